@@ -1,0 +1,60 @@
+"""Pinhole camera in the OpenCV frame (x right, y down, z forward), pixel centres at integers."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in pixels for an image of width x height pixels."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def __post_init__(self) -> None:
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
+        if self.fx <= 0 or self.fy <= 0:
+            raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+    def scaled(self, width: int, height: int) -> "Intrinsics":
+        """The same camera resampled to width x height (pixel-centre convention kept exact)."""
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(width, height, self.fx * sx, self.fy * sy,
+                          (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5)
+
+    @property
+    def fov_deg(self) -> tuple[float, float]:
+        """Full horizontal and vertical field of view in degrees."""
+        return (float(np.rad2deg(2 * np.arctan(self.width / (2 * self.fx)))),
+                float(np.rad2deg(2 * np.arctan(self.height / (2 * self.fy)))))
+
+
+def reference_intrinsics(width: int = 480, height: int = 270, fx: float = 640.0, fy: float = 360.0,
+                         cx: float = 240.0, cy: float = 135.0) -> Intrinsics:
+    """The paper's synthetic camera, K given at 480x270 (SPEC 2)."""
+    return Intrinsics(width, height, fx, fy, cx, cy)
+
+
+def project(points_cam: np.ndarray, K: Intrinsics) -> np.ndarray:
+    """(..., 3) camera-frame points (metres, z > 0) -> (..., 2) pixel coordinates (u, v)."""
+    p = np.asarray(points_cam, dtype=np.float64)
+    z = p[..., 2]
+    if np.any(z <= 0):
+        raise ValueError("cannot project points at or behind the camera (z <= 0)")
+    return np.stack([K.fx * p[..., 0] / z + K.cx, K.fy * p[..., 1] / z + K.cy], -1)
+
+
+def transform(points_obj: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Target-frame points (..., 3) -> camera frame with rotation R (3, 3) and translation t (3,)."""
+    return np.asarray(points_obj) @ np.asarray(R).T + np.asarray(t)
