@@ -1,0 +1,165 @@
+"""Closed-loop rendezvous guided by the pose estimator (SPEC 5), with an optional attack window.
+
+Frames. The world frame is target-centred with the approach along +z: it has the axes of the
+chaser's camera when that camera looks straight at the target from the start point, so the state
+`rel` (target position relative to the chaser, world axes, metres) starts at (0, 0, 60) and the
+goal is (0, 0, 10), exactly the label position t of an image taken with that attitude. The
+camera attitude R_c (camera -> world, OpenCV camera axes) changes: after every step the chaser
+re-points its camera at where it believes the target is. The image shows the target at
+t = R_c^T rel with attitude R_c^T R_target; the estimator's camera-frame t_pred becomes the world
+estimate R_c t_pred.
+
+Control law (per axis): cmd = clip(est - goal, -max_step, max_step).
+- variant "paper": the next true state is computed from the estimate, rel <- est - cmd (the
+  paper's simplification: the chaser ends up where it believes it goes);
+- variant "true_state": the command is applied to the true state, rel <- rel - cmd.
+A run lasts `max_steps` steps (the nominal approach 60 m -> 10 m takes 50); it is judged at the
+end: within `tolerance` of the goal or not. It stops early when the target's centre leaves the
+image ("target lost"). The attack starts at the first step whose true range is at or below S
+and lasts K consecutive frames (fewer if the run ends first).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from pipeline.camera import Intrinsics
+
+VARIANTS = ("paper", "true_state")
+HELD = "rendezvous held"
+SUCCEEDED = "attack succeeded"
+LOST = "target lost"
+MISSED = "missed without attack"
+
+RenderFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+"""render(R, t) -> image: target attitude R (target -> camera) and position t (camera frame, m)."""
+EstimateFn = Callable[[np.ndarray, bool, tuple[np.ndarray, np.ndarray]], np.ndarray]
+"""estimate(image, attacked, (R, t) true pose) -> t_pred (3,), camera frame, metres."""
+
+
+@dataclass(frozen=True)
+class AttackWindow:
+    """Attack the K = `length` frames from the first one at true range <= `start_range` (m)."""
+
+    start_range: float
+    length: int
+
+
+@dataclass(frozen=True)
+class GuidanceSettings:
+    """Start and goal of `rel` (world frame, metres), tolerance (m), per-axis step limit (m)."""
+
+    start: tuple[float, float, float] = (0.0, 0.0, 60.0)
+    goal: tuple[float, float, float] = (0.0, 0.0, 10.0)
+    tolerance: float = 1.0
+    max_step: float = 1.0
+    max_steps: int = 60
+    variant: str = "paper"
+
+    def __post_init__(self) -> None:
+        if self.variant not in VARIANTS:
+            raise ValueError(f"unknown guidance variant {self.variant!r}; choose one of {', '.join(VARIANTS)}")
+        if self.tolerance <= 0 or self.max_step <= 0 or self.max_steps < 1:
+            raise ValueError("guidance tolerance and max_step must be positive and max_steps >= 1, got "
+                             f"{self.tolerance}, {self.max_step}, {self.max_steps}")
+        if np.linalg.norm(self.goal) >= np.linalg.norm(self.start):
+            raise ValueError(f"the guidance goal {self.goal} must be closer to the target than the start {self.start}")
+
+    def window(self, start_range: float, length: int) -> AttackWindow:
+        """A validated attack window: S between the goal range and the start range, K >= 1."""
+        lo, hi = float(np.linalg.norm(self.goal)), float(np.linalg.norm(self.start))
+        if not lo <= start_range <= hi:
+            raise ValueError(f"attack start range S={start_range} m is outside the trajectory: the range goes "
+                             f"from {hi:g} m to {lo:g} m")
+        if int(length) < 1:
+            raise ValueError(f"attack length K must be at least 1 frame, got {length}")
+        return AttackWindow(float(start_range), int(length))
+
+
+@dataclass
+class RendezvousResult:
+    """One closed-loop run. positions: (n+1, 3) true rel after each step (first row = start);
+    estimates: (n, 3) world-frame estimates; attacked: (n,) bool; miss: final ||rel - goal|| (m)."""
+
+    positions: np.ndarray
+    estimates: np.ndarray
+    attacked: np.ndarray
+    outcome: str
+    miss: float
+    attack_start: int | None
+
+    @property
+    def attacked_frames(self) -> int:
+        return int(self.attacked.sum())
+
+
+def look_at(direction: np.ndarray) -> np.ndarray:
+    """Camera -> world rotation of a camera whose boresight (+z) points along `direction` (world),
+    with its x axis horizontal (perpendicular to world y); identity for direction +z."""
+    z = np.asarray(direction, dtype=np.float64)
+    z = z / np.linalg.norm(z)
+    x = np.cross([0.0, 1.0, 0.0], z)
+    if np.linalg.norm(x) < 1e-9:  # looking straight along world y: any horizontal x will do
+        x = np.array([1.0, 0.0, 0.0])
+    x = x / np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z], -1)
+
+
+def in_view(t: np.ndarray, K: Intrinsics) -> bool:
+    """Whether a camera-frame point (m) is in front of the camera and projects inside the image."""
+    if t[2] <= 0:
+        return False
+    u, v = K.fx * t[0] / t[2] + K.cx, K.fy * t[1] / t[2] + K.cy
+    return bool(-0.5 <= u <= K.width - 0.5 and -0.5 <= v <= K.height - 0.5)
+
+
+def guidance_step(est: np.ndarray, rel: np.ndarray, goal: np.ndarray, max_step: float,
+                  variant: str) -> tuple[np.ndarray, np.ndarray]:
+    """One application of the control law -> (next true rel, rel the chaser believes it reaches)."""
+    cmd = np.clip(est - goal, -max_step, max_step)
+    believed = est - cmd
+    return (believed if variant == "paper" else rel - cmd), believed
+
+
+def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settings: GuidanceSettings,
+                   window: AttackWindow | None = None,
+                   target_attitude: np.ndarray | None = None) -> RendezvousResult:
+    """Fly the closed loop: render the true pose, estimate it (attacked inside the window), move.
+
+    `target_attitude` is the target -> world rotation (identity by default).
+    """
+    R_tw = np.eye(3) if target_attitude is None else np.asarray(target_attitude, dtype=np.float64)
+    goal = np.asarray(settings.goal, dtype=np.float64)
+    rel = np.asarray(settings.start, dtype=np.float64)
+    R_c = look_at(rel)
+    positions, estimates, attacked = [rel], [], []
+    attack_start: int | None = None
+    lost = False
+    for k in range(settings.max_steps):
+        R, t = R_c.T @ R_tw, R_c.T @ rel
+        if window is not None and attack_start is None and np.linalg.norm(rel) <= window.start_range + 1e-6:
+            attack_start = k
+        hit = attack_start is not None and k < attack_start + window.length
+        t_pred = np.asarray(estimate(render(R, t), hit, (R, t)), dtype=np.float64)
+        est = R_c @ t_pred
+        rel, believed = guidance_step(est, rel, goal, settings.max_step, settings.variant)
+        if np.linalg.norm(believed) > 1e-6:
+            R_c = look_at(believed)
+        positions.append(rel)
+        estimates.append(est)
+        attacked.append(hit)
+        if not in_view(R_c.T @ rel, K):
+            lost = True
+            break
+    attacked_arr = np.array(attacked, dtype=bool)
+    miss = float(np.linalg.norm(rel - goal))
+    if lost:
+        outcome = LOST
+    elif miss <= settings.tolerance:
+        outcome = HELD
+    else:
+        outcome = SUCCEEDED if attacked_arr.any() else MISSED
+    return RendezvousResult(np.array(positions), np.array(estimates).reshape(-1, 3), attacked_arr,
+                            outcome, miss, attack_start)

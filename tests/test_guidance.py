@@ -1,0 +1,107 @@
+"""Closed-loop guidance with stand-in renderers and estimators (no Blender, no torch)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.camera import reference_intrinsics
+from pipeline.guidance import (HELD, LOST, MISSED, SUCCEEDED, GuidanceSettings, guidance_step, look_at,
+                               run_rendezvous)
+
+K = reference_intrinsics().scaled(160, 90)
+
+
+def blank(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    return np.zeros((K.height, K.width, 3), np.uint8)
+
+
+def perfect(image, attacked, pose):
+    return pose[1]
+
+
+def biased(offset):
+    """Perfect estimator, except `offset` (camera frame, m) added on attacked frames."""
+    return lambda image, attacked, pose: pose[1] + (np.asarray(offset) if attacked else 0.0)
+
+
+@pytest.mark.parametrize("variant", ["paper", "true_state"])
+@pytest.mark.parametrize("start", [(0.0, 0.0, 60.0), (-15.0, 25.0, 60.0)])
+def test_perfect_estimator_reaches_goal_with_bounded_steps(variant, start):
+    s = GuidanceSettings(start=start, variant=variant, max_steps=60)
+    r = run_rendezvous(blank, perfect, K, s)
+    assert r.outcome == HELD and r.miss < 1e-9
+    assert len(r.positions) == 61 and not r.attacked.any()
+    steps = np.abs(np.diff(r.positions, axis=0))
+    assert steps.max() <= 1.0 + 1e-9
+    assert np.isclose(steps[0], np.minimum(np.abs(np.subtract(start, (0, 0, 10))), 1.0)).all()
+    assert np.allclose(r.estimates, r.positions[:-1])
+
+
+def test_law_moves_at_most_max_step_from_the_estimate():
+    rng = np.random.default_rng(0)
+    goal = np.array([0.0, 0.0, 10.0])
+    for _ in range(200):
+        est, rel = rng.normal(0, 30, 3), rng.normal(0, 30, 3)
+        nxt_paper, believed = guidance_step(est, rel, goal, 1.0, "paper")
+        nxt_true, _ = guidance_step(est, rel, goal, 1.0, "true_state")
+        assert np.abs(believed - est).max() <= 1.0 + 1e-12
+        assert np.allclose(nxt_paper, believed)
+        assert np.abs(nxt_true - rel).max() <= 1.0 + 1e-12
+        assert np.allclose(nxt_true - rel, believed - est)
+
+
+@pytest.mark.parametrize("variant", ["paper", "true_state"])
+def test_five_metres_off_for_20_frames_near_the_end_fails(variant):
+    s = GuidanceSettings(variant=variant, max_steps=60)
+    r = run_rendezvous(blank, biased([5.0, 0.0, 0.0]), K, s, s.window(20, 20))
+    assert r.outcome in (SUCCEEDED, LOST)
+    assert r.miss > s.tolerance
+    assert r.attack_start == 40  # range 20 m after 40 one-metre steps
+    assert r.attacked[40:].all() and not r.attacked[:40].any()
+
+
+def test_early_attack_is_recovered_and_window_is_counted():
+    s = GuidanceSettings(max_steps=60)
+    r = run_rendezvous(blank, biased([5.0, 0.0, 0.0]), K, s, s.window(60, 5))
+    assert r.attack_start == 0 and r.attacked_frames == 5
+    assert r.outcome == HELD and r.miss < 1e-9
+
+
+def test_true_state_variant_loses_the_target_when_the_camera_follows_a_bad_estimate():
+    s = GuidanceSettings(variant="true_state", max_steps=60)
+    r = run_rendezvous(blank, biased([12.0, 0.0, 0.0]), K, s, s.window(30, 15))
+    assert r.outcome == LOST
+    assert len(r.positions) < 61
+
+
+def test_a_miss_without_attack_is_not_called_an_attack_success():
+    s = GuidanceSettings(max_steps=30)  # too few steps to cover 50 m
+    r = run_rendezvous(blank, perfect, K, s)
+    assert r.outcome == MISSED and r.miss == pytest.approx(20.0)
+
+
+def test_render_gets_the_pose_the_camera_sees():
+    seen = []
+
+    def render(R, t):
+        seen.append((R, t))
+        return blank(R, t)
+
+    s = GuidanceSettings(start=(10.0, -20.0, 60.0), max_steps=3)
+    run_rendezvous(render, perfect, K, s)
+    for R, t in seen:
+        assert np.allclose(R @ R.T, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0)
+        assert np.allclose(t[:2], 0.0, atol=1e-9) and t[2] > 0  # camera points at the target
+    assert np.allclose(look_at([0, 0, 1]), np.eye(3))
+
+
+def test_bad_inputs_raise_clear_errors():
+    s = GuidanceSettings()
+    with pytest.raises(ValueError, match="outside the trajectory"):
+        s.window(70, 5)
+    with pytest.raises(ValueError, match="outside the trajectory"):
+        s.window(5, 5)
+    with pytest.raises(ValueError, match="at least 1 frame"):
+        s.window(40, 0)
+    with pytest.raises(ValueError, match="unknown guidance variant"):
+        GuidanceSettings(variant="magic")
