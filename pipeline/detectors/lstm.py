@@ -1,0 +1,180 @@
+"""The paper's attack detector (SPEC 7): an LSTM with ReLU over the 9 SHAP rows, dense layers, a sigmoid.
+
+Input: SHAP values (B, 9, 1000), one row per pose output (tx, ty, tz, r0..r5), read as a sequence
+of 9 steps of 1000 features. The LSTM (100 units) uses ReLU where a standard LSTM uses tanh (the
+Keras `LSTM(activation="relu")` of the paper); `torch.nn.LSTM` has no such option, hence the small
+cell below. Then dense ReLU layers and one logit; `predict_proba` applies the sigmoid.
+
+The inputs are standardised per (row, feature) with the training set's mean and standard
+deviation, kept as buffers so the module takes raw SHAP values. The decision threshold on the
+probability is a buffer too, chosen on validation data, so a checkpoint carries everything.
+"""
+from __future__ import annotations
+
+import copy
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+import torch
+from torch import nn
+
+from pipeline.detectors.metrics import choose_threshold
+
+
+class ReLULSTMCell(nn.Module):
+    """LSTM cell with ReLU as the cell-input and output activation (gates stay sigmoid).
+
+    i, f, o = sigmoid(.); g = relu(.); c' = f * c + i * g; h' = o * relu(c').
+    """
+
+    def __init__(self, input_size: int, hidden_size: int):
+        super().__init__()
+        self.hidden_size = hidden_size
+        self.input_proj = nn.Linear(input_size, 4 * hidden_size)
+        self.hidden_proj = nn.Linear(hidden_size, 4 * hidden_size, bias=False)
+        with torch.no_grad():  # forget-gate bias 1 (Jozefowicz et al. 2015), as Keras' unit_forget_bias
+            self.input_proj.bias.zero_()
+            self.input_proj.bias[hidden_size:2 * hidden_size] = 1.0
+
+    def step(self, x_proj: torch.Tensor, h: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """One step from the already projected input `x_proj` (B, 4H) and the state (h, c) (B, H)."""
+        i, f, g, o = (x_proj + self.hidden_proj(h)).chunk(4, dim=1)
+        c = torch.sigmoid(f) * c + torch.sigmoid(i) * torch.relu(g)
+        h = torch.sigmoid(o) * torch.relu(c)
+        return h, c
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, T, input_size) -> last hidden state (B, hidden_size)."""
+        x_proj = self.input_proj(x)  # all steps at once
+        h = x.new_zeros(x.shape[0], self.hidden_size)
+        c = torch.zeros_like(h)
+        for t in range(x.shape[1]):
+            h, c = self.step(x_proj[:, t], h, c)
+        return h
+
+
+@dataclass
+class LSTMConfig:
+    """Architecture: sequence of `n_rows` steps of `n_features`; `hidden` LSTM units; `dense` widths."""
+
+    n_rows: int = 9
+    n_features: int = 1000
+    hidden: int = 100
+    dense: list[int] = field(default_factory=lambda: [64])
+
+
+class LSTMDetector(nn.Module):
+    """SHAP values (B, 9, 1000) -> attack logit (B,); `predict` thresholds the probability."""
+
+    def __init__(self, config: LSTMConfig):
+        super().__init__()
+        self.config = config
+        self.register_buffer("mean", torch.zeros(config.n_rows, config.n_features))
+        self.register_buffer("scale", torch.ones(config.n_rows, config.n_features))
+        self.register_buffer("threshold", torch.tensor(0.5))
+        self.lstm = ReLULSTMCell(config.n_features, config.hidden)
+        layers: list[nn.Module] = []
+        width = config.hidden
+        for d in config.dense:
+            layers += [nn.Linear(width, d), nn.ReLU()]
+            width = d
+        layers.append(nn.Linear(width, 1))
+        self.classifier = nn.Sequential(*layers)
+
+    def set_normalisation(self, values: np.ndarray) -> None:
+        """Per (row, feature) mean and standard deviation of training SHAP values (N, 9, 1000)."""
+        v = torch.as_tensor(np.asarray(values), dtype=torch.float64)
+        self.mean.copy_(v.mean(0).float())
+        self.scale.copy_(v.std(0).clamp_min(1e-8).float())
+
+    def forward(self, values: torch.Tensor) -> torch.Tensor:
+        x = (values - self.mean) / self.scale
+        return self.classifier(self.lstm(x)).squeeze(1)
+
+    @torch.no_grad()
+    def predict_proba(self, values: np.ndarray | torch.Tensor, batch_size: int = 1024) -> np.ndarray:
+        """Probability of "attacked" per sample, (N,) float64."""
+        self.eval()
+        v = torch.as_tensor(np.asarray(values), dtype=torch.float32)
+        out = [torch.sigmoid(self(v[s:s + batch_size])) for s in range(0, len(v), batch_size)]
+        return torch.cat(out).double().numpy() if out else np.zeros(0)
+
+    def predict(self, values: np.ndarray | torch.Tensor) -> np.ndarray:
+        """1 = attacked, 0 = clean, by the stored threshold."""
+        return (self.predict_proba(values) >= float(self.threshold)).astype(np.int64)
+
+
+def to_checkpoint(model: LSTMDetector, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """A dict of tensors and plain values (loadable with torch.load(weights_only=True))."""
+    return {"kind": "lstm", "config": asdict(model.config), "threshold": float(model.threshold),
+            "state_dict": model.state_dict(), **(extra or {})}
+
+
+def from_checkpoint(ckpt: dict[str, Any]) -> LSTMDetector:
+    """Rebuild a detector (eval mode) from `to_checkpoint`'s dict."""
+    if ckpt.get("kind") != "lstm":
+        raise ValueError(f"not an LSTM detector checkpoint (kind={ckpt.get('kind')!r})")
+    model = LSTMDetector(LSTMConfig(**ckpt["config"]))
+    model.load_state_dict(ckpt["state_dict"])
+    return model.eval()
+
+
+@dataclass
+class TrainResult:
+    model: LSTMDetector
+    history: list[dict[str, float]]  # per epoch: train_loss, val_loss, val_accuracy
+    best_epoch: int
+
+
+def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_val: np.ndarray,
+               config: LSTMConfig, *, epochs: int = 200, patience: int = 20, batch_size: int = 64,
+               lr: float = 1.0, seed: int = 0,
+               on_epoch: Callable[[dict[str, float]], None] | None = None) -> TrainResult:
+    """Fit with Adadelta and binary cross-entropy; early stopping on the validation loss.
+
+    Training stops after `patience` epochs without a lower validation loss; the weights of the
+    best epoch are kept, and the threshold is then chosen on the validation probabilities
+    (`choose_threshold`: highest validation accuracy). `on_epoch` gets each epoch's record.
+    """
+    torch.manual_seed(seed)
+    model = LSTMDetector(config)
+    model.set_normalisation(x_train)
+    xt = torch.as_tensor(np.asarray(x_train), dtype=torch.float32)
+    yt = torch.as_tensor(np.asarray(y_train), dtype=torch.float32)
+    xv = torch.as_tensor(np.asarray(x_val), dtype=torch.float32)
+    yv = torch.as_tensor(np.asarray(y_val), dtype=torch.float32)
+    opt = torch.optim.Adadelta(model.parameters(), lr=lr)
+    loss_fn = nn.BCEWithLogitsLoss()
+    gen = torch.Generator().manual_seed(seed)
+    best_loss, best_state, best_epoch, stale = float("inf"), copy.deepcopy(model.state_dict()), 0, 0
+    history: list[dict[str, float]] = []
+    for epoch in range(1, epochs + 1):
+        model.train()
+        perm = torch.randperm(len(xt), generator=gen)
+        total = 0.0
+        for s in range(0, len(xt), batch_size):
+            idx = perm[s:s + batch_size]
+            loss = loss_fn(model(xt[idx]), yt[idx])
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            total += float(loss) * len(idx)
+        model.eval()
+        with torch.no_grad():
+            logits = torch.cat([model(xv[s:s + 1024]) for s in range(0, len(xv), 1024)])
+            val_loss = float(loss_fn(logits, yv))
+            val_acc = float(((logits >= 0).float() == yv).float().mean())
+        record = {"epoch": epoch, "train_loss": total / len(xt), "val_loss": val_loss, "val_accuracy": val_acc}
+        history.append(record)
+        if on_epoch is not None:
+            on_epoch(record)
+        if val_loss < best_loss - 1e-7:
+            best_loss, best_state, best_epoch, stale = val_loss, copy.deepcopy(model.state_dict()), epoch, 0
+        else:
+            stale += 1
+            if stale >= patience:
+                break
+    model.load_state_dict(best_state)
+    model.threshold.fill_(choose_threshold(model.predict_proba(x_val), y_val))
+    return TrainResult(model.eval(), history, best_epoch)
