@@ -1,13 +1,12 @@
 """Closed-loop rendezvous guided by the pose estimator (SPEC 5), with an optional attack window.
 
-Frames. The world frame is target-centred with the approach along +z: it has the axes of the
-chaser's camera when that camera looks straight at the target from the start point, so the state
-`rel` (target position relative to the chaser, world axes, metres) starts at (0, 0, 60) and the
-goal is (0, 0, 10), exactly the label position t of an image taken with that attitude. The
-camera attitude R_c (camera -> world, OpenCV camera axes) changes: after every step the chaser
-re-points its camera at where it believes the target is. The image shows the target at
-t = R_c^T rel with attitude R_c^T R_target; the estimator's camera-frame t_pred becomes the world
-estimate R_c t_pred.
+Frames (those of pipeline/trajectories.py). The world frame is target-centred with the approach
+along +z; the state `rel` (target position relative to the chaser, world axes, metres) starts at
+(0, 0, 60) and the goal is (0, 0, 10), the label position t of an image taken by a camera looking
+along +z. The camera attitude R_c (camera -> world, OpenCV camera axes, `look_at`) changes: after
+every step the chaser re-points its camera at where it believes the target is. The image shows
+the target at t = R_c^T rel with attitude R_c^T R_target; the estimator's camera-frame t_pred
+becomes the world estimate R_c t_pred.
 
 Control law (per axis): cmd = clip(est - goal, -max_step, max_step).
 - variant "paper": the next true state is computed from the estimate, rel <- est - cmd (the
@@ -26,6 +25,7 @@ from typing import Callable
 import numpy as np
 
 from pipeline.camera import Intrinsics
+from pipeline.trajectories import look_at, pose_in_camera
 
 VARIANTS = ("paper", "true_state")
 HELD = "rendezvous held"
@@ -95,18 +95,6 @@ class RendezvousResult:
         return int(self.attacked.sum())
 
 
-def look_at(direction: np.ndarray) -> np.ndarray:
-    """Camera -> world rotation of a camera whose boresight (+z) points along `direction` (world),
-    with its x axis horizontal (perpendicular to world y); identity for direction +z."""
-    z = np.asarray(direction, dtype=np.float64)
-    z = z / np.linalg.norm(z)
-    x = np.cross([0.0, 1.0, 0.0], z)
-    if np.linalg.norm(x) < 1e-9:  # looking straight along world y: any horizontal x will do
-        x = np.array([1.0, 0.0, 0.0])
-    x = x / np.linalg.norm(x)
-    return np.stack([x, np.cross(z, x), z], -1)
-
-
 def in_view(t: np.ndarray, K: Intrinsics) -> bool:
     """Whether a camera-frame point (m) is in front of the camera and projects inside the image."""
     if t[2] <= 0:
@@ -138,7 +126,7 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
     attack_start: int | None = None
     lost = False
     for k in range(settings.max_steps):
-        R, t = R_c.T @ R_tw, R_c.T @ rel
+        R, t = pose_in_camera(rel, R_c, R_tw)
         if window is not None and attack_start is None and np.linalg.norm(rel) <= window.start_range + 1e-6:
             attack_start = k
         hit = attack_start is not None and k < attack_start + window.length
