@@ -103,3 +103,34 @@ def test_bad_inputs_raise_clear_errors():
         s.window(40, 0)
     with pytest.raises(ValueError, match="unknown guidance variant"):
         GuidanceSettings(variant="magic")
+
+
+def _params(**changes):
+    g = {"eps": [0.5, 0.05], "start_ranges": [60, 40, 20, 10], "lengths": [5, 15], "start": [0.0, 0.0, 60.0],
+         "target": [0.0, 0.0, 10.0], "tolerance": 1.0, "max_step": 1.0, "max_steps": 60, "variant": "paper",
+         "method": "fgsm"}
+    return {**g, **changes}
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"eps": [0.5, 1.5]}, r"guidance.eps: 1.5 is not in \(0, 1\]"),
+    ({"eps": [0.0]}, r"guidance.eps: 0.0 is not in \(0, 1\]"),
+    ({"method": "deepfool"}, "guidance.method: unknown attack 'deepfool'"),
+    ({"start_ranges": [60, 70]}, "S=70.0 m is outside the trajectory"),
+    ({"start_ranges": [5]}, "S=5.0 m is outside the trajectory"),
+    ({"variant": "teleport"}, "unknown guidance variant 'teleport'"),
+])
+def test_stage_refuses_bad_params_before_rendering(changes, message):
+    from stages.guidance import _plan
+    from stages.io import StageError
+
+    with pytest.raises(StageError, match=message):
+        _plan(_params(**changes))
+
+
+def test_stage_plans_the_whole_grid():
+    from stages.guidance import _plan
+
+    settings, grid = _plan(_params())
+    assert settings.max_steps == 60 and len(grid) == 2 * 4 * 2
+    assert {(e, s, k) for e, s, k, _ in grid} == {(e, s, k) for e in (0.5, 0.05) for s in (60, 40, 20, 10) for k in (5, 15)}

@@ -1,0 +1,214 @@
+"""`rpod attack`: adversarial test images at every eps in params, and their effect on the pose errors.
+
+Reads models/pose.pt and the test split; writes datasets/attack/adv.zarr (one uint8 (N, H, W, 3)
+array per eps, named `eps_<eps>`, plus `source_index` = the label `index` of each row),
+reports/attack.md, reports/figures/fgsm_example.png and reports/metrics/attack.json.
+Errors are measured on the stored uint8 adversarial images (what the SHAP stage reads).
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import typer
+
+from stages import params as params_mod
+from stages.io import StageError, atomic_dir, atomic_write_text, file_hash, write_json
+
+MODEL = Path("models/pose.pt")
+OUT_DIR = Path("datasets/attack")
+REPORT = Path("reports/attack.md")
+FIGURE = Path("reports/figures/fgsm_example.png")
+METRICS = Path("reports/metrics/attack.json")
+SEED_OFFSET = 400
+
+
+def array_name(eps: float) -> str:
+    """Name of the adv.zarr array holding the images attacked at `eps` (e.g. eps_0.5)."""
+    return f"eps_{eps:g}"
+
+
+def check_attack_params(section: dict[str, Any], where: str) -> None:
+    """Check an eps list and attack method (`<where>.eps`, `<where>.method`) before any work."""
+    from pipeline.attacks import ATTACKS, check_eps
+
+    eps = section.get("eps")
+    if not isinstance(eps, list) or not eps:
+        raise StageError(f"params.yaml {where}.eps must be a non-empty list of numbers in (0, 1]")
+    for e in eps:
+        try:
+            check_eps(e)
+        except (TypeError, ValueError):
+            raise StageError(f"params.yaml {where}.eps: {e!r} is not in (0, 1] (pixels are in [0, 1])") from None
+    if section.get("method") not in ATTACKS:
+        raise StageError(f"params.yaml {where}.method: unknown attack {section.get('method')!r}; "
+                         f"choose one of {', '.join(ATTACKS)}")
+
+
+def make_attack(a: dict[str, Any], method: str, seed: int):
+    """The attack named `method` with the iterative options of the `attack` params section."""
+    import torch
+
+    from pipeline.attacks import LOSSES, get_attack
+
+    if a["loss"] not in LOSSES:
+        raise StageError(f"params.yaml attack.loss: unknown loss {a['loss']!r}; choose one of {', '.join(LOSSES)}")
+    try:
+        return get_attack(method, steps=int(a["steps"]), step_size=a["step_size"], random_start=bool(a["random_start"]),
+                          momentum=float(a["momentum"]), generator=torch.Generator().manual_seed(seed))
+    except ValueError as e:
+        raise StageError(f"params.yaml attack: {e}") from None
+
+
+def main() -> None:
+    """Attack the test set at every attack.eps with attack.method on attack.loss; report the pose errors."""
+    import torch
+    import zarr
+    from tqdm import tqdm
+
+    from pipeline.attacks import attack_loss, quantize
+    from pipeline.rotations import attitude_error_deg, position_error, sixd_to_quat
+    from stages.checkpoint import load_pose_loss, load_pose_model
+    from stages.data import load_split
+
+    p = params_mod.load()
+    a = p["attack"]
+    check_attack_params(a, "attack")
+    eps_list = [float(e) for e in a["eps"]]
+    batch = int(a["batch_size"])
+    torch.set_num_threads(2)
+    attack = make_attack(a, a["method"], int(p["seed"]) + SEED_OFFSET)
+    model = load_pose_model(MODEL, p)
+    loss_fn = attack_loss(a["loss"], load_pose_loss(MODEL, p))
+    split = load_split(p, "test")
+    n = len(split) if a["max_images"] is None else min(len(split), int(a["max_images"]))
+    if n < 1:
+        raise StageError(f"params.yaml attack.max_images must be at least 1, got {a['max_images']}")
+    images, labels = split.images, split.labels.iloc[:n]
+    t_gt = labels[["tx", "ty", "tz"]].to_numpy(np.float64)
+    q_gt = labels[["qw", "qx", "qy", "qz"]].to_numpy(np.float64)
+    y_all = torch.tensor(labels[["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]].to_numpy(np.float32))
+
+    k = int(np.argmin(np.abs(t_gt[:, 2] - np.median(t_gt[:, 2]))))  # figure: a mid-range test image
+    example: dict[float, np.ndarray] = {}
+    preds = {"clean": np.zeros((n, 9))} | {e: np.zeros((n, 9)) for e in eps_list}
+    preds_float = {e: np.zeros((n, 9)) for e in eps_list}
+    linf = {e: 0.0 for e in eps_list}
+    t0 = time.perf_counter()
+    with atomic_dir(OUT_DIR) as tmp:
+        root = zarr.open_group(str(tmp / "adv.zarr"), mode="w")
+        h, w = images.shape[1:3]
+        arrays = {e: root.create_array(array_name(e), shape=(n, h, w, 3), chunks=(min(batch, n), h, w, 3),
+                                       dtype="uint8") for e in eps_list}
+        root.create_array("source_index", data=labels["index"].to_numpy(np.int64))
+        model.eval()
+        for i in tqdm(range(0, n, batch), desc=f"attack ({a['method']}, {len(eps_list)} eps)", unit="batch"):
+            u8 = np.stack([np.asarray(images[j]) for j in range(i, min(i + batch, n))])
+            x = torch.from_numpy(u8).permute(0, 3, 1, 2).float() / 255
+            y = y_all[i:i + batch]
+            with torch.no_grad():
+                preds["clean"][i:i + len(x)] = model(x).numpy()
+            for e in eps_list:
+                x_adv = attack(model, x, y, e, loss_fn)
+                stored = quantize(x_adv, x)
+                stored_hwc = stored.permute(0, 2, 3, 1).numpy()
+                arrays[e][i:i + len(x)] = stored_hwc
+                if i <= k < i + len(x):
+                    example[e] = stored_hwc[k - i]
+                linf[e] = max(linf[e], float((stored.float() / 255 - x).abs().max()))
+                with torch.no_grad():
+                    preds[e][i:i + len(x)] = model(stored.float() / 255).numpy()
+                    preds_float[e][i:i + len(x)] = model(x_adv).numpy()
+        root.attrs.update({"eps": eps_list, "method": a["method"], "loss": a["loss"], "model_hash": file_hash(MODEL),
+                           "quantisation": "round to nearest 8-bit level, at least one level, sign kept"})
+    seconds = time.perf_counter() - t0
+
+    def errors(pred: np.ndarray) -> dict[str, float]:
+        pos = position_error(pred[:, :3], t_gt)
+        att = attitude_error_deg(sixd_to_quat(pred[:, 3:]), q_gt)
+        return {"position_mean_m": float(pos.mean()), "position_median_m": float(np.median(pos)),
+                "attitude_mean_deg": float(att.mean()), "attitude_median_deg": float(np.median(att))}
+
+    rows = [{"eps": "clean", "stored_linf": 0.0, **errors(preds["clean"])}]
+    for e in eps_list:
+        f = errors(preds_float[e])
+        rows.append({"eps": f"{e:g}", "stored_linf": linf[e], **errors(preds[e]),
+                     "float_position_mean_m": f["position_mean_m"], "float_attitude_mean_deg": f["attitude_mean_deg"]})
+    metrics = {"method": a["method"], "loss": a["loss"], "images": n, "seconds": seconds, "model_hash": file_hash(MODEL),
+               "measured_on": "stored uint8 images", "clean": {k: v for k, v in rows[0].items() if k != "eps"},
+               "eps": {r["eps"]: {k: v for k, v in r.items() if k != "eps"} for r in rows[1:]}}
+    write_json(METRICS, metrics)
+    atomic_write_text(REPORT, _report(rows, a, n, seconds))
+    _figure(np.asarray(images[k]), example, t_gt[k], {e: preds[e][k] for e in ["clean", *eps_list]}, a["method"])
+    typer.echo(f"attack: {n} test images x {len(eps_list)} eps in {seconds:.0f} s -> {OUT_DIR}/adv.zarr, {REPORT}")
+
+
+def _report(rows: list[dict[str, Any]], a: dict[str, Any], n: int, seconds: float) -> str:
+    from pipeline.report import markdown_table
+
+    table = markdown_table(
+        [{"eps": r["eps"], "stored L-inf": r["stored_linf"], "pos. mean (m)": r["position_mean_m"],
+          "pos. median (m)": r["position_median_m"], "att. mean (deg)": r["attitude_mean_deg"],
+          "att. median (deg)": r["attitude_median_deg"]} for r in rows], decimals=3)
+    float_table = markdown_table(
+        [{"eps": r["eps"], "pos. mean, stored uint8 (m)": r["position_mean_m"],
+          "pos. mean, float (m)": r["float_position_mean_m"], "att. mean, stored uint8 (deg)": r["attitude_mean_deg"],
+          "att. mean, float (deg)": r["float_attitude_mean_deg"]} for r in rows[1:]], decimals=3)
+    step = "" if a["method"] == "fgsm" else (
+        f" ({a['steps']} steps, step size {a['step_size'] if a['step_size'] is not None else 'default'}"
+        + (", random start" if a["method"] == "pgd" and a["random_start"] else "")
+        + (f", momentum {a['momentum']}" if a["method"] == "mifgsm" else "") + ")")
+    return f"""# Adversarial attack on the pose estimator
+
+Attack: **{a['method']}**{step} on the **{a['loss']}** loss (`full` = the training loss with its
+learned weights), L-inf budget eps in pixel units ([0, 1] images), {n} test images, {seconds:.0f} s.
+FGSM is `x' = clip(x + eps * sign(grad_x L), 0, 1)` (SPEC 5).
+
+Errors are measured on the adversarial images **as stored** in `datasets/attack/adv.zarr` (uint8):
+each pixel's perturbation is rounded to the nearest 8-bit level, but never to zero, so every
+perturbed pixel keeps the sign of its perturbation. "stored L-inf" is the largest stored change of a
+pixel: it can exceed eps by up to half a level (eps = 0.01 = 2.55 levels is stored as 3 levels).
+
+{table}
+Position error `||t_pred - t_gt||`, attitude error `2 acos(|<q_pred, q_gt>|)` (SPEC 2).
+
+Same attack measured on the float adversarial images, before quantisation:
+
+{float_table}
+![original, perturbation, adversarial](figures/fgsm_example.png)
+"""
+
+
+def _figure(clean: np.ndarray, adv: dict[float, np.ndarray], t_gt: np.ndarray, pred: dict[Any, np.ndarray],
+            method: str) -> None:
+    """Per eps: the clean image, the stored perturbation scaled to fill [0, 1], the adversarial image."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    eps_list = list(adv)
+    fig, axes = plt.subplots(len(eps_list), 3, figsize=(9, 1.9 * len(eps_list) + 0.4), squeeze=False)
+    c = clean.astype(np.float64) / 255
+    err = {k: float(np.linalg.norm(v[:3] - t_gt)) for k, v in pred.items()}
+    for row, e in zip(axes, eps_list):
+        a = adv[e].astype(np.float64) / 255
+        delta = a - c
+        scale = max(float(np.abs(delta).max()), 1e-12)
+        row[0].imshow(clean)
+        row[0].set_title(f"original (pos. error {err['clean']:.2f} m)", fontsize=8)
+        row[1].imshow(np.clip(0.5 + 0.5 * delta / scale, 0, 1))
+        row[1].set_title(f"perturbation eps={e:g} (x{0.5 / scale:.0f})", fontsize=8)
+        row[2].imshow(adv[e])
+        row[2].set_title(f"adversarial (pos. error {err[e]:.2f} m)", fontsize=8)
+        for ax in row:
+            ax.set_axis_off()
+    fig.suptitle(f"{method.upper()} example, target at range {t_gt[2]:.1f} m", fontsize=9)
+    fig.tight_layout()
+    FIGURE.parent.mkdir(parents=True, exist_ok=True)
+    tmp = FIGURE.with_name(f".{FIGURE.name}.tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(FIGURE)

@@ -1,0 +1,218 @@
+"""`rpod guidance`: the closed-loop rendezvous of SPEC 5 under attack, Blender rendering every step.
+
+Runs a no-attack baseline and every (eps, start range S, length K) of params with one Renderer at
+the pose model's input size; writes reports/guidance.md (one S x K table per eps),
+reports/figures/guidance_trajectories.png and reports/metrics/guidance.json.
+"""
+from __future__ import annotations
+
+import itertools
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import typer
+
+from stages import params as params_mod
+from stages.attack import MODEL, check_attack_params, make_attack
+from stages.io import StageError, atomic_write_text, file_hash, write_json
+
+REPORT = Path("reports/guidance.md")
+FIGURE = Path("reports/figures/guidance_trajectories.png")
+METRICS = Path("reports/metrics/guidance.json")
+SEED_OFFSET = 500
+
+
+def _plan(g: dict[str, Any]):
+    """Validated settings and the (eps, S, K, window) grid, before anything is loaded or rendered."""
+    from pipeline.guidance import GuidanceSettings
+
+    check_attack_params(g, "guidance")
+    try:
+        settings = GuidanceSettings(start=tuple(map(float, g["start"])), goal=tuple(map(float, g["target"])),
+                                    tolerance=float(g["tolerance"]), max_step=float(g["max_step"]),
+                                    max_steps=int(g["max_steps"]), variant=str(g["variant"]))
+    except ValueError as e:
+        raise StageError(f"params.yaml guidance: {e}") from None
+    grid = []
+    for eps, s, k in itertools.product(g["eps"], g["start_ranges"], g["lengths"]):
+        try:
+            grid.append((float(eps), float(s), int(k), settings.window(float(s), int(k))))
+        except ValueError as e:
+            raise StageError(f"params.yaml guidance.start_ranges / guidance.lengths: {e}") from None
+    return settings, grid
+
+
+def main() -> None:
+    """Fly the closed loop without attack and under every (eps, S, K) attack window; report outcomes."""
+    import torch
+    from tqdm import tqdm
+
+    from pipeline.attacks import attack_loss, quantize
+    from pipeline.guidance import run_rendezvous
+    from pipeline.rotations import matrix_to_6d
+    from pipeline.scene import Renderer
+    from stages.checkpoint import load_pose_loss, load_pose_model
+    from stages.render import intrinsics, scene_settings
+
+    p = params_mod.load()
+    g = p["guidance"]
+    settings, grid = _plan(g)
+    a = p["attack"]
+    torch.set_num_threads(2)
+    attack = make_attack(a, g["method"], int(p["seed"]) + SEED_OFFSET)
+    model = load_pose_model(MODEL, p)  # refuses a checkpoint whose input size is not render.width x height
+    loss_fn = attack_loss(a["loss"], load_pose_loss(MODEL, p))
+    K = intrinsics(p)  # the model's input size
+
+    # Every run follows the baseline until its attack starts, and Cycles and the CNN are
+    # deterministic: cache each rendered pose's image and clean estimate.
+    cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+    counts = {"steps": 0, "renders": 0, "attacked": 0}
+    eps_now = [0.0]
+
+    with Renderer(K, scene_settings(p["render"])) as renderer:
+
+        def render(R: np.ndarray, t: np.ndarray) -> tuple[bytes, np.ndarray]:
+            key = np.round(np.concatenate([R.ravel(), t]), 9).tobytes()
+            if key not in cache:
+                image = renderer.render(R, t)
+                x = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
+                with torch.no_grad():
+                    cache[key] = (image, model(x)[0, :3].numpy().astype(np.float64))
+                counts["renders"] += 1
+            counts["steps"] += 1
+            return key, cache[key][0]
+
+        def estimate(rendered: tuple[bytes, np.ndarray], attacked: bool, pose: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+            key, image = rendered
+            if not attacked:
+                return cache[key][1]
+            counts["attacked"] += 1
+            x = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
+            y = torch.as_tensor(np.concatenate([pose[1], matrix_to_6d(pose[0])])[None], dtype=torch.float32)
+            x_adv = quantize(attack(model, x, y, eps_now[0], loss_fn), x).float() / 255
+            with torch.no_grad():
+                return model(x_adv)[0, :3].numpy().astype(np.float64)
+
+        t0 = time.perf_counter()
+        baseline = run_rendezvous(render, estimate, K, settings)
+        runs = []
+        for eps, s, k, window in tqdm(grid, desc="guidance runs", unit="run"):
+            eps_now[0] = eps
+            runs.append((eps, s, k, run_rendezvous(render, estimate, K, settings, window)))
+        seconds = time.perf_counter() - t0
+
+    metrics = {
+        "variant": settings.variant, "method": g["method"], "loss": a["loss"], "max_steps": settings.max_steps,
+        "tolerance": settings.tolerance, "model_hash": file_hash(MODEL), "seconds": seconds, **counts,
+        "baseline": {"outcome": baseline.outcome, "miss_m": baseline.miss},
+        "runs": [{"eps": e, "start_range": s, "length": k, "outcome": r.outcome, "miss_m": r.miss,
+                  "attack_start": r.attack_start, "attacked_frames": r.attacked_frames, "steps": len(r.estimates)}
+                 for e, s, k, r in runs],
+    }
+    metrics["attack_success_rate"] = {f"{e:g}": float(np.mean([r.outcome != "rendezvous held" for e2, _, _, r in runs
+                                                               if e2 == e])) for e in dict.fromkeys(e for e, *_ in runs)}
+    write_json(METRICS, metrics)
+    atomic_write_text(REPORT, _report(metrics, g, a, p["render"]))
+    _figure(baseline, [(s, k, r) for e, s, k, r in runs if e == runs[0][0]] if runs else [], runs[0][0] if runs else None,
+            settings.goal)
+    typer.echo(f"guidance: baseline {baseline.outcome} ({baseline.miss:.2f} m); {len(runs)} attacked runs, "
+          f"{counts['renders']} renders for {counts['steps']} steps in {seconds:.0f} s -> {REPORT}")
+    if baseline.outcome != "rendezvous held":
+        typer.secho(f"warning: the no-attack baseline did not reach the target ({baseline.outcome}, miss "
+                    f"{baseline.miss:.2f} m): the pose model is not good enough for closed-loop guidance, so the "
+                    f"attack tables say little; see {REPORT}", fg=typer.colors.YELLOW, err=True)
+
+
+def _cell(r: dict[str, Any]) -> str:
+    text = {"rendezvous held": "held", "attack succeeded": "**attack succeeded**",
+            "target lost": f"**target lost** (step {r['steps']})", "missed without attack": "missed"}[r["outcome"]]
+    frames = "" if r["attacked_frames"] == r["length"] else f", {r['attacked_frames']} attacked frames"
+    return f"{text}, {r['miss_m']:.2f} m{frames}"
+
+
+def _report(m: dict[str, Any], g: dict[str, Any], a: dict[str, Any], render: dict[str, Any]) -> str:
+    from pipeline.report import markdown_table
+
+    tables = []
+    for eps in dict.fromkeys(r["eps"] for r in m["runs"]):
+        rows = []
+        for s in g["start_ranges"]:
+            row = {"S (m)": f"{float(s):g}"}
+            for r in m["runs"]:
+                if r["eps"] == eps and r["start_range"] == float(s):
+                    row[f"K = {r['length']}"] = _cell(r)
+            rows.append(row)
+        rate = m["attack_success_rate"][f"{eps:g}"]
+        tables.append(f"### eps = {eps:g}: the chaser missed or lost the target in {rate:.0%} of the runs\n\n"
+                      f"{markdown_table(rows)}")
+    law = ("the next true position is computed from the estimate, `p_new = p_est - clip(p_est - p_tar, -1, 1)` "
+           "(the paper's variant)" if m["variant"] == "paper" else
+           "the command `clip(p_est - p_tar, -1, 1)` is computed from the estimate and applied to the true state")
+    start, goal = (", ".join(f"{float(v):g}" for v in g[k]) for k in ("start", "target"))
+    baseline = f"**No-attack baseline: {m['baseline']['outcome']}, final miss {m['baseline']['miss_m']:.2f} m.**"
+    if m["baseline"]["outcome"] != "rendezvous held":
+        baseline += (" The pose model cannot guide the chaser even without an attack, so a miss in the tables "
+                     "below cannot be blamed on the attack.")
+    return f"""# Closed-loop rendezvous under attack
+
+The chaser starts at ({start}) m (the target's position relative to the chaser, target-centred frame,
+approach along +z) and steers to ({goal}) m with at most {g['max_step']:g} m per axis per step: {law}.
+Every step renders a new {render['width']}x{render['height']} Blender image (the pose model's input size)
+at the true pose, the pose CNN estimates the target position, and the chaser re-points its camera
+at where it believes the target is. A run lasts {m['max_steps']} steps (the nominal approach takes 50) and succeeds for
+the chaser when it ends within {m['tolerance']:g} m of the target point; "target lost" means the
+target's centre left the image, which ends the run. The attack ({m['method']} on the {m['loss']}
+loss, images quantised to 8 bits as in `rpod attack`) starts at the first step at range <= S and
+lasts K frames (fewer when the run ends first; the cell then says how many).
+
+{baseline}
+
+Cells: outcome, final distance to the target point.
+
+{chr(10).join(tables)}
+{m['renders']} rendered frames for {m['steps']} guidance steps (runs share the baseline's frames until
+their attack starts), {m['attacked']} attacked frames, {m['seconds']:.0f} s.
+
+![true trajectories](figures/guidance_trajectories.png)
+
+The full paper grid (eps 0.5, 0.3, 0.1, 0.05, 0.01; S = 60..10 m; K = 5..20) runs with
+`dvc exp run -S profile=paper` (everything at paper scale) or, on the current model,
+`dvc exp run -S 'guidance.eps=[0.5,0.3,0.1,0.05,0.01]' -S 'guidance.start_ranges=[60,50,40,30,20,10]' -S 'guidance.lengths=[5,10,15,20]'`.
+"""
+
+
+def _figure(baseline, runs: list, eps: float | None, goal: tuple[float, float, float]) -> None:
+    """True trajectories, lateral x and y against range axis z, for the runs of one eps."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    cmap = plt.get_cmap("viridis")
+    for ax, i, name in zip(axes, (0, 1), ("x", "y")):
+        ax.plot(baseline.positions[:, 2], baseline.positions[:, i], "k-", lw=2, label="no attack")
+        for j, (s, k, r) in enumerate(runs):
+            color = cmap(j / max(len(runs) - 1, 1))
+            ax.plot(r.positions[:, 2], r.positions[:, i], "-", color=color, lw=1, label=f"S={s:g} m, K={k}: {r.outcome}")
+            hit = np.flatnonzero(r.attacked)
+            ax.plot(r.positions[hit, 2], r.positions[hit, i], "o", color=color, ms=3)
+        ax.plot(goal[2], goal[i], "r*", ms=12, label="target point")
+        ax.invert_xaxis()
+        ax.set_xlabel("z (m, along the approach)")
+        ax.set_ylabel(f"{name} (m)")
+        ax.grid(alpha=0.3)
+    axes[0].set_title("z vs x")
+    axes[1].set_title("z vs y")
+    axes[1].legend(fontsize=7, loc="best")
+    fig.suptitle(f"True chaser trajectories, eps = {eps:g} (dots: attacked frames)" if eps is not None
+                 else "True chaser trajectory without attack", fontsize=10)
+    fig.tight_layout()
+    FIGURE.parent.mkdir(parents=True, exist_ok=True)
+    tmp = FIGURE.with_name(f".{FIGURE.name}.tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(FIGURE)
