@@ -20,7 +20,7 @@ and lasts K consecutive frames (fewer if the run ends first).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -33,9 +33,10 @@ SUCCEEDED = "attack succeeded"
 LOST = "target lost"
 MISSED = "missed without attack"
 
-RenderFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
-"""render(R, t) -> image: target attitude R (target -> camera) and position t (camera frame, m)."""
-EstimateFn = Callable[[np.ndarray, bool, tuple[np.ndarray, np.ndarray]], np.ndarray]
+RenderFn = Callable[[np.ndarray, np.ndarray], Any]
+"""render(R, t) -> image (passed as is to the estimator): target attitude R (target -> camera),
+position t (camera frame, m)."""
+EstimateFn = Callable[[Any, bool, tuple[np.ndarray, np.ndarray]], np.ndarray]
 """estimate(image, attacked, (R, t) true pose) -> t_pred (3,), camera frame, metres."""
 
 

@@ -207,8 +207,15 @@ def _figure(clean: np.ndarray, adv: dict[float, np.ndarray], t_gt: np.ndarray, p
             ax.set_axis_off()
     fig.suptitle(f"{method.upper()} example, target at range {t_gt[2]:.1f} m", fontsize=9)
     fig.tight_layout()
-    FIGURE.parent.mkdir(parents=True, exist_ok=True)
-    tmp = FIGURE.with_name(f".{FIGURE.name}.tmp.png")
+    save_figure(fig, FIGURE)
+
+
+def save_figure(fig: Any, path: Path) -> None:
+    """Write a matplotlib figure as PNG atomically (temporary file + rename) and close it."""
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp.png")
     fig.savefig(tmp, dpi=110)
     plt.close(fig)
-    tmp.replace(FIGURE)
+    tmp.replace(path)

@@ -15,7 +15,7 @@ import numpy as np
 import typer
 
 from stages import params as params_mod
-from stages.attack import MODEL, check_attack_params, make_attack
+from stages.attack import MODEL, check_attack_params, make_attack, save_figure
 from stages.io import StageError, atomic_write_text, file_hash, write_json
 
 REPORT = Path("reports/guidance.md")
@@ -211,8 +211,4 @@ def _figure(baseline, runs: list, eps: float | None, goal: tuple[float, float, f
     fig.suptitle(f"True chaser trajectories, eps = {eps:g} (dots: attacked frames)" if eps is not None
                  else "True chaser trajectory without attack", fontsize=10)
     fig.tight_layout()
-    FIGURE.parent.mkdir(parents=True, exist_ok=True)
-    tmp = FIGURE.with_name(f".{FIGURE.name}.tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(FIGURE)
+    save_figure(fig, FIGURE)
