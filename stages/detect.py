@@ -316,7 +316,7 @@ def _report(results: dict[str, dict[str, dict[str, float]]], scores: dict[str, A
     lstm_table = markdown_table(nan_dash(lstm_rows), decimals=4)
     names = {"lstm": "LSTM on SHAP (paper)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis on GAP features",
              "lid": "LID on GAP features", "squeeze": "feature squeezing on images"}
-    comp = [{"detector": names[k], **row(r["all"]), "fit (s)": seconds[k]} for k, r in results.items()]
+    comp = [{"detector": names[k], **row(r["all"]), "fit (s)": f"{seconds[k]:.1f}"} for k, r in results.items()]
     eps_keys = [k for k in lstm if k != "all"]
     recall_rows = [{"detector": names[k], **{f"eps {e}": r[e]["recall"] for e in eps_keys},
                     "FPR": r["all"]["fpr"]} for k, r in results.items()]
@@ -331,14 +331,15 @@ Adadelta (lr {d['lr']}), early stopping after {d['patience']} epochs without a l
 
 **Test accuracy: {ours}** (paper: {paper} on its 30,000 SHAP samples).
 
-Data: {counts['samples']} SHAP samples (`datasets/shap.zarr`, method `{attrs.get('method')}`, background of
-{attrs.get('background_size')} training images), split {1 - d['test_fraction']:.0%}/{d['test_fraction']:.0%}
-train/test, {d['val_fraction']:.0%} of train held out for validation (stratified by eps, seeded):
-train {counts['train']}, validation {counts['validation']}, test {counts['test']}
-({counts['test_clean']} clean, {counts['test_adversarial']} adversarial). Adversarial samples are FGSM
-images at eps {', '.join(eps_keys)} (pixels in [0, 1]). The LSTM trained {len(result.history)} epochs
-(best {result.best_epoch}) in {seconds['lstm']:.0f} s; decision threshold on the probability
-{float(scores['lstm'][1]):.4f}, chosen on validation data for the highest validation accuracy.
+Data: {counts['samples']} SHAP samples (`datasets/shap.zarr`, method `{attrs.get('method')}`, background
+of {attrs.get('background_size')} training images). Split {1 - d['test_fraction']:.0%}/{d['test_fraction']:.0%} train/test with
+{d['val_fraction']:.0%} of train held out for validation (stratified by eps, seeded): train {counts['train']},
+validation {counts['validation']}, test {counts['test']} ({counts['test_clean']} clean, {counts['test_adversarial']} adversarial).
+Adversarial samples are FGSM images at eps {', '.join(eps_keys)} (pixels in [0, 1]).
+
+The LSTM trained {len(result.history)} epochs (best: {result.best_epoch}) in {seconds['lstm']:.0f} s. Its decision
+threshold on the probability, {float(scores['lstm'][1]):.4f}, was chosen on the validation samples for the
+highest validation accuracy.
 
 ## LSTM detector on the test split
 

@@ -57,6 +57,11 @@ def check_params(s: dict[str, Any]) -> None:
                          "(shap.per_eps > 0 and a non-empty shap.eps) for a detector to learn from")
 
 
+def _key(eps: float) -> float:
+    """eps as a lookup key: the store keeps eps as float32, params and adv.zarr as float64."""
+    return round(float(eps), 6)
+
+
 class Sources:
     """Everything needed to produce the image of a sample (split, label index, eps): the two pose
     splits, the model and attack loss for FGSM, and the usable arrays of adv.zarr."""
@@ -83,13 +88,13 @@ class Sources:
             elif attrs.get("loss") != params["attack"]["loss"]:
                 self.stack_note = f"adv.zarr attacked the {attrs.get('loss')!r} loss, not attack.loss"
             else:
-                self.stack = {float(e): root[f"eps_{float(e):g}"] for e in attrs.get("eps", [])
+                self.stack = {_key(e): root[f"eps_{float(e):g}"] for e in attrs.get("eps", [])
                               if f"eps_{float(e):g}" in root}
                 self.stack_row = {int(ix): r for r, ix in enumerate(root["source_index"][:])}
                 self.stack_note = f"adv.zarr holds eps {sorted(self.stack)} for {len(self.stack_row)} test images"
 
     def in_stack(self, split: str, index: int, eps: float) -> bool:
-        return split == "test" and eps in self.stack and index in self.stack_row
+        return split == "test" and _key(eps) in self.stack and index in self.stack_row
 
     def images(self, split: np.ndarray, index: np.ndarray, eps: np.ndarray) -> np.ndarray:
         """uint8 (N, H, W, 3) images of samples given by split name, label index and eps (0 = clean)."""
@@ -101,9 +106,9 @@ class Sources:
         todo: dict[tuple[str, float], list[int]] = {}
         for k, (sp, ix, e) in enumerate(zip(split, index, eps)):
             if e > 0 and self.in_stack(sp, int(ix), float(e)):
-                out[k] = np.asarray(self.stack[float(e)][self.stack_row[int(ix)]])
+                out[k] = np.asarray(self.stack[_key(e)][self.stack_row[int(ix)]])
             else:
-                todo.setdefault((sp, float(e)), []).append(k)
+                todo.setdefault((sp, _key(e)), []).append(k)
         for (sp, e), ks in todo.items():
             rows = [self.row_of[sp][int(index[k])] for k in ks]
             data = self.splits[sp]

@@ -165,3 +165,50 @@ def test_squeeze_detector_flags_high_frequency_perturbations():
     s_clean, s_adv = det.score(base[20:]), det.score(adv[20:])
     assert s_clean.shape == (20,)
     assert s_adv.min() > s_clean.max()
+
+
+def _store(path, n: int = 20, eps=None, model_hash: str = "h1", values=None):
+    import zarr
+
+    eps = np.r_[np.zeros(n // 2), np.full(n - n // 2, 0.5)] if eps is None else np.asarray(eps)
+    root = zarr.open_group(str(path), mode="w")
+    root.create_array("values", data=np.zeros((len(eps), 9, 16), np.float32) if values is None else values)
+    root.create_array("features", data=np.zeros((len(eps), 16), np.float32))
+    root.create_array("is_adversarial", data=eps > 0)
+    root.create_array("eps", data=eps.astype(np.float32))
+    root.create_array("source_index", data=np.arange(len(eps)))
+    root.create_array("split", data=np.ones(len(eps), np.int8))
+    root.attrs.update({"model_hash": model_hash, "background_size": 4, "background_mean": [0.0] * 16})
+    return path
+
+
+def test_detect_stage_refuses_bad_shap_stores(tmp_path):
+    from stages.detect import read_store
+    from stages.io import StageError
+
+    good = read_store(_store(tmp_path / "ok.zarr"), "h1")
+    assert good["values"].shape == (20, 9, 16) and good["is_adversarial"].sum() == 10
+    with pytest.raises(StageError, match="another pose checkpoint"):
+        read_store(_store(tmp_path / "hash.zarr"), "h2")
+    nan = np.zeros((20, 9, 16), np.float32)
+    nan[3, 2, 1] = np.nan
+    with pytest.raises(StageError, match="NaN"):
+        read_store(_store(tmp_path / "nan.zarr", values=nan), "h1")
+    with pytest.raises(StageError, match="only clean"):
+        read_store(_store(tmp_path / "one.zarr", eps=np.zeros(10)), "h1")
+    with pytest.raises(StageError, match=r"\(N, 9, n_features\)"):
+        read_store(_store(tmp_path / "shape.zarr", values=np.zeros((20, 8, 16), np.float32)), "h1")
+    with pytest.raises(StageError, match="not found"):
+        read_store(tmp_path / "missing.zarr", "h1")
+
+
+def test_detect_split_is_stratified_and_disjoint():
+    from stages.detect import split_indices
+
+    eps = np.r_[np.zeros(100), np.full(50, 0.5), np.full(50, 0.01)].astype(np.float32)
+    tr, va, te = split_indices(eps, 0.2, 0.2, seed=0)
+    assert len(np.intersect1d(tr, te)) == len(np.intersect1d(tr, va)) == len(np.intersect1d(va, te)) == 0
+    assert len(tr) + len(va) + len(te) == 200 and len(te) == 40 and len(va) == 32
+    assert (eps[te] == 0.01).sum() == 10 and (eps[te] == 0).sum() == 20
+    again = split_indices(eps, 0.2, 0.2, seed=0)
+    assert all(np.array_equal(a, b) for a, b in zip((tr, va, te), again))

@@ -113,3 +113,23 @@ def test_background_mean_and_bad_inputs():
         background_mean(np.zeros((0, 4)))
     with pytest.raises(ValueError, match="unknown SHAP method"):
         Explainer(TinyPoseNet(), feats, method="fast")  # type: ignore[arg-type]
+
+
+def test_real_posenet_head_is_read_as_affine_and_matches_shap():
+    from pipeline.model import PoseNet
+
+    torch.manual_seed(2)
+    model = PoseNet(width=0.125).eval()
+    with torch.no_grad():  # trained heads are far larger than the 0.01-std initialisation
+        model.head_pos.weight.normal_(std=0.5)
+        model.head_rot.weight.normal_(std=0.5)
+        gen = torch.Generator().manual_seed(0)
+        background = model.forward_features(torch.rand(12, 3, 36, 64, generator=gen)).numpy()
+        x = model.forward_features(torch.rand(3, 3, 36, 64, generator=gen)).numpy()
+    explainer = Explainer(model, background)
+    assert explainer.method == "exact"
+    weight = torch.cat([model.head_pos.weight, model.head_rot.weight]).detach().numpy()
+    np.testing.assert_allclose(explainer.affine.weight, weight, atol=1e-6)
+    closed = explainer(x)
+    assert np.abs(closed).max() > 1e-3
+    assert np.abs(closed - deep_shap(model, x, background)).max() < 1e-5

@@ -159,7 +159,7 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
             opt.zero_grad()
             loss.backward()
             opt.step()
-            total += float(loss) * len(idx)
+            total += loss.item() * len(idx)
         model.eval()
         with torch.no_grad():
             logits = torch.cat([model(xv[s:s + 1024]) for s in range(0, len(xv), 1024)])
