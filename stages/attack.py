@@ -99,7 +99,7 @@ def main() -> None:
     t0 = time.perf_counter()
     with atomic_dir(OUT_DIR) as tmp:
         root = zarr.open_group(str(tmp / "adv.zarr"), mode="w")
-        h, w = images.shape[1:3]
+        h, w = np.asarray(images[0]).shape[:2]
         arrays = {e: root.create_array(array_name(e), shape=(n, h, w, 3), chunks=(min(batch, n), h, w, 3),
                                        dtype="uint8") for e in eps_list}
         root.create_array("source_index", data=labels["index"].to_numpy(np.int64))
@@ -137,8 +137,8 @@ def main() -> None:
         rows.append({"eps": f"{e:g}", "stored_linf": linf[e], **errors(preds[e]),
                      "float_position_mean_m": f["position_mean_m"], "float_attitude_mean_deg": f["attitude_mean_deg"]})
     metrics = {"method": a["method"], "loss": a["loss"], "images": n, "seconds": seconds, "model_hash": file_hash(MODEL),
-               "measured_on": "stored uint8 images", "clean": {k: v for k, v in rows[0].items() if k != "eps"},
-               "eps": {r["eps"]: {k: v for k, v in r.items() if k != "eps"} for r in rows[1:]}}
+               "measured_on": "stored uint8 images", "clean": {key: v for key, v in rows[0].items() if key != "eps"},
+               "eps": {r["eps"]: {key: v for key, v in r.items() if key != "eps"} for r in rows[1:]}}
     write_json(METRICS, metrics)
     atomic_write_text(REPORT, _report(rows, a, n, seconds))
     _figure(np.asarray(images[k]), example, t_gt[k], {e: preds[e][k] for e in ["clean", *eps_list]}, a["method"])
@@ -173,12 +173,25 @@ pixel: it can exceed eps by up to half a level (eps = 0.01 = 2.55 levels is stor
 
 {table}
 Position error `||t_pred - t_gt||`, attitude error `2 acos(|<q_pred, q_gt>|)` (SPEC 2).
+{_trend(rows)}
 
 Same attack measured on the float adversarial images, before quantisation:
 
 {float_table}
 ![original, perturbation, adversarial](figures/fgsm_example.png)
 """
+
+
+def _trend(rows: list[dict[str, Any]]) -> str:
+    """One sentence on whether the mean errors grow with eps (rows[1:] in any eps order)."""
+    by_eps = sorted(rows[1:], key=lambda r: float(r["eps"]))
+    out = []
+    for key, what in (("position_mean_m", "position"), ("attitude_mean_deg", "attitude")):
+        vals = [rows[0][key]] + [r[key] for r in by_eps]
+        grows = all(b >= a for a, b in zip(vals, vals[1:]))
+        out.append(f"the mean {what} error {'grows' if grows else 'does not grow'} monotonically from clean "
+                   f"through eps = {', '.join(r['eps'] for r in by_eps)}")
+    return "Over this test set, " + "; ".join(out) + "."
 
 
 def _figure(clean: np.ndarray, adv: dict[float, np.ndarray], t_gt: np.ndarray, pred: dict[Any, np.ndarray],
