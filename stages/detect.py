@@ -141,7 +141,7 @@ def main() -> None:
     for key in ("test_fraction", "val_fraction"):
         if not 0 < float(d[key]) < 1:
             raise StageError(f"params.yaml detect.{key} must be in (0, 1), got {d[key]!r}")
-    torch.set_num_threads(2)
+    torch.set_num_threads(1)  # the LSTM's matrices are small: extra threads cost more than they give
     seed = int(p["seed"]) + SEED_OFFSET
     model_hash = file_hash(MODEL)
     data = read_store(SHAP, model_hash)

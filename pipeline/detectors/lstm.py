@@ -5,8 +5,11 @@ of 9 steps of 1000 features. The LSTM (100 units) uses ReLU where a standard LST
 Keras `LSTM(activation="relu")` of the paper); `torch.nn.LSTM` has no such option, hence the small
 cell below. Then dense ReLU layers and one logit; `predict_proba` applies the sigmoid.
 
-The inputs are standardised per (row, feature) with the training set's mean and standard
-deviation, kept as buffers so the module takes raw SHAP values. The decision threshold on the
+The inputs are standardised per row (output) with one mean and one standard deviation over the
+training set's values of that row, kept as buffers so the module takes raw SHAP values. A per-row
+scale keeps the relative size of the features within a row, which is what SHAP measures (with linear
+heads a row is W[j] * (a - mean_bg): a per-feature standardisation would make the 9 rows equal up to
+sign); it also came out a little more accurate than a per-feature standardisation in a rehearsal. The decision threshold on the
 probability is a buffer too, chosen on validation data, so a checkpoint carries everything.
 """
 from __future__ import annotations
@@ -70,8 +73,8 @@ class LSTMDetector(nn.Module):
     def __init__(self, config: LSTMConfig):
         super().__init__()
         self.config = config
-        self.register_buffer("mean", torch.zeros(config.n_rows, config.n_features))
-        self.register_buffer("scale", torch.ones(config.n_rows, config.n_features))
+        self.register_buffer("mean", torch.zeros(config.n_rows, 1))
+        self.register_buffer("scale", torch.ones(config.n_rows, 1))
         self.register_buffer("threshold", torch.tensor(0.5))
         self.lstm = ReLULSTMCell(config.n_features, config.hidden)
         layers: list[nn.Module] = []
@@ -83,10 +86,10 @@ class LSTMDetector(nn.Module):
         self.classifier = nn.Sequential(*layers)
 
     def set_normalisation(self, values: np.ndarray) -> None:
-        """Per (row, feature) mean and standard deviation of training SHAP values (N, 9, 1000)."""
+        """Per-row mean and standard deviation of training SHAP values (N, 9, 1000)."""
         v = torch.as_tensor(np.asarray(values), dtype=torch.float64)
-        self.mean.copy_(v.mean(0).float())
-        self.scale.copy_(v.std(0).clamp_min(1e-8).float())
+        self.mean.copy_(v.mean(dim=(0, 2)).float()[:, None])
+        self.scale.copy_(v.std(dim=(0, 2)).clamp_min(1e-12).float()[:, None])
 
     def forward(self, values: torch.Tensor) -> torch.Tensor:
         x = (values - self.mean) / self.scale
