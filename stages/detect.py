@@ -364,5 +364,11 @@ Detection rate (recall) per eps:
   clean standard deviation) under {d['squeeze_bits']}-bit colour depth and a {d['squeeze_median']}x{d['squeeze_median']}
   median filter; score = the larger change. Needs the image and two extra pose passes per frame.
 
+What the SHAP detectors see: with the linear heads, row j of a sample's SHAP values is
+`W[j] * (a - mean_background)` (pipeline/explain.py), an element-wise rescaling of the GAP features.
+The SHAP signature therefore carries the same information as the GAP features, weighted by how much
+each feature moves each output; the SHAP detectors and the GAP-feature baselines differ in the model
+they fit, not in what they can know.
+
 ROC curves: `dvc plots show` (reports/plots/roc/). Training curves: dvclive/detect/.
 """
