@@ -1,0 +1,68 @@
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from pipeline.chain import SafetyChain
+from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
+from pipeline.explain import Explainer
+from pipeline.model import PoseNet
+
+
+@pytest.fixture(scope="module")
+def parts():
+    torch.manual_seed(0)
+    model = PoseNet(width=0.125).eval()
+    x = torch.rand(4, 3, 36, 64)
+    with torch.no_grad():
+        bg = model.forward_features(torch.rand(6, 3, 36, 64)).numpy()
+    det = LSTMDetector(LSTMConfig(hidden=8, dense=[4])).eval()
+    det.set_normalisation(np.random.default_rng(0).normal(size=(5, 9, 1000)).astype(np.float32) * 0.01)
+    return model, bg, det, x
+
+
+def test_chain_matches_its_parts(parts):
+    model, bg, det, x = parts
+    chain = SafetyChain.from_model(model, bg.mean(0), det, threshold=0.5)
+    out = chain(x)
+    with torch.no_grad():
+        torch.testing.assert_close(out.pose, model(x), rtol=1e-5, atol=1e-5)
+        feats = model.forward_features(x).numpy()
+    expected_shap = Explainer(model, bg, method="exact")(feats)
+    np.testing.assert_allclose(out.shap.numpy(), expected_shap, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(out.prob.numpy(), det.predict_proba(expected_shap), rtol=1e-4, atol=1e-6)
+    assert torch.equal(out.flag, out.prob >= 0.5)
+    # SHAP additivity: each output's values sum to the output minus its background mean
+    with torch.no_grad():
+        bg_out = model.forward_head(torch.as_tensor(bg)).mean(0)
+    torch.testing.assert_close(out.shap.sum(-1), out.pose - bg_out, rtol=1e-3, atol=1e-3)
+
+
+def test_chain_is_stateless_per_frame(parts):
+    model, bg, det, x = parts
+    chain = SafetyChain.from_model(model, bg.mean(0), det, threshold=0.3)
+    batch = chain(x)
+    for i in range(len(x)):
+        one = chain(x[i])
+        torch.testing.assert_close(one.prob, batch.prob[i:i + 1], rtol=1e-4, atol=1e-6)
+        torch.testing.assert_close(one.pose, batch.pose[i:i + 1], rtol=1e-4, atol=1e-5)
+
+
+class _ReluHead(nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.lin = nn.Linear(1000, 9)
+
+    def forward_features(self, x):
+        return x.mean(dim=(2, 3)).repeat(1, 334)[:, :1000]
+
+    def forward_head(self, f):
+        return torch.relu(self.lin(f))
+
+
+def test_chain_refuses_a_non_affine_head(parts):
+    _, bg, det, _ = parts
+    with pytest.raises(ValueError, match="affine"):
+        SafetyChain.from_model(_ReluHead(), bg.mean(0), det)
+    with pytest.raises(ValueError, match="do not fit"):
+        SafetyChain(_ReluHead(), np.zeros((9, 1000)), np.zeros(999), det)

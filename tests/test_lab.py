@@ -1,0 +1,130 @@
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline.camera import Intrinsics, project, reference_intrinsics
+from pipeline.lab import (LabDataError, domain_shift, lab_to_synthetic_factor, lab_to_synthetic_position,
+                          match_frames, relative_pose, segment, synthetic_recording)
+from pipeline.rotations import attitude_error_deg, euler_to_matrix, matrix_to_quat, quat_to_matrix
+
+K_ZED = Intrinsics(1920, 1080, 1400.41, 1400.41, 956.29, 557.258)
+K_SYN = reference_intrinsics()
+
+
+def test_rescaling_keeps_the_apparent_size_of_the_target():
+    k = lab_to_synthetic_factor(K_SYN, K_ZED, 9.0)
+    assert k == pytest.approx(9 * 640 / (1400.41 / 4))
+    # a 0.2 m wide mock-up edge seen at lab range d, image resized 1920 -> 480 ...
+    K_lab = K_ZED.scaled(480, 270)
+    for d in (1.0, 2.0, 3.122):
+        lab_px = np.diff(project(np.array([[-0.1, 0, d], [0.1, 0, d]]), K_lab)[:, 0])[0]
+        # ... has the same width in pixels as the 9x (1.8 m) target at the rescaled range
+        z = d * k
+        syn_px = np.diff(project(np.array([[-0.9, 0, z], [0.9, 0, z]]), K_SYN)[:, 0])[0]
+        assert syn_px == pytest.approx(lab_px, rel=1e-9)
+    # the factor does not depend on the size the two cameras are compared at
+    assert lab_to_synthetic_factor(K_SYN.scaled(160, 90), K_ZED, 9.0) == pytest.approx(k)
+
+
+def test_rescaled_position_projects_to_the_same_pixel():
+    t_lab = np.array([[0.05, -0.03, 2.4], [-0.1, 0.08, 1.2]])
+    t_syn = lab_to_synthetic_position(t_lab, K_SYN, K_ZED, 9.0)
+    np.testing.assert_allclose(project(t_syn, K_SYN), project(t_lab, K_ZED.scaled(480, 270)), atol=1e-9)
+    np.testing.assert_allclose(t_syn[:, 2], t_lab[:, 2] * lab_to_synthetic_factor(K_SYN, K_ZED, 9.0))
+
+
+def test_relative_pose_matches_the_camera_frame_label():
+    rng = np.random.default_rng(0)
+    R_cam = euler_to_matrix(rng.uniform(-90, 90, 3))
+    R_tgt = euler_to_matrix(rng.uniform(-90, 90, 3))
+    p_cam, p_tgt = rng.normal(size=3), rng.normal(size=3)
+    t, q = relative_pose(p_cam, matrix_to_quat(R_cam), p_tgt, matrix_to_quat(R_tgt))
+    # a target point x (target frame) is at p_tgt + R_tgt x in the world, and at R x + t in the camera
+    x = rng.normal(size=3)
+    world = p_tgt + R_tgt @ x
+    np.testing.assert_allclose(R_cam.T @ (world - p_cam), quat_to_matrix(q) @ x + t, atol=1e-12)
+    np.testing.assert_allclose(t, -R_cam.T @ (p_cam - p_tgt), atol=1e-12)   # d = p_cam - p_tgt (SPEC 9)
+
+
+def _hand_made():
+    """Two bodies at 120 Hz: camera moving along world x at 1.2 m/s, target still; frames at 30 fps."""
+    ts = np.arange(0, 13) / 120.0
+    rows = []
+    for t in ts:
+        rows.append([t, "cam", 1.2 * t, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+        rows.append([t, "tgt", 0.0, 0.0, 3.0, 1.0, 0.0, 0.0, 0.0])
+    mocap = pd.DataFrame(rows, columns=["timestamp", "body", "x", "y", "z", "qw", "qx", "qy", "qz"])
+    camera = pd.DataFrame({"frame": [0, 1, 2, 3], "timestamp": [0.001, 0.034, 0.066, 0.099]})
+    return camera, mocap
+
+
+def test_timestamp_matching_nearest_and_interpolated():
+    camera, mocap = _hand_made()
+    frames, t, q = match_frames(camera, mocap, "cam", "tgt", "nearest", max_gap=0.005)
+    assert frames.tolist() == [0, 1, 2, 3]
+    nearest = np.round(camera.timestamp.to_numpy() * 120) / 120
+    np.testing.assert_allclose(t[:, 0], -1.2 * nearest)             # t = R^T (p_tgt - p_cam)
+    np.testing.assert_allclose(t[:, 2], 3.0)
+    _, t_i, q_i = match_frames(camera, mocap, "cam", "tgt", "interpolate", max_gap=0.005)
+    np.testing.assert_allclose(t_i[:, 0], -1.2 * camera.timestamp.to_numpy(), atol=1e-12)
+    assert np.all(attitude_error_deg(q_i, [1, 0, 0, 0]) < 1e-6)
+
+
+def test_interpolation_slerps_the_attitude():
+    ts = np.array([0.0, 1 / 120])
+    qz90 = matrix_to_quat(euler_to_matrix([0, 0, 90]))
+    mocap = pd.DataFrame([[ts[0], "cam", 0, 0, 0, 1, 0, 0, 0], [ts[0], "tgt", 0, 0, 1, 1, 0, 0, 0],
+                          [ts[1], "cam", 0, 0, 0, 1, 0, 0, 0], [ts[1], "tgt", 0, 0, 1, *qz90]],
+                         columns=["timestamp", "body", "x", "y", "z", "qw", "qx", "qy", "qz"])
+    camera = pd.DataFrame({"frame": [0], "timestamp": [0.25 / 120]})
+    _, _, q = match_frames(camera, mocap, "cam", "tgt", "interpolate", max_gap=0.01)
+    assert attitude_error_deg(q, [1, 0, 0, 0])[0] == pytest.approx(22.5, abs=1e-6)
+
+
+def test_bad_mocap_and_camera_tables_name_the_line():
+    camera, mocap = _hand_made()
+    swapped = mocap.copy()
+    swapped.iloc[[4, 6]] = swapped.iloc[[6, 4]].to_numpy()           # rows of body 'cam' out of order
+    with pytest.raises(LabDataError, match=r"mocap.csv line 8: body 'cam'.*time order"):
+        match_frames(camera, swapped, "cam", "tgt", "nearest", 0.005)
+    with pytest.raises(LabDataError, match=r"no rows for body 'chaser'"):
+        match_frames(camera, mocap, "chaser", "tgt", "nearest", 0.005)
+    late = camera.copy()
+    late.loc[3, "timestamp"] = 0.5
+    with pytest.raises(LabDataError, match=r"camera.csv line 5: no mocap sample of body 'cam' within 0.005 s"):
+        match_frames(late, mocap, "cam", "tgt", "nearest", 0.005)
+    with pytest.raises(LabDataError, match=r"mocap.csv: missing column"):
+        match_frames(camera, mocap.drop(columns="qz"), "cam", "tgt", "nearest", 0.005)
+    text = mocap.astype(object)
+    text.loc[3, "x"] = "oops"
+    with pytest.raises(LabDataError, match=r"mocap.csv line 5: column 'x' is not a number"):
+        match_frames(camera, text, "cam", "tgt", "nearest", 0.005)
+
+
+def test_synthetic_recording_matches_back_to_its_labels():
+    q_label = matrix_to_quat(euler_to_matrix([3.0, -5.0, 8.0]))
+    rec = synthetic_recording(3.1, 2.6, 40, 30.0, 120.0, q_label, lateral=(0.02, -0.01))
+    assert len(rec.camera) == 40 and set(rec.mocap.body) == {"camera", "target"}
+    assert np.all(np.diff(rec.mocap[rec.mocap.body == "camera"].timestamp) == pytest.approx(1 / 120))
+    speed = (3.1 - 2.6) / (39 / 30)                                   # lab m/s
+    for mode, tol in (("nearest", speed * 0.5 / 120 * 1.001), ("interpolate", 1e-9)):
+        frames, t, q = match_frames(rec.camera, rec.mocap, "camera", "target", mode, max_gap=0.01)
+        assert np.abs(t - rec.t).max() <= tol
+        assert attitude_error_deg(q, rec.q).max() < 1e-5
+
+
+def test_segmentation_and_domain_shift():
+    img = np.zeros((10, 12, 3), np.uint8)
+    img[2:5, 3:7] = 200
+    img[8, 1] = 10                                                    # faint noise on the background
+    seg = segment(img, threshold=0.08)
+    assert seg[8, 1].sum() == 0 and np.array_equal(seg[2:5, 3:7], img[2:5, 3:7])
+    mask = np.zeros((10, 12), np.uint8)
+    mask[2:4, 3:7] = 255
+    seg_m = segment(img, mask)
+    assert seg_m[4, 3].sum() == 0 and seg_m[2, 3].sum() > 0
+    rng = np.random.default_rng(0)
+    shifted = domain_shift(img, noise_std=0.02, blur_sigma=0.8, rng=rng)
+    assert shifted.dtype == np.uint8 and shifted.shape == img.shape
+    assert not np.array_equal(shifted, img)
+    assert abs(float(shifted.astype(float).mean()) - float(img.astype(float).mean())) < 3.0
