@@ -1,0 +1,261 @@
+"""`rpod render`: render the 13 approach sequences (SPEC 3) with Blender Cycles into a zarr stack.
+
+Writes datasets/render/{images.zarr, poses.parquet, meta.json} in one atomic step, plus PNG
+previews in reports/figures/previews/. With `--shard I/N` a process renders only part I of N (a
+contiguous block of frames) into datasets/render_shards/N/I; when the last part finishes (or on
+`rpod render --merge N`) the parts are checked and merged into datasets/render.
+"""
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import json
+import shutil
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import typer
+
+from stages import params as params_mod
+from stages.io import StageError, atomic_dir, open_zarr, read_json, read_parquet, write_json
+
+OUT = Path("datasets/render")
+SHARDS = Path("datasets/render_shards")
+PREVIEWS = Path("reports/figures/previews")
+SEED_OFFSET = 100
+PREVIEW_WIDTH = 480  # previews are upscaled (nearest neighbour) to about this width for viewing
+
+
+def intrinsics(p: dict[str, Any]):
+    """The render camera: K from params.camera at its reference size, scaled to render.width x height."""
+    from pipeline.camera import Intrinsics
+
+    c, r = p["camera"], p["render"]
+    try:
+        return Intrinsics(c["ref_width"], c["ref_height"], c["fx"], c["fy"], c["cx"], c["cy"]).scaled(
+            int(r["width"]), int(r["height"]))
+    except ValueError as e:
+        raise StageError(f"params.yaml camera/render: {e}") from None
+
+
+def scene_settings(r: dict[str, Any]):
+    from pipeline.scene import SceneSettings
+
+    return SceneSettings(mesh=r["mesh"], mesh_scale=float(r["mesh_scale"]),
+                         sun_direction=tuple(float(v) for v in r["sun_direction"]),
+                         sun_strength=float(r["sun_strength"]), samples=int(r["samples"]),
+                         denoiser=str(r["denoiser"]), denoise_quality=str(r["denoise_quality"]),
+                         threads=int(r["threads"]))
+
+
+def frames(p: dict[str, Any]):
+    """All frames of the 13 sequences as flat arrays: sequence, frame, R (N,3,3), t (N,3)."""
+    from pipeline.trajectories import approach_sequences
+
+    r = p["render"]
+    K = intrinsics(p)
+    half_fov = min(K.fov_deg) / 2
+    if r["pointing_jitter_deg"] > 0.8 * half_fov:
+        raise StageError(f"params.yaml render.pointing_jitter_deg={r['pointing_jitter_deg']} would push the "
+                         f"target out of view; keep it below {0.8 * half_fov:.1f} deg (80% of the half FOV)")
+    try:
+        seqs = approach_sequences(int(r["frames_per_sequence"]), float(r["start_range"]), float(r["end_range"]),
+                                  float(r["pointing_jitter_deg"]), float(r["max_target_rotation_deg"]),
+                                  seed=int(p["seed"]) + SEED_OFFSET)
+    except ValueError as e:
+        raise StageError(f"params.yaml render: {e}") from None
+    return (np.concatenate([np.full(len(s), s.sequence) for s in seqs]), np.concatenate([s.frame for s in seqs]),
+            np.concatenate([s.R for s in seqs]), np.concatenate([s.t for s in seqs]))
+
+
+def fingerprint(p: dict[str, Any]) -> str:
+    """Hash of everything that decides the rendered images (so shards of different runs never mix)."""
+    key = json.dumps({"seed": p["seed"], "camera": p["camera"], "render": p["render"]}, sort_keys=True)
+    return hashlib.sha256(key.encode()).hexdigest()[:16]
+
+
+def parse_shard(shard: str) -> tuple[int, int]:
+    try:
+        i, n = (int(v) for v in shard.split("/"))
+    except ValueError:
+        raise StageError(f"--shard must look like I/N (e.g. 2/4), got {shard!r}") from None
+    if not 1 <= i <= n:
+        raise StageError(f"--shard {shard}: need 1 <= I <= N")
+    return i, n
+
+
+def shard_range(n_frames: int, chunk: int, i: int, n: int) -> tuple[int, int]:
+    """Frames [start, stop) of part i of n: contiguous blocks aligned to whole zarr chunks."""
+    n_chunks = -(-n_frames // chunk)
+    edges = np.linspace(0, n_chunks, n + 1).round().astype(int) * chunk
+    return int(min(edges[i - 1], n_frames)), int(min(edges[i], n_frames))
+
+
+def poses_table(idx: np.ndarray, seq: np.ndarray, frm: np.ndarray, R: np.ndarray, t: np.ndarray):
+    import pandas as pd
+
+    from pipeline.rotations import matrix_to_quat
+
+    q = matrix_to_quat(R)
+    return pd.DataFrame({"index": idx, "sequence": seq, "frame": frm,
+                         "tx": t[:, 0], "ty": t[:, 1], "tz": t[:, 2],
+                         "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3],
+                         "range": np.linalg.norm(t, axis=1)})
+
+
+def render_part(p: dict[str, Any], start: int, stop: int, dest: Path, desc: str) -> None:
+    """Render frames [start, stop) into dest/{images.zarr, poses.parquet, meta.json} (dest is a fresh dir)."""
+    import zarr
+    from tqdm import tqdm
+
+    from pipeline.scene import Renderer
+
+    r = p["render"]
+    K = intrinsics(p)
+    seq, frm, R, t = frames(p)
+    chunk = int(r["chunk"])
+    n = stop - start
+    store = zarr.open_group(str(dest / "images.zarr"), mode="w")
+    images = store.create_array("images", shape=(n, K.height, K.width, 3), chunks=(chunk, K.height, K.width, 3),
+                                dtype="uint8")
+    try:
+        renderer = Renderer(K, scene_settings(r))
+    except ValueError as e:
+        raise StageError(f"params.yaml render: {e}") from None
+    t0 = time.perf_counter()
+    try:
+        buf = np.zeros((chunk, K.height, K.width, 3), np.uint8)
+        with tqdm(total=n, unit="img", desc=desc, dynamic_ncols=True) as bar:
+            for lo in range(0, n, chunk):
+                hi = min(lo + chunk, n)
+                for k in range(lo, hi):
+                    buf[k - lo] = renderer.render(R[start + k], t[start + k])
+                    bar.update(1)
+                images[lo:hi] = buf[: hi - lo]
+    finally:
+        renderer.close()
+    seconds = time.perf_counter() - t0
+    sl = slice(start, stop)
+    poses_table(np.arange(start, stop), seq[sl], frm[sl], R[sl], t[sl]).to_parquet(dest / "poses.parquet",
+                                                                                   index=False)
+    write_json(dest / "meta.json", {
+        "complete": True, "fingerprint": fingerprint(p), "frames": n, "start": start, "stop": stop,
+        "width": K.width, "height": K.height, "K": K.K, "render": r, "camera": p["camera"], "seed": p["seed"],
+        "seconds": seconds, "seconds_per_image": seconds / max(n, 1), "chunk": chunk,
+    })
+
+
+def check_store(path: Path, what: str = "render output") -> tuple[Any, Any, dict[str, Any]]:
+    """Open a render output folder and verify it is complete and consistent -> (images, poses, meta)."""
+    meta = read_json(path / "meta.json")
+    images = open_zarr(path / "images.zarr", what)
+    poses = read_parquet(path / "poses.parquet", f"{what} poses")
+    if not meta.get("complete") or "images" not in images:
+        raise StageError(f"{path} is incomplete; delete it and re-run `rpod render`")
+    n = images["images"].shape[0]
+    if n != meta["frames"] or n != len(poses):
+        raise StageError(f"{path} is inconsistent ({n} images, {len(poses)} poses, meta says {meta['frames']}); "
+                         f"delete it and re-run `rpod render`")
+    return images["images"], poses, meta
+
+
+def write_previews(images, poses, n_previews: int) -> list[Path]:
+    """PNG previews: the first (60 m) and last (10 m) frame of sequence 0, then frames spread over the
+    rotating sequences; upscaled by an integer factor (nearest neighbour) for viewing."""
+    import cv2
+
+    shutil.rmtree(PREVIEWS, ignore_errors=True)
+    PREVIEWS.mkdir(parents=True, exist_ok=True)
+    s0 = poses[poses.sequence == 0]
+    picks = [int(s0["index"].iloc[0]), int(s0["index"].iloc[-1])]
+    others = poses[poses.sequence >= 5]
+    extra = max(2, n_previews) - 2
+    if extra and len(others):
+        picks += [int(i) for i in others["index"].iloc[np.linspace(0, len(others) - 1, extra).round().astype(int)]]
+    out = []
+    for k, idx in enumerate(picks):
+        img = np.asarray(images[idx])
+        row = poses.iloc[idx]
+        scale = max(1, round(PREVIEW_WIDTH / img.shape[1]))
+        big = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+        path = PREVIEWS / f"{k:02d}_seq{int(row.sequence):02d}_frame{int(row.frame):04d}_{row.tz:.0f}m.png"
+        if not cv2.imwrite(str(path), big[..., ::-1]):
+            raise StageError(f"could not write {path}")
+        out.append(path)
+    return out
+
+
+def merge(p: dict[str, Any], n: int) -> None:
+    """Merge the N shard parts of this params fingerprint into datasets/render (atomically)."""
+    import pandas as pd
+    import zarr
+
+    parts = [SHARDS / str(n) / str(i) for i in range(1, n + 1)]
+    missing = [str(d) for d in parts if not (d / "meta.json").exists()]
+    if missing:
+        raise StageError(f"cannot merge: shard parts missing: {', '.join(missing)}")
+    checked = [check_store(d, "render shard") for d in parts]
+    fp = fingerprint(p)
+    stale = [str(d) for d, (_, _, m) in zip(parts, checked) if m["fingerprint"] != fp]
+    if stale:
+        raise StageError(f"shard parts {', '.join(stale)} were rendered with other params; re-render them")
+    n_total = len(frames(p)[0])
+    if sum(m["frames"] for _, _, m in checked) != n_total:
+        raise StageError(f"shard parts hold {sum(m['frames'] for _, _, m in checked)} frames, expected {n_total}")
+    first = checked[0][2]
+    chunk = int(p["render"]["chunk"])
+    with atomic_dir(OUT) as tmp:
+        store = zarr.open_group(str(tmp / "images.zarr"), mode="w")
+        dst = store.create_array("images", shape=(n_total, first["height"], first["width"], 3),
+                                 chunks=(chunk, first["height"], first["width"], 3), dtype="uint8")
+        for images, _, m in checked:
+            for lo in range(0, m["frames"], chunk):  # one chunk at a time: memory stays small
+                hi = min(lo + chunk, m["frames"])
+                dst[m["start"] + lo:m["start"] + hi] = images[lo:hi]
+        pd.concat([ps for _, ps, _ in checked], ignore_index=True).to_parquet(tmp / "poses.parquet", index=False)
+        seconds = sum(m["seconds"] for _, _, m in checked)
+        meta = {k: v for k, v in first.items() if k not in ("start", "stop")}
+        meta.update(frames=n_total, seconds=seconds, seconds_per_image=seconds / n_total, shards=n)
+        write_json(tmp / "meta.json", meta)
+    shutil.rmtree(SHARDS / str(n), ignore_errors=True)
+
+
+def main(
+    shard: str = typer.Option("1/1", help="Render only part I of N (e.g. 2/4): contiguous, chunk-aligned blocks "
+                                          "of frames, for parallel processes or machines. When all N parts "
+                                          "exist they are merged into datasets/render."),
+    merge_parts: int = typer.Option(0, "--merge", metavar="N",
+                                    help="Only merge the N finished parts in datasets/render_shards/N/ (no rendering)."),
+) -> None:
+    """Render the 13 approach sequences of SPEC 3 with Blender Cycles (CPU, headless).
+
+    Writes datasets/render/ (images.zarr, poses.parquet, meta.json) atomically and PNG previews to
+    reports/figures/previews/. Parameters: `seed`, `camera` and `render` in params.yaml.
+    """
+    p = params_mod.load()
+    n_frames = len(frames(p)[0])
+    if merge_parts:
+        merge(p, merge_parts)
+    else:
+        i, n = parse_shard(shard)
+        if n == 1:
+            with atomic_dir(OUT) as tmp:
+                render_part(p, 0, n_frames, tmp, "render")
+        else:
+            start, stop = shard_range(n_frames, int(p["render"]["chunk"]), i, n)
+            with atomic_dir(SHARDS / str(n) / str(i)) as tmp:
+                render_part(p, start, stop, tmp, f"render {i}/{n}")
+            with open(SHARDS / f".merge-{n}.lock", "w") as lock:  # parts finishing together merge once
+                fcntl.flock(lock, fcntl.LOCK_EX)
+                done = [j for j in range(1, n + 1) if (SHARDS / str(n) / str(j) / "meta.json").exists()]
+                if len(done) < n:
+                    typer.echo(f"part {i}/{n} done ({stop - start} frames); {len(done)}/{n} parts present. "
+                               f"The last part to finish merges them (or run `rpod render --merge {n}`).")
+                    return
+                merge(p, n)
+    images, poses, meta = check_store(OUT)
+    previews = write_previews(images, poses, int(p["render"]["previews"]))
+    typer.echo(f"{OUT}: {meta['frames']} images {meta['width']}x{meta['height']}, "
+               f"{meta['seconds_per_image']:.3f} s/image; previews: {', '.join(str(x) for x in previews)}")
