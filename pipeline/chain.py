@@ -10,6 +10,7 @@ gives the same result as the frames one at a time.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable, Iterable
 
 import numpy as np
 import torch
@@ -71,3 +72,44 @@ class SafetyChain:
         """The pose forward alone, (B, 9): the baseline the chain's cost is compared with."""
         x = images.unsqueeze(0) if images.ndim == 3 else images
         return self.model(x)
+
+
+Attack = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+@dataclass(frozen=True)
+class SequenceResult:
+    """A sequence through the chain: pose (N, 9), prob (N,), flag (N,) bool, as numpy arrays."""
+
+    pose: np.ndarray
+    prob: np.ndarray
+    flag: np.ndarray
+
+
+def run_sequence(chain: SafetyChain, images: np.ndarray, targets: np.ndarray, attacked: np.ndarray,
+                 attack: Attack | None, batch_size: int = 64,
+                 progress: Callable[[Iterable[int]], Iterable[int]] = iter) -> SequenceResult:
+    """Frames as onboard: attacked frames are replaced by `attack(x, y)` against their own true label.
+
+    images: (N, H, W, 3) uint8; targets: (N, 9) labels (m, 6-D); attacked: (N,) bool. `attack`
+    takes and returns (B, 3, H, W) images in [0, 1] (it may run with gradients). Frames are batched
+    for speed only: the chain is stateless, so each frame's result is that of the frame alone.
+    """
+    n = len(images)
+    attacked = np.asarray(attacked, dtype=bool)
+    if len(targets) != n or len(attacked) != n:
+        raise ValueError(f"images ({n}), targets ({len(targets)}) and schedule ({len(attacked)}) differ in length")
+    if attacked.any() and attack is None:
+        raise ValueError("frames are scheduled for attack but no attack was given")
+    pose, prob, flag = np.zeros((n, 9), np.float32), np.zeros(n), np.zeros(n, bool)
+    for lo in progress(range(0, n, batch_size)):
+        hi = min(lo + batch_size, n)
+        x = torch.from_numpy(np.ascontiguousarray(images[lo:hi])).permute(0, 3, 1, 2).float() / 255.0
+        hit = torch.from_numpy(attacked[lo:hi])
+        if hit.any():
+            y = torch.from_numpy(np.array(targets[lo:hi], dtype=np.float32))
+            x = x.clone()
+            x[hit] = attack(x[hit], y[hit])
+        out = chain(x)
+        pose[lo:hi], prob[lo:hi], flag[lo:hi] = out.pose.numpy(), out.prob.numpy(), out.flag.numpy()
+    return SequenceResult(pose, prob, flag)

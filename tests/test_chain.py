@@ -66,3 +66,28 @@ def test_chain_refuses_a_non_affine_head(parts):
         SafetyChain.from_model(_ReluHead(), bg.mean(0), det)
     with pytest.raises(ValueError, match="do not fit"):
         SafetyChain(_ReluHead(), np.zeros((9, 1000)), np.zeros(999), det)
+
+
+def test_run_sequence_attacks_only_scheduled_frames_with_their_own_labels(parts):
+    from pipeline.chain import run_sequence
+
+    model, bg, det, _ = parts
+    chain = SafetyChain.from_model(model, bg.mean(0), det)
+    rng = np.random.default_rng(1)
+    images = rng.integers(0, 256, (7, 36, 64, 3), dtype=np.uint8)
+    targets = np.arange(7 * 9, dtype=np.float32).reshape(7, 9)
+    attacked = np.array([0, 1, 1, 0, 0, 1, 0], bool)
+    seen = []
+
+    def attack(x, y):
+        seen.append(y[:, 0].numpy().copy())
+        return torch.zeros_like(x)
+
+    res = run_sequence(chain, images, targets, attacked, attack, batch_size=3)
+    assert np.concatenate(seen).tolist() == targets[attacked, 0].tolist()
+    clean = chain(torch.from_numpy(images).permute(0, 3, 1, 2).float() / 255)
+    zero = chain(torch.zeros(1, 3, 36, 64))
+    np.testing.assert_allclose(res.pose[~attacked], clean.pose.numpy()[~attacked], rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(res.pose[attacked], np.repeat(zero.pose.numpy(), 3, 0), rtol=1e-4, atol=1e-4)
+    with pytest.raises(ValueError, match="no attack"):
+        run_sequence(chain, images, targets, attacked, None)
