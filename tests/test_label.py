@@ -1,0 +1,139 @@
+"""The render and label stages end to end on a tiny dataset, plus their failure modes."""
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline.rotations import from_speed, quat_to_6d
+from stages import params as params_mod
+from stages.io import StageError
+from stages.label import build_labels
+
+CONTRACT = ["index", "image", "sequence", "frame", "tx", "ty", "tz", "qw", "qx", "qy", "qz",
+            "r0", "r1", "r2", "r3", "r4", "r5", "range", "split"]
+
+
+@pytest.fixture
+def workdir(tmp_path, monkeypatch):
+    """A project folder with a tiny params.yaml (13 x 2 frames at 32x18)."""
+    monkeypatch.chdir(tmp_path)
+    p = params_mod.compose("smoke", ["render.width=32", "render.height=18", "render.frames_per_sequence=2",
+                                     "render.samples=1", "render.chunk=4", "render.previews=3"])
+    params_mod.write_params(p)
+    return tmp_path
+
+
+def test_build_labels_contract_and_split():
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(100, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    poses = pd.DataFrame({"index": np.arange(100)[::-1], "sequence": 0, "frame": np.arange(100)[::-1],
+                          "tx": 0.0, "ty": 0.0, "tz": rng.uniform(10, 60, 100),
+                          "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3]})
+    poses["range"] = poses.tz
+    a = build_labels(poses, 0.2, seed=3)
+    assert list(a.columns) == CONTRACT
+    assert np.array_equal(a["index"], np.arange(100))  # sorted by row of the zarr array
+    assert a.image.iloc[7] == "datasets/render/images.zarr:7"
+    assert (a.split == "test").sum() == 20 and set(a.split) == {"train", "test"}
+    r6 = a[[f"r{k}" for k in range(6)]].to_numpy()
+    assert np.allclose(r6, quat_to_6d(a[["qw", "qx", "qy", "qz"]].to_numpy()))
+    assert a.split.equals(build_labels(poses, 0.2, seed=3).split)
+    assert not a.split.equals(build_labels(poses, 0.2, seed=4).split)
+    with pytest.raises(StageError, match="test_fraction"):
+        build_labels(poses, 1.5, seed=0)
+
+
+@pytest.mark.slow
+def test_render_and_label_stages(workdir):
+    import zarr
+
+    from stages import label, render
+
+    render.main(shard="1/1", merge_parts=0)
+    g = zarr.open_group("datasets/render/images.zarr", mode="r")
+    images = g["images"]
+    assert images.shape == (26, 18, 32, 3) and images.dtype == np.uint8 and images.chunks[0] == 4
+    assert np.asarray(images[0]).max() > 0  # something was rendered
+    meta = json.loads(open("datasets/render/meta.json").read())
+    assert meta["complete"] and meta["frames"] == 26 and meta["seconds_per_image"] > 0
+    previews = sorted(p.name for p in (workdir / "reports/figures/previews").glob("*.png"))
+    assert len(previews) == 3 and "60m" in previews[0] and "10m" in previews[1]
+
+    label.main()
+    labels = pd.read_parquet("datasets/labels.parquet")
+    assert list(labels.columns) == CONTRACT and len(labels) == 26
+    assert labels.tz.max() > 59 and abs(labels.tz.min() - 10) < 0.01
+    assert set(labels.sequence) == set(range(13))
+    names, t, q = from_speed(json.loads(open("datasets/speed_labels.json").read()))
+    assert names == list(labels.image) and np.allclose(t, labels[["tx", "ty", "tz"]].to_numpy())
+    card = open("reports/dataset.md").read()
+    assert "| 26 " in card and "figures/previews/" in card and "s per image" in card
+
+    # --shard: two parts rendered separately and merged give the same dataset
+    full = np.asarray(images[:])
+    render.main(shard="1/2", merge_parts=0)
+    assert (workdir / "datasets/render_shards/2/1/meta.json").exists()
+    render.main(shard="2/2", merge_parts=0)  # the last part merges
+    merged = np.asarray(zarr.open_group("datasets/render/images.zarr", mode="r")["images"][:])
+    assert np.abs(merged.astype(int) - full.astype(int)).max() <= 2
+    assert not (workdir / "datasets/render_shards/2").exists()
+    with pytest.raises(StageError, match="missing"):
+        render.main(shard="1/1", merge_parts=3)
+
+
+@pytest.mark.slow
+def test_interrupted_render_leaves_no_dataset(workdir, monkeypatch):
+    from pipeline import scene
+    from stages import render
+
+    calls = {"n": 0}
+    original = scene.Renderer.render
+
+    def flaky(self, R, t):
+        calls["n"] += 1
+        if calls["n"] > 5:
+            raise KeyboardInterrupt
+        return original(self, R, t)
+
+    monkeypatch.setattr(scene.Renderer, "render", flaky)
+    with pytest.raises(KeyboardInterrupt):
+        render.main(shard="1/1", merge_parts=0)
+    assert not (workdir / "datasets/render").exists()
+    assert not list((workdir / "datasets").glob(".render*"))  # the temporary folder is gone too
+
+
+@pytest.mark.slow
+def test_corrupt_or_missing_store_is_refused(workdir):
+    import shutil
+
+    from stages import label, render
+
+    with pytest.raises(StageError, match="not found"):
+        label.main()
+    render.main(shard="1/1", merge_parts=0)
+    shutil.rmtree("datasets/render/images.zarr/images")
+    with pytest.raises(StageError, match="incomplete|corrupt|inconsistent"):
+        label.main()
+    render.main(shard="1/1", merge_parts=0)
+    meta = json.loads(open("datasets/render/meta.json").read())
+    meta["frames"] = 999
+    open("datasets/render/meta.json", "w").write(json.dumps(meta))
+    with pytest.raises(StageError, match="inconsistent"):
+        label.main()
+
+
+def test_bad_params(workdir):
+    from stages import render
+
+    for override, msg in [("render.width=0", "positive"), ("render.pointing_jitter_deg=30", "out of view"),
+                          ("render.mesh=/nope/sat.obj", "not found")]:
+        params_mod.write_params(params_mod.compose("smoke", [override]))
+        with pytest.raises((StageError, ValueError), match=msg):
+            render.main(shard="1/1", merge_parts=0)
+        assert not (workdir / "datasets/render").exists()
+    with pytest.raises(StageError, match="I/N"):
+        render.parse_shard("2of4")
+    with pytest.raises(params_mod.ParamsError, match="unknown profile"):
+        params_mod.compose("nosuchprofile")

@@ -1,0 +1,70 @@
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.rotations import (attitude_error_deg, euler_to_matrix, from_speed, matrix_to_6d, matrix_to_quat,
+                                normalize_quat, position_error, quat_to_6d, quat_to_matrix, sixd_to_matrix,
+                                sixd_to_quat, to_speed)
+
+
+def random_quats(n, seed=0):
+    return normalize_quat(np.random.default_rng(seed).normal(size=(n, 4)))
+
+
+def test_quat_matrix_round_trip():
+    q = random_quats(500)
+    R = quat_to_matrix(q)
+    assert np.allclose(R @ np.swapaxes(R, -1, -2), np.eye(3), atol=1e-12)
+    assert np.allclose(np.linalg.det(R), 1.0)
+    assert np.abs(matrix_to_quat(R) - q).max() < 1e-6
+
+
+def test_quat_6d_matrix_round_trip():
+    q = random_quats(500, seed=1)
+    R = quat_to_matrix(q)
+    r6 = quat_to_6d(q)
+    assert r6.shape == (500, 6)
+    assert np.abs(r6 - matrix_to_6d(R)).max() < 1e-12
+    assert np.abs(sixd_to_matrix(r6) - R).max() < 1e-6
+    assert np.abs(sixd_to_quat(r6) - q).max() < 1e-6
+
+
+def test_6d_column_order_and_gram_schmidt():
+    R = euler_to_matrix(np.array([10.0, -20.0, 30.0]))
+    r6 = matrix_to_6d(R)
+    assert np.allclose(r6[:3], R[:, 0]) and np.allclose(r6[3:], R[:, 1])
+    noisy = 2.0 * r6 + np.array([0, 0, 0, 0.05, -0.02, 0.01])  # any 6-vector maps to a rotation
+    Rn = sixd_to_matrix(noisy)
+    assert np.allclose(Rn.T @ Rn, np.eye(3), atol=1e-12) and np.isclose(np.linalg.det(Rn), 1.0)
+    assert np.allclose(Rn[:, 0], R[:, 0])
+
+
+def test_quaternion_rotates_target_into_camera():
+    q = np.array([np.cos(np.pi / 4), 0, 0, np.sin(np.pi / 4)])  # 90 deg about z
+    assert np.allclose(quat_to_matrix(q) @ [1, 0, 0], [0, 1, 0])
+
+
+def test_errors():
+    q = random_quats(10, seed=2)
+    assert np.allclose(attitude_error_deg(q, -q), 0, atol=1e-5)  # q and -q are the same attitude
+    q2 = matrix_to_quat(quat_to_matrix(q) @ euler_to_matrix(np.array([0, 0, 7.0])))
+    assert np.allclose(attitude_error_deg(q2, q), 7.0, atol=1e-6)
+    assert np.allclose(position_error(np.array([[3.0, 4, 0]]), np.zeros((1, 3))), 5.0)
+
+
+def test_speed_json_round_trip(tmp_path):
+    q = random_quats(20, seed=3)
+    t = np.random.default_rng(4).uniform(-5, 60, size=(20, 3))
+    names = [f"img{i:06d}.jpg" for i in range(20)]
+    path = tmp_path / "train.json"
+    path.write_text(json.dumps(to_speed(names, t, q)))
+    records = json.loads(path.read_text())
+    assert set(records[0]) == {"filename", "q_vbs2tango_true", "r_Vo2To_vbs_true"}
+    names2, t2, q2 = from_speed(records)
+    assert names2 == names and np.abs(t2 - t).max() < 1e-12 and np.abs(q2 - q).max() < 1e-12
+
+
+def test_speed_json_bad_records():
+    with pytest.raises(ValueError, match="SPEED"):
+        from_speed([{"filename": "a.jpg", "q_vbs2tango_true": [1, 0, 0, 0]}])
