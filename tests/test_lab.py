@@ -128,3 +128,51 @@ def test_segmentation_and_domain_shift():
     assert shifted.dtype == np.uint8 and shifted.shape == img.shape
     assert not np.array_equal(shifted, img)
     assert abs(float(shifted.astype(float).mean()) - float(img.astype(float).mean())) < 3.0
+
+
+def test_loader_round_trips_a_synthetic_lab_recording(tmp_path):
+    from stages.io import StageError
+    from stages.lab import read_recording, write_recording
+
+    rec = synthetic_recording(1.6, 1.0, 12, 30.0, 120.0, np.array([1.0, 0, 0, 0]), lateral=(0.01, 0.0))
+    rng = np.random.default_rng(0)
+    images = rng.integers(0, 20, (12, 36, 64, 3), dtype=np.uint8)     # dark, noisy background
+    images[:, 10:26, 20:44] = rng.integers(120, 256, (12, 16, 24, 3), dtype=np.uint8)   # the target
+    masks = np.zeros((12, 36, 64), np.uint8)
+    masks[:, 10:26, 20:44] = 255
+    write_recording(tmp_path / "seq", rec.camera, rec.mocap, images, masks)
+    bodies = {"camera": "camera", "target": "target"}
+    got = read_recording(tmp_path / "seq", 32, 18, bodies, "interpolate", 0.01, 0.08)
+    assert got["images"].shape == (12, 18, 32, 3) and got["frames"].tolist() == list(range(12))
+    np.testing.assert_allclose(got["t_lab"], rec.t, atol=2e-6)        # CSVs keep 6 decimals
+    assert attitude_error_deg(got["q"], rec.q).max() < 1e-3
+    assert got["images"][:, :4].max() == 0                            # background segmented to black
+    assert got["images"][:, 6:12, 11:21].min() > 0
+    # without masks the grey-level threshold segments it the same way here
+    (tmp_path / "seq" / "masks" / "000003.png").unlink()
+    with pytest.raises(StageError, match=r"masks/000003.png cannot be read as a mask \(camera.csv line 5\)"):
+        read_recording(tmp_path / "seq", 32, 18, bodies, "nearest", 0.01, 0.08)
+    for f in (tmp_path / "seq" / "masks").iterdir():
+        f.unlink()
+    (tmp_path / "seq" / "masks").rmdir()
+    thr = read_recording(tmp_path / "seq", 32, 18, bodies, "interpolate", 0.01, 0.1)
+    assert thr["images"][:, :4].max() == 0
+    (tmp_path / "seq" / "images" / "000007.png").write_bytes(b"not a png")
+    with pytest.raises(StageError, match=r"images/000007.png cannot be read as an image \(camera.csv line 9\)"):
+        read_recording(tmp_path / "seq", 32, 18, bodies, "nearest", 0.01, 0.08)
+    with pytest.raises(StageError, match="no rows for body 'drone'"):
+        read_recording(tmp_path / "seq", 32, 18, {"camera": "drone", "target": "target"}, "nearest", 0.01, 0.08)
+
+
+def test_rescale_command_prints_the_synthetic_range(monkeypatch):
+    from pathlib import Path
+
+    from typer.testing import CliRunner
+
+    from stages.lab import app
+
+    monkeypatch.chdir(Path(__file__).resolve().parent.parent)          # the committed params.yaml
+    out = CliRunner().invoke(app, ["rescale", "--z", "3.122"])
+    assert out.exit_code == 0, out.output
+    k = lab_to_synthetic_factor(K_SYN, K_ZED, 9.0)
+    assert f"synthetic z = {3.122 * k:.2f} m" in out.output

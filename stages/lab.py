@@ -1,0 +1,392 @@
+"""`rpod lab`: the lab domain (SPEC 9); `rpod lab rescale --z Z`: lab range -> synthetic range.
+
+`rpod lab` renders lab-like sequences (the ZED camera's geometry, the mock-up at 9x scale, a domain
+shift: other sun, sensor blur and noise, a small calibration error), writes each one as a real lab
+recording would be stored, reads it back through the real-data loader, and evaluates the pose
+model and the safety chain on it: reports/lab.md, reports/metrics/lab.json. With `lab.real_data`
+set to a folder, the same evaluation runs on that recording instead.
+
+Lab recording layout (one folder per sequence; a folder of such folders also works):
+
+    images/000000.png ...     one image per camera frame, any size with the ZED's 16:9 aspect
+    masks/000000.png ...      optional: nonzero = target; else a grey-level threshold segments it
+    camera.csv                frame,timestamp            (s; optional column `image` = file name,
+                              default {frame:06d}.png)
+    mocap.csv                 timestamp,body,x,y,z,qw,qx,qy,qz   (s, m, body -> world quaternion)
+
+e.g. camera.csv `0,0.0013` and mocap.csv `0.0000,camera,1.5,0.4,4.3,0.5,-0.5,0.5,-0.5`. The bodies
+`lab.bodies.camera` and `lab.bodies.target` must be present; see pipeline/lab.py for the frames.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import typer
+
+from stages import params as params_mod
+from stages.io import StageError, atomic_dir, atomic_write_text, file_hash, read_json, write_json
+
+OUT = Path("datasets/lab")
+REPORT = Path("reports/lab.md")
+METRICS = Path("reports/metrics/lab.json")
+TRAIN_METRICS = Path("reports/metrics/train.json")
+SEED_OFFSET = 0
+PAPER_ACCURACY = {0.5: 100.0, 0.3: 100.0, 0.1: 100.0, 0.05: 98.44, 0.01: 90.44}
+PAPER_AVERAGE = 96.29
+
+app = typer.Typer(help="The lab domain (SPEC 9): lab-like sequences through the real-data loader, pose "
+                       "error, FGSM errors and integrated detection; `rpod lab rescale` converts ranges.",
+                  pretty_exceptions_enable=False, add_completion=False)
+
+
+def cameras(p: dict[str, Any]) -> tuple[Any, Any]:
+    """(K_syn at the reference size (480x270), K_zed at 1920x1080) from params."""
+    from pipeline.camera import Intrinsics
+
+    c, z = p["camera"], p["lab"]["zed"]
+    try:
+        return (Intrinsics(int(c["ref_width"]), int(c["ref_height"]), c["fx"], c["fy"], c["cx"], c["cy"]),
+                Intrinsics(int(z["width"]), int(z["height"]), z["fx"], z["fy"], z["cx"], z["cy"]))
+    except ValueError as e:
+        raise StageError(f"params.yaml camera / lab.zed: {e}") from None
+
+
+@app.command("rescale")
+def rescale(z: list[float] = typer.Option(..., "--z", help="Lab range(s) in metres (repeatable).")) -> None:
+    """Print the equivalent synthetic range of lab ranges (same apparent size in pixels; pinhole model)."""
+    from pipeline.lab import lab_to_synthetic_factor
+
+    p = params_mod.load()
+    K_syn, K_zed = cameras(p)
+    scale = float(p["lab"]["scale"])
+    k = lab_to_synthetic_factor(K_syn, K_zed, scale)
+    f_eff = K_zed.fx * K_syn.width / K_zed.width
+    typer.echo(f"factor = scale * fx_syn / fx_lab_eff = {scale:g} * {K_syn.fx:g} / ({K_zed.fx:g} * "
+               f"{K_syn.width}/{K_zed.width} = {f_eff:.2f}) = {k:.4f}")
+    for zi in z:
+        if zi <= 0:
+            raise StageError(f"--z must be a positive range in metres, got {zi}")
+        typer.echo(f"lab z = {zi:g} m -> synthetic z = {zi * k:.2f} m")
+
+
+# ----------------------------------------------------------------------------- recordings on disk
+def write_recording(folder: Path, camera: Any, mocap: Any, images: np.ndarray, masks: np.ndarray | None) -> None:
+    """Write one recording in the lab layout (PNG images, optional masks, camera.csv, mocap.csv)."""
+    import cv2
+
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    if masks is not None:
+        (folder / "masks").mkdir(exist_ok=True)
+    for k, frame in enumerate(camera["frame"].to_numpy()):
+        name = f"{int(frame):06d}.png"
+        if not cv2.imwrite(str(folder / "images" / name), images[k][..., ::-1]):
+            raise StageError(f"could not write {folder / 'images' / name}")
+        if masks is not None and not cv2.imwrite(str(folder / "masks" / name), masks[k]):
+            raise StageError(f"could not write {folder / 'masks' / name}")
+    camera.to_csv(folder / "camera.csv", index=False, float_format="%.6f")
+    mocap.to_csv(folder / "mocap.csv", index=False, float_format="%.6f")
+
+
+def recording_folders(root: Path) -> list[Path]:
+    """`root` itself when it holds camera.csv, else its subfolders that do (sorted)."""
+    if not root.is_dir():
+        raise StageError(f"lab recording folder {root} not found")
+    if (root / "camera.csv").exists():
+        return [root]
+    subs = sorted(d for d in root.iterdir() if d.is_dir() and (d / "camera.csv").exists())
+    if not subs:
+        raise StageError(f"{root} holds no lab recording (no camera.csv in it or its subfolders)")
+    return subs
+
+
+def read_recording(folder: Path, width: int, height: int, bodies: dict[str, str], match: str, max_gap: float,
+                   threshold: float) -> dict[str, Any]:
+    """Load one recording: segmented images resized to width x height (uint8), frames, lab labels t, q.
+
+    Every problem is a StageError naming the file (and line for the CSVs).
+    """
+    import cv2
+    import pandas as pd
+
+    from pipeline.lab import LabDataError, match_frames, resize, segment
+
+    tables = {}
+    for name in ("camera.csv", "mocap.csv"):
+        path = folder / name
+        if not path.exists():
+            raise StageError(f"{path} not found (a lab recording needs images/, camera.csv and mocap.csv)")
+        try:
+            tables[name] = pd.read_csv(path)
+        except Exception as e:
+            raise StageError(f"{path} is not a readable CSV ({type(e).__name__}: {e})") from None
+    try:
+        frames, t, q = match_frames(tables["camera.csv"], tables["mocap.csv"], bodies["camera"], bodies["target"],
+                                    match, max_gap, str(folder / "camera.csv"), str(folder / "mocap.csv"))
+    except LabDataError as e:
+        raise StageError(str(e)) from None
+    cam = tables["camera.csv"]
+    names = (cam["image"].astype(str).tolist() if "image" in cam.columns else [f"{int(f):06d}.png" for f in frames])
+    images = np.zeros((len(frames), height, width, 3), np.uint8)
+    for k, name in enumerate(names):
+        where = f"(camera.csv line {k + 2})"
+        bgr = cv2.imread(str(folder / "images" / name), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise StageError(f"{folder / 'images' / name} cannot be read as an image {where}")
+        h, w = bgr.shape[:2]
+        if abs(w / h - width / height) > 0.01 * width / height:
+            raise StageError(f"{folder / 'images' / name} is {w}x{h}; the lab images must have the model input's "
+                             f"aspect {width}:{height} {where}")
+        mask = None
+        mpath = folder / "masks" / name
+        if (folder / "masks").is_dir():
+            mask = cv2.imread(str(mpath), cv2.IMREAD_GRAYSCALE)
+            if mask is None:
+                raise StageError(f"{mpath} cannot be read as a mask {where}")
+            if mask.shape != (h, w):
+                raise StageError(f"{mpath} is {mask.shape[1]}x{mask.shape[0]}, its image {w}x{h} {where}")
+        images[k] = resize(segment(bgr[..., ::-1], mask, threshold), width, height)
+    return {"name": folder.name, "frames": frames, "images": images, "t_lab": t, "q": q}
+
+
+# ----------------------------------------------------------------------------- synthetic lab sequences
+def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
+    """Render lab.sequences with the lab camera and the domain shift into dest/<seq>/ (lab layout).
+
+    Returns per sequence the exact lab labels (for checking the loader round trip).
+    """
+    from tqdm import tqdm
+
+    from pipeline.lab import domain_shift, synthetic_recording
+    from pipeline.rotations import quat_to_matrix
+    from pipeline.scene import Renderer
+    from stages.render import scene_settings
+
+    lab, r = p["lab"], p["render"]
+    ds = lab["domain_shift"]
+    _, K_zed = cameras(p)
+    k_cal = 1.0 + float(ds["calib_error"])       # the true lens differs from the calibration used for labels
+    K_lab = K_zed.scaled(int(r["width"]), int(r["height"]))
+    K_true = dataclasses.replace(K_lab, fx=K_lab.fx * k_cal, fy=K_lab.fy * k_cal)
+    settings = dataclasses.replace(scene_settings(r), sun_direction=tuple(float(v) for v in ds["sun_direction"]),
+                                   sun_strength=float(ds["sun_strength"]))
+    rng = np.random.default_rng(int(lab["seed"]) + SEED_OFFSET)
+    scale = float(lab["scale"])
+    n = int(lab["frames"])
+    renderer = Renderer(K_true, settings)
+    truth = []
+    try:
+        with tqdm(total=n * len(lab["sequences"]), desc="lab render", unit="img", dynamic_ncols=True) as bar:
+            for i, (z0, z1) in enumerate(lab["sequences"]):
+                lateral = tuple(rng.uniform(-0.03, 0.03, 2) * float(z1))   # lab m, target off-centre
+                rec = synthetic_recording(float(z0), float(z1), n, float(lab["fps"]), float(lab["mocap_hz"]),
+                                          np.array([1.0, 0, 0, 0]), lateral=lateral,
+                                          clock_offset=float(rng.uniform(0, 1 / float(lab["mocap_hz"]))),
+                                          camera_body=lab["bodies"]["camera"], target_body=lab["bodies"]["target"])
+                images = np.zeros((n, K_true.height, K_true.width, 3), np.uint8)
+                masks = np.zeros((n, K_true.height, K_true.width), np.uint8)
+                for k in range(n):
+                    # the 1/scale mock-up at t equals the full-size target at scale * t
+                    rgb, alpha = renderer.render_with_alpha(quat_to_matrix(rec.q[k]), scale * rec.t[k])
+                    images[k] = domain_shift(rgb, float(ds["noise_std"]), float(ds["blur_sigma"]), rng)
+                    masks[k] = np.where(alpha > 0.5, 255, 0)
+                    bar.update(1)
+                write_recording(dest / f"seq{i + 1}", rec.camera, rec.mocap, images, masks)
+                truth.append({"name": f"seq{i + 1}", "t_lab": rec.t, "q": rec.q, "z_range": (float(z0), float(z1))})
+    finally:
+        renderer.close()
+    return truth
+
+
+# ----------------------------------------------------------------------------- the stage
+def check_params(lab: dict[str, Any]) -> None:
+    if lab["retrain"] not in ("auto", "always"):
+        raise StageError(f"params.yaml lab.retrain must be auto or always, got {lab['retrain']!r}")
+    if lab["retrain"] == "always":
+        raise StageError("params.yaml lab.retrain=always: retraining a synthetic-lab pose model and detector is not "
+                         "implemented yet; use lab.retrain=auto (reuses models/pose.pt and models/detector.pt, valid "
+                         "because the mock-up is the main target mesh and K_blender has the lab's 16:9 aspect)")
+    if lab["match"] not in ("nearest", "interpolate"):
+        raise StageError(f"params.yaml lab.match must be nearest or interpolate, got {lab['match']!r}")
+    if float(lab["max_gap_s"]) <= 0 or int(lab["frames"]) < 2 or int(lab["attack_length"]) < 1:
+        raise StageError("params.yaml lab: need max_gap_s > 0, frames >= 2 and attack_length >= 1")
+    for z in lab["sequences"]:
+        if len(z) != 2 or min(float(v) for v in z) <= 0:
+            raise StageError(f"params.yaml lab.sequences: each entry must be [z_start, z_end] in metres > 0, got {z}")
+
+
+@app.callback(invoke_without_command=True)
+def main(ctx: typer.Context) -> None:
+    """Evaluate the pose model and the safety chain in the lab domain (SPEC 9).
+
+    Params: `lab` (sequences, frames, fps, mocap_hz, match, max_gap_s, attack_length, domain_shift,
+    real_data, ...), `evaluate.p_start` / `evaluate.eps` for the integrated evaluation, `attack.eps`
+    for the FGSM error table.
+    """
+    if ctx.invoked_subcommand is not None:
+        return
+    import torch
+
+    from pipeline.lab import lab_to_synthetic_factor, lab_to_synthetic_position
+    from pipeline.rotations import attitude_error_deg, quat_to_6d
+    from pipeline.schedule import attack_schedule
+    from pipeline.training import pose_errors
+    from stages.evaluate import evaluate_sequences, fgsm_attack, load_chain, nan_to_none, per_eps_summary
+
+    p = params_mod.load()
+    lab, r = p["lab"], p["render"]
+    check_params(lab)
+    torch.set_num_threads(2)
+    K_syn, K_zed = cameras(p)
+    scale = float(lab["scale"])
+    factor = lab_to_synthetic_factor(K_syn, K_zed, scale)
+    chain, loss_fn, model_hash = load_chain(p)
+    t0 = time.perf_counter()
+    truth: list[dict[str, Any]] = []
+    if lab["real_data"]:
+        source = Path(lab["real_data"])
+    else:
+        with atomic_dir(OUT) as tmp:
+            truth = render_lab(p, tmp)
+        source = OUT
+    render_s = time.perf_counter() - t0
+    recs = [read_recording(f, int(r["width"]), int(r["height"]), lab["bodies"], lab["match"], float(lab["max_gap_s"]),
+                           float(lab["segment_threshold"])) for f in recording_folders(source)]
+    loader_err = {}
+    for tr in truth:      # the loader's labels against the exact ones the images were rendered at
+        rec = next(x for x in recs if x["name"] == tr["name"])
+        loader_err[tr["name"]] = {"position_max_m": float(np.abs(rec["t_lab"] - tr["t_lab"]).max()),
+                                  "attitude_max_deg": float(attitude_error_deg(rec["q"], tr["q"]).max())}
+    e = p["evaluate"]
+    eps_att = [float(x) for x in p["attack"]["eps"]]
+    length = int(lab["attack_length"])
+    sequences, ranges, clean_rows, fgsm_rows = [], [], [], []
+    for i, rec in enumerate(recs):
+        t_syn = lab_to_synthetic_position(rec["t_lab"], K_syn, K_zed, scale)
+        targets = np.concatenate([t_syn, quat_to_6d(rec["q"])], 1).astype(np.float32)
+        sequences.append({"name": rec["name"], "images": rec["images"], "targets": targets,
+                          "attacked": attack_schedule(len(targets), float(e["p_start"]), length,
+                                                      int(lab["seed"]) + 31 + i)})
+        zl = rec["t_lab"][:, 2]
+        ranges.append({"sequence": rec["name"], "frames": len(zl), "lab z start (m)": float(zl[0]),
+                       "lab z end (m)": float(zl[-1]), "synthetic z start (m)": float(t_syn[0, 2]),
+                       "synthetic z end (m)": float(t_syn[-1, 2])})
+    # pose error (clean) and FGSM errors on every lab frame
+    for s in sequences:
+        x = torch.from_numpy(s["images"]).permute(0, 3, 1, 2).float() / 255.0
+        y = torch.from_numpy(s["targets"])
+        batch = int(e["batch_size"])
+        preds = {"clean": np.concatenate([chain.pose_only(x[i:i + batch]).numpy() for i in range(0, len(x), batch)])}
+        for eps in eps_att:
+            attack = fgsm_attack(chain.model, loss_fn, eps)
+            preds[eps] = np.concatenate([chain.pose_only(attack(x[i:i + batch], y[i:i + batch])).numpy()
+                                         for i in range(0, len(x), batch)])
+        for key, pred in preds.items():
+            pos, att = pose_errors(pred, s["targets"])
+            row = {"sequence": s["name"], "eps": key, "position_m": float(pos.mean()),
+                   "relative_position": float(np.mean(pos / np.linalg.norm(s["targets"][:, :3], axis=1))),
+                   "attitude_deg": float(att.mean())}
+            (clean_rows if key == "clean" else fgsm_rows).append(row)
+    res = evaluate_sequences(chain, loss_fn, sequences, [float(x) for x in e["eps"]], length, int(e["batch_size"]),
+                             "lab evaluate")
+    summary = per_eps_summary(res["rows"])
+    seconds = time.perf_counter() - t0
+    train_metrics = read_json(TRAIN_METRICS) if TRAIN_METRICS.exists() else None
+    metrics = {"model_hash": model_hash, "source": str(source), "synthetic": not lab["real_data"], "factor": factor,
+               "retrain": lab["retrain"], "reused_models": True, "ranges": ranges, "loader_error": loader_err,
+               "clean": clean_rows, "fgsm": fgsm_rows, "attack_length": length, "threshold": chain.threshold,
+               "per_eps": {f"{x['eps']:g}": x for x in summary}, "rows": res["rows"], "clean_detection": res["clean"],
+               "accuracy_mean": float(np.mean([x["accuracy"] for x in summary])), "seconds": seconds,
+               "render_seconds": render_s}
+    write_json(METRICS, nan_to_none(metrics))
+    atomic_write_text(REPORT, report(p, metrics, res["rows"], summary, [s["name"] for s in sequences],
+                                     train_metrics, K_syn, K_zed, sequences))
+    typer.echo(f"lab: {len(sequences)} sequences from {source}; mean detection accuracy "
+               f"{100 * metrics['accuracy_mean']:.2f}% (paper {PAPER_AVERAGE}%) in {seconds:.0f} s -> {REPORT}")
+
+
+def report(p: dict[str, Any], m: dict[str, Any], rows: list[dict[str, Any]], summary: list[dict[str, Any]],
+           names: list[str], train_metrics: dict[str, Any] | None, K_syn: Any, K_zed: Any,
+           sequences: list[dict[str, Any]]) -> str:
+    import pandas as pd
+
+    from pipeline.report import markdown_table
+    from stages.evaluate import accuracy_table, detail_table
+
+    lab, ds = p["lab"], p["lab"]["domain_shift"]
+    f_eff = K_zed.fx * K_syn.width / K_zed.width
+    src = ("synthetic lab sequences rendered by this stage and read back through the real-data loader "
+           f"(`{OUT}/`)" if m["synthetic"] else f"the real lab recording in `{m['source']}`")
+    loader = ""
+    if m["loader_error"]:
+        worst_p = max(v["position_max_m"] for v in m["loader_error"].values())
+        worst_a = max(v["attitude_max_deg"] for v in m["loader_error"].values())
+        loader = (f"\nLoader round trip: the labels recovered from mocap.csv/camera.csv ({lab['match']} matching, "
+                  f"max gap {lab['max_gap_s']} s) differ from the exact render poses by at most "
+                  f"{1000 * worst_p:.2f} mm (lab units) and {worst_a:.4f} deg.\n")
+    clean = pd.DataFrame(m["clean"])
+    clean_table = [{"sequence": c["sequence"], "position (m)": c["position_m"], "relative position": c["relative_position"],
+                    "attitude (deg)": c["attitude_deg"]} for c in m["clean"]]
+    fg = pd.DataFrame(m["fgsm"])
+    fgsm_table = [{"eps": "clean", "position (m)": float(clean["position_m"].mean()),
+                   "relative position": float(clean["relative_position"].mean()),
+                   "attitude (deg)": float(clean["attitude_deg"].mean())}]
+    for eps, g in fg.groupby("eps", sort=False):
+        fgsm_table.append({"eps": f"{eps:g}", "position (m)": float(g["position_m"].mean()),
+                           "relative position": float(g["relative_position"].mean()),
+                           "attitude (deg)": float(g["attitude_deg"].mean())})
+    synth = "not available (run `rpod train`)"
+    if train_metrics:
+        flat = {k: v for k, v in train_metrics.items() if isinstance(v, (int, float))}
+        keys = [k for k in flat if "position" in k or "attitude" in k]
+        synth = ", ".join(f"{k} = {flat[k]:.3f}" for k in keys[:4]) or "see reports/pose.md"
+    att_frac = np.mean([s["attacked"].mean() for s in sequences])
+    mean_acc = 100 * m["accuracy_mean"]
+    return f"""# Lab domain
+
+Source: {src}. The pose model and the detector are the main ones (`lab.retrain: {lab['retrain']}`):
+the lab mock-up is the main target mesh at 1/{lab['scale']:g} scale and K_blender has the lab images'
+16:9 aspect (SPEC 9), so the synthetic-lab training set would repeat the main one; retraining
+(`lab.retrain: always`) is not implemented yet.
+
+## Range rescaling
+
+Apparent size s = f L / z (pixels). The lab image ({K_zed.width}x{K_zed.height}, fx = {K_zed.fx:g}) resized to
+{K_syn.width}x{K_syn.height} has fx_lab_eff = {K_zed.fx:g} x {K_syn.width}/{K_zed.width} = {f_eff:.2f} px; the
+mock-up is L/{lab['scale']:g}; the synthetic camera has fx = {K_syn.fx:g} px. Equal size gives
+z_syn = z_lab x {lab['scale']:g} x {K_syn.fx:g} / {f_eff:.2f} = **{m['factor']:.3f} x z_lab**
+(`rpod lab rescale --z 3.122` -> {3.122 * m['factor']:.2f} m). Lateral label coordinates keep the target's
+pixel position. The match is on the horizontal size: K_blender's pixels are not square (fx/fy = 16/9),
+so the target is {K_syn.fy / K_syn.fx:.3f}x as tall in the synthetic image as in the resized lab image.
+
+{markdown_table(m['ranges'], decimals=2)}
+{loader}
+## Pose error
+
+Lab frames: {lab['frames']} per sequence at {lab['fps']} fps, mocap at {lab['mocap_hz']} Hz, rendered with the
+ZED geometry (fx scaled by 1 + {ds['calib_error']:g}: a calibration error), sun direction {ds['sun_direction']}
+at strength {ds['sun_strength']}, blur sigma {ds['blur_sigma']} px, noise std {ds['noise_std']}, then
+segmented (masks/) and resized to {p['render']['width']}x{p['render']['height']}. Errors are in the equivalent
+synthetic frame (metres x {m['factor']:.2f} of lab metres).
+
+Synthetic test split (the main model, `reports/metrics/train.json`): {synth}.
+
+{markdown_table(clean_table, decimals=3)}
+## FGSM on the lab sequences
+
+Mean error over all lab frames (attack.eps, loss `{p['attack']['loss']}`, 8-bit images).
+
+{markdown_table(fgsm_table, decimals=3)}
+## Integrated detection, {m['attack_length']}-frame attacks
+
+Start probability {p['evaluate']['p_start']:g} per frame, {100 * att_frac:.1f}% of the frames attacked;
+accuracy = correctly classified frames / all frames (%).
+
+{markdown_table(accuracy_table(rows, summary, names, PAPER_ACCURACY), decimals=2)}
+Mean over eps: **{mean_acc:.2f}%** (paper: {PAPER_AVERAGE}% average).
+
+{markdown_table(detail_table(summary), decimals=2)}
+"""
