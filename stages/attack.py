@@ -213,7 +213,7 @@ def _figure(clean: np.ndarray, adv: dict[float, np.ndarray], t_gt: np.ndarray, p
         row[0].imshow(clean)
         row[0].set_title(f"original (pos. error {err['clean']:.2f} m)", fontsize=8)
         row[1].imshow(np.clip(0.5 + 0.5 * delta / scale, 0, 1))
-        row[1].set_title(f"perturbation eps={e:g} (x{0.5 / scale:.0f})", fontsize=8)
+        row[1].set_title(f"perturbation eps={e:g} (shown x{0.5 / scale:.2g})", fontsize=8)
         row[2].imshow(adv[e])
         row[2].set_title(f"adversarial (pos. error {err[e]:.2f} m)", fontsize=8)
         for ax in row:

@@ -149,7 +149,10 @@ def _report(m: dict[str, Any], g: dict[str, Any], a: dict[str, Any], render: dic
         tables.append(f"### eps = {eps:g}: the chaser missed or lost the target in {rate:.0%} of the runs\n\n"
                       f"{markdown_table(rows)}")
     law = ("the next true position is computed from the estimate, `p_new = p_est - clip(p_est - p_tar, -1, 1)` "
-           "(the paper's variant)" if m["variant"] == "paper" else
+           "(the paper's variant: the chaser ends up where it believes it goes, so one wrong estimate moves the true "
+           "chaser by as much as the estimate is wrong, and any estimate within 1 m per axis of the target point puts "
+           "it exactly there; `guidance.variant: true_state` applies the command to the true state instead)"
+           if m["variant"] == "paper" else
            "the command `clip(p_est - p_tar, -1, 1)` is computed from the estimate and applied to the true state")
     start, goal = (", ".join(f"{float(v):g}" for v in g[k]) for k in ("start", "target"))
     baseline = f"**No-attack baseline: {m['baseline']['outcome']}, final miss {m['baseline']['miss_m']:.2f} m.**"
@@ -185,30 +188,34 @@ The full paper grid (eps 0.5, 0.3, 0.1, 0.05, 0.01; S = 60..10 m; K = 5..20) run
 
 
 def _figure(baseline, runs: list, eps: float | None, goal: tuple[float, float, float]) -> None:
-    """True trajectories, lateral x and y against range axis z, for the runs of one eps."""
+    """True trajectories of the runs of one eps: lateral x and y against z, and z against the step."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     cmap = plt.get_cmap("viridis")
-    for ax, i, name in zip(axes, (0, 1), ("x", "y")):
-        ax.plot(baseline.positions[:, 2], baseline.positions[:, i], "k-", lw=2, label="no attack")
-        for j, (s, k, r) in enumerate(runs):
-            color = cmap(j / max(len(runs) - 1, 1))
-            ax.plot(r.positions[:, 2], r.positions[:, i], "-", color=color, lw=1, label=f"S={s:g} m, K={k}: {r.outcome}")
-            hit = np.flatnonzero(r.attacked)
-            ax.plot(r.positions[hit, 2], r.positions[hit, i], "o", color=color, ms=3)
-        ax.plot(goal[2], goal[i], "r*", ms=12, label="target point")
+    curves = [("no attack", baseline, "black", 2.0)] + [
+        (f"S={s:g} m, K={k}: {r.outcome}", r, cmap(j / max(len(runs) - 1, 1)), 1.0) for j, (s, k, r) in enumerate(runs)]
+    for label, r, color, lw in curves:
+        hit = np.flatnonzero(r.attacked)
+        for ax, (h, v) in zip(axes, ((r.positions[:, 2], r.positions[:, 0]), (r.positions[:, 2], r.positions[:, 1]),
+                                     (np.arange(len(r.positions)), r.positions[:, 2]))):
+            ax.plot(h, v, "-", color=color, lw=lw, label=label)
+            ax.plot(h[hit], v[hit], "o", color=color, ms=3)
+    for ax, (h, v) in zip(axes, ((goal[2], goal[0]), (goal[2], goal[1]))):
+        ax.plot(h, v, "r*", ms=12, label="target point")
         ax.invert_xaxis()
         ax.set_xlabel("z (m, along the approach)")
-        ax.set_ylabel(f"{name} (m)")
+    axes[2].axhline(goal[2], color="r", ls="--", lw=1)
+    axes[2].set_xlabel("step")
+    for ax, title, ylabel in zip(axes, ("z vs x", "z vs y", "z vs step"), ("x (m)", "y (m)", "z (m)")):
+        ax.set_title(title)
+        ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
-    axes[0].set_title("z vs x")
-    axes[1].set_title("z vs y")
     axes[1].legend(fontsize=7, loc="best")
-    fig.suptitle(f"True chaser trajectories, eps = {eps:g} (dots: attacked frames)" if eps is not None
-                 else "True chaser trajectory without attack", fontsize=10)
+    fig.suptitle("True position of the target relative to the chaser" + (f", eps = {eps:g}" if eps is not None else "")
+                 + " (dots: attacked frames)", fontsize=10)
     fig.tight_layout()
     save_figure(fig, FIGURE)
