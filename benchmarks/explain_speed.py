@@ -12,6 +12,7 @@ the default architecture (timings do not depend on the weights). Prints a table 
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import sys
 import time
@@ -46,8 +47,6 @@ def per_call(fn: Callable[[], object], min_seconds: float = 1.0, max_calls: int 
 
 def load_models(width: float) -> tuple[PoseNet, LSTMDetector, str]:
     """The trained models when present, else random ones of the default architecture."""
-    import os
-
     os.chdir(ROOT)
     source = []
     pose_path, det_path = Path("models/pose.pt"), Path("models/detector.pt")
@@ -124,8 +123,10 @@ def main() -> None:
         {"per frame": "safety chain = pose + SHAP + detector (1 frame)", "ms": (t_pose + t_exact_1 + t_det_1) * 1e3},
     ]
     ratio = t_deep / t_exact_1
-    body = f"""`benchmarks/explain_speed.py` on {platform.processor() or platform.machine()}, torch {torch.__version__},
-{args.threads} thread(s); models: {source}; input {w}x{h}; background of {args.background} images.
+    load = os.getloadavg()[0]
+    body = f"""`benchmarks/explain_speed.py` on {platform.processor() or platform.machine()} ({os.cpu_count()} cores, load
+average {load:.1f} when it ran), torch {torch.__version__}, {args.threads} thread(s); models: {source};
+input {w}x{h}; background of {args.background} images.
 Explaining the 9 outputs over the 1000 GAP features (a 9 x 1000 array per image):
 
 {markdown_table(rows, decimals=4)}
