@@ -127,7 +127,7 @@ def render_part(p: dict[str, Any], start: int, stop: int, dest: Path, desc: str)
     t0 = time.perf_counter()
     try:
         buf = np.zeros((chunk, K.height, K.width, 3), np.uint8)
-        with tqdm(total=n, unit="img", desc=desc, dynamic_ncols=True) as bar:
+        with tqdm(total=n, unit="img", desc=desc, dynamic_ncols=True, mininterval=0.5) as bar:
             for lo in range(0, n, chunk):
                 hi = min(lo + chunk, n)
                 for k in range(lo, hi):
