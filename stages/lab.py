@@ -339,10 +339,9 @@ def report(p: dict[str, Any], m: dict[str, Any], rows: list[dict[str, Any]], sum
                            "relative position": float(g["relative_position"].mean()),
                            "attitude (deg)": float(g["attitude_deg"].mean())})
     synth = "not available (run `rpod train`)"
-    if train_metrics:
-        flat = {k: v for k, v in train_metrics.items() if isinstance(v, (int, float))}
-        keys = [k for k in flat if "position" in k or "attitude" in k]
-        synth = ", ".join(f"{k} = {flat[k]:.3f}" for k in keys[:4]) or "see reports/pose.md"
+    test = (train_metrics or {}).get("test", {})
+    if "pos_mean_m" in test and "att_mean_deg" in test:
+        synth = f"{test['pos_mean_m']:.3f} m and {test['att_mean_deg']:.2f} deg mean error"
     att_frac = np.mean([s["attacked"].mean() for s in sequences])
     mean_acc = 100 * m["accuracy_mean"]
     return f"""# Lab domain
