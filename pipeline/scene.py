@@ -36,14 +36,14 @@ _FLIP = np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes <-> Blender camera axes
 
 @dataclass(frozen=True)
 class SceneSettings:
-    """Scene and render settings (metres, degrees-free: directions are vectors in the target frame)."""
+    """Scene and render settings. Lengths in metres; directions are vectors in the target frame."""
 
     mesh: str | None = None            # None = procedural Jason-1-like satellite; else OBJ/GLB/GLTF/STL/PLY
     mesh_scale: float = 1.0            # metres per mesh unit
     sun_direction: tuple[float, float, float] = (-0.5, -0.3, 1.0)  # direction sunlight travels, target frame
     sun_strength: float = 6.0          # W/m^2 (Blender sun strength)
     samples: int = 8                   # Cycles samples per pixel
-    denoiser: str = "OPENIMAGEDENOISE"  # or NONE
+    denoiser: str = "NONE"             # or OPENIMAGEDENOISE
     denoise_quality: str = "FAST"      # OIDN: FAST, BALANCED, HIGH
     threads: int = 2
     ambient: float = 0.08              # world light strength (Earth-shine fill); the background stays black
@@ -168,6 +168,10 @@ class Renderer:
             raise ValueError(f"mesh_scale must be positive, got {settings.mesh_scale}")
         if settings.samples < 1:
             raise ValueError(f"samples must be at least 1, got {settings.samples}")
+        if settings.denoiser.upper() not in ("NONE", "OPENIMAGEDENOISE"):
+            raise ValueError(f"denoiser must be NONE or OPENIMAGEDENOISE, got {settings.denoiser!r}")
+        if settings.denoise_quality.upper() not in ("FAST", "BALANCED", "HIGH"):
+            raise ValueError(f"denoise_quality must be FAST, BALANCED or HIGH, got {settings.denoise_quality!r}")
         self.K = K
         self.settings = settings
         bpy.ops.wm.read_factory_settings(use_empty=True)

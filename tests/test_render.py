@@ -142,3 +142,5 @@ def test_bad_meshes(tmp_path):
         Renderer(K160, SceneSettings(mesh=str(empty)))
     with pytest.raises(ValueError, match="positive"):
         Renderer(Intrinsics(0, 90, 100, 100, 50, 45), SceneSettings())
+    with pytest.raises(ValueError, match="denoiser"):
+        Renderer(K160, SceneSettings(denoiser="OPTIX"))
