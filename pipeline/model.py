@@ -1,0 +1,115 @@
+"""The relative-pose CNN: a modified Darknet-19 with a 1000-feature GAP layer and two linear heads.
+
+Architecture (SPEC 4): Darknet-19's layer plan with a 7x7 first convolution, every max-pool replaced
+by a 3x3 stride-2 convolution, and Darknet-53-style residual blocks (1x1 bottleneck to half the
+channels, 3x3 back, identity skip) in place of Darknet-19's 1x1/3x3 pairs. Every convolution is
+followed by BatchNorm and its own LeakyReLU(0.1) instance (inplace=False, so shap's DeepExplainer
+can hook each one). A 1x1 convolution to 1000 channels and Global Average Pooling give the "GAP
+layer" features; dropout (training only) and two separate linear heads give the nine outputs:
+position (tx, ty, tz) in metres in the OpenCV camera frame, then the 6-D rotation (Zhou et al.).
+
+Input: (B, 3, H, W) float RGB in [0, 1], any H, W (the GAP makes the heads size-independent).
+There is no input normalisation layer: the first convolution has no bias and is followed by
+BatchNorm, which absorbs any affine rescaling of the pixels.
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+N_FEATURES = 1000
+LEAKY_SLOPE = 0.1
+# Darknet-19 stages after the stem: (channels at full width, residual blocks). Each stage starts with
+# the stride-2 3x3 convolution that replaces Darknet-19's max-pool.
+STAGES: tuple[tuple[int, int], ...] = ((64, 0), (128, 1), (256, 1), (512, 2), (1024, 2))
+STEM_CHANNELS = 32
+# A typical label used as the initial output bias (metres; identity 6-D) until set from data.
+DEFAULT_POSITION = (0.0, 0.0, 35.0)
+IDENTITY_6D = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+
+
+def conv_bn_act(c_in: int, c_out: int, k: int, stride: int = 1) -> nn.Sequential:
+    """Conv (no bias) + BatchNorm + a fresh LeakyReLU; 'same' padding for odd k."""
+    return nn.Sequential(
+        nn.Conv2d(c_in, c_out, k, stride=stride, padding=k // 2, bias=False),
+        nn.BatchNorm2d(c_out),
+        nn.LeakyReLU(LEAKY_SLOPE, inplace=False),
+    )
+
+
+class Residual(nn.Module):
+    """Darknet-53 residual block: x + conv3x3(conv1x1(x)), the 1x1 halving the channels."""
+
+    def __init__(self, channels: int):
+        super().__init__()
+        self.body = nn.Sequential(conv_bn_act(channels, max(channels // 2, 1), 1),
+                                  conv_bn_act(max(channels // 2, 1), channels, 3))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.body(x)
+
+
+def scaled(channels: int, width: float) -> int:
+    """Channel count at a width multiplier, at least 4."""
+    return max(4, int(round(channels * width)))
+
+
+class PoseNet(nn.Module):
+    """Modified Darknet-19 pose regressor; `forward(x) = forward_head(forward_features(x))`.
+
+    width: channel multiplier of the backbone (the 1000-feature layer is fixed);
+    dropout: probability on the GAP features, active in training mode only.
+    """
+
+    def __init__(self, width: float = 1.0, dropout: float = 0.2):
+        super().__init__()
+        if not width > 0:
+            raise ValueError(f"width must be positive, got {width}")
+        if not 0 <= dropout < 1:
+            raise ValueError(f"dropout must be in [0, 1), got {dropout}")
+        self.width, self.dropout_p = float(width), float(dropout)
+        c = scaled(STEM_CHANNELS, width)
+        layers: list[nn.Module] = [conv_bn_act(3, c, 7)]
+        for channels, blocks in STAGES:
+            c_out = scaled(channels, width)
+            layers.append(conv_bn_act(c, c_out, 3, stride=2))
+            layers += [Residual(c_out) for _ in range(blocks)]
+            c = c_out
+        layers.append(conv_bn_act(c, N_FEATURES, 1))
+        self.backbone = nn.Sequential(*layers)
+        self.gap = nn.AdaptiveAvgPool2d(1)
+        self.dropout = nn.Dropout(dropout)
+        self.head_pos = nn.Linear(N_FEATURES, 3)
+        self.head_rot = nn.Linear(N_FEATURES, 6)
+        self._init_weights()
+        self.set_output_bias(DEFAULT_POSITION, IDENTITY_6D)
+
+    def _init_weights(self) -> None:
+        for m in self.modules():
+            if isinstance(m, nn.Conv2d):
+                nn.init.kaiming_normal_(m.weight, a=LEAKY_SLOPE, nonlinearity="leaky_relu")
+        for head in (self.head_pos, self.head_rot):
+            nn.init.normal_(head.weight, std=0.01)
+
+    @torch.no_grad()
+    def set_output_bias(self, position: tuple[float, ...] | torch.Tensor,
+                        rotation6d: tuple[float, ...] | torch.Tensor) -> None:
+        """Set the heads' biases (position in metres, 6-D rotation), e.g. to the training-label mean."""
+        self.head_pos.bias.copy_(torch.as_tensor(position, dtype=torch.float32))
+        self.head_rot.bias.copy_(torch.as_tensor(rotation6d, dtype=torch.float32))
+
+    def forward_features(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 3, H, W) in [0, 1] -> (B, 1000) GAP-layer features."""
+        return torch.flatten(self.gap(self.backbone(x)), 1)
+
+    def forward_head(self, features: torch.Tensor) -> torch.Tensor:
+        """(B, 1000) features -> (B, 9): position (m) then 6-D rotation."""
+        f = self.dropout(features)
+        return torch.cat([self.head_pos(f), self.head_rot(f)], dim=1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.forward_head(self.forward_features(x))
+
+    def arch(self) -> dict[str, float]:
+        """The constructor arguments (stored in checkpoints)."""
+        return {"width": self.width, "dropout": self.dropout_p}

@@ -1,0 +1,97 @@
+"""Pose-model checkpoints: weights + architecture + input size, loaded safely and checked against params.
+
+A checkpoint is a plain dict (loadable with `torch.load(weights_only=True)`):
+    format: "rpodguard-pose/1", arch: {width, dropout}, input_size: [height, width] (pixels),
+    model: the PoseNet state dict, loss: {s_p, s_r, reduction} (the learned loss, for attacks),
+    meta: small JSON-like facts (epoch, errors, ...).
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from stages.io import StageError
+
+POSE = Path("models/pose.pt")
+FORMAT = "rpodguard-pose/1"
+
+
+def expected(params: dict[str, Any]) -> dict[str, Any]:
+    """The architecture and input size that params.yaml asks for."""
+    return {"arch": {"width": float(params["train"]["width"]), "dropout": float(params["train"]["dropout"])},
+            "input_size": [int(params["render"]["height"]), int(params["render"]["width"])]}
+
+
+def save_pose(path: Path | str, model: Any, loss: Any, input_size: tuple[int, int], meta: dict[str, Any]) -> None:
+    """Write a checkpoint atomically (temporary file + rename)."""
+    import torch
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    state = {
+        "format": FORMAT,
+        "arch": model.arch(),
+        "input_size": [int(input_size[0]), int(input_size[1])],
+        "model": {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()},
+        "loss": {"s_p": loss.s_p.item(), "s_r": loss.s_r.item(), "reduction": loss.reduction},
+        "meta": meta,
+    }
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        torch.save(state, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def read_pose(path: Path | str = POSE, params: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Load a checkpoint with weights_only=True; with params, refuse an architecture/input-size mismatch."""
+    import torch
+
+    path = Path(path)
+    if not path.exists():
+        raise StageError(f"pose checkpoint {path} not found (run `rpod train` first)")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise StageError(f"pose checkpoint {path} is unreadable ({type(e).__name__}: {e}); re-run `rpod train`") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
+        raise StageError(f"{path} is not an rpodguard pose checkpoint ({FORMAT}); re-run `rpod train`")
+    if params is not None:
+        want = expected(params)
+        have = {"arch": ckpt["arch"], "input_size": list(ckpt["input_size"])}
+        diffs = [f"{k}={have['arch'].get(k)} (params: {v})" for k, v in want["arch"].items() if have["arch"].get(k) != v]
+        if have["input_size"] != want["input_size"]:
+            diffs.append(f"input_size HxW={have['input_size']} (params: {want['input_size']})")
+        if diffs:
+            raise StageError(f"pose checkpoint {path} does not match params.yaml: {', '.join(diffs)}; "
+                             f"re-run `rpod train` or restore the params it was trained with")
+    return ckpt
+
+
+def load_pose_model(path: Path | str = POSE, params: dict[str, Any] | None = None, device: str = "cpu"):
+    """The PoseNet of a checkpoint, in eval mode on `device` (checked against params when given)."""
+    from pipeline.model import PoseNet
+
+    ckpt = read_pose(path, params)
+    model = PoseNet(**ckpt["arch"])
+    model.load_state_dict(ckpt["model"])
+    return model.to(device).eval()
+
+
+def load_pose_loss(path: Path | str = POSE, params: dict[str, Any] | None = None):
+    """The PoseLoss with the learned weights s_p, s_r of a checkpoint (what attacks ascend)."""
+    import torch
+
+    from pipeline.loss import PoseLoss
+
+    ckpt = read_pose(path, params)
+    loss = PoseLoss(ckpt["loss"]["reduction"])
+    with torch.no_grad():
+        loss.s_p.fill_(ckpt["loss"]["s_p"])
+        loss.s_r.fill_(ckpt["loss"]["s_r"])
+    return loss

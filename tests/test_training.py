@@ -1,0 +1,164 @@
+"""The train stage on a tiny synthetic dataset: data checks, checkpoints, the loop, the report."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+import zarr
+
+from pipeline.camera import reference_intrinsics
+from pipeline.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
+from stages import checkpoint, data
+from stages import params as params_mod
+from stages.io import StageError
+
+W, H = 48, 27
+
+
+def write_dataset(root: Path, n: int = 40, width: int = W, height: int = H, seed: int = 0,
+                  overrides: list[str] | None = None) -> dict:
+    """A tiny stand-in for render + label under `root`: a bright rectangle at the projected target
+    position, sized by 1/range, shaded by the attitude; params.yaml = the smoke profile at this size."""
+    rng = np.random.default_rng(seed)
+    K = reference_intrinsics().scaled(width, height)
+    tz = rng.uniform(10, 60, n)
+    t = np.stack([rng.uniform(-0.2, 0.2, n) * tz, rng.uniform(-0.2, 0.2, n) * tz, tz], 1)
+    R = euler_to_matrix(rng.uniform(-10, 10, (n, 3)))
+    images = np.zeros((n, height, width, 3), np.uint8)
+    for i in range(n):
+        u, v = K.fx * t[i, 0] / t[i, 2] + K.cx, K.fy * t[i, 1] / t[i, 2] + K.cy
+        half = max(1, int(round(K.fx * 1.5 / t[i, 2])))
+        shade = (128 + 100 * R[i, :, 0]).clip(0, 255)
+        images[i, max(0, int(v) - half):int(v) + half + 1, max(0, int(u) - half):int(u) + half + 1] = shade
+    group = zarr.open_group(str(root / "datasets/render/images.zarr"), mode="w")
+    group.create_array("images", shape=images.shape, chunks=(16, height, width, 3), dtype="uint8")[:] = images
+    r6 = matrix_to_6d(R)
+    labels = pd.DataFrame({"index": np.arange(n), "image": [f"images/{i}" for i in range(n)],
+                           "sequence": np.arange(n) % 13, "frame": np.arange(n) // 13,
+                           **{c: t[:, k] for k, c in enumerate(data.POSITION)},
+                           **{c: q for c, q in zip(data.QUAT, matrix_to_quat(R).T)},
+                           **{c: r6[:, k] for k, c in enumerate(data.SIXD)},
+                           "range": np.linalg.norm(t, axis=1),
+                           "split": np.where(np.arange(n) % 5 == 0, "test", "train")})
+    labels.to_parquet(root / "datasets/labels.parquet")
+    params = params_mod.compose("smoke", [f"render.width={width}", f"render.height={height}", *(overrides or [])])
+    params_mod.write_params(params, root / "params.yaml")
+    return params
+
+
+@pytest.fixture
+def dataset(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    torch.set_num_threads(1)
+    return write_dataset(tmp_path)
+
+
+def test_load_split_reads_rows_and_images(dataset):
+    train, test = data.load_split(dataset, "train"), data.load_split(dataset, "test")
+    assert len(train) == 32 and len(test) == 8
+    assert train.images.shape == (32, H, W, 3) and train.images.dtype == np.uint8
+    assert train.targets.shape == (32, 9)
+    store = zarr.open_group("datasets/render/images.zarr", mode="r")["images"]
+    np.testing.assert_array_equal(test.images[3], store[int(test.labels["index"][3])])
+    lazy = data.load_split(dataset, "test", preload=False)
+    np.testing.assert_array_equal(lazy.images[3], test.images[3])
+
+
+def _edit_labels(fn) -> None:
+    df = pd.read_parquet("datasets/labels.parquet")
+    fn(df).to_parquet("datasets/labels.parquet")
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda df: df.assign(tx=df["tx"].where(df.index != 3)), "NaN labels"),
+    (lambda df: df.drop(columns=["r5"]), "r0..r5"),
+    (lambda df: df.assign(r6=0.0), "r0..r5"),
+    (lambda df: df.assign(r0=df["r0"] * 2), "rotation matrix"),
+    (lambda df: df.assign(split="train"), "'test' split is empty"),
+    (lambda df: df.assign(index=df["index"] + 100), "outside"),
+])
+def test_bad_labels_are_refused_clearly(dataset, edit, message):
+    _edit_labels(edit)
+    with pytest.raises(StageError, match=message):
+        data.load_split(dataset, "test")
+
+
+def test_image_size_mismatch_is_refused(dataset):
+    dataset["render"]["width"] = 64
+    with pytest.raises(StageError, match="48x27 pixels but params.yaml has render.width x render.height = 64x27"):
+        data.load_split(dataset, "train")
+
+
+def test_checkpoint_round_trip_and_mismatch_refusal(dataset, tmp_path):
+    from pipeline.loss import PoseLoss
+    from pipeline.model import PoseNet
+
+    model, loss = PoseNet(dataset["train"]["width"], dataset["train"]["dropout"]).eval(), PoseLoss()
+    with torch.no_grad():
+        loss.s_p.fill_(0.7)
+    path = tmp_path / "models/pose.pt"
+    checkpoint.save_pose(path, model, loss, (H, W), {"epoch": 1})
+    loaded = checkpoint.load_pose_model(path, dataset)
+    assert not loaded.training
+    x = torch.rand(2, 3, H, W)
+    torch.testing.assert_close(loaded(x), model(x))
+    assert checkpoint.load_pose_loss(path, dataset).s_p.item() == pytest.approx(0.7)
+    wider = {**dataset, "train": {**dataset["train"], "width": 0.5}}
+    with pytest.raises(StageError, match=r"does not match params.yaml: width=0.125 \(params: 0.5\)"):
+        checkpoint.load_pose_model(path, wider)
+    bigger = {**dataset, "render": {**dataset["render"], "height": 54, "width": 96}}
+    with pytest.raises(StageError, match=r"input_size HxW=\[27, 48\] \(params: \[54, 96\]\)"):
+        checkpoint.read_pose(path, bigger)
+    path.write_bytes(b"not a checkpoint")
+    with pytest.raises(StageError, match="unreadable"):
+        checkpoint.read_pose(path)
+
+
+def test_fit_improves_and_tracks_the_best_epoch(dataset):
+    from pipeline.loss import PoseLoss
+    from pipeline.model import PoseNet
+    from pipeline.training import TrainConfig, fit
+
+    train, test = data.load_split(dataset, "train"), data.load_split(dataset, "test")
+    model = PoseNet(0.125, 0.0)
+    model.set_output_bias(train.targets[:, :3].mean(0), train.targets[:, 3:].mean(0))
+    seen = []
+    cfg = TrainConfig(epochs=4, batch_size=8, lr_base=1e-4, lr_max=2e-3, cycle_epochs=2)
+    result = fit(model, PoseLoss(), data.pose_dataset(train, dataset["train"]["augment"]), data.pose_dataset(test), cfg,
+                 on_epoch=lambda stats, best, net: seen.append((stats.epoch, best)), progress=False)
+    assert [e for e, _ in seen] == [1, 2, 3, 4] and len(result.history) == 4
+    scores = [h.test_score for h in result.history]
+    assert result.best_epoch == int(np.argmin(scores)) + 1 and result.best_score == min(scores)
+    assert result.history[-1].loss < result.history[0].loss
+    assert all(h.images_per_s > 0 for h in result.history)
+    model.load_state_dict(result.best_state)  # the kept state loads back
+
+
+def test_time_limit_stops_between_epochs(dataset):
+    from pipeline.loss import PoseLoss
+    from pipeline.model import PoseNet
+    from pipeline.training import TrainConfig, fit
+
+    train, test = data.load_split(dataset, "train"), data.load_split(dataset, "test")
+    cfg = TrainConfig(epochs=50, batch_size=16, max_minutes=1e-4)
+    result = fit(PoseNet(0.125), PoseLoss(), data.pose_dataset(train), data.pose_dataset(test), cfg, progress=False)
+    assert result.stopped_early and len(result.history) == 1
+
+
+def test_train_stage_writes_checkpoint_report_and_metrics(dataset):
+    from stages.train import main
+
+    main()
+    metrics = json.loads(Path("reports/metrics/train.json").read_text())
+    assert metrics["epochs_run"] == dataset["train"]["epochs"] and metrics["processes"] == 1
+    assert metrics["test"]["n"] == 8 and metrics["train"]["n"] == 32
+    assert sum(b["n"] for b in metrics["test"]["bins"]) == 8
+    report = Path("reports/pose.md").read_text()
+    assert "0.490" in report and "Guidance requirements" in report and "60-45" in report
+    model = checkpoint.load_pose_model(checkpoint.POSE, params_mod.load())
+    assert model(torch.rand(1, 3, H, W)).shape == (1, 9)
+    assert Path("dvclive/train/plots/metrics/test_pos_m.tsv").exists()
