@@ -147,6 +147,14 @@ def render_part(p: dict[str, Any], start: int, stop: int, dest: Path, desc: str)
     })
 
 
+def remove_leftovers(path: Path) -> None:
+    """Delete temporary folders that an interrupted (killed) run left next to `path`; they were never
+    renamed into place, so nothing trusts them, but they hold disk space."""
+    for d in path.parent.glob(f".{path.name}.*.tmp"):
+        shutil.rmtree(d, ignore_errors=True)
+        typer.echo(f"removed {d}, left over from an interrupted run")
+
+
 def check_store(path: Path, what: str = "render output") -> tuple[Any, Any, dict[str, Any]]:
     """Open a render output folder and verify it is complete and consistent -> (images, poses, meta)."""
     meta = read_json(path / "meta.json")
@@ -241,10 +249,12 @@ def main(
     else:
         i, n = parse_shard(shard)
         if n == 1:
+            remove_leftovers(OUT)
             with atomic_dir(OUT) as tmp:
                 render_part(p, 0, n_frames, tmp, "render")
         else:
             start, stop = shard_range(n_frames, int(p["render"]["chunk"]), i, n)
+            remove_leftovers(SHARDS / str(n) / str(i))
             with atomic_dir(SHARDS / str(n) / str(i)) as tmp:
                 render_part(p, start, stop, tmp, f"render {i}/{n}")
             with open(SHARDS / f".merge-{n}.lock", "w") as lock:  # parts finishing together merge once

@@ -103,6 +103,13 @@ def test_interrupted_render_leaves_no_dataset(workdir, monkeypatch):
     assert not (workdir / "datasets/render").exists()
     assert not list((workdir / "datasets").glob(".render*"))  # the temporary folder is gone too
 
+    # A hard kill (no clean-up) leaves a temporary folder: never trusted, and removed by the next run.
+    leftover = workdir / "datasets" / ".render.killed.tmp"
+    (leftover / "images.zarr").mkdir(parents=True)
+    monkeypatch.setattr(scene.Renderer, "render", original)
+    render.main(shard="1/1", merge_parts=0)
+    assert not leftover.exists() and (workdir / "datasets/render/meta.json").exists()
+
 
 @pytest.mark.slow
 def test_corrupt_or_missing_store_is_refused(workdir):
