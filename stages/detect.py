@@ -320,6 +320,10 @@ def _report(results: dict[str, dict[str, dict[str, float]]], scores: dict[str, A
     eps_keys = [k for k in lstm if k != "all"]
     recall_rows = [{"detector": names[k], **{f"eps {e}": r[e]["recall"] for e in eps_keys},
                     "FPR": r["all"]["fpr"]} for k, r in results.items()]
+    best = max(results, key=lambda k: results[k]["all"]["accuracy"])
+    rates = ", ".join(f"{e}: {lstm[e]['recall']:.0%}" for e in eps_keys)
+    reading = (f"Detection rate of the LSTM by eps: {rates}; false alarms on clean images: {lstm['all']['fpr']:.1%}. "
+               f"Highest test accuracy of all detectors here: {names[best]} ({results[best]['all']['accuracy']:.2%}).")
     paper = f"{PAPER_ACCURACY * 100:.2f}%"
     ours = f"{lstm['all']['accuracy'] * 100:.2f}%"
     return f"""# Attack detector
@@ -330,6 +334,7 @@ attacked: an LSTM of {d['hidden']} units with ReLU, dense layers {d['dense']}, o
 Adadelta (lr {d['lr']}), early stopping after {d['patience']} epochs without a lower validation loss.
 
 **Test accuracy: {ours}** (paper: {paper} on its 30,000 SHAP samples).
+{reading}
 
 Data: {counts['samples']} SHAP samples (`datasets/shap.zarr`, method `{attrs.get('method')}`, background
 of {attrs.get('background_size')} training images). Split {1 - d['test_fraction']:.0%}/{d['test_fraction']:.0%} train/test with
