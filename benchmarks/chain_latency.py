@@ -3,7 +3,8 @@
 At batch 1 (one camera frame, as onboard), for the default (160x90, width 0.25) and the paper
 (480x270, width 1.0) configurations, with randomly initialised models (timings do not depend on
 the weights). The two are timed interleaved (pose, chain, pose, chain, ...) so load from other
-processes hits both alike; medians are reported. Target: chain <= 1.05x the pose forward.
+processes hits both alike; medians of wall and process CPU time are reported. Target: chain <=
+1.05x the pose forward (judged on CPU time).
 Prints a table and writes the `## Safety chain latency` section of reports/benchmarks.md.
 
     .venv/bin/python benchmarks/chain_latency.py [--threads 2] [--seconds 4]
@@ -11,6 +12,7 @@ Prints a table and writes the `## Safety chain latency` section of reports/bench
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import sys
 import time
@@ -31,19 +33,22 @@ REPORT = ROOT / "reports" / "benchmarks.md"
 CONFIGS = [("default", 0.25, 90, 160), ("paper", 1.0, 270, 480)]
 
 
-def interleaved(a, b, seconds: float) -> tuple[float, float]:
-    """Median seconds per call of a() and b(), timed alternately for about `seconds` in all."""
+def interleaved(a, b, seconds: float) -> dict[str, float]:
+    """Median seconds per call of a() and b(), timed alternately for about `seconds` in all.
+
+    Both wall time and process CPU time (all threads) are taken: on a CPU shared with other jobs
+    the CPU time is the steadier measure of what a call costs.
+    """
     a(), b()
-    ta, tb = [], []
+    out: dict[str, list[float]] = {"wall_a": [], "wall_b": [], "cpu_a": [], "cpu_b": []}
     start = time.perf_counter()
-    while time.perf_counter() - start < seconds or len(ta) < 5:
-        t = time.perf_counter()
-        a()
-        ta.append(time.perf_counter() - t)
-        t = time.perf_counter()
-        b()
-        tb.append(time.perf_counter() - t)
-    return float(np.median(ta)), float(np.median(tb))
+    while time.perf_counter() - start < seconds or len(out["wall_a"]) < 5:
+        for key, fn in (("a", a), ("b", b)):
+            w, c = time.perf_counter(), time.process_time()
+            fn()
+            out[f"cpu_{key}"].append(time.process_time() - c)
+            out[f"wall_{key}"].append(time.perf_counter() - w)
+    return {k: float(np.median(v)) for k, v in out.items()}
 
 
 def main() -> None:
@@ -62,19 +67,26 @@ def main() -> None:
         with torch.no_grad():
             bg_mean = model.forward_features(torch.rand(4, 3, h, w)).mean(0)
         chain = SafetyChain.from_model(model, bg_mean, detector)
-        t_pose, t_chain = interleaved(lambda: chain.pose_only(x), lambda: chain(x), args.seconds)
-        rows.append({"config": name, "input": f"{w}x{h}", "width": width, "pose forward (ms)": t_pose * 1e3,
-                     "whole chain (ms)": t_chain * 1e3, "ratio": t_chain / t_pose,
-                     "target <= 1.05x": "yes" if t_chain / t_pose <= 1.05 else "no"})
-        print(f"{name:8s} {w}x{h}: pose {t_pose * 1e3:.2f} ms, chain {t_chain * 1e3:.2f} ms, "
-              f"ratio {t_chain / t_pose:.3f}", flush=True)
+        t = interleaved(lambda: chain.pose_only(x), lambda: chain(x), args.seconds)
+        ratio = t["cpu_b"] / t["cpu_a"]
+        rows.append({"config": name, "input": f"{w}x{h}", "width": width,
+                     "pose CPU (ms)": t["cpu_a"] * 1e3, "chain CPU (ms)": t["cpu_b"] * 1e3, "CPU ratio": ratio,
+                     "pose wall (ms)": t["wall_a"] * 1e3, "chain wall (ms)": t["wall_b"] * 1e3,
+                     "wall ratio": t["wall_b"] / t["wall_a"], "target <= 1.05x": "yes" if ratio <= 1.05 else "no"})
+        print(f"{name:8s} {w}x{h}: CPU pose {t['cpu_a'] * 1e3:.2f} ms, chain {t['cpu_b'] * 1e3:.2f} ms "
+              f"(ratio {ratio:.3f}); wall ratio {t['wall_b'] / t['wall_a']:.3f}", flush=True)
     table = markdown_table(rows, decimals=3)
     print(table)
     body = f"""`benchmarks/chain_latency.py` on {platform.processor() or platform.machine()}, torch
-{torch.__version__}, {args.threads} threads, batch 1, random weights, medians of interleaved calls.
+{torch.__version__}, {args.threads} threads, batch 1, random weights, medians of interleaved calls; load average
+{os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (other jobs were running, so the target is judged on
+process CPU time, which they do not inflate; wall times are given too).
 The chain computes the GAP features once and uses them for the pose heads and for the closed-form
 SHAP values (pipeline/chain.py), then runs the LSTM detector (100 units, 9 steps; traced with
-TorchScript so its recurrence has no Python overhead).
+TorchScript so its recurrence has no Python overhead). What the chain adds is almost all the
+detector's input projection, 9 x 1000 x 400 = 3.6 M multiply-adds (about 0.4 ms on one core): a
+fixed cost that is a few percent of the paper-size network but about 10% of the width-0.25
+network at 160x90. The SHAP values themselves cost one 9 x 1000 multiply (~0.02 ms).
 
 {table}"""
     text = REPORT.read_text() if REPORT.exists() else "# Benchmarks\n"
