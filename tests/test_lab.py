@@ -176,3 +176,57 @@ def test_rescale_command_prints_the_synthetic_range(monkeypatch):
     assert out.exit_code == 0, out.output
     k = lab_to_synthetic_factor(K_SYN, K_ZED, 9.0)
     assert f"synthetic z = {3.122 * k:.2f} m" in out.output
+
+
+@pytest.mark.slow
+def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
+    """eval_render -> evaluate -> lab on the smoke profile with stand-in pose and detector checkpoints."""
+    import json
+
+    import torch
+    from typer.testing import CliRunner
+
+    from pipeline.detectors.lstm import LSTMConfig, LSTMDetector, to_checkpoint
+    from pipeline.loss import PoseLoss
+    from pipeline.model import PoseNet
+    from stages import params as params_mod
+    from stages.checkpoint import save_pose
+    from stages.cli import app
+    from stages.io import file_hash
+
+    monkeypatch.chdir(tmp_path)
+    p = params_mod.compose("smoke", ["evaluate.frames=12", "lab.frames=6", "evaluate.eps=[0.5,0.05]"])
+    params_mod.write_params(p)
+    torch.manual_seed(0)
+    h, w = p["render"]["height"], p["render"]["width"]
+    model = PoseNet(width=p["train"]["width"], dropout=p["train"]["dropout"]).eval()
+    model.set_output_bias((0.0, 0.0, 30.0), (1, 0, 0, 0, 1, 0))
+    save_pose("models/pose.pt", model, PoseLoss(), (h, w), {})
+    with torch.no_grad():
+        feats = model.forward_features(torch.rand(8, 3, h, w))
+    det = LSTMDetector(LSTMConfig(hidden=8, dense=[4]))
+    det.set_normalisation((feats - feats.mean(0)).unsqueeze(1).repeat(1, 9, 1).numpy())
+    torch.save(to_checkpoint(det, {"format": "rpodguard-detector/1", "pose_model_hash": file_hash("models/pose.pt"),
+                                   "background_mean": feats.mean(0), "background_size": 8, "shap_method": "exact"}),
+               "models/detector.pt")
+    runner = CliRunner()
+    out = runner.invoke(app, ["evaluate"])
+    assert out.exit_code != 0 and "eval_render" in str(out.exception)       # renders not there yet
+    for args in (["evaluate", "--render-only"], ["evaluate"], ["lab"]):
+        out = runner.invoke(app, args)
+        assert out.exit_code == 0, (args, out.output, out.exception)
+    ev = json.loads((tmp_path / "reports/metrics/evaluate.json").read_text())
+    assert set(ev["per_eps"]) == {"0.5", "0.05"} and len(ev["rows"]) == 2
+    assert (tmp_path / "reports/figures/timeline.png").stat().st_size > 1000
+    assert "| 0.5 " in (tmp_path / "reports/integrated.md").read_text()
+    lab = json.loads((tmp_path / "reports/metrics/lab.json").read_text())
+    assert lab["factor"] == pytest.approx(9 * 640 / (1400.41 / 4))
+    assert max(v["position_max_m"] for v in lab["loader_error"].values()) < 1e-3   # lab metres
+    seq = tmp_path / "datasets/lab/seq1"
+    assert len(list((seq / "images").glob("*.png"))) == 6 and (seq / "mocap.csv").exists()
+    # other eps must not re-render: the cached renders are reused as long as their params hold
+    params_mod.write_params(params_mod.compose("smoke", ["evaluate.frames=12", "lab.frames=6", "evaluate.eps=[0.3]"]))
+    assert runner.invoke(app, ["evaluate"]).exit_code == 0
+    params_mod.write_params(params_mod.compose("smoke", ["evaluate.frames=13", "lab.frames=6"]))
+    out = runner.invoke(app, ["evaluate"])
+    assert out.exit_code != 0 and "rendered with other params" in str(out.exception)
