@@ -343,7 +343,7 @@ def main(render_only: bool = typer.Option(False, "--render-only",
                "start_xy": meta["start_xy"]}
     write_json(METRICS, nan_to_none(metrics))
     atomic_write_text(REPORT, report(res["rows"], summary, res["clean"], sequences, e, meta, chain.threshold,
-                                     seconds, eps_fig))
+                                     seconds, eps_fig, str(p.get("profile_name", "?"))))
     typer.echo(f"evaluate: {len(sequences)} trajectories x {len(eps_list)} eps in {seconds:.0f} s; mean accuracy "
                f"{100 * metrics['accuracy_mean']:.2f}% -> {REPORT}, {FIGURE}")
 
@@ -385,7 +385,7 @@ def detail_table(summary: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 def report(rows: list[dict[str, Any]], summary: list[dict[str, Any]], clean: dict[str, dict[str, float]],
            sequences: list[dict[str, Any]], e: dict[str, Any], meta: dict[str, Any], threshold: float,
-           seconds: float, eps_fig: float) -> str:
+           seconds: float, eps_fig: float, profile: str) -> str:
     from pipeline.report import markdown_table
 
     names = [s["name"] for s in sequences]
@@ -409,7 +409,7 @@ frames / all frames. {seconds:.0f} s for all rows on this CPU.
 
 {markdown_table(accuracy_table(rows, summary, names, PAPER_ACCURACY), decimals=2)}
 Mean over eps: **{mean_acc:.2f}%** (paper: {PAPER_OVERALL}% overall, from 2,500-frame trajectories at
-480x270 with the full-width network; ours: the default profile's {e['frames']} frames at
+480x270 with the full-width network; ours: the {profile} profile's {e['frames']} frames at
 {meta['width']}x{meta['height']}).
 
 ## What the paper did not report
