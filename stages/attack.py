@@ -15,7 +15,7 @@ import numpy as np
 import typer
 
 from stages import params as params_mod
-from stages.io import StageError, atomic_dir, atomic_write_text, file_hash, write_json
+from stages.io import StageError, atomic_dir, atomic_write_text, file_hash, write_metrics
 
 MODEL = Path("models/pose.pt")
 OUT_DIR = Path("datasets/attack")
@@ -139,7 +139,7 @@ def main() -> None:
     metrics = {"method": a["method"], "loss": a["loss"], "images": n, "seconds": seconds, "model_hash": file_hash(MODEL),
                "measured_on": "stored uint8 images", "clean": {key: v for key, v in rows[0].items() if key != "eps"},
                "eps": {r["eps"]: {key: v for key, v in r.items() if key != "eps"} for r in rows[1:]}}
-    write_json(METRICS, metrics)
+    write_metrics(METRICS, metrics, p)
     atomic_write_text(REPORT, _report(rows, a, n, seconds))
     _figure(np.asarray(images[k]), example, t_gt[k], {e: preds[e][k] for e in ["clean", *eps_list]}, a["method"])
     typer.echo(f"attack: {n} test images x {len(eps_list)} eps in {seconds:.0f} s -> {OUT_DIR}/adv.zarr, {REPORT}")

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from stages import params as params_mod
-from stages.io import StageError, atomic_write_text, file_hash, open_zarr, write_json
+from stages.io import StageError, atomic_write_text, file_hash, open_zarr, write_metrics
 
 SHAP = Path("datasets/shap.zarr")
 MODEL = Path("models/pose.pt")
@@ -208,7 +208,7 @@ def main() -> None:
     metrics = {"model_hash": model_hash, "counts": counts, "threshold": {k: v[1] for k, v in scores.items()},
                "lstm_epochs": len(result.history), "lstm_best_epoch": result.best_epoch,
                "seconds": seconds, "paper_accuracy": PAPER_ACCURACY, "detectors": results}
-    write_json(METRICS, _clean_nan(metrics))
+    write_metrics(METRICS, _clean_nan(metrics), p)
     atomic_write_text(REPORT, _report(results, scores, counts, result, data["attrs"], d, seconds))
     acc = results["lstm"]["all"]["accuracy"]
     print(f"detect: LSTM test accuracy {acc:.4f} (paper {PAPER_ACCURACY:.4f}) -> {DETECTOR}, {REPORT}")

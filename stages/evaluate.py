@@ -21,7 +21,7 @@ import numpy as np
 import typer
 
 from stages import params as params_mod
-from stages.io import StageError, atomic_dir, atomic_write_text, file_hash, open_zarr, read_json, read_parquet, write_json
+from stages.io import StageError, atomic_dir, atomic_write_text, file_hash, open_zarr, read_json, read_parquet, write_json, write_metrics
 
 RENDER_OUT = Path("datasets/eval_render")
 MODEL = Path("models/pose.pt")
@@ -341,7 +341,7 @@ def main(render_only: bool = typer.Option(False, "--render-only",
                "rows": res["rows"], "clean": res["clean"],
                "attacked_fraction": {s["name"]: float(s["attacked"].mean()) for s in sequences},
                "start_xy": meta["start_xy"]}
-    write_json(METRICS, nan_to_none(metrics))
+    write_metrics(METRICS, nan_to_none(metrics), p)
     atomic_write_text(REPORT, report(res["rows"], summary, res["clean"], sequences, e, meta, chain.threshold,
                                      seconds, eps_fig, str(p.get("profile_name", "?"))))
     typer.echo(f"evaluate: {len(sequences)} trajectories x {len(eps_list)} eps in {seconds:.0f} s; mean accuracy "

@@ -16,7 +16,7 @@ import typer
 
 from stages import params as params_mod
 from stages.attack import MODEL, check_attack_params, make_attack, save_figure
-from stages.io import StageError, atomic_write_text, file_hash, write_json
+from stages.io import StageError, atomic_write_text, file_hash, write_metrics
 
 REPORT = Path("reports/guidance.md")
 FIGURE = Path("reports/figures/guidance_trajectories.png")
@@ -114,7 +114,7 @@ def main() -> None:
     }
     metrics["attack_success_rate"] = {f"{e:g}": float(np.mean([r.outcome != "rendezvous held" for e2, _, _, r in runs
                                                                if e2 == e])) for e in dict.fromkeys(e for e, *_ in runs)}
-    write_json(METRICS, metrics)
+    write_metrics(METRICS, metrics, p)
     atomic_write_text(REPORT, _report(metrics, g, a, p["render"]))
     _figure(baseline, [(s, k, r) for e, s, k, r in runs if e == runs[0][0]] if runs else [], runs[0][0] if runs else None,
             settings.goal)

@@ -7,6 +7,7 @@ import json
 import os
 import shutil
 import tempfile
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -33,6 +34,13 @@ def atomic_write_text(path: Path | str, text: str) -> None:
 
 def write_json(path: Path | str, obj: Any) -> None:
     atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n")
+
+
+def write_metrics(path: Path | str, metrics: dict[str, Any], params: dict[str, Any]) -> None:
+    """Write a stage's metrics JSON stamped with the params profile it ran on and the UTC time."""
+    stamp = {"profile": params.get("profile_name", "unknown"),
+             "produced": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
+    write_json(path, {**metrics, **stamp})
 
 
 def _json_default(o: Any) -> Any:

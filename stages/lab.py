@@ -28,7 +28,7 @@ import numpy as np
 import typer
 
 from stages import params as params_mod
-from stages.io import StageError, atomic_dir, atomic_write_text, file_hash, read_json, write_json
+from stages.io import StageError, atomic_dir, atomic_write_text, file_hash, read_json, write_metrics
 
 OUT = Path("datasets/lab")
 REPORT = Path("reports/lab.md")
@@ -301,7 +301,7 @@ def main(ctx: typer.Context) -> None:
                "per_eps": {f"{x['eps']:g}": x for x in summary}, "rows": res["rows"], "clean_detection": res["clean"],
                "accuracy_mean": float(np.mean([x["accuracy"] for x in summary])), "seconds": seconds,
                "render_seconds": render_s}
-    write_json(METRICS, nan_to_none(metrics))
+    write_metrics(METRICS, nan_to_none(metrics), p)
     atomic_write_text(REPORT, report(p, metrics, res["rows"], summary, [s["name"] for s in sequences],
                                      train_metrics, K_syn, K_zed, sequences))
     typer.echo(f"lab: {len(sequences)} sequences from {source}; mean detection accuracy "

@@ -13,7 +13,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from stages.io import StageError, atomic_write_text, write_json
+from stages.io import StageError, atomic_write_text, write_metrics
 
 REPORT = Path("reports/pose.md")
 METRICS = Path("reports/metrics/train.json")
@@ -101,7 +101,7 @@ def main() -> None:
                    "stopped_early": result.stopped_early, "train_minutes": result.seconds / 60,
                    "train_images_per_s": result.train_images_per_s, "test_score": result.best_score,
                    "processes": world, "device": str(device)}
-        write_json(METRICS, metrics)
+        write_metrics(METRICS, metrics, params)
         atomic_write_text(REPORT, _report(metrics, params, len(train_split), len(test_split)))
         print(f"train: best epoch {result.best_epoch}: test {summary['test']['pos_mean_m']:.3f} m, "
               f"{summary['test']['att_mean_deg']:.2f} deg -> {checkpoint.POSE}, {REPORT}, {METRICS}")
