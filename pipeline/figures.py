@@ -1,0 +1,92 @@
+"""Figures for the results page: plain arrays and dicts in, matplotlib Figures out (no files here).
+
+Every function returns a `matplotlib.figure.Figure` built without pyplot's global state, so the
+caller decides where to save it and nothing leaks between figures.
+"""
+from __future__ import annotations
+
+from typing import Mapping, Sequence
+
+import numpy as np
+from matplotlib.figure import Figure
+
+OUTPUT_NAMES = ("tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5")
+
+
+def pose_error_bars(bins: Mapping[str, Sequence[Mapping[str, float]]]) -> Figure:
+    """Mean position (m) and attitude (deg) error per range bin, one bar group per split.
+
+    `bins` maps a split name ("train", "test") to rows with `range_m` (label), `pos_mean_m`,
+    `att_mean_deg`, in the order the bars are drawn (far to near).
+    """
+    fig = Figure(figsize=(9, 3.4), layout="constrained")
+    axes = fig.subplots(1, 2)
+    labels = [str(b["range_m"]) for b in next(iter(bins.values()))]
+    x = np.arange(len(labels))
+    width = 0.8 / max(1, len(bins))
+    for k, (split, rows) in enumerate(bins.items()):
+        offset = (k - (len(bins) - 1) / 2) * width
+        axes[0].bar(x + offset, [r["pos_mean_m"] for r in rows], width, label=split)
+        axes[1].bar(x + offset, [r["att_mean_deg"] for r in rows], width, label=split)
+    for ax, ylabel in zip(axes, ("mean position error (m)", "mean attitude error (deg)")):
+        ax.set_xticks(x, labels)
+        ax.set_xlabel("range (m)")
+        ax.set_ylabel(ylabel)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].legend()
+    return fig
+
+
+def error_vs_eps(eps: Sequence[float], position_m: Sequence[float], attitude_deg: Sequence[float],
+                 clean_position_m: float, clean_attitude_deg: float) -> Figure:
+    """Mean pose error under attack against eps (log axis), with the clean error as a dashed line."""
+    fig = Figure(figsize=(9, 3.4), layout="constrained")
+    axes = fig.subplots(1, 2)
+    order = np.argsort(eps)
+    e = np.asarray(eps, dtype=float)[order]
+    for ax, values, clean, ylabel in ((axes[0], position_m, clean_position_m, "mean position error (m)"),
+                                      (axes[1], attitude_deg, clean_attitude_deg, "mean attitude error (deg)")):
+        ax.plot(e, np.asarray(values, dtype=float)[order], "o-", label="FGSM")
+        ax.axhline(clean, color="grey", linestyle="--", label="clean")
+        ax.set_xscale("log")
+        ax.set_xlabel("eps (L-inf, pixels in [0, 1])")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+    axes[0].legend()
+    return fig
+
+
+def shap_heatmaps(mean_abs: Mapping[str, np.ndarray], outputs: Sequence[str] = OUTPUT_NAMES) -> Figure:
+    """Mean |SHAP| per (output, GAP feature) for each group (e.g. normal, adversarial), one shared scale.
+
+    Features are sorted by their mean |phi| over all groups and outputs, so the columns line up
+    between panels and the strongest features sit on the left.
+    """
+    arrays = {k: np.asarray(v, dtype=float) for k, v in mean_abs.items()}
+    order = np.argsort(-sum(arrays.values()).sum(axis=0))
+    vmax = max(float(a.max()) for a in arrays.values()) or 1.0
+    fig = Figure(figsize=(10, 1.2 + 1.3 * len(arrays)), layout="constrained")
+    axes = np.atleast_1d(fig.subplots(len(arrays), 1, sharex=True))
+    for ax, (name, a) in zip(axes, arrays.items()):
+        im = ax.imshow(a[:, order], aspect="auto", cmap="magma", vmin=0.0, vmax=vmax, interpolation="nearest")
+        ax.set_yticks(range(len(outputs)), outputs)
+        ax.set_title(f"{name}: mean |phi|", fontsize=10, loc="left")
+    axes[-1].set_xlabel("GAP feature (sorted by mean |phi| over all panels)")
+    fig.colorbar(im, ax=list(axes), shrink=0.9, label="mean |phi|")
+    return fig
+
+
+def roc_curves(curves: Mapping[str, tuple[np.ndarray, np.ndarray, float]]) -> Figure:
+    """ROC curves: name -> (fpr, tpr, auc); the chance diagonal dashed."""
+    fig = Figure(figsize=(4.8, 4.4), layout="constrained")
+    ax = fig.subplots()
+    for name, (fpr, tpr, auc) in curves.items():
+        ax.plot(fpr, tpr, label=f"{name} (AUC {auc:.3f})")
+    ax.plot([0, 1], [0, 1], color="grey", linestyle="--", linewidth=0.8)
+    ax.set_xlabel("false-positive rate")
+    ax.set_ylabel("true-positive rate")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1.01)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right", fontsize=8)
+    return fig
