@@ -6,6 +6,11 @@ recording would be stored, reads it back through the real-data loader, and evalu
 model and the safety chain on it: reports/lab.md, reports/metrics/lab.json. With `lab.real_data`
 set to a folder, the same evaluation runs on that recording instead.
 
+Models: with `lab.retrain: auto` and the main target as the mock-up, the main models/pose.pt and
+models/detector.pt (SPEC 9 allows it); with `lab.retrain: always`, or another mock-up in `lab.mesh`,
+a pose model and detector trained first on a synthetic-lab set in datasets/lab/synthetic_lab/
+(stages/lab_models.py). The report and metrics (`reused_models`, `models`) say which were used.
+
 Lab recording layout (one folder per sequence; a folder of such folders also works):
 
     images/000000.png ...     one image per camera frame, any size with the ZED's 16:9 aspect
@@ -34,6 +39,8 @@ OUT = Path("datasets/lab")
 REPORT = Path("reports/lab.md")
 METRICS = Path("reports/metrics/lab.json")
 TRAIN_METRICS = Path("reports/metrics/train.json")
+MAIN_POSE = Path("models/pose.pt")
+MAIN_DETECTOR = Path("models/detector.pt")
 SEED_OFFSET = 0
 PAPER_ACCURACY = {0.5: 100.0, 0.3: 100.0, 0.1: 100.0, 0.05: 98.44, 0.01: 90.44}
 PAPER_AVERAGE = 96.29
@@ -163,6 +170,7 @@ def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
     from pipeline.lab import domain_shift, synthetic_recording
     from pipeline.rotations import quat_to_matrix
     from pipeline.scene import Renderer
+    from stages.lab_models import mockup
     from stages.render import scene_settings
 
     lab, r = p["lab"], p["render"]
@@ -171,7 +179,9 @@ def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
     k_cal = 1.0 + float(ds["calib_error"])       # the true lens differs from the calibration used for labels
     K_lab = K_zed.scaled(int(r["width"]), int(r["height"]))
     K_true = dataclasses.replace(K_lab, fx=K_lab.fx * k_cal, fy=K_lab.fy * k_cal)
-    settings = dataclasses.replace(scene_settings(r), sun_direction=tuple(float(v) for v in ds["sun_direction"]),
+    mesh, mesh_scale = mockup(p)                  # the mock-up at scale x its size (= the real target's size)
+    settings = dataclasses.replace(scene_settings(r), mesh=mesh, mesh_scale=mesh_scale,
+                                   sun_direction=tuple(float(v) for v in ds["sun_direction"]),
                                    sun_strength=float(ds["sun_strength"]))
     rng = np.random.default_rng(int(lab["seed"]) + SEED_OFFSET)
     scale = float(lab["scale"])
@@ -203,12 +213,15 @@ def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
 
 # ----------------------------------------------------------------------------- the stage
 def check_params(lab: dict[str, Any]) -> None:
+    """Refuse bad `lab` params before any work, naming the key."""
     if lab["retrain"] not in ("auto", "always"):
         raise StageError(f"params.yaml lab.retrain must be auto or always, got {lab['retrain']!r}")
-    if lab["retrain"] == "always":
-        raise StageError("params.yaml lab.retrain=always: retraining a synthetic-lab pose model and detector is not "
-                         "implemented yet; use lab.retrain=auto (reuses models/pose.pt and models/detector.pt, valid "
-                         "because the mock-up is the main target mesh and K_blender has the lab's 16:9 aspect)")
+    n = lab["train_frames_per_sequence"]
+    if n is not None and (not isinstance(n, int) or isinstance(n, bool) or n < 2):
+        raise StageError(f"params.yaml lab.train_frames_per_sequence must be null or a whole number >= 2, got {n!r}")
+    if float(lab["mesh_scale"]) <= 0 or float(lab["scale"]) <= 0:
+        raise StageError(f"params.yaml lab: scale and mesh_scale must be > 0, got {lab['scale']} and "
+                         f"{lab['mesh_scale']}")
     if lab["match"] not in ("nearest", "interpolate"):
         raise StageError(f"params.yaml lab.match must be nearest or interpolate, got {lab['match']!r}")
     if float(lab["max_gap_s"]) <= 0 or int(lab["frames"]) < 2 or int(lab["attack_length"]) < 1:
@@ -235,6 +248,7 @@ def main(ctx: typer.Context) -> None:
     from pipeline.schedule import attack_schedule
     from pipeline.training import pose_errors
     from stages.evaluate import evaluate_sequences, fgsm_attack, load_chain, nan_to_none, per_eps_summary
+    from stages.lab_models import SUBDIR, retrain, retrain_reason, working_dir
 
     p = params_mod.load()
     lab, r = p["lab"], p["render"]
@@ -243,16 +257,28 @@ def main(ctx: typer.Context) -> None:
     K_syn, K_zed = cameras(p)
     scale = float(lab["scale"])
     factor = lab_to_synthetic_factor(K_syn, K_zed, scale)
-    chain, loss_fn, model_hash = load_chain(p)
+    reason = retrain_reason(p)
+    if reason is None:                             # fail early when the main models are missing
+        chain, loss_fn, model_hash = load_chain(p)
+    elif lab["real_data"]:
+        recording_folders(Path(lab["real_data"]))   # likewise for a missing recording, before training
     t0 = time.perf_counter()
     truth: list[dict[str, Any]] = []
-    if lab["real_data"]:
-        source = Path(lab["real_data"])
-    else:
+    synthetic_lab: dict[str, Any] | None = None
+    source = Path(lab["real_data"]) if lab["real_data"] else OUT
+    if reason is not None or not lab["real_data"]:
         with atomic_dir(OUT) as tmp:
-            truth = render_lab(p, tmp)
-        source = OUT
+            if not lab["real_data"]:
+                truth = render_lab(p, tmp)
+            if reason is not None:
+                typer.echo(f"lab: retraining the pose model and detector on a synthetic-lab set ({reason})")
+                synthetic_lab = retrain(p, tmp / SUBDIR, OUT / SUBDIR)
     render_s = time.perf_counter() - t0
+    if synthetic_lab is not None:
+        torch.set_num_threads(2)
+        with working_dir(OUT / SUBDIR):            # load_chain reads models/pose.pt and models/detector.pt
+            chain, loss_fn, model_hash = load_chain(p)
+        render_s -= sum(synthetic_lab["seconds"].values())
     recs = [read_recording(f, int(r["width"]), int(r["height"]), lab["bodies"], lab["match"], float(lab["max_gap_s"]),
                            float(lab["segment_threshold"])) for f in recording_folders(source)]
     loader_err = {}
@@ -294,9 +320,13 @@ def main(ctx: typer.Context) -> None:
                              "lab evaluate")
     summary = per_eps_summary(res["rows"])
     seconds = time.perf_counter() - t0
-    train_metrics = read_json(TRAIN_METRICS) if TRAIN_METRICS.exists() else None
+    train_path = TRAIN_METRICS if synthetic_lab is None else OUT / SUBDIR / TRAIN_METRICS
+    train_metrics = read_json(train_path) if train_path.exists() else None
+    models = ({"pose": str(MAIN_POSE), "detector": str(MAIN_DETECTOR)} if synthetic_lab is None else
+              {"pose": synthetic_lab["pose"], "detector": synthetic_lab["detector"]})
     metrics = {"model_hash": model_hash, "source": str(source), "synthetic": not lab["real_data"], "factor": factor,
-               "retrain": lab["retrain"], "reused_models": True, "ranges": ranges, "loader_error": loader_err,
+               "retrain": lab["retrain"], "reused_models": synthetic_lab is None, "retrain_reason": reason,
+               "models": models, "synthetic_lab": synthetic_lab, "ranges": ranges, "loader_error": loader_err,
                "clean": clean_rows, "fgsm": fgsm_rows, "attack_length": length, "threshold": chain.threshold,
                "per_eps": {f"{x['eps']:g}": x for x in summary}, "rows": res["rows"], "clean_detection": res["clean"],
                "accuracy_mean": float(np.mean([x["accuracy"] for x in summary])), "seconds": seconds,
@@ -304,8 +334,49 @@ def main(ctx: typer.Context) -> None:
     write_metrics(METRICS, nan_to_none(metrics), p)
     atomic_write_text(REPORT, report(p, metrics, res["rows"], summary, [s["name"] for s in sequences],
                                      train_metrics, K_syn, K_zed, sequences))
-    typer.echo(f"lab: {len(sequences)} sequences from {source}; mean detection accuracy "
+    typer.echo(f"lab: {'reused' if synthetic_lab is None else 'retrained'} models {models['pose']}, "
+               f"{models['detector']}; {len(sequences)} sequences from {source}; mean detection accuracy "
                f"{100 * metrics['accuracy_mean']:.2f}% (paper {PAPER_AVERAGE}%) in {seconds:.0f} s -> {REPORT}")
+
+
+def models_section(p: dict[str, Any], m: dict[str, Any]) -> str:
+    """The report's paragraph on which pose model and detector were used, and why."""
+    from pipeline.report import markdown_table
+
+    lab, r = p["lab"], p["render"]
+    if m["reused_models"]:
+        return f"""## Models: reused
+
+The pose model and the detector are the main ones, `{m['models']['pose']}` (hash `{m['model_hash']}`) and
+`{m['models']['detector']}` (`lab.retrain: {lab['retrain']}`): the lab mock-up is the main target mesh at
+1/{lab['scale']:g} scale and K_blender has the lab images' 16:9 aspect (SPEC 9), so a synthetic-lab training set
+would repeat the main one. `lab.retrain: always` (the paper profile), or another mock-up mesh in `lab.mesh`,
+trains a synthetic-lab pose model and detector instead.
+"""
+    s = m["synthetic_lab"]
+    t = s["train_test"]
+    mesh = "(the procedural Jason-1-like target)" if s["mesh"] is None else f"`{s['mesh']}`"
+    steps = [{"step": k, "seconds": v} for k, v in s["seconds"].items()]
+    return f"""## Models: retrained on a synthetic-lab set
+
+Retrained because {s['reason']}. The pose model and the detector used below are
+`{s['pose']}` (hash `{m['model_hash']}`) and `{s['detector']}`, not the main models/pose.pt and
+models/detector.pt.
+
+- Synthetic-lab set: {s['images']} images at {s['size'][0]}x{s['size'][1]} with the main camera K_blender (the lab
+  images' 16:9 aspect), the 13 approach sequences of SPEC 3 ({s['frames_per_sequence']} frames each, 60 to 10 m,
+  base seed {s['seed']}), the mock-up {mesh} rendered at {lab['scale']:g} x its size ({s['mesh_scale']:g} m per mesh
+  unit) so the ranges are preserved; sun and render settings of `render`.
+- Pose model: the main recipe (`rpod train` with the `train` params, width {p['train']['width']}, input
+  {r['width']}x{r['height']}): {s['epochs_run']} epochs, best epoch {s['best_epoch']}; synthetic-lab test split
+  ({t['n']} images): {t['pos_mean_m']:.3f} m and {t['att_mean_deg']:.2f} deg mean error.
+- SHAP (`rpod shap`, `shap` params) of {s['shap_samples']} clean and FGSM samples with this model, and the LSTM
+  detector (`rpod detect`, `detect` params, no baselines) trained on them: test accuracy
+  {100 * s['detector_test_accuracy']:.2f}%.
+
+Everything is in `{s['folder']}/` (its own params.yaml, datasets/, models/, reports/pose.md, reports/detector.md).
+
+{markdown_table(steps, decimals=1)}"""
 
 
 def report(p: dict[str, Any], m: dict[str, Any], rows: list[dict[str, Any]], summary: list[dict[str, Any]],
@@ -342,14 +413,15 @@ def report(p: dict[str, Any], m: dict[str, Any], rows: list[dict[str, Any]], sum
     test = (train_metrics or {}).get("test", {})
     if "pos_mean_m" in test and "att_mean_deg" in test:
         synth = f"{test['pos_mean_m']:.3f} m and {test['att_mean_deg']:.2f} deg mean error"
+    which = (f"the main model, `{TRAIN_METRICS}`" if m["reused_models"] else
+             f"the synthetic-lab model, `{m['synthetic_lab']['folder']}/{TRAIN_METRICS}`")
     att_frac = np.mean([s["attacked"].mean() for s in sequences])
     mean_acc = 100 * m["accuracy_mean"]
     return f"""# Lab domain
 
-Source: {src}. The pose model and the detector are the main ones (`lab.retrain: {lab['retrain']}`):
-the lab mock-up is the main target mesh at 1/{lab['scale']:g} scale and K_blender has the lab images'
-16:9 aspect (SPEC 9), so the synthetic-lab training set would repeat the main one; retraining
-(`lab.retrain: always`) is not implemented yet.
+Source: {src}.
+
+{models_section(p, m)}
 
 ## Range rescaling
 
@@ -371,7 +443,7 @@ at strength {ds['sun_strength']}, blur sigma {ds['blur_sigma']} px, noise std {d
 segmented (masks/) and resized to {p['render']['width']}x{p['render']['height']}. Errors are in the equivalent
 synthetic frame (metres x {m['factor']:.2f} of lab metres).
 
-Synthetic test split (the main model, `reports/metrics/train.json`): {synth}.
+Synthetic test split ({which}): {synth}.
 
 {markdown_table(clean_table, decimals=3)}
 ## FGSM on the lab sequences

@@ -178,25 +178,16 @@ def test_rescale_command_prints_the_synthetic_range(monkeypatch):
     assert f"synthetic z = {3.122 * k:.2f} m" in out.output
 
 
-@pytest.mark.slow
-def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
-    """eval_render -> evaluate -> lab on the smoke profile with stand-in pose and detector checkpoints."""
-    import json
-
+def stand_in_models(p):
+    """Untrained stand-ins for models/pose.pt and models/detector.pt (in the current folder)."""
     import torch
-    from typer.testing import CliRunner
 
     from pipeline.detectors.lstm import LSTMConfig, LSTMDetector, to_checkpoint
     from pipeline.loss import PoseLoss
     from pipeline.model import PoseNet
-    from stages import params as params_mod
     from stages.checkpoint import save_pose
-    from stages.cli import app
     from stages.io import file_hash
 
-    monkeypatch.chdir(tmp_path)
-    p = params_mod.compose("smoke", ["evaluate.frames=12", "lab.frames=6", "evaluate.eps=[0.5,0.05]"])
-    params_mod.write_params(p)
     torch.manual_seed(0)
     h, w = p["render"]["height"], p["render"]["width"]
     model = PoseNet(width=p["train"]["width"], dropout=p["train"]["dropout"]).eval()
@@ -209,6 +200,22 @@ def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
     torch.save(to_checkpoint(det, {"format": "rpodguard-detector/1", "pose_model_hash": file_hash("models/pose.pt"),
                                    "background_mean": feats.mean(0), "background_size": 8, "shap_method": "exact"}),
                "models/detector.pt")
+
+
+@pytest.mark.slow
+def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
+    """eval_render -> evaluate -> lab on the smoke profile with stand-in pose and detector checkpoints."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from stages import params as params_mod
+    from stages.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    p = params_mod.compose("smoke", ["evaluate.frames=12", "lab.frames=6", "evaluate.eps=[0.5,0.05]"])
+    params_mod.write_params(p)
+    stand_in_models(p)
     runner = CliRunner()
     out = runner.invoke(app, ["evaluate"])
     assert out.exit_code != 0 and "eval_render" in str(out.exception)       # renders not there yet
@@ -224,9 +231,111 @@ def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
     assert max(v["position_max_m"] for v in lab["loader_error"].values()) < 1e-3   # lab metres
     seq = tmp_path / "datasets/lab/seq1"
     assert len(list((seq / "images").glob("*.png"))) == 6 and (seq / "mocap.csv").exists()
+    assert lab["reused_models"] and lab["models"]["pose"] == "models/pose.pt" and lab["synthetic_lab"] is None
+    assert "## Models: reused" in (tmp_path / "reports/lab.md").read_text()
     # other eps must not re-render: the cached renders are reused as long as their params hold
     params_mod.write_params(params_mod.compose("smoke", ["evaluate.frames=12", "lab.frames=6", "evaluate.eps=[0.3]"]))
     assert runner.invoke(app, ["evaluate"]).exit_code == 0
     params_mod.write_params(params_mod.compose("smoke", ["evaluate.frames=13", "lab.frames=6"]))
     out = runner.invoke(app, ["evaluate"])
     assert out.exit_code != 0 and "rendered with other params" in str(out.exception)
+
+
+@pytest.mark.slow
+def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, monkeypatch):
+    """lab.retrain=always on a tiny smoke set: render, label, train, shap, detect in datasets/lab/synthetic_lab/,
+    then the lab evaluation runs with those models, not the main stand-ins."""
+    import json
+
+    import torch
+    from typer.testing import CliRunner
+
+    from stages import params as params_mod
+    from stages.cli import app
+    from stages.io import file_hash
+
+    monkeypatch.chdir(tmp_path)
+    p = params_mod.compose("smoke", ["lab.retrain=always", "lab.frames=4", "lab.train_frames_per_sequence=3",
+                                     "evaluate.eps=[0.5]", "attack.eps=[0.5]", "shap.normal=12", "shap.per_eps=6",
+                                     "shap.eps=[0.5]", "shap.background=4", "detect.epochs=2"])
+    params_mod.write_params(p)
+    stand_in_models(p)
+    main_hash = file_hash("models/pose.pt")
+    threads = torch.get_num_threads()
+    out = CliRunner().invoke(app, ["lab"])
+    assert out.exit_code == 0, (out.output, out.exception)
+    assert torch.get_num_threads() == threads
+    sub = tmp_path / "datasets/lab/synthetic_lab"
+    lab = json.loads((tmp_path / "reports/metrics/lab.json").read_text())
+    assert not lab["reused_models"] and lab["retrain_reason"] == "lab.retrain is always"
+    assert lab["model_hash"] == file_hash(sub / "models/pose.pt") != main_hash
+    assert lab["models"] == {"pose": "datasets/lab/synthetic_lab/models/pose.pt",
+                             "detector": "datasets/lab/synthetic_lab/models/detector.pt"}
+    det = torch.load(sub / "models/detector.pt", weights_only=True)
+    assert det["pose_model_hash"] == lab["model_hash"]
+    s = lab["synthetic_lab"]
+    assert s["images"] == 13 * 3 and s["size"] == [64, 36] and s["mesh"] is None and s["mesh_scale"] == 1.0
+    assert s["seed"] == p["lab"]["seed"] + 700 and set(s["seconds"]) == {"render", "label", "train", "shap", "detect"}
+    sub_p = params_mod.load(sub / "params.yaml")            # the same recipe; only the data differ
+    assert sub_p["train"] == p["train"] and sub_p["detect"]["baselines"] == []
+    assert sub_p["render"]["frames_per_sequence"] == 3 and sub_p["render"]["width"] == 64
+    assert (sub / "reports/pose.md").exists() and (sub / "datasets/shap.zarr").is_dir()
+    assert (tmp_path / "datasets/lab/seq1/camera.csv").exists()     # the lab recordings sit beside it
+    text = (tmp_path / "reports/lab.md").read_text()
+    assert "## Models: retrained on a synthetic-lab set" in text and lab["model_hash"] in text
+    assert "datasets/lab/synthetic_lab/models/detector.pt" in text and "not the main models/pose.pt" in text
+    assert "the synthetic-lab model" in text
+    assert not (tmp_path / "reports/metrics/train.json").exists()   # the main reports are untouched
+
+
+@pytest.mark.parametrize("edit, message", [
+    ({"retrain": "sometimes"}, "lab.retrain must be auto or always"),
+    ({"train_frames_per_sequence": 1}, "lab.train_frames_per_sequence must be null or a whole number >= 2"),
+    ({"mesh_scale": 0.0}, "scale and mesh_scale must be > 0"),
+])
+def test_bad_lab_params_are_refused(edit, message):
+    from stages import params as params_mod
+    from stages.io import StageError
+    from stages.lab import check_params
+
+    lab = {**params_mod.compose("default")["lab"], **edit}
+    with pytest.raises(StageError, match=message):
+        check_params(lab)
+
+
+def test_when_the_lab_stage_retrains(tmp_path, monkeypatch):
+    from stages import params as params_mod
+    from stages.io import StageError
+    from stages.lab_models import retrain_reason, sub_params
+
+    monkeypatch.chdir(tmp_path)
+    p = params_mod.compose("default")
+    assert retrain_reason(p) is None                                       # default: the main target, reused
+    assert retrain_reason(params_mod.compose("paper")) == "lab.retrain is always"
+    (tmp_path / "mockup.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0 0.1 0\nf 1 2 3\n")
+    other = params_mod.compose("default", ["lab.mesh=mockup.obj", "lab.mesh_scale=0.001"])
+    assert "is not the main target" in retrain_reason(other)                # another mock-up: retrain
+    sub = sub_params(other)
+    assert sub["render"]["mesh"] == str(tmp_path / "mockup.obj") and sub["render"]["mesh_scale"] == pytest.approx(0.009)
+    same = params_mod.compose("default", ["render.mesh=mockup.obj", "render.mesh_scale=9", "lab.mesh=mockup.obj"])
+    assert retrain_reason(same) is None                                     # the main mesh, built at 1/9
+    with pytest.raises(StageError, match="lab.mesh: mock-up mesh file missing.obj not found"):
+        retrain_reason(params_mod.compose("default", ["lab.mesh=missing.obj"]))
+
+
+def test_a_failing_retrain_step_is_one_clear_error(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    from stages import lab_models, params as params_mod
+    from stages.io import StageError
+
+    def render() -> None:
+        assert Path("params.yaml").exists()            # the step runs inside the synthetic-lab folder
+        raise StageError("params.yaml render: boom")
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(lab_models, "_steps", lambda: {"render": render})
+    with pytest.raises(StageError, match=r"^lab.retrain \(render on the synthetic-lab set in final/\): params.yaml "
+                                         r"render: boom$"):
+        lab_models.retrain(params_mod.compose("smoke", ["lab.retrain=always"]), tmp_path / "sub", Path("final"))
+    assert Path.cwd() == tmp_path
