@@ -64,9 +64,9 @@ def main() -> None:
     rows = []
     for name, width, h, w in settings:
         train_ips, infer_ips = throughput(width, h, w, batch, args.batches)
-        rows.append({"setting": name, "input": f"{w}x{h}", "width": width, "batch": batch,
+        rows.append({"setting": name, "input": f"{w}x{h}", "width": f"{width:g}", "batch": batch,
                      "train images/s": train_ips, "inference images/s": infer_ips,
-                     "epoch of 3,120 images (s)": 3120 / train_ips})
+                     "train minutes per 1,000 images": 1000 / train_ips / 60})
         print(f"{name}: {w}x{h} width {width}: train {train_ips:.1f} img/s, inference {infer_ips:.1f} img/s", flush=True)
     load1 = os.getloadavg()[0]
     table = markdown_table(rows, decimals=1)

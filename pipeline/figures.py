@@ -21,13 +21,14 @@ def pose_error_bars(bins: Mapping[str, Sequence[Mapping[str, float]]]) -> Figure
     """
     fig = Figure(figsize=(9, 3.4), layout="constrained")
     axes = fig.subplots(1, 2)
-    labels = [str(b["range_m"]) for b in next(iter(bins.values()))]
+    labels = sorted({str(r["range_m"]) for rows in bins.values() for r in rows}, key=_far_first)
     x = np.arange(len(labels))
     width = 0.8 / max(1, len(bins))
     for k, (split, rows) in enumerate(bins.items()):
         offset = (k - (len(bins) - 1) / 2) * width
-        axes[0].bar(x + offset, [r["pos_mean_m"] for r in rows], width, label=split)
-        axes[1].bar(x + offset, [r["att_mean_deg"] for r in rows], width, label=split)
+        by_label = {str(r["range_m"]): r for r in rows}
+        for ax, key in ((axes[0], "pos_mean_m"), (axes[1], "att_mean_deg")):
+            ax.bar(x + offset, [by_label[b][key] if b in by_label else np.nan for b in labels], width, label=split)
     for ax, ylabel in zip(axes, ("mean position error (m)", "mean attitude error (deg)")):
         ax.set_xticks(x, labels)
         ax.set_xlabel("range (m)")
@@ -35,6 +36,14 @@ def pose_error_bars(bins: Mapping[str, Sequence[Mapping[str, float]]]) -> Figure
         ax.grid(axis="y", alpha=0.3)
     axes[0].legend()
     return fig
+
+
+def _far_first(label: str) -> float:
+    """Sort key for range-bin labels such as ">60", "60-45", "20-10", "<10": farthest first."""
+    numbers = [float(v) for v in label.lstrip("<>").split("-") if v]
+    if label.startswith(">"):
+        return -np.inf
+    return -(max(numbers) - (0.5 if label.startswith("<") else 0.0))
 
 
 def error_vs_eps(eps: Sequence[float], position_m: Sequence[float], attitude_deg: Sequence[float],

@@ -7,12 +7,10 @@ A checkpoint is a plain dict (loadable with `torch.load(weights_only=True)`):
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
-from stages.io import StageError
+from stages.io import StageError, load_torch, save_torch
 
 POSE = Path("models/pose.pt")
 FORMAT = "rpodguard-pose/1"
@@ -26,10 +24,6 @@ def expected(params: dict[str, Any]) -> dict[str, Any]:
 
 def save_pose(path: Path | str, model: Any, loss: Any, input_size: tuple[int, int], meta: dict[str, Any]) -> None:
     """Write a checkpoint atomically (temporary file + rename)."""
-    import torch
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     state = {
         "format": FORMAT,
         "arch": model.arch(),
@@ -38,29 +32,13 @@ def save_pose(path: Path | str, model: Any, loss: Any, input_size: tuple[int, in
         "loss": {"s_p": loss.s_p.item(), "s_r": loss.s_r.item(), "reduction": loss.reduction},
         "meta": meta,
     }
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        torch.save(state, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    save_torch(path, state)
 
 
 def read_pose(path: Path | str = POSE, params: dict[str, Any] | None = None) -> dict[str, Any]:
     """Load a checkpoint with weights_only=True; with params, refuse an architecture/input-size mismatch."""
-    import torch
-
     path = Path(path)
-    if not path.exists():
-        raise StageError(f"pose checkpoint {path} not found (run `rpod train` first)")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:
-        raise StageError(f"pose checkpoint {path} is unreadable ({type(e).__name__}: {e}); re-run `rpod train`") from None
-    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
-        raise StageError(f"{path} is not an rpodguard pose checkpoint ({FORMAT}); re-run `rpod train`")
+    ckpt = load_torch(path, FORMAT, "train")
     if params is not None:
         want = expected(params)
         have = {"arch": ckpt["arch"], "input_size": list(ckpt["input_size"])}

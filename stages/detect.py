@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from stages import params as params_mod
-from stages.io import StageError, atomic_write_text, file_hash, open_zarr, write_metrics
+from stages.io import StageError, atomic_write_text, file_hash, load_torch, open_zarr, save_torch, write_metrics
 
 SHAP = Path("datasets/shap.zarr")
 MODEL = Path("models/pose.pt")
@@ -96,19 +96,10 @@ def load_detector(path: Path | str = DETECTOR, model_hash: str | None = None) ->
     """The LSTM detector (eval mode) and its checkpoint dict (threshold, pose_model_hash,
     background_mean (1000,) tensor, shap_method, ...). With `model_hash`, refuse a detector trained
     on another pose checkpoint's SHAP values."""
-    import torch
-
     from pipeline.detectors.lstm import from_checkpoint
 
     path = Path(path)
-    if not path.exists():
-        raise StageError(f"detector checkpoint {path} not found (run `rpod detect` first)")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:
-        raise StageError(f"detector checkpoint {path} is unreadable ({type(e).__name__}: {e}); re-run `rpod detect`") from None
-    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
-        raise StageError(f"{path} is not an rpodguard detector checkpoint ({FORMAT}); re-run `rpod detect`")
+    ckpt = load_torch(path, FORMAT, "detect")
     if model_hash is not None and ckpt["pose_model_hash"] != model_hash:
         raise StageError(f"{path} was trained for pose checkpoint {ckpt['pose_model_hash']!r}, not {model_hash!r}; "
                          f"re-run `rpod shap` and `rpod detect`")
@@ -194,7 +185,7 @@ def main() -> None:
         "background_size": int(data["attrs"]["background_size"]),
         "eps": sorted({float(e) for e in eps[y == 1]}, reverse=True),
         "best_epoch": result.best_epoch, "test_accuracy": results["lstm"]["all"]["accuracy"]})
-    _save(ckpt)
+    save_torch(DETECTOR, ckpt)
     ROC_DIR.mkdir(parents=True, exist_ok=True)
     for name, (s, _) in scores.items():
         roc = roc_points(y[te], s)
@@ -212,23 +203,6 @@ def main() -> None:
     atomic_write_text(REPORT, _report(results, scores, counts, result, data["attrs"], d, seconds))
     acc = results["lstm"]["all"]["accuracy"]
     print(f"detect: LSTM test accuracy {acc:.4f} (paper {PAPER_ACCURACY:.4f}) -> {DETECTOR}, {REPORT}")
-
-
-def _save(ckpt: dict[str, Any]) -> None:
-    import os
-    import tempfile
-
-    import torch
-
-    DETECTOR.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=DETECTOR.parent, prefix=f".{DETECTOR.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        torch.save(ckpt, tmp)
-        os.replace(tmp, DETECTOR)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _baseline(name: str, p: dict[str, Any], data: dict[str, Any], y: np.ndarray, tr: np.ndarray,

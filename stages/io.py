@@ -51,6 +51,39 @@ def _json_default(o: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(o)}")
 
 
+def save_torch(path: Path | str, obj: Any) -> None:
+    """torch.save via a temporary file in the same folder and a rename (never a half-written file)."""
+    import torch
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        torch.save(obj, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def load_torch(path: Path | str, fmt: str, stage: str) -> dict[str, Any]:
+    """torch.load(weights_only=True) of an rpodguard checkpoint dict whose `format` is `fmt`;
+    a missing, unreadable or foreign file is a StageError telling the user to re-run `rpod <stage>`."""
+    import torch
+
+    path = Path(path)
+    if not path.exists():
+        raise StageError(f"checkpoint {path} not found (run `rpod {stage}` first)")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise StageError(f"checkpoint {path} is unreadable ({type(e).__name__}: {e}); re-run `rpod {stage}`") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != fmt:
+        raise StageError(f"{path} is not an rpodguard checkpoint of format {fmt}; re-run `rpod {stage}`")
+    return ckpt
+
+
 def read_json(path: Path | str) -> Any:
     path = Path(path)
     if not path.exists():

@@ -135,25 +135,26 @@ def summary_tables(metrics: dict[str, dict[str, Any]]) -> str:
          _fmt(100 * dets[best_base]["all"]["accuracy"]), "-", "detect"),
         ("integrated detection accuracy, mean over eps (%)", _fmt(100 * ev["accuracy_mean"]),
          _fmt(PAPER["integrated"]), "evaluate"),
-        ("lab detection accuracy, mean over eps (%)", _fmt(100 * lab["accuracy_mean"]), _fmt(PAPER["lab"]), "lab"),
+        (f"lab detection accuracy, mean over eps (%), {'main' if lab.get('reused_models', True) else 'retrained'} models",
+         _fmt(100 * lab["accuracy_mean"]), _fmt(PAPER["lab"]), "lab"),
     ]
     table = markdown_table([{"result": r, "this run": v, "paper": p, "stage": f"`{s}`"} for r, v, p, s in rows])
     eps_rows = []
     for e in sorted(set(ev["per_eps"]) | set(lab["per_eps"]), key=float, reverse=True):
         get = lambda m, k: _fmt(100 * m["per_eps"][e]["accuracy"]) if e in m["per_eps"] else "-"  # noqa: E731
-        eps_rows.append({"eps": e, "integrated (%)": get(ev, e), "paper": _fmt(PAPER["integrated_eps"].get(e)),
-                         "lab, 10-frame attacks (%)": get(lab, e), "paper ": _fmt(PAPER["lab_eps"].get(e))})
+        eps_rows.append({"eps": e, "integrated (%)": get(ev, e), "paper, integrated (%)": _fmt(PAPER["integrated_eps"].get(e)),
+                         "lab, 10-frame attacks (%)": get(lab, e), "paper, lab (%)": _fmt(PAPER["lab_eps"].get(e))})
     profiles = sorted({m.get("profile", "unknown") for m in metrics.values()})
     produced = sorted(m.get("produced", "") for m in metrics.values() if m.get("produced"))
     when = f"{produced[0]} to {produced[-1]}" if produced else "time not recorded"
     head = (f"Profile `{'`, `'.join(profiles)}`; stages run {when}. Paper: 480x270 images, full-width network, "
-            "50 epochs, 32,500 images; see each stage's section in [reports/README.md](reports/README.md) "
-            "for what differs and why.")
+            "50 epochs, 32,500 images; each stage's section of the results page says what differs and why.")
     return f"{head}\n\n{table}\nDetection accuracy per eps (correct flags over all frames):\n\n{markdown_table(eps_rows)}"
 
 
-def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figures: list[tuple[str, str]]) -> str:
-    """reports/README.md: title, summary block, figure gallery, then each stage report one level down."""
+def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figures: list[tuple[str, str, str]]) -> str:
+    """reports/README.md: title, summary block, then each stage report one level down with the
+    report's own figures (`figures`: (stage, title, file name)) at the end of its section."""
     from pipeline.report import demote_headings, replace_block
 
     profiles = {m.get("profile", "unknown") for m in metrics.values()}
@@ -161,26 +162,31 @@ def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figur
     if len(profiles) > 1:
         warn = (f"\n> **Mixed profiles** ({', '.join(sorted(profiles))}): some stages are stale; run `dvc repro` "
                 "to bring them all to the current params.yaml.\n")
-    hashes = {k: m["model_hash"] for k, m in metrics.items() if "model_hash" in m}
+    hashes = {k: m["model_hash"] for k, m in metrics.items()
+              if "model_hash" in m and not (k == "lab" and m.get("reused_models") is False)}
     if len(set(hashes.values())) > 1:
         warn += (f"\n> **Mixed pose models** ({', '.join(f'{k} {v}' for k, v in sorted(hashes.items()))}): "
                  "some stages ran on an older checkpoint.\n")
     page = (f"# rpodguard results\n\nWritten by `rpod report` from `reports/metrics/*.json` and the stage reports "
             f"beside this file; params profile `{params.get('profile_name', 'unknown')}`. Regenerate with "
-            f"`dvc repro`.\n{warn}\n## Summary against the paper\n")
+            f"`dvc repro`. Every section below is one stage's report, stamped with the profile and time it ran."
+            f"\n{warn}\n## Summary against the paper\n")
     page = replace_block(page, BLOCK, summary_tables(metrics))
-    page += "\n## Figures\n\n" + "\n\n".join(f"**{title}**\n\n![{title}](figures/{name})" for title, name in figures)
-    page += "\n"
     for stage, report, metric in SECTIONS:
         path = Path("reports") / report
         if not path.exists():
             continue
         m = metrics.get(metric or "", {})
-        stamp = (f"_`rpod {stage}`, profile `{m.get('profile', 'unknown')}`, produced {m.get('produced', 'at an unrecorded time')}; "
-                 f"source [{report}]({report})._" if metric else f"_Source [{report}]({report})._")
+        stamp = (f"_`rpod {stage}`, profile `{m.get('profile', 'unknown')}`, produced "
+                 f"{m.get('produced', 'at an unrecorded time')}; source [{report}]({report})._" if metric
+                 else f"_Source [{report}]({report})._")
         body = demote_headings(path.read_text().strip(), 1)
         first, _, rest = body.partition("\n")
         page += f"\n{first}\n\n{stamp}\n{rest}\n"
+        extra = [(title, name) for st, title, name in figures if st == stage]
+        if extra:
+            page += "\n### Figures\n\n" + "\n\n".join(f"{title}:\n\n![{title}](figures/{name})" for title, name in extra)
+            page += "\n"
     return page
 
 
@@ -191,8 +197,8 @@ def _save(fig, name: str) -> None:
     tmp.replace(FIGURES / name)
 
 
-def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str]]:
-    """Draw the report's own figures; return (title, file name) for every figure on the page."""
+def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, str]]:
+    """Draw the report's own figures; return (stage, title, file name) for each."""
     import pandas as pd
 
     from pipeline import figures as F
@@ -203,14 +209,13 @@ def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str]]:
     _save(F.error_vs_eps([float(e) for e in eps], [at["eps"][e]["position_mean_m"] for e in eps],
                          [at["eps"][e]["attitude_mean_deg"] for e in eps], at["clean"]["position_mean_m"],
                          at["clean"]["attitude_mean_deg"]), "error_vs_eps.png")
-    out = [("Pose error per range bin (train, test)", "pose_errors.png"),
-           ("FGSM: pose error against eps", "error_vs_eps.png"),
-           ("FGSM example: original, perturbation (amplified), adversarial", "fgsm_example.png"),
-           ("Closed-loop trajectories under attack", "guidance_trajectories.png")]
+    out = [("train", "Mean error per range bin, train and test", "pose_errors.png"),
+           ("attack", "Pose error against eps", "error_vs_eps.png")]
     heat = _shap_means()
     if heat is not None:
         _save(F.shap_heatmaps(heat), "shap_heatmaps.png")
-        out.append(("SHAP signatures: mean |phi| per output, normal vs adversarial", "shap_heatmaps.png"))
+        out.append(("detect", "SHAP signatures: mean |phi| per output and GAP feature, normal vs adversarial",
+                    "shap_heatmaps.png"))
     curves = {}
     for name in de["detectors"]:
         path = ROC_DIR / f"{name}.csv"
@@ -220,9 +225,8 @@ def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str]]:
                                                        float(de["detectors"][name]["all"]["roc_auc"]))
     if curves:
         _save(F.roc_curves(curves), "roc.png")
-        out.append(("ROC curves of all detectors (SHAP test split)", "roc.png"))
-    out.append(("Integrated evaluation timeline (one trajectory)", "timeline.png"))
-    return [(t, n) for t, n in out if (FIGURES / n).exists()]
+        out.append(("detect", "ROC curves of all detectors on the SHAP test split", "roc.png"))
+    return out
 
 
 def _shap_means() -> dict[str, Any] | None:

@@ -1,0 +1,112 @@
+"""End to end: `dvc repro` of the whole stage graph on the smoke profile, in a temporary copy of the repo.
+
+The copy holds the tracked and untracked-but-not-ignored files (what a clean clone plus local edits
+has), so the test sees exactly the working tree. About a minute on 2 cores.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+REPO = Path(__file__).resolve().parent.parent
+BIN = Path(sys.executable).parent
+REPORTS = ["dataset", "pose", "attack", "guidance", "detector", "integrated", "lab", "benchmarks", "README"]
+METRICS = ["train", "attack", "guidance", "detect", "evaluate", "lab"]
+FIGURES = ["fgsm_example", "guidance_trajectories", "timeline", "pose_errors", "error_vs_eps", "shap_heatmaps", "roc"]
+
+
+def _run(args: list[str], cwd: Path, env: dict[str, str], timeout: float = 900) -> str:
+    out = subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+    assert out.returncode == 0, f"{' '.join(args)} failed ({out.returncode}):\n{out.stdout[-3000:]}\n{out.stderr[-3000:]}"
+    return out.stdout
+
+
+def tables(md: str) -> list[tuple[str, list[str], list[str]]]:
+    """Markdown tables of a page: (heading above, header cells, first cell of every row)."""
+    found, heading, header, rows = [], "", None, []
+    for line in md.splitlines() + [""]:
+        if line.startswith("#"):
+            heading = line.lstrip("# ").strip()
+        if line.startswith("|"):
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if header is None:
+                header = cells
+            elif not set(line.replace("|", "").strip()) <= set(":- "):
+                rows.append(cells[0])
+        elif header is not None:
+            found.append((heading, header, rows))
+            header, rows = None, []
+    return found
+
+
+def rows_under(md: str, heading_start: str, first_header: str) -> list[str]:
+    hits = [rows for h, head, rows in tables(md) if h.startswith(heading_start) and head[0] == first_header]
+    assert hits, f"no table with first column {first_header!r} under a heading starting {heading_start!r}"
+    return hits[0]
+
+
+@pytest.fixture(scope="module")
+def smoke_repo(tmp_path_factory) -> tuple[Path, dict[str, str]]:
+    if shutil.which("git") is None:
+        pytest.skip("git is needed to list the repository's files")
+    dst = tmp_path_factory.mktemp("repo")
+    files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=REPO, check=True,
+                           capture_output=True).stdout.decode().split("\0")
+    for name in filter(None, files):
+        src = REPO / name
+        if src.is_file():
+            (dst / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src, dst / name)
+    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", "PYTHONPATH": str(dst),
+           "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@example.org", "GIT_COMMITTER_NAME": "t",
+           "GIT_COMMITTER_EMAIL": "t@example.org"}
+    env.pop("RPOD_DEBUG", None)
+    _run(["git", "init", "-q"], dst, env)
+    _run(["git", "add", "-A"], dst, env)
+    _run(["git", "commit", "-qm", "copy"], dst, env)
+    _run(["rpod", "params", "smoke"], dst, env)
+    _run(["dvc", "repro"], dst, env)
+    return dst, env
+
+
+def test_every_stage_ran_on_the_smoke_profile(smoke_repo):
+    dst, env = smoke_repo
+    for name in REPORTS:
+        assert (dst / "reports" / f"{name}.md").stat().st_size > 0, name
+    for name in FIGURES:
+        assert (dst / "reports" / "figures" / f"{name}.png").stat().st_size > 1000, name
+    for name in METRICS:
+        m = json.loads((dst / "reports" / "metrics" / f"{name}.json").read_text())
+        assert m["profile"] == "smoke", f"{name}.json was not produced by this run"
+    assert "changed" not in _run(["dvc", "status"], dst, env), "dvc status: stages left stale after dvc repro"
+    _run(["rpod", "report", "--check"], dst, env)
+
+
+def test_every_table_has_the_expected_rows(smoke_repo):
+    dst, _ = smoke_repo
+    p = yaml.safe_load((dst / "params.yaml").read_text())
+    page = lambda name: (dst / "reports" / f"{name}.md").read_text()  # noqa: E731
+    eps = lambda values: [f"{float(v):g}" for v in values]  # noqa: E731
+
+    assert rows_under(page("pose"), "Pose estimator", "split")[:2] == ["train", "test"]
+    assert rows_under(page("attack"), "Adversarial attack", "eps") == ["clean", *eps(p["attack"]["eps"])]
+    for e in p["guidance"]["eps"]:
+        rows = rows_under(page("guidance"), f"eps = {float(e):g}", "S (m)")
+        assert rows == [f"{float(s):g}" for s in p["guidance"]["start_ranges"]]
+    detectors = rows_under(page("detector"), "Comparison with baselines", "detector")
+    assert len(detectors) == 5 and detectors[0].startswith("LSTM")
+    assert rows_under(page("integrated"), "Detection accuracy", "eps") == [*eps(p["evaluate"]["eps"]), "average"]
+    assert rows_under(page("lab"), "Integrated detection", "eps") == [*eps(p["evaluate"]["eps"]), "average"]
+    assert rows_under(page("lab"), "FGSM on the lab sequences", "eps") == ["clean", *eps(p["attack"]["eps"])]
+
+    summary = rows_under(page("README"), "Summary against the paper", "result")
+    assert len(summary) == 9 and summary[0].startswith("pose")
+    readme = (dst / "README.md").read_text()
+    assert "Profile `smoke`" in readme, "rpod report --sync-readme did not copy the results into README.md"
