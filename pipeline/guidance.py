@@ -104,6 +104,17 @@ def in_view(t: np.ndarray, K: Intrinsics) -> bool:
     return bool(-0.5 <= u <= K.width - 0.5 and -0.5 <= v <= K.height - 0.5)
 
 
+def arrival_step(result: "RendezvousResult", goal: tuple[float, float, float] | np.ndarray,
+                 tolerance: float) -> int | None:
+    """Steps after which the chaser is within `tolerance` (m) of `goal` and stays there to the end of
+    the run, or None when the run does not end there."""
+    inside = np.linalg.norm(result.positions - np.asarray(goal, dtype=np.float64), axis=1) <= tolerance
+    if not inside[-1]:
+        return None
+    outside = np.flatnonzero(~inside)
+    return int(outside[-1] + 1) if len(outside) else 0
+
+
 def guidance_step(est: np.ndarray, rel: np.ndarray, goal: np.ndarray, max_step: float,
                   variant: str) -> tuple[np.ndarray, np.ndarray]:
     """One application of the control law -> (next true rel, rel the chaser believes it reaches)."""

@@ -6,6 +6,7 @@ reports/figures/guidance_trajectories.png and reports/metrics/guidance.json.
 """
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import time
 from pathlib import Path
@@ -35,6 +36,8 @@ def _plan(g: dict[str, Any]):
                                     max_steps=int(g["max_steps"]), variant=str(g["variant"]))
     except ValueError as e:
         raise StageError(f"params.yaml guidance: {e}") from None
+    if int(g["slack_steps"]) < 0:
+        raise StageError(f"params.yaml guidance.slack_steps must be >= 0, got {g['slack_steps']}")
     grid = []
     for eps, s, k in itertools.product(g["eps"], g["start_ranges"], g["lengths"]):
         try:
@@ -50,7 +53,7 @@ def main() -> None:
     from tqdm import tqdm
 
     from pipeline.attacks import attack_loss, quantize
-    from pipeline.guidance import run_rendezvous
+    from pipeline.guidance import arrival_step, run_rendezvous
     from pipeline.rotations import matrix_to_6d
     from pipeline.scene import Renderer
     from stages.checkpoint import load_pose_loss, load_pose_model
@@ -98,16 +101,22 @@ def main() -> None:
 
         t0 = time.perf_counter()
         baseline = run_rendezvous(render, estimate, K, settings)
+        # Attacked runs get the steps the unattacked chaser needed plus slack_steps: an attack succeeds
+        # when it delays or diverts the chaser beyond that (the paper: 50 nominal steps + ~10).
+        arrival = arrival_step(baseline, settings.goal, settings.tolerance)
+        horizon = settings.max_steps if arrival is None else min(settings.max_steps, arrival + int(g["slack_steps"]))
+        attacked_settings = dataclasses.replace(settings, max_steps=horizon)
         runs = []
         for eps, s, k, window in tqdm(grid, desc="guidance runs", unit="run"):
             eps_now[0] = eps
-            runs.append((eps, s, k, run_rendezvous(render, estimate, K, settings, window)))
+            runs.append((eps, s, k, run_rendezvous(render, estimate, K, attacked_settings, window)))
         seconds = time.perf_counter() - t0
 
     metrics = {
         "variant": settings.variant, "method": g["method"], "loss": a["loss"], "max_steps": settings.max_steps,
         "tolerance": settings.tolerance, "model_hash": file_hash(MODEL), "seconds": seconds, **counts,
-        "baseline": {"outcome": baseline.outcome, "miss_m": baseline.miss},
+        "baseline": {"outcome": baseline.outcome, "miss_m": baseline.miss, "arrival_step": arrival},
+        "horizon": horizon, "slack_steps": int(g["slack_steps"]),
         "runs": [{"eps": e, "start_range": s, "length": k, "outcome": r.outcome, "miss_m": r.miss,
                   "attack_start": r.attack_start, "attacked_frames": r.attacked_frames, "steps": len(r.estimates)}
                  for e, s, k, r in runs],
@@ -124,6 +133,16 @@ def main() -> None:
         typer.secho(f"warning: the no-attack baseline did not reach the target ({baseline.outcome}, miss "
                     f"{baseline.miss:.2f} m): the pose model is not good enough for closed-loop guidance, so the "
                     f"attack tables say little; see {REPORT}", fg=typer.colors.YELLOW, err=True)
+
+
+def _horizon_text(m: dict[str, Any]) -> str:
+    arrival = m["baseline"]["arrival_step"]
+    if arrival is None:
+        return f"Every run lasts {m['horizon']} steps (guidance.max_steps; the no-attack baseline did not arrive)."
+    return (f"The no-attack baseline arrived after {arrival} steps (the nominal approach takes 50; a bias of the "
+            f"estimate along the range slows the paper variant), so every attacked run lasts {m['horizon']} steps: "
+            f"that arrival plus guidance.slack_steps = {m['slack_steps']}, at most guidance.max_steps = {m['max_steps']}. "
+            "An attack succeeds when the chaser is not at the target point by then.")
 
 
 def _cell(r: dict[str, Any]) -> str:
@@ -165,7 +184,7 @@ The chaser starts at ({start}) m (the target's position relative to the chaser, 
 approach along +z) and steers to ({goal}) m with at most {g['max_step']:g} m per axis per step: {law}.
 Every step renders a new {render['width']}x{render['height']} Blender image (the pose model's input size)
 at the true pose, the pose CNN estimates the target position, and the chaser re-points its camera
-at where it believes the target is. A run lasts {m['max_steps']} steps (the nominal approach takes 50) and succeeds for
+at where it believes the target is. {_horizon_text(m)} A run succeeds for
 the chaser when it ends within {m['tolerance']:g} m of the target point; "target lost" means the
 target's centre left the image, which ends the run. The attack ({m['method']} on the {m['loss']}
 loss, images quantised to 8 bits as in `rpod attack`) starts at the first step at range <= S and

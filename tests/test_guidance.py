@@ -107,7 +107,7 @@ def test_bad_inputs_raise_clear_errors():
 
 def _params(**changes):
     g = {"eps": [0.5, 0.05], "start_ranges": [60, 40, 20, 10], "lengths": [5, 15], "start": [0.0, 0.0, 60.0],
-         "target": [0.0, 0.0, 10.0], "tolerance": 1.0, "max_step": 1.0, "max_steps": 60, "variant": "paper",
+         "target": [0.0, 0.0, 10.0], "tolerance": 1.0, "max_step": 1.0, "max_steps": 60, "slack_steps": 10, "variant": "paper",
          "method": "fgsm"}
     return {**g, **changes}
 
@@ -134,3 +134,14 @@ def test_stage_plans_the_whole_grid():
     settings, grid = _plan(_params())
     assert settings.max_steps == 60 and len(grid) == 2 * 4 * 2
     assert {(e, s, k) for e, s, k, _ in grid} == {(e, s, k) for e in (0.5, 0.05) for s in (60, 40, 20, 10) for k in (5, 15)}
+
+
+def test_arrival_step_is_when_the_chaser_reaches_the_goal_for_good():
+    from pipeline.guidance import RendezvousResult, arrival_step
+
+    z = np.array([60.0, 30.0, 10.5, 14.0, 10.2, 10.0, 10.0])       # in, out again, then in for good
+    run = RendezvousResult(np.stack([np.zeros_like(z), np.zeros_like(z), z], axis=1), np.zeros((6, 3)),
+                           np.zeros(6, bool), "rendezvous held", 0.0, None)
+    assert arrival_step(run, (0.0, 0.0, 10.0), 1.0) == 4
+    short = RendezvousResult(run.positions[:4], np.zeros((3, 3)), np.zeros(3, bool), "missed without attack", 4.0, None)
+    assert arrival_step(short, (0.0, 0.0, 10.0), 1.0) is None
