@@ -66,7 +66,7 @@ def main() -> None:
         train_ips, infer_ips = throughput(width, h, w, batch, args.batches)
         rows.append({"setting": name, "input": f"{w}x{h}", "width": f"{width:g}", "batch": batch,
                      "train images/s": train_ips, "inference images/s": infer_ips,
-                     "train minutes per 1,000 images": 1000 / train_ips / 60})
+                     "train seconds per 1,000 images": 1000 / train_ips})
         print(f"{name}: {w}x{h} width {width}: train {train_ips:.1f} img/s, inference {infer_ips:.1f} img/s", flush=True)
     load1 = os.getloadavg()[0]
     table = markdown_table(rows, decimals=1)
