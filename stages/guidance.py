@@ -139,8 +139,8 @@ def _horizon_text(m: dict[str, Any]) -> str:
     arrival = m["baseline"]["arrival_step"]
     if arrival is None:
         return f"Every run lasts {m['horizon']} steps (guidance.max_steps; the no-attack baseline did not arrive)."
-    return (f"The no-attack baseline arrived after {arrival} steps (the nominal approach takes 50; a bias of the "
-            f"estimate along the range slows the paper variant), so every attacked run lasts {m['horizon']} steps: "
+    return (f"The no-attack baseline arrived after {arrival} steps (the nominal approach takes 50; in the paper "
+            f"variant a bias of the estimate along the range changes how far the chaser moves per step), so every attacked run lasts {m['horizon']} steps: "
             f"that arrival plus guidance.slack_steps = {m['slack_steps']}, at most guidance.max_steps = {m['max_steps']}. "
             "An attack succeeds when the chaser is not at the target point by then.")
 
