@@ -21,13 +21,12 @@ from typing import Any
 import typer
 
 from stages import params as params_mod
+from stages.detect import ROC_DIR, SHAP as SHAP_STORE
 from stages.io import StageError, atomic_write_text, read_json
 
 PAGE = Path("reports/README.md")
 README = Path("README.md")
 FIGURES = Path("reports/figures")
-SHAP_STORE = Path("datasets/shap.zarr")
-ROC_DIR = Path("reports/plots/roc")
 BLOCK = "results"
 
 # (stage, report file, metrics file or None) in pipeline order.
