@@ -33,3 +33,17 @@ def test_check_flags_a_drifted_readme(tmp_path, monkeypatch, drift):
         assert result.exit_code != 0 and "rpod report --sync-readme" in str(result.exception)
     else:
         assert result.exit_code == 0, result.output
+
+
+def test_report_names_the_missing_inputs(tmp_path, monkeypatch):
+    import shutil
+
+    shutil.copy(REPO / "params.yaml", tmp_path / "params.yaml")
+    (tmp_path / "reports" / "metrics").mkdir(parents=True)
+    (tmp_path / "reports" / "metrics" / "train.json").write_text("{}")
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(app, ["report"])
+    assert result.exit_code != 0
+    message = str(result.exception)
+    assert "reports/metrics/attack.json (rpod attack)" in message and "reports/pose.md (rpod train)" in message
+    assert "train.json" not in message and not (tmp_path / "reports" / "README.md").exists()
