@@ -27,9 +27,9 @@ sys.path.insert(0, str(ROOT))
 from pipeline.chain import SafetyChain  # noqa: E402
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector  # noqa: E402
 from pipeline.model import PoseNet  # noqa: E402
-from pipeline.report import markdown_table, replace_section  # noqa: E402
+from pipeline.report import markdown_table  # noqa: E402
+from stages.report import write_benchmark  # noqa: E402
 
-REPORT = ROOT / "reports" / "benchmarks.md"
 CONFIGS = [("default", 0.25, 90, 160), ("paper", 1.0, 270, 480)]
 
 
@@ -89,10 +89,7 @@ fixed cost that is a few percent of the paper-size network but about 10% of the 
 network at 160x90. The SHAP values themselves cost one 9 x 1000 multiply (~0.02 ms).
 
 {table}"""
-    text = REPORT.read_text() if REPORT.exists() else "# Benchmarks\n"
-    REPORT.parent.mkdir(parents=True, exist_ok=True)
-    REPORT.write_text(replace_section(text, "Safety chain latency", body))
-    print(f"-> {REPORT}")
+    print(f"-> {write_benchmark('Safety chain latency', body)}")
 
 
 if __name__ == "__main__":

@@ -28,9 +28,9 @@ sys.path.insert(0, str(ROOT))
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector  # noqa: E402
 from pipeline.explain import Explainer, deep_shap  # noqa: E402
 from pipeline.model import PoseNet  # noqa: E402
-from pipeline.report import markdown_table, replace_section  # noqa: E402
+from pipeline.report import markdown_table  # noqa: E402
+from stages.report import write_benchmark  # noqa: E402
 
-REPORT = ROOT / "reports" / "benchmarks.md"
 
 
 def per_call(fn: Callable[[], object], min_seconds: float = 1.0, max_calls: int = 10_000) -> float:
@@ -138,10 +138,7 @@ difference < 1e-5).
 The whole safety chain costs {(t_pose + t_exact_1 + t_det_1) / t_pose:.2f}x the pose network alone.
 """
     print(body)
-    REPORT.parent.mkdir(parents=True, exist_ok=True)
-    text = REPORT.read_text() if REPORT.exists() else "# Benchmarks\n"
-    REPORT.write_text(replace_section(text, "Explanations", body))
-    print(f"-> {REPORT.relative_to(ROOT)} (## Explanations)")
+    print(f"-> {write_benchmark('Explanations', body)} (## Explanations)")
 
 
 if __name__ == "__main__":

@@ -12,15 +12,14 @@ import dataclasses
 import os
 import platform
 import time
-from pathlib import Path
 
 import numpy as np
 
-from pipeline.report import markdown_table, replace_section
+from pipeline.report import markdown_table
 from stages import params as params_mod
+from stages.report import write_benchmark
 from stages.render import frames, scene_settings
 
-REPORT = Path("reports/benchmarks.md")
 SIZES = [(160, 90), (240, 135), (480, 270)]
 
 
@@ -126,10 +125,7 @@ def main() -> None:
         "",
         markdown_table(qrows, decimals=3),
     ])
-    REPORT.parent.mkdir(parents=True, exist_ok=True)
-    md = REPORT.read_text() if REPORT.exists() else "# Benchmarks\n\nMeasured on the project machine.\n"
-    REPORT.write_text(replace_section(md, "Rendering", body))
-    print(f"wrote the Rendering section of {REPORT}")
+    print(f"wrote the Rendering section of {write_benchmark('Rendering', body)}")
 
 
 if __name__ == "__main__":

@@ -11,16 +11,15 @@ import os
 import platform
 import statistics
 import time
-from pathlib import Path
 
 import torch
 
 from pipeline.loss import PoseLoss
 from pipeline.model import PoseNet
-from pipeline.report import markdown_table, replace_section
+from pipeline.report import markdown_table
 from stages import params as params_mod
+from stages.report import write_benchmark
 
-REPORT = Path("reports/benchmarks.md")
 
 
 def throughput(width: float, h: int, w: int, batch: int, batches: int) -> tuple[float, float]:
@@ -76,12 +75,7 @@ def main() -> None:
             f"{load1:.1f} at the end (other processes were not stopped).\n\n{table}\n"
             f"Training images/s include the backward pass and the Adam step, not data loading or augmentation.")
     print(table)
-    REPORT.parent.mkdir(parents=True, exist_ok=True)
-    old = REPORT.read_text() if REPORT.exists() else "# Benchmarks\n"
-    from stages.io import atomic_write_text
-
-    atomic_write_text(REPORT, replace_section(old, "Training", body))
-    print(f"-> {REPORT} (## Training)")
+    print(f"-> {write_benchmark('Training', body)} (## Training)")
 
 
 if __name__ == "__main__":

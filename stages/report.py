@@ -28,6 +28,7 @@ PAGE = Path("reports/README.md")
 README = Path("README.md")
 FIGURES = Path("reports/figures")
 BLOCK = "results"
+BENCHMARKS = Path(__file__).resolve().parent.parent / "reports" / "benchmarks.md"
 
 # (stage, report file, metrics file or None) in pipeline order.
 SECTIONS = [
@@ -74,6 +75,15 @@ def main(
 
         atomic_write_text(README, replace_block(README.read_text(), BLOCK, extract_block(page, BLOCK) or ""))
         typer.echo(f"report: results block copied into {README}")
+
+
+def write_benchmark(section: str, body: str) -> Path:
+    """Replace (or append) the `## section` of reports/benchmarks.md atomically; benchmarks/*.py call this."""
+    from pipeline.report import replace_section
+
+    old = BENCHMARKS.read_text() if BENCHMARKS.exists() else "# Benchmarks\n"
+    atomic_write_text(BENCHMARKS, replace_section(old, section, body))
+    return BENCHMARKS
 
 
 def _check() -> None:
