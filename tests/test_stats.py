@@ -1,0 +1,63 @@
+"""Intervals: Wilson against the closed form computed by hand, bootstrap over groups."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pipeline.stats import bootstrap_rate, rate, wilson
+
+
+def _wilson_by_hand(k: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    return centre - half, centre + half
+
+
+@pytest.mark.parametrize("k,n", [(0, 10), (3, 10), (10, 10), (54, 100), (1197, 1200)])
+def test_wilson_matches_hand_computed(k: int, n: int) -> None:
+    r = wilson(k, n)
+    lo, hi = _wilson_by_hand(k, n)
+    assert r.value == pytest.approx(k / n)
+    assert r.lo == pytest.approx(lo, abs=1e-9) and r.hi == pytest.approx(hi, abs=1e-9)
+
+
+def test_wilson_known_value_and_format() -> None:
+    # 8 of 10: the textbook Wilson interval is [0.490, 0.943]
+    r = wilson(8, 10)
+    assert (round(r.lo, 3), round(r.hi, 3)) == (0.490, 0.943)
+    assert r.pct() == "80.0 [49.0, 94.3]"
+    assert wilson(0, 0).pct() == "-" and wilson(0, 0).ci() == [None, None]
+
+
+def test_wilson_refuses_bad_counts() -> None:
+    with pytest.raises(ValueError, match="k <= n"):
+        wilson(5, 3)
+
+
+def test_rate_of_mask() -> None:
+    assert rate(np.array([True, False, True, True])).value == pytest.approx(0.75)
+
+
+def test_bootstrap_over_groups_is_wider_when_groups_differ() -> None:
+    rng = np.random.default_rng(0)
+    groups = np.repeat(np.arange(6), 200)
+    # groups with very different rates: frames are correlated within a group
+    p = np.repeat([0.05, 0.9, 0.1, 0.8, 0.2, 0.95], 200)
+    hits = rng.random(groups.size) < p
+    b = bootstrap_rate(hits, groups)
+    w = rate(hits)
+    assert b.value == pytest.approx(w.value)
+    assert b.lo <= b.value <= b.hi
+    assert (b.hi - b.lo) > 2 * (w.hi - w.lo)
+    # deterministic for a seed
+    assert bootstrap_rate(hits, groups) == b
+
+
+def test_bootstrap_single_group_falls_back_to_wilson() -> None:
+    hits = np.array([True] * 7 + [False] * 3)
+    b = bootstrap_rate(hits, np.zeros(10))
+    w = wilson(7, 10)
+    assert (b.lo, b.hi) == (w.lo, w.hi)
