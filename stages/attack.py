@@ -15,7 +15,7 @@ import numpy as np
 import typer
 
 from stages import params as params_mod
-from stages.io import StageError, atomic_dir, atomic_write_text, file_hash, write_metrics
+from stages.io import StageError, atomic_dir, atomic_write_text, create_array, file_hash, write_metrics
 
 MODEL = Path("models/pose.pt")
 OUT_DIR = Path("datasets/attack")
@@ -100,9 +100,9 @@ def main() -> None:
     with atomic_dir(OUT_DIR) as tmp:
         root = zarr.open_group(str(tmp / "adv.zarr"), mode="w")
         h, w = np.asarray(images[0]).shape[:2]
-        arrays = {e: root.create_array(array_name(e), shape=(n, h, w, 3), chunks=(min(batch, n), h, w, 3),
-                                       dtype="uint8") for e in eps_list}
-        root.create_array("source_index", data=labels["index"].to_numpy(np.int64))
+        arrays = {e: create_array(root, array_name(e), shape=(n, h, w, 3), chunks=(min(batch, n), h, w, 3),
+                                 dtype="uint8") for e in eps_list}
+        create_array(root, "source_index", data=labels["index"].to_numpy(np.int64))
         model.eval()
         for i in tqdm(range(0, n, batch), desc=f"attack ({a['method']}, {len(eps_list)} eps)", unit="batch"):
             u8 = np.stack([np.asarray(images[j]) for j in range(i, min(i + batch, n))])

@@ -21,7 +21,7 @@ import numpy as np
 import typer
 
 from stages import params as params_mod
-from stages.io import StageError, atomic_dir, atomic_write_text, file_hash, open_zarr, read_json, read_parquet, write_json, write_metrics
+from stages.io import StageError, atomic_dir, atomic_write_text, create_array, file_hash, open_zarr, read_json, read_parquet, write_json, write_metrics
 
 RENDER_OUT = Path("datasets/eval_render")
 MODEL = Path("models/pose.pt")
@@ -93,8 +93,8 @@ def render_trajectories(p: dict[str, Any]) -> None:
     t0 = time.perf_counter()
     with atomic_dir(RENDER_OUT) as tmp:
         store = zarr.open_group(str(tmp / "images.zarr"), mode="w")
-        images = store.create_array("images", shape=(n, K.height, K.width, 3),
-                                    chunks=(min(n, 100), K.height, K.width, 3), dtype="uint8")
+        images = create_array(store, "images", shape=(n, K.height, K.width, 3),
+                              chunks=(min(n, 100), K.height, K.width, 3), dtype="uint8")
         try:
             renderer = Renderer(K, scene_settings(p["render"]))
         except ValueError as err:

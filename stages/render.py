@@ -19,7 +19,7 @@ import numpy as np
 import typer
 
 from stages import params as params_mod
-from stages.io import StageError, atomic_dir, open_zarr, read_json, read_parquet, write_json
+from stages.io import StageError, atomic_dir, create_array, open_zarr, read_json, read_parquet, remove_stale_temps, write_json
 
 OUT = Path("datasets/render")
 SHARDS = Path("datasets/render_shards")
@@ -118,8 +118,8 @@ def render_part(p: dict[str, Any], start: int, stop: int, dest: Path, desc: str)
     chunk = int(r["chunk"])
     n = stop - start
     store = zarr.open_group(str(dest / "images.zarr"), mode="w")
-    images = store.create_array("images", shape=(n, K.height, K.width, 3), chunks=(chunk, K.height, K.width, 3),
-                                dtype="uint8")
+    images = create_array(store, "images", shape=(n, K.height, K.width, 3), chunks=(chunk, K.height, K.width, 3),
+                          dtype="uint8")
     try:
         renderer = Renderer(K, scene_settings(r))
     except ValueError as e:
@@ -149,9 +149,9 @@ def render_part(p: dict[str, Any], start: int, stop: int, dest: Path, desc: str)
 
 def remove_leftovers(path: Path) -> None:
     """Delete temporary folders that an interrupted (killed) run left next to `path`; they were never
-    renamed into place, so nothing trusts them, but they hold disk space."""
-    for d in path.parent.glob(f".{path.name}.*.tmp"):
-        shutil.rmtree(d, ignore_errors=True)
+    renamed into place, so nothing trusts them, but they hold disk space. A live concurrent run's
+    folder is kept."""
+    for d in remove_stale_temps(path):
         typer.echo(f"removed {d}, left over from an interrupted run")
 
 
@@ -216,7 +216,7 @@ def merge(p: dict[str, Any], n: int) -> None:
     chunk = int(p["render"]["chunk"])
     with atomic_dir(OUT) as tmp:
         store = zarr.open_group(str(tmp / "images.zarr"), mode="w")
-        dst = store.create_array("images", shape=(n_total, first["height"], first["width"], 3),
+        dst = create_array(store, "images", shape=(n_total, first["height"], first["width"], 3),
                                  chunks=(chunk, first["height"], first["width"], 3), dtype="uint8")
         for images, _, m in checked:
             for lo in range(0, m["frames"], chunk):  # one chunk at a time: memory stays small

@@ -30,7 +30,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from stages import params as params_mod
-from stages.io import StageError, atomic_dir, file_hash
+from stages.io import StageError, atomic_dir, create_array, file_hash
 
 MODEL = Path("models/pose.pt")
 ADV = Path("datasets/attack/adv.zarr")
@@ -207,11 +207,11 @@ def main() -> None:
     with atomic_dir(OUT) as tmp:
         root = zarr.open_group(str(tmp), mode="w")
         c = min(chunk, n)
-        values = root.create_array("values", shape=(n, 9, bg_features.shape[1]), chunks=(c, 9, bg_features.shape[1]),
-                                   dtype="float32")
-        features = root.create_array("features", shape=(n, bg_features.shape[1]), chunks=(c, bg_features.shape[1]),
-                                     dtype="float32")
-        outputs = root.create_array("outputs", shape=(n, 9), chunks=(c, 9), dtype="float32")
+        values = create_array(root, "values", shape=(n, 9, bg_features.shape[1]), chunks=(c, 9, bg_features.shape[1]),
+                              dtype="float32")
+        features = create_array(root, "features", shape=(n, bg_features.shape[1]), chunks=(c, bg_features.shape[1]),
+                                dtype="float32")
+        outputs = create_array(root, "outputs", shape=(n, 9), chunks=(c, 9), dtype="float32")
         # write whole zarr chunks at a time: explain `chunk` samples, then store them
         bar = tqdm(total=n, desc=f"shap ({explainer.method})", unit="img")
         for start in range(0, n, c):
@@ -227,11 +227,11 @@ def main() -> None:
             features[sl] = f
             outputs[sl] = np.concatenate(o_parts)
         bar.close()
-        root.create_array("is_adversarial", data=todo["eps"] > 0)
-        root.create_array("eps", data=todo["eps"])
-        root.create_array("source_index", data=todo["index"])
-        root.create_array("split", data=np.array([SPLIT_CODES[x] for x in todo["split"]], dtype=np.int8))
-        root.create_array("from_stack", data=from_stack)
+        create_array(root, "is_adversarial", data=todo["eps"] > 0)
+        create_array(root, "eps", data=todo["eps"])
+        create_array(root, "source_index", data=todo["index"])
+        create_array(root, "split", data=np.array([SPLIT_CODES[x] for x in todo["split"]], dtype=np.int8))
+        create_array(root, "from_stack", data=from_stack)
         root.attrs.update({
             "model_hash": model_hash, "background_size": int(s["background"]), "background_seed": seed,
             "background_mean": explainer.bg_mean.astype(float).tolist(), "method": explainer.method,

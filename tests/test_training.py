@@ -14,7 +14,7 @@ from pipeline.camera import reference_intrinsics
 from pipeline.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
 from stages import checkpoint, data
 from stages import params as params_mod
-from stages.io import StageError
+from stages.io import StageError, create_array, seal_zarr
 
 W, H = 48, 27
 
@@ -35,7 +35,8 @@ def write_dataset(root: Path, n: int = 40, width: int = W, height: int = H, seed
         shade = (128 + 100 * R[i, :, 0]).clip(0, 255)
         images[i, max(0, int(v) - half):int(v) + half + 1, max(0, int(u) - half):int(u) + half + 1] = shade
     group = zarr.open_group(str(root / "datasets/render/images.zarr"), mode="w")
-    group.create_array("images", shape=images.shape, chunks=(16, height, width, 3), dtype="uint8")[:] = images
+    create_array(group, "images", shape=images.shape, chunks=(16, height, width, 3), dtype="uint8")[:] = images
+    seal_zarr(root / "datasets/render/images.zarr")
     r6 = matrix_to_6d(R)
     labels = pd.DataFrame({"index": np.arange(n), "image": [f"images/{i}" for i in range(n)],
                            "sequence": np.arange(n) % 13, "frame": np.arange(n) // 13,
