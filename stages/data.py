@@ -58,7 +58,7 @@ class _Rows:
 
 
 def load_labels(path: Path | str = LABELS) -> pd.DataFrame:
-    """Read and validate the label table: required columns, no NaNs, a valid 6-D rotation per row."""
+    """Read and validate the label table: required columns, no NaN or inf, a valid 6-D rotation per row."""
     path = Path(path)
     df = read_parquet(path, "label table")
     extra6 = sorted(c for c in df.columns if c.startswith("r") and c[1:].isdigit() and c not in SIXD)
@@ -70,9 +70,9 @@ def load_labels(path: Path | str = LABELS) -> pd.DataFrame:
     if missing:
         raise StageError(f"{path}: missing columns {missing} (re-run `rpod label`)")
     numeric = ["index", *POSITION, *QUAT, *SIXD, "range"]
-    nans = {c: int(n) for c, n in df[numeric].isna().sum().items() if n}
+    nans = {c: int(n) for c, n in (~np.isfinite(df[numeric].astype(np.float64))).sum().items() if n}
     if nans:
-        raise StageError(f"{path}: NaN labels in columns {nans} (re-run `rpod label`)")
+        raise StageError(f"{path}: NaN or infinite labels in columns {nans} (re-run `rpod label`)")
     r6 = df[SIXD].to_numpy(np.float64)
     a, b = r6[:, :3], r6[:, 3:]
     bad = ((np.abs(np.linalg.norm(a, axis=1) - 1) > 1e-3) | (np.abs(np.linalg.norm(b, axis=1) - 1) > 1e-3)

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from stages import params as params_mod
-from stages.io import StageError, atomic_write_text, file_hash, load_torch, open_zarr, save_torch, write_metrics
+from stages.io import StageError, atomic_outputs, atomic_write_text, file_hash, load_torch, open_zarr, save_torch, write_metrics
 
 SHAP = Path("datasets/shap.zarr")
 MODEL = Path("models/pose.pt")
@@ -145,20 +145,19 @@ def main() -> None:
     # the paper's LSTM detector
     config = LSTMConfig(n_rows=values.shape[1], n_features=values.shape[2], hidden=int(d["hidden"]),
                         dense=[int(x) for x in d["dense"]])
-    live = Live(dir=LIVE_DIR, dvcyaml=False, save_dvc_exp=False, report=None)
     bar = tqdm(total=int(d["epochs"]), desc="detect: LSTM", unit="epoch")
 
     def on_epoch(rec: dict[str, float]) -> None:
-        for k in ("train_loss", "val_loss", "val_accuracy"):
-            live.log_metric(k, rec[k])
-        live.next_step()
         bar.update(1)
         bar.set_postfix(val_loss=f"{rec['val_loss']:.4f}", val_acc=f"{rec['val_accuracy']:.3f}")
 
     t0 = time.perf_counter()
-    result = train_lstm(values[tr], y[tr], values[va], y[va], config, epochs=int(d["epochs"]),
-                        patience=int(d["patience"]), batch_size=int(d["batch_size"]), lr=float(d["lr"]),
-                        seed=seed, on_epoch=on_epoch)
+    try:
+        result = train_lstm(values[tr], y[tr], values[va], y[va], config, epochs=int(d["epochs"]),
+                            patience=int(d["patience"]), batch_size=int(d["batch_size"]), lr=float(d["lr"]),
+                            seed=seed, on_epoch=on_epoch)
+    except ValueError as e:  # also DivergenceError
+        raise StageError(f"params.yaml detect: {e} ({DETECTOR} and the reports were left as they were)") from None
     bar.close()
     lstm_seconds = time.perf_counter() - t0
     lstm = result.model
@@ -175,9 +174,6 @@ def main() -> None:
         print(f"detect: {name} baseline in {seconds[name]:.1f} s", flush=True)
 
     results = {name: metrics_by_eps(y[te], s, eps[te], thr) for name, (s, thr) in scores.items()}
-    for k, v in results["lstm"]["all"].items():
-        live.log_metric(f"test/{k}", v, plot=False)
-    live.end()
 
     ckpt = to_checkpoint(lstm, {
         "format": FORMAT, "pose_model_hash": model_hash, "shap_method": data["attrs"].get("method"),
@@ -185,22 +181,28 @@ def main() -> None:
         "background_size": int(data["attrs"]["background_size"]),
         "eps": sorted({float(e) for e in eps[y == 1]}, reverse=True),
         "best_epoch": result.best_epoch, "test_accuracy": results["lstm"]["all"]["accuracy"]})
-    save_torch(DETECTOR, ckpt)
-    ROC_DIR.mkdir(parents=True, exist_ok=True)
-    for name, (s, _) in scores.items():
-        roc = roc_points(y[te], s)
-        lines = ["fpr,tpr"] + [f"{a:.6f},{b:.6f}" for a, b in zip(roc["fpr"], roc["tpr"])]
-        atomic_write_text(ROC_DIR / f"{name}.csv", "\n".join(lines) + "\n")
-    for stale in ROC_DIR.glob("*.csv"):
-        if stale.stem not in scores:
-            stale.unlink()
     counts = {"samples": int(len(y)), "train": int(len(tr)), "validation": int(len(va)), "test": int(len(te)),
               "test_clean": int((y[te] == 0).sum()), "test_adversarial": int(y[te].sum())}
     metrics = {"model_hash": model_hash, "counts": counts, "threshold": {k: v[1] for k, v in scores.items()},
                "lstm_epochs": len(result.history), "lstm_best_epoch": result.best_epoch,
                "seconds": seconds, "paper_accuracy": PAPER_ACCURACY, "detectors": results}
-    write_metrics(METRICS, _clean_nan(metrics), p)
-    atomic_write_text(REPORT, _report(results, scores, counts, result, data["attrs"], d, seconds))
+    # detector, metrics, report, ROC data and curves move into place together, once all are written
+    with atomic_outputs(DETECTOR, METRICS, REPORT, dirs=(ROC_DIR, LIVE_DIR)) as (det, met, rep, roc_dir, live_dir):
+        save_torch(det, ckpt)
+        for name, (s, _) in scores.items():
+            roc = roc_points(y[te], s)
+            lines = ["fpr,tpr"] + [f"{a:.6f},{b:.6f}" for a, b in zip(roc["fpr"], roc["tpr"])]
+            atomic_write_text(roc_dir / f"{name}.csv", "\n".join(lines) + "\n")
+        write_metrics(met, _clean_nan(metrics), p)
+        atomic_write_text(rep, _report(results, scores, counts, result, data["attrs"], d, seconds))
+        live = Live(dir=str(live_dir), dvcyaml=False, save_dvc_exp=False, report=None)
+        for rec in result.history:
+            for k in ("train_loss", "val_loss", "val_accuracy"):
+                live.log_metric(k, rec[k])
+            live.next_step()
+        for k, v in results["lstm"]["all"].items():
+            live.log_metric(f"test/{k}", v, plot=False)
+        live.end()
     acc = results["lstm"]["all"]["accuracy"]
     print(f"detect: LSTM test accuracy {acc:.4f} (paper {PAPER_ACCURACY:.4f}) -> {DETECTOR}, {REPORT}")
 

@@ -81,7 +81,21 @@ def load_torch(path: Path | str, fmt: str, stage: str) -> dict[str, Any]:
         raise StageError(f"checkpoint {path} is unreadable ({type(e).__name__}: {e}); re-run `rpod {stage}`") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != fmt:
         raise StageError(f"{path} is not an rpodguard checkpoint of format {fmt}; re-run `rpod {stage}`")
+    bad = _nonfinite_tensors(ckpt)
+    if bad:
+        raise StageError(f"checkpoint {path} holds non-finite weights ({', '.join(bad[:3])}); re-run `rpod {stage}`")
     return ckpt
+
+
+def _nonfinite_tensors(obj: Any, prefix: str = "") -> list[str]:
+    """Names of the floating-point tensors (nested in dicts) with a NaN or inf."""
+    import torch
+
+    if isinstance(obj, dict):
+        return [n for k, v in obj.items() for n in _nonfinite_tensors(v, f"{prefix}{k}.")]
+    if isinstance(obj, torch.Tensor) and obj.is_floating_point() and not bool(torch.isfinite(obj).all()):
+        return [prefix.rstrip(".")]
+    return []
 
 
 def read_json(path: Path | str) -> Any:
@@ -145,6 +159,38 @@ def _alive(pid: int) -> bool:
     except PermissionError:
         return True
     return True
+
+
+@contextlib.contextmanager
+def atomic_outputs(*paths: Path | str, dirs: tuple[Path | str, ...] = ()) -> Iterator[list[Path]]:
+    """Yield temporary stand-ins for the files `paths` and the folders `dirs` (in that order; the folders
+    are created empty). On success every one is moved into place together, after all were written; on
+    error none is, so a stage's model, metrics and curves never come from different runs."""
+    files, folders = [Path(p) for p in paths], [Path(d) for d in dirs]
+    tmps = []
+    for p in files + folders:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        tmps.append(p.with_name(f".{p.name}.{os.getpid()}.tmp"))
+    try:
+        for t in tmps[len(files):]:
+            shutil.rmtree(t, ignore_errors=True)
+            t.mkdir()
+        yield tmps
+        missing = [str(p) for p, t in zip(files, tmps) if not t.exists()]
+        if missing:
+            raise RuntimeError(f"atomic_outputs: {missing} were not written")
+    except BaseException:
+        for t in tmps:
+            shutil.rmtree(t, ignore_errors=True) if t.is_dir() else t.unlink(missing_ok=True)
+        raise
+    for p, t in zip(files + folders, tmps):
+        if t.is_dir() and p.exists():
+            old = p.with_name(f".{p.name}.{os.getpid()}.old")
+            os.replace(p, old)
+            os.replace(t, p)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(t, p)
 
 
 def file_hash(path: Path | str, n: int = 16) -> str:

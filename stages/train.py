@@ -9,11 +9,12 @@ CPU, nccl on CUDA, one GPU per process); only rank 0 writes files. CUDA is used 
 """
 from __future__ import annotations
 
+import copy
 import os
 from pathlib import Path
 from typing import Any
 
-from stages.io import StageError, atomic_write_text, write_metrics
+from stages.io import StageError, atomic_outputs, atomic_write_text, write_metrics
 
 REPORT = Path("reports/pose.md")
 METRICS = Path("reports/metrics/train.json")
@@ -30,7 +31,7 @@ def main() -> None:
 
     from pipeline.loss import PoseLoss
     from pipeline.model import PoseNet
-    from pipeline.training import TrainConfig, fit, predict, summarize_errors
+    from pipeline.training import DivergenceError, TrainConfig, fit, predict, summarize_errors
     from stages import checkpoint, data, params as params_mod
 
     params = params_mod.load()
@@ -58,11 +59,8 @@ def main() -> None:
         model = torch.compile(model)  # type: ignore[assignment]
     input_size = (int(params["render"]["height"]), int(params["render"]["width"]))
 
-    live = None
+    best: dict[str, Any] = {}  # the learned loss weights and facts of the best epoch so far
     if rank == 0:
-        from dvclive import Live
-
-        live = Live(dir=LIVE_DIR, dvcyaml=False, save_dvc_exp=False, report=None)
         print(f"train: {len(train_split)} train / {len(test_split)} test images at {input_size[1]}x{input_size[0]}, "
               f"width {p['width']}, {cfg.epochs} epochs, batch {cfg.batch_size} x {world} process(es), "
               f"{torch.get_num_threads()} threads, device {device}", flush=True)
@@ -72,21 +70,20 @@ def main() -> None:
             return
         from tqdm import tqdm
 
-        for key in ("loss", "lr", "s_p", "s_r", "train_pos_m", "train_att_deg", "test_pos_m", "test_att_deg",
-                    "test_score", "images_per_s"):
-            live.log_metric(key, getattr(stats, key))
-        live.next_step()
         if is_best:
-            checkpoint.save_pose(checkpoint.POSE, _plain(net), loss, input_size,
-                                 {"epoch": stats.epoch, "test_score": stats.test_score,
-                                  "test_pos_m": stats.test_pos_m, "test_att_deg": stats.test_att_deg})
+            best.update(loss=copy.deepcopy(loss), meta={"epoch": stats.epoch, "test_score": stats.test_score,
+                                                        "test_pos_m": stats.test_pos_m,
+                                                        "test_att_deg": stats.test_att_deg})
         tqdm.write(f"epoch {stats.epoch:3d}  loss {stats.loss:7.3f}  train {stats.train_pos_m:6.2f} m "
                    f"{stats.train_att_deg:5.2f} deg  test {stats.test_pos_m:6.2f} m {stats.test_att_deg:5.2f} deg  "
                    f"{stats.images_per_s:5.0f} img/s  {stats.seconds:5.1f} s{'  *best' if is_best else ''}")
 
-    result = fit(model, loss, train_set, test_set, cfg, device, on_epoch=on_epoch)
+    try:
+        result = fit(model, loss, train_set, test_set, cfg, device, on_epoch=on_epoch)
+    except DivergenceError as e:
+        raise StageError(f"{e}; lower train.lr_base / train.lr_max in params.yaml "
+                         f"({checkpoint.POSE} and the reports were left as they were)") from None
     if rank == 0:
-        live.end()
         net = _plain(model)
         net.load_state_dict(result.best_state)
         bins = params["train"]["range_bins"]
@@ -101,8 +98,13 @@ def main() -> None:
                    "stopped_early": result.stopped_early, "train_minutes": result.seconds / 60,
                    "train_images_per_s": result.train_images_per_s, "test_score": result.best_score,
                    "processes": world, "device": str(device)}
-        write_metrics(METRICS, metrics, params)
-        atomic_write_text(REPORT, _report(metrics, params, len(train_split), len(test_split)))
+        # model, metrics, report and curves move into place together, only now: a crashed, killed or
+        # diverged run leaves the previous run's files as they were
+        with atomic_outputs(checkpoint.POSE, METRICS, REPORT, dirs=(LIVE_DIR,)) as (pose, metrics_path, report, live):
+            checkpoint.save_pose(pose, net, best["loss"], input_size, best["meta"])
+            write_metrics(metrics_path, metrics, params)
+            atomic_write_text(report, _report(metrics, params, len(train_split), len(test_split)))
+            _log_curves(live, result.history)
         print(f"train: best epoch {result.best_epoch}: test {summary['test']['pos_mean_m']:.3f} m, "
               f"{summary['test']['att_mean_deg']:.2f} deg -> {checkpoint.POSE}, {REPORT}, {METRICS}")
     if world > 1:
@@ -110,6 +112,19 @@ def main() -> None:
 
         dist.barrier()
         dist.destroy_process_group()
+
+
+def _log_curves(folder: Any, history: list[Any]) -> None:
+    """Per-epoch curves of a finished run into a DVCLive folder (for `dvc plots show`)."""
+    from dvclive import Live
+
+    live = Live(dir=str(folder), dvcyaml=False, save_dvc_exp=False, report=None)
+    for stats in history:
+        for key in ("loss", "lr", "s_p", "s_r", "train_pos_m", "train_att_deg", "test_pos_m", "test_att_deg",
+                    "test_score", "images_per_s"):
+            live.log_metric(key, getattr(stats, key))
+        live.next_step()
+    live.end()
 
 
 def _plain(model: Any) -> Any:

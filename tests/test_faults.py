@@ -60,3 +60,134 @@ def test_a_failed_write_leaves_the_old_store(tmp_path):
                          chunks=(8, 9, 16, 3), dtype="uint8")[:16] = 0
     np.testing.assert_array_equal(open_zarr(tmp_path / "images.zarr")["images"][:], images)
     assert [p.name for p in tmp_path.iterdir()] == ["images.zarr"]
+
+
+# --- training: divergence, non-finite labels, killed runs --------------------------------------------------
+
+TRAIN_OUTPUTS = ["models/pose.pt", "reports/metrics/train.json", "reports/pose.md",
+                 "dvclive/train/plots/metrics/test_pos_m.tsv"]
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A tiny dataset (tests/test_training.py) and one finished `rpod train` on it."""
+    import os
+
+    import torch
+
+    from stages.train import main
+    from tests.test_training import write_dataset
+
+    root = tmp_path_factory.mktemp("trained")
+    write_dataset(root)
+    torch.set_num_threads(1)
+    cwd = os.getcwd()
+    os.chdir(root)
+    try:
+        main()
+    finally:
+        os.chdir(cwd)
+    return root
+
+
+@pytest.fixture
+def run_dir(trained, tmp_path, monkeypatch):
+    """A copy of `trained` as the working directory; returns the bytes of the train outputs."""
+    import shutil
+
+    shutil.copytree(trained, tmp_path / "run")
+    monkeypatch.chdir(tmp_path / "run")
+    return {p: Path(p).read_bytes() for p in TRAIN_OUTPUTS}
+
+
+def _unchanged(before: dict[str, bytes]) -> None:
+    assert {p: Path(p).read_bytes() for p in before} == before
+    assert not [p for p in Path(".").rglob("*.tmp")], "temporary files left behind"
+
+
+def _set_params(**overrides: object) -> None:
+    from stages import params as params_mod
+
+    p = params_mod.load()
+    for key, value in overrides.items():
+        section, name = key.split("__")
+        p[section][name] = value
+    params_mod.write_params(p)
+
+
+def test_diverging_learning_rate_is_refused_and_keeps_the_old_model(run_dir):
+    from stages.train import main
+
+    _set_params(train__lr_base=1e12, train__lr_max=1e12)
+    with pytest.raises(StageError, match=r"training diverged: loss (nan|inf).*lower train.lr_base"):
+        main()
+    _unchanged(run_dir)
+
+
+@pytest.mark.parametrize("value", [np.inf, np.nan])
+def test_non_finite_label_is_refused(run_dir, value):
+    import pandas as pd
+
+    from stages.train import main
+
+    df = pd.read_parquet("datasets/labels.parquet")
+    df.loc[5, "tz"] = value
+    df.to_parquet("datasets/labels.parquet")
+    with pytest.raises(StageError, match=r"NaN or infinite labels in columns \{'tz': 1\}"):
+        main()
+    _unchanged(run_dir)
+
+
+def test_pose_dataset_refuses_non_finite_targets():
+    from pipeline.training import PoseDataset
+
+    targets = np.zeros((4, 9), np.float32)
+    targets[2, 4] = np.inf
+    with pytest.raises(ValueError, match=r"1 targets are NaN or infinite \(first: row 2\)"):
+        PoseDataset(np.zeros((4, 2, 2, 3), np.uint8), targets)
+
+
+def test_killed_train_leaves_old_model_and_metrics(run_dir):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    _set_params(train__epochs=50, train__max_minutes=None)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen([sys.executable, "-c", "from stages.train import main; main()"], env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    for line in proc.stdout:  # wait for the second finished epoch (the first was a new best)
+        if line.startswith("epoch   2"):
+            break
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    assert {p: Path(p).read_bytes() for p in run_dir} == run_dir
+
+
+def test_checkpoint_with_nan_weights_is_refused(run_dir):
+    import torch
+
+    from stages.checkpoint import read_pose
+
+    ckpt = torch.load("models/pose.pt", weights_only=True)
+    next(v for v in ckpt["model"].values() if v.is_floating_point()).view(-1)[0] = float("nan")
+    torch.save(ckpt, "models/pose.pt")
+    with pytest.raises(StageError, match="holds non-finite weights"):
+        read_pose("models/pose.pt")
+
+
+@pytest.mark.parametrize("setting, message", [
+    ({"epochs": 0}, "epochs=0"), ({"hidden": 0}, "hidden=0"), ({"dense": [0]}, r"dense\[0\]=0"),
+    ({"lr": 1e30}, "training diverged|improved"),
+])
+def test_lstm_detector_refuses_zero_sizes_and_divergence(setting, message):
+    from pipeline.detectors.lstm import LSTMConfig, train_lstm
+
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(size=(40, 9, 8)).astype(np.float32), np.arange(40) % 2
+    cfg = LSTMConfig(n_rows=9, n_features=8, hidden=setting.get("hidden", 4), dense=setting.get("dense", [4]))
+    with pytest.raises(ValueError, match=message):
+        train_lstm(x[:30], y[:30], x[30:], y[30:], cfg, epochs=setting.get("epochs", 3), patience=2,
+                   batch_size=8, lr=setting.get("lr", 1.0))

@@ -75,7 +75,7 @@ def _edit_labels(fn) -> None:
 
 
 @pytest.mark.parametrize("edit, message", [
-    (lambda df: df.assign(tx=df["tx"].where(df.index != 3)), "NaN labels"),
+    (lambda df: df.assign(tx=df["tx"].where(df.index != 3)), "NaN or infinite labels"),
     (lambda df: df.drop(columns=["r5"]), "r0..r5"),
     (lambda df: df.assign(r6=0.0), "r0..r5"),
     (lambda df: df.assign(r0=df["r0"] * 2), "rotation matrix"),
