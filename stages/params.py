@@ -68,7 +68,7 @@ def load(path: Path = PARAMS_FILE) -> dict[str, Any]:
         if key in known or any(key.startswith(p + ".") for p in known if schema[p] in ({}, None)):
             continue
         if key in prefixes:
-            continue
+            raise ParamsError(f"{path}: {key!r} must be a section of parameters, got {_flat(params)[key]!r}")
         hint = difflib.get_close_matches(key, sorted(known), n=1)
         raise ParamsError(f"{path}: unknown parameter {key!r}" + (f" (did you mean {hint[0]!r}?)" if hint else ""))
     return params

@@ -191,3 +191,54 @@ def test_lstm_detector_refuses_zero_sizes_and_divergence(setting, message):
     with pytest.raises(ValueError, match=message):
         train_lstm(x[:30], y[:30], x[30:], y[30:], cfg, epochs=setting.get("epochs", 3), patience=2,
                    batch_size=8, lr=setting.get("lr", 1.0))
+
+
+# --- the CLI: one line, exit status 1; --debug for the traceback --------------------------------------------
+
+def _rpod(monkeypatch, capsys, *args: str) -> tuple[int, str]:
+    import sys
+
+    from stages import cli
+
+    monkeypatch.setattr(sys, "argv", ["rpod", *args])
+    monkeypatch.setitem(cli._DEBUG, "on", False)
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main()
+    return exit_info.value.code, capsys.readouterr().err
+
+
+def test_cli_prints_one_line_for_known_errors(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    code, err = _rpod(monkeypatch, capsys, "params", "smoke", "-S", "nosuchkey=1")  # a Hydra error
+    assert code == 1 and err.count("\n") == 1 and err.startswith("error: ") and "nosuchkey" in err
+    code, err = _rpod(monkeypatch, capsys, "train")  # no params.yaml
+    assert code == 1 and err == "error: params.yaml not found: run `rpod params default` (or another profile) first\n"
+    code, err = _rpod(monkeypatch, capsys, "params", "smoke", "-S", "train=1")
+    assert code == 0
+    code, err = _rpod(monkeypatch, capsys, "label")  # params.yaml with a section replaced by a number
+    assert code == 1 and err == "error: params.yaml: 'train' must be a section of parameters, got 1\n"
+    assert not Path("datasets").exists()
+
+
+def test_cli_debug_shows_the_traceback(tmp_path, monkeypatch):
+    import sys
+
+    from stages import cli
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["rpod", "--debug", "train"])
+    with pytest.raises(ValueError, match="params.yaml not found"):
+        cli.main()
+
+
+def test_cli_reports_a_corrupt_chunk_in_one_line(trained, tmp_path, monkeypatch, capsys):
+    import shutil
+
+    shutil.copytree(trained, tmp_path / "run")
+    monkeypatch.chdir(tmp_path / "run")
+    Path("datasets/render/images.zarr/images/c/1/0/0/0").unlink()
+    before = {p: Path(p).read_bytes() for p in TRAIN_OUTPUTS}
+    code, err = _rpod(monkeypatch, capsys, "train")
+    assert code == 1 and err == ("error: image store datasets/render/images.zarr is missing chunk images/c/1/0/0/0; "
+                                 "delete it and re-run the stage that writes it\n")
+    _unchanged(before)
