@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -111,36 +112,58 @@ def recording_folders(root: Path) -> list[Path]:
 
 
 def read_recording(folder: Path, width: int, height: int, bodies: dict[str, str], match: str, max_gap: float,
-                   threshold: float) -> dict[str, Any]:
+                   threshold: float, max_pixels: int = 1 << 25, empty_tolerance: float = 0.0) -> dict[str, Any]:
     """Load one recording: segmented images resized to width x height (uint8), frames, lab labels t, q.
 
-    Every problem is a StageError naming the file (and line for the CSVs).
+    Every problem is a StageError naming the file (and line for the CSVs): files outside the folder or
+    not regular, images over `max_pixels` (checked on the header, before decoding), non-finite or
+    duplicated rows, a target behind the camera, more than `empty_tolerance` of frames without target.
     """
+    try:
+        return _read_recording(folder, width, height, bodies, match, max_gap, threshold, max_pixels, empty_tolerance)
+    except ValueError as e:  # pipeline.lab.LabDataError and friends
+        raise StageError(str(e)) from None
+
+
+def _read_recording(folder: Path, width: int, height: int, bodies: dict[str, str], match: str, max_gap: float,
+                    threshold: float, max_pixels: int, empty_tolerance: float) -> dict[str, Any]:
     import cv2
     import pandas as pd
+    from PIL import Image
+    from tqdm import tqdm
 
-    from pipeline.lab import LabDataError, match_frames, resize, segment
+    from pipeline.lab import check_target_pixels, image_names, match_frames, resize, resolve_inside, segment
 
     tables = {}
     for name in ("camera.csv", "mocap.csv"):
         path = folder / name
         if not path.exists():
             raise StageError(f"{path} not found (a lab recording needs images/, camera.csv and mocap.csv)")
+        path = resolve_inside(folder, name, str(folder))
         try:
             tables[name] = pd.read_csv(path)
         except Exception as e:
-            raise StageError(f"{path} is not a readable CSV ({type(e).__name__}: {e})") from None
-    try:
-        frames, t, q = match_frames(tables["camera.csv"], tables["mocap.csv"], bodies["camera"], bodies["target"],
-                                    match, max_gap, str(folder / "camera.csv"), str(folder / "mocap.csv"))
-    except LabDataError as e:
-        raise StageError(str(e)) from None
-    cam = tables["camera.csv"]
-    names = (cam["image"].astype(str).tolist() if "image" in cam.columns else [f"{int(f):06d}.png" for f in frames])
+            raise StageError(f"{folder / name} is not a readable CSV ({type(e).__name__}: {e})") from None
+    frames, t, q = match_frames(tables["camera.csv"], tables["mocap.csv"], bodies["camera"], bodies["target"],
+                                match, max_gap, str(folder / "camera.csv"), str(folder / "mocap.csv"))
+    names = image_names(tables["camera.csv"], frames, str(folder / "camera.csv"))
     images = np.zeros((len(frames), height, width, 3), np.uint8)
-    for k, name in enumerate(names):
+    for k, name in enumerate(tqdm(names, desc=f"read {folder.name}", unit="img", leave=False)):
         where = f"(camera.csv line {k + 2})"
-        bgr = cv2.imread(str(folder / "images" / name), cv2.IMREAD_COLOR)
+        path = resolve_inside(folder / "images", name, f"{folder / 'camera.csv'} line {k + 2}")
+        try:
+            with warnings.catch_warnings():  # the size is checked against lab.max_image_pixels just below
+                warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+                with Image.open(path) as header:  # reads the header only
+                    w, h = header.size
+        except Image.DecompressionBombError as e:
+            raise StageError(f"{folder / 'images' / name} is above lab.max_image_pixels ({e}) {where}") from None
+        except Exception:
+            raise StageError(f"{folder / 'images' / name} cannot be read as an image {where}") from None
+        if w * h > max_pixels:
+            raise StageError(f"{folder / 'images' / name} is {w}x{h} = {w * h} pixels, above lab.max_image_pixels "
+                             f"= {max_pixels} {where}")
+        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if bgr is None:
             raise StageError(f"{folder / 'images' / name} cannot be read as an image {where}")
         h, w = bgr.shape[:2]
@@ -150,12 +173,15 @@ def read_recording(folder: Path, width: int, height: int, bodies: dict[str, str]
         mask = None
         mpath = folder / "masks" / name
         if (folder / "masks").is_dir():
+            if mpath.exists():
+                mpath = resolve_inside(folder / "masks", name, f"{folder / 'camera.csv'} line {k + 2}")
             mask = cv2.imread(str(mpath), cv2.IMREAD_GRAYSCALE)
             if mask is None:
                 raise StageError(f"{mpath} cannot be read as a mask {where}")
             if mask.shape != (h, w):
                 raise StageError(f"{mpath} is {mask.shape[1]}x{mask.shape[0]}, its image {w}x{h} {where}")
         images[k] = resize(segment(bgr[..., ::-1], mask, threshold), width, height)
+    check_target_pixels(images, empty_tolerance, str(folder))
     return {"name": folder.name, "frames": frames, "images": images, "t_lab": t, "q": q}
 
 
@@ -280,7 +306,8 @@ def main(ctx: typer.Context) -> None:
             chain, loss_fn, model_hash = load_chain(p)
         render_s -= sum(synthetic_lab["seconds"].values())
     recs = [read_recording(f, int(r["width"]), int(r["height"]), lab["bodies"], lab["match"], float(lab["max_gap_s"]),
-                           float(lab["segment_threshold"])) for f in recording_folders(source)]
+                           float(lab["segment_threshold"]), int(lab["max_image_pixels"]),
+                           float(lab["empty_frame_tolerance"])) for f in recording_folders(source)]
     loader_err = {}
     for tr in truth:      # the loader's labels against the exact ones the images were rendered at
         rec = next(x for x in recs if x["name"] == tr["name"])
