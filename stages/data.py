@@ -15,7 +15,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from stages.io import StageError, open_zarr, read_parquet
+from stages.io import StageError, open_zarr, read_json, read_parquet
+from stages.params import check_render_fingerprint
 
 IMAGES = Path("datasets/render/images.zarr")
 LABELS = Path("datasets/labels.parquet")
@@ -84,8 +85,10 @@ def load_labels(path: Path | str = LABELS) -> pd.DataFrame:
 
 
 def open_images(params: dict[str, Any], path: Path | str = IMAGES) -> Any:
-    """The zarr array `images` (N, H, W, 3) uint8, checked against render.width x render.height."""
+    """The zarr array `images` (N, H, W, 3) uint8, checked against render.width x render.height and,
+    through meta.json beside it, against the render params' fingerprint."""
     path = Path(path)
+    check_render_fingerprint(read_json(path.parent / "meta.json"), params, path.parent / "meta.json")
     group = open_zarr(path, "image store")
     if "images" not in group:
         raise StageError(f"{path} has no array 'images' (re-run `rpod render`)")

@@ -117,6 +117,7 @@ def main() -> None:
 
     p = params_mod.load()
     _, poses, meta = check_store(RENDER)
+    params_mod.check_render_fingerprint(meta, p, RENDER / "meta.json")
     labels = build_labels(poses, float(p["label"]["test_fraction"]), int(p["seed"]) + SEED_OFFSET)
     LABELS.parent.mkdir(parents=True, exist_ok=True)
     tmp = LABELS.with_name(f".{LABELS.name}.tmp")

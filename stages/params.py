@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import difflib
+import hashlib
+import json
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +35,21 @@ def compose(profile: str = "default", overrides: list[str] | None = None) -> dic
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):
         cfg = hydra_compose(config_name="config", overrides=[f"profile={profile}", *(overrides or [])])
     return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
+
+
+def render_fingerprint(params: dict[str, Any]) -> str:
+    """Hash of everything that decides the rendered images (`seed`, `camera`, `render`): the render
+    stage stamps it into datasets/render/meta.json; every reader of the renders compares it."""
+    key = json.dumps({"seed": params["seed"], "camera": params["camera"], "render": params["render"]}, sort_keys=True)
+    return hashlib.sha256(key.encode()).hexdigest()[:16]
+
+
+def check_render_fingerprint(meta: dict[str, Any], params: dict[str, Any], path: Path | str) -> None:
+    """Refuse renders (meta.json at `path`) made with other `seed`/`camera`/`render` params than params.yaml."""
+    if meta.get("fingerprint") != render_fingerprint(params):
+        raise ParamsError(f"{path} was rendered with other seed/camera/render params than params.yaml "
+                          f"(fingerprint {meta.get('fingerprint')!r}, params give {render_fingerprint(params)!r}); "
+                          f"re-run `rpod render` (or `dvc repro`)")
 
 
 def write_params(params: dict[str, Any], path: Path = PARAMS_FILE) -> None:

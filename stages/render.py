@@ -8,8 +8,6 @@ contiguous block of frames) into datasets/render_shards/N/I; when the last part 
 from __future__ import annotations
 
 import fcntl
-import hashlib
-import json
 import shutil
 import time
 from pathlib import Path
@@ -72,8 +70,7 @@ def frames(p: dict[str, Any]):
 
 def fingerprint(p: dict[str, Any]) -> str:
     """Hash of everything that decides the rendered images (so shards of different runs never mix)."""
-    key = json.dumps({"seed": p["seed"], "camera": p["camera"], "render": p["render"]}, sort_keys=True)
-    return hashlib.sha256(key.encode()).hexdigest()[:16]
+    return params_mod.render_fingerprint(p)
 
 
 def parse_shard(shard: str) -> tuple[int, int]:
@@ -133,6 +130,9 @@ def render_part(p: dict[str, Any], start: int, stop: int, dest: Path, desc: str)
                 for k in range(lo, hi):
                     buf[k - lo] = renderer.render(R[start + k], t[start + k])
                     bar.update(1)
+                if lo == 0 and not buf[: hi - lo].any():
+                    raise StageError(f"render: the target covers no pixels in the first {hi} frames (all black); "
+                                     f"check render.mesh and render.mesh_scale (metres per mesh unit)")
                 images[lo:hi] = buf[: hi - lo]
     finally:
         renderer.close()

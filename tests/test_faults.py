@@ -356,3 +356,53 @@ def test_lab_nan_image_name_is_refused(recording):
     _edit_csv(recording / "camera.csv", lambda df: df.assign(image=[f"{i:06d}.png" for i in range(5)] + [np.nan]))
     with pytest.raises(StageError, match=r"camera.csv line 7: column 'image' is empty or not a file name \(nan\)"):
         _read(recording)
+
+
+# --- stale inputs: render fingerprints, wrong mesh scale ------------------------------------------------------
+
+def test_train_refuses_a_stale_render(run_dir):
+    from stages.train import main
+
+    _set_params(render__frames_per_sequence=7)
+    with pytest.raises(ValueError, match=r"datasets/render/meta.json was rendered with other seed/camera/render params"):
+        main()
+    _unchanged(run_dir)
+
+
+@pytest.mark.slow
+def test_label_refuses_a_stale_render_and_render_refuses_an_invisible_target(tmp_path, monkeypatch):
+    from stages import label, render
+    from stages import params as params_mod
+
+    monkeypatch.chdir(tmp_path)
+    tiny = ["render.width=32", "render.height=18", "render.frames_per_sequence=2", "render.samples=1", "render.chunk=4"]
+    params_mod.write_params(params_mod.compose("smoke", tiny))
+    render.main(shard="1/1", merge_parts=0)
+    rendered = {p: p.read_bytes() for p in Path("datasets/render").rglob("*") if p.is_file()}
+
+    params_mod.write_params(params_mod.compose("smoke", [*tiny, "render.frames_per_sequence=3"]))
+    with pytest.raises(ValueError, match="rendered with other seed/camera/render params"):
+        label.main()
+    assert not Path("datasets/labels.parquet").exists()
+
+    # a mesh in millimetres declared as metres: 1000x too small, nothing visible at 60 m
+    Path("cube.obj").write_text("".join(f"v {x} {y} {z}\n" for x in (-1, 1) for y in (-1, 1) for z in (-1, 1))
+                                + "f 1 2 4 3\nf 5 6 8 7\nf 1 2 6 5\nf 3 4 8 7\nf 1 3 7 5\nf 2 4 8 6\n")
+    params_mod.write_params(params_mod.compose("smoke", [*tiny, "render.mesh=cube.obj", "render.mesh_scale=0.001"]))
+    with pytest.raises(StageError, match="the target covers no pixels in the first 4 frames"):
+        render.main(shard="1/1", merge_parts=0)
+    assert {p: p.read_bytes() for p in Path("datasets/render").rglob("*") if p.is_file()} == rendered
+    assert sorted(p.name for p in Path("datasets").iterdir()) == ["render"]
+
+
+def test_temporary_folders_of_live_runs_are_kept(tmp_path):
+    import os
+
+    from stages.io import remove_stale_temps
+
+    live = tmp_path / f".render.{os.getpid()}.abc.tmp"
+    dead = tmp_path / ".render.999999999.def.tmp"
+    live.mkdir()
+    dead.mkdir()
+    assert remove_stale_temps(tmp_path / "render") == [dead]
+    assert live.is_dir() and not dead.exists()

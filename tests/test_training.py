@@ -14,7 +14,7 @@ from pipeline.camera import reference_intrinsics
 from pipeline.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
 from stages import checkpoint, data
 from stages import params as params_mod
-from stages.io import StageError, create_array, seal_zarr
+from stages.io import StageError, create_array, seal_zarr, write_json
 
 W, H = 48, 27
 
@@ -48,6 +48,7 @@ def write_dataset(root: Path, n: int = 40, width: int = W, height: int = H, seed
     labels.to_parquet(root / "datasets/labels.parquet")
     params = params_mod.compose("smoke", [f"render.width={width}", f"render.height={height}", *(overrides or [])])
     params_mod.write_params(params, root / "params.yaml")
+    write_json(root / "datasets/render/meta.json", {"fingerprint": params_mod.render_fingerprint(params)})
     return params
 
 
