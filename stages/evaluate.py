@@ -21,7 +21,7 @@ import numpy as np
 import typer
 
 from stages import params as params_mod
-from stages.io import StageError, atomic_dir, atomic_write_text, create_array, file_hash, open_zarr, read_json, read_parquet, write_json, write_metrics
+from stages.io import StageError, atomic_dir, atomic_write_text, create_array, file_hash, open_zarr, read_json, read_parquet, write_json, write_metrics, write_parquet
 
 RENDER_OUT = Path("datasets/eval_render")
 MODEL = Path("models/pose.pt")
@@ -114,7 +114,7 @@ def render_trajectories(p: dict[str, Any]) -> None:
                     k += len(s)
         finally:
             renderer.close()
-        pd.concat(rows, ignore_index=True).to_parquet(tmp / "poses.parquet", index=False)
+        write_parquet(pd.concat(rows, ignore_index=True), tmp / "poses.parquet")
         seconds = time.perf_counter() - t0
         write_json(tmp / "meta.json", {"complete": True, "fingerprint": render_fingerprint(p), "frames": n,
                                        "trajectories": len(seqs), "width": K.width, "height": K.height, "K": K.K,

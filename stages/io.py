@@ -318,13 +318,28 @@ def open_zarr(path: Path | str, what: str = "zarr store"):
     return group
 
 
+def write_parquet(df: Any, path: Path | str) -> None:
+    """DataFrame -> parquet with a CRC checksum on every page, via a temporary file and a rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        df.to_parquet(tmp, index=False, write_page_checksum=True)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
 def read_parquet(path: Path | str, what: str = "table"):
+    """A parquet table, its page checksums verified (where written); a clear StageError otherwise."""
     import pandas as pd
 
     path = Path(path)
     if not path.exists():
         raise StageError(f"{what} {path} not found (run the stage that writes it first)")
     try:
-        return pd.read_parquet(path)
+        return pd.read_parquet(path, page_checksum_verification=True)
     except Exception as e:
         raise StageError(f"{what} {path} is unreadable ({type(e).__name__}: {e})") from None

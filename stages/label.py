@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from stages import params as params_mod
-from stages.io import StageError, atomic_write_text, write_json
+from stages.io import StageError, atomic_write_text, write_json, write_parquet
 
 RENDER = Path("datasets/render")
 LABELS = Path("datasets/labels.parquet")
@@ -119,10 +119,7 @@ def main() -> None:
     _, poses, meta = check_store(RENDER)
     params_mod.check_render_fingerprint(meta, p, RENDER / "meta.json")
     labels = build_labels(poses, float(p["label"]["test_fraction"]), int(p["seed"]) + SEED_OFFSET)
-    LABELS.parent.mkdir(parents=True, exist_ok=True)
-    tmp = LABELS.with_name(f".{LABELS.name}.tmp")
-    labels.to_parquet(tmp, index=False)
-    os.replace(tmp, LABELS)
+    write_parquet(labels, LABELS)
     write_json(SPEED, to_speed(list(labels["image"]), labels[["tx", "ty", "tz"]].to_numpy(),
                                labels[["qw", "qx", "qy", "qz"]].to_numpy()))
     atomic_write_text(CARD, card(labels, meta))

@@ -17,7 +17,7 @@ import numpy as np
 import typer
 
 from stages import params as params_mod
-from stages.io import StageError, atomic_dir, create_array, open_zarr, read_json, read_parquet, remove_stale_temps, write_json
+from stages.io import StageError, atomic_dir, create_array, open_zarr, read_json, read_parquet, remove_stale_temps, write_json, write_parquet
 
 OUT = Path("datasets/render")
 SHARDS = Path("datasets/render_shards")
@@ -138,8 +138,7 @@ def render_part(p: dict[str, Any], start: int, stop: int, dest: Path, desc: str)
         renderer.close()
     seconds = time.perf_counter() - t0
     sl = slice(start, stop)
-    poses_table(np.arange(start, stop), seq[sl], frm[sl], R[sl], t[sl]).to_parquet(dest / "poses.parquet",
-                                                                                   index=False)
+    write_parquet(poses_table(np.arange(start, stop), seq[sl], frm[sl], R[sl], t[sl]), dest / "poses.parquet")
     write_json(dest / "meta.json", {
         "complete": True, "fingerprint": fingerprint(p), "frames": n, "start": start, "stop": stop,
         "width": K.width, "height": K.height, "K": K.K, "render": r, "camera": p["camera"], "seed": p["seed"],
@@ -222,7 +221,7 @@ def merge(p: dict[str, Any], n: int) -> None:
             for lo in range(0, m["frames"], chunk):  # one chunk at a time: memory stays small
                 hi = min(lo + chunk, m["frames"])
                 dst[m["start"] + lo:m["start"] + hi] = images[lo:hi]
-        pd.concat([ps for _, ps, _ in checked], ignore_index=True).to_parquet(tmp / "poses.parquet", index=False)
+        write_parquet(pd.concat([ps for _, ps, _ in checked], ignore_index=True), tmp / "poses.parquet")
         seconds = sum(m["seconds"] for _, _, m in checked)
         meta = {k: v for k, v in first.items() if k not in ("start", "stop")}
         meta.update(frames=n_total, seconds=seconds, seconds_per_image=seconds / n_total, shards=n)

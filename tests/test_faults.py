@@ -406,3 +406,18 @@ def test_temporary_folders_of_live_runs_are_kept(tmp_path):
     dead.mkdir()
     assert remove_stale_temps(tmp_path / "render") == [dead]
     assert live.is_dir() and not dead.exists()
+
+
+def test_flipped_bit_in_a_parquet_table_is_refused(tmp_path):
+    import pandas as pd
+
+    from stages.io import read_parquet, write_parquet
+
+    df = pd.DataFrame({"tz": np.random.default_rng(0).uniform(10, 60, 2000), "index": np.arange(2000)})
+    write_parquet(df, tmp_path / "labels.parquet")
+    pd.testing.assert_frame_equal(read_parquet(tmp_path / "labels.parquet"), df)
+    raw = bytearray((tmp_path / "labels.parquet").read_bytes())
+    raw[len(raw) // 4] ^= 0x10  # inside the first column's data page
+    (tmp_path / "labels.parquet").write_bytes(bytes(raw))
+    with pytest.raises(StageError, match=r"labels.parquet is unreadable .*(checksum|CRC)"):
+        read_parquet(tmp_path / "labels.parquet", "label table")
