@@ -88,7 +88,6 @@ def open_images(params: dict[str, Any], path: Path | str = IMAGES) -> Any:
     """The zarr array `images` (N, H, W, 3) uint8, checked against render.width x render.height and,
     through meta.json beside it, against the render params' fingerprint."""
     path = Path(path)
-    check_render_fingerprint(read_json(path.parent / "meta.json"), params, path.parent / "meta.json")
     group = open_zarr(path, "image store")
     if "images" not in group:
         raise StageError(f"{path} has no array 'images' (re-run `rpod render`)")
@@ -99,6 +98,7 @@ def open_images(params: dict[str, Any], path: Path | str = IMAGES) -> Any:
     if arr.shape[1:3] != (h, w):
         raise StageError(f"{path}/images are {arr.shape[2]}x{arr.shape[1]} pixels but params.yaml has "
                          f"render.width x render.height = {w}x{h} (re-run `rpod render`, or fix params)")
+    check_render_fingerprint(read_json(path.parent / "meta.json"), params, path.parent / "meta.json")
     return arr
 
 
