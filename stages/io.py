@@ -152,6 +152,7 @@ def remove_stale_temps(path: Path | str) -> list[Path]:
 
 
 def _alive(pid: int) -> bool:
+    """Whether a process with this id exists on this machine."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -164,8 +165,8 @@ def _alive(pid: int) -> bool:
 @contextlib.contextmanager
 def atomic_outputs(*paths: Path | str, dirs: tuple[Path | str, ...] = ()) -> Iterator[list[Path]]:
     """Yield temporary stand-ins for the files `paths` and the folders `dirs` (in that order; the folders
-    are created empty). On success every one is moved into place together, after all were written; on
-    error none is, so a stage's model, metrics and curves never come from different runs."""
+    are created empty). On success all are renamed into place one right after another, once every one
+    was written; on error none is, so a stage's model, metrics and curves never come from different runs."""
     files, folders = [Path(p) for p in paths], [Path(d) for d in dirs]
     tmps = []
     for p in files + folders:
@@ -181,7 +182,10 @@ def atomic_outputs(*paths: Path | str, dirs: tuple[Path | str, ...] = ()) -> Ite
             raise RuntimeError(f"atomic_outputs: {missing} were not written")
     except BaseException:
         for t in tmps:
-            shutil.rmtree(t, ignore_errors=True) if t.is_dir() else t.unlink(missing_ok=True)
+            if t.is_dir():
+                shutil.rmtree(t, ignore_errors=True)
+            else:
+                t.unlink(missing_ok=True)
         raise
     for p, t in zip(files + folders, tmps):
         if t.is_dir() and p.exists():
