@@ -15,51 +15,13 @@ import numpy as np
 import typer
 
 from stages import params as params_mod
-from stages.io import StageError, atomic_dir, atomic_write_text, file_hash, write_metrics
+from stages.artifacts import ADV, adv_array_name, load_pose
+from stages.io import StageError, atomic_dir, atomic_write_text, save_figure, write_metrics
 
-MODEL = Path("models/pose.pt")
-OUT_DIR = Path("datasets/attack")
 REPORT = Path("reports/attack.md")
 FIGURE = Path("reports/figures/fgsm_example.png")
 METRICS = Path("reports/metrics/attack.json")
 SEED_OFFSET = 400
-
-
-def array_name(eps: float) -> str:
-    """Name of the adv.zarr array holding the images attacked at `eps` (e.g. eps_0.5)."""
-    return f"eps_{eps:g}"
-
-
-def check_attack_params(section: dict[str, Any], where: str) -> None:
-    """Check an eps list and attack method (`<where>.eps`, `<where>.method`) before any work."""
-    from pipeline.attacks import ATTACKS, check_eps
-
-    eps = section.get("eps")
-    if not isinstance(eps, list) or not eps:
-        raise StageError(f"params.yaml {where}.eps must be a non-empty list of numbers in (0, 1]")
-    for e in eps:
-        try:
-            check_eps(e)
-        except (TypeError, ValueError):
-            raise StageError(f"params.yaml {where}.eps: {e!r} is not in (0, 1] (pixels are in [0, 1])") from None
-    if section.get("method") not in ATTACKS:
-        raise StageError(f"params.yaml {where}.method: unknown attack {section.get('method')!r}; "
-                         f"choose one of {', '.join(ATTACKS)}")
-
-
-def make_attack(a: dict[str, Any], method: str, seed: int):
-    """The attack named `method` with the iterative options of the `attack` params section."""
-    import torch
-
-    from pipeline.attacks import LOSSES, get_attack
-
-    if a["loss"] not in LOSSES:
-        raise StageError(f"params.yaml attack.loss: unknown loss {a['loss']!r}; choose one of {', '.join(LOSSES)}")
-    try:
-        return get_attack(method, steps=int(a["steps"]), step_size=a["step_size"], random_start=bool(a["random_start"]),
-                          momentum=float(a["momentum"]), generator=torch.Generator().manual_seed(seed))
-    except ValueError as e:
-        raise StageError(f"params.yaml attack: {e}") from None
 
 
 def main() -> None:
@@ -69,19 +31,19 @@ def main() -> None:
     from tqdm import tqdm
 
     from pipeline.attacks import attack_loss, quantize
+    from pipeline.figures import attack_example
     from pipeline.rotations import attitude_error_deg, position_error, sixd_to_quat
-    from stages.checkpoint import load_pose_loss, load_pose_model
     from stages.data import load_split
 
     p = params_mod.load()
     a = p["attack"]
-    check_attack_params(a, "attack")
+    params_mod.check_attack_params(a, "attack")
     eps_list = [float(e) for e in a["eps"]]
     batch = int(a["batch_size"])
-    torch.set_num_threads(2)
-    attack = make_attack(a, a["method"], int(p["seed"]) + SEED_OFFSET)
-    model = load_pose_model(MODEL, p)
-    loss_fn = attack_loss(a["loss"], load_pose_loss(MODEL, p))
+    params_mod.set_threads(p)
+    attack = params_mod.make_attack(a, a["method"], int(p["seed"]) + SEED_OFFSET)
+    pose = load_pose(p)
+    model, loss_fn = pose.model, attack_loss(a["loss"], pose.loss)
     split = load_split(p, "test")
     n = len(split) if a["max_images"] is None else min(len(split), int(a["max_images"]))
     if n < 1:
@@ -97,10 +59,10 @@ def main() -> None:
     preds_float = {e: np.zeros((n, 9)) for e in eps_list}
     linf = {e: 0.0 for e in eps_list}
     t0 = time.perf_counter()
-    with atomic_dir(OUT_DIR) as tmp:
-        root = zarr.open_group(str(tmp / "adv.zarr"), mode="w")
+    with atomic_dir(ADV.parent) as tmp:
+        root = zarr.open_group(str(tmp / ADV.name), mode="w")
         h, w = np.asarray(images[0]).shape[:2]
-        arrays = {e: root.create_array(array_name(e), shape=(n, h, w, 3), chunks=(min(batch, n), h, w, 3),
+        arrays = {e: root.create_array(adv_array_name(e), shape=(n, h, w, 3), chunks=(min(batch, n), h, w, 3),
                                        dtype="uint8") for e in eps_list}
         root.create_array("source_index", data=labels["index"].to_numpy(np.int64))
         model.eval()
@@ -121,7 +83,7 @@ def main() -> None:
                 with torch.no_grad():
                     preds[e][i:i + len(x)] = model(stored.float() / 255).numpy()
                     preds_float[e][i:i + len(x)] = model(x_adv).numpy()
-        root.attrs.update({"eps": eps_list, "method": a["method"], "loss": a["loss"], "model_hash": file_hash(MODEL),
+        root.attrs.update({"eps": eps_list, "method": a["method"], "loss": a["loss"], "model_hash": pose.hash,
                            "quantisation": "round to nearest 8-bit level, at least one level, sign kept"})
     seconds = time.perf_counter() - t0
 
@@ -136,13 +98,14 @@ def main() -> None:
         f = errors(preds_float[e])
         rows.append({"eps": f"{e:g}", "stored_linf": linf[e], **errors(preds[e]),
                      "float_position_mean_m": f["position_mean_m"], "float_attitude_mean_deg": f["attitude_mean_deg"]})
-    metrics = {"method": a["method"], "loss": a["loss"], "images": n, "seconds": seconds, "model_hash": file_hash(MODEL),
+    metrics = {"method": a["method"], "loss": a["loss"], "images": n, "seconds": seconds, "model_hash": pose.hash,
                "measured_on": "stored uint8 images", "clean": {key: v for key, v in rows[0].items() if key != "eps"},
                "eps": {r["eps"]: {key: v for key, v in r.items() if key != "eps"} for r in rows[1:]}}
     write_metrics(METRICS, metrics, p)
     atomic_write_text(REPORT, _report(rows, a, n, seconds))
-    _figure(np.asarray(images[k]), example, t_gt[k], {e: preds[e][k] for e in ["clean", *eps_list]}, a["method"])
-    typer.echo(f"attack: {n} test images x {len(eps_list)} eps in {seconds:.0f} s -> {OUT_DIR}/adv.zarr, {REPORT}")
+    save_figure(attack_example(np.asarray(images[k]), example, t_gt[k], {e: preds[e][k] for e in ["clean", *eps_list]},
+                               a["method"]), FIGURE)
+    typer.echo(f"attack: {n} test images x {len(eps_list)} eps in {seconds:.0f} s -> {ADV}, {REPORT}")
 
 
 def _report(rows: list[dict[str, Any]], a: dict[str, Any], n: int, seconds: float) -> str:
@@ -192,43 +155,3 @@ def _trend(rows: list[dict[str, Any]]) -> str:
         out.append(f"the mean {what} error {'grows' if grows else 'does not grow'} monotonically from clean "
                    f"through eps = {', '.join(r['eps'] for r in by_eps)}")
     return "Over this test set, " + "; ".join(out) + "."
-
-
-def _figure(clean: np.ndarray, adv: dict[float, np.ndarray], t_gt: np.ndarray, pred: dict[Any, np.ndarray],
-            method: str) -> None:
-    """Per eps: the clean image, the stored perturbation scaled to fill [0, 1], the adversarial image."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    eps_list = list(adv)
-    fig, axes = plt.subplots(len(eps_list), 3, figsize=(9, 1.9 * len(eps_list) + 0.4), squeeze=False)
-    c = clean.astype(np.float64) / 255
-    err = {k: float(np.linalg.norm(v[:3] - t_gt)) for k, v in pred.items()}
-    for row, e in zip(axes, eps_list):
-        a = adv[e].astype(np.float64) / 255
-        delta = a - c
-        scale = max(float(np.abs(delta).max()), 1e-12)
-        row[0].imshow(clean)
-        row[0].set_title(f"original (pos. error {err['clean']:.2f} m)", fontsize=8)
-        row[1].imshow(np.clip(0.5 + 0.5 * delta / scale, 0, 1))
-        row[1].set_title(f"perturbation eps={e:g} (shown x{0.5 / scale:.2g})", fontsize=8)
-        row[2].imshow(adv[e])
-        row[2].set_title(f"adversarial (pos. error {err[e]:.2f} m)", fontsize=8)
-        for ax in row:
-            ax.set_axis_off()
-    fig.suptitle(f"{method.upper()} example, target at range {t_gt[2]:.1f} m", fontsize=9)
-    fig.tight_layout()
-    save_figure(fig, FIGURE)
-
-
-def save_figure(fig: Any, path: Path) -> None:
-    """Write a matplotlib figure as PNG atomically (temporary file + rename) and close it."""
-    import matplotlib.pyplot as plt
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)

@@ -7,10 +7,10 @@ seeded), then fits on the same split:
 - mlp: an MLP on the flattened SHAP values; mahalanobis: Lee et al. 2018 on the GAP features, one
   Gaussian per range bin (train.range_bins) with a shared covariance; lid: Ma et al. 2018 on the GAP
   features; squeeze: Xu et al. 2018 on the input images (rebuilt from their sources, see
-  stages/shap.py). Every baseline's threshold is chosen on the same validation samples.
+  stages/artifacts.py). Every baseline's threshold is chosen on the same validation samples.
 
 Writes models/detector.pt (LSTM weights, architecture, threshold, and what the safety chain needs:
-the pose-model hash and the SHAP background mean; `load_detector` reads it), dvclive/detect/
+the pose-model hash and the SHAP background mean; `stages.artifacts.load_detector` reads it), dvclive/detect/
 (training curves), reports/detector.md, reports/metrics/detect.json and reports/plots/roc/<name>.csv.
 """
 from __future__ import annotations
@@ -23,19 +23,15 @@ from typing import Any
 import numpy as np
 
 from stages import params as params_mod
-from stages.io import StageError, atomic_write_text, file_hash, load_torch, open_zarr, save_torch, write_metrics
+from stages.artifacts import DETECTOR, DETECTOR_FORMAT, POSE, ROC_DIR, SHAP, SPLIT_CODES, SampleImages, load_pose
+from stages.io import StageError, atomic_write_text, file_hash, open_zarr, save_torch, write_metrics
 
-SHAP = Path("datasets/shap.zarr")
-MODEL = Path("models/pose.pt")
-DETECTOR = Path("models/detector.pt")
 REPORT = Path("reports/detector.md")
 METRICS = Path("reports/metrics/detect.json")
-ROC_DIR = Path("reports/plots/roc")
 LIVE_DIR = "dvclive/detect"
 SEED_OFFSET = 600
 BASELINES = ("mlp", "mahalanobis", "lid", "squeeze")
 PAPER_ACCURACY = 0.9990
-FORMAT = "rpodguard-detector/1"
 
 
 def read_store(path: Path, model_hash: str) -> dict[str, Any]:
@@ -48,7 +44,7 @@ def read_store(path: Path, model_hash: str) -> dict[str, Any]:
     attrs = dict(root.attrs)
     if attrs.get("model_hash") != model_hash:
         raise StageError(f"{path} was made with another pose checkpoint (hash {attrs.get('model_hash')!r}, "
-                         f"{MODEL} is {model_hash!r}); re-run `rpod shap`")
+                         f"{POSE} is {model_hash!r}); re-run `rpod shap`")
     values = root["values"]
     n = values.shape[0]
     if values.ndim != 3 or values.shape[1] != 9 or n == 0:
@@ -92,29 +88,6 @@ def split_indices(eps: np.ndarray, test_fraction: float, val_fraction: float,
     return np.sort(train), np.sort(val), np.sort(test)
 
 
-def load_detector(path: Path | str = DETECTOR, model_hash: str | None = None) -> tuple[Any, dict[str, Any]]:
-    """The LSTM detector (eval mode) and its checkpoint dict (threshold, pose_model_hash,
-    background_mean (1000,) tensor, shap_method, ...). With `model_hash`, refuse a detector trained
-    on another pose checkpoint's SHAP values."""
-    from pipeline.detectors.lstm import from_checkpoint
-
-    path = Path(path)
-    ckpt = load_torch(path, FORMAT, "detect")
-    if model_hash is not None and ckpt["pose_model_hash"] != model_hash:
-        raise StageError(f"{path} was trained for pose checkpoint {ckpt['pose_model_hash']!r}, not {model_hash!r}; "
-                         f"re-run `rpod shap` and `rpod detect`")
-    return from_checkpoint(ckpt), ckpt
-
-
-def _clean_nan(obj: Any) -> Any:
-    """NaN -> None, recursively (JSON has no NaN)."""
-    if isinstance(obj, dict):
-        return {k: _clean_nan(v) for k, v in obj.items()}
-    if isinstance(obj, float) and math.isnan(obj):
-        return None
-    return obj
-
-
 def main() -> None:
     """Train the LSTM detector and the baselines on one split of the SHAP store; write the report."""
     import torch
@@ -123,6 +96,7 @@ def main() -> None:
 
     from pipeline.detectors.lstm import LSTMConfig, to_checkpoint, train_lstm
     from pipeline.detectors.metrics import choose_threshold, metrics_by_eps, roc_points
+    from pipeline.evaluation import nan_to_none
 
     p = params_mod.load()
     d = p["detect"]
@@ -134,7 +108,7 @@ def main() -> None:
             raise StageError(f"params.yaml detect.{key} must be in (0, 1), got {d[key]!r}")
     torch.set_num_threads(1)  # the LSTM's matrices are small: extra threads cost more than they give
     seed = int(p["seed"]) + SEED_OFFSET
-    model_hash = file_hash(MODEL)
+    model_hash = file_hash(POSE)
     data = read_store(SHAP, model_hash)
     values, feats, eps = data["values"], data["features"], data["eps"].astype(np.float64)
     y = data["is_adversarial"].astype(np.int64)
@@ -180,7 +154,7 @@ def main() -> None:
     live.end()
 
     ckpt = to_checkpoint(lstm, {
-        "format": FORMAT, "pose_model_hash": model_hash, "shap_method": data["attrs"].get("method"),
+        "format": DETECTOR_FORMAT, "pose_model_hash": model_hash, "shap_method": data["attrs"].get("method"),
         "background_mean": torch.tensor(data["attrs"]["background_mean"], dtype=torch.float32),
         "background_size": int(data["attrs"]["background_size"]),
         "eps": sorted({float(e) for e in eps[y == 1]}, reverse=True),
@@ -199,7 +173,7 @@ def main() -> None:
     metrics = {"model_hash": model_hash, "counts": counts, "threshold": {k: v[1] for k, v in scores.items()},
                "lstm_epochs": len(result.history), "lstm_best_epoch": result.best_epoch,
                "seconds": seconds, "paper_accuracy": PAPER_ACCURACY, "detectors": results}
-    write_metrics(METRICS, _clean_nan(metrics), p)
+    write_metrics(METRICS, nan_to_none(metrics), p)
     atomic_write_text(REPORT, _report(results, scores, counts, result, data["attrs"], d, seconds))
     acc = results["lstm"]["all"]["accuracy"]
     print(f"detect: LSTM test accuracy {acc:.4f} (paper {PAPER_ACCURACY:.4f}) -> {DETECTOR}, {REPORT}")
@@ -240,18 +214,17 @@ def _baseline(name: str, p: dict[str, Any], data: dict[str, Any], y: np.ndarray,
 def _squeeze(p: dict[str, Any], data: dict[str, Any], y: np.ndarray, tr: np.ndarray, va: np.ndarray,
              te: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Feature squeezing needs the images and the pose model: rebuild each sample's image from its
-    source (stages.shap.Sources: clean split image, adv.zarr, or the same FGSM) and score it."""
+    source (stages.artifacts.SampleImages: clean split image, adv.zarr, or the same FGSM) and score it."""
     import torch
     from tqdm import tqdm
 
     from pipeline.attacks import attack_loss
     from pipeline.detectors.squeeze import SqueezeDetector
-    from stages.checkpoint import load_pose_loss, load_pose_model
-    from stages.shap import SPLIT_CODES, Sources
 
     d = p["detect"]
-    model = load_pose_model(MODEL, p)
-    src = Sources(p, model, attack_loss(p["attack"]["loss"], load_pose_loss(MODEL, p)), file_hash(MODEL))
+    pose = load_pose(p)
+    model = pose.model
+    src = SampleImages(p, model, attack_loss(p["attack"]["loss"], pose.loss), pose.hash)
     names = {v: k for k, v in SPLIT_CODES.items()}
     split = np.array([names[int(c)] for c in data["split"]])
     index, eps = data["source_index"], data["eps"].astype(np.float64)

@@ -33,14 +33,13 @@ import numpy as np
 import typer
 
 from stages import params as params_mod
-from stages.io import StageError, atomic_dir, atomic_write_text, file_hash, read_json, write_metrics
+from stages.artifacts import DETECTOR, POSE, load_chain
+from stages.io import StageError, atomic_dir, atomic_write_text, read_json, write_metrics
 
 OUT = Path("datasets/lab")
 REPORT = Path("reports/lab.md")
 METRICS = Path("reports/metrics/lab.json")
 TRAIN_METRICS = Path("reports/metrics/train.json")
-MAIN_POSE = Path("models/pose.pt")
-MAIN_DETECTOR = Path("models/detector.pt")
 SEED_OFFSET = 0
 PAPER_ACCURACY = {0.5: 100.0, 0.3: 100.0, 0.1: 100.0, 0.05: 98.44, 0.01: 90.44}
 PAPER_AVERAGE = 96.29
@@ -171,7 +170,6 @@ def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
     from pipeline.rotations import quat_to_matrix
     from pipeline.scene import Renderer
     from stages.lab_models import mockup
-    from stages.render import scene_settings
 
     lab, r = p["lab"], p["render"]
     ds = lab["domain_shift"]
@@ -180,7 +178,7 @@ def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
     K_lab = K_zed.scaled(int(r["width"]), int(r["height"]))
     K_true = dataclasses.replace(K_lab, fx=K_lab.fx * k_cal, fy=K_lab.fy * k_cal)
     mesh, mesh_scale = mockup(p)                  # the mock-up at scale x its size (= the real target's size)
-    settings = dataclasses.replace(scene_settings(r), mesh=mesh, mesh_scale=mesh_scale,
+    settings = dataclasses.replace(params_mod.scene_settings(r), mesh=mesh, mesh_scale=mesh_scale,
                                    sun_direction=tuple(float(v) for v in ds["sun_direction"]),
                                    sun_strength=float(ds["sun_strength"]))
     rng = np.random.default_rng(int(lab["seed"]) + SEED_OFFSET)
@@ -241,19 +239,16 @@ def main(ctx: typer.Context) -> None:
     """
     if ctx.invoked_subcommand is not None:
         return
-    import torch
-
+    from pipeline.evaluation import evaluate_sequences, nan_to_none, per_eps_summary, pose_errors_under_fgsm
     from pipeline.lab import lab_to_synthetic_factor, lab_to_synthetic_position
     from pipeline.rotations import attitude_error_deg, quat_to_6d
     from pipeline.schedule import attack_schedule
-    from pipeline.training import pose_errors
-    from stages.evaluate import evaluate_sequences, fgsm_attack, load_chain, nan_to_none, per_eps_summary
-    from stages.lab_models import SUBDIR, retrain, retrain_reason, working_dir
+    from stages.lab_models import SUBDIR, retrain, retrain_reason
 
     p = params_mod.load()
     lab, r = p["lab"], p["render"]
     check_params(lab)
-    torch.set_num_threads(2)
+    params_mod.set_threads(p)
     K_syn, K_zed = cameras(p)
     scale = float(lab["scale"])
     factor = lab_to_synthetic_factor(K_syn, K_zed, scale)
@@ -275,9 +270,7 @@ def main(ctx: typer.Context) -> None:
                 synthetic_lab = retrain(p, tmp / SUBDIR, OUT / SUBDIR)
     render_s = time.perf_counter() - t0
     if synthetic_lab is not None:
-        torch.set_num_threads(2)
-        with working_dir(OUT / SUBDIR):            # load_chain reads models/pose.pt and models/detector.pt
-            chain, loss_fn, model_hash = load_chain(p)
+        chain, loss_fn, model_hash = load_chain(p, OUT / SUBDIR / POSE, OUT / SUBDIR / DETECTOR)
         render_s -= sum(synthetic_lab["seconds"].values())
     recs = [read_recording(f, int(r["width"]), int(r["height"]), lab["bodies"], lab["match"], float(lab["max_gap_s"]),
                            float(lab["segment_threshold"])) for f in recording_folders(source)]
@@ -300,29 +293,16 @@ def main(ctx: typer.Context) -> None:
         ranges.append({"sequence": rec["name"], "frames": len(zl), "lab z start (m)": float(zl[0]),
                        "lab z end (m)": float(zl[-1]), "synthetic z start (m)": float(t_syn[0, 2]),
                        "synthetic z end (m)": float(t_syn[-1, 2])})
-    # pose error (clean) and FGSM errors on every lab frame
-    for s in sequences:
-        x = torch.from_numpy(s["images"]).permute(0, 3, 1, 2).float() / 255.0
-        y = torch.from_numpy(s["targets"])
-        batch = int(e["batch_size"])
-        preds = {"clean": np.concatenate([chain.pose_only(x[i:i + batch]).numpy() for i in range(0, len(x), batch)])}
-        for eps in eps_att:
-            attack = fgsm_attack(chain.model, loss_fn, eps)
-            preds[eps] = np.concatenate([chain.pose_only(attack(x[i:i + batch], y[i:i + batch])).numpy()
-                                         for i in range(0, len(x), batch)])
-        for key, pred in preds.items():
-            pos, att = pose_errors(pred, s["targets"])
-            row = {"sequence": s["name"], "eps": key, "position_m": float(pos.mean()),
-                   "relative_position": float(np.mean(pos / np.linalg.norm(s["targets"][:, :3], axis=1))),
-                   "attitude_deg": float(att.mean())}
-            (clean_rows if key == "clean" else fgsm_rows).append(row)
+    for s in sequences:   # pose error (clean) and FGSM errors on every lab frame
+        for row in pose_errors_under_fgsm(chain, loss_fn, s, eps_att, int(e["batch_size"])):
+            (clean_rows if row["eps"] == "clean" else fgsm_rows).append(row)
     res = evaluate_sequences(chain, loss_fn, sequences, [float(x) for x in e["eps"]], length, int(e["batch_size"]),
                              "lab evaluate")
     summary = per_eps_summary(res["rows"])
     seconds = time.perf_counter() - t0
     train_path = TRAIN_METRICS if synthetic_lab is None else OUT / SUBDIR / TRAIN_METRICS
     train_metrics = read_json(train_path) if train_path.exists() else None
-    models = ({"pose": str(MAIN_POSE), "detector": str(MAIN_DETECTOR)} if synthetic_lab is None else
+    models = ({"pose": str(POSE), "detector": str(DETECTOR)} if synthetic_lab is None else
               {"pose": synthetic_lab["pose"], "detector": synthetic_lab["detector"]})
     metrics = {"model_hash": model_hash, "source": str(source), "synthetic": not lab["real_data"], "factor": factor,
                "retrain": lab["retrain"], "reused_models": synthetic_lab is None, "retrain_reason": reason,
@@ -384,8 +364,8 @@ def report(p: dict[str, Any], m: dict[str, Any], rows: list[dict[str, Any]], sum
            sequences: list[dict[str, Any]]) -> str:
     import pandas as pd
 
+    from pipeline.evaluation import accuracy_table, detail_table
     from pipeline.report import markdown_table
-    from stages.evaluate import accuracy_table, detail_table
 
     lab, ds = p["lab"], p["lab"]["domain_shift"]
     f_eff = K_zed.fx * K_syn.width / K_zed.width

@@ -7,8 +7,8 @@ paper profile), or whenever `lab.mesh` names another mock-up, it trains them aga
 60..10 m of the 13 approach sequences are preserved) with the same camera K_blender at
 render.width x render.height.
 
-The retraining runs the pipeline's own stage commands (render, label, train, shap, detect) unchanged,
-in a folder of their own (`datasets/lab/synthetic_lab/`, inside the lab stage's DVC output) with a
+The retraining runs the pipeline's own stage commands (`rpod render`, `label`, `train`, `shap`,
+`detect`) unchanged, each as a subprocess in a folder of their own (`datasets/lab/synthetic_lab/`, inside the lab stage's DVC output) with a
 params.yaml derived from the main one (`sub_params`): the same training recipe (`train`, `shap`,
 `detect`, `label` sections), the mock-up mesh, `lab.train_frames_per_sequence` frames per sequence,
 base seed `lab.seed` + SEED_OFFSET, and no detector baselines (the lab chain uses the LSTM only).
@@ -18,15 +18,17 @@ reports/metrics/{train,detect}.json.
 """
 from __future__ import annotations
 
-import contextlib
 import copy
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
 from stages.io import StageError, file_hash, read_json
 
+ROOT = Path(__file__).resolve().parent.parent
 SUBDIR = "synthetic_lab"
 SEED_OFFSET = 700          # base seed of the synthetic-lab sub-pipeline = lab.seed + this
 
@@ -73,50 +75,38 @@ def sub_params(p: dict[str, Any]) -> dict[str, Any]:
     return sub
 
 
-@contextlib.contextmanager
-def working_dir(path: Path | str) -> Iterator[Path]:
-    """Run the body with `path` as the current folder (the stages read and write relative paths)."""
-    old = Path.cwd()
-    os.chdir(path)
-    try:
-        yield Path(path)
-    finally:
-        os.chdir(old)
+STEPS = ("render", "label", "train", "shap", "detect")   # the stage commands of the sub-pipeline, in order
 
 
-def _steps() -> dict[str, Callable[[], None]]:
-    """The stage commands of the sub-pipeline, in order (each reads ./params.yaml)."""
-    from stages import detect, label, render, shap, train
-
-    return {"render": lambda: render.main(shard="1/1", merge_parts=0), "label": label.main, "train": train.main,
-            "shap": shap.main, "detect": detect.main}
+def run_step(name: str, folder: Path) -> None:
+    """`rpod <name>` as a subprocess in `folder` (it reads ./params.yaml there); a failure is a StageError
+    carrying the command's own one-line error."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    out = subprocess.run([sys.executable, "-m", "stages.cli", name], cwd=folder, env=env, stderr=subprocess.PIPE,
+                         text=True)
+    sys.stderr.write(out.stderr)
+    if out.returncode != 0:
+        lines = [ln for ln in out.stderr.strip().splitlines() if ln.strip()]
+        raise StageError((lines[-1] if lines else f"exit status {out.returncode}").removeprefix("error: "))
 
 
 def retrain(p: dict[str, Any], dest: Path, final: Path) -> dict[str, Any]:
     """Render, label, train, explain and detect on the synthetic-lab set in `dest` (a fresh folder that
     becomes `final`); returns the summary the lab report and metrics show (seconds per step)."""
-    import torch
-
     from stages import params as params_mod
 
     sub = sub_params(p)
     dest.mkdir(parents=True, exist_ok=True)
     params_mod.write_params(sub, dest / "params.yaml")
-    threads = torch.get_num_threads()
     seconds: dict[str, float] = {}
-    try:
-        with working_dir(dest):
-            steps = _steps()
-            for i, (name, step) in enumerate(steps.items(), 1):
-                print(f"lab: synthetic-lab {name} ({i}/{len(steps)}) for {final}/", flush=True)
-                t0 = time.perf_counter()
-                try:
-                    step()
-                except (StageError, ValueError) as e:
-                    raise StageError(f"lab.retrain ({name} on the synthetic-lab set in {final}/): {e}") from None
-                seconds[name] = time.perf_counter() - t0
-    finally:
-        torch.set_num_threads(threads)
+    for i, name in enumerate(STEPS, 1):
+        print(f"lab: synthetic-lab {name} ({i}/{len(STEPS)}) for {final}/", flush=True)
+        t0 = time.perf_counter()
+        try:
+            run_step(name, dest)
+        except (StageError, ValueError) as e:
+            raise StageError(f"lab.retrain ({name} on the synthetic-lab set in {final}/): {e}") from None
+        seconds[name] = time.perf_counter() - t0
     train_m = read_json(dest / "reports/metrics/train.json")
     detect_m = read_json(dest / "reports/metrics/detect.json")
     meta = read_json(dest / "datasets/render/meta.json")

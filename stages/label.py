@@ -8,10 +8,9 @@ from typing import Any
 import numpy as np
 
 from stages import params as params_mod
+from stages.artifacts import LABELS, RENDER, read_render_store
 from stages.io import StageError, atomic_write_text, write_json
 
-RENDER = Path("datasets/render")
-LABELS = Path("datasets/labels.parquet")
 SPEED = Path("datasets/speed_labels.json")
 CARD = Path("reports/dataset.md")
 PREVIEWS = Path("reports/figures/previews")
@@ -113,10 +112,9 @@ def main() -> None:
     datasets/speed_labels.json (SPEED/SPEED+ format) and the dataset card reports/dataset.md.
     Parameters: `seed` and `label.test_fraction` in params.yaml."""
     from pipeline.rotations import to_speed
-    from stages.render import check_store
 
     p = params_mod.load()
-    _, poses, meta = check_store(RENDER)
+    _, poses, meta = read_render_store(RENDER)
     labels = build_labels(poses, float(p["label"]["test_fraction"]), int(p["seed"]) + SEED_OFFSET)
     LABELS.parent.mkdir(parents=True, exist_ok=True)
     tmp = LABELS.with_name(f".{LABELS.name}.tmp")

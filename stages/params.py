@@ -7,7 +7,7 @@ from typing import Any
 
 import yaml
 
-from stages.io import atomic_write_text
+from stages.io import StageError, atomic_write_text
 
 ROOT = Path(__file__).resolve().parent.parent
 CONF_DIR = ROOT / "conf"
@@ -72,3 +72,70 @@ def load(path: Path = PARAMS_FILE) -> dict[str, Any]:
         hint = difflib.get_close_matches(key, sorted(known), n=1)
         raise ParamsError(f"{path}: unknown parameter {key!r}" + (f" (did you mean {hint[0]!r}?)" if hint else ""))
     return params
+
+
+# ----------------------------------------------------------------------------- params -> library objects
+def set_threads(params: dict[str, Any]) -> None:
+    """torch's CPU threads for a stage: the `threads` param (a whole number >= 1)."""
+    import torch
+
+    n = params.get("threads")
+    if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+        raise ParamsError(f"params.yaml threads must be a whole number >= 1, got {n!r}")
+    torch.set_num_threads(n)
+
+
+def intrinsics(params: dict[str, Any]):
+    """The render camera: K from params.camera at its reference size, scaled to render.width x height."""
+    from pipeline.camera import Intrinsics
+
+    c, r = params["camera"], params["render"]
+    try:
+        return Intrinsics(c["ref_width"], c["ref_height"], c["fx"], c["fy"], c["cx"], c["cy"]).scaled(
+            int(r["width"]), int(r["height"]))
+    except ValueError as e:
+        raise StageError(f"params.yaml camera/render: {e}") from None
+
+
+def scene_settings(render: dict[str, Any]):
+    """The Blender scene settings of a `render` params section."""
+    from pipeline.scene import SceneSettings
+
+    return SceneSettings(mesh=render["mesh"], mesh_scale=float(render["mesh_scale"]),
+                         sun_direction=tuple(float(v) for v in render["sun_direction"]),
+                         sun_strength=float(render["sun_strength"]), samples=int(render["samples"]),
+                         denoiser=str(render["denoiser"]), denoise_quality=str(render["denoise_quality"]),
+                         threads=int(render["threads"]))
+
+
+def check_attack_params(section: dict[str, Any], where: str) -> None:
+    """Check an eps list and attack method (`<where>.eps`, `<where>.method`) before any work."""
+    from pipeline.attacks import ATTACKS, check_eps
+
+    eps = section.get("eps")
+    if not isinstance(eps, list) or not eps:
+        raise StageError(f"params.yaml {where}.eps must be a non-empty list of numbers in (0, 1]")
+    for e in eps:
+        try:
+            check_eps(e)
+        except (TypeError, ValueError):
+            raise StageError(f"params.yaml {where}.eps: {e!r} is not in (0, 1] (pixels are in [0, 1])") from None
+    if section.get("method") not in ATTACKS:
+        raise StageError(f"params.yaml {where}.method: unknown attack {section.get('method')!r}; "
+                          f"choose one of {', '.join(ATTACKS)}")
+
+
+def make_attack(attack: dict[str, Any], method: str, seed: int):
+    """The attack named `method` with the iterative options of the `attack` params section."""
+    import torch
+
+    from pipeline.attacks import LOSSES, get_attack
+
+    if attack["loss"] not in LOSSES:
+        raise StageError(f"params.yaml attack.loss: unknown loss {attack['loss']!r}; choose one of {', '.join(LOSSES)}")
+    try:
+        return get_attack(method, steps=int(attack["steps"]), step_size=attack["step_size"],
+                          random_start=bool(attack["random_start"]), momentum=float(attack["momentum"]),
+                          generator=torch.Generator().manual_seed(seed))
+    except ValueError as e:
+        raise StageError(f"params.yaml attack: {e}") from None

@@ -21,7 +21,7 @@ from typing import Any
 import typer
 
 from stages import params as params_mod
-from stages.detect import ROC_DIR, SHAP as SHAP_STORE
+from stages.artifacts import ROC_DIR, SHAP as SHAP_STORE
 from stages.io import StageError, atomic_write_text, read_json
 
 PAGE = Path("reports/README.md")

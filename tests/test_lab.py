@@ -219,7 +219,7 @@ def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
     runner = CliRunner()
     out = runner.invoke(app, ["evaluate"])
     assert out.exit_code != 0 and "eval_render" in str(out.exception)       # renders not there yet
-    for args in (["evaluate", "--render-only"], ["evaluate"], ["lab"]):
+    for args in (["eval_render"], ["evaluate"], ["lab"]):
         out = runner.invoke(app, args)
         assert out.exit_code == 0, (args, out.output, out.exception)
     ev = json.loads((tmp_path / "reports/metrics/evaluate.json").read_text())
@@ -329,12 +329,12 @@ def test_a_failing_retrain_step_is_one_clear_error(tmp_path, monkeypatch):
     from stages import lab_models, params as params_mod
     from stages.io import StageError
 
-    def render() -> None:
-        assert Path("params.yaml").exists()            # the step runs inside the synthetic-lab folder
+    def run_step(name: str, folder: Path) -> None:
+        assert name == "render" and (folder / "params.yaml").exists()   # the step runs in the synthetic-lab folder
         raise StageError("params.yaml render: boom")
 
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(lab_models, "_steps", lambda: {"render": render})
+    monkeypatch.setattr(lab_models, "run_step", run_step)
     with pytest.raises(StageError, match=r"^lab.retrain \(render on the synthetic-lab set in final/\): params.yaml "
                                          r"render: boom$"):
         lab_models.retrain(params_mod.compose("smoke", ["lab.retrain=always"]), tmp_path / "sub", Path("final"))
