@@ -27,23 +27,18 @@ SEED_OFFSET = 400
 def main() -> None:
     """Attack the test set at every attack.eps with attack.method on attack.loss; report the pose errors."""
     import torch
-    import zarr
-    from tqdm import tqdm
 
-    from pipeline.attacks import attack_loss, quantize
+    from pipeline.attacks import attack_loss
     from pipeline.figures import attack_example
-    from pipeline.rotations import attitude_error_deg, position_error, sixd_to_quat
     from stages.data import load_split
 
     p = params_mod.load()
     a = p["attack"]
     params_mod.check_attack_params(a, "attack")
     eps_list = [float(e) for e in a["eps"]]
-    batch = int(a["batch_size"])
     params_mod.set_threads(p)
     attack = params_mod.make_attack(a, a["method"], int(p["seed"]) + SEED_OFFSET)
     pose = load_pose(p)
-    model, loss_fn = pose.model, attack_loss(a["loss"], pose.loss)
     split = load_split(p, "test")
     n = len(split) if a["max_images"] is None else min(len(split), int(a["max_images"]))
     if n < 1:
@@ -52,60 +47,80 @@ def main() -> None:
     t_gt = labels[["tx", "ty", "tz"]].to_numpy(np.float64)
     q_gt = labels[["qw", "qx", "qy", "qz"]].to_numpy(np.float64)
     y_all = torch.tensor(labels[["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]].to_numpy(np.float32))
-
     k = int(np.argmin(np.abs(t_gt[:, 2] - np.median(t_gt[:, 2]))))  # figure: a mid-range test image
-    example: dict[float, np.ndarray] = {}
-    preds = {"clean": np.zeros((n, 9))} | {e: np.zeros((n, 9)) for e in eps_list}
-    preds_float = {e: np.zeros((n, 9)) for e in eps_list}
-    linf = {e: 0.0 for e in eps_list}
     t0 = time.perf_counter()
     with atomic_dir(ADV.parent) as tmp:
-        root = zarr.open_group(str(tmp / ADV.name), mode="w")
-        h, w = np.asarray(images[0]).shape[:2]
-        arrays = {e: root.create_array(adv_array_name(e), shape=(n, h, w, 3), chunks=(min(batch, n), h, w, 3),
-                                       dtype="uint8") for e in eps_list}
-        root.create_array("source_index", data=labels["index"].to_numpy(np.int64))
-        model.eval()
-        for i in tqdm(range(0, n, batch), desc=f"attack ({a['method']}, {len(eps_list)} eps)", unit="batch"):
-            u8 = np.stack([np.asarray(images[j]) for j in range(i, min(i + batch, n))])
-            x = torch.from_numpy(u8).permute(0, 3, 1, 2).float() / 255
-            y = y_all[i:i + batch]
-            with torch.no_grad():
-                preds["clean"][i:i + len(x)] = model(x).numpy()
-            for e in eps_list:
-                x_adv = attack(model, x, y, e, loss_fn)
-                stored = quantize(x_adv, x)
-                stored_hwc = stored.permute(0, 2, 3, 1).numpy()
-                arrays[e][i:i + len(x)] = stored_hwc
-                if i <= k < i + len(x):
-                    example[e] = stored_hwc[k - i]
-                linf[e] = max(linf[e], float((stored.float() / 255 - x).abs().max()))
-                with torch.no_grad():
-                    preds[e][i:i + len(x)] = model(stored.float() / 255).numpy()
-                    preds_float[e][i:i + len(x)] = model(x_adv).numpy()
-        root.attrs.update({"eps": eps_list, "method": a["method"], "loss": a["loss"], "model_hash": pose.hash,
-                           "quantisation": "round to nearest 8-bit level, at least one level, sign kept"})
+        out = _attack_into(tmp / ADV.name, pose.model, attack, attack_loss(a["loss"], pose.loss), images,
+                           labels["index"].to_numpy(np.int64), y_all, eps_list, int(a["batch_size"]), k, a["method"])
+        out["root"].attrs.update({"eps": eps_list, "method": a["method"], "loss": a["loss"], "model_hash": pose.hash,
+                                  "quantisation": "round to nearest 8-bit level, at least one level, sign kept"})
     seconds = time.perf_counter() - t0
-
-    def errors(pred: np.ndarray) -> dict[str, float]:
-        pos = position_error(pred[:, :3], t_gt)
-        att = attitude_error_deg(sixd_to_quat(pred[:, 3:]), q_gt)
-        return {"position_mean_m": float(pos.mean()), "position_median_m": float(np.median(pos)),
-                "attitude_mean_deg": float(att.mean()), "attitude_median_deg": float(np.median(att))}
-
-    rows = [{"eps": "clean", "stored_linf": 0.0, **errors(preds["clean"])}]
+    preds = out["preds"]
+    rows = [{"eps": "clean", "stored_linf": 0.0, **_errors(preds["clean"], t_gt, q_gt)}]
     for e in eps_list:
-        f = errors(preds_float[e])
-        rows.append({"eps": f"{e:g}", "stored_linf": linf[e], **errors(preds[e]),
+        f = _errors(out["preds_float"][e], t_gt, q_gt)
+        rows.append({"eps": f"{e:g}", "stored_linf": out["linf"][e], **_errors(preds[e], t_gt, q_gt),
                      "float_position_mean_m": f["position_mean_m"], "float_attitude_mean_deg": f["attitude_mean_deg"]})
     metrics = {"method": a["method"], "loss": a["loss"], "images": n, "seconds": seconds, "model_hash": pose.hash,
                "measured_on": "stored uint8 images", "clean": {key: v for key, v in rows[0].items() if key != "eps"},
                "eps": {r["eps"]: {key: v for key, v in r.items() if key != "eps"} for r in rows[1:]}}
     write_metrics(METRICS, metrics, p)
     atomic_write_text(REPORT, _report(rows, a, n, seconds))
-    save_figure(attack_example(np.asarray(images[k]), example, t_gt[k], {e: preds[e][k] for e in ["clean", *eps_list]},
-                               a["method"]), FIGURE)
+    save_figure(attack_example(np.asarray(images[k]), out["example"], t_gt[k],
+                               {e: preds[e][k] for e in ["clean", *eps_list]}, a["method"]), FIGURE)
     typer.echo(f"attack: {n} test images x {len(eps_list)} eps in {seconds:.0f} s -> {ADV}, {REPORT}")
+
+
+def _attack_into(path: Path, model: Any, attack: Any, loss_fn: Any, images: Any, source_index: np.ndarray, y_all: Any,
+                 eps_list: list[float], batch: int, k: int, method: str) -> dict[str, Any]:
+    """Attack the first len(source_index) images at every eps into a new zarr group at `path` (one uint8
+    array per eps); returns the group, the pose outputs (clean, stored uint8, float), the stored L-inf
+    per eps and image k's stored adversarial images (for the figure)."""
+    import torch
+    import zarr
+    from tqdm import tqdm
+
+    from pipeline.attacks import quantize
+
+    n = len(source_index)
+    preds = {"clean": np.zeros((n, 9))} | {e: np.zeros((n, 9)) for e in eps_list}
+    preds_float = {e: np.zeros((n, 9)) for e in eps_list}
+    linf = {e: 0.0 for e in eps_list}
+    example: dict[float, np.ndarray] = {}
+    root = zarr.open_group(str(path), mode="w")
+    h, w = np.asarray(images[0]).shape[:2]
+    arrays = {e: root.create_array(adv_array_name(e), shape=(n, h, w, 3), chunks=(min(batch, n), h, w, 3),
+                                   dtype="uint8") for e in eps_list}
+    root.create_array("source_index", data=source_index)
+    model.eval()
+    for i in tqdm(range(0, n, batch), desc=f"attack ({method}, {len(eps_list)} eps)", unit="batch"):
+        u8 = np.stack([np.asarray(images[j]) for j in range(i, min(i + batch, n))])
+        x = torch.from_numpy(u8).permute(0, 3, 1, 2).float() / 255
+        y = y_all[i:i + batch]
+        with torch.no_grad():
+            preds["clean"][i:i + len(x)] = model(x).numpy()
+        for e in eps_list:
+            x_adv = attack(model, x, y, e, loss_fn)
+            stored = quantize(x_adv, x)
+            stored_hwc = stored.permute(0, 2, 3, 1).numpy()
+            arrays[e][i:i + len(x)] = stored_hwc
+            if i <= k < i + len(x):
+                example[e] = stored_hwc[k - i]
+            linf[e] = max(linf[e], float((stored.float() / 255 - x).abs().max()))
+            with torch.no_grad():
+                preds[e][i:i + len(x)] = model(stored.float() / 255).numpy()
+                preds_float[e][i:i + len(x)] = model(x_adv).numpy()
+    return {"root": root, "preds": preds, "preds_float": preds_float, "linf": linf, "example": example}
+
+
+def _errors(pred: np.ndarray, t_gt: np.ndarray, q_gt: np.ndarray) -> dict[str, float]:
+    """Mean and median position (m) and attitude (deg) errors of (N, 9) outputs against the labels."""
+    from pipeline.rotations import attitude_error_deg, position_error, sixd_to_quat
+
+    pos = position_error(pred[:, :3], t_gt)
+    att = attitude_error_deg(sixd_to_quat(pred[:, 3:]), q_gt)
+    return {"position_mean_m": float(pos.mean()), "position_median_m": float(np.median(pos)),
+            "attitude_mean_deg": float(att.mean()), "attitude_median_deg": float(np.median(att))}
 
 
 def _report(rows: list[dict[str, Any]], a: dict[str, Any], n: int, seconds: float) -> str:

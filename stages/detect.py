@@ -92,10 +92,9 @@ def main() -> None:
     """Train the LSTM detector and the baselines on one split of the SHAP store; write the report."""
     import torch
     from dvclive import Live
-    from tqdm import tqdm
 
-    from pipeline.detectors.lstm import LSTMConfig, to_checkpoint, train_lstm
-    from pipeline.detectors.metrics import choose_threshold, metrics_by_eps, roc_points
+    from pipeline.detectors.lstm import to_checkpoint
+    from pipeline.detectors.metrics import choose_threshold, metrics_by_eps
     from pipeline.evaluation import nan_to_none
 
     p = params_mod.load()
@@ -116,25 +115,8 @@ def main() -> None:
     print(f"detect: {len(y)} SHAP samples ({int(y.sum())} adversarial) -> train {len(tr)}, validation {len(va)}, "
           f"test {len(te)}", flush=True)
 
-    # the paper's LSTM detector
-    config = LSTMConfig(n_rows=values.shape[1], n_features=values.shape[2], hidden=int(d["hidden"]),
-                        dense=[int(x) for x in d["dense"]])
     live = Live(dir=LIVE_DIR, dvcyaml=False, save_dvc_exp=False, report=None)
-    bar = tqdm(total=int(d["epochs"]), desc="detect: LSTM", unit="epoch")
-
-    def on_epoch(rec: dict[str, float]) -> None:
-        for k in ("train_loss", "val_loss", "val_accuracy"):
-            live.log_metric(k, rec[k])
-        live.next_step()
-        bar.update(1)
-        bar.set_postfix(val_loss=f"{rec['val_loss']:.4f}", val_acc=f"{rec['val_accuracy']:.3f}")
-
-    t0 = time.perf_counter()
-    result = train_lstm(values[tr], y[tr], values[va], y[va], config, epochs=int(d["epochs"]),
-                        patience=int(d["patience"]), batch_size=int(d["batch_size"]), lr=float(d["lr"]),
-                        seed=seed, on_epoch=on_epoch)
-    bar.close()
-    lstm_seconds = time.perf_counter() - t0
+    result, lstm_seconds = _train_lstm(values, y, tr, va, d, seed, live)   # the paper's LSTM detector
     lstm = result.model
     scores: dict[str, tuple[np.ndarray, float]] = {
         "lstm": (lstm.predict_proba(values[te]), float(lstm.threshold))}
@@ -160,14 +142,7 @@ def main() -> None:
         "eps": sorted({float(e) for e in eps[y == 1]}, reverse=True),
         "best_epoch": result.best_epoch, "test_accuracy": results["lstm"]["all"]["accuracy"]})
     save_torch(DETECTOR, ckpt)
-    ROC_DIR.mkdir(parents=True, exist_ok=True)
-    for name, (s, _) in scores.items():
-        roc = roc_points(y[te], s)
-        lines = ["fpr,tpr"] + [f"{a:.6f},{b:.6f}" for a, b in zip(roc["fpr"], roc["tpr"])]
-        atomic_write_text(ROC_DIR / f"{name}.csv", "\n".join(lines) + "\n")
-    for stale in ROC_DIR.glob("*.csv"):
-        if stale.stem not in scores:
-            stale.unlink()
+    _write_roc(scores, y[te])
     counts = {"samples": int(len(y)), "train": int(len(tr)), "validation": int(len(va)), "test": int(len(te)),
               "test_clean": int((y[te] == 0).sum()), "test_adversarial": int(y[te].sum())}
     metrics = {"model_hash": model_hash, "counts": counts, "threshold": {k: v[1] for k, v in scores.items()},
@@ -177,6 +152,47 @@ def main() -> None:
     atomic_write_text(REPORT, _report(results, scores, counts, result, data["attrs"], d, seconds))
     acc = results["lstm"]["all"]["accuracy"]
     print(f"detect: LSTM test accuracy {acc:.4f} (paper {PAPER_ACCURACY:.4f}) -> {DETECTOR}, {REPORT}")
+
+
+def _train_lstm(values: np.ndarray, y: np.ndarray, tr: np.ndarray, va: np.ndarray, d: dict[str, Any], seed: int,
+                live: Any) -> tuple[Any, float]:
+    """Fit the LSTM on the training indices with early stopping on the validation ones, logging every
+    epoch to DVCLive; returns the fit result and its seconds."""
+    from tqdm import tqdm
+
+    from pipeline.detectors.lstm import LSTMConfig, train_lstm
+
+    config = LSTMConfig(n_rows=values.shape[1], n_features=values.shape[2], hidden=int(d["hidden"]),
+                        dense=[int(x) for x in d["dense"]])
+    bar = tqdm(total=int(d["epochs"]), desc="detect: LSTM", unit="epoch")
+
+    def on_epoch(rec: dict[str, float]) -> None:
+        for k in ("train_loss", "val_loss", "val_accuracy"):
+            live.log_metric(k, rec[k])
+        live.next_step()
+        bar.update(1)
+        bar.set_postfix(val_loss=f"{rec['val_loss']:.4f}", val_acc=f"{rec['val_accuracy']:.3f}")
+
+    t0 = time.perf_counter()
+    result = train_lstm(values[tr], y[tr], values[va], y[va], config, epochs=int(d["epochs"]),
+                        patience=int(d["patience"]), batch_size=int(d["batch_size"]), lr=float(d["lr"]),
+                        seed=seed, on_epoch=on_epoch)
+    bar.close()
+    return result, time.perf_counter() - t0
+
+
+def _write_roc(scores: dict[str, tuple[np.ndarray, float]], y_test: np.ndarray) -> None:
+    """reports/plots/roc/<detector>.csv (fpr,tpr) for every detector; stale detectors' files removed."""
+    from pipeline.detectors.metrics import roc_points
+
+    ROC_DIR.mkdir(parents=True, exist_ok=True)
+    for name, (s, _) in scores.items():
+        roc = roc_points(y_test, s)
+        lines = ["fpr,tpr"] + [f"{a:.6f},{b:.6f}" for a, b in zip(roc["fpr"], roc["tpr"])]
+        atomic_write_text(ROC_DIR / f"{name}.csv", "\n".join(lines) + "\n")
+    for stale in ROC_DIR.glob("*.csv"):
+        if stale.stem not in scores:
+            stale.unlink()
 
 
 def _baseline(name: str, p: dict[str, Any], data: dict[str, Any], y: np.ndarray, tr: np.ndarray,

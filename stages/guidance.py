@@ -49,13 +49,11 @@ def _plan(g: dict[str, Any]):
 
 def main() -> None:
     """Fly the closed loop without attack and under every (eps, S, K) attack window; report outcomes."""
-    import torch
     from tqdm import tqdm
 
     from pipeline.attacks import attack_loss, stored_attack
     from pipeline.figures import guidance_trajectories
-    from pipeline.guidance import arrival_step, run_rendezvous
-    from pipeline.rotations import matrix_to_6d
+    from pipeline.guidance import CachedCamera, arrival_step, run_rendezvous
     from pipeline.scene import Renderer
 
     p = params_mod.load()
@@ -68,38 +66,10 @@ def main() -> None:
     model, loss_fn = pose.model, attack_loss(a["loss"], pose.loss)
     K = params_mod.intrinsics(p)  # the model's input size
 
-    # Every run follows the baseline until its attack starts, and Cycles and the CNN are
-    # deterministic: cache each rendered pose's image and clean estimate.
-    cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
-    counts = {"steps": 0, "renders": 0, "attacked": 0}
-    eps_now = [0.0]
-
     with Renderer(K, params_mod.scene_settings(p["render"])) as renderer:
-
-        def render(R: np.ndarray, t: np.ndarray) -> tuple[bytes, np.ndarray]:
-            key = np.round(np.concatenate([R.ravel(), t]), 9).tobytes()
-            if key not in cache:
-                image = renderer.render(R, t)
-                x = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
-                with torch.no_grad():
-                    cache[key] = (image, model(x)[0, :3].numpy().astype(np.float64))
-                counts["renders"] += 1
-            counts["steps"] += 1
-            return key, cache[key][0]
-
-        def estimate(rendered: tuple[bytes, np.ndarray], attacked: bool, pose: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-            key, image = rendered
-            if not attacked:
-                return cache[key][1]
-            counts["attacked"] += 1
-            x = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
-            y = torch.as_tensor(np.concatenate([pose[1], matrix_to_6d(pose[0])])[None], dtype=torch.float32)
-            x_adv = stored_attack(model, loss_fn, eps_now[0], attack)(x, y)
-            with torch.no_grad():
-                return model(x_adv)[0, :3].numpy().astype(np.float64)
-
+        camera = CachedCamera(renderer.render, model)
         t0 = time.perf_counter()
-        baseline = run_rendezvous(render, estimate, K, settings)
+        baseline = run_rendezvous(camera.render, camera.estimate, K, settings)
         # Attacked runs get the steps the unattacked chaser needed plus slack_steps: an attack succeeds
         # when it delays or diverts the chaser beyond that (the paper: 50 nominal steps + ~10).
         arrival = arrival_step(baseline, settings.goal, settings.tolerance)
@@ -107,9 +77,10 @@ def main() -> None:
         attacked_settings = dataclasses.replace(settings, max_steps=horizon)
         runs = []
         for eps, s, k, window in tqdm(grid, desc="guidance runs", unit="run"):
-            eps_now[0] = eps
-            runs.append((eps, s, k, run_rendezvous(render, estimate, K, attacked_settings, window)))
+            camera.attack = stored_attack(model, loss_fn, eps, attack)
+            runs.append((eps, s, k, run_rendezvous(camera.render, camera.estimate, K, attacked_settings, window)))
         seconds = time.perf_counter() - t0
+    counts = camera.counts
 
     metrics = {
         "variant": settings.variant, "method": g["method"], "loss": a["loss"], "max_steps": settings.max_steps,

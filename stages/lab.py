@@ -11,16 +11,7 @@ models/detector.pt (SPEC 9 allows it); with `lab.retrain: always`, or another mo
 a pose model and detector trained first on a synthetic-lab set in datasets/lab/synthetic_lab/
 (stages/lab_models.py). The report and metrics (`reused_models`, `models`) say which were used.
 
-Lab recording layout (one folder per sequence; a folder of such folders also works):
-
-    images/000000.png ...     one image per camera frame, any size with the ZED's 16:9 aspect
-    masks/000000.png ...      optional: nonzero = target; else a grey-level threshold segments it
-    camera.csv                frame,timestamp            (s; optional column `image` = file name,
-                              default {frame:06d}.png)
-    mocap.csv                 timestamp,body,x,y,z,qw,qx,qy,qz   (s, m, body -> world quaternion)
-
-e.g. camera.csv `0,0.0013` and mocap.csv `0.0000,camera,1.5,0.4,4.3,0.5,-0.5,0.5,-0.5`. The bodies
-`lab.bodies.camera` and `lab.bodies.target` must be present; see pipeline/lab.py for the frames.
+The lab recording layout (images/, masks/, camera.csv, mocap.csv) is described in stages/recordings.py.
 """
 from __future__ import annotations
 
@@ -34,6 +25,7 @@ import typer
 
 from stages import params as params_mod
 from stages.artifacts import DETECTOR, POSE, load_chain
+from stages.recordings import read_recording, recording_folders, write_recording
 from stages.io import StageError, atomic_dir, atomic_write_text, read_json, write_metrics
 
 OUT = Path("datasets/lab")
@@ -79,85 +71,6 @@ def rescale(z: list[float] = typer.Option(..., "--z", help="Lab range(s) in metr
         typer.echo(f"lab z = {zi:g} m -> synthetic z = {zi * k:.2f} m")
 
 
-# ----------------------------------------------------------------------------- recordings on disk
-def write_recording(folder: Path, camera: Any, mocap: Any, images: np.ndarray, masks: np.ndarray | None) -> None:
-    """Write one recording in the lab layout (PNG images, optional masks, camera.csv, mocap.csv)."""
-    import cv2
-
-    (folder / "images").mkdir(parents=True, exist_ok=True)
-    if masks is not None:
-        (folder / "masks").mkdir(exist_ok=True)
-    for k, frame in enumerate(camera["frame"].to_numpy()):
-        name = f"{int(frame):06d}.png"
-        if not cv2.imwrite(str(folder / "images" / name), images[k][..., ::-1]):
-            raise StageError(f"could not write {folder / 'images' / name}")
-        if masks is not None and not cv2.imwrite(str(folder / "masks" / name), masks[k]):
-            raise StageError(f"could not write {folder / 'masks' / name}")
-    camera.to_csv(folder / "camera.csv", index=False, float_format="%.6f")
-    mocap.to_csv(folder / "mocap.csv", index=False, float_format="%.6f")
-
-
-def recording_folders(root: Path) -> list[Path]:
-    """`root` itself when it holds camera.csv, else its subfolders that do (sorted)."""
-    if not root.is_dir():
-        raise StageError(f"lab recording folder {root} not found")
-    if (root / "camera.csv").exists():
-        return [root]
-    subs = sorted(d for d in root.iterdir() if d.is_dir() and (d / "camera.csv").exists())
-    if not subs:
-        raise StageError(f"{root} holds no lab recording (no camera.csv in it or its subfolders)")
-    return subs
-
-
-def read_recording(folder: Path, width: int, height: int, bodies: dict[str, str], match: str, max_gap: float,
-                   threshold: float) -> dict[str, Any]:
-    """Load one recording: segmented images resized to width x height (uint8), frames, lab labels t, q.
-
-    Every problem is a StageError naming the file (and line for the CSVs).
-    """
-    import cv2
-    import pandas as pd
-
-    from pipeline.lab import LabDataError, match_frames, resize, segment
-
-    tables = {}
-    for name in ("camera.csv", "mocap.csv"):
-        path = folder / name
-        if not path.exists():
-            raise StageError(f"{path} not found (a lab recording needs images/, camera.csv and mocap.csv)")
-        try:
-            tables[name] = pd.read_csv(path)
-        except Exception as e:
-            raise StageError(f"{path} is not a readable CSV ({type(e).__name__}: {e})") from None
-    try:
-        frames, t, q = match_frames(tables["camera.csv"], tables["mocap.csv"], bodies["camera"], bodies["target"],
-                                    match, max_gap, str(folder / "camera.csv"), str(folder / "mocap.csv"))
-    except LabDataError as e:
-        raise StageError(str(e)) from None
-    cam = tables["camera.csv"]
-    names = (cam["image"].astype(str).tolist() if "image" in cam.columns else [f"{int(f):06d}.png" for f in frames])
-    images = np.zeros((len(frames), height, width, 3), np.uint8)
-    for k, name in enumerate(names):
-        where = f"(camera.csv line {k + 2})"
-        bgr = cv2.imread(str(folder / "images" / name), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise StageError(f"{folder / 'images' / name} cannot be read as an image {where}")
-        h, w = bgr.shape[:2]
-        if abs(w / h - width / height) > 0.01 * width / height:
-            raise StageError(f"{folder / 'images' / name} is {w}x{h}; the lab images must have the model input's "
-                             f"aspect {width}:{height} {where}")
-        mask = None
-        mpath = folder / "masks" / name
-        if (folder / "masks").is_dir():
-            mask = cv2.imread(str(mpath), cv2.IMREAD_GRAYSCALE)
-            if mask is None:
-                raise StageError(f"{mpath} cannot be read as a mask {where}")
-            if mask.shape != (h, w):
-                raise StageError(f"{mpath} is {mask.shape[1]}x{mask.shape[0]}, its image {w}x{h} {where}")
-        images[k] = resize(segment(bgr[..., ::-1], mask, threshold), width, height)
-    return {"name": folder.name, "frames": frames, "images": images, "t_lab": t, "q": q}
-
-
 # ----------------------------------------------------------------------------- synthetic lab sequences
 def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
     """Render lab.sequences with the lab camera and the domain shift into dest/<seq>/ (lab layout).
@@ -166,8 +79,7 @@ def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
     """
     from tqdm import tqdm
 
-    from pipeline.lab import domain_shift, synthetic_recording
-    from pipeline.rotations import quat_to_matrix
+    from pipeline.lab import render_recording, synthetic_recording
     from pipeline.scene import Renderer
     from stages.lab_models import mockup
 
@@ -194,14 +106,8 @@ def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
                                           np.array([1.0, 0, 0, 0]), lateral=lateral,
                                           clock_offset=float(rng.uniform(0, 1 / float(lab["mocap_hz"]))),
                                           camera_body=lab["bodies"]["camera"], target_body=lab["bodies"]["target"])
-                images = np.zeros((n, K_true.height, K_true.width, 3), np.uint8)
-                masks = np.zeros((n, K_true.height, K_true.width), np.uint8)
-                for k in range(n):
-                    # the 1/scale mock-up at t equals the full-size target at scale * t
-                    rgb, alpha = renderer.render_with_alpha(quat_to_matrix(rec.q[k]), scale * rec.t[k])
-                    images[k] = domain_shift(rgb, float(ds["noise_std"]), float(ds["blur_sigma"]), rng)
-                    masks[k] = np.where(alpha > 0.5, 255, 0)
-                    bar.update(1)
+                images, masks = render_recording(renderer, rec, scale, float(ds["noise_std"]),
+                                                 float(ds["blur_sigma"]), rng, bar)
                 write_recording(dest / f"seq{i + 1}", rec.camera, rec.mocap, images, masks)
                 truth.append({"name": f"seq{i + 1}", "t_lab": rec.t, "q": rec.q, "z_range": (float(z0), float(z1))})
     finally:

@@ -55,7 +55,6 @@ def check_params(s: dict[str, Any]) -> None:
 def main() -> None:
     """Explain clean and FGSM images with DeepSHAP (closed form for the linear heads) into datasets/shap.zarr."""
     import zarr
-    from tqdm import tqdm
 
     from pipeline.attacks import attack_loss
     from pipeline.explain import Explainer, draw_background, gap_features, sample_plan
@@ -87,7 +86,7 @@ def main() -> None:
                            np.setdiff1d(train_index, train_index[bg_rows]), rng)
     except ValueError as e:
         raise StageError(f"params.yaml shap: {e}; lower shap.normal / shap.per_eps") from None
-    n, chunk = len(todo["index"]), int(s["chunk"])
+    n = len(todo["index"])
     from_stack = np.array([e > 0 and src.in_stack(sp, int(ix), float(e))
                            for sp, ix, e in zip(todo["split"], todo["index"], todo["eps"])], dtype=bool)
     print(f"shap: {n} samples ({s['normal']} clean + {s['per_eps']} x eps {s['eps']}), background "
@@ -96,31 +95,7 @@ def main() -> None:
           f"{int(((todo['eps'] > 0) & ~from_stack).sum())} by FGSM here", flush=True)
     with atomic_dir(OUT) as tmp:
         root = zarr.open_group(str(tmp), mode="w")
-        c = min(chunk, n)
-        values = root.create_array("values", shape=(n, 9, bg_features.shape[1]), chunks=(c, 9, bg_features.shape[1]),
-                                   dtype="float32")
-        features = root.create_array("features", shape=(n, bg_features.shape[1]), chunks=(c, bg_features.shape[1]),
-                                     dtype="float32")
-        outputs = root.create_array("outputs", shape=(n, 9), chunks=(c, 9), dtype="float32")
-        # write whole zarr chunks at a time: explain `chunk` samples, then store them
-        bar = tqdm(total=n, desc=f"shap ({explainer.method})", unit="img")
-        for start in range(0, n, c):
-            sl = slice(start, min(start + c, n))
-            f_parts, o_parts = [], []
-            for _, imgs in src.iter_images(todo["split"][sl], todo["index"][sl], todo["eps"][sl]):
-                f, o = gap_features(model, imgs)
-                f_parts.append(f)
-                o_parts.append(o)
-                bar.update(len(imgs))
-            f = np.concatenate(f_parts)
-            values[sl] = explainer(f)
-            features[sl] = f
-            outputs[sl] = np.concatenate(o_parts)
-        bar.close()
-        root.create_array("is_adversarial", data=todo["eps"] > 0)
-        root.create_array("eps", data=todo["eps"])
-        root.create_array("source_index", data=todo["index"])
-        root.create_array("split", data=np.array([SPLIT_CODES[x] for x in todo["split"]], dtype=np.int8))
+        _explain_into(root, src, model, explainer, todo, bg_features.shape[1], int(s["chunk"]))
         root.create_array("from_stack", data=from_stack)
         root.attrs.update({
             "model_hash": model_hash, "background_size": int(s["background"]), "background_seed": seed,
@@ -130,3 +105,36 @@ def main() -> None:
             "outputs": ["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"],
         })
     print(f"shap: {n} samples in {time.perf_counter() - t0:.0f} s -> {OUT}")
+
+
+def _explain_into(root: Any, src: SampleImages, model: Any, explainer: Any, todo: dict[str, np.ndarray],
+                  n_features: int, chunk: int) -> None:
+    """Explain the planned samples into the zarr group `root` (values, features, outputs and the sample
+    columns), `chunk` samples at a time so that every write fills whole zarr chunks."""
+    from tqdm import tqdm
+
+    from pipeline.explain import gap_features
+
+    n = len(todo["index"])
+    c = min(chunk, n)
+    values = root.create_array("values", shape=(n, 9, n_features), chunks=(c, 9, n_features), dtype="float32")
+    features = root.create_array("features", shape=(n, n_features), chunks=(c, n_features), dtype="float32")
+    outputs = root.create_array("outputs", shape=(n, 9), chunks=(c, 9), dtype="float32")
+    bar = tqdm(total=n, desc=f"shap ({explainer.method})", unit="img")
+    for start in range(0, n, c):
+        sl = slice(start, min(start + c, n))
+        f_parts, o_parts = [], []
+        for _, imgs in src.iter_images(todo["split"][sl], todo["index"][sl], todo["eps"][sl]):
+            f, o = gap_features(model, imgs)
+            f_parts.append(f)
+            o_parts.append(o)
+            bar.update(len(imgs))
+        f = np.concatenate(f_parts)
+        values[sl] = explainer(f)
+        features[sl] = f
+        outputs[sl] = np.concatenate(o_parts)
+    bar.close()
+    root.create_array("is_adversarial", data=todo["eps"] > 0)
+    root.create_array("eps", data=todo["eps"])
+    root.create_array("source_index", data=todo["index"])
+    root.create_array("split", data=np.array([SPLIT_CODES[x] for x in todo["split"]], dtype=np.int8))

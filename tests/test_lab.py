@@ -132,7 +132,7 @@ def test_segmentation_and_domain_shift():
 
 def test_loader_round_trips_a_synthetic_lab_recording(tmp_path):
     from stages.io import StageError
-    from stages.lab import read_recording, write_recording
+    from stages.recordings import read_recording, write_recording
 
     rec = synthetic_recording(1.6, 1.0, 12, 30.0, 120.0, np.array([1.0, 0, 0, 0]), lateral=(0.01, 0.0))
     rng = np.random.default_rng(0)
