@@ -17,28 +17,18 @@ from stages.artifacts import EVAL_RENDER, eval_render_fingerprint
 from stages.io import StageError, atomic_dir, write_json
 
 
-def check_params(e: dict[str, Any]) -> None:
-    """Clear one-line errors for the `evaluate` params that decide the trajectories."""
-    if int(e["trajectories"]) < 1 or int(e["frames"]) < 2:
-        raise StageError(f"params.yaml evaluate: need trajectories >= 1 and frames >= 2, "
-                         f"got {e['trajectories']} and {e['frames']}")
-    lo, hi = (float(v) for v in e["lateral_range"])
-    if not 0 <= lo <= hi:
-        raise StageError(f"params.yaml evaluate.lateral_range must be [low, high] with 0 <= low <= high, got {e['lateral_range']}")
-
-
 def trajectories(p: dict[str, Any]) -> list[Any]:
     """The fresh SPEC 8 approaches: lateral start offsets |x|, |y| uniform in lateral_range, random signs."""
     from pipeline.trajectories import projectile_trajectory
 
-    e, r = p["evaluate"], p["render"]
-    rng = np.random.default_rng(int(e["seed"]))
-    lo, hi = (float(v) for v in e["lateral_range"])
+    e, r = params_mod.typed(p).evaluate, p["render"]
+    rng = np.random.default_rng(e.seed)
+    lo, hi = e.lateral_range
     out = []
-    for i in range(int(e["trajectories"])):
+    for i in range(e.trajectories):
         xy = rng.uniform(lo, hi, 2) * rng.choice([-1.0, 1.0], 2)
-        out.append(projectile_trajectory(int(e["frames"]), (float(xy[0]), float(xy[1])), float(r["start_range"]),
-                                         float(r["end_range"]), seed=int(e["seed"]) + 1 + i,
+        out.append(projectile_trajectory(e.frames, (float(xy[0]), float(xy[1])), float(r["start_range"]),
+                                         float(r["end_range"]), seed=e.seed + 1 + i,
                                          jitter_deg=float(r["pointing_jitter_deg"]), max_rot_deg=0.0, sequence=i))
     return out
 
@@ -49,7 +39,6 @@ def main() -> None:
     Params: `evaluate.trajectories`, `frames`, `lateral_range`, `seed`, and `render`/`camera`.
     """
     p = params_mod.load()
-    check_params(p["evaluate"])
     import pandas as pd
     import zarr
 

@@ -17,7 +17,8 @@ import typer
 
 from stages import params as params_mod
 from stages.artifacts import load_chain, read_eval_render
-from stages.io import StageError, atomic_write_text, save_figure, write_metrics
+from stages.io import atomic_write_text, save_figure, write_metrics
+from stages.schema import Evaluate
 
 REPORT = Path("reports/integrated.md")
 FIGURE = Path("reports/figures/timeline.png")
@@ -29,19 +30,6 @@ PAPER_ACCURACY = {0.5: 100.0, 0.3: 99.99, 0.1: 99.97, 0.05: 99.99, 0.01: 97.67}
 PAPER_OVERALL = 99.21
 
 
-def check_params(e: dict[str, Any]) -> None:
-    """Clear one-line errors for evaluate params that would fail deep inside the run (the trajectory
-    params are checked by `rpod eval_render`, whose output is refused unless it matches them)."""
-    if not 0 <= float(e["p_start"]) <= 1 or int(e["attack_length"]) < 1:
-        raise StageError(f"params.yaml evaluate: p_start must be in [0, 1] and attack_length >= 1, "
-                         f"got {e['p_start']} and {e['attack_length']}")
-    bad = [x for x in e["eps"] if not 0 < float(x) <= 1]
-    if bad or not e["eps"]:
-        raise StageError(f"params.yaml evaluate.eps must be a non-empty list of values in (0, 1], got {e['eps']}")
-    if int(e["batch_size"]) < 1:
-        raise StageError(f"params.yaml evaluate.batch_size must be >= 1, got {e['batch_size']}")
-
-
 def main() -> None:
     """Detect FGSM attacks frame by frame on fresh trajectories with the whole safety chain (SPEC 8).
 
@@ -49,8 +37,7 @@ def main() -> None:
     batch_size), plus `render`/`camera` for the images and `attack.loss` for the FGSM loss.
     """
     p = params_mod.load()
-    e = p["evaluate"]
-    check_params(e)
+    e = params_mod.typed(p).evaluate
     from pipeline.evaluation import evaluate_sequences, nan_to_none, per_eps_summary
     from pipeline.figures import detection_timeline
     from pipeline.schedule import attack_schedule
@@ -58,27 +45,26 @@ def main() -> None:
     params_mod.set_threads(p)
     images, poses, meta = read_eval_render(p)
     chain, loss_fn, model_hash = load_chain(p)
-    eps_list = [float(x) for x in e["eps"]]
-    length = int(e["attack_length"])
+    eps_list, length = e.eps, e.attack_length
     sequences = []
     for tr, g in poses.groupby("trajectory", sort=True):
         idx = g["index"].to_numpy()
         sequences.append({"name": f"T{int(tr) + 1}", "images": images[idx], "poses": g.reset_index(drop=True),
                           "targets": g[TARGET].to_numpy(np.float32),
-                          "attacked": attack_schedule(len(idx), float(e["p_start"]), length,
-                                                      int(e["seed"]) + SCHEDULE_SEED_OFFSET + int(tr))})
+                          "attacked": attack_schedule(len(idx), e.p_start, length,
+                                                      e.seed + SCHEDULE_SEED_OFFSET + int(tr))})
     t0 = time.perf_counter()
-    res = evaluate_sequences(chain, loss_fn, sequences, eps_list, length, int(e["batch_size"]), "evaluate")
+    res = evaluate_sequences(chain, loss_fn, sequences, eps_list, length, e.batch_size, "evaluate")
     seconds = time.perf_counter() - t0
     summary = per_eps_summary(res["rows"])
     eps_fig = min(eps_list)
     s0 = sequences[0]
     title = (f"{s0['name']}: FGSM eps={eps_fig:g} on {int(s0['attacked'].sum())} of {len(s0['attacked'])} "
-             f"frames ({length}-frame attacks, p_start={float(e['p_start']):g})")
+             f"frames ({length}-frame attacks, p_start={e.p_start:g})")
     save_figure(detection_timeline(s0["poses"]["tz"].to_numpy(), s0["attacked"], res["traces"][(eps_fig, s0["name"])],
                                    chain.threshold, title), FIGURE)
-    metrics = {"model_hash": model_hash, "frames_per_trajectory": int(e["frames"]), "trajectories": len(sequences),
-               "p_start": float(e["p_start"]), "attack_length": length, "threshold": chain.threshold,
+    metrics = {"model_hash": model_hash, "frames_per_trajectory": e.frames, "trajectories": len(sequences),
+               "p_start": e.p_start, "attack_length": length, "threshold": chain.threshold,
                "seconds": seconds, "accuracy_mean": float(np.mean([r["accuracy"] for r in summary])),
                "per_eps": {f"{r['eps']:g}": r for r in summary},
                "rows": res["rows"], "clean": res["clean"],
@@ -92,7 +78,7 @@ def main() -> None:
 
 
 def report(rows: list[dict[str, Any]], summary: list[dict[str, Any]], clean: dict[str, dict[str, float]],
-           sequences: list[dict[str, Any]], e: dict[str, Any], meta: dict[str, Any], threshold: float,
+           sequences: list[dict[str, Any]], e: Evaluate, meta: dict[str, Any], threshold: float,
            seconds: float, eps_fig: float, profile: str) -> str:
     from pipeline.evaluation import accuracy_table, detail_table, pct
     from pipeline.report import markdown_table
@@ -105,12 +91,12 @@ def report(rows: list[dict[str, Any]], summary: list[dict[str, Any]], clean: dic
                    "attitude error (deg)": c["attitude_mean_deg"]} for n, c in clean.items()]
     return f"""# Integrated evaluation: the safety chain frame by frame
 
-{len(names)} fresh trajectories (never seen in training; seed {e['seed']}), {e['frames']} frames each, from 60 m
+{len(names)} fresh trajectories (never seen in training; seed {e.seed}), {e.frames} frames each, from 60 m
 with lateral start offsets {starts} along a projectile-shaped path to (0, 0, 10) m. Every frame goes
 through the chain as onboard: image -> (FGSM against that frame's true label, stored as an 8-bit
 image, when the schedule attacks it) -> pose -> exact SHAP of the GAP features -> LSTM detector
-(threshold {threshold:.3f}). A frame outside an attack starts one with probability {e['p_start']:g};
-each attack lasts {e['attack_length']} frames, so {100 * att_frac:.1f}% of the frames are attacked
+(threshold {threshold:.3f}). A frame outside an attack starts one with probability {e.p_start:g};
+each attack lasts {e.attack_length} frames, so {100 * att_frac:.1f}% of the frames are attacked
 (the same schedule for every eps). Accuracy counts frames, as the paper does: correctly classified
 frames / all frames. {seconds:.0f} s for all rows on this CPU.
 
@@ -118,7 +104,7 @@ frames / all frames. {seconds:.0f} s for all rows on this CPU.
 
 {markdown_table(accuracy_table(rows, summary, names, PAPER_ACCURACY), decimals=2)}
 Mean over eps: **{mean_acc:.2f}%** (paper: {PAPER_OVERALL}% overall, from 2,500-frame trajectories at
-480x270 with the full-width network; ours: the {profile} profile's {e['frames']} frames at
+480x270 with the full-width network; ours: the {profile} profile's {e.frames} frames at
 {meta['width']}x{meta['height']}).
 
 ## What the paper did not report

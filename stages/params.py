@@ -1,21 +1,17 @@
 """Params: compose profiles into params.yaml, load and validate it for a stage."""
 from __future__ import annotations
 
-import difflib
 from pathlib import Path
 from typing import Any
 
 import yaml
 
 from stages.io import StageError, atomic_write_text
+from stages.schema import Params, ParamsError, build
 
 ROOT = Path(__file__).resolve().parent.parent
 CONF_DIR = ROOT / "conf"
 PARAMS_FILE = Path("params.yaml")
-
-
-class ParamsError(ValueError):
-    """A params problem the user can fix; the message names the file and the key."""
 
 
 def profiles() -> list[str]:
@@ -39,19 +35,8 @@ def write_params(params: dict[str, Any], path: Path = PARAMS_FILE) -> None:
     atomic_write_text(path, yaml.safe_dump(params, sort_keys=False, default_flow_style=None, width=100))
 
 
-def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict) and v:
-            out.update(_flat(v, key + "."))
-        else:
-            out[key] = v
-    return out
-
-
 def load(path: Path = PARAMS_FILE) -> dict[str, Any]:
-    """Read params.yaml and refuse unknown keys (typos) with a suggestion."""
+    """Read params.yaml and check it against stages.schema (unknown keys refused with a suggestion)."""
     path = Path(path)
     if not path.exists():
         raise ParamsError(f"{path} not found: run `rpod params default` (or another profile) first")
@@ -61,28 +46,21 @@ def load(path: Path = PARAMS_FILE) -> dict[str, Any]:
         raise ParamsError(f"{path} is not valid YAML: {e}") from None
     if not isinstance(params, dict):
         raise ParamsError(f"{path} must hold a mapping of sections")
-    schema = _flat(compose("default"))
-    known = set(schema)
-    prefixes = {k.rsplit(".", 1)[0] for k in known if "." in k}
-    for key in _flat(params):
-        if key in known or any(key.startswith(p + ".") for p in known if schema[p] in ({}, None)):
-            continue
-        if key in prefixes:
-            continue
-        hint = difflib.get_close_matches(key, sorted(known), n=1)
-        raise ParamsError(f"{path}: unknown parameter {key!r}" + (f" (did you mean {hint[0]!r}?)" if hint else ""))
+    build(params)   # unknown keys, types and ranges of every section (stages.schema), checked once here
     return params
+
+
+def typed(params: dict[str, Any]) -> Params:
+    """The typed view (stages.schema.Params) of params that `load` returned."""
+    return build(params)
 
 
 # ----------------------------------------------------------------------------- params -> library objects
 def set_threads(params: dict[str, Any]) -> None:
-    """torch's CPU threads for a stage: the `threads` param (a whole number >= 1)."""
+    """torch's CPU threads for a stage: the `threads` param."""
     import torch
 
-    n = params.get("threads")
-    if not isinstance(n, int) or isinstance(n, bool) or n < 1:
-        raise ParamsError(f"params.yaml threads must be a whole number >= 1, got {n!r}")
-    torch.set_num_threads(n)
+    torch.set_num_threads(int(params["threads"]))
 
 
 def intrinsics(params: dict[str, Any]):
