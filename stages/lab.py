@@ -24,17 +24,14 @@ import numpy as np
 import typer
 
 from stages import params as params_mod
-from stages.artifacts import DETECTOR, POSE, load_chain
+from stages.artifacts import DETECTOR, LAB as OUT, POSE, TRAIN_METRICS, load_chain
+from stages.pages.lab import PAPER_AVERAGE, lab_page
 from stages.recordings import read_recording, recording_folders, write_recording
 from stages.io import StageError, atomic_dir, atomic_write_text, read_json, write_metrics
 
-OUT = Path("datasets/lab")
 REPORT = Path("reports/lab.md")
 METRICS = Path("reports/metrics/lab.json")
-TRAIN_METRICS = Path("reports/metrics/train.json")
 SEED_OFFSET = 0
-PAPER_ACCURACY = {0.5: 100.0, 0.3: 100.0, 0.1: 100.0, 0.05: 98.44, 0.01: 90.44}
-PAPER_AVERAGE = 96.29
 
 app = typer.Typer(help="The lab domain (SPEC 9): lab-like sequences through the real-data loader, pose "
                        "error, FGSM errors and integrated detection; `rpod lab rescale` converts ranges.",
@@ -146,9 +143,7 @@ def main(ctx: typer.Context) -> None:
     if ctx.invoked_subcommand is not None:
         return
     from pipeline.evaluation import evaluate_sequences, nan_to_none, per_eps_summary, pose_errors_under_fgsm
-    from pipeline.lab import lab_to_synthetic_factor, lab_to_synthetic_position
-    from pipeline.rotations import attitude_error_deg, quat_to_6d
-    from pipeline.schedule import attack_schedule
+    from pipeline.lab import lab_to_synthetic_factor
     from stages.lab_models import SUBDIR, retrain, retrain_reason
 
     p = params_mod.load()
@@ -180,25 +175,12 @@ def main(ctx: typer.Context) -> None:
         render_s -= sum(synthetic_lab["seconds"].values())
     recs = [read_recording(f, int(r["width"]), int(r["height"]), lab["bodies"], lab["match"], float(lab["max_gap_s"]),
                            float(lab["segment_threshold"])) for f in recording_folders(source)]
-    loader_err = {}
-    for tr in truth:      # the loader's labels against the exact ones the images were rendered at
-        rec = next(x for x in recs if x["name"] == tr["name"])
-        loader_err[tr["name"]] = {"position_max_m": float(np.abs(rec["t_lab"] - tr["t_lab"]).max()),
-                                  "attitude_max_deg": float(attitude_error_deg(rec["q"], tr["q"]).max())}
     e = p["evaluate"]
     eps_att = [float(x) for x in p["attack"]["eps"]]
     length = int(lab["attack_length"])
-    sequences, ranges, clean_rows, fgsm_rows = [], [], [], []
-    for i, rec in enumerate(recs):
-        t_syn = lab_to_synthetic_position(rec["t_lab"], K_syn, K_zed, scale)
-        targets = np.concatenate([t_syn, quat_to_6d(rec["q"])], 1).astype(np.float32)
-        sequences.append({"name": rec["name"], "images": rec["images"], "targets": targets,
-                          "attacked": attack_schedule(len(targets), float(e["p_start"]), length,
-                                                      int(lab["seed"]) + 31 + i)})
-        zl = rec["t_lab"][:, 2]
-        ranges.append({"sequence": rec["name"], "frames": len(zl), "lab z start (m)": float(zl[0]),
-                       "lab z end (m)": float(zl[-1]), "synthetic z start (m)": float(t_syn[0, 2]),
-                       "synthetic z end (m)": float(t_syn[-1, 2])})
+    sequences, ranges, loader_err = _sequences(recs, truth, K_syn, K_zed, scale, length, float(e["p_start"]),
+                                               int(lab["seed"]))
+    clean_rows, fgsm_rows = [], []
     for s in sequences:   # pose error (clean) and FGSM errors on every lab frame
         for row in pose_errors_under_fgsm(chain, loss_fn, s, eps_att, int(e["batch_size"])):
             (clean_rows if row["eps"] == "clean" else fgsm_rows).append(row)
@@ -218,132 +200,35 @@ def main(ctx: typer.Context) -> None:
                "accuracy_mean": float(np.mean([x["accuracy"] for x in summary])), "seconds": seconds,
                "render_seconds": render_s}
     write_metrics(METRICS, nan_to_none(metrics), p)
-    atomic_write_text(REPORT, report(p, metrics, res["rows"], summary, [s["name"] for s in sequences],
+    atomic_write_text(REPORT, lab_page(p, metrics, res["rows"], summary, [s["name"] for s in sequences],
                                      train_metrics, K_syn, K_zed, sequences))
     typer.echo(f"lab: {'reused' if synthetic_lab is None else 'retrained'} models {models['pose']}, "
                f"{models['detector']}; {len(sequences)} sequences from {source}; mean detection accuracy "
                f"{100 * metrics['accuracy_mean']:.2f}% (paper {PAPER_AVERAGE}%) in {seconds:.0f} s -> {REPORT}")
 
 
-def models_section(p: dict[str, Any], m: dict[str, Any]) -> str:
-    """The report's paragraph on which pose model and detector were used, and why."""
-    from pipeline.report import markdown_table
+def _sequences(recs: list[dict[str, Any]], truth: list[dict[str, Any]], K_syn: Any, K_zed: Any, scale: float,
+               length: int, p_start: float, seed: int) -> tuple[list[dict[str, Any]], list[dict[str, Any]],
+                                                                 dict[str, dict[str, float]]]:
+    """The recordings as chain sequences (synthetic-frame targets, seeded attack schedules), their range
+    table rows, and the loader's label error against the exact render poses (`truth`, synthetic lab only)."""
+    from pipeline.lab import lab_to_synthetic_position
+    from pipeline.rotations import attitude_error_deg, quat_to_6d
+    from pipeline.schedule import attack_schedule
 
-    lab, r = p["lab"], p["render"]
-    if m["reused_models"]:
-        return f"""## Models: reused
-
-The pose model and the detector are the main ones, `{m['models']['pose']}` (hash `{m['model_hash']}`) and
-`{m['models']['detector']}` (`lab.retrain: {lab['retrain']}`): the lab mock-up is the main target mesh at
-1/{lab['scale']:g} scale and K_blender has the lab images' 16:9 aspect (SPEC 9), so a synthetic-lab training set
-would repeat the main one. `lab.retrain: always` (the paper profile), or another mock-up mesh in `lab.mesh`,
-trains a synthetic-lab pose model and detector instead.
-"""
-    s = m["synthetic_lab"]
-    t = s["train_test"]
-    mesh = "(the procedural Jason-1-like target)" if s["mesh"] is None else f"`{s['mesh']}`"
-    steps = [{"step": k, "seconds": v} for k, v in s["seconds"].items()]
-    return f"""## Models: retrained on a synthetic-lab set
-
-Retrained because {s['reason']}. The pose model and the detector used below are
-`{s['pose']}` (hash `{m['model_hash']}`) and `{s['detector']}`, not the main models/pose.pt and
-models/detector.pt.
-
-- Synthetic-lab set: {s['images']} images at {s['size'][0]}x{s['size'][1]} with the main camera K_blender (the lab
-  images' 16:9 aspect), the 13 approach sequences of SPEC 3 ({s['frames_per_sequence']} frames each, 60 to 10 m,
-  base seed {s['seed']}), the mock-up {mesh} rendered at {lab['scale']:g} x its size ({s['mesh_scale']:g} m per mesh
-  unit) so the ranges are preserved; sun and render settings of `render`.
-- Pose model: the main recipe (`rpod train` with the `train` params, width {p['train']['width']}, input
-  {r['width']}x{r['height']}): {s['epochs_run']} epochs, best epoch {s['best_epoch']}; synthetic-lab test split
-  ({t['n']} images): {t['pos_mean_m']:.3f} m and {t['att_mean_deg']:.2f} deg mean error.
-- SHAP (`rpod shap`, `shap` params) of {s['shap_samples']} clean and FGSM samples with this model, and the LSTM
-  detector (`rpod detect`, `detect` params, no baselines) trained on them: test accuracy
-  {100 * s['detector_test_accuracy']:.2f}%.
-
-Everything is in `{s['folder']}/` (its own params.yaml, datasets/, models/, reports/pose.md, reports/detector.md).
-
-{markdown_table(steps, decimals=1)}"""
-
-
-def report(p: dict[str, Any], m: dict[str, Any], rows: list[dict[str, Any]], summary: list[dict[str, Any]],
-           names: list[str], train_metrics: dict[str, Any] | None, K_syn: Any, K_zed: Any,
-           sequences: list[dict[str, Any]]) -> str:
-    import pandas as pd
-
-    from pipeline.evaluation import accuracy_table, detail_table
-    from pipeline.report import markdown_table
-
-    lab, ds = p["lab"], p["lab"]["domain_shift"]
-    f_eff = K_zed.fx * K_syn.width / K_zed.width
-    src = ("synthetic lab sequences rendered by this stage and read back through the real-data loader "
-           f"(`{OUT}/`)" if m["synthetic"] else f"the real lab recording in `{m['source']}`")
-    loader = ""
-    if m["loader_error"]:
-        worst_p = max(v["position_max_m"] for v in m["loader_error"].values())
-        worst_a = max(v["attitude_max_deg"] for v in m["loader_error"].values())
-        loader = (f"\nLoader round trip: the labels recovered from mocap.csv/camera.csv ({lab['match']} matching, "
-                  f"max gap {lab['max_gap_s']} s) differ from the exact render poses by at most "
-                  f"{1000 * worst_p:.2f} mm (lab units) and {worst_a:.4f} deg.\n")
-    clean = pd.DataFrame(m["clean"])
-    clean_table = [{"sequence": c["sequence"], "position (m)": c["position_m"], "relative position": c["relative_position"],
-                    "attitude (deg)": c["attitude_deg"]} for c in m["clean"]]
-    fg = pd.DataFrame(m["fgsm"])
-    fgsm_table = [{"eps": "clean", "position (m)": float(clean["position_m"].mean()),
-                   "relative position": float(clean["relative_position"].mean()),
-                   "attitude (deg)": float(clean["attitude_deg"].mean())}]
-    for eps, g in fg.groupby("eps", sort=False):
-        fgsm_table.append({"eps": f"{eps:g}", "position (m)": float(g["position_m"].mean()),
-                           "relative position": float(g["relative_position"].mean()),
-                           "attitude (deg)": float(g["attitude_deg"].mean())})
-    synth = "not available (run `rpod train`)"
-    test = (train_metrics or {}).get("test", {})
-    if "pos_mean_m" in test and "att_mean_deg" in test:
-        synth = f"{test['pos_mean_m']:.3f} m and {test['att_mean_deg']:.2f} deg mean error"
-    which = (f"the main model, `{TRAIN_METRICS}`" if m["reused_models"] else
-             f"the synthetic-lab model, `{m['synthetic_lab']['folder']}/{TRAIN_METRICS}`")
-    att_frac = np.mean([s["attacked"].mean() for s in sequences])
-    mean_acc = 100 * m["accuracy_mean"]
-    return f"""# Lab domain
-
-Source: {src}.
-
-{models_section(p, m)}
-
-## Range rescaling
-
-Apparent size s = f L / z (pixels). The lab image ({K_zed.width}x{K_zed.height}, fx = {K_zed.fx:g}) resized to
-{K_syn.width}x{K_syn.height} has fx_lab_eff = {K_zed.fx:g} x {K_syn.width}/{K_zed.width} = {f_eff:.2f} px; the
-mock-up is L/{lab['scale']:g}; the synthetic camera has fx = {K_syn.fx:g} px. Equal size gives
-z_syn = z_lab x {lab['scale']:g} x {K_syn.fx:g} / {f_eff:.2f} = **{m['factor']:.3f} x z_lab**
-(`rpod lab rescale --z 3.122` -> {3.122 * m['factor']:.2f} m). Lateral label coordinates keep the target's
-pixel position. The match is on the horizontal size: K_blender's pixels are not square (fx/fy = 16/9),
-so the target is {K_syn.fy / K_syn.fx:.3f}x as tall in the synthetic image as in the resized lab image.
-
-{markdown_table(m['ranges'], decimals=2)}
-{loader}
-## Pose error
-
-Lab frames: {lab['frames']} per sequence at {lab['fps']} fps, mocap at {lab['mocap_hz']} Hz, rendered with the
-ZED geometry (fx scaled by 1 + {ds['calib_error']:g}: a calibration error), sun direction {ds['sun_direction']}
-at strength {ds['sun_strength']}, blur sigma {ds['blur_sigma']} px, noise std {ds['noise_std']}, then
-segmented (masks/) and resized to {p['render']['width']}x{p['render']['height']}. Errors are in the equivalent
-synthetic frame (metres x {m['factor']:.2f} of lab metres).
-
-Synthetic test split ({which}): {synth}.
-
-{markdown_table(clean_table, decimals=3)}
-## FGSM on the lab sequences
-
-Mean error over all lab frames (attack.eps, loss `{p['attack']['loss']}`, 8-bit images).
-
-{markdown_table(fgsm_table, decimals=3)}
-## Integrated detection, {m['attack_length']}-frame attacks
-
-Start probability {p['evaluate']['p_start']:g} per frame, {100 * att_frac:.1f}% of the frames attacked;
-accuracy = correctly classified frames / all frames (%).
-
-{markdown_table(accuracy_table(rows, summary, names, PAPER_ACCURACY), decimals=2)}
-Mean over eps: **{mean_acc:.2f}%** (paper: {PAPER_AVERAGE}% average).
-
-{markdown_table(detail_table(summary), decimals=2)}
-"""
+    loader_err = {}
+    for tr in truth:      # the loader's labels against the exact ones the images were rendered at
+        rec = next(x for x in recs if x["name"] == tr["name"])
+        loader_err[tr["name"]] = {"position_max_m": float(np.abs(rec["t_lab"] - tr["t_lab"]).max()),
+                                  "attitude_max_deg": float(attitude_error_deg(rec["q"], tr["q"]).max())}
+    sequences, ranges = [], []
+    for i, rec in enumerate(recs):
+        t_syn = lab_to_synthetic_position(rec["t_lab"], K_syn, K_zed, scale)
+        targets = np.concatenate([t_syn, quat_to_6d(rec["q"])], 1).astype(np.float32)
+        sequences.append({"name": rec["name"], "images": rec["images"], "targets": targets,
+                          "attacked": attack_schedule(len(targets), p_start, length, seed + 31 + i)})
+        zl = rec["t_lab"][:, 2]
+        ranges.append({"sequence": rec["name"], "frames": len(zl), "lab z start (m)": float(zl[0]),
+                       "lab z end (m)": float(zl[-1]), "synthetic z start (m)": float(t_syn[0, 2]),
+                       "synthetic z end (m)": float(t_syn[-1, 2])})
+    return sequences, ranges, loader_err
