@@ -2,8 +2,9 @@
 
 Paths are relative to the working folder (the repository root under `dvc repro`). Loaders check what
 they read and raise a StageError naming the file and the stage that writes it:
-- `read_render_store` (render output), `read_eval_render` (eval_render output, checked against params), `load_pose` (pose model, attack loss and file
-  hash from one read of models/pose.pt), `load_detector`, `load_chain` (pose model + detector);
+- `read_render_store` (render output), `read_eval_render` (eval_render output, checked against
+  params), `load_pose` (pose model, attack loss and file hash from one read of models/pose.pt),
+  `load_detector`, `load_chain` (pose model + detector);
 - `SampleImages`: the image of a SHAP sample (split, label index, eps) from the labelled renders,
   the attack stage's adv.zarr, or the same FGSM (shared by `rpod shap` and `rpod detect`).
 """
@@ -26,6 +27,8 @@ ADV = Path("datasets/attack/adv.zarr")
 SHAP = Path("datasets/shap.zarr")
 EVAL_RENDER = Path("datasets/eval_render")
 LAB = Path("datasets/lab")
+LAB_MODELS = Path("datasets/lab_models")
+LAB_MODELS_SUMMARY = LAB_MODELS / "summary.json"
 TRAIN_METRICS = Path("reports/metrics/train.json")
 DETECTOR = Path("models/detector.pt")
 ROC_DIR = Path("reports/plots/roc")

@@ -8,8 +8,8 @@ set to a folder, the same evaluation runs on that recording instead.
 
 Models: with `lab.retrain: auto` and the main target as the mock-up, the main models/pose.pt and
 models/detector.pt (SPEC 9 allows it); with `lab.retrain: always`, or another mock-up in `lab.mesh`,
-a pose model and detector trained first on a synthetic-lab set in datasets/lab/synthetic_lab/
-(stages/lab_models.py). The report and metrics (`reused_models`, `models`) say which were used.
+the pose model and detector that `rpod lab_models` trained on a synthetic-lab set in
+datasets/lab_models/. The report and metrics (`reused_models`, `models`) say which were used.
 
 The lab recording layout (images/, masks/, camera.csv, mocap.csv) is described in stages/recordings.py.
 """
@@ -24,7 +24,7 @@ import numpy as np
 import typer
 
 from stages import params as params_mod
-from stages.artifacts import DETECTOR, LAB as OUT, POSE, TRAIN_METRICS, load_chain
+from stages.artifacts import DETECTOR, LAB as OUT, LAB_MODELS, LAB_MODELS_SUMMARY, POSE, TRAIN_METRICS, load_chain
 from stages.pages.lab import PAPER_AVERAGE, lab_page
 from stages.recordings import read_recording, recording_folders, write_recording
 from stages.io import StageError, atomic_dir, atomic_write_text, read_json, write_metrics
@@ -78,7 +78,6 @@ def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
 
     from pipeline.lab import render_recording, synthetic_recording
     from pipeline.scene import Renderer
-    from stages.lab_models import mockup
 
     lab, r = p["lab"], p["render"]
     ds = lab["domain_shift"]
@@ -86,7 +85,7 @@ def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
     k_cal = 1.0 + float(ds["calib_error"])       # the true lens differs from the calibration used for labels
     K_lab = K_zed.scaled(int(r["width"]), int(r["height"]))
     K_true = dataclasses.replace(K_lab, fx=K_lab.fx * k_cal, fy=K_lab.fy * k_cal)
-    mesh, mesh_scale = mockup(p)                  # the mock-up at scale x its size (= the real target's size)
+    mesh, mesh_scale = params_mod.mockup(p)       # the mock-up at scale x its size (= the real target's size)
     settings = dataclasses.replace(params_mod.scene_settings(r), mesh=mesh, mesh_scale=mesh_scale,
                                    sun_direction=tuple(float(v) for v in ds["sun_direction"]),
                                    sun_strength=float(ds["sun_strength"]))
@@ -144,7 +143,6 @@ def main(ctx: typer.Context) -> None:
         return
     from pipeline.evaluation import evaluate_sequences, nan_to_none, per_eps_summary, pose_errors_under_fgsm
     from pipeline.lab import lab_to_synthetic_factor
-    from stages.lab_models import SUBDIR, retrain, retrain_reason
 
     p = params_mod.load()
     lab, r = p["lab"], p["render"]
@@ -153,26 +151,19 @@ def main(ctx: typer.Context) -> None:
     K_syn, K_zed = cameras(p)
     scale = float(lab["scale"])
     factor = lab_to_synthetic_factor(K_syn, K_zed, scale)
-    reason = retrain_reason(p)
-    if reason is None:                             # fail early when the main models are missing
+    reason = params_mod.retrain_reason(p)
+    synthetic_lab = _lab_models(reason)
+    if synthetic_lab is None:
         chain, loss_fn, model_hash = load_chain(p)
-    elif lab["real_data"]:
-        recording_folders(Path(lab["real_data"]))   # likewise for a missing recording, before training
+    else:
+        chain, loss_fn, model_hash = load_chain(p, LAB_MODELS / POSE, LAB_MODELS / DETECTOR)
     t0 = time.perf_counter()
     truth: list[dict[str, Any]] = []
-    synthetic_lab: dict[str, Any] | None = None
     source = Path(lab["real_data"]) if lab["real_data"] else OUT
-    if reason is not None or not lab["real_data"]:
+    if not lab["real_data"]:
         with atomic_dir(OUT) as tmp:
-            if not lab["real_data"]:
-                truth = render_lab(p, tmp)
-            if reason is not None:
-                typer.echo(f"lab: retraining the pose model and detector on a synthetic-lab set ({reason})")
-                synthetic_lab = retrain(p, tmp / SUBDIR, OUT / SUBDIR)
+            truth = render_lab(p, tmp)
     render_s = time.perf_counter() - t0
-    if synthetic_lab is not None:
-        chain, loss_fn, model_hash = load_chain(p, OUT / SUBDIR / POSE, OUT / SUBDIR / DETECTOR)
-        render_s -= sum(synthetic_lab["seconds"].values())
     recs = [read_recording(f, int(r["width"]), int(r["height"]), lab["bodies"], lab["match"], float(lab["max_gap_s"]),
                            float(lab["segment_threshold"])) for f in recording_folders(source)]
     e = p["evaluate"]
@@ -188,7 +179,7 @@ def main(ctx: typer.Context) -> None:
                              "lab evaluate")
     summary = per_eps_summary(res["rows"])
     seconds = time.perf_counter() - t0
-    train_path = TRAIN_METRICS if synthetic_lab is None else OUT / SUBDIR / TRAIN_METRICS
+    train_path = TRAIN_METRICS if synthetic_lab is None else LAB_MODELS / TRAIN_METRICS
     train_metrics = read_json(train_path) if train_path.exists() else None
     models = ({"pose": str(POSE), "detector": str(DETECTOR)} if synthetic_lab is None else
               {"pose": synthetic_lab["pose"], "detector": synthetic_lab["detector"]})
@@ -205,6 +196,16 @@ def main(ctx: typer.Context) -> None:
     typer.echo(f"lab: {'reused' if synthetic_lab is None else 'retrained'} models {models['pose']}, "
                f"{models['detector']}; {len(sequences)} sequences from {source}; mean detection accuracy "
                f"{100 * metrics['accuracy_mean']:.2f}% (paper {PAPER_AVERAGE}%) in {seconds:.0f} s -> {REPORT}")
+
+
+def _lab_models(reason: str | None) -> dict[str, Any] | None:
+    """The synthetic-lab summary of `rpod lab_models` when the lab must use retrained models (`reason`), else
+    None; refuses a datasets/lab_models/ made for other params."""
+    summary = read_json(LAB_MODELS_SUMMARY)
+    if summary.get("reason") != reason:
+        raise StageError(f"{LAB_MODELS} was made for other lab params (retrain reason {summary.get('reason')!r}, "
+                         f"now {reason!r}); run `rpod lab_models` (dvc repro lab_models)")
+    return summary if summary["retrained"] else None
 
 
 def _sequences(recs: list[dict[str, Any]], truth: list[dict[str, Any]], K_syn: Any, K_zed: Any, scale: float,

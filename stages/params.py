@@ -117,3 +117,33 @@ def make_attack(attack: dict[str, Any], method: str, seed: int):
                           generator=torch.Generator().manual_seed(seed))
     except ValueError as e:
         raise StageError(f"params.yaml attack: {e}") from None
+
+
+def mockup(p: dict[str, Any]) -> tuple[str | None, float]:
+    """(mesh file or None = procedural target, metres per mesh unit) of the mock-up rendered at lab.scale x
+    its size, i.e. at the size of the real target. Relative paths are resolved against the working folder."""
+    lab, r = p["lab"], p["render"]
+    if lab["mesh"] is None:   # the main target, built at 1/scale: rendered at scale x it is the main mesh
+        mesh, unit = r["mesh"], float(r["mesh_scale"])
+    else:
+        mesh, unit = lab["mesh"], float(lab["mesh_scale"]) * float(lab["scale"])
+    if mesh is None:
+        return None, unit
+    path = Path(mesh).resolve()
+    if not path.is_file():
+        key = "render.mesh" if lab["mesh"] is None else "lab.mesh"
+        raise StageError(f"params.yaml {key}: mock-up mesh file {mesh} not found")
+    return str(path), unit
+
+
+def retrain_reason(p: dict[str, Any]) -> str | None:
+    """Why the lab stage must train its own models, or None when it may reuse the main ones (SPEC 9)."""
+    lab, r = p["lab"], p["render"]
+    if lab["retrain"] == "always":
+        return "lab.retrain is always"
+    mesh, unit = mockup(p)
+    main = None if r["mesh"] is None else str(Path(r["mesh"]).resolve())
+    if mesh != main or abs(unit - float(r["mesh_scale"])) > 1e-9 * max(unit, 1.0):
+        return (f"the mock-up (lab.mesh {lab['mesh']}, {lab['mesh_scale']:g} m per unit, x{lab['scale']:g}) is not "
+                f"the main target (render.mesh {r['mesh']}, {r['mesh_scale']:g} m per unit)")
+    return None

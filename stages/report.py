@@ -22,7 +22,7 @@ import typer
 
 from stages import params as params_mod
 from stages.artifacts import ROC_DIR, SHAP as SHAP_STORE
-from stages.io import StageError, atomic_write_text, read_json
+from stages.io import StageError, atomic_write_text, read_json, save_figure
 
 PAGE = Path("reports/README.md")
 README = Path("README.md")
@@ -199,13 +199,6 @@ def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figur
     return page
 
 
-def _save(fig, name: str) -> None:
-    FIGURES.mkdir(parents=True, exist_ok=True)
-    tmp = FIGURES / f".{name}.tmp.png"
-    fig.savefig(tmp, dpi=110)
-    tmp.replace(FIGURES / name)
-
-
 def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, str]]:
     """Draw the report's own figures; return (stage, title, file name) for each."""
     import pandas as pd
@@ -213,16 +206,17 @@ def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, s
     from pipeline import figures as F
 
     tr, at, de = metrics["train"], metrics["attack"], metrics["detect"]
-    _save(F.pose_error_bars({"train": tr["train"]["bins"], "test": tr["test"]["bins"]}), "pose_errors.png")
+    save_figure(F.pose_error_bars({"train": tr["train"]["bins"], "test": tr["test"]["bins"]}),
+                FIGURES / "pose_errors.png")
     eps = sorted(at["eps"], key=float)
-    _save(F.error_vs_eps([float(e) for e in eps], [at["eps"][e]["position_mean_m"] for e in eps],
-                         [at["eps"][e]["attitude_mean_deg"] for e in eps], at["clean"]["position_mean_m"],
-                         at["clean"]["attitude_mean_deg"]), "error_vs_eps.png")
+    save_figure(F.error_vs_eps([float(e) for e in eps], [at["eps"][e]["position_mean_m"] for e in eps],
+                               [at["eps"][e]["attitude_mean_deg"] for e in eps], at["clean"]["position_mean_m"],
+                               at["clean"]["attitude_mean_deg"]), FIGURES / "error_vs_eps.png")
     out = [("train", "Mean error per range bin, train and test", "pose_errors.png"),
            ("attack", "Pose error against eps", "error_vs_eps.png")]
     heat = _shap_means()
     if heat is not None:
-        _save(F.shap_heatmaps(heat), "shap_heatmaps.png")
+        save_figure(F.shap_heatmaps(heat), FIGURES / "shap_heatmaps.png")
         out.append(("detect", "SHAP signatures: mean |phi| per output and GAP feature, normal vs adversarial",
                     "shap_heatmaps.png"))
     curves = {}
@@ -233,7 +227,7 @@ def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, s
             curves[DETECTOR_NAMES.get(name, name)] = (roc["fpr"].to_numpy(), roc["tpr"].to_numpy(),
                                                        float(de["detectors"][name]["all"]["roc_auc"]))
     if curves:
-        _save(F.roc_curves(curves), "roc.png")
+        save_figure(F.roc_curves(curves), FIGURES / "roc.png")
         out.append(("detect", "ROC curves of all detectors on the SHAP test split", "roc.png"))
     return out
 

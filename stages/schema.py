@@ -196,10 +196,10 @@ class Lab:
     frames: int
     fps: float
     mocap_hz: float
-    match: str                   # nearest | interpolate
+    match: Literal["nearest", "interpolate"]   # how mocap samples are matched to camera frames
     max_gap_s: float             # seconds
     attack_length: int           # frames
-    retrain: str                 # auto | always
+    retrain: Literal["auto", "always"]   # always: train synthetic-lab models (`rpod lab_models`)
     mesh: Optional[str]
     mesh_scale: float            # metres per mock-up mesh unit
     train_frames_per_sequence: Optional[int]

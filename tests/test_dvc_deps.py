@@ -105,7 +105,7 @@ def stage_files(name: str) -> set[Path]:
     cmd = STAGES[name]["cmd"].split()
     assert cmd[0] == "rpod", f"stage {name}: command {cmd} is not an rpod command"
     files = files_of(REPO / "stages" / f"{cmd[1]}.py")
-    if name == "lab":   # with lab.retrain, stages/lab_models.py runs these commands as subprocesses
+    if name == "lab_models":   # with lab.retrain, stages/lab_models.py runs these commands as subprocesses
         for sub in ("render", "label", "train", "shap", "detect"):
             files |= files_of(REPO / "stages" / f"{sub}.py")
     return files
@@ -126,15 +126,15 @@ def test_the_derivation_follows_functions_not_whole_modules():
     render = {str(f.relative_to(REPO)) for f in stage_files("render")}
     assert {"pipeline/scene.py", "stages/params.py", "stages/artifacts.py", "pipeline/trajectories.py"} <= render
     assert "pipeline/attacks.py" not in render          # params.make_attack is not used by render
-    assert "stages/detect.py" not in {str(f.relative_to(REPO)) for f in stage_files("evaluate")}
+    for later in ("evaluate", "lab"):   # editing the detector's code or page does not re-run them
+        assert "stages/detect.py" not in {str(f.relative_to(REPO)) for f in stage_files(later)}
 
 
 def test_no_stage_imports_another_stage():
     shared = {"artifacts", "io", "params", "schema", "cli", "checkpoint", "data", "recordings"}
-    own_helpers = {"lab_models": "lab"}   # a helper module imported by its own stage only
     for path in sorted((REPO / "stages").glob("*.py")):
         _, top = parse(path)
         imported = {f for f, _ in top.values()} | {f for u in parse(path)[0].values() for f, _ in bindings(u).values()}
         for f in imported:
-            if f.parent.name == "stages" and f.stem not in shared and f != path:
-                assert own_helpers.get(f.stem) == path.stem, f"{path.name} imports the stage module {f.name}"
+            assert f.parent.name != "stages" or f.stem in shared or f == path, \
+                f"{path.name} imports the stage module {f.name}"
