@@ -4,7 +4,7 @@ Paths are relative to the working folder (the repository root under `dvc repro`)
 they read and raise a StageError naming the file and the stage that writes it:
 - `read_render_store` (render output), `read_eval_render` (eval_render output, checked against
   params), `load_pose` (pose model, attack loss and file hash from one read of models/pose.pt),
-  `load_detector`, `load_chain` (pose model + detector);
+  `load_detector`, `load_chain` (pose model + detector), `read_shap_store` (checked SHAP store);
 - `SampleImages`: the image of a SHAP sample (split, label index, eps) from the labelled renders,
   the attack stage's adv.zarr, or the same FGSM (shared by `rpod shap` and `rpod detect`).
 """
@@ -121,6 +121,43 @@ def read_eval_render(p: dict[str, Any]) -> tuple[np.ndarray, Any, dict[str, Any]
     if len(images) != len(poses) or len(poses) != meta["frames"]:
         raise StageError(f"{EVAL_RENDER} is inconsistent; delete it and run `rpod eval_render`")
     return images, poses, meta
+
+
+def read_shap_store(path: Path, model_hash: str) -> dict[str, Any]:
+    """The SHAP store's arrays and attrs, checked: model hash, shapes, NaNs, both classes present."""
+    root = open_zarr(path, "SHAP store")
+    need = ["values", "features", "is_adversarial", "eps", "source_index", "split"]
+    missing = [k for k in need if k not in root]
+    if missing:
+        raise StageError(f"{path} lacks arrays {missing} (re-run `rpod shap`)")
+    attrs = dict(root.attrs)
+    if attrs.get("model_hash") != model_hash:
+        raise StageError(f"{path} was made with another pose checkpoint (hash {attrs.get('model_hash')!r}, "
+                         f"{POSE} is {model_hash!r}); re-run `rpod shap`")
+    values = root["values"]
+    n = values.shape[0]
+    if values.ndim != 3 or values.shape[1] != 9 or n == 0:
+        raise StageError(f"{path}/values must be (N, 9, n_features) with N > 0, got {tuple(values.shape)} "
+                         f"(re-run `rpod shap`)")
+    out = {k: root[k][:] for k in need}
+    out["attrs"] = attrs
+    for k in need[1:]:
+        if out[k].shape[0] != n:
+            raise StageError(f"{path}/{k} has {out[k].shape[0]} rows but values has {n} (re-run `rpod shap`)")
+    if out["features"].shape[1] != values.shape[2]:
+        raise StageError(f"{path}/features has {out['features'].shape[1]} columns, values {values.shape[2]} features")
+    for k in ("values", "features", "eps"):
+        bad = ~np.isfinite(out[k].reshape(n, -1)).all(axis=1)
+        if bad.any():
+            raise StageError(f"{path}/{k} has NaN or infinite entries in {int(bad.sum())} samples "
+                             f"(first: sample {int(np.argmax(bad))}); re-run `rpod shap`")
+    y = out["is_adversarial"].astype(bool)
+    if y.all() or not y.any():
+        raise StageError(f"{path} holds only {'adversarial' if y.all() else 'clean'} samples; a detector needs both "
+                         f"(check shap.normal, shap.per_eps and shap.eps)")
+    if not np.array_equal(y, out["eps"] > 0):
+        raise StageError(f"{path}: is_adversarial disagrees with eps > 0 (re-run `rpod shap`)")
+    return out
 
 
 def _key(eps: float) -> float:

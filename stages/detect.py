@@ -22,8 +22,9 @@ from typing import Any
 import numpy as np
 
 from stages import params as params_mod
-from stages.artifacts import DETECTOR, DETECTOR_FORMAT, POSE, ROC_DIR, SHAP, SPLIT_CODES, SampleImages, load_pose
-from stages.io import StageError, atomic_write_text, file_hash, open_zarr, save_torch, write_metrics
+from stages.artifacts import (DETECTOR, DETECTOR_FORMAT, POSE, ROC_DIR, SHAP, SPLIT_CODES, SampleImages, load_pose,
+                              read_shap_store)
+from stages.io import StageError, atomic_write_text, file_hash, save_torch, write_metrics
 from stages.pages.detect import PAPER_ACCURACY, detector_page
 
 REPORT = Path("reports/detector.md")
@@ -31,43 +32,6 @@ METRICS = Path("reports/metrics/detect.json")
 LIVE_DIR = "dvclive/detect"
 SEED_OFFSET = 600
 BASELINES = ("mlp", "mahalanobis", "lid", "squeeze")
-
-
-def read_store(path: Path, model_hash: str) -> dict[str, Any]:
-    """The SHAP store's arrays and attrs, checked: model hash, shapes, NaNs, both classes present."""
-    root = open_zarr(path, "SHAP store")
-    need = ["values", "features", "is_adversarial", "eps", "source_index", "split"]
-    missing = [k for k in need if k not in root]
-    if missing:
-        raise StageError(f"{path} lacks arrays {missing} (re-run `rpod shap`)")
-    attrs = dict(root.attrs)
-    if attrs.get("model_hash") != model_hash:
-        raise StageError(f"{path} was made with another pose checkpoint (hash {attrs.get('model_hash')!r}, "
-                         f"{POSE} is {model_hash!r}); re-run `rpod shap`")
-    values = root["values"]
-    n = values.shape[0]
-    if values.ndim != 3 or values.shape[1] != 9 or n == 0:
-        raise StageError(f"{path}/values must be (N, 9, n_features) with N > 0, got {tuple(values.shape)} "
-                         f"(re-run `rpod shap`)")
-    out = {k: root[k][:] for k in need}
-    out["attrs"] = attrs
-    for k in need[1:]:
-        if out[k].shape[0] != n:
-            raise StageError(f"{path}/{k} has {out[k].shape[0]} rows but values has {n} (re-run `rpod shap`)")
-    if out["features"].shape[1] != values.shape[2]:
-        raise StageError(f"{path}/features has {out['features'].shape[1]} columns, values {values.shape[2]} features")
-    for k in ("values", "features", "eps"):
-        bad = ~np.isfinite(out[k].reshape(n, -1)).all(axis=1)
-        if bad.any():
-            raise StageError(f"{path}/{k} has NaN or infinite entries in {int(bad.sum())} samples "
-                             f"(first: sample {int(np.argmax(bad))}); re-run `rpod shap`")
-    y = out["is_adversarial"].astype(bool)
-    if y.all() or not y.any():
-        raise StageError(f"{path} holds only {'adversarial' if y.all() else 'clean'} samples; a detector needs both "
-                         f"(check shap.normal, shap.per_eps and shap.eps)")
-    if not np.array_equal(y, out["eps"] > 0):
-        raise StageError(f"{path}: is_adversarial disagrees with eps > 0 (re-run `rpod shap`)")
-    return out
 
 
 def split_indices(eps: np.ndarray, test_fraction: float, val_fraction: float,
@@ -107,7 +71,7 @@ def main() -> None:
     torch.set_num_threads(1)  # the LSTM's matrices are small: extra threads cost more than they give
     seed = int(p["seed"]) + SEED_OFFSET
     model_hash = file_hash(POSE)
-    data = read_store(SHAP, model_hash)
+    data = read_shap_store(SHAP, model_hash)
     values, feats, eps = data["values"], data["features"], data["eps"].astype(np.float64)
     y = data["is_adversarial"].astype(np.int64)
     tr, va, te = split_indices(eps, float(d["test_fraction"]), float(d["val_fraction"]), seed)

@@ -112,25 +112,6 @@ def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
 
 
 # ----------------------------------------------------------------------------- the stage
-def check_params(lab: dict[str, Any]) -> None:
-    """Refuse bad `lab` params before any work, naming the key."""
-    if lab["retrain"] not in ("auto", "always"):
-        raise StageError(f"params.yaml lab.retrain must be auto or always, got {lab['retrain']!r}")
-    n = lab["train_frames_per_sequence"]
-    if n is not None and (not isinstance(n, int) or isinstance(n, bool) or n < 2):
-        raise StageError(f"params.yaml lab.train_frames_per_sequence must be null or a whole number >= 2, got {n!r}")
-    if float(lab["mesh_scale"]) <= 0 or float(lab["scale"]) <= 0:
-        raise StageError(f"params.yaml lab: scale and mesh_scale must be > 0, got {lab['scale']} and "
-                         f"{lab['mesh_scale']}")
-    if lab["match"] not in ("nearest", "interpolate"):
-        raise StageError(f"params.yaml lab.match must be nearest or interpolate, got {lab['match']!r}")
-    if float(lab["max_gap_s"]) <= 0 or int(lab["frames"]) < 2 or int(lab["attack_length"]) < 1:
-        raise StageError("params.yaml lab: need max_gap_s > 0, frames >= 2 and attack_length >= 1")
-    for z in lab["sequences"]:
-        if len(z) != 2 or min(float(v) for v in z) <= 0:
-            raise StageError(f"params.yaml lab.sequences: each entry must be [z_start, z_end] in metres > 0, got {z}")
-
-
 @app.callback(invoke_without_command=True)
 def main(ctx: typer.Context) -> None:
     """Evaluate the pose model and the safety chain in the lab domain (SPEC 9).
@@ -146,7 +127,6 @@ def main(ctx: typer.Context) -> None:
 
     p = params_mod.load()
     lab, r = p["lab"], p["render"]
-    check_params(lab)
     params_mod.set_threads(p)
     K_syn, K_zed = cameras(p)
     scale = float(lab["scale"])

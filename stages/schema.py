@@ -209,6 +209,18 @@ class Lab:
     segment_threshold: float     # grey level in [0, 1]
     seed: int
 
+    def __post_init__(self) -> None:
+        n = self.train_frames_per_sequence
+        if n is not None and n < 2:
+            raise ValueError(f"train_frames_per_sequence must be null or a whole number >= 2, got {n!r}")
+        if self.mesh_scale <= 0 or self.scale <= 0:
+            raise ValueError(f"scale and mesh_scale must be > 0, got {self.scale} and {self.mesh_scale}")
+        if self.max_gap_s <= 0 or self.frames < 2 or self.attack_length < 1:
+            raise ValueError("need max_gap_s > 0, frames >= 2 and attack_length >= 1")
+        for z in self.sequences:
+            if len(z) != 2 or min(z) <= 0:
+                raise ValueError(f"sequences: each entry must be [z_start, z_end] in metres > 0, got {z}")
+
 
 @dataclass(frozen=True)
 class Report:

@@ -292,18 +292,19 @@ def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, mo
 
 
 @pytest.mark.parametrize("edit, message", [
-    ({"retrain": "sometimes"}, "lab.retrain must be auto or always"),
-    ({"train_frames_per_sequence": 1}, "lab.train_frames_per_sequence must be null or a whole number >= 2"),
-    ({"mesh_scale": 0.0}, "scale and mesh_scale must be > 0"),
+    ({"retrain": "sometimes"}, r"lab.retrain must be one of auto, always, got 'sometimes'"),
+    ({"train_frames_per_sequence": 1}, "lab: train_frames_per_sequence must be null or a whole number >= 2"),
+    ({"mesh_scale": 0.0}, "lab: scale and mesh_scale must be > 0"),
+    ({"sequences": [[1.6, -1.0]]}, r"lab: sequences: each entry must be \[z_start, z_end\] in metres > 0"),
 ])
 def test_bad_lab_params_are_refused(edit, message):
     from stages import params as params_mod
-    from stages.io import StageError
-    from stages.lab import check_params
+    from stages.schema import ParamsError, build
 
-    lab = {**params_mod.compose("default")["lab"], **edit}
-    with pytest.raises(StageError, match=message):
-        check_params(lab)
+    p = params_mod.compose("default")
+    p["lab"].update(edit)
+    with pytest.raises(ParamsError, match=message):
+        build(p)
 
 
 def test_when_the_lab_stage_retrains(tmp_path, monkeypatch):
