@@ -126,7 +126,7 @@ def main(ctx: typer.Context) -> None:
     from pipeline.lab import lab_to_synthetic_factor
 
     p = params_mod.load()
-    lab, r = p["lab"], p["render"]
+    lab = p["lab"]
     params_mod.set_threads(p)
     K_syn, K_zed = cameras(p)
     scale = float(lab["scale"])
@@ -144,16 +144,12 @@ def main(ctx: typer.Context) -> None:
         with atomic_dir(OUT) as tmp:
             truth = render_lab(p, tmp)
     render_s = time.perf_counter() - t0
-    recs = [read_recording(f, int(r["width"]), int(r["height"]), lab["bodies"], lab["match"], float(lab["max_gap_s"]),
-                           float(lab["segment_threshold"])) for f in recording_folders(source)]
-    e = p["evaluate"]
-    eps_att = [float(x) for x in p["attack"]["eps"]]
-    length = int(lab["attack_length"])
-    sequences, ranges, loader_err = _sequences(recs, truth, K_syn, K_zed, scale, length, float(e["p_start"]),
-                                               int(lab["seed"]))
+    sequences, ranges, loader_err = _sequences(p, source, truth, K_syn, K_zed)
+    e, length = p["evaluate"], int(lab["attack_length"])
     clean_rows, fgsm_rows = [], []
     for s in sequences:   # pose error (clean) and FGSM errors on every lab frame
-        for row in pose_errors_under_fgsm(chain, loss_fn, s, eps_att, int(e["batch_size"])):
+        for row in pose_errors_under_fgsm(chain, loss_fn, s, [float(x) for x in p["attack"]["eps"]],
+                                          int(e["batch_size"])):
             (clean_rows if row["eps"] == "clean" else fgsm_rows).append(row)
     res = evaluate_sequences(chain, loss_fn, sequences, [float(x) for x in e["eps"]], length, int(e["batch_size"]),
                              "lab evaluate")
@@ -188,14 +184,20 @@ def _lab_models(reason: str | None) -> dict[str, Any] | None:
     return summary if summary["retrained"] else None
 
 
-def _sequences(recs: list[dict[str, Any]], truth: list[dict[str, Any]], K_syn: Any, K_zed: Any, scale: float,
-               length: int, p_start: float, seed: int) -> tuple[list[dict[str, Any]], list[dict[str, Any]],
-                                                                 dict[str, dict[str, float]]]:
-    """The recordings as chain sequences (synthetic-frame targets, seeded attack schedules), their range
-    table rows, and the loader's label error against the exact render poses (`truth`, synthetic lab only)."""
+def _sequences(p: dict[str, Any], source: Path, truth: list[dict[str, Any]], K_syn: Any,
+               K_zed: Any) -> tuple[list[dict[str, Any]], list[dict[str, Any]], dict[str, dict[str, float]]]:
+    """The recordings in `source` read through the real-data loader, as chain sequences (synthetic-frame
+    targets in metres, seeded attack schedules), their range table rows, and the loader's label error
+    against the exact render poses (`truth`, synthetic lab only)."""
     from pipeline.lab import lab_to_synthetic_position
     from pipeline.rotations import attitude_error_deg, quat_to_6d
     from pipeline.schedule import attack_schedule
+
+    lab, r = p["lab"], p["render"]
+    scale, length, p_start, seed = (float(lab["scale"]), int(lab["attack_length"]), float(p["evaluate"]["p_start"]),
+                                    int(lab["seed"]))
+    recs = [read_recording(f, int(r["width"]), int(r["height"]), lab["bodies"], lab["match"], float(lab["max_gap_s"]),
+                           float(lab["segment_threshold"])) for f in recording_folders(source)]
 
     loader_err = {}
     for tr in truth:      # the loader's labels against the exact ones the images were rendered at

@@ -130,12 +130,17 @@ class Detect:
     lr: float
     val_fraction: float
     test_fraction: float
-    baselines: list[str]
+    baselines: list[Literal["mlp", "mahalanobis", "lid", "squeeze"]]
     mlp_hidden: list[int]
     lid_k: int
     lid_batch: int
     squeeze_bits: int
     squeeze_median: int          # pixels, odd
+
+    def __post_init__(self) -> None:
+        for key in ("test_fraction", "val_fraction"):
+            if not 0 < getattr(self, key) < 1:
+                raise ValueError(f"{key} must be in (0, 1), got {getattr(self, key)!r}")
 
 
 @dataclass(frozen=True)

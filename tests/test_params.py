@@ -27,6 +27,8 @@ def test_every_profile_builds_typed_params(profile):
     (("evaluate", "lateral_range", [20.0, 10.0]), r"evaluate: lateral_range must be \[low, high\]"),
     ((None, "threads", 0), r"threads must be a whole number >= 1, got 0"),
     (("lab", "zed", {"width": 1920}), r"missing parameter 'lab.zed.height'"),
+    (("detect", "baselines", ["mlp", "knn"]), r"detect.baselines\[1\] must be one of mlp, mahalanobis, lid, squeeze"),
+    (("detect", "val_fraction", 1.0), r"detect: val_fraction must be in \(0, 1\), got 1.0"),
 ])
 def test_load_refuses_bad_params_naming_the_key(tmp_path, monkeypatch, edit, message):
     monkeypatch.chdir(tmp_path)
