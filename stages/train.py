@@ -14,6 +14,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from stages.checkpoint import POSE
 from stages.io import StageError, atomic_outputs, atomic_write_text, write_metrics
 
 REPORT = Path("reports/pose.md")
@@ -26,12 +27,11 @@ TARGET_TZ_PCT, TARGET_LATERAL_M = 2.0, 0.5  # guidance needs (issue 3)
 
 def main() -> None:
     """Train the pose CNN; keep the best checkpoint by test error; report errors next to the paper's."""
-    import numpy as np
     import torch
 
     from pipeline.loss import PoseLoss
     from pipeline.model import PoseNet
-    from pipeline.training import DivergenceError, TrainConfig, fit, predict, summarize_errors
+    from pipeline.training import DivergenceError, TrainConfig, fit
     from stages import checkpoint, data, params as params_mod
 
     params = params_mod.load()
@@ -82,36 +82,52 @@ def main() -> None:
         result = fit(model, loss, train_set, test_set, cfg, device, on_epoch=on_epoch)
     except DivergenceError as e:
         raise StageError(f"{e}; lower train.lr_base / train.lr_max in params.yaml "
-                         f"({checkpoint.POSE} and the reports were left as they were)") from None
+                         f"({POSE} and the reports were left as they were)") from None
     if rank == 0:
         net = _plain(model)
         net.load_state_dict(result.best_state)
-        bins = params["train"]["range_bins"]
-        summary = {name: summarize_errors(predict(net, ds, 2 * cfg.batch_size, device, cfg.channels_last),
-                                          split.targets, split.labels["range"].to_numpy(), bins)
-                   for name, ds, split in (("train", train_eval_set, train_split), ("test", test_set, test_split))}
-        # the floor any useful model must beat: always answer the mean training label
-        mean_pred = np.broadcast_to(targets.mean(0), test_split.targets.shape)
-        summary["test_mean_baseline"] = summarize_errors(mean_pred, test_split.targets,
-                                                         test_split.labels["range"].to_numpy(), bins)
-        metrics = {**summary, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
-                   "stopped_early": result.stopped_early, "train_minutes": result.seconds / 60,
-                   "train_images_per_s": result.train_images_per_s, "test_score": result.best_score,
-                   "processes": world, "device": str(device)}
-        # model, metrics, report and curves move into place together, only now: a crashed, killed or
-        # diverged run leaves the previous run's files as they were
-        with atomic_outputs(checkpoint.POSE, METRICS, REPORT, dirs=(LIVE_DIR,)) as (pose, metrics_path, report, live):
-            checkpoint.save_pose(pose, net, best["loss"], input_size, best["meta"])
-            write_metrics(metrics_path, metrics, params)
-            atomic_write_text(report, _report(metrics, params, len(train_split), len(test_split)))
-            _log_curves(live, result.history)
-        print(f"train: best epoch {result.best_epoch}: test {summary['test']['pos_mean_m']:.3f} m, "
-              f"{summary['test']['att_mean_deg']:.2f} deg -> {checkpoint.POSE}, {REPORT}, {METRICS}")
+        _write_results(params, net, best, input_size, result, cfg, device, world, (train_split, train_eval_set),
+                       (test_split, test_set))
     if world > 1:
         import torch.distributed as dist
 
         dist.barrier()
         dist.destroy_process_group()
+
+
+def _write_results(params: dict[str, Any], net: Any, best: dict[str, Any], input_size: tuple[int, int], result: Any,
+                   cfg: Any, device: Any, world: int, train: tuple[Any, Any], test: tuple[Any, Any]) -> None:
+    """Errors of the best checkpoint on both splits (and the always-the-mean-label floor), then
+    models/pose.pt (`net` with the best epoch's loss weights and facts, `best`), reports/metrics/train.json,
+    reports/pose.md and dvclive/train/ moved into place together. `train`, `test`: (split, its
+    un-augmented dataset)."""
+    import numpy as np
+
+    from pipeline.training import predict, summarize_errors
+    from stages import checkpoint
+
+    (train_split, train_eval_set), (test_split, test_set) = train, test
+    bins = params["train"]["range_bins"]
+    summary = {name: summarize_errors(predict(net, ds, 2 * cfg.batch_size, device, cfg.channels_last),
+                                      split.targets, split.labels["range"].to_numpy(), bins)
+               for name, ds, split in (("train", train_eval_set, train_split), ("test", test_set, test_split))}
+    # the floor any useful model must beat: always answer the mean training label
+    mean_pred = np.broadcast_to(train_split.targets.mean(0), test_split.targets.shape)
+    summary["test_mean_baseline"] = summarize_errors(mean_pred, test_split.targets,
+                                                     test_split.labels["range"].to_numpy(), bins)
+    metrics = {**summary, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
+               "stopped_early": result.stopped_early, "train_minutes": result.seconds / 60,
+               "train_images_per_s": result.train_images_per_s, "test_score": result.best_score,
+               "processes": world, "device": str(device)}
+    # model, metrics, report and curves move into place together, only now: a crashed, killed or
+    # diverged run leaves the previous run's files as they were
+    with atomic_outputs(POSE, METRICS, REPORT, dirs=(LIVE_DIR,)) as (pose, metrics_path, report, live):
+        checkpoint.save_pose(pose, net, best["loss"], input_size, best["meta"])
+        write_metrics(metrics_path, metrics, params)
+        atomic_write_text(report, _report(metrics, params, len(train_split), len(test_split)))
+        _log_curves(live, result.history)
+    print(f"train: best epoch {result.best_epoch}: test {summary['test']['pos_mean_m']:.3f} m, "
+          f"{summary['test']['att_mean_deg']:.2f} deg -> {POSE}, {REPORT}, {METRICS}")
 
 
 def _log_curves(folder: Any, history: list[Any]) -> None:

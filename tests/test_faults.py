@@ -251,9 +251,9 @@ BODIES = {"camera": "camera", "target": "target"}
 
 @pytest.fixture
 def recording(tmp_path) -> Path:
-    """A 6-frame lab recording (stages.lab.write_recording layout) with a bright target on black."""
+    """A 6-frame lab recording (stages.recordings.write_recording layout) with a bright target on black."""
     from pipeline.lab import synthetic_recording
-    from stages.lab import write_recording
+    from stages.recordings import write_recording
 
     rec = synthetic_recording(1.6, 1.0, 6, 30.0, 120.0, np.array([1.0, 0, 0, 0]))
     images = np.zeros((6, 36, 64, 3), np.uint8)
@@ -263,7 +263,7 @@ def recording(tmp_path) -> Path:
 
 
 def _read(folder: Path, **kwargs):
-    from stages.lab import read_recording
+    from stages.recordings import read_recording
 
     return read_recording(folder, 32, 18, BODIES, "nearest", 0.01, 0.08, **kwargs)
 
