@@ -1,8 +1,13 @@
 """`rpod train`: train the Darknet-19 pose CNN on the labelled renders (SPEC 4).
 
 Reads params `seed`, `render.width/height` (the input size) and `train`; writes models/pose.pt (the
-best epoch by test SPEED score), dvclive/train/ (per-epoch curves for `dvc plots show`),
+best epoch by validation SPEED score), dvclive/train/ (per-epoch curves for `dvc plots show`),
 reports/pose.md and reports/metrics/train.json.
+
+Honest selection: the validation split is `train.val_fraction` of the training frames (whole frames,
+seeded), the network is never fitted on it, and the test split is read only after training, for the
+final evaluation of the kept checkpoint. Torch is seeded (and switched to deterministic algorithms)
+before the network is built, so two runs on one machine give the same weights.
 
 Scale-out: `torchrun --nproc_per_node N .venv/bin/rpod train` runs DistributedDataParallel (gloo on
 CPU, nccl on CUDA, one GPU per process); only rank 0 writes files. CUDA is used when present.
@@ -24,13 +29,14 @@ TARGET_TZ_PCT, TARGET_LATERAL_M = 2.0, 0.5  # guidance needs (issue 3)
 
 
 def main() -> None:
-    """Train the pose CNN; keep the best checkpoint by test error; report errors next to the paper's."""
+    """Train the pose CNN; keep the best checkpoint by validation error; report test errors next to the paper's."""
     import numpy as np
     import torch
 
     from pipeline.loss import PoseLoss
     from pipeline.model import PoseNet
-    from pipeline.training import TrainConfig, fit, predict, summarize_errors
+    from pipeline.splits import holdout
+    from pipeline.training import TrainConfig, fit, make_deterministic, predict, summarize_errors
     from stages import checkpoint, data, params as params_mod
 
     params = params_mod.load()
@@ -44,13 +50,19 @@ def main() -> None:
                           max_minutes=None if p["max_minutes"] is None else float(p["max_minutes"]),
                           channels_last=bool(p["channels_last"]), workers=int(p["workers"]),
                           seed=int(params["seed"]) + SEED_OFFSET)
+        make_deterministic(cfg.seed)
         model = PoseNet(float(p["width"]), float(p["dropout"]))
     except ValueError as e:
         raise StageError(f"params.yaml: bad train section ({e})") from None
 
-    train_split, test_split = data.load_split(params, "train"), data.load_split(params, "test")
+    labelled = data.load_split(params, "train")
+    try:
+        fit_rows, val_rows = holdout(labelled.labels["index"].to_numpy(), float(p["val_fraction"]), cfg.seed)
+    except ValueError as e:
+        raise StageError(f"params.yaml train.val_fraction={p['val_fraction']!r}: {e}") from None
+    train_split, val_split = data.subset(labelled, fit_rows, "train"), data.subset(labelled, val_rows, "val")
     train_set = data.pose_dataset(train_split, p["augment"], seed=cfg.seed)
-    test_set, train_eval_set = data.pose_dataset(test_split), data.pose_dataset(train_split)
+    val_set, train_eval_set = data.pose_dataset(val_split), data.pose_dataset(train_split)
     targets = train_split.targets
     model.set_output_bias(targets[:, :3].mean(0), targets[:, 3:].mean(0))
     loss = PoseLoss("mean")
@@ -63,7 +75,7 @@ def main() -> None:
         from dvclive import Live
 
         live = Live(dir=LIVE_DIR, dvcyaml=False, save_dvc_exp=False, report=None)
-        print(f"train: {len(train_split)} train / {len(test_split)} test images at {input_size[1]}x{input_size[0]}, "
+        print(f"train: {len(train_split)} train / {len(val_split)} validation images at {input_size[1]}x{input_size[0]}, "
               f"width {p['width']}, {cfg.epochs} epochs, batch {cfg.batch_size} x {world} process(es), "
               f"{torch.get_num_threads()} threads, device {device}", flush=True)
 
@@ -72,37 +84,40 @@ def main() -> None:
             return
         from tqdm import tqdm
 
-        for key in ("loss", "lr", "s_p", "s_r", "train_pos_m", "train_att_deg", "test_pos_m", "test_att_deg",
-                    "test_score", "images_per_s"):
+        for key in ("loss", "lr", "s_p", "s_r", "train_pos_m", "train_att_deg", "val_pos_m", "val_att_deg",
+                    "val_score", "images_per_s"):
             live.log_metric(key, getattr(stats, key))
         live.next_step()
         if is_best:
             checkpoint.save_pose(checkpoint.POSE, _plain(net), loss, input_size,
-                                 {"epoch": stats.epoch, "test_score": stats.test_score,
-                                  "test_pos_m": stats.test_pos_m, "test_att_deg": stats.test_att_deg})
+                                 {"epoch": stats.epoch, "val_score": stats.val_score,
+                                  "val_pos_m": stats.val_pos_m, "val_att_deg": stats.val_att_deg})
         tqdm.write(f"epoch {stats.epoch:3d}  loss {stats.loss:7.3f}  train {stats.train_pos_m:6.2f} m "
-                   f"{stats.train_att_deg:5.2f} deg  test {stats.test_pos_m:6.2f} m {stats.test_att_deg:5.2f} deg  "
+                   f"{stats.train_att_deg:5.2f} deg  val {stats.val_pos_m:6.2f} m {stats.val_att_deg:5.2f} deg  "
                    f"{stats.images_per_s:5.0f} img/s  {stats.seconds:5.1f} s{'  *best' if is_best else ''}")
 
-    result = fit(model, loss, train_set, test_set, cfg, device, on_epoch=on_epoch)
+    result = fit(model, loss, train_set, val_set, cfg, device, on_epoch=on_epoch)
     if rank == 0:
         live.end()
         net = _plain(model)
         net.load_state_dict(result.best_state)
         bins = params["train"]["range_bins"]
+        test_split = data.load_split(params, "test")  # first read of the test split: the final evaluation
+        test_set = data.pose_dataset(test_split)
         summary = {name: summarize_errors(predict(net, ds, 2 * cfg.batch_size, device, cfg.channels_last),
                                           split.targets, split.labels["range"].to_numpy(), bins)
-                   for name, ds, split in (("train", train_eval_set, train_split), ("test", test_set, test_split))}
+                   for name, ds, split in (("train", train_eval_set, train_split), ("val", val_set, val_split),
+                                           ("test", test_set, test_split))}
         # the floor any useful model must beat: always answer the mean training label
         mean_pred = np.broadcast_to(targets.mean(0), test_split.targets.shape)
         summary["test_mean_baseline"] = summarize_errors(mean_pred, test_split.targets,
                                                          test_split.labels["range"].to_numpy(), bins)
         metrics = {**summary, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
                    "stopped_early": result.stopped_early, "train_minutes": result.seconds / 60,
-                   "train_images_per_s": result.train_images_per_s, "test_score": result.best_score,
+                   "train_images_per_s": result.train_images_per_s, "val_score": result.best_score,
                    "processes": world, "device": str(device)}
         write_metrics(METRICS, metrics, params)
-        atomic_write_text(REPORT, _report(metrics, params, len(train_split), len(test_split)))
+        atomic_write_text(REPORT, _report(metrics, params, len(train_split), len(val_split), len(test_split)))
         print(f"train: best epoch {result.best_epoch}: test {summary['test']['pos_mean_m']:.3f} m, "
               f"{summary['test']['att_mean_deg']:.2f} deg -> {checkpoint.POSE}, {REPORT}, {METRICS}")
     if world > 1:
@@ -133,13 +148,13 @@ def _init_distributed() -> tuple[int, int, Any]:
     return dist.get_rank(), world, torch.device(f"cuda:{local}" if cuda else "cpu")
 
 
-def _report(m: dict[str, Any], params: dict[str, Any], n_train: int, n_test: int) -> str:
+def _report(m: dict[str, Any], params: dict[str, Any], n_train: int, n_val: int, n_test: int) -> str:
     from pipeline.report import markdown_table
 
     p, r = params["train"], params["render"]
     rows = [{"split": s, "images": m[s]["n"], "position mean (m)": m[s]["pos_mean_m"],
              "position median (m)": m[s]["pos_median_m"], "attitude mean (deg)": m[s]["att_mean_deg"],
-             "attitude median (deg)": m[s]["att_median_deg"]} for s in ("train", "test")]
+             "attitude median (deg)": m[s]["att_median_deg"]} for s in ("train", "val", "test")]
     b = m["test_mean_baseline"]
     rows.append({"split": "test, always the mean training label (baseline)", "images": b["n"],
                  "position mean (m)": b["pos_mean_m"], "position median (m)": b["pos_median_m"],
@@ -158,10 +173,11 @@ def _report(m: dict[str, Any], params: dict[str, Any], n_train: int, n_test: int
 Modified Darknet-19 (7x7 stem, stride-2 3x3 convolutions for the max-pools, Darknet-53 residual
 blocks, BatchNorm + LeakyReLU, 1000-feature GAP layer, dropout {p['dropout']}, linear heads 3 + 6-D),
 width {p['width']}, input {r['width']}x{r['height']}, profile `{params.get('profile_name')}`.
-{n_train} training and {n_test} test images; {m['epochs_run']} epochs run
-({'stopped by train.max_minutes' if m['stopped_early'] else 'all requested'}), best epoch {m['best_epoch']} by test
-SPEED score ({m['test_score']:.4f}); {m['train_minutes']:.1f} minutes at {m['train_images_per_s']:.0f} training
-images/s on {m['processes']} process(es), device `{m['device']}`.
+{n_train} training, {n_val} validation (train.val_fraction of the labelled training frames, never fitted)
+and {n_test} test images; {m['epochs_run']} epochs run
+({'stopped by train.max_minutes' if m['stopped_early'] else 'all requested'}), best epoch {m['best_epoch']} by
+validation SPEED score ({m['val_score']:.4f}); the test split was read only after training, to evaluate
+that checkpoint. Training time and speed: reports/metrics/train.json.
 
 Errors: position ||t_pred - t_gt|| (m), attitude 2 acos(|<q_pred, q_gt>|) (deg), both splits evaluated
 with the best checkpoint in eval mode (no augmentation).
