@@ -40,9 +40,10 @@ def grouped_split(groups: np.ndarray, strata: np.ndarray, test_fraction: float, 
     """
     from sklearn.model_selection import StratifiedGroupKFold
 
-    groups, strata = np.asarray(groups), np.asarray(strata)
+    groups = np.asarray(groups)
     if len(groups) != len(strata):
         raise ValueError(f"{len(groups)} groups but {len(strata)} strata")
+    strata = np.unique(np.asarray(strata), return_inverse=True)[1]  # class labels, as scikit-learn wants
 
     def one_fold(idx: np.ndarray, fraction: float, rng_seed: int) -> tuple[np.ndarray, np.ndarray]:
         if not 0 < fraction <= 0.5:
