@@ -99,6 +99,12 @@ def card(labels, meta: dict[str, Any]) -> str:
         f"cy={K[1, 2]:.3f} (scaled from the reference K at {meta['camera']['ref_width']}x"
         f"{meta['camera']['ref_height']}). Renderer: Blender Cycles, CPU.",
         "",
+        f"Pixel aspect fy/fx = {K[1, 1] / K[0, 0]:.4g} (`camera.fy`). The paper prints K_Blender with fy = 360 beside "
+        "fx = 640 at 480x270; 360 = 270 x 48/36 is the sensor-width ratio applied to the image height, a common "
+        "slip: Blender renders square pixels unless told otherwise and the lab's ZED camera has square pixels. "
+        "The default is therefore fy = fx; `camera.fy: 360.0` renders the printed K (0.5625-aspect pixels, which "
+        "squash the target vertically).",
+        "",
         f"Rendering took {meta['seconds']:.1f} s in all, **{meta['seconds_per_image']:.3f} s per image** "
         f"({1 / max(meta['seconds_per_image'], 1e-9):.1f} images/s).",
         "",
