@@ -198,7 +198,7 @@ def main() -> None:
                "lstm_epochs": len(result.history), "lstm_best_epoch": result.best_epoch,
                "seconds": seconds, "paper_accuracy": PAPER_ACCURACY, "detectors": results}
     write_metrics(METRICS, _clean_nan(metrics), p)
-    atomic_write_text(REPORT, _report(results, scores, counts, result, data["attrs"], d, seconds))
+    atomic_write_text(REPORT, _report(results, scores, counts, result, data["attrs"], d))
     acc = results["lstm"]["all"]["accuracy"]
     print(f"detect: LSTM test accuracy {acc:.4f} (paper {PAPER_ACCURACY:.4f}) -> {DETECTOR}, {REPORT}")
 
@@ -273,7 +273,7 @@ def _squeeze(p: dict[str, Any], data: dict[str, Any], y: np.ndarray, tr: np.ndar
 
 
 def _report(results: dict[str, dict[str, dict[str, float]]], scores: dict[str, Any], counts: dict[str, int],
-            result: Any, attrs: dict[str, Any], d: dict[str, Any], seconds: dict[str, float]) -> str:
+            result: Any, attrs: dict[str, Any], d: dict[str, Any]) -> str:
     from pipeline.report import markdown_table
 
     def row(m: dict[str, float]) -> dict[str, Any]:
@@ -288,7 +288,7 @@ def _report(results: dict[str, dict[str, dict[str, float]]], scores: dict[str, A
     lstm_table = markdown_table(nan_dash(lstm_rows), decimals=4)
     names = {"lstm": "LSTM on SHAP (paper)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis on GAP features",
              "lid": "LID on GAP features", "squeeze": "feature squeezing on images"}
-    comp = [{"detector": names[k], **row(r["all"]), "fit (s)": f"{seconds[k]:.1f}"} for k, r in results.items()]
+    comp = [{"detector": names[k], **row(r["all"])} for k, r in results.items()]
     eps_keys = [k for k in lstm if k != "all"]
     recall_rows = [{"detector": names[k], **{f"eps {e}": r[e]["recall"] for e in eps_keys},
                     "FPR": r["all"]["fpr"]} for k, r in results.items()]
@@ -315,7 +315,7 @@ a frame sit on one side; stratified by eps; seeded): train {counts['train']},
 validation {counts['validation']}, test {counts['test']} ({counts['test_clean']} clean, {counts['test_adversarial']} adversarial).
 Adversarial samples are FGSM images at eps {', '.join(eps_keys)} (pixels in [0, 1]).
 
-The LSTM trained {len(result.history)} epochs (best: {result.best_epoch}) in {seconds['lstm']:.0f} s. Its decision
+The LSTM trained {len(result.history)} epochs (best: {result.best_epoch}; fit times in reports/metrics/detect.json). Its decision
 threshold on the probability, {float(scores['lstm'][1]):.4f}, was chosen on the validation samples for the
 highest validation accuracy.
 

@@ -341,8 +341,6 @@ def main(ctx: typer.Context) -> None:
 
 def models_section(p: dict[str, Any], m: dict[str, Any]) -> str:
     """The report's paragraph on which pose model and detector were used, and why."""
-    from pipeline.report import markdown_table
-
     lab, r = p["lab"], p["render"]
     if m["reused_models"]:
         return f"""## Models: reused
@@ -356,7 +354,6 @@ trains a synthetic-lab pose model and detector instead.
     s = m["synthetic_lab"]
     t = s["train_test"]
     mesh = "(the procedural Jason-1-like target)" if s["mesh"] is None else f"`{s['mesh']}`"
-    steps = [{"step": k, "seconds": v} for k, v in s["seconds"].items()]
     return f"""## Models: retrained on a synthetic-lab set
 
 Retrained because {s['reason']}. The pose model and the detector used below are
@@ -374,9 +371,9 @@ models/detector.pt.
   detector (`rpod detect`, `detect` params, no baselines) trained on them: test accuracy
   {100 * s['detector_test_accuracy']:.2f}%.
 
-Everything is in `{s['folder']}/` (its own params.yaml, datasets/, models/, reports/pose.md, reports/detector.md).
-
-{markdown_table(steps, decimals=1)}"""
+Everything is in `{s['folder']}/` (its own params.yaml, datasets/, models/, reports/pose.md, reports/detector.md);
+the time of each step is in reports/metrics/lab.json (`synthetic_lab.seconds`).
+"""
 
 
 PAPER_RANGES = {3.122: 51.18}  # the paper's representative-range table: lab z (m) -> synthetic z (m), as printed

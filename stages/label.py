@@ -105,8 +105,7 @@ def card(labels, meta: dict[str, Any]) -> str:
         "The default is therefore fy = fx; `camera.fy: 360.0` renders the printed K (0.5625-aspect pixels, which "
         "squash the target vertically).",
         "",
-        f"Rendering took {meta['seconds']:.1f} s in all, **{meta['seconds_per_image']:.3f} s per image** "
-        f"({1 / max(meta['seconds_per_image'], 1e-9):.1f} images/s).",
+        "Rendering time per image: `datasets/render/meta.json` (`seconds_per_image`) and reports/benchmarks.md.",
         "",
     ]
     if previews:

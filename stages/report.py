@@ -4,7 +4,8 @@ Reads reports/metrics/<stage>.json and reports/<stage>.md (written by the stages
 datasets/shap.zarr (for the SHAP heatmaps) and reports/plots/roc/*.csv (ROC curves), and writes:
 
     reports/README.md                      the results page: a summary against the paper, figures,
-                                           then every stage's report with its profile and time
+                                           then every stage's report with its profile (no times: the
+                                           page depends only on the results; times are in the metrics JSON)
     reports/figures/pose_errors.png        train/test error per range bin
     reports/figures/error_vs_eps.png       FGSM pose error against eps
     reports/figures/shap_heatmaps.png      mean |phi| per output, normal vs adversarial
@@ -154,9 +155,7 @@ def summary_tables(metrics: dict[str, dict[str, Any]]) -> str:
         eps_rows.append({"eps": e, "integrated (%)": get(ev, e), "paper, integrated (%)": _fmt(PAPER["integrated_eps"].get(e)),
                          "lab, 10-frame attacks (%)": get(lab, e), "paper, lab (%)": _fmt(PAPER["lab_eps"].get(e))})
     profiles = sorted({m.get("profile", "unknown") for m in metrics.values()})
-    produced = sorted(m.get("produced", "") for m in metrics.values() if m.get("produced"))
-    when = f"{produced[0]} to {produced[-1]}" if produced else "time not recorded"
-    head = (f"Profile `{'`, `'.join(profiles)}`; stages run {when}. Paper: 480x270 images, full-width network, "
+    head = (f"Profile `{'`, `'.join(profiles)}`. Paper: 480x270 images, full-width network, "
             "50 epochs, 32,500 images; each stage's section of the results page says what differs and why.")
     return f"{head}\n\n{table}\nDetection accuracy per eps (correct flags over all frames):\n\n{markdown_table(eps_rows)}"
 
@@ -178,7 +177,7 @@ def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figur
                  "some stages ran on an older checkpoint.\n")
     page = (f"# rpodguard results\n\nWritten by `rpod report` from `reports/metrics/*.json` and the stage reports "
             f"beside this file; params profile `{params.get('profile_name', 'unknown')}`. Regenerate with "
-            f"`dvc repro`. Every section below is one stage's report, stamped with the profile and time it ran."
+            f"`dvc repro`. Every section below is one stage's report, stamped with the profile it ran on (when it ran: `produced` in reports/metrics/<stage>.json)."
             f"\n{warn}\n## Summary against the paper\n")
     page = replace_block(page, BLOCK, summary_tables(metrics))
     for stage, report, metric in SECTIONS:
@@ -186,8 +185,7 @@ def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figur
         if not path.exists():
             continue
         m = metrics.get(metric or "", {})
-        stamp = (f"_`rpod {stage}`, profile `{m.get('profile', 'unknown')}`, produced "
-                 f"{m.get('produced', 'at an unrecorded time')}; source [{report}]({report})._" if metric
+        stamp = (f"_`rpod {stage}`, profile `{m.get('profile', 'unknown')}`; source [{report}]({report})._" if metric
                  else f"_Source [{report}]({report})._")
         body = demote_headings(path.read_text().strip(), 1)
         first, _, rest = body.partition("\n")

@@ -185,6 +185,8 @@ with the best checkpoint in eval mode (no augmentation).
 {markdown_table(rows, decimals=3)}
 The split is per frame (label.test_fraction), so test frames lie between training frames of the same
 approach sequences: the test error measures interpolation along the trajectories, not new geometry.
+The held-out-trajectory error (whole sequences never seen in training: the clean frames of the
+`rpod evaluate` trajectories) is in reports/integrated.md.
 The paper trained on 8x as many images at 9x the pixels with the full-width network; the default
 profile trades that accuracy for a CPU budget of about 13 minutes.
 
