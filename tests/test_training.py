@@ -221,3 +221,18 @@ def test_holdout_keeps_groups_whole():
         holdout(groups, 1.0, seed=0)
     with pytest.raises(ValueError, match="both sides non-empty"):
         holdout(np.arange(3), 0.1, seed=0)
+
+
+def test_checkpoint_bytes_do_not_depend_on_the_temporary_name(tmp_path):
+    """The same weights saved twice give the same file hash (models/pose.pt's hash is in the reports)."""
+    from pipeline.loss import PoseLoss
+    from pipeline.model import PoseNet
+    from stages.io import file_hash
+
+    torch.manual_seed(0)
+    model, loss = PoseNet(0.125), PoseLoss()
+    hashes = []
+    for name in ("a.pt", "b.pt"):
+        checkpoint.save_pose(tmp_path / name, model, loss, (H, W), {"epoch": 1})
+        hashes.append(file_hash(tmp_path / name))
+    assert hashes[0] == hashes[1]
