@@ -179,7 +179,7 @@ and {n_test} test images; {m['epochs_run']} epochs run
 validation SPEED score ({m['val_score']:.4f}); the test split was read only after training, to evaluate
 that checkpoint. Training time and speed: reports/metrics/train.json.
 
-Errors: position ||t_pred - t_gt|| (m), attitude 2 acos(|<q_pred, q_gt>|) (deg), both splits evaluated
+Errors: position ||t_pred - t_gt|| (m), attitude 2 acos(|<q_pred, q_gt>|) (deg), all three splits evaluated
 with the best checkpoint in eval mode (no augmentation).
 
 {markdown_table(rows, decimals=3)}
