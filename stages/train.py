@@ -18,6 +18,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from stages.checkpoint import POSE
 from stages.io import StageError, atomic_write_text, write_metrics
 
 REPORT = Path("reports/pose.md")
@@ -30,13 +31,11 @@ TARGET_TZ_PCT, TARGET_LATERAL_M = 2.0, 0.5  # guidance needs (issue 3)
 
 def main() -> None:
     """Train the pose CNN; keep the best checkpoint by validation error; report test errors next to the paper's."""
-    import numpy as np
     import torch
 
     from pipeline.loss import PoseLoss
     from pipeline.model import PoseNet
-    from pipeline.splits import holdout
-    from pipeline.training import TrainConfig, fit, make_deterministic, predict, summarize_errors
+    from pipeline.training import TrainConfig, fit, make_deterministic
     from stages import checkpoint, data, params as params_mod
 
     params = params_mod.load()
@@ -55,12 +54,7 @@ def main() -> None:
     except ValueError as e:
         raise StageError(f"params.yaml: bad train section ({e})") from None
 
-    labelled = data.load_split(params, "train")
-    try:
-        fit_rows, val_rows = holdout(labelled.labels["index"].to_numpy(), float(p["val_fraction"]), cfg.seed)
-    except ValueError as e:
-        raise StageError(f"params.yaml train.val_fraction={p['val_fraction']!r}: {e}") from None
-    train_split, val_split = data.subset(labelled, fit_rows, "train"), data.subset(labelled, val_rows, "val")
+    train_split, val_split = _fit_and_validation_splits(params, cfg.seed)
     train_set = data.pose_dataset(train_split, p["augment"], seed=cfg.seed)
     val_set, train_eval_set = data.pose_dataset(val_split), data.pose_dataset(train_split)
     targets = train_split.targets
@@ -89,7 +83,7 @@ def main() -> None:
             live.log_metric(key, getattr(stats, key))
         live.next_step()
         if is_best:
-            checkpoint.save_pose(checkpoint.POSE, _plain(net), loss, input_size,
+            checkpoint.save_pose(POSE, _plain(net), loss, input_size,
                                  {"epoch": stats.epoch, "val_score": stats.val_score,
                                   "val_pos_m": stats.val_pos_m, "val_att_deg": stats.val_att_deg})
         tqdm.write(f"epoch {stats.epoch:3d}  loss {stats.loss:7.3f}  train {stats.train_pos_m:6.2f} m "
@@ -101,30 +95,58 @@ def main() -> None:
         live.end()
         net = _plain(model)
         net.load_state_dict(result.best_state)
-        bins = params["train"]["range_bins"]
-        test_split = data.load_split(params, "test")  # first read of the test split: the final evaluation
-        test_set = data.pose_dataset(test_split)
-        summary = {name: summarize_errors(predict(net, ds, 2 * cfg.batch_size, device, cfg.channels_last),
-                                          split.targets, split.labels["range"].to_numpy(), bins)
-                   for name, ds, split in (("train", train_eval_set, train_split), ("val", val_set, val_split),
-                                           ("test", test_set, test_split))}
-        # the floor any useful model must beat: always answer the mean training label
-        mean_pred = np.broadcast_to(targets.mean(0), test_split.targets.shape)
-        summary["test_mean_baseline"] = summarize_errors(mean_pred, test_split.targets,
-                                                         test_split.labels["range"].to_numpy(), bins)
-        metrics = {**summary, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
-                   "stopped_early": result.stopped_early, "train_minutes": result.seconds / 60,
-                   "train_images_per_s": result.train_images_per_s, "val_score": result.best_score,
-                   "processes": world, "device": str(device)}
-        write_metrics(METRICS, metrics, params)
-        atomic_write_text(REPORT, _report(metrics, params, len(train_split), len(val_split), len(test_split)))
-        print(f"train: best epoch {result.best_epoch}: test {summary['test']['pos_mean_m']:.3f} m, "
-              f"{summary['test']['att_mean_deg']:.2f} deg -> {checkpoint.POSE}, {REPORT}, {METRICS}")
+        _write_results(params, net, result, cfg, device, world, (train_split, train_eval_set), (val_split, val_set))
     if world > 1:
         import torch.distributed as dist
 
         dist.barrier()
         dist.destroy_process_group()
+
+
+def _fit_and_validation_splits(params: dict[str, Any], seed: int) -> tuple[Any, Any]:
+    """The labelled training split cut into the frames `fit` trains on and the validation frames
+    (`train.val_fraction` of whole frames, seeded) the checkpoint is selected on; the test split is not read."""
+    from pipeline.splits import holdout
+    from stages import data
+
+    labelled, fraction = data.load_split(params, "train"), params["train"]["val_fraction"]
+    try:
+        fit_rows, val_rows = holdout(labelled.labels["index"].to_numpy(), float(fraction), seed)
+    except ValueError as e:
+        raise StageError(f"params.yaml train.val_fraction={fraction!r}: {e}") from None
+    return data.subset(labelled, fit_rows, "train"), data.subset(labelled, val_rows, "val")
+
+
+def _write_results(params: dict[str, Any], net: Any, result: Any, cfg: Any, device: Any, world: int,
+                   train: tuple[Any, Any], val: tuple[Any, Any]) -> None:
+    """Errors of the best checkpoint on the train, validation and test splits (and the always-the-mean-label
+    floor) -> reports/metrics/train.json and reports/pose.md. `train`, `val`: (split, its un-augmented
+    dataset). The test split is read here, after training, for the first time: the final evaluation."""
+    import numpy as np
+
+    from pipeline.training import predict, summarize_errors
+    from stages import data
+
+    (train_split, train_eval_set), (val_split, val_set) = train, val
+    test_split = data.load_split(params, "test")
+    test_set = data.pose_dataset(test_split)
+    bins = params["train"]["range_bins"]
+    summary = {name: summarize_errors(predict(net, ds, 2 * cfg.batch_size, device, cfg.channels_last),
+                                      split.targets, split.labels["range"].to_numpy(), bins)
+               for name, ds, split in (("train", train_eval_set, train_split), ("val", val_set, val_split),
+                                       ("test", test_set, test_split))}
+    # the floor any useful model must beat: always answer the mean training label
+    mean_pred = np.broadcast_to(train_split.targets.mean(0), test_split.targets.shape)
+    summary["test_mean_baseline"] = summarize_errors(mean_pred, test_split.targets,
+                                                     test_split.labels["range"].to_numpy(), bins)
+    metrics = {**summary, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
+               "stopped_early": result.stopped_early, "train_minutes": result.seconds / 60,
+               "train_images_per_s": result.train_images_per_s, "val_score": result.best_score,
+               "processes": world, "device": str(device)}
+    write_metrics(METRICS, metrics, params)
+    atomic_write_text(REPORT, _report(metrics, params, len(train_split), len(val_split), len(test_split)))
+    print(f"train: best epoch {result.best_epoch}: test {summary['test']['pos_mean_m']:.3f} m, "
+          f"{summary['test']['att_mean_deg']:.2f} deg -> {POSE}, {REPORT}, {METRICS}")
 
 
 def _plain(model: Any) -> Any:
