@@ -14,10 +14,11 @@ Equal apparent size,
 gives z_syn = z_lab * scale * f_syn / f_lab_eff = z_lab * 9 * 640 / 350.10 = 16.45 * z_lab
 (so 3.122 m in the lab is 51.36 m in the synthetic scene). The factor uses the horizontal focal
 lengths; it does not depend on the image size the two cameras are compared at, because both K
-scale alike with the image. K_blender's pixels are not square (fx / fy = 16 / 9) while the ZED's
-are, so the vertical apparent size differs by fy_syn / fx_syn = 9 / 16 (the synthetic camera's
-vertical field of view, 41.1 deg, is close to the ZED's 42.2 deg while its horizontal one is 41.1
-against 68.9 deg); we follow the paper and match the horizontal size. The lateral label
+scale alike with the image. With the default square-pixel K_blender (fy = fx, SPEC 2) the match
+holds vertically too; with the paper's printed fy = 360 the synthetic pixels are not square
+(fx / fy = 16 / 9) while the ZED's are, so the vertical apparent size differs by fy_syn / fx_syn =
+9 / 16. Either way we follow the paper and match the horizontal size. The paper's own table uses
+cx_zed / cx_blender = 956.29 / 240 for the resize (`paper_lab_factor`), 0.39% off the exact 4. The lateral label
 coordinates are chosen so that the target's centre lands on the same pixel in both images
 (`lab_to_synthetic_position`).
 
@@ -67,6 +68,15 @@ def lab_to_synthetic_factor(K_syn: Intrinsics, K_lab: Intrinsics, scale: float) 
         raise ValueError(f"mock-up scale must be positive, got {scale}")
     f_lab_eff = K_lab.fx * K_syn.width / K_lab.width
     return scale * K_syn.fx / f_lab_eff
+
+
+def paper_lab_factor(K_syn: Intrinsics, K_lab: Intrinsics, scale: float) -> float:
+    """z_syn / z_lab as the paper's representative-range table computes it: the 1920 -> 480 resize
+    taken as cx_lab / cx_syn (956.29 / 240 = 3.9845) instead of the exact width ratio 4, so its
+    synthetic ranges are 4 / 3.9845 = 1.0039x (0.39%) shorter than `lab_to_synthetic_factor`'s."""
+    if scale <= 0:
+        raise ValueError(f"mock-up scale must be positive, got {scale}")
+    return scale * K_syn.fx / K_lab.fx * K_lab.cx / K_syn.cx
 
 
 def lab_to_synthetic_position(t_lab: np.ndarray, K_syn: Intrinsics, K_lab: Intrinsics,

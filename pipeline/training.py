@@ -1,9 +1,11 @@
-"""Training loop for the pose CNN: Adam, cyclic LR "triangular2", best-by-test-error tracking.
+"""Training loop for the pose CNN: Adam, cyclic LR "triangular2", best-by-validation-error tracking.
 
 Works in one process or under DistributedDataParallel: when `torch.distributed` is initialised
 (the caller sets it up, e.g. from torchrun's environment variables), the model and the loss's
 learnable weights are wrapped together in DDP, the training set is sharded with a
-DistributedSampler and the test set evaluated in shards that are gathered on every rank.
+DistributedSampler and the validation set evaluated in shards that are gathered on every rank.
+The caller passes a validation set carved from the training data (pipeline.splits.holdout): `fit`
+never sees the test split, so the checkpoint it keeps is not selected on test data.
 
 Errors (SPEC 2): position ||t_pred - t_gt|| in metres, attitude 2*acos(|<q_pred, q_gt>|) in degrees,
 the 6-D output decoded by Gram-Schmidt. The model selection score is the ESA SPEED score,
@@ -14,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import math
+import os
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
@@ -99,6 +102,16 @@ def speed_score(pred: np.ndarray, target: np.ndarray) -> float:
     return float(np.mean(pos / np.linalg.norm(target[:, :3], axis=1)) + np.mean(np.deg2rad(att)))
 
 
+def make_deterministic(seed: int) -> None:
+    """Seed torch's generators and switch to deterministic algorithms: call before anything random is
+    built (the network's initial weights), so two runs on one machine with the same thread count give
+    bit-identical weights. On CUDA, ops without a deterministic kernel warn instead of failing."""
+    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    torch.manual_seed(seed)
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    torch.backends.cudnn.benchmark = False
+
+
 def _distributed() -> tuple[int, int]:
     if dist.is_available() and dist.is_initialized():
         return dist.get_rank(), dist.get_world_size()
@@ -161,7 +174,7 @@ class TrainConfig:
 
 @dataclass
 class EpochStats:
-    """One epoch: training loss and running errors (train mode, augmented), test errors (eval mode)."""
+    """One epoch: training loss and running errors (train mode, augmented), validation errors (eval mode)."""
 
     epoch: int
     loss: float
@@ -170,9 +183,9 @@ class EpochStats:
     s_r: float
     train_pos_m: float
     train_att_deg: float
-    test_pos_m: float
-    test_att_deg: float
-    test_score: float
+    val_pos_m: float
+    val_att_deg: float
+    val_score: float
     images_per_s: float
     seconds: float
 
@@ -203,11 +216,11 @@ class _Objective(nn.Module):
         return self.loss(pred, y), pred
 
 
-def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, test_set: PoseDataset, cfg: TrainConfig,
+def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, val_set: PoseDataset, cfg: TrainConfig,
         device: str | torch.device = "cpu",
         on_epoch: Callable[[EpochStats, bool, nn.Module], None] | None = None,
         progress: bool = True) -> FitResult:
-    """Train `model` in place; return the history and the best state (by test SPEED score).
+    """Train `model` in place; return the history and the best state (by validation SPEED score).
 
     `on_epoch(stats, is_best, model)` runs on every rank after each epoch (write files on rank 0 only).
     """
@@ -271,17 +284,17 @@ def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, test_set: Pose
         epoch_train_seconds = time.perf_counter() - t0
         if world > 1:
             dist.all_reduce(sums)
-        test_pred = predict_distributed(model, test_set, 2 * cfg.batch_size, device, cfg.channels_last)
-        targets = test_set.targets.numpy()
-        pos, att = pose_errors(test_pred, targets)
-        score = speed_score(test_pred, targets)
+        val_pred = predict_distributed(model, val_set, 2 * cfg.batch_size, device, cfg.channels_last)
+        targets = val_set.targets.numpy()
+        pos, att = pose_errors(val_pred, targets)
+        score = speed_score(val_pred, targets)
         n = sums[3].item()
         train_seconds += epoch_train_seconds
         train_images += int(n)
         stats = EpochStats(epoch=epoch + 1, loss=sums[0].item() / n, lr=float(sched.get_last_lr()[0]),
                            s_p=loss.s_p.item(), s_r=loss.s_r.item(), train_pos_m=sums[1].item() / n,
-                           train_att_deg=sums[2].item() / n, test_pos_m=float(pos.mean()),
-                           test_att_deg=float(att.mean()), test_score=score, images_per_s=n / epoch_train_seconds,
+                           train_att_deg=sums[2].item() / n, val_pos_m=float(pos.mean()),
+                           val_att_deg=float(att.mean()), val_score=score, images_per_s=n / epoch_train_seconds,
                            seconds=time.perf_counter() - t0)
         history.append(stats)
         is_best = score < best_score

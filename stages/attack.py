@@ -65,7 +65,7 @@ def main() -> None:
                "measured_on": "stored uint8 images", "clean": {key: v for key, v in rows[0].items() if key != "eps"},
                "eps": {r["eps"]: {key: v for key, v in r.items() if key != "eps"} for r in rows[1:]}}
     write_metrics(METRICS, metrics, p)
-    atomic_write_text(REPORT, _report(rows, a, n, seconds))
+    atomic_write_text(REPORT, _report(rows, a, n))
     save_figure(attack_example(np.asarray(images[k]), out["example"], t_gt[k],
                                {e: preds[e][k] for e in ["clean", *eps_list]}, a["method"]), FIGURE)
     typer.echo(f"attack: {n} test images x {len(eps_list)} eps in {seconds:.0f} s -> {ADV}, {REPORT}")
@@ -123,7 +123,7 @@ def _errors(pred: np.ndarray, t_gt: np.ndarray, q_gt: np.ndarray) -> dict[str, f
             "attitude_mean_deg": float(att.mean()), "attitude_median_deg": float(np.median(att))}
 
 
-def _report(rows: list[dict[str, Any]], a: dict[str, Any], n: int, seconds: float) -> str:
+def _report(rows: list[dict[str, Any]], a: dict[str, Any], n: int) -> str:
     from pipeline.report import markdown_table
 
     table = markdown_table(
@@ -141,7 +141,7 @@ def _report(rows: list[dict[str, Any]], a: dict[str, Any], n: int, seconds: floa
     return f"""# Adversarial attack on the pose estimator
 
 Attack: **{a['method']}**{step} on the **{a['loss']}** loss (`full` = the training loss with its
-learned weights), L-inf budget eps in pixel units ([0, 1] images), {n} test images, {seconds:.0f} s.
+learned weights), L-inf budget eps in pixel units ([0, 1] images), {n} test images (time: reports/metrics/attack.json).
 FGSM is `x' = clip(x + eps * sign(grad_x L), 0, 1)` (SPEC 5).
 
 Errors are measured on the adversarial images **as stored** in `datasets/attack/adv.zarr` (uint8):

@@ -130,6 +130,13 @@ def load_split(params: dict[str, Any], split: str, *, images_path: Path | str = 
     return Split(split, rows, out)
 
 
+def subset(split: Split, rows: np.ndarray, name: str) -> Split:
+    """The rows `rows` (positions in `split`) of a split as a new split called `name`."""
+    rows = np.asarray(rows, np.int64)
+    images = _Rows(split.images.array, split.images.rows[rows]) if isinstance(split.images, _Rows) else split.images[rows]
+    return Split(name, split.labels.iloc[rows].reset_index(drop=True), images)
+
+
 def pose_dataset(split: Split, augment: dict[str, Any] | None = None, seed: int = 0):
     """A `pipeline.training.PoseDataset` over a split; `augment` = the train.augment params (or None)."""
     from pipeline.augment import AugmentConfig

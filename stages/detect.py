@@ -1,8 +1,9 @@
 """`rpod detect`: train the LSTM attack detector on the SHAP store (SPEC 7) and compare it with baselines.
 
 Reads datasets/shap.zarr (refused unless it was made with the current models/pose.pt), splits its
-samples 80/20 into train/test and holds 20% of train out for validation (stratified by eps,
-seeded), then fits on the same split:
+samples 80/20 into train/test and holds 20% of train out for validation (grouped by source image,
+so the clean and all eps versions of a frame sit on one side; stratified by eps; seeded), then fits
+on the same split:
 - lstm: the paper's detector on the SHAP values (pipeline.detectors.lstm), threshold on validation;
 - mlp: an MLP on the flattened SHAP values; mahalanobis: Lee et al. 2018 on the GAP features, one
   Gaussian per range bin (train.range_bins) with a shared covariance; lid: Ma et al. 2018 on the GAP
@@ -33,21 +34,18 @@ LIVE_DIR = "dvclive/detect"
 SEED_OFFSET = 600
 
 
-def split_indices(eps: np.ndarray, test_fraction: float, val_fraction: float,
+def split_indices(eps: np.ndarray, source: np.ndarray, test_fraction: float, val_fraction: float,
                   seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Stratified (by eps, clean = 0) train / validation / test indices."""
-    from sklearn.model_selection import train_test_split
+    """Train / validation / test indices grouped by source image (all eps versions of a frame on one
+    side) and stratified by eps (clean = 0) as far as the groups allow (pipeline.splits.grouped_split)."""
+    from pipeline.splits import grouped_split
 
-    idx = np.arange(len(eps))
-    strata = np.round(eps, 6)
     try:
-        train, test = train_test_split(idx, test_size=test_fraction, stratify=strata, random_state=seed)
-        train, val = train_test_split(train, test_size=val_fraction, stratify=strata[train], random_state=seed)
+        return grouped_split(source, np.round(eps, 6), test_fraction, val_fraction, seed)
     except ValueError as e:
-        raise StageError(f"too few SHAP samples to split {len(eps)} samples over {len(np.unique(strata))} eps "
-                         f"classes with detect.test_fraction={test_fraction}, detect.val_fraction={val_fraction}: "
-                         f"{e} (raise shap.normal / shap.per_eps)") from None
-    return np.sort(train), np.sort(val), np.sort(test)
+        raise StageError(f"cannot split {len(eps)} SHAP samples from {len(np.unique(source))} source images with "
+                         f"detect.test_fraction={test_fraction}, detect.val_fraction={val_fraction}: {e} "
+                         f"(raise shap.normal / shap.per_eps)") from None
 
 
 def main() -> None:
@@ -66,7 +64,7 @@ def main() -> None:
     data = read_shap_store(SHAP, model_hash)
     values, feats, eps = data["values"], data["features"], data["eps"].astype(np.float64)
     y = data["is_adversarial"].astype(np.int64)
-    tr, va, te = split_indices(eps, float(d["test_fraction"]), float(d["val_fraction"]), seed)
+    tr, va, te = split_indices(eps, data["source_index"], float(d["test_fraction"]), float(d["val_fraction"]), seed)
     print(f"detect: {len(y)} SHAP samples ({int(y.sum())} adversarial) -> train {len(tr)}, validation {len(va)}, "
           f"test {len(te)}", flush=True)
 
@@ -102,7 +100,7 @@ def main() -> None:
         save_torch(det, ckpt)
         _write_roc(scores, y[te], roc_dir)
         write_metrics(met, nan_to_none(metrics), p)
-        atomic_write_text(rep, detector_page(results, scores, counts, result, data["attrs"], d, seconds))
+        atomic_write_text(rep, detector_page(results, scores, counts, result, data["attrs"], d))
         _log_curves(live_dir, result.history, results["lstm"]["all"])
     acc = results["lstm"]["all"]["accuracy"]
     print(f"detect: LSTM test accuracy {acc:.4f} (paper {PAPER_ACCURACY:.4f}) -> {DETECTOR}, {REPORT}")

@@ -72,14 +72,14 @@ def main() -> None:
                "start_xy": meta["start_xy"]}
     write_metrics(METRICS, nan_to_none(metrics), p)
     atomic_write_text(REPORT, report(res["rows"], summary, res["clean"], sequences, e, meta, chain.threshold,
-                                     seconds, eps_fig, str(p.get("profile_name", "?"))))
+                                     eps_fig, str(p.get("profile_name", "?"))))
     typer.echo(f"evaluate: {len(sequences)} trajectories x {len(eps_list)} eps in {seconds:.0f} s; mean accuracy "
                f"{100 * metrics['accuracy_mean']:.2f}% -> {REPORT}, {FIGURE}")
 
 
 def report(rows: list[dict[str, Any]], summary: list[dict[str, Any]], clean: dict[str, dict[str, float]],
            sequences: list[dict[str, Any]], e: Evaluate, meta: dict[str, Any], threshold: float,
-           seconds: float, eps_fig: float, profile: str) -> str:
+           eps_fig: float, profile: str) -> str:
     from pipeline.evaluation import accuracy_table, detail_table, pct
     from pipeline.report import markdown_table
 
@@ -89,6 +89,10 @@ def report(rows: list[dict[str, Any]], summary: list[dict[str, Any]], clean: dic
     starts = ", ".join(f"{n} ({x:+.1f}, {y:+.1f}) m" for n, (x, y) in zip(names, meta["start_xy"]))
     clean_rows = [{"trajectory": n, "FPR % (no attack)": pct(c["fpr"]), "position error (m)": c["position_mean_m"],
                    "attitude error (deg)": c["attitude_mean_deg"]} for n, c in clean.items()]
+    clean_rows.append({"trajectory": "all (equal frames each)",
+                       "FPR % (no attack)": pct(float(np.mean([c["fpr"] for c in clean.values()]))),
+                       "position error (m)": float(np.mean([c["position_mean_m"] for c in clean.values()])),
+                       "attitude error (deg)": float(np.mean([c["attitude_mean_deg"] for c in clean.values()]))})
     return f"""# Integrated evaluation: the safety chain frame by frame
 
 {len(names)} fresh trajectories (never seen in training; seed {e.seed}), {e.frames} frames each, from 60 m
@@ -98,7 +102,7 @@ image, when the schedule attacks it) -> pose -> exact SHAP of the GAP features -
 (threshold {threshold:.3f}). A frame outside an attack starts one with probability {e.p_start:g};
 each attack lasts {e.attack_length} frames, so {100 * att_frac:.1f}% of the frames are attacked
 (the same schedule for every eps). Accuracy counts frames, as the paper does: correctly classified
-frames / all frames. {seconds:.0f} s for all rows on this CPU.
+frames / all frames (time: reports/metrics/evaluate.json).
 
 ## Detection accuracy (%)
 
@@ -115,7 +119,9 @@ has no flag in any of its frames. The pose errors are position errors on the att
 detector let through (the ones guidance would act on), and on all attacked frames.
 
 {markdown_table(detail_table(summary), decimals=2)}
-Without any attack (the same frames, clean):
+Without any attack (the same frames, clean). The trajectories are whole sequences never rendered
+for training, so these pose errors are the **held-out-trajectory** errors, beside the per-frame test
+split's (reports/pose.md, whose test frames lie between training frames of the same sequences):
 
 {markdown_table(clean_rows, decimals=2)}
 ![timeline](figures/timeline.png)

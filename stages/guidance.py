@@ -166,7 +166,7 @@ Cells: outcome, final distance to the target point.
 
 {chr(10).join(tables)}
 {m['renders']} rendered frames for {m['steps']} guidance steps (runs share the baseline's frames until
-their attack starts), {m['attacked']} attacked frames, {m['seconds']:.0f} s.
+their attack starts), {m['attacked']} attacked frames (time: reports/metrics/guidance.json).
 
 ![true trajectories](figures/guidance_trajectories.png)
 

@@ -52,7 +52,9 @@ def _json_default(o: Any) -> Any:
 
 
 def save_torch(path: Path | str, obj: Any) -> None:
-    """torch.save via a temporary file in the same folder and a rename (never a half-written file)."""
+    """torch.save via a temporary file in the same folder and a rename (never a half-written file).
+    Saved through a file object, so the zip's root folder is torch's fixed "archive", not the random
+    temporary name: the same object gives the same bytes (and file hash) on every run."""
     import torch
 
     path = Path(path)
@@ -60,7 +62,8 @@ def save_torch(path: Path | str, obj: Any) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)
     try:
-        torch.save(obj, tmp)
+        with open(tmp, "wb") as f:
+            torch.save(obj, f)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

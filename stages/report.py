@@ -4,7 +4,8 @@ Reads reports/metrics/<stage>.json and reports/<stage>.md (written by the stages
 datasets/shap.zarr (for the SHAP heatmaps) and reports/plots/roc/*.csv (ROC curves), and writes:
 
     reports/README.md                      the results page: a summary against the paper, figures,
-                                           then every stage's report with its profile and time
+                                           then every stage's report with its profile (no times: the
+                                           page depends only on the results; times are in the metrics JSON)
     reports/figures/pose_errors.png        train/test error per range bin
     reports/figures/error_vs_eps.png       FGSM pose error against eps
     reports/figures/shap_heatmaps.png      mean |phi| per output, normal vs adversarial
@@ -120,7 +121,7 @@ def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figur
                  "some stages ran on an older checkpoint.\n")
     page = (f"# rpodguard results\n\nWritten by `rpod report` from `reports/metrics/*.json` and the stage reports "
             f"beside this file; params profile `{params.get('profile_name', 'unknown')}`. Regenerate with "
-            f"`dvc repro`. Every section below is one stage's report, stamped with the profile and time it ran."
+            f"`dvc repro`. Every section below is one stage's report, stamped with the profile it ran on (when it ran: `produced` in reports/metrics/<stage>.json)."
             f"\n{warn}\n## Summary against the paper\n")
     page = replace_block(page, BLOCK, summary_tables(metrics))
     for stage, report, metric in SECTIONS:
@@ -128,8 +129,7 @@ def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figur
         if not path.exists():
             continue
         m = metrics.get(metric or "", {})
-        stamp = (f"_`rpod {stage}`, profile `{m.get('profile', 'unknown')}`, produced "
-                 f"{m.get('produced', 'at an unrecorded time')}; source [{report}]({report})._" if metric
+        stamp = (f"_`rpod {stage}`, profile `{m.get('profile', 'unknown')}`; source [{report}]({report})._" if metric
                  else f"_Source [{report}]({report})._")
         body = demote_headings(path.read_text().strip(), 1)
         first, _, rest = body.partition("\n")

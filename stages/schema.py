@@ -68,6 +68,7 @@ class Augment:
 class Train:
     width: float            # channel-width multiplier of Darknet-19
     batch_size: int
+    val_fraction: float     # of the labelled training frames (whole frames, seeded): checkpoint selection, never fitted
     epochs: int
     max_minutes: Optional[float]
     lr_base: float
@@ -80,6 +81,10 @@ class Train:
     workers: int
     augment: Augment
     range_bins: list[float]      # metres, bin edges of the per-range error tables
+
+    def __post_init__(self) -> None:
+        if not 0 < self.val_fraction < 1:
+            raise ValueError(f"val_fraction must be in (0, 1), got {self.val_fraction!r}")
 
 
 @dataclass(frozen=True)

@@ -1,8 +1,13 @@
 """`rpod train`: train the Darknet-19 pose CNN on the labelled renders (SPEC 4).
 
 Reads params `seed`, `render.width/height` (the input size) and `train`; writes models/pose.pt (the
-best epoch by test SPEED score), dvclive/train/ (per-epoch curves for `dvc plots show`),
+best epoch by validation SPEED score), dvclive/train/ (per-epoch curves for `dvc plots show`),
 reports/pose.md and reports/metrics/train.json.
+
+Honest selection: the validation split is `train.val_fraction` of the training frames (whole frames,
+seeded), the network is never fitted on it, and the test split is read only after training, for the
+final evaluation of the kept checkpoint. Torch is seeded (and switched to deterministic algorithms)
+before the network is built, so two runs on one machine give the same weights.
 
 Scale-out: `torchrun --nproc_per_node N .venv/bin/rpod train` runs DistributedDataParallel (gloo on
 CPU, nccl on CUDA, one GPU per process); only rank 0 writes files. CUDA is used when present.
@@ -26,13 +31,13 @@ TARGET_TZ_PCT, TARGET_LATERAL_M = 2.0, 0.5  # guidance needs (issue 3)
 
 
 def main() -> None:
-    """Train the pose CNN; keep the best checkpoint by test error; report errors next to the paper's."""
+    """Train the pose CNN; keep the best checkpoint by validation error; report test errors next to the paper's."""
     import torch
 
     from pipeline.loss import PoseLoss
     from pipeline.model import PoseNet
-    from pipeline.training import DivergenceError, TrainConfig, fit
-    from stages import checkpoint, data, params as params_mod
+    from pipeline.training import DivergenceError, TrainConfig, fit, make_deterministic
+    from stages import data, params as params_mod
 
     params = params_mod.load()
     p = params["train"]
@@ -45,13 +50,14 @@ def main() -> None:
                           max_minutes=None if p["max_minutes"] is None else float(p["max_minutes"]),
                           channels_last=bool(p["channels_last"]), workers=int(p["workers"]),
                           seed=int(params["seed"]) + SEED_OFFSET)
+        make_deterministic(cfg.seed)
         model = PoseNet(float(p["width"]), float(p["dropout"]))
     except ValueError as e:
         raise StageError(f"params.yaml: bad train section ({e})") from None
 
-    train_split, test_split = data.load_split(params, "train"), data.load_split(params, "test")
+    train_split, val_split = _fit_and_validation_splits(params, cfg.seed)
     train_set = data.pose_dataset(train_split, p["augment"], seed=cfg.seed)
-    test_set, train_eval_set = data.pose_dataset(test_split), data.pose_dataset(train_split)
+    val_set, train_eval_set = data.pose_dataset(val_split), data.pose_dataset(train_split)
     targets = train_split.targets
     model.set_output_bias(targets[:, :3].mean(0), targets[:, 3:].mean(0))
     loss = PoseLoss("mean")
@@ -61,7 +67,7 @@ def main() -> None:
 
     best: dict[str, Any] = {}  # the learned loss weights and facts of the best epoch so far
     if rank == 0:
-        print(f"train: {len(train_split)} train / {len(test_split)} test images at {input_size[1]}x{input_size[0]}, "
+        print(f"train: {len(train_split)} train / {len(val_split)} validation images at {input_size[1]}x{input_size[0]}, "
               f"width {p['width']}, {cfg.epochs} epochs, batch {cfg.batch_size} x {world} process(es), "
               f"{torch.get_num_threads()} threads, device {device}", flush=True)
 
@@ -71,15 +77,15 @@ def main() -> None:
         from tqdm import tqdm
 
         if is_best:
-            best.update(loss=copy.deepcopy(loss), meta={"epoch": stats.epoch, "test_score": stats.test_score,
-                                                        "test_pos_m": stats.test_pos_m,
-                                                        "test_att_deg": stats.test_att_deg})
+            best.update(loss=copy.deepcopy(loss), meta={"epoch": stats.epoch, "val_score": stats.val_score,
+                                                        "val_pos_m": stats.val_pos_m,
+                                                        "val_att_deg": stats.val_att_deg})
         tqdm.write(f"epoch {stats.epoch:3d}  loss {stats.loss:7.3f}  train {stats.train_pos_m:6.2f} m "
-                   f"{stats.train_att_deg:5.2f} deg  test {stats.test_pos_m:6.2f} m {stats.test_att_deg:5.2f} deg  "
+                   f"{stats.train_att_deg:5.2f} deg  val {stats.val_pos_m:6.2f} m {stats.val_att_deg:5.2f} deg  "
                    f"{stats.images_per_s:5.0f} img/s  {stats.seconds:5.1f} s{'  *best' if is_best else ''}")
 
     try:
-        result = fit(model, loss, train_set, test_set, cfg, device, on_epoch=on_epoch)
+        result = fit(model, loss, train_set, val_set, cfg, device, on_epoch=on_epoch)
     except DivergenceError as e:
         raise StageError(f"{e}; lower train.lr_base / train.lr_max in params.yaml "
                          f"({POSE} and the reports were left as they were)") from None
@@ -87,7 +93,7 @@ def main() -> None:
         net = _plain(model)
         net.load_state_dict(result.best_state)
         _write_results(params, net, best, input_size, result, cfg, device, world, (train_split, train_eval_set),
-                       (test_split, test_set))
+                       (val_split, val_set))
     if world > 1:
         import torch.distributed as dist
 
@@ -95,36 +101,54 @@ def main() -> None:
         dist.destroy_process_group()
 
 
+def _fit_and_validation_splits(params: dict[str, Any], seed: int) -> tuple[Any, Any]:
+    """The labelled training split cut into the frames `fit` trains on and the validation frames
+    (`train.val_fraction` of whole frames, seeded) the checkpoint is selected on; the test split is not read."""
+    from pipeline.splits import holdout
+    from stages import data
+
+    labelled, fraction = data.load_split(params, "train"), params["train"]["val_fraction"]
+    try:
+        fit_rows, val_rows = holdout(labelled.labels["index"].to_numpy(), float(fraction), seed)
+    except ValueError as e:
+        raise StageError(f"params.yaml train.val_fraction={fraction!r}: {e}") from None
+    return data.subset(labelled, fit_rows, "train"), data.subset(labelled, val_rows, "val")
+
+
 def _write_results(params: dict[str, Any], net: Any, best: dict[str, Any], input_size: tuple[int, int], result: Any,
-                   cfg: Any, device: Any, world: int, train: tuple[Any, Any], test: tuple[Any, Any]) -> None:
-    """Errors of the best checkpoint on both splits (and the always-the-mean-label floor), then
-    models/pose.pt (`net` with the best epoch's loss weights and facts, `best`), reports/metrics/train.json,
-    reports/pose.md and dvclive/train/ moved into place together. `train`, `test`: (split, its
-    un-augmented dataset)."""
+                   cfg: Any, device: Any, world: int, train: tuple[Any, Any], val: tuple[Any, Any]) -> None:
+    """Errors of the best checkpoint on the train, validation and test splits (and the always-the-mean-label
+    floor), then models/pose.pt (`net` with the best epoch's loss weights and facts, `best`),
+    reports/metrics/train.json, reports/pose.md and dvclive/train/ moved into place together. `train`, `val`:
+    (split, its un-augmented dataset). The test split is read here, after training, for the first time:
+    the final evaluation."""
     import numpy as np
 
     from pipeline.training import predict, summarize_errors
-    from stages import checkpoint
+    from stages import checkpoint, data
 
-    (train_split, train_eval_set), (test_split, test_set) = train, test
+    (train_split, train_eval_set), (val_split, val_set) = train, val
+    test_split = data.load_split(params, "test")
+    test_set = data.pose_dataset(test_split)
     bins = params["train"]["range_bins"]
     summary = {name: summarize_errors(predict(net, ds, 2 * cfg.batch_size, device, cfg.channels_last),
                                       split.targets, split.labels["range"].to_numpy(), bins)
-               for name, ds, split in (("train", train_eval_set, train_split), ("test", test_set, test_split))}
+               for name, ds, split in (("train", train_eval_set, train_split), ("val", val_set, val_split),
+                                       ("test", test_set, test_split))}
     # the floor any useful model must beat: always answer the mean training label
     mean_pred = np.broadcast_to(train_split.targets.mean(0), test_split.targets.shape)
     summary["test_mean_baseline"] = summarize_errors(mean_pred, test_split.targets,
                                                      test_split.labels["range"].to_numpy(), bins)
     metrics = {**summary, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
                "stopped_early": result.stopped_early, "train_minutes": result.seconds / 60,
-               "train_images_per_s": result.train_images_per_s, "test_score": result.best_score,
+               "train_images_per_s": result.train_images_per_s, "val_score": result.best_score,
                "processes": world, "device": str(device)}
     # model, metrics, report and curves move into place together, only now: a crashed, killed or
     # diverged run leaves the previous run's files as they were
     with atomic_outputs(POSE, METRICS, REPORT, dirs=(LIVE_DIR,)) as (pose, metrics_path, report, live):
         checkpoint.save_pose(pose, net, best["loss"], input_size, best["meta"])
         write_metrics(metrics_path, metrics, params)
-        atomic_write_text(report, _report(metrics, params, len(train_split), len(test_split)))
+        atomic_write_text(report, _report(metrics, params, len(train_split), len(val_split), len(test_split)))
         _log_curves(live, result.history)
     print(f"train: best epoch {result.best_epoch}: test {summary['test']['pos_mean_m']:.3f} m, "
           f"{summary['test']['att_mean_deg']:.2f} deg -> {POSE}, {REPORT}, {METRICS}")
@@ -136,8 +160,8 @@ def _log_curves(folder: Any, history: list[Any]) -> None:
 
     live = Live(dir=str(folder), dvcyaml=False, save_dvc_exp=False, report=None)
     for stats in history:
-        for key in ("loss", "lr", "s_p", "s_r", "train_pos_m", "train_att_deg", "test_pos_m", "test_att_deg",
-                    "test_score", "images_per_s"):
+        for key in ("loss", "lr", "s_p", "s_r", "train_pos_m", "train_att_deg", "val_pos_m", "val_att_deg",
+                    "val_score", "images_per_s"):
             live.log_metric(key, getattr(stats, key))
         live.next_step()
     live.end()
@@ -164,13 +188,13 @@ def _init_distributed() -> tuple[int, int, Any]:
     return dist.get_rank(), world, torch.device(f"cuda:{local}" if cuda else "cpu")
 
 
-def _report(m: dict[str, Any], params: dict[str, Any], n_train: int, n_test: int) -> str:
+def _report(m: dict[str, Any], params: dict[str, Any], n_train: int, n_val: int, n_test: int) -> str:
     from pipeline.report import markdown_table
 
     p, r = params["train"], params["render"]
     rows = [{"split": s, "images": m[s]["n"], "position mean (m)": m[s]["pos_mean_m"],
              "position median (m)": m[s]["pos_median_m"], "attitude mean (deg)": m[s]["att_mean_deg"],
-             "attitude median (deg)": m[s]["att_median_deg"]} for s in ("train", "test")]
+             "attitude median (deg)": m[s]["att_median_deg"]} for s in ("train", "val", "test")]
     b = m["test_mean_baseline"]
     rows.append({"split": "test, always the mean training label (baseline)", "images": b["n"],
                  "position mean (m)": b["pos_mean_m"], "position median (m)": b["pos_median_m"],
@@ -189,17 +213,20 @@ def _report(m: dict[str, Any], params: dict[str, Any], n_train: int, n_test: int
 Modified Darknet-19 (7x7 stem, stride-2 3x3 convolutions for the max-pools, Darknet-53 residual
 blocks, BatchNorm + LeakyReLU, 1000-feature GAP layer, dropout {p['dropout']}, linear heads 3 + 6-D),
 width {p['width']}, input {r['width']}x{r['height']}, profile `{params.get('profile_name')}`.
-{n_train} training and {n_test} test images; {m['epochs_run']} epochs run
-({'stopped by train.max_minutes' if m['stopped_early'] else 'all requested'}), best epoch {m['best_epoch']} by test
-SPEED score ({m['test_score']:.4f}); {m['train_minutes']:.1f} minutes at {m['train_images_per_s']:.0f} training
-images/s on {m['processes']} process(es), device `{m['device']}`.
+{n_train} training, {n_val} validation (train.val_fraction of the labelled training frames, never fitted)
+and {n_test} test images; {m['epochs_run']} epochs run
+({'stopped by train.max_minutes' if m['stopped_early'] else 'all requested'}), best epoch {m['best_epoch']} by
+validation SPEED score ({m['val_score']:.4f}); the test split was read only after training, to evaluate
+that checkpoint. Training time and speed: reports/metrics/train.json.
 
-Errors: position ||t_pred - t_gt|| (m), attitude 2 acos(|<q_pred, q_gt>|) (deg), both splits evaluated
+Errors: position ||t_pred - t_gt|| (m), attitude 2 acos(|<q_pred, q_gt>|) (deg), all three splits evaluated
 with the best checkpoint in eval mode (no augmentation).
 
 {markdown_table(rows, decimals=3)}
 The split is per frame (label.test_fraction), so test frames lie between training frames of the same
 approach sequences: the test error measures interpolation along the trajectories, not new geometry.
+The held-out-trajectory error (whole sequences never seen in training: the clean frames of the
+`rpod evaluate` trajectories) is in reports/integrated.md.
 The paper trained on 8x as many images at 9x the pixels with the full-width network; the default
 profile trades that accuracy for a CPU budget of about 13 minutes.
 

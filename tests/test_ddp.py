@@ -27,7 +27,7 @@ def test_torchrun_two_processes_gloo(tmp_path, monkeypatch):
     assert "x 2 process(es)" in proc.stdout
     metrics = json.loads((tmp_path / "reports/metrics/train.json").read_text())
     assert metrics["processes"] == 2 and metrics["epochs_run"] == 2
-    assert metrics["test"]["n"] == 16 and metrics["train"]["n"] == 64
+    assert metrics["test"]["n"] == 16 and metrics["train"]["n"] == 58 and metrics["val"]["n"] == 6
     # rank 0 alone wrote: exactly one report and one checkpoint, and the checkpoint matches params
     assert len(list((tmp_path / "reports").glob("*.md"))) == 1
     monkeypatch.chdir(tmp_path)

@@ -214,13 +214,24 @@ def test_detect_stage_refuses_bad_shap_stores(tmp_path):
         read_store(tmp_path / "missing.zarr", "h1")
 
 
-def test_detect_split_is_stratified_and_disjoint():
+def test_detect_split_groups_source_images_and_stratifies_eps():
+    """All versions of a source image (clean and every eps) fall on one side; eps shares stay close."""
     from stages.detect import split_indices
 
+    rng = np.random.default_rng(0)
+    # 100 clean samples, then 50 at eps 0.5 and 50 at 0.01 drawn independently from 120 source images,
+    # so most attacked images have a clean or other-eps twin (as rpod shap draws them)
+    source = np.r_[rng.permutation(120)[:100], rng.permutation(120)[:50], rng.permutation(120)[:50]]
     eps = np.r_[np.zeros(100), np.full(50, 0.5), np.full(50, 0.01)].astype(np.float32)
-    tr, va, te = split_indices(eps, 0.2, 0.2, seed=0)
-    assert len(np.intersect1d(tr, te)) == len(np.intersect1d(tr, va)) == len(np.intersect1d(va, te)) == 0
-    assert len(tr) + len(va) + len(te) == 200 and len(te) == 40 and len(va) == 32
-    assert (eps[te] == 0.01).sum() == 10 and (eps[te] == 0).sum() == 20
-    again = split_indices(eps, 0.2, 0.2, seed=0)
+    tr, va, te = split_indices(eps, source, 0.2, 0.2, seed=0)
+    assert np.array_equal(np.sort(np.r_[tr, va, te]), np.arange(200))
+    for a, b in ((tr, te), (tr, va), (va, te)):
+        assert not set(source[a]) & set(source[b])
+    assert 30 <= len(te) <= 50 and 24 <= len(va) <= 40
+    assert 5 <= (eps[te] == 0.01).sum() <= 15 and 12 <= (eps[te] == 0).sum() <= 28
+    again = split_indices(eps, source, 0.2, 0.2, seed=0)
     assert all(np.array_equal(a, b) for a, b in zip((tr, va, te), again))
+    from stages.io import StageError
+
+    with pytest.raises(StageError, match="detect.test_fraction=0.2"):
+        split_indices(eps[:4], source[:4] * 0, 0.2, 0.2, seed=0)

@@ -1,4 +1,5 @@
-"""End to end: `dvc repro` of the whole stage graph on the smoke profile, in a temporary copy of the repo.
+"""End to end: `dvc repro` of the whole stage graph on the smoke profile, in a temporary copy of the repo,
+then `dvc repro --force` in the same copy: the Markdown reports must come out byte for byte the same.
 
 The copy holds the tracked and untracked-but-not-ignored files (what a clean clone plus local edits
 has), so the test sees exactly the working tree. About a minute on 2 cores.
@@ -95,7 +96,7 @@ def test_every_table_has_the_expected_rows(smoke_repo):
     page = lambda name: (dst / "reports" / f"{name}.md").read_text()  # noqa: E731
     eps = lambda values: [f"{float(v):g}" for v in values]  # noqa: E731
 
-    assert rows_under(page("pose"), "Pose estimator", "split")[:2] == ["train", "test"]
+    assert rows_under(page("pose"), "Pose estimator", "split")[:3] == ["train", "val", "test"]
     assert rows_under(page("attack"), "Adversarial attack", "eps") == ["clean", *eps(p["attack"]["eps"])]
     for e in p["guidance"]["eps"]:
         rows = rows_under(page("guidance"), f"eps = {float(e):g}", "S (m)")
@@ -110,3 +111,15 @@ def test_every_table_has_the_expected_rows(smoke_repo):
     assert len(summary) == 9 and summary[0].startswith("pose")
     readme = (dst / "README.md").read_text()
     assert "Profile `smoke`" in readme, "rpod report --sync-readme did not copy the results into README.md"
+
+
+def test_forced_rerun_leaves_every_report_byte_identical(smoke_repo):
+    """Reports depend only on the inputs: no timestamps, no wall-clock times, deterministic training.
+    (Last in this module: it re-runs every stage in the shared copy.)"""
+    dst, env = smoke_repo
+    before = {p.name: p.read_bytes() for p in sorted((dst / "reports").glob("*.md"))}
+    _run(["dvc", "repro", "--force"], dst, env)
+    after = {p.name: p.read_bytes() for p in sorted((dst / "reports").glob("*.md"))}
+    assert after.keys() == before.keys()
+    changed = sorted(name for name in before if before[name] != after[name])
+    assert not changed, f"reports changed by a forced re-run of an unchanged pipeline: {changed}"

@@ -4,7 +4,7 @@ import pytest
 
 from pipeline.camera import Intrinsics, project, reference_intrinsics
 from pipeline.lab import (LabDataError, domain_shift, lab_to_synthetic_factor, lab_to_synthetic_position,
-                          match_frames, relative_pose, segment, synthetic_recording)
+                          match_frames, paper_lab_factor, relative_pose, segment, synthetic_recording)
 from pipeline.rotations import attitude_error_deg, euler_to_matrix, matrix_to_quat, quat_to_matrix
 
 K_ZED = Intrinsics(1920, 1080, 1400.41, 1400.41, 956.29, 557.258)
@@ -24,6 +24,22 @@ def test_rescaling_keeps_the_apparent_size_of_the_target():
         assert syn_px == pytest.approx(lab_px, rel=1e-9)
     # the factor does not depend on the size the two cameras are compared at
     assert lab_to_synthetic_factor(K_SYN.scaled(160, 90), K_ZED, 9.0) == pytest.approx(k)
+
+
+def test_paper_factor_reproduces_the_printed_range_and_the_039_percent_gap():
+    k, k_paper = lab_to_synthetic_factor(K_SYN, K_ZED, 9.0), paper_lab_factor(K_SYN, K_ZED, 9.0)
+    assert 3.122 * k_paper == pytest.approx(51.18, abs=0.02)  # the paper's table, 3.122 m -> 51.18 m
+    assert 3.122 * k == pytest.approx(51.36, abs=0.01)
+    assert k / k_paper == pytest.approx(4 / (956.29 / 240)) and 100 * (k / k_paper - 1) == pytest.approx(0.39, abs=0.005)
+
+
+def test_lab_report_shows_the_paper_ranges_beside_ours():
+    from stages.pages.lab import paper_ranges
+
+    text = paper_ranges(K_SYN, K_ZED, 9.0, lab_to_synthetic_factor(K_SYN, K_ZED, 9.0))
+    row = next(line for line in text.splitlines() if line.startswith("| 3.122 "))
+    assert [c.strip() for c in row.strip("|").split("|")] == ["3.122", "51.36", "51.17", "51.18"]
+    assert "0.39% shorter" in text
 
 
 def test_rescaled_position_projects_to_the_same_pixel():

@@ -69,7 +69,9 @@ def test_render_and_label_stages(workdir):
     names, t, q = from_speed(json.loads(open("datasets/speed_labels.json").read()))
     assert names == list(labels.image) and np.allclose(t, labels[["tx", "ty", "tz"]].to_numpy())
     card = open("reports/dataset.md").read()
-    assert "| 26 " in card and "figures/previews/" in card and "s per image" in card
+    assert "| 26 " in card and "figures/previews/" in card
+    assert "Rendering took" not in card and "seconds_per_image" in card  # no wall-clock time in a report
+    assert "Pixel aspect fy/fx = 1 (`camera.fy`)" in card  # the default camera has square pixels
 
     # --shard: two parts rendered separately and merged give the same dataset
     full = np.asarray(images[:])

@@ -133,7 +133,7 @@ def test_fit_improves_and_tracks_the_best_epoch(dataset):
     result = fit(model, PoseLoss(), data.pose_dataset(train, dataset["train"]["augment"]), data.pose_dataset(test), cfg,
                  on_epoch=lambda stats, best, net: seen.append((stats.epoch, best)), progress=False)
     assert [e for e, _ in seen] == [1, 2, 3, 4] and len(result.history) == 4
-    scores = [h.test_score for h in result.history]
+    scores = [h.val_score for h in result.history]
     assert result.best_epoch == int(np.argmin(scores)) + 1 and result.best_score == min(scores)
     assert result.history[-1].loss < result.history[0].loss
     assert all(h.images_per_s > 0 for h in result.history)
@@ -157,10 +157,84 @@ def test_train_stage_writes_checkpoint_report_and_metrics(dataset):
     main()
     metrics = json.loads(Path("reports/metrics/train.json").read_text())
     assert metrics["epochs_run"] == dataset["train"]["epochs"] and metrics["processes"] == 1
-    assert metrics["test"]["n"] == 8 and metrics["train"]["n"] == 32
+    assert metrics["test"]["n"] == 8 and metrics["train"]["n"] + metrics["val"]["n"] == 32 and metrics["val"]["n"] == 3
     assert sum(b["n"] for b in metrics["test"]["bins"]) == 8
     report = Path("reports/pose.md").read_text()
     assert "0.490" in report and "Guidance requirements" in report and "60-45" in report
     model = checkpoint.load_pose_model(checkpoint.POSE, params_mod.load())
     assert model(torch.rand(1, 3, H, W)).shape == (1, 9)
-    assert Path("dvclive/train/plots/metrics/test_pos_m.tsv").exists()
+    assert Path("dvclive/train/plots/metrics/val_pos_m.tsv").exists()
+
+
+def test_test_split_is_read_only_after_training(dataset, monkeypatch):
+    """The checkpoint is chosen on validation frames carved from the training split: no test frame
+    reaches `fit`, and the test split is first loaded after `fit` returns."""
+    import pipeline.training
+    from stages import train
+
+    events: list[tuple[str, object]] = []
+    load, real_fit = data.load_split, pipeline.training.fit
+    test_targets = {tuple(t) for t in load(dataset, "test").targets}
+
+    def recording_load(params, split, **kw):
+        events.append(("load", split))
+        return load(params, split, **kw)
+
+    def recording_fit(model, loss, train_set, val_set, *args, **kw):
+        events.append(("fit", (len(train_set), len(val_set))))
+        seen = {tuple(t) for ds in (train_set, val_set) for t in ds.targets.numpy()}
+        assert len(seen) == 32 and not seen & test_targets
+        out = real_fit(model, loss, train_set, val_set, *args, **kw)
+        events.append(("fit done", None))
+        return out
+
+    monkeypatch.setattr(data, "load_split", recording_load)
+    monkeypatch.setattr(pipeline.training, "fit", recording_fit)
+    train.main()
+    assert events[:2] == [("load", "train"), ("fit", (29, 3))]
+    assert events.index(("load", "test")) > events.index(("fit done", None))
+
+
+def test_training_is_reproducible_bit_for_bit(dataset):
+    """Two runs of the train stage on one machine give identical weights (seeded before the network
+    is built, deterministic algorithms)."""
+    from stages import train
+
+    weights = []
+    for _ in range(2):
+        train.main()
+        weights.append(torch.load(checkpoint.POSE, weights_only=False))
+    a, b = (w["model"] for w in weights)
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+
+
+def test_holdout_keeps_groups_whole():
+    from pipeline.splits import holdout
+
+    groups = np.repeat(np.arange(20), 3)
+    kept, out = holdout(groups, 0.25, seed=1)
+    assert len(out) == 15 and len(kept) == 45
+    assert not set(groups[kept]) & set(groups[out])
+    np.testing.assert_array_equal(holdout(groups, 0.25, seed=1)[1], out)
+    assert not np.array_equal(holdout(groups, 0.25, seed=2)[1], out)
+    with pytest.raises(ValueError, match="fraction must be in"):
+        holdout(groups, 1.0, seed=0)
+    with pytest.raises(ValueError, match="both sides non-empty"):
+        holdout(np.arange(3), 0.1, seed=0)
+
+
+def test_checkpoint_bytes_do_not_depend_on_the_temporary_name(tmp_path):
+    """The same weights saved twice give the same file hash (models/pose.pt's hash is in the reports)."""
+    from pipeline.loss import PoseLoss
+    from pipeline.model import PoseNet
+    from stages.io import file_hash
+
+    torch.manual_seed(0)
+    model, loss = PoseNet(0.125), PoseLoss()
+    hashes = []
+    for name in ("a.pt", "b.pt"):
+        checkpoint.save_pose(tmp_path / name, model, loss, (H, W), {"epoch": 1})
+        hashes.append(file_hash(tmp_path / name))
+    assert hashes[0] == hashes[1]

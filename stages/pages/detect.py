@@ -9,7 +9,7 @@ PAPER_ACCURACY = 0.9990
 
 
 def detector_page(results: dict[str, dict[str, dict[str, float]]], scores: dict[str, Any], counts: dict[str, int],
-                  result: Any, attrs: dict[str, Any], d: dict[str, Any], seconds: dict[str, float]) -> str:
+                  result: Any, attrs: dict[str, Any], d: dict[str, Any]) -> str:
     """reports/detector.md: the LSTM per eps, the baselines on the same split, and what the detectors see."""
     from pipeline.report import markdown_table
 
@@ -25,7 +25,7 @@ def detector_page(results: dict[str, dict[str, dict[str, float]]], scores: dict[
     lstm_table = markdown_table(nan_dash(lstm_rows), decimals=4)
     names = {"lstm": "LSTM on SHAP (paper)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis on GAP features",
              "lid": "LID on GAP features", "squeeze": "feature squeezing on images"}
-    comp = [{"detector": names[k], **row(r["all"]), "fit (s)": f"{seconds[k]:.1f}"} for k, r in results.items()]
+    comp = [{"detector": names[k], **row(r["all"])} for k, r in results.items()]
     eps_keys = [k for k in lstm if k != "all"]
     recall_rows = [{"detector": names[k], **{f"eps {e}": r[e]["recall"] for e in eps_keys},
                     "FPR": r["all"]["fpr"]} for k, r in results.items()]
@@ -47,11 +47,12 @@ Adadelta (lr {d['lr']}), early stopping after {d['patience']} epochs without a l
 
 Data: {counts['samples']} SHAP samples (`datasets/shap.zarr`, method `{attrs.get('method')}`, background
 of {attrs.get('background_size')} training images). Split {1 - d['test_fraction']:.0%}/{d['test_fraction']:.0%} train/test with
-{d['val_fraction']:.0%} of train held out for validation (stratified by eps, seeded): train {counts['train']},
+{d['val_fraction']:.0%} of train held out for validation (grouped by source image: the clean and every eps version of
+a frame sit on one side; stratified by eps; seeded): train {counts['train']},
 validation {counts['validation']}, test {counts['test']} ({counts['test_clean']} clean, {counts['test_adversarial']} adversarial).
 Adversarial samples are FGSM images at eps {', '.join(eps_keys)} (pixels in [0, 1]).
 
-The LSTM trained {len(result.history)} epochs (best: {result.best_epoch}) in {seconds['lstm']:.0f} s. Its decision
+The LSTM trained {len(result.history)} epochs (best: {result.best_epoch}; fit times in reports/metrics/detect.json). Its decision
 threshold on the probability, {float(scores['lstm'][1]):.4f}, was chosen on the validation samples for the
 highest validation accuracy.
 

@@ -14,8 +14,6 @@ PAPER_AVERAGE = 96.29
 
 def models_section(p: dict[str, Any], m: dict[str, Any]) -> str:
     """The report's paragraph on which pose model and detector were used, and why."""
-    from pipeline.report import markdown_table
-
     lab, r = p["lab"], p["render"]
     if m["reused_models"]:
         return f"""## Models: reused
@@ -29,7 +27,6 @@ trains a synthetic-lab pose model and detector instead.
     s = m["synthetic_lab"]
     t = s["train_test"]
     mesh = "(the procedural Jason-1-like target)" if s["mesh"] is None else f"`{s['mesh']}`"
-    steps = [{"step": k, "seconds": v} for k, v in s["seconds"].items()]
     return f"""## Models: retrained on a synthetic-lab set
 
 Retrained because {s['reason']}. The pose model and the detector used below are
@@ -47,9 +44,30 @@ models/detector.pt.
   detector (`rpod detect`, `detect` params, no baselines) trained on them: test accuracy
   {100 * s['detector_test_accuracy']:.2f}%.
 
-Everything is in `{s['folder']}/` (its own params.yaml, datasets/, models/, reports/pose.md, reports/detector.md).
+Everything is in `{s['folder']}/` (its own params.yaml, datasets/, models/, reports/pose.md, reports/detector.md);
+the time of each step is in reports/metrics/lab.json (`synthetic_lab.seconds`).
+"""
 
-{markdown_table(steps, decimals=1)}"""
+
+PAPER_RANGES = {3.122: 51.18}  # the paper's representative-range table: lab z (m) -> synthetic z (m), as printed
+
+
+def paper_ranges(K_syn: Any, K_zed: Any, scale: float, factor: float) -> str:
+    """The paper's representative-range table beside ours, and why they differ (Markdown)."""
+    from pipeline.lab import paper_lab_factor
+    from pipeline.report import markdown_table
+
+    k_paper = paper_lab_factor(K_syn, K_zed, scale)
+    rows = [{"lab z (m)": f"{z:g}", "ours (m)": z * factor, "paper's formula (m)": z * k_paper,
+             "paper, as printed (m)": PAPER_RANGES.get(z, "-")} for z in (3.122, 3.0, 2.5, 2.0, 1.5, 1.0)]
+    return f"""Representative ranges beside the paper's. The paper takes the 1920 -> 480 resize as
+cx_zed / cx_blender = {K_zed.cx:g} / {K_syn.cx:g} = {K_zed.cx / K_syn.cx:.4f} instead of the exact
+{K_zed.width}/{K_syn.width} = {K_zed.width / K_syn.width:g}, so its factor is {k_paper:.3f} against our {factor:.3f} and
+its synthetic ranges are {100 * (factor / k_paper - 1):.2f}% shorter; the printed 51.18 m differs from its own
+formula only in rounding. Only the 3.122 m row is printed in the paper text we have; the other rows
+apply its formula.
+
+{markdown_table(rows, decimals=2)}"""
 
 
 def lab_page(p: dict[str, Any], m: dict[str, Any], rows: list[dict[str, Any]], summary: list[dict[str, Any]],
@@ -104,8 +122,10 @@ Apparent size s = f L / z (pixels). The lab image ({K_zed.width}x{K_zed.height},
 mock-up is L/{lab['scale']:g}; the synthetic camera has fx = {K_syn.fx:g} px. Equal size gives
 z_syn = z_lab x {lab['scale']:g} x {K_syn.fx:g} / {f_eff:.2f} = **{m['factor']:.3f} x z_lab**
 (`rpod lab rescale --z 3.122` -> {3.122 * m['factor']:.2f} m). Lateral label coordinates keep the target's
-pixel position. The match is on the horizontal size: K_blender's pixels are not square (fx/fy = 16/9),
-so the target is {K_syn.fy / K_syn.fx:.3f}x as tall in the synthetic image as in the resized lab image.
+pixel position. The match is on the horizontal size; K_blender has fy/fx = {K_syn.fy / K_syn.fx:.4g}
+(camera.fy), so the target is {K_syn.fy / K_syn.fx:.3f}x as tall in the synthetic image as in the resized lab image.
+
+{paper_ranges(K_syn, K_zed, float(lab['scale']), m['factor'])}
 
 {markdown_table(m['ranges'], decimals=2)}
 {loader}

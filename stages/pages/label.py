@@ -9,8 +9,8 @@ import numpy as np
 
 
 def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_dir: Path) -> str:
-    """reports/dataset.md: counts, ranges (m, px), attitude and pointing spread (deg), settings, time per
-    image; `previews` are PNG files shown relative to the card's folder `card_dir`."""
+    """reports/dataset.md: counts, ranges (m, px), attitude and pointing spread (deg), settings, where the time
+    per image is kept; `previews` are PNG files shown relative to the card's folder `card_dir`."""
     from pipeline.camera import Intrinsics, project
     from pipeline.report import markdown_table
     from pipeline.rotations import attitude_error_deg
@@ -68,8 +68,13 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
         f"cy={K[1, 2]:.3f} (scaled from the reference K at {meta['camera']['ref_width']}x"
         f"{meta['camera']['ref_height']}). Renderer: Blender Cycles, CPU.",
         "",
-        f"Rendering took {meta['seconds']:.1f} s in all, **{meta['seconds_per_image']:.3f} s per image** "
-        f"({1 / max(meta['seconds_per_image'], 1e-9):.1f} images/s).",
+        f"Pixel aspect fy/fx = {K[1, 1] / K[0, 0]:.4g} (`camera.fy`). The paper prints K_Blender with fy = 360 beside "
+        "fx = 640 at 480x270; 360 = 270 x 48/36 is the sensor-width ratio applied to the image height, a common "
+        "slip: Blender renders square pixels unless told otherwise and the lab's ZED camera has square pixels. "
+        "The default is therefore fy = fx; `camera.fy: 360.0` renders the printed K (0.5625-aspect pixels, which "
+        "squash the target vertically).",
+        "",
+        "Rendering time per image: `datasets/render/meta.json` (`seconds_per_image`) and reports/benchmarks.md.",
         "",
     ]
     if previews:

@@ -56,8 +56,6 @@ def summary_tables(metrics: dict[str, dict[str, Any]]) -> str:
         eps_rows.append({"eps": e, "integrated (%)": get(ev, e), "paper, integrated (%)": _fmt(PAPER["integrated_eps"].get(e)),
                          "lab, 10-frame attacks (%)": get(lab, e), "paper, lab (%)": _fmt(PAPER["lab_eps"].get(e))})
     profiles = sorted({m.get("profile", "unknown") for m in metrics.values()})
-    produced = sorted(m.get("produced", "") for m in metrics.values() if m.get("produced"))
-    when = f"{produced[0]} to {produced[-1]}" if produced else "time not recorded"
-    head = (f"Profile `{'`, `'.join(profiles)}`; stages run {when}. Paper: 480x270 images, full-width network, "
+    head = (f"Profile `{'`, `'.join(profiles)}`. Paper: 480x270 images, full-width network, "
             "50 epochs, 32,500 images; each stage's section of the results page says what differs and why.")
     return f"{head}\n\n{table}\nDetection accuracy per eps (correct flags over all frames):\n\n{markdown_table(eps_rows)}"
