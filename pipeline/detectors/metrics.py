@@ -4,6 +4,8 @@ from __future__ import annotations
 import numpy as np
 from sklearn import metrics as skm
 
+from pipeline.stats import wilson
+
 METRICS = ("accuracy", "precision", "recall", "fpr", "roc_auc", "tpr_at_1pct_fpr")
 
 
@@ -29,7 +31,8 @@ def choose_threshold(scores: np.ndarray, labels: np.ndarray) -> float:
 
 
 def detection_metrics(labels: np.ndarray, scores: np.ndarray, threshold: float) -> dict[str, float]:
-    """Accuracy, precision, recall (TPR), false-positive rate, ROC-AUC and TPR at 1% FPR.
+    """Accuracy, precision, recall (TPR), false-positive rate, ROC-AUC and TPR at 1% FPR, with 95%
+    Wilson intervals (`*_ci95`, [lo, hi]) for accuracy, recall and FPR (samples taken as independent).
 
     ROC-AUC and TPR at 1% FPR are threshold-free; they are NaN when only one class is present.
     """
@@ -45,6 +48,9 @@ def detection_metrics(labels: np.ndarray, scores: np.ndarray, threshold: float) 
         "roc_auc": float("nan"),
         "tpr_at_1pct_fpr": float("nan"),
         "n": int(len(labels)),
+        "accuracy_ci95": wilson(int(tp + tn), int(len(labels))).ci(),
+        "recall_ci95": wilson(int(tp), int(tp + fn)).ci(),
+        "fpr_ci95": wilson(int(fp), int(fp + tn)).ci(),
     }
     if len(np.unique(labels)) == 2:
         out["roc_auc"] = float(skm.roc_auc_score(labels, scores))

@@ -13,9 +13,17 @@ def detector_page(results: dict[str, dict[str, dict[str, float]]], scores: dict[
     """reports/detector.md: the LSTM per eps, the baselines on the same split, and what the detectors see."""
     from pipeline.report import markdown_table
 
-    def row(m: dict[str, float]) -> dict[str, Any]:
-        return {"n": m["n"], "accuracy": m["accuracy"], "precision": m["precision"], "recall": m["recall"],
-                "FPR": m["fpr"], "ROC-AUC": m["roc_auc"], "TPR @ 1% FPR": m["tpr_at_1pct_fpr"]}
+    def pct(m: dict[str, Any], key: str) -> str:
+        """A rate in percent with its 95% Wilson interval, e.g. "94.1 [92.4, 95.4]"."""
+        lo, hi = m.get(f"{key}_ci95") or (None, None)
+        if m[key] is None or math.isnan(m[key]) or lo is None:
+            return "-"
+        return f"{100 * m[key]:.1f} [{100 * lo:.1f}, {100 * hi:.1f}]"
+
+    def row(m: dict[str, Any]) -> dict[str, Any]:
+        return {"n": m["n"], "accuracy (%)": pct(m, "accuracy"), "precision": m["precision"],
+                "recall (%)": pct(m, "recall"), "FPR (%)": pct(m, "fpr"), "ROC-AUC": m["roc_auc"],
+                "TPR @ 1% FPR": m["tpr_at_1pct_fpr"]}
 
     def nan_dash(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
         return [{k: ("-" if isinstance(v, float) and math.isnan(v) else v) for k, v in r.items()} for r in rows]
@@ -27,14 +35,15 @@ def detector_page(results: dict[str, dict[str, dict[str, float]]], scores: dict[
              "lid": "LID on GAP features", "squeeze": "feature squeezing on images"}
     comp = [{"detector": names[k], **row(r["all"])} for k, r in results.items()]
     eps_keys = [k for k in lstm if k != "all"]
-    recall_rows = [{"detector": names[k], **{f"eps {e}": r[e]["recall"] for e in eps_keys},
-                    "FPR": r["all"]["fpr"]} for k, r in results.items()]
+    recall_rows = [{"detector": names[k], **{f"eps {e}": pct(r[e], "recall") for e in eps_keys},
+                    "FPR (%)": pct(r["all"], "fpr")} for k, r in results.items()]
     best = max(results, key=lambda k: results[k]["all"]["accuracy"])
-    rates = ", ".join(f"{e}: {lstm[e]['recall']:.0%}" for e in eps_keys)
-    reading = (f"Detection rate of the LSTM by eps: {rates}; false alarms on clean images: {lstm['all']['fpr']:.1%}. "
-               f"Highest test accuracy of all detectors here: {names[best]} ({results[best]['all']['accuracy']:.2%}).")
+    rates = ", ".join(f"{e}: {pct(lstm[e], 'recall')}%" for e in eps_keys)
+    reading = (f"Detection rate of the LSTM by eps: {rates}; false alarms on clean images: "
+               f"{pct(lstm['all'], 'fpr')}%. Highest test accuracy of all detectors here: {names[best]} "
+               f"({pct(results[best]['all'], 'accuracy')}%). Brackets: 95% Wilson intervals over the test samples.")
     paper = f"{PAPER_ACCURACY * 100:.2f}%"
-    ours = f"{lstm['all']['accuracy'] * 100:.2f}%"
+    ours = f"{pct(lstm['all'], 'accuracy')}%"
     return f"""# Attack detector
 
 The paper's detector (SPEC 7) reads the DeepSHAP values of the pose network's 1000 GAP features
