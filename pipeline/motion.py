@@ -34,11 +34,41 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import math
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-AXES = ("x", "y", "z")
+
+
+def rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotation vector (3,, radians) -> rotation matrix. Same as scipy's
+    Rotation.from_rotvec(w).as_matrix() (tested), without its per-call overhead (~0.1 ms, which
+    would be most of the filter's cost per frame)."""
+    th = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    W = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if th < 1e-8:
+        return np.eye(3) + W
+    return np.eye(3) + (math.sin(th) / th) * W + ((1 - math.cos(th)) / th ** 2) * (W @ W)
+
+
+def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix -> rotation vector (3,, radians), angle in [0, pi]; the inverse of
+    `rotvec_to_matrix` (tested against scipy)."""
+    c = max(-1.0, min(1.0, (R[0, 0] + R[1, 1] + R[2, 2] - 1.0) / 2.0))
+    th = math.acos(c)
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if th < 1e-6:
+        return v / 2.0
+    if th < math.pi - 1e-4:
+        return v * (th / (2.0 * math.sin(th)))
+    B = (R + np.eye(3)) / 2.0                      # near pi: axis from the symmetric part
+    i = int(np.argmax(np.diag(B)))
+    axis = B[:, i] / math.sqrt(B[i, i])
+    if axis @ v < 0:
+        axis = -axis
+    return axis * th
 
 
 def _positive(name: str, value: float) -> float:
@@ -69,8 +99,8 @@ class NoiseModel:
 
     def position_std(self, rng: float) -> np.ndarray:
         """(3,) std (m) along the camera x, y, z axes at range `rng` (m)."""
-        s = np.asarray(self.position_intercept) + np.asarray(self.position_slope) * rng
-        return np.maximum(s, self.floor)
+        a, b = self.position_intercept, self.position_slope
+        return np.array([max(a[i] + b[i] * rng, self.floor) for i in range(3)])
 
     def attitude_std(self, rng: float) -> float:
         """Attitude std (radians) per axis at range `rng` (m)."""
@@ -175,13 +205,13 @@ class _Kalman6:
             self.x[:3] += u
         self.P = self.F @ self.P @ self.F.T + self.Q
 
-    def innovation_cov(self, R: np.ndarray) -> np.ndarray:
-        return self.P[:3, :3] + R
+    def nis(self, y: np.ndarray, R: np.ndarray) -> float:
+        """Normalized innovation squared y^T S^-1 y with S = P_aa + R (3 dof)."""
+        return float(y @ np.linalg.inv(self.P[:3, :3] + R) @ y)
 
     def update(self, y: np.ndarray, R: np.ndarray) -> np.ndarray:
         """Update with innovation y and measurement covariance R; returns the state correction."""
-        S = self.innovation_cov(R)
-        K = np.linalg.solve(S, self.P[:3, :]).T          # (6, 3) = P H^T S^-1 (S symmetric)
+        K = self.P[:, :3] @ np.linalg.inv(self.P[:3, :3] + R)   # (6, 3) = P H^T S^-1
         dx = K @ y
         self.x = self.x + dx
         IKH = np.eye(6)
@@ -236,7 +266,7 @@ class MotionFilter:
     def measurement(self, t_pred: np.ndarray, R_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(z world-frame measurement of rel (m), its covariance (3, 3)) from a camera-frame estimate."""
         z = R_cam @ t_pred
-        std = self.noise.position_std(float(np.linalg.norm(t_pred)))
+        std = self.noise.position_std(math.sqrt(float(t_pred @ t_pred)))
         return z, (R_cam * std ** 2) @ R_cam.T
 
     def start_from(self, t_pred: np.ndarray, R_cam: np.ndarray, R_pred: np.ndarray | None = None) -> None:
@@ -253,19 +283,19 @@ class MotionFilter:
         t_pred, R_cam = np.asarray(t_pred, np.float64), np.asarray(R_cam, np.float64)
         self.pos.predict(None if u is None else np.asarray(u, np.float64))
         self.att.predict()
-        self.R_tw = self.R_tw @ Rotation.from_rotvec(self.att.x[:3]).as_matrix()
+        self.R_tw = self.R_tw @ rotvec_to_matrix(self.att.x[:3])
         self.att.x[:3] = 0.0
         predicted = self.position
         if not np.isfinite(t_pred).all() or (R_pred is not None and not np.isfinite(R_pred).all()):
             return self._stash(MotionCheck(np.inf, np.inf, True, predicted), None)
         z, Rz = self.measurement(t_pred, R_cam)
         y = z - predicted
-        nis_p = float(y @ np.linalg.solve(self.pos.innovation_cov(Rz), y))
+        nis_p = self.pos.nis(y, Rz)
         nis_a, att = np.nan, None
         if R_pred is not None:
-            dth = Rotation.from_matrix(self.R_tw.T @ R_cam @ R_pred).as_rotvec()
-            Ra = np.eye(3) * self.noise.attitude_std(float(np.linalg.norm(t_pred))) ** 2
-            nis_a = float(dth @ np.linalg.solve(self.att.innovation_cov(Ra), dth))
+            dth = matrix_to_rotvec(self.R_tw.T @ R_cam @ R_pred)
+            Ra = np.eye(3) * self.noise.attitude_std(math.sqrt(float(t_pred @ t_pred))) ** 2
+            nis_a = self.att.nis(dth, Ra)
             att = (dth, Ra)
         bad = nis_p > self.gate or (not np.isnan(nis_a) and nis_a > self.gate)
         return self._stash(MotionCheck(nis_p, nis_a, bool(bad), predicted), (y, Rz, att))
@@ -284,7 +314,7 @@ class MotionFilter:
         if att is not None:
             dth, Ra = att
             dx = self.att.update(dth, Ra * max(1.0, check.nis_attitude / soft))
-            self.R_tw = self.R_tw @ Rotation.from_rotvec(dx[:3]).as_matrix()
+            self.R_tw = self.R_tw @ rotvec_to_matrix(dx[:3])
             self.att.x[:3] = 0.0
         self._pending = None
 

@@ -151,3 +151,17 @@ def test_a_nan_estimate_is_flagged_and_the_filter_coasts():
     c = f.check(np.array([np.nan, 0.0, 20.0]), R_cam[30], u[30])
     assert c.inconsistent and np.allclose(c.predicted, before + u[30] + f.pos.x[3:], atol=1e-9)
     f.coast()
+
+
+def test_rotation_vector_helpers_match_scipy():
+    from pipeline.motion import matrix_to_rotvec, rotvec_to_matrix
+
+    rng = np.random.default_rng(0)
+    w = np.vstack([rng.normal(0, 1, (200, 3)), rng.normal(0, 1e-9, (5, 3)),
+                   np.pi * np.eye(3) * (1 - 1e-7), [[0.0, 0.0, 0.0]]])
+    for v in w:
+        R = Rotation.from_rotvec(v).as_matrix()
+        assert np.allclose(rotvec_to_matrix(v), R, atol=1e-9)
+        back = matrix_to_rotvec(R)
+        assert np.allclose(Rotation.from_rotvec(back).as_matrix(), R, atol=1e-6)
+        assert np.linalg.norm(back) <= np.pi + 1e-9
