@@ -4,9 +4,15 @@ Per frame, `Defense.step` turns (camera-frame estimate, detector probability, ca
 commanded displacement) into (flag, trusted estimate, mode):
 - flag: the detector's probability >= its threshold (`fusion` "paper", the paper's detector alone),
   the motion filter's gate (`fusion` "motion"), or either ("or", the default);
-- a frame that is not flagged updates the motion filter and the trusted estimate is the filter's
-  state (world frame, metres); a flagged frame is left out, the filter coasts on its prediction and
-  the prediction is the trusted estimate (mode "coast");
+- a frame that neither check flags updates the motion filter and the trusted estimate is the
+  filter's state (world frame, metres); a flagged frame is left out, the filter coasts on its
+  prediction and the prediction is the trusted estimate (mode "coast"). The filter leaves out the
+  frames its gate rejects and, unless fusion is "motion", the frames the detector flags, whatever
+  the fusion: the trusted estimate stays sound under either check;
+- frames only the gate rejects are restart candidates: when the last M of them agree with one
+  another (pipeline.motion.MotionFilter.reacquire), the filter restarts on them and the frame is
+  not flagged by the motion check: it was the filter that was wrong (a state corrupted by attacked
+  frames that slipped through), and a filter that never restarts would flag every clean frame after;
 - after `hold_after` consecutive flags the estimate is declared lost (mode "hold"): guidance should
   hold position until `release_after` consecutive frames pass both checks.
 Before the first unflagged frame there is no estimate to trust: such frames are in mode "hold" and
@@ -86,15 +92,25 @@ class Defense:
             return Decision(False, False, False, self.filter.position, TRACK, np.nan, np.nan)
         check = self.filter.check(t_pred, R_cam, u, R_pred)
         motion_flag = check.inconsistent
-        flag = {"paper": shap_flag, "motion": motion_flag, "or": shap_flag or motion_flag}[s.fusion]
-        if flag or not np.isfinite(check.nis_position):
+        suspect = shap_flag and s.fusion != "motion"      # the detector's word, where it counts
+        if not np.isfinite(check.nis_position) or (suspect and motion_flag):
             self.filter.coast()
+        elif motion_flag:
+            self.filter.coast(candidate=True)
+            # the last frames agree with one another but not with the filter: the filter was wrong
+            motion_flag = not self.filter.reacquire()
+        elif suspect:
+            self.filter.coast()
+        else:
+            self.filter.accept()
+        flag = {"paper": shap_flag, "motion": motion_flag, "or": shap_flag or motion_flag}[s.fusion]
+        flag = flag or not np.isfinite(check.nis_position)
+        if flag:
             self.flags_in_a_row += 1
             self.clean_in_a_row = 0
             if self.flags_in_a_row >= s.hold_after:
                 self.holding = True
         else:
-            self.filter.accept()
             self.flags_in_a_row = 0
             self.clean_in_a_row += 1
             if self.holding and self.clean_in_a_row >= s.release_after:

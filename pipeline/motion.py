@@ -32,6 +32,7 @@ and the few matrix products here are tested directly (tests/test_motion.py).
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 
 import math
@@ -80,17 +81,21 @@ def _positive(name: str, value: float) -> float:
 
 @dataclass(frozen=True)
 class NoiseModel:
-    """Pose-estimate noise: std per camera axis (x, y, z) = intercept + slope * range (metres), and the
-    attitude std (degrees) = intercept + slope * range, range in metres."""
+    """Pose-estimate noise: std per camera axis (x, y, z) = intercept + slope * range (metres), the
+    attitude std (degrees) = intercept + slope * range, and the position bias per camera axis
+    (metres) = bias_intercept + bias_slope * range, range in metres."""
 
     position_intercept: tuple[float, float, float]
     position_slope: tuple[float, float, float]
     attitude_intercept: float
     attitude_slope: float
     floor: float = 0.02   # metres: smallest position std used (a fit can go to zero at short range)
+    bias_intercept: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    bias_slope: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
-        for name, v in (("position_intercept", self.position_intercept), ("position_slope", self.position_slope)):
+        for name, v in (("position_intercept", self.position_intercept), ("position_slope", self.position_slope),
+                        ("bias_intercept", self.bias_intercept), ("bias_slope", self.bias_slope)):
             if len(v) != 3 or not np.all(np.isfinite(v)):
                 raise ValueError(f"noise model {name} must be 3 finite numbers, got {v}")
         if not np.isfinite(self.attitude_intercept) or not np.isfinite(self.attitude_slope):
@@ -102,6 +107,11 @@ class NoiseModel:
         a, b = self.position_intercept, self.position_slope
         return np.array([max(a[i] + b[i] * rng, self.floor) for i in range(3)])
 
+    def position_bias(self, rng: float) -> np.ndarray:
+        """(3,) mean error (m) along the camera x, y, z axes at range `rng` (m)."""
+        a, b = self.bias_intercept, self.bias_slope
+        return np.array([a[i] + b[i] * rng for i in range(3)])
+
     def attitude_std(self, rng: float) -> float:
         """Attitude std (radians) per axis at range `rng` (m)."""
         return float(np.radians(max(self.attitude_intercept + self.attitude_slope * rng, 0.1)))
@@ -109,7 +119,7 @@ class NoiseModel:
     def as_dict(self) -> dict[str, object]:
         return {"position_intercept": list(self.position_intercept), "position_slope": list(self.position_slope),
                 "attitude_intercept": self.attitude_intercept, "attitude_slope": self.attitude_slope,
-                "floor": self.floor}
+                "floor": self.floor, "bias_intercept": list(self.bias_intercept), "bias_slope": list(self.bias_slope)}
 
 
 def fit_noise(t_true: np.ndarray, t_pred: np.ndarray, R_true: np.ndarray | None = None,
@@ -118,9 +128,9 @@ def fit_noise(t_true: np.ndarray, t_pred: np.ndarray, R_true: np.ndarray | None 
 
     t_true, t_pred: (N, 3) camera-frame positions (m); R_true, R_pred: optional (N, 3, 3) target ->
     camera rotations. The frames are binned by true range into `bins` equal-count bins; in each bin
-    the robust std of the error (1.4826 * median absolute deviation from the bin median, per camera
-    axis) is taken, and a line std = a + b * range is fitted by least squares over the bins. Without
-    rotations the attitude std is a constant 5 degrees.
+    the median error (the bias) and the robust std of the error (1.4826 * median absolute deviation
+    from the bin median, per camera axis) are taken, and lines a + b * range are fitted to both by
+    least squares over the bins. Without rotations the attitude std is a constant 5 degrees.
     """
     t_true, t_pred = np.asarray(t_true, np.float64), np.asarray(t_pred, np.float64)
     if t_true.ndim != 2 or t_true.shape[1] != 3 or t_true.shape != t_pred.shape:
@@ -137,21 +147,24 @@ def fit_noise(t_true: np.ndarray, t_pred: np.ndarray, R_true: np.ndarray | None 
         rel = np.swapaxes(np.asarray(R_true), -1, -2) @ np.asarray(R_pred)
         att = np.degrees(Rotation.from_matrix(rel).as_rotvec())   # (N, 3) degrees, target frame
     order = np.argsort(rng)
-    centres, pos_std, att_std = [], [], []
+    centres, pos_std, att_std, bias = [], [], [], []
     for idx in np.array_split(order, bins):
         centres.append(rng[idx].mean())
         e = err[idx]
-        pos_std.append(1.4826 * np.median(np.abs(e - np.median(e, 0)), 0))
+        bias.append(np.median(e, 0))
+        pos_std.append(1.4826 * np.median(np.abs(e - bias[-1]), 0))
         if att is not None:
             a = att[idx]
             att_std.append(float(np.mean(1.4826 * np.median(np.abs(a - np.median(a, 0)), 0))))
     A = np.column_stack([np.ones(bins), centres])
     coef = np.linalg.lstsq(A, np.asarray(pos_std), rcond=None)[0]       # (2, 3)
+    bcoef = np.linalg.lstsq(A, np.asarray(bias), rcond=None)[0]
     if att is not None:
         a0, a1 = np.linalg.lstsq(A, np.asarray(att_std), rcond=None)[0]
     else:
         a0, a1 = 5.0, 0.0
-    return NoiseModel(tuple(map(float, coef[0])), tuple(map(float, coef[1])), float(a0), float(a1))
+    return NoiseModel(tuple(map(float, coef[0])), tuple(map(float, coef[1])), float(a0), float(a1),
+                      bias_intercept=tuple(map(float, bcoef[0])), bias_slope=tuple(map(float, bcoef[1])))
 
 
 @dataclass(frozen=True)
@@ -160,7 +173,9 @@ class MotionSettings:
     velocity_noise: std of the drift-velocity change per frame (m/frame); attitude_noise_deg and
     attitude_rate_noise_deg: the same for the target attitude (deg, deg/frame); false_alarm: the
     gate's false-alarm probability per frame on motion consistent with the model, in (0, 1);
-    soft_gate: fraction of the gate's NIS above which an accepted frame is down-weighted."""
+    soft_gate: fraction of the gate's NIS above which an accepted frame is down-weighted;
+    reacquire_after: M consecutive rejected frames that agree with one another (and that the
+    detector did not flag) restart the filter on them."""
 
     position_noise: float = 0.05
     velocity_noise: float = 0.01
@@ -168,6 +183,7 @@ class MotionSettings:
     attitude_rate_noise_deg: float = 0.05
     false_alarm: float = 0.005
     soft_gate: float = 0.5
+    reacquire_after: int = 4
 
     def __post_init__(self) -> None:
         for name in ("position_noise", "velocity_noise", "attitude_noise_deg", "attitude_rate_noise_deg"):
@@ -176,6 +192,8 @@ class MotionSettings:
             raise ValueError(f"defense.false_alarm is a gate probability and must be in (0, 1), got {self.false_alarm}")
         if not 0 < float(self.soft_gate) <= 1:
             raise ValueError(f"defense.soft_gate must be in (0, 1], got {self.soft_gate}")
+        if int(self.reacquire_after) < 2:
+            raise ValueError(f"defense.reacquire_after must be >= 2 frames, got {self.reacquire_after}")
 
     @property
     def gate(self) -> float:
@@ -244,6 +262,12 @@ class MotionFilter:
         self.R_tw = np.eye(3)          # attitude estimate (target -> world)
         self.started = False
         self._pending: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._moved = np.zeros(3)      # sum of the commanded displacements so far (world, m)
+        self._candidates: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
+        self._history: deque[np.ndarray] = deque(maxlen=2 * settings.reacquire_after)
+        self._last: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None
+        df = 3 * (settings.reacquire_after - 1)
+        self._agree = float(chi2.ppf(1.0 - settings.false_alarm, df))
 
     @property
     def position(self) -> np.ndarray:
@@ -262,11 +286,16 @@ class MotionFilter:
         self.att.reset(np.zeros(3), np.eye(3) * att_std ** 2, 3 * np.radians(self.settings.attitude_rate_noise_deg))
         self.R_tw = np.eye(3) if R_tw is None else np.asarray(R_tw, np.float64)
         self.started = True
+        self._candidates = []
+        self._history.clear()
+        self._history.append(self.pos.x[:3] - self._moved)
 
     def measurement(self, t_pred: np.ndarray, R_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(z world-frame measurement of rel (m), its covariance (3, 3)) from a camera-frame estimate."""
-        z = R_cam @ t_pred
-        std = self.noise.position_std(math.sqrt(float(t_pred @ t_pred)))
+        """(z world-frame measurement of rel (m), its covariance (3, 3)) from a camera-frame estimate,
+        the noise model's bias removed."""
+        rng = math.sqrt(float(t_pred @ t_pred))
+        z = R_cam @ (t_pred - self.noise.position_bias(rng))
+        std = self.noise.position_std(rng)
         return z, (R_cam * std ** 2) @ R_cam.T
 
     def start_from(self, t_pred: np.ndarray, R_cam: np.ndarray, R_pred: np.ndarray | None = None) -> None:
@@ -281,6 +310,8 @@ class MotionFilter:
         if not self.started:
             raise RuntimeError("MotionFilter.check before start")
         t_pred, R_cam = np.asarray(t_pred, np.float64), np.asarray(R_cam, np.float64)
+        if u is not None:
+            self._moved = self._moved + u
         self.pos.predict(None if u is None else np.asarray(u, np.float64))
         self.att.predict()
         self.R_tw = self.R_tw @ rotvec_to_matrix(self.att.x[:3])
@@ -289,6 +320,7 @@ class MotionFilter:
         if not np.isfinite(t_pred).all() or (R_pred is not None and not np.isfinite(R_pred).all()):
             return self._stash(MotionCheck(np.inf, np.inf, True, predicted), None)
         z, Rz = self.measurement(t_pred, R_cam)
+        self._last = (z - self._moved, Rz, None if R_pred is None else R_cam @ R_pred)
         y = z - predicted
         nis_p = self.pos.nis(y, Rz)
         nis_a, att = np.nan, None
@@ -317,7 +349,44 @@ class MotionFilter:
             self.R_tw = self.R_tw @ rotvec_to_matrix(dx[:3])
             self.att.x[:3] = 0.0
         self._pending = None
+        self._history.append(self._last[0])
+        self._candidates = []
 
-    def coast(self) -> None:
-        """Leave the last checked frame out: the state stays at the prediction."""
+    def coast(self, candidate: bool = False) -> None:
+        """Leave the last checked frame out: the state stays at the prediction. With `candidate`
+        (the gate rejected it but nothing else suspects it) the frame may restart the filter:
+        see `reacquire`."""
+        if candidate and self._pending is not None and self._pending[1] is not None and self._last is not None:
+            self._candidates = (self._candidates + [self._last])[-self.settings.reacquire_after:]
+        else:
+            self._candidates = []
         self._pending = None
+
+    def reacquire(self) -> bool:
+        """Restart the filter when the last `reacquire_after` (M) frames were all rejected as
+        candidates, agree with one another (their positions, moved to the current frame by the
+        commanded displacements, scatter about their weighted mean as the noise model says:
+        chi-square with 3 (M - 1) dof at 1 - false_alarm) and agree with the median of the last
+        2 M accepted measurements, moved likewise (the gate's NIS; skipped while fewer than M
+        frames were accepted since the start). The filter's state was then
+        wrong (dragged by attacked frames that slipped through), not the frames; a jump to a new,
+        steady position (an attacker's consistent offset) disagrees with the accepted history and
+        does not restart the filter. Returns whether it restarted."""
+        M = self.settings.reacquire_after
+        if len(self._candidates) < M:
+            return False
+        z = np.array([c[0] for c in self._candidates]) + self._moved
+        W = [np.linalg.inv(c[1]) for c in self._candidates]
+        cov = np.linalg.inv(sum(W))
+        mean = cov @ sum(w @ zi for w, zi in zip(W, z))
+        scatter = sum(float((zi - mean) @ w @ (zi - mean)) for w, zi in zip(W, z))
+        if scatter > self._agree:
+            return False
+        if len(self._history) >= M:   # a history shorter than the candidates does not outvote them
+            d = mean - (np.median(np.array(self._history), axis=0) + self._moved)
+            if float(d @ np.linalg.inv(cov + self._candidates[-1][1]) @ d) > self.gate:
+                return False
+        candidates = self._candidates
+        self.start(mean, cov + np.eye(3) * (M * self.settings.position_noise) ** 2, candidates[-1][2])
+        self._history.extend(c[0] for c in candidates)
+        return True

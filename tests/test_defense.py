@@ -90,3 +90,31 @@ def test_defense_is_deterministic():
     a = run_defense(DefenseSettings(), MOTION, NOISE, t_pred, np.zeros(len(rel)), R_cam, u)
     b = Defense(DefenseSettings(), MOTION, NOISE)
     assert np.allclose(a.trusted, [b.step(t_pred[i], 0.0, R_cam[i], u[i]).trusted for i in range(len(rel))])
+
+
+def test_a_state_dragged_by_missed_frames_is_not_locked_out():
+    """A slow ramp the gate lets through drags the filter; when it ends, the clean frames disagree
+    with the dragged state. They are flagged for a while (the filter cannot tell a jump back from
+    a jump away), but the coasting filter's gate widens and takes them again: no lock-out."""
+    rel, t_pred, R_cam, u = straight(70, seed=3)
+    t_pred = t_pred.copy()
+    ramp = np.zeros((70, 3))
+    ramp[20:40, 0] = 0.05 * np.arange(1, 21)          # up to 1 m sideways, 5 cm per frame
+    t_pred += np.einsum("nji,nj->ni", R_cam, ramp)
+    tr = run_defense(DefenseSettings(fusion="motion"), MOTION, NOISE, t_pred, np.zeros(70), R_cam, u)
+    flagged_after = np.flatnonzero(tr.flag[40:])
+    assert len(flagged_after) >= 1 and flagged_after.max() < 12
+    assert np.linalg.norm(tr.trusted[-1] - rel[-1]) < 0.2
+
+
+def test_clean_frames_after_a_bad_start_restart_the_filter():
+    """The filter started on a bad first frame (an attack the detector missed): the clean frames
+    that follow agree with one another and, once M of them are in, with nothing else the filter
+    accepted: it restarts on them after reacquire_after frames."""
+    rel, t_pred, R_cam, u = straight(30, seed=4)
+    t_pred = t_pred.copy()
+    t_pred[0] += np.array([0.0, 0.0, 6.0])
+    m = MotionSettings(false_alarm=0.005, reacquire_after=4)
+    tr = run_defense(DefenseSettings(fusion="motion"), m, NOISE, t_pred, np.zeros(30), R_cam, u)
+    assert tr.flag[1:4].all() and not tr.flag[4:].any()
+    assert np.linalg.norm(tr.trusted[-1] - rel[-1]) < 0.2

@@ -114,9 +114,11 @@ def test_fit_noise_recovers_a_linear_noise_model():
     t_pred = t + rng.normal(0, 1, (n, 3)) * np.array([NOISE.position_std(x) for x in r])
     R_true = Rotation.random(n, random_state=1).as_matrix()
     att = rng.normal(0, 1, (n, 3)) * np.radians(NOISE.attitude_intercept + NOISE.attitude_slope * r)[:, None]
+    t_pred = t_pred + np.outer(r, [0.0, 0.01, -0.02]) + [0.1, 0.0, 0.3]     # a range-dependent bias
     fit = fit_noise(t, t_pred, R_true, R_true @ Rotation.from_rotvec(att).as_matrix())
     for x in (15.0, 35.0, 55.0):
         assert np.allclose(fit.position_std(x), NOISE.position_std(x), rtol=0.1)
+        assert np.allclose(fit.position_bias(x), [0.1, 0.01 * x, 0.3 - 0.02 * x], atol=0.05)
         assert fit.attitude_std(x) == pytest.approx(NOISE.attitude_std(x), rel=0.1)
 
 
