@@ -12,7 +12,7 @@ state [rotation vector (3, rad), rate (3, rad per frame)] about the current atti
 target frame.
 
 Measurement noise is the pose model's own error, which grows with range and is larger along the
-camera boresight: `NoiseModel` holds per-camera-axis standard deviations a + b * range, fitted by
+camera boresight: `NoiseModel` holds per-camera-axis standard deviations and biases a + b * range, fitted by
 `fit_noise` on clean frames of validation data (never the test split); it is rotated into world
 axes with R_c every frame.
 
@@ -24,6 +24,9 @@ its prediction, its covariance grows, and clean frames are accepted again once t
 the widened gate, so an attack the gate caught cannot drag the state away. Frames that pass the
 gate update the filter with a Huber weight (measurement covariance inflated by NIS / soft gate
 above a soft gate), so an attacked frame that slips just under the gate moves the state little.
+A filter whose state was nevertheless dragged away (or started on a bad frame) would reject every
+clean frame after; `reacquire` restarts it on M rejected frames that agree with one another and
+with the accepted history, never on a steady offset that jumped away from that history.
 
 Implementation: a short Kalman filter of our own (predict, innovation, Joseph-form update on 6x6
 matrices) rather than filterpy: filterpy 2.0.0 is not among our dependencies, its KalmanFilter
@@ -261,7 +264,7 @@ class MotionFilter:
         self.att = _Kalman6(np.radians(settings.attitude_noise_deg), np.radians(settings.attitude_rate_noise_deg))
         self.R_tw = np.eye(3)          # attitude estimate (target -> world)
         self.started = False
-        self._pending: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._pending: tuple[MotionCheck, tuple | None] | None = None   # last check, its update terms
         self._moved = np.zeros(3)      # sum of the commanded displacements so far (world, m)
         self._candidates: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
         self._history: deque[np.ndarray] = deque(maxlen=2 * settings.reacquire_after)
@@ -333,7 +336,7 @@ class MotionFilter:
         return self._stash(MotionCheck(nis_p, nis_a, bool(bad), predicted), (y, Rz, att))
 
     def _stash(self, check: MotionCheck, pending: tuple | None) -> MotionCheck:
-        self._pending = (check, pending)  # type: ignore[assignment]
+        self._pending = (check, pending)
         return check
 
     def accept(self) -> None:
