@@ -184,7 +184,7 @@ class MotionSettings:
     velocity_noise: float = 0.01
     attitude_noise_deg: float = 0.5
     attitude_rate_noise_deg: float = 0.05
-    false_alarm: float = 0.005
+    false_alarm: float = 0.001
     soft_gate: float = 0.5
     reacquire_after: int = 4
 
