@@ -8,7 +8,8 @@ commanded displacement) into (flag, trusted estimate, mode):
   filter's state (world frame, metres); a flagged frame is left out, the filter coasts on its
   prediction and the prediction is the trusted estimate (mode "coast"). The filter leaves out the
   frames its gate rejects and, unless fusion is "motion", the frames the detector flags, whatever
-  the fusion: the trusted estimate stays sound under either check;
+  the fusion: the trusted estimate stays sound under either check. A frame whose probability is
+  at or above `update_below` (below the threshold) is doubtful: not flagged, but not used either;
 - frames only the gate rejects are restart candidates: when the last M of them agree with one
   another (pipeline.motion.MotionFilter.reacquire), the filter restarts on them and the frame is
   not flagged by the motion check: it was the filter that was wrong (a state corrupted by attacked
@@ -35,12 +36,15 @@ MODES = (TRACK, COAST, HOLD)
 class DefenseSettings:
     """fusion: which checks flag a frame (FUSIONS); hold_after: K consecutive flags that declare the
     estimate lost; release_after: consecutive clean frames that end a hold; threshold: the
-    detector's probability threshold (its checkpoint's, chosen on validation data)."""
+    detector's probability threshold (its checkpoint's, chosen on validation data); update_below:
+    frames whose detector probability is at or above this (but below the threshold) are not flagged
+    but do not update the motion filter either (None: the threshold)."""
 
     fusion: str = "or"
     hold_after: int = 5
     release_after: int = 2
     threshold: float = 0.5
+    update_below: float | None = None
 
     def __post_init__(self) -> None:
         if self.fusion not in FUSIONS:
@@ -51,6 +55,8 @@ class DefenseSettings:
             raise ValueError(f"defense.release_after must be >= 1, got {self.release_after}")
         if not 0 < float(self.threshold) < 1:
             raise ValueError(f"detector threshold must be in (0, 1), got {self.threshold}")
+        if self.update_below is not None and not 0 < float(self.update_below) <= float(self.threshold):
+            raise ValueError(f"defense.update_below must be in (0, threshold = {self.threshold}], got {self.update_below}")
 
 
 @dataclass(frozen=True)
@@ -92,7 +98,8 @@ class Defense:
             return Decision(False, False, False, self.filter.position, TRACK, np.nan, np.nan)
         check = self.filter.check(t_pred, R_cam, u, R_pred)
         motion_flag = check.inconsistent
-        suspect = shap_flag and s.fusion != "motion"      # the detector's word, where it counts
+        doubt = s.threshold if s.update_below is None else s.update_below
+        suspect = (prob >= doubt or shap_flag) and s.fusion != "motion"   # the detector's word, where it counts
         if not np.isfinite(check.nis_position) or (suspect and motion_flag):
             self.filter.coast()
         elif motion_flag:

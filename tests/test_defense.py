@@ -118,3 +118,19 @@ def test_clean_frames_after_a_bad_start_restart_the_filter():
     tr = run_defense(DefenseSettings(fusion="motion"), m, NOISE, t_pred, np.zeros(30), R_cam, u)
     assert tr.flag[1:4].all() and not tr.flag[4:].any()
     assert np.linalg.norm(tr.trusted[-1] - rel[-1]) < 0.2
+
+
+def test_a_doubtful_frame_is_not_flagged_but_does_not_update_the_filter():
+    rel, t_pred, R_cam, u = straight(40, seed=5)
+    t_pred = t_pred.copy()
+    t_pred[30, 0] += 0.25                      # a small error the gate lets through
+    prob = np.zeros(40)
+    prob[30] = 0.4                             # doubtful: above update_below, below the threshold
+    settings = DefenseSettings(threshold=0.5, update_below=0.3)
+    tr = run_defense(settings, MOTION, NOISE, t_pred, prob, R_cam, u)
+    trusting = run_defense(DefenseSettings(threshold=0.5), MOTION, NOISE, t_pred, prob, R_cam, u)
+    assert not tr.flag[30] and not trusting.flag[30]
+    assert np.allclose(tr.trusted[30], tr.trusted[29] + u[30], atol=0.05)        # coasted
+    assert not np.allclose(tr.trusted[30], trusting.trusted[30], atol=1e-6)      # the other one updated
+    with pytest.raises(ValueError, match="defense.update_below must be in"):
+        DefenseSettings(threshold=0.5, update_below=0.7)
