@@ -21,7 +21,7 @@ import tempfile
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 import bpy
 import cv2
@@ -312,3 +312,19 @@ class Renderer:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def render_into(renderer: Renderer, R: np.ndarray, t: np.ndarray, out: Any, chunk: int, desc: str) -> None:
+    """Render the poses R (N, 3, 3), t (N, 3) (camera frame, metres) into `out[0:N]`, an array-like of
+    uint8 (N, H, W, 3) such as a zarr array, writing `chunk` frames at a time; a tqdm bar shows progress."""
+    from tqdm import tqdm
+
+    n = len(t)
+    buf = np.zeros((chunk, renderer.K.height, renderer.K.width, 3), np.uint8)
+    with tqdm(total=n, unit="img", desc=desc, dynamic_ncols=True, mininterval=0.5) as bar:
+        for lo in range(0, n, chunk):
+            hi = min(lo + chunk, n)
+            for k in range(lo, hi):
+                buf[k - lo] = renderer.render(R[k], t[k])
+                bar.update(1)
+            out[lo:hi] = buf[: hi - lo]

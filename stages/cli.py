@@ -43,7 +43,8 @@ def params_cmd(
 
 # Stage modules keep heavy imports (bpy, torch) inside their commands so `rpod --help` is fast.
 # A module exposes `main` (one command) or `app` (a command group, e.g. `rpod lab rescale`).
-STAGES = ["render", "label", "train", "attack", "guidance", "shap", "detect", "evaluate", "lab", "report"]
+STAGES = ["render", "label", "train", "attack", "guidance", "shap", "detect", "eval_render", "evaluate",
+          "lab_models", "lab", "report"]
 
 
 def _register() -> None:
@@ -74,3 +75,7 @@ def main() -> None:
             raise
         typer.secho(f"error: {e}", fg=typer.colors.RED, err=True)
         sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

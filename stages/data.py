@@ -15,10 +15,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from stages.artifacts import LABELS, RENDER
 from stages.io import StageError, open_zarr, read_parquet
 
-IMAGES = Path("datasets/render/images.zarr")
-LABELS = Path("datasets/labels.parquet")
+IMAGES = RENDER / "images.zarr"
 POSITION = ["tx", "ty", "tz"]
 QUAT = ["qw", "qx", "qy", "qz"]
 SIXD = [f"r{i}" for i in range(6)]

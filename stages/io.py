@@ -118,6 +118,15 @@ def atomic_dir(path: Path | str) -> Iterator[Path]:
         os.replace(tmp, path)
 
 
+def save_figure(fig: Any, path: Path | str, dpi: int = 110) -> None:
+    """Write a matplotlib Figure (pipeline/figures.py) as PNG atomically (temporary file + rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp.png")
+    fig.savefig(tmp, dpi=dpi)
+    tmp.replace(path)
+
+
 def file_hash(path: Path | str, n: int = 16) -> str:
     """Short sha256 of a file (used to tie derived artifacts to a checkpoint)."""
     path = Path(path)

@@ -13,6 +13,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from stages.checkpoint import POSE
 from stages.io import StageError, atomic_write_text, write_metrics
 
 REPORT = Path("reports/pose.md")
@@ -25,12 +26,11 @@ TARGET_TZ_PCT, TARGET_LATERAL_M = 2.0, 0.5  # guidance needs (issue 3)
 
 def main() -> None:
     """Train the pose CNN; keep the best checkpoint by test error; report errors next to the paper's."""
-    import numpy as np
     import torch
 
     from pipeline.loss import PoseLoss
     from pipeline.model import PoseNet
-    from pipeline.training import TrainConfig, fit, predict, summarize_errors
+    from pipeline.training import TrainConfig, fit
     from stages import checkpoint, data, params as params_mod
 
     params = params_mod.load()
@@ -77,7 +77,7 @@ def main() -> None:
             live.log_metric(key, getattr(stats, key))
         live.next_step()
         if is_best:
-            checkpoint.save_pose(checkpoint.POSE, _plain(net), loss, input_size,
+            checkpoint.save_pose(POSE, _plain(net), loss, input_size,
                                  {"epoch": stats.epoch, "test_score": stats.test_score,
                                   "test_pos_m": stats.test_pos_m, "test_att_deg": stats.test_att_deg})
         tqdm.write(f"epoch {stats.epoch:3d}  loss {stats.loss:7.3f}  train {stats.train_pos_m:6.2f} m "
@@ -89,27 +89,39 @@ def main() -> None:
         live.end()
         net = _plain(model)
         net.load_state_dict(result.best_state)
-        bins = params["train"]["range_bins"]
-        summary = {name: summarize_errors(predict(net, ds, 2 * cfg.batch_size, device, cfg.channels_last),
-                                          split.targets, split.labels["range"].to_numpy(), bins)
-                   for name, ds, split in (("train", train_eval_set, train_split), ("test", test_set, test_split))}
-        # the floor any useful model must beat: always answer the mean training label
-        mean_pred = np.broadcast_to(targets.mean(0), test_split.targets.shape)
-        summary["test_mean_baseline"] = summarize_errors(mean_pred, test_split.targets,
-                                                         test_split.labels["range"].to_numpy(), bins)
-        metrics = {**summary, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
-                   "stopped_early": result.stopped_early, "train_minutes": result.seconds / 60,
-                   "train_images_per_s": result.train_images_per_s, "test_score": result.best_score,
-                   "processes": world, "device": str(device)}
-        write_metrics(METRICS, metrics, params)
-        atomic_write_text(REPORT, _report(metrics, params, len(train_split), len(test_split)))
-        print(f"train: best epoch {result.best_epoch}: test {summary['test']['pos_mean_m']:.3f} m, "
-              f"{summary['test']['att_mean_deg']:.2f} deg -> {checkpoint.POSE}, {REPORT}, {METRICS}")
+        _write_results(params, net, result, cfg, device, world, (train_split, train_eval_set), (test_split, test_set))
     if world > 1:
         import torch.distributed as dist
 
         dist.barrier()
         dist.destroy_process_group()
+
+
+def _write_results(params: dict[str, Any], net: Any, result: Any, cfg: Any, device: Any, world: int,
+                   train: tuple[Any, Any], test: tuple[Any, Any]) -> None:
+    """Errors of the best checkpoint on both splits (and the always-the-mean-label floor) ->
+    reports/metrics/train.json and reports/pose.md. `train`, `test`: (split, its un-augmented dataset)."""
+    import numpy as np
+
+    from pipeline.training import predict, summarize_errors
+
+    (train_split, train_eval_set), (test_split, test_set) = train, test
+    bins = params["train"]["range_bins"]
+    summary = {name: summarize_errors(predict(net, ds, 2 * cfg.batch_size, device, cfg.channels_last),
+                                      split.targets, split.labels["range"].to_numpy(), bins)
+               for name, ds, split in (("train", train_eval_set, train_split), ("test", test_set, test_split))}
+    # the floor any useful model must beat: always answer the mean training label
+    mean_pred = np.broadcast_to(train_split.targets.mean(0), test_split.targets.shape)
+    summary["test_mean_baseline"] = summarize_errors(mean_pred, test_split.targets,
+                                                     test_split.labels["range"].to_numpy(), bins)
+    metrics = {**summary, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
+               "stopped_early": result.stopped_early, "train_minutes": result.seconds / 60,
+               "train_images_per_s": result.train_images_per_s, "test_score": result.best_score,
+               "processes": world, "device": str(device)}
+    write_metrics(METRICS, metrics, params)
+    atomic_write_text(REPORT, _report(metrics, params, len(train_split), len(test_split)))
+    print(f"train: best epoch {result.best_epoch}: test {summary['test']['pos_mean_m']:.3f} m, "
+          f"{summary['test']['att_mean_deg']:.2f} deg -> {POSE}, {REPORT}, {METRICS}")
 
 
 def _plain(model: Any) -> Any:
