@@ -184,7 +184,10 @@ class Defense:
     release_after: int           # frames (>= 1): consecutive clean frames that end a hold
     update_below: Optional[float]    # detector probability in (0, 1) from which a frame does not update the
                                      # filter; None: the detector's threshold
-    noise_bins: int              # range bins of the measurement-noise fit (>= 1)
+    noise_bins: int              # range bins of the measurement-noise fit (>= 2)
+    val_trajectories: int        # validation approaches (own seed) the noise model is fitted on (>= 1)
+    val_seed: int                # their seed: never evaluate.seed
+    harm_m: float                # metres: an attacked frame with a larger position error is harmful (SPEC 11)
 
     def __post_init__(self) -> None:
         def bad(key: str, rule: str) -> ParamsError:
@@ -199,9 +202,12 @@ class Defense:
             raise bad("soft_gate", "in (0, 1]")
         if self.update_below is not None and not 0 < self.update_below < 1:
             raise bad("update_below", "null or a probability in (0, 1)")
-        for key, low in (("hold_after", 1), ("release_after", 1), ("reacquire_after", 2), ("noise_bins", 1)):
+        for key, low in (("hold_after", 1), ("release_after", 1), ("reacquire_after", 2), ("noise_bins", 2),
+                         ("val_trajectories", 1)):
             if getattr(self, key) < low:
                 raise bad(key, f"a whole number >= {low}")
+        if not self.harm_m > 0:
+            raise bad("harm_m", "> 0 (metres)")
 
 
 @dataclass(frozen=True)
@@ -289,6 +295,9 @@ class Params:
     def __post_init__(self) -> None:
         if self.threads < 1:
             raise ValueError(f"threads must be a whole number >= 1, got {self.threads}")
+        if self.defense.val_seed == self.evaluate.seed:
+            raise ValueError("defense.val_seed must differ from evaluate.seed: the defense is fitted on "
+                             "validation trajectories, never on the evaluation ones")
 
 
 def _check(value: Any, hint: Any, key: str) -> Any:
