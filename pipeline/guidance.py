@@ -214,19 +214,21 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
 
 
 class CachedCamera:
-    """The chaser's camera and pose CNN for `run_rendezvous`, with an image cache.
+    """The chaser's camera and pose CNN (or the whole safety chain) for `run_rendezvous`, with an image cache.
 
     Every attacked run follows the no-attack baseline until its attack starts, and Cycles and the CNN
-    are deterministic, so each rendered pose's image and clean position estimate are kept. `render`
-    and `estimate` are the RenderFn and EstimateFn; attacked frames go through `attack(x, y)` (images
+    are deterministic, so each rendered pose's image and clean estimate are kept. `render` and
+    `estimate` are the RenderFn and EstimateFn; attacked frames go through `attack(x, y)` (images
     (1, 3, H, W) in [0, 1], labels (1, 9): metres, 6-D) which `self.attack` may be changed to between
-    runs. `counts`: guidance steps, rendered frames, attacked frames.
+    runs. With `chain` (a pipeline.chain.SafetyChain over `model`) `estimate` returns an `Estimate`
+    (position, the detector's probability, attitude) for the defended variants; without it the
+    camera-frame position (m). `counts`: guidance steps, rendered frames, attacked frames.
     """
 
     def __init__(self, render_image: Callable[[np.ndarray, np.ndarray], np.ndarray], model: Any,
-                 attack: Callable[[Any, Any], Any] | None = None):
-        self.render_image, self.model, self.attack = render_image, model, attack
-        self.cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+                 attack: Callable[[Any, Any], Any] | None = None, chain: Any | None = None):
+        self.render_image, self.model, self.attack, self.chain = render_image, model, attack, chain
+        self.cache: dict[bytes, tuple[np.ndarray, np.ndarray | Estimate]] = {}
         self.counts = {"steps": 0, "renders": 0, "attacked": 0}
 
     @staticmethod
@@ -235,9 +237,15 @@ class CachedCamera:
 
         return torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
 
-    def _position(self, x: Any) -> np.ndarray:
+    def _position(self, x: Any) -> np.ndarray | Estimate:
         import torch
 
+        if self.chain is not None:
+            from pipeline.rotations import sixd_to_matrix
+
+            out = self.chain(x)
+            pose = out.pose[0].numpy().astype(np.float64)
+            return Estimate(pose[:3], float(out.prob[0]), sixd_to_matrix(pose[3:9]))
         with torch.no_grad():
             return self.model(x)[0, :3].numpy().astype(np.float64)
 
@@ -251,7 +259,7 @@ class CachedCamera:
         return key, self.cache[key][0]
 
     def estimate(self, rendered: tuple[bytes, np.ndarray], attacked: bool,
-                 pose: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+                 pose: tuple[np.ndarray, np.ndarray]) -> np.ndarray | Estimate:
         import torch
 
         from pipeline.rotations import matrix_to_6d

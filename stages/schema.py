@@ -106,8 +106,10 @@ class Guidance:
     max_step: float              # metres per step per axis
     max_steps: int
     slack_steps: int
-    variant: str                 # paper | true_state
+    variant: str                 # paper | true_state: the dynamics of the paper's S x K tables
     method: str
+    dynamics: list[Literal["paper", "true_state"]]   # dynamics of the defended comparison (SPEC 11)
+    defenses: list[Literal["hold", "recover"]]       # defended variants flown beside the undefended one
 
 
 @dataclass(frozen=True)
