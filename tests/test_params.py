@@ -36,6 +36,9 @@ def test_every_profile_builds_typed_params(profile):
     (("defense", "hold_after", 0), r"defense.hold_after must be a whole number >= 1, got 0"),
     (("defense", "fusion", "and"), r"defense.fusion must be one of or, paper, motion"),
     (("defense", "update_below", None), None),
+    (("defense", "val_seed", 1000), r"defense.val_seed must differ from evaluate.seed"),
+    (("defense", "harm_m", 0.0), r"defense.harm_m must be > 0"),
+    (("guidance", "defenses", ["hold", "pray"]), r"guidance.defenses\[1\] must be one of hold, recover"),
 ])
 def test_load_refuses_bad_params_naming_the_key(tmp_path, monkeypatch, edit, message):
     monkeypatch.chdir(tmp_path)
