@@ -14,14 +14,21 @@ def defense_section(chains: dict[str, list[dict[str, Any]]], calibration: dict[s
     from pipeline.report import markdown_table
 
     fused = list(chains.values())[-1]
-    misses = [f"{r['eps']:g}" for r in fused if not (r["accuracy"].value >= TARGET_ACCURACY
-                                                      and r["fpr"].value <= TARGET_FPR)]
-    verdict = ("The fused chain meets the issue's targets (accuracy >= 99.5%, FPR <= 0.5%) at every eps."
-               if not misses else
-               f"The fused chain misses the issue's targets (accuracy >= 99.5% and FPR <= 0.5% of clean frames) "
-               f"at eps {', '.join(misses)}: the motion check only sees attacks whose pose error stands out of the "
-               f"pose model's own noise at that range, and a filter coasting through an attack drifts, so clean "
-               f"frames right after it can fail the gate.")
+    misses = []
+    for r in fused:
+        short = [f"{name} {rate.pct(2)}%" for name, rate, ok in (
+            ("accuracy", r["accuracy"], r["accuracy"].value >= TARGET_ACCURACY),
+            ("harmful flagged", r["harmful_flagged"], r["harmful_flagged"].n == 0
+             or r["harmful_flagged"].value >= TARGET_HARMFUL_FLAGGED),
+            ("FPR between attacks", r["fpr"], r["fpr"].value <= TARGET_FPR)) if not ok]
+        if short:
+            misses.append(f"eps {r['eps']:g} ({', '.join(short)})")
+    if fused and fused[0]["fpr_clean"].value > TARGET_FPR:
+        misses.append(f"attack-free runs (FPR {fused[0]['fpr_clean'].pct(2)}%)")
+    verdict = ("The defended chain meets issue 16's detection targets (accuracy and harmful frames flagged >= 99.5%, "
+               "FPR <= 0.5%) at every eps." if not misses else
+               "Short of issue 16's detection targets (accuracy and harmful frames flagged >= 99.5%, FPR <= 0.5%) at: "
+               + "; ".join(misses) + ".")
     val = calibration.get("validation", {})
     return f"""
 ## The defended chain: motion check fused with the detector
