@@ -87,10 +87,11 @@ def main() -> None:
             camera.attack = stored_attack(model, loss_fn, eps, attack)
             runs.append((eps, s, k, run_rendezvous(camera.render, camera.estimate, K, attacked_settings, window)))
         seconds = time.perf_counter() - t0
+        counts = dict(camera.counts)      # the paper's grid alone
         defended = _defended(camera, K, settings, grid, g, defense, (baseline, runs),
                              lambda eps: stored_attack(model, loss_fn, eps, attack))
         defended["seconds"] = time.perf_counter() - t0 - seconds
-    counts = camera.counts
+        defended.update({k: v - counts[k] for k, v in camera.counts.items()})
 
     metrics = {
         "variant": settings.variant, "method": g["method"], "loss": a["loss"], "max_steps": settings.max_steps,
@@ -111,7 +112,8 @@ def main() -> None:
     save_figure(guidance_variants(defended["example"]["runs"], settings.goal, defended["example"]["title"]),
                 DEFENDED_FIGURE)
     typer.echo(f"guidance: baseline {baseline.outcome} ({baseline.miss:.2f} m); {len(runs)} attacked runs, "
-          f"{counts['renders']} renders for {counts['steps']} steps in {seconds:.0f} s -> {REPORT}")
+          f"{counts['renders']} renders for {counts['steps']} steps in {seconds:.0f} s; defended grid "
+          f"{defended['renders']} renders for {defended['steps']} steps in {defended['seconds']:.0f} s -> {REPORT}")
     if baseline.outcome != "rendezvous held":
         typer.secho(f"warning: the no-attack baseline did not reach the target ({baseline.outcome}, miss "
                     f"{baseline.miss:.2f} m): the pose model is not good enough for closed-loop guidance, so the "
