@@ -4,7 +4,9 @@ A sequence is a dict {"name", "images" (N, H, W, 3) uint8, "targets" (N, 9: metr
 frame, then 6-D), "attacked" (N,) bool}. `evaluate_sequences` runs each sequence clean and at every
 eps through the chain (FGSM on the attacked frames, stored as 8-bit images), `per_eps_summary`
 averages the per-sequence rows, and `accuracy_table` / `detail_table` lay them out for a report.
-`nan_to_none` makes the results JSON-safe.
+`defended_summary` runs the recorded frames through the defense (pipeline/defense.py) and gives the
+fused chain's per-eps rates with 95% intervals (bootstrap over the sequences); `defense_table` lays
+them out. `nan_to_none` makes the results JSON-safe.
 """
 from __future__ import annotations
 
@@ -16,7 +18,11 @@ import torch
 
 from pipeline.attacks import stored_attack
 from pipeline.chain import SafetyChain, run_sequence
-from pipeline.schedule import detection_metrics, mean_over, schedule_bursts, undetected_mask
+from pipeline.defense import DefenseSettings, run_defense
+from pipeline.motion import MotionSettings, NoiseModel
+from pipeline.rotations import sixd_to_matrix
+from pipeline.schedule import detection_delays, detection_metrics, mean_over, schedule_bursts, undetected_mask
+from pipeline.stats import bootstrap_rate
 from pipeline.training import pose_errors
 
 
@@ -32,7 +38,8 @@ def evaluate_sequences(chain: SafetyChain, loss_fn: Any, sequences: list[dict[st
     """Run every sequence clean and at every eps through the chain; per-row metrics and per-frame traces.
 
     Returns {"rows": [one dict per (eps, sequence)], "traces": {(eps, name): {prob, flag,
-    position_error (m), estimate_z (m)}}, "clean": {name: {fpr, position_mean_m, attitude_mean_deg}}}.
+    position_error (m), estimate_z (m), pose (N, 9)}} with eps 0.0 for the clean runs,
+    "clean": {name: {fpr, position_mean_m, attitude_mean_deg}}}.
     """
     from tqdm import tqdm
 
@@ -49,6 +56,8 @@ def evaluate_sequences(chain: SafetyChain, loss_fn: Any, sequences: list[dict[st
         pos, att = pose_errors(res.pose, s["targets"])
         clean[s["name"]] = {"fpr": float(res.flag.mean()), "position_mean_m": float(pos.mean()),
                             "attitude_mean_deg": float(att.mean())}
+        traces[(0.0, s["name"])] = {"prob": res.prob, "flag": res.flag, "position_error": pos,
+                                    "estimate_z": res.pose[:, 2], "pose": res.pose}
     for eps in eps_list:
         attack = stored_attack(chain.model, loss_fn, eps)
         for s in sequences:
@@ -63,7 +72,7 @@ def evaluate_sequences(chain: SafetyChain, loss_fn: Any, sequences: list[dict[st
                          "attacked_attitude_deg": mean_over(att, s["attacked"]),
                          "clean_position_m": mean_over(pos, ~s["attacked"])})
             traces[(eps, s["name"])] = {"prob": res.prob, "flag": res.flag, "position_error": pos,
-                                        "estimate_z": res.pose[:, 2]}
+                                        "estimate_z": res.pose[:, 2], "pose": res.pose}
     bar.close()
     return {"rows": rows, "traces": traces, "clean": clean}
 
@@ -156,3 +165,89 @@ def detail_table(summary: list[dict[str, Any]]) -> list[dict[str, Any]]:
              "undetected attacked frames": s["undetected_frames"],
              "pose error, undetected (m)": dash(s["undetected_position_m"]),
              "pose error, all attacked (m)": dash(s["attacked_position_m"])} for s in summary]
+
+
+def defend_trace(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel, trace: dict[str, Any],
+                 R_cam: np.ndarray, u: np.ndarray) -> Any:
+    """One recorded sequence (a trace of `evaluate_sequences`) through a fresh defense, open loop:
+    R_cam (N, 3, 3) camera -> world, u (N, 3) the chaser's displacement of rel per frame (world, m)."""
+    pose = np.asarray(trace["pose"], np.float64)
+    return run_defense(settings, motion, noise, pose[:, :3], trace["prob"], R_cam, u, sixd_to_matrix(pose[:, 3:9]))
+
+
+def defended_summary(traces: dict[tuple[float, str], dict[str, Any]], sequences: list[dict[str, Any]],
+                     eps_list: list[float], settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel,
+                     attack_length: int, harm_m: float) -> list[dict[str, Any]]:
+    """The defended chain per eps, frames pooled over the sequences, every rate a `pipeline.stats.Rate`
+    (bootstrap over sequences, whose frames are correlated).
+
+    Each sequence needs "name", "attacked" (N,), "rel" (N, 3, true rel, world, m), "R_cam" and "u"
+    (see `defend_trace`). Per eps: accuracy (the paper's: correct frames / all frames), tpr, fpr
+    (clean frames between attacks), fpr_clean (the attack-free run), harmful_flagged (attacked
+    frames with position error > harm_m that were flagged), harmful_undetected (harmful and not
+    flagged, over the attacked frames), mean_delay (frames from an attack's start to its first flag,
+    over the flagged attacks), trusted_error_m / trusted_error_attacked_m (mean distance of the
+    trusted estimate to the truth over all / the attacked frames, m).
+    """
+    clean_flags, clean_groups = [], []
+    for g, s in enumerate(sequences):
+        d = defend_trace(settings, motion, noise, traces[(0.0, s["name"])], s["R_cam"], s["u"])
+        clean_flags.append(d.flag)
+        clean_groups.append(np.full(len(d.flag), g))
+    fpr_clean = bootstrap_rate(np.concatenate(clean_flags), np.concatenate(clean_groups))
+    out = []
+    for eps in eps_list:
+        cols: dict[str, list[np.ndarray]] = {k: [] for k in ("flag", "attacked", "harm", "group", "err")}
+        delays = []
+        for g, s in enumerate(sequences):
+            tr = traces[(eps, s["name"])]
+            d = defend_trace(settings, motion, noise, tr, s["R_cam"], s["u"])
+            att = np.asarray(s["attacked"], bool)
+            cols["flag"].append(d.flag)
+            cols["attacked"].append(att)
+            cols["harm"].append(att & (tr["position_error"] > harm_m))
+            cols["group"].append(np.full(len(att), g))
+            cols["err"].append(np.linalg.norm(d.trusted - s["rel"], axis=1))
+            delays.append(detection_delays(schedule_bursts(att, attack_length), d.flag))
+        flag, att, harm, group, err = (np.concatenate(cols[k]) for k in ("flag", "attacked", "harm", "group", "err"))
+        delay = np.concatenate(delays) if delays else np.zeros(0)
+        hit = delay[~np.isnan(delay)]
+        ok = np.isfinite(err)
+        out.append({"eps": float(eps), "accuracy": bootstrap_rate(flag == att, group),
+                    "tpr": bootstrap_rate(flag[att], group[att]), "fpr": bootstrap_rate(flag[~att], group[~att]),
+                    "fpr_clean": fpr_clean, "harmful_frames": int(harm.sum()),
+                    "harmful_flagged": bootstrap_rate(flag[harm], group[harm]),
+                    "harmful_undetected": bootstrap_rate((harm & ~flag)[att], group[att]),
+                    "mean_delay": float(hit.mean()) if len(hit) else float("nan"),
+                    "missed_bursts": int(np.isnan(delay).sum()), "bursts": int(len(delay)),
+                    "trusted_error_m": float(err[ok].mean()) if ok.any() else float("nan"),
+                    "trusted_error_attacked_m": float(err[ok & att].mean()) if (ok & att).any() else float("nan")})
+    return out
+
+
+def rates_json(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """`defended_summary` rows for JSON: every Rate as {"value", "ci": [lo, hi], "n"}."""
+    def conv(v: Any) -> Any:
+        if hasattr(v, "ci") and hasattr(v, "n"):
+            return {"value": float(v.value), "ci": v.ci(), "n": int(v.n)}
+        return v
+
+    return [{k: conv(v) for k, v in r.items()} for r in rows]
+
+
+def defense_table(chains: dict[str, list[dict[str, Any]]]) -> list[dict[str, Any]]:
+    """Rows (eps, chain) of `defended_summary` results: rates in % with 95% intervals."""
+    table = []
+    eps_order = list(dict.fromkeys(r["eps"] for rows in chains.values() for r in rows))
+    for eps in eps_order:
+        for name, rows in chains.items():
+            r = next(x for x in rows if x["eps"] == eps)
+            table.append({"eps": f"{eps:g}", "chain": name, "accuracy %": r["accuracy"].pct(2),
+                          "TPR %": r["tpr"].pct(), "FPR % between attacks": r["fpr"].pct(),
+                          "FPR % attack-free": r["fpr_clean"].pct(),
+                          "harmful flagged %": f"{r['harmful_flagged'].pct()} of {r['harmful_frames']}",
+                          "harmful undetected %": r["harmful_undetected"].pct(),
+                          "mean delay (frames)": dash(r["mean_delay"]),
+                          "trusted error (m)": dash(r["trusted_error_m"]),
+                          "trusted error, attacked (m)": dash(r["trusted_error_attacked_m"])})
+    return table

@@ -205,3 +205,30 @@ def detection_timeline(true_z: np.ndarray, attacked: np.ndarray, trace: Mapping[
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return fig
+
+
+def guidance_variants(runs: Sequence[tuple[str, Any]], goal: Sequence[float], title: str) -> Figure:
+    """True trajectories (m) of one attacked cell flown by each variant (label, RendezvousResult):
+    lateral x against z and z against the step; dots mark attacked frames, crosses flagged ones."""
+    fig = Figure(figsize=(11, 4.2))
+    axes = fig.subplots(1, 2)
+    for j, (label, r) in enumerate(runs):
+        color = f"C{j}"
+        hit = np.flatnonzero(r.attacked)
+        flagged = np.array([], int) if r.flags is None else np.flatnonzero(r.flags)
+        for ax, (h, v) in zip(axes, ((r.positions[:, 2], r.positions[:, 0]),
+                                     (np.arange(len(r.positions)), r.positions[:, 2]))):
+            ax.plot(h, v, "-", color=color, lw=1.2, label=f"{label}: {r.outcome}")
+            ax.plot(h[hit], v[hit], "o", color=color, ms=3)
+            ax.plot(h[flagged + 1], v[flagged + 1], "x", color=color, ms=5)
+    axes[0].plot(goal[2], goal[0], "r*", ms=12, label="target point")
+    axes[0].invert_xaxis()
+    axes[1].axhline(goal[2], color="r", ls="--", lw=1)
+    for ax, xlabel, ylabel in zip(axes, ("z (m, along the approach)", "step"), ("x (m)", "z (m)")):
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7, loc="best")
+    fig.suptitle(f"One attacked run per variant ({title}); dots: attacked frames, crosses: flagged", fontsize=10)
+    fig.tight_layout()
+    return fig

@@ -12,6 +12,13 @@ Control law (per axis): cmd = clip(est - goal, -max_step, max_step).
 - variant "paper": the next true state is computed from the estimate, rel <- est - cmd (the
   paper's simplification: the chaser ends up where it believes it goes);
 - variant "true_state": the command is applied to the true state, rel <- rel - cmd.
+Defense (`GuidanceSettings.defense`, the chain inside the loop; pipeline/defense.py):
+- "undefended": the law acts on every estimate (the paper);
+- "hold": a flagged frame's estimate is not used: the chaser holds (no command) for that frame;
+- "recover": the law acts on the defense's trusted estimate (the motion filter's state, its
+  prediction on flagged frames); in the defense's hold mode the chaser holds.
+A hold sends no command: the chaser stays where it is and keeps its camera pointing. The defense
+gets the commanded displacement of `rel` (-cmd, or 0 in a hold) to drive its motion filter.
 A run lasts `max_steps` steps (the nominal approach 60 m -> 10 m takes 50); it is judged at the
 end: within `tolerance` of the goal or not. It stops early when the target's centre leaves the
 image ("target lost"). The attack starts at the first step whose true range is at or below S
@@ -25,9 +32,11 @@ from typing import Any, Callable
 import numpy as np
 
 from pipeline.camera import Intrinsics
+from pipeline.defense import HOLD as HOLD_MODE, Defense
 from pipeline.trajectories import look_at, pose_in_camera
 
 VARIANTS = ("paper", "true_state")
+DEFENSES = ("undefended", "hold", "recover")
 HELD = "rendezvous held"
 SUCCEEDED = "attack succeeded"
 LOST = "target lost"
@@ -36,8 +45,20 @@ MISSED = "missed without attack"
 RenderFn = Callable[[np.ndarray, np.ndarray], Any]
 """render(R, t) -> image (passed as is to the estimator): target attitude R (target -> camera),
 position t (camera frame, m)."""
-EstimateFn = Callable[[Any, bool, tuple[np.ndarray, np.ndarray]], np.ndarray]
-"""estimate(image, attacked, (R, t) true pose) -> t_pred (3,), camera frame, metres."""
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The chain's output for one frame: t camera-frame position (m), prob the detector's attack
+    probability, R the target -> camera attitude estimate (optional)."""
+
+    t: np.ndarray
+    prob: float = 0.0
+    R: np.ndarray | None = None
+
+
+EstimateFn = Callable[[Any, bool, tuple[np.ndarray, np.ndarray]], "np.ndarray | Estimate"]
+"""estimate(image, attacked, (R, t) true pose) -> t_pred (3,) camera frame (m), or an Estimate."""
 
 
 @dataclass(frozen=True)
@@ -58,10 +79,13 @@ class GuidanceSettings:
     max_step: float = 1.0
     max_steps: int = 60
     variant: str = "paper"
+    defense: str = "undefended"
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown guidance variant {self.variant!r}; choose one of {', '.join(VARIANTS)}")
+        if self.defense not in DEFENSES:
+            raise ValueError(f"unknown guidance defense {self.defense!r}; choose one of {', '.join(DEFENSES)}")
         if self.tolerance <= 0 or self.max_step <= 0 or self.max_steps < 1:
             raise ValueError("guidance tolerance and max_step must be positive and max_steps >= 1, got "
                              f"{self.tolerance}, {self.max_step}, {self.max_steps}")
@@ -82,7 +106,8 @@ class GuidanceSettings:
 @dataclass
 class RendezvousResult:
     """One closed-loop run. positions: (n+1, 3) true rel after each step (first row = start);
-    estimates: (n, 3) world-frame estimates; attacked: (n,) bool; miss: final ||rel - goal|| (m)."""
+    estimates: (n, 3) world-frame estimates; attacked: (n,) bool; miss: final ||rel - goal|| (m);
+    with a defense: flags (n,) bool and modes (n,) str of pipeline/defense.py, else None."""
 
     positions: np.ndarray
     estimates: np.ndarray
@@ -90,6 +115,8 @@ class RendezvousResult:
     outcome: str
     miss: float
     attack_start: int | None
+    flags: np.ndarray | None = None
+    modes: np.ndarray | None = None
 
     @property
     def attacked_frames(self) -> int:
@@ -124,29 +151,48 @@ def guidance_step(est: np.ndarray, rel: np.ndarray, goal: np.ndarray, max_step: 
 
 
 def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settings: GuidanceSettings,
-                   window: AttackWindow | None = None,
-                   target_attitude: np.ndarray | None = None) -> RendezvousResult:
+                   window: AttackWindow | None = None, target_attitude: np.ndarray | None = None,
+                   defense: Defense | None = None) -> RendezvousResult:
     """Fly the closed loop: render the true pose, estimate it (attacked inside the window), move.
 
-    `target_attitude` is the target -> world rotation (identity by default).
+    `target_attitude` is the target -> world rotation (identity by default). `defense` (a fresh
+    pipeline.defense.Defense per run) is required unless settings.defense is "undefended".
     """
+    if (settings.defense == "undefended") != (defense is None):
+        raise ValueError(f"guidance defense {settings.defense!r} needs "
+                         + ("no Defense" if defense is not None else "a Defense (pipeline/defense.py)"))
     R_tw = np.eye(3) if target_attitude is None else np.asarray(target_attitude, dtype=np.float64)
     goal = np.asarray(settings.goal, dtype=np.float64)
     rel = np.asarray(settings.start, dtype=np.float64)
     R_c = look_at(rel)
-    positions, estimates, attacked = [rel], [], []
+    positions, estimates, attacked, flags, modes = [rel], [], [], [], []
     attack_start: int | None = None
     lost = False
+    u = np.zeros(3)
     for k in range(settings.max_steps):
         R, t = pose_in_camera(rel, R_c, R_tw)
         if window is not None and attack_start is None and np.linalg.norm(rel) <= window.start_range + 1e-6:
             attack_start = k
         hit = attack_start is not None and k < attack_start + window.length
-        t_pred = np.asarray(estimate(render(R, t), hit, (R, t)), dtype=np.float64)
-        est = R_c @ t_pred
-        rel, believed = guidance_step(est, rel, goal, settings.max_step, settings.variant)
-        if np.linalg.norm(believed) > 1e-6:
-            R_c = look_at(believed)
+        out = estimate(render(R, t), hit, (R, t))
+        out = out if isinstance(out, Estimate) else Estimate(np.asarray(out, dtype=np.float64))
+        est = R_c @ np.asarray(out.t, dtype=np.float64)
+        act: np.ndarray | None = est
+        if defense is not None:
+            d = defense.step(out.t, out.prob, R_c, u, out.R)
+            flags.append(d.flag)
+            modes.append(d.mode)
+            if settings.defense == "hold":
+                act = None if d.flag else est
+            else:
+                act = None if d.mode == HOLD_MODE else d.trusted
+        if act is None:  # hold: no command, the chaser and its camera stay as they are
+            u = np.zeros(3)
+        else:
+            rel, believed = guidance_step(act, rel, goal, settings.max_step, settings.variant)
+            u = believed - act
+            if np.linalg.norm(believed) > 1e-6:
+                R_c = look_at(believed)
         positions.append(rel)
         estimates.append(est)
         attacked.append(hit)
@@ -162,23 +208,27 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
     else:
         outcome = SUCCEEDED if attacked_arr.any() else MISSED
     return RendezvousResult(np.array(positions), np.array(estimates).reshape(-1, 3), attacked_arr,
-                            outcome, miss, attack_start)
+                            outcome, miss, attack_start,
+                            None if defense is None else np.array(flags, dtype=bool),
+                            None if defense is None else np.array(modes))
 
 
 class CachedCamera:
-    """The chaser's camera and pose CNN for `run_rendezvous`, with an image cache.
+    """The chaser's camera and pose CNN (or the whole safety chain) for `run_rendezvous`, with an image cache.
 
     Every attacked run follows the no-attack baseline until its attack starts, and Cycles and the CNN
-    are deterministic, so each rendered pose's image and clean position estimate are kept. `render`
-    and `estimate` are the RenderFn and EstimateFn; attacked frames go through `attack(x, y)` (images
+    are deterministic, so each rendered pose's image and clean estimate are kept. `render` and
+    `estimate` are the RenderFn and EstimateFn; attacked frames go through `attack(x, y)` (images
     (1, 3, H, W) in [0, 1], labels (1, 9): metres, 6-D) which `self.attack` may be changed to between
-    runs. `counts`: guidance steps, rendered frames, attacked frames.
+    runs. With `chain` (a pipeline.chain.SafetyChain over `model`) `estimate` returns an `Estimate`
+    (position, the detector's probability, attitude) for the defended variants; without it the
+    camera-frame position (m). `counts`: guidance steps, rendered frames, attacked frames.
     """
 
     def __init__(self, render_image: Callable[[np.ndarray, np.ndarray], np.ndarray], model: Any,
-                 attack: Callable[[Any, Any], Any] | None = None):
-        self.render_image, self.model, self.attack = render_image, model, attack
-        self.cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+                 attack: Callable[[Any, Any], Any] | None = None, chain: Any | None = None):
+        self.render_image, self.model, self.attack, self.chain = render_image, model, attack, chain
+        self.cache: dict[bytes, tuple[np.ndarray, np.ndarray | Estimate]] = {}
         self.counts = {"steps": 0, "renders": 0, "attacked": 0}
 
     @staticmethod
@@ -187,9 +237,15 @@ class CachedCamera:
 
         return torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
 
-    def _position(self, x: Any) -> np.ndarray:
+    def _position(self, x: Any) -> np.ndarray | Estimate:
         import torch
 
+        if self.chain is not None:
+            from pipeline.rotations import sixd_to_matrix
+
+            out = self.chain(x)
+            pose = out.pose[0].numpy().astype(np.float64)
+            return Estimate(pose[:3], float(out.prob[0]), sixd_to_matrix(pose[3:9]))
         with torch.no_grad():
             return self.model(x)[0, :3].numpy().astype(np.float64)
 
@@ -203,7 +259,7 @@ class CachedCamera:
         return key, self.cache[key][0]
 
     def estimate(self, rendered: tuple[bytes, np.ndarray], attacked: bool,
-                 pose: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+                 pose: tuple[np.ndarray, np.ndarray]) -> np.ndarray | Estimate:
         import torch
 
         from pipeline.rotations import matrix_to_6d

@@ -2,8 +2,8 @@
 
 Paths are relative to the working folder (the repository root under `dvc repro`). Loaders check what
 they read and raise a StageError naming the file and the stage that writes it:
-- `read_render_store` (render output), `read_eval_render` (eval_render output, checked against
-  params), `load_pose` (pose model, attack loss and file hash from one read of models/pose.pt),
+- `read_render_store` (render output), `read_eval_render` (eval_render output, the evaluation or the
+  defense's validation trajectories, checked against params), `load_defense` (calibrate output), `load_pose` (pose model, attack loss and file hash from one read of models/pose.pt),
   `load_detector`, `load_chain` (pose model + detector), `read_shap_store` (checked SHAP store);
 - `SampleImages`: the image of a SHAP sample (split, label index, eps) from the labelled renders,
   the attack stage's adv.zarr, or the same FGSM (shared by `rpod shap` and `rpod detect`).
@@ -26,6 +26,9 @@ LABELS = Path("datasets/labels.parquet")
 ADV = Path("datasets/attack/adv.zarr")
 SHAP = Path("datasets/shap.zarr")
 EVAL_RENDER = Path("datasets/eval_render")
+VAL_RENDER = Path("datasets/val_render")
+DEFENSE = Path("models/defense.json")
+DEFENSE_FORMAT = "rpodguard-defense/1"
 LAB = Path("datasets/lab")
 LAB_MODELS = Path("datasets/lab_models")
 LAB_MODELS_SUMMARY = LAB_MODELS / "summary.json"
@@ -110,17 +113,92 @@ def eval_render_fingerprint(p: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def read_eval_render(p: dict[str, Any]) -> tuple[np.ndarray, Any, dict[str, Any]]:
-    """The `eval_render` output: (images (N, H, W, 3) uint8, poses table, meta), checked against the current params."""
-    meta = read_json(EVAL_RENDER / "meta.json")
-    if not meta.get("complete") or meta.get("fingerprint") != eval_render_fingerprint(p):
-        raise StageError(f"{EVAL_RENDER} was rendered with other params (or is incomplete); "
+def val_render_fingerprint(p: dict[str, Any]) -> str:
+    """Hash of the params that decide the defense's validation images (datasets/val_render)."""
+    e, d = p["evaluate"], p["defense"]
+    key = {"seed": p["seed"], "camera": p["camera"], "render": p["render"],
+           "evaluate": {k: e[k] for k in ("frames", "lateral_range")},
+           "defense": {k: d[k] for k in ("val_trajectories", "val_seed")}}
+    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def read_eval_render(p: dict[str, Any], validation: bool = False) -> tuple[np.ndarray, Any, dict[str, Any]]:
+    """The `eval_render` output: (images (N, H, W, 3) uint8, poses table, meta), checked against the
+    current params; the evaluation trajectories, or with `validation` the defense's (datasets/val_render)."""
+    folder, fingerprint = (VAL_RENDER, val_render_fingerprint(p)) if validation else (EVAL_RENDER,
+                                                                                   eval_render_fingerprint(p))
+    meta = read_json(folder / "meta.json")
+    if not meta.get("complete") or meta.get("fingerprint") != fingerprint:
+        raise StageError(f"{folder} was rendered with other params (or is incomplete); "
                          f"run `rpod eval_render` (dvc repro eval_render)")
-    images = open_zarr(EVAL_RENDER / "images.zarr", "evaluation renders")["images"][:]
-    poses = read_parquet(EVAL_RENDER / "poses.parquet", "evaluation poses")
+    images = open_zarr(folder / "images.zarr", "evaluation renders")["images"][:]
+    poses = read_parquet(folder / "poses.parquet", "evaluation poses")
     if len(images) != len(poses) or len(poses) != meta["frames"]:
-        raise StageError(f"{EVAL_RENDER} is inconsistent; delete it and run `rpod eval_render`")
+        raise StageError(f"{folder} is inconsistent; delete it and run `rpod eval_render`")
     return images, poses, meta
+
+
+def chaser_motion(poses: Any) -> tuple[np.ndarray, np.ndarray]:
+    """What the chaser knows of itself on an eval_render trajectory table: camera attitudes (N, 3, 3,
+    camera -> world) and the commanded displacement of rel since the previous frame (N, 3, world, m;
+    zero on each trajectory's first frame)."""
+    R_cam = poses[[f"c{j}" for j in range(9)]].to_numpy(np.float64).reshape(-1, 3, 3)
+    rel = poses[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64)
+    u = np.zeros_like(rel)
+    u[1:] = np.diff(rel, axis=0)
+    u[np.r_[True, np.diff(poses["trajectory"].to_numpy()) != 0]] = 0.0
+    return R_cam, u
+
+
+@dataclass(frozen=True)
+class DefenseModel:
+    """The calibrated defense (models/defense.json): settings from params.defense, the detector's
+    threshold and the measurement-noise model fitted on validation trajectories."""
+
+    settings: Any        # pipeline.defense.DefenseSettings
+    motion: Any          # pipeline.motion.MotionSettings
+    noise: Any           # pipeline.motion.NoiseModel
+    calibration: dict[str, Any]
+
+    def new(self, fusion: str | None = None) -> Any:
+        """A fresh pipeline.defense.Defense (one per trajectory or closed-loop run), optionally with another fusion."""
+        import dataclasses
+
+        from pipeline.defense import Defense
+
+        s = self.settings if fusion is None else dataclasses.replace(self.settings, fusion=fusion)
+        return Defense(s, self.motion, self.noise)
+
+
+def defense_settings(p: dict[str, Any], threshold: float) -> tuple[Any, Any]:
+    """(DefenseSettings, MotionSettings) of params.defense with the detector's `threshold`."""
+    from pipeline.defense import DefenseSettings
+    from pipeline.motion import MotionSettings
+
+    d = p["defense"]
+    try:
+        return (DefenseSettings(d["fusion"], d["hold_after"], d["release_after"], threshold, d["update_below"]),
+                MotionSettings(d["position_noise"], d["velocity_noise"], d["attitude_noise_deg"],
+                               d["attitude_rate_noise_deg"], d["false_alarm"], d["soft_gate"], d["reacquire_after"]))
+    except ValueError as e:
+        raise StageError(f"params.yaml: {e}") from None
+
+
+def load_defense(p: dict[str, Any], model_hash: str, threshold: float) -> DefenseModel:
+    """models/defense.json checked against the pose model and detector it was calibrated with, and params."""
+    from pipeline.motion import NoiseModel
+
+    cal = read_json(DEFENSE)
+    if cal.get("format") != DEFENSE_FORMAT:
+        raise StageError(f"{DEFENSE} is not a {DEFENSE_FORMAT} file; re-run `rpod calibrate`")
+    if cal.get("pose_model_hash") != model_hash or abs(float(cal.get("threshold", -1)) - threshold) > 1e-9:
+        raise StageError(f"{DEFENSE} was calibrated for another pose model or detector; re-run `rpod calibrate`")
+    try:
+        noise = NoiseModel(**{k: tuple(v) if isinstance(v, list) else v for k, v in cal["noise"].items()})
+    except (KeyError, TypeError, ValueError) as e:
+        raise StageError(f"{DEFENSE}: bad noise model ({e}); re-run `rpod calibrate`") from None
+    settings, motion = defense_settings(p, threshold)
+    return DefenseModel(settings, motion, noise, cal)
 
 
 def read_shap_store(path: Path, model_hash: str) -> dict[str, Any]:

@@ -3,11 +3,13 @@
 On the trajectories `rpod eval_render` rendered into datasets/eval_render/ it runs, per eps and
 trajectory, every frame through
   image -> (FGSM against that frame's true label when the schedule says so) -> pose -> exact SHAP
-  -> detector flag, and writes reports/integrated.md, reports/figures/timeline.png and
-  reports/metrics/evaluate.json.
+  -> detector flag, then the recorded frames through the defense calibrated by `rpod calibrate`
+  (motion check fused with the detector, pipeline/defense.py), and writes reports/integrated.md,
+  reports/figures/timeline.png and reports/metrics/evaluate.json (the defended chain under `fused`).
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 from typing import Any
@@ -16,8 +18,9 @@ import numpy as np
 import typer
 
 from stages import params as params_mod
-from stages.artifacts import load_chain, read_eval_render
+from stages.artifacts import chaser_motion, load_chain, load_defense, read_eval_render
 from stages.io import atomic_write_text, save_figure, write_metrics
+from stages.pages.evaluate import defense_section
 from stages.schema import Evaluate
 
 REPORT = Path("reports/integrated.md")
@@ -34,27 +37,35 @@ def main() -> None:
     """Detect FGSM attacks frame by frame on fresh trajectories with the whole safety chain (SPEC 8).
 
     Params: `evaluate` (trajectories, frames, lateral_range, p_start, attack_length, eps, seed,
-    batch_size), plus `render`/`camera` for the images and `attack.loss` for the FGSM loss.
+    batch_size), `defense`, plus `render`/`camera` for the images and `attack.loss` for the FGSM loss.
     """
     p = params_mod.load()
     e = params_mod.typed(p).evaluate
-    from pipeline.evaluation import evaluate_sequences, nan_to_none, per_eps_summary
+    from pipeline.evaluation import defended_summary, evaluate_sequences, nan_to_none, per_eps_summary, rates_json
     from pipeline.figures import detection_timeline
     from pipeline.schedule import attack_schedule
 
     params_mod.set_threads(p)
     images, poses, meta = read_eval_render(p)
     chain, loss_fn, model_hash = load_chain(p)
+    defense = load_defense(p, model_hash, chain.threshold)
     eps_list, length = e.eps, e.attack_length
     sequences = []
     for tr, g in poses.groupby("trajectory", sort=True):
         idx = g["index"].to_numpy()
+        R_cam, u = chaser_motion(g)
         sequences.append({"name": f"T{int(tr) + 1}", "images": images[idx], "poses": g.reset_index(drop=True),
-                          "targets": g[TARGET].to_numpy(np.float32),
+                          "targets": g[TARGET].to_numpy(np.float32), "R_cam": R_cam, "u": u,
+                          "rel": g[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64),
                           "attacked": attack_schedule(len(idx), e.p_start, length,
                                                       e.seed + SCHEDULE_SEED_OFFSET + int(tr))})
     t0 = time.perf_counter()
     res = evaluate_sequences(chain, loss_fn, sequences, eps_list, length, e.batch_size, "evaluate")
+    harm = params_mod.typed(p).defense.harm_m
+    fused = {name: defended_summary(res["traces"], sequences, eps_list, defense.settings if fusion is None else
+                                    dataclasses.replace(defense.settings, fusion=fusion), defense.motion,
+                                    defense.noise, length, harm)
+             for name, fusion in (("paper (LSTM alone)", "paper"), (f"defended ({defense.settings.fusion})", None))}
     seconds = time.perf_counter() - t0
     summary = per_eps_summary(res["rows"])
     eps_fig = min(eps_list)
@@ -69,10 +80,14 @@ def main() -> None:
                "per_eps": {f"{r['eps']:g}": r for r in summary},
                "rows": res["rows"], "clean": res["clean"],
                "attacked_fraction": {s["name"]: float(s["attacked"].mean()) for s in sequences},
-               "start_xy": meta["start_xy"]}
+               "start_xy": meta["start_xy"],
+               "fused": {"fusion": defense.settings.fusion, "harm_m": harm,
+                         "per_eps": {f"{r['eps']:g}": r for r in rates_json(list(fused.values())[-1])},
+                         "paper_per_eps": {f"{r['eps']:g}": r for r in rates_json(fused["paper (LSTM alone)"])}}}
     write_metrics(METRICS, nan_to_none(metrics), p)
     atomic_write_text(REPORT, report(res["rows"], summary, res["clean"], sequences, e, meta, chain.threshold,
-                                     eps_fig, str(p.get("profile_name", "?"))))
+                                     eps_fig, str(p.get("profile_name", "?")))
+                      + defense_section(fused, defense.calibration, harm, e.attack_length))
     typer.echo(f"evaluate: {len(sequences)} trajectories x {len(eps_list)} eps in {seconds:.0f} s; mean accuracy "
                f"{100 * metrics['accuracy_mean']:.2f}% -> {REPORT}, {FIGURE}")
 

@@ -2,7 +2,11 @@
 
 Runs a no-attack baseline and every (eps, start range S, length K) of params with one Renderer at
 the pose model's input size; writes reports/guidance.md (one S x K table per eps),
-reports/figures/guidance_trajectories.png and reports/metrics/guidance.json.
+reports/figures/guidance_trajectories.png and reports/metrics/guidance.json. With the safety chain
+inside the loop (SPEC 11) it flies every cell again for each of `guidance.dynamics` and each of
+undefended / `guidance.defenses` (detect-and-hold, detect-and-recover; a fresh calibrated defense
+from models/defense.json per run) -> the defended section of the report, metrics `defended`, and
+reports/figures/guidance_defended.png (one run per variant).
 """
 from __future__ import annotations
 
@@ -16,11 +20,13 @@ import numpy as np
 import typer
 
 from stages import params as params_mod
-from stages.artifacts import load_pose
+from stages.artifacts import load_chain, load_defense
 from stages.io import StageError, atomic_write_text, save_figure, write_metrics
+from stages.pages.guidance import defended_section
 
 REPORT = Path("reports/guidance.md")
 FIGURE = Path("reports/figures/guidance_trajectories.png")
+DEFENDED_FIGURE = Path("reports/figures/guidance_defended.png")
 METRICS = Path("reports/metrics/guidance.json")
 SEED_OFFSET = 500
 
@@ -51,8 +57,8 @@ def main() -> None:
     """Fly the closed loop without attack and under every (eps, S, K) attack window; report outcomes."""
     from tqdm import tqdm
 
-    from pipeline.attacks import attack_loss, stored_attack
-    from pipeline.figures import guidance_trajectories
+    from pipeline.attacks import stored_attack
+    from pipeline.figures import guidance_trajectories, guidance_variants
     from pipeline.guidance import CachedCamera, arrival_step, run_rendezvous
     from pipeline.scene import Renderer
 
@@ -62,12 +68,13 @@ def main() -> None:
     a = p["attack"]
     params_mod.set_threads(p)
     attack = params_mod.make_attack(a, g["method"], int(p["seed"]) + SEED_OFFSET)
-    pose = load_pose(p)  # refuses a checkpoint whose input size is not render.width x height
-    model, loss_fn = pose.model, attack_loss(a["loss"], pose.loss)
+    chain, loss_fn, model_hash = load_chain(p)  # refuses a pose model whose input size is not render.width x height
+    defense = load_defense(p, model_hash, chain.threshold)
+    model = chain.model
     K = params_mod.intrinsics(p)  # the model's input size
 
     with Renderer(K, params_mod.scene_settings(p["render"])) as renderer:
-        camera = CachedCamera(renderer.render, model)
+        camera = CachedCamera(renderer.render, model, chain=chain)
         t0 = time.perf_counter()
         baseline = run_rendezvous(camera.render, camera.estimate, K, settings)
         # Attacked runs get the steps the unattacked chaser needed plus slack_steps: an attack succeeds
@@ -80,11 +87,15 @@ def main() -> None:
             camera.attack = stored_attack(model, loss_fn, eps, attack)
             runs.append((eps, s, k, run_rendezvous(camera.render, camera.estimate, K, attacked_settings, window)))
         seconds = time.perf_counter() - t0
-    counts = camera.counts
+        counts = dict(camera.counts)      # the paper's grid alone
+        defended = _defended(camera, K, settings, grid, g, defense, (baseline, runs),
+                             lambda eps: stored_attack(model, loss_fn, eps, attack))
+        defended["seconds"] = time.perf_counter() - t0 - seconds
+        defended.update({k: v - counts[k] for k, v in camera.counts.items()})
 
     metrics = {
         "variant": settings.variant, "method": g["method"], "loss": a["loss"], "max_steps": settings.max_steps,
-        "tolerance": settings.tolerance, "model_hash": pose.hash, "seconds": seconds, **counts,
+        "tolerance": settings.tolerance, "model_hash": model_hash, "seconds": seconds, **counts,
         "baseline": {"outcome": baseline.outcome, "miss_m": baseline.miss, "arrival_step": arrival},
         "horizon": horizon, "slack_steps": int(g["slack_steps"]),
         "runs": [{"eps": e, "start_range": s, "length": k, "outcome": r.outcome, "miss_m": r.miss,
@@ -93,16 +104,80 @@ def main() -> None:
     }
     metrics["attack_success_rate"] = {f"{e:g}": float(np.mean([r.outcome != "rendezvous held" for e2, _, _, r in runs
                                                                if e2 == e])) for e in dict.fromkeys(e for e, *_ in runs)}
+    metrics["defended"] = {k: v for k, v in defended.items() if k != "example"}
     write_metrics(METRICS, metrics, p)
-    atomic_write_text(REPORT, _report(metrics, g, a, p["render"]))
+    atomic_write_text(REPORT, _report(metrics, g, a, p["render"]) + defended_section(metrics["defended"], g))
     save_figure(guidance_trajectories(baseline, [(s, k, r) for e, s, k, r in runs if e == runs[0][0]] if runs else [],
                                       runs[0][0] if runs else None, settings.goal), FIGURE)
+    save_figure(guidance_variants(defended["example"]["runs"], settings.goal, defended["example"]["title"]),
+                DEFENDED_FIGURE)
     typer.echo(f"guidance: baseline {baseline.outcome} ({baseline.miss:.2f} m); {len(runs)} attacked runs, "
-          f"{counts['renders']} renders for {counts['steps']} steps in {seconds:.0f} s -> {REPORT}")
+          f"{counts['renders']} renders for {counts['steps']} steps in {seconds:.0f} s; defended grid "
+          f"{defended['renders']} renders for {defended['steps']} steps in {defended['seconds']:.0f} s -> {REPORT}")
     if baseline.outcome != "rendezvous held":
         typer.secho(f"warning: the no-attack baseline did not reach the target ({baseline.outcome}, miss "
                     f"{baseline.miss:.2f} m): the pose model is not good enough for closed-loop guidance, so the "
                     f"attack tables say little; see {REPORT}", fg=typer.colors.YELLOW, err=True)
+
+
+def _defended(camera: Any, K: Any, settings: Any, grid: list[Any], g: dict[str, Any], defense: Any,
+              paper: tuple[Any, list[Any]], attack_at: Any) -> dict[str, Any]:
+    """Every (eps, S, K) cell for each of guidance.dynamics, undefended and each of guidance.defenses.
+
+    Undefended runs last the baseline arrival + slack_steps (as the paper's tables); a defended run
+    gets its own no-attack baseline's arrival + slack_steps + K: detect-and-hold sends no command on a
+    flagged frame, so it may arrive up to K steps late without being diverted.
+    """
+    from tqdm import tqdm
+
+    from pipeline.guidance import HELD, arrival_step, run_rendezvous
+
+    out: dict[str, Any] = {"dynamics": {}, "defenses": list(g["defenses"])}
+    bar = tqdm(total=len(g["dynamics"]) * (1 + len(g["defenses"])) * (len(grid) + 1), desc="guidance defended",
+               unit="run")
+    example: list[tuple[str, Any]] = []
+    for dyn in g["dynamics"]:
+        dyn_runs: dict[str, Any] = {}
+        for variant in ["undefended", *g["defenses"]]:
+            s = dataclasses.replace(settings, variant=dyn, defense=variant)
+            new = (lambda: None) if variant == "undefended" else defense.new
+            if variant == "undefended" and dyn == settings.variant:
+                base, cells = paper[0], paper[1]
+                bar.update(1 + len(grid))
+            else:
+                camera.attack = None
+                base = run_rendezvous(camera.render, camera.estimate, K, s, defense=new())
+                bar.update(1)
+                cells = []
+            arrival = arrival_step(base, settings.goal, settings.tolerance)
+            extra = 0 if variant == "undefended" else 1
+            if not cells:
+                for eps, S, k, window in grid:
+                    h = settings.max_steps if arrival is None else min(settings.max_steps,
+                                                                       arrival + int(g["slack_steps"]) + extra * k)
+                    camera.attack = attack_at(eps)
+                    cells.append((eps, S, k, run_rendezvous(camera.render, camera.estimate, K,
+                                                            dataclasses.replace(s, max_steps=h), window,
+                                                            defense=new())))
+                    bar.update(1)
+            dyn_runs[variant] = {
+                "baseline": {"outcome": base.outcome, "miss_m": base.miss, "arrival_step": arrival,
+                             "flags": None if base.flags is None else int(base.flags.sum())},
+                "runs": [{"eps": e, "start_range": S, "length": k, "outcome": r.outcome, "miss_m": r.miss,
+                          "attacked_frames": r.attacked_frames, "steps": len(r.estimates),
+                          "flags": None if r.flags is None else int(r.flags.sum()),
+                          "hold_steps": None if r.modes is None else int((r.modes == "hold").sum())}
+                         for e, S, k, r in cells],
+                "held": {f"{e:g}": [int(sum(r.outcome == HELD for e2, _, _, r in cells if e2 == e)),
+                                    int(sum(e2 == e for e2, *_ in cells))] for e in dict.fromkeys(c[0] for c in cells)}}
+            if grid and dyn == g["dynamics"][-1]:
+                pick = max(range(len(grid)), key=lambda i: (grid[i][0], grid[i][2], -grid[i][1]))
+                example.append((variant, cells[pick][3]))
+        out["dynamics"][dyn] = dyn_runs
+    bar.close()
+    e, S, k, _ = max(grid, key=lambda c: (c[0], c[2], -c[1])) if grid else (0.0, 0.0, 0, None)
+    out["example"] = {"runs": example, "title": f"{g['dynamics'][-1]} dynamics, eps = {e:g}, S = {S:g} m, K = {k}"}
+    return out
 
 
 def _horizon_text(m: dict[str, Any]) -> str:

@@ -111,8 +111,10 @@ class Guidance:
     max_step: float              # metres per step per axis
     max_steps: int
     slack_steps: int
-    variant: str                 # paper | true_state
+    variant: str                 # paper | true_state: the dynamics of the paper's S x K tables
     method: str
+    dynamics: list[Literal["paper", "true_state"]]   # dynamics of the defended comparison (SPEC 11)
+    defenses: list[Literal["hold", "recover"]]       # defended variants flown beside the undefended one
 
 
 @dataclass(frozen=True)
@@ -171,6 +173,48 @@ class Evaluate:
             raise ValueError(f"eps must be a non-empty list of values in (0, 1], got {self.eps}")
         if self.batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
+
+
+@dataclass(frozen=True)
+class Defense:
+    """SPEC 11, pipeline/motion.py and pipeline/defense.py; bad values are refused naming defense.<key>."""
+
+    fusion: Literal["or", "paper", "motion"]   # or: detector or motion gate | paper: detector alone | motion: gate alone
+    false_alarm: float           # gate false-alarm probability per frame on consistent motion, in (0, 1)
+    position_noise: float        # metres per frame: std of the unmodelled displacement, > 0
+    velocity_noise: float        # metres per frame per frame: std of the drift-velocity change, > 0
+    attitude_noise_deg: float    # degrees per frame: std of the unmodelled target rotation, > 0
+    attitude_rate_noise_deg: float   # degrees per frame per frame: std of the target rate change, > 0
+    soft_gate: float             # fraction of the gate's NIS above which accepted frames are down-weighted, (0, 1]
+    reacquire_after: int         # frames (M >= 2): agreeing rejected frames that restart the filter
+    hold_after: int              # frames (K >= 1): consecutive flags that declare the estimate lost -> hold
+    release_after: int           # frames (>= 1): consecutive clean frames that end a hold
+    update_below: Optional[float]    # detector probability in (0, 1) from which a frame does not update the
+                                     # filter; None: the detector's threshold
+    noise_bins: int              # range bins of the measurement-noise fit (>= 2)
+    val_trajectories: int        # validation approaches (own seed) the noise model is fitted on (>= 1)
+    val_seed: int                # their seed: never evaluate.seed
+    harm_m: float                # metres: an attacked frame with a larger position error is harmful (SPEC 11)
+
+    def __post_init__(self) -> None:
+        def bad(key: str, rule: str) -> ParamsError:
+            return ParamsError(f"params.yaml defense.{key} must be {rule}, got {getattr(self, key)!r}")
+
+        for key in ("position_noise", "velocity_noise", "attitude_noise_deg", "attitude_rate_noise_deg"):
+            if not getattr(self, key) > 0:
+                raise bad(key, "> 0 (a noise std)")
+        if not 0 < self.false_alarm < 1:
+            raise bad("false_alarm", "a gate probability in (0, 1)")
+        if not 0 < self.soft_gate <= 1:
+            raise bad("soft_gate", "in (0, 1]")
+        if self.update_below is not None and not 0 < self.update_below < 1:
+            raise bad("update_below", "null or a probability in (0, 1)")
+        for key, low in (("hold_after", 1), ("release_after", 1), ("reacquire_after", 2), ("noise_bins", 2),
+                         ("val_trajectories", 1)):
+            if getattr(self, key) < low:
+                raise bad(key, f"a whole number >= {low}")
+        if not self.harm_m > 0:
+            raise bad("harm_m", "> 0 (metres)")
 
 
 @dataclass(frozen=True)
@@ -257,12 +301,16 @@ class Params:
     shap: Shap
     detect: Detect
     evaluate: Evaluate
+    defense: Defense
     lab: Lab
     report: Report = field(default_factory=Report)
 
     def __post_init__(self) -> None:
         if self.threads < 1:
             raise ValueError(f"threads must be a whole number >= 1, got {self.threads}")
+        if self.defense.val_seed == self.evaluate.seed:
+            raise ValueError("defense.val_seed must differ from evaluate.seed: the defense is fitted on "
+                             "validation trajectories, never on the evaluation ones")
 
 
 def _check(value: Any, hint: Any, key: str) -> Any:
@@ -314,6 +362,8 @@ def _build(cls: type, section: Any, key: str) -> Any:
         values[name] = _check(section[name], hints[name], sub)
     try:
         return cls(**values)
+    except ParamsError:
+        raise                        # already names its key in full
     except ValueError as e:
         raise ParamsError(f"params.yaml {key + ': ' if key else ''}{e}") from None
 

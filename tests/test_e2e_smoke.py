@@ -20,7 +20,7 @@ REPO = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).parent
 REPORTS = ["dataset", "pose", "attack", "guidance", "detector", "integrated", "lab", "benchmarks", "README"]
 METRICS = ["train", "attack", "guidance", "detect", "evaluate", "lab"]
-FIGURES = ["fgsm_example", "guidance_trajectories", "timeline", "pose_errors", "error_vs_eps", "shap_heatmaps", "roc"]
+FIGURES = ["fgsm_example", "guidance_trajectories", "guidance_defended", "timeline", "pose_errors", "error_vs_eps", "shap_heatmaps", "roc"]
 
 
 def _run(args: list[str], cwd: Path, env: dict[str, str], timeout: float = 900) -> str:
@@ -104,11 +104,21 @@ def test_every_table_has_the_expected_rows(smoke_repo):
     detectors = rows_under(page("detector"), "Comparison with baselines", "detector")
     assert len(detectors) == 5 and detectors[0].startswith("LSTM")
     assert rows_under(page("integrated"), "Detection accuracy", "eps") == [*eps(p["evaluate"]["eps"]), "average"]
+    fused = [r for h, head, r in tables(page("integrated")) if h.startswith("The defended chain") and "chain" in head]
+    assert fused and fused[0] == [e for e in eps(p["evaluate"]["eps"]) for _ in range(2)]   # paper's and defended
+    m = json.loads((dst / "reports" / "metrics" / "evaluate.json").read_text())
+    assert set(m["fused"]["per_eps"]) == set(eps(p["evaluate"]["eps"]))
+    assert {"accuracy", "tpr", "fpr", "fpr_clean", "harmful_undetected"} <= set(m["fused"]["per_eps"][eps(p["evaluate"]["eps"])[0]])
+    variants = rows_under(page("guidance"), "The chain inside the loop", "dynamics")
+    assert variants == [d for d in p["guidance"]["dynamics"] for _ in range(1 + len(p["guidance"]["defenses"]))]
     assert rows_under(page("lab"), "Integrated detection", "eps") == [*eps(p["evaluate"]["eps"]), "average"]
     assert rows_under(page("lab"), "FGSM on the lab sequences", "eps") == ["clean", *eps(p["attack"]["eps"])]
 
     summary = rows_under(page("README"), "Summary against the paper", "result")
     assert len(summary) == 9 and summary[0].startswith("pose")
+    defended = [r for h, head, r in tables(page("README")) if "defended chain (or)" in head]
+    assert defended and defended[0][0].startswith("integrated accuracy at eps")
+    assert sum(r.startswith("closed loop") for r in defended[0]) == len(p["guidance"]["dynamics"])
     readme = (dst / "README.md").read_text()
     assert "Profile `smoke`" in readme, "rpod report --sync-readme did not copy the results into README.md"
 

@@ -36,3 +36,53 @@ def test_nan_to_none_makes_results_json_safe():
     out = nan_to_none({"a": float("nan"), "b": [1.0, float("nan"), {"c": math.nan}], "d": "x"})
     assert out == {"a": None, "b": [1.0, None, {"c": None}], "d": "x"}
     json.dumps(out, allow_nan=False)
+
+
+def _approach(n=60, seed=0, offset=(4.0, 0.0, 3.0), attacked=None):
+    """A straight approach rel (world, m) with a still camera looking along +z, seeded estimate noise
+    and `offset` (camera frame, m) on the attacked frames, which the detector does not see (prob 0)."""
+    import numpy as np
+
+    from pipeline.rotations import matrix_to_6d
+
+    rng = np.random.default_rng(seed)
+    rel = np.column_stack([np.full(n, 2.0), np.full(n, -1.0), np.linspace(40.0, 25.25, n)])
+    R_cam = np.repeat(np.eye(3)[None], n, axis=0)
+    u = np.zeros((n, 3))
+    u[1:] = np.diff(rel, axis=0)
+    att = np.zeros(n, bool) if attacked is None else attacked
+    est = rel + rng.normal(0, 0.03, (n, 3)) + np.where(att[:, None], np.asarray(offset), 0.0)
+    pose = np.column_stack([est, np.repeat(matrix_to_6d(np.eye(3))[None], n, axis=0)])
+    err = np.linalg.norm(est - rel, axis=1)
+    return rel, R_cam, u, att, pose, err
+
+
+def test_defended_summary_flags_what_the_detector_misses_with_intervals():
+    import numpy as np
+
+    from pipeline.defense import DefenseSettings
+    from pipeline.evaluation import defended_summary, defense_table, rates_json
+    from pipeline.motion import MotionSettings, NoiseModel
+
+    noise = NoiseModel((0.05, 0.05, 0.1), (0.0, 0.0, 0.0), 1.0, 0.0)
+    traces, seqs = {}, []
+    for g in range(3):
+        att = np.zeros(60, bool)
+        att[20 + g:30 + g] = True
+        rel, R_cam, u, att, pose, err = _approach(seed=g, attacked=att)
+        _, _, _, _, clean_pose, clean_err = _approach(seed=10 + g)
+        name = f"T{g + 1}"
+        seqs.append({"name": name, "attacked": att, "rel": rel, "R_cam": R_cam, "u": u})
+        traces[(0.5, name)] = {"pose": pose, "prob": np.zeros(60), "position_error": err}
+        traces[(0.0, name)] = {"pose": clean_pose, "prob": np.zeros(60), "position_error": clean_err}
+    chains = {f: defended_summary(traces, seqs, [0.5], DefenseSettings(fusion=f), MotionSettings(), noise, 10, 1.0)
+              for f in ("paper", "or")}
+    paper, fused = chains["paper"][0], chains["or"][0]
+    assert paper["tpr"].value == 0.0 and paper["harmful_undetected"].value == 1.0   # the detector sees nothing
+    assert fused["tpr"].value == 1.0 and fused["harmful_flagged"].value == 1.0 and fused["harmful_frames"] == 30
+    assert fused["fpr_clean"].value == 0.0 and fused["fpr"].value <= 0.02 and fused["mean_delay"] == 0.0
+    assert fused["accuracy"].n == 180 and fused["accuracy"].lo <= fused["accuracy"].value <= fused["accuracy"].hi
+    assert fused["trusted_error_attacked_m"] < 0.5        # coasting through the attack, not trusting it
+    rows = defense_table({"paper": chains["paper"], "fused": chains["or"]})
+    assert [(r["eps"], r["chain"]) for r in rows] == [("0.5", "paper"), ("0.5", "fused")]
+    assert rows[1]["TPR %"].startswith("100.0 [") and rates_json(chains["or"])[0]["tpr"]["n"] == 30

@@ -1,6 +1,8 @@
 """Closed-loop guidance with stand-in renderers and estimators (no Blender, no torch)."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -145,3 +147,54 @@ def test_arrival_step_is_when_the_chaser_reaches_the_goal_for_good():
     assert arrival_step(run, (0.0, 0.0, 10.0), 1.0) == 4
     short = RendezvousResult(run.positions[:4], np.zeros((3, 3)), np.zeros(3, bool), "missed without attack", 4.0, None)
     assert arrival_step(short, (0.0, 0.0, 10.0), 1.0) is None
+
+
+def _defense():
+    from pipeline.defense import Defense, DefenseSettings
+    from pipeline.motion import MotionSettings, NoiseModel
+
+    return Defense(DefenseSettings(hold_after=20), MotionSettings(false_alarm=0.005),
+                   NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02))
+
+
+def noisy_attacked(offset, seed=0):
+    """Small seeded estimate noise; `offset` (camera frame, m) on attacked frames, which the
+    detector misses (probability 0): only the motion check can catch them."""
+    from pipeline.guidance import Estimate
+
+    rng = np.random.default_rng(seed)
+    return lambda image, attacked, pose: Estimate(pose[1] + rng.normal(0, 0.03, 3) + (np.asarray(offset) if attacked else 0.0), 0.0)
+
+
+@pytest.mark.parametrize("variant", ["paper", "true_state"])
+def test_recovery_keeps_the_rendezvous_on_course_through_a_15_frame_attack(variant):
+    from pipeline.defense import COAST
+
+    s = GuidanceSettings(variant=variant, max_steps=60)
+    attack = noisy_attacked([5.0, 0.0, 3.0])
+    undefended = run_rendezvous(blank, attack, K, s, s.window(20, 15))
+    assert undefended.outcome in (SUCCEEDED, LOST)
+    r = run_rendezvous(blank, noisy_attacked([5.0, 0.0, 3.0]), K, dataclasses.replace(s, defense="recover"),
+                       s.window(20, 15), defense=_defense())
+    assert r.outcome == HELD and r.miss < 0.5
+    assert r.flags[r.attacked].all() and (r.modes[r.attacked] == COAST).all()
+    assert not r.flags[~r.attacked].any()
+    if variant == "true_state":  # the paper variant places the chaser at its (noisy) belief
+        assert np.abs(np.diff(r.positions, axis=0)).max() <= 1.0 + 1e-9
+
+
+def test_detect_and_hold_stops_the_chaser_while_flagged_and_resumes():
+    s = GuidanceSettings(variant="true_state", max_steps=75, defense="hold")
+    r = run_rendezvous(blank, noisy_attacked([5.0, 0.0, 3.0]), K, s, s.window(20, 15), defense=_defense())
+    hit = np.flatnonzero(r.attacked)
+    assert r.flags[hit].all()
+    assert np.allclose(r.positions[hit + 1], r.positions[hit[0]])     # held in place during the attack
+    assert r.outcome == HELD
+
+
+def test_defense_settings_and_defense_object_must_agree():
+    s = GuidanceSettings(defense="recover")
+    with pytest.raises(ValueError, match="needs a Defense"):
+        run_rendezvous(blank, perfect, K, s)
+    with pytest.raises(ValueError, match="unknown guidance defense 'magic'"):
+        GuidanceSettings(defense="magic")

@@ -235,11 +235,17 @@ def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
     runner = CliRunner()
     out = runner.invoke(app, ["evaluate"])
     assert out.exit_code != 0 and "eval_render" in str(out.exception)       # renders not there yet
-    for args in (["eval_render"], ["evaluate"], ["lab_models"], ["lab"]):
+    assert runner.invoke(app, ["eval_render"]).exit_code == 0
+    out = runner.invoke(app, ["evaluate"])
+    assert out.exit_code != 0 and "models/defense.json not found" in str(out.exception)   # not calibrated yet
+    for args in (["calibrate"], ["evaluate"], ["lab_models"], ["lab"]):
         out = runner.invoke(app, args)
         assert out.exit_code == 0, (args, out.output, out.exception)
+    cal = json.loads((tmp_path / "models/defense.json").read_text())
+    assert cal["validation"]["frames"] == 2 * 12 and cal["validation"]["seed"] == p["defense"]["val_seed"]
     ev = json.loads((tmp_path / "reports/metrics/evaluate.json").read_text())
     assert set(ev["per_eps"]) == {"0.5", "0.05"} and len(ev["rows"]) == 2
+    assert set(ev["fused"]["per_eps"]) == {"0.5", "0.05"} and ev["fused"]["per_eps"]["0.5"]["tpr"]["n"] > 0
     assert (tmp_path / "reports/figures/timeline.png").stat().st_size > 1000
     assert "| 0.5 " in (tmp_path / "reports/integrated.md").read_text()
     lab = json.loads((tmp_path / "reports/metrics/lab.json").read_text())

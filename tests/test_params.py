@@ -29,6 +29,16 @@ def test_every_profile_builds_typed_params(profile):
     (("lab", "zed", {"width": 1920}), r"missing parameter 'lab.zed.height'"),
     (("detect", "baselines", ["mlp", "knn"]), r"detect.baselines\[1\] must be one of mlp, mahalanobis, lid, squeeze"),
     (("detect", "val_fraction", 1.0), r"detect: val_fraction must be in \(0, 1\), got 1.0"),
+    (("defense", "position_noise", 0.0), r"defense.position_noise must be > 0 \(a noise std\), got 0.0"),
+    (("defense", "attitude_noise_deg", -1.0), r"defense.attitude_noise_deg must be > 0"),
+    (("defense", "false_alarm", 1.0), r"defense.false_alarm must be a gate probability in \(0, 1\), got 1.0"),
+    (("defense", "false_alarm", 0), r"defense.false_alarm must be a gate probability in \(0, 1\), got 0.0"),
+    (("defense", "hold_after", 0), r"defense.hold_after must be a whole number >= 1, got 0"),
+    (("defense", "fusion", "and"), r"defense.fusion must be one of or, paper, motion"),
+    (("defense", "update_below", None), None),
+    (("defense", "val_seed", 1000), r"defense.val_seed must differ from evaluate.seed"),
+    (("defense", "harm_m", 0.0), r"defense.harm_m must be > 0"),
+    (("guidance", "defenses", ["hold", "pray"]), r"guidance.defenses\[1\] must be one of hold, recover"),
 ])
 def test_load_refuses_bad_params_naming_the_key(tmp_path, monkeypatch, edit, message):
     monkeypatch.chdir(tmp_path)

@@ -58,4 +58,48 @@ def summary_tables(metrics: dict[str, dict[str, Any]]) -> str:
     profiles = sorted({m.get("profile", "unknown") for m in metrics.values()})
     head = (f"Profile `{'`, `'.join(profiles)}`. Paper: 480x270 images, full-width network, "
             "50 epochs, 32,500 images; each stage's section of the results page says what differs and why.")
-    return f"{head}\n\n{table}\nDetection accuracy per eps (correct flags over all frames):\n\n{markdown_table(eps_rows)}"
+    return (f"{head}\n\n{table}\nDetection accuracy per eps (correct flags over all frames):\n\n{markdown_table(eps_rows)}"
+            + defended_table(ev, gd))
+
+
+def _rate(r: dict[str, Any] | None) -> str:
+    """A rate of the metrics JSON ({"value", "ci": [lo, hi], "n"}) as "96.5 [95.1, 97.6]" (%)."""
+    if not r or not r.get("n") or r["value"] is None:
+        return "-"
+    lo, hi = r["ci"]
+    return f"{100 * r['value']:.2f} [{100 * lo:.2f}, {100 * hi:.2f}]"
+
+
+def defended_table(ev: dict[str, Any], gd: dict[str, Any]) -> str:
+    """The defended chain (SPEC 11) beside the paper's detector: integrated detection at the smallest
+    eps, harmful-undetected, false alarms, and closed-loop rendezvous held per variant (Markdown)."""
+    from pipeline.report import markdown_table
+    from pipeline.stats import wilson
+
+    fused = ev.get("fused")
+    if not fused or not fused["per_eps"]:
+        return ""
+    e = "0.01" if "0.01" in fused["per_eps"] else min(fused["per_eps"], key=float)
+    paper, ours = fused["paper_per_eps"][e], fused["per_eps"][e]
+    rows = [(f"integrated accuracy at eps {e} (%)", "accuracy", _fmt(PAPER["integrated_eps"].get(e)), ">= 99.5"),
+            (f"attacked frames flagged at eps {e} (TPR, %)", "tpr", "-", "-"),
+            (f"harmful frames (error > {fused['harm_m']:g} m) flagged at eps {e} (%)", "harmful_flagged", "-", ">= 99.5"),
+            (f"harmful and undetected, of the attacked frames at eps {e} (%)", "harmful_undetected", "-", "<= 1"),
+            (f"false alarms on clean frames between attacks at eps {e} (%)", "fpr", "-", "<= 0.5"),
+            ("false alarms on attack-free runs (%)", "fpr_clean", "-", "<= 0.5")]
+    table = [{"result": name, "paper's detector (this run)": _rate(paper[key]),
+              f"defended chain ({fused['fusion']})": _rate(ours[key]), "paper": p, "target": t}
+             for name, key, p, t in rows]
+    for dyn, variants in gd.get("defended", {}).get("dynamics", {}).items():
+        def held(variant: str) -> str:
+            if variant not in variants:
+                return "-"
+            k, n = (sum(v[i] for v in variants[variant]["held"].values()) for i in (0, 1))
+            return f"{wilson(k, n).pct()} ({k}/{n})"
+
+        table.append({"result": f"closed loop, attacked runs held (%), {dyn} dynamics: undefended vs "
+                                f"detect-and-recover (detect-and-hold: {held('hold')})",
+                      "paper's detector (this run)": held("undefended"),
+                      f"defended chain ({fused['fusion']})": held("recover"), "paper": "-", "target": ">= 95"})
+    return ("\n\nThe defended chain (motion check fused with the detector, recovery and hold; SPEC 11) beside the "
+            "paper's detector, on the same frames and runs (95% intervals):\n\n" + markdown_table(table))

@@ -1,0 +1,71 @@
+"""`rpod calibrate`: fit the defense on validation trajectories (SPEC 11, issue 16).
+
+Runs the safety chain clean over the validation approaches `rpod eval_render` rendered into
+datasets/val_render/ (seed `defense.val_seed`, never the evaluation seed), fits the pose model's
+range-dependent measurement noise and bias (`pipeline.motion.fit_noise`, `defense.noise_bins` range
+bins) and writes models/defense.json: the noise model, the detector threshold and pose-model hash
+it belongs to, and the defense's false alarms on those clean validation frames.
+"""
+from __future__ import annotations
+
+import numpy as np
+import typer
+
+from stages import params as params_mod
+from stages.artifacts import DEFENSE, DEFENSE_FORMAT, chaser_motion, defense_settings, load_chain, read_eval_render
+from stages.io import StageError, write_json
+
+TARGET = ["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]
+
+
+def main() -> None:
+    """Fit the defense's measurement-noise model on clean validation trajectories -> models/defense.json.
+
+    Params: `defense` (noise_bins, val_trajectories, val_seed and the filter settings), `evaluate.batch_size`.
+    """
+    from tqdm import tqdm
+
+    from pipeline.chain import run_sequence
+    from pipeline.evaluation import defend_trace
+    from pipeline.motion import fit_noise
+    from pipeline.rotations import sixd_to_matrix
+
+    p = params_mod.load()
+    d = params_mod.typed(p).defense
+    params_mod.set_threads(p)
+    images, poses, _ = read_eval_render(p, validation=True)
+    chain, _, model_hash = load_chain(p)
+    targets = poses[TARGET].to_numpy(np.float32)
+    batch = params_mod.typed(p).evaluate.batch_size
+    with tqdm(total=-(-len(images) // batch), desc="calibrate", unit="batch", dynamic_ncols=True) as bar:
+        def progress(it):
+            for i in it:
+                yield i
+                bar.update(1)
+
+        res = run_sequence(chain, images, targets, np.zeros(len(images), bool), None, batch, progress)
+    try:
+        noise = fit_noise(targets[:, :3], res.pose[:, :3], sixd_to_matrix(targets[:, 3:]),
+                          sixd_to_matrix(res.pose[:, 3:]), bins=d.noise_bins)
+    except ValueError as e:
+        raise StageError(f"calibrate on {len(images)} validation frames (defense.val_trajectories, "
+                         f"defense.noise_bins): {e}") from None
+    settings, motion = defense_settings(p, chain.threshold)
+    R_cam, u = chaser_motion(poses)
+    flags = []
+    for _, g in poses.groupby("trajectory", sort=True):
+        idx = g.index.to_numpy()
+        trace = {"pose": res.pose[idx], "prob": res.prob[idx]}
+        flags.append(defend_trace(settings, motion, noise, trace, R_cam[idx], u[idx]).flag)
+    flag = np.concatenate(flags)
+    doubt = settings.threshold if settings.update_below is None else settings.update_below
+    cal = {"format": DEFENSE_FORMAT, "pose_model_hash": model_hash, "threshold": chain.threshold,
+           "noise": noise.as_dict(),
+           "validation": {"trajectories": d.val_trajectories, "seed": d.val_seed, "frames": len(images),
+                          "fpr_clean": round(100 * float(flag.mean()), 3),
+                          "detector_fpr_clean": round(100 * float(res.flag.mean()), 3),
+                          "doubtful_fraction": float(np.mean(res.prob >= doubt)),
+                          "prob_quantiles": {f"{q:g}": float(np.quantile(res.prob, q)) for q in (0.5, 0.9, 0.99)}}}
+    write_json(DEFENSE, cal)
+    typer.echo(f"calibrate: noise model from {len(images)} clean validation frames; defended FPR on them "
+               f"{cal['validation']['fpr_clean']:.2f}% -> {DEFENSE}")
