@@ -66,6 +66,11 @@ def evaluate_sequences(chain: SafetyChain, loss_fn: Any, sequences: list[dict[st
             m = detection_metrics(s["attacked"], res.flag, schedule_bursts(s["attacked"], attack_length))
             und = undetected_mask(s["attacked"], res.flag)
             rows.append({"eps": eps, "sequence": s["name"], **m.as_dict(),
+                         "frames": len(res.flag), "correct": int((res.flag == s["attacked"]).sum()),
+                         "attacked_frames": int(s["attacked"].sum()),
+                         "flagged_attacked": int((res.flag & s["attacked"]).sum()),
+                         "clean_frames": int((~s["attacked"]).sum()),
+                         "flagged_clean": int((res.flag & ~s["attacked"]).sum()),
                          "undetected_frames": int(und.sum()),
                          "undetected_position_m": mean_over(pos, und), "undetected_attitude_deg": mean_over(att, und),
                          "attacked_position_m": mean_over(pos, s["attacked"]),
@@ -101,14 +106,26 @@ def pose_errors_under_fgsm(chain: SafetyChain, loss_fn: Any, sequence: dict[str,
     return rows
 
 
+def _pooled(k: np.ndarray, n: np.ndarray) -> list[float | None]:
+    """95% interval of sum(k) / sum(n) by a bootstrap over the sequences (k of n frames each): frames
+    of one sequence are correlated, so sequences are resampled whole. Coarse with few sequences."""
+    k, n = np.asarray(k, int), np.asarray(n, int)
+    hits = np.concatenate([np.r_[np.ones(a, bool), np.zeros(b - a, bool)] for a, b in zip(k, n)])
+    return bootstrap_rate(hits, np.repeat(np.arange(len(n)), n)).ci()
+
+
 def per_eps_summary(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Average over the sequences of each eps (accuracy etc. as plain means of the per-sequence values)."""
+    """Average over the sequences of each eps (accuracy etc. as plain means of the per-sequence values),
+    with 95% intervals (`*_ci95`) of accuracy, TPR and FPR by a bootstrap over the sequences."""
     df = pd.DataFrame(rows)
     out = []
     for eps, g in df.groupby("eps", sort=False):
         und = g["undetected_frames"].to_numpy()
         w_pos = g["undetected_position_m"].to_numpy()
         out.append({"eps": float(eps), "accuracy": float(g["accuracy"].mean()), "tpr": float(g["tpr"].mean()),
+                    "accuracy_ci95": _pooled(g["correct"], g["frames"]),
+                    "tpr_ci95": _pooled(g["flagged_attacked"], g["attacked_frames"]),
+                    "fpr_ci95": _pooled(g["flagged_clean"], g["clean_frames"]),
                     "fpr": float(g["fpr"].mean()), "mean_delay": float(np.nanmean(g["mean_delay"]))
                     if g["mean_delay"].notna().any() else float("nan"),
                     "missed_bursts": int(g["missed_bursts"].sum()), "bursts": int(g["bursts"].sum()),
@@ -148,19 +165,28 @@ def accuracy_table(rows: list[dict[str, Any]], summary: list[dict[str, Any]], na
         for name in names:
             r[name] = pct(next(x["accuracy"] for x in rows if x["eps"] == s["eps"] and x["sequence"] == name))
         r["average"] = pct(s["accuracy"])
+        r["95% interval"] = _interval(s.get("accuracy_ci95"))
         r["paper (average)"] = paper.get(s["eps"], "-")
         table.append(r)
     avg = {"eps": "average"}
     for name in names:
         avg[name] = pct(float(np.mean([x["accuracy"] for x in rows if x["sequence"] == name])))
     avg["average"] = pct(float(np.mean([s["accuracy"] for s in summary])))
+    avg["95% interval"] = "-"
     avg["paper (average)"] = "-"
     return table + [avg]
 
 
+def _interval(ci: list[float | None] | None) -> str:
+    """"[lo, hi]" in percent, "-" when missing."""
+    return "-" if not ci or ci[0] is None else f"[{100 * ci[0]:.1f}, {100 * ci[1]:.1f}]"
+
+
 def detail_table(summary: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Per eps: TPR, FPR (%), detection delay (frames), missed attacks, undetected frames and their pose error (m)."""
-    return [{"eps": f"{s['eps']:g}", "TPR %": pct(s["tpr"]), "FPR %": pct(s["fpr"]),
+    """Per eps: TPR, FPR (%) with 95% intervals, detection delay (frames), missed attacks, undetected frames
+    and their pose error (m)."""
+    return [{"eps": f"{s['eps']:g}", "TPR %": pct(s["tpr"]), "TPR 95% interval": _interval(s.get("tpr_ci95")),
+             "FPR %": pct(s["fpr"]), "FPR 95% interval": _interval(s.get("fpr_ci95")),
              "mean delay (frames)": dash(s["mean_delay"]), "missed attacks": f"{s['missed_bursts']} / {s['bursts']}",
              "undetected attacked frames": s["undetected_frames"],
              "pose error, undetected (m)": dash(s["undetected_position_m"]),

@@ -154,7 +154,8 @@ def _log_curves(folder: Path, history: list[dict[str, float]], test: dict[str, f
             live.log_metric(k, rec[k])
         live.next_step()
     for k, v in test.items():
-        live.log_metric(f"test/{k}", v, plot=False)
+        if not isinstance(v, list):  # intervals stay in reports/metrics/detect.json
+            live.log_metric(f"test/{k}", v, plot=False)
     live.end()
 
 

@@ -12,7 +12,8 @@ from pipeline.evaluation import accuracy_table, detail_table, nan_to_none, per_e
 def _row(eps, seq, acc, und, und_pos, delay):
     return {"eps": eps, "sequence": seq, "accuracy": acc, "tpr": acc, "fpr": 1 - acc, "mean_delay": delay,
             "missed_bursts": 1, "bursts": 4, "undetected_frames": und, "undetected_position_m": und_pos,
-            "attacked_position_m": 2.0}
+            "attacked_position_m": 2.0, "frames": 100, "correct": round(100 * acc), "attacked_frames": 20,
+            "flagged_attacked": round(20 * acc), "clean_frames": 80, "flagged_clean": round(80 * (1 - acc))}
 
 
 def test_per_eps_summary_averages_sequences_and_weights_undetected_errors():
@@ -30,6 +31,11 @@ def test_per_eps_summary_averages_sequences_and_weights_undetected_errors():
     assert table[0]["T2"] == pytest.approx(80.0) and table[1]["paper (average)"] == "-"
     assert table[2]["T1"] == pytest.approx(80.0) and table[2]["average"] == pytest.approx(70.0)
     assert detail_table([{**s[0.5], "mean_delay": float("nan")}])[0]["mean delay (frames)"] == "-"
+    # intervals: a bootstrap over the two sequences, around the pooled rate
+    lo, hi = s[0.05]["accuracy_ci95"]
+    assert lo <= 0.5 <= hi and lo >= 0.4 - 1e-9 and hi <= 0.6 + 1e-9
+    assert s[0.5]["fpr_ci95"][0] <= 0.1 <= s[0.5]["fpr_ci95"][1]
+    assert table[1]["95% interval"] == f"[{100 * lo:.1f}, {100 * hi:.1f}]"
 
 
 def test_nan_to_none_makes_results_json_safe():
