@@ -11,8 +11,11 @@ datasets/shap.zarr (for the SHAP heatmaps) and reports/plots/roc/*.csv (ROC curv
     reports/figures/shap_heatmaps.png      mean |phi| per output, normal vs adversarial
     reports/figures/roc.png                ROC curves of every detector
 
-`--sync-readme` copies the summary into the project README (between the `results` markers);
-`--check` only verifies that README and reports/README.md agree, and fails if they drifted.
+`--sync-readme` copies the summary and the generated "Known differences" bullets into the project README
+(between the `results` and `differences` markers), on the default profile only: the README publishes the
+default profile's numbers, so a smoke run or a `dvc exp run` sweep leaves it alone. `--check` writes
+nothing and fails if README and reports/README.md drifted apart or if a stage report changed after the
+page was built from it.
 """
 from __future__ import annotations
 
@@ -24,12 +27,15 @@ import typer
 from stages import params as params_mod
 from stages.artifacts import ROC_DIR, SHAP as SHAP_STORE
 from stages.io import StageError, atomic_write_text, read_json, save_figure
+from stages.pages.differences import differences
 from stages.pages.readme import DETECTOR_NAMES, summary_tables
 
 PAGE = Path("reports/README.md")
 README = Path("README.md")
 FIGURES = Path("reports/figures")
 BLOCK = "results"
+DIFFERENCES = "differences"
+README_PROFILE = "default"  # the only profile whose numbers README.md publishes
 BENCHMARKS = Path(__file__).resolve().parent.parent / "reports" / "benchmarks.md"
 
 # (stage, report file, metrics file or None) in pipeline order.
@@ -46,8 +52,9 @@ SECTIONS = [
 
 def main(
     sync_readme: bool = typer.Option(False, "--sync-readme", help="Also copy the summary table into README.md."),
-    check: bool = typer.Option(False, "--check", help="Write nothing; fail if README.md's results block differs "
-                               "from reports/README.md's."),
+    check: bool = typer.Option(False, "--check", help="Write nothing; fail if README.md's results or differences "
+                               "block differs from reports/README.md's, or a stage report changed since the page "
+                               "was built."),
 ) -> None:
     """Gather all stage metrics into reports/README.md (tables beside the paper's numbers, figures)."""
     if check:
@@ -62,12 +69,20 @@ def main(
     atomic_write_text(PAGE, page)
     typer.echo(f"report: {len(SECTIONS)} sections, {len(figures)} figures -> {PAGE}")
     if sync_readme:
+        profile = params.get("profile_name")
+        if profile != README_PROFILE:
+            typer.echo(f"report: profile {profile!r}, so {README} is left as it is (it shows the {README_PROFILE} "
+                       "profile's results)")
+            return
         if not README.exists():
             raise StageError(f"{README} not found: run `rpod report` from the repository root")
         from pipeline.report import extract_block
 
-        atomic_write_text(README, replace_block(README.read_text(), BLOCK, extract_block(page, BLOCK) or ""))
-        typer.echo(f"report: results block copied into {README}")
+        text = README.read_text()
+        for block in (BLOCK, DIFFERENCES):
+            text = replace_block(text, block, extract_block(page, block) or "")
+        atomic_write_text(README, text)
+        typer.echo(f"report: results and differences blocks copied into {README}")
 
 
 def write_benchmark(section: str, body: str) -> Path:
@@ -85,13 +100,30 @@ def _check() -> None:
     for path in (PAGE, README):
         if not path.exists():
             raise StageError(f"{path} not found: run `rpod report --sync-readme` first")
-    ours, theirs = extract_block(PAGE.read_text(), BLOCK), extract_block(README.read_text(), BLOCK)
-    if ours is None or theirs is None:
-        missing = PAGE if ours is None else README
-        raise StageError(f"{missing} has no <!-- {BLOCK}:start --> ... <!-- {BLOCK}:end --> block")
-    if ours != theirs:
-        raise StageError(f"{README}'s results block differs from {PAGE}'s: run `rpod report --sync-readme`")
-    typer.echo(f"report: {README} results match {PAGE}")
+    page = PAGE.read_text()
+    profile = params_mod.load().get("profile_name") if Path(params_mod.PARAMS_FILE).exists() else README_PROFILE
+    for block in (BLOCK, DIFFERENCES) if profile == README_PROFILE else ():
+        ours, theirs = extract_block(page, block), extract_block(README.read_text(), block)
+        if ours is None or theirs is None:
+            missing = PAGE if ours is None else README
+            raise StageError(f"{missing} has no <!-- {block}:start --> ... <!-- {block}:end --> block")
+        if ours != theirs:
+            raise StageError(f"{README}'s {block} block differs from {PAGE}'s: run `rpod report --sync-readme` "
+                             f"on the {README_PROFILE} profile")
+    stale = [report for _, report, _ in SECTIONS if Path("reports", report).exists()
+             and _section_body(Path("reports", report)) not in page]
+    if stale:
+        raise StageError(f"{PAGE} is older than {', '.join(f'reports/{r}' for r in stale)}: run `rpod report`")
+    compared = (f"{README} results and differences match {PAGE}" if profile == README_PROFILE
+                else f"profile {profile!r}: {README} (the {README_PROFILE} profile's results) not compared")
+    typer.echo(f"report: {compared}; {PAGE} holds every stage report")
+
+
+def _section_body(path: Path) -> str:
+    """A stage report as build_page embeds it (headings one level down, without its title line)."""
+    from pipeline.report import demote_headings
+
+    return demote_headings(path.read_text().strip(), 1).partition("\n")[2]
 
 
 def _load_metrics() -> dict[str, dict[str, Any]]:
@@ -124,6 +156,8 @@ def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figur
             f"`dvc repro`. Every section below is one stage's report, stamped with the profile it ran on (when it ran: `produced` in reports/metrics/<stage>.json)."
             f"\n{warn}\n## Summary against the paper\n")
     page = replace_block(page, BLOCK, summary_tables(metrics))
+    page += "\n## Known differences from the paper\n"
+    page = replace_block(page, DIFFERENCES, differences(metrics, params))
     for stage, report, metric in SECTIONS:
         path = Path("reports") / report
         if not path.exists():
