@@ -106,6 +106,16 @@ def pose_errors_under_fgsm(chain: SafetyChain, loss_fn: Any, sequence: dict[str,
     return rows
 
 
+def fgsm_error_table(chain: SafetyChain, loss_fn: Any, sequences: list[dict[str, Any]], eps_list: list[float],
+                     batch_size: int) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """`pose_errors_under_fgsm` over every sequence, split into (clean rows, FGSM rows)."""
+    clean, fgsm = [], []
+    for s in sequences:
+        for row in pose_errors_under_fgsm(chain, loss_fn, s, eps_list, batch_size):
+            (clean if row["eps"] == "clean" else fgsm).append(row)
+    return clean, fgsm
+
+
 def _pooled(k: np.ndarray, n: np.ndarray) -> list[float | None]:
     """95% interval of sum(k) / sum(n) by a bootstrap over the sequences (k of n frames each): frames
     of one sequence are correlated, so sequences are resampled whole. Coarse with few sequences."""

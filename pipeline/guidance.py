@@ -272,3 +272,93 @@ class CachedCamera:
         self.counts["attacked"] += 1
         y = torch.as_tensor(np.concatenate([pose[1], matrix_to_6d(pose[0])])[None], dtype=torch.float32)
         return self._position(self.attack(self._input(image), y))
+
+
+def horizon(arrival: int | None, max_steps: int, slack: int) -> int:
+    """Steps of an attacked run: the no-attack run's arrival plus `slack`, at most `max_steps` (all of
+    them when the no-attack run did not arrive)."""
+    return max_steps if arrival is None else min(max_steps, arrival + slack)
+
+
+def fly_grid(camera: CachedCamera, K: Intrinsics, settings: GuidanceSettings, grid: list[tuple[Any, ...]],
+             slack_steps: int, attack_at: Callable[[float], Any],
+             progress: Callable[[Any], Any] = iter) -> tuple[RendezvousResult, int | None, int, list[tuple[Any, ...]]]:
+    """The no-attack baseline, then every (eps, S, K, window) cell of `grid` with `attack_at(eps)` as
+    the camera's attack; attacked runs last the baseline's arrival + `slack_steps` (an attack succeeds
+    when it delays or diverts the chaser beyond that) -> (baseline, arrival, horizon, runs)."""
+    from dataclasses import replace
+
+    baseline = run_rendezvous(camera.render, camera.estimate, K, settings)
+    arrival = arrival_step(baseline, settings.goal, settings.tolerance)
+    steps = horizon(arrival, settings.max_steps, slack_steps)
+    attacked_settings = replace(settings, max_steps=steps)
+    runs = []
+    for eps, s, k, window in progress(grid):
+        camera.attack = attack_at(eps)
+        runs.append((eps, s, k, run_rendezvous(camera.render, camera.estimate, K, attacked_settings, window)))
+    return baseline, arrival, steps, runs
+
+
+def _count(x: np.ndarray | None, value: Any = True) -> int | None:
+    return None if x is None else int((x == value).sum())
+
+
+def defended_record(base: RendezvousResult, arrival: int | None, cells: list[tuple[Any, ...]]) -> dict[str, Any]:
+    """One (dynamics, variant) of `fly_defended`: its no-attack run, every cell, held runs per eps."""
+    return {
+        "baseline": {"outcome": base.outcome, "miss_m": base.miss, "arrival_step": arrival,
+                     "flags": _count(base.flags)},
+        "runs": [{"eps": e, "start_range": S, "length": k, "outcome": r.outcome, "miss_m": r.miss,
+                  "attacked_frames": r.attacked_frames, "steps": len(r.estimates),
+                  "flags": _count(r.flags), "hold_steps": _count(r.modes, "hold")}
+                 for e, S, k, r in cells],
+        "held": {f"{e:g}": [int(sum(r.outcome == HELD for e2, _, _, r in cells if e2 == e)),
+                            int(sum(e2 == e for e2, *_ in cells))] for e in dict.fromkeys(c[0] for c in cells)}}
+
+
+def fly_defended(camera: CachedCamera, K: Intrinsics, settings: GuidanceSettings, grid: list[tuple[Any, ...]],
+                 dynamics: list[str], defenses: list[str], slack_steps: int, defense: Any,
+                 paper: tuple[RendezvousResult, list[tuple[Any, ...]]], attack_at: Callable[[float], Any],
+                 bar: Any) -> dict[str, Any]:
+    """Every (eps, S, K) cell for each of `dynamics`, undefended and each of `defenses` (a fresh
+    `defense.new()` per run); `paper` = (baseline, runs) of `fly_grid`, reused for the undefended
+    runs under settings.variant; `bar.update(n)` counts runs.
+
+    Undefended runs last the baseline arrival + slack_steps (as the paper's tables); a defended run
+    gets its own no-attack baseline's arrival + slack_steps + K: detect-and-hold sends no command on a
+    flagged frame, so it may arrive up to K steps late without being diverted.
+    """
+    from dataclasses import replace
+
+    out: dict[str, Any] = {"dynamics": {}, "defenses": list(defenses)}
+    example: list[tuple[str, Any]] = []
+    for dyn in dynamics:
+        dyn_runs: dict[str, Any] = {}
+        for variant in ["undefended", *defenses]:
+            s = replace(settings, variant=dyn, defense=variant)
+            new = (lambda: None) if variant == "undefended" else defense.new
+            if variant == "undefended" and dyn == settings.variant:
+                base, cells = paper[0], paper[1]
+                bar.update(1 + len(grid))
+            else:
+                camera.attack = None
+                base = run_rendezvous(camera.render, camera.estimate, K, s, defense=new())
+                bar.update(1)
+                cells = []
+            arrival = arrival_step(base, settings.goal, settings.tolerance)
+            extra = 0 if variant == "undefended" else 1
+            if not cells:
+                for eps, S, k, window in grid:
+                    h = horizon(arrival, settings.max_steps, slack_steps + extra * k)
+                    camera.attack = attack_at(eps)
+                    cells.append((eps, S, k, run_rendezvous(camera.render, camera.estimate, K,
+                                                            replace(s, max_steps=h), window, defense=new())))
+                    bar.update(1)
+            dyn_runs[variant] = defended_record(base, arrival, cells)
+            if grid and dyn == dynamics[-1]:
+                pick = max(range(len(grid)), key=lambda i: (grid[i][0], grid[i][2], -grid[i][1]))
+                example.append((variant, cells[pick][3]))
+        out["dynamics"][dyn] = dyn_runs
+    e, S, k, _ = max(grid, key=lambda c: (c[0], c[2], -c[1])) if grid else (0.0, 0.0, 0, None)
+    out["example"] = {"runs": example, "title": f"{dynamics[-1]} dynamics, eps = {e:g}, S = {S:g} m, K = {k}"}
+    return out

@@ -378,3 +378,36 @@ def render_recording(renderer: Any, rec: LabRecording, scale: float, noise_std: 
         if bar is not None:
             bar.update(1)
     return images, masks
+
+
+def loader_errors(recs: list[dict[str, Any]], truth: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
+    """Per rendered recording in `truth`: the largest position (m) and attitude (deg) error of the
+    loader's labels (`recs`, by name) against the exact poses the images were rendered at."""
+    from pipeline.rotations import attitude_error_deg
+
+    out = {}
+    for tr in truth:
+        rec = next(x for x in recs if x["name"] == tr["name"])
+        out[tr["name"]] = {"position_max_m": float(np.abs(rec["t_lab"] - tr["t_lab"]).max()),
+                           "attitude_max_deg": float(attitude_error_deg(rec["q"], tr["q"]).max())}
+    return out
+
+
+def chain_sequences(recs: list[dict[str, Any]], K_syn: Intrinsics, K_lab: Intrinsics, scale: float, p_start: float,
+                    length: int, seed: int) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Loaded recordings as safety-chain sequences (targets: synthetic-frame position in metres, then
+    the 6-D rotation; attack schedule seeded with seed + 31 + i) and their range-table rows."""
+    from pipeline.rotations import quat_to_6d
+    from pipeline.schedule import attack_schedule
+
+    sequences, ranges = [], []
+    for i, rec in enumerate(recs):
+        t_syn = lab_to_synthetic_position(rec["t_lab"], K_syn, K_lab, scale)
+        targets = np.concatenate([t_syn, quat_to_6d(rec["q"])], 1).astype(np.float32)
+        sequences.append({"name": rec["name"], "images": rec["images"], "targets": targets,
+                          "attacked": attack_schedule(len(targets), p_start, length, seed + 31 + i)})
+        zl = rec["t_lab"][:, 2]
+        ranges.append({"sequence": rec["name"], "frames": len(zl), "lab z start (m)": float(zl[0]),
+                       "lab z end (m)": float(zl[-1]), "synthetic z start (m)": float(t_syn[0, 2]),
+                       "synthetic z end (m)": float(t_syn[-1, 2])})
+    return sequences, ranges

@@ -338,3 +338,10 @@ def render_into(renderer: Renderer, R: np.ndarray, t: np.ndarray, out: Any, chun
             if require_target and lo == 0 and not buf[: hi - lo].any():
                 raise EmptyRenderError(f"the target covers no pixels in the first {hi} frames (all black)")
             out[lo:hi] = buf[: hi - lo]
+
+
+def shard_range(n_frames: int, chunk: int, i: int, n: int) -> tuple[int, int]:
+    """Frames [start, stop) of part i of n: contiguous blocks aligned to whole zarr chunks."""
+    n_chunks = -(-n_frames // chunk)
+    edges = np.linspace(0, n_chunks, n + 1).round().astype(int) * chunk
+    return int(min(edges[i - 1], n_frames)), int(min(edges[i], n_frames))

@@ -134,3 +134,35 @@ def projectile_trajectory(n_frames: int, start_xy: tuple[float, float], start_ra
     z = start_range + s * (end_range - start_range)
     rel = np.column_stack([xy, z])
     return _sequence(sequence, rel, jitter_deg, max_rot_deg, rng)
+
+
+def poses_table(idx: np.ndarray, seq: np.ndarray, frm: np.ndarray, R: np.ndarray, t: np.ndarray):
+    """The poses of rendered frames as a DataFrame: index, sequence, frame, t (tx, ty, tz; m),
+    q (qw, qx, qy, qz; target -> camera) and range (m)."""
+    import pandas as pd
+
+    from pipeline.rotations import matrix_to_quat
+
+    q = matrix_to_quat(R)
+    return pd.DataFrame({"index": idx, "sequence": seq, "frame": frm,
+                         "tx": t[:, 0], "ty": t[:, 1], "tz": t[:, 2],
+                         "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3],
+                         "range": np.linalg.norm(t, axis=1)})
+
+
+def preview_picks(sequence: np.ndarray, index: np.ndarray, n_previews: int) -> list[int]:
+    """The `index` values of preview frames: the first (60 m) and last (10 m) frame of sequence 0,
+    then max(2, n_previews) - 2 frames spread evenly over the rotating sequences (5 and up)."""
+    s0 = index[sequence == 0]
+    picks = [int(s0[0]), int(s0[-1])]
+    others = index[sequence >= 5]
+    extra = max(2, n_previews) - 2
+    if extra and len(others):
+        picks += [int(i) for i in others[np.linspace(0, len(others) - 1, extra).round().astype(int)]]
+    return picks
+
+
+def flatten(seqs: list[Sequence]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Sequences as flat per-frame arrays: sequence id, frame, R (N, 3, 3), t (N, 3)."""
+    return (np.concatenate([np.full(len(s), s.sequence) for s in seqs]), np.concatenate([s.frame for s in seqs]),
+            np.concatenate([s.R for s in seqs]), np.concatenate([s.t for s in seqs]))

@@ -53,7 +53,7 @@ def main() -> None:
     import torch
 
     from pipeline.detectors.lstm import to_checkpoint
-    from pipeline.detectors.metrics import choose_threshold, metrics_by_eps
+    from pipeline.detectors.metrics import choose_threshold, metrics_by_eps, roc_csv
     from pipeline.evaluation import nan_to_none
 
     p = params_mod.load()
@@ -98,7 +98,8 @@ def main() -> None:
     # detector, metrics, report, ROC data and curves move into place together, once all are written
     with atomic_outputs(DETECTOR, METRICS, REPORT, dirs=(ROC_DIR, LIVE_DIR)) as (det, met, rep, roc_dir, live_dir):
         save_torch(det, ckpt)
-        _write_roc(scores, y[te], roc_dir)
+        for name, (s, _) in scores.items():   # into the empty stand-in for ROC_DIR: no stale detector's file
+            atomic_write_text(roc_dir / f"{name}.csv", roc_csv(y[te], s))
         write_metrics(met, nan_to_none(metrics), p)
         atomic_write_text(rep, detector_page(results, scores, counts, result, data["attrs"], d))
         _log_curves(live_dir, result.history, results["lstm"]["all"])
@@ -110,38 +111,18 @@ def _train_lstm(values: np.ndarray, y: np.ndarray, tr: np.ndarray, va: np.ndarra
                 seed: int) -> tuple[Any, float]:
     """Fit the LSTM on the training indices with early stopping on the validation ones; returns the fit
     result and its seconds. Bad settings or a diverged fit are a StageError (nothing is written)."""
-    from tqdm import tqdm
-
     from pipeline.detectors.lstm import LSTMConfig, train_lstm
 
     config = LSTMConfig(n_rows=values.shape[1], n_features=values.shape[2], hidden=int(d["hidden"]),
                         dense=[int(x) for x in d["dense"]])
-    bar = tqdm(total=int(d["epochs"]), desc="detect: LSTM", unit="epoch")
-
-    def on_epoch(rec: dict[str, float]) -> None:
-        bar.update(1)
-        bar.set_postfix(val_loss=f"{rec['val_loss']:.4f}", val_acc=f"{rec['val_accuracy']:.3f}")
-
     t0 = time.perf_counter()
     try:
         result = train_lstm(values[tr], y[tr], values[va], y[va], config, epochs=int(d["epochs"]),
                             patience=int(d["patience"]), batch_size=int(d["batch_size"]), lr=float(d["lr"]),
-                            seed=seed, on_epoch=on_epoch)
+                            seed=seed, progress="detect: LSTM")
     except ValueError as e:  # also DivergenceError
         raise StageError(f"params.yaml detect: {e} ({DETECTOR} and the reports were left as they were)") from None
-    bar.close()
     return result, time.perf_counter() - t0
-
-
-def _write_roc(scores: dict[str, tuple[np.ndarray, float]], y_test: np.ndarray, folder: Path) -> None:
-    """<folder>/<detector>.csv (fpr,tpr) for every detector, into the empty stand-in for ROC_DIR
-    (so no stale detector's file survives)."""
-    from pipeline.detectors.metrics import roc_points
-
-    for name, (s, _) in scores.items():
-        roc = roc_points(y_test, s)
-        lines = ["fpr,tpr"] + [f"{a:.6f},{b:.6f}" for a, b in zip(roc["fpr"], roc["tpr"])]
-        atomic_write_text(folder / f"{name}.csv", "\n".join(lines) + "\n")
 
 
 def _log_curves(folder: Path, history: list[dict[str, float]], test: dict[str, float]) -> None:
@@ -195,33 +176,23 @@ def _squeeze(p: dict[str, Any], data: dict[str, Any], y: np.ndarray, tr: np.ndar
              te: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Feature squeezing needs the images and the pose model: rebuild each sample's image from its
     source (stages.artifacts.SampleImages: clean split image, adv.zarr, or the same FGSM) and score it."""
-    import torch
     from tqdm import tqdm
 
     from pipeline.attacks import attack_loss
-    from pipeline.detectors.squeeze import SqueezeDetector
+    from pipeline.detectors.squeeze import SqueezeDetector, model_predictor, score_batches
 
     d = p["detect"]
     pose = load_pose(p)
-    model = pose.model
-    src = SampleImages(p, model, attack_loss(p["attack"]["loss"], pose.loss), pose.hash)
+    src = SampleImages(p, pose.model, attack_loss(p["attack"]["loss"], pose.loss), pose.hash)
     names = {v: k for k, v in SPLIT_CODES.items()}
-    split = np.array([names[int(c)] for c in data["split"]])
-    index, eps = data["source_index"], data["eps"].astype(np.float64)
-
-    def predict(images: np.ndarray) -> np.ndarray:
-        with torch.no_grad():
-            return model(torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float() / 255).numpy()
-
-    det = SqueezeDetector(predict, bits=int(d["squeeze_bits"]), median_size=int(d["squeeze_median"]))
+    keys = (np.array([names[int(c)] for c in data["split"]]), data["source_index"], data["eps"].astype(np.float64))
+    det = SqueezeDetector(model_predictor(pose.model), bits=int(d["squeeze_bits"]),
+                          median_size=int(d["squeeze_median"]))
     clean_tr = tr[y[tr] == 0][:512]
-    det.fit(src.images(split[clean_tr], index[clean_tr], eps[clean_tr]))
+    det.fit(src.images(*(k[clean_tr] for k in keys)))
 
     def score(rows: np.ndarray, what: str) -> np.ndarray:
-        out = np.zeros(len(rows))
-        for sl, imgs in tqdm(src.iter_images(split[rows], index[rows], eps[rows]), desc=f"detect: squeeze ({what})",
-                             total=-(-len(rows) // 64), unit="batch", leave=False):
-            out[sl] = det.score(imgs)
-        return out
+        return score_batches(det, tqdm(src.iter_images(*(k[rows] for k in keys)), desc=f"detect: squeeze ({what})",
+                                       total=-(-len(rows) // 64), unit="batch", leave=False), len(rows))
 
     return score(va, "validation"), score(te, "test")

@@ -10,7 +10,6 @@ reports/figures/guidance_defended.png (one run per variant).
 """
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import time
 from pathlib import Path
@@ -22,7 +21,7 @@ import typer
 from stages import params as params_mod
 from stages.artifacts import load_chain, load_defense
 from stages.io import StageError, atomic_write_text, save_figure, write_metrics
-from stages.pages.guidance import defended_section
+from stages.pages.guidance import defended_section, guidance_page
 
 REPORT = Path("reports/guidance.md")
 FIGURE = Path("reports/figures/guidance_trajectories.png")
@@ -59,7 +58,7 @@ def main() -> None:
 
     from pipeline.attacks import stored_attack
     from pipeline.figures import guidance_trajectories, guidance_variants
-    from pipeline.guidance import CachedCamera, arrival_step, run_rendezvous
+    from pipeline.guidance import CachedCamera, fly_grid
     from pipeline.scene import Renderer
 
     p = params_mod.load()
@@ -73,40 +72,25 @@ def main() -> None:
     model = chain.model
     K = params_mod.intrinsics(p)  # the model's input size
 
+    def attack_at(eps: float) -> Any:
+        return stored_attack(model, loss_fn, eps, attack)
+
     with Renderer(K, params_mod.scene_settings(p["render"])) as renderer:
         camera = CachedCamera(renderer.render, model, chain=chain)
         t0 = time.perf_counter()
-        baseline = run_rendezvous(camera.render, camera.estimate, K, settings)
         # Attacked runs get the steps the unattacked chaser needed plus slack_steps: an attack succeeds
         # when it delays or diverts the chaser beyond that (the paper: 50 nominal steps + ~10).
-        arrival = arrival_step(baseline, settings.goal, settings.tolerance)
-        horizon = settings.max_steps if arrival is None else min(settings.max_steps, arrival + int(g["slack_steps"]))
-        attacked_settings = dataclasses.replace(settings, max_steps=horizon)
-        runs = []
-        for eps, s, k, window in tqdm(grid, desc="guidance runs", unit="run"):
-            camera.attack = stored_attack(model, loss_fn, eps, attack)
-            runs.append((eps, s, k, run_rendezvous(camera.render, camera.estimate, K, attacked_settings, window)))
+        baseline, arrival, horizon, runs = fly_grid(camera, K, settings, grid, int(g["slack_steps"]), attack_at,
+                                                    lambda it: tqdm(it, desc="guidance runs", unit="run"))
         seconds = time.perf_counter() - t0
         counts = dict(camera.counts)      # the paper's grid alone
-        defended = _defended(camera, K, settings, grid, g, defense, (baseline, runs),
-                             lambda eps: stored_attack(model, loss_fn, eps, attack))
+        defended = _defended(camera, K, settings, grid, g, defense, (baseline, runs), attack_at)
         defended["seconds"] = time.perf_counter() - t0 - seconds
         defended.update({k: v - counts[k] for k, v in camera.counts.items()})
 
-    metrics = {
-        "variant": settings.variant, "method": g["method"], "loss": a["loss"], "max_steps": settings.max_steps,
-        "tolerance": settings.tolerance, "model_hash": model_hash, "seconds": seconds, **counts,
-        "baseline": {"outcome": baseline.outcome, "miss_m": baseline.miss, "arrival_step": arrival},
-        "horizon": horizon, "slack_steps": int(g["slack_steps"]),
-        "runs": [{"eps": e, "start_range": s, "length": k, "outcome": r.outcome, "miss_m": r.miss,
-                  "attack_start": r.attack_start, "attacked_frames": r.attacked_frames, "steps": len(r.estimates)}
-                 for e, s, k, r in runs],
-    }
-    metrics["attack_success_rate"] = {f"{e:g}": float(np.mean([r.outcome != "rendezvous held" for e2, _, _, r in runs
-                                                               if e2 == e])) for e in dict.fromkeys(e for e, *_ in runs)}
-    metrics["defended"] = {k: v for k, v in defended.items() if k != "example"}
+    metrics = _metrics(settings, g, a, model_hash, seconds, counts, (baseline, arrival, horizon, runs), defended)
     write_metrics(METRICS, metrics, p)
-    atomic_write_text(REPORT, _report(metrics, g, a, p["render"]) + defended_section(metrics["defended"], g))
+    atomic_write_text(REPORT, guidance_page(metrics, g, p["render"]) + defended_section(metrics["defended"], g))
     save_figure(guidance_trajectories(baseline, [(s, k, r) for e, s, k, r in runs if e == runs[0][0]] if runs else [],
                                       runs[0][0] if runs else None, settings.goal), FIGURE)
     save_figure(guidance_variants(defended["example"]["runs"], settings.goal, defended["example"]["title"]),
@@ -122,130 +106,36 @@ def main() -> None:
 
 def _defended(camera: Any, K: Any, settings: Any, grid: list[Any], g: dict[str, Any], defense: Any,
               paper: tuple[Any, list[Any]], attack_at: Any) -> dict[str, Any]:
-    """Every (eps, S, K) cell for each of guidance.dynamics, undefended and each of guidance.defenses.
-
-    Undefended runs last the baseline arrival + slack_steps (as the paper's tables); a defended run
-    gets its own no-attack baseline's arrival + slack_steps + K: detect-and-hold sends no command on a
-    flagged frame, so it may arrive up to K steps late without being diverted.
-    """
+    """Every (eps, S, K) cell for each of guidance.dynamics, undefended and each of guidance.defenses
+    (pipeline.guidance.fly_defended), with a progress bar."""
     from tqdm import tqdm
 
-    from pipeline.guidance import HELD, arrival_step, run_rendezvous
+    from pipeline.guidance import fly_defended
 
-    out: dict[str, Any] = {"dynamics": {}, "defenses": list(g["defenses"])}
     bar = tqdm(total=len(g["dynamics"]) * (1 + len(g["defenses"])) * (len(grid) + 1), desc="guidance defended",
                unit="run")
-    example: list[tuple[str, Any]] = []
-    for dyn in g["dynamics"]:
-        dyn_runs: dict[str, Any] = {}
-        for variant in ["undefended", *g["defenses"]]:
-            s = dataclasses.replace(settings, variant=dyn, defense=variant)
-            new = (lambda: None) if variant == "undefended" else defense.new
-            if variant == "undefended" and dyn == settings.variant:
-                base, cells = paper[0], paper[1]
-                bar.update(1 + len(grid))
-            else:
-                camera.attack = None
-                base = run_rendezvous(camera.render, camera.estimate, K, s, defense=new())
-                bar.update(1)
-                cells = []
-            arrival = arrival_step(base, settings.goal, settings.tolerance)
-            extra = 0 if variant == "undefended" else 1
-            if not cells:
-                for eps, S, k, window in grid:
-                    h = settings.max_steps if arrival is None else min(settings.max_steps,
-                                                                       arrival + int(g["slack_steps"]) + extra * k)
-                    camera.attack = attack_at(eps)
-                    cells.append((eps, S, k, run_rendezvous(camera.render, camera.estimate, K,
-                                                            dataclasses.replace(s, max_steps=h), window,
-                                                            defense=new())))
-                    bar.update(1)
-            dyn_runs[variant] = {
-                "baseline": {"outcome": base.outcome, "miss_m": base.miss, "arrival_step": arrival,
-                             "flags": None if base.flags is None else int(base.flags.sum())},
-                "runs": [{"eps": e, "start_range": S, "length": k, "outcome": r.outcome, "miss_m": r.miss,
-                          "attacked_frames": r.attacked_frames, "steps": len(r.estimates),
-                          "flags": None if r.flags is None else int(r.flags.sum()),
-                          "hold_steps": None if r.modes is None else int((r.modes == "hold").sum())}
-                         for e, S, k, r in cells],
-                "held": {f"{e:g}": [int(sum(r.outcome == HELD for e2, _, _, r in cells if e2 == e)),
-                                    int(sum(e2 == e for e2, *_ in cells))] for e in dict.fromkeys(c[0] for c in cells)}}
-            if grid and dyn == g["dynamics"][-1]:
-                pick = max(range(len(grid)), key=lambda i: (grid[i][0], grid[i][2], -grid[i][1]))
-                example.append((variant, cells[pick][3]))
-        out["dynamics"][dyn] = dyn_runs
-    bar.close()
-    e, S, k, _ = max(grid, key=lambda c: (c[0], c[2], -c[1])) if grid else (0.0, 0.0, 0, None)
-    out["example"] = {"runs": example, "title": f"{g['dynamics'][-1]} dynamics, eps = {e:g}, S = {S:g} m, K = {k}"}
-    return out
+    try:
+        return fly_defended(camera, K, settings, grid, list(g["dynamics"]), list(g["defenses"]),
+                            int(g["slack_steps"]), defense, paper, attack_at, bar)
+    finally:
+        bar.close()
 
 
-def _horizon_text(m: dict[str, Any]) -> str:
-    arrival = m["baseline"]["arrival_step"]
-    if arrival is None:
-        return f"Every run lasts {m['horizon']} steps (guidance.max_steps; the no-attack baseline did not arrive)."
-    return (f"The no-attack baseline arrived after {arrival} steps (the nominal approach takes 50; in the paper "
-            f"variant a bias of the estimate along the range changes how far the chaser moves per step), so every attacked run lasts {m['horizon']} steps: "
-            f"that arrival plus guidance.slack_steps = {m['slack_steps']}, at most guidance.max_steps = {m['max_steps']}. "
-            "An attack succeeds when the chaser is not at the target point by then.")
-
-
-def _cell(r: dict[str, Any]) -> str:
-    text = {"rendezvous held": "held", "attack succeeded": "**attack succeeded**",
-            "target lost": f"**target lost** (step {r['steps']})", "missed without attack": "missed"}[r["outcome"]]
-    frames = "" if r["attacked_frames"] == r["length"] else f", {r['attacked_frames']} attacked frames"
-    return f"{text}, {r['miss_m']:.2f} m{frames}"
-
-
-def _report(m: dict[str, Any], g: dict[str, Any], a: dict[str, Any], render: dict[str, Any]) -> str:
-    from pipeline.report import markdown_table
-
-    tables = []
-    for eps in dict.fromkeys(r["eps"] for r in m["runs"]):
-        rows = []
-        for s in g["start_ranges"]:
-            row = {"S (m)": f"{float(s):g}"}
-            for r in m["runs"]:
-                if r["eps"] == eps and r["start_range"] == float(s):
-                    row[f"K = {r['length']}"] = _cell(r)
-            rows.append(row)
-        rate = m["attack_success_rate"][f"{eps:g}"]
-        tables.append(f"### eps = {eps:g}: the chaser missed or lost the target in {rate:.0%} of the runs\n\n"
-                      f"{markdown_table(rows)}")
-    law = ("the next true position is computed from the estimate, `p_new = p_est - clip(p_est - p_tar, -1, 1)` "
-           "(the paper's variant: the chaser ends up where it believes it goes, so one wrong estimate moves the true "
-           "chaser by as much as the estimate is wrong, and any estimate within 1 m per axis of the target point puts "
-           "it exactly there; `guidance.variant: true_state` applies the command to the true state instead)"
-           if m["variant"] == "paper" else
-           "the command `clip(p_est - p_tar, -1, 1)` is computed from the estimate and applied to the true state")
-    start, goal = (", ".join(f"{float(v):g}" for v in g[k]) for k in ("start", "target"))
-    baseline = f"**No-attack baseline: {m['baseline']['outcome']}, final miss {m['baseline']['miss_m']:.2f} m.**"
-    if m["baseline"]["outcome"] != "rendezvous held":
-        baseline += (" The pose model cannot guide the chaser even without an attack, so a miss in the tables "
-                     "below cannot be blamed on the attack.")
-    return f"""# Closed-loop rendezvous under attack
-
-The chaser starts at ({start}) m (the target's position relative to the chaser, target-centred frame,
-approach along +z) and steers to ({goal}) m with at most {g['max_step']:g} m per axis per step: {law}.
-Every step renders a new {render['width']}x{render['height']} Blender image (the pose model's input size)
-at the true pose, the pose CNN estimates the target position, and the chaser re-points its camera
-at where it believes the target is. {_horizon_text(m)} A run succeeds for
-the chaser when it ends within {m['tolerance']:g} m of the target point; "target lost" means the
-target's centre left the image, which ends the run. The attack ({m['method']} on the {m['loss']}
-loss, images quantised to 8 bits as in `rpod attack`) starts at the first step at range <= S and
-lasts K frames (fewer when the run ends first; the cell then says how many).
-
-{baseline}
-
-Cells: outcome, final distance to the target point.
-
-{chr(10).join(tables)}
-{m['renders']} rendered frames for {m['steps']} guidance steps (runs share the baseline's frames until
-their attack starts), {m['attacked']} attacked frames (time: reports/metrics/guidance.json).
-
-![true trajectories](figures/guidance_trajectories.png)
-
-The full paper grid (eps 0.5, 0.3, 0.1, 0.05, 0.01; S = 60..10 m; K = 5..20) runs with
-`dvc exp run -S profile=paper` (everything at paper scale) or, on the current model,
-`dvc exp run -S 'guidance.eps=[0.5,0.3,0.1,0.05,0.01]' -S 'guidance.start_ranges=[60,50,40,30,20,10]' -S 'guidance.lengths=[5,10,15,20]'`.
-"""
+def _metrics(settings: Any, g: dict[str, Any], a: dict[str, Any], model_hash: str, seconds: float,
+             counts: dict[str, int], flown: tuple[Any, int | None, int, list[Any]],
+             defended: dict[str, Any]) -> dict[str, Any]:
+    """reports/metrics/guidance.json: the paper grid's runs and success rates, and the defended grid."""
+    baseline, arrival, horizon, runs = flown
+    metrics = {
+        "variant": settings.variant, "method": g["method"], "loss": a["loss"], "max_steps": settings.max_steps,
+        "tolerance": settings.tolerance, "model_hash": model_hash, "seconds": seconds, **counts,
+        "baseline": {"outcome": baseline.outcome, "miss_m": baseline.miss, "arrival_step": arrival},
+        "horizon": horizon, "slack_steps": int(g["slack_steps"]),
+        "runs": [{"eps": e, "start_range": s, "length": k, "outcome": r.outcome, "miss_m": r.miss,
+                  "attack_start": r.attack_start, "attacked_frames": r.attacked_frames, "steps": len(r.estimates)}
+                 for e, s, k, r in runs],
+    }
+    metrics["attack_success_rate"] = {f"{e:g}": float(np.mean([r.outcome != "rendezvous held" for e2, _, _, r in runs
+                                                               if e2 == e])) for e in dict.fromkeys(e for e, *_ in runs)}
+    metrics["defended"] = {k: v for k, v in defended.items() if k != "example"}
+    return metrics

@@ -122,21 +122,18 @@ def main(ctx: typer.Context) -> None:
     """
     if ctx.invoked_subcommand is not None:
         return
-    from pipeline.evaluation import evaluate_sequences, nan_to_none, per_eps_summary, pose_errors_under_fgsm
+    from pipeline.evaluation import evaluate_sequences, fgsm_error_table, nan_to_none, per_eps_summary
     from pipeline.lab import lab_to_synthetic_factor
 
     p = params_mod.load()
     lab = p["lab"]
     params_mod.set_threads(p)
     K_syn, K_zed = cameras(p)
-    scale = float(lab["scale"])
-    factor = lab_to_synthetic_factor(K_syn, K_zed, scale)
+    factor = lab_to_synthetic_factor(K_syn, K_zed, float(lab["scale"]))
     reason = params_mod.retrain_reason(p)
     synthetic_lab = _lab_models(reason)
-    if synthetic_lab is None:
-        chain, loss_fn, model_hash = load_chain(p)
-    else:
-        chain, loss_fn, model_hash = load_chain(p, LAB_MODELS / POSE, LAB_MODELS / DETECTOR)
+    chain, loss_fn, model_hash = (load_chain(p) if synthetic_lab is None else
+                                  load_chain(p, LAB_MODELS / POSE, LAB_MODELS / DETECTOR))
     t0 = time.perf_counter()
     truth: list[dict[str, Any]] = []
     source = Path(lab["real_data"]) if lab["real_data"] else OUT
@@ -146,11 +143,8 @@ def main(ctx: typer.Context) -> None:
     render_s = time.perf_counter() - t0
     sequences, ranges, loader_err = _sequences(p, source, truth, K_syn, K_zed)
     e, length = p["evaluate"], int(lab["attack_length"])
-    clean_rows, fgsm_rows = [], []
-    for s in sequences:   # pose error (clean) and FGSM errors on every lab frame
-        for row in pose_errors_under_fgsm(chain, loss_fn, s, [float(x) for x in p["attack"]["eps"]],
-                                          int(e["batch_size"])):
-            (clean_rows if row["eps"] == "clean" else fgsm_rows).append(row)
+    clean_rows, fgsm_rows = fgsm_error_table(chain, loss_fn, sequences, [float(x) for x in p["attack"]["eps"]],
+                                             int(e["batch_size"]))   # pose error (clean), FGSM errors: every lab frame
     res = evaluate_sequences(chain, loss_fn, sequences, [float(x) for x in e["eps"]], length, int(e["batch_size"]),
                              "lab evaluate")
     summary = per_eps_summary(res["rows"])
@@ -191,30 +185,12 @@ def _sequences(p: dict[str, Any], source: Path, truth: list[dict[str, Any]], K_s
     """The recordings in `source` read through the real-data loader, as chain sequences (synthetic-frame
     targets in metres, seeded attack schedules), their range table rows, and the loader's label error
     against the exact render poses (`truth`, synthetic lab only)."""
-    from pipeline.lab import lab_to_synthetic_position
-    from pipeline.rotations import attitude_error_deg, quat_to_6d
-    from pipeline.schedule import attack_schedule
+    from pipeline.lab import chain_sequences, loader_errors
 
     lab, r = p["lab"], p["render"]
-    scale, length, p_start, seed = (float(lab["scale"]), int(lab["attack_length"]), float(p["evaluate"]["p_start"]),
-                                    int(lab["seed"]))
     recs = [read_recording(f, int(r["width"]), int(r["height"]), lab["bodies"], lab["match"], float(lab["max_gap_s"]),
                            float(lab["segment_threshold"]), int(lab["max_image_pixels"]),
                            float(lab["empty_frame_tolerance"])) for f in recording_folders(source)]
-
-    loader_err = {}
-    for tr in truth:      # the loader's labels against the exact ones the images were rendered at
-        rec = next(x for x in recs if x["name"] == tr["name"])
-        loader_err[tr["name"]] = {"position_max_m": float(np.abs(rec["t_lab"] - tr["t_lab"]).max()),
-                                  "attitude_max_deg": float(attitude_error_deg(rec["q"], tr["q"]).max())}
-    sequences, ranges = [], []
-    for i, rec in enumerate(recs):
-        t_syn = lab_to_synthetic_position(rec["t_lab"], K_syn, K_zed, scale)
-        targets = np.concatenate([t_syn, quat_to_6d(rec["q"])], 1).astype(np.float32)
-        sequences.append({"name": rec["name"], "images": rec["images"], "targets": targets,
-                          "attacked": attack_schedule(len(targets), p_start, length, seed + 31 + i)})
-        zl = rec["t_lab"][:, 2]
-        ranges.append({"sequence": rec["name"], "frames": len(zl), "lab z start (m)": float(zl[0]),
-                       "lab z end (m)": float(zl[-1]), "synthetic z start (m)": float(t_syn[0, 2]),
-                       "synthetic z end (m)": float(t_syn[-1, 2])})
-    return sequences, ranges, loader_err
+    sequences, ranges = chain_sequences(recs, K_syn, K_zed, float(lab["scale"]), float(p["evaluate"]["p_start"]),
+                                        int(lab["attack_length"]), int(lab["seed"]))
+    return sequences, ranges, loader_errors(recs, truth)

@@ -28,7 +28,7 @@ PREVIEW_WIDTH = 480  # previews are upscaled (nearest neighbour) to about this w
 
 def frames(p: dict[str, Any]):
     """All frames of the 13 sequences as flat arrays: sequence, frame, R (N,3,3), t (N,3)."""
-    from pipeline.trajectories import approach_sequences
+    from pipeline.trajectories import approach_sequences, flatten
 
     r = p["render"]
     K = params_mod.intrinsics(p)
@@ -42,13 +42,7 @@ def frames(p: dict[str, Any]):
                                   seed=int(p["seed"]) + SEED_OFFSET)
     except ValueError as e:
         raise StageError(f"params.yaml render: {e}") from None
-    return (np.concatenate([np.full(len(s), s.sequence) for s in seqs]), np.concatenate([s.frame for s in seqs]),
-            np.concatenate([s.R for s in seqs]), np.concatenate([s.t for s in seqs]))
-
-
-def fingerprint(p: dict[str, Any]) -> str:
-    """Hash of everything that decides the rendered images (so shards of different runs never mix)."""
-    return params_mod.render_fingerprint(p)
+    return flatten(seqs)
 
 
 def parse_shard(shard: str) -> tuple[int, int]:
@@ -61,30 +55,12 @@ def parse_shard(shard: str) -> tuple[int, int]:
     return i, n
 
 
-def shard_range(n_frames: int, chunk: int, i: int, n: int) -> tuple[int, int]:
-    """Frames [start, stop) of part i of n: contiguous blocks aligned to whole zarr chunks."""
-    n_chunks = -(-n_frames // chunk)
-    edges = np.linspace(0, n_chunks, n + 1).round().astype(int) * chunk
-    return int(min(edges[i - 1], n_frames)), int(min(edges[i], n_frames))
-
-
-def poses_table(idx: np.ndarray, seq: np.ndarray, frm: np.ndarray, R: np.ndarray, t: np.ndarray):
-    import pandas as pd
-
-    from pipeline.rotations import matrix_to_quat
-
-    q = matrix_to_quat(R)
-    return pd.DataFrame({"index": idx, "sequence": seq, "frame": frm,
-                         "tx": t[:, 0], "ty": t[:, 1], "tz": t[:, 2],
-                         "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3],
-                         "range": np.linalg.norm(t, axis=1)})
-
-
 def render_part(p: dict[str, Any], start: int, stop: int, dest: Path, desc: str) -> None:
     """Render frames [start, stop) into dest/{images.zarr, poses.parquet, meta.json} (dest is a fresh dir)."""
     import zarr
 
     from pipeline.scene import EmptyRenderError, Renderer, render_into
+    from pipeline.trajectories import poses_table
 
     r = p["render"]
     K = params_mod.intrinsics(p)
@@ -109,9 +85,9 @@ def render_part(p: dict[str, Any], start: int, stop: int, dest: Path, desc: str)
     sl = slice(start, stop)
     write_parquet(poses_table(np.arange(start, stop), seq[sl], frm[sl], R[sl], t[sl]), dest / "poses.parquet")
     write_json(dest / "meta.json", {
-        "complete": True, "fingerprint": fingerprint(p), "frames": n, "start": start, "stop": stop,
-        "width": K.width, "height": K.height, "K": K.K, "render": r, "camera": p["camera"], "seed": p["seed"],
-        "seconds": seconds, "seconds_per_image": seconds / max(n, 1), "chunk": chunk,
+        "complete": True, "fingerprint": params_mod.render_fingerprint(p), "frames": n, "start": start,
+        "stop": stop, "width": K.width, "height": K.height, "K": K.K, "render": r, "camera": p["camera"],
+        "seed": p["seed"], "seconds": seconds, "seconds_per_image": seconds / max(n, 1), "chunk": chunk,
     })
 
 
@@ -128,16 +104,12 @@ def write_previews(images, poses, n_previews: int) -> list[Path]:
     rotating sequences; upscaled by an integer factor (nearest neighbour) for viewing."""
     import cv2
 
+    from pipeline.trajectories import preview_picks
+
     shutil.rmtree(PREVIEWS, ignore_errors=True)
     PREVIEWS.mkdir(parents=True, exist_ok=True)
-    s0 = poses[poses.sequence == 0]
-    picks = [int(s0["index"].iloc[0]), int(s0["index"].iloc[-1])]
-    others = poses[poses.sequence >= 5]
-    extra = max(2, n_previews) - 2
-    if extra and len(others):
-        picks += [int(i) for i in others["index"].iloc[np.linspace(0, len(others) - 1, extra).round().astype(int)]]
     out = []
-    for k, idx in enumerate(picks):
+    for k, idx in enumerate(preview_picks(poses["sequence"].to_numpy(), poses["index"].to_numpy(), n_previews)):
         img = np.asarray(images[idx])
         row = poses.iloc[idx]
         scale = max(1, round(PREVIEW_WIDTH / img.shape[1]))
@@ -159,7 +131,7 @@ def merge(p: dict[str, Any], n: int) -> None:
     if missing:
         raise StageError(f"cannot merge: shard parts missing: {', '.join(missing)}")
     checked = [read_render_store(d, "render shard") for d in parts]
-    fp = fingerprint(p)
+    fp = params_mod.render_fingerprint(p)
     stale = [str(d) for d, (_, _, m) in zip(parts, checked) if m["fingerprint"] != fp]
     if stale:
         raise StageError(f"shard parts {', '.join(stale)} were rendered with other params; re-render them")
@@ -207,6 +179,8 @@ def main(
             with atomic_dir(OUT) as tmp:
                 render_part(p, 0, n_frames, tmp, "render")
         else:
+            from pipeline.scene import shard_range
+
             start, stop = shard_range(n_frames, int(p["render"]["chunk"]), i, n)
             remove_leftovers(SHARDS / str(n) / str(i))
             with atomic_dir(SHARDS / str(n) / str(i)) as tmp:

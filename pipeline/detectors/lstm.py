@@ -134,13 +134,19 @@ class TrainResult:
 def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_val: np.ndarray,
                config: LSTMConfig, *, epochs: int = 200, patience: int = 20, batch_size: int = 64,
                lr: float = 1.0, seed: int = 0,
-               on_epoch: Callable[[dict[str, float]], None] | None = None) -> TrainResult:
+               on_epoch: Callable[[dict[str, float]], None] | None = None,
+               progress: str | None = None) -> TrainResult:
     """Fit with Adadelta and binary cross-entropy; early stopping on the validation loss.
 
     Training stops after `patience` epochs without a lower validation loss; the weights of the
     best epoch are kept, and the threshold is then chosen on the validation probabilities
-    (`choose_threshold`: highest validation accuracy). `on_epoch` gets each epoch's record.
+    (`choose_threshold`: highest validation accuracy). `on_epoch` gets each epoch's record;
+    `progress` (a description) shows a tqdm bar over the epochs with the validation loss and accuracy.
     """
+    if progress is not None:
+        return _with_progress(progress, epochs, on_epoch, lambda cb: train_lstm(
+            x_train, y_train, x_val, y_val, config, epochs=epochs, patience=patience, batch_size=batch_size, lr=lr,
+            seed=seed, on_epoch=cb))
     sizes = {"epochs": epochs, "patience": patience, "batch_size": batch_size, "hidden": config.hidden,
              **{f"dense[{i}]": w for i, w in enumerate(config.dense)}}
     small = [f"{k}={v}" for k, v in sizes.items() if int(v) < 1]
@@ -191,3 +197,21 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
     model.load_state_dict(best_state)
     model.threshold.fill_(choose_threshold(model.predict_proba(x_val), y_val))
     return TrainResult(model.eval(), history, best_epoch)
+
+
+def _with_progress(desc: str, epochs: int, on_epoch: Callable[[dict[str, float]], None] | None,
+                   fit: Callable[[Callable[[dict[str, float]], None]], TrainResult]) -> TrainResult:
+    """Run `fit(callback)` with a tqdm bar over the epochs (closed when the fit returns)."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=epochs, desc=desc, unit="epoch")
+
+    def callback(rec: dict[str, float]) -> None:
+        bar.update(1)
+        bar.set_postfix(val_loss=f"{rec['val_loss']:.4f}", val_acc=f"{rec['val_accuracy']:.3f}")
+        if on_epoch is not None:
+            on_epoch(rec)
+
+    result = fit(callback)
+    bar.close()
+    return result

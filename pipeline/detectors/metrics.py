@@ -75,3 +75,9 @@ def roc_points(labels: np.ndarray, scores: np.ndarray) -> dict[str, np.ndarray]:
     """ROC curve points (fpr, tpr, threshold) for plotting."""
     fpr, tpr, thr = skm.roc_curve(np.asarray(labels).astype(int), np.asarray(scores, dtype=np.float64))
     return {"fpr": fpr, "tpr": tpr, "threshold": thr}
+
+
+def roc_csv(labels: np.ndarray, scores: np.ndarray) -> str:
+    """The ROC curve as CSV text: a `fpr,tpr` header, then one point per line (6 decimals)."""
+    roc = roc_points(labels, scores)
+    return "\n".join(["fpr,tpr"] + [f"{a:.6f},{b:.6f}" for a, b in zip(roc["fpr"], roc["tpr"])]) + "\n"

@@ -8,7 +8,7 @@ by its standard deviation over clean images first (set by `fit`).
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Iterable
 
 import cv2
 import numpy as np
@@ -45,3 +45,22 @@ class SqueezeDetector:
         changes = [np.abs(base - np.asarray(self.predict(sq), dtype=np.float64)) / self.scale_
                    for sq in (reduce_bit_depth(images, self.bits), median_filter(images, self.median_size))]
         return np.max([c.sum(1) for c in changes], axis=0)
+
+
+def model_predictor(model: Callable[[object], object]) -> Predict:
+    """The pose network as a `Predict`: uint8 images (N, H, W, 3) -> outputs (N, 9), without gradients."""
+    import torch
+
+    def predict(images: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return model(torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float() / 255).numpy()
+
+    return predict
+
+
+def score_batches(detector: SqueezeDetector, batches: Iterable[tuple[slice, np.ndarray]], n: int) -> np.ndarray:
+    """Scores of n samples given as (slice, images) batches."""
+    out = np.zeros(n)
+    for sl, images in batches:
+        out[sl] = detector.score(images)
+    return out

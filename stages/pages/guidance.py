@@ -1,5 +1,6 @@
-"""The defended section of reports/guidance.md (`rpod guidance`, SPEC 11): closed-loop rendezvous
-success per variant (undefended, detect-and-hold, detect-and-recover) and dynamics."""
+"""reports/guidance.md, the page of `rpod guidance` (SPEC 5): one S x K table per eps; and its defended
+section (SPEC 11): closed-loop rendezvous success per variant (undefended, detect-and-hold,
+detect-and-recover) and dynamics."""
 from __future__ import annotations
 
 from typing import Any
@@ -51,3 +52,75 @@ rates carry 95% Wilson intervals over the runs of the grid (few runs: wide inter
 Every run:
 
 {markdown_table(cells, decimals=2)}"""
+
+
+def _horizon_text(m: dict[str, Any]) -> str:
+    arrival = m["baseline"]["arrival_step"]
+    if arrival is None:
+        return f"Every run lasts {m['horizon']} steps (guidance.max_steps; the no-attack baseline did not arrive)."
+    return (f"The no-attack baseline arrived after {arrival} steps (the nominal approach takes 50; in the paper "
+            f"variant a bias of the estimate along the range changes how far the chaser moves per step), so every attacked run lasts {m['horizon']} steps: "
+            f"that arrival plus guidance.slack_steps = {m['slack_steps']}, at most guidance.max_steps = {m['max_steps']}. "
+            "An attack succeeds when the chaser is not at the target point by then.")
+
+
+def _cell(r: dict[str, Any]) -> str:
+    text = {"rendezvous held": "held", "attack succeeded": "**attack succeeded**",
+            "target lost": f"**target lost** (step {r['steps']})", "missed without attack": "missed"}[r["outcome"]]
+    frames = "" if r["attacked_frames"] == r["length"] else f", {r['attacked_frames']} attacked frames"
+    return f"{text}, {r['miss_m']:.2f} m{frames}"
+
+
+def guidance_page(m: dict[str, Any], g: dict[str, Any], render: dict[str, Any]) -> str:
+    """reports/guidance.md without the defended section: one S x K table per eps, from the metrics."""
+    from pipeline.report import markdown_table
+
+    tables = []
+    for eps in dict.fromkeys(r["eps"] for r in m["runs"]):
+        rows = []
+        for s in g["start_ranges"]:
+            row = {"S (m)": f"{float(s):g}"}
+            for r in m["runs"]:
+                if r["eps"] == eps and r["start_range"] == float(s):
+                    row[f"K = {r['length']}"] = _cell(r)
+            rows.append(row)
+        rate = m["attack_success_rate"][f"{eps:g}"]
+        tables.append(f"### eps = {eps:g}: the chaser missed or lost the target in {rate:.0%} of the runs\n\n"
+                      f"{markdown_table(rows)}")
+    law = ("the next true position is computed from the estimate, `p_new = p_est - clip(p_est - p_tar, -1, 1)` "
+           "(the paper's variant: the chaser ends up where it believes it goes, so one wrong estimate moves the true "
+           "chaser by as much as the estimate is wrong, and any estimate within 1 m per axis of the target point puts "
+           "it exactly there; `guidance.variant: true_state` applies the command to the true state instead)"
+           if m["variant"] == "paper" else
+           "the command `clip(p_est - p_tar, -1, 1)` is computed from the estimate and applied to the true state")
+    start, goal = (", ".join(f"{float(v):g}" for v in g[k]) for k in ("start", "target"))
+    baseline = f"**No-attack baseline: {m['baseline']['outcome']}, final miss {m['baseline']['miss_m']:.2f} m.**"
+    if m["baseline"]["outcome"] != "rendezvous held":
+        baseline += (" The pose model cannot guide the chaser even without an attack, so a miss in the tables "
+                     "below cannot be blamed on the attack.")
+    return f"""# Closed-loop rendezvous under attack
+
+The chaser starts at ({start}) m (the target's position relative to the chaser, target-centred frame,
+approach along +z) and steers to ({goal}) m with at most {g['max_step']:g} m per axis per step: {law}.
+Every step renders a new {render['width']}x{render['height']} Blender image (the pose model's input size)
+at the true pose, the pose CNN estimates the target position, and the chaser re-points its camera
+at where it believes the target is. {_horizon_text(m)} A run succeeds for
+the chaser when it ends within {m['tolerance']:g} m of the target point; "target lost" means the
+target's centre left the image, which ends the run. The attack ({m['method']} on the {m['loss']}
+loss, images quantised to 8 bits as in `rpod attack`) starts at the first step at range <= S and
+lasts K frames (fewer when the run ends first; the cell then says how many).
+
+{baseline}
+
+Cells: outcome, final distance to the target point.
+
+{chr(10).join(tables)}
+{m['renders']} rendered frames for {m['steps']} guidance steps (runs share the baseline's frames until
+their attack starts), {m['attacked']} attacked frames (time: reports/metrics/guidance.json).
+
+![true trajectories](figures/guidance_trajectories.png)
+
+The full paper grid (eps 0.5, 0.3, 0.1, 0.05, 0.01; S = 60..10 m; K = 5..20) runs with
+`dvc exp run -S profile=paper` (everything at paper scale) or, on the current model,
+`dvc exp run -S 'guidance.eps=[0.5,0.3,0.1,0.05,0.01]' -S 'guidance.start_ranges=[60,50,40,30,20,10]' -S 'guidance.lengths=[5,10,15,20]'`.
+"""
