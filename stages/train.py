@@ -13,17 +13,24 @@ import os
 from pathlib import Path
 from typing import Any
 
+import typer
+
 from stages.io import StageError, atomic_write_text, write_metrics
 
 REPORT = Path("reports/pose.md")
 METRICS = Path("reports/metrics/train.json")
 LIVE_DIR = "dvclive/train"
 SEED_OFFSET = 300
+SURROGATE = Path("models/surrogate.pt")
 PAPER = {"pos_mean_m": 0.49, "att_mean_deg": 0.68}
 TARGET_TZ_PCT, TARGET_LATERAL_M = 2.0, 0.5  # guidance needs (issue 3)
 
 
-def main() -> None:
+def main(
+    surrogate: bool = typer.Option(False, "--surrogate", help="Train the robustness stage's surrogate instead: seed "
+                                   "robustness.surrogate_seed, robustness.surrogate_epochs epochs, writes "
+                                   "models/surrogate.pt and no reports."),
+) -> None:
     """Train the pose CNN; keep the best checkpoint by test error; report errors next to the paper's."""
     import numpy as np
     import torch
@@ -35,15 +42,19 @@ def main() -> None:
 
     params = params_mod.load()
     p = params["train"]
+    r = params["robustness"]
+    out = SURROGATE if surrogate else checkpoint.POSE
+    seed = int(r["surrogate_seed"]) if surrogate else int(params["seed"])
     rank, world, device = _init_distributed()
     torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
     try:
-        cfg = TrainConfig(epochs=int(p["epochs"]), batch_size=int(p["batch_size"]), lr_base=float(p["lr_base"]),
+        epochs = int(r["surrogate_epochs"] if surrogate else p["epochs"])
+        cfg = TrainConfig(epochs=epochs, batch_size=int(p["batch_size"]), lr_base=float(p["lr_base"]),
                           lr_max=float(p["lr_max"]), cycle_epochs=float(p["cycle_epochs"]),
                           weight_decay=float(p["weight_decay"]),
                           max_minutes=None if p["max_minutes"] is None else float(p["max_minutes"]),
                           channels_last=bool(p["channels_last"]), workers=int(p["workers"]),
-                          seed=int(params["seed"]) + SEED_OFFSET)
+                          seed=seed + SEED_OFFSET)
         model = PoseNet(float(p["width"]), float(p["dropout"]))
     except ValueError as e:
         raise StageError(f"params.yaml: bad train section ({e})") from None
@@ -59,7 +70,7 @@ def main() -> None:
     input_size = (int(params["render"]["height"]), int(params["render"]["width"]))
 
     live = None
-    if rank == 0:
+    if rank == 0 and not surrogate:
         from dvclive import Live
 
         live = Live(dir=LIVE_DIR, dvcyaml=False, save_dvc_exp=False, report=None)
@@ -72,12 +83,13 @@ def main() -> None:
             return
         from tqdm import tqdm
 
-        for key in ("loss", "lr", "s_p", "s_r", "train_pos_m", "train_att_deg", "test_pos_m", "test_att_deg",
-                    "test_score", "images_per_s"):
-            live.log_metric(key, getattr(stats, key))
-        live.next_step()
+        if live is not None:
+            for key in ("loss", "lr", "s_p", "s_r", "train_pos_m", "train_att_deg", "test_pos_m", "test_att_deg",
+                        "test_score", "images_per_s"):
+                live.log_metric(key, getattr(stats, key))
+            live.next_step()
         if is_best:
-            checkpoint.save_pose(checkpoint.POSE, _plain(net), loss, input_size,
+            checkpoint.save_pose(out, _plain(net), loss, input_size,
                                  {"epoch": stats.epoch, "test_score": stats.test_score,
                                   "test_pos_m": stats.test_pos_m, "test_att_deg": stats.test_att_deg})
         tqdm.write(f"epoch {stats.epoch:3d}  loss {stats.loss:7.3f}  train {stats.train_pos_m:6.2f} m "
@@ -85,7 +97,10 @@ def main() -> None:
                    f"{stats.images_per_s:5.0f} img/s  {stats.seconds:5.1f} s{'  *best' if is_best else ''}")
 
     result = fit(model, loss, train_set, test_set, cfg, device, on_epoch=on_epoch)
-    if rank == 0:
+    if rank == 0 and surrogate:
+        print(f"train --surrogate: seed {seed}, best epoch {result.best_epoch} of {len(result.history)}: test "
+              f"{result.history[result.best_epoch - 1].test_pos_m:.3f} m -> {out}")
+    elif rank == 0:
         live.end()
         net = _plain(model)
         net.load_state_dict(result.best_state)

@@ -1,0 +1,89 @@
+"""Robustness rows of the safety chain (SPEC 11): detection rate, harmful-undetected rate, pose error.
+
+For a set of attacked frames with their position errors (m) and the chain's flags:
+- detection rate = flagged frames / attacked frames;
+- harmful-undetected rate = frames whose position error exceeds the harm threshold `harm_m` (m)
+  and that the chain did not flag / attacked frames: the safety number;
+- position error = mean ||t_pred - t_gt|| (m, camera frame) over the attacked frames.
+Every rate carries its 95% Wilson interval (`pipeline.stats`): the frames are distinct held-out
+test frames, each attacked once, so they are independent trials of the attack.
+For benign corruptions, the false-alarm rate = flagged frames / corrupted frames.
+"""
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+from pipeline.stats import rate
+
+ROW_KEYS = ("attack", "group", "eps", "adaptive", "lambda", "n", "detection_rate", "harmful_undetected_rate",
+            "position_error_m", "ci95_detection", "ci95_harmful_undetected", "harmful_rate")
+
+
+def _check(position_error: np.ndarray, flag: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    pos = np.asarray(position_error, dtype=np.float64).ravel()
+    flag = np.asarray(flag, dtype=bool).ravel()
+    if pos.shape != flag.shape or pos.size == 0:
+        raise ValueError(f"position errors {pos.shape} and flags {flag.shape} must be equal, non-empty")
+    if not np.isfinite(pos).all():
+        raise ValueError(f"{int((~np.isfinite(pos)).sum())} position errors are NaN or infinite")
+    return pos, flag
+
+
+def harmful_undetected(position_error: np.ndarray, flag: np.ndarray, harm_m: float) -> np.ndarray:
+    """(N,) bool: position error > harm_m (m) and not flagged."""
+    pos, flag = _check(position_error, flag)
+    return (pos > harm_m) & ~flag
+
+
+def attack_row(attack: str, group: str, eps: float, position_error: np.ndarray, flag: np.ndarray, harm_m: float,
+               lam: float | None = None) -> dict[str, Any]:
+    """One attack's row: rates with Wilson 95% intervals and the mean position error (m).
+
+    `group`: transfer, adaptive, surrogate or seen (the detector's own training attack);
+    `lam` is the adaptive attack's lambda (None for the other groups).
+    """
+    pos, flag = _check(position_error, flag)
+    det = rate(flag)
+    hu = rate(harmful_undetected(pos, flag, harm_m))
+    return {"attack": attack, "group": group, "eps": float(eps), "adaptive": group == "adaptive",
+            "lambda": None if lam is None else float(lam), "n": int(pos.size),
+            "detection_rate": det.value, "harmful_undetected_rate": hu.value, "position_error_m": float(pos.mean()),
+            "ci95_detection": det.ci(), "ci95_harmful_undetected": hu.ci(),
+            "harmful_rate": float((pos > harm_m).mean())}
+
+
+def corruption_row(corruption: str, strength: float, position_error: np.ndarray, flag: np.ndarray) -> dict[str, Any]:
+    """One benign corruption's row: false-alarm rate with its Wilson 95% interval, mean position error (m)."""
+    pos, flag = _check(position_error, flag)
+    fa = rate(flag)
+    return {"corruption": corruption, "strength": float(strength), "n": int(pos.size), "false_alarm_rate": fa.value,
+            "ci95_false_alarm": fa.ci(), "position_error_m": float(pos.mean())}
+
+
+def worst_over_lambda(position_errors: Sequence[np.ndarray], flags: Sequence[np.ndarray],
+                      harm_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The attacker who tries every lambda and keeps, per frame, the best image for them.
+
+    Inputs: one (N,) position-error and one (N,) flag array per lambda, same frames in the same
+    order. Per frame the kept image is, in this order of preference: harmful and unflagged, then
+    unflagged, then the largest position error. Returns (position error (N,), flag (N,), index of
+    the kept lambda (N,)).
+    """
+    pos = np.stack([_check(p, f)[0] for p, f in zip(position_errors, flags)])
+    flag = np.stack([np.asarray(f, dtype=bool).ravel() for f in flags])
+    if pos.shape != flag.shape or pos.shape[0] == 0:
+        raise ValueError("worst_over_lambda needs one position-error and one flag array per lambda")
+    hu = (pos > harm_m) & ~flag
+    # lexsort sorts by the last key first; take the largest (last) per frame
+    order = np.lexsort((pos, ~flag, hu), axis=0)
+    pick = order[-1]
+    cols = np.arange(pos.shape[1])
+    return pos[pick, cols], flag[pick, cols], pick
+
+
+def worst_row(rows: list[dict[str, Any]], eps: float, key: str = "harmful_undetected_rate") -> dict[str, Any] | None:
+    """The row at `eps` with the highest `key` (None when there is none)."""
+    at = [r for r in rows if np.isclose(r["eps"], eps)]
+    return max(at, key=lambda r: r[key]) if at else None
