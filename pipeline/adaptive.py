@@ -56,7 +56,8 @@ class ShapChain(nn.Module):
     `model`: PoseNet (forward_features (B, D), forward_head (B, 9)); `weight` (9, D) the affine head
     weights and `background_mean` (D,) the SHAP background mean (as in `SafetyChain`); `detector`:
     SHAP values (B, 9, D) -> logits (B,). The pose is `forward_head(forward_features(x))`, exactly
-    `model(x)`, so the features are computed once for both outputs.
+    `model(x)`, so the features are computed once for both outputs. Built in eval mode (BatchNorm
+    statistics frozen): the attack restores this mode afterwards, so the shared pose model stays in it.
     """
 
     temporal = False
@@ -71,6 +72,7 @@ class ShapChain(nn.Module):
         if self.weight.ndim != 2 or self.background_mean.shape != (self.weight.shape[1],):
             raise ValueError(f"head weight {tuple(self.weight.shape)} and background mean "
                              f"{tuple(self.background_mean.shape)} do not fit (need (9, D) and (D,))")
+        self.eval()
 
     def forward(self, images: Tensor) -> tuple[Tensor, Tensor]:
         features = self.model.forward_features(images)

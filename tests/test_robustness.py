@@ -1,0 +1,234 @@
+"""Robustness stage: adaptive attack through the chain, corruptions, rows and their intervals, bad params."""
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from pipeline.adaptive import ShapChain, adaptive_objective, adaptive_pgd, check_lambdas
+from pipeline.attacks import pgd, quantize
+from pipeline.corruptions import CORRUPTIONS, corrupt
+from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
+from pipeline.loss import PoseLoss
+from pipeline.robustness import attack_row, corruption_row, worst_over_lambda
+
+D = 16
+
+
+class TinyPose(nn.Module):
+    """Conv -> BN -> LeakyReLU -> GAP (D features) -> affine 9-output head, with PoseNet's two halves."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.features = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.BatchNorm2d(8), nn.LeakyReLU(0.1),
+                                      nn.Conv2d(8, D, 3, stride=2, padding=1), nn.LeakyReLU(0.1),
+                                      nn.AdaptiveAvgPool2d(1), nn.Flatten())
+        self.head = nn.Linear(D, 9)
+
+    def forward_features(self, x: torch.Tensor) -> torch.Tensor:
+        return self.features(x)
+
+    def forward_head(self, f: torch.Tensor) -> torch.Tensor:
+        return self.head(f)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.forward_head(self.forward_features(x))
+
+
+@pytest.fixture()
+def setup() -> tuple[ShapChain, TinyPose, torch.Tensor, torch.Tensor, PoseLoss]:
+    torch.manual_seed(0)
+    model = TinyPose().eval()
+    detector = LSTMDetector(LSTMConfig(n_rows=9, n_features=D, hidden=8, dense=[4])).eval()
+    x = torch.round(torch.rand(6, 3, 12, 16) * 255) / 255  # on the 8-bit grid, as camera frames
+    with torch.no_grad():
+        background = model.forward_features(torch.rand(20, 3, 12, 16))
+        mu = background.mean(0)
+        # standardise the SHAP rows as training would, so the logit depends on the image
+        detector.set_normalisation((model.head.weight.unsqueeze(0) * (background - mu).unsqueeze(1)).numpy())
+    chain = ShapChain(model, model.head.weight.detach(), mu, detector)
+    y = torch.randn(6, 9)
+    return chain, model, x, y, PoseLoss("mean")
+
+
+def test_lambda_zero_is_plain_pgd(setup) -> None:
+    chain, model, x, y, loss = setup
+    ours = adaptive_pgd(chain, x, y, 0.05, loss, 0.0, steps=20, generator=torch.Generator().manual_seed(7))
+    plain = pgd(model, x, y, 0.05, loss, steps=20, generator=torch.Generator().manual_seed(7))
+    assert torch.equal(ours, plain)
+    other_seed = adaptive_pgd(chain, x, y, 0.05, loss, 0.0, steps=20, generator=torch.Generator().manual_seed(8))
+    assert not torch.equal(ours, other_seed)
+
+
+def test_large_lambda_lowers_detector_logit(setup) -> None:
+    chain, _, x, y, loss = setup
+
+    def mean_logit(images: torch.Tensor) -> float:
+        with torch.no_grad():
+            return float(chain(quantize(images, x).float() / 255)[1].mean())
+
+    plain = adaptive_pgd(chain, x, y, 0.1, loss, 0.0, steps=20, generator=torch.Generator().manual_seed(1))
+    evasive = adaptive_pgd(chain, x, y, 0.1, loss, 100.0, steps=20, generator=torch.Generator().manual_seed(1))
+    assert mean_logit(evasive) < mean_logit(plain) - 0.1
+    assert mean_logit(evasive) < mean_logit(x)
+
+
+@pytest.mark.parametrize("eps", [0.01, 0.05, 0.3])
+@pytest.mark.parametrize("lam", [0.0, 10.0])
+def test_stored_images_stay_within_eps(setup, eps: float, lam: float) -> None:
+    chain, _, x, y, loss = setup
+    adv = adaptive_pgd(chain, x, y, eps, loss, lam, steps=20, generator=torch.Generator().manual_seed(2))
+    assert float((adv - x).abs().max()) <= eps + 1e-6 and adv.min() >= 0 and adv.max() <= 1
+    stored = quantize(adv, x).int()
+    levels = (stored - torch.round(x * 255).int()).abs()
+    # 8-bit storage rounds each change to the nearest level: at most eps rounded to the nearest level
+    assert int(levels.max()) <= math.floor(eps * 255 + 0.5)
+    assert float(levels.float().max() / 255) <= eps + 0.5 / 255 + 1e-7
+
+
+def test_adaptive_leaves_parameters_and_mode_alone(setup) -> None:
+    chain, model, x, y, loss = setup
+    adaptive_pgd(chain, x, y, 0.05, loss, 10.0, steps=20, generator=torch.Generator().manual_seed(3))
+    # the pose model is shared with the evaluating chain: it must stay in eval mode (frozen BatchNorm)
+    assert not chain.training and not model.training
+    chain.train()
+    before = copy.deepcopy(chain.state_dict())
+    adaptive_pgd(chain, x, y, 0.05, loss, 10.0, steps=20, generator=torch.Generator().manual_seed(3))
+    assert chain.training
+    assert all(torch.equal(before[k], v) for k, v in chain.state_dict().items())
+    assert all(p.grad is None for p in chain.parameters())
+
+
+def test_chain_pose_is_the_model_and_logit_the_detector_on_shap(setup) -> None:
+    chain, model, x, _, _ = setup
+    pose, logit = chain(x)
+    assert torch.equal(pose, model(x))
+    phi = chain.weight.unsqueeze(0) * (model.forward_features(x) - chain.background_mean).unsqueeze(1)
+    assert torch.allclose(logit, chain.detector(phi))
+
+
+@pytest.mark.parametrize("bad", [[0, -1, 10], [], [float("nan")]])
+def test_bad_lambdas_refused(bad: list[float]) -> None:
+    with pytest.raises(ValueError, match="lambda"):
+        check_lambdas(bad)
+    if bad:
+        with pytest.raises(ValueError, match="lambda"):
+            adaptive_objective(PoseLoss("mean"), min(bad) if not math.isnan(bad[0]) else bad[0])
+
+
+def _wilson(k: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    return centre - half, centre + half
+
+
+def test_attack_row_rates_and_wilson_intervals() -> None:
+    pos = np.array([0.5, 2.0, 3.0, 0.2, 1.5, 4.0, 0.9, 1.1, 2.2, 0.1])
+    flag = np.array([1, 0, 1, 0, 0, 1, 0, 0, 1, 1], bool)
+    row = attack_row("pgd", "transfer", 0.05, pos, flag, harm_m=1.0)
+    assert row["n"] == 10 and row["adaptive"] is False and row["lambda"] is None
+    assert row["detection_rate"] == pytest.approx(0.5)
+    # harmful (> 1 m) and unflagged: 2.0, 1.5, 1.1
+    assert row["harmful_undetected_rate"] == pytest.approx(0.3)
+    assert row["position_error_m"] == pytest.approx(pos.mean())
+    assert row["ci95_detection"] == pytest.approx(list(_wilson(5, 10)), abs=1e-9)
+    assert row["ci95_harmful_undetected"] == pytest.approx(list(_wilson(3, 10)), abs=1e-9)
+    assert row["ci95_harmful_undetected"] == pytest.approx([0.107791, 0.603222], abs=1e-6)
+    adaptive = attack_row("adaptive pgd", "adaptive", 0.05, pos, flag, 1.0, lam=10)
+    assert adaptive["adaptive"] is True and adaptive["lambda"] == 10.0
+
+
+def test_rows_refuse_nan_and_shape_mismatch() -> None:
+    with pytest.raises(ValueError, match="NaN"):
+        attack_row("fgsm", "seen", 0.1, np.array([1.0, np.nan]), np.zeros(2, bool), 1.0)
+    with pytest.raises(ValueError, match="equal"):
+        corruption_row("blur", 1.0, np.ones(3), np.zeros(2, bool))
+
+
+def test_corruption_row_false_alarms() -> None:
+    row = corruption_row("jpeg", 40, np.array([0.1, 0.2, 0.3, 0.4]), np.array([0, 1, 0, 0], bool))
+    assert row["false_alarm_rate"] == pytest.approx(0.25)
+    assert row["ci95_false_alarm"] == pytest.approx(list(_wilson(1, 4)), abs=1e-9)
+    assert row["position_error_m"] == pytest.approx(0.25)
+
+
+def test_worst_over_lambda_keeps_the_attackers_best_image_per_frame() -> None:
+    pos = [np.array([2.0, 0.5, 3.0, 0.2]), np.array([1.5, 2.0, 0.3, 0.1])]
+    flags = [np.array([1, 0, 0, 1], bool), np.array([0, 1, 0, 1], bool)]
+    p, f, pick = worst_over_lambda(pos, flags, harm_m=1.0)
+    # frame 0: only lambda 1 is harmful and unflagged; frame 1: none harmful-unflagged, lambda 0 unflagged;
+    # frame 2: lambda 0 harmful and unflagged; frame 3: both flagged, larger error wins
+    assert pick.tolist() == [1, 0, 0, 0]
+    assert p.tolist() == [1.5, 0.5, 3.0, 0.2] and f.tolist() == [False, False, False, True]
+    row = attack_row("worst", "adaptive", 0.05, p, f, 1.0)
+    singles = [attack_row("x", "adaptive", 0.05, a, b, 1.0)["harmful_undetected_rate"] for a, b in zip(pos, flags)]
+    assert row["harmful_undetected_rate"] >= max(singles)
+
+
+@pytest.fixture()
+def frames() -> np.ndarray:
+    rng = np.random.default_rng(0)
+    return rng.integers(20, 230, size=(3, 18, 32, 3), dtype=np.uint8)
+
+
+@pytest.mark.parametrize("name,strength", [("noise", 0.03), ("blur", 1.5), ("jpeg", 40), ("brightness", 1.4),
+                                           ("contrast", 0.7)])
+def test_corruptions_change_frames_deterministically(frames: np.ndarray, name: str, strength: float) -> None:
+    out = corrupt(name, strength, seed=3)(frames)
+    assert out.dtype == np.uint8 and out.shape == frames.shape
+    assert not np.array_equal(out, frames)
+    assert np.array_equal(out, corrupt(name, strength, seed=3)(frames))
+
+
+@pytest.mark.parametrize("name,identity", [("noise", 0.0), ("brightness", 1.0), ("contrast", 1.0)])
+def test_neutral_strength_is_identity(frames: np.ndarray, name: str, identity: float) -> None:
+    assert np.array_equal(corrupt(name, identity)(frames), frames)
+
+
+def test_corruption_strengths_have_their_units(frames: np.ndarray) -> None:
+    noisy = corrupt("noise", 0.02, seed=1)(frames).astype(float) - frames
+    assert np.std(noisy) == pytest.approx(0.02 * 255, rel=0.1)
+    bright = corrupt("brightness", 1.2)(frames).astype(float)
+    assert bright.mean() == pytest.approx(1.2 * frames.mean(), rel=0.02)
+    assert set(CORRUPTIONS) == {"noise", "blur", "jpeg", "brightness", "contrast"}
+
+
+@pytest.mark.parametrize("name,strength,match", [("fog", 1.0, "unknown corruption"), ("jpeg", 0, "out of range"),
+                                                 ("noise", -0.1, "out of range"), ("blur", float("nan"), "out of range")])
+def test_bad_corruptions_refused(name: str, strength: float, match: str) -> None:
+    with pytest.raises(ValueError, match=match):
+        corrupt(name, strength)
+
+
+def _params() -> dict:
+    from stages.params import compose
+
+    return compose("smoke")["robustness"]
+
+
+@pytest.mark.parametrize("key,value,match", [
+    ("transfer", ["pgd", "cw"], r"robustness\.transfer: unknown attack 'cw'"),
+    ("transfer", ["fgsm/angle"], r"robustness\.transfer: unknown attack 'fgsm/angle'"),
+    ("surrogate_attacks", ["deepfool"], r"robustness\.surrogate_attacks: unknown attack"),
+    ("lambdas", [0, -1, 10], r"robustness\.lambdas"),
+    ("eps", [0.05, 1.5], r"robustness\.eps: 1\.5 is not in \(0, 1\]"),
+    ("eps", [0.0], r"robustness\.eps: 0\.0 is not in \(0, 1\]"),
+    ("unseen_eps", [-0.2], r"robustness\.unseen_eps"),
+    ("steps", 5, r"robustness\.steps"),
+    ("harm_m", 0, r"robustness\.harm_m"),
+    ("corruptions", {"jpeg": [0]}, r"robustness\.corruptions\.jpeg"),
+])
+def test_bad_params_stop_with_one_message(key: str, value: object, match: str) -> None:
+    from stages.io import StageError
+    from stages.robustness import check_params
+
+    r = _params()
+    check_params(r)
+    r[key] = value
+    with pytest.raises(StageError, match=match):
+        check_params(r)
