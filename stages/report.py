@@ -38,6 +38,7 @@ SECTIONS = [
     ("guidance", "guidance.md", "guidance"),
     ("detect", "detector.md", "detect"),
     ("evaluate", "integrated.md", "evaluate"),
+    ("robustness", "robustness.md", "robustness"),
     ("lab", "lab.md", "lab"),
     ("benchmarks", "benchmarks.md", None),
 ]
@@ -146,6 +147,7 @@ def summary_tables(metrics: dict[str, dict[str, Any]]) -> str:
          _fmt(PAPER["integrated"]), "evaluate"),
         (f"lab detection accuracy, mean over eps (%), {'main' if lab.get('reused_models', True) else 'retrained'} models",
          _fmt(100 * lab["accuracy_mean"]), _fmt(PAPER["lab"]), "lab"),
+        *_robustness_rows(metrics["robustness"]),
     ]
     table = markdown_table([{"result": r, "this run": v, "paper": p, "stage": f"`{s}`"} for r, v, p, s in rows])
     eps_rows = []
@@ -159,6 +161,21 @@ def summary_tables(metrics: dict[str, dict[str, Any]]) -> str:
     head = (f"Profile `{'`, `'.join(profiles)}`; stages run {when}. Paper: 480x270 images, full-width network, "
             "50 epochs, 32,500 images; each stage's section of the results page says what differs and why.")
     return f"{head}\n\n{table}\nDetection accuracy per eps (correct flags over all frames):\n\n{markdown_table(eps_rows)}"
+
+
+def _robustness_rows(m: dict[str, Any]) -> list[tuple[str, str, str, str]]:
+    """Summary rows: worst harmful-undetected rate over all robustness attacks (adaptive included) at
+    eps 0.05 and 0.01, percent with the 95% Wilson interval ("-" when the stage did not run that eps)."""
+    out = []
+    for e in ("0.05", "0.01"):
+        w = m["worst_harmful_undetected"].get(e)
+        value = "-"
+        if w is not None:
+            lo, hi = w["ci95_harmful_undetected"]
+            value = (f"{_fmt(100 * w['harmful_undetected_rate'], 1)} [{_fmt(100 * lo, 1)}, {_fmt(100 * hi, 1)}] "
+                     f"({w['attack']})")
+        out.append((f"worst harmful-undetected rate (%) at eps {e}, any attack incl. adaptive", value, "-", "robustness"))
+    return out
 
 
 def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figures: list[tuple[str, str, str]]) -> str:

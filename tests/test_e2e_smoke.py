@@ -17,9 +17,11 @@ import yaml
 
 REPO = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).parent
-REPORTS = ["dataset", "pose", "attack", "guidance", "detector", "integrated", "lab", "benchmarks", "README"]
-METRICS = ["train", "attack", "guidance", "detect", "evaluate", "lab"]
-FIGURES = ["fgsm_example", "guidance_trajectories", "timeline", "pose_errors", "error_vs_eps", "shap_heatmaps", "roc"]
+REPORTS = ["dataset", "pose", "attack", "guidance", "detector", "integrated", "robustness", "lab", "benchmarks",
+           "README"]
+METRICS = ["train", "attack", "guidance", "detect", "evaluate", "robustness", "lab"]
+FIGURES = ["fgsm_example", "guidance_trajectories", "timeline", "robustness", "pose_errors", "error_vs_eps",
+           "shap_heatmaps", "roc"]
 
 
 def _run(args: list[str], cwd: Path, env: dict[str, str], timeout: float = 900) -> str:
@@ -106,7 +108,16 @@ def test_every_table_has_the_expected_rows(smoke_repo):
     assert rows_under(page("lab"), "Integrated detection", "eps") == [*eps(p["evaluate"]["eps"]), "average"]
     assert rows_under(page("lab"), "FGSM on the lab sequences", "eps") == ["clean", *eps(p["attack"]["eps"])]
 
+    r = p["robustness"]
+    rob = json.loads((dst / "reports" / "metrics" / "robustness.json").read_text())
+    adaptive = [row for row in rob["rows"] if row["adaptive"] and row["lambda"] is not None]
+    assert sorted((row["eps"], row["lambda"]) for row in adaptive) == sorted(
+        (float(e), float(v)) for e in r["eps"] for v in r["lambdas"])
+    assert {row["attack"] for row in rob["rows"]} >= {*r["transfer"], "adaptive pgd, worst over lambda"}
+    assert len(rob["corruptions"]) == 1 + sum(len(v) for v in r["corruptions"].values())
+    assert rows_under(page("robustness"), "Benign corruptions", "corruption")[0] == "none"
+
     summary = rows_under(page("README"), "Summary against the paper", "result")
-    assert len(summary) == 9 and summary[0].startswith("pose")
+    assert len(summary) == 11 and summary[0].startswith("pose")
     readme = (dst / "README.md").read_text()
     assert "Profile `smoke`" in readme, "rpod report --sync-readme did not copy the results into README.md"
