@@ -17,10 +17,6 @@ import numpy as np
 
 from pipeline.stats import rate
 
-ROW_KEYS = ("attack", "group", "eps", "adaptive", "lambda", "n", "detection_rate", "harmful_undetected_rate",
-            "position_error_m", "ci95_detection", "ci95_harmful_undetected", "harmful_rate")
-
-
 def _check(position_error: np.ndarray, flag: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     pos = np.asarray(position_error, dtype=np.float64).ravel()
     flag = np.asarray(flag, dtype=bool).ravel()
@@ -42,16 +38,18 @@ def attack_row(attack: str, group: str, eps: float, position_error: np.ndarray, 
     """One attack's row: rates with Wilson 95% intervals and the mean position error (m).
 
     `group`: transfer, adaptive, surrogate or seen (the detector's own training attack);
-    `lam` is the adaptive attack's lambda (None for the other groups).
+    `lam` is the adaptive attack's lambda (None for the other groups). `harmful_rate` is the
+    fraction of frames beyond `harm_m` whether flagged or not (what the attack achieves undefended).
     """
     pos, flag = _check(position_error, flag)
     det = rate(flag)
     hu = rate(harmful_undetected(pos, flag, harm_m))
+    harmful = rate(pos > harm_m)
     return {"attack": attack, "group": group, "eps": float(eps), "adaptive": group == "adaptive",
             "lambda": None if lam is None else float(lam), "n": int(pos.size),
             "detection_rate": det.value, "harmful_undetected_rate": hu.value, "position_error_m": float(pos.mean()),
             "ci95_detection": det.ci(), "ci95_harmful_undetected": hu.ci(),
-            "harmful_rate": float((pos > harm_m).mean())}
+            "harmful_rate": harmful.value, "ci95_harmful": harmful.ci()}
 
 
 def corruption_row(corruption: str, strength: float, position_error: np.ndarray, flag: np.ndarray) -> dict[str, Any]:

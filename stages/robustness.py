@@ -139,32 +139,35 @@ def main() -> None:
         lf = attack_loss(loss or a["loss"], pl)
         return lambda x, y: fn(net, x, y, eps, lf)
 
-    # (attack, group, eps, lambda or None, x, y -> float adversarial images); PGD at eps index i uses
-    # seed + 100 + i, so plain PGD and the adaptive attack at lambda = 0 are one and the same run
+    # (attack, group, eps, lambda or None, x, y -> float adversarial images, gradients per frame); PGD at
+    # eps index i uses seed + 100 + i, so plain PGD and the adaptive attack at lambda = 0 are one run
     pgd_is_adaptive = "pgd" in r["transfer"] and 0.0 in lambdas
-    specs: list[tuple[str, str, float, float | None, Callable[[Any, Any], Any]]] = []
+    specs: list[tuple[str, str, float, float | None, Callable[[Any, Any], Any], int]] = []
     for e in eps_list:
-        specs.append(("fgsm", "seen", e, None, bound("fgsm", None, 0, model, pose_loss, e)))
+        specs.append(("fgsm", "seen", e, None, bound("fgsm", None, 0, model, pose_loss, e), 1))
     for e in (float(v) for v in r["unseen_eps"]):
-        specs.append(("fgsm", "transfer", e, None, bound("fgsm", None, 0, model, pose_loss, e)))
+        specs.append(("fgsm", "transfer", e, None, bound("fgsm", None, 0, model, pose_loss, e), 1))
     for j, name in enumerate(r["transfer"]):
         method, loss = parse_attack(name, "robustness.transfer")
         for i, e in enumerate(eps_list):
             if name == "pgd" and pgd_is_adaptive:
                 continue
             k = 100 + i if name == "pgd" else 200 + 10 * j + i
-            specs.append((name, "transfer", e, None, bound(method, loss, k, model, pose_loss, e)))
+            specs.append((name, "transfer", e, None, bound(method, loss, k, model, pose_loss, e),
+                          1 if method == "fgsm" else steps))
     full = attack_loss(a["loss"], pose_loss)
     for i, e in enumerate(eps_list):
         for lam in lambdas:
             specs.append(("adaptive pgd", "adaptive", e, lam,
                           lambda x, y, e=e, lam=lam, g=gen(100 + i): adaptive_pgd(target, x, y, e, full, lam,
-                                                                                  steps=steps, generator=g)))
+                                                                                  steps=steps, generator=g),
+                          steps))
     for j, name in enumerate(r["surrogate_attacks"]):
         method, loss = parse_attack(name, "robustness.surrogate_attacks")
         for i, e in enumerate(eps_list):
             specs.append((f"surrogate {name}", "surrogate", e, None,
-                          bound(method, loss, 500 + 10 * j + i, surrogate, surrogate_loss, e)))
+                          bound(method, loss, 500 + 10 * j + i, surrogate, surrogate_loss, e),
+                          1 if method == "fgsm" else steps))
 
     n_corr = sum(len(v) for v in r["corruptions"].values())
     total = -(-n // batch) * (len(specs) + n_corr + 1)
@@ -182,7 +185,7 @@ def main() -> None:
     attacked, none = np.ones(n, bool), np.zeros(n, bool)
     rows: list[dict[str, Any]] = []
     per_lambda: dict[float, list[tuple[np.ndarray, np.ndarray]]] = {e: [] for e in eps_list}
-    for name, group, e, lam, craft in specs:
+    for name, group, e, lam, craft, _ in specs:
         res = run_sequence(chain, images, targets, attacked, stored(craft), batch, progress)
         pos = pose_errors(res.pose, targets)[0]
         rows.append(attack_row(name, group, e, pos, res.flag, harm, lam))
@@ -207,7 +210,7 @@ def main() -> None:
     order = {"seen": 0, "transfer": 1, "adaptive": 2, "surrogate": 3}
     rows.sort(key=lambda row: order[row["group"]])
     metrics = {"rows": rows, "corruptions": corruptions, "frames": n, "test_frames": len(split), "harm_m": harm,
-               "steps": steps, "lambdas": lambdas, "eps": eps_list, "threshold": float(ckpt["threshold"]),
+               "steps": steps, "gradients_per_frame": sum(spec[-1] for spec in specs), "lambdas": lambdas, "eps": eps_list, "threshold": float(ckpt["threshold"]),
                "model_hash": model_hash, "surrogate_hash": file_hash(SURROGATE), "seconds": seconds,
                "worst_harmful_undetected": worst_by_eps(rows)}
     write_metrics(METRICS, metrics, p)
@@ -257,19 +260,17 @@ def _table(rows: list[dict[str, Any]], with_lambda: bool = False) -> str:
             cells["lambda"] = "-" if row["lambda"] is None else f"{row['lambda']:g}"
         cells |= {"frames": row["n"], "detected (%)": _pct(row["detection_rate"], row["ci95_detection"]),
                   "harmful and undetected (%)": _pct(row["harmful_undetected_rate"], row["ci95_harmful_undetected"]),
-                  "position error > harm (%)": f"{100 * row['harmful_rate']:.1f}",
+                  "position error > harm (%)": _pct(row["harmful_rate"], row["ci95_harmful"]),
                   "mean position error (m)": row["position_error_m"]}
         out.append(cells)
     return markdown_table(out, decimals=2)
 
 
-def _worst(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    return max(rows, key=lambda row: row["harmful_undetected_rate"])
-
-
 def _meaning(rows: list[dict[str, Any]], what: str) -> str:
-    """One sentence on the worst row of a section, for a mission planner."""
-    w = _worst(rows)
+    """One sentence on the worst row of a section, for a mission planner ("" for an empty section)."""
+    if not rows:
+        return ""
+    w = max(rows, key=lambda row: row["harmful_undetected_rate"])
     hu = 100 * w["harmful_undetected_rate"]
     verdict = ("so the chain would let this attacker steer the chaser unnoticed on a large share of frames"
                if hu >= 10 else "so the chain still catches or shrugs off nearly every harmful frame"
@@ -304,14 +305,14 @@ The shipped chain (pose network -> closed-form SHAP -> LSTM detector, threshold 
 validation) on **{m['frames']} held-out test frames** (a seeded sample of the {m['test_frames']} test frames;
 every attacked image is stored as 8-bit before the chain reads it). The safety number is the
 **harmful-undetected rate**: attacked frames whose position error exceeds **{m['harm_m']:g} m** and that the
-chain did not flag. Rates are percent with 95% Wilson intervals [lo, hi]; with {m['frames']} frames a rate
-near 50% is known to +-{half:.1f} points, rates near 0 or 100% much more tightly. The frame count is
-what fits the stage's budget of about 3 minutes on the 2-core CPU at the default profile (every frame
-costs about {m['steps']} gradient steps per iterative attack, eps and lambda); the paper profile raises it.
-Iterative attacks take {m['steps']} steps (step size 2.5 eps / steps for PGD, eps / steps for
-MI-FGSM, random start for PGD).
+chain did not flag. Rates are percent with 95% Wilson intervals [lo, hi]; with {m['frames']} frames
+(`robustness.frames`) a rate near 50% is known to +-{half:.1f} points, a rate near 0 or 100% much more
+tightly. At the default profile the frame count is set by the stage's budget of about 3 minutes on the
+2-core CPU: each frame costs {m['gradients_per_frame']} gradient evaluations (every iterative attack takes
+{m['steps']} steps, for every eps and lambda), and +-5 points at a 50% rate would need 385 frames.
+PGD steps 2.5 eps / steps from a random start, MI-FGSM eps / steps (momentum `attack.momentum`).
 
-Worst harmful-undetected rate over all attacks:
+Worst harmful-undetected rate over the attacks run at each eps:
 
 {worst_lines}
 
