@@ -130,12 +130,17 @@ def main() -> None:
     images = np.stack([np.asarray(split.images[int(i)]) for i in pick])
     targets = split.labels[TARGET].to_numpy(np.float32)[pick]
 
+    def cost(method: str) -> int:
+        """Gradient evaluations per frame: PGD takes robustness.steps (it is the adaptive attack at
+        lambda = 0), MI-FGSM attack.steps as in the attack stage, FGSM one."""
+        return {"fgsm": 1, "pgd": steps}.get(method, int(a["steps"]))
+
     def gen(k: int) -> torch.Generator:
         return torch.Generator().manual_seed(seed + k)
 
     def bound(method: str, loss: str | None, k: int, net: Any, pl: Any, eps: float) -> Callable[[Any, Any], Any]:
-        fn = get_attack(method, steps=steps, step_size=None, random_start=True, momentum=float(a["momentum"]),
-                        generator=gen(k))
+        fn = get_attack(method, steps=cost(method), step_size=None, random_start=True,
+                        momentum=float(a["momentum"]), generator=gen(k))
         lf = attack_loss(loss or a["loss"], pl)
         return lambda x, y: fn(net, x, y, eps, lf)
 
@@ -153,8 +158,7 @@ def main() -> None:
             if name == "pgd" and pgd_is_adaptive:
                 continue
             k = 100 + i if name == "pgd" else 200 + 10 * j + i
-            specs.append((name, "transfer", e, None, bound(method, loss, k, model, pose_loss, e),
-                          1 if method == "fgsm" else steps))
+            specs.append((name, "transfer", e, None, bound(method, loss, k, model, pose_loss, e), cost(method)))
     full = attack_loss(a["loss"], pose_loss)
     for i, e in enumerate(eps_list):
         for lam in lambdas:
@@ -166,8 +170,7 @@ def main() -> None:
         method, loss = parse_attack(name, "robustness.surrogate_attacks")
         for i, e in enumerate(eps_list):
             specs.append((f"surrogate {name}", "surrogate", e, None,
-                          bound(method, loss, 500 + 10 * j + i, surrogate, surrogate_loss, e),
-                          1 if method == "fgsm" else steps))
+                          bound(method, loss, 500 + 10 * j + i, surrogate, surrogate_loss, e), cost(method)))
 
     n_corr = sum(len(v) for v in r["corruptions"].values())
     total = -(-n // batch) * (len(specs) + n_corr + 1)
@@ -210,7 +213,8 @@ def main() -> None:
     order = {"seen": 0, "transfer": 1, "adaptive": 2, "surrogate": 3}
     rows.sort(key=lambda row: order[row["group"]])
     metrics = {"rows": rows, "corruptions": corruptions, "frames": n, "test_frames": len(split), "harm_m": harm,
-               "steps": steps, "gradients_per_frame": sum(spec[-1] for spec in specs), "lambdas": lambdas, "eps": eps_list, "threshold": float(ckpt["threshold"]),
+               "steps": steps, "gradients_per_frame": sum(spec[-1] for spec in specs), "lambdas": lambdas,
+               "eps": eps_list, "threshold": float(ckpt["threshold"]),
                "model_hash": model_hash, "surrogate_hash": file_hash(SURROGATE), "seconds": seconds,
                "worst_harmful_undetected": worst_by_eps(rows)}
     write_metrics(METRICS, metrics, p)
@@ -310,7 +314,8 @@ chain did not flag. Rates are percent with 95% Wilson intervals [lo, hi]; with {
 tightly. At the default profile the frame count is set by the stage's budget of about 3 minutes on the
 2-core CPU: each frame costs {m['gradients_per_frame']} gradient evaluations (every iterative attack takes
 {m['steps']} steps, for every eps and lambda), and +-5 points at a 50% rate would need 385 frames.
-PGD steps 2.5 eps / steps from a random start, MI-FGSM eps / steps (momentum `attack.momentum`).
+PGD (plain, adaptive and on the surrogate) takes {m['steps']} steps of 2.5 eps / steps from a random
+start; MI-FGSM takes `attack.steps` = {p['attack']['steps']} steps of eps / steps (momentum {p['attack']['momentum']:g}).
 
 Worst harmful-undetected rate over the attacks run at each eps:
 
