@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import typer
 
@@ -27,9 +27,9 @@ TARGET_TZ_PCT, TARGET_LATERAL_M = 2.0, 0.5  # guidance needs (issue 3)
 
 
 def main(
-    surrogate: bool = typer.Option(False, "--surrogate", help="Train the robustness stage's surrogate instead: seed "
-                                   "robustness.surrogate_seed, robustness.surrogate_epochs epochs, writes "
-                                   "models/surrogate.pt and no reports."),
+    surrogate: Annotated[bool, typer.Option("--surrogate", help="Train the robustness stage's surrogate instead: "
+                                            "seed robustness.surrogate_seed, robustness.surrogate_epochs epochs, "
+                                            "writes models/surrogate.pt and no reports.")] = False,
 ) -> None:
     """Train the pose CNN; keep the best checkpoint by test error; report errors next to the paper's."""
     import numpy as np
@@ -55,6 +55,8 @@ def main(
                           max_minutes=None if p["max_minutes"] is None else float(p["max_minutes"]),
                           channels_last=bool(p["channels_last"]), workers=int(p["workers"]),
                           seed=seed + SEED_OFFSET)
+        if surrogate:  # its own initial weights too, not only its own batches and augmentations
+            torch.manual_seed(cfg.seed)
         model = PoseNet(float(p["width"]), float(p["dropout"]))
     except ValueError as e:
         raise StageError(f"params.yaml: bad train section ({e})") from None

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import copy
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -232,3 +233,22 @@ def test_bad_params_stop_with_one_message(key: str, value: object, match: str) -
     r[key] = value
     with pytest.raises(StageError, match=match):
         check_params(r)
+
+
+def test_train_surrogate_writes_only_its_checkpoint_with_its_own_seed(tmp_path, monkeypatch) -> None:
+    from test_training import write_dataset
+
+    from stages import checkpoint
+    from stages.train import SURROGATE, main
+
+    monkeypatch.chdir(tmp_path)
+    torch.set_num_threads(1)
+    write_dataset(tmp_path, overrides=["robustness.surrogate_seed=5", "robustness.surrogate_epochs=1"])
+    main(surrogate=True)
+    assert SURROGATE.exists() and not checkpoint.POSE.exists()
+    assert not any(Path(p).exists() for p in ("reports/pose.md", "reports/metrics/train.json", "dvclive/train"))
+    surrogate = checkpoint.read_pose(SURROGATE)
+    assert surrogate["meta"]["epoch"] == 1
+    main(surrogate=False)
+    ours = checkpoint.read_pose(checkpoint.POSE)
+    assert not torch.equal(ours["model"]["head_pos.weight"], surrogate["model"]["head_pos.weight"])
