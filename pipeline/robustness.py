@@ -81,7 +81,13 @@ def worst_over_lambda(position_errors: Sequence[np.ndarray], flags: Sequence[np.
     return pos[pick, cols], flag[pick, cols], pick
 
 
-def worst_row(rows: list[dict[str, Any]], eps: float, key: str = "harmful_undetected_rate") -> dict[str, Any] | None:
-    """The row at `eps` with the highest `key` (None when there is none)."""
-    at = [r for r in rows if np.isclose(r["eps"], eps)]
-    return max(at, key=lambda r: r[key]) if at else None
+def worst_by_eps(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per eps (key "%g"): the attack row with the highest harmful-undetected rate, as
+    {attack, group, lambda, n, harmful_undetected_rate, ci95_harmful_undetected}."""
+    out: dict[str, dict[str, Any]] = {}
+    for row in rows:
+        key = f"{row['eps']:g}"
+        if key not in out or row["harmful_undetected_rate"] > out[key]["harmful_undetected_rate"]:
+            out[key] = {k: row[k] for k in ("attack", "group", "lambda", "n", "harmful_undetected_rate",
+                                             "ci95_harmful_undetected")}
+    return out

@@ -94,7 +94,7 @@ def main() -> None:
     from pipeline.attacks import attack_loss, get_attack, quantize
     from pipeline.chain import SafetyChain, run_sequence
     from pipeline.corruptions import corrupt
-    from pipeline.robustness import attack_row, corruption_row, worst_over_lambda
+    from pipeline.robustness import attack_row, corruption_row, worst_by_eps, worst_over_lambda
     from pipeline.training import pose_errors
     from stages.checkpoint import load_pose_loss, load_pose_model
     from stages.data import load_split
@@ -222,17 +222,6 @@ def main() -> None:
     save_figure(rows)
     print(f"robustness: {len(rows)} attack rows and {len(corruptions)} corruption rows on {n} test frames in "
           f"{seconds:.0f} s -> {REPORT}, {METRICS}, {FIGURE}")
-
-
-def worst_by_eps(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
-    """Per eps (key "%g"): the attack row with the highest harmful-undetected rate."""
-    out: dict[str, dict[str, Any]] = {}
-    for row in rows:
-        key = f"{row['eps']:g}"
-        if key not in out or row["harmful_undetected_rate"] > out[key]["harmful_undetected_rate"]:
-            out[key] = {k: row[k] for k in ("attack", "group", "lambda", "n", "harmful_undetected_rate",
-                                             "ci95_harmful_undetected")}
-    return out
 
 
 def save_figure(rows: list[dict[str, Any]]) -> None:

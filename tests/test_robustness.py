@@ -15,7 +15,7 @@ from pipeline.attacks import pgd, quantize
 from pipeline.corruptions import CORRUPTIONS, corrupt
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
 from pipeline.loss import PoseLoss
-from pipeline.robustness import attack_row, corruption_row, worst_over_lambda
+from pipeline.robustness import attack_row, corruption_row, worst_by_eps, worst_over_lambda
 
 D = 16
 
@@ -169,6 +169,17 @@ def test_worst_over_lambda_keeps_the_attackers_best_image_per_frame() -> None:
     row = attack_row("worst", "adaptive", 0.05, p, f, 1.0)
     singles = [attack_row("x", "adaptive", 0.05, a, b, 1.0)["harmful_undetected_rate"] for a, b in zip(pos, flags)]
     assert row["harmful_undetected_rate"] >= max(singles)
+
+
+def test_worst_by_eps_picks_the_highest_harmful_undetected_row_per_eps() -> None:
+    pos, none, some = np.full(10, 2.0), np.zeros(10, bool), np.arange(10) < 6
+    rows = [attack_row("fgsm", "seen", 0.05, pos, some, 1.0),
+            attack_row("adaptive pgd", "adaptive", 0.05, pos, none, 1.0, 10),
+            attack_row("pgd", "transfer", 0.01, pos, some, 1.0)]
+    worst = worst_by_eps(rows)
+    assert set(worst) == {"0.05", "0.01"}
+    assert worst["0.05"]["attack"] == "adaptive pgd" and worst["0.05"]["lambda"] == 10.0
+    assert worst["0.05"]["harmful_undetected_rate"] == 1.0 and worst["0.01"]["harmful_undetected_rate"] == 0.4
 
 
 @pytest.fixture()
