@@ -263,3 +263,43 @@ def test_train_surrogate_writes_only_its_checkpoint_with_its_own_seed(tmp_path, 
     main(surrogate=False)
     ours = checkpoint.read_pose(checkpoint.POSE)
     assert not torch.equal(ours["model"]["head_pos.weight"], surrogate["model"]["head_pos.weight"])
+
+
+class BurstChain(nn.Module):
+    """A stand-in temporal detector: frame t's logit reads the change of the pose-net features since
+    frame t - 1 of the same burst (the batch, in time order), as a motion-consistency test would."""
+
+    temporal = True
+
+    def __init__(self, model: TinyPose) -> None:
+        super().__init__()
+        self.model = model
+        self.score = nn.Linear(D, 1)
+
+    def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        f = self.model.forward_features(images)
+        jump = torch.cat([torch.zeros_like(f[:1]), f[1:] - f[:-1]])
+        return self.model.forward_head(f), self.score(jump.abs()).squeeze(1)
+
+
+def test_a_temporal_chain_plugs_in_and_is_attacked_over_the_burst(setup) -> None:
+    _, model, x, y, loss = setup
+    torch.manual_seed(4)
+    chain = BurstChain(model).eval()
+    with torch.no_grad():
+        chain.score.weight.abs_()  # larger feature jumps -> higher logit
+
+    def mean_logit(images: torch.Tensor) -> float:
+        with torch.no_grad():
+            return float(chain(quantize(images, x).float() / 255)[1].mean())
+
+    plain = adaptive_pgd(chain, x, y, 0.1, loss, 0.0, steps=20, generator=torch.Generator().manual_seed(5))
+    evasive = adaptive_pgd(chain, x, y, 0.1, loss, 100.0, steps=20, generator=torch.Generator().manual_seed(5))
+    assert mean_logit(evasive) < mean_logit(plain)
+    # the burst is optimised jointly: alone, frame 0's logit is constant and only the pose loss moves
+    # it; inside the burst it also moves to lower frame 1's logit (no random start: same start point)
+    alone = adaptive_pgd(chain, x[:1], y[:1], 0.1, loss, 100.0, steps=20, random_start=False)
+    in_burst = adaptive_pgd(chain, x, y, 0.1, loss, 100.0, steps=20, random_start=False)
+    alone_pose_only = adaptive_pgd(chain, x[:1], y[:1], 0.1, loss, 0.0, steps=20, random_start=False)
+    assert torch.equal(alone, alone_pose_only)
+    assert not torch.equal(in_burst[:1], alone)
