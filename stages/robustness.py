@@ -356,5 +356,5 @@ For a mission: the clean false-alarm rate is {100 * base['false_alarm_rate']:.1f
 error of {worst_fa['position_error_m']:.2f} m; every false alarm there would interrupt the approach for an image that is
 not attacked.
 
-![detection and harmful-undetected rate against eps](figures/robustness.png)
+![detection and harmful-undetected rate against eps, 95% Wilson intervals; the adaptive attack as its worst case over lambda](figures/robustness.png)
 """
