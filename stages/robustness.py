@@ -96,7 +96,8 @@ def main() -> None:
     from pipeline.corruptions import corrupt
     from pipeline.robustness import attack_row, corruption_row, worst_by_eps, worst_over_lambda
     from pipeline.training import pose_errors
-    from stages.checkpoint import load_pose_loss, load_pose_model
+    from pipeline.stats import rate
+    from stages.checkpoint import load_pose_loss, load_pose_model, read_pose
     from stages.data import load_split
     from stages.detect import load_detector  # moves to stages/artifacts.py (arch branch)
 
@@ -122,6 +123,7 @@ def main() -> None:
     target = ShapChain(model, chain.weight, chain.background_mean, detector)
     pose_loss = load_pose_loss(MODEL, p)
     surrogate = load_pose_model(SURROGATE, p)
+    surrogate_meta = read_pose(SURROGATE)["meta"]
     surrogate_loss = load_pose_loss(SURROGATE, p)
 
     split = load_split(p, "test")
@@ -201,7 +203,9 @@ def main() -> None:
         rows.append(attack_row("adaptive pgd, worst over lambda", "adaptive", e, pos, flag, harm))
 
     clean = run_sequence(chain, images, targets, none, None, batch, progress)
-    corruptions = [corruption_row("none", 0.0, pose_errors(clean.pose, targets)[0], clean.flag)]
+    clean_pos = pose_errors(clean.pose, targets)[0]
+    clean_harm = rate(clean_pos > harm)
+    corruptions = [corruption_row("none", 0.0, clean_pos, clean.flag)]
     for name, strengths in r["corruptions"].items():
         for s in strengths:
             bad = corrupt(name, s, seed)(images)
@@ -215,6 +219,9 @@ def main() -> None:
     metrics = {"rows": rows, "corruptions": corruptions, "frames": n, "test_frames": len(split), "harm_m": harm,
                "steps": steps, "gradients_per_frame": sum(spec[-1] for spec in specs), "lambdas": lambdas,
                "eps": eps_list, "threshold": float(ckpt["threshold"]),
+               "clean_harmful_rate": clean_harm.value, "ci95_clean_harmful": clean_harm.ci(),
+               "surrogate": {"best_epoch": int(surrogate_meta.get("epoch", 0)),
+                             "test_position_m": float(surrogate_meta.get("test_pos_m", float("nan")))},
                "model_hash": model_hash, "surrogate_hash": file_hash(SURROGATE), "seconds": seconds,
                "worst_harmful_undetected": worst_by_eps(rows)}
     write_metrics(METRICS, metrics, p)
@@ -298,7 +305,10 @@ The shipped chain (pose network -> closed-form SHAP -> LSTM detector, threshold 
 validation) on **{m['frames']} held-out test frames** (a seeded sample of the {m['test_frames']} test frames;
 every attacked image is stored as 8-bit before the chain reads it). The safety number is the
 **harmful-undetected rate**: attacked frames whose position error exceeds **{m['harm_m']:g} m** and that the
-chain did not flag. Rates are percent with 95% Wilson intervals [lo, hi]; with {m['frames']} frames
+chain did not flag. Without any attack, {_pct(m['clean_harmful_rate'], m['ci95_clean_harmful'])}% of these
+frames already exceed {m['harm_m']:g} m: that share of every harmful rate below is the pose model's own
+error, not the attack's.
+Rates are percent with 95% Wilson intervals [lo, hi]; with {m['frames']} frames
 (`robustness.frames`) a rate near 50% is known to +-{half:.1f} points, a rate near 0 or 100% much more
 tightly. At the default profile the frame count is set by the stage's budget of about 3 minutes on the
 2-core CPU: each frame costs {m['gradients_per_frame']} gradient evaluations (every iterative attack takes
@@ -338,9 +348,10 @@ exists, else an unflagged one, else the one with the largest error.
 
 ## Transfer from a surrogate model (black box)
 
-Attacks crafted on a second pose model trained with seed {r['surrogate_seed']} for {r['surrogate_epochs']} epochs
-(`rpod train --surrogate`: fewer epochs than ours to fit the CPU budget, so a weaker surrogate than a
-real attacker would train), evaluated on our chain.
+Attacks crafted on a second pose model trained with seed {r['surrogate_seed']} for at most {r['surrogate_epochs']} epochs
+(`rpod train --surrogate`; best epoch {m['surrogate']['best_epoch']}, test position error
+{m['surrogate']['test_position_m']:.2f} m): fewer epochs than ours to fit the CPU budget, so a weaker
+surrogate than a real attacker would train. Evaluated on our chain.
 
 {_table(groups['surrogate'])}
 {_meaning(groups['surrogate'], 'an attacker who cannot read our weights')}
