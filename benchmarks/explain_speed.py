@@ -59,7 +59,7 @@ def load_models(width: float) -> tuple[PoseNet, LSTMDetector, str]:
         pose = PoseNet(width=width).eval()
         source.append(f"random PoseNet(width={width})")
     if det_path.exists():
-        from stages.detect import load_detector
+        from stages.artifacts import load_detector
 
         det, _ = load_detector(det_path)
         source.append("models/detector.pt")

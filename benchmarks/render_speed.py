@@ -18,7 +18,7 @@ import numpy as np
 from pipeline.report import markdown_table
 from stages import params as params_mod
 from stages.report import write_benchmark
-from stages.render import frames, scene_settings
+from stages.render import frames
 
 SIZES = [(160, 90), (240, 135), (480, 270)]
 
@@ -71,14 +71,12 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=30, help="timed frames per resolution")
     args = ap.parse_args()
     p = params_mod.load()
-    from stages.render import intrinsics
-
     load = os.getloadavg()
-    base = scene_settings(p["render"])
+    base = params_mod.scene_settings(p["render"])
     R, t = poses(p, args.frames)
     rows = []
     for w, h in SIZES:
-        K = intrinsics({**p, "render": {**p["render"], "width": w, "height": h}})
+        K = params_mod.intrinsics({**p, "render": {**p["render"], "width": w, "height": h}})
         build, per, cpu, _ = speed(K, base, R, t)
         idle = f"{1 / cpu:.1f} to {base.threads / cpu:.1f}"  # wall time per image lies in [cpu / threads, cpu]
         rows.append({"size": f"{w}x{h}", "images/s": 1 / per, "median s/image": per, "CPU s/image": cpu,
@@ -87,7 +85,7 @@ def main() -> None:
               f"idle estimate {idle} images/s), scene build {build:.2f} s", flush=True)
 
     # Quality vs time at the default size: PSNR against a 256-sample, undenoised reference of the same poses.
-    K = intrinsics(p)
+    K = params_mod.intrinsics(p)
     nq = min(10, args.frames)
     Rq, tq = poses(p, nq)
     ref = speed(K, dataclasses.replace(base, samples=256, denoiser="NONE"), Rq, tq)[3]

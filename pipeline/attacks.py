@@ -157,3 +157,17 @@ def quantize(x_adv: Tensor, x: Tensor) -> Tensor:
     delta = (x_adv - x) * 255.0
     levels = torch.sign(delta) * torch.round(delta.abs()).clamp_min(1.0)
     return torch.clamp(torch.round(x * 255.0) + levels, 0, 255).to(torch.uint8)
+
+
+def stored_attack(model: nn.Module, loss_fn: LossFn, eps: float, attack: AttackFn = fgsm) -> Callable[[Tensor, Tensor], Tensor]:
+    """`attack` at `eps` as a camera would deliver it: `(x, y) -> x'` with x' the adversarial image
+    stored as 8 bits (`quantize`) and read back as floats in [0, 1], (B, 3, H, W).
+
+    `x` must be clean images on the 8-bit grid (uint8 / 255); `y` their (B, 9) labels (m, 6-D).
+    """
+    eps = check_eps(eps)
+
+    def apply(x: Tensor, y: Tensor) -> Tensor:
+        return quantize(attack(model, x, y, eps, loss_fn), x).float() / 255.0
+
+    return apply

@@ -138,3 +138,44 @@ class Explainer:
         if self.method == "exact":
             return exact_shap(features, self.affine.weight, self.bg_mean).numpy()
         return deep_shap(self.model, features, self.background)
+
+
+def gap_features(model: nn.Module, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """GAP features (N, D) and pose outputs (N, 9: metres, then 6-D) of uint8 RGB images (N, H, W, 3)."""
+    with torch.no_grad():
+        x = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float() / 255
+        f = model.forward_features(x)
+        return f.numpy(), model.forward_head(f).numpy()
+
+
+def draw_background(n_train: int, size: int, rng: np.random.Generator) -> np.ndarray:
+    """Sorted rows of `size` distinct training images (out of `n_train`) whose features form the background."""
+    if not 1 <= size <= n_train:
+        raise ValueError(f"background size must be in [1, {n_train}] (training images), got {size}")
+    return np.sort(rng.choice(n_train, size, replace=False))
+
+
+def sample_plan(normal: int, per_eps: int, eps: list[float], test_index: np.ndarray, train_pool: np.ndarray,
+                rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """The samples to explain: `normal` clean ones, then `per_eps` per eps (L-inf, pixels in [0, 1]).
+
+    Each group draws test images first (without replacement), then images of `train_pool` to fill
+    up. Returns {"split": names, "index": label indices int64, "eps": float32 (0 = clean)}.
+    """
+    def draw(n: int) -> tuple[list[str], np.ndarray]:
+        n_test = min(n, len(test_index))
+        if n - n_test > len(train_pool):
+            raise ValueError(f"{n} images asked for but only {len(test_index)} test and {len(train_pool)} spare "
+                             f"training images exist")
+        idx = np.concatenate([rng.choice(test_index, n_test, replace=False),
+                              rng.choice(train_pool, n - n_test, replace=False)])
+        return ["test"] * n_test + ["train"] * (n - n_test), idx
+
+    split, index, eps_out = [], [], []
+    for e, n in [(0.0, int(normal))] + [(float(e), int(per_eps)) for e in eps]:
+        sp, ix = draw(n)
+        split += sp
+        index.append(ix)
+        eps_out += [e] * n
+    return {"split": np.array(split), "index": np.concatenate(index).astype(np.int64),
+            "eps": np.array(eps_out, dtype=np.float32)}

@@ -5,10 +5,12 @@ caller decides where to save it and nothing leaks between figures.
 """
 from __future__ import annotations
 
-from typing import Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from matplotlib.figure import Figure
+
+from pipeline.schedule import bursts
 
 OUTPUT_NAMES = ("tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5")
 
@@ -98,6 +100,110 @@ def roc_curves(curves: Mapping[str, tuple[np.ndarray, np.ndarray, float]]) -> Fi
     ax.set_ylim(0, 1.01)
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right", fontsize=8)
+    return fig
+
+
+def attack_example(clean: np.ndarray, adv: Mapping[float, np.ndarray], t_gt: np.ndarray,
+                   pred: Mapping[Any, np.ndarray], method: str) -> Figure:
+    """Per eps: the clean uint8 image, the stored perturbation scaled to fill [0, 1], the adversarial image.
+
+    `t_gt` is the true position (m, camera frame); `pred` maps "clean" and each eps to the 9 outputs.
+    """
+    eps_list = list(adv)
+    fig = Figure(figsize=(9, 1.9 * len(eps_list) + 0.4))
+    axes = fig.subplots(len(eps_list), 3, squeeze=False)
+    c = clean.astype(np.float64) / 255
+    err = {k: float(np.linalg.norm(v[:3] - t_gt)) for k, v in pred.items()}
+    for row, e in zip(axes, eps_list):
+        a = adv[e].astype(np.float64) / 255
+        delta = a - c
+        scale = max(float(np.abs(delta).max()), 1e-12)
+        row[0].imshow(clean)
+        row[0].set_title(f"original (pos. error {err['clean']:.2f} m)", fontsize=8)
+        row[1].imshow(np.clip(0.5 + 0.5 * delta / scale, 0, 1))
+        row[1].set_title(f"perturbation eps={e:g} (shown x{0.5 / scale:.2g})", fontsize=8)
+        row[2].imshow(adv[e])
+        row[2].set_title(f"adversarial (pos. error {err[e]:.2f} m)", fontsize=8)
+        for ax in row:
+            ax.set_axis_off()
+    fig.suptitle(f"{method.upper()} example, target at range {t_gt[2]:.1f} m", fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
+def guidance_trajectories(baseline: Any, runs: Sequence[tuple[float, int, Any]], eps: float | None,
+                          goal: Sequence[float]) -> Figure:
+    """True trajectories (m) of the no-attack run and of the runs (S, K, RendezvousResult) of one eps:
+    lateral x and y against z, and z against the step; dots mark attacked frames."""
+    import matplotlib
+
+    fig = Figure(figsize=(15, 4.2))
+    axes = fig.subplots(1, 3)
+    cmap = matplotlib.colormaps["viridis"]
+    curves = [("no attack", baseline, "black", 2.0)] + [
+        (f"S={s:g} m, K={k}: {r.outcome}", r, cmap(j / max(len(runs) - 1, 1)), 1.0) for j, (s, k, r) in enumerate(runs)]
+    for label, r, color, lw in curves:
+        hit = np.flatnonzero(r.attacked)
+        for ax, (h, v) in zip(axes, ((r.positions[:, 2], r.positions[:, 0]), (r.positions[:, 2], r.positions[:, 1]),
+                                     (np.arange(len(r.positions)), r.positions[:, 2]))):
+            ax.plot(h, v, "-", color=color, lw=lw, label=label)
+            ax.plot(h[hit], v[hit], "o", color=color, ms=3)
+    for ax, (h, v) in zip(axes, ((goal[2], goal[0]), (goal[2], goal[1]))):
+        ax.plot(h, v, "r*", ms=12, label="target point")
+        ax.invert_xaxis()
+        ax.set_xlabel("z (m, along the approach)")
+    axes[2].axhline(goal[2], color="r", ls="--", lw=1)
+    axes[2].set_xlabel("step")
+    for ax, title, ylabel in zip(axes, ("z vs x", "z vs y", "z vs step"), ("x (m)", "y (m)", "z (m)")):
+        ax.set_title(title)
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+    axes[1].legend(fontsize=7, loc="best")
+    fig.suptitle("True position of the target relative to the chaser" + (f", eps = {eps:g}" if eps is not None else "")
+                 + " (dots: attacked frames)", fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def detection_timeline(true_z: np.ndarray, attacked: np.ndarray, trace: Mapping[str, np.ndarray], threshold: float,
+                       title: str) -> Figure:
+    """One trajectory frame by frame: true and estimated range t_z (m), attacked frames, the detector's
+    probability and flags, and the position error (m); `trace` holds estimate_z, prob, flag, position_error."""
+    frames = np.arange(len(attacked))
+    fig = Figure(figsize=(9, 7))
+    axes = fig.subplots(3, 1, sharex=True)
+
+    def shade(ax: Any, label: bool = False) -> None:
+        for k, (a, b) in enumerate(bursts(attacked)):
+            ax.axvspan(a - 0.5, b - 0.5, color="tab:red", alpha=0.15, lw=0,
+                       label="attacked frames" if label and k == 0 else None)
+
+    ax = axes[0]
+    shade(ax, label=True)
+    ax.plot(frames, true_z, "k-", lw=1.2, label="true t_z")
+    ax.plot(frames, trace["estimate_z"], ".", ms=2.5, color="tab:blue", label="estimated t_z")
+    ax.set_ylabel("range t_z (m)")
+    ax.legend(loc="upper right", fontsize=8)
+    ax = axes[1]
+    shade(ax)
+    ax.plot(frames, trace["prob"], "-", lw=0.8, color="tab:purple", label="detector probability")
+    ax.axhline(threshold, color="gray", ls="--", lw=0.8, label=f"threshold {threshold:.2f}")
+    f = trace["flag"]
+    ax.plot(frames[f], np.full(f.sum(), 1.05), "|", color="tab:orange", ms=6, label="flag")
+    ax.set_ylim(-0.05, 1.12)
+    ax.set_ylabel("P(attacked)")
+    ax.legend(loc="lower right", fontsize=8)
+    ax = axes[2]
+    shade(ax)
+    err = trace["position_error"]
+    miss = attacked & ~f
+    ax.semilogy(frames, np.maximum(err, 1e-3), "-", lw=0.8, color="tab:blue", label="position error")
+    ax.semilogy(frames[miss], np.maximum(err[miss], 1e-3), "x", color="tab:red", ms=5, label="attacked, not flagged")
+    ax.set_ylabel("error (m)")
+    ax.set_xlabel("frame")
+    ax.legend(loc="upper right", fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
     return fig
 
 

@@ -163,3 +163,56 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
         outcome = SUCCEEDED if attacked_arr.any() else MISSED
     return RendezvousResult(np.array(positions), np.array(estimates).reshape(-1, 3), attacked_arr,
                             outcome, miss, attack_start)
+
+
+class CachedCamera:
+    """The chaser's camera and pose CNN for `run_rendezvous`, with an image cache.
+
+    Every attacked run follows the no-attack baseline until its attack starts, and Cycles and the CNN
+    are deterministic, so each rendered pose's image and clean position estimate are kept. `render`
+    and `estimate` are the RenderFn and EstimateFn; attacked frames go through `attack(x, y)` (images
+    (1, 3, H, W) in [0, 1], labels (1, 9): metres, 6-D) which `self.attack` may be changed to between
+    runs. `counts`: guidance steps, rendered frames, attacked frames.
+    """
+
+    def __init__(self, render_image: Callable[[np.ndarray, np.ndarray], np.ndarray], model: Any,
+                 attack: Callable[[Any, Any], Any] | None = None):
+        self.render_image, self.model, self.attack = render_image, model, attack
+        self.cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+        self.counts = {"steps": 0, "renders": 0, "attacked": 0}
+
+    @staticmethod
+    def _input(image: np.ndarray) -> Any:
+        import torch
+
+        return torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
+
+    def _position(self, x: Any) -> np.ndarray:
+        import torch
+
+        with torch.no_grad():
+            return self.model(x)[0, :3].numpy().astype(np.float64)
+
+    def render(self, R: np.ndarray, t: np.ndarray) -> tuple[bytes, np.ndarray]:
+        key = np.round(np.concatenate([R.ravel(), t]), 9).tobytes()
+        if key not in self.cache:
+            image = self.render_image(R, t)
+            self.cache[key] = (image, self._position(self._input(image)))
+            self.counts["renders"] += 1
+        self.counts["steps"] += 1
+        return key, self.cache[key][0]
+
+    def estimate(self, rendered: tuple[bytes, np.ndarray], attacked: bool,
+                 pose: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        import torch
+
+        from pipeline.rotations import matrix_to_6d
+
+        key, image = rendered
+        if not attacked:
+            return self.cache[key][1]
+        if self.attack is None:
+            raise ValueError("an attacked frame but no attack was given")
+        self.counts["attacked"] += 1
+        y = torch.as_tensor(np.concatenate([pose[1], matrix_to_6d(pose[0])])[None], dtype=torch.float32)
+        return self._position(self.attack(self._input(image), y))

@@ -34,8 +34,11 @@ frame -> camera frame) is R = R_cam^T R_target, i.e. q = conj(q_cam) * q_target.
 """
 from __future__ import annotations
 
+import os
+import stat
 from dataclasses import dataclass
-from typing import Literal
+from pathlib import Path
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -112,9 +115,10 @@ def _numeric(df: pd.DataFrame, cols: list[str], source: str) -> pd.DataFrame:
     out = df.copy()
     for c in cols:
         vals = pd.to_numeric(out[c], errors="coerce")
-        bad = np.flatnonzero(vals.isna().to_numpy())
+        bad = np.flatnonzero(~np.isfinite(vals.to_numpy(np.float64)))
         if len(bad):
-            raise LabDataError(f"{source} line {_line(bad[0])}: column {c!r} is not a number ({df[c].iloc[bad[0]]!r})")
+            what = "is not a number" if np.isnan(vals.iloc[bad[0]]) else "is not finite"
+            raise LabDataError(f"{source} line {_line(bad[0])}: column {c!r} {what} ({df[c].iloc[bad[0]]!r})")
         out[c] = vals.astype(np.float64)
     return out
 
@@ -136,7 +140,13 @@ def parse_camera(df: pd.DataFrame, source: str = "camera.csv") -> tuple[np.ndarr
     if len(bad):
         i = bad[0] + 1
         raise LabDataError(f"{source} line {_line(i)}: timestamp {t[i]} is not after the previous one ({t[i - 1]})")
-    return df["frame"].to_numpy().astype(np.int64), t
+    frames = df["frame"].to_numpy().astype(np.int64)
+    _, first, counts = np.unique(frames, return_index=True, return_counts=True)
+    if (counts > 1).any():
+        i = int(first[np.argmax(counts > 1)])
+        again = int(np.flatnonzero(frames == frames[i])[1])
+        raise LabDataError(f"{source} line {_line(again)}: frame {frames[i]} already appears on line {_line(i)}")
+    return frames, t
 
 
 def parse_mocap(df: pd.DataFrame, bodies: list[str], source: str = "mocap.csv") -> dict[str, Track]:
@@ -205,7 +215,49 @@ def match_frames(camera: pd.DataFrame, mocap: pd.DataFrame, camera_body: str, ta
     p_c, q_c = sample_track(tracks[camera_body], times, mode, max_gap, camera_body, camera_source)
     p_t, q_t = sample_track(tracks[target_body], times, mode, max_gap, target_body, camera_source)
     t, q = relative_pose(p_c, q_c, p_t, q_t)
+    behind = np.flatnonzero(t[:, 2] <= 0)
+    if len(behind):
+        i = behind[0]
+        raise LabDataError(f"{camera_source} line {_line(i)}: the target is behind the camera (z = {t[i, 2]:.3f} m "
+                           f"in the camera frame); check the mocap bodies and their axes")
     return frames, t, q
+
+
+def image_names(camera: pd.DataFrame, frames: np.ndarray, source: str = "camera.csv") -> list[str]:
+    """The image file name of each camera.csv row: column `image`, else `{frame:06d}.png`."""
+    if "image" not in camera.columns:
+        return [f"{int(f):06d}.png" for f in frames]
+    names = camera["image"].tolist()
+    for i, name in enumerate(names):
+        if not isinstance(name, str) or not name.strip():
+            raise LabDataError(f"{source} line {_line(i)}: column 'image' is empty or not a file name ({name!r})")
+    return names
+
+
+def resolve_inside(folder: Path, name: str, source: str) -> Path:
+    """`folder / name` as a regular file inside `folder` (symlinks resolved): no absolute paths, no `..`
+    escapes, no FIFOs or devices (which would hang or leak the reader). `source` names the CSV line."""
+    base = Path(folder).resolve()
+    path = (base / name).resolve()
+    if Path(name).is_absolute() or not path.is_relative_to(base):
+        raise LabDataError(f"{source}: image {name!r} lies outside the recording folder {folder}")
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        raise LabDataError(f"{source}: {Path(folder) / name} not found") from None
+    if not stat.S_ISREG(mode):
+        raise LabDataError(f"{source}: {Path(folder) / name} is not a regular file")
+    return path
+
+
+def check_target_pixels(images: np.ndarray, tolerance: float, source: str) -> None:
+    """Refuse a recording where more than `tolerance` (fraction) of the segmented frames (N, H, W, 3)
+    have no target pixel: all-black frames mean a wrong threshold, mask or exposure."""
+    empty = np.flatnonzero(images.reshape(len(images), -1).max(axis=1) == 0)
+    if len(empty) > tolerance * len(images):
+        raise LabDataError(f"{source}: {len(empty)} of {len(images)} frames have no target pixels after segmentation "
+                           f"(first: frame index {empty[0]}), above the tolerance of {tolerance:.0%}; check "
+                           f"lab.segment_threshold or the masks")
 
 
 # ----------------------------------------------------------------------------- synthetic recordings
@@ -298,3 +350,21 @@ def domain_shift(image: np.ndarray, noise_std: float, blur_sigma: float, rng: np
     if noise_std > 0:
         x = x + rng.normal(0.0, noise_std, x.shape).astype(np.float32)
     return np.clip(np.rint(x * 255.0), 0, 255).astype(np.uint8)
+
+
+def render_recording(renderer: Any, rec: LabRecording, scale: float, noise_std: float, blur_sigma: float,
+                     rng: np.random.Generator, bar: Any = None) -> tuple[np.ndarray, np.ndarray]:
+    """Render a lab recording's frames: the 1/scale mock-up at the lab label t equals the full-size target
+    at scale * t, so `renderer` (a pipeline.scene.Renderer of the full-size target with the lab camera)
+    renders at scale * t; then the domain shift. Returns images (N, H, W, 3) uint8 and target masks
+    (N, H, W) uint8 (255 = target); `bar` (tqdm) advances per frame."""
+    n, K = len(rec.t), renderer.K
+    images = np.zeros((n, K.height, K.width, 3), np.uint8)
+    masks = np.zeros((n, K.height, K.width), np.uint8)
+    for k in range(n):
+        rgb, alpha = renderer.render_with_alpha(quat_to_matrix(rec.q[k]), scale * rec.t[k])
+        images[k] = domain_shift(rgb, noise_std, blur_sigma, rng)
+        masks[k] = np.where(alpha > 0.5, 255, 0)
+        if bar is not None:
+            bar.update(1)
+    return images, masks

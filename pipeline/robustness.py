@@ -11,11 +11,28 @@ For benign corruptions, the false-alarm rate = flagged frames / corrupted frames
 """
 from __future__ import annotations
 
-from typing import Any, Sequence
+from dataclasses import dataclass
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
 from pipeline.stats import rate
+
+Craft = Callable[[Any, Any], Any]   # (x (B, 3, H, W) in [0, 1], y (B, 9)) -> float adversarial images in [0, 1]
+
+
+@dataclass(frozen=True)
+class AttackSpec:
+    """One attack row to run: its name, group (seen, transfer, adaptive, surrogate), eps, lambda
+    (adaptive only), the attack and its cost in gradient evaluations per frame."""
+
+    attack: str
+    group: str
+    eps: float
+    lam: float | None
+    craft: Craft
+    cost: int
+
 
 def _check(position_error: np.ndarray, flag: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     pos = np.asarray(position_error, dtype=np.float64).ravel()
@@ -91,3 +108,38 @@ def worst_by_eps(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, Any]]:
             out[key] = {k: row[k] for k in ("attack", "group", "lambda", "n", "harmful_undetected_rate",
                                              "ci95_harmful_undetected")}
     return out
+
+
+def _stored(craft: Craft) -> Craft:
+    """`craft` whose images are stored as 8-bit and read back, as every attacked frame is."""
+    from pipeline.attacks import quantize
+
+    return lambda x, y: quantize(craft(x, y), x).float() / 255.0
+
+
+def run_attack_rows(chain: Any, images: np.ndarray, targets: np.ndarray, specs: Sequence[AttackSpec], harm_m: float,
+                    batch_size: int, progress: Callable[[Iterable[int]], Iterable[int]] = iter,
+                    pgd_is_lambda0: bool = False) -> list[dict[str, Any]]:
+    """Every spec's row on the frames (uint8 (N, H, W, 3), labels (N, 9) [m, 6-D]), each attacked
+    image stored as 8-bit (`pipeline.attacks.quantize`) before `chain` (a SafetyChain) reads it;
+    then per eps the adaptive attack's worst case over lambda. With `pgd_is_lambda0`, the adaptive
+    run at lambda = 0 (plain PGD on the same seed) is also the `pgd` transfer row."""
+    from pipeline.chain import run_sequence
+    from pipeline.training import pose_errors
+
+    attacked = np.ones(len(images), bool)
+    rows: list[dict[str, Any]] = []
+    per_lambda: dict[float, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for s in specs:
+        res = run_sequence(chain, images, targets, attacked, _stored(s.craft), batch_size, progress)
+        pos = pose_errors(res.pose, targets)[0]
+        rows.append(attack_row(s.attack, s.group, s.eps, pos, res.flag, harm_m, s.lam))
+        if s.group == "adaptive":
+            per_lambda.setdefault(s.eps, []).append((pos, res.flag))
+            if s.lam == 0.0 and pgd_is_lambda0:
+                rows.append(attack_row("pgd", "transfer", s.eps, pos, res.flag, harm_m))
+    for e, runs in per_lambda.items():
+        pos, flag, _ = worst_over_lambda([v[0] for v in runs], [v[1] for v in runs], harm_m)
+        rows.append(attack_row("adaptive pgd, worst over lambda", "adaptive", e, pos, flag, harm_m))
+    order = {"seen": 0, "transfer": 1, "adaptive": 2, "surrogate": 3}
+    return sorted(rows, key=lambda row: order.get(row["group"], len(order)))

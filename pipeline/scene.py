@@ -21,7 +21,7 @@ import tempfile
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 import bpy
 import cv2
@@ -312,3 +312,29 @@ class Renderer:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class EmptyRenderError(ValueError):
+    """The target covers no pixel in the first chunk of a render (usually a wrong mesh scale)."""
+
+
+def render_into(renderer: Renderer, R: np.ndarray, t: np.ndarray, out: Any, chunk: int, desc: str,
+                require_target: bool = False) -> None:
+    """Render the poses R (N, 3, 3), t (N, 3) (camera frame, metres) into `out[0:N]`, an array-like of
+    uint8 (N, H, W, 3) such as a zarr array, writing `chunk` frames at a time; a tqdm bar shows progress.
+
+    With `require_target`, stop with EmptyRenderError when the first chunk is all black (the target
+    covers no pixels: a wrong mesh or mesh scale), before rendering the rest."""
+    from tqdm import tqdm
+
+    n = len(t)
+    buf = np.zeros((chunk, renderer.K.height, renderer.K.width, 3), np.uint8)
+    with tqdm(total=n, unit="img", desc=desc, dynamic_ncols=True, mininterval=0.5) as bar:
+        for lo in range(0, n, chunk):
+            hi = min(lo + chunk, n)
+            for k in range(lo, hi):
+                buf[k - lo] = renderer.render(R[k], t[k])
+                bar.update(1)
+            if require_target and lo == 0 and not buf[: hi - lo].any():
+                raise EmptyRenderError(f"the target covers no pixels in the first {hi} frames (all black)")
+            out[lo:hi] = buf[: hi - lo]

@@ -33,6 +33,23 @@ from pipeline.rotations import attitude_error_deg, position_error, sixd_to_quat
 LOSS_WEIGHT_LR_FACTOR = 10.0
 
 
+class DivergenceError(ValueError):
+    """Training went wrong in a way no checkpoint should survive: a non-finite loss, or no epoch improved."""
+
+
+def check_loss(value: float, where: str) -> None:
+    """Raise DivergenceError when a training loss is NaN or infinite (`where`: e.g. "epoch 3")."""
+    if not math.isfinite(value):
+        raise DivergenceError(f"training diverged: loss {value} at {where} (learning rate too high, or bad inputs)")
+
+
+def check_improved(best_epoch: int, epochs_run: int) -> None:
+    """Raise DivergenceError when no epoch gave a finite, better validation score (best_epoch < 1)."""
+    if best_epoch < 1:
+        raise DivergenceError(f"no epoch of {epochs_run} improved on the untrained model (every score non-finite); "
+                              f"nothing to save")
+
+
 class PoseDataset(Dataset):
     """uint8 (N, H, W, 3) RGB images + (N, 9) targets -> (uint8 (H, W, 3) tensor, float32 (9,) tensor).
 
@@ -44,6 +61,9 @@ class PoseDataset(Dataset):
     def __init__(self, images: Any, targets: np.ndarray, augment_cfg: AugmentConfig | None = None, seed: int = 0):
         if len(images) != len(targets):
             raise ValueError(f"{len(images)} images but {len(targets)} targets")
+        bad = ~np.isfinite(np.asarray(targets, dtype=np.float64)).all(axis=1)
+        if bad.any():
+            raise ValueError(f"{int(bad.sum())} targets are NaN or infinite (first: row {int(np.argmax(bad))})")
         self.images, self.targets = images, torch.tensor(np.asarray(targets, dtype=np.float32))
         self.augment_cfg, self.seed, self.epoch = augment_cfg, seed, 0
 
@@ -237,6 +257,7 @@ def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, test_set: Pose
         for x, y in bar:
             x, y = to_input(x, cfg.channels_last).to(device, non_blocking=True), y.to(device, non_blocking=True)
             value, pred = objective(x, y)
+            check_loss(value.item(), f"epoch {epoch + 1}")
             opt.zero_grad(set_to_none=True)
             value.backward()
             opt.step()
@@ -269,6 +290,7 @@ def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, test_set: Pose
             best_state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
         if on_epoch is not None:
             on_epoch(stats, is_best, model)
+    check_improved(best_epoch, len(history))
     return FitResult(history, best_epoch, best_score, best_state, time.perf_counter() - start, stopped_early,
                      train_images / train_seconds if train_seconds else 0.0)
 

@@ -15,73 +15,30 @@ import numpy as np
 import typer
 
 from stages import params as params_mod
-from stages.io import StageError, atomic_dir, atomic_write_text, file_hash, write_metrics
+from stages.artifacts import ADV, adv_array_name, load_pose
+from stages.io import StageError, atomic_dir, atomic_write_text, create_array, save_figure, write_metrics
 
-MODEL = Path("models/pose.pt")
-OUT_DIR = Path("datasets/attack")
 REPORT = Path("reports/attack.md")
 FIGURE = Path("reports/figures/fgsm_example.png")
 METRICS = Path("reports/metrics/attack.json")
 SEED_OFFSET = 400
 
 
-def array_name(eps: float) -> str:
-    """Name of the adv.zarr array holding the images attacked at `eps` (e.g. eps_0.5)."""
-    return f"eps_{eps:g}"
-
-
-def check_attack_params(section: dict[str, Any], where: str) -> None:
-    """Check an eps list and attack method (`<where>.eps`, `<where>.method`) before any work."""
-    from pipeline.attacks import ATTACKS, check_eps
-
-    eps = section.get("eps")
-    if not isinstance(eps, list) or not eps:
-        raise StageError(f"params.yaml {where}.eps must be a non-empty list of numbers in (0, 1]")
-    for e in eps:
-        try:
-            check_eps(e)
-        except (TypeError, ValueError):
-            raise StageError(f"params.yaml {where}.eps: {e!r} is not in (0, 1] (pixels are in [0, 1])") from None
-    if section.get("method") not in ATTACKS:
-        raise StageError(f"params.yaml {where}.method: unknown attack {section.get('method')!r}; "
-                         f"choose one of {', '.join(ATTACKS)}")
-
-
-def make_attack(a: dict[str, Any], method: str, seed: int):
-    """The attack named `method` with the iterative options of the `attack` params section."""
-    import torch
-
-    from pipeline.attacks import LOSSES, get_attack
-
-    if a["loss"] not in LOSSES:
-        raise StageError(f"params.yaml attack.loss: unknown loss {a['loss']!r}; choose one of {', '.join(LOSSES)}")
-    try:
-        return get_attack(method, steps=int(a["steps"]), step_size=a["step_size"], random_start=bool(a["random_start"]),
-                          momentum=float(a["momentum"]), generator=torch.Generator().manual_seed(seed))
-    except ValueError as e:
-        raise StageError(f"params.yaml attack: {e}") from None
-
-
 def main() -> None:
     """Attack the test set at every attack.eps with attack.method on attack.loss; report the pose errors."""
     import torch
-    import zarr
-    from tqdm import tqdm
 
-    from pipeline.attacks import attack_loss, quantize
-    from pipeline.rotations import attitude_error_deg, position_error, sixd_to_quat
-    from stages.checkpoint import load_pose_loss, load_pose_model
+    from pipeline.attacks import attack_loss
+    from pipeline.figures import attack_example
     from stages.data import load_split
 
     p = params_mod.load()
     a = p["attack"]
-    check_attack_params(a, "attack")
+    params_mod.check_attack_params(a, "attack")
     eps_list = [float(e) for e in a["eps"]]
-    batch = int(a["batch_size"])
-    torch.set_num_threads(2)
-    attack = make_attack(a, a["method"], int(p["seed"]) + SEED_OFFSET)
-    model = load_pose_model(MODEL, p)
-    loss_fn = attack_loss(a["loss"], load_pose_loss(MODEL, p))
+    params_mod.set_threads(p)
+    attack = params_mod.make_attack(a, a["method"], int(p["seed"]) + SEED_OFFSET)
+    pose = load_pose(p)
     split = load_split(p, "test")
     n = len(split) if a["max_images"] is None else min(len(split), int(a["max_images"]))
     if n < 1:
@@ -90,59 +47,80 @@ def main() -> None:
     t_gt = labels[["tx", "ty", "tz"]].to_numpy(np.float64)
     q_gt = labels[["qw", "qx", "qy", "qz"]].to_numpy(np.float64)
     y_all = torch.tensor(labels[["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]].to_numpy(np.float32))
-
     k = int(np.argmin(np.abs(t_gt[:, 2] - np.median(t_gt[:, 2]))))  # figure: a mid-range test image
-    example: dict[float, np.ndarray] = {}
-    preds = {"clean": np.zeros((n, 9))} | {e: np.zeros((n, 9)) for e in eps_list}
-    preds_float = {e: np.zeros((n, 9)) for e in eps_list}
-    linf = {e: 0.0 for e in eps_list}
     t0 = time.perf_counter()
-    with atomic_dir(OUT_DIR) as tmp:
-        root = zarr.open_group(str(tmp / "adv.zarr"), mode="w")
-        h, w = np.asarray(images[0]).shape[:2]
-        arrays = {e: root.create_array(array_name(e), shape=(n, h, w, 3), chunks=(min(batch, n), h, w, 3),
-                                       dtype="uint8") for e in eps_list}
-        root.create_array("source_index", data=labels["index"].to_numpy(np.int64))
-        model.eval()
-        for i in tqdm(range(0, n, batch), desc=f"attack ({a['method']}, {len(eps_list)} eps)", unit="batch"):
-            u8 = np.stack([np.asarray(images[j]) for j in range(i, min(i + batch, n))])
-            x = torch.from_numpy(u8).permute(0, 3, 1, 2).float() / 255
-            y = y_all[i:i + batch]
-            with torch.no_grad():
-                preds["clean"][i:i + len(x)] = model(x).numpy()
-            for e in eps_list:
-                x_adv = attack(model, x, y, e, loss_fn)
-                stored = quantize(x_adv, x)
-                stored_hwc = stored.permute(0, 2, 3, 1).numpy()
-                arrays[e][i:i + len(x)] = stored_hwc
-                if i <= k < i + len(x):
-                    example[e] = stored_hwc[k - i]
-                linf[e] = max(linf[e], float((stored.float() / 255 - x).abs().max()))
-                with torch.no_grad():
-                    preds[e][i:i + len(x)] = model(stored.float() / 255).numpy()
-                    preds_float[e][i:i + len(x)] = model(x_adv).numpy()
-        root.attrs.update({"eps": eps_list, "method": a["method"], "loss": a["loss"], "model_hash": file_hash(MODEL),
-                           "quantisation": "round to nearest 8-bit level, at least one level, sign kept"})
+    with atomic_dir(ADV.parent) as tmp:
+        out = _attack_into(tmp / ADV.name, pose.model, attack, attack_loss(a["loss"], pose.loss), images,
+                           labels["index"].to_numpy(np.int64), y_all, eps_list, int(a["batch_size"]), k, a["method"])
+        out["root"].attrs.update({"eps": eps_list, "method": a["method"], "loss": a["loss"], "model_hash": pose.hash,
+                                  "quantisation": "round to nearest 8-bit level, at least one level, sign kept"})
     seconds = time.perf_counter() - t0
-
-    def errors(pred: np.ndarray) -> dict[str, float]:
-        pos = position_error(pred[:, :3], t_gt)
-        att = attitude_error_deg(sixd_to_quat(pred[:, 3:]), q_gt)
-        return {"position_mean_m": float(pos.mean()), "position_median_m": float(np.median(pos)),
-                "attitude_mean_deg": float(att.mean()), "attitude_median_deg": float(np.median(att))}
-
-    rows = [{"eps": "clean", "stored_linf": 0.0, **errors(preds["clean"])}]
+    preds = out["preds"]
+    rows = [{"eps": "clean", "stored_linf": 0.0, **_errors(preds["clean"], t_gt, q_gt)}]
     for e in eps_list:
-        f = errors(preds_float[e])
-        rows.append({"eps": f"{e:g}", "stored_linf": linf[e], **errors(preds[e]),
+        f = _errors(out["preds_float"][e], t_gt, q_gt)
+        rows.append({"eps": f"{e:g}", "stored_linf": out["linf"][e], **_errors(preds[e], t_gt, q_gt),
                      "float_position_mean_m": f["position_mean_m"], "float_attitude_mean_deg": f["attitude_mean_deg"]})
-    metrics = {"method": a["method"], "loss": a["loss"], "images": n, "seconds": seconds, "model_hash": file_hash(MODEL),
+    metrics = {"method": a["method"], "loss": a["loss"], "images": n, "seconds": seconds, "model_hash": pose.hash,
                "measured_on": "stored uint8 images", "clean": {key: v for key, v in rows[0].items() if key != "eps"},
                "eps": {r["eps"]: {key: v for key, v in r.items() if key != "eps"} for r in rows[1:]}}
     write_metrics(METRICS, metrics, p)
     atomic_write_text(REPORT, _report(rows, a, n, seconds))
-    _figure(np.asarray(images[k]), example, t_gt[k], {e: preds[e][k] for e in ["clean", *eps_list]}, a["method"])
-    typer.echo(f"attack: {n} test images x {len(eps_list)} eps in {seconds:.0f} s -> {OUT_DIR}/adv.zarr, {REPORT}")
+    save_figure(attack_example(np.asarray(images[k]), out["example"], t_gt[k],
+                               {e: preds[e][k] for e in ["clean", *eps_list]}, a["method"]), FIGURE)
+    typer.echo(f"attack: {n} test images x {len(eps_list)} eps in {seconds:.0f} s -> {ADV}, {REPORT}")
+
+
+def _attack_into(path: Path, model: Any, attack: Any, loss_fn: Any, images: Any, source_index: np.ndarray, y_all: Any,
+                 eps_list: list[float], batch: int, k: int, method: str) -> dict[str, Any]:
+    """Attack the first len(source_index) images at every eps into a new zarr group at `path` (one uint8
+    array per eps); returns the group, the pose outputs (clean, stored uint8, float), the stored L-inf
+    per eps and image k's stored adversarial images (for the figure)."""
+    import torch
+    import zarr
+    from tqdm import tqdm
+
+    from pipeline.attacks import quantize
+
+    n = len(source_index)
+    preds = {"clean": np.zeros((n, 9))} | {e: np.zeros((n, 9)) for e in eps_list}
+    preds_float = {e: np.zeros((n, 9)) for e in eps_list}
+    linf = {e: 0.0 for e in eps_list}
+    example: dict[float, np.ndarray] = {}
+    root = zarr.open_group(str(path), mode="w")
+    h, w = np.asarray(images[0]).shape[:2]
+    arrays = {e: create_array(root, adv_array_name(e), shape=(n, h, w, 3), chunks=(min(batch, n), h, w, 3),
+                             dtype="uint8") for e in eps_list}
+    create_array(root, "source_index", data=source_index)
+    model.eval()
+    for i in tqdm(range(0, n, batch), desc=f"attack ({method}, {len(eps_list)} eps)", unit="batch"):
+        u8 = np.stack([np.asarray(images[j]) for j in range(i, min(i + batch, n))])
+        x = torch.from_numpy(u8).permute(0, 3, 1, 2).float() / 255
+        y = y_all[i:i + batch]
+        with torch.no_grad():
+            preds["clean"][i:i + len(x)] = model(x).numpy()
+        for e in eps_list:
+            x_adv = attack(model, x, y, e, loss_fn)
+            stored = quantize(x_adv, x)
+            stored_hwc = stored.permute(0, 2, 3, 1).numpy()
+            arrays[e][i:i + len(x)] = stored_hwc
+            if i <= k < i + len(x):
+                example[e] = stored_hwc[k - i]
+            linf[e] = max(linf[e], float((stored.float() / 255 - x).abs().max()))
+            with torch.no_grad():
+                preds[e][i:i + len(x)] = model(stored.float() / 255).numpy()
+                preds_float[e][i:i + len(x)] = model(x_adv).numpy()
+    return {"root": root, "preds": preds, "preds_float": preds_float, "linf": linf, "example": example}
+
+
+def _errors(pred: np.ndarray, t_gt: np.ndarray, q_gt: np.ndarray) -> dict[str, float]:
+    """Mean and median position (m) and attitude (deg) errors of (N, 9) outputs against the labels."""
+    from pipeline.rotations import attitude_error_deg, position_error, sixd_to_quat
+
+    pos = position_error(pred[:, :3], t_gt)
+    att = attitude_error_deg(sixd_to_quat(pred[:, 3:]), q_gt)
+    return {"position_mean_m": float(pos.mean()), "position_median_m": float(np.median(pos)),
+            "attitude_mean_deg": float(att.mean()), "attitude_median_deg": float(np.median(att))}
 
 
 def _report(rows: list[dict[str, Any]], a: dict[str, Any], n: int, seconds: float) -> str:
@@ -192,43 +170,3 @@ def _trend(rows: list[dict[str, Any]]) -> str:
         out.append(f"the mean {what} error {'grows' if grows else 'does not grow'} monotonically from clean "
                    f"through eps = {', '.join(r['eps'] for r in by_eps)}")
     return "Over this test set, " + "; ".join(out) + "."
-
-
-def _figure(clean: np.ndarray, adv: dict[float, np.ndarray], t_gt: np.ndarray, pred: dict[Any, np.ndarray],
-            method: str) -> None:
-    """Per eps: the clean image, the stored perturbation scaled to fill [0, 1], the adversarial image."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    eps_list = list(adv)
-    fig, axes = plt.subplots(len(eps_list), 3, figsize=(9, 1.9 * len(eps_list) + 0.4), squeeze=False)
-    c = clean.astype(np.float64) / 255
-    err = {k: float(np.linalg.norm(v[:3] - t_gt)) for k, v in pred.items()}
-    for row, e in zip(axes, eps_list):
-        a = adv[e].astype(np.float64) / 255
-        delta = a - c
-        scale = max(float(np.abs(delta).max()), 1e-12)
-        row[0].imshow(clean)
-        row[0].set_title(f"original (pos. error {err['clean']:.2f} m)", fontsize=8)
-        row[1].imshow(np.clip(0.5 + 0.5 * delta / scale, 0, 1))
-        row[1].set_title(f"perturbation eps={e:g} (shown x{0.5 / scale:.2g})", fontsize=8)
-        row[2].imshow(adv[e])
-        row[2].set_title(f"adversarial (pos. error {err[e]:.2f} m)", fontsize=8)
-        for ax in row:
-            ax.set_axis_off()
-    fig.suptitle(f"{method.upper()} example, target at range {t_gt[2]:.1f} m", fontsize=9)
-    fig.tight_layout()
-    save_figure(fig, FIGURE)
-
-
-def save_figure(fig: Any, path: Path) -> None:
-    """Write a matplotlib figure as PNG atomically (temporary file + rename) and close it."""
-    import matplotlib.pyplot as plt
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)

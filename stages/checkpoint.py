@@ -51,25 +51,33 @@ def read_pose(path: Path | str = POSE, params: dict[str, Any] | None = None) -> 
     return ckpt
 
 
-def load_pose_model(path: Path | str = POSE, params: dict[str, Any] | None = None, device: str = "cpu"):
-    """The PoseNet of a checkpoint, in eval mode on `device` (checked against params when given)."""
+def model_from_checkpoint(ckpt: dict[str, Any], device: str = "cpu"):
+    """The PoseNet of a checkpoint dict, in eval mode on `device`."""
     from pipeline.model import PoseNet
 
-    ckpt = read_pose(path, params)
     model = PoseNet(**ckpt["arch"])
     model.load_state_dict(ckpt["model"])
     return model.to(device).eval()
 
 
-def load_pose_loss(path: Path | str = POSE, params: dict[str, Any] | None = None):
-    """The PoseLoss with the learned weights s_p, s_r of a checkpoint (what attacks ascend)."""
+def loss_from_checkpoint(ckpt: dict[str, Any]):
+    """The PoseLoss with the learned weights s_p, s_r of a checkpoint dict (what attacks ascend)."""
     import torch
 
     from pipeline.loss import PoseLoss
 
-    ckpt = read_pose(path, params)
     loss = PoseLoss(ckpt["loss"]["reduction"])
     with torch.no_grad():
         loss.s_p.fill_(ckpt["loss"]["s_p"])
         loss.s_r.fill_(ckpt["loss"]["s_r"])
     return loss
+
+
+def load_pose_model(path: Path | str = POSE, params: dict[str, Any] | None = None, device: str = "cpu"):
+    """The PoseNet of a checkpoint file, in eval mode on `device` (checked against params when given)."""
+    return model_from_checkpoint(read_pose(path, params), device)
+
+
+def load_pose_loss(path: Path | str = POSE, params: dict[str, Any] | None = None):
+    """The PoseLoss with the learned weights s_p, s_r of a checkpoint file."""
+    return loss_from_checkpoint(read_pose(path, params))

@@ -1,6 +1,7 @@
 """`rpod`: one command per DVC stage. Each command reads params.yaml, calls pipeline/, writes artifacts.
 
-Set RPOD_DEBUG=1 to see full tracebacks instead of one-line errors.
+Known errors (bad params, missing or corrupt artifacts, a refused training run) print one line and exit
+with status 1; `rpod --debug COMMAND` (or RPOD_DEBUG=1) shows the full traceback instead.
 """
 from __future__ import annotations
 
@@ -22,12 +23,18 @@ app = typer.Typer(
 )
 
 
+_DEBUG = {"on": bool(os.environ.get("RPOD_DEBUG"))}
+# errors raised inside these libraries are about their input (a damaged store or table, a bad override)
+_LIBRARIES = ("zarr", "numcodecs", "google_crc32c", "pyarrow", "hydra", "omegaconf", "yaml")
+
+
 @app.callback()
-def _root() -> None:
+def _root(debug: bool = typer.Option(False, "--debug", help="Show the full traceback of an error.")) -> None:
     """rpodguard: render, train, attack, explain (SHAP), detect, evaluate and report.
 
     Each command is one DVC stage (see dvc.yaml); `dvc repro` runs them all in order.
     """
+    _DEBUG["on"] = _DEBUG["on"] or debug
 
 
 @app.command("params")
@@ -43,7 +50,8 @@ def params_cmd(
 
 # Stage modules keep heavy imports (bpy, torch) inside their commands so `rpod --help` is fast.
 # A module exposes `main` (one command) or `app` (a command group, e.g. `rpod lab rescale`).
-STAGES = ["render", "label", "train", "attack", "guidance", "shap", "detect", "evaluate", "robustness", "lab", "report"]
+STAGES = ["render", "label", "train", "attack", "guidance", "shap", "detect", "eval_render", "evaluate",
+          "robustness", "lab_models", "lab", "report"]
 
 
 def _register() -> None:
@@ -65,12 +73,33 @@ def _register() -> None:
 _register()
 
 
+def known_error(e: BaseException) -> str | None:
+    """The one-line message for an error the user can act on, or None for a bug (shown as a traceback)."""
+    text = " ".join(str(e).split())
+    if isinstance(e, KeyError):
+        return f"missing field {e.args[0]!r} in params.yaml or an input artifact (rpod --debug shows where)"
+    if isinstance(e, (StageError, ValueError, OSError)):
+        return text or type(e).__name__
+    tb = e.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    where = [type(e).__module__, tb.tb_frame.f_globals.get("__name__", "") if tb is not None else ""]
+    if any(w.split(".")[0] in _LIBRARIES for w in where):
+        return f"{type(e).__name__}: {text}"
+    return None
+
+
 def main() -> None:
-    """Console entry point: one clear line for user errors, a traceback only with RPOD_DEBUG=1."""
+    """Console entry point: one line and exit status 1 for known errors, a traceback with --debug."""
     try:
         app()
-    except (StageError, ValueError, FileNotFoundError) as e:
-        if os.environ.get("RPOD_DEBUG"):
+    except Exception as e:
+        message = known_error(e)
+        if message is None or _DEBUG["on"]:
             raise
-        typer.secho(f"error: {e}", fg=typer.colors.RED, err=True)
-        sys.exit(2)
+        typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()

@@ -15,10 +15,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from stages.io import StageError, open_zarr, read_parquet
+from stages.artifacts import LABELS, RENDER
+from stages.io import StageError, open_zarr, read_json, read_parquet
+from stages.params import check_render_fingerprint
 
-IMAGES = Path("datasets/render/images.zarr")
-LABELS = Path("datasets/labels.parquet")
+IMAGES = RENDER / "images.zarr"
 POSITION = ["tx", "ty", "tz"]
 QUAT = ["qw", "qx", "qy", "qz"]
 SIXD = [f"r{i}" for i in range(6)]
@@ -58,7 +59,7 @@ class _Rows:
 
 
 def load_labels(path: Path | str = LABELS) -> pd.DataFrame:
-    """Read and validate the label table: required columns, no NaNs, a valid 6-D rotation per row."""
+    """Read and validate the label table: required columns, no NaN or inf, a valid 6-D rotation per row."""
     path = Path(path)
     df = read_parquet(path, "label table")
     extra6 = sorted(c for c in df.columns if c.startswith("r") and c[1:].isdigit() and c not in SIXD)
@@ -70,9 +71,9 @@ def load_labels(path: Path | str = LABELS) -> pd.DataFrame:
     if missing:
         raise StageError(f"{path}: missing columns {missing} (re-run `rpod label`)")
     numeric = ["index", *POSITION, *QUAT, *SIXD, "range"]
-    nans = {c: int(n) for c, n in df[numeric].isna().sum().items() if n}
+    nans = {c: int(n) for c, n in (~np.isfinite(df[numeric].astype(np.float64))).sum().items() if n}
     if nans:
-        raise StageError(f"{path}: NaN labels in columns {nans} (re-run `rpod label`)")
+        raise StageError(f"{path}: NaN or infinite labels in columns {nans} (re-run `rpod label`)")
     r6 = df[SIXD].to_numpy(np.float64)
     a, b = r6[:, :3], r6[:, 3:]
     bad = ((np.abs(np.linalg.norm(a, axis=1) - 1) > 1e-3) | (np.abs(np.linalg.norm(b, axis=1) - 1) > 1e-3)
@@ -84,7 +85,8 @@ def load_labels(path: Path | str = LABELS) -> pd.DataFrame:
 
 
 def open_images(params: dict[str, Any], path: Path | str = IMAGES) -> Any:
-    """The zarr array `images` (N, H, W, 3) uint8, checked against render.width x render.height."""
+    """The zarr array `images` (N, H, W, 3) uint8, checked against render.width x render.height and,
+    through meta.json beside it, against the render params' fingerprint."""
     path = Path(path)
     group = open_zarr(path, "image store")
     if "images" not in group:
@@ -96,6 +98,7 @@ def open_images(params: dict[str, Any], path: Path | str = IMAGES) -> Any:
     if arr.shape[1:3] != (h, w):
         raise StageError(f"{path}/images are {arr.shape[2]}x{arr.shape[1]} pixels but params.yaml has "
                          f"render.width x render.height = {w}x{h} (re-run `rpod render`, or fix params)")
+    check_render_fingerprint(read_json(path.parent / "meta.json"), params, path.parent / "meta.json")
     return arr
 
 

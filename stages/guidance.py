@@ -16,8 +16,8 @@ import numpy as np
 import typer
 
 from stages import params as params_mod
-from stages.attack import MODEL, check_attack_params, make_attack, save_figure
-from stages.io import StageError, atomic_write_text, file_hash, write_metrics
+from stages.artifacts import load_pose
+from stages.io import StageError, atomic_write_text, save_figure, write_metrics
 
 REPORT = Path("reports/guidance.md")
 FIGURE = Path("reports/figures/guidance_trajectories.png")
@@ -29,7 +29,7 @@ def _plan(g: dict[str, Any]):
     """Validated settings and the (eps, S, K, window) grid, before anything is loaded or rendered."""
     from pipeline.guidance import GuidanceSettings
 
-    check_attack_params(g, "guidance")
+    params_mod.check_attack_params(g, "guidance")
     try:
         settings = GuidanceSettings(start=tuple(map(float, g["start"])), goal=tuple(map(float, g["target"])),
                                     tolerance=float(g["tolerance"]), max_step=float(g["max_step"]),
@@ -49,58 +49,27 @@ def _plan(g: dict[str, Any]):
 
 def main() -> None:
     """Fly the closed loop without attack and under every (eps, S, K) attack window; report outcomes."""
-    import torch
     from tqdm import tqdm
 
-    from pipeline.attacks import attack_loss, quantize
-    from pipeline.guidance import arrival_step, run_rendezvous
-    from pipeline.rotations import matrix_to_6d
+    from pipeline.attacks import attack_loss, stored_attack
+    from pipeline.figures import guidance_trajectories
+    from pipeline.guidance import CachedCamera, arrival_step, run_rendezvous
     from pipeline.scene import Renderer
-    from stages.checkpoint import load_pose_loss, load_pose_model
-    from stages.render import intrinsics, scene_settings
 
     p = params_mod.load()
     g = p["guidance"]
     settings, grid = _plan(g)
     a = p["attack"]
-    torch.set_num_threads(2)
-    attack = make_attack(a, g["method"], int(p["seed"]) + SEED_OFFSET)
-    model = load_pose_model(MODEL, p)  # refuses a checkpoint whose input size is not render.width x height
-    loss_fn = attack_loss(a["loss"], load_pose_loss(MODEL, p))
-    K = intrinsics(p)  # the model's input size
+    params_mod.set_threads(p)
+    attack = params_mod.make_attack(a, g["method"], int(p["seed"]) + SEED_OFFSET)
+    pose = load_pose(p)  # refuses a checkpoint whose input size is not render.width x height
+    model, loss_fn = pose.model, attack_loss(a["loss"], pose.loss)
+    K = params_mod.intrinsics(p)  # the model's input size
 
-    # Every run follows the baseline until its attack starts, and Cycles and the CNN are
-    # deterministic: cache each rendered pose's image and clean estimate.
-    cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
-    counts = {"steps": 0, "renders": 0, "attacked": 0}
-    eps_now = [0.0]
-
-    with Renderer(K, scene_settings(p["render"])) as renderer:
-
-        def render(R: np.ndarray, t: np.ndarray) -> tuple[bytes, np.ndarray]:
-            key = np.round(np.concatenate([R.ravel(), t]), 9).tobytes()
-            if key not in cache:
-                image = renderer.render(R, t)
-                x = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
-                with torch.no_grad():
-                    cache[key] = (image, model(x)[0, :3].numpy().astype(np.float64))
-                counts["renders"] += 1
-            counts["steps"] += 1
-            return key, cache[key][0]
-
-        def estimate(rendered: tuple[bytes, np.ndarray], attacked: bool, pose: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-            key, image = rendered
-            if not attacked:
-                return cache[key][1]
-            counts["attacked"] += 1
-            x = torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
-            y = torch.as_tensor(np.concatenate([pose[1], matrix_to_6d(pose[0])])[None], dtype=torch.float32)
-            x_adv = quantize(attack(model, x, y, eps_now[0], loss_fn), x).float() / 255
-            with torch.no_grad():
-                return model(x_adv)[0, :3].numpy().astype(np.float64)
-
+    with Renderer(K, params_mod.scene_settings(p["render"])) as renderer:
+        camera = CachedCamera(renderer.render, model)
         t0 = time.perf_counter()
-        baseline = run_rendezvous(render, estimate, K, settings)
+        baseline = run_rendezvous(camera.render, camera.estimate, K, settings)
         # Attacked runs get the steps the unattacked chaser needed plus slack_steps: an attack succeeds
         # when it delays or diverts the chaser beyond that (the paper: 50 nominal steps + ~10).
         arrival = arrival_step(baseline, settings.goal, settings.tolerance)
@@ -108,13 +77,14 @@ def main() -> None:
         attacked_settings = dataclasses.replace(settings, max_steps=horizon)
         runs = []
         for eps, s, k, window in tqdm(grid, desc="guidance runs", unit="run"):
-            eps_now[0] = eps
-            runs.append((eps, s, k, run_rendezvous(render, estimate, K, attacked_settings, window)))
+            camera.attack = stored_attack(model, loss_fn, eps, attack)
+            runs.append((eps, s, k, run_rendezvous(camera.render, camera.estimate, K, attacked_settings, window)))
         seconds = time.perf_counter() - t0
+    counts = camera.counts
 
     metrics = {
         "variant": settings.variant, "method": g["method"], "loss": a["loss"], "max_steps": settings.max_steps,
-        "tolerance": settings.tolerance, "model_hash": file_hash(MODEL), "seconds": seconds, **counts,
+        "tolerance": settings.tolerance, "model_hash": pose.hash, "seconds": seconds, **counts,
         "baseline": {"outcome": baseline.outcome, "miss_m": baseline.miss, "arrival_step": arrival},
         "horizon": horizon, "slack_steps": int(g["slack_steps"]),
         "runs": [{"eps": e, "start_range": s, "length": k, "outcome": r.outcome, "miss_m": r.miss,
@@ -125,8 +95,8 @@ def main() -> None:
                                                                if e2 == e])) for e in dict.fromkeys(e for e, *_ in runs)}
     write_metrics(METRICS, metrics, p)
     atomic_write_text(REPORT, _report(metrics, g, a, p["render"]))
-    _figure(baseline, [(s, k, r) for e, s, k, r in runs if e == runs[0][0]] if runs else [], runs[0][0] if runs else None,
-            settings.goal)
+    save_figure(guidance_trajectories(baseline, [(s, k, r) for e, s, k, r in runs if e == runs[0][0]] if runs else [],
+                                      runs[0][0] if runs else None, settings.goal), FIGURE)
     typer.echo(f"guidance: baseline {baseline.outcome} ({baseline.miss:.2f} m); {len(runs)} attacked runs, "
           f"{counts['renders']} renders for {counts['steps']} steps in {seconds:.0f} s -> {REPORT}")
     if baseline.outcome != "rendezvous held":
@@ -204,37 +174,3 @@ The full paper grid (eps 0.5, 0.3, 0.1, 0.05, 0.01; S = 60..10 m; K = 5..20) run
 `dvc exp run -S profile=paper` (everything at paper scale) or, on the current model,
 `dvc exp run -S 'guidance.eps=[0.5,0.3,0.1,0.05,0.01]' -S 'guidance.start_ranges=[60,50,40,30,20,10]' -S 'guidance.lengths=[5,10,15,20]'`.
 """
-
-
-def _figure(baseline, runs: list, eps: float | None, goal: tuple[float, float, float]) -> None:
-    """True trajectories of the runs of one eps: lateral x and y against z, and z against the step."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
-    cmap = plt.get_cmap("viridis")
-    curves = [("no attack", baseline, "black", 2.0)] + [
-        (f"S={s:g} m, K={k}: {r.outcome}", r, cmap(j / max(len(runs) - 1, 1)), 1.0) for j, (s, k, r) in enumerate(runs)]
-    for label, r, color, lw in curves:
-        hit = np.flatnonzero(r.attacked)
-        for ax, (h, v) in zip(axes, ((r.positions[:, 2], r.positions[:, 0]), (r.positions[:, 2], r.positions[:, 1]),
-                                     (np.arange(len(r.positions)), r.positions[:, 2]))):
-            ax.plot(h, v, "-", color=color, lw=lw, label=label)
-            ax.plot(h[hit], v[hit], "o", color=color, ms=3)
-    for ax, (h, v) in zip(axes, ((goal[2], goal[0]), (goal[2], goal[1]))):
-        ax.plot(h, v, "r*", ms=12, label="target point")
-        ax.invert_xaxis()
-        ax.set_xlabel("z (m, along the approach)")
-    axes[2].axhline(goal[2], color="r", ls="--", lw=1)
-    axes[2].set_xlabel("step")
-    for ax, title, ylabel in zip(axes, ("z vs x", "z vs y", "z vs step"), ("x (m)", "y (m)", "z (m)")):
-        ax.set_title(title)
-        ax.set_ylabel(ylabel)
-        ax.grid(alpha=0.3)
-    axes[1].legend(fontsize=7, loc="best")
-    fig.suptitle("True position of the target relative to the chaser" + (f", eps = {eps:g}" if eps is not None else "")
-                 + " (dots: attacked frames)", fontsize=10)
-    fig.tight_layout()
-    save_figure(fig, FIGURE)

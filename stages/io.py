@@ -81,7 +81,21 @@ def load_torch(path: Path | str, fmt: str, stage: str) -> dict[str, Any]:
         raise StageError(f"checkpoint {path} is unreadable ({type(e).__name__}: {e}); re-run `rpod {stage}`") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != fmt:
         raise StageError(f"{path} is not an rpodguard checkpoint of format {fmt}; re-run `rpod {stage}`")
+    bad = _nonfinite_tensors(ckpt)
+    if bad:
+        raise StageError(f"checkpoint {path} holds non-finite weights ({', '.join(bad[:3])}); re-run `rpod {stage}`")
     return ckpt
+
+
+def _nonfinite_tensors(obj: Any, prefix: str = "") -> list[str]:
+    """Names of the floating-point tensors (nested in dicts) with a NaN or inf."""
+    import torch
+
+    if isinstance(obj, dict):
+        return [n for k, v in obj.items() for n in _nonfinite_tensors(v, f"{prefix}{k}.")]
+    if isinstance(obj, torch.Tensor) and obj.is_floating_point() and not bool(torch.isfinite(obj).all()):
+        return [prefix.rstrip(".")]
+    return []
 
 
 def read_json(path: Path | str) -> Any:
@@ -98,13 +112,18 @@ def read_json(path: Path | str) -> Any:
 def atomic_dir(path: Path | str) -> Iterator[Path]:
     """Yield a temporary sibling folder; on success it replaces `path` whole, on error it is removed.
 
-    A later stage therefore never sees a half-written output folder.
+    A later stage therefore never sees a half-written output folder. Every zarr store in it (the folder
+    itself, or any `*.zarr` below it) is sealed with its manifest (`seal_zarr`) before the rename. The
+    temporary name carries the process id, so `remove_stale_temps` never deletes a live run's folder.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.{os.getpid()}.", suffix=".tmp"))
     try:
         yield tmp
+        for store in [tmp, *sorted(tmp.rglob("*.zarr"))]:
+            if (store / "zarr.json").is_file():
+                seal_zarr(store)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -116,6 +135,75 @@ def atomic_dir(path: Path | str) -> Iterator[Path]:
         shutil.rmtree(old, ignore_errors=True)
     else:
         os.replace(tmp, path)
+
+
+def remove_stale_temps(path: Path | str) -> list[Path]:
+    """Delete the temporary folders `atomic_dir` left next to `path` in runs that were killed (their
+    process is gone); a concurrent live run's folder is kept. Returns the folders removed."""
+    path = Path(path)
+    removed = []
+    for d in path.parent.glob(f".{path.name}.*.tmp"):
+        pid = d.name[len(path.name) + 2:].split(".", 1)[0]
+        if pid.isdigit() and _alive(int(pid)):
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+        removed.append(d)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process with this id exists on this machine."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+@contextlib.contextmanager
+def atomic_outputs(*paths: Path | str, dirs: tuple[Path | str, ...] = ()) -> Iterator[list[Path]]:
+    """Yield temporary stand-ins for the files `paths` and the folders `dirs` (in that order; the folders
+    are created empty). On success all are renamed into place one right after another, once every one
+    was written; on error none is, so a stage's model, metrics and curves never come from different runs."""
+    files, folders = [Path(p) for p in paths], [Path(d) for d in dirs]
+    tmps = []
+    for p in files + folders:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        tmps.append(p.with_name(f".{p.name}.{os.getpid()}.tmp"))
+    try:
+        for t in tmps[len(files):]:
+            shutil.rmtree(t, ignore_errors=True)
+            t.mkdir()
+        yield tmps
+        missing = [str(p) for p, t in zip(files, tmps) if not t.exists()]
+        if missing:
+            raise RuntimeError(f"atomic_outputs: {missing} were not written")
+    except BaseException:
+        for t in tmps:
+            if t.is_dir():
+                shutil.rmtree(t, ignore_errors=True)
+            else:
+                t.unlink(missing_ok=True)
+        raise
+    for p, t in zip(files + folders, tmps):
+        if t.is_dir() and p.exists():
+            old = p.with_name(f".{p.name}.{os.getpid()}.old")
+            os.replace(p, old)
+            os.replace(t, p)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(t, p)
+
+
+def save_figure(fig: Any, path: Path | str, dpi: int = 110) -> None:
+    """Write a matplotlib Figure (pipeline/figures.py) as PNG atomically (temporary file + rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp.png")
+    fig.savefig(tmp, dpi=dpi)
+    tmp.replace(path)
 
 
 def file_hash(path: Path | str, n: int = 16) -> str:
@@ -130,27 +218,141 @@ def file_hash(path: Path | str, n: int = 16) -> str:
     return h.hexdigest()[:n]
 
 
+MANIFEST = "rpodguard_manifest"  # key in the root group's attributes (zarr.json)
+MANIFEST_FORMAT = "rpodguard-zarr-manifest/1"
+
+
+def create_array(group: Any, name: str, **kwargs: Any) -> Any:
+    """`group.create_array` with the project's codecs: zstd, then a crc32c checksum of every chunk,
+    and every chunk written (also all-zero ones) so a missing chunk file is always an error."""
+    from zarr.codecs import Crc32cCodec, ZstdCodec
+
+    return group.create_array(name, compressors=[ZstdCodec(level=0), Crc32cCodec()],
+                              config={"write_empty_chunks": True}, **kwargs)
+
+
+def _chunk_keys(shape: tuple[int, ...], chunks: tuple[int, ...]) -> list[str]:
+    """Chunk file names of a zarr v3 array (default encoding "c/i/j/...") over its whole grid."""
+    import itertools
+
+    grid = [range(-(-n // c)) for n, c in zip(shape, chunks)]
+    return ["/".join(["c", *map(str, ix)]) for ix in itertools.product(*grid)]
+
+
+def _crc32c(path: Path) -> str:
+    import google_crc32c
+
+    return f"{google_crc32c.value(path.read_bytes()):08x}"
+
+
+def seal_zarr(path: Path | str) -> None:
+    """Write the store's manifest last, into the root group's attributes: per array its shape, chunks
+    and the crc32c of every chunk file.
+
+    Refuses (RuntimeError: a bug in the writer) an array without the crc32c codec or with a chunk of
+    its grid never written.
+    """
+    import zarr
+
+    path = Path(path)
+    root = zarr.open_group(str(path), mode="r")
+    arrays: dict[str, Any] = {}
+    for name, arr in sorted(root.arrays()):
+        if not any(type(c).__name__ == "Crc32cCodec" for c in arr.compressors):
+            raise RuntimeError(f"{path}/{name} was written without the crc32c codec (use stages.io.create_array)")
+        keys = _chunk_keys(arr.shape, arr.chunks)
+        unwritten = [k for k in keys if not (path / name / k).is_file()]
+        if unwritten:
+            raise RuntimeError(f"{path}/{name}: chunk {unwritten[0]} was never written ({len(unwritten)} in all)")
+        arrays[name] = {"shape": list(arr.shape), "chunks": list(arr.chunks),
+                        "crc32c": {k: _crc32c(path / name / k) for k in keys}}
+    zarr.open_group(str(path), mode="r+").attrs[MANIFEST] = {"format": MANIFEST_FORMAT, "arrays": arrays}
+
+
+def _manifest(path: Path, what: str) -> dict[str, Any]:
+    """The manifest's arrays from the root zarr.json, or a StageError."""
+    redo = "delete it and re-run the stage that writes it"
+    try:
+        meta = json.loads((path / "zarr.json").read_text())
+    except FileNotFoundError:
+        raise StageError(f"{what} {path} is not a zarr store (no zarr.json); {redo}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise StageError(f"{what} {path}/zarr.json is damaged; {redo}") from None
+    manifest = meta.get("attributes", {}).get(MANIFEST) if isinstance(meta, dict) else None
+    if manifest is None:
+        raise StageError(f"{what} {path} has no checksum manifest (an interrupted write or an older "
+                         f"rpodguard); {redo}")
+    arrays = manifest.get("arrays") if isinstance(manifest, dict) and manifest.get("format") == MANIFEST_FORMAT else None
+    if not isinstance(arrays, dict):
+        raise StageError(f"{what} {path}: the checksum manifest is damaged; {redo}")
+    return arrays
+
+
+def verify_zarr(path: Path | str, what: str = "zarr store") -> None:
+    """Check a store against its manifest: every array and chunk file present, every crc32c equal.
+
+    One StageError naming the store and the first bad chunk; costs one read of the compressed bytes.
+    """
+    path = Path(path)
+    redo = "delete it and re-run the stage that writes it"
+    arrays = _manifest(path, what)
+    for name, entry in arrays.items():
+        for key, crc in entry["crc32c"].items():
+            chunk = path / name / key
+            if not chunk.is_file():
+                raise StageError(f"{what} {path} is missing chunk {name}/{key}; {redo}")
+            if _crc32c(chunk) != crc:
+                raise StageError(f"{what} {path}: chunk {name}/{key} fails its crc32c checksum (corrupt); {redo}")
+
+
 def open_zarr(path: Path | str, what: str = "zarr store"):
-    """Open a zarr group read-only with a clear message when it is missing or corrupt."""
+    """Open a zarr group read-only after `verify_zarr`, with a clear message when it is missing or corrupt.
+
+    The group's arrays are only those in the manifest (an array added later is refused).
+    """
     import zarr
 
     path = Path(path)
     if not path.exists():
         raise StageError(f"{what} {path} not found (run the stage that writes it first)")
+    verify_zarr(path, what)
     try:
-        return zarr.open_group(str(path), mode="r")
+        group = zarr.open_group(str(path), mode="r")
+        listed = _manifest(path, what)
+        stored = {name: arr for name, arr in group.arrays()}
     except Exception as e:  # zarr raises several types for a damaged store
         raise StageError(f"{what} {path} is unreadable or corrupt ({type(e).__name__}: {e}); "
                          f"delete it and re-run the stage that writes it") from None
+    changed = sorted(set(stored) ^ set(listed)) or [
+        n for n, a in stored.items() if [list(a.shape), list(a.chunks)] != [listed[n]["shape"], listed[n]["chunks"]]]
+    if changed:
+        raise StageError(f"{what} {path}: arrays {changed} differ from its checksum manifest; "
+                         f"delete it and re-run the stage that writes it")
+    return group
+
+
+def write_parquet(df: Any, path: Path | str) -> None:
+    """DataFrame -> parquet with a CRC checksum on every page, via a temporary file and a rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        df.to_parquet(tmp, index=False, write_page_checksum=True)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def read_parquet(path: Path | str, what: str = "table"):
+    """A parquet table, its page checksums verified (where written); a clear StageError otherwise."""
     import pandas as pd
 
     path = Path(path)
     if not path.exists():
         raise StageError(f"{what} {path} not found (run the stage that writes it first)")
     try:
-        return pd.read_parquet(path)
+        return pd.read_parquet(path, page_checksum_verification=True)
     except Exception as e:
         raise StageError(f"{what} {path} is unreadable ({type(e).__name__}: {e})") from None

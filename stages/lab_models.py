@@ -1,4 +1,5 @@
-"""The synthetic-lab pose model and detector of `rpod lab` (SPEC 9): when to retrain, and the retraining.
+"""`rpod lab_models`: the synthetic-lab pose model and detector that `rpod lab` uses when it may not reuse
+the main ones (SPEC 9); a cheap no-op otherwise.
 
 SPEC 9 lets the lab stage reuse models/pose.pt and models/detector.pt when the lab mock-up is the main
 target mesh (our K_blender already has the lab images' 16:9 aspect). With `lab.retrain: always` (the
@@ -7,58 +8,33 @@ paper profile), or whenever `lab.mesh` names another mock-up, it trains them aga
 60..10 m of the 13 approach sequences are preserved) with the same camera K_blender at
 render.width x render.height.
 
-The retraining runs the pipeline's own stage commands (render, label, train, shap, detect) unchanged,
-in a folder of their own (`datasets/lab/synthetic_lab/`, inside the lab stage's DVC output) with a
+The retraining runs the pipeline's own stage commands (`rpod render`, `label`, `train`, `shap`,
+`detect`) unchanged, each as a subprocess in the stage's output folder `datasets/lab_models/` with a
 params.yaml derived from the main one (`sub_params`): the same training recipe (`train`, `shap`,
 `detect`, `label` sections), the mock-up mesh, `lab.train_frames_per_sequence` frames per sequence,
 base seed `lab.seed` + SEED_OFFSET, and no detector baselines (the lab chain uses the LSTM only).
 That folder then holds what the main pipeline holds at the top level: datasets/render/,
 datasets/labels.parquet, models/pose.pt, datasets/shap.zarr, models/detector.pt, reports/*.md and
-reports/metrics/{train,detect}.json.
+reports/metrics/{train,detect}.json, plus summary.json (what `rpod lab` reads: whether and why it
+retrained, the model paths, the synthetic-lab test errors). Without retraining only summary.json is
+written, so DVC runs this stage as a no-op and `rpod lab` is not re-run for it.
 """
 from __future__ import annotations
 
-import contextlib
 import copy
 import os
+import subprocess
+import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any
 
-from stages.io import StageError, file_hash, read_json
+from stages import params as params_mod
+from stages.artifacts import LAB_MODELS, LAB_MODELS_SUMMARY
+from stages.io import StageError, atomic_dir, file_hash, read_json, write_json
 
-SUBDIR = "synthetic_lab"
+ROOT = Path(__file__).resolve().parent.parent
 SEED_OFFSET = 700          # base seed of the synthetic-lab sub-pipeline = lab.seed + this
-
-
-def mockup(p: dict[str, Any]) -> tuple[str | None, float]:
-    """(mesh file or None = procedural target, metres per mesh unit) of the mock-up rendered at lab.scale x
-    its size, i.e. at the size of the real target. Relative paths are resolved against the working folder."""
-    lab, r = p["lab"], p["render"]
-    if lab["mesh"] is None:   # the main target, built at 1/scale: rendered at scale x it is the main mesh
-        mesh, unit = r["mesh"], float(r["mesh_scale"])
-    else:
-        mesh, unit = lab["mesh"], float(lab["mesh_scale"]) * float(lab["scale"])
-    if mesh is None:
-        return None, unit
-    path = Path(mesh).resolve()
-    if not path.is_file():
-        key = "render.mesh" if lab["mesh"] is None else "lab.mesh"
-        raise StageError(f"params.yaml {key}: mock-up mesh file {mesh} not found")
-    return str(path), unit
-
-
-def retrain_reason(p: dict[str, Any]) -> str | None:
-    """Why the lab stage must train its own models, or None when it may reuse the main ones (SPEC 9)."""
-    lab, r = p["lab"], p["render"]
-    if lab["retrain"] == "always":
-        return "lab.retrain is always"
-    mesh, unit = mockup(p)
-    main = None if r["mesh"] is None else str(Path(r["mesh"]).resolve())
-    if mesh != main or abs(unit - float(r["mesh_scale"])) > 1e-9 * max(unit, 1.0):
-        return (f"the mock-up (lab.mesh {lab['mesh']}, {lab['mesh_scale']:g} m per unit, x{lab['scale']:g}) is not "
-                f"the main target (render.mesh {r['mesh']}, {r['mesh_scale']:g} m per unit)")
-    return None
 
 
 def sub_params(p: dict[str, Any]) -> dict[str, Any]:
@@ -66,62 +42,48 @@ def sub_params(p: dict[str, Any]) -> dict[str, Any]:
     sub = copy.deepcopy(p)
     lab, r = p["lab"], sub["render"]
     sub["seed"] = int(lab["seed"]) + SEED_OFFSET
-    r["mesh"], r["mesh_scale"] = mockup(p)
+    r["mesh"], r["mesh_scale"] = params_mod.mockup(p)
     if lab["train_frames_per_sequence"] is not None:
         r["frames_per_sequence"] = int(lab["train_frames_per_sequence"])
     sub["detect"]["baselines"] = []
     return sub
 
 
-@contextlib.contextmanager
-def working_dir(path: Path | str) -> Iterator[Path]:
-    """Run the body with `path` as the current folder (the stages read and write relative paths)."""
-    old = Path.cwd()
-    os.chdir(path)
-    try:
-        yield Path(path)
-    finally:
-        os.chdir(old)
+STEPS = ("render", "label", "train", "shap", "detect")   # the stage commands of the sub-pipeline, in order
 
 
-def _steps() -> dict[str, Callable[[], None]]:
-    """The stage commands of the sub-pipeline, in order (each reads ./params.yaml)."""
-    from stages import detect, label, render, shap, train
-
-    return {"render": lambda: render.main(shard="1/1", merge_parts=0), "label": label.main, "train": train.main,
-            "shap": shap.main, "detect": detect.main}
+def run_step(name: str, folder: Path) -> None:
+    """`rpod <name>` as a subprocess in `folder` (it reads ./params.yaml there); a failure is a StageError
+    carrying the command's own one-line error."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    out = subprocess.run([sys.executable, "-m", "stages.cli", name], cwd=folder, env=env, stderr=subprocess.PIPE,
+                         text=True)
+    sys.stderr.write(out.stderr)
+    if out.returncode != 0:
+        lines = [ln for ln in out.stderr.strip().splitlines() if ln.strip()]
+        raise StageError((lines[-1] if lines else f"exit status {out.returncode}").removeprefix("error: "))
 
 
 def retrain(p: dict[str, Any], dest: Path, final: Path) -> dict[str, Any]:
     """Render, label, train, explain and detect on the synthetic-lab set in `dest` (a fresh folder that
     becomes `final`); returns the summary the lab report and metrics show (seconds per step)."""
-    import torch
-
-    from stages import params as params_mod
-
     sub = sub_params(p)
     dest.mkdir(parents=True, exist_ok=True)
     params_mod.write_params(sub, dest / "params.yaml")
-    threads = torch.get_num_threads()
     seconds: dict[str, float] = {}
-    try:
-        with working_dir(dest):
-            steps = _steps()
-            for i, (name, step) in enumerate(steps.items(), 1):
-                print(f"lab: synthetic-lab {name} ({i}/{len(steps)}) for {final}/", flush=True)
-                t0 = time.perf_counter()
-                try:
-                    step()
-                except (StageError, ValueError) as e:
-                    raise StageError(f"lab.retrain ({name} on the synthetic-lab set in {final}/): {e}") from None
-                seconds[name] = time.perf_counter() - t0
-    finally:
-        torch.set_num_threads(threads)
+    for i, name in enumerate(STEPS, 1):
+        print(f"lab: synthetic-lab {name} ({i}/{len(STEPS)}) for {final}/", flush=True)
+        t0 = time.perf_counter()
+        try:
+            run_step(name, dest)
+        except (StageError, ValueError) as e:
+            raise StageError(f"lab.retrain ({name} on the synthetic-lab set in {final}/): {e}") from None
+        seconds[name] = time.perf_counter() - t0
     train_m = read_json(dest / "reports/metrics/train.json")
     detect_m = read_json(dest / "reports/metrics/detect.json")
     meta = read_json(dest / "datasets/render/meta.json")
     r = sub["render"]
-    return {"folder": str(final), "reason": retrain_reason(p), "seed": sub["seed"], "mesh": r["mesh"],
+    return {"retrained": True, "folder": str(final), "reason": params_mod.retrain_reason(p), "seed": sub["seed"], "mesh": r["mesh"],
             "mesh_scale": r["mesh_scale"], "frames_per_sequence": int(r["frames_per_sequence"]),
             "images": int(meta["frames"]), "size": [int(meta["width"]), int(meta["height"])],
             "pose": str(final / "models/pose.pt"), "pose_hash": file_hash(dest / "models/pose.pt"),
@@ -130,3 +92,20 @@ def retrain(p: dict[str, Any], dest: Path, final: Path) -> dict[str, Any]:
             "best_epoch": train_m["best_epoch"], "epochs_run": train_m["epochs_run"],
             "shap_samples": int(detect_m["counts"]["samples"]),
             "detector_test_accuracy": detect_m["detectors"]["lstm"]["all"]["accuracy"], "seconds": seconds}
+
+
+def main() -> None:
+    """Train the synthetic-lab pose model and detector into datasets/lab_models/ when `rpod lab` may not
+    reuse the main ones (lab.retrain: always, or another mock-up in lab.mesh); else only record that.
+    Params: the `lab` section and the training recipe (`render`, `label`, `train`, `shap`, `detect`)."""
+    p = params_mod.load()
+    reason = params_mod.retrain_reason(p)
+    with atomic_dir(LAB_MODELS) as tmp:
+        if reason is None:
+            summary: dict[str, Any] = {"retrained": False, "reason": None}
+        else:
+            print(f"lab_models: retraining the pose model and detector on a synthetic-lab set ({reason})", flush=True)
+            summary = retrain(p, tmp, LAB_MODELS)
+        write_json(tmp / LAB_MODELS_SUMMARY.name, summary)
+    print(f"lab_models: {'retrained' if reason else 'nothing to train (the lab reuses the main models)'} "
+          f"-> {LAB_MODELS_SUMMARY}")

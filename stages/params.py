@@ -1,21 +1,19 @@
 """Params: compose profiles into params.yaml, load and validate it for a stage."""
 from __future__ import annotations
 
-import difflib
+import hashlib
+import json
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from stages.io import atomic_write_text
+from stages.io import StageError, atomic_write_text
+from stages.schema import Params, ParamsError, build
 
 ROOT = Path(__file__).resolve().parent.parent
 CONF_DIR = ROOT / "conf"
 PARAMS_FILE = Path("params.yaml")
-
-
-class ParamsError(ValueError):
-    """A params problem the user can fix; the message names the file and the key."""
 
 
 def profiles() -> list[str]:
@@ -35,23 +33,27 @@ def compose(profile: str = "default", overrides: list[str] | None = None) -> dic
     return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
 
 
+def render_fingerprint(params: dict[str, Any]) -> str:
+    """Hash of everything that decides the rendered images (`seed`, `camera`, `render`): the render
+    stage stamps it into datasets/render/meta.json; every reader of the renders compares it."""
+    key = json.dumps({"seed": params["seed"], "camera": params["camera"], "render": params["render"]}, sort_keys=True)
+    return hashlib.sha256(key.encode()).hexdigest()[:16]
+
+
+def check_render_fingerprint(meta: dict[str, Any], params: dict[str, Any], path: Path | str) -> None:
+    """Refuse renders (meta.json at `path`) made with other `seed`/`camera`/`render` params than params.yaml."""
+    if meta.get("fingerprint") != render_fingerprint(params):
+        raise ParamsError(f"{path} was rendered with other seed/camera/render params than params.yaml "
+                          f"(fingerprint {meta.get('fingerprint')!r}, params give {render_fingerprint(params)!r}); "
+                          f"re-run `rpod render` (or `dvc repro`)")
+
+
 def write_params(params: dict[str, Any], path: Path = PARAMS_FILE) -> None:
     atomic_write_text(path, yaml.safe_dump(params, sort_keys=False, default_flow_style=None, width=100))
 
 
-def _flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict) and v:
-            out.update(_flat(v, key + "."))
-        else:
-            out[key] = v
-    return out
-
-
 def load(path: Path = PARAMS_FILE) -> dict[str, Any]:
-    """Read params.yaml and refuse unknown keys (typos) with a suggestion."""
+    """Read params.yaml and check it against stages.schema (unknown keys refused with a suggestion)."""
     path = Path(path)
     if not path.exists():
         raise ParamsError(f"{path} not found: run `rpod params default` (or another profile) first")
@@ -61,14 +63,104 @@ def load(path: Path = PARAMS_FILE) -> dict[str, Any]:
         raise ParamsError(f"{path} is not valid YAML: {e}") from None
     if not isinstance(params, dict):
         raise ParamsError(f"{path} must hold a mapping of sections")
-    schema = _flat(compose("default"))
-    known = set(schema)
-    prefixes = {k.rsplit(".", 1)[0] for k in known if "." in k}
-    for key in _flat(params):
-        if key in known or any(key.startswith(p + ".") for p in known if schema[p] in ({}, None)):
-            continue
-        if key in prefixes:
-            continue
-        hint = difflib.get_close_matches(key, sorted(known), n=1)
-        raise ParamsError(f"{path}: unknown parameter {key!r}" + (f" (did you mean {hint[0]!r}?)" if hint else ""))
+    build(params)   # unknown keys, types and ranges of every section (stages.schema), checked once here
     return params
+
+
+def typed(params: dict[str, Any]) -> Params:
+    """The typed view (stages.schema.Params) of params that `load` returned."""
+    return build(params)
+
+
+# ----------------------------------------------------------------------------- params -> library objects
+def set_threads(params: dict[str, Any]) -> None:
+    """torch's CPU threads for a stage: the `threads` param."""
+    import torch
+
+    torch.set_num_threads(int(params["threads"]))
+
+
+def intrinsics(params: dict[str, Any]):
+    """The render camera: K from params.camera at its reference size, scaled to render.width x height."""
+    from pipeline.camera import Intrinsics
+
+    c, r = params["camera"], params["render"]
+    try:
+        return Intrinsics(c["ref_width"], c["ref_height"], c["fx"], c["fy"], c["cx"], c["cy"]).scaled(
+            int(r["width"]), int(r["height"]))
+    except ValueError as e:
+        raise StageError(f"params.yaml camera/render: {e}") from None
+
+
+def scene_settings(render: dict[str, Any]):
+    """The Blender scene settings of a `render` params section."""
+    from pipeline.scene import SceneSettings
+
+    return SceneSettings(mesh=render["mesh"], mesh_scale=float(render["mesh_scale"]),
+                         sun_direction=tuple(float(v) for v in render["sun_direction"]),
+                         sun_strength=float(render["sun_strength"]), samples=int(render["samples"]),
+                         denoiser=str(render["denoiser"]), denoise_quality=str(render["denoise_quality"]),
+                         threads=int(render["threads"]))
+
+
+def check_attack_params(section: dict[str, Any], where: str) -> None:
+    """Check an eps list and attack method (`<where>.eps`, `<where>.method`) before any work."""
+    from pipeline.attacks import ATTACKS, check_eps
+
+    eps = section.get("eps")
+    if not isinstance(eps, list) or not eps:
+        raise StageError(f"params.yaml {where}.eps must be a non-empty list of numbers in (0, 1]")
+    for e in eps:
+        try:
+            check_eps(e)
+        except (TypeError, ValueError):
+            raise StageError(f"params.yaml {where}.eps: {e!r} is not in (0, 1] (pixels are in [0, 1])") from None
+    if section.get("method") not in ATTACKS:
+        raise StageError(f"params.yaml {where}.method: unknown attack {section.get('method')!r}; "
+                          f"choose one of {', '.join(ATTACKS)}")
+
+
+def make_attack(attack: dict[str, Any], method: str, seed: int):
+    """The attack named `method` with the iterative options of the `attack` params section."""
+    import torch
+
+    from pipeline.attacks import LOSSES, get_attack
+
+    if attack["loss"] not in LOSSES:
+        raise StageError(f"params.yaml attack.loss: unknown loss {attack['loss']!r}; choose one of {', '.join(LOSSES)}")
+    try:
+        return get_attack(method, steps=int(attack["steps"]), step_size=attack["step_size"],
+                          random_start=bool(attack["random_start"]), momentum=float(attack["momentum"]),
+                          generator=torch.Generator().manual_seed(seed))
+    except ValueError as e:
+        raise StageError(f"params.yaml attack: {e}") from None
+
+
+def mockup(p: dict[str, Any]) -> tuple[str | None, float]:
+    """(mesh file or None = procedural target, metres per mesh unit) of the mock-up rendered at lab.scale x
+    its size, i.e. at the size of the real target. Relative paths are resolved against the working folder."""
+    lab, r = p["lab"], p["render"]
+    if lab["mesh"] is None:   # the main target, built at 1/scale: rendered at scale x it is the main mesh
+        mesh, unit = r["mesh"], float(r["mesh_scale"])
+    else:
+        mesh, unit = lab["mesh"], float(lab["mesh_scale"]) * float(lab["scale"])
+    if mesh is None:
+        return None, unit
+    path = Path(mesh).resolve()
+    if not path.is_file():
+        key = "render.mesh" if lab["mesh"] is None else "lab.mesh"
+        raise StageError(f"params.yaml {key}: mock-up mesh file {mesh} not found")
+    return str(path), unit
+
+
+def retrain_reason(p: dict[str, Any]) -> str | None:
+    """Why the lab stage must train its own models, or None when it may reuse the main ones (SPEC 9)."""
+    lab, r = p["lab"], p["render"]
+    if lab["retrain"] == "always":
+        return "lab.retrain is always"
+    mesh, unit = mockup(p)
+    main = None if r["mesh"] is None else str(Path(r["mesh"]).resolve())
+    if mesh != main or abs(unit - float(r["mesh_scale"])) > 1e-9 * max(unit, 1.0):
+        return (f"the mock-up (lab.mesh {lab['mesh']}, {lab['mesh_scale']:g} m per unit, x{lab['scale']:g}) is not "
+                f"the main target (render.mesh {r['mesh']}, {r['mesh_scale']:g} m per unit)")
+    return None

@@ -8,8 +8,6 @@ contiguous block of frames) into datasets/render_shards/N/I; when the last part 
 from __future__ import annotations
 
 import fcntl
-import hashlib
-import json
 import shutil
 import time
 from pathlib import Path
@@ -19,35 +17,13 @@ import numpy as np
 import typer
 
 from stages import params as params_mod
-from stages.io import StageError, atomic_dir, open_zarr, read_json, read_parquet, write_json
+from stages.artifacts import RENDER as OUT, read_render_store
+from stages.io import StageError, atomic_dir, create_array, remove_stale_temps, write_json, write_parquet
 
-OUT = Path("datasets/render")
 SHARDS = Path("datasets/render_shards")
 PREVIEWS = Path("reports/figures/previews")
 SEED_OFFSET = 100
 PREVIEW_WIDTH = 480  # previews are upscaled (nearest neighbour) to about this width for viewing
-
-
-def intrinsics(p: dict[str, Any]):
-    """The render camera: K from params.camera at its reference size, scaled to render.width x height."""
-    from pipeline.camera import Intrinsics
-
-    c, r = p["camera"], p["render"]
-    try:
-        return Intrinsics(c["ref_width"], c["ref_height"], c["fx"], c["fy"], c["cx"], c["cy"]).scaled(
-            int(r["width"]), int(r["height"]))
-    except ValueError as e:
-        raise StageError(f"params.yaml camera/render: {e}") from None
-
-
-def scene_settings(r: dict[str, Any]):
-    from pipeline.scene import SceneSettings
-
-    return SceneSettings(mesh=r["mesh"], mesh_scale=float(r["mesh_scale"]),
-                         sun_direction=tuple(float(v) for v in r["sun_direction"]),
-                         sun_strength=float(r["sun_strength"]), samples=int(r["samples"]),
-                         denoiser=str(r["denoiser"]), denoise_quality=str(r["denoise_quality"]),
-                         threads=int(r["threads"]))
 
 
 def frames(p: dict[str, Any]):
@@ -55,7 +31,7 @@ def frames(p: dict[str, Any]):
     from pipeline.trajectories import approach_sequences
 
     r = p["render"]
-    K = intrinsics(p)
+    K = params_mod.intrinsics(p)
     half_fov = min(K.fov_deg) / 2
     if r["pointing_jitter_deg"] > 0.8 * half_fov:
         raise StageError(f"params.yaml render.pointing_jitter_deg={r['pointing_jitter_deg']} would push the "
@@ -72,8 +48,7 @@ def frames(p: dict[str, Any]):
 
 def fingerprint(p: dict[str, Any]) -> str:
     """Hash of everything that decides the rendered images (so shards of different runs never mix)."""
-    key = json.dumps({"seed": p["seed"], "camera": p["camera"], "render": p["render"]}, sort_keys=True)
-    return hashlib.sha256(key.encode()).hexdigest()[:16]
+    return params_mod.render_fingerprint(p)
 
 
 def parse_shard(shard: str) -> tuple[int, int]:
@@ -108,38 +83,31 @@ def poses_table(idx: np.ndarray, seq: np.ndarray, frm: np.ndarray, R: np.ndarray
 def render_part(p: dict[str, Any], start: int, stop: int, dest: Path, desc: str) -> None:
     """Render frames [start, stop) into dest/{images.zarr, poses.parquet, meta.json} (dest is a fresh dir)."""
     import zarr
-    from tqdm import tqdm
 
-    from pipeline.scene import Renderer
+    from pipeline.scene import EmptyRenderError, Renderer, render_into
 
     r = p["render"]
-    K = intrinsics(p)
+    K = params_mod.intrinsics(p)
     seq, frm, R, t = frames(p)
     chunk = int(r["chunk"])
     n = stop - start
     store = zarr.open_group(str(dest / "images.zarr"), mode="w")
-    images = store.create_array("images", shape=(n, K.height, K.width, 3), chunks=(chunk, K.height, K.width, 3),
-                                dtype="uint8")
+    images = create_array(store, "images", shape=(n, K.height, K.width, 3), chunks=(chunk, K.height, K.width, 3),
+                          dtype="uint8")
     try:
-        renderer = Renderer(K, scene_settings(r))
+        renderer = Renderer(K, params_mod.scene_settings(r))
     except ValueError as e:
         raise StageError(f"params.yaml render: {e}") from None
     t0 = time.perf_counter()
     try:
-        buf = np.zeros((chunk, K.height, K.width, 3), np.uint8)
-        with tqdm(total=n, unit="img", desc=desc, dynamic_ncols=True, mininterval=0.5) as bar:
-            for lo in range(0, n, chunk):
-                hi = min(lo + chunk, n)
-                for k in range(lo, hi):
-                    buf[k - lo] = renderer.render(R[start + k], t[start + k])
-                    bar.update(1)
-                images[lo:hi] = buf[: hi - lo]
+        render_into(renderer, R[start:stop], t[start:stop], images, chunk, desc, require_target=True)
+    except EmptyRenderError as e:
+        raise StageError(f"render: {e}; check render.mesh and render.mesh_scale (metres per mesh unit)") from None
     finally:
         renderer.close()
     seconds = time.perf_counter() - t0
     sl = slice(start, stop)
-    poses_table(np.arange(start, stop), seq[sl], frm[sl], R[sl], t[sl]).to_parquet(dest / "poses.parquet",
-                                                                                   index=False)
+    write_parquet(poses_table(np.arange(start, stop), seq[sl], frm[sl], R[sl], t[sl]), dest / "poses.parquet")
     write_json(dest / "meta.json", {
         "complete": True, "fingerprint": fingerprint(p), "frames": n, "start": start, "stop": stop,
         "width": K.width, "height": K.height, "K": K.K, "render": r, "camera": p["camera"], "seed": p["seed"],
@@ -149,24 +117,10 @@ def render_part(p: dict[str, Any], start: int, stop: int, dest: Path, desc: str)
 
 def remove_leftovers(path: Path) -> None:
     """Delete temporary folders that an interrupted (killed) run left next to `path`; they were never
-    renamed into place, so nothing trusts them, but they hold disk space."""
-    for d in path.parent.glob(f".{path.name}.*.tmp"):
-        shutil.rmtree(d, ignore_errors=True)
+    renamed into place, so nothing trusts them, but they hold disk space. A live concurrent run's
+    folder is kept."""
+    for d in remove_stale_temps(path):
         typer.echo(f"removed {d}, left over from an interrupted run")
-
-
-def check_store(path: Path, what: str = "render output") -> tuple[Any, Any, dict[str, Any]]:
-    """Open a render output folder and verify it is complete and consistent -> (images, poses, meta)."""
-    meta = read_json(path / "meta.json")
-    images = open_zarr(path / "images.zarr", what)
-    poses = read_parquet(path / "poses.parquet", f"{what} poses")
-    if not meta.get("complete") or "images" not in images:
-        raise StageError(f"{path} is incomplete; delete it and re-run `rpod render`")
-    n = images["images"].shape[0]
-    if n != meta["frames"] or n != len(poses):
-        raise StageError(f"{path} is inconsistent ({n} images, {len(poses)} poses, meta says {meta['frames']}); "
-                         f"delete it and re-run `rpod render`")
-    return images["images"], poses, meta
 
 
 def write_previews(images, poses, n_previews: int) -> list[Path]:
@@ -204,7 +158,7 @@ def merge(p: dict[str, Any], n: int) -> None:
     missing = [str(d) for d in parts if not (d / "meta.json").exists()]
     if missing:
         raise StageError(f"cannot merge: shard parts missing: {', '.join(missing)}")
-    checked = [check_store(d, "render shard") for d in parts]
+    checked = [read_render_store(d, "render shard") for d in parts]
     fp = fingerprint(p)
     stale = [str(d) for d, (_, _, m) in zip(parts, checked) if m["fingerprint"] != fp]
     if stale:
@@ -216,13 +170,13 @@ def merge(p: dict[str, Any], n: int) -> None:
     chunk = int(p["render"]["chunk"])
     with atomic_dir(OUT) as tmp:
         store = zarr.open_group(str(tmp / "images.zarr"), mode="w")
-        dst = store.create_array("images", shape=(n_total, first["height"], first["width"], 3),
-                                 chunks=(chunk, first["height"], first["width"], 3), dtype="uint8")
+        dst = create_array(store, "images", shape=(n_total, first["height"], first["width"], 3),
+                       chunks=(chunk, first["height"], first["width"], 3), dtype="uint8")
         for images, _, m in checked:
             for lo in range(0, m["frames"], chunk):  # one chunk at a time: memory stays small
                 hi = min(lo + chunk, m["frames"])
                 dst[m["start"] + lo:m["start"] + hi] = images[lo:hi]
-        pd.concat([ps for _, ps, _ in checked], ignore_index=True).to_parquet(tmp / "poses.parquet", index=False)
+        write_parquet(pd.concat([ps for _, ps, _ in checked], ignore_index=True), tmp / "poses.parquet")
         seconds = sum(m["seconds"] for _, _, m in checked)
         meta = {k: v for k, v in first.items() if k not in ("start", "stop")}
         meta.update(frames=n_total, seconds=seconds, seconds_per_image=seconds / n_total, shards=n)
@@ -265,7 +219,7 @@ def main(
                                f"The last part to finish merges them (or run `rpod render --merge {n}`).")
                     return
                 merge(p, n)
-    images, poses, meta = check_store(OUT)
+    images, poses, meta = read_render_store(OUT)
     previews = write_previews(images, poses, int(p["render"]["previews"]))
     typer.echo(f"{OUT}: {meta['frames']} images {meta['width']}x{meta['height']}, "
                f"{meta['seconds_per_image']:.3f} s/image; previews: {', '.join(str(x) for x in previews)}")

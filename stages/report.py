@@ -21,8 +21,9 @@ from typing import Any
 import typer
 
 from stages import params as params_mod
-from stages.detect import ROC_DIR, SHAP as SHAP_STORE
-from stages.io import StageError, atomic_write_text, read_json
+from stages.artifacts import ROC_DIR, SHAP as SHAP_STORE
+from stages.io import StageError, atomic_write_text, read_json, save_figure
+from stages.pages.readme import DETECTOR_NAMES, summary_tables
 
 PAGE = Path("reports/README.md")
 README = Path("README.md")
@@ -42,15 +43,6 @@ SECTIONS = [
     ("lab", "lab.md", "lab"),
     ("benchmarks", "benchmarks.md", None),
 ]
-
-PAPER = {
-    "position_m": 0.49, "attitude_deg": 0.68, "detector": 99.90, "integrated": 99.21, "lab": 96.29,
-    "integrated_eps": {"0.5": 100.0, "0.3": 99.99, "0.1": 99.97, "0.05": 99.99, "0.01": 97.67},
-    "lab_eps": {"0.5": 100.0, "0.3": 100.0, "0.1": 100.0, "0.05": 98.44, "0.01": 90.44},
-}
-DETECTOR_NAMES = {"lstm": "LSTM on SHAP (SPEC 7)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis (GAP)",
-                  "lid": "LID (GAP)", "squeeze": "feature squeezing"}
-
 
 def main(
     sync_readme: bool = typer.Option(False, "--sync-readme", help="Also copy the summary table into README.md."),
@@ -112,72 +104,6 @@ def _load_metrics() -> dict[str, dict[str, Any]]:
     return {m: read_json(f"reports/metrics/{m}.json") for _, _, m in SECTIONS if m}
 
 
-def _fmt(x: float | None, decimals: int = 2) -> str:
-    return "-" if x is None else f"{x:.{decimals}f}"
-
-
-def _eps_keys(d: dict[str, Any]) -> list[str]:
-    """eps keys of a per-eps dict, largest first (the paper's column order)."""
-    return sorted(d, key=float, reverse=True)
-
-
-def summary_tables(metrics: dict[str, dict[str, Any]]) -> str:
-    """The headline results against the paper, as Markdown (this is what README.md shows)."""
-    from pipeline.report import markdown_table
-
-    tr, at, gd, de, ev, lab = (metrics[k] for k in ("train", "attack", "guidance", "detect", "evaluate", "lab"))
-    eps_at = _eps_keys(at["eps"])
-    runs = [r for r in gd["runs"] if r.get("attacked_frames", 1) > 0]
-    broken = sum(r["outcome"] != "rendezvous held" for r in runs)
-    dets = de["detectors"]
-    best_base = max((k for k in dets if k != "lstm"), key=lambda k: dets[k]["all"]["accuracy"])
-    rows = [
-        ("pose, test mean position error (m)", _fmt(tr["test"]["pos_mean_m"]), _fmt(PAPER["position_m"]), "train"),
-        ("pose, test mean attitude error (deg)", _fmt(tr["test"]["att_mean_deg"]), _fmt(PAPER["attitude_deg"]), "train"),
-        ("FGSM mean position error (m) at eps " + " / ".join(eps_at),
-         " / ".join(_fmt(at["eps"][e]["position_mean_m"], 1) for e in eps_at), "-", "attack"),
-        ("closed loop, no attack", f"{gd['baseline']['outcome']} (miss {_fmt(gd['baseline']['miss_m'])} m)",
-         "reaches the target", "guidance"),
-        ("closed loop, attacked runs that lost the rendezvous", f"{broken} of {len(runs)}", "-", "guidance"),
-        ("LSTM detector accuracy, SHAP test split (%)", _fmt(100 * dets["lstm"]["all"]["accuracy"]),
-         _fmt(PAPER["detector"]), "detect"),
-        (f"best baseline detector accuracy (%): {DETECTOR_NAMES.get(best_base, best_base)}",
-         _fmt(100 * dets[best_base]["all"]["accuracy"]), "-", "detect"),
-        ("integrated detection accuracy, mean over eps (%)", _fmt(100 * ev["accuracy_mean"]),
-         _fmt(PAPER["integrated"]), "evaluate"),
-        (f"lab detection accuracy, mean over eps (%), {'main' if lab.get('reused_models', True) else 'retrained'} models",
-         _fmt(100 * lab["accuracy_mean"]), _fmt(PAPER["lab"]), "lab"),
-        *_robustness_rows(metrics["robustness"]),
-    ]
-    table = markdown_table([{"result": r, "this run": v, "paper": p, "stage": f"`{s}`"} for r, v, p, s in rows])
-    eps_rows = []
-    for e in sorted(set(ev["per_eps"]) | set(lab["per_eps"]), key=float, reverse=True):
-        get = lambda m, k: _fmt(100 * m["per_eps"][e]["accuracy"]) if e in m["per_eps"] else "-"  # noqa: E731
-        eps_rows.append({"eps": e, "integrated (%)": get(ev, e), "paper, integrated (%)": _fmt(PAPER["integrated_eps"].get(e)),
-                         "lab, 10-frame attacks (%)": get(lab, e), "paper, lab (%)": _fmt(PAPER["lab_eps"].get(e))})
-    profiles = sorted({m.get("profile", "unknown") for m in metrics.values()})
-    produced = sorted(m.get("produced", "") for m in metrics.values() if m.get("produced"))
-    when = f"{produced[0]} to {produced[-1]}" if produced else "time not recorded"
-    head = (f"Profile `{'`, `'.join(profiles)}`; stages run {when}. Paper: 480x270 images, full-width network, "
-            "50 epochs, 32,500 images; each stage's section of the results page says what differs and why.")
-    return f"{head}\n\n{table}\nDetection accuracy per eps (correct flags over all frames):\n\n{markdown_table(eps_rows)}"
-
-
-def _robustness_rows(m: dict[str, Any]) -> list[tuple[str, str, str, str]]:
-    """Summary rows: worst harmful-undetected rate over all robustness attacks (adaptive included) at
-    eps 0.05 and 0.01, percent with the 95% Wilson interval ("-" when the stage did not run that eps)."""
-    out = []
-    for e in ("0.05", "0.01"):
-        w = m["worst_harmful_undetected"].get(e)
-        value = "-"
-        if w is not None:
-            lo, hi = w["ci95_harmful_undetected"]
-            value = (f"{_fmt(100 * w['harmful_undetected_rate'], 1)} [{_fmt(100 * lo, 1)}, {_fmt(100 * hi, 1)}] "
-                     f"({w['attack']})")
-        out.append((f"worst harmful-undetected rate (%) at eps {e}, any attack incl. adaptive", value, "-", "robustness"))
-    return out
-
-
 def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figures: list[tuple[str, str, str]]) -> str:
     """reports/README.md: title, summary block, then each stage report one level down with the
     report's own figures (`figures`: (stage, title, file name)) at the end of its section."""
@@ -216,13 +142,6 @@ def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figur
     return page
 
 
-def _save(fig, name: str) -> None:
-    FIGURES.mkdir(parents=True, exist_ok=True)
-    tmp = FIGURES / f".{name}.tmp.png"
-    fig.savefig(tmp, dpi=110)
-    tmp.replace(FIGURES / name)
-
-
 def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, str]]:
     """Draw the report's own figures; return (stage, title, file name) for each."""
     import pandas as pd
@@ -230,16 +149,17 @@ def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, s
     from pipeline import figures as F
 
     tr, at, de = metrics["train"], metrics["attack"], metrics["detect"]
-    _save(F.pose_error_bars({"train": tr["train"]["bins"], "test": tr["test"]["bins"]}), "pose_errors.png")
+    save_figure(F.pose_error_bars({"train": tr["train"]["bins"], "test": tr["test"]["bins"]}),
+                FIGURES / "pose_errors.png")
     eps = sorted(at["eps"], key=float)
-    _save(F.error_vs_eps([float(e) for e in eps], [at["eps"][e]["position_mean_m"] for e in eps],
-                         [at["eps"][e]["attitude_mean_deg"] for e in eps], at["clean"]["position_mean_m"],
-                         at["clean"]["attitude_mean_deg"]), "error_vs_eps.png")
+    save_figure(F.error_vs_eps([float(e) for e in eps], [at["eps"][e]["position_mean_m"] for e in eps],
+                               [at["eps"][e]["attitude_mean_deg"] for e in eps], at["clean"]["position_mean_m"],
+                               at["clean"]["attitude_mean_deg"]), FIGURES / "error_vs_eps.png")
     out = [("train", "Mean error per range bin, train and test", "pose_errors.png"),
            ("attack", "Pose error against eps", "error_vs_eps.png")]
     heat = _shap_means()
     if heat is not None:
-        _save(F.shap_heatmaps(heat), "shap_heatmaps.png")
+        save_figure(F.shap_heatmaps(heat), FIGURES / "shap_heatmaps.png")
         out.append(("detect", "SHAP signatures: mean |phi| per output and GAP feature, normal vs adversarial",
                     "shap_heatmaps.png"))
     curves = {}
@@ -250,7 +170,7 @@ def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, s
             curves[DETECTOR_NAMES.get(name, name)] = (roc["fpr"].to_numpy(), roc["tpr"].to_numpy(),
                                                        float(de["detectors"][name]["all"]["roc_auc"]))
     if curves:
-        _save(F.roc_curves(curves), "roc.png")
+        save_figure(F.roc_curves(curves), FIGURES / "roc.png")
         out.append(("detect", "ROC curves of all detectors on the SHAP test split", "roc.png"))
     return out
 

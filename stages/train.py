@@ -9,13 +9,15 @@ CPU, nccl on CUDA, one GPU per process); only rank 0 writes files. CUDA is used 
 """
 from __future__ import annotations
 
+import copy
 import os
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
 
-from stages.io import StageError, atomic_write_text, write_metrics
+from stages.checkpoint import POSE
+from stages.io import StageError, atomic_outputs, atomic_write_text, write_metrics
 
 REPORT = Path("reports/pose.md")
 METRICS = Path("reports/metrics/train.json")
@@ -32,29 +34,20 @@ def main(
                                             "writes models/surrogate.pt and no reports.")] = False,
 ) -> None:
     """Train the pose CNN; keep the best checkpoint by test error; report errors next to the paper's."""
-    import numpy as np
     import torch
 
     from pipeline.loss import PoseLoss
     from pipeline.model import PoseNet
-    from pipeline.training import TrainConfig, fit, predict, summarize_errors
+    from pipeline.training import DivergenceError, fit
     from stages import checkpoint, data, params as params_mod
 
     params = params_mod.load()
-    p = params["train"]
-    r = params["robustness"]
-    out = SURROGATE if surrogate else checkpoint.POSE
+    p, r = params["train"], params["robustness"]
     seed = int(r["surrogate_seed"]) if surrogate else int(params["seed"])
     rank, world, device = _init_distributed()
     torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
     try:
-        epochs = int(r["surrogate_epochs"] if surrogate else p["epochs"])
-        cfg = TrainConfig(epochs=epochs, batch_size=int(p["batch_size"]), lr_base=float(p["lr_base"]),
-                          lr_max=float(p["lr_max"]), cycle_epochs=float(p["cycle_epochs"]),
-                          weight_decay=float(p["weight_decay"]),
-                          max_minutes=None if p["max_minutes"] is None else float(p["max_minutes"]),
-                          channels_last=bool(p["channels_last"]), workers=int(p["workers"]),
-                          seed=seed + SEED_OFFSET)
+        cfg = _config(p, int(r["surrogate_epochs"] if surrogate else p["epochs"]), seed + SEED_OFFSET)
         if surrogate:  # its own initial weights too, not only its own batches and augmentations
             torch.manual_seed(cfg.seed)
         model = PoseNet(float(p["width"]), float(p["dropout"]))
@@ -71,11 +64,8 @@ def main(
         model = torch.compile(model)  # type: ignore[assignment]
     input_size = (int(params["render"]["height"]), int(params["render"]["width"]))
 
-    live = None
-    if rank == 0 and not surrogate:
-        from dvclive import Live
-
-        live = Live(dir=LIVE_DIR, dvcyaml=False, save_dvc_exp=False, report=None)
+    best: dict[str, Any] = {}  # the learned loss weights and facts of the best epoch so far
+    if rank == 0:
         print(f"train: {len(train_split)} train / {len(test_split)} test images at {input_size[1]}x{input_size[0]}, "
               f"width {p['width']}, {cfg.epochs} epochs, batch {cfg.batch_size} x {world} process(es), "
               f"{torch.get_num_threads()} threads, device {device}", flush=True)
@@ -85,48 +75,93 @@ def main(
             return
         from tqdm import tqdm
 
-        if live is not None:
-            for key in ("loss", "lr", "s_p", "s_r", "train_pos_m", "train_att_deg", "test_pos_m", "test_att_deg",
-                        "test_score", "images_per_s"):
-                live.log_metric(key, getattr(stats, key))
-            live.next_step()
         if is_best:
-            checkpoint.save_pose(out, _plain(net), loss, input_size,
-                                 {"epoch": stats.epoch, "test_score": stats.test_score,
-                                  "test_pos_m": stats.test_pos_m, "test_att_deg": stats.test_att_deg})
+            best.update(loss=copy.deepcopy(loss), meta={"epoch": stats.epoch, "test_score": stats.test_score,
+                                                        "test_pos_m": stats.test_pos_m,
+                                                        "test_att_deg": stats.test_att_deg})
         tqdm.write(f"epoch {stats.epoch:3d}  loss {stats.loss:7.3f}  train {stats.train_pos_m:6.2f} m "
                    f"{stats.train_att_deg:5.2f} deg  test {stats.test_pos_m:6.2f} m {stats.test_att_deg:5.2f} deg  "
                    f"{stats.images_per_s:5.0f} img/s  {stats.seconds:5.1f} s{'  *best' if is_best else ''}")
 
-    result = fit(model, loss, train_set, test_set, cfg, device, on_epoch=on_epoch)
-    if rank == 0 and surrogate:
-        print(f"train --surrogate: seed {seed}, best epoch {result.best_epoch} of {len(result.history)}: test "
-              f"{result.history[result.best_epoch - 1].test_pos_m:.3f} m -> {out}")
-    elif rank == 0:
-        live.end()
+    try:
+        result = fit(model, loss, train_set, test_set, cfg, device, on_epoch=on_epoch)
+    except DivergenceError as e:
+        raise StageError(f"{e}; lower train.lr_base / train.lr_max in params.yaml "
+                         f"({SURROGATE if surrogate else POSE} and the reports were left as they were)") from None
+    if rank == 0:
         net = _plain(model)
         net.load_state_dict(result.best_state)
-        bins = params["train"]["range_bins"]
-        summary = {name: summarize_errors(predict(net, ds, 2 * cfg.batch_size, device, cfg.channels_last),
-                                          split.targets, split.labels["range"].to_numpy(), bins)
-                   for name, ds, split in (("train", train_eval_set, train_split), ("test", test_set, test_split))}
-        # the floor any useful model must beat: always answer the mean training label
-        mean_pred = np.broadcast_to(targets.mean(0), test_split.targets.shape)
-        summary["test_mean_baseline"] = summarize_errors(mean_pred, test_split.targets,
-                                                         test_split.labels["range"].to_numpy(), bins)
-        metrics = {**summary, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
-                   "stopped_early": result.stopped_early, "train_minutes": result.seconds / 60,
-                   "train_images_per_s": result.train_images_per_s, "test_score": result.best_score,
-                   "processes": world, "device": str(device)}
-        write_metrics(METRICS, metrics, params)
-        atomic_write_text(REPORT, _report(metrics, params, len(train_split), len(test_split)))
-        print(f"train: best epoch {result.best_epoch}: test {summary['test']['pos_mean_m']:.3f} m, "
-              f"{summary['test']['att_mean_deg']:.2f} deg -> {checkpoint.POSE}, {REPORT}, {METRICS}")
+    if rank == 0 and surrogate:  # the surrogate only: no metrics, reports or curves
+        checkpoint.save_pose(SURROGATE, net, best["loss"], input_size, best["meta"])
+        print(f"train --surrogate: seed {seed}, best epoch {result.best_epoch} of {len(result.history)}: test "
+              f"{best['meta']['test_pos_m']:.3f} m -> {SURROGATE}")
+    elif rank == 0:
+        _write_results(params, net, best, input_size, result, cfg, device, world, (train_split, train_eval_set),
+                       (test_split, test_set))
     if world > 1:
         import torch.distributed as dist
 
         dist.barrier()
         dist.destroy_process_group()
+
+
+def _config(p: dict[str, Any], epochs: int, seed: int) -> Any:
+    """The TrainConfig of a `train` params section (ValueError on a bad value)."""
+    from pipeline.training import TrainConfig
+
+    return TrainConfig(epochs=epochs, batch_size=int(p["batch_size"]), lr_base=float(p["lr_base"]),
+                       lr_max=float(p["lr_max"]), cycle_epochs=float(p["cycle_epochs"]),
+                       weight_decay=float(p["weight_decay"]),
+                       max_minutes=None if p["max_minutes"] is None else float(p["max_minutes"]),
+                       channels_last=bool(p["channels_last"]), workers=int(p["workers"]), seed=seed)
+
+
+def _write_results(params: dict[str, Any], net: Any, best: dict[str, Any], input_size: tuple[int, int], result: Any,
+                   cfg: Any, device: Any, world: int, train: tuple[Any, Any], test: tuple[Any, Any]) -> None:
+    """Errors of the best checkpoint on both splits (and the always-the-mean-label floor), then
+    models/pose.pt (`net` with the best epoch's loss weights and facts, `best`), reports/metrics/train.json,
+    reports/pose.md and dvclive/train/ moved into place together. `train`, `test`: (split, its
+    un-augmented dataset)."""
+    import numpy as np
+
+    from pipeline.training import predict, summarize_errors
+    from stages import checkpoint
+
+    (train_split, train_eval_set), (test_split, test_set) = train, test
+    bins = params["train"]["range_bins"]
+    summary = {name: summarize_errors(predict(net, ds, 2 * cfg.batch_size, device, cfg.channels_last),
+                                      split.targets, split.labels["range"].to_numpy(), bins)
+               for name, ds, split in (("train", train_eval_set, train_split), ("test", test_set, test_split))}
+    # the floor any useful model must beat: always answer the mean training label
+    mean_pred = np.broadcast_to(train_split.targets.mean(0), test_split.targets.shape)
+    summary["test_mean_baseline"] = summarize_errors(mean_pred, test_split.targets,
+                                                     test_split.labels["range"].to_numpy(), bins)
+    metrics = {**summary, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
+               "stopped_early": result.stopped_early, "train_minutes": result.seconds / 60,
+               "train_images_per_s": result.train_images_per_s, "test_score": result.best_score,
+               "processes": world, "device": str(device)}
+    # model, metrics, report and curves move into place together, only now: a crashed, killed or
+    # diverged run leaves the previous run's files as they were
+    with atomic_outputs(POSE, METRICS, REPORT, dirs=(LIVE_DIR,)) as (pose, metrics_path, report, live):
+        checkpoint.save_pose(pose, net, best["loss"], input_size, best["meta"])
+        write_metrics(metrics_path, metrics, params)
+        atomic_write_text(report, _report(metrics, params, len(train_split), len(test_split)))
+        _log_curves(live, result.history)
+    print(f"train: best epoch {result.best_epoch}: test {summary['test']['pos_mean_m']:.3f} m, "
+          f"{summary['test']['att_mean_deg']:.2f} deg -> {POSE}, {REPORT}, {METRICS}")
+
+
+def _log_curves(folder: Any, history: list[Any]) -> None:
+    """Per-epoch curves of a finished run into a DVCLive folder (for `dvc plots show`)."""
+    from dvclive import Live
+
+    live = Live(dir=str(folder), dvcyaml=False, save_dvc_exp=False, report=None)
+    for stats in history:
+        for key in ("loss", "lr", "s_p", "s_r", "train_pos_m", "train_att_deg", "test_pos_m", "test_att_deg",
+                    "test_score", "images_per_s"):
+            live.log_metric(key, getattr(stats, key))
+        live.next_step()
+    live.end()
 
 
 def _plain(model: Any) -> Any:

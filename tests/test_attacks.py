@@ -5,7 +5,7 @@ import pytest
 import torch
 from torch import nn
 
-from pipeline.attacks import ATTACKS, attack_loss, fgsm, get_attack, mifgsm, pgd, quantize
+from pipeline.attacks import ATTACKS, attack_loss, fgsm, get_attack, mifgsm, pgd, quantize, stored_attack
 
 
 class TinyPose(nn.Module):
@@ -137,6 +137,21 @@ def test_quantize_keeps_perturbation_sign(setup):
         assert torch.equal(torch.sign(q - x)[moved], torch.sign(x_adv - x)[moved])
         assert torch.equal(q[~moved], x[~moved])
         assert (q - x_adv).abs().max() <= 0.5 / 255 + max(0.0, 1 / 255 - eps) + 1e-6
+
+
+@pytest.mark.parametrize("name", sorted(ATTACKS))
+def test_stored_attack_is_the_attack_on_the_8_bit_grid(setup, name):
+    model, loss, x, y = setup
+    attack = get_attack(name, steps=3, generator=torch.Generator().manual_seed(1))
+    attack_again = get_attack(name, steps=3, generator=torch.Generator().manual_seed(1))
+    out = stored_attack(model, loss, 0.05, attack)(x, y)
+    assert out.dtype == torch.float32 and out.shape == x.shape
+    assert torch.equal(out, quantize(attack_again(model, x, y, 0.05, loss), x).float() / 255)
+    levels = out * 255
+    assert torch.equal(levels, torch.round(levels))                       # every pixel on the 8-bit grid
+    assert (out - x).abs().max() <= 0.05 + 0.5 / 255 + 1e-6 and (out != x).any()
+    with pytest.raises(ValueError, match="eps must be in"):
+        stored_attack(model, loss, 0.0)
 
 
 def test_bad_inputs_raise_clear_errors(setup):

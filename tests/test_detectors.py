@@ -179,20 +179,23 @@ def test_squeeze_detector_flags_high_frequency_perturbations():
 def _store(path, n: int = 20, eps=None, model_hash: str = "h1", values=None):
     import zarr
 
+    from stages.io import create_array, seal_zarr
+
     eps = np.r_[np.zeros(n // 2), np.full(n - n // 2, 0.5)] if eps is None else np.asarray(eps)
     root = zarr.open_group(str(path), mode="w")
-    root.create_array("values", data=np.zeros((len(eps), 9, 16), np.float32) if values is None else values)
-    root.create_array("features", data=np.zeros((len(eps), 16), np.float32))
-    root.create_array("is_adversarial", data=eps > 0)
-    root.create_array("eps", data=eps.astype(np.float32))
-    root.create_array("source_index", data=np.arange(len(eps)))
-    root.create_array("split", data=np.ones(len(eps), np.int8))
+    create_array(root, "values", data=np.zeros((len(eps), 9, 16), np.float32) if values is None else values)
+    create_array(root, "features", data=np.zeros((len(eps), 16), np.float32))
+    create_array(root, "is_adversarial", data=eps > 0)
+    create_array(root, "eps", data=eps.astype(np.float32))
+    create_array(root, "source_index", data=np.arange(len(eps)))
+    create_array(root, "split", data=np.ones(len(eps), np.int8))
     root.attrs.update({"model_hash": model_hash, "background_size": 4, "background_mean": [0.0] * 16})
+    seal_zarr(path)
     return path
 
 
 def test_detect_stage_refuses_bad_shap_stores(tmp_path):
-    from stages.detect import read_store
+    from stages.artifacts import read_shap_store as read_store
     from stages.io import StageError
 
     good = read_store(_store(tmp_path / "ok.zarr"), "h1")

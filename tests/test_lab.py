@@ -132,7 +132,7 @@ def test_segmentation_and_domain_shift():
 
 def test_loader_round_trips_a_synthetic_lab_recording(tmp_path):
     from stages.io import StageError
-    from stages.lab import read_recording, write_recording
+    from stages.recordings import read_recording, write_recording
 
     rec = synthetic_recording(1.6, 1.0, 12, 30.0, 120.0, np.array([1.0, 0, 0, 0]), lateral=(0.01, 0.0))
     rng = np.random.default_rng(0)
@@ -219,7 +219,7 @@ def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
     runner = CliRunner()
     out = runner.invoke(app, ["evaluate"])
     assert out.exit_code != 0 and "eval_render" in str(out.exception)       # renders not there yet
-    for args in (["evaluate", "--render-only"], ["evaluate"], ["lab"]):
+    for args in (["eval_render"], ["evaluate"], ["lab_models"], ["lab"]):
         out = runner.invoke(app, args)
         assert out.exit_code == 0, (args, out.output, out.exception)
     ev = json.loads((tmp_path / "reports/metrics/evaluate.json").read_text())
@@ -243,8 +243,8 @@ def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
 
 @pytest.mark.slow
 def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, monkeypatch):
-    """lab.retrain=always on a tiny smoke set: render, label, train, shap, detect in datasets/lab/synthetic_lab/,
-    then the lab evaluation runs with those models, not the main stand-ins."""
+    """lab.retrain=always on a tiny smoke set: `rpod lab_models` runs render, label, train, shap, detect in
+    datasets/lab_models/, then the lab evaluation runs with those models, not the main stand-ins."""
     import json
 
     import torch
@@ -263,14 +263,17 @@ def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, mo
     main_hash = file_hash("models/pose.pt")
     threads = torch.get_num_threads()
     out = CliRunner().invoke(app, ["lab"])
-    assert out.exit_code == 0, (out.output, out.exception)
+    assert out.exit_code != 0 and "lab_models" in str(out.exception)      # not trained yet
+    for args in (["lab_models"], ["lab"]):
+        out = CliRunner().invoke(app, args)
+        assert out.exit_code == 0, (args, out.output, out.exception)
     assert torch.get_num_threads() == threads
-    sub = tmp_path / "datasets/lab/synthetic_lab"
+    sub = tmp_path / "datasets/lab_models"
     lab = json.loads((tmp_path / "reports/metrics/lab.json").read_text())
     assert not lab["reused_models"] and lab["retrain_reason"] == "lab.retrain is always"
     assert lab["model_hash"] == file_hash(sub / "models/pose.pt") != main_hash
-    assert lab["models"] == {"pose": "datasets/lab/synthetic_lab/models/pose.pt",
-                             "detector": "datasets/lab/synthetic_lab/models/detector.pt"}
+    assert lab["models"] == {"pose": "datasets/lab_models/models/pose.pt",
+                             "detector": "datasets/lab_models/models/detector.pt"}
     det = torch.load(sub / "models/detector.pt", weights_only=True)
     assert det["pose_model_hash"] == lab["model_hash"]
     s = lab["synthetic_lab"]
@@ -280,33 +283,35 @@ def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, mo
     assert sub_p["train"] == p["train"] and sub_p["detect"]["baselines"] == []
     assert sub_p["render"]["frames_per_sequence"] == 3 and sub_p["render"]["width"] == 64
     assert (sub / "reports/pose.md").exists() and (sub / "datasets/shap.zarr").is_dir()
-    assert (tmp_path / "datasets/lab/seq1/camera.csv").exists()     # the lab recordings sit beside it
+    assert (tmp_path / "datasets/lab/seq1/camera.csv").exists()     # the lab recordings
     text = (tmp_path / "reports/lab.md").read_text()
     assert "## Models: retrained on a synthetic-lab set" in text and lab["model_hash"] in text
-    assert "datasets/lab/synthetic_lab/models/detector.pt" in text and "not the main models/pose.pt" in text
+    assert "datasets/lab_models/models/detector.pt" in text and "not the main models/pose.pt" in text
     assert "the synthetic-lab model" in text
     assert not (tmp_path / "reports/metrics/train.json").exists()   # the main reports are untouched
 
 
 @pytest.mark.parametrize("edit, message", [
-    ({"retrain": "sometimes"}, "lab.retrain must be auto or always"),
-    ({"train_frames_per_sequence": 1}, "lab.train_frames_per_sequence must be null or a whole number >= 2"),
-    ({"mesh_scale": 0.0}, "scale and mesh_scale must be > 0"),
+    ({"retrain": "sometimes"}, r"lab.retrain must be one of auto, always, got 'sometimes'"),
+    ({"train_frames_per_sequence": 1}, "lab: train_frames_per_sequence must be null or a whole number >= 2"),
+    ({"mesh_scale": 0.0}, "lab: scale and mesh_scale must be > 0"),
+    ({"sequences": [[1.6, -1.0]]}, r"lab: sequences: each entry must be \[z_start, z_end\] in metres > 0"),
 ])
 def test_bad_lab_params_are_refused(edit, message):
     from stages import params as params_mod
-    from stages.io import StageError
-    from stages.lab import check_params
+    from stages.schema import ParamsError, build
 
-    lab = {**params_mod.compose("default")["lab"], **edit}
-    with pytest.raises(StageError, match=message):
-        check_params(lab)
+    p = params_mod.compose("default")
+    p["lab"].update(edit)
+    with pytest.raises(ParamsError, match=message):
+        build(p)
 
 
 def test_when_the_lab_stage_retrains(tmp_path, monkeypatch):
     from stages import params as params_mod
     from stages.io import StageError
-    from stages.lab_models import retrain_reason, sub_params
+    from stages.lab_models import sub_params
+    from stages.params import retrain_reason
 
     monkeypatch.chdir(tmp_path)
     p = params_mod.compose("default")
@@ -329,12 +334,12 @@ def test_a_failing_retrain_step_is_one_clear_error(tmp_path, monkeypatch):
     from stages import lab_models, params as params_mod
     from stages.io import StageError
 
-    def render() -> None:
-        assert Path("params.yaml").exists()            # the step runs inside the synthetic-lab folder
+    def run_step(name: str, folder: Path) -> None:
+        assert name == "render" and (folder / "params.yaml").exists()   # the step runs in the synthetic-lab folder
         raise StageError("params.yaml render: boom")
 
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(lab_models, "_steps", lambda: {"render": render})
+    monkeypatch.setattr(lab_models, "run_step", run_step)
     with pytest.raises(StageError, match=r"^lab.retrain \(render on the synthetic-lab set in final/\): params.yaml "
                                          r"render: boom$"):
         lab_models.retrain(params_mod.compose("smoke", ["lab.retrain=always"]), tmp_path / "sub", Path("final"))

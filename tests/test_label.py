@@ -121,7 +121,7 @@ def test_corrupt_or_missing_store_is_refused(workdir):
         label.main()
     render.main(shard="1/1", merge_parts=0)
     shutil.rmtree("datasets/render/images.zarr/images")
-    with pytest.raises(StageError, match="incomplete|corrupt|inconsistent"):
+    with pytest.raises(StageError, match="incomplete|corrupt|inconsistent|missing chunk"):
         label.main()
     render.main(shard="1/1", merge_parts=0)
     meta = json.loads(open("datasets/render/meta.json").read())

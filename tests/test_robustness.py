@@ -220,30 +220,42 @@ def test_bad_corruptions_refused(name: str, strength: float, match: str) -> None
 def _params() -> dict:
     from stages.params import compose
 
-    return compose("smoke")["robustness"]
+    return compose("smoke")
 
 
 @pytest.mark.parametrize("key,value,match", [
-    ("transfer", ["pgd", "cw"], r"robustness\.transfer: unknown attack 'cw'"),
-    ("transfer", ["fgsm/angle"], r"robustness\.transfer: unknown attack 'fgsm/angle'"),
-    ("surrogate_attacks", ["deepfool"], r"robustness\.surrogate_attacks: unknown attack"),
-    ("lambdas", [0, -1, 10], r"robustness\.lambdas"),
-    ("eps", [0.05, 1.5], r"robustness\.eps: 1\.5 is not in \(0, 1\]"),
-    ("eps", [0.0], r"robustness\.eps: 0\.0 is not in \(0, 1\]"),
-    ("unseen_eps", [-0.2], r"robustness\.unseen_eps"),
-    ("steps", 5, r"robustness\.steps"),
-    ("harm_m", 0, r"robustness\.harm_m"),
-    ("corruptions", {"jpeg": [0]}, r"robustness\.corruptions\.jpeg"),
+    ("transfer", ["pgd", "cw"], r"robustness: transfer: unknown attack 'cw'"),
+    ("transfer", ["fgsm/angle"], r"robustness: transfer: unknown attack 'fgsm/angle'"),
+    ("surrogate_attacks", ["deepfool"], r"robustness: surrogate_attacks: unknown attack"),
+    ("lambdas", [0, -1, 10], r"robustness: lambdas must be"),
+    ("eps", [0.05, 1.5], r"robustness: eps: 1\.5 is not in \(0, 1\]"),
+    ("eps", [0.0], r"robustness: eps: 0\.0 is not in \(0, 1\]"),
+    ("unseen_eps", [-0.2], r"robustness: unseen_eps"),
+    ("steps", 5, r"robustness: steps"),
+    ("harm_m", 0, r"robustness: harm_m"),
+    ("corruptions", {"jpeg": [0]}, r"robustness\.corruptions: jpeg"),
+    ("corruptions", {"fog": [1]}, r"unknown parameter 'robustness\.corruptions\.fog'"),
 ])
 def test_bad_params_stop_with_one_message(key: str, value: object, match: str) -> None:
-    from stages.io import StageError
-    from stages.robustness import check_params
+    from stages.schema import ParamsError, build
 
-    r = _params()
-    check_params(r)
-    r[key] = value
-    with pytest.raises(StageError, match=match):
-        check_params(r)
+    p = _params()
+    build(p)
+    if key == "corruptions":
+        value = {**p["robustness"]["corruptions"], **value}
+    p["robustness"][key] = value
+    with pytest.raises(ParamsError, match=match):
+        build(p)
+
+
+def test_schema_attack_names_are_the_librarys() -> None:
+    import typing
+
+    from pipeline.attacks import ATTACKS, LOSSES
+    from stages.schema import AttackLoss, AttackMethod
+
+    assert typing.get_args(AttackMethod) == tuple(ATTACKS)
+    assert typing.get_args(AttackLoss) == tuple(LOSSES)
 
 
 def test_train_surrogate_writes_only_its_checkpoint_with_its_own_seed(tmp_path, monkeypatch) -> None:

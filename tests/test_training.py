@@ -14,7 +14,7 @@ from pipeline.camera import reference_intrinsics
 from pipeline.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
 from stages import checkpoint, data
 from stages import params as params_mod
-from stages.io import StageError
+from stages.io import StageError, create_array, seal_zarr, write_json
 
 W, H = 48, 27
 
@@ -35,7 +35,8 @@ def write_dataset(root: Path, n: int = 40, width: int = W, height: int = H, seed
         shade = (128 + 100 * R[i, :, 0]).clip(0, 255)
         images[i, max(0, int(v) - half):int(v) + half + 1, max(0, int(u) - half):int(u) + half + 1] = shade
     group = zarr.open_group(str(root / "datasets/render/images.zarr"), mode="w")
-    group.create_array("images", shape=images.shape, chunks=(16, height, width, 3), dtype="uint8")[:] = images
+    create_array(group, "images", shape=images.shape, chunks=(16, height, width, 3), dtype="uint8")[:] = images
+    seal_zarr(root / "datasets/render/images.zarr")
     r6 = matrix_to_6d(R)
     labels = pd.DataFrame({"index": np.arange(n), "image": [f"images/{i}" for i in range(n)],
                            "sequence": np.arange(n) % 13, "frame": np.arange(n) // 13,
@@ -47,6 +48,7 @@ def write_dataset(root: Path, n: int = 40, width: int = W, height: int = H, seed
     labels.to_parquet(root / "datasets/labels.parquet")
     params = params_mod.compose("smoke", [f"render.width={width}", f"render.height={height}", *(overrides or [])])
     params_mod.write_params(params, root / "params.yaml")
+    write_json(root / "datasets/render/meta.json", {"fingerprint": params_mod.render_fingerprint(params)})
     return params
 
 
@@ -74,7 +76,7 @@ def _edit_labels(fn) -> None:
 
 
 @pytest.mark.parametrize("edit, message", [
-    (lambda df: df.assign(tx=df["tx"].where(df.index != 3)), "NaN labels"),
+    (lambda df: df.assign(tx=df["tx"].where(df.index != 3)), "NaN or infinite labels"),
     (lambda df: df.drop(columns=["r5"]), "r0..r5"),
     (lambda df: df.assign(r6=0.0), "r0..r5"),
     (lambda df: df.assign(r0=df["r0"] * 2), "rotation matrix"),

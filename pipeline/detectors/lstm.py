@@ -23,6 +23,7 @@ import torch
 from torch import nn
 
 from pipeline.detectors.metrics import choose_threshold
+from pipeline.training import check_improved, check_loss
 
 
 class ReLULSTMCell(nn.Module):
@@ -140,6 +141,13 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
     best epoch are kept, and the threshold is then chosen on the validation probabilities
     (`choose_threshold`: highest validation accuracy). `on_epoch` gets each epoch's record.
     """
+    sizes = {"epochs": epochs, "patience": patience, "batch_size": batch_size, "hidden": config.hidden,
+             **{f"dense[{i}]": w for i, w in enumerate(config.dense)}}
+    small = [f"{k}={v}" for k, v in sizes.items() if int(v) < 1]
+    if small or not lr > 0:
+        raise ValueError(f"LSTM detector settings must be positive: {', '.join(small) or f'lr={lr}'}")
+    if not (np.isfinite(x_train).all() and np.isfinite(x_val).all()):
+        raise ValueError("LSTM detector inputs hold NaN or infinite values")
     torch.manual_seed(seed)
     model = LSTMDetector(config)
     model.set_normalisation(x_train)
@@ -159,6 +167,7 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
         for s in range(0, len(xt), batch_size):
             idx = perm[s:s + batch_size]
             loss = loss_fn(model(xt[idx]), yt[idx])
+            check_loss(loss.item(), f"epoch {epoch}")
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -178,6 +187,7 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
             stale += 1
             if stale >= patience:
                 break
+    check_improved(best_epoch, len(history))
     model.load_state_dict(best_state)
     model.threshold.fill_(choose_threshold(model.predict_proba(x_val), y_val))
     return TrainResult(model.eval(), history, best_epoch)

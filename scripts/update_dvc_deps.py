@@ -1,0 +1,45 @@
+"""Rewrite the code deps of every stage in dvc.yaml from the source (the derivation of
+tests/test_dvc_deps.py); data deps (datasets/, models/, reports/) are kept in their order.
+
+Run after adding a stage or changing what a stage imports: `python scripts/update_dvc_deps.py`.
+"""
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+import test_dvc_deps as derive  # noqa: E402
+
+WIDTH = 118
+
+
+def deps_block(deps: list[str]) -> str:
+    """`    deps: [...]` wrapped at WIDTH characters."""
+    lines, cur = [], "    deps: ["
+    for i, d in enumerate(deps):
+        item = d + (", " if i < len(deps) - 1 else "]")
+        if len(cur) + len(item) > WIDTH:
+            lines.append(cur.rstrip())
+            cur = " " * 11
+        cur += item
+    return "\n".join(lines + [cur]) + "\n"
+
+
+def main() -> None:
+    path = derive.REPO / "dvc.yaml"
+    text = path.read_text()
+    for name, stage in derive.STAGES.items():
+        data = [d for d in stage.get("deps", []) if d.split("/")[0] in ("datasets", "models", "reports")]
+        code = sorted(str(f.relative_to(derive.REPO)) for f in derive.stage_files(name))
+        m = re.search(rf"(\n  {name}:\n(?:    (?!deps:).*\n)*?)    deps: \[[^\]]*\]\n", text)
+        if m is None:
+            raise SystemExit(f"dvc.yaml: stage {name} has no `deps: [...]` list to rewrite")
+        text = text[:m.start()] + m.group(1) + deps_block(data + code) + text[m.end():]
+    path.write_text(text)
+    print(f"{path}: code deps of {len(derive.STAGES)} stages rewritten")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,78 @@
+"""`rpod eval_render`: render the fresh evaluation trajectories of SPEC 8 once, for `rpod evaluate` and its eps.
+
+Renders `evaluate.trajectories` projectile-shaped approaches (own seed `evaluate.seed`) with one
+Blender scene into datasets/eval_render/ (images.zarr, poses.parquet, meta.json with the params
+fingerprint), so changing eps or the models never re-renders.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import typer
+
+from stages import params as params_mod
+from stages.artifacts import EVAL_RENDER, eval_render_fingerprint
+from stages.io import StageError, atomic_dir, create_array, write_json, write_parquet
+
+
+def trajectories(p: dict[str, Any]) -> list[Any]:
+    """The fresh SPEC 8 approaches: lateral start offsets |x|, |y| uniform in lateral_range, random signs."""
+    from pipeline.trajectories import projectile_trajectory
+
+    e, r = params_mod.typed(p).evaluate, p["render"]
+    rng = np.random.default_rng(e.seed)
+    lo, hi = e.lateral_range
+    out = []
+    for i in range(e.trajectories):
+        xy = rng.uniform(lo, hi, 2) * rng.choice([-1.0, 1.0], 2)
+        out.append(projectile_trajectory(e.frames, (float(xy[0]), float(xy[1])), float(r["start_range"]),
+                                         float(r["end_range"]), seed=e.seed + 1 + i,
+                                         jitter_deg=float(r["pointing_jitter_deg"]), max_rot_deg=0.0, sequence=i))
+    return out
+
+
+def main() -> None:
+    """Render the fresh evaluation trajectories (SPEC 8) with one Blender scene into datasets/eval_render/.
+
+    Params: `evaluate.trajectories`, `frames`, `lateral_range`, `seed`, and `render`/`camera`.
+    """
+    p = params_mod.load()
+    import pandas as pd
+    import zarr
+
+    from pipeline.rotations import matrix_to_6d, matrix_to_quat
+    from pipeline.scene import Renderer, render_into
+
+    K = params_mod.intrinsics(p)
+    seqs = trajectories(p)
+    n = sum(len(s) for s in seqs)
+    R, t = np.concatenate([s.R for s in seqs]), np.concatenate([s.t for s in seqs])
+    q, r6 = matrix_to_quat(R), matrix_to_6d(R)
+    poses = pd.DataFrame({
+        "index": np.arange(n), "trajectory": np.concatenate([np.full(len(s), s.sequence) for s in seqs]),
+        "frame": np.concatenate([s.frame for s in seqs]), "tx": t[:, 0], "ty": t[:, 1], "tz": t[:, 2],
+        "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3], **{f"r{j}": r6[:, j] for j in range(6)},
+        "range": np.linalg.norm(t, axis=1)})
+    t0 = time.perf_counter()
+    with atomic_dir(EVAL_RENDER) as tmp:
+        chunk = min(n, 100)
+        store = zarr.open_group(str(tmp / "images.zarr"), mode="w")
+        images = create_array(store, "images", shape=(n, K.height, K.width, 3), chunks=(chunk, K.height, K.width, 3),
+                              dtype="uint8")
+        try:
+            renderer = Renderer(K, params_mod.scene_settings(p["render"]))
+        except ValueError as err:
+            raise StageError(f"params.yaml render: {err}") from None
+        try:
+            render_into(renderer, R, t, images, chunk, "eval_render")
+        finally:
+            renderer.close()
+        write_parquet(poses, tmp / "poses.parquet")
+        seconds = time.perf_counter() - t0
+        write_json(tmp / "meta.json", {"complete": True, "fingerprint": eval_render_fingerprint(p), "frames": n,
+                                       "trajectories": len(seqs), "width": K.width, "height": K.height, "K": K.K,
+                                       "seconds": seconds, "seconds_per_image": seconds / n,
+                                       "start_xy": [s.rel[0, :2].tolist() for s in seqs]})
+    typer.echo(f"eval_render: {n} images ({len(seqs)} trajectories) in {seconds:.0f} s -> {EVAL_RENDER}")

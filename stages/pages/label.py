@@ -1,0 +1,77 @@
+"""reports/dataset.md, the dataset card of `rpod label` (SPEC 3): counts, ranges, sequences, render settings."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_dir: Path) -> str:
+    """reports/dataset.md: counts, ranges (m, px), attitude and pointing spread (deg), settings, time per
+    image; `previews` are PNG files shown relative to the card's folder `card_dir`."""
+    from pipeline.camera import Intrinsics, project
+    from pipeline.report import markdown_table
+    from pipeline.rotations import attitude_error_deg
+
+    q = labels[["qw", "qx", "qy", "qz"]].to_numpy()
+    t = labels[["tx", "ty", "tz"]].to_numpy()
+    K = np.asarray(meta["K"])
+    cam = Intrinsics(meta["width"], meta["height"], K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    uv = project(t, cam)
+    angle = attitude_error_deg(q, np.tile([1.0, 0, 0, 0], (len(q), 1)))  # rotation angle from camera axes
+    seqs = labels.groupby("sequence").agg(frames=("index", "size"), train=("split", lambda s: int((s == "train").sum())),
+                                          tz_start=("tz", "max"), tz_end=("tz", "min"),
+                                          attitude_mean_deg=("index", lambda i: float(angle[i.to_numpy()].mean())))
+    seqs = seqs.reset_index()
+    r = meta["render"]
+    lines = [
+        "# Dataset card: synthetic Jason-1-like target, 60 m to 10 m",
+        "",
+        "Written by `rpod label` from `datasets/render/` (`rpod render`). Frames and labels per SPEC 2: "
+        "`t` = target origin in the OpenCV camera frame (m), `q` = (qw, qx, qy, qz) rotating target-frame "
+        "vectors into the camera frame, `r0..r5` = 6-D rotation (first two columns of R).",
+        "",
+        "## Counts",
+        "",
+        markdown_table([{"images": len(labels), "train": int((labels.split == "train").sum()),
+                         "test": int((labels.split == "test").sum()), "sequences": int(labels.sequence.nunique()),
+                         "size": f"{meta['width']}x{meta['height']}"}]),
+        "## Ranges",
+        "",
+        markdown_table([
+            {"quantity": "tz (m)", "min": float(t[:, 2].min()), "mean": float(t[:, 2].mean()), "max": float(t[:, 2].max())},
+            {"quantity": "range = norm of t (m)", "min": float(labels['range'].min()), "mean": float(labels['range'].mean()),
+             "max": float(labels['range'].max())},
+            {"quantity": "tx (m)", "min": float(t[:, 0].min()), "mean": float(t[:, 0].mean()), "max": float(t[:, 0].max())},
+            {"quantity": "ty (m)", "min": float(t[:, 1].min()), "mean": float(t[:, 1].mean()), "max": float(t[:, 1].max())},
+            {"quantity": "target centre u (px)", "min": float(uv[:, 0].min()), "mean": float(uv[:, 0].mean()),
+             "max": float(uv[:, 0].max())},
+            {"quantity": "target centre v (px)", "min": float(uv[:, 1].min()), "mean": float(uv[:, 1].mean()),
+             "max": float(uv[:, 1].max())},
+            {"quantity": "attitude angle from camera axes (deg)", "min": float(angle.min()),
+             "mean": float(angle.mean()), "max": float(angle.max())},
+        ]),
+        "The attitude angle is the rotation angle of `q`: it combines the camera's look-at rotation towards "
+        "laterally offset chasers, the pointing jitter, and (sequences 5-12) the random target rotation.",
+        "",
+        "## Sequences",
+        "",
+        markdown_table(seqs, decimals=1),
+        "## Render settings",
+        "",
+        markdown_table([{"setting": k, "value": str(r[k])} for k in
+                        ("samples", "denoiser", "denoise_quality", "threads", "mesh", "mesh_scale", "sun_direction",
+                         "sun_strength", "pointing_jitter_deg", "max_target_rotation_deg", "chunk")]),
+        f"Camera K at {meta['width']}x{meta['height']}: fx={K[0, 0]:.3f}, fy={K[1, 1]:.3f}, cx={K[0, 2]:.3f}, "
+        f"cy={K[1, 2]:.3f} (scaled from the reference K at {meta['camera']['ref_width']}x"
+        f"{meta['camera']['ref_height']}). Renderer: Blender Cycles, CPU.",
+        "",
+        f"Rendering took {meta['seconds']:.1f} s in all, **{meta['seconds_per_image']:.3f} s per image** "
+        f"({1 / max(meta['seconds_per_image'], 1e-9):.1f} images/s).",
+        "",
+    ]
+    if previews:
+        lines += ["## Preview", "", *[f"![{p.stem}]({os.path.relpath(p, card_dir)})" for p in previews[:2]], ""]
+    return "\n".join(lines)

@@ -1,0 +1,390 @@
+"""Typed params: one dataclass per params.yaml section, built and checked once by `stages.params.load`.
+
+`build(params)` turns the params.yaml mapping into a `Params` (types checked field by field: a whole
+number where one is expected, lists of numbers, null only where allowed; unknown keys refused with
+a suggestion) and runs each section's range checks. Errors are `ParamsError`s naming the key.
+Units and frames are in the field comments; conf/config.yaml holds the defaults.
+"""
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import types
+import typing
+from dataclasses import dataclass, field
+from typing import Any, Literal, Optional
+
+
+class ParamsError(ValueError):
+    """A params problem the user can fix; the message names the file and the key."""
+
+
+@dataclass(frozen=True)
+class Camera:
+    ref_width: int          # pixels: the size K is given at
+    ref_height: int
+    fx: float               # pixels, at the reference size
+    fy: float
+    cx: float
+    cy: float
+
+
+@dataclass(frozen=True)
+class Render:
+    width: int              # pixels (also the pose model's input size)
+    height: int
+    frames_per_sequence: int
+    start_range: float      # metres along the approach axis (z)
+    end_range: float        # metres
+    pointing_jitter_deg: float
+    max_target_rotation_deg: float
+    samples: int            # Cycles samples per pixel
+    denoiser: str           # NONE | OPENIMAGEDENOISE
+    denoise_quality: str    # FAST | BALANCED | HIGH
+    threads: int            # Blender render threads
+    mesh: Optional[str]     # mesh file; None = the procedural Jason-1-like target
+    mesh_scale: float       # metres per mesh unit
+    sun_direction: list[float]   # direction the sunlight travels, target frame
+    sun_strength: float
+    chunk: int              # frames per zarr chunk
+    previews: int
+
+
+@dataclass(frozen=True)
+class Label:
+    test_fraction: float    # of the frames, in (0, 1)
+
+
+@dataclass(frozen=True)
+class Augment:
+    p: float                # probability of each augmentation
+    blur_sigma: list[float]      # pixels, [low, high]
+    noise_std: list[float]       # [0, 1] pixel units
+    jpeg_quality: list[int]
+    brightness: list[float]      # multiplicative
+
+
+@dataclass(frozen=True)
+class Train:
+    width: float            # channel-width multiplier of Darknet-19
+    batch_size: int
+    epochs: int
+    max_minutes: Optional[float]
+    lr_base: float
+    lr_max: float
+    cycle_epochs: float     # epochs per half cycle
+    weight_decay: float
+    dropout: float
+    channels_last: bool
+    compile: bool
+    workers: int
+    augment: Augment
+    range_bins: list[float]      # metres, bin edges of the per-range error tables
+
+
+@dataclass(frozen=True)
+class Attack:
+    eps: list[float]        # L-inf budgets, pixels in [0, 1]
+    method: str             # fgsm | pgd | mifgsm
+    loss: str               # full | position | rotation
+    steps: int
+    step_size: Optional[float]   # pixel units; None = the method's default
+    random_start: bool
+    momentum: float
+    batch_size: int
+    max_images: Optional[int]    # None = the whole test set
+
+
+@dataclass(frozen=True)
+class Guidance:
+    eps: list[float]
+    start_ranges: list[float]    # metres (S)
+    lengths: list[int]           # attacked frames (K)
+    start: list[float]           # metres, target-centred camera frame
+    target: list[float]          # metres
+    tolerance: float             # metres
+    max_step: float              # metres per step per axis
+    max_steps: int
+    slack_steps: int
+    variant: str                 # paper | true_state
+    method: str
+
+
+@dataclass(frozen=True)
+class Shap:
+    background: int
+    normal: int
+    per_eps: int
+    eps: list[float]
+    method: str                  # auto | exact | deep
+    chunk: int
+
+
+@dataclass(frozen=True)
+class Detect:
+    hidden: int
+    dense: list[int]
+    epochs: int
+    patience: int
+    batch_size: int
+    lr: float
+    val_fraction: float
+    test_fraction: float
+    baselines: list[Literal["mlp", "mahalanobis", "lid", "squeeze"]]
+    mlp_hidden: list[int]
+    lid_k: int
+    lid_batch: int
+    squeeze_bits: int
+    squeeze_median: int          # pixels, odd
+
+    def __post_init__(self) -> None:
+        for key in ("test_fraction", "val_fraction"):
+            if not 0 < getattr(self, key) < 1:
+                raise ValueError(f"{key} must be in (0, 1), got {getattr(self, key)!r}")
+
+
+@dataclass(frozen=True)
+class Evaluate:
+    trajectories: int
+    frames: int                  # per trajectory
+    lateral_range: list[float]   # metres, [low, high] of |x| and |y| at the start
+    p_start: float               # per-frame probability that an attack starts
+    attack_length: int           # frames
+    eps: list[float]
+    seed: int
+    batch_size: int
+
+    def __post_init__(self) -> None:
+        if self.trajectories < 1 or self.frames < 2:
+            raise ValueError(f"need trajectories >= 1 and frames >= 2, got {self.trajectories} and {self.frames}")
+        if len(self.lateral_range) != 2 or not 0 <= self.lateral_range[0] <= self.lateral_range[1]:
+            raise ValueError(f"lateral_range must be [low, high] with 0 <= low <= high, got {self.lateral_range}")
+        if not 0 <= self.p_start <= 1 or self.attack_length < 1:
+            raise ValueError(f"p_start must be in [0, 1] and attack_length >= 1, got {self.p_start} and "
+                             f"{self.attack_length}")
+        if not self.eps or not all(0 < e <= 1 for e in self.eps):
+            raise ValueError(f"eps must be a non-empty list of values in (0, 1], got {self.eps}")
+        if self.batch_size < 1:
+            raise ValueError(f"batch_size must be >= 1, got {self.batch_size}")
+
+
+@dataclass(frozen=True)
+class Zed:
+    width: int                   # pixels
+    height: int
+    fx: float                    # pixels
+    fy: float
+    cx: float
+    cy: float
+
+
+@dataclass(frozen=True)
+class DomainShift:
+    noise_std: float             # [0, 1] pixel units
+    blur_sigma: float            # pixels
+    sun_direction: list[float]
+    sun_strength: float
+    calib_error: float           # relative focal-length error of the lab camera
+
+
+@dataclass(frozen=True)
+class Bodies:
+    camera: str
+    target: str
+
+
+@dataclass(frozen=True)
+class Lab:
+    scale: float                 # the mock-up is 1/scale of the real target
+    zed: Zed
+    sequences: list[list[float]]  # lab z ranges [start, end], metres
+    frames: int
+    fps: float
+    mocap_hz: float
+    match: Literal["nearest", "interpolate"]   # how mocap samples are matched to camera frames
+    max_gap_s: float             # seconds
+    attack_length: int           # frames
+    retrain: Literal["auto", "always"]   # always: train synthetic-lab models (`rpod lab_models`)
+    mesh: Optional[str]
+    mesh_scale: float            # metres per mock-up mesh unit
+    train_frames_per_sequence: Optional[int]
+    domain_shift: DomainShift
+    real_data: Optional[str]     # folder of a real lab recording
+    bodies: Bodies
+    segment_threshold: float     # grey level in [0, 1]
+    max_image_pixels: int        # largest lab image accepted (width x height, pixels), checked before decoding
+    empty_frame_tolerance: float  # fraction of frames allowed without target pixels after segmentation, [0, 1]
+    seed: int
+
+    def __post_init__(self) -> None:
+        n = self.train_frames_per_sequence
+        if n is not None and n < 2:
+            raise ValueError(f"train_frames_per_sequence must be null or a whole number >= 2, got {n!r}")
+        if self.mesh_scale <= 0 or self.scale <= 0:
+            raise ValueError(f"scale and mesh_scale must be > 0, got {self.scale} and {self.mesh_scale}")
+        if self.max_gap_s <= 0 or self.frames < 2 or self.attack_length < 1:
+            raise ValueError("need max_gap_s > 0, frames >= 2 and attack_length >= 1")
+        for z in self.sequences:
+            if len(z) != 2 or min(z) <= 0:
+                raise ValueError(f"sequences: each entry must be [z_start, z_end] in metres > 0, got {z}")
+        if self.max_image_pixels < 1:
+            raise ValueError(f"max_image_pixels must be a whole number >= 1, got {self.max_image_pixels}")
+        if not 0 <= self.empty_frame_tolerance <= 1:
+            raise ValueError(f"empty_frame_tolerance must be in [0, 1], got {self.empty_frame_tolerance}")
+
+
+AttackMethod = Literal["fgsm", "pgd", "mifgsm"]        # pipeline.attacks.ATTACKS (tests/test_robustness.py)
+AttackLoss = Literal["full", "position", "rotation"]   # pipeline.attacks.LOSSES
+
+
+def attack_name(name: str, key: str) -> tuple[str, Optional[str]]:
+    """`method[/loss]` -> (method, loss or None = attack.loss); ValueError naming `key` when unknown."""
+    method, _, loss = str(name).partition("/")
+    if method not in typing.get_args(AttackMethod) or (loss and loss not in typing.get_args(AttackLoss)):
+        raise ValueError(f"{key}: unknown attack {name!r}; use method[/loss] with method one of "
+                         f"{', '.join(typing.get_args(AttackMethod))} and loss one of "
+                         f"{', '.join(typing.get_args(AttackLoss))}")
+    return method, loss or None
+
+
+@dataclass(frozen=True)
+class Corruptions:
+    """Benign corruption strengths (pipeline/corruptions.py applies them; it checks the same ranges)."""
+
+    noise: list[float]           # Gaussian noise std, [0, 1] pixel units, in [0, 1]
+    blur: list[float]            # Gaussian blur sigma, pixels, in (0, 20]
+    jpeg: list[int]              # JPEG quality, 1..100
+    brightness: list[float]      # exposure gain, in (0, 10]
+    contrast: list[float]        # factor around the frame's mean grey level, in [0, 10]
+
+    def __post_init__(self) -> None:
+        ok = {"noise": lambda s: 0 <= s <= 1, "blur": lambda s: 0 < s <= 20, "jpeg": lambda s: 1 <= s <= 100,
+              "brightness": lambda s: 0 < s <= 10, "contrast": lambda s: 0 <= s <= 10}
+        for name, inside in ok.items():
+            bad = [s for s in getattr(self, name) if not inside(s)]
+            if bad:
+                raise ValueError(f"{name}: strength {bad[0]!r} is out of range")
+
+
+@dataclass(frozen=True)
+class Robustness:
+    frames: int                  # held-out test frames (seeded sample) of the per-frame rows
+    harm_m: float                # metres: an attacked frame is harmful when its position error exceeds this
+    eps: list[float]             # L-inf budgets, pixels in [0, 1], of the transfer, adaptive and surrogate rows
+    unseen_eps: list[float]      # FGSM budgets the detector was not trained on
+    transfer: list[str]          # method[/loss]; loss defaults to attack.loss
+    steps: int                   # PGD steps, plain, adaptive and on the surrogate (>= 20)
+    lambdas: list[float]         # adaptive attack: pose_loss - lambda * detector logit, lambda >= 0
+    surrogate_attacks: list[str]  # method[/loss], crafted on models/surrogate.pt
+    surrogate_seed: int
+    surrogate_epochs: int
+    batch_size: int
+    corruptions: Corruptions
+
+    def __post_init__(self) -> None:
+        for key in ("eps", "unseen_eps"):
+            values = getattr(self, key)
+            if not values:
+                raise ValueError(f"{key} must be a non-empty list of values in (0, 1]")
+            for e in values:
+                if not 0 < e <= 1:
+                    raise ValueError(f"{key}: {e!r} is not in (0, 1] (pixels are in [0, 1])")
+        if not self.lambdas or not all(0 <= v < float("inf") for v in self.lambdas):
+            raise ValueError(f"lambdas must be a non-empty list of finite values >= 0, got {self.lambdas}")
+        for key in ("transfer", "surrogate_attacks"):
+            for name in getattr(self, key):
+                attack_name(name, key)
+        if self.steps < 20:
+            raise ValueError(f"steps must be >= 20 (an adaptive attack with fewer steps understates the attacker), "
+                             f"got {self.steps}")
+        if not self.harm_m > 0:
+            raise ValueError(f"harm_m must be a positive distance in metres, got {self.harm_m}")
+        if min(self.frames, self.batch_size, self.surrogate_epochs) < 1:
+            raise ValueError(f"frames, batch_size and surrogate_epochs must be >= 1, got {self.frames}, "
+                             f"{self.batch_size} and {self.surrogate_epochs}")
+
+
+@dataclass(frozen=True)
+class Report:
+    pass
+
+
+@dataclass(frozen=True)
+class Params:
+    profile_name: str
+    seed: int
+    threads: int                 # torch CPU threads of the attack, guidance, shap, evaluate and lab stages
+    camera: Camera
+    render: Render
+    label: Label
+    train: Train
+    attack: Attack
+    guidance: Guidance
+    shap: Shap
+    detect: Detect
+    evaluate: Evaluate
+    lab: Lab
+    robustness: Robustness
+    report: Report = field(default_factory=Report)
+
+    def __post_init__(self) -> None:
+        if self.threads < 1:
+            raise ValueError(f"threads must be a whole number >= 1, got {self.threads}")
+
+
+def _check(value: Any, hint: Any, key: str) -> Any:
+    """`value` converted to the type `hint` (ints accepted for floats), or a ParamsError naming `key`."""
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        return _check(value, next(a for a in args if a is not type(None)), key)
+    if origin is list:
+        if not isinstance(value, list):
+            raise ParamsError(f"params.yaml {key} must be a list, got {value!r}")
+        return [_check(v, args[0], f"{key}[{i}]") for i, v in enumerate(value)]
+    if origin is Literal:
+        if value not in args:
+            raise ParamsError(f"params.yaml {key} must be one of {', '.join(map(str, args))}, got {value!r}")
+        return value
+    if dataclasses.is_dataclass(hint):
+        return _build(hint, value, key)
+    ok = {int: isinstance(value, int) and not isinstance(value, bool),
+          float: isinstance(value, (int, float)) and not isinstance(value, bool),
+          bool: isinstance(value, bool), str: isinstance(value, str)}[hint]
+    if not ok:
+        what = {int: "a whole number", float: "a number", bool: "true or false", str: "a string"}[hint]
+        raise ParamsError(f"params.yaml {key} must be {what}, got {value!r}")
+    return float(value) if hint is float else value
+
+
+def _build(cls: type, section: Any, key: str) -> Any:
+    if not isinstance(section, dict):
+        if key:   # a section replaced by a value (e.g. `-S train=1`)
+            raise ParamsError(f"params.yaml: {key!r} must be a section of parameters, got {section!r}")
+        raise ParamsError(f"params.yaml top level must be a mapping, got {section!r}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    prefix = f"{key}." if key else ""
+    for name in section:
+        if name not in fields:
+            hint = difflib.get_close_matches(name, list(fields), n=1)
+            raise ParamsError(f"params.yaml: unknown parameter {prefix + name!r}"
+                              + (f" (did you mean {prefix + hint[0]!r}?)" if hint else ""))
+    values = {}
+    for name, f in fields.items():
+        sub = f"{key}.{name}" if key else name
+        if name not in section:
+            if f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+                continue
+            raise ParamsError(f"params.yaml: missing parameter {sub!r} (run `rpod params <profile>`)")
+        values[name] = _check(section[name], hints[name], sub)
+    try:
+        return cls(**values)
+    except ValueError as e:
+        raise ParamsError(f"params.yaml {key + ': ' if key else ''}{e}") from None
+
+
+def build(params: dict[str, Any]) -> Params:
+    """The typed, checked params of a params.yaml mapping."""
+    return _build(Params, params, "")
