@@ -1,0 +1,395 @@
+"""Motion-consistency check of the pose estimates: a relative-motion Kalman filter and its gate (SPEC 11).
+
+Frames (those of pipeline/trajectories.py). The filter works in the target-centred world frame:
+`rel` is the target position relative to the chaser camera in world axes (metres). The chaser knows
+its own camera attitude R_c (camera -> world) and the displacement of `rel` it commanded since the
+previous frame (`u`, world axes, metres: rel_k = rel_{k-1} + u_k when the command is executed
+exactly), so a camera-frame estimate t_pred becomes the world measurement z = R_c t_pred, and the
+relative motion is nearly constant: state [rel (3), drift velocity (3, m per frame)],
+rel_k = rel_{k-1} + drift + u_k. The drift absorbs command execution errors and target motion.
+The target attitude R_tw (target -> world, measured as R_c R_pred) follows a rate model: error
+state [rotation vector (3, rad), rate (3, rad per frame)] about the current attitude estimate,
+target frame.
+
+Measurement noise is the pose model's own error, which grows with range and is larger along the
+camera boresight: `NoiseModel` holds per-camera-axis standard deviations and biases a + b * range, fitted by
+`fit_noise` on clean frames of validation data (never the test split); it is rotated into world
+axes with R_c every frame.
+
+The gate: each frame's normalized innovation squared (NIS) of position (3 dof) and attitude (3
+dof) is compared with the chi-square quantile at 1 - alpha / 2 each, so a frame consistent with the
+model is flagged with probability at most `alpha` (the false-alarm rate, Bonferroni over the two
+tests). A flagged frame is not used to update the filter (fault exclusion): the filter coasts on
+its prediction, its covariance grows, and clean frames are accepted again once they fall inside
+the widened gate, so an attack the gate caught cannot drag the state away. Frames that pass the
+gate update the filter with a Huber weight (measurement covariance inflated by NIS / soft gate
+above a soft gate), so an attacked frame that slips just under the gate moves the state little.
+A filter whose state was nevertheless dragged away (or started on a bad frame) would reject every
+clean frame after; `reacquire` restarts it on M rejected frames that agree with one another and
+with the accepted history, never on a steady offset that jumped away from that history.
+
+Implementation: a short Kalman filter of our own (predict, innovation, Joseph-form update on 6x6
+matrices) rather than filterpy: filterpy 2.0.0 is not among our dependencies, its KalmanFilter
+has no error-state (rotation) update and no per-frame measurement covariance beyond passing R,
+and the few matrix products here are tested directly (tests/test_motion.py).
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import math
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+
+
+def rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotation vector (3,, radians) -> rotation matrix. Same as scipy's
+    Rotation.from_rotvec(w).as_matrix() (tested), without its per-call overhead (~0.1 ms, which
+    would be most of the filter's cost per frame)."""
+    th = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    W = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if th < 1e-8:
+        return np.eye(3) + W
+    return np.eye(3) + (math.sin(th) / th) * W + ((1 - math.cos(th)) / th ** 2) * (W @ W)
+
+
+def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix -> rotation vector (3,, radians), angle in [0, pi]; the inverse of
+    `rotvec_to_matrix` (tested against scipy)."""
+    c = max(-1.0, min(1.0, (R[0, 0] + R[1, 1] + R[2, 2] - 1.0) / 2.0))
+    th = math.acos(c)
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if th < 1e-6:
+        return v / 2.0
+    if th < math.pi - 1e-4:
+        return v * (th / (2.0 * math.sin(th)))
+    B = (R + np.eye(3)) / 2.0                      # near pi: axis from the symmetric part
+    i = int(np.argmax(np.diag(B)))
+    axis = B[:, i] / math.sqrt(B[i, i])
+    if axis @ v < 0:
+        axis = -axis
+    return axis * th
+
+
+def _positive(name: str, value: float) -> float:
+    v = float(value)
+    if not np.isfinite(v) or v <= 0:
+        raise ValueError(f"{name} must be a finite number > 0, got {value}")
+    return v
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Pose-estimate noise: std per camera axis (x, y, z) = intercept + slope * range (metres), the
+    attitude std (degrees) = intercept + slope * range, and the position bias per camera axis
+    (metres) = bias_intercept + bias_slope * range, range in metres."""
+
+    position_intercept: tuple[float, float, float]
+    position_slope: tuple[float, float, float]
+    attitude_intercept: float
+    attitude_slope: float
+    floor: float = 0.02   # metres: smallest position std used (a fit can go to zero at short range)
+    bias_intercept: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    bias_slope: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        for name, v in (("position_intercept", self.position_intercept), ("position_slope", self.position_slope),
+                        ("bias_intercept", self.bias_intercept), ("bias_slope", self.bias_slope)):
+            if len(v) != 3 or not np.all(np.isfinite(v)):
+                raise ValueError(f"noise model {name} must be 3 finite numbers, got {v}")
+        if not np.isfinite(self.attitude_intercept) or not np.isfinite(self.attitude_slope):
+            raise ValueError("noise model attitude intercept and slope must be finite")
+        _positive("noise model floor", self.floor)
+
+    def position_std(self, rng: float) -> np.ndarray:
+        """(3,) std (m) along the camera x, y, z axes at range `rng` (m)."""
+        a, b = self.position_intercept, self.position_slope
+        return np.array([max(a[i] + b[i] * rng, self.floor) for i in range(3)])
+
+    def position_bias(self, rng: float) -> np.ndarray:
+        """(3,) mean error (m) along the camera x, y, z axes at range `rng` (m)."""
+        a, b = self.bias_intercept, self.bias_slope
+        return np.array([a[i] + b[i] * rng for i in range(3)])
+
+    def attitude_std(self, rng: float) -> float:
+        """Attitude std (radians) per axis at range `rng` (m)."""
+        return float(np.radians(max(self.attitude_intercept + self.attitude_slope * rng, 0.1)))
+
+    def as_dict(self) -> dict[str, object]:
+        return {"position_intercept": list(self.position_intercept), "position_slope": list(self.position_slope),
+                "attitude_intercept": self.attitude_intercept, "attitude_slope": self.attitude_slope,
+                "floor": self.floor, "bias_intercept": list(self.bias_intercept), "bias_slope": list(self.bias_slope)}
+
+
+def fit_noise(t_true: np.ndarray, t_pred: np.ndarray, R_true: np.ndarray | None = None,
+              R_pred: np.ndarray | None = None, bins: int = 8) -> NoiseModel:
+    """Fit a `NoiseModel` to clean validation estimates.
+
+    t_true, t_pred: (N, 3) camera-frame positions (m); R_true, R_pred: optional (N, 3, 3) target ->
+    camera rotations. The frames are binned by true range into `bins` equal-count bins; in each bin
+    the median error (the bias) and the robust std of the error (1.4826 * median absolute deviation
+    from the bin median, per camera axis) are taken, and lines a + b * range are fitted to both by
+    least squares over the bins. Without rotations the attitude std is a constant 5 degrees.
+    """
+    t_true, t_pred = np.asarray(t_true, np.float64), np.asarray(t_pred, np.float64)
+    if t_true.ndim != 2 or t_true.shape[1] != 3 or t_true.shape != t_pred.shape:
+        raise ValueError(f"fit_noise needs (N, 3) true and predicted positions, got {t_true.shape} and {t_pred.shape}")
+    if not (np.isfinite(t_true).all() and np.isfinite(t_pred).all()):
+        raise ValueError("fit_noise: positions contain NaN or inf")
+    bins = int(bins)
+    if bins < 2 or len(t_true) < 4 * bins:
+        raise ValueError(f"fit_noise needs at least {4 * max(bins, 2)} frames for {max(bins, 2)} range bins, got {len(t_true)}")
+    rng = np.linalg.norm(t_true, axis=1)
+    err = t_pred - t_true
+    att = None
+    if R_true is not None and R_pred is not None:
+        rel = np.swapaxes(np.asarray(R_true), -1, -2) @ np.asarray(R_pred)
+        att = np.degrees(Rotation.from_matrix(rel).as_rotvec())   # (N, 3) degrees, target frame
+    order = np.argsort(rng)
+    centres, pos_std, att_std, bias = [], [], [], []
+    for idx in np.array_split(order, bins):
+        centres.append(rng[idx].mean())
+        e = err[idx]
+        bias.append(np.median(e, 0))
+        pos_std.append(1.4826 * np.median(np.abs(e - bias[-1]), 0))
+        if att is not None:
+            a = att[idx]
+            att_std.append(float(np.mean(1.4826 * np.median(np.abs(a - np.median(a, 0)), 0))))
+    A = np.column_stack([np.ones(bins), centres])
+    coef = np.linalg.lstsq(A, np.asarray(pos_std), rcond=None)[0]       # (2, 3)
+    bcoef = np.linalg.lstsq(A, np.asarray(bias), rcond=None)[0]
+    if att is not None:
+        a0, a1 = np.linalg.lstsq(A, np.asarray(att_std), rcond=None)[0]
+    else:
+        a0, a1 = 5.0, 0.0
+    return NoiseModel(tuple(map(float, coef[0])), tuple(map(float, coef[1])), float(a0), float(a1),
+                      bias_intercept=tuple(map(float, bcoef[0])), bias_slope=tuple(map(float, bcoef[1])))
+
+
+@dataclass(frozen=True)
+class MotionSettings:
+    """Filter settings. position_noise: std of the unmodelled displacement per frame (m);
+    velocity_noise: std of the drift-velocity change per frame (m/frame); attitude_noise_deg and
+    attitude_rate_noise_deg: the same for the target attitude (deg, deg/frame); false_alarm: the
+    gate's false-alarm probability per frame on motion consistent with the model, in (0, 1);
+    soft_gate: fraction of the gate's NIS above which an accepted frame is down-weighted;
+    reacquire_after: M consecutive rejected frames that agree with one another (and that the
+    detector did not flag) restart the filter on them."""
+
+    position_noise: float = 0.05
+    velocity_noise: float = 0.01
+    attitude_noise_deg: float = 0.5
+    attitude_rate_noise_deg: float = 0.05
+    false_alarm: float = 0.001
+    soft_gate: float = 0.5
+    reacquire_after: int = 4
+
+    def __post_init__(self) -> None:
+        for name in ("position_noise", "velocity_noise", "attitude_noise_deg", "attitude_rate_noise_deg"):
+            _positive(f"defense.{name}", getattr(self, name))
+        if not 0 < float(self.false_alarm) < 1:
+            raise ValueError(f"defense.false_alarm is a gate probability and must be in (0, 1), got {self.false_alarm}")
+        if not 0 < float(self.soft_gate) <= 1:
+            raise ValueError(f"defense.soft_gate must be in (0, 1], got {self.soft_gate}")
+        if int(self.reacquire_after) < 2:
+            raise ValueError(f"defense.reacquire_after must be >= 2 frames, got {self.reacquire_after}")
+
+    @property
+    def gate(self) -> float:
+        """NIS threshold of each 3-dof test (position, attitude): chi2 quantile at 1 - false_alarm / 2."""
+        return float(chi2.ppf(1.0 - self.false_alarm / 2.0, 3))
+
+
+class _Kalman6:
+    """Linear Kalman filter on [a (3), rate of a (3)]: a_k = a_{k-1} + rate + u_k, measurement a."""
+
+    def __init__(self, q_level: float, q_rate: float):
+        self.F = np.eye(6)
+        self.F[:3, 3:] = np.eye(3)
+        self.Q = np.diag([q_level ** 2] * 3 + [q_rate ** 2] * 3)
+        self.x = np.zeros(6)
+        self.P = np.eye(6)
+
+    def reset(self, level: np.ndarray, level_cov: np.ndarray, rate_std: float) -> None:
+        self.x = np.concatenate([level, np.zeros(3)])
+        self.P = np.zeros((6, 6))
+        self.P[:3, :3] = level_cov
+        self.P[3:, 3:] = np.eye(3) * rate_std ** 2
+
+    def predict(self, u: np.ndarray | None = None) -> None:
+        self.x = self.F @ self.x
+        if u is not None:
+            self.x[:3] += u
+        self.P = self.F @ self.P @ self.F.T + self.Q
+
+    def nis(self, y: np.ndarray, R: np.ndarray) -> float:
+        """Normalized innovation squared y^T S^-1 y with S = P_aa + R (3 dof)."""
+        return float(y @ np.linalg.inv(self.P[:3, :3] + R) @ y)
+
+    def update(self, y: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """Update with innovation y and measurement covariance R; returns the state correction."""
+        K = self.P[:, :3] @ np.linalg.inv(self.P[:3, :3] + R)   # (6, 3) = P H^T S^-1
+        dx = K @ y
+        self.x = self.x + dx
+        IKH = np.eye(6)
+        IKH[:, :3] -= K
+        self.P = IKH @ self.P @ IKH.T + K @ R @ K.T
+        return dx
+
+
+@dataclass
+class MotionCheck:
+    """One frame's motion check: NIS of position and attitude (NaN before the filter starts) and the
+    gate decision; `predicted` is the filter's prediction of rel (world frame, m) before this frame."""
+
+    nis_position: float
+    nis_attitude: float
+    inconsistent: bool
+    predicted: np.ndarray = field(repr=False)
+
+
+class MotionFilter:
+    """Relative-motion filter with a chi-square innovation gate; call `check` then `accept` or `coast`
+    once per frame (the caller decides, e.g. with the SHAP detector's flag too)."""
+
+    def __init__(self, settings: MotionSettings, noise: NoiseModel):
+        self.settings = settings
+        self.noise = noise
+        self.gate = settings.gate
+        self.pos = _Kalman6(settings.position_noise, settings.velocity_noise)
+        self.att = _Kalman6(np.radians(settings.attitude_noise_deg), np.radians(settings.attitude_rate_noise_deg))
+        self.R_tw = np.eye(3)          # attitude estimate (target -> world)
+        self.started = False
+        self._pending: tuple[MotionCheck, tuple | None] | None = None   # last check, its update terms
+        self._moved = np.zeros(3)      # sum of the commanded displacements so far (world, m)
+        self._candidates: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
+        self._history: deque[np.ndarray] = deque(maxlen=2 * settings.reacquire_after)
+        self._last: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None
+        df = 3 * (settings.reacquire_after - 1)
+        self._agree = float(chi2.ppf(1.0 - settings.false_alarm, df))
+
+    @property
+    def position(self) -> np.ndarray:
+        """Current estimate of rel (world frame, m)."""
+        return self.pos.x[:3].copy()
+
+    @property
+    def attitude(self) -> np.ndarray:
+        """Current estimate of the target attitude (target -> world rotation)."""
+        return self.R_tw.copy()
+
+    def start(self, rel: np.ndarray, rel_cov: np.ndarray, R_tw: np.ndarray | None = None) -> None:
+        """Start (or restart) at rel (world, m) with covariance rel_cov (3, 3, m^2), optionally an attitude."""
+        self.pos.reset(np.asarray(rel, np.float64), np.asarray(rel_cov, np.float64), 3 * self.settings.velocity_noise)
+        att_std = self.noise.attitude_std(float(np.linalg.norm(rel)))
+        self.att.reset(np.zeros(3), np.eye(3) * att_std ** 2, 3 * np.radians(self.settings.attitude_rate_noise_deg))
+        self.R_tw = np.eye(3) if R_tw is None else np.asarray(R_tw, np.float64)
+        self.started = True
+        self._candidates = []
+        self._history.clear()
+        self._history.append(self.pos.x[:3] - self._moved)
+
+    def measurement(self, t_pred: np.ndarray, R_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(z world-frame measurement of rel (m), its covariance (3, 3)) from a camera-frame estimate,
+        the noise model's bias removed."""
+        rng = math.sqrt(float(t_pred @ t_pred))
+        z = R_cam @ (t_pred - self.noise.position_bias(rng))
+        std = self.noise.position_std(rng)
+        return z, (R_cam * std ** 2) @ R_cam.T
+
+    def start_from(self, t_pred: np.ndarray, R_cam: np.ndarray, R_pred: np.ndarray | None = None) -> None:
+        """Start from one trusted estimate (camera frame) with the noise model's covariance."""
+        z, Rz = self.measurement(np.asarray(t_pred, np.float64), np.asarray(R_cam, np.float64))
+        self.start(z, Rz, None if R_pred is None else R_cam @ R_pred)
+
+    def check(self, t_pred: np.ndarray, R_cam: np.ndarray, u: np.ndarray | None = None,
+              R_pred: np.ndarray | None = None) -> MotionCheck:
+        """Predict with the commanded displacement u (world, m) and test the estimate (t_pred camera
+        frame, m; R_pred target -> camera, optional) against the prediction."""
+        if not self.started:
+            raise RuntimeError("MotionFilter.check before start")
+        t_pred, R_cam = np.asarray(t_pred, np.float64), np.asarray(R_cam, np.float64)
+        if u is not None:
+            self._moved = self._moved + u
+        self.pos.predict(None if u is None else np.asarray(u, np.float64))
+        self.att.predict()
+        self.R_tw = self.R_tw @ rotvec_to_matrix(self.att.x[:3])
+        self.att.x[:3] = 0.0
+        predicted = self.position
+        if not np.isfinite(t_pred).all() or (R_pred is not None and not np.isfinite(R_pred).all()):
+            return self._stash(MotionCheck(np.inf, np.inf, True, predicted), None)
+        z, Rz = self.measurement(t_pred, R_cam)
+        self._last = (z - self._moved, Rz, None if R_pred is None else R_cam @ R_pred)
+        y = z - predicted
+        nis_p = self.pos.nis(y, Rz)
+        nis_a, att = np.nan, None
+        if R_pred is not None:
+            dth = matrix_to_rotvec(self.R_tw.T @ R_cam @ R_pred)
+            Ra = np.eye(3) * self.noise.attitude_std(math.sqrt(float(t_pred @ t_pred))) ** 2
+            nis_a = self.att.nis(dth, Ra)
+            att = (dth, Ra)
+        bad = nis_p > self.gate or (not np.isnan(nis_a) and nis_a > self.gate)
+        return self._stash(MotionCheck(nis_p, nis_a, bool(bad), predicted), (y, Rz, att))
+
+    def _stash(self, check: MotionCheck, pending: tuple | None) -> MotionCheck:
+        self._pending = (check, pending)
+        return check
+
+    def accept(self) -> None:
+        """Update the filter with the last checked frame (Huber-weighted above the soft gate)."""
+        if self._pending is None or self._pending[1] is None:
+            raise RuntimeError("MotionFilter.accept needs a checked, finite frame")
+        check, (y, Rz, att) = self._pending  # type: ignore[misc]
+        soft = self.settings.soft_gate * self.gate
+        self.pos.update(y, Rz * max(1.0, check.nis_position / soft))
+        if att is not None:
+            dth, Ra = att
+            dx = self.att.update(dth, Ra * max(1.0, check.nis_attitude / soft))
+            self.R_tw = self.R_tw @ rotvec_to_matrix(dx[:3])
+            self.att.x[:3] = 0.0
+        self._pending = None
+        self._history.append(self._last[0])
+        self._candidates = []
+
+    def coast(self, candidate: bool = False) -> None:
+        """Leave the last checked frame out: the state stays at the prediction. With `candidate`
+        (the gate rejected it but nothing else suspects it) the frame may restart the filter:
+        see `reacquire`."""
+        if candidate and self._pending is not None and self._pending[1] is not None and self._last is not None:
+            self._candidates = (self._candidates + [self._last])[-self.settings.reacquire_after:]
+        else:
+            self._candidates = []
+        self._pending = None
+
+    def reacquire(self) -> bool:
+        """Restart the filter when the last `reacquire_after` (M) frames were all rejected as
+        candidates, agree with one another (their positions, moved to the current frame by the
+        commanded displacements, scatter about their weighted mean as the noise model says:
+        chi-square with 3 (M - 1) dof at 1 - false_alarm) and agree with the median of the last
+        2 M accepted measurements, moved likewise (the gate's NIS; skipped while fewer than M
+        frames were accepted since the start). The filter's state was then
+        wrong (dragged by attacked frames that slipped through), not the frames; a jump to a new,
+        steady position (an attacker's consistent offset) disagrees with the accepted history and
+        does not restart the filter. Returns whether it restarted."""
+        M = self.settings.reacquire_after
+        if len(self._candidates) < M:
+            return False
+        z = np.array([c[0] for c in self._candidates]) + self._moved
+        W = [np.linalg.inv(c[1]) for c in self._candidates]
+        cov = np.linalg.inv(sum(W))
+        mean = cov @ sum(w @ zi for w, zi in zip(W, z))
+        scatter = sum(float((zi - mean) @ w @ (zi - mean)) for w, zi in zip(W, z))
+        if scatter > self._agree:
+            return False
+        if len(self._history) >= M:   # a history shorter than the candidates does not outvote them
+            d = mean - (np.median(np.array(self._history), axis=0) + self._moved)
+            if float(d @ np.linalg.inv(cov + self._candidates[-1][1]) @ d) > self.gate:
+                return False
+        candidates = self._candidates
+        self.start(mean, cov + np.eye(3) * (M * self.settings.position_noise) ** 2, candidates[-1][2])
+        self._history.extend(c[0] for c in candidates)
+        return True
