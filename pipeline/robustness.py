@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
+import torch
 
 from pipeline.stats import rate
 
@@ -143,3 +144,117 @@ def run_attack_rows(chain: Any, images: np.ndarray, targets: np.ndarray, specs: 
         rows.append(attack_row("adaptive pgd, worst over lambda", "adaptive", e, pos, flag, harm_m))
     order = {"seen": 0, "transfer": 1, "adaptive": 2, "surrogate": 3}
     return sorted(rows, key=lambda row: order.get(row["group"], len(order)))
+
+
+# ----------------------------------------------------------------------------- the fused chain on trajectories
+def world_motion(targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R_cam (N, 3, 3) camera -> world, u (N, 3) commanded displacement of rel per frame, world, m;
+    row 0 zero) of one trajectory from its labels (N, 9) [t camera frame m, 6-D target -> camera],
+    for a target that does not rotate in the world frame (R_target = I, as the eval_render
+    trajectories are rendered): R = R_cam^T, rel = R_cam t (pipeline/trajectories.py)."""
+    from pipeline.rotations import sixd_to_matrix
+
+    R_cam = np.swapaxes(sixd_to_matrix(targets[:, 3:]), 1, 2)
+    rel = np.einsum("nij,nj->ni", R_cam, np.asarray(targets[:, :3], np.float64))
+    return R_cam, np.vstack([np.zeros(3), np.diff(rel, axis=0)])
+
+
+def burst_schedule(n_frames: int, length: int, every: int) -> list[tuple[int, int]]:
+    """Bursts (start, stop) of `length` frames starting every `every` frames, the first after `every`
+    clean frames (the motion filter starts on them), all inside the trajectory."""
+    if length < 1 or every <= length:
+        raise ValueError(f"bursts need length >= 1 and a spacing longer than a burst, got {length} and {every}")
+    return [(s, s + length) for s in range(every, n_frames - length + 1, every)]
+
+
+@dataclass(frozen=True)
+class Defended:
+    """The fused chain's settings (pipeline.defense): fusion, threshold; the motion filter settings
+    and the fitted noise model."""
+
+    settings: Any      # DefenseSettings
+    motion: Any        # MotionSettings
+    noise: Any         # NoiseModel
+
+
+def _outputs(chain: Any, images: np.ndarray, batch_size: int) -> tuple[np.ndarray, np.ndarray]:
+    from pipeline.chain import run_sequence
+
+    res = run_sequence(chain, images, np.zeros((len(images), 9), np.float32), np.zeros(len(images), bool), None,
+                       batch_size)
+    return res.pose.astype(np.float64), res.prob
+
+
+def fused_attack(chain: Any, shap: Any, defended: Defended, images: np.ndarray, targets: np.ndarray,
+                 bursts: Sequence[tuple[int, int]], craft: Callable[[Any, Any, Any], Any],
+                 batch_size: int) -> tuple[np.ndarray, Any]:
+    """One trajectory (uint8 frames (N, H, W, 3), labels (N, 9)) with every burst attacked through the
+    fused chain, then the REAL defense over the whole trajectory, clean frames included.
+
+    Frames are fed to a `Defense` in time order; at each burst the attacker takes the motion
+    filter's state left by the frames before it (`burst_prior`, coasting on the commands) and
+    crafts the burst jointly: `craft(FusedBurstChain, x, y)` -> float images; they are stored as
+    8-bit. Returns (pose (N, 9) estimates, `run_defense` trace of the whole trajectory).
+    """
+    from pipeline.adaptive import FusedBurstChain, burst_prior
+    from pipeline.attacks import quantize
+    from pipeline.defense import Defense, run_defense
+    from pipeline.rotations import sixd_to_matrix
+
+    R_cam, u = world_motion(targets)
+    pose, prob = _outputs(chain, images, batch_size)
+    d, done = Defense(defended.settings, defended.motion, defended.noise), 0
+
+    def feed(stop: int) -> None:
+        for k in range(done, stop):
+            d.step(pose[k, :3], prob[k], R_cam[k], u[k], sixd_to_matrix(pose[k, 3:]))
+
+    for a, b in bursts:
+        feed(a)
+        prior = burst_prior(d.filter, R_cam[a:b], u[a:b]) if d.filter.started else None
+        fused = FusedBurstChain(shap, defended.settings.threshold, defended.noise, defended.motion.gate, prior)
+        x = torch.from_numpy(np.ascontiguousarray(images[a:b])).permute(0, 3, 1, 2).float() / 255.0
+        stored = quantize(craft(fused, x, torch.from_numpy(np.asarray(targets[a:b], np.float32))), x)
+        pose[a:b], prob[a:b] = _outputs(chain, stored.permute(0, 2, 3, 1).numpy(), batch_size)
+        done = a
+        feed(b)
+        done = b
+    trace = run_defense(defended.settings, defended.motion, defended.noise, pose[:, :3], prob, R_cam, u,
+                        sixd_to_matrix(pose[:, 3:]))
+    return pose, trace
+
+
+def fused_row(attack: str, eps: float, lam: float | None, position_error: np.ndarray, flag: np.ndarray,
+              groups: np.ndarray, harm_m: float) -> dict[str, Any]:
+    """A row against the fused chain: the attacked frames of whole trajectories, rates with a
+    percentile bootstrap over trajectories (`groups`: trajectory id per frame; frames of a burst,
+    and bursts of one filter run, are not independent)."""
+    from pipeline.stats import bootstrap_rate
+
+    pos, flag = _check(position_error, flag)
+    det = bootstrap_rate(flag, groups)
+    hu = bootstrap_rate(harmful_undetected(pos, flag, harm_m), groups)
+    harmful = bootstrap_rate(pos > harm_m, groups)
+    return {"attack": attack, "group": "fused", "chain": "fused", "eps": float(eps), "adaptive": True,
+            "lambda": None if lam is None else float(lam), "n": int(pos.size),
+            "trajectories": int(len(np.unique(groups))), "ci_method": "bootstrap over trajectories",
+            "detection_rate": det.value, "harmful_undetected_rate": hu.value, "position_error_m": float(pos.mean()),
+            "ci95_detection": det.ci(), "ci95_harmful_undetected": hu.ci(),
+            "harmful_rate": harmful.value, "ci95_harmful": harmful.ci()}
+
+
+def worst_burst_over_lambda(position_errors: Sequence[np.ndarray], flags: Sequence[np.ndarray],
+                            burst_ids: np.ndarray, harm_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The attacker who tries every lambda and keeps, per burst (a burst is crafted jointly, so the
+    choice is per burst, not per frame), the lambda with the most harmful unflagged frames, then
+    the fewest flagged frames, then the largest mean error. Inputs: one (N,) array per lambda over
+    the same attacked frames; `burst_ids` (N,). Returns (position error (N,), flag (N,))."""
+    pos = np.stack([_check(p, f)[0] for p, f in zip(position_errors, flags)])
+    flag = np.stack([np.asarray(f, dtype=bool).ravel() for f in flags])
+    out_pos, out_flag = np.empty(pos.shape[1]), np.empty(pos.shape[1], bool)
+    for b in np.unique(burst_ids):
+        m = burst_ids == b
+        j = max(range(len(pos)), key=lambda j: (int(((pos[j, m] > harm_m) & ~flag[j, m]).sum()),
+                                                -int(flag[j, m].sum()), float(pos[j, m].mean())))
+        out_pos[m], out_flag[m] = pos[j, m], flag[j, m]
+    return out_pos, out_flag

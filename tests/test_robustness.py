@@ -315,3 +315,98 @@ def test_a_temporal_chain_plugs_in_and_is_attacked_over_the_burst(setup) -> None
     alone_pose_only = adaptive_pgd(chain, x[:1], y[:1], 0.1, loss, 0.0, steps=20, random_start=False)
     assert torch.equal(alone, alone_pose_only)
     assert not torch.equal(in_burst[:1], alone)
+
+
+# ----------------------------------------------------------------------------- the fused (temporal) chain
+def _fused(setup, lam_prior: bool = True):
+    """A FusedBurstChain over a 4-frame burst whose prior is a filter started on the clean estimates."""
+    from pipeline.adaptive import FusedBurstChain, burst_prior
+    from pipeline.motion import MotionFilter, MotionSettings, NoiseModel
+    from pipeline.rotations import sixd_to_matrix
+
+    chain, model, x, y, loss = setup
+    noise = NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02)
+    motion = MotionSettings(false_alarm=0.01)
+    with torch.no_grad():
+        clean = model(x).double().numpy()
+    R_cam = np.repeat(np.eye(3)[None], len(x), 0)
+    f = MotionFilter(motion, noise)
+    f.start_from(clean[0, :3], R_cam[0], sixd_to_matrix(clean[0, 3:]))
+    u = np.vstack([np.zeros(3), np.diff(clean[:, :3], axis=0)])[1:5]
+    prior = burst_prior(f, R_cam[1:5], u) if lam_prior else None
+    return FusedBurstChain(chain, 0.5, noise, motion.gate, prior), x[1:5], y[1:5], loss, model
+
+
+def test_fused_lambda_zero_is_plain_pgd_on_the_burst(setup) -> None:
+    fused, x, y, loss, model = _fused(setup)
+    ours = adaptive_pgd(fused, x, y, 0.05, loss, 0.0, steps=20, generator=torch.Generator().manual_seed(3))
+    plain = pgd(model, x, y, 0.05, loss, steps=20, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(ours, plain)
+
+
+def test_fused_large_lambda_lowers_the_combined_score(setup) -> None:
+    fused, x, y, loss, _ = _fused(setup)
+
+    def score(images: torch.Tensor) -> float:
+        with torch.no_grad():
+            return float(fused(quantize(images, x).float() / 255)[1].sum())
+
+    plain = adaptive_pgd(fused, x, y, 0.1, loss, 0.0, steps=20, generator=torch.Generator().manual_seed(2))
+    evasive = adaptive_pgd(fused, x, y, 0.1, loss, 1000.0, steps=20, generator=torch.Generator().manual_seed(2))
+    assert score(evasive) < score(plain)
+    assert score(evasive) < 0.9 * score(plain)
+
+
+@pytest.mark.parametrize("eps", [0.01, 0.05])
+def test_fused_attack_stays_within_eps_after_8_bit_storage(setup, eps: float) -> None:
+    fused, x, y, loss, _ = _fused(setup)
+    adv = quantize(adaptive_pgd(fused, x, y, eps, loss, 100.0, steps=20), x).float() / 255
+    # quantize rounds each perturbation to the nearest level, at least one: within eps + half a level
+    assert float((adv - x).abs().max()) <= eps + 0.5 / 255 + 1e-6
+
+
+def test_fused_nis_matches_the_motion_filter(setup) -> None:
+    from pipeline.motion import MotionFilter, MotionSettings
+    from pipeline.rotations import sixd_to_matrix
+
+    fused, x, y, loss, model = _fused(setup)
+    with torch.no_grad():
+        pose = model(x).double()
+        nis_p, nis_a = fused.nis(pose)
+    # the same burst through a real filter that coasts: the NIS it computes at each frame
+    _, model2, x_all, _, _ = setup
+    with torch.no_grad():
+        clean = model2(x_all).double().numpy()
+    f = MotionFilter(MotionSettings(false_alarm=0.01), fused.noise)
+    R = np.eye(3)
+    f.start_from(clean[0, :3], R, sixd_to_matrix(clean[0, 3:]))
+    u = np.vstack([np.zeros(3), np.diff(clean[:, :3], axis=0)])
+    for k in range(4):
+        check = f.check(pose[k, :3].numpy(), R, u[k + 1], sixd_to_matrix(pose[k, 3:].numpy()))
+        f.coast()
+        assert math.isclose(float(nis_p[k]), check.nis_position, rel_tol=1e-6, abs_tol=1e-9)
+        assert math.isclose(float(nis_a[k]), check.nis_attitude, rel_tol=1e-4, abs_tol=1e-6)
+
+
+def test_worst_burst_over_lambda_chooses_per_burst() -> None:
+    from pipeline.robustness import worst_burst_over_lambda
+
+    bursts = np.array([0, 0, 1, 1])
+    pos = [np.array([2.0, 2.0, 0.5, 0.5]), np.array([3.0, 0.1, 2.0, 2.0])]
+    flag = [np.array([False, True, False, False]), np.array([False, False, False, True])]
+    p, f = worst_burst_over_lambda(pos, flag, bursts, 1.0)
+    # burst 0: one harmful unflagged frame either way, lambda 1 has no flag; burst 1: only lambda 1 harms
+    assert p.tolist() == [3.0, 0.1, 2.0, 2.0] and f.tolist() == [False, False, False, True]
+
+
+def test_burst_schedule_and_world_motion() -> None:
+    from pipeline.robustness import burst_schedule, world_motion
+    from pipeline.rotations import matrix_to_6d
+    from pipeline.trajectories import projectile_trajectory
+
+    assert burst_schedule(20, 5, 8) == [(8, 13)]
+    assert burst_schedule(30, 5, 8) == [(8, 13), (16, 21), (24, 29)]
+    s = projectile_trajectory(30, (10.0, -12.0), seed=1, jitter_deg=1.0)
+    R_cam, u = world_motion(np.hstack([s.t, matrix_to_6d(s.R)]))
+    assert np.allclose(R_cam, s.R_cam, atol=1e-9)
+    assert np.allclose(u[1:], np.diff(s.rel, axis=0), atol=1e-9)
