@@ -177,7 +177,8 @@ class Defended:
     noise: Any         # NoiseModel
 
 
-def _outputs(chain: Any, images: np.ndarray, batch_size: int) -> tuple[np.ndarray, np.ndarray]:
+def pose_estimates(chain: Any, images: np.ndarray, batch_size: int) -> tuple[np.ndarray, np.ndarray]:
+    """The chain on clean uint8 frames (N, H, W, 3): (pose (N, 9) [m, 6-D], detector probability (N,))."""
     from pipeline.chain import run_sequence
 
     res = run_sequence(chain, images, np.zeros((len(images), 9), np.float32), np.zeros(len(images), bool), None,
@@ -202,7 +203,7 @@ def fused_attack(chain: Any, shap: Any, defended: Defended, images: np.ndarray, 
     from pipeline.rotations import sixd_to_matrix
 
     R_cam, u = world_motion(targets)
-    pose, prob = _outputs(chain, images, batch_size)
+    pose, prob = pose_estimates(chain, images, batch_size)
     d, done = Defense(defended.settings, defended.motion, defended.noise), 0
 
     def feed(stop: int) -> None:
@@ -215,7 +216,7 @@ def fused_attack(chain: Any, shap: Any, defended: Defended, images: np.ndarray, 
         fused = FusedBurstChain(shap, defended.settings.threshold, defended.noise, defended.motion.gate, prior)
         x = torch.from_numpy(np.ascontiguousarray(images[a:b])).permute(0, 3, 1, 2).float() / 255.0
         stored = quantize(craft(fused, x, torch.from_numpy(np.asarray(targets[a:b], np.float32))), x)
-        pose[a:b], prob[a:b] = _outputs(chain, stored.permute(0, 2, 3, 1).numpy(), batch_size)
+        pose[a:b], prob[a:b] = pose_estimates(chain, stored.permute(0, 2, 3, 1).numpy(), batch_size)
         done = a
         feed(b)
         done = b

@@ -9,7 +9,10 @@ seeded sample of `robustness.frames` held-out test frames; every attacked image 
 - adaptive: L-inf PGD on pose_loss - lambda * detector logit (pipeline.adaptive) per lambda and eps,
   plus the per-frame worst case over lambda;
 - surrogate: robustness.surrogate_attacks crafted on the surrogate pose model, evaluated on ours;
-- corruptions (not attacks): robustness.corruptions at camera-realistic strengths.
+- corruptions (not attacks): robustness.corruptions at camera-realistic strengths;
+- fused (the chain that ships, issue 16: LSTM flag OR motion gate): the adaptive attack on the
+  fused chain over whole bursts of the eval_render trajectories, evaluated by the real defense
+  (pipeline.defense.run_defense) over each whole trajectory, clean frames included.
 Params are checked on load (stages.schema.Robustness). Writes reports/robustness.md,
 reports/metrics/robustness.json, reports/figures/robustness.png (text: stages/pages/robustness.py).
 """
@@ -23,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from stages import params as params_mod
-from stages.artifacts import Pose, load_detector, load_pose
+from stages.artifacts import Pose, load_detector, load_pose, read_eval_render
 from stages.checkpoint import POSE
 from stages.io import StageError, atomic_write_text, save_figure, write_metrics
 from stages.pages.robustness import robustness_page
@@ -65,7 +68,10 @@ def main() -> None:
     images = np.stack([np.asarray(split.images[int(i)]) for i in pick])
     targets = split.targets[pick]
 
-    specs = _specs(p, r, chain, pose, surrogate, seed)
+    from pipeline.adaptive import ShapChain
+
+    target = ShapChain(pose.model, chain.weight, chain.background_mean, chain.detector)
+    specs = _specs(p, r, target, pose, surrogate, seed)
     n_corr = sum(len(v) for v in dataclasses.asdict(r.corruptions).values())
     bar = tqdm(total=-(-n // r.batch_size) * (len(specs) + n_corr + 1), desc="robustness", unit="batch",
                dynamic_ncols=True)
@@ -80,6 +86,7 @@ def main() -> None:
                            pgd_is_lambda0="pgd" in r.transfer and 0.0 in r.lambdas)
     clean_harm, corruptions = _corruption_rows(chain, images, targets, r, seed, progress)
     bar.close()
+    fused = _fused_rows(p, r, chain, target, seed)
     seconds = time.perf_counter() - t0
     metrics = {"rows": rows, "corruptions": corruptions, "frames": n, "test_frames": len(split), "harm_m": r.harm_m,
                "steps": r.steps, "gradients_per_frame": sum(s.cost for s in specs), "lambdas": r.lambdas,
@@ -88,25 +95,26 @@ def main() -> None:
                "surrogate": {"best_epoch": int(surrogate.meta.get("epoch", 0)),
                              "test_position_m": float(surrogate.meta.get("test_pos_m", float("nan")))},
                "model_hash": pose.hash, "surrogate_hash": surrogate.hash, "seconds": seconds,
-               "worst_harmful_undetected": worst_by_eps(rows)}
+               "worst_harmful_undetected": worst_by_eps(rows), **fused,
+               "worst_harmful_undetected_fused": worst_by_eps(fused["fused_rows"])}
     write_metrics(METRICS, metrics, p)
     atomic_write_text(REPORT, robustness_page(metrics, p))
-    save_figure(robustness_vs_eps([row for row in rows if row["attack"] != "adaptive pgd"]), FIGURE)
+    worst_fused = [row for row in fused["fused_rows"] if row["lambda"] is None]
+    save_figure(robustness_vs_eps([row for row in rows if row["attack"] != "adaptive pgd"] + worst_fused), FIGURE)
     print(f"robustness: {len(rows)} attack rows and {len(corruptions)} corruption rows on {n} test frames in "
           f"{seconds:.0f} s -> {REPORT}, {METRICS}, {FIGURE}")
 
 
-def _specs(p: dict[str, Any], r: Robustness, chain: Any, pose: Pose, surrogate: Pose, seed: int) -> list[Any]:
+def _specs(p: dict[str, Any], r: Robustness, target: Any, pose: Pose, surrogate: Pose, seed: int) -> list[Any]:
     """The attack rows to run, in report order. PGD at eps index i uses seed + 100 + i, so plain PGD
     and the adaptive attack at lambda = 0 are one run (the `pgd` row is then taken from it)."""
     import torch
 
-    from pipeline.adaptive import ShapChain, adaptive_pgd
+    from pipeline.adaptive import adaptive_pgd
     from pipeline.attacks import attack_loss, get_attack
     from pipeline.robustness import AttackSpec
 
     a = p["attack"]
-    target = ShapChain(pose.model, chain.weight, chain.background_mean, chain.detector)
 
     def gen(k: int) -> torch.Generator:
         return torch.Generator().manual_seed(seed + k)
@@ -156,3 +164,103 @@ def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Rob
             res = run_sequence(chain, corrupt(name, s, seed)(images), targets, none, None, r.batch_size, progress)
             rows.append(corruption_row(name, s, pose_errors(res.pose, targets)[0], res.flag))
     return rate(clean_pos > r.harm_m), rows
+
+
+def _noise_model(p: dict[str, Any], r: Robustness, chain: Any, seed: int) -> Any:
+    """The motion filter's measurement-noise model, fitted on clean frames of the pose TRAINING split.
+
+    models/defense.json (issue 16's `rpod calibrate`, fitted on clean validation trajectories) does
+    not exist yet: until it does, the noise is fitted here on `robustness.noise_frames` clean
+    training-split frames, never test frames; switch to the calibrate stage's output when it lands.
+    A model that fits its training frames better than new ones makes this noise too small (a tighter
+    gate, more flags, a flattering detection rate); at the default profile train and test errors agree.
+    """
+    from pipeline.motion import fit_noise
+    from pipeline.robustness import pose_estimates
+    from pipeline.rotations import sixd_to_matrix
+    from stages.data import load_split
+
+    split = load_split(p, "train")
+    n = min(r.noise_frames, len(split))
+    pick = np.sort(np.random.default_rng(seed + 1).choice(len(split), n, replace=False))
+    est = pose_estimates(chain, np.stack([np.asarray(split.images[int(i)]) for i in pick]), r.batch_size)[0]
+    t = split.targets[pick].astype(np.float64)
+    try:
+        return fit_noise(t[:, :3], est[:, :3], sixd_to_matrix(t[:, 3:]), sixd_to_matrix(est[:, 3:]),
+                         bins=max(2, min(8, n // 4)))
+    except ValueError as e:
+        raise StageError(f"params.yaml robustness.noise_frames: {e}") from None
+
+
+def _fused_rows(p: dict[str, Any], r: Robustness, chain: Any, target: Any, seed: int) -> dict[str, Any]:
+    """Adaptive attack on the fused chain (LSTM flag OR motion gate, pipeline.defense) over bursts of
+    `evaluate.attack_length` frames every `robustness.burst_every` frames of each eval_render
+    trajectory, per eps and lambda and the per-burst worst case over lambda; rates with bootstrap
+    intervals over trajectories. Also the fused chain's false-alarm rate on the clean trajectories."""
+    import torch
+    from tqdm import tqdm
+
+    from pipeline.adaptive import adaptive_pgd
+    from pipeline.attacks import attack_loss
+    from pipeline.robustness import fused_attack, fused_row, worst_burst_over_lambda
+    from pipeline.training import pose_errors
+
+    images, labels, trajs, bursts, defended, info = _fused_setup(p, r, chain, seed)
+    full = attack_loss(p["attack"]["loss"], load_pose(p).loss)
+    rows = []
+    bar = tqdm(total=len(r.eps) * len(r.lambdas) * len(trajs), desc="robustness (fused)", unit="trajectory")
+    for i, e in enumerate(r.eps):
+        runs = []
+        for lam in r.lambdas:
+            def craft(fused: Any, x: Any, y: Any, e: float = e, lam: float = lam) -> Any:
+                return adaptive_pgd(fused, x, y, e, full, lam, steps=r.steps,
+                                    generator=torch.Generator().manual_seed(seed + 700 + i))
+            pos, flag, grp, bid = [], [], [], []
+            for g, (ix, bs) in enumerate(zip(trajs, bursts)):
+                est, trace = fused_attack(chain, target, defended, images[ix], labels[ix], bs, craft, r.batch_size)
+                err = pose_errors(est, labels[ix])[0]
+                for k, (a, b) in enumerate(bs):
+                    pos.append(err[a:b]), flag.append(trace.flag[a:b])
+                    grp.append(np.full(b - a, g)), bid.append(np.full(b - a, 1000 * g + k))
+                bar.update(1)
+            runs.append(tuple(np.concatenate(v) for v in (pos, flag, grp, bid)))
+            rows.append(fused_row("fused chain: adaptive pgd", e, lam, *runs[-1][:3], r.harm_m))
+        wp, wf = worst_burst_over_lambda([v[0] for v in runs], [v[1] for v in runs], runs[0][3], r.harm_m)
+        rows.append(fused_row("fused chain: adaptive pgd, worst over lambda", e, None, wp, wf, runs[0][2], r.harm_m))
+    bar.close()
+    return {"fused_rows": rows, "fused": info}
+
+
+def _fused_setup(p: dict[str, Any], r: Robustness, chain: Any, seed: int) -> tuple[Any, ...]:
+    """(eval_render images, labels (N, 9), frame indices per trajectory, bursts per trajectory, the
+    defended-chain settings, facts incl. the fused chain's false-alarm rate on the clean trajectories)."""
+    from pipeline.defense import DefenseSettings, run_defense
+    from pipeline.motion import MotionSettings
+    from pipeline.robustness import Defended, burst_schedule, pose_estimates, world_motion
+    from pipeline.rotations import sixd_to_matrix
+    from pipeline.stats import bootstrap_rate
+
+    images, poses, _ = read_eval_render(p)
+    labels = poses[["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]].to_numpy(np.float64)
+    trajs = [np.flatnonzero(poses["trajectory"].to_numpy() == t) for t in np.unique(poses["trajectory"])]
+    defended = Defended(DefenseSettings(fusion="or", threshold=chain.threshold), MotionSettings(),
+                        _noise_model(p, r, chain, seed))
+    length = int(p["evaluate"]["attack_length"])
+    try:
+        bursts = [burst_schedule(len(ix), length, r.burst_every) for ix in trajs]
+    except ValueError as e:
+        raise StageError(f"params.yaml robustness.burst_every / evaluate.attack_length: {e}") from None
+    clean_flags, groups = [], []
+    for g, ix in enumerate(trajs):   # the fused chain on the clean trajectories: its false alarms
+        est, prob = pose_estimates(chain, images[ix], r.batch_size)
+        R_cam, u = world_motion(labels[ix])
+        clean_flags.append(run_defense(defended.settings, defended.motion, defended.noise, est[:, :3], prob, R_cam,
+                                       u, sixd_to_matrix(est[:, 3:])).flag)
+        groups.append(np.full(len(ix), g))
+    alarms = bootstrap_rate(np.concatenate(clean_flags), np.concatenate(groups))
+    info = {"trajectories": len(trajs), "bursts": sum(len(b) for b in bursts), "burst_length": length,
+            "burst_every": r.burst_every, "false_alarm_rate": alarms.value, "ci95_false_alarm": alarms.ci(),
+            "noise_model": defended.noise.as_dict(), "gate": defended.motion.gate,
+            "gate_false_alarm": defended.motion.false_alarm,
+            "noise_fitted_on": "training split (no models/defense.json yet)"}
+    return images, labels, trajs, bursts, defended, info

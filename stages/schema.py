@@ -279,6 +279,8 @@ class Robustness:
     surrogate_seed: int
     surrogate_epochs: int
     batch_size: int
+    burst_every: int             # fused-chain rows: a burst of evaluate.attack_length frames every this many frames
+    noise_frames: int            # clean training-split frames the stage fits the motion noise model on
     corruptions: Corruptions
 
     def __post_init__(self) -> None:
@@ -299,9 +301,11 @@ class Robustness:
                              f"got {self.steps}")
         if not self.harm_m > 0:
             raise ValueError(f"harm_m must be a positive distance in metres, got {self.harm_m}")
-        if min(self.frames, self.batch_size, self.surrogate_epochs) < 1:
-            raise ValueError(f"frames, batch_size and surrogate_epochs must be >= 1, got {self.frames}, "
-                             f"{self.batch_size} and {self.surrogate_epochs}")
+        if self.noise_frames < 8:
+            raise ValueError(f"noise_frames must be >= 8 (two range bins of 4 frames), got {self.noise_frames}")
+        if min(self.frames, self.batch_size, self.surrogate_epochs, self.burst_every) < 1:
+            raise ValueError(f"frames, batch_size, surrogate_epochs and burst_every must be >= 1, got {self.frames}, "
+                             f"{self.batch_size}, {self.surrogate_epochs} and {self.burst_every}")
 
 
 @dataclass(frozen=True)

@@ -116,8 +116,12 @@ def test_every_table_has_the_expected_rows(smoke_repo):
     assert {row["attack"] for row in rob["rows"]} >= {*r["transfer"], "adaptive pgd, worst over lambda"}
     assert len(rob["corruptions"]) == 1 + sum(len(v) for v in r["corruptions"].values())
     assert rows_under(page("robustness"), "Benign corruptions", "corruption")[0] == "none"
+    fused = [(row["eps"], row["lambda"]) for row in rob["fused_rows"]]
+    assert sorted(fused, key=str) == sorted([(float(e), float(v)) for e in r["eps"] for v in r["lambdas"]]
+                                            + [(float(e), None) for e in r["eps"]], key=str)
+    assert all(row["n"] > 0 and row["ci_method"] == "bootstrap over trajectories" for row in rob["fused_rows"])
 
     summary = rows_under(page("README"), "Summary against the paper", "result")
-    assert len(summary) == 11 and summary[0].startswith("pose")
+    assert len(summary) == 13 and summary[0].startswith("pose")
     readme = (dst / "README.md").read_text()
     assert "Profile `smoke`" in readme, "rpod report --sync-readme did not copy the results into README.md"

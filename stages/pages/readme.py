@@ -65,15 +65,18 @@ def summary_tables(metrics: dict[str, dict[str, Any]]) -> str:
 
 
 def _robustness_rows(m: dict[str, Any]) -> list[tuple[str, str, str, str]]:
-    """Summary rows: worst harmful-undetected rate over all robustness attacks (adaptive included) at
-    eps 0.05 and 0.01, percent with the 95% Wilson interval ("-" when the stage did not run that eps)."""
+    """Summary rows at eps 0.05 and 0.01: the worst harmful-undetected rate against the chain that ships
+    (the fused chain, adaptive attack over bursts), and beside it against the paper's detector alone
+    (LSTM, any robustness attack incl. adaptive); percent with the 95% interval, "-" where not run."""
     out = []
-    for e in ("0.05", "0.01"):
-        w = m["worst_harmful_undetected"].get(e)
-        value = "-"
-        if w is not None:
-            lo, hi = w["ci95_harmful_undetected"]
-            value = (f"{_fmt(100 * w['harmful_undetected_rate'], 1)} [{_fmt(100 * lo, 1)}, {_fmt(100 * hi, 1)}] "
-                     f"({w['attack']})")
-        out.append((f"worst harmful-undetected rate (%) at eps {e}, any attack incl. adaptive", value, "-", "robustness"))
+    for key, what in (("worst_harmful_undetected_fused", "fused chain (ships), adaptive attack on bursts"),
+                      ("worst_harmful_undetected", "paper's LSTM detector alone, any attack incl. adaptive")):
+        for e in ("0.05", "0.01"):
+            w = m.get(key, {}).get(e)
+            value = "-"
+            if w is not None:
+                lo, hi = w["ci95_harmful_undetected"]
+                value = (f"{_fmt(100 * w['harmful_undetected_rate'], 1)} [{_fmt(100 * lo, 1)}, {_fmt(100 * hi, 1)}] "
+                         f"({w['attack']})")
+            out.append((f"worst harmful-undetected rate (%) at eps {e}, {what}", value, "-", "robustness"))
     return out
