@@ -232,3 +232,36 @@ def guidance_variants(runs: Sequence[tuple[str, Any]], goal: Sequence[float], ti
     fig.suptitle(f"One attacked run per variant ({title}); dots: attacked frames, crosses: flagged", fontsize=10)
     fig.tight_layout()
     return fig
+
+
+def robustness_vs_eps(rows: Sequence[Mapping[str, object]]) -> Figure:
+    """Detection rate and harmful-undetected rate (%) against eps (log axis), one line per attack.
+
+    `rows`: the robustness stage's attack rows (`attack`, `eps`, `detection_rate`,
+    `harmful_undetected_rate`, `ci95_detection`, `ci95_harmful_undetected`); error bars are the
+    95% Wilson intervals.
+    """
+    fig = Figure(figsize=(10, 3.8), layout="constrained")
+    axes = fig.subplots(1, 2, sharex=True)
+    names = list(dict.fromkeys(str(r["attack"]) for r in rows))
+    ticks = sorted({float(r["eps"]) for r in rows})
+    for k, name in enumerate(names):
+        pts = sorted((r for r in rows if r["attack"] == name), key=lambda r: float(r["eps"]))
+        # attacks at the same eps are dodged sideways by a few percent so their intervals stay apart
+        e = np.array([float(r["eps"]) for r in pts]) * 1.04 ** (k - (len(names) - 1) / 2)
+        for ax, key, ci in ((axes[0], "detection_rate", "ci95_detection"),
+                            (axes[1], "harmful_undetected_rate", "ci95_harmful_undetected")):
+            v = 100 * np.array([float(r[key]) for r in pts])
+            lo = 100 * np.array([float(r[ci][0]) for r in pts])
+            hi = 100 * np.array([float(r[ci][1]) for r in pts])
+            ax.errorbar(e, v, yerr=[v - lo, hi - v], marker="o", capsize=2, label=name)
+    for ax, ylabel in zip(axes, ("detection rate (%)", "harmful and undetected (%)")):
+        ax.set_xscale("log")
+        ax.set_xticks(ticks, [f"{t:g}" for t in ticks])
+        ax.minorticks_off()
+        ax.set_xlabel("eps (L-inf, pixels in [0, 1])")
+        ax.set_ylabel(ylabel)
+        ax.set_ylim(-2, 102)
+        ax.grid(alpha=0.3)
+    axes[1].legend(fontsize=7, loc="best")
+    return fig

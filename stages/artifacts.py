@@ -62,17 +62,19 @@ def read_render_store(path: Path, what: str = "render output") -> tuple[Any, Any
 
 @dataclass
 class Pose:
-    """The pose model (eval mode), its learned training loss (what attacks ascend) and the file's hash."""
+    """The pose model (eval mode), its learned training loss (what attacks ascend), the file's hash and
+    the checkpoint's facts (`meta`: best epoch, test errors in m and deg)."""
 
     model: Any
     loss: Any
     hash: str
+    meta: dict[str, Any]
 
 
 def load_pose(params: dict[str, Any], path: Path | str = POSE) -> Pose:
     """models/pose.pt read once, checked against params (architecture, input size)."""
     ckpt = read_pose(path, params)
-    return Pose(model_from_checkpoint(ckpt), loss_from_checkpoint(ckpt), file_hash(path))
+    return Pose(model_from_checkpoint(ckpt), loss_from_checkpoint(ckpt), file_hash(path), dict(ckpt.get("meta", {})))
 
 
 def load_detector(path: Path | str = DETECTOR, model_hash: str | None = None) -> tuple[Any, dict[str, Any]]:

@@ -46,6 +46,7 @@ SECTIONS = [
     ("guidance", "guidance.md", "guidance"),
     ("detect", "detector.md", "detect"),
     ("evaluate", "integrated.md", "evaluate"),
+    ("robustness", "robustness.md", "robustness"),
     ("lab", "lab.md", "lab"),
     ("benchmarks", "benchmarks.md", None),
 ]

@@ -282,6 +282,78 @@ class Lab:
             raise ValueError(f"empty_frame_tolerance must be in [0, 1], got {self.empty_frame_tolerance}")
 
 
+AttackMethod = Literal["fgsm", "pgd", "mifgsm"]        # pipeline.attacks.ATTACKS (tests/test_robustness.py)
+AttackLoss = Literal["full", "position", "rotation"]   # pipeline.attacks.LOSSES
+
+
+def attack_name(name: str, key: str) -> tuple[str, Optional[str]]:
+    """`method[/loss]` -> (method, loss or None = attack.loss); ValueError naming `key` when unknown."""
+    method, _, loss = str(name).partition("/")
+    if method not in typing.get_args(AttackMethod) or (loss and loss not in typing.get_args(AttackLoss)):
+        raise ValueError(f"{key}: unknown attack {name!r}; use method[/loss] with method one of "
+                         f"{', '.join(typing.get_args(AttackMethod))} and loss one of "
+                         f"{', '.join(typing.get_args(AttackLoss))}")
+    return method, loss or None
+
+
+@dataclass(frozen=True)
+class Corruptions:
+    """Benign corruption strengths (pipeline/corruptions.py applies them; it checks the same ranges)."""
+
+    noise: list[float]           # Gaussian noise std, [0, 1] pixel units, in [0, 1]
+    blur: list[float]            # Gaussian blur sigma, pixels, in (0, 20]
+    jpeg: list[int]              # JPEG quality, 1..100
+    brightness: list[float]      # exposure gain, in (0, 10]
+    contrast: list[float]        # factor around the frame's mean grey level, in [0, 10]
+
+    def __post_init__(self) -> None:
+        ok = {"noise": lambda s: 0 <= s <= 1, "blur": lambda s: 0 < s <= 20, "jpeg": lambda s: 1 <= s <= 100,
+              "brightness": lambda s: 0 < s <= 10, "contrast": lambda s: 0 <= s <= 10}
+        for name, inside in ok.items():
+            bad = [s for s in getattr(self, name) if not inside(s)]
+            if bad:
+                raise ValueError(f"{name}: strength {bad[0]!r} is out of range")
+
+
+@dataclass(frozen=True)
+class Robustness:
+    frames: int                  # held-out test frames (seeded sample) of the per-frame rows
+    harm_m: float                # metres: an attacked frame is harmful when its position error exceeds this
+    eps: list[float]             # L-inf budgets, pixels in [0, 1], of the transfer, adaptive and surrogate rows
+    unseen_eps: list[float]      # FGSM budgets the detector was not trained on
+    transfer: list[str]          # method[/loss]; loss defaults to attack.loss
+    steps: int                   # PGD steps, plain, adaptive and on the surrogate (>= 20)
+    lambdas: list[float]         # adaptive attack: pose_loss - lambda * detector logit, lambda >= 0
+    surrogate_attacks: list[str]  # method[/loss], crafted on models/surrogate.pt
+    surrogate_seed: int
+    surrogate_epochs: int
+    batch_size: int
+    burst_every: int             # fused-chain rows: a burst of evaluate.attack_length frames every this many frames
+    corruptions: Corruptions
+
+    def __post_init__(self) -> None:
+        for key in ("eps", "unseen_eps"):
+            values = getattr(self, key)
+            if not values:
+                raise ValueError(f"{key} must be a non-empty list of values in (0, 1]")
+            for e in values:
+                if not 0 < e <= 1:
+                    raise ValueError(f"{key}: {e!r} is not in (0, 1] (pixels are in [0, 1])")
+        if not self.lambdas or not all(0 <= v < float("inf") for v in self.lambdas):
+            raise ValueError(f"lambdas must be a non-empty list of finite values >= 0, got {self.lambdas}")
+        for key in ("transfer", "surrogate_attacks"):
+            for name in getattr(self, key):
+                attack_name(name, key)
+        if self.steps < 20:
+            raise ValueError(f"steps must be >= 20 (an adaptive attack with fewer steps understates the attacker), "
+                             f"got {self.steps}")
+        if not self.harm_m > 0:
+            raise ValueError(f"harm_m must be a positive distance in metres, got {self.harm_m}")
+        if min(self.frames, self.batch_size, self.surrogate_epochs, self.burst_every) < 1:
+            raise ValueError(f"frames, batch_size, surrogate_epochs and burst_every must be >= 1, got {self.frames}, "
+                             f"{self.batch_size}, {self.surrogate_epochs} and {self.burst_every}")
+
+
 @dataclass(frozen=True)
 class Report:
     pass
@@ -303,6 +375,7 @@ class Params:
     evaluate: Evaluate
     defense: Defense
     lab: Lab
+    robustness: Robustness
     report: Report = field(default_factory=Report)
 
     def __post_init__(self) -> None:

@@ -17,7 +17,9 @@ from __future__ import annotations
 import copy
 import os
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
+
+import typer
 
 from stages.checkpoint import POSE
 from stages.io import StageError, atomic_outputs, atomic_write_text, write_metrics
@@ -27,29 +29,30 @@ REPORT = Path("reports/pose.md")
 METRICS = Path("reports/metrics/train.json")
 LIVE_DIR = "dvclive/train"
 SEED_OFFSET = 300
+SURROGATE = Path("models/surrogate.pt")
 
 
-def main() -> None:
+def main(
+    surrogate: Annotated[bool, typer.Option("--surrogate", help="Train the robustness stage's surrogate instead: "
+                                            "seed robustness.surrogate_seed, robustness.surrogate_epochs epochs, "
+                                            "writes models/surrogate.pt and no reports.")] = False,
+) -> None:
     """Train the pose CNN; keep the best checkpoint by validation error; report test errors next to the paper's."""
     import torch
 
     from pipeline.loss import PoseLoss
     from pipeline.model import PoseNet
-    from pipeline.training import DivergenceError, TrainConfig, fit, make_deterministic
-    from stages import data, params as params_mod
+    from pipeline.training import DivergenceError, fit, make_deterministic
+    from stages import checkpoint, data, params as params_mod
 
     params = params_mod.load()
-    p = params["train"]
+    p, r = params["train"], params["robustness"]
+    seed = int(r["surrogate_seed"]) if surrogate else int(params["seed"])
     rank, world, device = _init_distributed()
     torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
     try:
-        cfg = TrainConfig(epochs=int(p["epochs"]), batch_size=int(p["batch_size"]), lr_base=float(p["lr_base"]),
-                          lr_max=float(p["lr_max"]), cycle_epochs=float(p["cycle_epochs"]),
-                          weight_decay=float(p["weight_decay"]),
-                          max_minutes=None if p["max_minutes"] is None else float(p["max_minutes"]),
-                          channels_last=bool(p["channels_last"]), workers=int(p["workers"]),
-                          seed=int(params["seed"]) + SEED_OFFSET)
-        make_deterministic(cfg.seed)
+        cfg = _config(p, int(r["surrogate_epochs"] if surrogate else p["epochs"]), seed + SEED_OFFSET)
+        make_deterministic(cfg.seed)  # before the network is built: its initial weights come from the seed
         model = PoseNet(float(p["width"]), float(p["dropout"]))
     except ValueError as e:
         raise StageError(f"params.yaml: bad train section ({e})") from None
@@ -87,10 +90,15 @@ def main() -> None:
         result = fit(model, loss, train_set, val_set, cfg, device, on_epoch=on_epoch)
     except DivergenceError as e:
         raise StageError(f"{e}; lower train.lr_base / train.lr_max in params.yaml "
-                         f"({POSE} and the reports were left as they were)") from None
+                         f"({SURROGATE if surrogate else POSE} and the reports were left as they were)") from None
     if rank == 0:
         net = _plain(model)
         net.load_state_dict(result.best_state)
+    if rank == 0 and surrogate:  # the surrogate only: no metrics, reports or curves
+        checkpoint.save_pose(SURROGATE, net, best["loss"], input_size, best["meta"])
+        print(f"train --surrogate: seed {seed}, best epoch {result.best_epoch} of {len(result.history)}: validation "
+              f"{best['meta']['val_pos_m']:.3f} m -> {SURROGATE}")
+    elif rank == 0:
         _write_results(params, net, best, input_size, result, cfg, device, world, (train_split, train_eval_set),
                        (val_split, val_set))
     if world > 1:
@@ -112,6 +120,17 @@ def _fit_and_validation_splits(params: dict[str, Any], seed: int) -> tuple[Any, 
     except ValueError as e:
         raise StageError(f"params.yaml train.val_fraction={fraction!r}: {e}") from None
     return data.subset(labelled, fit_rows, "train"), data.subset(labelled, val_rows, "val")
+
+
+def _config(p: dict[str, Any], epochs: int, seed: int) -> Any:
+    """The TrainConfig of a `train` params section (ValueError on a bad value)."""
+    from pipeline.training import TrainConfig
+
+    return TrainConfig(epochs=epochs, batch_size=int(p["batch_size"]), lr_base=float(p["lr_base"]),
+                       lr_max=float(p["lr_max"]), cycle_epochs=float(p["cycle_epochs"]),
+                       weight_decay=float(p["weight_decay"]),
+                       max_minutes=None if p["max_minutes"] is None else float(p["max_minutes"]),
+                       channels_last=bool(p["channels_last"]), workers=int(p["workers"]), seed=seed)
 
 
 def _write_results(params: dict[str, Any], net: Any, best: dict[str, Any], input_size: tuple[int, int], result: Any,

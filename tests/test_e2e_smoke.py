@@ -18,9 +18,11 @@ import yaml
 
 REPO = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).parent
-REPORTS = ["dataset", "pose", "attack", "guidance", "detector", "integrated", "lab", "benchmarks", "README"]
-METRICS = ["train", "attack", "guidance", "detect", "evaluate", "lab"]
-FIGURES = ["fgsm_example", "guidance_trajectories", "guidance_defended", "timeline", "pose_errors", "error_vs_eps", "shap_heatmaps", "roc"]
+REPORTS = ["dataset", "pose", "attack", "guidance", "detector", "integrated", "robustness", "lab", "benchmarks",
+           "README"]
+METRICS = ["train", "attack", "guidance", "detect", "evaluate", "robustness", "lab"]
+FIGURES = ["fgsm_example", "guidance_trajectories", "guidance_defended", "timeline", "robustness", "pose_errors",
+           "error_vs_eps", "shap_heatmaps", "roc"]
 
 
 def _run(args: list[str], cwd: Path, env: dict[str, str], timeout: float = 900) -> str:
@@ -114,8 +116,21 @@ def test_every_table_has_the_expected_rows(smoke_repo):
     assert rows_under(page("lab"), "Integrated detection", "eps") == [*eps(p["evaluate"]["eps"]), "average"]
     assert rows_under(page("lab"), "FGSM on the lab sequences", "eps") == ["clean", *eps(p["attack"]["eps"])]
 
+    r = p["robustness"]
+    rob = json.loads((dst / "reports" / "metrics" / "robustness.json").read_text())
+    adaptive = [row for row in rob["rows"] if row["adaptive"] and row["lambda"] is not None]
+    assert sorted((row["eps"], row["lambda"]) for row in adaptive) == sorted(
+        (float(e), float(v)) for e in r["eps"] for v in r["lambdas"])
+    assert {row["attack"] for row in rob["rows"]} >= {*r["transfer"], "adaptive pgd, worst over lambda"}
+    assert len(rob["corruptions"]) == 1 + sum(len(v) for v in r["corruptions"].values())
+    assert rows_under(page("robustness"), "Benign corruptions", "corruption")[0] == "none"
+    fused = [(row["eps"], row["lambda"]) for row in rob["fused_rows"]]
+    assert sorted(fused, key=str) == sorted([(float(e), float(v)) for e in r["eps"] for v in r["lambdas"]]
+                                            + [(float(e), None) for e in r["eps"]], key=str)
+    assert all(row["n"] > 0 and row["ci_method"] == "bootstrap over trajectories" for row in rob["fused_rows"])
+
     summary = rows_under(page("README"), "Summary against the paper", "result")
-    assert len(summary) == 9 and summary[0].startswith("pose")
+    assert len(summary) == 13 and summary[0].startswith("pose")
     defended = [r for h, head, r in tables(page("README")) if "defended chain (or)" in head]
     assert defended and defended[0][0].startswith("integrated accuracy at eps")
     assert sum(r.startswith("closed loop") for r in defended[0]) == len(p["guidance"]["dynamics"])

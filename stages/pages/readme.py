@@ -48,6 +48,7 @@ def summary_tables(metrics: dict[str, dict[str, Any]]) -> str:
          _fmt(PAPER["integrated"]), "evaluate"),
         (f"lab detection accuracy, mean over eps (%), {'main' if lab.get('reused_models', True) else 'retrained'} models",
          _fmt(100 * lab["accuracy_mean"]), _fmt(PAPER["lab"]), "lab"),
+        *_robustness_rows(metrics["robustness"]),
     ]
     table = markdown_table([{"result": r, "this run": v, "paper": p, "stage": f"`{s}`"} for r, v, p, s in rows])
     eps_rows = []
@@ -103,3 +104,22 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any]) -> str:
                       f"defended chain ({fused['fusion']})": held("recover"), "paper": "-", "target": ">= 95"})
     return ("\n\nThe defended chain (motion check fused with the detector, recovery and hold; SPEC 11) beside the "
             "paper's detector, on the same frames and runs (95% intervals):\n\n" + markdown_table(table))
+
+
+
+def _robustness_rows(m: dict[str, Any]) -> list[tuple[str, str, str, str]]:
+    """Summary rows at eps 0.05 and 0.01: the worst harmful-undetected rate against the chain that ships
+    (the fused chain, adaptive attack over bursts), and beside it against the paper's detector alone
+    (LSTM, any robustness attack incl. adaptive); percent with the 95% interval, "-" where not run."""
+    out = []
+    for key, what in (("worst_harmful_undetected_fused", "fused chain (ships), adaptive attack on bursts"),
+                      ("worst_harmful_undetected", "paper's LSTM detector alone, any attack incl. adaptive")):
+        for e in ("0.05", "0.01"):
+            w = m.get(key, {}).get(e)
+            value = "-"
+            if w is not None:
+                lo, hi = w["ci95_harmful_undetected"]
+                value = (f"{_fmt(100 * w['harmful_undetected_rate'], 1)} [{_fmt(100 * lo, 1)}, {_fmt(100 * hi, 1)}] "
+                         f"({w['attack']})")
+            out.append((f"worst harmful-undetected rate (%) at eps {e}, {what}", value, "-", "robustness"))
+    return out
