@@ -43,7 +43,7 @@ def main(
     from pipeline.loss import PoseLoss
     from pipeline.model import PoseNet
     from pipeline.training import DivergenceError, fit, make_deterministic
-    from stages import checkpoint, data, params as params_mod
+    from stages import checkpoint, params as params_mod
 
     params = params_mod.load()
     p, r = params["train"], params["robustness"]
@@ -57,9 +57,7 @@ def main(
     except ValueError as e:
         raise StageError(f"params.yaml: bad train section ({e})") from None
 
-    train_split, val_split = _fit_and_validation_splits(params, cfg.seed)
-    train_set = data.pose_dataset(train_split, p["augment"], seed=cfg.seed)
-    val_set, train_eval_set = data.pose_dataset(val_split), data.pose_dataset(train_split)
+    (train_split, train_set, train_eval_set), (val_split, val_set) = _datasets(params, cfg.seed)
     targets = train_split.targets
     model.set_output_bias(targets[:, :3].mean(0), targets[:, 3:].mean(0))
     loss = PoseLoss("mean")
@@ -73,6 +71,33 @@ def main(
               f"width {p['width']}, {cfg.epochs} epochs, batch {cfg.batch_size} x {world} process(es), "
               f"{torch.get_num_threads()} threads, device {device}", flush=True)
 
+    on_epoch = _epoch_logger(rank, loss, best)
+
+    try:
+        result = fit(model, loss, train_set, val_set, cfg, device, on_epoch=on_epoch)
+    except DivergenceError as e:
+        raise StageError(f"{e}; lower train.lr_base / train.lr_max in params.yaml "
+                         f"({SURROGATE if surrogate else POSE} and the reports were left as they were)") from None
+    if rank == 0:
+        net = _plain(model)
+        net.load_state_dict(result.best_state)
+        if surrogate:  # the surrogate only: no metrics, reports or curves
+            checkpoint.save_pose(SURROGATE, net, best["loss"], input_size, best["meta"])
+            print(f"train --surrogate: seed {seed}, best epoch {result.best_epoch} of {len(result.history)}: "
+                  f"validation {best['meta']['val_pos_m']:.3f} m -> {SURROGATE}")
+        else:
+            _write_results(params, net, best, input_size, result, cfg, device, world,
+                           (train_split, train_eval_set), (val_split, val_set))
+    if world > 1:
+        import torch.distributed as dist
+
+        dist.barrier()
+        dist.destroy_process_group()
+
+
+def _epoch_logger(rank: int, loss: Any, best: dict[str, Any]) -> Any:
+    """fit's per-epoch callback: on rank 0, keep the best epoch's loss weights and facts in `best`
+    (validation error, m and deg) and print one line per epoch."""
     def on_epoch(stats: Any, is_best: bool, net: Any) -> None:
         if rank != 0:
             return
@@ -85,27 +110,16 @@ def main(
         tqdm.write(f"epoch {stats.epoch:3d}  loss {stats.loss:7.3f}  train {stats.train_pos_m:6.2f} m "
                    f"{stats.train_att_deg:5.2f} deg  val {stats.val_pos_m:6.2f} m {stats.val_att_deg:5.2f} deg  "
                    f"{stats.images_per_s:5.0f} img/s  {stats.seconds:5.1f} s{'  *best' if is_best else ''}")
+    return on_epoch
 
-    try:
-        result = fit(model, loss, train_set, val_set, cfg, device, on_epoch=on_epoch)
-    except DivergenceError as e:
-        raise StageError(f"{e}; lower train.lr_base / train.lr_max in params.yaml "
-                         f"({SURROGATE if surrogate else POSE} and the reports were left as they were)") from None
-    if rank == 0:
-        net = _plain(model)
-        net.load_state_dict(result.best_state)
-    if rank == 0 and surrogate:  # the surrogate only: no metrics, reports or curves
-        checkpoint.save_pose(SURROGATE, net, best["loss"], input_size, best["meta"])
-        print(f"train --surrogate: seed {seed}, best epoch {result.best_epoch} of {len(result.history)}: validation "
-              f"{best['meta']['val_pos_m']:.3f} m -> {SURROGATE}")
-    elif rank == 0:
-        _write_results(params, net, best, input_size, result, cfg, device, world, (train_split, train_eval_set),
-                       (val_split, val_set))
-    if world > 1:
-        import torch.distributed as dist
 
-        dist.barrier()
-        dist.destroy_process_group()
+def _datasets(params: dict[str, Any], seed: int) -> tuple[tuple[Any, Any, Any], tuple[Any, Any]]:
+    """((fit split, its augmented dataset, its plain dataset), (validation split, its dataset))."""
+    from stages import data
+
+    train_split, val_split = _fit_and_validation_splits(params, seed)
+    return ((train_split, data.pose_dataset(train_split, params["train"]["augment"], seed=seed),
+             data.pose_dataset(train_split)), (val_split, data.pose_dataset(val_split)))
 
 
 def _fit_and_validation_splits(params: dict[str, Any], seed: int) -> tuple[Any, Any]:
