@@ -151,3 +151,23 @@ def pose_dataset(split: Split, augment: dict[str, Any] | None = None, seed: int 
         except (KeyError, TypeError, ValueError) as e:
             raise StageError(f"params.yaml: bad train.augment ({e})") from None
     return PoseDataset(split.images, split.targets, cfg, seed)
+
+
+def training_sets(params: dict[str, Any], seed: int) -> tuple[tuple[Any, Any, Any], tuple[Any, Any]]:
+    """((fit split, its augmented dataset, its plain dataset), (validation split, its dataset))."""
+    train_split, val_split = fit_and_validation_splits(params, seed)
+    return ((train_split, pose_dataset(train_split, params["train"]["augment"], seed=seed),
+             pose_dataset(train_split)), (val_split, pose_dataset(val_split)))
+
+
+def fit_and_validation_splits(params: dict[str, Any], seed: int) -> tuple[Any, Any]:
+    """The labelled training split cut into the frames `fit` trains on and the validation frames
+    (`train.val_fraction` of whole frames, seeded) the checkpoint is selected on; the test split is not read."""
+    from pipeline.splits import holdout
+
+    labelled, fraction = load_split(params, "train"), params["train"]["val_fraction"]
+    try:
+        fit_rows, val_rows = holdout(labelled.labels["index"].to_numpy(), float(fraction), seed)
+    except ValueError as e:
+        raise StageError(f"params.yaml train.val_fraction={fraction!r}: {e}") from None
+    return subset(labelled, fit_rows, "train"), subset(labelled, val_rows, "val")

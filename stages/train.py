@@ -43,7 +43,7 @@ def main(
     from pipeline.loss import PoseLoss
     from pipeline.model import PoseNet
     from pipeline.training import DivergenceError, fit, make_deterministic
-    from stages import checkpoint, params as params_mod
+    from stages import checkpoint, data, params as params_mod
 
     params = params_mod.load()
     p, r = params["train"], params["robustness"]
@@ -57,7 +57,7 @@ def main(
     except ValueError as e:
         raise StageError(f"params.yaml: bad train section ({e})") from None
 
-    (train_split, train_set, train_eval_set), (val_split, val_set) = _datasets(params, cfg.seed)
+    (train_split, train_set, train_eval_set), (val_split, val_set) = data.training_sets(params, cfg.seed)
     targets = train_split.targets
     model.set_output_bias(targets[:, :3].mean(0), targets[:, 3:].mean(0))
     loss = PoseLoss("mean")
@@ -111,29 +111,6 @@ def _epoch_logger(rank: int, loss: Any, best: dict[str, Any]) -> Any:
                    f"{stats.train_att_deg:5.2f} deg  val {stats.val_pos_m:6.2f} m {stats.val_att_deg:5.2f} deg  "
                    f"{stats.images_per_s:5.0f} img/s  {stats.seconds:5.1f} s{'  *best' if is_best else ''}")
     return on_epoch
-
-
-def _datasets(params: dict[str, Any], seed: int) -> tuple[tuple[Any, Any, Any], tuple[Any, Any]]:
-    """((fit split, its augmented dataset, its plain dataset), (validation split, its dataset))."""
-    from stages import data
-
-    train_split, val_split = _fit_and_validation_splits(params, seed)
-    return ((train_split, data.pose_dataset(train_split, params["train"]["augment"], seed=seed),
-             data.pose_dataset(train_split)), (val_split, data.pose_dataset(val_split)))
-
-
-def _fit_and_validation_splits(params: dict[str, Any], seed: int) -> tuple[Any, Any]:
-    """The labelled training split cut into the frames `fit` trains on and the validation frames
-    (`train.val_fraction` of whole frames, seeded) the checkpoint is selected on; the test split is not read."""
-    from pipeline.splits import holdout
-    from stages import data
-
-    labelled, fraction = data.load_split(params, "train"), params["train"]["val_fraction"]
-    try:
-        fit_rows, val_rows = holdout(labelled.labels["index"].to_numpy(), float(fraction), seed)
-    except ValueError as e:
-        raise StageError(f"params.yaml train.val_fraction={fraction!r}: {e}") from None
-    return data.subset(labelled, fit_rows, "train"), data.subset(labelled, val_rows, "val")
 
 
 def _config(p: dict[str, Any], epochs: int, seed: int) -> Any:
