@@ -17,6 +17,12 @@ def _fmt(x: float | None, decimals: int = 2) -> str:
     return "-" if x is None else f"{x:.{decimals}f}"
 
 
+def _with_ci(m: dict[str, Any], key: str) -> str:
+    """A rate of a metrics dict in percent with its 95% interval (`key_ci95`), e.g. "94.58 [92.40, 96.10]"."""
+    lo, hi = m.get(f"{key}_ci95") or (None, None)
+    return _fmt(100 * m[key]) + ("" if lo is None else f" [{_fmt(100 * lo)}, {_fmt(100 * hi)}]")
+
+
 def _eps_keys(d: dict[str, Any]) -> list[str]:
     """eps keys of a per-eps dict, largest first (the paper's column order)."""
     return sorted(d, key=float, reverse=True)
@@ -25,6 +31,7 @@ def _eps_keys(d: dict[str, Any]) -> list[str]:
 def summary_tables(metrics: dict[str, dict[str, Any]]) -> str:
     """The headline results against the paper, as Markdown (this is what README.md shows)."""
     from pipeline.report import markdown_table
+    from pipeline.stats import wilson
 
     tr, at, gd, de, ev, lab = (metrics[k] for k in ("train", "attack", "guidance", "detect", "evaluate", "lab"))
     eps_at = _eps_keys(at["eps"])
@@ -39,12 +46,13 @@ def summary_tables(metrics: dict[str, dict[str, Any]]) -> str:
          " / ".join(_fmt(at["eps"][e]["position_mean_m"], 1) for e in eps_at), "-", "attack"),
         ("closed loop, no attack", f"{gd['baseline']['outcome']} (miss {_fmt(gd['baseline']['miss_m'])} m)",
          "reaches the target", "guidance"),
-        ("closed loop, attacked runs that lost the rendezvous", f"{broken} of {len(runs)}", "-", "guidance"),
-        ("LSTM detector accuracy, SHAP test split (%)", _fmt(100 * dets["lstm"]["all"]["accuracy"]),
+        ("closed loop, attacked runs that lost the rendezvous (undefended)",
+         f"{broken} of {len(runs)} ({wilson(broken, len(runs)).pct()} %)", "-", "guidance"),
+        ("LSTM detector accuracy, SHAP test split (%)", _with_ci(dets["lstm"]["all"], "accuracy"),
          _fmt(PAPER["detector"]), "detect"),
         (f"best baseline detector accuracy (%): {DETECTOR_NAMES.get(best_base, best_base)}",
-         _fmt(100 * dets[best_base]["all"]["accuracy"]), "-", "detect"),
-        ("integrated detection accuracy, mean over eps (%)", _fmt(100 * ev["accuracy_mean"]),
+         _with_ci(dets[best_base]["all"], "accuracy"), "-", "detect"),
+        ("integrated detection accuracy, mean over eps (%; per eps with intervals below)", _fmt(100 * ev["accuracy_mean"]),
          _fmt(PAPER["integrated"]), "evaluate"),
         (f"lab detection accuracy, mean over eps (%), {'main' if lab.get('reused_models', True) else 'retrained'} models",
          _fmt(100 * lab["accuracy_mean"]), _fmt(PAPER["lab"]), "lab"),
@@ -53,13 +61,15 @@ def summary_tables(metrics: dict[str, dict[str, Any]]) -> str:
     table = markdown_table([{"result": r, "this run": v, "paper": p, "stage": f"`{s}`"} for r, v, p, s in rows])
     eps_rows = []
     for e in sorted(set(ev["per_eps"]) | set(lab["per_eps"]), key=float, reverse=True):
-        get = lambda m, k: _fmt(100 * m["per_eps"][e]["accuracy"]) if e in m["per_eps"] else "-"  # noqa: E731
+        get = lambda m, k: _with_ci(m["per_eps"][e], "accuracy") if e in m["per_eps"] else "-"  # noqa: E731
         eps_rows.append({"eps": e, "integrated (%)": get(ev, e), "paper, integrated (%)": _fmt(PAPER["integrated_eps"].get(e)),
                          "lab, 10-frame attacks (%)": get(lab, e), "paper, lab (%)": _fmt(PAPER["lab_eps"].get(e))})
     profiles = sorted({m.get("profile", "unknown") for m in metrics.values()})
     head = (f"Profile `{'`, `'.join(profiles)}`. Paper: 480x270 images, full-width network, "
             "50 epochs, 32,500 images; each stage's section of the results page says what differs and why.")
-    return (f"{head}\n\n{table}\nDetection accuracy per eps (correct flags over all frames):\n\n{markdown_table(eps_rows)}"
+    per_eps = ("Detection accuracy per eps (correct flags over all frames; 95% intervals by a bootstrap over the "
+               "trajectories):")
+    return (f"{head}\n\n{table}\n{per_eps}\n\n{markdown_table(eps_rows)}"
             + defended_table(ev, gd))
 
 
