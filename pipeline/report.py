@@ -6,8 +6,9 @@ re-run diffs cleanly in review.
 from __future__ import annotations
 
 import re
-from typing import Any, Mapping, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
+import numpy as np
 import pandas as pd
 
 
@@ -58,3 +59,21 @@ def replace_section(md: str, heading: str, body: str) -> str:
     if pattern.search(md):
         return pattern.sub(lambda _: section, md, count=1)
     return (md.rstrip("\n") + "\n\n" if md.strip() else "") + section
+
+
+def mean_abs_by_class(blocks: Iterable[tuple[np.ndarray, np.ndarray]],
+                      shape: tuple[int, ...]) -> dict[str, np.ndarray] | None:
+    """Mean |phi| (`shape`, e.g. (9, F)) over normal and over adversarial samples, from blocks of
+    (values (B, *shape), is_adversarial (B,) bool) read in order; keys `normal (n)` and
+    `adversarial (n)`; None when either class has no sample."""
+    sums = {False: np.zeros(shape), True: np.zeros(shape)}
+    counts = {False: 0, True: 0}
+    for values, flags in blocks:
+        block = np.abs(np.asarray(values, dtype=np.float64))
+        for flag in (False, True):
+            sums[flag] += block[flags == flag].sum(axis=0)
+            counts[flag] += int((flags == flag).sum())
+    if not all(counts.values()):
+        return None
+    return {f"normal ({counts[False]})": sums[False] / counts[False],
+            f"adversarial ({counts[True]})": sums[True] / counts[True]}

@@ -11,7 +11,7 @@ For benign corruptions, the false-alarm rate = flagged frames / corrupted frames
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
@@ -146,6 +146,47 @@ def run_attack_rows(chain: Any, images: np.ndarray, targets: np.ndarray, specs: 
     return sorted(rows, key=lambda row: order.get(row["group"], len(order)))
 
 
+def attack_specs(pose: Any, surrogate: Any, target: Any, *, eps: Sequence[float], unseen_eps: Sequence[float],
+                 transfer: Sequence[tuple[str, str, str | None]], lambdas: Sequence[float],
+                 surrogate_attacks: Sequence[tuple[str, str, str | None]], steps: int, mi_steps: int,
+                 momentum: float, loss: str, seed: int) -> list[AttackSpec]:
+    """The attack rows to run, in report order, on `pose` (and `surrogate`: objects with `.model` and
+    `.loss`, the learned training loss) and the adaptive `target` (pipeline.adaptive.ShapChain).
+    `transfer`, `surrogate_attacks`: (name, method, loss or None = `loss`). PGD takes `steps`
+    gradients, MI-FGSM `mi_steps` (attack.steps, as in the attack stage). PGD at eps index i uses
+    seed + 100 + i, so plain PGD and the adaptive attack at lambda = 0 are one run (the `pgd` row is
+    then taken from it, pipeline.robustness.run_attack_rows)."""
+    from pipeline.adaptive import adaptive_pgd
+    from pipeline.attacks import attack_loss, get_attack
+
+    def gen(k: int) -> torch.Generator:
+        return torch.Generator().manual_seed(seed + k)
+
+    def cost(method: str) -> int:
+        return {"fgsm": 1, "pgd": steps}.get(method, mi_steps)
+
+    def spec(name: str, method: str, lname: str | None, group: str, e: float, k: int, model: Any = pose) -> AttackSpec:
+        fn = get_attack(method, steps=cost(method), step_size=None, random_start=True, momentum=momentum,
+                        generator=gen(k))
+        lf = attack_loss(lname or loss, model.loss)
+        return AttackSpec(name, group, e, None, lambda x, y: fn(model.model, x, y, e, lf), cost(method))
+
+    out = [spec("fgsm", "fgsm", None, "seen", e, 0) for e in eps]
+    out += [spec("fgsm", "fgsm", None, "transfer", e, 0) for e in unseen_eps]
+    pgd_is_lambda0 = "pgd" in [name for name, _, _ in transfer] and 0.0 in lambdas
+    out += [spec(name, method, lname, "transfer", e, 100 + i if name == "pgd" else 200 + 10 * j + i)
+            for j, (name, method, lname) in enumerate(transfer) for i, e in enumerate(eps)
+            if not (name == "pgd" and pgd_is_lambda0)]
+    full = attack_loss(loss, pose.loss)
+    out += [AttackSpec("adaptive pgd", "adaptive", e, lam,
+                       lambda x, y, e=e, lam=lam, g=gen(100 + i): adaptive_pgd(target, x, y, e, full, lam,
+                                                                               steps=steps, generator=g), steps)
+            for i, e in enumerate(eps) for lam in lambdas]
+    out += [replace(spec(name, method, lname, "surrogate", e, 500 + 10 * j + i, surrogate), attack=f"surrogate {name}")
+            for j, (name, method, lname) in enumerate(surrogate_attacks) for i, e in enumerate(eps)]
+    return out
+
+
 # ----------------------------------------------------------------------------- the fused chain on trajectories
 def world_motion(targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(R_cam (N, 3, 3) camera -> world, u (N, 3) commanded displacement of rel per frame, world, m;
@@ -259,3 +300,41 @@ def worst_burst_over_lambda(position_errors: Sequence[np.ndarray], flags: Sequen
                                                 -int(flag[j, m].sum()), float(pos[j, m].mean())))
         out_pos[m], out_flag[m] = pos[j, m], flag[j, m]
     return out_pos, out_flag
+
+
+def fused_false_alarms(chain: Any, defended: Defended, images: np.ndarray, labels: np.ndarray,
+                       trajectories: Sequence[np.ndarray], batch_size: int) -> Any:
+    """The fused chain (the real defense) on the clean trajectories (frame indices into `images`,
+    `labels` (N, 9)): its false-alarm rate with a bootstrap over trajectories (pipeline.stats.Rate)."""
+    from pipeline.defense import run_defense
+    from pipeline.rotations import sixd_to_matrix
+    from pipeline.stats import bootstrap_rate
+
+    clean_flags, groups = [], []
+    for g, ix in enumerate(trajectories):
+        est, prob = pose_estimates(chain, images[ix], batch_size)
+        R_cam, u = world_motion(labels[ix])
+        clean_flags.append(run_defense(defended.settings, defended.motion, defended.noise, est[:, :3], prob, R_cam,
+                                       u, sixd_to_matrix(est[:, 3:])).flag)
+        groups.append(np.full(len(ix), g))
+    return bootstrap_rate(np.concatenate(clean_flags), np.concatenate(groups))
+
+
+def fused_bursts(chain: Any, shap: Any, defended: Defended, images: np.ndarray, labels: np.ndarray,
+                 trajectories: Sequence[np.ndarray], bursts: Sequence[Sequence[tuple[int, int]]],
+                 craft: Callable[[Any, Any, Any], Any], batch_size: int,
+                 done: Callable[[], None] = lambda: None) -> tuple[np.ndarray, ...]:
+    """`fused_attack` on every trajectory (frame indices into `images`, `labels` (N, 9)) with its
+    bursts; `done()` after each trajectory. Returns, over the attacked frames of all bursts in order,
+    (position error (M,), flag (M,), trajectory id (M,), burst id (M,): 1000 * trajectory + burst)."""
+    from pipeline.training import pose_errors
+
+    pos, flag, grp, bid = [], [], [], []
+    for g, (ix, bs) in enumerate(zip(trajectories, bursts)):
+        est, trace = fused_attack(chain, shap, defended, images[ix], labels[ix], bs, craft, batch_size)
+        err = pose_errors(est, labels[ix])[0]
+        for k, (a, b) in enumerate(bs):
+            pos.append(err[a:b]), flag.append(trace.flag[a:b])
+            grp.append(np.full(b - a, g)), bid.append(np.full(b - a, 1000 * g + k))
+        done()
+    return tuple(np.concatenate(v) for v in (pos, flag, grp, bid))

@@ -29,6 +29,7 @@ from stages.artifacts import ROC_DIR, SHAP as SHAP_STORE
 from stages.io import StageError, atomic_write_text, read_json, save_figure
 from stages.pages.differences import differences
 from stages.pages.readme import DETECTOR_NAMES, summary_tables
+from stages.pages.report import SECTIONS, page_head, section
 
 PAGE = Path("reports/README.md")
 README = Path("README.md")
@@ -38,18 +39,6 @@ DIFFERENCES = "differences"
 README_PROFILE = "default"  # the only profile whose numbers README.md publishes
 BENCHMARKS = Path(__file__).resolve().parent.parent / "reports" / "benchmarks.md"
 
-# (stage, report file, metrics file or None) in pipeline order.
-SECTIONS = [
-    ("label", "dataset.md", None),
-    ("train", "pose.md", "train"),
-    ("attack", "attack.md", "attack"),
-    ("guidance", "guidance.md", "guidance"),
-    ("detect", "detector.md", "detect"),
-    ("evaluate", "integrated.md", "evaluate"),
-    ("robustness", "robustness.md", "robustness"),
-    ("lab", "lab.md", "lab"),
-    ("benchmarks", "benchmarks.md", None),
-]
 
 def main(
     sync_readme: bool = typer.Option(False, "--sync-readme", help="Also copy the summary table into README.md."),
@@ -142,37 +131,15 @@ def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figur
     report's own figures (`figures`: (stage, title, file name)) at the end of its section."""
     from pipeline.report import demote_headings, replace_block
 
-    profiles = {m.get("profile", "unknown") for m in metrics.values()}
-    warn = ""
-    if len(profiles) > 1:
-        warn = (f"\n> **Mixed profiles** ({', '.join(sorted(profiles))}): some stages are stale; run `dvc repro` "
-                "to bring them all to the current params.yaml.\n")
-    hashes = {k: m["model_hash"] for k, m in metrics.items()
-              if "model_hash" in m and not (k == "lab" and m.get("reused_models") is False)}
-    if len(set(hashes.values())) > 1:
-        warn += (f"\n> **Mixed pose models** ({', '.join(f'{k} {v}' for k, v in sorted(hashes.items()))}): "
-                 "some stages ran on an older checkpoint.\n")
-    page = (f"# rpodguard results\n\nWritten by `rpod report` from `reports/metrics/*.json` and the stage reports "
-            f"beside this file; params profile `{params.get('profile_name', 'unknown')}`. Regenerate with "
-            f"`dvc repro`. Every section below is one stage's report, stamped with the profile it ran on (when it ran: `produced` in reports/metrics/<stage>.json)."
-            f"\n{warn}\n## Summary against the paper\n")
-    page = replace_block(page, BLOCK, summary_tables(metrics))
+    page = replace_block(page_head(metrics, params), BLOCK, summary_tables(metrics))
     page += "\n## Known differences from the paper\n"
     page = replace_block(page, DIFFERENCES, differences(metrics, params))
     for stage, report, metric in SECTIONS:
         path = Path("reports") / report
-        if not path.exists():
-            continue
-        m = metrics.get(metric or "", {})
-        stamp = (f"_`rpod {stage}`, profile `{m.get('profile', 'unknown')}`; source [{report}]({report})._" if metric
-                 else f"_Source [{report}]({report})._")
-        body = demote_headings(path.read_text().strip(), 1)
-        first, _, rest = body.partition("\n")
-        page += f"\n{first}\n\n{stamp}\n{rest}\n"
-        extra = [(title, name) for st, title, name in figures if st == stage]
-        if extra:
-            page += "\n### Figures\n\n" + "\n\n".join(f"{title}:\n\n![{title}](figures/{name})" for title, name in extra)
-            page += "\n"
+        if path.exists():
+            page += section(stage, report, metrics.get(metric, {}) if metric else None,
+                            demote_headings(path.read_text().strip(), 1),
+                            [(title, name) for st, title, name in figures if st == stage])
     return page
 
 
@@ -213,20 +180,11 @@ def _shap_means() -> dict[str, Any] | None:
     """Mean |phi| (9, F) over normal and adversarial samples of the SHAP store, read chunk by chunk."""
     if not SHAP_STORE.exists():
         return None
-    import numpy as np
-
+    from pipeline.report import mean_abs_by_class
     from stages.io import open_zarr
 
     root = open_zarr(SHAP_STORE, "SHAP store")
-    values, adv = root["values"], np.asarray(root["is_adversarial"][:], dtype=bool)
+    values, adv = root["values"], root["is_adversarial"][:].astype(bool)
     step = values.chunks[0]
-    sums = {False: np.zeros(values.shape[1:]), True: np.zeros(values.shape[1:])}
-    for i in range(0, values.shape[0], step):
-        block, flags = np.abs(np.asarray(values[i:i + step], dtype=np.float64)), adv[i:i + step]
-        for flag in (False, True):
-            sums[flag] += block[flags == flag].sum(axis=0)
-    counts = {flag: int((adv == flag).sum()) for flag in (False, True)}
-    if not all(counts.values()):
-        return None
-    return {f"normal ({counts[False]})": sums[False] / counts[False],
-            f"adversarial ({counts[True]})": sums[True] / counts[True]}
+    return mean_abs_by_class(((values[i:i + step], adv[i:i + step]) for i in range(0, values.shape[0], step)),
+                             values.shape[1:])

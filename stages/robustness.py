@@ -43,7 +43,7 @@ def main() -> None:
     """Run every attack and corruption row on held-out test frames; write the report, metrics and figure."""
     from tqdm import tqdm
 
-    from pipeline.chain import SafetyChain
+    from pipeline.adaptive import ShapChain
     from pipeline.figures import robustness_vs_eps
     from pipeline.robustness import run_attack_rows, worst_by_eps
     from stages.data import load_split
@@ -55,20 +55,12 @@ def main() -> None:
     params_mod.set_threads(p)
     seed = int(p["seed"]) + SEED_OFFSET
     pose, surrogate = load_pose(p), load_pose(p, SURROGATE)
-    detector, ckpt = load_detector(model_hash=pose.hash)
-    try:
-        chain = SafetyChain.from_model(pose.model, np.asarray(ckpt["background_mean"]), detector,
-                                       threshold=float(ckpt["threshold"]))
-    except ValueError as err:
-        raise StageError(f"{POSE}: {err}") from None
-
+    chain = _chain(pose)
     split = load_split(p, "test")
     n = min(r.frames, len(split))
     pick = np.sort(np.random.default_rng(seed).choice(len(split), n, replace=False))
     images = np.stack([np.asarray(split.images[int(i)]) for i in pick])
     targets = split.targets[pick]
-
-    from pipeline.adaptive import ShapChain
 
     target = ShapChain(pose.model, chain.weight, chain.background_mean, chain.detector)
     specs = _specs(p, r, target, pose, surrogate, seed)
@@ -105,45 +97,28 @@ def main() -> None:
           f"{seconds:.0f} s -> {REPORT}, {METRICS}, {FIGURE}")
 
 
-def _specs(p: dict[str, Any], r: Robustness, target: Any, pose: Pose, surrogate: Pose, seed: int) -> list[Any]:
-    """The attack rows to run, in report order. PGD at eps index i uses seed + 100 + i, so plain PGD
-    and the adaptive attack at lambda = 0 are one run (the `pgd` row is then taken from it)."""
-    import torch
+def _chain(pose: Pose) -> Any:
+    """The safety chain of `pose` and models/detector.pt (refused when trained on another pose model)."""
+    from pipeline.chain import SafetyChain
 
-    from pipeline.adaptive import adaptive_pgd
-    from pipeline.attacks import attack_loss, get_attack
-    from pipeline.robustness import AttackSpec
+    detector, ckpt = load_detector(model_hash=pose.hash)
+    try:
+        return SafetyChain.from_model(pose.model, np.asarray(ckpt["background_mean"]), detector,
+                                      threshold=float(ckpt["threshold"]))
+    except ValueError as err:
+        raise StageError(f"{POSE}: {err}") from None
+
+
+def _specs(p: dict[str, Any], r: Robustness, target: Any, pose: Pose, surrogate: Pose, seed: int) -> list[Any]:
+    """The attack rows to run, in report order (pipeline.robustness.attack_specs)."""
+    from pipeline.robustness import attack_specs
 
     a = p["attack"]
-
-    def gen(k: int) -> torch.Generator:
-        return torch.Generator().manual_seed(seed + k)
-
-    def cost(method: str) -> int:
-        """Gradients per frame: PGD takes robustness.steps, MI-FGSM attack.steps as in the attack stage."""
-        return {"fgsm": 1, "pgd": r.steps}.get(method, int(a["steps"]))
-
-    def spec(name: str, group: str, e: float, key: str, k: int, model: Pose = pose) -> AttackSpec:
-        method, loss = attack_name(name, key)
-        fn = get_attack(method, steps=cost(method), step_size=None, random_start=True,
-                        momentum=float(a["momentum"]), generator=gen(k))
-        lf = attack_loss(loss or a["loss"], model.loss)
-        return AttackSpec(name, group, e, None, lambda x, y: fn(model.model, x, y, e, lf), cost(method))
-
-    out = [spec("fgsm", "seen", e, "eps", 0) for e in r.eps]
-    out += [spec("fgsm", "transfer", e, "unseen_eps", 0) for e in r.unseen_eps]
-    pgd_is_lambda0 = "pgd" in r.transfer and 0.0 in r.lambdas
-    out += [spec(name, "transfer", e, "transfer", 100 + i if name == "pgd" else 200 + 10 * j + i)
-            for j, name in enumerate(r.transfer) for i, e in enumerate(r.eps) if not (name == "pgd" and pgd_is_lambda0)]
-    full = attack_loss(a["loss"], pose.loss)
-    out += [AttackSpec("adaptive pgd", "adaptive", e, lam,
-                       lambda x, y, e=e, lam=lam, g=gen(100 + i): adaptive_pgd(target, x, y, e, full, lam,
-                                                                               steps=r.steps, generator=g), r.steps)
-            for i, e in enumerate(r.eps) for lam in r.lambdas]
-    out += [dataclasses.replace(spec(name, "surrogate", e, "surrogate_attacks", 500 + 10 * j + i, surrogate),
-                                attack=f"surrogate {name}")
-            for j, name in enumerate(r.surrogate_attacks) for i, e in enumerate(r.eps)]
-    return out
+    transfer = [(name, *attack_name(name, "transfer")) for name in r.transfer]
+    on_surrogate = [(name, *attack_name(name, "surrogate_attacks")) for name in r.surrogate_attacks]
+    return attack_specs(pose, surrogate, target, eps=r.eps, unseen_eps=r.unseen_eps, transfer=transfer,
+                        lambdas=r.lambdas, surrogate_attacks=on_surrogate, steps=r.steps, mi_steps=int(a["steps"]),
+                        momentum=float(a["momentum"]), loss=a["loss"], seed=seed)
 
 
 def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Robustness, seed: int,
@@ -176,8 +151,7 @@ def _fused_rows(p: dict[str, Any], r: Robustness, chain: Any, target: Any, seed:
 
     from pipeline.adaptive import adaptive_pgd
     from pipeline.attacks import attack_loss
-    from pipeline.robustness import fused_attack, fused_row, worst_burst_over_lambda
-    from pipeline.training import pose_errors
+    from pipeline.robustness import fused_bursts, fused_row, worst_burst_over_lambda
 
     images, labels, trajs, bursts, defended, info = _fused_setup(p, r, chain, model_hash)
     full = attack_loss(p["attack"]["loss"], load_pose(p).loss)
@@ -189,15 +163,8 @@ def _fused_rows(p: dict[str, Any], r: Robustness, chain: Any, target: Any, seed:
             def craft(fused: Any, x: Any, y: Any, e: float = e, lam: float = lam) -> Any:
                 return adaptive_pgd(fused, x, y, e, full, lam, steps=r.steps,
                                     generator=torch.Generator().manual_seed(seed + 700 + i))
-            pos, flag, grp, bid = [], [], [], []
-            for g, (ix, bs) in enumerate(zip(trajs, bursts)):
-                est, trace = fused_attack(chain, target, defended, images[ix], labels[ix], bs, craft, r.batch_size)
-                err = pose_errors(est, labels[ix])[0]
-                for k, (a, b) in enumerate(bs):
-                    pos.append(err[a:b]), flag.append(trace.flag[a:b])
-                    grp.append(np.full(b - a, g)), bid.append(np.full(b - a, 1000 * g + k))
-                bar.update(1)
-            runs.append(tuple(np.concatenate(v) for v in (pos, flag, grp, bid)))
+            runs.append(fused_bursts(chain, target, defended, images, labels, trajs, bursts, craft, r.batch_size,
+                                     lambda: bar.update(1)))
             rows.append(fused_row("fused chain: adaptive pgd", e, lam, *runs[-1][:3], r.harm_m))
         wp, wf = worst_burst_over_lambda([v[0] for v in runs], [v[1] for v in runs], runs[0][3], r.harm_m)
         rows.append(fused_row("fused chain: adaptive pgd, worst over lambda", e, None, wp, wf, runs[0][2], r.harm_m))
@@ -208,10 +175,7 @@ def _fused_rows(p: dict[str, Any], r: Robustness, chain: Any, target: Any, seed:
 def _fused_setup(p: dict[str, Any], r: Robustness, chain: Any, model_hash: str) -> tuple[Any, ...]:
     """(eval_render images, labels (N, 9), frame indices per trajectory, bursts per trajectory, the
     defended-chain settings, facts incl. the fused chain's false-alarm rate on the clean trajectories)."""
-    from pipeline.defense import run_defense
-    from pipeline.robustness import Defended, burst_schedule, pose_estimates, world_motion
-    from pipeline.rotations import sixd_to_matrix
-    from pipeline.stats import bootstrap_rate
+    from pipeline.robustness import Defended, burst_schedule, fused_false_alarms
 
     images, poses, _ = read_eval_render(p)
     labels = poses[["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]].to_numpy(np.float64)
@@ -224,14 +188,8 @@ def _fused_setup(p: dict[str, Any], r: Robustness, chain: Any, model_hash: str) 
         bursts = [burst_schedule(len(ix), length, r.burst_every) for ix in trajs]
     except ValueError as e:
         raise StageError(f"params.yaml robustness.burst_every / evaluate.attack_length: {e}") from None
-    clean_flags, groups = [], []
-    for g, ix in enumerate(trajs):   # the fused chain on the clean trajectories: its false alarms
-        est, prob = pose_estimates(chain, images[ix], r.batch_size)
-        R_cam, u = world_motion(labels[ix])
-        clean_flags.append(run_defense(defended.settings, defended.motion, defended.noise, est[:, :3], prob, R_cam,
-                                       u, sixd_to_matrix(est[:, 3:])).flag)
-        groups.append(np.full(len(ix), g))
-    alarms = bootstrap_rate(np.concatenate(clean_flags), np.concatenate(groups))
+    # the fused chain on the clean trajectories: its false alarms
+    alarms = fused_false_alarms(chain, defended, images, labels, trajs, r.batch_size)
     info = {"trajectories": len(trajs), "bursts": sum(len(b) for b in bursts), "burst_length": length,
             "burst_every": r.burst_every, "false_alarm_rate": alarms.value, "ci95_false_alarm": alarms.ci(),
             "noise_model": defended.noise.as_dict(), "gate": defended.motion.gate,
