@@ -192,6 +192,7 @@ class Defense:
     update_below: Optional[float]    # detector probability in (0, 1) from which a frame does not update the
                                      # filter; None: the detector's threshold
     noise_bins: int              # range bins of the measurement-noise fit (>= 2)
+    target_false_alarm: float    # fraction of clean validation frames the defended chain may flag; calibrate inflates the noise to it, in (0, 1)
     val_trajectories: int        # validation approaches (own seed) the noise model is fitted on (>= 1)
     val_seed: int                # their seed: never evaluate.seed
     harm_m: float                # metres: an attacked frame with a larger position error is harmful (SPEC 11)
@@ -205,6 +206,8 @@ class Defense:
                 raise bad(key, "> 0 (a noise std)")
         if not 0 < self.false_alarm < 1:
             raise bad("false_alarm", "a gate probability in (0, 1)")
+        if not 0 < self.target_false_alarm < 1:
+            raise bad("target_false_alarm", "a fraction in (0, 1)")
         if not 0 < self.soft_gate <= 1:
             raise bad("soft_gate", "in (0, 1]")
         if self.update_below is not None and not 0 < self.update_below < 1:

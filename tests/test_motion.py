@@ -167,3 +167,24 @@ def test_rotation_vector_helpers_match_scipy():
         back = matrix_to_rotvec(R)
         assert np.allclose(Rotation.from_rotvec(back).as_matrix(), R, atol=1e-6)
         assert np.linalg.norm(back) <= np.pi + 1e-9
+
+
+def test_inflate_scales_every_std_and_keeps_the_bias():
+    from pipeline.motion import NoiseModel, inflate
+
+    n = NoiseModel((0.1, 0.2, 0.3), (0.01, 0.01, 0.02), 1.0, 0.05, floor=0.02, bias_intercept=(0.0, 0.0, 0.4))
+    m = inflate(n, 2.0)
+    assert np.allclose(m.position_std(30.0), 2 * n.position_std(30.0))
+    assert m.attitude_std(30.0) == pytest.approx(2 * n.attitude_std(30.0))
+    assert np.allclose(m.position_bias(30.0), n.position_bias(30.0))
+    with pytest.raises(ValueError, match="inflation"):
+        inflate(n, 0.0)
+
+
+def test_smallest_inflation_meets_the_target_or_says_it_cannot():
+    from pipeline.motion import smallest_inflation
+
+    k, rates = smallest_inflation(lambda k: 0.05 / k, target=0.02, grid=(1.0, 2.0, 3.0, 4.0))
+    assert k == 3.0 and list(rates) == [1.0, 2.0, 3.0]          # stops at the first factor that meets it
+    k, rates = smallest_inflation(lambda k: 0.5, target=0.02, grid=(1.0, 2.0))
+    assert k == 2.0 and rates == {1.0: 0.5, 2.0: 0.5}            # none meets it: the largest, with every rate
