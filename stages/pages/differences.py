@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from stages.pages.readme import PAPER
+from stages.pages.readme import DETECTOR_NAMES, PAPER
 
 
 def _pct(x: float | None, decimals: int = 1) -> str:
@@ -22,7 +22,7 @@ def _scale(params: dict[str, Any], tr: dict[str, Any]) -> str:
     r, t, cam = params["render"], params["train"], params["camera"]
     n = 13 * int(r["frames_per_sequence"])
     test, val = tr["test"], tr.get("val", {})
-    pixels = ("square pixels (fy = fx)" if float(cam["fy"]) == float(cam["fx"])
+    pixels = ("square pixels, fy = fx" if float(cam["fy"]) == float(cam["fx"])
               else f"the paper's printed fy/fx = {float(cam['fy']) / float(cam['fx']):.2f}")
     return (f"- **Scale.** {n:,} images at {r['width']}x{r['height']} ({pixels}), Darknet-19 at width {t['width']}, "
             f"{tr.get('epochs_run', t['epochs'])} epochs (checkpoint chosen on {100 * float(t['val_fraction']):.0f}% of the "
@@ -43,7 +43,7 @@ def _detector(params: dict[str, Any], de: dict[str, Any]) -> str:
             f"grouped by source image ({c['test']:,} test samples). LSTM test accuracy {_ci(lstm['all'], 'accuracy')} "
             f"(paper {PAPER['detector']:.2f}%); detection rate at eps {small} {_ci(lstm[small], 'recall')} (FGSM at "
             f"{small} on 8-bit images moves a pixel by at most {round(255 * float(small))} grey levels). Best detector "
-            f"on the same split: {best} ({_ci(de['detectors'][best]['all'], 'accuracy')}).")
+            f"on the same split: {DETECTOR_NAMES.get(best, best)} ({_ci(de['detectors'][best]['all'], 'accuracy')}).")
 
 
 def _integrated(params: dict[str, Any], ev: dict[str, Any]) -> str:
