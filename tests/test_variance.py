@@ -1,0 +1,46 @@
+"""scripts/variance.py: mean and spread of the headline numbers over runs that differ only in seed."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("variance", REPO / "scripts" / "variance.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _run(root: Path, seed: int, pos: float, detect_acc: float | None) -> Path:
+    run = root / f"seed{seed}"
+    (run / "reports" / "metrics").mkdir(parents=True)
+    (run / "params.yaml").write_text(f"profile_name: default\nseed: {seed}\n")
+    train = {"test": {"pos_mean_m": pos, "att_mean_deg": 3.0, "tz_pct_10_30": 1.0}}
+    (run / "reports" / "metrics" / "train.json").write_text(json.dumps(train))
+    if detect_acc is not None:
+        detect = {"detectors": {"lstm": {"all": {"accuracy": detect_acc}, "0.01": {"recall": 0.5}}}}
+        (run / "reports" / "metrics" / "detect.json").write_text(json.dumps(detect))
+    return run
+
+
+def test_rows_count_the_runs_that_have_each_number(tmp_path):
+    runs = [_run(tmp_path, 0, 0.40, 0.93), _run(tmp_path, 1, 0.46, 0.91), _run(tmp_path, 2, 0.43, None)]
+    rows = {r["headline number"]: r for r in _load().variance_rows(runs)}
+    pos = rows["pose, test position error (m)"]
+    assert pos["runs"] == 3 and pos["mean"] == pytest.approx(0.43) and pos["sd"] == pytest.approx(0.03)
+    assert (pos["min"], pos["max"]) == (0.40, 0.46)
+    acc = rows["LSTM detector accuracy, SHAP test split (%)"]
+    assert acc["runs"] == 2 and acc["mean"] == pytest.approx(92.0)
+    assert "lab detection accuracy (%)" not in rows           # no run has it: no row
+
+
+def test_a_single_run_has_no_spread(tmp_path):
+    rows = _load().variance_rows([_run(tmp_path, 0, 0.40, None)])
+    assert rows[0]["runs"] == 1 and math.isnan(rows[0]["sd"])
