@@ -44,11 +44,20 @@ HEADLINES: list[tuple[str, str, Callable[[dict[str, Any]], float]]] = [
 
 
 def _value(run: Path, stage: str, get: Callable[[dict[str, Any]], float]) -> float | None:
+    """The number from RUN's metrics of `stage`, or None when the stage did not run there: metrics that
+    name a pose model (`model_hash`) count only when it is RUN's own models/pose.pt (a copy of the
+    repository carries the committed metrics of stages it never ran)."""
+    from stages.io import file_hash
+
     path = run / "reports" / "metrics" / f"{stage}.json"
     if not path.exists():
         return None
+    metrics = json.loads(path.read_text())
+    pose = run / "models" / "pose.pt"
+    if "model_hash" in metrics and (not pose.exists() or metrics["model_hash"] != file_hash(pose)):
+        return None
     try:
-        return float(get(json.loads(path.read_text())))
+        return float(get(metrics))
     except (KeyError, TypeError):
         return None
 
@@ -66,7 +75,7 @@ def variance_rows(runs: list[Path]) -> list[dict[str, Any]]:
         values = [v for v in (_value(r, stage, get) for r in runs) if v is not None]
         if not values:
             continue
-        sd = statistics.stdev(values) if len(values) > 1 else float("nan")
+        sd: float | str = statistics.stdev(values) if len(values) > 1 else "-"  # no spread from one run
         rows.append({"headline number": name, "runs": len(values), "mean": statistics.mean(values), "sd": sd,
                      "min": min(values), "max": max(values)})
     return rows

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import math
 from pathlib import Path
 
 import pytest
@@ -24,8 +23,13 @@ def _run(root: Path, seed: int, pos: float, detect_acc: float | None) -> Path:
     (run / "params.yaml").write_text(f"profile_name: default\nseed: {seed}\n")
     train = {"test": {"pos_mean_m": pos, "att_mean_deg": 3.0, "tz_pct_10_30": 1.0}}
     (run / "reports" / "metrics" / "train.json").write_text(json.dumps(train))
+    (run / "models").mkdir()
+    (run / "models" / "pose.pt").write_bytes(f"weights of seed {seed}".encode())
     if detect_acc is not None:
-        detect = {"detectors": {"lstm": {"all": {"accuracy": detect_acc}, "0.01": {"recall": 0.5}}}}
+        from stages.io import file_hash
+
+        detect = {"detectors": {"lstm": {"all": {"accuracy": detect_acc}, "0.01": {"recall": 0.5}}},
+                  "model_hash": file_hash(run / "models" / "pose.pt")}
         (run / "reports" / "metrics" / "detect.json").write_text(json.dumps(detect))
     return run
 
@@ -43,4 +47,13 @@ def test_rows_count_the_runs_that_have_each_number(tmp_path):
 
 def test_a_single_run_has_no_spread(tmp_path):
     rows = _load().variance_rows([_run(tmp_path, 0, 0.40, None)])
-    assert rows[0]["runs"] == 1 and math.isnan(rows[0]["sd"])
+    assert rows[0]["runs"] == 1 and rows[0]["sd"] == "-"
+
+
+def test_metrics_of_another_pose_model_do_not_count(tmp_path):
+    """A copy of the repository carries committed metrics of stages it never ran: they name another model."""
+    run = _run(tmp_path, 1, 0.40, 0.93)
+    (run / "models" / "pose.pt").write_bytes(b"retrained")      # detect.json now belongs to another model
+    rows = {r["headline number"]: r for r in _load().variance_rows([run])}
+    assert "LSTM detector accuracy, SHAP test split (%)" not in rows and rows["pose, test position error (m)"]["runs"] == 1
+
