@@ -42,6 +42,11 @@ def _row(run: Path) -> dict[str, object]:
 
 
 def main(other: str) -> None:
+    needed = [Path(d) / f for d in (ROOT, other) for f in ("params.yaml", "reports/metrics/train.json",
+                                                               "reports/metrics/lab.json")]
+    missing = [str(f) for f in needed if not f.exists()]
+    if missing:
+        raise SystemExit(f"missing (run `dvc repro lab` there first): {', '.join(missing)}")
     rows = [_row(ROOT), _row(Path(other))]
     keys = ("test position (m)", "lab position (m)", "lab attitude (deg)")
     better = [k for k in keys if rows[0][k] < rows[1][k]]

@@ -83,6 +83,9 @@ def variance_rows(runs: list[Path]) -> list[dict[str, Any]]:
 
 def main(paths: list[str]) -> None:
     runs = [Path(p).resolve() for p in paths]
+    missing = [str(r / "params.yaml") for r in runs if not (r / "params.yaml").exists()]
+    if missing:
+        raise SystemExit(f"not a run of this repository (no params.yaml): {', '.join(missing)}")
     profiles = {yaml_profile(r) for r in runs}
     if len(profiles) != 1:
         raise SystemExit(f"runs of different profiles: {sorted(profiles)}")

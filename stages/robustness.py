@@ -193,7 +193,7 @@ def _fused_setup(p: dict[str, Any], r: Robustness, chain: Any, model_hash: str) 
     info = {"trajectories": len(trajs), "bursts": sum(len(b) for b in bursts), "burst_length": length,
             "burst_every": r.burst_every, "false_alarm_rate": alarms.value, "ci95_false_alarm": alarms.ci(),
             "noise_model": defended.noise.as_dict(), "gate": defended.motion.gate,
-            "gate_false_alarm": defended.motion.false_alarm,
+            "gate_false_alarm": defended.motion.false_alarm, "noise_inflation": shipped.calibration.get("inflation", 1.0),
             "fusion": defended.settings.fusion,
             "noise_fitted_on": "validation trajectories (models/defense.json, rpod calibrate)"}
     return images, labels, trajs, bursts, defended, info

@@ -50,7 +50,8 @@ def _fused(m: dict[str, Any], p: dict[str, Any]) -> str:
     return f"""## Adaptive attack on the fused chain (the chain that ships)
 
 The defended chain of issue 16 flags a frame when the LSTM flags it OR the motion filter's
-chi-square gate rejects it (false-alarm rate {100 * f['gate_false_alarm']:g}% per frame, gate NIS {f['gate']:.1f}), and coasts on
+chi-square gate rejects it (gate NIS {f['gate']:.1f}: a {100 * f['gate_false_alarm']:g}% false-alarm rate per frame under the
+noise model `rpod calibrate` fitted and inflated x{f.get('noise_inflation', 1.0):g} so that clean validation frames pass), and coasts on
 flagged frames. The attacker knows all of it: L-inf PGD, {m['steps']} steps, random start, on
 `pose_loss - lambda * sum over the burst of (softplus(LSTM logit margin) + softplus(position NIS margin)
 + softplus(attitude NIS margin))`, each NIS against the filter's prediction, which coasts on the chaser's
