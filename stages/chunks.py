@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from stages import engine
-from stages.io import StageError, chunk_crc32c, create_array, seal_zarr, store_fs
+from stages.io import StageError, chunk_crc32c, create_array, reopen_array, seal_zarr, store_fs
 
 
 def store_url(path: Path | str) -> str:
@@ -41,15 +41,13 @@ class RenderWorker:
     exactly one chunk, into the store's `images` and returns {chunk key: crc32c}."""
 
     def __init__(self, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, url: str, empty_hint: str | None) -> None:
-        import zarr
-
         from pipeline.scene import Renderer
 
         fs, root = store_fs(url)
         if not fs.exists(f"{root}/zarr.json"):
             raise StageError(f"image store {url} is not visible on worker host {socket.gethostname()}; on a "
                              f"cluster of several machines set engine.store to a shared folder or fsspec URL")
-        self.images = zarr.open_array(url, path="images", mode="r+")
+        self.images = reopen_array(url, "images")
         self.fs, self.root, self.R, self.t, self.empty_hint = fs, root, R, t, empty_hint
         try:
             self.renderer = Renderer(K, scene)

@@ -235,6 +235,15 @@ def create_array(group: Any, name: str, **kwargs: Any) -> Any:
                               config={"write_empty_chunks": True}, **kwargs)
 
 
+def reopen_array(path: Path | str, name: str) -> Any:
+    """An array that `create_array` made, reopened for writing (path or fsspec URL of its store) with the
+    same rule: every chunk written, also all-zero ones (zarr keeps that setting only per open array)."""
+    import zarr
+
+    with zarr.config.set({"array.write_empty_chunks": True}):
+        return zarr.open_array(str(path), path=name, mode="r+")
+
+
 def _chunk_keys(shape: tuple[int, ...], chunks: tuple[int, ...]) -> list[str]:
     """Chunk file names of a zarr v3 array (default encoding "c/i/j/...") over its whole grid."""
     import itertools
