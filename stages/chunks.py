@@ -70,12 +70,19 @@ class RenderWorker:
 
 def render_to_store(url: str, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, chunk: int,
                     es: engine.EngineSettings, desc: str, empty_hint: str | None = None) -> float:
-    """Render every pose into a new store at `url` (one job per chunk) and seal it -> seconds taken.
+    """Render every pose into a new store at `url` (one job per chunk) and seal it -> seconds taken;
+    bad render settings are refused before any worker starts.
 
     Each Ray worker renders with render.threads / workers Blender threads (at least 1); Cycles gives
     the same pixels for any thread count and chunk order, so the store equals the in-process one."""
     from tqdm import tqdm
 
+    from pipeline.scene import check_settings
+
+    try:
+        check_settings(K, scene)
+    except ValueError as e:
+        raise StageError(f"params.yaml render: {e}") from None
     n = len(t)
     create_store(url, n, K.height, K.width, chunk)
     if scene.mesh:   # workers may run in another folder

@@ -55,17 +55,24 @@ def run(worker_cls: type, init: tuple, jobs: list[tuple], es: EngineSettings, nu
             return out
         finally:
             worker.close()
-    with _connected(es):
+    with session(es):
         return _run_on_ray(worker_cls, init, jobs, es, num_cpus, progress)
 
 
 @contextlib.contextmanager
-def _connected(es: EngineSettings) -> Iterator[None]:
-    """A Ray session for one stage: the cluster at es.address, or a local Ray with es.workers CPUs."""
+def session(es: EngineSettings) -> Iterator[None]:
+    """A Ray session (the cluster at es.address, or a local Ray with es.workers CPUs) kept up for every
+    `run` inside it, so a stage with several sets starts Ray once; nothing when in-process or already up."""
     import logging
 
+    if es.in_process:
+        yield
+        return
     import ray
 
+    if ray.is_initialized():
+        yield
+        return
     if es.address:
         _check_reachable(es.address)
     try:

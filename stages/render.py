@@ -46,15 +46,10 @@ def frames(p: dict[str, Any]):
 def render_all(p: dict[str, Any], dest: Path) -> None:
     """Render every frame into dest/{poses.parquet, meta.json} and the image store (dest/images.zarr,
     or `engine.store`, which meta.json then names); `dest` is a fresh folder."""
-    from pipeline.scene import check_settings
     from pipeline.trajectories import poses_table
 
     r, es, store = p["render"], engine.settings(p), p["engine"]["store"]
     K, scene = params_mod.intrinsics(p), params_mod.scene_settings(r)
-    try:
-        check_settings(K, scene)
-    except ValueError as e:
-        raise StageError(f"params.yaml render: {e}") from None
     seq, frm, R, t = frames(p)
     url = store_url(store or dest / "images.zarr")
     seconds = render_to_store(url, K, scene, R, t, int(r["chunk"]), es, "render",
