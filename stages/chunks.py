@@ -49,10 +49,7 @@ class RenderWorker:
                              f"cluster of several machines set engine.store to a shared folder or fsspec URL")
         self.images = reopen_array(url, "images")
         self.fs, self.root, self.R, self.t, self.empty_hint = fs, root, R, t, empty_hint
-        try:
-            self.renderer = Renderer(K, scene)
-        except ValueError as e:
-            raise StageError(f"params.yaml render: {e}") from None
+        self.renderer = Renderer(K, scene)   # settings checked by the driver (`prepare`)
 
     def run(self, lo: int, hi: int) -> dict[str, str]:
         engine.exit_once_for_test()
@@ -68,30 +65,66 @@ class RenderWorker:
         self.renderer.close()
 
 
-def render_to_store(url: str, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, chunk: int,
-                    es: engine.EngineSettings, desc: str, empty_hint: str | None = None) -> float:
-    """Render every pose into a new store at `url` (one job per chunk) and seal it -> seconds taken;
-    bad render settings are refused before any worker starts.
+class PoseRenderWorker:
+    """One Blender scene: `run(R, t)` renders the poses R (n, 3, 3), t (n, 3) (camera frame, metres) and
+    returns them to the driver -> (RGB (n, H, W, 3) uint8 on black, alpha (n, H, W) float32 in [0, 1])."""
 
-    Each Ray worker renders with render.threads / workers Blender threads (at least 1); Cycles gives
-    the same pixels for any thread count and chunk order, so the store equals the in-process one."""
-    from tqdm import tqdm
+    def __init__(self, K: Any, scene: Any) -> None:
+        from pipeline.scene import Renderer
 
+        self.renderer = Renderer(K, scene)
+
+    def run(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        engine.exit_once_for_test()
+        out = [self.renderer.render_with_alpha(Ri, ti) for Ri, ti in zip(R, t)]
+        return np.stack([rgb for rgb, _ in out]), np.stack([alpha for _, alpha in out])
+
+    def close(self) -> None:
+        self.renderer.close()
+
+
+def prepare(K: Any, scene: Any, es: engine.EngineSettings) -> tuple[Any, int]:
+    """(scene settings for one worker, its Blender threads): settings checked before any worker starts
+    (StageError), the mesh path made absolute (workers may run elsewhere), and render.threads / workers
+    threads (at least 1) per Ray worker. Cycles gives the same pixels for any thread count and chunk
+    order, so the images equal the in-process ones."""
     from pipeline.scene import check_settings
 
     try:
         check_settings(K, scene)
     except ValueError as e:
         raise StageError(f"params.yaml render: {e}") from None
+    threads = scene.threads if es.in_process else max(1, scene.threads // es.workers)
+    mesh = str(Path(scene.mesh).resolve()) if scene.mesh else None
+    return dataclasses.replace(scene, threads=threads, mesh=mesh), threads
+
+
+def render_poses(K: Any, scene: Any, R: np.ndarray, t: np.ndarray, chunk: int, es: engine.EngineSettings,
+                 desc: str) -> tuple[np.ndarray, np.ndarray]:
+    """Every pose rendered by the engine's workers, `chunk` poses per job -> (RGB, alpha) in pose order."""
+    from tqdm import tqdm
+
+    scene, threads = prepare(K, scene, es)
+    jobs = [(R[lo:lo + chunk], t[lo:lo + chunk]) for lo in range(0, len(t), chunk)]
+    with tqdm(total=len(t), unit="img", desc=desc, dynamic_ncols=True, mininterval=0.5) as bar:
+        out = engine.run(PoseRenderWorker, (K, scene), jobs, es, num_cpus=threads,
+                         progress=lambda i, _: bar.update(len(jobs[i][1])))
+    return np.concatenate([rgb for rgb, _ in out]), np.concatenate([alpha for _, alpha in out])
+
+
+def render_to_store(url: str, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, chunk: int,
+                    es: engine.EngineSettings, desc: str, empty_hint: str | None = None) -> float:
+    """Render every pose into a new store at `url` (one job per chunk) and seal it -> seconds taken;
+    bad render settings are refused before any worker starts (`prepare`)."""
+    from tqdm import tqdm
+
+    scene, threads = prepare(K, scene, es)
     n = len(t)
     create_store(url, n, K.height, K.width, chunk)
-    if scene.mesh:   # workers may run in another folder
-        scene = dataclasses.replace(scene, mesh=str(Path(scene.mesh).resolve()))
-    threads = scene.threads if es.in_process else max(1, scene.threads // es.workers)
     jobs = [(lo, min(lo + chunk, n)) for lo in range(0, n, chunk)]
     t0 = time.perf_counter()
     with tqdm(total=n, unit="img", desc=desc, dynamic_ncols=True, mininterval=0.5) as bar:
-        crcs = engine.run(RenderWorker, (K, dataclasses.replace(scene, threads=threads), R, t, url, empty_hint),
-                          jobs, es, num_cpus=threads, progress=lambda i, _: bar.update(jobs[i][1] - jobs[i][0]))
+        crcs = engine.run(RenderWorker, (K, scene, R, t, url, empty_hint), jobs, es, num_cpus=threads,
+                          progress=lambda i, _: bar.update(jobs[i][1] - jobs[i][0]))
     seal_zarr(url, {"images": {k: v for c in crcs for k, v in c.items()}})
     return time.perf_counter() - t0
