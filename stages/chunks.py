@@ -2,13 +2,13 @@
 
 The driver creates the store (array `images`, uint8 (N, H, W, 3), chunked by frames); each worker
 holds one Blender scene, renders whole chunks, writes them into the store itself (a local path or an
-fsspec URL every worker can reach) and returns each chunk's crc32c; the driver writes the manifest
-last (`stages.io.seal_zarr`). No merge step: the store is complete when the manifest is there.
+fsspec URL) and returns each chunk's crc32c (a worker on a machine that cannot see the store returns
+the pixels and the driver writes them); the driver writes the manifest last (`stages.io.seal_zarr`).
+No merge step: the store is complete when the manifest is there.
 """
 from __future__ import annotations
 
 import dataclasses
-import socket
 import time
 from pathlib import Path
 from typing import Any
@@ -38,31 +38,41 @@ def create_store(url: str, n: int, height: int, width: int, chunk: int) -> None:
 
 class RenderWorker:
     """One Blender scene: `run(lo, hi)` renders the poses R[lo:hi], t[lo:hi] (camera frame, metres),
-    exactly one chunk, into the store's `images` and returns {chunk key: crc32c}."""
+    exactly one chunk, into the store's `images` and returns {chunk key: crc32c}; a worker that cannot
+    see the store (another machine without shared storage) returns the pixels for the driver to write."""
 
     def __init__(self, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, url: str, empty_hint: str | None) -> None:
         from pipeline.scene import Renderer
 
-        fs, root = store_fs(url)
-        if not fs.exists(f"{root}/zarr.json"):
-            raise StageError(f"image store {url} is not visible on worker host {socket.gethostname()}; on a "
-                             f"cluster of several machines set engine.store to a shared folder or fsspec URL")
-        self.images = reopen_array(url, "images")
-        self.fs, self.root, self.R, self.t, self.empty_hint = fs, root, R, t, empty_hint
+        self.fs, self.root = store_fs(url)
+        self.images = reopen_array(url, "images") if visible(self.fs, self.root) else None
+        self.R, self.t, self.empty_hint = R, t, empty_hint
         self.renderer = Renderer(K, scene)   # settings checked by the driver (`prepare`)
 
-    def run(self, lo: int, hi: int) -> dict[str, str]:
+    def run(self, lo: int, hi: int) -> dict[str, str] | np.ndarray:
         engine.exit_once_for_test()
         buf = np.stack([self.renderer.render(self.R[k], self.t[k]) for k in range(lo, hi)])
         if self.empty_hint and lo == 0 and not buf.any():
             raise StageError(f"render: the target covers no pixels in the first {hi} frames (all black); "
                              f"{self.empty_hint}")
-        self.images[lo:hi] = buf
-        key = f"c/{lo // self.images.chunks[0]}/0/0/0"
-        return {key: chunk_crc32c(self.fs, f"{self.root}/images/{key}")}
+        if self.images is None:
+            return buf
+        return write_chunk(self.images, self.fs, self.root, lo, buf)
 
     def close(self) -> None:
         self.renderer.close()
+
+
+def visible(fs: Any, root: str) -> bool:
+    """Whether this process sees the store the driver created (its zarr.json)."""
+    return fs.exists(f"{root}/zarr.json")
+
+
+def write_chunk(images: Any, fs: Any, root: str, lo: int, buf: np.ndarray) -> dict[str, str]:
+    """Write one whole chunk (frames lo .. lo + len(buf)) into the array `images` -> {its key: crc32c}."""
+    images[lo:lo + len(buf)] = buf
+    key = f"c/{lo // images.chunks[0]}/0/0/0"
+    return {key: chunk_crc32c(fs, f"{root}/images/{key}")}
 
 
 class PoseRenderWorker:
@@ -122,9 +132,17 @@ def render_to_store(url: str, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, 
     n = len(t)
     create_store(url, n, K.height, K.width, chunk)
     jobs = [(lo, min(lo + chunk, n)) for lo in range(0, n, chunk)]
+    crcs: dict[str, str] = {}
+    fs, root = store_fs(url)
+    images = reopen_array(url, "images")
+
+    def done(i: int, result: dict[str, str] | np.ndarray) -> None:
+        """Record a chunk's checksum; write the chunks a worker could not (it returned the pixels)."""
+        crcs.update(write_chunk(images, fs, root, jobs[i][0], result) if isinstance(result, np.ndarray) else result)
+        bar.update(jobs[i][1] - jobs[i][0])
+
     t0 = time.perf_counter()
     with tqdm(total=n, unit="img", desc=desc, dynamic_ncols=True, mininterval=0.5) as bar:
-        crcs = engine.run(RenderWorker, (K, scene, R, t, url, empty_hint), jobs, es, num_cpus=threads,
-                          progress=lambda i, _: bar.update(jobs[i][1] - jobs[i][0]))
-    seal_zarr(url, {"images": {k: v for c in crcs for k, v in c.items()}})
+        engine.run(RenderWorker, (K, scene, R, t, url, empty_hint), jobs, es, num_cpus=threads, progress=done)
+    seal_zarr(url, {"images": crcs})
     return time.perf_counter() - t0

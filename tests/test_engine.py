@@ -103,3 +103,13 @@ def test_store_elsewhere_is_named_in_meta_and_read_back(workdir):
     assert meta["store"] == str(store) and not (workdir / RENDER / "images.zarr").exists()
     images, poses, _ = read_render_store(RENDER)
     assert images.shape[0] == len(poses) == 26 and np.asarray(images[:]).max() > 0
+
+
+def test_a_worker_that_cannot_see_the_store_sends_its_pixels(workdir, monkeypatch):
+    from stages import chunks
+
+    direct = _render(workdir, ["engine.workers=1"])
+    asked = []
+    monkeypatch.setattr(chunks, "visible", lambda fs, root: asked.append(root) and False)  # "another machine"
+    sent = _render(workdir, ["engine.workers=1"])
+    assert asked and np.array_equal(direct, sent)   # the driver wrote every chunk: same store, same manifest
