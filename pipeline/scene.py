@@ -205,6 +205,7 @@ class Renderer:
         fd, self._png = tempfile.mkstemp(prefix=f"rpod_{os.getpid()}_{uuid.uuid4().hex[:8]}_", suffix=".png",
                                          dir="/dev/shm" if os.path.isdir("/dev/shm") else None)
         os.close(fd)
+        os.unlink(self._png)   # only the unique name is kept: Blender writes the file per frame
         self.scene.render.filepath = self._png
 
     def _setup_render(self) -> None:
@@ -299,6 +300,7 @@ class Renderer:
         with _quiet_stdout():
             bpy.ops.render.render(write_still=True)
         bgra = cv2.imread(self._png, cv2.IMREAD_UNCHANGED)
+        Path(self._png).unlink(missing_ok=True)   # a worker killed between frames leaves no file behind
         if bgra is None or bgra.shape[:2] != (self.K.height, self.K.width):
             raise RuntimeError(f"Blender did not write the expected {self.K.width}x{self.K.height} "
                                f"image to {self._png}")

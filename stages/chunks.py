@@ -104,7 +104,7 @@ def prepare(K: Any, scene: Any, es: engine.EngineSettings) -> tuple[Any, int]:
         check_settings(K, scene)
     except ValueError as e:
         raise StageError(f"params.yaml render: {e}") from None
-    threads = scene.threads if es.in_process else max(1, scene.threads // es.workers)
+    threads = es.threads(scene.threads)
     mesh = str(Path(scene.mesh).resolve()) if scene.mesh else None
     return dataclasses.replace(scene, threads=threads, mesh=mesh), threads
 

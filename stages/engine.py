@@ -22,7 +22,7 @@ EXIT_ONCE = "RPOD_TEST_EXIT_ONCE"  # test hook: a worker hard-exits on its first
 
 @dataclass(frozen=True)
 class EngineSettings:
-    workers: int              # actors (or 1 = in-process)
+    workers: int | None       # actors (1 = in-process); None = every core (of the cluster, with an address)
     address: str | None       # Ray cluster address, None = a local Ray (or in-process)
     timeout_s: float          # seconds without a finished chunk before giving up
     retries: int              # restarts of a dead worker (and retries of its chunk)
@@ -31,12 +31,19 @@ class EngineSettings:
     def in_process(self) -> bool:
         return self.workers == 1 and not self.address
 
+    def threads(self, render_threads: int) -> int:
+        """Blender threads per worker: all of render.threads in-process, else shared out (at least 1)."""
+        if self.in_process:
+            return render_threads
+        return max(1, render_threads // (self.workers or (1 if self.address else os.cpu_count() or 1)))
+
 
 def settings(params: dict[str, Any]) -> EngineSettings:
-    """The engine section of params, with workers None -> the cores and address None -> $RAY_ADDRESS."""
+    """The engine section of params, with address None -> $RAY_ADDRESS; workers None is every core of
+    this machine, or of the cluster when there is an address."""
     e = params["engine"]
-    workers = int(e["workers"] or os.cpu_count() or 1)
     address = e["address"] or os.environ.get("RAY_ADDRESS") or None
+    workers = e["workers"] if e["workers"] or address else os.cpu_count() or 1
     return EngineSettings(workers, address, float(e["timeout_s"]), int(e["retries"]))
 
 
@@ -107,7 +114,8 @@ def _run_on_ray(worker_cls: type, init: tuple, jobs: list[tuple], es: EngineSett
     import ray
 
     actor = ray.remote(worker_cls).options(num_cpus=num_cpus, max_restarts=es.retries, max_task_retries=es.retries)
-    actors = [actor.remote(*init) for _ in range(min(es.workers, len(jobs)))]
+    workers = es.workers or max(1, int(ray.cluster_resources().get("CPU", 1) // num_cpus))
+    actors = [actor.remote(*init) for _ in range(min(workers, len(jobs)))]
     todo, pending, out = list(range(len(jobs)))[::-1], {}, [None] * len(jobs)
     for a in actors:
         if todo:
@@ -126,6 +134,7 @@ def _run_on_ray(worker_cls: type, init: tuple, jobs: list[tuple], es: EngineSett
             if todo:
                 j = todo.pop()
                 pending[a.run.remote(*jobs[j])] = (a, j)
+        ray.get([a.close.remote() for a in actors], timeout=es.timeout_s)   # e.g. a scene's temporary files
     finally:
         for a in actors:
             ray.kill(a)
