@@ -57,12 +57,13 @@ def params_cmd(
 # A module exposes `main` (one command) or `app` (a command group, e.g. `rpod lab rescale`).
 STAGES = ["render", "label", "train", "attack", "guidance", "shap", "detect", "eval_render", "calibrate", "evaluate",
           "robustness", "lab_models", "lab", "report"]
+COMMANDS = ["predict"]   # commands outside the DVC pipeline, registered the same way
 
 
 def _register() -> None:
     import importlib
 
-    for name in STAGES:
+    for name in STAGES + COMMANDS:
         try:
             mod = importlib.import_module(f"stages.{name}")
         except ModuleNotFoundError as e:
