@@ -9,7 +9,7 @@ PAPER = {
     "integrated_eps": {"0.5": 100.0, "0.3": 99.99, "0.1": 99.97, "0.05": 99.99, "0.01": 97.67},
     "lab_eps": {"0.5": 100.0, "0.3": 100.0, "0.1": 100.0, "0.05": 98.44, "0.01": 90.44},
 }
-DETECTOR_NAMES = {"lstm": "LSTM on SHAP (SPEC 7)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis (GAP)",
+DETECTOR_NAMES = {"lstm": "LSTM on SHAP (paper)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis (GAP)",
                   "lid": "LID (GAP)", "squeeze": "feature squeezing"}
 
 
