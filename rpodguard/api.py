@@ -146,7 +146,7 @@ def read_image(path: Path) -> np.ndarray:
                 grey = (np.asarray(im).astype(np.uint16) >> 8).astype(np.uint8)
                 return np.repeat(grey[..., None], 3, axis=2)
             return np.asarray(im.convert("RGB"))
-    except (OSError, ValueError, SyntaxError) as e:
+    except (OSError, ValueError, SyntaxError, PILImage.DecompressionBombError) as e:
         raise StageError(f"{path} cannot be read as an image ({type(e).__name__}: {e})") from None
 
 

@@ -21,9 +21,9 @@ def main(
 ) -> None:
     """Pose (position m, quaternion, 6-D) and attack flag of each image through the trained chain.
 
-    The chain judges each image alone (pose CNN -> SHAP signature -> LSTM detector); the motion-filter
-    defense needs a sequence and is not applied. Positions assume the camera the model was trained with.
-    An image whose aspect differs from the model input's is stretched to fit, with a warning.
+    Each image is judged alone (pose CNN -> SHAP signature -> LSTM detector); the motion filter needs a sequence.
+
+    Positions assume the camera the model was trained with; another aspect is stretched to fit, with a warning.
     """
     from rpodguard import load_chain
     from stages.io import StageError
