@@ -171,8 +171,6 @@ def main(ctx: typer.Context) -> None:
 def _lab_models(reason: str | None) -> dict[str, Any] | None:
     """The synthetic-lab summary of `rpod lab_models` when the lab must use retrained models (`reason`), else
     None; refuses a datasets/lab_models/ made for other params."""
-    if not LAB_MODELS_SUMMARY.exists():
-        raise StageError(f"{LAB_MODELS_SUMMARY} not found: run `rpod lab_models` first (dvc repro lab_models)")
     summary = read_json(LAB_MODELS_SUMMARY)
     if summary.get("reason") != reason:
         raise StageError(f"{LAB_MODELS} was made for other lab params (retrain reason {summary.get('reason')!r}, "
