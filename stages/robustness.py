@@ -1,4 +1,4 @@
-"""`rpod robustness`: the shipped safety chain against attacks its detector never saw (SPEC 11).
+"""`rpod robustness`: the shipped safety chain against attacks its detector never saw.
 
 Reads models/pose.pt, models/detector.pt, models/surrogate.pt (`rpod train --surrogate`) and a
 seeded sample of `robustness.frames` held-out test frames; every attacked image is stored as 8-bit

@@ -1,4 +1,4 @@
-"""`rpod train`: train the Darknet-19 pose CNN on the labelled renders (SPEC 4).
+"""`rpod train`: train the Darknet-19 pose CNN on the labelled renders.
 
 Reads params `seed`, `render.width/height` (the input size) and `train`; writes models/pose.pt (the
 best epoch by validation SPEED score), dvclive/train/ (per-epoch curves for `dvc plots show`),
