@@ -26,13 +26,12 @@ from typing import Any
 import numpy as np
 
 from stages import params as params_mod
-from stages.artifacts import Pose, load_defense, load_detector, load_pose, read_eval_render
+from stages.artifacts import SURROGATE, Pose, load_defense, load_detector, load_pose, read_eval_render
 from stages.checkpoint import POSE
 from stages.io import StageError, atomic_write_text, not_found, save_figure, write_metrics
 from stages.pages.robustness import robustness_page
 from stages.schema import Robustness, attack_name
 
-SURROGATE = Path("models/surrogate.pt")
 REPORT = Path("reports/robustness.md")
 METRICS = Path("reports/metrics/robustness.json")
 FIGURE = Path("reports/figures/robustness.png")

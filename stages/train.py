@@ -21,6 +21,7 @@ from typing import Annotated, Any
 
 import typer
 
+from stages.artifacts import SURROGATE
 from stages.checkpoint import POSE
 from stages.io import StageError, atomic_outputs, atomic_write_text, write_metrics
 from stages.pages.pose import pose_page
@@ -29,7 +30,6 @@ REPORT = Path("reports/pose.md")
 METRICS = Path("reports/metrics/train.json")
 LIVE_DIR = "dvclive/train"
 SEED_OFFSET = 300
-SURROGATE = Path("models/surrogate.pt")
 
 
 def main(
