@@ -69,7 +69,7 @@ def _project(x_adv: Tensor, x: Tensor, eps: float) -> Tensor:
 
 
 def fgsm(model: nn.Module, x: Tensor, y: Tensor, eps: float, loss_fn: LossFn) -> Tensor:
-    """Fast gradient sign method (SPEC 5): x' = clip(x + eps * sign(grad_x L(model(x), y)), 0, 1)."""
+    """Fast gradient sign method: x' = clip(x + eps * sign(grad_x L(model(x), y)), 0, 1)."""
     eps = check_eps(eps)
     x = x.detach()
     with _eval_mode(model):

@@ -1,4 +1,4 @@
-"""DeepSHAP values of the pose network's GAP features for each of its 9 outputs (SPEC 6).
+"""DeepSHAP values of the pose network's GAP features for each of its 9 outputs.
 
 The pose model is `forward_head(forward_features(x))`: features `a` (B, 1000) from the Global
 Average Pooling layer, then the heads give 9 outputs (position in metres, then the 6-D rotation).

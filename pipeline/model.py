@@ -1,6 +1,6 @@
 """The relative-pose CNN: a modified Darknet-19 with a 1000-feature GAP layer and two linear heads.
 
-Architecture (SPEC 4): Darknet-19's layer plan with a 7x7 first convolution, every max-pool replaced
+Architecture: Darknet-19's layer plan with a 7x7 first convolution, every max-pool replaced
 by a 3x3 stride-2 convolution, and Darknet-53-style residual blocks (1x1 bottleneck to half the
 channels, 3x3 back, identity skip) in place of Darknet-19's 1x1/3x3 pairs. Every convolution is
 followed by BatchNorm and its own LeakyReLU(0.1) instance (inplace=False, so shap's DeepExplainer

@@ -1,6 +1,6 @@
 """Rotations and pose errors in the OpenCV camera frame (x right, y down, z forward).
 
-Conventions (SPEC 2): position t = target origin in the camera frame (metres); quaternion
+Conventions: position t = target origin in the camera frame (metres); quaternion
 q = (qw, qx, qy, qz), scalar first, rotating target-frame vectors into the camera frame
 (SPEED/SPEED+ `q_vbs2tango_true`); 6-D rotation (Zhou et al. 2019) = first two columns of R,
 flattened column-wise: (R00, R10, R20, R01, R11, R21).

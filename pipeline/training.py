@@ -7,7 +7,7 @@ DistributedSampler and the validation set evaluated in shards that are gathered 
 The caller passes a validation set carved from the training data (pipeline.splits.holdout): `fit`
 never sees the test split, so the checkpoint it keeps is not selected on test data.
 
-Errors (SPEC 2): position ||t_pred - t_gt|| in metres, attitude 2*acos(|<q_pred, q_gt>|) in degrees,
+Errors: position ||t_pred - t_gt|| in metres, attitude 2*acos(|<q_pred, q_gt>|) in degrees,
 the 6-D output decoded by Gram-Schmidt. The model selection score is the ESA SPEED score,
 mean(||t_pred - t_gt|| / ||t_gt||) + mean(attitude error in radians): dimensionless, so a 1% range
 error weighs as much as 0.01 rad (0.57 deg) of attitude.

@@ -34,6 +34,7 @@ LAB_MODELS = Path("datasets/lab_models")
 LAB_MODELS_SUMMARY = LAB_MODELS / "summary.json"
 TRAIN_METRICS = Path("reports/metrics/train.json")
 DETECTOR = Path("models/detector.pt")
+SURROGATE = Path("models/surrogate.pt")   # a second pose model (`rpod train --surrogate`) for black-box transfer
 ROC_DIR = Path("reports/plots/roc")
 DETECTOR_FORMAT = "rpodguard-detector/1"
 SPLIT_CODES = {"train": 0, "test": 1}   # `split` codes of the SHAP store

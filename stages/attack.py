@@ -142,7 +142,7 @@ def _report(rows: list[dict[str, Any]], a: dict[str, Any], n: int) -> str:
 
 Attack: **{a['method']}**{step} on the **{a['loss']}** loss (`full` = the training loss with its
 learned weights), L-inf budget eps in pixel units ([0, 1] images), {n} test images (time: reports/metrics/attack.json).
-FGSM is `x' = clip(x + eps * sign(grad_x L), 0, 1)` (SPEC 5).
+FGSM is `x' = clip(x + eps * sign(grad_x L), 0, 1)`.
 
 Errors are measured on the adversarial images **as stored** in `datasets/attack/adv.zarr` (uint8):
 each pixel's perturbation is rounded to the nearest 8-bit level, but never to zero, so every
@@ -150,7 +150,7 @@ perturbed pixel keeps the sign of its perturbation. "stored L-inf" is the larges
 pixel: it can exceed eps by up to half a level (eps = 0.01 = 2.55 levels is stored as 3 levels).
 
 {table}
-Position error `||t_pred - t_gt||`, attitude error `2 acos(|<q_pred, q_gt>|)` (SPEC 2).
+Position error `||t_pred - t_gt||`, attitude error `2 acos(|<q_pred, q_gt>|)`.
 {_trend(rows)}
 
 Same attack measured on the float adversarial images, before quantisation:

@@ -1,4 +1,4 @@
-"""`rpod calibrate`: fit the defense on validation trajectories (SPEC 11, issue 16).
+"""`rpod calibrate`: fit the defense on validation trajectories (issue 16).
 
 Runs the safety chain clean over the validation approaches `rpod eval_render` rendered into
 datasets/val_render/ (seed `defense.val_seed`, never the evaluation seed), fits the pose model's

@@ -62,6 +62,8 @@ STAGES = ["render", "label", "train", "attack", "guidance", "shap", "detect", "e
 def _register() -> None:
     import importlib
 
+    from stages.paramhelp import ParamsHelpCommand, ParamsHelpGroup
+
     for name in STAGES:
         try:
             mod = importlib.import_module(f"stages.{name}")
@@ -70,9 +72,9 @@ def _register() -> None:
                 continue  # stage not written yet
             raise
         if hasattr(mod, "app"):
-            app.add_typer(mod.app, name=name)
+            app.add_typer(mod.app, name=name, cls=ParamsHelpGroup)
         else:
-            app.command(name)(mod.main)
+            app.command(name, cls=ParamsHelpCommand)(mod.main)
 
 
 _register()

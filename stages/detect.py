@@ -1,4 +1,4 @@
-"""`rpod detect`: train the LSTM attack detector on the SHAP store (SPEC 7) and compare it with baselines.
+"""`rpod detect`: train the LSTM attack detector on the SHAP store and compare it with baselines.
 
 Reads datasets/shap.zarr (refused unless it was made with the current models/pose.pt), splits its
 samples 80/20 into train/test and holds 20% of train out for validation (grouped by source image,

@@ -154,7 +154,7 @@ def mockup(p: dict[str, Any]) -> tuple[str | None, float]:
 
 
 def retrain_reason(p: dict[str, Any]) -> str | None:
-    """Why the lab stage must train its own models, or None when it may reuse the main ones (SPEC 9)."""
+    """Why the lab stage must train its own models, or None when it may reuse the main ones."""
     lab, r = p["lab"], p["render"]
     if lab["retrain"] == "always":
         return "lab.retrain is always"

@@ -1,4 +1,4 @@
-"""`rpod render`: render the 13 approach sequences (SPEC 3) with Blender Cycles into a zarr stack.
+"""`rpod render`: render the 13 approach sequences with Blender Cycles into a zarr stack.
 
 Writes datasets/render/{images.zarr, poses.parquet, meta.json} in one atomic step, plus PNG
 previews in reports/figures/previews/. With `--shard I/N` a process renders only part I of N (a
@@ -163,7 +163,7 @@ def main(
     merge_parts: int = typer.Option(0, "--merge", metavar="N",
                                     help="Only merge the N finished parts in datasets/render_shards/N/ (no rendering)."),
 ) -> None:
-    """Render the 13 approach sequences of SPEC 3 with Blender Cycles (CPU, headless).
+    """Render the 13 approach sequences with Blender Cycles (CPU, headless).
 
     Writes datasets/render/ (images.zarr, poses.parquet, meta.json) atomically and PNG previews to
     reports/figures/previews/. Parameters: `seed`, `camera` and `render` in params.yaml.

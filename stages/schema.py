@@ -113,7 +113,7 @@ class Guidance:
     slack_steps: int
     variant: str                 # paper | true_state: the dynamics of the paper's S x K tables
     method: str
-    dynamics: list[Literal["paper", "true_state"]]   # dynamics of the defended comparison (SPEC 11)
+    dynamics: list[Literal["paper", "true_state"]]   # dynamics of the defended comparison
     defenses: list[Literal["hold", "recover"]]       # defended variants flown beside the undefended one
 
 
@@ -177,7 +177,7 @@ class Evaluate:
 
 @dataclass(frozen=True)
 class Defense:
-    """SPEC 11, pipeline/motion.py and pipeline/defense.py; bad values are refused naming defense.<key>."""
+    """The defense (pipeline/motion.py and pipeline/defense.py); bad values are refused naming defense.<key>."""
 
     fusion: Literal["or", "paper", "motion"]   # or: detector or motion gate | paper: detector alone | motion: gate alone
     false_alarm: float           # gate false-alarm probability per frame on consistent motion, in (0, 1)
@@ -195,7 +195,7 @@ class Defense:
     target_false_alarm: float    # fraction of clean validation frames the defended chain may flag; calibrate inflates the noise to it, in (0, 1)
     val_trajectories: int        # validation approaches (own seed) the noise model is fitted on (>= 1)
     val_seed: int                # their seed: never evaluate.seed
-    harm_m: float                # metres: an attacked frame with a larger position error is harmful (SPEC 11)
+    harm_m: float                # metres: an attacked frame with a larger position error is harmful
 
     def __post_init__(self) -> None:
         def bad(key: str, rule: str) -> ParamsError:

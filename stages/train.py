@@ -1,4 +1,4 @@
-"""`rpod train`: train the Darknet-19 pose CNN on the labelled renders (SPEC 4).
+"""`rpod train`: train the Darknet-19 pose CNN on the labelled renders.
 
 Reads params `seed`, `render.width/height` (the input size) and `train`; writes models/pose.pt (the
 best epoch by validation SPEED score), dvclive/train/ (per-epoch curves for `dvc plots show`),
@@ -21,6 +21,7 @@ from typing import Annotated, Any
 
 import typer
 
+from stages.artifacts import SURROGATE
 from stages.checkpoint import POSE
 from stages.io import StageError, atomic_outputs, atomic_write_text, write_metrics
 from stages.pages.pose import pose_page
@@ -29,7 +30,6 @@ REPORT = Path("reports/pose.md")
 METRICS = Path("reports/metrics/train.json")
 LIVE_DIR = "dvclive/train"
 SEED_OFFSET = 300
-SURROGATE = Path("models/surrogate.pt")
 
 
 def main(

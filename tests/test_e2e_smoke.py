@@ -92,6 +92,23 @@ def test_every_stage_ran_on_the_smoke_profile(smoke_repo):
     _run(["rpod", "report", "--check"], dst, env)
 
 
+def test_dvc_metrics_and_plots_show_after_repro(smoke_repo):
+    """`dvc metrics show` prints the flat headline summary in at most 120 columns; `dvc plots show` draws
+    every titled plot of dvc.yaml from the outputs of this fresh clone's `dvc repro`."""
+    from stages.pages.summary import HEADLINES
+
+    dst, env = smoke_repo
+    summary = json.loads((dst / "reports" / "metrics" / "summary.json").read_text())
+    assert set(summary) == {h.key for h in HEADLINES}
+    lines = _run(["dvc", "metrics", "show"], dst, env).splitlines()
+    assert len(lines) == 2 and max(map(len, lines)) <= 120, lines
+    _run(["dvc", "plots", "show"], dst, env)
+    page = (dst / "dvc_plots" / "index.html").read_text()
+    for entry in yaml.safe_load((dst / "dvc.yaml").read_text())["plots"]:
+        (plot,) = entry.values()
+        assert plot["title"] in page and plot["y_label"] in page, plot["title"]
+
+
 def test_every_table_has_the_expected_rows(smoke_repo):
     dst, _ = smoke_repo
     p = yaml.safe_load((dst / "params.yaml").read_text())

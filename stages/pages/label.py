@@ -1,4 +1,4 @@
-"""reports/dataset.md, the dataset card of `rpod label` (SPEC 3): counts, ranges, sequences, render settings."""
+"""reports/dataset.md, the dataset card of `rpod label`: counts, ranges, sequences, render settings."""
 from __future__ import annotations
 
 import os
@@ -29,7 +29,7 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
     lines = [
         "# Dataset card: synthetic Jason-1-like target, 60 m to 10 m",
         "",
-        "Written by `rpod label` from `datasets/render/` (`rpod render`). Frames and labels per SPEC 2: "
+        "Written by `rpod label` from `datasets/render/` (`rpod render`). Frames and labels: "
         "`t` = target origin in the OpenCV camera frame (m), `q` = (qw, qx, qy, qz) rotating target-frame "
         "vectors into the camera frame, `r0..r5` = 6-D rotation (first two columns of R).",
         "",

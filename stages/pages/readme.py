@@ -9,7 +9,7 @@ PAPER = {
     "integrated_eps": {"0.5": 100.0, "0.3": 99.99, "0.1": 99.97, "0.05": 99.99, "0.01": 97.67},
     "lab_eps": {"0.5": 100.0, "0.3": 100.0, "0.1": 100.0, "0.05": 98.44, "0.01": 90.44},
 }
-DETECTOR_NAMES = {"lstm": "LSTM on SHAP (SPEC 7)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis (GAP)",
+DETECTOR_NAMES = {"lstm": "LSTM on SHAP (paper)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis (GAP)",
                   "lid": "LID (GAP)", "squeeze": "feature squeezing"}
 
 
@@ -82,7 +82,7 @@ def _rate(r: dict[str, Any] | None) -> str:
 
 
 def defended_table(ev: dict[str, Any], gd: dict[str, Any]) -> str:
-    """The defended chain (SPEC 11) beside the paper's detector: integrated detection at the smallest
+    """The defended chain beside the paper's detector: integrated detection at the smallest
     eps, harmful-undetected, false alarms, and closed-loop rendezvous held per variant (Markdown)."""
     from pipeline.report import markdown_table
     from pipeline.stats import wilson
@@ -112,7 +112,7 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any]) -> str:
                                 f"detect-and-recover (detect-and-hold: {held('hold')})",
                       "paper's detector (this run)": held("undefended"),
                       f"defended chain ({fused['fusion']})": held("recover"), "paper": "-", "target": ">= 95"})
-    return ("\n\nThe defended chain (motion check fused with the detector, recovery and hold; SPEC 11) beside the "
+    return ("\n\nThe defended chain (motion check fused with the detector, recovery and hold) beside the "
             "paper's detector, on the same frames and runs (95% intervals):\n\n" + markdown_table(table))
 
 
