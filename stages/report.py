@@ -38,6 +38,7 @@ BLOCK = "results"
 DIFFERENCES = "differences"
 README_PROFILE = "default"  # the only profile whose numbers README.md publishes
 BENCHMARKS = Path(__file__).resolve().parent.parent / "reports" / "benchmarks.md"
+VARIANCE = Path("reports/variance.json")  # scripts/variance.py: the spread of the headline numbers over seeds
 
 
 def main(
@@ -126,12 +127,20 @@ def _load_metrics() -> dict[str, dict[str, Any]]:
     return {m: read_json(f"reports/metrics/{m}.json") for _, _, m in SECTIONS if m}
 
 
+def _spread(params: dict[str, Any]) -> dict[str, Any] | None:
+    """reports/variance.json when it describes runs of this profile (else None: no spread column)."""
+    if not VARIANCE.exists():
+        return None
+    spread = read_json(VARIANCE)
+    return spread if spread.get("profile") == params.get("profile_name") else None
+
+
 def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figures: list[tuple[str, str, str]]) -> str:
     """reports/README.md: title, summary block, then each stage report one level down with the
     report's own figures (`figures`: (stage, title, file name)) at the end of its section."""
     from pipeline.report import demote_headings, replace_block
 
-    page = replace_block(page_head(metrics, params), BLOCK, summary_tables(metrics))
+    page = replace_block(page_head(metrics, params), BLOCK, summary_tables(metrics, _spread(params)))
     page += "\n## Known differences from the paper\n"
     page = replace_block(page, DIFFERENCES, differences(metrics, params))
     for stage, report, metric in SECTIONS:
