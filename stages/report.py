@@ -4,9 +4,8 @@ Reads reports/metrics/<stage>.json and reports/<stage>.md (written by the stages
 datasets/shap.zarr (for the SHAP heatmaps) and reports/plots/roc/*.csv (ROC curves), and writes:
 
     reports/metrics/summary.json           the headline numbers, flat (`dvc metrics show`; stages/pages/summary.py)
-    reports/README.md                      the results page: a summary against the paper, figures,
-                                           then every stage's report with its profile (no times: the
-                                           page depends only on the results; times are in the metrics JSON)
+    reports/README.md                      the results page: a summary against the paper, figures, then every
+                                           stage's report with its profile (no times: those are in the metrics JSON)
     reports/figures/pose_errors.png        train/test error per range bin
     reports/figures/error_vs_eps.png       FGSM pose error against eps
     reports/figures/shap_heatmaps.png      mean |phi| per output, normal vs adversarial
@@ -41,6 +40,7 @@ BLOCK = "results"
 DIFFERENCES = "differences"
 README_PROFILE = "default"  # the only profile whose numbers README.md publishes
 BENCHMARKS = Path(__file__).resolve().parent.parent / "reports" / "benchmarks.md"
+VARIANCE = Path("reports/variance.json")  # scripts/variance.py: the spread of the headline numbers over seeds
 
 
 def main(
@@ -136,12 +136,18 @@ def _load_metrics() -> dict[str, dict[str, Any]]:
     return metrics
 
 
+def _spread(params: dict[str, Any]) -> dict[str, Any] | None:
+    """reports/variance.json when it describes runs of this profile (else None: no spread column)."""
+    spread = read_json(VARIANCE) if VARIANCE.exists() else {}
+    return spread if spread.get("profile") == params.get("profile_name") else None
+
+
 def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figures: list[tuple[str, str, str]]) -> str:
     """reports/README.md: title, summary block, then each stage report one level down with the
     report's own figures (`figures`: (stage, title, file name)) at the end of its section."""
     from pipeline.report import demote_headings, replace_block
 
-    page = replace_block(page_head(metrics, params), BLOCK, summary_tables(metrics))
+    page = replace_block(page_head(metrics, params), BLOCK, summary_tables(metrics, _spread(params)))
     page += "\n## Known differences from the paper\n"
     page = replace_block(page, DIFFERENCES, differences(metrics, params))
     for stage, report, metric in SECTIONS:
