@@ -6,8 +6,7 @@ datasets/shap.zarr (for the SHAP heatmaps) and reports/plots/roc/*.csv (ROC curv
     reports/metrics/summary.json           the headline numbers, flat (`dvc metrics show`; stages/pages/summary.py)
     reports/README.md                      the results page: a summary against the paper, figures, then every
                                            stage's report with its profile (no times: those are in the metrics JSON)
-    reports/figures/pose_errors.png        train/test error per range bin
-    reports/figures/error_vs_eps.png       FGSM pose error against eps
+    reports/figures/{pose_errors,error_vs_eps}.png   error per range bin (train/test); FGSM error against eps
     reports/figures/shap_heatmaps.png      mean |phi| per output, normal vs adversarial
     reports/figures/roc.png                ROC curves of every detector
 
