@@ -72,7 +72,7 @@ def read_image(path: Path, size: tuple[int, int], source_size: tuple[int, int]) 
     JPEGs are decoded at 1/2, 1/4 or 1/8 size when that still exceeds `size` (faster, same pixels)."""
     import cv2
 
-    reduce = max([r for r in (1, 2, 4, 8) if source_size[0] / r >= size[0] and source_size[1] / r >= size[1]])
+    reduce = max([r for r in (2, 4, 8) if source_size[0] / r >= size[0] and source_size[1] / r >= size[1]], default=1)
     flag = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
             8: cv2.IMREAD_REDUCED_COLOR_8}[reduce]
     img = cv2.imread(str(path), flag) if path.is_file() else None

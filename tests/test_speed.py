@@ -159,6 +159,8 @@ def test_speed_layout_resized_with_scaled_k(project):
     assert np.allclose(meta["K"], K_SRC.scaled(24, 15).K) and meta["frames"] == 6 and meta["width"] == 24
     assert meta["source"]["train"] == "train.json"
     assert pd.read_parquet(root / "store/poses.parquet")["filename"].iloc[-1] == "images/test/test001.png"
+    speed_io.import_source({**p, "render": {**p["render"], "width": 64, "height": 36}}, root / "store")  # upscaled
+    assert json.loads((root / "store/meta.json").read_text())["width"] == 64
 
 
 @pytest.mark.parametrize("damage, message", [
