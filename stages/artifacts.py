@@ -20,6 +20,7 @@ import numpy as np
 
 from stages.checkpoint import POSE, loss_from_checkpoint, model_from_checkpoint, read_pose
 from stages.io import StageError, file_hash, load_torch, open_zarr, read_json, read_parquet
+from stages.params import render_key
 
 RENDER = Path("datasets/render")
 LABELS = Path("datasets/labels.parquet")
@@ -111,7 +112,7 @@ def load_chain(params: dict[str, Any], pose_path: Path | str = POSE,
 def eval_render_fingerprint(p: dict[str, Any]) -> str:
     """Hash of the params that decide the `eval_render` images (so a stale render is refused)."""
     e = p["evaluate"]
-    key = {"seed": p["seed"], "camera": p["camera"], "render": p["render"],
+    key = {"seed": p["seed"], "camera": p["camera"], "render": render_key(p),
            "evaluate": {k: e[k] for k in ("trajectories", "frames", "lateral_range", "seed")}}
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -119,7 +120,7 @@ def eval_render_fingerprint(p: dict[str, Any]) -> str:
 def val_render_fingerprint(p: dict[str, Any]) -> str:
     """Hash of the params that decide the defense's validation images (datasets/val_render)."""
     e, d = p["evaluate"], p["defense"]
-    key = {"seed": p["seed"], "camera": p["camera"], "render": p["render"],
+    key = {"seed": p["seed"], "camera": p["camera"], "render": render_key(p),
            "evaluate": {k: e[k] for k in ("frames", "lateral_range")},
            "defense": {k: d[k] for k in ("val_trajectories", "val_seed")}}
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]

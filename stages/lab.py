@@ -136,8 +136,9 @@ def main(ctx: typer.Context) -> None:
                                   load_chain(p, LAB_MODELS / POSE, LAB_MODELS / DETECTOR))
     t0 = time.perf_counter()
     truth: list[dict[str, Any]] = []
-    source = Path(lab["real_data"]) if lab["real_data"] else OUT
-    if not lab["real_data"]:
+    real = params_mod.given(lab["real_data"])
+    source = Path(real) if real else OUT
+    if not real:
         with atomic_dir(OUT) as tmp:
             truth = render_lab(p, tmp)
     render_s = time.perf_counter() - t0
@@ -153,7 +154,7 @@ def main(ctx: typer.Context) -> None:
     train_metrics = read_json(train_path) if train_path.exists() else None
     models = ({"pose": str(POSE), "detector": str(DETECTOR)} if synthetic_lab is None else
               {"pose": synthetic_lab["pose"], "detector": synthetic_lab["detector"]})
-    metrics = {"model_hash": model_hash, "source": str(source), "synthetic": not lab["real_data"], "factor": factor,
+    metrics = {"model_hash": model_hash, "source": str(source), "synthetic": not real, "factor": factor,
                "retrain": lab["retrain"], "reused_models": synthetic_lab is None, "retrain_reason": reason,
                "models": models, "synthetic_lab": synthetic_lab, "ranges": ranges, "loader_error": loader_err,
                "clean": clean_rows, "fgsm": fgsm_rows, "attack_length": length, "threshold": chain.threshold,

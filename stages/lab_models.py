@@ -43,6 +43,7 @@ def sub_params(p: dict[str, Any]) -> dict[str, Any]:
     lab, r = p["lab"], sub["render"]
     sub["seed"] = int(lab["seed"]) + SEED_OFFSET
     r["mesh"], r["mesh_scale"] = params_mod.mockup(p)
+    r["source"] = params_mod.NONE    # the synthetic-lab set is rendered, never a SPEED import
     if lab["train_frames_per_sequence"] is not None:
         r["frames_per_sequence"] = int(lab["train_frames_per_sequence"])
     sub["detect"]["baselines"] = []

@@ -14,6 +14,9 @@ from stages.schema import Params, ParamsError, build
 ROOT = Path(__file__).resolve().parent.parent
 CONF_DIR = ROOT / "conf"
 PARAMS_FILE = Path("params.yaml")
+# The value of an unset external input (render.mesh, render.source, lab.mesh, lab.real_data): a tracked
+# folder, because dvc.yaml lists these params' paths as deps and a dep must exist (null cannot be one).
+NONE = "inputs/none"
 
 
 def profiles() -> list[str]:
@@ -33,10 +36,20 @@ def compose(profile: str = "default", overrides: list[str] | None = None) -> dic
     return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
 
 
+def render_key(params: dict[str, Any]) -> dict[str, Any]:
+    """The `render` params as fingerprints hash them: unset external inputs (null or inputs/none) as
+    null, an unset SPEED source left out, and no scale-out settings (they do not change the images)."""
+    r = {k: v for k, v in params["render"].items() if k != "workers"}
+    r["mesh"] = given(r.get("mesh"))
+    if given(r.get("source")) is None:
+        r.pop("source", None), r.pop("source_test", None)
+    return r
+
+
 def render_fingerprint(params: dict[str, Any]) -> str:
     """Hash of everything that decides the rendered images (`seed`, `camera`, `render`): the render
     stage stamps it into datasets/render/meta.json; every reader of the renders compares it."""
-    key = json.dumps({"seed": params["seed"], "camera": params["camera"], "render": params["render"]}, sort_keys=True)
+    key = json.dumps({"seed": params["seed"], "camera": params["camera"], "render": render_key(params)}, sort_keys=True)
     return hashlib.sha256(key.encode()).hexdigest()[:16]
 
 
@@ -73,6 +86,13 @@ def typed(params: dict[str, Any]) -> Params:
 
 
 # ----------------------------------------------------------------------------- params -> library objects
+def given(value: str | None) -> str | None:
+    """An external-input param's path, or None when it is unset: null, or a path ending in `inputs/none`."""
+    if value is None or Path(value).parts[-2:] == tuple(NONE.split("/")):
+        return None
+    return str(value)
+
+
 def set_threads(params: dict[str, Any]) -> None:
     """torch's CPU threads for a stage: the `threads` param."""
     import torch
@@ -96,7 +116,7 @@ def scene_settings(render: dict[str, Any]):
     """The Blender scene settings of a `render` params section."""
     from pipeline.scene import SceneSettings
 
-    return SceneSettings(mesh=render["mesh"], mesh_scale=float(render["mesh_scale"]),
+    return SceneSettings(mesh=given(render["mesh"]), mesh_scale=float(render["mesh_scale"]),
                          sun_direction=tuple(float(v) for v in render["sun_direction"]),
                          sun_strength=float(render["sun_strength"]), samples=int(render["samples"]),
                          denoiser=str(render["denoiser"]), denoise_quality=str(render["denoise_quality"]),
@@ -140,15 +160,15 @@ def mockup(p: dict[str, Any]) -> tuple[str | None, float]:
     """(mesh file or None = procedural target, metres per mesh unit) of the mock-up rendered at lab.scale x
     its size, i.e. at the size of the real target. Relative paths are resolved against the working folder."""
     lab, r = p["lab"], p["render"]
-    if lab["mesh"] is None:   # the main target, built at 1/scale: rendered at scale x it is the main mesh
-        mesh, unit = r["mesh"], float(r["mesh_scale"])
+    if given(lab["mesh"]) is None:   # the main target, built at 1/scale: rendered at scale x it is the main mesh
+        mesh, unit = given(r["mesh"]), float(r["mesh_scale"])
     else:
         mesh, unit = lab["mesh"], float(lab["mesh_scale"]) * float(lab["scale"])
     if mesh is None:
         return None, unit
     path = Path(mesh).resolve()
     if not path.is_file():
-        key = "render.mesh" if lab["mesh"] is None else "lab.mesh"
+        key = "render.mesh" if given(lab["mesh"]) is None else "lab.mesh"
         raise StageError(f"params.yaml {key}: mock-up mesh file {mesh} not found")
     return str(path), unit
 
@@ -159,7 +179,7 @@ def retrain_reason(p: dict[str, Any]) -> str | None:
     if lab["retrain"] == "always":
         return "lab.retrain is always"
     mesh, unit = mockup(p)
-    main = None if r["mesh"] is None else str(Path(r["mesh"]).resolve())
+    main = None if given(r["mesh"]) is None else str(Path(r["mesh"]).resolve())
     if mesh != main or abs(unit - float(r["mesh_scale"])) > 1e-9 * max(unit, 1.0):
         return (f"the mock-up (lab.mesh {lab['mesh']}, {lab['mesh_scale']:g} m per unit, x{lab['scale']:g}) is not "
                 f"the main target (render.mesh {r['mesh']}, {r['mesh_scale']:g} m per unit)")

@@ -42,7 +42,9 @@ class Render:
     denoiser: str           # NONE | OPENIMAGEDENOISE
     denoise_quality: str    # FAST | BALANCED | HIGH
     threads: int            # Blender render threads
-    mesh: Optional[str]     # mesh file; None = the procedural Jason-1-like target
+    mesh: Optional[str]     # mesh file; inputs/none (or None) = the procedural Jason-1-like target
+    source: Optional[str]   # SPEED/SPEED+ folder imported instead of rendering; inputs/none (or None) = render
+    source_test: Optional[str]   # its test labels, relative to it; None = synthetic/test.json, ... (stages/speed.py)
     mesh_scale: float       # metres per mesh unit
     sun_direction: list[float]   # direction the sunlight travels, target frame
     sun_strength: float

@@ -55,11 +55,11 @@ def rows_under(md: str, heading_start: str, first_header: str) -> list[str]:
     return hits[0]
 
 
-@pytest.fixture(scope="module")
-def smoke_repo(tmp_path_factory) -> tuple[Path, dict[str, str]]:
+def copy_repo(dst: Path) -> dict[str, str]:
+    """Copy the working tree's files (tracked and untracked-not-ignored) into `dst` as a one-commit git
+    repository; returns the environment to run `rpod` and `dvc` there."""
     if shutil.which("git") is None:
         pytest.skip("git is needed to list the repository's files")
-    dst = tmp_path_factory.mktemp("repo")
     files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=REPO, check=True,
                            capture_output=True).stdout.decode().split("\0")
     for name in filter(None, files):
@@ -74,6 +74,13 @@ def smoke_repo(tmp_path_factory) -> tuple[Path, dict[str, str]]:
     _run(["git", "init", "-q"], dst, env)
     _run(["git", "add", "-A"], dst, env)
     _run(["git", "commit", "-qm", "copy"], dst, env)
+    return env
+
+
+@pytest.fixture(scope="module")
+def smoke_repo(tmp_path_factory) -> tuple[Path, dict[str, str]]:
+    dst = tmp_path_factory.mktemp("repo")
+    env = copy_repo(dst)
     _run(["rpod", "params", "smoke"], dst, env)
     _run(["dvc", "repro"], dst, env)
     return dst, env

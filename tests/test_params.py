@@ -51,3 +51,17 @@ def test_load_refuses_bad_params_naming_the_key(tmp_path, monkeypatch, edit, mes
     else:
         with pytest.raises(ParamsError, match=message):
             params_mod.load()
+
+
+def test_unset_external_inputs_and_workers_leave_the_render_fingerprint_alone():
+    """inputs/none (the DVC-dep placeholder) fingerprints like null, so renders made before the
+    placeholder existed stay valid; a real mesh or SPEED source changes it."""
+    from stages.params import compose, render_fingerprint
+
+    p = compose("smoke")
+    base = render_fingerprint(p)
+    old = {**p, "render": {k: v for k, v in p["render"].items() if k not in ("source", "source_test")} | {"mesh": None}}
+    assert render_fingerprint(old) == base
+    assert render_fingerprint({**p, "render": {**p["render"], "workers": 7}}) == base
+    assert render_fingerprint({**p, "render": {**p["render"], "mesh": "meshes/sat.obj"}}) != base
+    assert render_fingerprint({**p, "render": {**p["render"], "source": "/data/speedplus"}}) != base
