@@ -141,11 +141,13 @@ class Explainer:
 
 
 def gap_features(model: nn.Module, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """GAP features (N, D) and pose outputs (N, 9: metres, then 6-D) of uint8 RGB images (N, H, W, 3)."""
+    """GAP features (N, D) and pose outputs (N, 9: metres, then 6-D) of uint8 RGB images (N, H, W, 3),
+    computed on the model's device (the images cross to it as uint8)."""
     with torch.no_grad():
-        x = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float() / 255
+        device = next(model.parameters()).device
+        x = torch.from_numpy(np.ascontiguousarray(images)).to(device).permute(0, 3, 1, 2).float() / 255
         f = model.forward_features(x)
-        return f.numpy(), model.forward_head(f).numpy()
+        return f.cpu().numpy(), model.forward_head(f).cpu().numpy()
 
 
 def draw_background(n_train: int, size: int, rng: np.random.Generator) -> np.ndarray:

@@ -3,13 +3,14 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from pathlib import Path
 from typing import Any
 
 import yaml
 
 from stages.io import StageError, atomic_write_text
-from stages.schema import Params, ParamsError, build
+from stages.schema import DEVICE, Params, ParamsError, build
 
 ROOT = Path(__file__).resolve().parent.parent
 CONF_DIR = ROOT / "conf"
@@ -73,11 +74,62 @@ def typed(params: dict[str, Any]) -> Params:
 
 
 # ----------------------------------------------------------------------------- params -> library objects
-def set_threads(params: dict[str, Any]) -> None:
-    """torch's CPU threads for a stage: the `threads` param."""
+def set_threads(params: dict[str, Any], processes: int = 1) -> int:
+    """Set torch's CPU threads for a stage: the `threads` param, or with null every core shared among
+    `processes` (torchrun) processes. Returns the count."""
     import torch
 
-    torch.set_num_threads(int(params["threads"]))
+    n = params["threads"]
+    n = max(1, (os.cpu_count() or 1) // processes) if n is None else int(n)
+    torch.set_num_threads(n)
+    return n
+
+
+def torch_device(params: dict[str, Any], local_rank: int | None = None):
+    """The torch.device of every torch stage, from the `device` param: auto = the CUDA GPU when torch
+    sees one, else the CPU. Under torchrun, a CUDA process takes GPU `local_rank`. StageError when
+    CUDA is asked for and torch sees no GPU (or fewer than the index)."""
+    import torch
+
+    value = str(params["device"])
+    if not DEVICE.fullmatch(value):
+        raise StageError(f"params.yaml device must be auto, cpu, cuda or cuda:N, got {value!r}")
+    cuda = torch.cuda.is_available()
+    if value == "cpu" or (value == "auto" and not cuda):
+        return torch.device("cpu")
+    if not cuda:
+        raise StageError(f"params.yaml device: {value!r} asks for a CUDA GPU but torch {torch.__version__} sees none; "
+                         f"set device: auto or cpu")
+    index = local_rank if local_rank is not None else int(value.partition(":")[2] or 0)
+    if index >= torch.cuda.device_count():
+        raise StageError(f"params.yaml device: GPU {index} asked for but torch sees {torch.cuda.device_count()}")
+    return torch.device("cuda", index)
+
+
+def torch_setup(params: dict[str, Any]):
+    """A torch stage's start: CPU threads (`set_threads`) and the device (`torch_device`, so a CUDA device
+    that does not exist stops the stage before any work). Returns the device."""
+    set_threads(params)
+    return torch_device(params)
+
+
+def distributed(params: dict[str, Any]) -> tuple[int, int, Any]:
+    """(rank, world size, device) of this process. Under torchrun (WORLD_SIZE > 1) the process group
+    is initialised: NCCL when the device is CUDA (one GPU per process, GPU LOCAL_RANK), gloo on the CPU.
+    Also sets the CPU threads (`set_threads`, shared among the processes)."""
+    import torch.distributed as dist
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    set_threads(params, world)
+    if world == 1:
+        return 0, 1, torch_device(params)
+    device = torch_device(params, int(os.environ.get("LOCAL_RANK", "0")))
+    if device.type == "cuda":
+        import torch
+
+        torch.cuda.set_device(device)
+    dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    return dist.get_rank(), world, device
 
 
 def intrinsics(params: dict[str, Any]):

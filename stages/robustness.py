@@ -52,7 +52,7 @@ def main() -> None:
     r = params_mod.typed(p).robustness
     if not SURROGATE.exists():
         raise StageError(f"{SURROGATE} not found: run `rpod train --surrogate` (dvc repro surrogate) first")
-    params_mod.set_threads(p)
+    params_mod.torch_setup(p)
     seed = int(p["seed"]) + SEED_OFFSET
     pose, surrogate = load_pose(p), load_pose(p, SURROGATE)
     chain = _chain(pose)
