@@ -271,6 +271,7 @@ def body(rows: list[dict[str, Any]], idle: list[dict[str, Any]], facts: dict[str
                            "REQUIRED at its share of 2 h (units/s)": f"{need[u]:.3g}"}
                           for u, n in unit_totals(rows).items()])
     top = ", ".join(f"{k} {v / total:.0%}" for k, v in list(totals.items())[:4])
+    renders = unit_totals(rows)["render"]
     return (f"`benchmarks/cost_model.py --device {facts['device']}` on {platform.machine()}, "
             f"{os.cpu_count()} cores, torch {facts['torch']}, {facts['threads']} threads, AMP "
             f"{'bf16' if facts['amp'] else 'off (CPU)'}; median of {facts['repeats']} repeats after a warm-up per "
@@ -291,8 +292,9 @@ def body(rows: list[dict[str, Any]], idle: list[dict[str, Any]], facts: dict[str
             f"on one H100-class GPU with {TARGET_CORES} cores: {idle_total / TARGET_S:,.0f}x this machine's idle "
             f"estimate. The floor is the rate a unit needs even if it had the whole 2 h; at its share, every unit "
             f"keeps the share of the time it has here:\n\n{req}\n"
-            f"Rendering stays on the CPU (Cycles, pipeline/scene.py): at {TARGET_CORES} instead of {os.cpu_count()} "
-            f"cores, with linear scaling, it gains at most {TARGET_CORES / (os.cpu_count() or 1):.0f}x, so the "
+            f"Rendering stays on the CPU (Cycles, pipeline/scene.py): at {TARGET_CORES} instead of "
+            f"{facts['render_threads']} threads, with linear scaling, the {renders:,.0f} renders would take "
+            f"{renders / (rate['render'] * TARGET_CORES / facts['render_threads']) / 60:.0f} min of the 120, so the "
             f"target also needs Cycles on the GPU or more render machines (Ray). The CUDA path of the torch stages "
             f"is written (device param, bf16 autocast, channels_last, pinned uint8 batches, NCCL under torchrun) "
             f"but was not run on a GPU in this session: the GPU rates are still to be measured with "
@@ -324,7 +326,7 @@ def main() -> None:
     idle = rows if amp else predict(counts, {u: cpu / threads[u] for u, (_, cpu) in measured.items()})
     facts = {"device": args.device, "torch": torch.__version__, "threads": args.threads, "amp": amp,
              "repeats": args.repeats, "batches": BATCHES["cpu" if args.device == "cpu" else "cuda"],
-             "load": (load0, os.getloadavg()[0]), "rps_note": note, "params": p}
+             "load": (load0, os.getloadavg()[0]), "rps_note": note, "params": p, "render_threads": threads["render"]}
     text = body(rows, idle, facts)
     print(text)
     if not args.no_write:

@@ -102,11 +102,12 @@ def deep_shap(model: nn.Module, features: np.ndarray, background: np.ndarray,
     import shap
 
     head = Head(model).eval()
-    bg = torch.as_tensor(np.asarray(background), dtype=torch.float32)
+    device = next(head.parameters()).device   # the explainer's tensors live with the head's weights
+    bg = torch.as_tensor(np.asarray(background), dtype=torch.float32, device=device)
     explainer = shap.DeepExplainer(head, bg)
     out = []
     for start in range(0, len(features), batch_size):
-        x = torch.as_tensor(np.asarray(features[start:start + batch_size]), dtype=torch.float32)
+        x = torch.as_tensor(np.asarray(features[start:start + batch_size]), dtype=torch.float32, device=device)
         values = explainer.shap_values(x, check_additivity=False)  # (B, D, n_outputs)
         out.append(np.transpose(np.asarray(values), (0, 2, 1)))
     return np.concatenate(out).astype(np.float32)

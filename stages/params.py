@@ -74,15 +74,14 @@ def typed(params: dict[str, Any]) -> Params:
 
 
 # ----------------------------------------------------------------------------- params -> library objects
-def set_threads(params: dict[str, Any], processes: int = 1) -> int:
-    """Set torch's CPU threads for a stage: the `threads` param, or with null every core shared among
-    `processes` (torchrun) processes. Returns the count."""
+def torch_setup(params: dict[str, Any], processes: int = 1, local_rank: int | None = None):
+    """A torch stage's start: torch's CPU threads from `threads` (null: every core, shared among `processes`
+    torchrun processes), then the device (`torch_device`: a missing CUDA GPU stops the stage before any work)."""
     import torch
 
     n = params["threads"]
-    n = max(1, (os.cpu_count() or 1) // processes) if n is None else int(n)
-    torch.set_num_threads(n)
-    return n
+    torch.set_num_threads(max(1, (os.cpu_count() or 1) // processes) if n is None else int(n))
+    return torch_device(params, local_rank)
 
 
 def torch_device(params: dict[str, Any], local_rank: int | None = None):
@@ -106,27 +105,17 @@ def torch_device(params: dict[str, Any], local_rank: int | None = None):
     return torch.device("cuda", index)
 
 
-def torch_setup(params: dict[str, Any]):
-    """A torch stage's start: CPU threads (`set_threads`) and the device (`torch_device`, so a CUDA device
-    that does not exist stops the stage before any work). Returns the device."""
-    set_threads(params)
-    return torch_device(params)
-
-
 def distributed(params: dict[str, Any]) -> tuple[int, int, Any]:
-    """(rank, world size, device) of this process. Under torchrun (WORLD_SIZE > 1) the process group
-    is initialised: NCCL when the device is CUDA (one GPU per process, GPU LOCAL_RANK), gloo on the CPU.
-    Also sets the CPU threads (`set_threads`, shared among the processes)."""
+    """(rank, world size, device) of this process after `torch_setup`. Under torchrun (WORLD_SIZE > 1) the
+    process group is initialised: NCCL on CUDA (one GPU per process: GPU LOCAL_RANK), gloo on the CPU."""
+    import torch
     import torch.distributed as dist
 
     world = int(os.environ.get("WORLD_SIZE", "1"))
-    set_threads(params, world)
+    device = torch_setup(params, world, int(os.environ.get("LOCAL_RANK", "0")) if world > 1 else None)
     if world == 1:
-        return 0, 1, torch_device(params)
-    device = torch_device(params, int(os.environ.get("LOCAL_RANK", "0")))
+        return 0, 1, device
     if device.type == "cuda":
-        import torch
-
         torch.cuda.set_device(device)
     dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
     return dist.get_rank(), world, device

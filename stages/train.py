@@ -10,7 +10,7 @@ final evaluation of the kept checkpoint. Torch is seeded (and switched to determ
 before the network is built, so two runs on one machine give the same weights.
 
 Device: the `device` param (auto = CUDA when present), with bf16 autocast there when `amp` is set;
-CPU threads: `threads`. Scale-out: `torchrun --nproc_per_node N .venv/bin/rpod train` runs
+CPU threads: `threads` (stages.params.distributed). Scale-out: `torchrun --nproc_per_node N .venv/bin/rpod train` runs
 DistributedDataParallel (gloo on the CPU, NCCL on CUDA, one GPU per process); only rank 0 writes files.
 """
 from __future__ import annotations

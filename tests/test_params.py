@@ -85,16 +85,18 @@ def test_device_param_resolves_in_one_place(monkeypatch):
         params_mod.torch_device({**p, "device": "cuda:2"})
 
 
-def test_threads_param_sets_torch_threads(monkeypatch):
+def test_threads_param_sets_torch_threads():
     import os
 
     import torch
 
     before = torch.get_num_threads()
-    p = params_mod.compose("smoke")
+    p = {**params_mod.compose("smoke"), "device": "cpu"}
     try:
-        assert params_mod.set_threads({**p, "threads": 1}) == 1 == torch.get_num_threads()
-        assert params_mod.set_threads({**p, "threads": None}) == (os.cpu_count() or 1) == torch.get_num_threads()
-        assert params_mod.set_threads({**p, "threads": None}, processes=64) == 1
+        assert params_mod.torch_setup({**p, "threads": 1}) == torch.device("cpu") and torch.get_num_threads() == 1
+        params_mod.torch_setup({**p, "threads": None})
+        assert torch.get_num_threads() == (os.cpu_count() or 1)
+        params_mod.torch_setup({**p, "threads": None}, processes=64)
+        assert torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(before)
