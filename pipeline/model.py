@@ -10,10 +10,10 @@ position (tx, ty, tz) in metres in the OpenCV camera frame, then the 6-D rotatio
 
 Input: (B, 3, H, W) float RGB in [0, 1], any H, W (the GAP makes the heads size-independent).
 Devices: `place(device, amp)` moves the weights; inputs on another device (CPU tensors from numpy)
-are moved to the weights' device and the outputs come back, in float32, on the input's device, so
-callers need not know where the network runs (gradients flow through the moves). On CUDA, `amp`
-runs the backbone under bf16 autocast and the weights use the channels_last layout; on the CPU the
-network computes exactly as without `place`.
+are moved to the weights' device and the outputs come back on the input's device, so callers need
+not know where the network runs (gradients flow through the moves). On CUDA, `amp` runs the backbone
+under bf16 autocast (features back in float32) and the weights use the channels_last layout; on the
+CPU the network computes exactly as without `place`.
 There is no input normalisation layer: the first convolution has no bias and is followed by
 BatchNorm, which absorbs any affine rescaling of the pixels.
 """
