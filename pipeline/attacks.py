@@ -101,7 +101,8 @@ def pgd(model: nn.Module, x: Tensor, y: Tensor, eps: float, loss_fn: LossFn, *, 
     x = x.detach()
     x_adv = x
     if random_start:
-        noise = torch.rand(x.shape, generator=generator, dtype=x.dtype, device=x.device)
+        # drawn on the CPU generator and moved: the same start on every device
+        noise = torch.rand(x.shape, generator=generator, dtype=x.dtype).to(x.device)
         x_adv = _project(x + (2 * noise - 1) * eps, x, eps)
     with _eval_mode(model):
         for _ in range(steps):

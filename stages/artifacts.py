@@ -74,9 +74,13 @@ class Pose:
 
 
 def load_pose(params: dict[str, Any], path: Path | str = POSE) -> Pose:
-    """models/pose.pt read once, checked against params (architecture, input size)."""
+    """models/pose.pt read once, checked against params (architecture, input size), the network placed on
+    the `device` param's device (with `amp`); it takes inputs from any device and answers on theirs."""
+    from stages.params import torch_device
+
     ckpt = read_pose(path, params)
-    return Pose(model_from_checkpoint(ckpt), loss_from_checkpoint(ckpt), file_hash(path), dict(ckpt.get("meta", {})))
+    model = model_from_checkpoint(ckpt, torch_device(params), bool(params["amp"]))
+    return Pose(model, loss_from_checkpoint(ckpt), file_hash(path), dict(ckpt.get("meta", {})))
 
 
 def load_detector(path: Path | str = DETECTOR, model_hash: str | None = None) -> tuple[Any, dict[str, Any]]:
@@ -299,10 +303,11 @@ class SampleImages:
             if e == 0:
                 imgs = clean
             else:
-                x = torch.from_numpy(clean).permute(0, 3, 1, 2).float() / 255
-                y = torch.as_tensor(data.targets[rows])
+                dev = self.model.device
+                x = torch.from_numpy(clean).to(dev).permute(0, 3, 1, 2).float() / 255
+                y = torch.as_tensor(data.targets[rows]).to(dev)
                 adv = stored_attack(self.model, self.loss_fn, e)(x, y)
-                imgs = torch.round(adv * 255).to(torch.uint8).permute(0, 2, 3, 1).numpy()
+                imgs = torch.round(adv * 255).to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
             for k, im in zip(ks, imgs):
                 out[k] = im
         return np.stack(out)  # type: ignore[arg-type]

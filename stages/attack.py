@@ -36,7 +36,7 @@ def main() -> None:
     a = p["attack"]
     params_mod.check_attack_params(a, "attack")
     eps_list = [float(e) for e in a["eps"]]
-    params_mod.set_threads(p)
+    params_mod.torch_setup(p)
     attack = params_mod.make_attack(a, a["method"], int(p["seed"]) + SEED_OFFSET)
     pose = load_pose(p)
     split = load_split(p, "test")
@@ -95,21 +95,21 @@ def _attack_into(path: Path, model: Any, attack: Any, loss_fn: Any, images: Any,
     model.eval()
     for i in tqdm(range(0, n, batch), desc=f"attack ({method}, {len(eps_list)} eps)", unit="batch"):
         u8 = np.stack([np.asarray(images[j]) for j in range(i, min(i + batch, n))])
-        x = torch.from_numpy(u8).permute(0, 3, 1, 2).float() / 255
-        y = y_all[i:i + batch]
+        x = torch.from_numpy(u8).to(model.device).permute(0, 3, 1, 2).float() / 255   # uint8 over the bus
+        y = y_all[i:i + batch].to(model.device)
         with torch.no_grad():
-            preds["clean"][i:i + len(x)] = model(x).numpy()
+            preds["clean"][i:i + len(x)] = model(x).cpu().numpy()
         for e in eps_list:
             x_adv = attack(model, x, y, e, loss_fn)
             stored = quantize(x_adv, x)
-            stored_hwc = stored.permute(0, 2, 3, 1).numpy()
+            stored_hwc = stored.permute(0, 2, 3, 1).cpu().numpy()
             arrays[e][i:i + len(x)] = stored_hwc
             if i <= k < i + len(x):
                 example[e] = stored_hwc[k - i]
             linf[e] = max(linf[e], float((stored.float() / 255 - x).abs().max()))
             with torch.no_grad():
-                preds[e][i:i + len(x)] = model(stored.float() / 255).numpy()
-                preds_float[e][i:i + len(x)] = model(x_adv).numpy()
+                preds[e][i:i + len(x)] = model(stored.float() / 255).cpu().numpy()
+                preds_float[e][i:i + len(x)] = model(x_adv).cpu().numpy()
     return {"root": root, "preds": preds, "preds_float": preds_float, "linf": linf, "example": example}
 
 

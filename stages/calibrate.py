@@ -36,7 +36,7 @@ def main() -> None:
 
     p = params_mod.load()
     d = params_mod.typed(p).defense
-    params_mod.set_threads(p)
+    params_mod.torch_setup(p)
     images, poses, _ = read_eval_render(p, validation=True)
     chain, _, model_hash = load_chain(p)
     targets = poses[TARGET].to_numpy(np.float32)

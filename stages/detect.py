@@ -59,6 +59,7 @@ def main() -> None:
     p = params_mod.load()
     d = p["detect"]
     torch.set_num_threads(1)  # the LSTM's matrices are small: extra threads cost more than they give
+    params_mod.torch_device(p)  # a missing CUDA device stops here; the squeeze baseline's pose forwards run on it
     seed = int(p["seed"]) + SEED_OFFSET
     model_hash = file_hash(POSE)
     data = read_shap_store(SHAP, model_hash)

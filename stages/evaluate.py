@@ -45,7 +45,7 @@ def main() -> None:
     from pipeline.figures import detection_timeline
     from pipeline.schedule import attack_schedule
 
-    params_mod.set_threads(p)
+    params_mod.torch_setup(p)
     images, poses, meta = read_eval_render(p)
     chain, loss_fn, model_hash = load_chain(p)
     defense = load_defense(p, model_hash, chain.threshold)

@@ -65,7 +65,7 @@ def main() -> None:
     g = p["guidance"]
     settings, grid = _plan(g)
     a = p["attack"]
-    params_mod.set_threads(p)
+    params_mod.torch_setup(p)
     attack = params_mod.make_attack(a, g["method"], int(p["seed"]) + SEED_OFFSET)
     chain, loss_fn, model_hash = load_chain(p)  # refuses a pose model whose input size is not render.width x height
     defense = load_defense(p, model_hash, chain.threshold)

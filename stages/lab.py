@@ -127,7 +127,7 @@ def main(ctx: typer.Context) -> None:
 
     p = params_mod.load()
     lab = p["lab"]
-    params_mod.set_threads(p)
+    params_mod.torch_setup(p)
     K_syn, K_zed = cameras(p)
     factor = lab_to_synthetic_factor(K_syn, K_zed, float(lab["scale"]))
     reason = params_mod.retrain_reason(p)

@@ -51,7 +51,7 @@ def main() -> None:
     r = params_mod.typed(p).robustness
     if not SURROGATE.exists():
         raise not_found(SURROGATE)
-    params_mod.set_threads(p)
+    params_mod.torch_setup(p)
     seed = int(p["seed"]) + SEED_OFFSET
     pose, surrogate = load_pose(p), load_pose(p, SURROGATE)
     chain = _chain(pose)

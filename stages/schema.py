@@ -9,10 +9,14 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import re
 import types
 import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal, Optional
+
+
+DEVICE = re.compile(r"auto|cpu|cuda(:\d+)?")   # values of the `device` param
 
 
 class ParamsError(ValueError):
@@ -368,7 +372,9 @@ class Report:
 class Params:
     profile_name: str
     seed: int
-    threads: int                 # torch CPU threads of the attack, guidance, shap, evaluate and lab stages
+    threads: Optional[int]       # torch CPU threads of every torch stage; None = every core
+    device: str                  # auto | cpu | cuda | cuda:N (stages.params.torch_device resolves it)
+    amp: bool                    # bf16 autocast of the pose network on CUDA; no effect on CPU
     camera: Camera
     render: Render
     label: Label
@@ -384,8 +390,10 @@ class Params:
     report: Report = field(default_factory=Report)
 
     def __post_init__(self) -> None:
-        if self.threads < 1:
-            raise ValueError(f"threads must be a whole number >= 1, got {self.threads}")
+        if self.threads is not None and self.threads < 1:
+            raise ValueError(f"threads must be null or a whole number >= 1, got {self.threads}")
+        if not DEVICE.fullmatch(self.device):
+            raise ValueError(f"device must be auto, cpu, cuda or cuda:N, got {self.device!r}")
         if self.defense.val_seed == self.evaluate.seed:
             raise ValueError("defense.val_seed must differ from evaluate.seed: the defense is fitted on "
                              "validation trajectories, never on the evaluation ones")

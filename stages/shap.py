@@ -62,7 +62,7 @@ def main() -> None:
     p = params_mod.load()
     s = p["shap"]
     check_params(s)
-    params_mod.set_threads(p)
+    params_mod.torch_setup(p)
     seed = int(p["seed"]) + SEED_OFFSET
     rng = np.random.default_rng(seed)
     pose = load_pose(p)
