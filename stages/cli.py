@@ -56,14 +56,15 @@ def params_cmd(
 # Stage modules keep heavy imports (bpy, torch) inside their commands so `rpod --help` is fast.
 # A module exposes `main` (one command) or `app` (a command group, e.g. `rpod lab rescale`).
 STAGES = ["render", "label", "train", "attack", "guidance", "shap", "detect", "eval_render", "calibrate", "evaluate",
-          "robustness", "lab_models", "lab", "report"]
-COMMANDS = ["predict"]   # commands outside the DVC pipeline, registered the same way
+          "robustness", "lab_models", "lab", "report", "export", "predict"]   # export, predict: not DVC stages
 
 
 def _register() -> None:
     import importlib
 
-    for name in STAGES + COMMANDS:
+    from stages.paramhelp import ParamsHelpCommand, ParamsHelpGroup
+
+    for name in STAGES:
         try:
             mod = importlib.import_module(f"stages.{name}")
         except ModuleNotFoundError as e:
@@ -71,9 +72,9 @@ def _register() -> None:
                 continue  # stage not written yet
             raise
         if hasattr(mod, "app"):
-            app.add_typer(mod.app, name=name)
+            app.add_typer(mod.app, name=name, cls=ParamsHelpGroup)
         else:
-            app.command(name)(mod.main)
+            app.command(name, cls=ParamsHelpCommand)(mod.main)
 
 
 _register()

@@ -1,4 +1,4 @@
-"""`rpod eval_render`: render the fresh evaluation trajectories of SPEC 8 once, for `rpod evaluate` and its eps.
+"""`rpod eval_render`: render the fresh evaluation trajectories once, for `rpod evaluate` and its eps.
 
 Renders `evaluate.trajectories` projectile-shaped approaches (own seed `evaluate.seed`) with one
 Blender scene into datasets/eval_render/ (images.zarr, poses.parquet, meta.json with the params
@@ -23,7 +23,7 @@ from stages.io import StageError, atomic_dir, create_array, write_json, write_pa
 
 
 def trajectories(p: dict[str, Any], seed: int, count: int) -> list[Any]:
-    """`count` SPEC 8 approaches from `seed`: lateral start offsets |x|, |y| uniform in
+    """`count` evaluation approaches from `seed`: lateral start offsets |x|, |y| uniform in
     evaluate.lateral_range, random signs, evaluate.frames frames each."""
     from pipeline.trajectories import projectile_trajectory
 
@@ -40,7 +40,7 @@ def trajectories(p: dict[str, Any], seed: int, count: int) -> list[Any]:
 
 
 def main() -> None:
-    """Render the fresh evaluation trajectories (SPEC 8) into datasets/eval_render/ and the defense's
+    """Render the fresh evaluation trajectories into datasets/eval_render/ and the defense's
     validation trajectories into datasets/val_render/, with one Blender scene.
 
     Params: `evaluate.trajectories`, `frames`, `lateral_range`, `seed`; `defense.val_trajectories`,

@@ -1,9 +1,8 @@
-"""`rpod render`: render the 13 approach sequences (SPEC 3) with Blender Cycles into a zarr stack.
-
-Writes datasets/render/{images.zarr, poses.parquet, meta.json} in one atomic step, plus PNG
-previews in reports/figures/previews/. With `--shard I/N` a process renders only part I of N (a
-contiguous block of frames) into datasets/render_shards/N/I; when the last part finishes (or on
-`rpod render --merge N`) the parts are checked and merged into datasets/render.
+"""`rpod render`: render the 13 approach sequences with Blender Cycles into a zarr stack (or import the
+SPEED/SPEED+ folder of `render.source`: stages/speed.py). Writes datasets/render/{images.zarr,
+poses.parquet, meta.json} in one atomic step, plus PNG previews in reports/figures/previews/. With
+`--shard I/N` a process renders only part I of N (a contiguous block of frames) into
+datasets/render_shards/N/I; the last part to finish (or `rpod render --merge N`) merges them.
 """
 from __future__ import annotations
 
@@ -16,7 +15,7 @@ from typing import Any
 import numpy as np
 import typer
 
-from stages import params as params_mod
+from stages import params as params_mod, speed as speed_io
 from stages.artifacts import RENDER as OUT, read_render_store
 from stages.io import StageError, atomic_dir, create_array, remove_stale_temps, write_json, write_parquet
 
@@ -92,9 +91,8 @@ def render_part(p: dict[str, Any], start: int, stop: int, dest: Path, desc: str)
 
 
 def remove_leftovers(path: Path) -> None:
-    """Delete temporary folders that an interrupted (killed) run left next to `path`; they were never
-    renamed into place, so nothing trusts them, but they hold disk space. A live concurrent run's
-    folder is kept."""
+    """Delete temporary folders that an interrupted (killed) run left next to `path` (never renamed into
+    place, so never trusted, but holding disk space); a live concurrent run's folder is kept."""
     for d in remove_stale_temps(path):
         typer.echo(f"removed {d}, left over from an interrupted run")
 
@@ -163,16 +161,17 @@ def main(
     merge_parts: int = typer.Option(0, "--merge", metavar="N",
                                     help="Only merge the N finished parts in datasets/render_shards/N/ (no rendering)."),
 ) -> None:
-    """Render the 13 approach sequences of SPEC 3 with Blender Cycles (CPU, headless).
-
-    Writes datasets/render/ (images.zarr, poses.parquet, meta.json) atomically and PNG previews to
-    reports/figures/previews/. Parameters: `seed`, `camera` and `render` in params.yaml.
+    """Render the 13 approach sequences with Blender Cycles (CPU, headless), or import the SPEED/SPEED+
+    folder of `render.source`. Writes datasets/render/ (images.zarr, poses.parquet, meta.json) atomically
+    and PNG previews to reports/figures/previews/. Parameters: `seed`, `camera` and `render` in params.yaml.
     """
     p = params_mod.load()
-    n_frames = len(frames(p)[0])
-    if merge_parts:
+    if params_mod.given(p["render"]["source"]):   # a SPEED/SPEED+ folder instead of rendering
+        speed_io.import_source(p, OUT)
+    elif merge_parts:
         merge(p, merge_parts)
     else:
+        n_frames = len(frames(p)[0])
         i, n = parse_shard(shard)
         if n == 1:
             remove_leftovers(OUT)

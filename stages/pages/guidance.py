@@ -1,5 +1,5 @@
-"""reports/guidance.md, the page of `rpod guidance` (SPEC 5): one S x K table per eps; and its defended
-section (SPEC 11): closed-loop rendezvous success per variant (undefended, detect-and-hold,
+"""reports/guidance.md, the page of `rpod guidance`: one S x K table per eps; and its defended
+section: closed-loop rendezvous success per variant (undefended, detect-and-hold,
 detect-and-recover) and dynamics."""
 from __future__ import annotations
 
