@@ -156,7 +156,7 @@ Position error `||t_pred - t_gt||`, attitude error `2 acos(|<q_pred, q_gt>|)`.
 Same attack measured on the float adversarial images, before quantisation:
 
 {float_table}
-![original, perturbation, adversarial](figures/fgsm_example.png)
+![the original, the stored adversarial image per eps and the amplified perturbation](figures/fgsm_example.png)
 """
 
 

@@ -93,8 +93,8 @@ def main() -> None:
     atomic_write_text(REPORT, guidance_page(metrics, g, p["render"]) + defended_section(metrics["defended"], g))
     save_figure(guidance_trajectories(baseline, [(s, k, r) for e, s, k, r in runs if e == runs[0][0]] if runs else [],
                                       runs[0][0] if runs else None, settings.goal), FIGURE)
-    save_figure(guidance_variants(defended["example"]["runs"], settings.goal, defended["example"]["title"]),
-                DEFENDED_FIGURE)
+    save_figure(guidance_variants(defended["example"]["runs"], settings.goal, defended["example"]["title"],
+                                  settings.tolerance), DEFENDED_FIGURE)
     typer.echo(f"guidance: baseline {baseline.outcome} ({baseline.miss:.2f} m); {len(runs)} attacked runs, "
           f"{counts['renders']} renders for {counts['steps']} steps in {seconds:.0f} s; defended grid "
           f"{defended['renders']} renders for {defended['steps']} steps in {defended['seconds']:.0f} s -> {REPORT}")

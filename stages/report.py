@@ -170,7 +170,7 @@ def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, s
     eps = sorted(at["eps"], key=float)
     save_figure(F.error_vs_eps([float(e) for e in eps], [at["eps"][e]["position_mean_m"] for e in eps],
                                [at["eps"][e]["attitude_mean_deg"] for e in eps], at["clean"]["position_mean_m"],
-                               at["clean"]["attitude_mean_deg"]), FIGURES / "error_vs_eps.png")
+                               at["clean"]["attitude_mean_deg"], at["method"]), FIGURES / "error_vs_eps.png")
     out = [("train", "Mean error per range bin, train and test", "pose_errors.png"),
            ("attack", "Pose error against eps", "error_vs_eps.png")]
     save_figure(F.shap_heatmaps(_shap_means()), FIGURES / "shap_heatmaps.png")
@@ -182,7 +182,7 @@ def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, s
         curves[DETECTOR_NAMES.get(name, name)] = (roc["fpr"].to_numpy(), roc["tpr"].to_numpy(),
                                                    float(de["detectors"][name]["all"]["roc_auc"]))
     if curves:
-        save_figure(F.roc_curves(curves), FIGURES / "roc.png")
+        save_figure(F.roc_curves(curves, highlight=DETECTOR_NAMES["lstm"]), FIGURES / "roc.png")
         out.append(("detect", "ROC curves of all detectors on the SHAP test split", "roc.png"))
     return out
 
