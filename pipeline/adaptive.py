@@ -1,4 +1,4 @@
-"""Adaptive white-box attack on the whole safety chain (SPEC 11): ascend the pose loss while
+"""Adaptive white-box attack on the whole safety chain: ascend the pose loss while
 descending the detector's logit.
 
 The attacker knows the pose network and the detector. A *differentiable chain* maps a batch of

@@ -69,7 +69,7 @@ def _project(x_adv: Tensor, x: Tensor, eps: float) -> Tensor:
 
 
 def fgsm(model: nn.Module, x: Tensor, y: Tensor, eps: float, loss_fn: LossFn) -> Tensor:
-    """Fast gradient sign method (SPEC 5): x' = clip(x + eps * sign(grad_x L(model(x), y)), 0, 1)."""
+    """Fast gradient sign method: x' = clip(x + eps * sign(grad_x L(model(x), y)), 0, 1)."""
     eps = check_eps(eps)
     x = x.detach()
     with _eval_mode(model):
@@ -101,7 +101,8 @@ def pgd(model: nn.Module, x: Tensor, y: Tensor, eps: float, loss_fn: LossFn, *, 
     x = x.detach()
     x_adv = x
     if random_start:
-        noise = torch.rand(x.shape, generator=generator, dtype=x.dtype, device=x.device)
+        # drawn on the CPU generator and moved: the same start on every device
+        noise = torch.rand(x.shape, generator=generator, dtype=x.dtype).to(x.device)
         x_adv = _project(x + (2 * noise - 1) * eps, x, eps)
     with _eval_mode(model):
         for _ in range(steps):

@@ -1,4 +1,4 @@
-"""Photometric augmentations for training images (SPEC 4), with OpenCV on uint8 (H, W, 3) RGB arrays.
+"""Photometric augmentations for training images, with OpenCV on uint8 (H, W, 3) RGB arrays.
 
 Each augmentation is applied independently with probability `p`, in a fixed order: brightness,
 Gaussian blur, Gaussian noise, JPEG compression (the camera chain: scene light, optics, sensor,

@@ -42,7 +42,7 @@ class Intrinsics:
 
 def reference_intrinsics(width: int = 480, height: int = 270, fx: float = 640.0, fy: float = 360.0,
                          cx: float = 240.0, cy: float = 135.0) -> Intrinsics:
-    """The paper's synthetic camera as printed, K given at 480x270 (SPEC 2). Its fy = 360 is most
+    """The paper's synthetic camera as printed, K given at 480x270. Its fy = 360 is most
     likely a slip for fy = fx (square pixels); the params default (`camera.fy`) is fy = fx."""
     return Intrinsics(width, height, fx, fy, cx, cy)
 

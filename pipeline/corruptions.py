@@ -1,4 +1,4 @@
-"""Benign image corruptions at fixed strengths, as a real camera produces them (SPEC 11).
+"""Benign image corruptions at fixed strengths, as a real camera produces them.
 
 A detector must not flag these: they are not attacks. Each function maps uint8 (N, H, W, 3) RGB
 frames to corrupted uint8 frames of the same shape, with OpenCV, deterministically (the noise

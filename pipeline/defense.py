@@ -1,4 +1,4 @@
-"""The defended chain: SHAP detector fused with the motion check, recovery and safe hold (SPEC 11).
+"""The defended chain: SHAP detector fused with the motion check, recovery and safe hold.
 
 Per frame, `Defense.step` turns (camera-frame estimate, detector probability, camera attitude,
 commanded displacement) into (flag, trusted estimate, mode):

@@ -1,4 +1,4 @@
-"""Integrated evaluation of the safety chain on image sequences (SPEC 8, and the lab domain of SPEC 9).
+"""Integrated evaluation of the safety chain on image sequences (evaluation trajectories and the lab domain).
 
 A sequence is a dict {"name", "images" (N, H, W, 3) uint8, "targets" (N, 9: metres in the camera
 frame, then 6-D), "attacked" (N,) bool}. `evaluate_sequences` runs each sequence clean and at every

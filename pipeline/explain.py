@@ -1,4 +1,4 @@
-"""DeepSHAP values of the pose network's GAP features for each of its 9 outputs (SPEC 6).
+"""DeepSHAP values of the pose network's GAP features for each of its 9 outputs.
 
 The pose model is `forward_head(forward_features(x))`: features `a` (B, 1000) from the Global
 Average Pooling layer, then the heads give 9 outputs (position in metres, then the 6-D rotation).
@@ -102,11 +102,12 @@ def deep_shap(model: nn.Module, features: np.ndarray, background: np.ndarray,
     import shap
 
     head = Head(model).eval()
-    bg = torch.as_tensor(np.asarray(background), dtype=torch.float32)
+    device = next(head.parameters()).device   # the explainer's tensors live with the head's weights
+    bg = torch.as_tensor(np.asarray(background), dtype=torch.float32, device=device)
     explainer = shap.DeepExplainer(head, bg)
     out = []
     for start in range(0, len(features), batch_size):
-        x = torch.as_tensor(np.asarray(features[start:start + batch_size]), dtype=torch.float32)
+        x = torch.as_tensor(np.asarray(features[start:start + batch_size]), dtype=torch.float32, device=device)
         values = explainer.shap_values(x, check_additivity=False)  # (B, D, n_outputs)
         out.append(np.transpose(np.asarray(values), (0, 2, 1)))
     return np.concatenate(out).astype(np.float32)
@@ -141,11 +142,13 @@ class Explainer:
 
 
 def gap_features(model: nn.Module, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """GAP features (N, D) and pose outputs (N, 9: metres, then 6-D) of uint8 RGB images (N, H, W, 3)."""
+    """GAP features (N, D) and pose outputs (N, 9: metres, then 6-D) of uint8 RGB images (N, H, W, 3),
+    computed on the model's device (the images cross to it as uint8)."""
     with torch.no_grad():
-        x = torch.from_numpy(np.ascontiguousarray(images)).permute(0, 3, 1, 2).float() / 255
+        device = next(model.parameters()).device
+        x = torch.from_numpy(np.ascontiguousarray(images)).to(device).permute(0, 3, 1, 2).float() / 255
         f = model.forward_features(x)
-        return f.numpy(), model.forward_head(f).numpy()
+        return f.cpu().numpy(), model.forward_head(f).cpu().numpy()
 
 
 def draw_background(n_train: int, size: int, rng: np.random.Generator) -> np.ndarray:

@@ -1,27 +1,50 @@
 """Figures for the results page: plain arrays and dicts in, matplotlib Figures out (no files here).
 
 Every function returns a `matplotlib.figure.Figure` built without pyplot's global state, so the
-caller decides where to save it and nothing leaks between figures.
+caller decides where to save it and nothing leaks between figures. Figures are at most WIDTH_IN wide
+with text of at least 8.5 pt, so they are shown unscaled and readable in a rendered Markdown page
+(about 880 pixels wide: 8 in at the 110 dpi of stages.io.save_figure); legends sit outside the data.
 """
 from __future__ import annotations
 
-from typing import Any, Mapping, Sequence
+import functools
+from typing import Any, Callable, Mapping, Sequence
 
+import matplotlib
 import numpy as np
 from matplotlib.figure import Figure
 
 from pipeline.schedule import bursts
 
 OUTPUT_NAMES = ("tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5")
+WIDTH_IN = 8.0          # figure width (in)
+TICK_PT = 9.0           # tick label size (pt)
+STYLE = {"font.size": 10, "axes.titlesize": 10, "axes.labelsize": 10, "legend.fontsize": 8.5,
+         "figure.titlesize": 10.5, "xtick.labelsize": TICK_PT, "ytick.labelsize": TICK_PT}
+LATERAL_VISIBLE_M = 0.01   # guidance figures draw the lateral offset only when a run leaves the axis by more (m)
 
 
+def _readable(build: Callable[..., Figure]) -> Callable[..., Figure]:
+    """Build a figure with STYLE's font sizes (tick labels are made when the figure is drawn, after
+    the style is gone, so their size is set on every axes)."""
+    @functools.wraps(build)
+    def wrapper(*args: Any, **kwargs: Any) -> Figure:
+        with matplotlib.rc_context(STYLE):
+            fig = build(*args, **kwargs)
+        for ax in fig.axes:
+            ax.tick_params(labelsize=TICK_PT)
+        return fig
+    return wrapper
+
+
+@_readable
 def pose_error_bars(bins: Mapping[str, Sequence[Mapping[str, float]]]) -> Figure:
     """Mean position (m) and attitude (deg) error per range bin, one bar group per split.
 
     `bins` maps a split name ("train", "test") to rows with `range_m` (label), `pos_mean_m`,
     `att_mean_deg`, in the order the bars are drawn (far to near).
     """
-    fig = Figure(figsize=(9, 3.4), layout="constrained")
+    fig = Figure(figsize=(WIDTH_IN, 3.4), layout="constrained")
     axes = fig.subplots(1, 2)
     labels = sorted({str(r["range_m"]) for rows in bins.values() for r in rows}, key=_far_first)
     x = np.arange(len(labels))
@@ -36,7 +59,8 @@ def pose_error_bars(bins: Mapping[str, Sequence[Mapping[str, float]]]) -> Figure
         ax.set_xlabel("range (m)")
         ax.set_ylabel(ylabel)
         ax.grid(axis="y", alpha=0.3)
-    axes[0].legend()
+    axes[0].legend(title="split")
+    fig.suptitle("Pose error of the trained model per range bin")
     return fig
 
 
@@ -48,25 +72,28 @@ def _far_first(label: str) -> float:
     return -(max(numbers) - (0.5 if label.startswith("<") else 0.0))
 
 
+@_readable
 def error_vs_eps(eps: Sequence[float], position_m: Sequence[float], attitude_deg: Sequence[float],
-                 clean_position_m: float, clean_attitude_deg: float) -> Figure:
-    """Mean pose error under attack against eps (log axis), with the clean error as a dashed line."""
-    fig = Figure(figsize=(9, 3.4), layout="constrained")
+                 clean_position_m: float, clean_attitude_deg: float, method: str = "fgsm") -> Figure:
+    """Mean pose error under the attack `method` against eps (log axis), the clean error dashed."""
+    fig = Figure(figsize=(WIDTH_IN, 3.4), layout="constrained")
     axes = fig.subplots(1, 2)
     order = np.argsort(eps)
     e = np.asarray(eps, dtype=float)[order]
     for ax, values, clean, ylabel in ((axes[0], position_m, clean_position_m, "mean position error (m)"),
                                       (axes[1], attitude_deg, clean_attitude_deg, "mean attitude error (deg)")):
-        ax.plot(e, np.asarray(values, dtype=float)[order], "o-", label="FGSM")
+        ax.plot(e, np.asarray(values, dtype=float)[order], "o-", label=method.upper())
         ax.axhline(clean, color="grey", linestyle="--", label="clean")
         ax.set_xscale("log")
         ax.set_xlabel("eps (L-inf, pixels in [0, 1])")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
     axes[0].legend()
+    fig.suptitle(f"Pose error on the test images under {method.upper()}")
     return fig
 
 
+@_readable
 def shap_heatmaps(mean_abs: Mapping[str, np.ndarray], outputs: Sequence[str] = OUTPUT_NAMES) -> Figure:
     """Mean |SHAP| per (output, GAP feature) for each group (e.g. normal, adversarial), one shared scale.
 
@@ -76,101 +103,137 @@ def shap_heatmaps(mean_abs: Mapping[str, np.ndarray], outputs: Sequence[str] = O
     arrays = {k: np.asarray(v, dtype=float) for k, v in mean_abs.items()}
     order = np.argsort(-sum(arrays.values()).sum(axis=0))
     vmax = max(float(a.max()) for a in arrays.values()) or 1.0
-    fig = Figure(figsize=(10, 1.2 + 1.3 * len(arrays)), layout="constrained")
+    fig = Figure(figsize=(WIDTH_IN, 1.2 + 1.3 * len(arrays)), layout="constrained")
     axes = np.atleast_1d(fig.subplots(len(arrays), 1, sharex=True))
     for ax, (name, a) in zip(axes, arrays.items()):
         im = ax.imshow(a[:, order], aspect="auto", cmap="magma", vmin=0.0, vmax=vmax, interpolation="nearest")
         ax.set_yticks(range(len(outputs)), outputs)
-        ax.set_title(f"{name}: mean |phi|", fontsize=10, loc="left")
+        ax.set_title(f"{name}: mean |phi|", loc="left")
     axes[-1].set_xlabel("GAP feature (sorted by mean |phi| over all panels)")
     fig.colorbar(im, ax=list(axes), shrink=0.9, label="mean |phi|")
     return fig
 
 
-def roc_curves(curves: Mapping[str, tuple[np.ndarray, np.ndarray, float]]) -> Figure:
-    """ROC curves: name -> (fpr, tpr, auc); the chance diagonal dashed."""
-    fig = Figure(figsize=(4.8, 4.4), layout="constrained")
-    ax = fig.subplots()
-    for name, (fpr, tpr, auc) in curves.items():
-        ax.plot(fpr, tpr, label=f"{name} (AUC {auc:.3f})")
-    ax.plot([0, 1], [0, 1], color="grey", linestyle="--", linewidth=0.8)
-    ax.set_xlabel("false-positive rate")
-    ax.set_ylabel("true-positive rate")
-    ax.set_xlim(0, 1)
-    ax.set_ylim(0, 1.01)
-    ax.grid(alpha=0.3)
-    ax.legend(loc="lower right", fontsize=8)
+@_readable
+def roc_curves(curves: Mapping[str, tuple[np.ndarray, np.ndarray, float]], highlight: str | None = None) -> Figure:
+    """ROC curves, name -> (fpr, tpr, auc): on linear axes, and with a log false-positive axis where
+    the good detectors differ (their curves overlap in the top-left corner). `highlight` (the
+    detector the page is about) is drawn last, thick and black, so no other curve hides it."""
+    fig = Figure(figsize=(WIDTH_IN, 4.2), layout="constrained")
+    axes = fig.subplots(1, 2)
+    names = [n for n in curves if n != highlight] + ([highlight] if highlight in curves else [])
+    smallest = min((float(np.min(f[f > 0])) for f, _, _ in curves.values() if np.any(f > 0)), default=1e-3)
+    for ax, log in zip(axes, (False, True)):
+        for j, name in enumerate(names):
+            fpr, tpr, auc = curves[name]
+            top = name == highlight
+            ax.plot(fpr, tpr, color="black" if top else f"C{j}", lw=2.4 if top else 1.2, zorder=3 if top else 2,
+                    label=f"{name} (AUC {auc:.3f})")
+        chance = np.logspace(np.log10(smallest / 1.5), 0, 50)   # many points: a straight line on either axis
+        ax.plot(chance, chance, color="grey", linestyle="--", linewidth=0.8, label="chance")
+        ax.set_xlabel("false-positive rate" + (" (log axis)" if log else ""))
+        ax.set_ylabel("true-positive rate")
+        ax.set_ylim(0, 1.01)
+        ax.grid(alpha=0.3)
+        if log:
+            ax.set_xscale("log")
+            ax.set_xlim(smallest / 1.5, 1)
+        else:
+            ax.set_xlim(0, 1)
+    axes[0].set_title("linear axes")
+    axes[1].set_title("low false-positive rates")
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncols=2)
+    fig.suptitle("ROC of the attack detectors on the SHAP test split")
     return fig
 
 
+@_readable
 def attack_example(clean: np.ndarray, adv: Mapping[float, np.ndarray], t_gt: np.ndarray,
                    pred: Mapping[Any, np.ndarray], method: str) -> Figure:
-    """Per eps: the clean uint8 image, the stored perturbation scaled to fill [0, 1], the adversarial image.
+    """The clean uint8 image, the stored adversarial image per eps (ascending), and the perturbation of
+    the smallest eps amplified to fill the grey range (mid-grey = unchanged), in rows of at most 4.
 
-    `t_gt` is the true position (m, camera frame); `pred` maps "clean" and each eps to the 9 outputs.
+    `t_gt` is the true position (m, camera frame); `pred` maps "clean" and each eps to the 9 outputs;
+    titles give the position error of each estimate (m).
     """
-    eps_list = list(adv)
-    fig = Figure(figsize=(9, 1.9 * len(eps_list) + 0.4))
-    axes = fig.subplots(len(eps_list), 3, squeeze=False)
-    c = clean.astype(np.float64) / 255
+    eps_list = sorted(adv, key=float)
     err = {k: float(np.linalg.norm(v[:3] - t_gt)) for k, v in pred.items()}
-    for row, e in zip(axes, eps_list):
-        a = adv[e].astype(np.float64) / 255
-        delta = a - c
-        scale = max(float(np.abs(delta).max()), 1e-12)
-        row[0].imshow(clean)
-        row[0].set_title(f"original (pos. error {err['clean']:.2f} m)", fontsize=8)
-        row[1].imshow(np.clip(0.5 + 0.5 * delta / scale, 0, 1))
-        row[1].set_title(f"perturbation eps={e:g} (shown x{0.5 / scale:.2g})", fontsize=8)
-        row[2].imshow(adv[e])
-        row[2].set_title(f"adversarial (pos. error {err[e]:.2f} m)", fontsize=8)
-        for ax in row:
-            ax.set_axis_off()
-    fig.suptitle(f"{method.upper()} example, target at range {t_gt[2]:.1f} m", fontsize=9)
-    fig.tight_layout()
+    delta = adv[eps_list[0]].astype(np.float64) / 255 - clean.astype(np.float64) / 255
+    gain = 0.5 / max(float(np.abs(delta).max()), 1e-12)
+    panels = ([(f"original\nerror {err['clean']:.2f} m", clean)]
+              + [(f"eps = {e:g}\nerror {err[e]:.1f} m", adv[e]) for e in eps_list]
+              + [(f"perturbation at eps = {eps_list[0]:g}\namplified x{gain:.3g}", np.clip(0.5 + gain * delta, 0, 1))])
+    cols = min(4, len(panels))
+    rows = -(-len(panels) // cols)
+    h, w = clean.shape[:2]
+    fig = Figure(figsize=(WIDTH_IN, rows * (WIDTH_IN / cols * h / w + 0.5) + 0.4), layout="constrained")
+    axes = fig.subplots(rows, cols, squeeze=False).ravel()
+    for ax in axes:
+        ax.set_axis_off()
+    for ax, (title, image) in zip(axes, panels):
+        ax.imshow(image, interpolation="nearest")
+        ax.set_title(title)
+    fig.suptitle(f"{method.upper()} on one test image (target at {t_gt[2]:.1f} m): stored 8-bit attacks and the "
+                 f"position error of the estimate")
     return fig
 
 
+def _lateral(r: Any) -> np.ndarray:
+    """Distance (m) of a run's true positions from the approach axis, sqrt(x^2 + y^2), per step."""
+    return np.hypot(r.positions[:, 0], r.positions[:, 1])
+
+
+def _estimate_error(r: Any) -> np.ndarray:
+    """Position error (m) of each step's estimate against the true position it was taken at."""
+    return np.linalg.norm(r.estimates - r.positions[:len(r.estimates)], axis=1)
+
+
+@_readable
 def guidance_trajectories(baseline: Any, runs: Sequence[tuple[float, int, Any]], eps: float | None,
                           goal: Sequence[float]) -> Figure:
-    """True trajectories (m) of the no-attack run and of the runs (S, K, RendezvousResult) of one eps:
-    lateral x and y against z, and z against the step; dots mark attacked frames."""
+    """The no-attack run and the attacked runs (S, K, RendezvousResult) of one eps, step by step: the
+    true range z (m) with the goal dashed, and the error of the position estimate (m, log axis); dots
+    mark attacked frames. A third panel, the distance from the approach axis (m), is drawn only when
+    a run leaves it by more than LATERAL_VISIBLE_M (under the paper's dynamics it stays exactly 0)."""
     import matplotlib
 
-    fig = Figure(figsize=(15, 4.2))
-    axes = fig.subplots(1, 3)
     cmap = matplotlib.colormaps["viridis"]
     curves = [("no attack", baseline, "black", 2.0)] + [
-        (f"S={s:g} m, K={k}: {r.outcome}", r, cmap(j / max(len(runs) - 1, 1)), 1.0) for j, (s, k, r) in enumerate(runs)]
+        (f"S={s:g} m, K={k}: {r.outcome}", r, cmap(j / max(len(runs) - 1, 1)), 1.2) for j, (s, k, r) in enumerate(runs)]
+    lateral = max(float(_lateral(r).max()) for _, r, _, _ in curves) > LATERAL_VISIBLE_M
+    fig = Figure(figsize=(WIDTH_IN, 5.4), layout="constrained")
+    axes = fig.subplots(1, 3 if lateral else 2, sharex=True)
     for label, r, color, lw in curves:
         hit = np.flatnonzero(r.attacked)
-        for ax, (h, v) in zip(axes, ((r.positions[:, 2], r.positions[:, 0]), (r.positions[:, 2], r.positions[:, 1]),
-                                     (np.arange(len(r.positions)), r.positions[:, 2]))):
-            ax.plot(h, v, "-", color=color, lw=lw, label=label)
-            ax.plot(h[hit], v[hit], "o", color=color, ms=3)
-    for ax, (h, v) in zip(axes, ((goal[2], goal[0]), (goal[2], goal[1]))):
-        ax.plot(h, v, "r*", ms=12, label="target point")
-        ax.invert_xaxis()
-        ax.set_xlabel("z (m, along the approach)")
-    axes[2].axhline(goal[2], color="r", ls="--", lw=1)
-    axes[2].set_xlabel("step")
-    for ax, title, ylabel in zip(axes, ("z vs x", "z vs y", "z vs step"), ("x (m)", "y (m)", "z (m)")):
+        panels = [(r.positions[:, 2], False), (_estimate_error(r), True)] + ([(_lateral(r), False)] if lateral else [])
+        for ax, (v, log) in zip(axes, panels):
+            steps = np.arange(len(v))
+            (ax.semilogy if log else ax.plot)(steps, v, "-", color=color, lw=lw, label=label)
+            ax.plot(steps[hit], v[hit], "o", color=color, ms=3.5)
+    axes[0].axhline(goal[2], color="r", ls="--", lw=1, label="target point")
+    titles = ["true range", "estimate error", "distance from the axis"]
+    ylabels = ["range z (m)", "position error of the estimate (m)", "sqrt(x^2 + y^2) (m)"]
+    for ax, title, ylabel in zip(axes, titles, ylabels):
         ax.set_title(title)
+        ax.set_xlabel("guidance step")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
-    axes[1].legend(fontsize=7, loc="best")
-    fig.suptitle("True position of the target relative to the chaser" + (f", eps = {eps:g}" if eps is not None else "")
-                 + " (dots: attacked frames)", fontsize=10)
-    fig.tight_layout()
+    if runs:   # the no-attack run may fly longer than the attacked runs are judged
+        axes[0].set_xlim(-1, max(len(r.positions) for _, _, r in runs) + 1)
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncols=3)
+    note = "" if lateral else "\nevery run stays on the approach axis (x = y = 0 m): lateral positions not drawn"
+    fig.suptitle("Closed-loop approach" + (f" under attack, eps = {eps:g}" if eps is not None else "")
+                 + f"; dots: attacked frames{note}")
     return fig
 
 
+@_readable
 def detection_timeline(true_z: np.ndarray, attacked: np.ndarray, trace: Mapping[str, np.ndarray], threshold: float,
                        title: str) -> Figure:
     """One trajectory frame by frame: true and estimated range t_z (m), attacked frames, the detector's
     probability and flags, and the position error (m); `trace` holds estimate_z, prob, flag, position_error."""
     frames = np.arange(len(attacked))
-    fig = Figure(figsize=(9, 7))
+    fig = Figure(figsize=(WIDTH_IN, 7.4), layout="constrained")
     axes = fig.subplots(3, 1, sharex=True)
 
     def shade(ax: Any, label: bool = False) -> None:
@@ -183,7 +246,6 @@ def detection_timeline(true_z: np.ndarray, attacked: np.ndarray, trace: Mapping[
     ax.plot(frames, true_z, "k-", lw=1.2, label="true t_z")
     ax.plot(frames, trace["estimate_z"], ".", ms=2.5, color="tab:blue", label="estimated t_z")
     ax.set_ylabel("range t_z (m)")
-    ax.legend(loc="upper right", fontsize=8)
     ax = axes[1]
     shade(ax)
     ax.plot(frames, trace["prob"], "-", lw=0.8, color="tab:purple", label="detector probability")
@@ -192,48 +254,61 @@ def detection_timeline(true_z: np.ndarray, attacked: np.ndarray, trace: Mapping[
     ax.plot(frames[f], np.full(f.sum(), 1.05), "|", color="tab:orange", ms=6, label="flag")
     ax.set_ylim(-0.05, 1.12)
     ax.set_ylabel("P(attacked)")
-    ax.legend(loc="lower right", fontsize=8)
     ax = axes[2]
     shade(ax)
     err = trace["position_error"]
     miss = attacked & ~f
     ax.semilogy(frames, np.maximum(err, 1e-3), "-", lw=0.8, color="tab:blue", label="position error")
     ax.semilogy(frames[miss], np.maximum(err[miss], 1e-3), "x", color="tab:red", ms=5, label="attacked, not flagged")
-    ax.set_ylabel("error (m)")
+    ax.set_ylabel("position error (m)")
     ax.set_xlabel("frame")
-    ax.legend(loc="upper right", fontsize=8)
-    fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
+    handles, labels = zip(*(hl for a in axes for hl in zip(*a.get_legend_handles_labels())))
+    fig.legend(handles, labels, loc="outside lower center", ncols=4)
+    fig.suptitle(title)
     return fig
 
 
-def guidance_variants(runs: Sequence[tuple[str, Any]], goal: Sequence[float], title: str) -> Figure:
-    """True trajectories (m) of one attacked cell flown by each variant (label, RendezvousResult):
-    lateral x against z and z against the step; dots mark attacked frames, crosses flagged ones."""
-    fig = Figure(figsize=(11, 4.2))
+@_readable
+def guidance_variants(runs: Sequence[tuple[str, Any]], goal: Sequence[float], title: str,
+                      tolerance: float | None = None) -> Figure:
+    """One attacked cell flown by each variant (label, RendezvousResult): the distance from the approach
+    axis (m) against the range z, and the distance to the target point (m) step by step from a few
+    steps before the first attack (before it the variants fly the same path), with `tolerance` (m)
+    dashed. Dots mark attacked frames, crosses the frames after a flag."""
+    fig = Figure(figsize=(WIDTH_IN, 4.6), layout="constrained")
     axes = fig.subplots(1, 2)
+    starts = [r.attack_start for _, r in runs if r.attack_start is not None]
+    first = max(0, min(starts) - 5) if starts else 0
     for j, (label, r) in enumerate(runs):
         color = f"C{j}"
         hit = np.flatnonzero(r.attacked)
-        flagged = np.array([], int) if r.flags is None else np.flatnonzero(r.flags)
-        for ax, (h, v) in zip(axes, ((r.positions[:, 2], r.positions[:, 0]),
-                                     (np.arange(len(r.positions)), r.positions[:, 2]))):
-            ax.plot(h, v, "-", color=color, lw=1.2, label=f"{label}: {r.outcome}")
-            ax.plot(h[hit], v[hit], "o", color=color, ms=3)
-            ax.plot(h[flagged + 1], v[flagged + 1], "x", color=color, ms=5)
-    axes[0].plot(goal[2], goal[0], "r*", ms=12, label="target point")
+        flagged = np.array([], int) if r.flags is None else np.flatnonzero(r.flags) + 1
+        steps = np.arange(len(r.positions))
+        to_goal = np.linalg.norm(r.positions - np.asarray(goal, dtype=np.float64), axis=1)
+        shown = steps >= first
+        extra = f", {r.attacked_frames} attacked" + ("" if r.flags is None else f", {int(r.flags.sum())} flagged")
+        axes[0].plot(r.positions[:, 2], _lateral(r), "-", color=color, lw=1.3, label=f"{label}: {r.outcome}{extra}")
+        axes[1].plot(steps[shown], to_goal[shown], "-", color=color, lw=1.3)
+        for ax, lo, h, v in ((axes[0], 0, r.positions[:, 2], _lateral(r)), (axes[1], first, steps, to_goal)):
+            ax.plot(h[hit[hit >= lo]], v[hit[hit >= lo]], "o", color=color, ms=3.5)
+            ax.plot(h[flagged[flagged >= lo]], v[flagged[flagged >= lo]], "x", color=color, ms=5)
     axes[0].invert_xaxis()
-    axes[1].axhline(goal[2], color="r", ls="--", lw=1)
-    for ax, xlabel, ylabel in zip(axes, ("z (m, along the approach)", "step"), ("x (m)", "z (m)")):
+    if tolerance is not None:
+        axes[1].axhline(tolerance, color="r", ls="--", lw=1, label=f"tolerance ({tolerance:g} m)")
+    for ax, sub, xlabel, ylabel in ((axes[0], "distance from the axis", "range z (m)", "sqrt(x^2 + y^2) (m)"),
+                                    (axes[1], "distance to the target point", "guidance step", "distance (m)")):
+        ax.set_title(sub)
         ax.set_xlabel(xlabel)
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=7, loc="best")
-    fig.suptitle(f"One attacked run per variant ({title}); dots: attacked frames, crosses: flagged", fontsize=10)
-    fig.tight_layout()
+    handles, labels = axes[0].get_legend_handles_labels()
+    more = axes[1].get_legend_handles_labels()
+    fig.legend(handles + more[0], labels + more[1], loc="outside lower center", ncols=2)
+    fig.suptitle(f"One attacked cell per variant ({title})\ndots: attacked frames, crosses: frames after a flag")
     return fig
 
 
+@_readable
 def robustness_vs_eps(rows: Sequence[Mapping[str, object]]) -> Figure:
     """Detection rate and harmful-undetected rate (%) against eps (log axis), one line per attack.
 
@@ -241,7 +316,7 @@ def robustness_vs_eps(rows: Sequence[Mapping[str, object]]) -> Figure:
     `harmful_undetected_rate`, `ci95_detection`, `ci95_harmful_undetected`); error bars are the
     95% Wilson intervals.
     """
-    fig = Figure(figsize=(10, 3.8), layout="constrained")
+    fig = Figure(figsize=(WIDTH_IN, 4.6), layout="constrained")
     axes = fig.subplots(1, 2, sharex=True)
     names = list(dict.fromkeys(str(r["attack"]) for r in rows))
     ticks = sorted({float(r["eps"]) for r in rows})
@@ -263,5 +338,6 @@ def robustness_vs_eps(rows: Sequence[Mapping[str, object]]) -> Figure:
         ax.set_ylabel(ylabel)
         ax.set_ylim(-2, 102)
         ax.grid(alpha=0.3)
-    axes[1].legend(fontsize=7, loc="best")
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncols=3)
+    fig.suptitle("Detection and harm per attack and eps (95% Wilson intervals)")
     return fig

@@ -1,4 +1,4 @@
-"""Closed-loop rendezvous guided by the pose estimator (SPEC 5), with an optional attack window.
+"""Closed-loop rendezvous guided by the pose estimator, with an optional attack window.
 
 Frames (those of pipeline/trajectories.py). The world frame is target-centred with the approach
 along +z; the state `rel` (target position relative to the chaser, world axes, metres) starts at

@@ -1,4 +1,4 @@
-"""The lab domain (SPEC 9): range rescaling, mocap-to-camera timestamp matching, lab images.
+"""The lab domain: range rescaling, mocap-to-camera timestamp matching, lab images.
 
 Range rescaling (pinhole model)
 -------------------------------
@@ -14,7 +14,7 @@ Equal apparent size,
 gives z_syn = z_lab * scale * f_syn / f_lab_eff = z_lab * 9 * 640 / 350.10 = 16.45 * z_lab
 (so 3.122 m in the lab is 51.36 m in the synthetic scene). The factor uses the horizontal focal
 lengths; it does not depend on the image size the two cameras are compared at, because both K
-scale alike with the image. With the default square-pixel K_blender (fy = fx, SPEC 2) the match
+scale alike with the image. With the default square-pixel K_blender (fy = fx) the match
 holds vertically too; with the paper's printed fy = 360 the synthetic pixels are not square
 (fx / fy = 16 / 9) while the ZED's are, so the vertical apparent size differs by fy_syn / fx_syn =
 9 / 16. Either way we follow the paper and match the horizontal size. The paper's own table uses
@@ -28,7 +28,7 @@ Motion capture
 mocap world frame, 120 Hz; `camera.csv` has (frame, timestamp s) at 30 fps on the same clock. A
 body's quaternion rotates body-frame vectors into the world frame. The camera body's frame must be
 the optical frame (OpenCV: x right, y down, z forward; a hand-eye calibration folded into the
-rigid body) and the target body's frame the target (mesh) frame. SPEC 9's relative position
+rigid body) and the target body's frame the target (mesh) frame. The lab's relative position
 `d = p_camera - p_target` is expressed in the world frame; our label is the target origin in the
 camera frame, t = R_cam^T (p_target - p_camera) = -R_cam^T d, and the label attitude (target
 frame -> camera frame) is R = R_cam^T R_target, i.e. q = conj(q_cam) * q_target.
@@ -101,7 +101,7 @@ def relative_pose(p_cam: np.ndarray, q_cam: np.ndarray, p_tgt: np.ndarray,
     """World poses of camera and target bodies -> label (t in the camera frame (m), q target->camera)."""
     R_cam = quat_to_matrix(q_cam)
     R_tgt = quat_to_matrix(q_tgt)
-    d = np.asarray(p_cam, np.float64) - np.asarray(p_tgt, np.float64)   # SPEC 9, world frame
+    d = np.asarray(p_cam, np.float64) - np.asarray(p_tgt, np.float64)   # world frame
     t = -np.einsum("...ji,...j->...i", R_cam, d)
     q = matrix_to_quat(np.swapaxes(R_cam, -1, -2) @ R_tgt)
     return t, q

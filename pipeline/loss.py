@@ -1,4 +1,4 @@
-"""Pose loss with learned position/rotation weighting (SPEC 4, Kendall et al. 2017).
+"""Pose loss with learned position/rotation weighting (Kendall et al. 2017).
 
     L = exp(-2 s_p) * A(||p_i - p_gt_i||) + exp(-2 s_r) * A(||r_i - r_gt_i||) + 2 (s_p + s_r)
 
@@ -15,7 +15,7 @@ from torch import nn
 
 
 class PoseLoss(nn.Module):
-    """The SPEC 4 loss; `parts` exposes the two unweighted error terms (for attacks)."""
+    """The pose loss; `parts` exposes the two unweighted error terms (for attacks)."""
 
     def __init__(self, reduction: str = "mean"):
         super().__init__()

@@ -1,6 +1,6 @@
 """The relative-pose CNN: a modified Darknet-19 with a 1000-feature GAP layer and two linear heads.
 
-Architecture (SPEC 4): Darknet-19's layer plan with a 7x7 first convolution, every max-pool replaced
+Architecture: Darknet-19's layer plan with a 7x7 first convolution, every max-pool replaced
 by a 3x3 stride-2 convolution, and Darknet-53-style residual blocks (1x1 bottleneck to half the
 channels, 3x3 back, identity skip) in place of Darknet-19's 1x1/3x3 pairs. Every convolution is
 followed by BatchNorm and its own LeakyReLU(0.1) instance (inplace=False, so shap's DeepExplainer
@@ -9,6 +9,11 @@ layer" features; dropout (training only) and two separate linear heads give the 
 position (tx, ty, tz) in metres in the OpenCV camera frame, then the 6-D rotation (Zhou et al.).
 
 Input: (B, 3, H, W) float RGB in [0, 1], any H, W (the GAP makes the heads size-independent).
+Devices: `place(device, amp)` moves the weights; inputs on another device (CPU tensors from numpy)
+are moved to the weights' device and the outputs come back on the input's device, so callers need
+not know where the network runs (gradients flow through the moves). On CUDA, `amp` runs the backbone
+under bf16 autocast (features back in float32) and the weights use the channels_last layout; on the
+CPU the network computes exactly as without `place`.
 There is no input normalisation layer: the first convolution has no bias and is followed by
 BatchNorm, which absorbs any affine rescaling of the pixels.
 """
@@ -68,6 +73,7 @@ class PoseNet(nn.Module):
         if not 0 <= dropout < 1:
             raise ValueError(f"dropout must be in [0, 1), got {dropout}")
         self.width, self.dropout_p = float(width), float(dropout)
+        self.amp = False   # bf16 autocast of the backbone (CUDA only; set by `place`)
         c = scaled(STEM_CHANNELS, width)
         layers: list[nn.Module] = [conv_bn_act(3, c, 7)]
         for channels, blocks in STAGES:
@@ -98,17 +104,43 @@ class PoseNet(nn.Module):
         self.head_pos.bias.copy_(torch.as_tensor(position, dtype=torch.float32))
         self.head_rot.bias.copy_(torch.as_tensor(rotation6d, dtype=torch.float32))
 
-    def forward_features(self, x: torch.Tensor) -> torch.Tensor:
-        """(B, 3, H, W) in [0, 1] -> (B, 1000) GAP-layer features."""
-        return torch.flatten(self.gap(self.backbone(x)), 1)
+    def place(self, device: str | torch.device, amp: bool = False) -> "PoseNet":
+        """Move the weights to `device`; on CUDA use the channels_last layout and, with `amp`, bf16
+        autocast of the backbone. On the CPU both are off (outputs as before). Returns self."""
+        device = torch.device(device)
+        self.to(device)
+        if device.type == "cuda":
+            self.to(memory_format=torch.channels_last)
+        self.amp = bool(amp) and device.type == "cuda"
+        return self
 
-    def forward_head(self, features: torch.Tensor) -> torch.Tensor:
-        """(B, 1000) features -> (B, 9): position (m) then 6-D rotation."""
+    @property
+    def device(self) -> torch.device:
+        """Where the weights are."""
+        return self.head_pos.weight.device
+
+    def _features(self, x: torch.Tensor) -> torch.Tensor:
+        """forward_features on the weights' device (x already there)."""
+        if not self.amp:
+            return torch.flatten(self.gap(self.backbone(x)), 1)
+        with torch.autocast("cuda", dtype=torch.bfloat16):
+            f = self.backbone(x.contiguous(memory_format=torch.channels_last))
+        return torch.flatten(self.gap(f.float()), 1)
+
+    def _head(self, features: torch.Tensor) -> torch.Tensor:
         f = self.dropout(features)
         return torch.cat([self.head_pos(f), self.head_rot(f)], dim=1)
 
+    def forward_features(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 3, H, W) in [0, 1] -> (B, 1000) GAP-layer features, on x's device."""
+        return self._features(x.to(self.device, non_blocking=True)).to(x.device)
+
+    def forward_head(self, features: torch.Tensor) -> torch.Tensor:
+        """(B, 1000) features -> (B, 9): position (m) then 6-D rotation, on the features' device."""
+        return self._head(features.to(self.device)).to(features.device)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.forward_head(self.forward_features(x))
+        return self._head(self._features(x.to(self.device, non_blocking=True))).to(x.device)
 
     def arch(self) -> dict[str, float]:
         """The constructor arguments (stored in checkpoints)."""

@@ -1,4 +1,4 @@
-"""Motion-consistency check of the pose estimates: a relative-motion Kalman filter and its gate (SPEC 11).
+"""Motion-consistency check of the pose estimates: a relative-motion Kalman filter and its gate.
 
 Frames (those of pipeline/trajectories.py). The filter works in the target-centred world frame:
 `rel` is the target position relative to the chaser camera in world axes (metres). The chaser knows

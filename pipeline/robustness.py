@@ -1,4 +1,4 @@
-"""Robustness rows of the safety chain (SPEC 11): detection rate, harmful-undetected rate, pose error.
+"""Robustness rows of the safety chain: detection rate, harmful-undetected rate, pose error.
 
 For a set of attacked frames with their position errors (m) and the chain's flags:
 - detection rate = flagged frames / attacked frames;

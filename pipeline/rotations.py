@@ -1,14 +1,12 @@
 """Rotations and pose errors in the OpenCV camera frame (x right, y down, z forward).
 
-Conventions (SPEC 2): position t = target origin in the camera frame (metres); quaternion
+Conventions: position t = target origin in the camera frame (metres); quaternion
 q = (qw, qx, qy, qz), scalar first, rotating target-frame vectors into the camera frame
-(SPEED/SPEED+ `q_vbs2tango_true`); 6-D rotation (Zhou et al. 2019) = first two columns of R,
-flattened column-wise: (R00, R10, R20, R01, R11, R21).
+(the same numbers as SPEED/SPEED+ `q_vbs2tango_true`: pipeline/speed.py); 6-D rotation (Zhou et al.
+2019) = first two columns of R, flattened column-wise: (R00, R10, R20, R01, R11, R21).
 All functions are batched over leading axes and work on numpy arrays.
 """
 from __future__ import annotations
-
-from typing import Any
 
 import numpy as np
 
@@ -103,22 +101,3 @@ def attitude_error_deg(q_pred: np.ndarray, q_gt: np.ndarray) -> np.ndarray:
     """Attitude error 2*acos(|<q_pred, q_gt>|) in degrees, per sample."""
     d = np.abs(np.sum(normalize_quat(q_pred) * normalize_quat(q_gt), -1))
     return np.rad2deg(2 * np.arccos(np.clip(d, 0.0, 1.0)))
-
-
-def to_speed(filenames: list[str], t: np.ndarray, q: np.ndarray) -> list[dict[str, Any]]:
-    """Labels in the SPEED/SPEED+ JSON layout (a list of records)."""
-    return [
-        {"filename": f, "q_vbs2tango_true": [float(v) for v in qi], "r_Vo2To_vbs_true": [float(v) for v in ti]}
-        for f, ti, qi in zip(filenames, np.asarray(t), np.asarray(q))
-    ]
-
-
-def from_speed(records: list[dict[str, Any]]) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """Parse SPEED/SPEED+ JSON records -> (filenames, t (N, 3), q (N, 4))."""
-    try:
-        names = [r["filename"] for r in records]
-        t = np.array([r["r_Vo2To_vbs_true"] for r in records], dtype=np.float64).reshape(-1, 3)
-        q = np.array([r["q_vbs2tango_true"] for r in records], dtype=np.float64).reshape(-1, 4)
-    except (KeyError, TypeError, ValueError) as e:
-        raise ValueError(f"not a SPEED label record list: {e}") from None
-    return names, t, q

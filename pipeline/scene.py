@@ -77,7 +77,7 @@ def _box(name: str, size: tuple[float, float, float], loc: tuple[float, float, f
 
 
 def _build_satellite(parent: bpy.types.Object) -> None:
-    """Procedural Jason-1-like satellite, target frame in metres (SPEC 3).
+    """Procedural Jason-1-like satellite, target frame in metres.
 
     Bus 1.0 (x) x 1.2 (y) x 1.0 (z) m of gold foil centred on the origin; two solar wings along
     +-x, each 4 dark-blue panels (1.5 m along y x 1.25 m along x, 5 m per wing) on a short yoke,

@@ -1,4 +1,4 @@
-"""Per-frame attack schedule and per-frame detection metrics for the integrated evaluation (SPEC 8).
+"""Per-frame attack schedule and per-frame detection metrics for the integrated evaluation.
 
 Schedule: walking the frames in order, a frame that is not already inside an attack starts one
 with probability `p_start`; an attack then covers exactly `length` consecutive frames (a burst is

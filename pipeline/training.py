@@ -7,7 +7,7 @@ DistributedSampler and the validation set evaluated in shards that are gathered 
 The caller passes a validation set carved from the training data (pipeline.splits.holdout): `fit`
 never sees the test split, so the checkpoint it keeps is not selected on test data.
 
-Errors (SPEC 2): position ||t_pred - t_gt|| in metres, attitude 2*acos(|<q_pred, q_gt>|) in degrees,
+Errors: position ||t_pred - t_gt|| in metres, attitude 2*acos(|<q_pred, q_gt>|) in degrees,
 the 6-D output decoded by Gram-Schmidt. The model selection score is the ESA SPEED score,
 mean(||t_pred - t_gt|| / ||t_gt||) + mean(attitude error in radians): dimensionless, so a 1% range
 error weighs as much as 0.01 rad (0.57 deg) of attitude.
@@ -125,8 +125,9 @@ def predict(model: nn.Module, dataset: Dataset, batch_size: int = 128, device: s
     was_training = model.training
     model.eval()
     subset = dataset if indices is None else torch.utils.data.Subset(dataset, list(indices))
-    out = [model(to_input(x, channels_last).to(device)).float().cpu()
-           for x, _ in DataLoader(subset, batch_size=batch_size, shuffle=False)]
+    pin = torch.device(device).type == "cuda"
+    out = [model(to_input(x.to(device, non_blocking=pin), channels_last)).float().cpu()   # uint8 over the bus
+           for x, _ in DataLoader(subset, batch_size=batch_size, shuffle=False, pin_memory=pin)]
     model.train(was_training)
     return torch.cat(out).numpy() if out else np.zeros((0, 9), np.float32)
 
@@ -268,7 +269,8 @@ def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, val_set: PoseD
         bar = tqdm(loader, desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="batch", disable=not progress or rank != 0,
                    leave=False, dynamic_ncols=True)
         for x, y in bar:
-            x, y = to_input(x, cfg.channels_last).to(device, non_blocking=True), y.to(device, non_blocking=True)
+            # the pinned uint8 batch crosses to the device, then becomes float there
+            x, y = to_input(x.to(device, non_blocking=True), cfg.channels_last), y.to(device, non_blocking=True)
             value, pred = objective(x, y)
             check_loss(value.item(), f"epoch {epoch + 1}")
             opt.zero_grad(set_to_none=True)

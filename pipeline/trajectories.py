@@ -1,8 +1,8 @@
-"""Chaser-camera trajectories around the target (SPEC 3 and 8), pure numpy.
+"""Chaser-camera trajectories around the target, pure numpy.
 
 Frames. The world frame is centred on the target. `rel` is the position of the target relative to
 the chaser camera, in world axes (metres); the nominal approach runs along world +z, so a chaser
-"at (x, y, 60)" in SPEC terms has rel = (x, y, 60) and the approach ends at rel = (0, 0, 10).
+"at (x, y, 60)" has rel = (x, y, 60) and the approach ends at rel = (0, 0, 10).
 `R_cam` rotates camera-frame vectors (OpenCV: x right, y down, z boresight) into world axes and
 `R_target` rotates target-frame vectors into world axes. The labels are then
 
@@ -20,7 +20,7 @@ import numpy as np
 
 from pipeline.rotations import euler_to_matrix
 
-# SPEC 3: lateral start offsets (x, y) in metres.
+# The 13 sequences' lateral start offsets (x, y) in metres.
 FIXED_STARTS = [(0.0, 0.0), (-15.0, -25.0), (-15.0, 25.0), (15.0, 25.0), (15.0, -25.0)]
 ROTATING_STARTS = [(-15.0, -10.0), (-15.0, 10.0), (15.0, 10.0), (15.0, -10.0)]
 
@@ -97,7 +97,7 @@ def _check(frames: int, start_range: float, end_range: float, jitter_deg: float)
 
 def approach_sequences(frames_per_sequence: int, start_range: float = 60.0, end_range: float = 10.0,
                        jitter_deg: float = 2.0, max_rot_deg: float = 10.0, seed: int = 0) -> list[Sequence]:
-    """The 13 approach sequences of SPEC 3.
+    """The 13 approach sequences of the training set.
 
     Each runs in a straight line, in equal steps, from rel = (x, y, start_range) to
     (0, 0, end_range). Sequences 0-4 start at FIXED_STARTS with the target attitude fixed (identity);
@@ -121,7 +121,7 @@ def approach_sequences(frames_per_sequence: int, start_range: float = 60.0, end_
 def projectile_trajectory(n_frames: int, start_xy: tuple[float, float], start_range: float = 60.0,
                           end_range: float = 10.0, seed: int = 0, jitter_deg: float = 0.0,
                           max_rot_deg: float = 0.0, sequence: int = 0) -> Sequence:
-    """An evaluation approach (SPEC 8): uniform z steps from start_range to end_range while the
+    """An evaluation approach: uniform z steps from start_range to end_range while the
     lateral offset decays along a parabola, xy(s) = start_xy * (1 - s)^2 for s in [0, 1], so the path
     bends in like a projectile and arrives at (0, 0, end_range) with zero lateral velocity.
     Camera pointing (optional jitter) and target attitude (optional random rotation) as in

@@ -1,5 +1,5 @@
 """Rewrite the code deps of every stage in dvc.yaml from the source (the derivation of
-tests/test_dvc_deps.py); data deps (datasets/, models/, reports/) are kept in their order.
+tests/test_dvc_deps.py); data deps (datasets/, models/, reports/, and "${param}" paths) are kept in their order.
 
 Run after adding a stage or changing what a stage imports: `python scripts/update_dvc_deps.py`.
 """
@@ -19,7 +19,7 @@ def deps_block(deps: list[str]) -> str:
     """`    deps: [...]` wrapped at WIDTH characters."""
     lines, cur = [], "    deps: ["
     for i, d in enumerate(deps):
-        item = d + (", " if i < len(deps) - 1 else "]")
+        item = (f'"{d}"' if d.startswith("${") else d) + (", " if i < len(deps) - 1 else "]")
         if len(cur) + len(item) > WIDTH:
             lines.append(cur.rstrip())
             cur = " " * 11
@@ -31,7 +31,8 @@ def main() -> None:
     path = derive.REPO / "dvc.yaml"
     text = path.read_text()
     for name, stage in derive.STAGES.items():
-        data = [d for d in stage.get("deps", []) if d.split("/")[0] in ("datasets", "models", "reports")]
+        data = [d for d in stage.get("deps", []) if d.split("/")[0] in ("datasets", "models", "reports")
+                or d.startswith("${")]
         code = sorted(str(f.relative_to(derive.REPO)) for f in derive.stage_files(name))
         m = re.search(rf"(\n  {name}:\n(?:    (?!deps:).*\n)*?)    deps: \[[^\]]*\]\n", text)
         if m is None:

@@ -20,6 +20,7 @@ import numpy as np
 
 from stages.checkpoint import POSE, loss_from_checkpoint, model_from_checkpoint, read_pose
 from stages.io import StageError, file_hash, load_torch, open_zarr, read_json, read_parquet
+from stages.params import render_key
 
 RENDER = Path("datasets/render")
 LABELS = Path("datasets/labels.parquet")
@@ -34,6 +35,7 @@ LAB_MODELS = Path("datasets/lab_models")
 LAB_MODELS_SUMMARY = LAB_MODELS / "summary.json"
 TRAIN_METRICS = Path("reports/metrics/train.json")
 DETECTOR = Path("models/detector.pt")
+SURROGATE = Path("models/surrogate.pt")   # a second pose model (`rpod train --surrogate`) for black-box transfer
 ROC_DIR = Path("reports/plots/roc")
 DETECTOR_FORMAT = "rpodguard-detector/1"
 SPLIT_CODES = {"train": 0, "test": 1}   # `split` codes of the SHAP store
@@ -72,9 +74,13 @@ class Pose:
 
 
 def load_pose(params: dict[str, Any], path: Path | str = POSE) -> Pose:
-    """models/pose.pt read once, checked against params (architecture, input size)."""
+    """models/pose.pt read once, checked against params (architecture, input size), the network placed on
+    the `device` param's device (with `amp`); it takes inputs from any device and answers on theirs."""
+    from stages.params import torch_device
+
     ckpt = read_pose(path, params)
-    return Pose(model_from_checkpoint(ckpt), loss_from_checkpoint(ckpt), file_hash(path), dict(ckpt.get("meta", {})))
+    model = model_from_checkpoint(ckpt, torch_device(params), bool(params["amp"]))
+    return Pose(model, loss_from_checkpoint(ckpt), file_hash(path), dict(ckpt.get("meta", {})))
 
 
 def load_detector(path: Path | str = DETECTOR, model_hash: str | None = None) -> tuple[Any, dict[str, Any]]:
@@ -110,7 +116,7 @@ def load_chain(params: dict[str, Any], pose_path: Path | str = POSE,
 def eval_render_fingerprint(p: dict[str, Any]) -> str:
     """Hash of the params that decide the `eval_render` images (so a stale render is refused)."""
     e = p["evaluate"]
-    key = {"seed": p["seed"], "camera": p["camera"], "render": p["render"],
+    key = {"seed": p["seed"], "camera": p["camera"], "render": render_key(p),
            "evaluate": {k: e[k] for k in ("trajectories", "frames", "lateral_range", "seed")}}
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -118,7 +124,7 @@ def eval_render_fingerprint(p: dict[str, Any]) -> str:
 def val_render_fingerprint(p: dict[str, Any]) -> str:
     """Hash of the params that decide the defense's validation images (datasets/val_render)."""
     e, d = p["evaluate"], p["defense"]
-    key = {"seed": p["seed"], "camera": p["camera"], "render": p["render"],
+    key = {"seed": p["seed"], "camera": p["camera"], "render": render_key(p),
            "evaluate": {k: e[k] for k in ("frames", "lateral_range")},
            "defense": {k: d[k] for k in ("val_trajectories", "val_seed")}}
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
@@ -297,10 +303,11 @@ class SampleImages:
             if e == 0:
                 imgs = clean
             else:
-                x = torch.from_numpy(clean).permute(0, 3, 1, 2).float() / 255
-                y = torch.as_tensor(data.targets[rows])
+                dev = self.model.device
+                x = torch.from_numpy(clean).to(dev).permute(0, 3, 1, 2).float() / 255
+                y = torch.as_tensor(data.targets[rows]).to(dev)
                 adv = stored_attack(self.model, self.loss_fn, e)(x, y)
-                imgs = torch.round(adv * 255).to(torch.uint8).permute(0, 2, 3, 1).numpy()
+                imgs = torch.round(adv * 255).to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
             for k, im in zip(ks, imgs):
                 out[k] = im
         return np.stack(out)  # type: ignore[arg-type]

@@ -36,7 +36,7 @@ def main() -> None:
     a = p["attack"]
     params_mod.check_attack_params(a, "attack")
     eps_list = [float(e) for e in a["eps"]]
-    params_mod.set_threads(p)
+    params_mod.torch_setup(p)
     attack = params_mod.make_attack(a, a["method"], int(p["seed"]) + SEED_OFFSET)
     pose = load_pose(p)
     split = load_split(p, "test")
@@ -95,21 +95,21 @@ def _attack_into(path: Path, model: Any, attack: Any, loss_fn: Any, images: Any,
     model.eval()
     for i in tqdm(range(0, n, batch), desc=f"attack ({method}, {len(eps_list)} eps)", unit="batch"):
         u8 = np.stack([np.asarray(images[j]) for j in range(i, min(i + batch, n))])
-        x = torch.from_numpy(u8).permute(0, 3, 1, 2).float() / 255
-        y = y_all[i:i + batch]
+        x = torch.from_numpy(u8).to(model.device).permute(0, 3, 1, 2).float() / 255   # uint8 over the bus
+        y = y_all[i:i + batch].to(model.device)
         with torch.no_grad():
-            preds["clean"][i:i + len(x)] = model(x).numpy()
+            preds["clean"][i:i + len(x)] = model(x).cpu().numpy()
         for e in eps_list:
             x_adv = attack(model, x, y, e, loss_fn)
             stored = quantize(x_adv, x)
-            stored_hwc = stored.permute(0, 2, 3, 1).numpy()
+            stored_hwc = stored.permute(0, 2, 3, 1).cpu().numpy()
             arrays[e][i:i + len(x)] = stored_hwc
             if i <= k < i + len(x):
                 example[e] = stored_hwc[k - i]
             linf[e] = max(linf[e], float((stored.float() / 255 - x).abs().max()))
             with torch.no_grad():
-                preds[e][i:i + len(x)] = model(stored.float() / 255).numpy()
-                preds_float[e][i:i + len(x)] = model(x_adv).numpy()
+                preds[e][i:i + len(x)] = model(stored.float() / 255).cpu().numpy()
+                preds_float[e][i:i + len(x)] = model(x_adv).cpu().numpy()
     return {"root": root, "preds": preds, "preds_float": preds_float, "linf": linf, "example": example}
 
 
@@ -142,7 +142,7 @@ def _report(rows: list[dict[str, Any]], a: dict[str, Any], n: int) -> str:
 
 Attack: **{a['method']}**{step} on the **{a['loss']}** loss (`full` = the training loss with its
 learned weights), L-inf budget eps in pixel units ([0, 1] images), {n} test images (time: reports/metrics/attack.json).
-FGSM is `x' = clip(x + eps * sign(grad_x L), 0, 1)` (SPEC 5).
+FGSM is `x' = clip(x + eps * sign(grad_x L), 0, 1)`.
 
 Errors are measured on the adversarial images **as stored** in `datasets/attack/adv.zarr` (uint8):
 each pixel's perturbation is rounded to the nearest 8-bit level, but never to zero, so every
@@ -150,13 +150,13 @@ perturbed pixel keeps the sign of its perturbation. "stored L-inf" is the larges
 pixel: it can exceed eps by up to half a level (eps = 0.01 = 2.55 levels is stored as 3 levels).
 
 {table}
-Position error `||t_pred - t_gt||`, attitude error `2 acos(|<q_pred, q_gt>|)` (SPEC 2).
+Position error `||t_pred - t_gt||`, attitude error `2 acos(|<q_pred, q_gt>|)`.
 {_trend(rows)}
 
 Same attack measured on the float adversarial images, before quantisation:
 
 {float_table}
-![original, perturbation, adversarial](figures/fgsm_example.png)
+![the original, the stored adversarial image per eps and the amplified perturbation](figures/fgsm_example.png)
 """
 
 

@@ -1,4 +1,4 @@
-"""`rpod calibrate`: fit the defense on validation trajectories (SPEC 11, issue 16).
+"""`rpod calibrate`: fit the defense on validation trajectories (issue 16).
 
 Runs the safety chain clean over the validation approaches `rpod eval_render` rendered into
 datasets/val_render/ (seed `defense.val_seed`, never the evaluation seed), fits the pose model's
@@ -36,7 +36,7 @@ def main() -> None:
 
     p = params_mod.load()
     d = params_mod.typed(p).defense
-    params_mod.set_threads(p)
+    params_mod.torch_setup(p)
     images, poses, _ = read_eval_render(p, validation=True)
     chain, _, model_hash = load_chain(p)
     targets = poses[TARGET].to_numpy(np.float32)

@@ -51,13 +51,13 @@ def read_pose(path: Path | str = POSE, params: dict[str, Any] | None = None) -> 
     return ckpt
 
 
-def model_from_checkpoint(ckpt: dict[str, Any], device: str = "cpu"):
-    """The PoseNet of a checkpoint dict, in eval mode on `device`."""
+def model_from_checkpoint(ckpt: dict[str, Any], device: Any = "cpu", amp: bool = False):
+    """The PoseNet of a checkpoint dict, in eval mode on `device` (`amp`: bf16 autocast there, CUDA only)."""
     from pipeline.model import PoseNet
 
     model = PoseNet(**ckpt["arch"])
     model.load_state_dict(ckpt["model"])
-    return model.to(device).eval()
+    return model.place(device, amp).eval()
 
 
 def loss_from_checkpoint(ckpt: dict[str, Any]):

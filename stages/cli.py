@@ -56,11 +56,13 @@ def params_cmd(
 # Stage modules keep heavy imports (bpy, torch) inside their commands so `rpod --help` is fast.
 # A module exposes `main` (one command) or `app` (a command group, e.g. `rpod lab rescale`).
 STAGES = ["render", "label", "train", "attack", "guidance", "shap", "detect", "eval_render", "calibrate", "evaluate",
-          "robustness", "lab_models", "lab", "report"]
+          "robustness", "lab_models", "lab", "report", "export", "predict"]   # export, predict: not DVC stages
 
 
 def _register() -> None:
     import importlib
+
+    from stages.paramhelp import ParamsHelpCommand, ParamsHelpGroup
 
     for name in STAGES:
         try:
@@ -70,9 +72,9 @@ def _register() -> None:
                 continue  # stage not written yet
             raise
         if hasattr(mod, "app"):
-            app.add_typer(mod.app, name=name)
+            app.add_typer(mod.app, name=name, cls=ParamsHelpGroup)
         else:
-            app.command(name)(mod.main)
+            app.command(name, cls=ParamsHelpCommand)(mod.main)
 
 
 _register()

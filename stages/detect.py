@@ -1,4 +1,4 @@
-"""`rpod detect`: train the LSTM attack detector on the SHAP store (SPEC 7) and compare it with baselines.
+"""`rpod detect`: train the LSTM attack detector on the SHAP store and compare it with baselines.
 
 Reads datasets/shap.zarr (refused unless it was made with the current models/pose.pt), splits its
 samples 80/20 into train/test and holds 20% of train out for validation (grouped by source image,
@@ -59,6 +59,7 @@ def main() -> None:
     p = params_mod.load()
     d = p["detect"]
     torch.set_num_threads(1)  # the LSTM's matrices are small: extra threads cost more than they give
+    params_mod.torch_device(p)  # a missing CUDA device stops here; the squeeze baseline's pose forwards run on it
     seed = int(p["seed"]) + SEED_OFFSET
     model_hash = file_hash(POSE)
     data = read_shap_store(SHAP, model_hash)

@@ -1,11 +1,11 @@
-"""`rpod eval_render`: render the fresh evaluation trajectories of SPEC 8 once, for `rpod evaluate` and its eps.
+"""`rpod eval_render`: render the fresh evaluation trajectories once, for `rpod evaluate` and its eps.
 
 Renders `evaluate.trajectories` projectile-shaped approaches (own seed `evaluate.seed`), their chunks
 fanned out over `engine.workers` Blender scenes (stages/engine.py), into datasets/eval_render/
 (images.zarr, poses.parquet, meta.json with the params fingerprint), so changing eps or the models
-never re-renders; and, in the same Ray session, `defense.val_trajectories` validation approaches of their own seed `defense.val_seed` into
-datasets/val_render/ (what `rpod calibrate` fits the defense on: never the evaluation seeds).
-poses.parquet also holds what the chaser knows of itself: rel (target relative to the chaser,
+never re-renders; and, in the same Ray session, `defense.val_trajectories` validation approaches of
+their own seed `defense.val_seed` into datasets/val_render/ (what `rpod calibrate` fits the defense
+on: never the evaluation seeds). poses.parquet also holds what the chaser knows of itself: rel (target relative to the chaser,
 world axes, m: its planned path) and the camera attitude c0..c8 (camera -> world, row-major).
 """
 from __future__ import annotations
@@ -23,7 +23,7 @@ from stages.io import atomic_dir, write_json, write_parquet
 
 
 def trajectories(p: dict[str, Any], seed: int, count: int) -> list[Any]:
-    """`count` SPEC 8 approaches from `seed`: lateral start offsets |x|, |y| uniform in
+    """`count` evaluation approaches from `seed`: lateral start offsets |x|, |y| uniform in
     evaluate.lateral_range, random signs, evaluate.frames frames each."""
     from pipeline.trajectories import projectile_trajectory
 
@@ -40,7 +40,7 @@ def trajectories(p: dict[str, Any], seed: int, count: int) -> list[Any]:
 
 
 def main() -> None:
-    """Render the fresh evaluation trajectories (SPEC 8) into datasets/eval_render/ and the defense's
+    """Render the fresh evaluation trajectories into datasets/eval_render/ and the defense's
     validation trajectories into datasets/val_render/, fanned out over `engine.workers` Blender scenes.
 
     Params: `evaluate.trajectories`, `frames`, `lateral_range`, `seed`; `defense.val_trajectories`,

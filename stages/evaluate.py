@@ -1,4 +1,4 @@
-"""`rpod evaluate`: the whole safety chain on fresh trajectories, frame by frame (SPEC 8).
+"""`rpod evaluate`: the whole safety chain on fresh trajectories, frame by frame.
 
 On the trajectories `rpod eval_render` rendered into datasets/eval_render/ it runs, per eps and
 trajectory, every frame through
@@ -34,7 +34,7 @@ PAPER_OVERALL = 99.21
 
 
 def main() -> None:
-    """Detect FGSM attacks frame by frame on fresh trajectories with the whole safety chain (SPEC 8).
+    """Detect FGSM attacks frame by frame on fresh trajectories with the whole safety chain.
 
     Params: `evaluate` (trajectories, frames, lateral_range, p_start, attack_length, eps, seed,
     batch_size), `defense`, plus `render`/`camera` for the images and `attack.loss` for the FGSM loss.
@@ -45,7 +45,7 @@ def main() -> None:
     from pipeline.figures import detection_timeline
     from pipeline.schedule import attack_schedule
 
-    params_mod.set_threads(p)
+    params_mod.torch_setup(p)
     images, poses, meta = read_eval_render(p)
     chain, loss_fn, model_hash = load_chain(p)
     defense = load_defense(p, model_hash, chain.threshold)

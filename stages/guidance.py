@@ -1,9 +1,9 @@
-"""`rpod guidance`: the closed-loop rendezvous of SPEC 5 under attack, Blender rendering every step.
+"""`rpod guidance`: the closed-loop rendezvous under attack, Blender rendering every step.
 
 Runs a no-attack baseline and every (eps, start range S, length K) of params with one Renderer at
 the pose model's input size; writes reports/guidance.md (one S x K table per eps),
 reports/figures/guidance_trajectories.png and reports/metrics/guidance.json. With the safety chain
-inside the loop (SPEC 11) it flies every cell again for each of `guidance.dynamics` and each of
+inside the loop it flies every cell again for each of `guidance.dynamics` and each of
 undefended / `guidance.defenses` (detect-and-hold, detect-and-recover; a fresh calibrated defense
 from models/defense.json per run) -> the defended section of the report, metrics `defended`, and
 reports/figures/guidance_defended.png (one run per variant).
@@ -65,7 +65,7 @@ def main() -> None:
     g = p["guidance"]
     settings, grid = _plan(g)
     a = p["attack"]
-    params_mod.set_threads(p)
+    params_mod.torch_setup(p)
     attack = params_mod.make_attack(a, g["method"], int(p["seed"]) + SEED_OFFSET)
     chain, loss_fn, model_hash = load_chain(p)  # refuses a pose model whose input size is not render.width x height
     defense = load_defense(p, model_hash, chain.threshold)
@@ -93,8 +93,8 @@ def main() -> None:
     atomic_write_text(REPORT, guidance_page(metrics, g, p["render"]) + defended_section(metrics["defended"], g))
     save_figure(guidance_trajectories(baseline, [(s, k, r) for e, s, k, r in runs if e == runs[0][0]] if runs else [],
                                       runs[0][0] if runs else None, settings.goal), FIGURE)
-    save_figure(guidance_variants(defended["example"]["runs"], settings.goal, defended["example"]["title"]),
-                DEFENDED_FIGURE)
+    save_figure(guidance_variants(defended["example"]["runs"], settings.goal, defended["example"]["title"],
+                                  settings.tolerance), DEFENDED_FIGURE)
     typer.echo(f"guidance: baseline {baseline.outcome} ({baseline.miss:.2f} m); {len(runs)} attacked runs, "
           f"{counts['renders']} renders for {counts['steps']} steps in {seconds:.0f} s; defended grid "
           f"{defended['renders']} renders for {defended['steps']} steps in {defended['seconds']:.0f} s -> {REPORT}")

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import json
 import os
@@ -16,6 +17,47 @@ import numpy as np
 
 class StageError(RuntimeError):
     """An error the user can act on; the CLI prints its message without a traceback."""
+
+
+DVC_YAML = Path(__file__).resolve().parent.parent / "dvc.yaml"
+
+
+@functools.cache
+def dvc_stages() -> dict[str, dict[str, Any]]:
+    """dvc.yaml's stages (name -> its entry: cmd, deps, params, outs, ...); empty without dvc.yaml."""
+    import yaml
+
+    if not DVC_YAML.is_file():
+        return {}
+    return yaml.safe_load(DVC_YAML.read_text()).get("stages", {})
+
+
+def _outputs(stage: dict[str, Any]) -> list[Path]:
+    """A dvc.yaml stage's outputs: its outs, metrics and plots."""
+    return [Path(next(iter(o)) if isinstance(o, dict) else o) for kind in ("outs", "metrics", "plots")
+            for o in stage.get(kind, [])]
+
+
+def producer(path: Path | str) -> str | None:
+    """The dvc.yaml stage whose output is `path` (or a folder holding it), or None."""
+    path = Path(path)
+    if path.is_absolute():
+        path = Path(os.path.relpath(path, DVC_YAML.parent if path.is_relative_to(DVC_YAML.parent) else Path.cwd()))
+    return next((name for name, st in dvc_stages().items()
+                 if any(path == out or out in path.parents for out in _outputs(st))), None)
+
+
+def make_hint(path: Path | str) -> str:
+    """How to make `path`: "run `dvc repro STAGE` (or `rpod ...`)" for the stage that writes it."""
+    stage = producer(path)
+    if stage is None:
+        return "run the stage that writes it first"
+    return f"run `dvc repro {stage}` (or `{dvc_stages()[stage]['cmd']}`)"
+
+
+def not_found(path: Path | str, what: str = "") -> StageError:
+    """The one-line error for a missing input, naming the stage that writes it."""
+    return StageError(f"{what + ' ' if what else ''}{path} not found: {make_hint(path)}")
 
 
 def atomic_write_text(path: Path | str, text: str) -> None:
@@ -77,7 +119,7 @@ def load_torch(path: Path | str, fmt: str, stage: str) -> dict[str, Any]:
 
     path = Path(path)
     if not path.exists():
-        raise StageError(f"checkpoint {path} not found (run `rpod {stage}` first)")
+        raise not_found(path, "checkpoint")
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
@@ -104,7 +146,7 @@ def _nonfinite_tensors(obj: Any, prefix: str = "") -> list[str]:
 def read_json(path: Path | str) -> Any:
     path = Path(path)
     if not path.exists():
-        raise StageError(f"{path} not found (run the stage that writes it first)")
+        raise not_found(path)
     try:
         return json.loads(path.read_text())
     except json.JSONDecodeError as e:
@@ -214,7 +256,7 @@ def file_hash(path: Path | str, n: int = 16) -> str:
     """Short sha256 of a file (used to tie derived artifacts to a checkpoint)."""
     path = Path(path)
     if not path.exists():
-        raise StageError(f"{path} not found")
+        raise not_found(path)
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
@@ -356,7 +398,7 @@ def open_zarr(path: Path | str, what: str = "zarr store"):
 
     fs, root = store_fs(path)
     if not fs.exists(root):
-        raise StageError(f"{what} {path} not found (run the stage that writes it first)")
+        raise not_found(path, what)
     verify_zarr(path, what)
     try:
         group = zarr.open_group(str(path), mode="r")
@@ -393,7 +435,7 @@ def read_parquet(path: Path | str, what: str = "table"):
 
     path = Path(path)
     if not path.exists():
-        raise StageError(f"{what} {path} not found (run the stage that writes it first)")
+        raise not_found(path, what)
     try:
         return pd.read_parquet(path, page_checksum_verification=True)
     except Exception as e:

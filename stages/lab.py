@@ -1,4 +1,4 @@
-"""`rpod lab`: the lab domain (SPEC 9); `rpod lab rescale --z Z`: lab range -> synthetic range.
+"""`rpod lab`: the lab domain; `rpod lab rescale --z Z`: lab range -> synthetic range.
 
 `rpod lab` renders lab-like sequences (the ZED camera's geometry, the mock-up at 9x scale, a domain
 shift: other sun, sensor blur and noise, a small calibration error), writes each one as a real lab
@@ -7,7 +7,7 @@ model and the safety chain on it: reports/lab.md, reports/metrics/lab.json. With
 set to a folder, the same evaluation runs on that recording instead.
 
 Models: with `lab.retrain: auto` and the main target as the mock-up, the main models/pose.pt and
-models/detector.pt (SPEC 9 allows it); with `lab.retrain: always`, or another mock-up in `lab.mesh`,
+models/detector.pt (allowed: the lab mock-up is the same target); with `lab.retrain: always`, or another mock-up in `lab.mesh`,
 the pose model and detector that `rpod lab_models` trained on a synthetic-lab set in
 datasets/lab_models/. The report and metrics (`reused_models`, `models`) say which were used.
 
@@ -35,7 +35,7 @@ METRICS = Path("reports/metrics/lab.json")
 SEED_OFFSET = 0
 LAB_CHUNK = 30              # frames per render job of the synthetic lab sequences (stages/engine.py)
 
-app = typer.Typer(help="The lab domain (SPEC 9): lab-like sequences through the real-data loader, pose "
+app = typer.Typer(help="The lab domain: lab-like sequences through the real-data loader, pose "
                        "error, FGSM errors and integrated detection; `rpod lab rescale` converts ranges.",
                   pretty_exceptions_enable=False, add_completion=False)
 
@@ -111,7 +111,7 @@ def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
 # ----------------------------------------------------------------------------- the stage
 @app.callback(invoke_without_command=True)
 def main(ctx: typer.Context) -> None:
-    """Evaluate the pose model and the safety chain in the lab domain (SPEC 9).
+    """Evaluate the pose model and the safety chain in the lab domain.
 
     Params: `lab` (sequences, frames, fps, mocap_hz, match, max_gap_s, attack_length, domain_shift,
     real_data, ...), `evaluate.p_start` / `evaluate.eps` for the integrated evaluation, `attack.eps`
@@ -124,7 +124,7 @@ def main(ctx: typer.Context) -> None:
 
     p = params_mod.load()
     lab = p["lab"]
-    params_mod.set_threads(p)
+    params_mod.torch_setup(p)
     K_syn, K_zed = cameras(p)
     factor = lab_to_synthetic_factor(K_syn, K_zed, float(lab["scale"]))
     reason = params_mod.retrain_reason(p)
@@ -133,8 +133,9 @@ def main(ctx: typer.Context) -> None:
                                   load_chain(p, LAB_MODELS / POSE, LAB_MODELS / DETECTOR))
     t0 = time.perf_counter()
     truth: list[dict[str, Any]] = []
-    source = Path(lab["real_data"]) if lab["real_data"] else OUT
-    if not lab["real_data"]:
+    real = params_mod.given(lab["real_data"])
+    source = Path(real) if real else OUT
+    if not real:
         with atomic_dir(OUT) as tmp:
             truth = render_lab(p, tmp)
     render_s = time.perf_counter() - t0
@@ -150,7 +151,7 @@ def main(ctx: typer.Context) -> None:
     train_metrics = read_json(train_path) if train_path.exists() else None
     models = ({"pose": str(POSE), "detector": str(DETECTOR)} if synthetic_lab is None else
               {"pose": synthetic_lab["pose"], "detector": synthetic_lab["detector"]})
-    metrics = {"model_hash": model_hash, "source": str(source), "synthetic": not lab["real_data"], "factor": factor,
+    metrics = {"model_hash": model_hash, "source": str(source), "synthetic": not real, "factor": factor,
                "retrain": lab["retrain"], "reused_models": synthetic_lab is None, "retrain_reason": reason,
                "models": models, "synthetic_lab": synthetic_lab, "ranges": ranges, "loader_error": loader_err,
                "clean": clean_rows, "fgsm": fgsm_rows, "attack_length": length, "threshold": chain.threshold,
@@ -168,8 +169,6 @@ def main(ctx: typer.Context) -> None:
 def _lab_models(reason: str | None) -> dict[str, Any] | None:
     """The synthetic-lab summary of `rpod lab_models` when the lab must use retrained models (`reason`), else
     None; refuses a datasets/lab_models/ made for other params."""
-    if not LAB_MODELS_SUMMARY.exists():
-        raise StageError(f"{LAB_MODELS_SUMMARY} not found: run `rpod lab_models` first (dvc repro lab_models)")
     summary = read_json(LAB_MODELS_SUMMARY)
     if summary.get("reason") != reason:
         raise StageError(f"{LAB_MODELS} was made for other lab params (retrain reason {summary.get('reason')!r}, "

@@ -1,7 +1,7 @@
 """`rpod lab_models`: the synthetic-lab pose model and detector that `rpod lab` uses when it may not reuse
-the main ones (SPEC 9); a cheap no-op otherwise.
+the main ones; a cheap no-op otherwise.
 
-SPEC 9 lets the lab stage reuse models/pose.pt and models/detector.pt when the lab mock-up is the main
+The lab stage may reuse models/pose.pt and models/detector.pt when the lab mock-up is the main
 target mesh (our K_blender already has the lab images' 16:9 aspect). With `lab.retrain: always` (the
 paper profile), or whenever `lab.mesh` names another mock-up, it trains them again on a
 "synthetic-lab" set instead: the mock-up rendered at `lab.scale` times its size (so the ranges
@@ -43,6 +43,7 @@ def sub_params(p: dict[str, Any]) -> dict[str, Any]:
     lab, r = p["lab"], sub["render"]
     sub["seed"] = int(lab["seed"]) + SEED_OFFSET
     r["mesh"], r["mesh_scale"] = params_mod.mockup(p)
+    r["source"] = params_mod.NONE    # the synthetic-lab set is rendered, never a SPEED import
     if lab["train_frames_per_sequence"] is not None:
         r["frames_per_sequence"] = int(lab["train_frames_per_sequence"])
     sub["detect"]["baselines"] = []

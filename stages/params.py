@@ -3,17 +3,21 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from pathlib import Path
 from typing import Any
 
 import yaml
 
 from stages.io import StageError, atomic_write_text
-from stages.schema import Params, ParamsError, build
+from stages.schema import DEVICE, Params, ParamsError, build
 
 ROOT = Path(__file__).resolve().parent.parent
 CONF_DIR = ROOT / "conf"
 PARAMS_FILE = Path("params.yaml")
+# The value of an unset external input (render.mesh, render.source, lab.mesh, lab.real_data): a tracked
+# folder, because dvc.yaml lists these params' paths as deps and a dep must exist (null cannot be one).
+NONE = "inputs/none"
 
 
 def profiles() -> list[str]:
@@ -33,10 +37,20 @@ def compose(profile: str = "default", overrides: list[str] | None = None) -> dic
     return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
 
 
+def render_key(params: dict[str, Any]) -> dict[str, Any]:
+    """The `render` params as fingerprints hash them: unset external inputs (null or inputs/none) as
+    null, an unset SPEED source left out, and no scale-out settings (they do not change the images)."""
+    r = {k: v for k, v in params["render"].items() if k != "workers"}
+    r["mesh"] = given(r.get("mesh"))
+    if given(r.get("source")) is None:
+        r.pop("source", None), r.pop("source_test", None)
+    return r
+
+
 def render_fingerprint(params: dict[str, Any]) -> str:
     """Hash of everything that decides the rendered images (`seed`, `camera`, `render`): the render
     stage stamps it into datasets/render/meta.json; every reader of the renders compares it."""
-    key = json.dumps({"seed": params["seed"], "camera": params["camera"], "render": params["render"]}, sort_keys=True)
+    key = json.dumps({"seed": params["seed"], "camera": params["camera"], "render": render_key(params)}, sort_keys=True)
     return hashlib.sha256(key.encode()).hexdigest()[:16]
 
 
@@ -73,11 +87,58 @@ def typed(params: dict[str, Any]) -> Params:
 
 
 # ----------------------------------------------------------------------------- params -> library objects
-def set_threads(params: dict[str, Any]) -> None:
-    """torch's CPU threads for a stage: the `threads` param."""
+def given(value: str | None) -> str | None:
+    """An external-input param's path, or None when it is unset: null, or a path ending in `inputs/none`."""
+    if value is None or Path(value).parts[-2:] == tuple(NONE.split("/")):
+        return None
+    return str(value)
+
+
+def torch_setup(params: dict[str, Any], processes: int = 1, local_rank: int | None = None):
+    """A torch stage's start: torch's CPU threads from `threads` (null: every core, shared among `processes`
+    torchrun processes), then the device (`torch_device`: a missing CUDA GPU stops the stage before any work)."""
     import torch
 
-    torch.set_num_threads(int(params["threads"]))
+    n = params["threads"]
+    torch.set_num_threads(max(1, (os.cpu_count() or 1) // processes) if n is None else int(n))
+    return torch_device(params, local_rank)
+
+
+def torch_device(params: dict[str, Any], local_rank: int | None = None):
+    """The torch.device of every torch stage, from the `device` param: auto = the CUDA GPU when torch
+    sees one, else the CPU. Under torchrun, a CUDA process takes GPU `local_rank`. StageError when
+    CUDA is asked for and torch sees no GPU (or fewer than the index)."""
+    import torch
+
+    value = str(params["device"])
+    if not DEVICE.fullmatch(value):
+        raise StageError(f"params.yaml device must be auto, cpu, cuda or cuda:N, got {value!r}")
+    cuda = torch.cuda.is_available()
+    if value == "cpu" or (value == "auto" and not cuda):
+        return torch.device("cpu")
+    if not cuda:
+        raise StageError(f"params.yaml device: {value!r} asks for a CUDA GPU but torch {torch.__version__} sees none; "
+                         f"set device: auto or cpu")
+    index = local_rank if local_rank is not None else int(value.partition(":")[2] or 0)
+    if index >= torch.cuda.device_count():
+        raise StageError(f"params.yaml device: GPU {index} asked for but torch sees {torch.cuda.device_count()}")
+    return torch.device("cuda", index)
+
+
+def distributed(params: dict[str, Any]) -> tuple[int, int, Any]:
+    """(rank, world size, device) of this process after `torch_setup`. Under torchrun (WORLD_SIZE > 1) the
+    process group is initialised: NCCL on CUDA (one GPU per process: GPU LOCAL_RANK), gloo on the CPU."""
+    import torch
+    import torch.distributed as dist
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    device = torch_setup(params, world, int(os.environ.get("LOCAL_RANK", "0")) if world > 1 else None)
+    if world == 1:
+        return 0, 1, device
+    if device.type == "cuda":
+        torch.cuda.set_device(device)
+    dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+    return dist.get_rank(), world, device
 
 
 def intrinsics(params: dict[str, Any]):
@@ -96,7 +157,7 @@ def scene_settings(render: dict[str, Any]):
     """The Blender scene settings of a `render` params section."""
     from pipeline.scene import SceneSettings
 
-    return SceneSettings(mesh=render["mesh"], mesh_scale=float(render["mesh_scale"]),
+    return SceneSettings(mesh=given(render["mesh"]), mesh_scale=float(render["mesh_scale"]),
                          sun_direction=tuple(float(v) for v in render["sun_direction"]),
                          sun_strength=float(render["sun_strength"]), samples=int(render["samples"]),
                          denoiser=str(render["denoiser"]), denoise_quality=str(render["denoise_quality"]),
@@ -140,26 +201,26 @@ def mockup(p: dict[str, Any]) -> tuple[str | None, float]:
     """(mesh file or None = procedural target, metres per mesh unit) of the mock-up rendered at lab.scale x
     its size, i.e. at the size of the real target. Relative paths are resolved against the working folder."""
     lab, r = p["lab"], p["render"]
-    if lab["mesh"] is None:   # the main target, built at 1/scale: rendered at scale x it is the main mesh
-        mesh, unit = r["mesh"], float(r["mesh_scale"])
+    if given(lab["mesh"]) is None:   # the main target, built at 1/scale: rendered at scale x it is the main mesh
+        mesh, unit = given(r["mesh"]), float(r["mesh_scale"])
     else:
         mesh, unit = lab["mesh"], float(lab["mesh_scale"]) * float(lab["scale"])
     if mesh is None:
         return None, unit
     path = Path(mesh).resolve()
     if not path.is_file():
-        key = "render.mesh" if lab["mesh"] is None else "lab.mesh"
+        key = "render.mesh" if given(lab["mesh"]) is None else "lab.mesh"
         raise StageError(f"params.yaml {key}: mock-up mesh file {mesh} not found")
     return str(path), unit
 
 
 def retrain_reason(p: dict[str, Any]) -> str | None:
-    """Why the lab stage must train its own models, or None when it may reuse the main ones (SPEC 9)."""
+    """Why the lab stage must train its own models, or None when it may reuse the main ones."""
     lab, r = p["lab"], p["render"]
     if lab["retrain"] == "always":
         return "lab.retrain is always"
     mesh, unit = mockup(p)
-    main = None if r["mesh"] is None else str(Path(r["mesh"]).resolve())
+    main = None if given(r["mesh"]) is None else str(Path(r["mesh"]).resolve())
     if mesh != main or abs(unit - float(r["mesh_scale"])) > 1e-9 * max(unit, 1.0):
         return (f"the mock-up (lab.mesh {lab['mesh']}, {lab['mesh_scale']:g} m per unit, x{lab['scale']:g}) is not "
                 f"the main target (render.mesh {r['mesh']}, {r['mesh_scale']:g} m per unit)")

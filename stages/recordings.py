@@ -1,4 +1,4 @@
-"""Lab recordings on disk (SPEC 9): the layout a real lab session is stored in, written for the
+"""Lab recordings on disk: the layout a real lab session is stored in, written for the
 synthetic lab sequences and read back (or read from a real recording) by `rpod lab`.
 
 One folder per sequence (a folder of such folders also works):

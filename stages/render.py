@@ -1,4 +1,5 @@
-"""`rpod render`: render the 13 approach sequences (SPEC 3) with Blender Cycles into a zarr stack.
+"""`rpod render`: render the 13 approach sequences with Blender Cycles into a zarr stack (or import the
+SPEED/SPEED+ folder of `render.source`: stages/speed.py).
 
 Writes datasets/render/{images.zarr, poses.parquet, meta.json} in one atomic step, plus PNG
 previews in reports/figures/previews/. The frames' chunks fan out over `engine.workers` workers (Ray
@@ -14,7 +15,7 @@ from typing import Any
 import numpy as np
 import typer
 
-from stages import engine, params as params_mod
+from stages import engine, params as params_mod, speed as speed_io
 from stages.artifacts import RENDER as OUT, read_render_store
 from stages.chunks import render_to_store, store_url
 from stages.io import StageError, atomic_dir, remove_stale_temps, write_json, write_parquet
@@ -64,9 +65,8 @@ def render_all(p: dict[str, Any], dest: Path) -> None:
 
 
 def remove_leftovers(path: Path) -> None:
-    """Delete temporary folders that an interrupted (killed) run left next to `path`; they were never
-    renamed into place, so nothing trusts them, but they hold disk space. A live concurrent run's
-    folder is kept."""
+    """Delete temporary folders that an interrupted (killed) run left next to `path` (never renamed into
+    place, so never trusted, but holding disk space); a live concurrent run's folder is kept."""
     for d in remove_stale_temps(path):
         typer.echo(f"removed {d}, left over from an interrupted run")
 
@@ -94,16 +94,18 @@ def write_previews(images, poses, n_previews: int) -> list[Path]:
 
 
 def main() -> None:
-    """Render the 13 approach sequences of SPEC 3 with Blender Cycles (CPU, headless).
-
-    Writes datasets/render/ (images.zarr, poses.parquet, meta.json) atomically and PNG previews to
-    reports/figures/previews/. Parameters: `seed`, `camera`, `render` and `engine` (workers, Ray
-    cluster address, image store) in params.yaml.
+    """Render the 13 approach sequences with Blender Cycles (CPU, headless), or import the SPEED/SPEED+
+    folder of `render.source`. Writes datasets/render/ (images.zarr, poses.parquet, meta.json) atomically
+    and PNG previews to reports/figures/previews/. Parameters: `seed`, `camera`, `render` and `engine`
+    (workers, Ray cluster address, image store) in params.yaml.
     """
     p = params_mod.load()
-    remove_leftovers(OUT)
-    with atomic_dir(OUT) as tmp:
-        render_all(p, tmp)
+    if params_mod.given(p["render"]["source"]):   # a SPEED/SPEED+ folder instead of rendering
+        speed_io.import_source(p, OUT)
+    else:
+        remove_leftovers(OUT)
+        with atomic_dir(OUT) as tmp:
+            render_all(p, tmp)
     images, poses, meta = read_render_store(OUT)
     previews = write_previews(images, poses, int(p["render"]["previews"]))
     typer.echo(f"{OUT}: {meta['frames']} images {meta['width']}x{meta['height']}, "

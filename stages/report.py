@@ -3,11 +3,10 @@
 Reads reports/metrics/<stage>.json and reports/<stage>.md (written by the stages before it),
 datasets/shap.zarr (for the SHAP heatmaps) and reports/plots/roc/*.csv (ROC curves), and writes:
 
-    reports/README.md                      the results page: a summary against the paper, figures,
-                                           then every stage's report with its profile (no times: the
-                                           page depends only on the results; times are in the metrics JSON)
-    reports/figures/pose_errors.png        train/test error per range bin
-    reports/figures/error_vs_eps.png       FGSM pose error against eps
+    reports/metrics/summary.json           the headline numbers, flat (`dvc metrics show`; stages/pages/summary.py)
+    reports/README.md                      the results page: a summary against the paper, figures, then every
+                                           stage's report with its profile (no times: those are in the metrics JSON)
+    reports/figures/{pose_errors,error_vs_eps}.png   error per range bin (train/test); FGSM error against eps
     reports/figures/shap_heatmaps.png      mean |phi| per output, normal vs adversarial
     reports/figures/roc.png                ROC curves of every detector
 
@@ -26,18 +25,21 @@ import typer
 
 from stages import params as params_mod
 from stages.artifacts import ROC_DIR, SHAP as SHAP_STORE
-from stages.io import StageError, atomic_write_text, read_json, save_figure
+from stages.io import StageError, atomic_write_text, make_hint, read_json, save_figure, write_json
 from stages.pages.differences import differences
 from stages.pages.readme import DETECTOR_NAMES, summary_tables
 from stages.pages.report import SECTIONS, page_head, section
+from stages.pages.summary import summary
 
 PAGE = Path("reports/README.md")
+SUMMARY = Path("reports/metrics/summary.json")   # the headline numbers: what `dvc metrics show` prints
 README = Path("README.md")
 FIGURES = Path("reports/figures")
 BLOCK = "results"
 DIFFERENCES = "differences"
 README_PROFILE = "default"  # the only profile whose numbers README.md publishes
 BENCHMARKS = Path(__file__).resolve().parent.parent / "reports" / "benchmarks.md"
+VARIANCE = Path("reports/variance.json")  # scripts/variance.py: the spread of the headline numbers over seeds
 
 
 def main(
@@ -54,6 +56,7 @@ def main(
 
     params = params_mod.load()
     metrics = _load_metrics()
+    write_json(SUMMARY, summary(metrics))
     figures = _write_figures(metrics)
     page = build_page(metrics, params, figures)
     atomic_write_text(PAGE, page)
@@ -117,13 +120,25 @@ def _section_body(path: Path) -> str:
 
 
 def _load_metrics() -> dict[str, dict[str, Any]]:
-    missing = [f"reports/metrics/{m}.json (rpod {s})" for s, _, m in SECTIONS
-               if m and not Path(f"reports/metrics/{m}.json").exists()]
-    missing += [f"reports/{r} (rpod {s})" for s, r, _ in SECTIONS
-                if s != "benchmarks" and not Path(f"reports/{r}").exists()]
+    """Every stage's metrics; a StageError naming each missing input (metrics, reports, figure data) and the
+    stage that writes it, so no page is written with a section or figure left out."""
+    missing = [Path(f"reports/metrics/{m}.json") for _, _, m in SECTIONS if m]
+    missing += [Path("reports", r) for s, r, _ in SECTIONS if s != "benchmarks"]
+    missing = [p for p in missing if not p.exists()]
+    metrics = {} if missing else {m: read_json(f"reports/metrics/{m}.json") for _, _, m in SECTIONS if m}
+    if metrics:
+        missing = [p for p in [SHAP_STORE, *(ROC_DIR / f"{d}.csv" for d in metrics["detect"]["detectors"])]
+                   if not p.exists()]
     if missing:
-        raise StageError("report: missing inputs, run their stages first (`dvc repro` runs all): " + ", ".join(missing))
-    return {m: read_json(f"reports/metrics/{m}.json") for _, _, m in SECTIONS if m}
+        raise StageError("report: missing inputs (`dvc repro` makes them all): "
+                         + "; ".join(f"{p}: {make_hint(p)}" for p in missing))
+    return metrics
+
+
+def _spread(params: dict[str, Any]) -> dict[str, Any] | None:
+    """reports/variance.json when it describes runs of this profile (else None: no spread column)."""
+    spread = read_json(VARIANCE) if VARIANCE.exists() else {}
+    return spread if spread.get("profile") == params.get("profile_name") else None
 
 
 def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figures: list[tuple[str, str, str]]) -> str:
@@ -131,7 +146,7 @@ def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figur
     report's own figures (`figures`: (stage, title, file name)) at the end of its section."""
     from pipeline.report import demote_headings, replace_block
 
-    page = replace_block(page_head(metrics, params), BLOCK, summary_tables(metrics))
+    page = replace_block(page_head(metrics, params), BLOCK, summary_tables(metrics, _spread(params)))
     page += "\n## Known differences from the paper\n"
     page = replace_block(page, DIFFERENCES, differences(metrics, params))
     for stage, report, metric in SECTIONS:
@@ -155,31 +170,25 @@ def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, s
     eps = sorted(at["eps"], key=float)
     save_figure(F.error_vs_eps([float(e) for e in eps], [at["eps"][e]["position_mean_m"] for e in eps],
                                [at["eps"][e]["attitude_mean_deg"] for e in eps], at["clean"]["position_mean_m"],
-                               at["clean"]["attitude_mean_deg"]), FIGURES / "error_vs_eps.png")
+                               at["clean"]["attitude_mean_deg"], at["method"]), FIGURES / "error_vs_eps.png")
     out = [("train", "Mean error per range bin, train and test", "pose_errors.png"),
            ("attack", "Pose error against eps", "error_vs_eps.png")]
-    heat = _shap_means()
-    if heat is not None:
-        save_figure(F.shap_heatmaps(heat), FIGURES / "shap_heatmaps.png")
-        out.append(("detect", "SHAP signatures: mean |phi| per output and GAP feature, normal vs adversarial",
-                    "shap_heatmaps.png"))
+    save_figure(F.shap_heatmaps(_shap_means()), FIGURES / "shap_heatmaps.png")
+    out.append(("detect", "SHAP signatures: mean |phi| per output and GAP feature, normal vs adversarial",
+                "shap_heatmaps.png"))
     curves = {}
     for name in de["detectors"]:
-        path = ROC_DIR / f"{name}.csv"
-        if path.exists():
-            roc = pd.read_csv(path)
-            curves[DETECTOR_NAMES.get(name, name)] = (roc["fpr"].to_numpy(), roc["tpr"].to_numpy(),
-                                                       float(de["detectors"][name]["all"]["roc_auc"]))
+        roc = pd.read_csv(ROC_DIR / f"{name}.csv")
+        curves[DETECTOR_NAMES.get(name, name)] = (roc["fpr"].to_numpy(), roc["tpr"].to_numpy(),
+                                                   float(de["detectors"][name]["all"]["roc_auc"]))
     if curves:
-        save_figure(F.roc_curves(curves), FIGURES / "roc.png")
+        save_figure(F.roc_curves(curves, highlight=DETECTOR_NAMES["lstm"]), FIGURES / "roc.png")
         out.append(("detect", "ROC curves of all detectors on the SHAP test split", "roc.png"))
     return out
 
 
-def _shap_means() -> dict[str, Any] | None:
+def _shap_means() -> dict[str, Any]:
     """Mean |phi| (9, F) over normal and adversarial samples of the SHAP store, read chunk by chunk."""
-    if not SHAP_STORE.exists():
-        return None
     from pipeline.report import mean_abs_by_class
     from stages.io import open_zarr
 

@@ -1,4 +1,4 @@
-"""`rpod robustness`: the shipped safety chain against attacks its detector never saw (SPEC 11).
+"""`rpod robustness`: the shipped safety chain against attacks its detector never saw.
 
 Reads models/pose.pt, models/detector.pt, models/surrogate.pt (`rpod train --surrogate`) and a
 seeded sample of `robustness.frames` held-out test frames; every attacked image is stored as 8-bit
@@ -26,13 +26,12 @@ from typing import Any
 import numpy as np
 
 from stages import params as params_mod
-from stages.artifacts import Pose, load_defense, load_detector, load_pose, read_eval_render
+from stages.artifacts import SURROGATE, Pose, load_defense, load_detector, load_pose, read_eval_render
 from stages.checkpoint import POSE
-from stages.io import StageError, atomic_write_text, save_figure, write_metrics
+from stages.io import StageError, atomic_write_text, not_found, save_figure, write_metrics
 from stages.pages.robustness import robustness_page
 from stages.schema import Robustness, attack_name
 
-SURROGATE = Path("models/surrogate.pt")
 REPORT = Path("reports/robustness.md")
 METRICS = Path("reports/metrics/robustness.json")
 FIGURE = Path("reports/figures/robustness.png")
@@ -51,8 +50,8 @@ def main() -> None:
     p = params_mod.load()
     r = params_mod.typed(p).robustness
     if not SURROGATE.exists():
-        raise StageError(f"{SURROGATE} not found: run `rpod train --surrogate` (dvc repro surrogate) first")
-    params_mod.set_threads(p)
+        raise not_found(SURROGATE)
+    params_mod.torch_setup(p)
     seed = int(p["seed"]) + SEED_OFFSET
     pose, surrogate = load_pose(p), load_pose(p, SURROGATE)
     chain = _chain(pose)

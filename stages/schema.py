@@ -9,10 +9,14 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import re
 import types
 import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal, Optional
+
+
+DEVICE = re.compile(r"auto|cpu|cuda(:\d+)?")   # values of the `device` param
 
 
 class ParamsError(ValueError):
@@ -42,7 +46,9 @@ class Render:
     denoiser: str           # NONE | OPENIMAGEDENOISE
     denoise_quality: str    # FAST | BALANCED | HIGH
     threads: int            # Blender render threads
-    mesh: Optional[str]     # mesh file; None = the procedural Jason-1-like target
+    mesh: Optional[str]     # mesh file; inputs/none (or None) = the procedural Jason-1-like target
+    source: Optional[str]   # SPEED/SPEED+ folder imported instead of rendering; inputs/none (or None) = render
+    source_test: Optional[str]   # its test labels, relative to it; None = synthetic/test.json, ... (stages/speed.py)
     mesh_scale: float       # metres per mesh unit
     sun_direction: list[float]   # direction the sunlight travels, target frame
     sun_strength: float
@@ -128,7 +134,7 @@ class Guidance:
     slack_steps: int
     variant: str                 # paper | true_state: the dynamics of the paper's S x K tables
     method: str
-    dynamics: list[Literal["paper", "true_state"]]   # dynamics of the defended comparison (SPEC 11)
+    dynamics: list[Literal["paper", "true_state"]]   # dynamics of the defended comparison
     defenses: list[Literal["hold", "recover"]]       # defended variants flown beside the undefended one
 
 
@@ -192,7 +198,7 @@ class Evaluate:
 
 @dataclass(frozen=True)
 class Defense:
-    """SPEC 11, pipeline/motion.py and pipeline/defense.py; bad values are refused naming defense.<key>."""
+    """The defense (pipeline/motion.py and pipeline/defense.py); bad values are refused naming defense.<key>."""
 
     fusion: Literal["or", "paper", "motion"]   # or: detector or motion gate | paper: detector alone | motion: gate alone
     false_alarm: float           # gate false-alarm probability per frame on consistent motion, in (0, 1)
@@ -210,7 +216,7 @@ class Defense:
     target_false_alarm: float    # fraction of clean validation frames the defended chain may flag; calibrate inflates the noise to it, in (0, 1)
     val_trajectories: int        # validation approaches (own seed) the noise model is fitted on (>= 1)
     val_seed: int                # their seed: never evaluate.seed
-    harm_m: float                # metres: an attacked frame with a larger position error is harmful (SPEC 11)
+    harm_m: float                # metres: an attacked frame with a larger position error is harmful
 
     def __post_init__(self) -> None:
         def bad(key: str, rule: str) -> ParamsError:
@@ -381,7 +387,9 @@ class Report:
 class Params:
     profile_name: str
     seed: int
-    threads: int                 # torch CPU threads of the attack, guidance, shap, evaluate and lab stages
+    threads: Optional[int]       # torch CPU threads of every torch stage; None = every core
+    device: str                  # auto | cpu | cuda | cuda:N (stages.params.torch_device resolves it)
+    amp: bool                    # bf16 autocast of the pose network on CUDA; no effect on CPU
     camera: Camera
     render: Render
     engine: Engine
@@ -398,8 +406,10 @@ class Params:
     report: Report = field(default_factory=Report)
 
     def __post_init__(self) -> None:
-        if self.threads < 1:
-            raise ValueError(f"threads must be a whole number >= 1, got {self.threads}")
+        if self.threads is not None and self.threads < 1:
+            raise ValueError(f"threads must be null or a whole number >= 1, got {self.threads}")
+        if not DEVICE.fullmatch(self.device):
+            raise ValueError(f"device must be auto, cpu, cuda or cuda:N, got {self.device!r}")
         if self.defense.val_seed == self.evaluate.seed:
             raise ValueError("defense.val_seed must differ from evaluate.seed: the defense is fitted on "
                              "validation trajectories, never on the evaluation ones")

@@ -1,4 +1,4 @@
-"""`rpod shap`: DeepSHAP values of the GAP features for clean and FGSM images (SPEC 6) -> datasets/shap.zarr.
+"""`rpod shap`: DeepSHAP values of the GAP features for clean and FGSM images -> datasets/shap.zarr.
 
 Composition (params `shap`): `normal` clean images and `per_eps` adversarial images for each eps in
 `shap.eps`. Source images come from the test split (never seen in training); clean ones are drawn
@@ -62,7 +62,7 @@ def main() -> None:
     p = params_mod.load()
     s = p["shap"]
     check_params(s)
-    params_mod.set_threads(p)
+    params_mod.torch_setup(p)
     seed = int(p["seed"]) + SEED_OFFSET
     rng = np.random.default_rng(seed)
     pose = load_pose(p)

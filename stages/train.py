@@ -1,4 +1,4 @@
-"""`rpod train`: train the Darknet-19 pose CNN on the labelled renders (SPEC 4).
+"""`rpod train`: train the Darknet-19 pose CNN on the labelled renders.
 
 Reads params `seed`, `render.width/height` (the input size) and `train`; writes models/pose.pt (the
 best epoch by validation SPEED score), dvclive/train/ (per-epoch curves for `dvc plots show`),
@@ -9,18 +9,19 @@ seeded), the network is never fitted on it, and the test split is read only afte
 final evaluation of the kept checkpoint. Torch is seeded (and switched to deterministic algorithms)
 before the network is built, so two runs on one machine give the same weights.
 
-Scale-out: `torchrun --nproc_per_node N .venv/bin/rpod train` runs DistributedDataParallel (gloo on
-CPU, nccl on CUDA, one GPU per process); only rank 0 writes files. CUDA is used when present.
+Device: the `device` param (auto = CUDA when present), with bf16 autocast there when `amp` is set;
+CPU threads: `threads` (stages.params.distributed). Scale-out: `torchrun --nproc_per_node N .venv/bin/rpod train` runs
+DistributedDataParallel (gloo on the CPU, NCCL on CUDA, one GPU per process); only rank 0 writes files.
 """
 from __future__ import annotations
 
 import copy
-import os
 from pathlib import Path
 from typing import Annotated, Any
 
 import typer
 
+from stages.artifacts import SURROGATE
 from stages.checkpoint import POSE
 from stages.io import StageError, atomic_outputs, atomic_write_text, write_metrics
 from stages.pages.pose import pose_page
@@ -29,7 +30,6 @@ REPORT = Path("reports/pose.md")
 METRICS = Path("reports/metrics/train.json")
 LIVE_DIR = "dvclive/train"
 SEED_OFFSET = 300
-SURROGATE = Path("models/surrogate.pt")
 
 
 def main(
@@ -48,8 +48,7 @@ def main(
     params = params_mod.load()
     p, r = params["train"], params["robustness"]
     seed = int(r["surrogate_seed"]) if surrogate else int(params["seed"])
-    rank, world, device = _init_distributed()
-    torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
+    rank, world, device = params_mod.distributed(params)
     try:
         cfg = _config(p, int(r["surrogate_epochs"] if surrogate else p["epochs"]), seed + SEED_OFFSET)
         make_deterministic(cfg.seed)  # before the network is built: its initial weights come from the seed
@@ -60,6 +59,7 @@ def main(
     (train_split, train_set, train_eval_set), (val_split, val_set) = data.training_sets(params, cfg.seed)
     targets = train_split.targets
     model.set_output_bias(targets[:, :3].mean(0), targets[:, 3:].mean(0))
+    model.place(device, bool(params["amp"]))
     loss = PoseLoss("mean")
     if p["compile"]:
         model = torch.compile(model)  # type: ignore[assignment]
@@ -69,7 +69,8 @@ def main(
     if rank == 0:
         print(f"train: {len(train_split)} train / {len(val_split)} validation images at {input_size[1]}x{input_size[0]}, "
               f"width {p['width']}, {cfg.epochs} epochs, batch {cfg.batch_size} x {world} process(es), "
-              f"{torch.get_num_threads()} threads, device {device}", flush=True)
+              f"{torch.get_num_threads()} threads, device {device}{' (bf16 autocast)' if _plain(model).amp else ''}",
+              flush=True)
 
     on_epoch = _epoch_logger(rank, loss, best)
 
@@ -179,19 +180,3 @@ def _log_curves(folder: Any, history: list[Any]) -> None:
 def _plain(model: Any) -> Any:
     """The PoseNet under a torch.compile wrapper, if any."""
     return getattr(model, "_orig_mod", model)
-
-
-def _init_distributed() -> tuple[int, int, Any]:
-    """(rank, world size, device) from torchrun's environment (WORLD_SIZE, RANK, LOCAL_RANK)."""
-    import torch
-    import torch.distributed as dist
-
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    cuda = torch.cuda.is_available()
-    if world == 1:
-        return 0, 1, torch.device("cuda" if cuda else "cpu")
-    local = int(os.environ.get("LOCAL_RANK", "0"))
-    if cuda:
-        torch.cuda.set_device(local)
-    dist.init_process_group("nccl" if cuda else "gloo")
-    return dist.get_rank(), world, torch.device(f"cuda:{local}" if cuda else "cpu")

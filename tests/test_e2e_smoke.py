@@ -55,11 +55,11 @@ def rows_under(md: str, heading_start: str, first_header: str) -> list[str]:
     return hits[0]
 
 
-@pytest.fixture(scope="module")
-def smoke_repo(tmp_path_factory) -> tuple[Path, dict[str, str]]:
+def copy_repo(dst: Path) -> dict[str, str]:
+    """Copy the working tree's files (tracked and untracked-not-ignored) into `dst` as a one-commit git
+    repository; returns the environment to run `rpod` and `dvc` there."""
     if shutil.which("git") is None:
         pytest.skip("git is needed to list the repository's files")
-    dst = tmp_path_factory.mktemp("repo")
     files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=REPO, check=True,
                            capture_output=True).stdout.decode().split("\0")
     for name in filter(None, files):
@@ -74,6 +74,13 @@ def smoke_repo(tmp_path_factory) -> tuple[Path, dict[str, str]]:
     _run(["git", "init", "-q"], dst, env)
     _run(["git", "add", "-A"], dst, env)
     _run(["git", "commit", "-qm", "copy"], dst, env)
+    return env
+
+
+@pytest.fixture(scope="module")
+def smoke_repo(tmp_path_factory) -> tuple[Path, dict[str, str]]:
+    dst = tmp_path_factory.mktemp("repo")
+    env = copy_repo(dst)
     _run(["rpod", "params", "smoke"], dst, env)
     _run(["dvc", "repro"], dst, env)
     return dst, env
@@ -90,6 +97,23 @@ def test_every_stage_ran_on_the_smoke_profile(smoke_repo):
         assert m["profile"] == "smoke", f"{name}.json was not produced by this run"
     assert "changed" not in _run(["dvc", "status"], dst, env), "dvc status: stages left stale after dvc repro"
     _run(["rpod", "report", "--check"], dst, env)
+
+
+def test_dvc_metrics_and_plots_show_after_repro(smoke_repo):
+    """`dvc metrics show` prints the flat headline summary in at most 120 columns; `dvc plots show` draws
+    every titled plot of dvc.yaml from the outputs of this fresh clone's `dvc repro`."""
+    from stages.pages.summary import HEADLINES
+
+    dst, env = smoke_repo
+    summary = json.loads((dst / "reports" / "metrics" / "summary.json").read_text())
+    assert set(summary) == {h.key for h in HEADLINES}
+    lines = _run(["dvc", "metrics", "show"], dst, env).splitlines()
+    assert len(lines) == 2 and max(map(len, lines)) <= 120, lines
+    _run(["dvc", "plots", "show"], dst, env)
+    page = (dst / "dvc_plots" / "index.html").read_text()
+    for entry in yaml.safe_load((dst / "dvc.yaml").read_text())["plots"]:
+        (plot,) = entry.values()
+        assert plot["title"] in page and plot["y_label"] in page, plot["title"]
 
 
 def test_every_table_has_the_expected_rows(smoke_repo):

@@ -130,3 +130,19 @@ def test_augment_changes_pixels_not_shape_and_is_seeded():
         AugmentConfig(brightness=(1.3, 0.7))
     with pytest.raises(ValueError):
         augment(img.astype(np.float32), np.random.default_rng(0), cfg)
+
+
+def test_place_on_the_cpu_changes_nothing_and_amp_is_cuda_only():
+    """`place("cpu", amp=True)`: outputs bit-identical to the unplaced network, no autocast, and the
+    outputs stay on the input's device."""
+    import copy
+
+    torch.manual_seed(0)
+    a = PoseNet(0.125).eval()
+    b = copy.deepcopy(a).place("cpu", amp=True)
+    assert not b.amp and b.device == torch.device("cpu")
+    x = torch.rand(2, 3, 27, 48)
+    with torch.no_grad():
+        assert torch.equal(a(x), b(x)) and torch.equal(a.forward_features(x), b.forward_features(x))
+        f = b.forward_features(x)
+        assert torch.equal(a.forward_head(f), b.forward_head(f)) and b(x).device == x.device

@@ -13,7 +13,7 @@ def test_every_profile_builds_typed_params(profile):
     p = build(params_mod.compose(profile))
     assert isinstance(p, Params) and p.profile_name == profile
     assert isinstance(p.evaluate.lateral_range[0], float) and isinstance(p.render.width, int)
-    assert p.lab.zed.width == 1920 and p.threads >= 1
+    assert p.lab.zed.width == 1920 and (p.threads is None or p.threads >= 1)
 
 
 @pytest.mark.parametrize("edit, message", [
@@ -25,7 +25,12 @@ def test_every_profile_builds_typed_params(profile):
     (("render", "samples", True), r"render.samples must be a whole number, got True"),
     (("evaluate", "p_start", 1.5), r"evaluate: p_start must be in \[0, 1\]"),
     (("evaluate", "lateral_range", [20.0, 10.0]), r"evaluate: lateral_range must be \[low, high\]"),
-    ((None, "threads", 0), r"threads must be a whole number >= 1, got 0"),
+    ((None, "threads", 0), r"threads must be null or a whole number >= 1, got 0"),
+    ((None, "threads", None), None),
+    ((None, "device", "gpu"), r"device must be auto, cpu, cuda or cuda:N, got 'gpu'"),
+    ((None, "device", "cuda:x"), r"device must be auto, cpu, cuda or cuda:N, got 'cuda:x'"),
+    ((None, "device", "cuda:1"), None),                              # checked against the GPUs when a stage runs
+    ((None, "amp", "yes"), r"params.yaml amp must be true or false, got 'yes'"),
     (("lab", "zed", {"width": 1920}), r"missing parameter 'lab.zed.height'"),
     (("detect", "baselines", ["mlp", "knn"]), r"detect.baselines\[1\] must be one of mlp, mahalanobis, lid, squeeze"),
     (("detect", "val_fraction", 1.0), r"detect: val_fraction must be in \(0, 1\), got 1.0"),
@@ -51,3 +56,61 @@ def test_load_refuses_bad_params_naming_the_key(tmp_path, monkeypatch, edit, mes
     else:
         with pytest.raises(ParamsError, match=message):
             params_mod.load()
+
+
+def test_unset_external_inputs_and_workers_leave_the_render_fingerprint_alone():
+    """inputs/none (the DVC-dep placeholder) fingerprints like null, so renders made before the
+    placeholder existed stay valid; a real mesh or SPEED source changes it."""
+    from stages.params import compose, render_fingerprint
+
+    p = compose("smoke")
+    base = render_fingerprint(p)
+    old = {**p, "render": {k: v for k, v in p["render"].items() if k not in ("source", "source_test")} | {"mesh": None}}
+    assert render_fingerprint(old) == base
+    assert render_fingerprint({**p, "render": {**p["render"], "workers": 7}}) == base
+    assert render_fingerprint({**p, "render": {**p["render"], "mesh": "meshes/sat.obj"}}) != base
+    assert render_fingerprint({**p, "render": {**p["render"], "source": "/data/speedplus"}}) != base
+
+
+def test_device_param_resolves_in_one_place(monkeypatch):
+    """auto -> cpu without a GPU; cuda without one -> one-line StageError; with (faked) GPUs, auto and
+    cuda:N pick one and torchrun's local rank picks its own; a bad value names the param."""
+    import torch
+
+    from stages.io import StageError
+
+    p = params_mod.compose("smoke")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert params_mod.torch_device({**p, "device": "auto"}) == torch.device("cpu")
+    assert params_mod.torch_device({**p, "device": "cpu"}) == torch.device("cpu")
+    for value in ("cuda", "cuda:0"):
+        with pytest.raises(StageError, match=rf"^params.yaml device: '{value}' asks for a CUDA GPU but torch \S+ "
+                                             r"sees none; set device: auto or cpu$"):
+            params_mod.torch_device({**p, "device": value})
+    with pytest.raises(StageError, match=r"^params.yaml device must be auto, cpu, cuda or cuda:N, got 'tpu'$"):
+        params_mod.torch_device({**p, "device": "tpu"})
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
+    assert params_mod.torch_device({**p, "device": "auto"}) == torch.device("cuda", 0)
+    assert params_mod.torch_device({**p, "device": "cuda:1"}) == torch.device("cuda", 1)
+    assert params_mod.torch_device({**p, "device": "cpu"}) == torch.device("cpu")
+    assert params_mod.torch_device({**p, "device": "cuda"}, local_rank=1) == torch.device("cuda", 1)
+    with pytest.raises(StageError, match=r"^params.yaml device: GPU 2 asked for but torch sees 2$"):
+        params_mod.torch_device({**p, "device": "cuda:2"})
+
+
+def test_threads_param_sets_torch_threads():
+    import os
+
+    import torch
+
+    before = torch.get_num_threads()
+    p = {**params_mod.compose("smoke"), "device": "cpu"}
+    try:
+        assert params_mod.torch_setup({**p, "threads": 1}) == torch.device("cpu") and torch.get_num_threads() == 1
+        params_mod.torch_setup({**p, "threads": None})
+        assert torch.get_num_threads() == (os.cpu_count() or 1)
+        params_mod.torch_setup({**p, "threads": None}, processes=64)
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)

@@ -81,5 +81,6 @@ def test_report_names_the_missing_inputs(tmp_path, monkeypatch):
     result = CliRunner().invoke(app, ["report"])
     assert result.exit_code != 0
     message = str(result.exception)
-    assert "reports/metrics/attack.json (rpod attack)" in message and "reports/pose.md (rpod train)" in message
+    assert "reports/metrics/attack.json: run `dvc repro attack` (or `rpod attack`)" in message
+    assert "reports/pose.md: run `dvc repro train` (or `rpod train`)" in message
     assert "train.json" not in message and not (tmp_path / "reports" / "README.md").exists()

@@ -1,11 +1,8 @@
-import json
-
 import numpy as np
 import pytest
 
-from pipeline.rotations import (attitude_error_deg, euler_to_matrix, from_speed, matrix_to_6d, matrix_to_quat,
-                                normalize_quat, position_error, quat_to_6d, quat_to_matrix, sixd_to_matrix,
-                                sixd_to_quat, to_speed)
+from pipeline.rotations import (attitude_error_deg, euler_to_matrix, matrix_to_6d, matrix_to_quat, normalize_quat,
+                                position_error, quat_to_6d, quat_to_matrix, sixd_to_matrix, sixd_to_quat)
 
 
 def random_quats(n, seed=0):
@@ -51,20 +48,3 @@ def test_errors():
     q2 = matrix_to_quat(quat_to_matrix(q) @ euler_to_matrix(np.array([0, 0, 7.0])))
     assert np.allclose(attitude_error_deg(q2, q), 7.0, atol=1e-6)
     assert np.allclose(position_error(np.array([[3.0, 4, 0]]), np.zeros((1, 3))), 5.0)
-
-
-def test_speed_json_round_trip(tmp_path):
-    q = random_quats(20, seed=3)
-    t = np.random.default_rng(4).uniform(-5, 60, size=(20, 3))
-    names = [f"img{i:06d}.jpg" for i in range(20)]
-    path = tmp_path / "train.json"
-    path.write_text(json.dumps(to_speed(names, t, q)))
-    records = json.loads(path.read_text())
-    assert set(records[0]) == {"filename", "q_vbs2tango_true", "r_Vo2To_vbs_true"}
-    names2, t2, q2 = from_speed(records)
-    assert names2 == names and np.abs(t2 - t).max() < 1e-12 and np.abs(q2 - q).max() < 1e-12
-
-
-def test_speed_json_bad_records():
-    with pytest.raises(ValueError, match="SPEED"):
-        from_speed([{"filename": "a.jpg", "q_vbs2tango_true": [1, 0, 0, 0]}])

@@ -238,3 +238,30 @@ def test_checkpoint_bytes_do_not_depend_on_the_temporary_name(tmp_path):
         checkpoint.save_pose(tmp_path / name, model, loss, (H, W), {"epoch": 1})
         hashes.append(file_hash(tmp_path / name))
     assert hashes[0] == hashes[1]
+
+
+def test_train_stage_on_the_cpu_device_and_a_missing_gpu_in_one_line(tmp_path, monkeypatch, capsys):
+    """device: cpu trains as before (the metrics name the device); device: cuda on a machine without a
+    GPU stops `rpod train` and `rpod attack` with one line before any work."""
+    import sys
+
+    from stages import cli, train
+
+    monkeypatch.chdir(tmp_path)
+    torch.set_num_threads(1)
+    write_dataset(tmp_path, overrides=["device=cpu"])
+    train.main()
+    assert json.loads(Path("reports/metrics/train.json").read_text())["device"] == "cpu"
+    capsys.readouterr()                      # the training run's own output
+    p = params_mod.load()
+    params_mod.write_params({**p, "device": "cuda"})
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setitem(cli._DEBUG, "on", False)
+    for stage in ("train", "attack"):
+        monkeypatch.setattr(sys, "argv", ["rpod", stage])
+        with pytest.raises(SystemExit) as exit_info:
+            cli.main()
+        err = capsys.readouterr().err
+        assert exit_info.value.code == 1 and err.count("\n") == 1
+        assert err.startswith("error: params.yaml device: 'cuda' asks for a CUDA GPU but torch ") and "auto or cpu" in err
+    assert not Path("reports/metrics/attack.json").exists()

@@ -57,3 +57,37 @@ def test_metrics_of_another_pose_model_do_not_count(tmp_path):
     rows = {r["headline number"]: r for r in _load().variance_rows([run])}
     assert "LSTM detector accuracy, SHAP test split (%)" not in rows and rows["pose, test position error (m)"]["runs"] == 1
 
+
+
+def test_every_headline_has_a_unique_key():
+    keys = [k for k, *_ in _load().HEADLINES]
+    assert len(keys) == len(set(keys))
+
+
+def test_readme_results_show_the_spread_of_each_headline_number():
+    """Each headline number's sd from reports/variance.json lands beside it in the README results table
+    (a typo in a key would leave a "-" there), and without a spread there is no such column."""
+    from stages.pages.readme import summary_tables
+
+    metrics = {m: json.loads((REPO / "reports" / "metrics" / f"{m}.json").read_text())
+               for m in ("train", "attack", "guidance", "detect", "evaluate", "lab", "robustness")}
+    not_shown = {"pose_tz_pct", "lstm_recall_0.01_pct", "integrated_0.01_pct"}   # in variance.md only
+    keys = [k for k, *_ in _load().HEADLINES if k not in not_shown]
+    spread = {"profile": "default", "seeds": ["0", "1", "2"],
+              "numbers": {k: {"runs": 3, "mean": 1.0, "sd": 1.01 + 0.01 * i, "min": 0.0, "max": 2.0}
+                          for i, k in enumerate(keys)}}
+    text = summary_tables(metrics, spread)
+    assert "sd over seeds" in text and "differ only in `seed`" in text
+    for i, k in enumerate(keys):
+        assert any(f"{1.01 + 0.01 * i:.2f}{note} (3 seeds)" in text for note in ("", " %", " at eps 0.05")), k
+    assert "sd over seeds" not in summary_tables(metrics)
+
+
+def test_a_spread_of_another_profile_is_not_shown(tmp_path, monkeypatch):
+    from stages import report
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "reports").mkdir()
+    (tmp_path / "reports" / "variance.json").write_text(json.dumps({"profile": "default", "seeds": [], "numbers": {}}))
+    assert report._spread({"profile_name": "smoke"}) is None
+    assert report._spread({"profile_name": "default"})["profile"] == "default"

@@ -1,6 +1,6 @@
 """Attack detectors, one per module, all scoring "higher = more likely attacked".
 
-- `lstm`: the paper's detector (SPEC 7): an LSTM with ReLU over the 9 SHAP rows (9 x 1000).
+- `lstm`: the paper's detector: an LSTM with ReLU over the 9 SHAP rows (9 x 1000).
 - `mlp`: an MLP on the flattened SHAP values (scikit-learn).
 - `mahalanobis`: class-conditional Gaussian distance on the GAP features (Lee et al. 2018).
 - `lid`: local intrinsic dimensionality of the GAP features (Ma et al. 2018).

@@ -1,4 +1,4 @@
-"""The paper's attack detector (SPEC 7): an LSTM with ReLU over the 9 SHAP rows, dense layers, a sigmoid.
+"""The paper's attack detector: an LSTM with ReLU over the 9 SHAP rows, dense layers, a sigmoid.
 
 Input: SHAP values (B, 9, 1000), one row per pose output (tx, ty, tz, r0..r5), read as a sequence
 of 9 steps of 1000 features. The LSTM (100 units) uses ReLU where a standard LSTM uses tanh (the

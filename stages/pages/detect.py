@@ -1,4 +1,4 @@
-"""reports/detector.md, the page of `rpod detect` (SPEC 7): the LSTM detector on the SHAP test split
+"""reports/detector.md, the page of `rpod detect`: the LSTM detector on the SHAP test split
 beside the paper, and the baselines on the same split."""
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ def detector_page(results: dict[str, dict[str, dict[str, float]]], scores: dict[
     ours = f"{pct(lstm['all'], 'accuracy')}%"
     return f"""# Attack detector
 
-The paper's detector (SPEC 7) reads the DeepSHAP values of the pose network's 1000 GAP features
+The paper's detector reads the DeepSHAP values of the pose network's 1000 GAP features
 for its 9 outputs (a 9 x 1000 sequence per image, `rpod shap`) and says whether the image was
 attacked: an LSTM of {d['hidden']} units with ReLU, dense layers {d['dense']}, one sigmoid output,
 Adadelta (lr {d['lr']}), early stopping after {d['patience']} epochs without a lower validation loss.

@@ -1,4 +1,4 @@
-"""The defended chain's section of reports/integrated.md (`rpod evaluate`, SPEC 11): the paper's
+"""The defended chain's section of reports/integrated.md (`rpod evaluate`): the paper's
 detector alone and the detector fused with the motion check, on the same recorded frames."""
 from __future__ import annotations
 

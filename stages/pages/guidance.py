@@ -1,5 +1,5 @@
-"""reports/guidance.md, the page of `rpod guidance` (SPEC 5): one S x K table per eps; and its defended
-section (SPEC 11): closed-loop rendezvous success per variant (undefended, detect-and-hold,
+"""reports/guidance.md, the page of `rpod guidance`: one S x K table per eps; and its defended
+section: closed-loop rendezvous success per variant (undefended, detect-and-hold,
 detect-and-recover) and dynamics."""
 from __future__ import annotations
 
@@ -47,7 +47,7 @@ attack's length counts as held, one diverted or still short after that counts as
 rates carry 95% Wilson intervals over the runs of the grid (few runs: wide intervals).
 
 {markdown_table(summary)}
-![one run per variant](figures/guidance_defended.png)
+![one attacked cell per variant: distance from the approach axis and to the target point](figures/guidance_defended.png)
 
 Every run:
 
@@ -118,7 +118,7 @@ Cells: outcome, final distance to the target point.
 {m['renders']} rendered frames for {m['steps']} guidance steps (runs share the baseline's frames until
 their attack starts), {m['attacked']} attacked frames (time: reports/metrics/guidance.json).
 
-![true trajectories](figures/guidance_trajectories.png)
+![true range and estimate error per step, no attack and each (S, K)](figures/guidance_trajectories.png)
 
 The full paper grid (eps 0.5, 0.3, 0.1, 0.05, 0.01; S = 60..10 m; K = 5..20) runs with
 `dvc exp run -S profile=paper` (everything at paper scale) or, on the current model,

@@ -1,4 +1,4 @@
-"""reports/lab.md, the page of `rpod lab` (SPEC 9): which models, the range rescaling, pose errors,
+"""reports/lab.md, the page of `rpod lab`: which models, the range rescaling, pose errors,
 FGSM errors and integrated detection on the lab sequences, beside the paper's numbers."""
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ def models_section(p: dict[str, Any], m: dict[str, Any]) -> str:
 
 The pose model and the detector are the main ones, `{m['models']['pose']}` (hash `{m['model_hash']}`) and
 `{m['models']['detector']}` (`lab.retrain: {lab['retrain']}`): the lab mock-up is the main target mesh at
-1/{lab['scale']:g} scale and K_blender has the lab images' 16:9 aspect (SPEC 9), so a synthetic-lab training set
+1/{lab['scale']:g} scale and K_blender has the lab images' 16:9 aspect, so a synthetic-lab training set
 would repeat the main one. `lab.retrain: always` (the paper profile), or another mock-up mesh in `lab.mesh`,
 trains a synthetic-lab pose model and detector instead.
 """
@@ -34,7 +34,7 @@ Retrained because {s['reason']}. The pose model and the detector used below are
 models/detector.pt.
 
 - Synthetic-lab set: {s['images']} images at {s['size'][0]}x{s['size'][1]} with the main camera K_blender (the lab
-  images' 16:9 aspect), the 13 approach sequences of SPEC 3 ({s['frames_per_sequence']} frames each, 60 to 10 m,
+  images' 16:9 aspect), the 13 approach sequences ({s['frames_per_sequence']} frames each, 60 to 10 m,
   base seed {s['seed']}), the mock-up {mesh} rendered at {lab['scale']:g} x its size ({s['mesh_scale']:g} m per mesh
   unit) so the ranges are preserved; sun and render settings of `render`.
 - Pose model: the main recipe (`rpod train` with the `train` params, width {p['train']['width']}, input

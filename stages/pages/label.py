@@ -1,4 +1,4 @@
-"""reports/dataset.md, the dataset card of `rpod label` (SPEC 3): counts, ranges, sequences, render settings."""
+"""reports/dataset.md, the dataset card of `rpod label`: counts, ranges, sequences, render settings."""
 from __future__ import annotations
 
 import os
@@ -21,15 +21,16 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
     cam = Intrinsics(meta["width"], meta["height"], K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     uv = project(t, cam)
     angle = attitude_error_deg(q, np.tile([1.0, 0, 0, 0], (len(q), 1)))  # rotation angle from camera axes
-    seqs = labels.groupby("sequence").agg(frames=("index", "size"), train=("split", lambda s: int((s == "train").sum())),
-                                          tz_start=("tz", "max"), tz_end=("tz", "min"),
-                                          attitude_mean_deg=("index", lambda i: float(angle[i.to_numpy()].mean())))
-    seqs = seqs.reset_index()
-    r = meta["render"]
+    r, source = meta["render"], meta.get("source")
+    if not source:
+        seqs = labels.groupby("sequence").agg(
+            frames=("index", "size"), train=("split", lambda s: int((s == "train").sum())), tz_start=("tz", "max"),
+            tz_end=("tz", "min"), attitude_mean_deg=("index", lambda i: float(angle[i.to_numpy()].mean())))
+        seqs = seqs.reset_index()
     lines = [
-        "# Dataset card: synthetic Jason-1-like target, 60 m to 10 m",
+        "# Dataset card: " + ("imported SPEED/SPEED+ set" if source else "synthetic Jason-1-like target, 60 m to 10 m"),
         "",
-        "Written by `rpod label` from `datasets/render/` (`rpod render`). Frames and labels per SPEC 2: "
+        "Written by `rpod label` from `datasets/render/` (`rpod render`). Frames and labels: "
         "`t` = target origin in the OpenCV camera frame (m), `q` = (qw, qx, qy, qz) rotating target-frame "
         "vectors into the camera frame, `r0..r5` = 6-D rotation (first two columns of R).",
         "",
@@ -56,17 +57,15 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
         "The attitude angle is the rotation angle of `q`: it combines the camera's look-at rotation towards "
         "laterally offset chasers, the pointing jitter, and (sequences 5-12) the random target rotation.",
         "",
-        "## Sequences",
-        "",
-        markdown_table(seqs, decimals=1),
-        "## Render settings",
-        "",
-        markdown_table([{"setting": k, "value": str(r[k])} for k in
-                        ("samples", "denoiser", "denoise_quality", "threads", "mesh", "mesh_scale", "sun_direction",
-                         "sun_strength", "pointing_jitter_deg", "max_target_rotation_deg", "chunk")]),
+        *(_source_section(source) if source else [
+            "## Sequences", "", markdown_table(seqs, decimals=1), "## Render settings", "",
+            markdown_table([{"setting": k, "value": str(r[k])} for k in
+                            ("samples", "denoiser", "denoise_quality", "threads", "mesh", "mesh_scale", "sun_direction",
+                             "sun_strength", "pointing_jitter_deg", "max_target_rotation_deg", "chunk")])]),
         f"Camera K at {meta['width']}x{meta['height']}: fx={K[0, 0]:.3f}, fy={K[1, 1]:.3f}, cx={K[0, 2]:.3f}, "
         f"cy={K[1, 2]:.3f} (scaled from the reference K at {meta['camera']['ref_width']}x"
-        f"{meta['camera']['ref_height']}). Renderer: Blender Cycles, CPU.",
+        f"{meta['camera']['ref_height']}). " + ("Images resized with an area filter; lens distortion is not removed."
+                                                if source else "Renderer: Blender Cycles, CPU."),
         "",
         f"Pixel aspect fy/fx = {K[1, 1] / K[0, 0]:.4g} (`camera.fy`). The paper prints K_Blender with fy = 360 beside "
         "fx = 640 at 480x270; 360 = 270 x 48/36 is the sensor-width ratio applied to the image height, a common "
@@ -80,3 +79,13 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
     if previews:
         lines += ["## Preview", "", *[f"![{p.stem}]({os.path.relpath(p, card_dir)})" for p in previews[:2]], ""]
     return "\n".join(lines)
+
+
+def _source_section(source: dict[str, Any]) -> list[str]:
+    """The card's section on an imported SPEED/SPEED+ folder: which label files made which split."""
+    from pipeline.report import markdown_table
+
+    return ["## Source", "", f"Imported by `rpod render` from `render.source` = {source['folder']} (each image is "
+            "its own sequence; the folder's own train/test split is kept).", "",
+            markdown_table([{"split": "train", "labels": source["train"], "images": source["train_images"]},
+                            {"split": "test", "labels": source["test"], "images": source["test_images"]}])]

@@ -9,7 +9,7 @@ PAPER = {
     "integrated_eps": {"0.5": 100.0, "0.3": 99.99, "0.1": 99.97, "0.05": 99.99, "0.01": 97.67},
     "lab_eps": {"0.5": 100.0, "0.3": 100.0, "0.1": 100.0, "0.05": 98.44, "0.01": 90.44},
 }
-DETECTOR_NAMES = {"lstm": "LSTM on SHAP (SPEC 7)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis (GAP)",
+DETECTOR_NAMES = {"lstm": "LSTM on SHAP (paper)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis (GAP)",
                   "lid": "LID (GAP)", "squeeze": "feature squeezing"}
 
 
@@ -28,8 +28,17 @@ def _eps_keys(d: dict[str, Any]) -> list[str]:
     return sorted(d, key=float, reverse=True)
 
 
-def summary_tables(metrics: dict[str, dict[str, Any]]) -> str:
-    """The headline results against the paper, as Markdown (this is what README.md shows)."""
+def _sd(spread: dict[str, Any] | None, key: str | None, note: str = "") -> str:
+    """The seed spread of one headline number from reports/variance.json: "0.022 (3 seeds)", or "-"."""
+    got = (spread or {}).get("numbers", {}).get(key or "")
+    if not got or not isinstance(got.get("sd"), (int, float)):
+        return "-"
+    return f"{got['sd']:.{3 if abs(got['sd']) < 0.1 else 2}f}{note} ({got['runs']} seeds)"
+
+
+def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | None = None) -> str:
+    """The headline results against the paper, as Markdown (this is what README.md shows). `spread`
+    (reports/variance.json of the same profile) adds the standard deviation over seeds of each number."""
     from pipeline.report import markdown_table
     from pipeline.stats import wilson
 
@@ -40,25 +49,31 @@ def summary_tables(metrics: dict[str, dict[str, Any]]) -> str:
     dets = de["detectors"]
     best_base = max((k for k in dets if k != "lstm"), key=lambda k: dets[k]["all"]["accuracy"])
     rows = [
-        ("pose, test mean position error (m)", _fmt(tr["test"]["pos_mean_m"]), _fmt(PAPER["position_m"]), "train"),
-        ("pose, test mean attitude error (deg)", _fmt(tr["test"]["att_mean_deg"]), _fmt(PAPER["attitude_deg"]), "train"),
+        ("pose, test mean position error (m)", _fmt(tr["test"]["pos_mean_m"]), _fmt(PAPER["position_m"]), "train",
+         _sd(spread, "pose_position_m")),
+        ("pose, test mean attitude error (deg)", _fmt(tr["test"]["att_mean_deg"]), _fmt(PAPER["attitude_deg"]), "train",
+         _sd(spread, "pose_attitude_deg")),
         ("FGSM mean position error (m) at eps " + " / ".join(eps_at),
-         " / ".join(_fmt(at["eps"][e]["position_mean_m"], 1) for e in eps_at), "-", "attack"),
+         " / ".join(_fmt(at["eps"][e]["position_mean_m"], 1) for e in eps_at), "-", "attack",
+         _sd(spread, "fgsm_position_m_0.05", " at eps 0.05")),
         ("closed loop, no attack", f"{gd['baseline']['outcome']} (miss {_fmt(gd['baseline']['miss_m'])} m)",
-         "reaches the target", "guidance"),
+         "reaches the target", "guidance", "-"),
         ("closed loop, attacked runs that lost the rendezvous (undefended)",
-         f"{broken} of {len(runs)} ({wilson(broken, len(runs)).pct()} %)", "-", "guidance"),
+         f"{broken} of {len(runs)} ({wilson(broken, len(runs)).pct()} %)", "-", "guidance",
+         _sd(spread, "undefended_lost_pct", " %")),
         ("LSTM detector accuracy, SHAP test split (%)", _with_ci(dets["lstm"]["all"], "accuracy"),
-         _fmt(PAPER["detector"]), "detect"),
+         _fmt(PAPER["detector"]), "detect", _sd(spread, "lstm_accuracy_pct")),
         (f"best baseline detector accuracy (%): {DETECTOR_NAMES.get(best_base, best_base)}",
-         _with_ci(dets[best_base]["all"], "accuracy"), "-", "detect"),
+         _with_ci(dets[best_base]["all"], "accuracy"), "-", "detect", "-"),
         ("integrated detection accuracy, mean over eps (%; per eps with intervals below)", _fmt(100 * ev["accuracy_mean"]),
-         _fmt(PAPER["integrated"]), "evaluate"),
+         _fmt(PAPER["integrated"]), "evaluate", _sd(spread, "integrated_pct")),
         (f"lab detection accuracy, mean over eps (%), {'main' if lab.get('reused_models', True) else 'retrained'} models",
-         _fmt(100 * lab["accuracy_mean"]), _fmt(PAPER["lab"]), "lab"),
-        *_robustness_rows(metrics["robustness"]),
+         _fmt(100 * lab["accuracy_mean"]), _fmt(PAPER["lab"]), "lab", _sd(spread, "lab_pct")),
+        *_robustness_rows(metrics["robustness"], spread),
     ]
-    table = markdown_table([{"result": r, "this run": v, "paper": p, "stage": f"`{s}`"} for r, v, p, s in rows])
+    columns = ("result", "this run", "paper", "stage", "sd over seeds")
+    table = markdown_table([dict(zip(columns, (r, v, p, f"`{s}`", sd) if spread else (r, v, p, f"`{s}`")))
+                            for r, v, p, s, sd in rows])
     eps_rows = []
     for e in sorted(set(ev["per_eps"]) | set(lab["per_eps"]), key=float, reverse=True):
         get = lambda m, k: _with_ci(m["per_eps"][e], "accuracy") if e in m["per_eps"] else "-"  # noqa: E731
@@ -69,8 +84,11 @@ def summary_tables(metrics: dict[str, dict[str, Any]]) -> str:
             "50 epochs, 32,500 images; each stage's section of the results page says what differs and why.")
     per_eps = ("Detection accuracy per eps (correct flags over all frames; 95% intervals by a bootstrap over the "
                "trajectories):")
+    if spread:
+        head += (f" The last column is the standard deviation of the number over {len(spread['seeds'])} runs that "
+                 "differ only in `seed` (reports/variance.md); a difference smaller than about twice it is noise.")
     return (f"{head}\n\n{table}\n{per_eps}\n\n{markdown_table(eps_rows)}"
-            + defended_table(ev, gd))
+            + defended_table(ev, gd, spread))
 
 
 def _rate(r: dict[str, Any] | None) -> str:
@@ -81,8 +99,8 @@ def _rate(r: dict[str, Any] | None) -> str:
     return f"{100 * r['value']:.2f} [{100 * lo:.2f}, {100 * hi:.2f}]"
 
 
-def defended_table(ev: dict[str, Any], gd: dict[str, Any]) -> str:
-    """The defended chain (SPEC 11) beside the paper's detector: integrated detection at the smallest
+def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any] | None = None) -> str:
+    """The defended chain beside the paper's detector: integrated detection at the smallest
     eps, harmful-undetected, false alarms, and closed-loop rendezvous held per variant (Markdown)."""
     from pipeline.report import markdown_table
     from pipeline.stats import wilson
@@ -92,15 +110,19 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any]) -> str:
         return ""
     e = "0.01" if "0.01" in fused["per_eps"] else min(fused["per_eps"], key=float)
     paper, ours = fused["paper_per_eps"][e], fused["per_eps"][e]
-    rows = [(f"integrated accuracy at eps {e} (%)", "accuracy", _fmt(PAPER["integrated_eps"].get(e)), ">= 99.5"),
-            (f"attacked frames flagged at eps {e} (TPR, %)", "tpr", "-", "-"),
-            (f"harmful frames (error > {fused['harm_m']:g} m) flagged at eps {e} (%)", "harmful_flagged", "-", ">= 99.5"),
-            (f"harmful and undetected, of the attacked frames at eps {e} (%)", "harmful_undetected", "-", "<= 1"),
-            (f"false alarms on clean frames between attacks at eps {e} (%)", "fpr", "-", "<= 0.5"),
-            ("false alarms on attack-free runs (%)", "fpr_clean", "-", "<= 0.5")]
+    rows = [(f"integrated accuracy at eps {e} (%)", "accuracy", _fmt(PAPER["integrated_eps"].get(e)), ">= 99.5",
+             f"defended_{e}_pct"),
+            (f"attacked frames flagged at eps {e} (TPR, %)", "tpr", "-", "-", None),
+            (f"harmful frames (error > {fused['harm_m']:g} m) flagged at eps {e} (%)", "harmful_flagged", "-", ">= 99.5",
+             None),
+            (f"harmful and undetected, of the attacked frames at eps {e} (%)", "harmful_undetected", "-", "<= 1", None),
+            (f"false alarms on clean frames between attacks at eps {e} (%)", "fpr", "-", "<= 0.5", None),
+            ("false alarms on attack-free runs (%)", "fpr_clean", "-", "<= 0.5", "defended_fpr_clean_pct")]
+    sd_column = {"sd over seeds, defended": None} if spread else {}
     table = [{"result": name, "paper's detector (this run)": _rate(paper[key]),
-              f"defended chain ({fused['fusion']})": _rate(ours[key]), "paper": p, "target": t}
-             for name, key, p, t in rows]
+              f"defended chain ({fused['fusion']})": _rate(ours[key]), "paper": p, "target": t,
+              **{c: _sd(spread, sd) for c in sd_column}}
+             for name, key, p, t, sd in rows]
     for dyn, variants in gd.get("defended", {}).get("dynamics", {}).items():
         def held(variant: str) -> str:
             if variant not in variants:
@@ -111,19 +133,21 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any]) -> str:
         table.append({"result": f"closed loop, attacked runs held (%), {dyn} dynamics: undefended vs "
                                 f"detect-and-recover (detect-and-hold: {held('hold')})",
                       "paper's detector (this run)": held("undefended"),
-                      f"defended chain ({fused['fusion']})": held("recover"), "paper": "-", "target": ">= 95"})
-    return ("\n\nThe defended chain (motion check fused with the detector, recovery and hold; SPEC 11) beside the "
+                      f"defended chain ({fused['fusion']})": held("recover"), "paper": "-", "target": ">= 95",
+                      **{c: _sd(spread, "recover_held_pct" if dyn == "paper" else None, " %") for c in sd_column}})
+    return ("\n\nThe defended chain (motion check fused with the detector, recovery and hold) beside the "
             "paper's detector, on the same frames and runs (95% intervals):\n\n" + markdown_table(table))
 
 
 
-def _robustness_rows(m: dict[str, Any]) -> list[tuple[str, str, str, str]]:
+def _robustness_rows(m: dict[str, Any], spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
     """Summary rows at eps 0.05 and 0.01: the worst harmful-undetected rate against the chain that ships
     (the fused chain, adaptive attack over bursts), and beside it against the paper's detector alone
     (LSTM, any robustness attack incl. adaptive); percent with the 95% interval, "-" where not run."""
     out = []
-    for key, what in (("worst_harmful_undetected_fused", "fused chain (ships), adaptive attack on bursts"),
-                      ("worst_harmful_undetected", "paper's LSTM detector alone, any attack incl. adaptive")):
+    for key, what, short in (("worst_harmful_undetected_fused", "fused chain (ships), adaptive attack on bursts", "fused"),
+                             ("worst_harmful_undetected", "paper's LSTM detector alone, any attack incl. adaptive",
+                              "lstm")):
         for e in ("0.05", "0.01"):
             w = m.get(key, {}).get(e)
             value = "-"
@@ -131,5 +155,6 @@ def _robustness_rows(m: dict[str, Any]) -> list[tuple[str, str, str, str]]:
                 lo, hi = w["ci95_harmful_undetected"]
                 value = (f"{_fmt(100 * w['harmful_undetected_rate'], 1)} [{_fmt(100 * lo, 1)}, {_fmt(100 * hi, 1)}] "
                          f"({w['attack']})")
-            out.append((f"worst harmful-undetected rate (%) at eps {e}, {what}", value, "-", "robustness"))
+            out.append((f"worst harmful-undetected rate (%) at eps {e}, {what}", value, "-", "robustness",
+                        _sd(spread, f"{short}_hu_{e}_pct")))
     return out

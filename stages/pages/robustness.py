@@ -1,4 +1,4 @@
-"""reports/robustness.md, the page of `rpod robustness` (SPEC 11): the shipped chain against attacks
+"""reports/robustness.md, the page of `rpod robustness`: the shipped chain against attacks
 its detector never saw, an attacker who knows it, a black-box surrogate, and benign corruptions."""
 from __future__ import annotations
 

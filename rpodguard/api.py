@@ -1,0 +1,174 @@
+"""The trained safety chain as one object: `load_chain(folder)` -> `Chain`; `Chain.predict(images)` -> `Prediction`.
+
+Files read: FOLDER/pose.pt (the pose model, written by `rpod train`) and FOLDER/detector.pt (the
+LSTM detector with its threshold and the SHAP background mean, written by `rpod detect`); FOLDER may
+also be a project root holding models/. Images are resized to the model's input as the lab loader
+resizes them (pipeline.lab.resize: area averaging when shrinking), without keeping their aspect.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator, Sequence, Union
+
+import numpy as np
+
+from stages.io import StageError
+
+ASPECT_TOLERANCE = 0.01   # relative difference of width/height above which `predict` warns
+BATCH = 64                # images per forward pass
+
+Image = Union[str, Path, np.ndarray]
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """The chain's output for N images; row k belongs to image k (`sources[k]`: its path or `array[k]`).
+
+    position (N, 3): target origin in the camera frame (m; OpenCV axes x right, y down, z forward);
+    quaternion (N, 4): (qw, qx, qy, qz), qw >= 0, rotating target-frame vectors into the camera frame;
+    rotation_6d (N, 6): the network's 6-D rotation (first two columns of R, column-wise, before
+    Gram-Schmidt); attack_probability (N,): the detector's P(attacked); attack_flag (N,) bool:
+    probability >= the detector's threshold (chosen on validation data by `rpod detect`).
+    """
+
+    sources: tuple[str, ...]
+    position: np.ndarray
+    quaternion: np.ndarray
+    rotation_6d: np.ndarray
+    attack_probability: np.ndarray
+    attack_flag: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.sources)
+
+    def records(self) -> list[dict[str, Any]]:
+        """One JSON-ready dict per image (position in m, quaternion qw first, 6-D, probability, flag)."""
+        return [{"image": name, "position_m": self.position[k].tolist(), "quaternion": self.quaternion[k].tolist(),
+                 "rotation_6d": self.rotation_6d[k].tolist(), "attack_probability": float(self.attack_probability[k]),
+                 "attack_flag": bool(self.attack_flag[k])} for k, name in enumerate(self.sources)]
+
+
+class Chain:
+    """The per-image safety chain of a trained run: pose CNN -> exact SHAP signature -> LSTM detector.
+
+    Each image is judged on its own. The motion-filter defense (pipeline/defense.py), which checks
+    estimates against the chaser's motion, needs sequences and is not applied here. Positions assume
+    the camera the model was trained with (params.yaml `camera`): an image from a camera with another
+    field of view gives ranges off by the ratio of the focal lengths (pixels per image width).
+    """
+
+    def __init__(self, safety: Any, input_size: tuple[int, int], files: tuple[Path, Path]):
+        self.safety = safety                      # pipeline.chain.SafetyChain
+        self.height, self.width = input_size      # model input, pixels
+        self.files = files                        # (pose.pt, detector.pt)
+
+    @property
+    def threshold(self) -> float:
+        """The detector's flag threshold on the attack probability."""
+        return self.safety.threshold
+
+    def predict(self, images: Image | Sequence[Image], batch_size: int = BATCH) -> Prediction:
+        """Pose and attack flag per image. `images`: a path, an array (H, W, 3) or (N, H, W, 3) (RGB,
+        uint8 or float in [0, 1]), or a list of paths and arrays; any size (resized to the model
+        input, with a UserWarning when the aspect differs from the model's)."""
+        import torch
+
+        from pipeline.rotations import sixd_to_quat
+
+        names, fitted = [], []
+        for name, image in _items(images):
+            names.append(name)
+            fitted.append(self._fit(image, name))
+        if not names:
+            raise StageError("no images given (pass one or more image files or arrays)")
+        x = torch.from_numpy(np.stack(fitted)).permute(0, 3, 1, 2)
+        pose, prob, flag = [], [], []
+        for lo in range(0, len(x), batch_size):
+            out = self.safety(x[lo:lo + batch_size])
+            pose.append(out.pose.numpy().astype(np.float64))
+            prob.append(out.prob.numpy().astype(np.float64))
+            flag.append(out.flag.numpy())
+        p = np.concatenate(pose)
+        return Prediction(tuple(names), p[:, :3], sixd_to_quat(p[:, 3:9]).reshape(-1, 4), p[:, 3:9],
+                          np.concatenate(prob), np.concatenate(flag).astype(bool))
+
+    def _fit(self, image: np.ndarray, name: str) -> np.ndarray:
+        """One RGB image -> float32 (height, width, 3) in [0, 1] at the model input size."""
+        from pipeline.lab import resize
+
+        if image.ndim != 3 or image.shape[2] != 3 or min(image.shape[:2]) == 0:
+            raise ValueError(f"{name}: an image must be (H, W, 3) RGB, got shape {tuple(image.shape)}")
+        if image.dtype != np.uint8:
+            if not np.issubdtype(image.dtype, np.floating):
+                raise ValueError(f"{name}: pixels must be uint8 or float in [0, 1], got {image.dtype}")
+            image = image.astype(np.float32)
+            if not np.isfinite(image).all() or image.min() < 0 or image.max() > 1:
+                raise ValueError(f"{name}: float pixels must be finite and in [0, 1]")
+        h, w = image.shape[:2]
+        want = self.width / self.height
+        if abs(w / h - want) > ASPECT_TOLERANCE * want:
+            warnings.warn(f"{name} is {w}x{h} (aspect {w / h:.3f}), the model's input {self.width}x{self.height} "
+                          f"(aspect {want:.3f}): stretched to fit, so the pose may be off", UserWarning, stacklevel=3)
+        out = resize(np.ascontiguousarray(image), self.width, self.height)
+        return out.astype(np.float32) / 255.0 if out.dtype == np.uint8 else out.astype(np.float32)
+
+
+def _items(images: Image | Sequence[Image]) -> Iterator[tuple[str, np.ndarray]]:
+    """(name, RGB array) of each input image, read from disk one at a time."""
+    if isinstance(images, (str, Path)):
+        images = [images]
+    elif isinstance(images, np.ndarray):
+        if images.ndim not in (3, 4):
+            raise ValueError(f"images must be (H, W, 3) or (N, H, W, 3), got shape {images.shape}")
+        images = [images] if images.ndim == 3 else list(images)
+    for k, item in enumerate(images):
+        if isinstance(item, (str, Path)):
+            yield str(item), read_image(Path(item))
+        else:
+            yield f"array[{k}]", np.asarray(item)
+
+
+def read_image(path: Path) -> np.ndarray:
+    """An image file (PNG, JPG, ... as Pillow reads them) -> uint8 (H, W, 3) RGB; 16-bit grey is
+    scaled to 8 bits. A missing, unreadable or truncated file is a StageError naming it."""
+    from PIL import Image as PILImage
+
+    if not path.exists():
+        raise StageError(f"{path} not found")
+    if not path.is_file():
+        raise StageError(f"{path} is not a file (give image files, e.g. PNG or JPG)")
+    try:
+        with PILImage.open(path) as im:
+            im.load()
+            if im.mode.startswith("I;16"):
+                grey = (np.asarray(im).astype(np.uint16) >> 8).astype(np.uint8)
+                return np.repeat(grey[..., None], 3, axis=2)
+            return np.asarray(im.convert("RGB"))
+    except (OSError, ValueError, SyntaxError, PILImage.DecompressionBombError) as e:
+        raise StageError(f"{path} cannot be read as an image ({type(e).__name__}: {e})") from None
+
+
+def load_chain(folder: str | Path = "models") -> Chain:
+    """The chain as the pipeline ships it: FOLDER/pose.pt and FOLDER/detector.pt (or FOLDER/models/...
+    when FOLDER is a project root). The detector must have been trained on this pose model's SHAP
+    values (its checkpoint names the pose file's hash)."""
+    from pipeline.chain import SafetyChain
+    from stages.artifacts import load_detector
+    from stages.checkpoint import model_from_checkpoint, read_pose
+    from stages.io import file_hash
+
+    folder = Path(folder)
+    if not (folder / "pose.pt").exists() and (folder / "models" / "pose.pt").exists():
+        folder = folder / "models"
+    pose_path, detector_path = folder / "pose.pt", folder / "detector.pt"
+    ckpt = read_pose(pose_path)
+    detector, det = load_detector(detector_path, model_hash=file_hash(pose_path))
+    try:
+        safety = SafetyChain.from_model(model_from_checkpoint(ckpt), np.asarray(det["background_mean"]), detector,
+                                        threshold=float(det["threshold"]))
+    except ValueError as e:
+        raise StageError(f"{pose_path}: {e}") from None
+    height, width = (int(v) for v in ckpt["input_size"])
+    return Chain(safety, (height, width), (pose_path, detector_path))

@@ -1,0 +1,47 @@
+"""`rpod predict IMAGES...`: the trained chain on your own images (not a DVC stage; reads no params.yaml).
+
+Prints per image the position (m, camera frame), the quaternion (qw, qx, qy, qz) and the detector's
+attack probability and flag as a table, or with --json everything including the 6-D rotation.
+"""
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import typer
+
+
+def main(
+    images: list[Path] = typer.Argument(None, help="Image files (PNG, JPG, any size; resized to the model input).",
+                                        show_default=False),
+    as_json: bool = typer.Option(False, "--json", help="Print a JSON list (one object per image) instead of a table."),
+    models: Path = typer.Option(Path("models"), "--models",
+                                help="Folder with pose.pt and detector.pt (or a project root holding models/)."),
+) -> None:
+    """Pose (position m, quaternion, 6-D) and attack flag of each image through the trained chain.
+
+    Each image is judged alone (pose CNN -> SHAP signature -> LSTM detector); the motion filter needs a sequence.
+
+    Positions assume the camera the model was trained with; another aspect is stretched to fit, with a warning.
+    """
+    from rpodguard import load_chain
+    from stages.io import StageError
+
+    if not images:
+        raise StageError("rpod predict: no images given (pass one or more PNG or JPG files)")
+    chain = load_chain(models)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = chain.predict(images)
+    for w in caught:
+        typer.secho(f"warning: {' '.join(str(w.message).split())}", fg=typer.colors.YELLOW, err=True)
+    if as_json:
+        typer.echo("[\n" + ",\n".join(json.dumps(r) for r in out.records()) + "\n]")  # one image per line
+        return
+    from tabulate import tabulate
+
+    rows = [[name, *out.position[k], *out.quaternion[k], out.attack_probability[k],
+             "ATTACK" if out.attack_flag[k] else "-"] for k, name in enumerate(out.sources)]
+    typer.echo(tabulate(rows, ["image", "x (m)", "y (m)", "z (m)", "qw", "qx", "qy", "qz", "P(attack)",
+                               f"flag (>= {chain.threshold:.2f})"], floatfmt=".3f"))

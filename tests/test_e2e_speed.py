@@ -1,0 +1,43 @@
+"""End to end: a tiny SPEED+-layout folder as the training/test data of `dvc exp run` on the smoke profile
+(render imports it; label -> train -> attack -> shap -> detect -> calibrate -> evaluate run on it), in a
+temporary copy of the repo; then editing one of its images marks `render` changed in `dvc status`
+(the folder is a DVC dep through "${render.source}"). A few minutes on 2 cores."""
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from test_e2e_smoke import _run, copy_repo
+from test_speed import write_folder
+
+
+@pytest.mark.slow
+def test_a_speedplus_folder_runs_through_dvc(tmp_path):
+    data = tmp_path / "speedplus"
+    write_folder(data, n=(64, 16))
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    env = copy_repo(repo)
+    _run(["dvc", "exp", "run", "-S", "profile=smoke", "-S", f"render.source={data}", "evaluate"], repo, env)
+
+    assert yaml.safe_load((repo / "params.yaml").read_text())["render"]["source"] == str(data)
+    meta = json.loads((repo / "datasets/render/meta.json").read_text())
+    assert meta["source"] == {"folder": str(data), "train": "synthetic/train.json", "test": "synthetic/test.json",
+                              "train_images": 64, "test_images": 16}
+    labels = pd.read_parquet(repo / "datasets/labels.parquet")
+    assert (labels.split == "train").sum() == 64 and (labels.split == "test").sum() == 16
+    train = json.loads((repo / "reports/metrics/train.json").read_text())
+    assert train["profile"] == "smoke" and train["test"]["n"] == 16
+    assert json.loads((repo / "reports/metrics/evaluate.json").read_text())["profile"] == "smoke"
+    lock = yaml.safe_load((repo / "dvc.lock").read_text())["stages"]["render"]
+    assert str(data) in [d["path"] for d in lock["deps"]]
+    assert "changed" not in _run(["dvc", "status", "evaluate"], repo, env)
+
+    cv2.imwrite(str(data / "synthetic/images/train000.png"), np.zeros((30, 48, 3), np.uint8))
+    status = _run(["dvc", "status", "render"], repo, env)
+    assert "modified" in status and str(data) in status

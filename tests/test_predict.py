@@ -1,0 +1,133 @@
+"""`rpodguard.load_chain` / `Chain.predict` and `rpod predict` on a tiny random pose model and detector."""
+from __future__ import annotations
+
+import json
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from rpodguard import load_chain
+
+H, W = 36, 64   # model input of the tiny checkpoint
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory) -> Path:
+    """models/pose.pt and models/detector.pt as `rpod train` and `rpod detect` write them (random weights)."""
+    from pipeline.detectors.lstm import LSTMConfig, LSTMDetector, to_checkpoint
+    from pipeline.loss import PoseLoss
+    from pipeline.model import PoseNet
+    from stages.artifacts import DETECTOR_FORMAT
+    from stages.checkpoint import save_pose
+    from stages.io import file_hash, save_torch
+
+    torch.manual_seed(0)
+    folder = tmp_path_factory.mktemp("run") / "models"
+    model = PoseNet(width=0.125).eval()
+    save_pose(folder / "pose.pt", model, PoseLoss(), (H, W), {})
+    with torch.no_grad():
+        background = model.forward_features(torch.rand(6, 3, H, W)).mean(0)
+    det = LSTMDetector(LSTMConfig(hidden=8, dense=[4])).eval()
+    det.set_normalisation(np.random.default_rng(0).normal(size=(5, 9, 1000)).astype(np.float32) * 0.01)
+    save_torch(folder / "detector.pt", to_checkpoint(det, {"format": DETECTOR_FORMAT, "background_mean": background,
+                                                           "pose_model_hash": file_hash(folder / "pose.pt")}))
+    return folder
+
+
+def _images(n: int, h: int = H, w: int = W, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 256, size=(n, h, w, 3), dtype=np.uint8)
+
+
+def _png(path: Path, image: np.ndarray) -> Path:
+    Image.fromarray(image).save(path)
+    return path
+
+
+def test_predict_gives_pose_and_flag_per_image(models):
+    chain = load_chain(models)
+    out = chain.predict(_images(3))
+    assert len(out) == 3 and out.sources == ("array[0]", "array[1]", "array[2]")
+    assert out.position.shape == (3, 3) and out.quaternion.shape == (3, 4) and out.rotation_6d.shape == (3, 6)
+    np.testing.assert_allclose(np.linalg.norm(out.quaternion, axis=1), 1.0, atol=1e-9)
+    assert (out.quaternion[:, 0] >= 0).all()
+    assert ((out.attack_probability >= 0) & (out.attack_probability <= 1)).all()
+    np.testing.assert_array_equal(out.attack_flag, out.attack_probability >= chain.threshold)
+    assert len(chain.predict(_images(1)[0])) == 1          # one (H, W, 3) image
+    assert load_chain(models.parent).files == chain.files   # a project root holding models/
+
+
+def test_png_float_and_array_inputs_agree(models, tmp_path):
+    chain = load_chain(models)
+    images = _images(2, seed=1)
+    paths = [_png(tmp_path / f"{k}.png", im) for k, im in enumerate(images)]
+    from_files = chain.predict(paths)
+    from_arrays = chain.predict(images)
+    from_floats = chain.predict(list(images.astype(np.float64) / 255))
+    assert from_files.sources == tuple(str(p) for p in paths)
+    for other in (from_arrays, from_floats):
+        np.testing.assert_allclose(other.position, from_files.position, atol=1e-5)
+        np.testing.assert_allclose(other.attack_probability, from_files.attack_probability, atol=1e-5)
+
+
+def test_other_sizes_are_resized_and_another_aspect_warns(models, tmp_path):
+    chain = load_chain(models)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")          # twice the size, same aspect: no warning
+        big = chain.predict(_png(tmp_path / "big.png", _images(1, 2 * H, 2 * W)[0]))
+    assert big.position.shape == (1, 3)
+    with pytest.warns(UserWarning, match=r"square\.png is 50x50 .*stretched"):
+        chain.predict(_png(tmp_path / "square.png", _images(1, 50, 50)[0]))
+
+
+def test_bad_arrays_are_refused(models):
+    chain = load_chain(models)
+    with pytest.raises(ValueError, match="float pixels"):
+        chain.predict(np.full((H, W, 3), 2.0))
+    with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
+        chain.predict([np.zeros((H, W), np.uint8)])
+
+
+def _rpod(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
+    from stages import cli
+
+    monkeypatch.setattr(sys, "argv", ["rpod", *args])
+    monkeypatch.setitem(cli._DEBUG, "on", False)
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main()
+    captured = capsys.readouterr()
+    return exit_info.value.code, captured.out, captured.err
+
+
+def test_cli_json_and_table(models, tmp_path, monkeypatch, capsys):
+    a = _png(tmp_path / "a.png", _images(1)[0])
+    b = _png(tmp_path / "b.png", _images(1, 50, 50, seed=2)[0])
+    code, out, err = _rpod(monkeypatch, capsys, "predict", str(a), str(b), "--json", "--models", str(models))
+    assert code == 0
+    records = json.loads(out)
+    assert [r["image"] for r in records] == [str(a), str(b)]
+    assert len(records[0]["position_m"]) == 3 and len(records[0]["quaternion"]) == 4
+    assert len(records[0]["rotation_6d"]) == 6 and isinstance(records[0]["attack_flag"], bool)
+    assert err.count("\n") == 1 and err.startswith("warning: ") and "b.png is 50x50" in err
+    code, out, err = _rpod(monkeypatch, capsys, "predict", str(a), "--models", str(models))
+    assert code == 0 and "a.png" in out and "z (m)" in out and err == ""
+
+
+def test_cli_bad_inputs_stop_with_one_line(models, tmp_path, monkeypatch, capsys):
+    good = _png(tmp_path / "good.png", _images(1)[0])
+    (tmp_path / "text.png").write_text("not an image")
+    truncated = tmp_path / "cut.png"
+    truncated.write_bytes(good.read_bytes()[:200])
+    for args, named in (([str(tmp_path / "missing.png")], "missing.png not found"),
+                        ([str(good), str(tmp_path / "text.png")], "text.png cannot be read as an image"),
+                        ([str(truncated)], "cut.png cannot be read as an image"),
+                        ([str(tmp_path)], "is not a file"),
+                        ([], "no images given")):
+        code, out, err = _rpod(monkeypatch, capsys, "predict", *args, "--models", str(models))
+        assert code == 1 and out == "" and err.count("\n") == 1 and err.startswith("error: ") and named in err, err
+    code, _, err = _rpod(monkeypatch, capsys, "predict", str(good), "--models", str(tmp_path / "none"))
+    assert code == 1 and "pose.pt not found" in err
