@@ -362,22 +362,13 @@ def domain_shift(image: np.ndarray, noise_std: float, blur_sigma: float, rng: np
     return np.clip(np.rint(x * 255.0), 0, 255).astype(np.uint8)
 
 
-def render_recording(renderer: Any, rec: LabRecording, scale: float, noise_std: float, blur_sigma: float,
-                     rng: np.random.Generator, bar: Any = None) -> tuple[np.ndarray, np.ndarray]:
-    """Render a lab recording's frames: the 1/scale mock-up at the lab label t equals the full-size target
-    at scale * t, so `renderer` (a pipeline.scene.Renderer of the full-size target with the lab camera)
-    renders at scale * t; then the domain shift. Returns images (N, H, W, 3) uint8 and target masks
-    (N, H, W) uint8 (255 = target); `bar` (tqdm) advances per frame."""
-    n, K = len(rec.t), renderer.K
-    images = np.zeros((n, K.height, K.width, 3), np.uint8)
-    masks = np.zeros((n, K.height, K.width), np.uint8)
-    for k in range(n):
-        rgb, alpha = renderer.render_with_alpha(quat_to_matrix(rec.q[k]), scale * rec.t[k])
-        images[k] = domain_shift(rgb, noise_std, blur_sigma, rng)
-        masks[k] = np.where(alpha > 0.5, 255, 0)
-        if bar is not None:
-            bar.update(1)
-    return images, masks
+def shift_recording(rgb: np.ndarray, alpha: np.ndarray, noise_std: float, blur_sigma: float,
+                    rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A lab recording's rendered frames (RGB (N, H, W, 3) uint8 on black, alpha (N, H, W) in [0, 1])
+    with the domain shift applied frame by frame in order (one rng stream) -> images (N, H, W, 3)
+    uint8 and target masks (N, H, W) uint8 (255 = target)."""
+    images = np.stack([domain_shift(x, noise_std, blur_sigma, rng) for x in rgb])
+    return images, np.where(alpha > 0.5, 255, 0).astype(np.uint8)
 
 
 def loader_errors(recs: list[dict[str, Any]], truth: list[dict[str, Any]]) -> dict[str, dict[str, float]]:

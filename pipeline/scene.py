@@ -110,12 +110,7 @@ def _build_satellite(parent: bpy.types.Object) -> None:
 def _import_mesh(path: str, parent: bpy.types.Object) -> None:
     """Import a user mesh; its file coordinates become the target frame (axes kept as stored)."""
     p = Path(path)
-    if not p.is_file():
-        raise ValueError(f"mesh file {path!r} not found")
     ext = p.suffix.lower()
-    if ext not in MESH_FORMATS:
-        raise ValueError(f"mesh file {path!r}: unsupported format {ext or '(none)'!r}; "
-                         f"use one of {', '.join(MESH_FORMATS)}")
     before = set(bpy.data.objects)
     try:
         if ext == ".obj":
@@ -154,6 +149,28 @@ def _quiet_stdout() -> Iterator[None]:
         os.close(devnull)
 
 
+def check_settings(K: Intrinsics, settings: SceneSettings) -> None:
+    """ValueError naming the first bad setting (resolution, scale, samples, denoiser, mesh file), so a
+    caller can refuse them before starting any worker."""
+    if K.width <= 0 or K.height <= 0:
+        raise ValueError(f"render resolution must be positive, got {K.width}x{K.height}")
+    if settings.mesh_scale <= 0:
+        raise ValueError(f"mesh_scale must be positive, got {settings.mesh_scale}")
+    if settings.samples < 1:
+        raise ValueError(f"samples must be at least 1, got {settings.samples}")
+    if settings.denoiser.upper() not in ("NONE", "OPENIMAGEDENOISE"):
+        raise ValueError(f"denoiser must be NONE or OPENIMAGEDENOISE, got {settings.denoiser!r}")
+    if settings.denoise_quality.upper() not in ("FAST", "BALANCED", "HIGH"):
+        raise ValueError(f"denoise_quality must be FAST, BALANCED or HIGH, got {settings.denoise_quality!r}")
+    if settings.mesh is not None:
+        p = Path(settings.mesh)
+        if not p.is_file():
+            raise ValueError(f"mesh file {settings.mesh!r} not found")
+        if p.suffix.lower() not in MESH_FORMATS:
+            raise ValueError(f"mesh file {settings.mesh!r}: unsupported format {p.suffix.lower() or '(none)'!r}; "
+                             f"use one of {', '.join(MESH_FORMATS)}")
+
+
 class Renderer:
     """A headless Cycles scene of the target; `render(R, t)` returns an RGB image for one pose.
 
@@ -162,16 +179,7 @@ class Renderer:
     """
 
     def __init__(self, K: Intrinsics, settings: SceneSettings = SceneSettings()) -> None:
-        if K.width <= 0 or K.height <= 0:
-            raise ValueError(f"render resolution must be positive, got {K.width}x{K.height}")
-        if settings.mesh_scale <= 0:
-            raise ValueError(f"mesh_scale must be positive, got {settings.mesh_scale}")
-        if settings.samples < 1:
-            raise ValueError(f"samples must be at least 1, got {settings.samples}")
-        if settings.denoiser.upper() not in ("NONE", "OPENIMAGEDENOISE"):
-            raise ValueError(f"denoiser must be NONE or OPENIMAGEDENOISE, got {settings.denoiser!r}")
-        if settings.denoise_quality.upper() not in ("FAST", "BALANCED", "HIGH"):
-            raise ValueError(f"denoise_quality must be FAST, BALANCED or HIGH, got {settings.denoise_quality!r}")
+        check_settings(K, settings)
         self.K = K
         self.settings = settings
         bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -197,6 +205,7 @@ class Renderer:
         fd, self._png = tempfile.mkstemp(prefix=f"rpod_{os.getpid()}_{uuid.uuid4().hex[:8]}_", suffix=".png",
                                          dir="/dev/shm" if os.path.isdir("/dev/shm") else None)
         os.close(fd)
+        os.unlink(self._png)   # only the unique name is kept: Blender writes the file per frame
         self.scene.render.filepath = self._png
 
     def _setup_render(self) -> None:
@@ -291,6 +300,7 @@ class Renderer:
         with _quiet_stdout():
             bpy.ops.render.render(write_still=True)
         bgra = cv2.imread(self._png, cv2.IMREAD_UNCHANGED)
+        Path(self._png).unlink(missing_ok=True)   # a worker killed between frames leaves no file behind
         if bgra is None or bgra.shape[:2] != (self.K.height, self.K.width):
             raise RuntimeError(f"Blender did not write the expected {self.K.width}x{self.K.height} "
                                f"image to {self._png}")
@@ -312,36 +322,3 @@ class Renderer:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-class EmptyRenderError(ValueError):
-    """The target covers no pixel in the first chunk of a render (usually a wrong mesh scale)."""
-
-
-def render_into(renderer: Renderer, R: np.ndarray, t: np.ndarray, out: Any, chunk: int, desc: str,
-                require_target: bool = False) -> None:
-    """Render the poses R (N, 3, 3), t (N, 3) (camera frame, metres) into `out[0:N]`, an array-like of
-    uint8 (N, H, W, 3) such as a zarr array, writing `chunk` frames at a time; a tqdm bar shows progress.
-
-    With `require_target`, stop with EmptyRenderError when the first chunk is all black (the target
-    covers no pixels: a wrong mesh or mesh scale), before rendering the rest."""
-    from tqdm import tqdm
-
-    n = len(t)
-    buf = np.zeros((chunk, renderer.K.height, renderer.K.width, 3), np.uint8)
-    with tqdm(total=n, unit="img", desc=desc, dynamic_ncols=True, mininterval=0.5) as bar:
-        for lo in range(0, n, chunk):
-            hi = min(lo + chunk, n)
-            for k in range(lo, hi):
-                buf[k - lo] = renderer.render(R[k], t[k])
-                bar.update(1)
-            if require_target and lo == 0 and not buf[: hi - lo].any():
-                raise EmptyRenderError(f"the target covers no pixels in the first {hi} frames (all black)")
-            out[lo:hi] = buf[: hi - lo]
-
-
-def shard_range(n_frames: int, chunk: int, i: int, n: int) -> tuple[int, int]:
-    """Frames [start, stop) of part i of n: contiguous blocks aligned to whole zarr chunks."""
-    n_chunks = -(-n_frames // chunk)
-    edges = np.linspace(0, n_chunks, n + 1).round().astype(int) * chunk
-    return int(min(edges[i - 1], n_frames)), int(min(edges[i], n_frames))

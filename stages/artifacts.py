@@ -48,10 +48,10 @@ def adv_array_name(eps: float) -> str:
 
 
 def read_render_store(path: Path, what: str = "render output") -> tuple[Any, Any, dict[str, Any]]:
-    """Open a render output folder (images.zarr, poses.parquet, meta.json) and verify it is complete
-    and consistent -> (images zarr array (N, H, W, 3) uint8, poses table, meta)."""
+    """Open a render output folder (images.zarr, or the store meta.json names; poses.parquet, meta.json)
+    and verify it is complete and consistent -> (images zarr array (N, H, W, 3) uint8, poses table, meta)."""
     meta = read_json(path / "meta.json")
-    images = open_zarr(path / "images.zarr", what)
+    images = open_zarr(meta.get("store") or path / "images.zarr", what)
     poses = read_parquet(path / "poses.parquet", f"{what} poses")
     if not meta.get("complete") or "images" not in images:
         raise StageError(f"{path} is incomplete; delete it and re-run `rpod render`")

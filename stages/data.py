@@ -85,10 +85,11 @@ def load_labels(path: Path | str = LABELS) -> pd.DataFrame:
 
 
 def open_images(params: dict[str, Any], path: Path | str = IMAGES) -> Any:
-    """The zarr array `images` (N, H, W, 3) uint8, checked against render.width x render.height and,
-    through meta.json beside it, against the render params' fingerprint."""
+    """The zarr array `images` (N, H, W, 3) uint8 (at `path`, or the store meta.json beside it names),
+    checked against render.width x render.height and the render params' fingerprint."""
     path = Path(path)
-    group = open_zarr(path, "image store")
+    meta = read_json(path.parent / "meta.json")
+    group = open_zarr(meta.get("store") or path, "image store")
     if "images" not in group:
         raise StageError(f"{path} has no array 'images' (re-run `rpod render`)")
     arr = group["images"]
@@ -98,7 +99,7 @@ def open_images(params: dict[str, Any], path: Path | str = IMAGES) -> Any:
     if arr.shape[1:3] != (h, w):
         raise StageError(f"{path}/images are {arr.shape[2]}x{arr.shape[1]} pixels but params.yaml has "
                          f"render.width x render.height = {w}x{h} (re-run `rpod render`, or fix params)")
-    check_render_fingerprint(read_json(path.parent / "meta.json"), params, path.parent / "meta.json")
+    check_render_fingerprint(meta, params, path.parent / "meta.json")
     return arr
 
 

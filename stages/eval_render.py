@@ -1,25 +1,25 @@
 """`rpod eval_render`: render the fresh evaluation trajectories once, for `rpod evaluate` and its eps.
 
-Renders `evaluate.trajectories` projectile-shaped approaches (own seed `evaluate.seed`) with one
-Blender scene into datasets/eval_render/ (images.zarr, poses.parquet, meta.json with the params
-fingerprint), so changing eps or the models never re-renders; and, with the same scene,
-`defense.val_trajectories` validation approaches of their own seed `defense.val_seed` into
-datasets/val_render/ (what `rpod calibrate` fits the defense on: never the evaluation seeds).
-poses.parquet also holds what the chaser knows of itself: rel (target relative to the chaser,
+Renders `evaluate.trajectories` projectile-shaped approaches (own seed `evaluate.seed`), their chunks
+fanned out over `engine.workers` Blender scenes (stages/engine.py), into datasets/eval_render/
+(images.zarr, poses.parquet, meta.json with the params fingerprint), so changing eps or the models
+never re-renders; and, in the same Ray session, `defense.val_trajectories` validation approaches of
+their own seed `defense.val_seed` into datasets/val_render/ (what `rpod calibrate` fits the defense
+on: never the evaluation seeds). poses.parquet also holds what the chaser knows of itself: rel (target relative to the chaser,
 world axes, m: its planned path) and the camera attitude c0..c8 (camera -> world, row-major).
 """
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import typer
 
-from stages import params as params_mod
+from stages import engine, params as params_mod
 from stages.artifacts import EVAL_RENDER, VAL_RENDER, eval_render_fingerprint, val_render_fingerprint
-from stages.io import StageError, atomic_dir, create_array, write_json, write_parquet
+from stages.chunks import render_to_store, store_url
+from stages.io import atomic_dir, write_json, write_parquet
 
 
 def trajectories(p: dict[str, Any], seed: int, count: int) -> list[Any]:
@@ -41,36 +41,26 @@ def trajectories(p: dict[str, Any], seed: int, count: int) -> list[Any]:
 
 def main() -> None:
     """Render the fresh evaluation trajectories into datasets/eval_render/ and the defense's
-    validation trajectories into datasets/val_render/, with one Blender scene.
+    validation trajectories into datasets/val_render/, fanned out over `engine.workers` Blender scenes.
 
     Params: `evaluate.trajectories`, `frames`, `lateral_range`, `seed`; `defense.val_trajectories`,
-    `val_seed`; and `render`/`camera`.
+    `val_seed`; `render`/`camera`; and `engine` (workers, Ray cluster address).
     """
     p = params_mod.load()
-    from pipeline.scene import Renderer
-
-    K = params_mod.intrinsics(p)
+    K, scene, es = params_mod.intrinsics(p), params_mod.scene_settings(p["render"]), engine.settings(p)
     d, e = params_mod.typed(p).defense, params_mod.typed(p).evaluate
-    try:
-        renderer = Renderer(K, params_mod.scene_settings(p["render"]))
-    except ValueError as err:
-        raise StageError(f"params.yaml render: {err}") from None
-    try:
+    with engine.session(es):
         for folder, seqs, fingerprint in (
                 (EVAL_RENDER, trajectories(p, e.seed, e.trajectories), eval_render_fingerprint(p)),
                 (VAL_RENDER, trajectories(p, d.val_seed, d.val_trajectories), val_render_fingerprint(p))):
-            _render_set(renderer, K, seqs, folder, fingerprint)
-    finally:
-        renderer.close()
+            _render_set(K, scene, es, seqs, folder, fingerprint)
 
 
-def _render_set(renderer: Any, K: Any, seqs: list[Any], folder: Path, fingerprint: str) -> None:
+def _render_set(K: Any, scene: Any, es: Any, seqs: list[Any], folder: Path, fingerprint: str) -> None:
     """Render the trajectories `seqs` into `folder` (images.zarr, poses.parquet, meta.json)."""
     import pandas as pd
-    import zarr
 
     from pipeline.rotations import matrix_to_6d, matrix_to_quat
-    from pipeline.scene import render_into
 
     n = sum(len(s) for s in seqs)
     R, t = np.concatenate([s.R for s in seqs]), np.concatenate([s.t for s in seqs])
@@ -82,15 +72,10 @@ def _render_set(renderer: Any, K: Any, seqs: list[Any], folder: Path, fingerprin
         "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3], **{f"r{j}": r6[:, j] for j in range(6)},
         "range": np.linalg.norm(t, axis=1), **{f"rel_{a}": rel[:, j] for j, a in enumerate("xyz")},
         **{f"c{j}": R_cam[:, j // 3, j % 3] for j in range(9)}})
-    t0 = time.perf_counter()
     with atomic_dir(folder) as tmp:
-        chunk = min(n, 100)
-        store = zarr.open_group(str(tmp / "images.zarr"), mode="w")
-        images = create_array(store, "images", shape=(n, K.height, K.width, 3), chunks=(chunk, K.height, K.width, 3),
-                              dtype="uint8")
-        render_into(renderer, R, t, images, chunk, f"eval_render {folder.name}")
+        seconds = render_to_store(store_url(tmp / "images.zarr"), K, scene, R, t, min(n, 100), es,
+                                  f"eval_render {folder.name}")
         write_parquet(poses, tmp / "poses.parquet")
-        seconds = time.perf_counter() - t0
         write_json(tmp / "meta.json", {"complete": True, "fingerprint": fingerprint, "frames": n,
                                        "trajectories": len(seqs), "width": K.width, "height": K.height, "K": K.K,
                                        "seconds": seconds, "seconds_per_image": seconds / n,

@@ -158,8 +158,9 @@ def atomic_dir(path: Path | str) -> Iterator[Path]:
     """Yield a temporary sibling folder; on success it replaces `path` whole, on error it is removed.
 
     A later stage therefore never sees a half-written output folder. Every zarr store in it (the folder
-    itself, or any `*.zarr` below it) is sealed with its manifest (`seal_zarr`) before the rename. The
-    temporary name carries the process id, so `remove_stale_temps` never deletes a live run's folder.
+    itself, or any `*.zarr` below it) is sealed with its manifest (`seal_zarr`), unless its writer
+    sealed it, before the rename. The temporary name carries the process id, so `remove_stale_temps`
+    never deletes a live run's folder.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -167,7 +168,7 @@ def atomic_dir(path: Path | str) -> Iterator[Path]:
     try:
         yield tmp
         for store in [tmp, *sorted(tmp.rglob("*.zarr"))]:
-            if (store / "zarr.json").is_file():
+            if (store / "zarr.json").is_file() and not is_sealed(store):
                 seal_zarr(store)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -276,6 +277,15 @@ def create_array(group: Any, name: str, **kwargs: Any) -> Any:
                               config={"write_empty_chunks": True}, **kwargs)
 
 
+def reopen_array(path: Path | str, name: str) -> Any:
+    """An array that `create_array` made, reopened for writing (path or fsspec URL of its store) with the
+    same rule: every chunk written, also all-zero ones (zarr keeps that setting only per open array)."""
+    import zarr
+
+    with zarr.config.set({"array.write_empty_chunks": True}):
+        return zarr.open_array(str(path), path=name, mode="r+")
+
+
 def _chunk_keys(shape: tuple[int, ...], chunks: tuple[int, ...]) -> list[str]:
     """Chunk file names of a zarr v3 array (default encoding "c/i/j/...") over its whole grid."""
     import itertools
@@ -284,41 +294,70 @@ def _chunk_keys(shape: tuple[int, ...], chunks: tuple[int, ...]) -> list[str]:
     return ["/".join(["c", *map(str, ix)]) for ix in itertools.product(*grid)]
 
 
-def _crc32c(path: Path) -> str:
+def store_fs(path: Path | str) -> tuple[Any, str]:
+    """(fsspec filesystem, root path on it) of a zarr store given as a local path or an fsspec URL."""
+    from fsspec.core import url_to_fs
+
+    return url_to_fs(str(path))
+
+
+def chunk_crc32c(fs: Any, path: str) -> str:
+    """crc32c (8 hex digits) of one stored chunk object's bytes, as the manifest lists it."""
     import google_crc32c
 
-    return f"{google_crc32c.value(path.read_bytes()):08x}"
+    return f"{google_crc32c.value(fs.cat_file(path)):08x}"
 
 
-def seal_zarr(path: Path | str) -> None:
+def _chunk_files(fs: Any, root: str, name: str) -> set[str]:
+    """Keys (c/i/j/...) of the chunk objects stored under array `name`."""
+    base = f"{root.rstrip('/')}/{name}/"
+    return {f[len(base):] for f in fs.find(base) if f.startswith(base) and f[len(base):].startswith("c/")}
+
+
+def seal_zarr(path: Path | str, crc32c: dict[str, dict[str, str]] | None = None) -> None:
     """Write the store's manifest last, into the root group's attributes: per array its shape, chunks
-    and the crc32c of every chunk file.
+    and the crc32c of every chunk object. `crc32c` ({array: {chunk key: crc}}, from the workers that
+    wrote the chunks) is used where given; other arrays are read back and checksummed here.
 
     Refuses (RuntimeError: a bug in the writer) an array without the crc32c codec or with a chunk of
-    its grid never written.
+    its grid never written (or not checksummed).
     """
     import zarr
 
-    path = Path(path)
-    root = zarr.open_group(str(path), mode="r")
+    fs, root = store_fs(path)
+    group = zarr.open_group(str(path), mode="r")
     arrays: dict[str, Any] = {}
-    for name, arr in sorted(root.arrays()):
+    for name, arr in sorted(group.arrays()):
         if not any(type(c).__name__ == "Crc32cCodec" for c in arr.compressors):
             raise RuntimeError(f"{path}/{name} was written without the crc32c codec (use stages.io.create_array)")
         keys = _chunk_keys(arr.shape, arr.chunks)
-        unwritten = [k for k in keys if not (path / name / k).is_file()]
+        given = (crc32c or {}).get(name)
+        missing = set(keys) - _chunk_files(fs, root, name)
+        if given:
+            missing |= set(keys) - set(given)
+        unwritten = sorted(missing)
         if unwritten:
             raise RuntimeError(f"{path}/{name}: chunk {unwritten[0]} was never written ({len(unwritten)} in all)")
-        arrays[name] = {"shape": list(arr.shape), "chunks": list(arr.chunks),
-                        "crc32c": {k: _crc32c(path / name / k) for k in keys}}
+        crcs = {k: given[k] for k in keys} if given else {k: chunk_crc32c(fs, f"{root}/{name}/{k}") for k in keys}
+        arrays[name] = {"shape": list(arr.shape), "chunks": list(arr.chunks), "crc32c": crcs}
     zarr.open_group(str(path), mode="r+").attrs[MANIFEST] = {"format": MANIFEST_FORMAT, "arrays": arrays}
 
 
-def _manifest(path: Path, what: str) -> dict[str, Any]:
+def is_sealed(path: Path | str) -> bool:
+    """Whether the store at `path` already carries its manifest."""
+    fs, root = store_fs(path)
+    try:
+        return MANIFEST in json.loads(fs.cat_file(f"{root}/zarr.json")).get("attributes", {})
+    except (FileNotFoundError, ValueError, AttributeError):
+        return False
+
+
+def _manifest(path: Path | str, what: str) -> dict[str, Any]:
     """The manifest's arrays from the root zarr.json, or a StageError."""
     redo = "delete it and re-run the stage that writes it"
+    fs, root = store_fs(path)
     try:
-        meta = json.loads((path / "zarr.json").read_text())
+        meta = json.loads(fs.cat_file(f"{root}/zarr.json"))
     except FileNotFoundError:
         raise StageError(f"{what} {path} is not a zarr store (no zarr.json); {redo}") from None
     except (json.JSONDecodeError, UnicodeDecodeError):
@@ -334,31 +373,31 @@ def _manifest(path: Path, what: str) -> dict[str, Any]:
 
 
 def verify_zarr(path: Path | str, what: str = "zarr store") -> None:
-    """Check a store against its manifest: every array and chunk file present, every crc32c equal.
-
-    One StageError naming the store and the first bad chunk; costs one read of the compressed bytes.
+    """Check a store (local path or fsspec URL) against its manifest: every array and chunk object
+    present, every crc32c equal. One StageError naming the store and the first bad chunk; costs one
+    read of the compressed bytes.
     """
-    path = Path(path)
     redo = "delete it and re-run the stage that writes it"
     arrays = _manifest(path, what)
+    fs, root = store_fs(path)
     for name, entry in arrays.items():
+        stored = _chunk_files(fs, root, name)
         for key, crc in entry["crc32c"].items():
-            chunk = path / name / key
-            if not chunk.is_file():
+            if key not in stored:
                 raise StageError(f"{what} {path} is missing chunk {name}/{key}; {redo}")
-            if _crc32c(chunk) != crc:
+            if chunk_crc32c(fs, f"{root}/{name}/{key}") != crc:
                 raise StageError(f"{what} {path}: chunk {name}/{key} fails its crc32c checksum (corrupt); {redo}")
 
 
 def open_zarr(path: Path | str, what: str = "zarr store"):
-    """Open a zarr group read-only after `verify_zarr`, with a clear message when it is missing or corrupt.
-
-    The group's arrays are only those in the manifest (an array added later is refused).
+    """Open a zarr group (local path or fsspec URL) read-only after `verify_zarr`, with a clear message
+    when it is missing or corrupt. The group's arrays are only those in the manifest (an array added
+    later is refused).
     """
     import zarr
 
-    path = Path(path)
-    if not path.exists():
+    fs, root = store_fs(path)
+    if not fs.exists(root):
         raise not_found(path, what)
     verify_zarr(path, what)
     try:

@@ -23,15 +23,17 @@ from typing import Any
 import numpy as np
 import typer
 
-from stages import params as params_mod
+from stages import engine, params as params_mod
 from stages.artifacts import DETECTOR, LAB as OUT, LAB_MODELS, LAB_MODELS_SUMMARY, POSE, TRAIN_METRICS, load_chain
 from stages.pages.lab import PAPER_AVERAGE, lab_page
+from stages.chunks import render_poses
 from stages.recordings import read_recording, recording_folders, write_recording
 from stages.io import StageError, atomic_dir, atomic_write_text, read_json, write_metrics
 
 REPORT = Path("reports/lab.md")
 METRICS = Path("reports/metrics/lab.json")
 SEED_OFFSET = 0
+LAB_CHUNK = 30              # frames per render job of the synthetic lab sequences (stages/engine.py)
 
 app = typer.Typer(help="The lab domain: lab-like sequences through the real-data loader, pose "
                        "error, FGSM errors and integrated detection; `rpod lab rescale` converts ranges.",
@@ -70,14 +72,13 @@ def rescale(z: list[float] = typer.Option(..., "--z", help="Lab range(s) in metr
 
 # ----------------------------------------------------------------------------- synthetic lab sequences
 def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
-    """Render lab.sequences with the lab camera and the domain shift into dest/<seq>/ (lab layout).
+    """Render lab.sequences with the lab camera and the domain shift into dest/<seq>/ (lab layout), the
+    frames fanned out over the engine's workers and the domain shift drawn in frame order.
 
     Returns per sequence the exact lab labels (for checking the loader round trip).
     """
-    from tqdm import tqdm
-
-    from pipeline.lab import render_recording, synthetic_recording
-    from pipeline.scene import Renderer
+    from pipeline.lab import shift_recording, synthetic_recording
+    from pipeline.rotations import quat_to_matrix
 
     lab, r = p["lab"], p["render"]
     ds = lab["domain_shift"]
@@ -90,24 +91,20 @@ def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
                                    sun_direction=tuple(float(v) for v in ds["sun_direction"]),
                                    sun_strength=float(ds["sun_strength"]))
     rng = np.random.default_rng(int(lab["seed"]) + SEED_OFFSET)
-    scale = float(lab["scale"])
-    n = int(lab["frames"])
-    renderer = Renderer(K_true, settings)
-    truth = []
-    try:
-        with tqdm(total=n * len(lab["sequences"]), desc="lab render", unit="img", dynamic_ncols=True) as bar:
-            for i, (z0, z1) in enumerate(lab["sequences"]):
-                lateral = tuple(rng.uniform(-0.03, 0.03, 2) * float(z1))   # lab m, target off-centre
-                rec = synthetic_recording(float(z0), float(z1), n, float(lab["fps"]), float(lab["mocap_hz"]),
-                                          np.array([1.0, 0, 0, 0]), lateral=lateral,
-                                          clock_offset=float(rng.uniform(0, 1 / float(lab["mocap_hz"]))),
-                                          camera_body=lab["bodies"]["camera"], target_body=lab["bodies"]["target"])
-                images, masks = render_recording(renderer, rec, scale, float(ds["noise_std"]),
-                                                 float(ds["blur_sigma"]), rng, bar)
-                write_recording(dest / f"seq{i + 1}", rec.camera, rec.mocap, images, masks)
-                truth.append({"name": f"seq{i + 1}", "t_lab": rec.t, "q": rec.q, "z_range": (float(z0), float(z1))})
-    finally:
-        renderer.close()
+    scale, n, truth, es = float(lab["scale"]), int(lab["frames"]), [], engine.settings(p)
+    with engine.session(es):
+        for i, (z0, z1) in enumerate(lab["sequences"]):
+            lateral = tuple(rng.uniform(-0.03, 0.03, 2) * float(z1))   # lab m, target off-centre
+            rec = synthetic_recording(float(z0), float(z1), n, float(lab["fps"]), float(lab["mocap_hz"]),
+                                      np.array([1.0, 0, 0, 0]), lateral=lateral,
+                                      clock_offset=float(rng.uniform(0, 1 / float(lab["mocap_hz"]))),
+                                      camera_body=lab["bodies"]["camera"], target_body=lab["bodies"]["target"])
+            # the 1/scale mock-up at the lab label t looks like the full-size target at scale * t
+            rgb, alpha = render_poses(K_true, settings, quat_to_matrix(rec.q), scale * rec.t, LAB_CHUNK, es,
+                                      f"lab render seq{i + 1}")
+            images, masks = shift_recording(rgb, alpha, float(ds["noise_std"]), float(ds["blur_sigma"]), rng)
+            write_recording(dest / f"seq{i + 1}", rec.camera, rec.mocap, images, masks)
+            truth.append({"name": f"seq{i + 1}", "t_lab": rec.t, "q": rec.q, "z_range": (float(z0), float(z1))})
     return truth
 
 

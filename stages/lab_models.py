@@ -47,6 +47,7 @@ def sub_params(p: dict[str, Any]) -> dict[str, Any]:
     if lab["train_frames_per_sequence"] is not None:
         r["frames_per_sequence"] = int(lab["train_frames_per_sequence"])
     sub["detect"]["baselines"] = []
+    sub["engine"]["store"] = None    # its renders stay in its own folder, never in the main image store
     return sub
 
 

@@ -57,6 +57,21 @@ class Render:
 
 
 @dataclass(frozen=True)
+class Engine:
+    workers: Optional[int]  # parallel workers (Ray actors, one Blender scene each); None = the cores; 1 = in-process
+    address: Optional[str]  # Ray cluster address host:port; None = $RAY_ADDRESS, else a local Ray for the stage
+    store: Optional[str]    # where `rpod render` writes images.zarr: None = datasets/render; else a folder or fsspec URL
+    timeout_s: float        # seconds to connect, or without any finished chunk, before the stage stops
+    retries: int            # times a chunk is retried on a restarted worker after its worker died
+
+    def __post_init__(self) -> None:
+        if self.workers is not None and self.workers < 1:
+            raise ValueError(f"workers must be at least 1 (or null = the cores), got {self.workers}")
+        if self.timeout_s <= 0 or self.retries < 0:
+            raise ValueError(f"need timeout_s > 0 and retries >= 0, got {self.timeout_s} and {self.retries}")
+
+
+@dataclass(frozen=True)
 class Label:
     test_fraction: float    # of the frames, in (0, 1)
 
@@ -377,6 +392,7 @@ class Params:
     amp: bool                    # bf16 autocast of the pose network on CUDA; no effect on CPU
     camera: Camera
     render: Render
+    engine: Engine
     label: Label
     train: Train
     attack: Attack

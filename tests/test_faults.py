@@ -377,7 +377,7 @@ def test_label_refuses_a_stale_render_and_render_refuses_an_invisible_target(tmp
     monkeypatch.chdir(tmp_path)
     tiny = ["render.width=32", "render.height=18", "render.frames_per_sequence=2", "render.samples=1", "render.chunk=4"]
     params_mod.write_params(params_mod.compose("smoke", tiny))
-    render.main(shard="1/1", merge_parts=0)
+    render.main()
     rendered = {p: p.read_bytes() for p in Path("datasets/render").rglob("*") if p.is_file()}
 
     params_mod.write_params(params_mod.compose("smoke", [*tiny, "render.frames_per_sequence=3"]))
@@ -390,7 +390,7 @@ def test_label_refuses_a_stale_render_and_render_refuses_an_invisible_target(tmp
                                 + "f 1 2 4 3\nf 5 6 8 7\nf 1 2 6 5\nf 3 4 8 7\nf 1 3 7 5\nf 2 4 8 6\n")
     params_mod.write_params(params_mod.compose("smoke", [*tiny, "render.mesh=cube.obj", "render.mesh_scale=0.001"]))
     with pytest.raises(StageError, match="the target covers no pixels in the first 4 frames"):
-        render.main(shard="1/1", merge_parts=0)
+        render.main()
     assert {p: p.read_bytes() for p in Path("datasets/render").rglob("*") if p.is_file()} == rendered
     assert sorted(p.name for p in Path("datasets").iterdir()) == ["render"]
 

@@ -51,7 +51,7 @@ def test_render_and_label_stages(workdir):
 
     from stages import label, render
 
-    render.main(shard="1/1", merge_parts=0)
+    render.main()
     g = zarr.open_group("datasets/render/images.zarr", mode="r")
     images = g["images"]
     assert images.shape == (26, 18, 32, 3) and images.dtype == np.uint8 and images.chunks[0] == 4
@@ -72,17 +72,6 @@ def test_render_and_label_stages(workdir):
     assert "Rendering took" not in card and "seconds_per_image" in card  # no wall-clock time in a report
     assert "Pixel aspect fy/fx = 1 (`camera.fy`)" in card  # the default camera has square pixels
 
-    # --shard: two parts rendered separately and merged give the same dataset
-    full = np.asarray(images[:])
-    render.main(shard="1/2", merge_parts=0)
-    assert (workdir / "datasets/render_shards/2/1/meta.json").exists()
-    render.main(shard="2/2", merge_parts=0)  # the last part merges
-    merged = np.asarray(zarr.open_group("datasets/render/images.zarr", mode="r")["images"][:])
-    assert np.abs(merged.astype(int) - full.astype(int)).max() <= 2
-    assert not (workdir / "datasets/render_shards/2").exists()
-    with pytest.raises(StageError, match="missing"):
-        render.main(shard="1/1", merge_parts=3)
-
 
 @pytest.mark.slow
 def test_interrupted_render_leaves_no_dataset(workdir, monkeypatch):
@@ -100,7 +89,7 @@ def test_interrupted_render_leaves_no_dataset(workdir, monkeypatch):
 
     monkeypatch.setattr(scene.Renderer, "render", flaky)
     with pytest.raises(KeyboardInterrupt):
-        render.main(shard="1/1", merge_parts=0)
+        render.main()
     assert not (workdir / "datasets/render").exists()
     assert not list((workdir / "datasets").glob(".render*"))  # the temporary folder is gone too
 
@@ -108,7 +97,7 @@ def test_interrupted_render_leaves_no_dataset(workdir, monkeypatch):
     leftover = workdir / "datasets" / ".render.killed.tmp"
     (leftover / "images.zarr").mkdir(parents=True)
     monkeypatch.setattr(scene.Renderer, "render", original)
-    render.main(shard="1/1", merge_parts=0)
+    render.main()
     assert not leftover.exists() and (workdir / "datasets/render/meta.json").exists()
 
 
@@ -120,11 +109,11 @@ def test_corrupt_or_missing_store_is_refused(workdir):
 
     with pytest.raises(StageError, match="not found"):
         label.main()
-    render.main(shard="1/1", merge_parts=0)
+    render.main()
     shutil.rmtree("datasets/render/images.zarr/images")
     with pytest.raises(StageError, match="incomplete|corrupt|inconsistent|missing chunk"):
         label.main()
-    render.main(shard="1/1", merge_parts=0)
+    render.main()
     meta = json.loads(open("datasets/render/meta.json").read())
     meta["frames"] = 999
     open("datasets/render/meta.json", "w").write(json.dumps(meta))
@@ -139,9 +128,7 @@ def test_bad_params(workdir):
                           ("render.mesh=/nope/sat.obj", "not found")]:
         params_mod.write_params(params_mod.compose("smoke", [override]))
         with pytest.raises((StageError, ValueError), match=msg):
-            render.main(shard="1/1", merge_parts=0)
+            render.main()
         assert not (workdir / "datasets/render").exists()
-    with pytest.raises(StageError, match="I/N"):
-        render.parse_shard("2of4")
     with pytest.raises(params_mod.ParamsError, match="unknown profile"):
         params_mod.compose("nosuchprofile")

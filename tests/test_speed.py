@@ -107,7 +107,7 @@ def project(tmp_path, monkeypatch):
 def render_and_label():
     from stages import label, render
 
-    render.main(shard="1/1", merge_parts=0)
+    render.main()
     label.main()
     return pd.read_parquet("datasets/labels.parquet")
 

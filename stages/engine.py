@@ -1,0 +1,168 @@
+"""Scale-out engine: a stage's chunks run on Ray actors, each holding one heavy state (a Blender scene).
+
+`run(worker_cls, init, jobs, settings)` builds `worker_cls(*init)` once per worker and returns
+`worker.run(*job)` for every job, in job order. With one worker and no cluster address it runs in this
+process without starting Ray; otherwise on a local Ray started for the call (`engine.workers` actors)
+or on the cluster at `engine.address` / $RAY_ADDRESS. A worker that dies is restarted and its chunk
+retried (`engine.retries`); no progress for `engine.timeout_s` seconds stops the stage with one line.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import socket
+from dataclasses import dataclass
+from typing import Any, Callable, Iterator
+
+from stages.io import StageError
+
+CONNECT_TIMEOUT_S = 10.0   # seconds to open a TCP connection to a cluster's head before calling it unreachable
+EXIT_ONCE = "RPOD_TEST_EXIT_ONCE"  # test hook: a worker hard-exits on its first chunk while this file is absent
+
+
+@dataclass(frozen=True)
+class EngineSettings:
+    workers: int | None       # actors (1 = in-process); None = every core (of the cluster, with an address)
+    address: str | None       # Ray cluster address, None = a local Ray (or in-process)
+    timeout_s: float          # seconds without a finished chunk before giving up
+    retries: int              # restarts of a dead worker (and retries of its chunk)
+
+    @property
+    def in_process(self) -> bool:
+        return self.workers == 1 and not self.address
+
+    def threads(self, render_threads: int) -> int:
+        """Blender threads per worker: all of render.threads in-process, else shared out (at least 1)."""
+        if self.in_process:
+            return render_threads
+        return max(1, render_threads // (self.workers or (1 if self.address else os.cpu_count() or 1)))
+
+
+def settings(params: dict[str, Any]) -> EngineSettings:
+    """The engine section of params, with address None -> $RAY_ADDRESS; workers None is every core of
+    this machine, or of the cluster when there is an address."""
+    e = params["engine"]
+    address = e["address"] or os.environ.get("RAY_ADDRESS") or None
+    workers = e["workers"] if e["workers"] or address else os.cpu_count() or 1
+    return EngineSettings(workers, address, float(e["timeout_s"]), int(e["retries"]))
+
+
+def run(worker_cls: type, init: tuple, jobs: list[tuple], es: EngineSettings, num_cpus: float = 1,
+        progress: Callable[[int, Any], None] | None = None) -> list[Any]:
+    """`worker.run(*job)` for every job (in order) on workers built as `worker_cls(*init)`;
+    `progress(i, result)` is called in the driver as each job finishes. A worker has a `close()`."""
+    if es.in_process:
+        worker = worker_cls(*init)
+        try:
+            out = []
+            for i, job in enumerate(jobs):
+                out.append(worker.run(*job))
+                if progress:
+                    progress(i, out[-1])
+            return out
+        finally:
+            worker.close()
+    with session(es):
+        return _run_on_ray(worker_cls, init, jobs, es, num_cpus, progress)
+
+
+@contextlib.contextmanager
+def session(es: EngineSettings) -> Iterator[None]:
+    """A Ray session (the cluster at es.address, or a local Ray with es.workers CPUs) kept up for every
+    `run` inside it, so a stage with several sets starts Ray once; nothing when in-process or already up."""
+    import logging
+
+    if es.in_process:
+        yield
+        return
+    import ray
+
+    if ray.is_initialized():
+        yield
+        return
+    if es.address:
+        _check_reachable(es.address)
+    try:
+        ray.init(address=es.address or "local", num_cpus=None if es.address else es.workers,
+                 include_dashboard=False, logging_level=logging.WARNING, log_to_driver=True)
+    except (ConnectionError, RuntimeError, ValueError) as e:
+        where = f"the Ray cluster at {es.address}" if es.address else "a local Ray"
+        raise StageError(f"could not start or reach {where} ({type(e).__name__}: {str(e).splitlines()[0]}); "
+                         f"check engine.address / $RAY_ADDRESS, or set engine.workers: 1 to run in-process") from None
+    try:
+        yield
+    finally:
+        ray.shutdown()
+
+
+def _check_reachable(address: str) -> None:
+    """Refuse a host:port (or ray://host:port) address whose head does not accept a TCP connection."""
+    if address in ("auto", "local"):
+        return
+    host, _, port = address.split("://")[-1].rpartition(":")
+    try:
+        socket.create_connection((host, int(port)), timeout=CONNECT_TIMEOUT_S).close()
+    except (OSError, ValueError) as e:
+        raise StageError(f"Ray cluster address {address!r} (engine.address or $RAY_ADDRESS) is unreachable "
+                         f"({type(e).__name__}: {e}); start its head with `ray start --head`, or unset it "
+                         f"to run on this machine") from None
+
+
+def _run_on_ray(worker_cls: type, init: tuple, jobs: list[tuple], es: EngineSettings, num_cpus: float,
+                progress: Callable[[int, Any], None] | None) -> list[Any]:
+    """Dispatch jobs to idle actors as they free up; results come back in job order."""
+    import ray
+
+    actor = ray.remote(worker_cls).options(num_cpus=num_cpus, max_restarts=es.retries, max_task_retries=es.retries)
+    workers = es.workers or max(1, int(ray.cluster_resources().get("CPU", 1) // num_cpus))
+    actors = [actor.remote(*init) for _ in range(min(workers, len(jobs)))]
+    todo, pending, out = list(range(len(jobs)))[::-1], {}, [None] * len(jobs)
+    for a in actors:
+        if todo:
+            i = todo.pop()
+            pending[a.run.remote(*jobs[i])] = (a, i)
+    try:
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1, timeout=es.timeout_s)
+            if not done:
+                raise StageError(f"no chunk finished within engine.timeout_s = {es.timeout_s:g} s on {len(actors)} "
+                                 f"Ray workers; check `ray status` (free CPUs, live nodes) or raise engine.timeout_s")
+            a, i = pending.pop(done[0])
+            out[i] = _get(done[0], i, es)
+            if progress:
+                progress(i, out[i])
+            if todo:
+                j = todo.pop()
+                pending[a.run.remote(*jobs[j])] = (a, j)
+        ray.get([a.close.remote() for a in actors], timeout=es.timeout_s)   # e.g. a scene's temporary files
+    finally:
+        for a in actors:
+            ray.kill(a)
+    return out
+
+
+def _get(ref: Any, i: int, es: EngineSettings) -> Any:
+    """The result of job i, or the StageError its worker raised, or one line saying it failed."""
+    import ray
+
+    try:
+        return ray.get(ref)
+    except ray.exceptions.RayError as e:
+        err: BaseException = e
+        for _ in range(10):  # a task error wraps the worker's own exception in `cause`
+            if getattr(err, "cause", None) is None:
+                break
+            err = err.cause
+        if isinstance(err, StageError) and not isinstance(err, ray.exceptions.RayError):
+            raise StageError(str(err)) from None
+        first = (str(e).strip().splitlines() or [type(e).__name__])[-1]
+        raise StageError(f"chunk {i} failed on its Ray worker after {es.retries} retries: {first}") from None
+
+
+def exit_once_for_test() -> None:
+    """Test hook: hard-exit this worker process (no clean-up) if $RPOD_TEST_EXIT_ONCE names a file
+    that does not exist yet, creating it first, so exactly one chunk attempt is killed."""
+    marker = os.environ.get(EXIT_ONCE)
+    if marker and not os.path.exists(marker):
+        open(marker, "w").close()
+        os._exit(1)

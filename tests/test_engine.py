@@ -1,0 +1,115 @@
+"""The Ray engine: a two-node local cluster renders the same store as one process, a killed worker's
+chunk is retried, and bad engine settings stop with one line (no hang)."""
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from stages import engine, params as params_mod
+from stages.chunks import RenderWorker
+from stages.io import StageError, open_zarr
+from stages.schema import ParamsError
+
+TINY = ["render.width=32", "render.height=18", "render.frames_per_sequence=2", "render.samples=2",
+        "render.chunk=4", "render.previews=1"]
+
+
+def _render(workdir, overrides):
+    """`rpod render` in workdir with the tiny params plus overrides -> the images (N, H, W, 3) uint8."""
+    from stages import render
+
+    params_mod.write_params(params_mod.compose("smoke", TINY + overrides))
+    render.main()
+    return open_zarr(workdir / "datasets/render/images.zarr")["images"][:]
+
+
+@pytest.fixture
+def workdir(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    return tmp_path
+
+
+@pytest.fixture
+def two_nodes(tmp_path_factory, monkeypatch):
+    """A local Ray cluster of two nodes with one CPU each; workers hard-exit once (test hook)."""
+    ray = pytest.importorskip("ray")
+    from ray.cluster_utils import Cluster
+
+    marker = tmp_path_factory.mktemp("hook") / "exited"
+    monkeypatch.setenv(engine.EXIT_ONCE, str(marker))   # node processes (and their workers) inherit it
+    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+    cluster.add_node(num_cpus=1)
+    cluster.wait_for_nodes()
+    monkeypatch.delenv(engine.EXIT_ONCE)                 # ... but not this process (the in-process render)
+    try:
+        yield cluster, marker
+    finally:
+        if ray.is_initialized():
+            ray.shutdown()
+        cluster.shutdown()
+
+
+@pytest.mark.slow
+def test_two_node_cluster_matches_one_process_and_retries_a_killed_worker(workdir, two_nodes):
+    cluster, marker = two_nodes
+    one = _render(workdir, ["engine.workers=1"])
+    assert not marker.exists()
+    two = _render(workdir, ["engine.workers=2", f"engine.address={cluster.address}"])
+    assert marker.exists()                           # one worker died mid-chunk: its chunk was retried
+    assert two.shape == one.shape == (26, 18, 32, 3) and one.max() > 0
+    assert np.array_equal(one, two)                  # image for image, bit for bit
+    with pytest.raises(StageError, match="covers no pixels") as err:   # a worker's own error, as one line
+        _render(workdir, ["engine.workers=2", f"engine.address={cluster.address}", "render.mesh_scale=0.0001"])
+    assert "\n" not in str(err.value) and "Traceback" not in str(err.value)
+    with pytest.raises(StageError, match="no chunk finished within engine.timeout_s"):
+        es = engine.EngineSettings(workers=1, address=cluster.address, timeout_s=2.0, retries=0)
+        engine.run(RenderWorker, (None,) * 6, [(0, 4)], es, num_cpus=8)   # 8 CPUs never free up: no hang
+
+
+def test_unreachable_address_stops_at_once(workdir):
+    with socket.socket() as s:                       # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    t0 = time.perf_counter()
+    with pytest.raises(StageError, match="unreachable.*ray start --head"):
+        _render(workdir, ["engine.workers=2", f"engine.address=127.0.0.1:{port}"])
+    assert time.perf_counter() - t0 < engine.CONNECT_TIMEOUT_S + 5
+    assert not (workdir / "datasets/render").exists()
+
+
+def test_bad_workers_and_store(workdir):
+    with pytest.raises(ParamsError, match="engine: workers must be at least 1"):
+        params_mod.build(params_mod.compose("smoke", ["engine.workers=0"]))
+    (workdir / "a_file").write_text("not a folder")
+    for store, what in [(workdir / "a_file" / "images.zarr", "a path below a file"), ("nosuchproto://x/y.zarr", "")]:
+        with pytest.raises(StageError, match="cannot be written.*engine.store"):
+            _render(workdir, ["engine.workers=1", f"engine.store={store}"])
+        assert not (workdir / "datasets/render").exists(), what
+
+
+def test_store_elsewhere_is_named_in_meta_and_read_back(workdir):
+    import json
+
+    from stages.artifacts import RENDER, read_render_store
+
+    store = workdir / "shared" / "render.zarr"
+    params_mod.write_params(params_mod.compose("smoke", TINY + [f"engine.store={store}"]))
+    from stages import render
+
+    render.main()
+    meta = json.loads((workdir / RENDER / "meta.json").read_text())
+    assert meta["store"] == str(store) and not (workdir / RENDER / "images.zarr").exists()
+    images, poses, _ = read_render_store(RENDER)
+    assert images.shape[0] == len(poses) == 26 and np.asarray(images[:]).max() > 0
+
+
+def test_a_worker_that_cannot_see_the_store_sends_its_pixels(workdir, monkeypatch):
+    from stages import chunks
+
+    direct = _render(workdir, ["engine.workers=1"])
+    asked = []
+    monkeypatch.setattr(chunks, "visible", lambda fs, root: asked.append(root) and False)  # "another machine"
+    sent = _render(workdir, ["engine.workers=1"])
+    assert asked and np.array_equal(direct, sent)   # the driver wrote every chunk: same store, same manifest
