@@ -265,7 +265,7 @@ def file_hash(path: Path | str, n: int = 16) -> str:
 
 
 MANIFEST = "rpodguard_manifest"  # key in the root group's attributes (zarr.json)
-MANIFEST_FORMAT = "rpodguard-zarr-manifest/1"
+MANIFEST_FORMAT = "rpodguard-zarr-manifest/2"  # /1 summed the codec's own crc32c too: a constant
 
 
 def create_array(group: Any, name: str, **kwargs: Any) -> Any:
@@ -302,10 +302,16 @@ def store_fs(path: Path | str) -> tuple[Any, str]:
 
 
 def chunk_crc32c(fs: Any, path: str) -> str:
-    """crc32c (8 hex digits) of one stored chunk object's bytes, as the manifest lists it."""
+    """crc32c (8 hex digits) of one stored chunk object's payload, as the manifest lists it: the bytes
+    before the 4-byte crc32c the codec appends (the crc32c of data followed by its own crc32c is the
+    same constant for every chunk, so it could not tell one chunk from another).
+    A chunk whose own trailer does not match its payload gives "damaged", which no manifest lists.
+    """
     import google_crc32c
 
-    return f"{google_crc32c.value(fs.cat_file(path)):08x}"
+    data = fs.cat_file(path)
+    crc = google_crc32c.value(data[:-4])
+    return f"{crc:08x}" if data[-4:] == crc.to_bytes(4, "little") else "damaged"
 
 
 def _chunk_files(fs: Any, root: str, name: str) -> set[str]:
@@ -339,6 +345,8 @@ def seal_zarr(path: Path | str, crc32c: dict[str, dict[str, str]] | None = None)
         if unwritten:
             raise RuntimeError(f"{path}/{name}: chunk {unwritten[0]} was never written ({len(unwritten)} in all)")
         crcs = {k: given[k] for k in keys} if given else {k: chunk_crc32c(fs, f"{root}/{name}/{k}") for k in keys}
+        if "damaged" in crcs.values():
+            raise RuntimeError(f"{path}/{name}: a chunk was damaged while it was written")
         arrays[name] = {"shape": list(arr.shape), "chunks": list(arr.chunks), "crc32c": crcs}
     zarr.open_group(str(path), mode="r+").attrs[MANIFEST] = {"format": MANIFEST_FORMAT, "arrays": arrays}
 
@@ -366,7 +374,10 @@ def _manifest(path: Path | str, what: str) -> dict[str, Any]:
     if manifest is None:
         raise StageError(f"{what} {path} has no checksum manifest (an interrupted write or an older "
                          f"rpodguard); {redo}")
-    arrays = manifest.get("arrays") if isinstance(manifest, dict) and manifest.get("format") == MANIFEST_FORMAT else None
+    fmt = manifest.get("format") if isinstance(manifest, dict) else None
+    if isinstance(fmt, str) and fmt.startswith("rpodguard-zarr-manifest/") and fmt != MANIFEST_FORMAT:
+        raise StageError(f"{what} {path} was written by an older rpodguard (checksum manifest {fmt}); {redo}")
+    arrays = manifest.get("arrays") if fmt == MANIFEST_FORMAT else None
     if not isinstance(arrays, dict):
         raise StageError(f"{what} {path}: the checksum manifest is damaged; {redo}")
     return arrays

@@ -31,7 +31,7 @@ def test_missing_chunk_is_named(tmp_path):
         open_zarr(tmp_path / "images.zarr", "image store")
 
 
-@pytest.mark.parametrize("byte", [0, -5, "middle"])
+@pytest.mark.parametrize("byte", [0, -5, -2, "middle"])
 def test_flipped_bit_is_named(tmp_path, byte):
     _store(tmp_path / "images.zarr")
     chunk = tmp_path / "images.zarr/images/c/1/0/0/0"
@@ -40,6 +40,28 @@ def test_flipped_bit_is_named(tmp_path, byte):
     chunk.write_bytes(bytes(raw))
     with pytest.raises(StageError, match=r"chunk images/c/1/0/0/0 fails its crc32c checksum"):
         open_zarr(tmp_path / "images.zarr", "image store")
+
+
+def test_a_chunk_swapped_in_from_elsewhere_is_named(tmp_path):
+    """Each chunk's manifest entry is its own payload's checksum, so an intact chunk of other data is refused."""
+    _store(tmp_path / "images.zarr")
+    chunks = tmp_path / "images.zarr/images/c"
+    entries = open_zarr(tmp_path / "images.zarr").attrs["rpodguard_manifest"]["arrays"]["images"]["crc32c"]
+    assert len(set(entries.values())) == len(entries)                 # no two chunks share a checksum
+    (chunks / "1/0/0/0").write_bytes((chunks / "2/0/0/0").read_bytes())
+    with pytest.raises(StageError, match=r"chunk images/c/1/0/0/0 fails its crc32c checksum"):
+        open_zarr(tmp_path / "images.zarr", "image store")
+
+
+def test_a_store_of_an_older_manifest_format_is_named(tmp_path):
+    import json
+
+    _store(tmp_path / "images.zarr")
+    meta = json.loads((tmp_path / "images.zarr/zarr.json").read_text())
+    meta["attributes"]["rpodguard_manifest"]["format"] = "rpodguard-zarr-manifest/1"
+    (tmp_path / "images.zarr/zarr.json").write_text(json.dumps(meta))
+    with pytest.raises(StageError, match=r"written by an older rpodguard \(checksum manifest rpodguard-zarr-manifest/1\)"):
+        open_zarr(tmp_path / "images.zarr")
 
 
 def test_unsealed_or_extended_store_is_refused(tmp_path):
