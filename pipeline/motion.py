@@ -47,33 +47,53 @@ from scipy.stats import chi2
 
 
 
-def rotvec_to_matrix(w: np.ndarray) -> np.ndarray:
+def rotvec_to_matrix(w: Sequence[float] | np.ndarray) -> np.ndarray:
     """Rodrigues: rotation vector (3,, radians) -> rotation matrix. Same as scipy's
-    Rotation.from_rotvec(w).as_matrix() (tested), without its per-call overhead (~0.1 ms, which
-    would be most of the filter's cost per frame)."""
-    th = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
-    W = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if th < 1e-8:
-        return np.eye(3) + W
-    return np.eye(3) + (math.sin(th) / th) * W + ((1 - math.cos(th)) / th ** 2) * (W @ W)
+    Rotation.from_rotvec(w).as_matrix() (tested), in plain floats and one array (~2 us; scipy's
+    per-call overhead is ~0.1 ms, more than the whole filter's cost per frame)."""
+    w0, w1, w2 = w.tolist() if isinstance(w, np.ndarray) else w
+    th2 = w0 * w0 + w1 * w1 + w2 * w2
+    s, k = 1.0, 0.0                                 # R = I + s W + k W^2, W^2 = w w^T - th^2 I
+    if th2 >= 1e-16:
+        th = math.sqrt(th2)
+        s, k = math.sin(th) / th, (1.0 - math.cos(th)) / th2
+    d = 1.0 - k * th2
+    kxy, kxz, kyz = k * w0 * w1, k * w0 * w2, k * w1 * w2
+    return np.array([[d + k * w0 * w0, kxy - s * w2, kxz + s * w1],
+                     [kxy + s * w2, d + k * w1 * w1, kyz - s * w0],
+                     [kxz - s * w1, kyz + s * w0, d + k * w2 * w2]])
 
 
 def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
     """Rotation matrix -> rotation vector (3,, radians), angle in [0, pi]; the inverse of
     `rotvec_to_matrix` (tested against scipy)."""
-    c = max(-1.0, min(1.0, (R[0, 0] + R[1, 1] + R[2, 2] - 1.0) / 2.0))
-    th = math.acos(c)
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if th < 1e-6:
-        return v / 2.0
-    if th < math.pi - 1e-4:
-        return v * (th / (2.0 * math.sin(th)))
-    B = (R + np.eye(3)) / 2.0                      # near pi: axis from the symmetric part
-    i = int(np.argmax(np.diag(B)))
-    axis = B[:, i] / math.sqrt(B[i, i])
-    if axis @ v < 0:
-        axis = -axis
-    return axis * th
+    return np.array(_rotvec(R))
+
+
+def _rotvec(R: np.ndarray) -> tuple[float, float, float]:
+    """`matrix_to_rotvec` as three floats."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
+    th = math.acos(max(-1.0, min(1.0, (r00 + r11 + r22 - 1.0) / 2.0)))
+    v0, v1, v2 = r21 - r12, r02 - r20, r10 - r01
+    if th >= math.pi - 1e-4:                       # near pi: axis from the symmetric part
+        B = (np.asarray(R) + np.eye(3)) / 2.0
+        i = int(np.argmax(np.diag(B)))
+        axis = B[:, i] / math.sqrt(B[i, i])
+        if axis @ np.array([v0, v1, v2]) < 0:
+            axis = -axis
+        return tuple((axis * th).tolist())
+    f = 0.5 if th < 1e-6 else th / (2.0 * math.sin(th))
+    return v0 * f, v1 * f, v2 * f
+
+
+def _inv3(S: np.ndarray) -> np.ndarray:
+    """Inverse of a 3x3 matrix by cofactors, in plain floats (a third of np.linalg.inv's time)."""
+    (a, b, c), (d, e, f), (g, h, i) = S.tolist()
+    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
+    r = 1.0 / (a * A + b * B + c * C)
+    return np.array([[A * r, (c * h - b * i) * r, (b * f - c * e) * r],
+                     [B * r, (a * i - c * g) * r, (c * d - a * f) * r],
+                     [C * r, (b * g - a * h) * r, (a * e - b * d) * r]])
 
 
 def _positive(name: str, value: float) -> float:
@@ -118,7 +138,7 @@ class NoiseModel:
 
     def attitude_std(self, rng: float) -> float:
         """Attitude std (radians) per axis at range `rng` (m)."""
-        return float(np.radians(max(self.attitude_intercept + self.attitude_slope * rng, 0.1)))
+        return math.radians(max(self.attitude_intercept + self.attitude_slope * rng, 0.1))
 
     def as_dict(self) -> dict[str, object]:
         return {"position_intercept": list(self.position_intercept), "position_slope": list(self.position_slope),
@@ -235,14 +255,16 @@ class MotionSettings:
 
 
 class _Kalman6:
-    """Linear Kalman filter on [a (3), rate of a (3)]: a_k = a_{k-1} + rate + u_k, measurement a."""
+    """Linear Kalman filter on [a (3), rate of a (3)]: a_k = a_{k-1} + rate + u_k, measurement a.
+
+    F P F^T (F = [[I, I], [0, I]]) is two in-place block sums and the 3x3 innovation covariance is
+    inverted in closed form: each numpy call costs ~1 us at these sizes, so the count matters."""
 
     def __init__(self, q_level: float, q_rate: float):
-        self.F = np.eye(6)
-        self.F[:3, 3:] = np.eye(3)
         self.Q = np.diag([q_level ** 2] * 3 + [q_rate ** 2] * 3)
         self.x = np.zeros(6)
         self.P = np.eye(6)
+        self._eye = np.eye(6)
 
     def reset(self, level: np.ndarray, level_cov: np.ndarray, rate_std: float) -> None:
         self.x = np.concatenate([level, np.zeros(3)])
@@ -251,24 +273,84 @@ class _Kalman6:
         self.P[3:, 3:] = np.eye(3) * rate_std ** 2
 
     def predict(self, u: np.ndarray | None = None) -> None:
-        self.x = self.F @ self.x
+        self.x[:3] += self.x[3:]
         if u is not None:
             self.x[:3] += u
-        self.P = self.F @ self.P @ self.F.T + self.Q
+        P = self.P
+        P[:3] += P[3:]
+        P[:, :3] += P[:, 3:]
+        P += self.Q
+
+    def innovation_inverse(self, R: np.ndarray) -> np.ndarray:
+        """S^-1 with S = P_aa + R (3, 3)."""
+        return _inv3(self.P[:3, :3] + R)
 
     def nis(self, y: np.ndarray, R: np.ndarray) -> float:
         """Normalized innovation squared y^T S^-1 y with S = P_aa + R (3 dof)."""
-        return float(y @ np.linalg.inv(self.P[:3, :3] + R) @ y)
+        return float(y @ self.innovation_inverse(R) @ y)
 
-    def update(self, y: np.ndarray, R: np.ndarray) -> np.ndarray:
-        """Update with innovation y and measurement covariance R; returns the state correction."""
-        K = self.P[:, :3] @ np.linalg.inv(self.P[:3, :3] + R)   # (6, 3) = P H^T S^-1
+    def update(self, y: np.ndarray, R: np.ndarray, s_inv: np.ndarray | None = None) -> np.ndarray:
+        """Update with innovation y and measurement covariance R (`s_inv`: its
+        `innovation_inverse`, when known); returns the state correction."""
+        K = self.P[:, :3] @ (self.innovation_inverse(R) if s_inv is None else s_inv)   # (6, 3) = P H^T S^-1
         dx = K @ y
         self.x = self.x + dx
-        IKH = np.eye(6)
+        IKH = self._eye.copy()
         IKH[:, :3] -= K
         self.P = IKH @ self.P @ IKH.T + K @ R @ K.T
         return dx
+
+
+class _IsoKalman6:
+    """`_Kalman6` for the attitude error state, whose P, Q and measurement covariances are all
+    multiples of I3 per 3x3 block (isotropic noise): three equal scalar filters on
+    P = [[a, b], [b, c]] (x) I3, in plain floats. `level` (the rotation-vector error) and `rate`
+    are 3-lists."""
+
+    def __init__(self, q_level: float, q_rate: float):
+        self.q_level, self.q_rate = q_level ** 2, q_rate ** 2
+        self.level, self.rate = [0.0] * 3, [0.0] * 3
+        self.p = (1.0, 0.0, 1.0)
+
+    @property
+    def x(self) -> np.ndarray:
+        return np.array(self.level + self.rate)
+
+    @property
+    def P(self) -> np.ndarray:
+        a, b, c = self.p
+        return np.kron(np.array([[a, b], [b, c]]), np.eye(3))
+
+    def reset(self, level_var: float, rate_std: float) -> None:
+        """Zero state, level variance `level_var`, rate std `rate_std` (per axis)."""
+        self.level, self.rate = [0.0] * 3, [0.0] * 3
+        self.p = (level_var, 0.0, rate_std ** 2)
+
+    def predict(self) -> None:
+        self.level = [v + r for v, r in zip(self.level, self.rate)]
+        a, b, c = self.p
+        self.p = (a + b + b + c + self.q_level, b + c, c + self.q_rate)
+
+    def take_level(self) -> list[float]:
+        """The level (3,), set to zero: the caller moves it into its attitude estimate."""
+        level, self.level = self.level, [0.0] * 3
+        return level
+
+    def nis(self, y: Sequence[float], r: float) -> float:
+        """y^T S^-1 y with S = (a + r) I3, `r` the measurement variance per axis."""
+        return (y[0] * y[0] + y[1] * y[1] + y[2] * y[2]) / (self.p[0] + r)
+
+    def update(self, y: Sequence[float], r: float) -> list[float]:
+        """Update with innovation y (3,) and measurement variance `r` (Joseph form, per axis);
+        returns the level correction (3,)."""
+        a, b, c = self.p
+        ka, kb = a / (a + r), b / (a + r)
+        d_level = [ka * v for v in y]
+        self.level = [v + dv for v, dv in zip(self.level, d_level)]
+        self.rate = [v + kb * w for v, w in zip(self.rate, y)]
+        self.p = ((1 - ka) ** 2 * a + ka * ka * r, (1 - ka) * (b - kb * a) + ka * kb * r,
+                  kb * kb * a - 2 * kb * b + c + kb * kb * r)
+        return d_level
 
 
 @dataclass
@@ -291,7 +373,7 @@ class MotionFilter:
         self.noise = noise
         self.gate = settings.gate
         self.pos = _Kalman6(settings.position_noise, settings.velocity_noise)
-        self.att = _Kalman6(np.radians(settings.attitude_noise_deg), np.radians(settings.attitude_rate_noise_deg))
+        self.att = _IsoKalman6(math.radians(settings.attitude_noise_deg), math.radians(settings.attitude_rate_noise_deg))
         self.R_tw = np.eye(3)          # attitude estimate (target -> world)
         self.started = False
         self._pending: tuple[MotionCheck, tuple | None] | None = None   # last check, its update terms
@@ -316,7 +398,7 @@ class MotionFilter:
         """Start (or restart) at rel (world, m) with covariance rel_cov (3, 3, m^2), optionally an attitude."""
         self.pos.reset(np.asarray(rel, np.float64), np.asarray(rel_cov, np.float64), 3 * self.settings.velocity_noise)
         att_std = self.noise.attitude_std(float(np.linalg.norm(rel)))
-        self.att.reset(np.zeros(3), np.eye(3) * att_std ** 2, 3 * np.radians(self.settings.attitude_rate_noise_deg))
+        self.att.reset(att_std ** 2, 3 * math.radians(self.settings.attitude_rate_noise_deg))
         self.R_tw = np.eye(3) if R_tw is None else np.asarray(R_tw, np.float64)
         self.started = True
         self._candidates = []
@@ -326,10 +408,15 @@ class MotionFilter:
     def measurement(self, t_pred: np.ndarray, R_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(z world-frame measurement of rel (m), its covariance (3, 3)) from a camera-frame estimate,
         the noise model's bias removed."""
-        rng = math.sqrt(float(t_pred @ t_pred))
-        z = R_cam @ (t_pred - self.noise.position_bias(rng))
-        std = self.noise.position_std(rng)
-        return z, (R_cam * std ** 2) @ R_cam.T
+        t = t_pred.tolist()
+        return self._measurement(t, math.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2]), R_cam)
+
+    def _measurement(self, t: list[float], rng: float, R_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`measurement` from the estimate as floats and its range (m)."""
+        a, b, n = self.noise.bias_intercept, self.noise.bias_slope, self.noise
+        z = R_cam @ np.array([t[i] - (a[i] + b[i] * rng) for i in range(3)])
+        var = [max(n.position_intercept[i] + n.position_slope[i] * rng, n.floor) ** 2 for i in range(3)]
+        return z, (R_cam * var) @ R_cam.T
 
     def start_from(self, t_pred: np.ndarray, R_cam: np.ndarray, R_pred: np.ndarray | None = None) -> None:
         """Start from one trusted estimate (camera frame) with the noise model's covariance."""
@@ -344,26 +431,31 @@ class MotionFilter:
             raise RuntimeError("MotionFilter.check before start")
         t_pred, R_cam = np.asarray(t_pred, np.float64), np.asarray(R_cam, np.float64)
         if u is not None:
+            u = np.asarray(u, np.float64)
             self._moved = self._moved + u
-        self.pos.predict(None if u is None else np.asarray(u, np.float64))
+        self.pos.predict(u)
         self.att.predict()
-        self.R_tw = self.R_tw @ rotvec_to_matrix(self.att.x[:3])
-        self.att.x[:3] = 0.0
+        self.R_tw = self.R_tw @ rotvec_to_matrix(self.att.take_level())
         predicted = self.position
-        if not np.isfinite(t_pred).all() or (R_pred is not None and not np.isfinite(R_pred).all()):
+        t = t_pred.tolist()
+        rng = math.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
+        R_pred = None if R_pred is None else np.asarray(R_pred, np.float64)
+        if not math.isfinite(rng) or (R_pred is not None and not math.isfinite(R_pred.sum())):
             return self._stash(MotionCheck(np.inf, np.inf, True, predicted), None)
-        z, Rz = self.measurement(t_pred, R_cam)
-        self._last = (z - self._moved, Rz, None if R_pred is None else R_cam @ R_pred)
+        z, Rz = self._measurement(t, rng, R_cam)
+        R_meas = None if R_pred is None else R_cam @ R_pred
+        self._last = (z - self._moved, Rz, R_meas)
         y = z - predicted
-        nis_p = self.pos.nis(y, Rz)
+        s_inv = self.pos.innovation_inverse(Rz)
+        nis_p = float(y @ s_inv @ y)
         nis_a, att = np.nan, None
-        if R_pred is not None:
-            dth = matrix_to_rotvec(self.R_tw.T @ R_cam @ R_pred)
-            Ra = np.eye(3) * self.noise.attitude_std(math.sqrt(float(t_pred @ t_pred))) ** 2
-            nis_a = self.att.nis(dth, Ra)
-            att = (dth, Ra)
+        if R_meas is not None:
+            dth = _rotvec(self.R_tw.T @ R_meas)
+            var = self.noise.attitude_std(rng) ** 2
+            nis_a = self.att.nis(dth, var)
+            att = (dth, var)
         bad = nis_p > self.gate or (not np.isnan(nis_a) and nis_a > self.gate)
-        return self._stash(MotionCheck(nis_p, nis_a, bool(bad), predicted), (y, Rz, att))
+        return self._stash(MotionCheck(nis_p, nis_a, bool(bad), predicted), (y, Rz, s_inv, att))
 
     def _stash(self, check: MotionCheck, pending: tuple | None) -> MotionCheck:
         self._pending = (check, pending)
@@ -373,14 +465,16 @@ class MotionFilter:
         """Update the filter with the last checked frame (Huber-weighted above the soft gate)."""
         if self._pending is None or self._pending[1] is None:
             raise RuntimeError("MotionFilter.accept needs a checked, finite frame")
-        check, (y, Rz, att) = self._pending  # type: ignore[misc]
+        check, (y, Rz, s_inv, att) = self._pending  # type: ignore[misc]
         soft = self.settings.soft_gate * self.gate
-        self.pos.update(y, Rz * max(1.0, check.nis_position / soft))
+        if check.nis_position > soft:                 # Huber: the inflated covariance has its own S
+            self.pos.update(y, Rz * (check.nis_position / soft))
+        else:
+            self.pos.update(y, Rz, s_inv)
         if att is not None:
-            dth, Ra = att
-            dx = self.att.update(dth, Ra * max(1.0, check.nis_attitude / soft))
-            self.R_tw = self.R_tw @ rotvec_to_matrix(dx[:3])
-            self.att.x[:3] = 0.0
+            dth, var = att
+            self.att.update(dth, var * max(1.0, check.nis_attitude / soft))
+            self.R_tw = self.R_tw @ rotvec_to_matrix(self.att.take_level())
         self._pending = None
         self._history.append(self._last[0])
         self._candidates = []
