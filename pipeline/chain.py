@@ -9,6 +9,7 @@ gives the same result as the frames one at a time.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Callable, Iterable
 
@@ -17,7 +18,7 @@ import torch
 from torch import nn
 
 from pipeline.detectors.lstm import LSTMDetector, ShapLSTM
-from pipeline.explain import affine_head
+from pipeline.explain import affine_head, exact_shap
 
 
 @dataclass(frozen=True)
@@ -34,12 +35,11 @@ class SafetyChain:
     """Pose model + exact SHAP (head weights, background mean) + detector, in eval mode, no grad.
 
     `detector` maps SHAP values (B, 9, D) to attack logits (B,); a frame is flagged when
-    sigmoid(logit) >= `threshold`. With `fast` (default) and an LSTM detector, CPU frames go
-    through `ShapLSTM`: the SHAP scaling and the detector's standardisation folded into one
-    multiply-add, a prepacked input projection and a numpy recurrence; per frame the chain then
-    adds 0.30 -> 0.17 ms to the pose forward on the 2-core CPU (benchmarks/chain_latency.py). The
-    probabilities equal the detector's on the SHAP values to float32 rounding (tested to 1e-4);
-    other detectors, and frames on a GPU, take the plain path.
+    sigmoid(logit) >= `threshold`. With `fast` (default) and an LSTM detector, frames on the CPU
+    go from the GAP features through one traced and frozen TorchScript graph (`ShapLSTM`: SHAP
+    values, the folded standardisation, the LSTM and the probability); its results equal the
+    detector's on the SHAP values to float32 rounding (tested to 1e-4). Other detectors, and
+    frames on another device, take the plain path. benchmarks/chain_latency.py measures the cost.
     """
 
     def __init__(self, model: nn.Module, weight: np.ndarray | torch.Tensor,
@@ -55,8 +55,13 @@ class SafetyChain:
         self.threshold = float(threshold)
         self._fast = None
         if fast and isinstance(detector, LSTMDetector):
-            with torch.no_grad():
-                self._fast = ShapLSTM(self.detector, self.weight, self.background_mean)
+            example = torch.zeros(1, self.weight.shape[1])
+            # TorchScript is deprecated in favour of torch.compile, which needs a C++ toolchain and
+            # recompiles per batch size; tracing still works in torch 2.13 and has neither cost.
+            with torch.no_grad(), warnings.catch_warnings():
+                warnings.simplefilter("ignore", DeprecationWarning)
+                module = ShapLSTM(self.detector, self.weight, self.background_mean).eval()
+                self._fast = torch.jit.freeze(torch.jit.trace(module, example))
 
     @classmethod
     def from_model(cls, model: nn.Module, background_mean: np.ndarray | torch.Tensor, detector: nn.Module,
@@ -74,11 +79,10 @@ class SafetyChain:
         x = images.unsqueeze(0) if images.ndim == 3 else images
         features = self.model.forward_features(x)
         pose = self.model.forward_head(features)
-        centred = features - self.background_mean.to(features.device)
-        phi = self.weight.to(features.device) * centred.unsqueeze(1)
         if self._fast is not None and features.device.type == "cpu":
-            prob = self._fast(centred)
+            phi, prob = self._fast(features)
         else:
+            phi = exact_shap(features, self.weight, self.background_mean)
             prob = torch.sigmoid(self.detector(phi))
         return ChainOutput(pose, phi, prob, prob >= self.threshold)
 

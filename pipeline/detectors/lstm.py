@@ -20,7 +20,6 @@ from typing import Any, Callable
 
 import numpy as np
 import torch
-from scipy.special import expit
 from torch import nn
 
 from pipeline.detectors.metrics import choose_threshold
@@ -110,81 +109,49 @@ class LSTMDetector(nn.Module):
         return (self.predict_proba(values) >= float(self.threshold)).astype(np.int64)
 
 
-class ShapLSTM:
-    """`detector` on the exact SHAP values of an affine head, read from the head's centred features.
+class ShapLSTM(nn.Module):
+    """`detector` on the exact SHAP values of an affine head, from the head's GAP features:
+    (B, D) features -> (SHAP values (B, n_rows, D), attack probability (B,)).
 
-    The detector sees x[b, j] = (phi[b, j] - m_j) / s_j with phi[b, j] = W[j] * (a[b] - mu), so
-    x[b, j] = (W[j] / s_j) * (a[b] - mu) - m_j / s_j: the SHAP scaling and the standardisation fold
-    into one (n_rows, D) weight and a per-row shift, and one broadcast multiply-add gives the LSTM
-    input. The input projection keeps the shared (4H, D) weight (the same 9 x D x 4H
-    multiply-adds as folding it into 9 distinct matrices, but 9x less memory to stream), prepacked
-    for oneDNN when torch has it (0.124 -> 0.086 ms at 9 rows on the 2-core EPYC); the 9-step
-    recurrence and the dense layers run in numpy float32 with the gates reordered (i, f, o | g) so
-    one sigmoid call covers them (each small op costs ~1 us, fewer than torch's, traced or not).
-    The cell state is never negative (c' = f c + i relu(g) with c_0 = 0), so h' = o * c'.
-    Equal to `torch.sigmoid(detector(exact_shap(a, W, mu)))` to float32 rounding; CPU tensors only.
-    The detector's weights are read once, here.
+    The detector reads x[b, j] = (phi[b, j] - m_j) / s_j with phi[b, j] = W[j] * (a[b] - mu), that
+    is x[b, j] = (W[j] / s_j) * (a[b] - mu) - m_j / s_j: the SHAP scaling and the standardisation
+    fold into one (n_rows, D) weight and a per-row shift, so one multiply-add gives the LSTM input.
+    The input projection keeps the detector's shared (4H, D) weight: folding it further into 9
+    distinct (D, 4H) matrices needs as many multiply-adds and 9x the memory to stream. The gates
+    are reordered (i, f, o | g) so that one sigmoid covers three of them, and since the cell state is
+    never negative (c' = f c + i relu(g), c_0 = 0) h' = o * c' needs no ReLU: the fewest small ops,
+    which is what a 9-step, 100-unit recurrence costs at batch 1. Equal to
+    `detector(exact_shap(a, W, mu))` to float32 rounding; the detector's weights are copied here.
     """
 
     def __init__(self, detector: "LSTMDetector", weight: torch.Tensor, background_mean: torch.Tensor):
-        h = detector.config.hidden
-        inv_scale = 1.0 / detector.scale.double()                                  # (n_rows, 1)
-        self.scaled = (weight.double() * inv_scale).float().contiguous()            # (n_rows, D)
-        self.shift = (-detector.mean.double() * inv_scale).float().contiguous()     # (n_rows, 1)
+        super().__init__()
+        h = self.hidden = detector.config.hidden
         order = torch.cat([torch.arange(2 * h), torch.arange(3 * h, 4 * h), torch.arange(2 * h, 3 * h)])
+        inv_scale = 1.0 / detector.scale.detach().double()                        # (n_rows, 1)
         cell = detector.lstm
-        self.bias = cell.input_proj.bias.detach()[order].contiguous()
-        self.packed = _pack_linear(cell.input_proj.weight.detach()[order].contiguous(), len(self.shift))
-        self.w_hidden = cell.hidden_proj.weight.detach()[order].T.contiguous().numpy()   # (H, 4H)
-        self.dense = [(m.weight.detach().T.contiguous().numpy(), m.bias.detach().numpy())
-                      for m in detector.classifier if isinstance(m, nn.Linear)]
-        self.hidden = h
+        buffers = {"weight": weight, "background_mean": background_mean,
+                   "scaled": weight.double() * inv_scale, "shift": -detector.mean.detach().double() * inv_scale,
+                   "w_in": cell.input_proj.weight.detach()[order], "b_in": cell.input_proj.bias.detach()[order],
+                   "w_hidden": cell.hidden_proj.weight.detach()[order].T}
+        for name, value in buffers.items():
+            self.register_buffer(name, value.float().contiguous())
+        self.classifier = copy.deepcopy(detector.classifier)
 
-    def __call__(self, centred: torch.Tensor) -> torch.Tensor:
-        """(B, D) features minus the background mean -> attack probability (B,) float32."""
-        x = torch.addcmul(self.shift, self.scaled, centred.unsqueeze(1))           # (B, n_rows, D)
-        proj = _linear(x.reshape(-1, x.shape[-1]), self.packed, self.bias)
-        h = self._recur(proj.numpy().reshape(x.shape[0], x.shape[1], -1))
-        for k, (w, b) in enumerate(self.dense):
-            h = h @ w + b
-            if k < len(self.dense) - 1:
-                np.maximum(h, 0.0, out=h)
-        return torch.from_numpy(expit(h[:, 0]))
-
-    def _recur(self, proj: np.ndarray) -> np.ndarray:
-        """The ReLU-LSTM over the projected rows (B, T, 4H), gates (i, f, o, g) -> last h (B, H)."""
-        n, hs = proj.shape[0], self.hidden
-        gates = np.empty((n, 4 * hs), np.float32)
-        sig = expit(proj[:, 0, :3 * hs])
-        ig_c = np.empty((n, 2 * hs), np.float32)          # [relu(g), c]: times [i, f], then summed
-        prod = np.empty_like(ig_c)
-        relu_g, c = ig_c[:, :hs], ig_c[:, hs:]
-        np.maximum(proj[:, 0, 3 * hs:], 0.0, out=relu_g)
-        np.multiply(sig[:, :hs], relu_g, out=c)
-        h = sig[:, 2 * hs:] * c
-        for t in range(1, proj.shape[1]):
-            np.dot(h, self.w_hidden, out=gates)
-            gates += proj[:, t]
-            expit(gates[:, :3 * hs], out=sig)
-            np.maximum(gates[:, 3 * hs:], 0.0, out=relu_g)
-            np.multiply(sig[:, :2 * hs], ig_c, out=prod)
-            np.add(prod[:, :hs], prod[:, hs:], out=c)
-            np.multiply(sig[:, 2 * hs:], c, out=h)
-        return h
-
-
-def _pack_linear(weight: torch.Tensor, rows: int) -> torch.Tensor:
-    """`weight` (out, in) prepacked for oneDNN's matmul at `rows` input rows, or as is without oneDNN."""
-    if torch.backends.mkldnn.is_available():
-        return torch.ops.mkldnn._reorder_linear_weight(weight, rows)
-    return weight
-
-
-def _linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-    """x @ weight^T + bias with a `_pack_linear` weight."""
-    if weight.is_mkldnn:
-        return torch.ops.mkldnn._linear_pointwise(x, weight, bias, "none", [], "")
-    return torch.nn.functional.linear(x, weight, bias)
+    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        centred = (features - self.background_mean).unsqueeze(1)                   # (B, 1, D)
+        x = torch.addcmul(self.shift, self.scaled, centred)                         # (B, n_rows, D)
+        steps = torch.nn.functional.linear(x, self.w_in, self.b_in).unbind(1)
+        sizes = [3 * self.hidden, self.hidden]
+        ifo, g = steps[0].split(sizes, dim=1)
+        i, f, o = torch.sigmoid(ifo).chunk(3, dim=1)
+        c = i * torch.relu(g)
+        for step in steps[1:]:
+            ifo, g = torch.addmm(step, o * c, self.w_hidden).split(sizes, dim=1)
+            i, f, o = torch.sigmoid(ifo).chunk(3, dim=1)
+            c = torch.addcmul(f * c, i, torch.relu(g))
+        prob = torch.sigmoid(self.classifier(o * c).squeeze(1))
+        return self.weight * centred, prob
 
 
 def to_checkpoint(model: LSTMDetector, extra: dict[str, Any] | None = None) -> dict[str, Any]:
