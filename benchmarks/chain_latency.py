@@ -100,32 +100,46 @@ def defended(chain: SafetyChain, x: torch.Tensor, frames: int = 5000) -> Callabl
     return step
 
 
-def defense_step_seconds(seconds: float) -> float:
-    """Median process CPU seconds of one `Defense.step` alone (caches warm), as in `defended`."""
-    d = Defense(DefenseSettings(), MotionSettings(), NOISE)
-    rel, u = np.array([3.0, -2.0, 40.0]), np.array([0.0, 0.0, -0.25])
+def alone(fn: Callable[[], object], seconds: float) -> float:
+    """Median process CPU seconds of `fn()` called over and over (caches warm), in batches of 100."""
+    fn()
     times: list[float] = []
     start = time.perf_counter()
-    while time.perf_counter() - start < seconds or len(times) < 100:
-        rel = rel + u
-        R_cam = look_at(rel)
+    while time.perf_counter() - start < seconds or len(times) < 20:
         c = time.process_time()
         for _ in range(100):
-            d.step(R_cam.T @ rel, 0.0, R_cam, u, R_cam.T)
+            fn()
         times.append((time.process_time() - c) / 100)
     return float(np.median(times))
+
+
+def defense_alone(seconds: float) -> float:
+    """`alone` for `Defense.step` on a smooth approach (its cost does not depend on the image size)."""
+    d = Defense(DefenseSettings(), MotionSettings(), NOISE)
+    rel, u = np.array([3.0, -2.0, 40.0]), np.array([0.0, 0.0, -0.005])
+    R_cam = look_at(rel)
+    state = {"rel": rel}
+
+    def step() -> object:
+        state["rel"] = state["rel"] + u
+        return d.step(R_cam.T @ state["rel"], 0.0, R_cam, u, R_cam.T)
+    return alone(step, seconds)
 
 
 def row(name: str, width: float, h: int, w: int, seconds: float) -> dict[str, object]:
     fast, plain = chains(width, h, w)
     diff, same_pose = equality(fast, plain, h, w)
     x = torch.rand(1, 3, h, w)
+    with torch.inference_mode():
+        features = fast.model.forward_features(x)
+        tail = alone(lambda: fast._fast(features), seconds / 8)
     t = interleaved({"pose": lambda: fast.pose_only(x), "chain": lambda: fast(x),
                      "defended": defended(fast, x), "plain": lambda: plain(x)}, seconds)
     pose = t["pose"]["cpu"]
     ratio = t["defended"]["cpu"] / pose
     return {"config": name, "input": f"{w}x{h}", "width": width, "pose CPU (ms)": pose * 1e3,
-            "chain CPU (ms)": t["chain"]["cpu"] * 1e3, "chain ratio": t["chain"]["cpu"] / pose,
+            "chain CPU (ms)": t["chain"]["cpu"] * 1e3, "SHAP + detector alone (ms)": tail * 1e3,
+            "chain ratio": t["chain"]["cpu"] / pose,
             "chain wall ratio": t["chain"]["wall"] / t["pose"]["wall"],
             "defense in the loop (ms)": (t["defended"]["cpu"] - t["chain"]["cpu"]) * 1e3,
             "chain + defense ratio": ratio, "plain chain ratio": t["plain"]["cpu"] / pose,
@@ -142,7 +156,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     load = os.getloadavg()[0]
-    defense = defense_step_seconds(args.seconds / 8)
+    defense = defense_alone(args.seconds / 8)
     print(f"defense step alone: {defense * 1e3:.3f} ms CPU", flush=True)
     rows = []
     for name, width, h, w in CONFIGS:
@@ -150,11 +164,14 @@ def main() -> None:
         print({k: v for k, v in rows[-1].items()}, flush=True)
     table = markdown_table(rows, decimals=3)
     print(table)
-    print(f"-> {write_benchmark('Safety chain latency', body(table, defense, args.threads, load))}")
+    print(f"-> {write_benchmark('Safety chain latency', body(table, rows, defense, args.threads, load))}")
 
 
-def body(table: str, defense: float, threads: int, load: float) -> str:
+def body(table: str, rows: list[dict[str, object]], defense: float, threads: int, load: float) -> str:
     """The benchmark section's text around `table`."""
+    d = rows[0]
+    in_chain = float(d["chain CPU (ms)"]) - float(d["pose CPU (ms)"])
+    verdict = ("meets" if float(d["chain + defense ratio"]) <= 1.05 else "does not meet")
     return f"""`benchmarks/chain_latency.py` on {platform.processor() or platform.machine()}, torch
 {torch.__version__}, {threads} thread(s), batch 1, random weights, medians of interleaved calls on the
 same model object; load average {load:.1f} at the start, {os.getloadavg()[0]:.1f} at the end, on
@@ -167,10 +184,27 @@ the LSTM detector: the SHAP scaling and the detector's standardisation are folde
 multiply-add, the gates are reordered so one sigmoid covers three of them, and the cell's ReLU on
 c is dropped (c is never negative). "plain chain" is the unfolded path (SHAP values, then the
 detector module), kept for other detectors and devices. The defense (pipeline/defense.py: motion
-filter, chi-square gate, fusion, recovery mode) costs {defense * 1e3:.3f} ms of CPU per frame when
-timed alone; "defense in the loop" is what it adds after the chain, with the caches the pose network
-left behind. The fast chain's pose is the plain chain's, and its probabilities equal the plain
-chain's within the "max |prob - plain|" column (tests/test_chain.py checks 1e-4 at real sizes).
+filter, chi-square gate, fusion, recovery mode) costs {defense * 1e3:.3f} ms of CPU per frame alone;
+"defense in the loop" is what it adds after the chain. The fast chain's pose is the plain chain's,
+and its probabilities equal the plain chain's within "max |prob - plain|" (tests/test_chain.py
+checks 1e-4 at real sizes).
+
+At the default size the defended chain {verdict} the 1.05x target. What the chain and the defense
+add is not their arithmetic but the caches the pose network's convolutions leave cold: SHAP +
+detector cost {float(d["SHAP + detector alone (ms)"]):.3f} ms alone and {in_chain:.3f} ms in the chain, the
+defense {defense * 1e3:.3f} ms alone and {float(d["defense in the loop (ms)"]):.3f} ms in the loop. Each frame
+the detector streams its 1.6 MB input-projection weight (400 x 1000 fp32) and the code and data of
+every small op again, from memory on this shared machine (a small numpy call costs 5-10 us there,
+~1 us warm, which is why the motion filter's per-frame path is plain floats). Measured in this
+work under similar load (ms, alone / in the chain): lower-precision weights halve the bytes but
+move the probabilities by more than 1e-4 on the trained detector (fp16 weights through fbgemm:
+up to 3.0e-4 over 3000 rows of datasets/shap.zarr; bf16: 4.6e-3); folding the SHAP scaling into
+the projection (9 distinct 1000 x 400 matrices) does the same multiply-adds from 9x the bytes
+(0.26-0.34 for the product alone against 0.12); a prepacked oneDNN weight speeds the projection
+alone (0.086 against 0.124) but not in the chain (0.32 against 0.28); a numpy recurrence
+(0.30 / 0.59) and torch.compile (0.17 alone, 77 s to compile) lose to the traced graph
+(0.28 / 0.51); a numba-compiled recurrence would save ~0.09 in the chain (0.22 / 0.42), but numba
+is not a dependency (it comes with the test extra's shap).
 
 {table}"""
 
