@@ -143,7 +143,7 @@ def row(name: str, width: float, h: int, w: int, seconds: float) -> dict[str, ob
             "chain wall ratio": t["chain"]["wall"] / t["pose"]["wall"],
             "defense in the loop (ms)": (t["defended"]["cpu"] - t["chain"]["cpu"]) * 1e3,
             "chain + defense ratio": ratio, "plain chain ratio": t["plain"]["cpu"] / pose,
-            "max |prob - plain|": f"{diff:.1e}", "pose identical": "yes" if same_pose else "no",
+            "max prob diff to plain": f"{diff:.1e}", "pose identical": "yes" if same_pose else "no",
             "target <= 1.05x": "yes" if ratio <= 1.05 else "no"}
 
 
@@ -186,8 +186,9 @@ c is dropped (c is never negative). "plain chain" is the unfolded path (SHAP val
 detector module), kept for other detectors and devices. The defense (pipeline/defense.py: motion
 filter, chi-square gate, fusion, recovery mode) costs {defense * 1e3:.3f} ms of CPU per frame alone;
 "defense in the loop" is what it adds after the chain. The fast chain's pose is the plain chain's,
-and its probabilities equal the plain chain's within "max |prob - plain|" (tests/test_chain.py
-checks 1e-4 at real sizes).
+and its probabilities equal the plain chain's within "max prob diff to plain" (tests/test_chain.py
+checks 1e-4 at real sizes). At 480x270 one call takes ~180 ms and the medians of a few dozen
+calls differ by a few ms from run to run, more than the defense costs: its column there is noise.
 
 At the default size the defended chain {verdict} the 1.05x target. What the chain and the defense
 add is not their arithmetic but the caches the pose network's convolutions leave cold: SHAP +
@@ -195,16 +196,22 @@ detector cost {float(d["SHAP + detector alone (ms)"]):.3f} ms alone and {in_chai
 defense {defense * 1e3:.3f} ms alone and {float(d["defense in the loop (ms)"]):.3f} ms in the loop. Each frame
 the detector streams its 1.6 MB input-projection weight (400 x 1000 fp32) and the code and data of
 every small op again, from memory on this shared machine (a small numpy call costs 5-10 us there,
-~1 us warm, which is why the motion filter's per-frame path is plain floats). Measured in this
-work under similar load (ms, alone / in the chain): lower-precision weights halve the bytes but
-move the probabilities by more than 1e-4 on the trained detector (fp16 weights through fbgemm:
-up to 3.0e-4 over 3000 rows of datasets/shap.zarr; bf16: 4.6e-3); folding the SHAP scaling into
-the projection (9 distinct 1000 x 400 matrices) does the same multiply-adds from 9x the bytes
-(0.26-0.34 for the product alone against 0.12); a prepacked oneDNN weight speeds the projection
-alone (0.086 against 0.124) but not in the chain (0.32 against 0.28); a numpy recurrence
-(0.30 / 0.59) and torch.compile (0.17 alone, 77 s to compile) lose to the traced graph
-(0.28 / 0.51); a numba-compiled recurrence would save ~0.09 in the chain (0.22 / 0.42), but numba
-is not a dependency (it comes with the test extra's shap).
+~1 us warm, which is why the motion filter's per-frame path is plain floats).
+
+Measured while this was built (same machine, load 1-9; ms alone / in the chain): the folded graph
+replaced a traced detector on the SHAP values that cost 0.40 / ~0.6; it is 1.8x faster on batches
+of 64 frames (7.1 against 12.9 ms), but in the chain the two are within the noise of these runs
+(1.095-1.102x against 1.100-1.108x the pose forward, interleaved). The float motion filter cut the
+defense in the loop from 0.37-0.40 to 0.22-0.25 (chain + defense 1.194x -> 1.158x in one
+interleaved run). Lower-precision weights would halve the projection's bytes but move the
+probabilities by more than 1e-4 on the trained detector (fp16 weights through fbgemm: up to
+3.0e-4 over 3000 rows of datasets/shap.zarr; bf16: 4.6e-3); folding the SHAP scaling into the
+projection (9 distinct 1000 x 400 matrices) does the same multiply-adds from 9x the bytes (0.26-0.34
+for the product alone against 0.12); a prepacked oneDNN weight speeds the projection alone (0.086
+against 0.124) but not after the pose network (0.32 against 0.28); a numpy recurrence (0.30 / 0.59)
+and torch.compile (0.17 alone, 77 s to compile) lose to the traced graph (0.28 / 0.51); a
+numba-compiled recurrence would save ~0.09 in the chain (0.22 / 0.42), but numba is not a
+dependency (it comes with the test extra's shap).
 
 {table}"""
 
