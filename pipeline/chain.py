@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from pipeline.detectors.lstm import LSTMDetector, ShapLSTM
 from pipeline.explain import affine_head, exact_shap
 
 
@@ -34,40 +35,43 @@ class SafetyChain:
     """Pose model + exact SHAP (head weights, background mean) + detector, in eval mode, no grad.
 
     `detector` maps SHAP values (B, 9, D) to attack logits (B,); a frame is flagged when
-    sigmoid(logit) >= `threshold`. With `trace` (default) the detector is traced and frozen with
-    TorchScript: its 9-step recurrence then runs without Python overhead (measured 0.76 -> 0.47 ms
-    per frame on the 2-core CPU, benchmarks/chain_latency.py); the results are the same.
+    sigmoid(logit) >= `threshold`. With `fast` (default) and an LSTM detector, frames on the CPU
+    go from the GAP features through one traced and frozen TorchScript graph (`ShapLSTM`: SHAP
+    values, the folded standardisation, the LSTM and the probability); its results equal the
+    detector's on the SHAP values to float32 rounding (tested to 1e-4). Other detectors, and
+    frames on another device, take the plain path. benchmarks/chain_latency.py measures the cost.
     """
 
     def __init__(self, model: nn.Module, weight: np.ndarray | torch.Tensor,
                  background_mean: np.ndarray | torch.Tensor, detector: nn.Module, threshold: float = 0.5,
-                 trace: bool = True):
+                 fast: bool = True):
         self.model = model.eval()
         self.detector = detector.eval()
-        self.weight = torch.as_tensor(np.asarray(weight), dtype=torch.float32)
-        self.background_mean = torch.as_tensor(np.asarray(background_mean), dtype=torch.float32)
+        self.weight = torch.as_tensor(np.asarray(weight), dtype=torch.float32).contiguous()
+        self.background_mean = torch.as_tensor(np.asarray(background_mean), dtype=torch.float32).contiguous()
         if self.weight.ndim != 2 or self.background_mean.shape != (self.weight.shape[1],):
             raise ValueError(f"head weight {tuple(self.weight.shape)} and background mean "
                              f"{tuple(self.background_mean.shape)} do not fit (need (9, D) and (D,))")
         self.threshold = float(threshold)
-        self._detect = self.detector
-        if trace:
-            example = torch.zeros(1, *self.weight.shape)
+        self._fast = None
+        if fast and isinstance(detector, LSTMDetector):
+            example = torch.zeros(1, self.weight.shape[1])
             # TorchScript is deprecated in favour of torch.compile, which needs a C++ toolchain and
             # recompiles per batch size; tracing still works in torch 2.13 and has neither cost.
             with torch.no_grad(), warnings.catch_warnings():
                 warnings.simplefilter("ignore", DeprecationWarning)
-                self._detect = torch.jit.freeze(torch.jit.trace(self.detector, example))
+                module = ShapLSTM(self.detector, self.weight, self.background_mean).eval()
+                self._fast = torch.jit.freeze(torch.jit.trace(module, example))
 
     @classmethod
     def from_model(cls, model: nn.Module, background_mean: np.ndarray | torch.Tensor, detector: nn.Module,
-                   threshold: float = 0.5, trace: bool = True) -> "SafetyChain":
+                   threshold: float = 0.5, fast: bool = True) -> "SafetyChain":
         """Read the head weights from `model` (they must form an affine map, as in PoseNet)."""
         mu = np.asarray(torch.as_tensor(background_mean, dtype=torch.float32))
         head = affine_head(model, n_features=len(mu))
         if head is None:
             raise ValueError("the safety chain needs an affine pose head (exact SHAP); this model's head is not")
-        return cls(model, head.weight, mu, detector, threshold, trace)
+        return cls(model, head.weight, mu, detector, threshold, fast)
 
     @torch.inference_mode()
     def __call__(self, images: torch.Tensor) -> ChainOutput:
@@ -75,8 +79,11 @@ class SafetyChain:
         x = images.unsqueeze(0) if images.ndim == 3 else images
         features = self.model.forward_features(x)
         pose = self.model.forward_head(features)
-        phi = exact_shap(features, self.weight, self.background_mean)
-        prob = torch.sigmoid(self._detect(phi))
+        if self._fast is not None and features.device.type == "cpu":
+            phi, prob = self._fast(features)
+        else:
+            phi = exact_shap(features, self.weight, self.background_mean)
+            prob = torch.sigmoid(self.detector(phi))
         return ChainOutput(pose, phi, prob, prob >= self.threshold)
 
     @torch.inference_mode()

@@ -21,6 +21,7 @@ the filter starts on the first frame the detector does not flag.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -89,7 +90,7 @@ class Defense:
         world, u commanded displacement of rel since the previous frame (world, m), R_pred target ->
         camera estimate (optional; enables the attitude check)."""
         s = self.settings
-        shap_flag = bool(prob >= s.threshold) or not np.isfinite(prob)
+        shap_flag = bool(prob >= s.threshold) or not math.isfinite(prob)
         if not self.filter.started:
             if shap_flag or not np.isfinite(t_pred).all():
                 return Decision(True, shap_flag, False, np.full(3, np.nan), HOLD, np.nan, np.nan)
@@ -100,7 +101,8 @@ class Defense:
         motion_flag = check.inconsistent
         doubt = s.threshold if s.update_below is None else s.update_below
         suspect = (prob >= doubt or shap_flag) and s.fusion != "motion"   # the detector's word, where it counts
-        if not np.isfinite(check.nis_position) or (suspect and motion_flag):
+        finite = math.isfinite(check.nis_position)
+        if not finite or (suspect and motion_flag):
             self.filter.coast()
         elif motion_flag:
             self.filter.coast(candidate=True)
@@ -111,7 +113,7 @@ class Defense:
         else:
             self.filter.accept()
         flag = {"paper": shap_flag, "motion": motion_flag, "or": shap_flag or motion_flag}[s.fusion]
-        flag = flag or not np.isfinite(check.nis_position)
+        flag = flag or not finite
         if flag:
             self.flags_in_a_row += 1
             self.clean_in_a_row = 0

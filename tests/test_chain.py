@@ -91,3 +91,29 @@ def test_run_sequence_attacks_only_scheduled_frames_with_their_own_labels(parts)
     np.testing.assert_allclose(res.pose[attacked], np.repeat(zero.pose.numpy(), 3, 0), rtol=1e-4, atol=1e-4)
     with pytest.raises(ValueError, match="no attack"):
         run_sequence(chain, images, targets, attacked, None)
+
+
+
+def test_fast_path_equals_the_plain_chain_at_real_sizes():
+    """1000 features, 100 LSTM units, 9 rows, random weights: the folded path (`ShapLSTM`) gives the
+    plain chain's pose and SHAP values exactly and its probabilities within 1e-4, batched or not."""
+    torch.manual_seed(3)
+    model = PoseNet(width=0.125).eval()
+    x = torch.rand(6, 3, 36, 64)
+    with torch.no_grad():
+        bg = model.forward_features(torch.rand(6, 3, 36, 64)).numpy()
+    det = LSTMDetector(LSTMConfig()).eval()
+    plain = SafetyChain.from_model(model, bg.mean(0), det, fast=False)
+    det.set_normalisation(plain(x).shap.numpy())
+    with torch.no_grad():   # sharper than the initialisation, so that the probabilities spread
+        det.lstm.input_proj.weight.mul_(5.0)
+        det.classifier[0].weight.mul_(5.0)
+    fast = SafetyChain.from_model(model, bg.mean(0), det, threshold=0.5)
+    assert fast._fast is not None and plain._fast is None
+    a, b = fast(x), plain(x)
+    assert torch.equal(a.pose, b.pose) and torch.equal(a.shap, b.shap)
+    assert b.prob.std() > 0.02
+    np.testing.assert_allclose(a.prob.numpy(), b.prob.numpy(), rtol=0, atol=1e-4)
+    assert torch.equal(a.flag, a.prob >= 0.5)
+    for i in (0, 5):
+        np.testing.assert_allclose(fast(x[i]).prob.numpy(), b.prob.numpy()[i:i + 1], rtol=0, atol=1e-4)
