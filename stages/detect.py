@@ -59,7 +59,7 @@ def main() -> None:
     p = params_mod.load()
     d = p["detect"]
     torch.set_num_threads(1)  # the LSTM's matrices are small: extra threads cost more than they give
-    params_mod.torch_device(p)  # a missing CUDA device stops here; the squeeze baseline's pose forwards run on it
+    device = params_mod.torch_device(p)  # a missing CUDA GPU stops here; the LSTM fit and the squeeze baseline run on it
     seed = int(p["seed"]) + SEED_OFFSET
     model_hash = file_hash(POSE)
     data = read_shap_store(SHAP, model_hash)
@@ -69,7 +69,7 @@ def main() -> None:
     print(f"detect: {len(y)} SHAP samples ({int(y.sum())} adversarial) -> train {len(tr)}, validation {len(va)}, "
           f"test {len(te)}", flush=True)
 
-    result, lstm_seconds = _train_lstm(values, y, tr, va, d, seed)   # the paper's LSTM detector
+    result, lstm_seconds = _train_lstm(values, y, tr, va, d, seed, device)   # the paper's LSTM detector
     lstm = result.model
     scores: dict[str, tuple[np.ndarray, float]] = {
         "lstm": (lstm.predict_proba(values[te]), float(lstm.threshold))}
@@ -109,7 +109,7 @@ def main() -> None:
 
 
 def _train_lstm(values: np.ndarray, y: np.ndarray, tr: np.ndarray, va: np.ndarray, d: dict[str, Any],
-                seed: int) -> tuple[Any, float]:
+                seed: int, device: Any) -> tuple[Any, float]:
     """Fit the LSTM on the training indices with early stopping on the validation ones; returns the fit
     result and its seconds. Bad settings or a diverged fit are a StageError (nothing is written)."""
     from pipeline.detectors.lstm import LSTMConfig, train_lstm
@@ -120,7 +120,7 @@ def _train_lstm(values: np.ndarray, y: np.ndarray, tr: np.ndarray, va: np.ndarra
     try:
         result = train_lstm(values[tr], y[tr], values[va], y[va], config, epochs=int(d["epochs"]),
                             patience=int(d["patience"]), batch_size=int(d["batch_size"]), lr=float(d["lr"]),
-                            seed=seed, progress="detect: LSTM")
+                            seed=seed, progress="detect: LSTM", device=device)
     except ValueError as e:  # also DivergenceError
         raise StageError(f"params.yaml detect: {e} ({DETECTOR} and the reports were left as they were)") from None
     return result, time.perf_counter() - t0

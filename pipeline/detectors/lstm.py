@@ -180,18 +180,20 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
                config: LSTMConfig, *, epochs: int = 200, patience: int = 20, batch_size: int = 64,
                lr: float = 1.0, seed: int = 0,
                on_epoch: Callable[[dict[str, float]], None] | None = None,
-               progress: str | None = None) -> TrainResult:
+               progress: str | None = None, device: str | torch.device = "cpu") -> TrainResult:
     """Fit with Adadelta and binary cross-entropy; early stopping on the validation loss.
 
     Training stops after `patience` epochs without a lower validation loss; the weights of the
     best epoch are kept, and the threshold is then chosen on the validation probabilities
     (`choose_threshold`: highest validation accuracy). `on_epoch` gets each epoch's record;
     `progress` (a description) shows a tqdm bar over the epochs with the validation loss and accuracy.
+    The fit runs on `device` (the shuffles are drawn on the CPU, so they are the same on every device);
+    the returned model is on the CPU, where the chain runs it.
     """
     if progress is not None:
         return _with_progress(progress, epochs, on_epoch, lambda cb: train_lstm(
             x_train, y_train, x_val, y_val, config, epochs=epochs, patience=patience, batch_size=batch_size, lr=lr,
-            seed=seed, on_epoch=cb))
+            seed=seed, on_epoch=cb, device=device))
     sizes = {"epochs": epochs, "patience": patience, "batch_size": batch_size, "hidden": config.hidden,
              **{f"dense[{i}]": w for i, w in enumerate(config.dense)}}
     small = [f"{k}={v}" for k, v in sizes.items() if int(v) < 1]
@@ -202,10 +204,9 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
     torch.manual_seed(seed)
     model = LSTMDetector(config)
     model.set_normalisation(x_train)
-    xt = torch.as_tensor(np.asarray(x_train), dtype=torch.float32)
-    yt = torch.as_tensor(np.asarray(y_train), dtype=torch.float32)
-    xv = torch.as_tensor(np.asarray(x_val), dtype=torch.float32)
-    yv = torch.as_tensor(np.asarray(y_val), dtype=torch.float32)
+    model.to(device)
+    xt, yt, xv, yv = (torch.as_tensor(np.asarray(a), dtype=torch.float32).to(device)
+                      for a in (x_train, y_train, x_val, y_val))
     opt = torch.optim.Adadelta(model.parameters(), lr=lr)
     loss_fn = nn.BCEWithLogitsLoss()
     gen = torch.Generator().manual_seed(seed)
@@ -216,7 +217,7 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
         perm = torch.randperm(len(xt), generator=gen)
         total = 0.0
         for s in range(0, len(xt), batch_size):
-            idx = perm[s:s + batch_size]
+            idx = perm[s:s + batch_size].to(device)
             loss = loss_fn(model(xt[idx]), yt[idx])
             check_loss(loss.item(), f"epoch {epoch}")
             opt.zero_grad()
@@ -240,6 +241,7 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
                 break
     check_improved(best_epoch, len(history))
     model.load_state_dict(best_state)
+    model.cpu()
     model.threshold.fill_(choose_threshold(model.predict_proba(x_val), y_val))
     return TrainResult(model.eval(), history, best_epoch)
 
