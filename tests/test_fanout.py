@@ -1,5 +1,6 @@
-"""The guidance grid on the engine: pilots that fly runs in any order, on any worker, give the same runs,
-outcomes and counts as one in-process pilot (stand-in camera: no Blender, no torch)."""
+"""The guidance grid and the attack sets on the engine: pilots that fly runs in any order, on any worker,
+give the same runs, outcomes and counts as one in-process pilot (stand-in camera: no Blender, no
+torch), and two Ray workers write the adversarial sets of one process (a tiny random pose model)."""
 from __future__ import annotations
 
 import sys
@@ -111,8 +112,54 @@ def test_counts_are_those_of_one_shared_camera():
     assert paper["renders"] + rest["renders"] == counts["renders"] and rest["renders"] > 0
 
 
+def attack_sets(tmp_path, es: engine.EngineSettings) -> tuple:
+    """`rpod attack`'s adversarial sets of 10 random images (batches of 4) by PGD with a random start,
+    on a tiny random pose model -> (every array of adv.zarr, the pose outputs, the stored L-inf)."""
+    import torch
+    import zarr
+
+    from pipeline.loss import PoseLoss
+    from pipeline.model import PoseNet
+    from stages import params as params_mod
+    from stages.attack import _attack_into
+    from stages.checkpoint import save_pose
+
+    p = params_mod.compose("smoke", ["render.width=32", "render.height=18", "train.width=0.125", "attack.method=pgd",
+                                     "attack.steps=2", "attack.eps=[0.5,0.05]", "attack.batch_size=4"])
+    torch.manual_seed(0)
+    save_pose(tmp_path / "pose.pt", PoseNet(0.125, float(p["train"]["dropout"])).eval(), PoseLoss(), (18, 32), {})
+    rng = np.random.default_rng(0)
+    images = rng.integers(0, 256, (10, 18, 32, 3), dtype=np.uint8)
+    y = torch.randn(10, 9, generator=torch.Generator().manual_seed(0))
+    worker = (p, str(tmp_path / "pose.pt"), [0.5, 0.05], 4, None if es.in_process else 1)
+    out = _attack_into(tmp_path / f"adv{es.workers}.zarr", worker, images, np.arange(10), y, 6, es, 1)
+    root = zarr.open_group(str(tmp_path / f"adv{es.workers}.zarr"), mode="r")
+    return ({name: root[name][:] for name in sorted(root.array_keys())}, out["preds"], out["preds_float"],
+            out["linf"], out["example"]), (worker, images, y)
+
+
+def test_attack_sets_are_seeded_per_batch(tmp_path):
+    from stages.attack import AttackWorker
+
+    (arrays, preds, _, linf, example), (worker, images, y) = attack_sets(tmp_path, engine.EngineSettings(1, None, 60.0, 0))
+    assert set(arrays) == {"eps_0.05", "eps_0.5", "source_index"} and arrays["eps_0.5"].shape == (10, 18, 32, 3)
+    assert 0.4 < linf[0.5] <= 0.5 + 1 / 510 + 1e-6 and np.array_equal(example[0.5], arrays["eps_0.5"][6])
+    assert not np.array_equal(preds["clean"], preds[0.5])
+    alone = AttackWorker(*worker).run(4, images[4:8], y[4:8])   # the second batch on a fresh worker, first
+    assert np.array_equal(alone[0.5][0], arrays["eps_0.5"][4:8]) and np.array_equal(alone[0.05][0], arrays["eps_0.05"][4:8])
+
+
+def _equal(a, b) -> bool:
+    """Nested tuples / dicts of arrays and numbers, equal bit for bit."""
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(_equal(a[k], b[k]) for k in a)
+    if isinstance(a, (tuple, list)):
+        return len(a) == len(b) and all(_equal(x, y) for x, y in zip(a, b))
+    return np.array_equal(a, b)
+
+
 @pytest.mark.slow
-def test_two_ray_workers_fly_the_grid_of_one_process(two_nodes):
+def test_two_ray_workers_fly_the_grid_and_attack_the_sets_of_one_process(two_nodes, tmp_path):
     import ray
 
     cluster, marker = two_nodes
@@ -122,3 +169,5 @@ def test_two_ray_workers_fly_the_grid_of_one_process(two_nodes):
     two = engine.run(StubWorker, (p,), p.runs(), engine.EngineSettings(2, cluster.address, 60.0, 2))
     assert marker.exists()                          # a worker died mid-run: its run was flown again
     assert summary(p, two) == summary(p, one)
+    sets = attack_sets(tmp_path, engine.EngineSettings(1, None, 60.0, 0))[0]
+    assert _equal(attack_sets(tmp_path, engine.EngineSettings(2, cluster.address, 60.0, 2))[0], sets)
