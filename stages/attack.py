@@ -153,7 +153,8 @@ def _attack_into(path: Path, worker: tuple[Any, ...], images: Any, source_index:
 
     jobs = [(i, np.stack([np.asarray(images[j]) for j in range(i, min(i + batch, n))]), y_all[i:i + batch])
             for i in starts]
-    with tqdm(total=len(jobs), desc=f"attack ({worker[0]['attack']['method']}, {len(eps_list)} eps)", unit="batch") as bar:
+    desc = f"attack ({worker[0]['attack']['method']}, {len(eps_list)} eps)"
+    with tqdm(total=len(jobs), desc=desc, unit="batch") as bar:
         engine.run(AttackWorker, worker, jobs, es, num_cpus=threads, progress=done)
     return {"root": root, "preds": preds, "preds_float": preds_float, "linf": linf, "example": example}
 

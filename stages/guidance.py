@@ -3,8 +3,8 @@
 Runs a no-attack baseline and every (eps, start range S, length K) of params, rendered at the pose
 model's input size; the runs fan out over the engine's workers (stages/engine.py: in-process with one
 worker, else Ray actors each holding one Blender scene and the safety chain), each attacked run's
-attack seeded by its place in the grid, so the results do not depend on the worker count; writes reports/guidance.md (one S x K table per eps),
-reports/figures/guidance_trajectories.png and reports/metrics/guidance.json. With the safety chain
+attack seeded by its place in the grid, so the results do not depend on the worker count; writes
+reports/guidance.md (one S x K table per eps), reports/figures/guidance_trajectories.png and reports/metrics/guidance.json. With the safety chain
 inside the loop it flies every cell again for each of `guidance.dynamics` and each of
 undefended / `guidance.defenses` (detect-and-hold, detect-and-recover; a fresh calibrated defense
 from models/defense.json per run) -> the defended section of the report, metrics `defended`, and
@@ -76,7 +76,8 @@ class GuidanceWorker:
             return stored_attack(chain.model, loss_fn, eps, params_mod.make_attack(a, method, seed + i))
 
         self.renderer = Renderer(K, scene)
-        self.pilot = GridPilot(CachedCamera(self.renderer.render, chain.model, chain=chain), K, plan, attack_at, defense)
+        camera = CachedCamera(self.renderer.render, chain.model, chain=chain)
+        self.pilot = GridPilot(camera, K, plan, attack_at, defense)
 
     def run(self, dyn: str, defense: str, cell: int | None) -> tuple[Any, frozenset[bytes]]:
         engine.exit_once_for_test()
@@ -118,8 +119,9 @@ def main() -> None:
         bar.update(1)
 
     with tqdm(total=len(runs), desc="guidance runs", unit="run") as bar:
-        flown = engine.run(GuidanceWorker, (p, K, scene, models, defense, plan, None if es.in_process else threads),
-                           runs, es, num_cpus=threads, progress=progress)
+        on_cpu = p if es.in_process else {**p, "device": "cpu"}   # Ray workers hold no GPU
+        init = (on_cpu, K, scene, models, defense, plan, None if es.in_process else threads)
+        flown = engine.run(GuidanceWorker, init, runs, es, num_cpus=threads, progress=progress)
     seconds = paper_done[0]
     paper = flown[:plan.paper_size]
     counts = grid_counts(paper)      # the paper's grid alone

@@ -141,12 +141,13 @@ def attack_sets(tmp_path, es: engine.EngineSettings) -> tuple:
 def test_attack_sets_are_seeded_per_batch(tmp_path):
     from stages.attack import AttackWorker
 
-    (arrays, preds, _, linf, example), (worker, images, y) = attack_sets(tmp_path, engine.EngineSettings(1, None, 60.0, 0))
+    sets, (worker, images, y) = attack_sets(tmp_path, engine.EngineSettings(1, None, 60.0, 0))
+    arrays, preds, _, linf, example = sets
     assert set(arrays) == {"eps_0.05", "eps_0.5", "source_index"} and arrays["eps_0.5"].shape == (10, 18, 32, 3)
     assert 0.4 < linf[0.5] <= 0.5 + 1 / 510 + 1e-6 and np.array_equal(example[0.5], arrays["eps_0.5"][6])
     assert not np.array_equal(preds["clean"], preds[0.5])
     alone = AttackWorker(*worker).run(4, images[4:8], y[4:8])   # the second batch on a fresh worker, first
-    assert np.array_equal(alone[0.5][0], arrays["eps_0.5"][4:8]) and np.array_equal(alone[0.05][0], arrays["eps_0.05"][4:8])
+    assert all(np.array_equal(alone[e][0], arrays[f"eps_{e:g}"][4:8]) for e in (0.5, 0.05))
 
 
 def _equal(a, b) -> bool:
