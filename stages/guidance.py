@@ -6,9 +6,10 @@ worker, else Ray actors each holding one Blender scene and the safety chain), ea
 attack seeded by its place in the grid, so the results do not depend on the worker count; writes
 reports/guidance.md (one S x K table per eps), reports/figures/guidance_trajectories.png and
 reports/metrics/guidance.json. With the safety chain inside the loop it flies every cell again for
-each of `guidance.dynamics` and each of undefended / `guidance.defenses` (detect-and-hold, detect-and-recover; a fresh calibrated defense
-from models/defense.json per run) -> the defended section of the report, metrics `defended`, and
-reports/figures/guidance_defended.png (one run per variant).
+each of `guidance.dynamics` and each of undefended / `guidance.defenses` (detect-and-hold,
+detect-and-recover; a fresh calibrated defense from models/defense.json per run) -> the defended
+section of the report, metrics `defended`, and reports/figures/guidance_defended.png (one run per
+variant).
 """
 from __future__ import annotations
 
