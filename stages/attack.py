@@ -4,9 +4,12 @@ Reads models/pose.pt and the test split; writes datasets/attack/adv.zarr (one ui
 array per eps, named `eps_<eps>`, plus `source_index` = the label `index` of each row),
 reports/attack.md, reports/figures/fgsm_example.png and reports/metrics/attack.json.
 Errors are measured on the stored uint8 adversarial images (what the SHAP stage reads).
+The batches fan out over the engine's workers on the CPU (stages/engine.py; in-process with one
+worker or on a GPU), each batch's attack seeded by its place, so adv.zarr does not depend on the workers.
 """
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -14,9 +17,10 @@ from typing import Any
 import numpy as np
 import typer
 
-from stages import params as params_mod
-from stages.artifacts import ADV, adv_array_name, load_pose
+from stages import engine, params as params_mod
+from stages.artifacts import ADV, POSE, adv_array_name, load_pose
 from stages.io import StageError, atomic_dir, atomic_write_text, create_array, save_figure, write_metrics
+from stages.pages.attack import attack_page
 
 REPORT = Path("reports/attack.md")
 FIGURE = Path("reports/figures/fgsm_example.png")
@@ -28,7 +32,6 @@ def main() -> None:
     """Attack the test set at every attack.eps with attack.method on attack.loss; report the pose errors."""
     import torch
 
-    from pipeline.attacks import attack_loss
     from pipeline.figures import attack_example
     from stages.data import load_split
 
@@ -37,7 +40,7 @@ def main() -> None:
     params_mod.check_attack_params(a, "attack")
     eps_list = [float(e) for e in a["eps"]]
     params_mod.torch_setup(p)
-    attack = params_mod.make_attack(a, a["method"], int(p["seed"]) + SEED_OFFSET)
+    params_mod.make_attack(a, a["method"], 0)   # refuses bad attack params before anything is loaded
     pose = load_pose(p)
     split = load_split(p, "test")
     n = len(split) if a["max_images"] is None else min(len(split), int(a["max_images"]))
@@ -48,10 +51,11 @@ def main() -> None:
     q_gt = labels[["qw", "qx", "qy", "qz"]].to_numpy(np.float64)
     y_all = torch.tensor(labels[["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]].to_numpy(np.float32))
     k = int(np.argmin(np.abs(t_gt[:, 2] - np.median(t_gt[:, 2]))))  # figure: a mid-range test image
+    es, threads = _engine(p, pose.model.device)
+    worker = (p, str(POSE.resolve()), eps_list, int(a["batch_size"]), None if es.in_process else threads)
     t0 = time.perf_counter()
     with atomic_dir(ADV.parent) as tmp:
-        out = _attack_into(tmp / ADV.name, pose.model, attack, attack_loss(a["loss"], pose.loss), images,
-                           labels["index"].to_numpy(np.int64), y_all, eps_list, int(a["batch_size"]), k, a["method"])
+        out = _attack_into(tmp / ADV.name, worker, images, labels["index"].to_numpy(np.int64), y_all, k, es, threads)
         out["root"].attrs.update({"eps": eps_list, "method": a["method"], "loss": a["loss"], "model_hash": pose.hash,
                                   "quantisation": "round to nearest 8-bit level, at least one level, sign kept"})
     seconds = time.perf_counter() - t0
@@ -65,23 +69,64 @@ def main() -> None:
                "measured_on": "stored uint8 images", "clean": {key: v for key, v in rows[0].items() if key != "eps"},
                "eps": {r["eps"]: {key: v for key, v in r.items() if key != "eps"} for r in rows[1:]}}
     write_metrics(METRICS, metrics, p)
-    atomic_write_text(REPORT, _report(rows, a, n))
+    atomic_write_text(REPORT, attack_page(rows, a, n))
     save_figure(attack_example(np.asarray(images[k]), out["example"], t_gt[k],
                                {e: preds[e][k] for e in ["clean", *eps_list]}, a["method"]), FIGURE)
     typer.echo(f"attack: {n} test images x {len(eps_list)} eps in {seconds:.0f} s -> {ADV}, {REPORT}")
 
 
-def _attack_into(path: Path, model: Any, attack: Any, loss_fn: Any, images: Any, source_index: np.ndarray, y_all: Any,
-                 eps_list: list[float], batch: int, k: int, method: str) -> dict[str, Any]:
+class AttackWorker:
+    """The pose model (models/pose.pt at the absolute `pose_path`, loaded once per engine worker):
+    `run(i, u8, y)` attacks one batch (images (B, H, W, 3) uint8 from test row i, labels (B, 9): metres,
+    6-D) at every eps, with the attack seeded by the batch (so the stored images do not depend on which
+    worker attacks it) -> pose outputs on the clean images and, per eps, the stored uint8 images, the
+    pose outputs on them and on the float adversarial images, and their stored L-inf."""
+
+    def __init__(self, p: dict[str, Any], pose_path: str, eps_list: list[float], batch: int,
+                 torch_threads: int | None) -> None:
+        import torch
+
+        from pipeline.attacks import attack_loss
+
+        if torch_threads:
+            torch.set_num_threads(torch_threads)
+        pose = load_pose(p, pose_path)
+        self.model, self.loss_fn = pose.model.eval(), attack_loss(p["attack"]["loss"], pose.loss)
+        self.a, self.seed, self.eps_list, self.batch = p["attack"], int(p["seed"]) + SEED_OFFSET, eps_list, batch
+
+    def run(self, i: int, u8: np.ndarray, y: Any) -> dict[str, Any]:
+        import torch
+
+        from pipeline.attacks import quantize
+
+        engine.exit_once_for_test()
+        attack = params_mod.make_attack(self.a, self.a["method"], self.seed + i // self.batch)
+        x = torch.from_numpy(u8).to(self.model.device).permute(0, 3, 1, 2).float() / 255   # uint8 over the bus
+        y = y.to(self.model.device)
+        with torch.no_grad():
+            out: dict[str, Any] = {"clean": self.model(x).cpu().numpy()}
+        for e in self.eps_list:
+            x_adv = attack(self.model, x, y, e, self.loss_fn)
+            stored = quantize(x_adv, x)
+            with torch.no_grad():
+                out[e] = (stored.permute(0, 2, 3, 1).cpu().numpy(), self.model(stored.float() / 255).cpu().numpy(),
+                          self.model(x_adv).cpu().numpy(), float((stored.float() / 255 - x).abs().max()))
+        return out
+
+    def close(self) -> None:
+        pass
+
+
+def _attack_into(path: Path, worker: tuple[Any, ...], images: Any, source_index: np.ndarray, y_all: Any,
+                 k: int, es: engine.EngineSettings, threads: int) -> dict[str, Any]:
     """Attack the first len(source_index) images at every eps into a new zarr group at `path` (one uint8
-    array per eps); returns the group, the pose outputs (clean, stored uint8, float), the stored L-inf
-    per eps and image k's stored adversarial images (for the figure)."""
-    import torch
+    array per eps), one batch per engine job on `AttackWorker(*worker)`; returns the group, the pose
+    outputs (clean, stored uint8, float), the stored L-inf per eps and image k's stored adversarial
+    images (for the figure)."""
     import zarr
     from tqdm import tqdm
 
-    from pipeline.attacks import quantize
-
+    eps_list, batch = worker[2], worker[3]
     n = len(source_index)
     preds = {"clean": np.zeros((n, 9))} | {e: np.zeros((n, 9)) for e in eps_list}
     preds_float = {e: np.zeros((n, 9)) for e in eps_list}
@@ -92,24 +137,25 @@ def _attack_into(path: Path, model: Any, attack: Any, loss_fn: Any, images: Any,
     arrays = {e: create_array(root, adv_array_name(e), shape=(n, h, w, 3), chunks=(min(batch, n), h, w, 3),
                              dtype="uint8") for e in eps_list}
     create_array(root, "source_index", data=source_index)
-    model.eval()
-    for i in tqdm(range(0, n, batch), desc=f"attack ({method}, {len(eps_list)} eps)", unit="batch"):
-        u8 = np.stack([np.asarray(images[j]) for j in range(i, min(i + batch, n))])
-        x = torch.from_numpy(u8).to(model.device).permute(0, 3, 1, 2).float() / 255   # uint8 over the bus
-        y = y_all[i:i + batch].to(model.device)
-        with torch.no_grad():
-            preds["clean"][i:i + len(x)] = model(x).cpu().numpy()
+    starts = list(range(0, n, batch))
+
+    def done(j: int, out: dict[str, Any]) -> None:
+        """Write one batch's stored images (whole chunks) and keep its outputs."""
+        i = starts[j]
+        hi = i + len(out["clean"])
+        preds["clean"][i:hi] = out["clean"]
         for e in eps_list:
-            x_adv = attack(model, x, y, e, loss_fn)
-            stored = quantize(x_adv, x)
-            stored_hwc = stored.permute(0, 2, 3, 1).cpu().numpy()
-            arrays[e][i:i + len(x)] = stored_hwc
-            if i <= k < i + len(x):
-                example[e] = stored_hwc[k - i]
-            linf[e] = max(linf[e], float((stored.float() / 255 - x).abs().max()))
-            with torch.no_grad():
-                preds[e][i:i + len(x)] = model(stored.float() / 255).cpu().numpy()
-                preds_float[e][i:i + len(x)] = model(x_adv).cpu().numpy()
+            arrays[e][i:hi], preds[e][i:hi], preds_float[e][i:hi], m = out[e]
+            linf[e] = max(linf[e], m)
+            if i <= k < hi:
+                example[e] = out[e][0][k - i]
+        bar.update(1)
+
+    jobs = [(i, np.stack([np.asarray(images[j]) for j in range(i, min(i + batch, n))]), y_all[i:i + batch])
+            for i in starts]
+    desc = f"attack ({worker[0]['attack']['method']}, {len(eps_list)} eps)"
+    with tqdm(total=len(jobs), desc=desc, unit="batch") as bar:
+        engine.run(AttackWorker, worker, jobs, es, num_cpus=threads, progress=done)
     return {"root": root, "preds": preds, "preds_float": preds_float, "linf": linf, "example": example}
 
 
@@ -123,50 +169,12 @@ def _errors(pred: np.ndarray, t_gt: np.ndarray, q_gt: np.ndarray) -> dict[str, f
             "attitude_mean_deg": float(att.mean()), "attitude_median_deg": float(np.median(att))}
 
 
-def _report(rows: list[dict[str, Any]], a: dict[str, Any], n: int) -> str:
-    from pipeline.report import markdown_table
+def _engine(p: dict[str, Any], device: Any) -> tuple[engine.EngineSettings, int]:
+    """(engine settings, torch threads per worker): the batches fan out over CPU workers (threads shared
+    out); on a GPU they run in-process, where the GPU does the work."""
+    import dataclasses
 
-    table = markdown_table(
-        [{"eps": r["eps"], "stored L-inf": r["stored_linf"], "pos. mean (m)": r["position_mean_m"],
-          "pos. median (m)": r["position_median_m"], "att. mean (deg)": r["attitude_mean_deg"],
-          "att. median (deg)": r["attitude_median_deg"]} for r in rows], decimals=3)
-    float_table = markdown_table(
-        [{"eps": r["eps"], "pos. mean, stored uint8 (m)": r["position_mean_m"],
-          "pos. mean, float (m)": r["float_position_mean_m"], "att. mean, stored uint8 (deg)": r["attitude_mean_deg"],
-          "att. mean, float (deg)": r["float_attitude_mean_deg"]} for r in rows[1:]], decimals=3)
-    step = "" if a["method"] == "fgsm" else (
-        f" ({a['steps']} steps, step size {a['step_size'] if a['step_size'] is not None else 'default'}"
-        + (", random start" if a["method"] == "pgd" and a["random_start"] else "")
-        + (f", momentum {a['momentum']}" if a["method"] == "mifgsm" else "") + ")")
-    return f"""# Adversarial attack on the pose estimator
-
-Attack: **{a['method']}**{step} on the **{a['loss']}** loss (`full` = the training loss with its
-learned weights), L-inf budget eps in pixel units ([0, 1] images), {n} test images (time: reports/metrics/attack.json).
-FGSM is `x' = clip(x + eps * sign(grad_x L), 0, 1)`.
-
-Errors are measured on the adversarial images **as stored** in `datasets/attack/adv.zarr` (uint8):
-each pixel's perturbation is rounded to the nearest 8-bit level, but never to zero, so every
-perturbed pixel keeps the sign of its perturbation. "stored L-inf" is the largest stored change of a
-pixel: it can exceed eps by up to half a level (eps = 0.01 = 2.55 levels is stored as 3 levels).
-
-{table}
-Position error `||t_pred - t_gt||`, attitude error `2 acos(|<q_pred, q_gt>|)`.
-{_trend(rows)}
-
-Same attack measured on the float adversarial images, before quantisation:
-
-{float_table}
-![the original, the stored adversarial image per eps and the amplified perturbation](figures/fgsm_example.png)
-"""
-
-
-def _trend(rows: list[dict[str, Any]]) -> str:
-    """One sentence on whether the mean errors grow with eps (rows[1:] in any eps order)."""
-    by_eps = sorted(rows[1:], key=lambda r: float(r["eps"]))
-    out = []
-    for key, what in (("position_mean_m", "position"), ("attitude_mean_deg", "attitude")):
-        vals = [rows[0][key]] + [r[key] for r in by_eps]
-        grows = all(b >= a for a, b in zip(vals, vals[1:]))
-        out.append(f"the mean {what} error {'grows' if grows else 'does not grow'} monotonically from clean "
-                   f"through eps = {', '.join(r['eps'] for r in by_eps)}")
-    return "Over this test set, " + "; ".join(out) + "."
+    es = engine.settings(p)
+    if device.type != "cpu":
+        es = dataclasses.replace(es, workers=1, address=None)
+    return es, es.threads(int(p["threads"] or os.cpu_count() or 1))

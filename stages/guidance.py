@@ -1,12 +1,15 @@
 """`rpod guidance`: the closed-loop rendezvous under attack, Blender rendering every step.
 
-Runs a no-attack baseline and every (eps, start range S, length K) of params with one Renderer at
-the pose model's input size; writes reports/guidance.md (one S x K table per eps),
-reports/figures/guidance_trajectories.png and reports/metrics/guidance.json. With the safety chain
-inside the loop it flies every cell again for each of `guidance.dynamics` and each of
-undefended / `guidance.defenses` (detect-and-hold, detect-and-recover; a fresh calibrated defense
-from models/defense.json per run) -> the defended section of the report, metrics `defended`, and
-reports/figures/guidance_defended.png (one run per variant).
+Runs a no-attack baseline and every (eps, start range S, length K) of params, rendered at the pose
+model's input size; the runs fan out over the engine's workers (stages/engine.py: in-process with one
+worker, else Ray actors each holding one Blender scene and the safety chain), each attacked run's
+attack seeded by its place in the grid, so the results do not depend on the worker count; writes
+reports/guidance.md (one S x K table per eps), reports/figures/guidance_trajectories.png and
+reports/metrics/guidance.json. With the safety chain inside the loop it flies every cell again for
+each of `guidance.dynamics` and each of undefended / `guidance.defenses` (detect-and-hold,
+detect-and-recover; a fresh calibrated defense from models/defense.json per run) -> the defended
+section of the report, metrics `defended`, and reports/figures/guidance_defended.png (one run per
+variant).
 """
 from __future__ import annotations
 
@@ -18,8 +21,8 @@ from typing import Any
 import numpy as np
 import typer
 
-from stages import params as params_mod
-from stages.artifacts import load_chain, load_defense
+from stages import chunks, engine, params as params_mod
+from stages.artifacts import DETECTOR, POSE, load_chain, load_defense
 from stages.io import StageError, atomic_write_text, save_figure, write_metrics
 from stages.pages.guidance import defended_section, guidance_page
 
@@ -52,73 +55,98 @@ def _plan(g: dict[str, Any]):
     return settings, grid
 
 
+class GuidanceWorker:
+    """One Blender scene and one safety chain (loaded here from `models`, absolute pose and detector
+    paths), built once per engine worker: `run(dyn, defense, cell)` flies that run of `plan`
+    (pipeline.guidance.GridPilot) -> (result, keys of the poses it rendered)."""
+
+    def __init__(self, p: dict[str, Any], K: Any, scene: Any, models: tuple[str, str], defense: Any,
+                 plan: Any, torch_threads: int | None) -> None:
+        from pipeline.attacks import stored_attack
+        from pipeline.guidance import CachedCamera, GridPilot
+        from pipeline.scene import Renderer
+
+        if torch_threads:
+            import torch
+
+            torch.set_num_threads(torch_threads)
+        chain, loss_fn, _ = load_chain(p, *models)
+        a, method, seed = p["attack"], p["guidance"]["method"], int(p["seed"]) + SEED_OFFSET
+
+        def attack_at(eps: float, i: int) -> Any:
+            return stored_attack(chain.model, loss_fn, eps, params_mod.make_attack(a, method, seed + i))
+
+        self.renderer = Renderer(K, scene)
+        camera = CachedCamera(self.renderer.render, chain.model, chain=chain)
+        self.pilot = GridPilot(camera, K, plan, attack_at, defense)
+
+    def run(self, dyn: str, defense: str, cell: int | None) -> tuple[Any, frozenset[bytes]]:
+        engine.exit_once_for_test()
+        return self.pilot.fly(dyn, defense, cell)
+
+    def close(self) -> None:
+        self.renderer.close()
+
+
 def main() -> None:
-    """Fly the closed loop without attack and under every (eps, S, K) attack window; report outcomes."""
+    """Fly the closed loop without attack and under every (eps, S, K) attack window, on the engine's
+    workers (each run on one; results in grid order); report outcomes."""
     from tqdm import tqdm
 
-    from pipeline.attacks import stored_attack
     from pipeline.figures import guidance_trajectories, guidance_variants
-    from pipeline.guidance import CachedCamera, fly_grid
-    from pipeline.scene import Renderer
+    from pipeline.guidance import GridPlan, defended_grid, grid_counts, paper_grid
 
     p = params_mod.load()
     g = p["guidance"]
     settings, grid = _plan(g)
-    a = p["attack"]
+    params_mod.make_attack(p["attack"], g["method"], 0)   # refuses bad attack params before anything runs
     params_mod.torch_setup(p)
-    attack = params_mod.make_attack(a, g["method"], int(p["seed"]) + SEED_OFFSET)
-    chain, loss_fn, model_hash = load_chain(p)  # refuses a pose model whose input size is not render.width x height
+    chain, _, model_hash = load_chain(p)  # refuses a pose model whose input size is not render.width x height
     defense = load_defense(p, model_hash, chain.threshold)
-    model = chain.model
     K = params_mod.intrinsics(p)  # the model's input size
+    es = engine.settings(p)
+    scene, threads = chunks.prepare(K, params_mod.scene_settings(p["render"]), es)
+    plan = GridPlan(settings, tuple(grid), int(g["slack_steps"]), tuple(g["dynamics"]), tuple(g["defenses"]))
+    runs = plan.runs()
+    models = (str(POSE.resolve()), str(DETECTOR.resolve()))
+    # Attacked runs get the steps the unattacked chaser needed plus slack_steps: an attack succeeds
+    # when it delays or diverts the chaser beyond that (the paper: 50 nominal steps + ~10).
+    finished, t0, paper_done = [0], time.perf_counter(), [0.0]
 
-    def attack_at(eps: float) -> Any:
-        return stored_attack(model, loss_fn, eps, attack)
+    def progress(i: int, _: Any) -> None:
+        finished[0] += i < plan.paper_size
+        if finished[0] == plan.paper_size and not paper_done[0]:
+            paper_done[0] = time.perf_counter() - t0
+        bar.update(1)
 
-    with Renderer(K, params_mod.scene_settings(p["render"])) as renderer:
-        camera = CachedCamera(renderer.render, model, chain=chain)
-        t0 = time.perf_counter()
-        # Attacked runs get the steps the unattacked chaser needed plus slack_steps: an attack succeeds
-        # when it delays or diverts the chaser beyond that (the paper: 50 nominal steps + ~10).
-        baseline, arrival, horizon, runs = fly_grid(camera, K, settings, grid, int(g["slack_steps"]), attack_at,
-                                                    lambda it: tqdm(it, desc="guidance runs", unit="run"))
-        seconds = time.perf_counter() - t0
-        counts = dict(camera.counts)      # the paper's grid alone
-        defended = _defended(camera, K, settings, grid, g, defense, (baseline, runs), attack_at)
-        defended["seconds"] = time.perf_counter() - t0 - seconds
-        defended.update({k: v - counts[k] for k, v in camera.counts.items()})
+    with tqdm(total=len(runs), desc="guidance runs", unit="run") as bar:
+        on_cpu = p if es.in_process else {**p, "device": "cpu"}   # Ray workers hold no GPU
+        init = (on_cpu, K, scene, models, defense, plan, None if es.in_process else threads)
+        flown = engine.run(GuidanceWorker, init, runs, es, num_cpus=threads, progress=progress)
+    seconds = paper_done[0]
+    paper = flown[:plan.paper_size]
+    counts = grid_counts(paper)      # the paper's grid alone
+    baseline, arrival, horizon, attacked = paper_grid(plan, [r for r, _ in flown])
+    defended = defended_grid(plan, [r for r, _ in flown])
+    defended["seconds"] = time.perf_counter() - t0 - seconds
+    defended.update(grid_counts(flown[plan.paper_size:], frozenset().union(*(k for _, k in paper))))
 
-    metrics = _metrics(settings, g, a, model_hash, seconds, counts, (baseline, arrival, horizon, runs), defended)
+    metrics = _metrics(settings, g, p["attack"], model_hash, seconds, counts, (baseline, arrival, horizon, attacked),
+                       defended)
     write_metrics(METRICS, metrics, p)
     atomic_write_text(REPORT, guidance_page(metrics, g, p["render"]) + defended_section(metrics["defended"], g))
-    save_figure(guidance_trajectories(baseline, [(s, k, r) for e, s, k, r in runs if e == runs[0][0]] if runs else [],
-                                      runs[0][0] if runs else None, settings.goal), FIGURE)
+    first = attacked[0][0] if attacked else None
+    save_figure(guidance_trajectories(baseline, [(s, k, r) for e, s, k, r in attacked if e == first], first,
+                                      settings.goal), FIGURE)
     save_figure(guidance_variants(defended["example"]["runs"], settings.goal, defended["example"]["title"],
                                   settings.tolerance), DEFENDED_FIGURE)
-    typer.echo(f"guidance: baseline {baseline.outcome} ({baseline.miss:.2f} m); {len(runs)} attacked runs, "
+    typer.echo(f"guidance: baseline {baseline.outcome} ({baseline.miss:.2f} m); {len(attacked)} attacked runs, "
           f"{counts['renders']} renders for {counts['steps']} steps in {seconds:.0f} s; defended grid "
           f"{defended['renders']} renders for {defended['steps']} steps in {defended['seconds']:.0f} s -> {REPORT}")
     if baseline.outcome != "rendezvous held":
         typer.secho(f"warning: the no-attack baseline did not reach the target ({baseline.outcome}, miss "
                     f"{baseline.miss:.2f} m): the pose model is not good enough for closed-loop guidance, so the "
                     f"attack tables say little; see {REPORT}", fg=typer.colors.YELLOW, err=True)
-
-
-def _defended(camera: Any, K: Any, settings: Any, grid: list[Any], g: dict[str, Any], defense: Any,
-              paper: tuple[Any, list[Any]], attack_at: Any) -> dict[str, Any]:
-    """Every (eps, S, K) cell for each of guidance.dynamics, undefended and each of guidance.defenses
-    (pipeline.guidance.fly_defended), with a progress bar."""
-    from tqdm import tqdm
-
-    from pipeline.guidance import fly_defended
-
-    bar = tqdm(total=len(g["dynamics"]) * (1 + len(g["defenses"])) * (len(grid) + 1), desc="guidance defended",
-               unit="run")
-    try:
-        return fly_defended(camera, K, settings, grid, list(g["dynamics"]), list(g["defenses"]),
-                            int(g["slack_steps"]), defense, paper, attack_at, bar)
-    finally:
-        bar.close()
 
 
 def _metrics(settings: Any, g: dict[str, Any], a: dict[str, Any], model_hash: str, seconds: float,
