@@ -392,11 +392,15 @@ def paper_grid(plan: GridPlan, results: list[RendezvousResult]
 def defended_grid(plan: GridPlan, results: list[RendezvousResult]) -> dict[str, Any]:
     """Every (dynamics, undefended / defense) block of `plan.runs()`'s `results` -> {"dynamics": {dyn:
     {defense: defended_record}}, "defenses", "example": the runs of the last dynamics at the strongest,
-    longest, earliest cell, for a figure}."""
+    longest, latest-starting cell that every variant flew under attack (a variant that never reached the
+    attack's start range is no example of a defense), for a figure}."""
     n = len(plan.grid) + 1
     blocks = {run[:2]: results[i:i + n] for i, run in enumerate(plan.runs()) if run[2] is None}
     out: dict[str, Any] = {"dynamics": {}, "defenses": list(plan.defenses)}
-    pick = max(range(len(plan.grid)), key=lambda i: (plan.grid[i][0], plan.grid[i][2], -plan.grid[i][1]), default=None)
+    last = [blocks[(plan.dynamics[-1], d)][1:] for d in ("undefended", *plan.defenses)] if plan.dynamics else []
+    attacked_by_all = [i for i in range(len(plan.grid)) if all(flown[i].attacked_frames > 0 for flown in last)]
+    pick = max(attacked_by_all or range(len(plan.grid)),
+               key=lambda i: (plan.grid[i][0], plan.grid[i][2], -plan.grid[i][1]), default=None)
     example: list[tuple[str, Any]] = []
     for dyn in plan.dynamics:
         out["dynamics"][dyn] = {}
