@@ -163,6 +163,7 @@ def test_report_refuses_a_missing_figure_input(tmp_path, monkeypatch):
     for md in (REPO / "reports").glob("*.md"):
         shutil.copy(md, tmp_path / "reports" / md.name)
     (tmp_path / "reports" / "README.md").unlink()
+    (tmp_path / "reports" / "metrics" / "summary.json").unlink()   # committed, written by `rpod report`
     (tmp_path / "reports" / "plots" / "roc" / "lid.csv").unlink()
     shutil.copy(REPO / "params.yaml", tmp_path / "params.yaml")
     monkeypatch.chdir(tmp_path)
