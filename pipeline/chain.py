@@ -1,4 +1,4 @@
-"""The onboard safety chain: image -> pose estimate -> SHAP signature -> attack flag (SPEC 8, 11).
+"""The onboard safety chain: image -> pose -> SHAP signature -> attack flag (defense: pipeline/defense.py).
 
 The pose network's GAP features `a` (B, 1000) are computed once and used twice: the affine heads
 turn them into the pose (B, 9), and the closed-form DeepSHAP of those heads,
