@@ -53,7 +53,8 @@ def pose_error_bars(bins: Mapping[str, Sequence[Mapping[str, float]]]) -> Figure
         offset = (k - (len(bins) - 1) / 2) * width
         by_label = {str(r["range_m"]): r for r in rows}
         for ax, key in ((axes[0], "pos_mean_m"), (axes[1], "att_mean_deg")):
-            ax.bar(x + offset, [by_label[b][key] if b in by_label else np.nan for b in labels], width, label=split)
+            # a range bin without frames (n = 0, e.g. an imported SPEED set) has no error: no bar
+            ax.bar(x + offset, [by_label.get(b, {}).get(key, np.nan) for b in labels], width, label=split)
     for ax, ylabel in zip(axes, ("mean position error (m)", "mean attitude error (deg)")):
         ax.set_xticks(x, labels)
         ax.set_xlabel("range (m)")

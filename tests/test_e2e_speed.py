@@ -1,7 +1,7 @@
 """End to end: a tiny SPEED+-layout folder as the training/test data of `dvc exp run` on the smoke profile
-(render imports it; label -> train -> attack -> shap -> detect -> calibrate -> evaluate run on it), in a
-temporary copy of the repo; then editing one of its images marks `render` changed in `dvc status`
-(the folder is a DVC dep through "${render.source}"). A few minutes on 2 cores."""
+(render imports it; every stage after it, through `rpod report`, runs on it), in a temporary copy of
+the repo; then editing one of its images marks `render` changed in `dvc status` (the folder is a DVC
+dep through "${render.source}"). About a minute and a half on 2 cores."""
 from __future__ import annotations
 
 import json
@@ -23,7 +23,7 @@ def test_a_speedplus_folder_runs_through_dvc(tmp_path):
     repo = tmp_path / "repo"
     repo.mkdir()
     env = copy_repo(repo)
-    _run(["dvc", "exp", "run", "-S", "profile=smoke", "-S", f"render.source={data}", "evaluate"], repo, env)
+    _run(["dvc", "exp", "run", "-S", "profile=smoke", "-S", f"render.source={data}"], repo, env)   # every stage
 
     assert yaml.safe_load((repo / "params.yaml").read_text())["render"]["source"] == str(data)
     meta = json.loads((repo / "datasets/render/meta.json").read_text())
@@ -33,10 +33,13 @@ def test_a_speedplus_folder_runs_through_dvc(tmp_path):
     assert (labels.split == "train").sum() == 64 and (labels.split == "test").sum() == 16
     train = json.loads((repo / "reports/metrics/train.json").read_text())
     assert train["profile"] == "smoke" and train["test"]["n"] == 16
-    assert json.loads((repo / "reports/metrics/evaluate.json").read_text())["profile"] == "smoke"
+    for stage in ("evaluate", "guidance", "robustness", "lab"):
+        assert json.loads((repo / f"reports/metrics/{stage}.json").read_text())["profile"] == "smoke", stage
+    assert json.loads((repo / "reports/metrics/summary.json").read_text())["pos_m"] > 0
+    assert "## " in (repo / "reports/README.md").read_text()
     lock = yaml.safe_load((repo / "dvc.lock").read_text())["stages"]["render"]
     assert str(data) in [d["path"] for d in lock["deps"]]
-    assert "changed" not in _run(["dvc", "status", "evaluate"], repo, env)
+    assert "changed" not in _run(["dvc", "status"], repo, env)
 
     cv2.imwrite(str(data / "synthetic/images/train000.png"), np.zeros((30, 48, 3), np.uint8))
     status = _run(["dvc", "status", "render"], repo, env)

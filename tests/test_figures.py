@@ -128,3 +128,13 @@ def test_guidance_panels_carry_information(figures):
             assert spread(ax) > 0.1, ax.get_title()
     zoomed = figures["guidance_defended"].axes[1]          # distance to the target from 5 steps before the attack
     assert min(float(np.min(line.get_xdata())) for line in zoomed.get_lines() if len(line.get_xdata()) > 2) == 25
+
+
+def test_pose_error_bars_leave_an_empty_range_bin_blank():
+    """A range bin without frames (an imported set that never comes closer than 20 m) has only n = 0."""
+    from pipeline.figures import pose_error_bars
+
+    rows = [{"n": 0, "range_m": "60-45"}, {"n": 9, "range_m": "45-30", "pos_mean_m": 1.5, "att_mean_deg": 9.0}]
+    fig = pose_error_bars({"train": rows, "test": rows})
+    heights = [p.get_height() for p in fig.axes[0].patches]
+    assert np.isnan(heights[0]) and heights[1] == 1.5
