@@ -24,70 +24,70 @@ sys.path.insert(0, str(ROOT))
 
 from pipeline.report import markdown_table  # noqa: E402
 from stages.io import atomic_write_text  # noqa: E402
+from stages.pages.summary import HEADLINES as SUMMARY_HEADLINES, Headline, Metrics  # noqa: E402
 
-# (key, headline number, metrics file, getter): percentages as percent, errors in their units. The key
-# names the number in reports/variance.json, which `rpod report` reads to show the spread in README.md.
-HEADLINES: list[tuple[str, str, str, Callable[[dict[str, Any]], float]]] = [
-    ("pose_position_m", "pose, test position error (m)", "train", lambda m: m["test"]["pos_mean_m"]),
-    ("pose_attitude_deg", "pose, test attitude error (deg)", "train", lambda m: m["test"]["att_mean_deg"]),
-    ("pose_tz_pct", "pose, tz error at 10-30 m (% of range)", "train", lambda m: m["test"]["tz_pct_10_30"]),
-    ("fgsm_position_m_0.05", "FGSM position error at eps 0.05 (m)", "attack",
-     lambda m: m["eps"]["0.05"]["position_mean_m"]),
-    ("undefended_lost_pct", "closed loop, attacked runs that lost the rendezvous, undefended (%)", "guidance",
-     lambda m: 100 * _lost(m)),
-    ("recover_held_pct", "closed loop, attacked runs held, detect-and-recover, paper dynamics (%)", "guidance",
-     lambda m: 100 * _held(m["defended"]["dynamics"]["paper"]["recover"])),
-    ("lstm_accuracy_pct", "LSTM detector accuracy, SHAP test split (%)", "detect",
-     lambda m: 100 * m["detectors"]["lstm"]["all"]["accuracy"]),
-    ("lstm_recall_0.01_pct", "LSTM detection rate at eps 0.01 (%)", "detect",
-     lambda m: 100 * m["detectors"]["lstm"]["0.01"]["recall"]),
-    ("integrated_pct", "integrated accuracy, mean over eps (%)", "evaluate", lambda m: 100 * m["accuracy_mean"]),
-    ("integrated_0.01_pct", "integrated accuracy at eps 0.01 (%)", "evaluate",
-     lambda m: 100 * m["per_eps"]["0.01"]["accuracy"]),
-    ("defended_0.01_pct", "defended chain accuracy at eps 0.01 (%)", "evaluate",
-     lambda m: 100 * m["fused"]["per_eps"]["0.01"]["accuracy"]["value"]),
-    ("defended_fpr_clean_pct", "defended chain false alarms on attack-free runs (%)", "evaluate",
-     lambda m: 100 * m["fused"]["per_eps"]["0.01"]["fpr_clean"]["value"]),
-    ("lab_pct", "lab detection accuracy (%)", "lab", lambda m: 100 * m["accuracy_mean"]),
-    ("fused_hu_0.05_pct", "worst harmful-undetected at eps 0.05, fused chain (%)", "robustness",
-     lambda m: 100 * m["worst_harmful_undetected_fused"]["0.05"]["harmful_undetected_rate"]),
-    ("fused_hu_0.01_pct", "worst harmful-undetected at eps 0.01, fused chain (%)", "robustness",
-     lambda m: 100 * m["worst_harmful_undetected_fused"]["0.01"]["harmful_undetected_rate"]),
-    ("lstm_hu_0.05_pct", "worst harmful-undetected at eps 0.05, LSTM alone (%)", "robustness",
-     lambda m: 100 * m["worst_harmful_undetected"]["0.05"]["harmful_undetected_rate"]),
-    ("lstm_hu_0.01_pct", "worst harmful-undetected at eps 0.01, LSTM alone (%)", "robustness",
-     lambda m: 100 * m["worst_harmful_undetected"]["0.01"]["harmful_undetected_rate"]),
+# The headline numbers: summary.json's (stages/pages/summary.py: `dvc metrics show`) and a few more
+# that only the seed spread needs. Keys name them in reports/variance.json, which `rpod report` reads to
+# show the spread beside the README's headline numbers.
+def _lost(m: Metrics) -> float:
+    """Percent of the attacked closed-loop runs (undefended) that lost the rendezvous."""
+    runs = [r for r in m["guidance"]["runs"] if r.get("attacked_frames", 1) > 0]
+    return 100 * sum(r["outcome"] != "rendezvous held" for r in runs) / len(runs)
+
+
+def _paper_held(m: Metrics) -> float:
+    """Percent of attacked runs held with detect-and-recover under the paper's dynamics."""
+    held = m["guidance"]["defended"]["dynamics"]["paper"]["recover"]["held"].values()
+    return 100 * sum(k for k, _ in held) / sum(n for _, n in held)
+
+
+def _worst(m: Metrics, key: str, eps: str) -> float:
+    return 100 * m["robustness"][key][eps]["harmful_undetected_rate"]
+
+
+HEADLINES: list[Headline] = [
+    *SUMMARY_HEADLINES,
+    Headline("pose_tz_pct", "pose, tz error at 10-30 m (% of range)", lambda m: m["train"]["test"]["tz_pct_10_30"]),
+    Headline("fgsm_position_m_0.05", "FGSM position error at eps 0.05 (m)",
+             lambda m: m["attack"]["eps"]["0.05"]["position_mean_m"]),
+    Headline("undefended_lost_pct", "closed loop, attacked runs that lost the rendezvous, undefended (%)", _lost),
+    Headline("recover_held_pct", "closed loop, attacked runs held, detect-and-recover, paper dynamics (%)",
+             _paper_held),
+    Headline("lstm_recall_0.01_pct", "LSTM detection rate at eps 0.01 (%)",
+             lambda m: 100 * m["detect"]["detectors"]["lstm"]["0.01"]["recall"]),
+    Headline("integrated_0.01_pct", "integrated accuracy at eps 0.01 (%)",
+             lambda m: 100 * m["evaluate"]["per_eps"]["0.01"]["accuracy"]),
+    Headline("fused_hu_0.05_pct", "worst harmful-undetected at eps 0.05, fused chain (%)",
+             lambda m: _worst(m, "worst_harmful_undetected_fused", "0.05")),
+    Headline("fused_hu_0.01_pct", "worst harmful-undetected at eps 0.01, fused chain (%)",
+             lambda m: _worst(m, "worst_harmful_undetected_fused", "0.01")),
+    Headline("lstm_hu_0.05_pct", "worst harmful-undetected at eps 0.05, LSTM alone (%)",
+             lambda m: _worst(m, "worst_harmful_undetected", "0.05")),
+    Headline("lstm_hu_0.01_pct", "worst harmful-undetected at eps 0.01, LSTM alone (%)",
+             lambda m: _worst(m, "worst_harmful_undetected", "0.01")),
 ]
 
 
-def _lost(m: dict[str, Any]) -> float:
-    """Fraction of the attacked closed-loop runs (undefended) that lost the rendezvous."""
-    runs = [r for r in m["runs"] if r.get("attacked_frames", 1) > 0]
-    return sum(r["outcome"] != "rendezvous held" for r in runs) / len(runs)
-
-
-def _held(variant: dict[str, Any]) -> float:
-    """Fraction of attacked runs held over every start of one defended variant ({start: [held, runs]})."""
-    return sum(v[0] for v in variant["held"].values()) / sum(v[1] for v in variant["held"].values())
-
-
-
-def _value(run: Path, stage: str, get: Callable[[dict[str, Any]], float]) -> float | None:
-    """The number from RUN's metrics of `stage`, or None when the stage did not run there: metrics that
+def run_metrics(run: Path) -> Metrics:
+    """RUN's stage metrics by file stem, without those of stages that did not run there: metrics that
     name a pose model (`model_hash`) count only when it is RUN's own models/pose.pt (a copy of the
     repository carries the committed metrics of stages it never ran)."""
     from stages.io import file_hash
 
-    path = run / "reports" / "metrics" / f"{stage}.json"
-    if not path.exists():
-        return None
-    metrics = json.loads(path.read_text())
     pose = run / "models" / "pose.pt"
-    if "model_hash" in metrics and (not pose.exists() or metrics["model_hash"] != file_hash(pose)):
-        return None
+    own = file_hash(pose) if pose.exists() else None
+    out = {}
+    for path in sorted((run / "reports" / "metrics").glob("*.json")):
+        metrics = json.loads(path.read_text())
+        if "model_hash" not in metrics or metrics["model_hash"] == own:
+            out[path.stem] = metrics
+    return out
+
+
+def _value(metrics: Metrics, get: Callable[[Metrics], float]) -> float | None:
     try:
         return float(get(metrics))
-    except (KeyError, TypeError):
+    except (KeyError, TypeError, ValueError, ZeroDivisionError):
         return None
 
 
@@ -100,8 +100,9 @@ def _seed(run: Path) -> str:
 def variance_rows(runs: list[Path]) -> list[dict[str, Any]]:
     """One row per headline number: runs that have it, mean, standard deviation (n - 1), min, max."""
     rows = []
-    for key, name, stage, get in HEADLINES:
-        values = [v for v in (_value(r, stage, get) for r in runs) if v is not None]
+    metrics = [run_metrics(r) for r in runs]
+    for key, name, get, _ in HEADLINES:
+        values = [v for v in (_value(m, get) for m in metrics) if v is not None]
         if not values:
             continue
         sd: float | str = statistics.stdev(values) if len(values) > 1 else "-"  # no spread from one run

@@ -36,13 +36,13 @@ def _run(root: Path, seed: int, pos: float, detect_acc: float | None) -> Path:
 
 def test_rows_count_the_runs_that_have_each_number(tmp_path):
     runs = [_run(tmp_path, 0, 0.40, 0.93), _run(tmp_path, 1, 0.46, 0.91), _run(tmp_path, 2, 0.43, None)]
-    rows = {r["headline number"]: r for r in _load().variance_rows(runs)}
-    pos = rows["pose, test position error (m)"]
+    rows = {r["key"]: r for r in _load().variance_rows(runs)}
+    pos = rows["pos_m"]
     assert pos["runs"] == 3 and pos["mean"] == pytest.approx(0.43) and pos["sd"] == pytest.approx(0.03)
     assert (pos["min"], pos["max"]) == (0.40, 0.46)
-    acc = rows["LSTM detector accuracy, SHAP test split (%)"]
+    acc = rows["lstm"]
     assert acc["runs"] == 2 and acc["mean"] == pytest.approx(92.0)
-    assert "lab detection accuracy (%)" not in rows           # no run has it: no row
+    assert "lab" not in rows                                  # no run has it: no row
 
 
 def test_a_single_run_has_no_spread(tmp_path):
@@ -54,8 +54,8 @@ def test_metrics_of_another_pose_model_do_not_count(tmp_path):
     """A copy of the repository carries committed metrics of stages it never ran: they name another model."""
     run = _run(tmp_path, 1, 0.40, 0.93)
     (run / "models" / "pose.pt").write_bytes(b"retrained")      # detect.json now belongs to another model
-    rows = {r["headline number"]: r for r in _load().variance_rows([run])}
-    assert "LSTM detector accuracy, SHAP test split (%)" not in rows and rows["pose, test position error (m)"]["runs"] == 1
+    rows = {r["key"]: r for r in _load().variance_rows([run])}
+    assert "lstm" not in rows and rows["pos_m"]["runs"] == 1
 
 
 
@@ -71,7 +71,8 @@ def test_readme_results_show_the_spread_of_each_headline_number():
 
     metrics = {m: json.loads((REPO / "reports" / "metrics" / f"{m}.json").read_text())
                for m in ("train", "attack", "guidance", "detect", "evaluate", "lab", "robustness")}
-    not_shown = {"pose_tz_pct", "lstm_recall_0.01_pct", "integrated_0.01_pct"}   # in variance.md only
+    # in variance.md only: the README shows these per eps or per dynamics (or not at all)
+    not_shown = {"pose_tz_pct", "lstm_recall_0.01_pct", "integrated_0.01_pct", "harm_und", "held"}
     keys = [k for k, *_ in _load().HEADLINES if k not in not_shown]
     spread = {"profile": "default", "seeds": ["0", "1", "2"],
               "numbers": {k: {"runs": 3, "mean": 1.0, "sd": 1.01 + 0.01 * i, "min": 0.0, "max": 2.0}
@@ -91,3 +92,11 @@ def test_a_spread_of_another_profile_is_not_shown(tmp_path, monkeypatch):
     (tmp_path / "reports" / "variance.json").write_text(json.dumps({"profile": "default", "seeds": [], "numbers": {}}))
     assert report._spread({"profile_name": "smoke"}) is None
     assert report._spread({"profile_name": "default"})["profile"] == "default"
+
+
+def test_the_spread_covers_every_summary_json_number():
+    """The seed spread and `dvc metrics show` read the same headline definitions (stages/pages/summary.py)."""
+    from stages.pages.summary import HEADLINES as SUMMARY
+
+    keys = [h.key for h in _load().HEADLINES]
+    assert keys[:len(SUMMARY)] == [h.key for h in SUMMARY]
