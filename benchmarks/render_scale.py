@@ -118,7 +118,7 @@ def ray_overhead(p: dict, cores: int, jobs: int = 200) -> dict[str, float]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--frames", type=int, nargs=2, default=[320, 120], help="poses at 160x90 and at 480x270")
+    ap.add_argument("--frames", type=int, nargs=2, default=[640, 160], help="poses at 160x90 and at 480x270")
     ap.add_argument("--chunk", type=int, default=20, help="frames per chunk (one job)")
     ap.add_argument("--stage", action="store_true", help="also time the default render stage both ways")
     args = ap.parse_args()
@@ -143,7 +143,9 @@ def main() -> None:
             f"the machine were not stopped). {p['render']['samples']} samples, denoiser {p['render']['denoiser']}; "
             f"chunks of {args.chunk} frames written straight into one zarr store by whichever path renders them. "
             f"Wall times include starting the workers (Ray's own start-up is in the second table); a Ray worker "
-            f"renders with render.threads / workers Blender threads ({p['render']['threads']} / 1, 1 each for 2).",
+            f"renders with render.threads / workers Blender threads ({p['render']['threads']} / 1, 1 each for 2) and "
+            f"is bound to as many cores of its own (`stages.engine.pin_cores`): unbound, a Blender scene at 1 thread "
+            f"still used both cores (its scene sync runs on a pool sized to the machine) and two workers collided.",
             "", markdown_table(rows, decimals=3), "",
             "Ray's overhead, measured with a worker that does nothing (one local Ray started and stopped once per "
             "stage; every stage builds its workers and their Blender scenes once), and the start of one Blender "
@@ -155,11 +157,13 @@ def main() -> None:
 
 
 def stage_times(p: dict) -> str:
-    """The default render stage (`render_all`, no previews) in-process and with Ray on every core."""
+    """The default render stage (`render_all`, no previews) in-process and with Ray on every core, each twice
+    in the order in-process, Ray, Ray, in-process so that a drift in the machine's load hits both alike."""
     from stages.render import render_all
 
     rows = []
-    for label, workers in [("in-process (engine.workers: 1)", 1), ("Ray on every core (engine.workers: null)", None)]:
+    ways = [("in-process (engine.workers: 1)", 1), ("Ray on every core (engine.workers: null)", None)]
+    for label, workers in [*ways, *ways[::-1]]:
         q = {**p, "engine": {**p["engine"], "workers": workers}}
         with tempfile.TemporaryDirectory() as d:
             meter, t0 = CpuMeter(), time.perf_counter()
@@ -168,9 +172,14 @@ def stage_times(p: dict) -> str:
             rows.append({"render stage": label, "frames": 13 * int(p["render"]["frames_per_sequence"]),
                          "wall s": wall, "CPU s (all processes)": meter.stop(), "load average after": os.getloadavg()[0]})
         print(rows[-1], flush=True)
-    return ("The whole default render stage (params.yaml, previews left out), both ways; the Ray row includes "
-            "starting and stopping Ray, and its CPU time that of Ray's own service processes (raylet, GCS server) "
-            "and of each worker's bpy import:\n\n" + markdown_table(rows, decimals=1))
+    mean = {label: np.mean([r["wall s"] for r in rows if r["render stage"] == label]) for label, _ in ways}
+    (one, _), (ray_, _) = ways
+    return ("The whole default render stage (params.yaml, previews left out), both ways, twice (in the order "
+            "in-process, Ray, Ray, in-process); the Ray rows include starting and stopping Ray, and their CPU time "
+            "that of Ray's own service processes (raylet, GCS server) and of each worker's bpy import:\n\n"
+            + markdown_table(rows, decimals=1)
+            + f"\n\nMean wall time: in-process {mean[one]:.1f} s, Ray {mean[ray_]:.1f} s "
+              f"({mean[one] / mean[ray_]:.2f}x the in-process speed).")
 
 
 if __name__ == "__main__":

@@ -113,3 +113,46 @@ def test_a_worker_that_cannot_see_the_store_sends_its_pixels(workdir, monkeypatc
     monkeypatch.setattr(chunks, "visible", lambda fs, root: asked.append(root) and False)  # "another machine"
     sent = _render(workdir, ["engine.workers=1"])
     assert asked and np.array_equal(direct, sent)   # the driver wrote every chunk: same store, same manifest
+
+
+HOLDER = """
+import os, sys
+from stages import engine
+got = engine.pin_cores(int(sys.argv[1]))
+print(got, sorted(os.sched_getaffinity(0)), flush=True)
+sys.stdin.read()   # hold the cores until the test closes stdin
+"""
+
+
+def test_pin_cores_gives_each_worker_cores_of_its_own(tmp_path):
+    """Processes (as Ray workers do) bind to distinct free cores, none when too few are free, and a
+    core is free again once its holder has exited. Run in subprocesses: pinning this one would slow the suite."""
+    import ast
+    import os
+    import subprocess
+    import sys
+
+    if not hasattr(os, "sched_setaffinity"):
+        pytest.skip("no CPU affinity on this OS")
+    cores = sorted(os.sched_getaffinity(0))
+    env = {**os.environ, "TMPDIR": str(tmp_path)}   # lock files of this test only, not of live workers
+    procs = []
+
+    def hold(n: int) -> tuple[list[int], list[int]]:
+        procs.append(subprocess.Popen([sys.executable, "-c", HOLDER, str(n)], stdin=subprocess.PIPE,
+                                      stdout=subprocess.PIPE, text=True, env=env))
+        got, bound = procs[-1].stdout.readline().split("] [")
+        return ast.literal_eval(got + "]"), ast.literal_eval("[" + bound)
+
+    try:
+        first = hold(1)
+        assert first == ([cores[0]], [cores[0]])
+        assert hold(len(cores)) == ([], cores)                     # one core is taken: none bound
+        if len(cores) > 1:
+            assert hold(1) == ([cores[1]], [cores[1]])
+        procs[0].communicate("")
+        assert hold(1) == ([cores[0]], [cores[0]])                 # freed by the exit of its holder
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
