@@ -175,8 +175,8 @@ def body(table: str, rows: list[dict[str, object]], defense: float, threads: int
     return f"""`benchmarks/chain_latency.py` on {platform.processor() or platform.machine()}, torch
 {torch.__version__}, {threads} thread(s), batch 1, random weights, medians of interleaved calls on the
 same model object; load average {load:.1f} at the start, {os.getloadavg()[0]:.1f} at the end, on
-{os.cpu_count()} cores (other jobs were running: ratios are of process CPU time, which their CPU use
-does not inflate, though their use of the shared caches does).
+{os.cpu_count()} cores (ratios are of process CPU time, which other processes' CPU use would not
+inflate, though their use of the shared caches would).
 
 The chain computes the GAP features once and uses them for the pose heads and, in one traced and
 frozen TorchScript graph (`pipeline.detectors.lstm.ShapLSTM`), for the closed-form SHAP values and
@@ -194,9 +194,12 @@ At the default size the defended chain {verdict} the 1.05x target. What the chai
 add is not their arithmetic but the caches the pose network's convolutions leave cold: SHAP +
 detector cost {float(d["SHAP + detector alone (ms)"]):.3f} ms alone and {in_chain:.3f} ms in the chain, the
 defense {defense * 1e3:.3f} ms alone and {float(d["defense in the loop (ms)"]):.3f} ms in the loop. Each frame
-the detector streams its 1.6 MB input-projection weight (400 x 1000 fp32) and the code and data of
-every small op again, from memory on this shared machine (a small numpy call costs 5-10 us there,
-~1 us warm, which is why the motion filter's per-frame path is plain floats).
+the detector fetches its 1.6 MB input-projection weight (400 x 1000 fp32) and the code and data of
+every small op again, after the convolutions have pushed them out of the core's caches (a small numpy
+call costs 5-10 us there, ~1 us warm, which is why the motion filter's per-frame path is plain
+floats). It is not contention from other jobs: with nothing else on the machine (load 1.0, this
+benchmark alone) the ratios were 1.104x / 1.156x (chain / chain + defense), with other jobs running
+1.098x / 1.147x.
 
 Measured while this was built (same machine, load 1-9; ms alone / in the chain): the folded graph
 replaced a traced detector on the SHAP values that cost 0.40 / ~0.6; it is 1.8x faster on batches
