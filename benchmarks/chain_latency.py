@@ -197,11 +197,11 @@ defense {defense * 1e3:.3f} ms alone and {float(d["defense in the loop (ms)"]):.
 the detector fetches its 1.6 MB input-projection weight (400 x 1000 fp32) and the code and data of
 every small op again, after the convolutions have pushed them out of the core's caches (a small numpy
 call costs 5-10 us there, ~1 us warm, which is why the motion filter's per-frame path is plain
-floats). It is not contention from other jobs: with nothing else on the machine (load 1.0, this
-benchmark alone) the ratios were 1.104x / 1.156x (chain / chain + defense), with other jobs running
-1.098x / 1.147x.
+floats).
 
-Measured while this was built (same machine, load 1-9; ms alone / in the chain): the folded graph
+Measured while this was built (same machine, load 1-9; ms alone / in the chain): the ratios are not
+contention from other jobs: with nothing else on the machine (load 1.0, this benchmark alone) they
+were 1.104x / 1.156x (chain / chain + defense), with other jobs running 1.098x / 1.147x. The folded graph
 replaced a traced detector on the SHAP values that cost 0.40 / ~0.6; it is 1.8x faster on batches
 of 64 frames (7.1 against 12.9 ms), but in the chain the two are within the noise of these runs
 (1.095-1.102x against 1.100-1.108x the pose forward, interleaved). The float motion filter cut the
