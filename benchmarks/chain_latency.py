@@ -27,13 +27,13 @@ import torch
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from pipeline.chain import SafetyChain  # noqa: E402
-from pipeline.defense import Defense, DefenseSettings  # noqa: E402
+from pipeline.defense.chain import SafetyChain  # noqa: E402
+from pipeline.defense.fusion import Defense, DefenseSettings  # noqa: E402
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector  # noqa: E402
-from pipeline.model import PoseNet  # noqa: E402
-from pipeline.motion import MotionSettings, NoiseModel  # noqa: E402
-from pipeline.report import markdown_table  # noqa: E402
-from pipeline.trajectories import look_at  # noqa: E402
+from pipeline.pose.model import PoseNet  # noqa: E402
+from pipeline.defense.kalman import MotionSettings, NoiseModel  # noqa: E402
+from pipeline.report.markdown import markdown_table  # noqa: E402
+from pipeline.geometry.trajectories import look_at  # noqa: E402
 from stages.report import write_benchmark  # noqa: E402
 
 CONFIGS = [("default", 0.25, 90, 160), ("paper", 1.0, 270, 480)]
@@ -183,7 +183,7 @@ frozen TorchScript graph (`pipeline.detectors.lstm.ShapLSTM`), for the closed-fo
 the LSTM detector: the SHAP scaling and the detector's standardisation are folded into one
 multiply-add, the gates are reordered so one sigmoid covers three of them, and the cell's ReLU on
 c is dropped (c is never negative). "plain chain" is the unfolded path (SHAP values, then the
-detector module), kept for other detectors and devices. The defense (pipeline/defense.py: motion
+detector module), kept for other detectors and devices. The defense (pipeline/defense/fusion.py: motion
 filter, chi-square gate, fusion, recovery mode) costs {defense * 1e3:.3f} ms of CPU per frame alone;
 "defense in the loop" is what it adds after the chain. The fast chain's pose is the plain chain's,
 and its probabilities equal the plain chain's within "max prob diff to plain" (tests/test_chain.py

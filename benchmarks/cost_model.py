@@ -171,9 +171,9 @@ def measure_torch(device: str, amp: bool, repeats: int, hw: tuple[int, int]) -> 
     """(wall, CPU) seconds per unit of the torch units on `device` (width-1 PoseNet at `hw`, small batches)."""
     import torch
 
-    from pipeline.attacks import fgsm
-    from pipeline.loss import PoseLoss
-    from pipeline.model import PoseNet
+    from pipeline.attacks.gradient import fgsm
+    from pipeline.pose.loss import PoseLoss
+    from pipeline.pose.model import PoseNet
 
     torch.manual_seed(0)
     sync = torch.cuda.synchronize if device.startswith("cuda") else (lambda: None)
@@ -213,8 +213,8 @@ def measure_lstm(repeats: int, n: int = 256) -> tuple[float, float]:
 
 def measure_render(p: dict[str, Any], repeats: int) -> tuple[float, float]:
     """(wall, CPU) seconds per frame of the Cycles render at the paper size and samples (approach poses)."""
-    from pipeline.scene import Renderer
-    from stages import params as params_mod
+    from pipeline.render.scene import Renderer
+    from stages.config import params as params_mod
     from stages.render import frames
 
     _, _, R, t = frames(p)
@@ -253,7 +253,7 @@ def unit_totals(rows: list[dict[str, Any]]) -> dict[str, float]:
 def body(rows: list[dict[str, Any]], idle: list[dict[str, Any]], facts: dict[str, Any]) -> str:
     """The Markdown of the `## Paper-profile cost model` section: `rows` predicted from the measured wall
     rates, `idle` from the CPU time per unit over the threads (what an otherwise idle machine would take)."""
-    from pipeline.report import markdown_table
+    from pipeline.report.markdown import markdown_table
 
     totals, idle_totals = stage_totals(rows), stage_totals(idle)
     total, idle_total = sum(totals.values()), sum(idle_totals.values())
@@ -292,7 +292,7 @@ def body(rows: list[dict[str, Any]], idle: list[dict[str, Any]], facts: dict[str
             f"on one H100-class GPU with {TARGET_CORES} cores: {idle_total / TARGET_S:,.0f}x this machine's idle "
             f"estimate. The floor is the rate a unit needs even if it had the whole 2 h; at its share, every unit "
             f"keeps the share of the time it has here:\n\n{req}\n"
-            f"Rendering stays on the CPU (Cycles, pipeline/scene.py): at {TARGET_CORES} instead of "
+            f"Rendering stays on the CPU (Cycles, pipeline/render/scene.py): at {TARGET_CORES} instead of "
             f"{facts['render_threads']} threads, with linear scaling, the {renders:,.0f} renders would take "
             f"{renders / (rate['render'] * TARGET_CORES / facts['render_threads']) / 60:.0f} min of the 120, so the "
             f"target also needs Cycles on the GPU or more render machines (Ray). The CUDA path of the torch stages "
@@ -304,7 +304,7 @@ def body(rows: list[dict[str, Any]], idle: list[dict[str, Any]], facts: dict[str
 def main() -> None:
     import torch
 
-    from stages import params as params_mod
+    from stages.config import params as params_mod
     from stages.report import write_benchmark
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

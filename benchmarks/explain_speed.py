@@ -1,7 +1,7 @@
 """Per-image cost of the SHAP explanation and of the LSTM detector, next to the pose network itself.
 
 Times, on the pose network's head (1000 GAP features -> 9 outputs) with the default background:
-the closed-form DeepSHAP of pipeline/explain.py, the shap library's DeepExplainer, and captum's
+the closed-form DeepSHAP of pipeline/shap.py, the shap library's DeepExplainer, and captum's
 DeepLiftShap when captum is installed; then the LSTM detector and the pose network per frame.
 Uses models/pose.pt and models/detector.pt when they exist, else randomly initialised models of
 the default architecture (timings do not depend on the weights). Prints a table and writes the
@@ -26,9 +26,9 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector  # noqa: E402
-from pipeline.explain import Explainer, deep_shap  # noqa: E402
-from pipeline.model import PoseNet  # noqa: E402
-from pipeline.report import markdown_table  # noqa: E402
+from pipeline.shap import Explainer, deep_shap  # noqa: E402
+from pipeline.pose.model import PoseNet  # noqa: E402
+from pipeline.report.markdown import markdown_table  # noqa: E402
 from stages.report import write_benchmark  # noqa: E402
 
 
@@ -51,7 +51,7 @@ def load_models(width: float) -> tuple[PoseNet, LSTMDetector, str]:
     source = []
     pose_path, det_path = Path("models/pose.pt"), Path("models/detector.pt")
     if pose_path.exists():
-        from stages.checkpoint import load_pose_model
+        from stages.artifacts.checkpoint import load_pose_model
 
         pose = load_pose_model(pose_path)
         source.append("models/pose.pt")
@@ -59,7 +59,7 @@ def load_models(width: float) -> tuple[PoseNet, LSTMDetector, str]:
         pose = PoseNet(width=width).eval()
         source.append(f"random PoseNet(width={width})")
     if det_path.exists():
-        from stages.artifacts import load_detector
+        from stages.artifacts.readers import load_detector
 
         det, _ = load_detector(det_path)
         source.append("models/detector.pt")
@@ -90,7 +90,7 @@ def main() -> None:
     rows = []
     t_exact_1 = per_call(lambda: explainer(feats[:1]))
     t_exact_b = per_call(lambda: explainer(feats)) / len(feats)
-    rows.append({"method": "closed form (pipeline.explain), 1 image", "ms / image": t_exact_1 * 1e3})
+    rows.append({"method": "closed form (pipeline.shap), 1 image", "ms / image": t_exact_1 * 1e3})
     rows.append({"method": "closed form, batch of 256", "ms / image": t_exact_b * 1e3})
     k = args.deep_images
     t_deep = per_call(lambda: deep_shap(pose, feats[:k], background, batch_size=k), min_seconds=3.0) / k
@@ -98,7 +98,7 @@ def main() -> None:
     try:
         from captum.attr import DeepLiftShap
 
-        from pipeline.explain import Head
+        from pipeline.shap import Head
 
         head = Head(pose).eval()
         dls = DeepLiftShap(head)

@@ -4,7 +4,7 @@ stage both ways; writes the '## Rendering on Ray' section of reports/benchmarks.
 
 Usage: .venv/bin/python benchmarks/render_scale.py [--frames 320 120] [--chunk 20] [--stage]
 Settings from params.yaml (render.*, camera.*); poses spread over the approach sequences (60 to 10 m).
-Every path writes a real zarr store through stages/chunks.py, the same code `rpod render` runs.
+Every path writes a real zarr store through stages/engine/chunks.py, the same code `rpod render` runs.
 """
 from __future__ import annotations
 
@@ -18,9 +18,10 @@ from pathlib import Path
 import numpy as np
 import psutil
 
-from pipeline.report import markdown_table
-from stages import engine, params as params_mod
-from stages.chunks import render_to_store
+from pipeline.report.markdown import markdown_table
+from stages.engine import pool as engine
+from stages.config import params as params_mod
+from stages.engine.chunks import render_to_store
 from stages.report import write_benchmark
 
 SIZES = [(160, 90), (480, 270)]
@@ -144,7 +145,7 @@ def main() -> None:
             f"chunks of {args.chunk} frames written straight into one zarr store by whichever path renders them. "
             f"Wall times include starting the workers (Ray's own start-up is in the second table); a Ray worker "
             f"renders with render.threads / workers Blender threads ({p['render']['threads']} / 1, 1 each for 2) and "
-            f"is bound to as many cores of its own (`stages.engine.pin_cores`): unbound, a Blender scene at 1 thread "
+            f"is bound to as many cores of its own (`stages.engine.pool.pin_cores`): unbound, a Blender scene at 1 thread "
             f"still used both cores (its scene sync runs on a pool sized to the machine) and two workers collided.",
             "", markdown_table(rows, decimals=3), "",
             "Ray's overhead, measured with a worker that does nothing (one local Ray started and stopped once per "

@@ -15,8 +15,8 @@ import time
 
 import numpy as np
 
-from pipeline.report import markdown_table
-from stages import params as params_mod
+from pipeline.report.markdown import markdown_table
+from stages.config import params as params_mod
 from stages.report import write_benchmark
 from stages.render import frames
 
@@ -34,7 +34,7 @@ def speed(K, settings, R: np.ndarray, t: np.ndarray) -> tuple[float, float, floa
     """(scene build s, median wall s per image, CPU s per image (all threads), images) after one
     warm-up frame. On a shared machine the median resists load spikes, and CPU time per image
     divided by the thread count estimates the wall time on an idle machine."""
-    from pipeline.scene import Renderer
+    from pipeline.render.scene import Renderer
 
     t0 = time.perf_counter()
     r = Renderer(K, settings)

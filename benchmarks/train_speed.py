@@ -14,10 +14,10 @@ import time
 
 import torch
 
-from pipeline.loss import PoseLoss
-from pipeline.model import PoseNet
-from pipeline.report import markdown_table
-from stages import params as params_mod
+from pipeline.pose.loss import PoseLoss
+from pipeline.pose.model import PoseNet
+from pipeline.report.markdown import markdown_table
+from stages.config import params as params_mod
 from stages.report import write_benchmark
 
 

@@ -3,7 +3,7 @@
 Files read: FOLDER/pose.pt (the pose model, written by `rpod train`) and FOLDER/detector.pt (the
 LSTM detector with its threshold and the SHAP background mean, written by `rpod detect`); FOLDER may
 also be a project root holding models/. Images are resized to the model's input as the lab loader
-resizes them (pipeline.lab.resize: area averaging when shrinking), without keeping their aspect.
+resizes them (pipeline.evaluation.lab.resize: area averaging when shrinking), without keeping their aspect.
 """
 from __future__ import annotations
 
@@ -53,14 +53,14 @@ class Prediction:
 class Chain:
     """The per-image safety chain of a trained run: pose CNN -> exact SHAP signature -> LSTM detector.
 
-    Each image is judged on its own. The motion-filter defense (pipeline/defense.py), which checks
+    Each image is judged on its own. The motion-filter defense (pipeline/defense/fusion.py), which checks
     estimates against the chaser's motion, needs sequences and is not applied here. Positions assume
     the camera the model was trained with (params.yaml `camera`): an image from a camera with another
     field of view gives ranges off by the ratio of the focal lengths (pixels per image width).
     """
 
     def __init__(self, safety: Any, input_size: tuple[int, int], files: tuple[Path, Path]):
-        self.safety = safety                      # pipeline.chain.SafetyChain
+        self.safety = safety                      # pipeline.defense.chain.SafetyChain
         self.height, self.width = input_size      # model input, pixels
         self.files = files                        # (pose.pt, detector.pt)
 
@@ -75,7 +75,7 @@ class Chain:
         input, with a UserWarning when the aspect differs from the model's)."""
         import torch
 
-        from pipeline.rotations import sixd_to_quat
+        from pipeline.geometry.rotations import sixd_to_quat
 
         names, fitted = [], []
         for name, image in _items(images):
@@ -96,7 +96,7 @@ class Chain:
 
     def _fit(self, image: np.ndarray, name: str) -> np.ndarray:
         """One RGB image -> float32 (height, width, 3) in [0, 1] at the model input size."""
-        from pipeline.lab import resize
+        from pipeline.evaluation.lab import resize
 
         if image.ndim != 3 or image.shape[2] != 3 or min(image.shape[:2]) == 0:
             raise ValueError(f"{name}: an image must be (H, W, 3) RGB, got shape {tuple(image.shape)}")
@@ -154,9 +154,9 @@ def load_chain(folder: str | Path = "models") -> Chain:
     """The chain as the pipeline ships it: FOLDER/pose.pt and FOLDER/detector.pt (or FOLDER/models/...
     when FOLDER is a project root). The detector must have been trained on this pose model's SHAP
     values (its checkpoint names the pose file's hash)."""
-    from pipeline.chain import SafetyChain
-    from stages.artifacts import load_detector
-    from stages.checkpoint import model_from_checkpoint, read_pose
+    from pipeline.defense.chain import SafetyChain
+    from stages.artifacts.readers import load_detector
+    from stages.artifacts.checkpoint import model_from_checkpoint, read_pose
     from stages.io import file_hash
 
     folder = Path(folder)

@@ -17,7 +17,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from pipeline.report import markdown_table  # noqa: E402
+from pipeline.report.markdown import markdown_table  # noqa: E402
 from stages.io import atomic_write_text  # noqa: E402
 
 

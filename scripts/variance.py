@@ -22,7 +22,7 @@ from typing import Any, Callable
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from pipeline.report import markdown_table  # noqa: E402
+from pipeline.report.markdown import markdown_table  # noqa: E402
 from stages.io import atomic_write_text  # noqa: E402
 from stages.pages.summary import HEADLINES as SUMMARY_HEADLINES, Headline, Metrics  # noqa: E402
 

@@ -4,7 +4,7 @@ Reads models/pose.pt and the test split; writes datasets/attack/adv.zarr (one ui
 array per eps, named `eps_<eps>`, plus `source_index` = the label `index` of each row),
 reports/attack.md, reports/figures/fgsm_example.png and reports/metrics/attack.json.
 Errors are measured on the stored uint8 adversarial images (what the SHAP stage reads).
-The batches fan out over the engine's workers on the CPU (stages/engine.py; in-process with one
+The batches fan out over the engine's workers on the CPU (stages/engine/pool.py; in-process with one
 worker or on a GPU), each batch's attack seeded by its place, so adv.zarr does not depend on the workers.
 """
 from __future__ import annotations
@@ -17,8 +17,10 @@ from typing import Any
 import numpy as np
 import typer
 
-from stages import engine, params as params_mod
-from stages.artifacts import ADV, POSE, adv_array_name, load_pose
+from stages.engine import pool as engine
+
+from stages.config import params as params_mod
+from stages.artifacts.readers import ADV, POSE, adv_array_name, load_pose
 from stages.io import StageError, atomic_dir, atomic_write_text, create_array, save_figure, write_metrics
 from stages.pages.attack import attack_page
 
@@ -32,8 +34,8 @@ def main() -> None:
     """Attack the test set at every attack.eps with attack.method on attack.loss; report the pose errors."""
     import torch
 
-    from pipeline.figures import attack_example
-    from stages.data import load_split
+    from pipeline.report.figures import attack_example
+    from stages.artifacts.data import load_split
 
     p = params_mod.load()
     a = p["attack"]
@@ -86,7 +88,7 @@ class AttackWorker:
                  torch_threads: int | None) -> None:
         import torch
 
-        from pipeline.attacks import attack_loss
+        from pipeline.attacks.gradient import attack_loss
 
         if torch_threads:
             torch.set_num_threads(torch_threads)
@@ -97,7 +99,7 @@ class AttackWorker:
     def run(self, i: int, u8: np.ndarray, y: Any) -> dict[str, Any]:
         import torch
 
-        from pipeline.attacks import quantize
+        from pipeline.attacks.gradient import quantize
 
         engine.exit_once_for_test()
         attack = params_mod.make_attack(self.a, self.a["method"], self.seed + i // self.batch)
@@ -161,7 +163,7 @@ def _attack_into(path: Path, worker: tuple[Any, ...], images: Any, source_index:
 
 def _errors(pred: np.ndarray, t_gt: np.ndarray, q_gt: np.ndarray) -> dict[str, float]:
     """Mean and median position (m) and attitude (deg) errors of (N, 9) outputs against the labels."""
-    from pipeline.rotations import attitude_error_deg, position_error, sixd_to_quat
+    from pipeline.geometry.rotations import attitude_error_deg, position_error, sixd_to_quat
 
     pos = position_error(pred[:, :3], t_gt)
     att = attitude_error_deg(sixd_to_quat(pred[:, 3:]), q_gt)

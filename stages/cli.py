@@ -15,7 +15,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import typer  # noqa: E402
 
-from stages import params as params_mod  # noqa: E402
+from stages.config import params as params_mod  # noqa: E402
 from stages.io import StageError  # noqa: E402
 
 app = typer.Typer(
@@ -62,7 +62,7 @@ STAGES = ["render", "label", "train", "attack", "guidance", "shap", "detect", "e
 def _register() -> None:
     import importlib
 
-    from stages.paramhelp import ParamsHelpCommand, ParamsHelpGroup
+    from stages.config.help import ParamsHelpCommand, ParamsHelpGroup
 
     for name in STAGES:
         try:

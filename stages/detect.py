@@ -8,10 +8,10 @@ on the same split:
 - mlp: an MLP on the flattened SHAP values; mahalanobis: Lee et al. 2018 on the GAP features, one
   Gaussian per range bin (train.range_bins) with a shared covariance; lid: Ma et al. 2018 on the GAP
   features; squeeze: Xu et al. 2018 on the input images (rebuilt from their sources, see
-  stages/artifacts.py). Every baseline's threshold is chosen on the same validation samples.
+  stages/artifacts/readers.py). Every baseline's threshold is chosen on the same validation samples.
 
 Writes models/detector.pt (LSTM weights, architecture, threshold, and what the safety chain needs:
-the pose-model hash and the SHAP background mean; `stages.artifacts.load_detector` reads it), dvclive/detect/
+the pose-model hash and the SHAP background mean; `stages.artifacts.readers.load_detector` reads it), dvclive/detect/
 (training curves), reports/detector.md, reports/metrics/detect.json and reports/plots/roc/<name>.csv.
 """
 from __future__ import annotations
@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from stages import params as params_mod
-from stages.artifacts import (DETECTOR, DETECTOR_FORMAT, POSE, ROC_DIR, SHAP, SPLIT_CODES, SampleImages, load_pose,
+from stages.config import params as params_mod
+from stages.artifacts.readers import (DETECTOR, DETECTOR_FORMAT, POSE, ROC_DIR, SHAP, SPLIT_CODES, SampleImages, load_pose,
                               read_shap_store)
 from stages.io import StageError, atomic_outputs, atomic_write_text, file_hash, save_torch, write_metrics
 from stages.pages.detect import PAPER_ACCURACY, detector_page
@@ -37,8 +37,8 @@ SEED_OFFSET = 600
 def split_indices(eps: np.ndarray, source: np.ndarray, test_fraction: float, val_fraction: float,
                   seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Train / validation / test indices grouped by source image (all eps versions of a frame on one
-    side) and stratified by eps (clean = 0) as far as the groups allow (pipeline.splits.grouped_split)."""
-    from pipeline.splits import grouped_split
+    side) and stratified by eps (clean = 0) as far as the groups allow (pipeline.evaluation.splits.grouped_split)."""
+    from pipeline.evaluation.splits import grouped_split
 
     try:
         return grouped_split(source, np.round(eps, 6), test_fraction, val_fraction, seed)
@@ -54,7 +54,7 @@ def main() -> None:
 
     from pipeline.detectors.lstm import to_checkpoint
     from pipeline.detectors.metrics import choose_threshold, metrics_by_eps, roc_csv
-    from pipeline.evaluation import nan_to_none
+    from pipeline.evaluation.sequences import nan_to_none
 
     p = params_mod.load()
     d = p["detect"]
@@ -153,7 +153,7 @@ def _baseline(name: str, p: dict[str, Any], data: dict[str, Any], y: np.ndarray,
         return det.score(values[va]), det.score(values[te])
     if name == "mahalanobis":
         from pipeline.detectors.mahalanobis import MahalanobisDetector
-        from stages.data import load_labels
+        from stages.artifacts.data import load_labels
 
         labels = load_labels().set_index("index")
         try:
@@ -176,10 +176,10 @@ def _baseline(name: str, p: dict[str, Any], data: dict[str, Any], y: np.ndarray,
 def _squeeze(p: dict[str, Any], data: dict[str, Any], y: np.ndarray, tr: np.ndarray, va: np.ndarray,
              te: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Feature squeezing needs the images and the pose model: rebuild each sample's image from its
-    source (stages.artifacts.SampleImages: clean split image, adv.zarr, or the same FGSM) and score it."""
+    source (stages.artifacts.readers.SampleImages: clean split image, adv.zarr, or the same FGSM) and score it."""
     from tqdm import tqdm
 
-    from pipeline.attacks import attack_loss
+    from pipeline.attacks.gradient import attack_loss
     from pipeline.detectors.squeeze import SqueezeDetector, model_predictor, score_batches
 
     d = p["detect"]

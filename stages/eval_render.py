@@ -1,7 +1,7 @@
 """`rpod eval_render`: render the fresh evaluation trajectories once, for `rpod evaluate` and its eps.
 
 Renders `evaluate.trajectories` projectile-shaped approaches (own seed `evaluate.seed`), their chunks
-fanned out over `engine.workers` Blender scenes (stages/engine.py), into datasets/eval_render/
+fanned out over `engine.workers` Blender scenes (stages/engine/pool.py), into datasets/eval_render/
 (images.zarr, poses.parquet, meta.json with the params fingerprint), so changing eps or the models
 never re-renders; and, in the same Ray session, `defense.val_trajectories` validation approaches of
 their own seed `defense.val_seed` into datasets/val_render/ (what `rpod calibrate` fits the defense
@@ -16,16 +16,18 @@ from typing import Any
 import numpy as np
 import typer
 
-from stages import engine, params as params_mod
-from stages.artifacts import EVAL_RENDER, VAL_RENDER, eval_render_fingerprint, val_render_fingerprint
-from stages.chunks import render_to_store, store_url
+from stages.engine import pool as engine
+
+from stages.config import params as params_mod
+from stages.artifacts.readers import EVAL_RENDER, VAL_RENDER, eval_render_fingerprint, val_render_fingerprint
+from stages.engine.chunks import render_to_store, store_url
 from stages.io import atomic_dir, write_json, write_parquet
 
 
 def trajectories(p: dict[str, Any], seed: int, count: int) -> list[Any]:
     """`count` evaluation approaches from `seed`: lateral start offsets |x|, |y| uniform in
     evaluate.lateral_range, random signs, evaluate.frames frames each."""
-    from pipeline.trajectories import projectile_trajectory
+    from pipeline.geometry.trajectories import projectile_trajectory
 
     e, r = params_mod.typed(p).evaluate, p["render"]
     rng = np.random.default_rng(seed)
@@ -60,7 +62,7 @@ def _render_set(K: Any, scene: Any, es: Any, seqs: list[Any], folder: Path, fing
     """Render the trajectories `seqs` into `folder` (images.zarr, poses.parquet, meta.json)."""
     import pandas as pd
 
-    from pipeline.rotations import matrix_to_6d, matrix_to_quat
+    from pipeline.geometry.rotations import matrix_to_6d, matrix_to_quat
 
     n = sum(len(s) for s in seqs)
     R, t = np.concatenate([s.R for s in seqs]), np.concatenate([s.t for s in seqs])

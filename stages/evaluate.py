@@ -4,7 +4,7 @@ On the trajectories `rpod eval_render` rendered into datasets/eval_render/ it ru
 trajectory, every frame through
   image -> (FGSM against that frame's true label when the schedule says so) -> pose -> exact SHAP
   -> detector flag, then the recorded frames through the defense calibrated by `rpod calibrate`
-  (motion check fused with the detector, pipeline/defense.py), and writes reports/integrated.md,
+  (motion check fused with the detector, pipeline/defense/fusion.py), and writes reports/integrated.md,
   reports/figures/timeline.png and reports/metrics/evaluate.json (the defended chain under `fused`).
 """
 from __future__ import annotations
@@ -17,11 +17,11 @@ from typing import Any
 import numpy as np
 import typer
 
-from stages import params as params_mod
-from stages.artifacts import chaser_motion, load_chain, load_defense, read_eval_render
+from stages.config import params as params_mod
+from stages.artifacts.readers import chaser_motion, load_chain, load_defense, read_eval_render
 from stages.io import atomic_write_text, save_figure, write_metrics
 from stages.pages.evaluate import defense_section
-from stages.schema import Evaluate
+from stages.config.schema import Evaluate
 
 REPORT = Path("reports/integrated.md")
 FIGURE = Path("reports/figures/timeline.png")
@@ -41,9 +41,9 @@ def main() -> None:
     """
     p = params_mod.load()
     e = params_mod.typed(p).evaluate
-    from pipeline.evaluation import defended_summary, evaluate_sequences, nan_to_none, per_eps_summary, rates_json
-    from pipeline.figures import detection_timeline
-    from pipeline.schedule import attack_schedule
+    from pipeline.evaluation.sequences import defended_summary, evaluate_sequences, nan_to_none, per_eps_summary, rates_json
+    from pipeline.report.figures import detection_timeline
+    from pipeline.evaluation.schedule import attack_schedule
 
     params_mod.torch_setup(p)
     images, poses, meta = read_eval_render(p)
@@ -95,8 +95,8 @@ def main() -> None:
 def report(rows: list[dict[str, Any]], summary: list[dict[str, Any]], clean: dict[str, dict[str, float]],
            sequences: list[dict[str, Any]], e: Evaluate, meta: dict[str, Any], threshold: float,
            eps_fig: float, profile: str) -> str:
-    from pipeline.evaluation import accuracy_table, detail_table, pct
-    from pipeline.report import markdown_table
+    from pipeline.evaluation.sequences import accuracy_table, detail_table, pct
+    from pipeline.report.markdown import markdown_table
 
     names = [s["name"] for s in sequences]
     att_frac = np.mean([s["attacked"].mean() for s in sequences])

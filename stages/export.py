@@ -2,7 +2,7 @@
 
 Reads datasets/render/ (`rpod render`) and datasets/labels.parquet (`rpod label`); writes OUT/camera.json
 (K at the stored image size, no distortion), OUT/synthetic/train.json and test.json (`filename`,
-`q_vbs2tango_true`, `r_Vo2To_vbs_true`: our q and t, the same numbers; pipeline/speed.py) and the
+`q_vbs2tango_true`, `r_Vo2To_vbs_true`: our q and t, the same numbers; pipeline/formats/speed.py) and the
 images as OUT/synthetic/images/imgNNNNNN.png (lossless, so the pixels are the ones the pose model saw).
 Not a DVC stage: run it after `dvc repro label`. The export is atomic: a temporary folder renamed to OUT.
 """
@@ -22,10 +22,10 @@ def speed(out: Path = typer.Argument(..., help="Folder to write: new, empty, or 
     synthetic/{train,test}.json, synthetic/images/*.png. `render.source: OUT` imports it back."""
     import numpy as np
 
-    from pipeline.camera import Intrinsics
-    from stages.artifacts import LABELS, RENDER, read_render_store
-    from stages.data import load_labels
-    from stages.speed import export
+    from pipeline.geometry.camera import Intrinsics
+    from stages.artifacts.readers import LABELS, RENDER, read_render_store
+    from stages.artifacts.data import load_labels
+    from stages.artifacts.speed import export
 
     images, _, meta = read_render_store(RENDER)
     labels = load_labels(LABELS)

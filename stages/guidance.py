@@ -1,7 +1,7 @@
 """`rpod guidance`: the closed-loop rendezvous under attack, Blender rendering every step.
 
 Runs a no-attack baseline and every (eps, start range S, length K) of params, rendered at the pose
-model's input size; the runs fan out over the engine's workers (stages/engine.py: in-process with one
+model's input size; the runs fan out over the engine's workers (stages/engine/pool.py: in-process with one
 worker, else Ray actors each holding one Blender scene and the safety chain), each attacked run's
 attack seeded by its place in the grid, so the results do not depend on the worker count; writes
 reports/guidance.md (one S x K table per eps), reports/figures/guidance_trajectories.png and
@@ -21,8 +21,10 @@ from typing import Any
 import numpy as np
 import typer
 
-from stages import chunks, engine, params as params_mod
-from stages.artifacts import DETECTOR, POSE, load_chain, load_defense
+from stages.engine import chunks, pool as engine
+
+from stages.config import params as params_mod
+from stages.artifacts.readers import DETECTOR, POSE, load_chain, load_defense
 from stages.io import StageError, atomic_write_text, save_figure, write_metrics
 from stages.pages.guidance import defended_section, guidance_page
 
@@ -35,7 +37,7 @@ SEED_OFFSET = 500
 
 def _plan(g: dict[str, Any]):
     """Validated settings and the (eps, S, K, window) grid, before anything is loaded or rendered."""
-    from pipeline.guidance import GuidanceSettings
+    from pipeline.guidance.law import GuidanceSettings
 
     params_mod.check_attack_params(g, "guidance")
     try:
@@ -58,13 +60,13 @@ def _plan(g: dict[str, Any]):
 class GuidanceWorker:
     """One Blender scene and one safety chain (loaded here from `models`, absolute pose and detector
     paths), built once per engine worker: `run(dyn, defense, cell)` flies that run of `plan`
-    (pipeline.guidance.GridPilot) -> (result, keys of the poses it rendered)."""
+    (pipeline.guidance.law.GridPilot) -> (result, keys of the poses it rendered)."""
 
     def __init__(self, p: dict[str, Any], K: Any, scene: Any, models: tuple[str, str], defense: Any,
                  plan: Any, torch_threads: int | None) -> None:
-        from pipeline.attacks import stored_attack
-        from pipeline.guidance import CachedCamera, GridPilot
-        from pipeline.scene import Renderer
+        from pipeline.attacks.gradient import stored_attack
+        from pipeline.guidance.law import CachedCamera, GridPilot
+        from pipeline.render.scene import Renderer
 
         if torch_threads:
             import torch
@@ -93,8 +95,8 @@ def main() -> None:
     workers (each run on one; results in grid order); report outcomes."""
     from tqdm import tqdm
 
-    from pipeline.figures import guidance_trajectories, guidance_variants
-    from pipeline.guidance import GridPlan, defended_grid, grid_counts, paper_grid
+    from pipeline.report.figures import guidance_trajectories, guidance_variants
+    from pipeline.guidance.law import GridPlan, defended_grid, grid_counts, paper_grid
 
     p = params_mod.load()
     g = p["guidance"]

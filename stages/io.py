@@ -244,7 +244,7 @@ def atomic_outputs(*paths: Path | str, dirs: tuple[Path | str, ...] = ()) -> Ite
 
 
 def save_figure(fig: Any, path: Path | str, dpi: int = 110) -> None:
-    """Write a matplotlib Figure (pipeline/figures.py) as PNG atomically (temporary file + rename)."""
+    """Write a matplotlib Figure (pipeline/report/figures.py) as PNG atomically (temporary file + rename)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp.png")

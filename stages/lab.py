@@ -11,7 +11,7 @@ models/detector.pt (allowed: the lab mock-up is the same target); with `lab.retr
 the pose model and detector that `rpod lab_models` trained on a synthetic-lab set in
 datasets/lab_models/. The report and metrics (`reused_models`, `models`) say which were used.
 
-The lab recording layout (images/, masks/, camera.csv, mocap.csv) is described in stages/recordings.py.
+The lab recording layout (images/, masks/, camera.csv, mocap.csv) is described in stages/artifacts/recordings.py.
 """
 from __future__ import annotations
 
@@ -23,17 +23,19 @@ from typing import Any
 import numpy as np
 import typer
 
-from stages import engine, params as params_mod
-from stages.artifacts import DETECTOR, LAB as OUT, LAB_MODELS, LAB_MODELS_SUMMARY, POSE, TRAIN_METRICS, load_chain
+from stages.engine import pool as engine
+
+from stages.config import params as params_mod
+from stages.artifacts.readers import DETECTOR, LAB as OUT, LAB_MODELS, LAB_MODELS_SUMMARY, POSE, TRAIN_METRICS, load_chain
 from stages.pages.lab import PAPER_AVERAGE, lab_page
-from stages.chunks import render_poses
-from stages.recordings import read_recording, recording_folders, write_recording
+from stages.engine.chunks import render_poses
+from stages.artifacts.recordings import read_recording, recording_folders, write_recording
 from stages.io import StageError, atomic_dir, atomic_write_text, read_json, write_metrics
 
 REPORT = Path("reports/lab.md")
 METRICS = Path("reports/metrics/lab.json")
 SEED_OFFSET = 0
-LAB_CHUNK = 30              # frames per render job of the synthetic lab sequences (stages/engine.py)
+LAB_CHUNK = 30              # frames per render job of the synthetic lab sequences (stages/engine/pool.py)
 
 app = typer.Typer(help="The lab domain: lab-like sequences through the real-data loader, pose "
                        "error, FGSM errors and integrated detection; `rpod lab rescale` converts ranges.",
@@ -42,7 +44,7 @@ app = typer.Typer(help="The lab domain: lab-like sequences through the real-data
 
 def cameras(p: dict[str, Any]) -> tuple[Any, Any]:
     """(K_syn at the reference size (480x270), K_zed at 1920x1080) from params."""
-    from pipeline.camera import Intrinsics
+    from pipeline.geometry.camera import Intrinsics
 
     c, z = p["camera"], p["lab"]["zed"]
     try:
@@ -55,7 +57,7 @@ def cameras(p: dict[str, Any]) -> tuple[Any, Any]:
 @app.command("rescale")
 def rescale(z: list[float] = typer.Option(..., "--z", help="Lab range(s) in metres (repeatable).")) -> None:
     """Print the equivalent synthetic range of lab ranges (same apparent size in pixels; pinhole model)."""
-    from pipeline.lab import lab_to_synthetic_factor
+    from pipeline.evaluation.lab import lab_to_synthetic_factor
 
     p = params_mod.load()
     K_syn, K_zed = cameras(p)
@@ -77,8 +79,8 @@ def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
 
     Returns per sequence the exact lab labels (for checking the loader round trip).
     """
-    from pipeline.lab import shift_recording, synthetic_recording
-    from pipeline.rotations import quat_to_matrix
+    from pipeline.evaluation.lab import shift_recording, synthetic_recording
+    from pipeline.geometry.rotations import quat_to_matrix
 
     lab, r = p["lab"], p["render"]
     ds = lab["domain_shift"]
@@ -119,8 +121,8 @@ def main(ctx: typer.Context) -> None:
     """
     if ctx.invoked_subcommand is not None:
         return
-    from pipeline.evaluation import evaluate_sequences, fgsm_error_table, nan_to_none, per_eps_summary
-    from pipeline.lab import lab_to_synthetic_factor
+    from pipeline.evaluation.sequences import evaluate_sequences, fgsm_error_table, nan_to_none, per_eps_summary
+    from pipeline.evaluation.lab import lab_to_synthetic_factor
 
     p = params_mod.load()
     lab = p["lab"]
@@ -181,7 +183,7 @@ def _sequences(p: dict[str, Any], source: Path, truth: list[dict[str, Any]], K_s
     """The recordings in `source` read through the real-data loader, as chain sequences (synthetic-frame
     targets in metres, seeded attack schedules), their range table rows, and the loader's label error
     against the exact render poses (`truth`, synthetic lab only)."""
-    from pipeline.lab import chain_sequences, loader_errors
+    from pipeline.evaluation.lab import chain_sequences, loader_errors
 
     lab, r = p["lab"], p["render"]
     recs = [read_recording(f, int(r["width"]), int(r["height"]), lab["bodies"], lab["match"], float(lab["max_gap_s"]),

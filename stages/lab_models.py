@@ -29,8 +29,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from stages import params as params_mod
-from stages.artifacts import LAB_MODELS, LAB_MODELS_SUMMARY
+from stages.config import params as params_mod
+from stages.artifacts.readers import LAB_MODELS, LAB_MODELS_SUMMARY
 from stages.io import StageError, atomic_dir, file_hash, read_json, write_json
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from stages import params as params_mod
-from stages.artifacts import LABELS, RENDER, read_render_store
+from stages.config import params as params_mod
+from stages.artifacts.readers import LABELS, RENDER, read_render_store
 from stages.io import StageError, atomic_write_text, write_parquet
 from stages.pages.label import dataset_card
 
@@ -19,7 +19,7 @@ SEED_OFFSET = 200
 def build_labels(poses, test_fraction: float, seed: int):
     """Poses table -> label table (contract columns, seeded train/test split of whole frames). An imported
     SPEED set (columns `split` and `filename` in the poses) keeps its own split and names its files."""
-    from pipeline.rotations import quat_to_6d
+    from pipeline.geometry.rotations import quat_to_6d
 
     if not 0 < test_fraction < 1:
         raise StageError(f"params.yaml label.test_fraction must be in (0, 1), got {test_fraction}")

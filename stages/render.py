@@ -1,5 +1,5 @@
 """`rpod render`: render the 13 approach sequences with Blender Cycles into a zarr stack (or import the
-SPEED/SPEED+ folder of `render.source`: stages/speed.py).
+SPEED/SPEED+ folder of `render.source`: stages/artifacts/speed.py).
 
 Writes datasets/render/{images.zarr, poses.parquet, meta.json} in one atomic step, plus PNG
 previews in reports/figures/previews/. The frames' chunks fan out over `engine.workers` workers (Ray
@@ -15,9 +15,13 @@ from typing import Any
 import numpy as np
 import typer
 
-from stages import engine, params as params_mod, speed as speed_io
-from stages.artifacts import RENDER as OUT, read_render_store
-from stages.chunks import render_to_store, store_url
+from stages.engine import pool as engine
+
+from stages.config import params as params_mod
+
+from stages.artifacts import speed as speed_io
+from stages.artifacts.readers import RENDER as OUT, read_render_store
+from stages.engine.chunks import render_to_store, store_url
 from stages.io import StageError, atomic_dir, remove_stale_temps, write_json, write_parquet
 
 PREVIEWS = Path("reports/figures/previews")
@@ -27,7 +31,7 @@ PREVIEW_WIDTH = 480  # previews are upscaled (nearest neighbour) to about this w
 
 def frames(p: dict[str, Any]):
     """All frames of the 13 sequences as flat arrays: sequence, frame, R (N,3,3), t (N,3)."""
-    from pipeline.trajectories import approach_sequences, flatten
+    from pipeline.geometry.trajectories import approach_sequences, flatten
 
     r = p["render"]
     K = params_mod.intrinsics(p)
@@ -47,7 +51,7 @@ def frames(p: dict[str, Any]):
 def render_all(p: dict[str, Any], dest: Path) -> None:
     """Render every frame into dest/{poses.parquet, meta.json} and the image store (dest/images.zarr,
     or `engine.store`, which meta.json then names); `dest` is a fresh folder."""
-    from pipeline.trajectories import poses_table
+    from pipeline.geometry.trajectories import poses_table
 
     r, es, store = p["render"], engine.settings(p), p["engine"]["store"]
     K, scene = params_mod.intrinsics(p), params_mod.scene_settings(r)
@@ -76,7 +80,7 @@ def write_previews(images, poses, n_previews: int) -> list[Path]:
     rotating sequences; upscaled by an integer factor (nearest neighbour) for viewing."""
     import cv2
 
-    from pipeline.trajectories import preview_picks
+    from pipeline.geometry.trajectories import preview_picks
 
     shutil.rmtree(PREVIEWS, ignore_errors=True)
     PREVIEWS.mkdir(parents=True, exist_ok=True)

@@ -23,8 +23,8 @@ from typing import Any
 
 import typer
 
-from stages import params as params_mod
-from stages.artifacts import ROC_DIR, SHAP as SHAP_STORE
+from stages.config import params as params_mod
+from stages.artifacts.readers import ROC_DIR, SHAP as SHAP_STORE
 from stages.io import StageError, atomic_write_text, make_hint, read_json, save_figure, write_json
 from stages.pages.differences import differences
 from stages.pages.readme import DETECTOR_NAMES, summary_tables
@@ -52,7 +52,7 @@ def main(
     if check:
         _check()
         return
-    from pipeline.report import replace_block
+    from pipeline.report.markdown import replace_block
 
     params = params_mod.load()
     metrics = _load_metrics()
@@ -69,7 +69,7 @@ def main(
             return
         if not README.exists():
             raise StageError(f"{README} not found: run `rpod report` from the repository root")
-        from pipeline.report import extract_block
+        from pipeline.report.markdown import extract_block
 
         text = README.read_text()
         for block in (BLOCK, DIFFERENCES):
@@ -80,7 +80,7 @@ def main(
 
 def write_benchmark(section: str, body: str) -> Path:
     """Replace (or append) the `## section` of reports/benchmarks.md atomically; benchmarks/*.py call this."""
-    from pipeline.report import replace_section
+    from pipeline.report.markdown import replace_section
 
     old = BENCHMARKS.read_text() if BENCHMARKS.exists() else "# Benchmarks\n"
     atomic_write_text(BENCHMARKS, replace_section(old, section, body))
@@ -88,7 +88,7 @@ def write_benchmark(section: str, body: str) -> Path:
 
 
 def _check() -> None:
-    from pipeline.report import extract_block
+    from pipeline.report.markdown import extract_block
 
     for path in (PAGE, README):
         if not path.exists():
@@ -114,7 +114,7 @@ def _check() -> None:
 
 def _section_body(path: Path) -> str:
     """A stage report as build_page embeds it (headings one level down, without its title line)."""
-    from pipeline.report import demote_headings
+    from pipeline.report.markdown import demote_headings
 
     return demote_headings(path.read_text().strip(), 1).partition("\n")[2]
 
@@ -144,7 +144,7 @@ def _spread(params: dict[str, Any]) -> dict[str, Any] | None:
 def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figures: list[tuple[str, str, str]]) -> str:
     """reports/README.md: title, summary block, then each stage report one level down with the
     report's own figures (`figures`: (stage, title, file name)) at the end of its section."""
-    from pipeline.report import demote_headings, replace_block
+    from pipeline.report.markdown import demote_headings, replace_block
 
     page = replace_block(page_head(metrics, params), BLOCK, summary_tables(metrics, _spread(params)))
     page += "\n## Known differences from the paper\n"
@@ -162,7 +162,7 @@ def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, s
     """Draw the report's own figures; return (stage, title, file name) for each."""
     import pandas as pd
 
-    from pipeline import figures as F
+    from pipeline.report import figures as F
 
     tr, at, de = metrics["train"], metrics["attack"], metrics["detect"]
     save_figure(F.pose_error_bars({"train": tr["train"]["bins"], "test": tr["test"]["bins"]}),
@@ -189,7 +189,7 @@ def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, s
 
 def _shap_means() -> dict[str, Any]:
     """Mean |phi| (9, F) over normal and adversarial samples of the SHAP store, read chunk by chunk."""
-    from pipeline.report import mean_abs_by_class
+    from pipeline.report.markdown import mean_abs_by_class
     from stages.io import open_zarr
 
     root = open_zarr(SHAP_STORE, "SHAP store")

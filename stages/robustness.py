@@ -2,18 +2,18 @@
 
 Reads models/pose.pt, models/detector.pt, models/surrogate.pt (`rpod train --surrogate`) and a
 seeded sample of `robustness.frames` held-out test frames; every attacked image is stored as 8-bit
-(`pipeline.attacks.quantize`) before it goes through the chain, as in the other stages. Rows:
+(`pipeline.attacks.gradient.quantize`) before it goes through the chain, as in the other stages. Rows:
 - seen: FGSM on the training loss at robustness.eps (the attack the detector was trained on);
 - transfer: FGSM at robustness.unseen_eps, and robustness.transfer (pgd, mifgsm, fgsm/position,
   fgsm/rotation: method[/loss]) at robustness.eps;
-- adaptive: L-inf PGD on pose_loss - lambda * detector logit (pipeline.adaptive) per lambda and eps,
+- adaptive: L-inf PGD on pose_loss - lambda * detector logit (pipeline.attacks.adaptive) per lambda and eps,
   plus the per-frame worst case over lambda;
 - surrogate: robustness.surrogate_attacks crafted on the surrogate pose model, evaluated on ours;
 - corruptions (not attacks): robustness.corruptions at camera-realistic strengths;
 - fused (the chain that ships, issue 16: LSTM flag OR motion gate): the adaptive attack on the
   fused chain over whole bursts of the eval_render trajectories, evaluated by the real defense
-  (pipeline.defense.run_defense) over each whole trajectory, clean frames included.
-Params are checked on load (stages.schema.Robustness). Writes reports/robustness.md,
+  (pipeline.defense.fusion.run_defense) over each whole trajectory, clean frames included.
+Params are checked on load (stages.config.schema.Robustness). Writes reports/robustness.md,
 reports/metrics/robustness.json, reports/figures/robustness.png (text: stages/pages/robustness.py).
 """
 from __future__ import annotations
@@ -25,12 +25,12 @@ from typing import Any
 
 import numpy as np
 
-from stages import params as params_mod
-from stages.artifacts import SURROGATE, Pose, load_defense, load_detector, load_pose, read_eval_render
-from stages.checkpoint import POSE
+from stages.config import params as params_mod
+from stages.artifacts.readers import SURROGATE, Pose, load_defense, load_detector, load_pose, read_eval_render
+from stages.artifacts.checkpoint import POSE
 from stages.io import StageError, atomic_write_text, not_found, save_figure, write_metrics
 from stages.pages.robustness import robustness_page
-from stages.schema import Robustness, attack_name
+from stages.config.schema import Robustness, attack_name
 
 REPORT = Path("reports/robustness.md")
 METRICS = Path("reports/metrics/robustness.json")
@@ -42,10 +42,10 @@ def main() -> None:
     """Run every attack and corruption row on held-out test frames; write the report, metrics and figure."""
     from tqdm import tqdm
 
-    from pipeline.adaptive import ShapChain
-    from pipeline.figures import robustness_vs_eps
-    from pipeline.robustness import run_attack_rows, worst_by_eps
-    from stages.data import load_split
+    from pipeline.attacks.adaptive import ShapChain
+    from pipeline.report.figures import robustness_vs_eps
+    from pipeline.evaluation.robustness import run_attack_rows, worst_by_eps
+    from stages.artifacts.data import load_split
 
     p = params_mod.load()
     r = params_mod.typed(p).robustness
@@ -98,7 +98,7 @@ def main() -> None:
 
 def _chain(pose: Pose) -> Any:
     """The safety chain of `pose` and models/detector.pt (refused when trained on another pose model)."""
-    from pipeline.chain import SafetyChain
+    from pipeline.defense.chain import SafetyChain
 
     detector, ckpt = load_detector(model_hash=pose.hash)
     try:
@@ -109,8 +109,8 @@ def _chain(pose: Pose) -> Any:
 
 
 def _specs(p: dict[str, Any], r: Robustness, target: Any, pose: Pose, surrogate: Pose, seed: int) -> list[Any]:
-    """The attack rows to run, in report order (pipeline.robustness.attack_specs)."""
-    from pipeline.robustness import attack_specs
+    """The attack rows to run, in report order (pipeline.evaluation.robustness.attack_specs)."""
+    from pipeline.evaluation.robustness import attack_specs
 
     a = p["attack"]
     transfer = [(name, *attack_name(name, "transfer")) for name in r.transfer]
@@ -123,11 +123,11 @@ def _specs(p: dict[str, Any], r: Robustness, target: Any, pose: Pose, surrogate:
 def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Robustness, seed: int,
                      progress: Any) -> tuple[Any, list[dict[str, Any]]]:
     """(rate of clean frames beyond harm_m, corruption rows: `none` first, then each corruption and strength)."""
-    from pipeline.chain import run_sequence
-    from pipeline.corruptions import corrupt
-    from pipeline.robustness import corruption_row
-    from pipeline.stats import rate
-    from pipeline.training import pose_errors
+    from pipeline.defense.chain import run_sequence
+    from pipeline.attacks.corruptions import corrupt
+    from pipeline.evaluation.robustness import corruption_row
+    from pipeline.evaluation.stats import rate
+    from pipeline.pose.train import pose_errors
 
     none = np.zeros(len(images), bool)
     clean = run_sequence(chain, images, targets, none, None, r.batch_size, progress)
@@ -141,16 +141,16 @@ def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Rob
 
 
 def _fused_rows(p: dict[str, Any], r: Robustness, chain: Any, target: Any, seed: int, model_hash: str) -> dict[str, Any]:
-    """Adaptive attack on the fused chain (LSTM flag OR motion gate, pipeline.defense) over bursts of
+    """Adaptive attack on the fused chain (LSTM flag OR motion gate, pipeline.defense.fusion) over bursts of
     `evaluate.attack_length` frames every `robustness.burst_every` frames of each eval_render
     trajectory, per eps and lambda and the per-burst worst case over lambda; rates with bootstrap
     intervals over trajectories. Also the fused chain's false-alarm rate on the clean trajectories."""
     import torch
     from tqdm import tqdm
 
-    from pipeline.adaptive import adaptive_pgd
-    from pipeline.attacks import attack_loss
-    from pipeline.robustness import fused_bursts, fused_row, worst_burst_over_lambda
+    from pipeline.attacks.adaptive import adaptive_pgd
+    from pipeline.attacks.gradient import attack_loss
+    from pipeline.evaluation.robustness import fused_bursts, fused_row, worst_burst_over_lambda
 
     images, labels, trajs, bursts, defended, info = _fused_setup(p, r, chain, model_hash)
     full = attack_loss(p["attack"]["loss"], load_pose(p).loss)
@@ -174,7 +174,7 @@ def _fused_rows(p: dict[str, Any], r: Robustness, chain: Any, target: Any, seed:
 def _fused_setup(p: dict[str, Any], r: Robustness, chain: Any, model_hash: str) -> tuple[Any, ...]:
     """(eval_render images, labels (N, 9), frame indices per trajectory, bursts per trajectory, the
     defended-chain settings, facts incl. the fused chain's false-alarm rate on the clean trajectories)."""
-    from pipeline.robustness import Defended, burst_schedule, fused_false_alarms
+    from pipeline.evaluation.robustness import Defended, burst_schedule, fused_false_alarms
 
     images, poses, _ = read_eval_render(p)
     labels = poses[["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]].to_numpy(np.float64)

@@ -28,8 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from stages import params as params_mod
-from stages.artifacts import BATCH, SHAP as OUT, SPLIT_CODES, SampleImages, load_pose
+from stages.config import params as params_mod
+from stages.artifacts.readers import BATCH, SHAP as OUT, SPLIT_CODES, SampleImages, load_pose
 from stages.io import StageError, atomic_dir, create_array
 
 SEED_OFFSET = 500
@@ -56,8 +56,8 @@ def main() -> None:
     """Explain clean and FGSM images with DeepSHAP (closed form for the linear heads) into datasets/shap.zarr."""
     import zarr
 
-    from pipeline.attacks import attack_loss
-    from pipeline.explain import Explainer, draw_background, gap_features, sample_plan
+    from pipeline.attacks.gradient import attack_loss
+    from pipeline.shap import Explainer, draw_background, gap_features, sample_plan
 
     p = params_mod.load()
     s = p["shap"]
@@ -113,7 +113,7 @@ def _explain_into(root: Any, src: SampleImages, model: Any, explainer: Any, todo
     columns), `chunk` samples at a time so that every write fills whole zarr chunks."""
     from tqdm import tqdm
 
-    from pipeline.explain import gap_features
+    from pipeline.shap import gap_features
 
     n = len(todo["index"])
     c = min(chunk, n)

@@ -10,7 +10,7 @@ final evaluation of the kept checkpoint. Torch is seeded (and switched to determ
 before the network is built, so two runs on one machine give the same weights.
 
 Device: the `device` param (auto = CUDA when present), with bf16 autocast there when `amp` is set;
-CPU threads: `threads` (stages.params.distributed). Scale-out: `torchrun --nproc_per_node N .venv/bin/rpod train` runs
+CPU threads: `threads` (stages.config.params.distributed). Scale-out: `torchrun --nproc_per_node N .venv/bin/rpod train` runs
 DistributedDataParallel (gloo on the CPU, NCCL on CUDA, one GPU per process); only rank 0 writes files.
 """
 from __future__ import annotations
@@ -21,8 +21,8 @@ from typing import Annotated, Any
 
 import typer
 
-from stages.artifacts import SURROGATE
-from stages.checkpoint import POSE
+from stages.artifacts.readers import SURROGATE
+from stages.artifacts.checkpoint import POSE
 from stages.io import StageError, atomic_outputs, atomic_write_text, write_metrics
 from stages.pages.pose import pose_page
 
@@ -40,11 +40,12 @@ def main(
     """Train the pose CNN; keep the best checkpoint by validation error; report test errors next to the paper's."""
     import torch
 
-    from pipeline.loss import PoseLoss
-    from pipeline.model import PoseNet
-    from pipeline.training import DivergenceError, fit, make_deterministic
-    from stages import checkpoint, data, params as params_mod
+    from pipeline.pose.loss import PoseLoss
+    from pipeline.pose.model import PoseNet
+    from pipeline.pose.train import DivergenceError, fit, make_deterministic
+    from stages.artifacts import checkpoint, data
 
+    from stages.config import params as params_mod
     params = params_mod.load()
     p, r = params["train"], params["robustness"]
     seed = int(r["surrogate_seed"]) if surrogate else int(params["seed"])
@@ -116,7 +117,7 @@ def _epoch_logger(rank: int, loss: Any, best: dict[str, Any]) -> Any:
 
 def _config(p: dict[str, Any], epochs: int, seed: int) -> Any:
     """The TrainConfig of a `train` params section (ValueError on a bad value)."""
-    from pipeline.training import TrainConfig
+    from pipeline.pose.train import TrainConfig
 
     return TrainConfig(epochs=epochs, batch_size=int(p["batch_size"]), lr_base=float(p["lr_base"]),
                        lr_max=float(p["lr_max"]), cycle_epochs=float(p["cycle_epochs"]),
@@ -134,8 +135,8 @@ def _write_results(params: dict[str, Any], net: Any, best: dict[str, Any], input
     the final evaluation."""
     import numpy as np
 
-    from pipeline.training import predict, summarize_errors
-    from stages import checkpoint, data
+    from pipeline.pose.train import predict, summarize_errors
+    from stages.artifacts import checkpoint, data
 
     (train_split, train_eval_set), (val_split, val_set) = train, val
     test_split = data.load_split(params, "test")

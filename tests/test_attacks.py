@@ -5,7 +5,7 @@ import pytest
 import torch
 from torch import nn
 
-from pipeline.attacks import ATTACKS, attack_loss, fgsm, get_attack, mifgsm, pgd, quantize, stored_attack
+from pipeline.attacks.gradient import ATTACKS, attack_loss, fgsm, get_attack, mifgsm, pgd, quantize, stored_attack
 
 
 class TinyPose(nn.Module):

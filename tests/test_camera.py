@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from pipeline.camera import Intrinsics, project, reference_intrinsics, transform
+from pipeline.geometry.camera import Intrinsics, project, reference_intrinsics, transform
 
 
 def test_reference_K_and_fov():

@@ -3,10 +3,10 @@ import pytest
 import torch
 from torch import nn
 
-from pipeline.chain import SafetyChain
+from pipeline.defense.chain import SafetyChain
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
-from pipeline.explain import Explainer
-from pipeline.model import PoseNet
+from pipeline.shap import Explainer
+from pipeline.pose.model import PoseNet
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +69,7 @@ def test_chain_refuses_a_non_affine_head(parts):
 
 
 def test_run_sequence_attacks_only_scheduled_frames_with_their_own_labels(parts):
-    from pipeline.chain import run_sequence
+    from pipeline.defense.chain import run_sequence
 
     model, bg, det, _ = parts
     chain = SafetyChain.from_model(model, bg.mean(0), det)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from benchmarks import cost_model as cm
-from stages import params as params_mod
+from stages.config import params as params_mod
 
 
 def test_prediction_is_count_times_seconds_per_unit_and_stages_sum_their_units():

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import torch
 
-from stages import checkpoint
-from stages import params as params_mod
+from stages.artifacts import checkpoint
+from stages.config import params as params_mod
 from test_training import H, W, write_dataset
 
 

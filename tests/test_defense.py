@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.defense import COAST, HOLD, TRACK, Defense, DefenseSettings, run_defense
-from pipeline.motion import MotionSettings, NoiseModel
-from pipeline.trajectories import look_at
+from pipeline.defense.fusion import COAST, HOLD, TRACK, Defense, DefenseSettings, run_defense
+from pipeline.defense.kalman import MotionSettings, NoiseModel
+from pipeline.geometry.trajectories import look_at
 
 NOISE = NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02)
 MOTION = MotionSettings(false_alarm=0.005)

@@ -195,7 +195,7 @@ def _store(path, n: int = 20, eps=None, model_hash: str = "h1", values=None):
 
 
 def test_detect_stage_refuses_bad_shap_stores(tmp_path):
-    from stages.artifacts import read_shap_store as read_store
+    from stages.artifacts.readers import read_shap_store as read_store
     from stages.io import StageError
 
     good = read_store(_store(tmp_path / "ok.zarr"), "h1")

@@ -95,7 +95,7 @@ def test_commands_outside_dvc_have_help_too():
 
 @pytest.mark.parametrize("command", DVC_COMMANDS)
 def test_stage_help_lists_its_params_with_comments(command):
-    from stages.paramhelp import CONFIG, command_params, config_comments
+    from stages.config.help import CONFIG, command_params, config_comments
 
     comments = config_comments(CONFIG.read_text())
     keys = command_params(command, comments)
@@ -111,7 +111,7 @@ def test_stage_help_lists_its_params_with_comments(command):
 
 
 def test_config_comments_parse_sections_and_continuations():
-    from stages.paramhelp import config_comments
+    from stages.config.help import config_comments
 
     text = ("defaults:\n  - _self_\nseed: 0   # base\nsec:      # a section\n  a: [1, 2]   # metres;\n"
             "              # more\n  sub:\n    b: 3\nempty: {}\n")
@@ -141,8 +141,8 @@ def test_every_input_a_stage_reads_has_a_producer():
     ("shap", "datasets/shap.zarr not found: run `dvc repro shap` (or `rpod shap`)"),
 ])
 def test_missing_input_names_the_stage_that_writes_it(tmp_path, monkeypatch, load, message):
-    from stages import artifacts
-    from stages.params import load as load_params
+    from stages.artifacts import readers as artifacts
+    from stages.config.params import load as load_params
 
     params = load_params(REPO / "params.yaml")
     monkeypatch.chdir(tmp_path)

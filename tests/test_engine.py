@@ -6,10 +6,12 @@ import time
 import numpy as np
 import pytest
 
-from stages import engine, params as params_mod
-from stages.chunks import RenderWorker
+from stages.engine import pool as engine
+
+from stages.config import params as params_mod
+from stages.engine.chunks import RenderWorker
 from stages.io import StageError, open_zarr
-from stages.schema import ParamsError
+from stages.config.schema import ParamsError
 
 TINY = ["render.width=32", "render.height=18", "render.frames_per_sequence=2", "render.samples=2",
         "render.chunk=4", "render.previews=1"]
@@ -92,7 +94,7 @@ def test_bad_workers_and_store(workdir):
 def test_store_elsewhere_is_named_in_meta_and_read_back(workdir):
     import json
 
-    from stages.artifacts import RENDER, read_render_store
+    from stages.artifacts.readers import RENDER, read_render_store
 
     store = workdir / "shared" / "render.zarr"
     params_mod.write_params(params_mod.compose("smoke", TINY + [f"engine.store={store}"]))
@@ -106,7 +108,7 @@ def test_store_elsewhere_is_named_in_meta_and_read_back(workdir):
 
 
 def test_a_worker_that_cannot_see_the_store_sends_its_pixels(workdir, monkeypatch):
-    from stages import chunks
+    from stages.engine import chunks
 
     direct = _render(workdir, ["engine.workers=1"])
     asked = []
@@ -117,7 +119,7 @@ def test_a_worker_that_cannot_see_the_store_sends_its_pixels(workdir, monkeypatc
 
 HOLDER = """
 import os, sys
-from stages import engine
+from stages.engine import pool as engine
 got = engine.pin_cores(int(sys.argv[1]))
 print(got, sorted(os.sched_getaffinity(0)), flush=True)
 sys.stdin.read()   # hold the cores until the test closes stdin

@@ -1,4 +1,4 @@
-"""pipeline/evaluation.py: per-eps summaries, the report tables and the JSON-safe NaN helper."""
+"""pipeline/evaluation/sequences.py: per-eps summaries, the report tables and the JSON-safe NaN helper."""
 from __future__ import annotations
 
 import json
@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from pipeline.evaluation import accuracy_table, detail_table, nan_to_none, per_eps_summary
+from pipeline.evaluation.sequences import accuracy_table, detail_table, nan_to_none, per_eps_summary
 
 
 def _row(eps, seq, acc, und, und_pos, delay):
@@ -49,7 +49,7 @@ def _approach(n=60, seed=0, offset=(4.0, 0.0, 3.0), attacked=None):
     and `offset` (camera frame, m) on the attacked frames, which the detector does not see (prob 0)."""
     import numpy as np
 
-    from pipeline.rotations import matrix_to_6d
+    from pipeline.geometry.rotations import matrix_to_6d
 
     rng = np.random.default_rng(seed)
     rel = np.column_stack([np.full(n, 2.0), np.full(n, -1.0), np.linspace(40.0, 25.25, n)])
@@ -66,9 +66,9 @@ def _approach(n=60, seed=0, offset=(4.0, 0.0, 3.0), attacked=None):
 def test_defended_summary_flags_what_the_detector_misses_with_intervals():
     import numpy as np
 
-    from pipeline.defense import DefenseSettings
-    from pipeline.evaluation import defended_summary, defense_table, rates_json
-    from pipeline.motion import MotionSettings, NoiseModel
+    from pipeline.defense.fusion import DefenseSettings
+    from pipeline.evaluation.sequences import defended_summary, defense_table, rates_json
+    from pipeline.defense.kalman import MotionSettings, NoiseModel
 
     noise = NoiseModel((0.05, 0.05, 0.1), (0.0, 0.0, 0.0), 1.0, 0.0)
     traces, seqs = {}, []

@@ -1,4 +1,4 @@
-"""The closed-form DeepSHAP of pipeline/explain.py against the shap library, on PoseNet-shaped models."""
+"""The closed-form DeepSHAP of pipeline/shap.py against the shap library, on PoseNet-shaped models."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch import nn
 
-from pipeline.explain import Explainer, affine_head, background_mean, deep_shap, exact_shap
+from pipeline.shap import Explainer, affine_head, background_mean, deep_shap, exact_shap
 
 N_FEATURES = 1000
 
@@ -116,7 +116,7 @@ def test_background_mean_and_bad_inputs():
 
 
 def test_real_posenet_head_is_read_as_affine_and_matches_shap():
-    from pipeline.model import PoseNet
+    from pipeline.pose.model import PoseNet
 
     torch.manual_seed(2)
     model = PoseNet(width=0.125).eval()
@@ -136,7 +136,7 @@ def test_real_posenet_head_is_read_as_affine_and_matches_shap():
 
 
 def test_shap_stage_composition_fills_from_training_images():
-    from pipeline.explain import sample_plan
+    from pipeline.shap import sample_plan
 
     test_index, train_pool = np.arange(100, 110), np.arange(0, 50)
     todo = sample_plan(12, 4, [0.5, 0.01], test_index, train_pool, np.random.default_rng(0))

@@ -8,9 +8,9 @@ import sys
 import numpy as np
 import pytest
 
-from pipeline.camera import reference_intrinsics
-from pipeline.guidance import Estimate, GridPilot, GridPlan, GuidanceSettings, defended_grid, grid_counts, paper_grid
-from stages import engine
+from pipeline.geometry.camera import reference_intrinsics
+from pipeline.guidance.law import Estimate, GridPilot, GridPlan, GuidanceSettings, defended_grid, grid_counts, paper_grid
+from stages.engine import pool as engine
 from test_engine import two_nodes  # noqa: F401  (the two-node local cluster fixture)
 
 K = reference_intrinsics().scaled(160, 90)
@@ -38,9 +38,9 @@ def attack_at(eps: float, i: int):
 
 
 def defense():
-    from pipeline.defense import DefenseSettings
-    from pipeline.motion import MotionSettings, NoiseModel
-    from stages.artifacts import DefenseModel
+    from pipeline.defense.fusion import DefenseSettings
+    from pipeline.defense.kalman import MotionSettings, NoiseModel
+    from stages.artifacts.readers import DefenseModel
 
     return DefenseModel(DefenseSettings(hold_after=20), MotionSettings(false_alarm=0.005),
                         NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02), {})
@@ -118,11 +118,11 @@ def attack_sets(tmp_path, es: engine.EngineSettings) -> tuple:
     import torch
     import zarr
 
-    from pipeline.loss import PoseLoss
-    from pipeline.model import PoseNet
-    from stages import params as params_mod
+    from pipeline.pose.loss import PoseLoss
+    from pipeline.pose.model import PoseNet
+    from stages.config import params as params_mod
     from stages.attack import _attack_into
-    from stages.checkpoint import save_pose
+    from stages.artifacts.checkpoint import save_pose
 
     p = params_mod.compose("smoke", ["render.width=32", "render.height=18", "train.width=0.125", "attack.method=pgd",
                                      "attack.steps=2", "attack.eps=[0.5,0.05]", "attack.batch_size=4"])

@@ -128,7 +128,7 @@ def _unchanged(before: dict[str, bytes]) -> None:
 
 
 def _set_params(**overrides: object) -> None:
-    from stages import params as params_mod
+    from stages.config import params as params_mod
 
     p = params_mod.load()
     for key, value in overrides.items():
@@ -161,7 +161,7 @@ def test_non_finite_label_is_refused(run_dir, value):
 
 
 def test_pose_dataset_refuses_non_finite_targets():
-    from pipeline.training import PoseDataset
+    from pipeline.pose.train import PoseDataset
 
     targets = np.zeros((4, 9), np.float32)
     targets[2, 4] = np.inf
@@ -191,7 +191,7 @@ def test_killed_train_leaves_old_model_and_metrics(run_dir):
 def test_checkpoint_with_nan_weights_is_refused(run_dir):
     import torch
 
-    from stages.checkpoint import read_pose
+    from stages.artifacts.checkpoint import read_pose
 
     ckpt = torch.load("models/pose.pt", weights_only=True)
     next(v for v in ckpt["model"].values() if v.is_floating_point()).view(-1)[0] = float("nan")
@@ -273,9 +273,9 @@ BODIES = {"camera": "camera", "target": "target"}
 
 @pytest.fixture
 def recording(tmp_path) -> Path:
-    """A 6-frame lab recording (stages.recordings.write_recording layout) with a bright target on black."""
-    from pipeline.lab import synthetic_recording
-    from stages.recordings import write_recording
+    """A 6-frame lab recording (stages.artifacts.recordings.write_recording layout) with a bright target on black."""
+    from pipeline.evaluation.lab import synthetic_recording
+    from stages.artifacts.recordings import write_recording
 
     rec = synthetic_recording(1.6, 1.0, 6, 30.0, 120.0, np.array([1.0, 0, 0, 0]))
     images = np.zeros((6, 36, 64, 3), np.uint8)
@@ -285,7 +285,7 @@ def recording(tmp_path) -> Path:
 
 
 def _read(folder: Path, **kwargs):
-    from stages.recordings import read_recording
+    from stages.artifacts.recordings import read_recording
 
     return read_recording(folder, 32, 18, BODIES, "nearest", 0.01, 0.08, **kwargs)
 
@@ -394,7 +394,7 @@ def test_train_refuses_a_stale_render(run_dir):
 @pytest.mark.slow
 def test_label_refuses_a_stale_render_and_render_refuses_an_invisible_target(tmp_path, monkeypatch):
     from stages import label, render
-    from stages import params as params_mod
+    from stages.config import params as params_mod
 
     monkeypatch.chdir(tmp_path)
     tiny = ["render.width=32", "render.height=18", "render.frames_per_sequence=2", "render.samples=1", "render.chunk=4"]

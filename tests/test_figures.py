@@ -1,4 +1,4 @@
-"""pipeline/figures.py: every figure fits a rendered Markdown page with readable text, legends outside
+"""pipeline/report/figures.py: every figure fits a rendered Markdown page with readable text, legends outside
 the data, and each panel carries information (synthetic inputs, no files)."""
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.image import AxesImage
 from matplotlib.text import Text
 
-from pipeline import figures as F
-from pipeline.guidance import RendezvousResult
+from pipeline.report import figures as F
+from pipeline.guidance.law import RendezvousResult
 
 RNG = np.random.default_rng(0)
 
@@ -132,7 +132,7 @@ def test_guidance_panels_carry_information(figures):
 
 def test_pose_error_bars_leave_an_empty_range_bin_blank():
     """A range bin without frames (an imported set that never comes closer than 20 m) has only n = 0."""
-    from pipeline.figures import pose_error_bars
+    from pipeline.report.figures import pose_error_bars
 
     rows = [{"n": 0, "range_m": "60-45"}, {"n": 9, "range_m": "45-30", "pos_mean_m": 1.5, "att_mean_deg": 9.0}]
     fig = pose_error_bars({"train": rows, "test": rows})

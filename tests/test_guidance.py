@@ -6,8 +6,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from pipeline.camera import reference_intrinsics
-from pipeline.guidance import HELD, LOST, MISSED, SUCCEEDED, GuidanceSettings, guidance_step, run_rendezvous
+from pipeline.geometry.camera import reference_intrinsics
+from pipeline.guidance.law import HELD, LOST, MISSED, SUCCEEDED, GuidanceSettings, guidance_step, run_rendezvous
 
 K = reference_intrinsics().scaled(160, 90)
 
@@ -139,7 +139,7 @@ def test_stage_plans_the_whole_grid():
 
 
 def test_arrival_step_is_when_the_chaser_reaches_the_goal_for_good():
-    from pipeline.guidance import RendezvousResult, arrival_step
+    from pipeline.guidance.law import RendezvousResult, arrival_step
 
     z = np.array([60.0, 30.0, 10.5, 14.0, 10.2, 10.0, 10.0])       # in, out again, then in for good
     run = RendezvousResult(np.stack([np.zeros_like(z), np.zeros_like(z), z], axis=1), np.zeros((6, 3)),
@@ -150,8 +150,8 @@ def test_arrival_step_is_when_the_chaser_reaches_the_goal_for_good():
 
 
 def _defense():
-    from pipeline.defense import Defense, DefenseSettings
-    from pipeline.motion import MotionSettings, NoiseModel
+    from pipeline.defense.fusion import Defense, DefenseSettings
+    from pipeline.defense.kalman import MotionSettings, NoiseModel
 
     return Defense(DefenseSettings(hold_after=20), MotionSettings(false_alarm=0.005),
                    NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02))
@@ -160,7 +160,7 @@ def _defense():
 def noisy_attacked(offset, seed=0):
     """Small seeded estimate noise; `offset` (camera frame, m) on attacked frames, which the
     detector misses (probability 0): only the motion check can catch them."""
-    from pipeline.guidance import Estimate
+    from pipeline.guidance.law import Estimate
 
     rng = np.random.default_rng(seed)
     return lambda image, attacked, pose: Estimate(pose[1] + rng.normal(0, 0.03, 3) + (np.asarray(offset) if attacked else 0.0), 0.0)
@@ -168,7 +168,7 @@ def noisy_attacked(offset, seed=0):
 
 @pytest.mark.parametrize("variant", ["paper", "true_state"])
 def test_recovery_keeps_the_rendezvous_on_course_through_a_15_frame_attack(variant):
-    from pipeline.defense import COAST
+    from pipeline.defense.fusion import COAST
 
     s = GuidanceSettings(variant=variant, max_steps=60)
     attack = noisy_attacked([5.0, 0.0, 3.0])

@@ -2,10 +2,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.camera import Intrinsics, project, reference_intrinsics
-from pipeline.lab import (LabDataError, domain_shift, lab_to_synthetic_factor, lab_to_synthetic_position,
+from pipeline.geometry.camera import Intrinsics, project, reference_intrinsics
+from pipeline.evaluation.lab import (LabDataError, domain_shift, lab_to_synthetic_factor, lab_to_synthetic_position,
                           match_frames, paper_lab_factor, relative_pose, segment, synthetic_recording)
-from pipeline.rotations import attitude_error_deg, euler_to_matrix, matrix_to_quat, quat_to_matrix
+from pipeline.geometry.rotations import attitude_error_deg, euler_to_matrix, matrix_to_quat, quat_to_matrix
 
 K_ZED = Intrinsics(1920, 1080, 1400.41, 1400.41, 956.29, 557.258)
 K_SYN = reference_intrinsics()
@@ -148,7 +148,7 @@ def test_segmentation_and_domain_shift():
 
 def test_loader_round_trips_a_synthetic_lab_recording(tmp_path):
     from stages.io import StageError
-    from stages.recordings import read_recording, write_recording
+    from stages.artifacts.recordings import read_recording, write_recording
 
     rec = synthetic_recording(1.6, 1.0, 12, 30.0, 120.0, np.array([1.0, 0, 0, 0]), lateral=(0.01, 0.0))
     rng = np.random.default_rng(0)
@@ -199,9 +199,9 @@ def stand_in_models(p):
     import torch
 
     from pipeline.detectors.lstm import LSTMConfig, LSTMDetector, to_checkpoint
-    from pipeline.loss import PoseLoss
-    from pipeline.model import PoseNet
-    from stages.checkpoint import save_pose
+    from pipeline.pose.loss import PoseLoss
+    from pipeline.pose.model import PoseNet
+    from stages.artifacts.checkpoint import save_pose
     from stages.io import file_hash
 
     torch.manual_seed(0)
@@ -225,7 +225,7 @@ def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
 
     from typer.testing import CliRunner
 
-    from stages import params as params_mod
+    from stages.config import params as params_mod
     from stages.cli import app
 
     monkeypatch.chdir(tmp_path)
@@ -272,7 +272,7 @@ def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, mo
     import torch
     from typer.testing import CliRunner
 
-    from stages import params as params_mod
+    from stages.config import params as params_mod
     from stages.cli import app
     from stages.io import file_hash
 
@@ -320,8 +320,8 @@ def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, mo
     ({"sequences": [[1.6, -1.0]]}, r"lab: sequences: each entry must be \[z_start, z_end\] in metres > 0"),
 ])
 def test_bad_lab_params_are_refused(edit, message):
-    from stages import params as params_mod
-    from stages.schema import ParamsError, build
+    from stages.config import params as params_mod
+    from stages.config.schema import ParamsError, build
 
     p = params_mod.compose("default")
     p["lab"].update(edit)
@@ -330,10 +330,10 @@ def test_bad_lab_params_are_refused(edit, message):
 
 
 def test_when_the_lab_stage_retrains(tmp_path, monkeypatch):
-    from stages import params as params_mod
+    from stages.config import params as params_mod
     from stages.io import StageError
     from stages.lab_models import sub_params
-    from stages.params import retrain_reason
+    from stages.config.params import retrain_reason
 
     monkeypatch.chdir(tmp_path)
     p = params_mod.compose("default")
@@ -353,7 +353,9 @@ def test_when_the_lab_stage_retrains(tmp_path, monkeypatch):
 def test_a_failing_retrain_step_is_one_clear_error(tmp_path, monkeypatch):
     from pathlib import Path
 
-    from stages import lab_models, params as params_mod
+    from stages import lab_models
+
+    from stages.config import params as params_mod
     from stages.io import StageError
 
     def run_step(name: str, folder: Path) -> None:

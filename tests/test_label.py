@@ -5,8 +5,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.rotations import quat_to_6d
-from stages import params as params_mod
+from pipeline.geometry.rotations import quat_to_6d
+from stages.config import params as params_mod
 from stages.io import StageError
 from stages.label import build_labels
 
@@ -75,7 +75,7 @@ def test_render_and_label_stages(workdir):
 
 @pytest.mark.slow
 def test_interrupted_render_leaves_no_dataset(workdir, monkeypatch):
-    from pipeline import scene
+    from pipeline.render import scene
     from stages import render
 
     calls = {"n": 0}

@@ -8,10 +8,10 @@ import pytest
 import torch
 from torch import nn
 
-from pipeline.augment import AugmentConfig, augment
-from pipeline.loss import PoseLoss
-from pipeline.model import N_FEATURES, PoseNet
-from pipeline.rotations import quat_to_6d, sixd_to_matrix
+from pipeline.pose.augment import AugmentConfig, augment
+from pipeline.pose.loss import PoseLoss
+from pipeline.pose.model import N_FEATURES, PoseNet
+from pipeline.geometry.rotations import quat_to_6d, sixd_to_matrix
 
 
 @pytest.fixture(autouse=True)

@@ -1,11 +1,11 @@
-"""Typed params (stages/schema.py): every profile builds; bad keys, types and ranges are refused by
-`stages.params.load` with a message naming the key."""
+"""Typed params (stages/config/schema.py): every profile builds; bad keys, types and ranges are refused by
+`stages.config.params.load` with a message naming the key."""
 from __future__ import annotations
 
 import pytest
 
-from stages import params as params_mod
-from stages.schema import Params, ParamsError, build
+from stages.config import params as params_mod
+from stages.config.schema import Params, ParamsError, build
 
 
 @pytest.mark.parametrize("profile", params_mod.profiles())
@@ -61,7 +61,7 @@ def test_load_refuses_bad_params_naming_the_key(tmp_path, monkeypatch, edit, mes
 def test_unset_external_inputs_and_workers_leave_the_render_fingerprint_alone():
     """inputs/none (the DVC-dep placeholder) fingerprints like null, so renders made before the
     placeholder existed stay valid; a real mesh or SPEED source changes it."""
-    from stages.params import compose, render_fingerprint
+    from stages.config.params import compose, render_fingerprint
 
     p = compose("smoke")
     base = render_fingerprint(p)

@@ -20,10 +20,10 @@ H, W = 36, 64   # model input of the tiny checkpoint
 def models(tmp_path_factory) -> Path:
     """models/pose.pt and models/detector.pt as `rpod train` and `rpod detect` write them (random weights)."""
     from pipeline.detectors.lstm import LSTMConfig, LSTMDetector, to_checkpoint
-    from pipeline.loss import PoseLoss
-    from pipeline.model import PoseNet
-    from stages.artifacts import DETECTOR_FORMAT
-    from stages.checkpoint import save_pose
+    from pipeline.pose.loss import PoseLoss
+    from pipeline.pose.model import PoseNet
+    from stages.artifacts.readers import DETECTOR_FORMAT
+    from stages.artifacts.checkpoint import save_pose
     from stages.io import file_hash, save_torch
 
     torch.manual_seed(0)

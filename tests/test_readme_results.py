@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from pipeline.report import extract_block, replace_block
+from pipeline.report.markdown import extract_block, replace_block
 from stages.cli import app
 
 REPO = Path(__file__).resolve().parent.parent

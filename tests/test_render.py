@@ -7,9 +7,9 @@ import pytest
 
 pytest.importorskip("bpy")
 
-from pipeline.camera import Intrinsics, project, reference_intrinsics, transform  # noqa: E402
-from pipeline.rotations import euler_to_matrix  # noqa: E402
-from pipeline.scene import Renderer, SceneSettings  # noqa: E402
+from pipeline.geometry.camera import Intrinsics, project, reference_intrinsics, transform  # noqa: E402
+from pipeline.geometry.rotations import euler_to_matrix  # noqa: E402
+from pipeline.render.scene import Renderer, SceneSettings  # noqa: E402
 
 pytestmark = pytest.mark.slow
 FAST = dict(samples=16, denoiser="NONE")

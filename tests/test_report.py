@@ -1,6 +1,6 @@
 import pytest
 
-from pipeline.report import demote_headings, extract_block, markdown_table, replace_block, replace_section
+from pipeline.report.markdown import demote_headings, extract_block, markdown_table, replace_block, replace_section
 
 
 def test_markdown_table_fixed_decimals_and_order():

@@ -10,12 +10,12 @@ import pytest
 import torch
 from torch import nn
 
-from pipeline.adaptive import ShapChain, adaptive_objective, adaptive_pgd, check_lambdas
-from pipeline.attacks import pgd, quantize
-from pipeline.corruptions import CORRUPTIONS, corrupt
+from pipeline.attacks.adaptive import ShapChain, adaptive_objective, adaptive_pgd, check_lambdas
+from pipeline.attacks.gradient import pgd, quantize
+from pipeline.attacks.corruptions import CORRUPTIONS, corrupt
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
-from pipeline.loss import PoseLoss
-from pipeline.robustness import attack_row, corruption_row, worst_by_eps, worst_over_lambda
+from pipeline.pose.loss import PoseLoss
+from pipeline.evaluation.robustness import attack_row, corruption_row, worst_by_eps, worst_over_lambda
 
 D = 16
 
@@ -218,7 +218,7 @@ def test_bad_corruptions_refused(name: str, strength: float, match: str) -> None
 
 
 def _params() -> dict:
-    from stages.params import compose
+    from stages.config.params import compose
 
     return compose("smoke")
 
@@ -237,7 +237,7 @@ def _params() -> dict:
     ("corruptions", {"fog": [1]}, r"unknown parameter 'robustness\.corruptions\.fog'"),
 ])
 def test_bad_params_stop_with_one_message(key: str, value: object, match: str) -> None:
-    from stages.schema import ParamsError, build
+    from stages.config.schema import ParamsError, build
 
     p = _params()
     build(p)
@@ -251,8 +251,8 @@ def test_bad_params_stop_with_one_message(key: str, value: object, match: str) -
 def test_schema_attack_names_are_the_librarys() -> None:
     import typing
 
-    from pipeline.attacks import ATTACKS, LOSSES
-    from stages.schema import AttackLoss, AttackMethod
+    from pipeline.attacks.gradient import ATTACKS, LOSSES
+    from stages.config.schema import AttackLoss, AttackMethod
 
     assert typing.get_args(AttackMethod) == tuple(ATTACKS)
     assert typing.get_args(AttackLoss) == tuple(LOSSES)
@@ -261,7 +261,7 @@ def test_schema_attack_names_are_the_librarys() -> None:
 def test_train_surrogate_writes_only_its_checkpoint_with_its_own_seed(tmp_path, monkeypatch) -> None:
     from test_training import write_dataset
 
-    from stages import checkpoint
+    from stages.artifacts import checkpoint
     from stages.train import SURROGATE, main
 
     monkeypatch.chdir(tmp_path)
@@ -320,9 +320,9 @@ def test_a_temporal_chain_plugs_in_and_is_attacked_over_the_burst(setup) -> None
 # ----------------------------------------------------------------------------- the fused (temporal) chain
 def _fused(setup, lam_prior: bool = True):
     """A FusedBurstChain over a 4-frame burst whose prior is a filter started on the clean estimates."""
-    from pipeline.adaptive import FusedBurstChain, burst_prior
-    from pipeline.motion import MotionFilter, MotionSettings, NoiseModel
-    from pipeline.rotations import sixd_to_matrix
+    from pipeline.attacks.adaptive import FusedBurstChain, burst_prior
+    from pipeline.defense.kalman import MotionFilter, MotionSettings, NoiseModel
+    from pipeline.geometry.rotations import sixd_to_matrix
 
     chain, model, x, y, loss = setup
     noise = NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02)
@@ -366,8 +366,8 @@ def test_fused_attack_stays_within_eps_after_8_bit_storage(setup, eps: float) ->
 
 
 def test_fused_nis_matches_the_motion_filter(setup) -> None:
-    from pipeline.motion import MotionFilter, MotionSettings
-    from pipeline.rotations import sixd_to_matrix
+    from pipeline.defense.kalman import MotionFilter, MotionSettings
+    from pipeline.geometry.rotations import sixd_to_matrix
 
     fused, x, y, loss, model = _fused(setup)
     with torch.no_grad():
@@ -389,7 +389,7 @@ def test_fused_nis_matches_the_motion_filter(setup) -> None:
 
 
 def test_worst_burst_over_lambda_chooses_per_burst() -> None:
-    from pipeline.robustness import worst_burst_over_lambda
+    from pipeline.evaluation.robustness import worst_burst_over_lambda
 
     bursts = np.array([0, 0, 1, 1])
     pos = [np.array([2.0, 2.0, 0.5, 0.5]), np.array([3.0, 0.1, 2.0, 2.0])]
@@ -400,9 +400,9 @@ def test_worst_burst_over_lambda_chooses_per_burst() -> None:
 
 
 def test_burst_schedule_and_world_motion() -> None:
-    from pipeline.robustness import burst_schedule, world_motion
-    from pipeline.rotations import matrix_to_6d
-    from pipeline.trajectories import projectile_trajectory
+    from pipeline.evaluation.robustness import burst_schedule, world_motion
+    from pipeline.geometry.rotations import matrix_to_6d
+    from pipeline.geometry.trajectories import projectile_trajectory
 
     assert burst_schedule(20, 5, 8) == [(8, 13)]
     assert burst_schedule(30, 5, 8) == [(8, 13), (16, 21), (24, 29)]

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from pipeline.rotations import (attitude_error_deg, euler_to_matrix, matrix_to_6d, matrix_to_quat, normalize_quat,
+from pipeline.geometry.rotations import (attitude_error_deg, euler_to_matrix, matrix_to_6d, matrix_to_quat, normalize_quat,
                                 position_error, quat_to_6d, quat_to_matrix, sixd_to_matrix, sixd_to_quat)
 
 

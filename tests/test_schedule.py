@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from pipeline.schedule import (attack_schedule, bursts, detection_delays, detection_metrics, mean_over,
+from pipeline.evaluation.schedule import (attack_schedule, bursts, detection_delays, detection_metrics, mean_over,
                                schedule_bursts, undetected_mask)
 
 

@@ -1,4 +1,4 @@
-"""SPEED / SPEED+ interop: the label and camera formats (pipeline/speed.py), the import as `rpod render`'s
+"""SPEED / SPEED+ interop: the label and camera formats (pipeline/formats/speed.py), the import as `rpod render`'s
 output, `rpod export speed`, and one clear error per kind of bad input."""
 import json
 
@@ -7,10 +7,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.camera import Intrinsics
-from pipeline.rotations import normalize_quat, quat_to_matrix
-from pipeline.speed import SPEED_CAMERA, camera_from_json, camera_to_json, from_speed, to_speed
-from stages import params as params_mod
+from pipeline.geometry.camera import Intrinsics
+from pipeline.geometry.rotations import normalize_quat, quat_to_matrix
+from pipeline.formats.speed import SPEED_CAMERA, camera_from_json, camera_to_json, from_speed, to_speed
+from stages.config import params as params_mod
 from stages.io import StageError
 
 SIZE = (48, 30)                                        # source images, Nu x Nv (16:10 like SPEED+)
@@ -148,7 +148,7 @@ def test_import_export_round_trip(project):
 
 
 def test_speed_layout_resized_with_scaled_k(project):
-    from stages import speed as speed_io
+    from stages.artifacts import speed as speed_io
 
     root, use = project
     write_folder(root / "speed", layout="speed", n=(4, 2))
@@ -181,7 +181,7 @@ def test_speed_layout_resized_with_scaled_k(project):
     (lambda r: (r / "synthetic/test.json").unlink(), "no test labels"),
 ])
 def test_bad_input_stops_with_one_message(project, damage, message):
-    from stages import speed as speed_io
+    from stages.artifacts import speed as speed_io
 
     root, use = project
     write_folder(root / "src")

@@ -10,10 +10,10 @@ import pytest
 import torch
 import zarr
 
-from pipeline.camera import reference_intrinsics
-from pipeline.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
-from stages import checkpoint, data
-from stages import params as params_mod
+from pipeline.geometry.camera import reference_intrinsics
+from pipeline.geometry.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
+from stages.artifacts import checkpoint, data
+from stages.config import params as params_mod
 from stages.io import StageError, create_array, seal_zarr, write_json
 
 W, H = 48, 27
@@ -96,8 +96,8 @@ def test_image_size_mismatch_is_refused(dataset):
 
 
 def test_checkpoint_round_trip_and_mismatch_refusal(dataset, tmp_path):
-    from pipeline.loss import PoseLoss
-    from pipeline.model import PoseNet
+    from pipeline.pose.loss import PoseLoss
+    from pipeline.pose.model import PoseNet
 
     model, loss = PoseNet(dataset["train"]["width"], dataset["train"]["dropout"]).eval(), PoseLoss()
     with torch.no_grad():
@@ -121,9 +121,9 @@ def test_checkpoint_round_trip_and_mismatch_refusal(dataset, tmp_path):
 
 
 def test_fit_improves_and_tracks_the_best_epoch(dataset):
-    from pipeline.loss import PoseLoss
-    from pipeline.model import PoseNet
-    from pipeline.training import TrainConfig, fit
+    from pipeline.pose.loss import PoseLoss
+    from pipeline.pose.model import PoseNet
+    from pipeline.pose.train import TrainConfig, fit
 
     train, test = data.load_split(dataset, "train"), data.load_split(dataset, "test")
     model = PoseNet(0.125, 0.0)
@@ -141,9 +141,9 @@ def test_fit_improves_and_tracks_the_best_epoch(dataset):
 
 
 def test_time_limit_stops_between_epochs(dataset):
-    from pipeline.loss import PoseLoss
-    from pipeline.model import PoseNet
-    from pipeline.training import TrainConfig, fit
+    from pipeline.pose.loss import PoseLoss
+    from pipeline.pose.model import PoseNet
+    from pipeline.pose.train import TrainConfig, fit
 
     train, test = data.load_split(dataset, "train"), data.load_split(dataset, "test")
     cfg = TrainConfig(epochs=50, batch_size=16, max_minutes=1e-4)
@@ -169,11 +169,11 @@ def test_train_stage_writes_checkpoint_report_and_metrics(dataset):
 def test_test_split_is_read_only_after_training(dataset, monkeypatch):
     """The checkpoint is chosen on validation frames carved from the training split: no test frame
     reaches `fit`, and the test split is first loaded after `fit` returns."""
-    import pipeline.training
+    import pipeline.pose.train
     from stages import train
 
     events: list[tuple[str, object]] = []
-    load, real_fit = data.load_split, pipeline.training.fit
+    load, real_fit = data.load_split, pipeline.pose.train.fit
     test_targets = {tuple(t) for t in load(dataset, "test").targets}
 
     def recording_load(params, split, **kw):
@@ -189,7 +189,7 @@ def test_test_split_is_read_only_after_training(dataset, monkeypatch):
         return out
 
     monkeypatch.setattr(data, "load_split", recording_load)
-    monkeypatch.setattr(pipeline.training, "fit", recording_fit)
+    monkeypatch.setattr(pipeline.pose.train, "fit", recording_fit)
     train.main()
     assert events[:2] == [("load", "train"), ("fit", (29, 3))]
     assert events.index(("load", "test")) > events.index(("fit done", None))
@@ -211,7 +211,7 @@ def test_training_is_reproducible_bit_for_bit(dataset):
 
 
 def test_holdout_keeps_groups_whole():
-    from pipeline.splits import holdout
+    from pipeline.evaluation.splits import holdout
 
     groups = np.repeat(np.arange(20), 3)
     kept, out = holdout(groups, 0.25, seed=1)
@@ -227,8 +227,8 @@ def test_holdout_keeps_groups_whole():
 
 def test_checkpoint_bytes_do_not_depend_on_the_temporary_name(tmp_path):
     """The same weights saved twice give the same file hash (models/pose.pt's hash is in the reports)."""
-    from pipeline.loss import PoseLoss
-    from pipeline.model import PoseNet
+    from pipeline.pose.loss import PoseLoss
+    from pipeline.pose.model import PoseNet
     from stages.io import file_hash
 
     torch.manual_seed(0)

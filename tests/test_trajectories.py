@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from pipeline.rotations import attitude_error_deg, matrix_to_quat
-from pipeline.trajectories import (FIXED_STARTS, ROTATING_STARTS, approach_sequences, look_at, pose_in_camera,
+from pipeline.geometry.rotations import attitude_error_deg, matrix_to_quat
+from pipeline.geometry.trajectories import (FIXED_STARTS, ROTATING_STARTS, approach_sequences, look_at, pose_in_camera,
                                    projectile_trajectory)
 
 

@@ -23,7 +23,7 @@ import torch
 from torch import nn
 
 from pipeline.detectors.metrics import choose_threshold
-from pipeline.training import check_improved, check_loss
+from pipeline.pose.train import check_improved, check_loss
 
 
 class ReLULSTMCell(nn.Module):

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 from sklearn import metrics as skm
 
-from pipeline.stats import wilson
+from pipeline.evaluation.stats import wilson
 
 METRICS = ("accuracy", "precision", "recall", "fpr", "roc_auc", "tpr_at_1pct_fpr")
 

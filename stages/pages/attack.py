@@ -5,7 +5,7 @@ from typing import Any
 
 
 def attack_page(rows: list[dict[str, Any]], a: dict[str, Any], n: int) -> str:
-    from pipeline.report import markdown_table
+    from pipeline.report.markdown import markdown_table
 
     table = markdown_table(
         [{"eps": r["eps"], "stored L-inf": r["stored_linf"], "pos. mean (m)": r["position_mean_m"],

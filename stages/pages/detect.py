@@ -11,7 +11,7 @@ PAPER_ACCURACY = 0.9990
 def detector_page(results: dict[str, dict[str, dict[str, float]]], scores: dict[str, Any], counts: dict[str, int],
                   result: Any, attrs: dict[str, Any], d: dict[str, Any]) -> str:
     """reports/detector.md: the LSTM per eps, the baselines on the same split, and what the detectors see."""
-    from pipeline.report import markdown_table
+    from pipeline.report.markdown import markdown_table
 
     def pct(m: dict[str, Any], key: str) -> str:
         """A rate in percent with its 95% Wilson interval, e.g. "94.1 [92.4, 95.4]"."""
@@ -89,7 +89,7 @@ Detection rate (recall) per eps:
   median filter; score = the larger change. Needs the image and two extra pose passes per frame.
 
 What the SHAP detectors see: with the linear heads, row j of a sample's SHAP values is
-`W[j] * (a - mean_background)` (pipeline/explain.py), an element-wise rescaling of the GAP features.
+`W[j] * (a - mean_background)` (pipeline/shap.py), an element-wise rescaling of the GAP features.
 The SHAP signature therefore carries the same information as the GAP features, weighted by how much
 each feature moves each output; the SHAP detectors and the GAP-feature baselines differ in the model
 they fit, not in what they can know.

@@ -9,9 +9,9 @@ TARGET_ACCURACY, TARGET_HARMFUL_FLAGGED, TARGET_FPR = 0.995, 0.995, 0.005   # is
 
 def defense_section(chains: dict[str, list[dict[str, Any]]], calibration: dict[str, Any], harm_m: float,
                     attack_length: int) -> str:
-    """Markdown: the per-eps table of `pipeline.evaluation.defense_table` and what the defense was fitted on."""
-    from pipeline.evaluation import defense_table
-    from pipeline.report import markdown_table
+    """Markdown: the per-eps table of `pipeline.evaluation.sequences.defense_table` and what the defense was fitted on."""
+    from pipeline.evaluation.sequences import defense_table
+    from pipeline.report.markdown import markdown_table
 
     fused = list(chains.values())[-1]
     misses = []
@@ -35,7 +35,7 @@ def defense_section(chains: dict[str, list[dict[str, Any]]], calibration: dict[s
 ## The defended chain: motion check fused with the detector
 
 The same recorded frames (same attacks, same detector probabilities) through the defense of
-pipeline/defense.py, one fresh defense per trajectory and eps, open loop: the chaser knows its own
+pipeline/defense/fusion.py, one fresh defense per trajectory and eps, open loop: the chaser knows its own
 camera attitude and its planned displacement between frames. A relative-motion Kalman filter tests
 each estimate with a chi-square gate; a frame is flagged when the detector or the gate fires
 (`defense.fusion`), and a flagged frame's estimate is replaced by the filter's prediction (the

@@ -12,8 +12,8 @@ VARIANTS = {"undefended": "undefended (paper)", "hold": "detect-and-hold", "reco
 
 def defended_section(d: dict[str, Any], g: dict[str, Any]) -> str:
     """Markdown: success rates with Wilson intervals per (dynamics, variant) and eps, and per S x K cell."""
-    from pipeline.report import markdown_table
-    from pipeline.stats import wilson
+    from pipeline.report.markdown import markdown_table
+    from pipeline.evaluation.stats import wilson
 
     summary, cells = [], []
     for dyn, variants in d["dynamics"].items():
@@ -34,7 +34,7 @@ def defended_section(d: dict[str, Any], g: dict[str, Any]) -> str:
 ## The chain inside the loop: undefended, detect-and-hold, detect-and-recover
 
 Every cell of the grid above flown again with the whole safety chain (pose, SHAP, detector) and the
-calibrated defense of pipeline/defense.py inside the loop, one fresh defense per run, for each
+calibrated defense of pipeline/defense/fusion.py inside the loop, one fresh defense per run, for each
 dynamics: {'; '.join(DYNAMICS[k] for k in d['dynamics'])}. Undefended: guidance acts on every
 estimate (the paper; under the table's dynamics these are the runs above). Detect-and-hold: a
 flagged frame's estimate is not used and the chaser sends no command for that step.
@@ -73,7 +73,7 @@ def _cell(r: dict[str, Any]) -> str:
 
 def guidance_page(m: dict[str, Any], g: dict[str, Any], render: dict[str, Any]) -> str:
     """reports/guidance.md without the defended section: one S x K table per eps, from the metrics."""
-    from pipeline.report import markdown_table
+    from pipeline.report.markdown import markdown_table
 
     tables = []
     for eps in dict.fromkeys(r["eps"] for r in m["runs"]):

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from stages.artifacts import LAB as OUT, TRAIN_METRICS
+from stages.artifacts.readers import LAB as OUT, TRAIN_METRICS
 
 PAPER_ACCURACY = {0.5: 100.0, 0.3: 100.0, 0.1: 100.0, 0.05: 98.44, 0.01: 90.44}
 PAPER_AVERAGE = 96.29
@@ -54,8 +54,8 @@ PAPER_RANGES = {3.122: 51.18}  # the paper's representative-range table: lab z (
 
 def paper_ranges(K_syn: Any, K_zed: Any, scale: float, factor: float) -> str:
     """The paper's representative-range table beside ours, and why they differ (Markdown)."""
-    from pipeline.lab import paper_lab_factor
-    from pipeline.report import markdown_table
+    from pipeline.evaluation.lab import paper_lab_factor
+    from pipeline.report.markdown import markdown_table
 
     k_paper = paper_lab_factor(K_syn, K_zed, scale)
     rows = [{"lab z (m)": f"{z:g}", "ours (m)": z * factor, "paper's formula (m)": z * k_paper,
@@ -76,8 +76,8 @@ def lab_page(p: dict[str, Any], m: dict[str, Any], rows: list[dict[str, Any]], s
     """reports/lab.md: models, range rescaling, loader round trip, pose and FGSM errors, integrated detection."""
     import pandas as pd
 
-    from pipeline.evaluation import accuracy_table, detail_table
-    from pipeline.report import markdown_table
+    from pipeline.evaluation.sequences import accuracy_table, detail_table
+    from pipeline.report.markdown import markdown_table
 
     lab, ds = p["lab"], p["lab"]["domain_shift"]
     f_eff = K_zed.fx * K_syn.width / K_zed.width

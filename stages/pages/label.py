@@ -11,9 +11,9 @@ import numpy as np
 def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_dir: Path) -> str:
     """reports/dataset.md: counts, ranges (m, px), attitude and pointing spread (deg), settings, where the time
     per image is kept; `previews` are PNG files shown relative to the card's folder `card_dir`."""
-    from pipeline.camera import Intrinsics, project
-    from pipeline.report import markdown_table
-    from pipeline.rotations import attitude_error_deg
+    from pipeline.geometry.camera import Intrinsics, project
+    from pipeline.report.markdown import markdown_table
+    from pipeline.geometry.rotations import attitude_error_deg
 
     q = labels[["qw", "qx", "qy", "qz"]].to_numpy()
     t = labels[["tx", "ty", "tz"]].to_numpy()
@@ -83,7 +83,7 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
 
 def _source_section(source: dict[str, Any]) -> list[str]:
     """The card's section on an imported SPEED/SPEED+ folder: which label files made which split."""
-    from pipeline.report import markdown_table
+    from pipeline.report.markdown import markdown_table
 
     return ["## Source", "", f"Imported by `rpod render` from `render.source` = {source['folder']} (each image is "
             "its own sequence; the folder's own train/test split is kept).", "",

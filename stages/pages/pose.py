@@ -10,7 +10,7 @@ TARGET_TZ_PCT, TARGET_LATERAL_M = 2.0, 0.5  # what the guidance law needs (issue
 
 def pose_page(m: dict[str, Any], params: dict[str, Any], n_train: int, n_val: int, n_test: int, live_dir: str) -> str:
     """reports/pose.md from the train metrics (errors per split and range bin) beside the paper."""
-    from pipeline.report import markdown_table
+    from pipeline.report.markdown import markdown_table
 
     p, r = params["train"], params["render"]
     rows = [{"split": s, "images": m[s]["n"], "position mean (m)": m[s]["pos_mean_m"],

@@ -39,8 +39,8 @@ def _sd(spread: dict[str, Any] | None, key: str | None, note: str = "") -> str:
 def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | None = None) -> str:
     """The headline results against the paper, as Markdown (this is what README.md shows). `spread`
     (reports/variance.json of the same profile) adds the standard deviation over seeds of each number."""
-    from pipeline.report import markdown_table
-    from pipeline.stats import wilson
+    from pipeline.report.markdown import markdown_table
+    from pipeline.evaluation.stats import wilson
 
     tr, at, gd, de, ev, lab = (metrics[k] for k in ("train", "attack", "guidance", "detect", "evaluate", "lab"))
     eps_at = _eps_keys(at["eps"])
@@ -102,8 +102,8 @@ def _rate(r: dict[str, Any] | None) -> str:
 def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any] | None = None) -> str:
     """The defended chain beside the paper's detector: integrated detection at the smallest
     eps, harmful-undetected, false alarms, and closed-loop rendezvous held per variant (Markdown)."""
-    from pipeline.report import markdown_table
-    from pipeline.stats import wilson
+    from pipeline.report.markdown import markdown_table
+    from pipeline.evaluation.stats import wilson
 
     fused = ev.get("fused")
     if not fused or not fused["per_eps"]:

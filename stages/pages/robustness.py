@@ -9,7 +9,7 @@ def _pct(value: float, ci: list[float | None]) -> str:
 
 
 def _table(rows: list[dict[str, Any]], with_lambda: bool = False) -> str:
-    from pipeline.report import markdown_table
+    from pipeline.report.markdown import markdown_table
 
     out = []
     for row in rows:
@@ -55,7 +55,7 @@ noise model `rpod calibrate` fitted and inflated x{f.get('noise_inflation', 1.0)
 flagged frames. The attacker knows all of it: L-inf PGD, {m['steps']} steps, random start, on
 `pose_loss - lambda * sum over the burst of (softplus(LSTM logit margin) + softplus(position NIS margin)
 + softplus(attitude NIS margin))`, each NIS against the filter's prediction, which coasts on the chaser's
-commands through the burst from the state the clean frames before it left (`pipeline/adaptive.py`
+commands through the burst from the state the clean frames before it left (`pipeline/attacks/adaptive.py`
 FusedBurstChain). Bursts of {f['burst_length']} frames every {f['burst_every']} frames of the
 {f['trajectories']} eval_render trajectories ({f['bursts']} bursts), each burst crafted jointly and stored
 as 8-bit; the REAL defense then runs over each whole trajectory, clean frames before and after
@@ -73,7 +73,7 @@ fused chain flags {_pct(f['false_alarm_rate'], f['ci95_false_alarm'])}% of frame
 
 def _intro(m: dict[str, Any], p: dict[str, Any]) -> str:
     """Title, what is measured on how many frames, and the worst harmful-undetected rate per eps."""
-    from pipeline.stats import wilson
+    from pipeline.evaluation.stats import wilson
 
     mid = wilson(m["frames"] // 2, m["frames"])
     half = 100 * (mid.hi - mid.lo) / 2
@@ -129,7 +129,7 @@ position-only and the rotation-only loss (`method/loss`).
 ### Adaptive white-box attack
 
 L-inf PGD, {m['steps']} steps, random start, on `pose_loss - lambda * detector_logit` through the whole chain
-(pose network, exact SHAP, LSTM: `pipeline/adaptive.py`), for lambda in {', '.join(f'{v:g}' for v in m['lambdas'])}.
+(pose network, exact SHAP, LSTM: `pipeline/attacks/adaptive.py`), for lambda in {', '.join(f'{v:g}' for v in m['lambdas'])}.
 lambda = 0 is plain PGD on the same seed (one run, also the `pgd` transfer row). "worst over lambda"
 is the attacker who tries every lambda and keeps, per frame, a harmful unflagged image when one
 exists, else an unflagged one, else the one with the largest error.
@@ -152,7 +152,7 @@ surrogate than a real attacker would train. Evaluated on our chain.
 
 def _corruptions(m: dict[str, Any]) -> str:
     """The benign-corruption table (false alarms) and its meaning for a mission."""
-    from pipeline.report import markdown_table
+    from pipeline.report.markdown import markdown_table
 
     corr = [{"corruption": c["corruption"], "strength": "-" if c["corruption"] == "none" else f"{c['strength']:g}",
              "frames": c["n"], "false alarms (%)": _pct(c["false_alarm_rate"], c["ci95_false_alarm"]),

@@ -1,0 +1,1 @@
+"""Attacks on the pose network and the safety chain, and benign corruptions."""

@@ -1,0 +1,134 @@
+"""The onboard safety chain: image -> pose -> SHAP signature -> attack flag (defense: pipeline/defense/fusion.py).
+
+The pose network's GAP features `a` (B, 1000) are computed once and used twice: the affine heads
+turn them into the pose (B, 9), and the closed-form DeepSHAP of those heads,
+phi[b, j, i] = W[j, i] * (a[b, i] - mean_background[i]), turns them into the (B, 9, 1000)
+signature the detector reads. So the chain costs the pose forward plus one broadcast multiply and
+the detector's small LSTM over 9 steps. The chain keeps no state between frames: a batch of frames
+gives the same result as the frames one at a time.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Callable, Iterable
+
+import numpy as np
+import torch
+from torch import nn
+
+from pipeline.detectors.lstm import LSTMDetector, ShapLSTM
+from pipeline.shap import affine_head, exact_shap
+
+
+@dataclass(frozen=True)
+class ChainOutput:
+    """One batch through the chain: pose (B, 9) [m, 6-D], shap (B, 9, D), prob (B,), flag (B,) bool."""
+
+    pose: torch.Tensor
+    shap: torch.Tensor
+    prob: torch.Tensor
+    flag: torch.Tensor
+
+
+class SafetyChain:
+    """Pose model + exact SHAP (head weights, background mean) + detector, in eval mode, no grad.
+
+    `detector` maps SHAP values (B, 9, D) to attack logits (B,); a frame is flagged when
+    sigmoid(logit) >= `threshold`. With `fast` (default) and an LSTM detector, frames on the CPU
+    go from the GAP features through one traced and frozen TorchScript graph (`ShapLSTM`: SHAP
+    values, the folded standardisation, the LSTM and the probability); its results equal the
+    detector's on the SHAP values to float32 rounding (tested to 1e-4). Other detectors, and
+    frames on another device, take the plain path. benchmarks/chain_latency.py measures the cost.
+    """
+
+    def __init__(self, model: nn.Module, weight: np.ndarray | torch.Tensor,
+                 background_mean: np.ndarray | torch.Tensor, detector: nn.Module, threshold: float = 0.5,
+                 fast: bool = True):
+        self.model = model.eval()
+        self.detector = detector.eval()
+        self.weight = torch.as_tensor(np.asarray(weight), dtype=torch.float32).contiguous()
+        self.background_mean = torch.as_tensor(np.asarray(background_mean), dtype=torch.float32).contiguous()
+        if self.weight.ndim != 2 or self.background_mean.shape != (self.weight.shape[1],):
+            raise ValueError(f"head weight {tuple(self.weight.shape)} and background mean "
+                             f"{tuple(self.background_mean.shape)} do not fit (need (9, D) and (D,))")
+        self.threshold = float(threshold)
+        self._fast = None
+        if fast and isinstance(detector, LSTMDetector):
+            example = torch.zeros(1, self.weight.shape[1])
+            # TorchScript is deprecated in favour of torch.compile, which needs a C++ toolchain and
+            # recompiles per batch size; tracing still works in torch 2.13 and has neither cost.
+            with torch.no_grad(), warnings.catch_warnings():
+                warnings.simplefilter("ignore", DeprecationWarning)
+                module = ShapLSTM(self.detector, self.weight, self.background_mean).eval()
+                self._fast = torch.jit.freeze(torch.jit.trace(module, example))
+
+    @classmethod
+    def from_model(cls, model: nn.Module, background_mean: np.ndarray | torch.Tensor, detector: nn.Module,
+                   threshold: float = 0.5, fast: bool = True) -> "SafetyChain":
+        """Read the head weights from `model` (they must form an affine map, as in PoseNet)."""
+        mu = np.asarray(torch.as_tensor(background_mean, dtype=torch.float32))
+        head = affine_head(model, n_features=len(mu))
+        if head is None:
+            raise ValueError("the safety chain needs an affine pose head (exact SHAP); this model's head is not")
+        return cls(model, head.weight, mu, detector, threshold, fast)
+
+    @torch.inference_mode()
+    def __call__(self, images: torch.Tensor) -> ChainOutput:
+        """(B, 3, H, W) images in [0, 1] -> ChainOutput; a single (3, H, W) frame is batched."""
+        x = images.unsqueeze(0) if images.ndim == 3 else images
+        features = self.model.forward_features(x)
+        pose = self.model.forward_head(features)
+        if self._fast is not None and features.device.type == "cpu":
+            phi, prob = self._fast(features)
+        else:
+            phi = exact_shap(features, self.weight, self.background_mean)
+            prob = torch.sigmoid(self.detector(phi))
+        return ChainOutput(pose, phi, prob, prob >= self.threshold)
+
+    @torch.inference_mode()
+    def pose_only(self, images: torch.Tensor) -> torch.Tensor:
+        """The pose forward alone, (B, 9): the baseline the chain's cost is compared with."""
+        x = images.unsqueeze(0) if images.ndim == 3 else images
+        return self.model(x)
+
+
+Attack = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+@dataclass(frozen=True)
+class SequenceResult:
+    """A sequence through the chain: pose (N, 9), prob (N,), flag (N,) bool, as numpy arrays."""
+
+    pose: np.ndarray
+    prob: np.ndarray
+    flag: np.ndarray
+
+
+def run_sequence(chain: SafetyChain, images: np.ndarray, targets: np.ndarray, attacked: np.ndarray,
+                 attack: Attack | None, batch_size: int = 64,
+                 progress: Callable[[Iterable[int]], Iterable[int]] = iter) -> SequenceResult:
+    """Frames as onboard: attacked frames are replaced by `attack(x, y)` against their own true label.
+
+    images: (N, H, W, 3) uint8; targets: (N, 9) labels (m, 6-D); attacked: (N,) bool. `attack`
+    takes and returns (B, 3, H, W) images in [0, 1] (it may run with gradients). Frames are batched
+    for speed only: the chain is stateless, so each frame's result is that of the frame alone.
+    """
+    n = len(images)
+    attacked = np.asarray(attacked, dtype=bool)
+    if len(targets) != n or len(attacked) != n:
+        raise ValueError(f"images ({n}), targets ({len(targets)}) and schedule ({len(attacked)}) differ in length")
+    if attacked.any() and attack is None:
+        raise ValueError("frames are scheduled for attack but no attack was given")
+    pose, prob, flag = np.zeros((n, 9), np.float32), np.zeros(n), np.zeros(n, bool)
+    for lo in progress(range(0, n, batch_size)):
+        hi = min(lo + batch_size, n)
+        x = torch.from_numpy(np.ascontiguousarray(images[lo:hi])).permute(0, 3, 1, 2).float() / 255.0
+        hit = torch.from_numpy(attacked[lo:hi])
+        if hit.any():
+            y = torch.from_numpy(np.array(targets[lo:hi], dtype=np.float32))
+            x = x.clone()
+            x[hit] = attack(x[hit], y[hit])
+        out = chain(x)
+        pose[lo:hi], prob[lo:hi], flag[lo:hi] = out.pose.numpy(), out.prob.numpy(), out.flag.numpy()
+    return SequenceResult(pose, prob, flag)

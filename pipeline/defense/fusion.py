@@ -1,0 +1,170 @@
+"""The defended chain: SHAP detector fused with the motion check, recovery and safe hold.
+
+Per frame, `Defense.step` turns (camera-frame estimate, detector probability, camera attitude,
+commanded displacement) into (flag, trusted estimate, mode):
+- flag: the detector's probability >= its threshold (`fusion` "paper", the paper's detector alone),
+  the motion filter's gate (`fusion` "motion"), or either ("or", the default);
+- a frame that neither check flags updates the motion filter and the trusted estimate is the
+  filter's state (world frame, metres); a flagged frame is left out, the filter coasts on its
+  prediction and the prediction is the trusted estimate (mode "coast"). The filter leaves out the
+  frames its gate rejects and, unless fusion is "motion", the frames the detector flags, whatever
+  the fusion: the trusted estimate stays sound under either check. A frame whose probability is
+  at or above `update_below` (below the threshold) is doubtful: not flagged, but not used either;
+- frames only the gate rejects are restart candidates: when the last M of them agree with one
+  another (pipeline.defense.kalman.MotionFilter.reacquire), the filter restarts on them and the frame is
+  not flagged by the motion check: it was the filter that was wrong (a state corrupted by attacked
+  frames that slipped through), and a filter that never restarts would flag every clean frame after;
+- after `hold_after` consecutive flags the estimate is declared lost (mode "hold"): guidance should
+  hold position until `release_after` consecutive frames pass both checks.
+Before the first unflagged frame there is no estimate to trust: such frames are in mode "hold" and
+the filter starts on the first frame the detector does not flag.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.defense.kalman import MotionFilter, MotionSettings, NoiseModel
+
+FUSIONS = ("paper", "motion", "or")
+TRACK, COAST, HOLD = "track", "coast", "hold"
+MODES = (TRACK, COAST, HOLD)
+
+
+@dataclass(frozen=True)
+class DefenseSettings:
+    """fusion: which checks flag a frame (FUSIONS); hold_after: K consecutive flags that declare the
+    estimate lost; release_after: consecutive clean frames that end a hold; threshold: the
+    detector's probability threshold (its checkpoint's, chosen on validation data); update_below:
+    frames whose detector probability is at or above this (but below the threshold) are not flagged
+    but do not update the motion filter either (None: the threshold)."""
+
+    fusion: str = "or"
+    hold_after: int = 5
+    release_after: int = 2
+    threshold: float = 0.5
+    update_below: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.fusion not in FUSIONS:
+            raise ValueError(f"unknown defense.fusion {self.fusion!r}; choose one of {', '.join(FUSIONS)}")
+        if int(self.hold_after) < 1:
+            raise ValueError(f"defense.hold_after (K consecutive flags before a hold) must be >= 1, got {self.hold_after}")
+        if int(self.release_after) < 1:
+            raise ValueError(f"defense.release_after must be >= 1, got {self.release_after}")
+        if not 0 < float(self.threshold) < 1:
+            raise ValueError(f"detector threshold must be in (0, 1), got {self.threshold}")
+        if self.update_below is not None and not 0 < float(self.update_below) <= float(self.threshold):
+            raise ValueError(f"defense.update_below must be in (0, threshold = {self.threshold}], got {self.update_below}")
+
+
+@dataclass(frozen=True)
+class Decision:
+    """One frame: flag (fused), shap_flag, motion_flag, trusted rel (world frame, m; NaN before the
+    filter starts), mode (MODES), NIS of position and attitude (NaN when not tested)."""
+
+    flag: bool
+    shap_flag: bool
+    motion_flag: bool
+    trusted: np.ndarray
+    mode: str
+    nis_position: float
+    nis_attitude: float
+
+
+class Defense:
+    """Stateful per-frame defense; one instance per trajectory or closed-loop run."""
+
+    def __init__(self, settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel):
+        self.settings = settings
+        self.filter = MotionFilter(motion, noise)
+        self.flags_in_a_row = 0
+        self.clean_in_a_row = 0
+        self.holding = True
+
+    def step(self, t_pred: np.ndarray, prob: float, R_cam: np.ndarray, u: np.ndarray | None = None,
+             R_pred: np.ndarray | None = None) -> Decision:
+        """One frame: t_pred camera-frame estimate (m), prob detector probability, R_cam camera ->
+        world, u commanded displacement of rel since the previous frame (world, m), R_pred target ->
+        camera estimate (optional; enables the attitude check)."""
+        s = self.settings
+        shap_flag = bool(prob >= s.threshold) or not math.isfinite(prob)
+        if not self.filter.started:
+            if shap_flag or not np.isfinite(t_pred).all():
+                return Decision(True, shap_flag, False, np.full(3, np.nan), HOLD, np.nan, np.nan)
+            self.filter.start_from(t_pred, R_cam, R_pred)
+            self.holding = False
+            return Decision(False, False, False, self.filter.position, TRACK, np.nan, np.nan)
+        check = self.filter.check(t_pred, R_cam, u, R_pred)
+        motion_flag = check.inconsistent
+        doubt = s.threshold if s.update_below is None else s.update_below
+        suspect = (prob >= doubt or shap_flag) and s.fusion != "motion"   # the detector's word, where it counts
+        finite = math.isfinite(check.nis_position)
+        if not finite or (suspect and motion_flag):
+            self.filter.coast()
+        elif motion_flag:
+            self.filter.coast(candidate=True)
+            # the last frames agree with one another but not with the filter: the filter was wrong
+            motion_flag = not self.filter.reacquire()
+        elif suspect:
+            self.filter.coast()
+        else:
+            self.filter.accept()
+        flag = {"paper": shap_flag, "motion": motion_flag, "or": shap_flag or motion_flag}[s.fusion]
+        flag = flag or not finite
+        if flag:
+            self.flags_in_a_row += 1
+            self.clean_in_a_row = 0
+            if self.flags_in_a_row >= s.hold_after:
+                self.holding = True
+        else:
+            self.flags_in_a_row = 0
+            self.clean_in_a_row += 1
+            if self.holding and self.clean_in_a_row >= s.release_after:
+                self.holding = False
+        mode = HOLD if self.holding else (COAST if flag else TRACK)
+        return Decision(bool(flag), shap_flag, bool(motion_flag), self.filter.position, mode,
+                        check.nis_position, check.nis_attitude)
+
+
+@dataclass(frozen=True)
+class DefenseTrace:
+    """A sequence through `run_defense`: flag, shap_flag, motion_flag (N,) bool; trusted (N, 3) world
+    frame (m); mode (N,) str; nis_position, nis_attitude (N,)."""
+
+    flag: np.ndarray
+    shap_flag: np.ndarray
+    motion_flag: np.ndarray
+    trusted: np.ndarray
+    mode: np.ndarray
+    nis_position: np.ndarray
+    nis_attitude: np.ndarray
+
+
+def run_defense(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel, t_pred: np.ndarray,
+                prob: np.ndarray, R_cam: np.ndarray, u: np.ndarray | None = None,
+                R_pred: np.ndarray | None = None) -> DefenseTrace:
+    """The defense over a recorded sequence (open loop, as in the integrated evaluation).
+
+    t_pred (N, 3) camera-frame estimates (m); prob (N,) detector probabilities; R_cam (N, 3, 3)
+    camera -> world; u (N, 3) displacement of rel from frame i-1 to i (world, m; row 0 unused), e.g.
+    np.diff of the planned trajectory's rel, or None for a still chaser; R_pred (N, 3, 3) optional.
+    """
+    t_pred, prob, R_cam = np.asarray(t_pred, np.float64), np.asarray(prob, np.float64), np.asarray(R_cam, np.float64)
+    n = len(t_pred)
+    if t_pred.shape != (n, 3) or prob.shape != (n,) or R_cam.shape != (n, 3, 3):
+        raise ValueError(f"run_defense needs t_pred (N, 3), prob (N,), R_cam (N, 3, 3); got {t_pred.shape}, "
+                         f"{prob.shape}, {R_cam.shape}")
+    if u is not None and np.shape(u) != (n, 3):
+        raise ValueError(f"run_defense: u must be (N, 3) = ({n}, 3), got {np.shape(u)}")
+    if R_pred is not None and np.shape(R_pred) != (n, 3, 3):
+        raise ValueError(f"run_defense: R_pred must be (N, 3, 3), got {np.shape(R_pred)}")
+    d = Defense(settings, motion, noise)
+    out = [d.step(t_pred[i], prob[i], R_cam[i], None if u is None else u[i], None if R_pred is None else R_pred[i])
+           for i in range(n)]
+    return DefenseTrace(np.array([o.flag for o in out]), np.array([o.shap_flag for o in out]),
+                        np.array([o.motion_flag for o in out]), np.array([o.trusted for o in out]).reshape(n, 3),
+                        np.array([o.mode for o in out]), np.array([o.nis_position for o in out]),
+                        np.array([o.nis_attitude for o in out]))

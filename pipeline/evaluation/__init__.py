@@ -1,0 +1,1 @@
+"""Evaluation: attack schedules, sequences, robustness rows, the lab domain, intervals, splits."""

@@ -1,0 +1,1 @@
+"""File formats of other tools' data sets (SPEED / SPEED+ labels and cameras)."""

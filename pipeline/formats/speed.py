@@ -1,0 +1,122 @@
+"""SPEED and SPEED+ labels and cameras (Sharma and D'Amico 2019; Park et al. 2022) in our pose convention.
+
+Frames. Both datasets use the camera frame we use (x right, y down, z along the boresight; pixels =
+K @ (x/z, y/z, 1)). `r_Vo2To_vbs_true` is the target (Tango) origin in the camera (VBS) frame, in metres:
+our `t`. `q_vbs2tango_true` (SPEED+) or `q_vbs2tango` (SPEED) = (q0, q1, q2, q3), scalar first. Its
+direction cosine matrix, as the datasets' own tools build it (`quat2dcm`), maps camera-frame coordinates
+into target-frame coordinates, hence "vbs2tango"; the same tools project target points as
+x_cam = quat2dcm(q).T @ x_target + r. quat2dcm(q).T is the Hamilton rotation matrix of the same four
+numbers, i.e. the rotation of target-frame vectors into the camera frame: our `q`
+(`pipeline.geometry.rotations.quat_to_matrix`). The numbers therefore carry over unchanged; we only normalise
+and choose the sign with qw >= 0 (q and -q are one attitude).
+
+camera.json (SPEED+, and what `rpod export speed` writes): `cameraMatrix` = 3x3 K in pixels, `Nu`, `Nv` =
+image width and height in pixels, `distCoeffs` = OpenCV (k1, k2, p1, p2, k3), and physical `fx`, `fy`
+(focal length, m), `ppx`, `ppy` (pixel pitch, m), `ccx`, `ccy` (principal point, px). SPEED ships no
+camera.json; its camera is `SPEED_CAMERA` (1920 x 1200 px, f = 17.6 mm, 5.86 um pixels, centred).
+Nothing here reads files: records and camera dicts come parsed from JSON, errors are ValueErrors that
+name the field (the caller adds the file).
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from pipeline.geometry.camera import Intrinsics
+from pipeline.geometry.rotations import normalize_quat
+
+POSITION_KEY = "r_Vo2To_vbs_true"
+QUAT_KEYS = ("q_vbs2tango_true", "q_vbs2tango")   # SPEED+, SPEED
+UNIT_TOLERANCE = 1e-3                             # |norm(q) - 1| above this is refused, not silently normalised
+SPEED_CAMERA = {"Nu": 1920, "Nv": 1200, "fx": 0.0176, "fy": 0.0176, "ppx": 5.86e-6, "ppy": 5.86e-6}
+
+
+def to_speed(filenames: list[str], t: np.ndarray, q: np.ndarray) -> list[dict[str, Any]]:
+    """Labels as SPEED+ JSON records: `filename`, `q_vbs2tango_true` (= our q), `r_Vo2To_vbs_true` (= t, m)."""
+    return [{"filename": str(f), QUAT_KEYS[0]: [float(v) for v in qi], POSITION_KEY: [float(v) for v in ti]}
+            for f, ti, qi in zip(filenames, np.asarray(t, np.float64), normalize_quat(q))]
+
+
+def _vector(record: dict[str, Any], key: str, n: int, where: str) -> np.ndarray:
+    try:
+        v = np.asarray(record[key], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: {key} must be a list of {n} numbers, got {record[key]!r}") from None
+    if v.shape != (n,) or not np.isfinite(v).all():
+        raise ValueError(f"{where}: {key} must be {n} finite numbers, got {record[key]!r}")
+    return v
+
+
+def _record(record: Any, i: int) -> tuple[str, np.ndarray, np.ndarray]:
+    where = f"record {i}"
+    if not isinstance(record, dict):
+        raise ValueError(f"{where}: expected an object with filename, {QUAT_KEYS[0]} and {POSITION_KEY}")
+    if not isinstance(record.get("filename"), str) or not record["filename"]:
+        raise ValueError(f"{where}: missing key 'filename' (the image's file name)")
+    where = f"record {i} ({record['filename']})"
+    qkey = next((k for k in QUAT_KEYS if k in record), None)
+    if qkey is None:
+        raise ValueError(f"{where}: missing key '{QUAT_KEYS[0]}' (SPEED+) or '{QUAT_KEYS[1]}' (SPEED)")
+    if POSITION_KEY not in record:
+        raise ValueError(f"{where}: missing key '{POSITION_KEY}'")
+    q = _vector(record, qkey, 4, where)
+    if abs(np.linalg.norm(q) - 1) > UNIT_TOLERANCE:
+        raise ValueError(f"{where}: {qkey} has norm {np.linalg.norm(q):.6g}, not a unit quaternion")
+    return record["filename"], _vector(record, POSITION_KEY, 3, where), q
+
+
+def from_speed(records: Any) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """SPEED or SPEED+ JSON records -> (filenames, t (N, 3) m, q (N, 4) unit, qw >= 0), checked record by
+    record; a ValueError names the record, its file name and the field."""
+    if not isinstance(records, list) or not records:
+        raise ValueError("expected a non-empty JSON list of label records")
+    parsed = [_record(r, i) for i, r in enumerate(records)]
+    names = [n for n, _, _ in parsed]
+    dup = sorted({n for n in names if names.count(n) > 1}) if len(set(names)) < len(names) else []
+    if dup:
+        raise ValueError(f"filename {dup[0]!r} is labelled more than once")
+    return names, np.stack([t for _, t, _ in parsed]), normalize_quat(np.stack([q for _, _, q in parsed]))
+
+
+def _number(cam: dict[str, Any], key: str) -> float:
+    try:
+        v = float(cam[key])
+    except KeyError:
+        raise ValueError(f"missing key '{key}'") from None
+    except (TypeError, ValueError):
+        raise ValueError(f"{key} must be a number, got {cam[key]!r}") from None
+    if not np.isfinite(v) or v <= 0:
+        raise ValueError(f"{key} must be a positive number, got {cam[key]!r}")
+    return v
+
+
+def camera_from_json(cam: Any, size: tuple[int, int] | None = None) -> Intrinsics:
+    """Intrinsics (pixels, at Nu x Nv) from a camera.json dict: `cameraMatrix` (3x3 K) when present, else
+    the physical fx, fy (m) over ppx, ppy (m per pixel) with ccx, ccy or the image centre. `size` =
+    (width, height) of the images stands in for missing Nu, Nv. ValueError names the missing field."""
+    if not isinstance(cam, dict):
+        raise ValueError("expected a JSON object")
+    if size is not None and ("Nu" not in cam or "Nv" not in cam):
+        cam = {"Nu": size[0], "Nv": size[1], **cam}
+    w, h = int(_number(cam, "Nu")), int(_number(cam, "Nv"))
+    if "cameraMatrix" in cam:
+        try:
+            K = np.asarray(cam["cameraMatrix"], dtype=np.float64)
+        except (TypeError, ValueError):
+            K = np.zeros(0)
+        if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError(f"cameraMatrix must be a 3x3 K with fx, fy > 0, got {cam['cameraMatrix']!r}")
+        return Intrinsics(w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+    if not {"fx", "ppx"} <= set(cam):
+        raise ValueError("no camera matrix: needs 'cameraMatrix' (3x3 K in pixels) or 'fx', 'fy' (m) with "
+                         "'ppx', 'ppy' (m per pixel)")
+    fx, fy = _number(cam, "fx") / _number(cam, "ppx"), _number(cam, "fy") / _number(cam, "ppy")
+    cx = _number(cam, "ccx") if "ccx" in cam else w / 2
+    return Intrinsics(w, h, fx, fy, cx, _number(cam, "ccy") if "ccy" in cam else h / 2)
+
+
+def camera_to_json(K: Intrinsics) -> dict[str, Any]:
+    """A SPEED+-style camera.json dict of a pinhole camera (no lens distortion; no physical sizes: unknown)."""
+    return {"Nu": int(K.width), "Nv": int(K.height), "cameraMatrix": K.K.tolist(), "distCoeffs": [0.0] * 5,
+            "ccx": float(K.cx), "ccy": float(K.cy)}

@@ -1,0 +1,1 @@
+"""Geometry: rotations (every conversion), the pinhole camera, chaser trajectories."""

@@ -1,0 +1,103 @@
+"""Rotations and pose errors in the OpenCV camera frame (x right, y down, z forward).
+
+Conventions: position t = target origin in the camera frame (metres); quaternion
+q = (qw, qx, qy, qz), scalar first, rotating target-frame vectors into the camera frame
+(the same numbers as SPEED/SPEED+ `q_vbs2tango_true`: pipeline/formats/speed.py); 6-D rotation (Zhou et al.
+2019) = first two columns of R, flattened column-wise: (R00, R10, R20, R01, R11, R21).
+All functions are batched over leading axes and work on numpy arrays.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def normalize_quat(q: np.ndarray) -> np.ndarray:
+    """Unit quaternion with a non-negative scalar part (q and -q are the same rotation)."""
+    q = np.asarray(q, dtype=np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """(..., 4) scalar-first quaternion -> (..., 3, 3) rotation matrix."""
+    w, x, y, z = np.moveaxis(normalize_quat(q), -1, 0)
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation matrix -> (..., 4) unit quaternion, scalar first, qw >= 0.
+
+    Uses the largest-diagonal branch (Shepperd's method), stable for every rotation.
+    """
+    R = np.asarray(R, dtype=np.float64)
+    m = R.reshape(-1, 3, 3)
+    tr = np.trace(m, axis1=1, axis2=2)
+    cand = np.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], 1)
+    k = np.argmax(cand, 1)
+    q = np.empty((len(m), 4))
+    for i, (Ri, ki) in enumerate(zip(m, k)):
+        if ki == 0:
+            s = 2 * np.sqrt(1 + tr[i])
+            q[i] = [s / 4, (Ri[2, 1] - Ri[1, 2]) / s, (Ri[0, 2] - Ri[2, 0]) / s, (Ri[1, 0] - Ri[0, 1]) / s]
+        elif ki == 1:
+            s = 2 * np.sqrt(1 + Ri[0, 0] - Ri[1, 1] - Ri[2, 2])
+            q[i] = [(Ri[2, 1] - Ri[1, 2]) / s, s / 4, (Ri[0, 1] + Ri[1, 0]) / s, (Ri[0, 2] + Ri[2, 0]) / s]
+        elif ki == 2:
+            s = 2 * np.sqrt(1 - Ri[0, 0] + Ri[1, 1] - Ri[2, 2])
+            q[i] = [(Ri[0, 2] - Ri[2, 0]) / s, (Ri[0, 1] + Ri[1, 0]) / s, s / 4, (Ri[1, 2] + Ri[2, 1]) / s]
+        else:
+            s = 2 * np.sqrt(1 - Ri[0, 0] - Ri[1, 1] + Ri[2, 2])
+            q[i] = [(Ri[1, 0] - Ri[0, 1]) / s, (Ri[0, 2] + Ri[2, 0]) / s, (Ri[1, 2] + Ri[2, 1]) / s, s / 4]
+    return normalize_quat(q).reshape(R.shape[:-2] + (4,))
+
+
+def matrix_to_6d(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) -> (..., 6): first two columns, column-wise."""
+    R = np.asarray(R)
+    return np.concatenate([R[..., :, 0], R[..., :, 1]], -1)
+
+
+def sixd_to_matrix(r6: np.ndarray) -> np.ndarray:
+    """(..., 6) -> (..., 3, 3) by Gram-Schmidt (Zhou et al. 2019); any 6-vector gives a rotation."""
+    r6 = np.asarray(r6, dtype=np.float64)
+    a, b = r6[..., :3], r6[..., 3:]
+    c0 = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = b - np.sum(c0 * b, -1, keepdims=True) * c0
+    c1 = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    c2 = np.cross(c0, c1)
+    return np.stack([c0, c1, c2], -1)
+
+
+def quat_to_6d(q: np.ndarray) -> np.ndarray:
+    return matrix_to_6d(quat_to_matrix(q))
+
+
+def sixd_to_quat(r6: np.ndarray) -> np.ndarray:
+    return matrix_to_quat(sixd_to_matrix(r6))
+
+
+def euler_to_matrix(angles_deg: np.ndarray) -> np.ndarray:
+    """(..., 3) rotations about x, y, z in degrees, applied x first: R = Rz @ Ry @ Rx."""
+    a = np.deg2rad(np.asarray(angles_deg, dtype=np.float64))
+    cx, cy, cz = np.cos(a[..., 0]), np.cos(a[..., 1]), np.cos(a[..., 2])
+    sx, sy, sz = np.sin(a[..., 0]), np.sin(a[..., 1]), np.sin(a[..., 2])
+    o, z = np.ones_like(cx), np.zeros_like(cx)
+    Rx = np.stack([np.stack([o, z, z], -1), np.stack([z, cx, -sx], -1), np.stack([z, sx, cx], -1)], -2)
+    Ry = np.stack([np.stack([cy, z, sy], -1), np.stack([z, o, z], -1), np.stack([-sy, z, cy], -1)], -2)
+    Rz = np.stack([np.stack([cz, -sz, z], -1), np.stack([sz, cz, z], -1), np.stack([z, z, o], -1)], -2)
+    return Rz @ Ry @ Rx
+
+
+def position_error(t_pred: np.ndarray, t_gt: np.ndarray) -> np.ndarray:
+    """Euclidean position error ||t_pred - t_gt|| in metres, per sample."""
+    return np.linalg.norm(np.asarray(t_pred, float) - np.asarray(t_gt, float), axis=-1)
+
+
+def attitude_error_deg(q_pred: np.ndarray, q_gt: np.ndarray) -> np.ndarray:
+    """Attitude error 2*acos(|<q_pred, q_gt>|) in degrees, per sample."""
+    d = np.abs(np.sum(normalize_quat(q_pred) * normalize_quat(q_gt), -1))
+    return np.rad2deg(2 * np.arccos(np.clip(d, 0.0, 1.0)))

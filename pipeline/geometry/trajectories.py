@@ -1,0 +1,168 @@
+"""Chaser-camera trajectories around the target, pure numpy.
+
+Frames. The world frame is centred on the target. `rel` is the position of the target relative to
+the chaser camera, in world axes (metres); the nominal approach runs along world +z, so a chaser
+"at (x, y, 60)" has rel = (x, y, 60) and the approach ends at rel = (0, 0, 10).
+`R_cam` rotates camera-frame vectors (OpenCV: x right, y down, z boresight) into world axes and
+`R_target` rotates target-frame vectors into world axes. The labels are then
+
+    t = R_cam^T rel                (target origin in the camera frame, metres)
+    R = R_cam^T R_target           (target frame -> camera frame; q = matrix_to_quat(R))
+
+Up convention of `look_at`: the camera y axis (image down) is world +y projected onto the image
+plane, so looking along +z gives R_cam = identity (camera axes = world axes).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.geometry.rotations import euler_to_matrix
+
+# The 13 sequences' lateral start offsets (x, y) in metres.
+FIXED_STARTS = [(0.0, 0.0), (-15.0, -25.0), (-15.0, 25.0), (15.0, 25.0), (15.0, -25.0)]
+ROTATING_STARTS = [(-15.0, -10.0), (-15.0, 10.0), (15.0, 10.0), (15.0, -10.0)]
+
+
+@dataclass(frozen=True)
+class Sequence:
+    """One trajectory: per-frame arrays of length n (metres, rotation matrices)."""
+
+    sequence: int           # sequence id
+    frame: np.ndarray       # (n,) frame index within the sequence
+    R: np.ndarray           # (n, 3, 3) target frame -> camera frame (the label rotation)
+    t: np.ndarray           # (n, 3) target origin in the camera frame (the label position)
+    rel: np.ndarray         # (n, 3) target relative to the chaser, world axes
+    R_cam: np.ndarray       # (n, 3, 3) camera frame -> world
+    R_target: np.ndarray    # (n, 3, 3) target frame -> world
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+
+def look_at(direction: np.ndarray) -> np.ndarray:
+    """Camera rotation (camera -> world, (..., 3, 3)) whose boresight +z points along `direction`.
+
+    Camera y (image down) is world +y made orthogonal to the boresight; camera x = y x z.
+    A boresight parallel to world y falls back to world +z for the up reference.
+    """
+    d = np.asarray(direction, dtype=np.float64)
+    z = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    ref = np.broadcast_to(np.array([0.0, 1.0, 0.0]), z.shape).copy()
+    parallel = np.abs(np.sum(z * ref, -1)) > 1 - 1e-9
+    ref[parallel] = [0.0, 0.0, 1.0]
+    y = ref - np.sum(z * ref, -1, keepdims=True) * z
+    y /= np.linalg.norm(y, axis=-1, keepdims=True)
+    x = np.cross(y, z)
+    return np.stack([x, y, z], -1)
+
+
+def pose_in_camera(rel: np.ndarray, R_cam: np.ndarray, R_target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World geometry -> label pose: (R target->camera (..., 3, 3), t target origin in camera (..., 3))."""
+    R_cam_T = np.swapaxes(R_cam, -1, -2)
+    t = np.einsum("...ij,...j->...i", R_cam_T, rel)
+    return R_cam_T @ R_target, t
+
+
+def _jittered_cameras(rel: np.ndarray, jitter_deg: float, rng: np.random.Generator) -> np.ndarray:
+    """Cameras pointing at the target, each turned by a uniform random angle in [-jitter, +jitter]
+    about its own x and y axes (so the target centre moves by at most about f * tan(jitter) pixels)."""
+    n = len(rel)
+    ang = np.zeros((n, 3))
+    ang[:, :2] = rng.uniform(-jitter_deg, jitter_deg, size=(n, 2))
+    return look_at(rel) @ euler_to_matrix(ang)
+
+
+def _sequence(seq_id: int, rel: np.ndarray, jitter_deg: float, max_rot_deg: float,
+              rng: np.random.Generator) -> Sequence:
+    n = len(rel)
+    R_cam = _jittered_cameras(rel, jitter_deg, rng)
+    if max_rot_deg > 0:
+        R_target = euler_to_matrix(rng.uniform(-max_rot_deg, max_rot_deg, size=(n, 3)))
+    else:
+        R_target = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+    R, t = pose_in_camera(rel, R_cam, R_target)
+    return Sequence(seq_id, np.arange(n), R, t, rel, R_cam, R_target)
+
+
+def _check(frames: int, start_range: float, end_range: float, jitter_deg: float) -> None:
+    if frames < 2:
+        raise ValueError(f"frames per sequence must be at least 2, got {frames}")
+    if not 0 < end_range < start_range:
+        raise ValueError(f"need 0 < end_range < start_range, got {end_range} and {start_range} m")
+    if not 0 <= jitter_deg < 45:
+        raise ValueError(f"pointing jitter must be in [0, 45) degrees, got {jitter_deg}")
+
+
+def approach_sequences(frames_per_sequence: int, start_range: float = 60.0, end_range: float = 10.0,
+                       jitter_deg: float = 2.0, max_rot_deg: float = 10.0, seed: int = 0) -> list[Sequence]:
+    """The 13 approach sequences of the training set.
+
+    Each runs in a straight line, in equal steps, from rel = (x, y, start_range) to
+    (0, 0, end_range). Sequences 0-4 start at FIXED_STARTS with the target attitude fixed (identity);
+    sequences 5-12 start at ROTATING_STARTS (twice) with a fresh random target attitude on every frame,
+    uniform in +-max_rot_deg about each target axis (x, then y, then z). Every frame the camera points
+    at the target, turned by a uniform random pointing jitter of up to +-jitter_deg about its x and y
+    axes. Seeded: the same arguments give the same sequences.
+    """
+    _check(frames_per_sequence, start_range, end_range, jitter_deg)
+    rng = np.random.default_rng(seed)
+    s = np.linspace(0.0, 1.0, frames_per_sequence)[:, None]
+    end = np.array([0.0, 0.0, end_range])
+    starts = [(xy, 0.0) for xy in FIXED_STARTS] + [(xy, max_rot_deg) for xy in ROTATING_STARTS * 2]
+    out = []
+    for i, ((x, y), rot) in enumerate(starts):
+        rel = (1 - s) * np.array([x, y, start_range]) + s * end
+        out.append(_sequence(i, rel, jitter_deg, rot, rng))
+    return out
+
+
+def projectile_trajectory(n_frames: int, start_xy: tuple[float, float], start_range: float = 60.0,
+                          end_range: float = 10.0, seed: int = 0, jitter_deg: float = 0.0,
+                          max_rot_deg: float = 0.0, sequence: int = 0) -> Sequence:
+    """An evaluation approach: uniform z steps from start_range to end_range while the
+    lateral offset decays along a parabola, xy(s) = start_xy * (1 - s)^2 for s in [0, 1], so the path
+    bends in like a projectile and arrives at (0, 0, end_range) with zero lateral velocity.
+    Camera pointing (optional jitter) and target attitude (optional random rotation) as in
+    `approach_sequences`; seeded.
+    """
+    _check(n_frames, start_range, end_range, jitter_deg)
+    rng = np.random.default_rng(seed)
+    s = np.linspace(0.0, 1.0, n_frames)
+    xy = np.asarray(start_xy, dtype=np.float64)[None, :] * (1 - s[:, None]) ** 2
+    z = start_range + s * (end_range - start_range)
+    rel = np.column_stack([xy, z])
+    return _sequence(sequence, rel, jitter_deg, max_rot_deg, rng)
+
+
+def poses_table(idx: np.ndarray, seq: np.ndarray, frm: np.ndarray, R: np.ndarray, t: np.ndarray):
+    """The poses of rendered frames as a DataFrame: index, sequence, frame, t (tx, ty, tz; m),
+    q (qw, qx, qy, qz; target -> camera) and range (m)."""
+    import pandas as pd
+
+    from pipeline.geometry.rotations import matrix_to_quat
+
+    q = matrix_to_quat(R)
+    return pd.DataFrame({"index": idx, "sequence": seq, "frame": frm,
+                         "tx": t[:, 0], "ty": t[:, 1], "tz": t[:, 2],
+                         "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3],
+                         "range": np.linalg.norm(t, axis=1)})
+
+
+def preview_picks(sequence: np.ndarray, index: np.ndarray, n_previews: int) -> list[int]:
+    """The `index` values of preview frames: the first (60 m) and last (10 m) frame of sequence 0,
+    then max(2, n_previews) - 2 frames spread evenly over the rotating sequences (5 and up)."""
+    s0 = index[sequence == 0]
+    picks = [int(s0[0]), int(s0[-1])]
+    others = index[sequence >= 5]
+    extra = max(2, n_previews) - 2
+    if extra and len(others):
+        picks += [int(i) for i in others[np.linspace(0, len(others) - 1, extra).round().astype(int)]]
+    return picks
+
+
+def flatten(seqs: list[Sequence]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Sequences as flat per-frame arrays: sequence id, frame, R (N, 3, 3), t (N, 3)."""
+    return (np.concatenate([np.full(len(s), s.sequence) for s in seqs]), np.concatenate([s.frame for s in seqs]),
+            np.concatenate([s.R for s in seqs]), np.concatenate([s.t for s in seqs]))

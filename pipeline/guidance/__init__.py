@@ -1,0 +1,1 @@
+"""Closed-loop rendezvous guidance flown on the pose estimates."""

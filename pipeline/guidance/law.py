@@ -1,0 +1,416 @@
+"""Closed-loop rendezvous guided by the pose estimator, with an optional attack window.
+
+Frames (those of pipeline/geometry/trajectories.py). The world frame is target-centred with the approach
+along +z; the state `rel` (target position relative to the chaser, world axes, metres) starts at
+(0, 0, 60) and the goal is (0, 0, 10), the label position t of an image taken by a camera looking
+along +z. The camera attitude R_c (camera -> world, OpenCV camera axes, `look_at`) changes: after
+every step the chaser re-points its camera at where it believes the target is. The image shows
+the target at t = R_c^T rel with attitude R_c^T R_target; the estimator's camera-frame t_pred
+becomes the world estimate R_c t_pred.
+
+Control law (per axis): cmd = clip(est - goal, -max_step, max_step).
+- variant "paper": the next true state is computed from the estimate, rel <- est - cmd (the
+  paper's simplification: the chaser ends up where it believes it goes);
+- variant "true_state": the command is applied to the true state, rel <- rel - cmd.
+Defense (`GuidanceSettings.defense`, the chain inside the loop; pipeline/defense/fusion.py):
+- "undefended": the law acts on every estimate (the paper);
+- "hold": a flagged frame's estimate is not used: the chaser holds (no command) for that frame;
+- "recover": the law acts on the defense's trusted estimate (the motion filter's state, its
+  prediction on flagged frames); in the defense's hold mode the chaser holds.
+A hold sends no command: the chaser stays where it is and keeps its camera pointing. The defense
+gets the commanded displacement of `rel` (-cmd, or 0 in a hold) to drive its motion filter.
+A run lasts `max_steps` steps (the nominal approach 60 m -> 10 m takes 50); it is judged at the
+end: within `tolerance` of the goal or not. It stops early when the target's centre leaves the
+image ("target lost"). The attack starts at the first step whose true range is at or below S
+and lasts K consecutive frames (fewer if the run ends first).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from pipeline.geometry.camera import Intrinsics
+from pipeline.defense.fusion import HOLD as HOLD_MODE, Defense
+from pipeline.geometry.trajectories import look_at, pose_in_camera
+
+VARIANTS = ("paper", "true_state")
+DEFENSES = ("undefended", "hold", "recover")
+HELD = "rendezvous held"
+SUCCEEDED = "attack succeeded"
+LOST = "target lost"
+MISSED = "missed without attack"
+
+RenderFn = Callable[[np.ndarray, np.ndarray], Any]
+"""render(R, t) -> image (passed as is to the estimator): target attitude R (target -> camera),
+position t (camera frame, m)."""
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """The chain's output for one frame: t camera-frame position (m), prob the detector's attack
+    probability, R the target -> camera attitude estimate (optional)."""
+
+    t: np.ndarray
+    prob: float = 0.0
+    R: np.ndarray | None = None
+
+
+EstimateFn = Callable[[Any, bool, tuple[np.ndarray, np.ndarray]], "np.ndarray | Estimate"]
+"""estimate(image, attacked, (R, t) true pose) -> t_pred (3,) camera frame (m), or an Estimate."""
+
+
+@dataclass(frozen=True)
+class AttackWindow:
+    """Attack the K = `length` frames from the first one at true range <= `start_range` (m)."""
+
+    start_range: float
+    length: int
+
+
+@dataclass(frozen=True)
+class GuidanceSettings:
+    """Start and goal of `rel` (world frame, metres), tolerance (m), per-axis step limit (m)."""
+
+    start: tuple[float, float, float] = (0.0, 0.0, 60.0)
+    goal: tuple[float, float, float] = (0.0, 0.0, 10.0)
+    tolerance: float = 1.0
+    max_step: float = 1.0
+    max_steps: int = 60
+    variant: str = "paper"
+    defense: str = "undefended"
+
+    def __post_init__(self) -> None:
+        if self.variant not in VARIANTS:
+            raise ValueError(f"unknown guidance variant {self.variant!r}; choose one of {', '.join(VARIANTS)}")
+        if self.defense not in DEFENSES:
+            raise ValueError(f"unknown guidance defense {self.defense!r}; choose one of {', '.join(DEFENSES)}")
+        if self.tolerance <= 0 or self.max_step <= 0 or self.max_steps < 1:
+            raise ValueError("guidance tolerance and max_step must be positive and max_steps >= 1, got "
+                             f"{self.tolerance}, {self.max_step}, {self.max_steps}")
+        if np.linalg.norm(self.goal) >= np.linalg.norm(self.start):
+            raise ValueError(f"the guidance goal {self.goal} must be closer to the target than the start {self.start}")
+
+    def window(self, start_range: float, length: int) -> AttackWindow:
+        """A validated attack window: S between the goal range and the start range, K >= 1."""
+        lo, hi = float(np.linalg.norm(self.goal)), float(np.linalg.norm(self.start))
+        if not lo <= start_range <= hi:
+            raise ValueError(f"attack start range S={start_range} m is outside the trajectory: the range goes "
+                             f"from {hi:g} m to {lo:g} m")
+        if int(length) < 1:
+            raise ValueError(f"attack length K must be at least 1 frame, got {length}")
+        return AttackWindow(float(start_range), int(length))
+
+
+@dataclass
+class RendezvousResult:
+    """One closed-loop run. positions: (n+1, 3) true rel after each step (first row = start);
+    estimates: (n, 3) world-frame estimates; attacked: (n,) bool; miss: final ||rel - goal|| (m);
+    with a defense: flags (n,) bool and modes (n,) str of pipeline/defense/fusion.py, else None."""
+
+    positions: np.ndarray
+    estimates: np.ndarray
+    attacked: np.ndarray
+    outcome: str
+    miss: float
+    attack_start: int | None
+    flags: np.ndarray | None = None
+    modes: np.ndarray | None = None
+
+    @property
+    def attacked_frames(self) -> int:
+        return int(self.attacked.sum())
+
+
+def in_view(t: np.ndarray, K: Intrinsics) -> bool:
+    """Whether a camera-frame point (m) is in front of the camera and projects inside the image."""
+    if t[2] <= 0:
+        return False
+    u, v = K.fx * t[0] / t[2] + K.cx, K.fy * t[1] / t[2] + K.cy
+    return bool(-0.5 <= u <= K.width - 0.5 and -0.5 <= v <= K.height - 0.5)
+
+
+def arrival_step(result: "RendezvousResult", goal: tuple[float, float, float] | np.ndarray,
+                 tolerance: float) -> int | None:
+    """Steps after which the chaser is within `tolerance` (m) of `goal` and stays there to the end of
+    the run, or None when the run does not end there."""
+    inside = np.linalg.norm(result.positions - np.asarray(goal, dtype=np.float64), axis=1) <= tolerance
+    if not inside[-1]:
+        return None
+    outside = np.flatnonzero(~inside)
+    return int(outside[-1] + 1) if len(outside) else 0
+
+
+def guidance_step(est: np.ndarray, rel: np.ndarray, goal: np.ndarray, max_step: float,
+                  variant: str) -> tuple[np.ndarray, np.ndarray]:
+    """One application of the control law -> (next true rel, rel the chaser believes it reaches)."""
+    cmd = np.clip(est - goal, -max_step, max_step)
+    believed = est - cmd
+    return (believed if variant == "paper" else rel - cmd), believed
+
+
+def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settings: GuidanceSettings,
+                   window: AttackWindow | None = None, target_attitude: np.ndarray | None = None,
+                   defense: Defense | None = None) -> RendezvousResult:
+    """Fly the closed loop: render the true pose, estimate it (attacked inside the window), move.
+
+    `target_attitude` is the target -> world rotation (identity by default). `defense` (a fresh
+    pipeline.defense.fusion.Defense per run) is required unless settings.defense is "undefended".
+    """
+    if (settings.defense == "undefended") != (defense is None):
+        raise ValueError(f"guidance defense {settings.defense!r} needs "
+                         + ("no Defense" if defense is not None else "a Defense (pipeline/defense/fusion.py)"))
+    R_tw = np.eye(3) if target_attitude is None else np.asarray(target_attitude, dtype=np.float64)
+    goal = np.asarray(settings.goal, dtype=np.float64)
+    rel = np.asarray(settings.start, dtype=np.float64)
+    R_c = look_at(rel)
+    positions, estimates, attacked, flags, modes = [rel], [], [], [], []
+    attack_start: int | None = None
+    lost = False
+    u = np.zeros(3)
+    for k in range(settings.max_steps):
+        R, t = pose_in_camera(rel, R_c, R_tw)
+        if window is not None and attack_start is None and np.linalg.norm(rel) <= window.start_range + 1e-6:
+            attack_start = k
+        hit = attack_start is not None and k < attack_start + window.length
+        out = estimate(render(R, t), hit, (R, t))
+        out = out if isinstance(out, Estimate) else Estimate(np.asarray(out, dtype=np.float64))
+        est = R_c @ np.asarray(out.t, dtype=np.float64)
+        act: np.ndarray | None = est
+        if defense is not None:
+            d = defense.step(out.t, out.prob, R_c, u, out.R)
+            flags.append(d.flag)
+            modes.append(d.mode)
+            if settings.defense == "hold":
+                act = None if d.flag else est
+            else:
+                act = None if d.mode == HOLD_MODE else d.trusted
+        if act is None:  # hold: no command, the chaser and its camera stay as they are
+            u = np.zeros(3)
+        else:
+            rel, believed = guidance_step(act, rel, goal, settings.max_step, settings.variant)
+            u = believed - act
+            if np.linalg.norm(believed) > 1e-6:
+                R_c = look_at(believed)
+        positions.append(rel)
+        estimates.append(est)
+        attacked.append(hit)
+        if not in_view(R_c.T @ rel, K):
+            lost = True
+            break
+    attacked_arr = np.array(attacked, dtype=bool)
+    miss = float(np.linalg.norm(rel - goal))
+    if lost:
+        outcome = LOST
+    elif miss <= settings.tolerance:
+        outcome = HELD
+    else:
+        outcome = SUCCEEDED if attacked_arr.any() else MISSED
+    return RendezvousResult(np.array(positions), np.array(estimates).reshape(-1, 3), attacked_arr,
+                            outcome, miss, attack_start,
+                            None if defense is None else np.array(flags, dtype=bool),
+                            None if defense is None else np.array(modes))
+
+
+class CachedCamera:
+    """The chaser's camera and pose CNN (or the whole safety chain) for `run_rendezvous`, with an image cache.
+
+    Every attacked run follows the no-attack baseline until its attack starts, and Cycles and the CNN
+    are deterministic, so each rendered pose's image and clean estimate are kept. `render` and
+    `estimate` are the RenderFn and EstimateFn; attacked frames go through `attack(x, y)` (images
+    (1, 3, H, W) in [0, 1], labels (1, 9): metres, 6-D) which `self.attack` may be changed to between
+    runs. With `chain` (a pipeline.defense.chain.SafetyChain over `model`) `estimate` returns an `Estimate`
+    (position, the detector's probability, attitude) for the defended variants; without it the
+    camera-frame position (m). `counts`: guidance steps, rendered frames, attacked frames.
+    """
+
+    def __init__(self, render_image: Callable[[np.ndarray, np.ndarray], np.ndarray], model: Any,
+                 attack: Callable[[Any, Any], Any] | None = None, chain: Any | None = None):
+        self.render_image, self.model, self.attack, self.chain = render_image, model, attack, chain
+        self.cache: dict[bytes, tuple[np.ndarray, np.ndarray | Estimate]] = {}
+        self.counts = {"steps": 0, "renders": 0, "attacked": 0}
+        self.keys: set[bytes] = set()   # the poses rendered (or read from the cache) since it was last cleared
+
+    @staticmethod
+    def _input(image: np.ndarray) -> Any:
+        import torch
+
+        return torch.from_numpy(image).permute(2, 0, 1)[None].float() / 255
+
+    def _position(self, x: Any) -> np.ndarray | Estimate:
+        import torch
+
+        if self.chain is not None:
+            from pipeline.geometry.rotations import sixd_to_matrix
+
+            out = self.chain(x)
+            pose = out.pose[0].numpy().astype(np.float64)
+            return Estimate(pose[:3], float(out.prob[0]), sixd_to_matrix(pose[3:9]))
+        with torch.no_grad():
+            return self.model(x)[0, :3].numpy().astype(np.float64)
+
+    def render(self, R: np.ndarray, t: np.ndarray) -> tuple[bytes, np.ndarray]:
+        key = np.round(np.concatenate([R.ravel(), t]), 9).tobytes()
+        if key not in self.cache:
+            image = self.render_image(R, t)
+            self.cache[key] = (image, self._position(self._input(image)))
+            self.counts["renders"] += 1
+        self.counts["steps"] += 1
+        self.keys.add(key)
+        return key, self.cache[key][0]
+
+    def estimate(self, rendered: tuple[bytes, np.ndarray], attacked: bool,
+                 pose: tuple[np.ndarray, np.ndarray]) -> np.ndarray | Estimate:
+        import torch
+
+        from pipeline.geometry.rotations import matrix_to_6d
+
+        key, image = rendered
+        if not attacked:
+            return self.cache[key][1]
+        if self.attack is None:
+            raise ValueError("an attacked frame but no attack was given")
+        self.counts["attacked"] += 1
+        y = torch.as_tensor(np.concatenate([pose[1], matrix_to_6d(pose[0])])[None], dtype=torch.float32)
+        return self._position(self.attack(self._input(image), y))
+
+
+def horizon(arrival: int | None, max_steps: int, slack: int) -> int:
+    """Steps of an attacked run: the no-attack run's arrival plus `slack`, at most `max_steps` (all of
+    them when the no-attack run did not arrive)."""
+    return max_steps if arrival is None else min(max_steps, arrival + slack)
+
+
+def _count(x: np.ndarray | None, value: Any = True) -> int | None:
+    return None if x is None else int((x == value).sum())
+
+
+def defended_record(base: RendezvousResult, arrival: int | None, cells: list[tuple[Any, ...]]) -> dict[str, Any]:
+    """One (dynamics, defense) block of `defended_grid`: its no-attack run, every cell, held runs per eps."""
+    return {
+        "baseline": {"outcome": base.outcome, "miss_m": base.miss, "arrival_step": arrival,
+                     "flags": _count(base.flags)},
+        "runs": [{"eps": e, "start_range": S, "length": k, "outcome": r.outcome, "miss_m": r.miss,
+                  "attacked_frames": r.attacked_frames, "steps": len(r.estimates),
+                  "flags": _count(r.flags), "hold_steps": _count(r.modes, "hold")}
+                 for e, S, k, r in cells],
+        "held": {f"{e:g}": [int(sum(r.outcome == HELD for e2, _, _, r in cells if e2 == e)),
+                            int(sum(e2 == e for e2, *_ in cells))] for e in dict.fromkeys(c[0] for c in cells)}}
+
+
+Run = tuple[str, str, "int | None"]
+"""One closed-loop run of a `GridPlan`: (dynamics = settings.variant, defense, grid cell index or None
+for that (dynamics, defense)'s no-attack baseline)."""
+
+
+@dataclass(frozen=True)
+class GridPlan:
+    """The guidance grid: `settings`, the (eps, S, K, window) cells, `slack_steps`; the paper grid is
+    flown under settings.variant undefended, the defended grid under every (`dynamics`, undefended and
+    each of `defenses`) except that one (its runs are the paper grid's)."""
+
+    settings: GuidanceSettings
+    grid: tuple[tuple[Any, ...], ...]
+    slack_steps: int
+    dynamics: tuple[str, ...] = ()
+    defenses: tuple[str, ...] = ()
+
+    def _block(self, dyn: str, defense: str) -> list[Run]:
+        return [(dyn, defense, None), *[(dyn, defense, i) for i in range(len(self.grid))]]
+
+    def runs(self) -> list[Run]:
+        """Every run: the paper grid (baseline first), then each defended (dynamics, defense) block."""
+        out = self._block(self.settings.variant, "undefended")
+        for dyn in self.dynamics:
+            out += [r for d in ("undefended", *self.defenses) if (dyn, d) != (self.settings.variant, "undefended")
+                    for r in self._block(dyn, d)]
+        return out
+
+    @property
+    def paper_size(self) -> int:
+        return len(self.grid) + 1
+
+
+class GridPilot:
+    """Flies single runs of a `GridPlan` with one `CachedCamera`: `fly(run)` -> (result, keys of the
+    poses it rendered). An attacked run's length comes from its block's no-attack baseline (flown here
+    first when this pilot has not flown it: runs are deterministic, so any pilot gets the same one);
+    `attack_at(eps, i)` is the attack of run i of `plan.runs()` (seeded per run, so the outcome does not
+    depend on which pilot flies it or in what order); `defense.new()` a fresh Defense per defended run."""
+
+    def __init__(self, camera: CachedCamera, K: Intrinsics, plan: GridPlan,
+                 attack_at: Callable[[float, int], Any], defense: Any = None) -> None:
+        self.camera, self.K, self.plan, self.attack_at, self.defense = camera, K, plan, attack_at, defense
+        self.index = {r: i for i, r in enumerate(plan.runs())}
+        self.baselines: dict[tuple[str, str], RendezvousResult] = {}
+
+    def fly(self, dyn: str, defense: str, cell: int | None) -> tuple[RendezvousResult, frozenset[bytes]]:
+        from dataclasses import replace
+
+        p = self.plan
+        s, window = replace(p.settings, variant=dyn, defense=defense), None
+        self.camera.attack = None
+        if cell is not None:
+            eps, _, k, window = p.grid[cell]
+            arrival = arrival_step(self._baseline(dyn, defense), p.settings.goal, p.settings.tolerance)
+            extra = 0 if defense == "undefended" else k   # a held chaser may arrive up to K steps late
+            s = replace(s, max_steps=horizon(arrival, p.settings.max_steps, p.slack_steps + extra))
+            self.camera.attack = self.attack_at(eps, self.index[(dyn, defense, cell)])
+        self.camera.keys = set()
+        result = run_rendezvous(self.camera.render, self.camera.estimate, self.K, s, window,
+                                defense=None if defense == "undefended" else self.defense.new())
+        if cell is None:
+            self.baselines[(dyn, defense)] = result
+        return result, frozenset(self.camera.keys)
+
+    def _baseline(self, dyn: str, defense: str) -> RendezvousResult:
+        if (dyn, defense) not in self.baselines:
+            self.fly(dyn, defense, None)
+        return self.baselines[(dyn, defense)]
+
+
+def grid_counts(flown: list[tuple[RendezvousResult, frozenset[bytes]]], seen: frozenset[bytes] = frozenset()
+                ) -> dict[str, int]:
+    """Guidance steps, distinct rendered poses not in `seen`, attacked frames of these runs: the same
+    counts whichever pilots flew them (a shared image cache renders each distinct pose once)."""
+    keys = frozenset().union(*(k for _, k in flown)) - seen
+    return {"steps": sum(len(r.estimates) for r, _ in flown), "renders": len(keys),
+            "attacked": sum(r.attacked_frames for r, _ in flown)}
+
+
+def paper_grid(plan: GridPlan, results: list[RendezvousResult]
+               ) -> tuple[RendezvousResult, int | None, int, list[tuple[Any, ...]]]:
+    """The paper grid's results (the first `plan.paper_size` of `plan.runs()`) -> (baseline, arrival,
+    horizon of the attacked runs, [(eps, S, K, result)] in grid order)."""
+    baseline = results[0]
+    arrival = arrival_step(baseline, plan.settings.goal, plan.settings.tolerance)
+    runs = [(eps, s, k, r) for (eps, s, k, _), r in zip(plan.grid, results[1:plan.paper_size])]
+    return baseline, arrival, horizon(arrival, plan.settings.max_steps, plan.slack_steps), runs
+
+
+def defended_grid(plan: GridPlan, results: list[RendezvousResult]) -> dict[str, Any]:
+    """Every (dynamics, undefended / defense) block of `plan.runs()`'s `results` -> {"dynamics": {dyn:
+    {defense: defended_record}}, "defenses", "example": the runs of the last dynamics at the strongest,
+    longest, latest-starting cell that every variant flew under attack (a variant that never reached the
+    attack's start range is no example of a defense), for a figure}."""
+    n = len(plan.grid) + 1
+    blocks = {run[:2]: results[i:i + n] for i, run in enumerate(plan.runs()) if run[2] is None}
+    out: dict[str, Any] = {"dynamics": {}, "defenses": list(plan.defenses)}
+    last = [blocks[(plan.dynamics[-1], d)][1:] for d in ("undefended", *plan.defenses)] if plan.dynamics else []
+    attacked_by_all = [i for i in range(len(plan.grid)) if all(flown[i].attacked_frames > 0 for flown in last)]
+    pick = max(attacked_by_all or range(len(plan.grid)),
+               key=lambda i: (plan.grid[i][0], plan.grid[i][2], -plan.grid[i][1]), default=None)
+    example: list[tuple[str, Any]] = []
+    for dyn in plan.dynamics:
+        out["dynamics"][dyn] = {}
+        for defense in ("undefended", *plan.defenses):
+            base, *flown = blocks[(dyn, defense)]
+            cells = [(eps, s, k, r) for (eps, s, k, _), r in zip(plan.grid, flown)]
+            arrival = arrival_step(base, plan.settings.goal, plan.settings.tolerance)
+            out["dynamics"][dyn][defense] = defended_record(base, arrival, cells)
+            if pick is not None and dyn == plan.dynamics[-1]:
+                example.append((defense, flown[pick]))
+    e, S, k, _ = plan.grid[pick] if pick is not None else (0.0, 0.0, 0, None)
+    out["example"] = {"runs": example, "title": f"{plan.dynamics[-1]} dynamics, eps = {e:g}, S = {S:g} m, K = {k}"}
+    return out

@@ -1,0 +1,1 @@
+"""The pose network: model, loss, augmentations, training loop."""

@@ -1,0 +1,354 @@
+"""Training loop for the pose CNN: Adam, cyclic LR "triangular2", best-by-validation-error tracking.
+
+Works in one process or under DistributedDataParallel: when `torch.distributed` is initialised
+(the caller sets it up, e.g. from torchrun's environment variables), the model and the loss's
+learnable weights are wrapped together in DDP, the training set is sharded with a
+DistributedSampler and the validation set evaluated in shards that are gathered on every rank.
+The caller passes a validation set carved from the training data (pipeline.evaluation.splits.holdout): `fit`
+never sees the test split, so the checkpoint it keeps is not selected on test data.
+
+Errors: position ||t_pred - t_gt|| in metres, attitude 2*acos(|<q_pred, q_gt>|) in degrees,
+the 6-D output decoded by Gram-Schmidt. The model selection score is the ESA SPEED score,
+mean(||t_pred - t_gt|| / ||t_gt||) + mean(attitude error in radians): dimensionless, so a 1% range
+error weighs as much as 0.01 rad (0.57 deg) of attitude.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch import nn
+from torch.utils.data import DataLoader, Dataset, DistributedSampler
+from tqdm import tqdm
+
+from pipeline.pose.augment import AugmentConfig, augment
+from pipeline.pose.loss import PoseLoss
+from pipeline.geometry.rotations import attitude_error_deg, position_error, sixd_to_quat
+
+
+LOSS_WEIGHT_LR_FACTOR = 10.0
+
+
+class DivergenceError(ValueError):
+    """Training went wrong in a way no checkpoint should survive: a non-finite loss, or no epoch improved."""
+
+
+def check_loss(value: float, where: str) -> None:
+    """Raise DivergenceError when a training loss is NaN or infinite (`where`: e.g. "epoch 3")."""
+    if not math.isfinite(value):
+        raise DivergenceError(f"training diverged: loss {value} at {where} (learning rate too high, or bad inputs)")
+
+
+def check_improved(best_epoch: int, epochs_run: int) -> None:
+    """Raise DivergenceError when no epoch gave a finite, better validation score (best_epoch < 1)."""
+    if best_epoch < 1:
+        raise DivergenceError(f"no epoch of {epochs_run} improved on the untrained model (every score non-finite); "
+                              f"nothing to save")
+
+
+class PoseDataset(Dataset):
+    """uint8 (N, H, W, 3) RGB images + (N, 9) targets -> (uint8 (H, W, 3) tensor, float32 (9,) tensor).
+
+    `images` is anything indexable by an int (a numpy array, or a zarr array: then each item is a
+    read from the store). With `augment` set, every item is augmented with an RNG seeded by
+    (seed, epoch, index), so results do not depend on the number of loader workers.
+    """
+
+    def __init__(self, images: Any, targets: np.ndarray, augment_cfg: AugmentConfig | None = None, seed: int = 0):
+        if len(images) != len(targets):
+            raise ValueError(f"{len(images)} images but {len(targets)} targets")
+        bad = ~np.isfinite(np.asarray(targets, dtype=np.float64)).all(axis=1)
+        if bad.any():
+            raise ValueError(f"{int(bad.sum())} targets are NaN or infinite (first: row {int(np.argmax(bad))})")
+        self.images, self.targets = images, torch.tensor(np.asarray(targets, dtype=np.float32))
+        self.augment_cfg, self.seed, self.epoch = augment_cfg, seed, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return len(self.targets)
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+        img = np.asarray(self.images[i])
+        if self.augment_cfg is not None:
+            img = augment(img, np.random.default_rng([self.seed, self.epoch, i]), self.augment_cfg)
+        return torch.from_numpy(np.ascontiguousarray(img)), self.targets[i]
+
+
+def to_input(batch: torch.Tensor, channels_last: bool = True) -> torch.Tensor:
+    """uint8 (B, H, W, 3) -> float (B, 3, H, W) in [0, 1] (channels_last memory layout if asked)."""
+    x = batch.permute(0, 3, 1, 2).float().div_(255.0)
+    return x.contiguous(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
+
+
+def pose_errors(pred: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 9) predictions and targets -> position error (m) and attitude error (deg), per sample."""
+    pred, target = np.asarray(pred, np.float64), np.asarray(target, np.float64)
+    return (position_error(pred[:, :3], target[:, :3]),
+            attitude_error_deg(sixd_to_quat(pred[:, 3:]), sixd_to_quat(target[:, 3:])))
+
+
+def speed_score(pred: np.ndarray, target: np.ndarray) -> float:
+    """ESA SPEED score: mean relative position error + mean attitude error in radians."""
+    pos, att = pose_errors(pred, target)
+    return float(np.mean(pos / np.linalg.norm(target[:, :3], axis=1)) + np.mean(np.deg2rad(att)))
+
+
+def make_deterministic(seed: int) -> None:
+    """Seed torch's generators and switch to deterministic algorithms: call before anything random is
+    built (the network's initial weights), so two runs on one machine with the same thread count give
+    bit-identical weights. On CUDA, ops without a deterministic kernel warn instead of failing."""
+    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    torch.manual_seed(seed)
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    torch.backends.cudnn.benchmark = False
+
+
+def _distributed() -> tuple[int, int]:
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
+
+
+@torch.no_grad()
+def predict(model: nn.Module, dataset: Dataset, batch_size: int = 128, device: str | torch.device = "cpu",
+            channels_last: bool = True, indices: Sequence[int] | None = None) -> np.ndarray:
+    """Eval-mode outputs (N, 9) for a PoseDataset (or the subset `indices`), in dataset order."""
+    was_training = model.training
+    model.eval()
+    subset = dataset if indices is None else torch.utils.data.Subset(dataset, list(indices))
+    pin = torch.device(device).type == "cuda"
+    out = [model(to_input(x.to(device, non_blocking=pin), channels_last)).float().cpu()   # uint8 over the bus
+           for x, _ in DataLoader(subset, batch_size=batch_size, shuffle=False, pin_memory=pin)]
+    model.train(was_training)
+    return torch.cat(out).numpy() if out else np.zeros((0, 9), np.float32)
+
+
+def predict_distributed(model: nn.Module, dataset: PoseDataset, batch_size: int, device: torch.device,
+                        channels_last: bool) -> np.ndarray:
+    """`predict` sharded over the ranks (rank r takes items r, r + world, ...), gathered on all ranks."""
+    rank, world = _distributed()
+    if world == 1:
+        return predict(model, dataset, batch_size, device, channels_last)
+    mine = predict(model, dataset, batch_size, device, channels_last, indices=range(rank, len(dataset), world))
+    shards: list[Any] = [None] * world
+    dist.all_gather_object(shards, mine)
+    out = np.zeros((len(dataset), 9), np.float32)
+    for r, shard in enumerate(shards):
+        out[r::world] = shard
+    return out
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimiser and schedule. LR: CyclicLR "triangular2" between lr_base and lr_max with a half
+    cycle of `cycle_epochs` epochs (the peak halves every cycle); `max_minutes` stops training before
+    an epoch that would end past the limit (None = no limit)."""
+
+    epochs: int
+    batch_size: int = 32
+    lr_base: float = 1e-4
+    lr_max: float = 1e-3
+    cycle_epochs: float = 3.0
+    weight_decay: float = 0.0
+    max_minutes: float | None = None
+    channels_last: bool = True
+    workers: int = 0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.epochs < 1 or self.batch_size < 1:
+            raise ValueError(f"epochs and batch_size must be >= 1, got {self.epochs}, {self.batch_size}")
+        if not 0 < self.lr_base <= self.lr_max:
+            raise ValueError(f"need 0 < lr_base <= lr_max, got {self.lr_base}, {self.lr_max}")
+        if self.cycle_epochs <= 0:
+            raise ValueError(f"cycle_epochs must be positive, got {self.cycle_epochs}")
+
+
+@dataclass
+class EpochStats:
+    """One epoch: training loss and running errors (train mode, augmented), validation errors (eval mode)."""
+
+    epoch: int
+    loss: float
+    lr: float
+    s_p: float
+    s_r: float
+    train_pos_m: float
+    train_att_deg: float
+    val_pos_m: float
+    val_att_deg: float
+    val_score: float
+    images_per_s: float
+    seconds: float
+
+    def as_dict(self) -> dict[str, float]:
+        return dict(self.__dict__)
+
+
+@dataclass
+class FitResult:
+    history: list[EpochStats]
+    best_epoch: int
+    best_score: float
+    best_state: dict[str, torch.Tensor]
+    seconds: float
+    stopped_early: bool = False
+    train_images_per_s: float = field(default=0.0)
+
+
+class _Objective(nn.Module):
+    """Model + loss in one module, so DDP also all-reduces the loss's learnable weights."""
+
+    def __init__(self, model: nn.Module, loss: PoseLoss):
+        super().__init__()
+        self.model, self.loss = model, loss
+
+    def forward(self, x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        pred = self.model(x)
+        return self.loss(pred, y), pred
+
+
+def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, val_set: PoseDataset, cfg: TrainConfig,
+        device: str | torch.device = "cpu",
+        on_epoch: Callable[[EpochStats, bool, nn.Module], None] | None = None,
+        progress: bool = True) -> FitResult:
+    """Train `model` in place; return the history and the best state (by validation SPEED score).
+
+    `on_epoch(stats, is_best, model)` runs on every rank after each epoch (write files on rank 0 only).
+    """
+    device = torch.device(device)
+    rank, world = _distributed()
+    torch.manual_seed(cfg.seed)
+    model.to(device)
+    loss.to(device)
+    if cfg.channels_last:
+        model.to(memory_format=torch.channels_last)
+    objective: nn.Module = _Objective(model, loss)
+    if world > 1:
+        objective = nn.parallel.DistributedDataParallel(objective, device_ids=[device.index] if device.type == "cuda" else None)
+    sampler = DistributedSampler(train_set, world, rank, shuffle=True, seed=cfg.seed, drop_last=True) if world > 1 else None
+    gen = torch.Generator().manual_seed(cfg.seed)
+    loader = DataLoader(train_set, batch_size=cfg.batch_size, shuffle=sampler is None, sampler=sampler, drop_last=True,
+                        num_workers=cfg.workers, generator=gen, pin_memory=device.type == "cuda",
+                        persistent_workers=False)
+    steps = len(loader)
+    if steps == 0:
+        raise ValueError(f"the training set ({len(train_set)} images over {world} process(es)) is smaller than "
+                         f"one batch of {cfg.batch_size}")
+    # The loss's two weights get LOSS_WEIGHT_LR_FACTOR x the learning rate (no weight decay) so they reach
+    # their balance (exp(-2 s) ~ 1 / error) within the first epochs instead of lagging the whole run.
+    opt = torch.optim.Adam([{"params": list(model.parameters()), "weight_decay": cfg.weight_decay},
+                            {"params": list(loss.parameters()), "weight_decay": 0.0}], lr=cfg.lr_base)
+    f = LOSS_WEIGHT_LR_FACTOR
+    sched = torch.optim.lr_scheduler.CyclicLR(opt, base_lr=[cfg.lr_base, f * cfg.lr_base],
+                                              max_lr=[cfg.lr_max, f * cfg.lr_max], mode="triangular2",
+                                              step_size_up=max(1, round(cfg.cycle_epochs * steps)),
+                                              cycle_momentum=False)
+    history: list[EpochStats] = []
+    best_score, best_epoch, best_state = math.inf, -1, copy.deepcopy(model.state_dict())
+    start, stopped_early, train_seconds, train_images = time.perf_counter(), False, 0.0, 0
+    for epoch in range(cfg.epochs):
+        if cfg.max_minutes is not None and history and _should_stop(start, history[-1].seconds, cfg.max_minutes, device):
+            stopped_early = True
+            break
+        t0 = time.perf_counter()
+        if sampler is not None:
+            sampler.set_epoch(epoch)
+        train_set.set_epoch(epoch)
+        objective.train()
+        sums = torch.zeros(4, dtype=torch.float64)  # loss * n, position error, attitude error, n
+        bar = tqdm(loader, desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="batch", disable=not progress or rank != 0,
+                   leave=False, dynamic_ncols=True)
+        for x, y in bar:
+            # the pinned uint8 batch crosses to the device, then becomes float there
+            x, y = to_input(x.to(device, non_blocking=True), cfg.channels_last), y.to(device, non_blocking=True)
+            value, pred = objective(x, y)
+            check_loss(value.item(), f"epoch {epoch + 1}")
+            opt.zero_grad(set_to_none=True)
+            value.backward()
+            opt.step()
+            sched.step()
+            n = len(y)
+            pos, att = pose_errors(pred.detach().cpu().numpy(), y.cpu().numpy())
+            sums += torch.tensor([value.item() * n, pos.sum(), att.sum(), n], dtype=torch.float64)
+            seen = sums[3].item() * world
+            bar.set_postfix(loss=f"{sums[0].item() / sums[3].item():.3f}", img_s=f"{seen / (time.perf_counter() - t0):.0f}")
+        bar.close()
+        epoch_train_seconds = time.perf_counter() - t0
+        if world > 1:
+            dist.all_reduce(sums)
+        val_pred = predict_distributed(model, val_set, 2 * cfg.batch_size, device, cfg.channels_last)
+        targets = val_set.targets.numpy()
+        pos, att = pose_errors(val_pred, targets)
+        score = speed_score(val_pred, targets)
+        n = sums[3].item()
+        train_seconds += epoch_train_seconds
+        train_images += int(n)
+        stats = EpochStats(epoch=epoch + 1, loss=sums[0].item() / n, lr=float(sched.get_last_lr()[0]),
+                           s_p=loss.s_p.item(), s_r=loss.s_r.item(), train_pos_m=sums[1].item() / n,
+                           train_att_deg=sums[2].item() / n, val_pos_m=float(pos.mean()),
+                           val_att_deg=float(att.mean()), val_score=score, images_per_s=n / epoch_train_seconds,
+                           seconds=time.perf_counter() - t0)
+        history.append(stats)
+        is_best = score < best_score
+        if is_best:
+            best_score, best_epoch = score, epoch + 1
+            best_state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+        if on_epoch is not None:
+            on_epoch(stats, is_best, model)
+    check_improved(best_epoch, len(history))
+    return FitResult(history, best_epoch, best_score, best_state, time.perf_counter() - start, stopped_early,
+                     train_images / train_seconds if train_seconds else 0.0)
+
+
+def _should_stop(start: float, last_epoch_seconds: float, max_minutes: float, device: torch.device) -> bool:
+    """True when another epoch as long as the last would end past the limit (rank 0 decides for all)."""
+    stop = torch.tensor([float(time.perf_counter() - start + last_epoch_seconds > 60 * max_minutes)],
+                        device=device if device.type == "cuda" else "cpu")
+    if _distributed()[1] > 1:
+        dist.broadcast(stop, src=0)
+    return bool(stop.item())
+
+
+def summarize_errors(pred: np.ndarray, target: np.ndarray, ranges: np.ndarray,
+                     bins: Sequence[float]) -> dict[str, Any]:
+    """Error statistics of (N, 9) predictions: position (m) and attitude (deg) mean/median, mean |tz|
+    error as % of range, mean lateral error sqrt(dx^2 + dy^2) (m) at ranges 10-30 m, and the same
+    per range bin (`bins`: edges in metres, any order; a bin is (low, high], the lowest edge included;
+    ranges outside the edges get their own open bins)."""
+    pos, att = pose_errors(pred, target)
+    pred, target, ranges = np.asarray(pred, np.float64), np.asarray(target, np.float64), np.asarray(ranges, np.float64)
+    tz_pct = 100 * np.abs(pred[:, 2] - target[:, 2]) / ranges
+    lateral = np.linalg.norm(pred[:, :2] - target[:, :2], axis=1)
+    near = (ranges >= 10) & (ranges <= 30)
+
+    def stats(m: np.ndarray) -> dict[str, float]:
+        if not m.any():
+            return {"n": 0}
+        return {"n": int(m.sum()), "pos_mean_m": float(pos[m].mean()), "pos_median_m": float(np.median(pos[m])),
+                "att_mean_deg": float(att[m].mean()), "att_median_deg": float(np.median(att[m])),
+                "tz_pct_range": float(tz_pct[m].mean()), "lateral_m": float(lateral[m].mean())}
+
+    edges = sorted(float(b) for b in bins)
+    per_bin = []
+    if (ranges < edges[0]).any():
+        per_bin.append({"range_m": f"<{edges[0]:g}", **stats(ranges < edges[0])})
+    for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        m = (ranges > lo) & (ranges <= hi) if i else (ranges >= lo) & (ranges <= hi)
+        per_bin.append({"range_m": f"{hi:g}-{lo:g}", **stats(m)})
+    if (ranges > edges[-1]).any():  # range = ||t||: lateral offsets put the start beyond the last edge
+        per_bin.append({"range_m": f">{edges[-1]:g}", **stats(ranges > edges[-1])})
+    out = stats(np.ones(len(pos), bool))
+    out["lateral_10_30_m"] = float(lateral[near].mean()) if near.any() else float("nan")
+    out["tz_pct_10_30"] = float(tz_pct[near].mean()) if near.any() else float("nan")
+    out["bins"] = per_bin[::-1]
+    return out

@@ -1,0 +1,1 @@
+"""Rendering the target satellite with Blender (bpy)."""

@@ -1,0 +1,1 @@
+"""Report building blocks: Markdown tables and matplotlib figures."""

@@ -1,0 +1,1 @@
+"""Where outputs live and how the stages read them back (paths, readers, checkpoints, data)."""

@@ -1,0 +1,174 @@
+"""Shared access to the labelled renders for the stages that train on or attack them.
+
+`load_split(params, "train" | "test")` reads `datasets/labels.parquet` (the `label` stage) and
+`datasets/render/images.zarr` (the `render` stage), checks both (NaNs, the 6-D columns, image size
+against params, an empty split) with one clear StageError each, and returns the split's rows with
+their uint8 (N, H, W, 3) RGB images. `pose_dataset(split, ...)` wraps it as a torch Dataset.
+Label column `index` is the image's row in the zarr array `images`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from stages.artifacts.readers import LABELS, RENDER
+from stages.io import StageError, open_zarr, read_json, read_parquet
+from stages.config.params import check_render_fingerprint
+
+IMAGES = RENDER / "images.zarr"
+POSITION = ["tx", "ty", "tz"]
+QUAT = ["qw", "qx", "qy", "qz"]
+SIXD = [f"r{i}" for i in range(6)]
+REQUIRED = ["index", *POSITION, *QUAT, *SIXD, "range", "split"]
+# Above this many bytes a split is read from the store item by item instead of into memory.
+PRELOAD_LIMIT_BYTES = 8 << 30
+
+
+@dataclass
+class Split:
+    """One split: label rows (sorted by image index) and their images, uint8 (N, H, W, 3) RGB."""
+
+    name: str
+    labels: pd.DataFrame
+    images: Any  # numpy array, or `_Rows` over the zarr array when not preloaded
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+    @property
+    def targets(self) -> np.ndarray:
+        """(N, 9) float32: position (m, camera frame) then the 6-D rotation."""
+        return self.labels[POSITION + SIXD].to_numpy(np.float32)
+
+
+class _Rows:
+    """Lazy view of chosen rows of a zarr array (one read per item)."""
+
+    def __init__(self, array: Any, rows: np.ndarray):
+        self.array, self.rows = array, rows
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        return self.array[int(self.rows[i])]
+
+
+def load_labels(path: Path | str = LABELS) -> pd.DataFrame:
+    """Read and validate the label table: required columns, no NaN or inf, a valid 6-D rotation per row."""
+    path = Path(path)
+    df = read_parquet(path, "label table")
+    extra6 = sorted(c for c in df.columns if c.startswith("r") and c[1:].isdigit() and c not in SIXD)
+    missing6 = [c for c in SIXD if c not in df.columns]
+    if missing6 or extra6:
+        raise StageError(f"{path}: the 6-D rotation must be exactly the 6 columns r0..r5; "
+                         f"missing {missing6 or 'none'}, unexpected {extra6 or 'none'} (re-run `rpod label`)")
+    missing = [c for c in REQUIRED if c not in df.columns]
+    if missing:
+        raise StageError(f"{path}: missing columns {missing} (re-run `rpod label`)")
+    numeric = ["index", *POSITION, *QUAT, *SIXD, "range"]
+    nans = {c: int(n) for c, n in (~np.isfinite(df[numeric].astype(np.float64))).sum().items() if n}
+    if nans:
+        raise StageError(f"{path}: NaN or infinite labels in columns {nans} (re-run `rpod label`)")
+    r6 = df[SIXD].to_numpy(np.float64)
+    a, b = r6[:, :3], r6[:, 3:]
+    bad = ((np.abs(np.linalg.norm(a, axis=1) - 1) > 1e-3) | (np.abs(np.linalg.norm(b, axis=1) - 1) > 1e-3)
+           | (np.abs(np.sum(a * b, axis=1)) > 1e-3))
+    if bad.any():
+        raise StageError(f"{path}: {int(bad.sum())} rows have r0..r5 that are not the first two columns of a "
+                         f"rotation matrix (first: row {int(np.argmax(bad))}) (re-run `rpod label`)")
+    return df
+
+
+def open_images(params: dict[str, Any], path: Path | str = IMAGES) -> Any:
+    """The zarr array `images` (N, H, W, 3) uint8 (at `path`, or the store meta.json beside it names),
+    checked against render.width x render.height and the render params' fingerprint."""
+    path = Path(path)
+    meta = read_json(path.parent / "meta.json")
+    group = open_zarr(meta.get("store") or path, "image store")
+    if "images" not in group:
+        raise StageError(f"{path} has no array 'images' (re-run `rpod render`)")
+    arr = group["images"]
+    if arr.ndim != 4 or arr.shape[3] != 3 or arr.dtype != np.uint8:
+        raise StageError(f"{path}/images must be uint8 (N, H, W, 3), got {arr.dtype} {tuple(arr.shape)}")
+    h, w = params["render"]["height"], params["render"]["width"]
+    if arr.shape[1:3] != (h, w):
+        raise StageError(f"{path}/images are {arr.shape[2]}x{arr.shape[1]} pixels but params.yaml has "
+                         f"render.width x render.height = {w}x{h} (re-run `rpod render`, or fix params)")
+    check_render_fingerprint(meta, params, path.parent / "meta.json")
+    return arr
+
+
+def load_split(params: dict[str, Any], split: str, *, images_path: Path | str = IMAGES,
+               labels_path: Path | str = LABELS, preload: bool | None = None) -> Split:
+    """Rows of `split` ("train" or "test") with their images; `preload` None = when it fits in memory."""
+    from tqdm import tqdm
+
+    labels = load_labels(labels_path)
+    images = open_images(params, images_path)
+    rows = labels[labels["split"] == split].sort_values("index").reset_index(drop=True)
+    if rows.empty:
+        found = sorted(map(str, labels["split"].unique()))
+        raise StageError(f"{labels_path}: the {split!r} split is empty (splits present: {found}); "
+                         f"check label.test_fraction and the number of rendered frames")
+    index = rows["index"].to_numpy(np.int64)
+    if index.min() < 0 or index.max() >= images.shape[0]:
+        raise StageError(f"{labels_path}: image index {int(index.max())} is outside {images_path}/images "
+                         f"({images.shape[0]} images); re-run `rpod label` after `rpod render`")
+    nbytes = len(index) * int(np.prod(images.shape[1:]))
+    if preload is False or (preload is None and nbytes > PRELOAD_LIMIT_BYTES):
+        return Split(split, rows, _Rows(images, index))
+    out = np.empty((len(index), *images.shape[1:]), np.uint8)
+    step = images.chunks[0]
+    for start in tqdm(range(0, images.shape[0], step), desc=f"read {split} images", unit="chunk", leave=False):
+        sel = (index >= start) & (index < start + step)
+        if sel.any():
+            out[sel] = images[start:start + step][index[sel] - start]
+    return Split(split, rows, out)
+
+
+def subset(split: Split, rows: np.ndarray, name: str) -> Split:
+    """The rows `rows` (positions in `split`) of a split as a new split called `name`."""
+    rows = np.asarray(rows, np.int64)
+    images = _Rows(split.images.array, split.images.rows[rows]) if isinstance(split.images, _Rows) else split.images[rows]
+    return Split(name, split.labels.iloc[rows].reset_index(drop=True), images)
+
+
+def pose_dataset(split: Split, augment: dict[str, Any] | None = None, seed: int = 0):
+    """A `pipeline.pose.train.PoseDataset` over a split; `augment` = the train.augment params (or None)."""
+    from pipeline.pose.augment import AugmentConfig
+    from pipeline.pose.train import PoseDataset
+
+    cfg = None
+    if augment is not None:
+        try:
+            cfg = AugmentConfig(p=augment["p"], blur_sigma=tuple(augment["blur_sigma"]),
+                                noise_std=tuple(augment["noise_std"]), jpeg_quality=tuple(augment["jpeg_quality"]),
+                                brightness=tuple(augment["brightness"]))
+        except (KeyError, TypeError, ValueError) as e:
+            raise StageError(f"params.yaml: bad train.augment ({e})") from None
+    return PoseDataset(split.images, split.targets, cfg, seed)
+
+
+def training_sets(params: dict[str, Any], seed: int) -> tuple[tuple[Any, Any, Any], tuple[Any, Any]]:
+    """((fit split, its augmented dataset, its plain dataset), (validation split, its dataset))."""
+    train_split, val_split = fit_and_validation_splits(params, seed)
+    return ((train_split, pose_dataset(train_split, params["train"]["augment"], seed=seed),
+             pose_dataset(train_split)), (val_split, pose_dataset(val_split)))
+
+
+def fit_and_validation_splits(params: dict[str, Any], seed: int) -> tuple[Any, Any]:
+    """The labelled training split cut into the frames `fit` trains on and the validation frames
+    (`train.val_fraction` of whole frames, seeded) the checkpoint is selected on; the test split is not read."""
+    from pipeline.evaluation.splits import holdout
+
+    labelled, fraction = load_split(params, "train"), params["train"]["val_fraction"]
+    try:
+        fit_rows, val_rows = holdout(labelled.labels["index"].to_numpy(), float(fraction), seed)
+    except ValueError as e:
+        raise StageError(f"params.yaml train.val_fraction={fraction!r}: {e}") from None
+    return subset(labelled, fit_rows, "train"), subset(labelled, val_rows, "val")

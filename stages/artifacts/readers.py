@@ -1,0 +1,319 @@
+"""Where every DVC artifact lives, and the loaders the stages share (one place for paths and formats).
+
+Paths are relative to the working folder (the repository root under `dvc repro`). Loaders check what
+they read and raise a StageError naming the file and the stage that writes it:
+- `read_render_store` (render output), `read_eval_render` (eval_render output, the evaluation or the
+  defense's validation trajectories, checked against params), `load_defense` (calibrate output), `load_pose` (pose model, attack loss and file hash from one read of models/pose.pt),
+  `load_detector`, `load_chain` (pose model + detector), `read_shap_store` (checked SHAP store);
+- `SampleImages`: the image of a SHAP sample (split, label index, eps) from the labelled renders,
+  the attack stage's adv.zarr, or the same FGSM (shared by `rpod shap` and `rpod detect`).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from stages.artifacts.checkpoint import POSE, loss_from_checkpoint, model_from_checkpoint, read_pose
+from stages.io import StageError, file_hash, load_torch, open_zarr, read_json, read_parquet
+from stages.config.params import render_key
+
+RENDER = Path("datasets/render")
+LABELS = Path("datasets/labels.parquet")
+ADV = Path("datasets/attack/adv.zarr")
+SHAP = Path("datasets/shap.zarr")
+EVAL_RENDER = Path("datasets/eval_render")
+VAL_RENDER = Path("datasets/val_render")
+DEFENSE = Path("models/defense.json")
+DEFENSE_FORMAT = "rpodguard-defense/1"
+LAB = Path("datasets/lab")
+LAB_MODELS = Path("datasets/lab_models")
+LAB_MODELS_SUMMARY = LAB_MODELS / "summary.json"
+TRAIN_METRICS = Path("reports/metrics/train.json")
+DETECTOR = Path("models/detector.pt")
+SURROGATE = Path("models/surrogate.pt")   # a second pose model (`rpod train --surrogate`) for black-box transfer
+ROC_DIR = Path("reports/plots/roc")
+DETECTOR_FORMAT = "rpodguard-detector/1"
+SPLIT_CODES = {"train": 0, "test": 1}   # `split` codes of the SHAP store
+BATCH = 64                              # images per forward pass when rebuilding SHAP sample images
+
+
+def adv_array_name(eps: float) -> str:
+    """Name of the adv.zarr array holding the images attacked at `eps` (e.g. eps_0.5)."""
+    return f"eps_{float(eps):g}"
+
+
+def read_render_store(path: Path, what: str = "render output") -> tuple[Any, Any, dict[str, Any]]:
+    """Open a render output folder (images.zarr, or the store meta.json names; poses.parquet, meta.json)
+    and verify it is complete and consistent -> (images zarr array (N, H, W, 3) uint8, poses table, meta)."""
+    meta = read_json(path / "meta.json")
+    images = open_zarr(meta.get("store") or path / "images.zarr", what)
+    poses = read_parquet(path / "poses.parquet", f"{what} poses")
+    if not meta.get("complete") or "images" not in images:
+        raise StageError(f"{path} is incomplete; delete it and re-run `rpod render`")
+    n = images["images"].shape[0]
+    if n != meta["frames"] or n != len(poses):
+        raise StageError(f"{path} is inconsistent ({n} images, {len(poses)} poses, meta says {meta['frames']}); "
+                         f"delete it and re-run `rpod render`")
+    return images["images"], poses, meta
+
+
+@dataclass
+class Pose:
+    """The pose model (eval mode), its learned training loss (what attacks ascend), the file's hash and
+    the checkpoint's facts (`meta`: best epoch, test errors in m and deg)."""
+
+    model: Any
+    loss: Any
+    hash: str
+    meta: dict[str, Any]
+
+
+def load_pose(params: dict[str, Any], path: Path | str = POSE) -> Pose:
+    """models/pose.pt read once, checked against params (architecture, input size), the network placed on
+    the `device` param's device (with `amp`); it takes inputs from any device and answers on theirs."""
+    from stages.config.params import torch_device
+
+    ckpt = read_pose(path, params)
+    model = model_from_checkpoint(ckpt, torch_device(params), bool(params["amp"]))
+    return Pose(model, loss_from_checkpoint(ckpt), file_hash(path), dict(ckpt.get("meta", {})))
+
+
+def load_detector(path: Path | str = DETECTOR, model_hash: str | None = None) -> tuple[Any, dict[str, Any]]:
+    """The LSTM detector (eval mode) and its checkpoint dict (threshold, pose_model_hash,
+    background_mean (1000,) tensor, shap_method, ...). With `model_hash`, refuse a detector trained
+    on another pose checkpoint's SHAP values."""
+    from pipeline.detectors.lstm import from_checkpoint
+
+    path = Path(path)
+    ckpt = load_torch(path, DETECTOR_FORMAT, "detect")
+    if model_hash is not None and ckpt["pose_model_hash"] != model_hash:
+        raise StageError(f"{path} was trained for pose checkpoint {ckpt['pose_model_hash']!r}, not {model_hash!r}; "
+                         f"re-run `rpod shap` and `rpod detect`")
+    return from_checkpoint(ckpt), ckpt
+
+
+def load_chain(params: dict[str, Any], pose_path: Path | str = POSE,
+               detector_path: Path | str = DETECTOR) -> tuple[Any, Any, str]:
+    """(SafetyChain, attack loss function on `attack.loss`, pose model hash) from a pose model and its detector."""
+    from pipeline.attacks.gradient import attack_loss
+    from pipeline.defense.chain import SafetyChain
+
+    pose = load_pose(params, pose_path)
+    detector, ckpt = load_detector(detector_path, model_hash=pose.hash)
+    try:
+        chain = SafetyChain.from_model(pose.model, np.asarray(ckpt["background_mean"]), detector,
+                                       threshold=float(ckpt["threshold"]))
+    except ValueError as err:
+        raise StageError(f"{pose_path}: {err}") from None
+    return chain, attack_loss(params["attack"]["loss"], pose.loss), pose.hash
+
+
+def eval_render_fingerprint(p: dict[str, Any]) -> str:
+    """Hash of the params that decide the `eval_render` images (so a stale render is refused)."""
+    e = p["evaluate"]
+    key = {"seed": p["seed"], "camera": p["camera"], "render": render_key(p),
+           "evaluate": {k: e[k] for k in ("trajectories", "frames", "lateral_range", "seed")}}
+    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def val_render_fingerprint(p: dict[str, Any]) -> str:
+    """Hash of the params that decide the defense's validation images (datasets/val_render)."""
+    e, d = p["evaluate"], p["defense"]
+    key = {"seed": p["seed"], "camera": p["camera"], "render": render_key(p),
+           "evaluate": {k: e[k] for k in ("frames", "lateral_range")},
+           "defense": {k: d[k] for k in ("val_trajectories", "val_seed")}}
+    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def read_eval_render(p: dict[str, Any], validation: bool = False) -> tuple[np.ndarray, Any, dict[str, Any]]:
+    """The `eval_render` output: (images (N, H, W, 3) uint8, poses table, meta), checked against the
+    current params; the evaluation trajectories, or with `validation` the defense's (datasets/val_render)."""
+    folder, fingerprint = (VAL_RENDER, val_render_fingerprint(p)) if validation else (EVAL_RENDER,
+                                                                                   eval_render_fingerprint(p))
+    meta = read_json(folder / "meta.json")
+    if not meta.get("complete") or meta.get("fingerprint") != fingerprint:
+        raise StageError(f"{folder} was rendered with other params (or is incomplete); "
+                         f"run `rpod eval_render` (dvc repro eval_render)")
+    images = open_zarr(folder / "images.zarr", "evaluation renders")["images"][:]
+    poses = read_parquet(folder / "poses.parquet", "evaluation poses")
+    if len(images) != len(poses) or len(poses) != meta["frames"]:
+        raise StageError(f"{folder} is inconsistent; delete it and run `rpod eval_render`")
+    return images, poses, meta
+
+
+def chaser_motion(poses: Any) -> tuple[np.ndarray, np.ndarray]:
+    """What the chaser knows of itself on an eval_render trajectory table: camera attitudes (N, 3, 3,
+    camera -> world) and the commanded displacement of rel since the previous frame (N, 3, world, m;
+    zero on each trajectory's first frame)."""
+    R_cam = poses[[f"c{j}" for j in range(9)]].to_numpy(np.float64).reshape(-1, 3, 3)
+    rel = poses[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64)
+    u = np.zeros_like(rel)
+    u[1:] = np.diff(rel, axis=0)
+    u[np.r_[True, np.diff(poses["trajectory"].to_numpy()) != 0]] = 0.0
+    return R_cam, u
+
+
+@dataclass(frozen=True)
+class DefenseModel:
+    """The calibrated defense (models/defense.json): settings from params.defense, the detector's
+    threshold and the measurement-noise model fitted on validation trajectories."""
+
+    settings: Any        # pipeline.defense.fusion.DefenseSettings
+    motion: Any          # pipeline.defense.kalman.MotionSettings
+    noise: Any           # pipeline.defense.kalman.NoiseModel
+    calibration: dict[str, Any]
+
+    def new(self, fusion: str | None = None) -> Any:
+        """A fresh pipeline.defense.fusion.Defense (one per trajectory or closed-loop run), optionally with another fusion."""
+        import dataclasses
+
+        from pipeline.defense.fusion import Defense
+
+        s = self.settings if fusion is None else dataclasses.replace(self.settings, fusion=fusion)
+        return Defense(s, self.motion, self.noise)
+
+
+def defense_settings(p: dict[str, Any], threshold: float) -> tuple[Any, Any]:
+    """(DefenseSettings, MotionSettings) of params.defense with the detector's `threshold`."""
+    from pipeline.defense.fusion import DefenseSettings
+    from pipeline.defense.kalman import MotionSettings
+
+    d = p["defense"]
+    try:
+        return (DefenseSettings(d["fusion"], d["hold_after"], d["release_after"], threshold, d["update_below"]),
+                MotionSettings(d["position_noise"], d["velocity_noise"], d["attitude_noise_deg"],
+                               d["attitude_rate_noise_deg"], d["false_alarm"], d["soft_gate"], d["reacquire_after"]))
+    except ValueError as e:
+        raise StageError(f"params.yaml: {e}") from None
+
+
+def load_defense(p: dict[str, Any], model_hash: str, threshold: float) -> DefenseModel:
+    """models/defense.json checked against the pose model and detector it was calibrated with, and params."""
+    from pipeline.defense.kalman import NoiseModel
+
+    cal = read_json(DEFENSE)
+    if cal.get("format") != DEFENSE_FORMAT:
+        raise StageError(f"{DEFENSE} is not a {DEFENSE_FORMAT} file; re-run `rpod calibrate`")
+    if cal.get("pose_model_hash") != model_hash or abs(float(cal.get("threshold", -1)) - threshold) > 1e-9:
+        raise StageError(f"{DEFENSE} was calibrated for another pose model or detector; re-run `rpod calibrate`")
+    try:
+        noise = NoiseModel(**{k: tuple(v) if isinstance(v, list) else v for k, v in cal["noise"].items()})
+    except (KeyError, TypeError, ValueError) as e:
+        raise StageError(f"{DEFENSE}: bad noise model ({e}); re-run `rpod calibrate`") from None
+    settings, motion = defense_settings(p, threshold)
+    return DefenseModel(settings, motion, noise, cal)
+
+
+def read_shap_store(path: Path, model_hash: str) -> dict[str, Any]:
+    """The SHAP store's arrays and attrs, checked: model hash, shapes, NaNs, both classes present."""
+    root = open_zarr(path, "SHAP store")
+    need = ["values", "features", "is_adversarial", "eps", "source_index", "split"]
+    missing = [k for k in need if k not in root]
+    if missing:
+        raise StageError(f"{path} lacks arrays {missing} (re-run `rpod shap`)")
+    attrs = dict(root.attrs)
+    if attrs.get("model_hash") != model_hash:
+        raise StageError(f"{path} was made with another pose checkpoint (hash {attrs.get('model_hash')!r}, "
+                         f"{POSE} is {model_hash!r}); re-run `rpod shap`")
+    values = root["values"]
+    n = values.shape[0]
+    if values.ndim != 3 or values.shape[1] != 9 or n == 0:
+        raise StageError(f"{path}/values must be (N, 9, n_features) with N > 0, got {tuple(values.shape)} "
+                         f"(re-run `rpod shap`)")
+    out = {k: root[k][:] for k in need}
+    out["attrs"] = attrs
+    for k in need[1:]:
+        if out[k].shape[0] != n:
+            raise StageError(f"{path}/{k} has {out[k].shape[0]} rows but values has {n} (re-run `rpod shap`)")
+    if out["features"].shape[1] != values.shape[2]:
+        raise StageError(f"{path}/features has {out['features'].shape[1]} columns, values {values.shape[2]} features")
+    for k in ("values", "features", "eps"):
+        bad = ~np.isfinite(out[k].reshape(n, -1)).all(axis=1)
+        if bad.any():
+            raise StageError(f"{path}/{k} has NaN or infinite entries in {int(bad.sum())} samples "
+                             f"(first: sample {int(np.argmax(bad))}); re-run `rpod shap`")
+    y = out["is_adversarial"].astype(bool)
+    if y.all() or not y.any():
+        raise StageError(f"{path} holds only {'adversarial' if y.all() else 'clean'} samples; a detector needs both "
+                         f"(check shap.normal, shap.per_eps and shap.eps)")
+    if not np.array_equal(y, out["eps"] > 0):
+        raise StageError(f"{path}: is_adversarial disagrees with eps > 0 (re-run `rpod shap`)")
+    return out
+
+
+def _key(eps: float) -> float:
+    """eps as a lookup key: the SHAP store keeps eps as float32, params and adv.zarr as float64."""
+    return round(float(eps), 6)
+
+
+class SampleImages:
+    """The image of a SHAP sample (split, label index, eps): the two pose splits, the model and attack
+    loss for FGSM, and the usable arrays of adv.zarr (FGSM by this pose model on `attack.loss`)."""
+
+    def __init__(self, params: dict[str, Any], model: Any, loss_fn: Any, model_hash: str):
+        from stages.artifacts.data import load_split
+
+        self.model, self.loss_fn = model, loss_fn
+        self.splits = {name: load_split(params, name) for name in SPLIT_CODES}
+        self.row_of = {name: {int(ix): r for r, ix in enumerate(sp.labels["index"].to_numpy())}
+                       for name, sp in self.splits.items()}
+        self.stack: dict[float, Any] = {}
+        self.stack_row: dict[int, int] = {}
+        self.stack_note = "no datasets/attack/adv.zarr"
+        if ADV.exists():
+            root = open_zarr(ADV, "adversarial store")
+            attrs = dict(root.attrs)
+            if attrs.get("method") != "fgsm":
+                self.stack_note = f"adv.zarr was made with {attrs.get('method')!r}, not FGSM"
+            elif attrs.get("model_hash") != model_hash:
+                self.stack_note = "adv.zarr was made with another pose checkpoint"
+            elif attrs.get("loss") != params["attack"]["loss"]:
+                self.stack_note = f"adv.zarr attacked the {attrs.get('loss')!r} loss, not attack.loss"
+            else:
+                self.stack = {_key(e): root[adv_array_name(e)] for e in attrs.get("eps", [])
+                              if adv_array_name(e) in root}
+                self.stack_row = {int(ix): r for r, ix in enumerate(root["source_index"][:])}
+                self.stack_note = f"adv.zarr holds eps {sorted(self.stack)} for {len(self.stack_row)} test images"
+
+    def in_stack(self, split: str, index: int, eps: float) -> bool:
+        return split == "test" and _key(eps) in self.stack and index in self.stack_row
+
+    def images(self, split: np.ndarray, index: np.ndarray, eps: np.ndarray) -> np.ndarray:
+        """uint8 (N, H, W, 3) images of samples given by split name, label index and eps (0 = clean)."""
+        import torch
+
+        from pipeline.attacks.gradient import stored_attack
+
+        out: list[np.ndarray | None] = [None] * len(index)
+        todo: dict[tuple[str, float], list[int]] = {}
+        for k, (sp, ix, e) in enumerate(zip(split, index, eps)):
+            if e > 0 and self.in_stack(sp, int(ix), float(e)):
+                out[k] = np.asarray(self.stack[_key(e)][self.stack_row[int(ix)]])
+            else:
+                todo.setdefault((sp, _key(e)), []).append(k)
+        for (sp, e), ks in todo.items():
+            rows = [self.row_of[sp][int(index[k])] for k in ks]
+            data = self.splits[sp]
+            clean = np.stack([np.asarray(data.images[r]) for r in rows])
+            if e == 0:
+                imgs = clean
+            else:
+                dev = self.model.device
+                x = torch.from_numpy(clean).to(dev).permute(0, 3, 1, 2).float() / 255
+                y = torch.as_tensor(data.targets[rows]).to(dev)
+                adv = stored_attack(self.model, self.loss_fn, e)(x, y)
+                imgs = torch.round(adv * 255).to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
+            for k, im in zip(ks, imgs):
+                out[k] = im
+        return np.stack(out)  # type: ignore[arg-type]
+
+    def iter_images(self, split: np.ndarray, index: np.ndarray, eps: np.ndarray,
+                    batch: int = BATCH) -> Iterator[tuple[slice, np.ndarray]]:
+        for s in range(0, len(index), batch):
+            sl = slice(s, s + batch)
+            yield sl, self.images(split[sl], index[sl], eps[sl])

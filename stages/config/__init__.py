@@ -1,0 +1,1 @@
+"""Params: the schema, composition of profiles into params.yaml, loading, `--help` text."""

@@ -1,0 +1,1 @@
+"""Scale-out: the Ray worker pool and the chunked render jobs."""

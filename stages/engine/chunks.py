@@ -1,0 +1,148 @@
+"""Chunk-aligned render jobs written straight into one zarr store, fanned out by stages/engine/pool.py.
+
+The driver creates the store (array `images`, uint8 (N, H, W, 3), chunked by frames); each worker
+holds one Blender scene, renders whole chunks, writes them into the store itself (a local path or an
+fsspec URL) and returns each chunk's crc32c (a worker on a machine that cannot see the store returns
+the pixels and the driver writes them); the driver writes the manifest last (`stages.io.seal_zarr`).
+No merge step: the store is complete when the manifest is there.
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from stages.engine import pool as engine
+from stages.io import StageError, chunk_crc32c, create_array, reopen_array, seal_zarr, store_fs
+
+
+def store_url(path: Path | str) -> str:
+    """An absolute location every worker can open: a local path made absolute, a URL as given."""
+    return str(path) if "://" in str(path) else str(Path(path).resolve())
+
+
+def create_store(url: str, n: int, height: int, width: int, chunk: int) -> None:
+    """An empty store at `url` (replacing one there) with the array `images` (n, height, width, 3) uint8."""
+    import zarr
+
+    try:
+        group = zarr.open_group(url, mode="w")
+        create_array(group, "images", shape=(n, height, width, 3), chunks=(chunk, height, width, 3), dtype="uint8")
+    except Exception as e:  # fsspec and zarr raise many types for a bad URL or a read-only place
+        raise StageError(f"image store {url} cannot be written ({type(e).__name__}: {e}); "
+                         f"set engine.store to a writable folder or fsspec URL") from None
+
+
+class RenderWorker:
+    """One Blender scene: `run(lo, hi)` renders the poses R[lo:hi], t[lo:hi] (camera frame, metres),
+    exactly one chunk, into the store's `images` and returns {chunk key: crc32c}; a worker that cannot
+    see the store (another machine without shared storage) returns the pixels for the driver to write."""
+
+    def __init__(self, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, url: str, empty_hint: str | None) -> None:
+        from pipeline.render.scene import Renderer
+
+        self.fs, self.root = store_fs(url)
+        self.images = reopen_array(url, "images") if visible(self.fs, self.root) else None
+        self.R, self.t, self.empty_hint = R, t, empty_hint
+        self.renderer = Renderer(K, scene)   # settings checked by the driver (`prepare`)
+
+    def run(self, lo: int, hi: int) -> dict[str, str] | np.ndarray:
+        engine.exit_once_for_test()
+        buf = np.stack([self.renderer.render(self.R[k], self.t[k]) for k in range(lo, hi)])
+        if self.empty_hint and lo == 0 and not buf.any():
+            raise StageError(f"render: the target covers no pixels in the first {hi} frames (all black); "
+                             f"{self.empty_hint}")
+        if self.images is None:
+            return buf
+        return write_chunk(self.images, self.fs, self.root, lo, buf)
+
+    def close(self) -> None:
+        self.renderer.close()
+
+
+def visible(fs: Any, root: str) -> bool:
+    """Whether this process sees the store the driver created (its zarr.json)."""
+    return fs.exists(f"{root}/zarr.json")
+
+
+def write_chunk(images: Any, fs: Any, root: str, lo: int, buf: np.ndarray) -> dict[str, str]:
+    """Write one whole chunk (frames lo .. lo + len(buf)) into the array `images` -> {its key: crc32c}."""
+    images[lo:lo + len(buf)] = buf
+    key = f"c/{lo // images.chunks[0]}/0/0/0"
+    return {key: chunk_crc32c(fs, f"{root}/images/{key}")}
+
+
+class PoseRenderWorker:
+    """One Blender scene: `run(R, t)` renders the poses R (n, 3, 3), t (n, 3) (camera frame, metres) and
+    returns them to the driver -> (RGB (n, H, W, 3) uint8 on black, alpha (n, H, W) float32 in [0, 1])."""
+
+    def __init__(self, K: Any, scene: Any) -> None:
+        from pipeline.render.scene import Renderer
+
+        self.renderer = Renderer(K, scene)
+
+    def run(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        engine.exit_once_for_test()
+        out = [self.renderer.render_with_alpha(Ri, ti) for Ri, ti in zip(R, t)]
+        return np.stack([rgb for rgb, _ in out]), np.stack([alpha for _, alpha in out])
+
+    def close(self) -> None:
+        self.renderer.close()
+
+
+def prepare(K: Any, scene: Any, es: engine.EngineSettings) -> tuple[Any, int]:
+    """(scene settings for one worker, its Blender threads): settings checked before any worker starts
+    (StageError), the mesh path made absolute (workers may run elsewhere), and render.threads / workers
+    threads (at least 1) per Ray worker. Cycles gives the same pixels for any thread count and chunk
+    order, so the images equal the in-process ones."""
+    from pipeline.render.scene import check_settings
+
+    try:
+        check_settings(K, scene)
+    except ValueError as e:
+        raise StageError(f"params.yaml render: {e}") from None
+    threads = es.threads(scene.threads)
+    mesh = str(Path(scene.mesh).resolve()) if scene.mesh else None
+    return dataclasses.replace(scene, threads=threads, mesh=mesh), threads
+
+
+def render_poses(K: Any, scene: Any, R: np.ndarray, t: np.ndarray, chunk: int, es: engine.EngineSettings,
+                 desc: str) -> tuple[np.ndarray, np.ndarray]:
+    """Every pose rendered by the engine's workers, `chunk` poses per job -> (RGB, alpha) in pose order."""
+    from tqdm import tqdm
+
+    scene, threads = prepare(K, scene, es)
+    jobs = [(R[lo:lo + chunk], t[lo:lo + chunk]) for lo in range(0, len(t), chunk)]
+    with tqdm(total=len(t), unit="img", desc=desc, dynamic_ncols=True, mininterval=0.5) as bar:
+        out = engine.run(PoseRenderWorker, (K, scene), jobs, es, num_cpus=threads,
+                         progress=lambda i, _: bar.update(len(jobs[i][1])))
+    return np.concatenate([rgb for rgb, _ in out]), np.concatenate([alpha for _, alpha in out])
+
+
+def render_to_store(url: str, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, chunk: int,
+                    es: engine.EngineSettings, desc: str, empty_hint: str | None = None) -> float:
+    """Render every pose into a new store at `url` (one job per chunk) and seal it -> seconds taken;
+    bad render settings are refused before any worker starts (`prepare`)."""
+    from tqdm import tqdm
+
+    scene, threads = prepare(K, scene, es)
+    n = len(t)
+    create_store(url, n, K.height, K.width, chunk)
+    jobs = [(lo, min(lo + chunk, n)) for lo in range(0, n, chunk)]
+    crcs: dict[str, str] = {}
+    fs, root = store_fs(url)
+    images = reopen_array(url, "images")
+
+    def done(i: int, result: dict[str, str] | np.ndarray) -> None:
+        """Record a chunk's checksum; write the chunks a worker could not (it returned the pixels)."""
+        crcs.update(write_chunk(images, fs, root, jobs[i][0], result) if isinstance(result, np.ndarray) else result)
+        bar.update(jobs[i][1] - jobs[i][0])
+
+    t0 = time.perf_counter()
+    with tqdm(total=n, unit="img", desc=desc, dynamic_ncols=True, mininterval=0.5) as bar:
+        engine.run(RenderWorker, (K, scene, R, t, url, empty_hint), jobs, es, num_cpus=threads, progress=done)
+    seal_zarr(url, {"images": crcs})
+    return time.perf_counter() - t0
