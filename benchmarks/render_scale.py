@@ -13,6 +13,7 @@ import os
 import platform
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -21,16 +22,24 @@ import psutil
 from pipeline.report.markdown import markdown_table
 from stages.engine import pool as engine
 from stages.config import params as params_mod
-from stages.engine.chunks import render_to_store
+from stages.engine.chunks import FrameRange, render_to_store
 from stages.report import write_benchmark
 
 SIZES = [(160, 90), (480, 270)]
 
 
+@dataclass(frozen=True)
+class NoSetup:
+    """A Noop worker's setup: nothing."""
+
+
 class Noop:
     """A worker that does nothing: its chunks time the engine's own cost per chunk."""
 
-    def run(self, lo: int, hi: int) -> dict[str, str]:
+    def __init__(self, setup: NoSetup) -> None:
+        pass
+
+    def run(self, job: FrameRange) -> dict[str, str]:
         return {}
 
     def close(self) -> None:
@@ -101,13 +110,13 @@ def ray_overhead(p: dict, cores: int, jobs: int = 200) -> dict[str, float]:
     with engine.session(engine.EngineSettings(cores, None, 600, 2)):
         up = time.perf_counter() - t0
         t0 = time.perf_counter()
-        engine.run(Noop, (), [(0, 1)], es)
+        engine.run(Noop, NoSetup(), [FrameRange(0, 1)], es)
         first = time.perf_counter() - t0
         t0 = time.perf_counter()
-        engine.run(Noop, (), [(0, 1)], es)   # a warm worker pool: the baseline for the per-chunk cost
+        engine.run(Noop, NoSetup(), [FrameRange(0, 1)], es)   # a warm worker pool: the baseline for the per-chunk cost
         one = time.perf_counter() - t0
         t0 = time.perf_counter()
-        engine.run(Noop, (), [(i, i + 1) for i in range(jobs + 1)], es)
+        engine.run(Noop, NoSetup(), [FrameRange(i, i + 1) for i in range(jobs + 1)], es)
         per_chunk = (time.perf_counter() - t0 - one) / jobs
         blender = timed_render(p, 160, 90, 1, 1, es)[0]
         t0 = time.perf_counter()

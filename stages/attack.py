@@ -4,8 +4,9 @@ Reads models/pose.pt and the test split; writes datasets/attack/adv.zarr (one ui
 array per eps, named `eps_<eps>`, plus `source_index` = the label `index` of each row),
 reports/attack.md, reports/figures/fgsm_example.png and reports/metrics/attack.json.
 Errors are measured on the stored uint8 adversarial images (what the SHAP stage reads).
-The batches fan out over the engine's workers on the CPU (stages/engine/pool.py; in-process with one
-worker or on a GPU), each batch's attack seeded by its place, so adv.zarr does not depend on the workers.
+The batches fan out over the engine's workers on the CPU (stages/engine/attack_worker.py on
+stages/engine/pool.py; in-process with one worker or on a GPU), each batch's attack seeded by its place,
+so adv.zarr does not depend on the workers.
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ import numpy as np
 import typer
 
 from stages.engine import pool as engine
+from stages.engine.attack_worker import AttackBatch, AttackSetup, AttackWorker
 
 from stages.config import params as params_mod
 from stages.artifacts.readers import ADV, POSE, adv_array_name, load_pose
@@ -54,10 +56,11 @@ def main() -> None:
     y_all = torch.tensor(labels[["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]].to_numpy(np.float32))
     k = int(np.argmin(np.abs(t_gt[:, 2] - np.median(t_gt[:, 2]))))  # figure: a mid-range test image
     es, threads = _engine(p, pose.model.device)
-    worker = (p, str(POSE.resolve()), eps_list, int(a["batch_size"]), None if es.in_process else threads)
+    setup = AttackSetup(params=p, pose_path=str(POSE.resolve()), eps=tuple(eps_list), batch=int(a["batch_size"]),
+                        seed=int(p["seed"]) + SEED_OFFSET, torch_threads=None if es.in_process else threads)
     t0 = time.perf_counter()
     with atomic_dir(ADV.parent) as tmp:
-        out = _attack_into(tmp / ADV.name, worker, images, labels["index"].to_numpy(np.int64), y_all, k, es, threads)
+        out = _attack_into(tmp / ADV.name, setup, images, labels["index"].to_numpy(np.int64), y_all, k, es, threads)
         out["root"].attrs.update({"eps": eps_list, "method": a["method"], "loss": a["loss"], "model_hash": pose.hash,
                                   "quantisation": "round to nearest 8-bit level, at least one level, sign kept"})
     seconds = time.perf_counter() - t0
@@ -77,58 +80,16 @@ def main() -> None:
     typer.echo(f"attack: {n} test images x {len(eps_list)} eps in {seconds:.0f} s -> {ADV}, {REPORT}")
 
 
-class AttackWorker:
-    """The pose model (models/pose.pt at the absolute `pose_path`, loaded once per engine worker):
-    `run(i, u8, y)` attacks one batch (images (B, H, W, 3) uint8 from test row i, labels (B, 9): metres,
-    6-D) at every eps, with the attack seeded by the batch (so the stored images do not depend on which
-    worker attacks it) -> pose outputs on the clean images and, per eps, the stored uint8 images, the
-    pose outputs on them and on the float adversarial images, and their stored L-inf."""
-
-    def __init__(self, p: dict[str, Any], pose_path: str, eps_list: list[float], batch: int,
-                 torch_threads: int | None) -> None:
-        import torch
-
-        from pipeline.attacks.gradient import attack_loss
-
-        if torch_threads:
-            torch.set_num_threads(torch_threads)
-        pose = load_pose(p, pose_path)
-        self.model, self.loss_fn = pose.model.eval(), attack_loss(p["attack"]["loss"], pose.loss)
-        self.a, self.seed, self.eps_list, self.batch = p["attack"], int(p["seed"]) + SEED_OFFSET, eps_list, batch
-
-    def run(self, i: int, u8: np.ndarray, y: Any) -> dict[str, Any]:
-        import torch
-
-        from pipeline.attacks.gradient import quantize
-
-        engine.exit_once_for_test()
-        attack = params_mod.make_attack(self.a, self.a["method"], self.seed + i // self.batch)
-        x = torch.from_numpy(u8).to(self.model.device).permute(0, 3, 1, 2).float() / 255   # uint8 over the bus
-        y = y.to(self.model.device)
-        with torch.no_grad():
-            out: dict[str, Any] = {"clean": self.model(x).cpu().numpy()}
-        for e in self.eps_list:
-            x_adv = attack(self.model, x, y, e, self.loss_fn)
-            stored = quantize(x_adv, x)
-            with torch.no_grad():
-                out[e] = (stored.permute(0, 2, 3, 1).cpu().numpy(), self.model(stored.float() / 255).cpu().numpy(),
-                          self.model(x_adv).cpu().numpy(), float((stored.float() / 255 - x).abs().max()))
-        return out
-
-    def close(self) -> None:
-        pass
-
-
-def _attack_into(path: Path, worker: tuple[Any, ...], images: Any, source_index: np.ndarray, y_all: Any,
+def _attack_into(path: Path, setup: AttackSetup, images: Any, source_index: np.ndarray, y_all: Any,
                  k: int, es: engine.EngineSettings, threads: int) -> dict[str, Any]:
     """Attack the first len(source_index) images at every eps into a new zarr group at `path` (one uint8
-    array per eps), one batch per engine job on `AttackWorker(*worker)`; returns the group, the pose
+    array per eps), one batch per engine job on `AttackWorker(setup)`; returns the group, the pose
     outputs (clean, stored uint8, float), the stored L-inf per eps and image k's stored adversarial
     images (for the figure)."""
     import zarr
     from tqdm import tqdm
 
-    eps_list, batch = worker[2], worker[3]
+    eps_list, batch = setup.eps, setup.batch
     n = len(source_index)
     preds = {"clean": np.zeros((n, 9))} | {e: np.zeros((n, 9)) for e in eps_list}
     preds_float = {e: np.zeros((n, 9)) for e in eps_list}
@@ -153,11 +114,11 @@ def _attack_into(path: Path, worker: tuple[Any, ...], images: Any, source_index:
                 example[e] = out[e][0][k - i]
         bar.update(1)
 
-    jobs = [(i, np.stack([np.asarray(images[j]) for j in range(i, min(i + batch, n))]), y_all[i:i + batch])
+    jobs = [AttackBatch(i, np.stack([np.asarray(images[j]) for j in range(i, min(i + batch, n))]), y_all[i:i + batch])
             for i in starts]
-    desc = f"attack ({worker[0]['attack']['method']}, {len(eps_list)} eps)"
+    desc = f"attack ({setup.params['attack']['method']}, {len(eps_list)} eps)"
     with tqdm(total=len(jobs), desc=desc, unit="batch") as bar:
-        engine.run(AttackWorker, worker, jobs, es, num_cpus=threads, progress=done)
+        engine.run(AttackWorker, setup, jobs, es, num_cpus=threads, progress=done)
     return {"root": root, "preds": preds, "preds_float": preds_float, "linf": linf, "example": example}
 
 

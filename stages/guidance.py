@@ -1,15 +1,15 @@
 """`rpod guidance`: the closed-loop rendezvous under attack, Blender rendering every step.
 
 Runs a no-attack baseline and every (eps, start range S, length K) of params, rendered at the pose
-model's input size; the runs fan out over the engine's workers (stages/engine/pool.py: in-process with one
-worker, else Ray actors each holding one Blender scene and the safety chain), each attacked run's
-attack seeded by its place in the grid, so the results do not depend on the worker count; writes
-reports/guidance.md (one S x K table per eps), reports/figures/guidance_trajectories.png and
-reports/metrics/guidance.json. With the safety chain inside the loop it flies every cell again for
-each of `guidance.dynamics` and each of undefended / `guidance.defenses` (detect-and-hold,
-detect-and-recover; a fresh calibrated defense from models/defense.json per run) -> the defended
-section of the report, metrics `defended`, and reports/figures/guidance_defended.png (one run per
-variant).
+model's input size; the runs fan out over the engine's workers (stages/engine/guidance_worker.py on
+stages/engine/pool.py: in-process with one worker, else Ray actors each holding one Blender scene and
+the safety chain), each attacked run's attack seeded by its place in the grid, so the results do not
+depend on the worker count; writes reports/guidance.md (one S x K table per eps),
+reports/figures/guidance_trajectories.png and reports/metrics/guidance.json. With the safety chain
+inside the loop it flies every cell again for each of `guidance.dynamics` and each of undefended /
+`guidance.defenses` (detect-and-hold, detect-and-recover; a fresh calibrated defense from
+models/defense.json per run) -> the defended section of the report, metrics `defended`, and
+reports/figures/guidance_defended.png (one run per variant).
 """
 from __future__ import annotations
 
@@ -22,6 +22,7 @@ import numpy as np
 import typer
 
 from stages.engine import chunks, pool as engine
+from stages.engine.guidance_worker import GuidanceSetup, GuidanceWorker, flights
 
 from stages.config import params as params_mod
 from stages.artifacts.readers import DETECTOR, POSE, load_chain, load_defense
@@ -57,39 +58,6 @@ def _plan(g: dict[str, Any]):
     return settings, grid
 
 
-class GuidanceWorker:
-    """One Blender scene and one safety chain (loaded here from `models`, absolute pose and detector
-    paths), built once per engine worker: `run(dyn, defense, cell)` flies that run of `plan`
-    (pipeline.guidance.law.GridPilot) -> (result, keys of the poses it rendered)."""
-
-    def __init__(self, p: dict[str, Any], K: Any, scene: Any, models: tuple[str, str], defense: Any,
-                 plan: Any, torch_threads: int | None) -> None:
-        from pipeline.attacks.gradient import stored_attack
-        from pipeline.guidance.law import CachedCamera, GridPilot
-        from pipeline.render.scene import Renderer
-
-        if torch_threads:
-            import torch
-
-            torch.set_num_threads(torch_threads)
-        chain, loss_fn, _ = load_chain(p, *models)
-        a, method, seed = p["attack"], p["guidance"]["method"], int(p["seed"]) + SEED_OFFSET
-
-        def attack_at(eps: float, i: int) -> Any:
-            return stored_attack(chain.model, loss_fn, eps, params_mod.make_attack(a, method, seed + i))
-
-        self.renderer = Renderer(K, scene)
-        camera = CachedCamera(self.renderer.render, chain.model, chain=chain)
-        self.pilot = GridPilot(camera, K, plan, attack_at, defense)
-
-    def run(self, dyn: str, defense: str, cell: int | None) -> tuple[Any, frozenset[bytes]]:
-        engine.exit_once_for_test()
-        return self.pilot.fly(dyn, defense, cell)
-
-    def close(self) -> None:
-        self.renderer.close()
-
-
 def main() -> None:
     """Fly the closed loop without attack and under every (eps, S, K) attack window, on the engine's
     workers (each run on one; results in grid order); report outcomes."""
@@ -109,8 +77,7 @@ def main() -> None:
     es = engine.settings(p)
     scene, threads = chunks.prepare(K, params_mod.scene_settings(p["render"]), es)
     plan = GridPlan(settings, tuple(grid), int(g["slack_steps"]), tuple(g["dynamics"]), tuple(g["defenses"]))
-    runs = plan.runs()
-    models = (str(POSE.resolve()), str(DETECTOR.resolve()))
+    runs = flights(plan)
     # Attacked runs get the steps the unattacked chaser needed plus slack_steps: an attack succeeds
     # when it delays or diverts the chaser beyond that (the paper: 50 nominal steps + ~10).
     finished, t0, paper_done = [0], time.perf_counter(), [0.0]
@@ -123,8 +90,10 @@ def main() -> None:
 
     with tqdm(total=len(runs), desc="guidance runs", unit="run") as bar:
         on_cpu = p if es.in_process else {**p, "device": "cpu"}   # Ray workers hold no GPU
-        init = (on_cpu, K, scene, models, defense, plan, None if es.in_process else threads)
-        flown = engine.run(GuidanceWorker, init, runs, es, num_cpus=threads, progress=progress)
+        setup = GuidanceSetup(params=on_cpu, K=K, scene=scene, pose_path=str(POSE.resolve()),
+                              detector_path=str(DETECTOR.resolve()), defense=defense, plan=plan,
+                              seed=int(p["seed"]) + SEED_OFFSET, torch_threads=None if es.in_process else threads)
+        flown = engine.run(GuidanceWorker, setup, runs, es, num_cpus=threads, progress=progress)
     seconds = paper_done[0]
     paper = flown[:plan.paper_size]
     counts = grid_counts(paper)      # the paper's grid alone

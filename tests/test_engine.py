@@ -9,7 +9,8 @@ import pytest
 from stages.engine import pool as engine
 
 from stages.config import params as params_mod
-from stages.engine.chunks import RenderWorker
+from faults import exits_once
+from stages.engine.chunks import FrameRange, RenderSetup, RenderWorker
 from stages.io import StageError, open_zarr
 from stages.config.schema import ParamsError
 
@@ -34,17 +35,15 @@ def workdir(tmp_path, monkeypatch):
 
 @pytest.fixture
 def two_nodes(tmp_path_factory, monkeypatch):
-    """A local Ray cluster of two nodes with one CPU each; workers hard-exit once (test hook)."""
+    """A local Ray cluster of two nodes with one CPU each, and a marker path for `faults.exits_once`."""
     ray = pytest.importorskip("ray")
     from ray.cluster_utils import Cluster
 
-    marker = tmp_path_factory.mktemp("hook") / "exited"
-    monkeypatch.setenv(engine.EXIT_ONCE, str(marker))   # node processes (and their workers) inherit it
+    marker = tmp_path_factory.mktemp("fault") / "exited"
     monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
     cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
     cluster.add_node(num_cpus=1)
     cluster.wait_for_nodes()
-    monkeypatch.delenv(engine.EXIT_ONCE)                 # ... but not this process (the in-process render)
     try:
         yield cluster, marker
     finally:
@@ -54,10 +53,12 @@ def two_nodes(tmp_path_factory, monkeypatch):
 
 
 @pytest.mark.slow
-def test_two_node_cluster_matches_one_process_and_retries_a_killed_worker(workdir, two_nodes):
+def test_two_node_cluster_matches_one_process_and_retries_a_killed_worker(workdir, two_nodes, monkeypatch):
+    from stages.engine import chunks
+
     cluster, marker = two_nodes
     one = _render(workdir, ["engine.workers=1"])
-    assert not marker.exists()
+    monkeypatch.setattr(chunks, "RenderWorker", exits_once(RenderWorker, marker))   # a worker dies on a chunk once
     two = _render(workdir, ["engine.workers=2", f"engine.address={cluster.address}"])
     assert marker.exists()                           # one worker died mid-chunk: its chunk was retried
     assert two.shape == one.shape == (26, 18, 32, 3) and one.max() > 0
@@ -67,7 +68,8 @@ def test_two_node_cluster_matches_one_process_and_retries_a_killed_worker(workdi
     assert "\n" not in str(err.value) and "Traceback" not in str(err.value)
     with pytest.raises(StageError, match="no chunk finished within engine.timeout_s"):
         es = engine.EngineSettings(workers=1, address=cluster.address, timeout_s=2.0, retries=0)
-        engine.run(RenderWorker, (None,) * 6, [(0, 4)], es, num_cpus=8)   # 8 CPUs never free up: no hang
+        setup = RenderSetup(K=None, scene=None, R=np.zeros((4, 3, 3)), t=np.zeros((4, 3)), url="", empty_hint=None)
+        engine.run(RenderWorker, setup, [FrameRange(0, 4)], es, num_cpus=8)   # 8 CPUs never free up: no hang
 
 
 def test_unreachable_address_stops_at_once(workdir):

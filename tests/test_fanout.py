@@ -10,7 +10,9 @@ import pytest
 
 from pipeline.geometry.camera import reference_intrinsics
 from pipeline.guidance.law import Estimate, GridPilot, GridPlan, GuidanceSettings, defended_grid, grid_counts, paper_grid
+from faults import exits_once
 from stages.engine import pool as engine
+from stages.engine.guidance_worker import Flight, flights
 from test_engine import two_nodes  # noqa: F401  (the two-node local cluster fixture)
 
 K = reference_intrinsics().scaled(160, 90)
@@ -47,14 +49,14 @@ def defense():
 
 
 class StubWorker:
-    """An engine worker with one stand-in camera (as stages.guidance.GuidanceWorker, without Blender)."""
+    """An engine worker with one stand-in camera (as stages.engine.guidance_worker.GuidanceWorker, without
+    Blender); its setup is the plan itself."""
 
     def __init__(self, plan: GridPlan) -> None:
         self.pilot = GridPilot(StubCamera(), K, plan, attack_at, defense())
 
-    def run(self, dyn: str, defense_name: str, cell: int | None):
-        engine.exit_once_for_test()
-        return self.pilot.fly(dyn, defense_name, cell)
+    def run(self, job: Flight):
+        return self.pilot.fly(job.dynamics, job.defense, job.cell)
 
     def close(self) -> None:
         pass
@@ -79,7 +81,7 @@ def summary(p: GridPlan, flown: list) -> tuple:
 
 
 def in_process(p: GridPlan) -> list:
-    return engine.run(StubWorker, (p,), p.runs(), engine.EngineSettings(1, None, 60.0, 0))
+    return engine.run(StubWorker, p, flights(p), engine.EngineSettings(1, None, 60.0, 0))
 
 
 def test_runs_flown_by_separate_pilots_in_any_order_match_one_pilot():
@@ -87,22 +89,22 @@ def test_runs_flown_by_separate_pilots_in_any_order_match_one_pilot():
     one = in_process(p)
     outcomes = {r.outcome for r, _ in one}
     assert len(outcomes) > 1 and len(one) == 1 + 8 + 5 * 9   # attacks change outcomes: the test can fail
-    runs = p.runs()
+    runs = flights(p)
     order = np.random.default_rng(0).permutation(len(runs))
     apart = [None] * len(runs)
     for j, i in enumerate(order):                   # three pilots, each starting cold, runs shuffled
-        apart[i] = StubWorker(p).run(*runs[i]) if j % 3 == 0 else None
+        apart[i] = StubWorker(p).run(runs[i]) if j % 3 == 0 else None
     pilots = [StubWorker(p), StubWorker(p)]
     for j, i in enumerate(order):
         if apart[i] is None:
-            apart[i] = pilots[j % 2].run(*runs[i])
+            apart[i] = pilots[j % 2].run(runs[i])
     assert summary(p, apart) == summary(p, one)
 
 
 def test_counts_are_those_of_one_shared_camera():
     p = plan()
     worker = StubWorker(p)
-    flown = [worker.run(*r) for r in p.runs()]
+    flown = [worker.run(r) for r in flights(p)]
     counts = grid_counts(flown)
     steps = sum(len(r.estimates) for r, _ in flown)
     assert counts["steps"] == steps and 0 < counts["renders"] < steps
@@ -121,7 +123,8 @@ def attack_sets(tmp_path, es: engine.EngineSettings) -> tuple:
     from pipeline.pose.loss import PoseLoss
     from pipeline.pose.model import PoseNet
     from stages.config import params as params_mod
-    from stages.attack import _attack_into
+    from stages.attack import SEED_OFFSET, _attack_into
+    from stages.engine.attack_worker import AttackSetup
     from stages.artifacts.checkpoint import save_pose
 
     p = params_mod.compose("smoke", ["render.width=32", "render.height=18", "train.width=0.125", "attack.method=pgd",
@@ -132,26 +135,27 @@ def attack_sets(tmp_path, es: engine.EngineSettings) -> tuple:
     images = rng.integers(0, 256, (10, 18, 32, 3), dtype=np.uint8)
     y = torch.randn(10, 9, generator=torch.Generator().manual_seed(0))
     # one torch thread on both paths: convolution gradients are not bit-identical across thread counts
-    worker = (p, str(tmp_path / "pose.pt"), [0.5, 0.05], 4, 1)
+    setup = AttackSetup(params=p, pose_path=str(tmp_path / "pose.pt"), eps=(0.5, 0.05), batch=4,
+                        seed=int(p["seed"]) + SEED_OFFSET, torch_threads=1)
     threads = torch.get_num_threads()
     try:
-        out = _attack_into(tmp_path / f"adv{es.workers}.zarr", worker, images, np.arange(10), y, 6, es, 1)
+        out = _attack_into(tmp_path / f"adv{es.workers}.zarr", setup, images, np.arange(10), y, 6, es, 1)
     finally:
         torch.set_num_threads(threads)
     root = zarr.open_group(str(tmp_path / f"adv{es.workers}.zarr"), mode="r")
     return ({name: root[name][:] for name in sorted(root.array_keys())}, out["preds"], out["preds_float"],
-            out["linf"], out["example"]), (worker, images, y)
+            out["linf"], out["example"]), (setup, images, y)
 
 
 def test_attack_sets_are_seeded_per_batch(tmp_path):
-    from stages.attack import AttackWorker
+    from stages.engine.attack_worker import AttackBatch, AttackWorker
 
-    sets, (worker, images, y) = attack_sets(tmp_path, engine.EngineSettings(1, None, 60.0, 0))
+    sets, (setup, images, y) = attack_sets(tmp_path, engine.EngineSettings(1, None, 60.0, 0))
     arrays, preds, _, linf, example = sets
     assert set(arrays) == {"eps_0.05", "eps_0.5", "source_index"} and arrays["eps_0.5"].shape == (10, 18, 32, 3)
     assert 0.4 < linf[0.5] <= 0.5 + 1 / 510 + 1e-6 and np.array_equal(example[0.5], arrays["eps_0.5"][6])
     assert not np.array_equal(preds["clean"], preds[0.5])
-    alone = AttackWorker(*worker).run(4, images[4:8], y[4:8])   # the second batch on a fresh worker, first
+    alone = AttackWorker(setup).run(AttackBatch(4, images[4:8], y[4:8]))   # the second batch on a fresh worker, first
     assert all(np.array_equal(alone[e][0], arrays[f"eps_{e:g}"][4:8]) for e in (0.5, 0.05))
 
 
@@ -172,7 +176,7 @@ def test_two_ray_workers_fly_the_grid_and_attack_the_sets_of_one_process(two_nod
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])   # the stand-ins live in this test file
     p = plan()
     one = in_process(p)
-    two = engine.run(StubWorker, (p,), p.runs(), engine.EngineSettings(2, cluster.address, 60.0, 2))
+    two = engine.run(exits_once(StubWorker, marker), p, flights(p), engine.EngineSettings(2, cluster.address, 60.0, 2))
     assert marker.exists()                          # a worker died mid-run: its run was flown again
     assert summary(p, two) == summary(p, one)
     sets = attack_sets(tmp_path, engine.EngineSettings(1, None, 60.0, 0))[0]

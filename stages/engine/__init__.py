@@ -1,1 +1,2 @@
-"""Scale-out: the Ray worker pool and the chunked render jobs."""
+"""Scale-out: the Ray worker pool (pool), the chunked render jobs and their workers (chunks), and the
+attack and guidance workers (attack_worker, guidance_worker), each with its frozen setup and job records."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -36,21 +37,42 @@ def create_store(url: str, n: int, height: int, width: int, chunk: int) -> None:
                          f"set engine.store to a writable folder or fsspec URL") from None
 
 
-class RenderWorker:
-    """One Blender scene: `run(lo, hi)` renders the poses R[lo:hi], t[lo:hi] (camera frame, metres),
-    exactly one chunk, into the store's `images` and returns {chunk key: crc32c}; a worker that cannot
-    see the store (another machine without shared storage) returns the pixels for the driver to write."""
+@dataclass(frozen=True)
+class RenderSetup:
+    """What one RenderWorker holds: the camera, the scene and every pose of the store."""
 
-    def __init__(self, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, url: str, empty_hint: str | None) -> None:
+    K: Any                  # pipeline.geometry.camera.Intrinsics (pixels)
+    scene: Any              # pipeline.render.scene.SceneSettings, checked by `prepare`
+    R: np.ndarray           # (N, 3, 3) target attitudes, target frame -> camera frame
+    t: np.ndarray           # (N, 3) target positions in the camera frame, metres
+    url: str                # the store (`store_url`: an absolute path or an fsspec URL)
+    empty_hint: str | None  # how to fix an all-black first chunk (refused); None: not checked
+
+
+@dataclass(frozen=True)
+class FrameRange:
+    """One render job: the frames lo .. hi - 1 of the store, exactly one chunk."""
+
+    lo: int   # first frame (a multiple of the store's chunk length)
+    hi: int   # one past the last frame
+
+
+class RenderWorker:
+    """One Blender scene: `run(FrameRange)` renders the poses R[lo:hi], t[lo:hi] of its setup (camera
+    frame, metres), exactly one chunk, into the store's `images` and returns {chunk key: crc32c}; a
+    worker that cannot see the store (another machine without shared storage) returns the pixels for
+    the driver to write."""
+
+    def __init__(self, setup: RenderSetup) -> None:
         from pipeline.render.scene import Renderer
 
-        self.fs, self.root = store_fs(url)
-        self.images = reopen_array(url, "images") if visible(self.fs, self.root) else None
-        self.R, self.t, self.empty_hint = R, t, empty_hint
-        self.renderer = Renderer(K, scene)   # settings checked by the driver (`prepare`)
+        self.fs, self.root = store_fs(setup.url)
+        self.images = reopen_array(setup.url, "images") if visible(self.fs, self.root) else None
+        self.R, self.t, self.empty_hint = setup.R, setup.t, setup.empty_hint
+        self.renderer = Renderer(setup.K, setup.scene)   # settings checked by the driver (`prepare`)
 
-    def run(self, lo: int, hi: int) -> dict[str, str] | np.ndarray:
-        engine.exit_once_for_test()
+    def run(self, job: FrameRange) -> dict[str, str] | np.ndarray:
+        lo, hi = job.lo, job.hi
         buf = np.stack([self.renderer.render(self.R[k], self.t[k]) for k in range(lo, hi)])
         if self.empty_hint and lo == 0 and not buf.any():
             raise StageError(f"render: the target covers no pixels in the first {hi} frames (all black); "
@@ -75,18 +97,33 @@ def write_chunk(images: Any, fs: Any, root: str, lo: int, buf: np.ndarray) -> di
     return {key: chunk_crc32c(fs, f"{root}/images/{key}")}
 
 
-class PoseRenderWorker:
-    """One Blender scene: `run(R, t)` renders the poses R (n, 3, 3), t (n, 3) (camera frame, metres) and
-    returns them to the driver -> (RGB (n, H, W, 3) uint8 on black, alpha (n, H, W) float32 in [0, 1])."""
+@dataclass(frozen=True)
+class PoseSetup:
+    """What one PoseRenderWorker holds: the camera and the scene."""
 
-    def __init__(self, K: Any, scene: Any) -> None:
+    K: Any       # pipeline.geometry.camera.Intrinsics (pixels)
+    scene: Any   # pipeline.render.scene.SceneSettings, checked by `prepare`
+
+
+@dataclass(frozen=True)
+class PoseBatch:
+    """One pose render job: n poses sent to the worker, rendered and sent back."""
+
+    R: np.ndarray   # (n, 3, 3) target attitudes, target frame -> camera frame
+    t: np.ndarray   # (n, 3) target positions in the camera frame, metres
+
+
+class PoseRenderWorker:
+    """One Blender scene: `run(PoseBatch)` renders its poses and returns them to the driver
+    -> (RGB (n, H, W, 3) uint8 on black, alpha (n, H, W) float32 in [0, 1])."""
+
+    def __init__(self, setup: PoseSetup) -> None:
         from pipeline.render.scene import Renderer
 
-        self.renderer = Renderer(K, scene)
+        self.renderer = Renderer(setup.K, setup.scene)
 
-    def run(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        engine.exit_once_for_test()
-        out = [self.renderer.render_with_alpha(Ri, ti) for Ri, ti in zip(R, t)]
+    def run(self, job: PoseBatch) -> tuple[np.ndarray, np.ndarray]:
+        out = [self.renderer.render_with_alpha(Ri, ti) for Ri, ti in zip(job.R, job.t)]
         return np.stack([rgb for rgb, _ in out]), np.stack([alpha for _, alpha in out])
 
     def close(self) -> None:
@@ -115,10 +152,10 @@ def render_poses(K: Any, scene: Any, R: np.ndarray, t: np.ndarray, chunk: int, e
     from tqdm import tqdm
 
     scene, threads = prepare(K, scene, es)
-    jobs = [(R[lo:lo + chunk], t[lo:lo + chunk]) for lo in range(0, len(t), chunk)]
+    jobs = [PoseBatch(R[lo:lo + chunk], t[lo:lo + chunk]) for lo in range(0, len(t), chunk)]
     with tqdm(total=len(t), unit="img", desc=desc, dynamic_ncols=True, mininterval=0.5) as bar:
-        out = engine.run(PoseRenderWorker, (K, scene), jobs, es, num_cpus=threads,
-                         progress=lambda i, _: bar.update(len(jobs[i][1])))
+        out = engine.run(PoseRenderWorker, PoseSetup(K, scene), jobs, es, num_cpus=threads,
+                         progress=lambda i, _: bar.update(len(jobs[i].t)))
     return np.concatenate([rgb for rgb, _ in out]), np.concatenate([alpha for _, alpha in out])
 
 
@@ -131,18 +168,19 @@ def render_to_store(url: str, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, 
     scene, threads = prepare(K, scene, es)
     n = len(t)
     create_store(url, n, K.height, K.width, chunk)
-    jobs = [(lo, min(lo + chunk, n)) for lo in range(0, n, chunk)]
+    jobs = [FrameRange(lo, min(lo + chunk, n)) for lo in range(0, n, chunk)]
     crcs: dict[str, str] = {}
     fs, root = store_fs(url)
     images = reopen_array(url, "images")
 
     def done(i: int, result: dict[str, str] | np.ndarray) -> None:
         """Record a chunk's checksum; write the chunks a worker could not (it returned the pixels)."""
-        crcs.update(write_chunk(images, fs, root, jobs[i][0], result) if isinstance(result, np.ndarray) else result)
-        bar.update(jobs[i][1] - jobs[i][0])
+        crcs.update(write_chunk(images, fs, root, jobs[i].lo, result) if isinstance(result, np.ndarray) else result)
+        bar.update(jobs[i].hi - jobs[i].lo)
 
     t0 = time.perf_counter()
     with tqdm(total=n, unit="img", desc=desc, dynamic_ncols=True, mininterval=0.5) as bar:
-        engine.run(RenderWorker, (K, scene, R, t, url, empty_hint), jobs, es, num_cpus=threads, progress=done)
+        engine.run(RenderWorker, RenderSetup(K, scene, R, t, url, empty_hint), jobs, es, num_cpus=threads,
+                   progress=done)
     seal_zarr(url, {"images": crcs})
     return time.perf_counter() - t0

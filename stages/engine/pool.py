@@ -1,11 +1,13 @@
 """Scale-out engine: a stage's chunks run on Ray actors, each holding one heavy state (a Blender scene).
 
-`run(worker_cls, init, jobs, settings)` builds `worker_cls(*init)` once per worker and returns
-`worker.run(*job)` for every job, in job order. With one worker and no cluster address it runs in this
-process without starting Ray; otherwise on a local Ray started for the call (`engine.workers` actors)
-or on the cluster at `engine.address` / $RAY_ADDRESS. A worker that dies is restarted and its chunk
-retried (`engine.retries`); no progress for `engine.timeout_s` seconds stops the stage with one line.
-Each Ray worker binds itself to as many cores of its machine as the CPUs it asked for (`pin_cores`).
+`run(worker_cls, setup, jobs, settings)` builds `worker_cls(setup)` once per worker and returns
+`worker.run(job)` for every job, in job order; the setup and each job are frozen dataclasses (named
+fields, e.g. `chunks.RenderSetup` and `chunks.FrameRange`), and the caller picks the worker class. With
+one worker and no cluster address it runs in this process without starting Ray; otherwise on a local Ray
+started for the call (`engine.workers` actors) or on the cluster at `engine.address` / $RAY_ADDRESS. A
+worker that dies is restarted and its chunk retried (`engine.retries`); no progress for
+`engine.timeout_s` seconds stops the stage with one line. Each Ray worker binds itself to as many cores
+of its machine as the CPUs it asked for (`pin_cores`).
 """
 from __future__ import annotations
 
@@ -14,13 +16,21 @@ import os
 import socket
 import tempfile
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Protocol
 
 from stages.io import StageError
 
 CONNECT_TIMEOUT_S = 10.0   # seconds to open a TCP connection to a cluster's head before calling it unreachable
 CORE_LOCKS = os.path.join(tempfile.gettempdir(), "rpod-cores")   # one lock file per core a worker holds
-EXIT_ONCE = "RPOD_TEST_EXIT_ONCE"  # test hook: a worker hard-exits on its first chunk while this file is absent
+
+
+class Worker(Protocol):
+    """What the engine runs: built once per worker as `worker_cls(setup)` (a frozen dataclass), then
+    `run(job)` per job (a frozen dataclass) and `close()` when the worker pool is done."""
+
+    def run(self, job: Any) -> Any: ...
+
+    def close(self) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -50,23 +60,32 @@ def settings(params: dict[str, Any]) -> EngineSettings:
     return EngineSettings(workers, address, float(e["timeout_s"]), int(e["retries"]))
 
 
-def run(worker_cls: type, init: tuple, jobs: list[tuple], es: EngineSettings, num_cpus: float = 1,
-        progress: Callable[[int, Any], None] | None = None) -> list[Any]:
-    """`worker.run(*job)` for every job (in order) on workers built as `worker_cls(*init)`;
-    `progress(i, result)` is called in the driver as each job finishes. A worker has a `close()`."""
+def run(worker_cls: Callable[[Any], Worker], setup: Any, jobs: list[Any], es: EngineSettings,
+        num_cpus: float = 1, progress: Callable[[int, Any], None] | None = None) -> list[Any]:
+    """`worker.run(job)` for every job (in order) on workers built as `worker_cls(setup)`, each using
+    `num_cpus` CPUs; `progress(i, result)` is called in the driver as each job finishes."""
+    _check_records(setup, jobs)
     if es.in_process:
-        worker = worker_cls(*init)
+        worker = worker_cls(setup)
         try:
             out = []
             for i, job in enumerate(jobs):
-                out.append(worker.run(*job))
+                out.append(worker.run(job))
                 if progress:
                     progress(i, out[-1])
             return out
         finally:
             worker.close()
     with session(es):
-        return _run_on_ray(worker_cls, init, jobs, es, num_cpus, progress)
+        return _run_on_ray(worker_cls, setup, jobs, es, num_cpus, progress)
+
+
+def _check_records(setup: Any, jobs: list[Any]) -> None:
+    """Refuse a setup or job that is not a frozen dataclass (named fields, not a positional tuple)."""
+    for record in (setup, *jobs):
+        params = getattr(record, "__dataclass_params__", None)
+        if isinstance(record, type) or params is None or not params.frozen:
+            raise TypeError(f"engine setups and jobs are frozen dataclasses, got {type(record).__name__}")
 
 
 @contextlib.contextmanager
@@ -111,20 +130,20 @@ def _check_reachable(address: str) -> None:
                          f"to run on this machine") from None
 
 
-def _run_on_ray(worker_cls: type, init: tuple, jobs: list[tuple], es: EngineSettings, num_cpus: float,
-                progress: Callable[[int, Any], None] | None) -> list[Any]:
+def _run_on_ray(worker_cls: Callable[[Any], Worker], setup: Any, jobs: list[Any], es: EngineSettings,
+                num_cpus: float, progress: Callable[[int, Any], None] | None) -> list[Any]:
     """Dispatch jobs to idle actors as they free up; results come back in job order."""
     import ray
 
     actor = ray.remote(Pinned).options(num_cpus=num_cpus, max_restarts=es.retries, max_task_retries=es.retries)
     workers = es.workers or max(1, int(ray.cluster_resources().get("CPU", 1) // num_cpus))
     cores = int(num_cpus) if float(num_cpus).is_integer() else 0
-    actors = [actor.remote(worker_cls, init, cores) for _ in range(min(workers, len(jobs)))]
+    actors = [actor.remote(worker_cls, setup, cores) for _ in range(min(workers, len(jobs)))]
     todo, pending, out = list(range(len(jobs)))[::-1], {}, [None] * len(jobs)
     for a in actors:
         if todo:
             i = todo.pop()
-            pending[a.run.remote(*jobs[i])] = (a, i)
+            pending[a.run.remote(jobs[i])] = (a, i)
     try:
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1, timeout=es.timeout_s)
@@ -137,7 +156,7 @@ def _run_on_ray(worker_cls: type, init: tuple, jobs: list[tuple], es: EngineSett
                 progress(i, out[i])
             if todo:
                 j = todo.pop()
-                pending[a.run.remote(*jobs[j])] = (a, j)
+                pending[a.run.remote(jobs[j])] = (a, j)
         ray.get([a.close.remote() for a in actors], timeout=es.timeout_s)   # e.g. a scene's temporary files
     finally:
         for a in actors:
@@ -146,14 +165,14 @@ def _run_on_ray(worker_cls: type, init: tuple, jobs: list[tuple], es: EngineSett
 
 
 class Pinned:
-    """A Ray actor: binds its process to `cores` free cores (`pin_cores`), then holds `worker_cls(*init)`."""
+    """A Ray actor: binds its process to `cores` free cores (`pin_cores`), then holds `worker_cls(setup)`."""
 
-    def __init__(self, worker_cls: type, init: tuple, cores: int) -> None:
+    def __init__(self, worker_cls: Callable[[Any], Worker], setup: Any, cores: int) -> None:
         pin_cores(cores)
-        self.worker = worker_cls(*init)
+        self.worker = worker_cls(setup)
 
-    def run(self, *job: Any) -> Any:
-        return self.worker.run(*job)
+    def run(self, job: Any) -> Any:
+        return self.worker.run(job)
 
     def close(self) -> None:
         self.worker.close()
@@ -221,11 +240,3 @@ def _get(ref: Any, i: int, es: EngineSettings) -> Any:
         first = (str(e).strip().splitlines() or [type(e).__name__])[-1]
         raise StageError(f"chunk {i} failed on its Ray worker after {es.retries} retries: {first}") from None
 
-
-def exit_once_for_test() -> None:
-    """Test hook: hard-exit this worker process (no clean-up) if $RPOD_TEST_EXIT_ONCE names a file
-    that does not exist yet, creating it first, so exactly one chunk attempt is killed."""
-    marker = os.environ.get(EXIT_ONCE)
-    if marker and not os.path.exists(marker):
-        open(marker, "w").close()
-        os._exit(1)

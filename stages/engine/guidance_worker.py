@@ -1,0 +1,72 @@
+"""The guidance stage's engine worker: one Blender scene and one safety chain per worker, one flight
+of the grid (pipeline.guidance.law.GridPlan) per job; stages/guidance.py builds the jobs.
+
+Each attacked run's attack is seeded by its place in the grid, so the flights do not depend on which
+worker flies which run.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from stages.artifacts.readers import load_chain
+from stages.config import params as params_mod
+
+
+@dataclass(frozen=True)
+class GuidanceSetup:
+    """What one GuidanceWorker holds: the camera, the scene, the chain's model files and the grid."""
+
+    params: dict[str, Any]     # the params mapping (device, `attack` section and `guidance.method`)
+    K: Any                     # pipeline.geometry.camera.Intrinsics: the pose model's input size (pixels)
+    scene: Any                 # pipeline.render.scene.SceneSettings, checked by stages.engine.chunks.prepare
+    pose_path: str             # models/pose.pt as an absolute path (a worker may run elsewhere)
+    detector_path: str         # models/detector.pt as an absolute path
+    defense: Any               # stages.artifacts.readers.DefenseModel: a fresh calibrated defense per run
+    plan: Any                  # pipeline.guidance.law.GridPlan: every run of the grid
+    seed: int                  # the attack seed of run 0 (params seed + the stage's offset)
+    torch_threads: int | None  # torch threads of this worker; None: left as set up
+
+
+@dataclass(frozen=True)
+class Flight:
+    """One guidance job: one run of the plan."""
+
+    dynamics: str     # the chaser's dynamics (a name of guidance.dynamics)
+    defense: str      # "undefended" or a name of guidance.defenses
+    cell: int | None  # index of the (eps, S, K) attack window in plan.grid; None: the no-attack run
+
+
+def flights(plan: Any) -> list[Flight]:
+    """Every run of a GridPlan as a job, in plan order (the paper grid first)."""
+    return [Flight(dynamics=dyn, defense=defense, cell=cell) for dyn, defense, cell in plan.runs()]
+
+
+class GuidanceWorker:
+    """One Blender scene and one safety chain, built once per engine worker: `run(Flight)` flies that
+    run of the plan (pipeline.guidance.law.GridPilot) -> (result, keys of the poses it rendered)."""
+
+    def __init__(self, setup: GuidanceSetup) -> None:
+        from pipeline.attacks.gradient import stored_attack
+        from pipeline.guidance.law import CachedCamera, GridPilot
+        from pipeline.render.scene import Renderer
+
+        if setup.torch_threads:
+            import torch
+
+            torch.set_num_threads(setup.torch_threads)
+        chain, loss_fn, _ = load_chain(setup.params, setup.pose_path, setup.detector_path)
+        a, method, seed = setup.params["attack"], setup.params["guidance"]["method"], setup.seed
+
+        def attack_at(eps: float, i: int) -> Any:
+            return stored_attack(chain.model, loss_fn, eps, params_mod.make_attack(a, method, seed + i))
+
+        self.renderer = Renderer(setup.K, setup.scene)
+        camera = CachedCamera(self.renderer.render, chain.model, chain=chain)
+        self.pilot = GridPilot(camera, setup.K, setup.plan, attack_at, setup.defense)
+
+    def run(self, job: Flight) -> tuple[Any, frozenset[bytes]]:
+        return self.pilot.fly(job.dynamics, job.defense, job.cell)
+
+    def close(self) -> None:
+        self.renderer.close()
