@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import typer
@@ -22,6 +22,9 @@ from stages.artifacts.readers import chaser_motion, load_chain, load_defense, re
 from stages.io import atomic_write_text, save_figure, write_metrics
 from stages.pages.evaluate import defense_section
 from stages.config.schema import Evaluate
+
+if TYPE_CHECKING:
+    from pipeline.evaluation.sequences import Sequence
 
 REPORT = Path("reports/integrated.md")
 FIGURE = Path("reports/figures/timeline.png")
@@ -41,7 +44,8 @@ def main() -> None:
     """
     p = params_mod.load()
     e = params_mod.typed(p).evaluate
-    from pipeline.evaluation.sequences import defended_summary, evaluate_sequences, nan_to_none, per_eps_summary, rates_json
+    from pipeline.evaluation.sequences import (Sequence, defended_summary, evaluate_sequences, nan_to_none,
+                                               per_eps_summary, rates_json)
     from pipeline.report.figures import detection_timeline
     from pipeline.evaluation.schedule import attack_schedule
 
@@ -54,11 +58,11 @@ def main() -> None:
     for tr, g in poses.groupby("trajectory", sort=True):
         idx = g["index"].to_numpy()
         R_cam, u = chaser_motion(g)
-        sequences.append({"name": f"T{int(tr) + 1}", "images": images[idx], "poses": g.reset_index(drop=True),
-                          "targets": g[TARGET].to_numpy(np.float32), "R_cam": R_cam, "u": u,
-                          "rel": g[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64),
-                          "attacked": attack_schedule(len(idx), e.p_start, length,
-                                                      e.seed + SCHEDULE_SEED_OFFSET + int(tr))})
+        sequences.append(Sequence(name=f"T{int(tr) + 1}", images=images[idx], poses=g.reset_index(drop=True),
+                                  targets=g[TARGET].to_numpy(np.float32), R_cam=R_cam, u=u,
+                                  rel=g[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64),
+                                  attacked=attack_schedule(len(idx), e.p_start, length,
+                                                           e.seed + SCHEDULE_SEED_OFFSET + int(tr))))
     t0 = time.perf_counter()
     res = evaluate_sequences(chain, loss_fn, sequences, eps_list, length, e.batch_size, "evaluate")
     harm = params_mod.typed(p).defense.harm_m
@@ -70,16 +74,16 @@ def main() -> None:
     summary = per_eps_summary(res["rows"])
     eps_fig = min(eps_list)
     s0 = sequences[0]
-    title = (f"{s0['name']}: FGSM eps={eps_fig:g} on {int(s0['attacked'].sum())} of {len(s0['attacked'])} "
+    title = (f"{s0.name}: FGSM eps={eps_fig:g} on {int(s0.attacked.sum())} of {len(s0.attacked)} "
              f"frames ({length}-frame attacks, p_start={e.p_start:g})")
-    save_figure(detection_timeline(s0["poses"]["tz"].to_numpy(), s0["attacked"], res["traces"][(eps_fig, s0["name"])],
+    save_figure(detection_timeline(s0.poses["tz"].to_numpy(), s0.attacked, res["traces"][(eps_fig, s0.name)],
                                    chain.threshold, title), FIGURE)
     metrics = {"model_hash": model_hash, "frames_per_trajectory": e.frames, "trajectories": len(sequences),
                "p_start": e.p_start, "attack_length": length, "threshold": chain.threshold,
                "seconds": seconds, "accuracy_mean": float(np.mean([r["accuracy"] for r in summary])),
                "per_eps": {f"{r['eps']:g}": r for r in summary},
                "rows": res["rows"], "clean": res["clean"],
-               "attacked_fraction": {s["name"]: float(s["attacked"].mean()) for s in sequences},
+               "attacked_fraction": {s.name: float(s.attacked.mean()) for s in sequences},
                "start_xy": meta["start_xy"],
                "fused": {"fusion": defense.settings.fusion, "harm_m": harm,
                          "per_eps": {f"{r['eps']:g}": r for r in rates_json(list(fused.values())[-1])},
@@ -93,13 +97,13 @@ def main() -> None:
 
 
 def report(rows: list[dict[str, Any]], summary: list[dict[str, Any]], clean: dict[str, dict[str, float]],
-           sequences: list[dict[str, Any]], e: Evaluate, meta: dict[str, Any], threshold: float,
+           sequences: list[Sequence], e: Evaluate, meta: dict[str, Any], threshold: float,
            eps_fig: float, profile: str) -> str:
     from pipeline.evaluation.sequences import accuracy_table, detail_table, pct
     from pipeline.report.markdown import markdown_table
 
-    names = [s["name"] for s in sequences]
-    att_frac = np.mean([s["attacked"].mean() for s in sequences])
+    names = [s.name for s in sequences]
+    att_frac = np.mean([s.attacked.mean() for s in sequences])
     mean_acc = 100 * np.mean([s["accuracy"] for s in summary])
     starts = ", ".join(f"{n} ({x:+.1f}, {y:+.1f}) m" for n, (x, y) in zip(names, meta["start_xy"]))
     clean_rows = [{"trajectory": n, "FPR % (no attack)": pct(c["fpr"]), "position error (m)": c["position_mean_m"],

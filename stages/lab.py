@@ -18,7 +18,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import typer
@@ -31,6 +31,9 @@ from stages.pages.lab import PAPER_AVERAGE, lab_page
 from stages.engine.chunks import render_poses
 from stages.artifacts.recordings import read_recording, recording_folders, write_recording
 from stages.io import StageError, atomic_dir, atomic_write_text, read_json, write_metrics
+
+if TYPE_CHECKING:
+    from pipeline.evaluation.sequences import Sequence
 
 REPORT = Path("reports/lab.md")
 METRICS = Path("reports/metrics/lab.json")
@@ -161,7 +164,7 @@ def main(ctx: typer.Context) -> None:
                "accuracy_mean": float(np.mean([x["accuracy"] for x in summary])), "seconds": seconds,
                "render_seconds": render_s}
     write_metrics(METRICS, nan_to_none(metrics), p)
-    atomic_write_text(REPORT, lab_page(p, metrics, res["rows"], summary, [s["name"] for s in sequences],
+    atomic_write_text(REPORT, lab_page(p, metrics, res["rows"], summary, [s.name for s in sequences],
                                      train_metrics, K_syn, K_zed, sequences))
     typer.echo(f"lab: {'reused' if synthetic_lab is None else 'retrained'} models {models['pose']}, "
                f"{models['detector']}; {len(sequences)} sequences from {source}; mean detection accuracy "
@@ -179,7 +182,7 @@ def _lab_models(reason: str | None) -> dict[str, Any] | None:
 
 
 def _sequences(p: dict[str, Any], source: Path, truth: list[dict[str, Any]], K_syn: Any,
-               K_zed: Any) -> tuple[list[dict[str, Any]], list[dict[str, Any]], dict[str, dict[str, float]]]:
+               K_zed: Any) -> tuple[list[Sequence], list[dict[str, Any]], dict[str, dict[str, float]]]:
     """The recordings in `source` read through the real-data loader, as chain sequences (synthetic-frame
     targets in metres, seeded attack schedules), their range table rows, and the loader's label error
     against the exact render poses (`truth`, synthetic lab only)."""

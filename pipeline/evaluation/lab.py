@@ -39,7 +39,7 @@ import os
 import stat
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import cv2
 import numpy as np
@@ -48,6 +48,9 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from pipeline.geometry.camera import Intrinsics
 from pipeline.geometry.rotations import matrix_to_quat, normalize_quat, quat_to_matrix
+
+if TYPE_CHECKING:
+    from pipeline.evaluation.sequences import Sequence
 
 Match = Literal["nearest", "interpolate"]
 CAMERA_COLUMNS = ["frame", "timestamp"]
@@ -385,18 +388,19 @@ def loader_errors(recs: list[dict[str, Any]], truth: list[dict[str, Any]]) -> di
 
 
 def chain_sequences(recs: list[dict[str, Any]], K_syn: Intrinsics, K_lab: Intrinsics, scale: float, p_start: float,
-                    length: int, seed: int) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+                    length: int, seed: int) -> tuple[list[Sequence], list[dict[str, Any]]]:
     """Loaded recordings as safety-chain sequences (targets: synthetic-frame position in metres, then
     the 6-D rotation; attack schedule seeded with seed + 31 + i) and their range-table rows."""
     from pipeline.geometry.rotations import quat_to_6d
     from pipeline.evaluation.schedule import attack_schedule
+    from pipeline.evaluation.sequences import Sequence
 
     sequences, ranges = [], []
     for i, rec in enumerate(recs):
         t_syn = lab_to_synthetic_position(rec["t_lab"], K_syn, K_lab, scale)
         targets = np.concatenate([t_syn, quat_to_6d(rec["q"])], 1).astype(np.float32)
-        sequences.append({"name": rec["name"], "images": rec["images"], "targets": targets,
-                          "attacked": attack_schedule(len(targets), p_start, length, seed + 31 + i)})
+        sequences.append(Sequence(name=rec["name"], images=rec["images"], targets=targets,
+                                  attacked=attack_schedule(len(targets), p_start, length, seed + 31 + i)))
         zl = rec["t_lab"][:, 2]
         ranges.append({"sequence": rec["name"], "frames": len(zl), "lab z start (m)": float(zl[0]),
                        "lab z end (m)": float(zl[-1]), "synthetic z start (m)": float(t_syn[0, 2]),

@@ -1,7 +1,7 @@
 """Integrated evaluation of the safety chain on image sequences (evaluation trajectories and the lab domain).
 
-A sequence is a dict {"name", "images" (N, H, W, 3) uint8, "targets" (N, 9: metres in the camera
-frame, then 6-D), "attacked" (N,) bool}. `evaluate_sequences` runs each sequence clean and at every
+A sequence is a `Sequence` (name, images, targets, attack schedule; the evaluation trajectories add
+the chaser's motion for the defense). `evaluate_sequences` runs each sequence clean and at every
 eps through the chain (FGSM on the attacked frames, stored as 8-bit images), `per_eps_summary`
 averages the per-sequence rows, and `accuracy_table` / `detail_table` lay them out for a report.
 `defended_summary` runs the recorded frames through the defense (pipeline/defense/fusion.py) and gives the
@@ -10,6 +10,7 @@ them out. `nan_to_none` makes the results JSON-safe.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Iterable, Iterator
 
 import numpy as np
@@ -26,6 +27,20 @@ from pipeline.evaluation.stats import bootstrap_rate
 from pipeline.pose.train import pose_errors
 
 
+@dataclass(frozen=True, eq=False)
+class Sequence:
+    """One image sequence through the safety chain: N frames with their labels and attack schedule."""
+
+    name: str                        # "T1".. (evaluation trajectory) or the recording's folder name
+    images: np.ndarray               # (N, H, W, 3) uint8 frames
+    targets: np.ndarray              # (N, 9) float32: target position in the camera frame (m), then 6-D rotation
+    attacked: np.ndarray             # (N,) bool: the frames the schedule attacks
+    rel: np.ndarray | None = None    # (N, 3) float64 true target position relative to the chaser, world frame (m)
+    R_cam: np.ndarray | None = None  # (N, 3, 3) camera -> world rotation per frame
+    u: np.ndarray | None = None      # (N, 3) the chaser's displacement of rel per frame, world frame (m)
+    poses: pd.DataFrame | None = None  # the trajectory's label rows (tz: range in metres), for the timeline figure
+
+
 def _bar_iter(it: Iterable[Any], bar: Any) -> Iterator[Any]:
     """Yield from `it`, advancing a tqdm bar per item."""
     for item in it:
@@ -33,7 +48,7 @@ def _bar_iter(it: Iterable[Any], bar: Any) -> Iterator[Any]:
         bar.update(1)
 
 
-def evaluate_sequences(chain: SafetyChain, loss_fn: Any, sequences: list[dict[str, Any]], eps_list: list[float],
+def evaluate_sequences(chain: SafetyChain, loss_fn: Any, sequences: list[Sequence], eps_list: list[float],
                        attack_length: int, batch_size: int, desc: str) -> dict[str, Any]:
     """Run every sequence clean and at every eps through the chain; per-row metrics and per-frame traces.
 
@@ -44,53 +59,53 @@ def evaluate_sequences(chain: SafetyChain, loss_fn: Any, sequences: list[dict[st
     from tqdm import tqdm
 
     rows, traces, clean = [], {}, {}
-    total = sum(-(-len(s["images"]) // batch_size) for s in sequences) * (len(eps_list) + 1)
+    total = sum(-(-len(s.images) // batch_size) for s in sequences) * (len(eps_list) + 1)
     bar = tqdm(total=total, desc=desc, unit="batch", dynamic_ncols=True)
 
     def progress(it: Iterable[int]) -> Iterator[int]:
         return _bar_iter(it, bar)
 
     for s in sequences:
-        res = run_sequence(chain, s["images"], s["targets"], np.zeros(len(s["images"]), bool), None, batch_size,
+        res = run_sequence(chain, s.images, s.targets, np.zeros(len(s.images), bool), None, batch_size,
                            progress)
-        pos, att = pose_errors(res.pose, s["targets"])
-        clean[s["name"]] = {"fpr": float(res.flag.mean()), "position_mean_m": float(pos.mean()),
+        pos, att = pose_errors(res.pose, s.targets)
+        clean[s.name] = {"fpr": float(res.flag.mean()), "position_mean_m": float(pos.mean()),
                             "attitude_mean_deg": float(att.mean())}
-        traces[(0.0, s["name"])] = {"prob": res.prob, "flag": res.flag, "position_error": pos,
+        traces[(0.0, s.name)] = {"prob": res.prob, "flag": res.flag, "position_error": pos,
                                     "estimate_z": res.pose[:, 2], "pose": res.pose}
     for eps in eps_list:
         attack = stored_attack(chain.model, loss_fn, eps)
         for s in sequences:
-            res = run_sequence(chain, s["images"], s["targets"], s["attacked"], attack, batch_size, progress)
-            pos, att = pose_errors(res.pose, s["targets"])
-            m = detection_metrics(s["attacked"], res.flag, schedule_bursts(s["attacked"], attack_length))
-            und = undetected_mask(s["attacked"], res.flag)
-            rows.append({"eps": eps, "sequence": s["name"], **m.as_dict(),
-                         "frames": len(res.flag), "correct": int((res.flag == s["attacked"]).sum()),
-                         "attacked_frames": int(s["attacked"].sum()),
-                         "flagged_attacked": int((res.flag & s["attacked"]).sum()),
-                         "clean_frames": int((~s["attacked"]).sum()),
-                         "flagged_clean": int((res.flag & ~s["attacked"]).sum()),
+            res = run_sequence(chain, s.images, s.targets, s.attacked, attack, batch_size, progress)
+            pos, att = pose_errors(res.pose, s.targets)
+            m = detection_metrics(s.attacked, res.flag, schedule_bursts(s.attacked, attack_length))
+            und = undetected_mask(s.attacked, res.flag)
+            rows.append({"eps": eps, "sequence": s.name, **m.as_dict(),
+                         "frames": len(res.flag), "correct": int((res.flag == s.attacked).sum()),
+                         "attacked_frames": int(s.attacked.sum()),
+                         "flagged_attacked": int((res.flag & s.attacked).sum()),
+                         "clean_frames": int((~s.attacked).sum()),
+                         "flagged_clean": int((res.flag & ~s.attacked).sum()),
                          "undetected_frames": int(und.sum()),
                          "undetected_position_m": mean_over(pos, und), "undetected_attitude_deg": mean_over(att, und),
-                         "attacked_position_m": mean_over(pos, s["attacked"]),
-                         "attacked_attitude_deg": mean_over(att, s["attacked"]),
-                         "clean_position_m": mean_over(pos, ~s["attacked"])})
-            traces[(eps, s["name"])] = {"prob": res.prob, "flag": res.flag, "position_error": pos,
+                         "attacked_position_m": mean_over(pos, s.attacked),
+                         "attacked_attitude_deg": mean_over(att, s.attacked),
+                         "clean_position_m": mean_over(pos, ~s.attacked)})
+            traces[(eps, s.name)] = {"prob": res.prob, "flag": res.flag, "position_error": pos,
                                         "estimate_z": res.pose[:, 2], "pose": res.pose}
     bar.close()
     return {"rows": rows, "traces": traces, "clean": clean}
 
 
-def pose_errors_under_fgsm(chain: SafetyChain, loss_fn: Any, sequence: dict[str, Any], eps_list: list[float],
+def pose_errors_under_fgsm(chain: SafetyChain, loss_fn: Any, sequence: Sequence, eps_list: list[float],
                            batch_size: int) -> list[dict[str, Any]]:
     """Mean pose errors of one sequence clean and under FGSM at every eps (every frame attacked).
 
     One row per case: {"sequence", "eps" ("clean" or the eps), "position_m", "relative_position"
     (error / true range), "attitude_deg"}.
     """
-    x = torch.from_numpy(sequence["images"]).permute(0, 3, 1, 2).float() / 255.0
-    y = torch.from_numpy(sequence["targets"])
+    x = torch.from_numpy(sequence.images).permute(0, 3, 1, 2).float() / 255.0
+    y = torch.from_numpy(sequence.targets)
     preds = {"clean": np.concatenate([chain.pose_only(x[i:i + batch_size]).numpy()
                                       for i in range(0, len(x), batch_size)])}
     for eps in eps_list:
@@ -99,14 +114,14 @@ def pose_errors_under_fgsm(chain: SafetyChain, loss_fn: Any, sequence: dict[str,
                                      for i in range(0, len(x), batch_size)])
     rows = []
     for key, pred in preds.items():
-        pos, att = pose_errors(pred, sequence["targets"])
-        rows.append({"sequence": sequence["name"], "eps": key, "position_m": float(pos.mean()),
-                     "relative_position": float(np.mean(pos / np.linalg.norm(sequence["targets"][:, :3], axis=1))),
+        pos, att = pose_errors(pred, sequence.targets)
+        rows.append({"sequence": sequence.name, "eps": key, "position_m": float(pos.mean()),
+                     "relative_position": float(np.mean(pos / np.linalg.norm(sequence.targets[:, :3], axis=1))),
                      "attitude_deg": float(att.mean())})
     return rows
 
 
-def fgsm_error_table(chain: SafetyChain, loss_fn: Any, sequences: list[dict[str, Any]], eps_list: list[float],
+def fgsm_error_table(chain: SafetyChain, loss_fn: Any, sequences: list[Sequence], eps_list: list[float],
                      batch_size: int) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """`pose_errors_under_fgsm` over every sequence, split into (clean rows, FGSM rows)."""
     clean, fgsm = [], []
@@ -211,23 +226,23 @@ def defend_trace(settings: DefenseSettings, motion: MotionSettings, noise: Noise
     return run_defense(settings, motion, noise, pose[:, :3], trace["prob"], R_cam, u, sixd_to_matrix(pose[:, 3:9]))
 
 
-def defended_summary(traces: dict[tuple[float, str], dict[str, Any]], sequences: list[dict[str, Any]],
+def defended_summary(traces: dict[tuple[float, str], dict[str, Any]], sequences: list[Sequence],
                      eps_list: list[float], settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel,
                      attack_length: int, harm_m: float) -> list[dict[str, Any]]:
     """The defended chain per eps, frames pooled over the sequences, every rate a `pipeline.evaluation.stats.Rate`
     (bootstrap over sequences, whose frames are correlated).
 
-    Each sequence needs "name", "attacked" (N,), "rel" (N, 3, true rel, world, m), "R_cam" and "u"
-    (see `defend_trace`). Per eps: accuracy (the paper's: correct frames / all frames), tpr, fpr
-    (clean frames between attacks), fpr_clean (the attack-free run), harmful_flagged (attacked
-    frames with position error > harm_m that were flagged), harmful_undetected (harmful and not
-    flagged, over the attacked frames), mean_delay (frames from an attack's start to its first flag,
-    over the flagged attacks), trusted_error_m / trusted_error_attacked_m (mean distance of the
-    trusted estimate to the truth over all / the attacked frames, m).
+    Each sequence needs its motion: rel, R_cam and u (see `Sequence` and `defend_trace`). Per eps:
+    accuracy (the paper's: correct frames / all frames), tpr, fpr (clean frames between attacks),
+    fpr_clean (the attack-free run), harmful_flagged (attacked frames with position error > harm_m that
+    were flagged), harmful_undetected (harmful and not flagged, over the attacked frames), mean_delay
+    (frames from an attack's start to its first flag, over the flagged attacks), trusted_error_m /
+    trusted_error_attacked_m (mean distance of the trusted estimate to the truth over all / the attacked
+    frames, m).
     """
     clean_flags, clean_groups = [], []
     for g, s in enumerate(sequences):
-        d = defend_trace(settings, motion, noise, traces[(0.0, s["name"])], s["R_cam"], s["u"])
+        d = defend_trace(settings, motion, noise, traces[(0.0, s.name)], s.R_cam, s.u)
         clean_flags.append(d.flag)
         clean_groups.append(np.full(len(d.flag), g))
     fpr_clean = bootstrap_rate(np.concatenate(clean_flags), np.concatenate(clean_groups))
@@ -236,14 +251,14 @@ def defended_summary(traces: dict[tuple[float, str], dict[str, Any]], sequences:
         cols: dict[str, list[np.ndarray]] = {k: [] for k in ("flag", "attacked", "harm", "group", "err")}
         delays = []
         for g, s in enumerate(sequences):
-            tr = traces[(eps, s["name"])]
-            d = defend_trace(settings, motion, noise, tr, s["R_cam"], s["u"])
-            att = np.asarray(s["attacked"], bool)
+            tr = traces[(eps, s.name)]
+            d = defend_trace(settings, motion, noise, tr, s.R_cam, s.u)
+            att = np.asarray(s.attacked, bool)
             cols["flag"].append(d.flag)
             cols["attacked"].append(att)
             cols["harm"].append(att & (tr["position_error"] > harm_m))
             cols["group"].append(np.full(len(att), g))
-            cols["err"].append(np.linalg.norm(d.trusted - s["rel"], axis=1))
+            cols["err"].append(np.linalg.norm(d.trusted - s.rel, axis=1))
             delays.append(detection_delays(schedule_bursts(att, attack_length), d.flag))
         flag, att, harm, group, err = (np.concatenate(cols[k]) for k in ("flag", "attacked", "harm", "group", "err"))
         delay = np.concatenate(delays) if delays else np.zeros(0)

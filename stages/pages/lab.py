@@ -2,11 +2,14 @@
 FGSM errors and integrated detection on the lab sequences, beside the paper's numbers."""
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from stages.artifacts.readers import LAB as OUT, TRAIN_METRICS
+
+if TYPE_CHECKING:
+    from pipeline.evaluation.sequences import Sequence
 
 PAPER_ACCURACY = {0.5: 100.0, 0.3: 100.0, 0.1: 100.0, 0.05: 98.44, 0.01: 90.44}
 PAPER_AVERAGE = 96.29
@@ -72,7 +75,7 @@ apply its formula.
 
 def lab_page(p: dict[str, Any], m: dict[str, Any], rows: list[dict[str, Any]], summary: list[dict[str, Any]],
            names: list[str], train_metrics: dict[str, Any] | None, K_syn: Any, K_zed: Any,
-           sequences: list[dict[str, Any]]) -> str:
+           sequences: list[Sequence]) -> str:
     """reports/lab.md: models, range rescaling, loader round trip, pose and FGSM errors, integrated detection."""
     import pandas as pd
 
@@ -107,7 +110,7 @@ def lab_page(p: dict[str, Any], m: dict[str, Any], rows: list[dict[str, Any]], s
         synth = f"{test['pos_mean_m']:.3f} m and {test['att_mean_deg']:.2f} deg mean error"
     which = (f"the main model, `{TRAIN_METRICS}`" if m["reused_models"] else
              f"the synthetic-lab model, `{m['synthetic_lab']['folder']}/{TRAIN_METRICS}`")
-    att_frac = np.mean([s["attacked"].mean() for s in sequences])
+    att_frac = np.mean([s.attacked.mean() for s in sequences])
     mean_acc = 100 * m["accuracy_mean"]
     return f"""# Lab domain
 
