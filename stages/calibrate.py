@@ -60,8 +60,8 @@ def main() -> None:
 
     def flags(model: Any) -> np.ndarray:
         """The defended chain's flags on the clean validation frames with noise model `model`."""
-        return np.concatenate([defend_trace(settings, motion, model, {"pose": res.pose[i], "prob": res.prob[i]},
-                                            R_cam[i], u[i]).flag for i in groups])
+        return np.concatenate([defend_trace(settings, motion, model, res.pose[i], res.prob[i], R_cam[i], u[i]).flag
+                               for i in groups])
 
     k, rates = smallest_inflation(lambda k: flags(inflate(noise, k)).mean(), d.target_false_alarm)
     fitted, noise = noise, inflate(noise, k)

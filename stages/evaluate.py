@@ -66,30 +66,30 @@ def main() -> None:
     t0 = time.perf_counter()
     res = evaluate_sequences(chain, loss_fn, sequences, eps_list, length, e.batch_size, "evaluate")
     harm = params_mod.typed(p).defense.harm_m
-    fused = {name: defended_summary(res["traces"], sequences, eps_list, defense.settings if fusion is None else
+    fused = {name: defended_summary(res.traces, sequences, eps_list, defense.settings if fusion is None else
                                     dataclasses.replace(defense.settings, fusion=fusion), defense.motion,
                                     defense.noise, length, harm)
              for name, fusion in (("paper (LSTM alone)", "paper"), (f"defended ({defense.settings.fusion})", None))}
     seconds = time.perf_counter() - t0
-    summary = per_eps_summary(res["rows"])
+    summary = per_eps_summary(res.rows)
     eps_fig = min(eps_list)
     s0 = sequences[0]
     title = (f"{s0.name}: FGSM eps={eps_fig:g} on {int(s0.attacked.sum())} of {len(s0.attacked)} "
              f"frames ({length}-frame attacks, p_start={e.p_start:g})")
-    save_figure(detection_timeline(s0.poses["tz"].to_numpy(), s0.attacked, res["traces"][(eps_fig, s0.name)],
+    save_figure(detection_timeline(s0.poses["tz"].to_numpy(), s0.attacked, res.traces[(eps_fig, s0.name)],
                                    chain.threshold, title), FIGURE)
     metrics = {"model_hash": model_hash, "frames_per_trajectory": e.frames, "trajectories": len(sequences),
                "p_start": e.p_start, "attack_length": length, "threshold": chain.threshold,
                "seconds": seconds, "accuracy_mean": float(np.mean([r["accuracy"] for r in summary])),
                "per_eps": {f"{r['eps']:g}": r for r in summary},
-               "rows": res["rows"], "clean": res["clean"],
+               "rows": res.rows, "clean": res.clean,
                "attacked_fraction": {s.name: float(s.attacked.mean()) for s in sequences},
                "start_xy": meta["start_xy"],
                "fused": {"fusion": defense.settings.fusion, "harm_m": harm,
                          "per_eps": {f"{r['eps']:g}": r for r in rates_json(list(fused.values())[-1])},
                          "paper_per_eps": {f"{r['eps']:g}": r for r in rates_json(fused["paper (LSTM alone)"])}}}
     write_metrics(METRICS, nan_to_none(metrics), p)
-    atomic_write_text(REPORT, report(res["rows"], summary, res["clean"], sequences, e, meta, chain.threshold,
+    atomic_write_text(REPORT, report(res.rows, summary, res.clean, sequences, e, meta, chain.threshold,
                                      eps_fig, str(p.get("profile_name", "?")))
                       + defense_section(fused, defense.calibration, harm, e.attack_length))
     typer.echo(f"evaluate: {len(sequences)} trajectories x {len(eps_list)} eps in {seconds:.0f} s; mean accuracy "

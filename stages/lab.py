@@ -150,7 +150,7 @@ def main(ctx: typer.Context) -> None:
                                              int(e["batch_size"]))   # pose error (clean), FGSM errors: every lab frame
     res = evaluate_sequences(chain, loss_fn, sequences, [float(x) for x in e["eps"]], length, int(e["batch_size"]),
                              "lab evaluate")
-    summary = per_eps_summary(res["rows"])
+    summary = per_eps_summary(res.rows)
     seconds = time.perf_counter() - t0
     train_path = TRAIN_METRICS if synthetic_lab is None else LAB_MODELS / TRAIN_METRICS
     train_metrics = read_json(train_path) if train_path.exists() else None
@@ -160,11 +160,11 @@ def main(ctx: typer.Context) -> None:
                "retrain": lab["retrain"], "reused_models": synthetic_lab is None, "retrain_reason": reason,
                "models": models, "synthetic_lab": synthetic_lab, "ranges": ranges, "loader_error": loader_err,
                "clean": clean_rows, "fgsm": fgsm_rows, "attack_length": length, "threshold": chain.threshold,
-               "per_eps": {f"{x['eps']:g}": x for x in summary}, "rows": res["rows"], "clean_detection": res["clean"],
+               "per_eps": {f"{x['eps']:g}": x for x in summary}, "rows": res.rows, "clean_detection": res.clean,
                "accuracy_mean": float(np.mean([x["accuracy"] for x in summary])), "seconds": seconds,
                "render_seconds": render_s}
     write_metrics(METRICS, nan_to_none(metrics), p)
-    atomic_write_text(REPORT, lab_page(p, metrics, res["rows"], summary, [s.name for s in sequences],
+    atomic_write_text(REPORT, lab_page(p, metrics, res.rows, summary, [s.name for s in sequences],
                                      train_metrics, K_syn, K_zed, sequences))
     typer.echo(f"lab: {'reused' if synthetic_lab is None else 'retrained'} models {models['pose']}, "
                f"{models['detector']}; {len(sequences)} sequences from {source}; mean detection accuracy "

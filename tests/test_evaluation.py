@@ -67,7 +67,7 @@ def test_defended_summary_flags_what_the_detector_misses_with_intervals():
     import numpy as np
 
     from pipeline.defense.fusion import DefenseSettings
-    from pipeline.evaluation.sequences import Sequence, defended_summary, defense_table, rates_json
+    from pipeline.evaluation.sequences import Sequence, Trace, defended_summary, defense_table, rates_json
     from pipeline.defense.kalman import MotionSettings, NoiseModel
 
     noise = NoiseModel((0.05, 0.05, 0.1), (0.0, 0.0, 0.0), 1.0, 0.0)
@@ -80,8 +80,10 @@ def test_defended_summary_flags_what_the_detector_misses_with_intervals():
         name = f"T{g + 1}"
         seqs.append(Sequence(name=name, images=np.zeros((60, 1, 1, 3), np.uint8), targets=pose.astype(np.float32),
                              attacked=att, rel=rel, R_cam=R_cam, u=u))
-        traces[(0.5, name)] = {"pose": pose, "prob": np.zeros(60), "position_error": err}
-        traces[(0.0, name)] = {"pose": clean_pose, "prob": np.zeros(60), "position_error": clean_err}
+        traces[(0.5, name)] = Trace(prob=np.zeros(60), flag=np.zeros(60, bool), position_error=err,
+                                    estimate_z=pose[:, 2], pose=pose)
+        traces[(0.0, name)] = Trace(prob=np.zeros(60), flag=np.zeros(60, bool), position_error=clean_err,
+                                    estimate_z=clean_pose[:, 2], pose=clean_pose)
     chains = {f: defended_summary(traces, seqs, [0.5], DefenseSettings(fusion=f), MotionSettings(), noise, 10, 1.0)
               for f in ("paper", "or")}
     paper, fused = chains["paper"][0], chains["or"][0]

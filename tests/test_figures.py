@@ -10,6 +10,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.image import AxesImage
 from matplotlib.text import Text
 
+from pipeline.evaluation.sequences import Trace
 from pipeline.report import figures as F
 from pipeline.guidance.law import RendezvousResult
 
@@ -35,8 +36,8 @@ def _figures() -> dict[str, object]:
     rows = [{"attack": a, "eps": e, "detection_rate": 0.5, "harmful_undetected_rate": 0.2,
              "ci95_detection": [0.4, 0.6], "ci95_harmful_undetected": [0.1, 0.3]}
             for a in ("fgsm", "pgd") for e in (0.01, 0.1)]
-    trace = {"estimate_z": np.linspace(60, 10, 50), "prob": RNG.random(50), "flag": RNG.random(50) > 0.5,
-             "position_error": RNG.random(50)}
+    trace = Trace(estimate_z=np.linspace(60, 10, 50), prob=RNG.random(50), flag=RNG.random(50) > 0.5,
+                  position_error=RNG.random(50), pose=np.zeros((50, 9)))
     clean = RNG.integers(0, 256, (90, 160, 3), dtype=np.uint8)
     adv = {e: np.clip(clean + RNG.choice([-1, 1], clean.shape) * max(1, int(255 * e)), 0, 255).astype(np.uint8)
            for e in (0.5, 0.01, 0.1)}

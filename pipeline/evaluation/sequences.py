@@ -41,6 +41,31 @@ class Sequence:
     poses: pd.DataFrame | None = None  # the trajectory's label rows (tz: range in metres), for the timeline figure
 
 
+@dataclass(frozen=True, eq=False)
+class Trace:
+    """One sequence's run through the chain (clean or at one eps), frame by frame."""
+
+    prob: np.ndarray            # (N,) the detector's probability that the frame is attacked
+    flag: np.ndarray            # (N,) bool: the detector's flags
+    position_error: np.ndarray  # (N,) distance of the estimated to the true target position (m)
+    estimate_z: np.ndarray      # (N,) estimated range t_z, camera frame (m)
+    pose: np.ndarray            # (N, 9) pose outputs: position in the camera frame (m), then 6-D rotation
+
+
+@dataclass(frozen=True, eq=False)
+class Evaluation:
+    """What `evaluate_sequences` measured."""
+
+    rows: list[dict[str, Any]]               # one per (eps, sequence): detection metrics, pose errors (m, deg)
+    traces: dict[tuple[float, str], Trace]   # (eps, sequence name) -> its trace; eps 0.0 for the clean runs
+    clean: dict[str, dict[str, float]]       # sequence name -> {fpr, position_mean_m, attitude_mean_deg}, clean
+
+
+def _trace(res: Any, pos: np.ndarray) -> Trace:
+    """The trace of one `run_sequence` result whose position errors (m) are `pos`."""
+    return Trace(prob=res.prob, flag=res.flag, position_error=pos, estimate_z=res.pose[:, 2], pose=res.pose)
+
+
 def _bar_iter(it: Iterable[Any], bar: Any) -> Iterator[Any]:
     """Yield from `it`, advancing a tqdm bar per item."""
     for item in it:
@@ -49,13 +74,9 @@ def _bar_iter(it: Iterable[Any], bar: Any) -> Iterator[Any]:
 
 
 def evaluate_sequences(chain: SafetyChain, loss_fn: Any, sequences: list[Sequence], eps_list: list[float],
-                       attack_length: int, batch_size: int, desc: str) -> dict[str, Any]:
-    """Run every sequence clean and at every eps through the chain; per-row metrics and per-frame traces.
-
-    Returns {"rows": [one dict per (eps, sequence)], "traces": {(eps, name): {prob, flag,
-    position_error (m), estimate_z (m), pose (N, 9)}} with eps 0.0 for the clean runs,
-    "clean": {name: {fpr, position_mean_m, attitude_mean_deg}}}.
-    """
+                       attack_length: int, batch_size: int, desc: str) -> Evaluation:
+    """Run every sequence clean and at every eps through the chain -> per-row metrics, per-frame traces
+    and the clean runs' rates and errors (`Evaluation`)."""
     from tqdm import tqdm
 
     rows, traces, clean = [], {}, {}
@@ -71,8 +92,7 @@ def evaluate_sequences(chain: SafetyChain, loss_fn: Any, sequences: list[Sequenc
         pos, att = pose_errors(res.pose, s.targets)
         clean[s.name] = {"fpr": float(res.flag.mean()), "position_mean_m": float(pos.mean()),
                             "attitude_mean_deg": float(att.mean())}
-        traces[(0.0, s.name)] = {"prob": res.prob, "flag": res.flag, "position_error": pos,
-                                    "estimate_z": res.pose[:, 2], "pose": res.pose}
+        traces[(0.0, s.name)] = _trace(res, pos)
     for eps in eps_list:
         attack = stored_attack(chain.model, loss_fn, eps)
         for s in sequences:
@@ -91,10 +111,9 @@ def evaluate_sequences(chain: SafetyChain, loss_fn: Any, sequences: list[Sequenc
                          "attacked_position_m": mean_over(pos, s.attacked),
                          "attacked_attitude_deg": mean_over(att, s.attacked),
                          "clean_position_m": mean_over(pos, ~s.attacked)})
-            traces[(eps, s.name)] = {"prob": res.prob, "flag": res.flag, "position_error": pos,
-                                        "estimate_z": res.pose[:, 2], "pose": res.pose}
+            traces[(eps, s.name)] = _trace(res, pos)
     bar.close()
-    return {"rows": rows, "traces": traces, "clean": clean}
+    return Evaluation(rows=rows, traces=traces, clean=clean)
 
 
 def pose_errors_under_fgsm(chain: SafetyChain, loss_fn: Any, sequence: Sequence, eps_list: list[float],
@@ -218,15 +237,16 @@ def detail_table(summary: list[dict[str, Any]]) -> list[dict[str, Any]]:
              "pose error, all attacked (m)": dash(s["attacked_position_m"])} for s in summary]
 
 
-def defend_trace(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel, trace: dict[str, Any],
-                 R_cam: np.ndarray, u: np.ndarray) -> Any:
-    """One recorded sequence (a trace of `evaluate_sequences`) through a fresh defense, open loop:
-    R_cam (N, 3, 3) camera -> world, u (N, 3) the chaser's displacement of rel per frame (world, m)."""
-    pose = np.asarray(trace["pose"], np.float64)
-    return run_defense(settings, motion, noise, pose[:, :3], trace["prob"], R_cam, u, sixd_to_matrix(pose[:, 3:9]))
+def defend_trace(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel, pose: np.ndarray,
+                 prob: np.ndarray, R_cam: np.ndarray, u: np.ndarray) -> Any:
+    """One recorded sequence (pose outputs (N, 9) and detector probabilities (N,), e.g. of a `Trace`)
+    through a fresh defense, open loop: R_cam (N, 3, 3) camera -> world, u (N, 3) the chaser's
+    displacement of rel per frame (world, m)."""
+    pose = np.asarray(pose, np.float64)
+    return run_defense(settings, motion, noise, pose[:, :3], prob, R_cam, u, sixd_to_matrix(pose[:, 3:9]))
 
 
-def defended_summary(traces: dict[tuple[float, str], dict[str, Any]], sequences: list[Sequence],
+def defended_summary(traces: dict[tuple[float, str], Trace], sequences: list[Sequence],
                      eps_list: list[float], settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel,
                      attack_length: int, harm_m: float) -> list[dict[str, Any]]:
     """The defended chain per eps, frames pooled over the sequences, every rate a `pipeline.evaluation.stats.Rate`
@@ -242,7 +262,8 @@ def defended_summary(traces: dict[tuple[float, str], dict[str, Any]], sequences:
     """
     clean_flags, clean_groups = [], []
     for g, s in enumerate(sequences):
-        d = defend_trace(settings, motion, noise, traces[(0.0, s.name)], s.R_cam, s.u)
+        clean = traces[(0.0, s.name)]
+        d = defend_trace(settings, motion, noise, clean.pose, clean.prob, s.R_cam, s.u)
         clean_flags.append(d.flag)
         clean_groups.append(np.full(len(d.flag), g))
     fpr_clean = bootstrap_rate(np.concatenate(clean_flags), np.concatenate(clean_groups))
@@ -252,11 +273,11 @@ def defended_summary(traces: dict[tuple[float, str], dict[str, Any]], sequences:
         delays = []
         for g, s in enumerate(sequences):
             tr = traces[(eps, s.name)]
-            d = defend_trace(settings, motion, noise, tr, s.R_cam, s.u)
+            d = defend_trace(settings, motion, noise, tr.pose, tr.prob, s.R_cam, s.u)
             att = np.asarray(s.attacked, bool)
             cols["flag"].append(d.flag)
             cols["attacked"].append(att)
-            cols["harm"].append(att & (tr["position_error"] > harm_m))
+            cols["harm"].append(att & (tr.position_error > harm_m))
             cols["group"].append(np.full(len(att), g))
             cols["err"].append(np.linalg.norm(d.trusted - s.rel, axis=1))
             delays.append(detection_delays(schedule_bursts(att, attack_length), d.flag))

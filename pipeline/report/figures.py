@@ -229,10 +229,10 @@ def guidance_trajectories(baseline: Any, runs: Sequence[tuple[float, int, Any]],
 
 
 @_readable
-def detection_timeline(true_z: np.ndarray, attacked: np.ndarray, trace: Mapping[str, np.ndarray], threshold: float,
+def detection_timeline(true_z: np.ndarray, attacked: np.ndarray, trace: Any, threshold: float,
                        title: str) -> Figure:
     """One trajectory frame by frame: true and estimated range t_z (m), attacked frames, the detector's
-    probability and flags, and the position error (m); `trace` holds estimate_z, prob, flag, position_error."""
+    probability and flags, and the position error (m), from its `Trace` (pipeline/evaluation/sequences.py)."""
     frames = np.arange(len(attacked))
     fig = Figure(figsize=(WIDTH_IN, 7.4), layout="constrained")
     axes = fig.subplots(3, 1, sharex=True)
@@ -245,19 +245,19 @@ def detection_timeline(true_z: np.ndarray, attacked: np.ndarray, trace: Mapping[
     ax = axes[0]
     shade(ax, label=True)
     ax.plot(frames, true_z, "k-", lw=1.2, label="true t_z")
-    ax.plot(frames, trace["estimate_z"], ".", ms=2.5, color="tab:blue", label="estimated t_z")
+    ax.plot(frames, trace.estimate_z, ".", ms=2.5, color="tab:blue", label="estimated t_z")
     ax.set_ylabel("range t_z (m)")
     ax = axes[1]
     shade(ax)
-    ax.plot(frames, trace["prob"], "-", lw=0.8, color="tab:purple", label="detector probability")
+    ax.plot(frames, trace.prob, "-", lw=0.8, color="tab:purple", label="detector probability")
     ax.axhline(threshold, color="gray", ls="--", lw=0.8, label=f"threshold {threshold:.2f}")
-    f = trace["flag"]
+    f = trace.flag
     ax.plot(frames[f], np.full(f.sum(), 1.05), "|", color="tab:orange", ms=6, label="flag")
     ax.set_ylim(-0.05, 1.12)
     ax.set_ylabel("P(attacked)")
     ax = axes[2]
     shade(ax)
-    err = trace["position_error"]
+    err = trace.position_error
     miss = attacked & ~f
     ax.semilogy(frames, np.maximum(err, 1e-3), "-", lw=0.8, color="tab:blue", label="position error")
     ax.semilogy(frames[miss], np.maximum(err[miss], 1e-3), "x", color="tab:red", ms=5, label="attacked, not flagged")
