@@ -39,7 +39,7 @@ import os
 import stat
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -48,9 +48,6 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from pipeline.geometry.camera import Intrinsics
 from pipeline.geometry.rotations import matrix_to_quat, normalize_quat, quat_to_matrix
-
-if TYPE_CHECKING:
-    from pipeline.evaluation.sequences import Sequence
 
 Match = Literal["nearest", "interpolate"]
 CAMERA_COLUMNS = ["frame", "timestamp"]
@@ -388,8 +385,8 @@ def loader_errors(recs: list[dict[str, Any]], truth: list[dict[str, Any]]) -> di
 
 
 def chain_sequences(recs: list[dict[str, Any]], K_syn: Intrinsics, K_lab: Intrinsics, scale: float, p_start: float,
-                    length: int, seed: int) -> tuple[list[Sequence], list[dict[str, Any]]]:
-    """Loaded recordings as safety-chain sequences (targets: synthetic-frame position in metres, then
+                    length: int, seed: int) -> tuple[list[Any], list[dict[str, Any]]]:
+    """Loaded recordings as safety-chain `Sequence`s (targets: synthetic-frame position in metres, then
     the 6-D rotation; attack schedule seeded with seed + 31 + i) and their range-table rows."""
     from pipeline.geometry.rotations import quat_to_6d
     from pipeline.evaluation.schedule import attack_schedule
