@@ -72,6 +72,14 @@ def test_two_node_cluster_matches_one_process_and_retries_a_killed_worker(workdi
         engine.run(RenderWorker, setup, [FrameRange(0, 4)], es, num_cpus=8)   # 8 CPUs never free up: no hang
 
 
+def test_setups_and_jobs_are_frozen_records():
+    es = engine.EngineSettings(workers=1, address=None, timeout_s=1.0, retries=0)
+    with pytest.raises(TypeError, match="frozen dataclasses, got tuple"):
+        engine.run(RenderWorker, (None,) * 6, [FrameRange(0, 4)], es)     # no positional tuples
+    with pytest.raises(TypeError, match="frozen dataclasses, got tuple"):
+        engine.run(RenderWorker, RenderSetup(None, None, None, None, "", None), [(0, 4)], es)
+
+
 def test_unreachable_address_stops_at_once(workdir):
     with socket.socket() as s:                       # a port nobody listens on
         s.bind(("127.0.0.1", 0))

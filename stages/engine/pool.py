@@ -35,6 +35,8 @@ class Worker(Protocol):
 
 @dataclass(frozen=True)
 class EngineSettings:
+    """How a stage's jobs fan out (the params `engine` section, resolved by `settings`)."""
+
     workers: int | None       # actors (1 = in-process); None = every core (of the cluster, with an address)
     address: str | None       # Ray cluster address, None = a local Ray (or in-process)
     timeout_s: float          # seconds without a finished chunk before giving up
