@@ -4,7 +4,9 @@ The driver creates the store (array `images`, uint8 (N, H, W, 3), chunked by fra
 holds one Blender scene, renders whole chunks, writes them into the store itself (a local path or an
 fsspec URL) and returns each chunk's crc32c (a worker on a machine that cannot see the store returns
 the pixels and the driver writes them); the driver writes the manifest last (`stages.io.seal_zarr`).
-No merge step: the store is complete when the manifest is there.
+No merge step: the store is complete when the manifest is there. A `RenderWorker` gets a `RenderSetup`
+and one `FrameRange` per job; a `PoseRenderWorker` (poses rendered and sent back, `render_poses`) gets a
+`PoseSetup` and one `PoseBatch` per job.
 """
 from __future__ import annotations
 
