@@ -30,7 +30,9 @@ from stages.artifacts.readers import DETECTOR, LAB as OUT, LAB_MODELS, LAB_MODEL
 from stages.pages.lab import PAPER_AVERAGE, lab_page
 from stages.engine.chunks import render_poses
 from stages.artifacts.recordings import read_recording, recording_folders, write_recording
-from stages.io import StageError, atomic_dir, atomic_write_text, read_json, write_metrics
+from pipeline.io.atomic import atomic_dir, atomic_write_text, read_json
+from stages.artifacts.dvc import write_metrics
+from stages.errors import StageError
 
 REPORT = Path("reports/lab.md")
 METRICS = Path("reports/metrics/lab.json")

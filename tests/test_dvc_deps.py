@@ -62,7 +62,7 @@ def bindings(nodes: list[ast.AST]) -> dict[str, tuple[Path, str]]:
                     sub = module_file(f"{node.module}.{a.name}")
                     if sub is not None:                     # `from stages import params`
                         out[a.asname or a.name] = (sub, TOP)
-                    elif base is not None:                  # `from stages.io import StageError`
+                    elif base is not None:                  # `from stages.errors import StageError`
                         out[a.asname or a.name] = (base, a.name)
     return out
 

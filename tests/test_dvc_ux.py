@@ -14,7 +14,8 @@ import yaml
 from typer.testing import CliRunner
 
 from stages.cli import STAGES, app
-from stages.io import StageError, dvc_stages, producer
+from stages.artifacts.dvc import dvc_stages, producer
+from stages.errors import StageError
 
 REPO = Path(__file__).resolve().parent.parent
 DVC = Path(sys.executable).with_name("dvc")
@@ -55,7 +56,7 @@ def test_only_the_summary_is_a_dvc_metric_and_details_stay_outputs():
 
 @pytest.mark.skipif(not DVC.exists(), reason="dvc not installed beside python")
 def test_dvc_metrics_show_fits_in_120_columns(tmp_path):
-    from stages.io import write_json
+    from pipeline.io.atomic import write_json
     from stages.pages.summary import summary
 
     for name in ("dvc.yaml", "params.yaml"):   # dvc.yaml templates external-input deps from params.yaml

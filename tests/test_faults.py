@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 import zarr
 
-from stages.io import StageError, atomic_dir, create_array, open_zarr
+from pipeline.io.atomic import atomic_dir
+from pipeline.io.store import create_array, open_zarr
+from stages.errors import StageError
 
 
 def _store(path: Path, n: int = 40) -> np.ndarray:
@@ -191,7 +193,7 @@ def test_killed_train_leaves_old_model_and_metrics(run_dir):
 def test_checkpoint_with_nan_weights_is_refused(run_dir):
     import torch
 
-    from stages.artifacts.checkpoint import read_pose
+    from pipeline.formats.models import read_pose
 
     ckpt = torch.load("models/pose.pt", weights_only=True)
     next(v for v in ckpt["model"].values() if v.is_floating_point()).view(-1)[0] = float("nan")
@@ -420,7 +422,7 @@ def test_label_refuses_a_stale_render_and_render_refuses_an_invisible_target(tmp
 def test_temporary_folders_of_live_runs_are_kept(tmp_path):
     import os
 
-    from stages.io import remove_stale_temps
+    from pipeline.io.atomic import remove_stale_temps
 
     live = tmp_path / f".render.{os.getpid()}.abc.tmp"
     dead = tmp_path / ".render.999999999.def.tmp"
@@ -433,7 +435,7 @@ def test_temporary_folders_of_live_runs_are_kept(tmp_path):
 def test_flipped_bit_in_a_parquet_table_is_refused(tmp_path):
     import pandas as pd
 
-    from stages.io import read_parquet, write_parquet
+    from pipeline.io.tables import read_parquet, write_parquet
 
     df = pd.DataFrame({"tz": np.random.default_rng(0).uniform(10, 60, 2000), "index": np.arange(2000)})
     write_parquet(df, tmp_path / "labels.parquet")

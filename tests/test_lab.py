@@ -147,7 +147,7 @@ def test_segmentation_and_domain_shift():
 
 
 def test_loader_round_trips_a_synthetic_lab_recording(tmp_path):
-    from stages.io import StageError
+    from stages.errors import StageError
     from stages.artifacts.recordings import read_recording, write_recording
 
     rec = synthetic_recording(1.6, 1.0, 12, 30.0, 120.0, np.array([1.0, 0, 0, 0]), lateral=(0.01, 0.0))
@@ -201,8 +201,8 @@ def stand_in_models(p):
     from pipeline.detectors.lstm import LSTMConfig, LSTMDetector, to_checkpoint
     from pipeline.pose.loss import PoseLoss
     from pipeline.pose.model import PoseNet
-    from stages.artifacts.checkpoint import save_pose
-    from stages.io import file_hash
+    from pipeline.formats.models import save_pose
+    from pipeline.io.atomic import file_hash
 
     torch.manual_seed(0)
     h, w = p["render"]["height"], p["render"]["width"]
@@ -274,7 +274,7 @@ def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, mo
 
     from stages.config import params as params_mod
     from stages.cli import app
-    from stages.io import file_hash
+    from pipeline.io.atomic import file_hash
 
     monkeypatch.chdir(tmp_path)
     p = params_mod.compose("smoke", ["lab.retrain=always", "lab.frames=4", "lab.train_frames_per_sequence=3",
@@ -331,7 +331,7 @@ def test_bad_lab_params_are_refused(edit, message):
 
 def test_when_the_lab_stage_retrains(tmp_path, monkeypatch):
     from stages.config import params as params_mod
-    from stages.io import StageError
+    from stages.errors import StageError
     from stages.lab_models import sub_params
     from stages.config.params import retrain_reason
 
@@ -356,7 +356,7 @@ def test_a_failing_retrain_step_is_one_clear_error(tmp_path, monkeypatch):
     from stages import lab_models
 
     from stages.config import params as params_mod
-    from stages.io import StageError
+    from stages.errors import StageError
 
     def run_step(name: str, folder: Path) -> None:
         assert name == "render" and (folder / "params.yaml").exists()   # the step runs in the synthetic-lab folder

@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.geometry.rotations import quat_to_6d
 from stages.config import params as params_mod
-from stages.io import StageError
+from stages.errors import StageError
 from stages.label import build_labels
 
 CONTRACT = ["index", "image", "sequence", "frame", "tx", "ty", "tz", "qw", "qx", "qy", "qz",

@@ -11,7 +11,7 @@ from pipeline.geometry.camera import Intrinsics
 from pipeline.geometry.rotations import normalize_quat, quat_to_matrix
 from pipeline.formats.speed import SPEED_CAMERA, camera_from_json, camera_to_json, from_speed, to_speed
 from stages.config import params as params_mod
-from stages.io import StageError
+from stages.errors import StageError
 
 SIZE = (48, 30)                                        # source images, Nu x Nv (16:10 like SPEED+)
 K_SRC = Intrinsics(*SIZE, 60.0, 60.0, 24.0, 15.0)

@@ -16,7 +16,10 @@ import numpy as np
 import pandas as pd
 
 from stages.artifacts.readers import LABELS, RENDER
-from stages.io import StageError, open_zarr, read_json, read_parquet
+from pipeline.io.atomic import read_json
+from pipeline.io.store import open_zarr
+from pipeline.io.tables import read_parquet
+from stages.errors import StageError
 from stages.config.params import check_render_fingerprint
 
 IMAGES = RENDER / "images.zarr"

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from stages.io import StageError
+from stages.errors import StageError
 
 
 def write_recording(folder: Path, camera: Any, mocap: Any, images: np.ndarray, masks: np.ndarray | None) -> None:

@@ -20,7 +20,10 @@ from typing import Any
 import numpy as np
 
 from stages.config import params as params_mod
-from stages.io import StageError, atomic_dir, create_array, read_json, remove_stale_temps, write_json, write_parquet
+from pipeline.io.atomic import atomic_dir, read_json, remove_stale_temps, write_json
+from pipeline.io.store import create_array
+from pipeline.io.tables import write_parquet
+from stages.errors import StageError
 
 TRAIN = ("synthetic/train.json", "train.json")
 TEST = ("synthetic/test.json", "synthetic/validation.json", "test.json")
