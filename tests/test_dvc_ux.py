@@ -13,8 +13,9 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from stages.cli import STAGES, app
+from pipeline.io.errors import DataError
 from stages.artifacts.dvc import dvc_stages, producer
+from stages.cli import STAGES, app
 from stages.errors import StageError
 
 REPO = Path(__file__).resolve().parent.parent
@@ -151,7 +152,7 @@ def test_missing_input_names_the_stage_that_writes_it(tmp_path, monkeypatch, loa
             "surrogate": lambda: artifacts.load_pose(params, "models/surrogate.pt"),
             "eval_render": lambda: artifacts.read_eval_render(params),
             "shap": lambda: artifacts.read_shap_store(artifacts.SHAP, "hash")}[load]
-    with pytest.raises(StageError) as err:
+    with pytest.raises(DataError) as err:
         call()
     assert message in str(err.value)
 

@@ -1,4 +1,4 @@
-"""Fault injection: each probe ends in one clear error (StageError/ValueError naming the file or
+"""Fault injection: each probe ends in one clear error (DataError/StageError/ValueError naming the file or
 parameter) and leaves every downstream artifact as it was."""
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import pytest
 import zarr
 
 from pipeline.io.atomic import atomic_dir
+from pipeline.io.errors import DataError
 from pipeline.io.store import create_array, open_zarr
 from stages.errors import StageError
 
@@ -29,7 +30,7 @@ def test_sealed_store_reads_back(tmp_path):
 def test_missing_chunk_is_named(tmp_path):
     _store(tmp_path / "images.zarr")
     (tmp_path / "images.zarr/images/c/2/0/0/0").unlink()
-    with pytest.raises(StageError, match=r"images.zarr is missing chunk images/c/2/0/0/0"):
+    with pytest.raises(DataError, match=r"images.zarr is missing chunk images/c/2/0/0/0"):
         open_zarr(tmp_path / "images.zarr", "image store")
 
 
@@ -40,7 +41,7 @@ def test_flipped_bit_is_named(tmp_path, byte):
     raw = bytearray(chunk.read_bytes())
     raw[len(raw) // 2 if byte == "middle" else byte] ^= 0x10
     chunk.write_bytes(bytes(raw))
-    with pytest.raises(StageError, match=r"chunk images/c/1/0/0/0 fails its crc32c checksum"):
+    with pytest.raises(DataError, match=r"chunk images/c/1/0/0/0 fails its crc32c checksum"):
         open_zarr(tmp_path / "images.zarr", "image store")
 
 
@@ -51,7 +52,7 @@ def test_a_chunk_swapped_in_from_elsewhere_is_named(tmp_path):
     entries = open_zarr(tmp_path / "images.zarr").attrs["rpodguard_manifest"]["arrays"]["images"]["crc32c"]
     assert len(set(entries.values())) == len(entries)                 # no two chunks share a checksum
     (chunks / "1/0/0/0").write_bytes((chunks / "2/0/0/0").read_bytes())
-    with pytest.raises(StageError, match=r"chunk images/c/1/0/0/0 fails its crc32c checksum"):
+    with pytest.raises(DataError, match=r"chunk images/c/1/0/0/0 fails its crc32c checksum"):
         open_zarr(tmp_path / "images.zarr", "image store")
 
 
@@ -62,17 +63,17 @@ def test_a_store_of_an_older_manifest_format_is_named(tmp_path):
     meta = json.loads((tmp_path / "images.zarr/zarr.json").read_text())
     meta["attributes"]["rpodguard_manifest"]["format"] = "rpodguard-zarr-manifest/1"
     (tmp_path / "images.zarr/zarr.json").write_text(json.dumps(meta))
-    with pytest.raises(StageError, match=r"written by an older rpodguard \(checksum manifest rpodguard-zarr-manifest/1\)"):
+    with pytest.raises(DataError, match=r"written by an older rpodguard \(checksum manifest rpodguard-zarr-manifest/1\)"):
         open_zarr(tmp_path / "images.zarr")
 
 
 def test_unsealed_or_extended_store_is_refused(tmp_path):
     zarr.open_group(str(tmp_path / "raw.zarr"), mode="w").create_array("x", data=np.arange(4))
-    with pytest.raises(StageError, match="has no checksum manifest"):
+    with pytest.raises(DataError, match="has no checksum manifest"):
         open_zarr(tmp_path / "raw.zarr")
     _store(tmp_path / "images.zarr")
     create_array(zarr.open_group(str(tmp_path / "images.zarr"), mode="a"), "extra", data=np.arange(4))
-    with pytest.raises(StageError, match=r"arrays \['extra'\] differ from its checksum manifest"):
+    with pytest.raises(DataError, match=r"arrays \['extra'\] differ from its checksum manifest"):
         open_zarr(tmp_path / "images.zarr")
 
 
@@ -198,7 +199,7 @@ def test_checkpoint_with_nan_weights_is_refused(run_dir):
     ckpt = torch.load("models/pose.pt", weights_only=True)
     next(v for v in ckpt["model"].values() if v.is_floating_point()).view(-1)[0] = float("nan")
     torch.save(ckpt, "models/pose.pt")
-    with pytest.raises(StageError, match="holds non-finite weights"):
+    with pytest.raises(DataError, match="holds non-finite weights"):
         read_pose("models/pose.pt")
 
 
@@ -443,5 +444,5 @@ def test_flipped_bit_in_a_parquet_table_is_refused(tmp_path):
     raw = bytearray((tmp_path / "labels.parquet").read_bytes())
     raw[len(raw) // 4] ^= 0x10  # inside the first column's data page
     (tmp_path / "labels.parquet").write_bytes(bytes(raw))
-    with pytest.raises(StageError, match=r"labels.parquet is unreadable .*(checksum|CRC)"):
+    with pytest.raises(DataError, match=r"labels.parquet is unreadable .*(checksum|CRC)"):
         read_parquet(tmp_path / "labels.parquet", "label table")
