@@ -52,7 +52,8 @@ def write_dataset(root: Path, n: int = 40, width: int = W, height: int = H, seed
     labels.to_parquet(root / "datasets/labels.parquet")
     params = params_mod.compose("smoke", [f"render.width={width}", f"render.height={height}", *(overrides or [])])
     params_mod.write_params(params, root / "params.yaml")
-    write_json(root / "datasets/render/meta.json", {"fingerprint": params_mod.render_fingerprint(params)})
+    write_json(root / "datasets/render/meta.json", {"complete": True, "frames": n,
+                                                    "fingerprint": params_mod.render_fingerprint(params)})
     return params
 
 

@@ -19,9 +19,9 @@ from typing import Any, Iterator
 import numpy as np
 
 from pipeline.formats.models import loss_from_checkpoint, model_from_checkpoint
+from pipeline.formats.renders import read_renders
 from pipeline.io.atomic import file_hash, read_json
 from pipeline.io.store import open_zarr
-from pipeline.io.tables import read_parquet
 from stages.artifacts.checkpoint import POSE, read_checked
 from stages.errors import StageError
 from stages.config.params import render_key
@@ -51,18 +51,10 @@ def adv_array_name(eps: float) -> str:
 
 
 def read_render_store(path: Path, what: str = "render output") -> tuple[Any, Any, dict[str, Any]]:
-    """Open a render output folder (images.zarr, or the store meta.json names; poses.parquet, meta.json)
-    and verify it is complete and consistent -> (images zarr array (N, H, W, 3) uint8, poses table, meta)."""
-    meta = read_json(path / "meta.json")
-    images = open_zarr(meta.get("store") or path / "images.zarr", what)
-    poses = read_parquet(path / "poses.parquet", f"{what} poses")
-    if not meta.get("complete") or "images" not in images:
-        raise StageError(f"{path} is incomplete; delete it and re-run `rpod render`")
-    n = images["images"].shape[0]
-    if n != meta["frames"] or n != len(poses):
-        raise StageError(f"{path} is inconsistent ({n} images, {len(poses)} poses, meta says {meta['frames']}); "
-                         f"delete it and re-run `rpod render`")
-    return images["images"], poses, meta
+    """The render output folder (pipeline.formats.renders), verified complete and consistent ->
+    (images zarr array (N, H, W, 3) uint8, poses table, meta)."""
+    r = read_renders(path, what, "re-run `rpod render`", poses=f"{what} poses")
+    return r.images, r.poses, r.meta
 
 
 @dataclass
@@ -119,15 +111,14 @@ def read_eval_render(p: dict[str, Any], validation: bool = False) -> tuple[np.nd
     current params; the evaluation trajectories, or with `validation` the defense's (datasets/val_render)."""
     folder, fingerprint = (VAL_RENDER, val_render_fingerprint(p)) if validation else (EVAL_RENDER,
                                                                                    eval_render_fingerprint(p))
-    meta = read_json(folder / "meta.json")
-    if not meta.get("complete") or meta.get("fingerprint") != fingerprint:
-        raise StageError(f"{folder} was rendered with other params (or is incomplete); "
-                         f"run `rpod eval_render` (dvc repro eval_render)")
-    images = open_zarr(folder / "images.zarr", "evaluation renders")["images"][:]
-    poses = read_parquet(folder / "poses.parquet", "evaluation poses")
-    if len(images) != len(poses) or len(poses) != meta["frames"]:
-        raise StageError(f"{folder} is inconsistent; delete it and run `rpod eval_render`")
-    return images, poses, meta
+
+    def check(meta: dict[str, Any]) -> None:
+        if not meta.get("complete") or meta.get("fingerprint") != fingerprint:
+            raise StageError(f"{folder} was rendered with other params (or is incomplete); "
+                             f"run `rpod eval_render` (dvc repro eval_render)")
+
+    r = read_renders(folder, "evaluation renders", "run `rpod eval_render`", poses="evaluation poses", check=check)
+    return r.images[:], r.poses, r.meta
 
 
 def chaser_motion(poses: Any) -> tuple[np.ndarray, np.ndarray]:
