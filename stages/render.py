@@ -1,5 +1,5 @@
 """`rpod render`: render the 13 approach sequences with Blender Cycles into a zarr stack (or import the
-SPEED/SPEED+ folder of `render.source`: stages/artifacts/speed.py).
+SPEED/SPEED+ folder of `render.source`: stages/artifacts/speed.py, pipeline/formats/speed_folder.py).
 
 Writes datasets/render/{images.zarr, poses.parquet, meta.json} in one atomic step, plus PNG
 previews in reports/figures/previews/. The frames' chunks fan out over `engine.workers` workers (Ray

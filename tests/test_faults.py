@@ -276,9 +276,9 @@ BODIES = {"camera": "camera", "target": "target"}
 
 @pytest.fixture
 def recording(tmp_path) -> Path:
-    """A 6-frame lab recording (stages.artifacts.recordings.write_recording layout) with a bright target on black."""
+    """A 6-frame lab recording (pipeline.formats.recordings.write_recording layout) with a bright target on black."""
     from pipeline.evaluation.lab import synthetic_recording
-    from stages.artifacts.recordings import write_recording
+    from pipeline.formats.recordings import write_recording
 
     rec = synthetic_recording(1.6, 1.0, 6, 30.0, 120.0, np.array([1.0, 0, 0, 0]))
     images = np.zeros((6, 36, 64, 3), np.uint8)
@@ -288,7 +288,7 @@ def recording(tmp_path) -> Path:
 
 
 def _read(folder: Path, **kwargs):
-    from stages.artifacts.recordings import read_recording
+    from pipeline.formats.recordings import read_recording
 
     return read_recording(folder, 32, 18, BODIES, "nearest", 0.01, 0.08, **kwargs)
 
@@ -309,7 +309,7 @@ def test_lab_image_path_escape_is_refused(recording, name):
 
     shutil.copy(recording / "images/000000.png", recording.parent / "secret.png")
     _edit_csv(recording / "camera.csv", lambda df: df.assign(image=[name] + [f"{i:06d}.png" for i in range(1, 6)]))
-    with pytest.raises(StageError, match=r"camera.csv line 2: image .* lies outside the recording folder"):
+    with pytest.raises(DataError, match=r"camera.csv line 2: image .* lies outside the recording folder"):
         _read(recording)
 
 
@@ -318,11 +318,11 @@ def test_lab_fifo_is_refused_without_hanging(recording):
 
     (recording / "images/000002.png").unlink()
     os.mkfifo(recording / "images/000002.png")
-    with pytest.raises(StageError, match=r"camera.csv line 4: .*000002.png is not a regular file"):
+    with pytest.raises(DataError, match=r"camera.csv line 4: .*000002.png is not a regular file"):
         _read(recording)
     os.rename(recording / "images/000002.png", recording / "camera.csv.fifo")
     os.replace(recording / "camera.csv.fifo", recording / "camera.csv")
-    with pytest.raises(StageError, match=r"camera.csv is not a regular file"):
+    with pytest.raises(DataError, match=r"camera.csv is not a regular file"):
         _read(recording)
 
 
@@ -336,7 +336,7 @@ def test_lab_oversized_image_is_refused_from_its_header(recording):
     # a 16000x9000 PNG header with no pixel data: decoding it would allocate 432 MB
     ihdr = struct.pack(">IIBBBBB", 16000, 9000, 8, 2, 0, 0, 0)
     (recording / "images/000001.png").write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IEND", b""))
-    with pytest.raises(StageError, match=r"000001.png is 16000x9000 = 144000000 pixels, above lab.max_image_pixels"):
+    with pytest.raises(DataError, match=r"000001.png is 16000x9000 = 144000000 pixels, above lab.max_image_pixels"):
         _read(recording)
 
 
@@ -346,13 +346,13 @@ def test_lab_oversized_image_is_refused_from_its_header(recording):
 ])
 def test_lab_non_finite_mocap_is_refused(recording, edit, message):
     _edit_csv(recording / "mocap.csv", edit)
-    with pytest.raises(StageError, match=message):
+    with pytest.raises(DataError, match=message):
         _read(recording)
 
 
 def test_lab_duplicate_frame_is_refused(recording):
     _edit_csv(recording / "camera.csv", lambda df: df.assign(frame=[0, 1, 2, 2, 4, 5]))
-    with pytest.raises(StageError, match=r"camera.csv line 5: frame 2 already appears on line 4"):
+    with pytest.raises(DataError, match=r"camera.csv line 5: frame 2 already appears on line 4"):
         _read(recording)
 
 
@@ -364,7 +364,7 @@ def test_lab_target_behind_the_camera_is_refused(recording):
         return df
 
     _edit_csv(recording / "mocap.csv", mirror)
-    with pytest.raises(StageError, match=r"camera.csv line 2: the target is behind the camera"):
+    with pytest.raises(DataError, match=r"camera.csv line 2: the target is behind the camera"):
         _read(recording)
 
 
@@ -372,14 +372,14 @@ def test_lab_frames_without_target_are_refused(recording):
     import cv2
 
     cv2.imwrite(str(recording / "images/000003.png"), np.zeros((36, 64, 3), np.uint8))
-    with pytest.raises(StageError, match=r"1 of 6 frames have no target pixels .*first: frame index 3"):
+    with pytest.raises(DataError, match=r"1 of 6 frames have no target pixels .*first: frame index 3"):
         _read(recording)
     assert _read(recording, empty_tolerance=0.2)["images"][3].max() == 0  # within a tolerance of 20%
 
 
 def test_lab_nan_image_name_is_refused(recording):
     _edit_csv(recording / "camera.csv", lambda df: df.assign(image=[f"{i:06d}.png" for i in range(5)] + [np.nan]))
-    with pytest.raises(StageError, match=r"camera.csv line 7: column 'image' is empty or not a file name \(nan\)"):
+    with pytest.raises(DataError, match=r"camera.csv line 7: column 'image' is empty or not a file name \(nan\)"):
         _read(recording)
 
 

@@ -147,8 +147,8 @@ def test_segmentation_and_domain_shift():
 
 
 def test_loader_round_trips_a_synthetic_lab_recording(tmp_path):
-    from stages.errors import StageError
-    from stages.artifacts.recordings import read_recording, write_recording
+    from pipeline.io.errors import DataError
+    from pipeline.formats.recordings import read_recording, write_recording
 
     rec = synthetic_recording(1.6, 1.0, 12, 30.0, 120.0, np.array([1.0, 0, 0, 0]), lateral=(0.01, 0.0))
     rng = np.random.default_rng(0)
@@ -166,7 +166,7 @@ def test_loader_round_trips_a_synthetic_lab_recording(tmp_path):
     assert got["images"][:, 6:12, 11:21].min() > 0
     # without masks the grey-level threshold segments it the same way here
     (tmp_path / "seq" / "masks" / "000003.png").unlink()
-    with pytest.raises(StageError, match=r"masks/000003.png cannot be read as a mask \(camera.csv line 5\)"):
+    with pytest.raises(DataError, match=r"masks/000003.png cannot be read as a mask \(camera.csv line 5\)"):
         read_recording(tmp_path / "seq", 32, 18, bodies, "nearest", 0.01, 0.08)
     for f in (tmp_path / "seq" / "masks").iterdir():
         f.unlink()
@@ -174,9 +174,9 @@ def test_loader_round_trips_a_synthetic_lab_recording(tmp_path):
     thr = read_recording(tmp_path / "seq", 32, 18, bodies, "interpolate", 0.01, 0.1)
     assert thr["images"][:, :4].max() == 0
     (tmp_path / "seq" / "images" / "000007.png").write_bytes(b"not a png")
-    with pytest.raises(StageError, match=r"images/000007.png cannot be read as an image \(camera.csv line 9\)"):
+    with pytest.raises(DataError, match=r"images/000007.png cannot be read as an image \(camera.csv line 9\)"):
         read_recording(tmp_path / "seq", 32, 18, bodies, "nearest", 0.01, 0.08)
-    with pytest.raises(StageError, match="no rows for body 'drone'"):
+    with pytest.raises(DataError, match="no rows for body 'drone'"):
         read_recording(tmp_path / "seq", 32, 18, {"camera": "drone", "target": "target"}, "nearest", 0.01, 0.08)
 
 
