@@ -195,6 +195,7 @@ def _store(path, n: int = 20, eps=None, model_hash: str = "h1", values=None):
 
 
 def test_detect_stage_refuses_bad_shap_stores(tmp_path):
+    from pipeline.io.errors import DataError
     from stages.artifacts.readers import read_shap_store as read_store
     from stages.errors import StageError
 
@@ -210,7 +211,7 @@ def test_detect_stage_refuses_bad_shap_stores(tmp_path):
         read_store(_store(tmp_path / "one.zarr", eps=np.zeros(10)), "h1")
     with pytest.raises(StageError, match=r"\(N, 9, n_features\)"):
         read_store(_store(tmp_path / "shape.zarr", values=np.zeros((20, 8, 16), np.float32)), "h1")
-    with pytest.raises(StageError, match="not found"):
+    with pytest.raises(DataError, match="not found"):
         read_store(tmp_path / "missing.zarr", "h1")
 
 
