@@ -71,21 +71,21 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     return sorted(found)
 
 
-def test_library_and_api_never_import_the_stages():
+def test_library_and_api_never_import_the_stages() -> None:
     bad = [f"{name} imports {dep}" for name in MODULES if not name.startswith("stages")
            for dep in sorted(imports(name)) if dep.split(".")[0] == "stages"]
     assert not bad, bad
 
 
-def test_the_api_imports_the_library_only():
+def test_the_api_imports_the_library_only() -> None:
     deps = {dep for name in MODULES if name.startswith("rpodguard") for dep in imports(name)}
     assert deps and all(d.split(".")[0] in ("pipeline", "rpodguard") for d in deps), deps
 
 
-def test_no_import_cycles():
+def test_no_import_cycles() -> None:
     assert cycles({name: imports(name) for name in MODULES}) == KNOWN_CYCLES
 
 
-def test_the_cycle_finder_finds_a_cycle():
+def test_the_cycle_finder_finds_a_cycle() -> None:
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     assert cycles({"a": {"b"}, "b": set()}) == []

@@ -41,7 +41,7 @@ def read_pose(path: Path | str) -> dict[str, Any]:
     return load_torch(path, POSE_FORMAT, POSE_REDO)
 
 
-def model_from_checkpoint(ckpt: dict[str, Any], device: Any = "cpu", amp: bool = False):
+def model_from_checkpoint(ckpt: dict[str, Any], device: Any = "cpu", amp: bool = False) -> Any:
     """The PoseNet of a checkpoint dict, in eval mode on `device` (`amp`: bf16 autocast there, CUDA only)."""
     from pipeline.pose.model import PoseNet
 
@@ -50,7 +50,7 @@ def model_from_checkpoint(ckpt: dict[str, Any], device: Any = "cpu", amp: bool =
     return model.place(device, amp).eval()
 
 
-def loss_from_checkpoint(ckpt: dict[str, Any]):
+def loss_from_checkpoint(ckpt: dict[str, Any]) -> Any:
     """The PoseLoss with the learned weights s_p, s_r of a checkpoint dict (what attacks ascend)."""
     import torch
 

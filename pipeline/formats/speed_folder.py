@@ -32,7 +32,7 @@ def read_labels(path: Path) -> tuple[list[str], np.ndarray, np.ndarray]:
         raise DataError(f"{path}: {e}") from None
 
 
-def read_camera(folder: Path, speed_layout: bool):
+def read_camera(folder: Path, speed_layout: bool) -> Any:
     """pipeline.geometry.camera.Intrinsics of FOLDER/camera.json (SPEED's published camera when a SPEED folder has none)."""
     from pipeline.formats.speed import SPEED_CAMERA, camera_from_json
 

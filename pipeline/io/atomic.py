@@ -32,10 +32,12 @@ def atomic_write_text(path: Path | str, text: str) -> None:
 
 
 def write_json(path: Path | str, obj: Any) -> None:
+    """`obj` as indented JSON with sorted keys (numpy scalars and arrays as numbers and lists), atomically."""
     atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n")
 
 
 def _json_default(o: Any) -> Any:
+    """numpy scalars and arrays as plain JSON values."""
     if isinstance(o, np.generic):
         return o.item()
     if isinstance(o, np.ndarray):
@@ -44,6 +46,7 @@ def _json_default(o: Any) -> Any:
 
 
 def read_json(path: Path | str) -> Any:
+    """A JSON file; a DataError when it is missing (naming how to make it) or not valid JSON."""
     path = Path(path)
     if not path.exists():
         raise not_found(path)

@@ -146,7 +146,7 @@ def verify_zarr(path: Path | str, what: str = "zarr store") -> None:
                 raise DataError(f"{what} {path}: chunk {name}/{key} fails its crc32c checksum (corrupt); {redo}")
 
 
-def open_zarr(path: Path | str, what: str = "zarr store"):
+def open_zarr(path: Path | str, what: str = "zarr store") -> Any:
     """Open a zarr group (local path or fsspec URL) read-only after `verify_zarr`, with a clear message
     when it is missing or corrupt. The group's arrays are only those in the manifest (an array added
     later is refused).

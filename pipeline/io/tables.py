@@ -23,7 +23,7 @@ def write_parquet(df: Any, path: Path | str) -> None:
         raise
 
 
-def read_parquet(path: Path | str, what: str = "table"):
+def read_parquet(path: Path | str, what: str = "table") -> Any:
     """A parquet table, its page checksums verified (where written); a clear DataError otherwise."""
     import pandas as pd
 

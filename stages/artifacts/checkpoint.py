@@ -32,11 +32,11 @@ def read_checked(path: Path | str = POSE, params: dict[str, Any] | None = None) 
     return ckpt
 
 
-def load_pose_model(path: Path | str = POSE, params: dict[str, Any] | None = None, device: str = "cpu"):
+def load_pose_model(path: Path | str = POSE, params: dict[str, Any] | None = None, device: str = "cpu") -> Any:
     """The PoseNet of a checkpoint file, in eval mode on `device` (checked against params when given)."""
     return model_from_checkpoint(read_checked(path, params), device)
 
 
-def load_pose_loss(path: Path | str = POSE, params: dict[str, Any] | None = None):
+def load_pose_loss(path: Path | str = POSE, params: dict[str, Any] | None = None) -> Any:
     """The PoseLoss with the learned weights s_p, s_r of a checkpoint file."""
     return loss_from_checkpoint(read_checked(path, params))
