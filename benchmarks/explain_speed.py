@@ -59,9 +59,9 @@ def load_models(width: float) -> tuple[PoseNet, LSTMDetector, str]:
         pose = PoseNet(width=width).eval()
         source.append(f"random PoseNet(width={width})")
     if det_path.exists():
-        from stages.artifacts.readers import load_detector
+        from pipeline.formats.models import read_detector
 
-        det, _ = load_detector(det_path)
+        det, _ = read_detector(det_path)
         source.append("models/detector.pt")
     else:
         det = LSTMDetector(LSTMConfig()).eval()

@@ -14,7 +14,7 @@ from typing import Any, Iterator, Sequence, Union
 
 import numpy as np
 
-from stages.io import StageError
+from pipeline.io.errors import DataError
 
 ASPECT_TOLERANCE = 0.01   # relative difference of width/height above which `predict` warns
 BATCH = 64                # images per forward pass
@@ -82,7 +82,7 @@ class Chain:
             names.append(name)
             fitted.append(self._fit(image, name))
         if not names:
-            raise StageError("no images given (pass one or more image files or arrays)")
+            raise ValueError("no images given (pass one or more image files or arrays)")
         x = torch.from_numpy(np.stack(fitted)).permute(0, 3, 1, 2)
         pose, prob, flag = [], [], []
         for lo in range(0, len(x), batch_size):
@@ -132,13 +132,13 @@ def _items(images: Image | Sequence[Image]) -> Iterator[tuple[str, np.ndarray]]:
 
 def read_image(path: Path) -> np.ndarray:
     """An image file (PNG, JPG, ... as Pillow reads them) -> uint8 (H, W, 3) RGB; 16-bit grey is
-    scaled to 8 bits. A missing, unreadable or truncated file is a StageError naming it."""
+    scaled to 8 bits. A missing, unreadable or truncated file is a DataError naming it."""
     from PIL import Image as PILImage
 
     if not path.exists():
-        raise StageError(f"{path} not found")
+        raise DataError(f"{path} not found")
     if not path.is_file():
-        raise StageError(f"{path} is not a file (give image files, e.g. PNG or JPG)")
+        raise DataError(f"{path} is not a file (give image files, e.g. PNG or JPG)")
     try:
         with PILImage.open(path) as im:
             im.load()
@@ -147,28 +147,22 @@ def read_image(path: Path) -> np.ndarray:
                 return np.repeat(grey[..., None], 3, axis=2)
             return np.asarray(im.convert("RGB"))
     except (OSError, ValueError, SyntaxError, PILImage.DecompressionBombError) as e:
-        raise StageError(f"{path} cannot be read as an image ({type(e).__name__}: {e})") from None
+        raise DataError(f"{path} cannot be read as an image ({type(e).__name__}: {e})") from None
 
 
 def load_chain(folder: str | Path = "models") -> Chain:
     """The chain as the pipeline ships it: FOLDER/pose.pt and FOLDER/detector.pt (or FOLDER/models/...
     when FOLDER is a project root). The detector must have been trained on this pose model's SHAP
-    values (its checkpoint names the pose file's hash)."""
-    from pipeline.defense.chain import SafetyChain
-    from stages.artifacts.readers import load_detector
-    from stages.artifacts.checkpoint import model_from_checkpoint, read_pose
-    from stages.io import file_hash
+    values (its checkpoint names the pose file's hash). A missing or bad file is a DataError."""
+    from pipeline.defense.chain import load_safety_chain
+    from pipeline.formats.models import model_from_checkpoint, read_pose
+    from pipeline.io.atomic import file_hash
 
     folder = Path(folder)
     if not (folder / "pose.pt").exists() and (folder / "models" / "pose.pt").exists():
         folder = folder / "models"
     pose_path, detector_path = folder / "pose.pt", folder / "detector.pt"
     ckpt = read_pose(pose_path)
-    detector, det = load_detector(detector_path, model_hash=file_hash(pose_path))
-    try:
-        safety = SafetyChain.from_model(model_from_checkpoint(ckpt), np.asarray(det["background_mean"]), detector,
-                                        threshold=float(det["threshold"]))
-    except ValueError as e:
-        raise StageError(f"{pose_path}: {e}") from None
+    safety = load_safety_chain(model_from_checkpoint(ckpt), file_hash(pose_path), pose_path, detector_path)
     height, width = (int(v) for v in ckpt["input_size"])
     return Chain(safety, (height, width), (pose_path, detector_path))

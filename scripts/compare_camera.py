@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from pipeline.report.markdown import markdown_table  # noqa: E402
-from stages.io import atomic_write_text  # noqa: E402
+from pipeline.io.atomic import atomic_write_text  # noqa: E402
 
 
 def _row(run: Path) -> dict[str, object]:

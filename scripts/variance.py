@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from pipeline.report.markdown import markdown_table  # noqa: E402
-from stages.io import atomic_write_text  # noqa: E402
+from pipeline.io.atomic import atomic_write_text  # noqa: E402
 from stages.pages.summary import HEADLINES as SUMMARY_HEADLINES, Headline, Metrics  # noqa: E402
 
 # The headline numbers: summary.json's (stages/pages/summary.py: `dvc metrics show`) and a few more
@@ -72,7 +72,7 @@ def run_metrics(run: Path) -> Metrics:
     """RUN's stage metrics by file stem, without those of stages that did not run there: metrics that
     name a pose model (`model_hash`) count only when it is RUN's own models/pose.pt (a copy of the
     repository carries the committed metrics of stages it never ran)."""
-    from stages.io import file_hash
+    from pipeline.io.atomic import file_hash
 
     pose = run / "models" / "pose.pt"
     own = file_hash(pose) if pose.exists() else None

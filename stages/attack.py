@@ -23,7 +23,10 @@ from stages.engine.attack_worker import AttackBatch, AttackSetup, AttackWorker
 
 from stages.config import params as params_mod
 from stages.artifacts.readers import ADV, POSE, adv_array_name, load_pose
-from stages.io import StageError, atomic_dir, atomic_write_text, create_array, save_figure, write_metrics
+from pipeline.io.atomic import atomic_dir, atomic_write_text, save_figure
+from pipeline.io.store import create_array
+from stages.artifacts.dvc import write_metrics
+from stages.errors import StageError
 from stages.pages.attack import attack_page
 
 REPORT = Path("reports/attack.md")

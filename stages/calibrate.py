@@ -17,7 +17,8 @@ import typer
 
 from stages.config import params as params_mod
 from stages.artifacts.readers import DEFENSE, DEFENSE_FORMAT, chaser_motion, defense_settings, load_chain, read_eval_render
-from stages.io import StageError, write_json
+from pipeline.io.atomic import write_json
+from stages.errors import StageError
 
 TARGET = ["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]
 

@@ -16,7 +16,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import typer  # noqa: E402
 
 from stages.config import params as params_mod  # noqa: E402
-from stages.io import StageError  # noqa: E402
+from pipeline.io.errors import DataError  # noqa: E402
 
 app = typer.Typer(
     help="rpodguard: render a target satellite, train a pose CNN, attack it, explain it with SHAP, "
@@ -85,7 +85,7 @@ def known_error(e: BaseException) -> str | None:
     text = " ".join(str(e).split())
     if isinstance(e, KeyError):
         return f"missing field {e.args[0]!r} in params.yaml or an input artifact (rpod --debug shows where)"
-    if isinstance(e, (StageError, ValueError, OSError)):
+    if isinstance(e, (DataError, ValueError, OSError)):   # a StageError is a DataError
         return text or type(e).__name__
     tb = e.__traceback__
     while tb is not None and tb.tb_next is not None:

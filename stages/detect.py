@@ -11,7 +11,7 @@ on the same split:
   stages/artifacts/readers.py). Every baseline's threshold is chosen on the same validation samples.
 
 Writes models/detector.pt (LSTM weights, architecture, threshold, and what the safety chain needs:
-the pose-model hash and the SHAP background mean; `stages.artifacts.readers.load_detector` reads it), dvclive/detect/
+the pose-model hash and the SHAP background mean; `pipeline.formats.models.read_detector` reads it), dvclive/detect/
 (training curves), reports/detector.md, reports/metrics/detect.json and reports/plots/roc/<name>.csv.
 """
 from __future__ import annotations
@@ -23,9 +23,13 @@ from typing import Any
 import numpy as np
 
 from stages.config import params as params_mod
-from stages.artifacts.readers import (DETECTOR, DETECTOR_FORMAT, POSE, ROC_DIR, SHAP, SPLIT_CODES, SampleImages, load_pose,
+from stages.artifacts.readers import (DETECTOR, POSE, ROC_DIR, SHAP, SPLIT_CODES, SampleImages, load_pose,
                               read_shap_store)
-from stages.io import StageError, atomic_outputs, atomic_write_text, file_hash, save_torch, write_metrics
+from pipeline.formats.models import DETECTOR_FORMAT
+from pipeline.io.atomic import atomic_outputs, atomic_write_text, file_hash
+from pipeline.io.checkpoints import save_torch
+from stages.artifacts.dvc import write_metrics
+from stages.errors import StageError
 from stages.pages.detect import PAPER_ACCURACY, detector_page
 
 REPORT = Path("reports/detector.md")

@@ -21,7 +21,8 @@ from stages.engine import pool as engine
 from stages.config import params as params_mod
 from stages.artifacts.readers import EVAL_RENDER, VAL_RENDER, eval_render_fingerprint, val_render_fingerprint
 from stages.engine.chunks import render_to_store, store_url
-from stages.io import atomic_dir, write_json, write_parquet
+from pipeline.io.atomic import atomic_dir, write_json
+from pipeline.io.tables import write_parquet
 
 
 def trajectories(p: dict[str, Any], seed: int, count: int) -> list[Any]:

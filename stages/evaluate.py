@@ -19,7 +19,8 @@ import typer
 
 from stages.config import params as params_mod
 from stages.artifacts.readers import chaser_motion, load_chain, load_defense, read_eval_render
-from stages.io import atomic_write_text, save_figure, write_metrics
+from pipeline.io.atomic import atomic_write_text, save_figure
+from stages.artifacts.dvc import write_metrics
 from stages.pages.evaluate import defense_section
 from stages.config.schema import Evaluate
 

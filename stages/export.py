@@ -22,15 +22,15 @@ def speed(out: Path = typer.Argument(..., help="Folder to write: new, empty, or 
     synthetic/{train,test}.json, synthetic/images/*.png. `render.source: OUT` imports it back."""
     import numpy as np
 
+    from pipeline.formats.speed_folder import write_speed
     from pipeline.geometry.camera import Intrinsics
-    from stages.artifacts.readers import LABELS, RENDER, read_render_store
     from stages.artifacts.data import load_labels
-    from stages.artifacts.speed import export
+    from stages.artifacts.readers import LABELS, RENDER, read_render_store
 
     images, _, meta = read_render_store(RENDER)
     labels = load_labels(LABELS)
     K = np.asarray(meta["K"], dtype=np.float64)
-    export(out, images, labels, Intrinsics(int(meta["width"]), int(meta["height"]), K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    write_speed(out, images, labels, Intrinsics(int(meta["width"]), int(meta["height"]), K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
     counts = labels["split"].value_counts()
     typer.echo(f"{out}: camera.json, synthetic/train.json ({counts.get('train', 0)} images), "
                f"synthetic/test.json ({counts.get('test', 0)} images), synthetic/images/*.png")

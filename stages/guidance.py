@@ -26,7 +26,9 @@ from stages.engine.guidance_worker import GuidanceSetup, GuidanceWorker, flights
 
 from stages.config import params as params_mod
 from stages.artifacts.readers import DETECTOR, POSE, load_chain, load_defense
-from stages.io import StageError, atomic_write_text, save_figure, write_metrics
+from pipeline.io.atomic import atomic_write_text, save_figure
+from stages.artifacts.dvc import write_metrics
+from stages.errors import StageError
 from stages.pages.guidance import defended_section, guidance_page
 
 REPORT = Path("reports/guidance.md")

@@ -11,7 +11,7 @@ models/detector.pt (allowed: the lab mock-up is the same target); with `lab.retr
 the pose model and detector that `rpod lab_models` trained on a synthetic-lab set in
 datasets/lab_models/. The report and metrics (`reused_models`, `models`) say which were used.
 
-The lab recording layout (images/, masks/, camera.csv, mocap.csv) is described in stages/artifacts/recordings.py.
+The lab recording layout (images/, masks/, camera.csv, mocap.csv) is described in pipeline/formats/recordings.py.
 """
 from __future__ import annotations
 
@@ -29,8 +29,10 @@ from stages.config import params as params_mod
 from stages.artifacts.readers import DETECTOR, LAB as OUT, LAB_MODELS, LAB_MODELS_SUMMARY, POSE, TRAIN_METRICS, load_chain
 from stages.pages.lab import PAPER_AVERAGE, lab_page
 from stages.engine.chunks import render_poses
-from stages.artifacts.recordings import read_recording, recording_folders, write_recording
-from stages.io import StageError, atomic_dir, atomic_write_text, read_json, write_metrics
+from pipeline.formats.recordings import read_recording, recording_folders, write_recording
+from pipeline.io.atomic import atomic_dir, atomic_write_text, read_json
+from stages.artifacts.dvc import write_metrics
+from stages.errors import StageError
 
 if TYPE_CHECKING:
     from pipeline.evaluation.sequences import Sequence

@@ -31,7 +31,8 @@ from typing import Any
 
 from stages.config import params as params_mod
 from stages.artifacts.readers import LAB_MODELS, LAB_MODELS_SUMMARY
-from stages.io import StageError, atomic_dir, file_hash, read_json, write_json
+from pipeline.io.atomic import atomic_dir, file_hash, read_json, write_json
+from stages.errors import StageError
 
 ROOT = Path(__file__).resolve().parent.parent
 SEED_OFFSET = 700          # base seed of the synthetic-lab sub-pipeline = lab.seed + this

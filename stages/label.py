@@ -8,7 +8,9 @@ import numpy as np
 
 from stages.config import params as params_mod
 from stages.artifacts.readers import LABELS, RENDER, read_render_store
-from stages.io import StageError, atomic_write_text, write_parquet
+from pipeline.io.atomic import atomic_write_text
+from pipeline.io.tables import write_parquet
+from stages.errors import StageError
 from stages.pages.label import dataset_card
 
 CARD = Path("reports/dataset.md")

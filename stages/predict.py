@@ -26,7 +26,7 @@ def main(
     Positions assume the camera the model was trained with; another aspect is stretched to fit, with a warning.
     """
     from rpodguard import load_chain
-    from stages.io import StageError
+    from stages.errors import StageError
 
     if not images:
         raise StageError("rpod predict: no images given (pass one or more PNG or JPG files)")

@@ -1,5 +1,5 @@
 """`rpod render`: render the 13 approach sequences with Blender Cycles into a zarr stack (or import the
-SPEED/SPEED+ folder of `render.source`: stages/artifacts/speed.py).
+SPEED/SPEED+ folder of `render.source`: stages/artifacts/speed.py, pipeline/formats/speed_folder.py).
 
 Writes datasets/render/{images.zarr, poses.parquet, meta.json} in one atomic step, plus PNG
 previews in reports/figures/previews/. The frames' chunks fan out over `engine.workers` workers (Ray
@@ -22,7 +22,9 @@ from stages.config import params as params_mod
 from stages.artifacts import speed as speed_io
 from stages.artifacts.readers import RENDER as OUT, read_render_store
 from stages.engine.chunks import render_to_store, store_url
-from stages.io import StageError, atomic_dir, remove_stale_temps, write_json, write_parquet
+from pipeline.io.atomic import atomic_dir, remove_stale_temps, write_json
+from pipeline.io.tables import write_parquet
+from stages.errors import StageError
 
 PREVIEWS = Path("reports/figures/previews")
 SEED_OFFSET = 100

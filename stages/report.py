@@ -25,7 +25,9 @@ import typer
 
 from stages.config import params as params_mod
 from stages.artifacts.readers import ROC_DIR, SHAP as SHAP_STORE
-from stages.io import StageError, atomic_write_text, make_hint, read_json, save_figure, write_json
+from pipeline.io.atomic import atomic_write_text, read_json, save_figure, write_json
+from stages.artifacts.dvc import make_hint
+from stages.errors import StageError
 from stages.pages.differences import differences
 from stages.pages.readme import DETECTOR_NAMES, summary_tables
 from stages.pages.report import SECTIONS, page_head, section
@@ -190,7 +192,7 @@ def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, s
 def _shap_means() -> dict[str, Any]:
     """Mean |phi| (9, F) over normal and adversarial samples of the SHAP store, read chunk by chunk."""
     from pipeline.report.markdown import mean_abs_by_class
-    from stages.io import open_zarr
+    from pipeline.io.store import open_zarr
 
     root = open_zarr(SHAP_STORE, "SHAP store")
     values, adv = root["values"], root["is_adversarial"][:].astype(bool)

@@ -26,9 +26,12 @@ from typing import Any
 import numpy as np
 
 from stages.config import params as params_mod
-from stages.artifacts.readers import SURROGATE, Pose, load_defense, load_detector, load_pose, read_eval_render
+from stages.artifacts.readers import DETECTOR, SURROGATE, Pose, load_defense, load_pose, read_eval_render
 from stages.artifacts.checkpoint import POSE
-from stages.io import StageError, atomic_write_text, not_found, save_figure, write_metrics
+from pipeline.io.atomic import atomic_write_text, save_figure
+from pipeline.io.errors import not_found
+from stages.artifacts.dvc import write_metrics
+from stages.errors import StageError
 from stages.pages.robustness import robustness_page
 from stages.config.schema import Robustness, attack_name
 
@@ -43,6 +46,7 @@ def main() -> None:
     from tqdm import tqdm
 
     from pipeline.attacks.adaptive import ShapChain
+    from pipeline.defense.chain import load_safety_chain
     from pipeline.report.figures import robustness_vs_eps
     from pipeline.evaluation.robustness import run_attack_rows, worst_by_eps
     from stages.artifacts.data import load_split
@@ -54,7 +58,7 @@ def main() -> None:
     params_mod.torch_setup(p)
     seed = int(p["seed"]) + SEED_OFFSET
     pose, surrogate = load_pose(p), load_pose(p, SURROGATE)
-    chain = _chain(pose)
+    chain = load_safety_chain(pose.model, pose.hash, POSE, DETECTOR)
     split = load_split(p, "test")
     n = min(r.frames, len(split))
     pick = np.sort(np.random.default_rng(seed).choice(len(split), n, replace=False))
@@ -94,18 +98,6 @@ def main() -> None:
     save_figure(robustness_vs_eps([row for row in rows if row["attack"] != "adaptive pgd"] + worst_fused), FIGURE)
     print(f"robustness: {len(rows)} attack rows and {len(corruptions)} corruption rows on {n} test frames in "
           f"{seconds:.0f} s -> {REPORT}, {METRICS}, {FIGURE}")
-
-
-def _chain(pose: Pose) -> Any:
-    """The safety chain of `pose` and models/detector.pt (refused when trained on another pose model)."""
-    from pipeline.defense.chain import SafetyChain
-
-    detector, ckpt = load_detector(model_hash=pose.hash)
-    try:
-        return SafetyChain.from_model(pose.model, np.asarray(ckpt["background_mean"]), detector,
-                                      threshold=float(ckpt["threshold"]))
-    except ValueError as err:
-        raise StageError(f"{POSE}: {err}") from None
 
 
 def _specs(p: dict[str, Any], r: Robustness, target: Any, pose: Pose, surrogate: Pose, seed: int) -> list[Any]:

@@ -30,7 +30,9 @@ import numpy as np
 
 from stages.config import params as params_mod
 from stages.artifacts.readers import BATCH, SHAP as OUT, SPLIT_CODES, SampleImages, load_pose
-from stages.io import StageError, atomic_dir, create_array
+from pipeline.io.atomic import atomic_dir
+from pipeline.io.store import create_array
+from stages.errors import StageError
 
 SEED_OFFSET = 500
 

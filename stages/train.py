@@ -23,7 +23,9 @@ import typer
 
 from stages.artifacts.readers import SURROGATE
 from stages.artifacts.checkpoint import POSE
-from stages.io import StageError, atomic_outputs, atomic_write_text, write_metrics
+from pipeline.io.atomic import atomic_outputs, atomic_write_text
+from stages.artifacts.dvc import write_metrics
+from stages.errors import StageError
 from stages.pages.pose import pose_page
 
 REPORT = Path("reports/pose.md")
@@ -42,8 +44,9 @@ def main(
 
     from pipeline.pose.loss import PoseLoss
     from pipeline.pose.model import PoseNet
+    from pipeline.formats.models import save_pose
     from pipeline.pose.train import DivergenceError, fit, make_deterministic
-    from stages.artifacts import checkpoint, data
+    from stages.artifacts import data
 
     from stages.config import params as params_mod
     params = params_mod.load()
@@ -84,7 +87,7 @@ def main(
         net = _plain(model)
         net.load_state_dict(result.best_state)
         if surrogate:  # the surrogate only: no metrics, reports or curves
-            checkpoint.save_pose(SURROGATE, net, best["loss"], input_size, best["meta"])
+            save_pose(SURROGATE, net, best["loss"], input_size, best["meta"])
             print(f"train --surrogate: seed {seed}, best epoch {result.best_epoch} of {len(result.history)}: "
                   f"validation {best['meta']['val_pos_m']:.3f} m -> {SURROGATE}")
         else:
@@ -135,8 +138,9 @@ def _write_results(params: dict[str, Any], net: Any, best: dict[str, Any], input
     the final evaluation."""
     import numpy as np
 
+    from pipeline.formats.models import save_pose
     from pipeline.pose.train import predict, summarize_errors
-    from stages.artifacts import checkpoint, data
+    from stages.artifacts import data
 
     (train_split, train_eval_set), (val_split, val_set) = train, val
     test_split = data.load_split(params, "test")
@@ -157,7 +161,7 @@ def _write_results(params: dict[str, Any], net: Any, best: dict[str, Any], input
     # model, metrics, report and curves move into place together, only now: a crashed, killed or
     # diverged run leaves the previous run's files as they were
     with atomic_outputs(POSE, METRICS, REPORT, dirs=(LIVE_DIR,)) as (pose, metrics_path, report, live):
-        checkpoint.save_pose(pose, net, best["loss"], input_size, best["meta"])
+        save_pose(pose, net, best["loss"], input_size, best["meta"])
         write_metrics(metrics_path, metrics, params)
         atomic_write_text(report, pose_page(metrics, params, len(train_split), len(val_split), len(test_split), LIVE_DIR))
         _log_curves(live, result.history)

@@ -179,7 +179,7 @@ def test_squeeze_detector_flags_high_frequency_perturbations():
 def _store(path, n: int = 20, eps=None, model_hash: str = "h1", values=None):
     import zarr
 
-    from stages.io import create_array, seal_zarr
+    from pipeline.io.store import create_array, seal_zarr
 
     eps = np.r_[np.zeros(n // 2), np.full(n - n // 2, 0.5)] if eps is None else np.asarray(eps)
     root = zarr.open_group(str(path), mode="w")
@@ -195,8 +195,9 @@ def _store(path, n: int = 20, eps=None, model_hash: str = "h1", values=None):
 
 
 def test_detect_stage_refuses_bad_shap_stores(tmp_path):
+    from pipeline.io.errors import DataError
     from stages.artifacts.readers import read_shap_store as read_store
-    from stages.io import StageError
+    from stages.errors import StageError
 
     good = read_store(_store(tmp_path / "ok.zarr"), "h1")
     assert good["values"].shape == (20, 9, 16) and good["is_adversarial"].sum() == 10
@@ -210,7 +211,7 @@ def test_detect_stage_refuses_bad_shap_stores(tmp_path):
         read_store(_store(tmp_path / "one.zarr", eps=np.zeros(10)), "h1")
     with pytest.raises(StageError, match=r"\(N, 9, n_features\)"):
         read_store(_store(tmp_path / "shape.zarr", values=np.zeros((20, 8, 16), np.float32)), "h1")
-    with pytest.raises(StageError, match="not found"):
+    with pytest.raises(DataError, match="not found"):
         read_store(tmp_path / "missing.zarr", "h1")
 
 
@@ -231,7 +232,7 @@ def test_detect_split_groups_source_images_and_stratifies_eps():
     assert 5 <= (eps[te] == 0.01).sum() <= 15 and 12 <= (eps[te] == 0).sum() <= 28
     again = split_indices(eps, source, 0.2, 0.2, seed=0)
     assert all(np.array_equal(a, b) for a, b in zip((tr, va, te), again))
-    from stages.io import StageError
+    from stages.errors import StageError
 
     with pytest.raises(StageError, match="detect.test_fraction=0.2"):
         split_indices(eps[:4], source[:4] * 0, 0.2, 0.2, seed=0)

@@ -62,7 +62,7 @@ def bindings(nodes: list[ast.AST]) -> dict[str, tuple[Path, str]]:
                     sub = module_file(f"{node.module}.{a.name}")
                     if sub is not None:                     # `from stages import params`
                         out[a.asname or a.name] = (sub, TOP)
-                    elif base is not None:                  # `from stages.io import StageError`
+                    elif base is not None:                  # `from stages.errors import StageError`
                         out[a.asname or a.name] = (base, a.name)
     return out
 
@@ -131,7 +131,7 @@ def test_the_derivation_follows_functions_not_whole_modules():
 
 
 def test_no_stage_imports_another_stage():
-    shared = {"artifacts", "io", "params", "schema", "cli", "checkpoint", "data", "recordings", "paramhelp", "speed",
+    shared = {"artifacts", "errors", "params", "schema", "cli", "checkpoint", "data", "paramhelp", "speed",
               "engine", "chunks"}
     for path in sorted((REPO / "stages").glob("*.py")):
         _, top = parse(path)

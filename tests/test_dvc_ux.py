@@ -13,8 +13,10 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
+from pipeline.io.errors import DataError
+from stages.artifacts.dvc import dvc_stages, producer
 from stages.cli import STAGES, app
-from stages.io import StageError, dvc_stages, producer
+from stages.errors import StageError
 
 REPO = Path(__file__).resolve().parent.parent
 DVC = Path(sys.executable).with_name("dvc")
@@ -55,7 +57,7 @@ def test_only_the_summary_is_a_dvc_metric_and_details_stay_outputs():
 
 @pytest.mark.skipif(not DVC.exists(), reason="dvc not installed beside python")
 def test_dvc_metrics_show_fits_in_120_columns(tmp_path):
-    from stages.io import write_json
+    from pipeline.io.atomic import write_json
     from stages.pages.summary import summary
 
     for name in ("dvc.yaml", "params.yaml"):   # dvc.yaml templates external-input deps from params.yaml
@@ -150,7 +152,7 @@ def test_missing_input_names_the_stage_that_writes_it(tmp_path, monkeypatch, loa
             "surrogate": lambda: artifacts.load_pose(params, "models/surrogate.pt"),
             "eval_render": lambda: artifacts.read_eval_render(params),
             "shap": lambda: artifacts.read_shap_store(artifacts.SHAP, "hash")}[load]
-    with pytest.raises(StageError) as err:
+    with pytest.raises(DataError) as err:
         call()
     assert message in str(err.value)
 

@@ -11,7 +11,8 @@ from stages.engine import pool as engine
 from stages.config import params as params_mod
 from faults import exits_once
 from stages.engine.chunks import FrameRange, RenderSetup, RenderWorker
-from stages.io import StageError, open_zarr
+from pipeline.io.store import open_zarr
+from stages.errors import StageError
 from stages.config.schema import ParamsError
 
 TINY = ["render.width=32", "render.height=18", "render.frames_per_sequence=2", "render.samples=2",

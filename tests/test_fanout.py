@@ -125,7 +125,7 @@ def attack_sets(tmp_path, es: engine.EngineSettings) -> tuple:
     from stages.config import params as params_mod
     from stages.attack import SEED_OFFSET, _attack_into
     from stages.engine.attack_worker import AttackSetup
-    from stages.artifacts.checkpoint import save_pose
+    from pipeline.formats.models import save_pose
 
     p = params_mod.compose("smoke", ["render.width=32", "render.height=18", "train.width=0.125", "attack.method=pgd",
                                      "attack.steps=2", "attack.eps=[0.5,0.05]", "attack.batch_size=4"])

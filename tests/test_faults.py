@@ -1,4 +1,4 @@
-"""Fault injection: each probe ends in one clear error (StageError/ValueError naming the file or
+"""Fault injection: each probe ends in one clear error (DataError/StageError/ValueError naming the file or
 parameter) and leaves every downstream artifact as it was."""
 from __future__ import annotations
 
@@ -8,7 +8,10 @@ import numpy as np
 import pytest
 import zarr
 
-from stages.io import StageError, atomic_dir, create_array, open_zarr
+from pipeline.io.atomic import atomic_dir
+from pipeline.io.errors import DataError
+from pipeline.io.store import create_array, open_zarr
+from stages.errors import StageError
 
 
 def _store(path: Path, n: int = 40) -> np.ndarray:
@@ -27,7 +30,7 @@ def test_sealed_store_reads_back(tmp_path):
 def test_missing_chunk_is_named(tmp_path):
     _store(tmp_path / "images.zarr")
     (tmp_path / "images.zarr/images/c/2/0/0/0").unlink()
-    with pytest.raises(StageError, match=r"images.zarr is missing chunk images/c/2/0/0/0"):
+    with pytest.raises(DataError, match=r"images.zarr is missing chunk images/c/2/0/0/0"):
         open_zarr(tmp_path / "images.zarr", "image store")
 
 
@@ -38,7 +41,7 @@ def test_flipped_bit_is_named(tmp_path, byte):
     raw = bytearray(chunk.read_bytes())
     raw[len(raw) // 2 if byte == "middle" else byte] ^= 0x10
     chunk.write_bytes(bytes(raw))
-    with pytest.raises(StageError, match=r"chunk images/c/1/0/0/0 fails its crc32c checksum"):
+    with pytest.raises(DataError, match=r"chunk images/c/1/0/0/0 fails its crc32c checksum"):
         open_zarr(tmp_path / "images.zarr", "image store")
 
 
@@ -49,7 +52,7 @@ def test_a_chunk_swapped_in_from_elsewhere_is_named(tmp_path):
     entries = open_zarr(tmp_path / "images.zarr").attrs["rpodguard_manifest"]["arrays"]["images"]["crc32c"]
     assert len(set(entries.values())) == len(entries)                 # no two chunks share a checksum
     (chunks / "1/0/0/0").write_bytes((chunks / "2/0/0/0").read_bytes())
-    with pytest.raises(StageError, match=r"chunk images/c/1/0/0/0 fails its crc32c checksum"):
+    with pytest.raises(DataError, match=r"chunk images/c/1/0/0/0 fails its crc32c checksum"):
         open_zarr(tmp_path / "images.zarr", "image store")
 
 
@@ -60,17 +63,17 @@ def test_a_store_of_an_older_manifest_format_is_named(tmp_path):
     meta = json.loads((tmp_path / "images.zarr/zarr.json").read_text())
     meta["attributes"]["rpodguard_manifest"]["format"] = "rpodguard-zarr-manifest/1"
     (tmp_path / "images.zarr/zarr.json").write_text(json.dumps(meta))
-    with pytest.raises(StageError, match=r"written by an older rpodguard \(checksum manifest rpodguard-zarr-manifest/1\)"):
+    with pytest.raises(DataError, match=r"written by an older rpodguard \(checksum manifest rpodguard-zarr-manifest/1\)"):
         open_zarr(tmp_path / "images.zarr")
 
 
 def test_unsealed_or_extended_store_is_refused(tmp_path):
     zarr.open_group(str(tmp_path / "raw.zarr"), mode="w").create_array("x", data=np.arange(4))
-    with pytest.raises(StageError, match="has no checksum manifest"):
+    with pytest.raises(DataError, match="has no checksum manifest"):
         open_zarr(tmp_path / "raw.zarr")
     _store(tmp_path / "images.zarr")
     create_array(zarr.open_group(str(tmp_path / "images.zarr"), mode="a"), "extra", data=np.arange(4))
-    with pytest.raises(StageError, match=r"arrays \['extra'\] differ from its checksum manifest"):
+    with pytest.raises(DataError, match=r"arrays \['extra'\] differ from its checksum manifest"):
         open_zarr(tmp_path / "images.zarr")
 
 
@@ -191,12 +194,12 @@ def test_killed_train_leaves_old_model_and_metrics(run_dir):
 def test_checkpoint_with_nan_weights_is_refused(run_dir):
     import torch
 
-    from stages.artifacts.checkpoint import read_pose
+    from pipeline.formats.models import read_pose
 
     ckpt = torch.load("models/pose.pt", weights_only=True)
     next(v for v in ckpt["model"].values() if v.is_floating_point()).view(-1)[0] = float("nan")
     torch.save(ckpt, "models/pose.pt")
-    with pytest.raises(StageError, match="holds non-finite weights"):
+    with pytest.raises(DataError, match="holds non-finite weights"):
         read_pose("models/pose.pt")
 
 
@@ -273,9 +276,9 @@ BODIES = {"camera": "camera", "target": "target"}
 
 @pytest.fixture
 def recording(tmp_path) -> Path:
-    """A 6-frame lab recording (stages.artifacts.recordings.write_recording layout) with a bright target on black."""
+    """A 6-frame lab recording (pipeline.formats.recordings.write_recording layout) with a bright target on black."""
     from pipeline.evaluation.lab import synthetic_recording
-    from stages.artifacts.recordings import write_recording
+    from pipeline.formats.recordings import write_recording
 
     rec = synthetic_recording(1.6, 1.0, 6, 30.0, 120.0, np.array([1.0, 0, 0, 0]))
     images = np.zeros((6, 36, 64, 3), np.uint8)
@@ -285,7 +288,7 @@ def recording(tmp_path) -> Path:
 
 
 def _read(folder: Path, **kwargs):
-    from stages.artifacts.recordings import read_recording
+    from pipeline.formats.recordings import read_recording
 
     return read_recording(folder, 32, 18, BODIES, "nearest", 0.01, 0.08, **kwargs)
 
@@ -306,7 +309,7 @@ def test_lab_image_path_escape_is_refused(recording, name):
 
     shutil.copy(recording / "images/000000.png", recording.parent / "secret.png")
     _edit_csv(recording / "camera.csv", lambda df: df.assign(image=[name] + [f"{i:06d}.png" for i in range(1, 6)]))
-    with pytest.raises(StageError, match=r"camera.csv line 2: image .* lies outside the recording folder"):
+    with pytest.raises(DataError, match=r"camera.csv line 2: image .* lies outside the recording folder"):
         _read(recording)
 
 
@@ -315,11 +318,11 @@ def test_lab_fifo_is_refused_without_hanging(recording):
 
     (recording / "images/000002.png").unlink()
     os.mkfifo(recording / "images/000002.png")
-    with pytest.raises(StageError, match=r"camera.csv line 4: .*000002.png is not a regular file"):
+    with pytest.raises(DataError, match=r"camera.csv line 4: .*000002.png is not a regular file"):
         _read(recording)
     os.rename(recording / "images/000002.png", recording / "camera.csv.fifo")
     os.replace(recording / "camera.csv.fifo", recording / "camera.csv")
-    with pytest.raises(StageError, match=r"camera.csv is not a regular file"):
+    with pytest.raises(DataError, match=r"camera.csv is not a regular file"):
         _read(recording)
 
 
@@ -333,7 +336,7 @@ def test_lab_oversized_image_is_refused_from_its_header(recording):
     # a 16000x9000 PNG header with no pixel data: decoding it would allocate 432 MB
     ihdr = struct.pack(">IIBBBBB", 16000, 9000, 8, 2, 0, 0, 0)
     (recording / "images/000001.png").write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IEND", b""))
-    with pytest.raises(StageError, match=r"000001.png is 16000x9000 = 144000000 pixels, above lab.max_image_pixels"):
+    with pytest.raises(DataError, match=r"000001.png is 16000x9000 = 144000000 pixels, above lab.max_image_pixels"):
         _read(recording)
 
 
@@ -343,13 +346,13 @@ def test_lab_oversized_image_is_refused_from_its_header(recording):
 ])
 def test_lab_non_finite_mocap_is_refused(recording, edit, message):
     _edit_csv(recording / "mocap.csv", edit)
-    with pytest.raises(StageError, match=message):
+    with pytest.raises(DataError, match=message):
         _read(recording)
 
 
 def test_lab_duplicate_frame_is_refused(recording):
     _edit_csv(recording / "camera.csv", lambda df: df.assign(frame=[0, 1, 2, 2, 4, 5]))
-    with pytest.raises(StageError, match=r"camera.csv line 5: frame 2 already appears on line 4"):
+    with pytest.raises(DataError, match=r"camera.csv line 5: frame 2 already appears on line 4"):
         _read(recording)
 
 
@@ -361,7 +364,7 @@ def test_lab_target_behind_the_camera_is_refused(recording):
         return df
 
     _edit_csv(recording / "mocap.csv", mirror)
-    with pytest.raises(StageError, match=r"camera.csv line 2: the target is behind the camera"):
+    with pytest.raises(DataError, match=r"camera.csv line 2: the target is behind the camera"):
         _read(recording)
 
 
@@ -369,14 +372,14 @@ def test_lab_frames_without_target_are_refused(recording):
     import cv2
 
     cv2.imwrite(str(recording / "images/000003.png"), np.zeros((36, 64, 3), np.uint8))
-    with pytest.raises(StageError, match=r"1 of 6 frames have no target pixels .*first: frame index 3"):
+    with pytest.raises(DataError, match=r"1 of 6 frames have no target pixels .*first: frame index 3"):
         _read(recording)
     assert _read(recording, empty_tolerance=0.2)["images"][3].max() == 0  # within a tolerance of 20%
 
 
 def test_lab_nan_image_name_is_refused(recording):
     _edit_csv(recording / "camera.csv", lambda df: df.assign(image=[f"{i:06d}.png" for i in range(5)] + [np.nan]))
-    with pytest.raises(StageError, match=r"camera.csv line 7: column 'image' is empty or not a file name \(nan\)"):
+    with pytest.raises(DataError, match=r"camera.csv line 7: column 'image' is empty or not a file name \(nan\)"):
         _read(recording)
 
 
@@ -420,7 +423,7 @@ def test_label_refuses_a_stale_render_and_render_refuses_an_invisible_target(tmp
 def test_temporary_folders_of_live_runs_are_kept(tmp_path):
     import os
 
-    from stages.io import remove_stale_temps
+    from pipeline.io.atomic import remove_stale_temps
 
     live = tmp_path / f".render.{os.getpid()}.abc.tmp"
     dead = tmp_path / ".render.999999999.def.tmp"
@@ -433,7 +436,7 @@ def test_temporary_folders_of_live_runs_are_kept(tmp_path):
 def test_flipped_bit_in_a_parquet_table_is_refused(tmp_path):
     import pandas as pd
 
-    from stages.io import read_parquet, write_parquet
+    from pipeline.io.tables import read_parquet, write_parquet
 
     df = pd.DataFrame({"tz": np.random.default_rng(0).uniform(10, 60, 2000), "index": np.arange(2000)})
     write_parquet(df, tmp_path / "labels.parquet")
@@ -441,5 +444,5 @@ def test_flipped_bit_in_a_parquet_table_is_refused(tmp_path):
     raw = bytearray((tmp_path / "labels.parquet").read_bytes())
     raw[len(raw) // 4] ^= 0x10  # inside the first column's data page
     (tmp_path / "labels.parquet").write_bytes(bytes(raw))
-    with pytest.raises(StageError, match=r"labels.parquet is unreadable .*(checksum|CRC)"):
+    with pytest.raises(DataError, match=r"labels.parquet is unreadable .*(checksum|CRC)"):
         read_parquet(tmp_path / "labels.parquet", "label table")

@@ -124,7 +124,7 @@ def _params(**changes):
 ])
 def test_stage_refuses_bad_params_before_rendering(changes, message):
     from stages.guidance import _plan
-    from stages.io import StageError
+    from stages.errors import StageError
 
     with pytest.raises(StageError, match=message):
         _plan(_params(**changes))

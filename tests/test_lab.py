@@ -147,8 +147,8 @@ def test_segmentation_and_domain_shift():
 
 
 def test_loader_round_trips_a_synthetic_lab_recording(tmp_path):
-    from stages.io import StageError
-    from stages.artifacts.recordings import read_recording, write_recording
+    from pipeline.io.errors import DataError
+    from pipeline.formats.recordings import read_recording, write_recording
 
     rec = synthetic_recording(1.6, 1.0, 12, 30.0, 120.0, np.array([1.0, 0, 0, 0]), lateral=(0.01, 0.0))
     rng = np.random.default_rng(0)
@@ -166,7 +166,7 @@ def test_loader_round_trips_a_synthetic_lab_recording(tmp_path):
     assert got["images"][:, 6:12, 11:21].min() > 0
     # without masks the grey-level threshold segments it the same way here
     (tmp_path / "seq" / "masks" / "000003.png").unlink()
-    with pytest.raises(StageError, match=r"masks/000003.png cannot be read as a mask \(camera.csv line 5\)"):
+    with pytest.raises(DataError, match=r"masks/000003.png cannot be read as a mask \(camera.csv line 5\)"):
         read_recording(tmp_path / "seq", 32, 18, bodies, "nearest", 0.01, 0.08)
     for f in (tmp_path / "seq" / "masks").iterdir():
         f.unlink()
@@ -174,9 +174,9 @@ def test_loader_round_trips_a_synthetic_lab_recording(tmp_path):
     thr = read_recording(tmp_path / "seq", 32, 18, bodies, "interpolate", 0.01, 0.1)
     assert thr["images"][:, :4].max() == 0
     (tmp_path / "seq" / "images" / "000007.png").write_bytes(b"not a png")
-    with pytest.raises(StageError, match=r"images/000007.png cannot be read as an image \(camera.csv line 9\)"):
+    with pytest.raises(DataError, match=r"images/000007.png cannot be read as an image \(camera.csv line 9\)"):
         read_recording(tmp_path / "seq", 32, 18, bodies, "nearest", 0.01, 0.08)
-    with pytest.raises(StageError, match="no rows for body 'drone'"):
+    with pytest.raises(DataError, match="no rows for body 'drone'"):
         read_recording(tmp_path / "seq", 32, 18, {"camera": "drone", "target": "target"}, "nearest", 0.01, 0.08)
 
 
@@ -201,8 +201,8 @@ def stand_in_models(p):
     from pipeline.detectors.lstm import LSTMConfig, LSTMDetector, to_checkpoint
     from pipeline.pose.loss import PoseLoss
     from pipeline.pose.model import PoseNet
-    from stages.artifacts.checkpoint import save_pose
-    from stages.io import file_hash
+    from pipeline.formats.models import save_pose
+    from pipeline.io.atomic import file_hash
 
     torch.manual_seed(0)
     h, w = p["render"]["height"], p["render"]["width"]
@@ -274,7 +274,7 @@ def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, mo
 
     from stages.config import params as params_mod
     from stages.cli import app
-    from stages.io import file_hash
+    from pipeline.io.atomic import file_hash
 
     monkeypatch.chdir(tmp_path)
     p = params_mod.compose("smoke", ["lab.retrain=always", "lab.frames=4", "lab.train_frames_per_sequence=3",
@@ -331,7 +331,7 @@ def test_bad_lab_params_are_refused(edit, message):
 
 def test_when_the_lab_stage_retrains(tmp_path, monkeypatch):
     from stages.config import params as params_mod
-    from stages.io import StageError
+    from stages.errors import StageError
     from stages.lab_models import sub_params
     from stages.config.params import retrain_reason
 
@@ -356,7 +356,7 @@ def test_a_failing_retrain_step_is_one_clear_error(tmp_path, monkeypatch):
     from stages import lab_models
 
     from stages.config import params as params_mod
-    from stages.io import StageError
+    from stages.errors import StageError
 
     def run_step(name: str, folder: Path) -> None:
         assert name == "render" and (folder / "params.yaml").exists()   # the step runs in the synthetic-lab folder

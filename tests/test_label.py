@@ -6,8 +6,9 @@ import pandas as pd
 import pytest
 
 from pipeline.geometry.rotations import quat_to_6d
+from pipeline.io.errors import DataError
 from stages.config import params as params_mod
-from stages.io import StageError
+from stages.errors import StageError
 from stages.label import build_labels
 
 CONTRACT = ["index", "image", "sequence", "frame", "tx", "ty", "tz", "qw", "qx", "qy", "qz",
@@ -107,17 +108,17 @@ def test_corrupt_or_missing_store_is_refused(workdir):
 
     from stages import label, render
 
-    with pytest.raises(StageError, match="not found"):
+    with pytest.raises(DataError, match="not found"):
         label.main()
     render.main()
     shutil.rmtree("datasets/render/images.zarr/images")
-    with pytest.raises(StageError, match="incomplete|corrupt|inconsistent|missing chunk"):
+    with pytest.raises(DataError, match="incomplete|corrupt|inconsistent|missing chunk"):
         label.main()
     render.main()
     meta = json.loads(open("datasets/render/meta.json").read())
     meta["frames"] = 999
     open("datasets/render/meta.json", "w").write(json.dumps(meta))
-    with pytest.raises(StageError, match="inconsistent"):
+    with pytest.raises(DataError, match="inconsistent"):
         label.main()
 
 

@@ -77,7 +77,7 @@ def test_device_param_resolves_in_one_place(monkeypatch):
     cuda:N pick one and torchrun's local rank picks its own; a bad value names the param."""
     import torch
 
-    from stages.io import StageError
+    from stages.errors import StageError
 
     p = params_mod.compose("smoke")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)

@@ -22,9 +22,9 @@ def models(tmp_path_factory) -> Path:
     from pipeline.detectors.lstm import LSTMConfig, LSTMDetector, to_checkpoint
     from pipeline.pose.loss import PoseLoss
     from pipeline.pose.model import PoseNet
-    from stages.artifacts.readers import DETECTOR_FORMAT
-    from stages.artifacts.checkpoint import save_pose
-    from stages.io import file_hash, save_torch
+    from pipeline.formats.models import DETECTOR_FORMAT, save_pose
+    from pipeline.io.atomic import file_hash
+    from pipeline.io.checkpoints import save_torch
 
     torch.manual_seed(0)
     folder = tmp_path_factory.mktemp("run") / "models"

@@ -261,6 +261,7 @@ def test_schema_attack_names_are_the_librarys() -> None:
 def test_train_surrogate_writes_only_its_checkpoint_with_its_own_seed(tmp_path, monkeypatch) -> None:
     from test_training import write_dataset
 
+    from pipeline.formats.models import read_pose
     from stages.artifacts import checkpoint
     from stages.train import SURROGATE, main
 
@@ -270,10 +271,10 @@ def test_train_surrogate_writes_only_its_checkpoint_with_its_own_seed(tmp_path, 
     main(surrogate=True)
     assert SURROGATE.exists() and not checkpoint.POSE.exists()
     assert not any(Path(p).exists() for p in ("reports/pose.md", "reports/metrics/train.json", "dvclive/train"))
-    surrogate = checkpoint.read_pose(SURROGATE)
+    surrogate = read_pose(SURROGATE)
     assert surrogate["meta"]["epoch"] == 1
     main(surrogate=False)
-    ours = checkpoint.read_pose(checkpoint.POSE)
+    ours = read_pose(checkpoint.POSE)
     assert not torch.equal(ours["model"]["head_pos.weight"], surrogate["model"]["head_pos.weight"])
 
 

@@ -11,7 +11,7 @@ from pipeline.geometry.camera import Intrinsics
 from pipeline.geometry.rotations import normalize_quat, quat_to_matrix
 from pipeline.formats.speed import SPEED_CAMERA, camera_from_json, camera_to_json, from_speed, to_speed
 from stages.config import params as params_mod
-from stages.io import StageError
+from pipeline.io.errors import DataError
 
 SIZE = (48, 30)                                        # source images, Nu x Nv (16:10 like SPEED+)
 K_SRC = Intrinsics(*SIZE, 60.0, 60.0, 24.0, 15.0)
@@ -141,7 +141,7 @@ def test_import_export_round_trip(project):
         assert np.abs(np.array([row2.qw, row2.qx, row2.qy, row2.qz]) - q).max() < 1e-6
     assert list(again.split) == list(labels.split)
 
-    with pytest.raises(StageError, match="not a SPEED folder"):   # never replaces an unrelated folder
+    with pytest.raises(DataError, match="not a SPEED folder"):   # never replaces an unrelated folder
         (root / "keep").mkdir()
         (root / "keep/notes.txt").write_text("mine")
         export_speed(root / "keep")
@@ -187,6 +187,6 @@ def test_bad_input_stops_with_one_message(project, damage, message):
     write_folder(root / "src")
     damage(root / "src")
     use(root / "src")
-    with pytest.raises(StageError, match=message) as err:
+    with pytest.raises(DataError, match=message) as err:
         speed_io.import_source(params_mod.load(), root / "store")
     assert "\n" not in str(err.value) and not (root / "store").exists()

@@ -10,11 +10,15 @@ import pytest
 import torch
 import zarr
 
+from pipeline.formats.models import read_pose, save_pose
 from pipeline.geometry.camera import reference_intrinsics
 from pipeline.geometry.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
 from stages.artifacts import checkpoint, data
+from pipeline.io.atomic import write_json
+from pipeline.io.errors import DataError
+from pipeline.io.store import create_array, seal_zarr
 from stages.config import params as params_mod
-from stages.io import StageError, create_array, seal_zarr, write_json
+from stages.errors import StageError
 
 W, H = 48, 27
 
@@ -48,7 +52,8 @@ def write_dataset(root: Path, n: int = 40, width: int = W, height: int = H, seed
     labels.to_parquet(root / "datasets/labels.parquet")
     params = params_mod.compose("smoke", [f"render.width={width}", f"render.height={height}", *(overrides or [])])
     params_mod.write_params(params, root / "params.yaml")
-    write_json(root / "datasets/render/meta.json", {"fingerprint": params_mod.render_fingerprint(params)})
+    write_json(root / "datasets/render/meta.json", {"complete": True, "frames": n,
+                                                    "fingerprint": params_mod.render_fingerprint(params)})
     return params
 
 
@@ -103,7 +108,7 @@ def test_checkpoint_round_trip_and_mismatch_refusal(dataset, tmp_path):
     with torch.no_grad():
         loss.s_p.fill_(0.7)
     path = tmp_path / "models/pose.pt"
-    checkpoint.save_pose(path, model, loss, (H, W), {"epoch": 1})
+    save_pose(path, model, loss, (H, W), {"epoch": 1})
     loaded = checkpoint.load_pose_model(path, dataset)
     assert not loaded.training
     x = torch.rand(2, 3, H, W)
@@ -114,10 +119,10 @@ def test_checkpoint_round_trip_and_mismatch_refusal(dataset, tmp_path):
         checkpoint.load_pose_model(path, wider)
     bigger = {**dataset, "render": {**dataset["render"], "height": 54, "width": 96}}
     with pytest.raises(StageError, match=r"input_size HxW=\[27, 48\] \(params: \[54, 96\]\)"):
-        checkpoint.read_pose(path, bigger)
+        checkpoint.read_checked(path, bigger)
     path.write_bytes(b"not a checkpoint")
-    with pytest.raises(StageError, match="unreadable"):
-        checkpoint.read_pose(path)
+    with pytest.raises(DataError, match="unreadable"):
+        read_pose(path)
 
 
 def test_fit_improves_and_tracks_the_best_epoch(dataset):
@@ -229,13 +234,13 @@ def test_checkpoint_bytes_do_not_depend_on_the_temporary_name(tmp_path):
     """The same weights saved twice give the same file hash (models/pose.pt's hash is in the reports)."""
     from pipeline.pose.loss import PoseLoss
     from pipeline.pose.model import PoseNet
-    from stages.io import file_hash
+    from pipeline.io.atomic import file_hash
 
     torch.manual_seed(0)
     model, loss = PoseNet(0.125), PoseLoss()
     hashes = []
     for name in ("a.pt", "b.pt"):
-        checkpoint.save_pose(tmp_path / name, model, loss, (H, W), {"epoch": 1})
+        save_pose(tmp_path / name, model, loss, (H, W), {"epoch": 1})
         hashes.append(file_hash(tmp_path / name))
     assert hashes[0] == hashes[1]
 

@@ -26,7 +26,7 @@ def _run(root: Path, seed: int, pos: float, detect_acc: float | None) -> Path:
     (run / "models").mkdir()
     (run / "models" / "pose.pt").write_bytes(f"weights of seed {seed}".encode())
     if detect_acc is not None:
-        from stages.io import file_hash
+        from pipeline.io.atomic import file_hash
 
         detect = {"detectors": {"lstm": {"all": {"accuracy": detect_acc}, "0.01": {"recall": 0.5}}},
                   "model_hash": file_hash(run / "models" / "pose.pt")}

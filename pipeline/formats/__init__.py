@@ -1,1 +1,1 @@
-"""File formats of other tools' data sets (SPEED / SPEED+ labels and cameras)."""
+"""File formats: our model checkpoints and render folders, SPEED / SPEED+ labels, cameras and folders, lab recordings."""

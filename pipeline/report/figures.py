@@ -3,7 +3,7 @@
 Every function returns a `matplotlib.figure.Figure` built without pyplot's global state, so the
 caller decides where to save it and nothing leaks between figures. Figures are at most WIDTH_IN wide
 with text of at least 8.5 pt, so they are shown unscaled and readable in a rendered Markdown page
-(about 880 pixels wide: 8 in at the 110 dpi of stages.io.save_figure); legends sit outside the data.
+(about 880 pixels wide: 8 in at the 110 dpi of pipeline.io.atomic.save_figure); legends sit outside the data.
 """
 from __future__ import annotations
 

@@ -1,19 +1,13 @@
-"""Pose-model checkpoints: weights + architecture + input size, loaded safely and checked against params.
-
-A checkpoint is a plain dict (loadable with `torch.load(weights_only=True)`):
-    format: "rpodguard-pose/1", arch: {width, dropout}, input_size: [height, width] (pixels),
-    model: the PoseNet state dict, loss: {s_p, s_r, reduction} (the learned loss, for attacks),
-    meta: small JSON-like facts (epoch, errors, ...).
-"""
+"""The pose checkpoint (models/pose.pt; format: pipeline/formats/models.py) checked against params.yaml."""
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Any
 
-from stages.io import StageError, load_torch, save_torch
+from pipeline.formats.models import loss_from_checkpoint, model_from_checkpoint, read_pose
+from stages.errors import StageError
 
 POSE = Path("models/pose.pt")
-FORMAT = "rpodguard-pose/1"
 
 
 def expected(params: dict[str, Any]) -> dict[str, Any]:
@@ -22,23 +16,10 @@ def expected(params: dict[str, Any]) -> dict[str, Any]:
             "input_size": [int(params["render"]["height"]), int(params["render"]["width"])]}
 
 
-def save_pose(path: Path | str, model: Any, loss: Any, input_size: tuple[int, int], meta: dict[str, Any]) -> None:
-    """Write a checkpoint atomically (temporary file + rename)."""
-    state = {
-        "format": FORMAT,
-        "arch": model.arch(),
-        "input_size": [int(input_size[0]), int(input_size[1])],
-        "model": {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()},
-        "loss": {"s_p": loss.s_p.item(), "s_r": loss.s_r.item(), "reduction": loss.reduction},
-        "meta": meta,
-    }
-    save_torch(path, state)
-
-
-def read_pose(path: Path | str = POSE, params: dict[str, Any] | None = None) -> dict[str, Any]:
-    """Load a checkpoint with weights_only=True; with params, refuse an architecture/input-size mismatch."""
+def read_checked(path: Path | str = POSE, params: dict[str, Any] | None = None) -> dict[str, Any]:
+    """A pose checkpoint dict (`read_pose`); with params, refuse an architecture/input-size mismatch."""
     path = Path(path)
-    ckpt = load_torch(path, FORMAT, "train")
+    ckpt = read_pose(path)
     if params is not None:
         want = expected(params)
         have = {"arch": ckpt["arch"], "input_size": list(ckpt["input_size"])}
@@ -51,33 +32,11 @@ def read_pose(path: Path | str = POSE, params: dict[str, Any] | None = None) -> 
     return ckpt
 
 
-def model_from_checkpoint(ckpt: dict[str, Any], device: Any = "cpu", amp: bool = False):
-    """The PoseNet of a checkpoint dict, in eval mode on `device` (`amp`: bf16 autocast there, CUDA only)."""
-    from pipeline.pose.model import PoseNet
-
-    model = PoseNet(**ckpt["arch"])
-    model.load_state_dict(ckpt["model"])
-    return model.place(device, amp).eval()
-
-
-def loss_from_checkpoint(ckpt: dict[str, Any]):
-    """The PoseLoss with the learned weights s_p, s_r of a checkpoint dict (what attacks ascend)."""
-    import torch
-
-    from pipeline.pose.loss import PoseLoss
-
-    loss = PoseLoss(ckpt["loss"]["reduction"])
-    with torch.no_grad():
-        loss.s_p.fill_(ckpt["loss"]["s_p"])
-        loss.s_r.fill_(ckpt["loss"]["s_r"])
-    return loss
-
-
-def load_pose_model(path: Path | str = POSE, params: dict[str, Any] | None = None, device: str = "cpu"):
+def load_pose_model(path: Path | str = POSE, params: dict[str, Any] | None = None, device: str = "cpu") -> Any:
     """The PoseNet of a checkpoint file, in eval mode on `device` (checked against params when given)."""
-    return model_from_checkpoint(read_pose(path, params), device)
+    return model_from_checkpoint(read_checked(path, params), device)
 
 
-def load_pose_loss(path: Path | str = POSE, params: dict[str, Any] | None = None):
+def load_pose_loss(path: Path | str = POSE, params: dict[str, Any] | None = None) -> Any:
     """The PoseLoss with the learned weights s_p, s_r of a checkpoint file."""
-    return loss_from_checkpoint(read_pose(path, params))
+    return loss_from_checkpoint(read_checked(path, params))

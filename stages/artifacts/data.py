@@ -16,7 +16,9 @@ import numpy as np
 import pandas as pd
 
 from stages.artifacts.readers import LABELS, RENDER
-from stages.io import StageError, open_zarr, read_json, read_parquet
+from pipeline.formats.renders import read_renders
+from pipeline.io.tables import read_parquet
+from stages.errors import StageError
 from stages.config.params import check_render_fingerprint
 
 IMAGES = RENDER / "images.zarr"
@@ -85,14 +87,12 @@ def load_labels(path: Path | str = LABELS) -> pd.DataFrame:
 
 
 def open_images(params: dict[str, Any], path: Path | str = IMAGES) -> Any:
-    """The zarr array `images` (N, H, W, 3) uint8 (at `path`, or the store meta.json beside it names),
-    checked against render.width x render.height and the render params' fingerprint."""
+    """The zarr array `images` (N, H, W, 3) uint8 of the render folder holding `path` (FOLDER/images.zarr,
+    or the store its meta.json names; pipeline.formats.renders), checked against render.width x
+    render.height and the render params' fingerprint."""
     path = Path(path)
-    meta = read_json(path.parent / "meta.json")
-    group = open_zarr(meta.get("store") or path, "image store")
-    if "images" not in group:
-        raise StageError(f"{path} has no array 'images' (re-run `rpod render`)")
-    arr = group["images"]
+    renders = read_renders(path.parent, "image store", "re-run `rpod render`")
+    arr, meta = renders.images, renders.meta
     if arr.ndim != 4 or arr.shape[3] != 3 or arr.dtype != np.uint8:
         raise StageError(f"{path}/images must be uint8 (N, H, W, 3), got {arr.dtype} {tuple(arr.shape)}")
     h, w = params["render"]["height"], params["render"]["width"]

@@ -1,10 +1,10 @@
 """Where every DVC artifact lives, and the loaders the stages share (one place for paths and formats).
 
 Paths are relative to the working folder (the repository root under `dvc repro`). Loaders check what
-they read and raise a StageError naming the file and the stage that writes it:
+they read and raise a DataError (or StageError) naming the file and the stage that writes it:
 - `read_render_store` (render output), `read_eval_render` (eval_render output, the evaluation or the
   defense's validation trajectories, checked against params), `load_defense` (calibrate output), `load_pose` (pose model, attack loss and file hash from one read of models/pose.pt),
-  `load_detector`, `load_chain` (pose model + detector), `read_shap_store` (checked SHAP store);
+  `load_chain` (pose model + detector: pipeline.defense.chain.load_safety_chain), `read_shap_store` (checked SHAP store);
 - `SampleImages`: the image of a SHAP sample (split, label index, eps) from the labelled renders,
   the attack stage's adv.zarr, or the same FGSM (shared by `rpod shap` and `rpod detect`).
 """
@@ -18,8 +18,12 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from stages.artifacts.checkpoint import POSE, loss_from_checkpoint, model_from_checkpoint, read_pose
-from stages.io import StageError, file_hash, load_torch, open_zarr, read_json, read_parquet
+from pipeline.formats.models import loss_from_checkpoint, model_from_checkpoint
+from pipeline.formats.renders import read_renders
+from pipeline.io.atomic import file_hash, read_json
+from pipeline.io.store import open_zarr
+from stages.artifacts.checkpoint import POSE, read_checked
+from stages.errors import StageError
 from stages.config.params import render_key
 
 RENDER = Path("datasets/render")
@@ -37,7 +41,6 @@ TRAIN_METRICS = Path("reports/metrics/train.json")
 DETECTOR = Path("models/detector.pt")
 SURROGATE = Path("models/surrogate.pt")   # a second pose model (`rpod train --surrogate`) for black-box transfer
 ROC_DIR = Path("reports/plots/roc")
-DETECTOR_FORMAT = "rpodguard-detector/1"
 SPLIT_CODES = {"train": 0, "test": 1}   # `split` codes of the SHAP store
 BATCH = 64                              # images per forward pass when rebuilding SHAP sample images
 
@@ -48,18 +51,10 @@ def adv_array_name(eps: float) -> str:
 
 
 def read_render_store(path: Path, what: str = "render output") -> tuple[Any, Any, dict[str, Any]]:
-    """Open a render output folder (images.zarr, or the store meta.json names; poses.parquet, meta.json)
-    and verify it is complete and consistent -> (images zarr array (N, H, W, 3) uint8, poses table, meta)."""
-    meta = read_json(path / "meta.json")
-    images = open_zarr(meta.get("store") or path / "images.zarr", what)
-    poses = read_parquet(path / "poses.parquet", f"{what} poses")
-    if not meta.get("complete") or "images" not in images:
-        raise StageError(f"{path} is incomplete; delete it and re-run `rpod render`")
-    n = images["images"].shape[0]
-    if n != meta["frames"] or n != len(poses):
-        raise StageError(f"{path} is inconsistent ({n} images, {len(poses)} poses, meta says {meta['frames']}); "
-                         f"delete it and re-run `rpod render`")
-    return images["images"], poses, meta
+    """The render output folder (pipeline.formats.renders), verified complete and consistent ->
+    (images zarr array (N, H, W, 3) uint8, poses table, meta)."""
+    r = read_renders(path, what, "re-run `rpod render`", poses=f"{what} poses")
+    return r.images, r.poses, r.meta
 
 
 @dataclass
@@ -78,38 +73,19 @@ def load_pose(params: dict[str, Any], path: Path | str = POSE) -> Pose:
     the `device` param's device (with `amp`); it takes inputs from any device and answers on theirs."""
     from stages.config.params import torch_device
 
-    ckpt = read_pose(path, params)
+    ckpt = read_checked(path, params)
     model = model_from_checkpoint(ckpt, torch_device(params), bool(params["amp"]))
     return Pose(model, loss_from_checkpoint(ckpt), file_hash(path), dict(ckpt.get("meta", {})))
-
-
-def load_detector(path: Path | str = DETECTOR, model_hash: str | None = None) -> tuple[Any, dict[str, Any]]:
-    """The LSTM detector (eval mode) and its checkpoint dict (threshold, pose_model_hash,
-    background_mean (1000,) tensor, shap_method, ...). With `model_hash`, refuse a detector trained
-    on another pose checkpoint's SHAP values."""
-    from pipeline.detectors.lstm import from_checkpoint
-
-    path = Path(path)
-    ckpt = load_torch(path, DETECTOR_FORMAT, "detect")
-    if model_hash is not None and ckpt["pose_model_hash"] != model_hash:
-        raise StageError(f"{path} was trained for pose checkpoint {ckpt['pose_model_hash']!r}, not {model_hash!r}; "
-                         f"re-run `rpod shap` and `rpod detect`")
-    return from_checkpoint(ckpt), ckpt
 
 
 def load_chain(params: dict[str, Any], pose_path: Path | str = POSE,
                detector_path: Path | str = DETECTOR) -> tuple[Any, Any, str]:
     """(SafetyChain, attack loss function on `attack.loss`, pose model hash) from a pose model and its detector."""
     from pipeline.attacks.gradient import attack_loss
-    from pipeline.defense.chain import SafetyChain
+    from pipeline.defense.chain import load_safety_chain
 
     pose = load_pose(params, pose_path)
-    detector, ckpt = load_detector(detector_path, model_hash=pose.hash)
-    try:
-        chain = SafetyChain.from_model(pose.model, np.asarray(ckpt["background_mean"]), detector,
-                                       threshold=float(ckpt["threshold"]))
-    except ValueError as err:
-        raise StageError(f"{pose_path}: {err}") from None
+    chain = load_safety_chain(pose.model, pose.hash, pose_path, detector_path)
     return chain, attack_loss(params["attack"]["loss"], pose.loss), pose.hash
 
 
@@ -135,15 +111,14 @@ def read_eval_render(p: dict[str, Any], validation: bool = False) -> tuple[np.nd
     current params; the evaluation trajectories, or with `validation` the defense's (datasets/val_render)."""
     folder, fingerprint = (VAL_RENDER, val_render_fingerprint(p)) if validation else (EVAL_RENDER,
                                                                                    eval_render_fingerprint(p))
-    meta = read_json(folder / "meta.json")
-    if not meta.get("complete") or meta.get("fingerprint") != fingerprint:
-        raise StageError(f"{folder} was rendered with other params (or is incomplete); "
-                         f"run `rpod eval_render` (dvc repro eval_render)")
-    images = open_zarr(folder / "images.zarr", "evaluation renders")["images"][:]
-    poses = read_parquet(folder / "poses.parquet", "evaluation poses")
-    if len(images) != len(poses) or len(poses) != meta["frames"]:
-        raise StageError(f"{folder} is inconsistent; delete it and run `rpod eval_render`")
-    return images, poses, meta
+
+    def check(meta: dict[str, Any]) -> None:
+        if not meta.get("complete") or meta.get("fingerprint") != fingerprint:
+            raise StageError(f"{folder} was rendered with other params (or is incomplete); "
+                             f"run `rpod eval_render` (dvc repro eval_render)")
+
+    r = read_renders(folder, "evaluation renders", "run `rpod eval_render`", poses="evaluation poses", check=check)
+    return r.images[:], r.poses, r.meta
 
 
 def chaser_motion(poses: Any) -> tuple[np.ndarray, np.ndarray]:

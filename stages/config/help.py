@@ -11,7 +11,7 @@ from typing import Any
 
 import typer.core
 
-from stages.io import dvc_stages
+from stages.artifacts.dvc import dvc_stages
 from stages.config.params import CONF_DIR
 
 CONFIG = CONF_DIR / "config.yaml"

@@ -9,7 +9,8 @@ from typing import Any
 
 import yaml
 
-from stages.io import StageError, atomic_write_text
+from pipeline.io.atomic import atomic_write_text
+from stages.errors import StageError
 from stages.config.schema import DEVICE, Params, ParamsError, build
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -3,7 +3,7 @@
 The driver creates the store (array `images`, uint8 (N, H, W, 3), chunked by frames); each worker
 holds one Blender scene, renders whole chunks, writes them into the store itself (a local path or an
 fsspec URL) and returns each chunk's crc32c (a worker on a machine that cannot see the store returns
-the pixels and the driver writes them); the driver writes the manifest last (`stages.io.seal_zarr`).
+the pixels and the driver writes them); the driver writes the manifest last (`pipeline.io.store.seal_zarr`).
 No merge step: the store is complete when the manifest is there. A `RenderWorker` gets a `RenderSetup`
 and one `FrameRange` per job; a `PoseRenderWorker` (poses rendered and sent back, `render_poses`) gets a
 `PoseSetup` and one `PoseBatch` per job.
@@ -19,7 +19,8 @@ from typing import Any
 import numpy as np
 
 from stages.engine import pool as engine
-from stages.io import StageError, chunk_crc32c, create_array, reopen_array, seal_zarr, store_fs
+from pipeline.io.store import chunk_crc32c, create_array, reopen_array, seal_zarr, store_fs
+from stages.errors import StageError
 
 
 def store_url(path: Path | str) -> str:

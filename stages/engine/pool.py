@@ -18,7 +18,8 @@ import tempfile
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, Protocol
 
-from stages.io import StageError
+from pipeline.io.errors import DataError
+from stages.errors import StageError
 
 CONNECT_TIMEOUT_S = 10.0   # seconds to open a TCP connection to a cluster's head before calling it unreachable
 CORE_LOCKS = os.path.join(tempfile.gettempdir(), "rpod-cores")   # one lock file per core a worker holds
@@ -226,7 +227,7 @@ def pin_cores(n: int) -> list[int]:
 
 
 def _get(ref: Any, i: int, es: EngineSettings) -> Any:
-    """The result of job i, or the StageError its worker raised, or one line saying it failed."""
+    """The result of job i, or the DataError (or StageError) its worker raised, or one line saying it failed."""
     import ray
 
     try:
@@ -237,7 +238,7 @@ def _get(ref: Any, i: int, es: EngineSettings) -> Any:
             if getattr(err, "cause", None) is None:
                 break
             err = err.cause
-        if isinstance(err, StageError) and not isinstance(err, ray.exceptions.RayError):
+        if isinstance(err, DataError) and not isinstance(err, ray.exceptions.RayError):
             raise StageError(str(err)) from None
         first = (str(e).strip().splitlines() or [type(e).__name__])[-1]
         raise StageError(f"chunk {i} failed on its Ray worker after {es.retries} retries: {first}") from None

@@ -10,7 +10,7 @@ One folder per sequence (a folder of such folders also works):
     mocap.csv                 timestamp,body,x,y,z,qw,qx,qy,qz   (s, m, body -> world quaternion)
 
 The CSV parsing and frame matching are pipeline/evaluation/lab.py's; this module does the file I/O and turns
-every problem into a StageError naming the file (and line).
+every problem into a DataError naming the file (and line).
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from stages.io import StageError
+from pipeline.io.errors import DataError
 
 
 def write_recording(folder: Path, camera: Any, mocap: Any, images: np.ndarray, masks: np.ndarray | None) -> None:
@@ -33,9 +33,9 @@ def write_recording(folder: Path, camera: Any, mocap: Any, images: np.ndarray, m
     for k, frame in enumerate(camera["frame"].to_numpy()):
         name = f"{int(frame):06d}.png"
         if not cv2.imwrite(str(folder / "images" / name), images[k][..., ::-1]):
-            raise StageError(f"could not write {folder / 'images' / name}")
+            raise DataError(f"could not write {folder / 'images' / name}")
         if masks is not None and not cv2.imwrite(str(folder / "masks" / name), masks[k]):
-            raise StageError(f"could not write {folder / 'masks' / name}")
+            raise DataError(f"could not write {folder / 'masks' / name}")
     camera.to_csv(folder / "camera.csv", index=False, float_format="%.6f")
     mocap.to_csv(folder / "mocap.csv", index=False, float_format="%.6f")
 
@@ -43,12 +43,12 @@ def write_recording(folder: Path, camera: Any, mocap: Any, images: np.ndarray, m
 def recording_folders(root: Path) -> list[Path]:
     """`root` itself when it holds camera.csv, else its subfolders that do (sorted)."""
     if not root.is_dir():
-        raise StageError(f"lab recording folder {root} not found")
+        raise DataError(f"lab recording folder {root} not found")
     if (root / "camera.csv").exists():
         return [root]
     subs = sorted(d for d in root.iterdir() if d.is_dir() and (d / "camera.csv").exists())
     if not subs:
-        raise StageError(f"{root} holds no lab recording (no camera.csv in it or its subfolders)")
+        raise DataError(f"{root} holds no lab recording (no camera.csv in it or its subfolders)")
     return subs
 
 
@@ -56,14 +56,14 @@ def read_recording(folder: Path, width: int, height: int, bodies: dict[str, str]
                    threshold: float, max_pixels: int = 1 << 25, empty_tolerance: float = 0.0) -> dict[str, Any]:
     """Load one recording: segmented images resized to width x height (uint8), frames, lab labels t, q.
 
-    Every problem is a StageError naming the file (and line for the CSVs): files outside the folder or
+    Every problem is a DataError naming the file (and line for the CSVs): files outside the folder or
     not regular, images over `max_pixels` (checked on the header, before decoding), non-finite or
     duplicated rows, a target behind the camera, more than `empty_tolerance` of frames without target.
     """
     try:
         return _read_recording(folder, width, height, bodies, match, max_gap, threshold, max_pixels, empty_tolerance)
     except ValueError as e:  # pipeline.evaluation.lab.LabDataError and friends
-        raise StageError(str(e)) from None
+        raise DataError(str(e)) from None
 
 
 def _read_recording(folder: Path, width: int, height: int, bodies: dict[str, str], match: str, max_gap: float,
@@ -79,12 +79,12 @@ def _read_recording(folder: Path, width: int, height: int, bodies: dict[str, str
     for name in ("camera.csv", "mocap.csv"):
         path = folder / name
         if not path.exists():
-            raise StageError(f"{path} not found (a lab recording needs images/, camera.csv and mocap.csv)")
+            raise DataError(f"{path} not found (a lab recording needs images/, camera.csv and mocap.csv)")
         path = resolve_inside(folder, name, str(folder))
         try:
             tables[name] = pd.read_csv(path)
         except Exception as e:
-            raise StageError(f"{folder / name} is not a readable CSV ({type(e).__name__}: {e})") from None
+            raise DataError(f"{folder / name} is not a readable CSV ({type(e).__name__}: {e})") from None
     frames, t, q = match_frames(tables["camera.csv"], tables["mocap.csv"], bodies["camera"], bodies["target"],
                                 match, max_gap, str(folder / "camera.csv"), str(folder / "mocap.csv"))
     names = image_names(tables["camera.csv"], frames, str(folder / "camera.csv"))
@@ -98,18 +98,18 @@ def _read_recording(folder: Path, width: int, height: int, bodies: dict[str, str
                 with Image.open(path) as header:  # reads the header only
                     w, h = header.size
         except Image.DecompressionBombError as e:
-            raise StageError(f"{folder / 'images' / name} is above lab.max_image_pixels ({e}) {where}") from None
+            raise DataError(f"{folder / 'images' / name} is above lab.max_image_pixels ({e}) {where}") from None
         except Exception:
-            raise StageError(f"{folder / 'images' / name} cannot be read as an image {where}") from None
+            raise DataError(f"{folder / 'images' / name} cannot be read as an image {where}") from None
         if w * h > max_pixels:
-            raise StageError(f"{folder / 'images' / name} is {w}x{h} = {w * h} pixels, above lab.max_image_pixels "
+            raise DataError(f"{folder / 'images' / name} is {w}x{h} = {w * h} pixels, above lab.max_image_pixels "
                              f"= {max_pixels} {where}")
         bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if bgr is None:
-            raise StageError(f"{folder / 'images' / name} cannot be read as an image {where}")
+            raise DataError(f"{folder / 'images' / name} cannot be read as an image {where}")
         h, w = bgr.shape[:2]
         if abs(w / h - width / height) > 0.01 * width / height:
-            raise StageError(f"{folder / 'images' / name} is {w}x{h}; the lab images must have the model input's "
+            raise DataError(f"{folder / 'images' / name} is {w}x{h}; the lab images must have the model input's "
                              f"aspect {width}:{height} {where}")
         mask = None
         mpath = folder / "masks" / name
@@ -118,9 +118,9 @@ def _read_recording(folder: Path, width: int, height: int, bodies: dict[str, str
                 mpath = resolve_inside(folder / "masks", name, f"{folder / 'camera.csv'} line {k + 2}")
             mask = cv2.imread(str(mpath), cv2.IMREAD_GRAYSCALE)
             if mask is None:
-                raise StageError(f"{mpath} cannot be read as a mask {where}")
+                raise DataError(f"{mpath} cannot be read as a mask {where}")
             if mask.shape != (h, w):
-                raise StageError(f"{mpath} is {mask.shape[1]}x{mask.shape[0]}, its image {w}x{h} {where}")
+                raise DataError(f"{mpath} is {mask.shape[1]}x{mask.shape[0]}, its image {w}x{h} {where}")
         images[k] = resize(segment(bgr[..., ::-1], mask, threshold), width, height)
     check_target_pixels(images, empty_tolerance, str(folder))
     return {"name": folder.name, "frames": frames, "images": images, "t_lab": t, "q": q}

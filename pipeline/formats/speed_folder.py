@@ -1,0 +1,103 @@
+"""SPEED / SPEED+ folders on disk (the label and camera fields and the frame conventions are
+pipeline/formats/speed.py's): label files, camera.json and images read, and a labelled image set
+written as a SPEED+ folder (`write_speed`). Every problem is a DataError naming the file.
+
+Layouts: SPEED+: FOLDER/camera.json, FOLDER/synthetic/{train,test,validation}.json, images
+<folder of the JSON>/images/<filename>. SPEED: FOLDER/train.json and FOLDER/test.json, images
+FOLDER/images/<train|test>/<filename>; FOLDER/camera.json if present, else SPEED's published camera.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.io.atomic import atomic_dir, read_json, write_json
+from pipeline.io.errors import DataError
+
+TRAIN = ("synthetic/train.json", "train.json")   # training label files, the first found is read
+TEST = ("synthetic/test.json", "synthetic/validation.json", "test.json")
+EXPORT_DIR = "synthetic"                 # SPEED+'s domain folder of synthetic images
+
+
+def read_labels(path: Path) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """(filenames, t (N, 3) m, q (N, 4)) of a SPEED/SPEED+ label file; one DataError naming file and field."""
+    from pipeline.formats.speed import from_speed
+
+    try:
+        return from_speed(read_json(path))
+    except ValueError as e:
+        raise DataError(f"{path}: {e}") from None
+
+
+def read_camera(folder: Path, speed_layout: bool) -> Any:
+    """pipeline.geometry.camera.Intrinsics of FOLDER/camera.json (SPEED's published camera when a SPEED folder has none)."""
+    from pipeline.formats.speed import SPEED_CAMERA, camera_from_json
+
+    path = folder / "camera.json"
+    if not path.is_file() and speed_layout:
+        print(f"{path} not found: using SPEED's published camera {SPEED_CAMERA}")
+        return camera_from_json(SPEED_CAMERA)
+    try:
+        return camera_from_json(read_json(path))
+    except ValueError as e:
+        raise DataError(f"{path}: {e}") from None
+
+
+def image_path(label_file: Path, name: str) -> Path:
+    """SPEED+: <json folder>/images/<name>; SPEED: <json folder>/images/<json stem>/<name>."""
+    plus = label_file.parent / "images" / name
+    return plus if plus.is_file() else label_file.parent / "images" / label_file.stem / name
+
+
+def read_image(path: Path, size: tuple[int, int], source_size: tuple[int, int]) -> np.ndarray:
+    """uint8 RGB (H, W, 3) at `size` (W, H) of an image file that must be `source_size` (Nu, Nv) pixels;
+    JPEGs are decoded at 1/2, 1/4 or 1/8 size when that still exceeds `size` (faster, same pixels)."""
+    import cv2
+
+    reduce = max([r for r in (2, 4, 8) if source_size[0] / r >= size[0] and source_size[1] / r >= size[1]], default=1)
+    flag = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
+            8: cv2.IMREAD_REDUCED_COLOR_8}[reduce]
+    img = cv2.imread(str(path), flag) if path.is_file() else None
+    if img is None:
+        raise DataError(f"{path}: {'not found' if not path.is_file() else 'not a readable image'} "
+                         f"(named by its label file)")
+    expect = (math.ceil(source_size[1] / reduce), math.ceil(source_size[0] / reduce))
+    if img.shape[:2] != expect:
+        raise DataError(f"{path}: image is {img.shape[1] * reduce}x{img.shape[0] * reduce} pixels but camera.json "
+                         f"gives Nu x Nv = {source_size[0]}x{source_size[1]}")
+    return cv2.resize(img, size, interpolation=cv2.INTER_AREA)[..., ::-1]
+
+
+def write_speed(out: Path, images: Any, labels: Any, K: Any) -> None:
+    """Write the labelled images as a SPEED+ folder `out` (camera.json, synthetic/{train,test}.json,
+    synthetic/images/imgNNNNNN.png, NNNNNN = label index + 1), atomically; PNG keeps every pixel."""
+    import cv2
+
+    from pipeline.formats.speed import camera_to_json, to_speed
+
+    if out.exists() and any(out.iterdir()) and not (out / "camera.json").is_file():
+        raise DataError(f"{out} exists and is not a SPEED folder written before; name a new or empty folder")
+    labels = labels.sort_values("index").reset_index(drop=True)
+    names = [f"img{int(i) + 1:06d}.png" for i in labels["index"]]
+    index, step = labels["index"].to_numpy(), int(images.chunks[0])
+    if index.min() < 0 or index.max() >= images.shape[0]:
+        raise DataError(f"the labels name image {int(index.max())} but the render store holds {images.shape[0]}; "
+                         f"re-run `rpod label`")
+    with atomic_dir(out) as tmp:
+        (tmp / EXPORT_DIR / "images").mkdir(parents=True)
+        for lo in range(0, int(images.shape[0]), step):   # one stored chunk at a time
+            rows = np.flatnonzero((index >= lo) & (index < lo + step))
+            block = np.asarray(images[lo:lo + step]) if len(rows) else None
+            for k in rows:
+                path = tmp / EXPORT_DIR / "images" / names[k]
+                if not cv2.imwrite(str(path), block[index[k] - lo][..., ::-1]):
+                    raise DataError(f"could not write {out / EXPORT_DIR / 'images' / names[k]}")
+        for split in ("train", "test"):
+            rows = (labels["split"] == split).to_numpy()
+            write_json(tmp / EXPORT_DIR / f"{split}.json",
+                       to_speed([n for n, keep in zip(names, rows) if keep], labels.loc[rows, ["tx", "ty", "tz"]],
+                                labels.loc[rows, ["qw", "qx", "qy", "qz"]]))
+        write_json(tmp / "camera.json", camera_to_json(K))

@@ -1,0 +1,167 @@
+"""Atomic file writes (temporary file or folder + rename: a reader never sees half a file) and JSON,
+figure and hash helpers."""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from pipeline.io.errors import DataError, not_found
+from pipeline.io.store import is_sealed, seal_zarr
+
+
+def atomic_write_text(path: Path | str, text: str) -> None:
+    """Write text to path via a temporary file in the same folder and a rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_json(path: Path | str, obj: Any) -> None:
+    """`obj` as indented JSON with sorted keys (numpy scalars and arrays as numbers and lists), atomically."""
+    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n")
+
+
+def _json_default(o: Any) -> Any:
+    """numpy scalars and arrays as plain JSON values."""
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def read_json(path: Path | str) -> Any:
+    """A JSON file; a DataError when it is missing (naming how to make it) or not valid JSON."""
+    path = Path(path)
+    if not path.exists():
+        raise not_found(path)
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise DataError(f"{path} is not valid JSON: {e}") from None
+
+
+@contextlib.contextmanager
+def atomic_dir(path: Path | str) -> Iterator[Path]:
+    """Yield a temporary sibling folder; on success it replaces `path` whole, on error it is removed.
+
+    A later stage therefore never sees a half-written output folder. Every zarr store in it (the folder
+    itself, or any `*.zarr` below it) is sealed with its manifest (`seal_zarr`), unless its writer
+    sealed it, before the rename. The temporary name carries the process id, so `remove_stale_temps`
+    never deletes a live run's folder.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.{os.getpid()}.", suffix=".tmp"))
+    try:
+        yield tmp
+        for store in [tmp, *sorted(tmp.rglob("*.zarr"))]:
+            if (store / "zarr.json").is_file() and not is_sealed(store):
+                seal_zarr(store)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if path.exists():
+        old = path.with_name(f".{path.name}.old")
+        shutil.rmtree(old, ignore_errors=True)
+        os.replace(path, old)
+        os.replace(tmp, path)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, path)
+
+
+def remove_stale_temps(path: Path | str) -> list[Path]:
+    """Delete the temporary folders `atomic_dir` left next to `path` in runs that were killed (their
+    process is gone); a concurrent live run's folder is kept. Returns the folders removed."""
+    path = Path(path)
+    removed = []
+    for d in path.parent.glob(f".{path.name}.*.tmp"):
+        pid = d.name[len(path.name) + 2:].split(".", 1)[0]
+        if pid.isdigit() and _alive(int(pid)):
+            continue
+        shutil.rmtree(d, ignore_errors=True)
+        removed.append(d)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process with this id exists on this machine."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+@contextlib.contextmanager
+def atomic_outputs(*paths: Path | str, dirs: tuple[Path | str, ...] = ()) -> Iterator[list[Path]]:
+    """Yield temporary stand-ins for the files `paths` and the folders `dirs` (in that order; the folders
+    are created empty). On success all are renamed into place one right after another, once every one
+    was written; on error none is, so a stage's model, metrics and curves never come from different runs."""
+    files, folders = [Path(p) for p in paths], [Path(d) for d in dirs]
+    tmps = []
+    for p in files + folders:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        tmps.append(p.with_name(f".{p.name}.{os.getpid()}.tmp"))
+    try:
+        for t in tmps[len(files):]:
+            shutil.rmtree(t, ignore_errors=True)
+            t.mkdir()
+        yield tmps
+        missing = [str(p) for p, t in zip(files, tmps) if not t.exists()]
+        if missing:
+            raise RuntimeError(f"atomic_outputs: {missing} were not written")
+    except BaseException:
+        for t in tmps:
+            if t.is_dir():
+                shutil.rmtree(t, ignore_errors=True)
+            else:
+                t.unlink(missing_ok=True)
+        raise
+    for p, t in zip(files + folders, tmps):
+        if t.is_dir() and p.exists():
+            old = p.with_name(f".{p.name}.{os.getpid()}.old")
+            os.replace(p, old)
+            os.replace(t, p)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(t, p)
+
+
+def save_figure(fig: Any, path: Path | str, dpi: int = 110) -> None:
+    """Write a matplotlib Figure (pipeline/report/figures.py) as PNG atomically (temporary file + rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp.png")
+    fig.savefig(tmp, dpi=dpi)
+    tmp.replace(path)
+
+
+def file_hash(path: Path | str, n: int = 16) -> str:
+    """Short sha256 of a file (used to tie derived artifacts to a checkpoint)."""
+    path = Path(path)
+    if not path.exists():
+        raise not_found(path)
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:n]

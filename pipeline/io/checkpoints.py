@@ -1,0 +1,59 @@
+"""torch checkpoints: written atomically with reproducible bytes, read safely (weights_only=True)."""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from pipeline.io.errors import DataError, not_found
+
+
+def save_torch(path: Path | str, obj: Any) -> None:
+    """torch.save via a temporary file in the same folder and a rename (never a half-written file).
+    Saved through a file object, so the zip's root folder is torch's fixed "archive", not the random
+    temporary name: the same object gives the same bytes (and file hash) on every run."""
+    import torch
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        with open(tmp, "wb") as f:
+            torch.save(obj, f)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def load_torch(path: Path | str, fmt: str, redo: str) -> dict[str, Any]:
+    """torch.load(weights_only=True) of an rpodguard checkpoint dict whose `format` is `fmt`; a missing,
+    unreadable, foreign or non-finite file is a DataError ending in `redo` (how to remake it)."""
+    import torch
+
+    path = Path(path)
+    if not path.exists():
+        raise not_found(path, "checkpoint")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:
+        raise DataError(f"checkpoint {path} is unreadable ({type(e).__name__}: {e}); {redo}") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != fmt:
+        raise DataError(f"{path} is not an rpodguard checkpoint of format {fmt}; {redo}")
+    bad = _nonfinite_tensors(ckpt)
+    if bad:
+        raise DataError(f"checkpoint {path} holds non-finite weights ({', '.join(bad[:3])}); {redo}")
+    return ckpt
+
+
+def _nonfinite_tensors(obj: Any, prefix: str = "") -> list[str]:
+    """Names of the floating-point tensors (nested in dicts) with a NaN or inf."""
+    import torch
+
+    if isinstance(obj, dict):
+        return [n for k, v in obj.items() for n in _nonfinite_tensors(v, f"{prefix}{k}.")]
+    if isinstance(obj, torch.Tensor) and obj.is_floating_point() and not bool(torch.isfinite(obj).all()):
+        return [prefix.rstrip(".")]
+    return []

@@ -1,0 +1,172 @@
+"""The checksummed zarr store: every chunk compressed with zstd and followed by its crc32c, and a
+manifest (written last, in the root group's attributes) listing per array its shape, chunks and the
+crc32c of every chunk object; `open_zarr` refuses a store that does not match it. Stores are local
+paths or fsspec URLs."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from pipeline.io.errors import DataError, not_found
+
+MANIFEST = "rpodguard_manifest"  # key in the root group's attributes (zarr.json)
+MANIFEST_FORMAT = "rpodguard-zarr-manifest/2"  # /1 summed the codec's own crc32c too: a constant
+
+
+def create_array(group: Any, name: str, **kwargs: Any) -> Any:
+    """`group.create_array` with the project's codecs: zstd, then a crc32c checksum of every chunk,
+    and every chunk written (also all-zero ones) so a missing chunk file is always an error."""
+    from zarr.codecs import Crc32cCodec, ZstdCodec
+
+    return group.create_array(name, compressors=[ZstdCodec(level=0), Crc32cCodec()],
+                              config={"write_empty_chunks": True}, **kwargs)
+
+
+def reopen_array(path: Path | str, name: str) -> Any:
+    """An array that `create_array` made, reopened for writing (path or fsspec URL of its store) with the
+    same rule: every chunk written, also all-zero ones (zarr keeps that setting only per open array)."""
+    import zarr
+
+    with zarr.config.set({"array.write_empty_chunks": True}):
+        return zarr.open_array(str(path), path=name, mode="r+")
+
+
+def _chunk_keys(shape: tuple[int, ...], chunks: tuple[int, ...]) -> list[str]:
+    """Chunk file names of a zarr v3 array (default encoding "c/i/j/...") over its whole grid."""
+    import itertools
+
+    grid = [range(-(-n // c)) for n, c in zip(shape, chunks)]
+    return ["/".join(["c", *map(str, ix)]) for ix in itertools.product(*grid)]
+
+
+def store_fs(path: Path | str) -> tuple[Any, str]:
+    """(fsspec filesystem, root path on it) of a zarr store given as a local path or an fsspec URL."""
+    from fsspec.core import url_to_fs
+
+    return url_to_fs(str(path))
+
+
+def chunk_crc32c(fs: Any, path: str) -> str:
+    """crc32c (8 hex digits) of one stored chunk object's payload, as the manifest lists it: the bytes
+    before the 4-byte crc32c the codec appends (the crc32c of data followed by its own crc32c is the
+    same constant for every chunk, so it could not tell one chunk from another).
+    A chunk whose own trailer does not match its payload gives "damaged", which no manifest lists.
+    """
+    import google_crc32c
+
+    data = fs.cat_file(path)
+    crc = google_crc32c.value(data[:-4])
+    return f"{crc:08x}" if data[-4:] == crc.to_bytes(4, "little") else "damaged"
+
+
+def _chunk_files(fs: Any, root: str, name: str) -> set[str]:
+    """Keys (c/i/j/...) of the chunk objects stored under array `name`."""
+    base = f"{root.rstrip('/')}/{name}/"
+    return {f[len(base):] for f in fs.find(base) if f.startswith(base) and f[len(base):].startswith("c/")}
+
+
+def seal_zarr(path: Path | str, crc32c: dict[str, dict[str, str]] | None = None) -> None:
+    """Write the store's manifest last, into the root group's attributes: per array its shape, chunks
+    and the crc32c of every chunk object. `crc32c` ({array: {chunk key: crc}}, from the workers that
+    wrote the chunks) is used where given; other arrays are read back and checksummed here.
+
+    Refuses (RuntimeError: a bug in the writer) an array without the crc32c codec or with a chunk of
+    its grid never written (or not checksummed).
+    """
+    import zarr
+
+    fs, root = store_fs(path)
+    group = zarr.open_group(str(path), mode="r")
+    arrays: dict[str, Any] = {}
+    for name, arr in sorted(group.arrays()):
+        if not any(type(c).__name__ == "Crc32cCodec" for c in arr.compressors):
+            raise RuntimeError(f"{path}/{name} was written without the crc32c codec (use pipeline.io.store.create_array)")
+        keys = _chunk_keys(arr.shape, arr.chunks)
+        given = (crc32c or {}).get(name)
+        missing = set(keys) - _chunk_files(fs, root, name)
+        if given:
+            missing |= set(keys) - set(given)
+        unwritten = sorted(missing)
+        if unwritten:
+            raise RuntimeError(f"{path}/{name}: chunk {unwritten[0]} was never written ({len(unwritten)} in all)")
+        crcs = {k: given[k] for k in keys} if given else {k: chunk_crc32c(fs, f"{root}/{name}/{k}") for k in keys}
+        if "damaged" in crcs.values():
+            raise RuntimeError(f"{path}/{name}: a chunk was damaged while it was written")
+        arrays[name] = {"shape": list(arr.shape), "chunks": list(arr.chunks), "crc32c": crcs}
+    zarr.open_group(str(path), mode="r+").attrs[MANIFEST] = {"format": MANIFEST_FORMAT, "arrays": arrays}
+
+
+def is_sealed(path: Path | str) -> bool:
+    """Whether the store at `path` already carries its manifest."""
+    fs, root = store_fs(path)
+    try:
+        return MANIFEST in json.loads(fs.cat_file(f"{root}/zarr.json")).get("attributes", {})
+    except (FileNotFoundError, ValueError, AttributeError):
+        return False
+
+
+def _manifest(path: Path | str, what: str) -> dict[str, Any]:
+    """The manifest's arrays from the root zarr.json, or a DataError."""
+    redo = "delete it and re-run the stage that writes it"
+    fs, root = store_fs(path)
+    try:
+        meta = json.loads(fs.cat_file(f"{root}/zarr.json"))
+    except FileNotFoundError:
+        raise DataError(f"{what} {path} is not a zarr store (no zarr.json); {redo}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise DataError(f"{what} {path}/zarr.json is damaged; {redo}") from None
+    manifest = meta.get("attributes", {}).get(MANIFEST) if isinstance(meta, dict) else None
+    if manifest is None:
+        raise DataError(f"{what} {path} has no checksum manifest (an interrupted write or an older "
+                         f"rpodguard); {redo}")
+    fmt = manifest.get("format") if isinstance(manifest, dict) else None
+    if isinstance(fmt, str) and fmt.startswith("rpodguard-zarr-manifest/") and fmt != MANIFEST_FORMAT:
+        raise DataError(f"{what} {path} was written by an older rpodguard (checksum manifest {fmt}); {redo}")
+    arrays = manifest.get("arrays") if fmt == MANIFEST_FORMAT else None
+    if not isinstance(arrays, dict):
+        raise DataError(f"{what} {path}: the checksum manifest is damaged; {redo}")
+    return arrays
+
+
+def verify_zarr(path: Path | str, what: str = "zarr store") -> None:
+    """Check a store (local path or fsspec URL) against its manifest: every array and chunk object
+    present, every crc32c equal. One DataError naming the store and the first bad chunk; costs one
+    read of the compressed bytes.
+    """
+    redo = "delete it and re-run the stage that writes it"
+    arrays = _manifest(path, what)
+    fs, root = store_fs(path)
+    for name, entry in arrays.items():
+        stored = _chunk_files(fs, root, name)
+        for key, crc in entry["crc32c"].items():
+            if key not in stored:
+                raise DataError(f"{what} {path} is missing chunk {name}/{key}; {redo}")
+            if chunk_crc32c(fs, f"{root}/{name}/{key}") != crc:
+                raise DataError(f"{what} {path}: chunk {name}/{key} fails its crc32c checksum (corrupt); {redo}")
+
+
+def open_zarr(path: Path | str, what: str = "zarr store") -> Any:
+    """Open a zarr group (local path or fsspec URL) read-only after `verify_zarr`, with a clear message
+    when it is missing or corrupt. The group's arrays are only those in the manifest (an array added
+    later is refused).
+    """
+    import zarr
+
+    fs, root = store_fs(path)
+    if not fs.exists(root):
+        raise not_found(path, what)
+    verify_zarr(path, what)
+    try:
+        group = zarr.open_group(str(path), mode="r")
+        listed = _manifest(path, what)
+        stored = {name: arr for name, arr in group.arrays()}
+    except Exception as e:  # zarr raises several types for a damaged store
+        raise DataError(f"{what} {path} is unreadable or corrupt ({type(e).__name__}: {e}); "
+                         f"delete it and re-run the stage that writes it") from None
+    changed = sorted(set(stored) ^ set(listed)) or [
+        n for n, a in stored.items() if [list(a.shape), list(a.chunks)] != [listed[n]["shape"], listed[n]["chunks"]]]
+    if changed:
+        raise DataError(f"{what} {path}: arrays {changed} differ from its checksum manifest; "
+                         f"delete it and re-run the stage that writes it")
+    return group
