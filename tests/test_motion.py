@@ -156,7 +156,7 @@ def test_a_nan_estimate_is_flagged_and_the_filter_coasts():
 
 
 def test_rotation_vector_helpers_match_scipy():
-    from pipeline.defense.kalman import matrix_to_rotvec, rotvec_to_matrix
+    from pipeline.geometry.rotations import matrix_to_rotvec, rotvec_to_matrix
 
     rng = np.random.default_rng(0)
     w = np.vstack([rng.normal(0, 1, (200, 3)), rng.normal(0, 1e-9, (5, 3)),

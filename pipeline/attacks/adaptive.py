@@ -31,6 +31,7 @@ from torch import Tensor, nn
 from pipeline.attacks.gradient import LossFn, pgd
 from pipeline.shap import exact_shap
 from pipeline.defense.kalman import MotionFilter, NoiseModel
+from pipeline.geometry.rotations import rotvec_t, sixd_to_matrix_t
 
 DEFAULT_STEPS = 20
 
@@ -145,24 +146,6 @@ def burst_prior(motion: MotionFilter, R_cam: np.ndarray, u: np.ndarray) -> Burst
         out["attitude_cov"].append(f.att.P[:3, :3].copy())
         f.coast()
     return BurstPrior(np.asarray(R_cam, np.float64), *(np.stack(v) for v in out.values()))
-
-
-def sixd_to_matrix_t(r6: Tensor) -> Tensor:
-    """(B, 6) -> (B, 3, 3) rotations by Gram-Schmidt, differentiable (as pipeline.geometry.rotations.sixd_to_matrix)."""
-    a, b = r6[:, :3], r6[:, 3:]
-    c0 = a / a.norm(dim=1, keepdim=True)
-    c1 = b - (c0 * b).sum(1, keepdim=True) * c0
-    c1 = c1 / c1.norm(dim=1, keepdim=True)
-    return torch.stack([c0, c1, torch.cross(c0, c1, dim=1)], -1)
-
-
-def rotvec_t(R: Tensor) -> Tensor:
-    """(B, 3, 3) rotations -> (B, 3) rotation vectors (rad), differentiable away from angle 0 and pi
-    (angle = atan2(|v| / 2, (trace - 1) / 2) with v the skew part, a tiny epsilon at 0)."""
-    v = torch.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], 1)
-    s = torch.sqrt((v * v).sum(1) + 1e-12)
-    angle = torch.atan2(s / 2, (R.diagonal(dim1=1, dim2=2).sum(1) - 1) / 2)
-    return v * (angle / s).unsqueeze(1)
 
 
 class FusedBurstChain(nn.Module):

@@ -51,59 +51,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-
-
-Mat3 = list[list[float]]
-
-
-def rotvec_to_matrix(w: Sequence[float] | np.ndarray) -> np.ndarray:
-    """Rodrigues: rotation vector (3,, radians) -> rotation matrix. Same as scipy's
-    Rotation.from_rotvec(w).as_matrix() (tested), without its per-call overhead (~0.1 ms, more than
-    the whole filter's cost per frame)."""
-    return np.array(_rotmat(_floats(w)))
-
-
-def _rotmat(w: Sequence[float]) -> Mat3:
-    """`rotvec_to_matrix` on floats, as a nested list: R = I + s W + k W^2, W^2 = w w^T - th^2 I."""
-    w0, w1, w2 = w
-    th2 = w0 * w0 + w1 * w1 + w2 * w2
-    s, k = 1.0, 0.0
-    if th2 >= 1e-16:
-        th = math.sqrt(th2)
-        s, k = math.sin(th) / th, (1.0 - math.cos(th)) / th2
-    d = 1.0 - k * th2
-    kxy, kxz, kyz = k * w0 * w1, k * w0 * w2, k * w1 * w2
-    return [[d + k * w0 * w0, kxy - s * w2, kxz + s * w1],
-            [kxy + s * w2, d + k * w1 * w1, kyz - s * w0],
-            [kxz - s * w1, kyz + s * w0, d + k * w2 * w2]]
-
-
-def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix -> rotation vector (3,, radians), angle in [0, pi]; the inverse of
-    `rotvec_to_matrix` (tested against scipy)."""
-    return np.array(_rotvec(_floats(R)))
-
-
-def _rotvec(R: Mat3) -> tuple[float, float, float]:
-    """`matrix_to_rotvec` of a nested list, as three floats."""
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R
-    th = math.acos(max(-1.0, min(1.0, (r00 + r11 + r22 - 1.0) / 2.0)))
-    v0, v1, v2 = r21 - r12, r02 - r20, r10 - r01
-    if th >= math.pi - 1e-4:                       # near pi: axis from the symmetric part
-        B = (np.array(R) + np.eye(3)) / 2.0
-        i = int(np.argmax(np.diag(B)))
-        axis = B[:, i] / math.sqrt(B[i, i])
-        if axis @ np.array([v0, v1, v2]) < 0:
-            axis = -axis
-        return tuple((axis * th).tolist())
-    f = 0.5 if th < 1e-6 else th / (2.0 * math.sin(th))
-    return v0 * f, v1 * f, v2 * f
-
-
-def _floats(a: Sequence | np.ndarray) -> list:
-    """An array (or nested sequence) of numbers as (nested) lists of Python floats."""
-    return a.tolist() if isinstance(a, np.ndarray) and a.dtype == np.float64 else np.asarray(a, np.float64).tolist()
-
+from pipeline.geometry.rotations import Mat3, float_lists, rotmat_list, rotvec_list
 
 def _inv3(S: Mat3) -> Mat3:
     """Inverse of a 3x3 matrix (nested list) by cofactors, in plain floats."""
@@ -501,18 +449,18 @@ class MotionFilter:
         if not self.started:
             raise RuntimeError("MotionFilter.check before start")
         if u is not None:
-            u = _floats(u)
+            u = float_lists(u)
             self._moved = [m + d for m, d in zip(self._moved, u)]
         self.pos.predict(u)
         self.att.predict()
-        self.R_tw = _mm(self.R_tw, _rotmat(self.att.take_level()))
+        self.R_tw = _mm(self.R_tw, rotmat_list(self.att.take_level()))
         predicted = self.position
-        t = _floats(t_pred)
+        t = float_lists(t_pred)
         rng = math.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
-        R_pred = None if R_pred is None else _floats(R_pred)
+        R_pred = None if R_pred is None else float_lists(R_pred)
         if not math.isfinite(rng) or (R_pred is not None and not math.isfinite(sum(map(sum, R_pred)))):
             return self._stash(MotionCheck(np.inf, np.inf, True, predicted), None)
-        R_cam = _floats(R_cam)
+        R_cam = float_lists(R_cam)
         z, Rz = self._measurement(t, rng, R_cam)
         R_meas = None if R_pred is None else _mm(R_cam, R_pred)
         self._last = ([v - m for v, m in zip(z, self._moved)], Rz, R_meas)
@@ -521,7 +469,7 @@ class MotionFilter:
         nis_p = sum(a * b for a, b in zip(y, _mv(s_inv, y)))
         nis_a, att = np.nan, None
         if R_meas is not None:
-            dth = _rotvec(_mm(_t(self.R_tw), R_meas))
+            dth = rotvec_list(_mm(_t(self.R_tw), R_meas))
             var = self.noise.attitude_std(rng) ** 2
             nis_a = self.att.nis(dth, var)
             att = (dth, var)
@@ -545,7 +493,7 @@ class MotionFilter:
         if att is not None:
             dth, var = att
             self.att.update(dth, var * max(1.0, check.nis_attitude / soft))
-            self.R_tw = _mm(self.R_tw, _rotmat(self.att.take_level()))
+            self.R_tw = _mm(self.R_tw, rotmat_list(self.att.take_level()))
         self._pending = None
         self._history.append(self._last[0])
         self._candidates = []
