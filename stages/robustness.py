@@ -61,7 +61,7 @@ def main() -> None:
     images = np.stack([np.asarray(split.images[int(i)]) for i in pick])
     targets = split.targets[pick]
 
-    target = ShapChain(pose.model, chain.weight, chain.background_mean, chain.detector)
+    target = ShapChain(pose.model, chain.shap, chain.detector)
     specs = _specs(p, r, target, pose, surrogate, seed)
     n_corr = sum(len(v) for v in dataclasses.asdict(r.corruptions).values())
     bar = tqdm(total=-(-n // r.batch_size) * (len(specs) + n_corr + 1), desc="robustness", unit="batch",

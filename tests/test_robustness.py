@@ -16,6 +16,7 @@ from pipeline.attacks.corruptions import CORRUPTIONS, corrupt
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
 from pipeline.pose.loss import PoseLoss
 from pipeline.evaluation.robustness import attack_row, corruption_row, worst_by_eps, worst_over_lambda
+from pipeline.shap import ExactShap
 
 D = 16
 
@@ -51,7 +52,7 @@ def setup() -> tuple[ShapChain, TinyPose, torch.Tensor, torch.Tensor, PoseLoss]:
         mu = background.mean(0)
         # standardise the SHAP rows as training would, so the logit depends on the image
         detector.set_normalisation((model.head.weight.unsqueeze(0) * (background - mu).unsqueeze(1)).numpy())
-    chain = ShapChain(model, model.head.weight.detach(), mu, detector)
+    chain = ShapChain(model, ExactShap(model.head.weight.detach(), mu), detector)
     y = torch.randn(6, 9)
     return chain, model, x, y, PoseLoss("mean")
 
@@ -108,7 +109,7 @@ def test_chain_pose_is_the_model_and_logit_the_detector_on_shap(setup) -> None:
     chain, model, x, _, _ = setup
     pose, logit = chain(x)
     assert torch.equal(pose, model(x))
-    phi = chain.weight.unsqueeze(0) * (model.forward_features(x) - chain.background_mean).unsqueeze(1)
+    phi = chain.shap.weight.unsqueeze(0) * (model.forward_features(x) - chain.shap.background_mean).unsqueeze(1)
     assert torch.allclose(logit, chain.detector(phi))
 
 

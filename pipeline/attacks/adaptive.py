@@ -29,7 +29,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from pipeline.attacks.gradient import LossFn, pgd
-from pipeline.shap import exact_shap
+from pipeline.shap import ExactShap
 from pipeline.defense.kalman import MotionFilter, NoiseModel
 from pipeline.geometry.rotations import rotvec_t, sixd_to_matrix_t
 
@@ -67,22 +67,17 @@ class ShapChain(nn.Module):
 
     temporal = False
 
-    def __init__(self, model: nn.Module, weight: np.ndarray | Tensor, background_mean: np.ndarray | Tensor,
-                 detector: nn.Module):
+    def __init__(self, model: nn.Module, shap: ExactShap, detector: nn.Module):
         super().__init__()
         self.model = model
         self.detector = detector
-        self.register_buffer("weight", torch.as_tensor(np.asarray(weight), dtype=torch.float32))
-        self.register_buffer("background_mean", torch.as_tensor(np.asarray(background_mean), dtype=torch.float32))
-        if self.weight.ndim != 2 or self.background_mean.shape != (self.weight.shape[1],):
-            raise ValueError(f"head weight {tuple(self.weight.shape)} and background mean "
-                             f"{tuple(self.background_mean.shape)} do not fit (need (9, D) and (D,))")
+        self.shap = shap
         self.eval()
 
     def forward(self, images: Tensor) -> tuple[Tensor, Tensor]:
         features = self.model.forward_features(images)
         pose = self.model.forward_head(features)
-        return pose, self.detector(exact_shap(features, self.weight, self.background_mean))
+        return pose, self.detector(self.shap(features))
 
 
 def check_lambdas(lambdas: list[float]) -> list[float]:

@@ -109,51 +109,6 @@ class LSTMDetector(nn.Module):
         return (self.predict_proba(values) >= float(self.threshold)).astype(np.int64)
 
 
-class ShapLSTM(nn.Module):
-    """`detector` on the exact SHAP values of an affine head, from the head's GAP features:
-    (B, D) features -> (SHAP values (B, n_rows, D), attack probability (B,)).
-
-    The detector reads x[b, j] = (phi[b, j] - m_j) / s_j with phi[b, j] = W[j] * (a[b] - mu), that
-    is x[b, j] = (W[j] / s_j) * (a[b] - mu) - m_j / s_j: the SHAP scaling and the standardisation
-    fold into one (n_rows, D) weight and a per-row shift, so one multiply-add gives the LSTM input.
-    The input projection keeps the detector's shared (4H, D) weight: folding it further into 9
-    distinct (D, 4H) matrices needs as many multiply-adds and 9x the memory to stream. The gates
-    are reordered (i, f, o | g) so that one sigmoid covers three of them, and since the cell state is
-    never negative (c' = f c + i relu(g), c_0 = 0) h' = o * c' needs no ReLU: the fewest small ops,
-    which is what a 9-step, 100-unit recurrence costs at batch 1. Equal to
-    `detector(exact_shap(a, W, mu))` to float32 rounding; the detector's weights are copied here.
-    """
-
-    def __init__(self, detector: "LSTMDetector", weight: torch.Tensor, background_mean: torch.Tensor):
-        super().__init__()
-        h = self.hidden = detector.config.hidden
-        order = torch.cat([torch.arange(2 * h), torch.arange(3 * h, 4 * h), torch.arange(2 * h, 3 * h)])
-        inv_scale = 1.0 / detector.scale.detach().double()                        # (n_rows, 1)
-        cell = detector.lstm
-        buffers = {"weight": weight, "background_mean": background_mean,
-                   "scaled": weight.double() * inv_scale, "shift": -detector.mean.detach().double() * inv_scale,
-                   "w_in": cell.input_proj.weight.detach()[order], "b_in": cell.input_proj.bias.detach()[order],
-                   "w_hidden": cell.hidden_proj.weight.detach()[order].T}
-        for name, value in buffers.items():
-            self.register_buffer(name, value.float().contiguous())
-        self.classifier = copy.deepcopy(detector.classifier)
-
-    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        centred = (features - self.background_mean).unsqueeze(1)                   # (B, 1, D)
-        x = torch.addcmul(self.shift, self.scaled, centred)                         # (B, n_rows, D)
-        steps = torch.nn.functional.linear(x, self.w_in, self.b_in).unbind(1)
-        sizes = [3 * self.hidden, self.hidden]
-        ifo, g = steps[0].split(sizes, dim=1)
-        i, f, o = torch.sigmoid(ifo).chunk(3, dim=1)
-        c = i * torch.relu(g)
-        for step in steps[1:]:
-            ifo, g = torch.addmm(step, o * c, self.w_hidden).split(sizes, dim=1)
-            i, f, o = torch.sigmoid(ifo).chunk(3, dim=1)
-            c = torch.addcmul(f * c, i, torch.relu(g))
-        prob = torch.sigmoid(self.classifier(o * c).squeeze(1))
-        return self.weight * centred, prob
-
-
 def to_checkpoint(model: LSTMDetector, extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """A dict of tensors and plain values (loadable with torch.load(weights_only=True))."""
     return {"kind": "lstm", "config": asdict(model.config), "threshold": float(model.threshold),
