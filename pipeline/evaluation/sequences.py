@@ -21,7 +21,8 @@ from pipeline.defense.chain import SafetyChain, run_sequence
 from pipeline.defense.fusion import DefenseSettings, run_defense
 from pipeline.defense.kalman import MotionSettings, NoiseModel
 from pipeline.geometry.rotations import sixd_to_matrix
-from pipeline.evaluation.schedule import detection_delays, detection_metrics, mean_over, schedule_bursts, undetected_mask
+from pipeline.detectors.metrics import detection_delays, frame_metrics, mean_over, undetected_mask
+from pipeline.evaluation.schedule import schedule_bursts
 from pipeline.evaluation.stats import bootstrap_rate
 from pipeline.pose.train import pose_errors
 
@@ -63,7 +64,7 @@ def evaluate_sequences(chain: SafetyChain, loss_fn: Any, sequences: list[dict[st
         for s in sequences:
             res = run_sequence(chain, s["images"], s["targets"], s["attacked"], attack, batch_size, progress)
             pos, att = pose_errors(res.pose, s["targets"])
-            m = detection_metrics(s["attacked"], res.flag, schedule_bursts(s["attacked"], attack_length))
+            m = frame_metrics(s["attacked"], res.flag, schedule_bursts(s["attacked"], attack_length))
             und = undetected_mask(s["attacked"], res.flag)
             rows.append({"eps": eps, "sequence": s["name"], **m.as_dict(),
                          "frames": len(res.flag), "correct": int((res.flag == s["attacked"]).sum()),
