@@ -163,7 +163,8 @@ def _attack_into(path: Path, worker: tuple[Any, ...], images: Any, source_index:
 
 def _errors(pred: np.ndarray, t_gt: np.ndarray, q_gt: np.ndarray) -> dict[str, float]:
     """Mean and median position (m) and attitude (deg) errors of (N, 9) outputs against the labels."""
-    from pipeline.geometry.rotations import attitude_error_deg, position_error, sixd_to_quat
+    from pipeline.geometry.rotations import sixd_to_quat
+    from pipeline.pose.metrics import attitude_error_deg, position_error
 
     pos = position_error(pred[:, :3], t_gt)
     att = attitude_error_deg(sixd_to_quat(pred[:, 3:]), q_gt)

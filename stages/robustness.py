@@ -127,7 +127,7 @@ def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Rob
     from pipeline.attacks.corruptions import corrupt
     from pipeline.evaluation.robustness import corruption_row
     from pipeline.evaluation.stats import rate
-    from pipeline.pose.train import pose_errors
+    from pipeline.pose.metrics import pose_errors
 
     none = np.zeros(len(images), bool)
     clean = run_sequence(chain, images, targets, none, None, r.batch_size, progress)

@@ -374,7 +374,7 @@ def shift_recording(rgb: np.ndarray, alpha: np.ndarray, noise_std: float, blur_s
 def loader_errors(recs: list[dict[str, Any]], truth: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
     """Per rendered recording in `truth`: the largest position (m) and attitude (deg) error of the
     loader's labels (`recs`, by name) against the exact poses the images were rendered at."""
-    from pipeline.geometry.rotations import attitude_error_deg
+    from pipeline.pose.metrics import attitude_error_deg
 
     out = {}
     for tr in truth:

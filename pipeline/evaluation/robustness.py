@@ -126,7 +126,7 @@ def run_attack_rows(chain: Any, images: np.ndarray, targets: np.ndarray, specs: 
     then per eps the adaptive attack's worst case over lambda. With `pgd_is_lambda0`, the adaptive
     run at lambda = 0 (plain PGD on the same seed) is also the `pgd` transfer row."""
     from pipeline.defense.chain import run_sequence
-    from pipeline.pose.train import pose_errors
+    from pipeline.pose.metrics import pose_errors
 
     attacked = np.ones(len(images), bool)
     rows: list[dict[str, Any]] = []
@@ -327,7 +327,7 @@ def fused_bursts(chain: Any, shap: Any, defended: Defended, images: np.ndarray, 
     """`fused_attack` on every trajectory (frame indices into `images`, `labels` (N, 9)) with its
     bursts; `done()` after each trajectory. Returns, over the attacked frames of all bursts in order,
     (position error (M,), flag (M,), trajectory id (M,), burst id (M,): 1000 * trajectory + burst)."""
-    from pipeline.pose.train import pose_errors
+    from pipeline.pose.metrics import pose_errors
 
     pos, flag, grp, bid = [], [], [], []
     for g, (ix, bs) in enumerate(zip(trajectories, bursts)):

@@ -24,7 +24,7 @@ from pipeline.geometry.rotations import sixd_to_matrix
 from pipeline.detectors.metrics import detection_delays, frame_metrics, mean_over, undetected_mask
 from pipeline.evaluation.schedule import schedule_bursts
 from pipeline.evaluation.stats import bootstrap_rate
-from pipeline.pose.train import pose_errors
+from pipeline.pose.metrics import pose_errors
 
 
 def _bar_iter(it: Iterable[Any], bar: Any) -> Iterator[Any]:

@@ -1,4 +1,4 @@
-"""Rotations and pose errors in the OpenCV camera frame (x right, y down, z forward).
+"""Rotations in the OpenCV camera frame (x right, y down, z forward).
 
 Conventions: position t = target origin in the camera frame (metres); quaternion
 q = (qw, qx, qy, qz), scalar first, rotating target-frame vectors into the camera frame
@@ -99,17 +99,6 @@ def euler_to_matrix(angles_deg: np.ndarray) -> np.ndarray:
     Ry = np.stack([np.stack([cy, z, sy], -1), np.stack([z, o, z], -1), np.stack([-sy, z, cy], -1)], -2)
     Rz = np.stack([np.stack([cz, -sz, z], -1), np.stack([sz, cz, z], -1), np.stack([z, z, o], -1)], -2)
     return Rz @ Ry @ Rx
-
-
-def position_error(t_pred: np.ndarray, t_gt: np.ndarray) -> np.ndarray:
-    """Euclidean position error ||t_pred - t_gt|| in metres, per sample."""
-    return np.linalg.norm(np.asarray(t_pred, float) - np.asarray(t_gt, float), axis=-1)
-
-
-def attitude_error_deg(q_pred: np.ndarray, q_gt: np.ndarray) -> np.ndarray:
-    """Attitude error 2*acos(|<q_pred, q_gt>|) in degrees, per sample."""
-    d = np.abs(np.sum(normalize_quat(q_pred) * normalize_quat(q_gt), -1))
-    return np.rad2deg(2 * np.arccos(np.clip(d, 0.0, 1.0)))
 
 
 def rotvec_to_matrix(w: Sequence[float] | np.ndarray) -> np.ndarray:

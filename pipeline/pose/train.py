@@ -7,10 +7,7 @@ DistributedSampler and the validation set evaluated in shards that are gathered 
 The caller passes a validation set carved from the training data (pipeline.evaluation.splits.holdout): `fit`
 never sees the test split, so the checkpoint it keeps is not selected on test data.
 
-Errors: position ||t_pred - t_gt|| in metres, attitude 2*acos(|<q_pred, q_gt>|) in degrees,
-the 6-D output decoded by Gram-Schmidt. The model selection score is the ESA SPEED score,
-mean(||t_pred - t_gt|| / ||t_gt||) + mean(attitude error in radians): dimensionless, so a 1% range
-error weighs as much as 0.01 rad (0.57 deg) of attitude.
+The model selection score is the ESA SPEED score (pipeline/pose/metrics.py).
 """
 from __future__ import annotations
 
@@ -30,7 +27,7 @@ from tqdm import tqdm
 
 from pipeline.pose.augment import AugmentConfig, augment
 from pipeline.pose.loss import PoseLoss
-from pipeline.geometry.rotations import attitude_error_deg, position_error, sixd_to_quat
+from pipeline.pose.metrics import pose_errors, speed_score
 
 
 LOSS_WEIGHT_LR_FACTOR = 10.0
@@ -87,19 +84,6 @@ def to_input(batch: torch.Tensor, channels_last: bool = True) -> torch.Tensor:
     """uint8 (B, H, W, 3) -> float (B, 3, H, W) in [0, 1] (channels_last memory layout if asked)."""
     x = batch.permute(0, 3, 1, 2).float().div_(255.0)
     return x.contiguous(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
-
-
-def pose_errors(pred: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 9) predictions and targets -> position error (m) and attitude error (deg), per sample."""
-    pred, target = np.asarray(pred, np.float64), np.asarray(target, np.float64)
-    return (position_error(pred[:, :3], target[:, :3]),
-            attitude_error_deg(sixd_to_quat(pred[:, 3:]), sixd_to_quat(target[:, 3:])))
-
-
-def speed_score(pred: np.ndarray, target: np.ndarray) -> float:
-    """ESA SPEED score: mean relative position error + mean attitude error in radians."""
-    pos, att = pose_errors(pred, target)
-    return float(np.mean(pos / np.linalg.norm(target[:, :3], axis=1)) + np.mean(np.deg2rad(att)))
 
 
 def make_deterministic(seed: int) -> None:
@@ -317,38 +301,3 @@ def _should_stop(start: float, last_epoch_seconds: float, max_minutes: float, de
     if _distributed()[1] > 1:
         dist.broadcast(stop, src=0)
     return bool(stop.item())
-
-
-def summarize_errors(pred: np.ndarray, target: np.ndarray, ranges: np.ndarray,
-                     bins: Sequence[float]) -> dict[str, Any]:
-    """Error statistics of (N, 9) predictions: position (m) and attitude (deg) mean/median, mean |tz|
-    error as % of range, mean lateral error sqrt(dx^2 + dy^2) (m) at ranges 10-30 m, and the same
-    per range bin (`bins`: edges in metres, any order; a bin is (low, high], the lowest edge included;
-    ranges outside the edges get their own open bins)."""
-    pos, att = pose_errors(pred, target)
-    pred, target, ranges = np.asarray(pred, np.float64), np.asarray(target, np.float64), np.asarray(ranges, np.float64)
-    tz_pct = 100 * np.abs(pred[:, 2] - target[:, 2]) / ranges
-    lateral = np.linalg.norm(pred[:, :2] - target[:, :2], axis=1)
-    near = (ranges >= 10) & (ranges <= 30)
-
-    def stats(m: np.ndarray) -> dict[str, float]:
-        if not m.any():
-            return {"n": 0}
-        return {"n": int(m.sum()), "pos_mean_m": float(pos[m].mean()), "pos_median_m": float(np.median(pos[m])),
-                "att_mean_deg": float(att[m].mean()), "att_median_deg": float(np.median(att[m])),
-                "tz_pct_range": float(tz_pct[m].mean()), "lateral_m": float(lateral[m].mean())}
-
-    edges = sorted(float(b) for b in bins)
-    per_bin = []
-    if (ranges < edges[0]).any():
-        per_bin.append({"range_m": f"<{edges[0]:g}", **stats(ranges < edges[0])})
-    for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
-        m = (ranges > lo) & (ranges <= hi) if i else (ranges >= lo) & (ranges <= hi)
-        per_bin.append({"range_m": f"{hi:g}-{lo:g}", **stats(m)})
-    if (ranges > edges[-1]).any():  # range = ||t||: lateral offsets put the start beyond the last edge
-        per_bin.append({"range_m": f">{edges[-1]:g}", **stats(ranges > edges[-1])})
-    out = stats(np.ones(len(pos), bool))
-    out["lateral_10_30_m"] = float(lateral[near].mean()) if near.any() else float("nan")
-    out["tz_pct_10_30"] = float(tz_pct[near].mean()) if near.any() else float("nan")
-    out["bins"] = per_bin[::-1]
-    return out

@@ -13,7 +13,7 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
     per image is kept; `previews` are PNG files shown relative to the card's folder `card_dir`."""
     from pipeline.geometry.camera import Intrinsics, project
     from pipeline.report.markdown import markdown_table
-    from pipeline.geometry.rotations import attitude_error_deg
+    from pipeline.pose.metrics import attitude_error_deg
 
     q = labels[["qw", "qx", "qy", "qz"]].to_numpy()
     t = labels[["tx", "ty", "tz"]].to_numpy()
