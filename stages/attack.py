@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import typer
 
+from pipeline.pose.labels import POSITION, QUAT, TARGET
 from stages.engine import pool as engine
 
 from stages.config import params as params_mod
@@ -49,9 +50,9 @@ def main() -> None:
     if n < 1:
         raise StageError(f"params.yaml attack.max_images must be at least 1, got {a['max_images']}")
     images, labels = split.images, split.labels.iloc[:n]
-    t_gt = labels[["tx", "ty", "tz"]].to_numpy(np.float64)
-    q_gt = labels[["qw", "qx", "qy", "qz"]].to_numpy(np.float64)
-    y_all = torch.tensor(labels[["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]].to_numpy(np.float32))
+    t_gt = labels[POSITION].to_numpy(np.float64)
+    q_gt = labels[QUAT].to_numpy(np.float64)
+    y_all = torch.tensor(labels[TARGET].to_numpy(np.float32))
     k = int(np.argmin(np.abs(t_gt[:, 2] - np.median(t_gt[:, 2]))))  # figure: a mid-range test image
     es, threads = _engine(p, pose.model.device)
     worker = (p, str(POSE.resolve()), eps_list, int(a["batch_size"]), None if es.in_process else threads)

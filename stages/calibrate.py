@@ -15,11 +15,11 @@ from typing import Any
 import numpy as np
 import typer
 
+from pipeline.pose.labels import TARGET
 from stages.config import params as params_mod
 from stages.artifacts.readers import DEFENSE, DEFENSE_FORMAT, chaser_motion, defense_settings, load_chain, read_eval_render
 from stages.io import StageError, write_json
 
-TARGET = ["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]
 
 
 def main() -> None:

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import typer
 
+from pipeline.pose.labels import TARGET
 from stages.config import params as params_mod
 from stages.artifacts.readers import chaser_motion, load_chain, load_defense, read_eval_render
 from stages.io import atomic_write_text, save_figure, write_metrics
@@ -27,7 +28,6 @@ REPORT = Path("reports/integrated.md")
 FIGURE = Path("reports/figures/timeline.png")
 METRICS = Path("reports/metrics/evaluate.json")
 SCHEDULE_SEED_OFFSET = 17
-TARGET = ["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]
 # The paper's integrated detection accuracy (%), averaged over its three trajectories, per eps.
 PAPER_ACCURACY = {0.5: 100.0, 0.3: 99.99, 0.1: 99.97, 0.05: 99.99, 0.01: 97.67}
 PAPER_OVERALL = 99.21

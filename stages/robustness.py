@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.pose.labels import TARGET
 from stages.config import params as params_mod
 from stages.artifacts.readers import SURROGATE, Pose, load_defense, load_detector, load_pose, read_eval_render
 from stages.artifacts.checkpoint import POSE
@@ -177,7 +178,7 @@ def _fused_setup(p: dict[str, Any], r: Robustness, chain: Any, model_hash: str) 
     from pipeline.evaluation.robustness import Defended, burst_schedule, fused_false_alarms
 
     images, poses, _ = read_eval_render(p)
-    labels = poses[["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]].to_numpy(np.float64)
+    labels = poses[TARGET].to_numpy(np.float64)
     trajs = [np.flatnonzero(poses["trajectory"].to_numpy() == t) for t in np.unique(poses["trajectory"])]
     # the defense that ships: params.defense with the noise model `rpod calibrate` fitted on validation trajectories
     shipped = load_defense(p, model_hash, chain.threshold)

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.pose.labels import POSITION, QUAT, pose_columns
 from stages.config import params as params_mod
 from stages.io import StageError, atomic_dir, create_array, read_json, remove_stale_temps, write_json, write_parquet
 
@@ -120,8 +121,7 @@ def import_source(p: dict[str, Any], out: Path) -> None:
             images[lo:lo + chunk] = np.stack([read_image(f, (W, H), (cam.width, cam.height))
                                               for f in names[lo:lo + chunk]])
         write_parquet(pd.DataFrame({
-            "index": np.arange(n), "sequence": np.arange(n), "frame": 0, "tx": t[:, 0], "ty": t[:, 1],
-            "tz": t[:, 2], "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3],
+            "index": np.arange(n), "sequence": np.arange(n), "frame": 0, **pose_columns(t, q),
             "range": np.linalg.norm(t, axis=1), "split": [s for s, _, ns, _, _ in parts for _ in ns],
             "filename": [str(f.relative_to(folder)) for f in names]}), tmp / "poses.parquet")
         seconds = time.perf_counter() - t0
@@ -163,6 +163,6 @@ def export(out: Path, images: Any, labels: Any, K: Any) -> None:
         for split in ("train", "test"):
             rows = (labels["split"] == split).to_numpy()
             write_json(tmp / EXPORT_DIR / f"{split}.json",
-                       to_speed([n for n, keep in zip(names, rows) if keep], labels.loc[rows, ["tx", "ty", "tz"]],
-                                labels.loc[rows, ["qw", "qx", "qy", "qz"]]))
+                       to_speed([n for n, keep in zip(names, rows) if keep], labels.loc[rows, POSITION],
+                                labels.loc[rows, QUAT]))
         write_json(tmp / "camera.json", camera_to_json(K))

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.pose.labels import POSITION, QUAT
 
 def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_dir: Path) -> str:
     """reports/dataset.md: counts, ranges (m, px), attitude and pointing spread (deg), settings, where the time
@@ -15,8 +16,8 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
     from pipeline.report.markdown import markdown_table
     from pipeline.pose.metrics import attitude_error_deg
 
-    q = labels[["qw", "qx", "qy", "qz"]].to_numpy()
-    t = labels[["tx", "ty", "tz"]].to_numpy()
+    q = labels[QUAT].to_numpy()
+    t = labels[POSITION].to_numpy()
     K = np.asarray(meta["K"])
     cam = Intrinsics(meta["width"], meta["height"], K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     uv = project(t, cam)
