@@ -11,14 +11,12 @@ PAPER_ACCURACY = 0.9990
 def detector_page(results: dict[str, dict[str, dict[str, float]]], scores: dict[str, Any], counts: dict[str, int],
                   result: Any, attrs: dict[str, Any], d: dict[str, Any]) -> str:
     """reports/detector.md: the LSTM per eps, the baselines on the same split, and what the detectors see."""
-    from pipeline.report.markdown import markdown_table
+    from pipeline.report.markdown import markdown_table, percent_ci
 
     def pct(m: dict[str, Any], key: str) -> str:
         """A rate in percent with its 95% Wilson interval, e.g. "94.1 [92.4, 95.4]"."""
-        lo, hi = m.get(f"{key}_ci95") or (None, None)
-        if m[key] is None or math.isnan(m[key]) or lo is None:
-            return "-"
-        return f"{100 * m[key]:.1f} [{100 * lo:.1f}, {100 * hi:.1f}]"
+        ci = m.get(f"{key}_ci95") or (None, None)
+        return "-" if m[key] is None or math.isnan(m[key]) or ci[0] is None else percent_ci(m[key], ci)
 
     def row(m: dict[str, Any]) -> dict[str, Any]:
         return {"n": m["n"], "accuracy (%)": pct(m, "accuracy"), "precision": m["precision"],

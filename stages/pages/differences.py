@@ -3,19 +3,14 @@ stage metrics and params (so no number in it is copied by hand; `rpod report --c
 from __future__ import annotations
 
 from typing import Any
-
 from stages.pages.readme import DETECTOR_NAMES, PAPER
-
-
-def _pct(x: float | None, decimals: int = 1) -> str:
-    return "-" if x is None else f"{100 * x:.{decimals}f}%"
 
 
 def _ci(m: dict[str, Any], key: str) -> str:
     """"54.0% [47.1, 60.8]" from a metrics dict with `key` and `key_ci95`."""
-    lo, hi = m.get(f"{key}_ci95") or (None, None)
-    ci = "" if lo is None else f" [{100 * lo:.1f}, {100 * hi:.1f}]"
-    return f"{_pct(m.get(key))}{ci}"
+    from pipeline.report.markdown import percent_ci
+
+    return percent_ci(m.get(key), m.get(f"{key}_ci95"), unit="%")
 
 
 def _scale(params: dict[str, Any], tr: dict[str, Any]) -> str:
@@ -47,24 +42,28 @@ def _detector(params: dict[str, Any], de: dict[str, Any]) -> str:
 
 
 def _integrated(params: dict[str, Any], ev: dict[str, Any]) -> str:
+    from pipeline.report.markdown import percent_ci
+
     e = params["evaluate"]
     per = ev["per_eps"]
     small = min(per, key=float)
     fpr = [c["fpr"] for c in ev.get("clean", {}).values()]
     return (f"- **Integrated evaluation.** {e['trajectories']} fresh trajectories of {e['frames']} frames (paper: "
-            f"2,500 frames each): {_pct(ev['accuracy_mean'], 2)} mean accuracy against {PAPER['integrated']:.2f}%; at "
+            f"2,500 frames each): {percent_ci(ev['accuracy_mean'], decimals=2, unit='%')} mean accuracy against {PAPER['integrated']:.2f}%; at "
             f"eps {small} {_ci(per[small], 'accuracy')} against {PAPER['integrated_eps'].get(small, '-')}%. False "
-            f"alarms on attack-free runs: {_pct(sum(fpr) / len(fpr) if fpr else None, 2)}. Intervals are a "
+            f"alarms on attack-free runs: {percent_ci(sum(fpr) / len(fpr) if fpr else None, decimals=2, unit='%')}. Intervals are a "
             f"bootstrap over the {e['trajectories']} trajectories (coarse with so few).")
 
 
 def _lab(lab: dict[str, Any]) -> str:
+    from pipeline.report.markdown import percent_ci
+
     fpr = [c["fpr"] for c in lab.get("clean_detection", {}).values()]
     models = ("reuses the main models (allowed when the mock-up is the main mesh)" if lab.get("reused_models", True)
               else "retrains the pose model and detector on a synthetic-lab set")
     return (f"- **Lab.** We have no lab: lab-like sequences are rendered with a domain shift and read back through "
-            f"the real-data loader; this run {models}. The detector flags {_pct(sum(fpr) / len(fpr) if fpr else None)} "
-            f"of the clean domain-shifted frames; mean accuracy {_pct(lab['accuracy_mean'], 2)} (paper "
+            f"the real-data loader; this run {models}. The detector flags {percent_ci(sum(fpr) / len(fpr) if fpr else None, unit='%')} "
+            f"of the clean domain-shifted frames; mean accuracy {percent_ci(lab['accuracy_mean'], decimals=2, unit='%')} (paper "
             f"{PAPER['lab']:.2f}%).")
 
 

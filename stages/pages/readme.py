@@ -19,8 +19,9 @@ def _fmt(x: float | None, decimals: int = 2) -> str:
 
 def _with_ci(m: dict[str, Any], key: str) -> str:
     """A rate of a metrics dict in percent with its 95% interval (`key_ci95`), e.g. "94.58 [92.40, 96.10]"."""
-    lo, hi = m.get(f"{key}_ci95") or (None, None)
-    return _fmt(100 * m[key]) + ("" if lo is None else f" [{_fmt(100 * lo)}, {_fmt(100 * hi)}]")
+    from pipeline.report.markdown import percent_ci
+
+    return percent_ci(m[key], m.get(f"{key}_ci95"), 2)
 
 
 def _eps_keys(d: dict[str, Any]) -> list[str]:
@@ -93,10 +94,9 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
 
 def _rate(r: dict[str, Any] | None) -> str:
     """A rate of the metrics JSON ({"value", "ci": [lo, hi], "n"}) as "96.5 [95.1, 97.6]" (%)."""
-    if not r or not r.get("n") or r["value"] is None:
-        return "-"
-    lo, hi = r["ci"]
-    return f"{100 * r['value']:.2f} [{100 * lo:.2f}, {100 * hi:.2f}]"
+    from pipeline.report.markdown import percent_ci
+
+    return "-" if not r or not r.get("n") or r["value"] is None else percent_ci(r["value"], r["ci"], 2)
 
 
 def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any] | None = None) -> str:
@@ -144,6 +144,8 @@ def _robustness_rows(m: dict[str, Any], spread: dict[str, Any] | None) -> list[t
     """Summary rows at eps 0.05 and 0.01: the worst harmful-undetected rate against the chain that ships
     (the fused chain, adaptive attack over bursts), and beside it against the paper's detector alone
     (LSTM, any robustness attack incl. adaptive); percent with the 95% interval, "-" where not run."""
+    from pipeline.report.markdown import percent_ci
+
     out = []
     for key, what, short in (("worst_harmful_undetected_fused", "fused chain (ships), adaptive attack on bursts", "fused"),
                              ("worst_harmful_undetected", "paper's LSTM detector alone, any attack incl. adaptive",
@@ -152,9 +154,7 @@ def _robustness_rows(m: dict[str, Any], spread: dict[str, Any] | None) -> list[t
             w = m.get(key, {}).get(e)
             value = "-"
             if w is not None:
-                lo, hi = w["ci95_harmful_undetected"]
-                value = (f"{_fmt(100 * w['harmful_undetected_rate'], 1)} [{_fmt(100 * lo, 1)}, {_fmt(100 * hi, 1)}] "
-                         f"({w['attack']})")
+                value = f"{percent_ci(w['harmful_undetected_rate'], w['ci95_harmful_undetected'])} ({w['attack']})"
             out.append((f"worst harmful-undetected rate (%) at eps {e}, {what}", value, "-", "robustness",
                         _sd(spread, f"{short}_hu_{e}_pct")))
     return out
