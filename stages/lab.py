@@ -27,7 +27,8 @@ from stages.engine import pool as engine
 
 from stages.config import params as params_mod
 from stages.artifacts.readers import DETECTOR, LAB as OUT, LAB_MODELS, LAB_MODELS_SUMMARY, POSE, TRAIN_METRICS, load_chain
-from stages.pages.lab import PAPER_AVERAGE, lab_page
+from stages.pages.lab import lab_page
+from stages.pages.paper import LAB
 from stages.engine.chunks import render_poses
 from stages.artifacts.recordings import read_recording, recording_folders, write_recording
 from stages.io import StageError, atomic_dir, atomic_write_text, read_json, write_metrics
@@ -165,7 +166,7 @@ def main(ctx: typer.Context) -> None:
                                      train_metrics, K_syn, K_zed, sequences))
     typer.echo(f"lab: {'reused' if synthetic_lab is None else 'retrained'} models {models['pose']}, "
                f"{models['detector']}; {len(sequences)} sequences from {source}; mean detection accuracy "
-               f"{100 * metrics['accuracy_mean']:.2f}% (paper {PAPER_AVERAGE}%) in {seconds:.0f} s -> {REPORT}")
+               f"{100 * metrics['accuracy_mean']:.2f}% (paper {LAB}%) in {seconds:.0f} s -> {REPORT}")
 
 
 def _lab_models(reason: str | None) -> dict[str, Any] | None:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
-PAPER_ACCURACY = 0.9990
+from stages.pages.paper import DETECTOR_ACCURACY
+
 
 
 def detector_page(results: dict[str, dict[str, dict[str, float]]], scores: dict[str, Any], counts: dict[str, int],
@@ -40,7 +41,7 @@ def detector_page(results: dict[str, dict[str, dict[str, float]]], scores: dict[
     reading = (f"Detection rate of the LSTM by eps: {rates}; false alarms on clean images: "
                f"{pct(lstm['all'], 'fpr')}%. Highest test accuracy of all detectors here: {names[best]} "
                f"({pct(results[best]['all'], 'accuracy')}%). Brackets: 95% Wilson intervals over the test samples.")
-    paper = f"{PAPER_ACCURACY * 100:.2f}%"
+    paper = f"{DETECTOR_ACCURACY * 100:.2f}%"
     ours = f"{pct(lstm['all'], 'accuracy')}%"
     return f"""# Attack detector
 

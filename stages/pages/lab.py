@@ -7,9 +7,7 @@ from typing import Any
 import numpy as np
 
 from stages.artifacts.readers import LAB as OUT, TRAIN_METRICS
-
-PAPER_ACCURACY = {0.5: 100.0, 0.3: 100.0, 0.1: 100.0, 0.05: 98.44, 0.01: 90.44}
-PAPER_AVERAGE = 96.29
+from stages.pages.paper import LAB, LAB_EPS, LAB_RANGES, by_eps
 
 
 def models_section(p: dict[str, Any], m: dict[str, Any]) -> str:
@@ -49,7 +47,6 @@ the time of each step is in reports/metrics/lab.json (`synthetic_lab.seconds`).
 """
 
 
-PAPER_RANGES = {3.122: 51.18}  # the paper's representative-range table: lab z (m) -> synthetic z (m), as printed
 
 
 def paper_ranges(K_syn: Any, K_zed: Any, scale: float, factor: float) -> str:
@@ -59,7 +56,7 @@ def paper_ranges(K_syn: Any, K_zed: Any, scale: float, factor: float) -> str:
 
     k_paper = paper_lab_factor(K_syn, K_zed, scale)
     rows = [{"lab z (m)": f"{z:g}", "ours (m)": z * factor, "paper's formula (m)": z * k_paper,
-             "paper, as printed (m)": PAPER_RANGES.get(z, "-")} for z in (3.122, 3.0, 2.5, 2.0, 1.5, 1.0)]
+             "paper, as printed (m)": LAB_RANGES.get(z, "-")} for z in (3.122, 3.0, 2.5, 2.0, 1.5, 1.0)]
     return f"""Representative ranges beside the paper's. The paper takes the 1920 -> 480 resize as
 cx_zed / cx_blender = {K_zed.cx:g} / {K_syn.cx:g} = {K_zed.cx / K_syn.cx:.4f} instead of the exact
 {K_zed.width}/{K_syn.width} = {K_zed.width / K_syn.width:g}, so its factor is {k_paper:.3f} against our {factor:.3f} and
@@ -150,8 +147,8 @@ Mean error over all lab frames (attack.eps, loss `{p['attack']['loss']}`, 8-bit 
 Start probability {p['evaluate']['p_start']:g} per frame, {100 * att_frac:.1f}% of the frames attacked;
 accuracy = correctly classified frames / all frames (%).
 
-{markdown_table(accuracy_table(rows, summary, names, PAPER_ACCURACY), decimals=2)}
-Mean over eps: **{mean_acc:.2f}%** (paper: {PAPER_AVERAGE}% average).
+{markdown_table(accuracy_table(rows, summary, names, by_eps(LAB_EPS)), decimals=2)}
+Mean over eps: **{mean_acc:.2f}%** (paper: {LAB}% average).
 
 {markdown_table(detail_table(summary), decimals=2)}
 """

@@ -4,11 +4,9 @@ from __future__ import annotations
 
 from typing import Any
 
-PAPER = {
-    "position_m": 0.49, "attitude_deg": 0.68, "detector": 99.90, "integrated": 99.21, "lab": 96.29,
-    "integrated_eps": {"0.5": 100.0, "0.3": 99.99, "0.1": 99.97, "0.05": 99.99, "0.01": 97.67},
-    "lab_eps": {"0.5": 100.0, "0.3": 100.0, "0.1": 100.0, "0.05": 98.44, "0.01": 90.44},
-}
+from stages.pages.paper import (ATTITUDE_DEG, DETECTOR_ACCURACY, INTEGRATED, INTEGRATED_EPS, LAB, LAB_EPS,
+                                POSITION_M)
+
 DETECTOR_NAMES = {"lstm": "LSTM on SHAP (paper)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis (GAP)",
                   "lid": "LID (GAP)", "squeeze": "feature squeezing"}
 
@@ -50,9 +48,9 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
     dets = de["detectors"]
     best_base = max((k for k in dets if k != "lstm"), key=lambda k: dets[k]["all"]["accuracy"])
     rows = [
-        ("pose, test mean position error (m)", _fmt(tr["test"]["pos_mean_m"]), _fmt(PAPER["position_m"]), "train",
+        ("pose, test mean position error (m)", _fmt(tr["test"]["pos_mean_m"]), _fmt(POSITION_M), "train",
          _sd(spread, "pos_m")),
-        ("pose, test mean attitude error (deg)", _fmt(tr["test"]["att_mean_deg"]), _fmt(PAPER["attitude_deg"]), "train",
+        ("pose, test mean attitude error (deg)", _fmt(tr["test"]["att_mean_deg"]), _fmt(ATTITUDE_DEG), "train",
          _sd(spread, "att_deg")),
         ("FGSM mean position error (m) at eps " + " / ".join(eps_at),
          " / ".join(_fmt(at["eps"][e]["position_mean_m"], 1) for e in eps_at), "-", "attack",
@@ -63,13 +61,13 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
          f"{broken} of {len(runs)} ({wilson(broken, len(runs)).pct()} %)", "-", "guidance",
          _sd(spread, "undefended_lost_pct", " %")),
         ("LSTM detector accuracy, SHAP test split (%)", _with_ci(dets["lstm"]["all"], "accuracy"),
-         _fmt(PAPER["detector"]), "detect", _sd(spread, "lstm")),
+         _fmt(100 * DETECTOR_ACCURACY), "detect", _sd(spread, "lstm")),
         (f"best baseline detector accuracy (%): {DETECTOR_NAMES.get(best_base, best_base)}",
          _with_ci(dets[best_base]["all"], "accuracy"), "-", "detect", "-"),
         ("integrated detection accuracy, mean over eps (%; per eps with intervals below)", _fmt(100 * ev["accuracy_mean"]),
-         _fmt(PAPER["integrated"]), "evaluate", _sd(spread, "chain")),
+         _fmt(INTEGRATED), "evaluate", _sd(spread, "chain")),
         (f"lab detection accuracy, mean over eps (%), {'main' if lab.get('reused_models', True) else 'retrained'} models",
-         _fmt(100 * lab["accuracy_mean"]), _fmt(PAPER["lab"]), "lab", _sd(spread, "lab")),
+         _fmt(100 * lab["accuracy_mean"]), _fmt(LAB), "lab", _sd(spread, "lab")),
         *_robustness_rows(metrics["robustness"], spread),
     ]
     columns = ("result", "this run", "paper", "stage", "sd over seeds")
@@ -78,8 +76,8 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
     eps_rows = []
     for e in sorted(set(ev["per_eps"]) | set(lab["per_eps"]), key=float, reverse=True):
         get = lambda m, k: _with_ci(m["per_eps"][e], "accuracy") if e in m["per_eps"] else "-"  # noqa: E731
-        eps_rows.append({"eps": e, "integrated (%)": get(ev, e), "paper, integrated (%)": _fmt(PAPER["integrated_eps"].get(e)),
-                         "lab, 10-frame attacks (%)": get(lab, e), "paper, lab (%)": _fmt(PAPER["lab_eps"].get(e))})
+        eps_rows.append({"eps": e, "integrated (%)": get(ev, e), "paper, integrated (%)": _fmt(INTEGRATED_EPS.get(e)),
+                         "lab, 10-frame attacks (%)": get(lab, e), "paper, lab (%)": _fmt(LAB_EPS.get(e))})
     profiles = sorted({m.get("profile", "unknown") for m in metrics.values()})
     head = (f"Profile `{'`, `'.join(profiles)}`. Paper: 480x270 images, full-width network, "
             "50 epochs, 32,500 images; each stage's section of the results page says what differs and why.")
@@ -110,7 +108,7 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
         return ""
     e = "0.01" if "0.01" in fused["per_eps"] else min(fused["per_eps"], key=float)
     paper, ours = fused["paper_per_eps"][e], fused["per_eps"][e]
-    rows = [(f"integrated accuracy at eps {e} (%)", "accuracy", _fmt(PAPER["integrated_eps"].get(e)), ">= 99.5",
+    rows = [(f"integrated accuracy at eps {e} (%)", "accuracy", _fmt(INTEGRATED_EPS.get(e)), ">= 99.5",
              "defended" if e == min(fused["per_eps"], key=float) else None),   # summary.json's key
             (f"attacked frames flagged at eps {e} (TPR, %)", "tpr", "-", "-", None),
             (f"harmful frames (error > {fused['harm_m']:g} m) flagged at eps {e} (%)", "harmful_flagged", "-", ">= 99.5",
