@@ -60,7 +60,7 @@ class Chain:
     """
 
     def __init__(self, safety: Any, input_size: tuple[int, int], files: tuple[Path, Path]):
-        self.safety = safety                      # pipeline.defense.chain.SafetyChain
+        self.safety = safety                      # pipeline.defense.chain.OnboardChain
         self.height, self.width = input_size      # model input, pixels
         self.files = files                        # (pose.pt, detector.pt)
 
@@ -154,7 +154,7 @@ def load_chain(folder: str | Path = "models") -> Chain:
     """The chain as the pipeline ships it: FOLDER/pose.pt and FOLDER/detector.pt (or FOLDER/models/...
     when FOLDER is a project root). The detector must have been trained on this pose model's SHAP
     values (its checkpoint names the pose file's hash)."""
-    from pipeline.defense.chain import SafetyChain
+    from pipeline.defense.chain import OnboardChain
     from stages.artifacts.readers import load_detector
     from stages.artifacts.checkpoint import model_from_checkpoint, read_pose
     from stages.io import file_hash
@@ -166,7 +166,7 @@ def load_chain(folder: str | Path = "models") -> Chain:
     ckpt = read_pose(pose_path)
     detector, det = load_detector(detector_path, model_hash=file_hash(pose_path))
     try:
-        safety = SafetyChain.from_model(model_from_checkpoint(ckpt), np.asarray(det["background_mean"]), detector,
+        safety = OnboardChain.from_model(model_from_checkpoint(ckpt), np.asarray(det["background_mean"]), detector,
                                         threshold=float(det["threshold"]))
     except ValueError as e:
         raise StageError(f"{pose_path}: {e}") from None

@@ -43,7 +43,7 @@ def main() -> None:
     """Run every attack and corruption row on held-out test frames; write the report, metrics and figure."""
     from tqdm import tqdm
 
-    from pipeline.attacks.adaptive import ShapChain
+    from pipeline.attacks.adaptive import PerFrameChain
     from pipeline.report.figures import robustness_vs_eps
     from pipeline.evaluation.robustness import run_attack_rows, worst_by_eps
     from stages.artifacts.data import load_split
@@ -62,7 +62,7 @@ def main() -> None:
     images = np.stack([np.asarray(split.images[int(i)]) for i in pick])
     targets = split.targets[pick]
 
-    target = ShapChain(pose.model, chain.shap, chain.detector)
+    target = PerFrameChain(pose.model, chain.shap, chain.detector)
     specs = _specs(p, r, target, pose, surrogate, seed)
     n_corr = sum(len(v) for v in dataclasses.asdict(r.corruptions).values())
     bar = tqdm(total=-(-n // r.batch_size) * (len(specs) + n_corr + 1), desc="robustness", unit="batch",
@@ -99,11 +99,11 @@ def main() -> None:
 
 def _chain(pose: Pose) -> Any:
     """The safety chain of `pose` and models/detector.pt (refused when trained on another pose model)."""
-    from pipeline.defense.chain import SafetyChain
+    from pipeline.defense.chain import OnboardChain
 
     detector, ckpt = load_detector(model_hash=pose.hash)
     try:
-        return SafetyChain.from_model(pose.model, np.asarray(ckpt["background_mean"]), detector,
+        return OnboardChain.from_model(pose.model, np.asarray(ckpt["background_mean"]), detector,
                                       threshold=float(ckpt["threshold"]))
     except ValueError as err:
         raise StageError(f"{POSE}: {err}") from None

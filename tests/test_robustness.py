@@ -10,7 +10,7 @@ import pytest
 import torch
 from torch import nn
 
-from pipeline.attacks.adaptive import ShapChain, adaptive_objective, adaptive_pgd, check_lambdas
+from pipeline.attacks.adaptive import PerFrameChain, adaptive_objective, adaptive_pgd, check_lambdas
 from pipeline.attacks.gradient import pgd, quantize
 from pipeline.attacks.corruptions import CORRUPTIONS, corrupt
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
@@ -42,7 +42,7 @@ class TinyPose(nn.Module):
 
 
 @pytest.fixture()
-def setup() -> tuple[ShapChain, TinyPose, torch.Tensor, torch.Tensor, PoseLoss]:
+def setup() -> tuple[PerFrameChain, TinyPose, torch.Tensor, torch.Tensor, PoseLoss]:
     torch.manual_seed(0)
     model = TinyPose().eval()
     detector = LSTMDetector(LSTMConfig(n_rows=9, n_features=D, hidden=8, dense=[4])).eval()
@@ -52,7 +52,7 @@ def setup() -> tuple[ShapChain, TinyPose, torch.Tensor, torch.Tensor, PoseLoss]:
         mu = background.mean(0)
         # standardise the SHAP rows as training would, so the logit depends on the image
         detector.set_normalisation((model.head.weight.unsqueeze(0) * (background - mu).unsqueeze(1)).numpy())
-    chain = ShapChain(model, ExactShap(model.head.weight.detach(), mu), detector)
+    chain = PerFrameChain(model, ExactShap(model.head.weight.detach(), mu), detector)
     y = torch.randn(6, 9)
     return chain, model, x, y, PoseLoss("mean")
 

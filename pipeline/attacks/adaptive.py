@@ -11,7 +11,7 @@ with gradients (`DifferentiableChain`). L-inf PGD then ascends
 `adaptive_pgd` is `pipeline.attacks.gradient.pgd` run on that objective, so with lambda = 0 it is plain
 PGD on the same seed, step for step.
 
-Today's shipped chain is `ShapChain`: pose net -> GAP features a -> closed-form DeepSHAP
+Today's shipped chain is `PerFrameChain`: pose net -> GAP features a -> closed-form DeepSHAP
 W * (a - mean_background) -> LSTM logit. A detector that reads frames in time order (a fused or
 temporal detector) plugs in as another `DifferentiableChain` with `temporal = True`: it reads the
 batch as one burst in time order, and the caller then attacks whole bursts (one burst per call),
@@ -37,7 +37,9 @@ DEFAULT_STEPS = 20
 
 
 class DifferentiableChain(Protocol):
-    """Frames (B, 3, H, W) in [0, 1] -> (pose (B, 9) [m, 6-D], attack logit (B,)), differentiable.
+    """What the adaptive attack differentiates through (`PerFrameChain`, `FusedBurstChain`).
+
+    Frames (B, 3, H, W) in [0, 1] -> (pose (B, 9) [m, 6-D], attack logit (B,)), differentiable.
 
     `temporal`: False when each frame's logit depends on that frame alone (the batch is any set of
     frames); True when the batch is read as one burst in time order.
@@ -55,11 +57,13 @@ class DifferentiableChain(Protocol):
     def training(self) -> bool: ...
 
 
-class ShapChain(nn.Module):
-    """The shipped chain as one differentiable module: image -> pose and LSTM-on-SHAP logit.
+class PerFrameChain(nn.Module):
+    """The attacker's differentiable copy of `OnboardChain`, frame by frame (stages/robustness.py's adaptive PGD).
+
+    The shipped chain as one differentiable module: image -> pose and LSTM-on-SHAP logit.
 
     `model`: PoseNet (forward_features (B, D), forward_head (B, 9)); `weight` (9, D) the affine head
-    weights and `background_mean` (D,) the SHAP background mean (as in `SafetyChain`); `detector`:
+    weights and `background_mean` (D,) the SHAP background mean (as in `pipeline.defense.chain.OnboardChain`); `detector`:
     SHAP values (B, 9, D) -> logits (B,). The pose is `forward_head(forward_features(x))`, exactly
     `model(x)`, so the features are computed once for both outputs. Built in eval mode (BatchNorm
     statistics frozen): the attack restores this mode afterwards, so the shared pose model stays in it.
@@ -144,7 +148,9 @@ def burst_prior(motion: MotionFilter, R_cam: np.ndarray, u: np.ndarray) -> Burst
 
 
 class FusedBurstChain(nn.Module):
-    """The fused chain (pipeline.defense.fusion, fusion "or": LSTM flag OR motion gate) on one burst of K
+    """The attacker's differentiable copy of the defended chain over one burst (pipeline.evaluation.robustness).
+
+    The fused chain (pipeline.defense.fusion, fusion "or": LSTM flag OR motion gate) on one burst of K
     frames in time order, differentiable: images (K, 3, H, W) -> (pose (K, 9), score (K,)).
 
     score = softplus(LSTM logit - logit(threshold)) + softplus((NIS_position - gate) / gate)
@@ -158,7 +164,7 @@ class FusedBurstChain(nn.Module):
 
     temporal = True
 
-    def __init__(self, chain: ShapChain, threshold: float, noise: NoiseModel, gate: float, prior: BurstPrior | None):
+    def __init__(self, chain: PerFrameChain, threshold: float, noise: NoiseModel, gate: float, prior: BurstPrior | None):
         super().__init__()
         if not 0 < threshold < 1 or not gate > 0:
             raise ValueError(f"threshold must be in (0, 1) and gate > 0, got {threshold} and {gate}")

@@ -32,8 +32,10 @@ class ChainOutput:
     flag: torch.Tensor
 
 
-class ShapLSTM(nn.Module):
-    """`detector` on the exact SHAP values of an affine head, from the head's GAP features:
+class FoldedShapLSTM(nn.Module):
+    """The onboard chain's fast path (traced by `OnboardChain` on the CPU): SHAP + LSTM folded into one graph.
+
+    `detector` on the exact SHAP values of an affine head, from the head's GAP features:
     (B, D) features -> (SHAP values (B, n_rows, D), attack probability (B,)).
 
     The detector reads x[b, j] = (phi[b, j] - m_j) / s_j with phi[b, j] = W[j] * (a[b] - mu), that
@@ -78,12 +80,15 @@ class ShapLSTM(nn.Module):
         return self.weight * centred, prob
 
 
-class SafetyChain:
-    """Pose model + exact SHAP (head weights, background mean) + detector, in eval mode, no grad.
+class OnboardChain:
+    """The chain that runs onboard, frame by frame, no gradients: image -> pose, SHAP, attack flag; used
+    by the stages (readers.load_chain, robustness), rpodguard.api, the evaluation and guidance.
+
+    Pose model + exact SHAP (head weights, background mean) + detector, in eval mode, no grad.
 
     `detector` maps SHAP values (B, 9, D) to attack logits (B,); a frame is flagged when
     sigmoid(logit) >= `threshold`. With `fast` (default) and an LSTM detector, frames on the CPU
-    go from the GAP features through one traced and frozen TorchScript graph (`ShapLSTM`: SHAP
+    go from the GAP features through one traced and frozen TorchScript graph (`FoldedShapLSTM`: SHAP
     values, the folded standardisation, the LSTM and the probability); its results equal the
     detector's on the SHAP values to float32 rounding (tested to 1e-4). Other detectors, and
     frames on another device, take the plain path. benchmarks/chain_latency.py measures the cost.
@@ -103,12 +108,12 @@ class SafetyChain:
             # recompiles per batch size; tracing still works in torch 2.13 and has neither cost.
             with torch.no_grad(), warnings.catch_warnings():
                 warnings.simplefilter("ignore", DeprecationWarning)
-                module = ShapLSTM(self.detector, self.shap).eval()
+                module = FoldedShapLSTM(self.detector, self.shap).eval()
                 self._fast = torch.jit.freeze(torch.jit.trace(module, example))
 
     @classmethod
     def from_model(cls, model: nn.Module, background_mean: np.ndarray | torch.Tensor, detector: nn.Module,
-                   threshold: float = 0.5, fast: bool = True) -> "SafetyChain":
+                   threshold: float = 0.5, fast: bool = True) -> "OnboardChain":
         """Read the head weights from `model` (they must form an affine map, as in PoseNet)."""
         mu = np.asarray(torch.as_tensor(background_mean, dtype=torch.float32))
         head = affine_head(model, n_features=len(mu))
@@ -136,7 +141,9 @@ class SafetyChain:
         return self.model(x)
 
 
-Attack = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+AttackFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+"""An attack as `run_sequence` calls it: (images (B, 3, H, W) in [0, 1], labels (B, 9)) -> attacked images
+(not the `attack` params section, stages.config.schema.Attack)."""
 
 
 @dataclass(frozen=True)
@@ -148,8 +155,8 @@ class SequenceResult:
     flag: np.ndarray
 
 
-def run_sequence(chain: SafetyChain, images: np.ndarray, targets: np.ndarray, attacked: np.ndarray,
-                 attack: Attack | None, batch_size: int = 64,
+def run_sequence(chain: OnboardChain, images: np.ndarray, targets: np.ndarray, attacked: np.ndarray,
+                 attack: AttackFn | None, batch_size: int = 64,
                  progress: Callable[[Iterable[int]], Iterable[int]] = iter) -> SequenceResult:
     """Frames as onboard: attacked frames are replaced by `attack(x, y)` against their own true label.
 

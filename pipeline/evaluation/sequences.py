@@ -17,7 +17,7 @@ import pandas as pd
 import torch
 
 from pipeline.attacks.gradient import stored_attack
-from pipeline.defense.chain import SafetyChain, run_sequence
+from pipeline.defense.chain import OnboardChain, run_sequence
 from pipeline.defense.fusion import DefenseSettings, run_defense
 from pipeline.defense.kalman import MotionSettings, NoiseModel
 from pipeline.geometry.rotations import sixd_to_matrix
@@ -34,7 +34,7 @@ def _bar_iter(it: Iterable[Any], bar: Any) -> Iterator[Any]:
         bar.update(1)
 
 
-def evaluate_sequences(chain: SafetyChain, loss_fn: Any, sequences: list[dict[str, Any]], eps_list: list[float],
+def evaluate_sequences(chain: OnboardChain, loss_fn: Any, sequences: list[dict[str, Any]], eps_list: list[float],
                        attack_length: int, batch_size: int, desc: str) -> dict[str, Any]:
     """Run every sequence clean and at every eps through the chain; per-row metrics and per-frame traces.
 
@@ -83,7 +83,7 @@ def evaluate_sequences(chain: SafetyChain, loss_fn: Any, sequences: list[dict[st
     return {"rows": rows, "traces": traces, "clean": clean}
 
 
-def pose_errors_under_fgsm(chain: SafetyChain, loss_fn: Any, sequence: dict[str, Any], eps_list: list[float],
+def pose_errors_under_fgsm(chain: OnboardChain, loss_fn: Any, sequence: dict[str, Any], eps_list: list[float],
                            batch_size: int) -> list[dict[str, Any]]:
     """Mean pose errors of one sequence clean and under FGSM at every eps (every frame attacked).
 
@@ -107,7 +107,7 @@ def pose_errors_under_fgsm(chain: SafetyChain, loss_fn: Any, sequence: dict[str,
     return rows
 
 
-def fgsm_error_table(chain: SafetyChain, loss_fn: Any, sequences: list[dict[str, Any]], eps_list: list[float],
+def fgsm_error_table(chain: OnboardChain, loss_fn: Any, sequences: list[dict[str, Any]], eps_list: list[float],
                      batch_size: int) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """`pose_errors_under_fgsm` over every sequence, split into (clean rows, FGSM rows)."""
     clean, fgsm = [], []

@@ -220,7 +220,7 @@ class CachedCamera:
     are deterministic, so each rendered pose's image and clean estimate are kept. `render` and
     `estimate` are the RenderFn and EstimateFn; attacked frames go through `attack(x, y)` (images
     (1, 3, H, W) in [0, 1], labels (1, 9): metres, 6-D) which `self.attack` may be changed to between
-    runs. With `chain` (a pipeline.defense.chain.SafetyChain over `model`) `estimate` returns an `Estimate`
+    runs. With `chain` (a pipeline.defense.chain.OnboardChain over `model`) `estimate` returns an `Estimate`
     (position, the detector's probability, attitude) for the defended variants; without it the
     camera-frame position (m). `counts`: guidance steps, rendered frames, attacked frames.
     """

@@ -99,14 +99,14 @@ def load_detector(path: Path | str = DETECTOR, model_hash: str | None = None) ->
 
 def load_chain(params: dict[str, Any], pose_path: Path | str = POSE,
                detector_path: Path | str = DETECTOR) -> tuple[Any, Any, str]:
-    """(SafetyChain, attack loss function on `attack.loss`, pose model hash) from a pose model and its detector."""
+    """(OnboardChain, attack loss function on `attack.loss`, pose model hash) from a pose model and its detector."""
     from pipeline.attacks.gradient import attack_loss
-    from pipeline.defense.chain import SafetyChain
+    from pipeline.defense.chain import OnboardChain
 
     pose = load_pose(params, pose_path)
     detector, ckpt = load_detector(detector_path, model_hash=pose.hash)
     try:
-        chain = SafetyChain.from_model(pose.model, np.asarray(ckpt["background_mean"]), detector,
+        chain = OnboardChain.from_model(pose.model, np.asarray(ckpt["background_mean"]), detector,
                                        threshold=float(ckpt["threshold"]))
     except ValueError as err:
         raise StageError(f"{pose_path}: {err}") from None
