@@ -31,7 +31,8 @@ from pipeline.defense.chain import OnboardChain  # noqa: E402
 from pipeline.defense.fusion import Defense, DefenseSettings  # noqa: E402
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector  # noqa: E402
 from pipeline.pose.model import PoseNet  # noqa: E402
-from pipeline.defense.kalman import MotionSettings, NoiseModel  # noqa: E402
+from pipeline.defense.gate import MotionSettings  # noqa: E402
+from pipeline.defense.noise import NoiseModel  # noqa: E402
 from pipeline.report.markdown import markdown_table  # noqa: E402
 from pipeline.geometry.trajectories import look_at  # noqa: E402
 from stages.report import write_benchmark  # noqa: E402

@@ -2,7 +2,7 @@
 
 Runs the safety chain clean over the validation approaches `rpod eval_render` rendered into
 datasets/val_render/ (seed `defense.val_seed`, never the evaluation seed), fits the pose model's
-range-dependent measurement noise and bias (`pipeline.defense.kalman.fit_noise`, `defense.noise_bins` range
+range-dependent measurement noise and bias (`pipeline.defense.noise.fit_noise`, `defense.noise_bins` range
 bins), inflates its standard deviations by the smallest factor that keeps the defended chain's false
 alarms on those clean frames within `defense.target_false_alarm` (a Gaussian fit under-states the
 errors' heavy, correlated tails), and writes models/defense.json: the noise model, the detector threshold and pose-model hash
@@ -31,7 +31,7 @@ def main() -> None:
 
     from pipeline.defense.chain import run_sequence
     from pipeline.evaluation.sequences import defend_trace
-    from pipeline.defense.kalman import fit_noise, inflate, smallest_inflation
+    from pipeline.defense.noise import fit_noise, inflate, smallest_inflation
     from pipeline.geometry.rotations import sixd_to_matrix
 
     p = params_mod.load()

@@ -39,7 +39,8 @@ def attack_at(eps: float, i: int):
 
 def defense():
     from pipeline.defense.fusion import DefenseSettings
-    from pipeline.defense.kalman import MotionSettings, NoiseModel
+    from pipeline.defense.gate import MotionSettings
+    from pipeline.defense.noise import NoiseModel
     from stages.artifacts.readers import DefenseModel
 
     return DefenseModel(DefenseSettings(hold_after=20), MotionSettings(false_alarm=0.005),

@@ -322,7 +322,9 @@ def test_a_temporal_chain_plugs_in_and_is_attacked_over_the_burst(setup) -> None
 def _fused(setup, lam_prior: bool = True):
     """A FusedBurstChain over a 4-frame burst whose prior is a filter started on the clean estimates."""
     from pipeline.attacks.adaptive import FusedBurstChain, burst_prior
-    from pipeline.defense.kalman import MotionFilter, MotionSettings, NoiseModel
+    from pipeline.defense.gate import MotionSettings
+    from pipeline.defense.kalman import MotionFilter
+    from pipeline.defense.noise import NoiseModel
     from pipeline.geometry.rotations import sixd_to_matrix
 
     chain, model, x, y, loss = setup
@@ -367,7 +369,8 @@ def test_fused_attack_stays_within_eps_after_8_bit_storage(setup, eps: float) ->
 
 
 def test_fused_nis_matches_the_motion_filter(setup) -> None:
-    from pipeline.defense.kalman import MotionFilter, MotionSettings
+    from pipeline.defense.gate import MotionSettings
+    from pipeline.defense.kalman import MotionFilter
     from pipeline.geometry.rotations import sixd_to_matrix
 
     fused, x, y, loss, model = _fused(setup)

@@ -30,7 +30,8 @@ from torch import Tensor, nn
 
 from pipeline.attacks.gradient import LossFn, pgd
 from pipeline.shap import ExactShap
-from pipeline.defense.kalman import MotionFilter, NoiseModel
+from pipeline.defense.kalman import MotionFilter
+from pipeline.defense.noise import NoiseModel
 from pipeline.geometry.rotations import rotvec_t, sixd_to_matrix_t
 
 DEFAULT_STEPS = 20

@@ -19,7 +19,8 @@ import torch
 from pipeline.attacks.gradient import stored_attack
 from pipeline.defense.chain import OnboardChain, run_sequence
 from pipeline.defense.fusion import DefenseSettings, run_defense
-from pipeline.defense.kalman import MotionSettings, NoiseModel
+from pipeline.defense.gate import MotionSettings
+from pipeline.defense.noise import NoiseModel
 from pipeline.geometry.rotations import sixd_to_matrix
 from pipeline.detectors.metrics import detection_delays, frame_metrics, mean_over, undetected_mask
 from pipeline.evaluation.schedule import schedule_bursts

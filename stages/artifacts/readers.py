@@ -164,8 +164,8 @@ class DefenseModel:
     threshold and the measurement-noise model fitted on validation trajectories."""
 
     settings: Any        # pipeline.defense.fusion.DefenseSettings
-    motion: Any          # pipeline.defense.kalman.MotionSettings
-    noise: Any           # pipeline.defense.kalman.NoiseModel
+    motion: Any          # pipeline.defense.gate.MotionSettings
+    noise: Any           # pipeline.defense.noise.NoiseModel
     calibration: dict[str, Any]
 
     def new(self, fusion: str | None = None) -> Any:
@@ -181,7 +181,7 @@ class DefenseModel:
 def defense_settings(p: dict[str, Any], threshold: float) -> tuple[Any, Any]:
     """(DefenseSettings, MotionSettings) of params.defense with the detector's `threshold`."""
     from pipeline.defense.fusion import DefenseSettings
-    from pipeline.defense.kalman import MotionSettings
+    from pipeline.defense.gate import MotionSettings
 
     d = p["defense"]
     try:
@@ -194,7 +194,7 @@ def defense_settings(p: dict[str, Any], threshold: float) -> tuple[Any, Any]:
 
 def load_defense(p: dict[str, Any], model_hash: str, threshold: float) -> DefenseModel:
     """models/defense.json checked against the pose model and detector it was calibrated with, and params."""
-    from pipeline.defense.kalman import NoiseModel
+    from pipeline.defense.noise import NoiseModel
 
     cal = read_json(DEFENSE)
     if cal.get("format") != DEFENSE_FORMAT:
