@@ -65,7 +65,8 @@ class GuidanceWorker:
     def __init__(self, p: dict[str, Any], K: Any, scene: Any, models: tuple[str, str], defense: Any,
                  plan: Any, torch_threads: int | None) -> None:
         from pipeline.attacks.gradient import stored_attack
-        from pipeline.guidance.law import CachedCamera, GridPilot
+        from pipeline.guidance.grid import GridPilot
+        from pipeline.guidance.law import CachedCamera
         from pipeline.render.scene import Renderer
 
         if torch_threads:
@@ -96,7 +97,7 @@ def main() -> None:
     from tqdm import tqdm
 
     from pipeline.report.figures import guidance_trajectories, guidance_variants
-    from pipeline.guidance.law import GridPlan, defended_grid, grid_counts, paper_grid
+    from pipeline.guidance.grid import GridPlan, defended_grid, grid_counts, paper_grid
 
     p = params_mod.load()
     g = p["guidance"]

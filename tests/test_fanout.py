@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from pipeline.geometry.camera import reference_intrinsics
-from pipeline.guidance.law import Estimate, GridPilot, GridPlan, GuidanceSettings, defended_grid, grid_counts, paper_grid
+from pipeline.guidance.grid import GridPilot, GridPlan, defended_grid, grid_counts, paper_grid
+from pipeline.guidance.law import Estimate, GuidanceSettings
 from stages.engine import pool as engine
 from test_engine import two_nodes  # noqa: F401  (the two-node local cluster fixture)
 
