@@ -3,7 +3,7 @@
 Files read: FOLDER/pose.pt (the pose model, written by `rpod train`) and FOLDER/detector.pt (the
 LSTM detector with its threshold and the SHAP background mean, written by `rpod detect`); FOLDER may
 also be a project root holding models/. Images are resized to the model's input as the lab loader
-resizes them (pipeline.evaluation.lab.resize: area averaging when shrinking), without keeping their aspect.
+resizes them (pipeline.evaluation.lab_images.resize: area averaging when shrinking), without keeping their aspect.
 """
 from __future__ import annotations
 
@@ -96,7 +96,7 @@ class Chain:
 
     def _fit(self, image: np.ndarray, name: str) -> np.ndarray:
         """One RGB image -> float32 (height, width, 3) in [0, 1] at the model input size."""
-        from pipeline.evaluation.lab import resize
+        from pipeline.evaluation.lab_images import resize
 
         if image.ndim != 3 or image.shape[2] != 3 or min(image.shape[:2]) == 0:
             raise ValueError(f"{name}: an image must be (H, W, 3) RGB, got shape {tuple(image.shape)}")

@@ -80,7 +80,8 @@ def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
 
     Returns per sequence the exact lab labels (for checking the loader round trip).
     """
-    from pipeline.evaluation.lab import shift_recording, synthetic_recording
+    from pipeline.evaluation.lab import synthetic_recording
+    from pipeline.evaluation.lab_images import shift_recording
     from pipeline.geometry.rotations import quat_to_matrix
 
     lab, r = p["lab"], p["render"]
