@@ -149,11 +149,7 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
         return _with_progress(progress, epochs, on_epoch, lambda cb: train_lstm(
             x_train, y_train, x_val, y_val, config, epochs=epochs, patience=patience, batch_size=batch_size, lr=lr,
             seed=seed, on_epoch=cb, device=device))
-    sizes = {"epochs": epochs, "patience": patience, "batch_size": batch_size, "hidden": config.hidden,
-             **{f"dense[{i}]": w for i, w in enumerate(config.dense)}}
-    small = [f"{k}={v}" for k, v in sizes.items() if int(v) < 1]
-    if small or not lr > 0:
-        raise ValueError(f"LSTM detector settings must be positive: {', '.join(small) or f'lr={lr}'}")
+    _check_settings(config, epochs, patience, batch_size, lr)
     if not (np.isfinite(x_train).all() and np.isfinite(x_val).all()):
         raise ValueError("LSTM detector inputs hold NaN or infinite values")
     torch.manual_seed(seed)
@@ -168,17 +164,7 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
     best_loss, best_state, best_epoch, stale = float("inf"), copy.deepcopy(model.state_dict()), 0, 0
     history: list[dict[str, float]] = []
     for epoch in range(1, epochs + 1):
-        model.train()
-        perm = torch.randperm(len(xt), generator=gen)
-        total = 0.0
-        for s in range(0, len(xt), batch_size):
-            idx = perm[s:s + batch_size].to(device)
-            loss = loss_fn(model(xt[idx]), yt[idx])
-            check_loss(loss.item(), f"epoch {epoch}")
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            total += loss.item() * len(idx)
+        total = _train_epoch(model, xt, yt, opt, loss_fn, torch.randperm(len(xt), generator=gen), batch_size, epoch)
         model.eval()
         with torch.no_grad():
             logits = torch.cat([model(xv[s:s + 1024]) for s in range(0, len(xv), 1024)])
@@ -199,6 +185,31 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
     model.cpu()
     model.threshold.fill_(choose_threshold(model.predict_proba(x_val), y_val))
     return TrainResult(model.eval(), history, best_epoch)
+
+
+def _check_settings(config: LSTMConfig, epochs: int, patience: int, batch_size: int, lr: float) -> None:
+    """Refuse sizes below 1 and a learning rate that is not > 0, naming them."""
+    sizes = {"epochs": epochs, "patience": patience, "batch_size": batch_size, "hidden": config.hidden,
+             **{f"dense[{i}]": w for i, w in enumerate(config.dense)}}
+    small = [f"{k}={v}" for k, v in sizes.items() if int(v) < 1]
+    if small or not lr > 0:
+        raise ValueError(f"LSTM detector settings must be positive: {', '.join(small) or f'lr={lr}'}")
+
+
+def _train_epoch(model: LSTMDetector, xt: torch.Tensor, yt: torch.Tensor, opt: torch.optim.Optimizer,
+                 loss_fn: nn.Module, perm: torch.Tensor, batch_size: int, epoch: int) -> float:
+    """One pass over the training set in the order `perm` (drawn on the CPU) -> sum of loss * batch size."""
+    model.train()
+    total = 0.0
+    for s in range(0, len(xt), batch_size):
+        idx = perm[s:s + batch_size].to(xt.device)
+        loss = loss_fn(model(xt[idx]), yt[idx])
+        check_loss(loss.item(), f"epoch {epoch}")
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        total += loss.item() * len(idx)
+    return total
 
 
 def _with_progress(desc: str, epochs: int, on_epoch: Callable[[dict[str, float]], None] | None,
