@@ -108,6 +108,7 @@ class ExactShap(nn.Module):
                              f"{tuple(self.background_mean.shape)} do not fit (need (9, D) and (D,))")
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
+        """GAP features (B, D) -> SHAP values (B, 9, D), float32, on the features' device."""
         return exact_shap(features, self.weight, self.background_mean)
 
 
