@@ -124,6 +124,7 @@ class FrameMetrics:
 
 
 def _rate(num: int, den: int) -> float:
+    """num / den, NaN when den is 0."""
     return float(num) / den if den else float("nan")
 
 
