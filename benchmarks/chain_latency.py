@@ -27,11 +27,12 @@ import torch
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from pipeline.defense.chain import SafetyChain  # noqa: E402
+from pipeline.defense.chain import OnboardChain  # noqa: E402
 from pipeline.defense.fusion import Defense, DefenseSettings  # noqa: E402
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector  # noqa: E402
 from pipeline.pose.model import PoseNet  # noqa: E402
-from pipeline.defense.kalman import MotionSettings, NoiseModel  # noqa: E402
+from pipeline.defense.gate import MotionSettings  # noqa: E402
+from pipeline.defense.noise import NoiseModel  # noqa: E402
 from pipeline.report.markdown import markdown_table  # noqa: E402
 from pipeline.geometry.trajectories import look_at  # noqa: E402
 from stages.report import write_benchmark  # noqa: E402
@@ -58,18 +59,18 @@ def interleaved(fns: dict[str, Callable[[], object]], seconds: float) -> dict[st
     return {k: {"cpu": float(np.median(cpu[k])), "wall": float(np.median(wall[k]))} for k in fns}
 
 
-def chains(width: float, h: int, w: int) -> tuple[SafetyChain, SafetyChain]:
+def chains(width: float, h: int, w: int) -> tuple[OnboardChain, OnboardChain]:
     """(fast chain, plain chain) over one random PoseNet and LSTM detector."""
     model = PoseNet(width=width).eval()
     detector = LSTMDetector(LSTMConfig()).eval()
     with torch.no_grad():
         bg_mean = model.forward_features(torch.rand(8, 3, h, w)).mean(0)
-    plain = SafetyChain.from_model(model, bg_mean, detector, fast=False)
+    plain = OnboardChain.from_model(model, bg_mean, detector, fast=False)
     detector.set_normalisation(plain(torch.rand(8, 3, h, w)).shap.numpy())
-    return SafetyChain.from_model(model, bg_mean, detector), plain
+    return OnboardChain.from_model(model, bg_mean, detector), plain
 
 
-def equality(fast: SafetyChain, plain: SafetyChain, h: int, w: int) -> tuple[float, bool]:
+def equality(fast: OnboardChain, plain: OnboardChain, h: int, w: int) -> tuple[float, bool]:
     """Largest |fast - plain| probability over 16 random frames (batched and one by one), and
     whether the poses are identical."""
     x = torch.rand(16, 3, h, w)
@@ -79,7 +80,7 @@ def equality(fast: SafetyChain, plain: SafetyChain, h: int, w: int) -> tuple[flo
     return diff, bool(torch.equal(a.pose, b.pose))
 
 
-def defended(chain: SafetyChain, x: torch.Tensor, frames: int = 5000) -> Callable[[], object]:
+def defended(chain: OnboardChain, x: torch.Tensor, frames: int = 5000) -> Callable[[], object]:
     """One frame through the chain and then `Defense.step` (motion filter, gate, fusion, mode) on
     a smooth approach whose camera attitudes are computed beforehand (the chaser knows them).
     Random weights give meaningless poses, so the filter reads the approach's true position; the
@@ -179,7 +180,7 @@ same model object; load average {load:.1f} at the start, {os.getloadavg()[0]:.1f
 inflate, though their use of the shared caches would).
 
 The chain computes the GAP features once and uses them for the pose heads and, in one traced and
-frozen TorchScript graph (`pipeline.detectors.lstm.ShapLSTM`), for the closed-form SHAP values and
+frozen TorchScript graph (`pipeline.defense.chain.FoldedShapLSTM`), for the closed-form SHAP values and
 the LSTM detector: the SHAP scaling and the detector's standardisation are folded into one
 multiply-add, the gates are reordered so one sigmoid covers three of them, and the cell's ReLU on
 c is dropped (c is never negative). "plain chain" is the unfolded path (SHAP values, then the

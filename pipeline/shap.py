@@ -93,6 +93,25 @@ def exact_shap(features: np.ndarray | torch.Tensor, weight: np.ndarray | torch.T
     return w.unsqueeze(0) * (a - mu).unsqueeze(1)
 
 
+class ExactShap(nn.Module):
+    """The closed-form SHAP core every chain uses (pipeline/defense/chain.py onboard, its folded LSTM
+    path, pipeline/attacks/adaptive.py for the attacker): the affine head's `weight` (9, D) and the
+    background mean (D,) as float32 buffers; GAP features (B, D) -> SHAP values (B, 9, D) by `exact_shap`."""
+
+    def __init__(self, weight: np.ndarray | torch.Tensor, background_mean: np.ndarray | torch.Tensor):
+        super().__init__()
+        self.register_buffer("weight", torch.as_tensor(np.asarray(weight), dtype=torch.float32).contiguous())
+        self.register_buffer("background_mean",
+                             torch.as_tensor(np.asarray(background_mean), dtype=torch.float32).contiguous())
+        if self.weight.ndim != 2 or self.background_mean.shape != (self.weight.shape[1],):
+            raise ValueError(f"head weight {tuple(self.weight.shape)} and background mean "
+                             f"{tuple(self.background_mean.shape)} do not fit (need (9, D) and (D,))")
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        """GAP features (B, D) -> SHAP values (B, 9, D), float32, on the features' device."""
+        return exact_shap(features, self.weight, self.background_mean)
+
+
 def deep_shap(model: nn.Module, features: np.ndarray, background: np.ndarray,
               batch_size: int = 64) -> np.ndarray:
     """DeepSHAP of the head through `shap.DeepExplainer`: (B, D) -> (B, n_outputs, D) float32.

@@ -3,7 +3,7 @@
 Files read: FOLDER/pose.pt (the pose model, written by `rpod train`) and FOLDER/detector.pt (the
 LSTM detector with its threshold and the SHAP background mean, written by `rpod detect`); FOLDER may
 also be a project root holding models/. Images are resized to the model's input as the lab loader
-resizes them (pipeline.evaluation.lab.resize: area averaging when shrinking), without keeping their aspect.
+resizes them (pipeline.evaluation.lab_images.resize: area averaging when shrinking), without keeping their aspect.
 """
 from __future__ import annotations
 
@@ -60,7 +60,7 @@ class Chain:
     """
 
     def __init__(self, safety: Any, input_size: tuple[int, int], files: tuple[Path, Path]):
-        self.safety = safety                      # pipeline.defense.chain.SafetyChain
+        self.safety = safety                      # pipeline.defense.chain.OnboardChain
         self.height, self.width = input_size      # model input, pixels
         self.files = files                        # (pose.pt, detector.pt)
 
@@ -96,7 +96,7 @@ class Chain:
 
     def _fit(self, image: np.ndarray, name: str) -> np.ndarray:
         """One RGB image -> float32 (height, width, 3) in [0, 1] at the model input size."""
-        from pipeline.evaluation.lab import resize
+        from pipeline.evaluation.lab_images import resize
 
         if image.ndim != 3 or image.shape[2] != 3 or min(image.shape[:2]) == 0:
             raise ValueError(f"{name}: an image must be (H, W, 3) RGB, got shape {tuple(image.shape)}")
@@ -154,7 +154,7 @@ def load_chain(folder: str | Path = "models") -> Chain:
     """The chain as the pipeline ships it: FOLDER/pose.pt and FOLDER/detector.pt (or FOLDER/models/...
     when FOLDER is a project root). The detector must have been trained on this pose model's SHAP
     values (its checkpoint names the pose file's hash). A missing or bad file is a DataError."""
-    from pipeline.defense.chain import load_safety_chain
+    from pipeline.defense.chain import load_onboard_chain
     from pipeline.formats.models import model_from_checkpoint, read_pose
     from pipeline.io.atomic import file_hash
 
@@ -163,6 +163,6 @@ def load_chain(folder: str | Path = "models") -> Chain:
         folder = folder / "models"
     pose_path, detector_path = folder / "pose.pt", folder / "detector.pt"
     ckpt = read_pose(pose_path)
-    safety = load_safety_chain(model_from_checkpoint(ckpt), file_hash(pose_path), pose_path, detector_path)
+    safety = load_onboard_chain(model_from_checkpoint(ckpt), file_hash(pose_path), pose_path, detector_path)
     height, width = (int(v) for v in ckpt["input_size"])
     return Chain(safety, (height, width), (pose_path, detector_path))

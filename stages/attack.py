@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import typer
 
+from pipeline.pose.labels import POSITION, QUAT, TARGET
 from stages.engine import pool as engine
 from stages.engine.attack_worker import AttackBatch, AttackSetup, AttackWorker
 
@@ -54,9 +55,9 @@ def main() -> None:
     if n < 1:
         raise StageError(f"params.yaml attack.max_images must be at least 1, got {a['max_images']}")
     images, labels = split.images, split.labels.iloc[:n]
-    t_gt = labels[["tx", "ty", "tz"]].to_numpy(np.float64)
-    q_gt = labels[["qw", "qx", "qy", "qz"]].to_numpy(np.float64)
-    y_all = torch.tensor(labels[["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]].to_numpy(np.float32))
+    t_gt = labels[POSITION].to_numpy(np.float64)
+    q_gt = labels[QUAT].to_numpy(np.float64)
+    y_all = torch.tensor(labels[TARGET].to_numpy(np.float32))
     k = int(np.argmin(np.abs(t_gt[:, 2] - np.median(t_gt[:, 2]))))  # figure: a mid-range test image
     es, threads = _engine(p, pose.model.device)
     setup = AttackSetup(params=p, pose_path=str(POSE.resolve()), eps=tuple(eps_list), batch=int(a["batch_size"]),
@@ -127,7 +128,8 @@ def _attack_into(path: Path, setup: AttackSetup, images: Any, source_index: np.n
 
 def _errors(pred: np.ndarray, t_gt: np.ndarray, q_gt: np.ndarray) -> dict[str, float]:
     """Mean and median position (m) and attitude (deg) errors of (N, 9) outputs against the labels."""
-    from pipeline.geometry.rotations import attitude_error_deg, position_error, sixd_to_quat
+    from pipeline.geometry.rotations import sixd_to_quat
+    from pipeline.pose.metrics import attitude_error_deg, position_error
 
     pos = position_error(pred[:, :3], t_gt)
     att = attitude_error_deg(sixd_to_quat(pred[:, 3:]), q_gt)

@@ -2,7 +2,7 @@
 
 Runs the safety chain clean over the validation approaches `rpod eval_render` rendered into
 datasets/val_render/ (seed `defense.val_seed`, never the evaluation seed), fits the pose model's
-range-dependent measurement noise and bias (`pipeline.defense.kalman.fit_noise`, `defense.noise_bins` range
+range-dependent measurement noise and bias (`pipeline.defense.noise.fit_noise`, `defense.noise_bins` range
 bins), inflates its standard deviations by the smallest factor that keeps the defended chain's false
 alarms on those clean frames within `defense.target_false_alarm` (a Gaussian fit under-states the
 errors' heavy, correlated tails), and writes models/defense.json: the noise model, the detector threshold and pose-model hash
@@ -15,12 +15,12 @@ from typing import Any
 import numpy as np
 import typer
 
+from pipeline.pose.labels import TARGET
 from stages.config import params as params_mod
 from stages.artifacts.readers import DEFENSE, DEFENSE_FORMAT, chaser_motion, defense_settings, load_chain, read_eval_render
 from pipeline.io.atomic import write_json
 from stages.errors import StageError
 
-TARGET = ["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]
 
 
 def main() -> None:
@@ -32,7 +32,7 @@ def main() -> None:
 
     from pipeline.defense.chain import run_sequence
     from pipeline.evaluation.sequences import defend_trace
-    from pipeline.defense.kalman import fit_noise, inflate, smallest_inflation
+    from pipeline.defense.noise import fit_noise, inflate, smallest_inflation
     from pipeline.geometry.rotations import sixd_to_matrix
 
     p = params_mod.load()

@@ -30,7 +30,8 @@ from pipeline.io.atomic import atomic_outputs, atomic_write_text, file_hash
 from pipeline.io.checkpoints import save_torch
 from stages.artifacts.dvc import write_metrics
 from stages.errors import StageError
-from stages.pages.detect import PAPER_ACCURACY, detector_page
+from stages.pages.detect import detector_page
+from stages.pages.paper import DETECTOR_ACCURACY
 
 REPORT = Path("reports/detector.md")
 METRICS = Path("reports/metrics/detect.json")
@@ -99,7 +100,7 @@ def main() -> None:
               "test_clean": int((y[te] == 0).sum()), "test_adversarial": int(y[te].sum())}
     metrics = {"model_hash": model_hash, "counts": counts, "threshold": {k: v[1] for k, v in scores.items()},
                "lstm_epochs": len(result.history), "lstm_best_epoch": result.best_epoch,
-               "seconds": seconds, "paper_accuracy": PAPER_ACCURACY, "detectors": results}
+               "seconds": seconds, "paper_accuracy": DETECTOR_ACCURACY, "detectors": results}
     # detector, metrics, report, ROC data and curves move into place together, once all are written
     with atomic_outputs(DETECTOR, METRICS, REPORT, dirs=(ROC_DIR, LIVE_DIR)) as (det, met, rep, roc_dir, live_dir):
         save_torch(det, ckpt)
@@ -109,7 +110,7 @@ def main() -> None:
         atomic_write_text(rep, detector_page(results, scores, counts, result, data["attrs"], d))
         _log_curves(live_dir, result.history, results["lstm"]["all"])
     acc = results["lstm"]["all"]["accuracy"]
-    print(f"detect: LSTM test accuracy {acc:.4f} (paper {PAPER_ACCURACY:.4f}) -> {DETECTOR}, {REPORT}")
+    print(f"detect: LSTM test accuracy {acc:.4f} (paper {DETECTOR_ACCURACY:.4f}) -> {DETECTOR}, {REPORT}")
 
 
 def _train_lstm(values: np.ndarray, y: np.ndarray, tr: np.ndarray, va: np.ndarray, d: dict[str, Any],

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import typer
 
+from pipeline.pose.labels import pose_columns
 from stages.engine import pool as engine
 
 from stages.config import params as params_mod
@@ -71,8 +72,7 @@ def _render_set(K: Any, scene: Any, es: Any, seqs: list[Any], folder: Path, fing
     q, r6 = matrix_to_quat(R), matrix_to_6d(R)
     poses = pd.DataFrame({
         "index": np.arange(n), "trajectory": np.concatenate([np.full(len(s), s.sequence) for s in seqs]),
-        "frame": np.concatenate([s.frame for s in seqs]), "tx": t[:, 0], "ty": t[:, 1], "tz": t[:, 2],
-        "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3], **{f"r{j}": r6[:, j] for j in range(6)},
+        "frame": np.concatenate([s.frame for s in seqs]), **pose_columns(t, q, r6),
         "range": np.linalg.norm(t, axis=1), **{f"rel_{a}": rel[:, j] for j, a in enumerate("xyz")},
         **{f"c{j}": R_cam[:, j // 3, j % 3] for j in range(9)}})
     with atomic_dir(folder) as tmp:

@@ -17,11 +17,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import typer
 
+from pipeline.pose.labels import TARGET
 from stages.config import params as params_mod
 from stages.artifacts.readers import chaser_motion, load_chain, load_defense, read_eval_render
 from pipeline.io.atomic import atomic_write_text, save_figure
 from stages.artifacts.dvc import write_metrics
 from stages.pages.evaluate import defense_section
+from stages.pages.paper import INTEGRATED, INTEGRATED_EPS, by_eps
 from stages.config.schema import Evaluate
 
 if TYPE_CHECKING:
@@ -31,10 +33,6 @@ REPORT = Path("reports/integrated.md")
 FIGURE = Path("reports/figures/timeline.png")
 METRICS = Path("reports/metrics/evaluate.json")
 SCHEDULE_SEED_OFFSET = 17
-TARGET = ["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]
-# The paper's integrated detection accuracy (%), averaged over its three trajectories, per eps.
-PAPER_ACCURACY = {0.5: 100.0, 0.3: 99.99, 0.1: 99.97, 0.05: 99.99, 0.01: 97.67}
-PAPER_OVERALL = 99.21
 
 
 def main() -> None:
@@ -126,8 +124,8 @@ frames / all frames (time: reports/metrics/evaluate.json).
 
 ## Detection accuracy (%)
 
-{markdown_table(accuracy_table(rows, summary, names, PAPER_ACCURACY), decimals=2)}
-Mean over eps: **{mean_acc:.2f}%** (paper: {PAPER_OVERALL}% overall, from 2,500-frame trajectories at
+{markdown_table(accuracy_table(rows, summary, names, by_eps(INTEGRATED_EPS)), decimals=2)}
+Mean over eps: **{mean_acc:.2f}%** (paper: {INTEGRATED}% overall, from 2,500-frame trajectories at
 480x270 with the full-width network; ours: the {profile} profile's {e.frames} frames at
 {meta['width']}x{meta['height']}).
 

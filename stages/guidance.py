@@ -66,7 +66,7 @@ def main() -> None:
     from tqdm import tqdm
 
     from pipeline.report.figures import guidance_trajectories, guidance_variants
-    from pipeline.guidance.law import GridPlan, defended_grid, grid_counts, paper_grid
+    from pipeline.guidance.grid import GridPlan, defended_grid, grid_counts, paper_grid
 
     p = params_mod.load()
     g = p["guidance"]

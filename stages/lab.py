@@ -27,7 +27,8 @@ from stages.engine import pool as engine
 
 from stages.config import params as params_mod
 from stages.artifacts.readers import DETECTOR, LAB as OUT, LAB_MODELS, LAB_MODELS_SUMMARY, POSE, TRAIN_METRICS, load_chain
-from stages.pages.lab import PAPER_AVERAGE, lab_page
+from stages.pages.lab import lab_page
+from stages.pages.paper import LAB
 from stages.engine.chunks import render_poses
 from pipeline.formats.recordings import read_recording, recording_folders, write_recording
 from pipeline.io.atomic import atomic_dir, atomic_write_text, read_json
@@ -84,7 +85,8 @@ def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
 
     Returns per sequence the exact lab labels (for checking the loader round trip).
     """
-    from pipeline.evaluation.lab import shift_recording, synthetic_recording
+    from pipeline.evaluation.lab import synthetic_recording
+    from pipeline.evaluation.lab_images import shift_recording
     from pipeline.geometry.rotations import quat_to_matrix
 
     lab, r = p["lab"], p["render"]
@@ -170,7 +172,7 @@ def main(ctx: typer.Context) -> None:
                                      train_metrics, K_syn, K_zed, sequences))
     typer.echo(f"lab: {'reused' if synthetic_lab is None else 'retrained'} models {models['pose']}, "
                f"{models['detector']}; {len(sequences)} sequences from {source}; mean detection accuracy "
-               f"{100 * metrics['accuracy_mean']:.2f}% (paper {PAPER_AVERAGE}%) in {seconds:.0f} s -> {REPORT}")
+               f"{100 * metrics['accuracy_mean']:.2f}% (paper {LAB}%) in {seconds:.0f} s -> {REPORT}")
 
 
 def _lab_models(reason: str | None) -> dict[str, Any] | None:

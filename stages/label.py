@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.pose.labels import POSITION, QUAT, SIXD
 from stages.config import params as params_mod
 from stages.artifacts.readers import LABELS, RENDER, read_render_store
 from pipeline.io.atomic import atomic_write_text
@@ -26,10 +27,10 @@ def build_labels(poses, test_fraction: float, seed: int):
     if not 0 < test_fraction < 1:
         raise StageError(f"params.yaml label.test_fraction must be in (0, 1), got {test_fraction}")
     df = poses.sort_values("index").reset_index(drop=True).copy()
-    q = df[["qw", "qx", "qy", "qz"]].to_numpy()
+    q = df[QUAT].to_numpy()
     r6 = quat_to_6d(q)
-    for k in range(6):
-        df[f"r{k}"] = r6[:, k]
+    for k, c in enumerate(SIXD):
+        df[c] = r6[:, k]
     rendered = [f"{RENDER}/images.zarr:{i}" for i in df["index"]]
     df.insert(1, "image", df.pop("filename") if "filename" in df else rendered)
     if "split" not in df:
@@ -37,8 +38,7 @@ def build_labels(poses, test_fraction: float, seed: int):
         split = np.full(len(df), "train", dtype=object)
         split[np.random.default_rng(seed).permutation(len(df))[:n_test]] = "test"
         df["split"] = split
-    cols = ["index", "image", "sequence", "frame", "tx", "ty", "tz", "qw", "qx", "qy", "qz",
-            *[f"r{k}" for k in range(6)], "range", "split"]
+    cols = ["index", "image", "sequence", "frame", *POSITION, *QUAT, *SIXD, "range", "split"]
     return df[cols]
 
 

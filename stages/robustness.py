@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.pose.labels import TARGET
 from stages.config import params as params_mod
 from stages.artifacts.readers import DETECTOR, SURROGATE, Pose, load_defense, load_pose, read_eval_render
 from stages.artifacts.checkpoint import POSE
@@ -45,8 +46,8 @@ def main() -> None:
     """Run every attack and corruption row on held-out test frames; write the report, metrics and figure."""
     from tqdm import tqdm
 
-    from pipeline.attacks.adaptive import ShapChain
-    from pipeline.defense.chain import load_safety_chain
+    from pipeline.attacks.adaptive import PerFrameChain
+    from pipeline.defense.chain import load_onboard_chain
     from pipeline.report.figures import robustness_vs_eps
     from pipeline.evaluation.robustness import run_attack_rows, worst_by_eps
     from stages.artifacts.data import load_split
@@ -58,14 +59,14 @@ def main() -> None:
     params_mod.torch_setup(p)
     seed = int(p["seed"]) + SEED_OFFSET
     pose, surrogate = load_pose(p), load_pose(p, SURROGATE)
-    chain = load_safety_chain(pose.model, pose.hash, POSE, DETECTOR)
+    chain = load_onboard_chain(pose.model, pose.hash, POSE, DETECTOR)
     split = load_split(p, "test")
     n = min(r.frames, len(split))
     pick = np.sort(np.random.default_rng(seed).choice(len(split), n, replace=False))
     images = np.stack([np.asarray(split.images[int(i)]) for i in pick])
     targets = split.targets[pick]
 
-    target = ShapChain(pose.model, chain.weight, chain.background_mean, chain.detector)
+    target = PerFrameChain(pose.model, chain.shap, chain.detector)
     specs = _specs(p, r, target, pose, surrogate, seed)
     n_corr = sum(len(v) for v in dataclasses.asdict(r.corruptions).values())
     bar = tqdm(total=-(-n // r.batch_size) * (len(specs) + n_corr + 1), desc="robustness", unit="batch",
@@ -119,7 +120,7 @@ def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Rob
     from pipeline.attacks.corruptions import corrupt
     from pipeline.evaluation.robustness import corruption_row
     from pipeline.evaluation.stats import rate
-    from pipeline.pose.train import pose_errors
+    from pipeline.pose.metrics import pose_errors
 
     none = np.zeros(len(images), bool)
     clean = run_sequence(chain, images, targets, none, None, r.batch_size, progress)
@@ -169,7 +170,7 @@ def _fused_setup(p: dict[str, Any], r: Robustness, chain: Any, model_hash: str) 
     from pipeline.evaluation.robustness import Defended, burst_schedule, fused_false_alarms
 
     images, poses, _ = read_eval_render(p)
-    labels = poses[["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]].to_numpy(np.float64)
+    labels = poses[TARGET].to_numpy(np.float64)
     trajs = [np.flatnonzero(poses["trajectory"].to_numpy() == t) for t in np.unique(poses["trajectory"])]
     # the defense that ships: params.defense with the noise model `rpod calibrate` fitted on validation trajectories
     shipped = load_defense(p, model_hash, chain.threshold)

@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.pose.labels import TARGET
 from stages.config import params as params_mod
 from stages.artifacts.readers import BATCH, SHAP as OUT, SPLIT_CODES, SampleImages, load_pose
 from pipeline.io.atomic import atomic_dir
@@ -104,7 +105,7 @@ def main() -> None:
             "background_mean": explainer.bg_mean.astype(float).tolist(), "method": explainer.method,
             "eps": [float(e) for e in s["eps"]], "attack": "fgsm", "attack_loss": p["attack"]["loss"],
             "split_codes": SPLIT_CODES, "counts": {"clean": int(s["normal"]), "per_eps": int(s["per_eps"])},
-            "outputs": ["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"],
+            "outputs": TARGET,
         })
     print(f"shap: {n} samples in {time.perf_counter() - t0:.0f} s -> {OUT}")
 

@@ -139,7 +139,8 @@ def _write_results(params: dict[str, Any], net: Any, best: dict[str, Any], input
     import numpy as np
 
     from pipeline.formats.models import save_pose
-    from pipeline.pose.train import predict, summarize_errors
+    from pipeline.pose.metrics import summarize_errors
+    from pipeline.pose.train import predict
     from stages.artifacts import data
 
     (train_split, train_eval_set), (val_split, val_set) = train, val

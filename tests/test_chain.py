@@ -3,7 +3,7 @@ import pytest
 import torch
 from torch import nn
 
-from pipeline.defense.chain import SafetyChain
+from pipeline.defense.chain import OnboardChain
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
 from pipeline.shap import Explainer
 from pipeline.pose.model import PoseNet
@@ -23,7 +23,7 @@ def parts():
 
 def test_chain_matches_its_parts(parts):
     model, bg, det, x = parts
-    chain = SafetyChain.from_model(model, bg.mean(0), det, threshold=0.5)
+    chain = OnboardChain.from_model(model, bg.mean(0), det, threshold=0.5)
     out = chain(x)
     with torch.no_grad():
         torch.testing.assert_close(out.pose, model(x), rtol=1e-5, atol=1e-5)
@@ -40,7 +40,7 @@ def test_chain_matches_its_parts(parts):
 
 def test_chain_is_stateless_per_frame(parts):
     model, bg, det, x = parts
-    chain = SafetyChain.from_model(model, bg.mean(0), det, threshold=0.3)
+    chain = OnboardChain.from_model(model, bg.mean(0), det, threshold=0.3)
     batch = chain(x)
     for i in range(len(x)):
         one = chain(x[i])
@@ -63,16 +63,16 @@ class _ReluHead(nn.Module):
 def test_chain_refuses_a_non_affine_head(parts):
     _, bg, det, _ = parts
     with pytest.raises(ValueError, match="affine"):
-        SafetyChain.from_model(_ReluHead(), bg.mean(0), det)
+        OnboardChain.from_model(_ReluHead(), bg.mean(0), det)
     with pytest.raises(ValueError, match="do not fit"):
-        SafetyChain(_ReluHead(), np.zeros((9, 1000)), np.zeros(999), det)
+        OnboardChain(_ReluHead(), np.zeros((9, 1000)), np.zeros(999), det)
 
 
 def test_run_sequence_attacks_only_scheduled_frames_with_their_own_labels(parts):
     from pipeline.defense.chain import run_sequence
 
     model, bg, det, _ = parts
-    chain = SafetyChain.from_model(model, bg.mean(0), det)
+    chain = OnboardChain.from_model(model, bg.mean(0), det)
     rng = np.random.default_rng(1)
     images = rng.integers(0, 256, (7, 36, 64, 3), dtype=np.uint8)
     targets = np.arange(7 * 9, dtype=np.float32).reshape(7, 9)
@@ -95,7 +95,7 @@ def test_run_sequence_attacks_only_scheduled_frames_with_their_own_labels(parts)
 
 
 def test_fast_path_equals_the_plain_chain_at_real_sizes():
-    """1000 features, 100 LSTM units, 9 rows, random weights: the folded path (`ShapLSTM`) gives the
+    """1000 features, 100 LSTM units, 9 rows, random weights: the folded path (`FoldedShapLSTM`) gives the
     plain chain's pose and SHAP values exactly and its probabilities within 1e-4, batched or not."""
     torch.manual_seed(3)
     model = PoseNet(width=0.125).eval()
@@ -103,12 +103,12 @@ def test_fast_path_equals_the_plain_chain_at_real_sizes():
     with torch.no_grad():
         bg = model.forward_features(torch.rand(6, 3, 36, 64)).numpy()
     det = LSTMDetector(LSTMConfig()).eval()
-    plain = SafetyChain.from_model(model, bg.mean(0), det, fast=False)
+    plain = OnboardChain.from_model(model, bg.mean(0), det, fast=False)
     det.set_normalisation(plain(x).shap.numpy())
     with torch.no_grad():   # sharper than the initialisation, so that the probabilities spread
         det.lstm.input_proj.weight.mul_(5.0)
         det.classifier[0].weight.mul_(5.0)
-    fast = SafetyChain.from_model(model, bg.mean(0), det, threshold=0.5)
+    fast = OnboardChain.from_model(model, bg.mean(0), det, threshold=0.5)
     assert fast._fast is not None and plain._fast is None
     a, b = fast(x), plain(x)
     assert torch.equal(a.pose, b.pose) and torch.equal(a.shap, b.shap)

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from pipeline.defense.fusion import COAST, HOLD, TRACK, Defense, DefenseSettings, run_defense
-from pipeline.defense.kalman import MotionSettings, NoiseModel
+from pipeline.defense.gate import MotionSettings
+from pipeline.defense.noise import NoiseModel
 from pipeline.geometry.trajectories import look_at
 
 NOISE = NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02)

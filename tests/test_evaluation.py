@@ -68,7 +68,8 @@ def test_defended_summary_flags_what_the_detector_misses_with_intervals():
 
     from pipeline.defense.fusion import DefenseSettings
     from pipeline.evaluation.sequences import Sequence, Trace, defended_summary, defense_table, rates_json
-    from pipeline.defense.kalman import MotionSettings, NoiseModel
+    from pipeline.defense.gate import MotionSettings
+    from pipeline.defense.noise import NoiseModel
 
     noise = NoiseModel((0.05, 0.05, 0.1), (0.0, 0.0, 0.0), 1.0, 0.0)
     traces, seqs = {}, []

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from pipeline.geometry.camera import reference_intrinsics
-from pipeline.guidance.law import Estimate, GridPilot, GridPlan, GuidanceSettings, defended_grid, grid_counts, paper_grid
+from pipeline.guidance.grid import GridPilot, GridPlan, defended_grid, grid_counts, paper_grid
+from pipeline.guidance.law import Estimate, GuidanceSettings
 from faults import exits_once
 from stages.engine import pool as engine
 from stages.engine.guidance_worker import Flight, flights
@@ -41,7 +42,8 @@ def attack_at(eps: float, i: int):
 
 def defense():
     from pipeline.defense.fusion import DefenseSettings
-    from pipeline.defense.kalman import MotionSettings, NoiseModel
+    from pipeline.defense.gate import MotionSettings
+    from pipeline.defense.noise import NoiseModel
     from stages.artifacts.readers import DefenseModel
 
     return DefenseModel(DefenseSettings(hold_after=20), MotionSettings(false_alarm=0.005),

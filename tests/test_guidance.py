@@ -151,7 +151,8 @@ def test_arrival_step_is_when_the_chaser_reaches_the_goal_for_good():
 
 def _defense():
     from pipeline.defense.fusion import Defense, DefenseSettings
-    from pipeline.defense.kalman import MotionSettings, NoiseModel
+    from pipeline.defense.gate import MotionSettings
+    from pipeline.defense.noise import NoiseModel
 
     return Defense(DefenseSettings(hold_after=20), MotionSettings(false_alarm=0.005),
                    NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02))

@@ -3,9 +3,11 @@ import pandas as pd
 import pytest
 
 from pipeline.geometry.camera import Intrinsics, project, reference_intrinsics
-from pipeline.evaluation.lab import (LabDataError, domain_shift, lab_to_synthetic_factor, lab_to_synthetic_position,
-                          match_frames, paper_lab_factor, relative_pose, segment, synthetic_recording)
-from pipeline.geometry.rotations import attitude_error_deg, euler_to_matrix, matrix_to_quat, quat_to_matrix
+from pipeline.evaluation.lab import (LabDataError, lab_to_synthetic_factor, lab_to_synthetic_position, match_frames,
+                                     paper_lab_factor, relative_pose, synthetic_recording)
+from pipeline.evaluation.lab_images import domain_shift, segment
+from pipeline.geometry.rotations import euler_to_matrix, matrix_to_quat, quat_to_matrix
+from pipeline.pose.metrics import attitude_error_deg
 
 K_ZED = Intrinsics(1920, 1080, 1400.41, 1400.41, 956.29, 557.258)
 K_SYN = reference_intrinsics()

@@ -5,7 +5,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.defense.kalman import MotionFilter, MotionSettings, NoiseModel, fit_noise
+from pipeline.defense.gate import MotionSettings
+from pipeline.defense.kalman import MotionFilter
+from pipeline.defense.noise import NoiseModel, fit_noise
 from pipeline.evaluation.stats import rate
 from pipeline.geometry.trajectories import look_at, projectile_trajectory
 
@@ -156,7 +158,7 @@ def test_a_nan_estimate_is_flagged_and_the_filter_coasts():
 
 
 def test_rotation_vector_helpers_match_scipy():
-    from pipeline.defense.kalman import matrix_to_rotvec, rotvec_to_matrix
+    from pipeline.geometry.rotations import matrix_to_rotvec, rotvec_to_matrix
 
     rng = np.random.default_rng(0)
     w = np.vstack([rng.normal(0, 1, (200, 3)), rng.normal(0, 1e-9, (5, 3)),
@@ -170,7 +172,7 @@ def test_rotation_vector_helpers_match_scipy():
 
 
 def test_inflate_scales_every_std_and_keeps_the_bias():
-    from pipeline.defense.kalman import NoiseModel, inflate
+    from pipeline.defense.noise import NoiseModel, inflate
 
     n = NoiseModel((0.1, 0.2, 0.3), (0.01, 0.01, 0.02), 1.0, 0.05, floor=0.02, bias_intercept=(0.0, 0.0, 0.4))
     m = inflate(n, 2.0)
@@ -182,7 +184,7 @@ def test_inflate_scales_every_std_and_keeps_the_bias():
 
 
 def test_smallest_inflation_meets_the_target_or_says_it_cannot():
-    from pipeline.defense.kalman import smallest_inflation
+    from pipeline.defense.noise import smallest_inflation
 
     k, rates = smallest_inflation(lambda k: 0.05 / k, target=0.02, grid=(1.0, 2.0, 3.0, 4.0))
     assert k == 3.0 and list(rates) == [1.0, 2.0, 3.0]          # stops at the first factor that meets it

@@ -10,12 +10,13 @@ import pytest
 import torch
 from torch import nn
 
-from pipeline.attacks.adaptive import ShapChain, adaptive_objective, adaptive_pgd, check_lambdas
+from pipeline.attacks.adaptive import PerFrameChain, adaptive_objective, adaptive_pgd, check_lambdas
 from pipeline.attacks.gradient import pgd, quantize
 from pipeline.attacks.corruptions import CORRUPTIONS, corrupt
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
 from pipeline.pose.loss import PoseLoss
 from pipeline.evaluation.robustness import attack_row, corruption_row, worst_by_eps, worst_over_lambda
+from pipeline.shap import ExactShap
 
 D = 16
 
@@ -41,7 +42,7 @@ class TinyPose(nn.Module):
 
 
 @pytest.fixture()
-def setup() -> tuple[ShapChain, TinyPose, torch.Tensor, torch.Tensor, PoseLoss]:
+def setup() -> tuple[PerFrameChain, TinyPose, torch.Tensor, torch.Tensor, PoseLoss]:
     torch.manual_seed(0)
     model = TinyPose().eval()
     detector = LSTMDetector(LSTMConfig(n_rows=9, n_features=D, hidden=8, dense=[4])).eval()
@@ -51,7 +52,7 @@ def setup() -> tuple[ShapChain, TinyPose, torch.Tensor, torch.Tensor, PoseLoss]:
         mu = background.mean(0)
         # standardise the SHAP rows as training would, so the logit depends on the image
         detector.set_normalisation((model.head.weight.unsqueeze(0) * (background - mu).unsqueeze(1)).numpy())
-    chain = ShapChain(model, model.head.weight.detach(), mu, detector)
+    chain = PerFrameChain(model, ExactShap(model.head.weight.detach(), mu), detector)
     y = torch.randn(6, 9)
     return chain, model, x, y, PoseLoss("mean")
 
@@ -108,7 +109,7 @@ def test_chain_pose_is_the_model_and_logit_the_detector_on_shap(setup) -> None:
     chain, model, x, _, _ = setup
     pose, logit = chain(x)
     assert torch.equal(pose, model(x))
-    phi = chain.weight.unsqueeze(0) * (model.forward_features(x) - chain.background_mean).unsqueeze(1)
+    phi = chain.shap.weight.unsqueeze(0) * (model.forward_features(x) - chain.shap.background_mean).unsqueeze(1)
     assert torch.allclose(logit, chain.detector(phi))
 
 
@@ -322,7 +323,9 @@ def test_a_temporal_chain_plugs_in_and_is_attacked_over_the_burst(setup) -> None
 def _fused(setup, lam_prior: bool = True):
     """A FusedBurstChain over a 4-frame burst whose prior is a filter started on the clean estimates."""
     from pipeline.attacks.adaptive import FusedBurstChain, burst_prior
-    from pipeline.defense.kalman import MotionFilter, MotionSettings, NoiseModel
+    from pipeline.defense.gate import MotionSettings
+    from pipeline.defense.kalman import MotionFilter
+    from pipeline.defense.noise import NoiseModel
     from pipeline.geometry.rotations import sixd_to_matrix
 
     chain, model, x, y, loss = setup
@@ -367,7 +370,8 @@ def test_fused_attack_stays_within_eps_after_8_bit_storage(setup, eps: float) ->
 
 
 def test_fused_nis_matches_the_motion_filter(setup) -> None:
-    from pipeline.defense.kalman import MotionFilter, MotionSettings
+    from pipeline.defense.gate import MotionSettings
+    from pipeline.defense.kalman import MotionFilter
     from pipeline.geometry.rotations import sixd_to_matrix
 
     fused, x, y, loss, model = _fused(setup)

@@ -1,8 +1,9 @@
 import numpy as np
 import pytest
 
-from pipeline.geometry.rotations import (attitude_error_deg, euler_to_matrix, matrix_to_6d, matrix_to_quat, normalize_quat,
-                                position_error, quat_to_6d, quat_to_matrix, sixd_to_matrix, sixd_to_quat)
+from pipeline.geometry.rotations import (euler_to_matrix, matrix_to_6d, matrix_to_quat, normalize_quat, quat_to_6d,
+                                         quat_to_matrix, sixd_to_matrix, sixd_to_quat)
+from pipeline.pose.metrics import attitude_error_deg, position_error
 
 
 def random_quats(n, seed=0):

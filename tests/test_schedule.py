@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from pipeline.evaluation.schedule import (attack_schedule, bursts, detection_delays, detection_metrics, mean_over,
-                               schedule_bursts, undetected_mask)
+from pipeline.detectors.metrics import detection_delays, frame_metrics, mean_over, undetected_mask
+from pipeline.evaluation.schedule import attack_schedule, bursts, schedule_bursts
 
 
 @pytest.mark.parametrize("p, length", [(0.2, 5), (0.05, 10), (0.5, 3)])
@@ -42,7 +42,7 @@ def test_metrics_on_a_hand_made_sequence():
     #            0  1  2  3  4  5  6  7  8  9 10 11
     attacked = [0, 1, 1, 1, 0, 0, 0, 1, 1, 1, 0, 0]
     flagged = [0, 0, 1, 1, 1, 0, 0, 0, 0, 0, 0, 1]
-    m = detection_metrics(np.array(attacked, bool), np.array(flagged, bool))
+    m = frame_metrics(np.array(attacked, bool), np.array(flagged, bool))
     # correct: frames 0,2,3,5,6,10 -> 6 of 12
     assert m.accuracy == pytest.approx(6 / 12)
     assert m.tpr == pytest.approx(2 / 6)      # frames 2, 3 of 1,2,3,7,8,9
@@ -58,7 +58,7 @@ def test_metrics_on_a_hand_made_sequence():
 
 
 def test_rates_undefined_without_attacks_and_touching_bursts():
-    m = detection_metrics(np.zeros(4, bool), np.array([0, 1, 0, 0], bool))
+    m = frame_metrics(np.zeros(4, bool), np.array([0, 1, 0, 0], bool))
     assert np.isnan(m.tpr) and m.fpr == pytest.approx(0.25) and m.accuracy == pytest.approx(0.75)
     touching = np.array([1, 1, 1, 1, 0], bool)
     assert bursts(touching) == [(0, 4)]

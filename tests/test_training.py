@@ -13,6 +13,7 @@ import zarr
 from pipeline.formats.models import read_pose, save_pose
 from pipeline.geometry.camera import reference_intrinsics
 from pipeline.geometry.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
+from pipeline.pose.labels import pose_columns
 from stages.artifacts import checkpoint, data
 from pipeline.io.atomic import write_json
 from pipeline.io.errors import DataError
@@ -44,9 +45,7 @@ def write_dataset(root: Path, n: int = 40, width: int = W, height: int = H, seed
     r6 = matrix_to_6d(R)
     labels = pd.DataFrame({"index": np.arange(n), "image": [f"images/{i}" for i in range(n)],
                            "sequence": np.arange(n) % 13, "frame": np.arange(n) // 13,
-                           **{c: t[:, k] for k, c in enumerate(data.POSITION)},
-                           **{c: q for c, q in zip(data.QUAT, matrix_to_quat(R).T)},
-                           **{c: r6[:, k] for k, c in enumerate(data.SIXD)},
+                           **pose_columns(t, matrix_to_quat(R), r6),
                            "range": np.linalg.norm(t, axis=1),
                            "split": np.where(np.arange(n) % 5 == 0, "test", "train")})
     labels.to_parquet(root / "datasets/labels.parquet")

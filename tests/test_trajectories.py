@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from pipeline.geometry.rotations import attitude_error_deg, matrix_to_quat
+from pipeline.geometry.rotations import matrix_to_quat
+from pipeline.pose.metrics import attitude_error_deg
 from pipeline.geometry.trajectories import (FIXED_STARTS, ROTATING_STARTS, approach_sequences, look_at, pose_in_camera,
                                    projectile_trajectory)
 

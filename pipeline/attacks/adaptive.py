@@ -11,7 +11,7 @@ with gradients (`DifferentiableChain`). L-inf PGD then ascends
 `adaptive_pgd` is `pipeline.attacks.gradient.pgd` run on that objective, so with lambda = 0 it is plain
 PGD on the same seed, step for step.
 
-Today's shipped chain is `ShapChain`: pose net -> GAP features a -> closed-form DeepSHAP
+Today's shipped chain is `PerFrameChain`: pose net -> GAP features a -> closed-form DeepSHAP
 W * (a - mean_background) -> LSTM logit. A detector that reads frames in time order (a fused or
 temporal detector) plugs in as another `DifferentiableChain` with `temporal = True`: it reads the
 batch as one burst in time order, and the caller then attacks whole bursts (one burst per call),
@@ -29,14 +29,18 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from pipeline.attacks.gradient import LossFn, pgd
-from pipeline.shap import exact_shap
-from pipeline.defense.kalman import MotionFilter, NoiseModel
+from pipeline.shap import ExactShap
+from pipeline.defense.kalman import MotionFilter
+from pipeline.defense.noise import NoiseModel
+from pipeline.geometry.rotations import rotvec_t, sixd_to_matrix_t
 
 DEFAULT_STEPS = 20
 
 
 class DifferentiableChain(Protocol):
-    """Frames (B, 3, H, W) in [0, 1] -> (pose (B, 9) [m, 6-D], attack logit (B,)), differentiable.
+    """What the adaptive attack differentiates through (`PerFrameChain`, `FusedBurstChain`).
+
+    Frames (B, 3, H, W) in [0, 1] -> (pose (B, 9) [m, 6-D], attack logit (B,)), differentiable.
 
     `temporal`: False when each frame's logit depends on that frame alone (the batch is any set of
     frames); True when the batch is read as one burst in time order.
@@ -54,11 +58,13 @@ class DifferentiableChain(Protocol):
     def training(self) -> bool: ...
 
 
-class ShapChain(nn.Module):
-    """The shipped chain as one differentiable module: image -> pose and LSTM-on-SHAP logit.
+class PerFrameChain(nn.Module):
+    """The attacker's differentiable copy of `OnboardChain`, frame by frame (stages/robustness.py's adaptive PGD).
+
+    The shipped chain as one differentiable module: image -> pose and LSTM-on-SHAP logit.
 
     `model`: PoseNet (forward_features (B, D), forward_head (B, 9)); `weight` (9, D) the affine head
-    weights and `background_mean` (D,) the SHAP background mean (as in `SafetyChain`); `detector`:
+    weights and `background_mean` (D,) the SHAP background mean (as in `pipeline.defense.chain.OnboardChain`); `detector`:
     SHAP values (B, 9, D) -> logits (B,). The pose is `forward_head(forward_features(x))`, exactly
     `model(x)`, so the features are computed once for both outputs. Built in eval mode (BatchNorm
     statistics frozen): the attack restores this mode afterwards, so the shared pose model stays in it.
@@ -66,22 +72,17 @@ class ShapChain(nn.Module):
 
     temporal = False
 
-    def __init__(self, model: nn.Module, weight: np.ndarray | Tensor, background_mean: np.ndarray | Tensor,
-                 detector: nn.Module):
+    def __init__(self, model: nn.Module, shap: ExactShap, detector: nn.Module):
         super().__init__()
         self.model = model
         self.detector = detector
-        self.register_buffer("weight", torch.as_tensor(np.asarray(weight), dtype=torch.float32))
-        self.register_buffer("background_mean", torch.as_tensor(np.asarray(background_mean), dtype=torch.float32))
-        if self.weight.ndim != 2 or self.background_mean.shape != (self.weight.shape[1],):
-            raise ValueError(f"head weight {tuple(self.weight.shape)} and background mean "
-                             f"{tuple(self.background_mean.shape)} do not fit (need (9, D) and (D,))")
+        self.shap = shap
         self.eval()
 
     def forward(self, images: Tensor) -> tuple[Tensor, Tensor]:
         features = self.model.forward_features(images)
         pose = self.model.forward_head(features)
-        return pose, self.detector(exact_shap(features, self.weight, self.background_mean))
+        return pose, self.detector(self.shap(features))
 
 
 def check_lambdas(lambdas: list[float]) -> list[float]:
@@ -147,26 +148,10 @@ def burst_prior(motion: MotionFilter, R_cam: np.ndarray, u: np.ndarray) -> Burst
     return BurstPrior(np.asarray(R_cam, np.float64), *(np.stack(v) for v in out.values()))
 
 
-def sixd_to_matrix_t(r6: Tensor) -> Tensor:
-    """(B, 6) -> (B, 3, 3) rotations by Gram-Schmidt, differentiable (as pipeline.geometry.rotations.sixd_to_matrix)."""
-    a, b = r6[:, :3], r6[:, 3:]
-    c0 = a / a.norm(dim=1, keepdim=True)
-    c1 = b - (c0 * b).sum(1, keepdim=True) * c0
-    c1 = c1 / c1.norm(dim=1, keepdim=True)
-    return torch.stack([c0, c1, torch.cross(c0, c1, dim=1)], -1)
-
-
-def rotvec_t(R: Tensor) -> Tensor:
-    """(B, 3, 3) rotations -> (B, 3) rotation vectors (rad), differentiable away from angle 0 and pi
-    (angle = atan2(|v| / 2, (trace - 1) / 2) with v the skew part, a tiny epsilon at 0)."""
-    v = torch.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], 1)
-    s = torch.sqrt((v * v).sum(1) + 1e-12)
-    angle = torch.atan2(s / 2, (R.diagonal(dim1=1, dim2=2).sum(1) - 1) / 2)
-    return v * (angle / s).unsqueeze(1)
-
-
 class FusedBurstChain(nn.Module):
-    """The fused chain (pipeline.defense.fusion, fusion "or": LSTM flag OR motion gate) on one burst of K
+    """The attacker's differentiable copy of the defended chain over one burst (pipeline.evaluation.robustness).
+
+    The fused chain (pipeline.defense.fusion, fusion "or": LSTM flag OR motion gate) on one burst of K
     frames in time order, differentiable: images (K, 3, H, W) -> (pose (K, 9), score (K,)).
 
     score = softplus(LSTM logit - logit(threshold)) + softplus((NIS_position - gate) / gate)
@@ -180,7 +165,7 @@ class FusedBurstChain(nn.Module):
 
     temporal = True
 
-    def __init__(self, chain: ShapChain, threshold: float, noise: NoiseModel, gate: float, prior: BurstPrior | None):
+    def __init__(self, chain: PerFrameChain, threshold: float, noise: NoiseModel, gate: float, prior: BurstPrior | None):
         super().__init__()
         if not 0 < threshold < 1 or not gate > 0:
             raise ValueError(f"threshold must be in (0, 1) and gate > 0, got {threshold} and {gate}")

@@ -9,6 +9,7 @@ gives the same result as the frames one at a time.
 """
 from __future__ import annotations
 
+import copy
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,8 +19,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from pipeline.detectors.lstm import LSTMDetector, ShapLSTM
-from pipeline.shap import affine_head, exact_shap
+from pipeline.detectors.lstm import LSTMDetector
+from pipeline.shap import ExactShap, affine_head
 
 
 @dataclass(frozen=True)
@@ -32,12 +33,63 @@ class ChainOutput:
     flag: torch.Tensor
 
 
-class SafetyChain:
-    """Pose model + exact SHAP (head weights, background mean) + detector, in eval mode, no grad.
+class FoldedShapLSTM(nn.Module):
+    """The onboard chain's fast path (traced by `OnboardChain` on the CPU): SHAP + LSTM folded into one graph.
+
+    `detector` on the exact SHAP values of an affine head, from the head's GAP features:
+    (B, D) features -> (SHAP values (B, n_rows, D), attack probability (B,)).
+
+    The detector reads x[b, j] = (phi[b, j] - m_j) / s_j with phi[b, j] = W[j] * (a[b] - mu), that
+    is x[b, j] = (W[j] / s_j) * (a[b] - mu) - m_j / s_j: the SHAP scaling and the standardisation
+    fold into one (n_rows, D) weight and a per-row shift, so one multiply-add gives the LSTM input.
+    The input projection keeps the detector's shared (4H, D) weight: folding it further into 9
+    distinct (D, 4H) matrices needs as many multiply-adds and 9x the memory to stream. The gates
+    are reordered (i, f, o | g) so that one sigmoid covers three of them, and since the cell state is
+    never negative (c' = f c + i relu(g), c_0 = 0) h' = o * c' needs no ReLU: the fewest small ops,
+    which is what a 9-step, 100-unit recurrence costs at batch 1. Equal to
+    `detector(exact_shap(a, W, mu))` to float32 rounding; the detector's weights are copied here.
+    """
+
+    def __init__(self, detector: LSTMDetector, shap: ExactShap):
+        super().__init__()
+        h = self.hidden = detector.config.hidden
+        order = torch.cat([torch.arange(2 * h), torch.arange(3 * h, 4 * h), torch.arange(2 * h, 3 * h)])
+        inv_scale = 1.0 / detector.scale.detach().double()                        # (n_rows, 1)
+        cell = detector.lstm
+        weight = shap.weight
+        buffers = {"weight": weight, "background_mean": shap.background_mean,
+                   "scaled": weight.double() * inv_scale, "shift": -detector.mean.detach().double() * inv_scale,
+                   "w_in": cell.input_proj.weight.detach()[order], "b_in": cell.input_proj.bias.detach()[order],
+                   "w_hidden": cell.hidden_proj.weight.detach()[order].T}
+        for name, value in buffers.items():
+            self.register_buffer(name, value.float().contiguous())
+        self.classifier = copy.deepcopy(detector.classifier)
+
+    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        centred = (features - self.background_mean).unsqueeze(1)                   # (B, 1, D)
+        x = torch.addcmul(self.shift, self.scaled, centred)                         # (B, n_rows, D)
+        steps = torch.nn.functional.linear(x, self.w_in, self.b_in).unbind(1)
+        sizes = [3 * self.hidden, self.hidden]
+        ifo, g = steps[0].split(sizes, dim=1)
+        i, f, o = torch.sigmoid(ifo).chunk(3, dim=1)
+        c = i * torch.relu(g)
+        for step in steps[1:]:
+            ifo, g = torch.addmm(step, o * c, self.w_hidden).split(sizes, dim=1)
+            i, f, o = torch.sigmoid(ifo).chunk(3, dim=1)
+            c = torch.addcmul(f * c, i, torch.relu(g))
+        prob = torch.sigmoid(self.classifier(o * c).squeeze(1))
+        return self.weight * centred, prob
+
+
+class OnboardChain:
+    """The chain that runs onboard, frame by frame, no gradients: image -> pose, SHAP, attack flag; used
+    by the stages (readers.load_chain, robustness), rpodguard.api, the evaluation and guidance.
+
+    Pose model + exact SHAP (head weights, background mean) + detector, in eval mode, no grad.
 
     `detector` maps SHAP values (B, 9, D) to attack logits (B,); a frame is flagged when
     sigmoid(logit) >= `threshold`. With `fast` (default) and an LSTM detector, frames on the CPU
-    go from the GAP features through one traced and frozen TorchScript graph (`ShapLSTM`: SHAP
+    go from the GAP features through one traced and frozen TorchScript graph (`FoldedShapLSTM`: SHAP
     values, the folded standardisation, the LSTM and the probability); its results equal the
     detector's on the SHAP values to float32 rounding (tested to 1e-4). Other detectors, and
     frames on another device, take the plain path. benchmarks/chain_latency.py measures the cost.
@@ -48,25 +100,21 @@ class SafetyChain:
                  fast: bool = True):
         self.model = model.eval()
         self.detector = detector.eval()
-        self.weight = torch.as_tensor(np.asarray(weight), dtype=torch.float32).contiguous()
-        self.background_mean = torch.as_tensor(np.asarray(background_mean), dtype=torch.float32).contiguous()
-        if self.weight.ndim != 2 or self.background_mean.shape != (self.weight.shape[1],):
-            raise ValueError(f"head weight {tuple(self.weight.shape)} and background mean "
-                             f"{tuple(self.background_mean.shape)} do not fit (need (9, D) and (D,))")
+        self.shap = ExactShap(weight, background_mean)
         self.threshold = float(threshold)
         self._fast = None
         if fast and isinstance(detector, LSTMDetector):
-            example = torch.zeros(1, self.weight.shape[1])
+            example = torch.zeros(1, self.shap.weight.shape[1])
             # TorchScript is deprecated in favour of torch.compile, which needs a C++ toolchain and
             # recompiles per batch size; tracing still works in torch 2.13 and has neither cost.
             with torch.no_grad(), warnings.catch_warnings():
                 warnings.simplefilter("ignore", DeprecationWarning)
-                module = ShapLSTM(self.detector, self.weight, self.background_mean).eval()
+                module = FoldedShapLSTM(self.detector, self.shap).eval()
                 self._fast = torch.jit.freeze(torch.jit.trace(module, example))
 
     @classmethod
     def from_model(cls, model: nn.Module, background_mean: np.ndarray | torch.Tensor, detector: nn.Module,
-                   threshold: float = 0.5, fast: bool = True) -> "SafetyChain":
+                   threshold: float = 0.5, fast: bool = True) -> "OnboardChain":
         """Read the head weights from `model` (they must form an affine map, as in PoseNet)."""
         mu = np.asarray(torch.as_tensor(background_mean, dtype=torch.float32))
         head = affine_head(model, n_features=len(mu))
@@ -83,7 +131,7 @@ class SafetyChain:
         if self._fast is not None and features.device.type == "cpu":
             phi, prob = self._fast(features)
         else:
-            phi = exact_shap(features, self.weight, self.background_mean)
+            phi = self.shap(features)
             prob = torch.sigmoid(self.detector(phi))
         return ChainOutput(pose, phi, prob, prob >= self.threshold)
 
@@ -94,7 +142,9 @@ class SafetyChain:
         return self.model(x)
 
 
-Attack = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+AttackFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+"""An attack as `run_sequence` calls it: (images (B, 3, H, W) in [0, 1], labels (B, 9)) -> attacked images
+(not the `attack` params section, stages.config.schema.Attack)."""
 
 
 @dataclass(frozen=True)
@@ -106,8 +156,8 @@ class SequenceResult:
     flag: np.ndarray
 
 
-def run_sequence(chain: SafetyChain, images: np.ndarray, targets: np.ndarray, attacked: np.ndarray,
-                 attack: Attack | None, batch_size: int = 64,
+def run_sequence(chain: OnboardChain, images: np.ndarray, targets: np.ndarray, attacked: np.ndarray,
+                 attack: AttackFn | None, batch_size: int = 64,
                  progress: Callable[[Iterable[int]], Iterable[int]] = iter) -> SequenceResult:
     """Frames as onboard: attacked frames are replaced by `attack(x, y)` against their own true label.
 
@@ -135,9 +185,9 @@ def run_sequence(chain: SafetyChain, images: np.ndarray, targets: np.ndarray, at
     return SequenceResult(pose, prob, flag)
 
 
-def load_safety_chain(model: nn.Module, model_hash: str, pose_path: Path | str,
-                      detector_path: Path | str) -> SafetyChain:
-    """The SafetyChain of a pose model read from `pose_path` (whose file hash is `model_hash`) and the
+def load_onboard_chain(model: nn.Module, model_hash: str, pose_path: Path | str,
+                      detector_path: Path | str) -> OnboardChain:
+    """The OnboardChain of a pose model read from `pose_path` (whose file hash is `model_hash`) and the
     detector checkpoint at `detector_path` (its threshold and SHAP background mean). A detector
     trained on another pose model's SHAP values, or a pose head that is not affine, is a DataError."""
     from pipeline.formats.models import read_detector
@@ -145,7 +195,7 @@ def load_safety_chain(model: nn.Module, model_hash: str, pose_path: Path | str,
 
     detector, ckpt = read_detector(detector_path, model_hash=model_hash)
     try:
-        return SafetyChain.from_model(model, np.asarray(ckpt["background_mean"]), detector,
+        return OnboardChain.from_model(model, np.asarray(ckpt["background_mean"]), detector,
                                       threshold=float(ckpt["threshold"]))
     except ValueError as err:
         raise DataError(f"{pose_path}: {err}") from None

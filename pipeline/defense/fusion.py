@@ -26,7 +26,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.defense.kalman import MotionFilter, MotionSettings, NoiseModel
+from pipeline.defense.gate import MotionSettings
+from pipeline.defense.kalman import MotionFilter
+from pipeline.defense.noise import NoiseModel
 
 FUSIONS = ("paper", "motion", "or")
 TRACK, COAST, HOLD = "track", "coast", "hold"

@@ -11,22 +11,11 @@ The target attitude R_tw (target -> world, measured as R_c R_pred) follows a rat
 state [rotation vector (3, rad), rate (3, rad per frame)] about the current attitude estimate,
 target frame.
 
-Measurement noise is the pose model's own error, which grows with range and is larger along the
-camera boresight: `NoiseModel` holds per-camera-axis standard deviations and biases a + b * range, fitted by
-`fit_noise` on clean frames of validation data (never the test split); it is rotated into world
-axes with R_c every frame.
+Measurement noise: pipeline/defense/noise.py (`NoiseModel`, rotated into world axes with R_c every
+frame). The gate and the filter's settings: pipeline/defense/gate.py (`MotionSettings`, `MotionCheck`).
 
-The gate: each frame's normalized innovation squared (NIS) of position (3 dof) and attitude (3
-dof) is compared with the chi-square quantile at 1 - alpha / 2 each, so a frame consistent with the
-model is flagged with probability at most `alpha` (the false-alarm rate, Bonferroni over the two
-tests). A flagged frame is not used to update the filter (fault exclusion): the filter coasts on
-its prediction, its covariance grows, and clean frames are accepted again once they fall inside
-the widened gate, so an attack the gate caught cannot drag the state away. Frames that pass the
-gate update the filter with a Huber weight (measurement covariance inflated by NIS / soft gate
-above a soft gate), so an attacked frame that slips just under the gate moves the state little.
-A filter whose state was nevertheless dragged away (or started on a bad frame) would reject every
-clean frame after; `reacquire` restarts it on M rejected frames that agree with one another and
-with the accepted history, never on a steady offset that jumped away from that history.
+`MotionFilter.check` applies the gate; flagged frames coast (fault exclusion), accepted ones update
+with a Huber weight, and `reacquire` restarts a filter that was dragged away (see gate.py).
 
 Implementation: a short Kalman filter of our own (predict, innovation, Joseph-form update on 6x6
 matrices) rather than filterpy: filterpy 2.0.0 is not among our dependencies, its KalmanFilter
@@ -41,68 +30,16 @@ reused between the gate and the update. On the 2-core EPYC a `Defense.step` afte
 """
 from __future__ import annotations
 
-from collections import deque
-from dataclasses import dataclass, field
-from typing import Callable, Sequence
-
 import math
+from collections import deque
+from typing import Sequence
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-
-
-Mat3 = list[list[float]]
-
-
-def rotvec_to_matrix(w: Sequence[float] | np.ndarray) -> np.ndarray:
-    """Rodrigues: rotation vector (3,, radians) -> rotation matrix. Same as scipy's
-    Rotation.from_rotvec(w).as_matrix() (tested), without its per-call overhead (~0.1 ms, more than
-    the whole filter's cost per frame)."""
-    return np.array(_rotmat(_floats(w)))
-
-
-def _rotmat(w: Sequence[float]) -> Mat3:
-    """`rotvec_to_matrix` on floats, as a nested list: R = I + s W + k W^2, W^2 = w w^T - th^2 I."""
-    w0, w1, w2 = w
-    th2 = w0 * w0 + w1 * w1 + w2 * w2
-    s, k = 1.0, 0.0
-    if th2 >= 1e-16:
-        th = math.sqrt(th2)
-        s, k = math.sin(th) / th, (1.0 - math.cos(th)) / th2
-    d = 1.0 - k * th2
-    kxy, kxz, kyz = k * w0 * w1, k * w0 * w2, k * w1 * w2
-    return [[d + k * w0 * w0, kxy - s * w2, kxz + s * w1],
-            [kxy + s * w2, d + k * w1 * w1, kyz - s * w0],
-            [kxz - s * w1, kyz + s * w0, d + k * w2 * w2]]
-
-
-def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix -> rotation vector (3,, radians), angle in [0, pi]; the inverse of
-    `rotvec_to_matrix` (tested against scipy)."""
-    return np.array(_rotvec(_floats(R)))
-
-
-def _rotvec(R: Mat3) -> tuple[float, float, float]:
-    """`matrix_to_rotvec` of a nested list, as three floats."""
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R
-    th = math.acos(max(-1.0, min(1.0, (r00 + r11 + r22 - 1.0) / 2.0)))
-    v0, v1, v2 = r21 - r12, r02 - r20, r10 - r01
-    if th >= math.pi - 1e-4:                       # near pi: axis from the symmetric part
-        B = (np.array(R) + np.eye(3)) / 2.0
-        i = int(np.argmax(np.diag(B)))
-        axis = B[:, i] / math.sqrt(B[i, i])
-        if axis @ np.array([v0, v1, v2]) < 0:
-            axis = -axis
-        return tuple((axis * th).tolist())
-    f = 0.5 if th < 1e-6 else th / (2.0 * math.sin(th))
-    return v0 * f, v1 * f, v2 * f
-
-
-def _floats(a: Sequence | np.ndarray) -> list:
-    """An array (or nested sequence) of numbers as (nested) lists of Python floats."""
-    return a.tolist() if isinstance(a, np.ndarray) and a.dtype == np.float64 else np.asarray(a, np.float64).tolist()
+from pipeline.defense.gate import MotionCheck, MotionSettings
+from pipeline.defense.noise import NoiseModel
+from pipeline.geometry.rotations import Mat3, float_lists, rotmat_list, rotvec_list
 
 
 def _inv3(S: Mat3) -> Mat3:
@@ -113,164 +50,6 @@ def _inv3(S: Mat3) -> Mat3:
     return [[A * r, (c * h - b * i) * r, (b * f - c * e) * r],
             [B * r, (a * i - c * g) * r, (c * d - a * f) * r],
             [C * r, (b * g - a * h) * r, (a * e - b * d) * r]]
-
-
-def _positive(name: str, value: float) -> float:
-    v = float(value)
-    if not np.isfinite(v) or v <= 0:
-        raise ValueError(f"{name} must be a finite number > 0, got {value}")
-    return v
-
-
-@dataclass(frozen=True)
-class NoiseModel:
-    """Pose-estimate noise: std per camera axis (x, y, z) = intercept + slope * range (metres), the
-    attitude std (degrees) = intercept + slope * range, and the position bias per camera axis
-    (metres) = bias_intercept + bias_slope * range, range in metres."""
-
-    position_intercept: tuple[float, float, float]
-    position_slope: tuple[float, float, float]
-    attitude_intercept: float
-    attitude_slope: float
-    floor: float = 0.02   # metres: smallest position std used (a fit can go to zero at short range)
-    bias_intercept: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    bias_slope: tuple[float, float, float] = (0.0, 0.0, 0.0)
-
-    def __post_init__(self) -> None:
-        for name, v in (("position_intercept", self.position_intercept), ("position_slope", self.position_slope),
-                        ("bias_intercept", self.bias_intercept), ("bias_slope", self.bias_slope)):
-            if len(v) != 3 or not np.all(np.isfinite(v)):
-                raise ValueError(f"noise model {name} must be 3 finite numbers, got {v}")
-        if not np.isfinite(self.attitude_intercept) or not np.isfinite(self.attitude_slope):
-            raise ValueError("noise model attitude intercept and slope must be finite")
-        _positive("noise model floor", self.floor)
-
-    def position_std(self, rng: float) -> np.ndarray:
-        """(3,) std (m) along the camera x, y, z axes at range `rng` (m)."""
-        a, b = self.position_intercept, self.position_slope
-        return np.array([max(a[i] + b[i] * rng, self.floor) for i in range(3)])
-
-    def position_bias(self, rng: float) -> np.ndarray:
-        """(3,) mean error (m) along the camera x, y, z axes at range `rng` (m)."""
-        a, b = self.bias_intercept, self.bias_slope
-        return np.array([a[i] + b[i] * rng for i in range(3)])
-
-    def attitude_std(self, rng: float) -> float:
-        """Attitude std (radians) per axis at range `rng` (m)."""
-        return math.radians(max(self.attitude_intercept + self.attitude_slope * rng, 0.1))
-
-    def as_dict(self) -> dict[str, object]:
-        return {"position_intercept": list(self.position_intercept), "position_slope": list(self.position_slope),
-                "attitude_intercept": self.attitude_intercept, "attitude_slope": self.attitude_slope,
-                "floor": self.floor, "bias_intercept": list(self.bias_intercept), "bias_slope": list(self.bias_slope)}
-
-
-INFLATIONS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0)
-
-
-def inflate(noise: "NoiseModel", k: float) -> "NoiseModel":
-    """The noise model with every standard deviation (position, attitude, floor) times `k` > 0; biases kept."""
-    import dataclasses
-
-    _positive("noise inflation", k)
-    return dataclasses.replace(
-        noise, position_intercept=tuple(k * v for v in noise.position_intercept),
-        position_slope=tuple(k * v for v in noise.position_slope), attitude_intercept=k * noise.attitude_intercept,
-        attitude_slope=k * noise.attitude_slope, floor=k * noise.floor)
-
-
-def smallest_inflation(false_alarms: Callable[[float], float], target: float,
-                       grid: Sequence[float] = INFLATIONS) -> tuple[float, dict[float, float]]:
-    """The smallest factor of `grid` whose false-alarm rate `false_alarms(k)` (measured on clean
-    validation frames) is at most `target`, and every measured rate; the largest factor when none is.
-
-    A Gaussian noise model fitted to the pose errors under-states their heavy, frame-to-frame
-    correlated tails, so the gate's nominal false-alarm rate is not what clean frames see."""
-    rates: dict[float, float] = {}
-    for k in grid:
-        rates[k] = float(false_alarms(k))
-        if rates[k] <= target:
-            return k, rates
-    return max(grid), rates
-
-
-def fit_noise(t_true: np.ndarray, t_pred: np.ndarray, R_true: np.ndarray | None = None,
-              R_pred: np.ndarray | None = None, bins: int = 8) -> NoiseModel:
-    """Fit a `NoiseModel` to clean validation estimates.
-
-    t_true, t_pred: (N, 3) camera-frame positions (m); R_true, R_pred: optional (N, 3, 3) target ->
-    camera rotations. The frames are binned by true range into `bins` equal-count bins; in each bin
-    the median error (the bias) and the robust std of the error (1.4826 * median absolute deviation
-    from the bin median, per camera axis) are taken, and lines a + b * range are fitted to both by
-    least squares over the bins. Without rotations the attitude std is a constant 5 degrees.
-    """
-    t_true, t_pred = np.asarray(t_true, np.float64), np.asarray(t_pred, np.float64)
-    if t_true.ndim != 2 or t_true.shape[1] != 3 or t_true.shape != t_pred.shape:
-        raise ValueError(f"fit_noise needs (N, 3) true and predicted positions, got {t_true.shape} and {t_pred.shape}")
-    if not (np.isfinite(t_true).all() and np.isfinite(t_pred).all()):
-        raise ValueError("fit_noise: positions contain NaN or inf")
-    bins = int(bins)
-    if bins < 2 or len(t_true) < 4 * bins:
-        raise ValueError(f"fit_noise needs at least {4 * max(bins, 2)} frames for {max(bins, 2)} range bins, got {len(t_true)}")
-    rng = np.linalg.norm(t_true, axis=1)
-    err = t_pred - t_true
-    att = None
-    if R_true is not None and R_pred is not None:
-        rel = np.swapaxes(np.asarray(R_true), -1, -2) @ np.asarray(R_pred)
-        att = np.degrees(Rotation.from_matrix(rel).as_rotvec())   # (N, 3) degrees, target frame
-    order = np.argsort(rng)
-    centres, pos_std, att_std, bias = [], [], [], []
-    for idx in np.array_split(order, bins):
-        centres.append(rng[idx].mean())
-        e = err[idx]
-        bias.append(np.median(e, 0))
-        pos_std.append(1.4826 * np.median(np.abs(e - bias[-1]), 0))
-        if att is not None:
-            a = att[idx]
-            att_std.append(float(np.mean(1.4826 * np.median(np.abs(a - np.median(a, 0)), 0))))
-    A = np.column_stack([np.ones(bins), centres])
-    coef = np.linalg.lstsq(A, np.asarray(pos_std), rcond=None)[0]       # (2, 3)
-    bcoef = np.linalg.lstsq(A, np.asarray(bias), rcond=None)[0]
-    if att is not None:
-        a0, a1 = np.linalg.lstsq(A, np.asarray(att_std), rcond=None)[0]
-    else:
-        a0, a1 = 5.0, 0.0
-    return NoiseModel(tuple(map(float, coef[0])), tuple(map(float, coef[1])), float(a0), float(a1),
-                      bias_intercept=tuple(map(float, bcoef[0])), bias_slope=tuple(map(float, bcoef[1])))
-
-
-@dataclass(frozen=True)
-class MotionSettings:
-    """Filter settings. position_noise: std of the unmodelled displacement per frame (m);
-    velocity_noise: std of the drift-velocity change per frame (m/frame); attitude_noise_deg and
-    attitude_rate_noise_deg: the same for the target attitude (deg, deg/frame); false_alarm: the
-    gate's false-alarm probability per frame on motion consistent with the model, in (0, 1);
-    soft_gate: fraction of the gate's NIS above which an accepted frame is down-weighted;
-    reacquire_after: M consecutive rejected frames that agree with one another (and that the
-    detector did not flag) restart the filter on them."""
-
-    position_noise: float = 0.05
-    velocity_noise: float = 0.01
-    attitude_noise_deg: float = 0.5
-    attitude_rate_noise_deg: float = 0.05
-    false_alarm: float = 0.001
-    soft_gate: float = 0.5
-    reacquire_after: int = 4
-
-    def __post_init__(self) -> None:
-        for name in ("position_noise", "velocity_noise", "attitude_noise_deg", "attitude_rate_noise_deg"):
-            _positive(f"defense.{name}", getattr(self, name))
-        if not 0 < float(self.false_alarm) < 1:
-            raise ValueError(f"defense.false_alarm is a gate probability and must be in (0, 1), got {self.false_alarm}")
-        if not 0 < float(self.soft_gate) <= 1:
-            raise ValueError(f"defense.soft_gate must be in (0, 1], got {self.soft_gate}")
-        if int(self.reacquire_after) < 2:
-            raise ValueError(f"defense.reacquire_after must be >= 2 frames, got {self.reacquire_after}")
-
-    @property
-    def gate(self) -> float:
-        """NIS threshold of each 3-dof test (position, attitude): chi2 quantile at 1 - false_alarm / 2."""
-        return float(chi2.ppf(1.0 - self.false_alarm / 2.0, 3))
 
 
 def _mm(A: Mat3, B: Mat3) -> Mat3:
@@ -418,17 +197,6 @@ class _IsoKalman6:
         return d_level
 
 
-@dataclass
-class MotionCheck:
-    """One frame's motion check: NIS of position and attitude (NaN before the filter starts) and the
-    gate decision; `predicted` is the filter's prediction of rel (world frame, m) before this frame."""
-
-    nis_position: float
-    nis_attitude: float
-    inconsistent: bool
-    predicted: np.ndarray = field(repr=False)
-
-
 class MotionFilter:
     """Relative-motion filter with a chi-square innovation gate; call `check` then `accept` or `coast`
     once per frame (the caller decides, e.g. with the SHAP detector's flag too). The per-frame path
@@ -501,18 +269,18 @@ class MotionFilter:
         if not self.started:
             raise RuntimeError("MotionFilter.check before start")
         if u is not None:
-            u = _floats(u)
+            u = float_lists(u)
             self._moved = [m + d for m, d in zip(self._moved, u)]
         self.pos.predict(u)
         self.att.predict()
-        self.R_tw = _mm(self.R_tw, _rotmat(self.att.take_level()))
+        self.R_tw = _mm(self.R_tw, rotmat_list(self.att.take_level()))
         predicted = self.position
-        t = _floats(t_pred)
+        t = float_lists(t_pred)
         rng = math.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
-        R_pred = None if R_pred is None else _floats(R_pred)
+        R_pred = None if R_pred is None else float_lists(R_pred)
         if not math.isfinite(rng) or (R_pred is not None and not math.isfinite(sum(map(sum, R_pred)))):
             return self._stash(MotionCheck(np.inf, np.inf, True, predicted), None)
-        R_cam = _floats(R_cam)
+        R_cam = float_lists(R_cam)
         z, Rz = self._measurement(t, rng, R_cam)
         R_meas = None if R_pred is None else _mm(R_cam, R_pred)
         self._last = ([v - m for v, m in zip(z, self._moved)], Rz, R_meas)
@@ -521,7 +289,7 @@ class MotionFilter:
         nis_p = sum(a * b for a, b in zip(y, _mv(s_inv, y)))
         nis_a, att = np.nan, None
         if R_meas is not None:
-            dth = _rotvec(_mm(_t(self.R_tw), R_meas))
+            dth = rotvec_list(_mm(_t(self.R_tw), R_meas))
             var = self.noise.attitude_std(rng) ** 2
             nis_a = self.att.nis(dth, var)
             att = (dth, var)
@@ -545,7 +313,7 @@ class MotionFilter:
         if att is not None:
             dth, var = att
             self.att.update(dth, var * max(1.0, check.nis_attitude / soft))
-            self.R_tw = _mm(self.R_tw, _rotmat(self.att.take_level()))
+            self.R_tw = _mm(self.R_tw, rotmat_list(self.att.take_level()))
         self._pending = None
         self._history.append(self._last[0])
         self._candidates = []

@@ -109,51 +109,6 @@ class LSTMDetector(nn.Module):
         return (self.predict_proba(values) >= float(self.threshold)).astype(np.int64)
 
 
-class ShapLSTM(nn.Module):
-    """`detector` on the exact SHAP values of an affine head, from the head's GAP features:
-    (B, D) features -> (SHAP values (B, n_rows, D), attack probability (B,)).
-
-    The detector reads x[b, j] = (phi[b, j] - m_j) / s_j with phi[b, j] = W[j] * (a[b] - mu), that
-    is x[b, j] = (W[j] / s_j) * (a[b] - mu) - m_j / s_j: the SHAP scaling and the standardisation
-    fold into one (n_rows, D) weight and a per-row shift, so one multiply-add gives the LSTM input.
-    The input projection keeps the detector's shared (4H, D) weight: folding it further into 9
-    distinct (D, 4H) matrices needs as many multiply-adds and 9x the memory to stream. The gates
-    are reordered (i, f, o | g) so that one sigmoid covers three of them, and since the cell state is
-    never negative (c' = f c + i relu(g), c_0 = 0) h' = o * c' needs no ReLU: the fewest small ops,
-    which is what a 9-step, 100-unit recurrence costs at batch 1. Equal to
-    `detector(exact_shap(a, W, mu))` to float32 rounding; the detector's weights are copied here.
-    """
-
-    def __init__(self, detector: "LSTMDetector", weight: torch.Tensor, background_mean: torch.Tensor):
-        super().__init__()
-        h = self.hidden = detector.config.hidden
-        order = torch.cat([torch.arange(2 * h), torch.arange(3 * h, 4 * h), torch.arange(2 * h, 3 * h)])
-        inv_scale = 1.0 / detector.scale.detach().double()                        # (n_rows, 1)
-        cell = detector.lstm
-        buffers = {"weight": weight, "background_mean": background_mean,
-                   "scaled": weight.double() * inv_scale, "shift": -detector.mean.detach().double() * inv_scale,
-                   "w_in": cell.input_proj.weight.detach()[order], "b_in": cell.input_proj.bias.detach()[order],
-                   "w_hidden": cell.hidden_proj.weight.detach()[order].T}
-        for name, value in buffers.items():
-            self.register_buffer(name, value.float().contiguous())
-        self.classifier = copy.deepcopy(detector.classifier)
-
-    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        centred = (features - self.background_mean).unsqueeze(1)                   # (B, 1, D)
-        x = torch.addcmul(self.shift, self.scaled, centred)                         # (B, n_rows, D)
-        steps = torch.nn.functional.linear(x, self.w_in, self.b_in).unbind(1)
-        sizes = [3 * self.hidden, self.hidden]
-        ifo, g = steps[0].split(sizes, dim=1)
-        i, f, o = torch.sigmoid(ifo).chunk(3, dim=1)
-        c = i * torch.relu(g)
-        for step in steps[1:]:
-            ifo, g = torch.addmm(step, o * c, self.w_hidden).split(sizes, dim=1)
-            i, f, o = torch.sigmoid(ifo).chunk(3, dim=1)
-            c = torch.addcmul(f * c, i, torch.relu(g))
-        prob = torch.sigmoid(self.classifier(o * c).squeeze(1))
-        return self.weight * centred, prob
-
-
 def to_checkpoint(model: LSTMDetector, extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """A dict of tensors and plain values (loadable with torch.load(weights_only=True))."""
     return {"kind": "lstm", "config": asdict(model.config), "threshold": float(model.threshold),
@@ -194,11 +149,7 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
         return _with_progress(progress, epochs, on_epoch, lambda cb: train_lstm(
             x_train, y_train, x_val, y_val, config, epochs=epochs, patience=patience, batch_size=batch_size, lr=lr,
             seed=seed, on_epoch=cb, device=device))
-    sizes = {"epochs": epochs, "patience": patience, "batch_size": batch_size, "hidden": config.hidden,
-             **{f"dense[{i}]": w for i, w in enumerate(config.dense)}}
-    small = [f"{k}={v}" for k, v in sizes.items() if int(v) < 1]
-    if small or not lr > 0:
-        raise ValueError(f"LSTM detector settings must be positive: {', '.join(small) or f'lr={lr}'}")
+    _check_settings(config, epochs, patience, batch_size, lr)
     if not (np.isfinite(x_train).all() and np.isfinite(x_val).all()):
         raise ValueError("LSTM detector inputs hold NaN or infinite values")
     torch.manual_seed(seed)
@@ -213,17 +164,7 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
     best_loss, best_state, best_epoch, stale = float("inf"), copy.deepcopy(model.state_dict()), 0, 0
     history: list[dict[str, float]] = []
     for epoch in range(1, epochs + 1):
-        model.train()
-        perm = torch.randperm(len(xt), generator=gen)
-        total = 0.0
-        for s in range(0, len(xt), batch_size):
-            idx = perm[s:s + batch_size].to(device)
-            loss = loss_fn(model(xt[idx]), yt[idx])
-            check_loss(loss.item(), f"epoch {epoch}")
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            total += loss.item() * len(idx)
+        total = _train_epoch(model, xt, yt, opt, loss_fn, torch.randperm(len(xt), generator=gen), batch_size, epoch)
         model.eval()
         with torch.no_grad():
             logits = torch.cat([model(xv[s:s + 1024]) for s in range(0, len(xv), 1024)])
@@ -244,6 +185,31 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
     model.cpu()
     model.threshold.fill_(choose_threshold(model.predict_proba(x_val), y_val))
     return TrainResult(model.eval(), history, best_epoch)
+
+
+def _check_settings(config: LSTMConfig, epochs: int, patience: int, batch_size: int, lr: float) -> None:
+    """Refuse sizes below 1 and a learning rate that is not > 0, naming them."""
+    sizes = {"epochs": epochs, "patience": patience, "batch_size": batch_size, "hidden": config.hidden,
+             **{f"dense[{i}]": w for i, w in enumerate(config.dense)}}
+    small = [f"{k}={v}" for k, v in sizes.items() if int(v) < 1]
+    if small or not lr > 0:
+        raise ValueError(f"LSTM detector settings must be positive: {', '.join(small) or f'lr={lr}'}")
+
+
+def _train_epoch(model: LSTMDetector, xt: torch.Tensor, yt: torch.Tensor, opt: torch.optim.Optimizer,
+                 loss_fn: nn.Module, perm: torch.Tensor, batch_size: int, epoch: int) -> float:
+    """One pass over the training set in the order `perm` (drawn on the CPU) -> sum of loss * batch size."""
+    model.train()
+    total = 0.0
+    for s in range(0, len(xt), batch_size):
+        idx = perm[s:s + batch_size].to(xt.device)
+        loss = loss_fn(model(xt[idx]), yt[idx])
+        check_loss(loss.item(), f"epoch {epoch}")
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        total += loss.item() * len(idx)
+    return total
 
 
 def _with_progress(desc: str, epochs: int, on_epoch: Callable[[dict[str, float]], None] | None,

@@ -1,9 +1,20 @@
-"""Detection metrics for scores where higher means "attacked" (label 1) and clean is label 0."""
+"""Detection metrics: per sample for scores where higher means "attacked" (label 1) and clean is
+label 0 (`detection_metrics`), and per frame of a flagged sequence (`frame_metrics`).
+
+Frame metrics count frames, as the paper does: accuracy = frames classified correctly / all frames,
+where a frame is correct when its flag equals its attacked state. TPR = flagged attacked frames /
+attacked frames, FPR = flagged clean frames / clean frames. The detection delay of a burst is the
+number of frames from its first frame to its first flagged frame (0 = flagged at once); bursts
+with no flag at all are counted as missed and have no delay.
+"""
 from __future__ import annotations
+
+from dataclasses import asdict, dataclass
 
 import numpy as np
 from sklearn import metrics as skm
 
+from pipeline.evaluation.schedule import bursts
 from pipeline.evaluation.stats import wilson
 
 METRICS = ("accuracy", "precision", "recall", "fpr", "roc_auc", "tpr_at_1pct_fpr")
@@ -81,3 +92,74 @@ def roc_csv(labels: np.ndarray, scores: np.ndarray) -> str:
     """The ROC curve as CSV text: a `fpr,tpr` header, then one point per line (6 decimals)."""
     roc = roc_points(labels, scores)
     return "\n".join(["fpr,tpr"] + [f"{a:.6f},{b:.6f}" for a, b in zip(roc["fpr"], roc["tpr"])]) + "\n"
+
+
+def detection_delays(attacked_bursts: list[tuple[int, int]], flagged: np.ndarray) -> np.ndarray:
+    """Per burst: frames from its start to its first flag, NaN when no frame of it was flagged."""
+    flagged = np.asarray(flagged, dtype=bool)
+    delays = np.full(len(attacked_bursts), np.nan)
+    for k, (start, stop) in enumerate(attacked_bursts):
+        hits = np.flatnonzero(flagged[start:stop])
+        if len(hits):
+            delays[k] = hits[0]
+    return delays
+
+
+@dataclass(frozen=True)
+class FrameMetrics:
+    """Frame-level detection figures for one sequence (rates in [0, 1]; NaN when undefined)."""
+
+    frames: int
+    attacked: int
+    flagged: int
+    accuracy: float
+    tpr: float
+    fpr: float
+    bursts: int
+    missed_bursts: int
+    mean_delay: float            # frames, over bursts that were flagged at least once
+
+    def as_dict(self) -> dict[str, float | int]:
+        return asdict(self)
+
+
+def _rate(num: int, den: int) -> float:
+    """num / den, NaN when den is 0."""
+    return float(num) / den if den else float("nan")
+
+
+def frame_metrics(attacked: np.ndarray, flagged: np.ndarray,
+                  attacked_bursts: list[tuple[int, int]] | None = None) -> FrameMetrics:
+    """Accuracy (correct flags / all frames), TPR, FPR and burst delays of one flag sequence.
+
+    `attacked_bursts` defaults to the runs of `attacked`; pass `schedule_bursts(...)` to count
+    touching bursts separately.
+    """
+    attacked = np.asarray(attacked, dtype=bool)
+    flagged = np.asarray(flagged, dtype=bool)
+    if attacked.shape != flagged.shape or attacked.ndim != 1:
+        raise ValueError(f"attacked {attacked.shape} and flagged {flagged.shape} must be equal 1-D shapes")
+    n = len(attacked)
+    tp = int(np.sum(attacked & flagged))
+    fp = int(np.sum(~attacked & flagged))
+    tn = int(np.sum(~attacked & ~flagged))
+    b = bursts(attacked) if attacked_bursts is None else attacked_bursts
+    delays = detection_delays(b, flagged)
+    hit = delays[~np.isnan(delays)]
+    return FrameMetrics(
+        frames=n, attacked=int(attacked.sum()), flagged=int(flagged.sum()),
+        accuracy=_rate(tp + tn, n), tpr=_rate(tp, int(attacked.sum())), fpr=_rate(fp, int((~attacked).sum())),
+        bursts=len(b), missed_bursts=int(np.isnan(delays).sum()),
+        mean_delay=float(hit.mean()) if len(hit) else float("nan"),
+    )
+
+
+def undetected_mask(attacked: np.ndarray, flagged: np.ndarray) -> np.ndarray:
+    """Attacked frames the detector did not flag (the ones whose bad pose reaches guidance)."""
+    return np.asarray(attacked, dtype=bool) & ~np.asarray(flagged, dtype=bool)
+
+
+def mean_over(values: np.ndarray, mask: np.ndarray) -> float:
+    """Mean of `values` where `mask` holds (e.g. pose error on undetected attacked frames); NaN if none."""
+    values, mask = np.asarray(values, dtype=np.float64), np.asarray(mask, dtype=bool)
+    return float(values[mask].mean()) if mask.any() else float("nan")

@@ -1,4 +1,4 @@
-"""The lab domain: range rescaling, mocap-to-camera timestamp matching, lab images.
+"""The lab domain: range rescaling, mocap-to-camera timestamp matching (lab images: lab_images.py).
 
 Range rescaling (pinhole model)
 -------------------------------
@@ -41,17 +41,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-import cv2
 import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation, Slerp
 
 from pipeline.geometry.camera import Intrinsics
 from pipeline.geometry.rotations import matrix_to_quat, normalize_quat, quat_to_matrix
+from pipeline.pose.labels import QUAT
 
 Match = Literal["nearest", "interpolate"]
 CAMERA_COLUMNS = ["frame", "timestamp"]
-MOCAP_COLUMNS = ["timestamp", "body", "x", "y", "z", "qw", "qx", "qy", "qz"]
+MOCAP_COLUMNS = ["timestamp", "body", "x", "y", "z", *QUAT]
 
 
 class LabDataError(ValueError):
@@ -175,7 +175,7 @@ def parse_mocap(df: pd.DataFrame, bodies: list[str], source: str = "mocap.csv") 
             i = rows[bad[0] + 1]
             raise LabDataError(f"{source} line {_line(i)}: body {body!r} timestamp {t[bad[0] + 1]} is not after "
                                f"its previous sample ({t[bad[0]]}); mocap rows must be in time order")
-        q = df[["qw", "qx", "qy", "qz"]].to_numpy()[rows]
+        q = df[QUAT].to_numpy()[rows]
         zero = np.flatnonzero(np.linalg.norm(q, axis=1) < 1e-9)
         if len(zero):
             raise LabDataError(f"{source} line {_line(rows[zero[0]])}: body {body!r} has a zero quaternion")
@@ -321,60 +321,16 @@ def synthetic_recording(z_start: float, z_end: float, n_frames: int, fps: float,
     for body, pos, q in ((camera_body, p_cam(mocap_t), np.tile(q_cam, (len(mocap_t), 1))),
                          (target_body, np.tile(p_tgt, (len(mocap_t), 1)), np.tile(q_tgt, (len(mocap_t), 1)))):
         rows.append(pd.DataFrame({"timestamp": mocap_t, "body": body, "x": pos[:, 0], "y": pos[:, 1],
-                                  "z": pos[:, 2], "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3]}))
+                                  "z": pos[:, 2], **{c: q[:, k] for k, c in enumerate(QUAT)}}))
     mocap = pd.concat(rows).sort_values("timestamp", kind="stable").reset_index(drop=True)
     camera = pd.DataFrame({"frame": np.arange(n_frames), "timestamp": frame_t})
     return LabRecording(camera, mocap, t_label(frame_t), np.tile(normalize_quat(q_label), (n_frames, 1)))
 
 
-# ----------------------------------------------------------------------------- images
-def segment(image: np.ndarray, mask: np.ndarray | None = None, threshold: float = 0.08) -> np.ndarray:
-    """Black out the background of an RGB uint8 image (H, W, 3).
-
-    With a mask (H, W; nonzero = target) the mask decides; otherwise pixels whose grey level is
-    below `threshold` (in [0, 1]) are set to black.
-    """
-    if mask is None:
-        grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-        keep = grey >= threshold * 255.0
-    else:
-        if mask.shape[:2] != image.shape[:2]:
-            raise ValueError(f"mask size {mask.shape[:2]} differs from image size {image.shape[:2]}")
-        keep = (mask if mask.ndim == 2 else mask[..., 0]) > 0
-    return np.where(keep[..., None], image, 0).astype(np.uint8)
-
-
-def resize(image: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Resize an image to width x height (area averaging when shrinking)."""
-    if image.shape[1] == width and image.shape[0] == height:
-        return image
-    shrink = image.shape[1] > width
-    return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
-
-
-def domain_shift(image: np.ndarray, noise_std: float, blur_sigma: float, rng: np.random.Generator) -> np.ndarray:
-    """Sensor blur (Gaussian, sigma in pixels) then Gaussian noise (std in [0, 1] units) on a uint8 image."""
-    x = image.astype(np.float32) / 255.0
-    if blur_sigma > 0:
-        x = cv2.GaussianBlur(x, (0, 0), blur_sigma)
-    if noise_std > 0:
-        x = x + rng.normal(0.0, noise_std, x.shape).astype(np.float32)
-    return np.clip(np.rint(x * 255.0), 0, 255).astype(np.uint8)
-
-
-def shift_recording(rgb: np.ndarray, alpha: np.ndarray, noise_std: float, blur_sigma: float,
-                    rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """A lab recording's rendered frames (RGB (N, H, W, 3) uint8 on black, alpha (N, H, W) in [0, 1])
-    with the domain shift applied frame by frame in order (one rng stream) -> images (N, H, W, 3)
-    uint8 and target masks (N, H, W) uint8 (255 = target)."""
-    images = np.stack([domain_shift(x, noise_std, blur_sigma, rng) for x in rgb])
-    return images, np.where(alpha > 0.5, 255, 0).astype(np.uint8)
-
-
 def loader_errors(recs: list[dict[str, Any]], truth: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
     """Per rendered recording in `truth`: the largest position (m) and attitude (deg) error of the
     loader's labels (`recs`, by name) against the exact poses the images were rendered at."""
-    from pipeline.geometry.rotations import attitude_error_deg
+    from pipeline.pose.metrics import attitude_error_deg
 
     out = {}
     for tr in truth:

@@ -122,11 +122,11 @@ def run_attack_rows(chain: Any, images: np.ndarray, targets: np.ndarray, specs: 
                     batch_size: int, progress: Callable[[Iterable[int]], Iterable[int]] = iter,
                     pgd_is_lambda0: bool = False) -> list[dict[str, Any]]:
     """Every spec's row on the frames (uint8 (N, H, W, 3), labels (N, 9) [m, 6-D]), each attacked
-    image stored as 8-bit (`pipeline.attacks.gradient.quantize`) before `chain` (a SafetyChain) reads it;
+    image stored as 8-bit (`pipeline.attacks.gradient.quantize`) before `chain` (a OnboardChain) reads it;
     then per eps the adaptive attack's worst case over lambda. With `pgd_is_lambda0`, the adaptive
     run at lambda = 0 (plain PGD on the same seed) is also the `pgd` transfer row."""
     from pipeline.defense.chain import run_sequence
-    from pipeline.pose.train import pose_errors
+    from pipeline.pose.metrics import pose_errors
 
     attacked = np.ones(len(images), bool)
     rows: list[dict[str, Any]] = []
@@ -151,7 +151,7 @@ def attack_specs(pose: Any, surrogate: Any, target: Any, *, eps: Sequence[float]
                  surrogate_attacks: Sequence[tuple[str, str, str | None]], steps: int, mi_steps: int,
                  momentum: float, loss: str, seed: int) -> list[AttackSpec]:
     """The attack rows to run, in report order, on `pose` (and `surrogate`: objects with `.model` and
-    `.loss`, the learned training loss) and the adaptive `target` (pipeline.attacks.adaptive.ShapChain).
+    `.loss`, the learned training loss) and the adaptive `target` (pipeline.attacks.adaptive.PerFrameChain).
     `transfer`, `surrogate_attacks`: (name, method, loss or None = `loss`). PGD takes `steps`
     gradients, MI-FGSM `mi_steps` (attack.steps, as in the attack stage). PGD at eps index i uses
     seed + 100 + i, so plain PGD and the adaptive attack at lambda = 0 are one run (the `pgd` row is
@@ -327,7 +327,7 @@ def fused_bursts(chain: Any, shap: Any, defended: Defended, images: np.ndarray, 
     """`fused_attack` on every trajectory (frame indices into `images`, `labels` (N, 9)) with its
     bursts; `done()` after each trajectory. Returns, over the attacked frames of all bursts in order,
     (position error (M,), flag (M,), trajectory id (M,), burst id (M,): 1000 * trajectory + burst)."""
-    from pipeline.pose.train import pose_errors
+    from pipeline.pose.metrics import pose_errors
 
     pos, flag, grp, bid = [], [], [], []
     for g, (ix, bs) in enumerate(zip(trajectories, bursts)):

@@ -18,13 +18,15 @@ import pandas as pd
 import torch
 
 from pipeline.attacks.gradient import stored_attack
-from pipeline.defense.chain import SafetyChain, run_sequence
+from pipeline.defense.chain import OnboardChain, run_sequence
 from pipeline.defense.fusion import DefenseSettings, run_defense
-from pipeline.defense.kalman import MotionSettings, NoiseModel
+from pipeline.defense.gate import MotionSettings
+from pipeline.defense.noise import NoiseModel
 from pipeline.geometry.rotations import sixd_to_matrix
-from pipeline.evaluation.schedule import detection_delays, detection_metrics, mean_over, schedule_bursts, undetected_mask
+from pipeline.detectors.metrics import detection_delays, frame_metrics, mean_over, undetected_mask
+from pipeline.evaluation.schedule import schedule_bursts
 from pipeline.evaluation.stats import bootstrap_rate
-from pipeline.pose.train import pose_errors
+from pipeline.pose.metrics import pose_errors
 
 
 @dataclass(frozen=True, eq=False)
@@ -73,7 +75,7 @@ def _bar_iter(it: Iterable[Any], bar: Any) -> Iterator[Any]:
         bar.update(1)
 
 
-def evaluate_sequences(chain: SafetyChain, loss_fn: Any, sequences: list[Sequence], eps_list: list[float],
+def evaluate_sequences(chain: OnboardChain, loss_fn: Any, sequences: list[Sequence], eps_list: list[float],
                        attack_length: int, batch_size: int, desc: str) -> Evaluation:
     """Run every sequence clean and at every eps through the chain -> per-row metrics, per-frame traces
     and the clean runs' rates and errors (`Evaluation`)."""
@@ -98,7 +100,7 @@ def evaluate_sequences(chain: SafetyChain, loss_fn: Any, sequences: list[Sequenc
         for s in sequences:
             res = run_sequence(chain, s.images, s.targets, s.attacked, attack, batch_size, progress)
             pos, att = pose_errors(res.pose, s.targets)
-            m = detection_metrics(s.attacked, res.flag, schedule_bursts(s.attacked, attack_length))
+            m = frame_metrics(s.attacked, res.flag, schedule_bursts(s.attacked, attack_length))
             und = undetected_mask(s.attacked, res.flag)
             rows.append({"eps": eps, "sequence": s.name, **m.as_dict(),
                          "frames": len(res.flag), "correct": int((res.flag == s.attacked).sum()),
@@ -116,7 +118,7 @@ def evaluate_sequences(chain: SafetyChain, loss_fn: Any, sequences: list[Sequenc
     return Evaluation(rows=rows, traces=traces, clean=clean)
 
 
-def pose_errors_under_fgsm(chain: SafetyChain, loss_fn: Any, sequence: Sequence, eps_list: list[float],
+def pose_errors_under_fgsm(chain: OnboardChain, loss_fn: Any, sequence: Sequence, eps_list: list[float],
                            batch_size: int) -> list[dict[str, Any]]:
     """Mean pose errors of one sequence clean and under FGSM at every eps (every frame attacked).
 
@@ -140,7 +142,7 @@ def pose_errors_under_fgsm(chain: SafetyChain, loss_fn: Any, sequence: Sequence,
     return rows
 
 
-def fgsm_error_table(chain: SafetyChain, loss_fn: Any, sequences: list[Sequence], eps_list: list[float],
+def fgsm_error_table(chain: OnboardChain, loss_fn: Any, sequences: list[Sequence], eps_list: list[float],
                      batch_size: int) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
     """`pose_errors_under_fgsm` over every sequence, split into (clean rows, FGSM rows)."""
     clean, fgsm = [], []

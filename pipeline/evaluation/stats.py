@@ -28,10 +28,9 @@ class Rate:
 
     def pct(self, decimals: int = 1) -> str:
         """``"96.5 [95.1, 97.6]"``: percent with the interval, or ``"-"`` when there is no trial."""
-        if self.n == 0:
-            return "-"
-        f = f"{{:.{decimals}f}}"
-        return f"{f.format(100 * self.value)} [{f.format(100 * self.lo)}, {f.format(100 * self.hi)}]"
+        from pipeline.report.markdown import percent_ci
+
+        return "-" if self.n == 0 else percent_ci(self.value, (self.lo, self.hi), decimals)
 
     def ci(self) -> list[float | None]:
         """``[lo, hi]`` for JSON (``None`` when there is no trial)."""

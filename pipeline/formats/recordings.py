@@ -73,7 +73,8 @@ def _read_recording(folder: Path, width: int, height: int, bodies: dict[str, str
     from PIL import Image
     from tqdm import tqdm
 
-    from pipeline.evaluation.lab import check_target_pixels, image_names, match_frames, resize, resolve_inside, segment
+    from pipeline.evaluation.lab import check_target_pixels, image_names, match_frames, resolve_inside
+    from pipeline.evaluation.lab_images import resize, segment
 
     tables = {}
     for name in ("camera.csv", "mocap.csv"):

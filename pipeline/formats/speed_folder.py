@@ -16,6 +16,7 @@ import numpy as np
 
 from pipeline.io.atomic import atomic_dir, read_json, write_json
 from pipeline.io.errors import DataError
+from pipeline.pose.labels import POSITION, QUAT
 
 TRAIN = ("synthetic/train.json", "train.json")   # training label files, the first found is read
 TEST = ("synthetic/test.json", "synthetic/validation.json", "test.json")
@@ -98,6 +99,6 @@ def write_speed(out: Path, images: Any, labels: Any, K: Any) -> None:
         for split in ("train", "test"):
             rows = (labels["split"] == split).to_numpy()
             write_json(tmp / EXPORT_DIR / f"{split}.json",
-                       to_speed([n for n, keep in zip(names, rows) if keep], labels.loc[rows, ["tx", "ty", "tz"]],
-                                labels.loc[rows, ["qw", "qx", "qy", "qz"]]))
+                       to_speed([n for n, keep in zip(names, rows) if keep], labels.loc[rows, POSITION],
+                                labels.loc[rows, QUAT]))
         write_json(tmp / "camera.json", camera_to_json(K))

@@ -142,11 +142,11 @@ def poses_table(idx: np.ndarray, seq: np.ndarray, frm: np.ndarray, R: np.ndarray
     import pandas as pd
 
     from pipeline.geometry.rotations import matrix_to_quat
+    from pipeline.pose.labels import pose_columns
 
     q = matrix_to_quat(R)
     return pd.DataFrame({"index": idx, "sequence": seq, "frame": frm,
-                         "tx": t[:, 0], "ty": t[:, 1], "tz": t[:, 2],
-                         "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3],
+                         **pose_columns(t, q),
                          "range": np.linalg.norm(t, axis=1)})
 
 

@@ -7,10 +7,7 @@ DistributedSampler and the validation set evaluated in shards that are gathered 
 The caller passes a validation set carved from the training data (pipeline.evaluation.splits.holdout): `fit`
 never sees the test split, so the checkpoint it keeps is not selected on test data.
 
-Errors: position ||t_pred - t_gt|| in metres, attitude 2*acos(|<q_pred, q_gt>|) in degrees,
-the 6-D output decoded by Gram-Schmidt. The model selection score is the ESA SPEED score,
-mean(||t_pred - t_gt|| / ||t_gt||) + mean(attitude error in radians): dimensionless, so a 1% range
-error weighs as much as 0.01 rad (0.57 deg) of attitude.
+The model selection score is the ESA SPEED score (pipeline/pose/metrics.py).
 """
 from __future__ import annotations
 
@@ -30,7 +27,7 @@ from tqdm import tqdm
 
 from pipeline.pose.augment import AugmentConfig, augment
 from pipeline.pose.loss import PoseLoss
-from pipeline.geometry.rotations import attitude_error_deg, position_error, sixd_to_quat
+from pipeline.pose.metrics import pose_errors, speed_score
 
 
 LOSS_WEIGHT_LR_FACTOR = 10.0
@@ -87,19 +84,6 @@ def to_input(batch: torch.Tensor, channels_last: bool = True) -> torch.Tensor:
     """uint8 (B, H, W, 3) -> float (B, 3, H, W) in [0, 1] (channels_last memory layout if asked)."""
     x = batch.permute(0, 3, 1, 2).float().div_(255.0)
     return x.contiguous(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
-
-
-def pose_errors(pred: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 9) predictions and targets -> position error (m) and attitude error (deg), per sample."""
-    pred, target = np.asarray(pred, np.float64), np.asarray(target, np.float64)
-    return (position_error(pred[:, :3], target[:, :3]),
-            attitude_error_deg(sixd_to_quat(pred[:, 3:]), sixd_to_quat(target[:, 3:])))
-
-
-def speed_score(pred: np.ndarray, target: np.ndarray) -> float:
-    """ESA SPEED score: mean relative position error + mean attitude error in radians."""
-    pos, att = pose_errors(pred, target)
-    return float(np.mean(pos / np.linalg.norm(target[:, :3], axis=1)) + np.mean(np.deg2rad(att)))
 
 
 def make_deterministic(seed: int) -> None:
@@ -235,24 +219,8 @@ def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, val_set: PoseD
     objective: nn.Module = _Objective(model, loss)
     if world > 1:
         objective = nn.parallel.DistributedDataParallel(objective, device_ids=[device.index] if device.type == "cuda" else None)
-    sampler = DistributedSampler(train_set, world, rank, shuffle=True, seed=cfg.seed, drop_last=True) if world > 1 else None
-    gen = torch.Generator().manual_seed(cfg.seed)
-    loader = DataLoader(train_set, batch_size=cfg.batch_size, shuffle=sampler is None, sampler=sampler, drop_last=True,
-                        num_workers=cfg.workers, generator=gen, pin_memory=device.type == "cuda",
-                        persistent_workers=False)
-    steps = len(loader)
-    if steps == 0:
-        raise ValueError(f"the training set ({len(train_set)} images over {world} process(es)) is smaller than "
-                         f"one batch of {cfg.batch_size}")
-    # The loss's two weights get LOSS_WEIGHT_LR_FACTOR x the learning rate (no weight decay) so they reach
-    # their balance (exp(-2 s) ~ 1 / error) within the first epochs instead of lagging the whole run.
-    opt = torch.optim.Adam([{"params": list(model.parameters()), "weight_decay": cfg.weight_decay},
-                            {"params": list(loss.parameters()), "weight_decay": 0.0}], lr=cfg.lr_base)
-    f = LOSS_WEIGHT_LR_FACTOR
-    sched = torch.optim.lr_scheduler.CyclicLR(opt, base_lr=[cfg.lr_base, f * cfg.lr_base],
-                                              max_lr=[cfg.lr_max, f * cfg.lr_max], mode="triangular2",
-                                              step_size_up=max(1, round(cfg.cycle_epochs * steps)),
-                                              cycle_momentum=False)
+    loader, sampler = _loader(train_set, cfg, device, rank, world)
+    opt, sched = _optimiser(model, loss, cfg, len(loader))
     history: list[EpochStats] = []
     best_score, best_epoch, best_state = math.inf, -1, copy.deepcopy(model.state_dict())
     start, stopped_early, train_seconds, train_images = time.perf_counter(), False, 0.0, 0
@@ -264,50 +232,93 @@ def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, val_set: PoseD
         if sampler is not None:
             sampler.set_epoch(epoch)
         train_set.set_epoch(epoch)
-        objective.train()
-        sums = torch.zeros(4, dtype=torch.float64)  # loss * n, position error, attitude error, n
-        bar = tqdm(loader, desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="batch", disable=not progress or rank != 0,
-                   leave=False, dynamic_ncols=True)
-        for x, y in bar:
-            # the pinned uint8 batch crosses to the device, then becomes float there
-            x, y = to_input(x.to(device, non_blocking=True), cfg.channels_last), y.to(device, non_blocking=True)
-            value, pred = objective(x, y)
-            check_loss(value.item(), f"epoch {epoch + 1}")
-            opt.zero_grad(set_to_none=True)
-            value.backward()
-            opt.step()
-            sched.step()
-            n = len(y)
-            pos, att = pose_errors(pred.detach().cpu().numpy(), y.cpu().numpy())
-            sums += torch.tensor([value.item() * n, pos.sum(), att.sum(), n], dtype=torch.float64)
-            seen = sums[3].item() * world
-            bar.set_postfix(loss=f"{sums[0].item() / sums[3].item():.3f}", img_s=f"{seen / (time.perf_counter() - t0):.0f}")
-        bar.close()
+        sums = _train_epoch(objective, loader, opt, sched, cfg, device, epoch, world, progress and rank == 0, t0)
         epoch_train_seconds = time.perf_counter() - t0
         if world > 1:
             dist.all_reduce(sums)
-        val_pred = predict_distributed(model, val_set, 2 * cfg.batch_size, device, cfg.channels_last)
-        targets = val_set.targets.numpy()
-        pos, att = pose_errors(val_pred, targets)
-        score = speed_score(val_pred, targets)
-        n = sums[3].item()
+        stats = _epoch_stats(model, loss, val_set, cfg, device, epoch, sums, sched, epoch_train_seconds, t0)
         train_seconds += epoch_train_seconds
-        train_images += int(n)
-        stats = EpochStats(epoch=epoch + 1, loss=sums[0].item() / n, lr=float(sched.get_last_lr()[0]),
-                           s_p=loss.s_p.item(), s_r=loss.s_r.item(), train_pos_m=sums[1].item() / n,
-                           train_att_deg=sums[2].item() / n, val_pos_m=float(pos.mean()),
-                           val_att_deg=float(att.mean()), val_score=score, images_per_s=n / epoch_train_seconds,
-                           seconds=time.perf_counter() - t0)
+        train_images += int(sums[3].item())
         history.append(stats)
-        is_best = score < best_score
+        is_best = stats.val_score < best_score
         if is_best:
-            best_score, best_epoch = score, epoch + 1
+            best_score, best_epoch = stats.val_score, epoch + 1
             best_state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
         if on_epoch is not None:
             on_epoch(stats, is_best, model)
     check_improved(best_epoch, len(history))
     return FitResult(history, best_epoch, best_score, best_state, time.perf_counter() - start, stopped_early,
                      train_images / train_seconds if train_seconds else 0.0)
+
+
+def _loader(train_set: PoseDataset, cfg: TrainConfig, device: torch.device, rank: int,
+            world: int) -> tuple[DataLoader, DistributedSampler | None]:
+    """The shuffled training batches (sharded over ranks under DDP) and their sampler (None alone)."""
+    sampler = DistributedSampler(train_set, world, rank, shuffle=True, seed=cfg.seed, drop_last=True) if world > 1 else None
+    gen = torch.Generator().manual_seed(cfg.seed)
+    loader = DataLoader(train_set, batch_size=cfg.batch_size, shuffle=sampler is None, sampler=sampler, drop_last=True,
+                        num_workers=cfg.workers, generator=gen, pin_memory=device.type == "cuda",
+                        persistent_workers=False)
+    if len(loader) == 0:
+        raise ValueError(f"the training set ({len(train_set)} images over {world} process(es)) is smaller than "
+                         f"one batch of {cfg.batch_size}")
+    return loader, sampler
+
+
+def _optimiser(model: nn.Module, loss: PoseLoss, cfg: TrainConfig,
+               steps: int) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.CyclicLR]:
+    """Adam on the model and the loss's weights, with the cyclic LR schedule (`steps` batches per epoch)."""
+    # The loss's two weights get LOSS_WEIGHT_LR_FACTOR x the learning rate (no weight decay) so they reach
+    # their balance (exp(-2 s) ~ 1 / error) within the first epochs instead of lagging the whole run.
+    opt = torch.optim.Adam([{"params": list(model.parameters()), "weight_decay": cfg.weight_decay},
+                            {"params": list(loss.parameters()), "weight_decay": 0.0}], lr=cfg.lr_base)
+    f = LOSS_WEIGHT_LR_FACTOR
+    sched = torch.optim.lr_scheduler.CyclicLR(opt, base_lr=[cfg.lr_base, f * cfg.lr_base],
+                                              max_lr=[cfg.lr_max, f * cfg.lr_max], mode="triangular2",
+                                              step_size_up=max(1, round(cfg.cycle_epochs * steps)),
+                                              cycle_momentum=False)
+    return opt, sched
+
+
+def _train_epoch(objective: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, sched: Any, cfg: TrainConfig,
+                 device: torch.device, epoch: int, world: int, show: bool, t0: float) -> torch.Tensor:
+    """One pass over this rank's batches -> float64 sums (loss * n, position error (m), attitude error
+    (deg), n) of the rank; `show` draws a tqdm bar (images per second since `t0`)."""
+    objective.train()
+    sums = torch.zeros(4, dtype=torch.float64)  # loss * n, position error, attitude error, n
+    bar = tqdm(loader, desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="batch", disable=not show,
+               leave=False, dynamic_ncols=True)
+    for x, y in bar:
+        # the pinned uint8 batch crosses to the device, then becomes float there
+        x, y = to_input(x.to(device, non_blocking=True), cfg.channels_last), y.to(device, non_blocking=True)
+        value, pred = objective(x, y)
+        check_loss(value.item(), f"epoch {epoch + 1}")
+        opt.zero_grad(set_to_none=True)
+        value.backward()
+        opt.step()
+        sched.step()
+        n = len(y)
+        pos, att = pose_errors(pred.detach().cpu().numpy(), y.cpu().numpy())
+        sums += torch.tensor([value.item() * n, pos.sum(), att.sum(), n], dtype=torch.float64)
+        seen = sums[3].item() * world
+        bar.set_postfix(loss=f"{sums[0].item() / sums[3].item():.3f}", img_s=f"{seen / (time.perf_counter() - t0):.0f}")
+    bar.close()
+    return sums
+
+
+def _epoch_stats(model: nn.Module, loss: PoseLoss, val_set: PoseDataset, cfg: TrainConfig, device: torch.device,
+                 epoch: int, sums: torch.Tensor, sched: Any, train_seconds: float, t0: float) -> EpochStats:
+    """The epoch's record: training sums (all ranks) and the validation errors and SPEED score."""
+    val_pred = predict_distributed(model, val_set, 2 * cfg.batch_size, device, cfg.channels_last)
+    targets = val_set.targets.numpy()
+    pos, att = pose_errors(val_pred, targets)
+    score = speed_score(val_pred, targets)
+    n = sums[3].item()
+    return EpochStats(epoch=epoch + 1, loss=sums[0].item() / n, lr=float(sched.get_last_lr()[0]),
+                      s_p=loss.s_p.item(), s_r=loss.s_r.item(), train_pos_m=sums[1].item() / n,
+                      train_att_deg=sums[2].item() / n, val_pos_m=float(pos.mean()),
+                      val_att_deg=float(att.mean()), val_score=score, images_per_s=n / train_seconds,
+                      seconds=time.perf_counter() - t0)
 
 
 def _should_stop(start: float, last_epoch_seconds: float, max_minutes: float, device: torch.device) -> bool:
@@ -317,38 +328,3 @@ def _should_stop(start: float, last_epoch_seconds: float, max_minutes: float, de
     if _distributed()[1] > 1:
         dist.broadcast(stop, src=0)
     return bool(stop.item())
-
-
-def summarize_errors(pred: np.ndarray, target: np.ndarray, ranges: np.ndarray,
-                     bins: Sequence[float]) -> dict[str, Any]:
-    """Error statistics of (N, 9) predictions: position (m) and attitude (deg) mean/median, mean |tz|
-    error as % of range, mean lateral error sqrt(dx^2 + dy^2) (m) at ranges 10-30 m, and the same
-    per range bin (`bins`: edges in metres, any order; a bin is (low, high], the lowest edge included;
-    ranges outside the edges get their own open bins)."""
-    pos, att = pose_errors(pred, target)
-    pred, target, ranges = np.asarray(pred, np.float64), np.asarray(target, np.float64), np.asarray(ranges, np.float64)
-    tz_pct = 100 * np.abs(pred[:, 2] - target[:, 2]) / ranges
-    lateral = np.linalg.norm(pred[:, :2] - target[:, :2], axis=1)
-    near = (ranges >= 10) & (ranges <= 30)
-
-    def stats(m: np.ndarray) -> dict[str, float]:
-        if not m.any():
-            return {"n": 0}
-        return {"n": int(m.sum()), "pos_mean_m": float(pos[m].mean()), "pos_median_m": float(np.median(pos[m])),
-                "att_mean_deg": float(att[m].mean()), "att_median_deg": float(np.median(att[m])),
-                "tz_pct_range": float(tz_pct[m].mean()), "lateral_m": float(lateral[m].mean())}
-
-    edges = sorted(float(b) for b in bins)
-    per_bin = []
-    if (ranges < edges[0]).any():
-        per_bin.append({"range_m": f"<{edges[0]:g}", **stats(ranges < edges[0])})
-    for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
-        m = (ranges > lo) & (ranges <= hi) if i else (ranges >= lo) & (ranges <= hi)
-        per_bin.append({"range_m": f"{hi:g}-{lo:g}", **stats(m)})
-    if (ranges > edges[-1]).any():  # range = ||t||: lateral offsets put the start beyond the last edge
-        per_bin.append({"range_m": f">{edges[-1]:g}", **stats(ranges > edges[-1])})
-    out = stats(np.ones(len(pos), bool))
-    out["lateral_10_30_m"] = float(lateral[near].mean()) if near.any() else float("nan")
-    out["tz_pct_10_30"] = float(tz_pct[near].mean()) if near.any() else float("nan")
-    out["bins"] = per_bin[::-1]
-    return out

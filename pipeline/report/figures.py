@@ -15,8 +15,8 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from pipeline.evaluation.schedule import bursts
+from pipeline.pose.labels import TARGET
 
-OUTPUT_NAMES = ("tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5")
 WIDTH_IN = 8.0          # figure width (in)
 TICK_PT = 9.0           # tick label size (pt)
 STYLE = {"font.size": 10, "axes.titlesize": 10, "axes.labelsize": 10, "legend.fontsize": 8.5,
@@ -95,7 +95,7 @@ def error_vs_eps(eps: Sequence[float], position_m: Sequence[float], attitude_deg
 
 
 @_readable
-def shap_heatmaps(mean_abs: Mapping[str, np.ndarray], outputs: Sequence[str] = OUTPUT_NAMES) -> Figure:
+def shap_heatmaps(mean_abs: Mapping[str, np.ndarray], outputs: Sequence[str] = tuple(TARGET)) -> Figure:
     """Mean |SHAP| per (output, GAP feature) for each group (e.g. normal, adversarial), one shared scale.
 
     Features are sorted by their mean |phi| over all groups and outputs, so the columns line up

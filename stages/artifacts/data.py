@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pipeline.pose.labels import POSITION, QUAT, SIXD
 from stages.artifacts.readers import LABELS, RENDER
 from pipeline.formats.renders import read_renders
 from pipeline.io.tables import read_parquet
@@ -22,9 +23,6 @@ from stages.errors import StageError
 from stages.config.params import check_render_fingerprint
 
 IMAGES = RENDER / "images.zarr"
-POSITION = ["tx", "ty", "tz"]
-QUAT = ["qw", "qx", "qy", "qz"]
-SIXD = [f"r{i}" for i in range(6)]
 REQUIRED = ["index", *POSITION, *QUAT, *SIXD, "range", "split"]
 # Above this many bytes a split is read from the store item by item instead of into memory.
 PRELOAD_LIMIT_BYTES = 8 << 30

@@ -4,7 +4,7 @@ Paths are relative to the working folder (the repository root under `dvc repro`)
 they read and raise a DataError (or StageError) naming the file and the stage that writes it:
 - `read_render_store` (render output), `read_eval_render` (eval_render output, the evaluation or the
   defense's validation trajectories, checked against params), `load_defense` (calibrate output), `load_pose` (pose model, attack loss and file hash from one read of models/pose.pt),
-  `load_chain` (pose model + detector: pipeline.defense.chain.load_safety_chain), `read_shap_store` (checked SHAP store);
+  `load_chain` (pose model + detector: pipeline.defense.chain.load_onboard_chain), `read_shap_store` (checked SHAP store);
 - `SampleImages`: the image of a SHAP sample (split, label index, eps) from the labelled renders,
   the attack stage's adv.zarr, or the same FGSM (shared by `rpod shap` and `rpod detect`).
 """
@@ -80,12 +80,12 @@ def load_pose(params: dict[str, Any], path: Path | str = POSE) -> Pose:
 
 def load_chain(params: dict[str, Any], pose_path: Path | str = POSE,
                detector_path: Path | str = DETECTOR) -> tuple[Any, Any, str]:
-    """(SafetyChain, attack loss function on `attack.loss`, pose model hash) from a pose model and its detector."""
+    """(OnboardChain, attack loss function on `attack.loss`, pose model hash) from a pose model and its detector."""
     from pipeline.attacks.gradient import attack_loss
-    from pipeline.defense.chain import load_safety_chain
+    from pipeline.defense.chain import load_onboard_chain
 
     pose = load_pose(params, pose_path)
-    chain = load_safety_chain(pose.model, pose.hash, pose_path, detector_path)
+    chain = load_onboard_chain(pose.model, pose.hash, pose_path, detector_path)
     return chain, attack_loss(params["attack"]["loss"], pose.loss), pose.hash
 
 
@@ -139,8 +139,8 @@ class DefenseModel:
     threshold and the measurement-noise model fitted on validation trajectories."""
 
     settings: Any        # pipeline.defense.fusion.DefenseSettings
-    motion: Any          # pipeline.defense.kalman.MotionSettings
-    noise: Any           # pipeline.defense.kalman.NoiseModel
+    motion: Any          # pipeline.defense.gate.MotionSettings
+    noise: Any           # pipeline.defense.noise.NoiseModel
     calibration: dict[str, Any]
 
     def new(self, fusion: str | None = None) -> Any:
@@ -156,7 +156,7 @@ class DefenseModel:
 def defense_settings(p: dict[str, Any], threshold: float) -> tuple[Any, Any]:
     """(DefenseSettings, MotionSettings) of params.defense with the detector's `threshold`."""
     from pipeline.defense.fusion import DefenseSettings
-    from pipeline.defense.kalman import MotionSettings
+    from pipeline.defense.gate import MotionSettings
 
     d = p["defense"]
     try:
@@ -169,7 +169,7 @@ def defense_settings(p: dict[str, Any], threshold: float) -> tuple[Any, Any]:
 
 def load_defense(p: dict[str, Any], model_hash: str, threshold: float) -> DefenseModel:
     """models/defense.json checked against the pose model and detector it was calibrated with, and params."""
-    from pipeline.defense.kalman import NoiseModel
+    from pipeline.defense.noise import NoiseModel
 
     cal = read_json(DEFENSE)
     if cal.get("format") != DEFENSE_FORMAT:

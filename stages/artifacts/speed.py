@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.pose.labels import pose_columns
 from stages.config import params as params_mod
 from pipeline.formats.speed_folder import TEST, TRAIN, image_path, read_camera, read_image, read_labels
 from pipeline.io.atomic import atomic_dir, remove_stale_temps, write_json
@@ -71,8 +72,7 @@ def import_source(p: dict[str, Any], out: Path) -> None:
             images[lo:lo + chunk] = np.stack([read_image(f, (W, H), (cam.width, cam.height))
                                               for f in names[lo:lo + chunk]])
         write_parquet(pd.DataFrame({
-            "index": np.arange(n), "sequence": np.arange(n), "frame": 0, "tx": t[:, 0], "ty": t[:, 1],
-            "tz": t[:, 2], "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3],
+            "index": np.arange(n), "sequence": np.arange(n), "frame": 0, **pose_columns(t, q),
             "range": np.linalg.norm(t, axis=1), "split": [s for s, _, ns, _, _ in parts for _ in ns],
             "filename": [str(f.relative_to(folder)) for f in names]}), tmp / "poses.parquet")
         seconds = time.perf_counter() - t0

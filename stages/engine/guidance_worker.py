@@ -48,7 +48,8 @@ class GuidanceWorker:
 
     def __init__(self, setup: GuidanceSetup) -> None:
         from pipeline.attacks.gradient import stored_attack
-        from pipeline.guidance.law import CachedCamera, GridPilot
+        from pipeline.guidance.grid import GridPilot
+        from pipeline.guidance.law import CachedCamera
         from pipeline.render.scene import Renderer
 
         if setup.torch_threads:

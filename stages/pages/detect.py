@@ -5,45 +5,70 @@ from __future__ import annotations
 import math
 from typing import Any
 
-PAPER_ACCURACY = 0.9990
+from stages.pages.paper import DETECTOR_ACCURACY
+
+NAMES = {"lstm": "LSTM on SHAP (paper)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis on GAP features",
+         "lid": "LID on GAP features", "squeeze": "feature squeezing on images"}
+
+
+def _pct(m: dict[str, Any], key: str) -> str:
+    """A rate in percent with its 95% Wilson interval, e.g. "94.1 [92.4, 95.4]"."""
+    from pipeline.report.markdown import percent_ci
+
+    ci = m.get(f"{key}_ci95") or (None, None)
+    return "-" if m[key] is None or math.isnan(m[key]) or ci[0] is None else percent_ci(m[key], ci)
+
+
+def _row(m: dict[str, Any]) -> dict[str, Any]:
+    """One table row of a detector's metrics."""
+    return {"n": m["n"], "accuracy (%)": _pct(m, "accuracy"), "precision": m["precision"],
+            "recall (%)": _pct(m, "recall"), "FPR (%)": _pct(m, "fpr"), "ROC-AUC": m["roc_auc"],
+            "TPR @ 1% FPR": m["tpr_at_1pct_fpr"]}
+
+
+def _table(rows: list[dict[str, Any]]) -> str:
+    """A Markdown table with 4 decimals, NaN shown as "-"."""
+    from pipeline.report.markdown import markdown_table
+
+    return markdown_table([{k: ("-" if isinstance(v, float) and math.isnan(v) else v) for k, v in r.items()}
+                           for r in rows], decimals=4)
+
+
+def _reading(results: dict[str, dict[str, dict[str, float]]], eps_keys: list[str]) -> str:
+    """The paragraph under the headline: the LSTM's detection rate per eps, its FPR, the best detector."""
+    lstm = results["lstm"]
+    best = max(results, key=lambda k: results[k]["all"]["accuracy"])
+    rates = ", ".join(f"{e}: {_pct(lstm[e], 'recall')}%" for e in eps_keys)
+    return (f"Detection rate of the LSTM by eps: {rates}; false alarms on clean images: "
+            f"{_pct(lstm['all'], 'fpr')}%. Highest test accuracy of all detectors here: {NAMES[best]} "
+            f"({_pct(results[best]['all'], 'accuracy')}%). Brackets: 95% Wilson intervals over the test samples.")
+
+
+def _baselines(d: dict[str, Any]) -> str:
+    """The baseline detectors, one bullet each."""
+    return f"""- **MLP on SHAP**: scikit-learn MLPClassifier on the flattened 9 x 1000 values (standardised).
+- **Mahalanobis** (Lee et al. 2018): one Gaussian per range bin (`train.range_bins`) with a shared
+  Ledoit-Wolf covariance fitted on clean training GAP features; score = smallest distance. No input
+  preprocessing or layer ensemble (one layer, the one the SHAP detectors see).
+- **LID** (Ma et al. 2018): LID of the GAP features from the k = {d['lid_k']} nearest clean neighbours
+  in minibatches of {d['lid_batch']}, then logistic regression; test frames against clean training minibatches.
+- **Feature squeezing** (Xu et al. 2018): pose change (L1 over the 9 outputs, each divided by its
+  clean standard deviation) under {d['squeeze_bits']}-bit colour depth and a {d['squeeze_median']}x{d['squeeze_median']}
+  median filter; score = the larger change. Needs the image and two extra pose passes per frame."""
 
 
 def detector_page(results: dict[str, dict[str, dict[str, float]]], scores: dict[str, Any], counts: dict[str, int],
                   result: Any, attrs: dict[str, Any], d: dict[str, Any]) -> str:
     """reports/detector.md: the LSTM per eps, the baselines on the same split, and what the detectors see."""
-    from pipeline.report.markdown import markdown_table
-
-    def pct(m: dict[str, Any], key: str) -> str:
-        """A rate in percent with its 95% Wilson interval, e.g. "94.1 [92.4, 95.4]"."""
-        lo, hi = m.get(f"{key}_ci95") or (None, None)
-        if m[key] is None or math.isnan(m[key]) or lo is None:
-            return "-"
-        return f"{100 * m[key]:.1f} [{100 * lo:.1f}, {100 * hi:.1f}]"
-
-    def row(m: dict[str, Any]) -> dict[str, Any]:
-        return {"n": m["n"], "accuracy (%)": pct(m, "accuracy"), "precision": m["precision"],
-                "recall (%)": pct(m, "recall"), "FPR (%)": pct(m, "fpr"), "ROC-AUC": m["roc_auc"],
-                "TPR @ 1% FPR": m["tpr_at_1pct_fpr"]}
-
-    def nan_dash(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-        return [{k: ("-" if isinstance(v, float) and math.isnan(v) else v) for k, v in r.items()} for r in rows]
-
     lstm = results["lstm"]
-    lstm_rows = [{"eps": k, **row(m)} for k, m in lstm.items()]
-    lstm_table = markdown_table(nan_dash(lstm_rows), decimals=4)
-    names = {"lstm": "LSTM on SHAP (paper)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis on GAP features",
-             "lid": "LID on GAP features", "squeeze": "feature squeezing on images"}
-    comp = [{"detector": names[k], **row(r["all"])} for k, r in results.items()]
+    lstm_table = _table([{"eps": k, **_row(m)} for k, m in lstm.items()])
     eps_keys = [k for k in lstm if k != "all"]
-    recall_rows = [{"detector": names[k], **{f"eps {e}": pct(r[e], "recall") for e in eps_keys},
-                    "FPR (%)": pct(r["all"], "fpr")} for k, r in results.items()]
-    best = max(results, key=lambda k: results[k]["all"]["accuracy"])
-    rates = ", ".join(f"{e}: {pct(lstm[e], 'recall')}%" for e in eps_keys)
-    reading = (f"Detection rate of the LSTM by eps: {rates}; false alarms on clean images: "
-               f"{pct(lstm['all'], 'fpr')}%. Highest test accuracy of all detectors here: {names[best]} "
-               f"({pct(results[best]['all'], 'accuracy')}%). Brackets: 95% Wilson intervals over the test samples.")
-    paper = f"{PAPER_ACCURACY * 100:.2f}%"
-    ours = f"{pct(lstm['all'], 'accuracy')}%"
+    comp = [{"detector": NAMES[k], **_row(r["all"])} for k, r in results.items()]
+    recall_rows = [{"detector": NAMES[k], **{f"eps {e}": _pct(r[e], "recall") for e in eps_keys},
+                    "FPR (%)": _pct(r["all"], "fpr")} for k, r in results.items()]
+    reading = _reading(results, eps_keys)
+    paper = f"{DETECTOR_ACCURACY * 100:.2f}%"
+    ours = f"{_pct(lstm['all'], 'accuracy')}%"
     return f"""# Attack detector
 
 The paper's detector reads the DeepSHAP values of the pose network's 1000 GAP features
@@ -74,19 +99,11 @@ TPR @ 1% FPR reads the ROC curve at 1% false positives (coarse when the test spl
 {lstm_table}
 ## Comparison with baselines (same split, thresholds on the same validation samples)
 
-{markdown_table(nan_dash(comp), decimals=4)}
+{_table(comp)}
 Detection rate (recall) per eps:
 
-{markdown_table(nan_dash(recall_rows), decimals=4)}
-- **MLP on SHAP**: scikit-learn MLPClassifier on the flattened 9 x 1000 values (standardised).
-- **Mahalanobis** (Lee et al. 2018): one Gaussian per range bin (`train.range_bins`) with a shared
-  Ledoit-Wolf covariance fitted on clean training GAP features; score = smallest distance. No input
-  preprocessing or layer ensemble (one layer, the one the SHAP detectors see).
-- **LID** (Ma et al. 2018): LID of the GAP features from the k = {d['lid_k']} nearest clean neighbours
-  in minibatches of {d['lid_batch']}, then logistic regression; test frames against clean training minibatches.
-- **Feature squeezing** (Xu et al. 2018): pose change (L1 over the 9 outputs, each divided by its
-  clean standard deviation) under {d['squeeze_bits']}-bit colour depth and a {d['squeeze_median']}x{d['squeeze_median']}
-  median filter; score = the larger change. Needs the image and two extra pose passes per frame.
+{_table(recall_rows)}
+{_baselines(d)}
 
 What the SHAP detectors see: with the linear heads, row j of a sample's SHAP values is
 `W[j] * (a - mean_background)` (pipeline/shap.py), an element-wise rescaling of the GAP features.

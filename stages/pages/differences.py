@@ -3,19 +3,15 @@ stage metrics and params (so no number in it is copied by hand; `rpod report --c
 from __future__ import annotations
 
 from typing import Any
-
-from stages.pages.readme import DETECTOR_NAMES, PAPER
-
-
-def _pct(x: float | None, decimals: int = 1) -> str:
-    return "-" if x is None else f"{100 * x:.{decimals}f}%"
+from stages.pages.paper import ATTITUDE_DEG, DETECTOR_ACCURACY, INTEGRATED, INTEGRATED_EPS, LAB, POSITION_M
+from stages.pages.readme import DETECTOR_NAMES
 
 
 def _ci(m: dict[str, Any], key: str) -> str:
     """"54.0% [47.1, 60.8]" from a metrics dict with `key` and `key_ci95`."""
-    lo, hi = m.get(f"{key}_ci95") or (None, None)
-    ci = "" if lo is None else f" [{100 * lo:.1f}, {100 * hi:.1f}]"
-    return f"{_pct(m.get(key))}{ci}"
+    from pipeline.report.markdown import percent_ci
+
+    return percent_ci(m.get(key), m.get(f"{key}_ci95"), unit="%")
 
 
 def _scale(params: dict[str, Any], tr: dict[str, Any]) -> str:
@@ -28,7 +24,7 @@ def _scale(params: dict[str, Any], tr: dict[str, Any]) -> str:
             f"{tr.get('epochs_run', t['epochs'])} epochs (checkpoint chosen on {100 * float(t['val_fraction']):.0f}% of the "
             f"training frames held out for validation: epoch {tr.get('best_epoch')}), instead of 32,500 images at "
             f"480x270, full width, 50 epochs. Test error {test['pos_mean_m']:.2f} m / {test['att_mean_deg']:.2f} deg "
-            f"(paper {PAPER['position_m']} m / {PAPER['attitude_deg']} deg; validation "
+            f"(paper {POSITION_M} m / {ATTITUDE_DEG} deg; validation "
             f"{val.get('pos_mean_m', float('nan')):.2f} m / {val.get('att_mean_deg', float('nan')):.2f} deg). The test "
             "split is per frame (test frames lie between training frames of the same 13 approaches); the "
             "evaluate stage's fresh trajectories give the held-out-trajectory error (reports/integrated.md).")
@@ -41,31 +37,35 @@ def _detector(params: dict[str, Any], de: dict[str, Any]) -> str:
     return (f"- **Detector data.** {c['samples']:,} SHAP samples ({s['normal']:,} clean, {s['per_eps']:,} per eps) instead "
             f"of 30,000, a background of {s['background']} images instead of 1,000, split train/validation/test "
             f"grouped by source image ({c['test']:,} test samples). LSTM test accuracy {_ci(lstm['all'], 'accuracy')} "
-            f"(paper {PAPER['detector']:.2f}%); detection rate at eps {small} {_ci(lstm[small], 'recall')} (FGSM at "
+            f"(paper {100 * DETECTOR_ACCURACY:.2f}%); detection rate at eps {small} {_ci(lstm[small], 'recall')} (FGSM at "
             f"{small} on 8-bit images moves a pixel by at most {round(255 * float(small))} grey levels). Best detector "
             f"on the same split: {DETECTOR_NAMES.get(best, best)} ({_ci(de['detectors'][best]['all'], 'accuracy')}).")
 
 
 def _integrated(params: dict[str, Any], ev: dict[str, Any]) -> str:
+    from pipeline.report.markdown import percent_ci
+
     e = params["evaluate"]
     per = ev["per_eps"]
     small = min(per, key=float)
     fpr = [c["fpr"] for c in ev.get("clean", {}).values()]
     return (f"- **Integrated evaluation.** {e['trajectories']} fresh trajectories of {e['frames']} frames (paper: "
-            f"2,500 frames each): {_pct(ev['accuracy_mean'], 2)} mean accuracy against {PAPER['integrated']:.2f}%; at "
-            f"eps {small} {_ci(per[small], 'accuracy')} against {PAPER['integrated_eps'].get(small, '-')}%. False "
-            f"alarms on attack-free runs: {_pct(sum(fpr) / len(fpr) if fpr else None, 2)}. Intervals are a "
+            f"2,500 frames each): {percent_ci(ev['accuracy_mean'], decimals=2, unit='%')} mean accuracy against {INTEGRATED:.2f}%; at "
+            f"eps {small} {_ci(per[small], 'accuracy')} against {INTEGRATED_EPS.get(small, '-')}%. False "
+            f"alarms on attack-free runs: {percent_ci(sum(fpr) / len(fpr) if fpr else None, decimals=2, unit='%')}. Intervals are a "
             f"bootstrap over the {e['trajectories']} trajectories (coarse with so few).")
 
 
 def _lab(lab: dict[str, Any]) -> str:
+    from pipeline.report.markdown import percent_ci
+
     fpr = [c["fpr"] for c in lab.get("clean_detection", {}).values()]
     models = ("reuses the main models (allowed when the mock-up is the main mesh)" if lab.get("reused_models", True)
               else "retrains the pose model and detector on a synthetic-lab set")
     return (f"- **Lab.** We have no lab: lab-like sequences are rendered with a domain shift and read back through "
-            f"the real-data loader; this run {models}. The detector flags {_pct(sum(fpr) / len(fpr) if fpr else None)} "
-            f"of the clean domain-shifted frames; mean accuracy {_pct(lab['accuracy_mean'], 2)} (paper "
-            f"{PAPER['lab']:.2f}%).")
+            f"the real-data loader; this run {models}. The detector flags {percent_ci(sum(fpr) / len(fpr) if fpr else None, unit='%')} "
+            f"of the clean domain-shifted frames; mean accuracy {percent_ci(lab['accuracy_mean'], decimals=2, unit='%')} (paper "
+            f"{LAB:.2f}%).")
 
 
 def _closed_loop(params: dict[str, Any], gd: dict[str, Any]) -> str:

@@ -7,12 +7,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from stages.artifacts.readers import LAB as OUT, TRAIN_METRICS
+from stages.pages.paper import LAB, LAB_EPS, LAB_RANGES, by_eps
 
 if TYPE_CHECKING:
     from pipeline.evaluation.sequences import Sequence
-
-PAPER_ACCURACY = {0.5: 100.0, 0.3: 100.0, 0.1: 100.0, 0.05: 98.44, 0.01: 90.44}
-PAPER_AVERAGE = 96.29
 
 
 def models_section(p: dict[str, Any], m: dict[str, Any]) -> str:
@@ -52,7 +50,6 @@ the time of each step is in reports/metrics/lab.json (`synthetic_lab.seconds`).
 """
 
 
-PAPER_RANGES = {3.122: 51.18}  # the paper's representative-range table: lab z (m) -> synthetic z (m), as printed
 
 
 def paper_ranges(K_syn: Any, K_zed: Any, scale: float, factor: float) -> str:
@@ -62,7 +59,7 @@ def paper_ranges(K_syn: Any, K_zed: Any, scale: float, factor: float) -> str:
 
     k_paper = paper_lab_factor(K_syn, K_zed, scale)
     rows = [{"lab z (m)": f"{z:g}", "ours (m)": z * factor, "paper's formula (m)": z * k_paper,
-             "paper, as printed (m)": PAPER_RANGES.get(z, "-")} for z in (3.122, 3.0, 2.5, 2.0, 1.5, 1.0)]
+             "paper, as printed (m)": LAB_RANGES.get(z, "-")} for z in (3.122, 3.0, 2.5, 2.0, 1.5, 1.0)]
     return f"""Representative ranges beside the paper's. The paper takes the 1920 -> 480 resize as
 cx_zed / cx_blender = {K_zed.cx:g} / {K_syn.cx:g} = {K_zed.cx / K_syn.cx:.4f} instead of the exact
 {K_zed.width}/{K_syn.width} = {K_zed.width / K_syn.width:g}, so its factor is {k_paper:.3f} against our {factor:.3f} and
@@ -73,26 +70,21 @@ apply its formula.
 {markdown_table(rows, decimals=2)}"""
 
 
-def lab_page(p: dict[str, Any], m: dict[str, Any], rows: list[dict[str, Any]], summary: list[dict[str, Any]],
-           names: list[str], train_metrics: dict[str, Any] | None, K_syn: Any, K_zed: Any,
-           sequences: list[Sequence]) -> str:
-    """reports/lab.md: models, range rescaling, loader round trip, pose and FGSM errors, integrated detection."""
+def _loader_note(m: dict[str, Any], lab: dict[str, Any]) -> str:
+    """The loader round trip's largest label errors (mm, deg), or "" when it was not measured."""
+    if not m["loader_error"]:
+        return ""
+    worst_p = max(v["position_max_m"] for v in m["loader_error"].values())
+    worst_a = max(v["attitude_max_deg"] for v in m["loader_error"].values())
+    return (f"\nLoader round trip: the labels recovered from mocap.csv/camera.csv ({lab['match']} matching, "
+            f"max gap {lab['max_gap_s']} s) differ from the exact render poses by at most "
+            f"{1000 * worst_p:.2f} mm (lab units) and {worst_a:.4f} deg.\n")
+
+
+def _error_tables(m: dict[str, Any]) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Rows of the clean pose errors per sequence and of the mean errors, clean then per FGSM eps."""
     import pandas as pd
 
-    from pipeline.evaluation.sequences import accuracy_table, detail_table
-    from pipeline.report.markdown import markdown_table
-
-    lab, ds = p["lab"], p["lab"]["domain_shift"]
-    f_eff = K_zed.fx * K_syn.width / K_zed.width
-    src = ("synthetic lab sequences rendered by this stage and read back through the real-data loader "
-           f"(`{OUT}/`)" if m["synthetic"] else f"the real lab recording in `{m['source']}`")
-    loader = ""
-    if m["loader_error"]:
-        worst_p = max(v["position_max_m"] for v in m["loader_error"].values())
-        worst_a = max(v["attitude_max_deg"] for v in m["loader_error"].values())
-        loader = (f"\nLoader round trip: the labels recovered from mocap.csv/camera.csv ({lab['match']} matching, "
-                  f"max gap {lab['max_gap_s']} s) differ from the exact render poses by at most "
-                  f"{1000 * worst_p:.2f} mm (lab units) and {worst_a:.4f} deg.\n")
     clean = pd.DataFrame(m["clean"])
     clean_table = [{"sequence": c["sequence"], "position (m)": c["position_m"], "relative position": c["relative_position"],
                     "attitude (deg)": c["attitude_deg"]} for c in m["clean"]]
@@ -104,12 +96,32 @@ def lab_page(p: dict[str, Any], m: dict[str, Any], rows: list[dict[str, Any]], s
         fgsm_table.append({"eps": f"{eps:g}", "position (m)": float(g["position_m"].mean()),
                            "relative position": float(g["relative_position"].mean()),
                            "attitude (deg)": float(g["attitude_deg"].mean())})
+    return clean_table, fgsm_table
+
+
+def _synthetic_note(m: dict[str, Any], train_metrics: dict[str, Any] | None) -> str:
+    """The synthetic test error of the pose model used, for comparison."""
     synth = "not available (run `rpod train`)"
     test = (train_metrics or {}).get("test", {})
     if "pos_mean_m" in test and "att_mean_deg" in test:
         synth = f"{test['pos_mean_m']:.3f} m and {test['att_mean_deg']:.2f} deg mean error"
     which = (f"the main model, `{TRAIN_METRICS}`" if m["reused_models"] else
              f"the synthetic-lab model, `{m['synthetic_lab']['folder']}/{TRAIN_METRICS}`")
+    return f"Synthetic test split ({which}): {synth}."
+
+
+def lab_page(p: dict[str, Any], m: dict[str, Any], rows: list[dict[str, Any]], summary: list[dict[str, Any]],
+           names: list[str], train_metrics: dict[str, Any] | None, K_syn: Any, K_zed: Any,
+           sequences: list[Sequence]) -> str:
+    """reports/lab.md: models, range rescaling, loader round trip, pose and FGSM errors, integrated detection."""
+    from pipeline.evaluation.sequences import accuracy_table, detail_table
+    from pipeline.report.markdown import markdown_table
+
+    lab, ds = p["lab"], p["lab"]["domain_shift"]
+    f_eff = K_zed.fx * K_syn.width / K_zed.width
+    src = ("synthetic lab sequences rendered by this stage and read back through the real-data loader "
+           f"(`{OUT}/`)" if m["synthetic"] else f"the real lab recording in `{m['source']}`")
+    clean_table, fgsm_table = _error_tables(m)
     att_frac = np.mean([s.attacked.mean() for s in sequences])
     mean_acc = 100 * m["accuracy_mean"]
     return f"""# Lab domain
@@ -131,7 +143,7 @@ pixel position. The match is on the horizontal size; K_blender has fy/fx = {K_sy
 {paper_ranges(K_syn, K_zed, float(lab['scale']), m['factor'])}
 
 {markdown_table(m['ranges'], decimals=2)}
-{loader}
+{_loader_note(m, lab)}
 ## Pose error
 
 Lab frames: {lab['frames']} per sequence at {lab['fps']} fps, mocap at {lab['mocap_hz']} Hz, rendered with the
@@ -140,7 +152,7 @@ at strength {ds['sun_strength']}, blur sigma {ds['blur_sigma']} px, noise std {d
 segmented (masks/) and resized to {p['render']['width']}x{p['render']['height']}. Errors are in the equivalent
 synthetic frame (metres x {m['factor']:.2f} of lab metres).
 
-Synthetic test split ({which}): {synth}.
+{_synthetic_note(m, train_metrics)}
 
 {markdown_table(clean_table, decimals=3)}
 ## FGSM on the lab sequences
@@ -153,8 +165,8 @@ Mean error over all lab frames (attack.eps, loss `{p['attack']['loss']}`, 8-bit 
 Start probability {p['evaluate']['p_start']:g} per frame, {100 * att_frac:.1f}% of the frames attacked;
 accuracy = correctly classified frames / all frames (%).
 
-{markdown_table(accuracy_table(rows, summary, names, PAPER_ACCURACY), decimals=2)}
-Mean over eps: **{mean_acc:.2f}%** (paper: {PAPER_AVERAGE}% average).
+{markdown_table(accuracy_table(rows, summary, names, by_eps(LAB_EPS)), decimals=2)}
+Mean over eps: **{mean_acc:.2f}%** (paper: {LAB}% average).
 
 {markdown_table(detail_table(summary), decimals=2)}
 """

@@ -7,16 +7,27 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.pose.labels import POSITION, QUAT
+
+
+RENDER_SETTINGS = ("samples", "denoiser", "denoise_quality", "threads", "mesh", "mesh_scale", "sun_direction",
+                   "sun_strength", "pointing_jitter_deg", "max_target_rotation_deg", "chunk")
+
+
+def _spread(quantity: str, values: Any) -> dict[str, Any]:
+    """A table row: min, mean and max of `values` (an array or a column)."""
+    return {"quantity": quantity, "min": float(values.min()), "mean": float(values.mean()), "max": float(values.max())}
+
 
 def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_dir: Path) -> str:
     """reports/dataset.md: counts, ranges (m, px), attitude and pointing spread (deg), settings, where the time
     per image is kept; `previews` are PNG files shown relative to the card's folder `card_dir`."""
     from pipeline.geometry.camera import Intrinsics, project
     from pipeline.report.markdown import markdown_table
-    from pipeline.geometry.rotations import attitude_error_deg
+    from pipeline.pose.metrics import attitude_error_deg
 
-    q = labels[["qw", "qx", "qy", "qz"]].to_numpy()
-    t = labels[["tx", "ty", "tz"]].to_numpy()
+    q = labels[QUAT].to_numpy()
+    t = labels[POSITION].to_numpy()
     K = np.asarray(meta["K"])
     cam = Intrinsics(meta["width"], meta["height"], K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     uv = project(t, cam)
@@ -41,27 +52,16 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
                          "size": f"{meta['width']}x{meta['height']}"}]),
         "## Ranges",
         "",
-        markdown_table([
-            {"quantity": "tz (m)", "min": float(t[:, 2].min()), "mean": float(t[:, 2].mean()), "max": float(t[:, 2].max())},
-            {"quantity": "range = norm of t (m)", "min": float(labels['range'].min()), "mean": float(labels['range'].mean()),
-             "max": float(labels['range'].max())},
-            {"quantity": "tx (m)", "min": float(t[:, 0].min()), "mean": float(t[:, 0].mean()), "max": float(t[:, 0].max())},
-            {"quantity": "ty (m)", "min": float(t[:, 1].min()), "mean": float(t[:, 1].mean()), "max": float(t[:, 1].max())},
-            {"quantity": "target centre u (px)", "min": float(uv[:, 0].min()), "mean": float(uv[:, 0].mean()),
-             "max": float(uv[:, 0].max())},
-            {"quantity": "target centre v (px)", "min": float(uv[:, 1].min()), "mean": float(uv[:, 1].mean()),
-             "max": float(uv[:, 1].max())},
-            {"quantity": "attitude angle from camera axes (deg)", "min": float(angle.min()),
-             "mean": float(angle.mean()), "max": float(angle.max())},
-        ]),
+        markdown_table([_spread(name, v) for name, v in (
+            ("tz (m)", t[:, 2]), ("range = norm of t (m)", labels["range"]), ("tx (m)", t[:, 0]), ("ty (m)", t[:, 1]),
+            ("target centre u (px)", uv[:, 0]), ("target centre v (px)", uv[:, 1]),
+            ("attitude angle from camera axes (deg)", angle))]),
         "The attitude angle is the rotation angle of `q`: it combines the camera's look-at rotation towards "
         "laterally offset chasers, the pointing jitter, and (sequences 5-12) the random target rotation.",
         "",
         *(_source_section(source) if source else [
             "## Sequences", "", markdown_table(seqs, decimals=1), "## Render settings", "",
-            markdown_table([{"setting": k, "value": str(r[k])} for k in
-                            ("samples", "denoiser", "denoise_quality", "threads", "mesh", "mesh_scale", "sun_direction",
-                             "sun_strength", "pointing_jitter_deg", "max_target_rotation_deg", "chunk")])]),
+            markdown_table([{"setting": k, "value": str(r[k])} for k in RENDER_SETTINGS])]),
         f"Camera K at {meta['width']}x{meta['height']}: fx={K[0, 0]:.3f}, fy={K[1, 1]:.3f}, cx={K[0, 2]:.3f}, "
         f"cy={K[1, 2]:.3f} (scaled from the reference K at {meta['camera']['ref_width']}x"
         f"{meta['camera']['ref_height']}). " + ("Images resized with an area filter; lens distortion is not removed."

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
-PAPER = {"pos_mean_m": 0.49, "att_mean_deg": 0.68}
+from stages.pages.paper import ATTITUDE_DEG, POSITION_M
+
 TARGET_TZ_PCT, TARGET_LATERAL_M = 2.0, 0.5  # what the guidance law needs (issue 3)
 
 
@@ -21,8 +22,8 @@ def pose_page(m: dict[str, Any], params: dict[str, Any], n_train: int, n_val: in
                  "position mean (m)": b["pos_mean_m"], "position median (m)": b["pos_median_m"],
                  "attitude mean (deg)": b["att_mean_deg"], "attitude median (deg)": b["att_median_deg"]})
     rows.append({"split": "paper, test (480x270, full width, 50 epochs)", "images": "6,500 of 32,500",
-                 "position mean (m)": PAPER["pos_mean_m"], "position median (m)": "-",
-                 "attitude mean (deg)": PAPER["att_mean_deg"], "attitude median (deg)": "-"})
+                 "position mean (m)": POSITION_M, "position median (m)": "-",
+                 "attitude mean (deg)": ATTITUDE_DEG, "attitude median (deg)": "-"})
     bins = [{"split": s, "range (m)": b["range_m"], "images": b["n"], "position mean (m)": b.get("pos_mean_m"),
              "attitude mean (deg)": b.get("att_mean_deg"), "|tz| error (% of range)": b.get("tz_pct_range"),
              "lateral error (m)": b.get("lateral_m")} for s in ("train", "test") for b in m[s]["bins"]]

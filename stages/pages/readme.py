@@ -4,11 +4,9 @@ from __future__ import annotations
 
 from typing import Any
 
-PAPER = {
-    "position_m": 0.49, "attitude_deg": 0.68, "detector": 99.90, "integrated": 99.21, "lab": 96.29,
-    "integrated_eps": {"0.5": 100.0, "0.3": 99.99, "0.1": 99.97, "0.05": 99.99, "0.01": 97.67},
-    "lab_eps": {"0.5": 100.0, "0.3": 100.0, "0.1": 100.0, "0.05": 98.44, "0.01": 90.44},
-}
+from stages.pages.paper import (ATTITUDE_DEG, DETECTOR_ACCURACY, INTEGRATED, INTEGRATED_EPS, LAB, LAB_EPS,
+                                POSITION_M)
+
 DETECTOR_NAMES = {"lstm": "LSTM on SHAP (paper)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis (GAP)",
                   "lid": "LID (GAP)", "squeeze": "feature squeezing"}
 
@@ -19,8 +17,9 @@ def _fmt(x: float | None, decimals: int = 2) -> str:
 
 def _with_ci(m: dict[str, Any], key: str) -> str:
     """A rate of a metrics dict in percent with its 95% interval (`key_ci95`), e.g. "94.58 [92.40, 96.10]"."""
-    lo, hi = m.get(f"{key}_ci95") or (None, None)
-    return _fmt(100 * m[key]) + ("" if lo is None else f" [{_fmt(100 * lo)}, {_fmt(100 * hi)}]")
+    from pipeline.report.markdown import percent_ci
+
+    return percent_ci(m[key], m.get(f"{key}_ci95"), 2)
 
 
 def _eps_keys(d: dict[str, Any]) -> list[str]:
@@ -49,9 +48,9 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
     dets = de["detectors"]
     best_base = max((k for k in dets if k != "lstm"), key=lambda k: dets[k]["all"]["accuracy"])
     rows = [
-        ("pose, test mean position error (m)", _fmt(tr["test"]["pos_mean_m"]), _fmt(PAPER["position_m"]), "train",
+        ("pose, test mean position error (m)", _fmt(tr["test"]["pos_mean_m"]), _fmt(POSITION_M), "train",
          _sd(spread, "pos_m")),
-        ("pose, test mean attitude error (deg)", _fmt(tr["test"]["att_mean_deg"]), _fmt(PAPER["attitude_deg"]), "train",
+        ("pose, test mean attitude error (deg)", _fmt(tr["test"]["att_mean_deg"]), _fmt(ATTITUDE_DEG), "train",
          _sd(spread, "att_deg")),
         ("FGSM mean position error (m) at eps " + " / ".join(eps_at),
          " / ".join(_fmt(at["eps"][e]["position_mean_m"], 1) for e in eps_at), "-", "attack",
@@ -62,13 +61,13 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
          f"{broken} of {len(runs)} ({wilson(broken, len(runs)).pct()} %)", "-", "guidance",
          _sd(spread, "undefended_lost_pct", " %")),
         ("LSTM detector accuracy, SHAP test split (%)", _with_ci(dets["lstm"]["all"], "accuracy"),
-         _fmt(PAPER["detector"]), "detect", _sd(spread, "lstm")),
+         _fmt(100 * DETECTOR_ACCURACY), "detect", _sd(spread, "lstm")),
         (f"best baseline detector accuracy (%): {DETECTOR_NAMES.get(best_base, best_base)}",
          _with_ci(dets[best_base]["all"], "accuracy"), "-", "detect", "-"),
         ("integrated detection accuracy, mean over eps (%; per eps with intervals below)", _fmt(100 * ev["accuracy_mean"]),
-         _fmt(PAPER["integrated"]), "evaluate", _sd(spread, "chain")),
+         _fmt(INTEGRATED), "evaluate", _sd(spread, "chain")),
         (f"lab detection accuracy, mean over eps (%), {'main' if lab.get('reused_models', True) else 'retrained'} models",
-         _fmt(100 * lab["accuracy_mean"]), _fmt(PAPER["lab"]), "lab", _sd(spread, "lab")),
+         _fmt(100 * lab["accuracy_mean"]), _fmt(LAB), "lab", _sd(spread, "lab")),
         *_robustness_rows(metrics["robustness"], spread),
     ]
     columns = ("result", "this run", "paper", "stage", "sd over seeds")
@@ -77,8 +76,8 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
     eps_rows = []
     for e in sorted(set(ev["per_eps"]) | set(lab["per_eps"]), key=float, reverse=True):
         get = lambda m, k: _with_ci(m["per_eps"][e], "accuracy") if e in m["per_eps"] else "-"  # noqa: E731
-        eps_rows.append({"eps": e, "integrated (%)": get(ev, e), "paper, integrated (%)": _fmt(PAPER["integrated_eps"].get(e)),
-                         "lab, 10-frame attacks (%)": get(lab, e), "paper, lab (%)": _fmt(PAPER["lab_eps"].get(e))})
+        eps_rows.append({"eps": e, "integrated (%)": get(ev, e), "paper, integrated (%)": _fmt(INTEGRATED_EPS.get(e)),
+                         "lab, 10-frame attacks (%)": get(lab, e), "paper, lab (%)": _fmt(LAB_EPS.get(e))})
     profiles = sorted({m.get("profile", "unknown") for m in metrics.values()})
     head = (f"Profile `{'`, `'.join(profiles)}`. Paper: 480x270 images, full-width network, "
             "50 epochs, 32,500 images; each stage's section of the results page says what differs and why.")
@@ -93,10 +92,9 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
 
 def _rate(r: dict[str, Any] | None) -> str:
     """A rate of the metrics JSON ({"value", "ci": [lo, hi], "n"}) as "96.5 [95.1, 97.6]" (%)."""
-    if not r or not r.get("n") or r["value"] is None:
-        return "-"
-    lo, hi = r["ci"]
-    return f"{100 * r['value']:.2f} [{100 * lo:.2f}, {100 * hi:.2f}]"
+    from pipeline.report.markdown import percent_ci
+
+    return "-" if not r or not r.get("n") or r["value"] is None else percent_ci(r["value"], r["ci"], 2)
 
 
 def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any] | None = None) -> str:
@@ -110,7 +108,7 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
         return ""
     e = "0.01" if "0.01" in fused["per_eps"] else min(fused["per_eps"], key=float)
     paper, ours = fused["paper_per_eps"][e], fused["per_eps"][e]
-    rows = [(f"integrated accuracy at eps {e} (%)", "accuracy", _fmt(PAPER["integrated_eps"].get(e)), ">= 99.5",
+    rows = [(f"integrated accuracy at eps {e} (%)", "accuracy", _fmt(INTEGRATED_EPS.get(e)), ">= 99.5",
              "defended" if e == min(fused["per_eps"], key=float) else None),   # summary.json's key
             (f"attacked frames flagged at eps {e} (TPR, %)", "tpr", "-", "-", None),
             (f"harmful frames (error > {fused['harm_m']:g} m) flagged at eps {e} (%)", "harmful_flagged", "-", ">= 99.5",
@@ -144,6 +142,8 @@ def _robustness_rows(m: dict[str, Any], spread: dict[str, Any] | None) -> list[t
     """Summary rows at eps 0.05 and 0.01: the worst harmful-undetected rate against the chain that ships
     (the fused chain, adaptive attack over bursts), and beside it against the paper's detector alone
     (LSTM, any robustness attack incl. adaptive); percent with the 95% interval, "-" where not run."""
+    from pipeline.report.markdown import percent_ci
+
     out = []
     for key, what, short in (("worst_harmful_undetected_fused", "fused chain (ships), adaptive attack on bursts", "fused"),
                              ("worst_harmful_undetected", "paper's LSTM detector alone, any attack incl. adaptive",
@@ -152,9 +152,7 @@ def _robustness_rows(m: dict[str, Any], spread: dict[str, Any] | None) -> list[t
             w = m.get(key, {}).get(e)
             value = "-"
             if w is not None:
-                lo, hi = w["ci95_harmful_undetected"]
-                value = (f"{_fmt(100 * w['harmful_undetected_rate'], 1)} [{_fmt(100 * lo, 1)}, {_fmt(100 * hi, 1)}] "
-                         f"({w['attack']})")
+                value = f"{percent_ci(w['harmful_undetected_rate'], w['ci95_harmful_undetected'])} ({w['attack']})"
             out.append((f"worst harmful-undetected rate (%) at eps {e}, {what}", value, "-", "robustness",
                         _sd(spread, f"{short}_hu_{e}_pct")))
     return out

@@ -4,21 +4,17 @@ from __future__ import annotations
 
 from typing import Any
 
-def _pct(value: float, ci: list[float | None]) -> str:
-    return f"{100 * value:.1f} [{100 * ci[0]:.1f}, {100 * ci[1]:.1f}]"
-
-
 def _table(rows: list[dict[str, Any]], with_lambda: bool = False) -> str:
-    from pipeline.report.markdown import markdown_table
+    from pipeline.report.markdown import markdown_table, percent_ci
 
     out = []
     for row in rows:
         cells = {"attack": row["attack"], "eps": f"{row['eps']:g}"}
         if with_lambda:
             cells["lambda"] = "-" if row["lambda"] is None else f"{row['lambda']:g}"
-        cells |= {"frames": row["n"], "detected (%)": _pct(row["detection_rate"], row["ci95_detection"]),
-                  "harmful and undetected (%)": _pct(row["harmful_undetected_rate"], row["ci95_harmful_undetected"]),
-                  "position error > harm (%)": _pct(row["harmful_rate"], row["ci95_harmful"]),
+        cells |= {"frames": row["n"], "detected (%)": percent_ci(row["detection_rate"], row["ci95_detection"]),
+                  "harmful and undetected (%)": percent_ci(row["harmful_undetected_rate"], row["ci95_harmful_undetected"]),
+                  "position error > harm (%)": percent_ci(row["harmful_rate"], row["ci95_harmful"]),
                   "mean position error (m)": row["position_error_m"]}
         out.append(cells)
     return markdown_table(out, decimals=2)
@@ -45,6 +41,8 @@ def robustness_page(m: dict[str, Any], p: dict[str, Any]) -> str:
 
 def _fused(m: dict[str, Any], p: dict[str, Any]) -> str:
     """The adaptive attack on the chain that ships (LSTM flag OR motion gate) over whole bursts."""
+    from pipeline.report.markdown import percent_ci
+
     f = m["fused"]
     rows = m["fused_rows"]
     return f"""## Adaptive attack on the fused chain (the chain that ships)
@@ -63,7 +61,7 @@ included. Rates are over the attacked frames with 95% percentile-bootstrap inter
 trajectories (frames of a burst are not independent; with few trajectories the intervals are wide).
 "worst over lambda" keeps, per burst, the lambda with the most harmful unflagged frames.
 The filter's noise model is fitted on {m['fused'].get('noise_fitted_on')}. On the clean trajectories the
-fused chain flags {_pct(f['false_alarm_rate'], f['ci95_false_alarm'])}% of frames.
+fused chain flags {percent_ci(f['false_alarm_rate'], f['ci95_false_alarm'])}% of frames.
 
 {_table(rows, with_lambda=True)}
 {_meaning(rows, 'an attacker who knows the fused chain')}
@@ -74,11 +72,11 @@ fused chain flags {_pct(f['false_alarm_rate'], f['ci95_false_alarm'])}% of frame
 def _intro(m: dict[str, Any], p: dict[str, Any]) -> str:
     """Title, what is measured on how many frames, and the worst harmful-undetected rate per eps."""
     from pipeline.evaluation.stats import wilson
+    from pipeline.report.markdown import percent_ci
 
     mid = wilson(m["frames"] // 2, m["frames"])
     half = 100 * (mid.hi - mid.lo) / 2
-    worst_lines = "\n".join(f"- eps {k}: {100 * v['harmful_undetected_rate']:.1f} "
-                            f"[{100 * v['ci95_harmful_undetected'][0]:.1f}, {100 * v['ci95_harmful_undetected'][1]:.1f}]% "
+    worst_lines = "\n".join(f"- eps {k}: {percent_ci(v['harmful_undetected_rate'], v['ci95_harmful_undetected'])}% "
                             f"({v['attack']}" + (f", lambda {v['lambda']:g}" if v["lambda"] is not None else "") + ")"
                             for k, v in sorted(m["worst_harmful_undetected"].items(), key=lambda kv: -float(kv[0])))
     return f"""# Robustness of the safety chain (`rpod robustness`)
@@ -87,7 +85,7 @@ The shipped chain (pose network -> closed-form SHAP -> LSTM detector, threshold 
 validation) on **{m['frames']} held-out test frames** (a seeded sample of the {m['test_frames']} test frames;
 every attacked image is stored as 8-bit before the chain reads it). The safety number is the
 **harmful-undetected rate**: attacked frames whose position error exceeds **{m['harm_m']:g} m** and that the
-chain did not flag. Without any attack, {_pct(m['clean_harmful_rate'], m['ci95_clean_harmful'])}% of these
+chain did not flag. Without any attack, {percent_ci(m['clean_harmful_rate'], m['ci95_clean_harmful'])}% of these
 frames already exceed {m['harm_m']:g} m: that share of every harmful rate below is the pose model's own
 error, not the attack's.
 Rates are percent with 95% Wilson intervals [lo, hi]; with {m['frames']} frames
@@ -152,10 +150,10 @@ surrogate than a real attacker would train. Evaluated on our chain.
 
 def _corruptions(m: dict[str, Any]) -> str:
     """The benign-corruption table (false alarms) and its meaning for a mission."""
-    from pipeline.report.markdown import markdown_table
+    from pipeline.report.markdown import markdown_table, percent_ci
 
     corr = [{"corruption": c["corruption"], "strength": "-" if c["corruption"] == "none" else f"{c['strength']:g}",
-             "frames": c["n"], "false alarms (%)": _pct(c["false_alarm_rate"], c["ci95_false_alarm"]),
+             "frames": c["n"], "false alarms (%)": percent_ci(c["false_alarm_rate"], c["ci95_false_alarm"]),
              "mean position error (m)": c["position_error_m"]} for c in m["corruptions"]]
     worst_fa = max(m["corruptions"][1:], key=lambda c: c["false_alarm_rate"], default=m["corruptions"][0])
     base = m["corruptions"][0]

@@ -1,0 +1,67 @@
+"""The motion filter's settings and its chi-square gate (the filter: pipeline/defense/kalman.py).
+
+The gate: each frame's normalized innovation squared (NIS) of position (3 dof) and attitude (3
+dof) is compared with the chi-square quantile at 1 - alpha / 2 each, so a frame consistent with the
+model is flagged with probability at most `alpha` (the false-alarm rate, Bonferroni over the two
+tests). A flagged frame is not used to update the filter (fault exclusion): the filter coasts on
+its prediction, its covariance grows, and clean frames are accepted again once they fall inside
+the widened gate, so an attack the gate caught cannot drag the state away. Frames that pass the
+gate update the filter with a Huber weight (measurement covariance inflated by NIS / soft gate
+above a soft gate), so an attacked frame that slips just under the gate moves the state little.
+A filter whose state was nevertheless dragged away (or started on a bad frame) would reject every
+clean frame after; `reacquire` restarts it on M rejected frames that agree with one another and
+with the accepted history, never on a steady offset that jumped away from that history.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.stats import chi2
+
+from pipeline.defense.noise import check_positive
+
+
+@dataclass(frozen=True)
+class MotionSettings:
+    """Filter settings. position_noise: std of the unmodelled displacement per frame (m);
+    velocity_noise: std of the drift-velocity change per frame (m/frame); attitude_noise_deg and
+    attitude_rate_noise_deg: the same for the target attitude (deg, deg/frame); false_alarm: the
+    gate's false-alarm probability per frame on motion consistent with the model, in (0, 1);
+    soft_gate: fraction of the gate's NIS above which an accepted frame is down-weighted;
+    reacquire_after: M consecutive rejected frames that agree with one another (and that the
+    detector did not flag) restart the filter on them."""
+
+    position_noise: float = 0.05
+    velocity_noise: float = 0.01
+    attitude_noise_deg: float = 0.5
+    attitude_rate_noise_deg: float = 0.05
+    false_alarm: float = 0.001
+    soft_gate: float = 0.5
+    reacquire_after: int = 4
+
+    def __post_init__(self) -> None:
+        for name in ("position_noise", "velocity_noise", "attitude_noise_deg", "attitude_rate_noise_deg"):
+            check_positive(f"defense.{name}", getattr(self, name))
+        if not 0 < float(self.false_alarm) < 1:
+            raise ValueError(f"defense.false_alarm is a gate probability and must be in (0, 1), got {self.false_alarm}")
+        if not 0 < float(self.soft_gate) <= 1:
+            raise ValueError(f"defense.soft_gate must be in (0, 1], got {self.soft_gate}")
+        if int(self.reacquire_after) < 2:
+            raise ValueError(f"defense.reacquire_after must be >= 2 frames, got {self.reacquire_after}")
+
+    @property
+    def gate(self) -> float:
+        """NIS threshold of each 3-dof test (position, attitude): chi2 quantile at 1 - false_alarm / 2."""
+        return float(chi2.ppf(1.0 - self.false_alarm / 2.0, 3))
+
+
+@dataclass
+class MotionCheck:
+    """One frame's motion check: NIS of position and attitude (NaN before the filter starts) and the
+    gate decision; `predicted` is the filter's prediction of rel (world frame, m) before this frame."""
+
+    nis_position: float
+    nis_attitude: float
+    inconsistent: bool
+    predicted: np.ndarray = field(repr=False)
