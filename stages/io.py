@@ -14,12 +14,13 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from stages.artifacts.paths import DVC_YAML
+
 
 class StageError(RuntimeError):
     """An error the user can act on; the CLI prints its message without a traceback."""
 
 
-DVC_YAML = Path(__file__).resolve().parent.parent / "dvc.yaml"
 
 
 @functools.cache
@@ -78,9 +79,9 @@ def write_json(path: Path | str, obj: Any) -> None:
     atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n")
 
 
-def write_metrics(path: Path | str, metrics: dict[str, Any], params: dict[str, Any]) -> None:
-    """Write a stage's metrics JSON stamped with the params profile it ran on and the UTC time."""
-    stamp = {"profile": params.get("profile_name", "unknown"),
+def write_metrics(path: Path | str, metrics: dict[str, Any], profile: str) -> None:
+    """Write a stage's metrics JSON stamped with the params profile it ran on (`profile_name`) and the UTC time."""
+    stamp = {"profile": profile,
              "produced": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
     write_json(path, {**metrics, **stamp})
 

@@ -2,18 +2,13 @@
 (`rpod export speed OUT` writes the labelled set as a SPEED+ folder.)"""
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
+from stages.artifacts.paths import DATASET_CARD as CARD, IMAGES, LABELS, PREVIEWS, RENDER, SEED_OFFSET
+from stages.artifacts.readers import read_render_store
 from stages.config import params as params_mod
-from stages.artifacts.readers import LABELS, RENDER, read_render_store
 from stages.io import StageError, atomic_write_text, write_parquet
 from stages.pages.label import dataset_card
-
-CARD = Path("reports/dataset.md")
-PREVIEWS = Path("reports/figures/previews")
-SEED_OFFSET = 200
 
 
 def build_labels(poses, test_fraction: float, seed: int):
@@ -28,7 +23,7 @@ def build_labels(poses, test_fraction: float, seed: int):
     r6 = quat_to_6d(q)
     for k in range(6):
         df[f"r{k}"] = r6[:, k]
-    rendered = [f"{RENDER}/images.zarr:{i}" for i in df["index"]]
+    rendered = [f"{IMAGES}:{i}" for i in df["index"]]
     df.insert(1, "image", df.pop("filename") if "filename" in df else rendered)
     if "split" not in df:
         n_test = int(round(test_fraction * len(df)))
@@ -47,7 +42,7 @@ def main() -> None:
     p = params_mod.load()
     _, poses, meta = read_render_store(RENDER)
     params_mod.check_render_fingerprint(meta, p, RENDER / "meta.json")
-    labels = build_labels(poses, float(p["label"]["test_fraction"]), int(p["seed"]) + SEED_OFFSET)
+    labels = build_labels(poses, float(p.label.test_fraction), p.seed + SEED_OFFSET["label"])
     write_parquet(labels, LABELS)
     atomic_write_text(CARD, dataset_card(labels, meta, sorted(PREVIEWS.glob("*.png")), CARD.parent))
     print(f"{LABELS}: {len(labels)} labels ({(labels.split == 'train').sum()} train, "

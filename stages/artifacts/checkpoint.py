@@ -10,16 +10,17 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from stages.artifacts.paths import POSE
+from stages.config.schema import Params
 from stages.io import StageError, load_torch, save_torch
 
-POSE = Path("models/pose.pt")
 FORMAT = "rpodguard-pose/1"
 
 
-def expected(params: dict[str, Any]) -> dict[str, Any]:
+def expected(params: Params) -> dict[str, Any]:
     """The architecture and input size that params.yaml asks for."""
-    return {"arch": {"width": float(params["train"]["width"]), "dropout": float(params["train"]["dropout"])},
-            "input_size": [int(params["render"]["height"]), int(params["render"]["width"])]}
+    return {"arch": {"width": float(params.train.width), "dropout": float(params.train.dropout)},
+            "input_size": [params.render.height, params.render.width]}
 
 
 def save_pose(path: Path | str, model: Any, loss: Any, input_size: tuple[int, int], meta: dict[str, Any]) -> None:
@@ -35,7 +36,7 @@ def save_pose(path: Path | str, model: Any, loss: Any, input_size: tuple[int, in
     save_torch(path, state)
 
 
-def read_pose(path: Path | str = POSE, params: dict[str, Any] | None = None) -> dict[str, Any]:
+def read_pose(path: Path | str = POSE, params: Params | None = None) -> dict[str, Any]:
     """Load a checkpoint with weights_only=True; with params, refuse an architecture/input-size mismatch."""
     path = Path(path)
     ckpt = load_torch(path, FORMAT, "train")
@@ -73,11 +74,11 @@ def loss_from_checkpoint(ckpt: dict[str, Any]):
     return loss
 
 
-def load_pose_model(path: Path | str = POSE, params: dict[str, Any] | None = None, device: str = "cpu"):
+def load_pose_model(path: Path | str = POSE, params: Params | None = None, device: str = "cpu"):
     """The PoseNet of a checkpoint file, in eval mode on `device` (checked against params when given)."""
     return model_from_checkpoint(read_pose(path, params), device)
 
 
-def load_pose_loss(path: Path | str = POSE, params: dict[str, Any] | None = None):
+def load_pose_loss(path: Path | str = POSE, params: Params | None = None):
     """The PoseLoss with the learned weights s_p, s_r of a checkpoint file."""
     return loss_from_checkpoint(read_pose(path, params))

@@ -12,6 +12,7 @@ is scaled with it; each image is one sequence, so the grouped splits downstream 
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from pathlib import Path
@@ -20,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from stages.config import params as params_mod
+from stages.config.schema import Params
 from stages.io import StageError, atomic_dir, create_array, read_json, remove_stale_temps, write_json, write_parquet
 
 TRAIN = ("synthetic/train.json", "train.json")
@@ -86,21 +88,21 @@ def read_image(path: Path, size: tuple[int, int], source_size: tuple[int, int]) 
     return cv2.resize(img, size, interpolation=cv2.INTER_AREA)[..., ::-1]
 
 
-def import_source(p: dict[str, Any], out: Path) -> None:
+def import_source(p: Params, out: Path) -> None:
     """Import the SPEED/SPEED+ folder of render.source into `out` (images.zarr, poses.parquet with a
     `split` and `filename` column, meta.json with K scaled to render.width x height), atomically."""
     import pandas as pd
     import zarr
     from tqdm import tqdm
 
-    r = p["render"]
-    folder = Path(str(params_mod.given(r["source"])))
+    r = p.render
+    folder = Path(str(params_mod.given(r.source)))
     if not folder.is_dir():
         raise StageError(f"params.yaml render.source: {folder} is not a folder")
     train = labels_file(folder, TRAIN, None, "training")
-    test = labels_file(folder, TEST, r["source_test"], "test")
+    test = labels_file(folder, TEST, r.source_test, "test")
     cam = read_camera(folder, speed_layout=train.parent == folder)
-    W, H = int(r["width"]), int(r["height"])
+    W, H = r.width, r.height
     K = cam.scaled(W, H)
     if abs(W / H - cam.width / cam.height) > 0.01 * W / H:
         print(f"render.source: {cam.width}x{cam.height} images resized to {W}x{H} change the aspect; "
@@ -109,7 +111,7 @@ def import_source(p: dict[str, Any], out: Path) -> None:
     names = [image_path(f, n) for _, f, ns, _, _ in parts for n in ns]
     t = np.concatenate([x[3] for x in parts])
     q = np.concatenate([x[4] for x in parts])
-    n, chunk = len(names), int(r["chunk"])
+    n, chunk = len(names), r.chunk
     for d in remove_stale_temps(out):
         print(f"removed {d}, left over from an interrupted run")
     t0 = time.perf_counter()
@@ -127,7 +129,7 @@ def import_source(p: dict[str, Any], out: Path) -> None:
         seconds = time.perf_counter() - t0
         write_json(tmp / "meta.json", {
             "complete": True, "fingerprint": params_mod.render_fingerprint(p), "frames": n, "width": W,
-            "height": H, "K": K.K, "render": r, "seed": p["seed"], "seconds": seconds,
+            "height": H, "K": K.K, "render": dataclasses.asdict(r), "seed": p.seed, "seconds": seconds,
             "seconds_per_image": seconds / n, "chunk": chunk,
             "camera": {"ref_width": cam.width, "ref_height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
                        "cy": cam.cy},
