@@ -15,8 +15,11 @@ from typing import Any
 import numpy as np
 import typer
 
-from stages.config import params as params_mod
-from stages.artifacts.readers import DEFENSE, DEFENSE_FORMAT, chaser_motion, defense_settings, load_chain, read_eval_render
+from stages.artifacts.paths import DEFENSE
+from stages.artifacts.readers import DEFENSE_FORMAT, chaser_motion, load_chain, read_eval_render
+from stages.config.build import defense_settings
+from stages.config.device import torch_setup
+from stages.config.params import load
 from stages.io import StageError, write_json
 
 TARGET = ["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]
@@ -34,13 +37,13 @@ def main() -> None:
     from pipeline.defense.kalman import fit_noise, inflate, smallest_inflation
     from pipeline.geometry.rotations import sixd_to_matrix
 
-    p = params_mod.load()
-    d = params_mod.typed(p).defense
-    params_mod.torch_setup(p)
+    p = load()
+    d = p.defense
+    torch_setup(p)
     images, poses, _ = read_eval_render(p, validation=True)
     chain, _, model_hash = load_chain(p)
     targets = poses[TARGET].to_numpy(np.float32)
-    batch = params_mod.typed(p).evaluate.batch_size
+    batch = p.evaluate.batch_size
     with tqdm(total=-(-len(images) // batch), desc="calibrate", unit="batch", dynamic_ncols=True) as bar:
         def progress(it):
             for i in it:
@@ -54,7 +57,7 @@ def main() -> None:
     except ValueError as e:
         raise StageError(f"calibrate on {len(images)} validation frames (defense.val_trajectories, "
                          f"defense.noise_bins): {e}") from None
-    settings, motion = defense_settings(p, chain.threshold)
+    settings, motion = defense_settings(d, chain.threshold)
     R_cam, u = chaser_motion(poses)
     groups = [g.index.to_numpy() for _, g in poses.groupby("trajectory", sort=True)]
 

@@ -11,22 +11,20 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import typer
 
-from stages.config import params as params_mod
+from stages.artifacts.paths import EVALUATE_FIGURE as FIGURE, EVALUATE_METRICS as METRICS, \
+    EVALUATE_REPORT as REPORT, SEED_OFFSET
 from stages.artifacts.readers import chaser_motion, load_chain, load_defense, read_eval_render
+from stages.config.device import torch_setup
+from stages.config.evaluation import Evaluate
+from stages.config.params import load
 from stages.io import atomic_write_text, save_figure, write_metrics
 from stages.pages.evaluate import defense_section
-from stages.config.schema import Evaluate
 
-REPORT = Path("reports/integrated.md")
-FIGURE = Path("reports/figures/timeline.png")
-METRICS = Path("reports/metrics/evaluate.json")
-SCHEDULE_SEED_OFFSET = 17
 TARGET = ["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]
 # The paper's integrated detection accuracy (%), averaged over its three trajectories, per eps.
 PAPER_ACCURACY = {0.5: 100.0, 0.3: 99.99, 0.1: 99.97, 0.05: 99.99, 0.01: 97.67}
@@ -39,13 +37,13 @@ def main() -> None:
     Params: `evaluate` (trajectories, frames, lateral_range, p_start, attack_length, eps, seed,
     batch_size), `defense`, plus `render`/`camera` for the images and `attack.loss` for the FGSM loss.
     """
-    p = params_mod.load()
-    e = params_mod.typed(p).evaluate
+    p = load()
+    e = p.evaluate
     from pipeline.evaluation.sequences import defended_summary, evaluate_sequences, nan_to_none, per_eps_summary, rates_json
     from pipeline.report.figures import detection_timeline
     from pipeline.evaluation.schedule import attack_schedule
 
-    params_mod.torch_setup(p)
+    torch_setup(p)
     images, poses, meta = read_eval_render(p)
     chain, loss_fn, model_hash = load_chain(p)
     defense = load_defense(p, model_hash, chain.threshold)
@@ -58,10 +56,10 @@ def main() -> None:
                           "targets": g[TARGET].to_numpy(np.float32), "R_cam": R_cam, "u": u,
                           "rel": g[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64),
                           "attacked": attack_schedule(len(idx), e.p_start, length,
-                                                      e.seed + SCHEDULE_SEED_OFFSET + int(tr))})
+                                                      e.seed + SEED_OFFSET["evaluate_schedule"] + int(tr))})
     t0 = time.perf_counter()
     res = evaluate_sequences(chain, loss_fn, sequences, eps_list, length, e.batch_size, "evaluate")
-    harm = params_mod.typed(p).defense.harm_m
+    harm = p.defense.harm_m
     fused = {name: defended_summary(res["traces"], sequences, eps_list, defense.settings if fusion is None else
                                     dataclasses.replace(defense.settings, fusion=fusion), defense.motion,
                                     defense.noise, length, harm)
@@ -84,9 +82,9 @@ def main() -> None:
                "fused": {"fusion": defense.settings.fusion, "harm_m": harm,
                          "per_eps": {f"{r['eps']:g}": r for r in rates_json(list(fused.values())[-1])},
                          "paper_per_eps": {f"{r['eps']:g}": r for r in rates_json(fused["paper (LSTM alone)"])}}}
-    write_metrics(METRICS, nan_to_none(metrics), p)
+    write_metrics(METRICS, nan_to_none(metrics), p.profile_name)
     atomic_write_text(REPORT, report(res["rows"], summary, res["clean"], sequences, e, meta, chain.threshold,
-                                     eps_fig, str(p.get("profile_name", "?")))
+                                     eps_fig, p.profile_name)
                       + defense_section(fused, defense.calibration, harm, e.attack_length))
     typer.echo(f"evaluate: {len(sequences)} trajectories x {len(eps_list)} eps in {seconds:.0f} s; mean accuracy "
                f"{100 * metrics['accuracy_mean']:.2f}% -> {REPORT}, {FIGURE}")

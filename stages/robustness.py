@@ -20,22 +20,19 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from stages.config import params as params_mod
-from stages.artifacts.readers import SURROGATE, Pose, load_defense, load_detector, load_pose, read_eval_render
-from stages.artifacts.checkpoint import POSE
+from stages.artifacts.paths import POSE, ROBUSTNESS_FIGURE as FIGURE, ROBUSTNESS_METRICS as METRICS, \
+    ROBUSTNESS_REPORT as REPORT, SEED_OFFSET, SURROGATE
+from stages.artifacts.readers import Pose, load_defense, load_detector, load_pose, read_eval_render
+from stages.config.device import torch_setup
+from stages.config.evaluation import Robustness, attack_name
+from stages.config.params import load
+from stages.config.schema import Params
 from stages.io import StageError, atomic_write_text, not_found, save_figure, write_metrics
 from stages.pages.robustness import robustness_page
-from stages.config.schema import Robustness, attack_name
-
-REPORT = Path("reports/robustness.md")
-METRICS = Path("reports/metrics/robustness.json")
-FIGURE = Path("reports/figures/robustness.png")
-SEED_OFFSET = 1500
 
 
 def main() -> None:
@@ -47,12 +44,12 @@ def main() -> None:
     from pipeline.evaluation.robustness import run_attack_rows, worst_by_eps
     from stages.artifacts.data import load_split
 
-    p = params_mod.load()
-    r = params_mod.typed(p).robustness
+    p = load()
+    r = dataclasses.replace(p.robustness, lambdas=[float(v) for v in p.robustness.lambdas])  # floats: echoed in the metrics
     if not SURROGATE.exists():
         raise not_found(SURROGATE)
-    params_mod.torch_setup(p)
-    seed = int(p["seed"]) + SEED_OFFSET
+    torch_setup(p)
+    seed = p.seed + SEED_OFFSET["robustness"]
     pose, surrogate = load_pose(p), load_pose(p, SURROGATE)
     chain = _chain(pose)
     split = load_split(p, "test")
@@ -88,7 +85,7 @@ def main() -> None:
                "model_hash": pose.hash, "surrogate_hash": surrogate.hash, "seconds": seconds,
                "worst_harmful_undetected": worst_by_eps(rows), **fused,
                "worst_harmful_undetected_fused": worst_by_eps(fused["fused_rows"])}
-    write_metrics(METRICS, metrics, p)
+    write_metrics(METRICS, metrics, p.profile_name)
     atomic_write_text(REPORT, robustness_page(metrics, p))
     worst_fused = [row for row in fused["fused_rows"] if row["lambda"] is None]
     save_figure(robustness_vs_eps([row for row in rows if row["attack"] != "adaptive pgd"] + worst_fused), FIGURE)
@@ -108,16 +105,16 @@ def _chain(pose: Pose) -> Any:
         raise StageError(f"{POSE}: {err}") from None
 
 
-def _specs(p: dict[str, Any], r: Robustness, target: Any, pose: Pose, surrogate: Pose, seed: int) -> list[Any]:
+def _specs(p: Params, r: Robustness, target: Any, pose: Pose, surrogate: Pose, seed: int) -> list[Any]:
     """The attack rows to run, in report order (pipeline.evaluation.robustness.attack_specs)."""
     from pipeline.evaluation.robustness import attack_specs
 
-    a = p["attack"]
+    a = p.attack
     transfer = [(name, *attack_name(name, "transfer")) for name in r.transfer]
     on_surrogate = [(name, *attack_name(name, "surrogate_attacks")) for name in r.surrogate_attacks]
     return attack_specs(pose, surrogate, target, eps=r.eps, unseen_eps=r.unseen_eps, transfer=transfer,
-                        lambdas=r.lambdas, surrogate_attacks=on_surrogate, steps=r.steps, mi_steps=int(a["steps"]),
-                        momentum=float(a["momentum"]), loss=a["loss"], seed=seed)
+                        lambdas=r.lambdas, surrogate_attacks=on_surrogate, steps=r.steps, mi_steps=a.steps,
+                        momentum=float(a.momentum), loss=a.loss, seed=seed)
 
 
 def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Robustness, seed: int,
@@ -140,7 +137,7 @@ def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Rob
     return rate(clean_pos > r.harm_m), rows
 
 
-def _fused_rows(p: dict[str, Any], r: Robustness, chain: Any, target: Any, seed: int, model_hash: str) -> dict[str, Any]:
+def _fused_rows(p: Params, r: Robustness, chain: Any, target: Any, seed: int, model_hash: str) -> dict[str, Any]:
     """Adaptive attack on the fused chain (LSTM flag OR motion gate, pipeline.defense.fusion) over bursts of
     `evaluate.attack_length` frames every `robustness.burst_every` frames of each eval_render
     trajectory, per eps and lambda and the per-burst worst case over lambda; rates with bootstrap
@@ -153,7 +150,7 @@ def _fused_rows(p: dict[str, Any], r: Robustness, chain: Any, target: Any, seed:
     from pipeline.evaluation.robustness import fused_bursts, fused_row, worst_burst_over_lambda
 
     images, labels, trajs, bursts, defended, info = _fused_setup(p, r, chain, model_hash)
-    full = attack_loss(p["attack"]["loss"], load_pose(p).loss)
+    full = attack_loss(p.attack.loss, load_pose(p).loss)
     rows = []
     bar = tqdm(total=len(r.eps) * len(r.lambdas) * len(trajs), desc="robustness (fused)", unit="trajectory")
     for i, e in enumerate(r.eps):
@@ -171,7 +168,7 @@ def _fused_rows(p: dict[str, Any], r: Robustness, chain: Any, target: Any, seed:
     return {"fused_rows": rows, "fused": info}
 
 
-def _fused_setup(p: dict[str, Any], r: Robustness, chain: Any, model_hash: str) -> tuple[Any, ...]:
+def _fused_setup(p: Params, r: Robustness, chain: Any, model_hash: str) -> tuple[Any, ...]:
     """(eval_render images, labels (N, 9), frame indices per trajectory, bursts per trajectory, the
     defended-chain settings, facts incl. the fused chain's false-alarm rate on the clean trajectories)."""
     from pipeline.evaluation.robustness import Defended, burst_schedule, fused_false_alarms
@@ -182,7 +179,7 @@ def _fused_setup(p: dict[str, Any], r: Robustness, chain: Any, model_hash: str) 
     # the defense that ships: params.defense with the noise model `rpod calibrate` fitted on validation trajectories
     shipped = load_defense(p, model_hash, chain.threshold)
     defended = Defended(shipped.settings, shipped.motion, shipped.noise)
-    length = int(p["evaluate"]["attack_length"])
+    length = p.evaluate.attack_length
     try:
         bursts = [burst_schedule(len(ix), length, r.burst_every) for ix in trajs]
     except ValueError as e:
