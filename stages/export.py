@@ -23,7 +23,8 @@ def speed(out: Path = typer.Argument(..., help="Folder to write: new, empty, or 
     import numpy as np
 
     from pipeline.geometry.camera import Intrinsics
-    from stages.artifacts.readers import LABELS, RENDER, read_render_store
+    from stages.artifacts.paths import LABELS, RENDER
+    from stages.artifacts.readers import read_render_store
     from stages.artifacts.data import load_labels
     from stages.artifacts.speed import export
 

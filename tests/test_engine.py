@@ -94,7 +94,8 @@ def test_bad_workers_and_store(workdir):
 def test_store_elsewhere_is_named_in_meta_and_read_back(workdir):
     import json
 
-    from stages.artifacts.readers import RENDER, read_render_store
+    from stages.artifacts.paths import RENDER
+    from stages.artifacts.readers import read_render_store
 
     store = workdir / "shared" / "render.zarr"
     params_mod.write_params(params_mod.compose("smoke", TINY + [f"engine.store={store}"]))

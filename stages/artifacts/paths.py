@@ -34,7 +34,9 @@ DETECTOR = Path("models/detector.pt")
 DEFENSE = Path("models/defense.json")
 
 # reports/: pages, metrics, figures, curves
-FIGURES = Path("reports/figures")
+REPORTS = Path("reports")
+METRICS_DIR = REPORTS / "metrics"   # reports/metrics/<stage>.json (stages/pages/report.py SECTIONS names them)
+FIGURES = REPORTS / "figures"
 PREVIEWS = FIGURES / "previews"
 DATASET_CARD = Path("reports/dataset.md")
 POSE_REPORT = Path("reports/pose.md")
@@ -62,6 +64,7 @@ LAB_METRICS = Path("reports/metrics/lab.json")
 PAGE = Path("reports/README.md")
 SUMMARY = Path("reports/metrics/summary.json")   # the headline numbers: what `dvc metrics show` prints
 REPORT_FIGURES = {name: FIGURES / f"{name}.png" for name in ("pose_errors", "error_vs_eps", "shap_heatmaps", "roc")}
+README = Path("README.md")   # the project README: `rpod report --sync-readme` copies the results block into it
 VARIANCE = Path("reports/variance.json")  # scripts/variance.py (not a stage): the spread of the headline numbers
 
 # output -> the dvc.yaml stage that writes it

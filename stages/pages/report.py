@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from stages.config.schema import Params
+
 # (stage, report file, metrics file or None) in pipeline order.
 SECTIONS = [
     ("label", "dataset.md", None),
@@ -18,7 +20,7 @@ SECTIONS = [
 ]
 
 
-def page_head(metrics: dict[str, dict[str, Any]], params: dict[str, Any]) -> str:
+def page_head(metrics: dict[str, dict[str, Any]], params: Params) -> str:
     """Title, where the page comes from, warnings on mixed profiles or pose models, and the summary heading."""
     profiles = {m.get("profile", "unknown") for m in metrics.values()}
     warn = ""
@@ -31,7 +33,7 @@ def page_head(metrics: dict[str, dict[str, Any]], params: dict[str, Any]) -> str
         warn += (f"\n> **Mixed pose models** ({', '.join(f'{k} {v}' for k, v in sorted(hashes.items()))}): "
                  "some stages ran on an older checkpoint.\n")
     return (f"# rpodguard results\n\nWritten by `rpod report` from `reports/metrics/*.json` and the stage reports "
-            f"beside this file; params profile `{params.get('profile_name', 'unknown')}`. Regenerate with "
+            f"beside this file; params profile `{params.profile_name}`. Regenerate with "
             f"`dvc repro`. Every section below is one stage's report, stamped with the profile it ran on (when it ran: `produced` in reports/metrics/<stage>.json)."
             f"\n{warn}\n## Summary against the paper\n")
 
