@@ -11,7 +11,8 @@ from stages.engine import pool as engine
 from stages.config import params as params_mod
 from stages.engine.chunks import RenderWorker
 from stages.io import StageError, open_zarr
-from stages.config.schema import ParamsError
+from stages.config.schema import build
+from stages.config.sections import ParamsError
 
 TINY = ["render.width=32", "render.height=18", "render.frames_per_sequence=2", "render.samples=2",
         "render.chunk=4", "render.previews=1"]
@@ -83,7 +84,7 @@ def test_unreachable_address_stops_at_once(workdir):
 
 def test_bad_workers_and_store(workdir):
     with pytest.raises(ParamsError, match="engine: workers must be at least 1"):
-        params_mod.build(params_mod.compose("smoke", ["engine.workers=0"]))
+        build(params_mod.compose("smoke", ["engine.workers=0"]))
     (workdir / "a_file").write_text("not a folder")
     for store, what in [(workdir / "a_file" / "images.zarr", "a path below a file"), ("nosuchproto://x/y.zarr", "")]:
         with pytest.raises(StageError, match="cannot be written.*engine.store"):

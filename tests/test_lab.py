@@ -321,7 +321,8 @@ def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, mo
 ])
 def test_bad_lab_params_are_refused(edit, message):
     from stages.config import params as params_mod
-    from stages.config.schema import ParamsError, build
+    from stages.config.schema import build
+    from stages.config.sections import ParamsError
 
     p = params_mod.compose("default")
     p["lab"].update(edit)
