@@ -2,6 +2,7 @@
 parameter) and leaves every downstream artifact as it was."""
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -130,7 +131,7 @@ def _unchanged(before: dict[str, bytes]) -> None:
 def _set_params(**overrides: object) -> None:
     from stages.config import params as params_mod
 
-    p = params_mod.load()
+    p = dataclasses.asdict(params_mod.load())
     for key, value in overrides.items():
         section, name = key.split("__")
         p[section][name] = value

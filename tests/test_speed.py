@@ -1,6 +1,7 @@
 """SPEED / SPEED+ interop: the label and camera formats (pipeline/formats/speed.py), the import as `rpod render`'s
 output, `rpod export speed`, and one clear error per kind of bad input."""
 import json
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -159,7 +160,7 @@ def test_speed_layout_resized_with_scaled_k(project):
     assert np.allclose(meta["K"], K_SRC.scaled(24, 15).K) and meta["frames"] == 6 and meta["width"] == 24
     assert meta["source"]["train"] == "train.json"
     assert pd.read_parquet(root / "store/poses.parquet")["filename"].iloc[-1] == "images/test/test001.png"
-    speed_io.import_source({**p, "render": {**p["render"], "width": 64, "height": 36}}, root / "store")  # upscaled
+    speed_io.import_source(replace(p, render=replace(p.render, width=64, height=36)), root / "store")  # upscaled
     assert json.loads((root / "store/meta.json").read_text())["width"] == 64
 
 
