@@ -22,28 +22,26 @@ from stages.artifacts.paths import ADV, ATTACK_FIGURE as FIGURE, ATTACK_METRICS 
 from stages.artifacts.readers import adv_array_name, load_pose
 from stages.config.build import check_attack_params, engine_settings, make_attack
 from stages.config.device import torch_setup
-from stages.config.params import load
 from stages.config.schema import Params
 from stages.engine import pool as engine
 from stages.io import StageError, atomic_dir, atomic_write_text, create_array, save_figure, write_metrics
 from stages.pages.attack import attack_page
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Attack the test set at every attack.eps with attack.method on attack.loss; report the pose errors."""
     import torch
 
     from pipeline.report.figures import attack_example
     from stages.artifacts.data import load_split
 
-    p = load()
-    a = p.attack
+    a = params.attack
     check_attack_params(a, "attack")
     eps_list = [float(e) for e in a.eps]
-    torch_setup(p)
+    torch_setup(params)
     make_attack(a, a.method, 0)   # refuses bad attack params before anything is loaded
-    pose = load_pose(p)
-    split = load_split(p, "test")
+    pose = load_pose(params)
+    split = load_split(params, "test")
     n = len(split) if a.max_images is None else min(len(split), a.max_images)
     if n < 1:
         raise StageError(f"params.yaml attack.max_images must be at least 1, got {a.max_images}")
@@ -52,8 +50,8 @@ def main() -> None:
     q_gt = labels[["qw", "qx", "qy", "qz"]].to_numpy(np.float64)
     y_all = torch.tensor(labels[["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]].to_numpy(np.float32))
     k = int(np.argmin(np.abs(t_gt[:, 2] - np.median(t_gt[:, 2]))))  # figure: a mid-range test image
-    es, threads = _engine(p, pose.model.device)
-    worker = (p, str(POSE.resolve()), eps_list, a.batch_size, None if es.in_process else threads)
+    es, threads = _engine(params, pose.model.device)
+    worker = (params, str(POSE.resolve()), eps_list, a.batch_size, None if es.in_process else threads)
     t0 = time.perf_counter()
     with atomic_dir(ADV.parent) as tmp:
         out = _attack_into(tmp / ADV.name, worker, images, labels["index"].to_numpy(np.int64), y_all, k, es, threads)
@@ -69,7 +67,7 @@ def main() -> None:
     metrics = {"method": a.method, "loss": a.loss, "images": n, "seconds": seconds, "model_hash": pose.hash,
                "measured_on": "stored uint8 images", "clean": {key: v for key, v in rows[0].items() if key != "eps"},
                "eps": {r["eps"]: {key: v for key, v in r.items() if key != "eps"} for r in rows[1:]}}
-    write_metrics(METRICS, metrics, p.profile_name)
+    write_metrics(METRICS, metrics, params.profile_name)
     atomic_write_text(REPORT, attack_page(rows, a, n))
     save_figure(attack_example(np.asarray(images[k]), out["example"], t_gt[k],
                                {e: preds[e][k] for e in ["clean", *eps_list]}, a.method), FIGURE)

@@ -19,13 +19,13 @@ from stages.artifacts.paths import DEFENSE
 from stages.artifacts.readers import DEFENSE_FORMAT, chaser_motion, load_chain, read_eval_render
 from stages.config.build import defense_settings
 from stages.config.device import torch_setup
-from stages.config.params import load
+from stages.config.schema import Params
 from stages.io import StageError, write_json
 
 TARGET = ["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"]
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Fit the defense's measurement-noise model on clean validation trajectories -> models/defense.json.
 
     Params: `defense` (noise_bins, val_trajectories, val_seed and the filter settings), `evaluate.batch_size`.
@@ -37,13 +37,12 @@ def main() -> None:
     from pipeline.defense.kalman import fit_noise, inflate, smallest_inflation
     from pipeline.geometry.rotations import sixd_to_matrix
 
-    p = load()
-    d = p.defense
-    torch_setup(p)
-    images, poses, _ = read_eval_render(p, validation=True)
-    chain, _, model_hash = load_chain(p)
+    d = params.defense
+    torch_setup(params)
+    images, poses, _ = read_eval_render(params, validation=True)
+    chain, _, model_hash = load_chain(params)
     targets = poses[TARGET].to_numpy(np.float32)
-    batch = p.evaluate.batch_size
+    batch = params.evaluate.batch_size
     with tqdm(total=-(-len(images) // batch), desc="calibrate", unit="batch", dynamic_ncols=True) as bar:
         def progress(it):
             for i in it:

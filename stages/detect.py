@@ -26,7 +26,6 @@ from stages.artifacts.paths import DETECT_LIVE, DETECT_METRICS as METRICS, DETEC
     LABELS, POSE, ROC_DIR, SEED_OFFSET, SHAP
 from stages.artifacts.readers import DETECTOR_FORMAT, SPLIT_CODES, SampleImages, load_pose, read_shap_store
 from stages.config.device import torch_device
-from stages.config.params import load
 from stages.config.schema import Params
 from stages.config.sections import Detect
 from stages.io import StageError, atomic_outputs, atomic_write_text, file_hash, save_torch, write_metrics
@@ -47,7 +46,7 @@ def split_indices(eps: np.ndarray, source: np.ndarray, test_fraction: float, val
                          f"(raise shap.normal / shap.per_eps)") from None
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Train the LSTM detector and the baselines on one split of the SHAP store; write the report."""
     import torch
 
@@ -55,11 +54,10 @@ def main() -> None:
     from pipeline.detectors.metrics import choose_threshold, metrics_by_eps, roc_csv
     from pipeline.evaluation.sequences import nan_to_none
 
-    p = load()
-    d = p.detect
+    d = params.detect
     torch.set_num_threads(1)  # the LSTM's matrices are small: extra threads cost more than they give
-    device = torch_device(p)  # a missing CUDA GPU stops here; the LSTM fit and the squeeze baseline run on it
-    seed = p.seed + SEED_OFFSET["detect"]
+    device = torch_device(params)  # a missing CUDA GPU stops here; the LSTM fit and the squeeze baseline run on it
+    seed = params.seed + SEED_OFFSET["detect"]
     model_hash = file_hash(POSE)
     data = read_shap_store(SHAP, model_hash)
     values, feats, eps = data["values"], data["features"], data["eps"].astype(np.float64)
@@ -77,7 +75,7 @@ def main() -> None:
     # baselines, same split, thresholds on the same validation samples
     for name in d.baselines:
         t0 = time.perf_counter()
-        s_val, s_test = _baseline(name, p, data, y, tr, va, te, seed)
+        s_val, s_test = _baseline(name, params, data, y, tr, va, te, seed)
         scores[name] = (s_test, choose_threshold(s_val, y[va]))
         seconds[name] = time.perf_counter() - t0
         print(f"detect: {name} baseline in {seconds[name]:.1f} s", flush=True)
@@ -100,7 +98,7 @@ def main() -> None:
         save_torch(det, ckpt)
         for name, (s, _) in scores.items():   # into the empty stand-in for ROC_DIR: no stale detector's file
             atomic_write_text(roc_dir / f"{name}.csv", roc_csv(y[te], s))
-        write_metrics(met, nan_to_none(metrics), p.profile_name)
+        write_metrics(met, nan_to_none(metrics), params.profile_name)
         atomic_write_text(rep, detector_page(results, scores, counts, result, data["attrs"], d))
         _log_curves(live_dir, result.history, results["lstm"]["all"])
     acc = results["lstm"]["all"]["accuracy"]

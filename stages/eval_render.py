@@ -18,7 +18,7 @@ import typer
 
 from stages.artifacts.paths import EVAL_RENDER, VAL_RENDER
 from stages.config.build import engine_settings, intrinsics, scene_settings
-from stages.config.params import eval_render_fingerprint, load, val_render_fingerprint
+from stages.config.params import eval_render_fingerprint, val_render_fingerprint
 from stages.config.schema import Params
 from stages.engine import pool as engine
 from stages.engine.chunks import render_to_store, store_url
@@ -42,20 +42,19 @@ def trajectories(p: Params, seed: int, count: int) -> list[Any]:
     return out
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Render the fresh evaluation trajectories into datasets/eval_render/ and the defense's
     validation trajectories into datasets/val_render/, fanned out over `engine.workers` Blender scenes.
 
     Params: `evaluate.trajectories`, `frames`, `lateral_range`, `seed`; `defense.val_trajectories`,
     `val_seed`; `render`/`camera`; and `engine` (workers, Ray cluster address).
     """
-    p = load()
-    K, scene, es = intrinsics(p), scene_settings(p.render), engine_settings(p)
-    d, e = p.defense, p.evaluate
+    K, scene, es = intrinsics(params), scene_settings(params.render), engine_settings(params)
+    d, e = params.defense, params.evaluate
     with engine.session(es):
         for folder, seqs, fingerprint in (
-                (EVAL_RENDER, trajectories(p, e.seed, e.trajectories), eval_render_fingerprint(p)),
-                (VAL_RENDER, trajectories(p, d.val_seed, d.val_trajectories), val_render_fingerprint(p))):
+                (EVAL_RENDER, trajectories(params, e.seed, e.trajectories), eval_render_fingerprint(params)),
+                (VAL_RENDER, trajectories(params, d.val_seed, d.val_trajectories), val_render_fingerprint(params))):
             _render_set(K, scene, es, seqs, folder, fingerprint)
 
 

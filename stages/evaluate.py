@@ -21,7 +21,7 @@ from stages.artifacts.paths import EVALUATE_FIGURE as FIGURE, EVALUATE_METRICS a
 from stages.artifacts.readers import chaser_motion, load_chain, load_defense, read_eval_render
 from stages.config.device import torch_setup
 from stages.config.evaluation import Evaluate
-from stages.config.params import load
+from stages.config.schema import Params
 from stages.io import atomic_write_text, save_figure, write_metrics
 from stages.pages.evaluate import defense_section
 
@@ -31,22 +31,21 @@ PAPER_ACCURACY = {0.5: 100.0, 0.3: 99.99, 0.1: 99.97, 0.05: 99.99, 0.01: 97.67}
 PAPER_OVERALL = 99.21
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Detect FGSM attacks frame by frame on fresh trajectories with the whole safety chain.
 
     Params: `evaluate` (trajectories, frames, lateral_range, p_start, attack_length, eps, seed,
     batch_size), `defense`, plus `render`/`camera` for the images and `attack.loss` for the FGSM loss.
     """
-    p = load()
-    e = p.evaluate
+    e = params.evaluate
     from pipeline.evaluation.sequences import defended_summary, evaluate_sequences, nan_to_none, per_eps_summary, rates_json
     from pipeline.report.figures import detection_timeline
     from pipeline.evaluation.schedule import attack_schedule
 
-    torch_setup(p)
-    images, poses, meta = read_eval_render(p)
-    chain, loss_fn, model_hash = load_chain(p)
-    defense = load_defense(p, model_hash, chain.threshold)
+    torch_setup(params)
+    images, poses, meta = read_eval_render(params)
+    chain, loss_fn, model_hash = load_chain(params)
+    defense = load_defense(params, model_hash, chain.threshold)
     eps_list, length = e.eps, e.attack_length
     sequences = []
     for tr, g in poses.groupby("trajectory", sort=True):
@@ -59,7 +58,7 @@ def main() -> None:
                                                       e.seed + SEED_OFFSET["evaluate_schedule"] + int(tr))})
     t0 = time.perf_counter()
     res = evaluate_sequences(chain, loss_fn, sequences, eps_list, length, e.batch_size, "evaluate")
-    harm = p.defense.harm_m
+    harm = params.defense.harm_m
     fused = {name: defended_summary(res["traces"], sequences, eps_list, defense.settings if fusion is None else
                                     dataclasses.replace(defense.settings, fusion=fusion), defense.motion,
                                     defense.noise, length, harm)
@@ -82,9 +81,9 @@ def main() -> None:
                "fused": {"fusion": defense.settings.fusion, "harm_m": harm,
                          "per_eps": {f"{r['eps']:g}": r for r in rates_json(list(fused.values())[-1])},
                          "paper_per_eps": {f"{r['eps']:g}": r for r in rates_json(fused["paper (LSTM alone)"])}}}
-    write_metrics(METRICS, nan_to_none(metrics), p.profile_name)
+    write_metrics(METRICS, nan_to_none(metrics), params.profile_name)
     atomic_write_text(REPORT, report(res["rows"], summary, res["clean"], sequences, e, meta, chain.threshold,
-                                     eps_fig, p.profile_name)
+                                     eps_fig, params.profile_name)
                       + defense_section(fused, defense.calibration, harm, e.attack_length))
     typer.echo(f"evaluate: {len(sequences)} trajectories x {len(eps_list)} eps in {seconds:.0f} s; mean accuracy "
                f"{100 * metrics['accuracy_mean']:.2f}% -> {REPORT}, {FIGURE}")

@@ -26,7 +26,6 @@ from stages.artifacts.paths import DETECTOR, GUIDANCE_DEFENDED_FIGURE as DEFENDE
 from stages.artifacts.readers import load_chain, load_defense
 from stages.config.build import check_attack_params, engine_settings, intrinsics, make_attack, scene_settings
 from stages.config.device import torch_setup
-from stages.config.params import load
 from stages.config.schema import Params
 from stages.config.sections import Attack, Guidance
 from stages.engine import chunks, pool as engine
@@ -89,7 +88,7 @@ class GuidanceWorker:
         self.renderer.close()
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Fly the closed loop without attack and under every (eps, S, K) attack window, on the engine's
     workers (each run on one; results in grid order); report outcomes."""
     from tqdm import tqdm
@@ -97,16 +96,15 @@ def main() -> None:
     from pipeline.report.figures import guidance_trajectories, guidance_variants
     from pipeline.guidance.law import GridPlan, defended_grid, grid_counts, paper_grid
 
-    p = load()
-    g = p.guidance
+    g = params.guidance
     settings, grid = _plan(g)
-    make_attack(p.attack, g.method, 0)   # refuses bad attack params before anything runs
-    torch_setup(p)
-    chain, _, model_hash = load_chain(p)  # refuses a pose model whose input size is not render.width x height
-    defense = load_defense(p, model_hash, chain.threshold)
-    K = intrinsics(p)  # the model's input size
-    es = engine_settings(p)
-    scene, threads = chunks.prepare(K, scene_settings(p.render), es)
+    make_attack(params.attack, g.method, 0)   # refuses bad attack params before anything runs
+    torch_setup(params)
+    chain, _, model_hash = load_chain(params)  # refuses a pose model whose input size is not render.width x height
+    defense = load_defense(params, model_hash, chain.threshold)
+    K = intrinsics(params)  # the model's input size
+    es = engine_settings(params)
+    scene, threads = chunks.prepare(K, scene_settings(params.render), es)
     plan = GridPlan(settings, tuple(grid), g.slack_steps, tuple(g.dynamics), tuple(g.defenses))
     runs = plan.runs()
     models = (str(POSE.resolve()), str(DETECTOR.resolve()))
@@ -121,7 +119,7 @@ def main() -> None:
         bar.update(1)
 
     with tqdm(total=len(runs), desc="guidance runs", unit="run") as bar:
-        on_cpu = p if es.in_process else dataclasses.replace(p, device="cpu")   # Ray workers hold no GPU
+        on_cpu = params if es.in_process else dataclasses.replace(params, device="cpu")   # Ray workers hold no GPU
         init = (on_cpu, K, scene, models, defense, plan, None if es.in_process else threads)
         flown = engine.run(GuidanceWorker, init, runs, es, num_cpus=threads, progress=progress)
     seconds = paper_done[0]
@@ -132,10 +130,10 @@ def main() -> None:
     defended["seconds"] = time.perf_counter() - t0 - seconds
     defended.update(grid_counts(flown[plan.paper_size:], frozenset().union(*(k for _, k in paper))))
 
-    metrics = _metrics(settings, g, p.attack, model_hash, seconds, counts, (baseline, arrival, horizon, attacked),
+    metrics = _metrics(settings, g, params.attack, model_hash, seconds, counts, (baseline, arrival, horizon, attacked),
                        defended)
-    write_metrics(METRICS, metrics, p.profile_name)
-    atomic_write_text(REPORT, guidance_page(metrics, g, p.render) + defended_section(metrics["defended"], g))
+    write_metrics(METRICS, metrics, params.profile_name)
+    atomic_write_text(REPORT, guidance_page(metrics, g, params.render) + defended_section(metrics["defended"], g))
     first = attacked[0][0] if attacked else None
     save_figure(guidance_trajectories(baseline, [(s, k, r) for e, s, k, r in attacked if e == first], first,
                                       settings.goal), FIGURE)

@@ -29,7 +29,7 @@ from stages.artifacts.readers import load_chain
 from stages.artifacts.recordings import read_recording, recording_folders, write_recording
 from stages.config.build import engine_settings, mockup, retrain_reason, scene_settings
 from stages.config.device import torch_setup
-from stages.config.params import given, load
+from stages.config.params import given, with_params
 from stages.config.schema import Params
 from stages.engine import pool as engine
 from stages.engine.chunks import render_poses
@@ -54,14 +54,13 @@ def cameras(p: Params) -> tuple[Any, Any]:
         raise StageError(f"params.yaml camera / lab.zed: {e}") from None
 
 
-@app.command("rescale")
-def rescale(z: list[float] = typer.Option(..., "--z", help="Lab range(s) in metres (repeatable).")) -> None:
+def rescale(params: Params,
+            z: list[float] = typer.Option(..., "--z", help="Lab range(s) in metres (repeatable).")) -> None:
     """Print the equivalent synthetic range of lab ranges (same apparent size in pixels; pinhole model)."""
     from pipeline.evaluation.lab import lab_to_synthetic_factor
 
-    p = load()
-    K_syn, K_zed = cameras(p)
-    scale = float(p.lab.scale)
+    K_syn, K_zed = cameras(params)
+    scale = float(params.lab.scale)
     k = lab_to_synthetic_factor(K_syn, K_zed, scale)
     f_eff = K_zed.fx * K_syn.width / K_zed.width
     typer.echo(f"factor = scale * fx_syn / fx_lab_eff = {scale:g} * {K_syn.fx:g} / ({K_zed.fx:g} * "
@@ -111,8 +110,7 @@ def render_lab(p: Params, dest: Path) -> list[dict[str, Any]]:
 
 
 # ----------------------------------------------------------------------------- the stage
-@app.callback(invoke_without_command=True)
-def main(ctx: typer.Context) -> None:
+def main(params: Params, ctx: typer.Context) -> None:
     """Evaluate the pose model and the safety chain in the lab domain.
 
     Params: `lab` (sequences, frames, fps, mocap_hz, match, max_gap_s, attack_length, domain_shift,
@@ -124,26 +122,25 @@ def main(ctx: typer.Context) -> None:
     from pipeline.evaluation.sequences import evaluate_sequences, fgsm_error_table, nan_to_none, per_eps_summary
     from pipeline.evaluation.lab import lab_to_synthetic_factor
 
-    p = load()
-    lab = p.lab
-    torch_setup(p)
-    K_syn, K_zed = cameras(p)
+    lab = params.lab
+    torch_setup(params)
+    K_syn, K_zed = cameras(params)
     factor = lab_to_synthetic_factor(K_syn, K_zed, float(lab.scale))
-    reason = retrain_reason(p)
+    reason = retrain_reason(params)
     synthetic_lab = _lab_models(reason)
-    chain, loss_fn, model_hash = (load_chain(p) if synthetic_lab is None else
-                                  load_chain(p, LAB_MODELS / POSE, LAB_MODELS / DETECTOR))
+    chain, loss_fn, model_hash = (load_chain(params) if synthetic_lab is None else
+                                  load_chain(params, LAB_MODELS / POSE, LAB_MODELS / DETECTOR))
     t0 = time.perf_counter()
     truth: list[dict[str, Any]] = []
     real = given(lab.real_data)
     source = Path(real) if real else OUT
     if not real:
         with atomic_dir(OUT) as tmp:
-            truth = render_lab(p, tmp)
+            truth = render_lab(params, tmp)
     render_s = time.perf_counter() - t0
-    sequences, ranges, loader_err = _sequences(p, source, truth, K_syn, K_zed)
-    e, length = p.evaluate, lab.attack_length
-    clean_rows, fgsm_rows = fgsm_error_table(chain, loss_fn, sequences, [float(x) for x in p.attack.eps],
+    sequences, ranges, loader_err = _sequences(params, source, truth, K_syn, K_zed)
+    e, length = params.evaluate, lab.attack_length
+    clean_rows, fgsm_rows = fgsm_error_table(chain, loss_fn, sequences, [float(x) for x in params.attack.eps],
                                              e.batch_size)   # pose error (clean), FGSM errors: every lab frame
     res = evaluate_sequences(chain, loss_fn, sequences, [float(x) for x in e.eps], length, e.batch_size,
                              "lab evaluate")
@@ -160,8 +157,8 @@ def main(ctx: typer.Context) -> None:
                "per_eps": {f"{x['eps']:g}": x for x in summary}, "rows": res["rows"], "clean_detection": res["clean"],
                "accuracy_mean": float(np.mean([x["accuracy"] for x in summary])), "seconds": seconds,
                "render_seconds": render_s}
-    write_metrics(METRICS, nan_to_none(metrics), p.profile_name)
-    atomic_write_text(REPORT, lab_page(p, metrics, res["rows"], summary, [s["name"] for s in sequences],
+    write_metrics(METRICS, nan_to_none(metrics), params.profile_name)
+    atomic_write_text(REPORT, lab_page(params, metrics, res["rows"], summary, [s["name"] for s in sequences],
                                      train_metrics, K_syn, K_zed, sequences))
     typer.echo(f"lab: {'reused' if synthetic_lab is None else 'retrained'} models {models['pose']}, "
                f"{models['detector']}; {len(sequences)} sequences from {source}; mean detection accuracy "
@@ -192,3 +189,7 @@ def _sequences(p: Params, source: Path, truth: list[dict[str, Any]], K_syn: Any,
     sequences, ranges = chain_sequences(recs, K_syn, K_zed, float(lab.scale), float(p.evaluate.p_start),
                                         lab.attack_length, lab.seed)
     return sequences, ranges, loader_errors(recs, truth)
+
+
+app.command("rescale")(with_params(rescale))
+app.callback(invoke_without_command=True)(with_params(main))

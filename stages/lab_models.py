@@ -32,7 +32,7 @@ from typing import Any
 from stages.artifacts.paths import DETECT_METRICS, DETECTOR, LAB_MODELS, LAB_MODELS_SUMMARY, PARAMS_FILE, POSE, RENDER, \
     ROOT, SEED_OFFSET, TRAIN_METRICS
 from stages.config.build import mockup, retrain_reason
-from stages.config.params import NONE, load, write_params
+from stages.config.params import NONE, write_params
 from stages.config.schema import Params
 from stages.io import StageError, atomic_dir, file_hash, read_json, write_json
 
@@ -93,18 +93,17 @@ def retrain(p: Params, dest: Path, final: Path) -> dict[str, Any]:
             "detector_test_accuracy": detect_m["detectors"]["lstm"]["all"]["accuracy"], "seconds": seconds}
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Train the synthetic-lab pose model and detector into datasets/lab_models/ when `rpod lab` may not
     reuse the main ones (lab.retrain: always, or another mock-up in lab.mesh); else only record that.
     Params: the `lab` section and the training recipe (`render`, `label`, `train`, `shap`, `detect`)."""
-    p = load()
-    reason = retrain_reason(p)
+    reason = retrain_reason(params)
     with atomic_dir(LAB_MODELS) as tmp:
         if reason is None:
             summary: dict[str, Any] = {"retrained": False, "reason": None}
         else:
             print(f"lab_models: retraining the pose model and detector on a synthetic-lab set ({reason})", flush=True)
-            summary = retrain(p, tmp, LAB_MODELS)
+            summary = retrain(params, tmp, LAB_MODELS)
         write_json(tmp / LAB_MODELS_SUMMARY.name, summary)
     print(f"lab_models: {'retrained' if reason else 'nothing to train (the lab reuses the main models)'} "
           f"-> {LAB_MODELS_SUMMARY}")

@@ -7,6 +7,7 @@ import numpy as np
 from stages.artifacts.paths import DATASET_CARD as CARD, IMAGES, LABELS, PREVIEWS, RENDER, SEED_OFFSET
 from stages.artifacts.readers import read_render_store
 from stages.config import params as params_mod
+from stages.config.schema import Params
 from stages.io import StageError, atomic_write_text, write_parquet
 from stages.pages.label import dataset_card
 
@@ -35,14 +36,13 @@ def build_labels(poses, test_fraction: float, seed: int):
     return df[cols]
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Label the rendered frames: datasets/labels.parquet (t, q, 6-D, sequence, frame, train/test split)
     and the dataset card reports/dataset.md. Parameters: `seed` and `label.test_fraction` in params.yaml
     (an imported SPEED/SPEED+ set keeps its own split). `rpod export speed OUT` writes a SPEED+ folder."""
-    p = params_mod.load()
     _, poses, meta = read_render_store(RENDER)
-    params_mod.check_render_fingerprint(meta, p, RENDER / "meta.json")
-    labels = build_labels(poses, float(p.label.test_fraction), p.seed + SEED_OFFSET["label"])
+    params_mod.check_render_fingerprint(meta, params, RENDER / "meta.json")
+    labels = build_labels(poses, float(params.label.test_fraction), params.seed + SEED_OFFSET["label"])
     write_parquet(labels, LABELS)
     atomic_write_text(CARD, dataset_card(labels, meta, sorted(PREVIEWS.glob("*.png")), CARD.parent))
     print(f"{LABELS}: {len(labels)} labels ({(labels.split == 'train').sum()} train, "

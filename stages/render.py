@@ -96,20 +96,19 @@ def write_previews(images, poses, n_previews: int) -> list[Path]:
     return out
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Render the 13 approach sequences with Blender Cycles (CPU, headless), or import the SPEED/SPEED+
     folder of `render.source`. Writes datasets/render/ (images.zarr, poses.parquet, meta.json) atomically
     and PNG previews to reports/figures/previews/. Parameters: `seed`, `camera`, `render` and `engine`
     (workers, Ray cluster address, image store) in params.yaml.
     """
-    p = params_mod.load()
-    if params_mod.given(p.render.source):   # a SPEED/SPEED+ folder instead of rendering
-        speed_io.import_source(p, OUT)
+    if params_mod.given(params.render.source):   # a SPEED/SPEED+ folder instead of rendering
+        speed_io.import_source(params, OUT)
     else:
         remove_leftovers(OUT)
         with atomic_dir(OUT) as tmp:
-            render_all(p, tmp)
+            render_all(params, tmp)
     images, poses, meta = read_render_store(OUT)
-    previews = write_previews(images, poses, p.render.previews)
+    previews = write_previews(images, poses, params.render.previews)
     typer.echo(f"{OUT}: {meta['frames']} images {meta['width']}x{meta['height']}, "
                f"{meta['seconds_per_image']:.3f} s/image; previews: {', '.join(str(x) for x in previews)}")

@@ -13,7 +13,7 @@ seeded sample of `robustness.frames` held-out test frames; every attacked image 
 - fused (the chain that ships, issue 16: LSTM flag OR motion gate): the adaptive attack on the
   fused chain over whole bursts of the eval_render trajectories, evaluated by the real defense
   (pipeline.defense.fusion.run_defense) over each whole trajectory, clean frames included.
-Params are checked on load (stages.config.schema.Robustness). Writes reports/robustness.md,
+Params are checked on load (stages.config.evaluation.Robustness). Writes reports/robustness.md,
 reports/metrics/robustness.json, reports/figures/robustness.png (text: stages/pages/robustness.py).
 """
 from __future__ import annotations
@@ -29,13 +29,12 @@ from stages.artifacts.paths import POSE, ROBUSTNESS_FIGURE as FIGURE, ROBUSTNESS
 from stages.artifacts.readers import Pose, load_defense, load_detector, load_pose, read_eval_render
 from stages.config.device import torch_setup
 from stages.config.evaluation import Robustness, attack_name
-from stages.config.params import load
 from stages.config.schema import Params
 from stages.io import StageError, atomic_write_text, not_found, save_figure, write_metrics
 from stages.pages.robustness import robustness_page
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Run every attack and corruption row on held-out test frames; write the report, metrics and figure."""
     from tqdm import tqdm
 
@@ -44,22 +43,22 @@ def main() -> None:
     from pipeline.evaluation.robustness import run_attack_rows, worst_by_eps
     from stages.artifacts.data import load_split
 
-    p = load()
-    r = dataclasses.replace(p.robustness, lambdas=[float(v) for v in p.robustness.lambdas])  # floats: echoed in the metrics
+    # the lambdas as floats, as the metrics echo them
+    r = dataclasses.replace(params.robustness, lambdas=[float(v) for v in params.robustness.lambdas])
     if not SURROGATE.exists():
         raise not_found(SURROGATE)
-    torch_setup(p)
-    seed = p.seed + SEED_OFFSET["robustness"]
-    pose, surrogate = load_pose(p), load_pose(p, SURROGATE)
+    torch_setup(params)
+    seed = params.seed + SEED_OFFSET["robustness"]
+    pose, surrogate = load_pose(params), load_pose(params, SURROGATE)
     chain = _chain(pose)
-    split = load_split(p, "test")
+    split = load_split(params, "test")
     n = min(r.frames, len(split))
     pick = np.sort(np.random.default_rng(seed).choice(len(split), n, replace=False))
     images = np.stack([np.asarray(split.images[int(i)]) for i in pick])
     targets = split.targets[pick]
 
     target = ShapChain(pose.model, chain.weight, chain.background_mean, chain.detector)
-    specs = _specs(p, r, target, pose, surrogate, seed)
+    specs = _specs(params, r, target, pose, surrogate, seed)
     n_corr = sum(len(v) for v in dataclasses.asdict(r.corruptions).values())
     bar = tqdm(total=-(-n // r.batch_size) * (len(specs) + n_corr + 1), desc="robustness", unit="batch",
                dynamic_ncols=True)
@@ -74,7 +73,7 @@ def main() -> None:
                            pgd_is_lambda0="pgd" in r.transfer and 0.0 in r.lambdas)
     clean_harm, corruptions = _corruption_rows(chain, images, targets, r, seed, progress)
     bar.close()
-    fused = _fused_rows(p, r, chain, target, seed, pose.hash)
+    fused = _fused_rows(params, r, chain, target, seed, pose.hash)
     seconds = time.perf_counter() - t0
     metrics = {"rows": rows, "corruptions": corruptions, "frames": n, "test_frames": len(split), "harm_m": r.harm_m,
                "steps": r.steps, "gradients_per_frame": sum(s.cost for s in specs), "lambdas": r.lambdas,
@@ -85,8 +84,8 @@ def main() -> None:
                "model_hash": pose.hash, "surrogate_hash": surrogate.hash, "seconds": seconds,
                "worst_harmful_undetected": worst_by_eps(rows), **fused,
                "worst_harmful_undetected_fused": worst_by_eps(fused["fused_rows"])}
-    write_metrics(METRICS, metrics, p.profile_name)
-    atomic_write_text(REPORT, robustness_page(metrics, p))
+    write_metrics(METRICS, metrics, params.profile_name)
+    atomic_write_text(REPORT, robustness_page(metrics, params))
     worst_fused = [row for row in fused["fused_rows"] if row["lambda"] is None]
     save_figure(robustness_vs_eps([row for row in rows if row["attack"] != "adaptive pgd"] + worst_fused), FIGURE)
     print(f"robustness: {len(rows)} attack rows and {len(corruptions)} corruption rows on {n} test frames in "

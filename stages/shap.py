@@ -31,8 +31,8 @@ import numpy as np
 from stages.artifacts.paths import SEED_OFFSET, SHAP as OUT
 from stages.artifacts.readers import BATCH, SPLIT_CODES, SampleImages, load_pose
 from stages.config.device import torch_setup
-from stages.config.params import load
 from stages.config.sections import Shap
+from stages.config.schema import Params
 from stages.io import StageError, atomic_dir, create_array
 
 
@@ -51,22 +51,21 @@ def check_params(s: Shap) -> None:
                          "(shap.per_eps > 0 and a non-empty shap.eps) for a detector to learn from")
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Explain clean and FGSM images with DeepSHAP (closed form for the linear heads) into datasets/shap.zarr."""
     import zarr
 
     from pipeline.attacks.gradient import attack_loss
     from pipeline.shap import Explainer, draw_background, gap_features, sample_plan
 
-    p = load()
-    s = p.shap
+    s = params.shap
     check_params(s)
-    torch_setup(p)
-    seed = p.seed + SEED_OFFSET["shap"]
+    torch_setup(params)
+    seed = params.seed + SEED_OFFSET["shap"]
     rng = np.random.default_rng(seed)
-    pose = load_pose(p)
+    pose = load_pose(params)
     model, model_hash = pose.model, pose.hash
-    src = SampleImages(p, model, attack_loss(p.attack.loss, pose.loss), model_hash)
+    src = SampleImages(params, model, attack_loss(params.attack.loss, pose.loss), model_hash)
     train = src.splits["train"]
     if s.background > len(train):
         raise StageError(f"params.yaml shap.background = {s.background} but the training split has only "
@@ -99,7 +98,7 @@ def main() -> None:
         root.attrs.update({
             "model_hash": model_hash, "background_size": s.background, "background_seed": seed,
             "background_mean": explainer.bg_mean.astype(float).tolist(), "method": explainer.method,
-            "eps": [float(e) for e in s.eps], "attack": "fgsm", "attack_loss": p.attack.loss,
+            "eps": [float(e) for e in s.eps], "attack": "fgsm", "attack_loss": params.attack.loss,
             "split_codes": SPLIT_CODES, "counts": {"clean": s.normal, "per_eps": s.per_eps},
             "outputs": ["tx", "ty", "tz", "r0", "r1", "r2", "r3", "r4", "r5"],
         })

@@ -28,6 +28,7 @@ from stages.pages.pose import pose_page
 
 
 def main(
+    params: Params,
     surrogate: Annotated[bool, typer.Option("--surrogate", help="Train the robustness stage's surrogate instead: "
                                             "seed robustness.surrogate_seed, robustness.surrogate_epochs epochs, "
                                             "writes models/surrogate.pt and no reports.")] = False,
@@ -39,9 +40,7 @@ def main(
     from pipeline.pose.train import DivergenceError, fit
     from stages.artifacts import checkpoint, data
     from stages.config.device import distributed
-    from stages.config.params import load
 
-    params = load()
     seed = params.robustness.surrogate_seed if surrogate else params.seed
     rank, world, device = distributed(params)
     model, cfg = _model(params, params.robustness.surrogate_epochs if surrogate else params.train.epochs,

@@ -9,6 +9,7 @@ import pytest
 from stages.engine import pool as engine
 
 from stages.config import params as params_mod
+from stages.config.params import load
 from stages.engine.chunks import RenderWorker
 from stages.io import StageError, open_zarr
 from stages.config.schema import build
@@ -23,7 +24,7 @@ def _render(workdir, overrides):
     from stages import render
 
     params_mod.write_params(params_mod.compose("smoke", TINY + overrides))
-    render.main()
+    render.main(load())
     return open_zarr(workdir / "datasets/render/images.zarr")["images"][:]
 
 
@@ -102,7 +103,7 @@ def test_store_elsewhere_is_named_in_meta_and_read_back(workdir):
     params_mod.write_params(params_mod.compose("smoke", TINY + [f"engine.store={store}"]))
     from stages import render
 
-    render.main()
+    render.main(load())
     meta = json.loads((workdir / RENDER / "meta.json").read_text())
     assert meta["store"] == str(store) and not (workdir / RENDER / "images.zarr").exists()
     images, poses, _ = read_render_store(RENDER)

@@ -16,6 +16,7 @@ from pipeline.attacks.corruptions import CORRUPTIONS, corrupt
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
 from pipeline.pose.loss import PoseLoss
 from pipeline.evaluation.robustness import attack_row, corruption_row, worst_by_eps, worst_over_lambda
+from stages.config.params import load
 
 D = 16
 
@@ -269,12 +270,12 @@ def test_train_surrogate_writes_only_its_checkpoint_with_its_own_seed(tmp_path, 
     monkeypatch.chdir(tmp_path)
     torch.set_num_threads(1)
     write_dataset(tmp_path, overrides=["robustness.surrogate_seed=5", "robustness.surrogate_epochs=1"])
-    main(surrogate=True)
+    main(load(), surrogate=True)
     assert SURROGATE.exists() and not POSE.exists()
     assert not any(Path(p).exists() for p in ("reports/pose.md", "reports/metrics/train.json", "dvclive/train"))
     surrogate = checkpoint.read_pose(SURROGATE)
     assert surrogate["meta"]["epoch"] == 1
-    main(surrogate=False)
+    main(load(), surrogate=False)
     ours = checkpoint.read_pose(POSE)
     assert not torch.equal(ours["model"]["head_pos.weight"], surrogate["model"]["head_pos.weight"])
 

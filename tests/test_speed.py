@@ -12,6 +12,7 @@ from pipeline.geometry.camera import Intrinsics
 from pipeline.geometry.rotations import normalize_quat, quat_to_matrix
 from pipeline.formats.speed import SPEED_CAMERA, camera_from_json, camera_to_json, from_speed, to_speed
 from stages.config import params as params_mod
+from stages.config.params import load
 from stages.io import StageError
 
 SIZE = (48, 30)                                        # source images, Nu x Nv (16:10 like SPEED+)
@@ -108,8 +109,8 @@ def project(tmp_path, monkeypatch):
 def render_and_label():
     from stages import label, render
 
-    render.main()
-    label.main()
+    render.main(load())
+    label.main(load())
     return pd.read_parquet("datasets/labels.parquet")
 
 

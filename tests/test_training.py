@@ -17,6 +17,7 @@ from pipeline.geometry.rotations import euler_to_matrix, matrix_to_6d, matrix_to
 from stages.artifacts import checkpoint, data
 from stages.artifacts.paths import POSE
 from stages.config import params as params_mod
+from stages.config.params import load
 from stages.config.schema import build
 from stages.io import StageError, create_array, seal_zarr, write_json
 
@@ -159,7 +160,7 @@ def test_time_limit_stops_between_epochs(dataset):
 def test_train_stage_writes_checkpoint_report_and_metrics(dataset):
     from stages.train import main
 
-    main()
+    main(load())
     metrics = json.loads(Path("reports/metrics/train.json").read_text())
     assert metrics["epochs_run"] == dataset.train.epochs and metrics["processes"] == 1
     assert metrics["test"]["n"] == 8 and metrics["train"]["n"] + metrics["val"]["n"] == 32 and metrics["val"]["n"] == 3
@@ -178,12 +179,12 @@ def test_test_split_is_read_only_after_training(dataset, monkeypatch):
     from stages import train
 
     events: list[tuple[str, object]] = []
-    load, real_fit = data.load_split, pipeline.pose.train.fit
-    test_targets = {tuple(t) for t in load(dataset, "test").targets}
+    load_split, real_fit = data.load_split, pipeline.pose.train.fit
+    test_targets = {tuple(t) for t in load_split(dataset, "test").targets}
 
     def recording_load(params, split, **kw):
         events.append(("load", split))
-        return load(params, split, **kw)
+        return load_split(params, split, **kw)
 
     def recording_fit(model, loss, train_set, val_set, *args, **kw):
         events.append(("fit", (len(train_set), len(val_set))))
@@ -195,7 +196,7 @@ def test_test_split_is_read_only_after_training(dataset, monkeypatch):
 
     monkeypatch.setattr(data, "load_split", recording_load)
     monkeypatch.setattr(pipeline.pose.train, "fit", recording_fit)
-    train.main()
+    train.main(load())
     assert events[:2] == [("load", "train"), ("fit", (29, 3))]
     assert events.index(("load", "test")) > events.index(("fit done", None))
 
@@ -207,7 +208,7 @@ def test_training_is_reproducible_bit_for_bit(dataset):
 
     weights = []
     for _ in range(2):
-        train.main()
+        train.main(load())
         weights.append(torch.load(POSE, weights_only=False))
     a, b = (w["model"] for w in weights)
     assert a.keys() == b.keys()
@@ -255,7 +256,7 @@ def test_train_stage_on_the_cpu_device_and_a_missing_gpu_in_one_line(tmp_path, m
     monkeypatch.chdir(tmp_path)
     torch.set_num_threads(1)
     write_dataset(tmp_path, overrides=["device=cpu"])
-    train.main()
+    train.main(load())
     assert json.loads(Path("reports/metrics/train.json").read_text())["device"] == "cpu"
     capsys.readouterr()                      # the training run's own output
     params_mod.write_params({**dataclasses.asdict(params_mod.load()), "device": "cuda"})

@@ -2,10 +2,12 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
+import inspect
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import yaml
 
@@ -98,6 +100,19 @@ def load(path: Path = PARAMS_FILE) -> Params:
     if not isinstance(params, dict):
         raise ParamsError(f"{path} must hold a mapping of sections")
     return build(params)   # unknown keys, types and ranges of every section (stages.config.schema), checked once here
+
+
+def with_params(command: Callable[..., None]) -> Callable[..., None]:
+    """A stage command `command(params, ...)` as the CLI registers it: params.yaml loaded once (`load`) and
+    passed in; Typer sees the command's other options (signature, --help text) unchanged."""
+    signature = inspect.signature(command, eval_str=True)   # real annotations: Typer reads Annotated options
+
+    @functools.wraps(command)
+    def run(*args: Any, **kwargs: Any) -> None:
+        return command(load(), *args, **kwargs)
+
+    run.__signature__ = signature.replace(parameters=list(signature.parameters.values())[1:])  # type: ignore[attr-defined]
+    return run
 
 
 def given(value: str | None) -> str | None:
