@@ -29,8 +29,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from stages.artifacts.paths import DETECT_METRICS, DETECTOR, LAB_MODELS, LAB_MODELS_SUMMARY, PARAMS_FILE, POSE, RENDER, \
-    ROOT, SEED_OFFSET, TRAIN_METRICS
+from stages.artifacts.paths import DETECT_METRICS, DETECTOR, LAB_MODELS, LAB_MODELS_SUMMARY, PARAMS_FILE, POSE, \
+    RENDER, ROOT, SEED_OFFSET, TRAIN_METRICS
 from stages.config.build import mockup, retrain_reason
 from stages.config.params import NONE, write_params
 from stages.config.schema import Params

@@ -62,8 +62,8 @@ def render_all(p: Params, dest: Path) -> None:
     write_parquet(poses_table(np.arange(n), seq, frm, R, t), dest / "poses.parquet")
     write_json(dest / "meta.json", {
         "complete": True, "fingerprint": params_mod.render_fingerprint(p), "frames": n, "width": K.width,
-        "height": K.height, "K": K.K, "render": dataclasses.asdict(r), "camera": dataclasses.asdict(p.camera), "seed": p.seed,
-        "seconds": seconds, "seconds_per_image": seconds / max(n, 1), "chunk": r.chunk, "workers": es.workers,
+        "height": K.height, "K": K.K, "render": dataclasses.asdict(r), "camera": dataclasses.asdict(p.camera),
+        "seed": p.seed, "seconds": seconds, "seconds_per_image": seconds / max(n, 1), "chunk": r.chunk, "workers": es.workers,
         **({"store": url} if store else {})})
 
 

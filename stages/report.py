@@ -23,8 +23,8 @@ from typing import Any
 
 import typer
 
-from stages.artifacts.paths import BENCHMARKS, METRICS_DIR, PAGE, PARAMS_FILE, README, REPORT_FIGURES, REPORTS, ROC_DIR, \
-    SHAP as SHAP_STORE, SUMMARY, VARIANCE
+from stages.artifacts.paths import BENCHMARKS, METRICS_DIR, PAGE, PARAMS_FILE, README, REPORT_FIGURES, REPORTS, \
+    ROC_DIR, SHAP as SHAP_STORE, SUMMARY, VARIANCE
 from stages.config.params import load
 from stages.config.schema import Params
 from stages.io import StageError, atomic_write_text, make_hint, read_json, save_figure, write_json

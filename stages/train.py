@@ -10,8 +10,8 @@ final evaluation of the kept checkpoint. Torch is seeded (and switched to determ
 before the network is built, so two runs on one machine give the same weights.
 
 Device: the `device` param (auto = CUDA when present), with bf16 autocast there when `amp` is set;
-CPU threads: `threads` (stages.config.device.distributed). Scale-out: `torchrun --nproc_per_node N .venv/bin/rpod train` runs
-DistributedDataParallel (gloo on the CPU, NCCL on CUDA, one GPU per process); only rank 0 writes files.
+CPU threads: `threads` (stages.config.device.distributed). Scale-out: `torchrun --nproc_per_node N
+.venv/bin/rpod train` runs DistributedDataParallel (gloo on the CPU, NCCL on CUDA, one GPU per process); only rank 0 writes files.
 """
 from __future__ import annotations
 

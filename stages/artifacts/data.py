@@ -91,10 +91,10 @@ def open_images(params: Params, path: Path | str = IMAGES) -> Any:
     checked against render.width x render.height and the render params' fingerprint."""
     path = Path(path)
     meta = read_json(path.parent / "meta.json")
-    group = open_zarr(meta.get("store") or path, "image store")
-    if "images" not in group:
+    store = open_zarr(meta.get("store") or path, "image store")
+    if "images" not in store:
         raise StageError(f"{path} has no array 'images' (re-run `rpod render`)")
-    arr = group["images"]
+    arr = store["images"]
     if arr.ndim != 4 or arr.shape[3] != 3 or arr.dtype != np.uint8:
         raise StageError(f"{path}/images must be uint8 (N, H, W, 3), got {arr.dtype} {tuple(arr.shape)}")
     h, w = params.render.height, params.render.width
