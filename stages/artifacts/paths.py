@@ -3,8 +3,8 @@
 One path base. Outputs (datasets/, models/, reports/, dvclive/) are relative to the working folder: the
 repository root under `dvc repro` (a stage run elsewhere reads and writes there). Code-side files
 (conf/, dvc.yaml, the committed reports/benchmarks.md) are found from the package location, `ROOT`.
-`WRITTEN_BY` names the dvc.yaml stage whose `outs` (or `metrics`) hold each output
-(tests/test_dvc_ux.py checks it). This module imports nothing from stages/, so every module may import it.
+Each output is declared with the dvc.yaml stage whose `outs` (or `metrics`) hold it (`WRITTEN_BY`;
+tests/test_dvc_ux.py checks it). This module imports nothing from stages/, so every module may import it.
 """
 from __future__ import annotations
 
@@ -15,77 +15,51 @@ CONF_DIR = ROOT / "conf"
 DVC_YAML = ROOT / "dvc.yaml"
 BENCHMARKS = ROOT / "reports" / "benchmarks.md"   # committed; `rpod report` adds its sections
 PARAMS_FILE = Path("params.yaml")
-
-# datasets/ and models/
-RENDER = Path("datasets/render")
-IMAGES = RENDER / "images.zarr"
-LABELS = Path("datasets/labels.parquet")
-ATTACK = Path("datasets/attack")
-ADV = ATTACK / "adv.zarr"
-SHAP = Path("datasets/shap.zarr")
-EVAL_RENDER = Path("datasets/eval_render")
-VAL_RENDER = Path("datasets/val_render")
-LAB = Path("datasets/lab")
-LAB_MODELS = Path("datasets/lab_models")
-LAB_MODELS_SUMMARY = LAB_MODELS / "summary.json"
-POSE = Path("models/pose.pt")
-SURROGATE = Path("models/surrogate.pt")   # a second pose model (`rpod train --surrogate`) for black-box transfer
-DETECTOR = Path("models/detector.pt")
-DEFENSE = Path("models/defense.json")
-
-# reports/: pages, metrics, figures, curves
+README = Path("README.md")   # the project README: `rpod report --sync-readme` copies the results block into it
 REPORTS = Path("reports")
 METRICS_DIR = REPORTS / "metrics"   # reports/metrics/<stage>.json (stages/pages/report.py SECTIONS names them)
-FIGURES = REPORTS / "figures"
-PREVIEWS = FIGURES / "previews"
-DATASET_CARD = Path("reports/dataset.md")
-POSE_REPORT = Path("reports/pose.md")
-TRAIN_METRICS = Path("reports/metrics/train.json")
-TRAIN_LIVE = Path("dvclive/train")
-ATTACK_REPORT = Path("reports/attack.md")
-ATTACK_FIGURE = FIGURES / "fgsm_example.png"
-ATTACK_METRICS = Path("reports/metrics/attack.json")
-GUIDANCE_REPORT = Path("reports/guidance.md")
-GUIDANCE_FIGURE = FIGURES / "guidance_trajectories.png"
-GUIDANCE_DEFENDED_FIGURE = FIGURES / "guidance_defended.png"
-GUIDANCE_METRICS = Path("reports/metrics/guidance.json")
-DETECT_REPORT = Path("reports/detector.md")
-DETECT_METRICS = Path("reports/metrics/detect.json")
-DETECT_LIVE = Path("dvclive/detect")
-ROC_DIR = Path("reports/plots/roc")
-EVALUATE_REPORT = Path("reports/integrated.md")
-EVALUATE_FIGURE = FIGURES / "timeline.png"
-EVALUATE_METRICS = Path("reports/metrics/evaluate.json")
-ROBUSTNESS_REPORT = Path("reports/robustness.md")
-ROBUSTNESS_FIGURE = FIGURES / "robustness.png"
-ROBUSTNESS_METRICS = Path("reports/metrics/robustness.json")
-LAB_REPORT = Path("reports/lab.md")
-LAB_METRICS = Path("reports/metrics/lab.json")
-PAGE = Path("reports/README.md")
-SUMMARY = Path("reports/metrics/summary.json")   # the headline numbers: what `dvc metrics show` prints
-REPORT_FIGURES = {name: FIGURES / f"{name}.png" for name in ("pose_errors", "error_vs_eps", "shap_heatmaps", "roc")}
-README = Path("README.md")   # the project README: `rpod report --sync-readme` copies the results block into it
-VARIANCE = Path("reports/variance.json")  # scripts/variance.py (not a stage): the spread of the headline numbers
+VARIANCE = REPORTS / "variance.json"  # scripts/variance.py (not a stage): the spread of the headline numbers
 
-# output -> the dvc.yaml stage that writes it
-WRITTEN_BY: dict[Path, str] = {
-    RENDER: "render", IMAGES: "render", PREVIEWS: "render",
-    LABELS: "label", DATASET_CARD: "label",
-    POSE: "train", POSE_REPORT: "train", TRAIN_METRICS: "train", TRAIN_LIVE: "train",
-    ATTACK: "attack", ADV: "attack", ATTACK_REPORT: "attack", ATTACK_FIGURE: "attack", ATTACK_METRICS: "attack",
-    GUIDANCE_REPORT: "guidance", GUIDANCE_FIGURE: "guidance", GUIDANCE_DEFENDED_FIGURE: "guidance",
-    GUIDANCE_METRICS: "guidance",
-    SHAP: "shap",
-    DETECTOR: "detect", DETECT_REPORT: "detect", DETECT_METRICS: "detect", DETECT_LIVE: "detect", ROC_DIR: "detect",
-    EVAL_RENDER: "eval_render", VAL_RENDER: "eval_render",
-    DEFENSE: "calibrate",
-    EVALUATE_REPORT: "evaluate", EVALUATE_FIGURE: "evaluate", EVALUATE_METRICS: "evaluate",
-    SURROGATE: "surrogate",
-    ROBUSTNESS_REPORT: "robustness", ROBUSTNESS_FIGURE: "robustness", ROBUSTNESS_METRICS: "robustness",
-    LAB_MODELS: "lab_models", LAB_MODELS_SUMMARY: "lab_models",
-    LAB: "lab", LAB_REPORT: "lab", LAB_METRICS: "lab",
-    PAGE: "report", SUMMARY: "report", **{path: "report" for path in REPORT_FIGURES.values()},
-}
+WRITTEN_BY: dict[Path, str] = {}   # output -> the dvc.yaml stage that writes it
+
+
+def _outputs(stage: str, *paths: str) -> tuple[Path, ...]:
+    """The outputs `paths` of dvc.yaml stage `stage`, entered in WRITTEN_BY."""
+    out = tuple(Path(p) for p in paths)
+    WRITTEN_BY.update(dict.fromkeys(out, stage))
+    return out
+
+
+RENDER, IMAGES, PREVIEWS = _outputs("render", "datasets/render", "datasets/render/images.zarr",
+                                    "reports/figures/previews")
+LABELS, DATASET_CARD = _outputs("label", "datasets/labels.parquet", "reports/dataset.md")
+POSE, POSE_REPORT, TRAIN_METRICS, TRAIN_LIVE = _outputs("train", "models/pose.pt", "reports/pose.md",
+                                                        "reports/metrics/train.json", "dvclive/train")
+ATTACK, ADV, ATTACK_REPORT, ATTACK_FIGURE, ATTACK_METRICS = _outputs(
+    "attack", "datasets/attack", "datasets/attack/adv.zarr", "reports/attack.md", "reports/figures/fgsm_example.png",
+    "reports/metrics/attack.json")
+GUIDANCE_REPORT, GUIDANCE_FIGURE, GUIDANCE_DEFENDED_FIGURE, GUIDANCE_METRICS = _outputs(
+    "guidance", "reports/guidance.md", "reports/figures/guidance_trajectories.png",
+    "reports/figures/guidance_defended.png", "reports/metrics/guidance.json")
+(SHAP,) = _outputs("shap", "datasets/shap.zarr")
+DETECTOR, DETECT_REPORT, DETECT_METRICS, DETECT_LIVE, ROC_DIR = _outputs(
+    "detect", "models/detector.pt", "reports/detector.md", "reports/metrics/detect.json", "dvclive/detect",
+    "reports/plots/roc")
+EVAL_RENDER, VAL_RENDER = _outputs("eval_render", "datasets/eval_render", "datasets/val_render")
+(DEFENSE,) = _outputs("calibrate", "models/defense.json")
+EVALUATE_REPORT, EVALUATE_FIGURE, EVALUATE_METRICS = _outputs(
+    "evaluate", "reports/integrated.md", "reports/figures/timeline.png", "reports/metrics/evaluate.json")
+# a second pose model (`rpod train --surrogate`) for black-box transfer
+(SURROGATE,) = _outputs("surrogate", "models/surrogate.pt")
+ROBUSTNESS_REPORT, ROBUSTNESS_FIGURE, ROBUSTNESS_METRICS = _outputs(
+    "robustness", "reports/robustness.md", "reports/figures/robustness.png", "reports/metrics/robustness.json")
+LAB_MODELS, LAB_MODELS_SUMMARY = _outputs("lab_models", "datasets/lab_models", "datasets/lab_models/summary.json")
+LAB, LAB_REPORT, LAB_METRICS = _outputs("lab", "datasets/lab", "reports/lab.md", "reports/metrics/lab.json")
+# the headline numbers (what `dvc metrics show` prints), then the report's own figures
+PAGE, SUMMARY, *_FIGURES = _outputs("report", "reports/README.md", "reports/metrics/summary.json",
+                                    *(f"reports/figures/{name}.png"
+                                      for name in ("pose_errors", "error_vs_eps", "shap_heatmaps", "roc")))
+REPORT_FIGURES = {path.stem: path for path in _FIGURES}
 
 # stage -> the offset added to its base seed (`seed`, or `lab.seed` for lab and lab_models; the evaluate
 # schedule adds it to evaluate.seed + the trajectory number), so no two stages draw the same stream
