@@ -23,8 +23,8 @@ from typing import Any
 
 import typer
 
-from stages.artifacts.paths import BENCHMARKS, METRICS_DIR, PAGE, PARAMS_FILE, README, REPORT_FIGURES, REPORTS, \
-    ROC_DIR, SHAP as SHAP_STORE, SUMMARY, VARIANCE
+from stages.artifacts.paths import BENCHMARKS, PAGE, PARAMS_FILE, README, REPORT_FIGURES, ROC_DIR, SHAP as SHAP_STORE, \
+    SUMMARY, VARIANCE
 from stages.config.params import load
 from stages.config.schema import Params
 from stages.io import StageError, atomic_write_text, make_hint, read_json, save_figure, write_json
@@ -99,10 +99,9 @@ def _check() -> None:
         if ours != theirs:
             raise StageError(f"{README}'s {block} block differs from {PAGE}'s: run `rpod report --sync-readme` "
                              f"on the {README_PROFILE} profile")
-    stale = [report for _, report, _ in SECTIONS if (REPORTS / report).exists()
-             and _section_body(REPORTS / report) not in page]
+    stale = [report for _, report, _ in SECTIONS if report.exists() and _section_body(report) not in page]
     if stale:
-        raise StageError(f"{PAGE} is older than {', '.join(f'reports/{r}' for r in stale)}: run `rpod report`")
+        raise StageError(f"{PAGE} is older than {', '.join(str(r) for r in stale)}: run `rpod report`")
     compared = (f"{README} results and differences match {PAGE}" if profile == README_PROFILE
                 else f"profile {profile!r}: {README} (the {README_PROFILE} profile's results) not compared")
     typer.echo(f"report: {compared}; {PAGE} holds every stage report")
@@ -118,10 +117,10 @@ def _section_body(path: Path) -> str:
 def _load_metrics() -> dict[str, dict[str, Any]]:
     """Every stage's metrics; a StageError naming each missing input (metrics, reports, figure data) and the
     stage that writes it, so no page is written with a section or figure left out."""
-    missing = [METRICS_DIR / f"{m}.json" for _, _, m in SECTIONS if m]
-    missing += [REPORTS / r for s, r, _ in SECTIONS if s != "benchmarks"]
+    missing = [m for _, _, m in SECTIONS if m]
+    missing += [r for s, r, _ in SECTIONS if s != "benchmarks"]
     missing = [p for p in missing if not p.exists()]
-    metrics = {} if missing else {m: read_json(METRICS_DIR / f"{m}.json") for _, _, m in SECTIONS if m}
+    metrics = {} if missing else {m.stem: read_json(m) for _, _, m in SECTIONS if m}
     if metrics:
         missing = [p for p in [SHAP_STORE, *(ROC_DIR / f"{d}.csv" for d in metrics["detect"]["detectors"])]
                    if not p.exists()]
@@ -146,10 +145,9 @@ def build_page(metrics: dict[str, dict[str, Any]], params: Params, figures: list
     page += "\n## Known differences from the paper\n"
     page = replace_block(page, DIFFERENCES, differences(metrics, params))
     for stage, report, metric in SECTIONS:
-        path = REPORTS / report
-        if path.exists():
-            page += section(stage, report, metrics.get(metric, {}) if metric else None,
-                            demote_headings(path.read_text().strip(), 1),
+        if report.exists():
+            page += section(stage, report.name, metrics.get(metric.stem, {}) if metric else None,
+                            demote_headings(report.read_text().strip(), 1),
                             [(title, name) for st, title, name in figures if st == stage])
     return page
 

@@ -17,7 +17,6 @@ BENCHMARKS = ROOT / "reports" / "benchmarks.md"   # committed; `rpod report` add
 PARAMS_FILE = Path("params.yaml")
 README = Path("README.md")   # the project README: `rpod report --sync-readme` copies the results block into it
 REPORTS = Path("reports")
-METRICS_DIR = REPORTS / "metrics"   # reports/metrics/<stage>.json (stages/pages/report.py SECTIONS names them)
 VARIANCE = REPORTS / "variance.json"  # scripts/variance.py (not a stage): the spread of the headline numbers
 
 WRITTEN_BY: dict[Path, str] = {}   # output -> the dvc.yaml stage that writes it

@@ -4,19 +4,23 @@ from __future__ import annotations
 
 from typing import Any
 
+from stages.artifacts.paths import ATTACK_METRICS, ATTACK_REPORT, DATASET_CARD, DETECT_METRICS, DETECT_REPORT, \
+    EVALUATE_METRICS, EVALUATE_REPORT, GUIDANCE_METRICS, GUIDANCE_REPORT, LAB_METRICS, LAB_REPORT, POSE_REPORT, \
+    REPORTS, ROBUSTNESS_METRICS, ROBUSTNESS_REPORT, TRAIN_METRICS
 from stages.config.schema import Params
 
-# (stage, report file, metrics file or None) in pipeline order.
+# (stage, report, metrics or None) in pipeline order (stages/artifacts/paths.py); benchmarks.md is the committed
+# page that benchmarks/*.py write, read in the working folder like the others.
 SECTIONS = [
-    ("label", "dataset.md", None),
-    ("train", "pose.md", "train"),
-    ("attack", "attack.md", "attack"),
-    ("guidance", "guidance.md", "guidance"),
-    ("detect", "detector.md", "detect"),
-    ("evaluate", "integrated.md", "evaluate"),
-    ("robustness", "robustness.md", "robustness"),
-    ("lab", "lab.md", "lab"),
-    ("benchmarks", "benchmarks.md", None),
+    ("label", DATASET_CARD, None),
+    ("train", POSE_REPORT, TRAIN_METRICS),
+    ("attack", ATTACK_REPORT, ATTACK_METRICS),
+    ("guidance", GUIDANCE_REPORT, GUIDANCE_METRICS),
+    ("detect", DETECT_REPORT, DETECT_METRICS),
+    ("evaluate", EVALUATE_REPORT, EVALUATE_METRICS),
+    ("robustness", ROBUSTNESS_REPORT, ROBUSTNESS_METRICS),
+    ("lab", LAB_REPORT, LAB_METRICS),
+    ("benchmarks", REPORTS / "benchmarks.md", None),
 ]
 
 
