@@ -3,7 +3,8 @@
 Loaders check what they read and raise a StageError naming the file and the stage that writes it:
 - `read_render_store` (render output), `read_eval_render` (eval_render output, the evaluation or the
   defense's validation trajectories, checked against params), `load_defense` (calibrate output),
-  `load_pose` (pose model, attack loss and file hash from one read of models/pose.pt), `load_detector`, `load_chain` (pose model + detector), `read_shap_store` (checked SHAP store);
+  `load_pose` (pose model, attack loss and file hash from one read of models/pose.pt), `load_detector`,
+  `load_chain` (pose model + detector), `read_shap_store` (checked SHAP store);
 - `SampleImages`: the image of a SHAP sample (split, label index, eps) from the labelled renders,
   the attack stage's adv.zarr, or the same FGSM (shared by `rpod shap` and `rpod detect`).
 """
