@@ -214,13 +214,15 @@ def measure_lstm(repeats: int, n: int = 256) -> tuple[float, float]:
 def measure_render(p: dict[str, Any], repeats: int) -> tuple[float, float]:
     """(wall, CPU) seconds per frame of the Cycles render at the paper size and samples (approach poses)."""
     from pipeline.render.scene import Renderer
-    from stages.config import params as params_mod
+    from stages.config.build import intrinsics, scene_settings
+    from stages.config.schema import build
     from stages.render import frames
 
-    _, _, R, t = frames(p)
+    typed = build(p)
+    _, _, R, t = frames(typed)
     idx = np.linspace(0, len(t) - 1, repeats + 1).round().astype(int)
     poses = iter(idx)                  # the warm-up and each timed call render a pose of their own
-    with Renderer(params_mod.intrinsics(p), params_mod.scene_settings(p["render"])) as r:
+    with Renderer(intrinsics(typed), scene_settings(typed.render)) as r:
         def one() -> None:
             i = next(poses)
             r.render(R[i], t[i])

@@ -9,6 +9,7 @@ Every path writes a real zarr store through stages/engine/chunks.py, the same co
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import platform
 import tempfile
@@ -22,6 +23,8 @@ import psutil
 from pipeline.report.markdown import markdown_table
 from stages.engine import pool as engine
 from stages.config import params as params_mod
+from stages.config.build import intrinsics, scene_settings
+from stages.config.schema import Params
 from stages.engine.chunks import FrameRange, render_to_store
 from stages.report import write_benchmark
 
@@ -81,26 +84,26 @@ class CpuMeter:
         return sum(self.seen.values()) - self.start
 
 
-def timed_render(p: dict, w: int, h: int, n: int, chunk: int, es: engine.EngineSettings) -> tuple[float, float, np.ndarray]:
+def timed_render(p: Params, w: int, h: int, n: int, chunk: int, es: engine.EngineSettings) -> tuple[float, float, np.ndarray]:
     """(wall s, CPU s of all processes, images) of rendering n poses at w x h into a fresh store."""
     import zarr
 
     from stages.render import frames
 
-    K = params_mod.intrinsics({**p, "render": {**p["render"], "width": w, "height": h}})
+    K = intrinsics(dataclasses.replace(p, render=dataclasses.replace(p.render, width=w, height=h)))
     _, _, R, t = frames(p)
     idx = np.linspace(0, len(t) - 1, n).round().astype(int)
     meter = CpuMeter()
     with tempfile.TemporaryDirectory() as d:
         url = str(Path(d) / "images.zarr")
         t0 = time.perf_counter()
-        render_to_store(url, K, params_mod.scene_settings(p["render"]), R[idx], t[idx], chunk, es, f"{w}x{h}")
+        render_to_store(url, K, scene_settings(p.render), R[idx], t[idx], chunk, es, f"{w}x{h}")
         wall = time.perf_counter() - t0
         images = zarr.open_group(url, mode="r")["images"][:]
     return wall, meter.stop(), images
 
 
-def ray_overhead(p: dict, cores: int, jobs: int = 200) -> dict[str, float]:
+def ray_overhead(p: Params, cores: int, jobs: int = 200) -> dict[str, float]:
     """Seconds: starting and stopping a local Ray, creating a worker, one chunk's dispatch, and
     starting a Blender worker (bpy import, scene build) that renders one frame at 160x90."""
     import ray
@@ -150,10 +153,10 @@ def main() -> None:
             print(rows[-1], flush=True)
     body = [f"`benchmarks/render_scale.py` ({platform.processor() or platform.machine()}, {cores} CPU cores; "
             f"load average {load[0]:.1f} at the start, {os.getloadavg()[0]:.1f} at the end: other processes on "
-            f"the machine were not stopped). {p['render']['samples']} samples, denoiser {p['render']['denoiser']}; "
+            f"the machine were not stopped). {p.render.samples} samples, denoiser {p.render.denoiser}; "
             f"chunks of {args.chunk} frames written straight into one zarr store by whichever path renders them. "
             f"Wall times include starting the workers (Ray's own start-up is in the second table); a Ray worker "
-            f"renders with render.threads / workers Blender threads ({p['render']['threads']} / 1, 1 each for 2) and "
+            f"renders with render.threads / workers Blender threads ({p.render.threads} / 1, 1 each for 2) and "
             f"is bound to as many cores of its own (`stages.engine.pool.pin_cores`): unbound, a Blender scene at 1 thread "
             f"still used both cores (its scene sync runs on a pool sized to the machine) and two workers collided.",
             "", markdown_table(rows, decimals=3), "",
@@ -166,7 +169,7 @@ def main() -> None:
     print(f"wrote the Rendering on Ray section of {write_benchmark('Rendering on Ray', chr(10).join(body))}")
 
 
-def stage_times(p: dict) -> str:
+def stage_times(p: Params) -> str:
     """The default render stage (`render_all`, no previews) in-process and with Ray on every core, each twice
     in the order in-process, Ray, Ray, in-process so that a drift in the machine's load hits both alike."""
     from stages.render import render_all
@@ -174,12 +177,12 @@ def stage_times(p: dict) -> str:
     rows = []
     ways = [("in-process (engine.workers: 1)", 1), ("Ray on every core (engine.workers: null)", None)]
     for label, workers in [*ways, *ways[::-1]]:
-        q = {**p, "engine": {**p["engine"], "workers": workers}}
+        q = dataclasses.replace(p, engine=dataclasses.replace(p.engine, workers=workers))
         with tempfile.TemporaryDirectory() as d:
             meter, t0 = CpuMeter(), time.perf_counter()
             render_all(q, Path(d))
             wall = time.perf_counter() - t0
-            rows.append({"render stage": label, "frames": 13 * int(p["render"]["frames_per_sequence"]),
+            rows.append({"render stage": label, "frames": 13 * p.render.frames_per_sequence,
                          "wall s": wall, "CPU s (all processes)": meter.stop(), "load average after": os.getloadavg()[0]})
         print(rows[-1], flush=True)
     mean = {label: np.mean([r["wall s"] for r in rows if r["render stage"] == label]) for label, _ in ways}

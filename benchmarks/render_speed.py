@@ -17,13 +17,15 @@ import numpy as np
 
 from pipeline.report.markdown import markdown_table
 from stages.config import params as params_mod
+from stages.config.build import intrinsics, scene_settings
+from stages.config.schema import Params
 from stages.report import write_benchmark
 from stages.render import frames
 
 SIZES = [(160, 90), (240, 135), (480, 270)]
 
 
-def poses(p: dict, n: int) -> tuple[np.ndarray, np.ndarray]:
+def poses(p: Params, n: int) -> tuple[np.ndarray, np.ndarray]:
     """n poses spread over all sequences and ranges."""
     _, _, R, t = frames(p)
     idx = np.linspace(0, len(t) - 1, n).round().astype(int)
@@ -72,11 +74,11 @@ def main() -> None:
     args = ap.parse_args()
     p = params_mod.load()
     load = os.getloadavg()
-    base = params_mod.scene_settings(p["render"])
+    base = scene_settings(p.render)
     R, t = poses(p, args.frames)
     rows = []
     for w, h in SIZES:
-        K = params_mod.intrinsics({**p, "render": {**p["render"], "width": w, "height": h}})
+        K = intrinsics(dataclasses.replace(p, render=dataclasses.replace(p.render, width=w, height=h)))
         build, per, cpu, _ = speed(K, base, R, t)
         idle = f"{1 / cpu:.1f} to {base.threads / cpu:.1f}"  # wall time per image lies in [cpu / threads, cpu]
         rows.append({"size": f"{w}x{h}", "images/s": 1 / per, "median s/image": per, "CPU s/image": cpu,
@@ -85,7 +87,7 @@ def main() -> None:
               f"idle estimate {idle} images/s), scene build {build:.2f} s", flush=True)
 
     # Quality vs time at the default size: PSNR against a 256-sample, undenoised reference of the same poses.
-    K = params_mod.intrinsics(p)
+    K = intrinsics(p)
     nq = min(10, args.frames)
     Rq, tq = poses(p, nq)
     ref = speed(K, dataclasses.replace(base, samples=256, denoiser="NONE"), Rq, tq)[3]

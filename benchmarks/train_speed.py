@@ -56,8 +56,8 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     p = params_mod.load()
-    batch = int(p["train"]["batch_size"])
-    settings = [("default", float(p["train"]["width"]), int(p["render"]["height"]), int(p["render"]["width"])),
+    batch = p.train.batch_size
+    settings = [("default", float(p.train.width), p.render.height, p.render.width),
                 ("paper", 1.0, 270, 480)]
     load0 = os.getloadavg()[0]
     rows = []

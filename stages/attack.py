@@ -18,54 +18,51 @@ from typing import Any
 import numpy as np
 import typer
 
-from pipeline.pose.labels import POSITION, QUAT, TARGET
-from stages.engine import pool as engine
-from stages.engine.attack_worker import AttackBatch, AttackSetup, AttackWorker
-
-from stages.config import params as params_mod
-from stages.artifacts.readers import ADV, POSE, adv_array_name, load_pose
 from pipeline.io.atomic import atomic_dir, atomic_write_text, save_figure
 from pipeline.io.store import create_array
+from pipeline.pose.labels import POSITION, QUAT, TARGET
 from stages.artifacts.dvc import write_metrics
+from stages.artifacts.paths import ADV, ATTACK_FIGURE as FIGURE, ATTACK_METRICS as METRICS, \
+    ATTACK_REPORT as REPORT, POSE, SEED_OFFSET
+from stages.artifacts.readers import adv_array_name, load_pose
+from stages.config.build import check_attack_params, engine_settings, make_attack
+from stages.config.device import torch_setup
+from stages.config.schema import Params
+from stages.engine import pool as engine
+from stages.engine.attack_worker import AttackBatch, AttackSetup, AttackWorker
 from stages.errors import StageError
 from stages.pages.attack import attack_page
 
-REPORT = Path("reports/attack.md")
-FIGURE = Path("reports/figures/fgsm_example.png")
-METRICS = Path("reports/metrics/attack.json")
-SEED_OFFSET = 400
 
-
-def main() -> None:
+def main(params: Params) -> None:
     """Attack the test set at every attack.eps with attack.method on attack.loss; report the pose errors."""
     import torch
 
     from pipeline.report.figures import attack_example
     from stages.artifacts.data import load_split
 
-    p = params_mod.load()
-    a = p["attack"]
-    params_mod.check_attack_params(a, "attack")
-    eps_list = [float(e) for e in a["eps"]]
-    params_mod.torch_setup(p)
-    params_mod.make_attack(a, a["method"], 0)   # refuses bad attack params before anything is loaded
-    pose = load_pose(p)
-    split = load_split(p, "test")
-    n = len(split) if a["max_images"] is None else min(len(split), int(a["max_images"]))
+    a = params.attack
+    check_attack_params(a, "attack")
+    eps_list = [float(e) for e in a.eps]
+    torch_setup(params)
+    make_attack(a, a.method, 0)   # refuses bad attack params before anything is loaded
+    pose = load_pose(params)
+    split = load_split(params, "test")
+    n = len(split) if a.max_images is None else min(len(split), a.max_images)
     if n < 1:
-        raise StageError(f"params.yaml attack.max_images must be at least 1, got {a['max_images']}")
+        raise StageError(f"params.yaml attack.max_images must be at least 1, got {a.max_images}")
     images, labels = split.images, split.labels.iloc[:n]
     t_gt = labels[POSITION].to_numpy(np.float64)
     q_gt = labels[QUAT].to_numpy(np.float64)
     y_all = torch.tensor(labels[TARGET].to_numpy(np.float32))
     k = int(np.argmin(np.abs(t_gt[:, 2] - np.median(t_gt[:, 2]))))  # figure: a mid-range test image
-    es, threads = _engine(p, pose.model.device)
-    setup = AttackSetup(params=p, pose_path=str(POSE.resolve()), eps=tuple(eps_list), batch=int(a["batch_size"]),
-                        seed=int(p["seed"]) + SEED_OFFSET, torch_threads=None if es.in_process else threads)
+    es, threads = _engine(params, pose.model.device)
+    setup = AttackSetup(params=params, pose_path=str(POSE.resolve()), eps=tuple(eps_list), batch=a.batch_size,
+                        seed=params.seed + SEED_OFFSET["attack"], torch_threads=None if es.in_process else threads)
     t0 = time.perf_counter()
     with atomic_dir(ADV.parent) as tmp:
         out = _attack_into(tmp / ADV.name, setup, images, labels["index"].to_numpy(np.int64), y_all, k, es, threads)
-        out["root"].attrs.update({"eps": eps_list, "method": a["method"], "loss": a["loss"], "model_hash": pose.hash,
+        out["root"].attrs.update({"eps": eps_list, "method": a.method, "loss": a.loss, "model_hash": pose.hash,
                                   "quantisation": "round to nearest 8-bit level, at least one level, sign kept"})
     seconds = time.perf_counter() - t0
     preds = out["preds"]
@@ -74,13 +71,13 @@ def main() -> None:
         f = _errors(out["preds_float"][e], t_gt, q_gt)
         rows.append({"eps": f"{e:g}", "stored_linf": out["linf"][e], **_errors(preds[e], t_gt, q_gt),
                      "float_position_mean_m": f["position_mean_m"], "float_attitude_mean_deg": f["attitude_mean_deg"]})
-    metrics = {"method": a["method"], "loss": a["loss"], "images": n, "seconds": seconds, "model_hash": pose.hash,
+    metrics = {"method": a.method, "loss": a.loss, "images": n, "seconds": seconds, "model_hash": pose.hash,
                "measured_on": "stored uint8 images", "clean": {key: v for key, v in rows[0].items() if key != "eps"},
                "eps": {r["eps"]: {key: v for key, v in r.items() if key != "eps"} for r in rows[1:]}}
-    write_metrics(METRICS, metrics, p)
+    write_metrics(METRICS, metrics, params.profile_name)
     atomic_write_text(REPORT, attack_page(rows, a, n))
     save_figure(attack_example(np.asarray(images[k]), out["example"], t_gt[k],
-                               {e: preds[e][k] for e in ["clean", *eps_list]}, a["method"]), FIGURE)
+                               {e: preds[e][k] for e in ["clean", *eps_list]}, a.method), FIGURE)
     typer.echo(f"attack: {n} test images x {len(eps_list)} eps in {seconds:.0f} s -> {ADV}, {REPORT}")
 
 
@@ -120,7 +117,7 @@ def _attack_into(path: Path, setup: AttackSetup, images: Any, source_index: np.n
 
     jobs = [AttackBatch(i, np.stack([np.asarray(images[j]) for j in range(i, min(i + batch, n))]), y_all[i:i + batch])
             for i in starts]
-    desc = f"attack ({setup.params['attack']['method']}, {len(eps_list)} eps)"
+    desc = f"attack ({setup.params.attack.method}, {len(eps_list)} eps)"
     with tqdm(total=len(jobs), desc=desc, unit="batch") as bar:
         engine.run(AttackWorker, setup, jobs, es, num_cpus=threads, progress=done)
     return {"root": root, "preds": preds, "preds_float": preds_float, "linf": linf, "example": example}
@@ -137,12 +134,12 @@ def _errors(pred: np.ndarray, t_gt: np.ndarray, q_gt: np.ndarray) -> dict[str, f
             "attitude_mean_deg": float(att.mean()), "attitude_median_deg": float(np.median(att))}
 
 
-def _engine(p: dict[str, Any], device: Any) -> tuple[engine.EngineSettings, int]:
+def _engine(p: Params, device: Any) -> tuple[engine.EngineSettings, int]:
     """(engine settings, torch threads per worker): the batches fan out over CPU workers (threads shared
     out); on a GPU they run in-process, where the GPU does the work."""
     import dataclasses
 
-    es = engine.settings(p)
+    es = engine_settings(p)
     if device.type != "cpu":
         es = dataclasses.replace(es, workers=1, address=None)
-    return es, es.threads(int(p["threads"] or os.cpu_count() or 1))
+    return es, es.threads(p.threads or os.cpu_count() or 1)

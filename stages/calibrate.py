@@ -15,15 +15,18 @@ from typing import Any
 import numpy as np
 import typer
 
-from pipeline.pose.labels import TARGET
-from stages.config import params as params_mod
-from stages.artifacts.readers import DEFENSE, DEFENSE_FORMAT, chaser_motion, defense_settings, load_chain, read_eval_render
 from pipeline.io.atomic import write_json
+from pipeline.pose.labels import TARGET
+from stages.artifacts.paths import DEFENSE
+from stages.artifacts.readers import DEFENSE_FORMAT, chaser_motion, load_chain, read_eval_render
+from stages.config.build import defense_settings
+from stages.config.device import torch_setup
+from stages.config.schema import Params
 from stages.errors import StageError
 
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Fit the defense's measurement-noise model on clean validation trajectories -> models/defense.json.
 
     Params: `defense` (noise_bins, val_trajectories, val_seed and the filter settings), `evaluate.batch_size`.
@@ -35,13 +38,12 @@ def main() -> None:
     from pipeline.defense.noise import fit_noise, inflate, smallest_inflation
     from pipeline.geometry.rotations import sixd_to_matrix
 
-    p = params_mod.load()
-    d = params_mod.typed(p).defense
-    params_mod.torch_setup(p)
-    images, poses, _ = read_eval_render(p, validation=True)
-    chain, _, model_hash = load_chain(p)
+    d = params.defense
+    torch_setup(params)
+    images, poses, _ = read_eval_render(params, validation=True)
+    chain, _, model_hash = load_chain(params)
     targets = poses[TARGET].to_numpy(np.float32)
-    batch = params_mod.typed(p).evaluate.batch_size
+    batch = params.evaluate.batch_size
     with tqdm(total=-(-len(images) // batch), desc="calibrate", unit="batch", dynamic_ncols=True) as bar:
         def progress(it):
             for i in it:
@@ -55,7 +57,7 @@ def main() -> None:
     except ValueError as e:
         raise StageError(f"calibrate on {len(images)} validation frames (defense.val_trajectories, "
                          f"defense.noise_bins): {e}") from None
-    settings, motion = defense_settings(p, chain.threshold)
+    settings, motion = defense_settings(d, chain.threshold)
     R_cam, u = chaser_motion(poses)
     groups = [g.index.to_numpy() for _, g in poses.groupby("trajectory", sort=True)]
 

@@ -63,6 +63,7 @@ def _register() -> None:
     import importlib
 
     from stages.config.help import ParamsHelpCommand, ParamsHelpGroup
+    from stages.config.params import with_params
 
     for name in STAGES:
         try:
@@ -74,7 +75,15 @@ def _register() -> None:
         if hasattr(mod, "app"):
             app.add_typer(mod.app, name=name, cls=ParamsHelpGroup)
         else:
-            app.command(name, cls=ParamsHelpCommand)(mod.main)
+            app.command(name, cls=ParamsHelpCommand)(with_params(mod.main) if _takes_params(mod.main) else mod.main)
+
+
+def _takes_params(command: object) -> bool:
+    """Whether a stage command takes the typed params first (`main(params: Params, ...)`): the CLI loads them."""
+    import inspect
+
+    first = next(iter(inspect.signature(command).parameters), None)   # type: ignore[arg-type]
+    return first == "params"
 
 
 _register()

@@ -22,21 +22,19 @@ from typing import Any
 
 import numpy as np
 
-from stages.config import params as params_mod
-from stages.artifacts.readers import (DETECTOR, POSE, ROC_DIR, SHAP, SPLIT_CODES, SampleImages, load_pose,
-                              read_shap_store)
 from pipeline.formats.models import DETECTOR_FORMAT
 from pipeline.io.atomic import atomic_outputs, atomic_write_text, file_hash
 from pipeline.io.checkpoints import save_torch
 from stages.artifacts.dvc import write_metrics
+from stages.artifacts.paths import DETECT_LIVE, DETECT_METRICS as METRICS, DETECT_REPORT as REPORT, DETECTOR, \
+    LABELS, POSE, ROC_DIR, SEED_OFFSET, SHAP
+from stages.artifacts.readers import SPLIT_CODES, SampleImages, load_pose, read_shap_store
+from stages.config.device import torch_device
+from stages.config.schema import Params
+from stages.config.sections import Detect
 from stages.errors import StageError
 from stages.pages.detect import detector_page
 from stages.pages.paper import DETECTOR_ACCURACY
-
-REPORT = Path("reports/detector.md")
-METRICS = Path("reports/metrics/detect.json")
-LIVE_DIR = "dvclive/detect"
-SEED_OFFSET = 600
 
 
 def split_indices(eps: np.ndarray, source: np.ndarray, test_fraction: float, val_fraction: float,
@@ -53,7 +51,7 @@ def split_indices(eps: np.ndarray, source: np.ndarray, test_fraction: float, val
                          f"(raise shap.normal / shap.per_eps)") from None
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Train the LSTM detector and the baselines on one split of the SHAP store; write the report."""
     import torch
 
@@ -61,16 +59,15 @@ def main() -> None:
     from pipeline.detectors.metrics import choose_threshold, metrics_by_eps, roc_csv
     from pipeline.evaluation.sequences import nan_to_none
 
-    p = params_mod.load()
-    d = p["detect"]
+    d = params.detect
     torch.set_num_threads(1)  # the LSTM's matrices are small: extra threads cost more than they give
-    device = params_mod.torch_device(p)  # a missing CUDA GPU stops here; the LSTM fit and the squeeze baseline run on it
-    seed = int(p["seed"]) + SEED_OFFSET
+    device = torch_device(params)  # a missing CUDA GPU stops here; the LSTM fit and the squeeze baseline run on it
+    seed = params.seed + SEED_OFFSET["detect"]
     model_hash = file_hash(POSE)
     data = read_shap_store(SHAP, model_hash)
     values, feats, eps = data["values"], data["features"], data["eps"].astype(np.float64)
     y = data["is_adversarial"].astype(np.int64)
-    tr, va, te = split_indices(eps, data["source_index"], float(d["test_fraction"]), float(d["val_fraction"]), seed)
+    tr, va, te = split_indices(eps, data["source_index"], float(d.test_fraction), float(d.val_fraction), seed)
     print(f"detect: {len(y)} SHAP samples ({int(y.sum())} adversarial) -> train {len(tr)}, validation {len(va)}, "
           f"test {len(te)}", flush=True)
 
@@ -81,9 +78,9 @@ def main() -> None:
     seconds = {"lstm": lstm_seconds}
 
     # baselines, same split, thresholds on the same validation samples
-    for name in d["baselines"]:
+    for name in d.baselines:
         t0 = time.perf_counter()
-        s_val, s_test = _baseline(name, p, data, y, tr, va, te, seed)
+        s_val, s_test = _baseline(name, params, data, y, tr, va, te, seed)
         scores[name] = (s_test, choose_threshold(s_val, y[va]))
         seconds[name] = time.perf_counter() - t0
         print(f"detect: {name} baseline in {seconds[name]:.1f} s", flush=True)
@@ -102,29 +99,29 @@ def main() -> None:
                "lstm_epochs": len(result.history), "lstm_best_epoch": result.best_epoch,
                "seconds": seconds, "paper_accuracy": DETECTOR_ACCURACY, "detectors": results}
     # detector, metrics, report, ROC data and curves move into place together, once all are written
-    with atomic_outputs(DETECTOR, METRICS, REPORT, dirs=(ROC_DIR, LIVE_DIR)) as (det, met, rep, roc_dir, live_dir):
+    with atomic_outputs(DETECTOR, METRICS, REPORT, dirs=(ROC_DIR, DETECT_LIVE)) as (det, met, rep, roc_dir, live_dir):
         save_torch(det, ckpt)
         for name, (s, _) in scores.items():   # into the empty stand-in for ROC_DIR: no stale detector's file
             atomic_write_text(roc_dir / f"{name}.csv", roc_csv(y[te], s))
-        write_metrics(met, nan_to_none(metrics), p)
+        write_metrics(met, nan_to_none(metrics), params.profile_name)
         atomic_write_text(rep, detector_page(results, scores, counts, result, data["attrs"], d))
         _log_curves(live_dir, result.history, results["lstm"]["all"])
     acc = results["lstm"]["all"]["accuracy"]
     print(f"detect: LSTM test accuracy {acc:.4f} (paper {DETECTOR_ACCURACY:.4f}) -> {DETECTOR}, {REPORT}")
 
 
-def _train_lstm(values: np.ndarray, y: np.ndarray, tr: np.ndarray, va: np.ndarray, d: dict[str, Any],
+def _train_lstm(values: np.ndarray, y: np.ndarray, tr: np.ndarray, va: np.ndarray, d: Detect,
                 seed: int, device: Any) -> tuple[Any, float]:
     """Fit the LSTM on the training indices with early stopping on the validation ones; returns the fit
     result and its seconds. Bad settings or a diverged fit are a StageError (nothing is written)."""
     from pipeline.detectors.lstm import LSTMConfig, train_lstm
 
-    config = LSTMConfig(n_rows=values.shape[1], n_features=values.shape[2], hidden=int(d["hidden"]),
-                        dense=[int(x) for x in d["dense"]])
+    config = LSTMConfig(n_rows=values.shape[1], n_features=values.shape[2], hidden=d.hidden,
+                        dense=list(d.dense))
     t0 = time.perf_counter()
     try:
-        result = train_lstm(values[tr], y[tr], values[va], y[va], config, epochs=int(d["epochs"]),
-                            patience=int(d["patience"]), batch_size=int(d["batch_size"]), lr=float(d["lr"]),
+        result = train_lstm(values[tr], y[tr], values[va], y[va], config, epochs=d.epochs,
+                            patience=d.patience, batch_size=d.batch_size, lr=float(d.lr),
                             seed=seed, progress="detect: LSTM", device=device)
     except ValueError as e:  # also DivergenceError
         raise StageError(f"params.yaml detect: {e} ({DETECTOR} and the reports were left as they were)") from None
@@ -146,15 +143,15 @@ def _log_curves(folder: Path, history: list[dict[str, float]], test: dict[str, f
     live.end()
 
 
-def _baseline(name: str, p: dict[str, Any], data: dict[str, Any], y: np.ndarray, tr: np.ndarray,
+def _baseline(name: str, p: Params, data: dict[str, Any], y: np.ndarray, tr: np.ndarray,
               va: np.ndarray, te: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Validation and test scores of one baseline fitted on the training indices."""
-    d = p["detect"]
+    d = p.detect
     values, feats = data["values"], data["features"]
     if name == "mlp":
         from pipeline.detectors.mlp import MLPDetector
 
-        det = MLPDetector(hidden=tuple(int(h) for h in d["mlp_hidden"]), seed=seed).fit(values[tr], y[tr])
+        det = MLPDetector(hidden=tuple(d.mlp_hidden), seed=seed).fit(values[tr], y[tr])
         return det.score(values[va]), det.score(values[te])
     if name == "mahalanobis":
         from pipeline.detectors.mahalanobis import MahalanobisDetector
@@ -164,21 +161,21 @@ def _baseline(name: str, p: dict[str, Any], data: dict[str, Any], y: np.ndarray,
         try:
             ranges = labels.loc[data["source_index"], "range"].to_numpy(np.float64)
         except KeyError:
-            raise StageError(f"{SHAP}/source_index names images missing from datasets/labels.parquet "
+            raise StageError(f"{SHAP}/source_index names images missing from {LABELS} "
                              f"(re-run `rpod shap`)") from None
-        groups = np.digitize(ranges, np.sort(np.asarray(p["train"]["range_bins"], dtype=np.float64)))
+        groups = np.digitize(ranges, np.sort(np.asarray(p.train.range_bins, dtype=np.float64)))
         clean_tr = tr[y[tr] == 0]
         det = MahalanobisDetector().fit(feats[clean_tr], groups[clean_tr])
         return det.score(feats[va]), det.score(feats[te])
     if name == "lid":
         from pipeline.detectors.lid import LIDDetector
 
-        det = LIDDetector(k=int(d["lid_k"]), batch_size=int(d["lid_batch"]), seed=seed).fit(feats[tr], y[tr])
+        det = LIDDetector(k=d.lid_k, batch_size=d.lid_batch, seed=seed).fit(feats[tr], y[tr])
         return det.score(feats[va]), det.score(feats[te])
     return _squeeze(p, data, y, tr, va, te)
 
 
-def _squeeze(p: dict[str, Any], data: dict[str, Any], y: np.ndarray, tr: np.ndarray, va: np.ndarray,
+def _squeeze(p: Params, data: dict[str, Any], y: np.ndarray, tr: np.ndarray, va: np.ndarray,
              te: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Feature squeezing needs the images and the pose model: rebuild each sample's image from its
     source (stages.artifacts.readers.SampleImages: clean split image, adv.zarr, or the same FGSM) and score it."""
@@ -187,13 +184,13 @@ def _squeeze(p: dict[str, Any], data: dict[str, Any], y: np.ndarray, tr: np.ndar
     from pipeline.attacks.gradient import attack_loss
     from pipeline.detectors.squeeze import SqueezeDetector, model_predictor, score_batches
 
-    d = p["detect"]
+    d = p.detect
     pose = load_pose(p)
-    src = SampleImages(p, pose.model, attack_loss(p["attack"]["loss"], pose.loss), pose.hash)
+    src = SampleImages(p, pose.model, attack_loss(p.attack.loss, pose.loss), pose.hash)
     names = {v: k for k, v in SPLIT_CODES.items()}
     keys = (np.array([names[int(c)] for c in data["split"]]), data["source_index"], data["eps"].astype(np.float64))
-    det = SqueezeDetector(model_predictor(pose.model), bits=int(d["squeeze_bits"]),
-                          median_size=int(d["squeeze_median"]))
+    det = SqueezeDetector(model_predictor(pose.model), bits=d.squeeze_bits,
+                          median_size=d.squeeze_median)
     clean_tr = tr[y[tr] == 0][:512]
     det.fit(src.images(*(k[clean_tr] for k in keys)))
 

@@ -17,46 +17,46 @@ import numpy as np
 import typer
 
 from pipeline.pose.labels import pose_columns
+from stages.artifacts.paths import EVAL_RENDER, VAL_RENDER
+from stages.config.build import engine_settings, intrinsics, scene_settings
+from stages.config.params import eval_render_fingerprint, val_render_fingerprint
+from stages.config.schema import Params
 from stages.engine import pool as engine
-
-from stages.config import params as params_mod
-from stages.artifacts.readers import EVAL_RENDER, VAL_RENDER, eval_render_fingerprint, val_render_fingerprint
 from stages.engine.chunks import render_to_store, store_url
 from pipeline.io.atomic import atomic_dir, write_json
 from pipeline.io.tables import write_parquet
 
 
-def trajectories(p: dict[str, Any], seed: int, count: int) -> list[Any]:
+def trajectories(p: Params, seed: int, count: int) -> list[Any]:
     """`count` evaluation approaches from `seed`: lateral start offsets |x|, |y| uniform in
     evaluate.lateral_range, random signs, evaluate.frames frames each."""
     from pipeline.geometry.trajectories import projectile_trajectory
 
-    e, r = params_mod.typed(p).evaluate, p["render"]
+    e, r = p.evaluate, p.render
     rng = np.random.default_rng(seed)
     lo, hi = e.lateral_range
     out = []
     for i in range(count):
         xy = rng.uniform(lo, hi, 2) * rng.choice([-1.0, 1.0], 2)
-        out.append(projectile_trajectory(e.frames, (float(xy[0]), float(xy[1])), float(r["start_range"]),
-                                         float(r["end_range"]), seed=seed + 1 + i,
-                                         jitter_deg=float(r["pointing_jitter_deg"]), max_rot_deg=0.0, sequence=i))
+        out.append(projectile_trajectory(e.frames, (float(xy[0]), float(xy[1])), float(r.start_range),
+                                         float(r.end_range), seed=seed + 1 + i,
+                                         jitter_deg=float(r.pointing_jitter_deg), max_rot_deg=0.0, sequence=i))
     return out
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Render the fresh evaluation trajectories into datasets/eval_render/ and the defense's
     validation trajectories into datasets/val_render/, fanned out over `engine.workers` Blender scenes.
 
     Params: `evaluate.trajectories`, `frames`, `lateral_range`, `seed`; `defense.val_trajectories`,
     `val_seed`; `render`/`camera`; and `engine` (workers, Ray cluster address).
     """
-    p = params_mod.load()
-    K, scene, es = params_mod.intrinsics(p), params_mod.scene_settings(p["render"]), engine.settings(p)
-    d, e = params_mod.typed(p).defense, params_mod.typed(p).evaluate
+    K, scene, es = intrinsics(params), scene_settings(params.render), engine_settings(params)
+    d, e = params.defense, params.evaluate
     with engine.session(es):
         for folder, seqs, fingerprint in (
-                (EVAL_RENDER, trajectories(p, e.seed, e.trajectories), eval_render_fingerprint(p)),
-                (VAL_RENDER, trajectories(p, d.val_seed, d.val_trajectories), val_render_fingerprint(p))):
+                (EVAL_RENDER, trajectories(params, e.seed, e.trajectories), eval_render_fingerprint(params)),
+                (VAL_RENDER, trajectories(params, d.val_seed, d.val_trajectories), val_render_fingerprint(params))):
             _render_set(K, scene, es, seqs, folder, fingerprint)
 
 

@@ -11,47 +11,43 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import typer
 
-from pipeline.pose.labels import TARGET
-from stages.config import params as params_mod
-from stages.artifacts.readers import chaser_motion, load_chain, load_defense, read_eval_render
 from pipeline.io.atomic import atomic_write_text, save_figure
+from pipeline.pose.labels import TARGET
 from stages.artifacts.dvc import write_metrics
+from stages.artifacts.paths import EVALUATE_FIGURE as FIGURE, EVALUATE_METRICS as METRICS, \
+    EVALUATE_REPORT as REPORT, SEED_OFFSET
+from stages.artifacts.readers import chaser_motion, load_chain, load_defense, read_eval_render
+from stages.config.device import torch_setup
+from stages.config.evaluation import Evaluate
+from stages.config.schema import Params
 from stages.pages.evaluate import defense_section
 from stages.pages.paper import INTEGRATED, INTEGRATED_EPS, by_eps
-from stages.config.schema import Evaluate
 
 if TYPE_CHECKING:
     from pipeline.evaluation.sequences import Sequence
 
-REPORT = Path("reports/integrated.md")
-FIGURE = Path("reports/figures/timeline.png")
-METRICS = Path("reports/metrics/evaluate.json")
-SCHEDULE_SEED_OFFSET = 17
 
-
-def main() -> None:
+def main(params: Params) -> None:
     """Detect FGSM attacks frame by frame on fresh trajectories with the whole safety chain.
 
     Params: `evaluate` (trajectories, frames, lateral_range, p_start, attack_length, eps, seed,
     batch_size), `defense`, plus `render`/`camera` for the images and `attack.loss` for the FGSM loss.
     """
-    p = params_mod.load()
-    e = params_mod.typed(p).evaluate
+    e = params.evaluate
     from pipeline.evaluation.sequences import (Sequence, defended_summary, evaluate_sequences, nan_to_none,
                                                per_eps_summary, rates_json)
     from pipeline.report.figures import detection_timeline
     from pipeline.evaluation.schedule import attack_schedule
 
-    params_mod.torch_setup(p)
-    images, poses, meta = read_eval_render(p)
-    chain, loss_fn, model_hash = load_chain(p)
-    defense = load_defense(p, model_hash, chain.threshold)
+    torch_setup(params)
+    images, poses, meta = read_eval_render(params)
+    chain, loss_fn, model_hash = load_chain(params)
+    defense = load_defense(params, model_hash, chain.threshold)
     eps_list, length = e.eps, e.attack_length
     sequences = []
     for tr, g in poses.groupby("trajectory", sort=True):
@@ -61,10 +57,10 @@ def main() -> None:
                                   targets=g[TARGET].to_numpy(np.float32), R_cam=R_cam, u=u,
                                   rel=g[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64),
                                   attacked=attack_schedule(len(idx), e.p_start, length,
-                                                           e.seed + SCHEDULE_SEED_OFFSET + int(tr))))
+                                                           e.seed + SEED_OFFSET["evaluate_schedule"] + int(tr))))
     t0 = time.perf_counter()
     res = evaluate_sequences(chain, loss_fn, sequences, eps_list, length, e.batch_size, "evaluate")
-    harm = params_mod.typed(p).defense.harm_m
+    harm = params.defense.harm_m
     fused = {name: defended_summary(res.traces, sequences, eps_list, defense.settings if fusion is None else
                                     dataclasses.replace(defense.settings, fusion=fusion), defense.motion,
                                     defense.noise, length, harm)
@@ -87,9 +83,9 @@ def main() -> None:
                "fused": {"fusion": defense.settings.fusion, "harm_m": harm,
                          "per_eps": {f"{r['eps']:g}": r for r in rates_json(list(fused.values())[-1])},
                          "paper_per_eps": {f"{r['eps']:g}": r for r in rates_json(fused["paper (LSTM alone)"])}}}
-    write_metrics(METRICS, nan_to_none(metrics), p)
+    write_metrics(METRICS, nan_to_none(metrics), params.profile_name)
     atomic_write_text(REPORT, report(res.rows, summary, res.clean, sequences, e, meta, chain.threshold,
-                                     eps_fig, str(p.get("profile_name", "?")))
+                                     eps_fig, params.profile_name)
                       + defense_section(fused, defense.calibration, harm, e.attack_length))
     typer.echo(f"evaluate: {len(sequences)} trajectories x {len(eps_list)} eps in {seconds:.0f} s; mean accuracy "
                f"{100 * metrics['accuracy_mean']:.2f}% -> {REPORT}, {FIGURE}")

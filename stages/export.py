@@ -24,8 +24,9 @@ def speed(out: Path = typer.Argument(..., help="Folder to write: new, empty, or 
 
     from pipeline.formats.speed_folder import write_speed
     from pipeline.geometry.camera import Intrinsics
+    from stages.artifacts.paths import LABELS, RENDER
+    from stages.artifacts.readers import read_render_store
     from stages.artifacts.data import load_labels
-    from stages.artifacts.readers import LABELS, RENDER, read_render_store
 
     images, _, meta = read_render_store(RENDER)
     labels = load_labels(LABELS)

@@ -13,46 +13,44 @@ reports/figures/guidance_defended.png (one run per variant).
 """
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import typer
 
+from stages.artifacts.paths import DETECTOR, GUIDANCE_DEFENDED_FIGURE as DEFENDED_FIGURE, \
+    GUIDANCE_FIGURE as FIGURE, GUIDANCE_METRICS as METRICS, GUIDANCE_REPORT as REPORT, POSE, SEED_OFFSET
+from stages.artifacts.readers import load_chain, load_defense
+from stages.config.build import check_attack_params, engine_settings, intrinsics, make_attack, scene_settings
+from stages.config.device import torch_setup
+from stages.config.schema import Params
+from stages.config.sections import Attack, Guidance
 from stages.engine import chunks, pool as engine
 from stages.engine.guidance_worker import GuidanceSetup, GuidanceWorker, flights
-
-from stages.config import params as params_mod
-from stages.artifacts.readers import DETECTOR, POSE, load_chain, load_defense
 from pipeline.io.atomic import atomic_write_text, save_figure
 from stages.artifacts.dvc import write_metrics
 from stages.errors import StageError
 from stages.pages.guidance import defended_section, guidance_page
 
-REPORT = Path("reports/guidance.md")
-FIGURE = Path("reports/figures/guidance_trajectories.png")
-DEFENDED_FIGURE = Path("reports/figures/guidance_defended.png")
-METRICS = Path("reports/metrics/guidance.json")
-SEED_OFFSET = 500
 
-
-def _plan(g: dict[str, Any]):
+def _plan(g: Guidance) -> tuple[Any, list[tuple[float, float, int, Any]]]:
     """Validated settings and the (eps, S, K, window) grid, before anything is loaded or rendered."""
     from pipeline.guidance.law import GuidanceSettings
 
-    params_mod.check_attack_params(g, "guidance")
+    check_attack_params(g, "guidance")
     try:
-        settings = GuidanceSettings(start=tuple(map(float, g["start"])), goal=tuple(map(float, g["target"])),
-                                    tolerance=float(g["tolerance"]), max_step=float(g["max_step"]),
-                                    max_steps=int(g["max_steps"]), variant=str(g["variant"]))
+        settings = GuidanceSettings(start=tuple(map(float, g.start)), goal=tuple(map(float, g.target)),
+                                    tolerance=float(g.tolerance), max_step=float(g.max_step),
+                                    max_steps=g.max_steps, variant=g.variant)
     except ValueError as e:
         raise StageError(f"params.yaml guidance: {e}") from None
-    if int(g["slack_steps"]) < 0:
-        raise StageError(f"params.yaml guidance.slack_steps must be >= 0, got {g['slack_steps']}")
+    if g.slack_steps < 0:
+        raise StageError(f"params.yaml guidance.slack_steps must be >= 0, got {g.slack_steps}")
     grid = []
-    for eps, s, k in itertools.product(g["eps"], g["start_ranges"], g["lengths"]):
+    for eps, s, k in itertools.product(g.eps, g.start_ranges, g.lengths):
         try:
             grid.append((float(eps), float(s), int(k), settings.window(float(s), int(k))))
         except ValueError as e:
@@ -60,7 +58,7 @@ def _plan(g: dict[str, Any]):
     return settings, grid
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Fly the closed loop without attack and under every (eps, S, K) attack window, on the engine's
     workers (each run on one; results in grid order); report outcomes."""
     from tqdm import tqdm
@@ -68,17 +66,16 @@ def main() -> None:
     from pipeline.report.figures import guidance_trajectories, guidance_variants
     from pipeline.guidance.grid import GridPlan, defended_grid, grid_counts, paper_grid
 
-    p = params_mod.load()
-    g = p["guidance"]
+    g = params.guidance
     settings, grid = _plan(g)
-    params_mod.make_attack(p["attack"], g["method"], 0)   # refuses bad attack params before anything runs
-    params_mod.torch_setup(p)
-    chain, _, model_hash = load_chain(p)  # refuses a pose model whose input size is not render.width x height
-    defense = load_defense(p, model_hash, chain.threshold)
-    K = params_mod.intrinsics(p)  # the model's input size
-    es = engine.settings(p)
-    scene, threads = chunks.prepare(K, params_mod.scene_settings(p["render"]), es)
-    plan = GridPlan(settings, tuple(grid), int(g["slack_steps"]), tuple(g["dynamics"]), tuple(g["defenses"]))
+    make_attack(params.attack, g.method, 0)   # refuses bad attack params before anything runs
+    torch_setup(params)
+    chain, _, model_hash = load_chain(params)  # refuses a pose model whose input size is not render.width x height
+    defense = load_defense(params, model_hash, chain.threshold)
+    K = intrinsics(params)  # the model's input size
+    es = engine_settings(params)
+    scene, threads = chunks.prepare(K, scene_settings(params.render), es)
+    plan = GridPlan(settings, tuple(grid), g.slack_steps, tuple(g.dynamics), tuple(g.defenses))
     runs = flights(plan)
     # Attacked runs get the steps the unattacked chaser needed plus slack_steps: an attack succeeds
     # when it delays or diverts the chaser beyond that (the paper: 50 nominal steps + ~10).
@@ -91,10 +88,10 @@ def main() -> None:
         bar.update(1)
 
     with tqdm(total=len(runs), desc="guidance runs", unit="run") as bar:
-        on_cpu = p if es.in_process else {**p, "device": "cpu"}   # Ray workers hold no GPU
+        on_cpu = params if es.in_process else dataclasses.replace(params, device="cpu")   # Ray workers hold no GPU
         setup = GuidanceSetup(params=on_cpu, K=K, scene=scene, pose_path=str(POSE.resolve()),
                               detector_path=str(DETECTOR.resolve()), defense=defense, plan=plan,
-                              seed=int(p["seed"]) + SEED_OFFSET, torch_threads=None if es.in_process else threads)
+                              seed=params.seed + SEED_OFFSET["guidance"], torch_threads=None if es.in_process else threads)
         flown = engine.run(GuidanceWorker, setup, runs, es, num_cpus=threads, progress=progress)
     seconds = paper_done[0]
     paper = flown[:plan.paper_size]
@@ -104,10 +101,10 @@ def main() -> None:
     defended["seconds"] = time.perf_counter() - t0 - seconds
     defended.update(grid_counts(flown[plan.paper_size:], frozenset().union(*(k for _, k in paper))))
 
-    metrics = _metrics(settings, g, p["attack"], model_hash, seconds, counts, (baseline, arrival, horizon, attacked),
+    metrics = _metrics(settings, g, params.attack, model_hash, seconds, counts, (baseline, arrival, horizon, attacked),
                        defended)
-    write_metrics(METRICS, metrics, p)
-    atomic_write_text(REPORT, guidance_page(metrics, g, p["render"]) + defended_section(metrics["defended"], g))
+    write_metrics(METRICS, metrics, params.profile_name)
+    atomic_write_text(REPORT, guidance_page(metrics, g, params.render) + defended_section(metrics["defended"], g))
     first = attacked[0][0] if attacked else None
     save_figure(guidance_trajectories(baseline, [(s, k, r) for e, s, k, r in attacked if e == first], first,
                                       settings.goal), FIGURE)
@@ -122,16 +119,16 @@ def main() -> None:
                     f"attack tables say little; see {REPORT}", fg=typer.colors.YELLOW, err=True)
 
 
-def _metrics(settings: Any, g: dict[str, Any], a: dict[str, Any], model_hash: str, seconds: float,
+def _metrics(settings: Any, g: Guidance, a: Attack, model_hash: str, seconds: float,
              counts: dict[str, int], flown: tuple[Any, int | None, int, list[Any]],
              defended: dict[str, Any]) -> dict[str, Any]:
     """reports/metrics/guidance.json: the paper grid's runs and success rates, and the defended grid."""
     baseline, arrival, horizon, runs = flown
     metrics = {
-        "variant": settings.variant, "method": g["method"], "loss": a["loss"], "max_steps": settings.max_steps,
+        "variant": settings.variant, "method": g.method, "loss": a.loss, "max_steps": settings.max_steps,
         "tolerance": settings.tolerance, "model_hash": model_hash, "seconds": seconds, **counts,
         "baseline": {"outcome": baseline.outcome, "miss_m": baseline.miss, "arrival_step": arrival},
-        "horizon": horizon, "slack_steps": int(g["slack_steps"]),
+        "horizon": horizon, "slack_steps": g.slack_steps,
         "runs": [{"eps": e, "start_range": s, "length": k, "outcome": r.outcome, "miss_m": r.miss,
                   "attack_start": r.attack_start, "attacked_frames": r.attacked_frames, "steps": len(r.estimates)}
                  for e, s, k, r in runs],

@@ -23,24 +23,24 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import typer
 
-from stages.engine import pool as engine
-
-from stages.config import params as params_mod
-from stages.artifacts.readers import DETECTOR, LAB as OUT, LAB_MODELS, LAB_MODELS_SUMMARY, POSE, TRAIN_METRICS, load_chain
-from stages.pages.lab import lab_page
-from stages.pages.paper import LAB
-from stages.engine.chunks import render_poses
 from pipeline.formats.recordings import read_recording, recording_folders, write_recording
 from pipeline.io.atomic import atomic_dir, atomic_write_text, read_json
 from stages.artifacts.dvc import write_metrics
+from stages.artifacts.paths import DETECTOR, LAB as OUT, LAB_METRICS as METRICS, LAB_MODELS, LAB_MODELS_SUMMARY, \
+    LAB_REPORT as REPORT, POSE, SEED_OFFSET, TRAIN_METRICS
+from stages.artifacts.readers import load_chain
+from stages.config.build import engine_settings, mockup, retrain_reason, scene_settings
+from stages.config.device import torch_setup
+from stages.config.params import given, with_params
+from stages.config.schema import Params
+from stages.engine import pool as engine
+from stages.engine.chunks import render_poses
 from stages.errors import StageError
+from stages.pages.lab import lab_page
+from stages.pages.paper import LAB
 
 if TYPE_CHECKING:
     from pipeline.evaluation.sequences import Sequence
-
-REPORT = Path("reports/lab.md")
-METRICS = Path("reports/metrics/lab.json")
-SEED_OFFSET = 0
 LAB_CHUNK = 30              # frames per render job of the synthetic lab sequences (stages/engine/pool.py)
 
 app = typer.Typer(help="The lab domain: lab-like sequences through the real-data loader, pose "
@@ -48,26 +48,25 @@ app = typer.Typer(help="The lab domain: lab-like sequences through the real-data
                   pretty_exceptions_enable=False, add_completion=False)
 
 
-def cameras(p: dict[str, Any]) -> tuple[Any, Any]:
+def cameras(p: Params) -> tuple[Any, Any]:
     """(K_syn at the reference size (480x270), K_zed at 1920x1080) from params."""
     from pipeline.geometry.camera import Intrinsics
 
-    c, z = p["camera"], p["lab"]["zed"]
+    c, z = p.camera, p.lab.zed
     try:
-        return (Intrinsics(int(c["ref_width"]), int(c["ref_height"]), c["fx"], c["fy"], c["cx"], c["cy"]),
-                Intrinsics(int(z["width"]), int(z["height"]), z["fx"], z["fy"], z["cx"], z["cy"]))
+        return (Intrinsics(c.ref_width, c.ref_height, c.fx, c.fy, c.cx, c.cy),
+                Intrinsics(z.width, z.height, z.fx, z.fy, z.cx, z.cy))
     except ValueError as e:
         raise StageError(f"params.yaml camera / lab.zed: {e}") from None
 
 
-@app.command("rescale")
-def rescale(z: list[float] = typer.Option(..., "--z", help="Lab range(s) in metres (repeatable).")) -> None:
+def rescale(params: Params,
+            z: list[float] = typer.Option(..., "--z", help="Lab range(s) in metres (repeatable).")) -> None:
     """Print the equivalent synthetic range of lab ranges (same apparent size in pixels; pinhole model)."""
     from pipeline.evaluation.lab import lab_to_synthetic_factor
 
-    p = params_mod.load()
-    K_syn, K_zed = cameras(p)
-    scale = float(p["lab"]["scale"])
+    K_syn, K_zed = cameras(params)
+    scale = float(params.lab.scale)
     k = lab_to_synthetic_factor(K_syn, K_zed, scale)
     f_eff = K_zed.fx * K_syn.width / K_zed.width
     typer.echo(f"factor = scale * fx_syn / fx_lab_eff = {scale:g} * {K_syn.fx:g} / ({K_zed.fx:g} * "
@@ -79,7 +78,7 @@ def rescale(z: list[float] = typer.Option(..., "--z", help="Lab range(s) in metr
 
 
 # ----------------------------------------------------------------------------- synthetic lab sequences
-def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
+def render_lab(p: Params, dest: Path) -> list[dict[str, Any]]:
     """Render lab.sequences with the lab camera and the domain shift into dest/<seq>/ (lab layout), the
     frames fanned out over the engine's workers and the domain shift drawn in frame order.
 
@@ -89,37 +88,36 @@ def render_lab(p: dict[str, Any], dest: Path) -> list[dict[str, Any]]:
     from pipeline.evaluation.lab_images import shift_recording
     from pipeline.geometry.rotations import quat_to_matrix
 
-    lab, r = p["lab"], p["render"]
-    ds = lab["domain_shift"]
+    lab, r = p.lab, p.render
+    ds = lab.domain_shift
     _, K_zed = cameras(p)
-    k_cal = 1.0 + float(ds["calib_error"])       # the true lens differs from the calibration used for labels
-    K_lab = K_zed.scaled(int(r["width"]), int(r["height"]))
+    k_cal = 1.0 + float(ds.calib_error)       # the true lens differs from the calibration used for labels
+    K_lab = K_zed.scaled(r.width, r.height)
     K_true = dataclasses.replace(K_lab, fx=K_lab.fx * k_cal, fy=K_lab.fy * k_cal)
-    mesh, mesh_scale = params_mod.mockup(p)       # the mock-up at scale x its size (= the real target's size)
-    settings = dataclasses.replace(params_mod.scene_settings(r), mesh=mesh, mesh_scale=mesh_scale,
-                                   sun_direction=tuple(float(v) for v in ds["sun_direction"]),
-                                   sun_strength=float(ds["sun_strength"]))
-    rng = np.random.default_rng(int(lab["seed"]) + SEED_OFFSET)
-    scale, n, truth, es = float(lab["scale"]), int(lab["frames"]), [], engine.settings(p)
+    mesh, mesh_scale = mockup(p)       # the mock-up at scale x its size (= the real target's size)
+    settings = dataclasses.replace(scene_settings(r), mesh=mesh, mesh_scale=mesh_scale,
+                                   sun_direction=tuple(float(v) for v in ds.sun_direction),
+                                   sun_strength=float(ds.sun_strength))
+    rng = np.random.default_rng(lab.seed + SEED_OFFSET["lab"])
+    scale, n, truth, es = float(lab.scale), lab.frames, [], engine_settings(p)
     with engine.session(es):
-        for i, (z0, z1) in enumerate(lab["sequences"]):
+        for i, (z0, z1) in enumerate(lab.sequences):
             lateral = tuple(rng.uniform(-0.03, 0.03, 2) * float(z1))   # lab m, target off-centre
-            rec = synthetic_recording(float(z0), float(z1), n, float(lab["fps"]), float(lab["mocap_hz"]),
+            rec = synthetic_recording(float(z0), float(z1), n, float(lab.fps), float(lab.mocap_hz),
                                       np.array([1.0, 0, 0, 0]), lateral=lateral,
-                                      clock_offset=float(rng.uniform(0, 1 / float(lab["mocap_hz"]))),
-                                      camera_body=lab["bodies"]["camera"], target_body=lab["bodies"]["target"])
+                                      clock_offset=float(rng.uniform(0, 1 / float(lab.mocap_hz))),
+                                      camera_body=lab.bodies.camera, target_body=lab.bodies.target)
             # the 1/scale mock-up at the lab label t looks like the full-size target at scale * t
             rgb, alpha = render_poses(K_true, settings, quat_to_matrix(rec.q), scale * rec.t, LAB_CHUNK, es,
                                       f"lab render seq{i + 1}")
-            images, masks = shift_recording(rgb, alpha, float(ds["noise_std"]), float(ds["blur_sigma"]), rng)
+            images, masks = shift_recording(rgb, alpha, float(ds.noise_std), float(ds.blur_sigma), rng)
             write_recording(dest / f"seq{i + 1}", rec.camera, rec.mocap, images, masks)
             truth.append({"name": f"seq{i + 1}", "t_lab": rec.t, "q": rec.q, "z_range": (float(z0), float(z1))})
     return truth
 
 
 # ----------------------------------------------------------------------------- the stage
-@app.callback(invoke_without_command=True)
-def main(ctx: typer.Context) -> None:
+def main(params: Params, ctx: typer.Context) -> None:
     """Evaluate the pose model and the safety chain in the lab domain.
 
     Params: `lab` (sequences, frames, fps, mocap_hz, match, max_gap_s, attack_length, domain_shift,
@@ -131,28 +129,27 @@ def main(ctx: typer.Context) -> None:
     from pipeline.evaluation.sequences import evaluate_sequences, fgsm_error_table, nan_to_none, per_eps_summary
     from pipeline.evaluation.lab import lab_to_synthetic_factor
 
-    p = params_mod.load()
-    lab = p["lab"]
-    params_mod.torch_setup(p)
-    K_syn, K_zed = cameras(p)
-    factor = lab_to_synthetic_factor(K_syn, K_zed, float(lab["scale"]))
-    reason = params_mod.retrain_reason(p)
+    lab = params.lab
+    torch_setup(params)
+    K_syn, K_zed = cameras(params)
+    factor = lab_to_synthetic_factor(K_syn, K_zed, float(lab.scale))
+    reason = retrain_reason(params)
     synthetic_lab = _lab_models(reason)
-    chain, loss_fn, model_hash = (load_chain(p) if synthetic_lab is None else
-                                  load_chain(p, LAB_MODELS / POSE, LAB_MODELS / DETECTOR))
+    chain, loss_fn, model_hash = (load_chain(params) if synthetic_lab is None else
+                                  load_chain(params, LAB_MODELS / POSE, LAB_MODELS / DETECTOR))
     t0 = time.perf_counter()
     truth: list[dict[str, Any]] = []
-    real = params_mod.given(lab["real_data"])
+    real = given(lab.real_data)
     source = Path(real) if real else OUT
     if not real:
         with atomic_dir(OUT) as tmp:
-            truth = render_lab(p, tmp)
+            truth = render_lab(params, tmp)
     render_s = time.perf_counter() - t0
-    sequences, ranges, loader_err = _sequences(p, source, truth, K_syn, K_zed)
-    e, length = p["evaluate"], int(lab["attack_length"])
-    clean_rows, fgsm_rows = fgsm_error_table(chain, loss_fn, sequences, [float(x) for x in p["attack"]["eps"]],
-                                             int(e["batch_size"]))   # pose error (clean), FGSM errors: every lab frame
-    res = evaluate_sequences(chain, loss_fn, sequences, [float(x) for x in e["eps"]], length, int(e["batch_size"]),
+    sequences, ranges, loader_err = _sequences(params, source, truth, K_syn, K_zed)
+    e, length = params.evaluate, lab.attack_length
+    clean_rows, fgsm_rows = fgsm_error_table(chain, loss_fn, sequences, [float(x) for x in params.attack.eps],
+                                             e.batch_size)   # pose error (clean), FGSM errors: every lab frame
+    res = evaluate_sequences(chain, loss_fn, sequences, [float(x) for x in e.eps], length, e.batch_size,
                              "lab evaluate")
     summary = per_eps_summary(res.rows)
     seconds = time.perf_counter() - t0
@@ -161,14 +158,14 @@ def main(ctx: typer.Context) -> None:
     models = ({"pose": str(POSE), "detector": str(DETECTOR)} if synthetic_lab is None else
               {"pose": synthetic_lab["pose"], "detector": synthetic_lab["detector"]})
     metrics = {"model_hash": model_hash, "source": str(source), "synthetic": not real, "factor": factor,
-               "retrain": lab["retrain"], "reused_models": synthetic_lab is None, "retrain_reason": reason,
+               "retrain": lab.retrain, "reused_models": synthetic_lab is None, "retrain_reason": reason,
                "models": models, "synthetic_lab": synthetic_lab, "ranges": ranges, "loader_error": loader_err,
                "clean": clean_rows, "fgsm": fgsm_rows, "attack_length": length, "threshold": chain.threshold,
                "per_eps": {f"{x['eps']:g}": x for x in summary}, "rows": res.rows, "clean_detection": res.clean,
                "accuracy_mean": float(np.mean([x["accuracy"] for x in summary])), "seconds": seconds,
                "render_seconds": render_s}
-    write_metrics(METRICS, nan_to_none(metrics), p)
-    atomic_write_text(REPORT, lab_page(p, metrics, res.rows, summary, [s.name for s in sequences],
+    write_metrics(METRICS, nan_to_none(metrics), params.profile_name)
+    atomic_write_text(REPORT, lab_page(params, metrics, res.rows, summary, [s.name for s in sequences],
                                      train_metrics, K_syn, K_zed, sequences))
     typer.echo(f"lab: {'reused' if synthetic_lab is None else 'retrained'} models {models['pose']}, "
                f"{models['detector']}; {len(sequences)} sequences from {source}; mean detection accuracy "
@@ -185,17 +182,21 @@ def _lab_models(reason: str | None) -> dict[str, Any] | None:
     return summary if summary["retrained"] else None
 
 
-def _sequences(p: dict[str, Any], source: Path, truth: list[dict[str, Any]], K_syn: Any,
+def _sequences(p: Params, source: Path, truth: list[dict[str, Any]], K_syn: Any,
                K_zed: Any) -> tuple[list[Sequence], list[dict[str, Any]], dict[str, dict[str, float]]]:
     """The recordings in `source` read through the real-data loader, as chain sequences (synthetic-frame
     targets in metres, seeded attack schedules), their range table rows, and the loader's label error
     against the exact render poses (`truth`, synthetic lab only)."""
     from pipeline.evaluation.lab import chain_sequences, loader_errors
 
-    lab, r = p["lab"], p["render"]
-    recs = [read_recording(f, int(r["width"]), int(r["height"]), lab["bodies"], lab["match"], float(lab["max_gap_s"]),
-                           float(lab["segment_threshold"]), int(lab["max_image_pixels"]),
-                           float(lab["empty_frame_tolerance"])) for f in recording_folders(source)]
-    sequences, ranges = chain_sequences(recs, K_syn, K_zed, float(lab["scale"]), float(p["evaluate"]["p_start"]),
-                                        int(lab["attack_length"]), int(lab["seed"]))
+    lab, r = p.lab, p.render
+    recs = [read_recording(f, r.width, r.height, dataclasses.asdict(lab.bodies), lab.match, float(lab.max_gap_s),
+                           float(lab.segment_threshold), lab.max_image_pixels,
+                           float(lab.empty_frame_tolerance)) for f in recording_folders(source)]
+    sequences, ranges = chain_sequences(recs, K_syn, K_zed, float(lab.scale), float(p.evaluate.p_start),
+                                        lab.attack_length, lab.seed)
     return sequences, ranges, loader_errors(recs, truth)
+
+
+app.command("rescale")(with_params(rescale))
+app.callback(invoke_without_command=True)(with_params(main))

@@ -21,7 +21,7 @@ written, so DVC runs this stage as a no-op and `rpod lab` is not re-run for it.
 """
 from __future__ import annotations
 
-import copy
+import dataclasses
 import os
 import subprocess
 import sys
@@ -29,27 +29,24 @@ import time
 from pathlib import Path
 from typing import Any
 
-from stages.config import params as params_mod
-from stages.artifacts.readers import LAB_MODELS, LAB_MODELS_SUMMARY
 from pipeline.io.atomic import atomic_dir, file_hash, read_json, write_json
+from stages.artifacts.paths import DETECT_METRICS, DETECTOR, LAB_MODELS, LAB_MODELS_SUMMARY, PARAMS_FILE, POSE, \
+    RENDER, ROOT, SEED_OFFSET, TRAIN_METRICS
+from stages.config.build import mockup, retrain_reason
+from stages.config.params import NONE, write_params
+from stages.config.schema import Params
 from stages.errors import StageError
 
-ROOT = Path(__file__).resolve().parent.parent
-SEED_OFFSET = 700          # base seed of the synthetic-lab sub-pipeline = lab.seed + this
-
-
-def sub_params(p: dict[str, Any]) -> dict[str, Any]:
+def sub_params(p: Params) -> Params:
     """params.yaml of the synthetic-lab sub-pipeline: the main params with the mock-up as the target."""
-    sub = copy.deepcopy(p)
-    lab, r = p["lab"], sub["render"]
-    sub["seed"] = int(lab["seed"]) + SEED_OFFSET
-    r["mesh"], r["mesh_scale"] = params_mod.mockup(p)
-    r["source"] = params_mod.NONE    # the synthetic-lab set is rendered, never a SPEED import
-    if lab["train_frames_per_sequence"] is not None:
-        r["frames_per_sequence"] = int(lab["train_frames_per_sequence"])
-    sub["detect"]["baselines"] = []
-    sub["engine"]["store"] = None    # its renders stay in its own folder, never in the main image store
-    return sub
+    lab = p.lab
+    mesh, mesh_scale = mockup(p)
+    frames = p.render.frames_per_sequence if lab.train_frames_per_sequence is None else lab.train_frames_per_sequence
+    # source: the synthetic-lab set is rendered, never a SPEED import
+    render = dataclasses.replace(p.render, mesh=mesh, mesh_scale=mesh_scale, source=NONE, frames_per_sequence=frames)
+    return dataclasses.replace(p, seed=lab.seed + SEED_OFFSET["lab_models"], render=render,
+                               detect=dataclasses.replace(p.detect, baselines=[]),
+                               engine=dataclasses.replace(p.engine, store=None))   # its renders stay in its folder
 
 
 STEPS = ("render", "label", "train", "shap", "detect")   # the stage commands of the sub-pipeline, in order
@@ -67,12 +64,12 @@ def run_step(name: str, folder: Path) -> None:
         raise StageError((lines[-1] if lines else f"exit status {out.returncode}").removeprefix("error: "))
 
 
-def retrain(p: dict[str, Any], dest: Path, final: Path) -> dict[str, Any]:
+def retrain(p: Params, dest: Path, final: Path) -> dict[str, Any]:
     """Render, label, train, explain and detect on the synthetic-lab set in `dest` (a fresh folder that
     becomes `final`); returns the summary the lab report and metrics show (seconds per step)."""
     sub = sub_params(p)
     dest.mkdir(parents=True, exist_ok=True)
-    params_mod.write_params(sub, dest / "params.yaml")
+    write_params(dataclasses.asdict(sub), dest / PARAMS_FILE)
     seconds: dict[str, float] = {}
     for i, name in enumerate(STEPS, 1):
         print(f"lab: synthetic-lab {name} ({i}/{len(STEPS)}) for {final}/", flush=True)
@@ -82,33 +79,32 @@ def retrain(p: dict[str, Any], dest: Path, final: Path) -> dict[str, Any]:
         except (StageError, ValueError) as e:
             raise StageError(f"lab.retrain ({name} on the synthetic-lab set in {final}/): {e}") from None
         seconds[name] = time.perf_counter() - t0
-    train_m = read_json(dest / "reports/metrics/train.json")
-    detect_m = read_json(dest / "reports/metrics/detect.json")
-    meta = read_json(dest / "datasets/render/meta.json")
-    r = sub["render"]
-    return {"retrained": True, "folder": str(final), "reason": params_mod.retrain_reason(p), "seed": sub["seed"], "mesh": r["mesh"],
-            "mesh_scale": r["mesh_scale"], "frames_per_sequence": int(r["frames_per_sequence"]),
+    train_m = read_json(dest / TRAIN_METRICS)
+    detect_m = read_json(dest / DETECT_METRICS)
+    meta = read_json(dest / RENDER / "meta.json")
+    r = sub.render
+    return {"retrained": True, "folder": str(final), "reason": retrain_reason(p), "seed": sub.seed, "mesh": r.mesh,
+            "mesh_scale": r.mesh_scale, "frames_per_sequence": r.frames_per_sequence,
             "images": int(meta["frames"]), "size": [int(meta["width"]), int(meta["height"])],
-            "pose": str(final / "models/pose.pt"), "pose_hash": file_hash(dest / "models/pose.pt"),
-            "detector": str(final / "models/detector.pt"),
+            "pose": str(final / POSE), "pose_hash": file_hash(dest / POSE),
+            "detector": str(final / DETECTOR),
             "train_test": {k: train_m["test"][k] for k in ("n", "pos_mean_m", "att_mean_deg")},
             "best_epoch": train_m["best_epoch"], "epochs_run": train_m["epochs_run"],
             "shap_samples": int(detect_m["counts"]["samples"]),
             "detector_test_accuracy": detect_m["detectors"]["lstm"]["all"]["accuracy"], "seconds": seconds}
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Train the synthetic-lab pose model and detector into datasets/lab_models/ when `rpod lab` may not
     reuse the main ones (lab.retrain: always, or another mock-up in lab.mesh); else only record that.
     Params: the `lab` section and the training recipe (`render`, `label`, `train`, `shap`, `detect`)."""
-    p = params_mod.load()
-    reason = params_mod.retrain_reason(p)
+    reason = retrain_reason(params)
     with atomic_dir(LAB_MODELS) as tmp:
         if reason is None:
             summary: dict[str, Any] = {"retrained": False, "reason": None}
         else:
             print(f"lab_models: retraining the pose model and detector on a synthetic-lab set ({reason})", flush=True)
-            summary = retrain(p, tmp, LAB_MODELS)
+            summary = retrain(params, tmp, LAB_MODELS)
         write_json(tmp / LAB_MODELS_SUMMARY.name, summary)
     print(f"lab_models: {'retrained' if reason else 'nothing to train (the lab reuses the main models)'} "
           f"-> {LAB_MODELS_SUMMARY}")

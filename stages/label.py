@@ -2,21 +2,17 @@
 (`rpod export speed OUT` writes the labelled set as a SPEED+ folder.)"""
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
-from pipeline.pose.labels import POSITION, QUAT, SIXD
-from stages.config import params as params_mod
-from stages.artifacts.readers import LABELS, RENDER, read_render_store
 from pipeline.io.atomic import atomic_write_text
 from pipeline.io.tables import write_parquet
+from pipeline.pose.labels import POSITION, QUAT, SIXD
+from stages.artifacts.paths import DATASET_CARD as CARD, IMAGES, LABELS, PREVIEWS, RENDER, SEED_OFFSET
+from stages.artifacts.readers import read_render_store
+from stages.config import params as params_mod
+from stages.config.schema import Params
 from stages.errors import StageError
 from stages.pages.label import dataset_card
-
-CARD = Path("reports/dataset.md")
-PREVIEWS = Path("reports/figures/previews")
-SEED_OFFSET = 200
 
 
 def build_labels(poses, test_fraction: float, seed: int):
@@ -31,7 +27,7 @@ def build_labels(poses, test_fraction: float, seed: int):
     r6 = quat_to_6d(q)
     for k, c in enumerate(SIXD):
         df[c] = r6[:, k]
-    rendered = [f"{RENDER}/images.zarr:{i}" for i in df["index"]]
+    rendered = [f"{IMAGES}:{i}" for i in df["index"]]
     df.insert(1, "image", df.pop("filename") if "filename" in df else rendered)
     if "split" not in df:
         n_test = int(round(test_fraction * len(df)))
@@ -42,14 +38,13 @@ def build_labels(poses, test_fraction: float, seed: int):
     return df[cols]
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Label the rendered frames: datasets/labels.parquet (t, q, 6-D, sequence, frame, train/test split)
     and the dataset card reports/dataset.md. Parameters: `seed` and `label.test_fraction` in params.yaml
     (an imported SPEED/SPEED+ set keeps its own split). `rpod export speed OUT` writes a SPEED+ folder."""
-    p = params_mod.load()
     _, poses, meta = read_render_store(RENDER)
-    params_mod.check_render_fingerprint(meta, p, RENDER / "meta.json")
-    labels = build_labels(poses, float(p["label"]["test_fraction"]), int(p["seed"]) + SEED_OFFSET)
+    params_mod.check_render_fingerprint(meta, params, RENDER / "meta.json")
+    labels = build_labels(poses, float(params.label.test_fraction), params.seed + SEED_OFFSET["label"])
     write_parquet(labels, LABELS)
     atomic_write_text(CARD, dataset_card(labels, meta, sorted(PREVIEWS.glob("*.png")), CARD.parent))
     print(f"{LABELS}: {len(labels)} labels ({(labels.split == 'train').sum()} train, "

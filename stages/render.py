@@ -8,6 +8,7 @@ straight into one store: datasets/render/images.zarr, or `engine.store` (a folde
 """
 from __future__ import annotations
 
+import dataclasses
 import shutil
 from pathlib import Path
 from typing import Any
@@ -15,58 +16,56 @@ from typing import Any
 import numpy as np
 import typer
 
-from stages.engine import pool as engine
-
-from stages.config import params as params_mod
-
 from stages.artifacts import speed as speed_io
-from stages.artifacts.readers import RENDER as OUT, read_render_store
+from stages.artifacts.paths import PREVIEWS, RENDER as OUT, SEED_OFFSET
+from stages.artifacts.readers import read_render_store
+from stages.config import params as params_mod
+from stages.config.build import engine_settings, intrinsics, scene_settings
+from stages.config.schema import Params
 from stages.engine.chunks import render_to_store, store_url
 from pipeline.io.atomic import atomic_dir, remove_stale_temps, write_json
 from pipeline.io.tables import write_parquet
 from stages.errors import StageError
 
-PREVIEWS = Path("reports/figures/previews")
-SEED_OFFSET = 100
 PREVIEW_WIDTH = 480  # previews are upscaled (nearest neighbour) to about this width for viewing
 
 
-def frames(p: dict[str, Any]):
+def frames(p: Params) -> tuple[Any, Any, Any, Any]:
     """All frames of the 13 sequences as flat arrays: sequence, frame, R (N,3,3), t (N,3)."""
     from pipeline.geometry.trajectories import approach_sequences, flatten
 
-    r = p["render"]
-    K = params_mod.intrinsics(p)
+    r = p.render
+    K = intrinsics(p)
     half_fov = min(K.fov_deg) / 2
-    if r["pointing_jitter_deg"] > 0.8 * half_fov:
-        raise StageError(f"params.yaml render.pointing_jitter_deg={r['pointing_jitter_deg']} would push the "
+    if r.pointing_jitter_deg > 0.8 * half_fov:
+        raise StageError(f"params.yaml render.pointing_jitter_deg={r.pointing_jitter_deg} would push the "
                          f"target out of view; keep it below {0.8 * half_fov:.1f} deg (80% of the half FOV)")
     try:
-        seqs = approach_sequences(int(r["frames_per_sequence"]), float(r["start_range"]), float(r["end_range"]),
-                                  float(r["pointing_jitter_deg"]), float(r["max_target_rotation_deg"]),
-                                  seed=int(p["seed"]) + SEED_OFFSET)
+        seqs = approach_sequences(r.frames_per_sequence, float(r.start_range), float(r.end_range),
+                                  float(r.pointing_jitter_deg), float(r.max_target_rotation_deg),
+                                  seed=p.seed + SEED_OFFSET["render"])
     except ValueError as e:
         raise StageError(f"params.yaml render: {e}") from None
     return flatten(seqs)
 
 
-def render_all(p: dict[str, Any], dest: Path) -> None:
+def render_all(p: Params, dest: Path) -> None:
     """Render every frame into dest/{poses.parquet, meta.json} and the image store (dest/images.zarr,
     or `engine.store`, which meta.json then names); `dest` is a fresh folder."""
     from pipeline.geometry.trajectories import poses_table
 
-    r, es, store = p["render"], engine.settings(p), p["engine"]["store"]
-    K, scene = params_mod.intrinsics(p), params_mod.scene_settings(r)
+    r, es, store = p.render, engine_settings(p), p.engine.store
+    K, scene = intrinsics(p), scene_settings(r)
     seq, frm, R, t = frames(p)
     url = store_url(store or dest / "images.zarr")
-    seconds = render_to_store(url, K, scene, R, t, int(r["chunk"]), es, "render",
+    seconds = render_to_store(url, K, scene, R, t, r.chunk, es, "render",
                               empty_hint="check render.mesh and render.mesh_scale (metres per mesh unit)")
     n = len(t)
     write_parquet(poses_table(np.arange(n), seq, frm, R, t), dest / "poses.parquet")
     write_json(dest / "meta.json", {
         "complete": True, "fingerprint": params_mod.render_fingerprint(p), "frames": n, "width": K.width,
-        "height": K.height, "K": K.K, "render": r, "camera": p["camera"], "seed": p["seed"], "seconds": seconds,
-        "seconds_per_image": seconds / max(n, 1), "chunk": int(r["chunk"]), "workers": es.workers,
+        "height": K.height, "K": K.K, "render": dataclasses.asdict(r), "camera": dataclasses.asdict(p.camera),
+        "seed": p.seed, "seconds": seconds, "seconds_per_image": seconds / max(n, 1), "chunk": r.chunk, "workers": es.workers,
         **({"store": url} if store else {})})
 
 
@@ -99,20 +98,19 @@ def write_previews(images, poses, n_previews: int) -> list[Path]:
     return out
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Render the 13 approach sequences with Blender Cycles (CPU, headless), or import the SPEED/SPEED+
     folder of `render.source`. Writes datasets/render/ (images.zarr, poses.parquet, meta.json) atomically
     and PNG previews to reports/figures/previews/. Parameters: `seed`, `camera`, `render` and `engine`
     (workers, Ray cluster address, image store) in params.yaml.
     """
-    p = params_mod.load()
-    if params_mod.given(p["render"]["source"]):   # a SPEED/SPEED+ folder instead of rendering
-        speed_io.import_source(p, OUT)
+    if params_mod.given(params.render.source):   # a SPEED/SPEED+ folder instead of rendering
+        speed_io.import_source(params, OUT)
     else:
         remove_leftovers(OUT)
         with atomic_dir(OUT) as tmp:
-            render_all(p, tmp)
+            render_all(params, tmp)
     images, poses, meta = read_render_store(OUT)
-    previews = write_previews(images, poses, int(p["render"]["previews"]))
+    previews = write_previews(images, poses, params.render.previews)
     typer.echo(f"{OUT}: {meta['frames']} images {meta['width']}x{meta['height']}, "
                f"{meta['seconds_per_image']:.3f} s/image; previews: {', '.join(str(x) for x in previews)}")

@@ -23,25 +23,21 @@ from typing import Any
 
 import typer
 
-from stages.config import params as params_mod
-from stages.artifacts.readers import ROC_DIR, SHAP as SHAP_STORE
 from pipeline.io.atomic import atomic_write_text, read_json, save_figure, write_json
 from stages.artifacts.dvc import make_hint
+from stages.artifacts.paths import BENCHMARKS, PAGE, PARAMS_FILE, README, REPORT_FIGURES, ROC_DIR, SHAP as SHAP_STORE, \
+    SUMMARY, VARIANCE
+from stages.config.params import load
+from stages.config.schema import Params
 from stages.errors import StageError
 from stages.pages.differences import differences
 from stages.pages.readme import DETECTOR_NAMES, summary_tables
 from stages.pages.report import SECTIONS, page_head, section
 from stages.pages.summary import summary
 
-PAGE = Path("reports/README.md")
-SUMMARY = Path("reports/metrics/summary.json")   # the headline numbers: what `dvc metrics show` prints
-README = Path("README.md")
-FIGURES = Path("reports/figures")
 BLOCK = "results"
 DIFFERENCES = "differences"
 README_PROFILE = "default"  # the only profile whose numbers README.md publishes
-BENCHMARKS = Path(__file__).resolve().parent.parent / "reports" / "benchmarks.md"
-VARIANCE = Path("reports/variance.json")  # scripts/variance.py: the spread of the headline numbers over seeds
 
 
 def main(
@@ -56,7 +52,7 @@ def main(
         return
     from pipeline.report.markdown import replace_block
 
-    params = params_mod.load()
+    params = load()
     metrics = _load_metrics()
     write_json(SUMMARY, summary(metrics))
     figures = _write_figures(metrics)
@@ -64,7 +60,7 @@ def main(
     atomic_write_text(PAGE, page)
     typer.echo(f"report: {len(SECTIONS)} sections, {len(figures)} figures -> {PAGE}")
     if sync_readme:
-        profile = params.get("profile_name")
+        profile = params.profile_name
         if profile != README_PROFILE:
             typer.echo(f"report: profile {profile!r}, so {README} is left as it is (it shows the {README_PROFILE} "
                        "profile's results)")
@@ -96,7 +92,7 @@ def _check() -> None:
         if not path.exists():
             raise StageError(f"{path} not found: run `rpod report --sync-readme` first")
     page = PAGE.read_text()
-    profile = params_mod.load().get("profile_name") if Path(params_mod.PARAMS_FILE).exists() else README_PROFILE
+    profile = load().profile_name if PARAMS_FILE.exists() else README_PROFILE
     for block in (BLOCK, DIFFERENCES) if profile == README_PROFILE else ():
         ours, theirs = extract_block(page, block), extract_block(README.read_text(), block)
         if ours is None or theirs is None:
@@ -105,10 +101,9 @@ def _check() -> None:
         if ours != theirs:
             raise StageError(f"{README}'s {block} block differs from {PAGE}'s: run `rpod report --sync-readme` "
                              f"on the {README_PROFILE} profile")
-    stale = [report for _, report, _ in SECTIONS if Path("reports", report).exists()
-             and _section_body(Path("reports", report)) not in page]
+    stale = [report for _, report, _ in SECTIONS if report.exists() and _section_body(report) not in page]
     if stale:
-        raise StageError(f"{PAGE} is older than {', '.join(f'reports/{r}' for r in stale)}: run `rpod report`")
+        raise StageError(f"{PAGE} is older than {', '.join(str(r) for r in stale)}: run `rpod report`")
     compared = (f"{README} results and differences match {PAGE}" if profile == README_PROFILE
                 else f"profile {profile!r}: {README} (the {README_PROFILE} profile's results) not compared")
     typer.echo(f"report: {compared}; {PAGE} holds every stage report")
@@ -124,10 +119,10 @@ def _section_body(path: Path) -> str:
 def _load_metrics() -> dict[str, dict[str, Any]]:
     """Every stage's metrics; a StageError naming each missing input (metrics, reports, figure data) and the
     stage that writes it, so no page is written with a section or figure left out."""
-    missing = [Path(f"reports/metrics/{m}.json") for _, _, m in SECTIONS if m]
-    missing += [Path("reports", r) for s, r, _ in SECTIONS if s != "benchmarks"]
+    missing = [m for _, _, m in SECTIONS if m]
+    missing += [r for s, r, _ in SECTIONS if s != "benchmarks"]
     missing = [p for p in missing if not p.exists()]
-    metrics = {} if missing else {m: read_json(f"reports/metrics/{m}.json") for _, _, m in SECTIONS if m}
+    metrics = {} if missing else {m.stem: read_json(m) for _, _, m in SECTIONS if m}
     if metrics:
         missing = [p for p in [SHAP_STORE, *(ROC_DIR / f"{d}.csv" for d in metrics["detect"]["detectors"])]
                    if not p.exists()]
@@ -137,13 +132,13 @@ def _load_metrics() -> dict[str, dict[str, Any]]:
     return metrics
 
 
-def _spread(params: dict[str, Any]) -> dict[str, Any] | None:
+def _spread(params: Params) -> dict[str, Any] | None:
     """reports/variance.json when it describes runs of this profile (else None: no spread column)."""
     spread = read_json(VARIANCE) if VARIANCE.exists() else {}
-    return spread if spread.get("profile") == params.get("profile_name") else None
+    return spread if spread.get("profile") == params.profile_name else None
 
 
-def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figures: list[tuple[str, str, str]]) -> str:
+def build_page(metrics: dict[str, dict[str, Any]], params: Params, figures: list[tuple[str, str, str]]) -> str:
     """reports/README.md: title, summary block, then each stage report one level down with the
     report's own figures (`figures`: (stage, title, file name)) at the end of its section."""
     from pipeline.report.markdown import demote_headings, replace_block
@@ -152,10 +147,9 @@ def build_page(metrics: dict[str, dict[str, Any]], params: dict[str, Any], figur
     page += "\n## Known differences from the paper\n"
     page = replace_block(page, DIFFERENCES, differences(metrics, params))
     for stage, report, metric in SECTIONS:
-        path = Path("reports") / report
-        if path.exists():
-            page += section(stage, report, metrics.get(metric, {}) if metric else None,
-                            demote_headings(path.read_text().strip(), 1),
+        if report.exists():
+            page += section(stage, report.name, metrics.get(metric.stem, {}) if metric else None,
+                            demote_headings(report.read_text().strip(), 1),
                             [(title, name) for st, title, name in figures if st == stage])
     return page
 
@@ -168,14 +162,14 @@ def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, s
 
     tr, at, de = metrics["train"], metrics["attack"], metrics["detect"]
     save_figure(F.pose_error_bars({"train": tr["train"]["bins"], "test": tr["test"]["bins"]}),
-                FIGURES / "pose_errors.png")
+                REPORT_FIGURES["pose_errors"])
     eps = sorted(at["eps"], key=float)
     save_figure(F.error_vs_eps([float(e) for e in eps], [at["eps"][e]["position_mean_m"] for e in eps],
                                [at["eps"][e]["attitude_mean_deg"] for e in eps], at["clean"]["position_mean_m"],
-                               at["clean"]["attitude_mean_deg"], at["method"]), FIGURES / "error_vs_eps.png")
+                               at["clean"]["attitude_mean_deg"], at["method"]), REPORT_FIGURES["error_vs_eps"])
     out = [("train", "Mean error per range bin, train and test", "pose_errors.png"),
            ("attack", "Pose error against eps", "error_vs_eps.png")]
-    save_figure(F.shap_heatmaps(_shap_means()), FIGURES / "shap_heatmaps.png")
+    save_figure(F.shap_heatmaps(_shap_means()), REPORT_FIGURES["shap_heatmaps"])
     out.append(("detect", "SHAP signatures: mean |phi| per output and GAP feature, normal vs adversarial",
                 "shap_heatmaps.png"))
     curves = {}
@@ -184,7 +178,7 @@ def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, s
         curves[DETECTOR_NAMES.get(name, name)] = (roc["fpr"].to_numpy(), roc["tpr"].to_numpy(),
                                                    float(de["detectors"][name]["all"]["roc_auc"]))
     if curves:
-        save_figure(F.roc_curves(curves, highlight=DETECTOR_NAMES["lstm"]), FIGURES / "roc.png")
+        save_figure(F.roc_curves(curves, highlight=DETECTOR_NAMES["lstm"]), REPORT_FIGURES["roc"])
         out.append(("detect", "ROC curves of all detectors on the SHAP test split", "roc.png"))
     return out
 

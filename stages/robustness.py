@@ -13,36 +13,32 @@ seeded sample of `robustness.frames` held-out test frames; every attacked image 
 - fused (the chain that ships, issue 16: LSTM flag OR motion gate): the adaptive attack on the
   fused chain over whole bursts of the eval_render trajectories, evaluated by the real defense
   (pipeline.defense.fusion.run_defense) over each whole trajectory, clean frames included.
-Params are checked on load (stages.config.schema.Robustness). Writes reports/robustness.md,
+Params are checked on load (stages.config.evaluation.Robustness). Writes reports/robustness.md,
 reports/metrics/robustness.json, reports/figures/robustness.png (text: stages/pages/robustness.py).
 """
 from __future__ import annotations
 
 import dataclasses
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pipeline.pose.labels import TARGET
-from stages.config import params as params_mod
-from stages.artifacts.readers import DETECTOR, SURROGATE, Pose, load_defense, load_pose, read_eval_render
-from stages.artifacts.checkpoint import POSE
 from pipeline.io.atomic import atomic_write_text, save_figure
 from pipeline.io.errors import not_found
+from pipeline.pose.labels import TARGET
 from stages.artifacts.dvc import write_metrics
+from stages.artifacts.paths import DETECTOR, POSE, ROBUSTNESS_FIGURE as FIGURE, ROBUSTNESS_METRICS as METRICS, \
+    ROBUSTNESS_REPORT as REPORT, SEED_OFFSET, SURROGATE
+from stages.artifacts.readers import Pose, load_defense, load_pose, read_eval_render
+from stages.config.device import torch_setup
+from stages.config.evaluation import Robustness, attack_name
+from stages.config.schema import Params
 from stages.errors import StageError
 from stages.pages.robustness import robustness_page
-from stages.config.schema import Robustness, attack_name
-
-REPORT = Path("reports/robustness.md")
-METRICS = Path("reports/metrics/robustness.json")
-FIGURE = Path("reports/figures/robustness.png")
-SEED_OFFSET = 1500
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Run every attack and corruption row on held-out test frames; write the report, metrics and figure."""
     from tqdm import tqdm
 
@@ -52,22 +48,22 @@ def main() -> None:
     from pipeline.evaluation.robustness import run_attack_rows, worst_by_eps
     from stages.artifacts.data import load_split
 
-    p = params_mod.load()
-    r = params_mod.typed(p).robustness
+    # the lambdas as floats, as the metrics echo them
+    r = dataclasses.replace(params.robustness, lambdas=[float(v) for v in params.robustness.lambdas])
     if not SURROGATE.exists():
         raise not_found(SURROGATE)
-    params_mod.torch_setup(p)
-    seed = int(p["seed"]) + SEED_OFFSET
-    pose, surrogate = load_pose(p), load_pose(p, SURROGATE)
+    torch_setup(params)
+    seed = params.seed + SEED_OFFSET["robustness"]
+    pose, surrogate = load_pose(params), load_pose(params, SURROGATE)
     chain = load_onboard_chain(pose.model, pose.hash, POSE, DETECTOR)
-    split = load_split(p, "test")
+    split = load_split(params, "test")
     n = min(r.frames, len(split))
     pick = np.sort(np.random.default_rng(seed).choice(len(split), n, replace=False))
     images = np.stack([np.asarray(split.images[int(i)]) for i in pick])
     targets = split.targets[pick]
 
     target = PerFrameChain(pose.model, chain.shap, chain.detector)
-    specs = _specs(p, r, target, pose, surrogate, seed)
+    specs = _specs(params, r, target, pose, surrogate, seed)
     n_corr = sum(len(v) for v in dataclasses.asdict(r.corruptions).values())
     bar = tqdm(total=-(-n // r.batch_size) * (len(specs) + n_corr + 1), desc="robustness", unit="batch",
                dynamic_ncols=True)
@@ -82,7 +78,7 @@ def main() -> None:
                            pgd_is_lambda0="pgd" in r.transfer and 0.0 in r.lambdas)
     clean_harm, corruptions = _corruption_rows(chain, images, targets, r, seed, progress)
     bar.close()
-    fused = _fused_rows(p, r, chain, target, seed, pose.hash)
+    fused = _fused_rows(params, r, chain, target, seed, pose.hash)
     seconds = time.perf_counter() - t0
     metrics = {"rows": rows, "corruptions": corruptions, "frames": n, "test_frames": len(split), "harm_m": r.harm_m,
                "steps": r.steps, "gradients_per_frame": sum(s.cost for s in specs), "lambdas": r.lambdas,
@@ -93,24 +89,24 @@ def main() -> None:
                "model_hash": pose.hash, "surrogate_hash": surrogate.hash, "seconds": seconds,
                "worst_harmful_undetected": worst_by_eps(rows), **fused,
                "worst_harmful_undetected_fused": worst_by_eps(fused["fused_rows"])}
-    write_metrics(METRICS, metrics, p)
-    atomic_write_text(REPORT, robustness_page(metrics, p))
+    write_metrics(METRICS, metrics, params.profile_name)
+    atomic_write_text(REPORT, robustness_page(metrics, params))
     worst_fused = [row for row in fused["fused_rows"] if row["lambda"] is None]
     save_figure(robustness_vs_eps([row for row in rows if row["attack"] != "adaptive pgd"] + worst_fused), FIGURE)
     print(f"robustness: {len(rows)} attack rows and {len(corruptions)} corruption rows on {n} test frames in "
           f"{seconds:.0f} s -> {REPORT}, {METRICS}, {FIGURE}")
 
 
-def _specs(p: dict[str, Any], r: Robustness, target: Any, pose: Pose, surrogate: Pose, seed: int) -> list[Any]:
+def _specs(p: Params, r: Robustness, target: Any, pose: Pose, surrogate: Pose, seed: int) -> list[Any]:
     """The attack rows to run, in report order (pipeline.evaluation.robustness.attack_specs)."""
     from pipeline.evaluation.robustness import attack_specs
 
-    a = p["attack"]
+    a = p.attack
     transfer = [(name, *attack_name(name, "transfer")) for name in r.transfer]
     on_surrogate = [(name, *attack_name(name, "surrogate_attacks")) for name in r.surrogate_attacks]
     return attack_specs(pose, surrogate, target, eps=r.eps, unseen_eps=r.unseen_eps, transfer=transfer,
-                        lambdas=r.lambdas, surrogate_attacks=on_surrogate, steps=r.steps, mi_steps=int(a["steps"]),
-                        momentum=float(a["momentum"]), loss=a["loss"], seed=seed)
+                        lambdas=r.lambdas, surrogate_attacks=on_surrogate, steps=r.steps, mi_steps=a.steps,
+                        momentum=float(a.momentum), loss=a.loss, seed=seed)
 
 
 def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Robustness, seed: int,
@@ -133,7 +129,7 @@ def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Rob
     return rate(clean_pos > r.harm_m), rows
 
 
-def _fused_rows(p: dict[str, Any], r: Robustness, chain: Any, target: Any, seed: int, model_hash: str) -> dict[str, Any]:
+def _fused_rows(p: Params, r: Robustness, chain: Any, target: Any, seed: int, model_hash: str) -> dict[str, Any]:
     """Adaptive attack on the fused chain (LSTM flag OR motion gate, pipeline.defense.fusion) over bursts of
     `evaluate.attack_length` frames every `robustness.burst_every` frames of each eval_render
     trajectory, per eps and lambda and the per-burst worst case over lambda; rates with bootstrap
@@ -146,7 +142,7 @@ def _fused_rows(p: dict[str, Any], r: Robustness, chain: Any, target: Any, seed:
     from pipeline.evaluation.robustness import fused_bursts, fused_row, worst_burst_over_lambda
 
     images, labels, trajs, bursts, defended, info = _fused_setup(p, r, chain, model_hash)
-    full = attack_loss(p["attack"]["loss"], load_pose(p).loss)
+    full = attack_loss(p.attack.loss, load_pose(p).loss)
     rows = []
     bar = tqdm(total=len(r.eps) * len(r.lambdas) * len(trajs), desc="robustness (fused)", unit="trajectory")
     for i, e in enumerate(r.eps):
@@ -164,7 +160,7 @@ def _fused_rows(p: dict[str, Any], r: Robustness, chain: Any, target: Any, seed:
     return {"fused_rows": rows, "fused": info}
 
 
-def _fused_setup(p: dict[str, Any], r: Robustness, chain: Any, model_hash: str) -> tuple[Any, ...]:
+def _fused_setup(p: Params, r: Robustness, chain: Any, model_hash: str) -> tuple[Any, ...]:
     """(eval_render images, labels (N, 9), frame indices per trajectory, bursts per trajectory, the
     defended-chain settings, facts incl. the fused chain's false-alarm rate on the clean trajectories)."""
     from pipeline.evaluation.robustness import Defended, burst_schedule, fused_false_alarms
@@ -175,7 +171,7 @@ def _fused_setup(p: dict[str, Any], r: Robustness, chain: Any, model_hash: str) 
     # the defense that ships: params.defense with the noise model `rpod calibrate` fitted on validation trajectories
     shipped = load_defense(p, model_hash, chain.threshold)
     defended = Defended(shipped.settings, shipped.motion, shipped.noise)
-    length = int(p["evaluate"]["attack_length"])
+    length = p.evaluate.attack_length
     try:
         bursts = [burst_schedule(len(ix), length, r.burst_every) for ix in trajs]
     except ValueError as e:

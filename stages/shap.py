@@ -28,83 +28,81 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.pose.labels import TARGET
-from stages.config import params as params_mod
-from stages.artifacts.readers import BATCH, SHAP as OUT, SPLIT_CODES, SampleImages, load_pose
 from pipeline.io.atomic import atomic_dir
 from pipeline.io.store import create_array
+from pipeline.pose.labels import TARGET
+from stages.artifacts.paths import SEED_OFFSET, SHAP as OUT
+from stages.artifacts.readers import BATCH, SPLIT_CODES, SampleImages, load_pose
+from stages.config.device import torch_setup
+from stages.config.sections import Shap
+from stages.config.schema import Params
 from stages.errors import StageError
 
-SEED_OFFSET = 500
 
-
-def check_params(s: dict[str, Any]) -> None:
-    """Refuse bad `shap` params before any work, naming the key."""
+def check_params(s: Shap) -> None:
+    """Refuse bad `shap` params before any work, naming the key (stages.config.schema checked the types)."""
     for key in ("background", "normal", "per_eps", "chunk"):
-        v = s.get(key)
-        if not isinstance(v, int) or isinstance(v, bool) or v < (1 if key in ("background", "chunk") else 0):
-            raise StageError(f"params.yaml shap.{key} must be a whole number >= "
-                             f"{1 if key in ('background', 'chunk') else 0}, got {v!r}")
-    eps = s.get("eps")
-    if not isinstance(eps, list) or not all(isinstance(e, (int, float)) and 0 < e <= 1 for e in eps):
-        raise StageError(f"params.yaml shap.eps must be a list of numbers in (0, 1], got {eps!r}")
-    if s.get("method") not in ("auto", "exact", "deep"):
-        raise StageError(f"params.yaml shap.method must be auto, exact or deep, got {s.get('method')!r}")
-    if s["normal"] == 0 or (s["per_eps"] == 0 or not eps):
+        v, low = getattr(s, key), 1 if key in ("background", "chunk") else 0
+        if v < low:
+            raise StageError(f"params.yaml shap.{key} must be a whole number >= {low}, got {v!r}")
+    if not all(0 < e <= 1 for e in s.eps):
+        raise StageError(f"params.yaml shap.eps must be a list of numbers in (0, 1], got {s.eps!r}")
+    if s.method not in ("auto", "exact", "deep"):
+        raise StageError(f"params.yaml shap.method must be auto, exact or deep, got {s.method!r}")
+    if s.normal == 0 or (s.per_eps == 0 or not s.eps):
         raise StageError("params.yaml shap: need clean (shap.normal > 0) and adversarial samples "
                          "(shap.per_eps > 0 and a non-empty shap.eps) for a detector to learn from")
 
 
-def main() -> None:
+def main(params: Params) -> None:
     """Explain clean and FGSM images with DeepSHAP (closed form for the linear heads) into datasets/shap.zarr."""
     import zarr
 
     from pipeline.attacks.gradient import attack_loss
     from pipeline.shap import Explainer, draw_background, gap_features, sample_plan
 
-    p = params_mod.load()
-    s = p["shap"]
+    s = params.shap
     check_params(s)
-    params_mod.torch_setup(p)
-    seed = int(p["seed"]) + SEED_OFFSET
+    torch_setup(params)
+    seed = params.seed + SEED_OFFSET["shap"]
     rng = np.random.default_rng(seed)
-    pose = load_pose(p)
+    pose = load_pose(params)
     model, model_hash = pose.model, pose.hash
-    src = SampleImages(p, model, attack_loss(p["attack"]["loss"], pose.loss), model_hash)
+    src = SampleImages(params, model, attack_loss(params.attack.loss, pose.loss), model_hash)
     train = src.splits["train"]
-    if s["background"] > len(train):
-        raise StageError(f"params.yaml shap.background = {s['background']} but the training split has only "
+    if s.background > len(train):
+        raise StageError(f"params.yaml shap.background = {s.background} but the training split has only "
                          f"{len(train)} images")
     t0 = time.perf_counter()
-    bg_rows = draw_background(len(train), s["background"], rng)
+    bg_rows = draw_background(len(train), s.background, rng)
     bg_features = np.concatenate([gap_features(model, np.stack([train.images[r] for r in bg_rows[i:i + BATCH]]))[0]
                                   for i in range(0, len(bg_rows), BATCH)])
     try:
-        explainer = Explainer(model, bg_features, s["method"])
+        explainer = Explainer(model, bg_features, s.method)
     except ValueError as e:
         raise StageError(f"params.yaml shap.method: {e}") from None
     train_index = train.labels["index"].to_numpy(np.int64)
     try:
-        todo = sample_plan(s["normal"], s["per_eps"], s["eps"], src.splits["test"].labels["index"].to_numpy(np.int64),
+        todo = sample_plan(s.normal, s.per_eps, s.eps, src.splits["test"].labels["index"].to_numpy(np.int64),
                            np.setdiff1d(train_index, train_index[bg_rows]), rng)
     except ValueError as e:
         raise StageError(f"params.yaml shap: {e}; lower shap.normal / shap.per_eps") from None
     n = len(todo["index"])
     from_stack = np.array([e > 0 and src.in_stack(sp, int(ix), float(e))
                            for sp, ix, e in zip(todo["split"], todo["index"], todo["eps"])], dtype=bool)
-    print(f"shap: {n} samples ({s['normal']} clean + {s['per_eps']} x eps {s['eps']}), background "
-          f"{s['background']}, method {explainer.method}; {src.stack_note}; "
+    print(f"shap: {n} samples ({s.normal} clean + {s.per_eps} x eps {s.eps}), background "
+          f"{s.background}, method {explainer.method}; {src.stack_note}; "
           f"{int(from_stack.sum())} adversarial images from adv.zarr, "
           f"{int(((todo['eps'] > 0) & ~from_stack).sum())} by FGSM here", flush=True)
     with atomic_dir(OUT) as tmp:
         root = zarr.open_group(str(tmp), mode="w")
-        _explain_into(root, src, model, explainer, todo, bg_features.shape[1], int(s["chunk"]))
+        _explain_into(root, src, model, explainer, todo, bg_features.shape[1], s.chunk)
         create_array(root, "from_stack", data=from_stack)
         root.attrs.update({
-            "model_hash": model_hash, "background_size": int(s["background"]), "background_seed": seed,
+            "model_hash": model_hash, "background_size": s.background, "background_seed": seed,
             "background_mean": explainer.bg_mean.astype(float).tolist(), "method": explainer.method,
-            "eps": [float(e) for e in s["eps"]], "attack": "fgsm", "attack_loss": p["attack"]["loss"],
-            "split_codes": SPLIT_CODES, "counts": {"clean": int(s["normal"]), "per_eps": int(s["per_eps"])},
+            "eps": [float(e) for e in s.eps], "attack": "fgsm", "attack_loss": params.attack.loss,
+            "split_codes": SPLIT_CODES, "counts": {"clean": s.normal, "per_eps": s.per_eps},
             "outputs": TARGET,
         })
     print(f"shap: {n} samples in {time.perf_counter() - t0:.0f} s -> {OUT}")

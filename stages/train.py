@@ -10,31 +10,27 @@ final evaluation of the kept checkpoint. Torch is seeded (and switched to determ
 before the network is built, so two runs on one machine give the same weights.
 
 Device: the `device` param (auto = CUDA when present), with bf16 autocast there when `amp` is set;
-CPU threads: `threads` (stages.config.params.distributed). Scale-out: `torchrun --nproc_per_node N .venv/bin/rpod train` runs
-DistributedDataParallel (gloo on the CPU, NCCL on CUDA, one GPU per process); only rank 0 writes files.
+CPU threads: `threads` (stages.config.device.distributed). Scale-out: `torchrun --nproc_per_node N
+.venv/bin/rpod train` runs DistributedDataParallel (gloo on the CPU, NCCL on CUDA, one GPU per process); only rank 0 writes files.
 """
 from __future__ import annotations
 
 import copy
-from pathlib import Path
 from typing import Annotated, Any
 
 import typer
 
-from stages.artifacts.readers import SURROGATE
-from stages.artifacts.checkpoint import POSE
 from pipeline.io.atomic import atomic_outputs, atomic_write_text
 from stages.artifacts.dvc import write_metrics
+from stages.artifacts.paths import POSE, POSE_REPORT as REPORT, SEED_OFFSET, SURROGATE, TRAIN_LIVE, \
+    TRAIN_METRICS as METRICS
+from stages.config.schema import Params
 from stages.errors import StageError
 from stages.pages.pose import pose_page
 
-REPORT = Path("reports/pose.md")
-METRICS = Path("reports/metrics/train.json")
-LIVE_DIR = "dvclive/train"
-SEED_OFFSET = 300
-
 
 def main(
+    params: Params,
     surrogate: Annotated[bool, typer.Option("--surrogate", help="Train the robustness stage's surrogate instead: "
                                             "seed robustness.surrogate_seed, robustness.surrogate_epochs epochs, "
                                             "writes models/surrogate.pt and no reports.")] = False,
@@ -43,41 +39,30 @@ def main(
     import torch
 
     from pipeline.pose.loss import PoseLoss
-    from pipeline.pose.model import PoseNet
     from pipeline.formats.models import save_pose
-    from pipeline.pose.train import DivergenceError, fit, make_deterministic
+    from pipeline.pose.train import DivergenceError, fit
     from stages.artifacts import data
+    from stages.config.device import distributed
 
-    from stages.config import params as params_mod
-    params = params_mod.load()
-    p, r = params["train"], params["robustness"]
-    seed = int(r["surrogate_seed"]) if surrogate else int(params["seed"])
-    rank, world, device = params_mod.distributed(params)
-    try:
-        cfg = _config(p, int(r["surrogate_epochs"] if surrogate else p["epochs"]), seed + SEED_OFFSET)
-        make_deterministic(cfg.seed)  # before the network is built: its initial weights come from the seed
-        model = PoseNet(float(p["width"]), float(p["dropout"]))
-    except ValueError as e:
-        raise StageError(f"params.yaml: bad train section ({e})") from None
-
+    seed = params.robustness.surrogate_seed if surrogate else params.seed
+    rank, world, device = distributed(params)
+    model, cfg = _model(params, params.robustness.surrogate_epochs if surrogate else params.train.epochs,
+                        seed + SEED_OFFSET["train"])
     (train_split, train_set, train_eval_set), (val_split, val_set) = data.training_sets(params, cfg.seed)
     targets = train_split.targets
     model.set_output_bias(targets[:, :3].mean(0), targets[:, 3:].mean(0))
-    model.place(device, bool(params["amp"]))
+    model.place(device, params.amp)
     loss = PoseLoss("mean")
-    if p["compile"]:
+    if params.train.compile:
         model = torch.compile(model)  # type: ignore[assignment]
-    input_size = (int(params["render"]["height"]), int(params["render"]["width"]))
-
+    input_size = (params.render.height, params.render.width)
     best: dict[str, Any] = {}  # the learned loss weights and facts of the best epoch so far
     if rank == 0:
         print(f"train: {len(train_split)} train / {len(val_split)} validation images at {input_size[1]}x{input_size[0]}, "
-              f"width {p['width']}, {cfg.epochs} epochs, batch {cfg.batch_size} x {world} process(es), "
+              f"width {params.train.width}, {cfg.epochs} epochs, batch {cfg.batch_size} x {world} process(es), "
               f"{torch.get_num_threads()} threads, device {device}{' (bf16 autocast)' if _plain(model).amp else ''}",
               flush=True)
-
     on_epoch = _epoch_logger(rank, loss, best)
-
     try:
         result = fit(model, loss, train_set, val_set, cfg, device, on_epoch=on_epoch)
     except DivergenceError as e:
@@ -118,18 +103,22 @@ def _epoch_logger(rank: int, loss: Any, best: dict[str, Any]) -> Any:
     return on_epoch
 
 
-def _config(p: dict[str, Any], epochs: int, seed: int) -> Any:
-    """The TrainConfig of a `train` params section (ValueError on a bad value)."""
-    from pipeline.pose.train import TrainConfig
+def _model(params: Params, epochs: int, seed: int) -> tuple[Any, Any]:
+    """(PoseNet, TrainConfig) of the `train` params section; torch is seeded (deterministic) before the
+    network is built, so its initial weights come from the seed. A bad value stops the stage."""
+    from pipeline.pose.model import PoseNet
+    from pipeline.pose.train import make_deterministic
+    from stages.config.build import train_config
 
-    return TrainConfig(epochs=epochs, batch_size=int(p["batch_size"]), lr_base=float(p["lr_base"]),
-                       lr_max=float(p["lr_max"]), cycle_epochs=float(p["cycle_epochs"]),
-                       weight_decay=float(p["weight_decay"]),
-                       max_minutes=None if p["max_minutes"] is None else float(p["max_minutes"]),
-                       channels_last=bool(p["channels_last"]), workers=int(p["workers"]), seed=seed)
+    try:
+        cfg = train_config(params.train, epochs, seed)
+        make_deterministic(cfg.seed)
+        return PoseNet(float(params.train.width), float(params.train.dropout)), cfg
+    except ValueError as e:
+        raise StageError(f"params.yaml: bad train section ({e})") from None
 
 
-def _write_results(params: dict[str, Any], net: Any, best: dict[str, Any], input_size: tuple[int, int], result: Any,
+def _write_results(params: Params, net: Any, best: dict[str, Any], input_size: tuple[int, int], result: Any,
                    cfg: Any, device: Any, world: int, train: tuple[Any, Any], val: tuple[Any, Any]) -> None:
     """Errors of the best checkpoint on the train, validation and test splits (and the always-the-mean-label
     floor), then models/pose.pt (`net` with the best epoch's loss weights and facts, `best`),
@@ -146,7 +135,7 @@ def _write_results(params: dict[str, Any], net: Any, best: dict[str, Any], input
     (train_split, train_eval_set), (val_split, val_set) = train, val
     test_split = data.load_split(params, "test")
     test_set = data.pose_dataset(test_split)
-    bins = params["train"]["range_bins"]
+    bins = params.train.range_bins
     summary = {name: summarize_errors(predict(net, ds, 2 * cfg.batch_size, device, cfg.channels_last),
                                       split.targets, split.labels["range"].to_numpy(), bins)
                for name, ds, split in (("train", train_eval_set, train_split), ("val", val_set, val_split),
@@ -161,10 +150,11 @@ def _write_results(params: dict[str, Any], net: Any, best: dict[str, Any], input
                "processes": world, "device": str(device)}
     # model, metrics, report and curves move into place together, only now: a crashed, killed or
     # diverged run leaves the previous run's files as they were
-    with atomic_outputs(POSE, METRICS, REPORT, dirs=(LIVE_DIR,)) as (pose, metrics_path, report, live):
+    with atomic_outputs(POSE, METRICS, REPORT, dirs=(str(TRAIN_LIVE),)) as (pose, metrics_path, report, live):
         save_pose(pose, net, best["loss"], input_size, best["meta"])
-        write_metrics(metrics_path, metrics, params)
-        atomic_write_text(report, pose_page(metrics, params, len(train_split), len(val_split), len(test_split), LIVE_DIR))
+        write_metrics(metrics_path, metrics, params.profile_name)
+        atomic_write_text(report, pose_page(metrics, params, len(train_split), len(val_split), len(test_split),
+                                            str(TRAIN_LIVE)))
         _log_curves(live, result.history)
     print(f"train: best epoch {result.best_epoch}: test {summary['test']['pos_mean_m']:.3f} m, "
           f"{summary['test']['att_mean_deg']:.2f} deg -> {POSE}, {REPORT}, {METRICS}")

@@ -5,7 +5,7 @@ The code a command can run is derived from the source, function by function: sta
 function of stages/<command>.py (stages/cli.py only dispatches to it), follow the names each function
 uses (module-level and in-function imports, `module.attr` references, calls to functions of the
 same module), and collect the files reached. Function granularity keeps, e.g., `rpod render` off
-pipeline/attacks/gradient.py although stages/config/params.py (which it uses) has an attack helper.
+pipeline/attacks/gradient.py although stages/config/build.py (which it uses) has an attack helper.
 """
 from __future__ import annotations
 
@@ -124,8 +124,9 @@ def test_every_module_a_stage_runs_is_a_dependency(name):
 
 def test_the_derivation_follows_functions_not_whole_modules():
     render = {str(f.relative_to(REPO)) for f in stage_files("render")}
-    assert {"pipeline/render/scene.py", "stages/config/params.py", "stages/artifacts/readers.py", "pipeline/geometry/trajectories.py"} <= render
-    assert "pipeline/attacks/gradient.py" not in render          # params.make_attack is not used by render
+    assert {"pipeline/render/scene.py", "stages/config/build.py", "stages/artifacts/readers.py",
+            "pipeline/geometry/trajectories.py"} <= render
+    assert "pipeline/attacks/gradient.py" not in render          # build.make_attack is not used by render
     for later in ("evaluate", "lab"):   # editing the detector's code or page does not re-run them
         assert "stages/detect.py" not in {str(f.relative_to(REPO)) for f in stage_files(later)}
 

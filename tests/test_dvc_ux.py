@@ -55,6 +55,19 @@ def test_only_the_summary_is_a_dvc_metric_and_details_stay_outputs():
         assert outs[f"reports/metrics/{stage}.json"] == {"cache": False}
 
 
+def test_every_output_path_is_an_out_of_the_stage_that_writes_it():
+    """stages/artifacts/paths.py WRITTEN_BY: each output (or a folder holding it) is in the `outs` or
+    `metrics` of the dvc.yaml stage it names."""
+    from stages.artifacts.paths import WRITTEN_BY
+
+    def listed(stage: str) -> set[Path]:
+        st = DVC_YAML["stages"][stage]
+        return {Path(o if isinstance(o, str) else next(iter(o))) for o in st.get("outs", []) + st.get("metrics", [])}
+
+    for path, stage in WRITTEN_BY.items():
+        assert any(path == out or out in path.parents for out in listed(stage)), f"{path} is not an out of {stage}"
+
+
 @pytest.mark.skipif(not DVC.exists(), reason="dvc not installed beside python")
 def test_dvc_metrics_show_fits_in_120_columns(tmp_path):
     from pipeline.io.atomic import write_json
@@ -144,6 +157,7 @@ def test_every_input_a_stage_reads_has_a_producer():
 ])
 def test_missing_input_names_the_stage_that_writes_it(tmp_path, monkeypatch, load, message):
     from stages.artifacts import readers as artifacts
+    from stages.artifacts.paths import SHAP
     from stages.config.params import load as load_params
 
     params = load_params(REPO / "params.yaml")
@@ -151,7 +165,7 @@ def test_missing_input_names_the_stage_that_writes_it(tmp_path, monkeypatch, loa
     call = {"pose": lambda: artifacts.load_pose(params),
             "surrogate": lambda: artifacts.load_pose(params, "models/surrogate.pt"),
             "eval_render": lambda: artifacts.read_eval_render(params),
-            "shap": lambda: artifacts.read_shap_store(artifacts.SHAP, "hash")}[load]
+            "shap": lambda: artifacts.read_shap_store(SHAP, "hash")}[load]
     with pytest.raises(DataError) as err:
         call()
     assert message in str(err.value)

@@ -10,10 +10,12 @@ from stages.engine import pool as engine
 
 from stages.config import params as params_mod
 from faults import exits_once
-from stages.engine.chunks import FrameRange, RenderSetup, RenderWorker
 from pipeline.io.store import open_zarr
+from stages.config.params import load
+from stages.config.schema import build
+from stages.config.sections import ParamsError
+from stages.engine.chunks import FrameRange, RenderSetup, RenderWorker
 from stages.errors import StageError
-from stages.config.schema import ParamsError
 
 TINY = ["render.width=32", "render.height=18", "render.frames_per_sequence=2", "render.samples=2",
         "render.chunk=4", "render.previews=1"]
@@ -24,7 +26,7 @@ def _render(workdir, overrides):
     from stages import render
 
     params_mod.write_params(params_mod.compose("smoke", TINY + overrides))
-    render.main()
+    render.main(load())
     return open_zarr(workdir / "datasets/render/images.zarr")["images"][:]
 
 
@@ -94,7 +96,7 @@ def test_unreachable_address_stops_at_once(workdir):
 
 def test_bad_workers_and_store(workdir):
     with pytest.raises(ParamsError, match="engine: workers must be at least 1"):
-        params_mod.build(params_mod.compose("smoke", ["engine.workers=0"]))
+        build(params_mod.compose("smoke", ["engine.workers=0"]))
     (workdir / "a_file").write_text("not a folder")
     for store, what in [(workdir / "a_file" / "images.zarr", "a path below a file"), ("nosuchproto://x/y.zarr", "")]:
         with pytest.raises(StageError, match="cannot be written.*engine.store"):
@@ -105,13 +107,14 @@ def test_bad_workers_and_store(workdir):
 def test_store_elsewhere_is_named_in_meta_and_read_back(workdir):
     import json
 
-    from stages.artifacts.readers import RENDER, read_render_store
+    from stages.artifacts.paths import RENDER
+    from stages.artifacts.readers import read_render_store
 
     store = workdir / "shared" / "render.zarr"
     params_mod.write_params(params_mod.compose("smoke", TINY + [f"engine.store={store}"]))
     from stages import render
 
-    render.main()
+    render.main(load())
     meta = json.loads((workdir / RENDER / "meta.json").read_text())
     assert meta["store"] == str(store) and not (workdir / RENDER / "images.zarr").exists()
     images, poses, _ = read_render_store(RENDER)

@@ -124,21 +124,24 @@ def attack_sets(tmp_path, es: engine.EngineSettings) -> tuple:
 
     from pipeline.pose.loss import PoseLoss
     from pipeline.pose.model import PoseNet
-    from stages.config import params as params_mod
-    from stages.attack import SEED_OFFSET, _attack_into
-    from stages.engine.attack_worker import AttackSetup
     from pipeline.formats.models import save_pose
+    from stages.attack import _attack_into
+    from stages.artifacts.paths import SEED_OFFSET
+    from stages.config import params as params_mod
+    from stages.config.schema import build
+    from stages.engine.attack_worker import AttackSetup
 
-    p = params_mod.compose("smoke", ["render.width=32", "render.height=18", "train.width=0.125", "attack.method=pgd",
-                                     "attack.steps=2", "attack.eps=[0.5,0.05]", "attack.batch_size=4"])
+    p = build(params_mod.compose("smoke", ["render.width=32", "render.height=18", "train.width=0.125",
+                                           "attack.method=pgd", "attack.steps=2", "attack.eps=[0.5,0.05]",
+                                           "attack.batch_size=4"]))
     torch.manual_seed(0)
-    save_pose(tmp_path / "pose.pt", PoseNet(0.125, float(p["train"]["dropout"])).eval(), PoseLoss(), (18, 32), {})
+    save_pose(tmp_path / "pose.pt", PoseNet(0.125, float(p.train.dropout)).eval(), PoseLoss(), (18, 32), {})
     rng = np.random.default_rng(0)
     images = rng.integers(0, 256, (10, 18, 32, 3), dtype=np.uint8)
     y = torch.randn(10, 9, generator=torch.Generator().manual_seed(0))
     # one torch thread on both paths: convolution gradients are not bit-identical across thread counts
     setup = AttackSetup(params=p, pose_path=str(tmp_path / "pose.pt"), eps=(0.5, 0.05), batch=4,
-                        seed=int(p["seed"]) + SEED_OFFSET, torch_threads=1)
+                        seed=p.seed + SEED_OFFSET["attack"], torch_threads=1)
     threads = torch.get_num_threads()
     try:
         out = _attack_into(tmp_path / f"adv{es.workers}.zarr", setup, images, np.arange(10), y, 6, es, 1)

@@ -2,6 +2,7 @@
 parameter) and leaves every downstream artifact as it was."""
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +12,7 @@ import zarr
 from pipeline.io.atomic import atomic_dir
 from pipeline.io.errors import DataError
 from pipeline.io.store import create_array, open_zarr
+from stages.config.params import load
 from stages.errors import StageError
 
 
@@ -109,7 +111,7 @@ def trained(tmp_path_factory):
     cwd = os.getcwd()
     os.chdir(root)
     try:
-        main()
+        main(load())
     finally:
         os.chdir(cwd)
     return root
@@ -133,7 +135,7 @@ def _unchanged(before: dict[str, bytes]) -> None:
 def _set_params(**overrides: object) -> None:
     from stages.config import params as params_mod
 
-    p = params_mod.load()
+    p = dataclasses.asdict(params_mod.load())
     for key, value in overrides.items():
         section, name = key.split("__")
         p[section][name] = value
@@ -145,7 +147,7 @@ def test_diverging_learning_rate_is_refused_and_keeps_the_old_model(run_dir):
 
     _set_params(train__lr_base=1e12, train__lr_max=1e12)
     with pytest.raises(StageError, match=r"(training diverged: loss (nan|inf)|no epoch of \d+ improved).*lower train.lr_base"):
-        main()
+        main(load())
     _unchanged(run_dir)
 
 
@@ -159,7 +161,7 @@ def test_non_finite_label_is_refused(run_dir, value):
     df.loc[5, "tz"] = value
     df.to_parquet("datasets/labels.parquet")
     with pytest.raises(StageError, match=r"NaN or infinite labels in columns \{'tz': 1\}"):
-        main()
+        main(load())
     _unchanged(run_dir)
 
 
@@ -180,7 +182,8 @@ def test_killed_train_leaves_old_model_and_metrics(run_dir):
 
     _set_params(train__epochs=50, train__max_minutes=None)
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent), "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen([sys.executable, "-c", "from stages.train import main; main()"], env=env,
+    proc = subprocess.Popen([sys.executable, "-c", "from stages.config.params import load; from stages.train import main; "
+                             "main(load())"], env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     for line in proc.stdout:  # wait for the second finished epoch (the first was a new best)
         if line.startswith("epoch   2"):
@@ -390,7 +393,7 @@ def test_train_refuses_a_stale_render(run_dir):
 
     _set_params(render__frames_per_sequence=7)
     with pytest.raises(ValueError, match=r"datasets/render/meta.json was rendered with other seed/camera/render params"):
-        main()
+        main(load())
     _unchanged(run_dir)
 
 
@@ -402,12 +405,12 @@ def test_label_refuses_a_stale_render_and_render_refuses_an_invisible_target(tmp
     monkeypatch.chdir(tmp_path)
     tiny = ["render.width=32", "render.height=18", "render.frames_per_sequence=2", "render.samples=1", "render.chunk=4"]
     params_mod.write_params(params_mod.compose("smoke", tiny))
-    render.main()
+    render.main(load())
     rendered = {p: p.read_bytes() for p in Path("datasets/render").rglob("*") if p.is_file()}
 
     params_mod.write_params(params_mod.compose("smoke", [*tiny, "render.frames_per_sequence=3"]))
     with pytest.raises(ValueError, match="rendered with other seed/camera/render params"):
-        label.main()
+        label.main(load())
     assert not Path("datasets/labels.parquet").exists()
 
     # a mesh in millimetres declared as metres: 1000x too small, nothing visible at 60 m
@@ -415,7 +418,7 @@ def test_label_refuses_a_stale_render_and_render_refuses_an_invisible_target(tmp
                                 + "f 1 2 4 3\nf 5 6 8 7\nf 1 2 6 5\nf 3 4 8 7\nf 1 3 7 5\nf 2 4 8 6\n")
     params_mod.write_params(params_mod.compose("smoke", [*tiny, "render.mesh=cube.obj", "render.mesh_scale=0.001"]))
     with pytest.raises(StageError, match="the target covers no pixels in the first 4 frames"):
-        render.main()
+        render.main(load())
     assert {p: p.read_bytes() for p in Path("datasets/render").rglob("*") if p.is_file()} == rendered
     assert sorted(p.name for p in Path("datasets").iterdir()) == ["render"]
 

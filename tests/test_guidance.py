@@ -8,6 +8,7 @@ import pytest
 
 from pipeline.geometry.camera import reference_intrinsics
 from pipeline.guidance.law import HELD, LOST, MISSED, SUCCEEDED, GuidanceSettings, guidance_step, run_rendezvous
+from stages.config.sections import Guidance
 
 K = reference_intrinsics().scaled(160, 90)
 
@@ -107,11 +108,11 @@ def test_bad_inputs_raise_clear_errors():
         GuidanceSettings(variant="magic")
 
 
-def _params(**changes):
+def _params(**changes: object) -> Guidance:
     g = {"eps": [0.5, 0.05], "start_ranges": [60, 40, 20, 10], "lengths": [5, 15], "start": [0.0, 0.0, 60.0],
          "target": [0.0, 0.0, 10.0], "tolerance": 1.0, "max_step": 1.0, "max_steps": 60, "slack_steps": 10, "variant": "paper",
-         "method": "fgsm"}
-    return {**g, **changes}
+         "method": "fgsm", "dynamics": ["paper"], "defenses": ["hold"]}
+    return Guidance(**{**g, **changes})
 
 
 @pytest.mark.parametrize("changes, message", [

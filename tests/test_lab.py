@@ -8,6 +8,7 @@ from pipeline.evaluation.lab import (LabDataError, lab_to_synthetic_factor, lab_
 from pipeline.evaluation.lab_images import domain_shift, segment
 from pipeline.geometry.rotations import euler_to_matrix, matrix_to_quat, quat_to_matrix
 from pipeline.pose.metrics import attitude_error_deg
+from stages.config.schema import Params, build
 
 K_ZED = Intrinsics(1920, 1080, 1400.41, 1400.41, 956.29, 557.258)
 K_SYN = reference_intrinsics()
@@ -207,8 +208,8 @@ def stand_in_models(p):
     from pipeline.io.atomic import file_hash
 
     torch.manual_seed(0)
-    h, w = p["render"]["height"], p["render"]["width"]
-    model = PoseNet(width=p["train"]["width"], dropout=p["train"]["dropout"]).eval()
+    h, w = p.render.height, p.render.width
+    model = PoseNet(width=p.train.width, dropout=p.train.dropout).eval()
     model.set_output_bias((0.0, 0.0, 30.0), (1, 0, 0, 0, 1, 0))
     save_pose("models/pose.pt", model, PoseLoss(), (h, w), {})
     with torch.no_grad():
@@ -233,7 +234,7 @@ def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     p = params_mod.compose("smoke", ["evaluate.frames=12", "lab.frames=6", "evaluate.eps=[0.5,0.05]"])
     params_mod.write_params(p)
-    stand_in_models(p)
+    stand_in_models(build(p))
     runner = CliRunner()
     out = runner.invoke(app, ["evaluate"])
     assert out.exit_code != 0 and "eval_render" in str(out.exception)       # renders not there yet
@@ -283,7 +284,7 @@ def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, mo
                                      "evaluate.eps=[0.5]", "attack.eps=[0.5]", "shap.normal=12", "shap.per_eps=6",
                                      "shap.eps=[0.5]", "shap.background=4", "detect.epochs=2"])
     params_mod.write_params(p)
-    stand_in_models(p)
+    stand_in_models(build(p))
     main_hash = file_hash("models/pose.pt")
     threads = torch.get_num_threads()
     out = CliRunner().invoke(app, ["lab"])
@@ -304,8 +305,8 @@ def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, mo
     assert s["images"] == 13 * 3 and s["size"] == [64, 36] and s["mesh"] is None and s["mesh_scale"] == 1.0
     assert s["seed"] == p["lab"]["seed"] + 700 and set(s["seconds"]) == {"render", "label", "train", "shap", "detect"}
     sub_p = params_mod.load(sub / "params.yaml")            # the same recipe; only the data differ
-    assert sub_p["train"] == p["train"] and sub_p["detect"]["baselines"] == []
-    assert sub_p["render"]["frames_per_sequence"] == 3 and sub_p["render"]["width"] == 64
+    assert sub_p.train == build(p).train and sub_p.detect.baselines == []
+    assert sub_p.render.frames_per_sequence == 3 and sub_p.render.width == 64
     assert (sub / "reports/pose.md").exists() and (sub / "datasets/shap.zarr").is_dir()
     assert (tmp_path / "datasets/lab/seq1/camera.csv").exists()     # the lab recordings
     text = (tmp_path / "reports/lab.md").read_text()
@@ -323,7 +324,7 @@ def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, mo
 ])
 def test_bad_lab_params_are_refused(edit, message):
     from stages.config import params as params_mod
-    from stages.config.schema import ParamsError, build
+    from stages.config.sections import ParamsError
 
     p = params_mod.compose("default")
     p["lab"].update(edit)
@@ -334,22 +335,24 @@ def test_bad_lab_params_are_refused(edit, message):
 def test_when_the_lab_stage_retrains(tmp_path, monkeypatch):
     from stages.config import params as params_mod
     from stages.errors import StageError
+    from stages.config.build import retrain_reason
     from stages.lab_models import sub_params
-    from stages.config.params import retrain_reason
+
+    def typed(profile: str, overrides: list[str] | None = None) -> Params:
+        return build(params_mod.compose(profile, overrides))
 
     monkeypatch.chdir(tmp_path)
-    p = params_mod.compose("default")
-    assert retrain_reason(p) is None                                       # default: the main target, reused
-    assert retrain_reason(params_mod.compose("paper")) == "lab.retrain is always"
+    assert retrain_reason(typed("default")) is None                         # default: the main target, reused
+    assert retrain_reason(typed("paper")) == "lab.retrain is always"
     (tmp_path / "mockup.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0 0.1 0\nf 1 2 3\n")
-    other = params_mod.compose("default", ["lab.mesh=mockup.obj", "lab.mesh_scale=0.001"])
+    other = typed("default", ["lab.mesh=mockup.obj", "lab.mesh_scale=0.001"])
     assert "is not the main target" in retrain_reason(other)                # another mock-up: retrain
     sub = sub_params(other)
-    assert sub["render"]["mesh"] == str(tmp_path / "mockup.obj") and sub["render"]["mesh_scale"] == pytest.approx(0.009)
-    same = params_mod.compose("default", ["render.mesh=mockup.obj", "render.mesh_scale=9", "lab.mesh=mockup.obj"])
+    assert sub.render.mesh == str(tmp_path / "mockup.obj") and sub.render.mesh_scale == pytest.approx(0.009)
+    same = typed("default", ["render.mesh=mockup.obj", "render.mesh_scale=9", "lab.mesh=mockup.obj"])
     assert retrain_reason(same) is None                                     # the main mesh, built at 1/9
     with pytest.raises(StageError, match="lab.mesh: mock-up mesh file missing.obj not found"):
-        retrain_reason(params_mod.compose("default", ["lab.mesh=missing.obj"]))
+        retrain_reason(typed("default", ["lab.mesh=missing.obj"]))
 
 
 def test_a_failing_retrain_step_is_one_clear_error(tmp_path, monkeypatch):
@@ -368,5 +371,5 @@ def test_a_failing_retrain_step_is_one_clear_error(tmp_path, monkeypatch):
     monkeypatch.setattr(lab_models, "run_step", run_step)
     with pytest.raises(StageError, match=r"^lab.retrain \(render on the synthetic-lab set in final/\): params.yaml "
                                          r"render: boom$"):
-        lab_models.retrain(params_mod.compose("smoke", ["lab.retrain=always"]), tmp_path / "sub", Path("final"))
+        lab_models.retrain(build(params_mod.compose("smoke", ["lab.retrain=always"])), tmp_path / "sub", Path("final"))
     assert Path.cwd() == tmp_path

@@ -8,6 +8,7 @@ import pytest
 from pipeline.geometry.rotations import quat_to_6d
 from pipeline.io.errors import DataError
 from stages.config import params as params_mod
+from stages.config.params import load
 from stages.errors import StageError
 from stages.label import build_labels
 
@@ -52,7 +53,7 @@ def test_render_and_label_stages(workdir):
 
     from stages import label, render
 
-    render.main()
+    render.main(load())
     g = zarr.open_group("datasets/render/images.zarr", mode="r")
     images = g["images"]
     assert images.shape == (26, 18, 32, 3) and images.dtype == np.uint8 and images.chunks[0] == 4
@@ -62,7 +63,7 @@ def test_render_and_label_stages(workdir):
     previews = sorted(p.name for p in (workdir / "reports/figures/previews").glob("*.png"))
     assert len(previews) == 3 and "60m" in previews[0] and "10m" in previews[1]
 
-    label.main()
+    label.main(load())
     labels = pd.read_parquet("datasets/labels.parquet")
     assert list(labels.columns) == CONTRACT and len(labels) == 26
     assert labels.tz.max() > 59 and abs(labels.tz.min() - 10) < 0.01
@@ -90,7 +91,7 @@ def test_interrupted_render_leaves_no_dataset(workdir, monkeypatch):
 
     monkeypatch.setattr(scene.Renderer, "render", flaky)
     with pytest.raises(KeyboardInterrupt):
-        render.main()
+        render.main(load())
     assert not (workdir / "datasets/render").exists()
     assert not list((workdir / "datasets").glob(".render*"))  # the temporary folder is gone too
 
@@ -98,7 +99,7 @@ def test_interrupted_render_leaves_no_dataset(workdir, monkeypatch):
     leftover = workdir / "datasets" / ".render.killed.tmp"
     (leftover / "images.zarr").mkdir(parents=True)
     monkeypatch.setattr(scene.Renderer, "render", original)
-    render.main()
+    render.main(load())
     assert not leftover.exists() and (workdir / "datasets/render/meta.json").exists()
 
 
@@ -109,17 +110,17 @@ def test_corrupt_or_missing_store_is_refused(workdir):
     from stages import label, render
 
     with pytest.raises(DataError, match="not found"):
-        label.main()
-    render.main()
+        label.main(load())
+    render.main(load())
     shutil.rmtree("datasets/render/images.zarr/images")
     with pytest.raises(DataError, match="incomplete|corrupt|inconsistent|missing chunk"):
-        label.main()
-    render.main()
+        label.main(load())
+    render.main(load())
     meta = json.loads(open("datasets/render/meta.json").read())
     meta["frames"] = 999
     open("datasets/render/meta.json", "w").write(json.dumps(meta))
     with pytest.raises(DataError, match="inconsistent"):
-        label.main()
+        label.main(load())
 
 
 def test_bad_params(workdir):
@@ -129,7 +130,7 @@ def test_bad_params(workdir):
                           ("render.mesh=/nope/sat.obj", "not found")]:
         params_mod.write_params(params_mod.compose("smoke", [override]))
         with pytest.raises((StageError, ValueError), match=msg):
-            render.main()
+            render.main(load())
         assert not (workdir / "datasets/render").exists()
     with pytest.raises(params_mod.ParamsError, match="unknown profile"):
         params_mod.compose("nosuchprofile")

@@ -4,8 +4,15 @@ from __future__ import annotations
 
 import pytest
 
+import dataclasses
+import hashlib
+import json
+from dataclasses import replace
+
 from stages.config import params as params_mod
-from stages.config.schema import Params, ParamsError, build
+from stages.config.device import torch_device, torch_setup
+from stages.config.schema import Params, build
+from stages.config.sections import ParamsError
 
 
 @pytest.mark.parametrize("profile", params_mod.profiles())
@@ -37,7 +44,7 @@ def test_every_profile_builds_typed_params(profile):
     (("defense", "position_noise", 0.0), r"defense.position_noise must be > 0 \(a noise std\), got 0.0"),
     (("defense", "attitude_noise_deg", -1.0), r"defense.attitude_noise_deg must be > 0"),
     (("defense", "false_alarm", 1.0), r"defense.false_alarm must be a gate probability in \(0, 1\), got 1.0"),
-    (("defense", "false_alarm", 0), r"defense.false_alarm must be a gate probability in \(0, 1\), got 0.0"),
+    (("defense", "false_alarm", 0), r"defense.false_alarm must be a gate probability in \(0, 1\), got 0$"),
     (("defense", "hold_after", 0), r"defense.hold_after must be a whole number >= 1, got 0"),
     (("defense", "fusion", "and"), r"defense.fusion must be one of or, paper, motion"),
     (("defense", "update_below", None), None),
@@ -52,51 +59,72 @@ def test_load_refuses_bad_params_naming_the_key(tmp_path, monkeypatch, edit, mes
     (p if section is None else p[section])[key] = value
     params_mod.write_params(p)
     if message is None:
-        assert params_mod.load() == p
+        assert dataclasses.asdict(params_mod.load()) == p
     else:
         with pytest.raises(ParamsError, match=message):
             params_mod.load()
 
 
-def test_unset_external_inputs_and_workers_leave_the_render_fingerprint_alone():
+def test_unset_external_inputs_leave_the_render_fingerprint_alone():
     """inputs/none (the DVC-dep placeholder) fingerprints like null, so renders made before the
     placeholder existed stay valid; a real mesh or SPEED source changes it."""
-    from stages.config.params import compose, render_fingerprint
+    from stages.config.params import render_fingerprint
 
-    p = compose("smoke")
+    p = build(params_mod.compose("smoke"))
     base = render_fingerprint(p)
-    old = {**p, "render": {k: v for k, v in p["render"].items() if k not in ("source", "source_test")} | {"mesh": None}}
-    assert render_fingerprint(old) == base
-    assert render_fingerprint({**p, "render": {**p["render"], "workers": 7}}) == base
-    assert render_fingerprint({**p, "render": {**p["render"], "mesh": "meshes/sat.obj"}}) != base
-    assert render_fingerprint({**p, "render": {**p["render"], "source": "/data/speedplus"}}) != base
+    assert render_fingerprint(replace(p, render=replace(p.render, mesh=None, source=None))) == base
+    assert render_fingerprint(replace(p, render=replace(p.render, mesh="meshes/sat.obj"))) != base
+    assert render_fingerprint(replace(p, render=replace(p.render, source="/data/speedplus"))) != base
+
+
+def _raw_key(p: dict, *extra: tuple[str, tuple[str, ...]]) -> str:
+    """A fingerprint as it was computed before params were typed: JSON of the params.yaml mapping itself."""
+    r = dict(p["render"])
+    r["mesh"] = params_mod.given(r["mesh"])
+    if params_mod.given(r["source"]) is None:
+        r.pop("source"), r.pop("source_test")
+    key = {"seed": p["seed"], "camera": p["camera"], "render": r} | {s: {k: p[s][k] for k in ks} for s, ks in extra}
+    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+
+
+@pytest.mark.parametrize("profile", params_mod.profiles())
+def test_typed_params_keep_the_yaml_values_and_every_fingerprint(profile):
+    """A whole number where a float is expected stays an int (e.g. guidance.start_ranges [60, 40]): the typed
+    params are the params.yaml mapping, so the fingerprints (JSON of params sub-mappings) and every value
+    echoed into metrics and reports are those of the YAML."""
+    raw = params_mod.compose(profile)
+    p = build(raw)
+    assert dataclasses.asdict(p) == raw and type(p.guidance.start_ranges[0]) is type(raw["guidance"]["start_ranges"][0])
+    assert params_mod.render_fingerprint(p) == _raw_key(raw)
+    assert params_mod.eval_render_fingerprint(p) == _raw_key(
+        raw, ("evaluate", ("trajectories", "frames", "lateral_range", "seed")))
+    assert params_mod.val_render_fingerprint(p) == _raw_key(
+        raw, ("evaluate", ("frames", "lateral_range")), ("defense", ("val_trajectories", "val_seed")))
 
 
 def test_device_param_resolves_in_one_place(monkeypatch):
     """auto -> cpu without a GPU; cuda without one -> one-line StageError; with (faked) GPUs, auto and
-    cuda:N pick one and torchrun's local rank picks its own; a bad value names the param."""
+    cuda:N pick one and torchrun's local rank picks its own (a bad value is refused by the schema)."""
     import torch
 
     from stages.errors import StageError
 
-    p = params_mod.compose("smoke")
+    p = build(params_mod.compose("smoke"))
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    assert params_mod.torch_device({**p, "device": "auto"}) == torch.device("cpu")
-    assert params_mod.torch_device({**p, "device": "cpu"}) == torch.device("cpu")
+    assert torch_device(replace(p, device="auto")) == torch.device("cpu")
+    assert torch_device(replace(p, device="cpu")) == torch.device("cpu")
     for value in ("cuda", "cuda:0"):
         with pytest.raises(StageError, match=rf"^params.yaml device: '{value}' asks for a CUDA GPU but torch \S+ "
                                              r"sees none; set device: auto or cpu$"):
-            params_mod.torch_device({**p, "device": value})
-    with pytest.raises(StageError, match=r"^params.yaml device must be auto, cpu, cuda or cuda:N, got 'tpu'$"):
-        params_mod.torch_device({**p, "device": "tpu"})
+            torch_device(replace(p, device=value))
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
-    assert params_mod.torch_device({**p, "device": "auto"}) == torch.device("cuda", 0)
-    assert params_mod.torch_device({**p, "device": "cuda:1"}) == torch.device("cuda", 1)
-    assert params_mod.torch_device({**p, "device": "cpu"}) == torch.device("cpu")
-    assert params_mod.torch_device({**p, "device": "cuda"}, local_rank=1) == torch.device("cuda", 1)
+    assert torch_device(replace(p, device="auto")) == torch.device("cuda", 0)
+    assert torch_device(replace(p, device="cuda:1")) == torch.device("cuda", 1)
+    assert torch_device(replace(p, device="cpu")) == torch.device("cpu")
+    assert torch_device(replace(p, device="cuda"), local_rank=1) == torch.device("cuda", 1)
     with pytest.raises(StageError, match=r"^params.yaml device: GPU 2 asked for but torch sees 2$"):
-        params_mod.torch_device({**p, "device": "cuda:2"})
+        torch_device(replace(p, device="cuda:2"))
 
 
 def test_threads_param_sets_torch_threads():
@@ -105,12 +133,12 @@ def test_threads_param_sets_torch_threads():
     import torch
 
     before = torch.get_num_threads()
-    p = {**params_mod.compose("smoke"), "device": "cpu"}
+    p = replace(build(params_mod.compose("smoke")), device="cpu")
     try:
-        assert params_mod.torch_setup({**p, "threads": 1}) == torch.device("cpu") and torch.get_num_threads() == 1
-        params_mod.torch_setup({**p, "threads": None})
+        assert torch_setup(replace(p, threads=1)) == torch.device("cpu") and torch.get_num_threads() == 1
+        torch_setup(replace(p, threads=None))
         assert torch.get_num_threads() == (os.cpu_count() or 1)
-        params_mod.torch_setup({**p, "threads": None}, processes=64)
+        torch_setup(replace(p, threads=None), processes=64)
         assert torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(before)

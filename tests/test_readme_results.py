@@ -58,10 +58,12 @@ def test_check_flags_a_stage_report_newer_than_the_page(tmp_path, monkeypatch):
 def test_only_the_default_profile_rewrites_the_readme(tmp_path, monkeypatch):
     """A smoke run (or a sweep) builds its own results page but leaves README.md alone."""
     from stages import report
+    from stages.config import params as params_mod
+    from stages.config.schema import build
 
     monkeypatch.chdir(tmp_path)
     (tmp_path / "README.md").write_text("# rpodguard\n")
-    monkeypatch.setattr(report.params_mod, "load", lambda: {"profile_name": "smoke"})
+    monkeypatch.setattr(report, "load", lambda: build(params_mod.compose("smoke")))
     monkeypatch.setattr(report, "_load_metrics", lambda: {})
     monkeypatch.setattr(report, "_write_figures", lambda metrics: [])
     monkeypatch.setattr(report, "build_page", lambda m, p, f: replace_block("# results\n", "results", "smoke table"))

@@ -17,6 +17,7 @@ from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
 from pipeline.pose.loss import PoseLoss
 from pipeline.evaluation.robustness import attack_row, corruption_row, worst_by_eps, worst_over_lambda
 from pipeline.shap import ExactShap
+from stages.config.params import load
 
 D = 16
 
@@ -238,7 +239,8 @@ def _params() -> dict:
     ("corruptions", {"fog": [1]}, r"unknown parameter 'robustness\.corruptions\.fog'"),
 ])
 def test_bad_params_stop_with_one_message(key: str, value: object, match: str) -> None:
-    from stages.config.schema import ParamsError, build
+    from stages.config.schema import build
+    from stages.config.sections import ParamsError
 
     p = _params()
     build(p)
@@ -253,7 +255,7 @@ def test_schema_attack_names_are_the_librarys() -> None:
     import typing
 
     from pipeline.attacks.gradient import ATTACKS, LOSSES
-    from stages.config.schema import AttackLoss, AttackMethod
+    from stages.config.evaluation import AttackLoss, AttackMethod
 
     assert typing.get_args(AttackMethod) == tuple(ATTACKS)
     assert typing.get_args(AttackLoss) == tuple(LOSSES)
@@ -263,19 +265,19 @@ def test_train_surrogate_writes_only_its_checkpoint_with_its_own_seed(tmp_path, 
     from test_training import write_dataset
 
     from pipeline.formats.models import read_pose
-    from stages.artifacts import checkpoint
-    from stages.train import SURROGATE, main
+    from stages.artifacts.paths import POSE, SURROGATE
+    from stages.train import main
 
     monkeypatch.chdir(tmp_path)
     torch.set_num_threads(1)
     write_dataset(tmp_path, overrides=["robustness.surrogate_seed=5", "robustness.surrogate_epochs=1"])
-    main(surrogate=True)
-    assert SURROGATE.exists() and not checkpoint.POSE.exists()
+    main(load(), surrogate=True)
+    assert SURROGATE.exists() and not POSE.exists()
     assert not any(Path(p).exists() for p in ("reports/pose.md", "reports/metrics/train.json", "dvclive/train"))
     surrogate = read_pose(SURROGATE)
     assert surrogate["meta"]["epoch"] == 1
-    main(surrogate=False)
-    ours = read_pose(checkpoint.POSE)
+    main(load(), surrogate=False)
+    ours = read_pose(POSE)
     assert not torch.equal(ours["model"]["head_pos.weight"], surrogate["model"]["head_pos.weight"])
 
 

@@ -1,6 +1,7 @@
 """SPEED / SPEED+ interop: the label and camera formats (pipeline/formats/speed.py), the import as `rpod render`'s
 output, `rpod export speed`, and one clear error per kind of bad input."""
 import json
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -12,6 +13,7 @@ from pipeline.geometry.rotations import normalize_quat, quat_to_matrix
 from pipeline.formats.speed import SPEED_CAMERA, camera_from_json, camera_to_json, from_speed, to_speed
 from stages.config import params as params_mod
 from pipeline.io.errors import DataError
+from stages.config.params import load
 
 SIZE = (48, 30)                                        # source images, Nu x Nv (16:10 like SPEED+)
 K_SRC = Intrinsics(*SIZE, 60.0, 60.0, 24.0, 15.0)
@@ -107,8 +109,8 @@ def project(tmp_path, monkeypatch):
 def render_and_label():
     from stages import label, render
 
-    render.main()
-    label.main()
+    render.main(load())
+    label.main(load())
     return pd.read_parquet("datasets/labels.parquet")
 
 
@@ -159,7 +161,7 @@ def test_speed_layout_resized_with_scaled_k(project):
     assert np.allclose(meta["K"], K_SRC.scaled(24, 15).K) and meta["frames"] == 6 and meta["width"] == 24
     assert meta["source"]["train"] == "train.json"
     assert pd.read_parquet(root / "store/poses.parquet")["filename"].iloc[-1] == "images/test/test001.png"
-    speed_io.import_source({**p, "render": {**p["render"], "width": 64, "height": 36}}, root / "store")  # upscaled
+    speed_io.import_source(replace(p, render=replace(p.render, width=64, height=36)), root / "store")  # upscaled
     assert json.loads((root / "store/meta.json").read_text())["width"] == 64
 
 

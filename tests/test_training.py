@@ -1,7 +1,9 @@
 """The train stage on a tiny synthetic dataset: data checks, checkpoints, the loop, the report."""
 from __future__ import annotations
 
+import dataclasses
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +20,10 @@ from stages.artifacts import checkpoint, data
 from pipeline.io.atomic import write_json
 from pipeline.io.errors import DataError
 from pipeline.io.store import create_array, seal_zarr
+from stages.artifacts.paths import POSE
 from stages.config import params as params_mod
+from stages.config.params import load
+from stages.config.schema import build
 from stages.errors import StageError
 
 W, H = 48, 27
@@ -51,9 +56,10 @@ def write_dataset(root: Path, n: int = 40, width: int = W, height: int = H, seed
     labels.to_parquet(root / "datasets/labels.parquet")
     params = params_mod.compose("smoke", [f"render.width={width}", f"render.height={height}", *(overrides or [])])
     params_mod.write_params(params, root / "params.yaml")
+    typed = build(params)
     write_json(root / "datasets/render/meta.json", {"complete": True, "frames": n,
-                                                    "fingerprint": params_mod.render_fingerprint(params)})
-    return params
+                                                    "fingerprint": params_mod.render_fingerprint(typed)})
+    return typed
 
 
 @pytest.fixture
@@ -94,7 +100,7 @@ def test_bad_labels_are_refused_clearly(dataset, edit, message):
 
 
 def test_image_size_mismatch_is_refused(dataset):
-    dataset["render"]["width"] = 64
+    dataset = replace(dataset, render=replace(dataset.render, width=64))
     with pytest.raises(StageError, match="48x27 pixels but params.yaml has render.width x render.height = 64x27"):
         data.load_split(dataset, "train")
 
@@ -103,7 +109,7 @@ def test_checkpoint_round_trip_and_mismatch_refusal(dataset, tmp_path):
     from pipeline.pose.loss import PoseLoss
     from pipeline.pose.model import PoseNet
 
-    model, loss = PoseNet(dataset["train"]["width"], dataset["train"]["dropout"]).eval(), PoseLoss()
+    model, loss = PoseNet(dataset.train.width, dataset.train.dropout).eval(), PoseLoss()
     with torch.no_grad():
         loss.s_p.fill_(0.7)
     path = tmp_path / "models/pose.pt"
@@ -113,10 +119,10 @@ def test_checkpoint_round_trip_and_mismatch_refusal(dataset, tmp_path):
     x = torch.rand(2, 3, H, W)
     torch.testing.assert_close(loaded(x), model(x))
     assert checkpoint.load_pose_loss(path, dataset).s_p.item() == pytest.approx(0.7)
-    wider = {**dataset, "train": {**dataset["train"], "width": 0.5}}
+    wider = replace(dataset, train=replace(dataset.train, width=0.5))
     with pytest.raises(StageError, match=r"does not match params.yaml: width=0.125 \(params: 0.5\)"):
         checkpoint.load_pose_model(path, wider)
-    bigger = {**dataset, "render": {**dataset["render"], "height": 54, "width": 96}}
+    bigger = replace(dataset, render=replace(dataset.render, height=54, width=96))
     with pytest.raises(StageError, match=r"input_size HxW=\[27, 48\] \(params: \[54, 96\]\)"):
         checkpoint.read_checked(path, bigger)
     path.write_bytes(b"not a checkpoint")
@@ -134,7 +140,7 @@ def test_fit_improves_and_tracks_the_best_epoch(dataset):
     model.set_output_bias(train.targets[:, :3].mean(0), train.targets[:, 3:].mean(0))
     seen = []
     cfg = TrainConfig(epochs=4, batch_size=8, lr_base=1e-4, lr_max=2e-3, cycle_epochs=2)
-    result = fit(model, PoseLoss(), data.pose_dataset(train, dataset["train"]["augment"]), data.pose_dataset(test), cfg,
+    result = fit(model, PoseLoss(), data.pose_dataset(train, dataset.train.augment), data.pose_dataset(test), cfg,
                  on_epoch=lambda stats, best, net: seen.append((stats.epoch, best)), progress=False)
     assert [e for e, _ in seen] == [1, 2, 3, 4] and len(result.history) == 4
     scores = [h.val_score for h in result.history]
@@ -158,14 +164,14 @@ def test_time_limit_stops_between_epochs(dataset):
 def test_train_stage_writes_checkpoint_report_and_metrics(dataset):
     from stages.train import main
 
-    main()
+    main(load())
     metrics = json.loads(Path("reports/metrics/train.json").read_text())
-    assert metrics["epochs_run"] == dataset["train"]["epochs"] and metrics["processes"] == 1
+    assert metrics["epochs_run"] == dataset.train.epochs and metrics["processes"] == 1
     assert metrics["test"]["n"] == 8 and metrics["train"]["n"] + metrics["val"]["n"] == 32 and metrics["val"]["n"] == 3
     assert sum(b["n"] for b in metrics["test"]["bins"]) == 8
     report = Path("reports/pose.md").read_text()
     assert "0.490" in report and "Guidance requirements" in report and "60-45" in report
-    model = checkpoint.load_pose_model(checkpoint.POSE, params_mod.load())
+    model = checkpoint.load_pose_model(POSE, params_mod.load())
     assert model(torch.rand(1, 3, H, W)).shape == (1, 9)
     assert Path("dvclive/train/plots/metrics/val_pos_m.tsv").exists()
 
@@ -177,12 +183,12 @@ def test_test_split_is_read_only_after_training(dataset, monkeypatch):
     from stages import train
 
     events: list[tuple[str, object]] = []
-    load, real_fit = data.load_split, pipeline.pose.train.fit
-    test_targets = {tuple(t) for t in load(dataset, "test").targets}
+    load_split, real_fit = data.load_split, pipeline.pose.train.fit
+    test_targets = {tuple(t) for t in load_split(dataset, "test").targets}
 
     def recording_load(params, split, **kw):
         events.append(("load", split))
-        return load(params, split, **kw)
+        return load_split(params, split, **kw)
 
     def recording_fit(model, loss, train_set, val_set, *args, **kw):
         events.append(("fit", (len(train_set), len(val_set))))
@@ -194,7 +200,7 @@ def test_test_split_is_read_only_after_training(dataset, monkeypatch):
 
     monkeypatch.setattr(data, "load_split", recording_load)
     monkeypatch.setattr(pipeline.pose.train, "fit", recording_fit)
-    train.main()
+    train.main(load())
     assert events[:2] == [("load", "train"), ("fit", (29, 3))]
     assert events.index(("load", "test")) > events.index(("fit done", None))
 
@@ -206,8 +212,8 @@ def test_training_is_reproducible_bit_for_bit(dataset):
 
     weights = []
     for _ in range(2):
-        train.main()
-        weights.append(torch.load(checkpoint.POSE, weights_only=False))
+        train.main(load())
+        weights.append(torch.load(POSE, weights_only=False))
     a, b = (w["model"] for w in weights)
     assert a.keys() == b.keys()
     for k in a:
@@ -254,11 +260,10 @@ def test_train_stage_on_the_cpu_device_and_a_missing_gpu_in_one_line(tmp_path, m
     monkeypatch.chdir(tmp_path)
     torch.set_num_threads(1)
     write_dataset(tmp_path, overrides=["device=cpu"])
-    train.main()
+    train.main(load())
     assert json.loads(Path("reports/metrics/train.json").read_text())["device"] == "cpu"
     capsys.readouterr()                      # the training run's own output
-    p = params_mod.load()
-    params_mod.write_params({**p, "device": "cuda"})
+    params_mod.write_params({**dataclasses.asdict(params_mod.load()), "device": "cuda"})
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     monkeypatch.setitem(cli._DEBUG, "on", False)
     for stage in ("train", "attack"):

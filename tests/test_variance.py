@@ -86,12 +86,14 @@ def test_readme_results_show_the_spread_of_each_headline_number():
 
 def test_a_spread_of_another_profile_is_not_shown(tmp_path, monkeypatch):
     from stages import report
+    from stages.config.params import compose
+    from stages.config.schema import build
 
     monkeypatch.chdir(tmp_path)
     (tmp_path / "reports").mkdir()
     (tmp_path / "reports" / "variance.json").write_text(json.dumps({"profile": "default", "seeds": [], "numbers": {}}))
-    assert report._spread({"profile_name": "smoke"}) is None
-    assert report._spread({"profile_name": "default"})["profile"] == "default"
+    assert report._spread(build(compose("smoke"))) is None
+    assert report._spread(build(compose("default")))["profile"] == "default"
 
 
 def test_the_spread_covers_every_summary_json_number():

@@ -5,18 +5,18 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.formats.models import loss_from_checkpoint, model_from_checkpoint, read_pose
+from stages.artifacts.paths import POSE
+from stages.config.schema import Params
 from stages.errors import StageError
 
-POSE = Path("models/pose.pt")
 
-
-def expected(params: dict[str, Any]) -> dict[str, Any]:
+def expected(params: Params) -> dict[str, Any]:
     """The architecture and input size that params.yaml asks for."""
-    return {"arch": {"width": float(params["train"]["width"]), "dropout": float(params["train"]["dropout"])},
-            "input_size": [int(params["render"]["height"]), int(params["render"]["width"])]}
+    return {"arch": {"width": float(params.train.width), "dropout": float(params.train.dropout)},
+            "input_size": [params.render.height, params.render.width]}
 
 
-def read_checked(path: Path | str = POSE, params: dict[str, Any] | None = None) -> dict[str, Any]:
+def read_checked(path: Path | str = POSE, params: Params | None = None) -> dict[str, Any]:
     """A pose checkpoint dict (`read_pose`); with params, refuse an architecture/input-size mismatch."""
     path = Path(path)
     ckpt = read_pose(path)
@@ -32,11 +32,11 @@ def read_checked(path: Path | str = POSE, params: dict[str, Any] | None = None) 
     return ckpt
 
 
-def load_pose_model(path: Path | str = POSE, params: dict[str, Any] | None = None, device: str = "cpu") -> Any:
+def load_pose_model(path: Path | str = POSE, params: Params | None = None, device: str = "cpu") -> Any:
     """The PoseNet of a checkpoint file, in eval mode on `device` (checked against params when given)."""
     return model_from_checkpoint(read_checked(path, params), device)
 
 
-def load_pose_loss(path: Path | str = POSE, params: dict[str, Any] | None = None) -> Any:
+def load_pose_loss(path: Path | str = POSE, params: Params | None = None) -> Any:
     """The PoseLoss with the learned weights s_p, s_r of a checkpoint file."""
     return loss_from_checkpoint(read_checked(path, params))

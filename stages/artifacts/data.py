@@ -15,14 +15,16 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.pose.labels import POSITION, QUAT, SIXD
-from stages.artifacts.readers import LABELS, RENDER
 from pipeline.formats.renders import read_renders
 from pipeline.io.tables import read_parquet
+from pipeline.pose.labels import POSITION, QUAT, SIXD
+from stages.artifacts.paths import IMAGES, LABELS
+from stages.config.build import augment_config
 from stages.errors import StageError
 from stages.config.params import check_render_fingerprint
+from stages.config.schema import Params
+from stages.config.sections import Augment
 
-IMAGES = RENDER / "images.zarr"
 REQUIRED = ["index", *POSITION, *QUAT, *SIXD, "range", "split"]
 # Above this many bytes a split is read from the store item by item instead of into memory.
 PRELOAD_LIMIT_BYTES = 8 << 30
@@ -84,7 +86,7 @@ def load_labels(path: Path | str = LABELS) -> pd.DataFrame:
     return df
 
 
-def open_images(params: dict[str, Any], path: Path | str = IMAGES) -> Any:
+def open_images(params: Params, path: Path | str = IMAGES) -> Any:
     """The zarr array `images` (N, H, W, 3) uint8 of the render folder holding `path` (FOLDER/images.zarr,
     or the store its meta.json names; pipeline.formats.renders), checked against render.width x
     render.height and the render params' fingerprint."""
@@ -93,7 +95,7 @@ def open_images(params: dict[str, Any], path: Path | str = IMAGES) -> Any:
     arr, meta = renders.images, renders.meta
     if arr.ndim != 4 or arr.shape[3] != 3 or arr.dtype != np.uint8:
         raise StageError(f"{path}/images must be uint8 (N, H, W, 3), got {arr.dtype} {tuple(arr.shape)}")
-    h, w = params["render"]["height"], params["render"]["width"]
+    h, w = params.render.height, params.render.width
     if arr.shape[1:3] != (h, w):
         raise StageError(f"{path}/images are {arr.shape[2]}x{arr.shape[1]} pixels but params.yaml has "
                          f"render.width x render.height = {w}x{h} (re-run `rpod render`, or fix params)")
@@ -101,7 +103,7 @@ def open_images(params: dict[str, Any], path: Path | str = IMAGES) -> Any:
     return arr
 
 
-def load_split(params: dict[str, Any], split: str, *, images_path: Path | str = IMAGES,
+def load_split(params: Params, split: str, *, images_path: Path | str = IMAGES,
                labels_path: Path | str = LABELS, preload: bool | None = None) -> Split:
     """Rows of `split` ("train" or "test") with their images; `preload` None = when it fits in memory."""
     from tqdm import tqdm
@@ -136,35 +138,26 @@ def subset(split: Split, rows: np.ndarray, name: str) -> Split:
     return Split(name, split.labels.iloc[rows].reset_index(drop=True), images)
 
 
-def pose_dataset(split: Split, augment: dict[str, Any] | None = None, seed: int = 0):
+def pose_dataset(split: Split, augment: Augment | None = None, seed: int = 0) -> Any:
     """A `pipeline.pose.train.PoseDataset` over a split; `augment` = the train.augment params (or None)."""
-    from pipeline.pose.augment import AugmentConfig
     from pipeline.pose.train import PoseDataset
 
-    cfg = None
-    if augment is not None:
-        try:
-            cfg = AugmentConfig(p=augment["p"], blur_sigma=tuple(augment["blur_sigma"]),
-                                noise_std=tuple(augment["noise_std"]), jpeg_quality=tuple(augment["jpeg_quality"]),
-                                brightness=tuple(augment["brightness"]))
-        except (KeyError, TypeError, ValueError) as e:
-            raise StageError(f"params.yaml: bad train.augment ({e})") from None
-    return PoseDataset(split.images, split.targets, cfg, seed)
+    return PoseDataset(split.images, split.targets, None if augment is None else augment_config(augment), seed)
 
 
-def training_sets(params: dict[str, Any], seed: int) -> tuple[tuple[Any, Any, Any], tuple[Any, Any]]:
+def training_sets(params: Params, seed: int) -> tuple[tuple[Any, Any, Any], tuple[Any, Any]]:
     """((fit split, its augmented dataset, its plain dataset), (validation split, its dataset))."""
     train_split, val_split = fit_and_validation_splits(params, seed)
-    return ((train_split, pose_dataset(train_split, params["train"]["augment"], seed=seed),
+    return ((train_split, pose_dataset(train_split, params.train.augment, seed=seed),
              pose_dataset(train_split)), (val_split, pose_dataset(val_split)))
 
 
-def fit_and_validation_splits(params: dict[str, Any], seed: int) -> tuple[Any, Any]:
+def fit_and_validation_splits(params: Params, seed: int) -> tuple[Any, Any]:
     """The labelled training split cut into the frames `fit` trains on and the validation frames
     (`train.val_fraction` of whole frames, seeded) the checkpoint is selected on; the test split is not read."""
     from pipeline.evaluation.splits import holdout
 
-    labelled, fraction = load_split(params, "train"), params["train"]["val_fraction"]
+    labelled, fraction = load_split(params, "train"), params.train.val_fraction
     try:
         fit_rows, val_rows = holdout(labelled.labels["index"].to_numpy(), float(fraction), seed)
     except ValueError as e:

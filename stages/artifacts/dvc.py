@@ -10,8 +10,8 @@ from typing import Any
 
 from pipeline.io.atomic import write_json
 from pipeline.io.errors import GENERIC_HINT
+from stages.artifacts.paths import DVC_YAML
 
-DVC_YAML = Path(__file__).resolve().parents[2] / "dvc.yaml"
 
 
 @functools.cache
@@ -47,8 +47,8 @@ def make_hint(path: Path | str) -> str:
     return f"run `dvc repro {stage}` (or `{dvc_stages()[stage]['cmd']}`)"
 
 
-def write_metrics(path: Path | str, metrics: dict[str, Any], params: dict[str, Any]) -> None:
-    """Write a stage's metrics JSON stamped with the params profile it ran on and the UTC time."""
-    stamp = {"profile": params.get("profile_name", "unknown"),
+def write_metrics(path: Path | str, metrics: dict[str, Any], profile: str) -> None:
+    """Write a stage's metrics JSON stamped with the params profile it ran on (`profile_name`) and the UTC time."""
+    stamp = {"profile": profile,
              "produced": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
     write_json(path, {**metrics, **stamp})

@@ -1,6 +1,6 @@
-"""Where every DVC artifact lives, and the loaders the stages share (one place for paths and formats).
+"""The loaders the stages share (the paths they read: stages/artifacts/paths.py).
 
-Paths are relative to the working folder (the repository root under `dvc repro`). Loaders check what
+Paths are in stages/artifacts/paths.py. Paths are relative to the working folder (the repository root under `dvc repro`). Loaders check what
 they read and raise a DataError (or StageError) naming the file and the stage that writes it:
 - `read_render_store` (render output), `read_eval_render` (eval_render output, the evaluation or the
   defense's validation trajectories, checked against params), `load_defense` (calibrate output), `load_pose` (pose model, attack loss and file hash from one read of models/pose.pt),
@@ -10,8 +10,6 @@ they read and raise a DataError (or StageError) naming the file and the stage th
 """
 from __future__ import annotations
 
-import hashlib
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
@@ -22,25 +20,15 @@ from pipeline.formats.models import loss_from_checkpoint, model_from_checkpoint
 from pipeline.formats.renders import read_renders
 from pipeline.io.atomic import file_hash, read_json
 from pipeline.io.store import open_zarr
-from stages.artifacts.checkpoint import POSE, read_checked
+from stages.artifacts.checkpoint import read_checked
+from stages.artifacts.data import load_split
+from stages.artifacts.paths import ADV, DEFENSE, DETECTOR, EVAL_RENDER, POSE, VAL_RENDER
+from stages.config.build import defense_settings
+from stages.config.params import eval_render_fingerprint, val_render_fingerprint
+from stages.config.schema import Params
 from stages.errors import StageError
-from stages.config.params import render_key
 
-RENDER = Path("datasets/render")
-LABELS = Path("datasets/labels.parquet")
-ADV = Path("datasets/attack/adv.zarr")
-SHAP = Path("datasets/shap.zarr")
-EVAL_RENDER = Path("datasets/eval_render")
-VAL_RENDER = Path("datasets/val_render")
-DEFENSE = Path("models/defense.json")
 DEFENSE_FORMAT = "rpodguard-defense/1"
-LAB = Path("datasets/lab")
-LAB_MODELS = Path("datasets/lab_models")
-LAB_MODELS_SUMMARY = LAB_MODELS / "summary.json"
-TRAIN_METRICS = Path("reports/metrics/train.json")
-DETECTOR = Path("models/detector.pt")
-SURROGATE = Path("models/surrogate.pt")   # a second pose model (`rpod train --surrogate`) for black-box transfer
-ROC_DIR = Path("reports/plots/roc")
 SPLIT_CODES = {"train": 0, "test": 1}   # `split` codes of the SHAP store
 BATCH = 64                              # images per forward pass when rebuilding SHAP sample images
 
@@ -68,17 +56,17 @@ class Pose:
     meta: dict[str, Any]
 
 
-def load_pose(params: dict[str, Any], path: Path | str = POSE) -> Pose:
+def load_pose(params: Params, path: Path | str = POSE) -> Pose:
     """models/pose.pt read once, checked against params (architecture, input size), the network placed on
     the `device` param's device (with `amp`); it takes inputs from any device and answers on theirs."""
-    from stages.config.params import torch_device
+    from stages.config.device import torch_device
 
     ckpt = read_checked(path, params)
-    model = model_from_checkpoint(ckpt, torch_device(params), bool(params["amp"]))
+    model = model_from_checkpoint(ckpt, torch_device(params), params.amp)
     return Pose(model, loss_from_checkpoint(ckpt), file_hash(path), dict(ckpt.get("meta", {})))
 
 
-def load_chain(params: dict[str, Any], pose_path: Path | str = POSE,
+def load_chain(params: Params, pose_path: Path | str = POSE,
                detector_path: Path | str = DETECTOR) -> tuple[Any, Any, str]:
     """(OnboardChain, attack loss function on `attack.loss`, pose model hash) from a pose model and its detector."""
     from pipeline.attacks.gradient import attack_loss
@@ -86,27 +74,10 @@ def load_chain(params: dict[str, Any], pose_path: Path | str = POSE,
 
     pose = load_pose(params, pose_path)
     chain = load_onboard_chain(pose.model, pose.hash, pose_path, detector_path)
-    return chain, attack_loss(params["attack"]["loss"], pose.loss), pose.hash
+    return chain, attack_loss(params.attack.loss, pose.loss), pose.hash
 
 
-def eval_render_fingerprint(p: dict[str, Any]) -> str:
-    """Hash of the params that decide the `eval_render` images (so a stale render is refused)."""
-    e = p["evaluate"]
-    key = {"seed": p["seed"], "camera": p["camera"], "render": render_key(p),
-           "evaluate": {k: e[k] for k in ("trajectories", "frames", "lateral_range", "seed")}}
-    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
-
-
-def val_render_fingerprint(p: dict[str, Any]) -> str:
-    """Hash of the params that decide the defense's validation images (datasets/val_render)."""
-    e, d = p["evaluate"], p["defense"]
-    key = {"seed": p["seed"], "camera": p["camera"], "render": render_key(p),
-           "evaluate": {k: e[k] for k in ("frames", "lateral_range")},
-           "defense": {k: d[k] for k in ("val_trajectories", "val_seed")}}
-    return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
-
-
-def read_eval_render(p: dict[str, Any], validation: bool = False) -> tuple[np.ndarray, Any, dict[str, Any]]:
+def read_eval_render(p: Params, validation: bool = False) -> tuple[np.ndarray, Any, dict[str, Any]]:
     """The `eval_render` output: (images (N, H, W, 3) uint8, poses table, meta), checked against the
     current params; the evaluation trajectories, or with `validation` the defense's (datasets/val_render)."""
     folder, fingerprint = (VAL_RENDER, val_render_fingerprint(p)) if validation else (EVAL_RENDER,
@@ -153,21 +124,7 @@ class DefenseModel:
         return Defense(s, self.motion, self.noise)
 
 
-def defense_settings(p: dict[str, Any], threshold: float) -> tuple[Any, Any]:
-    """(DefenseSettings, MotionSettings) of params.defense with the detector's `threshold`."""
-    from pipeline.defense.fusion import DefenseSettings
-    from pipeline.defense.gate import MotionSettings
-
-    d = p["defense"]
-    try:
-        return (DefenseSettings(d["fusion"], d["hold_after"], d["release_after"], threshold, d["update_below"]),
-                MotionSettings(d["position_noise"], d["velocity_noise"], d["attitude_noise_deg"],
-                               d["attitude_rate_noise_deg"], d["false_alarm"], d["soft_gate"], d["reacquire_after"]))
-    except ValueError as e:
-        raise StageError(f"params.yaml: {e}") from None
-
-
-def load_defense(p: dict[str, Any], model_hash: str, threshold: float) -> DefenseModel:
+def load_defense(p: Params, model_hash: str, threshold: float) -> DefenseModel:
     """models/defense.json checked against the pose model and detector it was calibrated with, and params."""
     from pipeline.defense.noise import NoiseModel
 
@@ -180,7 +137,7 @@ def load_defense(p: dict[str, Any], model_hash: str, threshold: float) -> Defens
         noise = NoiseModel(**{k: tuple(v) if isinstance(v, list) else v for k, v in cal["noise"].items()})
     except (KeyError, TypeError, ValueError) as e:
         raise StageError(f"{DEFENSE}: bad noise model ({e}); re-run `rpod calibrate`") from None
-    settings, motion = defense_settings(p, threshold)
+    settings, motion = defense_settings(p.defense, threshold)
     return DefenseModel(settings, motion, noise, cal)
 
 
@@ -230,9 +187,7 @@ class SampleImages:
     """The image of a SHAP sample (split, label index, eps): the two pose splits, the model and attack
     loss for FGSM, and the usable arrays of adv.zarr (FGSM by this pose model on `attack.loss`)."""
 
-    def __init__(self, params: dict[str, Any], model: Any, loss_fn: Any, model_hash: str):
-        from stages.artifacts.data import load_split
-
+    def __init__(self, params: Params, model: Any, loss_fn: Any, model_hash: str):
         self.model, self.loss_fn = model, loss_fn
         self.splits = {name: load_split(params, name) for name in SPLIT_CODES}
         self.row_of = {name: {int(ix): r for r, ix in enumerate(sp.labels["index"].to_numpy())}
@@ -247,7 +202,7 @@ class SampleImages:
                 self.stack_note = f"adv.zarr was made with {attrs.get('method')!r}, not FGSM"
             elif attrs.get("model_hash") != model_hash:
                 self.stack_note = "adv.zarr was made with another pose checkpoint"
-            elif attrs.get("loss") != params["attack"]["loss"]:
+            elif attrs.get("loss") != params.attack.loss:
                 self.stack_note = f"adv.zarr attacked the {attrs.get('loss')!r} loss, not attack.loss"
             else:
                 self.stack = {_key(e): root[adv_array_name(e)] for e in attrs.get("eps", [])

@@ -13,9 +13,9 @@ is scaled with it; each image is one sequence, so the grouped splits downstream 
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -25,6 +25,7 @@ from pipeline.formats.speed_folder import TEST, TRAIN, image_path, read_camera, 
 from pipeline.io.atomic import atomic_dir, remove_stale_temps, write_json
 from pipeline.io.store import create_array
 from pipeline.io.tables import write_parquet
+from stages.config.schema import Params
 from stages.errors import StageError
 
 
@@ -38,21 +39,21 @@ def labels_file(folder: Path, names: tuple[str, ...], given: str | None, what: s
     return found[0]
 
 
-def import_source(p: dict[str, Any], out: Path) -> None:
+def import_source(p: Params, out: Path) -> None:
     """Import the SPEED/SPEED+ folder of render.source into `out` (images.zarr, poses.parquet with a
     `split` and `filename` column, meta.json with K scaled to render.width x height), atomically."""
     import pandas as pd
     import zarr
     from tqdm import tqdm
 
-    r = p["render"]
-    folder = Path(str(params_mod.given(r["source"])))
+    r = p.render
+    folder = Path(str(params_mod.given(r.source)))
     if not folder.is_dir():
         raise StageError(f"params.yaml render.source: {folder} is not a folder")
     train = labels_file(folder, TRAIN, None, "training")
-    test = labels_file(folder, TEST, r["source_test"], "test")
+    test = labels_file(folder, TEST, r.source_test, "test")
     cam = read_camera(folder, speed_layout=train.parent == folder)
-    W, H = int(r["width"]), int(r["height"])
+    W, H = r.width, r.height
     K = cam.scaled(W, H)
     if abs(W / H - cam.width / cam.height) > 0.01 * W / H:
         print(f"render.source: {cam.width}x{cam.height} images resized to {W}x{H} change the aspect; "
@@ -61,7 +62,7 @@ def import_source(p: dict[str, Any], out: Path) -> None:
     names = [image_path(f, n) for _, f, ns, _, _ in parts for n in ns]
     t = np.concatenate([x[3] for x in parts])
     q = np.concatenate([x[4] for x in parts])
-    n, chunk = len(names), int(r["chunk"])
+    n, chunk = len(names), r.chunk
     for d in remove_stale_temps(out):
         print(f"removed {d}, left over from an interrupted run")
     t0 = time.perf_counter()
@@ -78,7 +79,7 @@ def import_source(p: dict[str, Any], out: Path) -> None:
         seconds = time.perf_counter() - t0
         write_json(tmp / "meta.json", {
             "complete": True, "fingerprint": params_mod.render_fingerprint(p), "frames": n, "width": W,
-            "height": H, "K": K.K, "render": r, "seed": p["seed"], "seconds": seconds,
+            "height": H, "K": K.K, "render": dataclasses.asdict(r), "seed": p.seed, "seconds": seconds,
             "seconds_per_image": seconds / n, "chunk": chunk,
             "camera": {"ref_width": cam.width, "ref_height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
                        "cy": cam.cy},

@@ -11,14 +11,15 @@ from typing import Any
 import numpy as np
 
 from stages.artifacts.readers import load_pose
-from stages.config import params as params_mod
+from stages.config.build import make_attack
+from stages.config.schema import Params
 
 
 @dataclass(frozen=True)
 class AttackSetup:
     """What one AttackWorker holds: the pose model and the attack settings."""
 
-    params: dict[str, Any]     # the params mapping (the pose model's device and `attack` section)
+    params: Params     # typed params (the pose model's device and `attack` section)
     pose_path: str             # models/pose.pt as an absolute path (a worker may run elsewhere)
     eps: tuple[float, ...]     # L-inf budgets, in units of the [0, 1] pixel range
     batch: int                 # images per job (the last may hold fewer)
@@ -48,15 +49,15 @@ class AttackWorker:
         if setup.torch_threads:
             torch.set_num_threads(setup.torch_threads)
         pose = load_pose(setup.params, setup.pose_path)
-        self.model, self.loss_fn = pose.model.eval(), attack_loss(setup.params["attack"]["loss"], pose.loss)
-        self.a, self.seed, self.eps_list, self.batch = setup.params["attack"], setup.seed, setup.eps, setup.batch
+        self.model, self.loss_fn = pose.model.eval(), attack_loss(setup.params.attack.loss, pose.loss)
+        self.a, self.seed, self.eps_list, self.batch = setup.params.attack, setup.seed, setup.eps, setup.batch
 
     def run(self, job: AttackBatch) -> dict[str, Any]:
         import torch
 
         from pipeline.attacks.gradient import quantize
 
-        attack = params_mod.make_attack(self.a, self.a["method"], self.seed + job.first // self.batch)
+        attack = make_attack(self.a, self.a.method, self.seed + job.first // self.batch)
         x = torch.from_numpy(job.images).to(self.model.device).permute(0, 3, 1, 2).float() / 255   # uint8 over the bus
         y = job.labels.to(self.model.device)
         with torch.no_grad():

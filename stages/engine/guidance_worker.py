@@ -10,14 +10,15 @@ from dataclasses import dataclass
 from typing import Any
 
 from stages.artifacts.readers import load_chain
-from stages.config import params as params_mod
+from stages.config.build import make_attack
+from stages.config.schema import Params
 
 
 @dataclass(frozen=True)
 class GuidanceSetup:
     """What one GuidanceWorker holds: the camera, the scene, the chain's model files and the grid."""
 
-    params: dict[str, Any]     # the params mapping (device, `attack` section and `guidance.method`)
+    params: Params     # typed params (device, `attack` section and `guidance.method`)
     K: Any                     # pipeline.geometry.camera.Intrinsics: the pose model's input size (pixels)
     scene: Any                 # pipeline.render.scene.SceneSettings, checked by stages.engine.chunks.prepare
     pose_path: str             # models/pose.pt as an absolute path (a worker may run elsewhere)
@@ -57,10 +58,10 @@ class GuidanceWorker:
 
             torch.set_num_threads(setup.torch_threads)
         chain, loss_fn, _ = load_chain(setup.params, setup.pose_path, setup.detector_path)
-        a, method, seed = setup.params["attack"], setup.params["guidance"]["method"], setup.seed
+        a, method, seed = setup.params.attack, setup.params.guidance.method, setup.seed
 
         def attack_at(eps: float, i: int) -> Any:
-            return stored_attack(chain.model, loss_fn, eps, params_mod.make_attack(a, method, seed + i))
+            return stored_attack(chain.model, loss_fn, eps, make_attack(a, method, seed + i))
 
         self.renderer = Renderer(setup.K, setup.scene)
         camera = CachedCamera(self.renderer.render, chain.model, chain=chain)

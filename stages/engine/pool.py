@@ -54,15 +54,6 @@ class EngineSettings:
         return max(1, render_threads // (self.workers or (1 if self.address else os.cpu_count() or 1)))
 
 
-def settings(params: dict[str, Any]) -> EngineSettings:
-    """The engine section of params, with address None -> $RAY_ADDRESS; workers None is every core of
-    this machine, or of the cluster when there is an address."""
-    e = params["engine"]
-    address = e["address"] or os.environ.get("RAY_ADDRESS") or None
-    workers = e["workers"] if e["workers"] or address else os.cpu_count() or 1
-    return EngineSettings(workers, address, float(e["timeout_s"]), int(e["retries"]))
-
-
 def run(worker_cls: Callable[[Any], Worker], setup: Any, jobs: list[Any], es: EngineSettings,
         num_cpus: float = 1, progress: Callable[[int, Any], None] | None = None) -> list[Any]:
     """`worker.run(job)` for every job (in order) on workers built as `worker_cls(setup)`, each using

@@ -3,8 +3,10 @@ from __future__ import annotations
 
 from typing import Any
 
+from stages.config.sections import Attack
 
-def attack_page(rows: list[dict[str, Any]], a: dict[str, Any], n: int) -> str:
+
+def attack_page(rows: list[dict[str, Any]], a: Attack, n: int) -> str:
     from pipeline.report.markdown import markdown_table
 
     table = markdown_table(
@@ -15,13 +17,13 @@ def attack_page(rows: list[dict[str, Any]], a: dict[str, Any], n: int) -> str:
         [{"eps": r["eps"], "pos. mean, stored uint8 (m)": r["position_mean_m"],
           "pos. mean, float (m)": r["float_position_mean_m"], "att. mean, stored uint8 (deg)": r["attitude_mean_deg"],
           "att. mean, float (deg)": r["float_attitude_mean_deg"]} for r in rows[1:]], decimals=3)
-    step = "" if a["method"] == "fgsm" else (
-        f" ({a['steps']} steps, step size {a['step_size'] if a['step_size'] is not None else 'default'}"
-        + (", random start" if a["method"] == "pgd" and a["random_start"] else "")
-        + (f", momentum {a['momentum']}" if a["method"] == "mifgsm" else "") + ")")
+    step = "" if a.method == "fgsm" else (
+        f" ({a.steps} steps, step size {a.step_size if a.step_size is not None else 'default'}"
+        + (", random start" if a.method == "pgd" and a.random_start else "")
+        + (f", momentum {a.momentum}" if a.method == "mifgsm" else "") + ")")
     return f"""# Adversarial attack on the pose estimator
 
-Attack: **{a['method']}**{step} on the **{a['loss']}** loss (`full` = the training loss with its
+Attack: **{a.method}**{step} on the **{a.loss}** loss (`full` = the training loss with its
 learned weights), L-inf budget eps in pixel units ([0, 1] images), {n} test images (time: reports/metrics/attack.json).
 FGSM is `x' = clip(x + eps * sign(grad_x L), 0, 1)`.
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from stages.config.sections import Detect
 from stages.pages.paper import DETECTOR_ACCURACY
 
 NAMES = {"lstm": "LSTM on SHAP (paper)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis on GAP features",
@@ -44,21 +45,21 @@ def _reading(results: dict[str, dict[str, dict[str, float]]], eps_keys: list[str
             f"({_pct(results[best]['all'], 'accuracy')}%). Brackets: 95% Wilson intervals over the test samples.")
 
 
-def _baselines(d: dict[str, Any]) -> str:
+def _baselines(d: Detect) -> str:
     """The baseline detectors, one bullet each."""
     return f"""- **MLP on SHAP**: scikit-learn MLPClassifier on the flattened 9 x 1000 values (standardised).
 - **Mahalanobis** (Lee et al. 2018): one Gaussian per range bin (`train.range_bins`) with a shared
   Ledoit-Wolf covariance fitted on clean training GAP features; score = smallest distance. No input
   preprocessing or layer ensemble (one layer, the one the SHAP detectors see).
-- **LID** (Ma et al. 2018): LID of the GAP features from the k = {d['lid_k']} nearest clean neighbours
-  in minibatches of {d['lid_batch']}, then logistic regression; test frames against clean training minibatches.
+- **LID** (Ma et al. 2018): LID of the GAP features from the k = {d.lid_k} nearest clean neighbours
+  in minibatches of {d.lid_batch}, then logistic regression; test frames against clean training minibatches.
 - **Feature squeezing** (Xu et al. 2018): pose change (L1 over the 9 outputs, each divided by its
-  clean standard deviation) under {d['squeeze_bits']}-bit colour depth and a {d['squeeze_median']}x{d['squeeze_median']}
+  clean standard deviation) under {d.squeeze_bits}-bit colour depth and a {d.squeeze_median}x{d.squeeze_median}
   median filter; score = the larger change. Needs the image and two extra pose passes per frame."""
 
 
 def detector_page(results: dict[str, dict[str, dict[str, float]]], scores: dict[str, Any], counts: dict[str, int],
-                  result: Any, attrs: dict[str, Any], d: dict[str, Any]) -> str:
+                  result: Any, attrs: dict[str, Any], d: Detect) -> str:
     """reports/detector.md: the LSTM per eps, the baselines on the same split, and what the detectors see."""
     lstm = results["lstm"]
     lstm_table = _table([{"eps": k, **_row(m)} for k, m in lstm.items()])
@@ -73,15 +74,15 @@ def detector_page(results: dict[str, dict[str, dict[str, float]]], scores: dict[
 
 The paper's detector reads the DeepSHAP values of the pose network's 1000 GAP features
 for its 9 outputs (a 9 x 1000 sequence per image, `rpod shap`) and says whether the image was
-attacked: an LSTM of {d['hidden']} units with ReLU, dense layers {d['dense']}, one sigmoid output,
-Adadelta (lr {d['lr']}), early stopping after {d['patience']} epochs without a lower validation loss.
+attacked: an LSTM of {d.hidden} units with ReLU, dense layers {d.dense}, one sigmoid output,
+Adadelta (lr {d.lr}), early stopping after {d.patience} epochs without a lower validation loss.
 
 **Test accuracy: {ours}** (paper: {paper} on its 30,000 SHAP samples).
 {reading}
 
 Data: {counts['samples']} SHAP samples (`datasets/shap.zarr`, method `{attrs.get('method')}`, background
-of {attrs.get('background_size')} training images). Split {1 - d['test_fraction']:.0%}/{d['test_fraction']:.0%} train/test with
-{d['val_fraction']:.0%} of train held out for validation (grouped by source image: the clean and every eps version of
+of {attrs.get('background_size')} training images). Split {1 - d.test_fraction:.0%}/{d.test_fraction:.0%} train/test with
+{d.val_fraction:.0%} of train held out for validation (grouped by source image: the clean and every eps version of
 a frame sit on one side; stratified by eps; seeded): train {counts['train']},
 validation {counts['validation']}, test {counts['test']} ({counts['test_clean']} clean, {counts['test_adversarial']} adversarial).
 Adversarial samples are FGSM images at eps {', '.join(eps_keys)} (pixels in [0, 1]).

@@ -3,6 +3,7 @@ stage metrics and params (so no number in it is copied by hand; `rpod report --c
 from __future__ import annotations
 
 from typing import Any
+from stages.config.schema import Params
 from stages.pages.paper import ATTITUDE_DEG, DETECTOR_ACCURACY, INTEGRATED, INTEGRATED_EPS, LAB, POSITION_M
 from stages.pages.readme import DETECTOR_NAMES
 
@@ -14,14 +15,14 @@ def _ci(m: dict[str, Any], key: str) -> str:
     return percent_ci(m.get(key), m.get(f"{key}_ci95"), unit="%")
 
 
-def _scale(params: dict[str, Any], tr: dict[str, Any]) -> str:
-    r, t, cam = params["render"], params["train"], params["camera"]
-    n = 13 * int(r["frames_per_sequence"])
+def _scale(params: Params, tr: dict[str, Any]) -> str:
+    r, t, cam = params.render, params.train, params.camera
+    n = 13 * r.frames_per_sequence
     test, val = tr["test"], tr.get("val", {})
-    pixels = ("square pixels, fy = fx" if float(cam["fy"]) == float(cam["fx"])
-              else f"the paper's printed fy/fx = {float(cam['fy']) / float(cam['fx']):.2f}")
-    return (f"- **Scale.** {n:,} images at {r['width']}x{r['height']} ({pixels}), Darknet-19 at width {t['width']}, "
-            f"{tr.get('epochs_run', t['epochs'])} epochs (checkpoint chosen on {100 * float(t['val_fraction']):.0f}% of the "
+    pixels = ("square pixels, fy = fx" if float(cam.fy) == float(cam.fx)
+              else f"the paper's printed fy/fx = {float(cam.fy) / float(cam.fx):.2f}")
+    return (f"- **Scale.** {n:,} images at {r.width}x{r.height} ({pixels}), Darknet-19 at width {t.width}, "
+            f"{tr.get('epochs_run', t.epochs)} epochs (checkpoint chosen on {100 * float(t.val_fraction):.0f}% of the "
             f"training frames held out for validation: epoch {tr.get('best_epoch')}), instead of 32,500 images at "
             f"480x270, full width, 50 epochs. Test error {test['pos_mean_m']:.2f} m / {test['att_mean_deg']:.2f} deg "
             f"(paper {POSITION_M} m / {ATTITUDE_DEG} deg; validation "
@@ -30,30 +31,30 @@ def _scale(params: dict[str, Any], tr: dict[str, Any]) -> str:
             "evaluate stage's fresh trajectories give the held-out-trajectory error (reports/integrated.md).")
 
 
-def _detector(params: dict[str, Any], de: dict[str, Any]) -> str:
-    s, c, lstm = params["shap"], de["counts"], de["detectors"]["lstm"]
+def _detector(params: Params, de: dict[str, Any]) -> str:
+    s, c, lstm = params.shap, de["counts"], de["detectors"]["lstm"]
     small = min(lstm, key=lambda k: float("inf") if k == "all" else float(k))
     best = max(de["detectors"], key=lambda k: de["detectors"][k]["all"]["accuracy"])
-    return (f"- **Detector data.** {c['samples']:,} SHAP samples ({s['normal']:,} clean, {s['per_eps']:,} per eps) instead "
-            f"of 30,000, a background of {s['background']} images instead of 1,000, split train/validation/test "
+    return (f"- **Detector data.** {c['samples']:,} SHAP samples ({s.normal:,} clean, {s.per_eps:,} per eps) instead "
+            f"of 30,000, a background of {s.background} images instead of 1,000, split train/validation/test "
             f"grouped by source image ({c['test']:,} test samples). LSTM test accuracy {_ci(lstm['all'], 'accuracy')} "
             f"(paper {100 * DETECTOR_ACCURACY:.2f}%); detection rate at eps {small} {_ci(lstm[small], 'recall')} (FGSM at "
             f"{small} on 8-bit images moves a pixel by at most {round(255 * float(small))} grey levels). Best detector "
             f"on the same split: {DETECTOR_NAMES.get(best, best)} ({_ci(de['detectors'][best]['all'], 'accuracy')}).")
 
 
-def _integrated(params: dict[str, Any], ev: dict[str, Any]) -> str:
+def _integrated(params: Params, ev: dict[str, Any]) -> str:
     from pipeline.report.markdown import percent_ci
 
-    e = params["evaluate"]
+    e = params.evaluate
     per = ev["per_eps"]
     small = min(per, key=float)
     fpr = [c["fpr"] for c in ev.get("clean", {}).values()]
-    return (f"- **Integrated evaluation.** {e['trajectories']} fresh trajectories of {e['frames']} frames (paper: "
+    return (f"- **Integrated evaluation.** {e.trajectories} fresh trajectories of {e.frames} frames (paper: "
             f"2,500 frames each): {percent_ci(ev['accuracy_mean'], decimals=2, unit='%')} mean accuracy against {INTEGRATED:.2f}%; at "
             f"eps {small} {_ci(per[small], 'accuracy')} against {INTEGRATED_EPS.get(small, '-')}%. False "
             f"alarms on attack-free runs: {percent_ci(sum(fpr) / len(fpr) if fpr else None, decimals=2, unit='%')}. Intervals are a "
-            f"bootstrap over the {e['trajectories']} trajectories (coarse with so few).")
+            f"bootstrap over the {e.trajectories} trajectories (coarse with so few).")
 
 
 def _lab(lab: dict[str, Any]) -> str:
@@ -68,8 +69,8 @@ def _lab(lab: dict[str, Any]) -> str:
             f"{LAB:.2f}%).")
 
 
-def _closed_loop(params: dict[str, Any], gd: dict[str, Any]) -> str:
-    g = params["guidance"]
+def _closed_loop(params: Params, gd: dict[str, Any]) -> str:
+    g = params.guidance
     runs = [r for r in gd["runs"] if r.get("attacked_frames", 1) > 0]
     lost = [r for r in runs if r["outcome"] != "rendezvous held"]
     where = sorted({(float(r["eps"]), float(r["start_range"]), int(r["length"])) for r in lost}, reverse=True)
@@ -77,17 +78,17 @@ def _closed_loop(params: dict[str, Any], gd: dict[str, Any]) -> str:
     base = gd["baseline"]
     return (f"- **Closed loop.** The paper's guidance law moves the chaser to where it believes it goes, so a range "
             f"bias changes its speed; attacked runs are judged at the no-attack baseline's arrival + "
-            f"{g['slack_steps']} steps (baseline: {base['outcome']}, {base.get('arrival_step', '-')} steps). On the "
-            f"reduced default grid (eps {', '.join(f'{x:g}' for x in g['eps'])}; S = "
-            f"{'/'.join(f'{x:g}' for x in g['start_ranges'])} m; K = {'/'.join(str(x) for x in g['lengths'])}) the "
+            f"{g.slack_steps} steps (baseline: {base['outcome']}, {base.get('arrival_step', '-')} steps). On the "
+            f"reduced default grid (eps {', '.join(f'{x:g}' for x in g.eps)}; S = "
+            f"{'/'.join(f'{x:g}' for x in g.start_ranges)} m; K = {'/'.join(str(x) for x in g.lengths)}) the "
             f"undefended paper chain lost {len(lost)} of {len(runs)} attacked runs ({cells}).")
 
 
-def differences(metrics: dict[str, dict[str, Any]], params: dict[str, Any]) -> str:
+def differences(metrics: dict[str, dict[str, Any]], params: Params) -> str:
     """The generated bullets (Markdown) of the "Known differences from the paper" section."""
     tr, de, ev, lab, gd = (metrics[k] for k in ("train", "detect", "evaluate", "lab", "guidance"))
     return "\n".join([
-        f"The numbers come from the **{params.get('profile_name', 'unknown')}** profile; each stage's section in "
+        f"The numbers come from the **{params.profile_name}** profile; each stage's section in "
         "[reports/README.md](reports/README.md) gives the details.\n",
         _scale(params, tr),
         "- **Target.** A procedural Jason-1-like model, not the paper's CAD model (`render.mesh` takes yours).",

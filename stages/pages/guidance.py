@@ -5,12 +5,14 @@ from __future__ import annotations
 
 from typing import Any
 
+from stages.config.sections import Guidance, Render
+
 DYNAMICS = {"paper": "paper (the chaser is placed at its estimate minus the command)",
             "true_state": "true state (the chaser moves by the command it sent)"}
 VARIANTS = {"undefended": "undefended (paper)", "hold": "detect-and-hold", "recover": "detect-and-recover"}
 
 
-def defended_section(d: dict[str, Any], g: dict[str, Any]) -> str:
+def defended_section(d: dict[str, Any], g: Guidance) -> str:
     """Markdown: success rates with Wilson intervals per (dynamics, variant) and eps, and per S x K cell."""
     from pipeline.report.markdown import markdown_table
     from pipeline.evaluation.stats import wilson
@@ -40,8 +42,8 @@ estimate (the paper; under the table's dynamics these are the runs above). Detec
 flagged frame's estimate is not used and the chaser sends no command for that step.
 Detect-and-recover: guidance acts on the defense's trusted estimate (the motion filter's state, its
 prediction on flagged frames) and holds position after `defense.hold_after` consecutive flags until
-clean frames return. Horizon: undefended runs last the no-attack arrival + {g['slack_steps']} steps
-as above; a defended run lasts its own no-attack run's arrival + {g['slack_steps']} + K steps, since
+clean frames return. Horizon: undefended runs last the no-attack arrival + {g.slack_steps} steps
+as above; a defended run lasts its own no-attack run's arrival + {g.slack_steps} + K steps, since
 holding on a flag costs a step per flagged frame: a defended chaser that arrives late by at most the
 attack's length counts as held, one diverted or still short after that counts as lost. Success
 rates carry 95% Wilson intervals over the runs of the grid (few runs: wide intervals).
@@ -71,14 +73,14 @@ def _cell(r: dict[str, Any]) -> str:
     return f"{text}, {r['miss_m']:.2f} m{frames}"
 
 
-def guidance_page(m: dict[str, Any], g: dict[str, Any], render: dict[str, Any]) -> str:
+def guidance_page(m: dict[str, Any], g: Guidance, render: Render) -> str:
     """reports/guidance.md without the defended section: one S x K table per eps, from the metrics."""
     from pipeline.report.markdown import markdown_table
 
     tables = []
     for eps in dict.fromkeys(r["eps"] for r in m["runs"]):
         rows = []
-        for s in g["start_ranges"]:
+        for s in g.start_ranges:
             row = {"S (m)": f"{float(s):g}"}
             for r in m["runs"]:
                 if r["eps"] == eps and r["start_range"] == float(s):
@@ -93,7 +95,7 @@ def guidance_page(m: dict[str, Any], g: dict[str, Any], render: dict[str, Any]) 
            "it exactly there; `guidance.variant: true_state` applies the command to the true state instead)"
            if m["variant"] == "paper" else
            "the command `clip(p_est - p_tar, -1, 1)` is computed from the estimate and applied to the true state")
-    start, goal = (", ".join(f"{float(v):g}" for v in g[k]) for k in ("start", "target"))
+    start, goal = (", ".join(f"{float(v):g}" for v in vs) for vs in (g.start, g.target))
     baseline = f"**No-attack baseline: {m['baseline']['outcome']}, final miss {m['baseline']['miss_m']:.2f} m.**"
     if m["baseline"]["outcome"] != "rendezvous held":
         baseline += (" The pose model cannot guide the chaser even without an attack, so a miss in the tables "
@@ -101,8 +103,8 @@ def guidance_page(m: dict[str, Any], g: dict[str, Any], render: dict[str, Any]) 
     return f"""# Closed-loop rendezvous under attack
 
 The chaser starts at ({start}) m (the target's position relative to the chaser, target-centred frame,
-approach along +z) and steers to ({goal}) m with at most {g['max_step']:g} m per axis per step: {law}.
-Every step renders a new {render['width']}x{render['height']} Blender image (the pose model's input size)
+approach along +z) and steers to ({goal}) m with at most {g.max_step:g} m per axis per step: {law}.
+Every step renders a new {render.width}x{render.height} Blender image (the pose model's input size)
 at the true pose, the pose CNN estimates the target position, and the chaser re-points its camera
 at where it believes the target is. {_horizon_text(m)} A run succeeds for
 the chaser when it ends within {m['tolerance']:g} m of the target point; "target lost" means the

@@ -6,22 +6,24 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from stages.artifacts.readers import LAB as OUT, TRAIN_METRICS
+from stages.artifacts.paths import LAB as OUT, TRAIN_METRICS
+from stages.config.schema import Params
+from stages.config.evaluation import Lab
 from stages.pages.paper import LAB, LAB_EPS, LAB_RANGES, by_eps
 
 if TYPE_CHECKING:
     from pipeline.evaluation.sequences import Sequence
 
 
-def models_section(p: dict[str, Any], m: dict[str, Any]) -> str:
+def models_section(p: Params, m: dict[str, Any]) -> str:
     """The report's paragraph on which pose model and detector were used, and why."""
-    lab, r = p["lab"], p["render"]
+    lab, r = p.lab, p.render
     if m["reused_models"]:
         return f"""## Models: reused
 
 The pose model and the detector are the main ones, `{m['models']['pose']}` (hash `{m['model_hash']}`) and
-`{m['models']['detector']}` (`lab.retrain: {lab['retrain']}`): the lab mock-up is the main target mesh at
-1/{lab['scale']:g} scale and K_blender has the lab images' 16:9 aspect, so a synthetic-lab training set
+`{m['models']['detector']}` (`lab.retrain: {lab.retrain}`): the lab mock-up is the main target mesh at
+1/{lab.scale:g} scale and K_blender has the lab images' 16:9 aspect, so a synthetic-lab training set
 would repeat the main one. `lab.retrain: always` (the paper profile), or another mock-up mesh in `lab.mesh`,
 trains a synthetic-lab pose model and detector instead.
 """
@@ -36,10 +38,10 @@ models/detector.pt.
 
 - Synthetic-lab set: {s['images']} images at {s['size'][0]}x{s['size'][1]} with the main camera K_blender (the lab
   images' 16:9 aspect), the 13 approach sequences ({s['frames_per_sequence']} frames each, 60 to 10 m,
-  base seed {s['seed']}), the mock-up {mesh} rendered at {lab['scale']:g} x its size ({s['mesh_scale']:g} m per mesh
+  base seed {s['seed']}), the mock-up {mesh} rendered at {lab.scale:g} x its size ({s['mesh_scale']:g} m per mesh
   unit) so the ranges are preserved; sun and render settings of `render`.
-- Pose model: the main recipe (`rpod train` with the `train` params, width {p['train']['width']}, input
-  {r['width']}x{r['height']}): {s['epochs_run']} epochs, best epoch {s['best_epoch']}; synthetic-lab test split
+- Pose model: the main recipe (`rpod train` with the `train` params, width {p.train.width}, input
+  {r.width}x{r.height}): {s['epochs_run']} epochs, best epoch {s['best_epoch']}; synthetic-lab test split
   ({t['n']} images): {t['pos_mean_m']:.3f} m and {t['att_mean_deg']:.2f} deg mean error.
 - SHAP (`rpod shap`, `shap` params) of {s['shap_samples']} clean and FGSM samples with this model, and the LSTM
   detector (`rpod detect`, `detect` params, no baselines) trained on them: test accuracy
@@ -70,14 +72,14 @@ apply its formula.
 {markdown_table(rows, decimals=2)}"""
 
 
-def _loader_note(m: dict[str, Any], lab: dict[str, Any]) -> str:
+def _loader_note(m: dict[str, Any], lab: Lab) -> str:
     """The loader round trip's largest label errors (mm, deg), or "" when it was not measured."""
     if not m["loader_error"]:
         return ""
     worst_p = max(v["position_max_m"] for v in m["loader_error"].values())
     worst_a = max(v["attitude_max_deg"] for v in m["loader_error"].values())
-    return (f"\nLoader round trip: the labels recovered from mocap.csv/camera.csv ({lab['match']} matching, "
-            f"max gap {lab['max_gap_s']} s) differ from the exact render poses by at most "
+    return (f"\nLoader round trip: the labels recovered from mocap.csv/camera.csv ({lab.match} matching, "
+            f"max gap {lab.max_gap_s} s) differ from the exact render poses by at most "
             f"{1000 * worst_p:.2f} mm (lab units) and {worst_a:.4f} deg.\n")
 
 
@@ -110,14 +112,14 @@ def _synthetic_note(m: dict[str, Any], train_metrics: dict[str, Any] | None) -> 
     return f"Synthetic test split ({which}): {synth}."
 
 
-def lab_page(p: dict[str, Any], m: dict[str, Any], rows: list[dict[str, Any]], summary: list[dict[str, Any]],
+def lab_page(p: Params, m: dict[str, Any], rows: list[dict[str, Any]], summary: list[dict[str, Any]],
            names: list[str], train_metrics: dict[str, Any] | None, K_syn: Any, K_zed: Any,
            sequences: list[Sequence]) -> str:
     """reports/lab.md: models, range rescaling, loader round trip, pose and FGSM errors, integrated detection."""
     from pipeline.evaluation.sequences import accuracy_table, detail_table
     from pipeline.report.markdown import markdown_table
 
-    lab, ds = p["lab"], p["lab"]["domain_shift"]
+    lab, ds = p.lab, p.lab.domain_shift
     f_eff = K_zed.fx * K_syn.width / K_zed.width
     src = ("synthetic lab sequences rendered by this stage and read back through the real-data loader "
            f"(`{OUT}/`)" if m["synthetic"] else f"the real lab recording in `{m['source']}`")
@@ -134,22 +136,22 @@ Source: {src}.
 
 Apparent size s = f L / z (pixels). The lab image ({K_zed.width}x{K_zed.height}, fx = {K_zed.fx:g}) resized to
 {K_syn.width}x{K_syn.height} has fx_lab_eff = {K_zed.fx:g} x {K_syn.width}/{K_zed.width} = {f_eff:.2f} px; the
-mock-up is L/{lab['scale']:g}; the synthetic camera has fx = {K_syn.fx:g} px. Equal size gives
-z_syn = z_lab x {lab['scale']:g} x {K_syn.fx:g} / {f_eff:.2f} = **{m['factor']:.3f} x z_lab**
+mock-up is L/{lab.scale:g}; the synthetic camera has fx = {K_syn.fx:g} px. Equal size gives
+z_syn = z_lab x {lab.scale:g} x {K_syn.fx:g} / {f_eff:.2f} = **{m['factor']:.3f} x z_lab**
 (`rpod lab rescale --z 3.122` -> {3.122 * m['factor']:.2f} m). Lateral label coordinates keep the target's
 pixel position. The match is on the horizontal size; K_blender has fy/fx = {K_syn.fy / K_syn.fx:.4g}
 (camera.fy), so the target is {K_syn.fy / K_syn.fx:.3f}x as tall in the synthetic image as in the resized lab image.
 
-{paper_ranges(K_syn, K_zed, float(lab['scale']), m['factor'])}
+{paper_ranges(K_syn, K_zed, float(lab.scale), m['factor'])}
 
 {markdown_table(m['ranges'], decimals=2)}
 {_loader_note(m, lab)}
 ## Pose error
 
-Lab frames: {lab['frames']} per sequence at {lab['fps']} fps, mocap at {lab['mocap_hz']} Hz, rendered with the
-ZED geometry (fx scaled by 1 + {ds['calib_error']:g}: a calibration error), sun direction {ds['sun_direction']}
-at strength {ds['sun_strength']}, blur sigma {ds['blur_sigma']} px, noise std {ds['noise_std']}, then
-segmented (masks/) and resized to {p['render']['width']}x{p['render']['height']}. Errors are in the equivalent
+Lab frames: {lab.frames} per sequence at {lab.fps} fps, mocap at {lab.mocap_hz} Hz, rendered with the
+ZED geometry (fx scaled by 1 + {ds.calib_error:g}: a calibration error), sun direction {ds.sun_direction}
+at strength {ds.sun_strength}, blur sigma {ds.blur_sigma} px, noise std {ds.noise_std}, then
+segmented (masks/) and resized to {p.render.width}x{p.render.height}. Errors are in the equivalent
 synthetic frame (metres x {m['factor']:.2f} of lab metres).
 
 {_synthetic_note(m, train_metrics)}
@@ -157,12 +159,12 @@ synthetic frame (metres x {m['factor']:.2f} of lab metres).
 {markdown_table(clean_table, decimals=3)}
 ## FGSM on the lab sequences
 
-Mean error over all lab frames (attack.eps, loss `{p['attack']['loss']}`, 8-bit images).
+Mean error over all lab frames (attack.eps, loss `{p.attack.loss}`, 8-bit images).
 
 {markdown_table(fgsm_table, decimals=3)}
 ## Integrated detection, {m['attack_length']}-frame attacks
 
-Start probability {p['evaluate']['p_start']:g} per frame, {100 * att_frac:.1f}% of the frames attacked;
+Start probability {p.evaluate.p_start:g} per frame, {100 * att_frac:.1f}% of the frames attacked;
 accuracy = correctly classified frames / all frames (%).
 
 {markdown_table(accuracy_table(rows, summary, names, by_eps(LAB_EPS)), decimals=2)}

@@ -4,16 +4,17 @@ from __future__ import annotations
 
 from typing import Any
 
+from stages.config.schema import Params
 from stages.pages.paper import ATTITUDE_DEG, POSITION_M
 
 TARGET_TZ_PCT, TARGET_LATERAL_M = 2.0, 0.5  # what the guidance law needs (issue 3)
 
 
-def pose_page(m: dict[str, Any], params: dict[str, Any], n_train: int, n_val: int, n_test: int, live_dir: str) -> str:
+def pose_page(m: dict[str, Any], params: Params, n_train: int, n_val: int, n_test: int, live_dir: str) -> str:
     """reports/pose.md from the train metrics (errors per split and range bin) beside the paper."""
     from pipeline.report.markdown import markdown_table
 
-    p, r = params["train"], params["render"]
+    p, r = params.train, params.render
     rows = [{"split": s, "images": m[s]["n"], "position mean (m)": m[s]["pos_mean_m"],
              "position median (m)": m[s]["pos_median_m"], "attitude mean (deg)": m[s]["att_mean_deg"],
              "attitude median (deg)": m[s]["att_median_deg"]} for s in ("train", "val", "test")]
@@ -33,8 +34,8 @@ def pose_page(m: dict[str, Any], params: dict[str, Any], n_train: int, n_val: in
     return f"""# Pose estimator (`rpod train`)
 
 Modified Darknet-19 (7x7 stem, stride-2 3x3 convolutions for the max-pools, Darknet-53 residual
-blocks, BatchNorm + LeakyReLU, 1000-feature GAP layer, dropout {p['dropout']}, linear heads 3 + 6-D),
-width {p['width']}, input {r['width']}x{r['height']}, profile `{params.get('profile_name')}`.
+blocks, BatchNorm + LeakyReLU, 1000-feature GAP layer, dropout {p.dropout}, linear heads 3 + 6-D),
+width {p.width}, input {r.width}x{r.height}, profile `{params.profile_name}`.
 {n_train} training, {n_val} validation (train.val_fraction of the labelled training frames, never fitted)
 and {n_test} test images; {m['epochs_run']} epochs run
 ({'stopped by train.max_minutes' if m['stopped_early'] else 'all requested'}), best epoch {m['best_epoch']} by

@@ -4,21 +4,27 @@ from __future__ import annotations
 
 from typing import Any
 
-# (stage, report file, metrics file or None) in pipeline order.
+from stages.artifacts.paths import ATTACK_METRICS, ATTACK_REPORT, DATASET_CARD, DETECT_METRICS, DETECT_REPORT, \
+    EVALUATE_METRICS, EVALUATE_REPORT, GUIDANCE_METRICS, GUIDANCE_REPORT, LAB_METRICS, LAB_REPORT, POSE_REPORT, \
+    REPORTS, ROBUSTNESS_METRICS, ROBUSTNESS_REPORT, TRAIN_METRICS
+from stages.config.schema import Params
+
+# (stage, report, metrics or None) in pipeline order (stages/artifacts/paths.py); benchmarks.md is the committed
+# page that benchmarks/*.py write, read in the working folder like the others.
 SECTIONS = [
-    ("label", "dataset.md", None),
-    ("train", "pose.md", "train"),
-    ("attack", "attack.md", "attack"),
-    ("guidance", "guidance.md", "guidance"),
-    ("detect", "detector.md", "detect"),
-    ("evaluate", "integrated.md", "evaluate"),
-    ("robustness", "robustness.md", "robustness"),
-    ("lab", "lab.md", "lab"),
-    ("benchmarks", "benchmarks.md", None),
+    ("label", DATASET_CARD, None),
+    ("train", POSE_REPORT, TRAIN_METRICS),
+    ("attack", ATTACK_REPORT, ATTACK_METRICS),
+    ("guidance", GUIDANCE_REPORT, GUIDANCE_METRICS),
+    ("detect", DETECT_REPORT, DETECT_METRICS),
+    ("evaluate", EVALUATE_REPORT, EVALUATE_METRICS),
+    ("robustness", ROBUSTNESS_REPORT, ROBUSTNESS_METRICS),
+    ("lab", LAB_REPORT, LAB_METRICS),
+    ("benchmarks", REPORTS / "benchmarks.md", None),
 ]
 
 
-def page_head(metrics: dict[str, dict[str, Any]], params: dict[str, Any]) -> str:
+def page_head(metrics: dict[str, dict[str, Any]], params: Params) -> str:
     """Title, where the page comes from, warnings on mixed profiles or pose models, and the summary heading."""
     profiles = {m.get("profile", "unknown") for m in metrics.values()}
     warn = ""
@@ -31,7 +37,7 @@ def page_head(metrics: dict[str, dict[str, Any]], params: dict[str, Any]) -> str
         warn += (f"\n> **Mixed pose models** ({', '.join(f'{k} {v}' for k, v in sorted(hashes.items()))}): "
                  "some stages ran on an older checkpoint.\n")
     return (f"# rpodguard results\n\nWritten by `rpod report` from `reports/metrics/*.json` and the stage reports "
-            f"beside this file; params profile `{params.get('profile_name', 'unknown')}`. Regenerate with "
+            f"beside this file; params profile `{params.profile_name}`. Regenerate with "
             f"`dvc repro`. Every section below is one stage's report, stamped with the profile it ran on (when it ran: `produced` in reports/metrics/<stage>.json)."
             f"\n{warn}\n## Summary against the paper\n")
 

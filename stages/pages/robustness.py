@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from stages.config.schema import Params
 def _table(rows: list[dict[str, Any]], with_lambda: bool = False) -> str:
     from pipeline.report.markdown import markdown_table, percent_ci
 
@@ -34,12 +35,12 @@ def _meaning(rows: list[dict[str, Any]], what: str) -> str:
             + f", which leaves {hu:.1f}% of frames harmful and undetected, {verdict}.")
 
 
-def robustness_page(m: dict[str, Any], p: dict[str, Any]) -> str:
+def robustness_page(m: dict[str, Any], p: Params) -> str:
     """reports/robustness.md: results only (no times)."""
     return _intro(m, p) + _fused(m, p) + _sections(m, p) + _corruptions(m)
 
 
-def _fused(m: dict[str, Any], p: dict[str, Any]) -> str:
+def _fused(m: dict[str, Any], p: Params) -> str:
     """The adaptive attack on the chain that ships (LSTM flag OR motion gate) over whole bursts."""
     from pipeline.report.markdown import percent_ci
 
@@ -69,7 +70,7 @@ fused chain flags {percent_ci(f['false_alarm_rate'], f['ci95_false_alarm'])}% of
 """
 
 
-def _intro(m: dict[str, Any], p: dict[str, Any]) -> str:
+def _intro(m: dict[str, Any], p: Params) -> str:
     """Title, what is measured on how many frames, and the worst harmful-undetected rate per eps."""
     from pipeline.evaluation.stats import wilson
     from pipeline.report.markdown import percent_ci
@@ -94,7 +95,7 @@ tightly. At the default profile the frame count is set by the stage's budget of 
 2-core CPU: each frame costs {m['gradients_per_frame']} gradient evaluations (every iterative attack takes
 {m['steps']} steps, for every eps and lambda), and +-5 points at a 50% rate would need 385 frames.
 PGD (plain, adaptive and on the surrogate) takes {m['steps']} steps of 2.5 eps / steps from a random
-start; MI-FGSM takes `attack.steps` = {p['attack']['steps']} steps of eps / steps (momentum {p['attack']['momentum']:g}).
+start; MI-FGSM takes `attack.steps` = {p.attack.steps} steps of eps / steps (momentum {p.attack.momentum:g}).
 
 Worst harmful-undetected rate over the attacks run at each eps:
 
@@ -103,9 +104,9 @@ Worst harmful-undetected rate over the attacks run at each eps:
 """
 
 
-def _sections(m: dict[str, Any], p: dict[str, Any]) -> str:
+def _sections(m: dict[str, Any], p: Params) -> str:
     """One section per attack group (seen, transfer, adaptive, surrogate) with its table and meaning."""
-    r = p["robustness"]
+    r = p.robustness
     groups = {g: [row for row in m["rows"] if row["group"] == g] for g in ("seen", "transfer", "adaptive", "surrogate")}
     return f"""## The paper's detector alone (LSTM on SHAP, per frame)
 
@@ -118,7 +119,7 @@ FGSM on the training loss at the detector's own eps values.
 
 ### Transfer to unseen attacks
 
-FGSM at eps the detector never saw ({', '.join(f'{e:g}' for e in r['unseen_eps'])}); PGD and MI-FGSM; FGSM on the
+FGSM at eps the detector never saw ({', '.join(f'{e:g}' for e in r.unseen_eps)}); PGD and MI-FGSM; FGSM on the
 position-only and the rotation-only loss (`method/loss`).
 
 {_table(groups['transfer'])}
@@ -137,7 +138,7 @@ exists, else an unflagged one, else the one with the largest error.
 
 ### Transfer from a surrogate model (black box)
 
-Attacks crafted on a second pose model trained with seed {r['surrogate_seed']} for at most {r['surrogate_epochs']} epochs
+Attacks crafted on a second pose model trained with seed {r.surrogate_seed} for at most {r.surrogate_epochs} epochs
 (`rpod train --surrogate`; best epoch {m['surrogate']['best_epoch']}, validation position error
 {m['surrogate']['validation_position_m']:.2f} m): fewer epochs than ours to fit the CPU budget, so a weaker
 surrogate than a real attacker would train. Evaluated on our chain.

@@ -1,0 +1,68 @@
+"""Where every artifact lives and the seed offset of every stage: the one table of both.
+
+One path base. Outputs (datasets/, models/, reports/, dvclive/) are relative to the working folder: the
+repository root under `dvc repro` (a stage run elsewhere reads and writes there). Code-side files
+(conf/, dvc.yaml, the committed reports/benchmarks.md) are found from the package location, `ROOT`.
+Each output is declared with the dvc.yaml stage whose `outs` (or `metrics`) hold it (`WRITTEN_BY`;
+tests/test_dvc_ux.py checks it). This module imports nothing from stages/, so every module may import it.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]   # the repository (package) root: code-side files only
+CONF_DIR = ROOT / "conf"
+DVC_YAML = ROOT / "dvc.yaml"
+BENCHMARKS = ROOT / "reports" / "benchmarks.md"   # committed; `rpod report` adds its sections
+PARAMS_FILE = Path("params.yaml")
+README = Path("README.md")   # the project README: `rpod report --sync-readme` copies the results block into it
+REPORTS = Path("reports")
+VARIANCE = REPORTS / "variance.json"  # scripts/variance.py (not a stage): the spread of the headline numbers
+
+WRITTEN_BY: dict[Path, str] = {}   # output -> the dvc.yaml stage that writes it
+
+
+def _outputs(stage: str, *paths: str) -> tuple[Path, ...]:
+    """The outputs `paths` of dvc.yaml stage `stage`, entered in WRITTEN_BY."""
+    out = tuple(Path(p) for p in paths)
+    WRITTEN_BY.update(dict.fromkeys(out, stage))
+    return out
+
+
+RENDER, IMAGES, PREVIEWS = _outputs("render", "datasets/render", "datasets/render/images.zarr",
+                                    "reports/figures/previews")
+LABELS, DATASET_CARD = _outputs("label", "datasets/labels.parquet", "reports/dataset.md")
+POSE, POSE_REPORT, TRAIN_METRICS, TRAIN_LIVE = _outputs("train", "models/pose.pt", "reports/pose.md",
+                                                        "reports/metrics/train.json", "dvclive/train")
+ATTACK, ADV, ATTACK_REPORT, ATTACK_FIGURE, ATTACK_METRICS = _outputs(
+    "attack", "datasets/attack", "datasets/attack/adv.zarr", "reports/attack.md", "reports/figures/fgsm_example.png",
+    "reports/metrics/attack.json")
+GUIDANCE_REPORT, GUIDANCE_FIGURE, GUIDANCE_DEFENDED_FIGURE, GUIDANCE_METRICS = _outputs(
+    "guidance", "reports/guidance.md", "reports/figures/guidance_trajectories.png",
+    "reports/figures/guidance_defended.png", "reports/metrics/guidance.json")
+(SHAP,) = _outputs("shap", "datasets/shap.zarr")
+DETECTOR, DETECT_REPORT, DETECT_METRICS, DETECT_LIVE, ROC_DIR = _outputs(
+    "detect", "models/detector.pt", "reports/detector.md", "reports/metrics/detect.json", "dvclive/detect",
+    "reports/plots/roc")
+EVAL_RENDER, VAL_RENDER = _outputs("eval_render", "datasets/eval_render", "datasets/val_render")
+(DEFENSE,) = _outputs("calibrate", "models/defense.json")
+EVALUATE_REPORT, EVALUATE_FIGURE, EVALUATE_METRICS = _outputs(
+    "evaluate", "reports/integrated.md", "reports/figures/timeline.png", "reports/metrics/evaluate.json")
+# a second pose model (`rpod train --surrogate`) for black-box transfer
+(SURROGATE,) = _outputs("surrogate", "models/surrogate.pt")
+ROBUSTNESS_REPORT, ROBUSTNESS_FIGURE, ROBUSTNESS_METRICS = _outputs(
+    "robustness", "reports/robustness.md", "reports/figures/robustness.png", "reports/metrics/robustness.json")
+LAB_MODELS, LAB_MODELS_SUMMARY = _outputs("lab_models", "datasets/lab_models", "datasets/lab_models/summary.json")
+LAB, LAB_REPORT, LAB_METRICS = _outputs("lab", "datasets/lab", "reports/lab.md", "reports/metrics/lab.json")
+# the headline numbers (what `dvc metrics show` prints), then the report's own figures
+PAGE, SUMMARY, *_FIGURES = _outputs("report", "reports/README.md", "reports/metrics/summary.json",
+                                    *(f"reports/figures/{name}.png"
+                                      for name in ("pose_errors", "error_vs_eps", "shap_heatmaps", "roc")))
+REPORT_FIGURES = {path.stem: path for path in _FIGURES}
+
+# stage -> the offset added to its base seed (`seed`, or `lab.seed` for lab and lab_models; the evaluate
+# schedule adds it to evaluate.seed + the trajectory number), so no two stages draw the same stream
+SEED_OFFSET: dict[str, int] = {
+    "render": 100, "label": 200, "train": 300, "attack": 400, "guidance": 500, "shap": 500, "detect": 600,
+    "lab_models": 700, "robustness": 1500, "lab": 0, "evaluate_schedule": 17,
+}

@@ -1,0 +1,161 @@
+"""Params -> library objects: the one place where typed params (stages.config.schema) become the settings
+pipeline/ takes (Intrinsics, SceneSettings, the attack, TrainConfig, AugmentConfig, DefenseSettings,
+MotionSettings, EngineSettings) and the lab mock-up policy. Bad values raise a StageError naming the key.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import types
+import typing
+from pathlib import Path
+from typing import Any
+
+from stages.config.params import given
+from stages.config.schema import Params
+from stages.config.sections import Attack, Augment, Guidance, Render, Train
+from stages.config.evaluation import Defense
+from stages.errors import StageError
+
+
+def settings_of(cls: type, section: Any, **extra: Any) -> Any:
+    """`cls` (a library settings dataclass) from the fields of a params `section` (a schema dataclass) that
+    it shares with it, and `extra` for the others; a value is converted to the library field's type (a
+    whole number to float, a list to a tuple of it), fields the section lacks keep the library default."""
+    hints = typing.get_type_hints(cls)
+    values = {}
+    for f in dataclasses.fields(cls):
+        if f.name in extra:
+            values[f.name] = extra[f.name]
+        elif hasattr(section, f.name):
+            values[f.name] = _as(getattr(section, f.name), hints[f.name])
+    return cls(**values)
+
+
+def _as(value: Any, hint: Any) -> Any:
+    """`value` as the type `hint` names: float(int) for float, a tuple of converted items for tuple[...]."""
+    if value is None:
+        return None
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        return _as(value, next(a for a in typing.get_args(hint) if a is not type(None)))
+    if typing.get_origin(hint) is tuple:
+        return tuple(_as(v, a) for v, a in zip(value, typing.get_args(hint)))
+    return float(value) if hint is float else value
+
+
+def intrinsics(params: Params) -> Any:
+    """The render camera: K from params.camera at its reference size, scaled to render.width x height."""
+    from pipeline.geometry.camera import Intrinsics
+
+    c, r = params.camera, params.render
+    try:
+        return Intrinsics(c.ref_width, c.ref_height, c.fx, c.fy, c.cx, c.cy).scaled(r.width, r.height)
+    except ValueError as e:
+        raise StageError(f"params.yaml camera/render: {e}") from None
+
+
+def scene_settings(render: Render) -> Any:
+    """The Blender scene settings of a `render` params section (mesh None = the procedural target)."""
+    from pipeline.render.scene import SceneSettings
+
+    return settings_of(SceneSettings, render, mesh=given(render.mesh))
+
+
+def check_attack_params(section: Attack | Guidance, where: str) -> None:
+    """Check the eps list and attack method of a section (`<where>.eps`, `<where>.method`) before any work."""
+    from pipeline.attacks.gradient import ATTACKS, check_eps
+
+    eps, method = section.eps, section.method
+    if not eps:
+        raise StageError(f"params.yaml {where}.eps must be a non-empty list of numbers in (0, 1]")
+    for e in eps:
+        try:
+            check_eps(e)
+        except (TypeError, ValueError):
+            raise StageError(f"params.yaml {where}.eps: {e!r} is not in (0, 1] (pixels are in [0, 1])") from None
+    if method not in ATTACKS:
+        raise StageError(f"params.yaml {where}.method: unknown attack {method!r}; choose one of {', '.join(ATTACKS)}")
+
+
+def make_attack(attack: Attack, method: str, seed: int) -> Any:
+    """The attack named `method` with the iterative options of the `attack` params section."""
+    import torch
+
+    from pipeline.attacks.gradient import LOSSES, get_attack
+
+    if attack.loss not in LOSSES:
+        raise StageError(f"params.yaml attack.loss: unknown loss {attack.loss!r}; choose one of {', '.join(LOSSES)}")
+    try:
+        return get_attack(method, steps=attack.steps, step_size=attack.step_size, random_start=attack.random_start,
+                          momentum=float(attack.momentum), generator=torch.Generator().manual_seed(seed))
+    except ValueError as e:
+        raise StageError(f"params.yaml attack: {e}") from None
+
+
+def train_config(train: Train, epochs: int, seed: int) -> Any:
+    """The TrainConfig of a `train` params section (ValueError on a bad value)."""
+    from pipeline.pose.train import TrainConfig
+
+    return settings_of(TrainConfig, train, epochs=epochs, seed=seed)
+
+
+def augment_config(augment: Augment) -> Any:
+    """The AugmentConfig of the `train.augment` params section."""
+    from pipeline.pose.augment import AugmentConfig
+
+    try:
+        return settings_of(AugmentConfig, augment)
+    except ValueError as e:
+        raise StageError(f"params.yaml: bad train.augment ({e})") from None
+
+
+def defense_settings(defense: Defense, threshold: float) -> tuple[Any, Any]:
+    """(DefenseSettings, MotionSettings) of params.defense with the detector's `threshold`."""
+    from pipeline.defense.fusion import DefenseSettings
+    from pipeline.defense.kalman import MotionSettings
+
+    try:
+        return settings_of(DefenseSettings, defense, threshold=threshold), settings_of(MotionSettings, defense)
+    except ValueError as e:
+        raise StageError(f"params.yaml: {e}") from None
+
+
+def engine_settings(params: Params) -> Any:
+    """The engine section of params, with address None -> $RAY_ADDRESS; workers None is every core of
+    this machine, or of the cluster when there is an address."""
+    from stages.engine.pool import EngineSettings
+
+    e = params.engine
+    address = e.address or os.environ.get("RAY_ADDRESS") or None
+    workers = e.workers if e.workers or address else os.cpu_count() or 1
+    return EngineSettings(workers, address, float(e.timeout_s), e.retries)
+
+
+def mockup(params: Params) -> tuple[str | None, float]:
+    """(mesh file or None = procedural target, metres per mesh unit) of the mock-up rendered at lab.scale x
+    its size, i.e. at the size of the real target. Relative paths are resolved against the working folder."""
+    lab, r = params.lab, params.render
+    if given(lab.mesh) is None:   # the main target, built at 1/scale: rendered at scale x it is the main mesh
+        mesh, unit = given(r.mesh), float(r.mesh_scale)
+    else:
+        mesh, unit = lab.mesh, float(lab.mesh_scale) * float(lab.scale)
+    if mesh is None:
+        return None, unit
+    path = Path(mesh).resolve()
+    if not path.is_file():
+        key = "render.mesh" if given(lab.mesh) is None else "lab.mesh"
+        raise StageError(f"params.yaml {key}: mock-up mesh file {mesh} not found")
+    return str(path), unit
+
+
+def retrain_reason(params: Params) -> str | None:
+    """Why the lab stage must train its own models, or None when it may reuse the main ones."""
+    lab, r = params.lab, params.render
+    if lab.retrain == "always":
+        return "lab.retrain is always"
+    mesh, unit = mockup(params)
+    main = None if given(r.mesh) is None else str(Path(r.mesh).resolve())
+    if mesh != main or abs(unit - float(r.mesh_scale)) > 1e-9 * max(unit, 1.0):
+        return (f"the mock-up (lab.mesh {lab.mesh}, {lab.mesh_scale:g} m per unit, x{lab.scale:g}) is not "
+                f"the main target (render.mesh {r.mesh}, {r.mesh_scale:g} m per unit)")
+    return None
