@@ -51,7 +51,7 @@ def load_models(width: float) -> tuple[PoseNet, LSTMDetector, str]:
     source = []
     pose_path, det_path = Path("models/pose.pt"), Path("models/detector.pt")
     if pose_path.exists():
-        from stages.artifacts.checkpoint import load_pose_model
+        from stages.artifacts.models import load_pose_model
 
         pose = load_pose_model(pose_path)
         source.append("models/pose.pt")

@@ -24,7 +24,8 @@ from pipeline.pose.labels import POSITION, QUAT, TARGET
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import ADV, ATTACK_FIGURE as FIGURE, ATTACK_METRICS as METRICS, \
     ATTACK_REPORT as REPORT, POSE, SEED_OFFSET
-from stages.artifacts.readers import adv_array_name, load_pose
+from stages.artifacts.readers import adv_array_name
+from stages.artifacts.models import load_pose
 from stages.config.build import check_attack_params, engine_settings, make_attack
 from stages.config.device import torch_setup
 from stages.config.schema import Params

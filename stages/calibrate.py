@@ -18,7 +18,8 @@ import typer
 from pipeline.io.atomic import write_json
 from pipeline.pose.labels import TARGET
 from stages.artifacts.paths import DEFENSE
-from stages.artifacts.readers import DEFENSE_FORMAT, chaser_motion, load_chain, read_eval_render
+from stages.artifacts.readers import chaser_motion, read_eval_render
+from stages.artifacts.models import DEFENSE_FORMAT, load_chain
 from stages.config.build import defense_settings
 from stages.config.device import torch_setup
 from stages.config.schema import Params

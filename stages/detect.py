@@ -28,7 +28,8 @@ from pipeline.io.checkpoints import save_torch
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import DETECT_LIVE, DETECT_METRICS as METRICS, DETECT_REPORT as REPORT, DETECTOR, \
     LABELS, POSE, ROC_DIR, SEED_OFFSET, SHAP
-from stages.artifacts.readers import SPLIT_CODES, SampleImages, load_pose, read_shap_store
+from stages.artifacts.readers import SPLIT_CODES, SampleImages, read_shap_store
+from stages.artifacts.models import load_pose
 from stages.config.device import torch_device
 from stages.config.schema import Params
 from stages.config.sections import Detect

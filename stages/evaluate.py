@@ -21,7 +21,8 @@ from pipeline.pose.labels import TARGET
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import EVALUATE_FIGURE as FIGURE, EVALUATE_METRICS as METRICS, \
     EVALUATE_REPORT as REPORT, SEED_OFFSET
-from stages.artifacts.readers import chaser_motion, load_chain, load_defense, read_eval_render
+from stages.artifacts.readers import chaser_motion, read_eval_render
+from stages.artifacts.models import load_chain, load_defense
 from stages.config.device import torch_setup
 from stages.config.evaluation import Evaluate
 from stages.config.schema import Params

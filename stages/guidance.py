@@ -23,7 +23,7 @@ import typer
 
 from stages.artifacts.paths import DETECTOR, GUIDANCE_DEFENDED_FIGURE as DEFENDED_FIGURE, \
     GUIDANCE_FIGURE as FIGURE, GUIDANCE_METRICS as METRICS, GUIDANCE_REPORT as REPORT, POSE, SEED_OFFSET
-from stages.artifacts.readers import load_chain, load_defense
+from stages.artifacts.models import load_chain, load_defense
 from stages.config.build import check_attack_params, engine_settings, intrinsics, make_attack, scene_settings
 from stages.config.device import torch_setup
 from stages.config.schema import Params

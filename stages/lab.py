@@ -28,7 +28,7 @@ from pipeline.io.atomic import atomic_dir, atomic_write_text, read_json
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import DETECTOR, LAB as OUT, LAB_METRICS as METRICS, LAB_MODELS, LAB_MODELS_SUMMARY, \
     LAB_REPORT as REPORT, POSE, SEED_OFFSET, TRAIN_METRICS
-from stages.artifacts.readers import load_chain
+from stages.artifacts.models import load_chain
 from stages.config.build import engine_settings, mockup, retrain_reason, scene_settings
 from stages.config.device import torch_setup
 from stages.config.params import given, with_params

@@ -30,7 +30,8 @@ from pipeline.pose.labels import TARGET
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import DETECTOR, POSE, ROBUSTNESS_FIGURE as FIGURE, ROBUSTNESS_METRICS as METRICS, \
     ROBUSTNESS_REPORT as REPORT, SEED_OFFSET, SURROGATE
-from stages.artifacts.readers import Pose, load_defense, load_pose, read_eval_render
+from stages.artifacts.readers import read_eval_render
+from stages.artifacts.models import Pose, load_defense, load_pose
 from stages.config.device import torch_setup
 from stages.config.evaluation import Robustness, attack_name
 from stages.config.schema import Params

@@ -32,7 +32,8 @@ from pipeline.io.atomic import atomic_dir
 from pipeline.io.store import create_array
 from pipeline.pose.labels import TARGET
 from stages.artifacts.paths import SEED_OFFSET, SHAP as OUT
-from stages.artifacts.readers import BATCH, SPLIT_CODES, SampleImages, load_pose
+from stages.artifacts.readers import BATCH, SPLIT_CODES, SampleImages
+from stages.artifacts.models import load_pose
 from stages.config.device import torch_setup
 from stages.config.sections import Shap
 from stages.config.schema import Params

@@ -156,14 +156,14 @@ def test_every_input_a_stage_reads_has_a_producer():
     ("shap", "datasets/shap.zarr not found: run `dvc repro shap` (or `rpod shap`)"),
 ])
 def test_missing_input_names_the_stage_that_writes_it(tmp_path, monkeypatch, load, message):
-    from stages.artifacts import readers as artifacts
+    from stages.artifacts import models, readers as artifacts
     from stages.artifacts.paths import SHAP
     from stages.config.params import load as load_params
 
     params = load_params(REPO / "params.yaml")
     monkeypatch.chdir(tmp_path)
-    call = {"pose": lambda: artifacts.load_pose(params),
-            "surrogate": lambda: artifacts.load_pose(params, "models/surrogate.pt"),
+    call = {"pose": lambda: models.load_pose(params),
+            "surrogate": lambda: models.load_pose(params, "models/surrogate.pt"),
             "eval_render": lambda: artifacts.read_eval_render(params),
             "shap": lambda: artifacts.read_shap_store(SHAP, "hash")}[load]
     with pytest.raises(DataError) as err:

@@ -16,7 +16,7 @@ from pipeline.formats.models import read_pose, save_pose
 from pipeline.geometry.camera import reference_intrinsics
 from pipeline.geometry.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
 from pipeline.pose.labels import pose_columns
-from stages.artifacts import checkpoint, data
+from stages.artifacts import data, models
 from pipeline.io.atomic import write_json
 from pipeline.io.errors import DataError
 from pipeline.io.store import create_array, seal_zarr
@@ -114,17 +114,17 @@ def test_checkpoint_round_trip_and_mismatch_refusal(dataset, tmp_path):
         loss.s_p.fill_(0.7)
     path = tmp_path / "models/pose.pt"
     save_pose(path, model, loss, (H, W), {"epoch": 1})
-    loaded = checkpoint.load_pose_model(path, dataset)
+    loaded = models.load_pose_model(path, dataset)
     assert not loaded.training
     x = torch.rand(2, 3, H, W)
     torch.testing.assert_close(loaded(x), model(x))
-    assert checkpoint.load_pose_loss(path, dataset).s_p.item() == pytest.approx(0.7)
+    assert models.load_pose_loss(path, dataset).s_p.item() == pytest.approx(0.7)
     wider = replace(dataset, train=replace(dataset.train, width=0.5))
     with pytest.raises(StageError, match=r"does not match params.yaml: width=0.125 \(params: 0.5\)"):
-        checkpoint.load_pose_model(path, wider)
+        models.load_pose_model(path, wider)
     bigger = replace(dataset, render=replace(dataset.render, height=54, width=96))
     with pytest.raises(StageError, match=r"input_size HxW=\[27, 48\] \(params: \[54, 96\]\)"):
-        checkpoint.read_checked(path, bigger)
+        models.read_checked(path, bigger)
     path.write_bytes(b"not a checkpoint")
     with pytest.raises(DataError, match="unreadable"):
         read_pose(path)
@@ -171,7 +171,7 @@ def test_train_stage_writes_checkpoint_report_and_metrics(dataset):
     assert sum(b["n"] for b in metrics["test"]["bins"]) == 8
     report = Path("reports/pose.md").read_text()
     assert "0.490" in report and "Guidance requirements" in report and "60-45" in report
-    model = checkpoint.load_pose_model(POSE, params_mod.load())
+    model = models.load_pose_model(POSE, params_mod.load())
     assert model(torch.rand(1, 3, H, W)).shape == (1, 9)
     assert Path("dvclive/train/plots/metrics/val_pos_m.tsv").exists()
 

@@ -1,34 +1,27 @@
-"""The loaders the stages share (the paths they read: stages/artifacts/paths.py).
+"""The data readers the stages share (paths: stages/artifacts/paths.py; models: stages/artifacts/models.py).
 
-Paths are in stages/artifacts/paths.py. Paths are relative to the working folder (the repository root under `dvc repro`). Loaders check what
-they read and raise a DataError (or StageError) naming the file and the stage that writes it:
+Readers check what they read and raise a DataError (or StageError) naming the file and the stage that writes it:
 - `read_render_store` (render output), `read_eval_render` (eval_render output, the evaluation or the
-  defense's validation trajectories, checked against params), `load_defense` (calibrate output), `load_pose` (pose model, attack loss and file hash from one read of models/pose.pt),
-  `load_chain` (pose model + detector: pipeline.defense.chain.load_onboard_chain), `read_shap_store` (checked SHAP store);
+  defense's validation trajectories, checked against params), `chaser_motion` (what the chaser knows of
+  itself on those), `read_shap_store` (checked SHAP store);
 - `SampleImages`: the image of a SHAP sample (split, label index, eps) from the labelled renders,
   the attack stage's adv.zarr, or the same FGSM (shared by `rpod shap` and `rpod detect`).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 
-from pipeline.formats.models import loss_from_checkpoint, model_from_checkpoint
 from pipeline.formats.renders import read_renders
-from pipeline.io.atomic import file_hash, read_json
 from pipeline.io.store import open_zarr
-from stages.artifacts.checkpoint import read_checked
 from stages.artifacts.data import load_split
-from stages.artifacts.paths import ADV, DEFENSE, DETECTOR, EVAL_RENDER, POSE, VAL_RENDER
-from stages.config.build import defense_settings
+from stages.artifacts.paths import ADV, EVAL_RENDER, POSE, VAL_RENDER
 from stages.config.params import eval_render_fingerprint, val_render_fingerprint
 from stages.config.schema import Params
 from stages.errors import StageError
 
-DEFENSE_FORMAT = "rpodguard-defense/1"
 SPLIT_CODES = {"train": 0, "test": 1}   # `split` codes of the SHAP store
 BATCH = 64                              # images per forward pass when rebuilding SHAP sample images
 
@@ -43,38 +36,6 @@ def read_render_store(path: Path, what: str = "render output") -> tuple[Any, Any
     (images zarr array (N, H, W, 3) uint8, poses table, meta)."""
     r = read_renders(path, what, "re-run `rpod render`", poses=f"{what} poses")
     return r.images, r.poses, r.meta
-
-
-@dataclass
-class Pose:
-    """The pose model (eval mode), its learned training loss (what attacks ascend), the file's hash and
-    the checkpoint's facts (`meta`: best epoch, test errors in m and deg)."""
-
-    model: Any
-    loss: Any
-    hash: str
-    meta: dict[str, Any]
-
-
-def load_pose(params: Params, path: Path | str = POSE) -> Pose:
-    """models/pose.pt read once, checked against params (architecture, input size), the network placed on
-    the `device` param's device (with `amp`); it takes inputs from any device and answers on theirs."""
-    from stages.config.device import torch_device
-
-    ckpt = read_checked(path, params)
-    model = model_from_checkpoint(ckpt, torch_device(params), params.amp)
-    return Pose(model, loss_from_checkpoint(ckpt), file_hash(path), dict(ckpt.get("meta", {})))
-
-
-def load_chain(params: Params, pose_path: Path | str = POSE,
-               detector_path: Path | str = DETECTOR) -> tuple[Any, Any, str]:
-    """(OnboardChain, attack loss function on `attack.loss`, pose model hash) from a pose model and its detector."""
-    from pipeline.attacks.gradient import attack_loss
-    from pipeline.defense.chain import load_onboard_chain
-
-    pose = load_pose(params, pose_path)
-    chain = load_onboard_chain(pose.model, pose.hash, pose_path, detector_path)
-    return chain, attack_loss(params.attack.loss, pose.loss), pose.hash
 
 
 def read_eval_render(p: Params, validation: bool = False) -> tuple[np.ndarray, Any, dict[str, Any]]:
@@ -102,43 +63,6 @@ def chaser_motion(poses: Any) -> tuple[np.ndarray, np.ndarray]:
     u[1:] = np.diff(rel, axis=0)
     u[np.r_[True, np.diff(poses["trajectory"].to_numpy()) != 0]] = 0.0
     return R_cam, u
-
-
-@dataclass(frozen=True)
-class DefenseModel:
-    """The calibrated defense (models/defense.json): settings from params.defense, the detector's
-    threshold and the measurement-noise model fitted on validation trajectories."""
-
-    settings: Any        # pipeline.defense.fusion.DefenseSettings
-    motion: Any          # pipeline.defense.gate.MotionSettings
-    noise: Any           # pipeline.defense.noise.NoiseModel
-    calibration: dict[str, Any]
-
-    def new(self, fusion: str | None = None) -> Any:
-        """A fresh pipeline.defense.fusion.Defense (one per trajectory or closed-loop run), optionally with another fusion."""
-        import dataclasses
-
-        from pipeline.defense.fusion import Defense
-
-        s = self.settings if fusion is None else dataclasses.replace(self.settings, fusion=fusion)
-        return Defense(s, self.motion, self.noise)
-
-
-def load_defense(p: Params, model_hash: str, threshold: float) -> DefenseModel:
-    """models/defense.json checked against the pose model and detector it was calibrated with, and params."""
-    from pipeline.defense.noise import NoiseModel
-
-    cal = read_json(DEFENSE)
-    if cal.get("format") != DEFENSE_FORMAT:
-        raise StageError(f"{DEFENSE} is not a {DEFENSE_FORMAT} file; re-run `rpod calibrate`")
-    if cal.get("pose_model_hash") != model_hash or abs(float(cal.get("threshold", -1)) - threshold) > 1e-9:
-        raise StageError(f"{DEFENSE} was calibrated for another pose model or detector; re-run `rpod calibrate`")
-    try:
-        noise = NoiseModel(**{k: tuple(v) if isinstance(v, list) else v for k, v in cal["noise"].items()})
-    except (KeyError, TypeError, ValueError) as e:
-        raise StageError(f"{DEFENSE}: bad noise model ({e}); re-run `rpod calibrate`") from None
-    settings, motion = defense_settings(p.defense, threshold)
-    return DefenseModel(settings, motion, noise, cal)
 
 
 def read_shap_store(path: Path, model_hash: str) -> dict[str, Any]:

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from stages.artifacts.readers import load_pose
+from stages.artifacts.models import load_pose
 from stages.config.build import make_attack
 from stages.config.schema import Params
 

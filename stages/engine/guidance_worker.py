@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from stages.artifacts.readers import load_chain
+from stages.artifacts.models import load_chain
 from stages.config.build import make_attack
 from stages.config.schema import Params
 
