@@ -4,10 +4,11 @@ Mo and Sinopoli (2010): a filter that gates its innovations cannot tell a bias t
 enough from the motion it models. The attacker knows the defense and its state
 (`pipeline.defense.fusion.Defense`: the motion filter of pipeline/defense/kalman.py, its noise
 model and gate) and simulates it step by step on a copy (`DriftPlanner`). Each frame it offsets the
-pose estimate by a bias b (metres) along a unit direction d of the camera frame, the line of sight
-("los": the target looks farther away) or a lateral one ("lateral": across the line of sight, in
-the camera's x-z plane; both fixed in world axes when the drift starts), and takes the largest b whose innovation stays under
-`gate_fraction` of the gate's NIS (`stealthy_bias`, from the filter's own predicted covariance).
+pose estimate by a bias b (metres) along a unit direction d, the line of sight ("los": the target
+looks farther away) or across it ("lateral": the camera x axis made orthogonal to the line of
+sight), both fixed in world axes when the drift starts, and takes the largest b (or, with
+`max_rate`, the b nearest the last one plus the rate) whose innovation stays under `gate_fraction`
+of the gate's NIS (`stealthy_bias`, from the filter's own predicted covariance).
 Every frame passes the gate, the filter updates on it, its predicted state (the trusted estimate
 that guidance flies on) moves with the bias, and the next frame's bias can grow again: the filter's
 drift-velocity state absorbs the ramp. `max_rate` (m/frame) caps the growth of b per frame.
