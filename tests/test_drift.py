@@ -14,7 +14,7 @@ from pipeline.attacks.adaptive import PerFrameChain
 from pipeline.attacks.base import AttackRun
 from pipeline.attacks.drift import DriftAttacker, DriftSettings, drift_estimates, targeted_pgd
 from pipeline.attacks.suite import get_attacker
-from pipeline.defense.fusion import Defense, DefenseSettings, run_defense
+from pipeline.defense.fusion import Defense, DefenseSettings, DefenseTrace, run_defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
@@ -37,7 +37,8 @@ def approach(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     return rel, t_clean, np.repeat(np.eye(3)[None], n, 0), u
 
 
-def defend(t: np.ndarray, R_cam: np.ndarray, u: np.ndarray):
+def defend(t: np.ndarray, R_cam: np.ndarray, u: np.ndarray) -> DefenseTrace:
+    """The defense (detector silent) over the estimates t (N, 3), camera frame (m)."""
     return run_defense(DefenseSettings(), MOTION, NOISE, t, np.zeros(len(t)), R_cam, u)
 
 
