@@ -19,7 +19,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal, Optional
 
-from stages.config.evaluation import Defense, Evaluate, Lab, Robustness
+from stages.config.evaluation import Defense, Evaluate, Integrity, Lab, Robustness
 from stages.config.sections import (Attack, Camera, Detect, Engine, Guidance, Label, ParamsError, Render, Shap,
                                     Train)
 
@@ -51,6 +51,7 @@ class Params:
     defense: Defense
     lab: Lab
     robustness: Robustness
+    integrity: Integrity
     report: Report = field(default_factory=Report)
 
     def __post_init__(self) -> None:
