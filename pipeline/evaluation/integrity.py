@@ -22,27 +22,27 @@ limit s (m per step), goal g (`rel` (0, 0, r_g)) and docking tolerance tol (m):
 Assumptions: (a) the chaser is on the nominal approach along the line of sight at true range r,
 (b) the run's step budget is the nominal approach's remaining ceil((r - r_g) / s) steps plus the
 closed loop's `slack_steps` (the guidance stage gives attacked runs the clean run's arrival step +
-guidance.slack_steps), (c) m = `error_frames` frames of the run carry an error of norm at most E
-and every other estimate is exact, (d) a true range below `collision_range` (m) is a collision.
-Because rel_next is computed from the estimate, an error e becomes a displacement e of the chaser
-(minus what that step's clipped command takes back); exact frames then close each axis's offset
-by s per step. Three directions bound E:
+guidance.slack_steps), (c) one frame's estimate is wrong by E (m, any direction) and every other
+estimate is exact, (d) a true range below `collision_range` (m) is a collision (r_g above it).
+Because rel_next is computed from the estimate, the error becomes a displacement of the chaser (less
+what that step's clipped command takes back); exact frames then close each axis's offset by s per
+step. Three directions bound E:
 - outward along the line of sight (estimate farther than the truth): the approach already spends
-  every step on that axis, so the displacements (at most m E) must fit in the slack: after the
-  budget the chaser is still m E - slack s short of the goal, which docks iff m E - slack s <= tol:
-      E <= (tol + slack s) / m;
-- inward (estimate nearer than the truth): an estimate beyond the goal, est_z <= r_g - s, sends the
-  chaser to est_z + s = r - E + s; no collision iff r - E + s >= collision_range:
-      E <= r + s - collision_range;
+  every step on that axis, so the displacement must fit in the slack: when the budget ends the
+  chaser is E - slack s short of the goal, and docks iff E - slack s <= tol:  E <= tol + slack s;
+- inward (estimate nearer than the truth): only an estimate beyond the goal, est_z <= r_g - s, sends
+  the chaser inside the goal range, to est_z + s = r - E + s (from there the budget brings it back
+  out); no collision iff r - E + s >= collision_range:  E <= r + s - collision_range;
 - lateral: those axes have the whole budget (>= slack steps) to close an offset, never tighter than
   the outward bound (and the residuals' norm is largest with the error on one axis).
 AL is the tightest bound, floored at the docking tolerance (an error the mission accepts anyway):
-    AL(r) = max(tol, min((tol + slack s) / m, r + s - collision_range)).
-With the defaults (tol 1 m, s 1 m, slack 10 steps, m 1, collision range 5 m) AL is 11 m from 15 m
-out (60 m and 30 m: 11 m) and falls to 6 m at the 10 m goal range, 1 m at 5 m. The docking term is
-range-independent: under a fixed deadline the line-of-sight axis has no spare step at any range.
-AL bounds one frame's error (m = 1) with the others exact; errors on several frames share the slack
-(m > 1 divides it), and a persistent error is a closed-loop matter (the in-loop attacker).
+    AL(r) = max(tol, min(tol + slack s, r + s - collision_range)).
+With the defaults (tol 1 m, s 1 m, slack 10 steps, collision range 5 m) AL is 11 m from 15 m out
+(at 60 m and 30 m: 11 m) and falls to 6 m at the 10 m goal range, 1 m at 5 m. The docking term
+does not grow with range: under a fixed deadline the line-of-sight axis has no spare step at any
+range. AL bounds one frame's error with the others exact: errors on several frames share the
+slack and compound toward the target (the paper law flies from each estimate), which the
+closed-loop (in-loop attacker) counts measure.
 """
 from __future__ import annotations
 
@@ -60,12 +60,11 @@ FLOWN = (TRACK, COAST)   # defense modes in which the guidance flies on the trus
 @dataclass(frozen=True)
 class AlertLimitSettings:
     """The constants of `alert_limit`: docking tolerance (m), step limit (m per step per axis), slack
-    steps of the run's budget, frames whose errors share it, collision range (m)."""
+    steps of the run's budget beyond the nominal approach, collision range (m)."""
 
     tolerance: float = 1.0
     max_step: float = 1.0
     slack_steps: int = 10
-    error_frames: int = 1
     collision_range: float = 5.0
 
     def __post_init__(self) -> None:
@@ -74,16 +73,14 @@ class AlertLimitSettings:
                 raise ValueError(f"alert limit: {name} must be > 0 (metres), got {getattr(self, name)!r}")
         if int(self.slack_steps) != self.slack_steps or self.slack_steps < 0:
             raise ValueError(f"alert limit: slack_steps must be a whole number >= 0, got {self.slack_steps!r}")
-        if int(self.error_frames) != self.error_frames or self.error_frames < 1:
-            raise ValueError(f"alert limit: error_frames must be a whole number >= 1, got {self.error_frames!r}")
 
 
 def alert_limit(range_m: np.ndarray | float, settings: AlertLimitSettings = AlertLimitSettings()) -> np.ndarray:
-    """AL (m) at true range `range_m` (m): max(tol, min((tol + slack s) / m, r + s - collision range));
-    see the module docstring for the derivation."""
+    """AL (m) at true range `range_m` (m): max(tol, min(tol + slack s, r + s - collision range)); see
+    the module docstring for the derivation."""
     s = settings
     r = np.asarray(range_m, dtype=np.float64)
-    docking = (s.tolerance + s.slack_steps * s.max_step) / s.error_frames
+    docking = s.tolerance + s.slack_steps * s.max_step
     collision = r + s.max_step - s.collision_range
     return np.maximum(s.tolerance, np.minimum(docking, collision))
 

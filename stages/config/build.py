@@ -122,19 +122,17 @@ def defense_settings(defense: Defense, threshold: float) -> tuple[Any, Any]:
 
 # AlertLimitSettings field -> the param that feeds it (the guidance law's constants are guidance's own)
 ALERT_LIMIT_KEYS = {"tolerance": "guidance.tolerance", "max_step": "guidance.max_step",
-                    "slack_steps": "guidance.slack_steps", "error_frames": "integrity.alert_limit.error_frames",
-                    "collision_range": "integrity.collision_range_m"}
+                    "slack_steps": "guidance.slack_steps", "collision_range": "integrity.collision_range_m"}
 
 
 def alert_limit_settings(params: Params) -> Any:
     """The AlertLimitSettings of pipeline.evaluation.integrity: the guidance law's tolerance, step limit and
-    slack (params.guidance) with params.integrity's error frames and collision range."""
+    slack (params.guidance) with params.integrity's collision range."""
     from pipeline.evaluation.integrity import AlertLimitSettings
 
     g, i = params.guidance, params.integrity
     try:
-        return AlertLimitSettings(float(g.tolerance), float(g.max_step), g.slack_steps, i.alert_limit.error_frames,
-                                  float(i.collision_range_m))
+        return AlertLimitSettings(float(g.tolerance), float(g.max_step), g.slack_steps, float(i.collision_range_m))
     except ValueError as e:
         name = next(k for k in ALERT_LIMIT_KEYS if f" {k} must" in str(e))
         raise StageError(f"params.yaml {ALERT_LIMIT_KEYS[name]}: {e}") from None

@@ -217,24 +217,14 @@ class Robustness:
                              f"{self.batch_size}, {self.surrogate_epochs} and {self.burst_every}")
 
 
-@dataclass(frozen=True)
-class AlertLimit:
-    """The alert limit's own constant (pipeline.evaluation.integrity.alert_limit; the others are guidance's)."""
-
-    error_frames: int            # frames of a run whose trusted errors share the closed loop's slack, >= 1
-
 
 @dataclass(frozen=True)
 class Integrity:
-    """Integrity metrics (pipeline/evaluation/integrity.py); bad values are refused naming integrity.<key>."""
+    """Integrity metrics (pipeline/evaluation/integrity.py; the alert limit's other constants are guidance's)."""
 
-    alert_limit: AlertLimit
     collision_range_m: float     # metres: a true range below this is a collision, > 0
 
     def __post_init__(self) -> None:
-        if self.alert_limit.error_frames < 1:
-            raise ParamsError("params.yaml integrity.alert_limit.error_frames must be a whole number >= 1, "
-                              f"got {self.alert_limit.error_frames!r}")
         if not self.collision_range_m > 0:
             raise ParamsError(f"params.yaml integrity.collision_range_m must be > 0 (metres), "
                               f"got {self.collision_range_m!r}")

@@ -62,6 +62,10 @@ class Params:
         if self.defense.val_seed == self.evaluate.seed:
             raise ValueError("defense.val_seed must differ from evaluate.seed: the defense is fitted on "
                              "validation trajectories, never on the evaluation ones")
+        goal = sum(float(v) ** 2 for v in self.guidance.target) ** 0.5
+        if not self.integrity.collision_range_m < goal:
+            raise ValueError(f"integrity.collision_range_m must be below the goal range |guidance.target| = {goal:g} m, "
+                             f"got {self.integrity.collision_range_m!r}")
 
 
 def _check(value: Any, hint: Any, key: str) -> Any:
