@@ -51,7 +51,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.defense.fusion import COAST, MODES, TRACK
+from pipeline.defense.fusion import COAST, MODES, TRACK, DefenseTrace
 from pipeline.evaluation.stats import Rate, bootstrap_rate
 
 FLOWN = (TRACK, COAST)   # defense modes in which the guidance flies on the trusted estimate
@@ -143,10 +143,10 @@ class IntegrityFrames:
         return self.has_pl & (self.error > (np.inf if self.pl is None else self.pl))
 
 
-def defense_frames(trace: Any, truth: np.ndarray, trajectory: Any, settings: AlertLimitSettings,
+def defense_frames(trace: DefenseTrace, truth: np.ndarray, trajectory: Any, settings: AlertLimitSettings,
                    pl: np.ndarray | None = None) -> IntegrityFrames:
-    """The integrity records of one run through the defense: `trace` a pipeline.defense.fusion.DefenseTrace
-    (e.g. of pipeline.evaluation.sequences.defend_trace), `truth` (N, 3) the true rel (world, m), e.g.
+    """The integrity records of one run through the defense: `trace` its DefenseTrace (e.g. of
+    pipeline.evaluation.sequences.defend_trace or pipeline.defense.fusion.run_defense), `truth` (N, 3) the true rel (world, m), e.g.
     `Sequence.rel`, `trajectory` the run's id, `pl` (N,) protection levels (m) when the chain has them."""
     truth = np.asarray(truth, np.float64)
     n = len(trace.mode)
