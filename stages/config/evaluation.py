@@ -215,3 +215,16 @@ class Robustness:
         if min(self.frames, self.batch_size, self.surrogate_epochs, self.burst_every) < 1:
             raise ValueError(f"frames, batch_size, surrogate_epochs and burst_every must be >= 1, got {self.frames}, "
                              f"{self.batch_size}, {self.surrogate_epochs} and {self.burst_every}")
+
+
+
+@dataclass(frozen=True)
+class Integrity:
+    """Integrity metrics (pipeline/evaluation/integrity.py; the alert limit's other constants are guidance's)."""
+
+    collision_range_m: float     # metres: a true range below this is a collision, > 0
+
+    def __post_init__(self) -> None:
+        if not self.collision_range_m > 0:
+            raise ParamsError(f"params.yaml integrity.collision_range_m must be > 0 (metres), "
+                              f"got {self.collision_range_m!r}")

@@ -19,7 +19,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Any, Literal, Optional
 
-from stages.config.evaluation import Defense, Evaluate, Lab, Robustness
+from stages.config.evaluation import Defense, Evaluate, Integrity, Lab, Robustness
 from stages.config.sections import (Attack, Camera, Detect, Engine, Guidance, Label, ParamsError, Render, Shap,
                                     Train)
 
@@ -51,6 +51,7 @@ class Params:
     defense: Defense
     lab: Lab
     robustness: Robustness
+    integrity: Integrity
     report: Report = field(default_factory=Report)
 
     def __post_init__(self) -> None:
@@ -61,6 +62,10 @@ class Params:
         if self.defense.val_seed == self.evaluate.seed:
             raise ValueError("defense.val_seed must differ from evaluate.seed: the defense is fitted on "
                              "validation trajectories, never on the evaluation ones")
+        goal = sum(float(v) ** 2 for v in self.guidance.target) ** 0.5
+        if not self.integrity.collision_range_m < goal:
+            raise ValueError(f"integrity.collision_range_m must be below the goal range |guidance.target| = {goal:g} m, "
+                             f"got {self.integrity.collision_range_m!r}")
 
 
 def _check(value: Any, hint: Any, key: str) -> Any:
