@@ -91,3 +91,10 @@ def test_record_profile_needs_the_defaults_line(tmp_path):
     config.write_text("defaults:\n  - _self_\nseed: 0\n")
     with pytest.raises(ParamsError, match="one `  - profile: NAME` line"):
         compose_mod.record_profile("smoke", config)
+
+
+def test_the_committed_params_are_the_profile_conf_picks():
+    """params.yaml and conf/config.yaml's defaults list are committed together (`rpod params NAME` writes both)."""
+    picked = next(line.split(":")[1].split()[0] for line in (REPO / "conf/config.yaml").read_text().splitlines()
+                  if line.startswith("  - profile:"))
+    assert yaml.safe_load((REPO / "params.yaml").read_text())["profile_name"] == picked
