@@ -12,6 +12,7 @@ import zarr
 from pipeline.io.atomic import atomic_dir
 from pipeline.io.errors import DataError
 from pipeline.io.store import create_array, open_zarr
+from stages.config import params as params_mod
 from stages.config.params import load
 from stages.errors import StageError
 
@@ -237,13 +238,14 @@ def _rpod(monkeypatch, capsys, *args: str) -> tuple[int, str]:
 
 def test_cli_prints_one_line_for_known_errors(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    code, err = _rpod(monkeypatch, capsys, "params", "smoke", "-S", "nosuchkey=1")  # a Hydra error
+    code, err = _rpod(monkeypatch, capsys, "params", "smoke", "-S", "nosuchkey=1")  # refused before Hydra
     assert code == 1 and err.count("\n") == 1 and err.startswith("error: ") and "nosuchkey" in err
     code, err = _rpod(monkeypatch, capsys, "train")  # no params.yaml
     assert code == 1 and err == "error: params.yaml not found: run `rpod params default` (or another profile) first\n"
-    code, err = _rpod(monkeypatch, capsys, "params", "smoke", "-S", "train=1")
-    assert code == 0
-    code, err = _rpod(monkeypatch, capsys, "label")  # params.yaml with a section replaced by a number
+    code, err = _rpod(monkeypatch, capsys, "params", "smoke", "-S", "train=1")   # checked at composition
+    assert code == 1 and err == "error: params.yaml: 'train' must be a section of parameters, got 1\n"
+    params_mod.write_params({**params_mod.compose("smoke"), "train": 1})     # the same params.yaml written by hand
+    code, err = _rpod(monkeypatch, capsys, "label")
     assert code == 1 and err == "error: params.yaml: 'train' must be a section of parameters, got 1\n"
     assert not Path("datasets").exists()
 
