@@ -14,10 +14,11 @@ objective: past c AL the budget goes to stealth), p* the probability at or above
 stops the frame from updating the filter (the threshold, or `update_below`; the detector's term
 is left out under fusion "motion") and g the gate's NIS bound. Each margin is > 0 where that check
 stops the frame. L-inf PGD (signed steps of `step_size` eps / steps, `steps` of them) runs from
-`restarts` starts for every lambda of the grid, batched; the best iterate of each run (by J) and its
-last are stored as 8-bit (`quantize`) and put through the REAL chain and defense: the burst keeps
-the candidate with the most hazardously misleading frames (HMI: unflagged, tracking, trusted error
-> AL), then the fewest flagged frames, then the largest mean capped trusted error (`BurstOutcome.key`).
+`restarts` starts (batched) for each lambda of the grid in turn (the lambda search); the best
+iterate of each run (by J) and its last are stored as 8-bit (`quantize`) and put through the REAL
+chain and defense: the burst keeps the candidate with the most hazardously misleading frames (HMI:
+unflagged, tracking, trusted error > AL), then the fewest flagged frames, then the largest mean
+capped trusted error (`BurstOutcome.key`): the best successful-and-undetected result.
 
 Nested in eps (`BurstAttacker.nested`): for increasing eps, restart 0 starts from the burst's
 solution at the previous eps (projected into the new ball), and that stored solution is itself a
@@ -183,8 +184,11 @@ class BurstAttacker:
 
     alert_limit: AL (m), a number or a function of the true range (m) per frame; cap: c, the
     objective's ceiling in units of AL; steps (>= 1) and restarts (>= 1) per lambda of `lambdas`
-    (>= 0); step_size: signed-step length in units of eps / steps; seed: the random starts';
-    ladder: the eps (in (0, 1]) that `attack(..., eps)` climbs through below eps (the nesting).
+    (>= 0, searched in increasing order); step_size: signed-step length in units of eps / steps;
+    seed: the random starts'; ladder: the eps (in (0, 1]) that `attack(..., eps)` climbs through
+    below eps (the nesting); early_stop: skip the remaining lambdas of a burst (and a larger eps's
+    search) once every frame of it is HMI: no candidate can count more HMI frames, though one might
+    have a larger error (False: always search the whole grid).
     """
 
     alert_limit: AlertLimit
@@ -195,6 +199,7 @@ class BurstAttacker:
     step_size: float = 2.5
     seed: int = 0
     ladder: tuple[float, ...] = ()
+    early_stop: bool = True
     name: str = field(default="burst", init=False)
 
     def __post_init__(self) -> None:
@@ -287,8 +292,9 @@ class BurstAttacker:
         return stored, outcomes
 
     def _burst(self, burst: _Burst, eps: float, previous: BurstOutcome | None, gen: torch.Generator) -> BurstOutcome:
-        """The burst's worst case at eps: every (lambda, restart) run, its best and last iterates,
-        and the previous eps's solution, judged on the stored images by the real defense."""
+        """The burst's worst case at eps: the previous eps's solution, then for each lambda in
+        increasing order the best and last iterates of its restarts (batched), judged on the stored
+        images by the real defense; with `early_stop`, no further lambda once every frame is HMI."""
         x = burst.x
         starts = []
         for r in range(int(self.restarts)):
@@ -297,15 +303,14 @@ class BurstAttacker:
             else:
                 noise = torch.rand(x.shape, generator=gen, dtype=x.dtype)
                 starts.append(_project(x + (2 * noise - 1) * eps, x, eps))
-        lams = [float(v) for v in self.lambdas]
-        X0 = torch.stack(starts).repeat(len(lams), 1, 1, 1, 1)
-        lam = torch.tensor(lams, dtype=DTYPE).repeat_interleave(len(starts))
-        best, last = self._ascend(burst, x, X0, lam, eps)
-        runs = [(lams[i // len(starts)], i % len(starts), eps) for i in range(len(X0))]
-        stored = torch.stack([quantize(c, x) for c in torch.cat([best, last])])
-        found = burst.evaluate(stored, eps, runs + runs)
-        if previous is not None:
-            found += burst.evaluate(previous.images[None], eps, [(previous.lam, previous.restart, previous.found_at)])
+        found = [] if previous is None else burst.evaluate(
+            previous.images[None], eps, [(previous.lam, previous.restart, previous.found_at)])
+        for lam in sorted(float(v) for v in self.lambdas):
+            if self.early_stop and found and max(o.key for o in found)[0] == len(x):
+                break
+            best, last = self._ascend(burst, x, torch.stack(starts), torch.full((len(starts),), lam, dtype=DTYPE), eps)
+            runs = [(lam, r, eps) for r in range(len(starts))]
+            found += burst.evaluate(torch.stack([quantize(c, x) for c in torch.cat([best, last])]), eps, runs + runs)
         return max(found, key=lambda o: o.key)
 
     def _ascend(self, burst: _Burst, x: Tensor, X: Tensor, lam: Tensor, eps: float) -> tuple[Tensor, Tensor]:
