@@ -124,8 +124,9 @@ def test_stored_images_respect_eps_and_leave_clean_frames(scene) -> None:
 
 def test_outcomes_are_what_the_real_defense_sees_on_the_stored_run(scene) -> None:
     _, chain, run, threshold = scene
-    stored = _attacker().attack(chain, _defense(threshold), run, 0.03)
-    res = _attacker().nested(chain, _defense(threshold), run, [0.03])
+    attacker = _attacker(alert_limit=lambda rng: 0.001 * rng)   # AL as a function of the true range (m)
+    stored = attacker.attack(chain, _defense(threshold), run, 0.03)
+    res = attacker.nested(chain, _defense(threshold), run, [0.03])
     assert torch.equal(stored, res.images[0])
     with torch.no_grad():
         pose, logit = chain(stored.float() / 255)
@@ -135,7 +136,10 @@ def test_outcomes_are_what_the_real_defense_sees_on_the_stored_run(scene) -> Non
     burst = res.bursts[0][0]
     truth = run.labels[N - K:, :3].double().numpy()
     assert np.array_equal(trace.flag[N - K:], burst.flag)
-    assert np.allclose(np.linalg.norm(trace.trusted[N - K:] - truth, axis=1), burst.trusted_error, atol=1e-6)
+    error = np.linalg.norm(trace.trusted[N - K:] - truth, axis=1)
+    assert np.allclose(error, burst.trusted_error, atol=1e-6)
+    al = 0.001 * np.linalg.norm(truth, axis=1)
+    assert np.array_equal(burst.hmi, ~trace.flag[N - K:] & (trace.mode[N - K:] == "track") & (error > al))
 
 
 def test_restarts_are_seeded(scene) -> None:
@@ -157,6 +161,12 @@ def test_bad_eps_is_one_line(scene, eps: list[float], word: str) -> None:
         _attacker().nested(chain, _defense(threshold), run, eps)
 
 
+def test_an_alert_limit_that_is_not_positive_at_some_range_is_one_line(scene) -> None:
+    _, chain, run, threshold = scene
+    with pytest.raises(ValueError, match="alert_limit"):
+        _attacker(alert_limit=lambda rng: rng - rng.max()).nested(chain, _defense(threshold), run, [0.01])
+
+
 def test_bad_options_are_one_line() -> None:
     with pytest.raises(ValueError, match="stepz"):
         BurstAttacker.from_options({"alert_limit": 1.0, "stepz": 3})
@@ -166,4 +176,5 @@ def test_bad_options_are_one_line() -> None:
         BurstAttacker.from_options({"alert_limit": 1.0, "restarts": 0})
     with pytest.raises(ValueError, match="eps"):
         BurstAttacker.from_options({"alert_limit": 1.0, "ladder": (2.0,)})
+
     assert BurstAttacker.from_options({"alert_limit": 1.0, "steps": 7}).steps == 7

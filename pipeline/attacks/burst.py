@@ -123,7 +123,9 @@ class _Burst:
     def __post_init__(self) -> None:
         self.truth = np.einsum("kij,kj->ki", self.R_cam, self.labels[:, :3].double().numpy())
         s = None if self.defense is None else self.defense.settings
-        doubt = None if s is None or s.fusion == "motion" else (s.threshold if s.update_below is None else s.update_below)
+        doubt = None
+        if s is not None and s.fusion != "motion":
+            doubt = s.threshold if s.update_below is None else s.update_below
         self.logit_doubt = None if doubt is None else float(np.log(doubt / (1 - doubt)))
 
     def objective(self, X: Tensor, lam: Tensor) -> Tensor:
@@ -280,7 +282,7 @@ class BurstAttacker:
             done = lo
             y = run.labels[lo:hi]
             rng = np.linalg.norm(y[:, :3].double().numpy(), axis=1)
-            al = self.alert_limit(rng) if callable(self.alert_limit) else np.full(len(rng), float(self.alert_limit))
+            al = self._alert_limit(rng)
             burst = _Burst(chain, d, run.images[lo:hi], y, np.asarray(run.R_cam[lo:hi], np.float64),
                            None if run.u is None else np.asarray(run.u[lo:hi], np.float64), np.asarray(al, np.float64),
                            float(self.cap))
@@ -290,6 +292,14 @@ class BurstAttacker:
             feed(hi)
             done = hi
         return stored, outcomes
+
+    def _alert_limit(self, rng: np.ndarray) -> np.ndarray:
+        """AL (K,) m at the true ranges `rng` (K,) m; a limit that is not positive is one line."""
+        al = self.alert_limit(rng) if callable(self.alert_limit) else float(self.alert_limit)
+        al = np.broadcast_to(np.asarray(al, np.float64), rng.shape)
+        if not (np.isfinite(al) & (al > 0)).all():
+            raise ValueError(f"burst alert_limit (m) must be positive at every range, got {al.min()} at some frame")
+        return al
 
     def _burst(self, burst: _Burst, eps: float, previous: BurstOutcome | None, gen: torch.Generator) -> BurstOutcome:
         """The burst's worst case at eps: the previous eps's solution, then for each lambda in

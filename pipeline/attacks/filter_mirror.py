@@ -51,7 +51,9 @@ class FilterMirror:
         self.rate_std = 3 * s.velocity_noise, 3 * math.radians(s.attitude_rate_noise_deg)
         self.started = motion.started
         if self.started:
-            rep = lambda a: torch.as_tensor(np.asarray(a, np.float64)).expand(self.runs, *np.shape(a)).clone()  # noqa: E731
+            def rep(a: object) -> Tensor:
+                return torch.as_tensor(np.asarray(a, np.float64)).expand(self.runs, *np.shape(a)).clone()
+
             self.level, self.rate = rep(motion.pos.level), rep(motion.pos.rate)
             self.A, self.B, self.C = rep(motion.pos.A), rep(motion.pos.B), rep(motion.pos.C)
             self.att_rate, self.R_tw = rep(motion.att.rate), rep(motion.R_tw)
