@@ -19,7 +19,7 @@ from pipeline.defense.gate import MotionSettings
 from pipeline.defense.kalman import MotionFilter
 from pipeline.defense.noise import NoiseModel
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
-from pipeline.geometry.rotations import sixd_to_matrix, sixd_to_matrix_t
+from pipeline.geometry.rotations import rotvec_to_matrix, sixd_to_matrix, sixd_to_matrix_t
 from pipeline.pose.loss import PoseLoss
 from pipeline.pose.model import N_FEATURES, PoseNet
 from pipeline.shap import ExactShap
@@ -65,25 +65,33 @@ def test_bursts_of_finds_each_run_of_attacked_frames() -> None:
 
 
 def test_the_mirror_replays_the_motion_filter(scene) -> None:
-    """Started on frame 0 or taken over mid-run, the mirror's trusted estimate and NIS equal the filter's."""
+    """Started on frame 0 or taken over mid-run, with turning cameras and frames above the soft gate
+    (Huber weights), the mirror's trusted estimate and NIS equal the filter's."""
     model, _, run, _ = scene
+    rng = np.random.default_rng(0)
     with torch.no_grad():
         pose = model(torch.clamp(run.images + 0.05 * torch.randn(run.images.shape), 0, 1)).double()
-    real = MotionFilter(MOTION, NOISE)
-    mirror = FilterMirror(real, 2)
+    pose[5:7, :3] += torch.tensor([0.4, -0.3, 1.5], dtype=torch.float64)     # jumps past the soft gate
+    pose[6, 3:] = torch.tensor([1.0, 0.2, 0.0, 0.0, 1.0, 0.3], dtype=torch.float64)
+    R_cam = np.stack([rotvec_to_matrix(rng.normal(0, 0.3, 3)) for _ in range(N)])
+    u = rng.normal(0, 0.05, (N, 3))
+    real, soft = MotionFilter(MOTION, NOISE), MOTION.soft_gate * MOTION.gate
+    mirror, nis = FilterMirror(real, 2), []
     for k in range(N):
         t, R6 = pose[k, :3], pose[k, 3:]
-        level, nis_p, nis_a = mirror.step(t.expand(2, 3), sixd_to_matrix_t(R6.expand(2, 6)), run.R_cam[k], run.u[k])
+        level, nis_p, nis_a = mirror.step(t.expand(2, 3), sixd_to_matrix_t(R6.expand(2, 6)), R_cam[k], u[k])
         if k == 0:
-            real.start_from(t.numpy(), run.R_cam[k], sixd_to_matrix(R6.numpy()))
+            real.start_from(t.numpy(), R_cam[k], sixd_to_matrix(R6.numpy()))
         else:
-            check = real.check(t.numpy(), run.R_cam[k], run.u[k], sixd_to_matrix(R6.numpy()))
+            check = real.check(t.numpy(), R_cam[k], u[k], sixd_to_matrix(R6.numpy()))
             real.accept()
             assert np.allclose(nis_p.numpy(), check.nis_position, rtol=1e-6)
             assert np.allclose(nis_a.numpy(), check.nis_attitude, rtol=1e-6, atol=1e-9)
+            nis.append((check.nis_position, check.nis_attitude))
         assert np.allclose(level.numpy(), real.position, rtol=1e-9, atol=1e-9)
         if k == 3:
             mirror = FilterMirror(real, 1)   # taken over from a started filter
+    assert np.max(nis, axis=0).min() > soft    # both Huber paths were taken
 
 
 def test_nested_worst_case_is_monotone_in_eps(scene) -> None:
