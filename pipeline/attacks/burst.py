@@ -26,7 +26,11 @@ candidate, so a burst's worst case cannot drop as eps grows (exactly so for the 
 run; a later burst meets the filter state the earlier bursts at this eps left, and its inherited
 candidate is judged again in that state). Without a defense (`defense` None: the undefended chain
 flies on the raw estimate, nothing flags) the trusted estimate is the raw one, and with lambda 0
-restart 0 of the first eps is plain PGD on the mean position error from the same random start.
+and a cap the errors never reach, restart 0 of the run's first burst at the first eps is plain PGD
+(`pipeline.attacks.gradient.pgd`, same seed) on the mean position error, step for step.
+
+Cost: steps x restarts x K frame-gradients per lambda tried, per burst and eps (the chain's
+forward and backward; the filter mirror and the real defense add little).
 """
 from __future__ import annotations
 
