@@ -11,6 +11,7 @@ import torch
 
 from pipeline.attacks.adaptive import PerFrameChain
 from pipeline.attacks.base import AttackRun
+from pipeline.attacks.suite import get_attacker
 from pipeline.attacks.burst import BurstAttacker, bursts_of
 from pipeline.attacks.filter_mirror import FilterMirror
 from pipeline.attacks.gradient import attack_loss, pgd, quantize
@@ -183,12 +184,12 @@ def test_an_alert_limit_that_is_not_positive_at_some_range_is_one_line(scene) ->
 
 def test_bad_options_are_one_line() -> None:
     with pytest.raises(ValueError, match="stepz"):
-        BurstAttacker.from_options({"alert_limit": 1.0, "stepz": 3})
+        get_attacker("burst", alert_limit=1.0, stepz=3)
     with pytest.raises(ValueError, match="alert_limit"):
-        BurstAttacker.from_options({"alert_limit": 0.0})
+        get_attacker("burst", alert_limit=0.0)
     with pytest.raises(ValueError, match="restarts"):
-        BurstAttacker.from_options({"alert_limit": 1.0, "restarts": 0})
+        get_attacker("burst", alert_limit=1.0, restarts=0)
     with pytest.raises(ValueError, match="eps"):
-        BurstAttacker.from_options({"alert_limit": 1.0, "ladder": (2.0,)})
+        get_attacker("burst", alert_limit=1.0, ladder=(2.0,))
 
-    assert BurstAttacker.from_options({"alert_limit": 1.0, "steps": 7}).steps == 7
+    assert get_attacker("burst", alert_limit=1.0, steps=7).steps == 7

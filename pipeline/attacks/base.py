@@ -73,8 +73,9 @@ class AttackRun:
 class SequenceAttacker(Protocol):
     """A chain-level attacker: `attack` returns the stored images (uint8, (N, 3, H, W)) it delivers
     for `run`, each within `eps` (L-inf, pixel values in [0, 1], eps in (0, 1]) of its clean frame
-    up to the 8-bit rounding of `quantize`; frames outside `run.mask` are returned unchanged."""
+    up to the 8-bit rounding of `quantize`; frames outside `run.mask` are returned unchanged.
+    `defense` None: the undefended chain (guidance flies on the raw estimate)."""
 
     name: str
 
-    def attack(self, chain: DifferentiableChain, defense: Defense, run: AttackRun, eps: float) -> Tensor: ...
+    def attack(self, chain: DifferentiableChain, defense: Defense | None, run: AttackRun, eps: float) -> Tensor: ...

@@ -35,9 +35,8 @@ forward and backward; the filter mirror and the real defense add little).
 from __future__ import annotations
 
 import copy
-import inspect
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping
+from typing import Callable
 
 import numpy as np
 import torch
@@ -220,15 +219,6 @@ class BurstAttacker:
         check_lambdas(list(self.lambdas))
         for e in self.ladder:
             check_eps(e)
-
-    @classmethod
-    def from_options(cls, options: Mapping[str, Any]) -> "BurstAttacker":
-        """From a mapping of constructor options; an unknown option is one line naming it."""
-        known = [p for p in inspect.signature(cls).parameters]
-        unknown = [k for k in options if k not in known]
-        if unknown:
-            raise ValueError(f"unknown burst option {unknown[0]!r}; choose from {', '.join(known)}")
-        return cls(**options)
 
     def attack(self, chain: DifferentiableChain, defense: Defense | None, run: AttackRun, eps: float) -> Tensor:
         """The run as stored (N, 3, H, W) uint8, each burst at its worst case at `eps`, nested
