@@ -72,15 +72,21 @@ def read_image(path: Path, size: tuple[int, int], source_size: tuple[int, int]) 
     return cv2.resize(img, size, interpolation=cv2.INTER_AREA)[..., ::-1]
 
 
+MARKER = ".rpodguard-export.json"        # written inside every export: the files it wrote (so a rerun may replace them)
+
+
 def write_speed(out: Path, images: Any, labels: Any, K: Any) -> None:
     """Write the labelled images as a SPEED+ folder `out` (camera.json, synthetic/{train,test}.json,
-    synthetic/images/imgNNNNNN.png, NNNNNN = label index + 1), atomically; PNG keeps every pixel."""
+    synthetic/images/imgNNNNNN.png, NNNNNN = label index + 1, and MARKER), atomically; PNG keeps every pixel.
+    An existing `out` is replaced only when it is empty or holds nothing but an earlier export's files
+    (its MARKER lists them); files are world-readable (0644), folders 0755."""
     import cv2
 
     from pipeline.formats.speed import camera_to_json, to_speed
+    from pipeline.io.atomic import remove_stale_temps
 
-    if out.exists() and any(out.iterdir()) and not (out / "camera.json").is_file():
-        raise DataError(f"{out} exists and is not a SPEED folder written before; name a new or empty folder")
+    check_replaceable(out)
+    remove_stale_temps(out)               # temporary folders of killed exports
     labels = labels.sort_values("index").reset_index(drop=True)
     names = [f"img{int(i) + 1:06d}.png" for i in labels["index"]]
     index, step = labels["index"].to_numpy(), int(images.chunks[0])
@@ -102,3 +108,40 @@ def write_speed(out: Path, images: Any, labels: Any, K: Any) -> None:
                        to_speed([n for n, keep in zip(names, rows) if keep], labels.loc[rows, POSITION],
                                 labels.loc[rows, QUAT]))
         write_json(tmp / "camera.json", camera_to_json(K))
+        write_json(tmp / MARKER, {"written_by": "rpod export speed", "files": sorted(_tree(tmp))})
+        _world_readable(tmp)
+
+
+def check_replaceable(out: Path) -> None:
+    """A DataError unless `out` is missing, an empty folder, or an earlier export holding only the files
+    its MARKER lists (a rerun replaces the whole folder, so it must hold nothing else)."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise DataError(f"{out} exists and is not a folder; name a new or empty folder")
+    if not any(out.iterdir()):
+        return
+    marker = out / MARKER
+    try:
+        written = set(read_json(marker)["files"]) if marker.is_file() else None
+    except (DataError, KeyError, TypeError):
+        written = None
+    if written is None:
+        raise DataError(f"{out} exists and is not a SPEED folder written before by `rpod export speed` "
+                         f"(no {MARKER}); name a new or empty folder")
+    extra = sorted(_tree(out) - written - {MARKER})
+    if extra:
+        raise DataError(f"{out} holds {out / extra[0]}, which `rpod export speed` did not write "
+                         f"({len(extra)} such files); move them away or name a new folder")
+
+
+def _tree(folder: Path) -> set[str]:
+    """Paths (relative, '/'-separated) of the files and symbolic links below `folder`."""
+    return {p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_symlink() or not p.is_dir()}
+
+
+def _world_readable(folder: Path) -> None:
+    """Files 0644 and folders 0755 below and including `folder` (temporary files are created 0600/0700)."""
+    folder.chmod(0o755)
+    for p in folder.rglob("*"):
+        p.chmod(0o755 if p.is_dir() else 0o644)
