@@ -49,6 +49,7 @@ def params_cmd(
 ) -> None:
     """Write params.yaml from conf/config.yaml and a profile (what `dvc exp run -S profile=NAME` does)."""
     composed = params_mod.compose(profile, set_)
+    params_mod.build(composed)   # every key, type and range checked before params.yaml is written
     params_mod.write_params(composed)
     typer.echo(f"params.yaml <- conf/config.yaml + conf/profile/{profile}.yaml" + (f" + {set_}" if set_ else ""))
 
