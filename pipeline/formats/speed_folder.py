@@ -58,6 +58,10 @@ def read_image(path: Path, size: tuple[int, int], source_size: tuple[int, int]) 
     JPEGs are decoded at 1/2, 1/4 or 1/8 size when that still exceeds `size` (faster, same pixels)."""
     import cv2
 
+    header = image_size(path)
+    if header != tuple(source_size):
+        raise DataError(f"{path}: image is {header[0]}x{header[1]} pixels but camera.json gives Nu x Nv = "
+                         f"{source_size[0]}x{source_size[1]}")
     reduce = max([r for r in (2, 4, 8) if source_size[0] / r >= size[0] and source_size[1] / r >= size[1]], default=1)
     flag = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
             8: cv2.IMREAD_REDUCED_COLOR_8}[reduce]
@@ -70,6 +74,19 @@ def read_image(path: Path, size: tuple[int, int], source_size: tuple[int, int]) 
         raise DataError(f"{path}: image is {img.shape[1] * reduce}x{img.shape[0] * reduce} pixels but camera.json "
                          f"gives Nu x Nv = {source_size[0]}x{source_size[1]}")
     return cv2.resize(img, size, interpolation=cv2.INTER_AREA)[..., ::-1]
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) in pixels from the image file's header (nothing decoded); a DataError naming the file."""
+    from PIL import Image, UnidentifiedImageError
+
+    if not path.is_file():
+        raise DataError(f"{path}: not found (named by its label file)")
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except (UnidentifiedImageError, Image.DecompressionBombError, OSError) as e:
+        raise DataError(f"{path}: not a readable image (named by its label file): {e}") from None
 
 
 MARKER = ".rpodguard-export.json"        # written inside every export: the files it wrote (so a rerun may replace them)
