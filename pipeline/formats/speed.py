@@ -25,11 +25,10 @@ from typing import Any
 import numpy as np
 
 from pipeline.geometry.camera import Intrinsics
-from pipeline.geometry.rotations import normalize_quat
+from pipeline.geometry.rotations import UNIT_TOLERANCE, normalize_quat
 
 POSITION_KEY = "r_Vo2To_vbs_true"
 QUAT_KEYS = ("q_vbs2tango_true", "q_vbs2tango")   # SPEED+, SPEED
-UNIT_TOLERANCE = 1e-3                             # |norm(q) - 1| above this is refused, not silently normalised
 SPEED_CAMERA = {"Nu": 1920, "Nv": 1200, "fx": 0.0176, "fy": 0.0176, "ppx": 5.86e-6, "ppy": 5.86e-6}
 
 
