@@ -37,6 +37,14 @@ def _snapshot(folder: Path) -> dict[str, bytes]:
     return {p.relative_to(folder).as_posix(): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
 
 
+def _refused_intact(folder: Path, tmp_path: Path, match: str) -> None:
+    """write_speed(folder) raises a DataError matching `match` and leaves every file in `folder` as it was."""
+    before = _snapshot(folder)
+    with pytest.raises(DataError, match=match):
+        write_speed(folder, *_data(tmp_path), K)
+    assert _snapshot(folder) == before
+
+
 def test_a_speed_release_is_never_deleted(tmp_path):
     """The issue's probe: a folder with camera.json and other data (a real SPEED+ release) is refused, intact."""
     release = tmp_path / "sp"
@@ -44,10 +52,7 @@ def test_a_speed_release_is_never_deleted(tmp_path):
     (release / "lightbox/images/a.jpg").write_text("x")
     (release / "camera.json").write_text("{}")
     (release / "LICENSE").write_text("CC BY-NC-SA")
-    before = _snapshot(release)
-    with pytest.raises(DataError, match=f"not a SPEED folder written before.*no {MARKER}"):
-        write_speed(release, *_data(tmp_path), K)
-    assert _snapshot(release) == before
+    _refused_intact(release, tmp_path, f"not a SPEED folder written before.*no {MARKER}")
 
 
 def test_rerun_replaces_its_own_export_but_refuses_added_files(tmp_path):
@@ -58,10 +63,7 @@ def test_rerun_replaces_its_own_export_but_refuses_added_files(tmp_path):
     write_speed(out, *_data(tmp_path, n=5), K)            # an earlier export: replaced whole
     assert not (out / "synthetic/images/img000006.png").exists()
     (out / "synthetic/notes.txt").write_text("mine")
-    before = _snapshot(out)
-    with pytest.raises(DataError, match=r"synthetic/notes.txt, which `rpod export speed` did not write"):
-        write_speed(out, *_data(tmp_path), K)
-    assert _snapshot(out) == before
+    _refused_intact(out, tmp_path, r"synthetic/notes.txt, which `rpod export speed` did not write")
 
 
 def test_a_forged_or_broken_marker_is_refused(tmp_path):
@@ -69,9 +71,7 @@ def test_a_forged_or_broken_marker_is_refused(tmp_path):
     out.mkdir()
     (out / "data.bin").write_text("keep")
     (out / MARKER).write_text("not json")
-    with pytest.raises(DataError, match="not a SPEED folder written before"):
-        write_speed(out, *_data(tmp_path), K)
-    assert (out / "data.bin").read_text() == "keep"
+    _refused_intact(out, tmp_path, "not a SPEED folder written before")
 
 
 def test_an_empty_folder_is_used_and_a_file_refused(tmp_path):

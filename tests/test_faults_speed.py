@@ -41,21 +41,17 @@ def test_names_are_normalised_before_the_duplicate_check():
     assert from_speed(to_speed(["sub/./a.png", "b.png"], t, q))[0] == ["sub/a.png", "b.png"]
 
 
-@pytest.mark.parametrize("name", ["../../../../x.png", "/etc/passwd", "a/../../x.png", "C:/data/x.png"])
-def test_names_outside_the_folder_are_refused(tmp_path, name):
+@pytest.mark.parametrize("split, name, error, message", [
+    *[("train", n, DataError, r"train.json: record 0 .*filename must be a path inside the dataset folder")
+      for n in ("../../../../x.png", "/etc/passwd", "a/../../x.png", "C:/data/x.png")],
+    ("test", "train002.png", StageError, r"train002.png is labelled in both .*train.json and .*test.json"),
+    ("test", "./train002.png", StageError, r"train002.png is labelled in both"),
+])
+def test_names_outside_the_folder_or_in_both_splits_are_refused(tmp_path, split, name, error, message):
     src = tmp_path / "src"
     write_folder(src)
-    _relabel(src, "train", [name])
-    with pytest.raises(DataError, match=r"train.json: record 0 .*filename must be a path inside the dataset folder"):
-        _import(src, tmp_path / "store")
-    assert not (tmp_path / "store").exists()
-
-
-def test_an_image_in_both_splits_is_refused(tmp_path):
-    src = tmp_path / "src"
-    write_folder(src)
-    _relabel(src, "test", ["train002.png"])
-    with pytest.raises(StageError, match=r"train002.png is labelled in both .*train.json and .*test.json"):
+    _relabel(src, split, [name])
+    with pytest.raises(error, match=message):
         _import(src, tmp_path / "store")
     assert not (tmp_path / "store").exists()
 
