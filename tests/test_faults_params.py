@@ -80,6 +80,17 @@ def test_every_numeric_param_declares_a_finite_range():
         assert rule.interval[0] in "[(" and rule.interval[-1] in "])", key
 
 
+def test_help_shows_each_range():
+    from typer.testing import CliRunner
+
+    from stages.cli import app
+    from stages.config.schema import ranges
+
+    assert set(ranges()) == {key for key, *_ in NUMERIC}
+    out = " ".join(CliRunner().invoke(app, ["render", "--help"], terminal_width=200).output.split())
+    assert "image width; range [8, 8192] pixels" in out and "(Blender sun strength); range (0, 10000] W/m^2" in out
+
+
 def test_every_profile_lies_inside_the_ranges():
     for name in ("default", "smoke", "paper"):
         build(compose(name))

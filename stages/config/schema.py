@@ -150,3 +150,19 @@ def _check_range(value: Any, hint: Any, key: str) -> None:
 def build(params: dict[str, Any]) -> Params:
     """The typed, checked params of a params.yaml mapping."""
     return _build(Params, params, "")
+
+
+def ranges(cls: type = Params, prefix: str = "") -> dict[str, In]:
+    """Dotted params.yaml key -> the `In` range of that numeric param (of each element, for a list), e.g.
+    {"render.width": In("[8, 8192]", "pixels"), ...}: what `rpod <stage> --help` shows beside each param."""
+    out: dict[str, In] = {}
+    for name, hint in typing.get_type_hints(cls, include_extras=True).items():
+        if dataclasses.is_dataclass(hint):
+            out.update(ranges(hint, f"{prefix}{name}."))
+            continue
+        while typing.get_origin(hint) in (typing.Union, types.UnionType, list):
+            hint = next(a for a in typing.get_args(hint) if a is not type(None))
+        rule = next((r for r in typing.get_args(hint)[1:] if isinstance(r, In)), None)
+        if typing.get_origin(hint) is Annotated and rule is not None:
+            out[f"{prefix}{name}"] = rule
+    return out
