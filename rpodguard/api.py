@@ -161,20 +161,47 @@ def check_files(paths: Sequence[str | Path]) -> None:
 
 
 def read_image(path: Path) -> np.ndarray:
-    """An image file (PNG, JPG, ... as Pillow reads them) -> uint8 (H, W, 3) RGB; 16-bit grey is
-    scaled to 8 bits. A missing, unreadable or truncated file is a DataError naming it."""
-    from PIL import Image as PILImage
+    """An image file (PNG, JPG, TIFF, ... as Pillow reads them) -> uint8 (H, W, 3) RGB as a viewer shows it:
+    EXIF orientation applied, 16-bit scaled to 8 bits, float pixels in [0, 1] scaled, transparency
+    composited on black (space) with a UserWarning. A missing, unreadable or truncated file, an animation
+    and 32-bit integer or out-of-range float pixels are a DataError naming the file."""
+    from PIL import Image as PILImage, ImageOps
 
     check_files([path])
     try:
         with PILImage.open(path) as im:
+            if getattr(im, "n_frames", 1) > 1:
+                raise DataError(f"{path} holds {im.n_frames} frames (an animation or a multi-page file); give "
+                                f"one image per file")
             im.load()
-            if im.mode.startswith("I;16"):
-                grey = (np.asarray(im).astype(np.uint16) >> 8).astype(np.uint8)
-                return np.repeat(grey[..., None], 3, axis=2)
-            return np.asarray(im.convert("RGB"))
+            return _rgb(ImageOps.exif_transpose(im), path)
+    except DataError:
+        raise
     except (OSError, ValueError, SyntaxError, PILImage.DecompressionBombError) as e:
         raise DataError(f"{path} cannot be read as an image ({type(e).__name__}: {e})") from None
+
+
+def _rgb(im: Any, path: Path) -> np.ndarray:
+    """uint8 (H, W, 3) RGB of a decoded Pillow image (see `read_image`)."""
+    if im.mode.startswith("I;16") or im.mode in ("F", "I"):
+        if im.mode == "I":
+            raise DataError(f"{path} has 32-bit integer pixels (no defined white level); save it as an 8- or "
+                            f"16-bit image")
+        grey = np.asarray(im)
+        if im.mode == "F":
+            if not np.isfinite(grey).all() or grey.min() < 0 or grey.max() > 1:
+                raise DataError(f"{path} has float pixels outside [0, 1] (min {grey.min():g}, max "
+                                f"{grey.max():g}); save it scaled to [0, 1] or as an 8-bit image")
+            grey = np.round(grey * 255)
+        else:
+            grey = grey.astype(np.uint16) >> 8
+        return np.repeat(grey.astype(np.uint8)[..., None], 3, axis=2)
+    if "A" in im.getbands() or "transparency" in im.info:
+        rgba = np.asarray(im.convert("RGBA")).astype(np.float32)
+        if (rgba[..., 3] < 255).any():
+            warnings.warn(f"{path} has transparent pixels: composited on black (space)")
+        return np.round(rgba[..., :3] * rgba[..., 3:] / 255).astype(np.uint8)
+    return np.asarray(im.convert("RGB"))
 
 
 def load_chain(folder: str | Path = "models") -> Chain:
