@@ -4,6 +4,7 @@ Files read: FOLDER/pose.pt (the pose model, written by `rpod train`) and FOLDER/
 LSTM detector with its threshold and the SHAP background mean, written by `rpod detect`); FOLDER may
 also be a project root holding models/. Images are resized to the model's input as the lab loader
 resizes them (pipeline.evaluation.lab_images.resize: area averaging when shrinking), without keeping their aspect.
+A frame with too few lit pixels has no target in view: it gets no pose (NaN) and no attack flag.
 """
 from __future__ import annotations
 
@@ -18,6 +19,12 @@ from pipeline.io.errors import DataError
 
 ASPECT_TOLERANCE = 0.01   # relative difference of width/height above which `predict` warns
 BATCH = 64                # images per forward pass
+# No target in view: under MIN_LIT_FRACTION of the pixels (at the model input) have a channel >= LIT_LEVEL.
+# Space behind the target renders black (0), so lit pixels are the target. Over the default profile's
+# 3,900 rendered frames (160x90, ranges 66.7..10 m) the least lit frame has 1.49% of its pixels at >= 16/255
+# (1st percentile 1.60%, median 4.7%); a quarter of that minimum leaves margin for a darker camera.
+LIT_LEVEL = 16 / 255          # pixel value in [0, 1] (brightest channel) from which a pixel counts as lit
+MIN_LIT_FRACTION = 0.0037     # fraction of lit pixels below which a frame has no target in view
 
 Image = Union[str, Path, np.ndarray]
 
@@ -30,7 +37,9 @@ class Prediction:
     quaternion (N, 4): (qw, qx, qy, qz), qw >= 0, rotating target-frame vectors into the camera frame;
     rotation_6d (N, 6): the network's 6-D rotation (first two columns of R, column-wise, before
     Gram-Schmidt); attack_probability (N,): the detector's P(attacked); attack_flag (N,) bool:
-    probability >= the detector's threshold (chosen on validation data by `rpod detect`).
+    probability >= the detector's threshold (chosen on validation data by `rpod detect`);
+    lit_fraction (N,): the fraction of lit pixels (LIT_LEVEL); in_view (N,) bool: lit_fraction >=
+    MIN_LIT_FRACTION. A frame with no target in view has NaN pose and probability and no flag.
     """
 
     sources: tuple[str, ...]
@@ -39,14 +48,21 @@ class Prediction:
     rotation_6d: np.ndarray
     attack_probability: np.ndarray
     attack_flag: np.ndarray
+    lit_fraction: np.ndarray
+    in_view: np.ndarray
 
     def __len__(self) -> int:
         return len(self.sources)
 
     def records(self) -> list[dict[str, Any]]:
-        """One JSON-ready dict per image (position in m, quaternion qw first, 6-D, probability, flag)."""
-        return [{"image": name, "position_m": self.position[k].tolist(), "quaternion": self.quaternion[k].tolist(),
-                 "rotation_6d": self.rotation_6d[k].tolist(), "attack_probability": float(self.attack_probability[k]),
+        """One JSON-ready dict per image (position in m, quaternion qw first, 6-D, probability, flag; null
+        for each of these when no target is in view)."""
+        def values(a: np.ndarray) -> Any:
+            return None if np.isnan(a).any() else a.tolist()
+
+        return [{"image": name, "in_view": bool(self.in_view[k]), "lit_fraction": float(self.lit_fraction[k]),
+                 "position_m": values(self.position[k]), "quaternion": values(self.quaternion[k]),
+                 "rotation_6d": values(self.rotation_6d[k]), "attack_probability": values(self.attack_probability[k]),
                  "attack_flag": bool(self.attack_flag[k])} for k, name in enumerate(self.sources)]
 
 
@@ -72,7 +88,8 @@ class Chain:
     def predict(self, images: Image | Sequence[Image], batch_size: int = BATCH) -> Prediction:
         """Pose and attack flag per image. `images`: a path, an array (H, W, 3) or (N, H, W, 3) (RGB,
         uint8 or float in [0, 1]), or a list of paths and arrays; any size (resized to the model
-        input, with a UserWarning when the aspect differs from the model's)."""
+        input, with a UserWarning when the aspect differs from the model's). A frame with no target in
+        view (`MIN_LIT_FRACTION`) gets NaN pose and probability and no flag."""
         import torch
 
         from pipeline.geometry.rotations import sixd_to_quat
@@ -90,9 +107,13 @@ class Chain:
             pose.append(out.pose.numpy().astype(np.float64))
             prob.append(out.prob.numpy().astype(np.float64))
             flag.append(out.flag.numpy())
-        p = np.concatenate(pose)
-        return Prediction(tuple(names), p[:, :3], sixd_to_quat(p[:, 3:9]).reshape(-1, 4), p[:, 3:9],
-                          np.concatenate(prob), np.concatenate(flag).astype(bool))
+        lit = (x.numpy().max(axis=1) >= LIT_LEVEL).mean(axis=(1, 2))
+        seen = lit >= MIN_LIT_FRACTION
+        p = np.where(seen[:, None], np.concatenate(pose), np.nan)
+        quaternion = np.full((len(p), 4), np.nan)
+        quaternion[seen] = sixd_to_quat(p[seen, 3:9]).reshape(-1, 4)
+        return Prediction(tuple(names), p[:, :3], quaternion, p[:, 3:9], np.where(seen, np.concatenate(prob), np.nan),
+                          np.concatenate(flag).astype(bool) & seen, lit, seen)
 
     def _fit(self, image: np.ndarray, name: str) -> np.ndarray:
         """One RGB image -> float32 (height, width, 3) in [0, 1] at the model input size."""
@@ -130,24 +151,57 @@ def _items(images: Image | Sequence[Image]) -> Iterator[tuple[str, np.ndarray]]:
             yield f"array[{k}]", np.asarray(item)
 
 
-def read_image(path: Path) -> np.ndarray:
-    """An image file (PNG, JPG, ... as Pillow reads them) -> uint8 (H, W, 3) RGB; 16-bit grey is
-    scaled to 8 bits. A missing, unreadable or truncated file is a DataError naming it."""
-    from PIL import Image as PILImage
+def check_files(paths: Sequence[str | Path]) -> None:
+    """Refuse (DataError naming it) a path that is missing or not a file: cheap, before any model loads."""
+    for path in map(Path, paths):
+        if not path.exists():
+            raise DataError(f"{path} not found")
+        if not path.is_file():
+            raise DataError(f"{path} is not a file (give image files, e.g. PNG or JPG)")
 
-    if not path.exists():
-        raise DataError(f"{path} not found")
-    if not path.is_file():
-        raise DataError(f"{path} is not a file (give image files, e.g. PNG or JPG)")
+
+def read_image(path: Path) -> np.ndarray:
+    """An image file (PNG, JPG, TIFF, ... as Pillow reads them) -> uint8 (H, W, 3) RGB as a viewer shows it:
+    EXIF orientation applied, 16-bit scaled to 8 bits, float pixels in [0, 1] scaled, transparency
+    composited on black (space) with a UserWarning. A missing, unreadable or truncated file, an animation
+    and 32-bit integer or out-of-range float pixels are a DataError naming the file."""
+    from PIL import Image as PILImage, ImageOps
+
+    check_files([path])
     try:
         with PILImage.open(path) as im:
+            if getattr(im, "n_frames", 1) > 1:
+                raise DataError(f"{path} holds {im.n_frames} frames (an animation or a multi-page file); give "
+                                f"one image per file")
             im.load()
-            if im.mode.startswith("I;16"):
-                grey = (np.asarray(im).astype(np.uint16) >> 8).astype(np.uint8)
-                return np.repeat(grey[..., None], 3, axis=2)
-            return np.asarray(im.convert("RGB"))
+            return _rgb(ImageOps.exif_transpose(im), path)
+    except DataError:
+        raise
     except (OSError, ValueError, SyntaxError, PILImage.DecompressionBombError) as e:
         raise DataError(f"{path} cannot be read as an image ({type(e).__name__}: {e})") from None
+
+
+def _rgb(im: Any, path: Path) -> np.ndarray:
+    """uint8 (H, W, 3) RGB of a decoded Pillow image (see `read_image`)."""
+    if im.mode.startswith("I;16") or im.mode in ("F", "I"):
+        if im.mode == "I":
+            raise DataError(f"{path} has 32-bit integer pixels (no defined white level); save it as an 8- or "
+                            f"16-bit image")
+        grey = np.asarray(im)
+        if im.mode == "F":
+            if not np.isfinite(grey).all() or grey.min() < 0 or grey.max() > 1:
+                raise DataError(f"{path} has float pixels outside [0, 1] (min {grey.min():g}, max "
+                                f"{grey.max():g}); save it scaled to [0, 1] or as an 8-bit image")
+            grey = np.round(grey * 255)
+        else:
+            grey = grey.astype(np.uint16) >> 8
+        return np.repeat(grey.astype(np.uint8)[..., None], 3, axis=2)
+    if "A" in im.getbands() or "transparency" in im.info:
+        rgba = np.asarray(im.convert("RGBA")).astype(np.float32)
+        if (rgba[..., 3] < 255).any():
+            warnings.warn(f"{path} has transparent pixels: composited on black (space)")
+        return np.round(rgba[..., :3] * rgba[..., 3:] / 255).astype(np.uint8)
+    return np.asarray(im.convert("RGB"))
 
 
 def load_chain(folder: str | Path = "models") -> Chain:

@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 import typer
 
-from pipeline.io.atomic import atomic_dir, atomic_write_text, save_figure
-from pipeline.io.store import create_array
+from pipeline.io.atomic import atomic_outputs, atomic_write_text, save_figure
+from pipeline.io.store import create_array, seal_zarr
 from pipeline.pose.labels import POSITION, QUAT, TARGET
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import ADV, ATTACK_FIGURE as FIGURE, ATTACK_METRICS as METRICS, \
@@ -61,24 +61,21 @@ def main(params: Params) -> None:
     setup = AttackSetup(params=params, pose_path=str(POSE.resolve()), eps=tuple(eps_list), batch=a.batch_size,
                         seed=params.seed + SEED_OFFSET["attack"], torch_threads=None if es.in_process else threads)
     t0 = time.perf_counter()
-    with atomic_dir(ADV.parent) as tmp:
-        out = _attack_into(tmp / ADV.name, setup, images, labels["index"].to_numpy(np.int64), y_all, k, es, threads)
+    # adv.zarr, the metrics, the report and the figure move into place together, once all are written
+    with atomic_outputs(METRICS, REPORT, FIGURE, dirs=(ADV.parent,)) as (metrics_tmp, report_tmp, figure_tmp, adv):
+        out = _attack_into(adv / ADV.name, setup, images, labels["index"].to_numpy(np.int64), y_all, k, es, threads)
         out["root"].attrs.update({"eps": eps_list, "method": a.method, "loss": a.loss, "model_hash": pose.hash,
                                   "quantisation": "round to nearest 8-bit level, at least one level, sign kept"})
-    seconds = time.perf_counter() - t0
-    preds = out["preds"]
-    rows = [{"eps": "clean", "stored_linf": 0.0, **_errors(preds["clean"], t_gt, q_gt)}]
-    for e in eps_list:
-        f = _errors(out["preds_float"][e], t_gt, q_gt)
-        rows.append({"eps": f"{e:g}", "stored_linf": out["linf"][e], **_errors(preds[e], t_gt, q_gt),
-                     "float_position_mean_m": f["position_mean_m"], "float_attitude_mean_deg": f["attitude_mean_deg"]})
-    metrics = {"method": a.method, "loss": a.loss, "images": n, "seconds": seconds, "model_hash": pose.hash,
-               "measured_on": "stored uint8 images", "clean": {key: v for key, v in rows[0].items() if key != "eps"},
-               "eps": {r["eps"]: {key: v for key, v in r.items() if key != "eps"} for r in rows[1:]}}
-    write_metrics(METRICS, metrics, params.profile_name)
-    atomic_write_text(REPORT, attack_page(rows, a, n))
-    save_figure(attack_example(np.asarray(images[k]), out["example"], t_gt[k],
-                               {e: preds[e][k] for e in ["clean", *eps_list]}, a.method), FIGURE)
+        seal_zarr(adv / ADV.name)
+        seconds = time.perf_counter() - t0
+        rows = _rows(out, eps_list, t_gt, q_gt)
+        write_metrics(metrics_tmp, {
+            "method": a.method, "loss": a.loss, "images": n, "seconds": seconds, "model_hash": pose.hash,
+            "measured_on": "stored uint8 images", "clean": {key: v for key, v in rows[0].items() if key != "eps"},
+            "eps": {r["eps"]: {key: v for key, v in r.items() if key != "eps"} for r in rows[1:]}}, params.profile_name)
+        atomic_write_text(report_tmp, attack_page(rows, a, n))
+        save_figure(attack_example(np.asarray(images[k]), out["example"], t_gt[k],
+                                   {e: out["preds"][e][k] for e in ["clean", *eps_list]}, a.method), figure_tmp)
     typer.echo(f"attack: {n} test images x {len(eps_list)} eps in {seconds:.0f} s -> {ADV}, {REPORT}")
 
 
@@ -122,6 +119,18 @@ def _attack_into(path: Path, setup: AttackSetup, images: Any, source_index: np.n
     with tqdm(total=len(jobs), desc=desc, unit="batch") as bar:
         engine.run(AttackWorker, setup, jobs, es, num_cpus=threads, progress=done)
     return {"root": root, "preds": preds, "preds_float": preds_float, "linf": linf, "example": example}
+
+
+def _rows(out: dict[str, Any], eps_list: list[float], t_gt: np.ndarray, q_gt: np.ndarray) -> list[dict[str, Any]]:
+    """The report's rows: clean, then per eps the errors on the stored uint8 images, their L-inf and the
+    errors on the float (unquantised) images."""
+    preds = out["preds"]
+    rows = [{"eps": "clean", "stored_linf": 0.0, **_errors(preds["clean"], t_gt, q_gt)}]
+    for e in eps_list:
+        f = _errors(out["preds_float"][e], t_gt, q_gt)
+        rows.append({"eps": f"{e:g}", "stored_linf": out["linf"][e], **_errors(preds[e], t_gt, q_gt),
+                     "float_position_mean_m": f["position_mean_m"], "float_attitude_mean_deg": f["attitude_mean_deg"]})
+    return rows
 
 
 def _errors(pred: np.ndarray, t_gt: np.ndarray, q_gt: np.ndarray) -> dict[str, float]:

@@ -15,6 +15,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import typer  # noqa: E402
 
+from stages.config import compose as compose_mod  # noqa: E402
 from stages.config import params as params_mod  # noqa: E402
 from pipeline.io.errors import DataError  # noqa: E402
 
@@ -47,10 +48,13 @@ def params_cmd(
     profile: str = typer.Argument("default", help="Profile in conf/profile/: default, smoke or paper."),
     set_: list[str] = typer.Option([], "--set", "-S", help="Hydra override, e.g. train.epochs=5 (repeatable)."),
 ) -> None:
-    """Write params.yaml from conf/config.yaml and a profile (what `dvc exp run -S profile=NAME` does)."""
-    composed = params_mod.compose(profile, set_)
+    """Write params.yaml from conf/config.yaml and a profile, checked against the params schema, and make the
+    profile the one conf/config.yaml composes from (so `dvc exp run -S key=value` keeps it)."""
+    composed = compose_mod.compose_checked(profile, set_)
     params_mod.write_params(composed)
-    typer.echo(f"params.yaml <- conf/config.yaml + conf/profile/{profile}.yaml" + (f" + {set_}" if set_ else ""))
+    recorded = compose_mod.record_profile(profile)
+    typer.echo(f"params.yaml <- conf/config.yaml + conf/profile/{profile}.yaml" + (f" + {set_}" if set_ else "")
+               + (f"; conf/config.yaml now composes {profile!r} (dvc exp run -S)" if recorded else ""))
 
 
 # Stage modules keep heavy imports (bpy, torch) inside their commands so `rpod --help` is fast.

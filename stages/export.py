@@ -5,6 +5,8 @@ Reads datasets/render/ (`rpod render`) and datasets/labels.parquet (`rpod label`
 `q_vbs2tango_true`, `r_Vo2To_vbs_true`: our q and t, the same numbers; pipeline/formats/speed.py) and the
 images as OUT/synthetic/images/imgNNNNNN.png (lossless, so the pixels are the ones the pose model saw).
 Not a DVC stage: run it after `dvc repro label`. The export is atomic: a temporary folder renamed to OUT.
+OUT/.rpodguard-export.json lists the files written; an existing OUT is replaced only when it holds nothing
+else (any other non-empty folder is refused, never deleted). Files are 0644.
 """
 from __future__ import annotations
 
@@ -16,8 +18,8 @@ app = typer.Typer(help="Write the pipeline's data in another dataset layout (SPE
 
 
 @app.command("speed")
-def speed(out: Path = typer.Argument(..., help="Folder to write: new, empty, or an earlier export (replaced).")
-          ) -> None:
+def speed(out: Path = typer.Argument(..., help="Folder to write: new, empty, or an earlier export holding "
+                                                "only its own files (replaced).")) -> None:
     """Write datasets/render + datasets/labels.parquet as a SPEED+ folder: camera.json,
     synthetic/{train,test}.json, synthetic/images/*.png. `render.source: OUT` imports it back."""
     import numpy as np

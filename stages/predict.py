@@ -1,7 +1,9 @@
 """`rpod predict IMAGES...`: the trained chain on your own images (not a DVC stage; reads no params.yaml).
 
 Prints per image the position (m, camera frame), the quaternion (qw, qx, qy, qz) and the detector's
-attack probability and flag as a table, or with --json everything including the 6-D rotation.
+attack probability and flag as a table, or with --json everything including the 6-D rotation. The image
+paths are checked before the model loads; a frame with no target in view (too few lit pixels:
+rpodguard.api.MIN_LIT_FRACTION) gets no pose and says so.
 """
 from __future__ import annotations
 
@@ -26,10 +28,12 @@ def main(
     Positions assume the camera the model was trained with; another aspect is stretched to fit, with a warning.
     """
     from rpodguard import load_chain
+    from rpodguard.api import check_files
     from stages.errors import StageError
 
     if not images:
         raise StageError("rpod predict: no images given (pass one or more PNG or JPG files)")
+    check_files(images)   # a typo stops here, before the ~10 s of loading torch and the models
     chain = load_chain(models)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -42,6 +46,8 @@ def main(
     from tabulate import tabulate
 
     rows = [[name, *out.position[k], *out.quaternion[k], out.attack_probability[k],
-             "ATTACK" if out.attack_flag[k] else "-"] for k, name in enumerate(out.sources)]
+             "ATTACK" if out.attack_flag[k] else "-"] if out.in_view[k] else
+            [name, f"no target in view ({100 * out.lit_fraction[k]:.2f}% lit pixels)"]
+            for k, name in enumerate(out.sources)]
     typer.echo(tabulate(rows, ["image", "x (m)", "y (m)", "z (m)", "qw", "qx", "qy", "qz", "P(attack)",
                                f"flag (>= {chain.threshold:.2f})"], floatfmt=".3f"))

@@ -134,7 +134,7 @@ def test_a_worker_that_cannot_see_the_store_sends_its_pixels(workdir, monkeypatc
 HOLDER = """
 import os, sys
 from stages.engine import pool as engine
-got = engine.pin_cores(int(sys.argv[1]))
+got = engine.pin_cores(int(sys.argv[1]), sys.argv[2] if len(sys.argv) > 2 else "/a/repository")
 print(got, sorted(os.sched_getaffinity(0)), flush=True)
 sys.stdin.read()   # hold the cores until the test closes stdin
 """
@@ -154,8 +154,8 @@ def test_pin_cores_gives_each_worker_cores_of_its_own(tmp_path):
     env = {**os.environ, "TMPDIR": str(tmp_path)}   # lock files of this test only, not of live workers
     procs = []
 
-    def hold(n: int) -> tuple[list[int], list[int]]:
-        procs.append(subprocess.Popen([sys.executable, "-c", HOLDER, str(n)], stdin=subprocess.PIPE,
+    def hold(n: int, scope: str = "/a/repository") -> tuple[list[int], list[int]]:
+        procs.append(subprocess.Popen([sys.executable, "-c", HOLDER, str(n), scope], stdin=subprocess.PIPE,
                                       stdout=subprocess.PIPE, text=True, env=env))
         got, bound = procs[-1].stdout.readline().split("] [")
         return ast.literal_eval(got + "]"), ast.literal_eval("[" + bound)
@@ -166,8 +166,10 @@ def test_pin_cores_gives_each_worker_cores_of_its_own(tmp_path):
         assert hold(len(cores)) == ([], cores)                     # one core is taken: none bound
         if len(cores) > 1:
             assert hold(1) == ([cores[1]], [cores[1]])
+        assert hold(1, "/another/repository") == ([cores[0]], [cores[0]])   # a second pipeline pins its own
         procs[0].communicate("")
         assert hold(1) == ([cores[0]], [cores[0]])                 # freed by the exit of its holder
+        assert engine.core_locks("/a/repository") != engine.core_locks("/another/repository")
     finally:
         for p in procs:
             p.kill()

@@ -12,6 +12,7 @@ import zarr
 from pipeline.io.atomic import atomic_dir
 from pipeline.io.errors import DataError
 from pipeline.io.store import create_array, open_zarr
+from stages.config import params as params_mod
 from stages.config.params import load
 from stages.errors import StageError
 
@@ -145,7 +146,7 @@ def _set_params(**overrides: object) -> None:
 def test_diverging_learning_rate_is_refused_and_keeps_the_old_model(run_dir):
     from stages.train import main
 
-    _set_params(train__lr_base=1e12, train__lr_max=1e12)
+    _set_params(train__lr_base=10.0, train__lr_max=10.0)   # the largest learning rate params accept
     with pytest.raises(StageError, match=r"(training diverged: loss (nan|inf)|no epoch of \d+ improved).*lower train.lr_base"):
         main(load())
     _unchanged(run_dir)
@@ -237,12 +238,14 @@ def _rpod(monkeypatch, capsys, *args: str) -> tuple[int, str]:
 
 def test_cli_prints_one_line_for_known_errors(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    code, err = _rpod(monkeypatch, capsys, "params", "smoke", "-S", "nosuchkey=1")  # a Hydra error
+    code, err = _rpod(monkeypatch, capsys, "params", "smoke", "-S", "nosuchkey=1")  # refused before Hydra
     assert code == 1 and err.count("\n") == 1 and err.startswith("error: ") and "nosuchkey" in err
     code, err = _rpod(monkeypatch, capsys, "train")  # no params.yaml
     assert code == 1 and err == "error: params.yaml not found: run `rpod params default` (or another profile) first\n"
-    code, err = _rpod(monkeypatch, capsys, "params", "smoke", "-S", "train=1")
-    assert code == 0
+    code, err = _rpod(monkeypatch, capsys, "params", "smoke", "-S", "train=1")   # refused when composed
+    assert code == 1 and err == "error: params.yaml: 'train' must be a section of parameters, got 1\n"
+    assert not Path("params.yaml").exists()
+    params_mod.write_params({**params_mod.compose("smoke"), "train": 1})   # e.g. edited by hand
     code, err = _rpod(monkeypatch, capsys, "label")  # params.yaml with a section replaced by a number
     assert code == 1 and err == "error: params.yaml: 'train' must be a section of parameters, got 1\n"
     assert not Path("datasets").exists()

@@ -131,3 +131,33 @@ def test_cli_bad_inputs_stop_with_one_line(models, tmp_path, monkeypatch, capsys
         assert code == 1 and out == "" and err.count("\n") == 1 and err.startswith("error: ") and named in err, err
     code, _, err = _rpod(monkeypatch, capsys, "predict", str(good), "--models", str(tmp_path / "none"))
     assert code == 1 and "pose.pt not found" in err
+
+
+def test_a_frame_with_no_target_in_view_gets_no_pose(models, tmp_path, monkeypatch, capsys):
+    from rpodguard.api import LIT_LEVEL, MIN_LIT_FRACTION
+
+    dark = np.zeros((H, W, 3), np.uint8)
+    speck = dark.copy()
+    speck[:2, :2] = 255                                   # 4 of 2304 lit pixels: under MIN_LIT_FRACTION
+    target = dark.copy()
+    target[10:20, 20:40] = int(LIT_LEVEL * 255) + 10      # a dim 20x10 target: 8.7% lit
+    assert 4 / (H * W) < MIN_LIT_FRACTION < 200 / (H * W)
+    out = load_chain(models).predict(np.stack([dark, speck, target]))
+    assert out.in_view.tolist() == [False, False, True]
+    assert np.isnan(out.position[:2]).all() and np.isnan(out.quaternion[:2]).all() and not out.attack_flag[:2].any()
+    assert np.isfinite(out.position[2]).all() and np.isfinite(out.attack_probability[2])
+    assert out.records()[0]["position_m"] is None and out.records()[2]["position_m"] is not None
+    code, text, err = _rpod(monkeypatch, capsys, "predict", str(_png(tmp_path / "dark.png", dark)), "--models",
+                            str(models))
+    assert code == 0 and "no target in view (0.00% lit pixels)" in text and err == ""
+    code, text, _ = _rpod(monkeypatch, capsys, "predict", str(_png(tmp_path / "dark.png", dark)), "--json",
+                          "--models", str(models))
+    assert json.loads(text)[0]["in_view"] is False and json.loads(text)[0]["quaternion"] is None
+
+
+def test_image_paths_are_checked_before_the_models_load(tmp_path, monkeypatch, capsys):
+    import rpodguard
+
+    monkeypatch.setattr(rpodguard, "load_chain", lambda *a: pytest.fail("models loaded before the paths were checked"))
+    code, out, err = _rpod(monkeypatch, capsys, "predict", str(tmp_path / "typo.png"), "--models", str(tmp_path))
+    assert code == 1 and out == "" and err == f"error: {tmp_path / 'typo.png'} not found\n"

@@ -46,7 +46,7 @@ import pandas as pd
 from scipy.spatial.transform import Rotation, Slerp
 
 from pipeline.geometry.camera import Intrinsics
-from pipeline.geometry.rotations import matrix_to_quat, normalize_quat, quat_to_matrix
+from pipeline.geometry.rotations import UNIT_TOLERANCE, matrix_to_quat, normalize_quat, quat_to_matrix
 from pipeline.pose.labels import QUAT
 
 Match = Literal["nearest", "interpolate"]
@@ -176,9 +176,11 @@ def parse_mocap(df: pd.DataFrame, bodies: list[str], source: str = "mocap.csv") 
             raise LabDataError(f"{source} line {_line(i)}: body {body!r} timestamp {t[bad[0] + 1]} is not after "
                                f"its previous sample ({t[bad[0]]}); mocap rows must be in time order")
         q = df[QUAT].to_numpy()[rows]
-        zero = np.flatnonzero(np.linalg.norm(q, axis=1) < 1e-9)
-        if len(zero):
-            raise LabDataError(f"{source} line {_line(rows[zero[0]])}: body {body!r} has a zero quaternion")
+        norm = np.linalg.norm(q, axis=1)
+        off = np.flatnonzero(np.abs(norm - 1) > UNIT_TOLERANCE)
+        if len(off):
+            raise LabDataError(f"{source} line {_line(rows[off[0]])}: body {body!r} has a quaternion of norm "
+                               f"{norm[off[0]]:.6g}, not a unit quaternion")
         tracks[body] = Track(t, df[["x", "y", "z"]].to_numpy()[rows], normalize_quat(q))
     return tracks
 

@@ -19,16 +19,16 @@ name the field (the caller adds the file).
 """
 from __future__ import annotations
 
+import posixpath
 from typing import Any
 
 import numpy as np
 
 from pipeline.geometry.camera import Intrinsics
-from pipeline.geometry.rotations import normalize_quat
+from pipeline.geometry.rotations import UNIT_TOLERANCE, normalize_quat
 
 POSITION_KEY = "r_Vo2To_vbs_true"
 QUAT_KEYS = ("q_vbs2tango_true", "q_vbs2tango")   # SPEED+, SPEED
-UNIT_TOLERANCE = 1e-3                             # |norm(q) - 1| above this is refused, not silently normalised
 SPEED_CAMERA = {"Nu": 1920, "Nv": 1200, "fx": 0.0176, "fy": 0.0176, "ppx": 5.86e-6, "ppy": 5.86e-6}
 
 
@@ -55,6 +55,7 @@ def _record(record: Any, i: int) -> tuple[str, np.ndarray, np.ndarray]:
     if not isinstance(record.get("filename"), str) or not record["filename"]:
         raise ValueError(f"{where}: missing key 'filename' (the image's file name)")
     where = f"record {i} ({record['filename']})"
+    name = relative_name(record["filename"], where)
     qkey = next((k for k in QUAT_KEYS if k in record), None)
     if qkey is None:
         raise ValueError(f"{where}: missing key '{QUAT_KEYS[0]}' (SPEED+) or '{QUAT_KEYS[1]}' (SPEED)")
@@ -63,12 +64,20 @@ def _record(record: Any, i: int) -> tuple[str, np.ndarray, np.ndarray]:
     q = _vector(record, qkey, 4, where)
     if abs(np.linalg.norm(q) - 1) > UNIT_TOLERANCE:
         raise ValueError(f"{where}: {qkey} has norm {np.linalg.norm(q):.6g}, not a unit quaternion")
-    return record["filename"], _vector(record, POSITION_KEY, 3, where), q
+    return name, _vector(record, POSITION_KEY, 3, where), q
+
+
+def relative_name(name: str, where: str) -> str:
+    """`name` normalised (`./a.png` -> `a.png`); a ValueError when it is absolute or leaves its folder (`..`)."""
+    norm = posixpath.normpath(name)
+    if posixpath.isabs(norm) or (len(norm) > 1 and norm[1] == ":") or norm.split("/")[0] == "..":
+        raise ValueError(f"{where}: filename must be a path inside the dataset folder, got {name!r}")
+    return norm
 
 
 def from_speed(records: Any) -> tuple[list[str], np.ndarray, np.ndarray]:
-    """SPEED or SPEED+ JSON records -> (filenames, t (N, 3) m, q (N, 4) unit, qw >= 0), checked record by
-    record; a ValueError names the record, its file name and the field."""
+    """SPEED or SPEED+ JSON records -> (filenames, normalised and inside the folder; t (N, 3) m; q (N, 4) unit,
+    qw >= 0), checked record by record; a ValueError names the record, its file name and the field."""
     if not isinstance(records, list) or not records:
         raise ValueError("expected a non-empty JSON list of label records")
     parsed = [_record(r, i) for i, r in enumerate(records)]
@@ -88,7 +97,18 @@ def _number(cam: dict[str, Any], key: str) -> float:
         raise ValueError(f"{key} must be a number, got {cam[key]!r}") from None
     if not np.isfinite(v) or v <= 0:
         raise ValueError(f"{key} must be a positive number, got {cam[key]!r}")
+    if key in ("Nu", "Nv") and not v.is_integer():
+        raise ValueError(f"{key} must be a whole number of pixels, got {cam[key]!r}")
     return v
+
+
+def _checked(K: Intrinsics) -> Intrinsics:
+    """K when its focal lengths are at least a pixel and its principal point lies inside the image."""
+    if min(K.fx, K.fy) < 1:
+        raise ValueError(f"focal lengths must be at least 1 pixel, got fx={K.fx:g}, fy={K.fy:g}")
+    if not (0 <= K.cx <= K.width and 0 <= K.cy <= K.height):
+        raise ValueError(f"principal point ({K.cx:g}, {K.cy:g}) lies outside the {K.width}x{K.height} image")
+    return K
 
 
 def camera_from_json(cam: Any, size: tuple[int, int] | None = None) -> Intrinsics:
@@ -107,13 +127,16 @@ def camera_from_json(cam: Any, size: tuple[int, int] | None = None) -> Intrinsic
             K = np.zeros(0)
         if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ValueError(f"cameraMatrix must be a 3x3 K with fx, fy > 0, got {cam['cameraMatrix']!r}")
-        return Intrinsics(w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+        if K[0, 1] != 0 or K[1, 0] != 0 or list(K[2]) != [0, 0, 1]:
+            raise ValueError(f"cameraMatrix must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew; not "
+                             f"transposed), got {cam['cameraMatrix']!r}")
+        return _checked(Intrinsics(w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])))
     if not {"fx", "ppx"} <= set(cam):
         raise ValueError("no camera matrix: needs 'cameraMatrix' (3x3 K in pixels) or 'fx', 'fy' (m) with "
                          "'ppx', 'ppy' (m per pixel)")
     fx, fy = _number(cam, "fx") / _number(cam, "ppx"), _number(cam, "fy") / _number(cam, "ppy")
     cx = _number(cam, "ccx") if "ccx" in cam else w / 2
-    return Intrinsics(w, h, fx, fy, cx, _number(cam, "ccy") if "ccy" in cam else h / 2)
+    return _checked(Intrinsics(w, h, fx, fy, cx, _number(cam, "ccy") if "ccy" in cam else h / 2))
 
 
 def camera_to_json(K: Intrinsics) -> dict[str, Any]:

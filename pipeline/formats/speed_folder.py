@@ -58,6 +58,10 @@ def read_image(path: Path, size: tuple[int, int], source_size: tuple[int, int]) 
     JPEGs are decoded at 1/2, 1/4 or 1/8 size when that still exceeds `size` (faster, same pixels)."""
     import cv2
 
+    header = image_size(path)
+    if header != tuple(source_size):
+        raise DataError(f"{path}: image is {header[0]}x{header[1]} pixels but camera.json gives Nu x Nv = "
+                         f"{source_size[0]}x{source_size[1]}")
     reduce = max([r for r in (2, 4, 8) if source_size[0] / r >= size[0] and source_size[1] / r >= size[1]], default=1)
     flag = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
             8: cv2.IMREAD_REDUCED_COLOR_8}[reduce]
@@ -72,15 +76,34 @@ def read_image(path: Path, size: tuple[int, int], source_size: tuple[int, int]) 
     return cv2.resize(img, size, interpolation=cv2.INTER_AREA)[..., ::-1]
 
 
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) in pixels from the image file's header (nothing decoded); a DataError naming the file."""
+    from PIL import Image, UnidentifiedImageError
+
+    if not path.is_file():
+        raise DataError(f"{path}: not found (named by its label file)")
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except (UnidentifiedImageError, Image.DecompressionBombError, OSError) as e:
+        raise DataError(f"{path}: not a readable image (named by its label file): {e}") from None
+
+
+MARKER = ".rpodguard-export.json"        # written inside every export: the files it wrote (so a rerun may replace them)
+
+
 def write_speed(out: Path, images: Any, labels: Any, K: Any) -> None:
     """Write the labelled images as a SPEED+ folder `out` (camera.json, synthetic/{train,test}.json,
-    synthetic/images/imgNNNNNN.png, NNNNNN = label index + 1), atomically; PNG keeps every pixel."""
+    synthetic/images/imgNNNNNN.png, NNNNNN = label index + 1, and MARKER), atomically; PNG keeps every pixel.
+    An existing `out` is replaced only when it is empty or holds nothing but an earlier export's files
+    (its MARKER lists them); files are world-readable (0644), folders 0755."""
     import cv2
 
     from pipeline.formats.speed import camera_to_json, to_speed
+    from pipeline.io.atomic import remove_stale_temps
 
-    if out.exists() and any(out.iterdir()) and not (out / "camera.json").is_file():
-        raise DataError(f"{out} exists and is not a SPEED folder written before; name a new or empty folder")
+    check_replaceable(out)
+    remove_stale_temps(out)               # temporary folders of killed exports
     labels = labels.sort_values("index").reset_index(drop=True)
     names = [f"img{int(i) + 1:06d}.png" for i in labels["index"]]
     index, step = labels["index"].to_numpy(), int(images.chunks[0])
@@ -102,3 +125,40 @@ def write_speed(out: Path, images: Any, labels: Any, K: Any) -> None:
                        to_speed([n for n, keep in zip(names, rows) if keep], labels.loc[rows, POSITION],
                                 labels.loc[rows, QUAT]))
         write_json(tmp / "camera.json", camera_to_json(K))
+        write_json(tmp / MARKER, {"written_by": "rpod export speed", "files": sorted(_tree(tmp))})
+        _world_readable(tmp)
+
+
+def check_replaceable(out: Path) -> None:
+    """A DataError unless `out` is missing, an empty folder, or an earlier export holding only the files
+    its MARKER lists (a rerun replaces the whole folder, so it must hold nothing else)."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise DataError(f"{out} exists and is not a folder; name a new or empty folder")
+    if not any(out.iterdir()):
+        return
+    marker = out / MARKER
+    try:
+        written = set(read_json(marker)["files"]) if marker.is_file() else None
+    except (DataError, KeyError, TypeError):
+        written = None
+    if written is None:
+        raise DataError(f"{out} exists and is not a SPEED folder written before by `rpod export speed` "
+                         f"(no {MARKER}); name a new or empty folder")
+    extra = sorted(_tree(out) - written - {MARKER})
+    if extra:
+        raise DataError(f"{out} holds {out / extra[0]}, which `rpod export speed` did not write "
+                         f"({len(extra)} such files); move them away or name a new folder")
+
+
+def _tree(folder: Path) -> set[str]:
+    """Paths (relative, '/'-separated) of the files and symbolic links below `folder`."""
+    return {p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_symlink() or not p.is_dir()}
+
+
+def _world_readable(folder: Path) -> None:
+    """Files 0644 and folders 0755 below and including `folder` (temporary files are created 0600/0700)."""
+    folder.chmod(0o755)
+    for p in folder.rglob("*"):
+        p.chmod(0o755 if p.is_dir() else 0o644)

@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 Mat3 = list[list[float]]
+UNIT_TOLERANCE = 1e-3   # |norm(q) - 1| of a stored quaternion above this is refused (SPEED labels, mocap), not normalised
 
 
 def normalize_quat(q: np.ndarray) -> np.ndarray:

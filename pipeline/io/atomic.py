@@ -160,6 +160,8 @@ def file_hash(path: Path | str, n: int = 16) -> str:
     path = Path(path)
     if not path.exists():
         raise not_found(path)
+    if not path.is_file():       # a FIFO or device would block the read for ever
+        raise DataError(f"{path} is not a regular file")
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):

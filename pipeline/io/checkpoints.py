@@ -1,6 +1,7 @@
 """torch checkpoints: written atomically with reproducible bytes, read safely (weights_only=True)."""
 from __future__ import annotations
 
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -36,24 +37,31 @@ def load_torch(path: Path | str, fmt: str, redo: str) -> dict[str, Any]:
     path = Path(path)
     if not path.exists():
         raise not_found(path, "checkpoint")
+    if not path.is_file():       # a FIFO or device would block the read for ever
+        raise DataError(f"checkpoint {path} is not a regular file; {redo}")
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
         raise DataError(f"checkpoint {path} is unreadable ({type(e).__name__}: {e}); {redo}") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != fmt:
         raise DataError(f"{path} is not an rpodguard checkpoint of format {fmt}; {redo}")
-    bad = _nonfinite_tensors(ckpt)
+    bad = _nonfinite(ckpt)
     if bad:
-        raise DataError(f"checkpoint {path} holds non-finite weights ({', '.join(bad[:3])}); {redo}")
+        raise DataError(f"checkpoint {path} holds non-finite weights or values ({', '.join(bad[:3])}); {redo}")
     return ckpt
 
 
-def _nonfinite_tensors(obj: Any, prefix: str = "") -> list[str]:
-    """Names of the floating-point tensors (nested in dicts) with a NaN or inf."""
+def _nonfinite(obj: Any, prefix: str = "") -> list[str]:
+    """Names of the floating-point tensors and numbers (nested in dicts and lists; e.g. a detector's
+    threshold) with a NaN or inf."""
     import torch
 
     if isinstance(obj, dict):
-        return [n for k, v in obj.items() for n in _nonfinite_tensors(v, f"{prefix}{k}.")]
+        return [n for k, v in obj.items() for n in _nonfinite(v, f"{prefix}{k}.")]
+    if isinstance(obj, (list, tuple)):
+        return [n for i, v in enumerate(obj) for n in _nonfinite(v, f"{prefix}{i}.")]
     if isinstance(obj, torch.Tensor) and obj.is_floating_point() and not bool(torch.isfinite(obj).all()):
+        return [prefix.rstrip(".")]
+    if isinstance(obj, float) and not math.isfinite(obj):
         return [prefix.rstrip(".")]
     return []

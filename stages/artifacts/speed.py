@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.formats.speed import relative_name
 from pipeline.pose.labels import pose_columns
 from stages.config import params as params_mod
 from pipeline.formats.speed_folder import TEST, TRAIN, image_path, read_camera, read_image, read_labels
@@ -31,12 +32,30 @@ from stages.errors import StageError
 
 def labels_file(folder: Path, names: tuple[str, ...], given: str | None, what: str) -> Path:
     """The label JSON of a split: `given` (relative to folder) or the first of `names` that exists."""
+    if given is not None:
+        try:
+            given = relative_name(given, "params.yaml render.source_test")
+        except ValueError as e:
+            raise StageError(str(e)) from None
     found = [folder / given] if given else [folder / n for n in names if (folder / n).is_file()]
     if not found or not found[0].is_file():
         tried = given or ", ".join(names)
         raise StageError(f"params.yaml render.source={folder}: no {what} labels ({tried} not found); "
                          f"set render.source_test for the test labels (e.g. lightbox/test.json)")
     return found[0]
+
+
+def check_images(names: list[Path], n_train: int, train: Path, test: Path) -> None:
+    """A StageError when an image is labelled in both splits or any labelled image is missing (checked
+    before the first image is read)."""
+    both = set(names[:n_train]) & set(names[n_train:])
+    if both:
+        raise StageError(f"{sorted(both)[0]} is labelled in both {train} and {test} ({len(both)} such images): "
+                         f"a test image must never be trained on")
+    missing = [f for f in names if not f.is_file()]
+    if missing:
+        raise StageError(f"{missing[0]}: not found, named by its label file ({len(missing)} of {len(names)} "
+                         f"labelled images missing)")
 
 
 def import_source(p: Params, out: Path) -> None:
@@ -60,6 +79,7 @@ def import_source(p: Params, out: Path) -> None:
               f"K is scaled per axis (fy/fx = {K.fy / K.fx:.3f})")
     parts = [(split, f, *read_labels(f)) for split, f in (("train", train), ("test", test))]
     names = [image_path(f, n) for _, f, ns, _, _ in parts for n in ns]
+    check_images(names, len(parts[0][2]), train, test)
     t = np.concatenate([x[3] for x in parts])
     q = np.concatenate([x[4] for x in parts])
     n, chunk = len(names), r.chunk

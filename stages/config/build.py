@@ -1,6 +1,6 @@
 """Params -> library objects: the one place where typed params (stages.config.schema) become the settings
 pipeline/ takes (Intrinsics, SceneSettings, the attack, TrainConfig, AugmentConfig, DefenseSettings,
-MotionSettings, EngineSettings) and the lab mock-up policy. Bad values raise a StageError naming the key.
+MotionSettings, AlertLimitSettings, EngineSettings) and the lab mock-up policy. Bad values raise a StageError naming the key.
 """
 from __future__ import annotations
 
@@ -118,6 +118,24 @@ def defense_settings(defense: Defense, threshold: float) -> tuple[Any, Any]:
         return settings_of(DefenseSettings, defense, threshold=threshold), settings_of(MotionSettings, defense)
     except ValueError as e:
         raise StageError(f"params.yaml: {e}") from None
+
+
+# AlertLimitSettings field -> the param that feeds it (the guidance law's constants are guidance's own)
+ALERT_LIMIT_KEYS = {"tolerance": "guidance.tolerance", "max_step": "guidance.max_step",
+                    "slack_steps": "guidance.slack_steps", "collision_range": "integrity.collision_range_m"}
+
+
+def alert_limit_settings(params: Params) -> Any:
+    """The AlertLimitSettings of pipeline.evaluation.integrity: the guidance law's tolerance, step limit and
+    slack (params.guidance) with params.integrity's collision range."""
+    from pipeline.evaluation.integrity import AlertLimitSettings
+
+    g, i = params.guidance, params.integrity
+    try:
+        return AlertLimitSettings(float(g.tolerance), float(g.max_step), g.slack_steps, float(i.collision_range_m))
+    except ValueError as e:
+        name = next(k for k in ALERT_LIMIT_KEYS if f" {k} must" in str(e))
+        raise StageError(f"params.yaml {ALERT_LIMIT_KEYS[name]}: {e}") from None
 
 
 def engine_settings(params: Params) -> Any:

@@ -5,21 +5,26 @@ from __future__ import annotations
 
 import typing
 from dataclasses import dataclass
-from typing import Literal, Optional
+from typing import Annotated, Literal, Optional
 
-from stages.config.sections import ParamsError
+from stages.config.sections import (Batch, Count, Direction, Eps, Focal, In, Metres, ParamsError, Pixels,
+                                    Principal, Probability, Scale, Seed)
+
+Frames = Annotated[int, In("[1, 10000000]", "frames")]
+Noise = Annotated[float, In("(0, 1000]", "std per frame")]
+OpenProbability = Annotated[float, In("(0, 1)", "probability")]
 
 
 @dataclass(frozen=True)
 class Evaluate:
-    trajectories: int
-    frames: int                  # per trajectory
-    lateral_range: list[float]   # metres, [low, high] of |x| and |y| at the start
-    p_start: float               # per-frame probability that an attack starts
-    attack_length: int           # frames
-    eps: list[float]
-    seed: int
-    batch_size: int
+    trajectories: Annotated[int, In("[1, 100000]", "trajectories")]
+    frames: Frames               # per trajectory
+    lateral_range: list[Annotated[float, In("[0, 100000]", "metres")]]   # [low, high] of |x| and |y| at the start
+    p_start: Probability         # per-frame probability that an attack starts
+    attack_length: Frames        # frames
+    eps: list[Eps]
+    seed: Seed
+    batch_size: Batch
 
     def __post_init__(self) -> None:
         if self.trajectories < 1 or self.frames < 2:
@@ -40,22 +45,22 @@ class Defense:
     """The defense (pipeline/defense/kalman.py and pipeline/defense/fusion.py); bad values are refused naming defense.<key>."""
 
     fusion: Literal["or", "paper", "motion"]   # or: detector or motion gate | paper: detector alone | motion: gate alone
-    false_alarm: float           # gate false-alarm probability per frame on consistent motion, in (0, 1)
-    position_noise: float        # metres per frame: std of the unmodelled displacement, > 0
-    velocity_noise: float        # metres per frame per frame: std of the drift-velocity change, > 0
-    attitude_noise_deg: float    # degrees per frame: std of the unmodelled target rotation, > 0
-    attitude_rate_noise_deg: float   # degrees per frame per frame: std of the target rate change, > 0
-    soft_gate: float             # fraction of the gate's NIS above which accepted frames are down-weighted, (0, 1]
-    reacquire_after: int         # frames (M >= 2): agreeing rejected frames that restart the filter
-    hold_after: int              # frames (K >= 1): consecutive flags that declare the estimate lost -> hold
-    release_after: int           # frames (>= 1): consecutive clean frames that end a hold
-    update_below: Optional[float]    # detector probability in (0, 1) from which a frame does not update the
+    false_alarm: OpenProbability   # gate false-alarm probability per frame on consistent motion
+    position_noise: Noise          # metres per frame: std of the unmodelled displacement
+    velocity_noise: Noise          # metres per frame per frame: std of the drift-velocity change
+    attitude_noise_deg: Annotated[float, In("(0, 180]", "degrees per frame")]   # std of the unmodelled target rotation
+    attitude_rate_noise_deg: Annotated[float, In("(0, 180]", "degrees per frame per frame")]   # std of the rate change
+    soft_gate: Annotated[float, In("(0, 1]", "fraction of the gate")]   # NIS fraction above which frames are down-weighted
+    reacquire_after: Annotated[int, In("[2, 10000000]", "frames")]   # M: agreeing rejected frames that restart the filter
+    hold_after: Frames             # K: consecutive flags that declare the estimate lost -> hold
+    release_after: Frames          # consecutive clean frames that end a hold
+    update_below: Optional[OpenProbability]  # detector probability from which a frame does not update the
                                      # filter; None: the detector's threshold
-    noise_bins: int              # range bins of the measurement-noise fit (>= 2)
-    target_false_alarm: float    # fraction of clean validation frames the defended chain may flag; calibrate inflates the noise to it, in (0, 1)
-    val_trajectories: int        # validation approaches (own seed) the noise model is fitted on (>= 1)
-    val_seed: int                # their seed: never evaluate.seed
-    harm_m: float                # metres: an attacked frame with a larger position error is harmful
+    noise_bins: Annotated[int, In("[2, 1000]", "range bins")]   # of the measurement-noise fit
+    target_false_alarm: OpenProbability   # fraction of clean validation frames the defended chain may flag (calibrate)
+    val_trajectories: Annotated[int, In("[1, 100000]", "trajectories")]   # validation approaches the noise is fitted on
+    val_seed: Seed               # their seed: never evaluate.seed
+    harm_m: Metres               # metres: an attacked frame with a larger position error is harmful
 
     def __post_init__(self) -> None:
         def bad(key: str, rule: str) -> ParamsError:
@@ -82,21 +87,21 @@ class Defense:
 
 @dataclass(frozen=True)
 class Zed:
-    width: int                   # pixels
-    height: int
-    fx: float                    # pixels
-    fy: float
-    cx: float
-    cy: float
+    width: Pixels
+    height: Pixels
+    fx: Focal
+    fy: Focal
+    cx: Principal
+    cy: Principal
 
 
 @dataclass(frozen=True)
 class DomainShift:
-    noise_std: float             # [0, 1] pixel units
-    blur_sigma: float            # pixels
-    sun_direction: list[float]
-    sun_strength: float
-    calib_error: float           # relative focal-length error of the lab camera
+    noise_std: Annotated[float, In("[0, 1]", "pixel units")]
+    blur_sigma: Annotated[float, In("[0, 20]", "pixels")]
+    sun_direction: list[Direction]
+    sun_strength: Annotated[float, In("(0, 10000]", "W/m^2")]
+    calib_error: Annotated[float, In("(-1, 1)", "relative focal-length error")]   # of the lab camera
 
 
 @dataclass(frozen=True)
@@ -107,26 +112,26 @@ class Bodies:
 
 @dataclass(frozen=True)
 class Lab:
-    scale: float                 # the mock-up is 1/scale of the real target
+    scale: Annotated[float, In("(0, 10000]", "scale factor")]   # the mock-up is 1/scale of the real target
     zed: Zed
-    sequences: list[list[float]]  # lab z ranges [start, end], metres
-    frames: int
-    fps: float
-    mocap_hz: float
+    sequences: list[list[Metres]]  # lab z ranges [start, end], metres
+    frames: Annotated[int, In("[2, 10000000]", "frames")]
+    fps: Annotated[float, In("(0, 100000]", "Hz")]
+    mocap_hz: Annotated[float, In("(0, 100000]", "Hz")]
     match: Literal["nearest", "interpolate"]   # how mocap samples are matched to camera frames
-    max_gap_s: float             # seconds
-    attack_length: int           # frames
+    max_gap_s: Annotated[float, In("(0, 3600]", "seconds")]
+    attack_length: Frames
     retrain: Literal["auto", "always"]   # always: train synthetic-lab models (`rpod lab_models`)
     mesh: Optional[str]
-    mesh_scale: float            # metres per mock-up mesh unit
-    train_frames_per_sequence: Optional[int]
+    mesh_scale: Scale            # metres per mock-up mesh unit
+    train_frames_per_sequence: Optional[Annotated[int, In("[2, 10000000]", "frames")]]
     domain_shift: DomainShift
     real_data: Optional[str]     # folder of a real lab recording
     bodies: Bodies
-    segment_threshold: float     # grey level in [0, 1]
-    max_image_pixels: int        # largest lab image accepted (width x height, pixels), checked before decoding
-    empty_frame_tolerance: float  # fraction of frames allowed without target pixels after segmentation, [0, 1]
-    seed: int
+    segment_threshold: Probability   # grey level in [0, 1]
+    max_image_pixels: Annotated[int, In("[1, 4294967296]", "pixels")]   # largest lab image (W x H), checked before decoding
+    empty_frame_tolerance: Probability  # fraction of frames allowed without target pixels after segmentation, [0, 1]
+    seed: Seed
 
     def __post_init__(self) -> None:
         n = self.train_frames_per_sequence
@@ -163,11 +168,11 @@ def attack_name(name: str, key: str) -> tuple[str, Optional[str]]:
 class Corruptions:
     """Benign corruption strengths (pipeline/attacks/corruptions.py applies them; it checks the same ranges)."""
 
-    noise: list[float]           # Gaussian noise std, [0, 1] pixel units, in [0, 1]
-    blur: list[float]            # Gaussian blur sigma, pixels, in (0, 20]
-    jpeg: list[int]              # JPEG quality, 1..100
-    brightness: list[float]      # exposure gain, in (0, 10]
-    contrast: list[float]        # factor around the frame's mean grey level, in [0, 10]
+    noise: list[Annotated[float, In("[0, 1]", "Gaussian noise std, pixel units")]]
+    blur: list[Annotated[float, In("(0, 20]", "Gaussian blur sigma, pixels")]]
+    jpeg: list[Annotated[int, In("[1, 100]", "JPEG quality")]]
+    brightness: list[Annotated[float, In("(0, 10]", "exposure gain")]]
+    contrast: list[Annotated[float, In("[0, 10]", "factor around the frame's mean grey level")]]
 
     def __post_init__(self) -> None:
         ok = {"noise": lambda s: 0 <= s <= 1, "blur": lambda s: 0 < s <= 20, "jpeg": lambda s: 1 <= s <= 100,
@@ -180,18 +185,18 @@ class Corruptions:
 
 @dataclass(frozen=True)
 class Robustness:
-    frames: int                  # held-out test frames (seeded sample) of the per-frame rows
-    harm_m: float                # metres: an attacked frame is harmful when its position error exceeds this
-    eps: list[float]             # L-inf budgets, pixels in [0, 1], of the transfer, adaptive and surrogate rows
-    unseen_eps: list[float]      # FGSM budgets the detector was not trained on
+    frames: Count                # held-out test frames (seeded sample) of the per-frame rows
+    harm_m: Metres               # metres: an attacked frame is harmful when its position error exceeds this
+    eps: list[Eps]               # L-inf budgets, pixels in [0, 1], of the transfer, adaptive and surrogate rows
+    unseen_eps: list[Eps]        # FGSM budgets the detector was not trained on
     transfer: list[str]          # method[/loss]; loss defaults to attack.loss
-    steps: int                   # PGD steps, plain, adaptive and on the surrogate (>= 20)
-    lambdas: list[float]         # adaptive attack: pose_loss - lambda * detector logit, lambda >= 0
+    steps: Annotated[int, In("[20, 100000]", "steps")]   # PGD steps, plain, adaptive and on the surrogate
+    lambdas: list[Annotated[float, In("[0, 1000000000]", "weight")]]   # adaptive attack: pose_loss - lambda * detector logit
     surrogate_attacks: list[str]  # method[/loss], crafted on models/surrogate.pt
-    surrogate_seed: int
-    surrogate_epochs: int
-    batch_size: int
-    burst_every: int             # fused-chain rows: a burst of evaluate.attack_length frames every this many frames
+    surrogate_seed: Seed
+    surrogate_epochs: Annotated[int, In("[1, 1000000]", "epochs")]
+    batch_size: Batch
+    burst_every: Frames          # fused-chain rows: a burst of evaluate.attack_length frames every this many frames
     corruptions: Corruptions
 
     def __post_init__(self) -> None:
@@ -215,3 +220,16 @@ class Robustness:
         if min(self.frames, self.batch_size, self.surrogate_epochs, self.burst_every) < 1:
             raise ValueError(f"frames, batch_size, surrogate_epochs and burst_every must be >= 1, got {self.frames}, "
                              f"{self.batch_size}, {self.surrogate_epochs} and {self.burst_every}")
+
+
+
+@dataclass(frozen=True)
+class Integrity:
+    """Integrity metrics (pipeline/evaluation/integrity.py; the alert limit's other constants are guidance's)."""
+
+    collision_range_m: Metres    # metres: a true range below this is a collision, > 0
+
+    def __post_init__(self) -> None:
+        if not self.collision_range_m > 0:
+            raise ParamsError(f"params.yaml integrity.collision_range_m must be > 0 (metres), "
+                              f"got {self.collision_range_m!r}")

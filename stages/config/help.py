@@ -2,7 +2,8 @@
 
 One source for each: the params of a command are dvc.yaml's `params:` of the stages that run it (so
 `dvc repro` re-runs a stage exactly when a param its help lists changes); their meaning and units are
-the comments beside them in conf/config.yaml. Built only when --help is asked for.
+the comments beside them in conf/config.yaml, and a numeric param's range is its `In` in the schema
+(stages/config/schema.py `ranges`). Built only when --help is asked for.
 """
 from __future__ import annotations
 
@@ -66,7 +67,12 @@ def params_epilog(command: str) -> str:
     if not keys:
         return ""
     stages = ", ".join(command_stages(command))
-    lines = [f"  {k}: {comments[k][1] or '(no description)'}" for k in keys]
+    from stages.config.schema import ranges
+
+    limits = ranges()
+    lines = [f"  {k}: {comments[k][1] or '(no description)'}"
+             + (f"; range {limits[k].interval} {limits[k].unit}".rstrip() if k in limits else "")
+             for k in keys]
     return (f"Params read (params.yaml, from conf/config.yaml; dvc.yaml stage {stages}):\n\n" + "\n".join(lines))
 
 

@@ -6,7 +6,7 @@ Units and frames are in the field comments; conf/config.yaml holds the defaults.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Optional
+from typing import Annotated, Literal, Optional
 
 
 class ParamsError(ValueError):
@@ -14,45 +14,88 @@ class ParamsError(ValueError):
 
 
 @dataclass(frozen=True)
+class In:
+    """The documented range of a numeric param, declared beside its field as `Annotated[float, In("(0, 1]")]`:
+    `interval` with finite bounds ("[" or "]": bound included, "(" or ")": excluded) and the unit.
+    `stages.config.schema.build` refuses a value outside it (and any NaN or infinity) naming the key."""
+
+    interval: str
+    unit: str = ""
+
+    def bounds(self) -> tuple[float, float]:
+        low, high = self.interval[1:-1].split(",")
+        return float(low), float(high)
+
+    def contains(self, value: float) -> bool:
+        (low, high), (left, right) = self.bounds(), (self.interval[0], self.interval[-1])
+        return (low <= value if left == "[" else low < value) and (value <= high if right == "]" else value < high)
+
+    def refusal(self, key: str, value: float, whole: bool) -> ParamsError:
+        """The one-line error of `value` outside the range, naming params.yaml's `key`."""
+        low = self.bounds()[0]
+        kind = ("a positive " if low > 0 or (low == 0 and self.interval[0] == "(") else "a ") + \
+            ("whole number" if whole else "number")
+        unit = f" ({self.unit})" if self.unit else ""
+        return ParamsError(f"params.yaml {key} must be {kind} in {self.interval}{unit}, got {value!r}")
+
+
+Seed = Annotated[int, In("[0, 2147483647]", "random seed")]
+Count = Annotated[int, In("[1, 1000000000]")]                       # how many (frames, samples, epochs, ...)
+Batch = Annotated[int, In("[1, 65536]", "samples per batch")]
+Pixels = Annotated[int, In("[1, 65536]", "pixels")]
+Focal = Annotated[float, In("(0, 1000000]", "pixels")]
+Principal = Annotated[float, In("[0, 65536]", "pixels")]
+Fraction = Annotated[float, In("(0, 1)")]
+Probability = Annotated[float, In("[0, 1]")]
+Eps = Annotated[float, In("(0, 1]", "L-inf budget, pixels in [0, 1]")]
+Metres = Annotated[float, In("(0, 100000]", "metres")]
+Coordinate = Annotated[float, In("[-100000, 100000]", "metres")]
+Direction = Annotated[float, In("[-1000000, 1000000]", "direction component")]
+Scale = Annotated[float, In("(0, 1000000]", "metres per mesh unit")]
+Units = Annotated[int, In("[1, 65536]", "units")]                   # network layer sizes
+
+
+@dataclass(frozen=True)
 class Camera:
-    ref_width: int          # pixels: the size K is given at
-    ref_height: int
-    fx: float               # pixels, at the reference size
-    fy: float
-    cx: float
-    cy: float
+    ref_width: Pixels       # pixels: the size K is given at
+    ref_height: Pixels
+    fx: Focal               # pixels, at the reference size
+    fy: Focal
+    cx: Principal
+    cy: Principal
 
 
 @dataclass(frozen=True)
 class Render:
-    width: int              # pixels (also the pose model's input size)
-    height: int
-    frames_per_sequence: int
-    start_range: float      # metres along the approach axis (z)
-    end_range: float        # metres
-    pointing_jitter_deg: float
-    max_target_rotation_deg: float
-    samples: int            # Cycles samples per pixel
+    width: Annotated[int, In("[8, 8192]", "pixels")]    # also the pose model's input size
+    height: Annotated[int, In("[8, 8192]", "pixels")]
+    frames_per_sequence: Annotated[int, In("[2, 10000000]", "frames")]
+    start_range: Metres     # metres along the approach axis (z)
+    end_range: Metres       # metres
+    pointing_jitter_deg: Annotated[float, In("[0, 90]", "degrees")]
+    max_target_rotation_deg: Annotated[float, In("[0, 180]", "degrees")]
+    samples: Annotated[int, In("[1, 65536]", "Cycles samples per pixel")]
     denoiser: str           # NONE | OPENIMAGEDENOISE
     denoise_quality: str    # FAST | BALANCED | HIGH
-    threads: int            # Blender render threads
+    threads: Annotated[int, In("[1, 1024]", "Blender threads")]
     mesh: Optional[str]     # mesh file; inputs/none (or None) = the procedural Jason-1-like target
     source: Optional[str]   # SPEED/SPEED+ folder imported instead of rendering; inputs/none (or None) = render
     source_test: Optional[str]   # its test labels, relative to it; None = synthetic/test.json, ... (stages/artifacts/speed.py)
-    mesh_scale: float       # metres per mesh unit
-    sun_direction: list[float]   # direction the sunlight travels, target frame
-    sun_strength: float
-    chunk: int              # frames per zarr chunk
-    previews: int
+    mesh_scale: Scale       # metres per mesh unit
+    sun_direction: list[Direction]   # direction the sunlight travels, target frame
+    sun_strength: Annotated[float, In("(0, 10000]", "W/m^2")]
+    chunk: Annotated[int, In("[1, 1000000]", "frames per zarr chunk")]
+    previews: Annotated[int, In("[1, 1000]", "images")]
 
 
 @dataclass(frozen=True)
 class Engine:
-    workers: Optional[int]  # parallel workers (Ray actors, one Blender scene each); None = the cores; 1 = in-process
+    workers: Optional[Annotated[int, In("[1, 65536]", "workers")]]   # Ray actors, one Blender scene each;
+                                                                     # None = the cores; 1 = in-process
     address: Optional[str]  # Ray cluster address host:port; None = $RAY_ADDRESS, else a local Ray for the stage
     store: Optional[str]    # where `rpod render` writes images.zarr: None = datasets/render; else a folder or fsspec URL
-    timeout_s: float        # seconds to connect, or without any finished chunk, before the stage stops
-    retries: int            # times a chunk is retried on a restarted worker after its worker died
+    timeout_s: Annotated[float, In("(0, 1000000]", "seconds")]   # to connect, or with no chunk finished, before stopping
+    retries: Annotated[int, In("[0, 100]", "retries")]   # times a chunk is retried on a restarted worker after it died
 
     def __post_init__(self) -> None:
         if self.workers is not None and self.workers < 1:
@@ -63,35 +106,35 @@ class Engine:
 
 @dataclass(frozen=True)
 class Label:
-    test_fraction: float    # of the frames, in (0, 1)
+    test_fraction: Fraction  # of the frames
 
 
 @dataclass(frozen=True)
 class Augment:
-    p: float                # probability of each augmentation
-    blur_sigma: list[float]      # pixels, [low, high]
-    noise_std: list[float]       # [0, 1] pixel units
-    jpeg_quality: list[int]
-    brightness: list[float]      # multiplicative
+    p: Probability          # probability of each augmentation
+    blur_sigma: list[Annotated[float, In("[0, 20]", "pixels")]]   # [low, high]
+    noise_std: list[Annotated[float, In("[0, 1]", "pixel units")]]
+    jpeg_quality: list[Annotated[int, In("[1, 100]", "JPEG quality")]]
+    brightness: list[Annotated[float, In("(0, 10]", "gain")]]      # multiplicative
 
 
 @dataclass(frozen=True)
 class Train:
-    width: float            # channel-width multiplier of Darknet-19
-    batch_size: int
-    val_fraction: float     # of the labelled training frames (whole frames, seeded): checkpoint selection, never fitted
-    epochs: int
-    max_minutes: Optional[float]
-    lr_base: float
-    lr_max: float
-    cycle_epochs: float     # epochs per half cycle
-    weight_decay: float
-    dropout: float
+    width: Annotated[float, In("(0, 16]", "channel-width multiplier")]   # of Darknet-19
+    batch_size: Batch
+    val_fraction: Fraction  # of the labelled training frames (whole, seeded): checkpoint selection, never fitted
+    epochs: Annotated[int, In("[1, 1000000]", "epochs")]
+    max_minutes: Optional[Annotated[float, In("(0, 1000000]", "minutes")]]
+    lr_base: Annotated[float, In("(0, 10]", "learning rate")]
+    lr_max: Annotated[float, In("(0, 10]", "learning rate")]
+    cycle_epochs: Annotated[float, In("(0, 1000000]", "epochs")]   # epochs per half cycle
+    weight_decay: Annotated[float, In("[0, 1]", "L2 weight decay")]
+    dropout: Annotated[float, In("[0, 1)", "probability")]
     channels_last: bool
     compile: bool
-    workers: int
+    workers: Annotated[int, In("[0, 1024]", "processes")]
     augment: Augment
-    range_bins: list[float]      # metres, bin edges of the per-range error tables
+    range_bins: list[Metres]     # metres, bin edges of the per-range error tables
 
     def __post_init__(self) -> None:
         if not 0 < self.val_fraction < 1:
@@ -100,28 +143,28 @@ class Train:
 
 @dataclass(frozen=True)
 class Attack:
-    eps: list[float]        # L-inf budgets, pixels in [0, 1]
+    eps: list[Eps]          # L-inf budgets, pixels in [0, 1]
     method: str             # fgsm | pgd | mifgsm
     loss: str               # full | position | rotation
-    steps: int
-    step_size: Optional[float]   # pixel units; None = the method's default
+    steps: Annotated[int, In("[1, 100000]", "steps")]
+    step_size: Optional[Annotated[float, In("(0, 1]", "pixel units")]]   # None = the method's default
     random_start: bool
-    momentum: float
-    batch_size: int
-    max_images: Optional[int]    # None = the whole test set
+    momentum: Annotated[float, In("[0, 10]", "MI-FGSM decay")]
+    batch_size: Batch
+    max_images: Optional[Count]  # None = the whole test set
 
 
 @dataclass(frozen=True)
 class Guidance:
-    eps: list[float]
-    start_ranges: list[float]    # metres (S)
-    lengths: list[int]           # attacked frames (K)
-    start: list[float]           # metres, target-centred camera frame
-    target: list[float]          # metres
-    tolerance: float             # metres
-    max_step: float              # metres per step per axis
-    max_steps: int
-    slack_steps: int
+    eps: list[Eps]
+    start_ranges: list[Metres]   # metres (S)
+    lengths: list[Annotated[int, In("[1, 1000000]", "frames")]]   # attacked frames (K)
+    start: list[Coordinate]      # metres, target-centred camera frame
+    target: list[Coordinate]     # metres
+    tolerance: Metres            # metres
+    max_step: Metres             # metres per step per axis
+    max_steps: Annotated[int, In("[1, 10000000]", "steps")]
+    slack_steps: Annotated[int, In("[0, 10000000]", "steps")]
     variant: str                 # paper | true_state: the dynamics of the paper's S x K tables
     method: str
     dynamics: list[Literal["paper", "true_state"]]   # dynamics of the defended comparison
@@ -130,30 +173,30 @@ class Guidance:
 
 @dataclass(frozen=True)
 class Shap:
-    background: int
-    normal: int
-    per_eps: int
-    eps: list[float]
+    background: Annotated[int, In("[1, 10000000]", "images")]
+    normal: Annotated[int, In("[1, 1000000000]", "samples")]
+    per_eps: Annotated[int, In("[1, 1000000000]", "samples")]
+    eps: list[Eps]
     method: str                  # auto | exact | deep
-    chunk: int
+    chunk: Annotated[int, In("[1, 1000000]", "samples per zarr chunk")]
 
 
 @dataclass(frozen=True)
 class Detect:
-    hidden: int
-    dense: list[int]
-    epochs: int
-    patience: int
-    batch_size: int
-    lr: float
-    val_fraction: float
-    test_fraction: float
+    hidden: Units
+    dense: list[Units]
+    epochs: Annotated[int, In("[1, 1000000]", "epochs")]
+    patience: Annotated[int, In("[1, 1000000]", "epochs")]
+    batch_size: Batch
+    lr: Annotated[float, In("(0, 100]", "Adadelta learning rate")]
+    val_fraction: Fraction
+    test_fraction: Fraction
     baselines: list[Literal["mlp", "mahalanobis", "lid", "squeeze"]]
-    mlp_hidden: list[int]
-    lid_k: int
-    lid_batch: int
-    squeeze_bits: int
-    squeeze_median: int          # pixels, odd
+    mlp_hidden: list[Units]
+    lid_k: Annotated[int, In("[1, 100000]", "neighbours")]
+    lid_batch: Annotated[int, In("[2, 1000000]", "samples")]
+    squeeze_bits: Annotated[int, In("[1, 8]", "bits per channel")]
+    squeeze_median: Annotated[int, In("[1, 99]", "pixels, odd")]
 
     def __post_init__(self) -> None:
         for key in ("test_fraction", "val_fraction"):

@@ -7,11 +7,14 @@ one worker and no cluster address it runs in this process without starting Ray; 
 started for the call (`engine.workers` actors) or on the cluster at `engine.address` / $RAY_ADDRESS. A
 worker that dies is restarted and its chunk retried (`engine.retries`); no progress for
 `engine.timeout_s` seconds stops the stage with one line. Each Ray worker binds itself to as many cores
-of its machine as the CPUs it asked for (`pin_cores`).
+of its machine as the CPUs it asked for (`pin_cores`), among the cores the workers of the same pipeline
+(the driver's working folder: the repository `dvc repro` runs in) hold, so another pipeline on the machine
+pins its own workers too.
 """
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import socket
 import tempfile
@@ -22,7 +25,12 @@ from pipeline.io.errors import DataError
 from stages.errors import StageError
 
 CONNECT_TIMEOUT_S = 10.0   # seconds to open a TCP connection to a cluster's head before calling it unreachable
-CORE_LOCKS = os.path.join(tempfile.gettempdir(), "rpod-cores")   # one lock file per core a worker holds
+
+
+def core_locks(scope: str) -> str:
+    """The folder of the per-core lock files of one pipeline: `rpod-cores-<16 hex digits of scope>` in this
+    machine's temporary folder, scope = the driver's working folder (absolute path), on every node of a cluster."""
+    return os.path.join(tempfile.gettempdir(), "rpod-cores-" + hashlib.sha256(scope.encode()).hexdigest()[:16])
 
 
 class Worker(Protocol):
@@ -132,7 +140,8 @@ def _run_on_ray(worker_cls: Callable[[Any], Worker], setup: Any, jobs: list[Any]
     actor = ray.remote(Pinned).options(num_cpus=num_cpus, max_restarts=es.retries, max_task_retries=es.retries)
     workers = es.workers or max(1, int(ray.cluster_resources().get("CPU", 1) // num_cpus))
     cores = int(num_cpus) if float(num_cpus).is_integer() else 0
-    actors = [actor.remote(worker_cls, setup, cores) for _ in range(min(workers, len(jobs)))]
+    scope = os.path.abspath(os.getcwd())   # the pipeline: its workers share one set of core locks
+    actors = [actor.remote(worker_cls, setup, cores, scope) for _ in range(min(workers, len(jobs)))]
     todo, pending, out = list(range(len(jobs)))[::-1], {}, [None] * len(jobs)
     for a in actors:
         if todo:
@@ -159,10 +168,11 @@ def _run_on_ray(worker_cls: Callable[[Any], Worker], setup: Any, jobs: list[Any]
 
 
 class Pinned:
-    """A Ray actor: binds its process to `cores` free cores (`pin_cores`), then holds `worker_cls(setup)`."""
+    """A Ray actor: binds its process to `cores` cores no other worker of its pipeline (`scope`) holds
+    (`pin_cores`), then holds `worker_cls(setup)`."""
 
-    def __init__(self, worker_cls: Callable[[Any], Worker], setup: Any, cores: int) -> None:
-        pin_cores(cores)
+    def __init__(self, worker_cls: Callable[[Any], Worker], setup: Any, cores: int, scope: str) -> None:
+        pin_cores(cores, scope)
         self.worker = worker_cls(setup)
 
     def run(self, job: Any) -> Any:
@@ -175,10 +185,10 @@ class Pinned:
 _held: list[int] = []   # lock-file descriptors of the cores this process holds, open until it exits
 
 
-def pin_cores(n: int) -> list[int]:
+def pin_cores(n: int, scope: str) -> list[int]:
     """Bind every thread of this process (and those it starts later) to n cores of this machine that no
-    other rpod worker holds: a lock file per core under CORE_LOCKS, freed when the process exits
-    -> the cores, or [] (left unbound) when n < 1, fewer are free, or the OS cannot bind.
+    other worker of the pipeline `scope` holds: a lock file per core under core_locks(scope), freed when the
+    process exits -> the cores, or [] (left unbound) when n < 1, fewer are free, or the OS cannot bind.
 
     Why: a Blender scene uses both cores of a 2-core machine even at render.threads 1 (its scene sync
     runs on a thread pool sized to the machine), so two unbound 1-thread workers collide; bound, two
@@ -189,10 +199,11 @@ def pin_cores(n: int) -> list[int]:
         return []
     fds: list[int] = []
     got: list[int] = []
+    locks = core_locks(scope)
     try:
-        os.makedirs(CORE_LOCKS, exist_ok=True)
+        os.makedirs(locks, exist_ok=True)
         for core in sorted(os.sched_getaffinity(0)):
-            fd = os.open(os.path.join(CORE_LOCKS, f"{core}.lock"), os.O_CREAT | os.O_RDWR, 0o666)
+            fd = os.open(os.path.join(locks, f"{core}.lock"), os.O_CREAT | os.O_RDWR, 0o666)
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError:

@@ -1,0 +1,248 @@
+"""The slow drift: false-data injection that walks a chi-square-gated Kalman filter away, frame by frame.
+
+Mo and Sinopoli (2010): a filter that gates its innovations cannot tell a bias that grows slowly
+enough from the motion it models. The attacker knows the defense and its state
+(`pipeline.defense.fusion.Defense`: the motion filter of pipeline/defense/kalman.py, its noise
+model and gate) and simulates it step by step on a copy (`DriftPlanner`). Each frame it offsets the
+pose estimate by a bias b (metres) along a unit direction d, the line of sight ("los": the target
+looks farther away) or across it ("lateral": the camera x axis made orthogonal to the line of
+sight), both fixed in world axes when the drift starts, and takes the largest b (or, with
+`max_rate`, the b nearest the last one plus the rate) whose innovation stays under `gate_fraction`
+of the gate's NIS (`stealthy_bias`, from the filter's own predicted covariance).
+Every frame passes the gate, the filter updates on it, its predicted state (the trusted estimate
+that guidance flies on) moves with the bias, and the next frame's bias can grow again: the filter's
+drift-velocity state absorbs the ramp. `max_rate` (m/frame) caps the growth of b per frame.
+At `gate_fraction` <= the soft gate (MotionSettings.soft_gate, 0.5) no frame is even down-weighted.
+
+At the pixel level (`DriftAttacker`) each attacked frame is a targeted L-inf PGD toward the estimate
+the drift wants (the clean estimate + b d; attitude kept at the clean estimate's) with the
+detector's margin in the objective (its logit above the threshold's, through a softplus), stored
+as 8 bits (`pipeline.attacks.gradient.quantize`); the simulated defense then steps on what the
+chain reads from the stored image, so the plan follows what was actually delivered.
+"""
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from pipeline.attacks.adaptive import DifferentiableChain
+from pipeline.attacks.base import AttackRun
+from pipeline.attacks.gradient import LossFn, check_eps, pgd, quantize
+from pipeline.defense.fusion import Decision, Defense
+from pipeline.defense.kalman import MotionFilter
+from pipeline.geometry.rotations import sixd_to_matrix
+
+DIRECTIONS = ("los", "lateral")
+
+
+@dataclass(frozen=True)
+class DriftSettings:
+    """direction: "los" (along the line of sight, away from the chaser) or "lateral" (camera frame);
+    gate_fraction: every innovation's NIS stays under this fraction of the gate, in (0, 1];
+    max_rate: cap on the growth of the bias per frame (m/frame), None for none."""
+
+    direction: str = "los"
+    gate_fraction: float = 0.5
+    max_rate: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.direction not in DIRECTIONS:
+            raise ValueError(f"unknown drift direction {self.direction!r}; choose one of {', '.join(DIRECTIONS)}")
+        if not 0 < float(self.gate_fraction) <= 1:
+            raise ValueError(f"drift gate_fraction must be in (0, 1], got {self.gate_fraction}")
+        if self.max_rate is not None and not (math.isfinite(self.max_rate) and self.max_rate > 0):
+            raise ValueError(f"drift max_rate (m/frame) must be a finite number > 0 or None, got {self.max_rate}")
+
+
+def drift_direction(t: np.ndarray, direction: str) -> np.ndarray:
+    """Unit vector (3,) of the camera frame along which the drift pushes an estimate at `t` (camera
+    frame, m): the line of sight t / |t| ("los") or the camera x axis made orthogonal to it ("lateral")."""
+    los = np.asarray(t, np.float64) / np.linalg.norm(t)
+    if direction == "los":
+        return los
+    if direction == "lateral":
+        side = np.array([1.0, 0.0, 0.0]) - los[0] * los
+        return side / np.linalg.norm(side)
+    raise ValueError(f"unknown drift direction {direction!r}; choose one of {', '.join(DIRECTIONS)}")
+
+
+def stealthy_bias(motion: MotionFilter, t_clean: np.ndarray, R_cam: np.ndarray, u: np.ndarray | None,
+                  direction: np.ndarray, limit: float, wanted: float = math.inf) -> float:
+    """The bias b (m) nearest `wanted` among those whose estimate t_clean + b * direction (camera
+    frame, m) passes `motion`'s next check with a position NIS <= `limit` (the b of least NIS when
+    none does). `motion` is not changed.
+
+    The NIS is that of `MotionFilter.check` after predicting with `u` (world, m): innovation
+    y(b) = z(b) - prediction, S(b) = P + R(b) with z, R the filter's measurement and its covariance
+    (noise model, camera attitude R_cam camera -> world). z is linear in b up to the range-dependent
+    noise bias and covariance, so the quadratic y^T S^-1 y <= limit is solved for its interval of b at
+    the current b a few times, then checked exactly (bisection toward the least NIS if the
+    linearisation overshot).
+    """
+    f = copy.deepcopy(motion)
+    f.check(t_clean, R_cam, u)
+    p, P = f.position, f.pos.P[:3, :3]
+    t_clean, R_cam = np.asarray(t_clean, np.float64), np.asarray(R_cam, np.float64)
+
+    def nis(b: float) -> tuple[float, np.ndarray, np.ndarray]:
+        z, Rz = f.measurement(t_clean + b * direction, R_cam)
+        S_inv = np.linalg.inv(P + Rz)
+        return float((z - p) @ S_inv @ (z - p)), z - p, S_inv
+
+    b, best, g = 0.0, 0.0, R_cam @ direction
+    for _ in range(3):
+        _, y, S_inv = nis(b)
+        y0 = y - g * b
+        a, beta, gamma = g @ S_inv @ g, g @ S_inv @ y0, y0 @ S_inv @ y0
+        half = math.sqrt(max(beta * beta - a * (gamma - limit), 0.0)) / a
+        best = float(-beta / a)
+        b = float(min(max(wanted, best - half), best + half))
+    if nis(b)[0] <= limit or nis(best)[0] > limit:
+        return b if nis(b)[0] <= limit else best
+    lo, hi = best, b                      # lo inside, hi outside: bisect on the segment
+    for _ in range(30):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if nis(mid)[0] <= limit else (lo, mid)
+    return lo
+
+
+class DriftPlanner:
+    """The drift against a copy of `defense` (left as it was): `target` gives the estimate the drift
+    wants for a frame, `deliver` steps the copy on the estimate actually delivered. `bias` (m) is
+    the last planned bias; before the filter starts (no trusted estimate yet) it is 0. `direction`
+    (world axes) is fixed when the drift starts, from the filter's state (its line of sight moved
+    by the command), not from a noisy estimate, and kept: a bias that turned with the dragged state
+    would turn across it."""
+
+    def __init__(self, defense: Defense, settings: DriftSettings):
+        self.defense = copy.deepcopy(defense)
+        self.settings = settings
+        self.bias = 0.0
+        self.direction: np.ndarray | None = None
+
+    def target(self, t_clean: np.ndarray, R_cam: np.ndarray, u: np.ndarray | None) -> np.ndarray:
+        """The camera-frame estimate (m) the drift wants for a frame whose clean estimate is t_clean."""
+        motion, s = self.defense.filter, self.settings
+        if not motion.started:
+            return np.asarray(t_clean, np.float64)
+        R_cam = np.asarray(R_cam, np.float64)
+        if self.direction is None:        # world axes, from the state's line of sight when the drift starts
+            ahead = motion.position + (0.0 if u is None else np.asarray(u, np.float64))
+            self.direction = R_cam @ drift_direction(R_cam.T @ ahead, s.direction)
+        d = R_cam.T @ self.direction
+        wanted = math.inf if s.max_rate is None else self.bias + s.max_rate
+        self.bias = stealthy_bias(motion, t_clean, R_cam, u, d, s.gate_fraction * motion.gate, wanted)
+        return np.asarray(t_clean, np.float64) + self.bias * d
+
+    def deliver(self, t: np.ndarray, prob: float, R_cam: np.ndarray, u: np.ndarray | None,
+                R_pred: np.ndarray | None = None) -> Decision:
+        """Step the simulated defense on the delivered estimate (`Defense.step`'s arguments)."""
+        return self.defense.step(t, prob, R_cam, u, R_pred)
+
+
+@dataclass(frozen=True)
+class DriftTrace:
+    """A drift planned on estimates: delivered (N, 3) camera-frame estimates (m), bias (N,) the
+    planned bias (m; 0 on frames not attacked), flag (N,) and trusted (N, 3) (world, m) of the
+    simulated defense."""
+
+    delivered: np.ndarray
+    bias: np.ndarray
+    flag: np.ndarray
+    trusted: np.ndarray
+
+
+def drift_estimates(defense: Defense, settings: DriftSettings, t_clean: np.ndarray, prob: np.ndarray,
+                    R_cam: np.ndarray, u: np.ndarray | None = None, attacked: np.ndarray | None = None) -> DriftTrace:
+    """The drift fed directly as the measurement error (no network): each attacked frame's estimate
+    is its clean estimate t_clean (N, 3) (camera frame, m) + the planned bias; prob (N,) the
+    detector's probabilities, R_cam (N, 3, 3), u (N, 3) or None, attacked (N,) bool or None (all)."""
+    n = len(t_clean)
+    attacked = np.ones(n, bool) if attacked is None else np.asarray(attacked, bool)
+    planner = DriftPlanner(defense, settings)
+    delivered, bias, flag, trusted = np.zeros((n, 3)), np.zeros(n), np.zeros(n, bool), np.zeros((n, 3))
+    for k in range(n):
+        uk = None if u is None else u[k]
+        delivered[k] = planner.target(t_clean[k], R_cam[k], uk) if attacked[k] else t_clean[k]
+        bias[k] = planner.bias if attacked[k] else 0.0
+        decision = planner.deliver(delivered[k], float(prob[k]), R_cam[k], uk)
+        flag[k], trusted[k] = decision.flag, decision.trusted
+    return DriftTrace(delivered, bias, flag, trusted)
+
+
+def targeted_objective(target: Tensor, logit_threshold: float, margin_weight: float) -> LossFn:
+    """What the targeted PGD ascends: -(|t - t*|^2 (m^2) + |r6 - r6*|^2) - margin_weight *
+    softplus(logit - logit_threshold), with target (B, 9) = (t*, r6*) the wanted pose: the estimate
+    pulled to the target while the detector's logit is kept below its threshold's."""
+
+    def objective(out: tuple[Tensor, Tensor], _: Tensor) -> Tensor:
+        pose, logit = out
+        miss = ((pose[:, :3] - target[:, :3]) ** 2).sum(1) + ((pose[:, 3:] - target[:, 3:]) ** 2).sum(1)
+        return -(miss + margin_weight * F.softplus(logit - logit_threshold)).mean()
+
+    return objective
+
+
+def targeted_pgd(chain: DifferentiableChain, x: Tensor, target: Tensor, eps: float, logit_threshold: float, *,
+                 margin_weight: float = 1.0, steps: int = 20, step_size: float | None = None,
+                 generator: torch.Generator | None = None) -> Tensor:
+    """Frames x (B, 3, H, W) on the 8-bit grid pulled toward the pose `target` (B, 9) [m, 6-D] by
+    L-inf PGD on `targeted_objective` through `chain` (detector margin against `logit_threshold`,
+    the logit of its probability threshold), stored as 8 bits: uint8 (B, 3, H, W)."""
+    objective = targeted_objective(target, logit_threshold, margin_weight)
+    x_adv = pgd(chain, x, target, eps, objective, steps=steps, step_size=step_size, generator=generator)
+    return quantize(x_adv, x)
+
+
+class DriftAttacker:
+    """The drift at the pixel level (pipeline/attacks/base.py's interface): each attacked frame, in
+    time order, is a targeted PGD (`steps` steps of `step_size`, default 2.5 eps / steps, one
+    random start drawn from `seed`) toward the pose the `DriftPlanner` wants, with
+    `margin_weight` times the detector's margin in the objective."""
+
+    name = "drift"
+
+    def __init__(self, settings: DriftSettings = DriftSettings(), *, steps: int = 20, step_size: float | None = None,
+                 margin_weight: float = 1.0, seed: int = 0):
+        if int(steps) < 1:
+            raise ValueError(f"drift steps (PGD steps per frame) must be >= 1, got {steps}")
+        if not (math.isfinite(margin_weight) and margin_weight >= 0):
+            raise ValueError(f"drift margin_weight must be a finite number >= 0, got {margin_weight}")
+        self.settings, self.steps, self.step_size = settings, int(steps), step_size
+        self.margin_weight, self.seed = float(margin_weight), int(seed)
+
+    def attack(self, chain: DifferentiableChain, defense: Defense, run: AttackRun, eps: float) -> Tensor:
+        """The stored images (uint8 (N, 3, H, W)) the drift delivers for `run` at L-inf budget eps."""
+        eps = check_eps(eps)
+        planner = DriftPlanner(defense, self.settings)
+        threshold = defense.settings.threshold
+        logit_threshold = math.log(threshold / (1 - threshold))
+        generator = torch.Generator().manual_seed(self.seed)
+        stored, mask = run.stored().clone(), run.mask
+        clean_pose, clean_prob = _read(chain, run.images)
+        for k in range(len(run)):
+            uk = None if run.u is None else run.u[k]
+            pose, prob = clean_pose[k], clean_prob[k]
+            if mask[k]:
+                wanted = planner.target(pose[:3], run.R_cam[k], uk)
+                target = torch.as_tensor(np.concatenate([wanted, pose[3:]]), dtype=run.images.dtype)[None]
+                stored[k] = targeted_pgd(chain, run.images[k:k + 1], target, eps, logit_threshold,
+                                         margin_weight=self.margin_weight, steps=self.steps,
+                                         step_size=self.step_size, generator=generator)[0]
+                (pose,), (prob,) = _read(chain, stored[k:k + 1].float() / 255.0)
+            planner.deliver(pose[:3], float(prob), run.R_cam[k], uk, sixd_to_matrix(pose[3:]))
+        return stored
+
+
+def _read(chain: DifferentiableChain, images: Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """What the chain reads from `images`: pose (B, 9) [m, 6-D] and the detector's probability (B,),
+    as float64 arrays."""
+    with torch.no_grad():
+        pose, logit = chain(images)
+    return pose.double().numpy(), torch.sigmoid(logit.double()).numpy()
