@@ -50,12 +50,13 @@ def copy_repo(src: Path, dst: Path) -> dict[str, str]:
 
 def smoke(dst: Path, stages: list[str], dry: bool) -> None:
     """Copy the checkout into the empty folder `dst`, switch the copy to the smoke profile and run
-    `dvc repro` there (only `stages` and what they need, when given), streaming its output."""
+    `dvc repro` there (only `stages` and what they need, when given), streaming the output; a command
+    that fails ends the script with one line (its own message is above it)."""
     env = copy_repo(ROOT, dst)
-    run(["rpod", "params", "smoke"], dst, env)
-    done = subprocess.run(["dvc", "repro", *(["--dry"] if dry else []), *stages], cwd=dst, env=env)
-    if done.returncode != 0:
-        sys.exit(f"smoke: dvc repro failed in {dst} (exit {done.returncode})")
+    for args in (["rpod", "params", "smoke"], ["dvc", "repro", *(["--dry"] if dry else []), *stages]):
+        done = subprocess.run(args, cwd=dst, env=env)
+        if done.returncode != 0:
+            sys.exit(f"smoke: `{' '.join(args)}` failed in {dst} (exit {done.returncode})")
 
 
 def main(argv: list[str] | None = None) -> None:

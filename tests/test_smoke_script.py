@@ -3,6 +3,7 @@ copy switches to the smoke profile and runs `dvc repro --dry` (nothing executes)
 runs the whole smoke pipeline in a copy made by the same `copy_repo`."""
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 import sys
@@ -44,3 +45,12 @@ def test_a_folder_that_is_not_empty_is_refused(tmp_path):
                          text=True, timeout=60)
     assert out.returncode != 0 and out.stderr.strip().splitlines() == [f"smoke: --dir {tmp_path} is not empty"]
     assert (tmp_path / "keep.txt").read_text() == "mine"
+
+
+def test_an_unknown_stage_stops_with_one_line(tmp_path):
+    out = subprocess.run([sys.executable, str(SCRIPT), "--dir", str(tmp_path / "c"), "--dry", "--stages", "nosuch"],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode != 0
+    last = out.stderr.strip().splitlines()[-1]
+    assert re.fullmatch(rf"smoke: `dvc repro --dry nosuch` failed in {re.escape(str(tmp_path.resolve()))}/c \(exit \d+\)",
+                        last), last

@@ -112,6 +112,7 @@ def test_a_distorted_camera_round_trips_through_undistortion(project, ext, size)
     found = np.array([centroid(np.asarray(stored[i])) for i in range(len(points))])
     assert np.abs(found - pinhole).max() < 0.3, found - pinhole
     assert np.abs(raw - (K_BIG.K @ (points / points[:, 2:]).T).T[:, :2]).max() > 4   # no undistortion is caught
+    assert json.loads((root / "store/meta.json").read_text())["camera"]["dist_coeffs_removed"] == DIST.tolist()
     poses = pd.read_parquet(root / "store/poses.parquet")
     assert np.allclose(poses[["tx", "ty", "tz"]].to_numpy(), points) and list(poses.split) == ["train"] * 3 + ["test"]
 

@@ -109,7 +109,7 @@ def import_source(p: Params, out: Path) -> None:
             "height": H, "K": K.K, "render": dataclasses.asdict(r), "seed": p.seed, "seconds": seconds,
             "seconds_per_image": seconds / n, "chunk": chunk,
             "camera": {"ref_width": cam.width, "ref_height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
-                       "cy": cam.cy},
+                       "cy": cam.cy, "dist_coeffs_removed": dist.tolist()},
             "source": {"folder": str(folder), "train": str(train.relative_to(folder)),
                        "test": str(test.relative_to(folder)), "train_images": len(parts[0][2]),
                        "test_images": len(parts[1][2])}})
