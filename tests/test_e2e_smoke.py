@@ -1,34 +1,31 @@
 """End to end: `dvc repro` of the whole stage graph on the smoke profile, in a temporary copy of the repo,
 then `dvc repro --force` in the same copy: the Markdown reports must come out byte for byte the same.
 
-The copy holds the tracked and untracked-but-not-ignored files (what a clean clone plus local edits
-has), so the test sees exactly the working tree. About a minute on 2 cores.
+The copy (scripts/smoke.py's `copy_repo`, which `make smoke` uses too) holds the tracked and
+untracked-but-not-ignored files (what a clean clone plus local edits has), so the test sees exactly the
+working tree. About a minute on 2 cores.
 """
 from __future__ import annotations
 
+import importlib.util
 import json
-import os
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
 
 REPO = Path(__file__).resolve().parent.parent
-BIN = Path(sys.executable).parent
+spec = importlib.util.spec_from_file_location("smoke_script", REPO / "scripts" / "smoke.py")
+smoke_script = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(smoke_script)
+_run = smoke_script.run
 REPORTS = ["dataset", "pose", "attack", "guidance", "detector", "integrated", "robustness", "lab", "benchmarks",
            "README"]
 METRICS = ["train", "attack", "guidance", "detect", "evaluate", "robustness", "lab"]
 FIGURES = ["fgsm_example", "guidance_trajectories", "guidance_defended", "timeline", "robustness", "pose_errors",
            "error_vs_eps", "shap_heatmaps", "roc"]
-
-
-def _run(args: list[str], cwd: Path, env: dict[str, str], timeout: float = 900) -> str:
-    out = subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
-    assert out.returncode == 0, f"{' '.join(args)} failed ({out.returncode}):\n{out.stdout[-3000:]}\n{out.stderr[-3000:]}"
-    return out.stdout
 
 
 def tables(md: str) -> list[tuple[str, list[str], list[str]]]:
@@ -56,25 +53,10 @@ def rows_under(md: str, heading_start: str, first_header: str) -> list[str]:
 
 
 def copy_repo(dst: Path) -> dict[str, str]:
-    """Copy the working tree's files (tracked and untracked-not-ignored) into `dst` as a one-commit git
-    repository; returns the environment to run `rpod` and `dvc` there."""
+    """Copy the working tree into `dst` (scripts/smoke.py's `copy_repo`); the environment to run there."""
     if shutil.which("git") is None:
         pytest.skip("git is needed to list the repository's files")
-    files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=REPO, check=True,
-                           capture_output=True).stdout.decode().split("\0")
-    for name in filter(None, files):
-        src = REPO / name
-        if src.is_file():
-            (dst / name).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(src, dst / name)
-    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", "PYTHONPATH": str(dst),
-           "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@example.org", "GIT_COMMITTER_NAME": "t",
-           "GIT_COMMITTER_EMAIL": "t@example.org"}
-    env.pop("RPOD_DEBUG", None)
-    _run(["git", "init", "-q"], dst, env)
-    _run(["git", "add", "-A"], dst, env)
-    _run(["git", "commit", "-qm", "copy"], dst, env)
-    return env
+    return smoke_script.copy_repo(REPO, dst)
 
 
 @pytest.fixture(scope="module")

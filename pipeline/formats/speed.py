@@ -14,6 +14,8 @@ camera.json (SPEED+, and what `rpod export speed` writes): `cameraMatrix` = 3x3 
 image width and height in pixels, `distCoeffs` = OpenCV (k1, k2, p1, p2, k3), and physical `fx`, `fy`
 (focal length, m), `ppx`, `ppy` (pixel pitch, m), `ccx`, `ccy` (principal point, px). SPEED ships no
 camera.json; its camera is `SPEED_CAMERA` (1920 x 1200 px, f = 17.6 mm, 5.86 um pixels, centred).
+Our renders have no physical sensor: the export gives them SPEED+'s 5.86 um pixel pitch (`PIXEL_PITCH`)
+and fx = K's focal length in pixels times it, so fx / ppx and the field of view are exact.
 Nothing here reads files: records and camera dicts come parsed from JSON, errors are ValueErrors that
 name the field (the caller adds the file).
 """
@@ -29,6 +31,8 @@ from pipeline.geometry.rotations import UNIT_TOLERANCE, normalize_quat
 
 POSITION_KEY = "r_Vo2To_vbs_true"
 QUAT_KEYS = ("q_vbs2tango_true", "q_vbs2tango")   # SPEED+, SPEED
+PIXEL_PITCH = 5.86e-6                             # m per pixel: SPEED+'s sensor, given to exported cameras
+DIST_LENGTHS = (4, 5, 8, 12, 14)                  # the distCoeffs lengths OpenCV accepts
 SPEED_CAMERA = {"Nu": 1920, "Nv": 1200, "fx": 0.0176, "fy": 0.0176, "ppx": 5.86e-6, "ppy": 5.86e-6}
 
 
@@ -139,7 +143,23 @@ def camera_from_json(cam: Any, size: tuple[int, int] | None = None) -> Intrinsic
     return _checked(Intrinsics(w, h, fx, fy, cx, _number(cam, "ccy") if "ccy" in cam else h / 2))
 
 
+def dist_from_json(cam: dict[str, Any]) -> np.ndarray:
+    """OpenCV distortion coefficients (k1, k2, p1, p2[, k3, ...]) of a camera.json dict; zeros when it has
+    no `distCoeffs` (a pinhole camera). ValueError when they are not 4, 5, 8, 12 or 14 finite numbers."""
+    raw = cam.get("distCoeffs", [0.0] * 5)
+    try:
+        dist = np.asarray(raw, dtype=np.float64).ravel()
+    except (TypeError, ValueError):
+        dist = np.zeros(0)
+    if len(dist) not in DIST_LENGTHS or not np.isfinite(dist).all():
+        raise ValueError(f"distCoeffs must be {', '.join(map(str, DIST_LENGTHS))} finite numbers (OpenCV's "
+                         f"k1, k2, p1, p2[, k3, ...]), got {raw!r}")
+    return dist
+
+
 def camera_to_json(K: Intrinsics) -> dict[str, Any]:
-    """A SPEED+-style camera.json dict of a pinhole camera (no lens distortion; no physical sizes: unknown)."""
-    return {"Nu": int(K.width), "Nv": int(K.height), "cameraMatrix": K.K.tolist(), "distCoeffs": [0.0] * 5,
-            "ccx": float(K.cx), "ccy": float(K.cy)}
+    """A SPEED+ camera.json dict of a pinhole camera (no lens distortion): K in pixels, and the physical
+    fx, fy (m) and ppx, ppy (m per pixel) at the nominal `PIXEL_PITCH`."""
+    return {"Nu": int(K.width), "Nv": int(K.height), "ppx": PIXEL_PITCH, "ppy": PIXEL_PITCH,
+            "fx": float(K.fx) * PIXEL_PITCH, "fy": float(K.fy) * PIXEL_PITCH, "ccx": float(K.cx),
+            "ccy": float(K.cy), "cameraMatrix": K.K.tolist(), "distCoeffs": [0.0] * 5}

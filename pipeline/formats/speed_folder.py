@@ -2,8 +2,8 @@
 pipeline/formats/speed.py's): label files, camera.json and images read, and a labelled image set
 written as a SPEED+ folder (`write_speed`). Every problem is a DataError naming the file.
 
-Layouts: SPEED+: FOLDER/camera.json, FOLDER/synthetic/{train,test,validation}.json, images
-<folder of the JSON>/images/<filename>. SPEED: FOLDER/train.json and FOLDER/test.json, images
+Layouts: SPEED+: FOLDER/camera.json, FOLDER/synthetic/{train,validation}.json (test.json: our older
+exports), images <folder of the JSON>/images/<filename>. SPEED: FOLDER/train.json and FOLDER/test.json, images
 FOLDER/images/<train|test>/<filename>; FOLDER/camera.json if present, else SPEED's published camera.
 """
 from __future__ import annotations
@@ -19,7 +19,7 @@ from pipeline.io.errors import DataError
 from pipeline.pose.labels import POSITION, QUAT
 
 TRAIN = ("synthetic/train.json", "train.json")   # training label files, the first found is read
-TEST = ("synthetic/test.json", "synthetic/validation.json", "test.json")
+TEST = ("synthetic/validation.json", "synthetic/test.json", "test.json")   # SPEED+'s, older exports', SPEED's
 EXPORT_DIR = "synthetic"                 # SPEED+'s domain folder of synthetic images
 
 
@@ -33,16 +33,18 @@ def read_labels(path: Path) -> tuple[list[str], np.ndarray, np.ndarray]:
         raise DataError(f"{path}: {e}") from None
 
 
-def read_camera(folder: Path, speed_layout: bool) -> Any:
-    """pipeline.geometry.camera.Intrinsics of FOLDER/camera.json (SPEED's published camera when a SPEED folder has none)."""
-    from pipeline.formats.speed import SPEED_CAMERA, camera_from_json
+def read_camera(folder: Path, speed_layout: bool) -> tuple[Any, np.ndarray]:
+    """(pipeline.geometry.camera.Intrinsics, OpenCV distCoeffs) of FOLDER/camera.json (SPEED's published
+    camera, no distortion, when a SPEED folder has none)."""
+    from pipeline.formats.speed import SPEED_CAMERA, camera_from_json, dist_from_json
 
     path = folder / "camera.json"
     if not path.is_file() and speed_layout:
         print(f"{path} not found: using SPEED's published camera {SPEED_CAMERA}")
-        return camera_from_json(SPEED_CAMERA)
+        return camera_from_json(SPEED_CAMERA), dist_from_json(SPEED_CAMERA)
     try:
-        return camera_from_json(read_json(path))
+        cam = read_json(path)
+        return camera_from_json(cam), dist_from_json(cam)
     except ValueError as e:
         raise DataError(f"{path}: {e}") from None
 
@@ -53,12 +55,16 @@ def image_path(label_file: Path, name: str) -> Path:
     return plus if plus.is_file() else label_file.parent / "images" / label_file.stem / name
 
 
-def read_image(path: Path, size: tuple[int, int], source_size: tuple[int, int]) -> np.ndarray:
-    """uint8 RGB (H, W, 3) at `size` (W, H) of an image file that must be `source_size` (Nu, Nv) pixels;
-    JPEGs are decoded at 1/2, 1/4 or 1/8 size when that still exceeds `size` (faster, same pixels)."""
+def read_image(path: Path, size: tuple[int, int], cam: Any, dist: np.ndarray) -> tuple[np.ndarray, bool]:
+    """(uint8 RGB (H, W, 3) at `size` (W, H), whether the file is grayscale) of an image file taken by the
+    camera `cam` (Intrinsics at Nu x Nv pixels, which the file must have) with OpenCV distortion `dist`:
+    undistorted to the pinhole camera `cam` (cv2.undistort) before resizing, so its K is cam.scaled(W, H);
+    a grayscale file is copied into the three channels. JPEGs are decoded at 1/2, 1/4 or 1/8 size when that
+    still exceeds `size` (faster, same pixels; K scaled to match)."""
     import cv2
 
-    header = image_size(path)
+    source_size = (cam.width, cam.height)
+    header, mode = image_header(path)
     if header != tuple(source_size):
         raise DataError(f"{path}: image is {header[0]}x{header[1]} pixels but camera.json gives Nu x Nv = "
                          f"{source_size[0]}x{source_size[1]}")
@@ -73,18 +79,26 @@ def read_image(path: Path, size: tuple[int, int], source_size: tuple[int, int]) 
     if img.shape[:2] != expect:
         raise DataError(f"{path}: image is {img.shape[1] * reduce}x{img.shape[0] * reduce} pixels but camera.json "
                          f"gives Nu x Nv = {source_size[0]}x{source_size[1]}")
-    return cv2.resize(img, size, interpolation=cv2.INTER_AREA)[..., ::-1]
+    if np.any(dist):
+        s = 1 / reduce                    # pixel centres: u_reduced = (u + 0.5) * s - 0.5
+        K = np.array([[cam.fx * s, 0, (cam.cx + 0.5) * s - 0.5], [0, cam.fy * s, (cam.cy + 0.5) * s - 0.5], [0, 0, 1]])
+        img = cv2.undistort(img, K, dist)
+    return cv2.resize(img, size, interpolation=cv2.INTER_AREA)[..., ::-1], mode in GRAY_MODES
 
 
-def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) in pixels from the image file's header (nothing decoded); a DataError naming the file."""
+GRAY_MODES = ("1", "L", "LA", "I", "I;16", "F")   # Pillow modes of single-channel images
+
+
+def image_header(path: Path) -> tuple[tuple[int, int], str]:
+    """((width, height) in pixels, Pillow mode) from the image file's header (nothing decoded); a DataError
+    naming the file."""
     from PIL import Image, UnidentifiedImageError
 
     if not path.is_file():
         raise DataError(f"{path}: not found (named by its label file)")
     try:
         with Image.open(path) as im:
-            return im.size
+            return im.size, im.mode
     except (UnidentifiedImageError, Image.DecompressionBombError, OSError) as e:
         raise DataError(f"{path}: not a readable image (named by its label file): {e}") from None
 
@@ -92,20 +106,29 @@ def image_size(path: Path) -> tuple[int, int]:
 MARKER = ".rpodguard-export.json"        # written inside every export: the files it wrote (so a rerun may replace them)
 
 
-def write_speed(out: Path, images: Any, labels: Any, K: Any) -> None:
-    """Write the labelled images as a SPEED+ folder `out` (camera.json, synthetic/{train,test}.json,
-    synthetic/images/imgNNNNNN.png, NNNNNN = label index + 1, and MARKER), atomically; PNG keeps every pixel.
-    An existing `out` is replaced only when it is empty or holds nothing but an earlier export's files
-    (its MARKER lists them); files are world-readable (0644), folders 0755."""
+SPLIT_FILES = {"train": "train.json", "test": "validation.json"}   # our split -> SPEED+'s label file
+IMAGE_FORMATS = {"png": "png", "jpeg-gray": "jpg"}   # format -> file extension: lossless RGB; grayscale JPEG as SPEED+
+JPEG_QUALITY = 95
+
+
+def write_speed(out: Path, images: Any, labels: Any, K: Any, image_format: str = "png") -> None:
+    """Write the labelled images as a SPEED+ folder `out` (camera.json, synthetic/train.json, the test split
+    as synthetic/validation.json, synthetic/images/imgNNNNNN.png or .jpg, NNNNNN = label index + 1, and
+    MARKER), atomically. `image_format`: "png" keeps every pixel; "jpeg-gray" writes grayscale JPEGs
+    (quality JPEG_QUALITY) as SPEED+ does. An existing `out` is replaced only when it is empty or holds
+    nothing but an earlier export's files (its MARKER lists them); files 0644, folders 0755."""
     import cv2
 
     from pipeline.formats.speed import camera_to_json, to_speed
     from pipeline.io.atomic import remove_stale_temps
 
+    if image_format not in IMAGE_FORMATS:
+        raise DataError(f"image format {image_format!r} is not one of {', '.join(IMAGE_FORMATS)}")
+    gray = image_format == "jpeg-gray"
     check_replaceable(out)
     remove_stale_temps(out)               # temporary folders of killed exports
     labels = labels.sort_values("index").reset_index(drop=True)
-    names = [f"img{int(i) + 1:06d}.png" for i in labels["index"]]
+    names = [f"img{int(i) + 1:06d}.{IMAGE_FORMATS[image_format]}" for i in labels["index"]]
     index, step = labels["index"].to_numpy(), int(images.chunks[0])
     if index.min() < 0 or index.max() >= images.shape[0]:
         raise DataError(f"the labels name image {int(index.max())} but the render store holds {images.shape[0]}; "
@@ -116,12 +139,14 @@ def write_speed(out: Path, images: Any, labels: Any, K: Any) -> None:
             rows = np.flatnonzero((index >= lo) & (index < lo + step))
             block = np.asarray(images[lo:lo + step]) if len(rows) else None
             for k in rows:
-                path = tmp / EXPORT_DIR / "images" / names[k]
-                if not cv2.imwrite(str(path), block[index[k] - lo][..., ::-1]):
+                rgb = block[index[k] - lo]
+                pixels = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if gray else rgb[..., ::-1]
+                flags = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if gray else []
+                if not cv2.imwrite(str(tmp / EXPORT_DIR / "images" / names[k]), pixels, flags):
                     raise DataError(f"could not write {out / EXPORT_DIR / 'images' / names[k]}")
-        for split in ("train", "test"):
+        for split, file in SPLIT_FILES.items():
             rows = (labels["split"] == split).to_numpy()
-            write_json(tmp / EXPORT_DIR / f"{split}.json",
+            write_json(tmp / EXPORT_DIR / file,
                        to_speed([n for n, keep in zip(names, rows) if keep], labels.loc[rows, POSITION],
                                 labels.loc[rows, QUAT]))
         write_json(tmp / "camera.json", camera_to_json(K))

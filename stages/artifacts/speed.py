@@ -3,13 +3,15 @@ into the render store (what `rpod render` does then); the files are read by pipe
 (which also writes them: `rpod export speed`), the fields and frame conventions are pipeline/formats/speed.py's.
 
 Layouts read:
-- SPEED+: FOLDER/camera.json, FOLDER/synthetic/train.json; test labels FOLDER/synthetic/test.json (what
-  `rpod export speed` writes), else FOLDER/synthetic/validation.json; `render.source_test` names another
-  (e.g. lightbox/test.json). Images: <folder of the JSON>/images/<filename>.
+- SPEED+: FOLDER/camera.json, FOLDER/synthetic/train.json; test labels FOLDER/synthetic/validation.json
+  (SPEED+'s and `rpod export speed`'s), else FOLDER/synthetic/test.json (older exports);
+  `render.source_test` names another (e.g. lightbox/test.json). Images: <folder of the JSON>/images/<filename>.
 - SPEED: FOLDER/train.json and FOLDER/test.json, images FOLDER/images/<train|test>/<filename>;
   FOLDER/camera.json if present, else SPEED's published camera.
 Every image is resized (area filter) to render.width x render.height, the pose model's input size, and K
-is scaled with it; each image is one sequence, so the grouped splits downstream stay valid.
+is scaled with it; images are first undistorted with camera.json's distCoeffs (cv2.undistort), so K is a
+pinhole camera's; grayscale images are copied into the model's 3 channels (one warning per import). Each
+image is one sequence, so the grouped splits downstream stay valid.
 """
 from __future__ import annotations
 
@@ -71,7 +73,7 @@ def import_source(p: Params, out: Path) -> None:
         raise StageError(f"params.yaml render.source: {folder} is not a folder")
     train = labels_file(folder, TRAIN, None, "training")
     test = labels_file(folder, TEST, r.source_test, "test")
-    cam = read_camera(folder, speed_layout=train.parent == folder)
+    cam, dist = read_camera(folder, speed_layout=train.parent == folder)
     W, H = r.width, r.height
     K = cam.scaled(W, H)
     if abs(W / H - cam.width / cam.height) > 0.01 * W / H:
@@ -89,9 +91,14 @@ def import_source(p: Params, out: Path) -> None:
     with atomic_dir(out) as tmp:
         images = create_array(zarr.open_group(str(tmp / "images.zarr"), mode="w"), "images", shape=(n, H, W, 3),
                               chunks=(chunk, H, W, 3), dtype="uint8")
+        gray = 0
         for lo in tqdm(range(0, n, chunk), desc="import", unit="chunk"):
-            images[lo:lo + chunk] = np.stack([read_image(f, (W, H), (cam.width, cam.height))
-                                              for f in names[lo:lo + chunk]])
+            read = [read_image(f, (W, H), cam, dist) for f in names[lo:lo + chunk]]
+            images[lo:lo + chunk] = np.stack([img for img, _ in read])
+            gray += sum(g for _, g in read)
+        if gray:
+            print(f"warning: render.source: {gray} of {n} images are grayscale; each is copied into the pose "
+                  f"model's 3 channels (R = G = B)")
         write_parquet(pd.DataFrame({
             "index": np.arange(n), "sequence": np.arange(n), "frame": 0, **pose_columns(t, q),
             "range": np.linalg.norm(t, axis=1), "split": [s for s, _, ns, _, _ in parts for _ in ns],
@@ -102,7 +109,7 @@ def import_source(p: Params, out: Path) -> None:
             "height": H, "K": K.K, "render": dataclasses.asdict(r), "seed": p.seed, "seconds": seconds,
             "seconds_per_image": seconds / n, "chunk": chunk,
             "camera": {"ref_width": cam.width, "ref_height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
-                       "cy": cam.cy},
+                       "cy": cam.cy, "dist_coeffs_removed": dist.tolist()},
             "source": {"folder": str(folder), "train": str(train.relative_to(folder)),
                        "test": str(test.relative_to(folder)), "train_images": len(parts[0][2]),
                        "test_images": len(parts[1][2])}})
