@@ -141,7 +141,10 @@ def _run_on_ray(worker_cls: Callable[[Any], Worker], setup: Any, jobs: list[Any]
     workers = es.workers or max(1, int(ray.cluster_resources().get("CPU", 1) // num_cpus))
     cores = int(num_cpus) if float(num_cpus).is_integer() else 0
     scope = os.path.abspath(os.getcwd())   # the pipeline: its workers share one set of core locks
-    actors = [actor.remote(worker_cls, setup, cores, scope) for _ in range(min(workers, len(jobs)))]
+    # The constructor state by reference, held here until the actors are gone: Ray frees an argument it
+    # stored itself once the first constructor ran, so a restarted actor could not be rebuilt (ray#53727).
+    state = ray.put((worker_cls, setup))
+    actors = [actor.remote(state, cores, scope) for _ in range(min(workers, len(jobs)))]
     todo, pending, out = list(range(len(jobs)))[::-1], {}, [None] * len(jobs)
     for a in actors:
         if todo:
@@ -169,10 +172,11 @@ def _run_on_ray(worker_cls: Callable[[Any], Worker], setup: Any, jobs: list[Any]
 
 class Pinned:
     """A Ray actor: binds its process to `cores` cores no other worker of its pipeline (`scope`) holds
-    (`pin_cores`), then holds `worker_cls(setup)`."""
+    (`pin_cores`), then holds `worker_cls(setup)` (state = (worker_cls, setup))."""
 
-    def __init__(self, worker_cls: Callable[[Any], Worker], setup: Any, cores: int, scope: str) -> None:
+    def __init__(self, state: tuple[Callable[[Any], Worker], Any], cores: int, scope: str) -> None:
         pin_cores(cores, scope)
+        worker_cls, setup = state
         self.worker = worker_cls(setup)
 
     def run(self, job: Any) -> Any:
