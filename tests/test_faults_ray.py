@@ -41,28 +41,26 @@ class TableWorker:
 
 @pytest.fixture
 def not_ray():
-    """A plain TCP server on 127.0.0.1 that answers every connection with an HTTP line (not Ray); it stops
-    when the test ends (and serves at most 64 connections)."""
-    srv = socket.create_server(("127.0.0.1", 0))
-    srv.settimeout(0.5)
-    stop = threading.Event()
+    """A plain TCP server on 127.0.0.2 (loopback, which Ray does not rewrite to this machine's address as it
+    does 127.0.0.1) that answers every connection with an HTTP line, not Ray -> (address, connections
+    served); it stops when the test ends and serves at most 64 connections."""
+    srv = socket.create_server(("127.0.0.2", 0))
+    srv.settimeout(0.2)
+    stop, served = threading.Event(), []
 
     def serve() -> None:
-        for _ in range(64):
-            while not stop.is_set():
-                try:
-                    conn, _ = srv.accept()
-                    break
-                except TimeoutError:
-                    continue
-            else:
-                return
+        while not stop.is_set() and len(served) < 64:
+            try:
+                conn, _ = srv.accept()
+            except TimeoutError:
+                continue
             with conn:
                 conn.sendall(b"HTTP/1.0 200 OK\r\n\r\nnot ray\n")
+            served.append(1)
 
     thread = threading.Thread(target=serve, daemon=True)
     thread.start()
-    yield f"127.0.0.1:{srv.getsockname()[1]}"
+    yield f"127.0.0.2:{srv.getsockname()[1]}", served
     stop.set()
     thread.join(5)
     srv.close()
@@ -70,13 +68,15 @@ def not_ray():
 
 def test_an_address_that_is_not_ray_stops_within_timeout(not_ray, monkeypatch):
     pytest.importorskip("ray")
+    address, served = not_ray
     monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
-    es = engine.EngineSettings(workers=2, address=not_ray, timeout_s=3.0, retries=0)
+    es = engine.EngineSettings(workers=2, address=address, timeout_s=3.0, retries=0)
     t0 = time.perf_counter()
-    with pytest.raises(StageError, match="engine.timeout_s") as err:
+    with pytest.raises(StageError, match="is not a Ray head.*engine.timeout_s = 3 s") as err:
         engine.run(TableWorker, Setup(np.zeros(4)), [Job(0)], es)
     assert time.perf_counter() - t0 < es.timeout_s + 5
-    assert not_ray in str(err.value) and "\n" not in str(err.value)
+    assert address in str(err.value) and "\n" not in str(err.value)
+    assert len(served) >= 2                          # the TCP check and the Ray client both reached it
 
 
 def test_a_worker_killed_mid_run_is_restarted_and_its_job_retried(tmp_path, monkeypatch):
