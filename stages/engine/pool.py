@@ -5,11 +5,11 @@
 fields, e.g. `chunks.RenderSetup` and `chunks.FrameRange`), and the caller picks the worker class. With
 one worker and no cluster address it runs in this process without starting Ray; otherwise on a local Ray
 started for the call (`engine.workers` actors) or on the cluster at `engine.address` / $RAY_ADDRESS. A
-worker that dies is restarted and its chunk retried (`engine.retries`); a cluster whose Ray
-head does not answer, or no progress, for `engine.timeout_s` seconds stops the stage with one line. Each Ray worker binds itself to as many cores
-of its machine as the CPUs it asked for (`pin_cores`), among the cores the workers of the same pipeline
-(the driver's working folder: the repository `dvc repro` runs in) hold, so another pipeline on the machine
-pins its own workers too.
+worker that dies is restarted and its chunk retried (`engine.retries`); a cluster whose Ray head does not
+answer, or no progress, for `engine.timeout_s` seconds stops the stage with one line. Each Ray worker binds
+itself to as many cores of its machine as the CPUs it asked for (`pin_cores`), among the cores the workers
+of the same pipeline (the driver's working folder: the repository `dvc repro` runs in) hold, so another
+pipeline on the machine pins its own workers too.
 """
 from __future__ import annotations
 
