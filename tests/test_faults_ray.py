@@ -11,6 +11,9 @@ import numpy as np
 import pytest
 
 from faults import exits_once
+from stages.config import params as params_mod
+from stages.config.build import engine_settings
+from stages.config.schema import build
 from stages.engine import pool as engine
 from stages.errors import StageError
 
@@ -66,11 +69,13 @@ def not_ray():
     srv.close()
 
 
-def test_an_address_that_is_not_ray_stops_within_timeout(not_ray, monkeypatch):
+def test_a_ray_address_that_is_not_ray_stops_within_timeout(not_ray, monkeypatch):
     pytest.importorskip("ray")
     address, served = not_ray
     monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
-    es = engine.EngineSettings(workers=2, address=address, timeout_s=3.0, retries=0)
+    monkeypatch.setenv("RAY_ADDRESS", address)
+    es = engine_settings(build(params_mod.compose("smoke", ["engine.workers=2", "engine.timeout_s=3"])))
+    assert es.address == address
     t0 = time.perf_counter()
     with pytest.raises(StageError, match="is not a Ray head.*engine.timeout_s = 3 s") as err:
         engine.run(TableWorker, Setup(np.zeros(4)), [Job(0)], es)
