@@ -61,7 +61,7 @@ def test_two_node_cluster_matches_one_process_and_retries_a_killed_worker(workdi
 
     cluster, marker = two_nodes
     one = _render(workdir, ["engine.workers=1"])
-    monkeypatch.setattr(chunks, "RenderWorker", exits_once(RenderWorker, marker))   # a worker dies on a chunk once
+    monkeypatch.setattr(chunks, "RenderWorker", exits_once(RenderWorker, marker, nth=2))   # dies on its 2nd chunk, once
     two = _render(workdir, ["engine.workers=2", f"engine.address={cluster.address}"])
     assert marker.exists()                           # one worker died mid-chunk: its chunk was retried
     assert two.shape == one.shape == (26, 18, 32, 3) and one.max() > 0

@@ -5,11 +5,11 @@
 fields, e.g. `chunks.RenderSetup` and `chunks.FrameRange`), and the caller picks the worker class. With
 one worker and no cluster address it runs in this process without starting Ray; otherwise on a local Ray
 started for the call (`engine.workers` actors) or on the cluster at `engine.address` / $RAY_ADDRESS. A
-worker that dies is restarted and its chunk retried (`engine.retries`); no progress for
-`engine.timeout_s` seconds stops the stage with one line. Each Ray worker binds itself to as many cores
-of its machine as the CPUs it asked for (`pin_cores`), among the cores the workers of the same pipeline
-(the driver's working folder: the repository `dvc repro` runs in) hold, so another pipeline on the machine
-pins its own workers too.
+worker that dies is restarted and its chunk retried (`engine.retries`); a cluster whose Ray head does not
+answer, or no progress, for `engine.timeout_s` seconds stops the stage with one line. Each Ray worker binds
+itself to as many cores of its machine as the CPUs it asked for (`pin_cores`), among the cores the workers
+of the same pipeline (the driver's working folder: the repository `dvc repro` runs in) hold, so another
+pipeline on the machine pins its own workers too.
 """
 from __future__ import annotations
 
@@ -105,7 +105,7 @@ def session(es: EngineSettings) -> Iterator[None]:
         yield
         return
     if es.address:
-        _check_reachable(es.address)
+        _check_reachable(es.address, es.timeout_s)
     try:
         ray.init(address=es.address or "local", num_cpus=None if es.address else es.workers,
                  include_dashboard=False, logging_level=logging.WARNING, log_to_driver=True)
@@ -119,17 +119,46 @@ def session(es: EngineSettings) -> Iterator[None]:
         ray.shutdown()
 
 
-def _check_reachable(address: str) -> None:
-    """Refuse a host:port (or ray://host:port) address whose head does not accept a TCP connection."""
+def _check_reachable(address: str, timeout_s: float) -> None:
+    """Refuse a host:port (or ray://host:port) address whose head does not accept a TCP connection, or (host:port)
+    whose Ray head does not answer within timeout_s seconds (ray.init would wait for ever on a port that is not Ray)."""
     if address in ("auto", "local"):
         return
     host, _, port = address.split("://")[-1].rpartition(":")
     try:
-        socket.create_connection((host, int(port)), timeout=CONNECT_TIMEOUT_S).close()
+        socket.create_connection((host, int(port)), timeout=min(CONNECT_TIMEOUT_S, timeout_s)).close()
     except (OSError, ValueError) as e:
         raise StageError(f"Ray cluster address {address!r} (engine.address or $RAY_ADDRESS) is unreachable "
                          f"({type(e).__name__}: {e}); start its head with `ray start --head`, or unset it "
                          f"to run on this machine") from None
+    if "://" not in address:   # a Ray Client address (ray://) bounds its own connection attempts
+        _check_ray_head(address, timeout_s)
+
+
+def _check_ray_head(address: str, timeout_s: float) -> None:
+    """Refuse a host:port that does not answer as a Ray head (its GCS) within timeout_s seconds: the client
+    ray.init uses retries for ever, so it runs on a thread that is left behind when it does not answer."""
+    import threading
+
+    from ray._private.services import canonicalize_bootstrap_address
+    from ray._raylet import GcsClient
+
+    failed: list[BaseException] = []
+    answered = threading.Event()
+
+    def probe() -> None:
+        try:
+            GcsClient(address=canonicalize_bootstrap_address(address))
+        except Exception as e:  # noqa: BLE001  (any failure to connect is reported in the driver)
+            failed.append(e)
+        answered.set()
+
+    threading.Thread(target=probe, name="rpod-ray-probe", daemon=True).start()
+    if not answered.wait(timeout_s) or failed:
+        why = f"{type(failed[0]).__name__}: {(str(failed[0]).splitlines() or [''])[0]}" if failed else "no answer"
+        raise StageError(f"Ray cluster address {address!r} (engine.address or $RAY_ADDRESS) accepts connections but "
+                         f"is not a Ray head ({why} within engine.timeout_s = {timeout_s:g} s); give the port "
+                         f"`ray start --head` printed, or unset it to run on this machine")
 
 
 def _run_on_ray(worker_cls: Callable[[Any], Worker], setup: Any, jobs: list[Any], es: EngineSettings,
@@ -141,7 +170,10 @@ def _run_on_ray(worker_cls: Callable[[Any], Worker], setup: Any, jobs: list[Any]
     workers = es.workers or max(1, int(ray.cluster_resources().get("CPU", 1) // num_cpus))
     cores = int(num_cpus) if float(num_cpus).is_integer() else 0
     scope = os.path.abspath(os.getcwd())   # the pipeline: its workers share one set of core locks
-    actors = [actor.remote(worker_cls, setup, cores, scope) for _ in range(min(workers, len(jobs)))]
+    # The constructor state by reference, held here until the actors are gone: Ray frees an argument it
+    # stored itself once the first constructor ran, so a restarted actor could not be rebuilt (ray#53727).
+    state = ray.put((worker_cls, setup))
+    actors = [actor.remote(state, cores, scope) for _ in range(min(workers, len(jobs)))]
     todo, pending, out = list(range(len(jobs)))[::-1], {}, [None] * len(jobs)
     for a in actors:
         if todo:
@@ -169,10 +201,11 @@ def _run_on_ray(worker_cls: Callable[[Any], Worker], setup: Any, jobs: list[Any]
 
 class Pinned:
     """A Ray actor: binds its process to `cores` cores no other worker of its pipeline (`scope`) holds
-    (`pin_cores`), then holds `worker_cls(setup)`."""
+    (`pin_cores`), then holds `worker_cls(setup)` (state = (worker_cls, setup))."""
 
-    def __init__(self, worker_cls: Callable[[Any], Worker], setup: Any, cores: int, scope: str) -> None:
+    def __init__(self, state: tuple[Callable[[Any], Worker], Any], cores: int, scope: str) -> None:
         pin_cores(cores, scope)
+        worker_cls, setup = state
         self.worker = worker_cls(setup)
 
     def run(self, job: Any) -> Any:
