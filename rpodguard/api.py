@@ -3,8 +3,9 @@
 Files read: FOLDER/pose.pt (the pose model, written by `rpod train`) and FOLDER/detector.pt (the
 LSTM detector with its threshold and the SHAP background mean, written by `rpod detect`); FOLDER may
 also be a project root holding models/, and by default it is the weights bundle shipped in git
-(rpodguard/weights/default/, written by scripts/bundle_weights.py; its manifest's hashes are checked). Images are resized to the model's input as the lab loader
-resizes them (pipeline.evaluation.lab_images.resize: area averaging when shrinking), without keeping their aspect.
+(rpodguard/weights/default/, written by scripts/bundle_weights.py; its manifest's hashes are checked).
+Images are resized to the model's input as the lab loader resizes them (pipeline.evaluation.lab_images.resize:
+area averaging when shrinking), without keeping their aspect.
 A frame with too few lit pixels has no target in view: it gets no pose (NaN) and no attack flag.
 """
 from __future__ import annotations

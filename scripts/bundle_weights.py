@@ -56,7 +56,8 @@ def provenance(models: Path) -> tuple[str, list[str]]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--models", type=Path, default=REPO / "models", help="folder with the three trained files")
-    parser.add_argument("--params", type=Path, default=REPO / "params.yaml", help="the params.yaml they were trained with")
+    parser.add_argument("--params", type=Path, default=REPO / "params.yaml",
+                        help="the params.yaml they were trained with")
     parser.add_argument("--out", type=Path, default=None, help="bundle folder (default rpodguard/weights/PROFILE)")
     args = parser.parse_args()
     if not args.params.is_file():
@@ -65,7 +66,8 @@ def main() -> None:
     profile = params.get("profile_name", "default")
     out = args.out or REPO / "rpodguard" / "weights" / profile
     commit, changes = provenance(args.models.resolve())
-    manifest = write_bundle(out, args.models, params, commit, changes, REBUILD.format(commit=commit[:12], profile=profile))
+    rebuild = REBUILD.format(commit=commit[:12], profile=profile)
+    manifest = write_bundle(out, args.models, params, commit, changes, rebuild)
     chain = load_chain(out)      # the detector must belong to this pose model; the hashes just written must hold
     size = sum(f["bytes"] for f in manifest["files"].values())
     print(f"{out}: {', '.join(manifest['files'])} ({size / 1e6:.1f} MB), profile {profile}, commit {commit[:12]}"

@@ -30,8 +30,8 @@ TIMED = ("s3", "http", "https")              # schemes whose DVC config takes co
 
 
 @app.command("add")
-def add(target: str = typer.Argument(..., metavar="PATH_OR_URL", help="A local folder (created if missing) or a URL DVC can use, "
-                                               "e.g. s3://BUCKET/PATH."),
+def add(target: str = typer.Argument(..., metavar="PATH_OR_URL",
+                                     help="A local folder (created if missing) or a URL DVC can use, e.g. s3://BUCKET/PATH."),
         name: str = typer.Option("storage", "--name", help="Remote name in .dvc/config."),
         endpoint: str = typer.Option(None, "--endpoint", help="S3-compatible endpoint URL (MinIO, Ceph, ...), e.g. "
                                                               "http://127.0.0.1:9000; AWS S3 when not given."),

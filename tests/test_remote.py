@@ -22,7 +22,8 @@ FILES = {"data/table.csv": b"a,b\n1,2\n", "data/images/0.bin": bytes(range(256))
 
 @pytest.fixture(scope="module")
 def env(tmp_path_factory) -> dict[str, str]:
-    """Subprocess environment: this tree first, dummy S3 credentials, no AWS files or instance metadata, a git identity."""
+    """Subprocess environment: this tree first, dummy S3 credentials, no AWS files or instance metadata, a git
+    identity."""
     home = tmp_path_factory.mktemp("home")
     return {**os.environ, "PYTHONPATH": str(REPO), "AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing",
             "AWS_DEFAULT_REGION": "us-east-1", "AWS_EC2_METADATA_DISABLED": "true",

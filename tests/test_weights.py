@@ -23,7 +23,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def satellite(scale: float, height: int = 90, width: int = 160) -> np.ndarray:
-    """A render-like frame: black space, a lit box (the bus) with two dark-blue panels, centred; SCALE = apparent size."""
+    """A render-like frame: black space, a lit box (the bus) with two dark-blue panels, centred; SCALE: apparent
+    size."""
     image = np.zeros((height, width, 3), np.uint8)
     cy, cx = height // 2, width // 2
     bus, panel, thick = int(6 * scale), int(14 * scale), max(1, int(2 * scale))

@@ -45,7 +45,7 @@ def write_bundle(out: Path | str, models: Path | str, params: dict[str, Any], co
 
 
 def check_bundle(folder: Path | str) -> dict[str, Any]:
-    """FOLDER's manifest, once every file it lists is present with its sha256 (a DataError naming the file otherwise)."""
+    """FOLDER's manifest, once every file it lists is present with its sha256 (else a DataError naming the file)."""
     folder = Path(folder)
     manifest = read_json(folder / MANIFEST)
     files = manifest.get("files") if isinstance(manifest, dict) else None
