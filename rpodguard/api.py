@@ -2,8 +2,10 @@
 
 Files read: FOLDER/pose.pt (the pose model, written by `rpod train`) and FOLDER/detector.pt (the
 LSTM detector with its threshold and the SHAP background mean, written by `rpod detect`); FOLDER may
-also be a project root holding models/. Images are resized to the model's input as the lab loader
-resizes them (pipeline.evaluation.lab_images.resize: area averaging when shrinking), without keeping their aspect.
+also be a project root holding models/, and by default it is the weights bundle shipped in git
+(rpodguard/weights/default/, written by scripts/bundle_weights.py; its manifest's hashes are checked).
+Images are resized to the model's input as the lab loader resizes them (pipeline.evaluation.lab_images.resize:
+area averaging when shrinking), without keeping their aspect.
 A frame with too few lit pixels has no target in view: it gets no pose (NaN) and no attack flag.
 """
 from __future__ import annotations
@@ -27,6 +29,7 @@ LIT_LEVEL = 16 / 255          # pixel value in [0, 1] (brightest channel) from w
 MIN_LIT_FRACTION = 0.0037     # fraction of lit pixels below which a frame has no target in view
 
 Image = Union[str, Path, np.ndarray]
+BUNDLE = Path(__file__).resolve().parent / "weights" / "default"   # the default profile's trained chain (git)
 
 
 @dataclass(frozen=True)
@@ -75,10 +78,12 @@ class Chain:
     field of view gives ranges off by the ratio of the focal lengths (pixels per image width).
     """
 
-    def __init__(self, safety: Any, input_size: tuple[int, int], files: tuple[Path, Path]):
+    def __init__(self, safety: Any, input_size: tuple[int, int], files: tuple[Path, Path],
+                 manifest: dict[str, Any] | None = None):
         self.safety = safety                      # pipeline.defense.chain.OnboardChain
         self.height, self.width = input_size      # model input, pixels
         self.files = files                        # (pose.pt, detector.pt)
+        self.manifest = manifest                  # a weights bundle's manifest (profile, commit, params), else None
 
     @property
     def threshold(self) -> float:
@@ -204,19 +209,23 @@ def _rgb(im: Any, path: Path) -> np.ndarray:
     return np.asarray(im.convert("RGB"))
 
 
-def load_chain(folder: str | Path = "models") -> Chain:
+def load_chain(folder: str | Path | None = None) -> Chain:
     """The chain as the pipeline ships it: FOLDER/pose.pt and FOLDER/detector.pt (or FOLDER/models/...
-    when FOLDER is a project root). The detector must have been trained on this pose model's SHAP
-    values (its checkpoint names the pose file's hash). A missing or bad file is a DataError."""
+    when FOLDER is a project root); with no FOLDER, the bundled weights (`BUNDLE`: the default profile's
+    trained chain, see its manifest.json). A folder holding a weights manifest (pipeline/formats/bundle.py)
+    has each file's sha256 checked first. The detector must have been trained on this pose model's SHAP
+    values (its checkpoint names the pose file's hash). A missing, changed or bad file is a DataError."""
     from pipeline.defense.chain import load_onboard_chain
+    from pipeline.formats.bundle import MANIFEST, check_bundle
     from pipeline.formats.models import model_from_checkpoint, read_pose
     from pipeline.io.atomic import file_hash
 
-    folder = Path(folder)
+    folder = BUNDLE if folder is None else Path(folder)
     if not (folder / "pose.pt").exists() and (folder / "models" / "pose.pt").exists():
         folder = folder / "models"
+    manifest = check_bundle(folder) if folder == BUNDLE or (folder / MANIFEST).exists() else None
     pose_path, detector_path = folder / "pose.pt", folder / "detector.pt"
     ckpt = read_pose(pose_path)
     safety = load_onboard_chain(model_from_checkpoint(ckpt), file_hash(pose_path), pose_path, detector_path)
     height, width = (int(v) for v in ckpt["input_size"])
-    return Chain(safety, (height, width), (pose_path, detector_path))
+    return Chain(safety, (height, width), (pose_path, detector_path), manifest)

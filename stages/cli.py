@@ -59,8 +59,9 @@ def params_cmd(
 
 # Stage modules keep heavy imports (bpy, torch) inside their commands so `rpod --help` is fast.
 # A module exposes `main` (one command) or `app` (a command group, e.g. `rpod lab rescale`).
+# export, predict, remote: not DVC stages
 STAGES = ["render", "label", "train", "attack", "guidance", "shap", "detect", "eval_render", "calibrate", "evaluate",
-          "robustness", "lab_models", "lab", "report", "export", "predict"]   # export, predict: not DVC stages
+          "robustness", "lab_models", "lab", "report", "export", "predict", "remote"]
 
 
 def _register() -> None:

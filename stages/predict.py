@@ -3,7 +3,8 @@
 Prints per image the position (m, camera frame), the quaternion (qw, qx, qy, qz) and the detector's
 attack probability and flag as a table, or with --json everything including the 6-D rotation. The image
 paths are checked before the model loads; a frame with no target in view (too few lit pixels:
-rpodguard.api.MIN_LIT_FRACTION) gets no pose and says so.
+rpodguard.api.MIN_LIT_FRACTION) gets no pose and says so. Without --models it uses the weights bundle
+shipped in git (rpodguard/weights/default/), so it works right after `make setup`.
 """
 from __future__ import annotations
 
@@ -18,8 +19,10 @@ def main(
     images: list[Path] = typer.Argument(None, help="Image files (PNG, JPG, any size; resized to the model input).",
                                         show_default=False),
     as_json: bool = typer.Option(False, "--json", help="Print a JSON list (one object per image) instead of a table."),
-    models: Path = typer.Option(Path("models"), "--models",
-                                help="Folder with pose.pt and detector.pt (or a project root holding models/)."),
+    models: Path = typer.Option(None, "--models", show_default=False,
+                                help="Folder with pose.pt and detector.pt (or a project root holding models/), e.g. "
+                                     "models for this project's run. Default: the bundled weights "
+                                     "(rpodguard/weights/default, the default profile's trained chain)."),
 ) -> None:
     """Pose (position m, quaternion, 6-D) and attack flag of each image through the trained chain.
 
@@ -35,6 +38,10 @@ def main(
         raise StageError("rpod predict: no images given (pass one or more PNG or JPG files)")
     check_files(images)   # a typo stops here, before the ~10 s of loading torch and the models
     chain = load_chain(models)
+    if models is None:
+        bundle = chain.manifest or {}
+        typer.secho(f"note: the bundled weights ({bundle.get('profile')} profile, commit "
+                    f"{str(bundle.get('commit'))[:12]}); --models models for this project's own run", err=True)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         out = chain.predict(images)
