@@ -257,6 +257,7 @@ def test_cli_debug_shows_the_traceback(tmp_path, monkeypatch):
     from stages import cli
 
     monkeypatch.chdir(tmp_path)
+    monkeypatch.setitem(cli._DEBUG, "on", False)   # restored after the test: --debug sets it for the process
     monkeypatch.setattr(sys, "argv", ["rpod", "--debug", "train"])
     with pytest.raises(ValueError, match="params.yaml not found"):
         cli.main()

@@ -126,6 +126,7 @@ def test_rpod_params_refuses_the_issues_probes_and_writes_nothing(tmp_path, monk
     from stages import cli
 
     monkeypatch.chdir(tmp_path)
+    monkeypatch.setitem(cli._DEBUG, "on", False)
     monkeypatch.setattr(sys, "argv", ["rpod", "params", "default", "-S", override])
     with pytest.raises(SystemExit) as exit_:
         cli.main()
