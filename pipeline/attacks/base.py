@@ -79,3 +79,20 @@ class SequenceAttacker(Protocol):
     name: str
 
     def attack(self, chain: DifferentiableChain, defense: Defense | None, run: AttackRun, eps: float) -> Tensor: ...
+
+
+def pose_logit(out: Tensor | tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor | None]:
+    """A chain's output: (pose, logit) of a `DifferentiableChain`, or a bare pose model's pose (no detector)."""
+    return out if isinstance(out, tuple) else (out, None)
+
+
+def chain_outputs(chain: DifferentiableChain, images: Tensor, batch: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """What the chain reads from `images` (N, 3, H, W) in [0, 1]: pose (N, 9) [m, 6-D] and the detector's
+    probability (N,), as float64 arrays (probability 0 without a detector), `batch` images per pass."""
+    poses, probs = [], []
+    with torch.no_grad():
+        for lo in range(0, len(images), batch):
+            p, logit = pose_logit(chain(images[lo:lo + batch]))
+            poses.append(p.double())
+            probs.append(torch.zeros(len(p), dtype=torch.float64) if logit is None else torch.sigmoid(logit.double()))
+    return torch.cat(poses).numpy(), torch.cat(probs).numpy()

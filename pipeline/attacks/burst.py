@@ -44,9 +44,9 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from pipeline.attacks.adaptive import DifferentiableChain, check_lambdas
-from pipeline.attacks.base import AttackRun
+from pipeline.attacks.base import AttackRun, chain_outputs, pose_logit
 from pipeline.attacks.filter_mirror import DTYPE, FilterMirror
-from pipeline.attacks.gradient import check_eps, quantize
+from pipeline.attacks.gradient import check_eps, project, quantize
 from pipeline.defense.fusion import TRACK, Defense
 from pipeline.geometry.rotations import sixd_to_matrix, sixd_to_matrix_t
 
@@ -99,15 +99,6 @@ def bursts_of(mask: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(edges[::2].tolist(), edges[1::2].tolist()))
 
 
-def _pose_logit(out: Tensor | tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor | None]:
-    """A chain's output: (pose, logit) of a `DifferentiableChain`, or a bare pose model's pose (no detector)."""
-    return out if isinstance(out, tuple) else (out, None)
-
-
-def _project(X: Tensor, x: Tensor, eps: float) -> Tensor:
-    return torch.clamp(torch.minimum(torch.maximum(X, x - eps), x + eps), 0.0, 1.0)
-
-
 @dataclass
 class _Burst:
     """One burst of K frames against the defense state `defense` (read only; None: undefended)."""
@@ -134,7 +125,7 @@ class _Burst:
     def objective(self, X: Tensor, lam: Tensor) -> Tensor:
         """J (R,) of R candidate bursts X (R, K, 3, H, W): capped trusted error - lam * margins."""
         R, K = X.shape[:2]
-        pose, logit = _pose_logit(self.chain(X.flatten(0, 1)))
+        pose, logit = pose_logit(self.chain(X.flatten(0, 1)))
         pose = pose.to(DTYPE).view(R, K, 9)
         margin = torch.zeros(R, dtype=DTYPE)
         if self.defense is None:
@@ -159,7 +150,7 @@ class _Burst:
         restart, found_at) of each."""
         C, K = stored.shape[:2]
         with torch.no_grad():
-            pose, logit = _pose_logit(self.chain(stored.flatten(0, 1).float() / 255.0))
+            pose, logit = pose_logit(self.chain(stored.flatten(0, 1).float() / 255.0))
         pose = pose.double().view(C, K, 9).numpy()
         prob = np.zeros((C, K)) if logit is None else torch.sigmoid(logit.double()).view(C, K).numpy()
         return [self._outcome(stored[c], pose[c], prob[c], eps, *runs[c]) for c in range(C)]
@@ -238,7 +229,7 @@ class BurstAttacker:
         was_training = chain.training
         chain.eval()
         try:
-            pose, prob = self._estimates(chain, run.images)
+            pose, prob = chain_outputs(chain, run.images)
             images, bursts, previous = [], [], None
             for e in eps:
                 stored, previous = self._pass(chain, defense, run, e, pose, prob, previous, gen)
@@ -247,17 +238,6 @@ class BurstAttacker:
         finally:
             chain.train(was_training)
         return NestedResult(tuple(eps), images, bursts)
-
-    @staticmethod
-    def _estimates(chain: DifferentiableChain, images: Tensor, batch: int = 64) -> tuple[np.ndarray, np.ndarray]:
-        """The chain on clean frames: (pose (N, 9), detector probability (N,); 0 without a detector)."""
-        poses, probs = [], []
-        with torch.no_grad():
-            for lo in range(0, len(images), batch):
-                p, logit = _pose_logit(chain(images[lo:lo + batch]))
-                poses.append(p.double())
-                probs.append(torch.zeros(len(p), dtype=DTYPE) if logit is None else torch.sigmoid(logit.double()))
-        return torch.cat(poses).numpy(), torch.cat(probs).numpy()
 
     def _pass(self, chain: DifferentiableChain, defense: Defense | None, run: AttackRun, eps: float, pose: np.ndarray,
               prob: np.ndarray, previous: list[BurstOutcome] | None,
@@ -303,10 +283,10 @@ class BurstAttacker:
         starts = []
         for r in range(int(self.restarts)):
             if r == 0 and previous is not None:
-                starts.append(_project(previous.images.float() / 255.0, x, eps))
+                starts.append(project(previous.images.float() / 255.0, x, eps))
             else:
                 noise = torch.rand(x.shape, generator=gen, dtype=x.dtype)
-                starts.append(_project(x + (2 * noise - 1) * eps, x, eps))
+                starts.append(project(x + (2 * noise - 1) * eps, x, eps))
         found = [] if previous is None else burst.evaluate(
             previous.images[None], eps, [(previous.lam, previous.restart, previous.found_at)])
         for lam in sorted(float(v) for v in self.lambdas):
@@ -330,5 +310,5 @@ class BurstAttacker:
             better = J.detach() > best_j
             best[better], best_j = X.detach()[better], torch.where(better, J.detach(), best_j)
             if grad is not None:
-                X = _project(X.detach() + alpha * grad.sign(), x, eps)
+                X = project(X.detach() + alpha * grad.sign(), x, eps)
         return best, X.detach()

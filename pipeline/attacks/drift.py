@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from pipeline.attacks.adaptive import DifferentiableChain
-from pipeline.attacks.base import AttackRun
+from pipeline.attacks.base import AttackRun, chain_outputs
 from pipeline.attacks.gradient import LossFn, check_eps, pgd, quantize
 from pipeline.defense.fusion import Decision, Defense
 from pipeline.defense.kalman import MotionFilter
@@ -225,7 +225,7 @@ class DriftAttacker:
         logit_threshold = math.log(threshold / (1 - threshold))
         generator = torch.Generator().manual_seed(self.seed)
         stored, mask = run.stored().clone(), run.mask
-        clean_pose, clean_prob = _read(chain, run.images)
+        clean_pose, clean_prob = chain_outputs(chain, run.images)
         for k in range(len(run)):
             uk = None if run.u is None else run.u[k]
             pose, prob = clean_pose[k], clean_prob[k]
@@ -235,14 +235,6 @@ class DriftAttacker:
                 stored[k] = targeted_pgd(chain, run.images[k:k + 1], target, eps, logit_threshold,
                                          margin_weight=self.margin_weight, steps=self.steps,
                                          step_size=self.step_size, generator=generator)[0]
-                (pose,), (prob,) = _read(chain, stored[k:k + 1].float() / 255.0)
+                (pose,), (prob,) = chain_outputs(chain, stored[k:k + 1].float() / 255.0)
             planner.deliver(pose[:3], float(prob), run.R_cam[k], uk, sixd_to_matrix(pose[3:]))
         return stored
-
-
-def _read(chain: DifferentiableChain, images: Tensor) -> tuple[np.ndarray, np.ndarray]:
-    """What the chain reads from `images`: pose (B, 9) [m, 6-D] and the detector's probability (B,),
-    as float64 arrays."""
-    with torch.no_grad():
-        pose, logit = chain(images)
-    return pose.double().numpy(), torch.sigmoid(logit.double()).numpy()

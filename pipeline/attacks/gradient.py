@@ -63,7 +63,7 @@ def _input_grad(model: nn.Module, x: Tensor, y: Tensor, loss_fn: LossFn) -> Tens
     return grad
 
 
-def _project(x_adv: Tensor, x: Tensor, eps: float) -> Tensor:
+def project(x_adv: Tensor, x: Tensor, eps: float) -> Tensor:
     """Back into the eps ball around x and into [0, 1]."""
     return torch.clamp(torch.minimum(torch.maximum(x_adv, x - eps), x + eps), 0.0, 1.0)
 
@@ -103,11 +103,11 @@ def pgd(model: nn.Module, x: Tensor, y: Tensor, eps: float, loss_fn: LossFn, *, 
     if random_start:
         # drawn on the CPU generator and moved: the same start on every device
         noise = torch.rand(x.shape, generator=generator, dtype=x.dtype).to(x.device)
-        x_adv = _project(x + (2 * noise - 1) * eps, x, eps)
+        x_adv = project(x + (2 * noise - 1) * eps, x, eps)
     with _eval_mode(model):
         for _ in range(steps):
             grad = _input_grad(model, x_adv, y, loss_fn)
-            x_adv = _project(x_adv + alpha * grad.sign(), x, eps)
+            x_adv = project(x_adv + alpha * grad.sign(), x, eps)
     return x_adv.detach()
 
 
@@ -128,7 +128,7 @@ def mifgsm(model: nn.Module, x: Tensor, y: Tensor, eps: float, loss_fn: LossFn, 
             grad = _input_grad(model, x_adv, y, loss_fn)
             l1 = grad.abs().flatten(1).sum(1).clamp_min(1e-12).view(-1, *([1] * (x.dim() - 1)))
             g = momentum * g + grad / l1
-            x_adv = _project(x_adv + alpha * g.sign(), x, eps)
+            x_adv = project(x_adv + alpha * g.sign(), x, eps)
     return x_adv.detach()
 
 
