@@ -3,7 +3,7 @@
 Reads reports/metrics/<stage>.json and reports/<stage>.md (written by the stages before it),
 datasets/shap.zarr (for the SHAP heatmaps) and reports/plots/roc/*.csv (ROC curves), and writes:
 
-    reports/metrics/summary.json           the headline numbers, flat (`dvc metrics show`; stages/pages/summary.py)
+    reports/metrics/summary.json           the headline numbers (`dvc metrics show`; stages/pages/summary.py)
     reports/README.md                      the results page: a summary against the paper, figures, then every
                                            stage's report with its profile (no times: those are in the metrics JSON)
     reports/figures/{pose_errors,error_vs_eps}.png   error per range bin (train/test); FGSM error against eps

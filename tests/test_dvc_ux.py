@@ -1,4 +1,4 @@
-"""DVC conventions and standalone help: `dvc metrics show` prints a small flat summary, plots carry
+"""DVC conventions and standalone help: `dvc metrics show` prints one row of readable names, plots carry
 titles and axis units with no duplicates, every stage's --help lists the params dvc.yaml gives it
 (with conf/config.yaml's comments), and a missing input names the stage that writes it."""
 from __future__ import annotations
@@ -29,13 +29,20 @@ def _committed_metrics() -> dict[str, dict]:
 
 
 # ----------------------------------------------------------------------------- metrics
-def test_summary_is_flat_short_and_has_every_headline():
-    from stages.pages.summary import HEADLINES, summary
+UNITS = ("_m", "_deg", "_pct")   # every headline name ends in its unit
 
-    s = summary(_committed_metrics())
-    assert list(s) == [h.key for h in HEADLINES]
-    assert all(isinstance(v, float) and len(k) <= 8 for k, v in s.items())
-    assert 0 < s["pos_m"] < 50 and all(0 <= s[k] <= 100 for k in ("lstm", "chain", "defended", "clean_fa", "held"))
+
+def test_summary_is_grouped_readable_and_has_every_headline():
+    from stages.pages.summary import HEADLINES, headline_values, summary
+
+    values = headline_values(_committed_metrics())
+    assert list(values) == [h.key for h in HEADLINES]
+    for key, value in values.items():
+        group, name = key.split(".")
+        assert isinstance(value, float) and name.endswith(UNITS) and len(key) <= 40, key
+        assert summary(_committed_metrics())[group][name] == value
+    assert 0 < values["pose.test_position_m"] < 50
+    assert all(0 <= v <= 100 for k, v in values.items() if k.endswith("_pct"))
 
 
 def test_summary_leaves_out_a_stage_that_did_not_run():
@@ -44,7 +51,7 @@ def test_summary_leaves_out_a_stage_that_did_not_run():
     metrics = _committed_metrics()
     del metrics["robustness"]
     s = summary(metrics)
-    assert "harm_und" not in s and "pos_m" in s
+    assert "robustness" not in s and "test_position_m" in s["pose"]
 
 
 def test_only_the_summary_is_a_dvc_metric_and_details_stay_outputs():
@@ -69,17 +76,19 @@ def test_every_output_path_is_an_out_of_the_stage_that_writes_it():
 
 
 @pytest.mark.skipif(not DVC.exists(), reason="dvc not installed beside python")
-def test_dvc_metrics_show_fits_in_120_columns(tmp_path):
+def test_dvc_metrics_show_prints_one_row_of_readable_names(tmp_path):
+    """One header and one row; every column is `<group>.<what>_<unit>` (DVC joins the nested keys with dots)."""
     from pipeline.io.atomic import write_json
-    from stages.pages.summary import summary
+    from stages.pages.summary import HEADLINES, summary
 
     for name in ("dvc.yaml", "params.yaml"):   # dvc.yaml templates external-input deps from params.yaml
         shutil.copy(REPO / name, tmp_path / name)
     write_json(tmp_path / "reports" / "metrics" / "summary.json", summary(_committed_metrics()))
     subprocess.run([str(DVC), "init", "--no-scm", "-q"], cwd=tmp_path, check=True)
     out = subprocess.run([str(DVC), "metrics", "show"], cwd=tmp_path, check=True, capture_output=True, text=True)
-    lines = out.stdout.splitlines()
-    assert len(lines) == 2 and "pos_m" in lines[0] and max(map(len, lines)) <= 120, out.stdout
+    header, row = out.stdout.splitlines()
+    assert header.split() == ["Path", *sorted(h.key for h in HEADLINES)], header
+    assert row.split()[0] == "reports/metrics/summary.json" and len(row.split()) == 1 + len(HEADLINES)
 
 
 # ----------------------------------------------------------------------------- plots

@@ -37,12 +37,12 @@ def _run(root: Path, seed: int, pos: float, detect_acc: float | None) -> Path:
 def test_rows_count_the_runs_that_have_each_number(tmp_path):
     runs = [_run(tmp_path, 0, 0.40, 0.93), _run(tmp_path, 1, 0.46, 0.91), _run(tmp_path, 2, 0.43, None)]
     rows = {r["key"]: r for r in _load().variance_rows(runs)}
-    pos = rows["pos_m"]
+    pos = rows["pose.test_position_m"]
     assert pos["runs"] == 3 and pos["mean"] == pytest.approx(0.43) and pos["sd"] == pytest.approx(0.03)
     assert (pos["min"], pos["max"]) == (0.40, 0.46)
-    acc = rows["lstm"]
+    acc = rows["detector.lstm_accuracy_pct"]
     assert acc["runs"] == 2 and acc["mean"] == pytest.approx(92.0)
-    assert "lab" not in rows                                  # no run has it: no row
+    assert "lab.accuracy_pct" not in rows                                  # no run has it: no row
 
 
 def test_a_single_run_has_no_spread(tmp_path):
@@ -55,7 +55,7 @@ def test_metrics_of_another_pose_model_do_not_count(tmp_path):
     run = _run(tmp_path, 1, 0.40, 0.93)
     (run / "models" / "pose.pt").write_bytes(b"retrained")      # detect.json now belongs to another model
     rows = {r["key"]: r for r in _load().variance_rows([run])}
-    assert "lstm" not in rows and rows["pos_m"]["runs"] == 1
+    assert "detector.lstm_accuracy_pct" not in rows and rows["pose.test_position_m"]["runs"] == 1
 
 
 
@@ -72,7 +72,8 @@ def test_readme_results_show_the_spread_of_each_headline_number():
     metrics = {m: json.loads((REPO / "reports" / "metrics" / f"{m}.json").read_text())
                for m in ("train", "attack", "guidance", "detect", "evaluate", "lab", "robustness")}
     # in variance.md only: the README shows these per eps or per dynamics (or not at all)
-    not_shown = {"pose_tz_pct", "lstm_recall_0.01_pct", "integrated_0.01_pct", "harm_und", "held"}
+    not_shown = {"pose_tz_pct", "lstm_recall_0.01_pct", "integrated_0.01_pct",
+                 "robustness.harmful_undetected_pct", "guidance.defended_held_pct"}
     keys = [k for k, *_ in _load().HEADLINES if k not in not_shown]
     spread = {"profile": "default", "seeds": ["0", "1", "2"],
               "numbers": {k: {"runs": 3, "mean": 1.0, "sd": 1.01 + 0.01 * i, "min": 0.0, "max": 2.0}
@@ -102,3 +103,9 @@ def test_the_spread_covers_every_summary_json_number():
 
     keys = [h.key for h in _load().HEADLINES]
     assert keys[:len(SUMMARY)] == [h.key for h in SUMMARY]
+
+
+def test_the_committed_spread_names_only_headline_numbers():
+    """reports/variance.json (read by `rpod report`) uses the headline keys: a renamed key would drop its sd."""
+    spread = json.loads((REPO / "reports" / "variance.json").read_text())
+    assert set(spread["numbers"]) == {h.key for h in _load().HEADLINES}

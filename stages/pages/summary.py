@@ -1,6 +1,7 @@
 """reports/metrics/summary.json, what `dvc metrics show` and `dvc exp show` print: the run's headline
-numbers, flat, with short keys (`dvc metrics show` fits in 120 columns), no times. Errors in their
-units (m, deg), every rate in percent; a number whose stage did not produce it is left out.
+numbers, no times, grouped by what they measure ({"pose": {"test_position_m": ...}, ...}), so DVC's columns
+read `pose.test_position_m`. Each name ends in its unit: `_m`, `_deg`, or `_pct` (every rate in percent);
+a number whose stage did not produce it is left out.
 
 The per-stage metrics JSONs (reports/metrics/<stage>.json) keep every detail; this file only picks from them.
 """
@@ -12,7 +13,7 @@ Metrics = dict[str, dict[str, Any]]
 
 
 class Headline(NamedTuple):
-    key: str                                  # summary.json key (at most 8 characters)
+    key: str                                  # dotted summary.json key, <group>.<what>_<unit> (DVC's column)
     what: str                                 # what the number is, with its unit
     get: Callable[[Metrics], float]           # from the stage metrics (keyed by metrics file stem)
     decimals: int = 2                         # rounding in summary.json
@@ -35,27 +36,44 @@ def _held(m: Metrics) -> float:
 
 
 HEADLINES: list[Headline] = [
-    Headline("pos_m", "pose, test mean position error (m)", lambda m: m["train"]["test"]["pos_mean_m"], 3),
-    Headline("att_deg", "pose, test mean attitude error (deg)", lambda m: m["train"]["test"]["att_mean_deg"]),
-    Headline("lstm", "LSTM detector accuracy on the SHAP test split (%)",
+    Headline("pose.test_position_m", "pose, test mean position error (m)",
+             lambda m: m["train"]["test"]["pos_mean_m"], 3),
+    Headline("pose.test_attitude_deg", "pose, test mean attitude error (deg)",
+             lambda m: m["train"]["test"]["att_mean_deg"]),
+    Headline("detector.lstm_accuracy_pct", "LSTM detector accuracy on the SHAP test split (%)",
              lambda m: 100 * m["detect"]["detectors"]["lstm"]["all"]["accuracy"]),
-    Headline("chain", "integrated detection accuracy, mean over eps (%)", lambda m: 100 * m["evaluate"]["accuracy_mean"]),
-    Headline("defended", "defended chain accuracy at the smallest eps (%)", lambda m: _defended(m, "accuracy")),
-    Headline("clean_fa", "defended chain false alarms on attack-free runs (%)", lambda m: _defended(m, "fpr_clean")),
-    Headline("harm_und", "worst harmful-undetected rate of the adaptive attack on the defended chain, any eps (%)",
+    Headline("integrated.accuracy_pct", "integrated detection accuracy, mean over eps (%)",
+             lambda m: 100 * m["evaluate"]["accuracy_mean"]),
+    Headline("defended.accuracy_pct", "defended chain accuracy at the smallest eps (%)",
+             lambda m: _defended(m, "accuracy")),
+    Headline("defended.clean_false_alarm_pct", "defended chain false alarms on attack-free runs (%)",
+             lambda m: _defended(m, "fpr_clean")),
+    Headline("robustness.harmful_undetected_pct",
+             "worst harmful-undetected rate of the adaptive attack on the defended chain, any eps (%)",
              lambda m: 100 * max(w["harmful_undetected_rate"]
                                  for w in m["robustness"]["worst_harmful_undetected_fused"].values())),
-    Headline("lab", "lab detection accuracy, mean over eps (%)", lambda m: 100 * m["lab"]["accuracy_mean"]),
-    Headline("held", "closed loop, attacked runs held with detect-and-recover (%)", _held),
+    Headline("lab.accuracy_pct", "lab detection accuracy, mean over eps (%)",
+             lambda m: 100 * m["lab"]["accuracy_mean"]),
+    Headline("guidance.defended_held_pct", "closed loop, attacked runs held with detect-and-recover (%)", _held),
 ]
 
 
-def summary(metrics: Metrics) -> dict[str, float]:
-    """The headline numbers of the stage metrics, rounded; those a stage did not produce are left out."""
+def headline_values(metrics: Metrics) -> dict[str, float]:
+    """The headline numbers of the stage metrics by dotted key, rounded; those a stage did not produce are
+    left out."""
     out = {}
     for h in HEADLINES:
         try:
             out[h.key] = round(float(h.get(metrics)), h.decimals)
         except (KeyError, TypeError, ValueError, ZeroDivisionError):
             continue
+    return out
+
+
+def summary(metrics: Metrics) -> dict[str, dict[str, float]]:
+    """summary.json: `headline_values` nested by the group before each key's dot."""
+    out: dict[str, dict[str, float]] = {}
+    for key, value in headline_values(metrics).items():
+        group, name = key.split(".", 1)
+        out.setdefault(group, {})[name] = value
     return out
