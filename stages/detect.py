@@ -12,7 +12,8 @@ on the same split:
 
 Writes models/detector.pt (LSTM weights, architecture, threshold, and what the safety chain needs:
 the pose-model hash and the SHAP background mean; `pipeline.formats.models.read_detector` reads it), dvclive/detect/
-(training curves), reports/detector.md, reports/metrics/detect.json and reports/plots/roc/<name>.csv.
+(DVCLive: the detect params, the LSTM's training curves and test metrics, and every detector's ROC on the test
+split as plots/sklearn/<name>.json), reports/detector.md and reports/metrics/detect.json.
 """
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ from pipeline.io.atomic import atomic_outputs, atomic_write_text, file_hash
 from pipeline.io.checkpoints import save_torch
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import DETECT_LIVE, DETECT_METRICS as METRICS, DETECT_REPORT as REPORT, DETECTOR, \
-    LABELS, POSE, ROC_DIR, SEED_OFFSET, SHAP
+    LABELS, POSE, SEED_OFFSET, SHAP
 from stages.artifacts.readers import SPLIT_CODES, SampleImages, read_shap_store
 from stages.artifacts.models import load_pose
 from stages.config.device import torch_device
@@ -57,7 +58,7 @@ def main(params: Params) -> None:
     import torch
 
     from pipeline.detectors.lstm import to_checkpoint
-    from pipeline.detectors.metrics import choose_threshold, metrics_by_eps, roc_csv
+    from pipeline.detectors.metrics import choose_threshold, metrics_by_eps
     from pipeline.evaluation.sequences import nan_to_none
 
     d = params.detect
@@ -99,14 +100,12 @@ def main(params: Params) -> None:
     metrics = {"model_hash": model_hash, "counts": counts, "threshold": {k: v[1] for k, v in scores.items()},
                "lstm_epochs": len(result.history), "lstm_best_epoch": result.best_epoch,
                "seconds": seconds, "paper_accuracy": DETECTOR_ACCURACY, "detectors": results}
-    # detector, metrics, report, ROC data and curves move into place together, once all are written
-    with atomic_outputs(DETECTOR, METRICS, REPORT, dirs=(ROC_DIR, DETECT_LIVE)) as (det, met, rep, roc_dir, live_dir):
+    # detector, metrics, report and the DVCLive folder move into place together, once all are written
+    with atomic_outputs(DETECTOR, METRICS, REPORT, dirs=(DETECT_LIVE,)) as (det, met, rep, live_dir):
         save_torch(det, ckpt)
-        for name, (s, _) in scores.items():   # into the empty stand-in for ROC_DIR: no stale detector's file
-            atomic_write_text(roc_dir / f"{name}.csv", roc_csv(y[te], s))
         write_metrics(met, nan_to_none(metrics), params.profile_name)
         atomic_write_text(rep, detector_page(results, scores, counts, result, data["attrs"], d))
-        _log_curves(live_dir, result.history, results["lstm"]["all"])
+        _log_live(live_dir, d, result.history, results["lstm"]["all"], (y[te], {k: v[0] for k, v in scores.items()}))
     acc = results["lstm"]["all"]["accuracy"]
     print(f"detect: LSTM test accuracy {acc:.4f} (paper {DETECTOR_ACCURACY:.4f}) -> {DETECTOR}, {REPORT}")
 
@@ -129,11 +128,21 @@ def _train_lstm(values: np.ndarray, y: np.ndarray, tr: np.ndarray, va: np.ndarra
     return result, time.perf_counter() - t0
 
 
-def _log_curves(folder: Path, history: list[dict[str, float]], test: dict[str, float]) -> None:
-    """The LSTM's per-epoch curves and its test metrics into a DVCLive folder (for `dvc plots show`)."""
+def _log_live(folder: Path, d: Detect, history: list[dict[str, float]], test: dict[str, float],
+              roc: tuple[np.ndarray, dict[str, np.ndarray]]) -> None:
+    """Into a DVCLive folder (for `dvc plots show`; dvc.yaml's `plots` draw them): the detect params, the
+    LSTM's per-epoch curves and test metrics, and each detector's ROC curve on the test split (`roc`: the
+    test labels, 1 = attacked, and each detector's scores) as DVCLive's plots/sklearn/<detector>.json."""
+    import dataclasses
+    import json
+
     from dvclive import Live
 
     live = Live(dir=str(folder), dvcyaml=False, save_dvc_exp=False, report=None)
+    live.log_params(json.loads(json.dumps(dataclasses.asdict(d))))   # plain lists, as params.yaml has them
+    labels, scores = roc
+    for name, score in scores.items():
+        live.log_sklearn_plot("roc", labels, score, name=name)
     for rec in history:
         for k in ("train_loss", "val_loss", "val_accuracy"):
             live.log_metric(k, rec[k])

@@ -4,7 +4,9 @@ Prints per image the position (m, camera frame), the quaternion (qw, qx, qy, qz)
 attack probability and flag as a table, or with --json everything including the 6-D rotation. The image
 paths are checked before the model loads; a frame with no target in view (too few lit pixels:
 rpodguard.api.MIN_LIT_FRACTION) gets no pose and says so. Without --models it uses the weights bundle
-shipped in git (rpodguard/weights/default/), so it works right after `make setup`.
+shipped in git (rpodguard/weights/default/), so it works right after `make setup`. With --camera (a
+camera.json as SPEED+ and `rpod export speed` write it) it warns when the images' camera is not the one the
+model was trained for (its K is stored in pose.pt; rpodguard/camera.py).
 """
 from __future__ import annotations
 
@@ -23,6 +25,9 @@ def main(
                                 help="Folder with pose.pt and detector.pt (or a project root holding models/), e.g. "
                                      "models for this project's run. Default: the bundled weights "
                                      "(rpodguard/weights/default, the default profile's trained chain)."),
+    camera: Path = typer.Option(None, "--camera", show_default=False,
+                                help="camera.json of the images' camera (SPEED+ layout: Nu, Nv and cameraMatrix, or "
+                                     "fx, fy, ppx, ppy); warns when it is not the camera the model was trained for."),
 ) -> None:
     """Pose (position m, quaternion, 6-D) and attack flag of each image through the trained chain.
 
@@ -32,11 +37,13 @@ def main(
     """
     from rpodguard import load_chain
     from rpodguard.api import check_files
+    from rpodguard.camera import read_camera
     from stages.errors import StageError
 
     if not images:
         raise StageError("rpod predict: no images given (pass one or more PNG or JPG files)")
     check_files(images)   # a typo stops here, before the ~10 s of loading torch and the models
+    cam = read_camera(camera) if camera is not None else None
     chain = load_chain(models)
     if models is None:
         bundle = chain.manifest or {}
@@ -44,7 +51,7 @@ def main(
                     f"{str(bundle.get('commit'))[:12]}); --models models for this project's own run", err=True)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        out = chain.predict(images)
+        out = chain.predict(images, camera=cam)
     for w in caught:
         typer.secho(f"warning: {' '.join(str(w.message).split())}", fg=typer.colors.YELLOW, err=True)
     if as_json:

@@ -20,9 +20,10 @@ from typing import Annotated, Any
 
 import typer
 
-from pipeline.io.atomic import atomic_outputs, atomic_write_text
+from pipeline.formats.renders import META
+from pipeline.io.atomic import atomic_outputs, atomic_write_text, read_json
 from stages.artifacts.dvc import write_metrics
-from stages.artifacts.paths import POSE, POSE_REPORT as REPORT, SEED_OFFSET, SURROGATE, TRAIN_LIVE, \
+from stages.artifacts.paths import POSE, POSE_REPORT as REPORT, RENDER, SEED_OFFSET, SURROGATE, TRAIN_LIVE, \
     TRAIN_METRICS as METRICS
 from stages.config.schema import Params
 from stages.errors import StageError
@@ -56,6 +57,7 @@ def main(
     if params.train.compile:
         model = torch.compile(model)  # type: ignore[assignment]
     input_size = (params.render.height, params.render.width)
+    camera = (input_size, read_json(RENDER / META)["K"])   # the training images' camera matrix (pixels), for pose.pt
     best: dict[str, Any] = {}  # the learned loss weights and facts of the best epoch so far
     if rank == 0:
         print(f"train: {len(train_split)} train / {len(val_split)} validation images at {input_size[1]}x{input_size[0]}, "
@@ -72,11 +74,11 @@ def main(
         net = _plain(model)
         net.load_state_dict(result.best_state)
         if surrogate:  # the surrogate only: no metrics, reports or curves
-            save_pose(SURROGATE, net, best["loss"], input_size, best["meta"])
+            save_pose(SURROGATE, net, best["loss"], input_size, best["meta"], K=camera[1])
             print(f"train --surrogate: seed {seed}, best epoch {result.best_epoch} of {len(result.history)}: "
                   f"validation {best['meta']['val_pos_m']:.3f} m -> {SURROGATE}")
         else:
-            _write_results(params, net, best, input_size, result, cfg, device, world,
+            _write_results(params, net, best, camera, result, cfg, device, world,
                            (train_split, train_eval_set), (val_split, val_set))
     if world > 1:
         import torch.distributed as dist
@@ -118,10 +120,11 @@ def _model(params: Params, epochs: int, seed: int) -> tuple[Any, Any]:
         raise StageError(f"params.yaml: bad train section ({e})") from None
 
 
-def _write_results(params: Params, net: Any, best: dict[str, Any], input_size: tuple[int, int], result: Any,
+def _write_results(params: Params, net: Any, best: dict[str, Any], camera: tuple[tuple[int, int], Any], result: Any,
                    cfg: Any, device: Any, world: int, train: tuple[Any, Any], val: tuple[Any, Any]) -> None:
     """Errors of the best checkpoint on the train, validation and test splits (and the always-the-mean-label
-    floor), then models/pose.pt (`net` with the best epoch's loss weights and facts, `best`),
+    floor), then models/pose.pt (`net` with the best epoch's loss weights and facts, `best`, and `camera`:
+    the input size (H, W) and camera matrix K, pixels),
     reports/metrics/train.json, reports/pose.md and dvclive/train/ moved into place together. `train`, `val`:
     (split, its un-augmented dataset). The test split is read here, after training, for the first time:
     the final evaluation."""
@@ -151,20 +154,27 @@ def _write_results(params: Params, net: Any, best: dict[str, Any], input_size: t
     # model, metrics, report and curves move into place together, only now: a crashed, killed or
     # diverged run leaves the previous run's files as they were
     with atomic_outputs(POSE, METRICS, REPORT, dirs=(str(TRAIN_LIVE),)) as (pose, metrics_path, report, live):
-        save_pose(pose, net, best["loss"], input_size, best["meta"])
+        save_pose(pose, net, best["loss"], camera[0], best["meta"], K=camera[1])
         write_metrics(metrics_path, metrics, params.profile_name)
         atomic_write_text(report, pose_page(metrics, params, len(train_split), len(val_split), len(test_split),
                                             str(TRAIN_LIVE)))
-        _log_curves(live, result.history)
+        _log_curves(live, result.history, params)
     print(f"train: best epoch {result.best_epoch}: test {summary['test']['pos_mean_m']:.3f} m, "
           f"{summary['test']['att_mean_deg']:.2f} deg -> {POSE}, {REPORT}, {METRICS}")
 
 
-def _log_curves(folder: Any, history: list[Any]) -> None:
-    """Per-epoch curves of a finished run into a DVCLive folder (for `dvc plots show`)."""
+def _log_curves(folder: Any, history: list[Any], params: Params) -> None:
+    """Per-epoch curves of a finished run and the params it trained with (seed, input size, `train`) into a
+    DVCLive folder (for `dvc plots show`)."""
+    import dataclasses
+    import json
+
     from dvclive import Live
 
     live = Live(dir=str(folder), dvcyaml=False, save_dvc_exp=False, report=None)
+    live.log_params(json.loads(json.dumps({"seed": params.seed, "render": {"width": params.render.width,
+                                                                          "height": params.render.height},
+                                           "train": dataclasses.asdict(params.train)})))
     for stats in history:
         for key in ("loss", "lr", "s_p", "s_r", "train_pos_m", "train_att_deg", "val_pos_m", "val_att_deg",
                     "val_score", "images_per_s"):

@@ -94,17 +94,50 @@ def test_dvc_metrics_show_prints_one_row_of_readable_names(tmp_path):
 # ----------------------------------------------------------------------------- plots
 def test_plots_have_titles_axis_units_and_no_duplicates():
     assert not [s for s, st in DVC_YAML["stages"].items() if "plots" in st], "stage-level plots draw curves twice"
-    curves = []
+    curves, images = [], []
     for entry in DVC_YAML["plots"]:
+        if isinstance(entry, str):            # an image plot: a PNG figure or a folder of them
+            images.append(entry)
+            continue
         (name, plot), = entry.items()
         assert plot.get("title") and plot.get("x_label") and plot.get("y_label"), name
         assert "(" in plot["y_label"] and "(" in plot["x_label"], f"{name}: axis names give units"
         curves += [(path, field) for path, field in plot["y"].items()]
-    assert len(curves) == len(set(curves))
-    for path, _ in curves:
+    assert len(curves) == len(set(curves)) and len(images) == len(set(images))
+    for path in [p for p, _ in curves] + images:
         assert producer(path) is not None, f"{path} is no stage's output"
         assert subprocess.run(["git", "check-ignore", "-q", path], cwd=REPO).returncode == 1, f"{path} is ignored"
     assert subprocess.run(["git", "check-ignore", "-q", "dvc_plots/index.html"], cwd=REPO).returncode == 0
+
+
+def test_every_figure_is_an_image_plot():
+    from stages.artifacts.paths import WRITTEN_BY
+
+    figures = {str(p) for p in WRITTEN_BY if p.suffix == ".png" or p.name == "previews"}
+    assert figures == {e for e in DVC_YAML["plots"] if isinstance(e, str)}
+
+
+def test_the_roc_curves_are_dvclive_sklearn_plots_of_every_detector():
+    """The ROC plot reads what `Live.log_sklearn_plot("roc", ...)` writes for the LSTM and each baseline."""
+    from stages.artifacts.paths import ROC_DATA
+
+    (roc,) = [e["roc"] for e in DVC_YAML["plots"] if isinstance(e, dict) and "roc" in e]
+    detectors = ["lstm", *yaml.safe_load((REPO / "params.yaml").read_text())["detect"]["baselines"]]
+    assert roc["y"] == {str(ROC_DATA / f"{d}.json"): "tpr" for d in detectors} and roc["x"] == "fpr"
+
+
+@pytest.mark.skipif(not DVC.exists(), reason="dvc not installed beside python")
+def test_the_models_are_dvc_model_artifacts():
+    """dvc.yaml's `artifacts` (what DVCLive's log_artifact(type="model") writes) name every model a stage makes."""
+    from dvc.repo import Repo
+
+    from stages.artifacts.paths import DEFENSE, DETECTOR, POSE
+
+    with Repo(str(REPO)) as repo:
+        found = {name: (a.path, a.type) for a in repo.artifacts.read().values() for name, a in a.items()}
+    assert found == {"pose": (str(POSE), "model"), "detector": (str(DETECTOR), "model"),
+                     "defense": (str(DEFENSE), "model")}
+    assert all(producer(path) for path, _ in found.values())
 
 
 # ----------------------------------------------------------------------------- help
@@ -183,19 +216,19 @@ def test_missing_input_names_the_stage_that_writes_it(tmp_path, monkeypatch, loa
 def test_report_refuses_a_missing_figure_input(tmp_path, monkeypatch):
     """Every metrics file and stage report present but no SHAP store: no page, and the message says
     which stage makes it (before, the SHAP figure was silently left out)."""
-    for sub in ("reports/metrics", "reports/plots"):
+    for sub in ("reports/metrics", "dvclive/detect"):
         shutil.copytree(REPO / sub, tmp_path / sub)
     for md in (REPO / "reports").glob("*.md"):
         shutil.copy(md, tmp_path / "reports" / md.name)
     (tmp_path / "reports" / "README.md").unlink()
     (tmp_path / "reports" / "metrics" / "summary.json").unlink()   # committed, written by `rpod report`
-    (tmp_path / "reports" / "plots" / "roc" / "lid.csv").unlink()
+    (tmp_path / "dvclive" / "detect" / "plots" / "sklearn" / "lid.json").unlink()
     shutil.copy(REPO / "params.yaml", tmp_path / "params.yaml")
     monkeypatch.chdir(tmp_path)
     result = CliRunner().invoke(app, ["report"])
     assert result.exit_code != 0 and isinstance(result.exception, StageError)
     message = str(result.exception)
     assert "datasets/shap.zarr: run `dvc repro shap`" in message
-    assert "reports/plots/roc/lid.csv: run `dvc repro detect`" in message
+    assert "dvclive/detect/plots/sklearn/lid.json: run `dvc repro detect`" in message
     assert not (tmp_path / "reports" / "README.md").exists()
     assert not (tmp_path / "reports" / "metrics" / "summary.json").exists()

@@ -11,14 +11,16 @@ import pytest
 import torch
 from PIL import Image
 
+from pipeline.geometry.camera import reference_intrinsics
 from rpodguard import load_chain
 
 H, W = 36, 64   # model input of the tiny checkpoint
+CAMERA = reference_intrinsics().scaled(W, H)
 
 
-@pytest.fixture(scope="module")
-def models(tmp_path_factory) -> Path:
-    """models/pose.pt and models/detector.pt as `rpod train` and `rpod detect` write them (random weights)."""
+def _save_models(folder: Path, K: np.ndarray | None = None) -> Path:
+    """FOLDER/pose.pt and FOLDER/detector.pt as `rpod train` and `rpod detect` write them (random weights; `K`:
+    the camera matrix `rpod train` stores, None for a checkpoint from before it did)."""
     from pipeline.detectors.lstm import LSTMConfig, LSTMDetector, to_checkpoint
     from pipeline.pose.loss import PoseLoss
     from pipeline.pose.model import PoseNet
@@ -27,9 +29,8 @@ def models(tmp_path_factory) -> Path:
     from pipeline.io.checkpoints import save_torch
 
     torch.manual_seed(0)
-    folder = tmp_path_factory.mktemp("run") / "models"
     model = PoseNet(width=0.125).eval()
-    save_pose(folder / "pose.pt", model, PoseLoss(), (H, W), {})
+    save_pose(folder / "pose.pt", model, PoseLoss(), (H, W), {}, K=K)
     with torch.no_grad():
         background = model.forward_features(torch.rand(6, 3, H, W)).mean(0)
     det = LSTMDetector(LSTMConfig(hidden=8, dense=[4])).eval()
@@ -37,6 +38,18 @@ def models(tmp_path_factory) -> Path:
     save_torch(folder / "detector.pt", to_checkpoint(det, {"format": DETECTOR_FORMAT, "background_mean": background,
                                                            "pose_model_hash": file_hash(folder / "pose.pt")}))
     return folder
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory) -> Path:
+    """A run's models/ without a camera matrix in pose.pt (written before it was stored)."""
+    return _save_models(tmp_path_factory.mktemp("run") / "models")
+
+
+@pytest.fixture(scope="module")
+def camera_models(tmp_path_factory) -> Path:
+    """A run's models/ whose pose.pt records its camera (`CAMERA`: the paper's printed K at the input size)."""
+    return _save_models(tmp_path_factory.mktemp("run") / "models", CAMERA.K)
 
 
 def _images(n: int, h: int = H, w: int = W, seed: int = 0) -> np.ndarray:
@@ -161,3 +174,64 @@ def test_image_paths_are_checked_before_the_models_load(tmp_path, monkeypatch, c
     monkeypatch.setattr(rpodguard, "load_chain", lambda *a: pytest.fail("models loaded before the paths were checked"))
     code, out, err = _rpod(monkeypatch, capsys, "predict", str(tmp_path / "typo.png"), "--models", str(tmp_path))
     assert code == 1 and out == "" and err == f"error: {tmp_path / 'typo.png'} not found\n"
+
+
+def test_the_model_camera_is_read_and_another_camera_warns(camera_models):
+    chain = load_chain(camera_models)
+    assert chain.camera == CAMERA
+    image = _images(1, 2 * H, 2 * W)[0]                  # the same camera at twice the resolution: no warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        chain.predict(image, camera=CAMERA.scaled(2 * W, 2 * H).K)
+        chain.predict(image, camera={"Nu": 2 * W, "Nv": 2 * H, "cameraMatrix": CAMERA.scaled(2 * W, 2 * H).K.tolist()})
+    wide = CAMERA.K * [[0.5], [0.5], [1]] + [[0, 0, 0.5 * CAMERA.cx], [0, 0, 0.5 * CAMERA.cy], [0, 0, 0]]
+    with pytest.warns(UserWarning, match=r"array\[0\]: its camera \(fx 42\.7.* ranges come out about 2\.00 times"):
+        chain.predict(_images(1)[0], camera=wide)          # half the focal length: twice the field of view
+    with pytest.warns(UserWarning, match=r"array\[0\] is 64x36 but its camera is given at 128x72"):
+        chain.predict(_images(1)[0], camera={"Nu": 2 * W, "Nv": 2 * H,
+                                             "cameraMatrix": CAMERA.scaled(2 * W, 2 * H).K.tolist()})
+
+
+def test_an_older_checkpoint_without_k_loads_and_says_it_cannot_check(models):
+    chain = load_chain(models)
+    assert chain.camera is None and len(chain.predict(_images(1))) == 1
+    with pytest.warns(UserWarning, match="records no camera matrix") as caught:
+        chain.predict(_images(3), camera=CAMERA.K)
+    assert len(caught) == 1                               # once per call, not per image
+
+
+def test_the_bundled_weights_know_their_camera_from_the_manifest():
+    """The bundle's pose.pt predates the stored K: its manifest's params give the synthetic camera."""
+    from pipeline.geometry.camera import Intrinsics
+    from pipeline.io.atomic import read_json
+    from rpodguard.api import BUNDLE
+    from rpodguard.camera import model_camera
+
+    manifest = read_json(BUNDLE / "manifest.json")
+    c, r = manifest["params"]["camera"], manifest["params"]["render"]
+    got = model_camera({"input_size": [r["height"], r["width"]]}, manifest, BUNDLE / "pose.pt")
+    assert got == Intrinsics(c["ref_width"], c["ref_height"], c["fx"], c["fy"], c["cx"], c["cy"]).scaled(
+        r["width"], r["height"])
+    imported = {**manifest, "params": {**manifest["params"], "render": {**r, "source": "/data/speedplus"}}}
+    assert model_camera({"input_size": [r["height"], r["width"]]}, imported, BUNDLE / "pose.pt") is None
+
+
+def test_cli_camera_mismatch_warns_and_a_bad_camera_file_stops_first(camera_models, tmp_path, monkeypatch, capsys):
+    image = _png(tmp_path / "a.png", _images(1)[0])
+    other = tmp_path / "camera.json"
+    other.write_text(json.dumps({"Nu": W, "Nv": H, "cameraMatrix": (CAMERA.K * [[2], [1], [1]]).tolist()}))
+    code, out, err = _rpod(monkeypatch, capsys, "predict", str(image), "--camera", str(other), "--models",
+                           str(camera_models))
+    assert code == 0 and "a.png" in out and err.count("\n") == 1 and "ranges come out about 0.50 times" in err
+    same = tmp_path / "same.json"
+    same.write_text(json.dumps({"Nu": W, "Nv": H, "cameraMatrix": CAMERA.K.tolist()}))
+    code, _, err = _rpod(monkeypatch, capsys, "predict", str(image), "--camera", str(same), "--models",
+                         str(camera_models))
+    assert code == 0 and err == ""
+    import rpodguard
+
+    monkeypatch.setattr(rpodguard, "load_chain", lambda *a: pytest.fail("models loaded before the camera was checked"))
+    (tmp_path / "bad.json").write_text(json.dumps({"cameraMatrix": CAMERA.K.tolist()}))
+    for path, named in ((tmp_path / "bad.json", "bad.json: missing key 'Nu'"), (tmp_path / "none.json", "not found")):
+        code, out, err = _rpod(monkeypatch, capsys, "predict", str(image), "--camera", str(path))
+        assert code == 1 and out == "" and err.count("\n") == 1 and named in err, err

@@ -41,9 +41,9 @@ GUIDANCE_REPORT, GUIDANCE_FIGURE, GUIDANCE_DEFENDED_FIGURE, GUIDANCE_METRICS = _
     "guidance", "reports/guidance.md", "reports/figures/guidance_trajectories.png",
     "reports/figures/guidance_defended.png", "reports/metrics/guidance.json")
 (SHAP,) = _outputs("shap", "datasets/shap.zarr")
-DETECTOR, DETECT_REPORT, DETECT_METRICS, DETECT_LIVE, ROC_DIR = _outputs(
-    "detect", "models/detector.pt", "reports/detector.md", "reports/metrics/detect.json", "dvclive/detect",
-    "reports/plots/roc")
+DETECTOR, DETECT_REPORT, DETECT_METRICS, DETECT_LIVE = _outputs(
+    "detect", "models/detector.pt", "reports/detector.md", "reports/metrics/detect.json", "dvclive/detect")
+ROC_DATA = DETECT_LIVE / "plots" / "sklearn"   # DVCLive's log_sklearn_plot("roc", name=D): D.json per detector
 EVAL_RENDER, VAL_RENDER = _outputs("eval_render", "datasets/eval_render", "datasets/val_render")
 (DEFENSE,) = _outputs("calibrate", "models/defense.json")
 EVALUATE_REPORT, EVALUATE_FIGURE, EVALUATE_METRICS = _outputs(

@@ -112,5 +112,5 @@ The SHAP signature therefore carries the same information as the GAP features, w
 each feature moves each output; the SHAP detectors and the GAP-feature baselines differ in the model
 they fit, not in what they can know.
 
-ROC curves: `dvc plots show` (reports/plots/roc/). Training curves: dvclive/detect/.
+ROC curves and training curves: `dvc plots show` (DVCLive data in dvclive/detect/).
 """
