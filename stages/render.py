@@ -4,10 +4,14 @@ SPEED/SPEED+ folder of `render.source`: stages/artifacts/speed.py, pipeline/form
 Writes datasets/render/{images.zarr, poses.parquet, meta.json} in one atomic step, plus PNG
 previews in reports/figures/previews/. The frames' chunks fan out over `engine.workers` workers (Ray
 actors, each with one Blender scene; a Ray cluster via `engine.address` or $RAY_ADDRESS) that write
-straight into one store: datasets/render/images.zarr, or `engine.store` (a folder or fsspec URL).
+straight into one store: datasets/render/images.zarr, or in the shared folder or fsspec URL `engine.store`
+the store of this render's params fingerprint, render-<fingerprint>.zarr (written beside it and swapped in
+when complete, so a failed or refused render leaves the previous one; a local one is locked while written).
+Two renders into one checkout are refused too: datasets/.render.lock.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import shutil
 from pathlib import Path
@@ -22,8 +26,8 @@ from stages.artifacts.readers import read_render_store
 from stages.config import params as params_mod
 from stages.config.build import engine_settings, intrinsics, scene_settings
 from stages.config.schema import Params
-from stages.engine.chunks import render_to_store, store_url
-from pipeline.io.atomic import atomic_dir, remove_stale_temps, write_json
+from stages.engine.chunks import keyed_store, render_to_store, replacing, store_url
+from pipeline.io.atomic import atomic_dir, exclusive, remove_stale_temps, write_json
 from pipeline.io.tables import write_parquet
 from stages.errors import StageError
 
@@ -50,20 +54,22 @@ def frames(p: Params) -> tuple[Any, Any, Any, Any]:
 
 
 def render_all(p: Params, dest: Path) -> None:
-    """Render every frame into dest/{poses.parquet, meta.json} and the image store (dest/images.zarr,
-    or `engine.store`, which meta.json then names); `dest` is a fresh folder."""
+    """Render every frame into dest/{poses.parquet, meta.json} and the image store (dest/images.zarr, or
+    `engine.store`'s store for this fingerprint, which meta.json then names); `dest` is a fresh folder."""
     from pipeline.geometry.trajectories import poses_table
 
     r, es, store = p.render, engine_settings(p), p.engine.store
     K, scene = intrinsics(p), scene_settings(r)
     seq, frm, R, t = frames(p)
-    url = store_url(store or dest / "images.zarr")
-    seconds = render_to_store(url, K, scene, R, t, r.chunk, es, "render",
-                              empty_hint="check render.mesh and render.mesh_scale (metres per mesh unit)")
+    fp = params_mod.render_fingerprint(p)
+    url = keyed_store(store, fp) if store else store_url(dest / "images.zarr")
+    with replacing(url) if store else contextlib.nullcontext(url) as target:
+        seconds = render_to_store(target, K, scene, R, t, r.chunk, es, "render", fingerprint=fp,
+                                  empty_hint="check render.mesh and render.mesh_scale (metres per mesh unit)")
     n = len(t)
     write_parquet(poses_table(np.arange(n), seq, frm, R, t), dest / "poses.parquet")
     write_json(dest / "meta.json", {
-        "complete": True, "fingerprint": params_mod.render_fingerprint(p), "frames": n, "width": K.width,
+        "complete": True, "fingerprint": fp, "frames": n, "width": K.width,
         "height": K.height, "K": K.K, "render": dataclasses.asdict(r), "camera": dataclasses.asdict(p.camera),
         "seed": p.seed, "seconds": seconds, "seconds_per_image": seconds / max(n, 1), "chunk": r.chunk, "workers": es.workers,
         **({"store": url} if store else {})})
@@ -104,12 +110,13 @@ def main(params: Params) -> None:
     and PNG previews to reports/figures/previews/. Parameters: `seed`, `camera`, `render` and `engine`
     (workers, Ray cluster address, image store) in params.yaml.
     """
-    if params_mod.given(params.render.source):   # a SPEED/SPEED+ folder instead of rendering
-        speed_io.import_source(params, OUT)
-    else:
-        remove_leftovers(OUT)
-        with atomic_dir(OUT) as tmp:
-            render_all(params, tmp)
+    with exclusive(OUT.parent / ".render.lock", str(OUT)):
+        if params_mod.given(params.render.source):   # a SPEED/SPEED+ folder instead of rendering
+            speed_io.import_source(params, OUT)
+        else:
+            remove_leftovers(OUT)
+            with atomic_dir(OUT) as tmp:
+                render_all(params, tmp)
     images, poses, meta = read_render_store(OUT)
     previews = write_previews(images, poses, params.render.previews)
     typer.echo(f"{OUT}: {meta['frames']} images {meta['width']}x{meta['height']}, "

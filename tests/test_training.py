@@ -54,12 +54,13 @@ def write_dataset(root: Path, n: int = 40, width: int = W, height: int = H, seed
                            **pose_columns(t, matrix_to_quat(R), r6),
                            "range": np.linalg.norm(t, axis=1),
                            "split": np.where(np.arange(n) % 5 == 0, "test", "train")})
-    labels.to_parquet(root / "datasets/labels.parquet")
     params = params_mod.compose("smoke", [f"render.width={width}", f"render.height={height}", *(overrides or [])])
     params_mod.write_params(params, root / "params.yaml")
     typed = build(params)
     write_json(root / "datasets/render/meta.json", {"complete": True, "frames": n, "K": K.K,
                                                     "fingerprint": params_mod.render_fingerprint(typed)})
+    labels.attrs[data.RENDER_KEY] = params_mod.render_fingerprint(typed)   # as `rpod label` records it
+    labels.to_parquet(root / "datasets/labels.parquet")
     return typed
 
 
