@@ -216,8 +216,12 @@ def test_missing_input_names_the_stage_that_writes_it(tmp_path, monkeypatch, loa
 def test_report_refuses_a_missing_figure_input(tmp_path, monkeypatch):
     """Every metrics file and stage report present but no SHAP store: no page, and the message says
     which stage makes it (before, the SHAP figure was silently left out)."""
-    for sub in ("reports/metrics", "dvclive/detect"):
-        shutil.copytree(REPO / sub, tmp_path / sub)
+    from stages.artifacts.paths import ROC_DATA
+
+    shutil.copytree(REPO / "reports/metrics", tmp_path / "reports/metrics")
+    for name in _committed_metrics()["detect"]["detectors"]:      # DVCLive's ROC data, as `rpod detect` writes it
+        (tmp_path / ROC_DATA).mkdir(parents=True, exist_ok=True)
+        (tmp_path / ROC_DATA / f"{name}.json").write_text('{"roc": [{"fpr": 0, "tpr": 0, "threshold": 1}]}')
     for md in (REPO / "reports").glob("*.md"):
         shutil.copy(md, tmp_path / "reports" / md.name)
     (tmp_path / "reports" / "README.md").unlink()
