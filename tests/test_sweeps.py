@@ -65,8 +65,8 @@ def test_a_sweep_keeps_the_profile_rpod_params_chose(repo):
 
 def test_a_dry_sweep_says_it_keeps_the_profile(repo):
     """`rpod params smoke && dvc exp run -S train.epochs=2 --dry` shows the smoke profile it composes (issue 29).
-    `-f`: in a checkout without the outputs, DVC's dry run stops at the first stage whose input is missing
-    (treeverse/dvc#9818); forced, it lists every stage."""
+    `-f`: DVC runs a dry experiment in a temporary copy without the outputs, where its dry run stops at the first
+    stage whose input is missing (treeverse/dvc#9818); forced, it lists every stage."""
     cwd, env = repo
     assert _rpod_params(cwd, env, "smoke").returncode == 0
     dvc = _run([str(DVC), "exp", "run", "--dry", "-f", "-S", "train.epochs=2"], cwd, env)
