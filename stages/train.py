@@ -21,9 +21,9 @@ from typing import Annotated, Any
 import typer
 
 from pipeline.formats.renders import META
-from pipeline.io.atomic import atomic_outputs, atomic_write_text, read_json
+from pipeline.io.atomic import atomic_outputs, atomic_write_text, file_hash, read_json
 from stages.artifacts.dvc import write_metrics
-from stages.artifacts.paths import POSE, POSE_REPORT as REPORT, RENDER, SEED_OFFSET, SURROGATE, TRAIN_LIVE, \
+from stages.artifacts.paths import LABELS, POSE, POSE_REPORT as REPORT, RENDER, SEED_OFFSET, SURROGATE, TRAIN_LIVE, \
     TRAIN_METRICS as METRICS
 from stages.config.schema import Params
 from stages.errors import StageError
@@ -57,7 +57,8 @@ def main(
     if params.train.compile:
         model = torch.compile(model)  # type: ignore[assignment]
     input_size = (params.render.height, params.render.width)
-    camera = (input_size, read_json(RENDER / META)["K"])   # the training images' camera matrix (pixels), for pose.pt
+    # for pose.pt: the training images' camera matrix (pixels) and the label table's hash (what readers check)
+    made_from = {"K": read_json(RENDER / META)["K"], "labels_hash": file_hash(LABELS)}
     best: dict[str, Any] = {}  # the learned loss weights and facts of the best epoch so far
     if rank == 0:
         print(f"train: {len(train_split)} train / {len(val_split)} validation images at {input_size[1]}x{input_size[0]}, "
@@ -74,11 +75,11 @@ def main(
         net = _plain(model)
         net.load_state_dict(result.best_state)
         if surrogate:  # the surrogate only: no metrics, reports or curves
-            save_pose(SURROGATE, net, best["loss"], input_size, best["meta"], K=camera[1])
+            save_pose(SURROGATE, net, best["loss"], input_size, best["meta"], **made_from)
             print(f"train --surrogate: seed {seed}, best epoch {result.best_epoch} of {len(result.history)}: "
                   f"validation {best['meta']['val_pos_m']:.3f} m -> {SURROGATE}")
         else:
-            _write_results(params, net, best, camera, result, cfg, device, world,
+            _write_results(params, net, best, (input_size, made_from), result, cfg, device, world,
                            (train_split, train_eval_set), (val_split, val_set))
     if world > 1:
         import torch.distributed as dist
@@ -120,11 +121,11 @@ def _model(params: Params, epochs: int, seed: int) -> tuple[Any, Any]:
         raise StageError(f"params.yaml: bad train section ({e})") from None
 
 
-def _write_results(params: Params, net: Any, best: dict[str, Any], camera: tuple[tuple[int, int], Any], result: Any,
+def _write_results(params: Params, net: Any, best: dict[str, Any], shape: tuple[tuple[int, int], Any], result: Any,
                    cfg: Any, device: Any, world: int, train: tuple[Any, Any], val: tuple[Any, Any]) -> None:
     """Errors of the best checkpoint on the train, validation and test splits (and the always-the-mean-label
-    floor), then models/pose.pt (`net` with the best epoch's loss weights and facts, `best`, and `camera`:
-    the input size (H, W) and camera matrix K, pixels),
+    floor), then models/pose.pt (`net` with the best epoch's loss weights and facts, `best`, and `shape`:
+    the input size (H, W) pixels and save_pose's K and labels_hash),
     reports/metrics/train.json, reports/pose.md and dvclive/train/ moved into place together. `train`, `val`:
     (split, its un-augmented dataset). The test split is read here, after training, for the first time:
     the final evaluation."""
@@ -154,7 +155,7 @@ def _write_results(params: Params, net: Any, best: dict[str, Any], camera: tuple
     # model, metrics, report and curves move into place together, only now: a crashed, killed or
     # diverged run leaves the previous run's files as they were
     with atomic_outputs(POSE, METRICS, REPORT, dirs=(str(TRAIN_LIVE),)) as (pose, metrics_path, report, live):
-        save_pose(pose, net, best["loss"], camera[0], best["meta"], K=camera[1])
+        save_pose(pose, net, best["loss"], shape[0], best["meta"], **shape[1])
         write_metrics(metrics_path, metrics, params.profile_name)
         atomic_write_text(report, pose_page(metrics, params, len(train_split), len(val_split), len(test_split),
                                             str(TRAIN_LIVE)))

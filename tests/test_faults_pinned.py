@@ -1,5 +1,6 @@
 """Issue 30, item 2: every artifact pinned to what it was made from. labels.parquet records the render it
-labels (train and export refuse labels of another render); a shared `engine.store` keeps one store per
+labels (train and export refuse labels of another render), pose.pt the labels it was trained on (every stage
+loading it checks them); a shared `engine.store` keeps one store per
 render fingerprint, which the store itself records and readers check; a refused or failed render leaves
 the previous store; a second writer gets one line. Item 6: each array's zarr.json and the root's attributes
 are in the checksum manifest."""
@@ -67,6 +68,26 @@ def test_labels_of_another_render_are_refused_by_train_and_export(workdir, capsy
     result = CliRunner().invoke(app, ["export", "speed", str(workdir / "out")])
     assert result.exit_code == 1 and not (workdir / "out").exists()
     assert "labels another render" in str(result.exception)
+
+
+def test_a_model_trained_on_other_labels_is_refused(workdir):
+    """pose.pt records the label table's hash: relabelling (another test split) after training stops every stage
+    that loads the model, instead of attacking or evaluating it on frames it was trained on."""
+    import pandas as pd
+
+    from stages import train
+    from stages.artifacts.models import load_pose
+    from tests.test_training import write_dataset
+
+    write_dataset(workdir)
+    train.main(load())
+    assert load_pose(load()).meta["epoch"] >= 0
+    df = pd.read_parquet("datasets/labels.parquet")
+    df.loc[df.index[0], "split"] = "test" if df.loc[df.index[0], "split"] == "train" else "train"
+    df.to_parquet("datasets/labels.parquet")
+    with pytest.raises(StageError, match=r"pose checkpoint models/pose.pt was trained on another "
+                                         r"datasets/labels.parquet \(relabelled since\); re-run `rpod train`"):
+        load_pose(load())
 
 
 def _poses_from_labels(root: Path) -> None:

@@ -18,7 +18,7 @@ from pipeline.geometry.camera import reference_intrinsics
 from pipeline.geometry.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
 from pipeline.pose.labels import pose_columns
 from stages.artifacts import data, models
-from pipeline.io.atomic import write_json
+from pipeline.io.atomic import file_hash, write_json
 from pipeline.io.errors import DataError
 from pipeline.io.store import create_array, seal_zarr
 from stages.artifacts.paths import POSE
@@ -176,6 +176,7 @@ def test_train_stage_writes_checkpoint_report_and_metrics(dataset):
     model = models.load_pose_model(POSE, params_mod.load())
     assert model(torch.rand(1, 3, H, W)).shape == (1, 9)
     assert read_pose(POSE)["K"] == reference_intrinsics().scaled(W, H).K.tolist()   # the training images' camera
+    assert read_pose(POSE)["labels_hash"] == file_hash("datasets/labels.parquet")     # and their labels
     assert Path("dvclive/train/plots/metrics/val_pos_m.tsv").exists()
     logged = yaml.safe_load(Path("dvclive/train/params.yaml").read_text())          # DVCLive's log_params
     assert logged["train"]["epochs"] == dataset.train.epochs and logged["render"] == {"width": W, "height": H}

@@ -9,7 +9,7 @@ from typing import Any
 
 from pipeline.formats.models import loss_from_checkpoint, model_from_checkpoint, read_pose
 from pipeline.io.atomic import file_hash, read_json
-from stages.artifacts.paths import DEFENSE, DETECTOR, POSE
+from stages.artifacts.paths import DEFENSE, DETECTOR, LABELS, POSE
 from stages.config.build import defense_settings
 from stages.config.schema import Params
 from stages.errors import StageError
@@ -24,7 +24,8 @@ def expected(params: Params) -> dict[str, Any]:
 
 
 def read_checked(path: Path | str = POSE, params: Params | None = None) -> dict[str, Any]:
-    """A pose checkpoint dict (`read_pose`); with params, refuse an architecture/input-size mismatch."""
+    """A pose checkpoint dict (`read_pose`); with params, refuse an architecture/input-size mismatch and a
+    model trained on another datasets/labels.parquet than the one there (its recorded hash)."""
     path = Path(path)
     ckpt = read_pose(path)
     if params is not None:
@@ -36,6 +37,9 @@ def read_checked(path: Path | str = POSE, params: Params | None = None) -> dict[
         if diffs:
             raise StageError(f"pose checkpoint {path} does not match params.yaml: {', '.join(diffs)}; "
                              f"re-run `rpod train` or restore the params it was trained with")
+        if "labels_hash" in ckpt and LABELS.exists() and file_hash(LABELS) != ckpt["labels_hash"]:
+            raise StageError(f"pose checkpoint {path} was trained on another {LABELS} (relabelled since); "
+                             f"re-run `rpod train`")
     return ckpt
 
 
