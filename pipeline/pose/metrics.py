@@ -40,10 +40,10 @@ def speed_score(pred: np.ndarray, target: np.ndarray) -> float:
 
 def summarize_errors(pred: np.ndarray, target: np.ndarray, ranges: np.ndarray,
                      bins: Sequence[float]) -> dict[str, Any]:
-    """Error statistics of (N, 9) predictions: position (m) and attitude (deg) mean/median, mean |tz|
-    error as % of range, mean lateral error sqrt(dx^2 + dy^2) (m) at ranges 10-30 m, and the same
-    per range bin (`bins`: edges in metres, any order; a bin is (low, high], the lowest edge included;
-    ranges outside the edges get their own open bins)."""
+    """Error statistics of (N, 9) predictions: position (m) and attitude (deg) mean/median, the SPEED score
+    (`speed_score`), mean |tz| error as % of range, mean lateral error sqrt(dx^2 + dy^2) (m) at ranges
+    10-30 m, and the same (but the score) per range bin (`bins`: edges in metres, any order; a bin is
+    (low, high], the lowest edge included; ranges outside the edges get their own open bins)."""
     pos, att = pose_errors(pred, target)
     pred, target, ranges = np.asarray(pred, np.float64), np.asarray(target, np.float64), np.asarray(ranges, np.float64)
     tz_pct = 100 * np.abs(pred[:, 2] - target[:, 2]) / ranges
@@ -67,6 +67,7 @@ def summarize_errors(pred: np.ndarray, target: np.ndarray, ranges: np.ndarray,
     if (ranges > edges[-1]).any():  # range = ||t||: lateral offsets put the start beyond the last edge
         per_bin.append({"range_m": f">{edges[-1]:g}", **stats(ranges > edges[-1])})
     out = stats(np.ones(len(pos), bool))
+    out["speed_score"] = speed_score(pred, target)
     out["lateral_10_30_m"] = float(lateral[near].mean()) if near.any() else float("nan")
     out["tz_pct_10_30"] = float(tz_pct[near].mean()) if near.any() else float("nan")
     out["bins"] = per_bin[::-1]

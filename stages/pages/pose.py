@@ -17,14 +17,16 @@ def pose_page(m: dict[str, Any], params: Params, n_train: int, n_val: int, n_tes
     p, r = params.train, params.render
     rows = [{"split": s, "images": m[s]["n"], "position mean (m)": m[s]["pos_mean_m"],
              "position median (m)": m[s]["pos_median_m"], "attitude mean (deg)": m[s]["att_mean_deg"],
-             "attitude median (deg)": m[s]["att_median_deg"]} for s in ("train", "val", "test")]
+             "attitude median (deg)": m[s]["att_median_deg"], "SPEED score": m[s].get("speed_score", "-")}
+            for s in ("train", "val", "test")]
     b = m["test_mean_baseline"]
     rows.append({"split": "test, always the mean training label (baseline)", "images": b["n"],
                  "position mean (m)": b["pos_mean_m"], "position median (m)": b["pos_median_m"],
-                 "attitude mean (deg)": b["att_mean_deg"], "attitude median (deg)": b["att_median_deg"]})
+                 "attitude mean (deg)": b["att_mean_deg"], "attitude median (deg)": b["att_median_deg"],
+                 "SPEED score": b.get("speed_score", "-")})
     rows.append({"split": "paper, test (480x270, full width, 50 epochs)", "images": "6,500 of 32,500",
                  "position mean (m)": POSITION_M, "position median (m)": "-",
-                 "attitude mean (deg)": ATTITUDE_DEG, "attitude median (deg)": "-"})
+                 "attitude mean (deg)": ATTITUDE_DEG, "attitude median (deg)": "-", "SPEED score": "-"})
     bins = [{"split": s, "range (m)": b["range_m"], "images": b["n"], "position mean (m)": b.get("pos_mean_m"),
              "attitude mean (deg)": b.get("att_mean_deg"), "|tz| error (% of range)": b.get("tz_pct_range"),
              "lateral error (m)": b.get("lateral_m")} for s in ("train", "test") for b in m[s]["bins"]]
@@ -43,7 +45,8 @@ validation SPEED score ({m['val_score']:.4f}); the test split was read only afte
 that checkpoint. Training time and speed: reports/metrics/train.json.
 
 Errors: position ||t_pred - t_gt|| (m), attitude 2 acos(|<q_pred, q_gt>|) (deg), all three splits evaluated
-with the best checkpoint in eval mode (no augmentation).
+with the best checkpoint in eval mode (no augmentation). SPEED score: the ESA pose competition's mean of
+||t_pred - t_gt|| / ||t_gt|| plus the mean attitude error in radians (lower is better).
 
 {markdown_table(rows, decimals=3)}
 The split is per frame (label.test_fraction), so test frames lie between training frames of the same
