@@ -142,8 +142,9 @@ def test_rpod_pins_torch_before_it_loads():
              "print(torch.backends.cpu.get_cpu_capability(), os.environ['ONEDNN_MAX_CPU_ISA'], os.environ['MKL_CBWR'])")
     env = {k: v for k, v in os.environ.items() if k not in ("ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA", "MKL_CBWR",
                                                             ISA_ENV)}
-    out = subprocess.run([sys.executable, "-c", probe], env={**env, "PYTHONPATH": str(REPO), "ONEDNN_MAX_CPU_ISA": "SSE41"},
-                         capture_output=True, text=True, check=True, cwd=REPO).stdout.split()
+    env.update({"PYTHONPATH": str(REPO), "ONEDNN_MAX_CPU_ISA": "SSE41"})   # one the user set: kept
+    out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=True,
+                         cwd=REPO).stdout.split()
     assert out == ["AVX2", "SSE41", "AVX2"]
 
 
@@ -170,4 +171,4 @@ def test_trajectory_renders_keep_timings_out_of_meta_json(tmp_path, monkeypatch)
     assert not {"seconds", "seconds_per_image", "workers"} & set(meta)
     assert meta["frames"] == params_mod.detector_trajectories(p) * p.shap.frames >= p.shap.normal
     timing = json.loads((tmp_path / "reports/metrics/detect_render.json").read_text())
-    assert timing["sets"]["detect_render"]["seconds"] == 1.5 and timing["cpu_isa"]
+    assert timing["sets"]["detect_render"]["seconds"] == 1.5 and timing["cpu_isa"]["cap"] == isa_label()

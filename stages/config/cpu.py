@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import os
 import platform
+import sys
 from collections.abc import MutableMapping
 
 ISA_ENV = "RPOD_CPU_ISA"
@@ -51,3 +52,11 @@ def isa_label(environ: MutableMapping[str, str] = os.environ) -> str:
         if given == pins:
             return cap
     return ",".join(f"{k}={v}" for k, v in given.items())
+
+
+def isa_stamp() -> dict[str, str | None]:
+    """The `cpu_isa` stamp of every reports/metrics/*.json: the cap (`isa_label`) and the kernels torch's
+    ATen runs ("AVX2", "AVX512", ...; None in a process that never loaded torch)."""
+    torch = sys.modules.get("torch")
+    kernels = torch.backends.cpu.get_cpu_capability() if torch is not None else None
+    return {"cap": isa_label(), "kernels": kernels}

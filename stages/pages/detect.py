@@ -94,8 +94,8 @@ of the {alarms['trajectories']} clean evaluation trajectories (`datasets/eval_re
 run through the onboard chain (pose -> exact SHAP -> LSTM; no motion filter): it flags
 **{alarms['false_alarms']} of {alarms['frames']} frames, {percent_ci(alarms['rate'], alarms['rate_ci95'], 2)}%**
 (Wilson interval over frames, optimistic: frames of one trajectory are correlated; per trajectory:
-{per}). The shipped chain's detector threshold is chosen on clean validation trajectories instead
-(`rpod calibrate`, models/defense.json); this row is the paper's detector as it was built.
+{per}). This is the paper's detector as it was built; the shipped chain reads its detector threshold
+from models/defense.json (`rpod calibrate`, clean validation trajectories).
 """
 
 
