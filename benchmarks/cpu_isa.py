@@ -6,8 +6,8 @@ native (`RPOD_CPU_ISA=native`: torch's own choice), each pin alone (`ATEN_CPU_CA
 `ONEDNN_MAX_CPU_ISA=AVX2`, `MKL_CBWR=AVX2`), and all three (what `rpod` sets by default,
 stages/config/cpu.py).
 - Speed: training images/s of the default pose network (train.width at render.width x height, batch
-  train.batch_size, random images; benchmarks/train_speed.py) and the pose forward of one image (ms),
-  each the median over --rounds rounds in which the configurations take turns.
+  train.batch_size, random images) and the pose forward of one image: the process's CPU time (all
+  threads) and wall time, medians over --rounds rounds in which the configurations take turns.
 - Same result: `rpod train` for --epochs epochs on the rendered default data (datasets/render and
   datasets/labels.parquet of --data), twice capped and twice native: are the weights bit-identical run
   to run, and how far apart are capped and native (largest weight difference, validation/test errors).
@@ -59,30 +59,49 @@ def probe(kind: str, pins: dict[str, str], *extra: str) -> dict[str, Any]:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def speed_probe() -> dict[str, Any]:
-    """(in a probe process) training images/s and the 1-image forward (ms) of the default pose network."""
+def speed_probe(batches: int) -> dict[str, Any]:
+    """(in a probe process) the default pose network: a training step (forward, backward, Adam; batch
+    train.batch_size, random images) and the forward of one image, each timed `batches` x (and 4x as
+    many forwards) after warm-ups: medians of wall time and of the process's CPU time (all threads; the
+    figure other processes on the machine disturb least)."""
     import torch
 
+    from pipeline.pose.loss import PoseLoss
     from pipeline.pose.model import PoseNet
     from stages.config import params as params_mod
-    from train_speed import throughput
 
     p = params_mod.load(ROOT / "params.yaml")
     torch.set_num_threads(p.threads or os.cpu_count() or 1)
-    c0 = time.process_time()
-    train_ips, _ = throughput(float(p.train.width), p.render.height, p.render.width, p.train.batch_size, 5)
     torch.manual_seed(0)
-    model = PoseNet(float(p.train.width)).eval().to(memory_format=torch.channels_last)
-    x = torch.rand(1, 3, p.render.height, p.render.width).contiguous(memory_format=torch.channels_last)
-    times = []
+    h, w, b = p.render.height, p.render.width, p.train.batch_size
+    model, loss = PoseNet(float(p.train.width)).to(memory_format=torch.channels_last), PoseLoss()
+    opt = torch.optim.Adam([*model.parameters(), *loss.parameters()], lr=1e-4)
+    x, y = torch.rand(b, 3, h, w).contiguous(memory_format=torch.channels_last), torch.rand(b, 9)
+
+    def step() -> None:
+        opt.zero_grad()
+        loss(model(x), y).backward()
+        opt.step()
+
+    train = _timed(step, batches)
+    model.eval()
+    one = x[:1].contiguous(memory_format=torch.channels_last)
     with torch.inference_mode():
-        for i in range(41):
-            t0 = time.perf_counter()
-            model(x)
-            if i:
-                times.append(time.perf_counter() - t0)
-    return {"train_ips": train_ips, "forward_ms": 1000 * statistics.median(times),
-            "cpu_s": time.process_time() - c0, "kernels": torch.backends.cpu.get_cpu_capability()}
+        forward = _timed(lambda: model(one), 4 * batches)
+    return {"train_ips": b / train[0], "train_cpu_ms": 1000 * train[1] / b, "forward_ms": 1000 * forward[0],
+            "forward_cpu_ms": 1000 * forward[1], "kernels": torch.backends.cpu.get_cpu_capability()}
+
+
+def _timed(call: Any, n: int) -> tuple[float, float]:
+    """(median wall s, median process CPU s) of `n` calls after two warm-up calls."""
+    call(), call()
+    wall, cpu = [], []
+    for _ in range(n):
+        t0, c0 = time.perf_counter(), time.process_time()
+        call()
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return statistics.median(wall), statistics.median(cpu)
 
 
 def render_probe(frames: int) -> dict[str, Any]:
@@ -144,28 +163,32 @@ def train_runs(data: Path, epochs: int, work: Path) -> list[dict[str, Any]]:
 
 
 def weight_gap(a: Path, b: Path) -> tuple[bool, float]:
-    """(bit-identical, largest absolute difference) of two pose checkpoints' weights."""
+    """(bit-identical, largest difference relative to the tensor's largest magnitude) of two pose
+    checkpoints' weights and buffers."""
     import torch
 
     wa, wb = (torch.load(x, weights_only=True)["model"] for x in (a, b))
-    gap = max(float((wa[k].double() - wb[k].double()).abs().max()) if wa[k].numel() else 0.0 for k in wa)
+    gap = max(float((wa[k].double() - wb[k].double()).abs().max() / max(float(wa[k].double().abs().max()), 1e-12))
+              for k in wa if wa[k].numel())
     return all(torch.equal(wa[k], wb[k]) for k in wa), gap
 
 
-def speed_table(rounds: int) -> list[dict[str, Any]]:
+def speed_table(rounds: int, batches: int) -> list[dict[str, Any]]:
     """The configurations' speed, interleaved over `rounds` rounds (medians), relative to native."""
     seen: dict[str, list[dict[str, Any]]] = {name: [] for name in CONFIGS}
     for r in range(rounds):
         for name, pins in CONFIGS.items():
-            seen[name].append(probe("speed", pins))
+            seen[name].append(probe("speed", pins, "--batches", str(batches)))
             print(f"round {r + 1}: {name}: {seen[name][-1]}", flush=True)
-    med = {name: {k: statistics.median(x[k] for x in v) for k in ("train_ips", "forward_ms")}
-           for name, v in seen.items()}
+    keys = ("train_ips", "train_cpu_ms", "forward_ms", "forward_cpu_ms")
+    med = {name: {k: statistics.median(x[k] for x in v) for k in keys} for name, v in seen.items()}
     base = med["native"]
     return [{"configuration": name, "torch kernels": seen[name][0]["kernels"],
-             "training images/s": m["train_ips"], "vs native": m["train_ips"] / base["train_ips"],
-             "pose forward, 1 image (ms)": m["forward_ms"], "forward vs native": m["forward_ms"] / base["forward_ms"]}
-            for name, m in med.items()]
+             "training CPU ms/image": m["train_cpu_ms"],
+             "training cost vs native": m["train_cpu_ms"] / base["train_cpu_ms"],
+             "training images/s (wall)": m["train_ips"], "forward CPU ms": m["forward_cpu_ms"],
+             "forward cost vs native": m["forward_cpu_ms"] / base["forward_cpu_ms"],
+             "forward ms (wall)": m["forward_ms"]} for name, m in med.items()]
 
 
 def train_table(runs: list[dict[str, Any]]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
@@ -186,23 +209,32 @@ def write(speed: list[dict[str, Any]], train: tuple[list[dict[str, Any]], dict[s
     from stages.report import write_benchmark
 
     rows, same = train
-    verdict = "; ".join(f"{k}: {'bit-identical' if eq else f'differ (largest weight difference {gap:.2e})'}"
+    verdict = "; ".join(f"{k}: {'bit-identical' if eq else f'differ (largest relative weight difference {gap:.1e})'}"
                         for k, (eq, gap) in same.items())
+    capped = speed[-1]
+    cost = (f"Capping all three costs {100 * (capped['training cost vs native'] - 1):+.0f}% CPU time per training "
+            f"image and {100 * (capped['forward cost vs native'] - 1):+.0f}% per 1-image forward here.")
     rrows = [{"Cycles setting": k, "images/s": v["images_per_s"], "CPU ms/image (all threads)": v["cpu_ms"],
               "pixels (sha256 of all frames)": v["pixels"]} for k, v in render.items()]
     body = f"""`benchmarks/cpu_isa.py` on {platform.processor() or platform.machine()}, {os.cpu_count()} cores; load
 average {load[0]:.1f} at the start, {load[1]:.1f} at the end (other processes were not stopped: the
-configurations take turns, {args.rounds} rounds, medians). `rpod` caps torch's CPU kernels at AVX2
+configurations take turns, {args.rounds} rounds, medians; the CPU-time columns, all threads of the
+process, are the ones other processes disturb least, the wall-clock ones are as measured). `rpod` caps
+torch's CPU kernels at AVX2
 (stages/config/cpu.py; `RPOD_CPU_ISA=native` lifts the cap) so that a seed trains the same pose model on
 machines with and without AVX-512 (issue 27: another model, then another detector verdict, on an AVX2 machine).
 
 {markdown_table(speed, decimals=3)}
+{cost}
+
 `rpod train`, {args.epochs} epochs of the default recipe on the rendered default data, capped (AVX2)
 and native, twice each: {verdict}.
 
 {markdown_table(rows, decimals=3)}
 Cycles (the renders): its CPU kernels are SSE4.2 and AVX2 only, and it takes AVX2 on any CPU that has
-it, so it needs no pin; {args.frames} frames of the approach sequences at the default settings:
+it, so it needs no pin; {args.frames} frames of the approach sequences at the default settings. The SSE4.2
+row sets Cycles' debug flag (`debug_use_cpu_avx2` off, with the debug preferences on); whether Cycles
+honoured it cannot be told from identical pixels and CPU time.
 
 {markdown_table(rrows, decimals=3)}"""
     print(body)
@@ -216,13 +248,14 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=ROOT,
                     help="repository whose datasets/render and datasets/labels.parquet to train on")
     ap.add_argument("--frames", type=int, default=40, help="frames per Cycles setting")
+    ap.add_argument("--batches", type=int, default=12, help="timed training steps per speed probe")
     ap.add_argument("--probe", choices=["speed", "render"], help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.probe:
-        print(json.dumps(speed_probe() if args.probe == "speed" else render_probe(args.frames)))
+        print(json.dumps(speed_probe(args.batches) if args.probe == "speed" else render_probe(args.frames)))
         return
     load0 = os.getloadavg()[0]
-    speed = speed_table(args.rounds)
+    speed = speed_table(args.rounds, args.batches)
     render = probe("render", PINS, "--frames", str(args.frames))
     with tempfile.TemporaryDirectory(prefix="cpu_isa_") as work:
         train = train_table(train_runs(args.data.resolve(), args.epochs, Path(work)))

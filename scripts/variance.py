@@ -62,6 +62,8 @@ HEADLINES: list[Headline] = [
              _paper_held),
     Headline("lstm_recall_0.01_pct", "LSTM detection rate at eps 0.01 (%)",
              lambda m: 100 * m["detect"]["detectors"]["lstm"]["0.01"]["recall"]),
+    Headline("lstm_eval_fa_pct", "LSTM alone at its own threshold, false alarms on clean evaluation frames (%)",
+             lambda m: 100 * m["detect"]["eval_alarms"]["rate"]),
     Headline("integrated_0.01_pct", "integrated accuracy at eps 0.01 (%)",
              lambda m: 100 * m["evaluate"]["per_eps"]["0.01"]["accuracy"]),
     Headline("fused_hu_0.05_pct", "worst harmful-undetected at eps 0.05, fused chain (%)",

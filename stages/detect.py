@@ -66,7 +66,6 @@ def main(
     """Train the LSTM detector and the baselines on one split of the SHAP store; write the report."""
     import torch
 
-    from pipeline.detectors.lstm import to_checkpoint
     from pipeline.detectors.metrics import choose_threshold, metrics_by_eps, roc_csv
     from pipeline.evaluation.sequences import nan_to_none
 
@@ -99,12 +98,7 @@ def main(
     results = {name: metrics_by_eps(y[te], s, eps[te], thr) for name, (s, thr) in scores.items()}
     alarms = _eval_alarms(params, lstm, data["attrs"]) if eval_alarms else None
 
-    ckpt = to_checkpoint(lstm, {
-        "format": DETECTOR_FORMAT, "pose_model_hash": model_hash, "shap_method": data["attrs"].get("method"),
-        "background_mean": torch.tensor(data["attrs"]["background_mean"], dtype=torch.float32),
-        "background_size": int(data["attrs"]["background_size"]),
-        "eps": sorted({float(e) for e in eps[y == 1]}, reverse=True),
-        "best_epoch": result.best_epoch, "test_accuracy": results["lstm"]["all"]["accuracy"]})
+    ckpt = _checkpoint(result, data["attrs"], model_hash, eps[y == 1], results["lstm"]["all"]["accuracy"])
     counts = {"samples": int(len(y)), "train": int(len(tr)), "validation": int(len(va)), "test": int(len(te)),
               "test_clean": int((y[te] == 0).sum()), "test_adversarial": int(y[te].sum())}
     metrics = {"model_hash": model_hash, "counts": counts, "threshold": {k: v[1] for k, v in scores.items()},
@@ -123,6 +117,20 @@ def main(
     acc = results["lstm"]["all"]["accuracy"]
     fa = "" if alarms is None else f"; false alarms on clean evaluation frames {alarms['rate']:.4f}"
     print(f"detect: LSTM test accuracy {acc:.4f} (paper {DETECTOR_ACCURACY:.4f}){fa} -> {DETECTOR}, {REPORT}")
+
+
+def _checkpoint(result: Any, attrs: dict[str, Any], model_hash: str, attacked_eps: np.ndarray,
+                accuracy: float) -> dict[str, Any]:
+    """models/detector.pt's content: the LSTM and what the safety chain needs (pose-model hash, SHAP background mean)."""
+    import torch
+
+    from pipeline.detectors.lstm import to_checkpoint
+
+    return to_checkpoint(result.model, {
+        "format": DETECTOR_FORMAT, "pose_model_hash": model_hash, "shap_method": attrs.get("method"),
+        "background_mean": torch.tensor(attrs["background_mean"], dtype=torch.float32),
+        "background_size": int(attrs["background_size"]), "eps": sorted({float(e) for e in attacked_eps}, reverse=True),
+        "best_epoch": result.best_epoch, "test_accuracy": accuracy})
 
 
 def _eval_alarms(p: Params, lstm: Any, attrs: dict[str, Any]) -> dict[str, Any]:

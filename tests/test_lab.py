@@ -364,8 +364,8 @@ def test_a_failing_retrain_step_is_one_clear_error(tmp_path, monkeypatch):
     from stages.config import params as params_mod
     from stages.errors import StageError
 
-    def run_step(name: str, folder: Path) -> None:
-        assert name == "render" and (folder / "params.yaml").exists()   # the step runs in the synthetic-lab folder
+    def run_step(args: list[str], folder: Path) -> None:
+        assert args == ["render"] and (folder / "params.yaml").exists()   # the step runs in the synthetic-lab folder
         raise StageError("params.yaml render: boom")
 
     monkeypatch.chdir(tmp_path)

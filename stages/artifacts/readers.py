@@ -49,8 +49,8 @@ def read_eval_render(p: Params, validation: bool = False) -> tuple[np.ndarray, A
 
 
 def read_detect_render(p: Params) -> tuple[Any, Any, dict[str, Any]]:
-    """The detector split (`rpod eval_render --detector`): (images, zarr array (N, H, W, 3) uint8 read
-    lazily, poses table, meta), checked against the current params."""
+    """The detector split (`rpod eval_render --detector`): (images: zarr array (N, H, W, 3) uint8, read
+    lazily; poses table; meta), checked against the current params."""
     r = _trajectory_renders(DETECT_RENDER, detect_render_fingerprint(p), "rpod eval_render --detector",
                             "detect_render", "detector-split")
     return r.images, r.poses, r.meta
