@@ -75,7 +75,7 @@ def main(
     else:
         sets = [(EVAL_RENDER, trajectories(params, e.seed, e.trajectories), eval_render_fingerprint(params)),
                 (VAL_RENDER, trajectories(params, d.val_seed, d.val_trajectories), val_render_fingerprint(params))]
-    timings = {}
+    timings: dict[str, Any] = {}
     with engine.session(es):
         for folder, seqs, fingerprint in sets:
             timings[folder.name] = _render_set(K, scene, es, seqs, folder, fingerprint)
