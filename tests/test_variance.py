@@ -72,7 +72,7 @@ def test_readme_results_show_the_spread_of_each_headline_number():
     metrics = {m: json.loads((REPO / "reports" / "metrics" / f"{m}.json").read_text())
                for m in ("train", "attack", "guidance", "detect", "evaluate", "lab", "robustness")}
     # in variance.md only: the README shows these per eps or per dynamics (or not at all)
-    not_shown = {"pose_tz_pct", "lstm_recall_0.01_pct", "integrated_0.01_pct",
+    not_shown = {"pose_tz_pct", "lstm_recall_0.01_pct", "lstm_eval_fa_pct", "integrated_0.01_pct",
                  "robustness.harmful_undetected_pct", "guidance.defended_held_pct"}
     keys = [k for k, *_ in _load().HEADLINES if k not in not_shown]
     spread = {"profile": "default", "seeds": ["0", "1", "2"],
@@ -106,6 +106,34 @@ def test_the_spread_covers_every_summary_json_number():
 
 
 def test_the_committed_spread_names_only_headline_numbers():
-    """reports/variance.json (read by `rpod report`) uses the headline keys: a renamed key would drop its sd."""
+    """reports/variance.json (read by `rpod report`) uses the headline keys: a renamed key would drop its sd
+    (a headline added after the runs has no spread until they are re-run)."""
     spread = json.loads((REPO / "reports" / "variance.json").read_text())
-    assert set(spread["numbers"]) == {h.key for h in _load().HEADLINES}
+    assert set(spread["numbers"]) <= {h.key for h in _load().HEADLINES}
+
+
+def test_runs_of_two_instruction_sets_make_a_seed_by_isa_table(tmp_path, monkeypatch):
+    """Runs are named by seed and the kernels their torch stages ran (the `cpu_isa` stamp), or by hand."""
+    mod = _load()
+    runs = []
+    for seed, isa, pos in ((0, "AVX2", 0.40), (0, "AVX512", 0.43), (1, "AVX2", 0.46), (1, "AVX512", 0.47)):
+        run = _run(tmp_path / isa, seed, pos, None)
+        train = json.loads((run / "reports/metrics/train.json").read_text())
+        train["cpu_isa"] = {"cap": "avx2" if isa == "AVX2" else "native", "kernels": isa}
+        (run / "reports/metrics/train.json").write_text(json.dumps(train))
+        runs.append(run)
+    isas = [mod.run_isa(mod.run_metrics(r)) for r in runs]
+    assert isas == ["AVX2", "AVX512", "AVX2", "AVX512"]
+    rows = {r["key"]: r for r in mod.isa_rows(runs, ["0", "0", "1", "1"], isas)}
+    pos = rows["pose.test_position_m"]
+    assert pos["seed 0, AVX2"] == 0.40 and pos["seed 1, AVX512"] == 0.47
+    assert pos["largest ISA difference at one seed"] == pytest.approx(0.03)
+    assert pos["sd over seeds, one ISA"] == pytest.approx(((0.06 ** 2 / 2 + 0.04 ** 2 / 2) / 2) ** 0.5)
+    assert mod.parse_runs([f"AVX2={runs[0]}", str(runs[1])]) == [(runs[0], "AVX2"), (runs[1], None)]
+    assert mod.run_isa({"train": {}}) == "?"                                # a run from before the stamp
+    monkeypatch.setattr(mod, "ROOT", tmp_path)
+    (tmp_path / "reports").mkdir()
+    mod.main([str(r) for r in runs])
+    text = (tmp_path / "reports/variance.md").read_text()
+    assert "## Seed x instruction set" in text and "| seed 0, AVX512" in text
+    assert json.loads((tmp_path / "reports/variance.json").read_text())["isas"] == isas

@@ -29,8 +29,8 @@ def _outputs(stage: str, *paths: str) -> tuple[Path, ...]:
     return out
 
 
-RENDER, IMAGES, PREVIEWS = _outputs("render", "datasets/render", "datasets/render/images.zarr",
-                                    "reports/figures/previews")
+RENDER, IMAGES, PREVIEWS, RENDER_METRICS = _outputs("render", "datasets/render", "datasets/render/images.zarr",
+                                                    "reports/figures/previews", "reports/metrics/render.json")
 LABELS, DATASET_CARD = _outputs("label", "datasets/labels.parquet", "reports/dataset.md")
 POSE, POSE_REPORT, TRAIN_METRICS, TRAIN_LIVE = _outputs("train", "models/pose.pt", "reports/pose.md",
                                                         "reports/metrics/train.json", "dvclive/train")
@@ -44,7 +44,11 @@ GUIDANCE_REPORT, GUIDANCE_FIGURE, GUIDANCE_DEFENDED_FIGURE, GUIDANCE_METRICS = _
 DETECTOR, DETECT_REPORT, DETECT_METRICS, DETECT_LIVE = _outputs(
     "detect", "models/detector.pt", "reports/detector.md", "reports/metrics/detect.json", "dvclive/detect")
 ROC_DATA = DETECT_LIVE / "plots" / "sklearn"   # DVCLive's log_sklearn_plot("roc", name=D): D.json per detector
-EVAL_RENDER, VAL_RENDER = _outputs("eval_render", "datasets/eval_render", "datasets/val_render")
+EVAL_RENDER, VAL_RENDER, EVAL_RENDER_METRICS = _outputs("eval_render", "datasets/eval_render", "datasets/val_render",
+                                                        "reports/metrics/eval_render.json")
+# the detector split (`rpod eval_render --detector`): the images `rpod shap` explains, never seen in training
+DETECT_RENDER, DETECT_RENDER_METRICS = _outputs("detect_render", "datasets/detect_render",
+                                                "reports/metrics/detect_render.json")
 (DEFENSE,) = _outputs("calibrate", "models/defense.json")
 EVALUATE_REPORT, EVALUATE_FIGURE, EVALUATE_METRICS = _outputs(
     "evaluate", "reports/integrated.md", "reports/figures/timeline.png", "reports/metrics/evaluate.json")

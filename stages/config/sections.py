@@ -179,6 +179,8 @@ class Shap:
     eps: list[Eps]
     method: str                  # auto | exact | deep
     chunk: Annotated[int, In("[1, 1000000]", "samples per zarr chunk")]
+    frames: Annotated[int, In("[2, 10000000]", "frames per detector trajectory")]
+    seed: Seed                   # of the detector split's trajectories (datasets/detect_render)
 
 
 @dataclass(frozen=True)
