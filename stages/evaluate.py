@@ -28,6 +28,7 @@ from stages.config.evaluation import Evaluate
 from stages.config.schema import Params
 from stages.pages.evaluate import defense_section
 from stages.pages.paper import INTEGRATED, INTEGRATED_EPS, by_eps
+from stages.pages.calibrate import unmet_banner
 
 if TYPE_CHECKING:
     from pipeline.evaluation.sequences import Sequence
@@ -85,8 +86,9 @@ def main(params: Params) -> None:
                          "per_eps": {f"{r['eps']:g}": r for r in rates_json(list(fused.values())[-1])},
                          "paper_per_eps": {f"{r['eps']:g}": r for r in rates_json(fused["paper (LSTM alone)"])}}}
     write_metrics(METRICS, nan_to_none(metrics), params.profile_name)
-    atomic_write_text(REPORT, report(res.rows, summary, res.clean, sequences, e, meta, chain.threshold,
-                                     eps_fig, params.profile_name)
+    atomic_write_text(REPORT, unmet_banner(defense.calibration)
+                      + report(res.rows, summary, res.clean, sequences, e, meta, chain.threshold, eps_fig,
+                               params.profile_name)
                       + defense_section(fused, defense.calibration, harm, e.attack_length))
     typer.echo(f"evaluate: {len(sequences)} trajectories x {len(eps_list)} eps in {seconds:.0f} s; mean accuracy "
                f"{100 * metrics['accuracy_mean']:.2f}% -> {REPORT}, {FIGURE}")

@@ -1,32 +1,36 @@
-"""Motion-consistency check of the pose estimates: a relative-motion Kalman filter and its gate.
+"""Motion-consistency check of the pose estimates: a relative-motion Kalman filter, its gate and its
+sequential test.
 
 Frames (those of pipeline/geometry/trajectories.py). The filter works in the target-centred world frame:
 `rel` is the target position relative to the chaser camera in world axes (metres). The chaser knows
 its own camera attitude R_c (camera -> world) and the displacement of `rel` it commanded since the
-previous frame (`u`, world axes, metres: rel_k = rel_{k-1} + u_k when the command is executed
-exactly), so a camera-frame estimate t_pred becomes the world measurement z = R_c t_pred, and the
-relative motion is nearly constant: state [rel (3), drift velocity (3, m per frame)],
-rel_k = rel_{k-1} + drift + u_k. The drift absorbs command execution errors and target motion.
-The target attitude R_tw (target -> world, measured as R_c R_pred) follows a rate model: error
-state [rotation vector (3, rad), rate (3, rad per frame)] about the current attitude estimate,
-target frame.
+previous frame (`u`, world axes, metres), so a camera-frame estimate t_pred becomes the world
+measurement z = R_c t_pred, and the position state is rel alone: rel_k = rel_{k-1} + u_k + w_k, w_k
+the command's execution error (std `position_noise` per axis, small: in our simulations the command
+is executed exactly). There is no free drift-velocity state: a chaser commands its own relative
+motion, and a velocity state would let a slowly growing bias (a drift attack) be absorbed as motion
+(Mo and Sinopoli 2010). The target attitude R_tw (target -> world, measured as R_c R_pred) follows a
+rate model (the target's tumble is not commanded): error state [rotation vector (3, rad), rate (3,
+rad per frame)] about the current attitude estimate, target frame.
 
 Measurement noise: pipeline/defense/noise.py (`NoiseModel`, rotated into world axes with R_c every
-frame). The gate and the filter's settings: pipeline/defense/gate.py (`MotionSettings`, `MotionCheck`).
+frame). The gate and the filter's settings: pipeline/defense/gate.py (`MotionSettings`, `MotionCheck`);
+the sequential test on the innovations: pipeline/defense/sequential.py; the protection level:
+pipeline/defense/protection.py.
 
-`MotionFilter.check` applies the gate; flagged frames coast (fault exclusion), accepted ones update
-with a Huber weight, and `reacquire` restarts a filter that was dragged away (see gate.py).
+`MotionFilter.check` applies the gate; flagged frames coast (fault exclusion); frames that pass it
+go to the sequential test (`test_sequence`) and, unless it alarms, update the filter with a Huber
+weight; `reacquire` restarts a filter that was dragged away (see gate.py); `protection_level` is the
+bound on the state's error.
 
-Implementation: a short Kalman filter of our own (predict, innovation, Joseph-form update on 6x6
-matrices) rather than filterpy: filterpy 2.0.0 is not among our dependencies, its KalmanFilter
-has no error-state (rotation) update and no per-frame measurement covariance beyond passing R,
-and the few matrix products here are tested directly (tests/test_motion.py). It runs once per
-camera frame right after the pose network, whose convolutions leave the caches cold: there a small
-numpy call costs 5-10 us (~1 us warm), so the per-frame path is plain floats on 3x3 blocks (nested
-lists): the position filter's P = [[A, B], [B^T, C]], the attitude filter as three equal scalar
-filters (its covariances are multiples of I3 per block: isotropic noise), closed-form 3x3 inverses
-reused between the gate and the update. On the 2-core EPYC a `Defense.step` after the chain costs
-0.40 -> 0.22 ms (numpy 6x6 version -> this one), 0.11 -> 0.07 ms with warm caches.
+Implementation: a short Kalman filter of our own (predict, innovation, Joseph-form update) rather
+than filterpy: filterpy 2.0.0 is not among our dependencies, its KalmanFilter has no error-state
+(rotation) update and no per-frame measurement covariance beyond passing R, and the few matrix
+products here are tested directly (tests/test_motion.py). It runs once per camera frame right after
+the pose network, whose convolutions leave the caches cold: there a small numpy call costs 5-10 us
+(~1 us warm), so the per-frame path is plain floats on 3x3 nested lists, the attitude filter as three
+equal scalar filters (its covariances are multiples of I3 per block: isotropic noise), closed-form
+3x3 inverses reused between the gate and the update.
 """
 from __future__ import annotations
 
@@ -39,6 +43,8 @@ from scipy.stats import chi2
 
 from pipeline.defense.gate import MotionCheck, MotionSettings
 from pipeline.defense.noise import NoiseModel
+from pipeline.defense.protection import ProtectionLevel, largest_eigenvalue
+from pipeline.defense.sequential import Cusum
 from pipeline.geometry.rotations import Mat3, float_lists, rotmat_list, rotvec_list
 
 
@@ -91,63 +97,52 @@ def _eye(k: float = 1.0) -> Mat3:
     return [[k, 0.0, 0.0], [0.0, k, 0.0], [0.0, 0.0, k]]
 
 
-class _Kalman6:
-    """Linear Kalman filter on [level a (3), rate of a (3)]: a_k = a_{k-1} + rate + u_k, measurement a.
+class _Kalman3:
+    """Linear Kalman filter on a level a (3): a_k = a_{k-1} + u_k (+ noise of std `q_level` per axis),
+    measurement a. In plain floats (see the module docstring); `x` and `P` give numpy copies."""
 
-    In plain floats on 3x3 blocks, P = [[A, B], [B^T, C]], the 3x3 innovation covariance inverted
-    in closed form (see the module docstring for why floats). `x` and `P` give numpy copies."""
-
-    def __init__(self, q_level: float, q_rate: float):
-        self.q_level, self.q_rate = q_level ** 2, q_rate ** 2
-        self.level, self.rate = [0.0] * 3, [0.0] * 3
-        self.A, self.B, self.C = _eye(), _eye(0.0), _eye()
+    def __init__(self, q_level: float):
+        self.q_level = q_level ** 2
+        self.level = [0.0] * 3
+        self.A = _eye()
 
     @property
     def x(self) -> np.ndarray:
-        return np.array(self.level + self.rate)
+        return np.array(self.level)
 
     @property
     def P(self) -> np.ndarray:
-        return np.block([[np.array(self.A), np.array(self.B)], [np.array(self.B).T, np.array(self.C)]])
+        return np.array(self.A)
 
-    def reset(self, level: Sequence[float], level_cov: Mat3, rate_std: float) -> None:
-        self.level, self.rate = [float(v) for v in level], [0.0] * 3
-        self.A, self.B, self.C = [[float(v) for v in row] for row in level_cov], _eye(0.0), _eye(rate_std ** 2)
+    def reset(self, level: Sequence[float], level_cov: Mat3) -> None:
+        self.level = [float(v) for v in level]
+        self.A = [[float(v) for v in row] for row in level_cov]
 
     def predict(self, u: Sequence[float] | None = None) -> None:
-        """F = [[I, I], [0, I]]: level += rate (+ u); P = F P F^T + Q."""
-        self.level = [a + r for a, r in zip(self.level, self.rate)]
+        """level += u; P += Q."""
         if u is not None:
             self.level = [a + d for a, d in zip(self.level, u)]
-        A, B, C, q = self.A, self.B, self.C, self.q_level
-        self.A = [[A[i][j] + B[i][j] + B[j][i] + C[i][j] + (q if i == j else 0.0) for j in range(3)] for i in range(3)]
-        self.B = _add(B, C)
-        self.C = _add(C, _eye(self.q_rate))
+        self.A = _add(self.A, _eye(self.q_level))
 
     def innovation_inverse(self, R: Mat3) -> Mat3:
-        """S^-1 with S = A + R (3, 3)."""
+        """S^-1 with S = P + R (3, 3)."""
         return _inv3(_add(self.A, R))
 
-    def update(self, y: Sequence[float], R: Mat3, s_inv: Mat3 | None = None) -> None:
-        """Update with innovation y and measurement covariance R (`s_inv`: its
-        `innovation_inverse`, when known), Joseph form P = M P M^T + K R K^T with M = I - K H,
-        K = [Ka; Kb] = P H^T S^-1, by blocks: A = (I - Ka) A (I - Ka)^T + Ka R Ka^T,
-        B = (I - Ka) (B - A Kb^T) + Ka R Kb^T, C = Kb (A + R) Kb^T - Kb B - (Kb B)^T + C."""
+    def update(self, y: Sequence[float], R: Mat3, s_inv: Mat3 | None = None) -> Mat3:
+        """Update with innovation y and measurement covariance R (`s_inv`: its `innovation_inverse`,
+        when known): K = P S^-1, Joseph form P = (I - K) P (I - K)^T + K R K^T. Returns K."""
         s_inv = self.innovation_inverse(R) if s_inv is None else s_inv
-        A, B, C = self.A, self.B, self.C
-        Ka, Kb = _mm(A, s_inv), _mm(_t(B), s_inv)
-        self.level = [a + d for a, d in zip(self.level, _mv(Ka, y))]
-        self.rate = [r + d for r, d in zip(self.rate, _mv(Kb, y))]
-        M, KaR, KbB = _add(_eye(), Ka, -1.0), _mm(Ka, R), _mm(Kb, B)
-        self.A = _sym(_add(_mmT(_mm(M, A), M), _mmT(KaR, Ka)))
-        self.B = _add(_mm(M, _add(B, _mmT(A, Kb), -1.0)), _mmT(KaR, Kb))
-        KSK = _mmT(_mm(Kb, _add(A, R)), Kb)
-        self.C = _sym([[KSK[i][j] - KbB[i][j] - KbB[j][i] + C[i][j] for j in range(3)] for i in range(3)])
+        K = _mm(self.A, s_inv)
+        self.level = [a + d for a, d in zip(self.level, _mv(K, y))]
+        M = _add(_eye(), K, -1.0)
+        self.A = _sym(_add(_mmT(_mm(M, self.A), M), _mmT(_mm(K, R), K)))
+        return K
 
 
 class _IsoKalman6:
-    """`_Kalman6` for the attitude error state, whose P, Q and measurement covariances are all
-    multiples of I3 per 3x3 block (isotropic noise): three equal scalar filters on
+    """A Kalman filter on [level (3), rate of the level (3)] for the attitude error state, whose P, Q
+    and measurement covariances are all multiples of I3 per 3x3 block (isotropic noise): three equal
+    scalar filters on
     P = [[a, b], [b, c]] (x) I3, in plain floats. `level` (the rotation-vector error) and `rate`
     are 3-lists."""
 
@@ -198,20 +193,23 @@ class _IsoKalman6:
 
 
 class MotionFilter:
-    """Relative-motion filter with a chi-square innovation gate; call `check` then `accept` or `coast`
-    once per frame (the caller decides, e.g. with the SHAP detector's flag too). The per-frame path
-    works on floats and 3x3 nested lists (see `_Kalman6`); `position`, `attitude` and the checks'
-    `predicted` are numpy arrays."""
+    """Relative-motion filter with a chi-square innovation gate and a sequential test; call `check`,
+    then for a frame that passed the gate (and the caller's other checks) `test_sequence`, then
+    `accept` or `coast`, once per frame. The per-frame path works on floats and 3x3 nested lists;
+    `position`, `attitude` and the checks' `predicted` are numpy arrays."""
 
     def __init__(self, settings: MotionSettings, noise: NoiseModel):
         self.settings = settings
         self.noise = noise
         self.gate = settings.gate
-        self.pos = _Kalman6(settings.position_noise, settings.velocity_noise)
+        self.pos = _Kalman3(settings.position_noise)
         self.att = _IsoKalman6(math.radians(settings.attitude_noise_deg), math.radians(settings.attitude_rate_noise_deg))
+        self.cusum = Cusum(settings.cusum_reference, settings.cusum_threshold)
+        self.protection = ProtectionLevel(settings.cusum_reference, settings.cusum_threshold, settings.integrity_risk)
         self.R_tw = _eye()             # attitude estimate (target -> world), 3x3 nested list
         self.started = False
         self._pending: tuple[MotionCheck, tuple | None] | None = None   # last check, its update terms
+        self._tested = False           # the pending frame went through the sequential test
         self._moved = [0.0] * 3        # sum of the commanded displacements so far (world, m)
         self._candidates: list[tuple[list[float], Mat3, Mat3 | None]] = []
         self._history: deque[list[float]] = deque(maxlen=2 * settings.reacquire_after)
@@ -229,14 +227,25 @@ class MotionFilter:
         """Current estimate of the target attitude (target -> world rotation)."""
         return np.array(self.R_tw)
 
-    def start(self, rel: np.ndarray, rel_cov: np.ndarray, R_tw: np.ndarray | None = None) -> None:
-        """Start (or restart) at rel (world, m) with covariance rel_cov (3, 3, m^2), optionally an attitude."""
+    @property
+    def protection_level(self) -> float:
+        """PL (m) of the current state (pipeline/defense/protection.py); inf before the start and while
+        the sequential test alarms."""
+        if not self.started or self.cusum.alarmed:
+            return math.inf
+        return self.protection.level(self.pos.A)
+
+    def start(self, rel: np.ndarray, rel_cov: np.ndarray, R_tw: np.ndarray | None = None, offset: float = 0.0) -> None:
+        """Start (or restart) at rel (world, m) with covariance rel_cov (3, 3, m^2), optionally an
+        attitude; `offset` (m): the bias bound the new run carries (see protection.py, restarts)."""
         rel = np.asarray(rel, np.float64)
-        self.pos.reset(rel.tolist(), np.asarray(rel_cov, np.float64).tolist(), 3 * self.settings.velocity_noise)
+        self.pos.reset(rel.tolist(), np.asarray(rel_cov, np.float64).tolist())
         att_std = self.noise.attitude_std(float(np.linalg.norm(rel)))
         self.att.reset(att_std ** 2, 3 * math.radians(self.settings.attitude_rate_noise_deg))
         self.R_tw = _eye() if R_tw is None else np.asarray(R_tw, np.float64).tolist()
         self.started = True
+        self.cusum.reset()
+        self.protection.reset(offset)
         self._candidates = []
         self._history.clear()
         self._history.append([p - m for p, m in zip(self.pos.level, self._moved)])
@@ -271,6 +280,7 @@ class MotionFilter:
         if u is not None:
             u = float_lists(u)
             self._moved = [m + d for m, d in zip(self._moved, u)]
+        self._tested = False
         self.pos.predict(u)
         self.att.predict()
         self.R_tw = _mm(self.R_tw, rotmat_list(self.att.take_level()))
@@ -287,6 +297,8 @@ class MotionFilter:
         y = [v - p for v, p in zip(z, self.pos.level)]
         s_inv = self.pos.innovation_inverse(Rz)
         nis_p = sum(a * b for a, b in zip(y, _mv(s_inv, y)))
+        sigma = [math.sqrt(self.pos.A[i][i] + Rz[i][i]) for i in range(3)]   # sqrt(S_ii), m
+        r = [v / sd for v, sd in zip(y, sigma)]
         nis_a, att = np.nan, None
         if R_meas is not None:
             dth = rotvec_list(_mm(_t(self.R_tw), R_meas))
@@ -294,22 +306,32 @@ class MotionFilter:
             nis_a = self.att.nis(dth, var)
             att = (dth, var)
         bad = nis_p > self.gate or (not math.isnan(nis_a) and nis_a > self.gate)
-        return self._stash(MotionCheck(nis_p, nis_a, bool(bad), predicted), (y, Rz, s_inv, att))
+        return self._stash(MotionCheck(nis_p, nis_a, bool(bad), predicted), (y, Rz, s_inv, att, r, sigma))
 
     def _stash(self, check: MotionCheck, pending: tuple | None) -> MotionCheck:
         self._pending = (check, pending)
         return check
 
+    def test_sequence(self) -> bool:
+        """Push the last checked (finite) frame's normalized innovations into the sequential test;
+        returns whether it alarms (the caller then coasts the frame)."""
+        if self._pending is None or self._pending[1] is None:
+            raise RuntimeError("MotionFilter.test_sequence needs a checked, finite frame")
+        self._tested = True
+        return self.cusum.push(self._pending[1][4])
+
     def accept(self) -> None:
-        """Update the filter with the last checked frame (Huber-weighted above the soft gate)."""
+        """Update the filter with the last checked frame (Huber-weighted above the soft gate); its
+        gain joins the protection level's sums."""
         if self._pending is None or self._pending[1] is None:
             raise RuntimeError("MotionFilter.accept needs a checked, finite frame")
-        check, (y, Rz, s_inv, att) = self._pending  # type: ignore[misc]
+        check, (y, Rz, s_inv, att, _, sigma) = self._pending  # type: ignore[misc]
         soft = self.settings.soft_gate * self.gate
         if check.nis_position > soft:                 # Huber: the inflated covariance has its own S
-            self.pos.update(y, [[v * (check.nis_position / soft) for v in row] for row in Rz])
+            K = self.pos.update(y, [[v * (check.nis_position / soft) for v in row] for row in Rz])
         else:
-            self.pos.update(y, Rz, s_inv)
+            K = self.pos.update(y, Rz, s_inv)
+        self.protection.add(K, sigma)
         if att is not None:
             dth, var = att
             self.att.update(dth, var * max(1.0, check.nis_attitude / soft))
@@ -320,8 +342,10 @@ class MotionFilter:
 
     def coast(self, candidate: bool = False) -> None:
         """Leave the last checked frame out: the state stays at the prediction. With `candidate`
-        (the gate rejected it but nothing else suspects it) the frame may restart the filter:
-        see `reacquire`."""
+        (the gate or the sequential test rejected it but nothing else suspects it) the frame may
+        restart the filter: see `reacquire`."""
+        if self._tested and self._pending is not None and self._pending[1] is not None:
+            self.protection.add(None, self._pending[1][5])     # a tested frame left out: weight 0
         if candidate and self._pending is not None and self._pending[1] is not None and self._last is not None:
             self._candidates = (self._candidates + [self._last])[-self.settings.reacquire_after:]
         else:
@@ -337,7 +361,9 @@ class MotionFilter:
         frames were accepted since the start). The filter's state was then
         wrong (dragged by attacked frames that slipped through), not the frames; a jump to a new,
         steady position (an attacker's consistent offset) disagrees with the accepted history and
-        does not restart the filter. Returns whether it restarted."""
+        does not restart the filter. The restarted filter carries the old bias bound plus the
+        agreement's tolerance into its protection level (pipeline/defense/protection.py). Returns
+        whether it restarted."""
         M = self.settings.reacquire_after
         if len(self._candidates) < M:
             return False
@@ -354,6 +380,8 @@ class MotionFilter:
             if float(d @ np.linalg.inv(cov + np.array(self._candidates[-1][1])) @ d) > self.gate:
                 return False
         candidates = self._candidates
-        self.start(mean, cov + np.eye(3) * (M * self.settings.position_noise) ** 2, candidates[-1][2])
+        tolerance = 2.0 * math.sqrt(self.gate * largest_eigenvalue((cov + np.array(candidates[-1][1])).tolist()))
+        self.start(mean, cov + np.eye(3) * (M * self.settings.position_noise) ** 2, candidates[-1][2],
+                   offset=self.protection.bias() + tolerance)
         self._history.extend(c[0] for c in candidates)
         return True

@@ -3,13 +3,13 @@
 Measurement noise is the pose model's own error, which grows with range and is larger along the
 camera boresight: `NoiseModel` holds per-camera-axis standard deviations and biases a + b * range
 (metres, range in metres), fitted by `fit_noise` on clean frames of validation data (never the test
-split); `inflate` and `smallest_inflation` widen it until clean validation frames pass the gate.
+split); `inflate` widens it (pipeline/defense/calibration.py chooses by how much, on clean validation
+frames).
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, Sequence
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -66,9 +66,6 @@ class NoiseModel:
                 "floor": self.floor, "bias_intercept": list(self.bias_intercept), "bias_slope": list(self.bias_slope)}
 
 
-INFLATIONS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0)
-
-
 def inflate(noise: "NoiseModel", k: float) -> "NoiseModel":
     """The noise model with every standard deviation (position, attitude, floor) times `k` > 0; biases kept."""
     import dataclasses
@@ -78,21 +75,6 @@ def inflate(noise: "NoiseModel", k: float) -> "NoiseModel":
         noise, position_intercept=tuple(k * v for v in noise.position_intercept),
         position_slope=tuple(k * v for v in noise.position_slope), attitude_intercept=k * noise.attitude_intercept,
         attitude_slope=k * noise.attitude_slope, floor=k * noise.floor)
-
-
-def smallest_inflation(false_alarms: Callable[[float], float], target: float,
-                       grid: Sequence[float] = INFLATIONS) -> tuple[float, dict[float, float]]:
-    """The smallest factor of `grid` whose false-alarm rate `false_alarms(k)` (measured on clean
-    validation frames) is at most `target`, and every measured rate; the largest factor when none is.
-
-    A Gaussian noise model fitted to the pose errors under-states their heavy, frame-to-frame
-    correlated tails, so the gate's nominal false-alarm rate is not what clean frames see."""
-    rates: dict[float, float] = {}
-    for k in grid:
-        rates[k] = float(false_alarms(k))
-        if rates[k] <= target:
-            return k, rates
-    return max(grid), rates
 
 
 def fit_noise(t_true: np.ndarray, t_pred: np.ndarray, R_true: np.ndarray | None = None,
