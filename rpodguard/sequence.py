@@ -30,7 +30,7 @@ class Track:
     """The defended chain over N frames in order (row k: image k). trusted (N, 3): the trusted estimate
     of rel (world frame, m; NaN before the filter starts); pl (N,): its protection level (m; inf where
     it bounds nothing); available (N,) bool: the guidance may fly on it (not holding, PL <= the alert
-    limit at the range |trusted| - PL); flag (N,) bool: a check flagged the frame; mode (N,): track,
+    limit at the trusted estimate's range); flag (N,) bool: a check flagged the frame; mode (N,): track,
     coast or hold; prediction: the per-image chain's output (camera-frame pose, detector probability)."""
 
     trusted: np.ndarray

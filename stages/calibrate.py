@@ -55,8 +55,8 @@ def main(params: Params) -> None:
     runs = [CleanRun(pose[i], prob[i], R_cam[i], u[i]) for i in groups]
     truths = [poses[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64)[i] for i in groups]
     settings, motion = defense_settings(d, chain.threshold)
-    checks, settings, motion = _calibrate_checks(params, settings, motion, fitted, runs, prob)
-    noise = inflate(fitted, checks[1].setting)
+    checks, settings, motion = calibrate_checks(params, settings, motion, fitted, runs, prob)
+    noise = inflate(fitted, checks[2].setting, checks[1].setting)
     alert = alert_limit_settings(params)
     final = clean_summary(defend_runs(settings, motion, noise, runs, _alert_fn(alert)), truths, alert)
     unmet = [unmet_line(c, len(images)) for c in checks if not c.met]
@@ -64,7 +64,8 @@ def main(params: Params) -> None:
         unmet.append(unmet_line(None, len(images), final["fused"].value, d.target_false_alarm))
         _refuse(unmet[-1], d.allow_unmet)
     cal = {"format": DEFENSE_FORMAT, "pose_model_hash": model_hash, "detector_threshold": chain.threshold,
-           "threshold": settings.threshold, "cusum_threshold": motion.cusum_threshold, "inflation": checks[1].setting,
+           "threshold": settings.threshold, "cusum_threshold": motion.cusum_threshold, "inflation": checks[2].setting,
+           "attitude_inflation": checks[1].setting,
            "noise": noise.as_dict(), "fitted_noise": fitted.as_dict(),
            "settings": {**dataclasses.asdict(settings), **dataclasses.asdict(motion)},
            "alert_limit": dataclasses.asdict(alert), "unmet": unmet,
@@ -107,10 +108,11 @@ def _refuse(line: str, allow: bool) -> None:
         raise StageError(line)
 
 
-def _calibrate_checks(params: Params, settings: Any, motion: Any, fitted: Any, runs: list[Any],
+def calibrate_checks(params: Params, settings: Any, motion: Any, fitted: Any, runs: list[Any],
                       prob: np.ndarray) -> tuple[list[Any], Any, Any]:
-    """The detector, the gate and the sequential test, each to its share, in that order (each later
-    one with the earlier ones' settings); an unmet share stops here unless defense.allow_unmet."""
+    """The detector, the gate (its attitude test, then both) and the sequential test, each to its
+    share, in that order (each later one with the earlier ones' settings); an unmet share stops here
+    unless defense.allow_unmet."""
     from pipeline.defense.calibration import detector_threshold, gate_inflation, sequential_threshold
     from pipeline.defense.noise import inflate
 
@@ -120,13 +122,14 @@ def _calibrate_checks(params: Params, settings: Any, motion: Any, fitted: Any, r
     _refuse(unmet_line(detector, frames), d.allow_unmet or detector.met)
     doubt = None if settings.update_below is None else min(settings.update_below, detector.setting)
     settings = dataclasses.replace(settings, threshold=detector.setting, update_below=doubt)
-    gate = gate_inflation(settings, motion, fitted, runs, shares.gate * budget)
-    _refuse(unmet_line(gate, frames), d.allow_unmet or gate.met)
-    sequential = sequential_threshold(settings, motion, inflate(fitted, gate.setting), runs,
+    attitude, gate = gate_inflation(settings, motion, fitted, runs, shares.gate * budget)
+    for check in (attitude, gate):
+        _refuse(unmet_line(check, frames), d.allow_unmet or check.met)
+    sequential = sequential_threshold(settings, motion, inflate(fitted, gate.setting, attitude.setting), runs,
                                       shares.sequential * budget)
     _refuse(unmet_line(sequential, frames), d.allow_unmet or sequential.met)
     motion = dataclasses.replace(motion, cusum_threshold=sequential.setting)
-    return [detector, gate, sequential], settings, motion
+    return [detector, attitude, gate, sequential], settings, motion
 
 
 def _alert_fn(alert: Any) -> Any:

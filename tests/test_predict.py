@@ -200,7 +200,7 @@ def test_track_gives_the_trusted_estimate_pl_and_availability_per_frame(models, 
     assert track.trusted.shape == (n, 3) and track.pl.shape == (n,) and track.available.dtype == bool
     assert np.isfinite(track.trusted).all() and np.isfinite(track.pl).all() and (track.pl > 0).all()
     rng = np.linalg.norm(track.trusted, axis=1)
-    limit = alert_limit(np.maximum(rng - track.pl, 0), AlertLimitSettings())
+    limit = alert_limit(rng, AlertLimitSettings())
     np.testing.assert_array_equal(track.available, (track.mode != "hold") & (track.pl <= limit))
     records = track.records()
     assert len(records) == n and records[0]["image"] == "array[0]" and len(records[0]["trusted_rel_m"]) == 3

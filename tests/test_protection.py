@@ -97,13 +97,13 @@ def test_calibrated_checks_meet_their_shares_on_heavy_tailed_clean_runs() -> Non
     from pipeline.defense.noise import inflate
 
     truths, runs = zip(*(approach(200, 100 + s, heavy=True) for s in range(10)))
-    gate = gate_inflation(DefenseSettings(), MOTION, NOISE, runs, 0.002)
-    assert gate.met and gate.setting > 1.0 and gate.rates[1.0] > 0.002
-    seq = sequential_threshold(DefenseSettings(), MOTION, inflate(NOISE, gate.setting), runs, 0.002)
+    attitude, gate = gate_inflation(DefenseSettings(), MOTION, NOISE, runs, 0.002)
+    assert attitude.met and gate.met and gate.setting > 1.0 and gate.rates[1.0] > 0.002
+    noise = inflate(NOISE, gate.setting, attitude.setting)
+    seq = sequential_threshold(DefenseSettings(), MOTION, noise, runs, 0.002)
     assert seq.met and list(seq.rates)[-1] == seq.setting
     motion = dataclasses.replace(MOTION, cusum_threshold=seq.setting)
-    summary = clean_summary(defend_runs(DefenseSettings(), motion, inflate(NOISE, gate.setting), runs), truths,
-                            AlertLimitSettings())
+    summary = clean_summary(defend_runs(DefenseSettings(), motion, noise, runs), truths, AlertLimitSettings())
     assert summary["fused"].value <= 0.005 and summary["frames"] == 2000
     assert summary["availability"].value > 0.99
 
@@ -124,3 +124,53 @@ def test_pl_is_infinite_while_the_sequential_test_alarms() -> None:
     d = run_defense(DefenseSettings(), MOTION, NOISE, t, run.prob, run.R_cam, run.u)
     alarmed = d.sequential_flag
     assert alarmed.any() and np.isinf(d.pl[alarmed]).all() and not d.available[alarmed].any()
+
+
+def _jumpy_runs() -> list[CleanRun]:
+    """Clean toy runs where 2% of the frames jump by 30 m: no noise inflation lets the gate pass them."""
+    runs = []
+    for s in range(4):
+        _, run = approach(200, 200 + s)
+        run.pose[::50, 2] += 30.0
+        runs.append(run)
+    return runs
+
+
+def test_calibrate_refuses_an_unreachable_share_with_one_line() -> None:
+    from stages.calibrate import calibrate_checks
+    from stages.config import params as params_mod
+    from stages.config.schema import build
+    from stages.errors import StageError
+
+    p = build(params_mod.compose("default"))
+    runs = _jumpy_runs()
+    prob = np.concatenate([r.prob for r in runs])
+    with pytest.raises(StageError) as e:
+        calibrate_checks(p, DefenseSettings(), MOTION, NOISE, runs, prob)
+    message = str(e.value)
+    assert "\n" not in message and message.startswith("calibrate: the gate cannot meet its share 0.200% of "
+                                                      "defense.target_false_alarm on 800 clean validation frames")
+    assert "at best (position noise inflation x8)" in message and "defense.allow_unmet" in message
+    allow = dataclasses.replace(p, defense=dataclasses.replace(p.defense, allow_unmet=True))
+    checks, settings, motion = calibrate_checks(allow, DefenseSettings(), MOTION, NOISE, runs, prob)
+    assert [c.check for c in checks if not c.met] == ["gate"] and motion.cusum_threshold == checks[3].setting
+    assert settings.threshold == checks[0].setting
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("shares", {"detector": 0.5, "gate": 0.4, "sequential": 0.4}, r"defense.shares must add up to 1 .*got 1.3$"),
+    ("cusum_reference", -1.0, r"^params.yaml defense.cusum_reference must be a number in \[0, 100\]"),
+    ("integrity_risk", 0.0, r"^params.yaml defense.integrity_risk must be a positive number in \(0, 1\)"),
+    ("allow_unmet", "maybe", r"defense.allow_unmet"),
+])
+def test_bad_defense_params_give_one_line_naming_the_param(tmp_path, monkeypatch, key, value, message) -> None:
+    from stages.config import params as params_mod
+    from stages.config.sections import ParamsError
+
+    monkeypatch.chdir(tmp_path)
+    p = params_mod.compose("smoke")
+    p["defense"][key] = value
+    params_mod.write_params(p)
+    with pytest.raises(ParamsError, match=message) as e:
+        params_mod.load()
+    assert "\n" not in str(e.value)

@@ -93,8 +93,8 @@ def stealthy_bias(motion: MotionFilter, t_clean: np.ndarray, R_cam: np.ndarray, 
     The NIS is that of `MotionFilter.check` after predicting with `u` (world, m): innovation
     y(b) = z(b) - prediction, S(b) = P + R(b) with z, R the filter's measurement and its covariance
     (noise model, camera attitude R_cam camera -> world). z is linear in b up to the range-dependent
-    noise bias and covariance, so the quadratic y^T S^-1 y <= limit and the CUSUM's linear bounds on
-    y_i / sqrt(S_ii) are solved for their interval of b at the current b a few times, then checked
+    noise bias, so the quadratic y^T S^-1 y <= limit and the CUSUM's linear bounds on the innovation
+    along each camera axis over its standard deviation are solved for their interval of b at the current b a few times, then checked
     exactly (bisection toward a point inside if the linearisation overshot).
     """
     f = copy.deepcopy(motion)
@@ -103,13 +103,15 @@ def stealthy_bias(motion: MotionFilter, t_clean: np.ndarray, R_cam: np.ndarray, 
     t_clean, R_cam = np.asarray(t_clean, np.float64), np.asarray(R_cam, np.float64)
     c, high, low = f.cusum.reference, np.array(f.cusum.high), np.array(f.cusum.low)
 
+    rng = f.predicted_range
+
     def terms(b: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        z, Rz = f.measurement(t_clean + b * direction, R_cam)
+        z, Rz = f.measurement(t_clean + b * direction, R_cam, rng)
         return z - p, P + Rz, np.linalg.inv(P + Rz)
 
     def ok(b: float) -> bool:
         y, S, S_inv = terms(b)
-        r = y / np.sqrt(np.diag(S))
+        r = (R_cam.T @ y) / np.sqrt(np.diag(R_cam.T @ S @ R_cam))
         within = cusum_limit is None or (max((high + r - c).max(), (low - r - c).max()) <= cusum_limit)
         return float(y @ S_inv @ y) <= limit and within
 
@@ -120,8 +122,9 @@ def stealthy_bias(motion: MotionFilter, t_clean: np.ndarray, R_cam: np.ndarray, 
         a, beta, gamma = g @ S_inv @ g, g @ S_inv @ y0, y0 @ S_inv @ y0
         half = math.sqrt(max(beta * beta - a * (gamma - limit), 0.0)) / a
         lo, hi = -beta / a - half, -beta / a + half
-        if cusum_limit is not None:
-            lo, hi = _cusum_interval(y0, g, np.sqrt(np.diag(S)), high, low, c, cusum_limit, lo, hi)
+        if cusum_limit is not None:       # the test works along the camera axes (kalman._camera_normalized)
+            lo, hi = _cusum_interval(R_cam.T @ y0, direction, np.sqrt(np.diag(R_cam.T @ S @ R_cam)), high, low, c,
+                                     cusum_limit, lo, hi)
         b = float(min(max(wanted, lo), hi))
     inside = (lo + hi) / 2 if hi >= lo else lo
     if ok(b) or not ok(inside):

@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from pipeline.defense.kalman import MotionFilter
+from pipeline.defense.noise import NoiseModel
 from pipeline.geometry.rotations import rotvec_t
 
 DTYPE = torch.float64
@@ -36,6 +37,34 @@ def rotmat_t(w: Tensor) -> Tensor:
     W = torch.stack([torch.stack([zero, -w[:, 2], w[:, 1]], 1), torch.stack([w[:, 2], zero, -w[:, 0]], 1),
                      torch.stack([-w[:, 1], w[:, 0], zero], 1)], 1)
     return torch.eye(3, dtype=w.dtype) + s * W + k * (W @ W)
+
+
+def noise_terms_t(noise: NoiseModel, rng: Tensor) -> tuple[Tensor, Tensor]:
+    """`NoiseModel.terms` in torch, differentiable in the range: rng (R, 1) m -> (bias (R, 3), std (R, 3)) m."""
+    as_t = lambda a: torch.as_tensor(np.asarray(a, np.float64), dtype=rng.dtype)  # noqa: E731
+    if not noise.knots:
+        bias = as_t(noise.bias_intercept) + as_t(noise.bias_slope) * rng
+        return bias, torch.clamp(as_t(noise.position_intercept) + as_t(noise.position_slope) * rng, min=noise.floor)
+    x = as_t(noise.knots)
+    k = torch.searchsorted(x, rng.detach().contiguous()).clamp(1, len(x) - 1)          # (R, 1)
+    w = ((rng - x[k - 1]) / (x[k] - x[k - 1])).clamp(0.0, 1.0)
+
+    def lerp(table: tuple) -> Tensor:
+        v = as_t(table)                                                                 # (knots, 3)
+        return v[k[:, 0] - 1] + w * (v[k[:, 0]] - v[k[:, 0] - 1])
+
+    return lerp(noise.knot_bias), torch.clamp(lerp(noise.knot_std), min=noise.floor)
+
+
+def attitude_std_t(noise: NoiseModel, rng: Tensor) -> Tensor:
+    """`NoiseModel.attitude_std` in torch: rng (R,) or (R, 1) m -> the attitude std (radians), same shape."""
+    if not noise.knots:
+        return torch.deg2rad(torch.clamp(noise.attitude_intercept + noise.attitude_slope * rng, min=0.1))
+    x = torch.as_tensor(noise.knots, dtype=rng.dtype)
+    a = torch.as_tensor(noise.knot_attitude, dtype=rng.dtype)
+    k = torch.searchsorted(x, rng.detach().contiguous()).clamp(1, len(x) - 1)
+    w = ((rng - x[k - 1]) / (x[k] - x[k - 1])).clamp(0.0, 1.0)
+    return torch.deg2rad(torch.clamp(a[k - 1] + w * (a[k] - a[k - 1]), min=0.1))
 
 
 def _sym(A: Tensor) -> Tensor:
@@ -72,30 +101,27 @@ class FilterMirror:
         are 0 on the frame that starts the filter (it is not tested)."""
         t, R_pred = t.to(DTYPE), R_pred.to(DTYPE)
         R_cam_t = torch.as_tensor(np.asarray(R_cam, np.float64))
-        rng = t.norm(dim=1)
-        z, Rz = self._measurement(t, rng, R_cam_t)
         R_meas = R_cam_t @ R_pred
         if not self.started:
+            z, Rz = self._measurement(t, t.norm(dim=1), R_cam_t)
             self._start(z, Rz, R_meas)
             zero = torch.zeros(self.runs, dtype=DTYPE)
             return self.level, zero, zero, zero
         self._predict(u)
-        nis_p, cusum = self._update_position(z - self.level, Rz)
+        rng = self.level.norm(dim=1)                  # the noise model at the predicted range, as the filter
+        z, Rz = self._measurement(t, rng, R_cam_t)
+        nis_p, cusum = self._update_position(z - self.level, Rz, R_cam_t)
         nis_a = self._update_attitude(R_meas, rng)
         return self.level, nis_p, nis_a, cusum
 
     def _measurement(self, t: Tensor, rng: Tensor, R_cam: Tensor) -> tuple[Tensor, Tensor]:
         """(z (R, 3), Rz (R, 3, 3)): `MotionFilter.measurement`, bias removed, covariance in world axes."""
-        n = self.noise
-        as_t = lambda a: torch.as_tensor(np.asarray(a, np.float64))  # noqa: E731
-        bias = as_t(n.bias_intercept) + as_t(n.bias_slope) * rng[:, None]
-        std = torch.clamp(as_t(n.position_intercept) + as_t(n.position_slope) * rng[:, None], min=n.floor)
+        bias, std = noise_terms_t(self.noise, rng[:, None])
         z = (t - bias) @ R_cam.T
         return z, R_cam @ torch.diag_embed(std ** 2) @ R_cam.T
 
     def _attitude_var(self, rng: Tensor) -> Tensor:
-        n = self.noise
-        return torch.deg2rad(torch.clamp(n.attitude_intercept + n.attitude_slope * rng, min=0.1)) ** 2
+        return attitude_std_t(self.noise, rng) ** 2
 
     def _start(self, z: Tensor, Rz: Tensor, R_meas: Tensor) -> None:
         """`MotionFilter.start_from` on the first frame (attitude std at the range of z)."""
@@ -115,12 +141,13 @@ class FilterMirror:
         self.p = (a + 2 * b + c + self.att_q, b + c, c + self.att_q_rate)
         self.R_tw = self.R_tw @ rotmat_t(self.att_rate)
 
-    def _update_position(self, y: Tensor, Rz: Tensor) -> tuple[Tensor, Tensor]:
-        """NIS of the innovation y (R, 3) and the CUSUM after it (`Cusum.push` on y / sqrt(S_ii)),
-        then `_Kalman3.update` with the Huber-inflated covariance."""
+    def _update_position(self, y: Tensor, Rz: Tensor, R_cam: Tensor) -> tuple[Tensor, Tensor]:
+        """NIS of the innovation y (R, 3) and the CUSUM after it (`Cusum.push` on the innovation along
+        the camera axes over its standard deviations there), then `_Kalman3.update` with the
+        Huber-inflated covariance."""
         S = self.A + Rz
         nis = (y * torch.linalg.solve(S, y.unsqueeze(2)).squeeze(2)).sum(1)
-        r = y / torch.diagonal(S, dim1=1, dim2=2).sqrt()
+        r = (y @ R_cam) / torch.diagonal(R_cam.T @ S @ R_cam, dim1=1, dim2=2).sqrt()
         self.high = torch.clamp(self.high + r - self.reference, min=0.0)
         self.low = torch.clamp(self.low - r - self.reference, min=0.0)
         cusum = torch.maximum(self.high.amax(1), self.low.amax(1))

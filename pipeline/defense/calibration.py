@@ -6,9 +6,9 @@ test data), in this order:
 1. the detector: its threshold is the smallest probability at which at most share_detector of the
    clean validation frames reach it (a quantile of the chain's own clean frames, not of the SHAP
    split, whose clean samples are partly pose-training images);
-2. the gate: the smallest inflation of the fitted noise model (`INFLATIONS`) at which the gate
-   flags at most share_gate of the frames (fusion "motion", the sequential test off): a Gaussian fit
-   under-states the pose errors' heavy, correlated tails;
+2. the gate: the smallest inflations of the fitted noise model (`INFLATIONS`; attitude first, then
+   position) at which the gate flags at most share_gate of the frames (fusion "motion", the
+   sequential test off): a Gaussian fit under-states the pose errors' heavy, correlated tails;
 3. the sequential test: the smallest CUSUM threshold h (`CUSUM_THRESHOLDS`) at which it flags at
    most share_sequential of the frames (fusion "motion", the gate at its inflation): the smallest h
    also gives the smallest protection level (pipeline/defense/protection.py).
@@ -31,7 +31,7 @@ from pipeline.defense.noise import NoiseModel, inflate
 from pipeline.geometry.rotations import sixd_to_matrix
 
 INFLATIONS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0)
-CUSUM_THRESHOLDS = (2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 10.0, 12.0, 15.0, 20.0, 25.0, 30.0, 40.0, 50.0)
+CUSUM_THRESHOLDS = (1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0, 6.0, 7.0, 8.0, 10.0, 12.0, 15.0, 20.0, 25.0, 30.0, 40.0, 50.0)
 OFF = 1e12          # a CUSUM threshold no statistic reaches: the sequential test off
 
 
@@ -100,16 +100,25 @@ def detector_threshold(prob: np.ndarray, share: float) -> CheckResult:
 
 
 def gate_inflation(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel, runs: Sequence[CleanRun],
-                   share: float, grid: Sequence[float] = INFLATIONS) -> CheckResult:
-    """The smallest noise inflation at which the gate alone flags at most `share` of the frames."""
+                   share: float, grid: Sequence[float] = INFLATIONS) -> tuple[CheckResult, CheckResult]:
+    """The gate's two tests, attitude then position: the smallest attitude-noise inflation at which the
+    attitude test flags at most half of `share` of the frames, then (with it) the smallest
+    position-noise inflation at which the gate (either test) flags at most `share` (fusion "motion",
+    the sequential test off). The position noise is inflated no more than the position test needs:
+    the sequential test and the protection level scale with it."""
     alone = dataclasses.replace(settings, fusion="motion")
     off = dataclasses.replace(motion, cusum_threshold=OFF)
 
-    def rate(k: float) -> float:
-        return float(np.concatenate([t.motion_flag for t in defend_runs(alone, off, inflate(noise, k), runs)]).mean())
+    def flags(k: float, k_att: float) -> tuple[float, float]:
+        traces = defend_runs(alone, off, inflate(noise, k, k_att), runs)
+        gate = np.concatenate([t.motion_flag for t in traces])
+        att = np.concatenate([t.motion_flag & (np.nan_to_num(t.nis_attitude) > off.gate) for t in traces])
+        return float(gate.mean()), float(att.mean())
 
-    k, rates = first_meeting(rate, share, grid)
-    return CheckResult("gate", k, rates[k], share, rates)
+    k_att, att_rates = first_meeting(lambda a: flags(max(grid), a)[1], share / 2, grid)
+    k, rates = first_meeting(lambda k: flags(k, k_att)[0], share, grid)
+    return (CheckResult("attitude gate", k_att, att_rates[k_att], share / 2, att_rates),
+            CheckResult("gate", k, rates[k], share, rates))
 
 
 def sequential_threshold(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel,

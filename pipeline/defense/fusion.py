@@ -16,8 +16,9 @@ commanded displacement) into (flag, trusted estimate, mode, protection level, av
   slow drift that stays under the gate cannot keep walking the state;
 - PL (m): the protection level of the trusted estimate (pipeline/defense/protection.py; inf before
   the start and while the sequential test alarms); available: the guidance may fly on the trusted
-  estimate: mode track or coast and, with an alert limit AL(range) given, PL <= AL at the range
-  |trusted| - PL (the nearest the target can be if PL bounds the error; AL grows with range);
+  estimate: mode track or coast and, with an alert limit AL(range) given, PL <= AL at the trusted
+  estimate's range (the chaser's best knowledge of it; the offline integrity metrics,
+  pipeline/evaluation/integrity.py, judge PL against AL at the true range);
 - frames only the gate rejects are restart candidates: when the last M of them agree with one
   another (pipeline.defense.kalman.MotionFilter.reacquire), the filter restarts on them and the frame is
   not flagged by the motion check: it was the filter that was wrong (a state corrupted by attacked
@@ -160,8 +161,7 @@ class Defense:
         trusted, pl = self.filter.position, self.filter.protection_level
         available = mode != HOLD and pl < math.inf
         if available and self.alert_limit is not None:
-            rng = math.sqrt(float(trusted @ trusted))
-            available = pl <= self.alert_limit(max(rng - pl, 0.0))
+            available = bool(pl <= self.alert_limit(math.sqrt(float(trusted @ trusted))))
         return Decision(bool(flag), bool(shap_flag), bool(motion_flag), trusted, mode, nis_position, nis_attitude,
                         bool(sequential_flag), pl, bool(available))
 

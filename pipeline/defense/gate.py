@@ -34,18 +34,20 @@ class MotionSettings:
     that the detector did not flag) restart the filter on them; cusum_reference (c) and
     cusum_threshold (h): the sequential test's reference value and threshold in standard deviations
     (pipeline/defense/sequential.py; h is calibrated on validation trajectories); integrity_risk:
-    the per-frame probability that the protection level's noise term is exceeded
-    (pipeline/defense/protection.py)."""
+    the per-frame probability that the protection level's noise term is exceeded; trusted_start:
+    frames after the filter's first start that the protection level assumes fault-free (its
+    assumption A, pipeline/defense/protection.py: the detector alone guards them)."""
 
-    position_noise: float = 0.01
+    position_noise: float = 0.005
     attitude_noise_deg: float = 0.5
     attitude_rate_noise_deg: float = 0.05
     false_alarm: float = 0.001
     soft_gate: float = 0.5
     reacquire_after: int = 4
-    cusum_reference: float = 0.5
+    cusum_reference: float = 1.0
     cusum_threshold: float = 10.0
     integrity_risk: float = 1e-5
+    trusted_start: int = 0
 
     def __post_init__(self) -> None:
         for name in ("position_noise", "attitude_noise_deg", "attitude_rate_noise_deg", "cusum_threshold"):
@@ -58,6 +60,8 @@ class MotionSettings:
             raise ValueError(f"defense.reacquire_after must be >= 2 frames, got {self.reacquire_after}")
         if not (np.isfinite(self.cusum_reference) and self.cusum_reference >= 0):
             raise ValueError(f"defense.cusum_reference must be a finite number >= 0, got {self.cusum_reference}")
+        if int(self.trusted_start) != self.trusted_start or self.trusted_start < 0:
+            raise ValueError(f"defense.trusted_start must be a whole number of frames >= 0, got {self.trusted_start}")
         if not 0 < float(self.integrity_risk) < 1:
             raise ValueError(f"defense.integrity_risk must be a probability in (0, 1), got {self.integrity_risk}")
 

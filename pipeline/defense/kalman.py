@@ -192,6 +192,20 @@ class _IsoKalman6:
         return d_level
 
 
+def _camera_normalized(y: Sequence[float], S: Mat3, R_cam: Mat3) -> tuple[list[float], list[float]]:
+    """(r, sigma): the innovation y (world, m) along the camera axes (columns of R_cam, camera ->
+    world) divided by its standard deviations there, sigma_k = sqrt(c_k^T S c_k) (m). The noise model
+    is diagonal in the camera frame, so these are the axes the sequential test and the protection
+    level's fault bound work in (pipeline/defense/protection.py)."""
+    sigma, r = [], []
+    for k in range(3):
+        c = [R_cam[0][k], R_cam[1][k], R_cam[2][k]]
+        sd = math.sqrt(sum(c[i] * sum(S[i][j] * c[j] for j in range(3)) for i in range(3)))
+        sigma.append(sd)
+        r.append((c[0] * y[0] + c[1] * y[1] + c[2] * y[2]) / sd)
+    return r, sigma
+
+
 class MotionFilter:
     """Relative-motion filter with a chi-square innovation gate and a sequential test; call `check`,
     then for a frame that passed the gate (and the caller's other checks) `test_sequence`, then
@@ -210,6 +224,7 @@ class MotionFilter:
         self.started = False
         self._pending: tuple[MotionCheck, tuple | None] | None = None   # last check, its update terms
         self._tested = False           # the pending frame went through the sequential test
+        self._trusted = 0              # frames after the start the protection level assumes fault-free
         self._moved = [0.0] * 3        # sum of the commanded displacements so far (world, m)
         self._candidates: list[tuple[list[float], Mat3, Mat3 | None]] = []
         self._history: deque[list[float]] = deque(maxlen=2 * settings.reacquire_after)
@@ -228,6 +243,12 @@ class MotionFilter:
         return np.array(self.R_tw)
 
     @property
+    def predicted_range(self) -> float:
+        """|rel| of the current state (m): the range the noise model is taken at."""
+        a = self.pos.level
+        return math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+
+    @property
     def protection_level(self) -> float:
         """PL (m) of the current state (pipeline/defense/protection.py); inf before the start and while
         the sequential test alarms."""
@@ -235,9 +256,11 @@ class MotionFilter:
             return math.inf
         return self.protection.level(self.pos.A)
 
-    def start(self, rel: np.ndarray, rel_cov: np.ndarray, R_tw: np.ndarray | None = None, offset: float = 0.0) -> None:
+    def start(self, rel: np.ndarray, rel_cov: np.ndarray, R_tw: np.ndarray | None = None, offset: float = 0.0,
+              trusted: int = 0) -> None:
         """Start (or restart) at rel (world, m) with covariance rel_cov (3, 3, m^2), optionally an
-        attitude; `offset` (m): the bias bound the new run carries (see protection.py, restarts)."""
+        attitude; `offset` (m): the bias bound the new run carries, `trusted`: the frames after the
+        start that the protection level assumes fault-free (see protection.py, assumption A)."""
         rel = np.asarray(rel, np.float64)
         self.pos.reset(rel.tolist(), np.asarray(rel_cov, np.float64).tolist())
         att_std = self.noise.attitude_std(float(np.linalg.norm(rel)))
@@ -246,30 +269,33 @@ class MotionFilter:
         self.started = True
         self.cusum.reset()
         self.protection.reset(offset)
+        self._trusted = int(trusted)
         self._candidates = []
         self._history.clear()
         self._history.append([p - m for p, m in zip(self.pos.level, self._moved)])
 
-    def measurement(self, t_pred: np.ndarray, R_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def measurement(self, t_pred: np.ndarray, R_cam: np.ndarray,
+                    rng: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(z world-frame measurement of rel (m), its covariance (3, 3)) from a camera-frame estimate,
-        the noise model's bias removed."""
+        the noise model's bias removed; the noise model at range `rng` (m; default |t_pred|: `check`
+        takes the predicted state's range, which a single estimate cannot move)."""
         t = np.asarray(t_pred, np.float64).tolist()
-        z, Rz = self._measurement(t, math.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2]),
-                                  np.asarray(R_cam, np.float64).tolist())
+        rng = math.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2]) if rng is None else float(rng)
+        z, Rz = self._measurement(t, rng, np.asarray(R_cam, np.float64).tolist())
         return np.array(z), np.array(Rz)
 
     def _measurement(self, t: list[float], rng: float, R_cam: Mat3) -> tuple[list[float], Mat3]:
         """`measurement` from the estimate as floats, its range (m) and R_cam as nested lists."""
-        a, b, n = self.noise.bias_intercept, self.noise.bias_slope, self.noise
-        z = _mv(R_cam, [t[i] - (a[i] + b[i] * rng) for i in range(3)])
-        var = [max(n.position_intercept[i] + n.position_slope[i] * rng, n.floor) ** 2 for i in range(3)]
+        bias, std = self.noise.terms(rng)
+        z = _mv(R_cam, [t[i] - bias[i] for i in range(3)])
+        var = [v * v for v in std]
         return z, _mmT([[r * v for r, v in zip(row, var)] for row in R_cam], R_cam)
 
     def start_from(self, t_pred: np.ndarray, R_cam: np.ndarray, R_pred: np.ndarray | None = None) -> None:
         """Start from one trusted estimate (camera frame) with the noise model's covariance."""
         R_cam = np.asarray(R_cam, np.float64)
         z, Rz = self.measurement(t_pred, R_cam)
-        self.start(z, Rz, None if R_pred is None else R_cam @ R_pred)
+        self.start(z, Rz, None if R_pred is None else R_cam @ R_pred, trusted=self.settings.trusted_start)
 
     def check(self, t_pred: np.ndarray, R_cam: np.ndarray, u: np.ndarray | None = None,
               R_pred: np.ndarray | None = None) -> MotionCheck:
@@ -291,14 +317,14 @@ class MotionFilter:
         if not math.isfinite(rng) or (R_pred is not None and not math.isfinite(sum(map(sum, R_pred)))):
             return self._stash(MotionCheck(np.inf, np.inf, True, predicted), None)
         R_cam = float_lists(R_cam)
+        rng = self.predicted_range
         z, Rz = self._measurement(t, rng, R_cam)
         R_meas = None if R_pred is None else _mm(R_cam, R_pred)
         self._last = ([v - m for v, m in zip(z, self._moved)], Rz, R_meas)
         y = [v - p for v, p in zip(z, self.pos.level)]
         s_inv = self.pos.innovation_inverse(Rz)
         nis_p = sum(a * b for a, b in zip(y, _mv(s_inv, y)))
-        sigma = [math.sqrt(self.pos.A[i][i] + Rz[i][i]) for i in range(3)]   # sqrt(S_ii), m
-        r = [v / sd for v, sd in zip(y, sigma)]
+        r, sigma = _camera_normalized(y, _add(self.pos.A, Rz), R_cam)
         nis_a, att = np.nan, None
         if R_meas is not None:
             dth = rotvec_list(_mm(_t(self.R_tw), R_meas))
@@ -306,7 +332,7 @@ class MotionFilter:
             nis_a = self.att.nis(dth, var)
             att = (dth, var)
         bad = nis_p > self.gate or (not math.isnan(nis_a) and nis_a > self.gate)
-        return self._stash(MotionCheck(nis_p, nis_a, bool(bad), predicted), (y, Rz, s_inv, att, r, sigma))
+        return self._stash(MotionCheck(nis_p, nis_a, bool(bad), predicted), (y, Rz, s_inv, att, r, sigma, R_cam))
 
     def _stash(self, check: MotionCheck, pending: tuple | None) -> MotionCheck:
         self._pending = (check, pending)
@@ -325,13 +351,13 @@ class MotionFilter:
         gain joins the protection level's sums."""
         if self._pending is None or self._pending[1] is None:
             raise RuntimeError("MotionFilter.accept needs a checked, finite frame")
-        check, (y, Rz, s_inv, att, _, sigma) = self._pending  # type: ignore[misc]
+        check, (y, Rz, s_inv, att, _, sigma, R_cam) = self._pending  # type: ignore[misc]
         soft = self.settings.soft_gate * self.gate
         if check.nis_position > soft:                 # Huber: the inflated covariance has its own S
             K = self.pos.update(y, [[v * (check.nis_position / soft) for v in row] for row in Rz])
         else:
             K = self.pos.update(y, Rz, s_inv)
-        self.protection.add(K, sigma)
+        self._bound(_mm(K, R_cam), sigma)
         if att is not None:
             dth, var = att
             self.att.update(dth, var * max(1.0, check.nis_attitude / soft))
@@ -345,12 +371,20 @@ class MotionFilter:
         (the gate or the sequential test rejected it but nothing else suspects it) the frame may
         restart the filter: see `reacquire`."""
         if self._tested and self._pending is not None and self._pending[1] is not None:
-            self.protection.add(None, self._pending[1][5])     # a tested frame left out: weight 0
+            self._bound(None, self._pending[1][5])             # a tested frame left out: weight 0
         if candidate and self._pending is not None and self._pending[1] is not None and self._last is not None:
             self._candidates = (self._candidates + [self._last])[-self.settings.reacquire_after:]
         else:
             self._candidates = []
         self._pending = None
+
+    def _bound(self, G: Mat3 | None, sigma: list[float]) -> None:
+        """Add a tested frame to the protection level's sums, unless it is one of the trusted frames
+        after the first start (assumption A of pipeline/defense/protection.py)."""
+        if self._trusted > 0:
+            self._trusted -= 1
+        else:
+            self.protection.add(G, sigma)
 
     def reacquire(self) -> bool:
         """Restart the filter when the last `reacquire_after` (M) frames were all rejected as

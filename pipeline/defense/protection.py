@@ -15,23 +15,26 @@ given (A) no fault on the frame(s) the filter started from (e^f_0 = 0; see resta
 Fault-free part: e^0_n ~ N(0, P_n) under the noise model, so |e^0_n| <= kappa sqrt(lambda_max(P_n))
 with probability 1 - risk, kappa^2 the chi-square(3) quantile at 1 - `integrity_risk` (per frame).
 
-Fault part: write nu^f_{j,k} = sigma_{j,k} rho_{j,k} with sigma_{j,k} = sqrt(S_j[k, k]), the scale the
-sequential test normalizes by (pipeline/defense/sequential.py). (B) The fault is undetected: the
-CUSUM's statistics driven by it stay under h, i.e. every window of tested frames has
-|sum_a..b rho_{j,k}| <= c (b - a + 1) + h (the noise's share of the statistics is what h's calibrated
-false-alarm rate pays for). Component i of e^f_n is sum_k sum_j K_j[i, k] sigma_{j,k} rho_{j,k}. Split
-the weights W_j = K_j[i, k] sigma_{j,k} into their positive and negative parts W+ and W- (>= 0) and
+Fault part: the sequential test (pipeline/defense/sequential.py) works along the camera axes c_{j,k}
+(the columns of frame j's camera attitude R_j, camera -> world), where the noise model is diagonal:
+write nu^f_j = R_j diag(sigma_j) rho_j with sigma_{j,k} = sqrt(c_{j,k}^T S_j c_{j,k}) the scale it
+normalizes by. (B) The fault is undetected: the CUSUM's statistics driven by it stay under h, i.e.
+every window of tested frames has |sum_a..b rho_{j,k}| <= c (b - a + 1) + h (the noise's share of the
+statistics is what h's calibrated false-alarm rate pays for). Component i (world axis) of e^f_n is
+sum_k sum_j W_j[i, k] rho_{j,k} with W_j = K_j R_j diag(sigma_j) (world axis i, camera axis k; the
+camera turns slowly, so axis k is nearly the same direction from frame to frame). Split
+the weights W_j[i, k] into their positive and negative parts W+ and W- (>= 0) and
 write rho = c + d, with every window sum of d at most h. Layer-cake: a sequence W >= 0 is the integral
 over levels t > 0 of the indicator of {j: W_j >= t}, a union of N(t) runs of consecutive frames, and
 the integral of N(t) is TV+(W) = sum_j max(W_j - W_{j-1}, 0) (W_0 = 0). Each run's sum of d is a
 window sum (<= h), so sum_j W_j d_j <= h TV+(W), and
-    |e^f_{n,i}| <= sum_k [ c sum_j |K_j[i, k]| sigma_{j,k} + h (TV+(W+) + TV+(W-)) ] =: b_i,
+    |e^f_{n,i}| <= sum_k [ c sum_j |W_j[i, k]| + h (TV+(W+) + TV+(W-)) ] =: b_i,
 the same bound for -e^f (the window constraint is two-sided). Frames the test saw but the filter
 left out have W = 0; frames the test did not see (the gate or the detector left them out) are not
 in the sequence. Hence
     PL_n = kappa sqrt(lambda_max(P_n)) + |b| (+ a restart's carried offset, below).
 With exact commands and a small process noise the gains decay like 1/n until they settle near
-q / sigma_R, so sum_j |K_j| sigma_j grows like sigma_R ln n and then by about q per frame: the c term
+q / sigma_R, so sum_j |W_j| grows like sigma_R ln n and then by about q per frame: the c term
 is the slow ramp (under c q per frame) that no test of this filter can tell from the execution error,
 and it is why the process noise must stay small. The h term is the transient the test lets through,
 largest right after a start, where the gain is largest. While the test alarms, assumption (B) fails:
@@ -79,8 +82,9 @@ def kappa(integrity_risk: float) -> float:
 
 class ProtectionLevel:
     """The PL's accumulators over one filter run (see the module docstring): `add` once per frame the
-    sequential test saw (the gain K (3x3, world) of an accepted frame, None for one it left out) with
-    the test's scales sigma (3,) (m); `level(P)` the PL (m) for the state covariance P (3x3, m^2)."""
+    sequential test saw (G = K R: the gain times the camera attitude, 3x3, world rows and camera
+    columns, of an accepted frame; None for one it left out) with the test's scales sigma (3,) (m,
+    camera axes); `level(P)` the PL (m) for the state covariance P (3x3, m^2)."""
 
     def __init__(self, reference: float, threshold: float, integrity_risk: float):
         self.reference, self.threshold = float(reference), float(threshold)
@@ -90,15 +94,15 @@ class ProtectionLevel:
     def reset(self, offset: float = 0.0) -> None:
         """A new filter run, carrying `offset` (m) of bias bound from the previous one."""
         self.offset = float(offset)
-        self.total = [[0.0] * 3 for _ in range(3)]        # sum_j |K_j[i, k]| sigma_{j,k}
+        self.total = [[0.0] * 3 for _ in range(3)]        # sum_j |W_j[i, k]|
         self.rise = [[0.0] * 3 for _ in range(3)]         # TV+(W+) + TV+(W-)
         self.last = [[0.0] * 3 for _ in range(3)]         # W_{j-1}[i, k] (signed)
 
-    def add(self, K: Mat3 | None, sigma: Sequence[float]) -> None:
+    def add(self, G: Mat3 | None, sigma: Sequence[float]) -> None:
         for i in range(3):
             total, rise, last = self.total[i], self.rise[i], self.last[i]
             for k in range(3):
-                w = 0.0 if K is None else K[i][k] * sigma[k]
+                w = 0.0 if G is None else G[i][k] * sigma[k]
                 prev = last[k]
                 rise[k] += max(max(w, 0.0) - max(prev, 0.0), 0.0) + max(max(-w, 0.0) - max(-prev, 0.0), 0.0)
                 total[k] += abs(w)

@@ -62,6 +62,7 @@ class Defense:
     reacquire_after: Annotated[int, In("[2, 10000000]", "frames")]   # M: agreeing rejected frames that restart the filter
     cusum_reference: Annotated[float, In("[0, 100]", "standard deviations")]   # c of the sequential test
     integrity_risk: OpenProbability   # per frame, of the protection level's noise term
+    trusted_start: Annotated[int, In("[0, 10000000]", "frames")]   # assumed attack-free after the filter's first start
     hold_after: Frames             # K: consecutive flags that declare the estimate lost -> hold
     release_after: Frames          # consecutive clean frames that end a hold
     update_below: Optional[OpenProbability]  # detector probability from which a frame does not update the

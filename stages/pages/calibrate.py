@@ -5,7 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-SETTING = {"detector": "threshold {:.4g}", "gate": "noise inflation x{:g}", "sequential test": "CUSUM threshold h = {:g}"}
+SETTING = {"detector": "threshold {:.4g}", "attitude gate": "attitude noise inflation x{:g}",
+           "gate": "position noise inflation x{:g}", "sequential test": "CUSUM threshold h = {:g}"}
 
 
 def unmet_line(check: Any, frames: int, reached: float | None = None, target: float | None = None) -> str:
@@ -27,7 +28,7 @@ def summary_line(cal: dict[str, Any], path: Path) -> str:
     fa = v["false_alarms"]
     unmet = f"; UNMET (defense.allow_unmet): {len(cal['unmet'])} check(s)" if cal["unmet"] else ""
     return (f"calibrate: {v['frames']} clean validation frames; detector threshold {cal['threshold']:.4g}, noise x"
-            f"{cal['inflation']:g}, CUSUM h {cal['cusum_threshold']:g}; false alarms detector {fa['detector']['pct']:.3f}%, "
+            f"{cal['inflation']:g} (attitude x{cal['attitude_inflation']:g}), CUSUM h {cal['cusum_threshold']:g}; false alarms detector {fa['detector']['pct']:.3f}%, "
             f"gate {fa['gate']['pct']:.3f}%, sequential {fa['sequential']['pct']:.3f}%, fused {fa['fused']['pct']:.3f}% "
             f"(target {v['target_pct']:g}%); availability {v['availability']['pct']:.2f}%{unmet} -> {path}")
 
