@@ -18,7 +18,7 @@ from pipeline.attacks.adaptive import PerFrameChain
 from pipeline.attacks.base import AttackRun
 from pipeline.attacks.drift import DriftAttacker, DriftSettings, drift_estimates, targeted_pgd
 from pipeline.attacks.suite import get_attacker
-from pipeline.defense.fusion import Defense, DefenseSettings, DefenseTrace, run_defense
+from pipeline.defense.fusion import Defense, DefenseSettings, run_defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
@@ -65,7 +65,8 @@ def test_a_drift_under_the_gate_is_caught_or_bounded(direction: str, alert_limit
     a filter whose process noise (5 cm per frame) lets the state follow it: with the sequential test
     off it walks the trusted estimate past AL unflagged; with it on, no frame is misleading (error >
     PL) and none is hazardous (available, error > AL): the chain declares itself unavailable (PL >
-    AL) before the error passes AL. With a tighter reference value (c = 0.5) the test flags it."""
+    AL) before the error passes AL. With a tighter reference value (c = 0.5) the test flags it, and
+    the same holds."""
     loose = dataclasses.replace(MOTION, position_noise=0.05)
     rate = 1.25 * alert_limit / FRAMES                       # m/frame: past AL within the 100 frames
     rel, t_clean, _, off = drifted(direction, rate, None, dataclasses.replace(loose, cusum_threshold=1e12))
@@ -77,9 +78,11 @@ def test_a_drift_under_the_gate_is_caught_or_bounded(direction: str, alert_limit
     assert not d.motion_flag.any()                             # the gate still sees nothing
     assert not (d.available & (error > alert_limit)).any()     # no hazardous frame
     assert not (error > d.pl).any()                            # no misleading frame
-    _, _, _, tight = drifted(direction, rate, None, dataclasses.replace(loose, cusum_reference=0.5))
-    first = int(np.flatnonzero(tight.sequential_flag)[0])
-    assert START < first and np.linalg.norm(tight.trusted - rel, axis=1).max() < alert_limit
+    _, _, _, tight = drifted(direction, rate, None, dataclasses.replace(loose, cusum_reference=0.5),
+                             alert_limit=alert_limit)
+    error = np.linalg.norm(tight.trusted - rel, axis=1)
+    assert not tight.sequential_flag[:START].any() and tight.sequential_flag[START:].any()
+    assert not (tight.available & (error > alert_limit)).any() and not (error > tight.pl).any()
     offset = trace.delivered - t_clean
     jumped = run_defense(DefenseSettings(), loose, NOISE, np.where(np.arange(len(rel))[:, None] >= START,
                          t_clean + offset[-1], t_clean), np.zeros(len(rel)), np.repeat(np.eye(3)[None], len(rel), 0),

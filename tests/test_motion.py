@@ -202,7 +202,7 @@ def test_float_filters_follow_the_matrix_equations():
     """The per-frame filters (plain floats on 3x3 lists, scalar attitude filters) against the Kalman
     equations written on numpy matrices: predict, then the Joseph-form update. The position filter's
     state is rel alone (F = I, moved by the command u); the attitude's is [level, rate]."""
-    from pipeline.defense.kalman import _IsoKalman6, _Kalman3
+    from pipeline.defense.linear import IsoKalman6, Kalman3
 
     rng = np.random.default_rng(4)
     for iso in (False, True):
@@ -210,7 +210,7 @@ def test_float_filters_follow_the_matrix_equations():
         F, H = np.eye(d), np.hstack([np.eye(3), np.zeros((3, d - 3))])
         F[:3, 3:] = np.eye(3) if iso else F[:3, 3:]
         q = np.array([0.05] * 3 + [0.01] * 3)[:d] ** 2
-        kf = _IsoKalman6(0.05, 0.01) if iso else _Kalman3(0.05)
+        kf = IsoKalman6(0.05, 0.01) if iso else Kalman3(0.05)
         cov = np.eye(3) * 0.3 if iso else _spd(rng, 0.5)
         x, P = np.r_[rng.normal(0, 5, 3) * (not iso), np.zeros(d - 3)], np.zeros((d, d))
         P[:3, :3] = cov

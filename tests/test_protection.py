@@ -117,13 +117,18 @@ def test_the_detector_threshold_is_a_quantile_of_clean_frames_or_says_it_cannot(
     assert not r.met and r.reached == pytest.approx(0.01) and r.setting < 1.0
 
 
-def test_pl_is_infinite_while_the_sequential_test_alarms() -> None:
+def test_each_alarm_of_the_sequential_test_flags_one_frame_and_raises_the_pl() -> None:
+    """A 5 cm/frame ramp along the boresight from frame 60: the sequential test flags it again and
+    again (it restarts after each alarm), the flagged frames are left out, and every alarm starts a
+    new segment of the fault bound, so the PL jumps there and keeps covering the error."""
     rel, run = approach(120, 3)
     t = run.pose[:, :3].copy()
-    t[60:, 2] += 0.05 * np.arange(60)                   # a 5 cm/frame ramp along the boresight
+    t[60:, 2] += 0.05 * np.arange(60)
     d = run_defense(DefenseSettings(), MOTION, NOISE, t, run.prob, run.R_cam, run.u)
-    alarmed = d.sequential_flag
-    assert alarmed.any() and np.isinf(d.pl[alarmed]).all() and not d.available[alarmed].any()
+    alarms = np.flatnonzero(d.sequential_flag)
+    assert len(alarms) >= 3 and alarms[0] >= 60 and not d.sequential_flag[:60].any()
+    assert (d.pl[alarms + 1] > d.pl[alarms - 1]).all()
+    assert not (np.linalg.norm(d.trusted - rel, axis=1) > d.pl).any()
 
 
 def _jumpy_runs() -> list[CleanRun]:

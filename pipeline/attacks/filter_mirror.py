@@ -133,7 +133,7 @@ class FilterMirror:
         self.started = True
 
     def _predict(self, u: np.ndarray | None) -> None:
-        """`_Kalman3.predict` and `_IsoKalman6.predict` (the attitude rate moved into R_tw)."""
+        """`Kalman3.predict` and `IsoKalman6.predict` (the attitude rate moved into R_tw)."""
         if u is not None:
             self.level = self.level + torch.as_tensor(np.asarray(u, np.float64))
         self.A = self.A + self.q * torch.eye(3, dtype=DTYPE)
@@ -143,7 +143,7 @@ class FilterMirror:
 
     def _update_position(self, y: Tensor, Rz: Tensor, R_cam: Tensor) -> tuple[Tensor, Tensor]:
         """NIS of the innovation y (R, 3) and the CUSUM after it (`Cusum.push` on the innovation along
-        the camera axes over its standard deviations there), then `_Kalman3.update` with the
+        the camera axes over its standard deviations there), then `Kalman3.update` with the
         Huber-inflated covariance."""
         S = self.A + Rz
         nis = (y * torch.linalg.solve(S, y.unsqueeze(2)).squeeze(2)).sum(1)
@@ -159,7 +159,7 @@ class FilterMirror:
         return nis, cusum
 
     def _update_attitude(self, R_meas: Tensor, rng: Tensor) -> Tensor:
-        """NIS of the attitude error, then `_IsoKalman6.update` (Huber-inflated) moved into R_tw."""
+        """NIS of the attitude error, then `IsoKalman6.update` (Huber-inflated) moved into R_tw."""
         dth = rotvec_t(self.R_tw.transpose(1, 2) @ R_meas)
         var = self._attitude_var(rng)
         a, b, c = self.p

@@ -12,10 +12,10 @@ commanded displacement) into (flag, trusted estimate, mode, protection level, av
   the fusion: the trusted estimate stays sound under either check. A frame whose probability is
   at or above `update_below` (below the threshold) is doubtful: not flagged, but not used either;
 - a frame that passes the gate and the detector goes to the sequential test (a CUSUM on the
-  innovations, pipeline/defense/sequential.py): while it alarms, frames are flagged and coast, so a
-  slow drift that stays under the gate cannot keep walking the state;
+  innovations, pipeline/defense/sequential.py): a frame on which it alarms is flagged and coasts and
+  the test restarts, so a slow drift that stays under the gate is flagged as it walks the state;
 - PL (m): the protection level of the trusted estimate (pipeline/defense/protection.py; inf before
-  the start and while the sequential test alarms); available: the guidance may fly on the trusted
+  the start), which grows with every restart of the test; available: the guidance may fly on the trusted
   estimate: mode track or coast and, with an alert limit AL(range) given, PL <= AL at the trusted
   estimate's range (the chaser's best knowledge of it; the offline integrity metrics,
   pipeline/evaluation/integrity.py, judge PL against AL at the true range);

@@ -45,151 +45,8 @@ from pipeline.defense.gate import MotionCheck, MotionSettings
 from pipeline.defense.noise import NoiseModel
 from pipeline.defense.protection import ProtectionLevel, largest_eigenvalue
 from pipeline.defense.sequential import Cusum
+from pipeline.defense.linear import IsoKalman6, Kalman3, add, eye, mm, mm_t, mv, transpose
 from pipeline.geometry.rotations import Mat3, float_lists, rotmat_list, rotvec_list
-
-
-def _inv3(S: Mat3) -> Mat3:
-    """Inverse of a 3x3 matrix (nested list) by cofactors, in plain floats."""
-    (a, b, c), (d, e, f), (g, h, i) = S
-    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
-    r = 1.0 / (a * A + b * B + c * C)
-    return [[A * r, (c * h - b * i) * r, (b * f - c * e) * r],
-            [B * r, (a * i - c * g) * r, (c * d - a * f) * r],
-            [C * r, (b * g - a * h) * r, (a * e - b * d) * r]]
-
-
-def _mm(A: Mat3, B: Mat3) -> Mat3:
-    """A @ B for 3x3 nested lists."""
-    (a0, a1, a2), (a3, a4, a5), (a6, a7, a8) = A
-    (b0, b1, b2), (b3, b4, b5), (b6, b7, b8) = B
-    return [[a0 * b0 + a1 * b3 + a2 * b6, a0 * b1 + a1 * b4 + a2 * b7, a0 * b2 + a1 * b5 + a2 * b8],
-            [a3 * b0 + a4 * b3 + a5 * b6, a3 * b1 + a4 * b4 + a5 * b7, a3 * b2 + a4 * b5 + a5 * b8],
-            [a6 * b0 + a7 * b3 + a8 * b6, a6 * b1 + a7 * b4 + a8 * b7, a6 * b2 + a7 * b5 + a8 * b8]]
-
-
-def _mmT(A: Mat3, B: Mat3) -> Mat3:
-    """A @ B^T for 3x3 nested lists."""
-    return [[a[0] * b[0] + a[1] * b[1] + a[2] * b[2] for b in B] for a in A]
-
-
-def _t(A: Mat3) -> Mat3:
-    """Transpose of a 3x3 nested list."""
-    return [list(col) for col in zip(*A)]
-
-
-def _add(A: Mat3, B: Mat3, k: float = 1.0) -> Mat3:
-    """A + k B for 3x3 nested lists."""
-    return [[a + k * b for a, b in zip(ra, rb)] for ra, rb in zip(A, B)]
-
-
-def _sym(A: Mat3) -> Mat3:
-    """(A + A^T) / 2: block products round a covariance's halves apart, and a 3x3 block's
-    asymmetry, left alone, grows from frame to frame (1e-16 to 1e-6 in 6000 frames, measured)."""
-    return [[(A[i][j] + A[j][i]) * 0.5 for j in range(3)] for i in range(3)]
-
-
-def _mv(A: Mat3, v: Sequence[float]) -> list[float]:
-    """A @ v for a 3x3 nested list and a 3-vector."""
-    return [r[0] * v[0] + r[1] * v[1] + r[2] * v[2] for r in A]
-
-
-def _eye(k: float = 1.0) -> Mat3:
-    return [[k, 0.0, 0.0], [0.0, k, 0.0], [0.0, 0.0, k]]
-
-
-class _Kalman3:
-    """Linear Kalman filter on a level a (3): a_k = a_{k-1} + u_k (+ noise of std `q_level` per axis),
-    measurement a. In plain floats (see the module docstring); `x` and `P` give numpy copies."""
-
-    def __init__(self, q_level: float):
-        self.q_level = q_level ** 2
-        self.level = [0.0] * 3
-        self.A = _eye()
-
-    @property
-    def x(self) -> np.ndarray:
-        return np.array(self.level)
-
-    @property
-    def P(self) -> np.ndarray:
-        return np.array(self.A)
-
-    def reset(self, level: Sequence[float], level_cov: Mat3) -> None:
-        self.level = [float(v) for v in level]
-        self.A = [[float(v) for v in row] for row in level_cov]
-
-    def predict(self, u: Sequence[float] | None = None) -> None:
-        """level += u; P += Q."""
-        if u is not None:
-            self.level = [a + d for a, d in zip(self.level, u)]
-        self.A = _add(self.A, _eye(self.q_level))
-
-    def innovation_inverse(self, R: Mat3) -> Mat3:
-        """S^-1 with S = P + R (3, 3)."""
-        return _inv3(_add(self.A, R))
-
-    def update(self, y: Sequence[float], R: Mat3, s_inv: Mat3 | None = None) -> Mat3:
-        """Update with innovation y and measurement covariance R (`s_inv`: its `innovation_inverse`,
-        when known): K = P S^-1, Joseph form P = (I - K) P (I - K)^T + K R K^T. Returns K."""
-        s_inv = self.innovation_inverse(R) if s_inv is None else s_inv
-        K = _mm(self.A, s_inv)
-        self.level = [a + d for a, d in zip(self.level, _mv(K, y))]
-        M = _add(_eye(), K, -1.0)
-        self.A = _sym(_add(_mmT(_mm(M, self.A), M), _mmT(_mm(K, R), K)))
-        return K
-
-
-class _IsoKalman6:
-    """A Kalman filter on [level (3), rate of the level (3)] for the attitude error state, whose P, Q
-    and measurement covariances are all multiples of I3 per 3x3 block (isotropic noise): three equal
-    scalar filters on
-    P = [[a, b], [b, c]] (x) I3, in plain floats. `level` (the rotation-vector error) and `rate`
-    are 3-lists."""
-
-    def __init__(self, q_level: float, q_rate: float):
-        self.q_level, self.q_rate = q_level ** 2, q_rate ** 2
-        self.level, self.rate = [0.0] * 3, [0.0] * 3
-        self.p = (1.0, 0.0, 1.0)
-
-    @property
-    def x(self) -> np.ndarray:
-        return np.array(self.level + self.rate)
-
-    @property
-    def P(self) -> np.ndarray:
-        a, b, c = self.p
-        return np.kron(np.array([[a, b], [b, c]]), np.eye(3))
-
-    def reset(self, level_var: float, rate_std: float) -> None:
-        """Zero state, level variance `level_var`, rate std `rate_std` (per axis)."""
-        self.level, self.rate = [0.0] * 3, [0.0] * 3
-        self.p = (level_var, 0.0, rate_std ** 2)
-
-    def predict(self) -> None:
-        self.level = [v + r for v, r in zip(self.level, self.rate)]
-        a, b, c = self.p
-        self.p = (a + b + b + c + self.q_level, b + c, c + self.q_rate)
-
-    def take_level(self) -> list[float]:
-        """The level (3,), set to zero: the caller moves it into its attitude estimate."""
-        level, self.level = self.level, [0.0] * 3
-        return level
-
-    def nis(self, y: Sequence[float], r: float) -> float:
-        """y^T S^-1 y with S = (a + r) I3, `r` the measurement variance per axis."""
-        return (y[0] * y[0] + y[1] * y[1] + y[2] * y[2]) / (self.p[0] + r)
-
-    def update(self, y: Sequence[float], r: float) -> list[float]:
-        """Update with innovation y (3,) and measurement variance `r` (Joseph form, per axis);
-        returns the level correction (3,)."""
-        a, b, c = self.p
-        ka, kb = a / (a + r), b / (a + r)
-        d_level = [ka * v for v in y]
-        self.level = [v + dv for v, dv in zip(self.level, d_level)]
-        self.rate = [v + kb * w for v, w in zip(self.rate, y)]
-        self.p = ((1 - ka) ** 2 * a + ka * ka * r, (1 - ka) * (b - kb * a) + ka * kb * r,
-                  kb * kb * a - 2 * kb * b + c + kb * kb * r)
-        return d_level
 
 
 def _camera_normalized(y: Sequence[float], S: Mat3, R_cam: Mat3) -> tuple[list[float], list[float]]:
@@ -216,11 +73,11 @@ class MotionFilter:
         self.settings = settings
         self.noise = noise
         self.gate = settings.gate
-        self.pos = _Kalman3(settings.position_noise)
-        self.att = _IsoKalman6(math.radians(settings.attitude_noise_deg), math.radians(settings.attitude_rate_noise_deg))
+        self.pos = Kalman3(settings.position_noise)
+        self.att = IsoKalman6(math.radians(settings.attitude_noise_deg), math.radians(settings.attitude_rate_noise_deg))
         self.cusum = Cusum(settings.cusum_reference, settings.cusum_threshold)
         self.protection = ProtectionLevel(settings.cusum_reference, settings.cusum_threshold, settings.integrity_risk)
-        self.R_tw = _eye()             # attitude estimate (target -> world), 3x3 nested list
+        self.R_tw = eye()             # attitude estimate (target -> world), 3x3 nested list
         self.started = False
         self._pending: tuple[MotionCheck, tuple | None] | None = None   # last check, its update terms
         self._tested = False           # the pending frame went through the sequential test
@@ -250,9 +107,8 @@ class MotionFilter:
 
     @property
     def protection_level(self) -> float:
-        """PL (m) of the current state (pipeline/defense/protection.py); inf before the start and while
-        the sequential test alarms."""
-        if not self.started or self.cusum.alarmed:
+        """PL (m) of the current state (pipeline/defense/protection.py); inf before the start."""
+        if not self.started:
             return math.inf
         return self.protection.level(self.pos.A)
 
@@ -265,7 +121,7 @@ class MotionFilter:
         self.pos.reset(rel.tolist(), np.asarray(rel_cov, np.float64).tolist())
         att_std = self.noise.attitude_std(float(np.linalg.norm(rel)))
         self.att.reset(att_std ** 2, 3 * math.radians(self.settings.attitude_rate_noise_deg))
-        self.R_tw = _eye() if R_tw is None else np.asarray(R_tw, np.float64).tolist()
+        self.R_tw = eye() if R_tw is None else np.asarray(R_tw, np.float64).tolist()
         self.started = True
         self.cusum.reset()
         self.protection.reset(offset)
@@ -287,9 +143,9 @@ class MotionFilter:
     def _measurement(self, t: list[float], rng: float, R_cam: Mat3) -> tuple[list[float], Mat3]:
         """`measurement` from the estimate as floats, its range (m) and R_cam as nested lists."""
         bias, std = self.noise.terms(rng)
-        z = _mv(R_cam, [t[i] - bias[i] for i in range(3)])
+        z = mv(R_cam, [t[i] - bias[i] for i in range(3)])
         var = [v * v for v in std]
-        return z, _mmT([[r * v for r, v in zip(row, var)] for row in R_cam], R_cam)
+        return z, mm_t([[r * v for r, v in zip(row, var)] for row in R_cam], R_cam)
 
     def start_from(self, t_pred: np.ndarray, R_cam: np.ndarray, R_pred: np.ndarray | None = None) -> None:
         """Start from one trusted estimate (camera frame) with the noise model's covariance."""
@@ -309,7 +165,7 @@ class MotionFilter:
         self._tested = False
         self.pos.predict(u)
         self.att.predict()
-        self.R_tw = _mm(self.R_tw, rotmat_list(self.att.take_level()))
+        self.R_tw = mm(self.R_tw, rotmat_list(self.att.take_level()))
         predicted = self.position
         t = float_lists(t_pred)
         rng = math.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
@@ -319,15 +175,15 @@ class MotionFilter:
         R_cam = float_lists(R_cam)
         rng = self.predicted_range
         z, Rz = self._measurement(t, rng, R_cam)
-        R_meas = None if R_pred is None else _mm(R_cam, R_pred)
+        R_meas = None if R_pred is None else mm(R_cam, R_pred)
         self._last = ([v - m for v, m in zip(z, self._moved)], Rz, R_meas)
         y = [v - p for v, p in zip(z, self.pos.level)]
         s_inv = self.pos.innovation_inverse(Rz)
-        nis_p = sum(a * b for a, b in zip(y, _mv(s_inv, y)))
-        r, sigma = _camera_normalized(y, _add(self.pos.A, Rz), R_cam)
+        nis_p = sum(a * b for a, b in zip(y, mv(s_inv, y)))
+        r, sigma = _camera_normalized(y, add(self.pos.A, Rz), R_cam)
         nis_a, att = np.nan, None
         if R_meas is not None:
-            dth = rotvec_list(_mm(_t(self.R_tw), R_meas))
+            dth = rotvec_list(mm(transpose(self.R_tw), R_meas))
             var = self.noise.attitude_std(rng) ** 2
             nis_a = self.att.nis(dth, var)
             att = (dth, var)
@@ -340,11 +196,19 @@ class MotionFilter:
 
     def test_sequence(self) -> bool:
         """Push the last checked (finite) frame's normalized innovations into the sequential test;
-        returns whether it alarms (the caller then coasts the frame)."""
+        returns whether it alarms (the caller then coasts the frame). An alarm restarts the test: the
+        frame is left out of the state, and the protection level's fault bound starts a new segment
+        (pipeline/defense/protection.py), so a clean false alarm costs one frame, while a drift that
+        keeps alarming pays for each new segment in its PL."""
         if self._pending is None or self._pending[1] is None:
             raise RuntimeError("MotionFilter.test_sequence needs a checked, finite frame")
         self._tested = True
-        return self.cusum.push(self._pending[1][4])
+        if not self.cusum.push(self._pending[1][4]):
+            return False
+        self.cusum.reset()                 # a new segment of the test (and of the PL's fault bound) starts
+        self.protection.add(None, self._pending[1][5])
+        self._tested = False
+        return True
 
     def accept(self) -> None:
         """Update the filter with the last checked frame (Huber-weighted above the soft gate); its
@@ -357,11 +221,11 @@ class MotionFilter:
             K = self.pos.update(y, [[v * (check.nis_position / soft) for v in row] for row in Rz])
         else:
             K = self.pos.update(y, Rz, s_inv)
-        self._bound(_mm(K, R_cam), sigma)
+        self._bound(mm(K, R_cam), sigma)
         if att is not None:
             dth, var = att
             self.att.update(dth, var * max(1.0, check.nis_attitude / soft))
-            self.R_tw = _mm(self.R_tw, rotmat_list(self.att.take_level()))
+            self.R_tw = mm(self.R_tw, rotmat_list(self.att.take_level()))
         self._pending = None
         self._history.append(self._last[0])
         self._candidates = []

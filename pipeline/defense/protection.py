@@ -31,14 +31,15 @@ window sum (<= h), so sum_j W_j d_j <= h TV+(W), and
     |e^f_{n,i}| <= sum_k [ c sum_j |W_j[i, k]| + h (TV+(W+) + TV+(W-)) ] =: b_i,
 the same bound for -e^f (the window constraint is two-sided). Frames the test saw but the filter
 left out have W = 0; frames the test did not see (the gate or the detector left them out) are not
-in the sequence. Hence
+in the sequence. An alarm restarts the test (pipeline/defense/sequential.py): the constraint holds
+within each segment between alarms, the alarming frame is left out (W = 0), so the next segment's
+first weight counts in full in TV+ and the bound is the sum of the segments' bounds. Hence
     PL_n = kappa sqrt(lambda_max(P_n)) + |b| (+ a restart's carried offset, below).
 With exact commands and a small process noise the gains decay like 1/n until they settle near
 q / sigma_R, so sum_j |W_j| grows like sigma_R ln n and then by about q per frame: the c term
 is the slow ramp (under c q per frame) that no test of this filter can tell from the execution error,
 and it is why the process noise must stay small. The h term is the transient the test lets through,
-largest right after a start, where the gain is largest. While the test alarms, assumption (B) fails:
-PL is infinite (unavailable).
+largest right after a start, where the gain is largest, and paid again after each alarm.
 
 Restarts (`MotionFilter.reacquire`): the new state is the mean of M frames that agreed with the
 median of the last 2 M accepted measurements within the gate. An accepted measurement's fault is

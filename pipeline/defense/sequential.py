@@ -10,12 +10,15 @@ N(0, 1) on motion consistent with the model,
 
     g+_i <- max(0, g+_i + r_i - c),    g-_i <- max(0, g-_i - r_i - c),
 
-and the test alarms when any statistic exceeds h. c (the reference value, in standard deviations)
+and the test alarms when any statistic exceeds h; the caller then leaves the frame out and restarts
+the test (`reset`): an alarm ends a segment, so a clean false alarm flags one frame instead of the
+run of frames a slowly decaying statistic would (the clean pose errors are correlated, and alarm
+episodes made the calibrated rate jump between neighbouring thresholds). c (the reference value, in standard deviations)
 is the persistent shift the test is tuned against (half the shift it detects fastest); h (the
 threshold) sets its false-alarm rate, calibrated on clean validation trajectories (`rpod calibrate`)
 because the pose model's errors are correlated from frame to frame, which the white-noise model does
-not see. While the test does not alarm, every window a..b of tested frames satisfies
--c (b - a + 1) - h <= sum r_i <= c (b - a + 1) + h: the bound the protection level rests on.
+not see. Within a segment (between alarms), every window a..b of the frames the filter accepted
+satisfies -c (b - a + 1) - h <= sum r_i <= c (b - a + 1) + h: the bound the protection level rests on.
 """
 from __future__ import annotations
 

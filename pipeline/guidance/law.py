@@ -19,7 +19,7 @@ Defense (`GuidanceSettings.defense`, the chain inside the loop; pipeline/defense
   prediction on flagged frames) where the defense declares it available; elsewhere the chaser
   holds: in the defense's hold mode, and where the protection level exceeds the alert limit (PL >
   AL: the defense cannot bound its error within what the guidance absorbs; the Defense's
-  `alert_limit`, pipeline/defense/fusion.py) or is infinite (the sequential test alarms).
+  `alert_limit`, pipeline/defense/fusion.py).
 A hold sends no command: the chaser stays where it is and keeps its camera pointing. The defense
 gets the commanded displacement of `rel` (-cmd, or 0 in a hold) to drive its motion filter.
 A run lasts `max_steps` steps (the nominal approach 60 m -> 10 m takes 50); it is judged at the

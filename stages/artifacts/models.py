@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.formats.models import loss_from_checkpoint, model_from_checkpoint, read_pose
-from pipeline.io.atomic import file_hash, read_json
+from pipeline.io.atomic import file_hash
 from stages.artifacts.paths import DEFENSE, DETECTOR, POSE
 from stages.config.build import defense_settings
 from stages.config.schema import Params
