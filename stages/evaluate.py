@@ -63,10 +63,11 @@ def main(params: Params) -> None:
     t0 = time.perf_counter()
     res = evaluate_sequences(chain, loss_fn, sequences, eps_list, length, e.batch_size, "evaluate")
     harm = params.defense.harm_m
-    fused = {name: defended_summary(res.traces, sequences, eps_list, defense.settings if fusion is None else
-                                    dataclasses.replace(defense.settings, fusion=fusion), defense.motion,
-                                    defense.noise, length, harm)
-             for name, fusion in (("paper (LSTM alone)", "paper"), (f"defended ({defense.settings.fusion})", None))}
+    # the paper's row: the LSTM alone at its own threshold (detector.pt); the defended chain: the calibrated one
+    paper = dataclasses.replace(defense.settings, fusion="paper", threshold=chain.threshold,
+                                update_below=min(params.defense.update_below or 1.0, chain.threshold))
+    fused = {name: defended_summary(res.traces, sequences, eps_list, s, defense.motion, defense.noise, length, harm)
+             for name, s in (("paper (LSTM alone)", paper), (f"defended ({defense.settings.fusion})", defense.settings))}
     seconds = time.perf_counter() - t0
     summary = per_eps_summary(res.rows)
     eps_fig = min(eps_list)
