@@ -73,8 +73,8 @@ class Prediction:
 class Chain:
     """The per-image safety chain of a trained run: pose CNN -> exact SHAP signature -> LSTM detector.
 
-    Each image is judged on its own. The motion-filter defense (pipeline/defense/fusion.py), which checks
-    estimates against the chaser's motion, needs sequences and is not applied here. Positions assume
+    `predict` judges each image on its own. The motion-filter defense (pipeline/defense/fusion.py), which
+    checks estimates against the chaser's motion, needs sequences: `track`. Positions assume
     the camera the model was trained with (params.yaml `camera`): an image from a camera with another
     field of view gives ranges off by the ratio of the focal lengths (pixels per image width).
     """
@@ -128,6 +128,17 @@ class Chain:
         quaternion[seen] = sixd_to_quat(p[seen, 3:9]).reshape(-1, 4)
         return Prediction(tuple(names), p[:, :3], quaternion, p[:, 3:9], np.where(seen, np.concatenate(prob), np.nan),
                           np.concatenate(flag).astype(bool) & seen, lit, seen)
+
+    def track(self, images: Image | Sequence[Image], commands: np.ndarray, attitudes: np.ndarray,
+              batch_size: int = BATCH, camera: Any = None) -> Any:
+        """The defended chain over a sequence (rpodguard/sequence.py): `images` in time order, the chaser's
+        commanded displacement of the target's relative position per frame `commands` (N, 3; world axes,
+        m; row 0 unused) and camera `attitudes` (N, 3, 3; camera -> world) -> a `Track`: per frame the
+        trusted estimate (world, m), its protection level (m) and availability; `camera` the images' K, as in
+        `predict`. Needs FOLDER/defense.json (`rpod calibrate`)."""
+        from rpodguard.sequence import track
+
+        return track(self, images, commands, attitudes, batch_size, camera)
 
     def _fit(self, image: np.ndarray, name: str) -> np.ndarray:
         """One RGB image -> float32 (height, width, 3) in [0, 1] at the model input size."""

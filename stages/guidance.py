@@ -34,6 +34,7 @@ from pipeline.io.atomic import atomic_write_text, save_figure
 from stages.artifacts.dvc import write_metrics
 from stages.errors import StageError
 from stages.pages.guidance import defended_section, guidance_page
+from stages.pages.calibrate import unmet_banner
 
 
 def _plan(g: Guidance) -> tuple[Any, list[tuple[float, float, int, Any]]]:
@@ -104,7 +105,8 @@ def main(params: Params) -> None:
     metrics = _metrics(settings, g, params.attack, model_hash, seconds, counts, (baseline, arrival, horizon, attacked),
                        defended)
     write_metrics(METRICS, metrics, params.profile_name)
-    atomic_write_text(REPORT, guidance_page(metrics, g, params.render) + defended_section(metrics["defended"], g))
+    atomic_write_text(REPORT, unmet_banner(defense.calibration) + guidance_page(metrics, g, params.render)
+                      + defended_section(metrics["defended"], g))
     first = attacked[0][0] if attacked else None
     save_figure(guidance_trajectories(baseline, [(s, k, r) for e, s, k, r in attacked if e == first], first,
                                       settings.goal), FIGURE)

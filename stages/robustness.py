@@ -37,6 +37,7 @@ from stages.config.evaluation import Robustness, attack_name
 from stages.config.schema import Params
 from stages.errors import StageError
 from stages.pages.robustness import robustness_page
+from stages.pages.calibrate import unmet_banner
 
 
 def main(params: Params) -> None:
@@ -91,7 +92,7 @@ def main(params: Params) -> None:
                "worst_harmful_undetected": worst_by_eps(rows), **fused,
                "worst_harmful_undetected_fused": worst_by_eps(fused["fused_rows"])}
     write_metrics(METRICS, metrics, params.profile_name)
-    atomic_write_text(REPORT, robustness_page(metrics, params))
+    atomic_write_text(REPORT, unmet_banner({"unmet": fused["fused"]["calibration_unmet"]}) + robustness_page(metrics, params))
     worst_fused = [row for row in fused["fused_rows"] if row["lambda"] is None]
     save_figure(robustness_vs_eps([row for row in rows if row["attack"] != "adaptive pgd"] + worst_fused), FIGURE)
     print(f"robustness: {len(rows)} attack rows and {len(corruptions)} corruption rows on {n} test frames in "
@@ -183,6 +184,6 @@ def _fused_setup(p: Params, r: Robustness, chain: Any, model_hash: str) -> tuple
             "burst_every": r.burst_every, "false_alarm_rate": alarms.value, "ci95_false_alarm": alarms.ci(),
             "noise_model": defended.noise.as_dict(), "gate": defended.motion.gate,
             "gate_false_alarm": defended.motion.false_alarm, "noise_inflation": shipped.calibration.get("inflation", 1.0),
-            "fusion": defended.settings.fusion,
+            "fusion": defended.settings.fusion, "calibration_unmet": shipped.calibration.get("unmet", []),
             "noise_fitted_on": "validation trajectories (models/defense.json, rpod calibrate)"}
     return images, labels, trajs, bursts, defended, info

@@ -235,3 +235,72 @@ def test_cli_camera_mismatch_warns_and_a_bad_camera_file_stops_first(camera_mode
     for path, named in ((tmp_path / "bad.json", "bad.json: missing key 'Nu'"), (tmp_path / "none.json", "not found")):
         code, out, err = _rpod(monkeypatch, capsys, "predict", str(image), "--camera", str(path))
         assert code == 1 and out == "" and err.count("\n") == 1 and named in err, err
+
+
+# ----------------------------------------------------------------------------- sequence mode (rpodguard/sequence.py)
+def _calibrate(models: Path) -> None:
+    """models/defense.json as `rpod calibrate` writes it (pipeline/formats/defense.py), for the tiny chain."""
+    import dataclasses
+
+    from pipeline.defense.fusion import DefenseSettings
+    from pipeline.defense.gate import MotionSettings
+    from pipeline.defense.noise import NoiseModel
+    from pipeline.evaluation.integrity import AlertLimitSettings
+    from pipeline.formats.defense import DEFENSE_FORMAT
+    from pipeline.io.atomic import file_hash, write_json
+
+    noise = NoiseModel((0.05, 0.05, 0.1), (0.005, 0.005, 0.01), 1.0, 0.0)
+    threshold = load_chain(models).threshold
+    write_json(models / "defense.json", {
+        "format": DEFENSE_FORMAT, "pose_model_hash": file_hash(models / "pose.pt"), "detector_threshold": threshold,
+        "threshold": 0.9, "cusum_threshold": 8.0, "noise": noise.as_dict(), "fitted_noise": noise.as_dict(),
+        "settings": {**dataclasses.asdict(DefenseSettings()), **dataclasses.asdict(MotionSettings())},
+        "alert_limit": dataclasses.asdict(AlertLimitSettings()), "unmet": []})
+
+
+def test_track_gives_the_trusted_estimate_pl_and_availability_per_frame(models, tmp_path):
+    from pipeline.evaluation.integrity import AlertLimitSettings, alert_limit
+
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for name in ("pose.pt", "detector.pt"):
+        (bare / name).write_bytes((models / name).read_bytes())
+    n = 8
+    images, still, camera = _images(n, seed=3), np.zeros((n, 3)), np.repeat(np.eye(3)[None], n, 0)
+    with pytest.raises(Exception, match=r"defense.json not found"):
+        load_chain(bare).track(images, still, camera)
+    _calibrate(models)
+    track = load_chain(models).track(images, still, camera)
+    assert track.trusted.shape == (n, 3) and track.pl.shape == (n,) and track.available.dtype == bool
+    assert np.isfinite(track.trusted).all() and np.isfinite(track.pl).all() and (track.pl > 0).all()
+    rng = np.linalg.norm(track.trusted, axis=1)
+    limit = alert_limit(rng, AlertLimitSettings())
+    np.testing.assert_array_equal(track.available, (track.mode != "hold") & (track.pl <= limit))
+    records = track.records()
+    assert len(records) == n and records[0]["image"] == "array[0]" and len(records[0]["trusted_rel_m"]) == 3
+    with pytest.raises(ValueError, match=r"commands \(N, 3\) and camera attitudes \(N, 3, 3\)"):
+        load_chain(models).track(images, still[:3], camera)
+
+
+def test_cli_motion_file_gives_one_row_per_frame_and_bad_files_one_line(models, tmp_path, monkeypatch, capsys):
+    from rpodguard.sequence import MOTION_COLUMNS
+
+    _calibrate(models)
+    paths = [str(_png(tmp_path / f"f{k}.png", image)) for k, image in enumerate(_images(3, seed=4))]
+    rows = [",".join(MOTION_COLUMNS)] + ["0,0,-0.1," + ",".join(map(str, np.eye(3).ravel()))] * 3
+    (tmp_path / "motion.csv").write_text("\n".join(rows) + "\n")
+    code, out, err = _rpod(monkeypatch, capsys, "predict", *paths, "--motion", str(tmp_path / "motion.csv"), "--json",
+                           "--models", str(models))
+    assert code == 0, err
+    records = json.loads(out)
+    assert [r["image"] for r in records] == paths and {"trusted_rel_m", "pl_m", "available", "flag", "mode"} <= set(records[0])
+    code, out, _ = _rpod(monkeypatch, capsys, "predict", *paths, "--motion", str(tmp_path / "motion.csv"), "--models",
+                         str(models))
+    assert code == 0 and "PL (m)" in out and "f2.png" in out
+    (tmp_path / "short.csv").write_text("\n".join(rows[:3]) + "\n")
+    (tmp_path / "cols.csv").write_text("u_x,u_y\n0,0\n")
+    for name, message in (("short.csv", "has 2 rows for 3 images"), ("cols.csv", "lacks the column(s) u_z"),
+                          ("none.csv", "none.csv not found")):
+        code, out, err = _rpod(monkeypatch, capsys, "predict", *paths, "--motion", str(tmp_path / name), "--models",
+                               str(models))
+        assert code == 1 and out == "" and err.count("\n") == 1 and message in err, err

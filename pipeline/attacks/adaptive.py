@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from pipeline.attacks.filter_mirror import attitude_std_t, noise_terms_t
 from pipeline.attacks.gradient import LossFn, pgd
 from pipeline.shap import ExactShap
 from pipeline.defense.kalman import MotionFilter
@@ -186,15 +187,14 @@ class FusedBurstChain(nn.Module):
         pr, n = self.prior, self.noise
         as_t = lambda a: torch.as_tensor(np.asarray(a), dtype=pose.dtype)  # noqa: E731
         t = pose[:, :3]
-        rng = t.norm(dim=1, keepdim=True)
-        bias = as_t(n.bias_intercept) + as_t(n.bias_slope) * rng
-        std = torch.clamp(as_t(n.position_intercept) + as_t(n.position_slope) * rng, min=n.floor)
+        rng = as_t(pr.position).norm(dim=1, keepdim=True)     # the noise model at the predicted range, as the filter
+        bias, std = noise_terms_t(n, rng)
         R_cam = as_t(pr.R_cam)
         y = torch.einsum("kij,kj->ki", R_cam, t - bias) - as_t(pr.position)
         S = as_t(pr.position_cov) + R_cam @ torch.diag_embed(std ** 2) @ R_cam.transpose(1, 2)
         nis_p = (y * torch.linalg.solve(S, y.unsqueeze(2)).squeeze(2)).sum(1)
         dth = rotvec_t(as_t(pr.attitude).transpose(1, 2) @ R_cam @ sixd_to_matrix_t(pose[:, 3:]))
-        att_std = torch.deg2rad(torch.clamp(n.attitude_intercept + n.attitude_slope * rng, min=0.1))
+        att_std = attitude_std_t(n, rng)
         S_a = as_t(pr.attitude_cov) + torch.eye(3, dtype=pose.dtype) * (att_std ** 2).unsqueeze(2)
         nis_a = (dth * torch.linalg.solve(S_a, dth.unsqueeze(2)).squeeze(2)).sum(1)
         return nis_p, nis_a

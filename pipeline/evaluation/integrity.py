@@ -6,7 +6,8 @@ The vocabulary is that of satellite-navigation integrity monitoring (RAIM/ARAIM)
   metres; NaN before the filter starts. Its error is the distance (m) to the true `rel`.
 - alert limit AL(range) (m): the largest trusted-estimate error the guidance law and the docking
   tolerance absorb at that true range (`alert_limit`, derived below).
-- protection level PL (m, optional): the chain's own bound on its error (a later defense adds it).
+- protection level PL (m, optional): the chain's own bound on its error (pipeline/defense/protection.py;
+  `DefenseTrace.pl`).
 - available: the guidance flies on the trusted estimate (defense mode track or coast, not hold: in
   the "recover" guidance a coasting prediction is flown too) and, where PL is given, PL <= AL.
 - HMI (hazardously misleading information): available and error > AL.
@@ -147,8 +148,10 @@ def defense_frames(trace: DefenseTrace, truth: np.ndarray, trajectory: Any, sett
                    pl: np.ndarray | None = None) -> IntegrityFrames:
     """The integrity records of one run through the defense: `trace` its DefenseTrace (e.g. of
     pipeline.evaluation.sequences.defend_trace or pipeline.defense.fusion.run_defense), `truth` (N, 3) the true rel (world, m), e.g.
-    `Sequence.rel`, `trajectory` the run's id, `pl` (N,) protection levels (m) when the chain has them."""
+    `Sequence.rel`, `trajectory` the run's id, `pl` (N,) protection levels (m): by default the trace's own
+    (`DefenseTrace.pl`, where the defense has one); availability is then flown and PL <= AL, MI error > PL."""
     truth = np.asarray(truth, np.float64)
+    pl = trace.pl if pl is None else pl
     n = len(trace.mode)
     if truth.shape != (n, 3):
         raise ValueError(f"defense_frames: truth must be (N, 3) = ({n}, 3), got {truth.shape}")

@@ -110,12 +110,15 @@ def augment_config(augment: Augment) -> Any:
 
 
 def defense_settings(defense: Defense, threshold: float) -> tuple[Any, Any]:
-    """(DefenseSettings, MotionSettings) of params.defense with the detector's `threshold`."""
+    """(DefenseSettings, MotionSettings) of params.defense with the detector's `threshold`; a doubt
+    zone (`update_below`) that starts above the threshold starts at it (calibrate may lower the threshold)."""
     from pipeline.defense.fusion import DefenseSettings
-    from pipeline.defense.kalman import MotionSettings
+    from pipeline.defense.gate import MotionSettings
 
+    doubt = None if defense.update_below is None else min(defense.update_below, threshold)
     try:
-        return settings_of(DefenseSettings, defense, threshold=threshold), settings_of(MotionSettings, defense)
+        return (settings_of(DefenseSettings, defense, threshold=threshold, update_below=doubt),
+                settings_of(MotionSettings, defense))
     except ValueError as e:
         raise StageError(f"params.yaml: {e}") from None
 
