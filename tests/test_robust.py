@@ -3,6 +3,7 @@ weights' moving average, PGD-k adversarial training, the attacked-error table, `
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 from pathlib import Path
 
@@ -23,6 +24,7 @@ from stages.artifacts import data, models
 from stages.artifacts.paths import POSE_ROBUST
 from stages.config import params as params_mod
 from stages.config.sections import ParamsError
+from stages.errors import StageError
 from test_training import H, W, write_dataset
 
 
@@ -211,8 +213,14 @@ def test_robust_stage_writes_the_model_its_page_and_a_loader_reads_it(dataset):
     assert m["standard"]["test"]["n"] == m["robust"]["test"]["n"] == 16 and m["eval_frames"] == 8
     assert [r["attack"] for r in m["robust"]["attacks"]] == ["clean", "fgsm", "pgd-3", "fgsm", "pgd-3"]
     assert m["robust"]["train_minutes"] > 0 and m["standard"]["train_minutes"] > 0
+    assert m["robust"]["gradients"] == 3 * m["standard"]["gradients"] > 0   # PGD-2 on every image, 1 epoch each
     page = Path("reports/pose_robust.md").read_text()
     assert "Black-level clamp t = 0.07" in page and "| pgd-3    | 0.050" in page
     pose = models.load_pose(params_mod.load(), POSE_ROBUST)
     assert pose.model.black_level == 0.07 and pose.model(torch.rand(1, 3, H, W)).shape == (1, 9)
     assert list(Path("dvclive/robust").glob("**/val_adv_pos_m.tsv"))
+    other = params_mod.load()
+    other = dataclasses.replace(other, train=dataclasses.replace(
+        other.train, adversarial=dataclasses.replace(other.train.adversarial, black_level=0.08)))
+    with pytest.raises(StageError, match=r"black_level=0.07 \(params: 0.08\)"):
+        models.load_pose(other, POSE_ROBUST)

@@ -115,7 +115,7 @@ def robust_page(m: dict[str, Any], params: Params) -> str:
     models = ("standard", "robust")
     clean = [{"model": k, "split": s, "images": m[k][s]["n"], "position mean (m)": m[k][s]["pos_mean_m"],
               "attitude mean (deg)": m[k][s]["att_mean_deg"], "tilt mean (deg)": m[k][s]["tilt_mean_deg"],
-              "roll mean (deg)": m[k][s]["roll_mean_deg"], "training (min)": m[k]["train_minutes"]}
+              "roll mean (deg)": m[k][s]["roll_mean_deg"], "training cost (image gradients)": f"{m[k]['gradients']:,}"}
              for s in ("val", "test") for k in models]
     attacked = [{"attack": r["attack"], "eps": r["eps"],
                  **{f"{k} position (m)": _ci(row["pos_m"], row["pos_ci"]) for k, row in
@@ -136,6 +136,9 @@ attacked every epoch). Profile `{params.profile_name}`.
 ## Clean errors
 
 Validation (the standard model's split: never fitted by either model) and test. {TILT_ROLL}
+Training cost: image passes with a gradient (a training step's weight gradients, or one PGD step's input
+gradient); the robust model's counts its own training only (fine-tuned, it also cost the standard model's).
+Minutes on this machine: `train_minutes` in reports/metrics/robust.json.
 
 {markdown_table(clean, decimals=3)}
 ## Under attack
