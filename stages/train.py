@@ -54,10 +54,7 @@ def main(
     from stages.config.device import distributed
 
     if robust:
-        if surrogate:
-            raise StageError("rpod train: --robust and --surrogate train different models; give one")
-        _robust(params)
-        return
+        return _robust(params, surrogate)
     seed = params.robustness.surrogate_seed if surrogate else params.seed
     rank, world, device = distributed(params)
     model, cfg = _model(params, params.robustness.surrogate_epochs if surrogate else params.train.epochs,
@@ -92,6 +89,11 @@ def main(
         else:
             _write_results(params, net, best, input_size, result, cfg, device, world,
                            (train_split, train_eval_set), (val_split, val_set))
+    _finish(world)
+
+
+def _finish(world: int) -> None:
+    """Under torchrun, wait for every rank, then end the process group."""
     if world > 1:
         import torch.distributed as dist
 
@@ -133,7 +135,7 @@ def _model(params: Params, epochs: int, seed: int) -> tuple[Any, Any]:
         raise StageError(f"params.yaml: bad train section ({e})") from None
 
 
-def _robust(params: Params) -> None:
+def _robust(params: Params, surrogate: bool) -> None:
     """`rpod train --robust`: adversarial training of the clamped network, then both models on test."""
     from pipeline.pose.adversarial import Adversary
     from pipeline.pose.loss import PoseLoss
@@ -144,6 +146,8 @@ def _robust(params: Params) -> None:
     from stages.config.build import adversarial_config, robust_train_config
     from stages.config.device import distributed
 
+    if surrogate:
+        raise StageError("rpod train: --robust and --surrogate train different models; give one")
     adv = params.train.adversarial
     rank, world, device = distributed(params)
     try:
@@ -171,6 +175,7 @@ def _robust(params: Params) -> None:
     if rank == 0:
         model.load_state_dict(result.best_state)
         _write_robust(params, model, best, result, (train_split, val_split, val_set), device)
+    _finish(world)
 
 
 def _write_robust(params: Params, net: Any, best: dict[str, Any], result: Any, splits: tuple[Any, Any, Any],

@@ -148,6 +148,19 @@ def test_the_eps_ramp_and_the_attacked_share():
     assert not torch.equal(x_adv[:2], x[:2])
 
 
+def test_attacked_images_can_leave_the_rotation_term():
+    adv = Adversary(AdversarialConfig(fraction=0.5, attacked_rotation=False), PoseLoss(), 1, 0)
+    assert adv.skip_rotation(8) == 4 and adv.skip_rotation(1) == 0
+    assert Adversary(AdversarialConfig(fraction=0.5), PoseLoss(), 1, 0).skip_rotation(8) == 0
+    loss, target = PoseLoss(), _target(4)
+    pred = target.clone()
+    pred[:2, 3:] += 1.0                   # wrong rotations on the two attacked rows only
+    assert loss(pred, target, skip_rotation=2).item() == pytest.approx(0.0)
+    assert loss(pred, target).item() > 0
+    with pytest.raises(ValueError, match="needs fraction < 1"):
+        AdversarialConfig(attacked_rotation=False)
+
+
 def test_attack_table_stores_8_bit_images_and_attacks_raise_the_error():
     torch.manual_seed(0)
     model = PoseNet(0.125, 0.0).eval()
@@ -193,6 +206,7 @@ def test_tilt_and_roll_split_the_attitude_error_about_the_line_of_sight():
     ("steps", 0, r"train.adversarial.steps must be a positive whole number in \[1, 1000\]"),
     ("black_level", 0.03, r"train.adversarial: black_level \(0.03\) must exceed eps \(0.05\)"),
     ("black_level", 1.0, r"train.adversarial.black_level must be a number in \[0, 1\)"),
+    ("attacked_rotation", False, r"train.adversarial: attacked_rotation: false needs fraction < 1"),
 ])
 def test_bad_adversarial_params_are_refused_in_one_line_naming_the_key(tmp_path, monkeypatch, key, value, message):
     monkeypatch.chdir(tmp_path)

@@ -8,7 +8,9 @@ since the harm an attacker seeks is a position error:
     inner = w exp(-2 s_p) ||p - p_gt|| + (1 - w) exp(-2 s_r) ||r - r_gt||,   w = position_weight,
 
 with the training loss's current learned weights s_p, s_r (detached), so each term is in units of its own
-typical error. The budget eps ramps linearly from 0 to `eps` over the first `ramp_epochs` epochs.
+typical error. The budget eps ramps linearly from 0 to `eps` over the first `ramp_epochs` epochs. The
+training loss then fits the whole batch, or with `attacked_rotation` off only the position of its attacked
+images (their rotation term is left out: the rotation is fitted on the clean share of each batch).
 
 Catastrophic overfitting guard: every epoch, `validate` attacks a fixed seeded subset of `val_frames`
 validation images with a stronger PGD (`val_steps` steps, full budget, position-only loss, stored as
@@ -31,6 +33,7 @@ from pipeline.pose.loss import PoseLoss
 class AdversarialConfig:
     """eps: L-inf budget in [0, 1] pixel units (reached after `ramp_epochs` epochs); steps: PGD-k steps;
     position_weight: w of the inner loss; fraction: share of each batch replaced by attacked images;
+    attacked_rotation: fit the rotation of attacked images too (off: their position only);
     val_steps, val_frames: the per-epoch PGD check on validation images."""
 
     eps: float = 0.05
@@ -38,6 +41,7 @@ class AdversarialConfig:
     ramp_epochs: float = 2.0
     position_weight: float = 0.8
     fraction: float = 1.0
+    attacked_rotation: bool = True
     val_steps: int = 10
     val_frames: int = 64
 
@@ -49,6 +53,8 @@ class AdversarialConfig:
         if self.ramp_epochs < 0 or not 0 <= self.position_weight <= 1 or not 0 < self.fraction <= 1:
             raise ValueError(f"need ramp_epochs >= 0, position_weight in [0, 1] and fraction in (0, 1], got "
                              f"{self.ramp_epochs}, {self.position_weight}, {self.fraction}")
+        if not self.attacked_rotation and self.fraction == 1:
+            raise ValueError("attacked_rotation off needs fraction < 1: the rotation is fitted on the clean share")
 
 
 class Adversary:
@@ -75,9 +81,17 @@ class Adversary:
         s_p, s_r = self.loss.s_p.detach(), self.loss.s_r.detach()
         return w * torch.exp(-2 * s_p) * pos + (1 - w) * torch.exp(-2 * s_r) * rot
 
+    def attacked(self, batch: int) -> int:
+        """How many images of a batch of `batch` are attacked (the first ones): at least one."""
+        return max(1, round(self.cfg.fraction * batch))
+
+    def skip_rotation(self, batch: int) -> int:
+        """Rows at the start of a batch left out of the training loss's rotation term (PoseLoss)."""
+        return 0 if self.cfg.attacked_rotation else min(self.attacked(batch), batch - 1)
+
     def perturb(self, model: nn.Module, x: Tensor, y: Tensor, step: int) -> Tensor:
         """The batch with its first `fraction` of images replaced by PGD-k examples at eps_at(step)."""
-        n = max(1, round(self.cfg.fraction * len(x)))
+        n = self.attacked(len(x))
         x_adv = pgd(model, x[:n], y[:n], self.eps_at(step), self.inner_loss, steps=self.cfg.steps,
                     generator=self.generator)
         return x_adv if n == len(x) else torch.cat([x_adv, x[n:]])

@@ -220,9 +220,9 @@ class _Objective(nn.Module):
         super().__init__()
         self.model, self.loss = model, loss
 
-    def forward(self, x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, x: torch.Tensor, y: torch.Tensor, skip_rotation: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
         pred = self.model(x)
-        return self.loss(pred, y), pred
+        return self.loss(pred, y, skip_rotation), pred
 
 
 def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, val_set: PoseDataset, cfg: TrainConfig,
@@ -324,9 +324,10 @@ class _Step:
 
     def __call__(self, x: torch.Tensor, y: torch.Tensor, where: str) -> tuple[float, torch.Tensor]:
         """One step on the batch (x, y) (its PGD-k examples with an adversary) -> (loss, predictions)."""
+        skip = 0
         if self.adversary is not None:
-            x = self.adversary.perturb(self.model, x, y, self.step)
-        value, pred = self.objective(x, y)
+            x, skip = self.adversary.perturb(self.model, x, y, self.step), self.adversary.skip_rotation(len(x))
+        value, pred = self.objective(x, y, skip)
         check_loss(value.item(), where)
         self.opt.zero_grad(set_to_none=True)
         value.backward()

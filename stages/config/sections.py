@@ -128,6 +128,7 @@ class Adversarial:
     ramp_epochs: Annotated[float, In("[0, 1000000]", "epochs")]      # eps ramps linearly from 0
     position_weight: Probability   # weight of the position term in the attack's inner loss
     fraction: Annotated[float, In("(0, 1]", "share of each batch")]  # attacked share of each batch
+    attacked_rotation: bool # fit the rotation of attacked images too (false: their position only)
     black_level: Annotated[float, In("[0, 1)", "pixel units")]       # the input clamp's threshold, > eps
     init: Literal["standard", "scratch"]   # fine-tune models/pose.pt, or train from the seed
     epochs: Annotated[int, In("[1, 1000000]", "epochs")]
@@ -143,6 +144,8 @@ class Adversarial:
         if 0 < self.eps <= 1 and not self.black_level > self.eps:   # (an eps out of range: its own message)
             raise ValueError(f"black_level ({self.black_level}) must exceed eps ({self.eps}): the clamp must "
                              f"swallow a black pixel lifted by the whole training budget")
+        if not self.attacked_rotation and self.fraction == 1:
+            raise ValueError("attacked_rotation: false needs fraction < 1 (the rotation is fitted on the clean share)")
 
 
 @dataclass(frozen=True)
