@@ -12,8 +12,9 @@ DistributedSampler and the validation set evaluated in shards that are gathered 
 The caller passes a validation set carved from the training data (pipeline.evaluation.splits.holdout): `fit`
 never sees the test split, so the checkpoint it keeps is not selected on test data.
 
-The model selection score is the ESA SPEED score (pipeline/pose/metrics.py); with an adversary, the mean
-of the clean and the attacked validation SPEED scores (`Adversary.validate`).
+The model selection score is the ESA SPEED score (pipeline/pose/metrics.py); with an adversary, plus the
+mean relative position error ||p - p_gt|| / ||p_gt|| of its attacked validation images (`Adversary.validate`):
+the harm is a position error, and the attacked attitude (which training may leave undefended) is not scored.
 """
 from __future__ import annotations
 
@@ -196,7 +197,7 @@ class EpochStats:
     seconds: float
     val_adv_pos_m: float = math.nan    # with an adversary: validation subset under its PGD check
     val_adv_att_deg: float = math.nan
-    score: float = math.nan            # what selects the checkpoint (val_score, or the clean/attacked mean)
+    score: float = math.nan            # what selects the checkpoint (val_score, + attacked position with an adversary)
 
     def as_dict(self) -> dict[str, float]:
         return dict(self.__dict__)
@@ -375,7 +376,7 @@ def _epoch_stats(model: nn.Module, loss: PoseLoss, val_set: PoseDataset, cfg: Tr
         adv_pred, adv_targets = adversary.validate(model, val_set, device)
         adv_pos_errors, adv_att_errors = pose_errors(adv_pred, adv_targets)
         adv_pos, adv_att = float(adv_pos_errors.mean()), float(adv_att_errors.mean())
-        selection = (score + speed_score(adv_pred, adv_targets)) / 2
+        selection = score + float(np.mean(adv_pos_errors / np.linalg.norm(adv_targets[:, :3], axis=1)))
     n = sums[3].item()
     return EpochStats(epoch=epoch + 1, loss=sums[0].item() / n, lr=float(sched.get_last_lr()[0]),
                       s_p=loss.s_p.item(), s_r=loss.s_r.item(), train_pos_m=sums[1].item() / n,

@@ -127,9 +127,9 @@ def robust_page(m: dict[str, Any], params: Params) -> str:
 The standard model (models/pose.pt, `rpod train`: the paper's reproduction) beside the robust one
 (models/pose_robust.pt): the same network with a black-level clamp in front, {'fine-tuned from the standard model' if a.init == 'standard' else 'trained from the seed'}
 with PGD-{a.steps} adversarial training (inner loss {a.position_weight:g} position / {1 - a.position_weight:g} rotation, eps ramped to
-{a.eps:g} over {a.ramp_epochs:g} epochs, {100 * a.fraction:g}% of each batch attacked) for {m['epochs_run']} epochs; best
-epoch {m['best_epoch']} by the mean of the clean and the PGD-{a.val_steps} validation SPEED scores ({a.val_frames} validation frames
-attacked every epoch). Profile `{params.profile_name}`.
+{a.eps:g} over {a.ramp_epochs:g} epochs, {100 * a.fraction:g}% of each batch attacked, {_fitted(a.attacked_rotation)}) for {m['epochs_run']} epoch(s); best
+epoch {m['best_epoch']} by the clean validation SPEED score plus the mean relative position error under PGD-{a.val_steps}
+at eps {a.eps:g} ({a.val_frames} validation frames attacked every epoch). Profile `{params.profile_name}`.
 
 {black_level_line(m['black_level'], a.eps)}
 
@@ -152,6 +152,12 @@ clamp no longer holds the background black.
 ## Errors per range bin (test)
 
 {markdown_table(_bins(m, models), decimals=3)}"""
+
+
+def _fitted(attacked_rotation: bool) -> str:
+    """What the training loss fits of the attacked images, in words."""
+    return ("their whole pose fitted" if attacked_rotation else
+            "only their position fitted: the rotation is fitted on the clean images")
 
 
 def _row(rows: list[dict[str, Any]], like: dict[str, Any]) -> dict[str, Any]:
