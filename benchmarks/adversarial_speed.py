@@ -16,14 +16,18 @@ import platform
 import statistics
 import time
 
-import torch
+# before torch loads (as stages/cli.py does): spinning OpenMP threads made training 10-20x slower on the
+# shared 2-core machine
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from pipeline.pose.adversarial import Adversary, AdversarialConfig
-from pipeline.pose.loss import PoseLoss
-from pipeline.pose.model import PoseNet
-from pipeline.report.markdown import markdown_table
-from stages.config import params as params_mod
-from stages.report import write_benchmark
+import torch  # noqa: E402
+
+from pipeline.pose.adversarial import Adversary, AdversarialConfig  # noqa: E402
+from pipeline.pose.loss import PoseLoss  # noqa: E402
+from pipeline.pose.model import PoseNet  # noqa: E402
+from pipeline.report.markdown import markdown_table  # noqa: E402
+from stages.config import params as params_mod  # noqa: E402
+from stages.report import write_benchmark  # noqa: E402
 
 TARGET_RATIO = 1.3
 
