@@ -206,7 +206,7 @@ def test_tilt_and_roll_split_the_attitude_error_about_the_line_of_sight():
     ("steps", 0, r"train.adversarial.steps must be a positive whole number in \[1, 1000\]"),
     ("black_level", 0.03, r"train.adversarial: black_level \(0.03\) must exceed eps \(0.05\)"),
     ("black_level", 1.0, r"train.adversarial.black_level must be a number in \[0, 1\)"),
-    ("attacked_rotation", False, r"train.adversarial: attacked_rotation: false needs fraction < 1"),
+    ("fraction", 1.0, r"train.adversarial: attacked_rotation: false needs fraction < 1"),   # the default is false
 ])
 def test_bad_adversarial_params_are_refused_in_one_line_naming_the_key(tmp_path, monkeypatch, key, value, message):
     monkeypatch.chdir(tmp_path)
