@@ -43,10 +43,12 @@ def pose_page(m: dict[str, Any], params: Params, n_train: int, n_val: int, n_tes
     b = m["test_mean_baseline"]
     rows.append({"split": "test, always the mean training label (baseline)", "images": b["n"],
                  "position mean (m)": b["pos_mean_m"], "position median (m)": b["pos_median_m"],
-                 "attitude mean (deg)": b["att_mean_deg"], "attitude median (deg)": b["att_median_deg"]})
+                 "attitude mean (deg)": b["att_mean_deg"], "attitude median (deg)": b["att_median_deg"],
+                 "tilt mean (deg)": b["tilt_mean_deg"], "roll mean (deg)": b["roll_mean_deg"]})
     rows.append({"split": "paper, test (480x270, full width, 50 epochs)", "images": "6,500 of 32,500",
                  "position mean (m)": POSITION_M, "position median (m)": "-",
-                 "attitude mean (deg)": ATTITUDE_DEG, "attitude median (deg)": "-"})
+                 "attitude mean (deg)": ATTITUDE_DEG, "attitude median (deg)": "-", "tilt mean (deg)": "-",
+                 "roll mean (deg)": "-"})
     bins = range_rows(m, ("train", "test"))
     t = m["test"]
     ok = {k: "yes" if t[k] < v else "no" for k, v in
