@@ -94,14 +94,17 @@ Training curves: `dvc plots show` (DVCLive, {live_dir}/).
 
 
 def black_level_line(b: dict[str, Any], eps: float) -> str:
-    """How the clamp threshold was chosen, against the data it was chosen on (`b`: black_level_stats)."""
-    return (f"Black-level clamp t = {b['threshold']:g} (pixels in [0, 1]), chosen from data: the rendered background is "
-            f"exactly black ({100 * b['render_black']:.1f}% of the pixels of {b['images']} training frames); under the lab "
-            f"domain shift (lab.domain_shift: blur, then noise) its 99.9th percentile is {b['lab_black_999']:.4f}, "
-            f"and t sits above both that and the training budget eps = {eps:g} (stored as {_levels(eps)} grey levels "
-            f"= {_levels(eps) / 255:.4f}), so a black pixel lifted by eps stays black; "
-            f"{100 * b['lab_passed']:.3f}% of lab-like background values pass the clamp and "
-            f"{100 * b['target_erased']:.1f}% of the target's channel values fall below t.")
+    """How the clamp threshold was chosen, against the data it was chosen on (`b`: black_level_stats): above
+    the training budget as stored (so a black pixel lifted by eps stays black) and above the lab black level."""
+    t, stored, lab = b["threshold"], _levels(eps) / 255, b["lab_black_999"]
+    return (f"Black-level clamp t = {t:g} (pixels in [0, 1]), chosen from data: the rendered background is exactly "
+            f"black ({100 * b['render_black']:.1f}% of the pixels of {b['images']} training frames); under the lab domain "
+            f"shift (lab.domain_shift: blur, then noise) its 99.9th percentile is {lab:.4f}. t is "
+            f"{'above' if t > stored else 'NOT above'} the training budget eps = {eps:g} as stored ({_levels(eps)} grey "
+            f"levels = {stored:.4f}: a black pixel lifted by eps {'stays' if t > stored else 'does not stay'} black) and "
+            f"{'above' if t > lab else 'below'} that lab black level; {100 * b['lab_passed']:.3f}% of lab-like "
+            f"background values pass the clamp and {100 * b['target_erased']:.1f}% of the target's channel values "
+            f"fall below t.")
 
 
 def _levels(eps: float) -> int:
