@@ -14,19 +14,23 @@ from stages.config.build import defense_settings
 from stages.config.schema import Params
 from stages.errors import StageError
 
-def expected(params: Params) -> dict[str, Any]:
-    """The architecture and input size that params.yaml asks for."""
-    return {"arch": {"width": float(params.train.width), "dropout": float(params.train.dropout)},
-            "input_size": [params.render.height, params.render.width]}
+def expected(params: Params, clamped: bool = False) -> dict[str, Any]:
+    """The architecture and input size that params.yaml asks for (`clamped`: of the robust model, whose
+    black-level clamp is train.adversarial.black_level)."""
+    arch = {"width": float(params.train.width), "dropout": float(params.train.dropout)}
+    if clamped:
+        arch["black_level"] = float(params.train.adversarial.black_level)
+    return {"arch": arch, "input_size": [params.render.height, params.render.width]}
 
 
 def read_checked(path: Path | str = POSE, params: Params | None = None) -> dict[str, Any]:
-    """A pose checkpoint dict (`read_pose`); with params, refuse an architecture/input-size mismatch and a
+    """A pose checkpoint dict (`read_pose`); with params, refuse an architecture/input-size mismatch (a
+    clamped checkpoint, models/pose_robust.pt, is checked against train.adversarial.black_level too) and a
     model trained on another datasets/labels.parquet than the one there (its recorded hash)."""
     path = Path(path)
     ckpt = read_pose(path)
     if params is not None:
-        want = expected(params)
+        want = expected(params, "black_level" in ckpt["arch"])
         have = {"arch": ckpt["arch"], "input_size": list(ckpt["input_size"])}
         diffs = [f"{k}={have['arch'].get(k)} (params: {v})" for k, v in want["arch"].items() if have["arch"].get(k) != v]
         if have["input_size"] != want["input_size"]:
@@ -62,8 +66,9 @@ class Pose:
 
 
 def load_pose(params: Params, path: Path | str = POSE) -> Pose:
-    """models/pose.pt read once, checked against params (architecture, input size), the network placed on
-    the `device` param's device (with `amp`); it takes inputs from any device and answers on theirs."""
+    """models/pose.pt (or the robust model, `path` = POSE_ROBUST) read once, checked against params
+    (architecture, input size), the network placed on the `device` param's device (with `amp`); it takes
+    inputs from any device and answers on theirs."""
     from stages.config.device import torch_device
 
     ckpt = read_checked(path, params)

@@ -52,6 +52,9 @@ DETECT_RENDER, DETECT_RENDER_METRICS = _outputs("detect_render", "datasets/detec
 (DEFENSE,) = _outputs("calibrate", "models/defense.json")
 EVALUATE_REPORT, EVALUATE_FIGURE, EVALUATE_METRICS = _outputs(
     "evaluate", "reports/integrated.md", "reports/figures/timeline.png", "reports/metrics/evaluate.json")
+# the robust pose model (`rpod train --robust`: adversarial training behind a black-level clamp) and its page
+POSE_ROBUST, ROBUST_REPORT, ROBUST_METRICS, ROBUST_LIVE = _outputs(
+    "robust", "models/pose_robust.pt", "reports/pose_robust.md", "reports/metrics/robust.json", "dvclive/robust")
 # a second pose model (`rpod train --surrogate`) for black-box transfer
 (SURROGATE,) = _outputs("surrogate", "models/surrogate.pt")
 ROBUSTNESS_REPORT, ROBUSTNESS_FIGURE, ROBUSTNESS_METRICS = _outputs(
@@ -68,5 +71,5 @@ REPORT_FIGURES = {path.stem: path for path in _FIGURES}
 # schedule adds it to evaluate.seed + the trajectory number), so no two stages draw the same stream
 SEED_OFFSET: dict[str, int] = {
     "render": 100, "label": 200, "train": 300, "attack": 400, "guidance": 500, "shap": 500, "detect": 600,
-    "lab_models": 700, "robustness": 1500, "lab": 0, "evaluate_schedule": 17,
+    "lab_models": 700, "robustness": 1500, "lab": 0, "evaluate_schedule": 17, "robust": 1600,
 }

@@ -1,5 +1,5 @@
 """Params -> library objects: the one place where typed params (stages.config.schema) become the settings
-pipeline/ takes (Intrinsics, SceneSettings, the attack, TrainConfig, AugmentConfig, DefenseSettings,
+pipeline/ takes (Intrinsics, SceneSettings, the attack, TrainConfig, AdversarialConfig, AugmentConfig, DefenseSettings,
 MotionSettings, AlertLimitSettings, EngineSettings) and the lab mock-up policy. Bad values raise a StageError naming the key.
 """
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import Any
 
 from stages.config.params import given
 from stages.config.schema import Params
-from stages.config.sections import Attack, Augment, Guidance, Render, Train
+from stages.config.sections import Adversarial, Attack, Augment, Guidance, Render, Train
 from stages.config.evaluation import Defense
 from stages.errors import StageError
 
@@ -97,6 +97,30 @@ def train_config(train: Train, epochs: int, seed: int) -> Any:
     from pipeline.pose.train import TrainConfig
 
     return settings_of(TrainConfig, train, epochs=epochs, seed=seed)
+
+
+def robust_train_config(train: Train, seed: int) -> Any:
+    """The TrainConfig of `rpod train --robust` (train.adversarial): the train recipe for adversarial.epochs
+    epochs; fine-tuning (init: standard) on a cosine schedule warming up from min(train.lr_base, lr_max) to
+    adversarial.lr_max over adversarial.warmup_epochs (ValueError on a bad value)."""
+    from pipeline.pose.train import TrainConfig
+
+    adv = train.adversarial
+    if adv.init == "scratch":
+        return settings_of(TrainConfig, train, epochs=adv.epochs, seed=seed)
+    return settings_of(TrainConfig, train, epochs=adv.epochs, seed=seed, schedule="cosine",
+                       lr_base=min(float(train.lr_base), float(adv.lr_max)), lr_max=float(adv.lr_max),
+                       warmup_epochs=float(adv.warmup_epochs))
+
+
+def adversarial_config(adversarial: Adversarial) -> Any:
+    """The AdversarialConfig of the `train.adversarial` params section."""
+    from pipeline.pose.adversarial import AdversarialConfig
+
+    try:
+        return settings_of(AdversarialConfig, adversarial)
+    except ValueError as e:
+        raise StageError(f"params.yaml: bad train.adversarial ({e})") from None
 
 
 def augment_config(augment: Augment) -> Any:
