@@ -138,6 +138,48 @@ def alert_limit_settings(params: Params) -> Any:
         raise StageError(f"params.yaml {ALERT_LIMIT_KEYS[name]}: {e}") from None
 
 
+def integrity_limit(params: Params) -> Any:
+    """The alert limit of pipeline.evaluation.integrity_runs: integrity.alert_limit_m (m) when set, else the
+    AlertLimitSettings that derive AL(range) from the guidance law."""
+    fixed = params.integrity.alert_limit_m
+    return alert_limit_settings(params) if fixed is None else float(fixed)
+
+
+def burst_attacker(params: Params, seed: int) -> Any:
+    """The BurstAttacker of params.integrity (AL as a function of the true range, as the integrity rows judge it)."""
+    from pipeline.attacks.suite import get_attacker
+    from pipeline.evaluation.integrity import alert_limit
+
+    i, limit = params.integrity, integrity_limit(params)
+    al = limit if isinstance(limit, float) else (lambda rng: alert_limit(rng, limit))
+    try:
+        return get_attacker("burst", alert_limit=al, cap=float(i.burst_cap), steps=i.burst_steps,
+                            restarts=i.burst_restarts, lambdas=tuple(float(v) for v in i.burst_lambdas), seed=seed)
+    except ValueError as e:
+        raise StageError(f"params.yaml integrity: {e}") from None
+
+
+def drift_settings(params: Params, direction: str) -> Any:
+    """The DriftSettings of params.integrity for `direction` (los or lateral)."""
+    from pipeline.attacks.drift import DriftSettings
+
+    try:
+        return DriftSettings(direction=direction, gate_fraction=float(params.integrity.drift_gate_fraction))
+    except ValueError as e:
+        raise StageError(f"params.yaml integrity.attackers / drift_gate_fraction: {e}") from None
+
+
+def in_loop_settings(params: Params, goal: str) -> Any:
+    """The InLoopSettings of params.integrity for `goal` (collide or miss); its stealth is the drift's gate fraction."""
+    from pipeline.attacks.in_loop import InLoopSettings
+
+    i = params.integrity
+    try:
+        return InLoopSettings(goal=goal, steps=i.in_loop_steps, gate_fraction=float(i.drift_gate_fraction))
+    except ValueError as e:
+        raise StageError(f"params.yaml integrity.in_loop_goals / in_loop_steps: {e}") from None
+
+
 def engine_settings(params: Params) -> Any:
     """The engine section of params, with address None -> $RAY_ADDRESS; workers None is every core of
     this machine, or of the cluster when there is an address."""

@@ -29,9 +29,20 @@ def _defended(m: Metrics, rate: str) -> float:
 
 
 def _held(m: Metrics) -> float:
-    """Closed-loop attacked runs whose rendezvous held with detect-and-recover, all dynamics (%)."""
+    """Closed-loop attacked runs (that met the attack) whose rendezvous held with detect-and-recover, all dynamics (%)."""
     held = [v for d in m["guidance"]["defended"]["dynamics"].values() for v in d["recover"]["held"].values()]
     return 100 * sum(k for k, _ in held) / sum(n for _, n in held)
+
+
+def worst_hmi(m: Metrics, eps: str) -> float:
+    """The HMI the worst chain-level attacker caused on the shipped chain at `eps` (%; integrity rows)."""
+    return 100 * m["robustness"]["integrity"]["worst_hmi"][eps]["hmi"]["value"]
+
+
+def in_loop_collisions(m: Metrics, defense: str = "recover") -> float:
+    """In-loop attacked runs (that met the attack) that collided, `defense` variant, all dynamics and eps (%)."""
+    counts = [c for d in m["guidance"]["in_loop"]["counts"].values() for c in d[defense].values()]
+    return 100 * sum(c[0] for c in counts) / sum(c[3] for c in counts)
 
 
 HEADLINES: list[Headline] = [
@@ -47,6 +58,11 @@ HEADLINES: list[Headline] = [
                                  for w in m["robustness"]["worst_harmful_undetected_fused"].values())),
     Headline("lab", "lab detection accuracy, mean over eps (%)", lambda m: 100 * m["lab"]["accuracy_mean"]),
     Headline("held", "closed loop, attacked runs held with detect-and-recover (%)", _held),
+    Headline("hmi01", "integrity: worst HMI caused by a chain-level attack at eps 0.01 (%)", lambda m: worst_hmi(m, "0.01")),
+    Headline("hmi05", "integrity: worst HMI caused by a chain-level attack at eps 0.05 (%)", lambda m: worst_hmi(m, "0.05")),
+    Headline("avail", "integrity: availability of the trusted estimate without attack (%)",
+             lambda m: 100 * m["robustness"]["integrity"]["clean"]["availability"]["value"]),
+    Headline("collide", "closed loop, in-loop attacker: collisions with detect-and-recover (%)", in_loop_collisions),
 ]
 
 
