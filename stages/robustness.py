@@ -239,11 +239,11 @@ def _fused_setup(p: Params, r: Robustness, chain: Any, model_hash: str) -> tuple
     # the defense that ships: params.defense with the noise model `rpod calibrate` fitted on validation trajectories
     shipped = load_defense(p, model_hash, chain.threshold)
     defended = Defended(shipped.settings, shipped.motion, shipped.noise)
-    length = p.evaluate.attack_length
+    length = p.integrity.burst_length
     try:
         bursts = [burst_schedule(len(ix), length, r.burst_every) for ix in trajs]
     except ValueError as e:
-        raise StageError(f"params.yaml robustness.burst_every / evaluate.attack_length: {e}") from None
+        raise StageError(f"params.yaml robustness.burst_every / integrity.burst_length: {e}") from None
     info = {"trajectories": len(trajs), "bursts": sum(len(b) for b in bursts), "burst_length": length,
             "burst_every": r.burst_every, "noise_model": defended.noise.as_dict(), "gate": defended.motion.gate,
             "gate_false_alarm": defended.motion.false_alarm, "noise_inflation": shipped.calibration.get("inflation", 1.0),

@@ -237,6 +237,7 @@ class Integrity:
     alert_limit_m: Optional[Metres]   # metres: a fixed AL instead of AL(range) from the guidance law; None: derived
     eps: list[Eps]               # L-inf budgets of the integrity attacks, pixels in [0, 1] (the burst nests through them)
     attackers: list[IntegrityAttacker]
+    burst_length: Frames         # frames per burst (one every robustness.burst_every frames of each trajectory)
     burst_steps: Steps           # PGD steps per restart and lambda
     burst_restarts: Annotated[int, In("[1, 1000]", "random starts")]
     burst_lambdas: list[Annotated[float, In("[0, 1000000000]", "weight")]]   # searched in increasing order
