@@ -183,24 +183,25 @@ def _attack_runs(p: Params, r: Robustness, chain: Any, target: Any, tracks: list
     i, limit = p.integrity, integrity_limit(p)
     eps = sorted(float(e) for e in i.eps)
     drifts = [a for a in i.attackers if a != "burst"]
-    bar = tqdm(total=len(tracks) * ("burst" in i.attackers) + len(drifts) * len(eps) * i.drift_frames,
+    bar = tqdm(total=len(tracks) * ("burst" in i.attackers) + bool(drifts) * len(eps) * i.drift_frames,
                desc="robustness (integrity)", unit="step", dynamic_ncols=True)
     out = []
     if "burst" in i.attackers:
         masks = [np.isin(np.arange(len(t)), [k for a, b in bs for k in range(a, b)]) for t, bs in zip(tracks, bursts)]
         stored, worst = burst_attack(target, defended, tracks, masks, burst_attacker(p, seed + 800), eps,
                                      lambda: bar.update(1))
-        out += [("burst", e, [fly(chain, defended, t, limit, r.batch_size, s) for t, s in zip(tracks, stored[e])], masks)
-                for e in eps]
+        out += [("burst", e, [fly(chain, defended, t, limit, r.batch_size, s, c) for t, s, c in
+                              zip(tracks, stored[e], clean)], masks) for e in eps]
         bursts_hmi.update({e: [sum(int(b.hmi.any()) for bs in worst[e] for b in bs), sum(map(len, worst[e]))]
                            for e in eps})
     window = (i.drift_start, i.drift_start + i.drift_frames)
-    for j, name in enumerate(drifts):
-        masks = [(np.arange(len(t)) >= window[0]) & (np.arange(len(t)) < window[1]) for t in tracks]
-        for e in eps:
-            stored = drift_attack(target, defended, tracks, clean, window, drift_settings(p, name.split("/")[1]), e,
-                                  i.drift_steps, seed + 900 + 10 * j, lambda: bar.update(1))
-            out.append((name, e, [fly(chain, defended, t, limit, r.batch_size, s) for t, s in zip(tracks, stored)], masks))
+    settings = [drift_settings(p, a.split("/")[1]) for a in drifts]
+    masks = [(np.arange(len(t)) >= window[0]) & (np.arange(len(t)) < window[1]) for t in tracks]
+    for e in eps if drifts else []:
+        stored = drift_attack(target, defended, tracks, clean, window, settings, e, i.drift_steps, seed + 900,
+                              lambda: bar.update(1))
+        out += [(name, e, [fly(chain, defended, t, limit, r.batch_size, s, c) for t, s, c in zip(tracks, per, clean)],
+                 masks) for name, per in zip(drifts, stored)]
     bar.close()
     return out
 

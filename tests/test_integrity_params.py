@@ -43,7 +43,7 @@ def test_an_in_loop_start_range_off_the_approach_is_one_line():
     p = build(params_mod.compose("default"))
     settings, _ = _plan(p.guidance)
     assert _in_loop(p.integrity, settings) == tuple((e, g, s) for e in (0.01, 0.05) for g in ("collide", "miss")
-                                                    for s in (30.0, 15.0))
+                                                    for s in (20.0,))
     bad = dataclasses.replace(p.integrity, in_loop_start_ranges=[30.0, 80.0])
     with pytest.raises(StageError, match=r"^params.yaml integrity.in_loop_start_ranges: attack start range S=80.0 m"):
         _in_loop(bad, settings)

@@ -72,10 +72,17 @@ def test_the_nested_burst_through_the_runner_is_monotone_in_eps_and_within_eps(r
 def test_the_batched_drift_changes_only_its_window_within_eps(runs) -> None:
     chain, target, defended, tracks = runs
     clean = [fly(chain, defended, t, AlertLimitSettings(), 8) for t in tracks]
-    stored = drift_attack(target, defended, tracks, clean, (3, 9), DriftSettings("lateral"), 0.03, 2, seed=0)
-    for t, s, m in zip(tracks, stored, _masks(tracks, 3, 9)):
-        delta = np.abs(s.astype(int) - t.images.astype(int))
-        assert delta[~m].max() == 0 and 0 < delta[m].max() <= round(0.03 * 255 + 0.5)
+    stored = drift_attack(target, defended, tracks, clean, (3, 9), [DriftSettings("lateral"), DriftSettings("los")],
+                          0.03, 2, seed=0)
+    assert len(stored) == 2 and all(len(per) == len(tracks) for per in stored)
+    for per in stored:
+        for t, s, m in zip(tracks, per, _masks(tracks, 3, 9)):
+            delta = np.abs(s.astype(int) - t.images.astype(int))
+            assert delta[~m].max() == 0 and 0 < delta[m].max() <= round(0.03 * 255 + 0.5)
+    # an attacked flight reads only the changed frames through the chain: the same as reading them all
+    again = fly(chain, defended, tracks[0], AlertLimitSettings(), 8, stored[0][0], clean[0])
+    full = fly(chain, defended, tracks[0], AlertLimitSettings(), 8, stored[0][0])
+    assert np.allclose(again.pose, full.pose, atol=1e-5) and np.array_equal(again.trace.flag, full.trace.flag)
 
 
 def test_a_fixed_alert_limit_and_a_protection_level_reach_the_records() -> None:

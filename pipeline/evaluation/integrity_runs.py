@@ -9,9 +9,11 @@ clean counterpart, frame for frame, so harm counts only what the attack caused.
 - burst (`burst_attack`): `BurstAttacker.nested` on each trajectory through the increasing eps, its
   bursts at the given frames;
 - drift (`drift_attack`): the drift's planner and targeted PGD per frame (pipeline/attacks/drift.py),
-  run in lockstep over every trajectory so that each PGD step is one batch of all of them: the
-  `DriftAttacker`, batched, with the detector's margin taken against the probability at which the
-  defense stops updating its filter (`update_below`, else the threshold).
+  run in lockstep over every trajectory and drift direction so that each PGD step is one batch of
+  all of them: the `DriftAttacker`, batched, with the detector's margin taken against the
+  probability at which the defense stops updating its filter (`update_below`, else the threshold).
+An attacked flight reads through the chain only the frames the attack changed (`fly` with `base`):
+the chain is stateless, so the other frames' estimates are the clean flight's.
 Counted frames (`counted`): from a trajectory's first attacked frame to its end, every frame the attack
 can reach; detection is over the attacked frames.
 """
@@ -81,14 +83,20 @@ def integrity_frames(trace: Any, truth: np.ndarray, name: str, limit: Limit) -> 
 
 
 def fly(chain: Any, defended: Any, track: Track, limit: Limit, batch_size: int,
-        images: np.ndarray | None = None) -> Flown:
+        images: np.ndarray | None = None, base: Flown | None = None) -> Flown:
     """`track` (or its frames replaced by `images`, uint8 (N, H, W, 3)) through the OnboardChain `chain`
-    and a fresh defense (`defended`: pipeline.evaluation.robustness.Defended)."""
+    and a fresh defense (`defended`: pipeline.evaluation.robustness.Defended); with `base` (the clean
+    flight of `track`) only the frames that differ from the track's are read through the chain."""
     from pipeline.defense.fusion import run_defense
     from pipeline.evaluation.robustness import pose_estimates
     from pipeline.geometry.rotations import sixd_to_matrix
 
-    pose, prob = pose_estimates(chain, track.images if images is None else images, batch_size)
+    if base is None or images is None:
+        pose, prob = pose_estimates(chain, track.images if images is None else images, batch_size)
+    else:
+        changed = np.flatnonzero((images != track.images).reshape(len(images), -1).any(1))
+        pose, prob = base.pose.copy(), base.prob.copy()
+        pose[changed], prob[changed] = pose_estimates(chain, images[changed], batch_size)
     trace = run_defense(defended.settings, defended.motion, defended.noise, pose[:, :3], prob, track.R_cam, track.u,
                         sixd_to_matrix(pose[:, 3:]))
     return Flown(pose, prob, trace, integrity_frames(trace, track.truth, track.name, limit))
@@ -121,12 +129,12 @@ def burst_attack(target: Any, defended: Any, tracks: Sequence[Track], masks: Seq
 
 
 def drift_attack(target: Any, defended: Any, tracks: Sequence[Track], clean: Sequence[Flown], window: tuple[int, int],
-                 settings: Any, eps: float, steps: int, seed: int,
-                 done: Callable[[], None] = lambda: None) -> list[np.ndarray]:
-    """The stored frames (uint8 (N, H, W, 3)) of each track with frames window = (start, stop) drifted
-    (`settings`: a DriftSettings) at `eps`, all tracks in lockstep, one batched targeted PGD of `steps`
-    steps per frame; `clean` the tracks' clean flights (the estimates the planner starts from);
-    `done()` after each drifted frame."""
+                 settings: Sequence[Any], eps: float, steps: int, seed: int,
+                 done: Callable[[], None] = lambda: None) -> list[list[np.ndarray]]:
+    """Per drift of `settings` (DriftSettings), the stored frames (uint8 (N, H, W, 3)) of each track with
+    frames window = (start, stop) drifted at `eps`: every drift and track in lockstep, one batched targeted
+    PGD of `steps` steps per frame over all of them; `clean` the tracks' clean flights (the estimates the
+    planners start from); `done()` after each drifted frame."""
     from pipeline.attacks.base import chain_outputs
     from pipeline.attacks.drift import DriftPlanner, targeted_pgd
     from pipeline.geometry.rotations import sixd_to_matrix
@@ -134,23 +142,25 @@ def drift_attack(target: Any, defended: Any, tracks: Sequence[Track], clean: Seq
     start, stop = window
     s = defended.settings
     doubt = s.threshold if s.update_below is None else s.update_below
-    planners = [DriftPlanner(_fresh(defended), settings) for _ in tracks]
-    stored = [t.images.copy() for t in tracks]
+    pairs = [(j, i) for j in range(len(settings)) for i in range(len(tracks))]   # (drift, track)
+    planners = [DriftPlanner(_fresh(defended), settings[j]) for j, _ in pairs]
+    stored = [[t.images.copy() for t in tracks] for _ in settings]
     generator = torch.Generator().manual_seed(int(seed))
     for k in range(stop):
         if k < start:
-            for p, t, c in zip(planners, tracks, clean):
+            for p, (_, i) in zip(planners, pairs):
+                c, t = clean[i], tracks[i]
                 p.deliver(c.pose[k, :3], float(c.prob[k]), t.R_cam[k], t.u[k], sixd_to_matrix(c.pose[k, 3:]))
             continue
-        wanted = [np.concatenate([p.target(c.pose[k, :3], t.R_cam[k], t.u[k]), c.pose[k, 3:]])
-                  for p, t, c in zip(planners, tracks, clean)]
-        x = torch.cat([t.frames(slice(k, k + 1)) for t in tracks])
+        wanted = [np.concatenate([p.target(clean[i].pose[k, :3], tracks[i].R_cam[k], tracks[i].u[k]),
+                                  clean[i].pose[k, 3:]]) for p, (_, i) in zip(planners, pairs)]
+        x = torch.cat([tracks[i].frames(slice(k, k + 1)) for _, i in pairs])
         adv = targeted_pgd(target, x, torch.as_tensor(np.stack(wanted), dtype=x.dtype), eps,
                            math.log(doubt / (1 - doubt)), steps=int(steps), generator=generator)
         pose, prob = chain_outputs(target, adv.float() / 255.0)
-        for i, (p, t) in enumerate(zip(planners, tracks)):
-            stored[i][k] = adv[i].permute(1, 2, 0).numpy()
-            p.deliver(pose[i, :3], float(prob[i]), t.R_cam[k], t.u[k], sixd_to_matrix(pose[i, 3:]))
+        for n, (p, (j, i)) in enumerate(zip(planners, pairs)):
+            stored[j][i][k] = adv[n].permute(1, 2, 0).numpy()
+            p.deliver(pose[n, :3], float(prob[n]), tracks[i].R_cam[k], tracks[i].u[k], sixd_to_matrix(pose[n, 3:]))
         done()
     return stored
 
