@@ -210,12 +210,13 @@ def _integrity_figure(clean: list[Any], top: list[tuple[str, list[Any], list[np.
     """The Stanford diagram of every attacker at the largest eps (and the clean runs), and trajectory 0 over frames."""
     from pipeline.evaluation.integrity_runs import diagram_points
     from pipeline.report.figures import integrity_diagram
+    from stages.pages.integrity import NAMES
 
     every = [np.ones(len(c.pose), bool) for c in clean]
-    points = {"clean": diagram_points(clean, every), **{f"{name} at eps {eps:g}": diagram_points(flown, masks)
-                                                        for name, flown, masks in top}}
-    series = {"clean": clean[0].frames.error, **{f"{name} at eps {eps:g}": flown[0].frames.error
-                                                 for name, flown, _ in top}}
+    points = {"no attack": diagram_points(clean, every), **{f"{NAMES[name]}, eps {eps:g}": diagram_points(flown, masks)
+                                                            for name, flown, masks in top}}
+    series = {"no attack": clean[0].frames.error, **{f"{NAMES[name]}, eps {eps:g}": flown[0].frames.error
+                                                     for name, flown, _ in top}}
     return integrity_diagram(points, series, clean[0].frames.alert,
                              f"Trusted estimate against its bound, eps {eps:g} (counted frames: from the first attacked one)")
 

@@ -97,3 +97,15 @@ def test_a_fixed_alert_limit_and_a_protection_level_reach_the_records() -> None:
     with_pl = integrity_frames(trace, truth, "a", AlertLimitSettings())
     assert with_pl.mi.tolist() == [True, False, False, False]
     assert with_pl.available.tolist() == [True, True, False, False]   # PL > AL or no PL: not available
+
+
+def test_a_bootstrap_without_spread_falls_back_to_trajectories_as_trials() -> None:
+    from pipeline.evaluation.integrity_runs import as_json
+    from pipeline.evaluation.stats import Rate, wilson
+
+    none = as_json(Rate(0.0, 0.0, 0.0, 1550), trajectories=10)
+    assert none["ci"] == pytest.approx([0.0, wilson(0, 10).hi]) and none["ci"][1] > 0.25 and "Wilson" in none["ci_method"]
+    every = as_json(Rate(1.0, 1.0, 1.0, 1550), trajectories=10)
+    assert every["ci"][0] == pytest.approx(wilson(10, 10).lo) and every["ci"][1] == 1.0
+    spread = as_json(Rate(0.2, 0.1, 0.3, 100), trajectories=10)
+    assert spread["ci"] == [0.1, 0.3] and spread["ci_method"] == "bootstrap over trajectories"

@@ -171,9 +171,19 @@ def counted(attacked: np.ndarray) -> np.ndarray:
     return np.cumsum(attacked) > 0
 
 
-def as_json(r: Rate) -> dict[str, Any]:
-    """A Rate as the metrics JSON holds it: {"value", "ci": [lo, hi], "n"} (value None when n is 0)."""
-    return {"value": None if r.n == 0 else float(r.value), "ci": r.ci(), "n": int(r.n)}
+def as_json(r: Rate, trajectories: int) -> dict[str, Any]:
+    """A Rate as the metrics JSON holds it: {"value", "ci": [lo, hi], "n", "ci_method"} (value None when n
+    is 0). A bootstrap over trajectories without spread (no hit or only hits on every trajectory: [0, 0]
+    or [1, 1]) bounds nothing; its interval is then the Wilson interval of the `trajectories` as trials,
+    all without a hit (or all with hits): a conservative bound of the frame rate, since a trajectory
+    with a hit has at least the frame's chance of one."""
+    from pipeline.evaluation.stats import wilson
+
+    method = "bootstrap over trajectories"
+    if r.n and r.lo == r.hi and r.value in (0.0, 1.0):
+        w = wilson(int(r.value) * trajectories, trajectories)
+        r, method = Rate(r.value, w.lo, w.hi, r.n), "Wilson over trajectories (the bootstrap had no spread)"
+    return {"value": None if r.n == 0 else float(r.value), "ci": r.ci(), "n": int(r.n), "ci_method": method}
 
 
 def _errors(frames: IntegrityFrames, mask: np.ndarray) -> tuple[float, float]:
@@ -197,10 +207,10 @@ def integrity_row(attacker: str, eps: float, attacked: Sequence[Flown], clean: S
     (mean, worst), (clean_mean, clean_worst) = _errors(a, keep), _errors(c, keep)
     return {"attacker": attacker, "eps": float(eps), "frames": int(keep.sum()), "attacked_frames": int(hit.sum()),
             "trajectories": len(attacked), "ci_method": "bootstrap over trajectories",
-            **{k: as_json(r[k]) for k in ("hmi", "hmi_attacked", "hmi_clean", "mi", "availability",
-                                         "availability_clean")},
-            "detected": as_json(bootstrap_rate(flag[hit], groups[hit], seed=seed)),
-            "detected_clean": as_json(bootstrap_rate(clean_flag[hit], groups[hit], seed=seed)),
+            **{k: as_json(r[k], len(attacked)) for k in ("hmi", "hmi_attacked", "hmi_clean", "mi", "availability",
+                                                         "availability_clean")},
+            "detected": as_json(bootstrap_rate(flag[hit], groups[hit], seed=seed), len(attacked)),
+            "detected_clean": as_json(bootstrap_rate(clean_flag[hit], groups[hit], seed=seed), len(attacked)),
             "trusted_error_mean_m": mean, "trusted_error_max_m": worst,
             "clean_error_mean_m": clean_mean, "clean_error_max_m": clean_worst}
 
@@ -210,7 +220,7 @@ def clean_row(clean: Sequence[Flown], seed: int = 0) -> dict[str, Any]:
     from pipeline.evaluation.integrity import clean_rates
 
     r = clean_rates(concat([f.frames for f in clean]), seed=seed)
-    return {**{k: as_json(r[k]) for k in ("availability", "hmi", "mi")}, "frames": r["frames"],
+    return {**{k: as_json(r[k], len(clean)) for k in ("availability", "hmi", "mi")}, "frames": r["frames"],
             "trajectories": len(clean), "trusted_error_mean_m": r["trusted_error_mean_m"],
             "trusted_error_max_m": r["trusted_error_max_m"], "has_pl": bool(clean[0].frames.pl is not None)}
 

@@ -357,10 +357,12 @@ def integrity_diagram(points: Mapping[str, Mapping[str, np.ndarray]], series: Ma
     for j, (label, p) in enumerate(points.items()):
         axes[0].plot(np.maximum(p["bound"], 1e-2), np.maximum(p["error"], 1e-2), ".", ms=2.5, alpha=0.5,
                      color=f"C{j}", label=label)
-    top = max([1.0] + [float(np.nanmax(p["error"])) for p in points.values() if len(p["error"])])
-    line = np.array([1e-2, 2 * top])
+    every = np.concatenate([np.concatenate([p["bound"], p["error"]]) for p in points.values()] + [np.ones(1)])
+    lo, top = max(1e-2, 0.5 * float(np.nanmin(every))), 2 * float(np.nanmax(every))
+    line = np.array([lo, top])
     axes[0].plot(line, line, "k-", lw=1)
-    axes[0].fill_between(line, line, 2 * top, color="r", alpha=0.07, label=f"error > {names[0]}")
+    axes[0].fill_between(line, line, top, color="r", alpha=0.07, label=f"error > {names[0]}")
+    axes[0].set(xlim=(lo, top), ylim=(lo, top))
     axes[0].set(xscale="log", yscale="log", xlabel=f"{names[0]} (m)", ylabel="trusted error (m)",
                 title=f"error against {names[0]}, counted frames")
     for j, (label, err) in enumerate(series.items()):

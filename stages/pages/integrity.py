@@ -42,13 +42,25 @@ def integrity_table(rows: list[dict[str, Any]], with_mi: bool) -> str:
 
 
 def worst_hmi(integrity: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """Per eps ("%g"): the attacker whose caused HMI is highest, with its rate ({"value", "ci", "n"})."""
+    """Per eps ("%g"): the attacker whose caused HMI is highest, with its rate ({"value", "ci", "n"}); attackers
+    that tie are named together ("burst = drift/los"), the widest interval kept."""
     out: dict[str, dict[str, Any]] = {}
     for r in integrity["rows"]:
         key, value = f"{r['eps']:g}", r["hmi"]["value"]
-        if value is not None and (key not in out or value > out[key]["hmi"]["value"]):
+        if value is None:
+            continue
+        w = out.get(key)
+        if w is None or value > w["hmi"]["value"]:
             out[key] = {"attacker": r["attacker"], "hmi": r["hmi"]}
+        elif value == w["hmi"]["value"]:
+            wider = r["hmi"]["ci"][1] - r["hmi"]["ci"][0] > w["hmi"]["ci"][1] - w["hmi"]["ci"][0]
+            out[key] = {"attacker": f"{w['attacker']} = {r['attacker']}", "hmi": r["hmi"] if wider else w["hmi"]}
     return out
+
+
+def attacker_names(attacker: str) -> str:
+    """`worst_hmi`'s attacker (names joined by " = ") in words."""
+    return " = ".join(NAMES.get(a, a) for a in attacker.split(" = "))
 
 
 def _al_text(integrity: dict[str, Any], p: Params) -> str:
@@ -68,10 +80,11 @@ def _al_text(integrity: dict[str, Any], p: Params) -> str:
 def _verdict(worst: dict[str, dict[str, Any]]) -> str:
     lines = []
     for e, w in sorted(worst.items(), key=lambda kv: float(kv[0])):
-        hi = w["hmi"]["ci"][1]
-        met = hi is not None and hi <= TARGET_HMI
-        lines.append(f"- eps {e}: {_pct(w['hmi'])}% ({NAMES.get(w['attacker'], w['attacker'])}); the target (upper "
-                     f"bound <= {100 * TARGET_HMI:g}%) is {'met' if met else '**not met**'}")
+        value, hi = w["hmi"]["value"], w["hmi"]["ci"][1]
+        verdict = ("met" if hi is not None and hi <= TARGET_HMI else "**not met**" if value > TARGET_HMI else
+                   "**not shown** (the interval reaches above it at this sample size)")
+        lines.append(f"- eps {e}: {_pct(w['hmi'])}% ({attacker_names(w['attacker'])}); the target (upper "
+                     f"bound <= {100 * TARGET_HMI:g}%) is {verdict}")
     return "\n".join(lines)
 
 
@@ -103,7 +116,9 @@ information) = available and error > AL{'; **MI** = error > PL' if with_mi else 
 compared frame by frame with the same trajectory unattacked: "HMI caused" counts only the frames
 that are HMI with the attack and not without it. Counted frames: from a trajectory's first attacked
 frame to its end (every frame the attack can reach); flagged: over the attacked frames. Rates are
-percent with 95% percentile-bootstrap intervals over the {c['trajectories']} eval_render trajectories.
+percent with 95% percentile-bootstrap intervals over the {c['trajectories']} eval_render trajectories; where the
+bootstrap has no spread (no hit on any trajectory, or hits on every frame), the Wilson interval of the
+{c['trajectories']} trajectories as trials instead: all that {c['trajectories']} trajectories without a hit can bound.
 
 The attackers know the whole chain: the pose network, the detector (threshold and
 `defense.update_below`) and the calibrated defense with its state (pipeline/attacks/):

@@ -137,7 +137,9 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
                       f"defended chain ({fused['fusion']})": held("recover"), "paper": "-", "target": ">= 95",
                       **{c: _sd(spread, "recover_held_pct" if dyn == "paper" else None, " %") for c in sd_column}})
     return ("\n\nThe defended chain (motion check fused with the detector, recovery and hold) beside the "
-            "paper's detector, on the same frames and runs (95% intervals):\n\n" + markdown_table(table))
+            "paper's detector, on the same frames and runs (95% intervals); the per-frame rows are the paper's view "
+            "(the raw estimate of each frame against a fixed threshold), the closed-loop rows count only the runs "
+            "that met the attack:\n\n" + markdown_table(table))
 
 
 
@@ -167,12 +169,12 @@ def _integrity_rows(rb: dict[str, Any], gd: dict[str, Any],
     """The integrity headline rows: the worst HMI a chain-level attack caused on the shipped chain at eps 0.01
     and 0.05, availability without attack, and the in-loop attacker's collisions per variant ("-" where not run)."""
     from pipeline.evaluation.stats import wilson
-    from stages.pages.integrity import NAMES
+    from stages.pages.integrity import attacker_names
 
     integrity, out = rb.get("integrity", {}), []
     for e in ("0.01", "0.05"):
         w = integrity.get("worst_hmi", {}).get(e)
-        value = "-" if w is None else f"{_rate(w['hmi'])} ({NAMES.get(w['attacker'], w['attacker'])})"
+        value = "-" if w is None else f"{_rate(w['hmi'])} ({attacker_names(w['attacker'])})"
         out.append((f"integrity: worst HMI (%) a chain-level attack caused at eps {e} (trusted error > AL, "
                     f"available), shipped chain", value, "-", "robustness", _sd(spread, {"0.01": "hmi01", "0.05": "hmi05"}[e])))
     clean = integrity.get("clean")
