@@ -24,10 +24,10 @@ sys.path.insert(0, str(ROOT))
 
 from pipeline.report.markdown import markdown_table  # noqa: E402
 from pipeline.io.atomic import atomic_write_text  # noqa: E402
-from stages.pages.summary import HEADLINES as SUMMARY_HEADLINES, Headline, Metrics  # noqa: E402
+from stages.pages.summary import HEADLINES as SUMMARY_HEADLINES, SEED_ONLY, Headline, Metrics  # noqa: E402
 
-# The headline numbers: summary.json's (stages/pages/summary.py: `dvc metrics show`) and a few more
-# that only the seed spread needs. Keys name them in reports/variance.json, which `rpod report` reads to
+# The headline numbers: summary.json's (stages/pages/summary.py: `dvc metrics show`: the integrity rows among
+# them), its SEED_ONLY ones and a few more that only the seed spread needs. Keys name them in reports/variance.json, which `rpod report` reads to
 # show the spread beside the README's headline numbers.
 def _lost(m: Metrics) -> float:
     """Percent of the attacked closed-loop runs (undefended) that lost the rendezvous."""
@@ -47,6 +47,7 @@ def _worst(m: Metrics, key: str, eps: str) -> float:
 
 HEADLINES: list[Headline] = [
     *SUMMARY_HEADLINES,
+    *SEED_ONLY,
     Headline("pose_tz_pct", "pose, tz error at 10-30 m (% of range)", lambda m: m["train"]["test"]["tz_pct_10_30"]),
     Headline("fgsm_position_m_0.05", "FGSM position error at eps 0.05 (m)",
              lambda m: m["attack"]["eps"]["0.05"]["position_mean_m"]),

@@ -35,7 +35,8 @@ def test_summary_is_flat_short_and_has_every_headline():
     s = summary(_committed_metrics())
     assert list(s) == [h.key for h in HEADLINES]
     assert all(isinstance(v, float) and len(k) <= 8 for k, v in s.items())
-    assert 0 < s["pos_m"] < 50 and all(0 <= s[k] <= 100 for k in ("lstm", "chain", "defended", "clean_fa", "held"))
+    assert 0 < s["pos_m"] < 50 and all(0 <= s[k] <= 100 for k in ("lstm", "chain", "held", "hmi01", "hmi05", "avail",
+                                                                   "collide"))
 
 
 def test_summary_leaves_out_a_stage_that_did_not_run():
@@ -44,7 +45,7 @@ def test_summary_leaves_out_a_stage_that_did_not_run():
     metrics = _committed_metrics()
     del metrics["robustness"]
     s = summary(metrics)
-    assert "harm_und" not in s and "pos_m" in s
+    assert "hmi01" not in s and "pos_m" in s
 
 
 def test_only_the_summary_is_a_dvc_metric_and_details_stay_outputs():

@@ -112,7 +112,7 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
     e = "0.01" if "0.01" in fused["per_eps"] else min(fused["per_eps"], key=float)
     paper, ours = fused["paper_per_eps"][e], fused["per_eps"][e]
     rows = [(f"integrated accuracy at eps {e} (%)", "accuracy", _fmt(INTEGRATED_EPS.get(e)), ">= 99.5",
-             "defended" if e == min(fused["per_eps"], key=float) else None),   # summary.json's key
+             "defended" if e == min(fused["per_eps"], key=float) else None),   # its seed-spread key
             (f"attacked frames flagged at eps {e} (TPR, %)", "tpr", "-", "-", None),
             (f"harmful frames (error > {fused['harm_m']:g} m) flagged at eps {e} (%)", "harmful_flagged", "-", ">= 99.5",
              None),
