@@ -149,8 +149,8 @@ def _metrics(settings: Any, g: Guidance, a: Attack, model_hash: str, seconds: fl
                  for e, s, k, r in runs],
     }
     # of the runs that met the attack (a run that never reached S was not attacked)
-    metrics["attack_success_rate"] = {f"{e:g}": float(np.mean([r.outcome != "rendezvous held" for e2, _, _, r in runs
-                                                               if e2 == e and r.attacked_frames > 0] or [np.nan]))
-                                      for e in dict.fromkeys(e for e, *_ in runs)}
+    met = {e: [r.outcome != "rendezvous held" for e2, _, _, r in runs if e2 == e and r.attacked_frames > 0]
+           for e in dict.fromkeys(e for e, *_ in runs)}
+    metrics["attack_success_rate"] = {f"{e:g}": float(np.mean(v)) if v else None for e, v in met.items()}
     metrics["defended"] = {k: v for k, v in defended.items() if k != "example"}
     return metrics

@@ -90,8 +90,9 @@ def guidance_page(m: dict[str, Any], g: Guidance, render: Render) -> str:
                     row[f"K = {r['length']}"] = _cell(r)
             rows.append(row)
         rate = m["attack_success_rate"][f"{eps:g}"]
-        tables.append(f"### eps = {eps:g}: the chaser missed or lost the target in {rate:.0%} of the runs\n\n"
-                      f"{markdown_table(rows)}")
+        share = "no run met the attack" if rate is None or rate != rate else \
+            f"the chaser missed or lost the target in {rate:.0%} of the runs that met the attack"
+        tables.append(f"### eps = {eps:g}: {share}\n\n{markdown_table(rows)}")
     law = ("the next true position is computed from the estimate, `p_new = p_est - clip(p_est - p_tar, -1, 1)` "
            "(the paper's variant: the chaser ends up where it believes it goes, so one wrong estimate moves the true "
            "chaser by as much as the estimate is wrong, and any estimate within 1 m per axis of the target point puts "
