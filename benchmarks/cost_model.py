@@ -50,11 +50,15 @@ def training_counts(n_images: int, p: dict[str, Any], epochs: int) -> dict[str, 
 
 
 def detector_counts(p: dict[str, Any]) -> dict[str, float]:
-    """SHAP forwards and LSTM sample-epochs (at most detect.epochs: early stopping ends sooner)."""
+    """The detector split's renders (whole shap.frames trajectories for the SHAP sources), SHAP forwards,
+    the FGSM gradients of the attacked samples and LSTM sample-epochs (at most detect.epochs: early
+    stopping ends sooner)."""
     s, d = p["shap"], p["detect"]
-    samples = s["normal"] + s["per_eps"] * len(s["eps"])
+    attacked = s["per_eps"] * len(s["eps"])
+    samples = s["normal"] + attacked
     fit = samples * (1 - d["test_fraction"])
-    return {"shap_forward": s["background"] + samples, "lstm": d["epochs"] * fit,
+    return {"render": -(-max(s["normal"], attacked) // s["frames"]) * s["frames"], "gradient": attacked,
+            "shap_forward": s["background"] + samples, "lstm": d["epochs"] * fit,
             "squeeze_forward": 2 * samples * ("squeeze" in d["baselines"])}
 
 
@@ -103,8 +107,9 @@ def paper_counts(p: dict[str, Any], renders_per_step: float = 1.0) -> dict[str, 
         "render": {"render": n},
         "train": training_counts(n, p, p["train"]["epochs"]),
         "attack": {"gradient": n_test * len(a["eps"]), "forward": n_test * (1 + 2 * len(a["eps"]))},
-        "shap": {"forward": det["shap_forward"]},
-        "detect": {"lstm": det["lstm"], "forward": det["squeeze_forward"]},
+        "detect_render": {"render": det["render"]},
+        "shap": {"forward": det["shap_forward"], "gradient": det["gradient"]},
+        "detect": {"lstm": det["lstm"], "forward": det["squeeze_forward"] + eval_frames},
         "guidance": guidance_counts(p, renders_per_step),
         "eval_render": {"render": eval_frames + d["val_trajectories"] * e["frames"]},
         "calibrate": {"forward": d["val_trajectories"] * e["frames"]},
@@ -117,8 +122,8 @@ def paper_counts(p: dict[str, Any], renders_per_step: float = 1.0) -> dict[str, 
     }
     if lab["retrain"] == "always":   # the synthetic-lab sub-pipeline: render, train, shap, detect again
         sub = training_counts(n, p, p["train"]["epochs"])
-        counts["lab_models"] = {"render": n, "train": sub["train"], "forward": sub["forward"] + det["shap_forward"],
-                                "lstm": det["lstm"]}
+        counts["lab_models"] = {"render": n + det["render"], "train": sub["train"], "gradient": det["gradient"],
+                                "forward": sub["forward"] + det["shap_forward"], "lstm": det["lstm"]}
     return counts
 
 

@@ -177,27 +177,27 @@ def draw_background(n_train: int, size: int, rng: np.random.Generator) -> np.nda
     return np.sort(rng.choice(n_train, size, replace=False))
 
 
-def sample_plan(normal: int, per_eps: int, eps: list[float], test_index: np.ndarray, train_pool: np.ndarray,
+def plan_sources(normal: int, per_eps: int, n_eps: int) -> int:
+    """Source images a sample plan needs: each is explained clean at most once and attacked at most once."""
+    return max(int(normal), int(per_eps) * int(n_eps))
+
+
+def sample_plan(normal: int, per_eps: int, eps: list[float], pool: np.ndarray,
                 rng: np.random.Generator) -> dict[str, np.ndarray]:
-    """The samples to explain: `normal` clean ones, then `per_eps` per eps (L-inf, pixels in [0, 1]).
+    """The samples to explain: `normal` clean ones, then `per_eps` attacked ones per eps (L-inf, pixels
+    in [0, 1]), all from the same source images of `pool` (indices of images the pose network never saw).
 
-    Each group draws test images first (without replacement), then images of `train_pool` to fill
-    up. Returns {"split": names, "index": label indices int64, "eps": float32 (0 = clean)}.
+    `plan_sources` images are drawn from `pool` without replacement, in random order; the first
+    `normal` are explained clean, and a random `per_eps x len(eps)` of them attacked, dealt to the eps
+    in blocks. With normal = per_eps x len(eps) (every profile) each source image is explained twice,
+    once clean and once attacked at one eps, so the two classes show the same images and differ only
+    by the attack. Returns {"index": pool indices int64, "eps": float32 (0 = clean)}.
     """
-    def draw(n: int) -> tuple[list[str], np.ndarray]:
-        n_test = min(n, len(test_index))
-        if n - n_test > len(train_pool):
-            raise ValueError(f"{n} images asked for but only {len(test_index)} test and {len(train_pool)} spare "
-                             f"training images exist")
-        idx = np.concatenate([rng.choice(test_index, n_test, replace=False),
-                              rng.choice(train_pool, n - n_test, replace=False)])
-        return ["test"] * n_test + ["train"] * (n - n_test), idx
-
-    split, index, eps_out = [], [], []
-    for e, n in [(0.0, int(normal))] + [(float(e), int(per_eps)) for e in eps]:
-        sp, ix = draw(n)
-        split += sp
-        index.append(ix)
-        eps_out += [e] * n
-    return {"split": np.array(split), "index": np.concatenate(index).astype(np.int64),
-            "eps": np.array(eps_out, dtype=np.float32)}
+    n = plan_sources(normal, per_eps, len(eps))
+    if n > len(pool):
+        raise ValueError(f"{n} source images needed but the pool holds {len(pool)}")
+    sources = rng.choice(np.asarray(pool, dtype=np.int64), n, replace=False)
+    attacked = rng.permutation(sources)[:int(per_eps) * len(eps)]
+    eps_out = np.concatenate([np.zeros(int(normal)), np.repeat(np.asarray(eps, dtype=np.float64), int(per_eps))])
+    return {"index": np.concatenate([sources[:int(normal)], attacked]).astype(np.int64),
+            "eps": eps_out.astype(np.float32)}

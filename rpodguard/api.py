@@ -5,7 +5,8 @@ LSTM detector with its threshold and the SHAP background mean, written by `rpod 
 also be a project root holding models/, and by default it is the weights bundle shipped in git
 (rpodguard/weights/default/, written by scripts/bundle_weights.py; its manifest's hashes are checked).
 Images are resized to the model's input as the lab loader resizes them (pipeline.evaluation.lab_images.resize:
-area averaging when shrinking), without keeping their aspect.
+area averaging when shrinking), without keeping their aspect. Given the camera the images were taken with,
+`predict` warns when it is not the one the model was trained for (rpodguard/camera.py).
 A frame with too few lit pixels has no target in view: it gets no pose (NaN) and no attack flag.
 """
 from __future__ import annotations
@@ -72,37 +73,45 @@ class Prediction:
 class Chain:
     """The per-image safety chain of a trained run: pose CNN -> exact SHAP signature -> LSTM detector.
 
-    Each image is judged on its own. The motion-filter defense (pipeline/defense/fusion.py), which checks
-    estimates against the chaser's motion, needs sequences and is not applied here. Positions assume
+    `predict` judges each image on its own. The motion-filter defense (pipeline/defense/fusion.py), which
+    checks estimates against the chaser's motion, needs sequences: `track`. Positions assume
     the camera the model was trained with (params.yaml `camera`): an image from a camera with another
     field of view gives ranges off by the ratio of the focal lengths (pixels per image width).
     """
 
     def __init__(self, safety: Any, input_size: tuple[int, int], files: tuple[Path, Path],
-                 manifest: dict[str, Any] | None = None):
+                 manifest: dict[str, Any] | None = None, camera: Any = None):
         self.safety = safety                      # pipeline.defense.chain.OnboardChain
         self.height, self.width = input_size      # model input, pixels
         self.files = files                        # (pose.pt, detector.pt)
         self.manifest = manifest                  # a weights bundle's manifest (profile, commit, params), else None
+        self.camera = camera                      # the model's camera at its input size (Intrinsics), None: unknown
 
     @property
     def threshold(self) -> float:
         """The detector's flag threshold on the attack probability."""
         return self.safety.threshold
 
-    def predict(self, images: Image | Sequence[Image], batch_size: int = BATCH) -> Prediction:
+    def predict(self, images: Image | Sequence[Image], batch_size: int = BATCH, camera: Any = None) -> Prediction:
         """Pose and attack flag per image. `images`: a path, an array (H, W, 3) or (N, H, W, 3) (RGB,
         uint8 or float in [0, 1]), or a list of paths and arrays; any size (resized to the model
-        input, with a UserWarning when the aspect differs from the model's). A frame with no target in
-        view (`MIN_LIT_FRACTION`) gets NaN pose and probability and no flag."""
+        input, with a UserWarning when the aspect differs from the model's). `camera`: the images' camera,
+        a 3x3 K (pixels, at the images' size) or a SPEED+ camera.json dict; a UserWarning when it is not the
+        model's camera (rpodguard.camera). A frame with no target in view (`MIN_LIT_FRACTION`) gets NaN
+        pose and probability and no flag."""
         import torch
 
         from pipeline.geometry.rotations import sixd_to_quat
+        from rpodguard.camera import camera_warnings
 
-        names, fitted = [], []
+        names, fitted, said = [], [], []
         for name, image in _items(images):
             names.append(name)
             fitted.append(self._fit(image, name))
+            if camera is not None:
+                said += camera_warnings(self.camera, camera, image.shape[1], image.shape[0], name)
+        for text in dict.fromkeys(said):   # each once
+            warnings.warn(text, UserWarning, stacklevel=2)
         if not names:
             raise ValueError("no images given (pass one or more image files or arrays)")
         x = torch.from_numpy(np.stack(fitted)).permute(0, 3, 1, 2)
@@ -119,6 +128,17 @@ class Chain:
         quaternion[seen] = sixd_to_quat(p[seen, 3:9]).reshape(-1, 4)
         return Prediction(tuple(names), p[:, :3], quaternion, p[:, 3:9], np.where(seen, np.concatenate(prob), np.nan),
                           np.concatenate(flag).astype(bool) & seen, lit, seen)
+
+    def track(self, images: Image | Sequence[Image], commands: np.ndarray, attitudes: np.ndarray,
+              batch_size: int = BATCH, camera: Any = None) -> Any:
+        """The defended chain over a sequence (rpodguard/sequence.py): `images` in time order, the chaser's
+        commanded displacement of the target's relative position per frame `commands` (N, 3; world axes,
+        m; row 0 unused) and camera `attitudes` (N, 3, 3; camera -> world) -> a `Track`: per frame the
+        trusted estimate (world, m), its protection level (m) and availability; `camera` the images' K, as in
+        `predict`. Needs FOLDER/defense.json (`rpod calibrate`)."""
+        from rpodguard.sequence import track
+
+        return track(self, images, commands, attitudes, batch_size, camera)
 
     def _fit(self, image: np.ndarray, name: str) -> np.ndarray:
         """One RGB image -> float32 (height, width, 3) in [0, 1] at the model input size."""
@@ -219,6 +239,7 @@ def load_chain(folder: str | Path | None = None) -> Chain:
     from pipeline.formats.bundle import MANIFEST, check_bundle
     from pipeline.formats.models import model_from_checkpoint, read_pose
     from pipeline.io.atomic import file_hash
+    from rpodguard.camera import model_camera
 
     folder = BUNDLE if folder is None else Path(folder)
     if not (folder / "pose.pt").exists() and (folder / "models" / "pose.pt").exists():
@@ -228,4 +249,4 @@ def load_chain(folder: str | Path | None = None) -> Chain:
     ckpt = read_pose(pose_path)
     safety = load_onboard_chain(model_from_checkpoint(ckpt), file_hash(pose_path), pose_path, detector_path)
     height, width = (int(v) for v in ckpt["input_size"])
-    return Chain(safety, (height, width), (pose_path, detector_path), manifest)
+    return Chain(safety, (height, width), (pose_path, detector_path), manifest, model_camera(ckpt, manifest, pose_path))

@@ -30,19 +30,25 @@ def run(args: list[str], cwd: Path, env: dict[str, str], timeout: float = 900) -
     return out.stdout
 
 
+def copy_env(dst: Path) -> dict[str, str]:
+    """The environment to run this venv's `rpod` and `dvc` on the code of the copy `dst` (and git there)."""
+    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", "PYTHONPATH": str(dst),
+           "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@example.org", "GIT_COMMITTER_NAME": "t",
+           "GIT_COMMITTER_EMAIL": "t@example.org"}
+    env.pop("RPOD_DEBUG", None)
+    return env
+
+
 def copy_repo(src: Path, dst: Path) -> dict[str, str]:
     """Copy `src`'s working-tree files (tracked and untracked-not-ignored) into the folder `dst` as a
-    one-commit git repository; returns the environment to run `rpod` and `dvc` there."""
+    one-commit git repository; returns the environment to run `rpod` and `dvc` there (`copy_env`)."""
     files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=src, check=True,
                            capture_output=True).stdout.decode().split("\0")
     for name in filter(None, files):
         if (src / name).is_file():
             (dst / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(src / name, dst / name)
-    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", "PYTHONPATH": str(dst),
-           "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@example.org", "GIT_COMMITTER_NAME": "t",
-           "GIT_COMMITTER_EMAIL": "t@example.org"}
-    env.pop("RPOD_DEBUG", None)
+    env = copy_env(dst)
     for args in (["git", "init", "-q"], ["git", "add", "-A"], ["git", "commit", "-qm", "copy"]):
         run(args, dst, env)
     return env

@@ -1,5 +1,6 @@
 """Rewrite the code deps of every stage in dvc.yaml from the source (the derivation of
-tests/test_dvc_deps.py); data deps (datasets/, models/, reports/, and "${param}" paths) are kept in their order.
+tests/test_dvc_deps.py); data deps (datasets/, models/, reports/, dvclive/ and "${param}" paths) are kept in their
+order.
 
 Run after adding a stage or changing what a stage imports: `python scripts/update_dvc_deps.py`.
 """
@@ -31,7 +32,7 @@ def main() -> None:
     path = derive.REPO / "dvc.yaml"
     text = path.read_text()
     for name, stage in derive.STAGES.items():
-        data = [d for d in stage.get("deps", []) if d.split("/")[0] in ("datasets", "models", "reports")
+        data = [d for d in stage.get("deps", []) if d.split("/")[0] in ("datasets", "models", "reports", "dvclive")
                 or d.startswith("${")]
         code = sorted(str(f.relative_to(derive.REPO)) for f in derive.stage_files(name))
         m = re.search(rf"(\n  {name}:\n(?:    (?!deps:).*\n)*?)    deps: \[[^\]]*\]\n", text)

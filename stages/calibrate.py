@@ -1,85 +1,157 @@
-"""`rpod calibrate`: fit the defense on validation trajectories (issue 16).
+"""`rpod calibrate`: calibrate the defense on clean validation trajectories, one check at a time.
 
 Runs the safety chain clean over the validation approaches `rpod eval_render` rendered into
 datasets/val_render/ (seed `defense.val_seed`, never the evaluation seed), fits the pose model's
-range-dependent measurement noise and bias (`pipeline.defense.noise.fit_noise`, `defense.noise_bins` range
-bins), inflates its standard deviations by the smallest factor that keeps the defended chain's false
-alarms on those clean frames within `defense.target_false_alarm` (a Gaussian fit under-states the
-errors' heavy, correlated tails), and writes models/defense.json: the noise model, the detector threshold and pose-model hash
-it belongs to, and the defense's false alarms on those clean validation frames.
+range-dependent measurement noise and bias (`pipeline.defense.noise.fit_noise`, `defense.noise_bins`
+range bins), then sets each check to its own share (`defense.shares`) of the false-alarm budget
+`defense.target_false_alarm` (pipeline/defense/calibration.py): the detector's threshold (a quantile of
+these clean frames' probabilities), the noise inflation of the gate, the sequential test's threshold.
+A check that cannot meet its share stops the stage with one line naming it and what it reached,
+unless `defense.allow_unmet` (then models/defense.json lists it under `unmet`, and the reports that
+use the defense say so in their first line). Writes models/defense.json (pipeline/formats/defense.py):
+the noise model, the thresholds, the settings, and the defended chain's false alarms of each check,
+availability and protection levels on those clean validation frames.
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
 import typer
 
+from pipeline.formats.defense import DEFENSE_FORMAT
 from pipeline.io.atomic import write_json
 from pipeline.pose.labels import TARGET
 from stages.artifacts.paths import DEFENSE
 from stages.artifacts.readers import chaser_motion, read_eval_render
-from stages.artifacts.models import DEFENSE_FORMAT, load_chain
-from stages.config.build import defense_settings
+from stages.artifacts.models import load_chain
+from stages.config.build import alert_limit_settings, defense_settings
 from stages.config.device import torch_setup
 from stages.config.schema import Params
 from stages.errors import StageError
-
+from stages.pages.calibrate import summary_line, unmet_line
 
 
 def main(params: Params) -> None:
-    """Fit the defense's measurement-noise model on clean validation trajectories -> models/defense.json.
+    """Calibrate the defense's checks on clean validation trajectories -> models/defense.json.
 
-    Params: `defense` (noise_bins, val_trajectories, val_seed and the filter settings), `evaluate.batch_size`.
+    Params: `defense` (noise_bins, target_false_alarm, shares, allow_unmet, val_trajectories, val_seed and the
+    filter settings), `evaluate.batch_size`, the alert limit's (`guidance.tolerance`, `max_step`,
+    `slack_steps`, `integrity.collision_range_m`) for the availability it records.
     """
-    from tqdm import tqdm
-
-    from pipeline.defense.chain import run_sequence
-    from pipeline.evaluation.sequences import defend_trace
-    from pipeline.defense.noise import fit_noise, inflate, smallest_inflation
-    from pipeline.geometry.rotations import sixd_to_matrix
+    from pipeline.defense.calibration import CleanRun, clean_summary, defend_runs
+    from pipeline.defense.noise import inflate
 
     d = params.defense
     torch_setup(params)
     images, poses, _ = read_eval_render(params, validation=True)
     chain, _, model_hash = load_chain(params)
+    pose, prob = _chain_outputs(chain, images, params.evaluate.batch_size)
     targets = poses[TARGET].to_numpy(np.float32)
-    batch = params.evaluate.batch_size
+    fitted = _fit_noise(targets, pose, d.noise_bins, len(images))
+    R_cam, u = chaser_motion(poses)
+    groups = [g.index.to_numpy() for _, g in poses.groupby("trajectory", sort=True)]
+    runs = [CleanRun(pose[i], prob[i], R_cam[i], u[i]) for i in groups]
+    truths = [poses[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64)[i] for i in groups]
+    settings, motion = defense_settings(d, chain.threshold)
+    checks, settings, motion = calibrate_checks(params, settings, motion, fitted, runs, prob)
+    noise = inflate(fitted, checks[2].setting, checks[1].setting)
+    alert = alert_limit_settings(params)
+    final = clean_summary(defend_runs(settings, motion, noise, runs, _alert_fn(alert)), truths, alert)
+    unmet = [unmet_line(c, len(images)) for c in checks if not c.met]
+    if final["fused"].value > d.target_false_alarm:
+        unmet.append(unmet_line(None, len(images), final["fused"].value, d.target_false_alarm))
+        _refuse(unmet[-1], d.allow_unmet)
+    cal = {"format": DEFENSE_FORMAT, "pose_model_hash": model_hash, "detector_threshold": chain.threshold,
+           "threshold": settings.threshold, "cusum_threshold": motion.cusum_threshold, "inflation": checks[2].setting,
+           "attitude_inflation": checks[1].setting,
+           "noise": noise.as_dict(), "fitted_noise": fitted.as_dict(),
+           "settings": {**dataclasses.asdict(settings), **dataclasses.asdict(motion)},
+           "alert_limit": dataclasses.asdict(alert), "unmet": unmet,
+           "validation": _validation(params, len(images), checks, final)}
+    write_json(DEFENSE, cal)
+    typer.echo(summary_line(cal, DEFENSE))
+
+
+def _chain_outputs(chain: Any, images: np.ndarray, batch: int) -> tuple[np.ndarray, np.ndarray]:
+    """The chain on the clean frames: (pose (N, 9), detector probability (N,)), with a progress bar."""
+    from tqdm import tqdm
+
+    from pipeline.defense.chain import run_sequence
+
     with tqdm(total=-(-len(images) // batch), desc="calibrate", unit="batch", dynamic_ncols=True) as bar:
         def progress(it):
             for i in it:
                 yield i
                 bar.update(1)
 
-        res = run_sequence(chain, images, targets, np.zeros(len(images), bool), None, batch, progress)
+        res = run_sequence(chain, images, np.zeros((len(images), 9), np.float32), np.zeros(len(images), bool),
+                           None, batch, progress)
+    return res.pose.astype(np.float64), res.prob.astype(np.float64)
+
+
+def _fit_noise(targets: np.ndarray, pose: np.ndarray, bins: int, frames: int) -> Any:
+    from pipeline.defense.noise import fit_noise
+    from pipeline.geometry.rotations import sixd_to_matrix
+
     try:
-        noise = fit_noise(targets[:, :3], res.pose[:, :3], sixd_to_matrix(targets[:, 3:]),
-                          sixd_to_matrix(res.pose[:, 3:]), bins=d.noise_bins)
+        return fit_noise(targets[:, :3], pose[:, :3], sixd_to_matrix(targets[:, 3:]), sixd_to_matrix(pose[:, 3:]),
+                         bins=bins)
     except ValueError as e:
-        raise StageError(f"calibrate on {len(images)} validation frames (defense.val_trajectories, "
+        raise StageError(f"calibrate on {frames} validation frames (defense.val_trajectories, "
                          f"defense.noise_bins): {e}") from None
-    settings, motion = defense_settings(d, chain.threshold)
-    R_cam, u = chaser_motion(poses)
-    groups = [g.index.to_numpy() for _, g in poses.groupby("trajectory", sort=True)]
 
-    def flags(model: Any) -> np.ndarray:
-        """The defended chain's flags on the clean validation frames with noise model `model`."""
-        return np.concatenate([defend_trace(settings, motion, model, res.pose[i], res.prob[i], R_cam[i], u[i]).flag
-                               for i in groups])
 
-    k, rates = smallest_inflation(lambda k: flags(inflate(noise, k)).mean(), d.target_false_alarm)
-    fitted, noise = noise, inflate(noise, k)
-    flag = flags(noise)
-    doubt = settings.threshold if settings.update_below is None else settings.update_below
-    cal = {"format": DEFENSE_FORMAT, "pose_model_hash": model_hash, "threshold": chain.threshold,
-           "noise": noise.as_dict(), "fitted_noise": fitted.as_dict(), "inflation": k,
-           "validation": {"trajectories": d.val_trajectories, "seed": d.val_seed, "frames": len(images),
-                          "fpr_clean": round(100 * float(flag.mean()), 3),
-                          "fpr_clean_by_inflation": {f"{f:g}": round(100 * r, 3) for f, r in rates.items()},
-                          "target_fpr": 100 * d.target_false_alarm,
-                          "detector_fpr_clean": round(100 * float(res.flag.mean()), 3),
-                          "doubtful_fraction": float(np.mean(res.prob >= doubt)),
-                          "prob_quantiles": {f"{q:g}": float(np.quantile(res.prob, q)) for q in (0.5, 0.9, 0.99)}}}
-    write_json(DEFENSE, cal)
-    typer.echo(f"calibrate: noise model from {len(images)} clean validation frames, inflated x{k:g} (target "
-               f"{100 * d.target_false_alarm:g}%); defended FPR on them {cal['validation']['fpr_clean']:.2f}% -> {DEFENSE}")
+def _refuse(line: str, allow: bool) -> None:
+    if not allow:
+        raise StageError(line)
+
+
+def calibrate_checks(params: Params, settings: Any, motion: Any, fitted: Any, runs: list[Any],
+                      prob: np.ndarray) -> tuple[list[Any], Any, Any]:
+    """The detector, the gate (its attitude test, then both) and the sequential test, each to its
+    share, in that order (each later one with the earlier ones' settings); an unmet share stops here
+    unless defense.allow_unmet."""
+    from pipeline.defense.calibration import detector_threshold, gate_inflation, sequential_threshold
+    from pipeline.defense.noise import inflate
+
+    d = params.defense
+    budget, shares, frames = d.target_false_alarm, d.shares, len(prob)
+    detector = detector_threshold(prob, shares.detector * budget)
+    _refuse(unmet_line(detector, frames), d.allow_unmet or detector.met)
+    doubt = None if settings.update_below is None else min(settings.update_below, detector.setting)
+    settings = dataclasses.replace(settings, threshold=detector.setting, update_below=doubt)
+    attitude, gate = gate_inflation(settings, motion, fitted, runs, shares.gate * budget)
+    for check in (attitude, gate):
+        _refuse(unmet_line(check, frames), d.allow_unmet or check.met)
+    sequential = sequential_threshold(settings, motion, inflate(fitted, gate.setting, attitude.setting), runs,
+                                      shares.sequential * budget)
+    _refuse(unmet_line(sequential, frames), d.allow_unmet or sequential.met)
+    motion = dataclasses.replace(motion, cusum_threshold=sequential.setting)
+    return [detector, attitude, gate, sequential], settings, motion
+
+
+def _alert_fn(alert: Any) -> Any:
+    from functools import partial
+
+    from pipeline.evaluation.integrity import alert_limit
+
+    return partial(alert_limit, settings=alert)
+
+
+def _validation(params: Params, frames: int, checks: list[Any], final: dict[str, Any]) -> dict[str, Any]:
+    """defense.json's record of the validation frames: each check's calibration and the fused chain."""
+    d = params.defense
+
+    def pct(r: Any) -> dict[str, Any]:
+        return {"pct": round(100 * r.value, 4), "ci95_pct": [round(100 * v, 4) for v in r.ci()]}
+
+    return {"trajectories": d.val_trajectories, "seed": d.val_seed, "frames": frames,
+            "target_pct": 100 * d.target_false_alarm,
+            "checks": {c.check: {"setting": c.setting, "share_pct": round(100 * c.share, 4),
+                                 "reached_pct": round(100 * c.reached, 4), "met": c.met,
+                                 "tried": {f"{k:g}": round(100 * v, 4) for k, v in c.rates.items()}} for c in checks},
+            "false_alarms": {k: pct(final[k]) for k in ("detector", "gate", "sequential", "fused")},
+            "availability": pct(final["availability"]), "mi": pct(final["mi"]),
+            "pl_m": final["pl_m"], "error_m": final["error_m"]}

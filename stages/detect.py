@@ -1,34 +1,40 @@
 """`rpod detect`: train the LSTM attack detector on the SHAP store and compare it with baselines.
 
-Reads datasets/shap.zarr (refused unless it was made with the current models/pose.pt), splits its
+Reads datasets/shap.zarr (refused unless it was made with the current models/pose.pt): clean and FGSM
+samples of the same detector-split images, none seen by the pose network (`rpod shap`). Splits its
 samples 80/20 into train/test and holds 20% of train out for validation (grouped by source image,
-so the clean and all eps versions of a frame sit on one side; stratified by eps; seeded), then fits
-on the same split:
+so the clean and the attacked version of an image sit on one side; stratified by eps; seeded), then
+fits on the same split:
 - lstm: the paper's detector on the SHAP values (pipeline.detectors.lstm), threshold on validation;
 - mlp: an MLP on the flattened SHAP values; mahalanobis: Lee et al. 2018 on the GAP features, one
   Gaussian per range bin (train.range_bins) with a shared covariance; lid: Ma et al. 2018 on the GAP
   features; squeeze: Xu et al. 2018 on the input images (rebuilt from their sources, see
   stages/artifacts/readers.py). Every baseline's threshold is chosen on the same validation samples.
+Then (unless --no-eval-alarms) the LSTM's false alarms at its own threshold on the clean frames of the
+fresh evaluation trajectories (datasets/eval_render), run through the onboard chain: what the SHAP
+split's accuracy does not say about a detector in the loop.
 
 Writes models/detector.pt (LSTM weights, architecture, threshold, and what the safety chain needs:
 the pose-model hash and the SHAP background mean; `pipeline.formats.models.read_detector` reads it), dvclive/detect/
-(training curves), reports/detector.md, reports/metrics/detect.json and reports/plots/roc/<name>.csv.
+(DVCLive: the detect params, the LSTM's training curves and test metrics, and every detector's ROC on the test
+split as plots/sklearn/<name>.json), reports/detector.md and reports/metrics/detect.json.
 """
 from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
+import typer
 
 from pipeline.formats.models import DETECTOR_FORMAT
 from pipeline.io.atomic import atomic_outputs, atomic_write_text, file_hash
 from pipeline.io.checkpoints import save_torch
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import DETECT_LIVE, DETECT_METRICS as METRICS, DETECT_REPORT as REPORT, DETECTOR, \
-    LABELS, POSE, ROC_DIR, SEED_OFFSET, SHAP
-from stages.artifacts.readers import SPLIT_CODES, SampleImages, read_shap_store
+    DETECT_RENDER, POSE, SEED_OFFSET, SHAP
+from stages.artifacts.readers import SampleImages, read_detect_render, read_eval_render, read_shap_store
 from stages.artifacts.models import load_pose
 from stages.config.device import torch_device
 from stages.config.schema import Params
@@ -52,12 +58,16 @@ def split_indices(eps: np.ndarray, source: np.ndarray, test_fraction: float, val
                          f"(raise shap.normal / shap.per_eps)") from None
 
 
-def main(params: Params) -> None:
+def main(
+    params: Params,
+    eval_alarms: Annotated[bool, typer.Option(
+        "--eval-alarms/--no-eval-alarms", help="Measure the LSTM's false alarms on the clean evaluation "
+        "trajectories (datasets/eval_render); off for the lab's synthetic-lab detector.")] = True,
+) -> None:
     """Train the LSTM detector and the baselines on one split of the SHAP store; write the report."""
     import torch
 
-    from pipeline.detectors.lstm import to_checkpoint
-    from pipeline.detectors.metrics import choose_threshold, metrics_by_eps, roc_csv
+    from pipeline.detectors.metrics import choose_threshold, metrics_by_eps
     from pipeline.evaluation.sequences import nan_to_none
 
     d = params.detect
@@ -87,28 +97,65 @@ def main(params: Params) -> None:
         print(f"detect: {name} baseline in {seconds[name]:.1f} s", flush=True)
 
     results = {name: metrics_by_eps(y[te], s, eps[te], thr) for name, (s, thr) in scores.items()}
+    alarms = _eval_alarms(params, lstm, data["attrs"]) if eval_alarms else None
 
-    ckpt = to_checkpoint(lstm, {
-        "format": DETECTOR_FORMAT, "pose_model_hash": model_hash, "shap_method": data["attrs"].get("method"),
-        "background_mean": torch.tensor(data["attrs"]["background_mean"], dtype=torch.float32),
-        "background_size": int(data["attrs"]["background_size"]),
-        "eps": sorted({float(e) for e in eps[y == 1]}, reverse=True),
-        "best_epoch": result.best_epoch, "test_accuracy": results["lstm"]["all"]["accuracy"]})
+    ckpt = _checkpoint(result, data["attrs"], model_hash, eps[y == 1], results["lstm"]["all"]["accuracy"])
     counts = {"samples": int(len(y)), "train": int(len(tr)), "validation": int(len(va)), "test": int(len(te)),
               "test_clean": int((y[te] == 0).sum()), "test_adversarial": int(y[te].sum())}
     metrics = {"model_hash": model_hash, "counts": counts, "threshold": {k: v[1] for k, v in scores.items()},
                "lstm_epochs": len(result.history), "lstm_best_epoch": result.best_epoch,
-               "seconds": seconds, "paper_accuracy": DETECTOR_ACCURACY, "detectors": results}
-    # detector, metrics, report, ROC data and curves move into place together, once all are written
-    with atomic_outputs(DETECTOR, METRICS, REPORT, dirs=(ROC_DIR, DETECT_LIVE)) as (det, met, rep, roc_dir, live_dir):
+               "seconds": seconds, "paper_accuracy": DETECTOR_ACCURACY, "detectors": results,
+               "composition": {**data["attrs"].get("counts", {}), **data["attrs"].get("source", {})},
+               "eval_alarms": alarms}
+    # detector, metrics, report and the DVCLive folder move into place together, once all are written
+    with atomic_outputs(DETECTOR, METRICS, REPORT, dirs=(DETECT_LIVE,)) as (det, met, rep, live_dir):
         save_torch(det, ckpt)
-        for name, (s, _) in scores.items():   # into the empty stand-in for ROC_DIR: no stale detector's file
-            atomic_write_text(roc_dir / f"{name}.csv", roc_csv(y[te], s))
         write_metrics(met, nan_to_none(metrics), params.profile_name)
-        atomic_write_text(rep, detector_page(results, scores, counts, result, data["attrs"], d))
-        _log_curves(live_dir, result.history, results["lstm"]["all"])
+        atomic_write_text(rep, detector_page(results, scores, counts, result, data["attrs"], d, alarms))
+        _log_live(live_dir, d, result.history, results["lstm"]["all"], (y[te], {k: v[0] for k, v in scores.items()}))
     acc = results["lstm"]["all"]["accuracy"]
-    print(f"detect: LSTM test accuracy {acc:.4f} (paper {DETECTOR_ACCURACY:.4f}) -> {DETECTOR}, {REPORT}")
+    fa = "" if alarms is None else f"; false alarms on clean evaluation frames {alarms['rate']:.4f}"
+    print(f"detect: LSTM test accuracy {acc:.4f} (paper {DETECTOR_ACCURACY:.4f}){fa} -> {DETECTOR}, {REPORT}")
+
+
+def _checkpoint(result: Any, attrs: dict[str, Any], model_hash: str, attacked_eps: np.ndarray,
+                accuracy: float) -> dict[str, Any]:
+    """models/detector.pt's content: the LSTM and what the safety chain needs (pose-model hash, SHAP background mean)."""
+    import torch
+
+    from pipeline.detectors.lstm import to_checkpoint
+
+    return to_checkpoint(result.model, {
+        "format": DETECTOR_FORMAT, "pose_model_hash": model_hash, "shap_method": attrs.get("method"),
+        "background_mean": torch.tensor(attrs["background_mean"], dtype=torch.float32),
+        "background_size": int(attrs["background_size"]), "eps": sorted({float(e) for e in attacked_eps}, reverse=True),
+        "best_epoch": result.best_epoch, "test_accuracy": accuracy})
+
+
+def _eval_alarms(p: Params, lstm: Any, attrs: dict[str, Any]) -> dict[str, Any]:
+    """The LSTM's false alarms at its own threshold on every frame of the clean evaluation trajectories
+    (datasets/eval_render), through the onboard chain (pose -> exact SHAP -> LSTM; no motion filter):
+    the rate with its Wilson interval over frames (optimistic: frames of a trajectory are correlated)
+    and the count per trajectory."""
+    from tqdm import tqdm
+
+    from pipeline.defense.chain import OnboardChain, run_sequence
+    from pipeline.evaluation.stats import rate
+
+    images, poses, _ = read_eval_render(p)
+    pose = load_pose(p)
+    try:
+        chain = OnboardChain.from_model(pose.model, np.asarray(attrs["background_mean"]), lstm, float(lstm.threshold))
+    except ValueError as e:
+        raise StageError(f"{POSE}: {e}") from None
+    n = len(images)
+    res = run_sequence(chain, images, np.zeros((n, 9), np.float32), np.zeros(n, bool), None, p.evaluate.batch_size,
+                       progress=lambda r: tqdm(r, desc="detect: clean evaluation frames", unit="batch", leave=False))
+    traj = poses["trajectory"].to_numpy()
+    r = rate(res.flag)
+    return {"frames": n, "trajectories": int(len(np.unique(traj))), "false_alarms": int(res.flag.sum()),
+            "rate": r.value, "rate_ci95": r.ci(), "threshold": float(lstm.threshold),
+            "per_trajectory": {str(int(t)): int(res.flag[traj == t].sum()) for t in np.unique(traj)}}
 
 
 def _train_lstm(values: np.ndarray, y: np.ndarray, tr: np.ndarray, va: np.ndarray, d: Detect,
@@ -129,11 +176,21 @@ def _train_lstm(values: np.ndarray, y: np.ndarray, tr: np.ndarray, va: np.ndarra
     return result, time.perf_counter() - t0
 
 
-def _log_curves(folder: Path, history: list[dict[str, float]], test: dict[str, float]) -> None:
-    """The LSTM's per-epoch curves and its test metrics into a DVCLive folder (for `dvc plots show`)."""
+def _log_live(folder: Path, d: Detect, history: list[dict[str, float]], test: dict[str, float],
+              roc: tuple[np.ndarray, dict[str, np.ndarray]]) -> None:
+    """Into a DVCLive folder (for `dvc plots show`; dvc.yaml's `plots` draw them): the detect params, the
+    LSTM's per-epoch curves and test metrics, and each detector's ROC curve on the test split (`roc`: the
+    test labels, 1 = attacked, and each detector's scores) as DVCLive's plots/sklearn/<detector>.json."""
+    import dataclasses
+    import json
+
     from dvclive import Live
 
     live = Live(dir=str(folder), dvcyaml=False, save_dvc_exp=False, report=None)
+    live.log_params(json.loads(json.dumps(dataclasses.asdict(d))))   # plain lists, as params.yaml has them
+    labels, scores = roc
+    for name, score in scores.items():
+        live.log_sklearn_plot("roc", labels, score, name=name)
     for rec in history:
         for k in ("train_loss", "val_loss", "val_accuracy"):
             live.log_metric(k, rec[k])
@@ -156,14 +213,11 @@ def _baseline(name: str, p: Params, data: dict[str, Any], y: np.ndarray, tr: np.
         return det.score(values[va]), det.score(values[te])
     if name == "mahalanobis":
         from pipeline.detectors.mahalanobis import MahalanobisDetector
-        from stages.artifacts.data import load_labels
 
-        labels = load_labels().set_index("index")
-        try:
-            ranges = labels.loc[data["source_index"], "range"].to_numpy(np.float64)
-        except KeyError:
-            raise StageError(f"{SHAP}/source_index names images missing from {LABELS} "
-                             f"(re-run `rpod shap`)") from None
+        poses = read_detect_render(p)[1]
+        if data["source_index"].max() >= len(poses):
+            raise StageError(f"{SHAP}/source_index names images missing from {DETECT_RENDER} (re-run `rpod shap`)")
+        ranges = poses["range"].to_numpy(np.float64)[data["source_index"]]
         groups = np.digitize(ranges, np.sort(np.asarray(p.train.range_bins, dtype=np.float64)))
         clean_tr = tr[y[tr] == 0]
         det = MahalanobisDetector().fit(feats[clean_tr], groups[clean_tr])
@@ -179,7 +233,7 @@ def _baseline(name: str, p: Params, data: dict[str, Any], y: np.ndarray, tr: np.
 def _squeeze(p: Params, data: dict[str, Any], y: np.ndarray, tr: np.ndarray, va: np.ndarray,
              te: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Feature squeezing needs the images and the pose model: rebuild each sample's image from its
-    source (stages.artifacts.readers.SampleImages: clean split image, adv.zarr, or the same FGSM) and score it."""
+    source (stages.artifacts.readers.SampleImages: the detector-split render, or the same FGSM) and score it."""
     from tqdm import tqdm
 
     from pipeline.attacks.gradient import attack_loss
@@ -187,9 +241,8 @@ def _squeeze(p: Params, data: dict[str, Any], y: np.ndarray, tr: np.ndarray, va:
 
     d = p.detect
     pose = load_pose(p)
-    src = SampleImages(p, pose.model, attack_loss(p.attack.loss, pose.loss), pose.hash)
-    names = {v: k for k, v in SPLIT_CODES.items()}
-    keys = (np.array([names[int(c)] for c in data["split"]]), data["source_index"], data["eps"].astype(np.float64))
+    src = SampleImages(p, pose.model, attack_loss(p.attack.loss, pose.loss))
+    keys = (data["source_index"], data["eps"].astype(np.float64))
     det = SqueezeDetector(model_predictor(pose.model), bits=d.squeeze_bits,
                           median_size=d.squeeze_median)
     clean_tr = tr[y[tr] == 0][:512]

@@ -1,4 +1,5 @@
-"""`rpod eval_render`: render the fresh evaluation trajectories once, for `rpod evaluate` and its eps.
+"""`rpod eval_render`: render the fresh evaluation trajectories once, for `rpod evaluate` and its eps;
+`rpod eval_render --detector`: the detector split, the images `rpod shap` explains.
 
 Renders `evaluate.trajectories` projectile-shaped approaches (own seed `evaluate.seed`), their chunks
 fanned out over `engine.workers` Blender scenes (stages/engine/pool.py), into datasets/eval_render/
@@ -7,19 +8,29 @@ never re-renders; and, in the same Ray session, `defense.val_trajectories` valid
 their own seed `defense.val_seed` into datasets/val_render/ (what `rpod calibrate` fits the defense
 on: never the evaluation seeds). poses.parquet also holds what the chaser knows of itself: rel (target relative to the chaser,
 world axes, m: its planned path) and the camera attitude c0..c8 (camera -> world, row-major).
+
+With `--detector` (dvc.yaml stage `detect_render`) it renders only the detector split into
+datasets/detect_render/: approaches drawn like the evaluation ones but from `shap.seed`, `shap.frames`
+frames each, as many as the SHAP sample plan's source images need (stages.config.params.detector_trajectories).
+The pose network never saw these images, so the detector's clean and attacked samples come from the
+same unseen images (issue 27: clean samples partly from the pose-training split made "unfamiliar"
+read as "attacked"). Render times go to reports/metrics/{eval_render,detect_render}.json, never into
+meta.json, so the same params give byte-identical folders (stable DVC hashes).
 """
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 import typer
 
 from pipeline.pose.labels import pose_columns
-from stages.artifacts.paths import EVAL_RENDER, VAL_RENDER
+from stages.artifacts.dvc import write_metrics
+from stages.artifacts.paths import DETECT_RENDER, DETECT_RENDER_METRICS, EVAL_RENDER, EVAL_RENDER_METRICS, VAL_RENDER
 from stages.config.build import engine_settings, intrinsics, scene_settings
-from stages.config.params import eval_render_fingerprint, val_render_fingerprint
+from stages.config.params import detect_render_fingerprint, detector_trajectories, eval_render_fingerprint, \
+    val_render_fingerprint
 from stages.config.schema import Params
 from stages.engine import pool as engine
 from stages.engine.chunks import render_to_store, store_url
@@ -27,9 +38,9 @@ from pipeline.io.atomic import atomic_dir, write_json
 from pipeline.io.tables import write_parquet
 
 
-def trajectories(p: Params, seed: int, count: int) -> list[Any]:
+def trajectories(p: Params, seed: int, count: int, frames: int | None = None) -> list[Any]:
     """`count` evaluation approaches from `seed`: lateral start offsets |x|, |y| uniform in
-    evaluate.lateral_range, random signs, evaluate.frames frames each."""
+    evaluate.lateral_range, random signs, `frames` (default evaluate.frames) frames each."""
     from pipeline.geometry.trajectories import projectile_trajectory
 
     e, r = p.evaluate, p.render
@@ -38,30 +49,43 @@ def trajectories(p: Params, seed: int, count: int) -> list[Any]:
     out = []
     for i in range(count):
         xy = rng.uniform(lo, hi, 2) * rng.choice([-1.0, 1.0], 2)
-        out.append(projectile_trajectory(e.frames, (float(xy[0]), float(xy[1])), float(r.start_range),
+        out.append(projectile_trajectory(frames or e.frames, (float(xy[0]), float(xy[1])), float(r.start_range),
                                          float(r.end_range), seed=seed + 1 + i,
                                          jitter_deg=float(r.pointing_jitter_deg), max_rot_deg=0.0, sequence=i))
     return out
 
 
-def main(params: Params) -> None:
+def main(
+    params: Params,
+    detector: Annotated[bool, typer.Option("--detector", help="Render the detector split instead "
+                                           "(datasets/detect_render: shap.seed, shap.frames per trajectory).")] = False,
+) -> None:
     """Render the fresh evaluation trajectories into datasets/eval_render/ and the defense's
-    validation trajectories into datasets/val_render/, fanned out over `engine.workers` Blender scenes.
+    validation trajectories into datasets/val_render/, fanned out over `engine.workers` Blender scenes;
+    with --detector the detector split into datasets/detect_render/.
 
     Params: `evaluate.trajectories`, `frames`, `lateral_range`, `seed`; `defense.val_trajectories`,
-    `val_seed`; `render`/`camera`; and `engine` (workers, Ray cluster address).
+    `val_seed`; `shap.frames`, `seed` (--detector); `render`/`camera`; and `engine` (workers, Ray cluster address).
     """
     K, scene, es = intrinsics(params), scene_settings(params.render), engine_settings(params)
-    d, e = params.defense, params.evaluate
+    d, e, s = params.defense, params.evaluate, params.shap
+    if detector:
+        sets = [(DETECT_RENDER, trajectories(params, s.seed, detector_trajectories(params), s.frames),
+                 detect_render_fingerprint(params))]
+    else:
+        sets = [(EVAL_RENDER, trajectories(params, e.seed, e.trajectories), eval_render_fingerprint(params)),
+                (VAL_RENDER, trajectories(params, d.val_seed, d.val_trajectories), val_render_fingerprint(params))]
+    timings: dict[str, Any] = {}
     with engine.session(es):
-        for folder, seqs, fingerprint in (
-                (EVAL_RENDER, trajectories(params, e.seed, e.trajectories), eval_render_fingerprint(params)),
-                (VAL_RENDER, trajectories(params, d.val_seed, d.val_trajectories), val_render_fingerprint(params))):
-            _render_set(K, scene, es, seqs, folder, fingerprint)
+        for folder, seqs, fingerprint in sets:
+            timings[folder.name] = _render_set(K, scene, es, seqs, folder, fingerprint)
+    write_metrics(DETECT_RENDER_METRICS if detector else EVAL_RENDER_METRICS,
+                  {"workers": es.workers, "sets": timings}, params.profile_name)
 
 
-def _render_set(K: Any, scene: Any, es: Any, seqs: list[Any], folder: Path, fingerprint: str) -> None:
-    """Render the trajectories `seqs` into `folder` (images.zarr, poses.parquet, meta.json)."""
+def _render_set(K: Any, scene: Any, es: Any, seqs: list[Any], folder: Path, fingerprint: str) -> dict[str, Any]:
+    """Render the trajectories `seqs` into `folder` (images.zarr, poses.parquet, meta.json); returns the
+    frame count and render time (s) for the metrics JSON."""
     import pandas as pd
 
     from pipeline.geometry.rotations import matrix_to_6d, matrix_to_quat
@@ -81,6 +105,6 @@ def _render_set(K: Any, scene: Any, es: Any, seqs: list[Any], folder: Path, fing
         write_parquet(poses, tmp / "poses.parquet")
         write_json(tmp / "meta.json", {"complete": True, "fingerprint": fingerprint, "frames": n,
                                        "trajectories": len(seqs), "width": K.width, "height": K.height, "K": K.K,
-                                       "seconds": seconds, "seconds_per_image": seconds / n,
                                        "start_xy": [s.rel[0, :2].tolist() for s in seqs]})
     typer.echo(f"eval_render: {n} images ({len(seqs)} trajectories) in {seconds:.0f} s -> {folder}")
+    return {"frames": n, "seconds": seconds, "images_per_s": n / seconds if seconds > 0 else None}

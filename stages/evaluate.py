@@ -28,6 +28,7 @@ from stages.config.evaluation import Evaluate
 from stages.config.schema import Params
 from stages.pages.evaluate import defense_section
 from stages.pages.paper import INTEGRATED, INTEGRATED_EPS, by_eps
+from stages.pages.calibrate import unmet_banner
 
 if TYPE_CHECKING:
     from pipeline.evaluation.sequences import Sequence
@@ -62,10 +63,11 @@ def main(params: Params) -> None:
     t0 = time.perf_counter()
     res = evaluate_sequences(chain, loss_fn, sequences, eps_list, length, e.batch_size, "evaluate")
     harm = params.defense.harm_m
-    fused = {name: defended_summary(res.traces, sequences, eps_list, defense.settings if fusion is None else
-                                    dataclasses.replace(defense.settings, fusion=fusion), defense.motion,
-                                    defense.noise, length, harm)
-             for name, fusion in (("paper (LSTM alone)", "paper"), (f"defended ({defense.settings.fusion})", None))}
+    # the paper's row: the LSTM alone at its own threshold (detector.pt); the defended chain: the calibrated one
+    paper = dataclasses.replace(defense.settings, fusion="paper", threshold=chain.threshold,
+                                update_below=min(params.defense.update_below or 1.0, chain.threshold))
+    fused = {name: defended_summary(res.traces, sequences, eps_list, s, defense.motion, defense.noise, length, harm)
+             for name, s in (("paper (LSTM alone)", paper), (f"defended ({defense.settings.fusion})", defense.settings))}
     seconds = time.perf_counter() - t0
     summary = per_eps_summary(res.rows)
     eps_fig = min(eps_list)
@@ -85,8 +87,9 @@ def main(params: Params) -> None:
                          "per_eps": {f"{r['eps']:g}": r for r in rates_json(list(fused.values())[-1])},
                          "paper_per_eps": {f"{r['eps']:g}": r for r in rates_json(fused["paper (LSTM alone)"])}}}
     write_metrics(METRICS, nan_to_none(metrics), params.profile_name)
-    atomic_write_text(REPORT, report(res.rows, summary, res.clean, sequences, e, meta, chain.threshold,
-                                     eps_fig, params.profile_name)
+    atomic_write_text(REPORT, unmet_banner(defense.calibration)
+                      + report(res.rows, summary, res.clean, sequences, e, meta, chain.threshold, eps_fig,
+                               params.profile_name)
                       + defense_section(fused, defense.calibration, harm, e.attack_length))
     typer.echo(f"evaluate: {len(sequences)} trajectories x {len(eps_list)} eps in {seconds:.0f} s; mean accuracy "
                f"{100 * metrics['accuracy_mean']:.2f}% -> {REPORT}, {FIGURE}")

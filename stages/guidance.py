@@ -36,6 +36,7 @@ from stages.engine.guidance_worker import GuidanceSetup, GuidanceWorker, flights
 from pipeline.io.atomic import atomic_write_text, save_figure
 from stages.artifacts.dvc import write_metrics
 from stages.errors import StageError
+from stages.pages.calibrate import unmet_banner
 from stages.pages.guidance import defended_section, guidance_page, in_loop_section
 
 
@@ -119,8 +120,8 @@ def main(params: Params) -> None:
     metrics |= {"in_loop": in_loop_grid(plan, [r for r, _ in flown], params.integrity.collision_range_m)
                 | grid_counts(flown[len(flown) - looped:]), "minutes": (time.perf_counter() - t0) / 60}
     write_metrics(METRICS, metrics, params.profile_name)
-    atomic_write_text(REPORT, guidance_page(metrics, g, params.render) + defended_section(metrics["defended"], g)
-                      + in_loop_section(metrics["in_loop"], params.integrity))
+    atomic_write_text(REPORT, unmet_banner(defense.calibration) + guidance_page(metrics, g, params.render)
+                      + defended_section(metrics["defended"], g) + in_loop_section(metrics["in_loop"], params.integrity))
     first = attacked[0][0] if attacked else None
     save_figure(guidance_trajectories(baseline, [(s, k, r) for e, s, k, r in attacked if e == first], first,
                                       settings.goal), FIGURE)

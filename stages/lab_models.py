@@ -8,13 +8,13 @@ paper profile), or whenever `lab.mesh` names another mock-up, it trains them aga
 60..10 m of the 13 approach sequences are preserved) with the same camera K_blender at
 render.width x render.height.
 
-The retraining runs the pipeline's own stage commands (`rpod render`, `label`, `train`, `shap`,
-`detect`) unchanged, each as a subprocess in the stage's output folder `datasets/lab_models/` with a
+The retraining runs the pipeline's own stage commands (`rpod render`, `label`, `train`,
+`eval_render --detector`, `shap`, `detect`) unchanged, each as a subprocess in the stage's output folder `datasets/lab_models/` with a
 params.yaml derived from the main one (`sub_params`): the same training recipe (`train`, `shap`,
 `detect`, `label` sections), the mock-up mesh, `lab.train_frames_per_sequence` frames per sequence,
 base seed `lab.seed` + SEED_OFFSET, and no detector baselines (the lab chain uses the LSTM only).
 That folder then holds what the main pipeline holds at the top level: datasets/render/,
-datasets/labels.parquet, models/pose.pt, datasets/shap.zarr, models/detector.pt, reports/*.md and
+datasets/labels.parquet, models/pose.pt, datasets/detect_render/, datasets/shap.zarr, models/detector.pt, reports/*.md and
 reports/metrics/{train,detect}.json, plus summary.json (what `rpod lab` reads: whether and why it
 retrained, the model paths, the synthetic-lab test errors). Without retraining only summary.json is
 written, so DVC runs this stage as a no-op and `rpod lab` is not re-run for it.
@@ -49,14 +49,17 @@ def sub_params(p: Params) -> Params:
                                engine=dataclasses.replace(p.engine, store=None))   # its renders stay in its folder
 
 
-STEPS = ("render", "label", "train", "shap", "detect")   # the stage commands of the sub-pipeline, in order
+# the sub-pipeline, in order: dvc.yaml stage name -> its `rpod` command (the detector's false alarms on
+# evaluation trajectories are left out: the lab stage measures this detector on the lab frames)
+STEPS = {"render": ["render"], "label": ["label"], "train": ["train"], "detect_render": ["eval_render", "--detector"],
+         "shap": ["shap"], "detect": ["detect", "--no-eval-alarms"]}
 
 
-def run_step(name: str, folder: Path) -> None:
-    """`rpod <name>` as a subprocess in `folder` (it reads ./params.yaml there); a failure is a StageError
+def run_step(args: list[str], folder: Path) -> None:
+    """`rpod <args>` as a subprocess in `folder` (it reads ./params.yaml there); a failure is a StageError
     carrying the command's own one-line error."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
-    out = subprocess.run([sys.executable, "-m", "stages.cli", name], cwd=folder, env=env, stderr=subprocess.PIPE,
+    out = subprocess.run([sys.executable, "-m", "stages.cli", *args], cwd=folder, env=env, stderr=subprocess.PIPE,
                          text=True)
     sys.stderr.write(out.stderr)
     if out.returncode != 0:
@@ -71,11 +74,11 @@ def retrain(p: Params, dest: Path, final: Path) -> dict[str, Any]:
     dest.mkdir(parents=True, exist_ok=True)
     write_params(dataclasses.asdict(sub), dest / PARAMS_FILE)
     seconds: dict[str, float] = {}
-    for i, name in enumerate(STEPS, 1):
+    for i, (name, args) in enumerate(STEPS.items(), 1):
         print(f"lab: synthetic-lab {name} ({i}/{len(STEPS)}) for {final}/", flush=True)
         t0 = time.perf_counter()
         try:
-            run_step(name, dest)
+            run_step(args, dest)
         except (StageError, ValueError) as e:
             raise StageError(f"lab.retrain ({name} on the synthetic-lab set in {final}/): {e}") from None
         seconds[name] = time.perf_counter() - t0

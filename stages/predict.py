@@ -1,16 +1,22 @@
 """`rpod predict IMAGES...`: the trained chain on your own images (not a DVC stage; reads no params.yaml).
 
 Prints per image the position (m, camera frame), the quaternion (qw, qx, qy, qz) and the detector's
-attack probability and flag as a table, or with --json everything including the 6-D rotation. The image
+attack probability and flag as a table, or with --json everything including the 6-D rotation. With
+--motion CSV (the chaser's commanded displacement and camera attitude per image: rpodguard.sequence)
+the images are a sequence in time order through the defended chain, and it prints per frame the trusted
+estimate (world frame, m), its protection level (m), whether the guidance may fly on it, and the flag. The image
 paths are checked before the model loads; a frame with no target in view (too few lit pixels:
 rpodguard.api.MIN_LIT_FRACTION) gets no pose and says so. Without --models it uses the weights bundle
-shipped in git (rpodguard/weights/default/), so it works right after `make setup`.
+shipped in git (rpodguard/weights/default/), so it works right after `make setup`. With --camera (a
+camera.json as SPEED+ and `rpod export speed` write it) it warns when the images' camera is not the one the
+model was trained for (its K is stored in pose.pt; rpodguard/camera.py).
 """
 from __future__ import annotations
 
 import json
 import warnings
 from pathlib import Path
+from typing import Any
 
 import typer
 
@@ -23,6 +29,14 @@ def main(
                                 help="Folder with pose.pt and detector.pt (or a project root holding models/), e.g. "
                                      "models for this project's run. Default: the bundled weights "
                                      "(rpodguard/weights/default, the default profile's trained chain)."),
+    camera: Path = typer.Option(None, "--camera", show_default=False,
+                                help="camera.json of the images' camera (SPEED+ layout: Nu, Nv and cameraMatrix, or "
+                                     "fx, fy, ppx, ppy); warns when it is not the camera the model was trained for."),
+    motion: Path = typer.Option(None, "--motion", show_default=False,
+                                help="CSV with the chaser's motion per image (columns u_x,u_y,u_z: commanded displacement "
+                                     "of the target's relative position since the previous image, world axes, m; "
+                                     "c0..c8: camera -> world rotation, row-major): the images are then a sequence "
+                                     "through the defended chain (needs defense.json beside the models)."),
 ) -> None:
     """Pose (position m, quaternion, 6-D) and attack flag of each image through the trained chain.
 
@@ -32,11 +46,17 @@ def main(
     """
     from rpodguard import load_chain
     from rpodguard.api import check_files
+    from rpodguard.camera import read_camera
     from stages.errors import StageError
 
     if not images:
         raise StageError("rpod predict: no images given (pass one or more PNG or JPG files)")
     check_files(images)   # a typo stops here, before the ~10 s of loading torch and the models
+    cam = read_camera(camera) if camera is not None else None
+    if motion is not None:
+        from rpodguard.sequence import read_motion
+
+        commands, attitudes = read_motion(motion, len(images))
     chain = load_chain(models)
     if models is None:
         bundle = chain.manifest or {}
@@ -44,9 +64,12 @@ def main(
                     f"{str(bundle.get('commit'))[:12]}); --models models for this project's own run", err=True)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        out = chain.predict(images)
+        out = chain.predict(images, camera=cam) if motion is None else \
+            chain.track(images, commands, attitudes, camera=cam)
     for w in caught:
         typer.secho(f"warning: {' '.join(str(w.message).split())}", fg=typer.colors.YELLOW, err=True)
+    if motion is not None:
+        return _print_track(out, as_json)
     if as_json:
         typer.echo("[\n" + ",\n".join(json.dumps(r) for r in out.records()) + "\n]")  # one image per line
         return
@@ -58,3 +81,16 @@ def main(
             for k, name in enumerate(out.sources)]
     typer.echo(tabulate(rows, ["image", "x (m)", "y (m)", "z (m)", "qw", "qx", "qy", "qz", "P(attack)",
                                f"flag (>= {chain.threshold:.2f})"], floatfmt=".3f"))
+
+
+def _print_track(out: Any, as_json: bool) -> None:
+    """A rpodguard.sequence.Track as a JSON list (one object per frame) or a table."""
+    if as_json:
+        typer.echo("[\n" + ",\n".join(json.dumps(r) for r in out.records()) + "\n]")
+        return
+    from tabulate import tabulate
+
+    rows = [[name, *out.trusted[k], out.pl[k], "yes" if out.available[k] else "no", "FLAG" if out.flag[k] else "-",
+             out.mode[k]] for k, name in enumerate(out.prediction.sources)]
+    typer.echo(tabulate(rows, ["image", "trusted x (m)", "y (m)", "z (m)", "PL (m)", "available", "flag", "mode"],
+                        floatfmt=".3f"))

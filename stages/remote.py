@@ -5,7 +5,8 @@ Writes `[remote "NAME"]` (url, and `endpointurl` for an S3-compatible server) an
 address and that it answers: a local folder is created (its parent must exist or be creatable) and must
 be writable; `s3://BUCKET/PATH` needs `dvc-s3` installed and the bucket to exist, checked with one
 bounded request to its endpoint (`--endpoint URL` for MinIO, Ceph or any S3-compatible server; AWS
-otherwise); other schemes need their DVC plugin and one bounded answer. Not a DVC stage; reads no params.
+otherwise); an http(s) URL must answer a HEAD request with success, a redirect or 404 (an empty remote);
+other schemes need their DVC plugin and one bounded answer. Not a DVC stage; reads no params.
 Credentials are never written: S3 takes them from AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY, ~/.aws, or
 `dvc remote modify --local NAME access_key_id ...` (.dvc/config.local, not in git).
 """
@@ -75,8 +76,24 @@ def remote_section(target: str, endpoint: str | None, timeout: float) -> dict[st
         _answer(lambda: fs.fs.info(parsed.netloc), f"s3 bucket {parsed.netloc!r} at {address}", timeout)
     else:
         _connect(target, timeout)
-        _answer(lambda: fs.exists(path), target, timeout)
+        probe = (lambda: _http_head(target, timeout)) if parsed.scheme in DEFAULT_PORTS else (lambda: fs.exists(path))
+        _answer(probe, target, timeout)
     return section
+
+
+def _http_head(url: str, timeout: float) -> None:
+    """One HEAD request to URL: fine when it succeeds, redirects or says 404 (nothing pushed yet); 401 and 403
+    are a PermissionError, any other error status (a server that is no HTTP remote) a ConnectionError."""
+    import urllib.error
+    import urllib.request
+
+    try:
+        urllib.request.urlopen(urllib.request.Request(url, method="HEAD"), timeout=timeout).close()
+    except urllib.error.HTTPError as e:
+        if e.code in (401, 403):
+            raise PermissionError(url) from None
+        if e.code != 404:
+            raise ConnectionError(f"HTTP {e.code} {e.reason}") from None
 
 
 def local_folder(path: Path) -> Path:

@@ -2,12 +2,17 @@
 SPEED/SPEED+ folder of `render.source`: stages/artifacts/speed.py, pipeline/formats/speed_folder.py).
 
 Writes datasets/render/{images.zarr, poses.parquet, meta.json} in one atomic step, plus PNG
-previews in reports/figures/previews/. The frames' chunks fan out over `engine.workers` workers (Ray
+previews in reports/figures/previews/ and the render time in reports/metrics/render.json (never in
+meta.json: the same params give a byte-identical folder, so its DVC hash is stable). The frames' chunks fan out over `engine.workers` workers (Ray
 actors, each with one Blender scene; a Ray cluster via `engine.address` or $RAY_ADDRESS) that write
-straight into one store: datasets/render/images.zarr, or `engine.store` (a folder or fsspec URL).
+straight into one store: datasets/render/images.zarr, or in the shared folder or fsspec URL `engine.store`
+the store of this render's params fingerprint, render-<fingerprint>.zarr (written beside it and swapped in
+when complete, so a failed or refused render leaves the previous one; a local one is locked while written).
+Two renders into one checkout are refused too: datasets/.render.lock.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import shutil
 from pathlib import Path
@@ -17,13 +22,14 @@ import numpy as np
 import typer
 
 from stages.artifacts import speed as speed_io
-from stages.artifacts.paths import PREVIEWS, RENDER as OUT, SEED_OFFSET
+from stages.artifacts.dvc import write_metrics
+from stages.artifacts.paths import PREVIEWS, RENDER as OUT, RENDER_METRICS as METRICS, SEED_OFFSET
 from stages.artifacts.readers import read_render_store
 from stages.config import params as params_mod
 from stages.config.build import engine_settings, intrinsics, scene_settings
 from stages.config.schema import Params
-from stages.engine.chunks import render_to_store, store_url
-from pipeline.io.atomic import atomic_dir, remove_stale_temps, write_json
+from stages.engine.chunks import keyed_store, render_to_store, replacing, store_url
+from pipeline.io.atomic import atomic_dir, exclusive, remove_stale_temps, write_json
 from pipeline.io.tables import write_parquet
 from stages.errors import StageError
 
@@ -49,24 +55,28 @@ def frames(p: Params) -> tuple[Any, Any, Any, Any]:
     return flatten(seqs)
 
 
-def render_all(p: Params, dest: Path) -> None:
-    """Render every frame into dest/{poses.parquet, meta.json} and the image store (dest/images.zarr,
-    or `engine.store`, which meta.json then names); `dest` is a fresh folder."""
+def render_all(p: Params, dest: Path) -> float:
+    """Render every frame into dest/{poses.parquet, meta.json} and the image store (dest/images.zarr, or
+    `engine.store`'s store for this fingerprint, which meta.json then names); `dest` is a fresh folder.
+    Returns the render time (s): timings go to reports/metrics/render.json, never into meta.json, so the
+    folder's hash is stable."""
     from pipeline.geometry.trajectories import poses_table
 
     r, es, store = p.render, engine_settings(p), p.engine.store
     K, scene = intrinsics(p), scene_settings(r)
     seq, frm, R, t = frames(p)
-    url = store_url(store or dest / "images.zarr")
-    seconds = render_to_store(url, K, scene, R, t, r.chunk, es, "render",
-                              empty_hint="check render.mesh and render.mesh_scale (metres per mesh unit)")
+    fp = params_mod.render_fingerprint(p)
+    url = keyed_store(store, fp) if store else store_url(dest / "images.zarr")
+    with replacing(url) if store else contextlib.nullcontext(url) as target:
+        seconds = render_to_store(target, K, scene, R, t, r.chunk, es, "render", fingerprint=fp,
+                                  empty_hint="check render.mesh and render.mesh_scale (metres per mesh unit)")
     n = len(t)
     write_parquet(poses_table(np.arange(n), seq, frm, R, t), dest / "poses.parquet")
     write_json(dest / "meta.json", {
-        "complete": True, "fingerprint": params_mod.render_fingerprint(p), "frames": n, "width": K.width,
+        "complete": True, "fingerprint": fp, "frames": n, "width": K.width,
         "height": K.height, "K": K.K, "render": dataclasses.asdict(r), "camera": dataclasses.asdict(p.camera),
-        "seed": p.seed, "seconds": seconds, "seconds_per_image": seconds / max(n, 1), "chunk": r.chunk, "workers": es.workers,
-        **({"store": url} if store else {})})
+        "seed": p.seed, "chunk": r.chunk, **({"store": url} if store else {})})
+    return seconds
 
 
 def remove_leftovers(path: Path) -> None:
@@ -104,13 +114,19 @@ def main(params: Params) -> None:
     and PNG previews to reports/figures/previews/. Parameters: `seed`, `camera`, `render` and `engine`
     (workers, Ray cluster address, image store) in params.yaml.
     """
-    if params_mod.given(params.render.source):   # a SPEED/SPEED+ folder instead of rendering
-        speed_io.import_source(params, OUT)
-    else:
-        remove_leftovers(OUT)
-        with atomic_dir(OUT) as tmp:
-            render_all(params, tmp)
+    imported = params_mod.given(params.render.source) is not None   # a SPEED/SPEED+ folder instead of rendering
+    with exclusive(OUT.parent / ".render.lock", str(OUT)):
+        if imported:
+            seconds = speed_io.import_source(params, OUT)
+        else:
+            remove_leftovers(OUT)
+            with atomic_dir(OUT) as tmp:
+                seconds = render_all(params, tmp)
     images, poses, meta = read_render_store(OUT)
     previews = write_previews(images, poses, params.render.previews)
-    typer.echo(f"{OUT}: {meta['frames']} images {meta['width']}x{meta['height']}, "
-               f"{meta['seconds_per_image']:.3f} s/image; previews: {', '.join(str(x) for x in previews)}")
+    n = int(meta["frames"])
+    write_metrics(METRICS, {"frames": n, "seconds": seconds, "seconds_per_image": seconds / max(n, 1),
+                            "workers": None if imported else engine_settings(params).workers,
+                            "imported": imported}, params.profile_name)
+    typer.echo(f"{OUT}: {n} images {meta['width']}x{meta['height']}, {seconds / max(n, 1):.3f} s/image "
+               f"(-> {METRICS}); previews: {', '.join(str(x) for x in previews)}")

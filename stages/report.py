@@ -1,9 +1,10 @@
 """`rpod report`: gather every stage's metrics and reports into reports/README.md, with figures.
 
 Reads reports/metrics/<stage>.json and reports/<stage>.md (written by the stages before it),
-datasets/shap.zarr (for the SHAP heatmaps) and reports/plots/roc/*.csv (ROC curves), and writes:
+datasets/shap.zarr (for the SHAP heatmaps) and dvclive/detect/plots/sklearn/*.json (DVCLive's ROC data),
+and writes:
 
-    reports/metrics/summary.json           the headline numbers, flat (`dvc metrics show`; stages/pages/summary.py)
+    reports/metrics/summary.json           the headline numbers (`dvc metrics show`; stages/pages/summary.py)
     reports/README.md                      the results page: a summary against the paper, figures, then every
                                            stage's report with its profile (no times: those are in the metrics JSON)
     reports/figures/{pose_errors,error_vs_eps}.png   error per range bin (train/test); FGSM error against eps
@@ -25,8 +26,8 @@ import typer
 
 from pipeline.io.atomic import atomic_write_text, read_json, save_figure, write_json
 from stages.artifacts.dvc import make_hint
-from stages.artifacts.paths import BENCHMARKS, PAGE, PARAMS_FILE, README, REPORT_FIGURES, ROC_DIR, SHAP as SHAP_STORE, \
-    SUMMARY, VARIANCE
+from stages.artifacts.paths import BENCHMARKS, PAGE, PARAMS_FILE, README, REPORT_FIGURES, ROC_DATA, \
+    SHAP as SHAP_STORE, SUMMARY, VARIANCE
 from stages.config.params import load
 from stages.config.schema import Params
 from stages.errors import StageError
@@ -124,7 +125,7 @@ def _load_metrics() -> dict[str, dict[str, Any]]:
     missing = [p for p in missing if not p.exists()]
     metrics = {} if missing else {m.stem: read_json(m) for _, _, m in SECTIONS if m}
     if metrics:
-        missing = [p for p in [SHAP_STORE, *(ROC_DIR / f"{d}.csv" for d in metrics["detect"]["detectors"])]
+        missing = [p for p in [SHAP_STORE, *(ROC_DATA / f"{d}.json" for d in metrics["detect"]["detectors"])]
                    if not p.exists()]
     if missing:
         raise StageError("report: missing inputs (`dvc repro` makes them all): "
@@ -174,7 +175,7 @@ def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, s
                 "shap_heatmaps.png"))
     curves = {}
     for name in de["detectors"]:
-        roc = pd.read_csv(ROC_DIR / f"{name}.csv")
+        roc = pd.DataFrame(read_json(ROC_DATA / f"{name}.json")["roc"])   # DVCLive: [{fpr, tpr, threshold}]
         curves[DETECTOR_NAMES.get(name, name)] = (roc["fpr"].to_numpy(), roc["tpr"].to_numpy(),
                                                    float(de["detectors"][name]["all"]["roc_auc"]))
     if curves:

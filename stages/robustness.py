@@ -37,6 +37,7 @@ from stages.config.evaluation import Robustness, attack_name
 from stages.config.schema import Params
 from stages.errors import StageError
 from stages.pages.robustness import robustness_page
+from stages.pages.calibrate import unmet_banner
 
 
 def main(params: Params) -> None:
@@ -91,7 +92,7 @@ def main(params: Params) -> None:
                "worst_harmful_undetected": worst_by_eps(rows), **fused,
                "worst_harmful_undetected_fused": worst_by_eps(fused["fused_rows"])}
     write_metrics(METRICS, metrics, params.profile_name)
-    atomic_write_text(REPORT, robustness_page(metrics, params))
+    atomic_write_text(REPORT, unmet_banner({"unmet": fused["fused"]["calibration_unmet"]}) + robustness_page(metrics, params))
     worst_fused = [row for row in fused["fused_rows"] if row["lambda"] is None]
     save_figure(robustness_vs_eps([row for row in rows if row["attack"] != "adaptive pgd"] + worst_fused), FIGURE)
     save_figure(_integrity_figure(*figure), INTEGRITY_FIGURE)
@@ -138,13 +139,13 @@ def _integrity(p: Params, r: Robustness, chain: Any, target: Any, seed: int, mod
     (raw error > harm_m and unflagged). Returns the metrics and the figure's data."""
     from pipeline.evaluation.integrity_runs import Track, clean_row, fly, integrity_row
     from pipeline.evaluation.stats import bootstrap_rate
-    from stages.config.build import integrity_limit
+    from stages.config.build import alert_limit_settings
     from stages.pages.integrity import worst_hmi
 
     t0 = time.perf_counter()
     images, labels, trajs, bursts, defended, info = _fused_setup(p, r, chain, model_hash)
     tracks = [Track(f"t{g}", images[ix], labels[ix]) for g, ix in enumerate(trajs)]
-    limit, i = integrity_limit(p), p.integrity
+    limit, i = alert_limit_settings(p), p.integrity
     clean = [fly(chain, defended, t, limit, r.batch_size) for t in tracks]
     flags = np.concatenate([c.trace.flag for c in clean])
     alarms = bootstrap_rate(flags, np.concatenate([np.full(len(t), g) for g, t in enumerate(tracks)]))
@@ -178,9 +179,9 @@ def _attack_runs(p: Params, r: Robustness, chain: Any, target: Any, tracks: list
     from tqdm import tqdm
 
     from pipeline.evaluation.integrity_runs import burst_attack, drift_attack, fly
-    from stages.config.build import burst_attacker, drift_settings, integrity_limit
+    from stages.config.build import burst_attacker, drift_settings, alert_limit_settings
 
-    i, limit = p.integrity, integrity_limit(p)
+    i, limit = p.integrity, alert_limit_settings(p)
     eps = sorted(float(e) for e in i.eps)
     drifts = [a for a in i.attackers if a != "burst"]
     bar = tqdm(total=len(tracks) * ("burst" in i.attackers) + bool(drifts) * len(eps) * i.drift_frames,
@@ -240,7 +241,7 @@ def _fused_setup(p: Params, r: Robustness, chain: Any, model_hash: str) -> tuple
     trajs = [np.flatnonzero(poses["trajectory"].to_numpy() == t) for t in np.unique(poses["trajectory"])]
     # the defense that ships: params.defense with the noise model `rpod calibrate` fitted on validation trajectories
     shipped = load_defense(p, model_hash, chain.threshold)
-    defended = Defended(shipped.settings, shipped.motion, shipped.noise)
+    defended = Defended(shipped.settings, shipped.motion, shipped.noise, shipped.alert)
     length = p.integrity.burst_length
     try:
         bursts = [burst_schedule(len(ix), length, r.burst_every) for ix in trajs]
@@ -249,6 +250,6 @@ def _fused_setup(p: Params, r: Robustness, chain: Any, model_hash: str) -> tuple
     info = {"trajectories": len(trajs), "bursts": sum(len(b) for b in bursts), "burst_length": length,
             "burst_every": r.burst_every, "noise_model": defended.noise.as_dict(), "gate": defended.motion.gate,
             "gate_false_alarm": defended.motion.false_alarm, "noise_inflation": shipped.calibration.get("inflation", 1.0),
-            "fusion": defended.settings.fusion,
+            "fusion": defended.settings.fusion, "calibration_unmet": shipped.calibration.get("unmet", []),
             "noise_fitted_on": "validation trajectories (models/defense.json, rpod calibrate)"}
     return images, labels, trajs, bursts, defended, info

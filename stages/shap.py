@@ -1,25 +1,26 @@
 """`rpod shap`: DeepSHAP values of the GAP features for clean and FGSM images -> datasets/shap.zarr.
 
-Composition (params `shap`): `normal` clean images and `per_eps` adversarial images for each eps in
-`shap.eps`. Source images come from the test split (never seen in training); clean ones are drawn
-without replacement from it, and when `normal` exceeds the test split (paper scale: 15,000 vs
-6,500) the rest come from training images outside the background. Each eps draws its `per_eps`
-sources the same way, independently of the clean draw, so an image can appear clean and attacked
-(as in the paper's pool of 32,500 images). An adversarial image is read from the attack stage's
-`datasets/attack/adv.zarr` when that stack holds the eps, was made with FGSM by the current model
-and holds the source image; otherwise it is computed here with the same FGSM (on `attack.loss`)
-and the same uint8 quantisation, so both paths give the same image.
+Composition (params `shap`, pipeline.shap.sample_plan): `normal` clean samples and `per_eps` FGSM
+samples for each eps in `shap.eps`, all from the same source images of the detector split
+(datasets/detect_render, `rpod eval_render --detector`: trajectories of their own seed that the pose
+network never saw). Each source image is explained clean once and attacked at one eps (every profile
+has normal = per_eps x len(eps)), so the clean and the attacked class show the same images and differ
+only by the attack. (Until issue 27 clean samples came from the pose test split topped up with
+pose-training images, 69% of them at the default size, while every attacked one was a test image: an
+unfamiliar image partly read as "attacked".) An adversarial image is FGSM (on `attack.loss`) by the
+current pose model against the image's true pose, stored as 8 bits (as the attack stage stores them).
 
-Background: GAP features of `shap.background` random training images (seed `seed` + 500).
+Background: GAP features of `shap.background` random training images (seed `seed` + 500): one fixed
+reference for every sample, clean or attacked.
 
 Store (zarr, written atomically, chunked by `shap.chunk` samples):
 - `values` (N, 9, 1000) float32: phi[j, i] for output j (tx, ty, tz, r0..r5) and GAP feature i;
 - `features` (N, 1000) float32 GAP features; `outputs` (N, 9) float32 pose outputs;
-- `is_adversarial` (N,) bool, `eps` (N,) float32 (0 = clean), `source_index` (N,) int64 = label
-  `index` of the source image, `split` (N,) int8 (attrs `split_codes`: train 0, test 1),
-  `from_stack` (N,) bool (adversarial image read from adv.zarr rather than computed here);
+- `is_adversarial` (N,) bool, `eps` (N,) float32 (0 = clean), `source_index` (N,) int64 = row of the
+  source image in datasets/detect_render;
 - attrs: model_hash (of models/pose.pt), background_size, background_seed, background_mean
-  (1000 floats), method (exact | deep), eps, attack, attack_loss, counts.
+  (1000 floats), method (exact | deep), eps, attack, attack_loss, counts (clean, per_eps, source
+  images, images explained both clean and attacked), source (the detector split and its fingerprint).
 """
 from __future__ import annotations
 
@@ -31,8 +32,9 @@ import numpy as np
 from pipeline.io.atomic import atomic_dir
 from pipeline.io.store import create_array
 from pipeline.pose.labels import TARGET
-from stages.artifacts.paths import SEED_OFFSET, SHAP as OUT
-from stages.artifacts.readers import BATCH, SPLIT_CODES, SampleImages
+from stages.artifacts.data import load_split
+from stages.artifacts.paths import DETECT_RENDER, SEED_OFFSET, SHAP as OUT
+from stages.artifacts.readers import BATCH, SampleImages
 from stages.artifacts.models import load_pose
 from stages.config.device import torch_setup
 from stages.config.sections import Shap
@@ -56,7 +58,8 @@ def check_params(s: Shap) -> None:
 
 
 def main(params: Params) -> None:
-    """Explain clean and FGSM images with DeepSHAP (closed form for the linear heads) into datasets/shap.zarr."""
+    """Explain clean and FGSM images of the detector split with DeepSHAP (closed form for the linear heads)
+    into datasets/shap.zarr."""
     import zarr
 
     from pipeline.attacks.gradient import attack_loss
@@ -69,8 +72,7 @@ def main(params: Params) -> None:
     rng = np.random.default_rng(seed)
     pose = load_pose(params)
     model, model_hash = pose.model, pose.hash
-    src = SampleImages(params, model, attack_loss(params.attack.loss, pose.loss), model_hash)
-    train = src.splits["train"]
+    train = load_split(params, "train")
     if s.background > len(train):
         raise StageError(f"params.yaml shap.background = {s.background} but the training split has only "
                          f"{len(train)} images")
@@ -82,28 +84,28 @@ def main(params: Params) -> None:
         explainer = Explainer(model, bg_features, s.method)
     except ValueError as e:
         raise StageError(f"params.yaml shap.method: {e}") from None
-    train_index = train.labels["index"].to_numpy(np.int64)
+    src = SampleImages(params, model, attack_loss(params.attack.loss, pose.loss))
     try:
-        todo = sample_plan(s.normal, s.per_eps, s.eps, src.splits["test"].labels["index"].to_numpy(np.int64),
-                           np.setdiff1d(train_index, train_index[bg_rows]), rng)
+        todo = sample_plan(s.normal, s.per_eps, s.eps, np.arange(len(src)), rng)
     except ValueError as e:
-        raise StageError(f"params.yaml shap: {e}; lower shap.normal / shap.per_eps") from None
-    n = len(todo["index"])
-    from_stack = np.array([e > 0 and src.in_stack(sp, int(ix), float(e))
-                           for sp, ix, e in zip(todo["split"], todo["index"], todo["eps"])], dtype=bool)
-    print(f"shap: {n} samples ({s.normal} clean + {s.per_eps} x eps {s.eps}), background "
-          f"{s.background}, method {explainer.method}; {src.stack_note}; "
-          f"{int(from_stack.sum())} adversarial images from adv.zarr, "
-          f"{int(((todo['eps'] > 0) & ~from_stack).sum())} by FGSM here", flush=True)
+        raise StageError(f"{DETECT_RENDER}: {e}; re-run `rpod eval_render --detector`") from None
+    n, clean = len(todo["index"]), todo["eps"] == 0
+    sources = np.unique(todo["index"])
+    shared = np.intersect1d(todo["index"][clean], todo["index"][~clean])
+    print(f"shap: {n} samples ({s.normal} clean + {s.per_eps} x eps {s.eps}) of {len(sources)} detector-split "
+          f"images ({len(shared)} both clean and attacked), background {s.background}, method {explainer.method}",
+          flush=True)
     with atomic_dir(OUT) as tmp:
         root = zarr.open_group(str(tmp), mode="w")
         _explain_into(root, src, model, explainer, todo, bg_features.shape[1], s.chunk)
-        create_array(root, "from_stack", data=from_stack)
         root.attrs.update({
             "model_hash": model_hash, "background_size": s.background, "background_seed": seed,
             "background_mean": explainer.bg_mean.astype(float).tolist(), "method": explainer.method,
             "eps": [float(e) for e in s.eps], "attack": "fgsm", "attack_loss": params.attack.loss,
-            "split_codes": SPLIT_CODES, "counts": {"clean": s.normal, "per_eps": s.per_eps},
+            "counts": {"clean": s.normal, "per_eps": s.per_eps, "sources": int(len(sources)),
+                       "shared": int(len(shared))},
+            "source": {"folder": str(DETECT_RENDER), "images": len(src),
+                       "trajectories": int(src.poses["trajectory"].nunique())},
             "outputs": TARGET,
         })
     print(f"shap: {n} samples in {time.perf_counter() - t0:.0f} s -> {OUT}")
@@ -126,7 +128,7 @@ def _explain_into(root: Any, src: SampleImages, model: Any, explainer: Any, todo
     for start in range(0, n, c):
         sl = slice(start, min(start + c, n))
         f_parts, o_parts = [], []
-        for _, imgs in src.iter_images(todo["split"][sl], todo["index"][sl], todo["eps"][sl]):
+        for _, imgs in src.iter_images(todo["index"][sl], todo["eps"][sl]):
             f, o = gap_features(model, imgs)
             f_parts.append(f)
             o_parts.append(o)
@@ -139,4 +141,3 @@ def _explain_into(root: Any, src: SampleImages, model: Any, explainer: Any, todo
     create_array(root, "is_adversarial", data=todo["eps"] > 0)
     create_array(root, "eps", data=todo["eps"])
     create_array(root, "source_index", data=todo["index"])
-    create_array(root, "split", data=np.array([SPLIT_CODES[x] for x in todo["split"]], dtype=np.int8))

@@ -1,8 +1,15 @@
 """`rpod train`: train the Darknet-19 pose CNN on the labelled renders.
 
-Reads params `seed`, `render.width/height` (the input size) and `train`; writes models/pose.pt (the
-best epoch by validation SPEED score), dvclive/train/ (per-epoch curves for `dvc plots show`),
-reports/pose.md and reports/metrics/train.json.
+Reads params `seed`, `render.width/height` (the input size) and `train` (but `train.adversarial`); writes
+models/pose.pt (the best epoch by validation SPEED score; with `train.ema` the weights' moving average),
+dvclive/train/ (per-epoch curves for `dvc plots show`), reports/pose.md and reports/metrics/train.json.
+
+`rpod train --robust` (dvc stage `robust`): the robust model, models/pose_robust.pt: the same network with
+the black-level clamp (train.adversarial.black_level) in front, fine-tuned from models/pose.pt (or trained
+from the seed) with PGD-k adversarial training (pipeline/pose/adversarial.py) and chosen on clean +
+attacked validation error; then both models are evaluated on test, clean and under FGSM / PGD
+(pipeline/pose/robustness.py), into reports/pose_robust.md, reports/metrics/robust.json and dvclive/robust/.
+Its validation split is the standard model's (same seed), so neither model was fitted on it.
 
 Honest selection: the validation split is `train.val_fraction` of the training frames (whole frames,
 seeded), the network is never fitted on it, and the test split is read only after training, for the
@@ -20,13 +27,14 @@ from typing import Annotated, Any
 
 import typer
 
-from pipeline.io.atomic import atomic_outputs, atomic_write_text
+from pipeline.formats.renders import META
+from pipeline.io.atomic import atomic_outputs, atomic_write_text, file_hash, read_json
 from stages.artifacts.dvc import write_metrics
-from stages.artifacts.paths import POSE, POSE_REPORT as REPORT, SEED_OFFSET, SURROGATE, TRAIN_LIVE, \
-    TRAIN_METRICS as METRICS
+from stages.artifacts.paths import LABELS, POSE, POSE_REPORT as REPORT, POSE_ROBUST, RENDER, ROBUST_LIVE, ROBUST_METRICS, \
+    ROBUST_REPORT, SEED_OFFSET, SURROGATE, TRAIN_LIVE, TRAIN_METRICS as METRICS
 from stages.config.schema import Params
 from stages.errors import StageError
-from stages.pages.pose import pose_page
+from stages.pages.pose import pose_page, robust_page
 
 
 def main(
@@ -34,6 +42,8 @@ def main(
     surrogate: Annotated[bool, typer.Option("--surrogate", help="Train the robustness stage's surrogate instead: "
                                             "seed robustness.surrogate_seed, robustness.surrogate_epochs epochs, "
                                             "writes models/surrogate.pt and no reports.")] = False,
+    robust: Annotated[bool, typer.Option("--robust", help="Train the robust model instead (train.adversarial): "
+                                         "writes models/pose_robust.pt and reports/pose_robust.md.")] = False,
 ) -> None:
     """Train the pose CNN; keep the best checkpoint by validation error; report test errors next to the paper's."""
     import torch
@@ -44,6 +54,8 @@ def main(
     from stages.artifacts import data
     from stages.config.device import distributed
 
+    if robust:
+        return _robust(params, surrogate)
     seed = params.robustness.surrogate_seed if surrogate else params.seed
     rank, world, device = distributed(params)
     model, cfg = _model(params, params.robustness.surrogate_epochs if surrogate else params.train.epochs,
@@ -72,12 +84,17 @@ def main(
         net = _plain(model)
         net.load_state_dict(result.best_state)
         if surrogate:  # the surrogate only: no metrics, reports or curves
-            save_pose(SURROGATE, net, best["loss"], input_size, best["meta"])
+            save_pose(SURROGATE, net, best["loss"], input_size, best["meta"], **_made_from())
             print(f"train --surrogate: seed {seed}, best epoch {result.best_epoch} of {len(result.history)}: "
                   f"validation {best['meta']['val_pos_m']:.3f} m -> {SURROGATE}")
         else:
             _write_results(params, net, best, input_size, result, cfg, device, world,
                            (train_split, train_eval_set), (val_split, val_set))
+    _finish(world)
+
+
+def _finish(world: int) -> None:
+    """Under torchrun, wait for every rank, then end the process group."""
     if world > 1:
         import torch.distributed as dist
 
@@ -93,13 +110,14 @@ def _epoch_logger(rank: int, loss: Any, best: dict[str, Any]) -> Any:
             return
         from tqdm import tqdm
 
+        attacked = "" if stats.val_adv_pos_m != stats.val_adv_pos_m else f"  PGD {stats.val_adv_pos_m:6.2f} m"
         if is_best:
             best.update(loss=copy.deepcopy(loss), meta={"epoch": stats.epoch, "val_score": stats.val_score,
                                                         "val_pos_m": stats.val_pos_m,
-                                                        "val_att_deg": stats.val_att_deg})
+                                                        "val_att_deg": stats.val_att_deg, "score": stats.score})
         tqdm.write(f"epoch {stats.epoch:3d}  loss {stats.loss:7.3f}  train {stats.train_pos_m:6.2f} m "
-                   f"{stats.train_att_deg:5.2f} deg  val {stats.val_pos_m:6.2f} m {stats.val_att_deg:5.2f} deg  "
-                   f"{stats.images_per_s:5.0f} img/s  {stats.seconds:5.1f} s{'  *best' if is_best else ''}")
+                   f"{stats.train_att_deg:5.2f} deg  val {stats.val_pos_m:6.2f} m {stats.val_att_deg:5.2f} deg"
+                   f"{attacked}  {stats.images_per_s:5.0f} img/s  {stats.seconds:5.1f} s{'  *best' if is_best else ''}")
     return on_epoch
 
 
@@ -116,6 +134,101 @@ def _model(params: Params, epochs: int, seed: int) -> tuple[Any, Any]:
         return PoseNet(float(params.train.width), float(params.train.dropout)), cfg
     except ValueError as e:
         raise StageError(f"params.yaml: bad train section ({e})") from None
+
+
+def _robust(params: Params, surrogate: bool) -> None:
+    """`rpod train --robust`: adversarial training of the clamped network, then both models on test."""
+    from pipeline.pose.adversarial import Adversary
+    from pipeline.pose.loss import PoseLoss
+    from pipeline.pose.model import PoseNet
+    from pipeline.pose.train import DivergenceError, fit, make_deterministic
+    from stages.artifacts import data
+    from stages.artifacts.models import load_pose
+    from stages.config.build import adversarial_config, robust_train_config
+    from stages.config.device import distributed
+
+    if surrogate:
+        raise StageError("rpod train: --robust and --surrogate train different models; give one")
+    adv = params.train.adversarial
+    rank, world, device = distributed(params)
+    try:
+        cfg = robust_train_config(params.train, params.seed + SEED_OFFSET["robust"])
+    except ValueError as e:
+        raise StageError(f"params.yaml: bad train.adversarial section ({e})") from None
+    make_deterministic(cfg.seed)
+    model, loss = PoseNet(float(params.train.width), float(params.train.dropout), float(adv.black_level)), PoseLoss("mean")
+    # the standard model's split: its validation frames were never fitted by either model
+    (train_split, train_set, _), (val_split, val_set) = data.training_sets(params, params.seed + SEED_OFFSET["train"])
+    if adv.init == "standard":
+        standard = load_pose(params)
+        model.load_state_dict(standard.model.state_dict())
+        loss.load_state_dict(standard.loss.state_dict())
+    else:
+        model.set_output_bias(train_split.targets[:, :3].mean(0), train_split.targets[:, 3:].mean(0))
+    model.place(device, params.amp)
+    adversary = Adversary(adversarial_config(adv), loss, len(train_set) // (cfg.batch_size * world), cfg.seed)
+    best: dict[str, Any] = {}
+    try:
+        result = fit(model, loss, train_set, val_set, cfg, device, on_epoch=_epoch_logger(rank, loss, best),
+                     adversary=adversary)
+    except DivergenceError as e:
+        raise StageError(f"{e}; lower train.adversarial.lr_max ({POSE_ROBUST} was left as it was)") from None
+    if rank == 0:
+        model.load_state_dict(result.best_state)
+        _write_robust(params, model, best, result, (train_split, val_split, val_set), device)
+    _finish(world)
+
+
+def _write_robust(params: Params, net: Any, best: dict[str, Any], result: Any, splits: tuple[Any, Any, Any],
+                  device: Any) -> None:
+    """Both models on validation and test (clean), and under FGSM / PGD on a seeded sample of test frames
+    (train.adversarial.eval_*); the clamp threshold against the data (training frames); then
+    models/pose_robust.pt, reports/metrics/robust.json, reports/pose_robust.md and dvclive/robust/ together.
+    `splits`: (fit split, validation split, its dataset). The test split is read here, after training."""
+    import numpy as np
+
+    from pipeline.formats.models import save_pose
+    from pipeline.io.atomic import read_json
+    from pipeline.pose.metrics import summarize_errors
+    from pipeline.pose.robustness import attack_table, black_level_stats, sample_rows
+    from pipeline.pose.train import predict
+    from stages.artifacts import data
+    from stages.artifacts.models import load_pose
+    from stages.config.build import adversarial_config
+
+    adv, bins, seed = params.train.adversarial, params.train.range_bins, params.seed + SEED_OFFSET["robust"]
+    train_split, val_split, val_set = splits
+    test_split = data.load_split(params, "test")
+    test_set = data.pose_dataset(test_split)
+    rows = sample_rows(len(test_split), adv.eval_frames, seed)
+    images = np.stack([test_split.images[int(i)] for i in rows])
+    standard = load_pose(params)
+    out: dict[str, Any] = {}
+    for name, model, loss in (("standard", standard.model, standard.loss), ("robust", net, best["loss"])):
+        out[name] = {split: summarize_errors(predict(model, ds, 64, device), s.targets, s.labels["range"].to_numpy(), bins)
+                     for split, ds, s in (("val", val_set, val_split), ("test", test_set, test_split))}
+        out[name]["attacks"] = attack_table(model, loss, images, test_split.targets[rows], adv.eval_eps,
+                                            adv.eval_steps, seed, 64, device)
+    # training cost: minutes (this machine) and gradients (weight-gradient + input-gradient image passes)
+    standard_run, a = read_json(METRICS), adversarial_config(adv)
+    per_epoch = len(train_split) // params.train.batch_size * params.train.batch_size
+    out["standard"].update(train_minutes=standard_run.get("train_minutes"),
+                           gradients=standard_run.get("epochs_run", 0) * per_epoch)
+    out["robust"].update(train_minutes=result.seconds / 60,
+                         gradients=round(len(result.history) * per_epoch * (1 + a.steps * a.fraction)))
+    shift = params.lab.domain_shift
+    metrics = {**out, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
+               "stopped_early": result.stopped_early, "score": result.best_score, "eval_frames": int(len(rows)),
+               "black_level": black_level_stats(train_split.images, float(adv.black_level), float(shift.noise_std),
+                                                float(shift.blur_sigma), seed),
+               "train_images_per_s": result.train_images_per_s, "device": str(device)}
+    with atomic_outputs(POSE_ROBUST, ROBUST_METRICS, ROBUST_REPORT, dirs=(str(ROBUST_LIVE),)) as (pose, path, report, live):
+        save_pose(pose, net, best["loss"], (params.render.height, params.render.width), best["meta"], **_made_from())
+        write_metrics(path, metrics, params.profile_name)
+        atomic_write_text(report, robust_page(metrics, params))
+        _log_curves(live, result.history, params)
+    print(f"train --robust: best epoch {result.best_epoch}: test {out['robust']['test']['pos_mean_m']:.3f} m, "
+          f"{out['robust']['test']['att_mean_deg']:.2f} deg -> {POSE_ROBUST}, {ROBUST_REPORT}, {ROBUST_METRICS}")
 
 
 def _write_results(params: Params, net: Any, best: dict[str, Any], input_size: tuple[int, int], result: Any,
@@ -151,23 +264,37 @@ def _write_results(params: Params, net: Any, best: dict[str, Any], input_size: t
     # model, metrics, report and curves move into place together, only now: a crashed, killed or
     # diverged run leaves the previous run's files as they were
     with atomic_outputs(POSE, METRICS, REPORT, dirs=(str(TRAIN_LIVE),)) as (pose, metrics_path, report, live):
-        save_pose(pose, net, best["loss"], input_size, best["meta"])
+        save_pose(pose, net, best["loss"], input_size, best["meta"], **_made_from())
         write_metrics(metrics_path, metrics, params.profile_name)
         atomic_write_text(report, pose_page(metrics, params, len(train_split), len(val_split), len(test_split),
                                             str(TRAIN_LIVE)))
-        _log_curves(live, result.history)
+        _log_curves(live, result.history, params)
     print(f"train: best epoch {result.best_epoch}: test {summary['test']['pos_mean_m']:.3f} m, "
           f"{summary['test']['att_mean_deg']:.2f} deg -> {POSE}, {REPORT}, {METRICS}")
 
 
-def _log_curves(folder: Any, history: list[Any]) -> None:
-    """Per-epoch curves of a finished run into a DVCLive folder (for `dvc plots show`)."""
+def _made_from() -> dict[str, Any]:
+    """What a pose checkpoint records of its inputs (pipeline.formats.models.save_pose): the training images'
+    camera matrix K (pixels) and the label table's hash (readers refuse a model of other labels)."""
+    return {"K": read_json(RENDER / META)["K"], "labels_hash": file_hash(LABELS)}
+
+
+def _log_curves(folder: Any, history: list[Any], params: Params) -> None:
+    """Per-epoch curves of a finished run and the params it trained with (seed, input size, `train`) into a
+    DVCLive folder (for `dvc plots show`)."""
+    import dataclasses
+    import json
+
     from dvclive import Live
 
     live = Live(dir=str(folder), dvcyaml=False, save_dvc_exp=False, report=None)
+    live.log_params(json.loads(json.dumps({"seed": params.seed, "render": {"width": params.render.width,
+                                                                          "height": params.render.height},
+                                           "train": dataclasses.asdict(params.train)})))
     for stats in history:
+        adversarial = ("val_adv_pos_m", "val_adv_att_deg", "score") if stats.val_adv_pos_m == stats.val_adv_pos_m else ()
         for key in ("loss", "lr", "s_p", "s_r", "train_pos_m", "train_att_deg", "val_pos_m", "val_att_deg",
-                    "val_score", "images_per_s"):
+                    "val_score", "images_per_s", *adversarial):
             live.log_metric(key, getattr(stats, key))
         live.next_step()
     live.end()

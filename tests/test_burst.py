@@ -67,7 +67,7 @@ def test_bursts_of_finds_each_run_of_attacked_frames() -> None:
 
 def test_the_mirror_replays_the_motion_filter(scene) -> None:
     """Started on frame 0 or taken over mid-run, with turning cameras and frames above the soft gate
-    (Huber weights), the mirror's trusted estimate and NIS equal the filter's."""
+    (Huber weights), the mirror's trusted estimate, NIS and CUSUM statistic equal the filter's."""
     model, _, run, _ = scene
     rng = np.random.default_rng(0)
     with torch.no_grad():
@@ -76,16 +76,19 @@ def test_the_mirror_replays_the_motion_filter(scene) -> None:
     pose[6, 3:] = torch.tensor([1.0, 0.2, 0.0, 0.0, 1.0, 0.3], dtype=torch.float64)
     R_cam = np.stack([rotvec_to_matrix(rng.normal(0, 0.3, 3)) for _ in range(N)])
     u = rng.normal(0, 0.05, (N, 3))
-    real, soft = MotionFilter(MOTION, NOISE), MOTION.soft_gate * MOTION.gate
+    quiet = dataclasses.replace(MOTION, cusum_threshold=1e9)   # the mirror follows accepted frames: no alarm
+    real, soft = MotionFilter(quiet, NOISE), MOTION.soft_gate * MOTION.gate
     mirror, nis = FilterMirror(real, 2), []
     for k in range(N):
         t, R6 = pose[k, :3], pose[k, 3:]
-        level, nis_p, nis_a = mirror.step(t.expand(2, 3), sixd_to_matrix_t(R6.expand(2, 6)), R_cam[k], u[k])
+        level, nis_p, nis_a, cusum = mirror.step(t.expand(2, 3), sixd_to_matrix_t(R6.expand(2, 6)), R_cam[k], u[k])
         if k == 0:
             real.start_from(t.numpy(), R_cam[k], sixd_to_matrix(R6.numpy()))
         else:
             check = real.check(t.numpy(), R_cam[k], u[k], sixd_to_matrix(R6.numpy()))
+            real.test_sequence()
             real.accept()
+            assert np.allclose(cusum.numpy(), real.cusum.statistic, rtol=1e-6, atol=1e-9)
             assert np.allclose(nis_p.numpy(), check.nis_position, rtol=1e-6)
             assert np.allclose(nis_a.numpy(), check.nis_attitude, rtol=1e-6, atol=1e-9)
             nis.append((check.nis_position, check.nis_attitude))
@@ -93,6 +96,7 @@ def test_the_mirror_replays_the_motion_filter(scene) -> None:
         if k == 3:
             mirror = FilterMirror(real, 1)   # taken over from a started filter
     assert np.max(nis, axis=0).min() > soft    # both Huber paths were taken
+    assert real.cusum.statistic > 0            # and the CUSUM moved
 
 
 def test_nested_worst_case_is_monotone_in_eps(scene) -> None:
@@ -156,7 +160,8 @@ def test_outcomes_are_what_the_real_defense_sees_on_the_stored_run(scene, mask: 
         error = np.linalg.norm(trace.trusted[lo:hi] - truth, axis=1)
         assert np.allclose(error, burst.trusted_error, atol=1e-6)
         al = 0.001 * np.linalg.norm(truth, axis=1)
-        assert np.array_equal(burst.hmi, ~trace.flag[lo:hi] & (trace.mode[lo:hi] == "track") & (error > al))
+        assert np.array_equal(burst.hmi, ~trace.flag[lo:hi] & (trace.mode[lo:hi] == "track")
+                              & (trace.pl[lo:hi] <= al) & (error > al))
 
 
 def test_restarts_are_seeded(scene) -> None:

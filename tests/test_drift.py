@@ -1,10 +1,14 @@
 """The slow drift (pipeline/attacks/drift.py) and the attacker registry (pipeline/attacks/suite.py).
 
-On a toy filter (no network) the drift is fed directly as the measurement error: it drags the
-trusted estimate (the filter's state) past an alert limit with no frame flagged, while a jump of
-the same final size is flagged. On a tiny random PoseNet the pixel-level attack moves the estimate
+On a toy filter (no network) the drift is fed directly as the measurement error: a drift that keeps
+every innovation under the gate (the drift that walked the old filter, with its free drift-velocity
+state, past the alert limit unflagged) is caught by the sequential test before its error reaches
+the alert limit, and a drift that also keeps under the sequential test stays within the protection
+level; a jump of the same final size is flagged by the gate. On a tiny random PoseNet the pixel-level attack moves the estimate
 toward its target and stays within eps once stored as 8 bits."""
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
@@ -14,7 +18,7 @@ from pipeline.attacks.adaptive import PerFrameChain
 from pipeline.attacks.base import AttackRun
 from pipeline.attacks.drift import DriftAttacker, DriftSettings, drift_estimates, targeted_pgd
 from pipeline.attacks.suite import get_attacker
-from pipeline.defense.fusion import Defense, DefenseSettings, DefenseTrace, run_defense
+from pipeline.defense.fusion import Defense, DefenseSettings, run_defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
@@ -37,37 +41,74 @@ def approach(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     return rel, t_clean, np.repeat(np.eye(3)[None], n, 0), u
 
 
-def defend(t: np.ndarray, R_cam: np.ndarray, u: np.ndarray) -> DefenseTrace:
-    """The defense (detector silent) over the estimates t (N, 3), camera frame (m)."""
-    return run_defense(DefenseSettings(), MOTION, NOISE, t, np.zeros(len(t)), R_cam, u)
+def drifted(direction: str, rate: float, cusum_fraction: float | None, motion: MotionSettings = MOTION, seed: int = 0,
+            alert_limit: float | None = None):
+    """The drift planned on the toy approach (START clean frames, then FRAMES attacked) against a
+    defense with `motion` settings, and that defense (its availability judged against a constant
+    `alert_limit`, m) over what it delivered -> (true rel, clean estimates, the planner's trace, the
+    defense's trace)."""
+    n = START + FRAMES
+    rel, t_clean, R_cam, u = approach(n, seed)
+    attacked = np.arange(n) >= START
+    defense = Defense(DefenseSettings(), motion, NOISE)
+    trace = drift_estimates(defense, DriftSettings(direction, 0.5, rate, cusum_fraction), t_clean, np.zeros(n), R_cam,
+                            u, attacked)
+    assert not defense.filter.started                         # the caller's defense is left alone
+    return rel, t_clean, trace, run_defense(DefenseSettings(), motion, NOISE, trace.delivered, np.zeros(n), R_cam, u,
+                                            alert_limit=None if alert_limit is None else lambda _: alert_limit)
 
 
 @pytest.mark.parametrize("direction", ["los", "lateral"])
 @pytest.mark.parametrize("alert_limit", [3.0, 4.0])
-def test_drift_passes_alert_limit_unflagged_and_a_jump_is_caught(direction: str, alert_limit: float) -> None:
-    n = START + FRAMES
-    rel, t_clean, R_cam, u = approach(n)
-    attacked = np.arange(n) >= START
+def test_a_drift_under_the_gate_is_caught_or_bounded(direction: str, alert_limit: float) -> None:
+    """The drift of issue 26 (every innovation under half the gate, past AL within 100 frames), against
+    a filter whose process noise (5 cm per frame) lets the state follow it: with the sequential test
+    off it walks the trusted estimate past AL unflagged; with it on, no frame is misleading (error >
+    PL) and none is hazardous (available, error > AL): the chain declares itself unavailable (PL >
+    AL) before the error passes AL. With a tighter reference value (c = 0.5) the test flags it, and
+    the same holds."""
+    loose = dataclasses.replace(MOTION, position_noise=0.05)
     rate = 1.25 * alert_limit / FRAMES                       # m/frame: past AL within the 100 frames
-    defense = Defense(DefenseSettings(), MOTION, NOISE)
-    trace = drift_estimates(defense, DriftSettings(direction, 0.5, rate), t_clean, np.zeros(n), R_cam, u, attacked)
-    assert not defense.filter.started                         # the caller's defense is left alone
-    drifted = defend(trace.delivered, R_cam, u)
-    error = np.linalg.norm(drifted.trusted - rel, axis=1)
-    assert not drifted.flag.any()
-    assert np.nanmax(drifted.nis_position) <= MOTION.gate
+    rel, t_clean, _, off = drifted(direction, rate, None, dataclasses.replace(loose, cusum_threshold=1e12))
+    error = np.linalg.norm(off.trusted - rel, axis=1)
+    assert not off.flag.any() and np.nanmax(off.nis_position) <= MOTION.gate
     assert error[:START].max() < alert_limit < error[-1]
-    np.testing.assert_allclose(drifted.trusted, trace.trusted)  # the attacker's simulation is the defense
-    offset = trace.delivered[attacked] - t_clean[attacked]
-    jumped = defend(np.where(attacked[:, None], t_clean + offset[-1], t_clean), R_cam, u)
-    assert jumped.flag[START]                                  # the gate works: the slow walk is what slips by
+    _, _, trace, d = drifted(direction, rate, None, loose, alert_limit=alert_limit)
+    error = np.linalg.norm(d.trusted - rel, axis=1)
+    assert not d.motion_flag.any()                             # the gate still sees nothing
+    assert not (d.available & (error > alert_limit)).any()     # no hazardous frame
+    assert not (error > d.pl).any()                            # no misleading frame
+    _, _, _, tight = drifted(direction, rate, None, dataclasses.replace(loose, cusum_reference=0.5),
+                             alert_limit=alert_limit)
+    error = np.linalg.norm(tight.trusted - rel, axis=1)
+    assert not tight.sequential_flag[:START].any() and tight.sequential_flag[START:].any()
+    assert not (tight.available & (error > alert_limit)).any() and not (error > tight.pl).any()
+    offset = trace.delivered - t_clean
+    jumped = run_defense(DefenseSettings(), loose, NOISE, np.where(np.arange(len(rel))[:, None] >= START,
+                         t_clean + offset[-1], t_clean), np.zeros(len(rel)), np.repeat(np.eye(3)[None], len(rel), 0),
+                         np.vstack([np.zeros(3), np.diff(rel, axis=0)]))
+    assert jumped.flag[START]                                  # the gate catches the same offset as a jump
+
+
+@pytest.mark.parametrize("direction", ["los", "lateral"])
+def test_a_drift_that_keeps_under_both_tests_stays_within_the_protection_level(direction: str) -> None:
+    """The drift that also keeps every CUSUM statistic under half its threshold is never flagged,
+    but it can only keep up the ramp the filter's process noise allows: the trusted error stays
+    within the PL on every frame, far below the 3 m the gate-only drift reached."""
+    rel, _, trace, d = drifted(direction, 0.0375, 0.5, seed=2)
+    error = np.linalg.norm(d.trusted - rel, axis=1)
+    assert not d.flag.any() and d.available[1:].all()
+    assert (error <= d.pl).all() and error.max() < 1.5
+    np.testing.assert_allclose(d.trusted, trace.trusted)       # the attacker's simulation is the defense
+    assert np.abs(trace.bias[-1]) > 0.3                        # it did drift
 
 
 def test_drift_grows_along_its_direction_at_its_rate() -> None:
     n = START + FRAMES
     _, t_clean, R_cam, u = approach(n, seed=1)
     attacked = np.arange(n) >= START
-    trace = drift_estimates(Defense(DefenseSettings(), MOTION, NOISE), DriftSettings("los", 0.5, 0.03),
+    loose = dataclasses.replace(MOTION, position_noise=0.05, cusum_threshold=1e12)     # a state that follows
+    trace = drift_estimates(Defense(DefenseSettings(), loose, NOISE), DriftSettings("los", 0.5, 0.03, None),
                             t_clean, np.zeros(n), R_cam, u, attacked)
     assert (trace.bias[~attacked] == 0).all() and (np.diff(trace.bias[attacked]) <= 0.03 + 1e-9).all()
     offset = trace.delivered - t_clean

@@ -27,8 +27,8 @@ PARAMS = yaml.safe_load((REPO / "params.yaml").read_text())
 class Reads:
     """The params keys (tuples of names) that functions read, given the flags that are set."""
 
-    def __init__(self, flags: frozenset[str] = frozenset()):
-        self.flags, self.keys, self.seen = flags, set[Key](), set()
+    def __init__(self, flags: frozenset[str] = frozenset(), off: frozenset[str] = frozenset()):
+        self.flags, self.off, self.keys, self.seen = flags, off, set[Key](), set()
 
     def function(self, path: Path, name: str, env: dict[str, Key]) -> None:
         if (path, name, tuple(sorted(env.items()))) in self.seen:
@@ -84,8 +84,8 @@ class Reads:
         return True
 
     def _flag(self, test: ast.AST) -> bool | None:
-        if isinstance(test, ast.Name) and test.id in self.flags:
-            return True
+        if isinstance(test, ast.Name) and test.id in self.flags | self.off:
+            return test.id in self.flags
         if isinstance(test, ast.UnaryOp) and isinstance(test.op, ast.Not) and self._flag(test.operand):
             return False
         return None
@@ -126,7 +126,11 @@ def command_reads(stage: str) -> set[Key]:
     """The params keys the stage's command reads (its flags select branches)."""
     cmd = STAGES[stage]["cmd"].split()
     flags = frozenset(a.removeprefix("--") for a in cmd[2:] if a.startswith("--"))
-    reads = Reads(flags)
+    main = parse(REPO / "stages" / f"{cmd[1]}.py")[0]["main"][0]
+    # the command's other boolean flags (parameters defaulting to False) are off
+    off = frozenset(a.arg for a, d in zip(main.args.args[::-1], main.args.defaults[::-1])
+                    if isinstance(d, ast.Constant) and d.value is False) - flags
+    reads = Reads(flags, off)
     reads.function(REPO / "stages" / f"{cmd[1]}.py", "main", {"params": ()})
     return reads.keys
 
@@ -162,12 +166,15 @@ def test_the_surrogate_lists_only_what_it_reads():
 def test_lab_models_lists_only_what_it_and_its_sub_pipeline_read():
     """With lab.retrain, stages/lab_models.py runs render, label, train, shap and detect on a params.yaml
     derived from the main one (all of it: the derivation reads the whole params there): what they list is
-    read too, so the whole `train` section (train.epochs included) stays a dep."""
+    read too, so the train stage's keys (train.epochs included) stay deps; train.adversarial (the robust
+    stage's, which the sub-pipeline does not run) is not listed."""
     from stages.lab_models import STEPS
 
     assert () in command_reads("lab_models")
     sub_pipeline = {k for step in STEPS for k in listed(step)}
-    assert ("train",) in sub_pipeline and not unread("lab_models", command_reads("lab_models") | sub_pipeline)
+    assert ("train", "epochs") in sub_pipeline and not unread("lab_models", command_reads("lab_models") | sub_pipeline)
+    assert listed("lab_models") >= {k for k in listed("train") if k[0] == "train"}
+    assert not any(k[:2] == ("train", "adversarial") or k == ("train",) for k in listed("lab_models"))
 
 
 @pytest.mark.parametrize("stage", sorted(set(STAGES) - {"lab_models"}))

@@ -1,4 +1,4 @@
-"""DVC conventions and standalone help: `dvc metrics show` prints a small flat summary, plots carry
+"""DVC conventions and standalone help: `dvc metrics show` prints one row of readable names, plots carry
 titles and axis units with no duplicates, every stage's --help lists the params dvc.yaml gives it
 (with conf/config.yaml's comments), and a missing input names the stage that writes it."""
 from __future__ import annotations
@@ -29,14 +29,20 @@ def _committed_metrics() -> dict[str, dict]:
 
 
 # ----------------------------------------------------------------------------- metrics
-def test_summary_is_flat_short_and_has_every_headline():
-    from stages.pages.summary import HEADLINES, summary
+UNITS = ("_m", "_deg", "_pct")   # every headline name ends in its unit
 
-    s = summary(_committed_metrics())
-    assert list(s) == [h.key for h in HEADLINES]
-    assert all(isinstance(v, float) and len(k) <= 8 for k, v in s.items())
-    assert 0 < s["pos_m"] < 50 and all(0 <= s[k] <= 100 for k in ("lstm", "chain", "held", "hmi01", "hmi05", "avail",
-                                                                   "collide"))
+
+def test_summary_is_grouped_readable_and_has_every_headline():
+    from stages.pages.summary import HEADLINES, headline_values, summary
+
+    values = headline_values(_committed_metrics())
+    assert list(values) == [h.key for h in HEADLINES]
+    for key, value in values.items():
+        group, name = key.split(".")
+        assert isinstance(value, float) and name.endswith(UNITS) and len(key) <= 40, key
+        assert summary(_committed_metrics())[group][name] == value
+    assert 0 < values["pose.test_position_m"] < 50
+    assert all(0 <= v <= 100 for k, v in values.items() if k.endswith("_pct"))
 
 
 def test_summary_leaves_out_a_stage_that_did_not_run():
@@ -45,7 +51,7 @@ def test_summary_leaves_out_a_stage_that_did_not_run():
     metrics = _committed_metrics()
     del metrics["robustness"]
     s = summary(metrics)
-    assert "hmi01" not in s and "pos_m" in s
+    assert "robustness" not in s and "integrity" not in s and "test_position_m" in s["pose"]
 
 
 def test_only_the_summary_is_a_dvc_metric_and_details_stay_outputs():
@@ -70,33 +76,68 @@ def test_every_output_path_is_an_out_of_the_stage_that_writes_it():
 
 
 @pytest.mark.skipif(not DVC.exists(), reason="dvc not installed beside python")
-def test_dvc_metrics_show_fits_in_120_columns(tmp_path):
+def test_dvc_metrics_show_prints_one_row_of_readable_names(tmp_path):
+    """One header and one row; every column is `<group>.<what>_<unit>` (DVC joins the nested keys with dots)."""
     from pipeline.io.atomic import write_json
-    from stages.pages.summary import summary
+    from stages.pages.summary import HEADLINES, summary
 
     for name in ("dvc.yaml", "params.yaml"):   # dvc.yaml templates external-input deps from params.yaml
         shutil.copy(REPO / name, tmp_path / name)
     write_json(tmp_path / "reports" / "metrics" / "summary.json", summary(_committed_metrics()))
     subprocess.run([str(DVC), "init", "--no-scm", "-q"], cwd=tmp_path, check=True)
     out = subprocess.run([str(DVC), "metrics", "show"], cwd=tmp_path, check=True, capture_output=True, text=True)
-    lines = out.stdout.splitlines()
-    assert len(lines) == 2 and "pos_m" in lines[0] and max(map(len, lines)) <= 120, out.stdout
+    header, row = out.stdout.splitlines()
+    assert header.split() == ["Path", *sorted(h.key for h in HEADLINES)], header
+    assert row.split()[0] == "reports/metrics/summary.json" and len(row.split()) == 1 + len(HEADLINES)
 
 
 # ----------------------------------------------------------------------------- plots
 def test_plots_have_titles_axis_units_and_no_duplicates():
     assert not [s for s, st in DVC_YAML["stages"].items() if "plots" in st], "stage-level plots draw curves twice"
-    curves = []
+    curves, images = [], []
     for entry in DVC_YAML["plots"]:
+        if isinstance(entry, str):            # an image plot: a PNG figure or a folder of them
+            images.append(entry)
+            continue
         (name, plot), = entry.items()
         assert plot.get("title") and plot.get("x_label") and plot.get("y_label"), name
         assert "(" in plot["y_label"] and "(" in plot["x_label"], f"{name}: axis names give units"
         curves += [(path, field) for path, field in plot["y"].items()]
-    assert len(curves) == len(set(curves))
-    for path, _ in curves:
+    assert len(curves) == len(set(curves)) and len(images) == len(set(images))
+    for path in [p for p, _ in curves] + images:
         assert producer(path) is not None, f"{path} is no stage's output"
         assert subprocess.run(["git", "check-ignore", "-q", path], cwd=REPO).returncode == 1, f"{path} is ignored"
     assert subprocess.run(["git", "check-ignore", "-q", "dvc_plots/index.html"], cwd=REPO).returncode == 0
+
+
+def test_every_figure_is_an_image_plot():
+    from stages.artifacts.paths import WRITTEN_BY
+
+    figures = {str(p) for p in WRITTEN_BY if p.suffix == ".png" or p.name == "previews"}
+    assert figures == {e for e in DVC_YAML["plots"] if isinstance(e, str)}
+
+
+def test_the_roc_curves_are_dvclive_sklearn_plots_of_every_detector():
+    """The ROC plot reads what `Live.log_sklearn_plot("roc", ...)` writes for the LSTM and each baseline."""
+    from stages.artifacts.paths import ROC_DATA
+
+    (roc,) = [e["roc"] for e in DVC_YAML["plots"] if isinstance(e, dict) and "roc" in e]
+    detectors = ["lstm", *yaml.safe_load((REPO / "params.yaml").read_text())["detect"]["baselines"]]
+    assert roc["y"] == {str(ROC_DATA / f"{d}.json"): "tpr" for d in detectors} and roc["x"] == "fpr"
+
+
+@pytest.mark.skipif(not DVC.exists(), reason="dvc not installed beside python")
+def test_the_models_are_dvc_model_artifacts():
+    """dvc.yaml's `artifacts` (what DVCLive's log_artifact(type="model") writes) name every model a stage makes."""
+    from dvc.repo import Repo
+
+    from stages.artifacts.paths import DEFENSE, DETECTOR, POSE
+
+    with Repo(str(REPO)) as repo:
+        found = {name: (a.path, a.type) for a in repo.artifacts.read().values() for name, a in a.items()}
+    assert found == {"pose": (str(POSE), "model"), "detector": (str(DETECTOR), "model"),
+                     "defense": (str(DEFENSE), "model")}
+    assert all(producer(path) for path, _ in found.values())
 
 
 # ----------------------------------------------------------------------------- help
@@ -175,19 +216,23 @@ def test_missing_input_names_the_stage_that_writes_it(tmp_path, monkeypatch, loa
 def test_report_refuses_a_missing_figure_input(tmp_path, monkeypatch):
     """Every metrics file and stage report present but no SHAP store: no page, and the message says
     which stage makes it (before, the SHAP figure was silently left out)."""
-    for sub in ("reports/metrics", "reports/plots"):
-        shutil.copytree(REPO / sub, tmp_path / sub)
+    from stages.artifacts.paths import ROC_DATA
+
+    shutil.copytree(REPO / "reports/metrics", tmp_path / "reports/metrics")
+    for name in _committed_metrics()["detect"]["detectors"]:      # DVCLive's ROC data, as `rpod detect` writes it
+        (tmp_path / ROC_DATA).mkdir(parents=True, exist_ok=True)
+        (tmp_path / ROC_DATA / f"{name}.json").write_text('{"roc": [{"fpr": 0, "tpr": 0, "threshold": 1}]}')
     for md in (REPO / "reports").glob("*.md"):
         shutil.copy(md, tmp_path / "reports" / md.name)
     (tmp_path / "reports" / "README.md").unlink()
     (tmp_path / "reports" / "metrics" / "summary.json").unlink()   # committed, written by `rpod report`
-    (tmp_path / "reports" / "plots" / "roc" / "lid.csv").unlink()
+    (tmp_path / "dvclive" / "detect" / "plots" / "sklearn" / "lid.json").unlink()
     shutil.copy(REPO / "params.yaml", tmp_path / "params.yaml")
     monkeypatch.chdir(tmp_path)
     result = CliRunner().invoke(app, ["report"])
     assert result.exit_code != 0 and isinstance(result.exception, StageError)
     message = str(result.exception)
     assert "datasets/shap.zarr: run `dvc repro shap`" in message
-    assert "reports/plots/roc/lid.csv: run `dvc repro detect`" in message
+    assert "dvclive/detect/plots/sklearn/lid.json: run `dvc repro detect`" in message
     assert not (tmp_path / "reports" / "README.md").exists()
     assert not (tmp_path / "reports" / "metrics" / "summary.json").exists()

@@ -116,7 +116,8 @@ def test_store_elsewhere_is_named_in_meta_and_read_back(workdir):
 
     render.main(load())
     meta = json.loads((workdir / RENDER / "meta.json").read_text())
-    assert meta["store"] == str(store) and not (workdir / RENDER / "images.zarr").exists()
+    assert meta["store"] == f"{store}/render-{meta['fingerprint']}.zarr"          # one store per render there
+    assert not (workdir / RENDER / "images.zarr").exists()
     images, poses, _ = read_render_store(RENDER)
     assert images.shape[0] == len(poses) == 26 and np.asarray(images[:]).max() > 0
 

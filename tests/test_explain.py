@@ -133,21 +133,3 @@ def test_real_posenet_head_is_read_as_affine_and_matches_shap():
     closed = explainer(x)
     assert np.abs(closed).max() > 1e-3
     assert np.abs(closed - deep_shap(model, x, background)).max() < 1e-5
-
-
-def test_shap_stage_composition_fills_from_training_images():
-    from pipeline.shap import sample_plan
-
-    test_index, train_pool = np.arange(100, 110), np.arange(0, 50)
-    todo = sample_plan(12, 4, [0.5, 0.01], test_index, train_pool, np.random.default_rng(0))
-    assert len(todo["index"]) == 12 + 2 * 4
-    clean = todo["eps"] == 0
-    assert clean.sum() == 12 and (todo["eps"] == np.float32(0.01)).sum() == 4
-    # all 10 test images first, then 2 training images; per eps only test images
-    assert (todo["split"][clean] == "test").sum() == 10 and set(todo["index"][clean][10:]) <= set(train_pool)
-    assert (todo["split"][~clean] == "test").all()
-    assert len(set(todo["index"][clean])) == 12  # without replacement
-    again = sample_plan(12, 4, [0.5, 0.01], test_index, train_pool, np.random.default_rng(0))
-    assert np.array_equal(todo["index"], again["index"])
-    with pytest.raises(ValueError, match="100 images asked for but only 10 test and 50 spare training images"):
-        sample_plan(100, 1, [0.5], test_index, train_pool, np.random.default_rng(0))

@@ -51,15 +51,16 @@ def test_an_in_loop_start_range_off_the_approach_is_one_line():
 
 def test_the_builders_follow_the_params():
     from pipeline.evaluation.integrity import alert_limit
-    from stages.config.build import burst_attacker, drift_settings, in_loop_settings, integrity_limit
+    from stages.config.build import alert_limit_settings, burst_attacker, drift_settings, in_loop_settings
     from stages.config.schema import build
 
     p = build(params_mod.compose("default"))
     attacker = burst_attacker(p, seed=7)
     assert (attacker.steps, attacker.restarts, attacker.lambdas, attacker.cap, attacker.seed) == (50, 3, (0.0, 10.0),
                                                                                                   2.0, 7)
-    assert float(attacker.alert_limit(60.0)) == float(alert_limit(60.0, integrity_limit(p))) == 11.0
+    assert float(attacker.alert_limit(60.0)) == float(alert_limit(60.0, alert_limit_settings(p))) == 11.0
     fixed = dataclasses.replace(p, integrity=dataclasses.replace(p.integrity, alert_limit_m=2.5))
-    assert integrity_limit(fixed) == 2.5 and burst_attacker(fixed, 0).alert_limit == 2.5
+    assert alert_limit_settings(fixed).fixed == 2.5 and float(burst_attacker(fixed, 0).alert_limit(30.0)) == 2.5
+    assert float(alert_limit(60.0, alert_limit_settings(fixed))) == 2.5   # the defense's AL too (PL > AL: unavailable)
     assert drift_settings(p, "lateral").direction == "lateral" and drift_settings(p, "los").gate_fraction == 0.5
     assert in_loop_settings(p, "miss").goal == "miss" and in_loop_settings(p, "collide").steps == 10

@@ -17,9 +17,8 @@ from pipeline.defense.chain import OnboardChain
 from pipeline.defense.fusion import DefenseSettings
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel
-from pipeline.evaluation.integrity import AlertLimitSettings
-from pipeline.evaluation.integrity_runs import (Track, burst_attack, clean_row, counted, drift_attack, fly,
-                                                integrity_frames, integrity_row)
+from pipeline.evaluation.integrity import AlertLimitSettings, defense_frames
+from pipeline.evaluation.integrity_runs import Track, burst_attack, clean_row, counted, drift_attack, fly, integrity_row
 from pipeline.evaluation.robustness import Defended
 from test_burst import scene  # noqa: F401  (its tiny PoseNet and LSTM)
 
@@ -88,13 +87,13 @@ def test_the_batched_drift_changes_only_its_window_within_eps(runs) -> None:
 def test_a_fixed_alert_limit_and_a_protection_level_reach_the_records() -> None:
     n = 4
     truth = np.tile([0.0, 0.0, 30.0], (n, 1))
-    trace = SimpleNamespace(trusted=truth + [[0, 0, 2.0]], mode=np.array(["track"] * n))
-    derived = integrity_frames(trace, truth, "a", AlertLimitSettings())
+    trace = SimpleNamespace(trusted=truth + [[0, 0, 2.0]], mode=np.array(["track"] * n), pl=None)
+    derived = defense_frames(trace, truth, "a", AlertLimitSettings())
     assert derived.pl is None and np.allclose(derived.alert, 11.0) and not derived.hmi.any()
-    fixed = integrity_frames(trace, truth, "a", 1.5)
+    fixed = defense_frames(trace, truth, "a", AlertLimitSettings(fixed=1.5))
     assert np.allclose(fixed.alert, 1.5) and fixed.hmi.all()
     trace.pl = np.array([1.0, 3.0, np.nan, 20.0])
-    with_pl = integrity_frames(trace, truth, "a", AlertLimitSettings())
+    with_pl = defense_frames(trace, truth, "a", AlertLimitSettings())
     assert with_pl.mi.tolist() == [True, False, False, False]
     assert with_pl.available.tolist() == [True, True, False, False]   # PL > AL or no PL: not available
 

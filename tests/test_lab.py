@@ -303,7 +303,8 @@ def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, mo
     assert det["pose_model_hash"] == lab["model_hash"]
     s = lab["synthetic_lab"]
     assert s["images"] == 13 * 3 and s["size"] == [64, 36] and s["mesh"] is None and s["mesh_scale"] == 1.0
-    assert s["seed"] == p["lab"]["seed"] + 700 and set(s["seconds"]) == {"render", "label", "train", "shap", "detect"}
+    assert s["seed"] == p["lab"]["seed"] + 700 and set(s["seconds"]) == {"render", "label", "train", "detect_render", "shap",
+                                                                       "detect"}
     sub_p = params_mod.load(sub / "params.yaml")            # the same recipe; only the data differ
     assert sub_p.train == build(p).train and sub_p.detect.baselines == []
     assert sub_p.render.frames_per_sequence == 3 and sub_p.render.width == 64
@@ -363,8 +364,8 @@ def test_a_failing_retrain_step_is_one_clear_error(tmp_path, monkeypatch):
     from stages.config import params as params_mod
     from stages.errors import StageError
 
-    def run_step(name: str, folder: Path) -> None:
-        assert name == "render" and (folder / "params.yaml").exists()   # the step runs in the synthetic-lab folder
+    def run_step(args: list[str], folder: Path) -> None:
+        assert args == ["render"] and (folder / "params.yaml").exists()   # the step runs in the synthetic-lab folder
         raise StageError("params.yaml render: boom")
 
     monkeypatch.chdir(tmp_path)

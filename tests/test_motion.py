@@ -15,17 +15,16 @@ NOISE = NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02)
 
 
 def simulate(settings: MotionSettings, n: int, seed: int, start_xy=(20.0, -15.0)):
-    """Clean motion that follows the filter's model exactly: the planned projectile approach plus a
-    random-walk drift and displacement noise of the configured sizes; estimates with the noise
-    model's errors along the camera axes. -> (rel (n, 3), t_pred, R_cam, u, R_pred)."""
+    """Clean motion that follows the filter's model exactly: the planned projectile approach's
+    commands executed with an error of the configured size; estimates with the noise model's errors
+    along the camera axes. -> (rel (n, 3), t_pred, R_cam, u, R_pred)."""
     rng = np.random.default_rng(seed)
     plan = projectile_trajectory(n, start_xy, seed=seed).rel
     u = np.vstack([np.zeros(3), np.diff(plan, axis=0)])
     rel = np.zeros((n, 3))
-    rel[0], v = plan[0], np.zeros(3)
+    rel[0] = plan[0]
     for k in range(1, n):
-        rel[k] = rel[k - 1] + v + u[k] + rng.normal(0, settings.position_noise, 3)
-        v = v + rng.normal(0, settings.velocity_noise, 3)
+        rel[k] = rel[k - 1] + u[k] + rng.normal(0, settings.position_noise, 3)
     R_cam = look_at(rel) @ Rotation.from_rotvec(rng.normal(0, np.radians(1.0), (n, 3))).as_matrix()
     t = np.einsum("nji,nj->ni", R_cam, rel)
     t_pred = t + rng.normal(0, 1, (n, 3)) * np.array([NOISE.position_std(r) for r in np.linalg.norm(t, axis=1)])
@@ -126,7 +125,9 @@ def test_fit_noise_recovers_a_linear_noise_model():
 
 @pytest.mark.parametrize("changes, message", [
     ({"position_noise": 0.0}, "defense.position_noise must be a finite number > 0"),
-    ({"velocity_noise": -1.0}, "defense.velocity_noise must be a finite number > 0"),
+    ({"cusum_threshold": -1.0}, "defense.cusum_threshold must be a finite number > 0"),
+    ({"cusum_reference": float("nan")}, "defense.cusum_reference must be a finite number >= 0"),
+    ({"integrity_risk": 1.0}, r"defense.integrity_risk must be a probability in \(0, 1\)"),
     ({"attitude_noise_deg": float("nan")}, "defense.attitude_noise_deg must be a finite number > 0"),
     ({"attitude_rate_noise_deg": 0}, "defense.attitude_rate_noise_deg must be a finite number > 0"),
     ({"false_alarm": 0.0}, r"defense.false_alarm is a gate probability and must be in \(0, 1\)"),
@@ -153,7 +154,7 @@ def test_a_nan_estimate_is_flagged_and_the_filter_coasts():
     f, _ = run(s, t_pred[:30], R_cam, u)
     before = f.position
     c = f.check(np.array([np.nan, 0.0, 20.0]), R_cam[30], u[30])
-    assert c.inconsistent and np.allclose(c.predicted, before + u[30] + f.pos.x[3:], atol=1e-9)
+    assert c.inconsistent and np.allclose(c.predicted, before + u[30], atol=1e-9)
     f.coast()
 
 
@@ -183,12 +184,12 @@ def test_inflate_scales_every_std_and_keeps_the_bias():
         inflate(n, 0.0)
 
 
-def test_smallest_inflation_meets_the_target_or_says_it_cannot():
-    from pipeline.defense.noise import smallest_inflation
+def test_first_meeting_meets_the_target_or_says_it_cannot():
+    from pipeline.defense.calibration import first_meeting
 
-    k, rates = smallest_inflation(lambda k: 0.05 / k, target=0.02, grid=(1.0, 2.0, 3.0, 4.0))
+    k, rates = first_meeting(lambda k: 0.05 / k, target=0.02, grid=(1.0, 2.0, 3.0, 4.0))
     assert k == 3.0 and list(rates) == [1.0, 2.0, 3.0]          # stops at the first factor that meets it
-    k, rates = smallest_inflation(lambda k: 0.5, target=0.02, grid=(1.0, 2.0))
+    k, rates = first_meeting(lambda k: 0.5, target=0.02, grid=(1.0, 2.0))
     assert k == 2.0 and rates == {1.0: 0.5, 2.0: 0.5}            # none meets it: the largest, with every rate
 
 
@@ -198,31 +199,35 @@ def _spd(rng, scale):
 
 
 def test_float_filters_follow_the_matrix_equations():
-    """The per-frame filters (plain floats on 3x3 blocks, scalar attitude filters) against the
-    Kalman equations written on 6x6 numpy matrices: predict, then the Joseph-form update."""
-    from pipeline.defense.kalman import _IsoKalman6, _Kalman6
+    """The per-frame filters (plain floats on 3x3 lists, scalar attitude filters) against the Kalman
+    equations written on numpy matrices: predict, then the Joseph-form update. The position filter's
+    state is rel alone (F = I, moved by the command u); the attitude's is [level, rate]."""
+    from pipeline.defense.linear import IsoKalman6, Kalman3
 
     rng = np.random.default_rng(4)
-    F = np.eye(6)
-    F[:3, 3:] = np.eye(3)
-    H = np.hstack([np.eye(3), np.zeros((3, 3))])
     for iso in (False, True):
-        q = np.array([0.05] * 3 + [0.01] * 3) ** 2
-        kf = _IsoKalman6(0.05, 0.01) if iso else _Kalman6(0.05, 0.01)
+        d = 6 if iso else 3
+        F, H = np.eye(d), np.hstack([np.eye(3), np.zeros((3, d - 3))])
+        F[:3, 3:] = np.eye(3) if iso else F[:3, 3:]
+        q = np.array([0.05] * 3 + [0.01] * 3)[:d] ** 2
+        kf = IsoKalman6(0.05, 0.01) if iso else Kalman3(0.05)
         cov = np.eye(3) * 0.3 if iso else _spd(rng, 0.5)
-        x, P = np.r_[rng.normal(0, 5, 3) * (not iso), np.zeros(3)], np.zeros((6, 6))
-        P[:3, :3], P[3:, 3:] = cov, np.eye(3) * 0.03 ** 2
-        kf.reset(0.3, 0.03) if iso else kf.reset(x[:3].tolist(), cov.tolist(), 0.03)
+        x, P = np.r_[rng.normal(0, 5, 3) * (not iso), np.zeros(d - 3)], np.zeros((d, d))
+        P[:3, :3] = cov
+        P[3:, 3:] = np.eye(d - 3) * 0.03 ** 2
+        kf.reset(0.3, 0.03) if iso else kf.reset(x.tolist(), cov.tolist())
         for _ in range(6):
             u = np.zeros(3) if iso else rng.normal(0, 0.1, 3)
-            x, P = F @ x + np.r_[u, np.zeros(3)], F @ P @ F.T + np.diag(q)
+            x, P = F @ x + np.r_[u, np.zeros(d - 3)], F @ P @ F.T + np.diag(q)
             kf.predict() if iso else kf.predict(u.tolist())
             R = np.eye(3) * rng.uniform(0.01, 0.2) if iso else _spd(rng, 0.2)
             y = rng.normal(0, 0.3, 3)
             K = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
-            M = np.eye(6) - K @ H
+            M = np.eye(d) - K @ H
             x, P = x + K @ y, M @ P @ M.T + K @ R @ K.T
-            kf.update(y.tolist(), R[0, 0]) if iso else kf.update(y.tolist(), R.tolist())
+            gain = kf.update(y.tolist(), R[0, 0]) if iso else kf.update(y.tolist(), R.tolist())
+            if not iso:
+                np.testing.assert_allclose(gain, K, rtol=1e-10, atol=1e-12)
             np.testing.assert_allclose(kf.x, x, rtol=1e-10, atol=1e-12)
             np.testing.assert_allclose(kf.P, P, rtol=1e-10, atol=1e-12)
 

@@ -11,14 +11,16 @@ import pytest
 import torch
 from PIL import Image
 
+from pipeline.geometry.camera import reference_intrinsics
 from rpodguard import load_chain
 
 H, W = 36, 64   # model input of the tiny checkpoint
+CAMERA = reference_intrinsics().scaled(W, H)
 
 
-@pytest.fixture(scope="module")
-def models(tmp_path_factory) -> Path:
-    """models/pose.pt and models/detector.pt as `rpod train` and `rpod detect` write them (random weights)."""
+def _save_models(folder: Path, K: np.ndarray | None = None) -> Path:
+    """FOLDER/pose.pt and FOLDER/detector.pt as `rpod train` and `rpod detect` write them (random weights; `K`:
+    the camera matrix `rpod train` stores, None for a checkpoint from before it did)."""
     from pipeline.detectors.lstm import LSTMConfig, LSTMDetector, to_checkpoint
     from pipeline.pose.loss import PoseLoss
     from pipeline.pose.model import PoseNet
@@ -27,9 +29,8 @@ def models(tmp_path_factory) -> Path:
     from pipeline.io.checkpoints import save_torch
 
     torch.manual_seed(0)
-    folder = tmp_path_factory.mktemp("run") / "models"
     model = PoseNet(width=0.125).eval()
-    save_pose(folder / "pose.pt", model, PoseLoss(), (H, W), {})
+    save_pose(folder / "pose.pt", model, PoseLoss(), (H, W), {}, K=K)
     with torch.no_grad():
         background = model.forward_features(torch.rand(6, 3, H, W)).mean(0)
     det = LSTMDetector(LSTMConfig(hidden=8, dense=[4])).eval()
@@ -37,6 +38,18 @@ def models(tmp_path_factory) -> Path:
     save_torch(folder / "detector.pt", to_checkpoint(det, {"format": DETECTOR_FORMAT, "background_mean": background,
                                                            "pose_model_hash": file_hash(folder / "pose.pt")}))
     return folder
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory) -> Path:
+    """A run's models/ without a camera matrix in pose.pt (written before it was stored)."""
+    return _save_models(tmp_path_factory.mktemp("run") / "models")
+
+
+@pytest.fixture(scope="module")
+def camera_models(tmp_path_factory) -> Path:
+    """A run's models/ whose pose.pt records its camera (`CAMERA`: the paper's printed K at the input size)."""
+    return _save_models(tmp_path_factory.mktemp("run") / "models", CAMERA.K)
 
 
 def _images(n: int, h: int = H, w: int = W, seed: int = 0) -> np.ndarray:
@@ -161,3 +174,133 @@ def test_image_paths_are_checked_before_the_models_load(tmp_path, monkeypatch, c
     monkeypatch.setattr(rpodguard, "load_chain", lambda *a: pytest.fail("models loaded before the paths were checked"))
     code, out, err = _rpod(monkeypatch, capsys, "predict", str(tmp_path / "typo.png"), "--models", str(tmp_path))
     assert code == 1 and out == "" and err == f"error: {tmp_path / 'typo.png'} not found\n"
+
+
+def test_the_model_camera_is_read_and_another_camera_warns(camera_models):
+    chain = load_chain(camera_models)
+    assert chain.camera == CAMERA
+    image = _images(1, 2 * H, 2 * W)[0]                  # the same camera at twice the resolution: no warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        chain.predict(image, camera=CAMERA.scaled(2 * W, 2 * H).K)
+        chain.predict(image, camera={"Nu": 2 * W, "Nv": 2 * H, "cameraMatrix": CAMERA.scaled(2 * W, 2 * H).K.tolist()})
+    wide = CAMERA.K * [[0.5], [0.5], [1]] + [[0, 0, 0.5 * CAMERA.cx], [0, 0, 0.5 * CAMERA.cy], [0, 0, 0]]
+    with pytest.warns(UserWarning, match=r"array\[0\]: its camera \(fx 42\.7.* ranges come out about 2\.00 times"):
+        chain.predict(_images(1)[0], camera=wide)          # half the focal length: twice the field of view
+    with pytest.warns(UserWarning, match=r"array\[0\] is 64x36 but its camera is given at 128x72"):
+        chain.predict(_images(1)[0], camera={"Nu": 2 * W, "Nv": 2 * H,
+                                             "cameraMatrix": CAMERA.scaled(2 * W, 2 * H).K.tolist()})
+
+
+def test_an_older_checkpoint_without_k_loads_and_says_it_cannot_check(models):
+    chain = load_chain(models)
+    assert chain.camera is None and len(chain.predict(_images(1))) == 1
+    with pytest.warns(UserWarning, match="records no camera matrix") as caught:
+        chain.predict(_images(3), camera=CAMERA.K)
+    assert len(caught) == 1                               # once per call, not per image
+
+
+def test_the_bundled_weights_know_their_camera_from_the_manifest():
+    """The bundle's pose.pt predates the stored K: its manifest's params give the synthetic camera."""
+    from pipeline.geometry.camera import Intrinsics
+    from pipeline.io.atomic import read_json
+    from rpodguard.api import BUNDLE
+    from rpodguard.camera import model_camera
+
+    manifest = read_json(BUNDLE / "manifest.json")
+    c, r = manifest["params"]["camera"], manifest["params"]["render"]
+    got = model_camera({"input_size": [r["height"], r["width"]]}, manifest, BUNDLE / "pose.pt")
+    assert got == Intrinsics(c["ref_width"], c["ref_height"], c["fx"], c["fy"], c["cx"], c["cy"]).scaled(
+        r["width"], r["height"])
+    imported = {**manifest, "params": {**manifest["params"], "render": {**r, "source": "/data/speedplus"}}}
+    assert model_camera({"input_size": [r["height"], r["width"]]}, imported, BUNDLE / "pose.pt") is None
+
+
+def test_cli_camera_mismatch_warns_and_a_bad_camera_file_stops_first(camera_models, tmp_path, monkeypatch, capsys):
+    image = _png(tmp_path / "a.png", _images(1)[0])
+    other = tmp_path / "camera.json"
+    other.write_text(json.dumps({"Nu": W, "Nv": H, "cameraMatrix": (CAMERA.K * [[2], [1], [1]]).tolist()}))
+    code, out, err = _rpod(monkeypatch, capsys, "predict", str(image), "--camera", str(other), "--models",
+                           str(camera_models))
+    assert code == 0 and "a.png" in out and err.count("\n") == 1 and "ranges come out about 0.50 times" in err
+    same = tmp_path / "same.json"
+    same.write_text(json.dumps({"Nu": W, "Nv": H, "cameraMatrix": CAMERA.K.tolist()}))
+    code, _, err = _rpod(monkeypatch, capsys, "predict", str(image), "--camera", str(same), "--models",
+                         str(camera_models))
+    assert code == 0 and err == ""
+    import rpodguard
+
+    monkeypatch.setattr(rpodguard, "load_chain", lambda *a: pytest.fail("models loaded before the camera was checked"))
+    (tmp_path / "bad.json").write_text(json.dumps({"cameraMatrix": CAMERA.K.tolist()}))
+    for path, named in ((tmp_path / "bad.json", "bad.json: missing key 'Nu'"), (tmp_path / "none.json", "not found")):
+        code, out, err = _rpod(monkeypatch, capsys, "predict", str(image), "--camera", str(path))
+        assert code == 1 and out == "" and err.count("\n") == 1 and named in err, err
+
+
+# ----------------------------------------------------------------------------- sequence mode (rpodguard/sequence.py)
+def _calibrate(models: Path) -> None:
+    """models/defense.json as `rpod calibrate` writes it (pipeline/formats/defense.py), for the tiny chain."""
+    import dataclasses
+
+    from pipeline.defense.fusion import DefenseSettings
+    from pipeline.defense.gate import MotionSettings
+    from pipeline.defense.noise import NoiseModel
+    from pipeline.evaluation.integrity import AlertLimitSettings
+    from pipeline.formats.defense import DEFENSE_FORMAT
+    from pipeline.io.atomic import file_hash, write_json
+
+    noise = NoiseModel((0.05, 0.05, 0.1), (0.005, 0.005, 0.01), 1.0, 0.0)
+    threshold = load_chain(models).threshold
+    write_json(models / "defense.json", {
+        "format": DEFENSE_FORMAT, "pose_model_hash": file_hash(models / "pose.pt"), "detector_threshold": threshold,
+        "threshold": 0.9, "cusum_threshold": 8.0, "noise": noise.as_dict(), "fitted_noise": noise.as_dict(),
+        "settings": {**dataclasses.asdict(DefenseSettings()), **dataclasses.asdict(MotionSettings())},
+        "alert_limit": dataclasses.asdict(AlertLimitSettings()), "unmet": []})
+
+
+def test_track_gives_the_trusted_estimate_pl_and_availability_per_frame(models, tmp_path):
+    from pipeline.evaluation.integrity import AlertLimitSettings, alert_limit
+
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for name in ("pose.pt", "detector.pt"):
+        (bare / name).write_bytes((models / name).read_bytes())
+    n = 8
+    images, still, camera = _images(n, seed=3), np.zeros((n, 3)), np.repeat(np.eye(3)[None], n, 0)
+    with pytest.raises(Exception, match=r"defense.json not found"):
+        load_chain(bare).track(images, still, camera)
+    _calibrate(models)
+    track = load_chain(models).track(images, still, camera)
+    assert track.trusted.shape == (n, 3) and track.pl.shape == (n,) and track.available.dtype == bool
+    assert np.isfinite(track.trusted).all() and np.isfinite(track.pl).all() and (track.pl > 0).all()
+    rng = np.linalg.norm(track.trusted, axis=1)
+    limit = alert_limit(rng, AlertLimitSettings())
+    np.testing.assert_array_equal(track.available, (track.mode != "hold") & (track.pl <= limit))
+    records = track.records()
+    assert len(records) == n and records[0]["image"] == "array[0]" and len(records[0]["trusted_rel_m"]) == 3
+    with pytest.raises(ValueError, match=r"commands \(N, 3\) and camera attitudes \(N, 3, 3\)"):
+        load_chain(models).track(images, still[:3], camera)
+
+
+def test_cli_motion_file_gives_one_row_per_frame_and_bad_files_one_line(models, tmp_path, monkeypatch, capsys):
+    from rpodguard.sequence import MOTION_COLUMNS
+
+    _calibrate(models)
+    paths = [str(_png(tmp_path / f"f{k}.png", image)) for k, image in enumerate(_images(3, seed=4))]
+    rows = [",".join(MOTION_COLUMNS)] + ["0,0,-0.1," + ",".join(map(str, np.eye(3).ravel()))] * 3
+    (tmp_path / "motion.csv").write_text("\n".join(rows) + "\n")
+    code, out, err = _rpod(monkeypatch, capsys, "predict", *paths, "--motion", str(tmp_path / "motion.csv"), "--json",
+                           "--models", str(models))
+    assert code == 0, err
+    records = json.loads(out)
+    assert [r["image"] for r in records] == paths and {"trusted_rel_m", "pl_m", "available", "flag", "mode"} <= set(records[0])
+    code, out, _ = _rpod(monkeypatch, capsys, "predict", *paths, "--motion", str(tmp_path / "motion.csv"), "--models",
+                         str(models))
+    assert code == 0 and "PL (m)" in out and "f2.png" in out
+    (tmp_path / "short.csv").write_text("\n".join(rows[:3]) + "\n")
+    (tmp_path / "cols.csv").write_text("u_x,u_y\n0,0\n")
+    for name, message in (("short.csv", "has 2 rows for 3 images"), ("cols.csv", "lacks the column(s) u_z"),
+                          ("none.csv", "none.csv not found")):
+        code, out, err = _rpod(monkeypatch, capsys, "predict", *paths, "--motion", str(tmp_path / name), "--models",
+                               str(models))
+        assert code == 1 and out == "" and err.count("\n") == 1 and message in err, err

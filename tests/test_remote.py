@@ -125,16 +125,52 @@ def _closed_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.fixture(scope="module")
+def web() -> str:
+    """http://127.0.0.1:PORT of a server that is no HTTP remote under /upgrade/ (426, as a proxy may answer), an
+    empty one under /empty/ (404) and a private one under /private/ (403); stopped after the module."""
+    import http.server
+    import threading
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        def do_HEAD(self) -> None:
+            codes = {"upgrade": 426, "empty": 404, "private": 403}
+            self.send_response(codes.get(self.path.strip("/").split("/")[0], 200))
+            self.end_headers()
+
+        def log_message(self, *args) -> None:
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}"
+    finally:
+        server.shutdown()
+
+
+def test_an_empty_http_remote_is_accepted(origin, env, web):
+    before = (origin / ".dvc/config").read_text()
+    try:
+        done = _rpod_remote(origin, env, f"{web}/empty/store")
+        assert done.returncode == 0 and f"remote 'storage' -> {web}/empty/store" in done.stdout, done.stderr
+    finally:
+        (origin / ".dvc/config").write_text(before)
+
+
 @pytest.mark.parametrize("args, message", [
     (["s3://rpod-remote-test/x", "--endpoint", "http://127.0.0.1:{closed}"], "cannot reach 127.0.0.1:{closed}"),
+    (["http://127.0.0.1:{closed}/store"], "cannot reach 127.0.0.1:{closed}"),
+    (["{web}/upgrade/store"], "{web}/upgrade/store did not answer as a DVC remote can use (ConnectionError: HTTP 426"),
+    (["{web}/private/store"], "access to {web}/private/store denied"),
     (["s3://no-such-bucket/x", "--endpoint", "{endpoint}"], "s3 bucket 'no-such-bucket' at {endpoint} does not exist"),
     (["ftp://example.org/store"], "DVC cannot use ftp://example.org/store: Unsupported URL type"),
     (["{blocked}/sub"], "cannot create the folder"),
 ])
-def test_unusable_addresses_are_refused_with_one_line(origin, endpoint, env, tmp_path, args, message):
+def test_unusable_addresses_are_refused_with_one_line(origin, endpoint, web, env, tmp_path, args, message):
     blocked = tmp_path / "a-file"
     blocked.write_text("not a folder")
-    fill = {"closed": _closed_port(), "endpoint": endpoint, "blocked": blocked}
+    fill = {"closed": _closed_port(), "endpoint": endpoint, "blocked": blocked, "web": web}
     before = (origin / ".dvc/config").read_text()
     done = _rpod_remote(origin, env, *[a.format(**fill) for a in args])
     assert done.returncode == 1 and done.stdout == ""

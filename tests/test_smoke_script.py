@@ -1,6 +1,6 @@
 """scripts/smoke.py (`make smoke`) works in a copy and leaves the checkout as it was. Kept cheap: the
 copy switches to the smoke profile and runs `dvc repro --dry` (nothing executes); tests/test_e2e_smoke.py
-runs the whole smoke pipeline in a copy made by the same `copy_repo`."""
+runs the whole `make smoke` (this script, every stage) and checks the checkout is left as it was."""
 from __future__ import annotations
 
 import re

@@ -63,6 +63,19 @@ def test_a_sweep_keeps_the_profile_rpod_params_chose(repo):
     assert "  - profile: default" in (cwd / "conf/config.yaml").read_text()
 
 
+def test_a_dry_sweep_says_it_keeps_the_profile(repo):
+    """`rpod params smoke && dvc exp run -S train.epochs=2 --dry` shows the smoke profile it composes (issue 29).
+    `-f`: DVC runs a dry experiment in a temporary copy without the outputs, where its dry run stops at the first
+    stage whose input is missing (treeverse/dvc#9818); forced, it lists every stage."""
+    cwd, env = repo
+    assert _rpod_params(cwd, env, "smoke").returncode == 0
+    dvc = _run([str(DVC), "exp", "run", "--dry", "-f", "-S", "train.epochs=2"], cwd, env)
+    assert dvc.returncode == 0, dvc.stderr
+    assert "params.yaml <- profile 'smoke' with train.epochs=2" in dvc.stderr.splitlines()
+    assert "> rpod train" in dvc.stdout
+    assert yaml.safe_load((cwd / "params.yaml").read_text())["profile_name"] == "smoke"
+
+
 @pytest.mark.parametrize("override, message", [
     ("trian.epochs=3", "params.yaml: unknown parameter 'trian' (did you mean 'train'?)"),
     ("+trian.epochs=3", "params.yaml: unknown parameter 'trian' (did you mean 'train'?)"),

@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+import yaml
 import zarr
 
 from pipeline.formats.models import read_pose, save_pose
@@ -17,7 +18,7 @@ from pipeline.geometry.camera import reference_intrinsics
 from pipeline.geometry.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
 from pipeline.pose.labels import pose_columns
 from stages.artifacts import data, models
-from pipeline.io.atomic import write_json
+from pipeline.io.atomic import file_hash, write_json
 from pipeline.io.errors import DataError
 from pipeline.io.store import create_array, seal_zarr
 from stages.artifacts.paths import POSE
@@ -53,12 +54,13 @@ def write_dataset(root: Path, n: int = 40, width: int = W, height: int = H, seed
                            **pose_columns(t, matrix_to_quat(R), r6),
                            "range": np.linalg.norm(t, axis=1),
                            "split": np.where(np.arange(n) % 5 == 0, "test", "train")})
-    labels.to_parquet(root / "datasets/labels.parquet")
     params = params_mod.compose("smoke", [f"render.width={width}", f"render.height={height}", *(overrides or [])])
     params_mod.write_params(params, root / "params.yaml")
     typed = build(params)
-    write_json(root / "datasets/render/meta.json", {"complete": True, "frames": n,
+    write_json(root / "datasets/render/meta.json", {"complete": True, "frames": n, "K": K.K,
                                                     "fingerprint": params_mod.render_fingerprint(typed)})
+    labels.attrs[data.RENDER_KEY] = params_mod.render_fingerprint(typed)   # as `rpod label` records it
+    labels.to_parquet(root / "datasets/labels.parquet")
     return typed
 
 
@@ -173,7 +175,11 @@ def test_train_stage_writes_checkpoint_report_and_metrics(dataset):
     assert "0.490" in report and "Guidance requirements" in report and "60-45" in report
     model = models.load_pose_model(POSE, params_mod.load())
     assert model(torch.rand(1, 3, H, W)).shape == (1, 9)
+    assert read_pose(POSE)["K"] == reference_intrinsics().scaled(W, H).K.tolist()   # the training images' camera
+    assert read_pose(POSE)["labels_hash"] == file_hash("datasets/labels.parquet")     # and their labels
     assert Path("dvclive/train/plots/metrics/val_pos_m.tsv").exists()
+    logged = yaml.safe_load(Path("dvclive/train/params.yaml").read_text())          # DVCLive's log_params
+    assert logged["train"]["epochs"] == dataset.train.epochs and logged["render"] == {"width": W, "height": H}
 
 
 def test_test_split_is_read_only_after_training(dataset, monkeypatch):

@@ -37,12 +37,12 @@ def _run(root: Path, seed: int, pos: float, detect_acc: float | None) -> Path:
 def test_rows_count_the_runs_that_have_each_number(tmp_path):
     runs = [_run(tmp_path, 0, 0.40, 0.93), _run(tmp_path, 1, 0.46, 0.91), _run(tmp_path, 2, 0.43, None)]
     rows = {r["key"]: r for r in _load().variance_rows(runs)}
-    pos = rows["pos_m"]
+    pos = rows["pose.test_position_m"]
     assert pos["runs"] == 3 and pos["mean"] == pytest.approx(0.43) and pos["sd"] == pytest.approx(0.03)
     assert (pos["min"], pos["max"]) == (0.40, 0.46)
-    acc = rows["lstm"]
+    acc = rows["detector.lstm_accuracy_pct"]
     assert acc["runs"] == 2 and acc["mean"] == pytest.approx(92.0)
-    assert "lab" not in rows                                  # no run has it: no row
+    assert "lab.accuracy_pct" not in rows                                  # no run has it: no row
 
 
 def test_a_single_run_has_no_spread(tmp_path):
@@ -55,7 +55,7 @@ def test_metrics_of_another_pose_model_do_not_count(tmp_path):
     run = _run(tmp_path, 1, 0.40, 0.93)
     (run / "models" / "pose.pt").write_bytes(b"retrained")      # detect.json now belongs to another model
     rows = {r["key"]: r for r in _load().variance_rows([run])}
-    assert "lstm" not in rows and rows["pos_m"]["runs"] == 1
+    assert "detector.lstm_accuracy_pct" not in rows and rows["pose.test_position_m"]["runs"] == 1
 
 
 
@@ -72,7 +72,8 @@ def test_readme_results_show_the_spread_of_each_headline_number():
     metrics = {m: json.loads((REPO / "reports" / "metrics" / f"{m}.json").read_text())
                for m in ("train", "attack", "guidance", "detect", "evaluate", "lab", "robustness")}
     # in variance.md only: the README shows these per eps or per dynamics (or not at all)
-    not_shown = {"pose_tz_pct", "lstm_recall_0.01_pct", "integrated_0.01_pct", "harm_und", "held"}
+    not_shown = {"pose_tz_pct", "lstm_recall_0.01_pct", "lstm_eval_fa_pct", "integrated_0.01_pct",
+                 "robustness.harmful_undetected_pct", "guidance.defended_held_pct"}
     keys = [k for k, *_ in _load().HEADLINES if k not in not_shown]
     spread = {"profile": "default", "seeds": ["0", "1", "2"],
               "numbers": {k: {"runs": 3, "mean": 1.0, "sd": 1.01 + 0.01 * i, "min": 0.0, "max": 2.0}
@@ -102,3 +103,37 @@ def test_the_spread_covers_every_summary_json_number():
 
     keys = [h.key for h in _load().HEADLINES]
     assert keys[:len(SUMMARY)] == [h.key for h in SUMMARY]
+
+
+def test_the_committed_spread_names_only_headline_numbers():
+    """reports/variance.json (read by `rpod report`) uses the headline keys: a renamed key would drop its sd
+    (a headline added after the runs has no spread until they are re-run)."""
+    spread = json.loads((REPO / "reports" / "variance.json").read_text())
+    assert set(spread["numbers"]) <= {h.key for h in _load().HEADLINES}
+
+
+def test_runs_of_two_instruction_sets_make_a_seed_by_isa_table(tmp_path, monkeypatch):
+    """Runs are named by seed and the kernels their torch stages ran (the `cpu_isa` stamp), or by hand."""
+    mod = _load()
+    runs = []
+    for seed, isa, pos in ((0, "AVX2", 0.40), (0, "AVX512", 0.43), (1, "AVX2", 0.46), (1, "AVX512", 0.47)):
+        run = _run(tmp_path / isa, seed, pos, None)
+        train = json.loads((run / "reports/metrics/train.json").read_text())
+        train["cpu_isa"] = {"cap": "avx2" if isa == "AVX2" else "native", "kernels": isa}
+        (run / "reports/metrics/train.json").write_text(json.dumps(train))
+        runs.append(run)
+    isas = [mod.run_isa(mod.run_metrics(r)) for r in runs]
+    assert isas == ["AVX2", "AVX512", "AVX2", "AVX512"]
+    rows = {r["key"]: r for r in mod.isa_rows(runs, ["0", "0", "1", "1"], isas)}
+    pos = rows["pose.test_position_m"]
+    assert pos["seed 0, AVX2"] == 0.40 and pos["seed 1, AVX512"] == 0.47
+    assert pos["largest ISA difference at one seed"] == pytest.approx(0.03)
+    assert pos["sd over seeds, one ISA"] == pytest.approx(((0.06 ** 2 / 2 + 0.04 ** 2 / 2) / 2) ** 0.5)
+    assert mod.parse_runs([f"AVX2={runs[0]}", str(runs[1])]) == [(runs[0], "AVX2"), (runs[1], None)]
+    assert mod.run_isa({"train": {}}) == "?"                                # a run from before the stamp
+    monkeypatch.setattr(mod, "ROOT", tmp_path)
+    (tmp_path / "reports").mkdir()
+    mod.main([str(r) for r in runs])
+    text = (tmp_path / "reports/variance.md").read_text()
+    assert "## Seed x instruction set" in text and "| seed 0, AVX512" in text
+    assert json.loads((tmp_path / "reports/variance.json").read_text())["isas"] == isas

@@ -5,19 +5,21 @@ A burst is a run of consecutive attacked frames (`AttackRun.mask`). The attacker
 copy of the defense the frames before it, then crafts the burst's K frames jointly, ascending
 
     J = mean_k min(e_k, c AL_k) - lambda * mean_k (softplus(logit_k - logit(p*))
-                                                  + softplus((NIS_pos_k - g) / g) + softplus((NIS_att_k - g) / g))
+                                                  + softplus((NIS_pos_k - g) / g) + softplus((NIS_att_k - g) / g)
+                                                  + softplus((G_k - h) / h))
 
 where e_k is the error of the trusted estimate (the motion filter's state after frame k, advanced
 through the burst as the defense would if it accepted the frames: `FilterMirror`) against the
 true rel (world frame, m), AL_k the alert limit (m) at the frame's true range, c the cap (a bounded
 objective: past c AL the budget goes to stealth), p* the probability at or above which the detector
 stops the frame from updating the filter (the threshold, or `update_below`; the detector's term
-is left out under fusion "motion") and g the gate's NIS bound. Each margin is > 0 where that check
-stops the frame. L-inf PGD (signed steps of `step_size` eps / steps, `steps` of them) runs from
+is left out under fusion "motion"), g the gate's NIS bound, G_k the sequential test's largest CUSUM
+statistic after frame k and h its threshold (pipeline/defense/sequential.py). Each margin is > 0
+where that check stops the frame. L-inf PGD (signed steps of `step_size` eps / steps, `steps` of them) runs from
 `restarts` starts (batched) for each lambda of the grid in turn (the lambda search); the best
 iterate of each run (by J) and its last are stored as 8-bit (`quantize`) and put through the REAL
 chain and defense: the burst keeps the candidate with the most hazardously misleading frames (HMI:
-unflagged, tracking, trusted error > AL), then the fewest flagged frames, then the largest mean
+unflagged, tracking, PL <= AL (available), trusted error > AL), then the fewest flagged frames, then the largest mean
 capped trusted error (`BurstOutcome.key`): the best successful-and-undetected result.
 
 Nested in eps (`BurstAttacker.nested`): for increasing eps, restart 0 starts from the burst's
@@ -133,11 +135,11 @@ class _Burst:
         else:
             mirror, levels = FilterMirror(self.defense.filter, R), []
             for k in range(K):
-                level, nis_p, nis_a = mirror.step(pose[:, k, :3], sixd_to_matrix_t(pose[:, k, 3:]), self.R_cam[k],
-                                                  None if self.u is None else self.u[k])
+                level, nis_p, nis_a, cusum = mirror.step(pose[:, k, :3], sixd_to_matrix_t(pose[:, k, 3:]),
+                                                         self.R_cam[k], None if self.u is None else self.u[k])
                 levels.append(level)
-                g = mirror.gate
-                margin = margin + F.softplus((nis_p - g) / g) + F.softplus((nis_a - g) / g)
+                g, h = mirror.gate, mirror.threshold
+                margin = margin + F.softplus((nis_p - g) / g) + F.softplus((nis_a - g) / g) + F.softplus((cusum - h) / h)
             trusted = torch.stack(levels, 1)
             if self.logit_doubt is not None and logit is not None:
                 margin = margin + F.softplus(logit.to(DTYPE).view(R, K) - self.logit_doubt).sum(1)
@@ -158,6 +160,7 @@ class _Burst:
     def _outcome(self, images: Tensor, pose: np.ndarray, prob: np.ndarray, eps: float, lam: float, restart: int,
                  found_at: float) -> BurstOutcome:
         K = len(pose)
+        pl = np.zeros(K)                                        # undefended: no protection level
         if self.defense is None:
             trusted, flag, mode = np.einsum("kij,kj->ki", self.R_cam, pose[:, :3]), np.zeros(K, bool), np.full(K, TRACK)
         else:
@@ -165,10 +168,10 @@ class _Burst:
             out = [d.step(pose[k, :3], float(prob[k]), self.R_cam[k], None if self.u is None else self.u[k],
                           sixd_to_matrix(pose[k, 3:])) for k in range(K)]
             trusted = np.array([o.trusted for o in out])
-            flag, mode = np.array([o.flag for o in out]), np.array([o.mode for o in out])
+            flag, mode, pl = np.array([o.flag for o in out]), np.array([o.mode for o in out]), np.array([o.pl for o in out])
         err = np.linalg.norm(trusted - self.truth, axis=1)
         err = np.where(np.isfinite(err), err, 0.0)              # no estimate yet: nothing misleads
-        hmi = ~flag & (mode == TRACK) & (err > self.alert_limit)
+        hmi = ~flag & (mode == TRACK) & (pl <= self.alert_limit) & (err > self.alert_limit)
         return BurstOutcome(eps, found_at, lam, restart, images, pose, prob, err,
                             np.linalg.norm(pose[:, :3] - self.labels[:, :3].double().numpy(), axis=1), flag, mode, hmi,
                             float(np.minimum(err, self.cap * self.alert_limit).mean()))

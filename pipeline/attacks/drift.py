@@ -1,18 +1,23 @@
 """The slow drift: false-data injection that walks a chi-square-gated Kalman filter away, frame by frame.
 
-Mo and Sinopoli (2010): a filter that gates its innovations cannot tell a bias that grows slowly
-enough from the motion it models. The attacker knows the defense and its state
+Mo and Sinopoli (2010): a filter that gates its innovations one frame at a time cannot tell a bias
+that grows slowly enough from the motion it models. The attacker knows the defense and its state
 (`pipeline.defense.fusion.Defense`: the motion filter of pipeline/defense/kalman.py, its noise
-model and gate) and simulates it step by step on a copy (`DriftPlanner`). Each frame it offsets the
-pose estimate by a bias b (metres) along a unit direction d, the line of sight ("los": the target
-looks farther away) or across it ("lateral": the camera x axis made orthogonal to the line of
-sight), both fixed in world axes when the drift starts, and takes the largest b (or, with
-`max_rate`, the b nearest the last one plus the rate) whose innovation stays under `gate_fraction`
-of the gate's NIS (`stealthy_bias`, from the filter's own predicted covariance).
-Every frame passes the gate, the filter updates on it, its predicted state (the trusted estimate
-that guidance flies on) moves with the bias, and the next frame's bias can grow again: the filter's
-drift-velocity state absorbs the ramp. `max_rate` (m/frame) caps the growth of b per frame.
-At `gate_fraction` <= the soft gate (MotionSettings.soft_gate, 0.5) no frame is even down-weighted.
+model, gate and sequential test) and simulates it step by step on a copy (`DriftPlanner`). Each
+frame it offsets the pose estimate by a bias b (metres) along a unit direction d, the line of sight
+("los": the target looks farther away) or across it ("lateral": the camera x axis made orthogonal
+to the line of sight), both fixed in world axes when the drift starts, and takes the largest b (or,
+with `max_rate`, the b nearest the last one plus the rate) whose innovation stays under
+`gate_fraction` of the gate's NIS and keeps every CUSUM statistic of the sequential test under
+`cusum_fraction` of its threshold (`stealthy_bias`, from the filter's own predicted covariance;
+`cusum_fraction` None: an attacker that ignores the sequential test, as against a gate alone).
+Every frame passes the checks, the filter updates on it and its state (the trusted estimate that
+guidance flies on) moves with the bias. Against a gate alone the next frame's bias can grow again
+by about the gate's width; the sequential test holds the persistent normalized innovation under its
+reference value c, so the ramp the drift can keep up slows to what the filter's process noise
+allows (pipeline/defense/protection.py: the error it causes is within the protection level's c
+term). `max_rate` (m/frame) caps the growth of b per frame. At `gate_fraction` <= the soft gate
+(MotionSettings.soft_gate, 0.5) no frame is even down-weighted.
 
 At the pixel level (`DriftAttacker`) each attacked frame is a targeted L-inf PGD toward the estimate
 the drift wants (the clean estimate + b d; attitude kept at the clean estimate's) with the
@@ -45,11 +50,14 @@ DIRECTIONS = ("los", "lateral")
 class DriftSettings:
     """direction: "los" (along the line of sight, away from the chaser) or "lateral" (camera frame);
     gate_fraction: every innovation's NIS stays under this fraction of the gate, in (0, 1];
-    max_rate: cap on the growth of the bias per frame (m/frame), None for none."""
+    max_rate: cap on the growth of the bias per frame (m/frame), None for none; cusum_fraction:
+    every CUSUM statistic of the sequential test stays under this fraction of its threshold, in (0,
+    1] (None: the drift ignores the sequential test)."""
 
     direction: str = "los"
     gate_fraction: float = 0.5
     max_rate: float | None = None
+    cusum_fraction: float | None = 0.5
 
     def __post_init__(self) -> None:
         if self.direction not in DIRECTIONS:
@@ -58,6 +66,8 @@ class DriftSettings:
             raise ValueError(f"drift gate_fraction must be in (0, 1], got {self.gate_fraction}")
         if self.max_rate is not None and not (math.isfinite(self.max_rate) and self.max_rate > 0):
             raise ValueError(f"drift max_rate (m/frame) must be a finite number > 0 or None, got {self.max_rate}")
+        if self.cusum_fraction is not None and not 0 < float(self.cusum_fraction) <= 1:
+            raise ValueError(f"drift cusum_fraction must be in (0, 1] or None, got {self.cusum_fraction}")
 
 
 def drift_direction(t: np.ndarray, direction: str) -> np.ndarray:
@@ -73,43 +83,72 @@ def drift_direction(t: np.ndarray, direction: str) -> np.ndarray:
 
 
 def stealthy_bias(motion: MotionFilter, t_clean: np.ndarray, R_cam: np.ndarray, u: np.ndarray | None,
-                  direction: np.ndarray, limit: float, wanted: float = math.inf) -> float:
+                  direction: np.ndarray, limit: float, wanted: float = math.inf,
+                  cusum_limit: float | None = None) -> float:
     """The bias b (m) nearest `wanted` among those whose estimate t_clean + b * direction (camera
-    frame, m) passes `motion`'s next check with a position NIS <= `limit` (the b of least NIS when
-    none does). `motion` is not changed.
+    frame, m) passes `motion`'s next check with a position NIS <= `limit` and, with `cusum_limit`,
+    leaves every CUSUM statistic of its sequential test <= `cusum_limit` (the b of least NIS, or of
+    the CUSUM interval's middle, when none does). `motion` is not changed.
 
     The NIS is that of `MotionFilter.check` after predicting with `u` (world, m): innovation
     y(b) = z(b) - prediction, S(b) = P + R(b) with z, R the filter's measurement and its covariance
     (noise model, camera attitude R_cam camera -> world). z is linear in b up to the range-dependent
-    noise bias and covariance, so the quadratic y^T S^-1 y <= limit is solved for its interval of b at
-    the current b a few times, then checked exactly (bisection toward the least NIS if the
-    linearisation overshot).
+    noise bias, so the quadratic y^T S^-1 y <= limit and the CUSUM's linear bounds on the innovation
+    along each camera axis over its standard deviation are solved for their interval of b at the current b a few times, then checked
+    exactly (bisection toward a point inside if the linearisation overshot).
     """
     f = copy.deepcopy(motion)
     f.check(t_clean, R_cam, u)
-    p, P = f.position, f.pos.P[:3, :3]
+    p, P = f.position, f.pos.P
     t_clean, R_cam = np.asarray(t_clean, np.float64), np.asarray(R_cam, np.float64)
+    c, high, low = f.cusum.reference, np.array(f.cusum.high), np.array(f.cusum.low)
 
-    def nis(b: float) -> tuple[float, np.ndarray, np.ndarray]:
-        z, Rz = f.measurement(t_clean + b * direction, R_cam)
-        S_inv = np.linalg.inv(P + Rz)
-        return float((z - p) @ S_inv @ (z - p)), z - p, S_inv
+    rng = f.predicted_range
 
-    b, best, g = 0.0, 0.0, R_cam @ direction
+    def terms(b: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        z, Rz = f.measurement(t_clean + b * direction, R_cam, rng)
+        return z - p, P + Rz, np.linalg.inv(P + Rz)
+
+    def ok(b: float) -> bool:
+        y, S, S_inv = terms(b)
+        r = (R_cam.T @ y) / np.sqrt(np.diag(R_cam.T @ S @ R_cam))
+        within = cusum_limit is None or (max((high + r - c).max(), (low - r - c).max()) <= cusum_limit)
+        return float(y @ S_inv @ y) <= limit and within
+
+    b, lo, hi, g = 0.0, -math.inf, math.inf, R_cam @ direction
     for _ in range(3):
-        _, y, S_inv = nis(b)
+        y, S, S_inv = terms(b)
         y0 = y - g * b
         a, beta, gamma = g @ S_inv @ g, g @ S_inv @ y0, y0 @ S_inv @ y0
         half = math.sqrt(max(beta * beta - a * (gamma - limit), 0.0)) / a
-        best = float(-beta / a)
-        b = float(min(max(wanted, best - half), best + half))
-    if nis(b)[0] <= limit or nis(best)[0] > limit:
-        return b if nis(b)[0] <= limit else best
-    lo, hi = best, b                      # lo inside, hi outside: bisect on the segment
-    for _ in range(30):
-        mid = (lo + hi) / 2
-        lo, hi = (mid, hi) if nis(mid)[0] <= limit else (lo, mid)
-    return lo
+        lo, hi = -beta / a - half, -beta / a + half
+        if cusum_limit is not None:       # the test works along the camera axes (kalman._camera_normalized)
+            lo, hi = _cusum_interval(R_cam.T @ y0, direction, np.sqrt(np.diag(R_cam.T @ S @ R_cam)), high, low, c,
+                                     cusum_limit, lo, hi)
+        b = float(min(max(wanted, lo), hi))
+    inside = (lo + hi) / 2 if hi >= lo else lo
+    if ok(b) or not ok(inside):
+        return b if ok(b) else float(inside)
+    for _ in range(30):                   # inside passes, b does not: bisect on the segment
+        mid = (inside + b) / 2
+        inside, b = (mid, b) if ok(mid) else (inside, mid)
+    return float(inside)
+
+
+def _cusum_interval(y0: np.ndarray, g: np.ndarray, sigma: np.ndarray, high: np.ndarray, low: np.ndarray,
+                    c: float, limit: float, lo: float, hi: float) -> tuple[float, float]:
+    """[lo, hi] narrowed to the b whose normalized innovations r = (y0 + g b) / sigma (3,) keep both
+    CUSUM statistics of each axis (high + r - c, low - r - c) <= limit; an empty intersection comes
+    back as the CUSUM interval's own ends (what the sequential test allows, the gate aside)."""
+    r_hi, r_lo = limit + c - high, low - c - limit            # r must lie in [r_lo, r_hi] per axis
+    c_lo, c_hi = -math.inf, math.inf
+    for i in range(3):
+        if abs(g[i]) < 1e-12:
+            continue
+        ends = sorted(((r_lo[i] * sigma[i] - y0[i]) / g[i], (r_hi[i] * sigma[i] - y0[i]) / g[i]))
+        c_lo, c_hi = max(c_lo, ends[0]), min(c_hi, ends[1])
+    both = max(lo, c_lo), min(hi, c_hi)
+    return both if both[0] <= both[1] else (c_lo, c_hi)
 
 
 class DriftPlanner:
@@ -137,7 +176,8 @@ class DriftPlanner:
             self.direction = R_cam @ drift_direction(R_cam.T @ ahead, s.direction)
         d = R_cam.T @ self.direction
         wanted = math.inf if s.max_rate is None else self.bias + s.max_rate
-        self.bias = stealthy_bias(motion, t_clean, R_cam, u, d, s.gate_fraction * motion.gate, wanted)
+        cusum = None if s.cusum_fraction is None else s.cusum_fraction * motion.cusum.threshold
+        self.bias = stealthy_bias(motion, t_clean, R_cam, u, d, s.gate_fraction * motion.gate, wanted, cusum)
         return np.asarray(t_clean, np.float64) + self.bias * d
 
     def deliver(self, t: np.ndarray, prob: float, R_cam: np.ndarray, u: np.ndarray | None,

@@ -45,12 +45,15 @@ GOALS = ("collide", "miss")
 @dataclass(frozen=True)
 class InLoopSettings:
     """goal: "collide" or "miss"; steps: PGD steps per attacked frame (>= 1); gate_fraction: every
-    innovation's NIS stays under this fraction of the gate, in (0, 1]; margin_weight: the detector's
-    margin in the objective (>= 0); magnitudes: candidate biases (m, > 0) where no filter bounds them."""
+    innovation's NIS stays under this fraction of the gate, in (0, 1]; cusum_fraction: every CUSUM statistic of
+    the sequential test stays under this fraction of its threshold, in (0, 1] (None: the attacker ignores the
+    test); margin_weight: the detector's margin in the objective (>= 0); magnitudes: candidate biases (m, > 0)
+    where no filter bounds them."""
 
     goal: str = "collide"
     steps: int = 10
     gate_fraction: float = 0.5
+    cusum_fraction: float | None = 0.5
     margin_weight: float = 1.0
     magnitudes: tuple[float, ...] = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
 
@@ -61,6 +64,8 @@ class InLoopSettings:
             raise ValueError(f"in-loop attack steps must be >= 1, got {self.steps}")
         if not 0 < float(self.gate_fraction) <= 1:
             raise ValueError(f"in-loop attack gate_fraction must be in (0, 1], got {self.gate_fraction}")
+        if self.cusum_fraction is not None and not 0 < float(self.cusum_fraction) <= 1:
+            raise ValueError(f"in-loop attack cusum_fraction must be in (0, 1] or None, got {self.cusum_fraction}")
         if not (math.isfinite(self.margin_weight) and self.margin_weight >= 0):
             raise ValueError(f"in-loop attack margin_weight must be a finite number >= 0, got {self.margin_weight}")
         if not self.magnitudes or not all(math.isfinite(m) and m > 0 for m in self.magnitudes):
@@ -126,7 +131,10 @@ class InLoopAttacker:
         if defense is None or not defense.filter.started:
             return self.settings.magnitudes
         motion = defense.filter
-        b = stealthy_bias(motion, t0, self.state.R_c, self.state.u, d_cam, self.settings.gate_fraction * motion.gate)
+        s = self.settings
+        cusum = None if s.cusum_fraction is None else s.cusum_fraction * motion.cusum.threshold
+        b = stealthy_bias(motion, t0, self.state.R_c, self.state.u, d_cam, s.gate_fraction * motion.gate,
+                          cusum_limit=cusum)
         return (b,) if b > 0 else ()
 
     def _next(self, t: np.ndarray, prob: float, R_pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -24,24 +24,33 @@ from pipeline.defense.noise import check_positive
 
 @dataclass(frozen=True)
 class MotionSettings:
-    """Filter settings. position_noise: std of the unmodelled displacement per frame (m);
-    velocity_noise: std of the drift-velocity change per frame (m/frame); attitude_noise_deg and
-    attitude_rate_noise_deg: the same for the target attitude (deg, deg/frame); false_alarm: the
-    gate's false-alarm probability per frame on motion consistent with the model, in (0, 1);
-    soft_gate: fraction of the gate's NIS above which an accepted frame is down-weighted;
-    reacquire_after: M consecutive rejected frames that agree with one another (and that the
-    detector did not flag) restart the filter on them."""
+    """Filter settings. position_noise: std of the execution error of the chaser's commanded
+    displacement per frame (m; the position state has no free velocity: the chaser commands its
+    relative motion); attitude_noise_deg and attitude_rate_noise_deg: the target attitude's
+    unmodelled rotation and rate change per frame (deg, deg/frame; the target's tumble is not
+    commanded); false_alarm: the gate's false-alarm probability per frame on motion consistent with
+    the model, in (0, 1); soft_gate: fraction of the gate's NIS above which an accepted frame is
+    down-weighted; reacquire_after: M consecutive rejected frames that agree with one another (and
+    that the detector did not flag) restart the filter on them; cusum_reference (c) and
+    cusum_threshold (h): the sequential test's reference value and threshold in standard deviations
+    (pipeline/defense/sequential.py; h is calibrated on validation trajectories); integrity_risk:
+    the per-frame probability that the protection level's noise term is exceeded; trusted_start:
+    frames after the filter's first start that the protection level assumes fault-free (its
+    assumption A, pipeline/defense/protection.py: the detector alone guards them)."""
 
-    position_noise: float = 0.05
-    velocity_noise: float = 0.01
+    position_noise: float = 0.005
     attitude_noise_deg: float = 0.5
     attitude_rate_noise_deg: float = 0.05
     false_alarm: float = 0.001
     soft_gate: float = 0.5
     reacquire_after: int = 4
+    cusum_reference: float = 1.0
+    cusum_threshold: float = 10.0
+    integrity_risk: float = 1e-5
+    trusted_start: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("position_noise", "velocity_noise", "attitude_noise_deg", "attitude_rate_noise_deg"):
+        for name in ("position_noise", "attitude_noise_deg", "attitude_rate_noise_deg", "cusum_threshold"):
             check_positive(f"defense.{name}", getattr(self, name))
         if not 0 < float(self.false_alarm) < 1:
             raise ValueError(f"defense.false_alarm is a gate probability and must be in (0, 1), got {self.false_alarm}")
@@ -49,6 +58,12 @@ class MotionSettings:
             raise ValueError(f"defense.soft_gate must be in (0, 1], got {self.soft_gate}")
         if int(self.reacquire_after) < 2:
             raise ValueError(f"defense.reacquire_after must be >= 2 frames, got {self.reacquire_after}")
+        if not (np.isfinite(self.cusum_reference) and self.cusum_reference >= 0):
+            raise ValueError(f"defense.cusum_reference must be a finite number >= 0, got {self.cusum_reference}")
+        if int(self.trusted_start) != self.trusted_start or self.trusted_start < 0:
+            raise ValueError(f"defense.trusted_start must be a whole number of frames >= 0, got {self.trusted_start}")
+        if not 0 < float(self.integrity_risk) < 1:
+            raise ValueError(f"defense.integrity_risk must be a probability in (0, 1), got {self.integrity_risk}")
 
     @property
     def gate(self) -> float:

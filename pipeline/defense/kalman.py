@@ -1,32 +1,36 @@
-"""Motion-consistency check of the pose estimates: a relative-motion Kalman filter and its gate.
+"""Motion-consistency check of the pose estimates: a relative-motion Kalman filter, its gate and its
+sequential test.
 
 Frames (those of pipeline/geometry/trajectories.py). The filter works in the target-centred world frame:
 `rel` is the target position relative to the chaser camera in world axes (metres). The chaser knows
 its own camera attitude R_c (camera -> world) and the displacement of `rel` it commanded since the
-previous frame (`u`, world axes, metres: rel_k = rel_{k-1} + u_k when the command is executed
-exactly), so a camera-frame estimate t_pred becomes the world measurement z = R_c t_pred, and the
-relative motion is nearly constant: state [rel (3), drift velocity (3, m per frame)],
-rel_k = rel_{k-1} + drift + u_k. The drift absorbs command execution errors and target motion.
-The target attitude R_tw (target -> world, measured as R_c R_pred) follows a rate model: error
-state [rotation vector (3, rad), rate (3, rad per frame)] about the current attitude estimate,
-target frame.
+previous frame (`u`, world axes, metres), so a camera-frame estimate t_pred becomes the world
+measurement z = R_c t_pred, and the position state is rel alone: rel_k = rel_{k-1} + u_k + w_k, w_k
+the command's execution error (std `position_noise` per axis, small: in our simulations the command
+is executed exactly). There is no free drift-velocity state: a chaser commands its own relative
+motion, and a velocity state would let a slowly growing bias (a drift attack) be absorbed as motion
+(Mo and Sinopoli 2010). The target attitude R_tw (target -> world, measured as R_c R_pred) follows a
+rate model (the target's tumble is not commanded): error state [rotation vector (3, rad), rate (3,
+rad per frame)] about the current attitude estimate, target frame.
 
 Measurement noise: pipeline/defense/noise.py (`NoiseModel`, rotated into world axes with R_c every
-frame). The gate and the filter's settings: pipeline/defense/gate.py (`MotionSettings`, `MotionCheck`).
+frame). The gate and the filter's settings: pipeline/defense/gate.py (`MotionSettings`, `MotionCheck`);
+the sequential test on the innovations: pipeline/defense/sequential.py; the protection level:
+pipeline/defense/protection.py.
 
-`MotionFilter.check` applies the gate; flagged frames coast (fault exclusion), accepted ones update
-with a Huber weight, and `reacquire` restarts a filter that was dragged away (see gate.py).
+`MotionFilter.check` applies the gate; flagged frames coast (fault exclusion); frames that pass it
+go to the sequential test (`test_sequence`) and, unless it alarms, update the filter with a Huber
+weight; `reacquire` restarts a filter that was dragged away (see gate.py); `protection_level` is the
+bound on the state's error.
 
-Implementation: a short Kalman filter of our own (predict, innovation, Joseph-form update on 6x6
-matrices) rather than filterpy: filterpy 2.0.0 is not among our dependencies, its KalmanFilter
-has no error-state (rotation) update and no per-frame measurement covariance beyond passing R,
-and the few matrix products here are tested directly (tests/test_motion.py). It runs once per
-camera frame right after the pose network, whose convolutions leave the caches cold: there a small
-numpy call costs 5-10 us (~1 us warm), so the per-frame path is plain floats on 3x3 blocks (nested
-lists): the position filter's P = [[A, B], [B^T, C]], the attitude filter as three equal scalar
-filters (its covariances are multiples of I3 per block: isotropic noise), closed-form 3x3 inverses
-reused between the gate and the update. On the 2-core EPYC a `Defense.step` after the chain costs
-0.40 -> 0.22 ms (numpy 6x6 version -> this one), 0.11 -> 0.07 ms with warm caches.
+Implementation: a short Kalman filter of our own (predict, innovation, Joseph-form update) rather
+than filterpy: filterpy 2.0.0 is not among our dependencies, its KalmanFilter has no error-state
+(rotation) update and no per-frame measurement covariance beyond passing R, and the few matrix
+products here are tested directly (tests/test_motion.py). It runs once per camera frame right after
+the pose network, whose convolutions leave the caches cold: there a small numpy call costs 5-10 us
+(~1 us warm), so the per-frame path is plain floats on 3x3 nested lists, the attitude filter as three
+equal scalar filters (its covariances are multiples of I3 per block: isotropic noise), closed-form
+3x3 inverses reused between the gate and the update.
 """
 from __future__ import annotations
 
@@ -39,179 +43,45 @@ from scipy.stats import chi2
 
 from pipeline.defense.gate import MotionCheck, MotionSettings
 from pipeline.defense.noise import NoiseModel
+from pipeline.defense.protection import ProtectionLevel, largest_eigenvalue
+from pipeline.defense.sequential import Cusum
+from pipeline.defense.linear import IsoKalman6, Kalman3, add, eye, mm, mm_t, mv, transpose
 from pipeline.geometry.rotations import Mat3, float_lists, rotmat_list, rotvec_list
 
 
-def _inv3(S: Mat3) -> Mat3:
-    """Inverse of a 3x3 matrix (nested list) by cofactors, in plain floats."""
-    (a, b, c), (d, e, f), (g, h, i) = S
-    A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
-    r = 1.0 / (a * A + b * B + c * C)
-    return [[A * r, (c * h - b * i) * r, (b * f - c * e) * r],
-            [B * r, (a * i - c * g) * r, (c * d - a * f) * r],
-            [C * r, (b * g - a * h) * r, (a * e - b * d) * r]]
-
-
-def _mm(A: Mat3, B: Mat3) -> Mat3:
-    """A @ B for 3x3 nested lists."""
-    (a0, a1, a2), (a3, a4, a5), (a6, a7, a8) = A
-    (b0, b1, b2), (b3, b4, b5), (b6, b7, b8) = B
-    return [[a0 * b0 + a1 * b3 + a2 * b6, a0 * b1 + a1 * b4 + a2 * b7, a0 * b2 + a1 * b5 + a2 * b8],
-            [a3 * b0 + a4 * b3 + a5 * b6, a3 * b1 + a4 * b4 + a5 * b7, a3 * b2 + a4 * b5 + a5 * b8],
-            [a6 * b0 + a7 * b3 + a8 * b6, a6 * b1 + a7 * b4 + a8 * b7, a6 * b2 + a7 * b5 + a8 * b8]]
-
-
-def _mmT(A: Mat3, B: Mat3) -> Mat3:
-    """A @ B^T for 3x3 nested lists."""
-    return [[a[0] * b[0] + a[1] * b[1] + a[2] * b[2] for b in B] for a in A]
-
-
-def _t(A: Mat3) -> Mat3:
-    """Transpose of a 3x3 nested list."""
-    return [list(col) for col in zip(*A)]
-
-
-def _add(A: Mat3, B: Mat3, k: float = 1.0) -> Mat3:
-    """A + k B for 3x3 nested lists."""
-    return [[a + k * b for a, b in zip(ra, rb)] for ra, rb in zip(A, B)]
-
-
-def _sym(A: Mat3) -> Mat3:
-    """(A + A^T) / 2: block products round a covariance's halves apart, and a 3x3 block's
-    asymmetry, left alone, grows from frame to frame (1e-16 to 1e-6 in 6000 frames, measured)."""
-    return [[(A[i][j] + A[j][i]) * 0.5 for j in range(3)] for i in range(3)]
-
-
-def _mv(A: Mat3, v: Sequence[float]) -> list[float]:
-    """A @ v for a 3x3 nested list and a 3-vector."""
-    return [r[0] * v[0] + r[1] * v[1] + r[2] * v[2] for r in A]
-
-
-def _eye(k: float = 1.0) -> Mat3:
-    return [[k, 0.0, 0.0], [0.0, k, 0.0], [0.0, 0.0, k]]
-
-
-class _Kalman6:
-    """Linear Kalman filter on [level a (3), rate of a (3)]: a_k = a_{k-1} + rate + u_k, measurement a.
-
-    In plain floats on 3x3 blocks, P = [[A, B], [B^T, C]], the 3x3 innovation covariance inverted
-    in closed form (see the module docstring for why floats). `x` and `P` give numpy copies."""
-
-    def __init__(self, q_level: float, q_rate: float):
-        self.q_level, self.q_rate = q_level ** 2, q_rate ** 2
-        self.level, self.rate = [0.0] * 3, [0.0] * 3
-        self.A, self.B, self.C = _eye(), _eye(0.0), _eye()
-
-    @property
-    def x(self) -> np.ndarray:
-        return np.array(self.level + self.rate)
-
-    @property
-    def P(self) -> np.ndarray:
-        return np.block([[np.array(self.A), np.array(self.B)], [np.array(self.B).T, np.array(self.C)]])
-
-    def reset(self, level: Sequence[float], level_cov: Mat3, rate_std: float) -> None:
-        self.level, self.rate = [float(v) for v in level], [0.0] * 3
-        self.A, self.B, self.C = [[float(v) for v in row] for row in level_cov], _eye(0.0), _eye(rate_std ** 2)
-
-    def predict(self, u: Sequence[float] | None = None) -> None:
-        """F = [[I, I], [0, I]]: level += rate (+ u); P = F P F^T + Q."""
-        self.level = [a + r for a, r in zip(self.level, self.rate)]
-        if u is not None:
-            self.level = [a + d for a, d in zip(self.level, u)]
-        A, B, C, q = self.A, self.B, self.C, self.q_level
-        self.A = [[A[i][j] + B[i][j] + B[j][i] + C[i][j] + (q if i == j else 0.0) for j in range(3)] for i in range(3)]
-        self.B = _add(B, C)
-        self.C = _add(C, _eye(self.q_rate))
-
-    def innovation_inverse(self, R: Mat3) -> Mat3:
-        """S^-1 with S = A + R (3, 3)."""
-        return _inv3(_add(self.A, R))
-
-    def update(self, y: Sequence[float], R: Mat3, s_inv: Mat3 | None = None) -> None:
-        """Update with innovation y and measurement covariance R (`s_inv`: its
-        `innovation_inverse`, when known), Joseph form P = M P M^T + K R K^T with M = I - K H,
-        K = [Ka; Kb] = P H^T S^-1, by blocks: A = (I - Ka) A (I - Ka)^T + Ka R Ka^T,
-        B = (I - Ka) (B - A Kb^T) + Ka R Kb^T, C = Kb (A + R) Kb^T - Kb B - (Kb B)^T + C."""
-        s_inv = self.innovation_inverse(R) if s_inv is None else s_inv
-        A, B, C = self.A, self.B, self.C
-        Ka, Kb = _mm(A, s_inv), _mm(_t(B), s_inv)
-        self.level = [a + d for a, d in zip(self.level, _mv(Ka, y))]
-        self.rate = [r + d for r, d in zip(self.rate, _mv(Kb, y))]
-        M, KaR, KbB = _add(_eye(), Ka, -1.0), _mm(Ka, R), _mm(Kb, B)
-        self.A = _sym(_add(_mmT(_mm(M, A), M), _mmT(KaR, Ka)))
-        self.B = _add(_mm(M, _add(B, _mmT(A, Kb), -1.0)), _mmT(KaR, Kb))
-        KSK = _mmT(_mm(Kb, _add(A, R)), Kb)
-        self.C = _sym([[KSK[i][j] - KbB[i][j] - KbB[j][i] + C[i][j] for j in range(3)] for i in range(3)])
-
-
-class _IsoKalman6:
-    """`_Kalman6` for the attitude error state, whose P, Q and measurement covariances are all
-    multiples of I3 per 3x3 block (isotropic noise): three equal scalar filters on
-    P = [[a, b], [b, c]] (x) I3, in plain floats. `level` (the rotation-vector error) and `rate`
-    are 3-lists."""
-
-    def __init__(self, q_level: float, q_rate: float):
-        self.q_level, self.q_rate = q_level ** 2, q_rate ** 2
-        self.level, self.rate = [0.0] * 3, [0.0] * 3
-        self.p = (1.0, 0.0, 1.0)
-
-    @property
-    def x(self) -> np.ndarray:
-        return np.array(self.level + self.rate)
-
-    @property
-    def P(self) -> np.ndarray:
-        a, b, c = self.p
-        return np.kron(np.array([[a, b], [b, c]]), np.eye(3))
-
-    def reset(self, level_var: float, rate_std: float) -> None:
-        """Zero state, level variance `level_var`, rate std `rate_std` (per axis)."""
-        self.level, self.rate = [0.0] * 3, [0.0] * 3
-        self.p = (level_var, 0.0, rate_std ** 2)
-
-    def predict(self) -> None:
-        self.level = [v + r for v, r in zip(self.level, self.rate)]
-        a, b, c = self.p
-        self.p = (a + b + b + c + self.q_level, b + c, c + self.q_rate)
-
-    def take_level(self) -> list[float]:
-        """The level (3,), set to zero: the caller moves it into its attitude estimate."""
-        level, self.level = self.level, [0.0] * 3
-        return level
-
-    def nis(self, y: Sequence[float], r: float) -> float:
-        """y^T S^-1 y with S = (a + r) I3, `r` the measurement variance per axis."""
-        return (y[0] * y[0] + y[1] * y[1] + y[2] * y[2]) / (self.p[0] + r)
-
-    def update(self, y: Sequence[float], r: float) -> list[float]:
-        """Update with innovation y (3,) and measurement variance `r` (Joseph form, per axis);
-        returns the level correction (3,)."""
-        a, b, c = self.p
-        ka, kb = a / (a + r), b / (a + r)
-        d_level = [ka * v for v in y]
-        self.level = [v + dv for v, dv in zip(self.level, d_level)]
-        self.rate = [v + kb * w for v, w in zip(self.rate, y)]
-        self.p = ((1 - ka) ** 2 * a + ka * ka * r, (1 - ka) * (b - kb * a) + ka * kb * r,
-                  kb * kb * a - 2 * kb * b + c + kb * kb * r)
-        return d_level
+def _camera_normalized(y: Sequence[float], S: Mat3, R_cam: Mat3) -> tuple[list[float], list[float]]:
+    """(r, sigma): the innovation y (world, m) along the camera axes (columns of R_cam, camera ->
+    world) divided by its standard deviations there, sigma_k = sqrt(c_k^T S c_k) (m). The noise model
+    is diagonal in the camera frame, so these are the axes the sequential test and the protection
+    level's fault bound work in (pipeline/defense/protection.py)."""
+    sigma, r = [], []
+    for k in range(3):
+        c = [R_cam[0][k], R_cam[1][k], R_cam[2][k]]
+        sd = math.sqrt(sum(c[i] * sum(S[i][j] * c[j] for j in range(3)) for i in range(3)))
+        sigma.append(sd)
+        r.append((c[0] * y[0] + c[1] * y[1] + c[2] * y[2]) / sd)
+    return r, sigma
 
 
 class MotionFilter:
-    """Relative-motion filter with a chi-square innovation gate; call `check` then `accept` or `coast`
-    once per frame (the caller decides, e.g. with the SHAP detector's flag too). The per-frame path
-    works on floats and 3x3 nested lists (see `_Kalman6`); `position`, `attitude` and the checks'
-    `predicted` are numpy arrays."""
+    """Relative-motion filter with a chi-square innovation gate and a sequential test; call `check`,
+    then for a frame that passed the gate (and the caller's other checks) `test_sequence`, then
+    `accept` or `coast`, once per frame. The per-frame path works on floats and 3x3 nested lists;
+    `position`, `attitude` and the checks' `predicted` are numpy arrays."""
 
     def __init__(self, settings: MotionSettings, noise: NoiseModel):
         self.settings = settings
         self.noise = noise
         self.gate = settings.gate
-        self.pos = _Kalman6(settings.position_noise, settings.velocity_noise)
-        self.att = _IsoKalman6(math.radians(settings.attitude_noise_deg), math.radians(settings.attitude_rate_noise_deg))
-        self.R_tw = _eye()             # attitude estimate (target -> world), 3x3 nested list
+        self.pos = Kalman3(settings.position_noise)
+        self.att = IsoKalman6(math.radians(settings.attitude_noise_deg), math.radians(settings.attitude_rate_noise_deg))
+        self.cusum = Cusum(settings.cusum_reference, settings.cusum_threshold)
+        self.protection = ProtectionLevel(settings.cusum_reference, settings.cusum_threshold, settings.integrity_risk)
+        self.R_tw = eye()             # attitude estimate (target -> world), 3x3 nested list
         self.started = False
         self._pending: tuple[MotionCheck, tuple | None] | None = None   # last check, its update terms
+        self._tested = False           # the pending frame went through the sequential test
+        self._trusted = 0              # frames after the start the protection level assumes fault-free
         self._moved = [0.0] * 3        # sum of the commanded displacements so far (world, m)
         self._candidates: list[tuple[list[float], Mat3, Mat3 | None]] = []
         self._history: deque[list[float]] = deque(maxlen=2 * settings.reacquire_after)
@@ -229,38 +99,59 @@ class MotionFilter:
         """Current estimate of the target attitude (target -> world rotation)."""
         return np.array(self.R_tw)
 
-    def start(self, rel: np.ndarray, rel_cov: np.ndarray, R_tw: np.ndarray | None = None) -> None:
-        """Start (or restart) at rel (world, m) with covariance rel_cov (3, 3, m^2), optionally an attitude."""
+    @property
+    def predicted_range(self) -> float:
+        """|rel| of the current state (m): the range the noise model is taken at."""
+        a = self.pos.level
+        return math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+
+    @property
+    def protection_level(self) -> float:
+        """PL (m) of the current state (pipeline/defense/protection.py); inf before the start."""
+        if not self.started:
+            return math.inf
+        return self.protection.level(self.pos.A)
+
+    def start(self, rel: np.ndarray, rel_cov: np.ndarray, R_tw: np.ndarray | None = None, offset: float = 0.0,
+              trusted: int = 0) -> None:
+        """Start (or restart) at rel (world, m) with covariance rel_cov (3, 3, m^2), optionally an
+        attitude; `offset` (m): the bias bound the new run carries, `trusted`: the frames after the
+        start that the protection level assumes fault-free (see protection.py, assumption A)."""
         rel = np.asarray(rel, np.float64)
-        self.pos.reset(rel.tolist(), np.asarray(rel_cov, np.float64).tolist(), 3 * self.settings.velocity_noise)
+        self.pos.reset(rel.tolist(), np.asarray(rel_cov, np.float64).tolist())
         att_std = self.noise.attitude_std(float(np.linalg.norm(rel)))
         self.att.reset(att_std ** 2, 3 * math.radians(self.settings.attitude_rate_noise_deg))
-        self.R_tw = _eye() if R_tw is None else np.asarray(R_tw, np.float64).tolist()
+        self.R_tw = eye() if R_tw is None else np.asarray(R_tw, np.float64).tolist()
         self.started = True
+        self.cusum.reset()
+        self.protection.reset(offset)
+        self._trusted = int(trusted)
         self._candidates = []
         self._history.clear()
         self._history.append([p - m for p, m in zip(self.pos.level, self._moved)])
 
-    def measurement(self, t_pred: np.ndarray, R_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def measurement(self, t_pred: np.ndarray, R_cam: np.ndarray,
+                    rng: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(z world-frame measurement of rel (m), its covariance (3, 3)) from a camera-frame estimate,
-        the noise model's bias removed."""
+        the noise model's bias removed; the noise model at range `rng` (m; default |t_pred|: `check`
+        takes the predicted state's range, which a single estimate cannot move)."""
         t = np.asarray(t_pred, np.float64).tolist()
-        z, Rz = self._measurement(t, math.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2]),
-                                  np.asarray(R_cam, np.float64).tolist())
+        rng = math.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2]) if rng is None else float(rng)
+        z, Rz = self._measurement(t, rng, np.asarray(R_cam, np.float64).tolist())
         return np.array(z), np.array(Rz)
 
     def _measurement(self, t: list[float], rng: float, R_cam: Mat3) -> tuple[list[float], Mat3]:
         """`measurement` from the estimate as floats, its range (m) and R_cam as nested lists."""
-        a, b, n = self.noise.bias_intercept, self.noise.bias_slope, self.noise
-        z = _mv(R_cam, [t[i] - (a[i] + b[i] * rng) for i in range(3)])
-        var = [max(n.position_intercept[i] + n.position_slope[i] * rng, n.floor) ** 2 for i in range(3)]
-        return z, _mmT([[r * v for r, v in zip(row, var)] for row in R_cam], R_cam)
+        bias, std = self.noise.terms(rng)
+        z = mv(R_cam, [t[i] - bias[i] for i in range(3)])
+        var = [v * v for v in std]
+        return z, mm_t([[r * v for r, v in zip(row, var)] for row in R_cam], R_cam)
 
     def start_from(self, t_pred: np.ndarray, R_cam: np.ndarray, R_pred: np.ndarray | None = None) -> None:
         """Start from one trusted estimate (camera frame) with the noise model's covariance."""
         R_cam = np.asarray(R_cam, np.float64)
         z, Rz = self.measurement(t_pred, R_cam)
-        self.start(z, Rz, None if R_pred is None else R_cam @ R_pred)
+        self.start(z, Rz, None if R_pred is None else R_cam @ R_pred, trusted=self.settings.trusted_start)
 
     def check(self, t_pred: np.ndarray, R_cam: np.ndarray, u: np.ndarray | None = None,
               R_pred: np.ndarray | None = None) -> MotionCheck:
@@ -271,9 +162,10 @@ class MotionFilter:
         if u is not None:
             u = float_lists(u)
             self._moved = [m + d for m, d in zip(self._moved, u)]
+        self._tested = False
         self.pos.predict(u)
         self.att.predict()
-        self.R_tw = _mm(self.R_tw, rotmat_list(self.att.take_level()))
+        self.R_tw = mm(self.R_tw, rotmat_list(self.att.take_level()))
         predicted = self.position
         t = float_lists(t_pred)
         rng = math.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
@@ -281,52 +173,82 @@ class MotionFilter:
         if not math.isfinite(rng) or (R_pred is not None and not math.isfinite(sum(map(sum, R_pred)))):
             return self._stash(MotionCheck(np.inf, np.inf, True, predicted), None)
         R_cam = float_lists(R_cam)
+        rng = self.predicted_range
         z, Rz = self._measurement(t, rng, R_cam)
-        R_meas = None if R_pred is None else _mm(R_cam, R_pred)
+        R_meas = None if R_pred is None else mm(R_cam, R_pred)
         self._last = ([v - m for v, m in zip(z, self._moved)], Rz, R_meas)
         y = [v - p for v, p in zip(z, self.pos.level)]
         s_inv = self.pos.innovation_inverse(Rz)
-        nis_p = sum(a * b for a, b in zip(y, _mv(s_inv, y)))
+        nis_p = sum(a * b for a, b in zip(y, mv(s_inv, y)))
+        r, sigma = _camera_normalized(y, add(self.pos.A, Rz), R_cam)
         nis_a, att = np.nan, None
         if R_meas is not None:
-            dth = rotvec_list(_mm(_t(self.R_tw), R_meas))
+            dth = rotvec_list(mm(transpose(self.R_tw), R_meas))
             var = self.noise.attitude_std(rng) ** 2
             nis_a = self.att.nis(dth, var)
             att = (dth, var)
         bad = nis_p > self.gate or (not math.isnan(nis_a) and nis_a > self.gate)
-        return self._stash(MotionCheck(nis_p, nis_a, bool(bad), predicted), (y, Rz, s_inv, att))
+        return self._stash(MotionCheck(nis_p, nis_a, bool(bad), predicted), (y, Rz, s_inv, att, r, sigma, R_cam))
 
     def _stash(self, check: MotionCheck, pending: tuple | None) -> MotionCheck:
         self._pending = (check, pending)
         return check
 
+    def test_sequence(self) -> bool:
+        """Push the last checked (finite) frame's normalized innovations into the sequential test;
+        returns whether it alarms (the caller then coasts the frame). An alarm restarts the test: the
+        frame is left out of the state, and the protection level's fault bound starts a new segment
+        (pipeline/defense/protection.py), so a clean false alarm costs one frame, while a drift that
+        keeps alarming pays for each new segment in its PL."""
+        if self._pending is None or self._pending[1] is None:
+            raise RuntimeError("MotionFilter.test_sequence needs a checked, finite frame")
+        self._tested = True
+        if not self.cusum.push(self._pending[1][4]):
+            return False
+        self.cusum.reset()                 # a new segment of the test (and of the PL's fault bound) starts
+        self.protection.add(None, self._pending[1][5])
+        self._tested = False
+        return True
+
     def accept(self) -> None:
-        """Update the filter with the last checked frame (Huber-weighted above the soft gate)."""
+        """Update the filter with the last checked frame (Huber-weighted above the soft gate); its
+        gain joins the protection level's sums."""
         if self._pending is None or self._pending[1] is None:
             raise RuntimeError("MotionFilter.accept needs a checked, finite frame")
-        check, (y, Rz, s_inv, att) = self._pending  # type: ignore[misc]
+        check, (y, Rz, s_inv, att, _, sigma, R_cam) = self._pending  # type: ignore[misc]
         soft = self.settings.soft_gate * self.gate
         if check.nis_position > soft:                 # Huber: the inflated covariance has its own S
-            self.pos.update(y, [[v * (check.nis_position / soft) for v in row] for row in Rz])
+            K = self.pos.update(y, [[v * (check.nis_position / soft) for v in row] for row in Rz])
         else:
-            self.pos.update(y, Rz, s_inv)
+            K = self.pos.update(y, Rz, s_inv)
+        self._bound(mm(K, R_cam), sigma)
         if att is not None:
             dth, var = att
             self.att.update(dth, var * max(1.0, check.nis_attitude / soft))
-            self.R_tw = _mm(self.R_tw, rotmat_list(self.att.take_level()))
+            self.R_tw = mm(self.R_tw, rotmat_list(self.att.take_level()))
         self._pending = None
         self._history.append(self._last[0])
         self._candidates = []
 
     def coast(self, candidate: bool = False) -> None:
         """Leave the last checked frame out: the state stays at the prediction. With `candidate`
-        (the gate rejected it but nothing else suspects it) the frame may restart the filter:
-        see `reacquire`."""
+        (the gate or the sequential test rejected it but nothing else suspects it) the frame may
+        restart the filter: see `reacquire`."""
+        if self._tested and self._pending is not None and self._pending[1] is not None:
+            self._bound(None, self._pending[1][5])             # a tested frame left out: weight 0
         if candidate and self._pending is not None and self._pending[1] is not None and self._last is not None:
             self._candidates = (self._candidates + [self._last])[-self.settings.reacquire_after:]
         else:
             self._candidates = []
         self._pending = None
+
+    def _bound(self, G: Mat3 | None, sigma: list[float]) -> None:
+        """Add a tested frame to the protection level's sums, unless it is one of the trusted frames
+        after the first start (assumption A of pipeline/defense/protection.py)."""
+        if self._trusted > 0:
+            self._trusted -= 1
+        else:
+            self.protection.add(G, sigma)
 
     def reacquire(self) -> bool:
         """Restart the filter when the last `reacquire_after` (M) frames were all rejected as
@@ -337,7 +259,9 @@ class MotionFilter:
         frames were accepted since the start). The filter's state was then
         wrong (dragged by attacked frames that slipped through), not the frames; a jump to a new,
         steady position (an attacker's consistent offset) disagrees with the accepted history and
-        does not restart the filter. Returns whether it restarted."""
+        does not restart the filter. The restarted filter carries the old bias bound plus the
+        agreement's tolerance into its protection level (pipeline/defense/protection.py). Returns
+        whether it restarted."""
         M = self.settings.reacquire_after
         if len(self._candidates) < M:
             return False
@@ -354,6 +278,8 @@ class MotionFilter:
             if float(d @ np.linalg.inv(cov + np.array(self._candidates[-1][1])) @ d) > self.gate:
                 return False
         candidates = self._candidates
-        self.start(mean, cov + np.eye(3) * (M * self.settings.position_noise) ** 2, candidates[-1][2])
+        tolerance = 2.0 * math.sqrt(self.gate * largest_eigenvalue((cov + np.array(candidates[-1][1])).tolist()))
+        self.start(mean, cov + np.eye(3) * (M * self.settings.position_noise) ** 2, candidates[-1][2],
+                   offset=self.protection.bias() + tolerance)
         self._history.extend(c[0] for c in candidates)
         return True

@@ -82,18 +82,6 @@ def metrics_by_eps(labels: np.ndarray, scores: np.ndarray, eps: np.ndarray,
     return out
 
 
-def roc_points(labels: np.ndarray, scores: np.ndarray) -> dict[str, np.ndarray]:
-    """ROC curve points (fpr, tpr, threshold) for plotting."""
-    fpr, tpr, thr = skm.roc_curve(np.asarray(labels).astype(int), np.asarray(scores, dtype=np.float64))
-    return {"fpr": fpr, "tpr": tpr, "threshold": thr}
-
-
-def roc_csv(labels: np.ndarray, scores: np.ndarray) -> str:
-    """The ROC curve as CSV text: a `fpr,tpr` header, then one point per line (6 decimals)."""
-    roc = roc_points(labels, scores)
-    return "\n".join(["fpr,tpr"] + [f"{a:.6f},{b:.6f}" for a, b in zip(roc["fpr"], roc["tpr"])]) + "\n"
-
-
 def detection_delays(attacked_bursts: list[tuple[int, int]], flagged: np.ndarray) -> np.ndarray:
     """Per burst: frames from its start to its first flag, NaN when no frame of it was flagged."""
     flagged = np.asarray(flagged, dtype=bool)

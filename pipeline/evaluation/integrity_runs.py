@@ -20,7 +20,7 @@ can reach; detection is over the attacked frames.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -29,7 +29,6 @@ import torch
 from pipeline.evaluation.integrity import AlertLimitSettings, IntegrityFrames, concat, defense_frames, integrity_rates
 from pipeline.evaluation.stats import Rate, bootstrap_rate
 
-Limit = AlertLimitSettings | float   # the derived AL(range), or a fixed AL (m)
 
 
 @dataclass(frozen=True)
@@ -74,15 +73,7 @@ class Flown:
     frames: IntegrityFrames
 
 
-def integrity_frames(trace: Any, truth: np.ndarray, name: str, limit: Limit) -> IntegrityFrames:
-    """The integrity records of a defense trace, with the trace's protection level when it has one and a
-    fixed AL (m) when `limit` is a number."""
-    frames = defense_frames(trace, truth, name, limit if isinstance(limit, AlertLimitSettings) else
-                            AlertLimitSettings(), getattr(trace, "pl", None))
-    return frames if isinstance(limit, AlertLimitSettings) else replace(frames, alert=np.full(len(truth), limit))
-
-
-def fly(chain: Any, defended: Any, track: Track, limit: Limit, batch_size: int,
+def fly(chain: Any, defended: Any, track: Track, limit: AlertLimitSettings, batch_size: int,
         images: np.ndarray | None = None, base: Flown | None = None) -> Flown:
     """`track` (or its frames replaced by `images`, uint8 (N, H, W, 3)) through the OnboardChain `chain`
     and a fresh defense (`defended`: pipeline.evaluation.robustness.Defended); with `base` (the clean
@@ -97,15 +88,10 @@ def fly(chain: Any, defended: Any, track: Track, limit: Limit, batch_size: int,
         changed = np.flatnonzero((images != track.images).reshape(len(images), -1).any(1))
         pose, prob = base.pose.copy(), base.prob.copy()
         pose[changed], prob[changed] = pose_estimates(chain, images[changed], batch_size)
-    trace = run_defense(defended.settings, defended.motion, defended.noise, pose[:, :3], prob, track.R_cam, track.u,
-                        sixd_to_matrix(pose[:, 3:]))
-    return Flown(pose, prob, trace, integrity_frames(trace, track.truth, track.name, limit))
-
-
-def _fresh(defended: Any) -> Any:
-    from pipeline.defense.fusion import Defense
-
-    return Defense(defended.settings, defended.motion, defended.noise)
+    d = defended.defense()
+    trace = run_defense(d.settings, d.filter.settings, d.filter.noise, pose[:, :3], prob, track.R_cam, track.u,
+                        sixd_to_matrix(pose[:, 3:]), d.alert_limit)
+    return Flown(pose, prob, trace, defense_frames(trace, track.truth, track.name, limit))
 
 
 def burst_attack(target: Any, defended: Any, tracks: Sequence[Track], masks: Sequence[np.ndarray], attacker: Any,
@@ -120,7 +106,7 @@ def burst_attack(target: Any, defended: Any, tracks: Sequence[Track], masks: Seq
     for track, mask in zip(tracks, masks):
         run = AttackRun(track.frames(), torch.as_tensor(track.labels, dtype=torch.float32), track.R_cam, track.u,
                         np.asarray(mask, bool))
-        res = attacker.nested(target, _fresh(defended), run, [float(e) for e in eps])
+        res = attacker.nested(target, defended.defense(), run, [float(e) for e in eps])
         for e, images, bursts in zip(res.eps, res.images, res.bursts):
             stored[e].append(images.permute(0, 2, 3, 1).numpy())
             worst[e].append(bursts)
@@ -143,7 +129,7 @@ def drift_attack(target: Any, defended: Any, tracks: Sequence[Track], clean: Seq
     s = defended.settings
     doubt = s.threshold if s.update_below is None else s.update_below
     pairs = [(j, i) for j in range(len(settings)) for i in range(len(tracks))]   # (drift, track)
-    planners = [DriftPlanner(_fresh(defended), settings[j]) for j, _ in pairs]
+    planners = [DriftPlanner(defended.defense(), settings[j]) for j, _ in pairs]
     stored = [[t.images.copy() for t in tracks] for _ in settings]
     generator = torch.Generator().manual_seed(int(seed))
     for k in range(stop):

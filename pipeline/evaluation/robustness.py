@@ -210,12 +210,23 @@ def burst_schedule(n_frames: int, length: int, every: int) -> list[tuple[int, in
 
 @dataclass(frozen=True)
 class Defended:
-    """The fused chain's settings (pipeline.defense.fusion): fusion, threshold; the motion filter settings
-    and the fitted noise model."""
+    """The fused chain's settings (pipeline.defense.fusion): fusion, threshold; the motion filter settings,
+    the fitted noise model and the alert limit its availability is judged against (PL <= AL)."""
 
     settings: Any      # DefenseSettings
     motion: Any        # MotionSettings
     noise: Any         # NoiseModel
+    alert: Any = None  # AlertLimitSettings (pipeline.evaluation.integrity), None: no availability check
+
+    def defense(self) -> Any:
+        """A fresh pipeline.defense.fusion.Defense with these settings."""
+        from functools import partial
+
+        from pipeline.defense.fusion import Defense
+        from pipeline.evaluation.integrity import alert_limit
+
+        return Defense(self.settings, self.motion, self.noise,
+                       None if self.alert is None else partial(alert_limit, settings=self.alert))
 
 
 def pose_estimates(chain: Any, images: np.ndarray, batch_size: int) -> tuple[np.ndarray, np.ndarray]:

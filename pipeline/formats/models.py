@@ -3,8 +3,10 @@
 
 Pose (`POSE_FORMAT`, written by `rpod train`):
     format: "rpodguard-pose/1", arch: {width, dropout}, input_size: [height, width] (pixels),
-    model: the PoseNet state dict, loss: {s_p, s_r, reduction} (the learned loss, for attacks),
-    meta: small JSON-like facts (epoch, errors, ...).
+    K: the 3x3 camera matrix of the training images at the input size (pixels), labels_hash: the
+    `file_hash` of the label table it was trained on (both absent in checkpoints written before they were
+    recorded), model: the PoseNet state dict, loss: {s_p, s_r, reduction} (the
+    learned loss, for attacks), meta: small JSON-like facts (epoch, errors, ...).
 Detector (`DETECTOR_FORMAT`, written by `rpod detect`): pipeline.detectors.lstm.to_checkpoint's dict
 plus format, threshold, pose_model_hash (the pose file's `file_hash`), background_mean (D,) and
 shap_method.
@@ -23,12 +25,17 @@ POSE_REDO = "re-run `rpod train`"      # how a bad pose checkpoint is remade, in
 DETECTOR_REDO = "re-run `rpod detect`"
 
 
-def save_pose(path: Path | str, model: Any, loss: Any, input_size: tuple[int, int], meta: dict[str, Any]) -> None:
-    """Write a pose checkpoint atomically (temporary file + rename); `input_size` = (height, width) pixels."""
+def save_pose(path: Path | str, model: Any, loss: Any, input_size: tuple[int, int], meta: dict[str, Any],
+              K: Any = None, labels_hash: str | None = None) -> None:
+    """Write a pose checkpoint atomically (temporary file + rename); `input_size` = (height, width) pixels,
+    `K` the camera matrix (3x3, pixels at that size) of the training images and `labels_hash` the label
+    table's file hash, when known."""
     state = {
         "format": POSE_FORMAT,
         "arch": model.arch(),
         "input_size": [int(input_size[0]), int(input_size[1])],
+        **({} if K is None else {"K": [[float(v) for v in row] for row in K]}),
+        **({} if labels_hash is None else {"labels_hash": labels_hash}),
         "model": {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()},
         "loss": {"s_p": loss.s_p.item(), "s_r": loss.s_r.item(), "reduction": loss.reduction},
         "meta": meta,

@@ -28,17 +28,23 @@ class Renders:
 def read_renders(folder: Path | str, what: str, redo: str, *, poses: str | None = None,
                  check: Callable[[dict[str, Any]], None] | None = None) -> Renders:
     """Open a render folder and verify it: meta.json, then `check(meta)` (the caller's own test, e.g. a
-    params fingerprint), the image store against its checksum manifest (named `what` in messages), and
-    with `poses` (its name in messages) poses.parquet. A DataError ending in `redo` (how to remake the
+    params fingerprint), the image store against its checksum manifest (named `what` in messages) and against
+    meta.json's render fingerprint (the one the store records), and with `poses` (its name in messages)
+    poses.parquet. A DataError ending in `redo` (how to remake the
     folder) when it is incomplete or its counts of images, poses and meta's `frames` differ."""
     folder = Path(folder)
     meta = read_json(folder / META)
     if check is not None:
         check(meta)
-    group = open_zarr(meta.get("store") or folder / IMAGES, what)
+    store = meta.get("store") or folder / IMAGES
+    group = open_zarr(store, what)
     table = read_parquet(folder / POSES, poses) if poses is not None else None
     if not meta.get("complete") or "images" not in group:
         raise DataError(f"{folder} is incomplete; delete it and {redo}")
+    held = group.attrs.get("render_fingerprint", meta.get("fingerprint"))   # older stores do not record it
+    if held != meta.get("fingerprint"):
+        raise DataError(f"{what} {store} holds the images of another render (fingerprint {held}; "
+                        f"{folder / META} says {meta.get('fingerprint')}); {redo}")
     n = group["images"].shape[0]
     if n != meta["frames"] or (table is not None and n != len(table)):
         counts = f"{n} images" + (f", {len(table)} poses" if table is not None else "")

@@ -40,6 +40,14 @@ class Intrinsics:
                 float(np.rad2deg(2 * np.arctan(self.height / (2 * self.fy)))))
 
 
+def camera_difference(a: Intrinsics, b: Intrinsics) -> float:
+    """How far camera `b` is from `a`, both at a's image size (b scaled to it): the largest relative difference
+    of fx and fy (over a's) and of cx and cy (over the image width and height); 0 for the same camera."""
+    b = b.scaled(a.width, a.height)
+    return max(abs(b.fx - a.fx) / a.fx, abs(b.fy - a.fy) / a.fy, abs(b.cx - a.cx) / a.width,
+               abs(b.cy - a.cy) / a.height)
+
+
 def reference_intrinsics(width: int = 480, height: int = 270, fx: float = 640.0, fy: float = 360.0,
                          cx: float = 240.0, cy: float = 135.0) -> Intrinsics:
     """The paper's synthetic camera as printed, K given at 480x270. Its fy = 360 is most

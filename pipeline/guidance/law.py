@@ -16,7 +16,10 @@ Defense (`GuidanceSettings.defense`, the chain inside the loop; pipeline/defense
 - "undefended": the law acts on every estimate (the paper);
 - "hold": a flagged frame's estimate is not used: the chaser holds (no command) for that frame;
 - "recover": the law acts on the defense's trusted estimate (the motion filter's state, its
-  prediction on flagged frames); in the defense's hold mode the chaser holds.
+  prediction on flagged frames) where the defense declares it available; elsewhere the chaser
+  holds: in the defense's hold mode, and where the protection level exceeds the alert limit (PL >
+  AL: the defense cannot bound its error within what the guidance absorbs; the Defense's
+  `alert_limit`, pipeline/defense/fusion.py).
 A hold sends no command: the chaser stays where it is and keeps its camera pointing. The defense
 gets the commanded displacement of `rel` (-cmd, or 0 in a hold) to drive its motion filter.
 A run lasts `max_steps` steps (the nominal approach 60 m -> 10 m takes 50); it is judged at the
@@ -33,7 +36,7 @@ from typing import Any, Callable
 import numpy as np
 
 from pipeline.geometry.camera import Intrinsics
-from pipeline.defense.fusion import HOLD as HOLD_MODE, Defense
+from pipeline.defense.fusion import Defense
 from pipeline.geometry.trajectories import look_at, pose_in_camera
 
 VARIANTS = ("paper", "true_state")
@@ -229,7 +232,7 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
             if settings.defense == "hold":
                 act = None if d.flag else est
             else:
-                act = None if d.mode == HOLD_MODE else d.trusted
+                act = d.trusted if d.available else None
         if act is None:  # hold: no command, the chaser and its camera stay as they are
             u = np.zeros(3)
         else:

@@ -86,6 +86,31 @@ def atomic_dir(path: Path | str) -> Iterator[Path]:
         os.replace(tmp, path)
 
 
+@contextlib.contextmanager
+def exclusive(lock: Path | str, what: str) -> Iterator[None]:
+    """Hold an exclusive lock on the file `lock` (created if missing) while the block runs: fcntl.flock, which
+    the system releases when the holder ends, also when it is killed. A DataError naming `what` and the
+    holder's process id when another process holds it (no waiting)."""
+    import fcntl
+
+    lock = Path(lock)
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    with open(lock, "a+") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            raise DataError(f"{what} is being written by another process (pid {f.read().strip() or '?'}, lock "
+                            f"{lock}); wait for it to finish") from None
+        f.truncate(0)
+        f.write(str(os.getpid()))
+        f.flush()
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
 def remove_stale_temps(path: Path | str) -> list[Path]:
     """Delete the temporary folders `atomic_dir` left next to `path` in runs that were killed (their
     process is gone); a concurrent live run's folder is kept. Returns the folders removed."""

@@ -1,7 +1,8 @@
 """The checksummed zarr store: every chunk compressed with zstd and followed by its crc32c, and a
-manifest (written last, in the root group's attributes) listing per array its shape, chunks and the
-crc32c of every chunk object; `open_zarr` refuses a store that does not match it. Stores are local
-paths or fsspec URLs."""
+manifest (written last, in the root group's attributes) listing per array its shape, chunks, the crc32c
+of its metadata document (its zarr.json: dtype, codecs, fill value) and of every chunk object, and the
+crc32c of the root group's other attributes; `open_zarr` refuses a store that does not match it. Stores
+are local paths or fsspec URLs."""
 from __future__ import annotations
 
 import json
@@ -11,7 +12,7 @@ from typing import Any
 from pipeline.io.errors import DataError, not_found
 
 MANIFEST = "rpodguard_manifest"  # key in the root group's attributes (zarr.json)
-MANIFEST_FORMAT = "rpodguard-zarr-manifest/2"  # /1 summed the codec's own crc32c too: a constant
+MANIFEST_FORMAT = "rpodguard-zarr-manifest/3"  # /1 summed the codec's own crc32c too; /2 left zarr.json out
 
 
 def create_array(group: Any, name: str, **kwargs: Any) -> Any:
@@ -60,6 +61,18 @@ def chunk_crc32c(fs: Any, path: str) -> str:
     return f"{crc:08x}" if data[-4:] == crc.to_bytes(4, "little") else "damaged"
 
 
+def _json_crc32c(fs: Any, root: str, name: str | None) -> str:
+    """crc32c (8 hex digits) of what the manifest pins of a zarr.json: an array's whole document (`name`), or
+    the root group's attributes other than the manifest itself (`name` None), as canonical JSON."""
+    import google_crc32c
+
+    raw = fs.cat_file(f"{root}/{name}/zarr.json" if name else f"{root}/zarr.json")
+    if name is None:
+        attrs = json.loads(raw).get("attributes", {})
+        raw = json.dumps({k: v for k, v in attrs.items() if k != MANIFEST}, sort_keys=True).encode()
+    return f"{google_crc32c.value(raw):08x}"
+
+
 def _chunk_files(fs: Any, root: str, name: str) -> set[str]:
     """Keys (c/i/j/...) of the chunk objects stored under array `name`."""
     base = f"{root.rstrip('/')}/{name}/"
@@ -67,9 +80,10 @@ def _chunk_files(fs: Any, root: str, name: str) -> set[str]:
 
 
 def seal_zarr(path: Path | str, crc32c: dict[str, dict[str, str]] | None = None) -> None:
-    """Write the store's manifest last, into the root group's attributes: per array its shape, chunks
-    and the crc32c of every chunk object. `crc32c` ({array: {chunk key: crc}}, from the workers that
-    wrote the chunks) is used where given; other arrays are read back and checksummed here.
+    """Write the store's manifest last, into the root group's attributes: per array its shape, chunks and
+    the crc32c of its zarr.json and of every chunk object, and the crc32c of the root's other attributes.
+    `crc32c` ({array: {chunk key: crc}}, from the workers that wrote the chunks) is used where given; other
+    arrays are read back and checksummed here.
 
     Refuses (RuntimeError: a bug in the writer) an array without the crc32c codec or with a chunk of
     its grid never written (or not checksummed).
@@ -93,8 +107,10 @@ def seal_zarr(path: Path | str, crc32c: dict[str, dict[str, str]] | None = None)
         crcs = {k: given[k] for k in keys} if given else {k: chunk_crc32c(fs, f"{root}/{name}/{k}") for k in keys}
         if "damaged" in crcs.values():
             raise RuntimeError(f"{path}/{name}: a chunk was damaged while it was written")
-        arrays[name] = {"shape": list(arr.shape), "chunks": list(arr.chunks), "crc32c": crcs}
-    zarr.open_group(str(path), mode="r+").attrs[MANIFEST] = {"format": MANIFEST_FORMAT, "arrays": arrays}
+        arrays[name] = {"shape": list(arr.shape), "chunks": list(arr.chunks), "zarr_json": _json_crc32c(fs, root, name),
+                        "crc32c": crcs}
+    zarr.open_group(str(path), mode="r+").attrs[MANIFEST] = {"format": MANIFEST_FORMAT, "arrays": arrays,
+                                                              "attributes": _json_crc32c(fs, root, None)}
 
 
 def is_sealed(path: Path | str) -> bool:
@@ -107,7 +123,7 @@ def is_sealed(path: Path | str) -> bool:
 
 
 def _manifest(path: Path | str, what: str) -> dict[str, Any]:
-    """The manifest's arrays from the root zarr.json, or a DataError."""
+    """The manifest from the root zarr.json (format, arrays, attributes), or a DataError."""
     redo = "delete it and re-run the stage that writes it"
     fs, root = store_fs(path)
     try:
@@ -126,18 +142,27 @@ def _manifest(path: Path | str, what: str) -> dict[str, Any]:
     arrays = manifest.get("arrays") if fmt == MANIFEST_FORMAT else None
     if not isinstance(arrays, dict):
         raise DataError(f"{what} {path}: the checksum manifest is damaged; {redo}")
-    return arrays
+    return manifest
 
 
 def verify_zarr(path: Path | str, what: str = "zarr store") -> None:
     """Check a store (local path or fsspec URL) against its manifest: every array and chunk object
-    present, every crc32c equal. One DataError naming the store and the first bad chunk; costs one
-    read of the compressed bytes.
+    present, every crc32c equal (chunks, each array's zarr.json, the root's attributes). One DataError naming
+    the store and the first bad file; costs one read of the compressed bytes.
     """
     redo = "delete it and re-run the stage that writes it"
-    arrays = _manifest(path, what)
+    manifest = _manifest(path, what)
     fs, root = store_fs(path)
-    for name, entry in arrays.items():
+    if _json_crc32c(fs, root, None) != manifest.get("attributes"):
+        raise DataError(f"{what} {path}: the root group's attributes (zarr.json) changed since it was sealed; {redo}")
+    for name, entry in manifest["arrays"].items():
+        try:
+            changed = _json_crc32c(fs, root, name) != entry.get("zarr_json")
+        except FileNotFoundError:
+            raise DataError(f"{what} {path} is missing {name}/zarr.json; {redo}") from None
+        if changed:
+            raise DataError(f"{what} {path}: {name}/zarr.json (dtype, codecs, shape) changed since it was sealed; "
+                            f"{redo}")
         stored = _chunk_files(fs, root, name)
         for key, crc in entry["crc32c"].items():
             if key not in stored:
@@ -159,7 +184,7 @@ def open_zarr(path: Path | str, what: str = "zarr store") -> Any:
     verify_zarr(path, what)
     try:
         group = zarr.open_group(str(path), mode="r")
-        listed = _manifest(path, what)
+        listed = _manifest(path, what)["arrays"]
         stored = {name: arr for name, arr in group.arrays()}
     except Exception as e:  # zarr raises several types for a damaged store
         raise DataError(f"{what} {path} is unreadable or corrupt ({type(e).__name__}: {e}); "

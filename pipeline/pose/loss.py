@@ -35,6 +35,10 @@ class PoseLoss(nn.Module):
             return pos.mean(), rot.mean()
         return pos.sum(), rot.sum()
 
-    def forward(self, pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    def forward(self, pred: torch.Tensor, target: torch.Tensor, skip_rotation: int = 0) -> torch.Tensor:
+        """The loss of (B, 9) predictions; `skip_rotation` > 0 leaves the first rows out of the rotation term
+        (adversarial training that fits only the position of its attacked images, pipeline/pose/adversarial.py)."""
         pos, rot = self.parts(pred, target)
+        if skip_rotation:
+            rot = self.parts(pred[skip_rotation:], target[skip_rotation:])[1]
         return torch.exp(-2 * self.s_p) * pos + torch.exp(-2 * self.s_r) * rot + 2 * (self.s_p + self.s_r)

@@ -16,6 +16,15 @@ under bf16 autocast (features back in float32) and the weights use the channels_
 CPU the network computes exactly as without `place`.
 There is no input normalisation layer: the first convolution has no bias and is followed by
 BatchNorm, which absorbs any affine rescaling of the pixels.
+
+Black-level clamp (`black_level` t > 0, the robust model; 0 = off, the standard model): the first
+operation of the network is x -> max(x - t, 0), per pixel and channel, so every pixel darker than t
+reaches the backbone as exactly 0 and its input gradient is exactly 0 (at x = t too). Inside the module,
+it is part of every forward pass an attack differentiates (adaptive attacks included): an L-inf
+perturbation of at most eps < t cannot lift a black background pixel out of the clamp. It is
+1-Lipschitz (a perturbation of eps moves the clamped pixel by at most eps), unlike a hard threshold
+x * [x > t], which an attacker could use to drop a pixel just above t by t + eps. How the robust
+model's t is chosen from data: stages/pages/pose.py (`black_level_line`).
 """
 from __future__ import annotations
 
@@ -63,16 +72,19 @@ class PoseNet(nn.Module):
     """Modified Darknet-19 pose regressor; `forward(x) = forward_head(forward_features(x))`.
 
     width: channel multiplier of the backbone (the 1000-feature layer is fixed);
-    dropout: probability on the GAP features, active in training mode only.
+    dropout: probability on the GAP features, active in training mode only;
+    black_level: the input clamp's threshold t in [0, 1) pixel units (0 = no clamp).
     """
 
-    def __init__(self, width: float = 1.0, dropout: float = 0.2):
+    def __init__(self, width: float = 1.0, dropout: float = 0.2, black_level: float = 0.0):
         super().__init__()
         if not width > 0:
             raise ValueError(f"width must be positive, got {width}")
         if not 0 <= dropout < 1:
             raise ValueError(f"dropout must be in [0, 1), got {dropout}")
-        self.width, self.dropout_p = float(width), float(dropout)
+        if not 0 <= black_level < 1:
+            raise ValueError(f"black_level must be in [0, 1) (pixel units), got {black_level}")
+        self.width, self.dropout_p, self.black_level = float(width), float(dropout), float(black_level)
         self.amp = False   # bf16 autocast of the backbone (CUDA only; set by `place`)
         c = scaled(STEM_CHANNELS, width)
         layers: list[nn.Module] = [conv_bn_act(3, c, 7)]
@@ -119,8 +131,13 @@ class PoseNet(nn.Module):
         """Where the weights are."""
         return self.head_pos.weight.device
 
+    def clamp(self, x: torch.Tensor) -> torch.Tensor:
+        """The black-level clamp max(x - black_level, 0) ((B, 3, H, W) in [0, 1]); x itself when off."""
+        return torch.relu(x - self.black_level) if self.black_level > 0 else x
+
     def _features(self, x: torch.Tensor) -> torch.Tensor:
-        """forward_features on the weights' device (x already there)."""
+        """forward_features on the weights' device (x already there), through the clamp."""
+        x = self.clamp(x)
         if not self.amp:
             return torch.flatten(self.gap(self.backbone(x)), 1)
         with torch.autocast("cuda", dtype=torch.bfloat16):
@@ -143,5 +160,7 @@ class PoseNet(nn.Module):
         return self._head(self._features(x.to(self.device, non_blocking=True))).to(x.device)
 
     def arch(self) -> dict[str, float]:
-        """The constructor arguments (stored in checkpoints)."""
-        return {"width": self.width, "dropout": self.dropout_p}
+        """The constructor arguments (stored in checkpoints; black_level only when the clamp is on, so a
+        standard model's checkpoint reads as before)."""
+        arch = {"width": self.width, "dropout": self.dropout_p}
+        return {**arch, "black_level": self.black_level} if self.black_level > 0 else arch

@@ -1,4 +1,9 @@
-"""Training loop for the pose CNN: Adam, cyclic LR "triangular2", best-by-validation-error tracking.
+"""Training loop for the pose CNN: Adam, a cyclic or cosine LR schedule (pipeline/pose/optim.py), an optional
+EMA of the weights, optional PGD-k adversarial training (pipeline/pose/adversarial.py), best-by-validation
+tracking.
+
+With `ema` > 0 the exponential moving average of the weights is what is validated every epoch, what the
+best checkpoint is chosen from and what `best_state` holds (the raw weights only train).
 
 Works in one process or under DistributedDataParallel: when `torch.distributed` is initialised
 (the caller sets it up, e.g. from torchrun's environment variables), the model and the loss's
@@ -7,7 +12,9 @@ DistributedSampler and the validation set evaluated in shards that are gathered 
 The caller passes a validation set carved from the training data (pipeline.evaluation.splits.holdout): `fit`
 never sees the test split, so the checkpoint it keeps is not selected on test data.
 
-The model selection score is the ESA SPEED score (pipeline/pose/metrics.py).
+The model selection score is the ESA SPEED score (pipeline/pose/metrics.py); with an adversary, plus the
+mean relative position error ||p - p_gt|| / ||p_gt|| of its attacked validation images (`Adversary.validate`):
+the harm is a position error, and the attacked attitude (which training may leave undefended) is not scored.
 """
 from __future__ import annotations
 
@@ -25,9 +32,11 @@ from torch import nn
 from torch.utils.data import DataLoader, Dataset, DistributedSampler
 from tqdm import tqdm
 
+from pipeline.pose.adversarial import Adversary
 from pipeline.pose.augment import AugmentConfig, augment
 from pipeline.pose.loss import PoseLoss
 from pipeline.pose.metrics import pose_errors, speed_score
+from pipeline.pose.optim import SCHEDULES, WeightEMA, make_scheduler
 
 
 LOSS_WEIGHT_LR_FACTOR = 10.0
@@ -133,15 +142,21 @@ def predict_distributed(model: nn.Module, dataset: PoseDataset, batch_size: int,
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Optimiser and schedule. LR: CyclicLR "triangular2" between lr_base and lr_max with a half
-    cycle of `cycle_epochs` epochs (the peak halves every cycle); `max_minutes` stops training before
-    an epoch that would end past the limit (None = no limit)."""
+    """Optimiser and schedule. LR (`schedule`, pipeline/pose/optim.py): "cyclic" = CyclicLR "triangular2"
+    between lr_base and lr_max with a half cycle of `cycle_epochs` epochs (the peak halves every cycle);
+    "cosine" = linear warm-up from lr_base to lr_max over `warmup_epochs`, then a half cosine down to
+    `lr_min` at the last step. `ema`: decay per step of the weights' moving average (0 = none);
+    `max_minutes` stops training before an epoch that would end past the limit (None = no limit)."""
 
     epochs: int
     batch_size: int = 32
     lr_base: float = 1e-4
     lr_max: float = 1e-3
     cycle_epochs: float = 3.0
+    schedule: str = "cyclic"
+    lr_min: float = 1e-6
+    warmup_epochs: float = 1.0
+    ema: float = 0.0
     weight_decay: float = 0.0
     max_minutes: float | None = None
     channels_last: bool = True
@@ -153,8 +168,15 @@ class TrainConfig:
             raise ValueError(f"epochs and batch_size must be >= 1, got {self.epochs}, {self.batch_size}")
         if not 0 < self.lr_base <= self.lr_max:
             raise ValueError(f"need 0 < lr_base <= lr_max, got {self.lr_base}, {self.lr_max}")
-        if self.cycle_epochs <= 0:
-            raise ValueError(f"cycle_epochs must be positive, got {self.cycle_epochs}")
+        if self.cycle_epochs <= 0 or self.warmup_epochs < 0:
+            raise ValueError(f"need cycle_epochs > 0 and warmup_epochs >= 0, got {self.cycle_epochs}, "
+                             f"{self.warmup_epochs}")
+        if self.schedule not in SCHEDULES:
+            raise ValueError(f"schedule must be one of {', '.join(SCHEDULES)}, got {self.schedule!r}")
+        if not 0 < self.lr_min <= self.lr_base:
+            raise ValueError(f"need 0 < lr_min <= lr_base, got {self.lr_min}, {self.lr_base}")
+        if not 0 <= self.ema < 1:
+            raise ValueError(f"ema (decay per step) must be in [0, 1), got {self.ema}")
 
 
 @dataclass
@@ -173,6 +195,9 @@ class EpochStats:
     val_score: float
     images_per_s: float
     seconds: float
+    val_adv_pos_m: float = math.nan    # with an adversary: validation subset under its PGD check
+    val_adv_att_deg: float = math.nan
+    score: float = math.nan            # what selects the checkpoint (val_score, + attacked position with an adversary)
 
     def as_dict(self) -> dict[str, float]:
         return dict(self.__dict__)
@@ -196,18 +221,20 @@ class _Objective(nn.Module):
         super().__init__()
         self.model, self.loss = model, loss
 
-    def forward(self, x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, x: torch.Tensor, y: torch.Tensor, skip_rotation: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
         pred = self.model(x)
-        return self.loss(pred, y), pred
+        return self.loss(pred, y, skip_rotation), pred
 
 
 def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, val_set: PoseDataset, cfg: TrainConfig,
         device: str | torch.device = "cpu",
         on_epoch: Callable[[EpochStats, bool, nn.Module], None] | None = None,
-        progress: bool = True) -> FitResult:
-    """Train `model` in place; return the history and the best state (by validation SPEED score).
+        progress: bool = True, adversary: Adversary | None = None) -> FitResult:
+    """Train `model` in place; return the history and the best state (by the validation score).
 
-    `on_epoch(stats, is_best, model)` runs on every rank after each epoch (write files on rank 0 only).
+    `on_epoch(stats, is_best, evaluated)` runs on every rank after each epoch (write files on rank 0 only);
+    `evaluated` is the network validated (the EMA copy when `cfg.ema` > 0). `adversary`: train on its
+    PGD-k examples and select on clean + attacked validation error.
     """
     device = torch.device(device)
     rank, world = _distributed()
@@ -221,8 +248,10 @@ def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, val_set: PoseD
         objective = nn.parallel.DistributedDataParallel(objective, device_ids=[device.index] if device.type == "cuda" else None)
     loader, sampler = _loader(train_set, cfg, device, rank, world)
     opt, sched = _optimiser(model, loss, cfg, len(loader))
+    ema = WeightEMA(model, cfg.ema) if cfg.ema > 0 else None
+    evaluated = model if ema is None else ema.model
     history: list[EpochStats] = []
-    best_score, best_epoch, best_state = math.inf, -1, copy.deepcopy(model.state_dict())
+    best_score, best_epoch, best_state = math.inf, -1, copy.deepcopy(evaluated.state_dict())
     start, stopped_early, train_seconds, train_images = time.perf_counter(), False, 0.0, 0
     for epoch in range(cfg.epochs):
         if cfg.max_minutes is not None and history and _should_stop(start, history[-1].seconds, cfg.max_minutes, device):
@@ -232,20 +261,22 @@ def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, val_set: PoseD
         if sampler is not None:
             sampler.set_epoch(epoch)
         train_set.set_epoch(epoch)
-        sums = _train_epoch(objective, loader, opt, sched, cfg, device, epoch, world, progress and rank == 0, t0)
+        step = _Step(objective, model, opt, sched, ema, adversary, epoch * len(loader))
+        sums = _train_epoch(step, loader, cfg, device, epoch, world, progress and rank == 0, t0)
         epoch_train_seconds = time.perf_counter() - t0
         if world > 1:
             dist.all_reduce(sums)
-        stats = _epoch_stats(model, loss, val_set, cfg, device, epoch, sums, sched, epoch_train_seconds, t0)
+        stats = _epoch_stats(evaluated, loss, val_set, cfg, device, epoch, sums, sched, epoch_train_seconds, t0,
+                             adversary)
         train_seconds += epoch_train_seconds
         train_images += int(sums[3].item())
         history.append(stats)
-        is_best = stats.val_score < best_score
+        is_best = stats.score < best_score
         if is_best:
-            best_score, best_epoch = stats.val_score, epoch + 1
-            best_state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+            best_score, best_epoch = stats.score, epoch + 1
+            best_state = {k: v.detach().cpu().clone() for k, v in evaluated.state_dict().items()}
         if on_epoch is not None:
-            on_epoch(stats, is_best, model)
+            on_epoch(stats, is_best, evaluated)
     check_improved(best_epoch, len(history))
     return FitResult(history, best_epoch, best_score, best_state, time.perf_counter() - start, stopped_early,
                      train_images / train_seconds if train_seconds else 0.0)
@@ -266,40 +297,64 @@ def _loader(train_set: PoseDataset, cfg: TrainConfig, device: torch.device, rank
 
 
 def _optimiser(model: nn.Module, loss: PoseLoss, cfg: TrainConfig,
-               steps: int) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.CyclicLR]:
-    """Adam on the model and the loss's weights, with the cyclic LR schedule (`steps` batches per epoch)."""
+               steps: int) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.LRScheduler]:
+    """Adam on the model and the loss's weights, with the LR schedule of `cfg` (`steps` batches per epoch)."""
     # The loss's two weights get LOSS_WEIGHT_LR_FACTOR x the learning rate (no weight decay) so they reach
     # their balance (exp(-2 s) ~ 1 / error) within the first epochs instead of lagging the whole run.
-    opt = torch.optim.Adam([{"params": list(model.parameters()), "weight_decay": cfg.weight_decay},
-                            {"params": list(loss.parameters()), "weight_decay": 0.0}], lr=cfg.lr_base)
-    f = LOSS_WEIGHT_LR_FACTOR
-    sched = torch.optim.lr_scheduler.CyclicLR(opt, base_lr=[cfg.lr_base, f * cfg.lr_base],
-                                              max_lr=[cfg.lr_max, f * cfg.lr_max], mode="triangular2",
-                                              step_size_up=max(1, round(cfg.cycle_epochs * steps)),
-                                              cycle_momentum=False)
+    opt = torch.optim.Adam([{"params": list(model.parameters()), "weight_decay": cfg.weight_decay, "lr": cfg.lr_base},
+                            {"params": list(loss.parameters()), "weight_decay": 0.0,
+                             "lr": LOSS_WEIGHT_LR_FACTOR * cfg.lr_base}], lr=cfg.lr_base)
+    sched = make_scheduler(opt, cfg.schedule, cfg.epochs * steps, lr_base=cfg.lr_base, lr_max=cfg.lr_max,
+                           lr_min=cfg.lr_min, cycle=round(cfg.cycle_epochs * steps),
+                           warmup=round(cfg.warmup_epochs * steps))
     return opt, sched
 
 
-def _train_epoch(objective: nn.Module, loader: DataLoader, opt: torch.optim.Optimizer, sched: Any, cfg: TrainConfig,
-                 device: torch.device, epoch: int, world: int, show: bool, t0: float) -> torch.Tensor:
+@dataclass
+class _Step:
+    """What one optimiser step needs: the objective (DDP-wrapped or not), the plain model (what the
+    adversary attacks and the EMA averages), optimiser, schedule, EMA, adversary, and the global step."""
+
+    objective: nn.Module
+    model: nn.Module
+    opt: torch.optim.Optimizer
+    sched: Any
+    ema: WeightEMA | None
+    adversary: Adversary | None
+    step: int
+
+    def __call__(self, x: torch.Tensor, y: torch.Tensor, where: str) -> tuple[float, torch.Tensor]:
+        """One step on the batch (x, y) (its PGD-k examples with an adversary) -> (loss, predictions)."""
+        skip = 0
+        if self.adversary is not None:
+            x, skip = self.adversary.perturb(self.model, x, y, self.step), self.adversary.skip_rotation(len(x))
+        value, pred = self.objective(x, y, skip)
+        check_loss(value.item(), where)
+        self.opt.zero_grad(set_to_none=True)
+        value.backward()
+        self.opt.step()
+        self.sched.step()
+        if self.ema is not None:
+            self.ema.update(self.model)
+        self.step += 1
+        return value.item(), pred.detach()
+
+
+def _train_epoch(step: _Step, loader: DataLoader, cfg: TrainConfig, device: torch.device, epoch: int, world: int,
+                 show: bool, t0: float) -> torch.Tensor:
     """One pass over this rank's batches -> float64 sums (loss * n, position error (m), attitude error
     (deg), n) of the rank; `show` draws a tqdm bar (images per second since `t0`)."""
-    objective.train()
+    step.objective.train()
     sums = torch.zeros(4, dtype=torch.float64)  # loss * n, position error, attitude error, n
     bar = tqdm(loader, desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="batch", disable=not show,
                leave=False, dynamic_ncols=True)
     for x, y in bar:
         # the pinned uint8 batch crosses to the device, then becomes float there
         x, y = to_input(x.to(device, non_blocking=True), cfg.channels_last), y.to(device, non_blocking=True)
-        value, pred = objective(x, y)
-        check_loss(value.item(), f"epoch {epoch + 1}")
-        opt.zero_grad(set_to_none=True)
-        value.backward()
-        opt.step()
-        sched.step()
+        value, pred = step(x, y, f"epoch {epoch + 1}")
         n = len(y)
-        pos, att = pose_errors(pred.detach().cpu().numpy(), y.cpu().numpy())
-        sums += torch.tensor([value.item() * n, pos.sum(), att.sum(), n], dtype=torch.float64)
+        pos, att = pose_errors(pred.cpu().numpy(), y.cpu().numpy())
+        sums += torch.tensor([value * n, pos.sum(), att.sum(), n], dtype=torch.float64)
         seen = sums[3].item() * world
         bar.set_postfix(loss=f"{sums[0].item() / sums[3].item():.3f}", img_s=f"{seen / (time.perf_counter() - t0):.0f}")
     bar.close()
@@ -307,18 +362,28 @@ def _train_epoch(objective: nn.Module, loader: DataLoader, opt: torch.optim.Opti
 
 
 def _epoch_stats(model: nn.Module, loss: PoseLoss, val_set: PoseDataset, cfg: TrainConfig, device: torch.device,
-                 epoch: int, sums: torch.Tensor, sched: Any, train_seconds: float, t0: float) -> EpochStats:
-    """The epoch's record: training sums (all ranks) and the validation errors and SPEED score."""
+                 epoch: int, sums: torch.Tensor, sched: Any, train_seconds: float, t0: float,
+                 adversary: Adversary | None) -> EpochStats:
+    """The epoch's record: training sums (all ranks), the validation errors and SPEED score of `model`
+    (the network validated), and with an adversary its attacked validation errors."""
     val_pred = predict_distributed(model, val_set, 2 * cfg.batch_size, device, cfg.channels_last)
     targets = val_set.targets.numpy()
     pos, att = pose_errors(val_pred, targets)
     score = speed_score(val_pred, targets)
+    adv_pos = adv_att = math.nan
+    selection = score
+    if adversary is not None:
+        adv_pred, adv_targets = adversary.validate(model, val_set, device)
+        adv_pos_errors, adv_att_errors = pose_errors(adv_pred, adv_targets)
+        adv_pos, adv_att = float(adv_pos_errors.mean()), float(adv_att_errors.mean())
+        selection = score + float(np.mean(adv_pos_errors / np.linalg.norm(adv_targets[:, :3], axis=1)))
     n = sums[3].item()
     return EpochStats(epoch=epoch + 1, loss=sums[0].item() / n, lr=float(sched.get_last_lr()[0]),
                       s_p=loss.s_p.item(), s_r=loss.s_r.item(), train_pos_m=sums[1].item() / n,
                       train_att_deg=sums[2].item() / n, val_pos_m=float(pos.mean()),
                       val_att_deg=float(att.mean()), val_score=score, images_per_s=n / train_seconds,
-                      seconds=time.perf_counter() - t0)
+                      seconds=time.perf_counter() - t0, val_adv_pos_m=adv_pos, val_adv_att_deg=adv_att,
+                      score=selection)
 
 
 def _should_stop(start: float, last_epoch_seconds: float, max_minutes: float, device: torch.device) -> bool:

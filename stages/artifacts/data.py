@@ -2,7 +2,8 @@
 
 `load_split(params, "train" | "test")` reads `datasets/labels.parquet` (the `label` stage) and
 `datasets/render/images.zarr` (the `render` stage), checks both (NaNs, the 6-D columns, image size
-against params, an empty split) with one clear StageError each, and returns the split's rows with
+against params, labels made from this very render, an empty split) with one clear StageError each, and
+returns the split's rows with
 their uint8 (N, H, W, 3) RGB images. `pose_dataset(split, ...)` wraps it as a torch Dataset.
 Label column `index` is the image's row in the zarr array `images`.
 """
@@ -15,10 +16,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.formats.renders import read_renders
+from pipeline.formats.renders import META, read_renders
+from pipeline.io.atomic import read_json
 from pipeline.io.tables import read_parquet
 from pipeline.pose.labels import POSITION, QUAT, SIXD
-from stages.artifacts.paths import IMAGES, LABELS
+from stages.artifacts.paths import IMAGES, LABELS, RENDER
 from stages.config.build import augment_config
 from stages.errors import StageError
 from stages.config.params import check_render_fingerprint
@@ -26,6 +28,7 @@ from stages.config.schema import Params
 from stages.config.sections import Augment
 
 REQUIRED = ["index", *POSITION, *QUAT, *SIXD, "range", "split"]
+RENDER_KEY = "render_fingerprint"   # label table metadata (DataFrame.attrs): the fingerprint of the render it labels
 # Above this many bytes a split is read from the store item by item instead of into memory.
 PRELOAD_LIMIT_BYTES = 8 << 30
 
@@ -60,10 +63,16 @@ class _Rows:
         return self.array[int(self.rows[i])]
 
 
-def load_labels(path: Path | str = LABELS) -> pd.DataFrame:
-    """Read and validate the label table: required columns, no NaN or inf, a valid 6-D rotation per row."""
+def load_labels(path: Path | str = LABELS, render: Path | str = RENDER) -> pd.DataFrame:
+    """Read and validate the label table: made from the render in the folder `render` (the fingerprint in
+    its meta.json, which `rpod label` copies into the table), required columns, no NaN or inf, a valid 6-D
+    rotation per row."""
     path = Path(path)
     df = read_parquet(path, "label table")
+    made, have = df.attrs.get(RENDER_KEY), read_json(Path(render) / META).get("fingerprint")
+    if made != have:
+        raise StageError(f"{path} labels another render than {render} (render fingerprint "
+                         f"{made or 'not recorded'}, {render} has {have}): re-run `rpod label`")
     extra6 = sorted(c for c in df.columns if c.startswith("r") and c[1:].isdigit() and c not in SIXD)
     missing6 = [c for c in SIXD if c not in df.columns]
     if missing6 or extra6:
@@ -108,8 +117,8 @@ def load_split(params: Params, split: str, *, images_path: Path | str = IMAGES,
     """Rows of `split` ("train" or "test") with their images; `preload` None = when it fits in memory."""
     from tqdm import tqdm
 
-    labels = load_labels(labels_path)
     images = open_images(params, images_path)
+    labels = load_labels(labels_path, Path(images_path).parent)
     rows = labels[labels["split"] == split].sort_values("index").reset_index(drop=True)
     if rows.empty:
         found = sorted(map(str, labels["split"].unique()))

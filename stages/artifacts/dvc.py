@@ -48,7 +48,10 @@ def make_hint(path: Path | str) -> str:
 
 
 def write_metrics(path: Path | str, metrics: dict[str, Any], profile: str) -> None:
-    """Write a stage's metrics JSON stamped with the params profile it ran on (`profile_name`) and the UTC time."""
-    stamp = {"profile": profile,
+    """Write a stage's metrics JSON stamped with the params profile it ran on (`profile_name`), the CPU
+    instruction-set cap torch ran with (stages/config/cpu.py: scripts/variance.py reads it) and the UTC time."""
+    from stages.config.cpu import isa_stamp
+
+    stamp = {"profile": profile, "cpu_isa": isa_stamp(),
              "produced": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
     write_json(path, {**metrics, **stamp})

@@ -8,27 +8,29 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.formats.models import loss_from_checkpoint, model_from_checkpoint, read_pose
-from pipeline.io.atomic import file_hash, read_json
-from stages.artifacts.paths import DEFENSE, DETECTOR, POSE
+from pipeline.io.atomic import file_hash
+from stages.artifacts.paths import DEFENSE, DETECTOR, LABELS, POSE
 from stages.config.build import defense_settings
 from stages.config.schema import Params
 from stages.errors import StageError
 
-DEFENSE_FORMAT = "rpodguard-defense/1"
-
-
-def expected(params: Params) -> dict[str, Any]:
-    """The architecture and input size that params.yaml asks for."""
-    return {"arch": {"width": float(params.train.width), "dropout": float(params.train.dropout)},
-            "input_size": [params.render.height, params.render.width]}
+def expected(params: Params, clamped: bool = False) -> dict[str, Any]:
+    """The architecture and input size that params.yaml asks for (`clamped`: of the robust model, whose
+    black-level clamp is train.adversarial.black_level)."""
+    arch = {"width": float(params.train.width), "dropout": float(params.train.dropout)}
+    if clamped:
+        arch["black_level"] = float(params.train.adversarial.black_level)
+    return {"arch": arch, "input_size": [params.render.height, params.render.width]}
 
 
 def read_checked(path: Path | str = POSE, params: Params | None = None) -> dict[str, Any]:
-    """A pose checkpoint dict (`read_pose`); with params, refuse an architecture/input-size mismatch."""
+    """A pose checkpoint dict (`read_pose`); with params, refuse an architecture/input-size mismatch (a
+    clamped checkpoint, models/pose_robust.pt, is checked against train.adversarial.black_level too) and a
+    model trained on another datasets/labels.parquet than the one there (its recorded hash)."""
     path = Path(path)
     ckpt = read_pose(path)
     if params is not None:
-        want = expected(params)
+        want = expected(params, "black_level" in ckpt["arch"])
         have = {"arch": ckpt["arch"], "input_size": list(ckpt["input_size"])}
         diffs = [f"{k}={have['arch'].get(k)} (params: {v})" for k, v in want["arch"].items() if have["arch"].get(k) != v]
         if have["input_size"] != want["input_size"]:
@@ -36,6 +38,9 @@ def read_checked(path: Path | str = POSE, params: Params | None = None) -> dict[
         if diffs:
             raise StageError(f"pose checkpoint {path} does not match params.yaml: {', '.join(diffs)}; "
                              f"re-run `rpod train` or restore the params it was trained with")
+        if "labels_hash" in ckpt and LABELS.exists() and file_hash(LABELS) != ckpt["labels_hash"]:
+            raise StageError(f"pose checkpoint {path} was trained on another {LABELS} (relabelled since); "
+                             f"re-run `rpod train`")
     return ckpt
 
 
@@ -61,8 +66,9 @@ class Pose:
 
 
 def load_pose(params: Params, path: Path | str = POSE) -> Pose:
-    """models/pose.pt read once, checked against params (architecture, input size), the network placed on
-    the `device` param's device (with `amp`); it takes inputs from any device and answers on theirs."""
+    """models/pose.pt (or the robust model, `path` = POSE_ROBUST) read once, checked against params
+    (architecture, input size), the network placed on the `device` param's device (with `amp`); it takes
+    inputs from any device and answers on theirs."""
     from stages.config.device import torch_device
 
     ckpt = read_checked(path, params)
@@ -83,36 +89,38 @@ def load_chain(params: Params, pose_path: Path | str = POSE,
 
 @dataclass(frozen=True)
 class DefenseModel:
-    """The calibrated defense (models/defense.json): settings from params.defense, the detector's
-    threshold and the measurement-noise model fitted on validation trajectories."""
+    """The calibrated defense (models/defense.json): settings from params.defense with the calibrated
+    detector threshold and CUSUM threshold, the measurement-noise model fitted on validation
+    trajectories, and the alert limit (params.guidance, params.integrity) its availability is judged by."""
 
     settings: Any        # pipeline.defense.fusion.DefenseSettings
     motion: Any          # pipeline.defense.gate.MotionSettings
     noise: Any           # pipeline.defense.noise.NoiseModel
     calibration: dict[str, Any]
+    alert: Any = None    # pipeline.evaluation.integrity.AlertLimitSettings
 
     def new(self, fusion: str | None = None) -> Any:
-        """A fresh pipeline.defense.fusion.Defense (one per trajectory or closed-loop run), optionally with another fusion."""
+        """A fresh pipeline.defense.fusion.Defense (one per trajectory or closed-loop run), optionally with
+        another fusion; its availability is judged against the alert limit."""
         import dataclasses
+        from functools import partial
 
         from pipeline.defense.fusion import Defense
+        from pipeline.evaluation.integrity import alert_limit
 
         s = self.settings if fusion is None else dataclasses.replace(self.settings, fusion=fusion)
-        return Defense(s, self.motion, self.noise)
+        return Defense(s, self.motion, self.noise, None if self.alert is None else partial(alert_limit, settings=self.alert))
 
 
 def load_defense(p: Params, model_hash: str, threshold: float) -> DefenseModel:
-    """models/defense.json checked against the pose model and detector it was calibrated with, and params."""
-    from pipeline.defense.noise import NoiseModel
+    """models/defense.json checked against the pose model and detector (checkpoint `threshold`) it was
+    calibrated with, and params."""
+    import dataclasses
 
-    cal = read_json(DEFENSE)
-    if cal.get("format") != DEFENSE_FORMAT:
-        raise StageError(f"{DEFENSE} is not a {DEFENSE_FORMAT} file; re-run `rpod calibrate`")
-    if cal.get("pose_model_hash") != model_hash or abs(float(cal.get("threshold", -1)) - threshold) > 1e-9:
-        raise StageError(f"{DEFENSE} was calibrated for another pose model or detector; re-run `rpod calibrate`")
-    try:
-        noise = NoiseModel(**{k: tuple(v) if isinstance(v, list) else v for k, v in cal["noise"].items()})
-    except (KeyError, TypeError, ValueError) as e:
-        raise StageError(f"{DEFENSE}: bad noise model ({e}); re-run `rpod calibrate`") from None
-    settings, motion = defense_settings(p.defense, threshold)
-    return DefenseModel(settings, motion, noise, cal)
+    from pipeline.formats.defense import read_calibration
+    from stages.config.build import alert_limit_settings
+
+    cal = read_calibration(DEFENSE, model_hash, threshold)
+    settings, motion = defense_settings(p.defense, cal.threshold)
+    return DefenseModel(settings, dataclasses.replace(motion, cusum_threshold=cal.cusum_threshold), cal.noise,
+                        cal.raw, alert_limit_settings(p))

@@ -29,8 +29,8 @@ def _outputs(stage: str, *paths: str) -> tuple[Path, ...]:
     return out
 
 
-RENDER, IMAGES, PREVIEWS = _outputs("render", "datasets/render", "datasets/render/images.zarr",
-                                    "reports/figures/previews")
+RENDER, IMAGES, PREVIEWS, RENDER_METRICS = _outputs("render", "datasets/render", "datasets/render/images.zarr",
+                                                    "reports/figures/previews", "reports/metrics/render.json")
 LABELS, DATASET_CARD = _outputs("label", "datasets/labels.parquet", "reports/dataset.md")
 POSE, POSE_REPORT, TRAIN_METRICS, TRAIN_LIVE = _outputs("train", "models/pose.pt", "reports/pose.md",
                                                         "reports/metrics/train.json", "dvclive/train")
@@ -41,13 +41,20 @@ GUIDANCE_REPORT, GUIDANCE_FIGURE, GUIDANCE_DEFENDED_FIGURE, GUIDANCE_METRICS = _
     "guidance", "reports/guidance.md", "reports/figures/guidance_trajectories.png",
     "reports/figures/guidance_defended.png", "reports/metrics/guidance.json")
 (SHAP,) = _outputs("shap", "datasets/shap.zarr")
-DETECTOR, DETECT_REPORT, DETECT_METRICS, DETECT_LIVE, ROC_DIR = _outputs(
-    "detect", "models/detector.pt", "reports/detector.md", "reports/metrics/detect.json", "dvclive/detect",
-    "reports/plots/roc")
-EVAL_RENDER, VAL_RENDER = _outputs("eval_render", "datasets/eval_render", "datasets/val_render")
+DETECTOR, DETECT_REPORT, DETECT_METRICS, DETECT_LIVE = _outputs(
+    "detect", "models/detector.pt", "reports/detector.md", "reports/metrics/detect.json", "dvclive/detect")
+ROC_DATA = DETECT_LIVE / "plots" / "sklearn"   # DVCLive's log_sklearn_plot("roc", name=D): D.json per detector
+EVAL_RENDER, VAL_RENDER, EVAL_RENDER_METRICS = _outputs("eval_render", "datasets/eval_render", "datasets/val_render",
+                                                        "reports/metrics/eval_render.json")
+# the detector split (`rpod eval_render --detector`): the images `rpod shap` explains, never seen in training
+DETECT_RENDER, DETECT_RENDER_METRICS = _outputs("detect_render", "datasets/detect_render",
+                                                "reports/metrics/detect_render.json")
 (DEFENSE,) = _outputs("calibrate", "models/defense.json")
 EVALUATE_REPORT, EVALUATE_FIGURE, EVALUATE_METRICS = _outputs(
     "evaluate", "reports/integrated.md", "reports/figures/timeline.png", "reports/metrics/evaluate.json")
+# the robust pose model (`rpod train --robust`: adversarial training behind a black-level clamp) and its page
+POSE_ROBUST, ROBUST_REPORT, ROBUST_METRICS, ROBUST_LIVE = _outputs(
+    "robust", "models/pose_robust.pt", "reports/pose_robust.md", "reports/metrics/robust.json", "dvclive/robust")
 # a second pose model (`rpod train --surrogate`) for black-box transfer
 (SURROGATE,) = _outputs("surrogate", "models/surrogate.pt")
 ROBUSTNESS_REPORT, ROBUSTNESS_FIGURE, ROBUSTNESS_METRICS, INTEGRITY_FIGURE = _outputs(
@@ -65,5 +72,5 @@ REPORT_FIGURES = {path.stem: path for path in _FIGURES}
 # schedule adds it to evaluate.seed + the trajectory number), so no two stages draw the same stream
 SEED_OFFSET: dict[str, int] = {
     "render": 100, "label": 200, "train": 300, "attack": 400, "guidance": 500, "shap": 500, "detect": 600,
-    "lab_models": 700, "robustness": 1500, "lab": 0, "evaluate_schedule": 17,
+    "lab_models": 700, "robustness": 1500, "lab": 0, "evaluate_schedule": 17, "robust": 1600,
 }

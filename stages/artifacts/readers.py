@@ -2,10 +2,11 @@
 
 Readers check what they read and raise a DataError (or StageError) naming the file and the stage that writes it:
 - `read_render_store` (render output), `read_eval_render` (eval_render output, the evaluation or the
-  defense's validation trajectories, checked against params), `chaser_motion` (what the chaser knows of
-  itself on those), `read_shap_store` (checked SHAP store);
-- `SampleImages`: the image of a SHAP sample (split, label index, eps) from the labelled renders,
-  the attack stage's adv.zarr, or the same FGSM (shared by `rpod shap` and `rpod detect`).
+  defense's validation trajectories, checked against params), `read_detect_render` (the detector split,
+  `rpod eval_render --detector`), `chaser_motion` (what the chaser knows of itself on those),
+  `read_shap_store` (checked SHAP store);
+- `SampleImages`: the image of a SHAP sample (detector-split index, eps): the clean render, or the same
+  FGSM with the same 8-bit quantisation (shared by `rpod shap` and `rpod detect`).
 """
 from __future__ import annotations
 
@@ -16,14 +17,14 @@ import numpy as np
 
 from pipeline.formats.renders import read_renders
 from pipeline.io.store import open_zarr
-from stages.artifacts.data import load_split
-from stages.artifacts.paths import ADV, EVAL_RENDER, POSE, VAL_RENDER
-from stages.config.params import eval_render_fingerprint, val_render_fingerprint
+from pipeline.pose.labels import POSITION, SIXD
+from stages.artifacts.paths import DETECT_RENDER, EVAL_RENDER, POSE, VAL_RENDER
+from stages.config.params import detect_render_fingerprint, eval_render_fingerprint, val_render_fingerprint
 from stages.config.schema import Params
 from stages.errors import StageError
 
-SPLIT_CODES = {"train": 0, "test": 1}   # `split` codes of the SHAP store
 BATCH = 64                              # images per forward pass when rebuilding SHAP sample images
+PRELOAD_BYTES = 8 << 30                 # a detector split up to this size is read into memory at once
 
 
 def adv_array_name(eps: float) -> str:
@@ -43,14 +44,27 @@ def read_eval_render(p: Params, validation: bool = False) -> tuple[np.ndarray, A
     current params; the evaluation trajectories, or with `validation` the defense's (datasets/val_render)."""
     folder, fingerprint = (VAL_RENDER, val_render_fingerprint(p)) if validation else (EVAL_RENDER,
                                                                                    eval_render_fingerprint(p))
+    r = _trajectory_renders(folder, fingerprint, "rpod eval_render", "eval_render", "evaluation")
+    return r.images[:], r.poses, r.meta
 
+
+def read_detect_render(p: Params) -> tuple[Any, Any, dict[str, Any]]:
+    """The detector split (`rpod eval_render --detector`): (images: zarr array (N, H, W, 3) uint8, read
+    lazily; poses table; meta), checked against the current params."""
+    r = _trajectory_renders(DETECT_RENDER, detect_render_fingerprint(p), "rpod eval_render --detector",
+                            "detect_render", "detector-split")
+    return r.images, r.poses, r.meta
+
+
+def _trajectory_renders(folder: Path, fingerprint: str, command: str, stage: str, what: str) -> Any:
+    """A folder of rendered trajectories (pipeline.formats.renders), refused when params changed since;
+    `what` names them in messages ("evaluation": evaluation renders, evaluation poses)."""
     def check(meta: dict[str, Any]) -> None:
         if not meta.get("complete") or meta.get("fingerprint") != fingerprint:
             raise StageError(f"{folder} was rendered with other params (or is incomplete); "
-                             f"run `rpod eval_render` (dvc repro eval_render)")
+                             f"run `{command}` (dvc repro {stage})")
 
-    r = read_renders(folder, "evaluation renders", "run `rpod eval_render`", poses="evaluation poses", check=check)
-    return r.images[:], r.poses, r.meta
+    return read_renders(folder, f"{what} renders", f"run `{command}`", poses=f"{what} poses", check=check)
 
 
 def chaser_motion(poses: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -68,7 +82,7 @@ def chaser_motion(poses: Any) -> tuple[np.ndarray, np.ndarray]:
 def read_shap_store(path: Path, model_hash: str) -> dict[str, Any]:
     """The SHAP store's arrays and attrs, checked: model hash, shapes, NaNs, both classes present."""
     root = open_zarr(path, "SHAP store")
-    need = ["values", "features", "is_adversarial", "eps", "source_index", "split"]
+    need = ["values", "features", "is_adversarial", "eps", "source_index"]
     missing = [k for k in need if k not in root]
     if missing:
         raise StageError(f"{path} lacks arrays {missing} (re-run `rpod shap`)")
@@ -103,71 +117,42 @@ def read_shap_store(path: Path, model_hash: str) -> dict[str, Any]:
 
 
 def _key(eps: float) -> float:
-    """eps as a lookup key: the SHAP store keeps eps as float32, params and adv.zarr as float64."""
+    """eps as the attack takes it: the SHAP store keeps eps as float32, params as float64 (0.05, not 0.0500000007)."""
     return round(float(eps), 6)
 
 
 class SampleImages:
-    """The image of a SHAP sample (split, label index, eps): the two pose splits, the model and attack
-    loss for FGSM, and the usable arrays of adv.zarr (FGSM by this pose model on `attack.loss`)."""
+    """The image of a SHAP sample (row of the detector split, eps): the clean render of
+    datasets/detect_render, or its FGSM at eps by the pose model on `attack.loss`, stored as 8 bits
+    (`pipeline.attacks.gradient.stored_attack`, as a camera would deliver it)."""
 
-    def __init__(self, params: Params, model: Any, loss_fn: Any, model_hash: str):
+    def __init__(self, params: Params, model: Any, loss_fn: Any):
         self.model, self.loss_fn = model, loss_fn
-        self.splits = {name: load_split(params, name) for name in SPLIT_CODES}
-        self.row_of = {name: {int(ix): r for r, ix in enumerate(sp.labels["index"].to_numpy())}
-                       for name, sp in self.splits.items()}
-        self.stack: dict[float, Any] = {}
-        self.stack_row: dict[int, int] = {}
-        self.stack_note = "no datasets/attack/adv.zarr"
-        if ADV.exists():
-            root = open_zarr(ADV, "adversarial store")
-            attrs = dict(root.attrs)
-            if attrs.get("method") != "fgsm":
-                self.stack_note = f"adv.zarr was made with {attrs.get('method')!r}, not FGSM"
-            elif attrs.get("model_hash") != model_hash:
-                self.stack_note = "adv.zarr was made with another pose checkpoint"
-            elif attrs.get("loss") != params.attack.loss:
-                self.stack_note = f"adv.zarr attacked the {attrs.get('loss')!r} loss, not attack.loss"
-            else:
-                self.stack = {_key(e): root[adv_array_name(e)] for e in attrs.get("eps", [])
-                              if adv_array_name(e) in root}
-                self.stack_row = {int(ix): r for r, ix in enumerate(root["source_index"][:])}
-                self.stack_note = f"adv.zarr holds eps {sorted(self.stack)} for {len(self.stack_row)} test images"
+        images, self.poses, _ = read_detect_render(params)
+        self.clean = images[:] if int(np.prod(images.shape)) <= PRELOAD_BYTES else images
+        self.targets = self.poses[POSITION + SIXD].to_numpy(np.float32)   # (N, 9): m, 6-D
 
-    def in_stack(self, split: str, index: int, eps: float) -> bool:
-        return split == "test" and _key(eps) in self.stack and index in self.stack_row
+    def __len__(self) -> int:
+        return len(self.targets)
 
-    def images(self, split: np.ndarray, index: np.ndarray, eps: np.ndarray) -> np.ndarray:
-        """uint8 (N, H, W, 3) images of samples given by split name, label index and eps (0 = clean)."""
+    def images(self, index: np.ndarray, eps: np.ndarray) -> np.ndarray:
+        """uint8 (N, H, W, 3) images of samples given by detector-split row and eps (0 = clean)."""
         import torch
 
         from pipeline.attacks.gradient import stored_attack
 
-        out: list[np.ndarray | None] = [None] * len(index)
-        todo: dict[tuple[str, float], list[int]] = {}
-        for k, (sp, ix, e) in enumerate(zip(split, index, eps)):
-            if e > 0 and self.in_stack(sp, int(ix), float(e)):
-                out[k] = np.asarray(self.stack[_key(e)][self.stack_row[int(ix)]])
-            else:
-                todo.setdefault((sp, _key(e)), []).append(k)
-        for (sp, e), ks in todo.items():
-            rows = [self.row_of[sp][int(index[k])] for k in ks]
-            data = self.splits[sp]
-            clean = np.stack([np.asarray(data.images[r]) for r in rows])
-            if e == 0:
-                imgs = clean
-            else:
-                dev = self.model.device
-                x = torch.from_numpy(clean).to(dev).permute(0, 3, 1, 2).float() / 255
-                y = torch.as_tensor(data.targets[rows]).to(dev)
-                adv = stored_attack(self.model, self.loss_fn, e)(x, y)
-                imgs = torch.round(adv * 255).to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
-            for k, im in zip(ks, imgs):
-                out[k] = im
-        return np.stack(out)  # type: ignore[arg-type]
+        index, keys = np.asarray(index, dtype=np.int64), np.array([_key(x) for x in eps])
+        out = np.stack([np.asarray(self.clean[int(i)]) for i in index])
+        for e in sorted(set(keys.tolist()) - {0.0}):
+            ks = np.flatnonzero(keys == e)
+            dev = self.model.device
+            x = torch.from_numpy(out[ks]).to(dev).permute(0, 3, 1, 2).float() / 255
+            y = torch.as_tensor(self.targets[index[ks]]).to(dev)
+            adv = stored_attack(self.model, self.loss_fn, e)(x, y)
+            out[ks] = torch.round(adv * 255).to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
+        return out
 
-    def iter_images(self, split: np.ndarray, index: np.ndarray, eps: np.ndarray,
-                    batch: int = BATCH) -> Iterator[tuple[slice, np.ndarray]]:
+    def iter_images(self, index: np.ndarray, eps: np.ndarray, batch: int = BATCH) -> Iterator[tuple[slice, np.ndarray]]:
         for s in range(0, len(index), batch):
             sl = slice(s, s + batch)
-            yield sl, self.images(split[sl], index[sl], eps[sl])
+            yield sl, self.images(index[sl], eps[sl])

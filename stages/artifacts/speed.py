@@ -60,9 +60,10 @@ def check_images(names: list[Path], n_train: int, train: Path, test: Path) -> No
                          f"labelled images missing)")
 
 
-def import_source(p: Params, out: Path) -> None:
+def import_source(p: Params, out: Path) -> float:
     """Import the SPEED/SPEED+ folder of render.source into `out` (images.zarr, poses.parquet with a
-    `split` and `filename` column, meta.json with K scaled to render.width x height), atomically."""
+    `split` and `filename` column, meta.json with K scaled to render.width x height), atomically;
+    returns the seconds it took (for reports/metrics/render.json, never meta.json)."""
     import pandas as pd
     import zarr
     from tqdm import tqdm
@@ -106,10 +107,10 @@ def import_source(p: Params, out: Path) -> None:
         seconds = time.perf_counter() - t0
         write_json(tmp / "meta.json", {
             "complete": True, "fingerprint": params_mod.render_fingerprint(p), "frames": n, "width": W,
-            "height": H, "K": K.K, "render": dataclasses.asdict(r), "seed": p.seed, "seconds": seconds,
-            "seconds_per_image": seconds / n, "chunk": chunk,
+            "height": H, "K": K.K, "render": dataclasses.asdict(r), "seed": p.seed, "chunk": chunk,
             "camera": {"ref_width": cam.width, "ref_height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
                        "cy": cam.cy, "dist_coeffs_removed": dist.tolist()},
             "source": {"folder": str(folder), "train": str(train.relative_to(folder)),
                        "test": str(test.relative_to(folder)), "train_images": len(parts[0][2]),
                        "test_images": len(parts[1][2])}})
+    return seconds

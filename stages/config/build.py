@@ -1,5 +1,5 @@
 """Params -> library objects: the one place where typed params (stages.config.schema) become the settings
-pipeline/ takes (Intrinsics, SceneSettings, the attack, TrainConfig, AugmentConfig, DefenseSettings,
+pipeline/ takes (Intrinsics, SceneSettings, the attack, TrainConfig, AdversarialConfig, AugmentConfig, DefenseSettings,
 MotionSettings, AlertLimitSettings, EngineSettings) and the lab mock-up policy. Bad values raise a StageError naming the key.
 """
 from __future__ import annotations
@@ -13,7 +13,7 @@ from typing import Any
 
 from stages.config.params import given
 from stages.config.schema import Params
-from stages.config.sections import Attack, Augment, Guidance, Render, Train
+from stages.config.sections import Adversarial, Attack, Augment, Guidance, Render, Train
 from stages.config.evaluation import Defense
 from stages.errors import StageError
 
@@ -99,6 +99,30 @@ def train_config(train: Train, epochs: int, seed: int) -> Any:
     return settings_of(TrainConfig, train, epochs=epochs, seed=seed)
 
 
+def robust_train_config(train: Train, seed: int) -> Any:
+    """The TrainConfig of `rpod train --robust` (train.adversarial): the train recipe for adversarial.epochs
+    epochs; fine-tuning (init: standard) on a cosine schedule warming up from min(train.lr_base, lr_max) to
+    adversarial.lr_max over adversarial.warmup_epochs (ValueError on a bad value)."""
+    from pipeline.pose.train import TrainConfig
+
+    adv = train.adversarial
+    if adv.init == "scratch":
+        return settings_of(TrainConfig, train, epochs=adv.epochs, seed=seed)
+    return settings_of(TrainConfig, train, epochs=adv.epochs, seed=seed, schedule="cosine",
+                       lr_base=min(float(train.lr_base), float(adv.lr_max)), lr_max=float(adv.lr_max),
+                       warmup_epochs=float(adv.warmup_epochs))
+
+
+def adversarial_config(adversarial: Adversarial) -> Any:
+    """The AdversarialConfig of the `train.adversarial` params section."""
+    from pipeline.pose.adversarial import AdversarialConfig
+
+    try:
+        return settings_of(AdversarialConfig, adversarial)
+    except ValueError as e:
+        raise StageError(f"params.yaml: bad train.adversarial ({e})") from None
+
+
 def augment_config(augment: Augment) -> Any:
     """The AugmentConfig of the `train.augment` params section."""
     from pipeline.pose.augment import AugmentConfig
@@ -110,39 +134,37 @@ def augment_config(augment: Augment) -> Any:
 
 
 def defense_settings(defense: Defense, threshold: float) -> tuple[Any, Any]:
-    """(DefenseSettings, MotionSettings) of params.defense with the detector's `threshold`."""
+    """(DefenseSettings, MotionSettings) of params.defense with the detector's `threshold`; a doubt
+    zone (`update_below`) that starts above the threshold starts at it (calibrate may lower the threshold)."""
     from pipeline.defense.fusion import DefenseSettings
-    from pipeline.defense.kalman import MotionSettings
+    from pipeline.defense.gate import MotionSettings
 
+    doubt = None if defense.update_below is None else min(defense.update_below, threshold)
     try:
-        return settings_of(DefenseSettings, defense, threshold=threshold), settings_of(MotionSettings, defense)
+        return (settings_of(DefenseSettings, defense, threshold=threshold, update_below=doubt),
+                settings_of(MotionSettings, defense))
     except ValueError as e:
         raise StageError(f"params.yaml: {e}") from None
 
 
 # AlertLimitSettings field -> the param that feeds it (the guidance law's constants are guidance's own)
 ALERT_LIMIT_KEYS = {"tolerance": "guidance.tolerance", "max_step": "guidance.max_step",
-                    "slack_steps": "guidance.slack_steps", "collision_range": "integrity.collision_range_m"}
+                    "slack_steps": "guidance.slack_steps", "collision_range": "integrity.collision_range_m",
+                    "fixed": "integrity.alert_limit_m"}
 
 
 def alert_limit_settings(params: Params) -> Any:
     """The AlertLimitSettings of pipeline.evaluation.integrity: the guidance law's tolerance, step limit and
-    slack (params.guidance) with params.integrity's collision range."""
+    slack (params.guidance) with params.integrity's collision range, or integrity.alert_limit_m (m) when set."""
     from pipeline.evaluation.integrity import AlertLimitSettings
 
     g, i = params.guidance, params.integrity
     try:
-        return AlertLimitSettings(float(g.tolerance), float(g.max_step), g.slack_steps, float(i.collision_range_m))
+        return AlertLimitSettings(float(g.tolerance), float(g.max_step), g.slack_steps, float(i.collision_range_m),
+                                  None if i.alert_limit_m is None else float(i.alert_limit_m))
     except ValueError as e:
         name = next(k for k in ALERT_LIMIT_KEYS if f" {k} must" in str(e))
         raise StageError(f"params.yaml {ALERT_LIMIT_KEYS[name]}: {e}") from None
-
-
-def integrity_limit(params: Params) -> Any:
-    """The alert limit of pipeline.evaluation.integrity_runs: integrity.alert_limit_m (m) when set, else the
-    AlertLimitSettings that derive AL(range) from the guidance law."""
-    fixed = params.integrity.alert_limit_m
-    return alert_limit_settings(params) if fixed is None else float(fixed)
 
 
 def burst_attacker(params: Params, seed: int) -> Any:
@@ -150,8 +172,8 @@ def burst_attacker(params: Params, seed: int) -> Any:
     from pipeline.attacks.suite import get_attacker
     from pipeline.evaluation.integrity import alert_limit
 
-    i, limit = params.integrity, integrity_limit(params)
-    al = limit if isinstance(limit, float) else (lambda rng: alert_limit(rng, limit))
+    i, limit = params.integrity, alert_limit_settings(params)
+    al = lambda rng: alert_limit(rng, limit)  # noqa: E731
     try:
         return get_attacker("burst", alert_limit=al, cap=float(i.burst_cap), steps=i.burst_steps,
                             restarts=i.burst_restarts, lambdas=tuple(float(v) for v in i.burst_lambdas), seed=seed)

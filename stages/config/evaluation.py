@@ -41,23 +41,36 @@ class Evaluate:
 
 
 @dataclass(frozen=True)
+class Shares:
+    """Fractions of defense.target_false_alarm per check (they add up to 1)."""
+
+    detector: Annotated[float, In("[0, 1]", "fraction of the budget")]
+    gate: Annotated[float, In("[0, 1]", "fraction of the budget")]
+    sequential: Annotated[float, In("[0, 1]", "fraction of the budget")]
+
+
+@dataclass(frozen=True)
 class Defense:
     """The defense (pipeline/defense/kalman.py and pipeline/defense/fusion.py); bad values are refused naming defense.<key>."""
 
-    fusion: Literal["or", "paper", "motion"]   # or: detector or motion gate | paper: detector alone | motion: gate alone
+    fusion: Literal["or", "paper", "motion"]   # or: any check | paper: detector alone | motion: gate + sequential test
     false_alarm: OpenProbability   # gate false-alarm probability per frame on consistent motion
-    position_noise: Noise          # metres per frame: std of the unmodelled displacement
-    velocity_noise: Noise          # metres per frame per frame: std of the drift-velocity change
+    position_noise: Noise          # metres per frame: std of the commanded displacement's execution error
     attitude_noise_deg: Annotated[float, In("(0, 180]", "degrees per frame")]   # std of the unmodelled target rotation
     attitude_rate_noise_deg: Annotated[float, In("(0, 180]", "degrees per frame per frame")]   # std of the rate change
     soft_gate: Annotated[float, In("(0, 1]", "fraction of the gate")]   # NIS fraction above which frames are down-weighted
     reacquire_after: Annotated[int, In("[2, 10000000]", "frames")]   # M: agreeing rejected frames that restart the filter
+    cusum_reference: Annotated[float, In("[0, 100]", "standard deviations")]   # c of the sequential test
+    integrity_risk: OpenProbability   # per frame, of the protection level's noise term
+    trusted_start: Annotated[int, In("[0, 10000000]", "frames")]   # assumed attack-free after the filter's first start
     hold_after: Frames             # K: consecutive flags that declare the estimate lost -> hold
     release_after: Frames          # consecutive clean frames that end a hold
     update_below: Optional[OpenProbability]  # detector probability from which a frame does not update the
                                      # filter; None: the detector's threshold
     noise_bins: Annotated[int, In("[2, 1000]", "range bins")]   # of the measurement-noise fit
     target_false_alarm: OpenProbability   # fraction of clean validation frames the defended chain may flag (calibrate)
+    shares: Shares               # of target_false_alarm: detector, gate, sequential test
+    allow_unmet: bool            # calibrate continues when a check cannot meet its share (reports say so)
     val_trajectories: Annotated[int, In("[1, 100000]", "trajectories")]   # validation approaches the noise is fitted on
     val_seed: Seed               # their seed: never evaluate.seed
     harm_m: Metres               # metres: an attacked frame with a larger position error is harmful
@@ -66,7 +79,7 @@ class Defense:
         def bad(key: str, rule: str) -> ParamsError:
             return ParamsError(f"params.yaml defense.{key} must be {rule}, got {getattr(self, key)!r}")
 
-        for key in ("position_noise", "velocity_noise", "attitude_noise_deg", "attitude_rate_noise_deg"):
+        for key in ("position_noise", "attitude_noise_deg", "attitude_rate_noise_deg"):
             if not getattr(self, key) > 0:
                 raise bad(key, "> 0 (a noise std)")
         if not 0 < self.false_alarm < 1:
@@ -83,6 +96,10 @@ class Defense:
                 raise bad(key, f"a whole number >= {low}")
         if not self.harm_m > 0:
             raise bad("harm_m", "> 0 (metres)")
+        total = self.shares.detector + self.shares.gate + self.shares.sequential
+        if abs(total - 1.0) > 1e-6:
+            raise ParamsError(f"params.yaml defense.shares must add up to 1 (fractions of target_false_alarm), "
+                              f"got {total:g}")
 
 
 @dataclass(frozen=True)

@@ -75,6 +75,21 @@ def val_render_fingerprint(params: Params) -> str:
                         "defense": {"val_trajectories": d.val_trajectories, "val_seed": d.val_seed}})
 
 
+def detect_render_fingerprint(params: Params) -> str:
+    """Hash of the params that decide the detector split's images (datasets/detect_render)."""
+    s = params.shap
+    return fingerprint({"seed": params.seed, "camera": dataclasses.asdict(params.camera), "render": render_key(params),
+                        "evaluate": {"lateral_range": params.evaluate.lateral_range},
+                        "shap": {"frames": s.frames, "seed": s.seed, "trajectories": detector_trajectories(params)}})
+
+
+def detector_trajectories(params: Params) -> int:
+    """Trajectories of the detector split: enough `shap.frames`-frame ones for the SHAP sample plan's
+    source images (pipeline.shap.plan_sources)."""
+    s = params.shap
+    return -(-max(s.normal, s.per_eps * len(s.eps)) // s.frames)
+
+
 def check_render_fingerprint(meta: dict[str, Any], params: Params, path: Path | str) -> None:
     """Refuse renders (meta.json at `path`) made with other `seed`/`camera`/`render` params than params.yaml."""
     if meta.get("fingerprint") != render_fingerprint(params):

@@ -119,6 +119,36 @@ class Augment:
 
 
 @dataclass(frozen=True)
+class Adversarial:
+    """`rpod train --robust`: the robust pose model (models/pose_robust.pt), PGD-k adversarial training
+    behind the black-level clamp."""
+
+    eps: Eps                # L-inf training budget, pixels in [0, 1], reached after ramp_epochs
+    steps: Annotated[int, In("[1, 1000]", "PGD steps")]              # k of PGD-k
+    ramp_epochs: Annotated[float, In("[0, 1000000]", "epochs")]      # eps ramps linearly from 0
+    position_weight: Probability   # weight of the position term in the attack's inner loss
+    fraction: Annotated[float, In("(0, 1]", "share of each batch")]  # attacked share of each batch
+    attacked_rotation: bool # fit the rotation of attacked images too (false: their position only)
+    black_level: Annotated[float, In("[0, 1)", "pixel units")]       # the input clamp's threshold, > eps
+    init: Literal["standard", "scratch"]   # fine-tune models/pose.pt, or train from the seed
+    epochs: Annotated[int, In("[1, 1000000]", "epochs")]
+    lr_max: Annotated[float, In("(0, 10]", "learning rate")]        # the cosine schedule's peak
+    warmup_epochs: Annotated[float, In("[0, 1000000]", "epochs")]
+    val_steps: Annotated[int, In("[1, 1000]", "PGD steps")]          # the per-epoch validation attack
+    val_frames: Count       # validation images it attacks (seeded subset)
+    eval_eps: list[Eps]     # budgets of the FGSM / PGD table of reports/pose_robust.md
+    eval_steps: Annotated[int, In("[1, 100000]", "PGD steps")]
+    eval_frames: Count      # test frames of that table (seeded sample)
+
+    def __post_init__(self) -> None:
+        if 0 < self.eps <= 1 and not self.black_level > self.eps:   # (an eps out of range: its own message)
+            raise ValueError(f"black_level ({self.black_level}) must exceed eps ({self.eps}): the clamp must "
+                             f"swallow a black pixel lifted by the whole training budget")
+        if not self.attacked_rotation and self.fraction == 1:
+            raise ValueError("attacked_rotation: false needs fraction < 1 (the rotation is fitted on the clean share)")
+
+
+@dataclass(frozen=True)
 class Train:
     width: Annotated[float, In("(0, 16]", "channel-width multiplier")]   # of Darknet-19
     batch_size: Batch
@@ -128,6 +158,10 @@ class Train:
     lr_base: Annotated[float, In("(0, 10]", "learning rate")]
     lr_max: Annotated[float, In("(0, 10]", "learning rate")]
     cycle_epochs: Annotated[float, In("(0, 1000000]", "epochs")]   # epochs per half cycle
+    schedule: Literal["cyclic", "cosine"]
+    lr_min: Annotated[float, In("(0, 10]", "learning rate")]       # the cosine schedule's floor
+    warmup_epochs: Annotated[float, In("[0, 1000000]", "epochs")]  # the cosine schedule's warm-up
+    ema: Annotated[float, In("[0, 1)", "decay per optimiser step")]  # weights' moving average; 0 = none
     weight_decay: Annotated[float, In("[0, 1]", "L2 weight decay")]
     dropout: Annotated[float, In("[0, 1)", "probability")]
     channels_last: bool
@@ -135,6 +169,7 @@ class Train:
     workers: Annotated[int, In("[0, 1024]", "processes")]
     augment: Augment
     range_bins: list[Metres]     # metres, bin edges of the per-range error tables
+    adversarial: Adversarial
 
     def __post_init__(self) -> None:
         if not 0 < self.val_fraction < 1:
@@ -179,6 +214,8 @@ class Shap:
     eps: list[Eps]
     method: str                  # auto | exact | deep
     chunk: Annotated[int, In("[1, 1000000]", "samples per zarr chunk")]
+    frames: Annotated[int, In("[2, 10000000]", "frames per detector trajectory")]
+    seed: Seed                   # of the detector split's trajectories (datasets/detect_render)
 
 
 @dataclass(frozen=True)

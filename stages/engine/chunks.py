@@ -10,11 +10,13 @@ and one `FrameRange` per job; a `PoseRenderWorker` (poses rendered and sent back
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -28,16 +30,60 @@ def store_url(path: Path | str) -> str:
     return str(path) if "://" in str(path) else str(Path(path).resolve())
 
 
-def create_store(url: str, n: int, height: int, width: int, chunk: int) -> None:
-    """An empty store at `url` (replacing one there) with the array `images` (n, height, width, 3) uint8."""
+def keyed_store(store: str, fingerprint: str) -> str:
+    """Where a render with this params `fingerprint` keeps its images in the shared folder or fsspec URL
+    `store` (`engine.store`): one store per fingerprint, so runs of other params never write over it."""
+    return f"{store_url(store).rstrip('/')}/render-{fingerprint}.zarr"
+
+
+@contextlib.contextmanager
+def replacing(url: str) -> Iterator[str]:
+    """Yield a temporary sibling URL to write a store into; once the block ends it replaces `url` whole (the
+    previous store stays until then, and stays as it was when the block fails: the temporary is removed).
+    A local store is locked for the block (one writer at a time, one message for the others), and the
+    temporaries of killed writers beside it are removed first."""
+    from pipeline.io.atomic import exclusive, remove_stale_temps
+
+    with contextlib.ExitStack() as stack:
+        try:
+            fs, root = store_fs(url)
+            if "file" in (fs.protocol if isinstance(fs.protocol, tuple) else (fs.protocol,)):
+                stack.enter_context(exclusive(f"{root}.lock", f"image store {url}"))
+                remove_stale_temps(root)
+        except (OSError, ValueError, ImportError) as e:    # a path below a file, an unknown protocol, ...
+            raise unwritable(url, e) from None
+        parent, name = url.rstrip("/").rsplit("/", 1)
+        tmp, old = f"{parent}/.{name}.{os.getpid()}.tmp", f"{parent}/.{name}.{os.getpid()}.old"
+        try:
+            yield tmp
+            if fs.exists(root):
+                fs.mv(root, store_fs(old)[1], recursive=True)
+            fs.mv(store_fs(tmp)[1], root, recursive=True)
+        finally:
+            for leftover in (tmp, old):
+                if fs.exists(store_fs(leftover)[1]):
+                    fs.rm(store_fs(leftover)[1], recursive=True)
+
+
+def create_store(url: str, n: int, height: int, width: int, chunk: int, fingerprint: str | None = None) -> None:
+    """An empty store at `url` (replacing one there) with the array `images` (n, height, width, 3) uint8; with a
+    `fingerprint`, its root attribute `render_fingerprint` names the render params it holds
+    (pipeline.formats.renders checks it against meta.json's)."""
     import zarr
 
     try:
         group = zarr.open_group(url, mode="w")
+        if fingerprint is not None:
+            group.attrs["render_fingerprint"] = fingerprint
         create_array(group, "images", shape=(n, height, width, 3), chunks=(chunk, height, width, 3), dtype="uint8")
     except Exception as e:  # fsspec and zarr raise many types for a bad URL or a read-only place
-        raise StageError(f"image store {url} cannot be written ({type(e).__name__}: {e}); "
-                         f"set engine.store to a writable folder or fsspec URL") from None
+        raise unwritable(url, e) from None
+
+
+def unwritable(url: str, e: Exception) -> StageError:
+    """The one-line refusal of an image store that cannot be written."""
+    return StageError(f"image store {url} cannot be written ({type(e).__name__}: {e}); set engine.store to a "
+                      f"writable folder or fsspec URL")
 
 
 @dataclass(frozen=True)
@@ -163,14 +209,16 @@ def render_poses(K: Any, scene: Any, R: np.ndarray, t: np.ndarray, chunk: int, e
 
 
 def render_to_store(url: str, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, chunk: int,
-                    es: engine.EngineSettings, desc: str, empty_hint: str | None = None) -> float:
-    """Render every pose into a new store at `url` (one job per chunk) and seal it -> seconds taken;
-    bad render settings are refused before any worker starts (`prepare`)."""
+                    es: engine.EngineSettings, desc: str, empty_hint: str | None = None,
+                    fingerprint: str | None = None) -> float:
+    """Render every pose into a new store at `url` (one job per chunk; `fingerprint`: of the render params,
+    recorded in it) and seal it -> seconds taken; bad render settings are refused before any worker starts
+    (`prepare`)."""
     from tqdm import tqdm
 
     scene, threads = prepare(K, scene, es)
     n = len(t)
-    create_store(url, n, K.height, K.width, chunk)
+    create_store(url, n, K.height, K.width, chunk, fingerprint)
     jobs = [FrameRange(lo, min(lo + chunk, n)) for lo in range(0, n, chunk)]
     crcs: dict[str, str] = {}
     fs, root = store_fs(url)

@@ -17,6 +17,7 @@ import contextlib
 import hashlib
 import os
 import socket
+import sys
 import tempfile
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, Protocol
@@ -135,27 +136,40 @@ def _check_reachable(address: str, timeout_s: float) -> None:
         _check_ray_head(address, timeout_s)
 
 
+# The Ray head probe, run in a child process: the GCS client ray.init uses retries for ever and logs every retry
+# from native code to file descriptor 2, so the child's output is discarded and it ends itself after timeout_s
+# (argv[2]) seconds of waiting (os._exit: a client stuck in native code would hold up a normal exit).
+_PROBE = """
+import os, sys, threading
+from ray._private.services import canonicalize_bootstrap_address
+from ray._raylet import GcsClient
+got = []
+def probe():
+    try:
+        GcsClient(address=canonicalize_bootstrap_address(sys.argv[1]))
+        got.append("")
+    except Exception as e:
+        got.append(f"{type(e).__name__}: {(str(e).splitlines() or [''])[0]}")
+thread = threading.Thread(target=probe, daemon=True)
+thread.start()
+thread.join(float(sys.argv[2]))
+print(got[0] if got else "no answer", flush=True)
+os._exit(0 if got == [""] else 1)
+"""
+PROBE_IMPORT_S = 120   # seconds the probe may take to import Ray, beyond engine.timeout_s of waiting for the head
+
+
 def _check_ray_head(address: str, timeout_s: float) -> None:
-    """Refuse a host:port that does not answer as a Ray head (its GCS) within timeout_s seconds: the client
-    ray.init uses retries for ever, so it runs on a thread that is left behind when it does not answer."""
-    import threading
+    """Refuse a host:port that does not answer as a Ray head (its GCS) within timeout_s seconds (`_PROBE`)."""
+    import subprocess
 
-    from ray._private.services import canonicalize_bootstrap_address
-    from ray._raylet import GcsClient
-
-    failed: list[BaseException] = []
-    answered = threading.Event()
-
-    def probe() -> None:
-        try:
-            GcsClient(address=canonicalize_bootstrap_address(address))
-        except Exception as e:  # noqa: BLE001  (any failure to connect is reported in the driver)
-            failed.append(e)
-        answered.set()
-
-    threading.Thread(target=probe, name="rpod-ray-probe", daemon=True).start()
-    if not answered.wait(timeout_s) or failed:
-        why = f"{type(failed[0]).__name__}: {(str(failed[0]).splitlines() or [''])[0]}" if failed else "no answer"
+    try:
+        done = subprocess.run([sys.executable, "-c", _PROBE, address, str(timeout_s)], stdout=subprocess.PIPE,
+                              stderr=subprocess.DEVNULL, text=True, timeout=timeout_s + PROBE_IMPORT_S)
+        why = done.stdout.strip() or f"probe exit status {done.returncode}" if done.returncode else None
+    except subprocess.TimeoutExpired:
+        why = "no answer"
+    if why is not None:
         raise StageError(f"Ray cluster address {address!r} (engine.address or $RAY_ADDRESS) accepts connections but "
                          f"is not a Ray head ({why} within engine.timeout_s = {timeout_s:g} s); give the port "
                          f"`ray start --head` printed, or unset it to run on this machine")

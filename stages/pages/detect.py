@@ -45,6 +45,16 @@ def _reading(results: dict[str, dict[str, dict[str, float]]], eps_keys: list[str
             f"({_pct(results[best]['all'], 'accuracy')}%). Brackets: 95% Wilson intervals over the test samples.")
 
 
+def _headline_alarms(alarms: dict[str, Any] | None) -> str:
+    """The clean-trajectory false alarms beside the headline accuracy (empty when not measured)."""
+    if alarms is None:
+        return ""
+    from pipeline.report.markdown import percent_ci
+
+    return (f" At the same threshold it flags {percent_ci(alarms['rate'], alarms['rate_ci95'], 2)}% of the "
+            f"{alarms['frames']} frames of fresh clean evaluation trajectories (below).")
+
+
 def _baselines(d: Detect) -> str:
     """The baseline detectors, one bullet each."""
     return f"""- **MLP on SHAP**: scikit-learn MLPClassifier on the flattened 9 x 1000 values (standardised).
@@ -58,9 +68,41 @@ def _baselines(d: Detect) -> str:
   median filter; score = the larger change. Needs the image and two extra pose passes per frame."""
 
 
+def _composition(attrs: dict[str, Any]) -> str:
+    """Where the SHAP samples come from (the store's attrs `counts` and `source`, `rpod shap`)."""
+    c, src = attrs.get("counts", {}), attrs.get("source", {})
+    return (f"All samples are images of the detector split (`{src.get('folder')}`, {src.get('images')} images on "
+            f"{src.get('trajectories')} approach trajectories of their own seed, `shap.seed`), which the pose "
+            f"network never saw: {c.get('sources')} source images, each explained clean once and attacked at one "
+            f"eps ({c.get('shared')} images are in both classes), so clean and attacked samples differ only by the "
+            f"attack. (The paper drew its clean samples from the pose data set; until issue 27 ours came "
+            f"mostly from the pose-training images while every attacked one was a test image.)")
+
+
+def _alarms(alarms: dict[str, Any] | None) -> str:
+    """The section on the LSTM's false alarms on the clean evaluation trajectories."""
+    if alarms is None:
+        return ("## False alarms on fresh clean trajectories\n\nNot measured (`rpod detect --no-eval-alarms`: "
+                "the lab's synthetic-lab detector).\n")
+    from pipeline.report.markdown import percent_ci
+
+    per = ", ".join(f"{k}: {v}" for k, v in alarms["per_trajectory"].items())
+    return f"""## False alarms on fresh clean trajectories
+
+The LSTM at its own threshold ({alarms['threshold']:.4f}, chosen on the SHAP validation samples) on every frame
+of the {alarms['trajectories']} clean evaluation trajectories (`datasets/eval_render`, seed `evaluate.seed`),
+run through the onboard chain (pose -> exact SHAP -> LSTM; no motion filter): it flags
+**{alarms['false_alarms']} of {alarms['frames']} frames, {percent_ci(alarms['rate'], alarms['rate_ci95'], 2)}%**
+(Wilson interval over frames, optimistic: frames of one trajectory are correlated; per trajectory:
+{per}). This is the paper's detector as it was built; the shipped chain reads its detector threshold
+from models/defense.json (`rpod calibrate`, clean validation trajectories).
+"""
+
+
 def detector_page(results: dict[str, dict[str, dict[str, float]]], scores: dict[str, Any], counts: dict[str, int],
-                  result: Any, attrs: dict[str, Any], d: Detect) -> str:
-    """reports/detector.md: the LSTM per eps, the baselines on the same split, and what the detectors see."""
+                  result: Any, attrs: dict[str, Any], d: Detect, alarms: dict[str, Any] | None = None) -> str:
+    """reports/detector.md: the LSTM per eps, the baselines on the same split, its false alarms on clean
+    evaluation trajectories, and what the detectors see."""
     lstm = results["lstm"]
     lstm_table = _table([{"eps": k, **_row(m)} for k, m in lstm.items()])
     eps_keys = [k for k in lstm if k != "all"]
@@ -77,13 +119,14 @@ for its 9 outputs (a 9 x 1000 sequence per image, `rpod shap`) and says whether 
 attacked: an LSTM of {d.hidden} units with ReLU, dense layers {d.dense}, one sigmoid output,
 Adadelta (lr {d.lr}), early stopping after {d.patience} epochs without a lower validation loss.
 
-**Test accuracy: {ours}** (paper: {paper} on its 30,000 SHAP samples).
+**Test accuracy: {ours}** (paper: {paper} on its 30,000 SHAP samples).{_headline_alarms(alarms)}
 {reading}
 
 Data: {counts['samples']} SHAP samples (`datasets/shap.zarr`, method `{attrs.get('method')}`, background
-of {attrs.get('background_size')} training images). Split {1 - d.test_fraction:.0%}/{d.test_fraction:.0%} train/test with
-{d.val_fraction:.0%} of train held out for validation (grouped by source image: the clean and every eps version of
-a frame sit on one side; stratified by eps; seeded): train {counts['train']},
+of {attrs.get('background_size')} training images). {_composition(attrs)}
+Split {1 - d.test_fraction:.0%}/{d.test_fraction:.0%} train/test with
+{d.val_fraction:.0%} of train held out for validation (grouped by source image: the clean and the attacked version of
+an image sit on one side; stratified by eps; seeded): train {counts['train']},
 validation {counts['validation']}, test {counts['test']} ({counts['test_clean']} clean, {counts['test_adversarial']} adversarial).
 Adversarial samples are FGSM images at eps {', '.join(eps_keys)} (pixels in [0, 1]).
 
@@ -106,11 +149,12 @@ Detection rate (recall) per eps:
 {_table(recall_rows)}
 {_baselines(d)}
 
+{_alarms(alarms)}
 What the SHAP detectors see: with the linear heads, row j of a sample's SHAP values is
 `W[j] * (a - mean_background)` (pipeline/shap.py), an element-wise rescaling of the GAP features.
 The SHAP signature therefore carries the same information as the GAP features, weighted by how much
 each feature moves each output; the SHAP detectors and the GAP-feature baselines differ in the model
 they fit, not in what they can know.
 
-ROC curves: `dvc plots show` (reports/plots/roc/). Training curves: dvclive/detect/.
+ROC curves and training curves: `dvc plots show` (DVCLive data in dvclive/detect/).
 """

@@ -36,7 +36,9 @@ def _detector(params: Params, de: dict[str, Any]) -> str:
     small = min(lstm, key=lambda k: float("inf") if k == "all" else float(k))
     best = max(de["detectors"], key=lambda k: de["detectors"][k]["all"]["accuracy"])
     return (f"- **Detector data.** {c['samples']:,} SHAP samples ({s.normal:,} clean, {s.per_eps:,} per eps) instead "
-            f"of 30,000, a background of {s.background} images instead of 1,000, split train/validation/test "
+            f"of 30,000, of images the pose network never saw (a detector split of trajectories, each image clean "
+            f"once and attacked once), a background of {s.background} images instead of 1,000, split "
+            f"train/validation/test "
             f"grouped by source image ({c['test']:,} test samples). LSTM test accuracy {_ci(lstm['all'], 'accuracy')} "
             f"(paper {100 * DETECTOR_ACCURACY:.2f}%); detection rate at eps {small} {_ci(lstm[small], 'recall')} (FGSM at "
             f"{small} on 8-bit images moves a pixel by at most {round(255 * float(small))} grey levels). Best detector "

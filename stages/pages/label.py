@@ -73,7 +73,7 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
         "The default is therefore fy = fx; `camera.fy: 360.0` renders the printed K (0.5625-aspect pixels, which "
         "squash the target vertically).",
         "",
-        "Rendering time per image: `datasets/render/meta.json` (`seconds_per_image`) and reports/benchmarks.md.",
+        "Rendering time per image: `reports/metrics/render.json` (`seconds_per_image`) and reports/benchmarks.md.",
         "",
     ]
     if previews:

@@ -49,9 +49,9 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
     best_base = max((k for k in dets if k != "lstm"), key=lambda k: dets[k]["all"]["accuracy"])
     rows = [
         ("pose, test mean position error (m)", _fmt(tr["test"]["pos_mean_m"]), _fmt(POSITION_M), "train",
-         _sd(spread, "pos_m")),
+         _sd(spread, "pose.test_position_m")),
         ("pose, test mean attitude error (deg)", _fmt(tr["test"]["att_mean_deg"]), _fmt(ATTITUDE_DEG), "train",
-         _sd(spread, "att_deg")),
+         _sd(spread, "pose.test_attitude_deg")),
         ("FGSM mean position error (m) at eps " + " / ".join(eps_at),
          " / ".join(_fmt(at["eps"][e]["position_mean_m"], 1) for e in eps_at), "-", "attack",
          _sd(spread, "fgsm_position_m_0.05", " at eps 0.05")),
@@ -61,15 +61,15 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
          f"{broken} of {len(runs)} ({wilson(broken, len(runs)).pct()} %)", "-", "guidance",
          _sd(spread, "undefended_lost_pct", " %")),
         ("(paper's view) LSTM detector accuracy, SHAP test split (%)", _with_ci(dets["lstm"]["all"], "accuracy"),
-         _fmt(100 * DETECTOR_ACCURACY), "detect", _sd(spread, "lstm")),
+         _fmt(100 * DETECTOR_ACCURACY), "detect", _sd(spread, "detector.lstm_accuracy_pct")),
         (f"best baseline detector accuracy (%): {DETECTOR_NAMES.get(best_base, best_base)}",
          _with_ci(dets[best_base]["all"], "accuracy"), "-", "detect", "-"),
         ("(paper's view) integrated per-frame detection accuracy, mean over eps (%; per eps below)",
          _fmt(100 * ev["accuracy_mean"]),
-         _fmt(INTEGRATED), "evaluate", _sd(spread, "chain")),
+         _fmt(INTEGRATED), "evaluate", _sd(spread, "integrated.accuracy_pct")),
         ("(paper's view) lab detection accuracy, mean over eps (%): synthetic lab-like render, "
          + ("same mesh, reused models" if lab.get("reused_models", True) else "retrained models"),
-         _fmt(100 * lab["accuracy_mean"]), _fmt(LAB), "lab", _sd(spread, "lab")),
+         _fmt(100 * lab["accuracy_mean"]), _fmt(LAB), "lab", _sd(spread, "lab.accuracy_pct")),
         *_robustness_rows(metrics["robustness"], spread),
         *_integrity_rows(metrics["robustness"], gd, spread),
     ]
@@ -112,13 +112,13 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
     e = "0.01" if "0.01" in fused["per_eps"] else min(fused["per_eps"], key=float)
     paper, ours = fused["paper_per_eps"][e], fused["per_eps"][e]
     rows = [(f"integrated accuracy at eps {e} (%)", "accuracy", _fmt(INTEGRATED_EPS.get(e)), ">= 99.5",
-             "defended" if e == min(fused["per_eps"], key=float) else None),   # its seed-spread key
+             "defended.accuracy_pct" if e == min(fused["per_eps"], key=float) else None),   # summary.json key
             (f"attacked frames flagged at eps {e} (TPR, %)", "tpr", "-", "-", None),
             (f"harmful frames (error > {fused['harm_m']:g} m) flagged at eps {e} (%)", "harmful_flagged", "-", ">= 99.5",
              None),
             (f"harmful and undetected, of the attacked frames at eps {e} (%)", "harmful_undetected", "-", "<= 1", None),
             (f"false alarms on clean frames between attacks at eps {e} (%)", "fpr", "-", "<= 0.5", None),
-            ("false alarms on attack-free runs (%)", "fpr_clean", "-", "<= 0.5", "clean_fa")]
+            ("false alarms on attack-free runs (%)", "fpr_clean", "-", "<= 0.5", "defended.clean_false_alarm_pct")]
     sd_column = {"sd over seeds, defended": None} if spread else {}
     table = [{"result": name, "paper's detector (this run)": _rate(paper[key]),
               f"defended chain ({fused['fusion']})": _rate(ours[key]), "paper": p, "target": t,
@@ -176,10 +176,10 @@ def _integrity_rows(rb: dict[str, Any], gd: dict[str, Any],
         w = integrity.get("worst_hmi", {}).get(e)
         value = "-" if w is None else f"{_rate(w['hmi'])} ({attacker_names(w['attacker'])})"
         out.append((f"integrity: worst HMI (%) a chain-level attack caused at eps {e} (trusted error > AL, "
-                    f"available), shipped chain", value, "-", "robustness", _sd(spread, {"0.01": "hmi01", "0.05": "hmi05"}[e])))
+                    f"available), shipped chain", value, "-", "robustness", _sd(spread, f"integrity.worst_hmi_eps_{e.replace('.', '_')}_pct")))
     clean = integrity.get("clean")
     out.append(("integrity: availability of the trusted estimate without attack (%)",
-                "-" if clean is None else _rate(clean["availability"]), "-", "robustness", _sd(spread, "avail")))
+                "-" if clean is None else _rate(clean["availability"]), "-", "robustness", _sd(spread, "integrity.clean_availability_pct")))
     counts = gd.get("in_loop", {}).get("counts", {})
     cells = []
     for variant in ("undefended", "hold", "recover"):
@@ -189,5 +189,5 @@ def _integrity_rows(rb: dict[str, Any], gd: dict[str, Any],
     out.append(("closed loop, in-loop attacker at eps " + " and ".join(sorted({f"{r['eps']:g}" for r in
                 gd.get("in_loop", {}).get("runs", [])})) + ": collisions of attacked runs (%), undefended / "
                 "detect-and-hold / detect-and-recover", " / ".join(cells), "-", "guidance",
-                _sd(spread, "collide")))
+                _sd(spread, "in_loop.recover_collisions_pct")))
     return out

@@ -1,6 +1,7 @@
 """reports/metrics/summary.json, what `dvc metrics show` and `dvc exp show` print: the run's headline
-numbers, flat, with short keys (`dvc metrics show` fits in 120 columns), no times. Errors in their
-units (m, deg), every rate in percent; a number whose stage did not produce it is left out.
+numbers, no times, grouped by what they measure ({"pose": {"test_position_m": ...}, ...}), so DVC's columns
+read `pose.test_position_m`. Each name ends in its unit: `_m`, `_deg`, or `_pct` (every rate in percent);
+a number whose stage did not produce it is left out.
 
 The per-stage metrics JSONs (reports/metrics/<stage>.json) keep every detail; this file only picks from them.
 """
@@ -12,7 +13,7 @@ Metrics = dict[str, dict[str, Any]]
 
 
 class Headline(NamedTuple):
-    key: str                                  # summary.json key (at most 8 characters)
+    key: str                                  # dotted summary.json key, <group>.<what>_<unit> (DVC's column)
     what: str                                 # what the number is, with its unit
     get: Callable[[Metrics], float]           # from the stage metrics (keyed by metrics file stem)
     decimals: int = 2                         # rounding in summary.json
@@ -29,7 +30,8 @@ def _defended(m: Metrics, rate: str) -> float:
 
 
 def _held(m: Metrics) -> float:
-    """Closed-loop attacked runs (that met the attack) whose rendezvous held with detect-and-recover, all dynamics (%)."""
+    """Closed-loop attacked runs (that met the attack) whose rendezvous held with detect-and-recover, all
+    dynamics (%)."""
     held = [v for d in m["guidance"]["defended"]["dynamics"].values() for v in d["recover"]["held"].values()]
     return 100 * sum(k for k, _ in held) / sum(n for _, n in held)
 
@@ -46,37 +48,52 @@ def in_loop_collisions(m: Metrics, defense: str = "recover") -> float:
 
 
 HEADLINES: list[Headline] = [
-    Headline("pos_m", "pose, test mean position error (m)", lambda m: m["train"]["test"]["pos_mean_m"], 3),
-    Headline("att_deg", "pose, test mean attitude error (deg)", lambda m: m["train"]["test"]["att_mean_deg"]),
-    Headline("lstm", "LSTM detector accuracy on the SHAP test split (%)",
+    Headline("pose.test_position_m", "pose, test mean position error (m)",
+             lambda m: m["train"]["test"]["pos_mean_m"], 3),
+    Headline("pose.test_attitude_deg", "pose, test mean attitude error (deg)",
+             lambda m: m["train"]["test"]["att_mean_deg"]),
+    Headline("detector.lstm_accuracy_pct", "LSTM detector accuracy on the SHAP test split (%)",
              lambda m: 100 * m["detect"]["detectors"]["lstm"]["all"]["accuracy"]),
-    Headline("chain", "integrated detection accuracy, mean over eps (%)", lambda m: 100 * m["evaluate"]["accuracy_mean"]),
-    Headline("held", "closed loop, attacked runs held with detect-and-recover (%)", _held),
-    Headline("hmi01", "integrity: worst HMI caused by a chain-level attack at eps 0.01 (%)", lambda m: worst_hmi(m, "0.01")),
-    Headline("hmi05", "integrity: worst HMI caused by a chain-level attack at eps 0.05 (%)", lambda m: worst_hmi(m, "0.05")),
-    Headline("avail", "integrity: availability of the trusted estimate without attack (%)",
-             lambda m: 100 * m["robustness"]["integrity"]["clean"]["availability"]["value"]),
-    Headline("collide", "closed loop, in-loop attacker: collisions with detect-and-recover (%)", in_loop_collisions),
-]
-
-# headline numbers of the paper's per-frame view and the lab that the seed spread (scripts/variance.py) and the
-# README's "sd over seeds" read, left out of summary.json so that `dvc metrics show` fits in 120 columns
-SEED_ONLY: list[Headline] = [
-    Headline("defended", "defended chain accuracy at the smallest eps (%)", lambda m: _defended(m, "accuracy")),
-    Headline("clean_fa", "defended chain false alarms on attack-free runs (%)", lambda m: _defended(m, "fpr_clean")),
-    Headline("harm_und", "worst harmful-undetected rate of the burst attack on the defended chain, any eps (%)",
+    Headline("integrated.accuracy_pct", "integrated detection accuracy, mean over eps (%)",
+             lambda m: 100 * m["evaluate"]["accuracy_mean"]),
+    Headline("defended.accuracy_pct", "defended chain accuracy at the smallest eps (%)",
+             lambda m: _defended(m, "accuracy")),
+    Headline("defended.clean_false_alarm_pct", "defended chain false alarms on attack-free runs (%)",
+             lambda m: _defended(m, "fpr_clean")),
+    Headline("robustness.harmful_undetected_pct",
+             "worst harmful-undetected rate of the burst attack on the defended chain, any eps (%; paper's view)",
              lambda m: 100 * max(w["harmful_undetected_rate"]
                                  for w in m["robustness"]["worst_harmful_undetected_fused"].values())),
-    Headline("lab", "lab detection accuracy, mean over eps (%)", lambda m: 100 * m["lab"]["accuracy_mean"]),
+    Headline("lab.accuracy_pct", "lab detection accuracy, mean over eps (%)",
+             lambda m: 100 * m["lab"]["accuracy_mean"]),
+    Headline("guidance.defended_held_pct", "closed loop, attacked runs held with detect-and-recover (%)", _held),
+    Headline("integrity.worst_hmi_eps_0_01_pct", "integrity: worst HMI caused by a chain-level attack at eps 0.01 (%)",
+             lambda m: worst_hmi(m, "0.01")),
+    Headline("integrity.worst_hmi_eps_0_05_pct", "integrity: worst HMI caused by a chain-level attack at eps 0.05 (%)",
+             lambda m: worst_hmi(m, "0.05")),
+    Headline("integrity.clean_availability_pct", "integrity: availability of the trusted estimate without attack (%)",
+             lambda m: 100 * m["robustness"]["integrity"]["clean"]["availability"]["value"]),
+    Headline("in_loop.recover_collisions_pct", "closed loop, in-loop attacker: collisions with detect-and-recover (%)",
+             in_loop_collisions),
 ]
 
 
-def summary(metrics: Metrics) -> dict[str, float]:
-    """The headline numbers of the stage metrics, rounded; those a stage did not produce are left out."""
+def headline_values(metrics: Metrics) -> dict[str, float]:
+    """The headline numbers of the stage metrics by dotted key, rounded; those a stage did not produce are
+    left out."""
     out = {}
     for h in HEADLINES:
         try:
             out[h.key] = round(float(h.get(metrics)), h.decimals)
         except (KeyError, TypeError, ValueError, ZeroDivisionError):
             continue
+    return out
+
+
+def summary(metrics: Metrics) -> dict[str, dict[str, float]]:
+    """summary.json: `headline_values` nested by the group before each key's dot."""
+    out: dict[str, dict[str, float]] = {}
+    for key, value in headline_values(metrics).items():
+        group, name = key.split(".", 1)
+        out.setdefault(group, {})[name] = value
     return out

@@ -1,0 +1,160 @@
+"""Calibration of the defense's checks on clean validation trajectories, one check at a time.
+
+The false-alarm budget `target` (fraction of clean frames the defended chain may flag) is split into
+shares, one per check, and each check is set to meet its own share on clean validation frames (never
+test data), in this order:
+1. the detector: its threshold is the smallest probability at which at most share_detector of the
+   clean validation frames reach it (a quantile of the chain's own clean frames, not of the SHAP
+   split, whose clean samples are partly pose-training images);
+2. the gate: the smallest inflations of the fitted noise model (`INFLATIONS`; attitude first, then
+   position) at which the gate flags at most share_gate of the frames (fusion "motion", the
+   sequential test off): a Gaussian fit under-states the pose errors' heavy, correlated tails;
+3. the sequential test: the smallest CUSUM threshold h (`CUSUM_THRESHOLDS`) at which it flags at
+   most share_sequential of the frames (fusion "motion", the gate at its inflation): the smallest h
+   also gives the smallest protection level (pipeline/defense/protection.py).
+Each returns a `CheckResult` that says whether the share was met; the caller decides what an unmet
+share means (`rpod calibrate` stops). The shares add up to the budget, so the fused chain's rate is
+at most about the budget (the checks' flags overlap); the caller measures it too.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from pipeline.defense.fusion import DefenseSettings, DefenseTrace, run_defense
+from pipeline.defense.gate import MotionSettings
+from pipeline.defense.noise import NoiseModel, inflate
+from pipeline.geometry.rotations import sixd_to_matrix
+
+INFLATIONS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0)
+CUSUM_THRESHOLDS = (1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0, 6.0, 7.0, 8.0, 10.0, 12.0, 15.0, 20.0, 25.0, 30.0, 40.0, 50.0)
+OFF = 1e12          # a CUSUM threshold no statistic reaches: the sequential test off
+
+
+@dataclass(frozen=True)
+class CheckResult:
+    """One check's calibration: `setting` (threshold, inflation or h) chosen, its flag rate `reached`
+    on the clean validation frames, its `share` of the budget (fractions), `met` = reached <= share,
+    and the rate at every setting tried (`rates`)."""
+
+    check: str
+    setting: float
+    reached: float
+    share: float
+    rates: dict[float, float]
+
+    @property
+    def met(self) -> bool:
+        return self.reached <= self.share
+
+
+@dataclass(frozen=True)
+class CleanRun:
+    """One clean validation trajectory as the defense sees it: pose (N, 9) [m, 6-D], prob (N,),
+    R_cam (N, 3, 3) camera -> world, u (N, 3) commanded displacements (world, m)."""
+
+    pose: np.ndarray
+    prob: np.ndarray
+    R_cam: np.ndarray
+    u: np.ndarray
+
+
+def defend_runs(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel, runs: Sequence[CleanRun],
+                alert_limit: Callable[[float], float] | None = None) -> list[DefenseTrace]:
+    """A fresh defense over each run (open loop)."""
+    return [run_defense(settings, motion, noise, r.pose[:, :3], r.prob, r.R_cam, r.u, sixd_to_matrix(r.pose[:, 3:9]),
+                        alert_limit) for r in runs]
+
+
+def first_meeting(rate_at: Callable[[float], float], target: float,
+                  grid: Sequence[float]) -> tuple[float, dict[float, float]]:
+    """The first setting of `grid` whose rate `rate_at(setting)` is at most `target`, and every rate
+    measured (it stops there); the last setting when none is (check the rate before using it)."""
+    rates: dict[float, float] = {}
+    for v in grid:
+        rates[v] = float(rate_at(v))
+        if rates[v] <= target:
+            return v, rates
+    return grid[-1], rates
+
+
+def detector_threshold(prob: np.ndarray, share: float) -> CheckResult:
+    """The smallest threshold t in (0, 1) with mean(prob >= t) <= share on clean frames `prob` (N,).
+    When the frames above the share all sit at the top (ties at probability 1), no t < 1 meets it:
+    the result is not met, at t just under 1."""
+    p = np.sort(np.asarray(prob, np.float64))[::-1]
+    if p.size == 0 or not np.isfinite(p).all():
+        raise ValueError("detector calibration needs clean probabilities, finite, at least one")
+    allowed = int(math.floor(share * p.size + 1e-9))            # frames that may reach the threshold
+    if allowed >= p.size:
+        t = float(np.nextafter(0.0, 1.0))
+    else:
+        t = float(np.nextafter(p[allowed], 1.0))                 # just above the first frame that may not
+    t = min(max(t, float(np.nextafter(0.0, 1.0))), float(np.nextafter(1.0, 0.0)))
+    reached = float(np.mean(p >= t))
+    return CheckResult("detector", t, reached, share, {t: reached})
+
+
+def gate_inflation(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel, runs: Sequence[CleanRun],
+                   share: float, grid: Sequence[float] = INFLATIONS) -> tuple[CheckResult, CheckResult]:
+    """The gate's two tests, attitude then position: the smallest attitude-noise inflation at which the
+    attitude test flags at most half of `share` of the frames, then (with it) the smallest
+    position-noise inflation at which the gate (either test) flags at most `share` (fusion "motion",
+    the sequential test off). The position noise is inflated no more than the position test needs:
+    the sequential test and the protection level scale with it."""
+    alone = dataclasses.replace(settings, fusion="motion")
+    off = dataclasses.replace(motion, cusum_threshold=OFF)
+
+    def flags(k: float, k_att: float) -> tuple[float, float]:
+        traces = defend_runs(alone, off, inflate(noise, k, k_att), runs)
+        gate = np.concatenate([t.motion_flag for t in traces])
+        att = np.concatenate([t.motion_flag & (np.nan_to_num(t.nis_attitude) > off.gate) for t in traces])
+        return float(gate.mean()), float(att.mean())
+
+    k_att, att_rates = first_meeting(lambda a: flags(max(grid), a)[1], share / 2, grid)
+    k, rates = first_meeting(lambda k: flags(k, k_att)[0], share, grid)
+    return (CheckResult("attitude gate", k_att, att_rates[k_att], share / 2, att_rates),
+            CheckResult("gate", k, rates[k], share, rates))
+
+
+def sequential_threshold(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel,
+                         runs: Sequence[CleanRun], share: float,
+                         grid: Sequence[float] = CUSUM_THRESHOLDS) -> CheckResult:
+    """The smallest CUSUM threshold h at which the sequential test flags at most `share` of the frames
+    (the gate on, with `noise` as calibrated for it)."""
+    alone = dataclasses.replace(settings, fusion="motion")
+
+    def rate(h: float) -> float:
+        traces = defend_runs(alone, dataclasses.replace(motion, cusum_threshold=h), noise, runs)
+        return float(np.concatenate([t.sequential_flag for t in traces]).mean())
+
+    h, rates = first_meeting(rate, share, grid)
+    return CheckResult("sequential test", h, rates[h], share, rates)
+
+
+def clean_summary(traces: Sequence[DefenseTrace], truths: Sequence[np.ndarray], alert: Any) -> dict[str, Any]:
+    """What the defense does on clean runs (`traces`, their true rel (N, 3) world m, `alert` the
+    AlertLimitSettings): flag rates of each check and of the fused chain, availability (flown and PL
+    <= AL at the true range), MI (error > PL, frames with a PL), as Rates with a bootstrap over runs;
+    frames; the median and 95th percentile of the finite PL and of the trusted error (m)."""
+    from pipeline.evaluation.integrity import concat, defense_frames
+    from pipeline.evaluation.stats import bootstrap_rate
+
+    groups = np.concatenate([np.full(len(t.flag), i) for i, t in enumerate(traces)])
+    out: dict[str, Any] = {name: bootstrap_rate(np.concatenate([getattr(t, attr) for t in traces]), groups)
+                           for name, attr in (("detector", "shap_flag"), ("gate", "motion_flag"),
+                                              ("sequential", "sequential_flag"), ("fused", "flag"))}
+    frames = concat([defense_frames(t, truth, i, alert) for i, (t, truth) in enumerate(zip(traces, truths))])
+    has = frames.has_pl
+    out["availability"] = bootstrap_rate(frames.available, groups)
+    out["mi"] = bootstrap_rate(frames.mi[has], groups[has])
+    out["frames"] = int(len(groups))
+    err = frames.error[np.isfinite(frames.error)]
+    for name, v in (("pl_m", frames.pl[has]), ("error_m", err)):
+        out[name] = {"median": float(np.median(v)) if v.size else math.nan,
+                     "p95": float(np.quantile(v, 0.95)) if v.size else math.nan}
+    return out

@@ -1,0 +1,241 @@
+"""The robust pose model (issue 28): the black-level clamp inside the network, the cosine schedule and the
+weights' moving average, PGD-k adversarial training, the attacked-error table, `rpod train --robust`."""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.attacks.gradient import attack_loss, fgsm, quantize
+from pipeline.formats.models import model_from_checkpoint, read_pose, save_pose
+from pipeline.pose.adversarial import Adversary, AdversarialConfig
+from pipeline.pose.loss import PoseLoss
+from pipeline.pose.metrics import tilt_roll_deg
+from pipeline.pose.model import PoseNet
+from pipeline.pose.optim import WeightEMA, cosine_factor, make_scheduler
+from pipeline.pose.robustness import attack_table, black_level_stats
+from pipeline.pose.train import TrainConfig, fit, make_deterministic
+from stages.artifacts import data, models
+from stages.artifacts.paths import POSE_ROBUST
+from stages.config import params as params_mod
+from stages.config.sections import ParamsError
+from stages.errors import StageError
+from test_training import H, W, write_dataset
+
+
+@pytest.fixture
+def dataset(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    torch.set_num_threads(1)
+    return write_dataset(tmp_path, n=80)
+
+
+def _target(n: int = 4) -> torch.Tensor:
+    return torch.tensor([[0.0, 0.0, 30.0, 1, 0, 0, 0, 1, 0]] * n)
+
+
+def test_the_clamp_is_inside_the_model_and_zeroes_the_gradient_on_black_pixels(tmp_path):
+    torch.manual_seed(0)
+    model = PoseNet(0.125, 0.0, black_level=0.07).eval()
+    x = torch.zeros(4, 3, H, W)
+    x[:, :, 10:17, 20:30] = torch.rand(4, 3, 7, 10) * 0.9 + 0.1      # a bright target on black
+    x[:, :, 0, :5] = 0.069                                           # dark pixels just under t
+    x = x.requires_grad_(True)
+    loss = attack_loss("position", PoseLoss())
+    (grad,) = torch.autograd.grad(loss(model(x), _target()), x)
+    dark = x.detach() < 0.07
+    assert torch.all(grad[dark] == 0) and torch.any(grad[~dark] != 0)
+    # an attack through the module leaves the background at most eps < t, which the network sees as black
+    x_adv = fgsm(model, x.detach(), _target(), 0.05, loss)
+    assert torch.all(model.clamp(x_adv)[x.detach() == 0] == 0)
+    torch.testing.assert_close(model(x_adv), model(torch.where(x.detach() == 0, 0.0, x_adv)))
+    # the checkpoint's architecture rebuilds it; a standard model's reads as before
+    save_pose(tmp_path / "m.pt", model, PoseLoss(), (H, W), {})
+    assert read_pose(tmp_path / "m.pt")["arch"]["black_level"] == 0.07
+    torch.testing.assert_close(model_from_checkpoint(read_pose(tmp_path / "m.pt"))(x.detach()), model(x.detach()))
+    assert "black_level" not in PoseNet(0.125).arch()
+    with pytest.raises(ValueError, match="black_level must be in"):
+        PoseNet(0.125, black_level=1.0)
+
+
+def test_the_cosine_schedule_reaches_its_floor_at_the_last_step():
+    w = torch.nn.Parameter(torch.zeros(()))
+    opt = torch.optim.Adam([{"params": [w], "lr": 1e-4}, {"params": [torch.nn.Parameter(torch.zeros(()))], "lr": 1e-3}])
+    sched = make_scheduler(opt, "cosine", 50, lr_base=1e-4, lr_max=1e-3, lr_min=1e-6, cycle=10, warmup=5)
+    used = []
+    for _ in range(50):
+        used.append([g["lr"] for g in opt.param_groups])
+        opt.step()
+        sched.step()
+    assert used[0] == pytest.approx([1e-4, 1e-3]) and used[5] == pytest.approx([1e-3, 1e-2])
+    assert used[-1] == pytest.approx([1e-6, 1e-5]) and min(u[0] for u in used) == pytest.approx(1e-6)
+    assert all(a[0] >= b[0] for a, b in zip(used[5:], used[6:]))            # monotone after the warm-up
+    assert cosine_factor(80, 50, 5, 1e-4, 1e-3, 1e-6) * 1e-3 == pytest.approx(1e-6)   # held after the end
+
+
+def test_ema_weights_are_what_is_validated_and_kept(dataset):
+    train, test = data.load_split(dataset, "train"), data.load_split(dataset, "test")
+    make_deterministic(0)
+    model = PoseNet(0.125, 0.0)
+    kept = {}
+
+    def on_epoch(stats, is_best, net):
+        assert net is not model and not net.training
+        if is_best:
+            kept.update({k: v.clone() for k, v in net.state_dict().items()})
+
+    cfg = TrainConfig(epochs=3, batch_size=8, schedule="cosine", warmup_epochs=0, ema=0.9)
+    result = fit(model, PoseLoss(), data.pose_dataset(train), data.pose_dataset(test), cfg, on_epoch=on_epoch,
+                 progress=False)
+    assert result.history[-1].lr == pytest.approx(cfg.lr_min)
+    for k, v in result.best_state.items():
+        torch.testing.assert_close(v, kept[k])
+    raw = model.state_dict()
+    assert any(not torch.equal(v, raw[k].cpu()) for k, v in result.best_state.items() if v.is_floating_point())
+
+
+def test_weight_ema_averages_with_a_warm_up():
+    net = torch.nn.Linear(1, 1, bias=False)
+    with torch.no_grad():
+        net.weight.fill_(0.0)
+    ema = WeightEMA(net, 0.5)
+    with torch.no_grad():
+        net.weight.fill_(1.0)
+    ema.update(net)   # d = min(0.5, 2 / 11)
+    assert ema.model.weight.item() == pytest.approx(1 - 2 / 11)
+    with pytest.raises(ValueError, match="EMA decay"):
+        WeightEMA(net, 1.0)
+
+
+def test_adversarial_training_lowers_the_pgd_error(dataset):
+    train, test = data.load_split(dataset, "train"), data.load_split(dataset, "test")
+    fit_set, val_set = data.pose_dataset(train), data.pose_dataset(test)
+    make_deterministic(0)
+    model, loss = PoseNet(0.125, 0.0), PoseLoss()
+    model.set_output_bias(train.targets[:, :3].mean(0), train.targets[:, 3:].mean(0))
+    fit(model, loss, fit_set, val_set, TrainConfig(epochs=6, batch_size=8, lr_max=2e-3, schedule="cosine",
+                                                   warmup_epochs=0), progress=False)
+
+    def tuned(adversarial: bool) -> dict[str, float]:
+        m, l = copy.deepcopy(model), copy.deepcopy(loss)
+        cfg = TrainConfig(epochs=3, batch_size=8, lr_max=5e-4, schedule="cosine", warmup_epochs=0, seed=1)
+        adv = Adversary(AdversarialConfig(eps=0.05, steps=2, ramp_epochs=0, val_frames=8, val_steps=2), l,
+                        len(fit_set) // 8, 1) if adversarial else None
+        result = fit(m, l, fit_set, val_set, cfg, progress=False, adversary=adv)
+        assert (result.history[0].val_adv_pos_m == result.history[0].val_adv_pos_m) == adversarial
+        m.load_state_dict(result.best_state)
+        rows = attack_table(m, l, test.images, test.targets, [0.05], pgd_steps=10)
+        return {r["attack"]: r["pos_m"] for r in rows}
+
+    plain, robust = tuned(False), tuned(True)
+    assert robust["pgd-10"] < 0.9 * plain["pgd-10"]
+    assert plain["pgd-10"] > plain["clean"]
+
+
+def test_the_eps_ramp_and_the_attacked_share():
+    adv = Adversary(AdversarialConfig(eps=0.04, steps=1, ramp_epochs=2, fraction=0.5), PoseLoss(), 10, 0)
+    assert adv.eps_at(0) == pytest.approx(0.002) and adv.eps_at(9) == pytest.approx(0.02)
+    assert adv.eps_at(19) == adv.eps_at(500) == pytest.approx(0.04)
+    model = PoseNet(0.125, 0.0).eval()
+    x = torch.rand(4, 3, H, W)
+    x_adv = adv.perturb(model, x, _target(), 100)
+    assert torch.equal(x_adv[2:], x[2:]) and (x_adv[:2] - x[:2]).abs().max() <= 0.04 + 1e-6
+    assert not torch.equal(x_adv[:2], x[:2])
+
+
+def test_attacked_images_can_leave_the_rotation_term():
+    adv = Adversary(AdversarialConfig(fraction=0.5, attacked_rotation=False), PoseLoss(), 1, 0)
+    assert adv.skip_rotation(8) == 4 and adv.skip_rotation(1) == 0
+    assert Adversary(AdversarialConfig(fraction=0.5), PoseLoss(), 1, 0).skip_rotation(8) == 0
+    loss, target = PoseLoss(), _target(4)
+    pred = target.clone()
+    pred[:2, 3:] += 1.0                   # wrong rotations on the two attacked rows only
+    assert loss(pred, target, skip_rotation=2).item() == pytest.approx(0.0)
+    assert loss(pred, target).item() > 0
+    with pytest.raises(ValueError, match="needs fraction < 1"):
+        AdversarialConfig(attacked_rotation=False)
+
+
+def test_attack_table_stores_8_bit_images_and_attacks_raise_the_error():
+    torch.manual_seed(0)
+    model = PoseNet(0.125, 0.0).eval()
+    rng = np.random.default_rng(0)
+    images = rng.integers(0, 256, (6, H, W, 3), dtype=np.uint8)
+    targets = _target(6).numpy()
+    rows = attack_table(model, PoseLoss(), images, targets, [0.01, 0.05], pgd_steps=3)
+    assert [(r["attack"], r["eps"]) for r in rows] == [("clean", 0.0), ("fgsm", 0.01), ("pgd-3", 0.01),
+                                                        ("fgsm", 0.05), ("pgd-3", 0.05)]
+    clean = rows[0]["pos_m"]
+    assert all(r["pos_m"] > clean and r["pos_ci"][0] <= r["pos_m"] <= r["pos_ci"][1] for r in rows[1:])
+    x = torch.tensor(images).permute(0, 3, 1, 2).float() / 255
+    stored = quantize(x + 0.01, x)
+    assert (stored.int() - torch.tensor(images).permute(0, 3, 1, 2).int()).abs().max() <= 3
+
+
+def test_black_level_stats_measure_the_render_and_the_lab_background():
+    images = np.zeros((5, 40, 60, 3), np.uint8)
+    images[:, 15:25, 25:35] = 200
+    images[:, 15, 25:35] = 10                  # a dark rim of the target, below t = 0.07
+    b = black_level_stats(images, 0.07, 0.02, 0.0, seed=0)
+    assert b["render_black"] == pytest.approx(1 - 100 / 2400) and b["target_erased"] == pytest.approx(0.1)
+    assert 0.05 < b["lab_black_999"] < 0.08 and 0 < b["lab_passed"] < 0.01
+
+
+def test_tilt_and_roll_split_the_attitude_error_about_the_line_of_sight():
+    from pipeline.geometry.rotations import matrix_to_6d, rotvec_to_matrix
+
+    t = np.array([[0.0, 0.0, 30.0]] * 3)
+    r = [rotvec_to_matrix([0, 0, np.deg2rad(4)]), rotvec_to_matrix([np.deg2rad(3), 0, 0]),
+         rotvec_to_matrix([0, np.deg2rad(3), np.deg2rad(4)])]
+    pred = np.concatenate([t, matrix_to_6d(np.stack(r))], 1)
+    target = np.concatenate([t, matrix_to_6d(np.stack([np.eye(3)] * 3))], 1)
+    tilt, roll = tilt_roll_deg(pred, target)
+    np.testing.assert_allclose(tilt[:2], [0, 3], atol=1e-6)
+    np.testing.assert_allclose(roll[:2], [4, 0], atol=1e-6)
+    assert 2.5 < tilt[2] < 3.5 and 3.5 < roll[2] < 4.5
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("eps", 0.0, r"train.adversarial.eps must be a positive number in \(0, 1\]"),
+    ("eps", 1.5, r"train.adversarial.eps must be a positive number in \(0, 1\]"),
+    ("steps", 0, r"train.adversarial.steps must be a positive whole number in \[1, 1000\]"),
+    ("black_level", 0.03, r"train.adversarial: black_level \(0.03\) must exceed eps \(0.05\)"),
+    ("black_level", 1.0, r"train.adversarial.black_level must be a number in \[0, 1\)"),
+    ("fraction", 1.0, r"train.adversarial: attacked_rotation: false needs fraction < 1"),   # the default is false
+])
+def test_bad_adversarial_params_are_refused_in_one_line_naming_the_key(tmp_path, monkeypatch, key, value, message):
+    monkeypatch.chdir(tmp_path)
+    p = params_mod.compose("smoke")
+    p["train"]["adversarial"][key] = value
+    params_mod.write_params(p)
+    with pytest.raises(ParamsError, match=message) as err:
+        params_mod.load()
+    assert "\n" not in str(err.value)
+
+
+def test_robust_stage_writes_the_model_its_page_and_a_loader_reads_it(dataset):
+    from stages.train import main
+
+    main(params_mod.load())
+    main(params_mod.load(), robust=True)
+    m = json.loads(Path("reports/metrics/robust.json").read_text())
+    assert m["standard"]["test"]["n"] == m["robust"]["test"]["n"] == 16 and m["eval_frames"] == 8
+    assert [r["attack"] for r in m["robust"]["attacks"]] == ["clean", "fgsm", "pgd-3", "fgsm", "pgd-3"]
+    assert m["robust"]["train_minutes"] > 0 and m["standard"]["train_minutes"] > 0
+    a = params_mod.load().train.adversarial   # 1 epoch each; PGD-k on a share of each batch
+    assert m["robust"]["gradients"] == round((1 + a.steps * a.fraction) * m["standard"]["gradients"]) > 0
+    page = Path("reports/pose_robust.md").read_text()
+    assert "Black-level clamp t = 0.07" in page and "| pgd-3    | 0.050" in page
+    pose = models.load_pose(params_mod.load(), POSE_ROBUST)
+    assert pose.model.black_level == 0.07 and pose.model(torch.rand(1, 3, H, W)).shape == (1, 9)
+    assert list(Path("dvclive/robust").glob("**/val_adv_pos_m.tsv"))
+    other = params_mod.load()
+    other = dataclasses.replace(other, train=dataclasses.replace(
+        other.train, adversarial=dataclasses.replace(other.train.adversarial, black_level=0.08)))
+    with pytest.raises(StageError, match=r"black_level=0.07 \(params: 0.08\)"):
+        models.load_pose(other, POSE_ROBUST)
