@@ -33,9 +33,9 @@ from pipeline.report.markdown import markdown_table  # noqa: E402
 from pipeline.io.atomic import atomic_write_text  # noqa: E402
 from stages.pages.summary import HEADLINES as SUMMARY_HEADLINES, Headline, Metrics  # noqa: E402
 
-# The headline numbers: summary.json's (stages/pages/summary.py: `dvc metrics show`) and a few more
-# that only the seed spread needs. Keys name them in reports/variance.json, which `rpod report` reads to
-# show the spread beside the README's headline numbers.
+# The headline numbers: summary.json's (stages/pages/summary.py: `dvc metrics show`: the integrity rows among
+# them) and a few more that only the seed spread needs. Keys name them in reports/variance.json, which
+# `rpod report` reads to show the spread beside the README's headline numbers.
 def _lost(m: Metrics) -> float:
     """Percent of the attacked closed-loop runs (undefended) that lost the rendezvous."""
     runs = [r for r in m["guidance"]["runs"] if r.get("attacked_frames", 1) > 0]

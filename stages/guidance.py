@@ -9,7 +9,9 @@ reports/figures/guidance_trajectories.png and reports/metrics/guidance.json. Wit
 inside the loop it flies every cell again for each of `guidance.dynamics` and each of undefended /
 `guidance.defenses` (detect-and-hold, detect-and-recover; a fresh calibrated defense from
 models/defense.json per run) -> the defended section of the report, metrics `defended`, and
-reports/figures/guidance_defended.png (one run per variant).
+reports/figures/guidance_defended.png (one run per variant). Last, the in-loop attacker
+(pipeline/attacks/in_loop.py) at each `integrity.eps`, goal and start range under every dynamics and
+variant -> the in-loop section, metrics `in_loop`. Rates count only the runs that met the attack.
 """
 from __future__ import annotations
 
@@ -27,14 +29,26 @@ from stages.artifacts.models import load_chain, load_defense
 from stages.config.build import check_attack_params, engine_settings, intrinsics, make_attack, scene_settings
 from stages.config.device import torch_setup
 from stages.config.schema import Params
+from stages.config.evaluation import Integrity
 from stages.config.sections import Attack, Guidance
 from stages.engine import chunks, pool as engine
 from stages.engine.guidance_worker import GuidanceSetup, GuidanceWorker, flights
 from pipeline.io.atomic import atomic_write_text, save_figure
 from stages.artifacts.dvc import write_metrics
 from stages.errors import StageError
-from stages.pages.guidance import defended_section, guidance_page
 from stages.pages.calibrate import unmet_banner
+from stages.pages.guidance import defended_section, guidance_page, in_loop_section
+
+
+def _in_loop(i: Integrity, settings: Any) -> tuple[tuple[float, str, float], ...]:
+    """The in-loop attacker's (eps, goal, S) cells of params.integrity, S checked against the approach."""
+    for s in i.in_loop_start_ranges:
+        try:
+            settings.window(float(s), 1)
+        except ValueError as e:
+            raise StageError(f"params.yaml integrity.in_loop_start_ranges: {e}") from None
+    return tuple((float(e), goal, float(s)) for e, goal, s in itertools.product(sorted(i.eps), i.in_loop_goals,
+                                                                                i.in_loop_start_ranges))
 
 
 def _plan(g: Guidance) -> tuple[Any, list[tuple[float, float, int, Any]]]:
@@ -65,21 +79,20 @@ def main(params: Params) -> None:
     from tqdm import tqdm
 
     from pipeline.report.figures import guidance_trajectories, guidance_variants
-    from pipeline.guidance.grid import GridPlan, defended_grid, grid_counts, paper_grid
+    from pipeline.guidance.grid import GridPlan, defended_grid, grid_counts, in_loop_grid, paper_grid
 
     g = params.guidance
     settings, grid = _plan(g)
+    in_loop = _in_loop(params.integrity, settings)
     make_attack(params.attack, g.method, 0)   # refuses bad attack params before anything runs
     torch_setup(params)
     chain, _, model_hash = load_chain(params)  # refuses a pose model whose input size is not render.width x height
     defense = load_defense(params, model_hash, chain.threshold)
-    K = intrinsics(params)  # the model's input size
-    es = engine_settings(params)
+    K, es = intrinsics(params), engine_settings(params)   # K: the model's input size
     scene, threads = chunks.prepare(K, scene_settings(params.render), es)
-    plan = GridPlan(settings, tuple(grid), g.slack_steps, tuple(g.dynamics), tuple(g.defenses))
+    plan = GridPlan(settings, tuple(grid), g.slack_steps, tuple(g.dynamics), tuple(g.defenses), in_loop)
     runs = flights(plan)
-    # Attacked runs get the steps the unattacked chaser needed plus slack_steps: an attack succeeds
-    # when it delays or diverts the chaser beyond that (the paper: 50 nominal steps + ~10).
+    # attacked runs last the unattacked chaser's arrival + slack_steps (the paper: 50 nominal steps + ~10)
     finished, t0, paper_done = [0], time.perf_counter(), [0.0]
 
     def progress(i: int, _: Any) -> None:
@@ -99,22 +112,23 @@ def main(params: Params) -> None:
     counts = grid_counts(paper)      # the paper's grid alone
     baseline, arrival, horizon, attacked = paper_grid(plan, [r for r, _ in flown])
     defended = defended_grid(plan, [r for r, _ in flown])
-    defended["seconds"] = time.perf_counter() - t0 - seconds
-    defended.update(grid_counts(flown[plan.paper_size:], frozenset().union(*(k for _, k in paper))))
-
+    defended["seconds"] = time.perf_counter() - t0 - seconds   # with the in-loop runs: they share the workers
+    looped = len(plan.in_loop_runs())
+    defended.update(grid_counts(flown[plan.paper_size:len(flown) - looped], frozenset().union(*(k for _, k in paper))))
     metrics = _metrics(settings, g, params.attack, model_hash, seconds, counts, (baseline, arrival, horizon, attacked),
                        defended)
+    metrics |= {"in_loop": in_loop_grid(plan, [r for r, _ in flown], params.integrity.collision_range_m)
+                | grid_counts(flown[len(flown) - looped:]), "minutes": (time.perf_counter() - t0) / 60}
     write_metrics(METRICS, metrics, params.profile_name)
     atomic_write_text(REPORT, unmet_banner(defense.calibration) + guidance_page(metrics, g, params.render)
-                      + defended_section(metrics["defended"], g))
+                      + defended_section(metrics["defended"], g) + in_loop_section(metrics["in_loop"], params.integrity))
     first = attacked[0][0] if attacked else None
     save_figure(guidance_trajectories(baseline, [(s, k, r) for e, s, k, r in attacked if e == first], first,
                                       settings.goal), FIGURE)
     save_figure(guidance_variants(defended["example"]["runs"], settings.goal, defended["example"]["title"],
                                   settings.tolerance), DEFENDED_FIGURE)
-    typer.echo(f"guidance: baseline {baseline.outcome} ({baseline.miss:.2f} m); {len(attacked)} attacked runs, "
-          f"{counts['renders']} renders for {counts['steps']} steps in {seconds:.0f} s; defended grid "
-          f"{defended['renders']} renders for {defended['steps']} steps in {defended['seconds']:.0f} s -> {REPORT}")
+    typer.echo(f"guidance: baseline {baseline.outcome} ({baseline.miss:.2f} m); {len(attacked)} attacked runs in "
+               f"{seconds:.0f} s; defended grid and {looped} in-loop runs in {defended['seconds']:.0f} s -> {REPORT}")
     if baseline.outcome != "rendezvous held":
         typer.secho(f"warning: the no-attack baseline did not reach the target ({baseline.outcome}, miss "
                     f"{baseline.miss:.2f} m): the pose model is not good enough for closed-loop guidance, so the "
@@ -135,7 +149,9 @@ def _metrics(settings: Any, g: Guidance, a: Attack, model_hash: str, seconds: fl
                   "attack_start": r.attack_start, "attacked_frames": r.attacked_frames, "steps": len(r.estimates)}
                  for e, s, k, r in runs],
     }
-    metrics["attack_success_rate"] = {f"{e:g}": float(np.mean([r.outcome != "rendezvous held" for e2, _, _, r in runs
-                                                               if e2 == e])) for e in dict.fromkeys(e for e, *_ in runs)}
+    # of the runs that met the attack (a run that never reached S was not attacked)
+    met = {e: [r.outcome != "rendezvous held" for e2, _, _, r in runs if e2 == e and r.attacked_frames > 0]
+           for e in dict.fromkeys(e for e, *_ in runs)}
+    metrics["attack_success_rate"] = {f"{e:g}": float(np.mean(v)) if v else None for e, v in met.items()}
     metrics["defended"] = {k: v for k, v in defended.items() if k != "example"}
     return metrics

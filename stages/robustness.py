@@ -28,8 +28,8 @@ from pipeline.io.atomic import atomic_write_text, save_figure
 from pipeline.io.errors import not_found
 from pipeline.pose.labels import TARGET
 from stages.artifacts.dvc import write_metrics
-from stages.artifacts.paths import DETECTOR, POSE, ROBUSTNESS_FIGURE as FIGURE, ROBUSTNESS_METRICS as METRICS, \
-    ROBUSTNESS_REPORT as REPORT, SEED_OFFSET, SURROGATE
+from stages.artifacts.paths import DETECTOR, INTEGRITY_FIGURE, POSE, ROBUSTNESS_FIGURE as FIGURE, \
+    ROBUSTNESS_METRICS as METRICS, ROBUSTNESS_REPORT as REPORT, SEED_OFFSET, SURROGATE
 from stages.artifacts.readers import read_eval_render
 from stages.artifacts.models import Pose, load_defense, load_pose
 from stages.config.device import torch_setup
@@ -80,23 +80,24 @@ def main(params: Params) -> None:
                            pgd_is_lambda0="pgd" in r.transfer and 0.0 in r.lambdas)
     clean_harm, corruptions = _corruption_rows(chain, images, targets, r, seed, progress)
     bar.close()
-    fused = _fused_rows(params, r, chain, target, seed, pose.hash)
-    seconds = time.perf_counter() - t0
+    fused = _integrity(params, r, chain, target, seed, pose.hash)
+    seconds, figure = time.perf_counter() - t0, fused.pop("figure")
     metrics = {"rows": rows, "corruptions": corruptions, "frames": n, "test_frames": len(split), "harm_m": r.harm_m,
                "steps": r.steps, "gradients_per_frame": sum(s.cost for s in specs), "lambdas": r.lambdas,
                "eps": r.eps, "threshold": chain.threshold,
                "clean_harmful_rate": clean_harm.value, "ci95_clean_harmful": clean_harm.ci(),
                "surrogate": {"best_epoch": int(surrogate.meta.get("epoch", 0)),
                              "validation_position_m": float(surrogate.meta.get("val_pos_m", float("nan")))},
-               "model_hash": pose.hash, "surrogate_hash": surrogate.hash, "seconds": seconds,
+               "model_hash": pose.hash, "surrogate_hash": surrogate.hash, "seconds": seconds, "minutes": seconds / 60,
                "worst_harmful_undetected": worst_by_eps(rows), **fused,
                "worst_harmful_undetected_fused": worst_by_eps(fused["fused_rows"])}
     write_metrics(METRICS, metrics, params.profile_name)
     atomic_write_text(REPORT, unmet_banner({"unmet": fused["fused"]["calibration_unmet"]}) + robustness_page(metrics, params))
     worst_fused = [row for row in fused["fused_rows"] if row["lambda"] is None]
     save_figure(robustness_vs_eps([row for row in rows if row["attack"] != "adaptive pgd"] + worst_fused), FIGURE)
-    print(f"robustness: {len(rows)} attack rows and {len(corruptions)} corruption rows on {n} test frames in "
-          f"{seconds:.0f} s -> {REPORT}, {METRICS}, {FIGURE}")
+    save_figure(_integrity_figure(*figure), INTEGRITY_FIGURE)
+    print(f"robustness: {len(rows)} attack rows, {len(corruptions)} corruption rows on {n} test frames and "
+          f"{len(fused['integrity']['rows'])} integrity rows in {seconds:.0f} s -> {REPORT}, {METRICS}, {INTEGRITY_FIGURE}")
 
 
 def _specs(p: Params, r: Robustness, target: Any, pose: Pose, surrogate: Pose, seed: int) -> list[Any]:
@@ -131,58 +132,123 @@ def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Rob
     return rate(clean_pos > r.harm_m), rows
 
 
-def _fused_rows(p: Params, r: Robustness, chain: Any, target: Any, seed: int, model_hash: str) -> dict[str, Any]:
-    """Adaptive attack on the fused chain (LSTM flag OR motion gate, pipeline.defense.fusion) over bursts of
-    `evaluate.attack_length` frames every `robustness.burst_every` frames of each eval_render
-    trajectory, per eps and lambda and the per-burst worst case over lambda; rates with bootstrap
-    intervals over trajectories. Also the fused chain's false-alarm rate on the clean trajectories."""
-    import torch
+def _integrity(p: Params, r: Robustness, chain: Any, target: Any, seed: int, model_hash: str) -> dict[str, Any]:
+    """The chain-level attackers (integrity.attackers at integrity.eps) on the eval_render trajectories through the
+    shipped chain and calibrated defense, judged by integrity against the same trajectories unattacked
+    (pipeline.evaluation.integrity_runs); the burst's attacked frames also give the per-frame fused rows
+    (raw error > harm_m and unflagged). Returns the metrics and the figure's data."""
+    from pipeline.evaluation.integrity_runs import Track, clean_row, fly, integrity_row
+    from pipeline.evaluation.stats import bootstrap_rate
+    from stages.config.build import alert_limit_settings
+    from stages.pages.integrity import worst_hmi
+
+    t0 = time.perf_counter()
+    images, labels, trajs, bursts, defended, info = _fused_setup(p, r, chain, model_hash)
+    tracks = [Track(f"t{g}", images[ix], labels[ix]) for g, ix in enumerate(trajs)]
+    limit, i = alert_limit_settings(p), p.integrity
+    clean = [fly(chain, defended, t, limit, r.batch_size) for t in tracks]
+    flags = np.concatenate([c.trace.flag for c in clean])
+    alarms = bootstrap_rate(flags, np.concatenate([np.full(len(t), g) for g, t in enumerate(tracks)]))
+    info.update(false_alarm_rate=alarms.value, ci95_false_alarm=alarms.ci())
+    bursts_hmi: dict[float, list[int]] = {}
+    runs = _attack_runs(p, r, chain, target, tracks, bursts, defended, clean, seed, bursts_hmi)
+    eps = sorted(float(e) for e in i.eps)
+    rows = [integrity_row(name, e, flown, clean, masks, seed=seed) | ({"bursts_with_hmi": bursts_hmi[e]}
+                                                                       if name == "burst" else {})
+            for name, e, flown, masks in runs]
+    worst = worst_hmi({"rows": rows})
+    fused = [_burst_fused_row(e, flown, tracks, masks, r.harm_m) for name, e, flown, masks in runs if name == "burst"]
+    top = [(name, flown, masks) for name, e, flown, masks in runs if e == eps[-1]]
+    return {"fused_rows": fused, "fused": info,
+            "integrity": {"rows": rows, "worst_hmi": worst, "clean": clean_row(clean, seed=seed), "eps": eps,
+                          "attackers": list(i.attackers),
+                          "alert_limit_m": i.alert_limit_m, "collision_range_m": i.collision_range_m,
+                          "burst": {"steps": i.burst_steps, "restarts": i.burst_restarts,
+                                    "lambdas": [float(v) for v in i.burst_lambdas], "cap": i.burst_cap,
+                                    "bursts": info["bursts"], "burst_length": info["burst_length"]},
+                          "drift": {"start": i.drift_start, "frames": i.drift_frames, "steps": i.drift_steps,
+                                    "gate_fraction": i.drift_gate_fraction}, "seconds": time.perf_counter() - t0},
+            "figure": (clean, top, eps[-1])}
+
+
+def _attack_runs(p: Params, r: Robustness, chain: Any, target: Any, tracks: list[Any], bursts: list[Any], defended: Any,
+                 clean: list[Any], seed: int,
+                 bursts_hmi: dict[float, list[int]]) -> list[tuple[str, float, list[Any], list[np.ndarray]]]:
+    """(attacker, eps, attacked flights, attacked frames per track) for every attacker and eps of params.integrity;
+    `bursts_hmi` gets per eps [bursts with an HMI frame, bursts] as the burst attacker judged its own worst cases."""
     from tqdm import tqdm
 
-    from pipeline.attacks.adaptive import adaptive_pgd
-    from pipeline.attacks.gradient import attack_loss
-    from pipeline.evaluation.robustness import fused_bursts, fused_row, worst_burst_over_lambda
+    from pipeline.evaluation.integrity_runs import burst_attack, drift_attack, fly
+    from stages.config.build import burst_attacker, drift_settings, alert_limit_settings
 
-    images, labels, trajs, bursts, defended, info = _fused_setup(p, r, chain, model_hash)
-    full = attack_loss(p.attack.loss, load_pose(p).loss)
-    rows = []
-    bar = tqdm(total=len(r.eps) * len(r.lambdas) * len(trajs), desc="robustness (fused)", unit="trajectory")
-    for i, e in enumerate(r.eps):
-        runs = []
-        for lam in r.lambdas:
-            def craft(fused: Any, x: Any, y: Any, e: float = e, lam: float = lam) -> Any:
-                return adaptive_pgd(fused, x, y, e, full, lam, steps=r.steps,
-                                    generator=torch.Generator().manual_seed(seed + 700 + i))
-            runs.append(fused_bursts(chain, target, defended, images, labels, trajs, bursts, craft, r.batch_size,
-                                     lambda: bar.update(1)))
-            rows.append(fused_row("fused chain: adaptive pgd", e, lam, *runs[-1][:3], r.harm_m))
-        wp, wf = worst_burst_over_lambda([v[0] for v in runs], [v[1] for v in runs], runs[0][3], r.harm_m)
-        rows.append(fused_row("fused chain: adaptive pgd, worst over lambda", e, None, wp, wf, runs[0][2], r.harm_m))
+    i, limit = p.integrity, alert_limit_settings(p)
+    eps = sorted(float(e) for e in i.eps)
+    drifts = [a for a in i.attackers if a != "burst"]
+    bar = tqdm(total=len(tracks) * ("burst" in i.attackers) + bool(drifts) * len(eps) * i.drift_frames,
+               desc="robustness (integrity)", unit="step", dynamic_ncols=True)
+    out = []
+    if "burst" in i.attackers:
+        masks = [np.isin(np.arange(len(t)), [k for a, b in bs for k in range(a, b)]) for t, bs in zip(tracks, bursts)]
+        stored, worst = burst_attack(target, defended, tracks, masks, burst_attacker(p, seed + 800), eps,
+                                     lambda: bar.update(1))
+        out += [("burst", e, [fly(chain, defended, t, limit, r.batch_size, s, c) for t, s, c in
+                              zip(tracks, stored[e], clean)], masks) for e in eps]
+        bursts_hmi.update({e: [sum(int(b.hmi.any()) for bs in worst[e] for b in bs), sum(map(len, worst[e]))]
+                           for e in eps})
+    window = (i.drift_start, i.drift_start + i.drift_frames)
+    settings = [drift_settings(p, a.split("/")[1]) for a in drifts]
+    masks = [(np.arange(len(t)) >= window[0]) & (np.arange(len(t)) < window[1]) for t in tracks]
+    for e in eps if drifts else []:
+        stored = drift_attack(target, defended, tracks, clean, window, settings, e, i.drift_steps, seed + 900,
+                              lambda: bar.update(1))
+        out += [(name, e, [fly(chain, defended, t, limit, r.batch_size, s, c) for t, s, c in zip(tracks, per, clean)],
+                 masks) for name, per in zip(drifts, stored)]
     bar.close()
-    return {"fused_rows": rows, "fused": info}
+    return out
+
+
+def _integrity_figure(clean: list[Any], top: list[tuple[str, list[Any], list[np.ndarray]]], eps: float) -> Any:
+    """The Stanford diagram of every attacker at the largest eps (and the clean runs), and trajectory 0 over frames."""
+    from pipeline.evaluation.integrity_runs import diagram_points
+    from pipeline.report.figures import integrity_diagram
+    from stages.pages.integrity import NAMES
+
+    every = [np.ones(len(c.pose), bool) for c in clean]
+    points = {"no attack": diagram_points(clean, every), **{f"{NAMES[name]}, eps {eps:g}": diagram_points(flown, masks)
+                                                            for name, flown, masks in top}}
+    series = {"no attack": clean[0].frames.error, **{f"{NAMES[name]}, eps {eps:g}": flown[0].frames.error
+                                                     for name, flown, _ in top}}
+    return integrity_diagram(points, series, clean[0].frames.alert,
+                             f"Trusted estimate against its bound, eps {eps:g} (counted frames: from the first attacked one)")
+
+
+def _burst_fused_row(eps: float, flown: list[Any], tracks: list[Any], masks: list[np.ndarray], harm_m: float) -> Any:
+    """The per-frame view of the nested burst on the fused chain: raw error > harm_m and unflagged."""
+    from pipeline.evaluation.integrity_runs import raw_errors
+    from pipeline.evaluation.robustness import fused_row
+
+    err, flag, group = raw_errors(flown, tracks, masks)
+    return fused_row("fused chain: burst (nested, worst over lambda and restarts)", eps, None, err, flag, group, harm_m)
 
 
 def _fused_setup(p: Params, r: Robustness, chain: Any, model_hash: str) -> tuple[Any, ...]:
     """(eval_render images, labels (N, 9), frame indices per trajectory, bursts per trajectory, the
-    defended-chain settings, facts incl. the fused chain's false-alarm rate on the clean trajectories)."""
-    from pipeline.evaluation.robustness import Defended, burst_schedule, fused_false_alarms
+    defended-chain settings, facts about the defense)."""
+    from pipeline.evaluation.robustness import Defended, burst_schedule
 
     images, poses, _ = read_eval_render(p)
     labels = poses[TARGET].to_numpy(np.float64)
     trajs = [np.flatnonzero(poses["trajectory"].to_numpy() == t) for t in np.unique(poses["trajectory"])]
     # the defense that ships: params.defense with the noise model `rpod calibrate` fitted on validation trajectories
     shipped = load_defense(p, model_hash, chain.threshold)
-    defended = Defended(shipped.settings, shipped.motion, shipped.noise)
-    length = p.evaluate.attack_length
+    defended = Defended(shipped.settings, shipped.motion, shipped.noise, shipped.alert)
+    length = p.integrity.burst_length
     try:
         bursts = [burst_schedule(len(ix), length, r.burst_every) for ix in trajs]
     except ValueError as e:
-        raise StageError(f"params.yaml robustness.burst_every / evaluate.attack_length: {e}") from None
-    # the fused chain on the clean trajectories: its false alarms
-    alarms = fused_false_alarms(chain, defended, images, labels, trajs, r.batch_size)
+        raise StageError(f"params.yaml robustness.burst_every / integrity.burst_length: {e}") from None
     info = {"trajectories": len(trajs), "bursts": sum(len(b) for b in bursts), "burst_length": length,
-            "burst_every": r.burst_every, "false_alarm_rate": alarms.value, "ci95_false_alarm": alarms.ci(),
-            "noise_model": defended.noise.as_dict(), "gate": defended.motion.gate,
+            "burst_every": r.burst_every, "noise_model": defended.noise.as_dict(), "gate": defended.motion.gate,
             "gate_false_alarm": defended.motion.false_alarm, "noise_inflation": shipped.calibration.get("inflation", 1.0),
             "fusion": defended.settings.fusion, "calibration_unmet": shipped.calibration.get("unmet", []),
             "noise_fitted_on": "validation trajectories (models/defense.json, rpod calibrate)"}

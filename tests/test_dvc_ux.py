@@ -51,7 +51,7 @@ def test_summary_leaves_out_a_stage_that_did_not_run():
     metrics = _committed_metrics()
     del metrics["robustness"]
     s = summary(metrics)
-    assert "robustness" not in s and "test_position_m" in s["pose"]
+    assert "robustness" not in s and "integrity" not in s and "test_position_m" in s["pose"]
 
 
 def test_only_the_summary_is_a_dvc_metric_and_details_stay_outputs():

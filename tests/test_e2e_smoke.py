@@ -26,7 +26,7 @@ REPORTS = ["dataset", "pose", "attack", "guidance", "detector", "integrated", "r
            "README"]
 METRICS = ["train", "attack", "guidance", "detect", "evaluate", "robustness", "lab"]
 FIGURES = ["fgsm_example", "guidance_trajectories", "guidance_defended", "timeline", "robustness", "pose_errors",
-           "error_vs_eps", "shap_heatmaps", "roc"]
+           "error_vs_eps", "shap_heatmaps", "roc", "integrity"]
 
 
 def tables(md: str) -> list[tuple[str, list[str], list[str]]]:
@@ -162,13 +162,23 @@ def test_every_table_has_the_expected_rows(smoke_repo):
     assert {row["attack"] for row in rob["rows"]} >= {*r["transfer"], "adaptive pgd, worst over lambda"}
     assert len(rob["corruptions"]) == 1 + sum(len(v) for v in r["corruptions"].values())
     assert rows_under(page("robustness"), "Benign corruptions", "corruption")[0] == "none"
+    i = p["integrity"]
     fused = [(row["eps"], row["lambda"]) for row in rob["fused_rows"]]
-    assert sorted(fused, key=str) == sorted([(float(e), float(v)) for e in r["eps"] for v in r["lambdas"]]
-                                            + [(float(e), None) for e in r["eps"]], key=str)
+    assert fused == [(e, None) for e in sorted(map(float, i["eps"]))]    # the nested burst, per frame
     assert all(row["n"] > 0 and row["ci_method"] == "bootstrap over trajectories" for row in rob["fused_rows"])
+    integrity = [(row["attacker"], row["eps"]) for row in rob["integrity"]["rows"]]
+    assert sorted(integrity) == sorted((a, float(e)) for a in i["attackers"] for e in i["eps"])
+    assert set(rob["integrity"]["worst_hmi"]) == set(eps(i["eps"]))
+    assert len(rows_under(page("robustness"), "Integrity", "attacker")) == len(integrity)
+    in_loop = rows_under(page("guidance"), "The in-loop attacker", "dynamics")
+    assert in_loop == [d for d in p["guidance"]["dynamics"] for _ in range(1 + len(p["guidance"]["defenses"]))
+                       for _ in i["eps"]]
+    runs = json.loads((dst / "reports" / "metrics" / "guidance.json").read_text())["in_loop"]["runs"]
+    assert len(runs) == len(in_loop) * len(i["in_loop_goals"]) * len(i["in_loop_start_ranges"])
 
     summary = rows_under(page("README"), "Summary against the paper", "result")
-    assert len(summary) == 13 and summary[0].startswith("pose")
+    assert len(summary) == 17 and summary[0].startswith("pose")
+    assert sum(r.startswith("integrity") for r in summary) == 3
     defended = [r for h, head, r in tables(page("README")) if "defended chain (or)" in head]
     assert defended and defended[0][0].startswith("integrated accuracy at eps")
     assert sum(r.startswith("closed loop") for r in defended[0]) == len(p["guidance"]["dynamics"])

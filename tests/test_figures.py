@@ -54,6 +54,10 @@ def _figures() -> dict[str, object]:
                                                  (0.0, 0.0, 10.0), "test cell", tolerance=1.0),
         "timeline": F.detection_timeline(np.linspace(60, 10, 50), np.arange(50) % 7 < 2, trace, 0.5, "T0"),
         "robustness": F.robustness_vs_eps(rows),
+        "integrity": F.integrity_diagram(
+            {name: {"bound": np.full(40, 11.0), "error": RNG.lognormal(0, 1, 40), "bound_is": "AL"}
+             for name in ("clean", "burst at eps 0.05")},
+            {"clean": RNG.random(60), "burst at eps 0.05": 5 * RNG.random(60)}, np.full(60, 11.0), "test"),
     }
 
 
@@ -82,7 +86,8 @@ def _overlaps(a, b) -> bool:
     return a.x0 < b.x1 and b.x0 < a.x1 and a.y0 < b.y1 and b.y0 < a.y1
 
 
-@pytest.mark.parametrize("name", ["roc", "guidance_trajectories", "guidance_defended", "robustness", "timeline"])
+@pytest.mark.parametrize("name", ["roc", "guidance_trajectories", "guidance_defended", "robustness", "timeline",
+                                  "integrity"])
 def test_legends_sit_outside_the_axes(figures, name):
     fig = figures[name]
     renderer = fig.canvas.get_renderer()

@@ -61,12 +61,14 @@ FLOWN = (TRACK, COAST)   # defense modes in which the guidance flies on the trus
 @dataclass(frozen=True)
 class AlertLimitSettings:
     """The constants of `alert_limit`: docking tolerance (m), step limit (m per step per axis), slack
-    steps of the run's budget beyond the nominal approach, collision range (m)."""
+    steps of the run's budget beyond the nominal approach, collision range (m); `fixed` (m): a fixed AL at
+    every range instead of the derived AL(range) (None: derived)."""
 
     tolerance: float = 1.0
     max_step: float = 1.0
     slack_steps: int = 10
     collision_range: float = 5.0
+    fixed: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("tolerance", "max_step", "collision_range"):
@@ -74,13 +76,17 @@ class AlertLimitSettings:
                 raise ValueError(f"alert limit: {name} must be > 0 (metres), got {getattr(self, name)!r}")
         if int(self.slack_steps) != self.slack_steps or self.slack_steps < 0:
             raise ValueError(f"alert limit: slack_steps must be a whole number >= 0, got {self.slack_steps!r}")
+        if self.fixed is not None and not float(self.fixed) > 0:
+            raise ValueError(f"alert limit: fixed must be None or > 0 (metres), got {self.fixed!r}")
 
 
 def alert_limit(range_m: np.ndarray | float, settings: AlertLimitSettings = AlertLimitSettings()) -> np.ndarray:
-    """AL (m) at true range `range_m` (m): max(tol, min(tol + slack s, r + s - collision range)); see
-    the module docstring for the derivation."""
+    """AL (m) at true range `range_m` (m): max(tol, min(tol + slack s, r + s - collision range)) (see the
+    module docstring for the derivation), or `settings.fixed` at every range when set."""
     s = settings
     r = np.asarray(range_m, dtype=np.float64)
+    if s.fixed is not None:
+        return np.full_like(r, float(s.fixed))
     docking = s.tolerance + s.slack_steps * s.max_step
     collision = r + s.max_step - s.collision_range
     return np.maximum(s.tolerance, np.minimum(docking, collision))

@@ -210,12 +210,23 @@ def burst_schedule(n_frames: int, length: int, every: int) -> list[tuple[int, in
 
 @dataclass(frozen=True)
 class Defended:
-    """The fused chain's settings (pipeline.defense.fusion): fusion, threshold; the motion filter settings
-    and the fitted noise model."""
+    """The fused chain's settings (pipeline.defense.fusion): fusion, threshold; the motion filter settings,
+    the fitted noise model and the alert limit its availability is judged against (PL <= AL)."""
 
     settings: Any      # DefenseSettings
     motion: Any        # MotionSettings
     noise: Any         # NoiseModel
+    alert: Any = None  # AlertLimitSettings (pipeline.evaluation.integrity), None: no availability check
+
+    def defense(self) -> Any:
+        """A fresh pipeline.defense.fusion.Defense with these settings."""
+        from functools import partial
+
+        from pipeline.defense.fusion import Defense
+        from pipeline.evaluation.integrity import alert_limit
+
+        return Defense(self.settings, self.motion, self.noise,
+                       None if self.alert is None else partial(alert_limit, settings=self.alert))
 
 
 def pose_estimates(chain: Any, images: np.ndarray, batch_size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -225,45 +236,6 @@ def pose_estimates(chain: Any, images: np.ndarray, batch_size: int) -> tuple[np.
     res = run_sequence(chain, images, np.zeros((len(images), 9), np.float32), np.zeros(len(images), bool), None,
                        batch_size)
     return res.pose.astype(np.float64), res.prob
-
-
-def fused_attack(chain: Any, shap: Any, defended: Defended, images: np.ndarray, targets: np.ndarray,
-                 bursts: Sequence[tuple[int, int]], craft: Callable[[Any, Any, Any], Any],
-                 batch_size: int) -> tuple[np.ndarray, Any]:
-    """One trajectory (uint8 frames (N, H, W, 3), labels (N, 9)) with every burst attacked through the
-    fused chain, then the REAL defense over the whole trajectory, clean frames included.
-
-    Frames are fed to a `Defense` in time order; at each burst the attacker takes the motion
-    filter's state left by the frames before it (`burst_prior`, coasting on the commands) and
-    crafts the burst jointly: `craft(FusedBurstChain, x, y)` -> float images; they are stored as
-    8-bit. Returns (pose (N, 9) estimates, `run_defense` trace of the whole trajectory).
-    """
-    from pipeline.attacks.adaptive import FusedBurstChain, burst_prior
-    from pipeline.attacks.gradient import quantize
-    from pipeline.defense.fusion import Defense, run_defense
-    from pipeline.geometry.rotations import sixd_to_matrix
-
-    R_cam, u = world_motion(targets)
-    pose, prob = pose_estimates(chain, images, batch_size)
-    d, done = Defense(defended.settings, defended.motion, defended.noise), 0
-
-    def feed(stop: int) -> None:
-        for k in range(done, stop):
-            d.step(pose[k, :3], prob[k], R_cam[k], u[k], sixd_to_matrix(pose[k, 3:]))
-
-    for a, b in bursts:
-        feed(a)
-        prior = burst_prior(d.filter, R_cam[a:b], u[a:b]) if d.filter.started else None
-        fused = FusedBurstChain(shap, defended.settings.threshold, defended.noise, defended.motion.gate, prior)
-        x = torch.from_numpy(np.ascontiguousarray(images[a:b])).permute(0, 3, 1, 2).float() / 255.0
-        stored = quantize(craft(fused, x, torch.from_numpy(np.asarray(targets[a:b], np.float32))), x)
-        pose[a:b], prob[a:b] = pose_estimates(chain, stored.permute(0, 2, 3, 1).numpy(), batch_size)
-        done = a
-        feed(b)
-        done = b
-    trace = run_defense(defended.settings, defended.motion, defended.noise, pose[:, :3], prob, R_cam, u,
-                        sixd_to_matrix(pose[:, 3:]))
-    return pose, trace
 
 
 def fused_row(attack: str, eps: float, lam: float | None, position_error: np.ndarray, flag: np.ndarray,
@@ -283,58 +255,3 @@ def fused_row(attack: str, eps: float, lam: float | None, position_error: np.nda
             "detection_rate": det.value, "harmful_undetected_rate": hu.value, "position_error_m": float(pos.mean()),
             "ci95_detection": det.ci(), "ci95_harmful_undetected": hu.ci(),
             "harmful_rate": harmful.value, "ci95_harmful": harmful.ci()}
-
-
-def worst_burst_over_lambda(position_errors: Sequence[np.ndarray], flags: Sequence[np.ndarray],
-                            burst_ids: np.ndarray, harm_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """The attacker who tries every lambda and keeps, per burst (a burst is crafted jointly, so the
-    choice is per burst, not per frame), the lambda with the most harmful unflagged frames, then
-    the fewest flagged frames, then the largest mean error. Inputs: one (N,) array per lambda over
-    the same attacked frames; `burst_ids` (N,). Returns (position error (N,), flag (N,))."""
-    pos = np.stack([_check(p, f)[0] for p, f in zip(position_errors, flags)])
-    flag = np.stack([np.asarray(f, dtype=bool).ravel() for f in flags])
-    out_pos, out_flag = np.empty(pos.shape[1]), np.empty(pos.shape[1], bool)
-    for b in np.unique(burst_ids):
-        m = burst_ids == b
-        j = max(range(len(pos)), key=lambda j: (int(((pos[j, m] > harm_m) & ~flag[j, m]).sum()),
-                                                -int(flag[j, m].sum()), float(pos[j, m].mean())))
-        out_pos[m], out_flag[m] = pos[j, m], flag[j, m]
-    return out_pos, out_flag
-
-
-def fused_false_alarms(chain: Any, defended: Defended, images: np.ndarray, labels: np.ndarray,
-                       trajectories: Sequence[np.ndarray], batch_size: int) -> Any:
-    """The fused chain (the real defense) on the clean trajectories (frame indices into `images`,
-    `labels` (N, 9)): its false-alarm rate with a bootstrap over trajectories (pipeline.evaluation.stats.Rate)."""
-    from pipeline.defense.fusion import run_defense
-    from pipeline.geometry.rotations import sixd_to_matrix
-    from pipeline.evaluation.stats import bootstrap_rate
-
-    clean_flags, groups = [], []
-    for g, ix in enumerate(trajectories):
-        est, prob = pose_estimates(chain, images[ix], batch_size)
-        R_cam, u = world_motion(labels[ix])
-        clean_flags.append(run_defense(defended.settings, defended.motion, defended.noise, est[:, :3], prob, R_cam,
-                                       u, sixd_to_matrix(est[:, 3:])).flag)
-        groups.append(np.full(len(ix), g))
-    return bootstrap_rate(np.concatenate(clean_flags), np.concatenate(groups))
-
-
-def fused_bursts(chain: Any, shap: Any, defended: Defended, images: np.ndarray, labels: np.ndarray,
-                 trajectories: Sequence[np.ndarray], bursts: Sequence[Sequence[tuple[int, int]]],
-                 craft: Callable[[Any, Any, Any], Any], batch_size: int,
-                 done: Callable[[], None] = lambda: None) -> tuple[np.ndarray, ...]:
-    """`fused_attack` on every trajectory (frame indices into `images`, `labels` (N, 9)) with its
-    bursts; `done()` after each trajectory. Returns, over the attacked frames of all bursts in order,
-    (position error (M,), flag (M,), trajectory id (M,), burst id (M,): 1000 * trajectory + burst)."""
-    from pipeline.pose.metrics import pose_errors
-
-    pos, flag, grp, bid = [], [], [], []
-    for g, (ix, bs) in enumerate(zip(trajectories, bursts)):
-        est, trace = fused_attack(chain, shap, defended, images[ix], labels[ix], bs, craft, batch_size)
-        err = pose_errors(est, labels[ix])[0]
-        for k, (a, b) in enumerate(bs):
-            pos.append(err[a:b]), flag.append(trace.flag[a:b])
-            grp.append(np.full(b - a, g)), bid.append(np.full(b - a, 1000 * g + k))
-        done()
-    return tuple(np.concatenate(v) for v in (pos, flag, grp, bid))

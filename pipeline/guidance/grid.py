@@ -1,8 +1,11 @@
 """The guidance grid of `rpod guidance`: which closed-loop runs to fly (`GridPlan`), flying them with a
-shared image cache (`GridPilot`), and their results as the paper grid and the defended grid.
+shared image cache (`GridPilot`), and their results as the paper grid, the defended grid and the
+in-loop attacker's runs.
 
 A grid cell is (eps, S = attack start range in metres, K = attacked frames, AttackWindow); runs use the
-closed loop of pipeline/guidance/law.py.
+closed loop of pipeline/guidance/law.py. An in-loop cell is (eps, goal, S): the in-loop attacker
+(pipeline/attacks/in_loop.py) attacks every frame from the first at range <= S to the end of the run.
+Rates count only the runs that met the attack (a run that never reached S was not attacked).
 """
 from __future__ import annotations
 
@@ -12,7 +15,8 @@ from typing import Any, Callable
 import numpy as np
 
 from pipeline.geometry.camera import Intrinsics
-from pipeline.guidance.law import HELD, CachedCamera, GuidanceSettings, RendezvousResult, arrival_step, run_rendezvous
+from pipeline.guidance.law import (HELD, AttackWindow, CachedCamera, GuidanceSettings, RendezvousResult,
+                                   arrival_step, run_rendezvous)
 
 
 def horizon(arrival: int | None, max_steps: int, slack: int) -> int:
@@ -25,8 +29,22 @@ def _count(x: np.ndarray | None, value: Any = True) -> int | None:
     return None if x is None else int((x == value).sum())
 
 
+def held_counts(cells: list[tuple[Any, ...]]) -> dict[str, list[int]]:
+    """Per eps ("%g"): [runs held, runs that met the attack, runs that never met it] of (eps, ..., result) cells."""
+    out: dict[str, list[int]] = {}
+    for e, *_, r in cells:
+        k = out.setdefault(f"{e:g}", [0, 0, 0])
+        met = r.attacked_frames > 0
+        k[0] += int(met and r.outcome == HELD)
+        k[1] += int(met)
+        k[2] += int(not met)
+    return out
+
+
 def defended_record(base: RendezvousResult, arrival: int | None, cells: list[tuple[Any, ...]]) -> dict[str, Any]:
-    """One (dynamics, defense) block of `defended_grid`: its no-attack run, every cell, held runs per eps."""
+    """One (dynamics, defense) block of `defended_grid`: its no-attack run, every cell, and per eps the
+    runs held of those that met the attack (`held`: [held, met]) and the runs that never met it."""
+    counts = held_counts(cells)
     return {
         "baseline": {"outcome": base.outcome, "miss_m": base.miss, "arrival_step": arrival,
                      "flags": _count(base.flags)},
@@ -34,37 +52,51 @@ def defended_record(base: RendezvousResult, arrival: int | None, cells: list[tup
                   "attacked_frames": r.attacked_frames, "steps": len(r.estimates),
                   "flags": _count(r.flags), "hold_steps": _count(r.modes, "hold")}
                  for e, S, k, r in cells],
-        "held": {f"{e:g}": [int(sum(r.outcome == HELD for e2, _, _, r in cells if e2 == e)),
-                            int(sum(e2 == e for e2, *_ in cells))] for e in dict.fromkeys(c[0] for c in cells)}}
+        "held": {e: v[:2] for e, v in counts.items()}, "not_met": {e: v[2] for e, v in counts.items()}}
 
 
-Run = tuple[str, str, "int | None"]
-"""One closed-loop run of a `GridPlan`: (dynamics = settings.variant, defense, grid cell index or None
-for that (dynamics, defense)'s no-attack baseline)."""
+@dataclass(frozen=True)
+class InLoopRun:
+    """The run of a `GridPlan` that flies `plan.in_loop[index]` with the in-loop attacker."""
+
+    index: int
+
+
+Run = tuple[str, str, "int | InLoopRun | None"]
+"""One closed-loop run of a `GridPlan`: (dynamics = settings.variant, defense, grid cell index, an
+`InLoopRun`, or None for that (dynamics, defense)'s no-attack baseline)."""
 
 
 @dataclass(frozen=True)
 class GridPlan:
     """The guidance grid: `settings`, the (eps, S, K, window) cells, `slack_steps`; the paper grid is
     flown under settings.variant undefended, the defended grid under every (`dynamics`, undefended and
-    each of `defenses`) except that one (its runs are the paper grid's)."""
+    each of `defenses`) except that one (its runs are the paper grid's). `in_loop`: the in-loop
+    attacker's (eps, goal, S) cells, flown last under every (dynamics, undefended and each defense)."""
 
     settings: GuidanceSettings
     grid: tuple[tuple[Any, ...], ...]
     slack_steps: int
     dynamics: tuple[str, ...] = ()
     defenses: tuple[str, ...] = ()
+    in_loop: tuple[tuple[float, str, float], ...] = ()
 
     def _block(self, dyn: str, defense: str) -> list[Run]:
         return [(dyn, defense, None), *[(dyn, defense, i) for i in range(len(self.grid))]]
 
     def runs(self) -> list[Run]:
-        """Every run: the paper grid (baseline first), then each defended (dynamics, defense) block."""
+        """Every run: the paper grid (baseline first), then each defended (dynamics, defense) block,
+        then the in-loop runs."""
         out = self._block(self.settings.variant, "undefended")
         for dyn in self.dynamics:
             out += [r for d in ("undefended", *self.defenses) if (dyn, d) != (self.settings.variant, "undefended")
                     for r in self._block(dyn, d)]
-        return out
+        return out + self.in_loop_runs()
+
+    def in_loop_runs(self) -> list[Run]:
+        """The in-loop runs: per dynamics (settings.variant when none), undefended and each defense, each cell."""
+        return [(dyn, d, InLoopRun(i)) for dyn in self.dynamics or (self.settings.variant,)
+                for d in ("undefended", *self.defenses) for i in range(len(self.in_loop))]
 
     @property
     def paper_size(self) -> int:
@@ -76,29 +108,40 @@ class GridPilot:
     poses it rendered). An attacked run's length comes from its block's no-attack baseline (flown here
     first when this pilot has not flown it: runs are deterministic, so any pilot gets the same one);
     `attack_at(eps, i)` is the attack of run i of `plan.runs()` (seeded per run, so the outcome does not
-    depend on which pilot flies it or in what order); `defense.new()` a fresh Defense per defended run."""
+    depend on which pilot flies it or in what order); `in_loop_at(eps, goal, i)` the in-loop attacker
+    (pipeline.attacks.in_loop.InLoopAttacker) of run i; `defense.new()` a fresh Defense per defended run."""
 
     def __init__(self, camera: CachedCamera, K: Intrinsics, plan: GridPlan,
-                 attack_at: Callable[[float, int], Any], defense: Any = None) -> None:
+                 attack_at: Callable[[float, int], Any], defense: Any = None,
+                 in_loop_at: Callable[[float, str, int], Any] | None = None) -> None:
         self.camera, self.K, self.plan, self.attack_at, self.defense = camera, K, plan, attack_at, defense
+        self.in_loop_at = in_loop_at
         self.index = {r: i for i, r in enumerate(plan.runs())}
         self.baselines: dict[tuple[str, str], RendezvousResult] = {}
 
-    def fly(self, dyn: str, defense: str, cell: int | None) -> tuple[RendezvousResult, frozenset[bytes]]:
+    def fly(self, dyn: str, defense: str, cell: int | InLoopRun | None) -> tuple[RendezvousResult, frozenset[bytes]]:
         from dataclasses import replace
 
         p = self.plan
-        s, window = replace(p.settings, variant=dyn, defense=defense), None
+        s, window, observe = replace(p.settings, variant=dyn, defense=defense), None, None
         self.camera.attack = None
         if cell is not None:
-            eps, _, k, window = p.grid[cell]
             arrival = arrival_step(self._baseline(dyn, defense), p.settings.goal, p.settings.tolerance)
-            extra = 0 if defense == "undefended" else k   # a held chaser may arrive up to K steps late
+            i = self.index[(dyn, defense, cell)]
+            if isinstance(cell, InLoopRun):   # attacked to the end; a defended chaser may hold for slack more steps
+                eps, goal, start = p.in_loop[cell.index]
+                window, extra = AttackWindow(start, p.settings.max_steps), p.slack_steps
+                self.camera.attack = attacker = self.in_loop_at(eps, goal, i)
+                observe = attacker.observe
+            else:
+                eps, _, k, window = p.grid[cell]
+                extra = k                      # a held chaser may arrive up to K steps late
+                self.camera.attack = self.attack_at(eps, i)
+            extra = 0 if defense == "undefended" else extra
             s = replace(s, max_steps=horizon(arrival, p.settings.max_steps, p.slack_steps + extra))
-            self.camera.attack = self.attack_at(eps, self.index[(dyn, defense, cell)])
         self.camera.keys = set()
         result = run_rendezvous(self.camera.render, self.camera.estimate, self.K, s, window,
-                                defense=None if defense == "undefended" else self.defense.new())
+                                defense=None if defense == "undefended" else self.defense.new(), observe=observe)
         if cell is None:
             self.baselines[(dyn, defense)] = result
         return result, frozenset(self.camera.keys)
@@ -153,3 +196,29 @@ def defended_grid(plan: GridPlan, results: list[RendezvousResult]) -> dict[str, 
     e, S, k, _ = plan.grid[pick] if pick is not None else (0.0, 0.0, 0, None)
     out["example"] = {"runs": example, "title": f"{plan.dynamics[-1]} dynamics, eps = {e:g}, S = {S:g} m, K = {k}"}
     return out
+
+
+def in_loop_grid(plan: GridPlan, results: list[RendezvousResult], collision_range: float) -> dict[str, Any]:
+    """The in-loop runs of `plan.runs()`'s `results` -> {"runs": one record per run (dynamics, defense,
+    eps, goal, S, outcome, collided: closest range < `collision_range` (m), closest range and miss (m),
+    steps, attacked frames, flags, hold steps, ended in hold), "counts": per (dynamics, defense, eps)
+    [collisions, lost rendezvous (not held, no collision), rendezvous held, runs that met the attack,
+    runs that never met it] over goals and start ranges}."""
+    first = len(plan.runs()) - len(plan.in_loop_runs())
+    runs, counts = [], {}
+    for (dyn, defense, cell), r in zip(plan.in_loop_runs(), results[first:]):
+        eps, goal, start = plan.in_loop[cell.index]
+        collided = r.closest_range < collision_range
+        runs.append({"dynamics": dyn, "defense": defense, "eps": eps, "goal": goal, "start_range": start,
+                     "outcome": r.outcome, "collided": bool(collided), "closest_range_m": r.closest_range,
+                     "miss_m": r.miss, "steps": len(r.estimates), "attacked_frames": r.attacked_frames,
+                     "flags": _count(r.flags), "hold_steps": _count(r.modes, "hold"),
+                     "ended_in_hold": None if r.modes is None or not len(r.modes) else bool(r.modes[-1] == "hold")})
+        k = counts.setdefault(dyn, {}).setdefault(defense, {}).setdefault(f"{eps:g}", [0, 0, 0, 0, 0])
+        met = r.attacked_frames > 0
+        k[0] += int(met and collided)
+        k[1] += int(met and not collided and r.outcome != HELD)
+        k[2] += int(met and not collided and r.outcome == HELD)
+        k[3] += int(met)
+        k[4] += int(not met)
+    return {"runs": runs, "counts": counts, "collision_range_m": float(collision_range)}

@@ -25,7 +25,8 @@ gets the commanded displacement of `rel` (-cmd, or 0 in a hold) to drive its mot
 A run lasts `max_steps` steps (the nominal approach 60 m -> 10 m takes 50); it is judged at the
 end: within `tolerance` of the goal or not. It stops early when the target's centre leaves the
 image ("target lost"). The attack starts at the first step whose true range is at or below S
-and lasts K consecutive frames (fewer if the run ends first).
+and lasts K consecutive frames (fewer if the run ends first). An attacker in the loop may watch it:
+`observe` gets the loop's state (`LoopState`) before every frame is estimated.
 """
 from __future__ import annotations
 
@@ -106,6 +107,21 @@ class GuidanceSettings:
         return AttackWindow(float(start_range), int(length))
 
 
+@dataclass(frozen=True)
+class LoopState:
+    """What the loop shows an attacker who watches it, before frame `step` is estimated: the true rel
+    (world, m), the camera attitude R_c (camera -> world), the commanded displacement of rel since the
+    last frame (world, m; what the defense will be given), the live defense (None: undefended; read
+    it, never step it) and the run's settings."""
+
+    step: int
+    rel: np.ndarray
+    R_c: np.ndarray
+    u: np.ndarray
+    defense: Defense | None
+    settings: "GuidanceSettings"
+
+
 @dataclass
 class RendezvousResult:
     """One closed-loop run. positions: (n+1, 3) true rel after each step (first row = start);
@@ -124,6 +140,20 @@ class RendezvousResult:
     @property
     def attacked_frames(self) -> int:
         return int(self.attacked.sum())
+
+    @property
+    def closest_range(self) -> float:
+        """The least true range over the run (m): the distance from the target to the path between
+        consecutive positions (a step may jump past the target under the paper dynamics)."""
+        return float(min(segment_range(a, b) for a, b in zip(self.positions[:-1], self.positions[1:]))
+                     if len(self.positions) > 1 else np.linalg.norm(self.positions[0]))
+
+
+def segment_range(a: np.ndarray, b: np.ndarray) -> float:
+    """Distance (m) from the target (the origin of rel) to the segment from rel `a` to rel `b`."""
+    d = np.asarray(b, np.float64) - a
+    s = 0.0 if not d @ d > 0 else float(np.clip(-(np.asarray(a, np.float64) @ d) / (d @ d), 0.0, 1.0))
+    return float(np.linalg.norm(a + s * d))
 
 
 def in_view(t: np.ndarray, K: Intrinsics) -> bool:
@@ -165,11 +195,13 @@ def outcome(lost: bool, miss: float, tolerance: float, attacked: np.ndarray) -> 
 
 def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settings: GuidanceSettings,
                    window: AttackWindow | None = None, target_attitude: np.ndarray | None = None,
-                   defense: Defense | None = None) -> RendezvousResult:
+                   defense: Defense | None = None,
+                   observe: Callable[[LoopState], None] | None = None) -> RendezvousResult:
     """Fly the closed loop: render the true pose, estimate it (attacked inside the window), move.
 
     `target_attitude` is the target -> world rotation (identity by default). `defense` (a fresh
     pipeline.defense.fusion.Defense per run) is required unless settings.defense is "undefended".
+    `observe` (an attacker in the loop) is shown the `LoopState` before each frame is estimated.
     """
     if (settings.defense == "undefended") != (defense is None):
         raise ValueError(f"guidance defense {settings.defense!r} needs "
@@ -187,6 +219,8 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
         if window is not None and attack_start is None and np.linalg.norm(rel) <= window.start_range + 1e-6:
             attack_start = k
         hit = attack_start is not None and k < attack_start + window.length
+        if observe is not None:
+            observe(LoopState(k, rel.copy(), R_c.copy(), u.copy(), defense, settings))
         out = estimate(render(R, t), hit, (R, t))
         out = out if isinstance(out, Estimate) else Estimate(np.asarray(out, dtype=np.float64))
         est = R_c @ np.asarray(out.t, dtype=np.float64)

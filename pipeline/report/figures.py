@@ -342,3 +342,37 @@ def robustness_vs_eps(rows: Sequence[Mapping[str, object]]) -> Figure:
     fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncols=3)
     fig.suptitle("Detection and harm per attack and eps (95% Wilson intervals)")
     return fig
+
+
+@_readable
+def integrity_diagram(points: Mapping[str, Mapping[str, np.ndarray]], series: Mapping[str, np.ndarray],
+                      alert: np.ndarray, title: str) -> Figure:
+    """Left, the Stanford diagram: per run label, the trusted estimate's error (m) against the frame's
+    bound (`points[label]`: "bound", "error" (n,), "bound_is" "PL" when the chain gives a protection
+    level, else "AL"); above the diagonal the error exceeds it (HMI against AL, MI against PL). Right,
+    the trusted error (m) of one trajectory per label (`series[label]` (N,)) and its AL (N,) over frames."""
+    fig = Figure(figsize=(WIDTH_IN, 4.4), layout="constrained")
+    axes = fig.subplots(1, 2)
+    names = [str(p.get("bound_is", "AL")) for p in points.values()]
+    for j, (label, p) in enumerate(points.items()):
+        axes[0].plot(np.maximum(p["bound"], 1e-2), np.maximum(p["error"], 1e-2), ".", ms=2.5, alpha=0.5,
+                     color=f"C{j}", label=label)
+    every = np.concatenate([np.concatenate([p["bound"], p["error"]]) for p in points.values()] + [np.ones(1)])
+    lo, top = max(1e-2, 0.5 * float(np.nanmin(every))), 2 * float(np.nanmax(every))
+    line = np.array([lo, top])
+    axes[0].plot(line, line, "k-", lw=1)
+    axes[0].fill_between(line, line, top, color="r", alpha=0.07, label=f"error > {names[0]}")
+    axes[0].set(xlim=(lo, top), ylim=(lo, top))
+    axes[0].set(xscale="log", yscale="log", xlabel=f"{names[0]} (m)", ylabel="trusted error (m)",
+                title=f"error against {names[0]}, counted frames")
+    for j, (label, err) in enumerate(series.items()):
+        axes[1].plot(np.arange(len(err)), err, "-", lw=1.1, color=f"C{j}")
+    axes[1].plot(np.arange(len(alert)), alert, "k--", lw=1, label="AL")
+    axes[1].set(yscale="log", xlabel="frame", ylabel="trusted error (m)", title="one trajectory")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    handles, labels = axes[0].get_legend_handles_labels()
+    more = axes[1].get_legend_handles_labels()
+    fig.legend(handles + more[0], labels + more[1], loc="outside lower center", ncols=3, markerscale=3)
+    fig.suptitle(title)
+    return fig

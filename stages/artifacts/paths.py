@@ -57,8 +57,9 @@ POSE_ROBUST, ROBUST_REPORT, ROBUST_METRICS, ROBUST_LIVE = _outputs(
     "robust", "models/pose_robust.pt", "reports/pose_robust.md", "reports/metrics/robust.json", "dvclive/robust")
 # a second pose model (`rpod train --surrogate`) for black-box transfer
 (SURROGATE,) = _outputs("surrogate", "models/surrogate.pt")
-ROBUSTNESS_REPORT, ROBUSTNESS_FIGURE, ROBUSTNESS_METRICS = _outputs(
-    "robustness", "reports/robustness.md", "reports/figures/robustness.png", "reports/metrics/robustness.json")
+ROBUSTNESS_REPORT, ROBUSTNESS_FIGURE, ROBUSTNESS_METRICS, INTEGRITY_FIGURE = _outputs(
+    "robustness", "reports/robustness.md", "reports/figures/robustness.png", "reports/metrics/robustness.json",
+    "reports/figures/integrity.png")
 LAB_MODELS, LAB_MODELS_SUMMARY = _outputs("lab_models", "datasets/lab_models", "datasets/lab_models/summary.json")
 LAB, LAB_REPORT, LAB_METRICS = _outputs("lab", "datasets/lab", "reports/lab.md", "reports/metrics/lab.json")
 # the headline numbers (what `dvc metrics show` prints), then the report's own figures

@@ -149,20 +149,57 @@ def defense_settings(defense: Defense, threshold: float) -> tuple[Any, Any]:
 
 # AlertLimitSettings field -> the param that feeds it (the guidance law's constants are guidance's own)
 ALERT_LIMIT_KEYS = {"tolerance": "guidance.tolerance", "max_step": "guidance.max_step",
-                    "slack_steps": "guidance.slack_steps", "collision_range": "integrity.collision_range_m"}
+                    "slack_steps": "guidance.slack_steps", "collision_range": "integrity.collision_range_m",
+                    "fixed": "integrity.alert_limit_m"}
 
 
 def alert_limit_settings(params: Params) -> Any:
     """The AlertLimitSettings of pipeline.evaluation.integrity: the guidance law's tolerance, step limit and
-    slack (params.guidance) with params.integrity's collision range."""
+    slack (params.guidance) with params.integrity's collision range, or integrity.alert_limit_m (m) when set."""
     from pipeline.evaluation.integrity import AlertLimitSettings
 
     g, i = params.guidance, params.integrity
     try:
-        return AlertLimitSettings(float(g.tolerance), float(g.max_step), g.slack_steps, float(i.collision_range_m))
+        return AlertLimitSettings(float(g.tolerance), float(g.max_step), g.slack_steps, float(i.collision_range_m),
+                                  None if i.alert_limit_m is None else float(i.alert_limit_m))
     except ValueError as e:
         name = next(k for k in ALERT_LIMIT_KEYS if f" {k} must" in str(e))
         raise StageError(f"params.yaml {ALERT_LIMIT_KEYS[name]}: {e}") from None
+
+
+def burst_attacker(params: Params, seed: int) -> Any:
+    """The BurstAttacker of params.integrity (AL as a function of the true range, as the integrity rows judge it)."""
+    from pipeline.attacks.suite import get_attacker
+    from pipeline.evaluation.integrity import alert_limit
+
+    i, limit = params.integrity, alert_limit_settings(params)
+    al = lambda rng: alert_limit(rng, limit)  # noqa: E731
+    try:
+        return get_attacker("burst", alert_limit=al, cap=float(i.burst_cap), steps=i.burst_steps,
+                            restarts=i.burst_restarts, lambdas=tuple(float(v) for v in i.burst_lambdas), seed=seed)
+    except ValueError as e:
+        raise StageError(f"params.yaml integrity: {e}") from None
+
+
+def drift_settings(params: Params, direction: str) -> Any:
+    """The DriftSettings of params.integrity for `direction` (los or lateral)."""
+    from pipeline.attacks.drift import DriftSettings
+
+    try:
+        return DriftSettings(direction=direction, gate_fraction=float(params.integrity.drift_gate_fraction))
+    except ValueError as e:
+        raise StageError(f"params.yaml integrity.attackers / drift_gate_fraction: {e}") from None
+
+
+def in_loop_settings(params: Params, goal: str) -> Any:
+    """The InLoopSettings of params.integrity for `goal` (collide or miss); its stealth is the drift's gate fraction."""
+    from pipeline.attacks.in_loop import InLoopSettings
+
+    i = params.integrity
+    try:
+        return InLoopSettings(goal=goal, steps=i.in_loop_steps, gate_fraction=float(i.drift_gate_fraction))
+    except ValueError as e:
+        raise StageError(f"params.yaml integrity.in_loop_goals / in_loop_steps: {e}") from None
 
 
 def engine_settings(params: Params) -> Any:

@@ -240,13 +240,44 @@ class Robustness:
 
 
 
+IntegrityAttacker = Literal["burst", "drift/los", "drift/lateral"]   # pipeline.attacks.suite.ATTACKERS[/direction]
+InLoopGoal = Literal["collide", "miss"]                              # pipeline.attacks.in_loop.GOALS
+Steps = Annotated[int, In("[1, 100000]", "PGD steps")]
+
+
 @dataclass(frozen=True)
 class Integrity:
-    """Integrity metrics (pipeline/evaluation/integrity.py; the alert limit's other constants are guidance's)."""
+    """Integrity metrics and the chain-level attackers (pipeline/evaluation/integrity.py, pipeline/attacks/;
+    the alert limit's other constants are guidance's)."""
 
     collision_range_m: Metres    # metres: a true range below this is a collision, > 0
+    alert_limit_m: Optional[Metres]   # metres: a fixed AL instead of AL(range) from the guidance law; None: derived
+    eps: list[Eps]               # L-inf budgets of the integrity attacks, pixels in [0, 1] (the burst nests through them)
+    attackers: list[IntegrityAttacker]
+    burst_length: Frames         # frames per burst (one every robustness.burst_every frames of each trajectory)
+    burst_steps: Steps           # PGD steps per restart and lambda
+    burst_restarts: Annotated[int, In("[1, 1000]", "random starts")]
+    burst_lambdas: list[Annotated[float, In("[0, 1000000000]", "weight")]]   # searched in increasing order
+    burst_cap: Annotated[float, In("(0, 1000]", "units of AL")]   # the objective's ceiling
+    drift_start: Annotated[int, In("[1, 10000000]", "frame")]   # first drifted frame of each trajectory
+    drift_frames: Frames         # drifted frames per trajectory
+    drift_steps: Steps           # targeted PGD steps per drifted frame
+    drift_gate_fraction: Annotated[float, In("(0, 1]", "fraction of the gate")]
+    in_loop_goals: list[InLoopGoal]
+    in_loop_start_ranges: list[Metres]   # metres: the in-loop attacker attacks from the first step at range <= S
+    in_loop_steps: Steps         # targeted PGD steps per attacked closed-loop frame
 
     def __post_init__(self) -> None:
         if not self.collision_range_m > 0:
             raise ParamsError(f"params.yaml integrity.collision_range_m must be > 0 (metres), "
                               f"got {self.collision_range_m!r}")
+        if self.alert_limit_m is not None and not self.alert_limit_m > 0:
+            raise ParamsError(f"params.yaml integrity.alert_limit_m must be null or > 0 (metres), "
+                              f"got {self.alert_limit_m!r}")
+        for key in ("eps", "attackers", "burst_lambdas", "in_loop_goals", "in_loop_start_ranges"):
+            values = getattr(self, key)
+            if not values or len(set(values)) != len(values):
+                raise ParamsError(f"params.yaml integrity.{key} must be a non-empty list without repeats, got {values!r}")
+        bad = [e for e in self.eps if not 0 < e <= 1]
+        if bad:
+            raise ParamsError(f"params.yaml integrity.eps: {bad[0]!r} is not in (0, 1] (pixels are in [0, 1])")

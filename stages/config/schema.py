@@ -69,6 +69,10 @@ class Params:
         if not self.integrity.collision_range_m < goal:
             raise ValueError(f"integrity.collision_range_m must be below the goal range |guidance.target| = {goal:g} m, "
                              f"got {self.integrity.collision_range_m!r}")
+        i = self.integrity
+        if i.drift_start + i.drift_frames > self.evaluate.frames:
+            raise ValueError(f"integrity.drift_start + integrity.drift_frames ({i.drift_start} + {i.drift_frames}) must "
+                             f"be at most evaluate.frames = {self.evaluate.frames}: the drift is held inside a trajectory")
 
 
 def _check(value: Any, hint: Any, key: str) -> Any:

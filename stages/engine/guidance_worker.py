@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from stages.artifacts.models import load_chain
-from stages.config.build import make_attack
+from stages.config.build import in_loop_settings, make_attack
 from stages.config.schema import Params
 
 
@@ -18,7 +18,7 @@ from stages.config.schema import Params
 class GuidanceSetup:
     """What one GuidanceWorker holds: the camera, the scene, the chain's model files and the grid."""
 
-    params: Params     # typed params (device, `attack` section and `guidance.method`)
+    params: Params     # typed params (device, `attack` section, `guidance.method`, the in-loop attacker's `integrity`)
     K: Any                     # pipeline.geometry.camera.Intrinsics: the pose model's input size (pixels)
     scene: Any                 # pipeline.render.scene.SceneSettings, checked by stages.engine.chunks.prepare
     pose_path: str             # models/pose.pt as an absolute path (a worker may run elsewhere)
@@ -48,7 +48,9 @@ class GuidanceWorker:
     run of the plan (pipeline.guidance.law.GridPilot) -> (result, keys of the poses it rendered)."""
 
     def __init__(self, setup: GuidanceSetup) -> None:
+        from pipeline.attacks.adaptive import PerFrameChain
         from pipeline.attacks.gradient import stored_attack
+        from pipeline.attacks.in_loop import InLoopAttacker
         from pipeline.guidance.grid import GridPilot
         from pipeline.guidance.law import CachedCamera
         from pipeline.render.scene import Renderer
@@ -63,9 +65,14 @@ class GuidanceWorker:
         def attack_at(eps: float, i: int) -> Any:
             return stored_attack(chain.model, loss_fn, eps, make_attack(a, method, seed + i))
 
+        target = PerFrameChain(chain.model, chain.shap, chain.detector)
+
+        def in_loop_at(eps: float, goal: str, i: int) -> Any:
+            return InLoopAttacker(target, eps, in_loop_settings(setup.params, goal), seed + i)
+
         self.renderer = Renderer(setup.K, setup.scene)
         camera = CachedCamera(self.renderer.render, chain.model, chain=chain)
-        self.pilot = GridPilot(camera, setup.K, setup.plan, attack_at, setup.defense)
+        self.pilot = GridPilot(camera, setup.K, setup.plan, attack_at, setup.defense, in_loop_at)
 
     def run(self, job: Flight) -> tuple[Any, frozenset[bytes]]:
         return self.pilot.fly(job.dynamics, job.defense, job.cell)

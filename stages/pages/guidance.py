@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from stages.config.evaluation import Integrity
 from stages.config.sections import Guidance, Render
 
 DYNAMICS = {"paper": "paper (the chaser is placed at its estimate minus the command)",
@@ -24,7 +25,8 @@ def defended_section(d: dict[str, Any], g: Guidance) -> str:
                    "no-attack run": f"{v['baseline']['outcome']}, {v['baseline']['miss_m']:.2f} m"
                    + ("" if v["baseline"]["flags"] is None else f", {v['baseline']['flags']} flags")}
             for eps, (k, n) in v["held"].items():
-                row[f"held % at eps {eps}"] = f"{wilson(k, n).pct()} ({k}/{n})"
+                unmet = v.get("not_met", {}).get(eps, 0)
+                row[f"held % at eps {eps}"] = f"{wilson(k, n).pct()} ({k}/{n})" + (f", {unmet} not met" if unmet else "")
             summary.append(row)
             for r in v["runs"]:
                 cells.append({"dynamics": dyn, "variant": VARIANTS[variant], "eps": f"{r['eps']:g}",
@@ -46,7 +48,8 @@ clean frames return. Horizon: undefended runs last the no-attack arrival + {g.sl
 as above; a defended run lasts its own no-attack run's arrival + {g.slack_steps} + K steps, since
 holding on a flag costs a step per flagged frame: a defended chaser that arrives late by at most the
 attack's length counts as held, one diverted or still short after that counts as lost. Success
-rates carry 95% Wilson intervals over the runs of the grid (few runs: wide intervals).
+rates count only the runs that met the attack (a run that never reached S was not attacked: "not
+met") and carry 95% Wilson intervals over them (few runs: wide intervals).
 
 {markdown_table(summary)}
 ![one attacked cell per variant: distance from the approach axis and to the target point](figures/guidance_defended.png)
@@ -87,8 +90,9 @@ def guidance_page(m: dict[str, Any], g: Guidance, render: Render) -> str:
                     row[f"K = {r['length']}"] = _cell(r)
             rows.append(row)
         rate = m["attack_success_rate"][f"{eps:g}"]
-        tables.append(f"### eps = {eps:g}: the chaser missed or lost the target in {rate:.0%} of the runs\n\n"
-                      f"{markdown_table(rows)}")
+        share = "no run met the attack" if rate is None or rate != rate else \
+            f"the chaser missed or lost the target in {rate:.0%} of the runs that met the attack"
+        tables.append(f"### eps = {eps:g}: {share}\n\n{markdown_table(rows)}")
     law = ("the next true position is computed from the estimate, `p_new = p_est - clip(p_est - p_tar, -1, 1)` "
            "(the paper's variant: the chaser ends up where it believes it goes, so one wrong estimate moves the true "
            "chaser by as much as the estimate is wrong, and any estimate within 1 m per axis of the target point puts "
@@ -126,3 +130,46 @@ The full paper grid (eps 0.5, 0.3, 0.1, 0.05, 0.01; S = 60..10 m; K = 5..20) run
 `dvc exp run -S profile=paper` (everything at paper scale) or, on the current model,
 `dvc exp run -S 'guidance.eps=[0.5,0.3,0.1,0.05,0.01]' -S 'guidance.start_ranges=[60,50,40,30,20,10]' -S 'guidance.lengths=[5,10,15,20]'`.
 """
+
+
+def in_loop_section(d: dict[str, Any], i: Integrity) -> str:
+    """Markdown: the in-loop attacker's collisions, lost and held rendezvous per (dynamics, variant, eps), and every run."""
+    from pipeline.evaluation.stats import wilson
+    from pipeline.report.markdown import markdown_table
+
+    summary = []
+    for dyn, variants in d["counts"].items():
+        for variant in [v for v in VARIANTS if v in variants]:
+            for eps, (col, lost, held, met, unmet) in sorted(variants[variant].items(), key=lambda kv: float(kv[0])):
+                summary.append({"dynamics": dyn, "variant": VARIANTS[variant], "eps": eps, "runs met": met,
+                                "collisions (%)": f"{wilson(col, met).pct()} ({col}/{met})",
+                                "lost rendezvous, no collision (%)": f"{wilson(lost, met).pct()} ({lost}/{met})",
+                                "rendezvous held (%)": f"{wilson(held, met).pct()} ({held}/{met})",
+                                "not met": unmet})
+    runs = [{"dynamics": r["dynamics"], "variant": VARIANTS[r["defense"]], "eps": f"{r['eps']:g}", "goal": r["goal"],
+             "S (m)": f"{r['start_range']:g}", "outcome": ("**collision**, " if r["collided"] else "") + r["outcome"],
+             "closest range (m)": r["closest_range_m"], "miss (m)": r["miss_m"], "steps": r["steps"],
+             "attacked": r["attacked_frames"], "flags": "-" if r["flags"] is None else r["flags"],
+             "hold steps": "-" if r["hold_steps"] is None else r["hold_steps"]} for r in d["runs"]]
+    return f"""
+
+## The in-loop attacker: collision course and miss
+
+Every frame from the first step at range <= S (S in {', '.join(f'{s:g}' for s in i.in_loop_start_ranges)} m) to the end of the
+run is crafted by an attacker who knows the chain (pose network and detector), the defense with its
+state, the guidance law and where the chaser truly is (pipeline/attacks/in_loop.py): it looks one step
+ahead over estimates pushed along and across the line of sight (as far as keeps the innovation under
+{i.drift_gate_fraction:g} of the motion gate once the filter runs), keeps the one whose step brings the chaser
+nearest the target (goal "collide") or farthest from the docking point ("miss"), and crafts the frame
+by targeted L-inf PGD ({i.in_loop_steps} steps, the detector's margin in the objective) at eps
+{', '.join(f'{e:g}' for e in sorted(i.eps))}, stored as 8 bits. Greedy: a course that needs a detour is not found. A **collision**
+is a true range below `integrity.collision_range_m` = {d['collision_range_m']:g} m anywhere on the path; **lost
+rendezvous** a run that ends outside the tolerance or loses the target without a collision; **held**
+a run that ends docked. Horizon: the variant's no-attack arrival + `guidance.slack_steps`, plus as
+many again for the defended variants (a chaser that holds on flags arrives late). Only the runs that
+met the attack count; rates over goals and start ranges with 95% Wilson intervals (few runs: wide).
+
+{markdown_table(summary)}
+Every in-loop run:
+
+{markdown_table(runs, decimals=2)}"""

@@ -60,15 +60,18 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
         ("closed loop, attacked runs that lost the rendezvous (undefended)",
          f"{broken} of {len(runs)} ({wilson(broken, len(runs)).pct()} %)", "-", "guidance",
          _sd(spread, "undefended_lost_pct", " %")),
-        ("LSTM detector accuracy, SHAP test split (%)", _with_ci(dets["lstm"]["all"], "accuracy"),
+        ("(paper's view) LSTM detector accuracy, SHAP test split (%)", _with_ci(dets["lstm"]["all"], "accuracy"),
          _fmt(100 * DETECTOR_ACCURACY), "detect", _sd(spread, "detector.lstm_accuracy_pct")),
         (f"best baseline detector accuracy (%): {DETECTOR_NAMES.get(best_base, best_base)}",
          _with_ci(dets[best_base]["all"], "accuracy"), "-", "detect", "-"),
-        ("integrated detection accuracy, mean over eps (%; per eps with intervals below)", _fmt(100 * ev["accuracy_mean"]),
+        ("(paper's view) integrated per-frame detection accuracy, mean over eps (%; per eps below)",
+         _fmt(100 * ev["accuracy_mean"]),
          _fmt(INTEGRATED), "evaluate", _sd(spread, "integrated.accuracy_pct")),
-        (f"lab detection accuracy, mean over eps (%), {'main' if lab.get('reused_models', True) else 'retrained'} models",
+        ("(paper's view) lab detection accuracy, mean over eps (%): synthetic lab-like render, "
+         + ("same mesh, reused models" if lab.get("reused_models", True) else "retrained models"),
          _fmt(100 * lab["accuracy_mean"]), _fmt(LAB), "lab", _sd(spread, "lab.accuracy_pct")),
         *_robustness_rows(metrics["robustness"], spread),
+        *_integrity_rows(metrics["robustness"], gd, spread),
     ]
     columns = ("result", "this run", "paper", "stage", "sd over seeds")
     table = markdown_table([dict(zip(columns, (r, v, p, f"`{s}`", sd) if spread else (r, v, p, f"`{s}`")))
@@ -134,7 +137,9 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
                       f"defended chain ({fused['fusion']})": held("recover"), "paper": "-", "target": ">= 95",
                       **{c: _sd(spread, "recover_held_pct" if dyn == "paper" else None, " %") for c in sd_column}})
     return ("\n\nThe defended chain (motion check fused with the detector, recovery and hold) beside the "
-            "paper's detector, on the same frames and runs (95% intervals):\n\n" + markdown_table(table))
+            "paper's detector, on the same frames and runs (95% intervals); the per-frame rows are the paper's view "
+            "(the raw estimate of each frame against a fixed threshold), the closed-loop rows count only the runs "
+            "that met the attack:\n\n" + markdown_table(table))
 
 
 
@@ -145,7 +150,7 @@ def _robustness_rows(m: dict[str, Any], spread: dict[str, Any] | None) -> list[t
     from pipeline.report.markdown import percent_ci
 
     out = []
-    for key, what, short in (("worst_harmful_undetected_fused", "fused chain (ships), adaptive attack on bursts", "fused"),
+    for key, what, short in (("worst_harmful_undetected_fused", "fused chain (ships), nested burst attack", "fused"),
                              ("worst_harmful_undetected", "paper's LSTM detector alone, any attack incl. adaptive",
                               "lstm")):
         for e in ("0.05", "0.01"):
@@ -153,6 +158,36 @@ def _robustness_rows(m: dict[str, Any], spread: dict[str, Any] | None) -> list[t
             value = "-"
             if w is not None:
                 value = f"{percent_ci(w['harmful_undetected_rate'], w['ci95_harmful_undetected'])} ({w['attack']})"
-            out.append((f"worst harmful-undetected rate (%) at eps {e}, {what}", value, "-", "robustness",
+            out.append((f"(paper's view, per frame) worst harmful-undetected rate (%) at eps {e}, {what}", value, "-",
+                        "robustness",
                         _sd(spread, f"{short}_hu_{e}_pct")))
+    return out
+
+
+def _integrity_rows(rb: dict[str, Any], gd: dict[str, Any],
+                    spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
+    """The integrity headline rows: the worst HMI a chain-level attack caused on the shipped chain at eps 0.01
+    and 0.05, availability without attack, and the in-loop attacker's collisions per variant ("-" where not run)."""
+    from pipeline.evaluation.stats import wilson
+    from stages.pages.integrity import attacker_names
+
+    integrity, out = rb.get("integrity", {}), []
+    for e in ("0.01", "0.05"):
+        w = integrity.get("worst_hmi", {}).get(e)
+        value = "-" if w is None else f"{_rate(w['hmi'])} ({attacker_names(w['attacker'])})"
+        out.append((f"integrity: worst HMI (%) a chain-level attack caused at eps {e} (trusted error > AL, "
+                    f"available), shipped chain", value, "-", "robustness", _sd(spread, f"integrity.worst_hmi_eps_{e.replace('.', '_')}_pct")))
+    clean = integrity.get("clean")
+    out.append(("integrity: availability of the trusted estimate without attack (%)",
+                "-" if clean is None else _rate(clean["availability"]), "-", "robustness", _sd(spread, "integrity.clean_availability_pct")))
+    counts = gd.get("in_loop", {}).get("counts", {})
+    cells = []
+    for variant in ("undefended", "hold", "recover"):
+        c = [v for d in counts.values() for v in d.get(variant, {}).values()]
+        k, n = sum(x[0] for x in c), sum(x[3] for x in c)
+        cells.append("-" if not c else f"{wilson(k, n).pct()} ({k}/{n})")
+    out.append(("closed loop, in-loop attacker at eps " + " and ".join(sorted({f"{r['eps']:g}" for r in
+                gd.get("in_loop", {}).get("runs", [])})) + ": collisions of attacked runs (%), undefended / "
+                "detect-and-hold / detect-and-recover", " / ".join(cells), "-", "guidance",
+                _sd(spread, "in_loop.recover_collisions_pct")))
     return out

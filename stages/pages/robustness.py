@@ -37,41 +37,52 @@ def _meaning(rows: list[dict[str, Any]], what: str) -> str:
 
 def robustness_page(m: dict[str, Any], p: Params) -> str:
     """reports/robustness.md: results only (no times)."""
-    return _intro(m, p) + _fused(m, p) + _sections(m, p) + _corruptions(m)
+    from stages.pages.integrity import integrity_section
+
+    return _intro(m, p) + integrity_section(m["integrity"], m["fused"], p) + _paper_view(m, p) + _fused(m, p) \
+        + _sections(m, p) + _corruptions(m)
 
 
 def _fused(m: dict[str, Any], p: Params) -> str:
-    """The adaptive attack on the chain that ships (LSTM flag OR motion gate) over whole bursts."""
+    """The per-frame view of the nested burst attack on the chain that ships (LSTM flag OR motion gate)."""
     from pipeline.report.markdown import percent_ci
 
     f = m["fused"]
     rows = m["fused_rows"]
-    return f"""## Adaptive attack on the fused chain (the chain that ships)
+    if not rows:
+        return ""
+    return f"""### The burst attack on the fused chain, per frame
 
-The defended chain of issue 16 flags a frame when the LSTM flags it OR the motion filter's
-chi-square gate rejects it (gate NIS {f['gate']:.1f}: a {100 * f['gate_false_alarm']:g}% false-alarm rate per frame under the
-noise model `rpod calibrate` fitted and inflated x{f.get('noise_inflation', 1.0):g} so that clean validation frames pass), and coasts on
-flagged frames. The attacker knows all of it: L-inf PGD, {m['steps']} steps, random start, on
-`pose_loss - lambda * sum over the burst of (softplus(LSTM logit margin) + softplus(position NIS margin)
-+ softplus(attitude NIS margin))`, each NIS against the filter's prediction, which coasts on the chaser's
-commands through the burst from the state the clean frames before it left (`pipeline/attacks/adaptive.py`
-FusedBurstChain). Bursts of {f['burst_length']} frames every {f['burst_every']} frames of the
-{f['trajectories']} eval_render trajectories ({f['bursts']} bursts), each burst crafted jointly and stored
-as 8-bit; the REAL defense then runs over each whole trajectory, clean frames before and after
-included. Rates are over the attacked frames with 95% percentile-bootstrap intervals over
-trajectories (frames of a burst are not independent; with few trajectories the intervals are wide).
-"worst over lambda" keeps, per burst, the lambda with the most harmful unflagged frames.
-The filter's noise model is fitted on {m['fused'].get('noise_fitted_on')}. On the clean trajectories the
-fused chain flags {percent_ci(f['false_alarm_rate'], f['ci95_false_alarm'])}% of frames.
+The same bursts as the Integrity section's burst rows ({f['bursts']} bursts of {f['burst_length']} frames, one every
+{f['burst_every']} frames of the {f['trajectories']} eval_render trajectories), judged frame by frame as the paper
+judges an attack: an attacked frame is harmful when the raw CNN position error exceeds {m['harm_m']:g} m, and
+"harmful and undetected" when the fused chain (gate NIS {f['gate']:.1f}: a {100 * f['gate_false_alarm']:g}% false-alarm rate per
+frame under the noise model `rpod calibrate` fitted on {f.get('noise_fitted_on')}, inflated
+x{f.get('noise_inflation', 1.0):g}) did not flag it either. The worst case at each eps comes from the nested attack, so
+it cannot drop as eps grows by the attacker's choice. Rates are over the attacked frames with 95%
+percentile-bootstrap intervals over trajectories. On the clean trajectories the fused chain flags
+{percent_ci(f['false_alarm_rate'], f['ci95_false_alarm'])}% of frames.
 
-{_table(rows, with_lambda=True)}
-{_meaning(rows, 'an attacker who knows the fused chain')}
+{_table(rows)}
+{_meaning(rows, 'the burst attacker on the fused chain')}
 
 """
 
 
 def _intro(m: dict[str, Any], p: Params) -> str:
-    """Title, what is measured on how many frames, and the worst harmful-undetected rate per eps."""
+    """Title and the page's two views."""
+    return f"""# Robustness of the safety chain (`rpod robustness`)
+
+Two views of the shipped chain under attack. The first section, **Integrity**, judges what the
+guidance flies on: the defended chain's trusted estimate over whole trajectories, against attackers
+that know the chain and the defense with its state. The sections after it are **the paper's view**:
+frame by frame, the raw CNN estimate of each attacked frame against a fixed {m['harm_m']:g} m threshold.
+
+"""
+
+
+def _paper_view(m: dict[str, Any], p: Params) -> str:
+    """What the paper's per-frame view measures on how many frames, and its worst harmful-undetected rate per eps."""
     from pipeline.evaluation.stats import wilson
     from pipeline.report.markdown import percent_ci
 
@@ -80,24 +91,24 @@ def _intro(m: dict[str, Any], p: Params) -> str:
     worst_lines = "\n".join(f"- eps {k}: {percent_ci(v['harmful_undetected_rate'], v['ci95_harmful_undetected'])}% "
                             f"({v['attack']}" + (f", lambda {v['lambda']:g}" if v["lambda"] is not None else "") + ")"
                             for k, v in sorted(m["worst_harmful_undetected"].items(), key=lambda kv: -float(kv[0])))
-    return f"""# Robustness of the safety chain (`rpod robustness`)
+    return f"""## The paper's view: harmful and undetected frames
 
 The shipped chain (pose network -> closed-form SHAP -> LSTM detector, threshold {m['threshold']:.3f} from
 validation) on **{m['frames']} held-out test frames** (a seeded sample of the {m['test_frames']} test frames;
-every attacked image is stored as 8-bit before the chain reads it). The safety number is the
-**harmful-undetected rate**: attacked frames whose position error exceeds **{m['harm_m']:g} m** and that the
-chain did not flag. Without any attack, {percent_ci(m['clean_harmful_rate'], m['ci95_clean_harmful'])}% of these
+every attacked image is stored as 8-bit before the chain reads it), where the paper's safety number
+is the **harmful-undetected rate**: attacked frames whose position error exceeds **{m['harm_m']:g} m** and
+that the chain did not flag. Without any attack, {percent_ci(m['clean_harmful_rate'], m['ci95_clean_harmful'])}% of these
 frames already exceed {m['harm_m']:g} m: that share of every harmful rate below is the pose model's own
 error, not the attack's.
 Rates are percent with 95% Wilson intervals [lo, hi]; with {m['frames']} frames
 (`robustness.frames`) a rate near 50% is known to +-{half:.1f} points, a rate near 0 or 100% much more
-tightly. At the default profile the frame count is set by the stage's budget of about 3 minutes on the
-2-core CPU: each frame costs {m['gradients_per_frame']} gradient evaluations (every iterative attack takes
+tightly. At the default profile the frame count is set by the stage's budget on the 2-core CPU: each
+frame costs {m['gradients_per_frame']} gradient evaluations (every iterative attack takes
 {m['steps']} steps, for every eps and lambda), and +-5 points at a 50% rate would need 385 frames.
 PGD (plain, adaptive and on the surrogate) takes {m['steps']} steps of 2.5 eps / steps from a random
 start; MI-FGSM takes `attack.steps` = {p.attack.steps} steps of eps / steps (momentum {p.attack.momentum:g}).
 
-Worst harmful-undetected rate over the attacks run at each eps:
+The paper's view, worst harmful-undetected rate over the per-frame attacks run at each eps (LSTM alone):
 
 {worst_lines}
 

@@ -30,9 +30,21 @@ def _defended(m: Metrics, rate: str) -> float:
 
 
 def _held(m: Metrics) -> float:
-    """Closed-loop attacked runs whose rendezvous held with detect-and-recover, all dynamics (%)."""
+    """Closed-loop attacked runs (that met the attack) whose rendezvous held with detect-and-recover, all
+    dynamics (%)."""
     held = [v for d in m["guidance"]["defended"]["dynamics"].values() for v in d["recover"]["held"].values()]
     return 100 * sum(k for k, _ in held) / sum(n for _, n in held)
+
+
+def worst_hmi(m: Metrics, eps: str) -> float:
+    """The HMI the worst chain-level attacker caused on the shipped chain at `eps` (%; integrity rows)."""
+    return 100 * m["robustness"]["integrity"]["worst_hmi"][eps]["hmi"]["value"]
+
+
+def in_loop_collisions(m: Metrics, defense: str = "recover") -> float:
+    """In-loop attacked runs (that met the attack) that collided, `defense` variant, all dynamics and eps (%)."""
+    counts = [c for d in m["guidance"]["in_loop"]["counts"].values() for c in d[defense].values()]
+    return 100 * sum(c[0] for c in counts) / sum(c[3] for c in counts)
 
 
 HEADLINES: list[Headline] = [
@@ -49,12 +61,20 @@ HEADLINES: list[Headline] = [
     Headline("defended.clean_false_alarm_pct", "defended chain false alarms on attack-free runs (%)",
              lambda m: _defended(m, "fpr_clean")),
     Headline("robustness.harmful_undetected_pct",
-             "worst harmful-undetected rate of the adaptive attack on the defended chain, any eps (%)",
+             "worst harmful-undetected rate of the burst attack on the defended chain, any eps (%; paper's view)",
              lambda m: 100 * max(w["harmful_undetected_rate"]
                                  for w in m["robustness"]["worst_harmful_undetected_fused"].values())),
     Headline("lab.accuracy_pct", "lab detection accuracy, mean over eps (%)",
              lambda m: 100 * m["lab"]["accuracy_mean"]),
     Headline("guidance.defended_held_pct", "closed loop, attacked runs held with detect-and-recover (%)", _held),
+    Headline("integrity.worst_hmi_eps_0_01_pct", "integrity: worst HMI caused by a chain-level attack at eps 0.01 (%)",
+             lambda m: worst_hmi(m, "0.01")),
+    Headline("integrity.worst_hmi_eps_0_05_pct", "integrity: worst HMI caused by a chain-level attack at eps 0.05 (%)",
+             lambda m: worst_hmi(m, "0.05")),
+    Headline("integrity.clean_availability_pct", "integrity: availability of the trusted estimate without attack (%)",
+             lambda m: 100 * m["robustness"]["integrity"]["clean"]["availability"]["value"]),
+    Headline("in_loop.recover_collisions_pct", "closed loop, in-loop attacker: collisions with detect-and-recover (%)",
+             in_loop_collisions),
 ]
 
 

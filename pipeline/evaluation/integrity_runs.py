@@ -1,0 +1,233 @@
+"""The chain-level attackers on recorded trajectories, judged by integrity (issue 26; `rpod robustness`).
+
+Each trajectory (`Track`: uint8 frames (N, H, W, 3), labels (N, 9): camera-frame position (m) and 6-D
+rotation) is flown open loop along its planned commands (`pipeline.evaluation.robustness.world_motion`):
+the shipped chain reads every frame, a fresh defense runs over the whole trajectory, and its trace
+gives the integrity records of the trusted estimate (`pipeline.evaluation.integrity`: AL at the true
+range, available, HMI; PL when the defense has one). The same trajectory without the attack is the
+clean counterpart, frame for frame, so harm counts only what the attack caused.
+- burst (`burst_attack`): `BurstAttacker.nested` on each trajectory through the increasing eps, its
+  bursts at the given frames;
+- drift (`drift_attack`): the drift's planner and targeted PGD per frame (pipeline/attacks/drift.py),
+  run in lockstep over every trajectory and drift direction so that each PGD step is one batch of
+  all of them: the `DriftAttacker`, batched, with the detector's margin taken against the
+  probability at which the defense stops updating its filter (`update_below`, else the threshold).
+An attacked flight reads through the chain only the frames the attack changed (`fly` with `base`):
+the chain is stateless, so the other frames' estimates are the clean flight's.
+Counted frames (`counted`): from a trajectory's first attacked frame to its end, every frame the attack
+can reach; detection is over the attacked frames.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+
+from pipeline.evaluation.integrity import AlertLimitSettings, IntegrityFrames, concat, defense_frames, integrity_rates
+from pipeline.evaluation.stats import Rate, bootstrap_rate
+
+
+
+@dataclass(frozen=True)
+class Track:
+    """One recorded trajectory: `name`, uint8 frames (N, H, W, 3), labels (N, 9) [m, 6-D]; R_cam (N, 3,
+    3) camera -> world and u (N, 3) the commanded displacement of rel (world, m), from the labels."""
+
+    name: str
+    images: np.ndarray
+    labels: np.ndarray
+    R_cam: np.ndarray = field(init=False)
+    u: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        from pipeline.evaluation.robustness import world_motion
+
+        R_cam, u = world_motion(np.asarray(self.labels, np.float64))
+        object.__setattr__(self, "R_cam", R_cam)
+        object.__setattr__(self, "u", u)
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    @property
+    def truth(self) -> np.ndarray:
+        """(N, 3) the true rel, world frame (m)."""
+        return np.einsum("nij,nj->ni", self.R_cam, np.asarray(self.labels[:, :3], np.float64))
+
+    def frames(self, index: Any = slice(None)) -> torch.Tensor:
+        """Frames `index` as floats on the 8-bit grid, (n, 3, H, W)."""
+        return torch.from_numpy(np.ascontiguousarray(self.images[index])).permute(0, 3, 1, 2).float() / 255.0
+
+
+@dataclass(frozen=True)
+class Flown:
+    """One trajectory through the real chain and defense: pose (N, 9), prob (N,), the `DefenseTrace`
+    and the integrity records."""
+
+    pose: np.ndarray
+    prob: np.ndarray
+    trace: Any
+    frames: IntegrityFrames
+
+
+def fly(chain: Any, defended: Any, track: Track, limit: AlertLimitSettings, batch_size: int,
+        images: np.ndarray | None = None, base: Flown | None = None) -> Flown:
+    """`track` (or its frames replaced by `images`, uint8 (N, H, W, 3)) through the OnboardChain `chain`
+    and a fresh defense (`defended`: pipeline.evaluation.robustness.Defended); with `base` (the clean
+    flight of `track`) only the frames that differ from the track's are read through the chain."""
+    from pipeline.defense.fusion import run_defense
+    from pipeline.evaluation.robustness import pose_estimates
+    from pipeline.geometry.rotations import sixd_to_matrix
+
+    if base is None or images is None:
+        pose, prob = pose_estimates(chain, track.images if images is None else images, batch_size)
+    else:
+        changed = np.flatnonzero((images != track.images).reshape(len(images), -1).any(1))
+        pose, prob = base.pose.copy(), base.prob.copy()
+        pose[changed], prob[changed] = pose_estimates(chain, images[changed], batch_size)
+    d = defended.defense()
+    trace = run_defense(d.settings, d.filter.settings, d.filter.noise, pose[:, :3], prob, track.R_cam, track.u,
+                        sixd_to_matrix(pose[:, 3:]), d.alert_limit)
+    return Flown(pose, prob, trace, defense_frames(trace, track.truth, track.name, limit))
+
+
+def burst_attack(target: Any, defended: Any, tracks: Sequence[Track], masks: Sequence[np.ndarray], attacker: Any,
+                 eps: Sequence[float], done: Callable[[], None] = lambda: None) -> tuple[dict[float, list[Any]], ...]:
+    """(eps -> the stored frames (uint8 (N, H, W, 3)) of each track, eps -> each track's bursts' worst cases
+    (`BurstOutcome`s in time order)), its bursts (`masks` (N,) bool) crafted by `attacker` (a BurstAttacker)
+    through `target` (a DifferentiableChain), nested through the increasing `eps`; `done()` after each track."""
+    from pipeline.attacks.base import AttackRun
+
+    stored: dict[float, list[Any]] = {float(e): [] for e in eps}
+    worst: dict[float, list[Any]] = {float(e): [] for e in eps}
+    for track, mask in zip(tracks, masks):
+        run = AttackRun(track.frames(), torch.as_tensor(track.labels, dtype=torch.float32), track.R_cam, track.u,
+                        np.asarray(mask, bool))
+        res = attacker.nested(target, defended.defense(), run, [float(e) for e in eps])
+        for e, images, bursts in zip(res.eps, res.images, res.bursts):
+            stored[e].append(images.permute(0, 2, 3, 1).numpy())
+            worst[e].append(bursts)
+        done()
+    return stored, worst
+
+
+def drift_attack(target: Any, defended: Any, tracks: Sequence[Track], clean: Sequence[Flown], window: tuple[int, int],
+                 settings: Sequence[Any], eps: float, steps: int, seed: int,
+                 done: Callable[[], None] = lambda: None) -> list[list[np.ndarray]]:
+    """Per drift of `settings` (DriftSettings), the stored frames (uint8 (N, H, W, 3)) of each track with
+    frames window = (start, stop) drifted at `eps`: every drift and track in lockstep, one batched targeted
+    PGD of `steps` steps per frame over all of them; `clean` the tracks' clean flights (the estimates the
+    planners start from); `done()` after each drifted frame."""
+    from pipeline.attacks.base import chain_outputs
+    from pipeline.attacks.drift import DriftPlanner, targeted_pgd
+    from pipeline.geometry.rotations import sixd_to_matrix
+
+    start, stop = window
+    s = defended.settings
+    doubt = s.threshold if s.update_below is None else s.update_below
+    pairs = [(j, i) for j in range(len(settings)) for i in range(len(tracks))]   # (drift, track)
+    planners = [DriftPlanner(defended.defense(), settings[j]) for j, _ in pairs]
+    stored = [[t.images.copy() for t in tracks] for _ in settings]
+    generator = torch.Generator().manual_seed(int(seed))
+    for k in range(stop):
+        if k < start:
+            for p, (_, i) in zip(planners, pairs):
+                c, t = clean[i], tracks[i]
+                p.deliver(c.pose[k, :3], float(c.prob[k]), t.R_cam[k], t.u[k], sixd_to_matrix(c.pose[k, 3:]))
+            continue
+        wanted = [np.concatenate([p.target(clean[i].pose[k, :3], tracks[i].R_cam[k], tracks[i].u[k]),
+                                  clean[i].pose[k, 3:]]) for p, (_, i) in zip(planners, pairs)]
+        x = torch.cat([tracks[i].frames(slice(k, k + 1)) for _, i in pairs])
+        adv = targeted_pgd(target, x, torch.as_tensor(np.stack(wanted), dtype=x.dtype), eps,
+                           math.log(doubt / (1 - doubt)), steps=int(steps), generator=generator)
+        pose, prob = chain_outputs(target, adv.float() / 255.0)
+        for n, (p, (j, i)) in enumerate(zip(planners, pairs)):
+            stored[j][i][k] = adv[n].permute(1, 2, 0).numpy()
+            p.deliver(pose[n, :3], float(prob[n]), tracks[i].R_cam[k], tracks[i].u[k], sixd_to_matrix(pose[n, 3:]))
+        done()
+    return stored
+
+
+def counted(attacked: np.ndarray) -> np.ndarray:
+    """(N,) the frames from the first attacked frame of `attacked` (N,) bool to the end (none without one)."""
+    attacked = np.asarray(attacked, bool)
+    return np.cumsum(attacked) > 0
+
+
+def as_json(r: Rate, trajectories: int) -> dict[str, Any]:
+    """A Rate as the metrics JSON holds it: {"value", "ci": [lo, hi], "n", "ci_method"} (value None when n
+    is 0). A bootstrap over trajectories without spread (no hit or only hits on every trajectory: [0, 0]
+    or [1, 1]) bounds nothing; its interval is then the Wilson interval of the `trajectories` as trials,
+    all without a hit (or all with hits): a conservative bound of the frame rate, since a trajectory
+    with a hit has at least the frame's chance of one."""
+    from pipeline.evaluation.stats import wilson
+
+    method = "bootstrap over trajectories"
+    if r.n and r.lo == r.hi and r.value in (0.0, 1.0):
+        w = wilson(int(r.value) * trajectories, trajectories)
+        r, method = Rate(r.value, w.lo, w.hi, r.n), "Wilson over trajectories (the bootstrap had no spread)"
+    return {"value": None if r.n == 0 else float(r.value), "ci": r.ci(), "n": int(r.n), "ci_method": method}
+
+
+def _errors(frames: IntegrityFrames, mask: np.ndarray) -> tuple[float, float]:
+    err = frames.error[mask]
+    err = err[np.isfinite(err)]
+    return (float(err.mean()), float(err.max())) if err.size else (float("nan"), float("nan"))
+
+
+def integrity_row(attacker: str, eps: float, attacked: Sequence[Flown], clean: Sequence[Flown],
+                  masks: Sequence[np.ndarray], seed: int = 0) -> dict[str, Any]:
+    """One attacker at one eps over every track (attacked flights, their clean counterparts, the attacked
+    frames (N,) of each): the HMI the attack caused and the rest of `integrity_rates` over the counted
+    frames, detection over the attacked frames, and the same frames without the attack beside them."""
+    a, c = concat([f.frames for f in attacked]), concat([f.frames for f in clean])
+    hit = np.concatenate([np.asarray(m, bool) for m in masks])
+    keep = np.concatenate([counted(m) for m in masks])
+    r = integrity_rates(a, c, keep, seed=seed)
+    groups = a.trajectory.astype(str)
+    flag = np.concatenate([f.trace.flag for f in attacked])
+    clean_flag = np.concatenate([f.trace.flag for f in clean])
+    (mean, worst), (clean_mean, clean_worst) = _errors(a, keep), _errors(c, keep)
+    return {"attacker": attacker, "eps": float(eps), "frames": int(keep.sum()), "attacked_frames": int(hit.sum()),
+            "trajectories": len(attacked), "ci_method": "bootstrap over trajectories",
+            **{k: as_json(r[k], len(attacked)) for k in ("hmi", "hmi_attacked", "hmi_clean", "mi", "availability",
+                                                         "availability_clean")},
+            "detected": as_json(bootstrap_rate(flag[hit], groups[hit], seed=seed), len(attacked)),
+            "detected_clean": as_json(bootstrap_rate(clean_flag[hit], groups[hit], seed=seed), len(attacked)),
+            "trusted_error_mean_m": mean, "trusted_error_max_m": worst,
+            "clean_error_mean_m": clean_mean, "clean_error_max_m": clean_worst}
+
+
+def clean_row(clean: Sequence[Flown], seed: int = 0) -> dict[str, Any]:
+    """The clean trajectories' integrity: availability, HMI, MI (bootstrap over trajectories), frames, error (m)."""
+    from pipeline.evaluation.integrity import clean_rates
+
+    r = clean_rates(concat([f.frames for f in clean]), seed=seed)
+    return {**{k: as_json(r[k], len(clean)) for k in ("availability", "hmi", "mi")}, "frames": r["frames"],
+            "trajectories": len(clean), "trusted_error_mean_m": r["trusted_error_mean_m"],
+            "trusted_error_max_m": r["trusted_error_max_m"], "has_pl": bool(clean[0].frames.pl is not None)}
+
+
+def raw_errors(flown: Sequence[Flown], tracks: Sequence[Track], masks: Sequence[np.ndarray]) -> tuple[np.ndarray, ...]:
+    """Over the attacked frames of every track: (raw position error (M,) of the CNN estimate, camera frame
+    (m); flag (M,); trajectory id (M,)): the per-frame view of pipeline.evaluation.robustness.fused_row."""
+    err, flag, group = [], [], []
+    for g, (f, t, m) in enumerate(zip(flown, tracks, masks)):
+        m = np.asarray(m, bool)
+        err.append(np.linalg.norm(f.pose[m, :3] - np.asarray(t.labels[m, :3], np.float64), axis=1))
+        flag.append(f.trace.flag[m])
+        group.append(np.full(int(m.sum()), g))
+    return tuple(np.concatenate(v) for v in (err, flag, group))
+
+
+def diagram_points(flown: Sequence[Flown], masks: Sequence[np.ndarray]) -> dict[str, list[float]]:
+    """For the integrity figure: over the counted frames with an estimate, the bound (PL where the frames
+    have one, else AL; m), the trusted error (m) and whether the frame was available."""
+    fr = concat([f.frames for f in flown])
+    keep = np.concatenate([counted(m) for m in masks]) & np.isfinite(fr.error)
+    bound = fr.alert if fr.pl is None else fr.pl
+    return {"bound": bound[keep].tolist(), "error": fr.error[keep].tolist(),
+            "available": fr.available[keep].tolist(), "bound_is": "AL" if fr.pl is None else "PL"}
