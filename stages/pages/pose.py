@@ -31,26 +31,29 @@ def range_rows(m: dict[str, Any], splits: tuple[str, ...], label: str = "split")
              "lateral error (m)": b.get("lateral_m")} for s in splits for b in m[s]["bins"]]
 
 
+def _error_rows(m: dict[str, Any]) -> list[dict[str, Any]]:
+    """The error table's rows: each split, the always-the-mean-label baseline and the paper."""
+    def row(name: str, x: dict[str, Any]) -> dict[str, Any]:
+        return {"split": name, "images": x["n"], "position mean (m)": x["pos_mean_m"],
+                "position median (m)": x["pos_median_m"], "attitude mean (deg)": x["att_mean_deg"],
+                "attitude median (deg)": x["att_median_deg"], "tilt mean (deg)": x["tilt_mean_deg"],
+                "roll mean (deg)": x["roll_mean_deg"], "SPEED score": x.get("speed_score", "-")}
+
+    rows = [row(s, m[s]) for s in ("train", "val", "test")]
+    rows.append(row("test, always the mean training label (baseline)", m["test_mean_baseline"]))
+    rows.append({"split": "paper, test (480x270, full width, 50 epochs)", "images": "6,500 of 32,500",
+                 "position mean (m)": POSITION_M, "position median (m)": "-",
+                 "attitude mean (deg)": ATTITUDE_DEG, "attitude median (deg)": "-", "tilt mean (deg)": "-",
+                 "roll mean (deg)": "-", "SPEED score": "-"})
+    return rows
+
+
 def pose_page(m: dict[str, Any], params: Params, n_train: int, n_val: int, n_test: int, live_dir: str) -> str:
     """reports/pose.md from the train metrics (errors per split and range bin) beside the paper."""
     from pipeline.report.markdown import markdown_table
 
     p, r = params.train, params.render
-    rows = [{"split": s, "images": m[s]["n"], "position mean (m)": m[s]["pos_mean_m"],
-             "position median (m)": m[s]["pos_median_m"], "attitude mean (deg)": m[s]["att_mean_deg"],
-             "attitude median (deg)": m[s]["att_median_deg"], "tilt mean (deg)": m[s]["tilt_mean_deg"],
-             "roll mean (deg)": m[s]["roll_mean_deg"], "SPEED score": m[s].get("speed_score", "-")}
-            for s in ("train", "val", "test")]
-    b = m["test_mean_baseline"]
-    rows.append({"split": "test, always the mean training label (baseline)", "images": b["n"],
-                 "position mean (m)": b["pos_mean_m"], "position median (m)": b["pos_median_m"],
-                 "attitude mean (deg)": b["att_mean_deg"], "attitude median (deg)": b["att_median_deg"],
-                 "tilt mean (deg)": b["tilt_mean_deg"], "roll mean (deg)": b["roll_mean_deg"],
-                 "SPEED score": b.get("speed_score", "-")})
-    rows.append({"split": "paper, test (480x270, full width, 50 epochs)", "images": "6,500 of 32,500",
-                 "position mean (m)": POSITION_M, "position median (m)": "-",
-                 "attitude mean (deg)": ATTITUDE_DEG, "attitude median (deg)": "-", "tilt mean (deg)": "-",
-                 "roll mean (deg)": "-", "SPEED score": "-"})
+    rows = _error_rows(m)
     bins = range_rows(m, ("train", "test"))
     t = m["test"]
     ok = {k: "yes" if t[k] < v else "no" for k, v in
