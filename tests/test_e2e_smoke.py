@@ -113,9 +113,12 @@ def test_dvc_metrics_and_plots_show_after_repro(smoke_repo):
 
     dst, env = smoke_repo
     summary = json.loads((dst / "reports" / "metrics" / "summary.json").read_text())
-    assert {f"{g}.{k}" for g, group in summary.items() for k in group} == {h.key for h in HEADLINES}
+    keys = {f"{g}.{k}" for g, group in summary.items() for k in group}
+    # on smoke no closed-loop run may meet its attack: a rate over zero runs is left out, never made up
+    closed_loop = {"guidance.defended_held_pct", "in_loop.recover_collisions_pct"}
+    assert keys <= {h.key for h in HEADLINES} and {h.key for h in HEADLINES} - keys <= closed_loop
     header, row = _run(["dvc", "metrics", "show"], dst, env).splitlines()
-    assert header.split()[1:] == sorted(h.key for h in HEADLINES) and len(row.split()) == 1 + len(HEADLINES)
+    assert header.split()[1:] == sorted(keys) and len(row.split()) == 1 + len(keys)
     _run(["dvc", "plots", "show"], dst, env)
     page = (dst / "dvc_plots" / "index.html").read_text()
     for entry in yaml.safe_load((dst / "dvc.yaml").read_text())["plots"]:
