@@ -263,13 +263,17 @@ class CachedCamera:
     (1, 3, H, W) in [0, 1], labels (1, 9): metres, 6-D) which `self.attack` may be changed to between
     runs. With `chain` (a pipeline.defense.chain.OnboardChain over `model`) `estimate` returns an `Estimate`
     (position, the detector's probability, attitude) for the defended variants; without it the
-    camera-frame position (m). `counts`: guidance steps, rendered frames, attacked frames.
+    camera-frame position (m). `images`: the rendered images by pose, a dict that cameras of other chains
+    over the same scene may share (each pose is rendered once). `counts`: guidance steps, frames this camera
+    rendered, attacked frames.
     """
 
     def __init__(self, render_image: Callable[[np.ndarray, np.ndarray], np.ndarray], model: Any,
-                 attack: Callable[[Any, Any], Any] | None = None, chain: Any | None = None):
+                 attack: Callable[[Any, Any], Any] | None = None, chain: Any | None = None,
+                 images: dict[bytes, np.ndarray] | None = None):
         self.render_image, self.model, self.attack, self.chain = render_image, model, attack, chain
-        self.cache: dict[bytes, tuple[np.ndarray, np.ndarray | Estimate]] = {}
+        self.images = {} if images is None else images
+        self.cache: dict[bytes, np.ndarray | Estimate] = {}   # pose -> this chain's clean estimate
         self.counts = {"steps": 0, "renders": 0, "attacked": 0}
         self.keys: set[bytes] = set()   # the poses rendered (or read from the cache) since it was last cleared
 
@@ -293,13 +297,14 @@ class CachedCamera:
 
     def render(self, R: np.ndarray, t: np.ndarray) -> tuple[bytes, np.ndarray]:
         key = np.round(np.concatenate([R.ravel(), t]), 9).tobytes()
-        if key not in self.cache:
-            image = self.render_image(R, t)
-            self.cache[key] = (image, self._position(self._input(image)))
+        if key not in self.images:
+            self.images[key] = self.render_image(R, t)
             self.counts["renders"] += 1
+        if key not in self.cache:
+            self.cache[key] = self._position(self._input(self.images[key]))
         self.counts["steps"] += 1
         self.keys.add(key)
-        return key, self.cache[key][0]
+        return key, self.images[key]
 
     def estimate(self, rendered: tuple[bytes, np.ndarray], attacked: bool,
                  pose: tuple[np.ndarray, np.ndarray]) -> np.ndarray | Estimate:
@@ -309,7 +314,7 @@ class CachedCamera:
 
         key, image = rendered
         if not attacked:
-            return self.cache[key][1]
+            return self.cache[key]
         if self.attack is None:
             raise ValueError("an attacked frame but no attack was given")
         self.counts["attacked"] += 1
