@@ -164,11 +164,14 @@ def standard_integrity_section(standard: dict[str, Any], shipped: dict[str, Any]
     both = [{"eps": e, "shipped chain (robust model), any attacker (%)": _pct(w["hmi"]) + f" ({attacker_names(w['attacker'])})",
              f"standard model's chain, {names} (%)": _pct(standard["worst_hmi"][e]["hmi"]) if e in standard["worst_hmi"]
              else "-"} for e, w in sorted(shipped.get("worst_hmi", {}).items(), key=lambda kv: float(kv[0]))]
+    n, total = standard["trajectories"], shipped["clean"]["trajectories"]
+    scope = (f"on all {n} eval_render trajectories" if n == total else
+             f"on the first **{n} of the {total}** eval_render trajectories, so its intervals are wider than the shipped "
+             f"chain's")
     return head + f"""The definitions and attackers of the section above, on the standard model (models/pose.pt) with its
 own detector (models/detector.pt) and the defense calibrated for it (models/defense_standard.json, `rpod
-calibrate --model standard`): **{names}** on the first **{standard['trajectories']} of the {shipped['clean']['trajectories']}**
-eval_render trajectories (`integrity.standard_attackers`, `integrity.standard_trajectories`: the whole suite on
-both chains does not fit the default budget), so its intervals are wider than the shipped chain's. Without any
+calibrate --model standard`): **{names}** {scope} (`integrity.standard_attackers`,
+`integrity.standard_trajectories`: the whole suite on both chains does not fit the default budget). Without any
 attack, on all {c['frames']} frames of these trajectories: availability {_pct(c['availability'])}%, HMI
 {_pct(c['hmi'])}%, trusted error mean {_m(c['trusted_error_mean_m'])} m, max {_m(c['trusted_error_max_m'])} m.
 

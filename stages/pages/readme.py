@@ -53,7 +53,7 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
          "train", _sd(spread, "pose.test_position_m")),
         ("pose, test mean attitude error (deg), standard model", _fmt(tr["test"]["att_mean_deg"]), _fmt(ATTITUDE_DEG),
          "train", _sd(spread, "pose.test_attitude_deg")),
-        *_robust_rows(metrics.get("robust")),
+        *_robust_rows(metrics.get("robust"), spread),
         ("FGSM mean position error (m) at eps " + " / ".join(eps_at) + ", standard model",
          " / ".join(_fmt(at["eps"][e]["position_mean_m"], 1) for e in eps_at), "-", "attack",
          _sd(spread, "fgsm_position_m_0.05", " at eps 0.05")),
@@ -65,7 +65,7 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
         ("(paper's view) LSTM detector accuracy, SHAP test split (%), standard model",
          _with_ci(dets["lstm"]["all"], "accuracy"), _fmt(100 * DETECTOR_ACCURACY), "detect",
          _sd(spread, "detector.lstm_accuracy_pct")),
-        *_shipped_detector_rows(metrics.get("detect_robust"), lab),
+        *_shipped_detector_rows(metrics.get("detect_robust"), lab, spread),
         (f"best baseline detector accuracy (%), standard model: {DETECTOR_NAMES.get(best_base, best_base)}",
          _with_ci(dets[best_base]["all"], "accuracy"), "-", "detect", "-"),
         ("(paper's view) integrated per-frame detection accuracy, mean over eps (%; per eps below), standard model",
@@ -97,7 +97,7 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
             + defended_table(ev, gd, spread))
 
 
-def _robust_rows(rb: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
+def _robust_rows(rb: dict[str, Any] | None, spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
     """The robust model's rows (reports/metrics/robust.json): clean test errors, and PGD position errors of
     both models at eps 0.01 and 0.05 (none when the metrics are missing)."""
     if not rb:
@@ -109,13 +109,16 @@ def _robust_rows(rb: dict[str, Any] | None) -> list[tuple[str, str, str, str, st
         return " / ".join(_fmt(got.get(e), 2) for e in ("0.01", "0.05"))
 
     name = next((a["attack"] for a in rb["robust"]["attacks"] if a["attack"].startswith("pgd")), "pgd")
-    return [("pose, test mean position / attitude error (m / deg), robust model (ships)",
-             f"{_fmt(t['pos_mean_m'])} / {_fmt(t['att_mean_deg'])}", "-", "robust", "-"),
+    return [("pose, test mean position error (m), robust model (ships)", _fmt(t["pos_mean_m"]), "-", "robust",
+             _sd(spread, "pose.robust_test_position_m")),
+            ("pose, test mean attitude error (deg), robust model (ships)", _fmt(t["att_mean_deg"]), "-", "robust",
+             _sd(spread, "pose.robust_test_attitude_deg")),
             (f"{name.upper()} mean position error (m) at eps 0.01 / 0.05: robust model (ships) vs standard",
              f"{pgd('robust')} vs {pgd('standard')}", "-", "robust", "-")]
 
 
-def _shipped_detector_rows(dr: dict[str, Any] | None, lab: dict[str, Any]) -> list[tuple[str, str, str, str, str]]:
+def _shipped_detector_rows(dr: dict[str, Any] | None, lab: dict[str, Any],
+                           spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
     """The shipped chain's detector (robust model): its SHAP test accuracy, and the chain's clean false alarms on the
     lab-like frames at its calibrated threshold (rows left out when not measured)."""
     from pipeline.report.markdown import percent_ci
@@ -123,11 +126,13 @@ def _shipped_detector_rows(dr: dict[str, Any] | None, lab: dict[str, Any]) -> li
     out = []
     if dr:
         out.append(("shipped chain's LSTM detector accuracy, SHAP test split (%), robust model",
-                    _with_ci(dr["detectors"]["lstm"]["all"], "accuracy"), "-", "detect_robust", "-"))
+                    _with_ci(dr["detectors"]["lstm"]["all"], "accuracy"), "-", "detect_robust",
+                    _sd(spread, "detector.robust_lstm_accuracy_pct")))
     s = lab.get("shipped")
     if s:
         out.append(("shipped chain (robust model): detector false alarms on clean lab-like frames (%)",
-                    f"{percent_ci(s['rate'], s['rate_ci95'], 2)} ({s['false_alarms']}/{s['frames']})", "-", "lab", "-"))
+                    f"{percent_ci(s['rate'], s['rate_ci95'], 2)} ({s['false_alarms']}/{s['frames']})", "-", "lab",
+                    _sd(spread, "lab.shipped_clean_false_alarm_pct")))
     return out
 
 
@@ -221,11 +226,11 @@ def _integrity_rows(rb: dict[str, Any], gd: dict[str, Any],
         out.append((f"integrity: worst HMI (%) a chain-level attack caused at eps {e} (trusted error > AL, "
                     f"available), shipped chain (robust model)", value, "-", "robustness", _sd(spread, f"integrity.worst_hmi_eps_{e.replace('.', '_')}_pct")))
     std = rb.get("integrity_standard", {})
-    if std.get("attackers"):
-        worst = std.get("worst_hmi", {})
-        out.append((f"integrity: worst HMI (%) at eps 0.01 / 0.05 on the standard model's chain ({', '.join(std['attackers'])}, "
-                    f"{std['trajectories']} trajectories)", " / ".join(_rate(worst[e]["hmi"]) if e in worst else "-"
-                                                                      for e in ("0.01", "0.05")), "-", "robustness", "-"))
+    for e in ("0.01", "0.05") if std.get("attackers") else ():
+        w = std.get("worst_hmi", {}).get(e)
+        out.append((f"integrity: worst HMI (%) at eps {e}, standard model's chain ({', '.join(std['attackers'])} on "
+                    f"{std['trajectories']} trajectories)", "-" if w is None else _rate(w["hmi"]), "-", "robustness",
+                    _sd(spread, f"integrity.standard_worst_hmi_{e.replace('.', '_')}_pct")))
     clean = integrity.get("clean")
     out.append(("integrity: availability of the trusted estimate without attack (%), shipped chain (robust model)",
                 "-" if clean is None else _rate(clean["availability"]), "-", "robustness", _sd(spread, "integrity.clean_availability_pct")))
