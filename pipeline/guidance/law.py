@@ -202,6 +202,9 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
     `target_attitude` is the target -> world rotation (identity by default). `defense` (a fresh
     pipeline.defense.fusion.Defense per run) is required unless settings.defense is "undefended".
     `observe` (an attacker in the loop) is shown the `LoopState` before each frame is estimated.
+    The defense is told the chaser's displacement u (world, m) since the previous frame: -cmd in the
+    true_state variant; in the paper variant the chaser lands where it believes it goes (act - cmd), so
+    u is that point minus the defense's trusted estimate, and a biased estimate is not read as motion.
     """
     if (settings.defense == "undefended") != (defense is None):
         raise ValueError(f"guidance defense {settings.defense!r} needs "
@@ -225,8 +228,10 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
         out = out if isinstance(out, Estimate) else Estimate(np.asarray(out, dtype=np.float64))
         est = R_c @ np.asarray(out.t, dtype=np.float64)
         act: np.ndarray | None = est
+        trusted: np.ndarray | None = None
         if defense is not None:
             d = defense.step(out.t, out.prob, R_c, u, out.R)
+            trusted = d.trusted if np.isfinite(d.trusted).all() else None
             flags.append(d.flag)
             modes.append(d.mode)
             if settings.defense == "hold":
@@ -237,7 +242,7 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
             u = np.zeros(3)
         else:
             rel, believed = guidance_step(act, rel, goal, settings.max_step, settings.variant)
-            u = believed - act
+            u = believed - (act if trusted is None or settings.variant != "paper" else trusted)
             if np.linalg.norm(believed) > 1e-6:
                 R_c = look_at(believed)
         positions.append(rel)
