@@ -2,7 +2,7 @@
 
     from rpodguard import load_chain
     chain = load_chain()                   # the bundled weights (default profile, rpodguard/weights/default/)
-    chain = load_chain("models/")          # or your own run: pose model + detector + SHAP background
+    chain = load_chain("models/")          # or your own run's shipped chain: robust pose model + its detector
     out = chain.predict(images)            # images: paths, or uint8/float arrays (N,H,W,3) or (H,W,3)
 
 `out` (a `Prediction`) holds per image the position (m, camera frame), the quaternion (qw, qx, qy,

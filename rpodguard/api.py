@@ -1,9 +1,10 @@
 """The trained safety chain as one object: `load_chain(folder)` -> `Chain`; `Chain.predict(images)` -> `Prediction`.
 
-Files read: FOLDER/pose.pt (the pose model, written by `rpod train`) and FOLDER/detector.pt (the
-LSTM detector with its threshold and the SHAP background mean, written by `rpod detect`); FOLDER may
-also be a project root holding models/, and by default it is the weights bundle shipped in git
-(rpodguard/weights/default/, written by scripts/bundle_weights.py; its manifest's hashes are checked).
+Files read: the chain that ships, the robust pose model and its LSTM detector (with its threshold and the SHAP
+background mean): by default the weights bundle shipped in git (rpodguard/weights/default/pose.pt and detector.pt,
+written by scripts/bundle_weights.py; its manifest's hashes are checked); a run's models/ folder (or the project
+root holding it) as `rpod train --robust` and `rpod detect --model robust` wrote them, models/pose_robust.pt and
+models/detector_robust.pt; or any folder holding pose.pt and detector.pt (another chain, e.g. the standard one).
 Images are resized to the model's input as the lab loader resizes them (pipeline.evaluation.lab_images.resize:
 area averaging when shrinking), without keeping their aspect. Given the camera the images were taken with,
 `predict` warns when it is not the one the model was trained for (rpodguard/camera.py).
@@ -230,22 +231,24 @@ def _rgb(im: Any, path: Path) -> np.ndarray:
 
 
 def load_chain(folder: str | Path | None = None) -> Chain:
-    """The chain as the pipeline ships it: FOLDER/pose.pt and FOLDER/detector.pt (or FOLDER/models/...
-    when FOLDER is a project root); with no FOLDER, the bundled weights (`BUNDLE`: the default profile's
-    trained chain, see its manifest.json). A folder holding a weights manifest (pipeline/formats/bundle.py)
-    has each file's sha256 checked first. The detector must have been trained on this pose model's SHAP
-    values (its checkpoint names the pose file's hash). A missing, changed or bad file is a DataError."""
+    """The chain as the pipeline ships it (the robust pose model and its detector): with no FOLDER, the bundled
+    weights (`BUNDLE`: the default profile's trained chain, see its manifest.json); a run's models/ folder (or a
+    project root holding it): models/pose_robust.pt and models/detector_robust.pt; else FOLDER/pose.pt and
+    FOLDER/detector.pt. A folder holding a weights manifest (pipeline/formats/bundle.py) has each file's sha256
+    checked first. The detector must have been trained on this pose model's SHAP values (its checkpoint names
+    the pose file's hash). A missing, changed or bad file is a DataError."""
     from pipeline.defense.chain import load_onboard_chain
-    from pipeline.formats.bundle import MANIFEST, check_bundle
+    from pipeline.formats.bundle import MANIFEST, RUN_FILES, check_bundle
     from pipeline.formats.models import model_from_checkpoint, read_pose
     from pipeline.io.atomic import file_hash
     from rpodguard.camera import model_camera
 
     folder = BUNDLE if folder is None else Path(folder)
-    if not (folder / "pose.pt").exists() and (folder / "models" / "pose.pt").exists():
+    if not any((folder / n).exists() for n in ("pose.pt", RUN_FILES["pose.pt"])) and (folder / "models").is_dir():
         folder = folder / "models"
     manifest = check_bundle(folder) if folder == BUNDLE or (folder / MANIFEST).exists() else None
-    pose_path, detector_path = folder / "pose.pt", folder / "detector.pt"
+    run = (folder / RUN_FILES["pose.pt"]).exists()   # a run's models/: the shipped chain's names there
+    pose_path, detector_path = (folder / (RUN_FILES[n] if run else n) for n in ("pose.pt", "detector.pt"))
     ckpt = read_pose(pose_path)
     safety = load_onboard_chain(model_from_checkpoint(ckpt), file_hash(pose_path), pose_path, detector_path)
     height, width = (int(v) for v in ckpt["input_size"])

@@ -1,8 +1,10 @@
-"""Write the ready-to-use weights bundle from a trained run: models/{pose.pt, detector.pt, defense.json} and the
-params.yaml they were trained with -> rpodguard/weights/PROFILE/ (pipeline/formats/bundle.py: each file's sha256,
-the params, the git commit of the code), which `rpodguard.load_chain()` and `rpod predict` load by default.
+"""Write the ready-to-use weights bundle from a trained run: the chain that ships, models/{pose_robust.pt,
+detector_robust.pt, defense.json}, and the params.yaml they were trained with -> rpodguard/weights/PROFILE/ as
+pose.pt, detector.pt, defense.json (pipeline/formats/bundle.py: each file's sha256 and source, the params, the git
+commit of the code), which `rpodguard.load_chain()` and `rpod predict` load by default.
 
-    rpod params default && dvc repro calibrate     # pose.pt (train), detector.pt (detect), defense.json (calibrate)
+    rpod params default && dvc repro calibrate     # pose_robust.pt (robust), detector_robust.pt (detect_robust),
+                                                   # defense.json (calibrate)
     python scripts/bundle_weights.py               # -> rpodguard/weights/default/; commit it
 
 --models DIR (default models/) and --params FILE (default params.yaml) may point into another checkout. The
@@ -24,7 +26,7 @@ import yaml
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from pipeline.formats.bundle import FILES, write_bundle  # noqa: E402
+from pipeline.formats.bundle import FILES, RUN_FILES, write_bundle  # noqa: E402
 from pipeline.io.errors import DataError  # noqa: E402
 from rpodguard import load_chain  # noqa: E402
 
@@ -40,7 +42,7 @@ def provenance(models: Path) -> tuple[str, list[str]]:
     def git(*args: str) -> str:
         return subprocess.run(["git", *args], cwd=models, capture_output=True, text=True, check=True).stdout
 
-    md5 = [hashlib.md5((models / name).read_bytes()).hexdigest() for name in FILES]
+    md5 = [hashlib.md5((models / RUN_FILES[name]).read_bytes()).hexdigest() for name in FILES]
     try:
         for commit in git("log", "--reverse", "--format=%H", "-S", md5[-1], "--", ":/dvc.lock").split():
             if all(m in git("show", f"{commit}:dvc.lock") for m in md5):
@@ -55,7 +57,8 @@ def provenance(models: Path) -> tuple[str, list[str]]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--models", type=Path, default=REPO / "models", help="folder with the three trained files")
+    parser.add_argument("--models", type=Path, default=REPO / "models",
+                        help="a run's models/ folder (pose_robust.pt, detector_robust.pt, defense.json)")
     parser.add_argument("--params", type=Path, default=REPO / "params.yaml",
                         help="the params.yaml they were trained with")
     parser.add_argument("--out", type=Path, default=None, help="bundle folder (default rpodguard/weights/PROFILE)")

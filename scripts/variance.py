@@ -79,16 +79,17 @@ HEADLINES: list[Headline] = [
 
 def run_metrics(run: Path) -> Metrics:
     """RUN's stage metrics by file stem, without those of stages that did not run there: metrics that
-    name a pose model (`model_hash`) count only when it is RUN's own models/pose.pt (a copy of the
-    repository carries the committed metrics of stages it never ran)."""
+    name a pose model (`model_hash`) count only when it is RUN's own checkpoint of that model (`model`: standard,
+    models/pose.pt, when not named; robust, models/pose_robust.pt), as a copy of the repository carries the
+    committed metrics of stages it never ran."""
     from pipeline.io.atomic import file_hash
+    from stages.artifacts.paths import CHAINS
 
-    pose = run / "models" / "pose.pt"
-    own = file_hash(pose) if pose.exists() else None
+    own = {m.value: file_hash(run / f.pose) if (run / f.pose).exists() else None for m, f in CHAINS.items()}
     out = {}
     for path in sorted((run / "reports" / "metrics").glob("*.json")):
         metrics = json.loads(path.read_text())
-        if "model_hash" not in metrics or metrics["model_hash"] == own:
+        if "model_hash" not in metrics or metrics["model_hash"] == own.get(metrics.get("model", "standard")):
             out[path.stem] = metrics
     return out
 

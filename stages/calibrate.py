@@ -1,4 +1,7 @@
-"""`rpod calibrate`: calibrate the defense on clean validation trajectories, one check at a time.
+"""`rpod calibrate [--model robust|standard]`: calibrate the defense of one chain on clean validation
+trajectories, one check at a time: the robust model's chain (the one that ships, dvc stage `calibrate`) ->
+models/defense.json; the standard model's (the paper's reproduction, stage `calibrate_standard`, for its
+integrity and defended rows beside the shipped chain's) -> models/defense_standard.json.
 
 Runs the safety chain clean over the validation approaches `rpod eval_render` rendered into
 datasets/val_render/ (seed `defense.val_seed`, never the evaluation seed), fits the pose model's
@@ -8,14 +11,14 @@ range bins), then sets each check to its own share (`defense.shares`) of the fal
 these clean frames' probabilities), the noise inflation of the gate, the sequential test's threshold.
 A check that cannot meet its share stops the stage with one line naming it and what it reached,
 unless `defense.allow_unmet` (then models/defense.json lists it under `unmet`, and the reports that
-use the defense say so in their first line). Writes models/defense.json (pipeline/formats/defense.py):
+use the defense say so in their first line). Writes the defense file (pipeline/formats/defense.py):
 the noise model, the thresholds, the settings, and the defended chain's false alarms of each check,
 availability and protection levels on those clean validation frames.
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 import typer
@@ -23,9 +26,9 @@ import typer
 from pipeline.formats.defense import DEFENSE_FORMAT
 from pipeline.io.atomic import write_json
 from pipeline.pose.labels import TARGET
-from stages.artifacts.paths import DEFENSE
+from stages.artifacts.paths import CHAINS, Model
 from stages.artifacts.readers import chaser_motion, read_eval_render
-from stages.artifacts.models import load_chain
+from stages.artifacts.models import load_chain, model_option
 from stages.config.build import alert_limit_settings, defense_settings
 from stages.config.device import torch_setup
 from stages.config.schema import Params
@@ -33,8 +36,11 @@ from stages.errors import StageError
 from stages.pages.calibrate import summary_line, unmet_line
 
 
-def main(params: Params) -> None:
-    """Calibrate the defense's checks on clean validation trajectories -> models/defense.json.
+ModelOption = Annotated[Model, model_option("Writes models/defense.json (robust) or models/defense_standard.json.")]
+
+
+def main(params: Params, model: ModelOption = Model.robust) -> None:
+    """Calibrate the defense's checks of one chain on clean validation trajectories -> its defense file.
 
     Params: `defense` (noise_bins, target_false_alarm, shares, allow_unmet, val_trajectories, val_seed and the
     filter settings), `evaluate.batch_size`, the alert limit's (`guidance.tolerance`, `max_step`,
@@ -46,7 +52,7 @@ def main(params: Params) -> None:
     d = params.defense
     torch_setup(params)
     images, poses, _ = read_eval_render(params, validation=True)
-    chain, _, model_hash = load_chain(params)
+    chain, _, model_hash = load_chain(params, model)
     pose, prob = _chain_outputs(chain, images, params.evaluate.batch_size)
     targets = poses[TARGET].to_numpy(np.float32)
     fitted = _fit_noise(targets, pose, d.noise_bins, len(images))
@@ -63,15 +69,16 @@ def main(params: Params) -> None:
     if final["fused"].value > d.target_false_alarm:
         unmet.append(unmet_line(None, len(images), final["fused"].value, d.target_false_alarm))
         _refuse(unmet[-1], d.allow_unmet)
-    cal = {"format": DEFENSE_FORMAT, "pose_model_hash": model_hash, "detector_threshold": chain.threshold,
+    cal = {"format": DEFENSE_FORMAT, "model": model.value, "pose_model_hash": model_hash, "detector_threshold": chain.threshold,
            "threshold": settings.threshold, "cusum_threshold": motion.cusum_threshold, "inflation": checks[2].setting,
            "attitude_inflation": checks[1].setting,
            "noise": noise.as_dict(), "fitted_noise": fitted.as_dict(),
            "settings": {**dataclasses.asdict(settings), **dataclasses.asdict(motion)},
            "alert_limit": dataclasses.asdict(alert), "unmet": unmet,
            "validation": _validation(params, len(images), checks, final)}
-    write_json(DEFENSE, cal)
-    typer.echo(summary_line(cal, DEFENSE))
+    out = CHAINS[model].defense
+    write_json(out, cal)
+    typer.echo(summary_line(cal, out))
 
 
 def _chain_outputs(chain: Any, images: np.ndarray, batch: int) -> tuple[np.ndarray, np.ndarray]:

@@ -1,6 +1,13 @@
-"""`rpod detect`: train the LSTM attack detector on the SHAP store and compare it with baselines.
+"""`rpod detect [--model standard|robust]`: train the LSTM attack detector on one pose model's SHAP store and
+compare it with baselines.
 
-Reads datasets/shap.zarr (refused unless it was made with the current models/pose.pt): clean and FGSM
+Per model (stages.artifacts.paths.CHAINS): standard (dvc stage `detect`, the paper's reproduction):
+datasets/shap.zarr -> models/detector.pt, reports/detector.md, reports/metrics/detect.json, dvclive/detect/;
+robust (stage `detect_robust`, the detector of the chain that ships, run with --no-baselines):
+datasets/shap_robust.zarr -> models/detector_robust.pt, reports/detector_robust.md,
+reports/metrics/detect_robust.json, dvclive/detect_robust/. Both use the same seed, so the same split.
+
+Reads the SHAP store (refused unless it was made with the model's current checkpoint): clean and FGSM
 samples of the same detector-split images, none seen by the pose network (`rpod shap`). Splits its
 samples 80/20 into train/test and holds 20% of train out for validation (grouped by source image,
 so the clean and the attacked version of an image sit on one side; stratified by eps; seeded), then
@@ -14,10 +21,10 @@ Then (unless --no-eval-alarms) the LSTM's false alarms at its own threshold on t
 fresh evaluation trajectories (datasets/eval_render), run through the onboard chain: what the SHAP
 split's accuracy does not say about a detector in the loop.
 
-Writes models/detector.pt (LSTM weights, architecture, threshold, and what the safety chain needs:
-the pose-model hash and the SHAP background mean; `pipeline.formats.models.read_detector` reads it), dvclive/detect/
-(DVCLive: the detect params, the LSTM's training curves and test metrics, and every detector's ROC on the test
-split as plots/sklearn/<name>.json), reports/detector.md and reports/metrics/detect.json.
+Writes the detector (LSTM weights, architecture, threshold, and what the safety chain needs: the pose-model
+hash and the SHAP background mean; `pipeline.formats.models.read_detector` reads it), the DVCLive folder (the
+detect params, the LSTM's training curves and test metrics, and every detector's ROC on the test split as
+plots/sklearn/<name>.json), the report and the metrics.
 """
 from __future__ import annotations
 
@@ -32,10 +39,9 @@ from pipeline.formats.models import DETECTOR_FORMAT
 from pipeline.io.atomic import atomic_outputs, atomic_write_text, file_hash
 from pipeline.io.checkpoints import save_torch
 from stages.artifacts.dvc import write_metrics
-from stages.artifacts.paths import DETECT_LIVE, DETECT_METRICS as METRICS, DETECT_REPORT as REPORT, DETECTOR, \
-    DETECT_RENDER, POSE, SEED_OFFSET, SHAP
+from stages.artifacts.paths import CHAINS, DETECT_RENDER, SEED_OFFSET, ChainFiles, Model
 from stages.artifacts.readers import SampleImages, read_detect_render, read_eval_render, read_shap_store
-from stages.artifacts.models import load_pose
+from stages.artifacts.models import load_pose, model_option
 from stages.config.device import torch_device
 from stages.config.schema import Params
 from stages.config.sections import Detect
@@ -58,64 +64,67 @@ def split_indices(eps: np.ndarray, source: np.ndarray, test_fraction: float, val
                          f"(raise shap.normal / shap.per_eps)") from None
 
 
-def main(
-    params: Params,
-    eval_alarms: Annotated[bool, typer.Option(
-        "--eval-alarms/--no-eval-alarms", help="Measure the LSTM's false alarms on the clean evaluation "
-        "trajectories (datasets/eval_render); off for the lab's synthetic-lab detector.")] = True,
-) -> None:
-    """Train the LSTM detector and the baselines on one split of the SHAP store; write the report."""
+ModelOption = Annotated[Model, model_option("Reads datasets/shap.zarr or datasets/shap_robust.zarr; writes "
+                                           "models/detector.pt or models/detector_robust.pt and their report.")]
+EvalAlarmsOption = Annotated[bool, typer.Option(
+    "--eval-alarms/--no-eval-alarms", help="Measure the LSTM's false alarms on the clean evaluation "
+    "trajectories (datasets/eval_render); off for the lab's synthetic-lab detector.")]
+BaselinesOption = Annotated[bool, typer.Option(
+    "--baselines/--no-baselines", help="Fit detect.baselines on the same split (the paper's comparison); off for "
+    "the robust model's detector.")]
+
+
+def main(params: Params, model: ModelOption = Model.standard, eval_alarms: EvalAlarmsOption = True,
+         baselines: BaselinesOption = True) -> None:
+    """Train the LSTM detector (and the baselines) on one split of a pose model's SHAP store; write the report."""
     import torch
 
-    from pipeline.detectors.metrics import choose_threshold, metrics_by_eps
+    from pipeline.detectors.metrics import metrics_by_eps
     from pipeline.evaluation.sequences import nan_to_none
 
     d = params.detect
     torch.set_num_threads(1)  # the LSTM's matrices are small: extra threads cost more than they give
     device = torch_device(params)  # a missing CUDA GPU stops here; the LSTM fit and the squeeze baseline run on it
     seed = params.seed + SEED_OFFSET["detect"]
-    model_hash = file_hash(POSE)
-    data = read_shap_store(SHAP, model_hash)
+    files = CHAINS[model]
+    model_hash = file_hash(files.pose)
+    data = read_shap_store(files.shap, model_hash)
     values, feats, eps = data["values"], data["features"], data["eps"].astype(np.float64)
     y = data["is_adversarial"].astype(np.int64)
     tr, va, te = split_indices(eps, data["source_index"], float(d.test_fraction), float(d.val_fraction), seed)
-    print(f"detect: {len(y)} SHAP samples ({int(y.sum())} adversarial) -> train {len(tr)}, validation {len(va)}, "
-          f"test {len(te)}", flush=True)
+    print(f"detect ({model.value} model): {len(y)} SHAP samples ({int(y.sum())} adversarial) -> train {len(tr)}, "
+          f"validation {len(va)}, test {len(te)}", flush=True)
 
     result, lstm_seconds = _train_lstm(values, y, tr, va, d, seed, device)   # the paper's LSTM detector
     lstm = result.model
     scores: dict[str, tuple[np.ndarray, float]] = {
         "lstm": (lstm.predict_proba(values[te]), float(lstm.threshold))}
     seconds = {"lstm": lstm_seconds}
-
-    # baselines, same split, thresholds on the same validation samples
-    for name in d.baselines:
-        t0 = time.perf_counter()
-        s_val, s_test = _baseline(name, params, data, y, tr, va, te, seed)
-        scores[name] = (s_test, choose_threshold(s_val, y[va]))
-        seconds[name] = time.perf_counter() - t0
-        print(f"detect: {name} baseline in {seconds[name]:.1f} s", flush=True)
-
+    for name in d.baselines if baselines else []:   # same split, thresholds on the same validation samples
+        scores[name], seconds[name] = _fit_baseline(name, params, files, data, (y, tr, va, te), seed)
     results = {name: metrics_by_eps(y[te], s, eps[te], thr) for name, (s, thr) in scores.items()}
-    alarms = _eval_alarms(params, lstm, data["attrs"]) if eval_alarms else None
+    alarms = _eval_alarms(params, files, lstm, data["attrs"]) if eval_alarms else None
 
     ckpt = _checkpoint(result, data["attrs"], model_hash, eps[y == 1], results["lstm"]["all"]["accuracy"])
     counts = {"samples": int(len(y)), "train": int(len(tr)), "validation": int(len(va)), "test": int(len(te)),
               "test_clean": int((y[te] == 0).sum()), "test_adversarial": int(y[te].sum())}
-    metrics = {"model_hash": model_hash, "counts": counts, "threshold": {k: v[1] for k, v in scores.items()},
+    metrics = {"model": model.value, "model_hash": model_hash, "counts": counts,
+               "threshold": {k: v[1] for k, v in scores.items()},
                "lstm_epochs": len(result.history), "lstm_best_epoch": result.best_epoch,
                "seconds": seconds, "paper_accuracy": DETECTOR_ACCURACY, "detectors": results,
                "composition": {**data["attrs"].get("counts", {}), **data["attrs"].get("source", {})},
                "eval_alarms": alarms}
     # detector, metrics, report and the DVCLive folder move into place together, once all are written
-    with atomic_outputs(DETECTOR, METRICS, REPORT, dirs=(DETECT_LIVE,)) as (det, met, rep, live_dir):
+    with atomic_outputs(files.detector, files.detect_metrics, files.detect_report,
+                        dirs=(files.detect_live,)) as (det, met, rep, live_dir):
         save_torch(det, ckpt)
         write_metrics(met, nan_to_none(metrics), params.profile_name)
-        atomic_write_text(rep, detector_page(results, scores, counts, result, data["attrs"], d, alarms))
+        atomic_write_text(rep, detector_page(results, scores, counts, result, data["attrs"], d, files, alarms))
         _log_live(live_dir, d, result.history, results["lstm"]["all"], (y[te], {k: v[0] for k, v in scores.items()}))
     acc = results["lstm"]["all"]["accuracy"]
     fa = "" if alarms is None else f"; false alarms on clean evaluation frames {alarms['rate']:.4f}"
-    print(f"detect: LSTM test accuracy {acc:.4f} (paper {DETECTOR_ACCURACY:.4f}){fa} -> {DETECTOR}, {REPORT}")
+    print(f"detect: LSTM test accuracy {acc:.4f} (paper {DETECTOR_ACCURACY:.4f}){fa} -> {files.detector}, "
+          f"{files.detect_report}")
 
 
 def _checkpoint(result: Any, attrs: dict[str, Any], model_hash: str, attacked_eps: np.ndarray,
@@ -132,7 +141,7 @@ def _checkpoint(result: Any, attrs: dict[str, Any], model_hash: str, attacked_ep
         "best_epoch": result.best_epoch, "test_accuracy": accuracy})
 
 
-def _eval_alarms(p: Params, lstm: Any, attrs: dict[str, Any]) -> dict[str, Any]:
+def _eval_alarms(p: Params, files: ChainFiles, lstm: Any, attrs: dict[str, Any]) -> dict[str, Any]:
     """The LSTM's false alarms at its own threshold on every frame of the clean evaluation trajectories
     (datasets/eval_render), through the onboard chain (pose -> exact SHAP -> LSTM; no motion filter):
     the rate with its Wilson interval over frames (optimistic: frames of a trajectory are correlated)
@@ -143,11 +152,11 @@ def _eval_alarms(p: Params, lstm: Any, attrs: dict[str, Any]) -> dict[str, Any]:
     from pipeline.evaluation.stats import rate
 
     images, poses, _ = read_eval_render(p)
-    pose = load_pose(p)
+    pose = load_pose(p, files.pose)
     try:
         chain = OnboardChain.from_model(pose.model, np.asarray(attrs["background_mean"]), lstm, float(lstm.threshold))
     except ValueError as e:
-        raise StageError(f"{POSE}: {e}") from None
+        raise StageError(f"{files.pose}: {e}") from None
     n = len(images)
     res = run_sequence(chain, images, np.zeros((n, 9), np.float32), np.zeros(n, bool), None, p.evaluate.batch_size,
                        progress=lambda r: tqdm(r, desc="detect: clean evaluation frames", unit="batch", leave=False))
@@ -172,7 +181,7 @@ def _train_lstm(values: np.ndarray, y: np.ndarray, tr: np.ndarray, va: np.ndarra
                             patience=d.patience, batch_size=d.batch_size, lr=float(d.lr),
                             seed=seed, progress="detect: LSTM", device=device)
     except ValueError as e:  # also DivergenceError
-        raise StageError(f"params.yaml detect: {e} ({DETECTOR} and the reports were left as they were)") from None
+        raise StageError(f"params.yaml detect: {e} (the detector and its reports were left as they were)") from None
     return result, time.perf_counter() - t0
 
 
@@ -201,10 +210,25 @@ def _log_live(folder: Path, d: Detect, history: list[dict[str, float]], test: di
     live.end()
 
 
-def _baseline(name: str, p: Params, data: dict[str, Any], y: np.ndarray, tr: np.ndarray,
-              va: np.ndarray, te: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Validation and test scores of one baseline fitted on the training indices."""
+def _fit_baseline(name: str, p: Params, files: ChainFiles, data: dict[str, Any],
+                  split: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+                  seed: int) -> tuple[tuple[np.ndarray, float], float]:
+    """((test scores, threshold chosen on the validation scores), seconds) of one baseline."""
+    from pipeline.detectors.metrics import choose_threshold
+
+    t0 = time.perf_counter()
+    s_val, s_test = _baseline(name, p, files, data, split, seed)
+    seconds = time.perf_counter() - t0
+    print(f"detect: {name} baseline in {seconds:.1f} s", flush=True)
+    return (s_test, choose_threshold(s_val, split[0][split[2]])), seconds
+
+
+def _baseline(name: str, p: Params, files: ChainFiles, data: dict[str, Any],
+              split: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Validation and test scores of one baseline fitted on the training indices (`split`: labels, then the
+    train, validation and test indices)."""
     d = p.detect
+    y, tr, va, te = split
     values, feats = data["values"], data["features"]
     if name == "mlp":
         from pipeline.detectors.mlp import MLPDetector
@@ -216,7 +240,7 @@ def _baseline(name: str, p: Params, data: dict[str, Any], y: np.ndarray, tr: np.
 
         poses = read_detect_render(p)[1]
         if data["source_index"].max() >= len(poses):
-            raise StageError(f"{SHAP}/source_index names images missing from {DETECT_RENDER} (re-run `rpod shap`)")
+            raise StageError(f"{files.shap}/source_index names images missing from {DETECT_RENDER} (re-run `rpod shap`)")
         ranges = poses["range"].to_numpy(np.float64)[data["source_index"]]
         groups = np.digitize(ranges, np.sort(np.asarray(p.train.range_bins, dtype=np.float64)))
         clean_tr = tr[y[tr] == 0]
@@ -227,10 +251,10 @@ def _baseline(name: str, p: Params, data: dict[str, Any], y: np.ndarray, tr: np.
 
         det = LIDDetector(k=d.lid_k, batch_size=d.lid_batch, seed=seed).fit(feats[tr], y[tr])
         return det.score(feats[va]), det.score(feats[te])
-    return _squeeze(p, data, y, tr, va, te)
+    return _squeeze(p, files, data, y, tr, va, te)
 
 
-def _squeeze(p: Params, data: dict[str, Any], y: np.ndarray, tr: np.ndarray, va: np.ndarray,
+def _squeeze(p: Params, files: ChainFiles, data: dict[str, Any], y: np.ndarray, tr: np.ndarray, va: np.ndarray,
              te: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Feature squeezing needs the images and the pose model: rebuild each sample's image from its
     source (stages.artifacts.readers.SampleImages: the detector-split render, or the same FGSM) and score it."""
@@ -240,7 +264,7 @@ def _squeeze(p: Params, data: dict[str, Any], y: np.ndarray, tr: np.ndarray, va:
     from pipeline.detectors.squeeze import SqueezeDetector, model_predictor, score_batches
 
     d = p.detect
-    pose = load_pose(p)
+    pose = load_pose(p, files.pose)
     src = SampleImages(p, pose.model, attack_loss(p.attack.loss, pose.loss))
     keys = (data["source_index"], data["eps"].astype(np.float64))
     det = SqueezeDetector(model_predictor(pose.model), bits=d.squeeze_bits,

@@ -1,11 +1,16 @@
-"""`rpod evaluate`: the whole safety chain on fresh trajectories, frame by frame.
+"""`rpod evaluate`: the safety chains on fresh trajectories, frame by frame.
 
 On the trajectories `rpod eval_render` rendered into datasets/eval_render/ it runs, per eps and
 trajectory, every frame through
   image -> (FGSM against that frame's true label when the schedule says so) -> pose -> exact SHAP
-  -> detector flag, then the recorded frames through the defense calibrated by `rpod calibrate`
-  (motion check fused with the detector, pipeline/defense/fusion.py), and writes reports/integrated.md,
-  reports/figures/timeline.png and reports/metrics/evaluate.json (the defended chain under `fused`).
+  -> detector flag,
+once for each chain (stages.artifacts.paths.CHAINS): the **standard** model with its own detector (the
+paper's reproduction: the detection accuracy tables and the timeline) and the **robust** model with its
+own detector (the chain that ships), each attack crafted on that chain's pose model. Then the recorded
+frames go through the defense calibrated for each chain (`rpod calibrate`, pipeline/defense/fusion.py):
+the paper's LSTM alone (standard model), the defended standard chain, and the defended robust chain
+that ships (metrics `fused`). Writes reports/integrated.md, reports/figures/timeline.png and
+reports/metrics/evaluate.json.
 """
 from __future__ import annotations
 
@@ -20,13 +25,13 @@ from pipeline.io.atomic import atomic_write_text, save_figure
 from pipeline.pose.labels import TARGET
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import EVALUATE_FIGURE as FIGURE, EVALUATE_METRICS as METRICS, \
-    EVALUATE_REPORT as REPORT, SEED_OFFSET
+    EVALUATE_REPORT as REPORT, PAPER, SEED_OFFSET, SHIPPED, Model
 from stages.artifacts.readers import chaser_motion, read_eval_render
 from stages.artifacts.models import load_chain, load_defense
 from stages.config.device import torch_setup
 from stages.config.evaluation import Evaluate
 from stages.config.schema import Params
-from stages.pages.evaluate import defense_section
+from stages.pages.evaluate import chain_names, defense_section
 from stages.pages.paper import INTEGRATED, INTEGRATED_EPS, by_eps
 from stages.pages.calibrate import unmet_banner
 
@@ -34,65 +39,126 @@ if TYPE_CHECKING:
     from pipeline.evaluation.sequences import Sequence
 
 
+@dataclasses.dataclass(frozen=True)
+class ChainRun:
+    """One chain's pass over the evaluation trajectories: its chain, pose-model hash, calibrated defense and
+    what `pipeline.evaluation.sequences.evaluate_sequences` measured."""
+
+    model: Model
+    chain: Any
+    model_hash: str
+    defense: Any
+    result: Any
+
+
 def main(params: Params) -> None:
-    """Detect FGSM attacks frame by frame on fresh trajectories with the whole safety chain.
+    """Detect FGSM attacks frame by frame on fresh trajectories with the paper's and the shipped chain.
 
     Params: `evaluate` (trajectories, frames, lateral_range, p_start, attack_length, eps, seed,
     batch_size), `defense`, plus `render`/`camera` for the images and `attack.loss` for the FGSM loss.
     """
-    e = params.evaluate
-    from pipeline.evaluation.sequences import (Sequence, defended_summary, evaluate_sequences, nan_to_none,
-                                               per_eps_summary, rates_json)
+    from pipeline.evaluation.sequences import nan_to_none, per_eps_summary, rates_json
     from pipeline.report.figures import detection_timeline
-    from pipeline.evaluation.schedule import attack_schedule
 
+    e = params.evaluate
     torch_setup(params)
     images, poses, meta = read_eval_render(params)
-    chain, loss_fn, model_hash = load_chain(params)
-    defense = load_defense(params, model_hash, chain.threshold)
-    eps_list, length = e.eps, e.attack_length
-    sequences = []
+    sequences = _sequences(images, poses, e)
+    t0 = time.perf_counter()
+    paper, shipped = (_run_chain(params, model, sequences) for model in (PAPER, SHIPPED))
+    fused = _defended(params, paper, shipped, sequences)
+    seconds = time.perf_counter() - t0
+    res, chain = paper.result, paper.chain
+    summary = per_eps_summary(res.rows)
+    eps_fig = min(e.eps)
+    s0 = sequences[0]
+    title = (f"{s0.name}: FGSM eps={eps_fig:g} on {int(s0.attacked.sum())} of {len(s0.attacked)} "
+             f"frames ({e.attack_length}-frame attacks, p_start={e.p_start:g}); standard model")
+    save_figure(detection_timeline(s0.poses["tz"].to_numpy(), s0.attacked, res.traces[(eps_fig, s0.name)],
+                                   chain.threshold, title), FIGURE)
+    names = list(fused)
+    metrics = {"model": PAPER.value, "model_hash": paper.model_hash, "frames_per_trajectory": e.frames,
+               "trajectories": len(sequences), "p_start": e.p_start, "attack_length": e.attack_length,
+               "threshold": chain.threshold, "seconds": seconds,
+               "accuracy_mean": float(np.mean([r["accuracy"] for r in summary])),
+               "per_eps": {f"{r['eps']:g}": r for r in summary}, "rows": res.rows, "clean": res.clean,
+               "attacked_fraction": {s.name: float(s.attacked.mean()) for s in sequences},
+               "start_xy": meta["start_xy"], "shipped": _shipped_metrics(shipped),
+               "fused": {"fusion": shipped.defense.settings.fusion, "harm_m": params.defense.harm_m,
+                         "chains": chain_names(params.defense.fusion),
+                         **{key: {f"{r['eps']:g}": r for r in rates_json(fused[name])} for key, name in
+                            zip(("paper_per_eps", "standard_per_eps", "per_eps"), names)}}}
+    write_metrics(METRICS, nan_to_none(metrics), params.profile_name)
+    atomic_write_text(REPORT, unmet_banner(shipped.defense.calibration) + unmet_banner(paper.defense.calibration, PAPER)
+                      + report(res.rows, summary, res.clean, sequences, e, meta, chain.threshold, eps_fig,
+                               params.profile_name)
+                      + defense_section(fused, shipped.defense.calibration, params.defense.harm_m, e.attack_length,
+                                        _shipped_clean(shipped)))
+    typer.echo(f"evaluate: {len(sequences)} trajectories x {len(e.eps)} eps, standard and robust chain in "
+               f"{seconds:.0f} s; mean accuracy (standard, paper's view) {100 * metrics['accuracy_mean']:.2f}% "
+               f"-> {REPORT}, {FIGURE}")
+
+
+def _sequences(images: np.ndarray, poses: Any, e: Evaluate) -> list[Sequence]:
+    """The evaluation trajectories as chain sequences with their motion and seeded attack schedules."""
+    from pipeline.evaluation.schedule import attack_schedule
+    from pipeline.evaluation.sequences import Sequence
+
+    out = []
     for tr, g in poses.groupby("trajectory", sort=True):
         idx = g["index"].to_numpy()
         R_cam, u = chaser_motion(g)
-        sequences.append(Sequence(name=f"T{int(tr) + 1}", images=images[idx], poses=g.reset_index(drop=True),
-                                  targets=g[TARGET].to_numpy(np.float32), R_cam=R_cam, u=u,
-                                  rel=g[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64),
-                                  attacked=attack_schedule(len(idx), e.p_start, length,
-                                                           e.seed + SEED_OFFSET["evaluate_schedule"] + int(tr))))
-    t0 = time.perf_counter()
-    res = evaluate_sequences(chain, loss_fn, sequences, eps_list, length, e.batch_size, "evaluate")
-    harm = params.defense.harm_m
-    # the paper's row: the LSTM alone at its own threshold (detector.pt); the defended chain: the calibrated one
-    paper = dataclasses.replace(defense.settings, fusion="paper", threshold=chain.threshold,
-                                update_below=min(params.defense.update_below or 1.0, chain.threshold))
-    fused = {name: defended_summary(res.traces, sequences, eps_list, s, defense.motion, defense.noise, length, harm)
-             for name, s in (("paper (LSTM alone)", paper), (f"defended ({defense.settings.fusion})", defense.settings))}
-    seconds = time.perf_counter() - t0
-    summary = per_eps_summary(res.rows)
-    eps_fig = min(eps_list)
-    s0 = sequences[0]
-    title = (f"{s0.name}: FGSM eps={eps_fig:g} on {int(s0.attacked.sum())} of {len(s0.attacked)} "
-             f"frames ({length}-frame attacks, p_start={e.p_start:g})")
-    save_figure(detection_timeline(s0.poses["tz"].to_numpy(), s0.attacked, res.traces[(eps_fig, s0.name)],
-                                   chain.threshold, title), FIGURE)
-    metrics = {"model_hash": model_hash, "frames_per_trajectory": e.frames, "trajectories": len(sequences),
-               "p_start": e.p_start, "attack_length": length, "threshold": chain.threshold,
-               "seconds": seconds, "accuracy_mean": float(np.mean([r["accuracy"] for r in summary])),
-               "per_eps": {f"{r['eps']:g}": r for r in summary},
-               "rows": res.rows, "clean": res.clean,
-               "attacked_fraction": {s.name: float(s.attacked.mean()) for s in sequences},
-               "start_xy": meta["start_xy"],
-               "fused": {"fusion": defense.settings.fusion, "harm_m": harm,
-                         "per_eps": {f"{r['eps']:g}": r for r in rates_json(list(fused.values())[-1])},
-                         "paper_per_eps": {f"{r['eps']:g}": r for r in rates_json(fused["paper (LSTM alone)"])}}}
-    write_metrics(METRICS, nan_to_none(metrics), params.profile_name)
-    atomic_write_text(REPORT, unmet_banner(defense.calibration)
-                      + report(res.rows, summary, res.clean, sequences, e, meta, chain.threshold, eps_fig,
-                               params.profile_name)
-                      + defense_section(fused, defense.calibration, harm, e.attack_length))
-    typer.echo(f"evaluate: {len(sequences)} trajectories x {len(eps_list)} eps in {seconds:.0f} s; mean accuracy "
-               f"{100 * metrics['accuracy_mean']:.2f}% -> {REPORT}, {FIGURE}")
+        out.append(Sequence(name=f"T{int(tr) + 1}", images=images[idx], poses=g.reset_index(drop=True),
+                            targets=g[TARGET].to_numpy(np.float32), R_cam=R_cam, u=u,
+                            rel=g[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64),
+                            attacked=attack_schedule(len(idx), e.p_start, e.attack_length,
+                                                     e.seed + SEED_OFFSET["evaluate_schedule"] + int(tr))))
+    return out
+
+
+def _run_chain(params: Params, model: Model, sequences: list[Sequence]) -> ChainRun:
+    """One chain (its pose model, its detector, its calibrated defense) over every sequence, clean and at every
+    eps of `evaluate.eps` (FGSM crafted on that chain's pose model)."""
+    from pipeline.evaluation.sequences import evaluate_sequences
+
+    e = params.evaluate
+    chain, loss_fn, model_hash = load_chain(params, model)
+    defense = load_defense(params, model_hash, chain.threshold, model)
+    res = evaluate_sequences(chain, loss_fn, sequences, e.eps, e.attack_length, e.batch_size,
+                             f"evaluate ({model.value} model)")
+    return ChainRun(model, chain, model_hash, defense, res)
+
+
+def _defended(params: Params, paper: ChainRun, shipped: ChainRun, sequences: list[Sequence]) -> dict[str, Any]:
+    """The recorded frames through the defenses: the paper's LSTM alone at its own threshold and the defended
+    standard chain (both on the standard model's frames, its defense file), then the defended shipped chain."""
+    from pipeline.evaluation.sequences import defended_summary
+
+    e, harm, names = params.evaluate, params.defense.harm_m, chain_names(params.defense.fusion)
+    d = paper.defense
+    lstm_alone = dataclasses.replace(d.settings, fusion="paper", threshold=paper.chain.threshold,
+                                     update_below=min(params.defense.update_below or 1.0, paper.chain.threshold))
+    cases = ((names["paper"], paper, lstm_alone), (names["standard"], paper, d.settings),
+             (names["shipped"], shipped, shipped.defense.settings))
+    return {name: defended_summary(run.result.traces, sequences, e.eps, settings, run.defense.motion,
+                                   run.defense.noise, e.attack_length, harm) for name, run, settings in cases}
+
+
+def _shipped_metrics(run: ChainRun) -> dict[str, Any]:
+    """metrics `shipped`: the robust chain's model hash, its detector's own threshold, and per eps its per-frame
+    detection at that threshold (its defended rows are under `fused`)."""
+    from pipeline.evaluation.sequences import per_eps_summary
+
+    return {"model": run.model.value, "model_hash": run.model_hash, "threshold": run.chain.threshold,
+            "defense_threshold": run.defense.settings.threshold, "clean": run.result.clean,
+            "per_eps": {f"{r['eps']:g}": r for r in per_eps_summary(run.result.rows)}}
+
+
+def _shipped_clean(run: ChainRun) -> dict[str, float]:
+    """The shipped chain's clean pose errors over the evaluation trajectories (m, deg; equal frames each)."""
+    clean = run.result.clean.values()
+    return {"position_m": float(np.mean([c["position_mean_m"] for c in clean])),
+            "attitude_deg": float(np.mean([c["attitude_mean_deg"] for c in clean]))}
 
 
 def report(rows: list[dict[str, Any]], summary: list[dict[str, Any]], clean: dict[str, dict[str, float]],
@@ -111,7 +177,11 @@ def report(rows: list[dict[str, Any]], summary: list[dict[str, Any]], clean: dic
                        "FPR % (no attack)": pct(float(np.mean([c["fpr"] for c in clean.values()]))),
                        "position error (m)": float(np.mean([c["position_mean_m"] for c in clean.values()])),
                        "attitude error (deg)": float(np.mean([c["attitude_mean_deg"] for c in clean.values()]))})
-    return f"""# Integrated evaluation: the safety chain frame by frame
+    return f"""# Integrated evaluation: the safety chains frame by frame
+
+Which model: every table above "The defended chains" is the paper's reproduction, the **standard
+model** (models/pose.pt) with its own detector (models/detector.pt); the defended section adds the chain
+that ships, the **robust model** (models/pose_robust.pt) with its own detector (models/detector_robust.pt).
 
 {len(names)} fresh trajectories (never seen in training; seed {e.seed}), {e.frames} frames each, from 60 m
 with lateral start offsets {starts} along a projectile-shaped path to (0, 0, 10) m. Every frame goes

@@ -5,26 +5,29 @@ model's input size; the runs fan out over the engine's workers (stages/engine/gu
 stages/engine/pool.py: in-process with one worker, else Ray actors each holding one Blender scene and
 the safety chain), each attacked run's attack seeded by its place in the grid, so the results do not
 depend on the worker count; writes reports/guidance.md (one S x K table per eps),
-reports/figures/guidance_trajectories.png and reports/metrics/guidance.json. With the safety chain
-inside the loop it flies every cell again for each of `guidance.dynamics` and each of undefended /
-`guidance.defenses` (detect-and-hold, detect-and-recover; a fresh calibrated defense from
-models/defense.json per run) -> the defended section of the report, metrics `defended`, and
+reports/figures/guidance_trajectories.png and reports/metrics/guidance.json. That paper grid flies the
+standard model (models/pose.pt, the paper's reproduction; FGSM on it). With the safety chain that ships
+(the robust model models/pose_robust.pt, its detector models/detector_robust.pt) inside the loop it flies
+every cell again for each of `guidance.dynamics` and each of undefended / `guidance.defenses`
+(detect-and-hold, detect-and-recover; a fresh calibrated defense from models/defense.json per run; FGSM on
+the robust model) -> the defended section of the report, metrics `defended`, and
 reports/figures/guidance_defended.png (one run per variant). Last, the in-loop attacker
-(pipeline/attacks/in_loop.py) at each `integrity.eps`, goal and start range under every dynamics and
-variant -> the in-loop section, metrics `in_loop`. Rates count only the runs that met the attack.
+(pipeline/attacks/in_loop.py) on the shipped chain at each `integrity.eps`, goal and start range under every
+dynamics and variant -> the in-loop section, metrics `in_loop`. Rates count only the runs that met the attack.
 """
 from __future__ import annotations
 
 import dataclasses
 import itertools
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import typer
 
-from stages.artifacts.paths import DETECTOR, GUIDANCE_DEFENDED_FIGURE as DEFENDED_FIGURE, \
-    GUIDANCE_FIGURE as FIGURE, GUIDANCE_METRICS as METRICS, GUIDANCE_REPORT as REPORT, POSE, SEED_OFFSET
+from stages.artifacts.paths import GUIDANCE_DEFENDED_FIGURE as DEFENDED_FIGURE, GUIDANCE_FIGURE as FIGURE, \
+    GUIDANCE_METRICS as METRICS, GUIDANCE_REPORT as REPORT, PAPER, SEED_OFFSET, SHIPPED
 from stages.artifacts.models import load_chain, load_defense
 from stages.config.build import check_attack_params, engine_settings, intrinsics, make_attack, scene_settings
 from stages.config.device import torch_setup
@@ -86,13 +89,14 @@ def main(params: Params) -> None:
     in_loop = _in_loop(params.integrity, settings)
     make_attack(params.attack, g.method, 0)   # refuses bad attack params before anything runs
     torch_setup(params)
-    chain, _, model_hash = load_chain(params)  # refuses a pose model whose input size is not render.width x height
-    defense = load_defense(params, model_hash, chain.threshold)
+    # each refuses a pose model whose input size is not render.width x height, or a detector of another model
+    chains = {m.value: load_chain(params, m) for m in (PAPER, SHIPPED)}
+    hashes = {m: h for m, (_, _, h) in chains.items()}
+    defense = load_defense(params, hashes[SHIPPED.value], chains[SHIPPED.value][0].threshold, SHIPPED)
     K, es = intrinsics(params), engine_settings(params)   # K: the model's input size
     scene, threads = chunks.prepare(K, scene_settings(params.render), es)
     plan = GridPlan(settings, tuple(grid), g.slack_steps, tuple(g.dynamics), tuple(g.defenses), in_loop)
-    runs = flights(plan)
-    # attacked runs last the unattacked chaser's arrival + slack_steps (the paper: 50 nominal steps + ~10)
+    runs = flights(plan)   # attacked runs last the no-attack arrival + slack_steps (the paper: 50 nominal steps + ~10)
     finished, t0, paper_done = [0], time.perf_counter(), [0.0]
 
     def progress(i: int, _: Any) -> None:
@@ -103,8 +107,7 @@ def main(params: Params) -> None:
 
     with tqdm(total=len(runs), desc="guidance runs", unit="run") as bar:
         on_cpu = params if es.in_process else dataclasses.replace(params, device="cpu")   # Ray workers hold no GPU
-        setup = GuidanceSetup(params=on_cpu, K=K, scene=scene, pose_path=str(POSE.resolve()),
-                              detector_path=str(DETECTOR.resolve()), defense=defense, plan=plan,
+        setup = GuidanceSetup(params=on_cpu, K=K, scene=scene, root=str(Path.cwd()), defense=defense, plan=plan,
                               seed=params.seed + SEED_OFFSET["guidance"], torch_threads=None if es.in_process else threads)
         flown = engine.run(GuidanceWorker, setup, runs, es, num_cpus=threads, progress=progress)
     seconds = paper_done[0]
@@ -115,7 +118,7 @@ def main(params: Params) -> None:
     defended["seconds"] = time.perf_counter() - t0 - seconds   # with the in-loop runs: they share the workers
     looped = len(plan.in_loop_runs())
     defended.update(grid_counts(flown[plan.paper_size:len(flown) - looped], frozenset().union(*(k for _, k in paper))))
-    metrics = _metrics(settings, g, params.attack, model_hash, seconds, counts, (baseline, arrival, horizon, attacked),
+    metrics = _metrics(settings, g, params.attack, hashes, seconds, counts, (baseline, arrival, horizon, attacked),
                        defended)
     metrics |= {"in_loop": in_loop_grid(plan, [r for r, _ in flown], params.integrity.collision_range_m)
                 | grid_counts(flown[len(flown) - looped:]), "minutes": (time.perf_counter() - t0) / 60}
@@ -135,14 +138,17 @@ def main(params: Params) -> None:
                     f"attack tables say little; see {REPORT}", fg=typer.colors.YELLOW, err=True)
 
 
-def _metrics(settings: Any, g: Guidance, a: Attack, model_hash: str, seconds: float,
+def _metrics(settings: Any, g: Guidance, a: Attack, hashes: dict[str, str], seconds: float,
              counts: dict[str, int], flown: tuple[Any, int | None, int, list[Any]],
              defended: dict[str, Any]) -> dict[str, Any]:
-    """reports/metrics/guidance.json: the paper grid's runs and success rates, and the defended grid."""
+    """reports/metrics/guidance.json: the paper grid's runs and success rates (standard model: `model_hash`),
+    and the defended grid (the shipped chain: `models`); `hashes`: pose-model hash per model name."""
     baseline, arrival, horizon, runs = flown
     metrics = {
         "variant": settings.variant, "method": g.method, "loss": a.loss, "max_steps": settings.max_steps,
-        "tolerance": settings.tolerance, "model_hash": model_hash, "seconds": seconds, **counts,
+        "tolerance": settings.tolerance, "model_hash": hashes[PAPER.value], "seconds": seconds, **counts,
+        "models": {"paper": {"model": PAPER.value, "model_hash": hashes[PAPER.value]},
+                   "shipped": {"model": SHIPPED.value, "model_hash": hashes[SHIPPED.value]}},
         "baseline": {"outcome": baseline.outcome, "miss_m": baseline.miss, "arrival_step": arrival},
         "horizon": horizon, "slack_steps": g.slack_steps,
         "runs": [{"eps": e, "start_range": s, "length": k, "outcome": r.outcome, "miss_m": r.miss,

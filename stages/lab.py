@@ -6,10 +6,14 @@ recording would be stored, reads it back through the real-data loader, and evalu
 model and the safety chain on it: reports/lab.md, reports/metrics/lab.json. With `lab.real_data`
 set to a folder, the same evaluation runs on that recording instead.
 
-Models: with `lab.retrain: auto` and the main target as the mock-up, the main models/pose.pt and
-models/detector.pt (allowed: the lab mock-up is the same target); with `lab.retrain: always`, or another mock-up in `lab.mesh`,
-the pose model and detector that `rpod lab_models` trained on a synthetic-lab set in
-datasets/lab_models/. The report and metrics (`reused_models`, `models`) say which were used.
+Models (the paper's reproduction rows: pose error, FGSM errors, integrated detection): with `lab.retrain: auto`
+and the main target as the mock-up, the main standard models models/pose.pt and models/detector.pt (allowed:
+the lab mock-up is the same target); with `lab.retrain: always`, or another mock-up in `lab.mesh`, the pose
+model and detector that `rpod lab_models` trained on a synthetic-lab set in datasets/lab_models/. The report
+and metrics (`reused_models`, `models`) say which were used. Beside them, the chain that ships (the robust model
+models/pose_robust.pt behind its black-level clamp, its detector models/detector_robust.pt at the threshold
+`rpod calibrate` chose, models/defense.json) on the same clean lab frames: its false alarms and pose error
+(metrics `shipped`).
 
 The lab recording layout (images/, masks/, camera.csv, mocap.csv) is described in pipeline/formats/recordings.py.
 """
@@ -26,9 +30,9 @@ import typer
 from pipeline.formats.recordings import read_recording, recording_folders, write_recording
 from pipeline.io.atomic import atomic_dir, atomic_write_text, read_json
 from stages.artifacts.dvc import write_metrics
-from stages.artifacts.paths import DETECTOR, LAB as OUT, LAB_METRICS as METRICS, LAB_MODELS, LAB_MODELS_SUMMARY, \
-    LAB_REPORT as REPORT, POSE, SEED_OFFSET, TRAIN_METRICS
-from stages.artifacts.models import load_chain
+from stages.artifacts.paths import CHAINS, LAB as OUT, LAB_METRICS as METRICS, LAB_MODELS, LAB_MODELS_SUMMARY, \
+    LAB_REPORT as REPORT, PAPER, SEED_OFFSET, SHIPPED, TRAIN_METRICS
+from stages.artifacts.models import load_chain, load_defense
 from stages.config.build import engine_settings, mockup, retrain_reason, scene_settings
 from stages.config.device import torch_setup
 from stages.config.params import given, with_params
@@ -135,8 +139,7 @@ def main(params: Params, ctx: typer.Context) -> None:
     factor = lab_to_synthetic_factor(K_syn, K_zed, float(lab.scale))
     reason = retrain_reason(params)
     synthetic_lab = _lab_models(reason)
-    chain, loss_fn, model_hash = (load_chain(params) if synthetic_lab is None else
-                                  load_chain(params, LAB_MODELS / POSE, LAB_MODELS / DETECTOR))
+    chain, loss_fn, model_hash = load_chain(params, PAPER, "." if synthetic_lab is None else LAB_MODELS)
     t0 = time.perf_counter()
     truth: list[dict[str, Any]] = []
     real = given(lab.real_data)
@@ -155,7 +158,7 @@ def main(params: Params, ctx: typer.Context) -> None:
     seconds = time.perf_counter() - t0
     train_path = TRAIN_METRICS if synthetic_lab is None else LAB_MODELS / TRAIN_METRICS
     train_metrics = read_json(train_path) if train_path.exists() else None
-    models = ({"pose": str(POSE), "detector": str(DETECTOR)} if synthetic_lab is None else
+    models = ({"pose": str(CHAINS[PAPER].pose), "detector": str(CHAINS[PAPER].detector)} if synthetic_lab is None else
               {"pose": synthetic_lab["pose"], "detector": synthetic_lab["detector"]})
     metrics = {"model_hash": model_hash, "source": str(source), "synthetic": not real, "factor": factor,
                "retrain": lab.retrain, "reused_models": synthetic_lab is None, "retrain_reason": reason,
@@ -163,13 +166,38 @@ def main(params: Params, ctx: typer.Context) -> None:
                "clean": clean_rows, "fgsm": fgsm_rows, "attack_length": length, "threshold": chain.threshold,
                "per_eps": {f"{x['eps']:g}": x for x in summary}, "rows": res.rows, "clean_detection": res.clean,
                "accuracy_mean": float(np.mean([x["accuracy"] for x in summary])), "seconds": seconds,
-               "render_seconds": render_s}
+               "render_seconds": render_s, "shipped": shipped_alarms(params, sequences)}
     write_metrics(METRICS, nan_to_none(metrics), params.profile_name)
     atomic_write_text(REPORT, lab_page(params, metrics, res.rows, summary, [s.name for s in sequences],
                                      train_metrics, K_syn, K_zed, sequences))
     typer.echo(f"lab: {'reused' if synthetic_lab is None else 'retrained'} models {models['pose']}, "
                f"{models['detector']}; {len(sequences)} sequences from {source}; mean detection accuracy "
                f"{100 * metrics['accuracy_mean']:.2f}% (paper {LAB}%) in {seconds:.0f} s -> {REPORT}")
+
+
+def shipped_alarms(p: Params, sequences: list[Sequence]) -> dict[str, Any]:
+    """The chain that ships (robust model, its detector, the detector threshold of models/defense.json) on every
+    clean lab frame: its false alarms (Wilson interval over frames: optimistic, frames of a sequence are
+    correlated; and per sequence), mean pose errors (m, deg; synthetic-frame metres), and the share of the frames'
+    non-zero channel values that its black-level clamp erases (the lab's noise and blur lift them off zero)."""
+    from pipeline.defense.chain import run_sequence
+    from pipeline.evaluation.stats import rate
+    from pipeline.pose.metrics import pose_errors
+
+    chain, _, model_hash = load_chain(p, SHIPPED)
+    threshold = load_defense(p, model_hash, chain.threshold, SHIPPED).settings.threshold
+    level = float(getattr(chain.model, "black_level", 0.0))
+    runs = [run_sequence(chain, s.images, s.targets, np.zeros(len(s.images), bool), None, p.evaluate.batch_size)
+            for s in sequences]
+    flags = [res.prob >= threshold for res in runs]
+    pos, att = (np.concatenate(e) for e in zip(*(pose_errors(res.pose, s.targets) for res, s in zip(runs, sequences))))
+    values = np.concatenate([s.images[s.images > 0] for s in sequences]).astype(np.float64) / 255
+    r = rate(np.concatenate(flags))
+    return {"model": SHIPPED.value, "model_hash": model_hash, "threshold": threshold, "frames": int(r.n),
+            "false_alarms": int(np.concatenate(flags).sum()), "rate": r.value, "rate_ci95": r.ci(),
+            "per_sequence": {s.name: int(f.sum()) for s, f in zip(sequences, flags)}, "position_m": float(pos.mean()),
+            "attitude_deg": float(att.mean()), "black_level": level,
+            "clamp_erased": float((values < level).mean()) if values.size else None}
 
 
 def _lab_models(reason: str | None) -> dict[str, Any] | None:

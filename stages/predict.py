@@ -26,9 +26,10 @@ def main(
                                         show_default=False),
     as_json: bool = typer.Option(False, "--json", help="Print a JSON list (one object per image) instead of a table."),
     models: Path = typer.Option(None, "--models", show_default=False,
-                                help="Folder with pose.pt and detector.pt (or a project root holding models/), e.g. "
-                                     "models for this project's run. Default: the bundled weights "
-                                     "(rpodguard/weights/default, the default profile's trained chain)."),
+                                help="A run's models/ folder (or the project root holding it: the chain that ships, "
+                                     "pose_robust.pt and detector_robust.pt), or a folder with pose.pt and detector.pt. "
+                                     "Default: the bundled weights (rpodguard/weights/default, the default profile's "
+                                     "shipped chain)."),
     camera: Path = typer.Option(None, "--camera", show_default=False,
                                 help="camera.json of the images' camera (SPEED+ layout: Nu, Nv and cameraMatrix, or "
                                      "fx, fy, ppx, ppy); warns when it is not the camera the model was trained for."),

@@ -1,6 +1,13 @@
 """`rpod robustness`: the shipped safety chain against attacks its detector never saw.
 
-Reads models/pose.pt, models/detector.pt, models/surrogate.pt (`rpod train --surrogate`) and a
+The chain that ships is the robust model (models/pose_robust.pt) with its own detector
+(models/detector_robust.pt) and defense (models/defense.json): every row below runs on it. Beside it, the
+standard model's chain (models/pose.pt, models/detector.pt, models/defense_standard.json: the paper's
+reproduction) gets the integrity rows of `integrity.standard_attackers` on the first
+`integrity.standard_trajectories` trajectories (the full suite on both chains does not fit the budget), and
+the page shows the two pose models side by side (clean, FGSM, PGD-50: reports/metrics/robust.json).
+
+Reads the shipped chain, models/surrogate.pt (`rpod train --surrogate`) and a
 seeded sample of `robustness.frames` held-out test frames; every attacked image is stored as 8-bit
 (`pipeline.attacks.gradient.quantize`) before it goes through the chain, as in the other stages. Rows:
 - seen: FGSM on the training loss at robustness.eps (the attack the detector was trained on);
@@ -24,19 +31,19 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.io.atomic import atomic_write_text, save_figure
+from pipeline.io.atomic import atomic_write_text, read_json, save_figure
 from pipeline.io.errors import not_found
 from pipeline.pose.labels import TARGET
 from stages.artifacts.dvc import write_metrics
-from stages.artifacts.paths import DETECTOR, INTEGRITY_FIGURE, POSE, ROBUSTNESS_FIGURE as FIGURE, \
-    ROBUSTNESS_METRICS as METRICS, ROBUSTNESS_REPORT as REPORT, SEED_OFFSET, SURROGATE
+from stages.artifacts.paths import INTEGRITY_FIGURE, PAPER, ROBUST_METRICS, ROBUSTNESS_FIGURE as FIGURE, \
+    ROBUSTNESS_METRICS as METRICS, ROBUSTNESS_REPORT as REPORT, SEED_OFFSET, SHIPPED, SURROGATE, Model
 from stages.artifacts.readers import read_eval_render
-from stages.artifacts.models import Pose, load_defense, load_pose
+from stages.artifacts.models import Pose, load_defense, load_pose, load_pose_chain
 from stages.config.device import torch_setup
 from stages.config.evaluation import Robustness, attack_name
 from stages.config.schema import Params
 from stages.errors import StageError
-from stages.pages.robustness import robustness_page
+from stages.pages.robustness import pose_models, robustness_page
 from stages.pages.calibrate import unmet_banner
 
 
@@ -45,25 +52,19 @@ def main(params: Params) -> None:
     from tqdm import tqdm
 
     from pipeline.attacks.adaptive import PerFrameChain
-    from pipeline.defense.chain import load_onboard_chain
     from pipeline.report.figures import robustness_vs_eps
     from pipeline.evaluation.robustness import run_attack_rows, worst_by_eps
-    from stages.artifacts.data import load_split
 
     # the lambdas as floats, as the metrics echo them
     r = dataclasses.replace(params.robustness, lambdas=[float(v) for v in params.robustness.lambdas])
-    if not SURROGATE.exists():
-        raise not_found(SURROGATE)
+    for path in (SURROGATE, ROBUST_METRICS):
+        if not path.exists():
+            raise not_found(path)
     torch_setup(params)
     seed = params.seed + SEED_OFFSET["robustness"]
-    pose, surrogate = load_pose(params), load_pose(params, SURROGATE)
-    chain = load_onboard_chain(pose.model, pose.hash, POSE, DETECTOR)
-    split = load_split(params, "test")
-    n = min(r.frames, len(split))
-    pick = np.sort(np.random.default_rng(seed).choice(len(split), n, replace=False))
-    images = np.stack([np.asarray(split.images[int(i)]) for i in pick])
-    targets = split.targets[pick]
-
+    (pose, chain), surrogate = load_pose_chain(params, SHIPPED), load_pose(params, SURROGATE)
+    images, targets, n_test = _test_frames(params, r.frames, seed)
+    n = len(images)
     target = PerFrameChain(pose.model, chain.shap, chain.detector)
     specs = _specs(params, r, target, pose, surrogate, seed)
     n_corr = sum(len(v) for v in dataclasses.asdict(r.corruptions).values())
@@ -80,24 +81,38 @@ def main(params: Params) -> None:
                            pgd_is_lambda0="pgd" in r.transfer and 0.0 in r.lambdas)
     clean_harm, corruptions = _corruption_rows(chain, images, targets, r, seed, progress)
     bar.close()
-    fused = _integrity(params, r, chain, target, seed, pose.hash)
+    fused = _integrity(params, r, (chain, target, pose.hash), seed, SHIPPED)
+    standard = _standard_integrity(params, r, seed)
     seconds, figure = time.perf_counter() - t0, fused.pop("figure")
-    metrics = {"rows": rows, "corruptions": corruptions, "frames": n, "test_frames": len(split), "harm_m": r.harm_m,
+    metrics = {"rows": rows, "corruptions": corruptions, "frames": n, "test_frames": n_test, "harm_m": r.harm_m,
                "steps": r.steps, "gradients_per_frame": sum(s.cost for s in specs), "lambdas": r.lambdas,
                "eps": r.eps, "threshold": chain.threshold,
                "clean_harmful_rate": clean_harm.value, "ci95_clean_harmful": clean_harm.ci(),
                "surrogate": {"best_epoch": int(surrogate.meta.get("epoch", 0)),
                              "validation_position_m": float(surrogate.meta.get("val_pos_m", float("nan")))},
-               "model_hash": pose.hash, "surrogate_hash": surrogate.hash, "seconds": seconds, "minutes": seconds / 60,
-               "worst_harmful_undetected": worst_by_eps(rows), **fused,
-               "worst_harmful_undetected_fused": worst_by_eps(fused["fused_rows"])}
+               "model": SHIPPED.value, "model_hash": pose.hash, "surrogate_hash": surrogate.hash, "seconds": seconds,
+               "minutes": seconds / 60, "worst_harmful_undetected": worst_by_eps(rows), **fused,
+               "worst_harmful_undetected_fused": worst_by_eps(fused["fused_rows"]), "integrity_standard": standard,
+               "pose_models": pose_models(read_json(ROBUST_METRICS))}
     write_metrics(METRICS, metrics, params.profile_name)
-    atomic_write_text(REPORT, unmet_banner({"unmet": fused["fused"]["calibration_unmet"]}) + robustness_page(metrics, params))
+    atomic_write_text(REPORT, unmet_banner({"unmet": fused["fused"]["calibration_unmet"]})
+                      + unmet_banner({"unmet": standard.get("calibration_unmet", [])}, PAPER)
+                      + robustness_page(metrics, params))
     worst_fused = [row for row in fused["fused_rows"] if row["lambda"] is None]
     save_figure(robustness_vs_eps([row for row in rows if row["attack"] != "adaptive pgd"] + worst_fused), FIGURE)
     save_figure(_integrity_figure(*figure), INTEGRITY_FIGURE)
     print(f"robustness: {len(rows)} attack rows, {len(corruptions)} corruption rows on {n} test frames and "
           f"{len(fused['integrity']['rows'])} integrity rows in {seconds:.0f} s -> {REPORT}, {METRICS}, {INTEGRITY_FIGURE}")
+
+
+def _test_frames(p: Params, frames: int, seed: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """(images (n, H, W, 3) uint8, labels (n, 9), test-split size) of a seeded sample of `frames` test frames."""
+    from stages.artifacts.data import load_split
+
+    split = load_split(p, "test")
+    n = min(frames, len(split))
+    pick = np.sort(np.random.default_rng(seed).choice(len(split), n, replace=False))
+    return np.stack([np.asarray(split.images[int(i)]) for i in pick]), split.targets[pick], len(split)
 
 
 def _specs(p: Params, r: Robustness, target: Any, pose: Pose, surrogate: Pose, seed: int) -> list[Any]:
@@ -132,26 +147,48 @@ def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Rob
     return rate(clean_pos > r.harm_m), rows
 
 
-def _integrity(p: Params, r: Robustness, chain: Any, target: Any, seed: int, model_hash: str) -> dict[str, Any]:
-    """The chain-level attackers (integrity.attackers at integrity.eps) on the eval_render trajectories through the
-    shipped chain and calibrated defense, judged by integrity against the same trajectories unattacked
-    (pipeline.evaluation.integrity_runs); the burst's attacked frames also give the per-frame fused rows
-    (raw error > harm_m and unflagged). Returns the metrics and the figure's data."""
+def _standard_integrity(p: Params, r: Robustness, seed: int) -> dict[str, Any]:
+    """The integrity rows of the standard model's chain (the paper's reproduction, with the defense calibrated
+    for it): `integrity.standard_attackers` on the first `integrity.standard_trajectories` trajectories
+    ({"attackers": []} when none are asked for)."""
+    from pipeline.attacks.adaptive import PerFrameChain
+
+    i = p.integrity
+    if not i.standard_attackers:
+        return {"attackers": [], "model": PAPER.value}
+    pose, chain = load_pose_chain(p, PAPER)
+    out = _integrity(p, r, (chain, PerFrameChain(pose.model, chain.shap, chain.detector), pose.hash), seed, PAPER,
+                     list(i.standard_attackers), i.standard_trajectories)
+    out.pop("figure")
+    return {**out["integrity"], "model": PAPER.value, "model_hash": pose.hash, "trajectories": out["fused"]["trajectories"],
+            "false_alarm_rate": out["fused"]["false_alarm_rate"], "ci95_false_alarm": out["fused"]["ci95_false_alarm"],
+            "calibration_unmet": out["fused"]["calibration_unmet"]}
+
+
+def _integrity(p: Params, r: Robustness, chain_of: tuple[Any, Any, str], seed: int, model: Model,
+               attackers: list[str] | None = None, n_traj: int | None = None) -> dict[str, Any]:
+    """The chain-level attackers (`attackers`, default integrity.attackers, at integrity.eps) on the eval_render
+    trajectories (the first `n_traj`; None: all) through one chain (`chain_of`: OnboardChain, its PerFrameChain,
+    pose-model hash) and the defense calibrated for it (`model`), judged by integrity against the same
+    trajectories unattacked (pipeline.evaluation.integrity_runs); the burst's attacked frames also give the
+    per-frame fused rows (raw error > harm_m and unflagged). Returns the metrics and the figure's data."""
     from pipeline.evaluation.integrity_runs import Track, clean_row, fly, integrity_row
     from pipeline.evaluation.stats import bootstrap_rate
     from stages.config.build import alert_limit_settings
     from stages.pages.integrity import worst_hmi
 
     t0 = time.perf_counter()
-    images, labels, trajs, bursts, defended, info = _fused_setup(p, r, chain, model_hash)
+    chain, target, model_hash = chain_of
+    images, labels, trajs, bursts, defended, info = _fused_setup(p, r, chain, model_hash, model, n_traj)
     tracks = [Track(f"t{g}", images[ix], labels[ix]) for g, ix in enumerate(trajs)]
     limit, i = alert_limit_settings(p), p.integrity
+    attackers = list(i.attackers) if attackers is None else attackers
     clean = [fly(chain, defended, t, limit, r.batch_size) for t in tracks]
     flags = np.concatenate([c.trace.flag for c in clean])
     alarms = bootstrap_rate(flags, np.concatenate([np.full(len(t), g) for g, t in enumerate(tracks)]))
     info.update(false_alarm_rate=alarms.value, ci95_false_alarm=alarms.ci())
     bursts_hmi: dict[float, list[int]] = {}
-    runs = _attack_runs(p, r, chain, target, tracks, bursts, defended, clean, seed, bursts_hmi)
+    runs = _attack_runs(p, r, (chain, target, defended), (tracks, bursts, clean), attackers, seed, bursts_hmi)
     eps = sorted(float(e) for e in i.eps)
     rows = [integrity_row(name, e, flown, clean, masks, seed=seed) | ({"bursts_with_hmi": bursts_hmi[e]}
                                                                        if name == "burst" else {})
@@ -161,7 +198,7 @@ def _integrity(p: Params, r: Robustness, chain: Any, target: Any, seed: int, mod
     top = [(name, flown, masks) for name, e, flown, masks in runs if e == eps[-1]]
     return {"fused_rows": fused, "fused": info,
             "integrity": {"rows": rows, "worst_hmi": worst, "clean": clean_row(clean, seed=seed), "eps": eps,
-                          "attackers": list(i.attackers),
+                          "attackers": attackers,
                           "alert_limit_m": i.alert_limit_m, "collision_range_m": i.collision_range_m,
                           "burst": {"steps": i.burst_steps, "restarts": i.burst_restarts,
                                     "lambdas": [float(v) for v in i.burst_lambdas], "cap": i.burst_cap,
@@ -171,23 +208,26 @@ def _integrity(p: Params, r: Robustness, chain: Any, target: Any, seed: int, mod
             "figure": (clean, top, eps[-1])}
 
 
-def _attack_runs(p: Params, r: Robustness, chain: Any, target: Any, tracks: list[Any], bursts: list[Any], defended: Any,
-                 clean: list[Any], seed: int,
+def _attack_runs(p: Params, r: Robustness, chain_of: tuple[Any, Any, Any], flights: tuple[list[Any], ...],
+                 attackers: list[str], seed: int,
                  bursts_hmi: dict[float, list[int]]) -> list[tuple[str, float, list[Any], list[np.ndarray]]]:
-    """(attacker, eps, attacked flights, attacked frames per track) for every attacker and eps of params.integrity;
-    `bursts_hmi` gets per eps [bursts with an HMI frame, bursts] as the burst attacker judged its own worst cases."""
+    """(attacker, eps, attacked flights, attacked frames per track) for every one of `attackers` and eps of
+    params.integrity on one chain (`chain_of`: OnboardChain, its PerFrameChain, its Defended) and its flights
+    (tracks, bursts per track, clean flights); `bursts_hmi` gets per eps [bursts with an HMI frame, bursts] as the
+    burst attacker judged its own worst cases."""
     from tqdm import tqdm
 
     from pipeline.evaluation.integrity_runs import burst_attack, drift_attack, fly
     from stages.config.build import burst_attacker, drift_settings, alert_limit_settings
 
     i, limit = p.integrity, alert_limit_settings(p)
+    (chain, target, defended), (tracks, bursts, clean) = chain_of, flights
     eps = sorted(float(e) for e in i.eps)
-    drifts = [a for a in i.attackers if a != "burst"]
-    bar = tqdm(total=len(tracks) * ("burst" in i.attackers) + bool(drifts) * len(eps) * i.drift_frames,
+    drifts = [a for a in attackers if a != "burst"]
+    bar = tqdm(total=len(tracks) * ("burst" in attackers) + bool(drifts) * len(eps) * i.drift_frames,
                desc="robustness (integrity)", unit="step", dynamic_ncols=True)
     out = []
-    if "burst" in i.attackers:
+    if "burst" in attackers:
         masks = [np.isin(np.arange(len(t)), [k for a, b in bs for k in range(a, b)]) for t, bs in zip(tracks, bursts)]
         stored, worst = burst_attack(target, defended, tracks, masks, burst_attacker(p, seed + 800), eps,
                                      lambda: bar.update(1))
@@ -231,16 +271,17 @@ def _burst_fused_row(eps: float, flown: list[Any], tracks: list[Any], masks: lis
     return fused_row("fused chain: burst (nested, worst over lambda and restarts)", eps, None, err, flag, group, harm_m)
 
 
-def _fused_setup(p: Params, r: Robustness, chain: Any, model_hash: str) -> tuple[Any, ...]:
-    """(eval_render images, labels (N, 9), frame indices per trajectory, bursts per trajectory, the
-    defended-chain settings, facts about the defense)."""
+def _fused_setup(p: Params, r: Robustness, chain: Any, model_hash: str, model: Model,
+                 n_traj: int | None) -> tuple[Any, ...]:
+    """(eval_render images, labels (N, 9), frame indices per trajectory (the first `n_traj`; None: all), bursts per
+    trajectory, the defended-chain settings of `model`'s chain, facts about the defense)."""
     from pipeline.evaluation.robustness import Defended, burst_schedule
 
     images, poses, _ = read_eval_render(p)
     labels = poses[TARGET].to_numpy(np.float64)
-    trajs = [np.flatnonzero(poses["trajectory"].to_numpy() == t) for t in np.unique(poses["trajectory"])]
-    # the defense that ships: params.defense with the noise model `rpod calibrate` fitted on validation trajectories
-    shipped = load_defense(p, model_hash, chain.threshold)
+    trajs = [np.flatnonzero(poses["trajectory"].to_numpy() == t) for t in np.unique(poses["trajectory"])][:n_traj]
+    # the chain's defense: params.defense with the noise model `rpod calibrate` fitted on validation trajectories
+    shipped = load_defense(p, model_hash, chain.threshold, model)
     defended = Defended(shipped.settings, shipped.motion, shipped.noise, shipped.alert)
     length = p.integrity.burst_length
     try:

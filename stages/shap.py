@@ -1,4 +1,6 @@
-"""`rpod shap`: DeepSHAP values of the GAP features for clean and FGSM images -> datasets/shap.zarr.
+"""`rpod shap [--model standard|robust]`: DeepSHAP values of one pose model's GAP features for clean and FGSM
+images -> datasets/shap.zarr (the standard model's, dvc stage `shap`) or datasets/shap_robust.zarr (the robust
+model's, stage `shap_robust`; stages.artifacts.paths.CHAINS). Both use the same seed, so the same images.
 
 Composition (params `shap`, pipeline.shap.sample_plan): `normal` clean samples and `per_eps` FGSM
 samples for each eps in `shap.eps`, all from the same source images of the detector split
@@ -8,7 +10,7 @@ has normal = per_eps x len(eps)), so the clean and the attacked class show the s
 only by the attack. (Until issue 27 clean samples came from the pose test split topped up with
 pose-training images, 69% of them at the default size, while every attacked one was a test image: an
 unfamiliar image partly read as "attacked".) An adversarial image is FGSM (on `attack.loss`) by the
-current pose model against the image's true pose, stored as 8 bits (as the attack stage stores them).
+explained pose model against the image's true pose, stored as 8 bits (as the attack stage stores them).
 
 Background: GAP features of `shap.background` random training images (seed `seed` + 500): one fixed
 reference for every sample, clean or attacked.
@@ -18,14 +20,14 @@ Store (zarr, written atomically, chunked by `shap.chunk` samples):
 - `features` (N, 1000) float32 GAP features; `outputs` (N, 9) float32 pose outputs;
 - `is_adversarial` (N,) bool, `eps` (N,) float32 (0 = clean), `source_index` (N,) int64 = row of the
   source image in datasets/detect_render;
-- attrs: model_hash (of models/pose.pt), background_size, background_seed, background_mean
+- attrs: model (standard | robust), model_hash (of its checkpoint), background_size, background_seed, background_mean
   (1000 floats), method (exact | deep), eps, attack, attack_loss, counts (clean, per_eps, source
   images, images explained both clean and attacked), source (the detector split and its fingerprint).
 """
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
@@ -33,9 +35,9 @@ from pipeline.io.atomic import atomic_dir
 from pipeline.io.store import create_array
 from pipeline.pose.labels import TARGET
 from stages.artifacts.data import load_split
-from stages.artifacts.paths import DETECT_RENDER, SEED_OFFSET, SHAP as OUT
+from stages.artifacts.paths import CHAINS, DETECT_RENDER, SEED_OFFSET, Model
 from stages.artifacts.readers import BATCH, SampleImages
-from stages.artifacts.models import load_pose
+from stages.artifacts.models import load_pose, model_option
 from stages.config.device import torch_setup
 from stages.config.sections import Shap
 from stages.config.schema import Params
@@ -57,9 +59,10 @@ def check_params(s: Shap) -> None:
                          "(shap.per_eps > 0 and a non-empty shap.eps) for a detector to learn from")
 
 
-def main(params: Params) -> None:
+def main(params: Params, model: Annotated[Model, model_option(
+        "Writes datasets/shap.zarr or datasets/shap_robust.zarr.")] = Model.standard) -> None:
     """Explain clean and FGSM images of the detector split with DeepSHAP (closed form for the linear heads)
-    into datasets/shap.zarr."""
+    into the chosen model's SHAP store."""
     import zarr
 
     from pipeline.attacks.gradient import attack_loss
@@ -70,21 +73,23 @@ def main(params: Params) -> None:
     torch_setup(params)
     seed = params.seed + SEED_OFFSET["shap"]
     rng = np.random.default_rng(seed)
-    pose = load_pose(params)
-    model, model_hash = pose.model, pose.hash
+    files = CHAINS[model]
+    out = files.shap
+    pose = load_pose(params, files.pose)
+    net, model_hash = pose.model, pose.hash
     train = load_split(params, "train")
     if s.background > len(train):
         raise StageError(f"params.yaml shap.background = {s.background} but the training split has only "
                          f"{len(train)} images")
     t0 = time.perf_counter()
     bg_rows = draw_background(len(train), s.background, rng)
-    bg_features = np.concatenate([gap_features(model, np.stack([train.images[r] for r in bg_rows[i:i + BATCH]]))[0]
+    bg_features = np.concatenate([gap_features(net, np.stack([train.images[r] for r in bg_rows[i:i + BATCH]]))[0]
                                   for i in range(0, len(bg_rows), BATCH)])
     try:
-        explainer = Explainer(model, bg_features, s.method)
+        explainer = Explainer(net, bg_features, s.method)
     except ValueError as e:
         raise StageError(f"params.yaml shap.method: {e}") from None
-    src = SampleImages(params, model, attack_loss(params.attack.loss, pose.loss))
+    src = SampleImages(params, net, attack_loss(params.attack.loss, pose.loss))
     try:
         todo = sample_plan(s.normal, s.per_eps, s.eps, np.arange(len(src)), rng)
     except ValueError as e:
@@ -92,14 +97,14 @@ def main(params: Params) -> None:
     n, clean = len(todo["index"]), todo["eps"] == 0
     sources = np.unique(todo["index"])
     shared = np.intersect1d(todo["index"][clean], todo["index"][~clean])
-    print(f"shap: {n} samples ({s.normal} clean + {s.per_eps} x eps {s.eps}) of {len(sources)} detector-split "
-          f"images ({len(shared)} both clean and attacked), background {s.background}, method {explainer.method}",
+    print(f"shap ({model.value} model): {n} samples ({s.normal} clean + {s.per_eps} x eps {s.eps}) of {len(sources)} "
+          f"detector-split images ({len(shared)} both clean and attacked), background {s.background}, method {explainer.method}",
           flush=True)
-    with atomic_dir(OUT) as tmp:
+    with atomic_dir(out) as tmp:
         root = zarr.open_group(str(tmp), mode="w")
-        _explain_into(root, src, model, explainer, todo, bg_features.shape[1], s.chunk)
+        _explain_into(root, src, net, explainer, todo, bg_features.shape[1], s.chunk)
         root.attrs.update({
-            "model_hash": model_hash, "background_size": s.background, "background_seed": seed,
+            "model": model.value, "model_hash": model_hash, "background_size": s.background, "background_seed": seed,
             "background_mean": explainer.bg_mean.astype(float).tolist(), "method": explainer.method,
             "eps": [float(e) for e in s.eps], "attack": "fgsm", "attack_loss": params.attack.loss,
             "counts": {"clean": s.normal, "per_eps": s.per_eps, "sources": int(len(sources)),
@@ -108,7 +113,7 @@ def main(params: Params) -> None:
                        "trajectories": int(src.poses["trajectory"].nunique())},
             "outputs": TARGET,
         })
-    print(f"shap: {n} samples in {time.perf_counter() - t0:.0f} s -> {OUT}")
+    print(f"shap: {n} samples in {time.perf_counter() - t0:.0f} s -> {out}")
 
 
 def _explain_into(root: Any, src: SampleImages, model: Any, explainer: Any, todo: dict[str, np.ndarray],

@@ -131,12 +131,14 @@ def test_the_models_are_dvc_model_artifacts():
     """dvc.yaml's `artifacts` (what DVCLive's log_artifact(type="model") writes) name every model a stage makes."""
     from dvc.repo import Repo
 
-    from stages.artifacts.paths import DEFENSE, DETECTOR, POSE
+    from stages.artifacts.paths import DEFENSE, DEFENSE_STANDARD, DETECTOR, DETECTOR_ROBUST, POSE, POSE_ROBUST
 
     with Repo(str(REPO)) as repo:
         found = {name: (a.path, a.type) for a in repo.artifacts.read().values() for name, a in a.items()}
     assert found == {"pose": (str(POSE), "model"), "detector": (str(DETECTOR), "model"),
-                     "defense": (str(DEFENSE), "model")}
+                     "defense": (str(DEFENSE), "model"), "pose_robust": (str(POSE_ROBUST), "model"),
+                     "detector_robust": (str(DETECTOR_ROBUST), "model"),
+                     "defense_standard": (str(DEFENSE_STANDARD), "model")}
     assert all(producer(path) for path, _ in found.values())
 
 
@@ -195,7 +197,7 @@ def test_every_input_a_stage_reads_has_a_producer():
     ("pose", "models/pose.pt not found: run `dvc repro train` (or `rpod train`)"),
     ("surrogate", "models/surrogate.pt not found: run `dvc repro surrogate` (or `rpod train --surrogate`)"),
     ("eval_render", "datasets/eval_render/meta.json not found: run `dvc repro eval_render` (or `rpod eval_render`)"),
-    ("shap", "datasets/shap.zarr not found: run `dvc repro shap` (or `rpod shap`)"),
+    ("shap", "datasets/shap.zarr not found: run `dvc repro shap` (or `rpod shap --model standard`)"),
 ])
 def test_missing_input_names_the_stage_that_writes_it(tmp_path, monkeypatch, load, message):
     from stages.artifacts import models, readers as artifacts

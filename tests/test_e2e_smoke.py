@@ -22,9 +22,9 @@ spec = importlib.util.spec_from_file_location("smoke_script", REPO / "scripts" /
 smoke_script = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(smoke_script)
 _run = smoke_script.run
-REPORTS = ["dataset", "pose", "attack", "guidance", "detector", "integrated", "robustness", "lab", "benchmarks",
-           "README"]
-METRICS = ["train", "attack", "guidance", "detect", "evaluate", "robustness", "lab"]
+REPORTS = ["dataset", "pose", "pose_robust", "attack", "guidance", "detector", "detector_robust", "integrated",
+           "robustness", "lab", "benchmarks", "README"]
+METRICS = ["train", "robust", "attack", "guidance", "detect", "detect_robust", "evaluate", "robustness", "lab"]
 FIGURES = ["fgsm_example", "guidance_trajectories", "guidance_defended", "timeline", "robustness", "pose_errors",
            "error_vs_eps", "shap_heatmaps", "roc", "integrity"]
 
@@ -147,10 +147,12 @@ def test_every_table_has_the_expected_rows(smoke_repo):
     detectors = rows_under(page("detector"), "Comparison with baselines", "detector")
     assert len(detectors) == 5 and detectors[0].startswith("LSTM")
     assert rows_under(page("integrated"), "Detection accuracy", "eps") == [*eps(p["evaluate"]["eps"]), "average"]
+    assert "Not run for this detector" in page("detector_robust") and page("detector_robust").startswith(
+        "# Attack detector of the shipped chain (robust model)")
     fused = [r for h, head, r in tables(page("integrated")) if h.startswith("The defended chain") and "chain" in head]
-    assert fused and fused[0] == [e for e in eps(p["evaluate"]["eps"]) for _ in range(2)]   # paper's and defended
+    assert fused and fused[0] == [e for e in eps(p["evaluate"]["eps"]) for _ in range(3)]   # paper's, standard, shipped
     m = json.loads((dst / "reports" / "metrics" / "evaluate.json").read_text())
-    assert set(m["fused"]["per_eps"]) == set(eps(p["evaluate"]["eps"]))
+    assert set(m["fused"]["per_eps"]) == set(m["fused"]["standard_per_eps"]) == set(eps(p["evaluate"]["eps"]))
     assert {"accuracy", "tpr", "fpr", "fpr_clean", "harmful_undetected"} <= set(m["fused"]["per_eps"][eps(p["evaluate"]["eps"])[0]])
     variants = rows_under(page("guidance"), "The chain inside the loop", "dynamics")
     assert variants == [d for d in p["guidance"]["dynamics"] for _ in range(1 + len(p["guidance"]["defenses"]))]
@@ -172,7 +174,11 @@ def test_every_table_has_the_expected_rows(smoke_repo):
     integrity = [(row["attacker"], row["eps"]) for row in rob["integrity"]["rows"]]
     assert sorted(integrity) == sorted((a, float(e)) for a in i["attackers"] for e in i["eps"])
     assert set(rob["integrity"]["worst_hmi"]) == set(eps(i["eps"]))
-    assert len(rows_under(page("robustness"), "Integrity", "attacker")) == len(integrity)
+    assert len(rows_under(page("robustness"), "Integrity of the shipped", "attacker")) == len(integrity)
+    standard = [(row["attacker"], row["eps"]) for row in rob["integrity_standard"]["rows"]]
+    assert sorted(standard) == sorted((a, float(e)) for a in i["standard_attackers"] for e in i["eps"])
+    assert len(rows_under(page("robustness"), "Integrity of the standard", "attacker")) == len(standard)
+    assert rows_under(page("robustness"), "The two pose models", "measure")[0].startswith("clean test position")
     in_loop = rows_under(page("guidance"), "The in-loop attacker", "dynamics")
     assert in_loop == [d for d in p["guidance"]["dynamics"] for _ in range(1 + len(p["guidance"]["defenses"]))
                        for _ in i["eps"]]
@@ -180,14 +186,39 @@ def test_every_table_has_the_expected_rows(smoke_repo):
     assert len(runs) == len(in_loop) * len(i["in_loop_goals"]) * len(i["in_loop_start_ranges"])
 
     summary = rows_under(page("README"), "Summary against the paper", "result")
-    assert len(summary) == 17 and summary[0].startswith("pose")
-    assert sum(r.startswith("integrity") for r in summary) == 3
-    defended = [r for h, head, r in tables(page("README")) if "defended chain (or)" in head]
+    assert len(summary) == 24 and summary[0].startswith("pose")
+    assert sum(r.startswith("integrity") for r in summary) == 5
+    defended = [r for h, head, r in tables(page("README")) if any(c.startswith("defended chain (or)") for c in head)]
     assert defended and defended[0][0].startswith("integrated accuracy at eps")
     assert sum(r.startswith("closed loop") for r in defended[0]) == len(p["guidance"]["dynamics"])
     changed = subprocess.run(["git", "diff", "--quiet", "--", "README.md"], cwd=dst).returncode
     assert changed == 0, "a smoke run rewrote README.md (only the default profile may)"
     assert "Known differences from the paper" in page("README") and "**Scale.**" in page("README")
+
+
+def test_each_row_runs_on_its_chain(smoke_repo):
+    """The shipped chain is the robust model with its own detector and defense everywhere it is used (robustness,
+    evaluate's defended rows, guidance's defended grid and in-loop attacker, lab's shipped section, rpod predict on
+    the run); the paper's reproduction rows run on the standard model with its own (hash checks)."""
+    from pipeline.formats.models import read_detector
+    from pipeline.io.atomic import file_hash
+    from rpodguard import load_chain
+
+    dst, _ = smoke_repo
+    metrics = lambda name: json.loads((dst / "reports" / "metrics" / f"{name}.json").read_text())  # noqa: E731
+    standard, robust = (file_hash(dst / "models" / name) for name in ("pose.pt", "pose_robust.pt"))
+    assert standard != robust
+    for name, model_hash in (("detector.pt", standard), ("detector_robust.pt", robust)):
+        assert read_detector(dst / "models" / name)[1]["pose_model_hash"] == model_hash
+    for name, model_hash in (("defense_standard.json", standard), ("defense.json", robust)):
+        assert json.loads((dst / "models" / name).read_text())["pose_model_hash"] == model_hash
+    ev, gd, lab, rob = (metrics(n) for n in ("evaluate", "guidance", "lab", "robustness"))
+    assert (metrics("detect")["model_hash"], metrics("detect_robust")["model_hash"]) == (standard, robust)
+    assert (ev["model_hash"], ev["shipped"]["model_hash"]) == (standard, robust)        # paper rows, defended rows
+    assert (gd["model_hash"], gd["models"]["shipped"]["model_hash"]) == (standard, robust)
+    assert (lab["model_hash"], lab["shipped"]["model_hash"]) == (standard, robust)
+    assert (rob["model_hash"], rob["integrity_standard"]["model_hash"]) == (robust, standard)
+    assert load_chain(dst).files == (dst / "models" / "pose_robust.pt", dst / "models" / "detector_robust.pt")
 
 
 def test_forced_rerun_leaves_every_report_byte_identical(smoke_repo):

@@ -200,3 +200,16 @@ def test_defense_settings_and_defense_object_must_agree():
         run_rendezvous(blank, perfect, K, s)
     with pytest.raises(ValueError, match="unknown guidance defense 'magic'"):
         GuidanceSettings(defense="magic")
+
+
+def test_paper_variant_hold_reads_a_biased_estimate_as_bias_not_motion():
+    """The paper variant lands the chaser at its belief: the defense must predict that point, or a
+    steady range bias (here 0.3 m, clean frames) looks like a ramp and detect-and-hold never moves."""
+    from pipeline.guidance.law import Estimate
+
+    rng = np.random.default_rng(1)
+    bias = np.array([0.0, 0.0, 0.3])
+    estimate = lambda image, attacked, pose: Estimate(pose[1] + bias + rng.normal(0, 0.02, 3), 0.0)  # noqa: E731
+    s = GuidanceSettings(variant="paper", max_steps=70, defense="hold")
+    r = run_rendezvous(blank, estimate, K, s, defense=_defense())
+    assert r.flags.sum() <= 1 and r.outcome == HELD

@@ -69,7 +69,7 @@ def _fly(goal: str, eps: float = 0.05, start: float = 20.0) -> tuple[GridPlan, l
 
 def test_the_in_loop_attacker_puts_the_undefended_chaser_on_a_collision_course() -> None:
     plan, results, attackers = _fly("collide")
-    baseline, attacked = results
+    _, baseline, attacked = results          # the paper chain's baseline, then the shipped chain's runs
     assert baseline.outcome == "rendezvous held" and baseline.closest_range > 9
     out = in_loop_grid(plan, results, collision_range=5.0)
     (run,) = out["runs"]
@@ -86,10 +86,10 @@ def test_the_miss_variant_loses_the_rendezvous() -> None:
 
 def test_a_run_that_never_meets_the_attack_is_not_counted() -> None:
     plan, results, _ = _fly("collide", start=10.0 - 1e-3)   # S below the goal range: never reached
-    assert results[1].attacked_frames == 0
+    assert results[-1].attacked_frames == 0
     assert in_loop_grid(plan, results, collision_range=5.0)["counts"]["paper"]["undefended"]["0.05"] == [0, 0, 0, 0, 1]
     held = RendezvousResult(np.zeros((2, 3)), np.zeros((1, 3)), np.array([True]), "rendezvous held", 0.0, 0)
-    assert held_counts([(0.5, 40, 5, results[1]), (0.5, 40, 5, held)]) == {"0.5": [1, 1, 1]}
+    assert held_counts([(0.5, 40, 5, results[-1]), (0.5, 40, 5, held)]) == {"0.5": [1, 1, 1]}
 
 
 def test_aiming_reads_the_defense_and_leaves_it_as_it_was() -> None:

@@ -18,9 +18,10 @@ H, W = 36, 64   # model input of the tiny checkpoint
 CAMERA = reference_intrinsics().scaled(W, H)
 
 
-def _save_models(folder: Path, K: np.ndarray | None = None) -> Path:
-    """FOLDER/pose.pt and FOLDER/detector.pt as `rpod train` and `rpod detect` write them (random weights; `K`:
-    the camera matrix `rpod train` stores, None for a checkpoint from before it did)."""
+def _save_models(folder: Path, K: np.ndarray | None = None, black_level: float = 0.0, seed: int = 0) -> Path:
+    """FOLDER/pose.pt and FOLDER/detector.pt as `rpod train` and `rpod detect` write them (random weights drawn with
+    `seed`; `K`: the camera matrix `rpod train` stores, None for a checkpoint from before it did; `black_level`: the
+    robust model's input clamp, 0 for the standard model)."""
     from pipeline.detectors.lstm import LSTMConfig, LSTMDetector, to_checkpoint
     from pipeline.pose.loss import PoseLoss
     from pipeline.pose.model import PoseNet
@@ -28,8 +29,8 @@ def _save_models(folder: Path, K: np.ndarray | None = None) -> Path:
     from pipeline.io.atomic import file_hash
     from pipeline.io.checkpoints import save_torch
 
-    torch.manual_seed(0)
-    model = PoseNet(width=0.125).eval()
+    torch.manual_seed(seed)
+    model = PoseNet(width=0.125, black_level=black_level).eval()
     save_pose(folder / "pose.pt", model, PoseLoss(), (H, W), {}, K=K)
     with torch.no_grad():
         background = model.forward_features(torch.rand(6, 3, H, W)).mean(0)

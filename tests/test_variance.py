@@ -70,7 +70,8 @@ def test_readme_results_show_the_spread_of_each_headline_number():
     from stages.pages.readme import summary_tables
 
     metrics = {m: json.loads((REPO / "reports" / "metrics" / f"{m}.json").read_text())
-               for m in ("train", "attack", "guidance", "detect", "evaluate", "lab", "robustness")}
+               for m in ("train", "robust", "attack", "guidance", "detect", "detect_robust", "evaluate", "lab",
+                         "robustness")}
     # in variance.md only: the README shows these per eps or per dynamics (or not at all)
     not_shown = {"pose_tz_pct", "lstm_recall_0.01_pct", "lstm_eval_fa_pct", "integrated_0.01_pct",
                  "robustness.harmful_undetected_pct", "guidance.defended_held_pct"}

@@ -12,7 +12,7 @@ import pytest
 import yaml
 from PIL import Image
 
-from pipeline.formats.bundle import FILES, MANIFEST, check_bundle
+from pipeline.formats.bundle import FILES, MANIFEST, RUN_FILES, check_bundle
 from pipeline.io.atomic import file_hash, read_json
 from pipeline.io.errors import DataError
 from rpodguard import load_chain
@@ -84,12 +84,33 @@ def test_a_missing_file_or_a_foreign_manifest_is_refused(copy):
         check_bundle(copy)
 
 
+def test_the_bundle_is_the_shipped_chain_the_robust_model_and_its_own_detector():
+    """The bundle was copied from a run's shipped chain (models/pose_robust.pt, detector_robust.pt), its pose model
+    is the clamped one, and stages.artifacts.paths names the same files as the chain that ships."""
+    from pipeline.formats.models import read_detector, read_pose
+    from stages.artifacts.paths import CHAINS, SHIPPED, Model
+
+    assert SHIPPED == Model.robust
+    shipped = CHAINS[SHIPPED]
+    assert {n: f"models/{RUN_FILES[n]}" for n in FILES} == {"pose.pt": str(shipped.pose),
+                                                          "detector.pt": str(shipped.detector),
+                                                          "defense.json": str(shipped.defense)}
+    assert read_json(BUNDLE / MANIFEST)["sources"] == {n: f"models/{RUN_FILES[n]}" for n in FILES}
+    assert read_pose(BUNDLE / "pose.pt")["arch"].get("black_level", 0) > 0        # the clamp: the robust model
+    assert read_detector(BUNDLE / "detector.pt", model_hash=file_hash(BUNDLE / "pose.pt"))   # its own detector
+
+
 def test_the_script_rebuilds_the_bundle_naming_the_commit_that_recorded_the_files(copy, tmp_path):
     import hashlib
 
     git = ["git", "-c", "user.name=t", "-c", "user.email=t@example.org", "-C", str(tmp_path)]
     subprocess.run([*git, "init", "-q"], check=True)
-    md5 = {name: hashlib.md5((copy / name).read_bytes()).hexdigest() for name in FILES}
+    run = tmp_path / "models"                              # a run's models/: the shipped chain under its run names
+    run.mkdir()
+    for name in FILES:
+        shutil.copy(copy / name, run / RUN_FILES[name])
+    copy = run
+    md5 = {RUN_FILES[name]: hashlib.md5((copy / RUN_FILES[name]).read_bytes()).hexdigest() for name in FILES}
     (tmp_path / "dvc.lock").write_text("".join(f"- path: models/{n}\n  md5: {m}\n" for n, m in md5.items()))
     subprocess.run([*git, "add", "dvc.lock"], check=True)
     subprocess.run([*git, "commit", "-qm", "a run"], check=True)

@@ -1,11 +1,13 @@
-"""A weights bundle: a trained chain's files with their sha256, the params they were trained with and where they
-came from, so a chain can be used (and checked) without running the pipeline.
+"""A weights bundle: the files of the chain that ships with their sha256, the params they were trained with and
+where they came from, so the chain can be used (and checked) without running the pipeline.
 
-FOLDER/pose.pt (`rpod train`), FOLDER/detector.pt (`rpod detect`), FOLDER/defense.json (`rpod calibrate`),
+FOLDER/pose.pt (the robust pose model, a run's models/pose_robust.pt: `rpod train --robust`), FOLDER/detector.pt
+(its detector, models/detector_robust.pt: `rpod detect --model robust`), FOLDER/defense.json (`rpod calibrate`),
 and FOLDER/manifest.json:
     format: "rpodguard-weights/1", profile: the params profile, commit: the git commit of the code that
     trained them, code_changes: code files that differed from that commit (empty for a committed run),
-    files: {name: {sha256, bytes}}, params: the params.yaml they were trained with, rebuild: how to remake it.
+    files: {name: {sha256, bytes}}, sources: {name: the file of a run's models/ it was copied from},
+    params: the params.yaml they were trained with, rebuild: how to remake it.
 """
 from __future__ import annotations
 
@@ -19,22 +21,27 @@ from pipeline.io.errors import DataError
 BUNDLE_FORMAT = "rpodguard-weights/1"
 MANIFEST = "manifest.json"
 FILES = ("pose.pt", "detector.pt", "defense.json")
+# where a run's models/ folder keeps the shipped chain's files (stages.artifacts.paths.CHAINS[SHIPPED]; a test checks
+# they agree): a bundle holds them under the names of FILES
+RUN_FILES = {"pose.pt": "pose_robust.pt", "detector.pt": "detector_robust.pt", "defense.json": "defense.json"}
 
 
 def write_bundle(out: Path | str, models: Path | str, params: dict[str, Any], commit: str,
                  code_changes: list[str], rebuild: str) -> dict[str, Any]:
-    """Copy MODELS/{pose.pt, detector.pt, defense.json} into the folder OUT (replaced whole, atomically) with
-    its manifest; returns the manifest. defense.json must name pose.pt's hash (calibrated on that model)."""
+    """Copy the shipped chain of a run's MODELS folder (RUN_FILES: pose_robust.pt, detector_robust.pt, defense.json)
+    into the folder OUT as FILES (replaced whole, atomically) with its manifest; returns the manifest. defense.json
+    must name the robust pose model's hash (calibrated on that model)."""
     models = Path(models)
-    defense = read_json(models / "defense.json")
-    if defense.get("pose_model_hash") != file_hash(models / "pose.pt"):
-        raise DataError(f"{models / 'defense.json'} was calibrated for another pose model than {models / 'pose.pt'}; "
+    defense, pose = read_json(models / RUN_FILES["defense.json"]), models / RUN_FILES["pose.pt"]
+    if defense.get("pose_model_hash") != file_hash(pose):
+        raise DataError(f"{models / RUN_FILES['defense.json']} was calibrated for another pose model than {pose}; "
                         f"re-run `rpod calibrate`")
     with atomic_dir(out) as tmp:
         for name in FILES:
-            shutil.copyfile(models / name, tmp / name)
+            shutil.copyfile(models / RUN_FILES[name], tmp / name)
         manifest = {"format": BUNDLE_FORMAT, "profile": params.get("profile_name"), "commit": commit,
                     "code_changes": sorted(code_changes), "params": params, "rebuild": rebuild,
+                    "sources": {name: f"models/{RUN_FILES[name]}" for name in FILES},
                     "files": {name: {"sha256": file_hash(tmp / name, 64), "bytes": (tmp / name).stat().st_size}
                               for name in FILES}}
         write_json(tmp / MANIFEST, manifest)

@@ -22,7 +22,7 @@ from pipeline.io.atomic import read_json
 from pipeline.io.errors import DataError
 
 DEFENSE_FORMAT = "rpodguard-defense/2"
-DEFENSE_REDO = "re-run `rpod calibrate`"
+DEFENSE_REDO = "re-run `rpod calibrate` (`--model standard` for models/defense_standard.json)"
 
 
 @dataclass(frozen=True)

@@ -2,6 +2,10 @@
 shared image cache (`GridPilot`), and their results as the paper grid, the defended grid and the
 in-loop attacker's runs.
 
+Two chains fly: the paper grid on the "paper" chain (the paper's reproduction), everything else (the
+defended grid with its undefended reference, the in-loop attacker) on the "shipped" chain; a pilot holds a
+camera per chain (one camera may serve both).
+
 A grid cell is (eps, S = attack start range in metres, K = attacked frames, AttackWindow); runs use the
 closed loop of pipeline/guidance/law.py. An in-loop cell is (eps, goal, S): the in-loop attacker
 (pipeline/attacks/in_loop.py) attacks every frame from the first at range <= S to the end of the run.
@@ -62,17 +66,19 @@ class InLoopRun:
     index: int
 
 
-Run = tuple[str, str, "int | InLoopRun | None"]
-"""One closed-loop run of a `GridPlan`: (dynamics = settings.variant, defense, grid cell index, an
-`InLoopRun`, or None for that (dynamics, defense)'s no-attack baseline)."""
+CHAINS = ("paper", "shipped")   # the chain a run flies: the paper grid's, or the one that ships
+
+Run = tuple[str, str, str, "int | InLoopRun | None"]
+"""One closed-loop run of a `GridPlan`: (chain: "paper" or "shipped", dynamics = settings.variant, defense,
+grid cell index, an `InLoopRun`, or None for that (chain, dynamics, defense)'s no-attack baseline)."""
 
 
 @dataclass(frozen=True)
 class GridPlan:
     """The guidance grid: `settings`, the (eps, S, K, window) cells, `slack_steps`; the paper grid is
-    flown under settings.variant undefended, the defended grid under every (`dynamics`, undefended and
-    each of `defenses`) except that one (its runs are the paper grid's). `in_loop`: the in-loop
-    attacker's (eps, goal, S) cells, flown last under every (dynamics, undefended and each defense)."""
+    flown on the paper chain under settings.variant undefended, the defended grid on the shipped chain under
+    every (`dynamics`, undefended and each of `defenses`). `in_loop`: the in-loop attacker's (eps, goal, S)
+    cells, flown last on the shipped chain under every (dynamics, undefended and each defense)."""
 
     settings: GuidanceSettings
     grid: tuple[tuple[Any, ...], ...]
@@ -81,21 +87,20 @@ class GridPlan:
     defenses: tuple[str, ...] = ()
     in_loop: tuple[tuple[float, str, float], ...] = ()
 
-    def _block(self, dyn: str, defense: str) -> list[Run]:
-        return [(dyn, defense, None), *[(dyn, defense, i) for i in range(len(self.grid))]]
+    def _block(self, chain: str, dyn: str, defense: str) -> list[Run]:
+        return [(chain, dyn, defense, None), *[(chain, dyn, defense, i) for i in range(len(self.grid))]]
 
     def runs(self) -> list[Run]:
         """Every run: the paper grid (baseline first), then each defended (dynamics, defense) block,
         then the in-loop runs."""
-        out = self._block(self.settings.variant, "undefended")
+        out = self._block("paper", self.settings.variant, "undefended")
         for dyn in self.dynamics:
-            out += [r for d in ("undefended", *self.defenses) if (dyn, d) != (self.settings.variant, "undefended")
-                    for r in self._block(dyn, d)]
+            out += [r for d in ("undefended", *self.defenses) for r in self._block("shipped", dyn, d)]
         return out + self.in_loop_runs()
 
     def in_loop_runs(self) -> list[Run]:
         """The in-loop runs: per dynamics (settings.variant when none), undefended and each defense, each cell."""
-        return [(dyn, d, InLoopRun(i)) for dyn in self.dynamics or (self.settings.variant,)
+        return [("shipped", dyn, d, InLoopRun(i)) for dyn in self.dynamics or (self.settings.variant,)
                 for d in ("undefended", *self.defenses) for i in range(len(self.in_loop))]
 
     @property
@@ -104,52 +109,55 @@ class GridPlan:
 
 
 class GridPilot:
-    """Flies single runs of a `GridPlan` with one `CachedCamera`: `fly(run)` -> (result, keys of the
-    poses it rendered). An attacked run's length comes from its block's no-attack baseline (flown here
-    first when this pilot has not flown it: runs are deterministic, so any pilot gets the same one);
-    `attack_at(eps, i)` is the attack of run i of `plan.runs()` (seeded per run, so the outcome does not
-    depend on which pilot flies it or in what order); `in_loop_at(eps, goal, i)` the in-loop attacker
-    (pipeline.attacks.in_loop.InLoopAttacker) of run i; `defense.new()` a fresh Defense per defended run."""
+    """Flies single runs of a `GridPlan` with a `CachedCamera` per chain (`cameras`: {"paper": ..., "shipped": ...},
+    or one camera for both): `fly(run)` -> (result, keys of the poses it rendered). An attacked run's length comes
+    from its block's no-attack baseline (flown here first when this pilot has not flown it: runs are
+    deterministic, so any pilot gets the same one); `attack_at(chain, eps, i)` is the attack of run i of
+    `plan.runs()` on that chain (seeded per run, so the outcome does not depend on which pilot flies it or in
+    what order); `in_loop_at(eps, goal, i)` the in-loop attacker (pipeline.attacks.in_loop.InLoopAttacker, on
+    the shipped chain) of run i; `defense.new()` a fresh Defense per defended run."""
 
-    def __init__(self, camera: CachedCamera, K: Intrinsics, plan: GridPlan,
-                 attack_at: Callable[[float, int], Any], defense: Any = None,
+    def __init__(self, cameras: CachedCamera | dict[str, CachedCamera], K: Intrinsics, plan: GridPlan,
+                 attack_at: Callable[[str, float, int], Any] | None, defense: Any = None,
                  in_loop_at: Callable[[float, str, int], Any] | None = None) -> None:
-        self.camera, self.K, self.plan, self.attack_at, self.defense = camera, K, plan, attack_at, defense
+        self.cameras = cameras if isinstance(cameras, dict) else dict.fromkeys(CHAINS, cameras)
+        self.K, self.plan, self.attack_at, self.defense = K, plan, attack_at, defense
         self.in_loop_at = in_loop_at
         self.index = {r: i for i, r in enumerate(plan.runs())}
-        self.baselines: dict[tuple[str, str], RendezvousResult] = {}
+        self.baselines: dict[tuple[str, str, str], RendezvousResult] = {}
 
-    def fly(self, dyn: str, defense: str, cell: int | InLoopRun | None) -> tuple[RendezvousResult, frozenset[bytes]]:
+    def fly(self, chain: str, dyn: str, defense: str,
+            cell: int | InLoopRun | None) -> tuple[RendezvousResult, frozenset[bytes]]:
         from dataclasses import replace
 
-        p = self.plan
+        p, camera = self.plan, self.cameras[chain]
         s, window, observe = replace(p.settings, variant=dyn, defense=defense), None, None
-        self.camera.attack = None
+        camera.attack = None
         if cell is not None:
-            arrival = arrival_step(self._baseline(dyn, defense), p.settings.goal, p.settings.tolerance)
-            i = self.index[(dyn, defense, cell)]
+            arrival = arrival_step(self._baseline(chain, dyn, defense), p.settings.goal, p.settings.tolerance)
+            i = self.index[(chain, dyn, defense, cell)]
             if isinstance(cell, InLoopRun):   # attacked to the end; a defended chaser may hold for slack more steps
                 eps, goal, start = p.in_loop[cell.index]
                 window, extra = AttackWindow(start, p.settings.max_steps), p.slack_steps
-                self.camera.attack = attacker = self.in_loop_at(eps, goal, i)
+                camera.attack = attacker = self.in_loop_at(eps, goal, i)
                 observe = attacker.observe
             else:
                 eps, _, k, window = p.grid[cell]
                 extra = k                      # a held chaser may arrive up to K steps late
-                self.camera.attack = self.attack_at(eps, i)
+                camera.attack = self.attack_at(chain, eps, i)
             extra = 0 if defense == "undefended" else extra
             s = replace(s, max_steps=horizon(arrival, p.settings.max_steps, p.slack_steps + extra))
-        self.camera.keys = set()
-        result = run_rendezvous(self.camera.render, self.camera.estimate, self.K, s, window,
+        camera.keys = set()
+        result = run_rendezvous(camera.render, camera.estimate, self.K, s, window,
                                 defense=None if defense == "undefended" else self.defense.new(), observe=observe)
         if cell is None:
-            self.baselines[(dyn, defense)] = result
-        return result, frozenset(self.camera.keys)
+            self.baselines[(chain, dyn, defense)] = result
+        return result, frozenset(camera.keys)
 
-    def _baseline(self, dyn: str, defense: str) -> RendezvousResult:
-        if (dyn, defense) not in self.baselines:
-            self.fly(dyn, defense, None)
-        return self.baselines[(dyn, defense)]
+    def _baseline(self, chain: str, dyn: str, defense: str) -> RendezvousResult:
+        if (chain, dyn, defense) not in self.baselines:
+            self.fly(chain, dyn, defense, None)
+        return self.baselines[(chain, dyn, defense)]
 
 
 def grid_counts(flown: list[tuple[RendezvousResult, frozenset[bytes]]], seen: frozenset[bytes] = frozenset()
@@ -172,12 +180,12 @@ def paper_grid(plan: GridPlan, results: list[RendezvousResult]
 
 
 def defended_grid(plan: GridPlan, results: list[RendezvousResult]) -> dict[str, Any]:
-    """Every (dynamics, undefended / defense) block of `plan.runs()`'s `results` -> {"dynamics": {dyn:
+    """Every (dynamics, undefended / defense) block of the shipped chain in `plan.runs()`'s `results` -> {"dynamics": {dyn:
     {defense: defended_record}}, "defenses", "example": the runs of the last dynamics at the strongest,
     longest, latest-starting cell that every variant flew under attack (a variant that never reached the
     attack's start range is no example of a defense), for a figure}."""
     n = len(plan.grid) + 1
-    blocks = {run[:2]: results[i:i + n] for i, run in enumerate(plan.runs()) if run[2] is None}
+    blocks = {run[1:3]: results[i:i + n] for i, run in enumerate(plan.runs()) if run[0] == "shipped" and run[3] is None}
     out: dict[str, Any] = {"dynamics": {}, "defenses": list(plan.defenses)}
     last = [blocks[(plan.dynamics[-1], d)][1:] for d in ("undefended", *plan.defenses)] if plan.dynamics else []
     attacked_by_all = [i for i in range(len(plan.grid)) if all(flown[i].attacked_frames > 0 for flown in last)]
@@ -206,7 +214,7 @@ def in_loop_grid(plan: GridPlan, results: list[RendezvousResult], collision_rang
     runs that never met it] over goals and start ranges}."""
     first = len(plan.runs()) - len(plan.in_loop_runs())
     runs, counts = [], {}
-    for (dyn, defense, cell), r in zip(plan.in_loop_runs(), results[first:]):
+    for (_, dyn, defense, cell), r in zip(plan.in_loop_runs(), results[first:]):
         eps, goal, start = plan.in_loop[cell.index]
         collided = r.closest_range < collision_range
         runs.append({"dynamics": dyn, "defense": defense, "eps": eps, "goal": goal, "start_range": start,

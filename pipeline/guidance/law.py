@@ -202,6 +202,9 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
     `target_attitude` is the target -> world rotation (identity by default). `defense` (a fresh
     pipeline.defense.fusion.Defense per run) is required unless settings.defense is "undefended".
     `observe` (an attacker in the loop) is shown the `LoopState` before each frame is estimated.
+    The defense is told the chaser's displacement u (world, m) since the previous frame: -cmd in the
+    true_state variant; in the paper variant the chaser lands where it believes it goes (act - cmd), so
+    u is that point minus the defense's trusted estimate, and a biased estimate is not read as motion.
     """
     if (settings.defense == "undefended") != (defense is None):
         raise ValueError(f"guidance defense {settings.defense!r} needs "
@@ -225,8 +228,10 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
         out = out if isinstance(out, Estimate) else Estimate(np.asarray(out, dtype=np.float64))
         est = R_c @ np.asarray(out.t, dtype=np.float64)
         act: np.ndarray | None = est
+        trusted: np.ndarray | None = None
         if defense is not None:
             d = defense.step(out.t, out.prob, R_c, u, out.R)
+            trusted = d.trusted if np.isfinite(d.trusted).all() else None
             flags.append(d.flag)
             modes.append(d.mode)
             if settings.defense == "hold":
@@ -237,7 +242,7 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
             u = np.zeros(3)
         else:
             rel, believed = guidance_step(act, rel, goal, settings.max_step, settings.variant)
-            u = believed - act
+            u = believed - (act if trusted is None or settings.variant != "paper" else trusted)
             if np.linalg.norm(believed) > 1e-6:
                 R_c = look_at(believed)
         positions.append(rel)
@@ -263,13 +268,17 @@ class CachedCamera:
     (1, 3, H, W) in [0, 1], labels (1, 9): metres, 6-D) which `self.attack` may be changed to between
     runs. With `chain` (a pipeline.defense.chain.OnboardChain over `model`) `estimate` returns an `Estimate`
     (position, the detector's probability, attitude) for the defended variants; without it the
-    camera-frame position (m). `counts`: guidance steps, rendered frames, attacked frames.
+    camera-frame position (m). `images`: the rendered images by pose, a dict that cameras of other chains
+    over the same scene may share (each pose is rendered once). `counts`: guidance steps, frames this camera
+    rendered, attacked frames.
     """
 
     def __init__(self, render_image: Callable[[np.ndarray, np.ndarray], np.ndarray], model: Any,
-                 attack: Callable[[Any, Any], Any] | None = None, chain: Any | None = None):
+                 attack: Callable[[Any, Any], Any] | None = None, chain: Any | None = None,
+                 images: dict[bytes, np.ndarray] | None = None):
         self.render_image, self.model, self.attack, self.chain = render_image, model, attack, chain
-        self.cache: dict[bytes, tuple[np.ndarray, np.ndarray | Estimate]] = {}
+        self.images = {} if images is None else images
+        self.cache: dict[bytes, np.ndarray | Estimate] = {}   # pose -> this chain's clean estimate
         self.counts = {"steps": 0, "renders": 0, "attacked": 0}
         self.keys: set[bytes] = set()   # the poses rendered (or read from the cache) since it was last cleared
 
@@ -293,13 +302,14 @@ class CachedCamera:
 
     def render(self, R: np.ndarray, t: np.ndarray) -> tuple[bytes, np.ndarray]:
         key = np.round(np.concatenate([R.ravel(), t]), 9).tobytes()
-        if key not in self.cache:
-            image = self.render_image(R, t)
-            self.cache[key] = (image, self._position(self._input(image)))
+        if key not in self.images:
+            self.images[key] = self.render_image(R, t)
             self.counts["renders"] += 1
+        if key not in self.cache:
+            self.cache[key] = self._position(self._input(self.images[key]))
         self.counts["steps"] += 1
         self.keys.add(key)
-        return key, self.cache[key][0]
+        return key, self.images[key]
 
     def estimate(self, rendered: tuple[bytes, np.ndarray], attacked: bool,
                  pose: tuple[np.ndarray, np.ndarray]) -> np.ndarray | Estimate:
@@ -309,7 +319,7 @@ class CachedCamera:
 
         key, image = rendered
         if not attacked:
-            return self.cache[key][1]
+            return self.cache[key]
         if self.attack is None:
             raise ValueError("an attacked frame but no attack was given")
         self.counts["attacked"] += 1

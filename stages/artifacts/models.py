@@ -1,6 +1,7 @@
 """The models the stages load: the pose checkpoint checked against params.yaml, the pose model with its
-attack loss, the onboard chain (pose model + detector), and the calibrated defense (models/defense.json).
-File formats: pipeline/formats/models.py; paths: stages/artifacts/paths.py."""
+attack loss, the onboard chain (pose model + its detector) and the defense calibrated for it, each by the
+model it is built on (stages.artifacts.paths.CHAINS: `standard`, the paper's reproduction; `robust`, the
+chain that ships). File formats: pipeline/formats/models.py; paths: stages/artifacts/paths.py."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -9,10 +10,19 @@ from typing import Any
 
 from pipeline.formats.models import loss_from_checkpoint, model_from_checkpoint, read_pose
 from pipeline.io.atomic import file_hash
-from stages.artifacts.paths import DEFENSE, DETECTOR, LABELS, POSE
+from stages.artifacts.paths import CHAINS, LABELS, POSE, Model
 from stages.config.build import defense_settings
 from stages.config.schema import Params
 from stages.errors import StageError
+
+def model_option(outputs: str) -> Any:
+    """The `--model` option of the commands that run once per pose model (shap, detect, calibrate); `outputs`:
+    what each model's run writes."""
+    import typer
+
+    return typer.Option("--model", help="The pose model: standard (models/pose.pt, `rpod train`, the paper's "
+                                        f"reproduction) or robust (models/pose_robust.pt, the one that ships). {outputs}")
+
 
 def expected(params: Params, clamped: bool = False) -> dict[str, Any]:
     """The architecture and input size that params.yaml asks for (`clamped`: of the robust model, whose
@@ -76,14 +86,23 @@ def load_pose(params: Params, path: Path | str = POSE) -> Pose:
     return Pose(model, loss_from_checkpoint(ckpt), file_hash(path), dict(ckpt.get("meta", {})))
 
 
-def load_chain(params: Params, pose_path: Path | str = POSE,
-               detector_path: Path | str = DETECTOR) -> tuple[Any, Any, str]:
-    """(OnboardChain, attack loss function on `attack.loss`, pose model hash) from a pose model and its detector."""
-    from pipeline.attacks.gradient import attack_loss
+def load_pose_chain(params: Params, model: Model | str, root: Path | str = ".") -> tuple[Pose, Any]:
+    """(Pose, OnboardChain) of one chain (`model`: standard or robust, stages.artifacts.paths.CHAINS): its pose
+    model and the detector trained on that model's SHAP values (refused when it names another model's hash),
+    read from `root` (the working folder, or e.g. datasets/lab_models)."""
     from pipeline.defense.chain import load_onboard_chain
 
+    files = CHAINS[Model(model)]
+    pose_path, detector_path = Path(root) / files.pose, Path(root) / files.detector
     pose = load_pose(params, pose_path)
-    chain = load_onboard_chain(pose.model, pose.hash, pose_path, detector_path)
+    return pose, load_onboard_chain(pose.model, pose.hash, pose_path, detector_path)
+
+
+def load_chain(params: Params, model: Model | str, root: Path | str = ".") -> tuple[Any, Any, str]:
+    """(OnboardChain, attack loss function on `attack.loss`, pose model hash) of one chain (`load_pose_chain`)."""
+    from pipeline.attacks.gradient import attack_loss
+
+    pose, chain = load_pose_chain(params, model, root)
     return chain, attack_loss(params.attack.loss, pose.loss), pose.hash
 
 
@@ -112,15 +131,16 @@ class DefenseModel:
         return Defense(s, self.motion, self.noise, None if self.alert is None else partial(alert_limit, settings=self.alert))
 
 
-def load_defense(p: Params, model_hash: str, threshold: float) -> DefenseModel:
-    """models/defense.json checked against the pose model and detector (checkpoint `threshold`) it was
-    calibrated with, and params."""
+def load_defense(p: Params, model_hash: str, threshold: float, model: Model | str) -> DefenseModel:
+    """The defense calibrated for one chain (`model`: models/defense.json for the robust one that ships,
+    models/defense_standard.json for the standard one) checked against the pose model and detector
+    (checkpoint `threshold`) it was calibrated with, and params."""
     import dataclasses
 
     from pipeline.formats.defense import read_calibration
     from stages.config.build import alert_limit_settings
 
-    cal = read_calibration(DEFENSE, model_hash, threshold)
+    cal = read_calibration(CHAINS[Model(model)].defense, model_hash, threshold)
     settings, motion = defense_settings(p.defense, cal.threshold)
     return DefenseModel(settings, dataclasses.replace(motion, cusum_threshold=cal.cusum_threshold), cal.noise,
                         cal.raw, alert_limit_settings(p))

@@ -8,6 +8,8 @@ tests/test_dvc_ux.py checks it). This module imports nothing from stages/, so ev
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+from enum import Enum
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]   # the repository (package) root: code-side files only
@@ -43,13 +45,19 @@ GUIDANCE_REPORT, GUIDANCE_FIGURE, GUIDANCE_DEFENDED_FIGURE, GUIDANCE_METRICS = _
 (SHAP,) = _outputs("shap", "datasets/shap.zarr")
 DETECTOR, DETECT_REPORT, DETECT_METRICS, DETECT_LIVE = _outputs(
     "detect", "models/detector.pt", "reports/detector.md", "reports/metrics/detect.json", "dvclive/detect")
+# the same two stages on the robust pose model (`rpod shap --model robust`, `rpod detect --model robust`)
+(SHAP_ROBUST,) = _outputs("shap_robust", "datasets/shap_robust.zarr")
+DETECTOR_ROBUST, DETECT_ROBUST_REPORT, DETECT_ROBUST_METRICS, DETECT_ROBUST_LIVE = _outputs(
+    "detect_robust", "models/detector_robust.pt", "reports/detector_robust.md", "reports/metrics/detect_robust.json",
+    "dvclive/detect_robust")
 ROC_DATA = DETECT_LIVE / "plots" / "sklearn"   # DVCLive's log_sklearn_plot("roc", name=D): D.json per detector
 EVAL_RENDER, VAL_RENDER, EVAL_RENDER_METRICS = _outputs("eval_render", "datasets/eval_render", "datasets/val_render",
                                                         "reports/metrics/eval_render.json")
 # the detector split (`rpod eval_render --detector`): the images `rpod shap` explains, never seen in training
 DETECT_RENDER, DETECT_RENDER_METRICS = _outputs("detect_render", "datasets/detect_render",
                                                 "reports/metrics/detect_render.json")
-(DEFENSE,) = _outputs("calibrate", "models/defense.json")
+(DEFENSE,) = _outputs("calibrate", "models/defense.json")                       # the shipped chain's
+(DEFENSE_STANDARD,) = _outputs("calibrate_standard", "models/defense_standard.json")   # the paper chain's
 EVALUATE_REPORT, EVALUATE_FIGURE, EVALUATE_METRICS = _outputs(
     "evaluate", "reports/integrated.md", "reports/figures/timeline.png", "reports/metrics/evaluate.json")
 # the robust pose model (`rpod train --robust`: adversarial training behind a black-level clamp) and its page
@@ -67,6 +75,40 @@ PAGE, SUMMARY, *_FIGURES = _outputs("report", "reports/README.md", "reports/metr
                                     *(f"reports/figures/{name}.png"
                                       for name in ("pose_errors", "error_vs_eps", "shap_heatmaps", "roc")))
 REPORT_FIGURES = {path.stem: path for path in _FIGURES}
+
+
+
+class Model(str, Enum):
+    """The two pose models (the `--model` option of `rpod shap`, `detect`, `calibrate`): `standard` (`rpod
+    train`, the paper's reproduction) and `robust` (`rpod train --robust`, the one that ships)."""
+
+    standard = "standard"
+    robust = "robust"
+
+
+@dataclass(frozen=True)
+class ChainFiles:
+    """The files of one chain: its pose model, the SHAP store and detector made on that model's SHAP values
+    (with the detector's report, metrics and curves), and the defense calibrated for it."""
+
+    model: Model
+    pose: Path
+    shap: Path
+    detector: Path
+    detect_report: Path
+    detect_metrics: Path
+    detect_live: Path
+    defense: Path
+
+
+CHAINS: dict[Model, ChainFiles] = {
+    Model.standard: ChainFiles(Model.standard, POSE, SHAP, DETECTOR, DETECT_REPORT, DETECT_METRICS, DETECT_LIVE,
+                               DEFENSE_STANDARD),
+    Model.robust: ChainFiles(Model.robust, POSE_ROBUST, SHAP_ROBUST, DETECTOR_ROBUST, DETECT_ROBUST_REPORT,
+                             DETECT_ROBUST_METRICS, DETECT_ROBUST_LIVE, DEFENSE),
+}
+PAPER = Model.standard     # the paper's reproduction rows: the standard model and its own detector
+SHIPPED = Model.robust     # what ships (rpod predict, rpodguard.load_chain, the weights bundle, every safety row)
 
 # stage -> the offset added to its base seed (`seed`, or `lab.seed` for lab and lab_models; the evaluate
 # schedule adds it to evaluate.seed + the trajectory number), so no two stages draw the same stream

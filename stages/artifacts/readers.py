@@ -89,7 +89,7 @@ def read_shap_store(path: Path, model_hash: str) -> dict[str, Any]:
     attrs = dict(root.attrs)
     if attrs.get("model_hash") != model_hash:
         raise StageError(f"{path} was made with another pose checkpoint (hash {attrs.get('model_hash')!r}, "
-                         f"{POSE} is {model_hash!r}); re-run `rpod shap`")
+                         f"the pose model's is {model_hash!r}); re-run `rpod shap`")
     values = root["values"]
     n = values.shape[0]
     if values.ndim != 3 or values.shape[1] != 9 or n == 0:

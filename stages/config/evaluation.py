@@ -254,6 +254,8 @@ class Integrity:
     alert_limit_m: Optional[Metres]   # metres: a fixed AL instead of AL(range) from the guidance law; None: derived
     eps: list[Eps]               # L-inf budgets of the integrity attacks, pixels in [0, 1] (the burst nests through them)
     attackers: list[IntegrityAttacker]
+    standard_attackers: list[IntegrityAttacker]   # also run on the standard model's chain ([] = none)
+    standard_trajectories: Optional[Annotated[int, In("[1, 100000]", "trajectories")]]   # the first N; None: all
     burst_length: Frames         # frames per burst (one every robustness.burst_every frames of each trajectory)
     burst_steps: Steps           # PGD steps per restart and lambda
     burst_restarts: Annotated[int, In("[1, 1000]", "random starts")]
@@ -278,6 +280,9 @@ class Integrity:
             values = getattr(self, key)
             if not values or len(set(values)) != len(values):
                 raise ParamsError(f"params.yaml integrity.{key} must be a non-empty list without repeats, got {values!r}")
+        if len(set(self.standard_attackers)) != len(self.standard_attackers):
+            raise ParamsError(f"params.yaml integrity.standard_attackers must be a list without repeats, "
+                              f"got {self.standard_attackers!r}")
         bad = [e for e in self.eps if not 0 < e <= 1]
         if bad:
             raise ParamsError(f"params.yaml integrity.eps: {bad[0]!r} is not in (0, 1] (pixels are in [0, 1])")

@@ -1,5 +1,6 @@
-"""The guidance stage's engine worker: one Blender scene and one safety chain per worker, one flight
-of the grid (pipeline.guidance.law.GridPlan) per job; stages/guidance.py builds the jobs.
+"""The guidance stage's engine worker: one Blender scene and two safety chains per worker (the paper grid's,
+the standard model's; and the shipped one, the robust model's: stages.artifacts.paths.PAPER, SHIPPED), one
+flight of the grid (pipeline.guidance.grid.GridPlan) per job; stages/guidance.py builds the jobs.
 
 Each attacked run's attack is seeded by its place in the grid, so the flights do not depend on which
 worker flies which run.
@@ -10,20 +11,20 @@ from dataclasses import dataclass
 from typing import Any
 
 from stages.artifacts.models import load_chain
+from stages.artifacts.paths import PAPER, SHIPPED
 from stages.config.build import in_loop_settings, make_attack
 from stages.config.schema import Params
 
 
 @dataclass(frozen=True)
 class GuidanceSetup:
-    """What one GuidanceWorker holds: the camera, the scene, the chain's model files and the grid."""
+    """What one GuidanceWorker holds: the camera, the scene, where the chains' model files are and the grid."""
 
     params: Params     # typed params (device, `attack` section, `guidance.method`, the in-loop attacker's `integrity`)
     K: Any                     # pipeline.geometry.camera.Intrinsics: the pose model's input size (pixels)
     scene: Any                 # pipeline.render.scene.SceneSettings, checked by stages.engine.chunks.prepare
-    pose_path: str             # models/pose.pt as an absolute path (a worker may run elsewhere)
-    detector_path: str         # models/detector.pt as an absolute path
-    defense: Any               # stages.artifacts.readers.DefenseModel: a fresh calibrated defense per run
+    root: str                  # the folder holding models/, as an absolute path (a worker may run elsewhere)
+    defense: Any               # stages.artifacts.models.DefenseModel of the shipped chain: a fresh one per run
     plan: Any                  # pipeline.guidance.law.GridPlan: every run of the grid
     seed: int                  # the attack seed of run 0 (params seed + the stage's offset)
     torch_threads: int | None  # torch threads of this worker; None: left as set up
@@ -33,19 +34,20 @@ class GuidanceSetup:
 class Flight:
     """One guidance job: one run of the plan."""
 
+    chain: str        # "paper" (the paper grid) or "shipped" (pipeline.guidance.grid.CHAINS)
     dynamics: str     # the chaser's dynamics (a name of guidance.dynamics)
     defense: str      # "undefended" or a name of guidance.defenses
-    cell: int | None  # index of the (eps, S, K) attack window in plan.grid; None: the no-attack run
+    cell: Any         # index of the (eps, S, K) attack window in plan.grid, an InLoopRun, or None: the no-attack run
 
 
 def flights(plan: Any) -> list[Flight]:
     """Every run of a GridPlan as a job, in plan order (the paper grid first)."""
-    return [Flight(dynamics=dyn, defense=defense, cell=cell) for dyn, defense, cell in plan.runs()]
+    return [Flight(chain=chain, dynamics=dyn, defense=defense, cell=cell) for chain, dyn, defense, cell in plan.runs()]
 
 
 class GuidanceWorker:
-    """One Blender scene and one safety chain, built once per engine worker: `run(Flight)` flies that
-    run of the plan (pipeline.guidance.law.GridPilot) -> (result, keys of the poses it rendered)."""
+    """One Blender scene and the two safety chains, built once per engine worker: `run(Flight)` flies that
+    run of the plan (pipeline.guidance.grid.GridPilot) -> (result, keys of the poses it rendered)."""
 
     def __init__(self, setup: GuidanceSetup) -> None:
         from pipeline.attacks.adaptive import PerFrameChain
@@ -59,23 +61,28 @@ class GuidanceWorker:
             import torch
 
             torch.set_num_threads(setup.torch_threads)
-        chain, loss_fn, _ = load_chain(setup.params, setup.pose_path, setup.detector_path)
+        chains = {"paper": load_chain(setup.params, PAPER, setup.root),
+                  "shipped": load_chain(setup.params, SHIPPED, setup.root)}
         a, method, seed = setup.params.attack, setup.params.guidance.method, setup.seed
 
-        def attack_at(eps: float, i: int) -> Any:
+        def attack_at(name: str, eps: float, i: int) -> Any:
+            chain, loss_fn, _ = chains[name]
             return stored_attack(chain.model, loss_fn, eps, make_attack(a, method, seed + i))
 
-        target = PerFrameChain(chain.model, chain.shap, chain.detector)
+        shipped = chains["shipped"][0]
+        target = PerFrameChain(shipped.model, shipped.shap, shipped.detector)
 
         def in_loop_at(eps: float, goal: str, i: int) -> Any:
             return InLoopAttacker(target, eps, in_loop_settings(setup.params, goal), seed + i)
 
         self.renderer = Renderer(setup.K, setup.scene)
-        camera = CachedCamera(self.renderer.render, chain.model, chain=chain)
-        self.pilot = GridPilot(camera, setup.K, setup.plan, attack_at, setup.defense, in_loop_at)
+        images: dict[bytes, Any] = {}   # both chains see the same rendered poses: each is rendered once
+        cameras = {name: CachedCamera(self.renderer.render, c.model, chain=c, images=images)
+                   for name, (c, _, _) in chains.items()}
+        self.pilot = GridPilot(cameras, setup.K, setup.plan, attack_at, setup.defense, in_loop_at)
 
     def run(self, job: Flight) -> tuple[Any, frozenset[bytes]]:
-        return self.pilot.fly(job.dynamics, job.defense, job.cell)
+        return self.pilot.fly(job.chain, job.dynamics, job.defense, job.cell)
 
     def close(self) -> None:
         self.renderer.close()

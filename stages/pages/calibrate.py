@@ -33,12 +33,14 @@ def summary_line(cal: dict[str, Any], path: Path) -> str:
             f"(target {v['target_pct']:g}%); availability {v['availability']['pct']:.2f}%{unmet} -> {path}")
 
 
-def unmet_banner(calibration: dict[str, Any]) -> str:
-    """The first line of a report that uses the defense: empty when every check met its share, else
-    a warning naming what was not met (then a blank line)."""
+def unmet_banner(calibration: dict[str, Any], model: Any = None) -> str:
+    """The first line of a report that uses a defense: empty when every check met its share, else a warning
+    naming what was not met (then a blank line); `model` (stages.artifacts.paths.Model) names a defense other than
+    the shipped chain's."""
     unmet = calibration.get("unmet") or []
     if not unmet:
         return ""
-    return ("> **Warning: the defense was calibrated with unmet false-alarm shares (defense.allow_unmet)**: "
+    which = "the defense" if model is None else f"the {model.value} model's defense"
+    return (f"> **Warning: {which} was calibrated with unmet false-alarm shares (defense.allow_unmet)**: "
             + " | ".join(line.removeprefix("calibrate: ").split("; set defense.allow_unmet")[0] for line in unmet)
             + "\n\n")

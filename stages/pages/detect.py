@@ -1,10 +1,12 @@
-"""reports/detector.md, the page of `rpod detect`: the LSTM detector on the SHAP test split
-beside the paper, and the baselines on the same split."""
+"""reports/detector.md (the standard model's detector, the paper's reproduction) and reports/detector_robust.md
+(the robust model's, the one that ships), the pages of `rpod detect --model ...`: the LSTM detector on the
+SHAP test split beside the paper, and the baselines on the same split."""
 from __future__ import annotations
 
 import math
 from typing import Any
 
+from stages.artifacts.paths import ChainFiles, Model
 from stages.config.sections import Detect
 from stages.pages.paper import DETECTOR_ACCURACY
 
@@ -79,7 +81,7 @@ def _composition(attrs: dict[str, Any]) -> str:
             f"mostly from the pose-training images while every attacked one was a test image.)")
 
 
-def _alarms(alarms: dict[str, Any] | None) -> str:
+def _alarms(alarms: dict[str, Any] | None, model: Model) -> str:
     """The section on the LSTM's false alarms on the clean evaluation trajectories."""
     if alarms is None:
         return ("## False alarms on fresh clean trajectories\n\nNot measured (`rpod detect --no-eval-alarms`: "
@@ -94,26 +96,60 @@ of the {alarms['trajectories']} clean evaluation trajectories (`datasets/eval_re
 run through the onboard chain (pose -> exact SHAP -> LSTM; no motion filter): it flags
 **{alarms['false_alarms']} of {alarms['frames']} frames, {percent_ci(alarms['rate'], alarms['rate_ci95'], 2)}%**
 (Wilson interval over frames, optimistic: frames of one trajectory are correlated; per trajectory:
-{per}). This is the paper's detector as it was built; the shipped chain reads its detector threshold
-from models/defense.json (`rpod calibrate`, clean validation trajectories).
+{per}). {_threshold_note(model)}
+"""
+
+
+def _threshold_note(model: Model) -> str:
+    """What the page's threshold is for, per model."""
+    if model == Model.standard:
+        return ("This is the paper's detector as it was built; the shipped chain (robust model, "
+                "reports/detector_robust.md) reads its own detector's threshold from models/defense.json.")
+    return ("The shipped chain does not flag at this threshold: it reads its detector threshold from "
+            "models/defense.json (`rpod calibrate`, chosen on clean validation trajectories).")
+
+
+def _intro(files: ChainFiles) -> str:
+    """Which pose model the page's detector explains, and what the page is."""
+    if files.model == Model.standard:
+        return (f"# Attack detector (standard model: the paper's reproduction)\n\nOn the SHAP values of the standard "
+                f"pose model (`{files.pose}`, `rpod train`); the chain that ships uses the robust model and its own "
+                f"detector (reports/detector_robust.md).\n")
+    return (f"# Attack detector of the shipped chain (robust model)\n\nOn the SHAP values of the robust pose model "
+            f"(`{files.pose}`, `rpod train --robust`): the detector of the chain that ships (`rpod predict`, the "
+            f"weights bundle, every safety row). The paper's reproduction, on the standard model: reports/detector.md.\n")
+
+
+def _comparison(results: dict[str, Any], eps_keys: list[str], d: Detect) -> str:
+    """The baselines section, or a line saying they were not run (`--no-baselines`)."""
+    if len(results) == 1:
+        return ("## Comparison with baselines\n\nNot run for this detector (`rpod detect --no-baselines`): the "
+                "baseline comparison is the paper's reproduction, on the standard model (reports/detector.md).\n")
+    comp = [{"detector": NAMES[k], **_row(r["all"])} for k, r in results.items()]
+    recall_rows = [{"detector": NAMES[k], **{f"eps {e}": _pct(r[e], "recall") for e in eps_keys},
+                    "FPR (%)": _pct(r["all"], "fpr")} for k, r in results.items()]
+    return f"""## Comparison with baselines (same split, thresholds on the same validation samples)
+
+{_table(comp)}
+Detection rate (recall) per eps:
+
+{_table(recall_rows)}
+{_baselines(d)}
 """
 
 
 def detector_page(results: dict[str, dict[str, dict[str, float]]], scores: dict[str, Any], counts: dict[str, int],
-                  result: Any, attrs: dict[str, Any], d: Detect, alarms: dict[str, Any] | None = None) -> str:
-    """reports/detector.md: the LSTM per eps, the baselines on the same split, its false alarms on clean
-    evaluation trajectories, and what the detectors see."""
+                  result: Any, attrs: dict[str, Any], d: Detect, files: ChainFiles,
+                  alarms: dict[str, Any] | None = None) -> str:
+    """The detector page of one model (`files`): the LSTM per eps, the baselines on the same split (when run),
+    its false alarms on clean evaluation trajectories, and what the detectors see."""
     lstm = results["lstm"]
     lstm_table = _table([{"eps": k, **_row(m)} for k, m in lstm.items()])
     eps_keys = [k for k in lstm if k != "all"]
-    comp = [{"detector": NAMES[k], **_row(r["all"])} for k, r in results.items()]
-    recall_rows = [{"detector": NAMES[k], **{f"eps {e}": _pct(r[e], "recall") for e in eps_keys},
-                    "FPR (%)": _pct(r["all"], "fpr")} for k, r in results.items()]
     reading = _reading(results, eps_keys)
     paper = f"{DETECTOR_ACCURACY * 100:.2f}%"
     ours = f"{_pct(lstm['all'], 'accuracy')}%"
-    return f"""# Attack detector
-
+    return f"""{_intro(files)}
 The paper's detector reads the DeepSHAP values of the pose network's 1000 GAP features
 for its 9 outputs (a 9 x 1000 sequence per image, `rpod shap`) and says whether the image was
 attacked: an LSTM of {d.hidden} units with ReLU, dense layers {d.dense}, one sigmoid output,
@@ -122,7 +158,7 @@ Adadelta (lr {d.lr}), early stopping after {d.patience} epochs without a lower v
 **Test accuracy: {ours}** (paper: {paper} on its 30,000 SHAP samples).{_headline_alarms(alarms)}
 {reading}
 
-Data: {counts['samples']} SHAP samples (`datasets/shap.zarr`, method `{attrs.get('method')}`, background
+Data: {counts['samples']} SHAP samples (`{files.shap}`, method `{attrs.get('method')}`, background
 of {attrs.get('background_size')} training images). {_composition(attrs)}
 Split {1 - d.test_fraction:.0%}/{d.test_fraction:.0%} train/test with
 {d.val_fraction:.0%} of train held out for validation (grouped by source image: the clean and the attacked version of
@@ -130,7 +166,7 @@ an image sit on one side; stratified by eps; seeded): train {counts['train']},
 validation {counts['validation']}, test {counts['test']} ({counts['test_clean']} clean, {counts['test_adversarial']} adversarial).
 Adversarial samples are FGSM images at eps {', '.join(eps_keys)} (pixels in [0, 1]).
 
-The LSTM trained {len(result.history)} epochs (best: {result.best_epoch}; fit times in reports/metrics/detect.json). Its decision
+The LSTM trained {len(result.history)} epochs (best: {result.best_epoch}; fit times in {files.detect_metrics}). Its decision
 threshold on the probability, {float(scores['lstm'][1]):.4f}, was chosen on the validation samples for the
 highest validation accuracy.
 
@@ -141,20 +177,13 @@ its recall is the detection rate at that eps and its FPR is the same clean-sampl
 TPR @ 1% FPR reads the ROC curve at 1% false positives (coarse when the test split has few clean samples).
 
 {lstm_table}
-## Comparison with baselines (same split, thresholds on the same validation samples)
-
-{_table(comp)}
-Detection rate (recall) per eps:
-
-{_table(recall_rows)}
-{_baselines(d)}
-
-{_alarms(alarms)}
+{_comparison(results, eps_keys, d)}
+{_alarms(alarms, files.model)}
 What the SHAP detectors see: with the linear heads, row j of a sample's SHAP values is
 `W[j] * (a - mean_background)` (pipeline/shap.py), an element-wise rescaling of the GAP features.
 The SHAP signature therefore carries the same information as the GAP features, weighted by how much
 each feature moves each output; the SHAP detectors and the GAP-feature baselines differ in the model
 they fit, not in what they can know.
 
-ROC curves and training curves: `dvc plots show` (DVCLive data in dvclive/detect/).
+ROC curves and training curves: DVCLive data in {files.detect_live}/ (`dvc plots show` draws dvclive/detect/).
 """

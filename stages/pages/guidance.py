@@ -1,6 +1,6 @@
-"""reports/guidance.md, the page of `rpod guidance`: one S x K table per eps; and its defended
-section: closed-loop rendezvous success per variant (undefended, detect-and-hold,
-detect-and-recover) and dynamics."""
+"""reports/guidance.md, the page of `rpod guidance`: one S x K table per eps (the paper's grid, on the
+standard model); and its defended section (the chain that ships, on the robust model): closed-loop
+rendezvous success per variant (undefended, detect-and-hold, detect-and-recover) and dynamics."""
 from __future__ import annotations
 
 from typing import Any
@@ -10,7 +10,7 @@ from stages.config.sections import Guidance, Render
 
 DYNAMICS = {"paper": "paper (the chaser is placed at its estimate minus the command)",
             "true_state": "true state (the chaser moves by the command it sent)"}
-VARIANTS = {"undefended": "undefended (paper)", "hold": "detect-and-hold", "recover": "detect-and-recover"}
+VARIANTS = {"undefended": "undefended", "hold": "detect-and-hold", "recover": "detect-and-recover"}
 
 
 def defended_section(d: dict[str, Any], g: Guidance) -> str:
@@ -37,10 +37,12 @@ def defended_section(d: dict[str, Any], g: Guidance) -> str:
     return f"""
 ## The chain inside the loop: undefended, detect-and-hold, detect-and-recover
 
-Every cell of the grid above flown again with the whole safety chain (pose, SHAP, detector) and the
-calibrated defense of pipeline/defense/fusion.py inside the loop, one fresh defense per run, for each
-dynamics: {'; '.join(DYNAMICS[k] for k in d['dynamics'])}. Undefended: guidance acts on every
-estimate (the paper; under the table's dynamics these are the runs above). Detect-and-hold: a
+Every cell of the grid above flown again with the chain that ships: the **robust model**
+(models/pose_robust.pt; FGSM now crafted on it), its own detector (models/detector_robust.pt) and the
+defense calibrated for it (models/defense.json, pipeline/defense/fusion.py) inside the loop, one fresh
+defense per run, for each dynamics: {'; '.join(DYNAMICS[k] for k in d['dynamics'])}. Undefended: guidance
+acts on every estimate of the robust model (as the paper's grid above does on the standard model's).
+Detect-and-hold: a
 flagged frame's estimate is not used and the chaser sends no command for that step.
 Detect-and-recover: guidance acts on the defense's trusted estimate (the motion filter's state, its
 prediction on flagged frames) and holds position after `defense.hold_after` consecutive flags until
@@ -106,6 +108,10 @@ def guidance_page(m: dict[str, Any], g: Guidance, render: Render) -> str:
                      "below cannot be blamed on the attack.")
     return f"""# Closed-loop rendezvous under attack
 
+The paper's grid (the tables below) flies the **standard model** (models/pose.pt, the paper's reproduction)
+undefended; the sections "The chain inside the loop" and "The in-loop attacker" fly the chain that ships,
+the **robust model** with its own detector and defense.
+
 The chaser starts at ({start}) m (the target's position relative to the chaser, target-centred frame,
 approach along +z) and steers to ({goal}) m with at most {g.max_step:g} m per axis per step: {law}.
 Every step renders a new {render.width}x{render.height} Blender image (the pose model's input size)
@@ -155,8 +161,9 @@ def in_loop_section(d: dict[str, Any], i: Integrity) -> str:
 
 ## The in-loop attacker: collision course and miss
 
-Every frame from the first step at range <= S (S in {', '.join(f'{s:g}' for s in i.in_loop_start_ranges)} m) to the end of the
-run is crafted by an attacker who knows the chain (pose network and detector), the defense with its
+On the chain that ships (robust model, its detector and defense). Every frame from the first step at range
+<= S (S in {', '.join(f'{s:g}' for s in i.in_loop_start_ranges)} m) to the end of the run is crafted by an
+attacker who knows the chain (pose network and detector), the defense with its
 state, the guidance law and where the chaser truly is (pipeline/attacks/in_loop.py): it looks one step
 ahead over estimates pushed along and across the line of sight (as far as keeps the innovation under
 {i.drift_gate_fraction:g} of the motion gate once the filter runs), keeps the one whose step brings the chaser

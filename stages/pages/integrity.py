@@ -105,7 +105,7 @@ def integrity_section(integrity: dict[str, Any], fused: dict[str, Any], p: Param
     c, b, d = integrity["clean"], integrity["burst"], integrity["drift"]
     with_mi = bool(c.get("has_pl"))
     bound = "PL" if with_mi else "AL"
-    return f"""## Integrity: is the trusted estimate safe to fly on?
+    return f"""## Integrity of the shipped chain (robust model): is the trusted estimate safe to fly on?
 
 Guidance flies on the defense's **trusted estimate** (the motion filter's state; its prediction on
 flagged frames), not on the raw CNN estimate, so this section judges that estimate, with the
@@ -147,4 +147,38 @@ error; doubling its steps and restarts) are in reports/benchmarks.md, "Chain-lev
 
 ![trusted error against {bound} (Stanford diagram) at the largest eps, and one trajectory over frames](figures/integrity.png)
 
+"""
+
+
+def standard_integrity_section(standard: dict[str, Any], shipped: dict[str, Any], p: Params) -> str:
+    """Markdown: the integrity rows of the standard model's chain (the paper's reproduction) beside the shipped
+    chain's worst case (`standard`: metrics `integrity_standard`; `shipped`: metrics `integrity`)."""
+    from pipeline.report.markdown import markdown_table
+
+    head = "## Integrity of the standard model's chain (the paper's reproduction)\n\n"
+    if not standard.get("attackers"):
+        return head + "Not run (`integrity.standard_attackers` is empty).\n\n"
+    c = standard["clean"]
+    with_mi = bool(c.get("has_pl"))
+    names = ", ".join(NAMES.get(a, a) for a in standard["attackers"])
+    both = [{"eps": e, "shipped chain (robust model), any attacker (%)": _pct(w["hmi"]) + f" ({attacker_names(w['attacker'])})",
+             f"standard model's chain, {names} (%)": _pct(standard["worst_hmi"][e]["hmi"]) if e in standard["worst_hmi"]
+             else "-"} for e, w in sorted(shipped.get("worst_hmi", {}).items(), key=lambda kv: float(kv[0]))]
+    n, total = standard["trajectories"], shipped["clean"]["trajectories"]
+    scope = (f"on all {n} eval_render trajectories" if n == total else
+             f"on the first **{n} of the {total}** eval_render trajectories, so its intervals are wider than the shipped "
+             f"chain's")
+    return head + f"""The definitions and attackers of the section above, on the standard model (models/pose.pt) with its
+own detector (models/detector.pt) and the defense calibrated for it (models/defense_standard.json, `rpod
+calibrate --model standard`): **{names}** {scope} (`integrity.standard_attackers`,
+`integrity.standard_trajectories`: the whole suite on both chains does not fit the default budget). Without any
+attack, on all {c['frames']} frames of these trajectories: availability {_pct(c['availability'])}%, HMI
+{_pct(c['hmi'])}%, trusted error mean {_m(c['trusted_error_mean_m'])} m, max {_m(c['trusted_error_max_m'])} m.
+
+{integrity_table(standard['rows'], with_mi)}
+Worst HMI caused per eps, both chains (the shipped chain over every attacker and trajectory above; the standard
+one over the attackers and trajectories named here):
+
+{markdown_table(both)}
+{_bursts(standard)}
 """

@@ -1,5 +1,6 @@
 """The summary block of reports/README.md (and of README.md, `rpod report --sync-readme`): this run's
-headline results beside the paper's."""
+headline results beside the paper's, each row naming the pose model it ran on: the standard model (the paper's
+reproduction) or the robust one (the chain that ships)."""
 from __future__ import annotations
 
 from typing import Any
@@ -48,27 +49,30 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
     dets = de["detectors"]
     best_base = max((k for k in dets if k != "lstm"), key=lambda k: dets[k]["all"]["accuracy"])
     rows = [
-        ("pose, test mean position error (m)", _fmt(tr["test"]["pos_mean_m"]), _fmt(POSITION_M), "train",
-         _sd(spread, "pose.test_position_m")),
-        ("pose, test mean attitude error (deg)", _fmt(tr["test"]["att_mean_deg"]), _fmt(ATTITUDE_DEG), "train",
-         _sd(spread, "pose.test_attitude_deg")),
-        ("FGSM mean position error (m) at eps " + " / ".join(eps_at),
+        ("pose, test mean position error (m), standard model", _fmt(tr["test"]["pos_mean_m"]), _fmt(POSITION_M),
+         "train", _sd(spread, "pose.test_position_m")),
+        ("pose, test mean attitude error (deg), standard model", _fmt(tr["test"]["att_mean_deg"]), _fmt(ATTITUDE_DEG),
+         "train", _sd(spread, "pose.test_attitude_deg")),
+        *_robust_rows(metrics.get("robust"), spread),
+        ("FGSM mean position error (m) at eps " + " / ".join(eps_at) + ", standard model",
          " / ".join(_fmt(at["eps"][e]["position_mean_m"], 1) for e in eps_at), "-", "attack",
          _sd(spread, "fgsm_position_m_0.05", " at eps 0.05")),
-        ("closed loop, no attack", f"{gd['baseline']['outcome']} (miss {_fmt(gd['baseline']['miss_m'])} m)",
+        ("closed loop, no attack, standard model", f"{gd['baseline']['outcome']} (miss {_fmt(gd['baseline']['miss_m'])} m)",
          "reaches the target", "guidance", "-"),
-        ("closed loop, attacked runs that lost the rendezvous (undefended)",
+        ("closed loop, attacked runs that lost the rendezvous (undefended, standard model)",
          f"{broken} of {len(runs)} ({wilson(broken, len(runs)).pct()} %)", "-", "guidance",
          _sd(spread, "undefended_lost_pct", " %")),
-        ("(paper's view) LSTM detector accuracy, SHAP test split (%)", _with_ci(dets["lstm"]["all"], "accuracy"),
-         _fmt(100 * DETECTOR_ACCURACY), "detect", _sd(spread, "detector.lstm_accuracy_pct")),
-        (f"best baseline detector accuracy (%): {DETECTOR_NAMES.get(best_base, best_base)}",
+        ("(paper's view) LSTM detector accuracy, SHAP test split (%), standard model",
+         _with_ci(dets["lstm"]["all"], "accuracy"), _fmt(100 * DETECTOR_ACCURACY), "detect",
+         _sd(spread, "detector.lstm_accuracy_pct")),
+        *_shipped_detector_rows(metrics.get("detect_robust"), lab, spread),
+        (f"best baseline detector accuracy (%), standard model: {DETECTOR_NAMES.get(best_base, best_base)}",
          _with_ci(dets[best_base]["all"], "accuracy"), "-", "detect", "-"),
-        ("(paper's view) integrated per-frame detection accuracy, mean over eps (%; per eps below)",
+        ("(paper's view) integrated per-frame detection accuracy, mean over eps (%; per eps below), standard model",
          _fmt(100 * ev["accuracy_mean"]),
          _fmt(INTEGRATED), "evaluate", _sd(spread, "integrated.accuracy_pct")),
         ("(paper's view) lab detection accuracy, mean over eps (%): synthetic lab-like render, "
-         + ("same mesh, reused models" if lab.get("reused_models", True) else "retrained models"),
+         + ("same mesh, reused standard models" if lab.get("reused_models", True) else "retrained models"),
          _fmt(100 * lab["accuracy_mean"]), _fmt(LAB), "lab", _sd(spread, "lab.accuracy_pct")),
         *_robustness_rows(metrics["robustness"], spread),
         *_integrity_rows(metrics["robustness"], gd, spread),
@@ -91,6 +95,45 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
                  "differ only in `seed` (reports/variance.md); a difference smaller than about twice it is noise.")
     return (f"{head}\n\n{table}\n{per_eps}\n\n{markdown_table(eps_rows)}"
             + defended_table(ev, gd, spread))
+
+
+def _robust_rows(rb: dict[str, Any] | None, spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
+    """The robust model's rows (reports/metrics/robust.json): clean test errors, and PGD position errors of
+    both models at eps 0.01 and 0.05 (none when the metrics are missing)."""
+    if not rb:
+        return []
+    t = rb["robust"]["test"]
+
+    def pgd(model: str) -> str:
+        got = {f"{a['eps']:g}": a["pos_m"] for a in rb[model]["attacks"] if a["attack"].startswith("pgd")}
+        return " / ".join(_fmt(got.get(e), 2) for e in ("0.01", "0.05"))
+
+    name = next((a["attack"] for a in rb["robust"]["attacks"] if a["attack"].startswith("pgd")), "pgd")
+    return [("pose, test mean position error (m), robust model (ships)", _fmt(t["pos_mean_m"]), "-", "robust",
+             _sd(spread, "pose.robust_test_position_m")),
+            ("pose, test mean attitude error (deg), robust model (ships)", _fmt(t["att_mean_deg"]), "-", "robust",
+             _sd(spread, "pose.robust_test_attitude_deg")),
+            (f"{name.upper()} mean position error (m) at eps 0.01 / 0.05: robust model (ships) vs standard",
+             f"{pgd('robust')} vs {pgd('standard')}", "-", "robust", "-")]
+
+
+def _shipped_detector_rows(dr: dict[str, Any] | None, lab: dict[str, Any],
+                           spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
+    """The shipped chain's detector (robust model): its SHAP test accuracy, and the chain's clean false alarms on the
+    lab-like frames at its calibrated threshold (rows left out when not measured)."""
+    from pipeline.report.markdown import percent_ci
+
+    out = []
+    if dr:
+        out.append(("shipped chain's LSTM detector accuracy, SHAP test split (%), robust model",
+                    _with_ci(dr["detectors"]["lstm"]["all"], "accuracy"), "-", "detect_robust",
+                    _sd(spread, "detector.robust_lstm_accuracy_pct")))
+    s = lab.get("shipped")
+    if s:
+        out.append(("shipped chain (robust model): detector false alarms on clean lab-like frames (%)",
+                    f"{percent_ci(s['rate'], s['rate_ci95'], 2)} ({s['false_alarms']}/{s['frames']})", "-", "lab",
+                    _sd(spread, "lab.shipped_clean_false_alarm_pct")))
+    return out
 
 
 def _rate(r: dict[str, Any] | None) -> str:
@@ -120,8 +163,10 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
             (f"false alarms on clean frames between attacks at eps {e} (%)", "fpr", "-", "<= 0.5", None),
             ("false alarms on attack-free runs (%)", "fpr_clean", "-", "<= 0.5", "defended.clean_false_alarm_pct")]
     sd_column = {"sd over seeds, defended": None} if spread else {}
-    table = [{"result": name, "paper's detector (this run)": _rate(paper[key]),
-              f"defended chain ({fused['fusion']})": _rate(ours[key]), "paper": p, "target": t,
+    standard = fused.get("standard_per_eps", {}).get(e)
+    ours_col, std_col = f"defended chain ({fused['fusion']}), robust model (ships)", f"defended ({fused['fusion']}), standard model"
+    table = [{"result": name, "paper's detector, standard model (this run)": _rate(paper[key]),
+              std_col: _rate(standard[key]) if standard else "-", ours_col: _rate(ours[key]), "paper": p, "target": t,
               **{c: _sd(spread, sd) for c in sd_column}}
              for name, key, p, t, sd in rows]
     for dyn, variants in gd.get("defended", {}).get("dynamics", {}).items():
@@ -131,15 +176,16 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
             k, n = (sum(v[i] for v in variants[variant]["held"].values()) for i in (0, 1))
             return f"{wilson(k, n).pct()} ({k}/{n})"
 
-        table.append({"result": f"closed loop, attacked runs held (%), {dyn} dynamics: undefended vs "
-                                f"detect-and-recover (detect-and-hold: {held('hold')})",
-                      "paper's detector (this run)": held("undefended"),
-                      f"defended chain ({fused['fusion']})": held("recover"), "paper": "-", "target": ">= 95",
+        table.append({"result": f"closed loop, attacked runs held (%), {dyn} dynamics, detect-and-recover (robust "
+                                f"model: undefended {held('undefended')}, detect-and-hold {held('hold')})",
+                      "paper's detector, standard model (this run)": "-", std_col: "-", ours_col: held("recover"),
+                      "paper": "-", "target": ">= 95",
                       **{c: _sd(spread, "recover_held_pct" if dyn == "paper" else None, " %") for c in sd_column}})
-    return ("\n\nThe defended chain (motion check fused with the detector, recovery and hold) beside the "
-            "paper's detector, on the same frames and runs (95% intervals); the per-frame rows are the paper's view "
-            "(the raw estimate of each frame against a fixed threshold), the closed-loop rows count only the runs "
-            "that met the attack:\n\n" + markdown_table(table))
+    return ("\n\nThe defended chains (motion check fused with the detector, recovery and hold) beside the "
+            "paper's detector, on the same trajectories and attack schedule, each on its own model's frames (FGSM "
+            "crafted on that model; 95% intervals); the per-frame rows are the paper's view (the raw estimate of each "
+            "frame against a fixed threshold), the closed-loop rows count only the runs that met the attack:\n\n"
+            + markdown_table(table))
 
 
 
@@ -150,9 +196,10 @@ def _robustness_rows(m: dict[str, Any], spread: dict[str, Any] | None) -> list[t
     from pipeline.report.markdown import percent_ci
 
     out = []
-    for key, what, short in (("worst_harmful_undetected_fused", "fused chain (ships), nested burst attack", "fused"),
-                             ("worst_harmful_undetected", "paper's LSTM detector alone, any attack incl. adaptive",
-                              "lstm")):
+    for key, what, short in (("worst_harmful_undetected_fused", "fused chain (ships, robust model), nested burst attack",
+                              "fused"),
+                             ("worst_harmful_undetected", "the shipped chain's LSTM detector alone (robust model), any "
+                              "attack incl. adaptive", "lstm")):
         for e in ("0.05", "0.01"):
             w = m.get(key, {}).get(e)
             value = "-"
@@ -166,8 +213,9 @@ def _robustness_rows(m: dict[str, Any], spread: dict[str, Any] | None) -> list[t
 
 def _integrity_rows(rb: dict[str, Any], gd: dict[str, Any],
                     spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
-    """The integrity headline rows: the worst HMI a chain-level attack caused on the shipped chain at eps 0.01
-    and 0.05, availability without attack, and the in-loop attacker's collisions per variant ("-" where not run)."""
+    """The integrity headline rows: the worst HMI a chain-level attack caused on the shipped chain (robust model) at
+    eps 0.01 and 0.05, beside it on the standard model's chain (its attackers and trajectories), availability without
+    attack, and the in-loop attacker's collisions per variant on the shipped chain ("-" where not run)."""
     from pipeline.evaluation.stats import wilson
     from stages.pages.integrity import attacker_names
 
@@ -176,9 +224,15 @@ def _integrity_rows(rb: dict[str, Any], gd: dict[str, Any],
         w = integrity.get("worst_hmi", {}).get(e)
         value = "-" if w is None else f"{_rate(w['hmi'])} ({attacker_names(w['attacker'])})"
         out.append((f"integrity: worst HMI (%) a chain-level attack caused at eps {e} (trusted error > AL, "
-                    f"available), shipped chain", value, "-", "robustness", _sd(spread, f"integrity.worst_hmi_eps_{e.replace('.', '_')}_pct")))
+                    f"available), shipped chain (robust model)", value, "-", "robustness", _sd(spread, f"integrity.worst_hmi_eps_{e.replace('.', '_')}_pct")))
+    std = rb.get("integrity_standard", {})
+    for e in ("0.01", "0.05") if std.get("attackers") else ():
+        w = std.get("worst_hmi", {}).get(e)
+        out.append((f"integrity: worst HMI (%) at eps {e}, standard model's chain ({', '.join(std['attackers'])} on "
+                    f"{std['trajectories']} trajectories)", "-" if w is None else _rate(w["hmi"]), "-", "robustness",
+                    _sd(spread, f"integrity.standard_worst_hmi_{e.replace('.', '_')}_pct")))
     clean = integrity.get("clean")
-    out.append(("integrity: availability of the trusted estimate without attack (%)",
+    out.append(("integrity: availability of the trusted estimate without attack (%), shipped chain (robust model)",
                 "-" if clean is None else _rate(clean["availability"]), "-", "robustness", _sd(spread, "integrity.clean_availability_pct")))
     counts = gd.get("in_loop", {}).get("counts", {})
     cells = []
@@ -187,7 +241,7 @@ def _integrity_rows(rb: dict[str, Any], gd: dict[str, Any],
         k, n = sum(x[0] for x in c), sum(x[3] for x in c)
         cells.append("-" if not c else f"{wilson(k, n).pct()} ({k}/{n})")
     out.append(("closed loop, in-loop attacker at eps " + " and ".join(sorted({f"{r['eps']:g}" for r in
-                gd.get("in_loop", {}).get("runs", [])})) + ": collisions of attacked runs (%), undefended / "
-                "detect-and-hold / detect-and-recover", " / ".join(cells), "-", "guidance",
+                gd.get("in_loop", {}).get("runs", [])})) + ": collisions of attacked runs (%), shipped chain (robust "
+                "model), undefended / detect-and-hold / detect-and-recover", " / ".join(cells), "-", "guidance",
                 _sd(spread, "in_loop.recover_collisions_pct")))
     return out

@@ -1,5 +1,6 @@
-"""reports/robustness.md, the page of `rpod robustness`: the shipped chain against attacks
-its detector never saw, an attacker who knows it, a black-box surrogate, and benign corruptions."""
+"""reports/robustness.md, the page of `rpod robustness`: the shipped chain (robust model) against attacks
+its detector never saw, an attacker who knows it, a black-box surrogate, and benign corruptions; the integrity
+rows of the standard model's chain beside it, and the two pose models side by side."""
 from __future__ import annotations
 
 from typing import Any
@@ -37,10 +38,59 @@ def _meaning(rows: list[dict[str, Any]], what: str) -> str:
 
 def robustness_page(m: dict[str, Any], p: Params) -> str:
     """reports/robustness.md: results only (no times)."""
-    from stages.pages.integrity import integrity_section
+    from stages.pages.integrity import integrity_section, standard_integrity_section
 
-    return _intro(m, p) + integrity_section(m["integrity"], m["fused"], p) + _paper_view(m, p) + _fused(m, p) \
+    return _intro(m, p) + _models_section(m["pose_models"]) + integrity_section(m["integrity"], m["fused"], p) \
+        + standard_integrity_section(m["integrity_standard"], m["integrity"], p) + _paper_view(m, p) + _fused(m, p) \
         + _sections(m, p) + _corruptions(m)
+
+
+ATTACK_EPS = (0.01, 0.02, 0.05, 0.1)   # the eps of the standard-vs-robust table (issue 28)
+
+
+def pose_models(robust: dict[str, Any]) -> dict[str, Any]:
+    """metrics `pose_models`: per model (standard, robust) its clean test errors, training cost (image gradients)
+    and its position error under FGSM and PGD-50 at ATTACK_EPS, from reports/metrics/robust.json (`rpod train
+    --robust`)."""
+    out: dict[str, Any] = {"fine_tuned_from_standard": True, "eval_frames": robust.get("eval_frames")}
+    for name in ("standard", "robust"):
+        m = robust[name]
+        attacks = {f"{a['attack']} at eps {a['eps']:g}": {"position_m": a["pos_m"], "ci": a["pos_ci"]}
+                   for a in sorted(m["attacks"], key=lambda a: (a["eps"], a["attack"]))
+                   if a["attack"] != "clean" and a["eps"] in ATTACK_EPS}
+        out[name] = {"test_position_m": m["test"]["pos_mean_m"], "test_attitude_deg": m["test"]["att_mean_deg"],
+                     "gradients": m["gradients"], "attacks": attacks}
+    return out
+
+
+def _models_section(m: dict[str, Any]) -> str:
+    """The standard and the robust pose model side by side: clean, under FGSM and PGD-50, training cost."""
+    from pipeline.report.markdown import markdown_table
+
+    def attack(model: str, key: str) -> str:
+        a = m[model]["attacks"].get(key)
+        return "-" if a is None else f"{a['position_m']:.2f} [{a['ci'][0]:.2f}, {a['ci'][1]:.2f}]"
+
+    rows = [{"": "clean test position error, mean (m)", **{k: f"{m[k]['test_position_m']:.3f}" for k in MODELS}},
+            {"": "clean test attitude error, mean (deg)", **{k: f"{m[k]['test_attitude_deg']:.2f}" for k in MODELS}}]
+    rows += [{"": f"{key.upper().replace(' AT EPS', ' at eps')}: position error (m)", **{k: attack(k, key) for k in MODELS}}
+             for key in m["standard"]["attacks"]]
+    rows.append({"": "training cost (image gradients)", **{k: f"{m[k]['gradients']:,}" for k in MODELS}})
+    return f"""## The two pose models
+
+The **standard** model (models/pose.pt, `rpod train`) is the paper's reproduction; the **robust** model
+(models/pose_robust.pt, `rpod train --robust`: the same network behind a black-level clamp, fine-tuned from
+the standard one with PGD adversarial training) is the one that ships: every section of this page runs on
+the robust model's chain (its own detector and defense) except "Integrity of the standard model's chain".
+Attacks ascend each model's own position error on {m['eval_frames']} test frames (mean with 95% interval;
+reports/pose_robust.md has the attitude errors); the robust model's training cost counts its fine-tuning
+only (it also cost the standard model's).
+
+{markdown_table([{"measure": r[""], **{MODELS[k]: r[k] for k in MODELS}} for r in rows])}
+"""
+
+
+MODELS = {"standard": "standard (paper's reproduction)", "robust": "robust (ships)"}
 
 
 def _fused(m: dict[str, Any], p: Params) -> str:
@@ -73,8 +123,9 @@ def _intro(m: dict[str, Any], p: Params) -> str:
     """Title and the page's two views."""
     return f"""# Robustness of the safety chain (`rpod robustness`)
 
-Two views of the shipped chain under attack. The first section, **Integrity**, judges what the
-guidance flies on: the defended chain's trusted estimate over whole trajectories, against attackers
+The shipped chain is the robust pose model (models/pose_robust.pt) with its own detector
+(models/detector_robust.pt) and defense (models/defense.json). Two views of it under attack. The
+section **Integrity** judges what the guidance flies on: the defended chain's trusted estimate over whole trajectories, against attackers
 that know the chain and the defense with its state. The sections after it are **the paper's view**:
 frame by frame, the raw CNN estimate of each attacked frame against a fixed {m['harm_m']:g} m threshold.
 
@@ -93,8 +144,8 @@ def _paper_view(m: dict[str, Any], p: Params) -> str:
                             for k, v in sorted(m["worst_harmful_undetected"].items(), key=lambda kv: -float(kv[0])))
     return f"""## The paper's view: harmful and undetected frames
 
-The shipped chain (pose network -> closed-form SHAP -> LSTM detector, threshold {m['threshold']:.3f} from
-validation) on **{m['frames']} held-out test frames** (a seeded sample of the {m['test_frames']} test frames;
+The shipped chain (robust pose network -> closed-form SHAP -> its LSTM detector, threshold {m['threshold']:.3f}
+chosen on the SHAP validation samples) on **{m['frames']} held-out test frames** (a seeded sample of the {m['test_frames']} test frames;
 every attacked image is stored as 8-bit before the chain reads it), where the paper's safety number
 is the **harmful-undetected rate**: attacked frames whose position error exceeds **{m['harm_m']:g} m** and
 that the chain did not flag. Without any attack, {percent_ci(m['clean_harmful_rate'], m['ci95_clean_harmful'])}% of these
@@ -108,7 +159,8 @@ frame costs {m['gradients_per_frame']} gradient evaluations (every iterative att
 PGD (plain, adaptive and on the surrogate) takes {m['steps']} steps of 2.5 eps / steps from a random
 start; MI-FGSM takes `attack.steps` = {p.attack.steps} steps of eps / steps (momentum {p.attack.momentum:g}).
 
-The paper's view, worst harmful-undetected rate over the per-frame attacks run at each eps (LSTM alone):
+The paper's view, worst harmful-undetected rate over the per-frame attacks run at each eps (the robust model's
+LSTM alone):
 
 {worst_lines}
 
@@ -119,11 +171,11 @@ def _sections(m: dict[str, Any], p: Params) -> str:
     """One section per attack group (seen, transfer, adaptive, surrogate) with its table and meaning."""
     r = p.robustness
     groups = {g: [row for row in m["rows"] if row["group"] == g] for g in ("seen", "transfer", "adaptive", "surrogate")}
-    return f"""## The paper's detector alone (LSTM on SHAP, per frame)
+    return f"""## The shipped chain's detector alone (LSTM on the robust model's SHAP, per frame)
 
 ### The attack the detector was trained on (reference)
 
-FGSM on the training loss at the detector's own eps values.
+FGSM on the robust model's training loss at the detector's own eps values.
 
 {_table(groups['seen'])}
 {_meaning(groups['seen'], 'the training attack')}
@@ -152,7 +204,8 @@ exists, else an unflagged one, else the one with the largest error.
 Attacks crafted on a second pose model trained with seed {r.surrogate_seed} for at most {r.surrogate_epochs} epochs
 (`rpod train --surrogate`; best epoch {m['surrogate']['best_epoch']}, validation position error
 {m['surrogate']['validation_position_m']:.2f} m): fewer epochs than ours to fit the CPU budget, so a weaker
-surrogate than a real attacker would train. Evaluated on our chain.
+surrogate than a real attacker would train (and a standard, not adversarially trained, one). Evaluated on the
+shipped chain (robust model).
 
 {_table(groups['surrogate'])}
 {_meaning(groups['surrogate'], 'an attacker who cannot read our weights')}

@@ -1,0 +1,131 @@
+"""The two chains (issue 28): the chain that ships is the robust pose model with its own detector and defense,
+the paper's reproduction is the standard model with its own; every loader picks them by model (stages.artifacts.
+paths.CHAINS) and refuses a detector or defense made for the other model (hash checks). Tiny random models."""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from pipeline.formats.bundle import FILES, RUN_FILES
+from pipeline.formats.defense import DEFENSE_FORMAT
+from pipeline.io.atomic import file_hash, write_json
+from pipeline.io.errors import DataError
+from stages.artifacts.paths import CHAINS, PAPER, SHIPPED, Model
+from stages.config import params as params_mod
+from test_predict import H, W, _save_models
+
+
+def _run(root: Path) -> Path:
+    """ROOT/models as a run leaves it: the standard chain (pose.pt, detector.pt) and the robust one, whose pose
+    model has the black-level clamp (pose_robust.pt, detector_robust.pt), each detector made on its own model."""
+    models = root / "models"
+    _save_models(models)
+    robust = _save_models(root / "robust", black_level=0.07, seed=1)
+    for name in ("pose", "detector"):
+        shutil.copy(robust / f"{name}.pt", models / f"{name}_robust.pt")
+    return models
+
+
+def _defense(models: Path, pose: str, threshold: float) -> dict:
+    """A defense file as `rpod calibrate` records its model (only what the hash check reads is real)."""
+    return {"format": DEFENSE_FORMAT, "pose_model_hash": file_hash(models / pose), "detector_threshold": threshold}
+
+
+@pytest.fixture
+def run(tmp_path, monkeypatch) -> Path:
+    monkeypatch.chdir(tmp_path)
+    p = params_mod.compose("smoke")
+    p["render"]["width"], p["render"]["height"], p["train"]["width"] = W, H, 0.125
+    params_mod.write_params(p)
+    return _run(tmp_path)
+
+
+def test_the_shipped_chain_is_the_robust_model_and_the_paper_rows_the_standard_one():
+    assert SHIPPED == Model.robust and PAPER == Model.standard
+    assert (CHAINS[SHIPPED].pose, CHAINS[SHIPPED].detector, CHAINS[SHIPPED].defense) == (
+        Path("models/pose_robust.pt"), Path("models/detector_robust.pt"), Path("models/defense.json"))
+    assert (CHAINS[PAPER].pose, CHAINS[PAPER].detector, CHAINS[PAPER].defense) == (
+        Path("models/pose.pt"), Path("models/detector.pt"), Path("models/defense_standard.json"))
+    # the weights bundle and rpodguard read the shipped chain's files of a run by the same names
+    assert {n: Path("models") / RUN_FILES[n] for n in FILES} == {
+        "pose.pt": CHAINS[SHIPPED].pose, "detector.pt": CHAINS[SHIPPED].detector, "defense.json": CHAINS[SHIPPED].defense}
+
+
+def test_the_stage_loader_gives_each_model_its_own_chain(run):
+    from stages.artifacts.models import load_pose_chain
+
+    params = params_mod.load()
+    shipped, shipped_chain = load_pose_chain(params, SHIPPED)
+    paper, paper_chain = load_pose_chain(params, PAPER)
+    assert shipped.hash == file_hash(run / "pose_robust.pt") and paper.hash == file_hash(run / "pose.pt")
+    assert shipped.model.black_level == 0.07 and paper.model.black_level == 0
+    x = torch.rand(2, 3, H, W)
+    assert not torch.equal(shipped_chain(x).pose, paper_chain(x).pose)
+
+
+def test_a_detector_of_the_other_model_is_refused(run):
+    from stages.artifacts.models import load_pose_chain
+
+    shutil.copy(run / "detector.pt", run / "detector_robust.pt")     # the standard model's detector
+    with pytest.raises(DataError, match="detector_robust.pt was trained for pose checkpoint"):
+        load_pose_chain(params_mod.load(), SHIPPED)
+
+
+def test_each_defense_file_belongs_to_its_own_chain(run):
+    from stages.artifacts.models import load_chain, load_defense
+
+    params = params_mod.load()
+    chains = {m: load_chain(params, m) for m in Model}
+    write_json(run / "defense.json", _defense(run, "pose_robust.pt", chains[SHIPPED][0].threshold))
+    write_json(run / "defense_standard.json", _defense(run, "pose.pt", chains[PAPER][0].threshold))
+    for model, (chain, _, model_hash) in chains.items():   # past the hash check, a stub file has no noise model
+        with pytest.raises(DataError, match=f"{CHAINS[model].defense}: bad calibration"):
+            load_defense(params, model_hash, chain.threshold, model)
+    shutil.copy(run / "defense_standard.json", run / "defense.json")
+    with pytest.raises(DataError, match="defense.json was calibrated for another pose model"):
+        load_defense(params, chains[SHIPPED][2], chains[SHIPPED][0].threshold, SHIPPED)
+
+
+def test_rpodguard_and_rpod_predict_load_the_shipped_chain_of_a_run(run):
+    from rpodguard import load_chain
+
+    for folder in (run, run.parent):                     # models/, or the project root holding it
+        chain = load_chain(folder)
+        assert chain.files == (run / "pose_robust.pt", run / "detector_robust.pt")
+        assert chain.safety.model.black_level == 0.07
+    only_standard = run.parent / "standard"
+    only_standard.mkdir()
+    for name in ("pose.pt", "detector.pt"):
+        shutil.copy(run / name, only_standard / name)
+    assert load_chain(only_standard).files == (only_standard / "pose.pt", only_standard / "detector.pt")
+
+
+def test_the_bundle_script_copies_the_shipped_chain(run):
+    from pipeline.formats.bundle import write_bundle
+    from rpodguard import load_chain
+
+    write_json(run / "defense.json", {"pose_model_hash": file_hash(run / "pose_robust.pt")})
+    manifest = write_bundle(run.parent / "bundle", run, {"profile_name": "smoke"}, "0" * 40, [], "rebuild")
+    assert manifest["sources"]["pose.pt"] == "models/pose_robust.pt"
+    assert file_hash(run.parent / "bundle" / "pose.pt") == file_hash(run / "pose_robust.pt")
+    assert load_chain(run.parent / "bundle").safety.model.black_level == 0.07
+    write_json(run / "defense.json", {"pose_model_hash": file_hash(run / "pose.pt")})
+    with pytest.raises(DataError, match="calibrated for another pose model"):
+        write_bundle(run.parent / "bundle2", run, {}, "0" * 40, [], "rebuild")
+
+
+def test_the_guidance_plan_flies_the_paper_grid_on_the_paper_chain_and_the_rest_on_the_shipped_one():
+    from pipeline.guidance.grid import GridPlan, InLoopRun
+    from pipeline.guidance.law import GuidanceSettings
+
+    s = GuidanceSettings(max_steps=70)
+    plan = GridPlan(s, ((0.5, 40, 5, s.window(40, 5)),), 10, ("paper", "true_state"), ("recover",),
+                    ((0.05, "collide", 20.0),))
+    runs = plan.runs()
+    assert {r[0] for r in runs[:plan.paper_size]} == {"paper"}
+    assert {r[0] for r in runs[plan.paper_size:]} == {"shipped"}
+    assert ("shipped", "paper", "undefended", None) in runs                      # its own undefended reference
+    assert [r for r in runs if isinstance(r[3], InLoopRun)] == plan.in_loop_runs() and len(set(runs)) == len(runs)
