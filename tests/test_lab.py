@@ -198,7 +198,8 @@ def test_rescale_command_prints_the_synthetic_range(monkeypatch):
 
 
 def stand_in_models(p):
-    """Untrained stand-ins for models/pose.pt and models/detector.pt (in the current folder)."""
+    """Untrained stand-ins for both chains (in the current folder): models/pose.pt and models/detector.pt (the
+    standard model), models/pose_robust.pt (with the black-level clamp) and models/detector_robust.pt."""
     import torch
 
     from pipeline.detectors.lstm import LSTMConfig, LSTMDetector, to_checkpoint
@@ -209,16 +210,18 @@ def stand_in_models(p):
 
     torch.manual_seed(0)
     h, w = p.render.height, p.render.width
-    model = PoseNet(width=p.train.width, dropout=p.train.dropout).eval()
-    model.set_output_bias((0.0, 0.0, 30.0), (1, 0, 0, 0, 1, 0))
-    save_pose("models/pose.pt", model, PoseLoss(), (h, w), {})
-    with torch.no_grad():
-        feats = model.forward_features(torch.rand(8, 3, h, w))
-    det = LSTMDetector(LSTMConfig(hidden=8, dense=[4]))
-    det.set_normalisation((feats - feats.mean(0)).unsqueeze(1).repeat(1, 9, 1).numpy())
-    torch.save(to_checkpoint(det, {"format": "rpodguard-detector/1", "pose_model_hash": file_hash("models/pose.pt"),
-                                   "background_mean": feats.mean(0), "background_size": 8, "shap_method": "exact"}),
-               "models/detector.pt")
+    for suffix, black_level in (("", 0.0), ("_robust", float(p.train.adversarial.black_level))):
+        model = PoseNet(width=p.train.width, dropout=p.train.dropout, black_level=black_level).eval()
+        model.set_output_bias((0.0, 0.0, 30.0), (1, 0, 0, 0, 1, 0))
+        save_pose(f"models/pose{suffix}.pt", model, PoseLoss(), (h, w), {})
+        with torch.no_grad():
+            feats = model.forward_features(torch.rand(8, 3, h, w))
+        det = LSTMDetector(LSTMConfig(hidden=8, dense=[4]))
+        det.set_normalisation((feats - feats.mean(0)).unsqueeze(1).repeat(1, 9, 1).numpy())
+        torch.save(to_checkpoint(det, {"format": "rpodguard-detector/1",
+                                       "pose_model_hash": file_hash(f"models/pose{suffix}.pt"),
+                                       "background_mean": feats.mean(0), "background_size": 8, "shap_method": "exact"}),
+                   f"models/detector{suffix}.pt")
 
 
 @pytest.mark.slow
@@ -240,8 +243,8 @@ def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
     assert out.exit_code != 0 and "eval_render" in str(out.exception)       # renders not there yet
     assert runner.invoke(app, ["eval_render"]).exit_code == 0
     out = runner.invoke(app, ["evaluate"])
-    assert out.exit_code != 0 and "models/defense.json not found" in str(out.exception)   # not calibrated yet
-    for args in (["calibrate"], ["evaluate"], ["lab_models"], ["lab"]):
+    assert out.exit_code != 0 and "not found" in str(out.exception) and "calibrate" in str(out.exception)
+    for args in (["calibrate", "--model", "standard"], ["calibrate"], ["evaluate"], ["lab_models"], ["lab"]):
         out = runner.invoke(app, args)
         assert out.exit_code == 0, (args, out.output, out.exception)
     cal = json.loads((tmp_path / "models/defense.json").read_text())
@@ -289,7 +292,7 @@ def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, mo
     threads = torch.get_num_threads()
     out = CliRunner().invoke(app, ["lab"])
     assert out.exit_code != 0 and "lab_models" in str(out.exception)      # not trained yet
-    for args in (["lab_models"], ["lab"]):
+    for args in (["eval_render"], ["calibrate"], ["lab_models"], ["lab"]):   # lab reads the shipped chain's threshold
         out = CliRunner().invoke(app, args)
         assert out.exit_code == 0, (args, out.output, out.exception)
     assert torch.get_num_threads() == threads
