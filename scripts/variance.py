@@ -189,12 +189,24 @@ not a result. "runs" counts the runs that produced the number (a run may stop af
 Written by `scripts/variance.py`, with reports/variance.json (read by `rpod report` to show the spread
 beside the headline numbers in README.md).
 
-{table}{_isa_section(runs, seeds, isas)}"""
+{_unmet_note(runs, seeds, isas)}{table}{_isa_section(runs, seeds, isas)}"""
     spread = {"profile": profile, "seeds": seeds, "isas": isas,
               "numbers": {r["key"]: {k: r[k] for k in ("runs", "mean", "sd", "min", "max")} for r in rows}}
     atomic_write_text(ROOT / "reports" / "variance.json", json.dumps(spread, indent=1) + "\n")
     atomic_write_text(ROOT / "reports" / "variance.md", text)
     print(text)
+
+
+def _unmet_note(runs: list[Path], seeds: list[str], isas: list[str]) -> str:
+    """One line per run whose calibration missed its target and carried on (`defense.allow_unmet`), from the
+    `unmet` list `rpod calibrate` records in each defense file (models/defense*.json); "" when none did."""
+    lines = []
+    for run, seed, isa in zip(runs, seeds, isas):
+        for path in sorted((run / "models").glob("defense*.json")):
+            for line in json.loads(path.read_text()).get("unmet") or []:
+                lines.append(f"- seed {seed}, {isa}: {path.name}: {line.split('; set defense.allow_unmet')[0]} "
+                             "(the run went on with `defense.allow_unmet: true`)")
+    return "Calibrations that missed their target:\n\n" + "\n".join(lines) + "\n\n" if lines else ""
 
 
 def _isa_note(isas: list[str]) -> str:

@@ -84,6 +84,10 @@ def test_readme_results_show_the_spread_of_each_headline_number():
     for i, k in enumerate(keys):
         assert any(f"{1.01 + 0.01 * i:.2f}{note} (3 seeds)" in text for note in ("", " %", " at eps 0.05")), k
     assert "sd over seeds" not in summary_tables(metrics)
+    mixed = dict(spread, seeds=["0", "1", "2", "0"], isas=["AVX2", "AVX2", "AVX2", "AVX512"])
+    text = summary_tables(metrics, mixed)
+    assert "differ only in `seed` (0, 1, 2) and in torch's CPU kernels (AVX2, AVX512)" in text
+    assert "(3 runs)" in text and "(3 seeds)" not in text
 
 
 def test_a_spread_of_another_profile_is_not_shown(tmp_path, monkeypatch):
@@ -138,3 +142,19 @@ def test_runs_of_two_instruction_sets_make_a_seed_by_isa_table(tmp_path, monkeyp
     text = (tmp_path / "reports/variance.md").read_text()
     assert "## Seed x instruction set" in text and "| seed 0, AVX512" in text
     assert json.loads((tmp_path / "reports/variance.json").read_text())["isas"] == isas
+
+
+def test_a_run_whose_calibration_missed_its_target_is_named(tmp_path):
+    import json
+
+    ok, missed = tmp_path / "ok", tmp_path / "missed"
+    for run in (ok, missed):
+        (run / "models").mkdir(parents=True)
+        (run / "models" / "defense.json").write_text(json.dumps({"unmet": []}))
+    (missed / "models" / "defense_standard.json").write_text(json.dumps({"unmet": [
+        "calibrate: the fused chain flags 0.520% of 5000 clean validation frames, above defense.target_false_alarm "
+        "0.5%, although each check met its share; set defense.allow_unmet: true to continue anyway"]}))
+    note = _load()._unmet_note([ok, missed], ["0", "2"], ["AVX2", "AVX2"])
+    assert "seed 2, AVX2: defense_standard.json: calibrate: the fused chain flags 0.520%" in note
+    assert "seed 0" not in note and note.count("\n- ") == 1
+    assert _load()._unmet_note([ok], ["0"], ["AVX2"]) == ""

@@ -33,7 +33,8 @@ def _sd(spread: dict[str, Any] | None, key: str | None, note: str = "") -> str:
     got = (spread or {}).get("numbers", {}).get(key or "")
     if not got or not isinstance(got.get("sd"), (int, float)):
         return "-"
-    return f"{got['sd']:.{3 if abs(got['sd']) < 0.1 else 2}f}{note} ({got['runs']} seeds)"
+    unit = "runs" if len(set((spread or {}).get("isas") or [])) > 1 else "seeds"
+    return f"{got['sd']:.{3 if abs(got['sd']) < 0.1 else 2}f}{note} ({got['runs']} {unit})"
 
 
 def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | None = None) -> str:
@@ -91,8 +92,12 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
     per_eps = ("Detection accuracy per eps (correct flags over all frames; 95% intervals by a bootstrap over the "
                "trajectories):")
     if spread:
+        isas = sorted(set(spread.get("isas") or []))
+        seeds = ", ".join(sorted(set(spread["seeds"]), key=str))
+        what = (f"differ only in `seed` ({seeds}) and in torch's CPU kernels ({', '.join(isas)})" if len(isas) > 1
+                else "differ only in `seed`")
         head += (f" The last column is the standard deviation of the number over {len(spread['seeds'])} runs that "
-                 "differ only in `seed` (reports/variance.md); a difference smaller than about twice it is noise.")
+                 f"{what} (reports/variance.md); a difference smaller than about twice it is noise.")
     return (f"{head}\n\n{table}\n{per_eps}\n\n{markdown_table(eps_rows)}"
             + defended_table(ev, gd, spread))
 
