@@ -49,3 +49,18 @@ def test_errors():
     q2 = matrix_to_quat(quat_to_matrix(q) @ euler_to_matrix(np.array([0, 0, 7.0])))
     assert np.allclose(attitude_error_deg(q2, q), 7.0, atol=1e-6)
     assert np.allclose(position_error(np.array([[3.0, 4, 0]]), np.zeros((1, 3))), 5.0)
+
+
+def test_ray_rotation_takes_the_optical_axis_onto_the_ray_and_allocentric_round_trips():
+    from pipeline.geometry.allocentric import ray_rotation, to_allocentric, to_egocentric
+
+    rng = np.random.default_rng(0)
+    t = np.concatenate([rng.normal(0, 5, (50, 2)), rng.uniform(10, 60, (50, 1))], 1)
+    t[0] = (0.0, 0.0, 30.0)                                               # on the axis: identity
+    Rr = ray_rotation(t)
+    assert np.allclose(Rr @ np.array([0.0, 0.0, 1.0]), t / np.linalg.norm(t, axis=1, keepdims=True))
+    assert np.allclose(Rr @ np.swapaxes(Rr, 1, 2), np.eye(3)) and np.allclose(np.linalg.det(Rr), 1.0)
+    assert np.allclose(Rr[0], np.eye(3))
+    R = sixd_to_matrix(rng.normal(size=(50, 6)))
+    assert np.allclose(to_egocentric(to_allocentric(R, t), t), R)
+    assert not np.allclose(to_allocentric(R[1:], t[1:]), R[1:])          # off the axis it differs
