@@ -75,6 +75,9 @@ def main(epochs: int | None = None) -> None:
     from stages.config.device import torch_setup
 
     os.chdir(ROOT)
+    missing = [str(p) for p in (POSE, Path("datasets/labels.parquet")) if not (ROOT / p).exists()]
+    if missing:   # before ten minutes of training, not after
+        raise SystemExit(f"allocentric trial: {', '.join(missing)} not found: run `dvc repro train` first")
     params = params_mod.load()
     device = torch_setup(params)
     cfg = train_config(params.train, epochs or params.train.epochs, params.seed + SEED_OFFSET["train"])
