@@ -21,7 +21,8 @@ Defense (`GuidanceSettings.defense`, the chain inside the loop; pipeline/defense
   AL: the defense cannot bound its error within what the guidance absorbs; the Defense's
   `alert_limit`, pipeline/defense/fusion.py).
 A hold sends no command: the chaser stays where it is and keeps its camera pointing. The defense
-gets the commanded displacement of `rel` (-cmd, or 0 in a hold) to drive its motion filter.
+gets the displacement of `rel` (-cmd, or 0 in a hold; in the paper variant the believed point minus
+its trusted estimate) to drive its motion filter.
 A run lasts `max_steps` steps (the nominal approach 60 m -> 10 m takes 50); it is judged at the
 end: within `tolerance` of the goal or not. It stops early when the target's centre leaves the
 image ("target lost"). The attack starts at the first step whose true range is at or below S
