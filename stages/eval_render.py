@@ -38,20 +38,39 @@ from pipeline.io.atomic import atomic_dir, write_json
 from pipeline.io.tables import write_parquet
 
 
-def trajectories(p: Params, seed: int, count: int, frames: int | None = None) -> list[Any]:
-    """`count` evaluation approaches from `seed`: lateral start offsets |x|, |y| uniform in
-    evaluate.lateral_range, random signs, `frames` (default evaluate.frames) frames each."""
-    from pipeline.geometry.trajectories import projectile_trajectory
+def trajectories(p: Params, seed: int, count: int, frames: int | None = None,
+                 envelope: str | None = None) -> list[Any]:
+    """`count` approaches from `seed`, `frames` (default evaluate.frames) frames each.
 
+    envelope None: the evaluation trajectories of the spec: lateral start offsets |x|, |y| uniform in
+    evaluate.lateral_range with random signs, projectile paths, the target at rest (identity attitude).
+    envelope "detector" or "validation": the operational envelope the pose network was trained for, so that
+    a detector or a threshold fitted on them has seen every kind of clean view: x, y uniform in
+    +-max(evaluate.lateral_range), and the paths cycle through projectile and straight (the training
+    sequences' shape, seen obliquely), each with the target at rest and turned by up to
+    render.max_target_rotation_deg about each axis; turned once per path ("validation": the motion filter
+    needs a target that holds its attitude) or afresh every frame ("detector": single images, as the
+    rotating training sequences). Until issue 27's envelope fix both were drawn like the evaluation ones:
+    the detector then flagged 46% of clean pose-test frames (oblique and turned views it had never seen).
+    """
+    from pipeline.geometry.trajectories import approach_trajectory
+
+    if envelope not in (None, "detector", "validation"):
+        raise ValueError(f"envelope must be None, 'detector' or 'validation', got {envelope!r}")
     e, r = p.evaluate, p.render
     rng = np.random.default_rng(seed)
     lo, hi = e.lateral_range
     out = []
     for i in range(count):
-        xy = rng.uniform(lo, hi, 2) * rng.choice([-1.0, 1.0], 2)
-        out.append(projectile_trajectory(frames or e.frames, (float(xy[0]), float(xy[1])), float(r.start_range),
-                                         float(r.end_range), seed=seed + 1 + i,
-                                         jitter_deg=float(r.pointing_jitter_deg), max_rot_deg=0.0, sequence=i))
+        if envelope is None:
+            xy, path, rot = rng.uniform(lo, hi, 2) * rng.choice([-1.0, 1.0], 2), "projectile", 0.0
+        else:
+            xy, path = rng.uniform(-hi, hi, 2), ("projectile", "straight")[i % 2]
+            rot = float(r.max_target_rotation_deg) if i % 4 >= 2 else 0.0
+        out.append(approach_trajectory(frames or e.frames, (float(xy[0]), float(xy[1])), float(r.start_range),
+                                       float(r.end_range), seed=seed + 1 + i,
+                                       jitter_deg=float(r.pointing_jitter_deg), max_rot_deg=rot, sequence=i,
+                                       path=path, tumbling=envelope == "detector"))
     return out
 
 
@@ -70,11 +89,11 @@ def main(
     K, scene, es = intrinsics(params), scene_settings(params.render), engine_settings(params)
     d, e, s = params.defense, params.evaluate, params.shap
     if detector:
-        sets = [(DETECT_RENDER, trajectories(params, s.seed, detector_trajectories(params), s.frames),
+        sets = [(DETECT_RENDER, trajectories(params, s.seed, detector_trajectories(params), s.frames, "detector"),
                  detect_render_fingerprint(params))]
     else:
         sets = [(EVAL_RENDER, trajectories(params, e.seed, e.trajectories), eval_render_fingerprint(params)),
-                (VAL_RENDER, trajectories(params, d.val_seed, d.val_trajectories), val_render_fingerprint(params))]
+                (VAL_RENDER, trajectories(params, d.val_seed, d.val_trajectories, envelope="validation"), val_render_fingerprint(params))]
     timings: dict[str, Any] = {}
     with engine.session(es):
         for folder, seqs, fingerprint in sets:

@@ -79,14 +79,15 @@ def main(params: Params) -> None:
     t0 = time.perf_counter()
     rows = run_attack_rows(chain, images, targets, specs, r.harm_m, r.batch_size, progress,
                            pgd_is_lambda0="pgd" in r.transfer and 0.0 in r.lambdas)
-    clean_harm, corruptions = _corruption_rows(chain, images, targets, r, seed, progress)
+    shipped_threshold = load_defense(params, pose.hash, chain.threshold, SHIPPED).settings.threshold
+    clean_harm, corruptions = _corruption_rows(chain, images, targets, r, seed, shipped_threshold, progress)
     bar.close()
     fused = _integrity(params, r, (chain, target, pose.hash), seed, SHIPPED)
     standard = _standard_integrity(params, r, seed)
     seconds, figure = time.perf_counter() - t0, fused.pop("figure")
     metrics = {"rows": rows, "corruptions": corruptions, "frames": n, "test_frames": n_test, "harm_m": r.harm_m,
                "steps": r.steps, "gradients_per_frame": sum(s.cost for s in specs), "lambdas": r.lambdas,
-               "eps": r.eps, "threshold": chain.threshold,
+               "eps": r.eps, "threshold": chain.threshold, "shipped_threshold": shipped_threshold,
                "clean_harmful_rate": clean_harm.value, "ci95_clean_harmful": clean_harm.ci(),
                "surrogate": {"best_epoch": int(surrogate.meta.get("epoch", 0)),
                              "validation_position_m": float(surrogate.meta.get("val_pos_m", float("nan")))},
@@ -128,8 +129,9 @@ def _specs(p: Params, r: Robustness, target: Any, pose: Pose, surrogate: Pose, s
 
 
 def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Robustness, seed: int,
-                     progress: Any) -> tuple[Any, list[dict[str, Any]]]:
-    """(rate of clean frames beyond harm_m, corruption rows: `none` first, then each corruption and strength)."""
+                     shipped_threshold: float, progress: Any) -> tuple[Any, list[dict[str, Any]]]:
+    """(rate of clean frames beyond harm_m, corruption rows: `none` first, then each corruption and strength;
+    false alarms at the detector's own threshold and at the shipped one, models/defense.json's)."""
     from pipeline.defense.chain import run_sequence
     from pipeline.attacks.corruptions import corrupt
     from pipeline.evaluation.robustness import corruption_row
@@ -139,11 +141,12 @@ def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Rob
     none = np.zeros(len(images), bool)
     clean = run_sequence(chain, images, targets, none, None, r.batch_size, progress)
     clean_pos = pose_errors(clean.pose, targets)[0]
-    rows = [corruption_row("none", 0.0, clean_pos, clean.flag)]
+    rows = [corruption_row("none", 0.0, clean_pos, clean.flag, clean.prob >= shipped_threshold)]
     for name, strengths in dataclasses.asdict(r.corruptions).items():
         for s in strengths:
             res = run_sequence(chain, corrupt(name, s, seed)(images), targets, none, None, r.batch_size, progress)
-            rows.append(corruption_row(name, s, pose_errors(res.pose, targets)[0], res.flag))
+            rows.append(corruption_row(name, s, pose_errors(res.pose, targets)[0], res.flag,
+                                       res.prob >= shipped_threshold))
     return rate(clean_pos > r.harm_m), rows
 
 

@@ -9,7 +9,7 @@ from pipeline.defense.gate import MotionSettings
 from pipeline.defense.kalman import MotionFilter
 from pipeline.defense.noise import NoiseModel, fit_noise
 from pipeline.evaluation.stats import rate
-from pipeline.geometry.trajectories import look_at, projectile_trajectory
+from pipeline.geometry.trajectories import look_at, approach_trajectory
 
 NOISE = NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02)
 
@@ -19,7 +19,7 @@ def simulate(settings: MotionSettings, n: int, seed: int, start_xy=(20.0, -15.0)
     commands executed with an error of the configured size; estimates with the noise model's errors
     along the camera axes. -> (rel (n, 3), t_pred, R_cam, u, R_pred)."""
     rng = np.random.default_rng(seed)
-    plan = projectile_trajectory(n, start_xy, seed=seed).rel
+    plan = approach_trajectory(n, start_xy, seed=seed).rel
     u = np.vstack([np.zeros(3), np.diff(plan, axis=0)])
     rel = np.zeros((n, 3))
     rel[0] = plan[0]

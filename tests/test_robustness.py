@@ -150,12 +150,16 @@ def test_rows_refuse_nan_and_shape_mismatch() -> None:
     with pytest.raises(ValueError, match="NaN"):
         attack_row("fgsm", "seen", 0.1, np.array([1.0, np.nan]), np.zeros(2, bool), 1.0)
     with pytest.raises(ValueError, match="equal"):
-        corruption_row("blur", 1.0, np.ones(3), np.zeros(2, bool))
+        corruption_row("blur", 1.0, np.ones(3), np.zeros(2, bool), np.zeros(3, bool))
+    with pytest.raises(ValueError, match="equal"):
+        corruption_row("blur", 1.0, np.ones(3), np.zeros(3, bool), np.zeros(2, bool))
 
 
 def test_corruption_row_false_alarms() -> None:
-    row = corruption_row("jpeg", 40, np.array([0.1, 0.2, 0.3, 0.4]), np.array([0, 1, 0, 0], bool))
+    row = corruption_row("jpeg", 40, np.array([0.1, 0.2, 0.3, 0.4]), np.array([0, 1, 0, 0], bool),
+                         np.array([0, 0, 0, 0], bool))
     assert row["false_alarm_rate"] == pytest.approx(0.25)
+    assert row["shipped_false_alarm_rate"] == 0.0
     assert row["ci95_false_alarm"] == pytest.approx(list(_wilson(1, 4)), abs=1e-9)
     assert row["position_error_m"] == pytest.approx(0.25)
 
@@ -324,11 +328,11 @@ def test_a_temporal_chain_plugs_in_and_is_attacked_over_the_burst(setup) -> None
 def test_burst_schedule_and_world_motion() -> None:
     from pipeline.evaluation.robustness import burst_schedule, world_motion
     from pipeline.geometry.rotations import matrix_to_6d
-    from pipeline.geometry.trajectories import projectile_trajectory
+    from pipeline.geometry.trajectories import approach_trajectory
 
     assert burst_schedule(20, 5, 8) == [(8, 13)]
     assert burst_schedule(30, 5, 8) == [(8, 13), (16, 21), (24, 29)]
-    s = projectile_trajectory(30, (10.0, -12.0), seed=1, jitter_deg=1.0)
+    s = approach_trajectory(30, (10.0, -12.0), seed=1, jitter_deg=1.0)
     R_cam, u = world_motion(np.hstack([s.t, matrix_to_6d(s.R)]))
     assert np.allclose(R_cam, s.R_cam, atol=1e-9)
     assert np.allclose(u[1:], np.diff(s.rel, axis=0), atol=1e-9)

@@ -4,7 +4,7 @@ import pytest
 from pipeline.geometry.rotations import matrix_to_quat
 from pipeline.pose.metrics import attitude_error_deg
 from pipeline.geometry.trajectories import (FIXED_STARTS, ROTATING_STARTS, approach_sequences, look_at, pose_in_camera,
-                                   projectile_trajectory)
+                                   approach_trajectory)
 
 
 def angle_deg(a, b):
@@ -66,8 +66,8 @@ def test_bad_arguments():
         approach_sequences(10, jitter_deg=50)
 
 
-def test_projectile_trajectory():
-    s = projectile_trajectory(201, (20.0, -18.0), 60.0, 10.0, seed=0, jitter_deg=1.0)
+def test_approach_trajectory():
+    s = approach_trajectory(201, (20.0, -18.0), 60.0, 10.0, seed=0, jitter_deg=1.0)
     assert len(s) == 201
     assert np.allclose(s.rel[0], [20, -18, 60]) and np.allclose(s.rel[-1], [0, 0, 10])
     assert np.allclose(np.diff(s.rel[:, 2]), -0.25)  # uniform z steps (0.25 m per frame here)
@@ -76,3 +76,40 @@ def test_projectile_trajectory():
     steps = -np.diff(lateral)
     assert steps[0] > 10 * steps[-1]  # bends in like a parabola: fast at first, flat on arrival
     assert np.all(angle_deg(s.t, np.array([0, 0, 1.0])) <= np.sqrt(2) + 1e-6)
+
+
+def test_straight_path_and_target_attitude_modes():
+    s = approach_trajectory(101, (20.0, -10.0), 60.0, 10.0, seed=0, path="straight")
+    assert np.allclose(s.rel[0], [20, -10, 60]) and np.allclose(s.rel[-1], [0, 0, 10])
+    assert np.allclose(np.diff(s.rel, axis=0), np.diff(s.rel, axis=0)[0])   # a straight line in equal steps
+    fixed = approach_trajectory(50, (5.0, 5.0), seed=1, max_rot_deg=10.0)
+    tumbling = approach_trajectory(50, (5.0, 5.0), seed=1, max_rot_deg=10.0, tumbling=True)
+    assert np.allclose(fixed.R_target, fixed.R_target[0]) and not np.allclose(fixed.R_target[0], np.eye(3))
+    assert attitude_error_deg(matrix_to_quat(tumbling.R_target[:-1]), matrix_to_quat(tumbling.R_target[1:])).min() > 0.1
+    with pytest.raises(ValueError, match="path"):
+        approach_trajectory(50, (5.0, 5.0), path="spiral")
+
+
+def test_detector_and_validation_splits_span_the_training_envelope():
+    """Issue 27: a detector (or threshold) fitted only on the evaluation's kind of approach (projectile paths,
+    target at rest) flagged 46% of clean pose-test frames; its split now spans the training sequences' views."""
+    from stages.config import params as params_mod
+    from stages.eval_render import trajectories
+
+    p = params_mod.build(params_mod.compose("default"))
+    lo, hi = p.evaluate.lateral_range
+    spec = trajectories(p, 1000, 8, 20)
+    assert all(lo <= abs(v) <= hi for s in spec for v in s.rel[0, :2])
+    assert all(np.allclose(s.R_target, np.eye(3)) for s in spec)
+    for envelope in ("detector", "validation"):
+        seqs = trajectories(p, 3000, 8, 20, envelope)
+        starts = np.array([s.rel[0, :2] for s in seqs])
+        assert np.all(np.abs(starts) <= hi) and np.abs(starts).min() < lo     # offsets from 0 to the widest
+        straight = [np.allclose(np.diff(s.rel[:, :2], axis=0), np.diff(s.rel[:2, :2], axis=0)) for s in seqs]
+        assert any(straight) and not all(straight)
+        turned = [not np.allclose(s.R_target, np.eye(3)) for s in seqs]
+        assert any(turned) and not all(turned)
+        per_frame = [not np.allclose(s.R_target, s.R_target[0]) for s in seqs]
+        assert any(per_frame) == (envelope == "detector")      # the filter's validation target holds its attitude
+    with pytest.raises(ValueError, match="envelope"):
+        trajectories(p, 1, 1, 20, "lab")

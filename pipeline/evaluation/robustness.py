@@ -70,12 +70,17 @@ def attack_row(attack: str, group: str, eps: float, position_error: np.ndarray, 
             "harmful_rate": harmful.value, "ci95_harmful": harmful.ci()}
 
 
-def corruption_row(corruption: str, strength: float, position_error: np.ndarray, flag: np.ndarray) -> dict[str, Any]:
-    """One benign corruption's row: false-alarm rate with its Wilson 95% interval, mean position error (m)."""
+def corruption_row(corruption: str, strength: float, position_error: np.ndarray, flag: np.ndarray,
+                   shipped_flag: np.ndarray) -> dict[str, Any]:
+    """One benign corruption's row: the false-alarm rates of the detector at its own threshold (`flag`) and at
+    the threshold the shipped chain flies with (`shipped_flag`), each with its Wilson 95% interval, and the
+    mean position error (m)."""
     pos, flag = _check(position_error, flag)
-    fa = rate(flag)
+    _, shipped_flag = _check(position_error, shipped_flag)
+    fa, shipped = rate(flag), rate(shipped_flag)
     return {"corruption": corruption, "strength": float(strength), "n": int(pos.size), "false_alarm_rate": fa.value,
-            "ci95_false_alarm": fa.ci(), "position_error_m": float(pos.mean())}
+            "ci95_false_alarm": fa.ci(), "shipped_false_alarm_rate": shipped.value,
+            "ci95_shipped_false_alarm": shipped.ci(), "position_error_m": float(pos.mean())}
 
 
 def worst_over_lambda(position_errors: Sequence[np.ndarray], flags: Sequence[np.ndarray],

@@ -75,11 +75,14 @@ def _jittered_cameras(rel: np.ndarray, jitter_deg: float, rng: np.random.Generat
 
 
 def _sequence(seq_id: int, rel: np.ndarray, jitter_deg: float, max_rot_deg: float,
-              rng: np.random.Generator) -> Sequence:
+              rng: np.random.Generator, tumbling: bool = True) -> Sequence:
+    """The frames of one path `rel`: jittered cameras, and a target attitude uniform in +-max_rot_deg about
+    each target axis, drawn afresh every frame (`tumbling`, the training sequences) or once for the path."""
     n = len(rel)
     R_cam = _jittered_cameras(rel, jitter_deg, rng)
     if max_rot_deg > 0:
-        R_target = euler_to_matrix(rng.uniform(-max_rot_deg, max_rot_deg, size=(n, 3)))
+        angles = rng.uniform(-max_rot_deg, max_rot_deg, size=(n if tumbling else 1, 3))
+        R_target = np.broadcast_to(euler_to_matrix(angles), (n, 3, 3)).copy()
     else:
         R_target = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
     R, t = pose_in_camera(rel, R_cam, R_target)
@@ -118,22 +121,31 @@ def approach_sequences(frames_per_sequence: int, start_range: float = 60.0, end_
     return out
 
 
-def projectile_trajectory(n_frames: int, start_xy: tuple[float, float], start_range: float = 60.0,
-                          end_range: float = 10.0, seed: int = 0, jitter_deg: float = 0.0,
-                          max_rot_deg: float = 0.0, sequence: int = 0) -> Sequence:
-    """An evaluation approach: uniform z steps from start_range to end_range while the
-    lateral offset decays along a parabola, xy(s) = start_xy * (1 - s)^2 for s in [0, 1], so the path
-    bends in like a projectile and arrives at (0, 0, end_range) with zero lateral velocity.
-    Camera pointing (optional jitter) and target attitude (optional random rotation) as in
-    `approach_sequences`; seeded.
+PATHS = ("projectile", "straight")
+
+
+def approach_trajectory(n_frames: int, start_xy: tuple[float, float], start_range: float = 60.0,
+                        end_range: float = 10.0, seed: int = 0, jitter_deg: float = 0.0,
+                        max_rot_deg: float = 0.0, sequence: int = 0, path: str = "projectile",
+                        tumbling: bool = False) -> Sequence:
+    """A fresh approach: uniform z steps from start_range to end_range (metres) while the lateral offset
+    goes from start_xy to 0, arriving at (0, 0, end_range). `path` "projectile" (the evaluation
+    trajectories): xy(s) = start_xy * (1 - s)^2 for s in [0, 1], bending in with zero lateral velocity at
+    the end; "straight": xy(s) = start_xy * (1 - s), a straight line as in the training sequences (seen
+    obliquely until the end). Camera pointing (optional jitter, degrees) as in `approach_sequences`;
+    target attitude uniform in +-max_rot_deg about each axis, fixed for the path or, with `tumbling`,
+    drawn afresh every frame (as the rotating training sequences). Seeded.
     """
     _check(n_frames, start_range, end_range, jitter_deg)
+    if path not in PATHS:
+        raise ValueError(f"path must be one of {PATHS}, got {path!r}")
     rng = np.random.default_rng(seed)
     s = np.linspace(0.0, 1.0, n_frames)
-    xy = np.asarray(start_xy, dtype=np.float64)[None, :] * (1 - s[:, None]) ** 2
+    decay = (1 - s) ** 2 if path == "projectile" else 1 - s
+    xy = np.asarray(start_xy, dtype=np.float64)[None, :] * decay[:, None]
     z = start_range + s * (end_range - start_range)
     rel = np.column_stack([xy, z])
-    return _sequence(sequence, rel, jitter_deg, max_rot_deg, rng)
+    return _sequence(sequence, rel, jitter_deg, max_rot_deg, rng, tumbling)
 
 
 def poses_table(idx: np.ndarray, seq: np.ndarray, frm: np.ndarray, R: np.ndarray, t: np.ndarray):

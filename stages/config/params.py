@@ -38,6 +38,11 @@ def compose(profile: str = "default", overrides: list[str] | None = None) -> dic
     return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
 
 
+# The trajectory generator of the validation and detector splits (stages/eval_render.py `trajectories`): in the
+# fingerprints of those renders, so a render made before the operational-envelope draw (issue 27) is refused.
+ENVELOPE = "operational-envelope-1"
+
+
 def render_key(params: Params) -> dict[str, Any]:
     """The `render` params as fingerprints hash them: unset external inputs (null or inputs/none) as
     null and an unset SPEED source left out (the mapping params.yaml holds: stages.config.schema)."""
@@ -72,7 +77,8 @@ def val_render_fingerprint(params: Params) -> str:
     e, d = params.evaluate, params.defense
     return fingerprint({"seed": params.seed, "camera": dataclasses.asdict(params.camera), "render": render_key(params),
                         "evaluate": {"frames": e.frames, "lateral_range": e.lateral_range},
-                        "defense": {"val_trajectories": d.val_trajectories, "val_seed": d.val_seed}})
+                        "defense": {"val_trajectories": d.val_trajectories, "val_seed": d.val_seed},
+                        "envelope": ENVELOPE})
 
 
 def detect_render_fingerprint(params: Params) -> str:
@@ -80,7 +86,8 @@ def detect_render_fingerprint(params: Params) -> str:
     s = params.shap
     return fingerprint({"seed": params.seed, "camera": dataclasses.asdict(params.camera), "render": render_key(params),
                         "evaluate": {"lateral_range": params.evaluate.lateral_range},
-                        "shap": {"frames": s.frames, "seed": s.seed, "trajectories": detector_trajectories(params)}})
+                        "shap": {"frames": s.frames, "seed": s.seed, "trajectories": detector_trajectories(params)},
+                        "envelope": ENVELOPE})
 
 
 def detector_trajectories(params: Params) -> int:
