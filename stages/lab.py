@@ -178,7 +178,7 @@ def main(params: Params, ctx: typer.Context) -> None:
 def shipped_alarms(p: Params, sequences: list[Sequence]) -> dict[str, Any]:
     """The chain that ships (robust model, its detector, the detector threshold of models/defense.json) on every
     clean lab frame: its false alarms (Wilson interval over frames: optimistic, frames of a sequence are
-    correlated; and per sequence), mean pose errors (m, deg; synthetic-frame metres), and the share of the frames'
+    correlated; and per sequence), the median and largest detector probability (the margin to the threshold), mean pose errors (m, deg; synthetic-frame metres), and the share of the frames'
     non-zero channel values that its black-level clamp erases (the lab's noise and blur lift them off zero)."""
     from pipeline.defense.chain import run_sequence
     from pipeline.evaluation.stats import rate
@@ -193,7 +193,9 @@ def shipped_alarms(p: Params, sequences: list[Sequence]) -> dict[str, Any]:
     pos, att = (np.concatenate(e) for e in zip(*(pose_errors(res.pose, s.targets) for res, s in zip(runs, sequences))))
     values = np.concatenate([s.images[s.images > 0] for s in sequences]).astype(np.float64) / 255
     r = rate(np.concatenate(flags))
+    probs = np.concatenate([res.prob for res in runs]).astype(np.float64)
     return {"model": SHIPPED.value, "model_hash": model_hash, "threshold": threshold, "frames": int(r.n),
+            "probability_median": float(np.median(probs)), "probability_max": float(probs.max()),
             "false_alarms": int(np.concatenate(flags).sum()), "rate": r.value, "rate_ci95": r.ci(),
             "per_sequence": {s.name: int(f.sum()) for s, f in zip(sequences, flags)}, "position_m": float(pos.mean()),
             "attitude_deg": float(att.mean()), "black_level": level,

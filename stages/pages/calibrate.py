@@ -9,13 +9,15 @@ SETTING = {"detector": "threshold {:.4g}", "attitude gate": "attitude noise infl
            "gate": "position noise inflation x{:g}", "sequential test": "CUSUM threshold h = {:g}"}
 
 
-def unmet_line(check: Any, frames: int, reached: float | None = None, target: float | None = None) -> str:
+def unmet_line(check: Any, frames: int, reached: float | None = None, target: float | None = None,
+               tightened: int = 0) -> str:
     """One line: `check` (a pipeline.defense.calibration.CheckResult; None: the fused chain, which
-    `reached` a rate above `target`) could not meet its share on `frames` clean validation frames."""
+    `reached` a rate above `target` after its shares were tightened `tightened` times) could not meet its
+    share on `frames` clean validation frames."""
     if check is None:
         return (f"calibrate: the fused chain flags {100 * reached:.3f}% of {frames} clean validation frames, above "
-                f"defense.target_false_alarm {100 * target:g}%, although each check met its share; set "
-                f"defense.allow_unmet: true to continue anyway")
+                f"defense.target_false_alarm {100 * target:g}%, although each check met its share (tightened "
+                f"{tightened} times); set defense.allow_unmet: true to continue anyway")
     best = min(check.rates.values())
     return (f"calibrate: the {check.check} cannot meet its share {100 * check.share:.3f}% of "
             f"defense.target_false_alarm on {frames} clean validation frames: it flags {100 * best:.3f}% at best "
@@ -27,6 +29,8 @@ def summary_line(cal: dict[str, Any], path: Path) -> str:
     v = cal["validation"]
     fa = v["false_alarms"]
     unmet = f"; UNMET (defense.allow_unmet): {len(cal['unmet'])} check(s)" if cal["unmet"] else ""
+    if "tightened" in cal:
+        unmet += f"; shares tightened x{cal['tightened']['shares_scale']:.3g} (the fused chain overshot at x1)"
     return (f"calibrate: {v['frames']} clean validation frames; detector threshold {cal['threshold']:.4g}, noise x"
             f"{cal['inflation']:g} (attitude x{cal['attitude_inflation']:g}), CUSUM h {cal['cusum_threshold']:g}; false alarms detector {fa['detector']['pct']:.3f}%, "
             f"gate {fa['gate']['pct']:.3f}%, sequential {fa['sequential']['pct']:.3f}%, fused {fa['fused']['pct']:.3f}% "

@@ -189,7 +189,9 @@ ships is the robust model (`models/pose_robust.pt`, hash `{s['model_hash']}`) be
 (t = {s['black_level']:g}: channel values below it go to 0) with its own detector at the threshold `rpod calibrate`
 chose on clean validation trajectories ({s['threshold']:.4f}, models/defense.json). On the same lab frames without
 any attack it flags **{s['false_alarms']} of {s['frames']} frames, {percent_ci(s['rate'], s['rate_ci95'], 2)}%** (Wilson
-interval over frames, optimistic: frames of a sequence are correlated; per sequence: {per}); its mean pose error
+interval over frames, optimistic: frames of a sequence are correlated; per sequence: {per}); the detector's
+probability on these frames has median {s['probability_median']:.3f} and maximum {s['probability_max']:.4f}, against the
+threshold {s['threshold']:.4f} (a count of 0 with a wide margin is a result; at a narrow one it is luck). Its mean pose error
 is {s['position_m']:.3f} m and {s['attitude_deg']:.2f} deg. The clamp erases {erased} of these frames' non-zero
 channel values (the loader's segmentation sets the background to 0 before resizing, so these are the target's
 dark pixels and its edges blended by the resize). The motion filter needs the chaser's commanded motion, which the lab recordings do not carry, so this is
