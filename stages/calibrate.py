@@ -4,7 +4,9 @@ models/defense.json; the standard model's (the paper's reproduction, stage `cali
 integrity and defended rows beside the shipped chain's) -> models/defense_standard.json.
 
 Runs the safety chain clean over the validation approaches `rpod eval_render` rendered into
-datasets/val_render/ (seed `defense.val_seed`, never the evaluation seed), fits the pose model's
+datasets/val_render/ (seed `defense.val_seed`, never the evaluation seed; the same kind of mission as the
+evaluation's) and over the frames of datasets/val_envelope/ (every kind of clean view the pose network was
+trained for: the detector's threshold must meet its share on both), fits the pose model's
 range-dependent measurement noise and bias (`pipeline.defense.noise.fit_noise`, `defense.noise_bins`
 range bins), then sets each check to its own share (`defense.shares`) of the false-alarm budget
 `defense.target_false_alarm` (pipeline/defense/calibration.py): the detector's threshold (a quantile of
@@ -30,7 +32,7 @@ from pipeline.formats.defense import DEFENSE_FORMAT
 from pipeline.io.atomic import write_json
 from pipeline.pose.labels import TARGET
 from stages.artifacts.paths import CHAINS, Model
-from stages.artifacts.readers import chaser_motion, read_eval_render
+from stages.artifacts.readers import chaser_motion, read_eval_render, read_val_envelope
 from stages.artifacts.models import load_chain, model_option
 from stages.config.build import alert_limit_settings, defense_settings
 from stages.config.device import torch_setup
@@ -57,8 +59,10 @@ def main(params: Params, model: ModelOption = Model.robust) -> None:
     d = params.defense
     torch_setup(params)
     images, poses, _ = read_eval_render(params, validation=True)
+    envelope = read_val_envelope(params)
     chain, _, model_hash = load_chain(params, model)
     pose, prob = _chain_outputs(chain, images, params.evaluate.batch_size)
+    _, envelope_prob = _chain_outputs(chain, envelope, params.evaluate.batch_size)
     targets = poses[TARGET].to_numpy(np.float32)
     fitted = _fit_noise(targets, pose, d.noise_bins, len(images))
     R_cam, u = chaser_motion(poses)
@@ -66,7 +70,7 @@ def main(params: Params, model: ModelOption = Model.robust) -> None:
     runs = [CleanRun(pose[i], prob[i], R_cam[i], u[i]) for i in groups]
     truths = [poses[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64)[i] for i in groups]
     alert = alert_limit_settings(params)
-    c = calibrate_to_target(params, chain.threshold, fitted, runs, prob, truths, alert)
+    c = calibrate_to_target(params, chain.threshold, fitted, runs, (prob, envelope_prob), truths, alert)
     checks, settings, motion, noise, final = c.checks, c.settings, c.motion, c.noise, c.final
     unmet = [unmet_line(check, len(images)) for check in checks if not check.met]
     if final["fused"].value > d.target_false_alarm:
@@ -79,7 +83,7 @@ def main(params: Params, model: ModelOption = Model.robust) -> None:
            "settings": {**dataclasses.asdict(settings), **dataclasses.asdict(motion)},
            "alert_limit": dataclasses.asdict(alert), "unmet": unmet,
            **({"tightened": {"shares_scale": c.scale, "before": c.tightened}} if c.tightened else {}),
-           "validation": _validation(params, len(images), checks, final)}
+           "validation": _validation(params, len(images), checks, final, envelope_prob)}
     out = CHAINS[model].defense
     write_json(out, cal)
     typer.echo(summary_line(cal, out))
@@ -132,8 +136,8 @@ class Calibrated(NamedTuple):
     tightened: list[dict[str, Any]]  # each overshooting attempt: its scale and fused false alarms (%)
 
 
-def calibrate_to_target(params: Params, threshold: float, fitted: Any, runs: list[Any], prob: np.ndarray,
-                        truths: list[np.ndarray], alert: Any) -> Calibrated:
+def calibrate_to_target(params: Params, threshold: float, fitted: Any, runs: list[Any],
+                        prob: tuple[np.ndarray, ...], truths: list[np.ndarray], alert: Any) -> Calibrated:
     """Every check to its share (`calibrate_checks`), then the fused chain on the clean validation runs; when
     it flags more than defense.target_false_alarm although each check met its share (a rejected frame leaves
     the filter to coast, which can raise the next innovations), every share is tightened by the overshoot
@@ -157,16 +161,18 @@ def calibrate_to_target(params: Params, threshold: float, fitted: Any, runs: lis
 
 
 def calibrate_checks(params: Params, settings: Any, motion: Any, fitted: Any, runs: list[Any],
-                      prob: np.ndarray, scale: float = 1.0) -> tuple[list[Any], Any, Any]:
+                      prob: tuple[np.ndarray, ...], scale: float = 1.0) -> tuple[list[Any], Any, Any]:
     """The detector, the gate (its attitude test, then both) and the sequential test, each to its
     share (times `scale` <= 1, when the fused chain overshot the target), in that order (each later one
-    with the earlier ones' settings); an unmet share stops here unless defense.allow_unmet."""
+    with the earlier ones' settings); an unmet share stops here unless defense.allow_unmet. The detector's
+    threshold meets its share on every set of clean probabilities in `prob` (the validation runs' frames,
+    then the envelope's): the highest of their thresholds."""
     from pipeline.defense.calibration import detector_threshold, gate_inflation, sequential_threshold
     from pipeline.defense.noise import inflate
 
     d = params.defense
-    budget, shares, frames = d.target_false_alarm * scale, d.shares, len(prob)
-    detector = detector_threshold(prob, shares.detector * budget)
+    budget, shares, frames = d.target_false_alarm * scale, d.shares, len(prob[0])
+    detector = max((detector_threshold(p, shares.detector * budget) for p in prob), key=lambda c: c.setting)
     _refuse(unmet_line(detector, frames), d.allow_unmet or detector.met)
     doubt = None if settings.update_below is None else min(settings.update_below, detector.setting)
     settings = dataclasses.replace(settings, threshold=detector.setting, update_below=doubt)
@@ -188,14 +194,18 @@ def _alert_fn(alert: Any) -> Any:
     return partial(alert_limit, settings=alert)
 
 
-def _validation(params: Params, frames: int, checks: list[Any], final: dict[str, Any]) -> dict[str, Any]:
-    """defense.json's record of the validation frames: each check's calibration and the fused chain."""
+def _validation(params: Params, frames: int, checks: list[Any], final: dict[str, Any],
+                envelope_prob: np.ndarray) -> dict[str, Any]:
+    """defense.json's record of the validation frames: each check's calibration and the fused chain, and the
+    detector's false alarms on the envelope frames at its threshold."""
     d = params.defense
 
     def pct(r: Any) -> dict[str, Any]:
         return {"pct": round(100 * r.value, 4), "ci95_pct": [round(100 * v, 4) for v in r.ci()]}
 
+    alarms = float(np.mean(envelope_prob >= checks[0].setting))
     return {"trajectories": d.val_trajectories, "seed": d.val_seed, "frames": frames,
+            "envelope": {"frames": int(envelope_prob.size), "detector_pct": round(100 * alarms, 4)},
             "target_pct": 100 * d.target_false_alarm,
             "checks": {c.check: {"setting": c.setting, "share_pct": round(100 * c.share, 4),
                                  "reached_pct": round(100 * c.reached, 4), "met": c.met,

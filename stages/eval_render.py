@@ -27,10 +27,11 @@ import typer
 
 from pipeline.pose.labels import pose_columns
 from stages.artifacts.dvc import write_metrics
-from stages.artifacts.paths import DETECT_RENDER, DETECT_RENDER_METRICS, EVAL_RENDER, EVAL_RENDER_METRICS, VAL_RENDER
+from stages.artifacts.paths import DETECT_RENDER, DETECT_RENDER_METRICS, EVAL_RENDER, EVAL_RENDER_METRICS, VAL_ENVELOPE, \
+    VAL_RENDER
 from stages.config.build import engine_settings, intrinsics, scene_settings
 from stages.config.params import detect_render_fingerprint, detector_trajectories, eval_render_fingerprint, \
-    val_render_fingerprint
+    val_envelope_fingerprint, val_render_fingerprint
 from stages.config.schema import Params
 from stages.engine import pool as engine
 from stages.engine.chunks import render_to_store, store_url
@@ -38,39 +39,39 @@ from pipeline.io.atomic import atomic_dir, write_json
 from pipeline.io.tables import write_parquet
 
 
-def trajectories(p: Params, seed: int, count: int, frames: int | None = None,
-                 envelope: str | None = None) -> list[Any]:
+# seed of the envelope validation frames: defense.val_seed + this, so they share no draw with datasets/val_render
+ENVELOPE_SEED_OFFSET = 500
+
+
+def trajectories(p: Params, seed: int, count: int, frames: int | None = None, envelope: bool = False) -> list[Any]:
     """`count` approaches from `seed`, `frames` (default evaluate.frames) frames each.
 
-    envelope None: the evaluation trajectories of the spec: lateral start offsets |x|, |y| uniform in
-    evaluate.lateral_range with random signs, projectile paths, the target at rest (identity attitude).
-    envelope "detector" or "validation": the operational envelope the pose network was trained for, so that
-    a detector or a threshold fitted on them has seen every kind of clean view: x, y uniform in
-    +-max(evaluate.lateral_range), and the paths cycle through projectile and straight (the training
-    sequences' shape, seen obliquely), each with the target at rest and turned by up to
-    render.max_target_rotation_deg about each axis; turned once per path ("validation": the motion filter
-    needs a target that holds its attitude) or afresh every frame ("detector": single images, as the
-    rotating training sequences). Until issue 27's envelope fix both were drawn like the evaluation ones:
-    the detector then flagged 46% of clean pose-test frames (oblique and turned views it had never seen).
+    The evaluation trajectories of the spec (and the defense's validation ones, the same kind of mission):
+    lateral start offsets |x|, |y| uniform in evaluate.lateral_range with random signs, projectile paths,
+    the target at rest (identity attitude). With `envelope`: the views the pose network was trained for, so
+    that a detector, or a detector threshold, fitted on them has seen every kind of clean view: x, y uniform
+    in +-max(evaluate.lateral_range), the paths cycling through projectile and straight (the training
+    sequences' shape, seen obliquely), each with the target at rest and turned afresh every frame by up to
+    render.max_target_rotation_deg about each axis (as the rotating training sequences). Until issue 27's
+    envelope fix the detector split was drawn like the evaluation trajectories, and the shipped detector at
+    its calibrated threshold flagged 46% of clean pose-test frames (oblique and turned views it had never seen).
     """
     from pipeline.geometry.trajectories import approach_trajectory
 
-    if envelope not in (None, "detector", "validation"):
-        raise ValueError(f"envelope must be None, 'detector' or 'validation', got {envelope!r}")
     e, r = p.evaluate, p.render
     rng = np.random.default_rng(seed)
     lo, hi = e.lateral_range
     out = []
     for i in range(count):
-        if envelope is None:
-            xy, path, rot = rng.uniform(lo, hi, 2) * rng.choice([-1.0, 1.0], 2), "projectile", 0.0
-        else:
+        if envelope:
             xy, path = rng.uniform(-hi, hi, 2), ("projectile", "straight")[i % 2]
             rot = float(r.max_target_rotation_deg) if i % 4 >= 2 else 0.0
+        else:
+            xy, path, rot = rng.uniform(lo, hi, 2) * rng.choice([-1.0, 1.0], 2), "projectile", 0.0
         out.append(approach_trajectory(frames or e.frames, (float(xy[0]), float(xy[1])), float(r.start_range),
                                        float(r.end_range), seed=seed + 1 + i,
                                        jitter_deg=float(r.pointing_jitter_deg), max_rot_deg=rot, sequence=i,
-                                       path=path, tumbling=envelope == "detector"))
+                                       path=path, tumbling=envelope))
     return out
 
 
@@ -79,9 +80,10 @@ def main(
     detector: Annotated[bool, typer.Option("--detector", help="Render the detector split instead "
                                            "(datasets/detect_render: shap.seed, shap.frames per trajectory).")] = False,
 ) -> None:
-    """Render the fresh evaluation trajectories into datasets/eval_render/ and the defense's
-    validation trajectories into datasets/val_render/, fanned out over `engine.workers` Blender scenes;
-    with --detector the detector split into datasets/detect_render/.
+    """Render the fresh evaluation trajectories into datasets/eval_render/, the defense's validation
+    trajectories (the same kind of mission) into datasets/val_render/ and validation frames over the whole
+    envelope (for the detector threshold) into datasets/val_envelope/, fanned out over `engine.workers`
+    Blender scenes; with --detector the detector split into datasets/detect_render/.
 
     Params: `evaluate.trajectories`, `frames`, `lateral_range`, `seed`; `defense.val_trajectories`,
     `val_seed`; `shap.frames`, `seed` (--detector); `render`/`camera`; and `engine` (workers, Ray cluster address).
@@ -89,11 +91,13 @@ def main(
     K, scene, es = intrinsics(params), scene_settings(params.render), engine_settings(params)
     d, e, s = params.defense, params.evaluate, params.shap
     if detector:
-        sets = [(DETECT_RENDER, trajectories(params, s.seed, detector_trajectories(params), s.frames, "detector"),
+        sets = [(DETECT_RENDER, trajectories(params, s.seed, detector_trajectories(params), s.frames, envelope=True),
                  detect_render_fingerprint(params))]
     else:
         sets = [(EVAL_RENDER, trajectories(params, e.seed, e.trajectories), eval_render_fingerprint(params)),
-                (VAL_RENDER, trajectories(params, d.val_seed, d.val_trajectories, envelope="validation"), val_render_fingerprint(params))]
+                (VAL_RENDER, trajectories(params, d.val_seed, d.val_trajectories), val_render_fingerprint(params)),
+                (VAL_ENVELOPE, trajectories(params, d.val_seed + ENVELOPE_SEED_OFFSET, d.val_trajectories, envelope=True),
+                 val_envelope_fingerprint(params))]
     timings: dict[str, Any] = {}
     with engine.session(es):
         for folder, seqs, fingerprint in sets:

@@ -152,13 +152,13 @@ def test_calibrate_refuses_an_unreachable_share_with_one_line() -> None:
     runs = _jumpy_runs()
     prob = np.concatenate([r.prob for r in runs])
     with pytest.raises(StageError) as e:
-        calibrate_checks(p, DefenseSettings(), MOTION, NOISE, runs, prob)
+        calibrate_checks(p, DefenseSettings(), MOTION, NOISE, runs, (prob,))
     message = str(e.value)
     assert "\n" not in message and message.startswith("calibrate: the gate cannot meet its share 0.200% of "
                                                       "defense.target_false_alarm on 800 clean validation frames")
     assert "at best (position noise inflation x8)" in message and "defense.allow_unmet" in message
     allow = dataclasses.replace(p, defense=dataclasses.replace(p.defense, allow_unmet=True))
-    checks, settings, motion = calibrate_checks(allow, DefenseSettings(), MOTION, NOISE, runs, prob)
+    checks, settings, motion = calibrate_checks(allow, DefenseSettings(), MOTION, NOISE, runs, (prob,))
     assert [c.check for c in checks if not c.met] == ["gate"] and motion.cusum_threshold == checks[3].setting
     assert settings.threshold == checks[0].setting
 

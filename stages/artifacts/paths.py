@@ -51,8 +51,11 @@ DETECTOR_ROBUST, DETECT_ROBUST_REPORT, DETECT_ROBUST_METRICS, DETECT_ROBUST_LIVE
     "detect_robust", "models/detector_robust.pt", "reports/detector_robust.md", "reports/metrics/detect_robust.json",
     "dvclive/detect_robust")
 ROC_DATA = DETECT_LIVE / "plots" / "sklearn"   # DVCLive's log_sklearn_plot("roc", name=D): D.json per detector
-EVAL_RENDER, VAL_RENDER, EVAL_RENDER_METRICS = _outputs("eval_render", "datasets/eval_render", "datasets/val_render",
-                                                        "reports/metrics/eval_render.json")
+# the evaluation trajectories, the defense's validation ones (the mission's kind) and validation frames over the
+# pose network's whole envelope (the detector threshold must hold on every kind of clean view)
+EVAL_RENDER, VAL_RENDER, VAL_ENVELOPE, EVAL_RENDER_METRICS = _outputs(
+    "eval_render", "datasets/eval_render", "datasets/val_render", "datasets/val_envelope",
+    "reports/metrics/eval_render.json")
 # the detector split (`rpod eval_render --detector`): the images `rpod shap` explains, never seen in training
 DETECT_RENDER, DETECT_RENDER_METRICS = _outputs("detect_render", "datasets/detect_render",
                                                 "reports/metrics/detect_render.json")

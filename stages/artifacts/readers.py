@@ -18,8 +18,9 @@ import numpy as np
 from pipeline.formats.renders import read_renders
 from pipeline.io.store import open_zarr
 from pipeline.pose.labels import POSITION, SIXD
-from stages.artifacts.paths import DETECT_RENDER, EVAL_RENDER, POSE, VAL_RENDER
-from stages.config.params import detect_render_fingerprint, eval_render_fingerprint, val_render_fingerprint
+from stages.artifacts.paths import DETECT_RENDER, EVAL_RENDER, POSE, VAL_ENVELOPE, VAL_RENDER
+from stages.config.params import detect_render_fingerprint, eval_render_fingerprint, val_envelope_fingerprint, \
+    val_render_fingerprint
 from stages.config.schema import Params
 from stages.errors import StageError
 
@@ -46,6 +47,14 @@ def read_eval_render(p: Params, validation: bool = False) -> tuple[np.ndarray, A
                                                                                    eval_render_fingerprint(p))
     r = _trajectory_renders(folder, fingerprint, "rpod eval_render", "eval_render", "evaluation")
     return r.images[:], r.poses, r.meta
+
+
+def read_val_envelope(p: Params) -> np.ndarray:
+    """The envelope validation frames (`rpod eval_render` -> datasets/val_envelope): images (N, H, W, 3) uint8,
+    checked against the current params; the detector's calibration reads them beside datasets/val_render."""
+    r = _trajectory_renders(VAL_ENVELOPE, val_envelope_fingerprint(p), "rpod eval_render", "eval_render",
+                            "envelope validation")
+    return r.images[:]
 
 
 def read_detect_render(p: Params) -> tuple[Any, Any, dict[str, Any]]:

@@ -38,8 +38,8 @@ def compose(profile: str = "default", overrides: list[str] | None = None) -> dic
     return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
 
 
-# The trajectory generator of the validation and detector splits (stages/eval_render.py `trajectories`): in the
-# fingerprints of those renders, so a render made before the operational-envelope draw (issue 27) is refused.
+# The envelope trajectory generator (stages/eval_render.py `trajectories`) of the detector split and the envelope
+# validation frames: in the fingerprints of those renders, so a render made before it (issue 27) is refused.
 ENVELOPE = "operational-envelope-1"
 
 
@@ -74,6 +74,14 @@ def eval_render_fingerprint(params: Params) -> str:
 
 def val_render_fingerprint(params: Params) -> str:
     """Hash of the params that decide the defense's validation images (datasets/val_render)."""
+    e, d = params.evaluate, params.defense
+    return fingerprint({"seed": params.seed, "camera": dataclasses.asdict(params.camera), "render": render_key(params),
+                        "evaluate": {"frames": e.frames, "lateral_range": e.lateral_range},
+                        "defense": {"val_trajectories": d.val_trajectories, "val_seed": d.val_seed}})
+
+
+def val_envelope_fingerprint(params: Params) -> str:
+    """Hash of the params that decide the envelope validation images (datasets/val_envelope)."""
     e, d = params.evaluate, params.defense
     return fingerprint({"seed": params.seed, "camera": dataclasses.asdict(params.camera), "render": render_key(params),
                         "evaluate": {"frames": e.frames, "lateral_range": e.lateral_range},

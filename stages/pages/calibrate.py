@@ -34,6 +34,7 @@ def summary_line(cal: dict[str, Any], path: Path) -> str:
     return (f"calibrate: {v['frames']} clean validation frames; detector threshold {cal['threshold']:.4g}, noise x"
             f"{cal['inflation']:g} (attitude x{cal['attitude_inflation']:g}), CUSUM h {cal['cusum_threshold']:g}; false alarms detector {fa['detector']['pct']:.3f}%, "
             f"gate {fa['gate']['pct']:.3f}%, sequential {fa['sequential']['pct']:.3f}%, fused {fa['fused']['pct']:.3f}% "
+            f"(detector on {v['envelope']['frames']} envelope frames {v['envelope']['detector_pct']:.3f}%) "
             f"(target {v['target_pct']:g}%); availability {v['availability']['pct']:.2f}%{unmet} -> {path}")
 
 
