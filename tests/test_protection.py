@@ -210,8 +210,12 @@ def test_calibrate_tightens_every_share_when_only_the_fusion_overshoots(monkeypa
     monkeypatch.setattr("pipeline.defense.noise.inflate", lambda noise, k, k_att: noise)
     out = cal.calibrate_to_target(p, 0.5, NOISE, [], np.zeros(0), [], None)
     assert out.final["fused"].value == pytest.approx(0.0045)
-    assert scales == pytest.approx([1.0, 0.5 / 0.6, 0.5 / 0.6 * 0.5 / 0.55])
+    assert scales == pytest.approx([1.0, cal.TIGHTEN_STEP, cal.TIGHTEN_STEP ** 2])   # at least a step each time
     assert [t["fused_pct"] for t in out.tightened] == [0.6, 0.55] and out.scale == pytest.approx(scales[-1])
+    scales.clear()
+    fused = iter([0.02, 0.004])                                                     # a large overshoot: x 0.25
+    cal.calibrate_to_target(p, 0.5, NOISE, [], np.zeros(0), [], None)
+    assert scales == pytest.approx([1.0, 0.25])
 
     scales.clear()
     fused = iter([0.006] * (cal.TIGHTEN_TRIES + 1))
