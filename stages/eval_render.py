@@ -71,7 +71,7 @@ def trajectories(p: Params, seed: int, count: int, frames: int | None = None, en
         out.append(approach_trajectory(frames or e.frames, (float(xy[0]), float(xy[1])), float(r.start_range),
                                        float(r.end_range), seed=seed + 1 + i,
                                        jitter_deg=float(r.pointing_jitter_deg), max_rot_deg=rot, sequence=i,
-                                       path=path, tumbling=envelope))
+                                       path=path))
     return out
 
 

@@ -178,8 +178,9 @@ def main(params: Params, ctx: typer.Context) -> None:
 def shipped_alarms(p: Params, sequences: list[Sequence]) -> dict[str, Any]:
     """The chain that ships (robust model, its detector, the detector threshold of models/defense.json) on every
     clean lab frame: its false alarms (Wilson interval over frames: optimistic, frames of a sequence are
-    correlated; and per sequence), the median and largest detector probability (the margin to the threshold), mean pose errors (m, deg; synthetic-frame metres), and the share of the frames'
-    non-zero channel values that its black-level clamp erases (the lab's noise and blur lift them off zero)."""
+    correlated; and per sequence), the median and largest detector probability (the margin to the threshold),
+    mean pose errors (m, deg; synthetic-frame metres), and the share of the frames' non-zero channel values that
+    its black-level clamp erases (the lab's noise and blur lift them off zero)."""
     from pipeline.defense.chain import run_sequence
     from pipeline.evaluation.stats import rate
     from pipeline.pose.metrics import pose_errors

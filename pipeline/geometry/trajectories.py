@@ -75,14 +75,11 @@ def _jittered_cameras(rel: np.ndarray, jitter_deg: float, rng: np.random.Generat
 
 
 def _sequence(seq_id: int, rel: np.ndarray, jitter_deg: float, max_rot_deg: float,
-              rng: np.random.Generator, tumbling: bool = True) -> Sequence:
-    """The frames of one path `rel`: jittered cameras, and a target attitude uniform in +-max_rot_deg about
-    each target axis, drawn afresh every frame (`tumbling`, the training sequences) or once for the path."""
+              rng: np.random.Generator) -> Sequence:
     n = len(rel)
     R_cam = _jittered_cameras(rel, jitter_deg, rng)
     if max_rot_deg > 0:
-        angles = rng.uniform(-max_rot_deg, max_rot_deg, size=(n if tumbling else 1, 3))
-        R_target = np.broadcast_to(euler_to_matrix(angles), (n, 3, 3)).copy()
+        R_target = euler_to_matrix(rng.uniform(-max_rot_deg, max_rot_deg, size=(n, 3)))
     else:
         R_target = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
     R, t = pose_in_camera(rel, R_cam, R_target)
@@ -126,15 +123,13 @@ PATHS = ("projectile", "straight")
 
 def approach_trajectory(n_frames: int, start_xy: tuple[float, float], start_range: float = 60.0,
                         end_range: float = 10.0, seed: int = 0, jitter_deg: float = 0.0,
-                        max_rot_deg: float = 0.0, sequence: int = 0, path: str = "projectile",
-                        tumbling: bool = False) -> Sequence:
+                        max_rot_deg: float = 0.0, sequence: int = 0, path: str = "projectile") -> Sequence:
     """A fresh approach: uniform z steps from start_range to end_range (metres) while the lateral offset
     goes from start_xy to 0, arriving at (0, 0, end_range). `path` "projectile" (the evaluation
     trajectories): xy(s) = start_xy * (1 - s)^2 for s in [0, 1], bending in with zero lateral velocity at
     the end; "straight": xy(s) = start_xy * (1 - s), a straight line as in the training sequences (seen
-    obliquely until the end). Camera pointing (optional jitter, degrees) as in `approach_sequences`;
-    target attitude uniform in +-max_rot_deg about each axis, fixed for the path or, with `tumbling`,
-    drawn afresh every frame (as the rotating training sequences). Seeded.
+    obliquely until the end). Camera pointing (optional jitter, degrees) and target attitude (uniform in
+    +-max_rot_deg about each axis, drawn afresh every frame) as in `approach_sequences`. Seeded.
     """
     _check(n_frames, start_range, end_range, jitter_deg)
     if path not in PATHS:
@@ -145,7 +140,7 @@ def approach_trajectory(n_frames: int, start_xy: tuple[float, float], start_rang
     xy = np.asarray(start_xy, dtype=np.float64)[None, :] * decay[:, None]
     z = start_range + s * (end_range - start_range)
     rel = np.column_stack([xy, z])
-    return _sequence(sequence, rel, jitter_deg, max_rot_deg, rng, tumbling)
+    return _sequence(sequence, rel, jitter_deg, max_rot_deg, rng)
 
 
 def poses_table(idx: np.ndarray, seq: np.ndarray, frm: np.ndarray, R: np.ndarray, t: np.ndarray):
