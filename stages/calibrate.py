@@ -17,8 +17,10 @@ checks are calibrated again, at most TIGHTEN_TRIES times (models/defense.json re
 A check that cannot meet its share stops the stage with one line naming it and what it reached,
 unless `defense.allow_unmet` (then models/defense.json lists it under `unmet`, and the reports that
 use the defense say so in their first line). Writes the defense file (pipeline/formats/defense.py):
-the noise model, the thresholds, the settings, and the defended chain's false alarms of each check,
-availability and protection levels on those clean validation frames.
+the noise model, the thresholds, the doubt level (the detector probability from which a frame does not
+update the filter: at most `defense.doubt_share` of the clean validation frames reach it), the settings, and
+the defended chain's false alarms of each check, availability and protection levels on those clean
+validation frames.
 """
 from __future__ import annotations
 
@@ -86,7 +88,7 @@ def main(params: Params, model: ModelOption = Model.robust) -> None:
            "settings": {**dataclasses.asdict(settings), **dataclasses.asdict(motion)},
            "alert_limit": dataclasses.asdict(alert), "unmet": unmet,
            **({"tightened": {"shares_scale": c.scale, "before": c.tightened}} if c.tightened else {}),
-           "validation": _validation(params, len(images), checks, final, envelope_prob)}
+           "validation": _validation(params, len(images), checks, final, envelope_prob, prob, settings.update_below)}
     out = CHAINS[model].defense
     write_json(out, cal)
     typer.echo(summary_line(cal, out))
@@ -170,14 +172,14 @@ def calibrate_checks(params: Params, settings: Any, motion: Any, fitted: Any, ru
     with the earlier ones' settings); an unmet share stops here unless defense.allow_unmet. The detector's
     threshold meets its share on every set of clean probabilities in `prob` (the validation runs' frames,
     then the envelope's): the highest of their thresholds."""
-    from pipeline.defense.calibration import detector_threshold, gate_inflation, sequential_threshold
+    from pipeline.defense.calibration import detector_threshold, doubt_level, gate_inflation, sequential_threshold
     from pipeline.defense.noise import inflate
 
     d = params.defense
     budget, shares, frames = d.target_false_alarm * scale, d.shares, len(prob[0])
     detector = max((detector_threshold(p, shares.detector * budget) for p in prob), key=lambda c: c.setting)
     _refuse(unmet_line(detector, frames), d.allow_unmet or detector.met)
-    doubt = None if settings.update_below is None else min(settings.update_below, detector.setting)
+    doubt = None if d.doubt_share is None else doubt_level(prob[0], d.doubt_share, detector.setting)
     settings = dataclasses.replace(settings, threshold=detector.setting, update_below=doubt)
     attitude, gate = gate_inflation(settings, motion, fitted, runs, shares.gate * budget)
     for check in (attitude, gate):
@@ -197,10 +199,11 @@ def _alert_fn(alert: Any) -> Any:
     return partial(alert_limit, settings=alert)
 
 
-def _validation(params: Params, frames: int, checks: list[Any], final: dict[str, Any],
-                envelope_prob: np.ndarray) -> dict[str, Any]:
-    """defense.json's record of the validation frames: each check's calibration and the fused chain, and the
-    detector's false alarms on the envelope frames at its threshold."""
+def _validation(params: Params, frames: int, checks: list[Any], final: dict[str, Any], envelope_prob: np.ndarray,
+                prob: np.ndarray, doubt: float | None) -> dict[str, Any]:
+    """defense.json's record of the validation frames: each check's calibration and the fused chain, the
+    detector's false alarms on the envelope frames at its threshold, and the share of the validation frames
+    (probabilities `prob`) at or above the doubt level `doubt`."""
     d = params.defense
 
     def pct(r: Any) -> dict[str, Any]:
@@ -209,6 +212,8 @@ def _validation(params: Params, frames: int, checks: list[Any], final: dict[str,
     alarms = float(np.mean(envelope_prob >= checks[0].setting))
     return {"trajectories": d.val_trajectories, "seed": d.val_seed, "frames": frames,
             "envelope": {"frames": int(envelope_prob.size), "detector_pct": round(100 * alarms, 4)},
+            "doubt": {"level": doubt, "share_pct": None if d.doubt_share is None else 100 * d.doubt_share,
+                      "reached_pct": None if doubt is None else round(100 * float(np.mean(prob >= doubt)), 4)},
             "target_pct": 100 * d.target_false_alarm,
             "checks": {c.check: {"setting": c.setting, "share_pct": round(100 * c.share, 4),
                                  "reached_pct": round(100 * c.reached, 4), "met": c.met,

@@ -137,7 +137,7 @@ def _defended(params: Params, paper: ChainRun, shipped: ChainRun, sequences: lis
     e, harm, names = params.evaluate, params.defense.harm_m, chain_names(params.defense.fusion)
     d = paper.defense
     lstm_alone = dataclasses.replace(d.settings, fusion="paper", threshold=paper.chain.threshold,
-                                     update_below=min(params.defense.update_below or 1.0, paper.chain.threshold))
+                                     update_below=min(d.settings.update_below or 1.0, paper.chain.threshold))
     cases = ((names["paper"], paper, lstm_alone), (names["standard"], paper, d.settings),
              (names["shipped"], shipped, shipped.defense.settings))
     return {name: defended_summary(run.result.traces, sequences, e.eps, settings, run.defense.motion,

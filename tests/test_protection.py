@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.optimize import linprog
 
-from pipeline.defense.calibration import CleanRun, clean_summary, defend_runs, detector_threshold
+from pipeline.defense.calibration import CleanRun, clean_summary, defend_runs, detector_threshold, doubt_level
 from pipeline.defense.fusion import DefenseSettings, run_defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel
@@ -118,6 +118,34 @@ def test_the_detector_threshold_is_a_quantile_of_clean_frames_or_says_it_cannot(
     assert not r.met and r.reached == pytest.approx(0.01) and r.setting < 1.0
 
 
+def test_the_doubt_level_leaves_its_share_of_clean_frames_and_stays_under_the_threshold() -> None:
+    prob = np.random.default_rng(0).beta(2, 5, 5000)                  # clean probabilities, 42% of them >= 0.25
+    level = doubt_level(prob, 0.05, 0.9997)
+    assert np.mean(prob >= level) <= 0.05 < np.mean(prob >= np.nextafter(level, 0.0) - 1e-3) and level > 0.25
+    assert doubt_level(prob, 0.05, 0.3) == 0.3                        # never above the detector's threshold
+
+
+def test_a_calibrated_doubt_level_lets_a_filter_started_on_an_attack_recover() -> None:
+    """The filter starts on a consistently biased first stretch (2.5 m in range, probability 0.97: doubtful,
+    under the threshold), then clean frames return whose probabilities (0.3) sit above the old fixed doubt
+    level 0.25 (the envelope detector put 43% of clean validation frames there): with that level no clean
+    frame may restart the filter and the trusted estimate keeps the attack's bias to the end (the closed
+    loop held forever, seed 0); with the level calibrated on clean frames the filter re-acquires on them."""
+    rel, run = approach(80, 4)
+    t = run.pose[:, :3].copy()
+    t[:15, 2] += 2.5
+    prob = np.where(np.arange(80) < 15, 0.97, 0.3)
+    clean = np.random.default_rng(1).beta(2, 5, 5000)
+
+    def final_error(update_below: float) -> float:
+        settings = DefenseSettings(threshold=0.9997, update_below=update_below)
+        d = run_defense(settings, MOTION, NOISE, t, prob, run.R_cam, run.u)
+        return float(np.linalg.norm(d.trusted[-1] - rel[-1]))
+
+    assert final_error(0.25) > 2.0
+    assert final_error(doubt_level(clean, 0.05, 0.9997)) < 0.5
+
+
 def test_each_alarm_of_the_sequential_test_flags_one_frame_and_raises_the_pl() -> None:
     """A 5 cm/frame ramp along the boresight from frame 60: the sequential test flags it again and
     again (it restarts after each alarm), the flagged frames are left out, and every alarm starts a
@@ -161,6 +189,7 @@ def test_calibrate_refuses_an_unreachable_share_with_one_line() -> None:
     checks, settings, motion = calibrate_checks(allow, DefenseSettings(), MOTION, NOISE, runs, (prob,))
     assert [c.check for c in checks if not c.met] == ["gate"] and motion.cusum_threshold == checks[3].setting
     assert settings.threshold == checks[0].setting
+    assert settings.update_below == doubt_level(prob, p.defense.doubt_share, settings.threshold)   # calibrated too
 
 
 @pytest.mark.parametrize("key, value, message", [

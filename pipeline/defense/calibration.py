@@ -99,6 +99,15 @@ def detector_threshold(prob: np.ndarray, share: float) -> CheckResult:
     return CheckResult("detector", t, reached, share, {t: reached})
 
 
+def doubt_level(prob: np.ndarray, share: float, threshold: float) -> float:
+    """The detector's doubt level (`DefenseSettings.update_below`): the smallest probability with
+    mean(prob >= level) <= share on clean frames `prob` (N,), at most the detector's `threshold`. Frames
+    at or above it (and below the threshold) are not flagged but do not update the motion filter, so
+    `share` is the fraction of clean frames the filter goes without: a fixed level that most clean frames
+    reach starves the filter, which then coasts on a stale state until clean frames disagree with it."""
+    return min(detector_threshold(prob, share).setting, float(threshold))
+
+
 def gate_inflation(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel, runs: Sequence[CleanRun],
                    share: float, grid: Sequence[float] = INFLATIONS) -> tuple[CheckResult, CheckResult]:
     """The gate's two tests, attitude then position: the smallest attitude-noise inflation at which the

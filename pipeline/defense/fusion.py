@@ -10,7 +10,8 @@ commanded displacement) into (flag, trusted estimate, mode, protection level, av
   prediction and the prediction is the trusted estimate (mode "coast"). The filter leaves out the
   frames its gate rejects and, unless fusion is "motion", the frames the detector flags, whatever
   the fusion: the trusted estimate stays sound under either check. A frame whose probability is
-  at or above `update_below` (below the threshold) is doubtful: not flagged, but not used either;
+  at or above `update_below` (below the threshold; its level is calibrated on clean validation frames,
+  `pipeline.defense.calibration.doubt_level`) is doubtful: not flagged, but not used either;
 - a frame that passes the gate and the detector goes to the sequential test (a CUSUM on the
   innovations, pipeline/defense/sequential.py): a frame on which it alarms is flagged and coasts and
   the test restarts, so a slow drift that stays under the gate is flagged as it walks the state;

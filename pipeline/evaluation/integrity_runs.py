@@ -11,7 +11,7 @@ clean counterpart, frame for frame, so harm counts only what the attack caused.
 - drift (`drift_attack`): the drift's planner and targeted PGD per frame (pipeline/attacks/drift.py),
   run in lockstep over every trajectory and drift direction so that each PGD step is one batch of
   all of them: the `DriftAttacker`, batched, with the detector's margin taken against the
-  probability at which the defense stops updating its filter (`update_below`, else the threshold).
+  probability at which the defense stops updating its filter (its doubt level `update_below`, else the threshold).
 An attacked flight reads through the chain only the frames the attack changed (`fly` with `base`):
 the chain is stateless, so the other frames' estimates are the clean flight's.
 Counted frames (`counted`): from a trajectory's first attacked frame to its end, every frame the attack

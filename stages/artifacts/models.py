@@ -134,13 +134,14 @@ class DefenseModel:
 def load_defense(p: Params, model_hash: str, threshold: float, model: Model | str) -> DefenseModel:
     """The defense calibrated for one chain (`model`: models/defense.json for the robust one that ships,
     models/defense_standard.json for the standard one) checked against the pose model and detector
-    (checkpoint `threshold`) it was calibrated with, and params."""
+    (checkpoint `threshold`) it was calibrated with, and params; the detector threshold, the doubt level
+    (`update_below`) and the CUSUM threshold as calibrated."""
     import dataclasses
 
     from pipeline.formats.defense import read_calibration
     from stages.config.build import alert_limit_settings
 
     cal = read_calibration(CHAINS[Model(model)].defense, model_hash, threshold)
-    settings, motion = defense_settings(p.defense, cal.threshold)
+    settings, motion = defense_settings(p.defense, cal.threshold, cal.settings.get("update_below"))
     return DefenseModel(settings, dataclasses.replace(motion, cusum_threshold=cal.cusum_threshold), cal.noise,
                         cal.raw, alert_limit_settings(p))

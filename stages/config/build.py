@@ -133,13 +133,14 @@ def augment_config(augment: Augment) -> Any:
         raise StageError(f"params.yaml: bad train.augment ({e})") from None
 
 
-def defense_settings(defense: Defense, threshold: float) -> tuple[Any, Any]:
-    """(DefenseSettings, MotionSettings) of params.defense with the detector's `threshold`; a doubt
-    zone (`update_below`) that starts above the threshold starts at it (calibrate may lower the threshold)."""
+def defense_settings(defense: Defense, threshold: float, update_below: float | None = None) -> tuple[Any, Any]:
+    """(DefenseSettings, MotionSettings) of params.defense with the detector's `threshold` and doubt level
+    `update_below` (calibrated from `defense.doubt_share`; None: no doubt zone); a doubt level above the
+    threshold starts at it."""
     from pipeline.defense.fusion import DefenseSettings
     from pipeline.defense.gate import MotionSettings
 
-    doubt = None if defense.update_below is None else min(defense.update_below, threshold)
+    doubt = None if update_below is None else min(float(update_below), threshold)
     try:
         return (settings_of(DefenseSettings, defense, threshold=threshold, update_below=doubt),
                 settings_of(MotionSettings, defense))

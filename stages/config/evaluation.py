@@ -65,8 +65,8 @@ class Defense:
     trusted_start: Annotated[int, In("[0, 10000000]", "frames")]   # assumed attack-free after the filter's first start
     hold_after: Frames             # K: consecutive flags that declare the estimate lost -> hold
     release_after: Frames          # consecutive clean frames that end a hold
-    update_below: Optional[OpenProbability]  # detector probability from which a frame does not update the
-                                     # filter; None: the detector's threshold
+    doubt_share: Optional[OpenProbability]  # of clean validation frames at or above the doubt level (calibrated),
+                                     # from which a frame does not update the filter; None: the detector's threshold
     noise_bins: Annotated[int, In("[2, 1000]", "range bins")]   # of the measurement-noise fit
     target_false_alarm: OpenProbability   # fraction of clean validation frames the defended chain may flag (calibrate)
     shares: Shares               # of target_false_alarm: detector, gate, sequential test
@@ -88,8 +88,8 @@ class Defense:
             raise bad("target_false_alarm", "a fraction in (0, 1)")
         if not 0 < self.soft_gate <= 1:
             raise bad("soft_gate", "in (0, 1]")
-        if self.update_below is not None and not 0 < self.update_below < 1:
-            raise bad("update_below", "null or a probability in (0, 1)")
+        if self.doubt_share is not None and not 0 < self.doubt_share < 1:
+            raise bad("doubt_share", "null or a fraction in (0, 1)")
         for key, low in (("hold_after", 1), ("release_after", 1), ("reacquire_after", 2), ("noise_bins", 2),
                          ("val_trajectories", 1)):
             if getattr(self, key) < low:

@@ -121,7 +121,7 @@ bootstrap has no spread (no hit on any trajectory, or hits on every frame), the 
 {c['trajectories']} trajectories as trials instead: all that {c['trajectories']} trajectories without a hit can bound.
 
 The attackers know the whole chain: the pose network, the detector (threshold and
-`defense.update_below`) and the calibrated defense with its state (pipeline/attacks/):
+its doubt level, calibrated from `defense.doubt_share`) and the calibrated defense with its state (pipeline/attacks/):
 - **burst**: bursts of {b['burst_length']} frames every {fused['burst_every']} frames ({b['bursts']} bursts per eps), each crafted
   jointly by L-inf PGD on min(trusted error, {b['cap']:g} AL) minus lambda times the margins of every check (the
   detector's logit, both gates' NIS through a differentiable copy of the filter), {b['steps']} steps from
