@@ -6,9 +6,11 @@ counts the units each stage of the paper profile needs (conf/config.yaml + conf/
 and predicts the paper profile's wall time per stage on this machine. Counts that depend on the
 data (early stopping, the guidance stage's render cache, attacked frames) are stated assumptions.
 Then prints what one GPU box would need to reach the 2-hour target: a requirement, not a measurement.
-Writes the `## Paper-profile cost model` section of reports/benchmarks.md (other sections are kept).
+Writes the `## Paper-profile cost model` section of reports/benchmarks.md (`## Paper-profile cost model on a
+GPU` with --device cuda; other sections are kept).
 
-Usage: .venv/bin/python benchmarks/cost_model.py [--device cpu|cuda] [--repeats 2] [--no-write]
+Usage: .venv/bin/python benchmarks/cost_model.py [--device cpu|cuda] [--repeats 2] [--render-rate R] [--no-write]
+--render-rate: frames/s of the Cycles unit, given instead of measured (a GPU box whose Python has no bpy).
 """
 from __future__ import annotations
 
@@ -100,6 +102,7 @@ def paper_counts(p: dict[str, Any], renders_per_step: float = 1.0) -> dict[str, 
     n = 13 * r["frames_per_sequence"]
     n_test = n * p["label"]["test_fraction"] if a["max_images"] is None else min(a["max_images"], n)
     eval_frames = e["trajectories"] * e["frames"]
+    val_frames = d["val_trajectories"] * e["frames"]
     frac = attacked_fraction(e["p_start"], e["attack_length"])
     det = detector_counts(p)
     lab_frames = len(lab["sequences"]) * lab["frames"]
@@ -111,8 +114,9 @@ def paper_counts(p: dict[str, Any], renders_per_step: float = 1.0) -> dict[str, 
         "shap": {"forward": det["shap_forward"], "gradient": det["gradient"]},
         "detect": {"lstm": det["lstm"], "forward": det["squeeze_forward"] + eval_frames},
         "guidance": guidance_counts(p, renders_per_step),
-        "eval_render": {"render": eval_frames + d["val_trajectories"] * e["frames"]},
-        "calibrate": {"forward": d["val_trajectories"] * e["frames"]},
+        # evaluation, validation and envelope-validation trajectories; both chains' calibrations read the last two
+        "eval_render": {"render": eval_frames + 2 * val_frames},
+        "calibrate": {"forward": 2 * 2 * val_frames},
         "evaluate": {"forward": eval_frames * (1 + len(e["eps"])), "gradient": eval_frames * len(e["eps"]) * frac},
         "surrogate": training_counts(n, p, p["robustness"]["surrogate_epochs"]),
         "robustness": {"gradient": p["robustness"]["frames"] * robustness_gradients_per_frame(p),
@@ -279,7 +283,17 @@ def body(rows: list[dict[str, Any]], idle: list[dict[str, Any]], facts: dict[str
                           for u, n in unit_totals(rows).items()])
     top = ", ".join(f"{k} {v / total:.0%}" for k, v in list(totals.items())[:4])
     renders = unit_totals(rows)["render"]
-    return (f"`benchmarks/cost_model.py --device {facts['device']}` on {platform.machine()}, "
+    on = f"one {facts['gpu']} and " if facts["gpu"] else ""
+    given = facts["render_given"]
+    render_note = ("" if given is None else
+                   f" The Cycles frame was not rendered here (this Python has no bpy): its rate, {given:g} frames/s at "
+                   f"{facts['render_threads']} threads, is given (--render-rate), as measured on the 2-core CPU machine.")
+    gpu_note = (f"The torch units above ran on {facts['gpu']} (CUDA, bf16 autocast, channels_last); the LSTM's "
+                f"training runs on the CPU." if facts["gpu"] else
+                f"The CUDA path of the torch stages is written (device param, bf16 autocast, channels_last, pinned "
+                f"uint8 batches, NCCL under torchrun); its rates are measured with `--device cuda` on a GPU box "
+                f"(section \"Paper-profile cost model on a GPU\", when one was run).")
+    return (f"`benchmarks/cost_model.py --device {facts['device']}` on {on}{platform.machine()}, "
             f"{os.cpu_count()} cores, torch {facts['torch']}, {facts['threads']} threads, AMP "
             f"{'bf16' if facts['amp'] else 'off (CPU)'}; median of {facts['repeats']} repeats after a warm-up per "
             f"unit (training and gradients at batch {facts['batches'][0]}, batched forwards at batch "
@@ -289,7 +303,7 @@ def body(rows: list[dict[str, Any]], idle: list[dict[str, Any]], facts: dict[str
             f"threads). Counts from conf/config.yaml + conf/profile/paper.yaml (`paper_counts`); guidance: "
             f"{facts['rps_note']}; detect: every one of detect.epochs (early stopping ends sooner: an upper "
             f"bound); evaluate and lab: the expected attacked fraction of the schedule. Label and report are "
-            f"left out (seconds).\n\n{table}\n"
+            f"left out (seconds).{render_note}\n\n{table}\n"
             f"Predicted per stage on this machine: **{total / 3600:,.0f} h** as measured, **{idle_total / 3600:,.0f} "
             f"h** idle (largest: {top}). Three trainings of the width-1 network at 480x270 (train, surrogate and the "
             f"synthetic-lab retraining of lab_models, 50 epochs each) and the robustness stage's "
@@ -302,10 +316,7 @@ def body(rows: list[dict[str, Any]], idle: list[dict[str, Any]], facts: dict[str
             f"Rendering stays on the CPU (Cycles, pipeline/render/scene.py): at {TARGET_CORES} instead of "
             f"{facts['render_threads']} threads, with linear scaling, the {renders:,.0f} renders would take "
             f"{renders / (rate['render'] * TARGET_CORES / facts['render_threads']) / 60:.0f} min of the 120, so the "
-            f"target also needs Cycles on the GPU or more render machines (Ray). The CUDA path of the torch stages "
-            f"is written (device param, bf16 autocast, channels_last, pinned uint8 batches, NCCL under torchrun) "
-            f"but was not run on a GPU in this session: the GPU rates are still to be measured with "
-            f"`--device cuda` on such a box.")
+            f"target also needs Cycles on the GPU or more render machines (Ray). {gpu_note}")
 
 
 def main() -> None:
@@ -318,6 +329,8 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (torch units; rendering is Cycles on the CPU)")
     ap.add_argument("--repeats", type=int, default=2, help="timed repeats per unit (after one warm-up)")
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="torch CPU threads")
+    ap.add_argument("--render-rate", type=float, default=None,
+                    help="frames/s of the 480x270 Cycles frame measured elsewhere (where this Python has no bpy)")
     ap.add_argument("--no-write", action="store_true", help="print only; leave reports/benchmarks.md alone")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -325,19 +338,27 @@ def main() -> None:
     load0 = os.getloadavg()[0]
     amp = args.device.startswith("cuda")
     measured = measure_torch(args.device, amp, args.repeats, (p["render"]["height"], p["render"]["width"]))
-    measured["render"] = measure_render(p, args.repeats)
-    threads = {u: p["render"]["threads"] if u == "render" else args.threads for u in measured}
+    threads = {u: args.threads for u in measured} | {"render": p["render"]["threads"]}
+    if args.render_rate is None:
+        measured["render"] = measure_render(p, args.repeats)
+    elif not args.render_rate > 0:
+        raise SystemExit(f"--render-rate must be frames/s > 0, got {args.render_rate}")
+    else:                              # wall and CPU of an idle machine at render.threads
+        measured["render"] = (1 / args.render_rate, threads["render"] / args.render_rate)
     rps, note = renders_per_step()
     counts = paper_counts(p, rps)
     rows = predict(counts, {u: wall for u, (wall, _) in measured.items()})
     idle = rows if amp else predict(counts, {u: cpu / threads[u] for u, (_, cpu) in measured.items()})
     facts = {"device": args.device, "torch": torch.__version__, "threads": args.threads, "amp": amp,
              "repeats": args.repeats, "batches": BATCHES["cpu" if args.device == "cpu" else "cuda"],
-             "load": (load0, os.getloadavg()[0]), "rps_note": note, "params": p, "render_threads": threads["render"]}
+             "load": (load0, os.getloadavg()[0]), "rps_note": note, "params": p, "render_threads": threads["render"],
+             "render_given": args.render_rate,
+             "gpu": torch.cuda.get_device_name(args.device) if args.device.startswith("cuda") else None}
     text = body(rows, idle, facts)
     print(text)
+    section = "Paper-profile cost model" + (" on a GPU" if facts["gpu"] else "")
     if not args.no_write:
-        print(f"-> {write_benchmark('Paper-profile cost model', text)} (## Paper-profile cost model)")
+        print(f"-> {write_benchmark(section, text)} (## {section})")
 
 
 if __name__ == "__main__":
