@@ -284,6 +284,12 @@ def body(rows: list[dict[str, Any]], idle: list[dict[str, Any]], facts: dict[str
     top = ", ".join(f"{k} {v / total:.0%}" for k, v in list(totals.items())[:4])
     renders = unit_totals(rows)["render"]
     on = f"one {facts['gpu']} and " if facts["gpu"] else ""
+    rendering = sum(r["seconds"] for r in rows if r["unit"] == "render")
+    dominant = (f"The Cycles renders dominate ({rendering / 3600:,.1f} h); every torch unit together takes "
+                f"{(total - rendering) / 3600:,.2f} h." if rendering > total / 2 else
+                f"Three trainings of the width-1 network at 480x270 (train, surrogate and the synthetic-lab retraining "
+                f"of lab_models, 50 epochs each) and the robustness stage's "
+                f"{robustness_gradients_per_frame(facts['params']):.0f} input gradients per held-out frame dominate.")
     given = facts["render_given"]
     render_note = ("" if given is None else
                    f" The Cycles frame was not rendered here (this Python has no bpy): its rate, {given:g} frames/s at "
@@ -305,9 +311,7 @@ def body(rows: list[dict[str, Any]], idle: list[dict[str, Any]], facts: dict[str
             f"bound); evaluate and lab: the expected attacked fraction of the schedule. Label and report are "
             f"left out (seconds).{render_note}\n\n{table}\n"
             f"Predicted per stage on this machine: **{total / 3600:,.0f} h** as measured, **{idle_total / 3600:,.0f} "
-            f"h** idle (largest: {top}). Three trainings of the width-1 network at 480x270 (train, surrogate and the "
-            f"synthetic-lab retraining of lab_models, 50 epochs each) and the robustness stage's "
-            f"{robustness_gradients_per_frame(facts['params']):.0f} input gradients per held-out frame dominate.\n\n"
+            f"h** idle (largest: {top}). {dominant}\n\n"
             f"{stages}\n"
             f"**Requirement, not a measurement.** The issue's target is the paper profile end to end in under 2 h "
             f"on one H100-class GPU with {TARGET_CORES} cores: {idle_total / TARGET_S:,.0f}x this machine's idle "
