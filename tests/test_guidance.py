@@ -213,3 +213,25 @@ def test_paper_variant_hold_reads_a_biased_estimate_as_bias_not_motion():
     s = GuidanceSettings(variant="paper", max_steps=70, defense="hold")
     r = run_rendezvous(blank, estimate, K, s, defense=_defense())
     assert r.flags.sum() <= 1 and r.outcome == HELD
+
+
+def test_the_defended_page_explains_the_paper_dynamics_clean_flags_and_only_when_there_are_some() -> None:
+    """The paper dynamics puts the chaser at its belief, so a steady estimate error reaches the sequential test in
+    a clean defended run: the page says why, with the undefended run's pace and the true-state counts beside."""
+    from stages.config import params as params_mod
+    from stages.config.schema import build
+    from stages.pages.guidance import defended_section
+
+    g = build(params_mod.compose("default")).guidance
+
+    def block(flags, arrival):
+        return {"baseline": {"outcome": "rendezvous held", "miss_m": 0.0, "arrival_step": arrival, "flags": flags},
+                "held": {}, "not_met": {}, "runs": []}
+
+    d = {"dynamics": {"paper": {"undefended": block(None, 36), "recover": block(28, 46)},
+                      "true_state": {"undefended": block(None, 50), "recover": block(4, 50)}}}
+    text = defended_section(d, g)
+    assert "Flags without an attack" in text and "28 flags with detect-and-recover" in text
+    assert "arrives after 36 steps, not 50: about 0.39 m" in text and "(true_state: 4 with detect-and-recover)" in text
+    d["dynamics"]["paper"]["recover"] = block(0, 46)
+    assert "Flags without an attack" not in defended_section(d, g)

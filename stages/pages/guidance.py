@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 from stages.config.evaluation import Integrity
 from stages.config.sections import Guidance, Render
 
@@ -53,12 +55,33 @@ attack's length counts as held, one diverted or still short after that counts as
 rates count only the runs that met the attack (a run that never reached S was not attacked: "not
 met") and carry 95% Wilson intervals over them (few runs: wide intervals).
 
-{markdown_table(summary)}
+{markdown_table(summary)}{_clean_flags_text(d, g)}
 ![one attacked cell per variant: distance from the approach axis and to the target point](figures/guidance_defended.png)
 
 Every run:
 
 {markdown_table(cells, decimals=2)}"""
+
+
+def _clean_flags_text(d: dict[str, Any], g: Guidance) -> str:
+    """Why the defended no-attack runs of the paper dynamics raise flags (empty when they raise none)."""
+    paper, other = d["dynamics"].get("paper"), d["dynamics"].get("true_state")
+    flags = {k: v["baseline"]["flags"] for k, v in (paper or {}).items() if v["baseline"]["flags"]}
+    if not flags:
+        return ""
+    arrival = paper.get("undefended", {}).get("baseline", {}).get("arrival_step")
+    distance = float(np.linalg.norm(np.subtract(g.start, g.target)))
+    pace = ("" if not arrival else f" (the undefended run arrives after {arrival} steps, not "
+            f"{distance / g.max_step:.0f}: about {distance / arrival - g.max_step:.2f} m of range more per step than commanded)")
+    beside = "" if other is None else " (true_state: " + ", ".join(
+        f"{v['baseline']['flags']} with {VARIANTS[k]}" for k, v in other.items() if v["baseline"]["flags"] is not None) + ")"
+    return (f"\nFlags without an attack: in the paper dynamics the chaser lands where it believes it goes, so the "
+            f"motion filter's prediction is the true state whatever its estimate was. A steady error of the pose model "
+            f"on these views{pace}, which under true-state dynamics the filter carries in its state, here reaches the "
+            f"innovations whole, and the sequential test flags it: "
+            + ", ".join(f"{n} flags with {VARIANTS[k]}" for k, n in flags.items()) + f" in the no-attack runs{beside}. "
+            f"A flag there costs the frame's update (detect-and-recover flies on the prediction, which is exact) or a "
+            f"step (detect-and-hold waits), not the approach.\n")
 
 
 def _horizon_text(m: dict[str, Any]) -> str:
