@@ -125,3 +125,19 @@ def test_the_script_rebuilds_the_bundle_naming_the_commit_that_recorded_the_file
     assert rebuilt["files"] == shipped["files"] and rebuilt["params"] == shipped["params"]
     assert rebuilt["commit"] == commit and rebuilt["code_changes"] == []
     assert "dvc repro calibrate" in rebuilt["rebuild"] and "scripts/bundle_weights.py" in rebuilt["rebuild"]
+
+
+def test_the_bundle_is_the_chain_of_the_committed_run() -> None:
+    """Each bundled file is byte for byte the models/ file that the committed dvc.lock records (md5): a re-run whose
+    bundle was not rebuilt (scripts/bundle_weights.py) would have the API and `rpod predict` fly another chain than
+    the one reports/ describe (the bundle of d4e9661 outlived two re-calibrations and a new detector)."""
+    import hashlib
+
+    manifest = read_json(BUNDLE / MANIFEST)
+    lock = yaml.safe_load((REPO / "dvc.lock").read_text())
+    recorded = {o["path"]: o["md5"] for s in lock["stages"].values() for o in s.get("outs", [])}
+    for name in FILES:
+        source = manifest["sources"][name]
+        assert source == f"models/{RUN_FILES[name]}" and source in recorded, source
+        md5 = hashlib.md5((BUNDLE / name).read_bytes()).hexdigest()
+        assert md5 == recorded[source], f"{name} is not the {source} of dvc.lock: run scripts/bundle_weights.py"
