@@ -11,7 +11,7 @@ import torch
 
 from pipeline.formats.bundle import FILES, RUN_FILES
 from pipeline.formats.defense import DEFENSE_FORMAT
-from pipeline.io.atomic import file_hash, write_json
+from pipeline.io.atomic import file_hash, read_json, write_json
 from pipeline.io.errors import DataError
 from stages.artifacts.paths import CHAINS, PAPER, SHIPPED, Model
 from stages.config import params as params_mod
@@ -129,3 +129,17 @@ def test_the_guidance_plan_flies_the_paper_grid_on_the_paper_chain_and_the_rest_
     assert {r[0] for r in runs[plan.paper_size:]} == {"shipped"}
     assert ("shipped", "paper", "undefended", None) in runs                      # its own undefended reference
     assert [r for r in runs if isinstance(r[3], InLoopRun)] == plan.in_loop_runs() and len(set(runs)) == len(runs)
+
+
+@pytest.mark.parametrize("doubt", ["0.3", 1.5, 0.0])
+def test_a_defense_file_with_a_bad_doubt_level_is_refused_with_one_line(tmp_path, doubt):
+    from pipeline.formats.defense import read_calibration
+    from rpodguard.api import BUNDLE
+
+    cal = read_json(BUNDLE / "defense.json")
+    read_calibration(BUNDLE / "defense.json", cal["pose_model_hash"], cal["detector_threshold"])   # as calibrated
+    cal["settings"]["update_below"] = doubt
+    write_json(tmp_path / "defense.json", cal)
+    with pytest.raises(DataError, match=r"defense.json: settings.update_below .* must be null or in \(0, threshold") as e:
+        read_calibration(tmp_path / "defense.json", cal["pose_model_hash"], cal["detector_threshold"])
+    assert "\n" not in str(e.value)

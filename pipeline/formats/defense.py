@@ -57,6 +57,10 @@ def read_calibration(path: Path | str, model_hash: str, detector_threshold: floa
         raise DataError(f"{path}: bad calibration ({type(e).__name__}: {e}); {DEFENSE_REDO}") from None
     if not 0 < threshold < 1 or not h > 0:
         raise DataError(f"{path}: threshold {threshold} must be in (0, 1) and cusum_threshold {h} > 0; {DEFENSE_REDO}")
+    doubt = settings.get("update_below")
+    if doubt is not None and not (isinstance(doubt, (int, float)) and 0 < doubt <= threshold):
+        raise DataError(f"{path}: settings.update_below {doubt!r} (the doubt level) must be null or in (0, threshold = "
+                        f"{threshold}]; {DEFENSE_REDO}")
     return Calibration(noise, threshold, h, settings, alert, unmet, cal)
 
 
