@@ -36,9 +36,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from pipeline.attacks.base import AttackRun  # noqa: E402
-from pipeline.evaluation.stats import bootstrap_rate  # noqa: E402
-from pipeline.report.markdown import markdown_table, percent_ci  # noqa: E402
+from pipeline.attackers.base import AttackRun  # noqa: E402
+from pipeline.stats import bootstrap_rate  # noqa: E402
+from pipeline.report.markdown import markdown_table  # noqa: E402
+from pipeline.stats import percent_ci  # noqa: E402
 from stages.report import write_benchmark  # noqa: E402
 
 
@@ -57,10 +58,10 @@ class Counting(nn.Module):
 def setup(p: Any, n_tracks: int, per_track: int) -> tuple[Any, ...]:
     """(pose, PerFrameChain, Defended, runs): per track its frames as an AttackRun with its first bursts attacked."""
     from pipeline.attacks.adaptive import PerFrameChain
-    from pipeline.defense.chain import load_onboard_chain
+    from pipeline.formats.models import load_onboard_chain
     from pipeline.evaluation.integrity_runs import Track
     from pipeline.evaluation.robustness import Defended, burst_schedule
-    from pipeline.pose.labels import TARGET
+    from pipeline.geometry.labels import TARGET
     from stages.artifacts.models import load_defense, load_pose
     from stages.artifacts.paths import DETECTOR, POSE
     from stages.artifacts.readers import read_eval_render
@@ -84,7 +85,7 @@ def setup(p: Any, n_tracks: int, per_track: int) -> tuple[Any, ...]:
 
 def speed(p: Any, pose: Any, target: nn.Module, defended: Any, run: AttackRun) -> list[dict[str, Any]]:
     """Rows: the burst attack's frame-gradients/s, bare input gradients/s at three batches, training images/s."""
-    from pipeline.attacks.burst import bursts_of
+    from pipeline.attackers.burst import bursts_of
     from pipeline.defense.fusion import Defense
     from stages.config.build import burst_attacker
     from train_speed import throughput
@@ -114,7 +115,7 @@ def speed(p: Any, pose: Any, target: nn.Module, defended: Any, run: AttackRun) -
 
 def no_checks(p: Any, pose: Any, runs: list[AttackRun], seed: int = 3) -> list[dict[str, Any]]:
     """Per eps: mean raw position error (m) of plain PGD and of the burst with every check removed."""
-    from pipeline.attacks.burst import BurstAttacker, bursts_of
+    from pipeline.attackers.burst import BurstAttacker, bursts_of
     from pipeline.attacks.gradient import attack_loss, pgd, quantize
 
     i, rows = p.integrity, []

@@ -5,7 +5,7 @@ background mean): by default the weights bundle shipped in git (rpodguard/weight
 written by scripts/bundle_weights.py; its manifest's hashes are checked); a run's models/ folder (or the project
 root holding it) as `rpod train --robust` and `rpod detect --model robust` wrote them, models/pose_robust.pt and
 models/detector_robust.pt; or any folder holding pose.pt and detector.pt (another chain, e.g. the standard one).
-Images are resized to the model's input as the lab loader resizes them (pipeline.evaluation.lab_images.resize:
+Images are resized to the model's input as the lab loader resizes them (pipeline.images.resize:
 area averaging when shrinking), without keeping their aspect. Given the camera the images were taken with,
 `predict` warns when it is not the one the model was trained for (rpodguard/camera.py).
 A frame with too few lit pixels has no target in view: it gets no pose (NaN) and no attack flag.
@@ -143,7 +143,7 @@ class Chain:
 
     def _fit(self, image: np.ndarray, name: str) -> np.ndarray:
         """One RGB image -> float32 (height, width, 3) in [0, 1] at the model input size."""
-        from pipeline.evaluation.lab_images import resize
+        from pipeline.images import resize
 
         if image.ndim != 3 or image.shape[2] != 3 or min(image.shape[:2]) == 0:
             raise ValueError(f"{name}: an image must be (H, W, 3) RGB, got shape {tuple(image.shape)}")
@@ -237,7 +237,7 @@ def load_chain(folder: str | Path | None = None) -> Chain:
     FOLDER/detector.pt. A folder holding a weights manifest (pipeline/formats/bundle.py) has each file's sha256
     checked first. The detector must have been trained on this pose model's SHAP values (its checkpoint names
     the pose file's hash). A missing, changed or bad file is a DataError."""
-    from pipeline.defense.chain import load_onboard_chain
+    from pipeline.formats.models import load_onboard_chain
     from pipeline.formats.bundle import MANIFEST, RUN_FILES, check_bundle
     from pipeline.formats.models import model_from_checkpoint, read_pose
     from pipeline.io.atomic import file_hash

@@ -57,7 +57,7 @@ def track(chain: Any, images: Any, commands: np.ndarray, attitudes: np.ndarray, 
     since the previous frame, row 0 unused) and camera `attitudes` (N, 3, 3; camera -> world); `camera` the
     images' camera K (checked as in Chain.predict)."""
     from pipeline.defense.fusion import run_defense
-    from pipeline.evaluation.integrity import alert_limit
+    from pipeline.defense.integrity import alert_limit
     from pipeline.formats.defense import defense_from, read_calibration
     from pipeline.io.atomic import file_hash
 

@@ -20,13 +20,13 @@ import typer
 
 from pipeline.io.atomic import atomic_outputs, atomic_write_text, save_figure
 from pipeline.io.store import create_array, seal_zarr
-from pipeline.pose.labels import POSITION, QUAT, TARGET
+from pipeline.geometry.labels import POSITION, QUAT, TARGET
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import ADV, ATTACK_FIGURE as FIGURE, ATTACK_METRICS as METRICS, \
     ATTACK_REPORT as REPORT, POSE, SEED_OFFSET
 from stages.artifacts.readers import adv_array_name
 from stages.artifacts.models import load_pose
-from stages.config.build import check_attack_params, engine_settings, make_attack
+from stages.config.build import check_attack_params, make_attack
 from stages.config.device import torch_setup
 from stages.config.schema import Params
 from stages.engine import pool as engine
@@ -149,7 +149,7 @@ def _engine(p: Params, device: Any) -> tuple[engine.EngineSettings, int]:
     out); on a GPU they run in-process, where the GPU does the work."""
     import dataclasses
 
-    es = engine_settings(p)
+    es = engine.engine_settings(p)
     if device.type != "cpu":
         es = dataclasses.replace(es, workers=1, address=None)
     return es, es.threads(p.threads or os.cpu_count() or 1)

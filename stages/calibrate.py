@@ -32,7 +32,7 @@ import typer
 
 from pipeline.formats.defense import DEFENSE_FORMAT
 from pipeline.io.atomic import write_json
-from pipeline.pose.labels import TARGET
+from pipeline.geometry.labels import TARGET
 from stages.artifacts.paths import CHAINS, Model
 from stages.artifacts.readers import chaser_motion, read_eval_render, read_val_envelope
 from stages.artifacts.models import load_chain, model_option
@@ -194,7 +194,7 @@ def calibrate_checks(params: Params, settings: Any, motion: Any, fitted: Any, ru
 def _alert_fn(alert: Any) -> Any:
     from functools import partial
 
-    from pipeline.evaluation.integrity import alert_limit
+    from pipeline.defense.integrity import alert_limit
 
     return partial(alert_limit, settings=alert)
 

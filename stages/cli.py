@@ -75,7 +75,7 @@ STAGES = ["render", "label", "train", "attack", "guidance", "shap", "detect", "e
 def _register() -> None:
     import importlib
 
-    from stages.config.help import ParamsHelpCommand, ParamsHelpGroup
+    from stages.help import ParamsHelpCommand, ParamsHelpGroup
     from stages.config.params import with_params
 
     for name in STAGES:

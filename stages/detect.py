@@ -149,7 +149,7 @@ def _eval_alarms(p: Params, files: ChainFiles, lstm: Any, attrs: dict[str, Any])
     from tqdm import tqdm
 
     from pipeline.defense.chain import OnboardChain, run_sequence
-    from pipeline.evaluation.stats import rate
+    from pipeline.stats import rate
 
     images, poses, _ = read_eval_render(p)
     pose = load_pose(p, files.pose)

@@ -25,11 +25,11 @@ from typing import Annotated, Any
 import numpy as np
 import typer
 
-from pipeline.pose.labels import pose_columns
+from pipeline.geometry.labels import pose_columns
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import DETECT_RENDER, DETECT_RENDER_METRICS, EVAL_RENDER, EVAL_RENDER_METRICS, VAL_ENVELOPE, \
     VAL_RENDER
-from stages.config.build import engine_settings, intrinsics, scene_settings
+from stages.config.build import intrinsics, scene_settings
 from stages.config.params import detect_render_fingerprint, detector_trajectories, eval_render_fingerprint, \
     val_envelope_fingerprint, val_render_fingerprint
 from stages.config.schema import Params
@@ -88,7 +88,7 @@ def main(
     Params: `evaluate.trajectories`, `frames`, `lateral_range`, `seed`; `defense.val_trajectories`,
     `val_seed`; `shap.frames`, `seed` (--detector); `render`/`camera`; and `engine` (workers, Ray cluster address).
     """
-    K, scene, es = intrinsics(params), scene_settings(params.render), engine_settings(params)
+    K, scene, es = intrinsics(params), scene_settings(params.render), engine.engine_settings(params)
     d, e, s = params.defense, params.evaluate, params.shap
     if detector:
         sets = [(DETECT_RENDER, trajectories(params, s.seed, detector_trajectories(params), s.frames, envelope=True),

@@ -22,7 +22,7 @@ import numpy as np
 import typer
 
 from pipeline.io.atomic import atomic_write_text, save_figure
-from pipeline.pose.labels import TARGET
+from pipeline.geometry.labels import TARGET
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import EVALUATE_FIGURE as FIGURE, EVALUATE_METRICS as METRICS, \
     EVALUATE_REPORT as REPORT, PAPER, SEED_OFFSET, SHIPPED, Model
@@ -101,7 +101,7 @@ def main(params: Params) -> None:
 
 def _sequences(images: np.ndarray, poses: Any, e: Evaluate) -> list[Sequence]:
     """The evaluation trajectories as chain sequences with their motion and seeded attack schedules."""
-    from pipeline.evaluation.schedule import attack_schedule
+    from pipeline.attacks.schedule import attack_schedule
     from pipeline.evaluation.sequences import Sequence
 
     out = []

@@ -12,7 +12,7 @@ every cell again for each of `guidance.dynamics` and each of undefended / `guida
 (detect-and-hold, detect-and-recover; a fresh calibrated defense from models/defense.json per run; FGSM on
 the robust model) -> the defended section of the report, metrics `defended`, and
 reports/figures/guidance_defended.png (one run per variant). Last, the in-loop attacker
-(pipeline/attacks/in_loop.py) on the shipped chain at each `integrity.eps`, goal and start range under every
+(pipeline/attackers/in_loop.py) on the shipped chain at each `integrity.eps`, goal and start range under every
 dynamics and variant -> the in-loop section, metrics `in_loop`. Rates count only the runs that met the attack.
 """
 from __future__ import annotations
@@ -29,7 +29,7 @@ import typer
 from stages.artifacts.paths import GUIDANCE_DEFENDED_FIGURE as DEFENDED_FIGURE, GUIDANCE_FIGURE as FIGURE, \
     GUIDANCE_METRICS as METRICS, GUIDANCE_REPORT as REPORT, PAPER, SEED_OFFSET, SHIPPED
 from stages.artifacts.models import load_chain, load_defense
-from stages.config.build import check_attack_params, engine_settings, intrinsics, make_attack, scene_settings
+from stages.config.build import check_attack_params, intrinsics, make_attack, scene_settings
 from stages.config.device import torch_setup
 from stages.config.schema import Params
 from stages.config.evaluation import Integrity
@@ -93,7 +93,7 @@ def main(params: Params) -> None:
     chains = {m.value: load_chain(params, m) for m in (PAPER, SHIPPED)}
     hashes = {m: h for m, (_, _, h) in chains.items()}
     defense = load_defense(params, hashes[SHIPPED.value], chains[SHIPPED.value][0].threshold, SHIPPED)
-    K, es = intrinsics(params), engine_settings(params)   # K: the model's input size
+    K, es = intrinsics(params), engine.engine_settings(params)   # K: the model's input size
     scene, threads = chunks.prepare(K, scene_settings(params.render), es)
     plan = GridPlan(settings, tuple(grid), g.slack_steps, tuple(g.dynamics), tuple(g.defenses), in_loop)
     runs = flights(plan)   # attacked runs last the no-attack arrival + slack_steps (the paper: 50 nominal steps + ~10)

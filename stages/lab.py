@@ -33,7 +33,7 @@ from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import CHAINS, LAB as OUT, LAB_METRICS as METRICS, LAB_MODELS, LAB_MODELS_SUMMARY, \
     LAB_REPORT as REPORT, PAPER, SEED_OFFSET, SHIPPED, TRAIN_METRICS
 from stages.artifacts.models import load_chain, load_defense
-from stages.config.build import engine_settings, mockup, retrain_reason, scene_settings
+from stages.config.build import mockup, retrain_reason, scene_settings
 from stages.config.device import torch_setup
 from stages.config.params import given, with_params
 from stages.config.schema import Params
@@ -89,7 +89,7 @@ def render_lab(p: Params, dest: Path) -> list[dict[str, Any]]:
     Returns per sequence the exact lab labels (for checking the loader round trip).
     """
     from pipeline.evaluation.lab import synthetic_recording
-    from pipeline.evaluation.lab_images import shift_recording
+    from pipeline.images import shift_recording
     from pipeline.geometry.rotations import quat_to_matrix
 
     lab, r = p.lab, p.render
@@ -103,7 +103,7 @@ def render_lab(p: Params, dest: Path) -> list[dict[str, Any]]:
                                    sun_direction=tuple(float(v) for v in ds.sun_direction),
                                    sun_strength=float(ds.sun_strength))
     rng = np.random.default_rng(lab.seed + SEED_OFFSET["lab"])
-    scale, n, truth, es = float(lab.scale), lab.frames, [], engine_settings(p)
+    scale, n, truth, es = float(lab.scale), lab.frames, [], engine.engine_settings(p)
     with engine.session(es):
         for i, (z0, z1) in enumerate(lab.sequences):
             lateral = tuple(rng.uniform(-0.03, 0.03, 2) * float(z1))   # lab m, target off-centre
@@ -182,7 +182,7 @@ def shipped_alarms(p: Params, sequences: list[Sequence]) -> dict[str, Any]:
     mean pose errors (m, deg; synthetic-frame metres), and the share of the frames' non-zero channel values that
     its black-level clamp erases (the lab's noise and blur lift them off zero)."""
     from pipeline.defense.chain import run_sequence
-    from pipeline.evaluation.stats import rate
+    from pipeline.stats import rate
     from pipeline.pose.metrics import pose_errors
 
     chain, _, model_hash = load_chain(p, SHIPPED)

@@ -30,10 +30,10 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.io.atomic import atomic_dir, file_hash, read_json, write_json
-from stages.artifacts.paths import DETECT_METRICS, DETECTOR, LAB_MODELS, LAB_MODELS_SUMMARY, PARAMS_FILE, POSE, \
-    RENDER, ROOT, SEED_OFFSET, TRAIN_METRICS
+from stages.artifacts.paths import (DETECT_METRICS, DETECTOR, LAB_MODELS, LAB_MODELS_SUMMARY, POSE, RENDER, SEED_OFFSET,
+                                   TRAIN_METRICS)
 from stages.config.build import mockup, retrain_reason
-from stages.config.params import NONE, write_params
+from stages.config.params import NONE, PARAMS_FILE, ROOT, write_params
 from stages.config.schema import Params
 from stages.errors import StageError
 

@@ -6,7 +6,7 @@ import numpy as np
 
 from pipeline.io.atomic import atomic_write_text
 from pipeline.io.tables import write_parquet
-from pipeline.pose.labels import POSITION, QUAT, SIXD
+from pipeline.geometry.labels import POSITION, QUAT, SIXD
 from stages.artifacts.data import RENDER_KEY
 from stages.artifacts.paths import DATASET_CARD as CARD, IMAGES, LABELS, PREVIEWS, RENDER, SEED_OFFSET
 from stages.artifacts.readers import read_render_store

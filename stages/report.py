@@ -26,9 +26,9 @@ import typer
 
 from pipeline.io.atomic import atomic_write_text, read_json, save_figure, write_json
 from stages.artifacts.dvc import make_hint
-from stages.artifacts.paths import BENCHMARKS, PAGE, PARAMS_FILE, README, REPORT_FIGURES, ROC_DATA, \
-    SHAP as SHAP_STORE, SUMMARY, VARIANCE
-from stages.config.params import load
+from stages.artifacts.paths import (BENCHMARKS, PAGE, README, REPORT_FIGURES, ROC_DATA, SHAP as SHAP_STORE, SUMMARY,
+                                   VARIANCE)
+from stages.config.params import PARAMS_FILE, load
 from stages.config.schema import Params
 from stages.errors import StageError
 from stages.pages.differences import differences

@@ -33,7 +33,7 @@ import numpy as np
 
 from pipeline.io.atomic import atomic_write_text, read_json, save_figure
 from pipeline.io.errors import not_found
-from pipeline.pose.labels import TARGET
+from pipeline.geometry.labels import TARGET
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import INTEGRITY_FIGURE, PAPER, ROBUST_METRICS, ROBUSTNESS_FIGURE as FIGURE, \
     ROBUSTNESS_METRICS as METRICS, ROBUSTNESS_REPORT as REPORT, SEED_OFFSET, SHIPPED, SURROGATE, Model
@@ -135,7 +135,7 @@ def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Rob
     from pipeline.defense.chain import run_sequence
     from pipeline.attacks.corruptions import corrupt
     from pipeline.evaluation.robustness import corruption_row
-    from pipeline.evaluation.stats import rate
+    from pipeline.stats import rate
     from pipeline.pose.metrics import pose_errors
 
     none = np.zeros(len(images), bool)
@@ -176,7 +176,7 @@ def _integrity(p: Params, r: Robustness, chain_of: tuple[Any, Any, str], seed: i
     trajectories unattacked (pipeline.evaluation.integrity_runs); the burst's attacked frames also give the
     per-frame fused rows (raw error > harm_m and unflagged). Returns the metrics and the figure's data."""
     from pipeline.evaluation.integrity_runs import Track, clean_row, fly, integrity_row
-    from pipeline.evaluation.stats import bootstrap_rate
+    from pipeline.stats import bootstrap_rate
     from stages.config.build import alert_limit_settings
     from stages.pages.integrity import worst_hmi
 

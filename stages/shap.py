@@ -33,7 +33,7 @@ import numpy as np
 
 from pipeline.io.atomic import atomic_dir
 from pipeline.io.store import create_array
-from pipeline.pose.labels import TARGET
+from pipeline.geometry.labels import TARGET
 from stages.artifacts.data import load_split
 from stages.artifacts.paths import CHAINS, DETECT_RENDER, SEED_OFFSET, Model
 from stages.artifacts.readers import BATCH, SampleImages

@@ -1,5 +1,6 @@
 """Layering of the code: the library (pipeline/) and the public API (rpodguard/) never import the
-commands (stages/), and no modules of pipeline/, stages/ and rpodguard/ import each other in a cycle.
+commands (stages/); the packages of each are declared in one order, lowest first, and a package imports
+only the packages below it (so no two packages import each other); no modules import each other in a cycle.
 
 Every import statement counts, also those inside functions (a deferred import is still a dependency).
 """
@@ -18,6 +19,33 @@ def _module_name(path: Path) -> str:
 
 
 MODULES = {_module_name(p): p for pkg in PACKAGES for p in sorted((REPO / pkg).rglob("*.py"))}
+
+# The layers, lowest first: a unit (a subpackage, or a module directly under pipeline/) imports only units
+# before it. The library: files and errors; intervals; frames and cameras; image operations; the
+# Blender scene; the SHAP closed form; attacks on images (FGSM, PGD, the adaptive one) and their schedules;
+# the pose network (its adversarial training uses the attacks); the detectors; the defense (filter, fusion,
+# protection level, integrity, calibration, the onboard chain); the guidance law; the attackers of the
+# defended chain (burst, drift, in-loop: they model the defense and the guidance); evaluation campaigns;
+# file formats (a chain's files and the one door that loads a chain); report building blocks.
+PIPELINE_ORDER = ("io", "stats", "geometry", "images", "render", "shap", "attacks", "pose", "detectors",
+                  "defense", "guidance", "attackers", "evaluation", "formats", "report")
+# The commands' support, lowest first: errors; params (schema, composition, params -> library settings);
+# artifacts (paths, readers, checks); the Ray engine and its workers; report pages; then the commands
+# (one module per stage, the CLI and its --help), which no other unit imports.
+STAGES_ORDER = ("errors", "config", "artifacts", "engine", "pages")
+COMMANDS = "stages.<commands>"
+ORDER = (*(f"pipeline.{u}" for u in PIPELINE_ORDER), "rpodguard", *(f"stages.{u}" for u in STAGES_ORDER), COMMANDS)
+
+
+def unit(name: str) -> str:
+    """The layer unit of a module: pipeline.X / stages.X (a subpackage or a module under the package),
+    rpodguard, or the stages' commands (every other module directly under stages/, and stages/__init__)."""
+    parts = name.split(".")
+    if parts[0] == "rpodguard":
+        return "rpodguard"
+    if parts[0] == "stages" and (len(parts) == 1 or (len(parts) == 2 and parts[1] not in STAGES_ORDER)):
+        return COMMANDS
+    return ".".join(parts[:2])
 
 
 def imports(name: str) -> set[str]:
@@ -76,6 +104,25 @@ def test_library_and_api_never_import_the_stages() -> None:
 def test_the_api_imports_the_library_only() -> None:
     deps = {dep for name in MODULES if name.startswith("rpodguard") for dep in imports(name)}
     assert deps and all(d.split(".")[0] in ("pipeline", "rpodguard") for d in deps), deps
+
+
+def test_every_unit_has_its_place_in_the_order() -> None:
+    units = {unit(name) for name in MODULES if name != "pipeline"}
+    assert units - set(ORDER) == set(), "declare the new package in PIPELINE_ORDER or STAGES_ORDER"
+    assert set(ORDER) - units == set(), "a declared layer has no module"
+
+
+def test_packages_import_only_the_layers_below() -> None:
+    rank = {u: i for i, u in enumerate(ORDER)}
+    bad = sorted(f"{name} ({unit(name)}) imports {dep} ({unit(dep)})" for name in MODULES if name != "pipeline"
+                 for dep in imports(name) if rank[unit(dep)] > rank[unit(name)])
+    assert not bad, bad
+
+
+def test_a_command_imports_no_other_command() -> None:
+    commands = {name for name in MODULES if unit(name) == COMMANDS and name != "stages"}
+    bad = sorted(f"{name} imports {dep}" for name in commands - {"stages.cli"} for dep in imports(name) & commands)
+    assert not bad, bad
 
 
 def test_no_import_cycles() -> None:

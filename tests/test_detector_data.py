@@ -65,7 +65,7 @@ def test_the_detector_split_has_enough_trajectories_of_its_own_seed():
 def _write_trajectories(folder: Path, p, n: int, seed: int) -> np.ndarray:
     """A stand-in detector split (what `rpod eval_render --detector` writes) of random images; returns them."""
     from pipeline.geometry.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
-    from pipeline.pose.labels import pose_columns
+    from pipeline.geometry.labels import pose_columns
 
     rng = np.random.default_rng(seed)
     h, w = p.render.height, p.render.width

@@ -1,4 +1,4 @@
-"""The slow drift (pipeline/attacks/drift.py) and the attacker registry (pipeline/attacks/suite.py).
+"""The slow drift (pipeline/attackers/drift.py) and the attacker registry (pipeline/attackers/suite.py).
 
 On a toy filter (no network) the drift is fed directly as the measurement error: a drift that keeps
 every innovation under the gate (the drift that walked the old filter, with its free drift-velocity
@@ -15,9 +15,9 @@ import pytest
 import torch
 
 from pipeline.attacks.adaptive import PerFrameChain
-from pipeline.attacks.base import AttackRun
-from pipeline.attacks.drift import DriftAttacker, DriftSettings, drift_estimates, targeted_pgd
-from pipeline.attacks.suite import get_attacker
+from pipeline.attackers.base import AttackRun
+from pipeline.attackers.drift import DriftAttacker, DriftSettings, drift_estimates, targeted_pgd
+from pipeline.attackers.suite import get_attacker
 from pipeline.defense.fusion import Defense, DefenseSettings, run_defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel

@@ -132,7 +132,7 @@ def test_the_derivation_follows_functions_not_whole_modules():
 
 
 def test_no_stage_imports_another_stage():
-    shared = {"artifacts", "errors", "params", "schema", "cli", "checkpoint", "data", "paramhelp", "speed",
+    shared = {"artifacts", "errors", "params", "schema", "cli", "checkpoint", "data", "help", "speed",
               "engine", "chunks"}
     for path in sorted((REPO / "stages").glob("*.py")):
         _, top = parse(path)

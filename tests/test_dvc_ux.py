@@ -154,7 +154,7 @@ def test_commands_outside_dvc_have_help_too():
 
 @pytest.mark.parametrize("command", DVC_COMMANDS)
 def test_stage_help_lists_its_params_with_comments(command):
-    from stages.config.help import CONFIG, command_params, config_comments
+    from stages.help import CONFIG, command_params, config_comments
 
     comments = config_comments(CONFIG.read_text())
     keys = command_params(command, comments)
@@ -170,7 +170,7 @@ def test_stage_help_lists_its_params_with_comments(command):
 
 
 def test_config_comments_parse_sections_and_continuations():
-    from stages.config.help import config_comments
+    from stages.help import config_comments
 
     text = ("defaults:\n  - _self_\nseed: 0   # base\nsec:      # a section\n  a: [1, 2]   # metres;\n"
             "              # more\n  sub:\n    b: 3\nempty: {}\n")

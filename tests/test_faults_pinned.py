@@ -97,7 +97,7 @@ def _poses_from_labels(root: Path) -> None:
     from pipeline.geometry.rotations import quat_to_matrix
     from pipeline.geometry.trajectories import poses_table
     from pipeline.io.tables import write_parquet
-    from pipeline.pose.labels import POSITION, QUAT
+    from pipeline.geometry.labels import POSITION, QUAT
 
     df = pd.read_parquet(root / "datasets/labels.parquet")
     write_parquet(poses_table(df["index"].to_numpy(), df["sequence"].to_numpy(), df["frame"].to_numpy(),

@@ -12,7 +12,7 @@ import pytest
 
 from faults import exits_once
 from stages.config import params as params_mod
-from stages.config.build import engine_settings
+from stages.engine.pool import engine_settings
 from stages.config.schema import build
 from stages.engine import pool as engine
 from stages.errors import StageError

@@ -11,7 +11,7 @@ import pytest
 import torch
 from torch import nn
 
-from pipeline.attacks.in_loop import InLoopAttacker, InLoopSettings, axes
+from pipeline.attackers.in_loop import InLoopAttacker, InLoopSettings, axes
 from pipeline.defense.fusion import Defense, DefenseSettings
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel

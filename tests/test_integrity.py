@@ -1,4 +1,4 @@
-"""Integrity metrics (pipeline/evaluation/integrity.py): the alert limit against the guidance law flown in
+"""Integrity metrics (pipeline/defense/integrity.py): the alert limit against the guidance law flown in
 the loop, HMI / MI / availability and attack-caused harm on hand-made traces, the params that feed them."""
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from pipeline.defense.fusion import COAST, HOLD, TRACK, DefenseTrace
-from pipeline.evaluation.integrity import (AlertLimitSettings, IntegrityFrames, alert_limit, attack_hmi, attack_mi,
+from pipeline.defense.integrity import (AlertLimitSettings, IntegrityFrames, alert_limit, attack_hmi, attack_mi,
                                            clean_rates, concat, defense_frames, integrity_rates)
-from pipeline.evaluation.stats import bootstrap_rate
+from pipeline.stats import bootstrap_rate
 from pipeline.geometry.camera import reference_intrinsics
 from pipeline.guidance.law import GuidanceSettings, run_rendezvous
 from stages.config import params as params_mod

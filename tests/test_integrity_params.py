@@ -50,7 +50,7 @@ def test_an_in_loop_start_range_off_the_approach_is_one_line():
 
 
 def test_the_builders_follow_the_params():
-    from pipeline.evaluation.integrity import alert_limit
+    from pipeline.defense.integrity import alert_limit
     from stages.config.build import alert_limit_settings, burst_attacker, drift_settings, in_loop_settings
     from stages.config.schema import build
 

@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.attacks.burst import BurstAttacker
-from pipeline.attacks.drift import DriftSettings
+from pipeline.attackers.burst import BurstAttacker
+from pipeline.attackers.drift import DriftSettings
 from pipeline.defense.chain import OnboardChain
 from pipeline.defense.fusion import DefenseSettings
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel
-from pipeline.evaluation.integrity import AlertLimitSettings, defense_frames
+from pipeline.defense.integrity import AlertLimitSettings, defense_frames
 from pipeline.evaluation.integrity_runs import Track, burst_attack, clean_row, counted, drift_attack, fly, integrity_row
 from pipeline.evaluation.robustness import Defended
 from test_burst import scene  # noqa: F401  (its tiny PoseNet and LSTM)
@@ -100,7 +100,7 @@ def test_a_fixed_alert_limit_and_a_protection_level_reach_the_records() -> None:
 
 def test_a_bootstrap_without_spread_falls_back_to_trajectories_as_trials() -> None:
     from pipeline.evaluation.integrity_runs import as_json
-    from pipeline.evaluation.stats import Rate, wilson
+    from pipeline.stats import Rate, wilson
 
     none = as_json(Rate(0.0, 0.0, 0.0, 1550), trajectories=10)
     assert none["ci"] == pytest.approx([0.0, wilson(0, 10).hi]) and none["ci"][1] > 0.25 and "Wilson" in none["ci_method"]

@@ -5,7 +5,7 @@ import pytest
 from pipeline.geometry.camera import Intrinsics, project, reference_intrinsics
 from pipeline.evaluation.lab import (LabDataError, lab_to_synthetic_factor, lab_to_synthetic_position, match_frames,
                                      paper_lab_factor, relative_pose, synthetic_recording)
-from pipeline.evaluation.lab_images import domain_shift, segment
+from pipeline.images import domain_shift, segment
 from pipeline.geometry.rotations import euler_to_matrix, matrix_to_quat, quat_to_matrix
 from pipeline.pose.metrics import attitude_error_deg
 from stages.config.schema import Params, build

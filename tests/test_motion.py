@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.kalman import MotionFilter
 from pipeline.defense.noise import NoiseModel, fit_noise
-from pipeline.evaluation.stats import rate
+from pipeline.stats import rate
 from pipeline.geometry.trajectories import look_at, approach_trajectory
 
 NOISE = NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02)

@@ -246,7 +246,7 @@ def _calibrate(models: Path) -> None:
     from pipeline.defense.fusion import DefenseSettings
     from pipeline.defense.gate import MotionSettings
     from pipeline.defense.noise import NoiseModel
-    from pipeline.evaluation.integrity import AlertLimitSettings
+    from pipeline.defense.integrity import AlertLimitSettings
     from pipeline.formats.defense import DEFENSE_FORMAT
     from pipeline.io.atomic import file_hash, write_json
 
@@ -260,7 +260,7 @@ def _calibrate(models: Path) -> None:
 
 
 def test_track_gives_the_trusted_estimate_pl_and_availability_per_frame(models, tmp_path):
-    from pipeline.evaluation.integrity import AlertLimitSettings, alert_limit
+    from pipeline.defense.integrity import AlertLimitSettings, alert_limit
 
     bare = tmp_path / "bare"
     bare.mkdir()

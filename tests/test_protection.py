@@ -15,7 +15,7 @@ from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel
 from pipeline.defense.protection import ProtectionLevel, largest_eigenvalue
 from pipeline.defense.sequential import Cusum
-from pipeline.evaluation.integrity import AlertLimitSettings
+from pipeline.defense.integrity import AlertLimitSettings
 from pipeline.geometry.rotations import matrix_to_6d
 
 NOISE = NoiseModel((0.05, 0.05, 0.1), (0.005, 0.005, 0.01), 1.0, 0.0)   # 0.2, 0.2, 0.4 m std at 30 m
@@ -217,7 +217,7 @@ def test_calibrate_tightens_every_share_when_only_the_fusion_overshoots(monkeypa
     calibrate gives up after TIGHTEN_TRIES and the caller refuses with one line."""
     import pipeline.defense.calibration as calibration
     import stages.calibrate as cal
-    from pipeline.evaluation.stats import rate
+    from pipeline.stats import rate
     from stages.config import params as params_mod
     from stages.config.schema import build
 

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.evaluation.stats import bootstrap_rate, rate, wilson
+from pipeline.stats import bootstrap_rate, rate, wilson
 
 
 def _wilson_by_hand(k: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:

@@ -16,7 +16,7 @@ import zarr
 from pipeline.formats.models import read_pose, save_pose
 from pipeline.geometry.camera import reference_intrinsics
 from pipeline.geometry.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
-from pipeline.pose.labels import pose_columns
+from pipeline.geometry.labels import pose_columns
 from stages.artifacts import data, models
 from pipeline.io.atomic import file_hash, write_json
 from pipeline.io.errors import DataError

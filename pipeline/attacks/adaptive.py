@@ -33,7 +33,7 @@ DEFAULT_STEPS = 20
 
 class DifferentiableChain(Protocol):
     """What the adaptive attack differentiates through (`PerFrameChain`; the chain-level attackers of
-    pipeline/attacks/base.py take the same).
+    pipeline/attackers/base.py take the same).
 
     Frames (B, 3, H, W) in [0, 1] -> (pose (B, 9) [m, 6-D], attack logit (B,)), differentiable.
 

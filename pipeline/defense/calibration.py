@@ -150,8 +150,8 @@ def clean_summary(traces: Sequence[DefenseTrace], truths: Sequence[np.ndarray], 
     AlertLimitSettings): flag rates of each check and of the fused chain, availability (flown and PL
     <= AL at the true range), MI (error > PL, frames with a PL), as Rates with a bootstrap over runs;
     frames; the median and 95th percentile of the finite PL and of the trusted error (m)."""
-    from pipeline.evaluation.integrity import concat, defense_frames
-    from pipeline.evaluation.stats import bootstrap_rate
+    from pipeline.defense.integrity import concat, defense_frames
+    from pipeline.stats import bootstrap_rate
 
     groups = np.concatenate([np.full(len(t.flag), i) for i, t in enumerate(traces)])
     out: dict[str, Any] = {name: bootstrap_rate(np.concatenate([getattr(t, attr) for t in traces]), groups)

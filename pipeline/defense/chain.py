@@ -12,7 +12,6 @@ from __future__ import annotations
 import copy
 import warnings
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Callable, Iterable
 
 import numpy as np
@@ -183,19 +182,3 @@ def run_sequence(chain: OnboardChain, images: np.ndarray, targets: np.ndarray, a
         out = chain(x)
         pose[lo:hi], prob[lo:hi], flag[lo:hi] = out.pose.numpy(), out.prob.numpy(), out.flag.numpy()
     return SequenceResult(pose, prob, flag)
-
-
-def load_onboard_chain(model: nn.Module, model_hash: str, pose_path: Path | str,
-                      detector_path: Path | str) -> OnboardChain:
-    """The OnboardChain of a pose model read from `pose_path` (whose file hash is `model_hash`) and the
-    detector checkpoint at `detector_path` (its threshold and SHAP background mean). A detector
-    trained on another pose model's SHAP values, or a pose head that is not affine, is a DataError."""
-    from pipeline.formats.models import read_detector
-    from pipeline.io.errors import DataError
-
-    detector, ckpt = read_detector(detector_path, model_hash=model_hash)
-    try:
-        return OnboardChain.from_model(model, np.asarray(ckpt["background_mean"]), detector,
-                                      threshold=float(ckpt["threshold"]))
-    except ValueError as err:
-        raise DataError(f"{pose_path}: {err}") from None

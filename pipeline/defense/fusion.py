@@ -19,7 +19,7 @@ commanded displacement) into (flag, trusted estimate, mode, protection level, av
   the start), which grows with every restart of the test; available: the guidance may fly on the trusted
   estimate: mode track or coast and, with an alert limit AL(range) given, PL <= AL at the trusted
   estimate's range (the chaser's best knowledge of it; the offline integrity metrics,
-  pipeline/evaluation/integrity.py, judge PL against AL at the true range);
+  pipeline/defense/integrity.py, judge PL against AL at the true range);
 - frames only the gate rejects are restart candidates: when the last M of them agree with one
   another (pipeline.defense.kalman.MotionFilter.reacquire), the filter restarts on them and the frame is
   not flagged by the motion check: it was the filter that was wrong (a state corrupted by attacked
@@ -92,7 +92,7 @@ class Decision:
 
 
 AlertLimitFn = Callable[[float], float]
-"""AL (m) at a range (m): the largest error the guidance absorbs there (pipeline/evaluation/integrity.py)."""
+"""AL (m) at a range (m): the largest error the guidance absorbs there (pipeline/defense/integrity.py)."""
 
 
 class Defense:

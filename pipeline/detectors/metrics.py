@@ -14,8 +14,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from sklearn import metrics as skm
 
-from pipeline.evaluation.schedule import bursts
-from pipeline.evaluation.stats import wilson
+from pipeline.attacks.schedule import bursts
+from pipeline.stats import wilson
 
 METRICS = ("accuracy", "precision", "recall", "fpr", "roc_auc", "tpr_at_1pct_fpr")
 

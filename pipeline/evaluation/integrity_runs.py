@@ -26,8 +26,8 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
-from pipeline.evaluation.integrity import AlertLimitSettings, IntegrityFrames, concat, defense_frames, integrity_rates
-from pipeline.evaluation.stats import Rate, bootstrap_rate
+from pipeline.defense.integrity import AlertLimitSettings, IntegrityFrames, concat, defense_frames, integrity_rates
+from pipeline.stats import Rate, bootstrap_rate
 
 
 
@@ -99,7 +99,7 @@ def burst_attack(target: Any, defended: Any, tracks: Sequence[Track], masks: Seq
     """(eps -> the stored frames (uint8 (N, H, W, 3)) of each track, eps -> each track's bursts' worst cases
     (`BurstOutcome`s in time order)), its bursts (`masks` (N,) bool) crafted by `attacker` (a BurstAttacker)
     through `target` (a DifferentiableChain), nested through the increasing `eps`; `done()` after each track."""
-    from pipeline.attacks.base import AttackRun
+    from pipeline.attackers.base import AttackRun
 
     stored: dict[float, list[Any]] = {float(e): [] for e in eps}
     worst: dict[float, list[Any]] = {float(e): [] for e in eps}
@@ -121,8 +121,8 @@ def drift_attack(target: Any, defended: Any, tracks: Sequence[Track], clean: Seq
     frames window = (start, stop) drifted at `eps`: every drift and track in lockstep, one batched targeted
     PGD of `steps` steps per frame over all of them; `clean` the tracks' clean flights (the estimates the
     planners start from); `done()` after each drifted frame."""
-    from pipeline.attacks.base import chain_outputs
-    from pipeline.attacks.drift import DriftPlanner, targeted_pgd
+    from pipeline.attackers.base import chain_outputs
+    from pipeline.attackers.drift import DriftPlanner, targeted_pgd
     from pipeline.geometry.rotations import sixd_to_matrix
 
     start, stop = window
@@ -163,7 +163,7 @@ def as_json(r: Rate, trajectories: int) -> dict[str, Any]:
     or [1, 1]) bounds nothing; its interval is then the Wilson interval of the `trajectories` as trials,
     all without a hit (or all with hits): a conservative bound of the frame rate, since a trajectory
     with a hit has at least the frame's chance of one."""
-    from pipeline.evaluation.stats import wilson
+    from pipeline.stats import wilson
 
     method = "bootstrap over trajectories"
     if r.n and r.lo == r.hi and r.value in (0.0, 1.0):
@@ -203,7 +203,7 @@ def integrity_row(attacker: str, eps: float, attacked: Sequence[Flown], clean: S
 
 def clean_row(clean: Sequence[Flown], seed: int = 0) -> dict[str, Any]:
     """The clean trajectories' integrity: availability, HMI, MI (bootstrap over trajectories), frames, error (m)."""
-    from pipeline.evaluation.integrity import clean_rates
+    from pipeline.defense.integrity import clean_rates
 
     r = clean_rates(concat([f.frames for f in clean]), seed=seed)
     return {**{k: as_json(r[k], len(clean)) for k in ("availability", "hmi", "mi")}, "frames": r["frames"],

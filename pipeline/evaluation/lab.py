@@ -47,7 +47,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from pipeline.geometry.camera import Intrinsics
 from pipeline.geometry.rotations import UNIT_TOLERANCE, matrix_to_quat, normalize_quat, quat_to_matrix
-from pipeline.pose.labels import QUAT
+from pipeline.geometry.labels import QUAT
 
 Match = Literal["nearest", "interpolate"]
 CAMERA_COLUMNS = ["frame", "timestamp"]
@@ -347,7 +347,7 @@ def chain_sequences(recs: list[dict[str, Any]], K_syn: Intrinsics, K_lab: Intrin
     """Loaded recordings as safety-chain `Sequence`s (targets: synthetic-frame position in metres, then
     the 6-D rotation; attack schedule seeded with seed + 31 + i) and their range-table rows."""
     from pipeline.geometry.rotations import quat_to_6d
-    from pipeline.evaluation.schedule import attack_schedule
+    from pipeline.attacks.schedule import attack_schedule
     from pipeline.evaluation.sequences import Sequence
 
     sequences, ranges = [], []

@@ -5,7 +5,7 @@ For a set of attacked frames with their position errors (m) and the chain's flag
 - harmful-undetected rate = frames whose position error exceeds the harm threshold `harm_m` (m)
   and that the chain did not flag / attacked frames: the safety number;
 - position error = mean ||t_pred - t_gt|| (m, camera frame) over the attacked frames.
-Every rate carries its 95% Wilson interval (`pipeline.evaluation.stats`): the frames are distinct held-out
+Every rate carries its 95% Wilson interval (`pipeline.stats`): the frames are distinct held-out
 test frames, each attacked once, so they are independent trials of the attack.
 For benign corruptions, the false-alarm rate = flagged frames / corrupted frames.
 """
@@ -17,7 +17,7 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 import torch
 
-from pipeline.evaluation.stats import rate
+from pipeline.stats import rate
 
 Craft = Callable[[Any, Any], Any]   # (x (B, 3, H, W) in [0, 1], y (B, 9)) -> float adversarial images in [0, 1]
 
@@ -221,14 +221,14 @@ class Defended:
     settings: Any      # DefenseSettings
     motion: Any        # MotionSettings
     noise: Any         # NoiseModel
-    alert: Any = None  # AlertLimitSettings (pipeline.evaluation.integrity), None: no availability check
+    alert: Any = None  # AlertLimitSettings (pipeline.defense.integrity), None: no availability check
 
     def defense(self) -> Any:
         """A fresh pipeline.defense.fusion.Defense with these settings."""
         from functools import partial
 
         from pipeline.defense.fusion import Defense
-        from pipeline.evaluation.integrity import alert_limit
+        from pipeline.defense.integrity import alert_limit
 
         return Defense(self.settings, self.motion, self.noise,
                        None if self.alert is None else partial(alert_limit, settings=self.alert))
@@ -248,7 +248,7 @@ def fused_row(attack: str, eps: float, lam: float | None, position_error: np.nda
     """A row against the fused chain: the attacked frames of whole trajectories, rates with a
     percentile bootstrap over trajectories (`groups`: trajectory id per frame; frames of a burst,
     and bursts of one filter run, are not independent)."""
-    from pipeline.evaluation.stats import bootstrap_rate
+    from pipeline.stats import bootstrap_rate
 
     pos, flag = _check(position_error, flag)
     det = bootstrap_rate(flag, groups)

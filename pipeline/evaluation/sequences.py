@@ -24,8 +24,8 @@ from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel
 from pipeline.geometry.rotations import sixd_to_matrix
 from pipeline.detectors.metrics import detection_delays, frame_metrics, mean_over, undetected_mask
-from pipeline.evaluation.schedule import schedule_bursts
-from pipeline.evaluation.stats import bootstrap_rate
+from pipeline.attacks.schedule import schedule_bursts
+from pipeline.stats import bootstrap_rate
 from pipeline.pose.metrics import pose_errors
 
 
@@ -251,7 +251,7 @@ def defend_trace(settings: DefenseSettings, motion: MotionSettings, noise: Noise
 def defended_summary(traces: dict[tuple[float, str], Trace], sequences: list[Sequence],
                      eps_list: list[float], settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel,
                      attack_length: int, harm_m: float) -> list[dict[str, Any]]:
-    """The defended chain per eps, frames pooled over the sequences, every rate a `pipeline.evaluation.stats.Rate`
+    """The defended chain per eps, frames pooled over the sequences, every rate a `pipeline.stats.Rate`
     (bootstrap over sequences, whose frames are correlated).
 
     Each sequence needs its motion: rel, R_cam and u (see `Sequence` and `defend_trace`). Per eps:

@@ -69,7 +69,7 @@ def defense_from(cal: Calibration) -> tuple[Any, Any, Any]:
     settings with the calibrated detector threshold and CUSUM threshold."""
     from pipeline.defense.fusion import DefenseSettings
     from pipeline.defense.gate import MotionSettings
-    from pipeline.evaluation.integrity import AlertLimitSettings
+    from pipeline.defense.integrity import AlertLimitSettings
 
     def pick(cls: type, values: dict[str, Any], **extra: Any) -> Any:
         names = {f.name for f in dataclasses.fields(cls)}

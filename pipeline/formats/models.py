@@ -82,3 +82,20 @@ def read_detector(path: Path | str, model_hash: str | None = None) -> tuple[Any,
         raise DataError(f"{path} was trained for pose checkpoint {ckpt['pose_model_hash']!r}, not {model_hash!r}; "
                         f"re-run `rpod shap` and `rpod detect`")
     return from_checkpoint(ckpt), ckpt
+
+
+def load_onboard_chain(model: Any, model_hash: str, pose_path: Path | str,
+                      detector_path: Path | str) -> Any:
+    """The OnboardChain of a pose model read from `pose_path` (whose file hash is `model_hash`) and the
+    detector checkpoint at `detector_path` (its threshold and SHAP background mean). A detector
+    trained on another pose model's SHAP values, or a pose head that is not affine, is a DataError."""
+    import numpy as np
+
+    from pipeline.defense.chain import OnboardChain
+
+    detector, ckpt = read_detector(detector_path, model_hash=model_hash)
+    try:
+        return OnboardChain.from_model(model, np.asarray(ckpt["background_mean"]), detector,
+                                      threshold=float(ckpt["threshold"]))
+    except ValueError as err:
+        raise DataError(f"{pose_path}: {err}") from None

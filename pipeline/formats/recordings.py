@@ -74,7 +74,7 @@ def _read_recording(folder: Path, width: int, height: int, bodies: dict[str, str
     from tqdm import tqdm
 
     from pipeline.evaluation.lab import check_target_pixels, image_names, match_frames, resolve_inside
-    from pipeline.evaluation.lab_images import resize, segment
+    from pipeline.images import resize, segment
 
     tables = {}
     for name in ("camera.csv", "mocap.csv"):

@@ -16,7 +16,7 @@ import numpy as np
 
 from pipeline.io.atomic import atomic_dir, read_json, write_json
 from pipeline.io.errors import DataError
-from pipeline.pose.labels import POSITION, QUAT
+from pipeline.geometry.labels import POSITION, QUAT
 
 TRAIN = ("synthetic/train.json", "train.json")   # training label files, the first found is read
 TEST = ("synthetic/validation.json", "synthetic/test.json", "test.json")   # SPEED+'s, older exports', SPEED's

@@ -149,7 +149,7 @@ def poses_table(idx: np.ndarray, seq: np.ndarray, frm: np.ndarray, R: np.ndarray
     import pandas as pd
 
     from pipeline.geometry.rotations import matrix_to_quat
-    from pipeline.pose.labels import pose_columns
+    from pipeline.geometry.labels import pose_columns
 
     q = matrix_to_quat(R)
     return pd.DataFrame({"index": idx, "sequence": seq, "frame": frm,

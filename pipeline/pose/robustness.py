@@ -84,7 +84,7 @@ def black_level_stats(images: Any, threshold: float, noise_std: float, blur_sigm
     - lab_passed: the share of those background values at or above t (background the clamp lets through)."""
     import cv2
 
-    from pipeline.evaluation.lab_images import domain_shift
+    from pipeline.images import domain_shift
 
     rng = np.random.default_rng(seed)
     kernel = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)

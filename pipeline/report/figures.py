@@ -14,8 +14,8 @@ import matplotlib
 import numpy as np
 from matplotlib.figure import Figure
 
-from pipeline.evaluation.schedule import bursts
-from pipeline.pose.labels import TARGET
+from pipeline.attacks.schedule import bursts
+from pipeline.geometry.labels import TARGET
 
 WIDTH_IN = 8.0          # figure width (in)
 TICK_PT = 9.0           # tick label size (pt)

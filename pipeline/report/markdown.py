@@ -26,15 +26,6 @@ def markdown_table(rows: Sequence[Mapping[str, Any]] | pd.DataFrame, columns: Se
     return df.to_markdown(index=False, disable_numparse=True) + "\n"
 
 
-def percent_ci(value: float | None, ci: Sequence[float | None] | None = None, decimals: int = 1,
-               unit: str = "") -> str:
-    """A rate in [0, 1] as `100 * value` with `decimals` places and `unit` (e.g. "%"; "-" when None),
-    then its 95% interval " [lo, hi]" in percent when `ci` holds one: "94.1 [92.4, 95.4]".
-    Every percent-with-interval in the reports is written by this one function."""
-    lo, hi = ci or (None, None)
-    head = "-" if value is None else f"{100 * value:.{decimals}f}{unit}"
-    return head + ("" if lo is None else f" [{100 * lo:.{decimals}f}, {100 * hi:.{decimals}f}]")
-
 
 def demote_headings(md: str, levels: int = 1) -> str:
     """Push every ATX heading down `levels` levels (to nest a stage report in a larger page)."""

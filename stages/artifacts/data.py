@@ -19,7 +19,7 @@ import pandas as pd
 from pipeline.formats.renders import META, read_renders
 from pipeline.io.atomic import read_json
 from pipeline.io.tables import read_parquet
-from pipeline.pose.labels import POSITION, QUAT, SIXD
+from pipeline.geometry.labels import POSITION, QUAT, SIXD
 from stages.artifacts.paths import IMAGES, LABELS, RENDER
 from stages.config.build import augment_config
 from stages.errors import StageError

@@ -90,7 +90,7 @@ def load_pose_chain(params: Params, model: Model | str, root: Path | str = ".") 
     """(Pose, OnboardChain) of one chain (`model`: standard or robust, stages.artifacts.paths.CHAINS): its pose
     model and the detector trained on that model's SHAP values (refused when it names another model's hash),
     read from `root` (the working folder, or e.g. datasets/lab_models)."""
-    from pipeline.defense.chain import load_onboard_chain
+    from pipeline.formats.models import load_onboard_chain
 
     files = CHAINS[Model(model)]
     pose_path, detector_path = Path(root) / files.pose, Path(root) / files.detector
@@ -116,7 +116,7 @@ class DefenseModel:
     motion: Any          # pipeline.defense.gate.MotionSettings
     noise: Any           # pipeline.defense.noise.NoiseModel
     calibration: dict[str, Any]
-    alert: Any = None    # pipeline.evaluation.integrity.AlertLimitSettings
+    alert: Any = None    # pipeline.defense.integrity.AlertLimitSettings
 
     def new(self, fusion: str | None = None) -> Any:
         """A fresh pipeline.defense.fusion.Defense (one per trajectory or closed-loop run), optionally with
@@ -125,7 +125,7 @@ class DefenseModel:
         from functools import partial
 
         from pipeline.defense.fusion import Defense
-        from pipeline.evaluation.integrity import alert_limit
+        from pipeline.defense.integrity import alert_limit
 
         s = self.settings if fusion is None else dataclasses.replace(self.settings, fusion=fusion)
         return Defense(s, self.motion, self.noise, None if self.alert is None else partial(alert_limit, settings=self.alert))

@@ -4,7 +4,7 @@ One path base. Outputs (datasets/, models/, reports/, dvclive/) are relative to 
 repository root under `dvc repro` (a stage run elsewhere reads and writes there). Code-side files
 (conf/, dvc.yaml, the committed reports/benchmarks.md) are found from the package location, `ROOT`.
 Each output is declared with the dvc.yaml stage whose `outs` (or `metrics`) hold it (`WRITTEN_BY`;
-tests/test_dvc_ux.py checks it). This module imports nothing from stages/, so every module may import it.
+tests/test_dvc_ux.py checks it). `ROOT`, conf/ and params.yaml are stages/config/params.py's.
 """
 from __future__ import annotations
 
@@ -12,11 +12,10 @@ from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]   # the repository (package) root: code-side files only
-CONF_DIR = ROOT / "conf"
+from stages.config.params import ROOT
+
 DVC_YAML = ROOT / "dvc.yaml"
 BENCHMARKS = ROOT / "reports" / "benchmarks.md"   # committed; `rpod report` adds its sections
-PARAMS_FILE = Path("params.yaml")
 README = Path("README.md")   # the project README: `rpod report --sync-readme` copies the results block into it
 REPORTS = Path("reports")
 VARIANCE = REPORTS / "variance.json"  # scripts/variance.py (not a stage): the spread of the headline numbers

@@ -17,7 +17,7 @@ import numpy as np
 
 from pipeline.formats.renders import read_renders
 from pipeline.io.store import open_zarr
-from pipeline.pose.labels import POSITION, SIXD
+from pipeline.geometry.labels import POSITION, SIXD
 from stages.artifacts.paths import DETECT_RENDER, EVAL_RENDER, POSE, VAL_ENVELOPE, VAL_RENDER
 from stages.config.params import detect_render_fingerprint, eval_render_fingerprint, val_envelope_fingerprint, \
     val_render_fingerprint

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.formats.speed import relative_name
-from pipeline.pose.labels import pose_columns
+from pipeline.geometry.labels import pose_columns
 from stages.config import params as params_mod
 from pipeline.formats.speed_folder import TEST, TRAIN, image_path, read_camera, read_image, read_labels
 from pipeline.io.atomic import atomic_dir, remove_stale_temps, write_json

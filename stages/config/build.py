@@ -5,7 +5,6 @@ MotionSettings, AlertLimitSettings, EngineSettings) and the lab mock-up policy. 
 from __future__ import annotations
 
 import dataclasses
-import os
 import types
 import typing
 from pathlib import Path
@@ -155,9 +154,9 @@ ALERT_LIMIT_KEYS = {"tolerance": "guidance.tolerance", "max_step": "guidance.max
 
 
 def alert_limit_settings(params: Params) -> Any:
-    """The AlertLimitSettings of pipeline.evaluation.integrity: the guidance law's tolerance, step limit and
+    """The AlertLimitSettings of pipeline.defense.integrity: the guidance law's tolerance, step limit and
     slack (params.guidance) with params.integrity's collision range, or integrity.alert_limit_m (m) when set."""
-    from pipeline.evaluation.integrity import AlertLimitSettings
+    from pipeline.defense.integrity import AlertLimitSettings
 
     g, i = params.guidance, params.integrity
     try:
@@ -170,8 +169,8 @@ def alert_limit_settings(params: Params) -> Any:
 
 def burst_attacker(params: Params, seed: int) -> Any:
     """The BurstAttacker of params.integrity (AL as a function of the true range, as the integrity rows judge it)."""
-    from pipeline.attacks.suite import get_attacker
-    from pipeline.evaluation.integrity import alert_limit
+    from pipeline.attackers.suite import get_attacker
+    from pipeline.defense.integrity import alert_limit
 
     i, limit = params.integrity, alert_limit_settings(params)
     al = lambda rng: alert_limit(rng, limit)  # noqa: E731
@@ -184,7 +183,7 @@ def burst_attacker(params: Params, seed: int) -> Any:
 
 def drift_settings(params: Params, direction: str) -> Any:
     """The DriftSettings of params.integrity for `direction` (los or lateral)."""
-    from pipeline.attacks.drift import DriftSettings
+    from pipeline.attackers.drift import DriftSettings
 
     try:
         return DriftSettings(direction=direction, gate_fraction=float(params.integrity.drift_gate_fraction))
@@ -194,7 +193,7 @@ def drift_settings(params: Params, direction: str) -> Any:
 
 def in_loop_settings(params: Params, goal: str) -> Any:
     """The InLoopSettings of params.integrity for `goal` (collide or miss); its stealth is the drift's gate fraction."""
-    from pipeline.attacks.in_loop import InLoopSettings
+    from pipeline.attackers.in_loop import InLoopSettings
 
     i = params.integrity
     try:
@@ -202,16 +201,6 @@ def in_loop_settings(params: Params, goal: str) -> Any:
     except ValueError as e:
         raise StageError(f"params.yaml integrity.in_loop_goals / in_loop_steps: {e}") from None
 
-
-def engine_settings(params: Params) -> Any:
-    """The engine section of params, with address None -> $RAY_ADDRESS; workers None is every core of
-    this machine, or of the cluster when there is an address."""
-    from stages.engine.pool import EngineSettings
-
-    e = params.engine
-    address = e.address or os.environ.get("RAY_ADDRESS") or None
-    workers = e.workers if e.workers or address else os.cpu_count() or 1
-    return EngineSettings(workers, address, float(e.timeout_s), e.retries)
 
 
 def mockup(params: Params) -> tuple[str | None, float]:

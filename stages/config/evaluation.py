@@ -240,14 +240,14 @@ class Robustness:
 
 
 
-IntegrityAttacker = Literal["burst", "drift/los", "drift/lateral"]   # pipeline.attacks.suite.ATTACKERS[/direction]
-InLoopGoal = Literal["collide", "miss"]                              # pipeline.attacks.in_loop.GOALS
+IntegrityAttacker = Literal["burst", "drift/los", "drift/lateral"]   # pipeline.attackers.suite.ATTACKERS[/direction]
+InLoopGoal = Literal["collide", "miss"]                              # pipeline.attackers.in_loop.GOALS
 Steps = Annotated[int, In("[1, 100000]", "PGD steps")]
 
 
 @dataclass(frozen=True)
 class Integrity:
-    """Integrity metrics and the chain-level attackers (pipeline/evaluation/integrity.py, pipeline/attacks/;
+    """Integrity metrics and the chain-level attackers (pipeline/defense/integrity.py, pipeline/attacks/;
     the alert limit's other constants are guidance's)."""
 
     collision_range_m: Metres    # metres: a true range below this is a collision, > 0

@@ -12,9 +12,12 @@ from typing import Any, Callable
 import yaml
 
 from pipeline.io.atomic import atomic_write_text
-from stages.artifacts.paths import CONF_DIR, PARAMS_FILE
 from stages.config.schema import Params, build
 from stages.config.sections import ParamsError
+
+ROOT = Path(__file__).resolve().parents[2]   # the repository (package) root: code-side files only
+CONF_DIR = ROOT / "conf"                      # the source of params.yaml: config.yaml and profile/*.yaml
+PARAMS_FILE = Path("params.yaml")             # in the working folder, like every output
 
 # The value of an unset external input (render.mesh, render.source, lab.mesh, lab.real_data): a tracked
 # folder, because dvc.yaml lists these params' paths as deps and a dep must exist (null cannot be one).

@@ -52,7 +52,7 @@ class GuidanceWorker:
     def __init__(self, setup: GuidanceSetup) -> None:
         from pipeline.attacks.adaptive import PerFrameChain
         from pipeline.attacks.gradient import stored_attack
-        from pipeline.attacks.in_loop import InLoopAttacker
+        from pipeline.attackers.in_loop import InLoopAttacker
         from pipeline.guidance.grid import GridPilot
         from pipeline.guidance.law import CachedCamera
         from pipeline.render.scene import Renderer

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Iterator, Protocol
 
 from pipeline.io.errors import DataError
+from stages.config.schema import Params
 from stages.errors import StageError
 
 CONNECT_TIMEOUT_S = 10.0   # seconds to open a TCP connection to a cluster's head before calling it unreachable
@@ -45,7 +46,7 @@ class Worker(Protocol):
 
 @dataclass(frozen=True)
 class EngineSettings:
-    """How a stage's jobs fan out (the params `engine` section, resolved by `settings`)."""
+    """How a stage's jobs fan out (the params `engine` section, resolved by `engine_settings`)."""
 
     workers: int | None       # actors (1 = in-process); None = every core (of the cluster, with an address)
     address: str | None       # Ray cluster address, None = a local Ray (or in-process)
@@ -61,6 +62,14 @@ class EngineSettings:
         if self.in_process:
             return render_threads
         return max(1, render_threads // (self.workers or (1 if self.address else os.cpu_count() or 1)))
+
+def engine_settings(params: Params) -> EngineSettings:
+    """The engine section of params, with address None -> $RAY_ADDRESS; workers None is every core of
+    this machine, or of the cluster when there is an address."""
+    e = params.engine
+    address = e.address or os.environ.get("RAY_ADDRESS") or None
+    workers = e.workers if e.workers or address else os.cpu_count() or 1
+    return EngineSettings(workers, address, float(e.timeout_s), e.retries)
 
 
 def run(worker_cls: Callable[[Any], Worker], setup: Any, jobs: list[Any], es: EngineSettings,

@@ -16,7 +16,7 @@ NAMES = {"lstm": "LSTM on SHAP (paper)", "mlp": "MLP on SHAP", "mahalanobis": "M
 
 def _pct(m: dict[str, Any], key: str) -> str:
     """A rate in percent with its 95% Wilson interval, e.g. "94.1 [92.4, 95.4]"."""
-    from pipeline.report.markdown import percent_ci
+    from pipeline.stats import percent_ci
 
     ci = m.get(f"{key}_ci95") or (None, None)
     return "-" if m[key] is None or math.isnan(m[key]) or ci[0] is None else percent_ci(m[key], ci)
@@ -51,7 +51,7 @@ def _headline_alarms(alarms: dict[str, Any] | None) -> str:
     """The clean-trajectory false alarms beside the headline accuracy (empty when not measured)."""
     if alarms is None:
         return ""
-    from pipeline.report.markdown import percent_ci
+    from pipeline.stats import percent_ci
 
     return (f" At the same threshold it flags {percent_ci(alarms['rate'], alarms['rate_ci95'], 2)}% of the "
             f"{alarms['frames']} frames of fresh clean evaluation trajectories (below).")
@@ -90,7 +90,7 @@ def _alarms(alarms: dict[str, Any] | None, model: Model) -> str:
     if alarms is None:
         return ("## False alarms on fresh clean trajectories\n\nNot measured (`rpod detect --no-eval-alarms`: "
                 "the lab's synthetic-lab detector).\n")
-    from pipeline.report.markdown import percent_ci
+    from pipeline.stats import percent_ci
 
     per = ", ".join(f"{k}: {v}" for k, v in alarms["per_trajectory"].items())
     return f"""## False alarms on fresh clean trajectories

@@ -10,7 +10,7 @@ from stages.pages.readme import DETECTOR_NAMES
 
 def _ci(m: dict[str, Any], key: str) -> str:
     """"54.0% [47.1, 60.8]" from a metrics dict with `key` and `key_ci95`."""
-    from pipeline.report.markdown import percent_ci
+    from pipeline.stats import percent_ci
 
     return percent_ci(m.get(key), m.get(f"{key}_ci95"), unit="%")
 
@@ -49,7 +49,7 @@ def _detector(params: Params, de: dict[str, Any]) -> str:
 
 
 def _integrated(params: Params, ev: dict[str, Any]) -> str:
-    from pipeline.report.markdown import percent_ci
+    from pipeline.stats import percent_ci
 
     e = params.evaluate
     per = ev["per_eps"]
@@ -63,7 +63,7 @@ def _integrated(params: Params, ev: dict[str, Any]) -> str:
 
 
 def _lab(lab: dict[str, Any]) -> str:
-    from pipeline.report.markdown import percent_ci
+    from pipeline.stats import percent_ci
 
     fpr = [c["fpr"] for c in lab.get("clean_detection", {}).values()]
     models = ("reuses the main models (allowed when the mock-up is the main mesh)" if lab.get("reused_models", True)

@@ -18,7 +18,7 @@ VARIANTS = {"undefended": "undefended", "hold": "detect-and-hold", "recover": "d
 def defended_section(d: dict[str, Any], g: Guidance) -> str:
     """Markdown: success rates with Wilson intervals per (dynamics, variant) and eps, and per S x K cell."""
     from pipeline.report.markdown import markdown_table
-    from pipeline.evaluation.stats import wilson
+    from pipeline.stats import wilson
 
     summary, cells = [], []
     for dyn, variants in d["dynamics"].items():
@@ -163,7 +163,7 @@ The full paper grid (eps 0.5, 0.3, 0.1, 0.05, 0.01; S = 60..10 m; K = 5..20) run
 
 def in_loop_section(d: dict[str, Any], i: Integrity) -> str:
     """Markdown: the in-loop attacker's collisions, lost and held rendezvous per (dynamics, variant, eps), and every run."""
-    from pipeline.evaluation.stats import wilson
+    from pipeline.stats import wilson
     from pipeline.report.markdown import markdown_table
 
     summary = []

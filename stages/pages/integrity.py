@@ -13,7 +13,7 @@ NAMES = {"burst": "burst (nested)", "drift/los": "drift along the line of sight"
 
 def _pct(r: dict[str, Any] | None) -> str:
     """A rate of the metrics JSON ({"value", "ci", "n"}) in percent with its interval, or "-"."""
-    from pipeline.report.markdown import percent_ci
+    from pipeline.stats import percent_ci
 
     return "-" if not r or not r.get("n") else percent_ci(r["value"], r["ci"], 1)
 
@@ -64,7 +64,7 @@ def attacker_names(attacker: str) -> str:
 
 
 def _al_text(integrity: dict[str, Any], p: Params) -> str:
-    from pipeline.evaluation.integrity import AlertLimitSettings, alert_limit
+    from pipeline.defense.integrity import AlertLimitSettings, alert_limit
 
     if integrity.get("alert_limit_m") is not None:
         return f"a fixed alert limit AL = {integrity['alert_limit_m']:g} m (`integrity.alert_limit_m`)"
@@ -90,7 +90,7 @@ def _verdict(worst: dict[str, dict[str, Any]]) -> str:
 
 def _bursts(integrity: dict[str, Any]) -> str:
     """A line: bursts whose worst case has an HMI frame, per eps (the nested attacker's own count)."""
-    from pipeline.evaluation.stats import wilson
+    from pipeline.stats import wilson
 
     counts = [(r["eps"], r["bursts_with_hmi"]) for r in integrity["rows"] if "bursts_with_hmi" in r]
     if not counts:

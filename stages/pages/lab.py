@@ -177,7 +177,7 @@ Mean over eps: **{mean_acc:.2f}%** (paper: {LAB}% average).
 
 def shipped_section(s: dict[str, Any]) -> str:
     """The chain that ships (robust model) on the clean lab frames: false alarms, pose error, the clamp."""
-    from pipeline.report.markdown import percent_ci
+    from pipeline.stats import percent_ci
 
     per = ", ".join(f"{k}: {v}" for k, v in s["per_sequence"].items())
     erased = "-" if s["clamp_erased"] is None else f"{100 * s['clamp_erased']:.2f}%"

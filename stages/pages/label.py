@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.pose.labels import POSITION, QUAT
+from pipeline.geometry.labels import POSITION, QUAT
 
 
 RENDER_SETTINGS = ("samples", "denoiser", "denoise_quality", "threads", "mesh", "mesh_scale", "sun_direction",

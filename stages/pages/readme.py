@@ -18,7 +18,7 @@ def _fmt(x: float | None, decimals: int = 2) -> str:
 
 def _with_ci(m: dict[str, Any], key: str) -> str:
     """A rate of a metrics dict in percent with its 95% interval (`key_ci95`), e.g. "94.58 [92.40, 96.10]"."""
-    from pipeline.report.markdown import percent_ci
+    from pipeline.stats import percent_ci
 
     return percent_ci(m[key], m.get(f"{key}_ci95"), 2)
 
@@ -41,7 +41,7 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
     """The headline results against the paper, as Markdown (this is what README.md shows). `spread`
     (reports/variance.json of the same profile) adds the standard deviation over seeds of each number."""
     from pipeline.report.markdown import markdown_table
-    from pipeline.evaluation.stats import wilson
+    from pipeline.stats import wilson
 
     tr, at, gd, de, ev, lab = (metrics[k] for k in ("train", "attack", "guidance", "detect", "evaluate", "lab"))
     eps_at = _eps_keys(at["eps"])
@@ -126,7 +126,7 @@ def _shipped_detector_rows(dr: dict[str, Any] | None, lab: dict[str, Any],
                            spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
     """The shipped chain's detector (robust model): its SHAP test accuracy, and the chain's clean false alarms on the
     lab-like frames at its calibrated threshold (rows left out when not measured)."""
-    from pipeline.report.markdown import percent_ci
+    from pipeline.stats import percent_ci
 
     out = []
     if dr:
@@ -143,7 +143,7 @@ def _shipped_detector_rows(dr: dict[str, Any] | None, lab: dict[str, Any],
 
 def _rate(r: dict[str, Any] | None) -> str:
     """A rate of the metrics JSON ({"value", "ci": [lo, hi], "n"}) as "96.5 [95.1, 97.6]" (%)."""
-    from pipeline.report.markdown import percent_ci
+    from pipeline.stats import percent_ci
 
     return "-" if not r or not r.get("n") or r["value"] is None else percent_ci(r["value"], r["ci"], 2)
 
@@ -152,7 +152,7 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
     """The defended chain beside the paper's detector: integrated detection at the smallest
     eps, harmful-undetected, false alarms, and closed-loop rendezvous held per variant (Markdown)."""
     from pipeline.report.markdown import markdown_table
-    from pipeline.evaluation.stats import wilson
+    from pipeline.stats import wilson
 
     fused = ev.get("fused")
     if not fused or not fused["per_eps"]:
@@ -198,7 +198,7 @@ def _robustness_rows(m: dict[str, Any], spread: dict[str, Any] | None) -> list[t
     """Summary rows at eps 0.05 and 0.01: the worst harmful-undetected rate against the chain that ships
     (the fused chain, adaptive attack over bursts), and beside it against the paper's detector alone
     (LSTM, any robustness attack incl. adaptive); percent with the 95% interval, "-" where not run."""
-    from pipeline.report.markdown import percent_ci
+    from pipeline.stats import percent_ci
 
     out = []
     for key, what, short in (("worst_harmful_undetected_fused", "fused chain (ships, robust model), nested burst attack",
@@ -221,7 +221,7 @@ def _integrity_rows(rb: dict[str, Any], gd: dict[str, Any],
     """The integrity headline rows: the worst HMI a chain-level attack caused on the shipped chain (robust model) at
     eps 0.01 and 0.05, beside it on the standard model's chain (its attackers and trajectories), availability without
     attack, and the in-loop attacker's collisions per variant on the shipped chain ("-" where not run)."""
-    from pipeline.evaluation.stats import wilson
+    from pipeline.stats import wilson
     from stages.pages.integrity import attacker_names
 
     integrity, out = rb.get("integrity", {}), []

@@ -7,7 +7,8 @@ from typing import Any
 
 from stages.config.schema import Params
 def _table(rows: list[dict[str, Any]], with_lambda: bool = False) -> str:
-    from pipeline.report.markdown import markdown_table, percent_ci
+    from pipeline.report.markdown import markdown_table
+    from pipeline.stats import percent_ci
 
     out = []
     for row in rows:
@@ -95,7 +96,7 @@ MODELS = {"standard": "standard (paper's reproduction)", "robust": "robust (ship
 
 def _fused(m: dict[str, Any], p: Params) -> str:
     """The per-frame view of the nested burst attack on the chain that ships (LSTM flag OR motion gate)."""
-    from pipeline.report.markdown import percent_ci
+    from pipeline.stats import percent_ci
 
     f = m["fused"]
     rows = m["fused_rows"]
@@ -134,8 +135,8 @@ frame by frame, the raw CNN estimate of each attacked frame against a fixed {m['
 
 def _paper_view(m: dict[str, Any], p: Params) -> str:
     """What the paper's per-frame view measures on how many frames, and its worst harmful-undetected rate per eps."""
-    from pipeline.evaluation.stats import wilson
-    from pipeline.report.markdown import percent_ci
+    from pipeline.stats import wilson
+    from pipeline.stats import percent_ci
 
     mid = wilson(m["frames"] // 2, m["frames"])
     half = 100 * (mid.hi - mid.lo) / 2
@@ -215,7 +216,8 @@ shipped chain (robust model).
 
 def _corruptions(m: dict[str, Any]) -> str:
     """The benign-corruption table (false alarms at both thresholds) and its meaning for a mission."""
-    from pipeline.report.markdown import markdown_table, percent_ci
+    from pipeline.report.markdown import markdown_table
+    from pipeline.stats import percent_ci
 
     corr = [{"corruption": c["corruption"], "strength": "-" if c["corruption"] == "none" else f"{c['strength']:g}",
              "frames": c["n"],

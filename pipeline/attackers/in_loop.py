@@ -32,8 +32,8 @@ import torch
 from torch import Tensor
 
 from pipeline.attacks.adaptive import DifferentiableChain
-from pipeline.attacks.base import chain_outputs
-from pipeline.attacks.drift import stealthy_bias, targeted_pgd
+from pipeline.attackers.base import chain_outputs
+from pipeline.attackers.drift import stealthy_bias, targeted_pgd
 from pipeline.attacks.gradient import check_eps
 from pipeline.defense.fusion import HOLD
 from pipeline.geometry.rotations import sixd_to_matrix

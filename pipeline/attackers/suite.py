@@ -4,9 +4,9 @@ from __future__ import annotations
 import inspect
 from typing import Callable
 
-from pipeline.attacks.base import SequenceAttacker
-from pipeline.attacks.burst import BurstAttacker
-from pipeline.attacks.drift import DriftAttacker
+from pipeline.attackers.base import SequenceAttacker
+from pipeline.attackers.burst import BurstAttacker
+from pipeline.attackers.drift import DriftAttacker
 
 ATTACKERS: dict[str, Callable[..., SequenceAttacker]] = {DriftAttacker.name: DriftAttacker,
                                                          BurstAttacker.name: BurstAttacker}

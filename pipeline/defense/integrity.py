@@ -53,7 +53,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.defense.fusion import COAST, MODES, TRACK, DefenseTrace
-from pipeline.evaluation.stats import Rate, bootstrap_rate
+from pipeline.stats import Rate, bootstrap_rate
 
 FLOWN = (TRACK, COAST)   # defense modes in which the guidance flies on the trusted estimate
 

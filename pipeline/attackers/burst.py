@@ -46,8 +46,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from pipeline.attacks.adaptive import DifferentiableChain, check_lambdas
-from pipeline.attacks.base import AttackRun, chain_outputs, pose_logit
-from pipeline.attacks.filter_mirror import DTYPE, FilterMirror
+from pipeline.attackers.base import AttackRun, chain_outputs, pose_logit
+from pipeline.attackers.filter_mirror import DTYPE, FilterMirror
 from pipeline.attacks.gradient import check_eps, project, quantize
 from pipeline.defense.fusion import TRACK, Defense
 from pipeline.geometry.rotations import sixd_to_matrix, sixd_to_matrix_t

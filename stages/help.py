@@ -13,7 +13,7 @@ from typing import Any
 import typer.core
 
 from stages.artifacts.dvc import dvc_stages
-from stages.artifacts.paths import CONF_DIR
+from stages.config.params import CONF_DIR
 
 CONFIG = CONF_DIR / "config.yaml"
 _KEY = re.compile(r"^(?P<indent> *)(?P<key>\w+):(?P<value>[^#]*?)\s*(?:#\s?(?P<comment>.*))?$")

@@ -37,7 +37,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from pipeline.attacks.adaptive import DifferentiableChain
-from pipeline.attacks.base import AttackRun, chain_outputs
+from pipeline.attackers.base import AttackRun, chain_outputs
 from pipeline.attacks.gradient import LossFn, check_eps, pgd, quantize
 from pipeline.defense.fusion import Decision, Defense
 from pipeline.defense.kalman import MotionFilter

@@ -6,15 +6,27 @@
   rates whose frames are correlated within a group, from ``scipy.stats.bootstrap``; the statistic is
   the pooled rate sum(hits) / n over the resampled groups.
 - ``Rate``: a rate with its interval, formatted as ``"96.5 [95.1, 97.6]"`` (percent) for reports.
+- ``percent_ci(value, ci)``: the one formatter of a percent with its interval in every report.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 from scipy import stats as sps
 
 LEVEL = 0.95
+
+
+def percent_ci(value: float | None, ci: Sequence[float | None] | None = None, decimals: int = 1,
+               unit: str = "") -> str:
+    """A rate in [0, 1] as `100 * value` with `decimals` places and `unit` (e.g. "%"; "-" when None),
+    then its 95% interval " [lo, hi]" in percent when `ci` holds one: "94.1 [92.4, 95.4]".
+    Every percent-with-interval in the reports is written by this one function."""
+    lo, hi = ci or (None, None)
+    head = "-" if value is None else f"{100 * value:.{decimals}f}{unit}"
+    return head + ("" if lo is None else f" [{100 * lo:.{decimals}f}, {100 * hi:.{decimals}f}]")
 
 
 @dataclass(frozen=True)
@@ -28,8 +40,6 @@ class Rate:
 
     def pct(self, decimals: int = 1) -> str:
         """``"96.5 [95.1, 97.6]"``: percent with the interval, or ``"-"`` when there is no trial."""
-        from pipeline.report.markdown import percent_ci
-
         return "-" if self.n == 0 else percent_ci(self.value, (self.lo, self.hi), decimals)
 
     def ci(self) -> list[float | None]:
