@@ -56,19 +56,18 @@ class Counting(nn.Module):
 
 
 def setup(p: Any, n_tracks: int, per_track: int) -> tuple[Any, ...]:
-    """(pose, PerFrameChain, Defended, runs): per track its frames as an AttackRun with its first bursts attacked."""
+    """(the standard model's SafetyChain, its PerFrameChain, its Defended without availability, runs): per track its
+    frames as an AttackRun with its first bursts attacked."""
     from pipeline.attacks.adaptive import PerFrameChain
-    from pipeline.formats.models import load_onboard_chain
     from pipeline.evaluation.integrity_runs import Track
-    from pipeline.evaluation.robustness import Defended, burst_schedule
+    from pipeline.evaluation.robustness import burst_schedule
     from pipeline.geometry.labels import TARGET
-    from stages.artifacts.models import load_defense, load_pose
-    from stages.artifacts.paths import DETECTOR, POSE
+    from stages.artifacts.models import load_chain
+    from stages.artifacts.paths import PAPER
     from stages.artifacts.readers import read_eval_render
 
-    pose = load_pose(p)
-    chain = load_onboard_chain(pose.model, pose.hash, POSE, DETECTOR)
-    shipped = load_defense(p, pose.hash, chain.threshold)
+    pose = load_chain(p, PAPER)
+    chain = pose.onboard
     images, poses, _ = read_eval_render(p)
     labels = poses[TARGET].to_numpy(np.float64)
     runs = []
@@ -79,8 +78,7 @@ def setup(p: Any, n_tracks: int, per_track: int) -> tuple[Any, ...]:
         for a, b in burst_schedule(len(t), p.integrity.burst_length, p.robustness.burst_every)[:per_track]:
             mask[a:b] = True
         runs.append(AttackRun(t.frames(), torch.as_tensor(t.labels, dtype=torch.float32), t.R_cam, t.u, mask))
-    return pose, PerFrameChain(pose.model, chain.shap, chain.detector), Defended(shipped.settings, shipped.motion,
-                                                                                 shipped.noise), runs
+    return pose, PerFrameChain(pose.model, chain.shap, chain.detector), dataclasses.replace(pose.defended, alert=None), runs
 
 
 def speed(p: Any, pose: Any, target: nn.Module, defended: Any, run: AttackRun) -> list[dict[str, Any]]:

@@ -51,9 +51,9 @@ def load_models(width: float) -> tuple[PoseNet, LSTMDetector, str]:
     source = []
     pose_path, det_path = Path("models/pose.pt"), Path("models/detector.pt")
     if pose_path.exists():
-        from stages.artifacts.models import load_pose_model
+        from pipeline.formats.models import load_pose
 
-        pose = load_pose_model(pose_path)
+        pose = load_pose(pose_path).model
         source.append("models/pose.pt")
     else:
         pose = PoseNet(width=width).eval()

@@ -80,11 +80,11 @@ class Chain:
     field of view gives ranges off by the ratio of the focal lengths (pixels per image width).
     """
 
-    def __init__(self, safety: Any, input_size: tuple[int, int], files: tuple[Path, Path],
-                 manifest: dict[str, Any] | None = None, camera: Any = None):
-        self.safety = safety                      # pipeline.defense.chain.OnboardChain
+    def __init__(self, safety: Any, input_size: tuple[int, int], manifest: dict[str, Any] | None = None,
+                 camera: Any = None):
+        self.safety = safety                      # pipeline.defense.chain.SafetyChain
         self.height, self.width = input_size      # model input, pixels
-        self.files = files                        # (pose.pt, detector.pt)
+        self.files = safety.files                 # (pose.pt, detector.pt, defense.json)
         self.manifest = manifest                  # a weights bundle's manifest (profile, commit, params), else None
         self.camera = camera                      # the model's camera at its input size (Intrinsics), None: unknown
 
@@ -118,7 +118,7 @@ class Chain:
         x = torch.from_numpy(np.stack(fitted)).permute(0, 3, 1, 2)
         pose, prob, flag = [], [], []
         for lo in range(0, len(x), batch_size):
-            out = self.safety(x[lo:lo + batch_size])
+            out = self.safety.onboard(x[lo:lo + batch_size])
             pose.append(out.pose.numpy().astype(np.float64))
             prob.append(out.prob.numpy().astype(np.float64))
             flag.append(out.flag.numpy())
@@ -231,25 +231,16 @@ def _rgb(im: Any, path: Path) -> np.ndarray:
 
 
 def load_chain(folder: str | Path | None = None) -> Chain:
-    """The chain as the pipeline ships it (the robust pose model and its detector): with no FOLDER, the bundled
-    weights (`BUNDLE`: the default profile's trained chain, see its manifest.json); a run's models/ folder (or a
-    project root holding it): models/pose_robust.pt and models/detector_robust.pt; else FOLDER/pose.pt and
-    FOLDER/detector.pt. A folder holding a weights manifest (pipeline/formats/bundle.py) has each file's sha256
-    checked first. The detector must have been trained on this pose model's SHAP values (its checkpoint names
-    the pose file's hash). A missing, changed or bad file is a DataError."""
-    from pipeline.formats.models import load_onboard_chain
-    from pipeline.formats.bundle import MANIFEST, RUN_FILES, check_bundle
-    from pipeline.formats.models import model_from_checkpoint, read_pose
-    from pipeline.io.atomic import file_hash
+    """The chain as the pipeline ships it (the robust pose model and its detector, and its defense when calibrated):
+    with no FOLDER, the bundled weights (`BUNDLE`: the default profile's trained chain, see its manifest.json); a
+    run's models/ folder (or a project root holding it): models/pose_robust.pt, detector_robust.pt and defense.json;
+    else FOLDER/pose.pt, FOLDER/detector.pt and FOLDER/defense.json (read by pipeline.formats.chain.load_chain, the
+    one door to a chain, which checks a bundle's sha256, that the detector and the defense were made for this pose
+    model and that the defense file is sound). A missing, changed or bad file is a DataError."""
+    from pipeline.formats.chain import load_chain as open_chain
     from rpodguard.camera import model_camera
 
-    folder = BUNDLE if folder is None else Path(folder)
-    if not any((folder / n).exists() for n in ("pose.pt", RUN_FILES["pose.pt"])) and (folder / "models").is_dir():
-        folder = folder / "models"
-    manifest = check_bundle(folder) if folder == BUNDLE or (folder / MANIFEST).exists() else None
-    run = (folder / RUN_FILES["pose.pt"]).exists()   # a run's models/: the shipped chain's names there
-    pose_path, detector_path = (folder / (RUN_FILES[n] if run else n) for n in ("pose.pt", "detector.pt"))
-    ckpt = read_pose(pose_path)
-    safety = load_onboard_chain(model_from_checkpoint(ckpt), file_hash(pose_path), pose_path, detector_path)
+    safety = open_chain(BUNDLE if folder is None else folder, defended=None, bundle=folder is None)
+    ckpt = safety.checkpoint
     height, width = (int(v) for v in ckpt["input_size"])
-    return Chain(safety, (height, width), (pose_path, detector_path), manifest, model_camera(ckpt, manifest, pose_path))
+    return Chain(safety, (height, width), ckpt.get("manifest"), model_camera(ckpt, ckpt.get("manifest"), safety.files[0]))

@@ -5,7 +5,7 @@ The per-image chain (rpodguard/api.py) judges each image alone. With the chaser'
 the defense of pipeline/defense/fusion.py runs over the sequence as onboard: the motion filter
 (position moved by the commanded displacements, a gate and a sequential test on its innovations)
 fused with the detector, as calibrated by `rpod calibrate` (FOLDER/defense.json: its noise model,
-thresholds and settings; pipeline/formats/defense.py). Frames (pipeline/geometry/trajectories.py):
+thresholds and settings; pipeline/formats/defense.py, read with the chain by pipeline/formats/chain.py). Frames (pipeline/geometry/trajectories.py):
 world axes centred on the target; `rel` is the target's position relative to the chaser camera (m).
 """
 from __future__ import annotations
@@ -58,9 +58,11 @@ def track(chain: Any, images: Any, commands: np.ndarray, attitudes: np.ndarray, 
     images' camera K (checked as in Chain.predict)."""
     from pipeline.defense.fusion import run_defense
     from pipeline.defense.integrity import alert_limit
-    from pipeline.formats.defense import defense_from, read_calibration
-    from pipeline.io.atomic import file_hash
 
+    defended = chain.safety.defended
+    if defended is None:
+        raise DataError(f"{chain.files[2]} not found (`rpod calibrate` writes a run's defense: the chain's checks and "
+                        f"their thresholds)")
     pred = chain.predict(images, batch_size, camera=camera)
     n = len(pred)
     commands, attitudes = np.asarray(commands, np.float64), np.asarray(attitudes, np.float64)
@@ -69,12 +71,9 @@ def track(chain: Any, images: Any, commands: np.ndarray, attitudes: np.ndarray, 
                          f"{commands.shape} and {attitudes.shape}")
     if not (np.isfinite(commands).all() and np.isfinite(attitudes).all()):
         raise ValueError("track: commands and camera attitudes must be finite")
-    pose_path = chain.files[0]
-    cal = read_calibration(pose_path.parent / "defense.json", file_hash(pose_path), chain.threshold)
-    settings, motion, alert = defense_from(cal)
     R_pred = _rotations(pred.rotation_6d)
-    trace = run_defense(settings, motion, cal.noise, pred.position, pred.attack_probability, attitudes, commands,
-                        R_pred, partial(alert_limit, settings=alert))
+    trace = run_defense(defended.settings, defended.motion, defended.noise, pred.position, pred.attack_probability,
+                        attitudes, commands, R_pred, partial(alert_limit, settings=defended.alert))
     return Track(trace.trusted, trace.pl, trace.available, trace.flag, trace.mode, pred)
 
 

@@ -124,9 +124,9 @@ def _row(e: dict[str, float]) -> dict[str, str]:
 
 
 def _load_standard(path: Path):
-    from stages.artifacts.models import load_pose_model
+    from pipeline.formats.models import load_pose
 
-    return load_pose_model(path)
+    return load_pose(path).model
 
 
 if __name__ == "__main__":

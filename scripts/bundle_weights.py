@@ -26,7 +26,7 @@ import yaml
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from pipeline.formats.bundle import FILES, RUN_FILES, write_bundle  # noqa: E402
+from pipeline.formats.bundle import FILES, SOURCES, write_bundle  # noqa: E402
 from pipeline.io.errors import DataError  # noqa: E402
 from rpodguard import load_chain  # noqa: E402
 
@@ -42,7 +42,7 @@ def provenance(models: Path) -> tuple[str, list[str]]:
     def git(*args: str) -> str:
         return subprocess.run(["git", *args], cwd=models, capture_output=True, text=True, check=True).stdout
 
-    md5 = [hashlib.md5((models / RUN_FILES[name]).read_bytes()).hexdigest() for name in FILES]
+    md5 = [hashlib.md5((models / SOURCES[name]).read_bytes()).hexdigest() for name in FILES]
     try:
         for commit in git("log", "--reverse", "--format=%H", "-S", md5[-1], "--", ":/dvc.lock").split():
             if all(m in git("show", f"{commit}:dvc.lock") for m in md5):

@@ -30,7 +30,7 @@ from typing import Annotated, Any, NamedTuple
 import numpy as np
 import typer
 
-from pipeline.formats.defense import DEFENSE_FORMAT
+from pipeline.formats.defense import DEFENSE_FORMAT, DefenseFile, Validation, parse_defense
 from pipeline.io.atomic import write_json
 from pipeline.geometry.labels import TARGET
 from stages.artifacts.paths import CHAINS, Model
@@ -65,7 +65,8 @@ def main(params: Params, model: ModelOption = Model.robust) -> None:
     torch_setup(params)
     images, poses, _ = read_eval_render(params, validation=True)
     envelope = read_val_envelope(params)
-    chain, _, model_hash = load_chain(params, model)
+    safety = load_chain(params, model, defended=False)
+    chain, model_hash = safety.onboard, safety.pose_hash
     pose, prob = _chain_outputs(chain, images, params.evaluate.batch_size)
     _, envelope_prob = _chain_outputs(chain, envelope, params.evaluate.batch_size)
     targets = poses[TARGET].to_numpy(np.float32)
@@ -81,17 +82,15 @@ def main(params: Params, model: ModelOption = Model.robust) -> None:
     if final["fused"].value > d.target_false_alarm:
         unmet.append(unmet_line(None, len(images), final["fused"].value, d.target_false_alarm, len(c.tightened)))
         _refuse(unmet[-1], d.allow_unmet)
-    cal = {"format": DEFENSE_FORMAT, "model": model.value, "pose_model_hash": model_hash, "detector_threshold": chain.threshold,
-           "threshold": settings.threshold, "cusum_threshold": motion.cusum_threshold, "inflation": checks[2].setting,
-           "attitude_inflation": checks[1].setting,
-           "noise": noise.as_dict(), "fitted_noise": fitted.as_dict(),
-           "settings": {**dataclasses.asdict(settings), **dataclasses.asdict(motion)},
-           "alert_limit": dataclasses.asdict(alert), "unmet": unmet,
-           **({"tightened": {"shares_scale": c.scale, "before": c.tightened}} if c.tightened else {}),
-           "validation": _validation(params, len(images), checks, final, envelope_prob, prob, settings.update_below)}
     out = CHAINS[model].defense
-    write_json(out, cal)
-    typer.echo(summary_line(cal, out))
+    record = DefenseFile(
+        DEFENSE_FORMAT, model.value, model_hash, chain.threshold, settings.threshold, motion.cusum_threshold,
+        checks[2].setting, checks[1].setting, noise, fitted, settings, motion, alert, tuple(unmet),
+        Validation(**_validation(params, len(images), checks, final, envelope_prob, prob, settings.update_below)),
+        {"shares_scale": c.scale, "before": c.tightened} if c.tightened else None).to_json()
+    parse_defense(record, str(out))   # what every reader will require of it
+    write_json(out, record)
+    typer.echo(summary_line(record, out))
 
 
 def _chain_outputs(chain: Any, images: np.ndarray, batch: int) -> tuple[np.ndarray, np.ndarray]:

@@ -27,7 +27,7 @@ from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import EVALUATE_FIGURE as FIGURE, EVALUATE_METRICS as METRICS, \
     EVALUATE_REPORT as REPORT, PAPER, SEED_OFFSET, SHIPPED, Model
 from stages.artifacts.readers import chaser_motion, read_eval_render
-from stages.artifacts.models import load_chain, load_defense
+from stages.artifacts.models import load_chain
 from stages.config.device import torch_setup
 from stages.config.evaluation import Evaluate
 from stages.config.schema import Params
@@ -41,13 +41,11 @@ if TYPE_CHECKING:
 
 @dataclasses.dataclass(frozen=True)
 class ChainRun:
-    """One chain's pass over the evaluation trajectories: its chain, pose-model hash, calibrated defense and
-    what `pipeline.evaluation.sequences.evaluate_sequences` measured."""
+    """One chain's pass over the evaluation trajectories: the chain (pipeline.defense.chain.SafetyChain, with its
+    calibrated defense) and what `pipeline.evaluation.sequences.evaluate_sequences` measured."""
 
     model: Model
     chain: Any
-    model_hash: str
-    defense: Any
     result: Any
 
 
@@ -69,6 +67,7 @@ def main(params: Params) -> None:
     fused = _defended(params, paper, shipped, sequences)
     seconds = time.perf_counter() - t0
     res, chain = paper.result, paper.chain
+    shipped_cal = shipped.chain.calibration
     summary = per_eps_summary(res.rows)
     eps_fig = min(e.eps)
     s0 = sequences[0]
@@ -77,22 +76,22 @@ def main(params: Params) -> None:
     save_figure(detection_timeline(s0.poses["tz"].to_numpy(), s0.attacked, res.traces[(eps_fig, s0.name)],
                                    chain.threshold, title), FIGURE)
     names = list(fused)
-    metrics = {"model": PAPER.value, "model_hash": paper.model_hash, "frames_per_trajectory": e.frames,
+    metrics = {"model": PAPER.value, "model_hash": paper.chain.pose_hash, "frames_per_trajectory": e.frames,
                "trajectories": len(sequences), "p_start": e.p_start, "attack_length": e.attack_length,
                "threshold": chain.threshold, "seconds": seconds,
                "accuracy_mean": float(np.mean([r["accuracy"] for r in summary])),
                "per_eps": {f"{r['eps']:g}": r for r in summary}, "rows": res.rows, "clean": res.clean,
                "attacked_fraction": {s.name: float(s.attacked.mean()) for s in sequences},
                "start_xy": meta["start_xy"], "shipped": _shipped_metrics(shipped),
-               "fused": {"fusion": shipped.defense.settings.fusion, "harm_m": params.defense.harm_m,
+               "fused": {"fusion": shipped.chain.defended.settings.fusion, "harm_m": params.defense.harm_m,
                          "chains": chain_names(params.defense.fusion),
                          **{key: {f"{r['eps']:g}": r for r in rates_json(fused[name])} for key, name in
                             zip(("paper_per_eps", "standard_per_eps", "per_eps"), names)}}}
     write_metrics(METRICS, nan_to_none(metrics), params.profile_name)
-    atomic_write_text(REPORT, unmet_banner(shipped.defense.calibration) + unmet_banner(paper.defense.calibration, PAPER)
+    atomic_write_text(REPORT, unmet_banner(shipped_cal.unmet) + unmet_banner(paper.chain.calibration.unmet, PAPER)
                       + report(res.rows, summary, res.clean, sequences, e, meta, chain.threshold, eps_fig,
                                params.profile_name)
-                      + defense_section(fused, shipped.defense.calibration, params.defense.harm_m, e.attack_length,
+                      + defense_section(fused, shipped_cal.to_json(), params.defense.harm_m, e.attack_length,
                                         _shipped_clean(shipped)))
     typer.echo(f"evaluate: {len(sequences)} trajectories x {len(e.eps)} eps, standard and robust chain in "
                f"{seconds:.0f} s; mean accuracy (standard, paper's view) {100 * metrics['accuracy_mean']:.2f}% "
@@ -119,14 +118,14 @@ def _sequences(images: np.ndarray, poses: Any, e: Evaluate) -> list[Sequence]:
 def _run_chain(params: Params, model: Model, sequences: list[Sequence]) -> ChainRun:
     """One chain (its pose model, its detector, its calibrated defense) over every sequence, clean and at every
     eps of `evaluate.eps` (FGSM crafted on that chain's pose model)."""
+    from pipeline.attacks.gradient import attack_loss
     from pipeline.evaluation.sequences import evaluate_sequences
 
     e = params.evaluate
-    chain, loss_fn, model_hash = load_chain(params, model)
-    defense = load_defense(params, model_hash, chain.threshold, model)
-    res = evaluate_sequences(chain, loss_fn, sequences, e.eps, e.attack_length, e.batch_size,
-                             f"evaluate ({model.value} model)")
-    return ChainRun(model, chain, model_hash, defense, res)
+    chain = load_chain(params, model)
+    res = evaluate_sequences(chain.onboard, attack_loss(params.attack.loss, chain.loss), sequences, e.eps,
+                             e.attack_length, e.batch_size, f"evaluate ({model.value} model)")
+    return ChainRun(model, chain, res)
 
 
 def _defended(params: Params, paper: ChainRun, shipped: ChainRun, sequences: list[Sequence]) -> dict[str, Any]:
@@ -135,13 +134,13 @@ def _defended(params: Params, paper: ChainRun, shipped: ChainRun, sequences: lis
     from pipeline.evaluation.sequences import defended_summary
 
     e, harm, names = params.evaluate, params.defense.harm_m, chain_names(params.defense.fusion)
-    d = paper.defense
+    d = paper.chain.defended
     lstm_alone = dataclasses.replace(d.settings, fusion="paper", threshold=paper.chain.threshold,
                                      update_below=min(d.settings.update_below or 1.0, paper.chain.threshold))
     cases = ((names["paper"], paper, lstm_alone), (names["standard"], paper, d.settings),
-             (names["shipped"], shipped, shipped.defense.settings))
-    return {name: defended_summary(run.result.traces, sequences, e.eps, settings, run.defense.motion,
-                                   run.defense.noise, e.attack_length, harm) for name, run, settings in cases}
+             (names["shipped"], shipped, shipped.chain.defended.settings))
+    return {name: defended_summary(run.result.traces, sequences, e.eps, settings, run.chain.defended.motion,
+                                   run.chain.defended.noise, e.attack_length, harm) for name, run, settings in cases}
 
 
 def _shipped_metrics(run: ChainRun) -> dict[str, Any]:
@@ -149,8 +148,8 @@ def _shipped_metrics(run: ChainRun) -> dict[str, Any]:
     detection at that threshold (its defended rows are under `fused`)."""
     from pipeline.evaluation.sequences import per_eps_summary
 
-    return {"model": run.model.value, "model_hash": run.model_hash, "threshold": run.chain.threshold,
-            "defense_threshold": run.defense.settings.threshold, "clean": run.result.clean,
+    return {"model": run.model.value, "model_hash": run.chain.pose_hash, "threshold": run.chain.threshold,
+            "defense_threshold": run.chain.defended.settings.threshold, "clean": run.result.clean,
             "per_eps": {f"{r['eps']:g}": r for r in per_eps_summary(run.result.rows)}}
 
 

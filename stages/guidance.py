@@ -28,7 +28,7 @@ import typer
 
 from stages.artifacts.paths import GUIDANCE_DEFENDED_FIGURE as DEFENDED_FIGURE, GUIDANCE_FIGURE as FIGURE, \
     GUIDANCE_METRICS as METRICS, GUIDANCE_REPORT as REPORT, PAPER, SEED_OFFSET, SHIPPED
-from stages.artifacts.models import load_chain, load_defense
+from stages.artifacts.models import load_chain
 from stages.config.build import check_attack_params, intrinsics, make_attack, scene_settings
 from stages.config.device import torch_setup
 from stages.config.schema import Params
@@ -90,9 +90,9 @@ def main(params: Params) -> None:
     make_attack(params.attack, g.method, 0)   # refuses bad attack params before anything runs
     torch_setup(params)
     # each refuses a pose model whose input size is not render.width x height, or a detector of another model
-    chains = {m.value: load_chain(params, m) for m in (PAPER, SHIPPED)}
-    hashes = {m: h for m, (_, _, h) in chains.items()}
-    defense = load_defense(params, hashes[SHIPPED.value], chains[SHIPPED.value][0].threshold, SHIPPED)
+    chains = {m.value: load_chain(params, m, defended=m == SHIPPED) for m in (PAPER, SHIPPED)}
+    hashes = {m: chain.pose_hash for m, chain in chains.items()}
+    shipped = chains[SHIPPED.value]
     K, es = intrinsics(params), engine.engine_settings(params)   # K: the model's input size
     scene, threads = chunks.prepare(K, scene_settings(params.render), es)
     plan = GridPlan(settings, tuple(grid), g.slack_steps, tuple(g.dynamics), tuple(g.defenses), in_loop)
@@ -107,7 +107,7 @@ def main(params: Params) -> None:
 
     with tqdm(total=len(runs), desc="guidance runs", unit="run") as bar:
         on_cpu = params if es.in_process else dataclasses.replace(params, device="cpu")   # Ray workers hold no GPU
-        setup = GuidanceSetup(params=on_cpu, K=K, scene=scene, root=str(Path.cwd()), defense=defense, plan=plan,
+        setup = GuidanceSetup(params=on_cpu, K=K, scene=scene, root=str(Path.cwd()), defense=shipped.defended, plan=plan,
                               seed=params.seed + SEED_OFFSET["guidance"], torch_threads=None if es.in_process else threads)
         flown = engine.run(GuidanceWorker, setup, runs, es, num_cpus=threads, progress=progress)
     seconds = paper_done[0]
@@ -123,7 +123,7 @@ def main(params: Params) -> None:
     metrics |= {"in_loop": in_loop_grid(plan, [r for r, _ in flown], params.integrity.collision_range_m)
                 | grid_counts(flown[len(flown) - looped:]), "minutes": (time.perf_counter() - t0) / 60}
     write_metrics(METRICS, metrics, params.profile_name)
-    atomic_write_text(REPORT, unmet_banner(defense.calibration) + guidance_page(metrics, g, params.render)
+    atomic_write_text(REPORT, unmet_banner(shipped.calibration.unmet) + guidance_page(metrics, g, params.render)
                       + defended_section(metrics["defended"], g) + in_loop_section(metrics["in_loop"], params.integrity))
     first = attacked[0][0] if attacked else None
     save_figure(guidance_trajectories(baseline, [(s, k, r) for e, s, k, r in attacked if e == first], first,

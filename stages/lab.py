@@ -32,7 +32,7 @@ from pipeline.io.atomic import atomic_dir, atomic_write_text, read_json
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import CHAINS, LAB as OUT, LAB_METRICS as METRICS, LAB_MODELS, LAB_MODELS_SUMMARY, \
     LAB_REPORT as REPORT, PAPER, SEED_OFFSET, SHIPPED, TRAIN_METRICS
-from stages.artifacts.models import load_chain, load_defense
+from stages.artifacts.models import load_chain
 from stages.config.build import mockup, retrain_reason, scene_settings
 from stages.config.device import torch_setup
 from stages.config.params import given, with_params
@@ -130,6 +130,7 @@ def main(params: Params, ctx: typer.Context) -> None:
     """
     if ctx.invoked_subcommand is not None:
         return
+    from pipeline.attacks.gradient import attack_loss
     from pipeline.evaluation.sequences import evaluate_sequences, fgsm_error_table, nan_to_none, per_eps_summary
     from pipeline.evaluation.lab import lab_to_synthetic_factor
 
@@ -139,7 +140,8 @@ def main(params: Params, ctx: typer.Context) -> None:
     factor = lab_to_synthetic_factor(K_syn, K_zed, float(lab.scale))
     reason = retrain_reason(params)
     synthetic_lab = _lab_models(reason)
-    chain, loss_fn, model_hash = load_chain(params, PAPER, "." if synthetic_lab is None else LAB_MODELS)
+    paper = load_chain(params, PAPER, "." if synthetic_lab is None else LAB_MODELS, defended=False)
+    chain, loss_fn, model_hash = paper.onboard, attack_loss(params.attack.loss, paper.loss), paper.pose_hash
     t0 = time.perf_counter()
     truth: list[dict[str, Any]] = []
     real = given(lab.real_data)
@@ -185,8 +187,8 @@ def shipped_alarms(p: Params, sequences: list[Sequence]) -> dict[str, Any]:
     from pipeline.stats import rate
     from pipeline.pose.metrics import pose_errors
 
-    chain, _, model_hash = load_chain(p, SHIPPED)
-    threshold = load_defense(p, model_hash, chain.threshold, SHIPPED).settings.threshold
+    shipped = load_chain(p, SHIPPED)
+    chain, model_hash, threshold = shipped.onboard, shipped.pose_hash, shipped.defended.settings.threshold
     level = float(getattr(chain.model, "black_level", 0.0))
     runs = [run_sequence(chain, s.images, s.targets, np.zeros(len(s.images), bool), None, p.evaluate.batch_size)
             for s in sequences]

@@ -36,9 +36,9 @@ from pipeline.io.errors import not_found
 from pipeline.geometry.labels import TARGET
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import INTEGRITY_FIGURE, PAPER, ROBUST_METRICS, ROBUSTNESS_FIGURE as FIGURE, \
-    ROBUSTNESS_METRICS as METRICS, ROBUSTNESS_REPORT as REPORT, SEED_OFFSET, SHIPPED, SURROGATE, Model
+    ROBUSTNESS_METRICS as METRICS, ROBUSTNESS_REPORT as REPORT, SEED_OFFSET, SHIPPED, SURROGATE
 from stages.artifacts.readers import read_eval_render
-from stages.artifacts.models import Pose, load_defense, load_pose, load_pose_chain
+from stages.artifacts.models import load_chain, load_pose
 from stages.config.device import torch_setup
 from stages.config.evaluation import Robustness, attack_name
 from stages.config.schema import Params
@@ -62,11 +62,12 @@ def main(params: Params) -> None:
             raise not_found(path)
     torch_setup(params)
     seed = params.seed + SEED_OFFSET["robustness"]
-    (pose, chain), surrogate = load_pose_chain(params, SHIPPED), load_pose(params, SURROGATE)
+    shipped, surrogate = load_chain(params, SHIPPED), load_pose(params, SURROGATE)
+    chain = shipped.onboard
     images, targets, n_test = _test_frames(params, r.frames, seed)
     n = len(images)
-    target = PerFrameChain(pose.model, chain.shap, chain.detector)
-    specs = _specs(params, r, target, pose, surrogate, seed)
+    target = PerFrameChain(shipped.model, chain.shap, chain.detector)
+    specs = _specs(params, r, target, shipped, surrogate, seed)
     n_corr = sum(len(v) for v in dataclasses.asdict(r.corruptions).values())
     bar = tqdm(total=-(-n // r.batch_size) * (len(specs) + n_corr + 1), desc="robustness", unit="batch",
                dynamic_ncols=True)
@@ -79,10 +80,10 @@ def main(params: Params) -> None:
     t0 = time.perf_counter()
     rows = run_attack_rows(chain, images, targets, specs, r.harm_m, r.batch_size, progress,
                            pgd_is_lambda0="pgd" in r.transfer and 0.0 in r.lambdas)
-    shipped_threshold = load_defense(params, pose.hash, chain.threshold, SHIPPED).settings.threshold
+    shipped_threshold = shipped.defended.settings.threshold
     clean_harm, corruptions = _corruption_rows(chain, images, targets, r, seed, shipped_threshold, progress)
     bar.close()
-    fused = _integrity(params, r, (chain, target, pose.hash), seed, SHIPPED)
+    fused = _integrity(params, r, shipped, target, seed)
     standard = _standard_integrity(params, r, seed)
     seconds, figure = time.perf_counter() - t0, fused.pop("figure")
     metrics = {"rows": rows, "corruptions": corruptions, "frames": n, "test_frames": n_test, "harm_m": r.harm_m,
@@ -91,13 +92,13 @@ def main(params: Params) -> None:
                "clean_harmful_rate": clean_harm.value, "ci95_clean_harmful": clean_harm.ci(),
                "surrogate": {"best_epoch": int(surrogate.meta.get("epoch", 0)),
                              "validation_position_m": float(surrogate.meta.get("val_pos_m", float("nan")))},
-               "model": SHIPPED.value, "model_hash": pose.hash, "surrogate_hash": surrogate.hash, "seconds": seconds,
+               "model": SHIPPED.value, "model_hash": shipped.pose_hash, "surrogate_hash": surrogate.hash, "seconds": seconds,
                "minutes": seconds / 60, "worst_harmful_undetected": worst_by_eps(rows), **fused,
                "worst_harmful_undetected_fused": worst_by_eps(fused["fused_rows"]), "integrity_standard": standard,
                "pose_models": pose_models(read_json(ROBUST_METRICS))}
     write_metrics(METRICS, metrics, params.profile_name)
-    atomic_write_text(REPORT, unmet_banner({"unmet": fused["fused"]["calibration_unmet"]})
-                      + unmet_banner({"unmet": standard.get("calibration_unmet", [])}, PAPER)
+    atomic_write_text(REPORT, unmet_banner(fused["fused"]["calibration_unmet"])
+                      + unmet_banner(standard.get("calibration_unmet", []), PAPER)
                       + robustness_page(metrics, params))
     worst_fused = [row for row in fused["fused_rows"] if row["lambda"] is None]
     save_figure(robustness_vs_eps([row for row in rows if row["attack"] != "adaptive pgd"] + worst_fused), FIGURE)
@@ -116,7 +117,7 @@ def _test_frames(p: Params, frames: int, seed: int) -> tuple[np.ndarray, np.ndar
     return np.stack([np.asarray(split.images[int(i)]) for i in pick]), split.targets[pick], len(split)
 
 
-def _specs(p: Params, r: Robustness, target: Any, pose: Pose, surrogate: Pose, seed: int) -> list[Any]:
+def _specs(p: Params, r: Robustness, target: Any, pose: Any, surrogate: Any, seed: int) -> list[Any]:
     """The attack rows to run, in report order (pipeline.evaluation.robustness.attack_specs)."""
     from pipeline.evaluation.robustness import attack_specs
 
@@ -159,20 +160,21 @@ def _standard_integrity(p: Params, r: Robustness, seed: int) -> dict[str, Any]:
     i = p.integrity
     if not i.standard_attackers:
         return {"attackers": [], "model": PAPER.value}
-    pose, chain = load_pose_chain(p, PAPER)
-    out = _integrity(p, r, (chain, PerFrameChain(pose.model, chain.shap, chain.detector), pose.hash), seed, PAPER,
+    paper = load_chain(p, PAPER)
+    chain = paper.onboard
+    out = _integrity(p, r, paper, PerFrameChain(paper.model, chain.shap, chain.detector), seed,
                      list(i.standard_attackers), i.standard_trajectories)
     out.pop("figure")
-    return {**out["integrity"], "model": PAPER.value, "model_hash": pose.hash, "trajectories": out["fused"]["trajectories"],
+    return {**out["integrity"], "model": PAPER.value, "model_hash": paper.pose_hash, "trajectories": out["fused"]["trajectories"],
             "false_alarm_rate": out["fused"]["false_alarm_rate"], "ci95_false_alarm": out["fused"]["ci95_false_alarm"],
             "calibration_unmet": out["fused"]["calibration_unmet"]}
 
 
-def _integrity(p: Params, r: Robustness, chain_of: tuple[Any, Any, str], seed: int, model: Model,
-               attackers: list[str] | None = None, n_traj: int | None = None) -> dict[str, Any]:
+def _integrity(p: Params, r: Robustness, safety: Any, target: Any, seed: int, attackers: list[str] | None = None,
+               n_traj: int | None = None) -> dict[str, Any]:
     """The chain-level attackers (`attackers`, default integrity.attackers, at integrity.eps) on the eval_render
-    trajectories (the first `n_traj`; None: all) through one chain (`chain_of`: OnboardChain, its PerFrameChain,
-    pose-model hash) and the defense calibrated for it (`model`), judged by integrity against the same
+    trajectories (the first `n_traj`; None: all) through one chain (`safety`: a SafetyChain; `target`: its
+    PerFrameChain) and the defense calibrated for it, judged by integrity against the same
     trajectories unattacked (pipeline.evaluation.integrity_runs); the burst's attacked frames also give the
     per-frame fused rows (raw error > harm_m and unflagged). Returns the metrics and the figure's data."""
     from pipeline.evaluation.integrity_runs import Track, clean_row, fly, integrity_row
@@ -181,8 +183,8 @@ def _integrity(p: Params, r: Robustness, chain_of: tuple[Any, Any, str], seed: i
     from stages.pages.integrity import worst_hmi
 
     t0 = time.perf_counter()
-    chain, target, model_hash = chain_of
-    images, labels, trajs, bursts, defended, info = _fused_setup(p, r, chain, model_hash, model, n_traj)
+    chain = safety.onboard
+    images, labels, trajs, bursts, defended, info = _fused_setup(p, r, safety, n_traj)
     tracks = [Track(f"t{g}", images[ix], labels[ix]) for g, ix in enumerate(trajs)]
     limit, i = alert_limit_settings(p), p.integrity
     attackers = list(i.attackers) if attackers is None else attackers
@@ -274,18 +276,16 @@ def _burst_fused_row(eps: float, flown: list[Any], tracks: list[Any], masks: lis
     return fused_row("fused chain: burst (nested, worst over lambda and restarts)", eps, None, err, flag, group, harm_m)
 
 
-def _fused_setup(p: Params, r: Robustness, chain: Any, model_hash: str, model: Model,
-                 n_traj: int | None) -> tuple[Any, ...]:
+def _fused_setup(p: Params, r: Robustness, safety: Any, n_traj: int | None) -> tuple[Any, ...]:
     """(eval_render images, labels (N, 9), frame indices per trajectory (the first `n_traj`; None: all), bursts per
-    trajectory, the defended-chain settings of `model`'s chain, facts about the defense)."""
-    from pipeline.evaluation.robustness import Defended, burst_schedule
+    trajectory, the defended-chain settings of the chain `safety`, facts about the defense)."""
+    from pipeline.evaluation.robustness import burst_schedule
 
     images, poses, _ = read_eval_render(p)
     labels = poses[TARGET].to_numpy(np.float64)
     trajs = [np.flatnonzero(poses["trajectory"].to_numpy() == t) for t in np.unique(poses["trajectory"])][:n_traj]
-    # the chain's defense: params.defense with the noise model `rpod calibrate` fitted on validation trajectories
-    shipped = load_defense(p, model_hash, chain.threshold, model)
-    defended = Defended(shipped.settings, shipped.motion, shipped.noise, shipped.alert)
+    # the chain's defense as `rpod calibrate` recorded it (the noise model fitted on validation trajectories)
+    defended, cal = safety.defended, safety.calibration
     length = p.integrity.burst_length
     try:
         bursts = [burst_schedule(len(ix), length, r.burst_every) for ix in trajs]
@@ -293,7 +293,7 @@ def _fused_setup(p: Params, r: Robustness, chain: Any, model_hash: str, model: M
         raise StageError(f"params.yaml robustness.burst_every / integrity.burst_length: {e}") from None
     info = {"trajectories": len(trajs), "bursts": sum(len(b) for b in bursts), "burst_length": length,
             "burst_every": r.burst_every, "noise_model": defended.noise.as_dict(), "gate": defended.motion.gate,
-            "gate_false_alarm": defended.motion.false_alarm, "noise_inflation": shipped.calibration.get("inflation", 1.0),
-            "fusion": defended.settings.fusion, "calibration_unmet": shipped.calibration.get("unmet", []),
+            "gate_false_alarm": defended.motion.false_alarm, "noise_inflation": cal.inflation,
+            "fusion": defended.settings.fusion, "calibration_unmet": list(cal.unmet),
             "noise_fitted_on": "validation trajectories (models/defense.json, rpod calibrate)"}
     return images, labels, trajs, bursts, defended, info

@@ -21,13 +21,13 @@ def _module_name(path: Path) -> str:
 MODULES = {_module_name(p): p for pkg in PACKAGES for p in sorted((REPO / pkg).rglob("*.py"))}
 
 # The layers, lowest first: a unit (a subpackage, or a module directly under pipeline/) imports only units
-# before it. The library: files and errors; intervals; frames and cameras; image operations; the
+# before it. The library: files and errors; typed settings (ranges, checks); intervals; frames and cameras; image operations; the
 # Blender scene; the SHAP closed form; attacks on images (FGSM, PGD, the adaptive one) and their schedules;
 # the pose network (its adversarial training uses the attacks); the detectors; the defense (filter, fusion,
 # protection level, integrity, calibration, the onboard chain); the guidance law; the attackers of the
 # defended chain (burst, drift, in-loop: they model the defense and the guidance); evaluation campaigns;
 # file formats (a chain's files and the one door that loads a chain); report building blocks.
-PIPELINE_ORDER = ("io", "stats", "geometry", "images", "render", "shap", "attacks", "pose", "detectors",
+PIPELINE_ORDER = ("io", "settings", "stats", "geometry", "images", "render", "shap", "attacks", "pose", "detectors",
                   "defense", "guidance", "attackers", "evaluation", "formats", "report")
 # The commands' support, lowest first: errors; params (schema, composition, params -> library settings);
 # artifacts (paths, readers, checks); the Ray engine and its workers; report pages; then the commands

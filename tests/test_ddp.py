@@ -32,5 +32,5 @@ def test_torchrun_two_processes_gloo(tmp_path, monkeypatch):
     # rank 0 alone wrote: exactly one report and one checkpoint, and the checkpoint matches params
     assert len(list((tmp_path / "reports").glob("*.md"))) == 1
     monkeypatch.chdir(tmp_path)
-    model = models.load_pose_model(POSE, params_mod.load())
+    model = models.load_pose(params_mod.load(), POSE).model
     assert model(torch.rand(1, 3, H, W)).shape == (1, 9)

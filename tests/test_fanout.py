@@ -45,10 +45,10 @@ def defense():
     from pipeline.defense.fusion import DefenseSettings
     from pipeline.defense.gate import MotionSettings
     from pipeline.defense.noise import NoiseModel
-    from stages.artifacts.models import DefenseModel
+    from pipeline.defense.chain import Defended
 
-    return DefenseModel(DefenseSettings(hold_after=20), MotionSettings(false_alarm=0.005),
-                        NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02), {})
+    return Defended(DefenseSettings(hold_after=20), MotionSettings(false_alarm=0.005),
+                    NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02))
 
 
 class StubWorker:

@@ -17,7 +17,8 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 from stages.config.params import compose
 from stages.config.schema import Params, build
-from stages.config.sections import In, ParamsError
+from pipeline.settings import In
+from stages.config.sections import ParamsError
 
 
 def _leaves(cls: type, prefix: str = "") -> list[tuple[str, Any]]:

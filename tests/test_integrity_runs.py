@@ -19,7 +19,7 @@ from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel
 from pipeline.defense.integrity import AlertLimitSettings, defense_frames
 from pipeline.evaluation.integrity_runs import Track, burst_attack, clean_row, counted, drift_attack, fly, integrity_row
-from pipeline.evaluation.robustness import Defended
+from pipeline.defense.chain import Defended
 from test_burst import scene  # noqa: F401  (its tiny PoseNet and LSTM)
 
 N = 12

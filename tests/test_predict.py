@@ -239,24 +239,33 @@ def test_cli_camera_mismatch_warns_and_a_bad_camera_file_stops_first(camera_mode
 
 
 # ----------------------------------------------------------------------------- sequence mode (rpodguard/sequence.py)
-def _calibrate(models: Path) -> None:
-    """models/defense.json as `rpod calibrate` writes it (pipeline/formats/defense.py), for the tiny chain."""
+def defense_record(pose: Path, detector_threshold: float, model: str = "robust", **changes) -> dict:
+    """A whole defense file's record as `rpod calibrate` writes it (pipeline/formats/defense.py) for the pose model
+    at `pose` and a detector of that threshold, with made-up calibration results; `changes`: DefenseFile fields."""
     import dataclasses
 
     from pipeline.defense.fusion import DefenseSettings
     from pipeline.defense.gate import MotionSettings
-    from pipeline.defense.noise import NoiseModel
     from pipeline.defense.integrity import AlertLimitSettings
-    from pipeline.formats.defense import DEFENSE_FORMAT
-    from pipeline.io.atomic import file_hash, write_json
+    from pipeline.defense.noise import NoiseModel
+    from pipeline.formats.defense import DEFENSE_FORMAT, DefenseFile, Validation
+    from pipeline.io.atomic import file_hash
 
     noise = NoiseModel((0.05, 0.05, 0.1), (0.005, 0.005, 0.01), 1.0, 0.0)
-    threshold = load_chain(models).threshold
-    write_json(models / "defense.json", {
-        "format": DEFENSE_FORMAT, "pose_model_hash": file_hash(models / "pose.pt"), "detector_threshold": threshold,
-        "threshold": 0.9, "cusum_threshold": 8.0, "noise": noise.as_dict(), "fitted_noise": noise.as_dict(),
-        "settings": {**dataclasses.asdict(DefenseSettings()), **dataclasses.asdict(MotionSettings())},
-        "alert_limit": dataclasses.asdict(AlertLimitSettings()), "unmet": []})
+    validation = Validation(3, 1, 60, 0.5, {"level": None, "share_pct": None, "reached_pct": None},
+                            {"frames": 10, "detector_pct": 0.0}, {}, {}, {"pct": 100.0, "ci95_pct": [90.0, 100.0]},
+                            {"pct": 0.0, "ci95_pct": [0.0, 5.0]}, {}, {})
+    record = DefenseFile(DEFENSE_FORMAT, model, file_hash(pose), detector_threshold, 0.9, 8.0, 1.0, 1.0, noise, noise,
+                         DefenseSettings(threshold=0.9), MotionSettings(cusum_threshold=8.0), AlertLimitSettings(), (),
+                         validation)
+    return dataclasses.replace(record, **changes).to_json()
+
+
+def _calibrate(models: Path) -> None:
+    """models/defense.json as `rpod calibrate` writes it (pipeline/formats/defense.py), for the tiny chain."""
+    from pipeline.io.atomic import write_json
+
+    write_json(models / "defense.json", defense_record(models / "pose.pt", load_chain(models).threshold))
 
 
 def test_track_gives_the_trusted_estimate_pl_and_availability_per_frame(models, tmp_path):

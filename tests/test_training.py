@@ -116,17 +116,18 @@ def test_checkpoint_round_trip_and_mismatch_refusal(dataset, tmp_path):
         loss.s_p.fill_(0.7)
     path = tmp_path / "models/pose.pt"
     save_pose(path, model, loss, (H, W), {"epoch": 1})
-    loaded = models.load_pose_model(path, dataset)
+    pose = models.load_pose(dataset, path)
+    loaded = pose.model
     assert not loaded.training
     x = torch.rand(2, 3, H, W)
     torch.testing.assert_close(loaded(x), model(x))
-    assert models.load_pose_loss(path, dataset).s_p.item() == pytest.approx(0.7)
+    assert pose.loss.s_p.item() == pytest.approx(0.7)
     wider = replace(dataset, train=replace(dataset.train, width=0.5))
     with pytest.raises(StageError, match=r"does not match params.yaml: width=0.125 \(params: 0.5\)"):
-        models.load_pose_model(path, wider)
+        models.load_pose(wider, path)
     bigger = replace(dataset, render=replace(dataset.render, height=54, width=96))
     with pytest.raises(StageError, match=r"input_size HxW=\[27, 48\] \(params: \[54, 96\]\)"):
-        models.read_checked(path, bigger)
+        models.check_pose(bigger, path, read_pose(path))
     path.write_bytes(b"not a checkpoint")
     with pytest.raises(DataError, match="unreadable"):
         read_pose(path)
@@ -173,7 +174,7 @@ def test_train_stage_writes_checkpoint_report_and_metrics(dataset):
     assert sum(b["n"] for b in metrics["test"]["bins"]) == 8
     report = Path("reports/pose.md").read_text()
     assert "0.490" in report and "Guidance requirements" in report and "60-45" in report
-    model = models.load_pose_model(POSE, params_mod.load())
+    model = models.load_pose(params_mod.load(), POSE).model
     assert model(torch.rand(1, 3, H, W)).shape == (1, 9)
     assert read_pose(POSE)["K"] == reference_intrinsics().scaled(W, H).K.tolist()   # the training images' camera
     assert read_pose(POSE)["labels_hash"] == file_hash("datasets/labels.parquet")     # and their labels

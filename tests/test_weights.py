@@ -12,7 +12,7 @@ import pytest
 import yaml
 from PIL import Image
 
-from pipeline.formats.bundle import FILES, MANIFEST, RUN_FILES, check_bundle
+from pipeline.formats.bundle import FILES, MANIFEST, SOURCES, check_bundle
 from pipeline.io.atomic import file_hash, read_json
 from pipeline.io.errors import DataError
 from rpodguard import load_chain
@@ -37,7 +37,8 @@ def satellite(scale: float, height: int = 90, width: int = 160) -> np.ndarray:
 def test_load_chain_with_no_argument_is_the_bundle_from_any_folder(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)                           # no models/ here: nothing but the bundle to load
     chain = load_chain()
-    assert chain.files == (BUNDLE / "pose.pt", BUNDLE / "detector.pt")
+    assert chain.files == (BUNDLE / "pose.pt", BUNDLE / "detector.pt", BUNDLE / "defense.json")
+    assert chain.safety.defended is not None and chain.safety.calibration.model == "robust"
     manifest = chain.manifest
     assert manifest["profile"] == "default" and len(manifest["commit"]) == 40
     render = manifest["params"]["render"]                 # trained with the params it lists
@@ -92,10 +93,10 @@ def test_the_bundle_is_the_shipped_chain_the_robust_model_and_its_own_detector()
 
     assert SHIPPED == Model.robust
     shipped = CHAINS[SHIPPED]
-    assert {n: f"models/{RUN_FILES[n]}" for n in FILES} == {"pose.pt": str(shipped.pose),
+    assert {n: f"models/{SOURCES[n]}" for n in FILES} == {"pose.pt": str(shipped.pose),
                                                           "detector.pt": str(shipped.detector),
                                                           "defense.json": str(shipped.defense)}
-    assert read_json(BUNDLE / MANIFEST)["sources"] == {n: f"models/{RUN_FILES[n]}" for n in FILES}
+    assert read_json(BUNDLE / MANIFEST)["sources"] == {n: f"models/{SOURCES[n]}" for n in FILES}
     assert read_pose(BUNDLE / "pose.pt")["arch"].get("black_level", 0) > 0        # the clamp: the robust model
     assert read_detector(BUNDLE / "detector.pt", model_hash=file_hash(BUNDLE / "pose.pt"))   # its own detector
 
@@ -108,9 +109,9 @@ def test_the_script_rebuilds_the_bundle_naming_the_commit_that_recorded_the_file
     run = tmp_path / "models"                              # a run's models/: the shipped chain under its run names
     run.mkdir()
     for name in FILES:
-        shutil.copy(copy / name, run / RUN_FILES[name])
+        shutil.copy(copy / name, run / SOURCES[name])
     copy = run
-    md5 = {RUN_FILES[name]: hashlib.md5((copy / RUN_FILES[name]).read_bytes()).hexdigest() for name in FILES}
+    md5 = {SOURCES[name]: hashlib.md5((copy / SOURCES[name]).read_bytes()).hexdigest() for name in FILES}
     (tmp_path / "dvc.lock").write_text("".join(f"- path: models/{n}\n  md5: {m}\n" for n, m in md5.items()))
     subprocess.run([*git, "add", "dvc.lock"], check=True)
     subprocess.run([*git, "commit", "-qm", "a run"], check=True)
@@ -138,6 +139,6 @@ def test_the_bundle_is_the_chain_of_the_committed_run() -> None:
     recorded = {o["path"]: o["md5"] for s in lock["stages"].values() for o in s.get("outs", [])}
     for name in FILES:
         source = manifest["sources"][name]
-        assert source == f"models/{RUN_FILES[name]}" and source in recorded, source
+        assert source == f"models/{SOURCES[name]}" and source in recorded, source
         md5 = hashlib.md5((BUNDLE / name).read_bytes()).hexdigest()
         assert md5 == recorded[source], f"{name} is not the {source} of dvc.lock: run scripts/bundle_weights.py"

@@ -1,4 +1,6 @@
-"""The onboard safety chain: image -> pose -> SHAP signature -> attack flag (defense: pipeline/defense/fusion.py).
+"""The safety chain: image -> pose -> SHAP signature -> attack flag (`OnboardChain`), its calibrated defense
+(`Defended`: pipeline/defense/fusion.py) and the whole trained chain (`SafetyChain`, loaded by the one door
+pipeline/formats/chain.py `load_chain`).
 
 The pose network's GAP features `a` (B, 1000) are computed once and used twice: the affine heads
 turn them into the pose (B, 9), and the closed-form DeepSHAP of those heads,
@@ -10,14 +12,20 @@ gives the same result as the frames one at a time.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import warnings
 from dataclasses import dataclass
-from typing import Callable, Iterable
+from functools import partial
+from typing import Any, Callable, Iterable
 
 import numpy as np
 import torch
 from torch import nn
 
+from pipeline.defense.fusion import Defense, DefenseSettings
+from pipeline.defense.gate import MotionSettings
+from pipeline.defense.integrity import AlertLimitSettings, alert_limit
+from pipeline.defense.noise import NoiseModel
 from pipeline.detectors.lstm import LSTMDetector
 from pipeline.shap import ExactShap, affine_head
 
@@ -81,8 +89,8 @@ class FoldedShapLSTM(nn.Module):
 
 
 class OnboardChain:
-    """The chain that runs onboard, frame by frame, no gradients: image -> pose, SHAP, attack flag; used
-    by the stages (readers.load_chain, robustness), rpodguard.api, the evaluation and guidance.
+    """The chain that runs onboard, frame by frame, no gradients: image -> pose, SHAP, attack flag; the
+    `onboard` part of a SafetyChain (the stages, rpodguard.api, the evaluation and guidance).
 
     Pose model + exact SHAP (head weights, background mean) + detector, in eval mode, no grad.
 
@@ -182,3 +190,52 @@ def run_sequence(chain: OnboardChain, images: np.ndarray, targets: np.ndarray, a
         out = chain(x)
         pose[lo:hi], prob[lo:hi], flag[lo:hi] = out.pose.numpy(), out.prob.numpy(), out.flag.numpy()
     return SequenceResult(pose, prob, flag)
+
+
+@dataclass(frozen=True)
+class Defended:
+    """A chain's calibrated defense (pipeline/defense/fusion.py): the fusion settings (with the calibrated
+    detector threshold and doubt level), the motion filter's settings (with the calibrated h), the inflated
+    noise model and the alert limit its availability is judged against (PL <= AL; None: no availability check)."""
+
+    settings: DefenseSettings
+    motion: MotionSettings
+    noise: NoiseModel
+    alert: AlertLimitSettings | None = None
+
+    def new(self, fusion: str | None = None) -> Defense:
+        """A fresh Defense (one per trajectory or closed-loop run), optionally with another fusion."""
+        s = self.settings if fusion is None else dataclasses.replace(self.settings, fusion=fusion)
+        return Defense(s, self.motion, self.noise, None if self.alert is None else partial(alert_limit, settings=self.alert))
+
+    def defense(self) -> Defense:
+        """`new()` by the name pipeline/evaluation/integrity_runs.py calls."""
+        return self.new()
+
+
+@dataclass(frozen=True)
+class SafetyChain:
+    """A trained chain: `name` (its pose model: standard or robust), `onboard` (the pose model, exact SHAP and
+    its detector), the pose model's learned training loss (`loss`, what attacks ascend), its file hash and
+    checkpoint facts (`checkpoint`: arch, input_size, K, labels_hash, meta; no weights), the files it was read
+    from (pose, detector, defense) and, once calibrated, its defense (`defended`) and the defense file's record
+    (`calibration`: pipeline.formats.defense.DefenseFile; None before `rpod calibrate`)."""
+
+    name: str
+    onboard: OnboardChain
+    loss: nn.Module
+    pose_hash: str
+    checkpoint: dict[str, Any]
+    files: tuple[Any, Any, Any]
+    defended: Defended | None = None
+    calibration: Any = None
+
+    @property
+    def model(self) -> nn.Module:
+        """The pose network (eval mode)."""
+        return self.onboard.model
+
+    @property
+    def threshold(self) -> float:
+        """The detector checkpoint's own flag threshold (the defended chain flies `defended.settings.threshold`)."""
+        return self.onboard.threshold

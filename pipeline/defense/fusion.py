@@ -33,13 +33,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Annotated, Callable, Literal, Optional
 
 import numpy as np
 
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.kalman import MotionFilter
 from pipeline.defense.noise import NoiseModel
+from pipeline.settings import In
 
 FUSIONS = ("paper", "motion", "or")
 TRACK, COAST, HOLD = "track", "coast", "hold"
@@ -54,11 +55,11 @@ class DefenseSettings:
     frames whose detector probability is at or above this (but below the threshold) are not flagged
     but do not update the motion filter either (None: the threshold)."""
 
-    fusion: str = "or"
-    hold_after: int = 5
-    release_after: int = 2
-    threshold: float = 0.5
-    update_below: float | None = None
+    fusion: Literal[FUSIONS] = "or"
+    hold_after: Annotated[int, In("[1, 10000000]", "frames")] = 5
+    release_after: Annotated[int, In("[1, 10000000]", "frames")] = 2
+    threshold: Annotated[float, In("(0, 1)", "probability")] = 0.5
+    update_below: Optional[Annotated[float, In("(0, 1)", "probability")]] = None
 
     def __post_init__(self) -> None:
         if self.fusion not in FUSIONS:

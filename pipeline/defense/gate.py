@@ -15,11 +15,13 @@ with the accepted history, never on a steady offset that jumped away from that h
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import numpy as np
 from scipy.stats import chi2
 
 from pipeline.defense.noise import check_positive
+from pipeline.settings import In
 
 
 @dataclass(frozen=True)
@@ -38,16 +40,16 @@ class MotionSettings:
     frames after the filter's first start that the protection level assumes fault-free (its
     assumption A, pipeline/defense/protection.py: the detector alone guards them)."""
 
-    position_noise: float = 0.005
-    attitude_noise_deg: float = 0.5
-    attitude_rate_noise_deg: float = 0.05
-    false_alarm: float = 0.001
-    soft_gate: float = 0.5
-    reacquire_after: int = 4
-    cusum_reference: float = 1.0
-    cusum_threshold: float = 10.0
-    integrity_risk: float = 1e-5
-    trusted_start: int = 0
+    position_noise: Annotated[float, In("(0, 1000]", "metres per frame")] = 0.005
+    attitude_noise_deg: Annotated[float, In("(0, 180]", "degrees per frame")] = 0.5
+    attitude_rate_noise_deg: Annotated[float, In("(0, 180]", "degrees per frame per frame")] = 0.05
+    false_alarm: Annotated[float, In("(0, 1)", "probability per frame")] = 0.001
+    soft_gate: Annotated[float, In("(0, 1]", "fraction of the gate")] = 0.5
+    reacquire_after: Annotated[int, In("[2, 10000000]", "frames")] = 4
+    cusum_reference: Annotated[float, In("[0, 100]", "standard deviations")] = 1.0
+    cusum_threshold: Annotated[float, In("(0, 1000000]", "standard deviations")] = 10.0
+    integrity_risk: Annotated[float, In("(0, 1)", "probability per frame")] = 1e-5
+    trusted_start: Annotated[int, In("[0, 10000000]", "frames")] = 0
 
     def __post_init__(self) -> None:
         for name in ("position_noise", "attitude_noise_deg", "attitude_rate_noise_deg", "cusum_threshold"):

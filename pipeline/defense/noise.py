@@ -11,9 +11,15 @@ from __future__ import annotations
 import bisect
 import math
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from pipeline.settings import In
+
+Range = Annotated[float, In("(0, 100000]", "metres")]   # a range knot
+Std = Annotated[float, In("(0, 100000]", "metres")]     # a position standard deviation at a knot
 
 
 def check_positive(name: str, value: float) -> float:
@@ -38,13 +44,13 @@ class NoiseModel:
     position_slope: tuple[float, float, float]
     attitude_intercept: float
     attitude_slope: float
-    floor: float = 0.02   # metres: smallest position std used (a fit can go to zero at short range)
+    floor: Annotated[float, In("(0, 1000]", "metres")] = 0.02   # smallest position std used (a fit can go to 0)
     bias_intercept: tuple[float, float, float] = (0.0, 0.0, 0.0)
     bias_slope: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    knots: tuple[float, ...] = ()
-    knot_std: tuple[tuple[float, float, float], ...] = ()
+    knots: tuple[Range, ...] = ()
+    knot_std: tuple[tuple[Std, Std, Std], ...] = ()
     knot_bias: tuple[tuple[float, float, float], ...] = ()
-    knot_attitude: tuple[float, ...] = ()
+    knot_attitude: tuple[Annotated[float, In("(0, 180]", "degrees")], ...] = ()
 
     def __post_init__(self) -> None:
         for name, v in (("position_intercept", self.position_intercept), ("position_slope", self.position_slope),

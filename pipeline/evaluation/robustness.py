@@ -213,25 +213,6 @@ def burst_schedule(n_frames: int, length: int, every: int) -> list[tuple[int, in
     return [(s, s + length) for s in range(every, n_frames - length + 1, every)]
 
 
-@dataclass(frozen=True)
-class Defended:
-    """The fused chain's settings (pipeline.defense.fusion): fusion, threshold; the motion filter settings,
-    the fitted noise model and the alert limit its availability is judged against (PL <= AL)."""
-
-    settings: Any      # DefenseSettings
-    motion: Any        # MotionSettings
-    noise: Any         # NoiseModel
-    alert: Any = None  # AlertLimitSettings (pipeline.defense.integrity), None: no availability check
-
-    def defense(self) -> Any:
-        """A fresh pipeline.defense.fusion.Defense with these settings."""
-        from functools import partial
-
-        from pipeline.defense.fusion import Defense
-        from pipeline.defense.integrity import alert_limit
-
-        return Defense(self.settings, self.motion, self.noise,
-                       None if self.alert is None else partial(alert_limit, settings=self.alert))
 
 
 def pose_estimates(chain: Any, images: np.ndarray, batch_size: int) -> tuple[np.ndarray, np.ndarray]:

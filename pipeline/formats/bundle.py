@@ -15,33 +15,32 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+from pipeline.formats.run import BUNDLE_FILES, MODELS_DIR, RUN_FILES, SHIPPED
 from pipeline.io.atomic import atomic_dir, file_hash, read_json, write_json
 from pipeline.io.errors import DataError
 
 BUNDLE_FORMAT = "rpodguard-weights/1"
 MANIFEST = "manifest.json"
-FILES = ("pose.pt", "detector.pt", "defense.json")
-# where a run's models/ folder keeps the shipped chain's files (stages.artifacts.paths.CHAINS[SHIPPED]; a test checks
-# they agree): a bundle holds them under the names of FILES
-RUN_FILES = {"pose.pt": "pose_robust.pt", "detector.pt": "detector_robust.pt", "defense.json": "defense.json"}
+FILES = tuple(BUNDLE_FILES)
+SOURCES = dict(zip(BUNDLE_FILES, RUN_FILES[SHIPPED]))   # bundle file -> the shipped chain's file in a run's models/
 
 
 def write_bundle(out: Path | str, models: Path | str, params: dict[str, Any], commit: str,
                  code_changes: list[str], rebuild: str) -> dict[str, Any]:
-    """Copy the shipped chain of a run's MODELS folder (RUN_FILES: pose_robust.pt, detector_robust.pt, defense.json)
+    """Copy the shipped chain of a run's MODELS folder (`SOURCES`: pose_robust.pt, detector_robust.pt, defense.json)
     into the folder OUT as FILES (replaced whole, atomically) with its manifest; returns the manifest. defense.json
     must name the robust pose model's hash (calibrated on that model)."""
-    models = Path(models)
-    defense, pose = read_json(models / RUN_FILES["defense.json"]), models / RUN_FILES["pose.pt"]
+    models, names = Path(models), RUN_FILES[SHIPPED]
+    defense, pose = read_json(models / names.defense), models / names.pose
     if defense.get("pose_model_hash") != file_hash(pose):
-        raise DataError(f"{models / RUN_FILES['defense.json']} was calibrated for another pose model than {pose}; "
+        raise DataError(f"{models / names.defense} was calibrated for another pose model than {pose}; "
                         f"re-run `rpod calibrate`")
     with atomic_dir(out) as tmp:
         for name in FILES:
-            shutil.copyfile(models / RUN_FILES[name], tmp / name)
+            shutil.copyfile(models / SOURCES[name], tmp / name)
         manifest = {"format": BUNDLE_FORMAT, "profile": params.get("profile_name"), "commit": commit,
                     "code_changes": sorted(code_changes), "params": params, "rebuild": rebuild,
-                    "sources": {name: f"models/{RUN_FILES[name]}" for name in FILES},
+                    "sources": {name: f"{MODELS_DIR}/{SOURCES[name]}" for name in FILES},
                     "files": {name: {"sha256": file_hash(tmp / name, 64), "bytes": (tmp / name).stat().st_size}
                               for name in FILES}}
         write_json(tmp / MANIFEST, manifest)

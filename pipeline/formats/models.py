@@ -13,8 +13,9 @@ shap_method.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from pipeline.io.checkpoints import load_torch, save_torch
 from pipeline.io.errors import DataError
@@ -70,6 +71,36 @@ def loss_from_checkpoint(ckpt: dict[str, Any]) -> Any:
     return loss
 
 
+@dataclass(frozen=True)
+class Pose:
+    """A pose checkpoint loaded: the PoseNet (eval mode), its learned training loss (what attacks ascend), the
+    file's hash and the checkpoint's facts without the weights (`checkpoint`: arch, input_size, K, labels_hash,
+    meta: best epoch, test errors in m and deg)."""
+
+    model: Any
+    loss: Any
+    hash: str
+    checkpoint: dict[str, Any]
+
+    @property
+    def meta(self) -> dict[str, Any]:
+        return dict(self.checkpoint.get("meta", {}))
+
+
+def load_pose(path: Path | str, device: Any = "cpu", amp: bool = False,
+              check: Callable[[Path, dict[str, Any]], None] | None = None) -> Pose:
+    """The pose checkpoint at `path` read once (`read_pose`; `check(path, checkpoint)` may refuse it before the
+    network is built), its network placed on `device` (with `amp`: bf16 autocast on CUDA)."""
+    from pipeline.io.atomic import file_hash
+
+    path = Path(path)
+    ckpt = read_pose(path)
+    if check is not None:
+        check(path, ckpt)
+    facts = {k: v for k, v in ckpt.items() if k not in ("model", "loss")}
+    return Pose(model_from_checkpoint(ckpt, device, amp), loss_from_checkpoint(ckpt), file_hash(path), facts)
+
+
 def read_detector(path: Path | str, model_hash: str | None = None) -> tuple[Any, dict[str, Any]]:
     """The LSTM detector (eval mode) and its checkpoint dict (threshold, pose_model_hash,
     background_mean (D,) tensor, shap_method, ...). With `model_hash`, refuse a detector trained
@@ -82,20 +113,3 @@ def read_detector(path: Path | str, model_hash: str | None = None) -> tuple[Any,
         raise DataError(f"{path} was trained for pose checkpoint {ckpt['pose_model_hash']!r}, not {model_hash!r}; "
                         f"re-run `rpod shap` and `rpod detect`")
     return from_checkpoint(ckpt), ckpt
-
-
-def load_onboard_chain(model: Any, model_hash: str, pose_path: Path | str,
-                      detector_path: Path | str) -> Any:
-    """The OnboardChain of a pose model read from `pose_path` (whose file hash is `model_hash`) and the
-    detector checkpoint at `detector_path` (its threshold and SHAP background mean). A detector
-    trained on another pose model's SHAP values, or a pose head that is not affine, is a DataError."""
-    import numpy as np
-
-    from pipeline.defense.chain import OnboardChain
-
-    detector, ckpt = read_detector(detector_path, model_hash=model_hash)
-    try:
-        return OnboardChain.from_model(model, np.asarray(ckpt["background_mean"]), detector,
-                                      threshold=float(ckpt["threshold"]))
-    except ValueError as err:
-        raise DataError(f"{pose_path}: {err}") from None

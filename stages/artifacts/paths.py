@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
 
+from pipeline.formats.run import MODELS as MODEL_NAMES, MODELS_DIR, PAPER as PAPER_NAME, RUN_FILES, SHIPPED as SHIPPED_NAME
 from stages.config.params import ROOT
 
 DVC_YAML = ROOT / "dvc.yaml"
@@ -21,6 +22,8 @@ REPORTS = Path("reports")
 VARIANCE = REPORTS / "variance.json"  # scripts/variance.py (not a stage): the spread of the headline numbers
 
 WRITTEN_BY: dict[Path, str] = {}   # output -> the dvc.yaml stage that writes it
+MODELS = Path(MODELS_DIR)          # the model files, named by pipeline/formats/run.py
+_STANDARD, _ROBUST = RUN_FILES["standard"], RUN_FILES["robust"]
 
 
 def _outputs(stage: str, *paths: str) -> tuple[Path, ...]:
@@ -33,7 +36,7 @@ def _outputs(stage: str, *paths: str) -> tuple[Path, ...]:
 RENDER, IMAGES, PREVIEWS, RENDER_METRICS = _outputs("render", "datasets/render", "datasets/render/images.zarr",
                                                     "reports/figures/previews", "reports/metrics/render.json")
 LABELS, DATASET_CARD = _outputs("label", "datasets/labels.parquet", "reports/dataset.md")
-POSE, POSE_REPORT, TRAIN_METRICS, TRAIN_LIVE = _outputs("train", "models/pose.pt", "reports/pose.md",
+POSE, POSE_REPORT, TRAIN_METRICS, TRAIN_LIVE = _outputs("train", str(MODELS / _STANDARD.pose), "reports/pose.md",
                                                         "reports/metrics/train.json", "dvclive/train")
 ATTACK, ADV, ATTACK_REPORT, ATTACK_FIGURE, ATTACK_METRICS = _outputs(
     "attack", "datasets/attack", "datasets/attack/adv.zarr", "reports/attack.md", "reports/figures/fgsm_example.png",
@@ -43,11 +46,11 @@ GUIDANCE_REPORT, GUIDANCE_FIGURE, GUIDANCE_DEFENDED_FIGURE, GUIDANCE_METRICS = _
     "reports/figures/guidance_defended.png", "reports/metrics/guidance.json")
 (SHAP,) = _outputs("shap", "datasets/shap.zarr")
 DETECTOR, DETECT_REPORT, DETECT_METRICS, DETECT_LIVE = _outputs(
-    "detect", "models/detector.pt", "reports/detector.md", "reports/metrics/detect.json", "dvclive/detect")
+    "detect", str(MODELS / _STANDARD.detector), "reports/detector.md", "reports/metrics/detect.json", "dvclive/detect")
 # the same two stages on the robust pose model (`rpod shap --model robust`, `rpod detect --model robust`)
 (SHAP_ROBUST,) = _outputs("shap_robust", "datasets/shap_robust.zarr")
 DETECTOR_ROBUST, DETECT_ROBUST_REPORT, DETECT_ROBUST_METRICS, DETECT_ROBUST_LIVE = _outputs(
-    "detect_robust", "models/detector_robust.pt", "reports/detector_robust.md", "reports/metrics/detect_robust.json",
+    "detect_robust", str(MODELS / _ROBUST.detector), "reports/detector_robust.md", "reports/metrics/detect_robust.json",
     "dvclive/detect_robust")
 ROC_DATA = DETECT_LIVE / "plots" / "sklearn"   # DVCLive's log_sklearn_plot("roc", name=D): D.json per detector
 # the evaluation trajectories, the defense's validation ones (the mission's kind) and validation frames over the
@@ -58,15 +61,15 @@ EVAL_RENDER, VAL_RENDER, VAL_ENVELOPE, EVAL_RENDER_METRICS = _outputs(
 # the detector split (`rpod eval_render --detector`): the images `rpod shap` explains, never seen in training
 DETECT_RENDER, DETECT_RENDER_METRICS = _outputs("detect_render", "datasets/detect_render",
                                                 "reports/metrics/detect_render.json")
-(DEFENSE,) = _outputs("calibrate", "models/defense.json")                       # the shipped chain's
-(DEFENSE_STANDARD,) = _outputs("calibrate_standard", "models/defense_standard.json")   # the paper chain's
+(DEFENSE,) = _outputs("calibrate", str(MODELS / _ROBUST.defense))                       # the shipped chain's
+(DEFENSE_STANDARD,) = _outputs("calibrate_standard", str(MODELS / _STANDARD.defense))   # the paper chain's
 EVALUATE_REPORT, EVALUATE_FIGURE, EVALUATE_METRICS = _outputs(
     "evaluate", "reports/integrated.md", "reports/figures/timeline.png", "reports/metrics/evaluate.json")
 # the robust pose model (`rpod train --robust`: adversarial training behind a black-level clamp) and its page
 POSE_ROBUST, ROBUST_REPORT, ROBUST_METRICS, ROBUST_LIVE = _outputs(
-    "robust", "models/pose_robust.pt", "reports/pose_robust.md", "reports/metrics/robust.json", "dvclive/robust")
+    "robust", str(MODELS / _ROBUST.pose), "reports/pose_robust.md", "reports/metrics/robust.json", "dvclive/robust")
 # a second pose model (`rpod train --surrogate`) for black-box transfer
-(SURROGATE,) = _outputs("surrogate", "models/surrogate.pt")
+(SURROGATE,) = _outputs("surrogate", str(MODELS / "surrogate.pt"))
 ROBUSTNESS_REPORT, ROBUSTNESS_FIGURE, ROBUSTNESS_METRICS, INTEGRITY_FIGURE = _outputs(
     "robustness", "reports/robustness.md", "reports/figures/robustness.png", "reports/metrics/robustness.json",
     "reports/figures/integrity.png")
@@ -80,12 +83,9 @@ REPORT_FIGURES = {path.stem: path for path in _FIGURES}
 
 
 
-class Model(str, Enum):
-    """The two pose models (the `--model` option of `rpod shap`, `detect`, `calibrate`): `standard` (`rpod
-    train`, the paper's reproduction) and `robust` (`rpod train --robust`, the one that ships)."""
-
-    standard = "standard"
-    robust = "robust"
+Model = Enum("Model", [(name, name) for name in MODEL_NAMES], type=str)
+Model.__doc__ = """The two pose models (the `--model` option of `rpod shap`, `detect`, `calibrate`): `standard` (`rpod
+train`, the paper's reproduction) and `robust` (`rpod train --robust`, the one that ships): pipeline/formats/run.py."""
 
 
 @dataclass(frozen=True)
@@ -109,8 +109,8 @@ CHAINS: dict[Model, ChainFiles] = {
     Model.robust: ChainFiles(Model.robust, POSE_ROBUST, SHAP_ROBUST, DETECTOR_ROBUST, DETECT_ROBUST_REPORT,
                              DETECT_ROBUST_METRICS, DETECT_ROBUST_LIVE, DEFENSE),
 }
-PAPER = Model.standard     # the paper's reproduction rows: the standard model and its own detector
-SHIPPED = Model.robust     # what ships (rpod predict, rpodguard.load_chain, the weights bundle, every safety row)
+PAPER = Model(PAPER_NAME)       # the paper's reproduction rows: the standard model and its own detector
+SHIPPED = Model(SHIPPED_NAME)   # what ships (rpod predict, rpodguard.load_chain, the weights bundle, every safety row)
 
 # stage -> the offset added to its base seed (`seed`, or `lab.seed` for lab and lab_models; the evaluate
 # schedule adds it to evaluate.seed + the trajectory number), so no two stages draw the same stream

@@ -7,8 +7,9 @@ import typing
 from dataclasses import dataclass
 from typing import Annotated, Literal, Optional
 
-from stages.config.sections import (Batch, Count, Direction, Eps, Focal, In, Metres, ParamsError, Pixels,
-                                    Principal, Probability, Scale, Seed)
+from pipeline.settings import In
+from stages.config.sections import (Batch, Count, Direction, Eps, Focal, Metres, ParamsError, Pixels, Principal,
+                                    Probability, Scale, Seed)
 
 Frames = Annotated[int, In("[1, 10000000]", "frames")]
 Noise = Annotated[float, In("(0, 1000]", "std per frame")]

@@ -8,35 +8,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated, Literal, Optional
 
+from pipeline.settings import In
+
 
 class ParamsError(ValueError):
     """A params problem the user can fix; the message names the file and the key."""
-
-
-@dataclass(frozen=True)
-class In:
-    """The documented range of a numeric param, declared beside its field as `Annotated[float, In("(0, 1]")]`:
-    `interval` with finite bounds ("[" or "]": bound included, "(" or ")": excluded) and the unit.
-    `stages.config.schema.build` refuses a value outside it (and any NaN or infinity) naming the key."""
-
-    interval: str
-    unit: str = ""
-
-    def bounds(self) -> tuple[float, float]:
-        low, high = self.interval[1:-1].split(",")
-        return float(low), float(high)
-
-    def contains(self, value: float) -> bool:
-        (low, high), (left, right) = self.bounds(), (self.interval[0], self.interval[-1])
-        return (low <= value if left == "[" else low < value) and (value <= high if right == "]" else value < high)
-
-    def refusal(self, key: str, value: float, whole: bool) -> ParamsError:
-        """The one-line error of `value` outside the range, naming params.yaml's `key`."""
-        low = self.bounds()[0]
-        kind = ("a positive " if low > 0 or (low == 0 and self.interval[0] == "(") else "a ") + \
-            ("whole number" if whole else "number")
-        unit = f" ({self.unit})" if self.unit else ""
-        return ParamsError(f"params.yaml {key} must be {kind} in {self.interval}{unit}, got {value!r}")
 
 
 Seed = Annotated[int, In("[0, 2147483647]", "random seed")]

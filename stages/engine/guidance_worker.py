@@ -24,7 +24,7 @@ class GuidanceSetup:
     K: Any                     # pipeline.geometry.camera.Intrinsics: the pose model's input size (pixels)
     scene: Any                 # pipeline.render.scene.SceneSettings, checked by stages.engine.chunks.prepare
     root: str                  # the folder holding models/, as an absolute path (a worker may run elsewhere)
-    defense: Any               # stages.artifacts.models.DefenseModel of the shipped chain: a fresh one per run
+    defense: Any               # pipeline.defense.chain.Defended of the shipped chain: a fresh Defense per run
     plan: Any                  # pipeline.guidance.law.GridPlan: every run of the grid
     seed: int                  # the attack seed of run 0 (params seed + the stage's offset)
     torch_threads: int | None  # torch threads of this worker; None: left as set up
@@ -51,7 +51,7 @@ class GuidanceWorker:
 
     def __init__(self, setup: GuidanceSetup) -> None:
         from pipeline.attacks.adaptive import PerFrameChain
-        from pipeline.attacks.gradient import stored_attack
+        from pipeline.attacks.gradient import attack_loss, stored_attack
         from pipeline.attackers.in_loop import InLoopAttacker
         from pipeline.guidance.grid import GridPilot
         from pipeline.guidance.law import CachedCamera
@@ -61,15 +61,15 @@ class GuidanceWorker:
             import torch
 
             torch.set_num_threads(setup.torch_threads)
-        chains = {"paper": load_chain(setup.params, PAPER, setup.root),
-                  "shipped": load_chain(setup.params, SHIPPED, setup.root)}
+        chains = {"paper": load_chain(setup.params, PAPER, setup.root, defended=False),
+                  "shipped": load_chain(setup.params, SHIPPED, setup.root, defended=False)}
+        losses = {name: attack_loss(setup.params.attack.loss, chain.loss) for name, chain in chains.items()}
         a, method, seed = setup.params.attack, setup.params.guidance.method, setup.seed
 
         def attack_at(name: str, eps: float, i: int) -> Any:
-            chain, loss_fn, _ = chains[name]
-            return stored_attack(chain.model, loss_fn, eps, make_attack(a, method, seed + i))
+            return stored_attack(chains[name].model, losses[name], eps, make_attack(a, method, seed + i))
 
-        shipped = chains["shipped"][0]
+        shipped = chains["shipped"].onboard
         target = PerFrameChain(shipped.model, shipped.shap, shipped.detector)
 
         def in_loop_at(eps: float, goal: str, i: int) -> Any:
@@ -77,8 +77,8 @@ class GuidanceWorker:
 
         self.renderer = Renderer(setup.K, setup.scene)
         images: dict[bytes, Any] = {}   # both chains see the same rendered poses: each is rendered once
-        cameras = {name: CachedCamera(self.renderer.render, c.model, chain=c, images=images)
-                   for name, (c, _, _) in chains.items()}
+        cameras = {name: CachedCamera(self.renderer.render, c.model, chain=c.onboard, images=images)
+                   for name, c in chains.items()}
         self.pilot = GridPilot(cameras, setup.K, setup.plan, attack_at, setup.defense, in_loop_at)
 
     def run(self, job: Flight) -> tuple[Any, frozenset[bytes]]:

@@ -3,7 +3,7 @@ reports that use a defense calibrated with unmet shares (defense.allow_unmet) op
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 SETTING = {"detector": "threshold {:.4g}", "attitude gate": "attitude noise inflation x{:g}",
            "gate": "position noise inflation x{:g}", "sequential test": "CUSUM threshold h = {:g}"}
@@ -38,11 +38,10 @@ def summary_line(cal: dict[str, Any], path: Path) -> str:
             f"(target {v['target_pct']:g}%); availability {v['availability']['pct']:.2f}%{unmet} -> {path}")
 
 
-def unmet_banner(calibration: dict[str, Any], model: Any = None) -> str:
-    """The first line of a report that uses a defense: empty when every check met its share, else a warning
-    naming what was not met (then a blank line); `model` (stages.artifacts.paths.Model) names a defense other than
-    the shipped chain's."""
-    unmet = calibration.get("unmet") or []
+def unmet_banner(unmet: Sequence[str], model: Any = None) -> str:
+    """The first line of a report that uses a defense: empty when every check met its share (its defense file's
+    `unmet` lines), else a warning naming what was not met (then a blank line); `model`
+    (stages.artifacts.paths.Model) names a defense other than the shipped chain's."""
     if not unmet:
         return ""
     which = "the defense" if model is None else f"the {model.value} model's defense"
