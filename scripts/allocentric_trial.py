@@ -69,7 +69,8 @@ def main(epochs: int | None = None) -> None:
     from pipeline.pose.train import fit, make_deterministic, predict
     from pipeline.report.markdown import markdown_table
     from stages.artifacts import data
-    from stages.artifacts.paths import POSE, SEED_OFFSET
+    from pipeline.seeds import seed_for
+    from stages.artifacts.paths import POSE
     from stages.config import params as params_mod
     from stages.config.build import train_config
     from stages.config.device import torch_setup
@@ -80,7 +81,7 @@ def main(epochs: int | None = None) -> None:
         raise SystemExit(f"allocentric trial: {', '.join(missing)} not found: run `dvc repro train` first")
     params = params_mod.load()
     device = torch_setup(params)
-    cfg = train_config(params.train, epochs or params.train.epochs, params.seed + SEED_OFFSET["train"])
+    cfg = train_config(params.train, epochs or params.train.epochs, seed_for(params.seed, "train"))
     make_deterministic(cfg.seed)
     model = PoseNet(float(params.train.width), float(params.train.dropout))
     (train_split, train_set, _), (val_split, val_set) = data.training_sets(params, cfg.seed)

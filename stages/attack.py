@@ -21,9 +21,10 @@ import typer
 from pipeline.io.atomic import atomic_outputs, atomic_write_text, save_figure
 from pipeline.io.store import create_array, seal_zarr
 from pipeline.geometry.labels import POSITION, QUAT, TARGET
+from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import ADV, ATTACK_FIGURE as FIGURE, ATTACK_METRICS as METRICS, \
-    ATTACK_REPORT as REPORT, POSE, SEED_OFFSET
+    ATTACK_REPORT as REPORT, POSE
 from stages.artifacts.readers import adv_array_name
 from stages.artifacts.models import load_pose
 from stages.config.build import check_attack_params, make_attack
@@ -59,7 +60,7 @@ def main(params: Params) -> None:
     k = int(np.argmin(np.abs(t_gt[:, 2] - np.median(t_gt[:, 2]))))  # figure: a mid-range test image
     es, threads = _engine(params, pose.model.device)
     setup = AttackSetup(params=params, pose_path=str(POSE.resolve()), eps=tuple(eps_list), batch=a.batch_size,
-                        seed=params.seed + SEED_OFFSET["attack"], torch_threads=None if es.in_process else threads)
+                        seed=seed_for(params.seed, "attack"), torch_threads=None if es.in_process else threads)
     t0 = time.perf_counter()
     # adv.zarr, the metrics, the report and the figure move into place together, once all are written
     with atomic_outputs(METRICS, REPORT, FIGURE, dirs=(ADV.parent,)) as (metrics_tmp, report_tmp, figure_tmp, adv):

@@ -38,8 +38,9 @@ import typer
 from pipeline.formats.models import DETECTOR_FORMAT
 from pipeline.io.atomic import atomic_outputs, atomic_write_text, file_hash
 from pipeline.io.checkpoints import save_torch
+from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
-from stages.artifacts.paths import CHAINS, DETECT_RENDER, SEED_OFFSET, ChainFiles, Model
+from stages.artifacts.paths import CHAINS, DETECT_RENDER, ChainFiles, Model
 from stages.artifacts.readers import SampleImages, read_detect_render, read_eval_render, read_shap_store
 from stages.artifacts.models import load_pose, model_option
 from stages.config.device import torch_device
@@ -85,7 +86,7 @@ def main(params: Params, model: ModelOption = Model.standard, eval_alarms: EvalA
     d = params.detect
     torch.set_num_threads(1)  # the LSTM's matrices are small: extra threads cost more than they give
     device = torch_device(params)  # a missing CUDA GPU stops here; the LSTM fit and the squeeze baseline run on it
-    seed = params.seed + SEED_OFFSET["detect"]
+    seed = seed_for(params.seed, "detect")
     files = CHAINS[model]
     model_hash = file_hash(files.pose)
     data = read_shap_store(files.shap, model_hash)

@@ -26,6 +26,7 @@ import numpy as np
 import typer
 
 from pipeline.geometry.labels import pose_columns
+from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import DETECT_RENDER, DETECT_RENDER_METRICS, EVAL_RENDER, EVAL_RENDER_METRICS, VAL_ENVELOPE, \
     VAL_RENDER
@@ -37,10 +38,6 @@ from stages.engine import pool as engine
 from stages.engine.chunks import render_to_store, store_url
 from pipeline.io.atomic import atomic_dir, write_json
 from pipeline.io.tables import write_parquet
-
-
-# seed of the envelope validation frames: defense.val_seed + this, so they share no draw with datasets/val_render
-ENVELOPE_SEED_OFFSET = 500
 
 
 def trajectories(p: Params, seed: int, count: int, frames: int | None = None, envelope: bool = False) -> list[Any]:
@@ -69,7 +66,7 @@ def trajectories(p: Params, seed: int, count: int, frames: int | None = None, en
         else:
             xy, path, rot = rng.uniform(lo, hi, 2) * rng.choice([-1.0, 1.0], 2), "projectile", 0.0
         out.append(approach_trajectory(frames or e.frames, (float(xy[0]), float(xy[1])), float(r.start_range),
-                                       float(r.end_range), seed=seed + 1 + i,
+                                       float(r.end_range), seed=seed_for(seed, "eval_render.trajectory", i),
                                        jitter_deg=float(r.pointing_jitter_deg), max_rot_deg=rot, sequence=i,
                                        path=path))
     return out
@@ -96,7 +93,7 @@ def main(
     else:
         sets = [(EVAL_RENDER, trajectories(params, e.seed, e.trajectories), eval_render_fingerprint(params)),
                 (VAL_RENDER, trajectories(params, d.val_seed, d.val_trajectories), val_render_fingerprint(params)),
-                (VAL_ENVELOPE, trajectories(params, d.val_seed + ENVELOPE_SEED_OFFSET, d.val_trajectories, envelope=True),
+                (VAL_ENVELOPE, trajectories(params, seed_for(d.val_seed, "eval_render.envelope"), d.val_trajectories, envelope=True),
                  val_envelope_fingerprint(params))]
     timings: dict[str, Any] = {}
     with engine.session(es):

@@ -23,9 +23,10 @@ import typer
 
 from pipeline.io.atomic import atomic_write_text, save_figure
 from pipeline.geometry.labels import TARGET
+from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import EVALUATE_FIGURE as FIGURE, EVALUATE_METRICS as METRICS, \
-    EVALUATE_REPORT as REPORT, PAPER, SEED_OFFSET, SHIPPED, Model
+    EVALUATE_REPORT as REPORT, PAPER, SHIPPED, Model
 from stages.artifacts.readers import chaser_motion, read_eval_render
 from stages.artifacts.models import load_chain
 from stages.config.device import torch_setup
@@ -111,7 +112,7 @@ def _sequences(images: np.ndarray, poses: Any, e: Evaluate) -> list[Sequence]:
                             targets=g[TARGET].to_numpy(np.float32), R_cam=R_cam, u=u,
                             rel=g[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64),
                             attacked=attack_schedule(len(idx), e.p_start, e.attack_length,
-                                                     e.seed + SEED_OFFSET["evaluate_schedule"] + int(tr))))
+                                                     seed_for(e.seed, "evaluate.schedule", int(tr)))))
     return out
 
 

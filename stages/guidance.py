@@ -26,8 +26,9 @@ from typing import Any
 import numpy as np
 import typer
 
+from pipeline.seeds import seed_for
 from stages.artifacts.paths import GUIDANCE_DEFENDED_FIGURE as DEFENDED_FIGURE, GUIDANCE_FIGURE as FIGURE, \
-    GUIDANCE_METRICS as METRICS, GUIDANCE_REPORT as REPORT, PAPER, SEED_OFFSET, SHIPPED
+    GUIDANCE_METRICS as METRICS, GUIDANCE_REPORT as REPORT, PAPER, SHIPPED
 from stages.artifacts.models import load_chain
 from stages.config.build import check_attack_params, intrinsics, make_attack, scene_settings
 from stages.config.device import torch_setup
@@ -108,7 +109,7 @@ def main(params: Params) -> None:
     with tqdm(total=len(runs), desc="guidance runs", unit="run") as bar:
         on_cpu = params if es.in_process else dataclasses.replace(params, device="cpu")   # Ray workers hold no GPU
         setup = GuidanceSetup(params=on_cpu, K=K, scene=scene, root=str(Path.cwd()), defense=shipped.defended, plan=plan,
-                              seed=params.seed + SEED_OFFSET["guidance"], torch_threads=None if es.in_process else threads)
+                              seed=seed_for(params.seed, "guidance"), torch_threads=None if es.in_process else threads)
         flown = engine.run(GuidanceWorker, setup, runs, es, num_cpus=threads, progress=progress)
     seconds = paper_done[0]
     paper = flown[:plan.paper_size]

@@ -29,9 +29,10 @@ import typer
 
 from pipeline.formats.recordings import read_recording, recording_folders, write_recording
 from pipeline.io.atomic import atomic_dir, atomic_write_text, read_json
+from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import CHAINS, LAB as OUT, LAB_METRICS as METRICS, LAB_MODELS, LAB_MODELS_SUMMARY, \
-    LAB_REPORT as REPORT, PAPER, SEED_OFFSET, SHIPPED, TRAIN_METRICS
+    LAB_REPORT as REPORT, PAPER, SHIPPED, TRAIN_METRICS
 from stages.artifacts.models import load_chain
 from stages.config.build import mockup, retrain_reason, scene_settings
 from stages.config.device import torch_setup
@@ -102,7 +103,7 @@ def render_lab(p: Params, dest: Path) -> list[dict[str, Any]]:
     settings = dataclasses.replace(scene_settings(r), mesh=mesh, mesh_scale=mesh_scale,
                                    sun_direction=tuple(float(v) for v in ds.sun_direction),
                                    sun_strength=float(ds.sun_strength))
-    rng = np.random.default_rng(lab.seed + SEED_OFFSET["lab"])
+    rng = np.random.default_rng(seed_for(lab.seed, "lab"))
     scale, n, truth, es = float(lab.scale), lab.frames, [], engine.engine_settings(p)
     with engine.session(es):
         for i, (z0, z1) in enumerate(lab.sequences):

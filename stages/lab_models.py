@@ -12,7 +12,7 @@ The retraining runs the pipeline's own stage commands (`rpod render`, `label`, `
 `eval_render --detector`, `shap`, `detect`) unchanged, each as a subprocess in the stage's output folder `datasets/lab_models/` with a
 params.yaml derived from the main one (`sub_params`): the same training recipe (`train`, `shap`,
 `detect`, `label` sections), the mock-up mesh, `lab.train_frames_per_sequence` frames per sequence,
-base seed `lab.seed` + SEED_OFFSET, and no detector baselines (the lab chain uses the LSTM only).
+base seed `lab.seed` (its stream in pipeline/seeds.py), and no detector baselines (the lab chain uses the LSTM only).
 That folder then holds what the main pipeline holds at the top level: datasets/render/,
 datasets/labels.parquet, models/pose.pt, datasets/detect_render/, datasets/shap.zarr, models/detector.pt, reports/*.md and
 reports/metrics/{train,detect}.json, plus summary.json (what `rpod lab` reads: whether and why it
@@ -30,7 +30,8 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.io.atomic import atomic_dir, file_hash, read_json, write_json
-from stages.artifacts.paths import (DETECT_METRICS, DETECTOR, LAB_MODELS, LAB_MODELS_SUMMARY, POSE, RENDER, SEED_OFFSET,
+from pipeline.seeds import seed_for
+from stages.artifacts.paths import (DETECT_METRICS, DETECTOR, LAB_MODELS, LAB_MODELS_SUMMARY, POSE, RENDER,
                                    TRAIN_METRICS)
 from stages.config.build import mockup, retrain_reason
 from stages.config.params import NONE, PARAMS_FILE, ROOT, write_params
@@ -44,7 +45,7 @@ def sub_params(p: Params) -> Params:
     frames = p.render.frames_per_sequence if lab.train_frames_per_sequence is None else lab.train_frames_per_sequence
     # source: the synthetic-lab set is rendered, never a SPEED import
     render = dataclasses.replace(p.render, mesh=mesh, mesh_scale=mesh_scale, source=NONE, frames_per_sequence=frames)
-    return dataclasses.replace(p, seed=lab.seed + SEED_OFFSET["lab_models"], render=render,
+    return dataclasses.replace(p, seed=seed_for(lab.seed, "lab_models"), render=render,
                                detect=dataclasses.replace(p.detect, baselines=[]),
                                engine=dataclasses.replace(p.engine, store=None))   # its renders stay in its folder
 

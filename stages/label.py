@@ -7,8 +7,9 @@ import numpy as np
 from pipeline.io.atomic import atomic_write_text
 from pipeline.io.tables import write_parquet
 from pipeline.geometry.labels import POSITION, QUAT, SIXD
+from pipeline.seeds import seed_for
 from stages.artifacts.data import RENDER_KEY
-from stages.artifacts.paths import DATASET_CARD as CARD, IMAGES, LABELS, PREVIEWS, RENDER, SEED_OFFSET
+from stages.artifacts.paths import DATASET_CARD as CARD, IMAGES, LABELS, PREVIEWS, RENDER
 from stages.artifacts.readers import read_render_store
 from stages.config import params as params_mod
 from stages.config.schema import Params
@@ -45,7 +46,7 @@ def main(params: Params) -> None:
     (an imported SPEED/SPEED+ set keeps its own split). `rpod export speed OUT` writes a SPEED+ folder."""
     _, poses, meta = read_render_store(RENDER)
     params_mod.check_render_fingerprint(meta, params, RENDER / "meta.json")
-    labels = build_labels(poses, float(params.label.test_fraction), params.seed + SEED_OFFSET["label"])
+    labels = build_labels(poses, float(params.label.test_fraction), seed_for(params.seed, "label"))
     labels.attrs[RENDER_KEY] = meta["fingerprint"]   # what every reader checks the render against (load_labels)
     write_parquet(labels, LABELS)
     atomic_write_text(CARD, dataset_card(labels, meta, sorted(PREVIEWS.glob("*.png")), CARD.parent))

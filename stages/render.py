@@ -21,9 +21,10 @@ from typing import Any
 import numpy as np
 import typer
 
+from pipeline.seeds import seed_for
 from stages.artifacts import speed as speed_io
 from stages.artifacts.dvc import write_metrics
-from stages.artifacts.paths import PREVIEWS, RENDER as OUT, RENDER_METRICS as METRICS, SEED_OFFSET
+from stages.artifacts.paths import PREVIEWS, RENDER as OUT, RENDER_METRICS as METRICS
 from stages.artifacts.readers import read_render_store
 from stages.config import params as params_mod
 from stages.config.build import intrinsics, scene_settings
@@ -50,7 +51,7 @@ def frames(p: Params) -> tuple[Any, Any, Any, Any]:
     try:
         seqs = approach_sequences(r.frames_per_sequence, float(r.start_range), float(r.end_range),
                                   float(r.pointing_jitter_deg), float(r.max_target_rotation_deg),
-                                  seed=p.seed + SEED_OFFSET["render"])
+                                  seed=seed_for(p.seed, "render"))
     except ValueError as e:
         raise StageError(f"params.yaml render: {e}") from None
     return flatten(seqs)

@@ -34,9 +34,10 @@ import numpy as np
 from pipeline.io.atomic import atomic_write_text, read_json, save_figure
 from pipeline.io.errors import not_found
 from pipeline.geometry.labels import TARGET
+from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import INTEGRITY_FIGURE, PAPER, ROBUST_METRICS, ROBUSTNESS_FIGURE as FIGURE, \
-    ROBUSTNESS_METRICS as METRICS, ROBUSTNESS_REPORT as REPORT, SEED_OFFSET, SHIPPED, SURROGATE
+    ROBUSTNESS_METRICS as METRICS, ROBUSTNESS_REPORT as REPORT, SHIPPED, SURROGATE
 from stages.artifacts.readers import read_eval_render
 from stages.artifacts.models import load_chain, load_pose
 from stages.config.device import torch_setup
@@ -61,7 +62,7 @@ def main(params: Params) -> None:
         if not path.exists():
             raise not_found(path)
     torch_setup(params)
-    seed = params.seed + SEED_OFFSET["robustness"]
+    seed = seed_for(params.seed, "robustness")
     shipped, surrogate = load_chain(params, SHIPPED), load_pose(params, SURROGATE)
     chain = shipped.onboard
     images, targets, n_test = _test_frames(params, r.frames, seed)
@@ -234,7 +235,7 @@ def _attack_runs(p: Params, r: Robustness, chain_of: tuple[Any, Any, Any], fligh
     out = []
     if "burst" in attackers:
         masks = [np.isin(np.arange(len(t)), [k for a, b in bs for k in range(a, b)]) for t, bs in zip(tracks, bursts)]
-        stored, worst = burst_attack(target, defended, tracks, masks, burst_attacker(p, seed + 800), eps,
+        stored, worst = burst_attack(target, defended, tracks, masks, burst_attacker(p, seed_for(seed, "robustness.burst")), eps,
                                      lambda: bar.update(1))
         out += [("burst", e, [fly(chain, defended, t, limit, r.batch_size, s, c) for t, s, c in
                               zip(tracks, stored[e], clean)], masks) for e in eps]
@@ -244,7 +245,7 @@ def _attack_runs(p: Params, r: Robustness, chain_of: tuple[Any, Any, Any], fligh
     settings = [drift_settings(p, a.split("/")[1]) for a in drifts]
     masks = [(np.arange(len(t)) >= window[0]) & (np.arange(len(t)) < window[1]) for t in tracks]
     for e in eps if drifts else []:
-        stored = drift_attack(target, defended, tracks, clean, window, settings, e, i.drift_steps, seed + 900,
+        stored = drift_attack(target, defended, tracks, clean, window, settings, e, i.drift_steps, seed_for(seed, "robustness.drift"),
                               lambda: bar.update(1))
         out += [(name, e, [fly(chain, defended, t, limit, r.batch_size, s, c) for t, s, c in zip(tracks, per, clean)],
                  masks) for name, per in zip(drifts, stored)]

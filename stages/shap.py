@@ -34,8 +34,9 @@ import numpy as np
 from pipeline.io.atomic import atomic_dir
 from pipeline.io.store import create_array
 from pipeline.geometry.labels import TARGET
+from pipeline.seeds import seed_for
 from stages.artifacts.data import load_split
-from stages.artifacts.paths import CHAINS, DETECT_RENDER, SEED_OFFSET, Model
+from stages.artifacts.paths import CHAINS, DETECT_RENDER, Model
 from stages.artifacts.readers import BATCH, SampleImages
 from stages.artifacts.models import load_pose, model_option
 from stages.config.device import torch_setup
@@ -71,7 +72,7 @@ def main(params: Params, model: Annotated[Model, model_option(
     s = params.shap
     check_params(s)
     torch_setup(params)
-    seed = params.seed + SEED_OFFSET["shap"]
+    seed = seed_for(params.seed, "shap")
     rng = np.random.default_rng(seed)
     files = CHAINS[model]
     out = files.shap

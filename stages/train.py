@@ -29,9 +29,10 @@ import typer
 
 from pipeline.formats.renders import META
 from pipeline.io.atomic import atomic_outputs, atomic_write_text, file_hash, read_json
+from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import LABELS, POSE, POSE_REPORT as REPORT, POSE_ROBUST, RENDER, ROBUST_LIVE, ROBUST_METRICS, \
-    ROBUST_REPORT, SEED_OFFSET, SURROGATE, TRAIN_LIVE, TRAIN_METRICS as METRICS
+    ROBUST_REPORT, SURROGATE, TRAIN_LIVE, TRAIN_METRICS as METRICS
 from stages.config.schema import Params
 from stages.errors import StageError
 from stages.pages.pose import pose_page, robust_page
@@ -59,7 +60,7 @@ def main(
     seed = params.robustness.surrogate_seed if surrogate else params.seed
     rank, world, device = distributed(params)
     model, cfg = _model(params, params.robustness.surrogate_epochs if surrogate else params.train.epochs,
-                        seed + SEED_OFFSET["train"])
+                        seed_for(seed, "train"))
     (train_split, train_set, train_eval_set), (val_split, val_set) = data.training_sets(params, cfg.seed)
     targets = train_split.targets
     model.set_output_bias(targets[:, :3].mean(0), targets[:, 3:].mean(0))
@@ -152,13 +153,13 @@ def _robust(params: Params, surrogate: bool) -> None:
     adv = params.train.adversarial
     rank, world, device = distributed(params)
     try:
-        cfg = robust_train_config(params.train, params.seed + SEED_OFFSET["robust"])
+        cfg = robust_train_config(params.train, seed_for(params.seed, "robust"))
     except ValueError as e:
         raise StageError(f"params.yaml: bad train.adversarial section ({e})") from None
     make_deterministic(cfg.seed)
     model, loss = PoseNet(float(params.train.width), float(params.train.dropout), float(adv.black_level)), PoseLoss("mean")
     # the standard model's split: its validation frames were never fitted by either model
-    (train_split, train_set, _), (val_split, val_set) = data.training_sets(params, params.seed + SEED_OFFSET["train"])
+    (train_split, train_set, _), (val_split, val_set) = data.training_sets(params, seed_for(params.seed, "train"))
     if adv.init == "standard":
         standard = load_pose(params)
         model.load_state_dict(standard.model.state_dict())
@@ -196,7 +197,7 @@ def _write_robust(params: Params, net: Any, best: dict[str, Any], result: Any, s
     from stages.artifacts.models import load_pose
     from stages.config.build import adversarial_config
 
-    adv, bins, seed = params.train.adversarial, params.train.range_bins, params.seed + SEED_OFFSET["robust"]
+    adv, bins, seed = params.train.adversarial, params.train.range_bins, seed_for(params.seed, "robust")
     train_split, val_split, val_set = splits
     test_split = data.load_split(params, "test")
     test_set = data.pose_dataset(test_split)

@@ -127,7 +127,7 @@ def attack_sets(tmp_path, es: engine.EngineSettings) -> tuple:
     from pipeline.pose.model import PoseNet
     from pipeline.formats.models import save_pose
     from stages.attack import _attack_into
-    from stages.artifacts.paths import SEED_OFFSET
+    from pipeline.seeds import seed_for
     from stages.config import params as params_mod
     from stages.config.schema import build
     from stages.engine.attack_worker import AttackSetup
@@ -142,7 +142,7 @@ def attack_sets(tmp_path, es: engine.EngineSettings) -> tuple:
     y = torch.randn(10, 9, generator=torch.Generator().manual_seed(0))
     # one torch thread on both paths: convolution gradients are not bit-identical across thread counts
     setup = AttackSetup(params=p, pose_path=str(tmp_path / "pose.pt"), eps=(0.5, 0.05), batch=4,
-                        seed=p.seed + SEED_OFFSET["attack"], torch_threads=1)
+                        seed=seed_for(p.seed, "attack"), torch_threads=1)
     threads = torch.get_num_threads()
     try:
         out = _attack_into(tmp_path / f"adv{es.workers}.zarr", setup, images, np.arange(10), y, 6, es, 1)

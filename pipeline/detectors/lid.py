@@ -16,6 +16,8 @@ from sklearn.neighbors import NearestNeighbors
 from sklearn.pipeline import Pipeline, make_pipeline
 from sklearn.preprocessing import StandardScaler
 
+from pipeline.seeds import seed_for
+
 
 def lid_mle(x: np.ndarray, reference: np.ndarray, k: int, skip_self: bool = False) -> np.ndarray:
     """MLE of the LID of each row of x (N, D) against `reference` (M, D); `skip_self` drops the
@@ -56,7 +58,7 @@ class LIDDetector:
     def lid(self, features: np.ndarray) -> np.ndarray:
         """Mean LID of each sample against `n_reference` random clean training minibatches (each as
         large as the clean part of a training minibatch, since the estimate depends on that size)."""
-        rng = np.random.default_rng(self.seed + 1)
+        rng = np.random.default_rng(seed_for(self.seed, "lid.reference"))
         size = min(self.ref_size_, len(self.reference_))
         draws = [lid_mle(features, self.reference_[rng.choice(len(self.reference_), size, replace=False)], self.k)
                  for _ in range(self.n_reference)]

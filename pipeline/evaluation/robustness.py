@@ -158,36 +158,40 @@ def attack_specs(pose: Any, surrogate: Any, target: Any, *, eps: Sequence[float]
     """The attack rows to run, in report order, on `pose` (and `surrogate`: objects with `.model` and
     `.loss`, the learned training loss) and the adaptive `target` (pipeline.attacks.adaptive.PerFrameChain).
     `transfer`, `surrogate_attacks`: (name, method, loss or None = `loss`). PGD takes `steps`
-    gradients, MI-FGSM `mi_steps` (attack.steps, as in the attack stage). PGD at eps index i uses
-    seed + 100 + i, so plain PGD and the adaptive attack at lambda = 0 are one run (the `pgd` row is
-    then taken from it, pipeline.evaluation.robustness.run_attack_rows)."""
+    gradients, MI-FGSM `mi_steps` (attack.steps, as in the attack stage). PGD at eps index i uses the
+    "robustness.pgd" stream (pipeline/seeds.py), so plain PGD and the adaptive attack at lambda = 0 are one run (the
+    `pgd` row is then taken from it, pipeline.evaluation.robustness.run_attack_rows)."""
     from pipeline.attacks.adaptive import adaptive_pgd
     from pipeline.attacks.gradient import attack_loss, get_attack
+    from pipeline.seeds import seed_for
 
-    def gen(k: int) -> torch.Generator:
-        return torch.Generator().manual_seed(seed + k)
+    def gen(stream: str, k: int) -> torch.Generator:
+        return torch.Generator().manual_seed(seed_for(seed, stream, k))
 
     def cost(method: str) -> int:
         return {"fgsm": 1, "pgd": steps}.get(method, mi_steps)
 
-    def spec(name: str, method: str, lname: str | None, group: str, e: float, k: int, model: Any = pose) -> AttackSpec:
-        fn = get_attack(method, steps=cost(method), step_size=None, random_start=True, momentum=momentum,
-                        generator=gen(k))
+    def spec(name: str, method: str, lname: str | None, group: str, e: float, g: torch.Generator,
+             model: Any = pose) -> AttackSpec:
+        fn = get_attack(method, steps=cost(method), step_size=None, random_start=True, momentum=momentum, generator=g)
         lf = attack_loss(lname or loss, model.loss)
         return AttackSpec(name, group, e, None, lambda x, y: fn(model.model, x, y, e, lf), cost(method))
 
-    out = [spec("fgsm", "fgsm", None, "seen", e, 0) for e in eps]
-    out += [spec("fgsm", "fgsm", None, "transfer", e, 0) for e in unseen_eps]
+    out = [spec("fgsm", "fgsm", None, "seen", e, gen("robustness.fgsm", 0)) for e in eps]
+    out += [spec("fgsm", "fgsm", None, "transfer", e, gen("robustness.fgsm", 0)) for e in unseen_eps]
     pgd_is_lambda0 = "pgd" in [name for name, _, _ in transfer] and 0.0 in lambdas
-    out += [spec(name, method, lname, "transfer", e, 100 + i if name == "pgd" else 200 + 10 * j + i)
+    out += [spec(name, method, lname, "transfer", e,
+                 gen("robustness.pgd", i) if name == "pgd" else gen("robustness.transfer", 10 * j + i))
             for j, (name, method, lname) in enumerate(transfer) for i, e in enumerate(eps)
             if not (name == "pgd" and pgd_is_lambda0)]
     full = attack_loss(loss, pose.loss)
     out += [AttackSpec("adaptive pgd", "adaptive", e, lam,
-                       lambda x, y, e=e, lam=lam, g=gen(100 + i): adaptive_pgd(target, x, y, e, full, lam,
-                                                                               steps=steps, generator=g), steps)
+                       lambda x, y, e=e, lam=lam, g=gen("robustness.pgd", i): adaptive_pgd(target, x, y, e, full, lam,
+                                                                                          steps=steps, generator=g),
+                       steps)
             for i, e in enumerate(eps) for lam in lambdas]
-    out += [replace(spec(name, method, lname, "surrogate", e, 500 + 10 * j + i, surrogate), attack=f"surrogate {name}")
+    out += [replace(spec(name, method, lname, "surrogate", e, gen("robustness.surrogate", 10 * j + i), surrogate),
+                    attack=f"surrogate {name}")
             for j, (name, method, lname) in enumerate(surrogate_attacks) for i, e in enumerate(eps)]
     return out
 

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.seeds import seed_for
+
 
 def holdout(groups: np.ndarray, fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """(kept, held out) sorted sample indices; round(fraction * number of groups) whole groups are held out.
@@ -56,5 +58,5 @@ def grouped_split(groups: np.ndarray, strata: np.ndarray, test_fraction: float, 
         return idx[keep], idx[out]
 
     rest, test = one_fold(np.arange(len(groups)), test_fraction, seed)
-    train, val = one_fold(rest, val_fraction, seed + 1)
+    train, val = one_fold(rest, val_fraction, seed_for(seed, "splits.validation"))
     return np.sort(train), np.sort(val), np.sort(test)

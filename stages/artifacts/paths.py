@@ -1,4 +1,4 @@
-"""Where every artifact lives and the seed offset of every stage: the one table of both.
+"""Where every artifact lives: the one table of the outputs (the seeds: pipeline/seeds.py).
 
 One path base. Outputs (datasets/, models/, reports/, dvclive/) are relative to the working folder: the
 repository root under `dvc repro` (a stage run elsewhere reads and writes there). Code-side files
@@ -111,10 +111,3 @@ CHAINS: dict[Model, ChainFiles] = {
 }
 PAPER = Model(PAPER_NAME)       # the paper's reproduction rows: the standard model and its own detector
 SHIPPED = Model(SHIPPED_NAME)   # what ships (rpod predict, rpodguard.load_chain, the weights bundle, every safety row)
-
-# stage -> the offset added to its base seed (`seed`, or `lab.seed` for lab and lab_models; the evaluate
-# schedule adds it to evaluate.seed + the trajectory number), so no two stages draw the same stream
-SEED_OFFSET: dict[str, int] = {
-    "render": 100, "label": 200, "train": 300, "attack": 400, "guidance": 500, "shap": 500, "detect": 600,
-    "lab_models": 700, "robustness": 1500, "lab": 0, "evaluate_schedule": 17, "robust": 1600,
-}
