@@ -12,8 +12,9 @@ range bins), then sets each check to its own share (`defense.shares`) of the fal
 `defense.target_false_alarm` (pipeline/defense/calibration.py): the detector's threshold (a quantile of
 these clean frames' probabilities), the noise inflation of the gate, the sequential test's threshold.
 When every check meets its share but their fusion flags more than the target (a rejected frame leaves the
-filter to coast, which can raise the next innovations), every share is tightened by the overshoot (at least x0.75) and the
-checks are calibrated again, at most TIGHTEN_TRIES times (models/defense.json records it under `tightened`).
+filter to coast, which can raise the next innovations), every share is tightened by the overshoot (at least x0.75) and
+the checks are calibrated again, at most three times (the search: pipeline.defense.calibration.calibrate_to_target;
+models/defense.json records it under `tightened`).
 A check that cannot meet its share stops the stage with one line naming it and what it reached,
 unless `defense.allow_unmet` (then models/defense.json lists it under `unmet`, and the reports that
 use the defense say so in their first line). Writes the defense file (pipeline/formats/defense.py):
@@ -24,8 +25,7 @@ validation frames.
 """
 from __future__ import annotations
 
-import dataclasses
-from typing import Annotated, Any, NamedTuple
+from typing import Annotated, Any
 
 import numpy as np
 import typer
@@ -43,12 +43,6 @@ from stages.errors import StageError
 from stages.pages.calibrate import summary_line, unmet_line
 
 
-# times the shares are tightened (each by the fused chain's overshoot) before calibrate gives up on the target
-TIGHTEN_TRIES = 3
-# the least tightening per try: the checks' settings move on coarse grids (gate inflation, CUSUM h), and a share
-# tightened only by a small overshoot (0.52% against 0.5%: x0.96) moved none of them (seed 1, AVX-512)
-TIGHTEN_STEP = 0.75
-
 ModelOption = Annotated[Model, model_option("Writes models/defense.json (robust) or models/defense_standard.json.")]
 
 
@@ -59,7 +53,7 @@ def main(params: Params, model: ModelOption = Model.robust) -> None:
     filter settings), `evaluate.batch_size`, the alert limit's (`guidance.tolerance`, `max_step`,
     `slack_steps`, `integrity.collision_range_m`) for the availability it records.
     """
-    from pipeline.defense.calibration import CleanRun
+    from pipeline.defense.calibration import Budget, CleanRun, UnmetShare, calibrate_to_target
 
     d = params.defense
     torch_setup(params)
@@ -76,12 +70,19 @@ def main(params: Params, model: ModelOption = Model.robust) -> None:
     runs = [CleanRun(pose[i], prob[i], R_cam[i], u[i]) for i in groups]
     truths = [poses[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64)[i] for i in groups]
     alert = alert_limit_settings(params)
-    c = calibrate_to_target(params, chain.threshold, fitted, runs, (prob, envelope_prob), truths, alert)
+    budget = Budget(d.target_false_alarm, d.shares.detector, d.shares.gate, d.shares.sequential, d.doubt_share,
+                    d.allow_unmet)
+    try:
+        c = calibrate_to_target(*defense_settings(d, chain.threshold), fitted, runs, (prob, envelope_prob), truths,
+                                alert, budget)
+    except UnmetShare as e:
+        raise StageError(unmet_line(e.check, len(images))) from None
     checks, settings, motion, noise, final = c.checks, c.settings, c.motion, c.noise, c.final
     unmet = [unmet_line(check, len(images)) for check in checks if not check.met]
     if final["fused"].value > d.target_false_alarm:
         unmet.append(unmet_line(None, len(images), final["fused"].value, d.target_false_alarm, len(c.tightened)))
-        _refuse(unmet[-1], d.allow_unmet)
+        if not d.allow_unmet:
+            raise StageError(unmet[-1])
     out = CHAINS[model].defense
     record = DefenseFile(
         DEFENSE_FORMAT, model.value, model_hash, chain.threshold, settings.threshold, motion.cusum_threshold,
@@ -120,82 +121,6 @@ def _fit_noise(targets: np.ndarray, pose: np.ndarray, bins: int, frames: int) ->
     except ValueError as e:
         raise StageError(f"calibrate on {frames} validation frames (defense.val_trajectories, "
                          f"defense.noise_bins): {e}") from None
-
-
-def _refuse(line: str, allow: bool) -> None:
-    if not allow:
-        raise StageError(line)
-
-
-class Calibrated(NamedTuple):
-    """The outcome of `calibrate_to_target`: the checks as calibrated (CheckResults), the chain's settings,
-    the inflated noise model, clean_summary of the defended validation runs, and the share tightening."""
-
-    checks: list[Any]
-    settings: Any
-    motion: Any
-    noise: Any
-    final: dict[str, Any]
-    scale: float                    # the factor the shares were calibrated with (1: not tightened)
-    tightened: list[dict[str, Any]]  # each overshooting attempt: its scale and fused false alarms (%)
-
-
-def calibrate_to_target(params: Params, threshold: float, fitted: Any, runs: list[Any],
-                        prob: tuple[np.ndarray, ...], truths: list[np.ndarray], alert: Any) -> Calibrated:
-    """Every check to its share (`calibrate_checks`), then the fused chain on the clean validation runs; when
-    it flags more than defense.target_false_alarm although each check met its share (a rejected frame leaves
-    the filter to coast, which can raise the next innovations), every share is tightened by the overshoot
-    (target / fused), at least by TIGHTEN_STEP, and the checks are calibrated again, at most TIGHTEN_TRIES times. The caller judges the
-    last attempt against the target."""
-    from pipeline.defense.calibration import clean_summary, defend_runs
-    from pipeline.defense.noise import inflate
-
-    d = params.defense
-    scale, tightened = 1.0, []
-    while True:
-        settings, motion = defense_settings(d, threshold)
-        checks, settings, motion = calibrate_checks(params, settings, motion, fitted, runs, prob, scale)
-        noise = inflate(fitted, checks[2].setting, checks[1].setting)
-        final = clean_summary(defend_runs(settings, motion, noise, runs, _alert_fn(alert)), truths, alert)
-        fused = final["fused"].value
-        if fused <= d.target_false_alarm or len(tightened) == TIGHTEN_TRIES:
-            return Calibrated(checks, settings, motion, noise, final, scale, tightened)
-        tightened.append({"shares_scale": scale, "fused_pct": round(100 * fused, 4)})
-        scale *= min(d.target_false_alarm / fused, TIGHTEN_STEP)
-
-
-def calibrate_checks(params: Params, settings: Any, motion: Any, fitted: Any, runs: list[Any],
-                      prob: tuple[np.ndarray, ...], scale: float = 1.0) -> tuple[list[Any], Any, Any]:
-    """The detector, the gate (its attitude test, then both) and the sequential test, each to its
-    share (times `scale` <= 1, when the fused chain overshot the target), in that order (each later one
-    with the earlier ones' settings); an unmet share stops here unless defense.allow_unmet. The detector's
-    threshold meets its share on every set of clean probabilities in `prob` (the validation runs' frames,
-    then the envelope's): the highest of their thresholds."""
-    from pipeline.defense.calibration import detector_threshold, doubt_level, gate_inflation, sequential_threshold
-    from pipeline.defense.noise import inflate
-
-    d = params.defense
-    budget, shares, frames = d.target_false_alarm * scale, d.shares, len(prob[0])
-    detector = max((detector_threshold(p, shares.detector * budget) for p in prob), key=lambda c: c.setting)
-    _refuse(unmet_line(detector, frames), d.allow_unmet or detector.met)
-    doubt = None if d.doubt_share is None else doubt_level(prob[0], d.doubt_share, detector.setting)
-    settings = dataclasses.replace(settings, threshold=detector.setting, update_below=doubt)
-    attitude, gate = gate_inflation(settings, motion, fitted, runs, shares.gate * budget)
-    for check in (attitude, gate):
-        _refuse(unmet_line(check, frames), d.allow_unmet or check.met)
-    sequential = sequential_threshold(settings, motion, inflate(fitted, gate.setting, attitude.setting), runs,
-                                      shares.sequential * budget)
-    _refuse(unmet_line(sequential, frames), d.allow_unmet or sequential.met)
-    motion = dataclasses.replace(motion, cusum_threshold=sequential.setting)
-    return [detector, attitude, gate, sequential], settings, motion
-
-
-def _alert_fn(alert: Any) -> Any:
-    from functools import partial
-
-    from pipeline.defense.integrity import alert_limit
-
-    return partial(alert_limit, settings=alert)
 
 
 def _validation(params: Params, frames: int, checks: list[Any], final: dict[str, Any], envelope_prob: np.ndarray,

@@ -170,23 +170,31 @@ def _jumpy_runs() -> list[CleanRun]:
     return runs
 
 
+def _budget(p):
+    from pipeline.defense.calibration import Budget
+
+    d = p.defense
+    return Budget(d.target_false_alarm, d.shares.detector, d.shares.gate, d.shares.sequential, d.doubt_share,
+                  d.allow_unmet)
+
+
 def test_calibrate_refuses_an_unreachable_share_with_one_line() -> None:
-    from stages.calibrate import calibrate_checks
+    from pipeline.defense.calibration import UnmetShare, calibrate_checks
     from stages.config import params as params_mod
     from stages.config.schema import build
-    from stages.errors import StageError
+    from stages.pages.calibrate import unmet_line
 
     p = build(params_mod.compose("default"))
     runs = _jumpy_runs()
     prob = np.concatenate([r.prob for r in runs])
-    with pytest.raises(StageError) as e:
-        calibrate_checks(p, DefenseSettings(), MOTION, NOISE, runs, (prob,))
-    message = str(e.value)
+    with pytest.raises(UnmetShare) as e:
+        calibrate_checks(DefenseSettings(), MOTION, NOISE, runs, (prob,), _budget(p))
+    message = unmet_line(e.value.check, len(prob))      # what `rpod calibrate` stops with
     assert "\n" not in message and message.startswith("calibrate: the gate cannot meet its share 0.200% of "
                                                       "defense.target_false_alarm on 800 clean validation frames")
     assert "at best (position noise inflation x8)" in message and "defense.allow_unmet" in message
-    allow = dataclasses.replace(p, defense=dataclasses.replace(p.defense, allow_unmet=True))
-    checks, settings, motion = calibrate_checks(allow, DefenseSettings(), MOTION, NOISE, runs, (prob,))
+    allow = dataclasses.replace(_budget(p), allow_unmet=True)
+    checks, settings, motion = calibrate_checks(DefenseSettings(), MOTION, NOISE, runs, (prob,), allow)
     assert [c.check for c in checks if not c.met] == ["gate"] and motion.cusum_threshold == checks[3].setting
     assert settings.threshold == checks[0].setting
     assert settings.update_below == doubt_level(prob, p.defense.doubt_share, settings.threshold)   # calibrated too
@@ -214,18 +222,19 @@ def test_bad_defense_params_give_one_line_naming_the_param(tmp_path, monkeypatch
 def test_calibrate_tightens_every_share_when_only_the_fusion_overshoots(monkeypatch) -> None:
     """Each check meets its share but the fused chain flags 0.6% > 0.5% (seed 1's shipped chain did): the shares
     are tightened by the overshoot and calibrated again until the fusion meets the target; when it never does,
-    calibrate gives up after TIGHTEN_TRIES and the caller refuses with one line."""
-    import pipeline.defense.calibration as calibration
-    import stages.calibrate as cal
+    the search gives up after TIGHTEN_TRIES and `rpod calibrate` refuses with one line."""
+    import pipeline.defense.calibration as cal
     from pipeline.stats import rate
     from stages.config import params as params_mod
     from stages.config.schema import build
+    from stages.pages.calibrate import unmet_line
 
     p = build(params_mod.compose("default"))
+    budget = _budget(p)
     scales: list[float] = []
     fused = iter([0.006, 0.0055, 0.0045])
 
-    def checks(params, settings, motion, fitted, runs, prob, scale=1.0):
+    def checks(settings, motion, fitted, runs, prob, budget, scale=1.0):
         scales.append(scale)
         return [None, SimpleNamespace(setting=1.0), SimpleNamespace(setting=1.0), None], settings, motion
 
@@ -234,21 +243,22 @@ def test_calibrate_tightens_every_share_when_only_the_fusion_overshoots(monkeypa
         return {"fused": rate(np.arange(10000) < round(v * 10000))}
 
     monkeypatch.setattr(cal, "calibrate_checks", checks)
-    monkeypatch.setattr(calibration, "clean_summary", summary)
-    monkeypatch.setattr(calibration, "defend_runs", lambda *a, **k: [])
-    monkeypatch.setattr("pipeline.defense.noise.inflate", lambda noise, k, k_att: noise)
-    out = cal.calibrate_to_target(p, 0.5, NOISE, [], np.zeros(0), [], None)
+    monkeypatch.setattr(cal, "clean_summary", summary)
+    monkeypatch.setattr(cal, "defend_runs", lambda *a, **k: [])
+    monkeypatch.setattr(cal, "inflate", lambda noise, k, k_att: noise)
+    start = (DefenseSettings(threshold=0.5), MOTION)
+    out = cal.calibrate_to_target(*start, NOISE, [], (np.zeros(0),), [], None, budget)
     assert out.final["fused"].value == pytest.approx(0.0045)
     assert scales == pytest.approx([1.0, cal.TIGHTEN_STEP, cal.TIGHTEN_STEP ** 2])   # at least a step each time
     assert [t["fused_pct"] for t in out.tightened] == [0.6, 0.55] and out.scale == pytest.approx(scales[-1])
     scales.clear()
     fused = iter([0.02, 0.004])                                                     # a large overshoot: x 0.25
-    cal.calibrate_to_target(p, 0.5, NOISE, [], np.zeros(0), [], None)
+    cal.calibrate_to_target(*start, NOISE, [], (np.zeros(0),), [], None, budget)
     assert scales == pytest.approx([1.0, 0.25])
 
     scales.clear()
     fused = iter([0.006] * (cal.TIGHTEN_TRIES + 1))
-    out = cal.calibrate_to_target(p, 0.5, NOISE, [], np.zeros(0), [], None)
+    out = cal.calibrate_to_target(*start, NOISE, [], (np.zeros(0),), [], None, budget)
     assert len(scales) == cal.TIGHTEN_TRIES + 1 and out.final["fused"].value > p.defense.target_false_alarm
-    line = cal.unmet_line(None, 5000, out.final["fused"].value, p.defense.target_false_alarm, len(out.tightened))
+    line = unmet_line(None, 5000, out.final["fused"].value, p.defense.target_false_alarm, len(out.tightened))
     assert "\n" not in line and f"tightened {cal.TIGHTEN_TRIES} times" in line and "defense.allow_unmet" in line
