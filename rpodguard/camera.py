@@ -25,7 +25,7 @@ def model_camera(ckpt: dict[str, Any], manifest: dict[str, Any] | None, path: Pa
     height, width = (int(v) for v in ckpt["input_size"])
     if "K" in ckpt:
         try:
-            return _intrinsics(ckpt["K"], width, height)
+            return Intrinsics.from_K(ckpt["K"], width, height)
         except ValueError as e:
             raise DataError(f"{path}: K {e}; re-run `rpod train`") from None
     params = (manifest or {}).get("params") or {}
@@ -60,7 +60,7 @@ def camera_warnings(model: Intrinsics | None, camera: Any, width: int, height: i
     if isinstance(camera, dict):
         given = camera_from_json(camera)
     else:
-        given = _intrinsics(camera, width, height)
+        given = Intrinsics.from_K(camera, width, height)
     out = []
     if (given.width, given.height) != (width, height):
         out.append(f"{name} is {width}x{height} but its camera is given at {given.width}x{given.height}: K is "
@@ -75,11 +75,3 @@ def camera_warnings(model: Intrinsics | None, camera: Any, width: int, height: i
                    f"px at {width}x{height}) is not the one the model was trained for (fx {m.fx:.1f}, fy {m.fy:.1f}, "
                    f"cx {m.cx:.1f}, cy {m.cy:.1f}): ranges come out about {m.fx / given.fx:.2f} times the true ones")
     return out
-
-
-def _intrinsics(K: Any, width: int, height: int) -> Intrinsics:
-    """Intrinsics of a 3x3 pinhole matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (pixels) at width x height."""
-    k = np.asarray(K, dtype=np.float64)
-    if k.shape != (3, 3) or not np.isfinite(k).all() or k[0, 1] != 0 or k[1, 0] != 0 or list(k[2]) != [0, 0, 1]:
-        raise ValueError(f"must be a 3x3 pinhole matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], got {K!r}")
-    return Intrinsics(width, height, float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))

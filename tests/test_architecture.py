@@ -159,3 +159,81 @@ def test_no_import_cycles() -> None:
 def test_the_cycle_finder_finds_a_cycle() -> None:
     assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     assert cycles({"a": {"b"}, "b": set()}) == []
+
+
+def _section(path: str) -> type:
+    """The schema dataclass of a dotted params section (e.g. "train.adversarial")."""
+    import typing
+
+    from stages.config.schema import Params
+
+    cls = Params
+    for name in path.split("."):
+        cls = typing.get_type_hints(cls)[name]
+    return cls
+
+
+def test_every_schema_field_maps_to_a_library_field() -> None:
+    """Each params section built into library settings (stages/config/build.py SECTION_SETTINGS) holds only fields
+    of those settings, under their names, and the fields the stages read themselves (STAGE_ONLY, which no library
+    settings of the section take); settings_of refuses a library field that nothing gives."""
+    import dataclasses
+    import importlib
+
+    from stages.config.build import SECTION_SETTINGS, STAGE_ONLY
+
+    for path, classes in SECTION_SETTINGS.items():
+        library: set[str] = set()
+        for spec in classes:
+            module, name = spec.split(":")
+            library |= {f.name for f in dataclasses.fields(getattr(importlib.import_module(module), name))}
+        schema = {f.name for f in dataclasses.fields(_section(path))}
+        assert schema - library == set(STAGE_ONLY[path]), (path, sorted(schema - library))
+        assert not set(STAGE_ONLY[path]) & library, path
+        assert schema & library, path
+
+
+def test_settings_of_refuses_a_library_field_that_nothing_gives() -> None:
+    import dataclasses
+
+    import pytest
+
+    from stages.config.build import settings_of
+
+    @dataclasses.dataclass(frozen=True)
+    class Library:
+        kept: float = 1.0
+        renamed: int = 2
+
+    @dataclasses.dataclass(frozen=True)
+    class Section:
+        kept: int
+        old_name: int
+
+    assert settings_of(Library, Section(3, 4), ("renamed",)) == Library(3.0, 2)
+    with pytest.raises(TypeError, match=r"no value for \['renamed'\]"):
+        settings_of(Library, Section(3, 4))
+    with pytest.raises(TypeError, match=r"unknown library defaults \['typo'\]"):
+        settings_of(Library, Section(3, 4), ("renamed", "typo"))
+
+
+def test_the_registry_literals_of_the_schema_are_the_registries() -> None:
+    """The schema's Literal types mirror the library's registries (importing those here, not in the schema, keeps
+    torch out of `rpod --help`): each must name exactly the registry's entries."""
+    import typing
+
+    from pipeline.attackers.in_loop import GOALS
+    from pipeline.attackers.suite import ATTACKERS
+    from pipeline.attacks.gradient import ATTACKS, LOSSES
+    from pipeline.defense.fusion import FUSIONS
+    from pipeline.guidance.law import DEFENSES, VARIANTS
+    from stages.config.evaluation import AttackLoss, AttackMethod, Defense, InLoopGoal, IntegrityAttacker
+    from stages.config.sections import Guidance
+
+    hints = {name: typing.get_type_hints(cls) for name, cls in (("defense", Defense), ("guidance", Guidance))}
+    attackers = {a for a in typing.get_args(IntegrityAttacker)}
+    assert set(typing.get_args(AttackMethod)) == set(ATTACKS) and set(typing.get_args(AttackLoss)) == set(LOSSES)
+    assert {a.split("/")[0] for a in attackers} == set(ATTACKERS) and set(typing.get_args(InLoopGoal)) == set(GOALS)
+    assert set(typing.get_args(hints["defense"]["fusion"])) == set(FUSIONS)
+    assert set(typing.get_args(typing.get_args(hints["guidance"]["dynamics"])[0])) == set(VARIANTS)
+    assert set(typing.get_args(typing.get_args(hints["guidance"]["defenses"])[0])) == set(DEFENSES) - {"undefended"}

@@ -49,7 +49,7 @@ class MotionSettings:
     cusum_reference: Annotated[float, In("[0, 100]", "standard deviations")] = 1.0
     cusum_threshold: Annotated[float, In("(0, 1000000]", "standard deviations")] = 10.0
     integrity_risk: Annotated[float, In("(0, 1)", "probability per frame")] = 1e-5
-    trusted_start: Annotated[int, In("[0, 10000000]", "frames")] = 0
+    trusted_start: Annotated[int, In("[0, 10000000]", "frames")] = 20
 
     def __post_init__(self) -> None:
         for name in ("position_noise", "attitude_noise_deg", "attitude_rate_noise_deg", "cusum_threshold"):

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -22,6 +23,15 @@ class Intrinsics:
             raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
         if self.fx <= 0 or self.fy <= 0:
             raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+
+    @classmethod
+    def from_K(cls, K: Any, width: int, height: int) -> "Intrinsics":
+        """The camera of a 3x3 pinhole matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (pixels) at width x height
+        pixels (ValueError for any other matrix: skewed, transposed, not finite, fx or fy <= 0)."""
+        k = np.asarray(K, dtype=np.float64)
+        if k.shape != (3, 3) or not np.isfinite(k).all() or k[0, 1] != 0 or k[1, 0] != 0 or list(k[2]) != [0, 0, 1]:
+            raise ValueError(f"must be a 3x3 pinhole matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], got {K!r}")
+        return cls(width, height, float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
 
     @property
     def K(self) -> np.ndarray:

@@ -17,11 +17,19 @@ from stages.config.evaluation import Defense
 from stages.errors import StageError
 
 
-def settings_of(cls: type, section: Any, **extra: Any) -> Any:
-    """`cls` (a library settings dataclass) from the fields of a params `section` (a schema dataclass) that
-    it shares with it, and `extra` for the others; a value is converted to the library field's type (a
-    whole number to float, a list to a tuple of it), fields the section lacks keep the library default."""
+def settings_of(cls: type, section: Any, library_defaults: tuple[str, ...] = (), **extra: Any) -> Any:
+    """`cls` (a library settings dataclass) from the fields of a params `section` (a schema dataclass) of the
+    same names and `extra` for the others; a value is converted to the library field's type (a whole number to
+    float, a list to a tuple of it). A field of `cls` that neither gives keeps its library default only when
+    named in `library_defaults` (a setting params.yaml does not set): any other gap, or a name there that `cls`
+    lacks, is a TypeError, so a field renamed on one side fails loudly instead of falling back to its default
+    (tests/test_architecture.py checks every section of `SECTION_SETTINGS` against its classes)."""
     hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    missing = sorted(names - set(extra) - {n for n in names if hasattr(section, n)} - set(library_defaults))
+    if missing or not set(library_defaults) <= names:
+        raise TypeError(f"{cls.__name__} from params section {type(section).__name__}: no value for {missing}, "
+                        f"unknown library defaults {sorted(set(library_defaults) - names)}")
     values = {}
     for f in dataclasses.fields(cls):
         if f.name in extra:
@@ -29,6 +37,26 @@ def settings_of(cls: type, section: Any, **extra: Any) -> Any:
         elif hasattr(section, f.name):
             values[f.name] = _as(getattr(section, f.name), hints[f.name])
     return cls(**values)
+
+
+# params section -> the library settings dataclasses `settings_of` builds from it, and the section's fields that
+# no library settings take (the stages read them themselves: sizes, counts, file and calibration params)
+SECTION_SETTINGS: dict[str, tuple[str, ...]] = {
+    "render": ("pipeline.render.scene:SceneSettings",), "train": ("pipeline.pose.train:TrainConfig",),
+    "train.adversarial": ("pipeline.pose.adversarial:AdversarialConfig",),
+    "train.augment": ("pipeline.pose.augment:AugmentConfig",),
+    "defense": ("pipeline.defense.fusion:DefenseSettings", "pipeline.defense.gate:MotionSettings"),
+}
+STAGE_ONLY: dict[str, tuple[str, ...]] = {
+    "render": ("chunk", "end_range", "frames_per_sequence", "height", "max_target_rotation_deg", "pointing_jitter_deg",
+               "previews", "source", "source_test", "start_range", "width"),
+    "train": ("adversarial", "augment", "compile", "dropout", "range_bins", "val_fraction", "width"),
+    "train.adversarial": ("black_level", "epochs", "eval_eps", "eval_frames", "eval_steps", "init", "lr_max",
+                          "warmup_epochs"),
+    "train.augment": (),
+    "defense": ("allow_unmet", "doubt_share", "harm_m", "noise_bins", "shares", "target_false_alarm", "val_seed",
+                "val_trajectories"),
+}
 
 
 def _as(value: Any, hint: Any) -> Any:
@@ -57,7 +85,7 @@ def scene_settings(render: Render) -> Any:
     """The Blender scene settings of a `render` params section (mesh None = the procedural target)."""
     from pipeline.render.scene import SceneSettings
 
-    return settings_of(SceneSettings, render, mesh=given(render.mesh))
+    return settings_of(SceneSettings, render, ("ambient", "max_bounces"), mesh=given(render.mesh))
 
 
 def check_attack_params(section: Attack | Guidance, where: str) -> None:
@@ -142,7 +170,7 @@ def defense_settings(defense: Defense, threshold: float, update_below: float | N
     doubt = None if update_below is None else min(float(update_below), threshold)
     try:
         return (settings_of(DefenseSettings, defense, threshold=threshold, update_below=doubt),
-                settings_of(MotionSettings, defense))
+                settings_of(MotionSettings, defense, ("cusum_threshold",)))
     except ValueError as e:
         raise StageError(f"params.yaml: {e}") from None
 

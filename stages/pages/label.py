@@ -28,8 +28,7 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
 
     q = labels[QUAT].to_numpy()
     t = labels[POSITION].to_numpy()
-    K = np.asarray(meta["K"])
-    cam = Intrinsics(meta["width"], meta["height"], K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    cam = Intrinsics.from_K(meta["K"], meta["width"], meta["height"])
     uv = project(t, cam)
     angle = attitude_error_deg(q, np.tile([1.0, 0, 0, 0], (len(q), 1)))  # rotation angle from camera axes
     r, source = meta["render"], meta.get("source")
@@ -62,12 +61,12 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
         *(_source_section(source) if source else [
             "## Sequences", "", markdown_table(seqs, decimals=1), "## Render settings", "",
             markdown_table([{"setting": k, "value": str(r[k])} for k in RENDER_SETTINGS])]),
-        f"Camera K at {meta['width']}x{meta['height']}: fx={K[0, 0]:.3f}, fy={K[1, 1]:.3f}, cx={K[0, 2]:.3f}, "
-        f"cy={K[1, 2]:.3f} (scaled from the reference K at {meta['camera']['ref_width']}x"
+        f"Camera K at {meta['width']}x{meta['height']}: fx={cam.fx:.3f}, fy={cam.fy:.3f}, cx={cam.cx:.3f}, "
+        f"cy={cam.cy:.3f} (scaled from the reference K at {meta['camera']['ref_width']}x"
         f"{meta['camera']['ref_height']}). " + ("Images resized with an area filter; lens distortion is not removed."
                                                 if source else "Renderer: Blender Cycles, CPU."),
         "",
-        f"Pixel aspect fy/fx = {K[1, 1] / K[0, 0]:.4g} (`camera.fy`). The paper prints K_Blender with fy = 360 beside "
+        f"Pixel aspect fy/fx = {cam.fy / cam.fx:.4g} (`camera.fy`). The paper prints K_Blender with fy = 360 beside "
         "fx = 640 at 480x270; 360 = 270 x 48/36 is the sensor-width ratio applied to the image height, a common "
         "slip: Blender renders square pixels unless told otherwise and the lab's ZED camera has square pixels. "
         "The default is therefore fy = fx; `camera.fy: 360.0` renders the printed K (0.5625-aspect pixels, which "
