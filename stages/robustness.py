@@ -175,82 +175,40 @@ def _integrity(p: Params, r: Robustness, safety: Any, target: Any, seed: int, at
                n_traj: int | None = None) -> dict[str, Any]:
     """The chain-level attackers (`attackers`, default integrity.attackers, at integrity.eps) on the eval_render
     trajectories (the first `n_traj`; None: all) through one chain (`safety`: a SafetyChain; `target`: its
-    PerFrameChain) and the defense calibrated for it, judged by integrity against the same
-    trajectories unattacked (pipeline.evaluation.integrity_runs); the burst's attacked frames also give the
-    per-frame fused rows (raw error > harm_m and unflagged). Returns the metrics and the figure's data."""
-    from pipeline.evaluation.integrity_runs import Track, clean_row, fly, integrity_row
-    from pipeline.stats import bootstrap_rate
-    from stages.config.build import alert_limit_settings
+    PerFrameChain) and the defense calibrated for it: pipeline.evaluation.campaign.fly_campaign. Returns the
+    metrics and the figure's data."""
+    from tqdm import tqdm
+
+    from pipeline.evaluation.campaign import Campaign, fly_campaign
+    from pipeline.evaluation.integrity_runs import Track
+    from stages.config.build import alert_limit_settings, burst_attacker, drift_settings
     from stages.pages.integrity import worst_hmi
 
     t0 = time.perf_counter()
-    chain = safety.onboard
     images, labels, trajs, bursts, defended, info = _fused_setup(p, r, safety, n_traj)
     tracks = [Track(f"t{g}", images[ix], labels[ix]) for g, ix in enumerate(trajs)]
-    limit, i = alert_limit_settings(p), p.integrity
+    i = p.integrity
     attackers = list(i.attackers) if attackers is None else attackers
-    clean = [fly(chain, defended, t, limit, r.batch_size) for t in tracks]
-    flags = np.concatenate([c.trace.flag for c in clean])
-    alarms = bootstrap_rate(flags, np.concatenate([np.full(len(t), g) for g, t in enumerate(tracks)]))
-    info.update(false_alarm_rate=alarms.value, ci95_false_alarm=alarms.ci())
-    bursts_hmi: dict[float, list[int]] = {}
-    runs = _attack_runs(p, r, (chain, target, defended), (tracks, bursts, clean), attackers, seed, bursts_hmi)
     eps = sorted(float(e) for e in i.eps)
-    rows = [integrity_row(name, e, flown, clean, masks, seed=seed) | ({"bursts_with_hmi": bursts_hmi[e]}
-                                                                       if name == "burst" else {})
-            for name, e, flown, masks in runs]
-    worst = worst_hmi({"rows": rows})
-    fused = [_burst_fused_row(e, flown, tracks, masks, r.harm_m) for name, e, flown, masks in runs if name == "burst"]
-    top = [(name, flown, masks) for name, e, flown, masks in runs if e == eps[-1]]
-    return {"fused_rows": fused, "fused": info,
-            "integrity": {"rows": rows, "worst_hmi": worst, "clean": clean_row(clean, seed=seed), "eps": eps,
-                          "attackers": attackers,
+    drifts = [(a, drift_settings(p, a.split("/")[1])) for a in attackers if a != "burst"]
+    campaign = Campaign(eps, burst_attacker(p, seed_for(seed, "robustness.burst")) if "burst" in attackers else None,
+                        bursts, drifts, (i.drift_start, i.drift_start + i.drift_frames), i.drift_steps,
+                        seed_for(seed, "robustness.drift"), alert_limit_settings(p), r.batch_size, r.harm_m, seed)
+    with tqdm(total=len(tracks) * ("burst" in attackers) + bool(drifts) * len(eps) * i.drift_frames,
+              desc="robustness (integrity)", unit="step", dynamic_ncols=True) as bar:
+        flown = fly_campaign(safety.onboard, target, defended, tracks, campaign, lambda: bar.update(1))
+    info.update(false_alarm_rate=flown.alarms.value, ci95_false_alarm=flown.alarms.ci())
+    top = [(name, runs, masks) for name, e, runs, masks in flown.runs if e == eps[-1]]
+    return {"fused_rows": flown.fused_rows, "fused": info,
+            "integrity": {"rows": flown.rows, "worst_hmi": worst_hmi({"rows": flown.rows}), "clean": flown.clean_row,
+                          "eps": eps, "attackers": attackers,
                           "alert_limit_m": i.alert_limit_m, "collision_range_m": i.collision_range_m,
                           "burst": {"steps": i.burst_steps, "restarts": i.burst_restarts,
                                     "lambdas": [float(v) for v in i.burst_lambdas], "cap": i.burst_cap,
                                     "bursts": info["bursts"], "burst_length": info["burst_length"]},
                           "drift": {"start": i.drift_start, "frames": i.drift_frames, "steps": i.drift_steps,
                                     "gate_fraction": i.drift_gate_fraction}, "seconds": time.perf_counter() - t0},
-            "figure": (clean, top, eps[-1])}
-
-
-def _attack_runs(p: Params, r: Robustness, chain_of: tuple[Any, Any, Any], flights: tuple[list[Any], ...],
-                 attackers: list[str], seed: int,
-                 bursts_hmi: dict[float, list[int]]) -> list[tuple[str, float, list[Any], list[np.ndarray]]]:
-    """(attacker, eps, attacked flights, attacked frames per track) for every one of `attackers` and eps of
-    params.integrity on one chain (`chain_of`: OnboardChain, its PerFrameChain, its Defended) and its flights
-    (tracks, bursts per track, clean flights); `bursts_hmi` gets per eps [bursts with an HMI frame, bursts] as the
-    burst attacker judged its own worst cases."""
-    from tqdm import tqdm
-
-    from pipeline.evaluation.integrity_runs import burst_attack, drift_attack, fly
-    from stages.config.build import burst_attacker, drift_settings, alert_limit_settings
-
-    i, limit = p.integrity, alert_limit_settings(p)
-    (chain, target, defended), (tracks, bursts, clean) = chain_of, flights
-    eps = sorted(float(e) for e in i.eps)
-    drifts = [a for a in attackers if a != "burst"]
-    bar = tqdm(total=len(tracks) * ("burst" in attackers) + bool(drifts) * len(eps) * i.drift_frames,
-               desc="robustness (integrity)", unit="step", dynamic_ncols=True)
-    out = []
-    if "burst" in attackers:
-        masks = [np.isin(np.arange(len(t)), [k for a, b in bs for k in range(a, b)]) for t, bs in zip(tracks, bursts)]
-        stored, worst = burst_attack(target, defended, tracks, masks, burst_attacker(p, seed_for(seed, "robustness.burst")), eps,
-                                     lambda: bar.update(1))
-        out += [("burst", e, [fly(chain, defended, t, limit, r.batch_size, s, c) for t, s, c in
-                              zip(tracks, stored[e], clean)], masks) for e in eps]
-        bursts_hmi.update({e: [sum(int(b.hmi.any()) for bs in worst[e] for b in bs), sum(map(len, worst[e]))]
-                           for e in eps})
-    window = (i.drift_start, i.drift_start + i.drift_frames)
-    settings = [drift_settings(p, a.split("/")[1]) for a in drifts]
-    masks = [(np.arange(len(t)) >= window[0]) & (np.arange(len(t)) < window[1]) for t in tracks]
-    for e in eps if drifts else []:
-        stored = drift_attack(target, defended, tracks, clean, window, settings, e, i.drift_steps, seed_for(seed, "robustness.drift"),
-                              lambda: bar.update(1))
-        out += [(name, e, [fly(chain, defended, t, limit, r.batch_size, s, c) for t, s, c in zip(tracks, per, clean)],
-                 masks) for name, per in zip(drifts, stored)]
-    bar.close()
-    return out
+            "figure": (flown.clean, top, eps[-1])}
 
 
 def _integrity_figure(clean: list[Any], top: list[tuple[str, list[Any], list[np.ndarray]]], eps: float) -> Any:
@@ -266,15 +224,6 @@ def _integrity_figure(clean: list[Any], top: list[tuple[str, list[Any], list[np.
                                                      for name, flown, _ in top}}
     return integrity_diagram(points, series, clean[0].frames.alert,
                              f"Trusted estimate against its bound, eps {eps:g} (counted frames: from the first attacked one)")
-
-
-def _burst_fused_row(eps: float, flown: list[Any], tracks: list[Any], masks: list[np.ndarray], harm_m: float) -> Any:
-    """The per-frame view of the nested burst on the fused chain: raw error > harm_m and unflagged."""
-    from pipeline.evaluation.integrity_runs import raw_errors
-    from pipeline.evaluation.robustness import fused_row
-
-    err, flag, group = raw_errors(flown, tracks, masks)
-    return fused_row("fused chain: burst (nested, worst over lambda and restarts)", eps, None, err, flag, group, harm_m)
 
 
 def _fused_setup(p: Params, r: Robustness, safety: Any, n_traj: int | None) -> tuple[Any, ...]:

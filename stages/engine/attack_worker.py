@@ -53,22 +53,10 @@ class AttackWorker:
         self.a, self.seed, self.eps_list, self.batch = setup.params.attack, setup.seed, setup.eps, setup.batch
 
     def run(self, job: AttackBatch) -> dict[str, Any]:
-        import torch
-
-        from pipeline.attacks.gradient import quantize
+        from pipeline.attacks.stored import attack_every_eps
 
         attack = make_attack(self.a, self.a.method, self.seed + job.first // self.batch)
-        x = torch.from_numpy(job.images).to(self.model.device).permute(0, 3, 1, 2).float() / 255   # uint8 over the bus
-        y = job.labels.to(self.model.device)
-        with torch.no_grad():
-            out: dict[str, Any] = {"clean": self.model(x).cpu().numpy()}
-        for e in self.eps_list:
-            x_adv = attack(self.model, x, y, e, self.loss_fn)
-            stored = quantize(x_adv, x)
-            with torch.no_grad():
-                out[e] = (stored.permute(0, 2, 3, 1).cpu().numpy(), self.model(stored.float() / 255).cpu().numpy(),
-                          self.model(x_adv).cpu().numpy(), float((stored.float() / 255 - x).abs().max()))
-        return out
+        return attack_every_eps(self.model, self.loss_fn, attack, job.images, job.labels, self.eps_list)
 
     def close(self) -> None:
         pass
