@@ -218,8 +218,8 @@ def test_settings_of_refuses_a_library_field_that_nothing_gives() -> None:
 
 
 def test_the_registry_literals_of_the_schema_are_the_registries() -> None:
-    """The schema's Literal types mirror the library's registries (importing those here, not in the schema, keeps
-    torch out of `rpod --help`): each must name exactly the registry's entries."""
+    """The schema's Literal types mirror the library's registries (generating them there would import torch into
+    every params load, the Hydra plugin DVC runs included): each must name exactly the registry's entries."""
     import typing
 
     from pipeline.attackers.in_loop import GOALS
