@@ -37,9 +37,8 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from pipeline.attackers.base import AttackRun  # noqa: E402
-from pipeline.stats import bootstrap_rate  # noqa: E402
 from pipeline.report.markdown import markdown_table  # noqa: E402
-from pipeline.stats import percent_ci  # noqa: E402
+from pipeline.stats import bootstrap_rate, percent_ci  # noqa: E402
 from stages.report import write_benchmark  # noqa: E402
 
 
@@ -78,15 +77,17 @@ def setup(p: Any, n_tracks: int, per_track: int) -> tuple[Any, ...]:
         for a, b in burst_schedule(len(t), p.integrity.burst_length, p.robustness.burst_every)[:per_track]:
             mask[a:b] = True
         runs.append(AttackRun(t.frames(), torch.as_tensor(t.labels, dtype=torch.float32), t.R_cam, t.u, mask))
-    return pose, PerFrameChain(pose.model, chain.shap, chain.detector), dataclasses.replace(pose.defended, alert=None), runs
+    target = PerFrameChain(pose.model, chain.shap, chain.detector)
+    return pose, target, dataclasses.replace(pose.defended, alert=None), runs
 
 
 def speed(p: Any, pose: Any, target: nn.Module, defended: Any, run: AttackRun) -> list[dict[str, Any]]:
     """Rows: the burst attack's frame-gradients/s, bare input gradients/s at three batches, training images/s."""
+    from train_speed import throughput
+
     from pipeline.attackers.burst import bursts_of
     from pipeline.defense.fusion import Defense
     from stages.config.build import burst_attacker
-    from train_speed import throughput
 
     lo, hi = bursts_of(run.mask)[0]
     one = dataclasses.replace(run, attacked=(np.arange(len(run)) >= lo) & (np.arange(len(run)) < hi))   # one burst

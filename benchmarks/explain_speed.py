@@ -26,11 +26,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector  # noqa: E402
-from pipeline.shap import Explainer, deep_shap  # noqa: E402
 from pipeline.pose.model import PoseNet  # noqa: E402
 from pipeline.report.markdown import markdown_table  # noqa: E402
+from pipeline.shap import Explainer, deep_shap  # noqa: E402
 from stages.report import write_benchmark  # noqa: E402
-
 
 
 def per_call(fn: Callable[[], object], min_seconds: float = 1.0, max_calls: int = 10_000) -> float:

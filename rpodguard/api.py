@@ -191,7 +191,8 @@ def read_image(path: Path) -> np.ndarray:
     EXIF orientation applied, 16-bit scaled to 8 bits, float pixels in [0, 1] scaled, transparency
     composited on black (space) with a UserWarning. A missing, unreadable or truncated file, an animation
     and 32-bit integer or out-of-range float pixels are a DataError naming the file."""
-    from PIL import Image as PILImage, ImageOps
+    from PIL import Image as PILImage
+    from PIL import ImageOps
 
     check_files([path])
     try:
@@ -225,7 +226,7 @@ def _rgb(im: Any, path: Path) -> np.ndarray:
     if "A" in im.getbands() or "transparency" in im.info:
         rgba = np.asarray(im.convert("RGBA")).astype(np.float32)
         if (rgba[..., 3] < 255).any():
-            warnings.warn(f"{path} has transparent pixels: composited on black (space)")
+            warnings.warn(f"{path} has transparent pixels: composited on black (space)", stacklevel=2)
         return np.round(rgba[..., :3] * rgba[..., 3:] / 255).astype(np.uint8)
     return np.asarray(im.convert("RGB"))
 
@@ -243,4 +244,5 @@ def load_chain(folder: str | Path | None = None) -> Chain:
     safety = open_chain(BUNDLE if folder is None else folder, defended=None, bundle=folder is None)
     ckpt = safety.checkpoint
     height, width = (int(v) for v in ckpt["input_size"])
-    return Chain(safety, (height, width), ckpt.get("manifest"), model_camera(ckpt, ckpt.get("manifest"), safety.files[0]))
+    manifest = ckpt.get("manifest")
+    return Chain(safety, (height, width), manifest, model_camera(ckpt, manifest, safety.files[0]))

@@ -11,8 +11,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from pipeline.geometry.camera import Intrinsics, camera_difference
 from pipeline.io.errors import DataError
 

@@ -5,7 +5,8 @@ The per-image chain (rpodguard/api.py) judges each image alone. With the chaser'
 the defense of pipeline/defense/fusion.py runs over the sequence as onboard: the motion filter
 (position moved by the commanded displacements, a gate and a sequential test on its innovations)
 fused with the detector, as calibrated by `rpod calibrate` (FOLDER/defense.json: its noise model,
-thresholds and settings; pipeline/formats/defense.py, read with the chain by pipeline/formats/chain.py). Frames (pipeline/geometry/trajectories.py):
+thresholds and settings; pipeline/formats/defense.py, read with the chain by pipeline/formats/chain.py). Frames
+(pipeline/geometry/trajectories.py):
 world axes centred on the target; `rel` is the target's position relative to the chaser camera (m).
 """
 from __future__ import annotations

@@ -48,8 +48,8 @@ def egocentric_predictions(pred: np.ndarray) -> np.ndarray:
 
 def errors(pred: np.ndarray, target: np.ndarray) -> dict[str, float]:
     """Mean position (m), attitude, tilt and roll (deg) errors, with the attitude's 95% interval."""
-    from pipeline.pose.robustness import mean_interval
     from pipeline.pose.metrics import pose_errors, tilt_roll_deg
+    from pipeline.pose.robustness import mean_interval
 
     pos, att = pose_errors(pred, target)
     tilt, roll = tilt_roll_deg(pred, target)
@@ -63,13 +63,13 @@ def main(epochs: int | None = None) -> None:
 
     from pipeline.io.atomic import atomic_write_text
     from pipeline.pose.loss import PoseLoss
-    from pipeline.pose.model import PoseNet
     from pipeline.pose.metrics import pose_errors
+    from pipeline.pose.model import PoseNet
     from pipeline.pose.robustness import mean_interval
     from pipeline.pose.train import fit, make_deterministic, predict
     from pipeline.report.markdown import markdown_table
-    from stages.artifacts import data
     from pipeline.seeds import seed_for
+    from stages.artifacts import data
     from stages.artifacts.paths import POSE
     from stages.config import params as params_mod
     from stages.config.build import train_config

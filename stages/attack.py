@@ -18,15 +18,17 @@ from typing import Any
 import numpy as np
 import typer
 
+from pipeline.geometry.labels import POSITION, QUAT, TARGET
 from pipeline.io.atomic import atomic_outputs, atomic_write_text, save_figure
 from pipeline.io.store import create_array, seal_zarr
-from pipeline.geometry.labels import POSITION, QUAT, TARGET
 from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
-from stages.artifacts.paths import ADV, ATTACK_FIGURE as FIGURE, ATTACK_METRICS as METRICS, \
-    ATTACK_REPORT as REPORT, POSE
-from stages.artifacts.readers import adv_array_name
 from stages.artifacts.models import load_pose
+from stages.artifacts.paths import ADV, POSE
+from stages.artifacts.paths import ATTACK_FIGURE as FIGURE
+from stages.artifacts.paths import ATTACK_METRICS as METRICS
+from stages.artifacts.paths import ATTACK_REPORT as REPORT
+from stages.artifacts.readers import adv_array_name
 from stages.config.build import check_attack_params, make_attack
 from stages.config.device import torch_setup
 from stages.config.schema import Params

@@ -31,17 +31,16 @@ import numpy as np
 import typer
 
 from pipeline.formats.defense import DEFENSE_FORMAT, DefenseFile, Validation, parse_defense
-from pipeline.io.atomic import write_json
 from pipeline.geometry.labels import TARGET
+from pipeline.io.atomic import write_json
+from stages.artifacts.models import load_chain, model_option
 from stages.artifacts.paths import CHAINS, Model
 from stages.artifacts.readers import chaser_motion, read_eval_render, read_val_envelope
-from stages.artifacts.models import load_chain, model_option
 from stages.config.build import alert_limit_settings, defense_settings
 from stages.config.device import torch_setup
 from stages.config.schema import Params
 from stages.errors import StageError
 from stages.pages.calibrate import summary_line, unmet_line
-
 
 ModelOption = Annotated[Model, model_option("Writes models/defense.json (robust) or models/defense_standard.json.")]
 

@@ -23,9 +23,9 @@ except ValueError as _e:
 
 import typer  # noqa: E402
 
+from pipeline.io.errors import DataError  # noqa: E402
 from stages.config import compose as compose_mod  # noqa: E402
 from stages.config import params as params_mod  # noqa: E402
-from pipeline.io.errors import DataError  # noqa: E402
 
 app = typer.Typer(
     help="rpodguard: render a target satellite, train a pose CNN, attack it, explain it with SHAP, "
@@ -75,8 +75,8 @@ STAGES = ["render", "label", "train", "attack", "guidance", "shap", "detect", "e
 def _register() -> None:
     import importlib
 
-    from stages.help import ParamsHelpCommand, ParamsHelpGroup
     from stages.config.params import with_params
+    from stages.help import ParamsHelpCommand, ParamsHelpGroup
 
     for name in STAGES:
         try:

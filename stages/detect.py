@@ -40,9 +40,9 @@ from pipeline.io.atomic import atomic_outputs, atomic_write_text, file_hash
 from pipeline.io.checkpoints import save_torch
 from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
+from stages.artifacts.models import load_pose, model_option
 from stages.artifacts.paths import CHAINS, DETECT_RENDER, ChainFiles, Model
 from stages.artifacts.readers import SampleImages, read_detect_render, read_eval_render, read_shap_store
-from stages.artifacts.models import load_pose, model_option
 from stages.config.device import torch_device
 from stages.config.schema import Params
 from stages.config.sections import Detect
@@ -90,7 +90,7 @@ def main(params: Params, model: ModelOption = Model.standard, eval_alarms: EvalA
     files = CHAINS[model]
     model_hash = file_hash(files.pose)
     data = read_shap_store(files.shap, model_hash)
-    values, feats, eps = data["values"], data["features"], data["eps"].astype(np.float64)
+    values, eps = data["values"], data["eps"].astype(np.float64)
     y = data["is_adversarial"].astype(np.int64)
     tr, va, te = split_indices(eps, data["source_index"], float(d.test_fraction), float(d.val_fraction), seed)
     print(f"detect ({model.value} model): {len(y)} SHAP samples ({int(y.sum())} adversarial) -> train {len(tr)}, "

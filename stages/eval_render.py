@@ -26,18 +26,29 @@ import numpy as np
 import typer
 
 from pipeline.geometry.labels import pose_columns
+from pipeline.io.atomic import atomic_dir, write_json
+from pipeline.io.tables import write_parquet
 from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
-from stages.artifacts.paths import DETECT_RENDER, DETECT_RENDER_METRICS, EVAL_RENDER, EVAL_RENDER_METRICS, VAL_ENVELOPE, \
-    VAL_RENDER
+from stages.artifacts.paths import (
+    DETECT_RENDER,
+    DETECT_RENDER_METRICS,
+    EVAL_RENDER,
+    EVAL_RENDER_METRICS,
+    VAL_ENVELOPE,
+    VAL_RENDER,
+)
 from stages.config.build import intrinsics, scene_settings
-from stages.config.params import detect_render_fingerprint, detector_trajectories, eval_render_fingerprint, \
-    val_envelope_fingerprint, val_render_fingerprint
+from stages.config.params import (
+    detect_render_fingerprint,
+    detector_trajectories,
+    eval_render_fingerprint,
+    val_envelope_fingerprint,
+    val_render_fingerprint,
+)
 from stages.config.schema import Params
 from stages.engine import pool as engine
 from stages.engine.chunks import render_to_store, store_url
-from pipeline.io.atomic import atomic_dir, write_json
-from pipeline.io.tables import write_parquet
 
 
 def trajectories(p: Params, seed: int, count: int, frames: int | None = None, envelope: bool = False) -> list[Any]:
@@ -93,7 +104,8 @@ def main(
     else:
         sets = [(EVAL_RENDER, trajectories(params, e.seed, e.trajectories), eval_render_fingerprint(params)),
                 (VAL_RENDER, trajectories(params, d.val_seed, d.val_trajectories), val_render_fingerprint(params)),
-                (VAL_ENVELOPE, trajectories(params, seed_for(d.val_seed, "eval_render.envelope"), d.val_trajectories, envelope=True),
+                (VAL_ENVELOPE, trajectories(params, seed_for(d.val_seed, "eval_render.envelope"), d.val_trajectories,
+                                            envelope=True),
                  val_envelope_fingerprint(params))]
     timings: dict[str, Any] = {}
     with engine.session(es):

@@ -21,20 +21,22 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import typer
 
-from pipeline.io.atomic import atomic_write_text, save_figure
 from pipeline.geometry.labels import TARGET
+from pipeline.io.atomic import atomic_write_text, save_figure
 from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
-from stages.artifacts.paths import EVALUATE_FIGURE as FIGURE, EVALUATE_METRICS as METRICS, \
-    EVALUATE_REPORT as REPORT, PAPER, SHIPPED, Model
-from stages.artifacts.readers import chaser_motion, read_eval_render
 from stages.artifacts.models import load_chain
+from stages.artifacts.paths import EVALUATE_FIGURE as FIGURE
+from stages.artifacts.paths import EVALUATE_METRICS as METRICS
+from stages.artifacts.paths import EVALUATE_REPORT as REPORT
+from stages.artifacts.paths import PAPER, SHIPPED, Model
+from stages.artifacts.readers import chaser_motion, read_eval_render
 from stages.config.device import torch_setup
 from stages.config.evaluation import Evaluate
 from stages.config.schema import Params
+from stages.pages.calibrate import unmet_banner
 from stages.pages.evaluate import chain_names, defense_section
 from stages.pages.paper import INTEGRATED, INTEGRATED_EPS, by_eps
-from stages.pages.calibrate import unmet_banner
 
 if TYPE_CHECKING:
     from pipeline.evaluation.sequences import Sequence

@@ -26,19 +26,23 @@ from typing import Any
 import numpy as np
 import typer
 
+from pipeline.io.atomic import atomic_write_text, save_figure
 from pipeline.seeds import seed_for
-from stages.artifacts.paths import GUIDANCE_DEFENDED_FIGURE as DEFENDED_FIGURE, GUIDANCE_FIGURE as FIGURE, \
-    GUIDANCE_METRICS as METRICS, GUIDANCE_REPORT as REPORT, PAPER, SHIPPED
+from stages.artifacts.dvc import write_metrics
 from stages.artifacts.models import load_chain
+from stages.artifacts.paths import GUIDANCE_DEFENDED_FIGURE as DEFENDED_FIGURE
+from stages.artifacts.paths import GUIDANCE_FIGURE as FIGURE
+from stages.artifacts.paths import GUIDANCE_METRICS as METRICS
+from stages.artifacts.paths import GUIDANCE_REPORT as REPORT
+from stages.artifacts.paths import PAPER, SHIPPED
 from stages.config.build import check_attack_params, intrinsics, make_attack, scene_settings
 from stages.config.device import torch_setup
-from stages.config.schema import Params
 from stages.config.evaluation import Integrity
+from stages.config.schema import Params
 from stages.config.sections import Attack, Guidance
-from stages.engine import chunks, pool as engine
+from stages.engine import chunks
+from stages.engine import pool as engine
 from stages.engine.guidance_worker import GuidanceSetup, GuidanceWorker, flights
-from pipeline.io.atomic import atomic_write_text, save_figure
-from stages.artifacts.dvc import write_metrics
 from stages.errors import StageError
 from stages.pages.calibrate import unmet_banner
 from stages.pages.guidance import defended_section, guidance_page, in_loop_section
@@ -82,8 +86,8 @@ def main(params: Params) -> None:
     workers (each run on one; results in grid order); report outcomes."""
     from tqdm import tqdm
 
-    from pipeline.report.figures import guidance_trajectories, guidance_variants
     from pipeline.guidance.grid import GridPlan, defended_grid, grid_counts, in_loop_grid, paper_grid
+    from pipeline.report.figures import guidance_trajectories, guidance_variants
 
     g = params.guidance
     settings, grid = _plan(g)
@@ -108,7 +112,8 @@ def main(params: Params) -> None:
 
     with tqdm(total=len(runs), desc="guidance runs", unit="run") as bar:
         on_cpu = params if es.in_process else dataclasses.replace(params, device="cpu")   # Ray workers hold no GPU
-        setup = GuidanceSetup(params=on_cpu, K=K, scene=scene, root=str(Path.cwd()), defense=shipped.defended, plan=plan,
+        setup = GuidanceSetup(params=on_cpu, K=K, scene=scene, root=str(Path.cwd()), defense=shipped.defended,
+                              plan=plan,
                               seed=seed_for(params.seed, "guidance"), torch_threads=None if es.in_process else threads)
         flown = engine.run(GuidanceWorker, setup, runs, es, num_cpus=threads, progress=progress)
     seconds = paper_done[0]

@@ -31,9 +31,11 @@ from pipeline.formats.recordings import read_recording, recording_folders, write
 from pipeline.io.atomic import atomic_dir, atomic_write_text, read_json
 from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
-from stages.artifacts.paths import CHAINS, LAB as OUT, LAB_METRICS as METRICS, LAB_MODELS, LAB_MODELS_SUMMARY, \
-    LAB_REPORT as REPORT, PAPER, SHIPPED, TRAIN_METRICS
 from stages.artifacts.models import load_chain
+from stages.artifacts.paths import CHAINS, LAB_MODELS, LAB_MODELS_SUMMARY, PAPER, SHIPPED, TRAIN_METRICS
+from stages.artifacts.paths import LAB as OUT
+from stages.artifacts.paths import LAB_METRICS as METRICS
+from stages.artifacts.paths import LAB_REPORT as REPORT
 from stages.config.build import mockup, retrain_reason, scene_settings
 from stages.config.device import torch_setup
 from stages.config.params import given, with_params
@@ -90,8 +92,8 @@ def render_lab(p: Params, dest: Path) -> list[dict[str, Any]]:
     Returns per sequence the exact lab labels (for checking the loader round trip).
     """
     from pipeline.evaluation.lab import synthetic_recording
-    from pipeline.images import shift_recording
     from pipeline.geometry.rotations import quat_to_matrix
+    from pipeline.images import shift_recording
 
     lab, r = p.lab, p.render
     ds = lab.domain_shift
@@ -132,8 +134,8 @@ def main(params: Params, ctx: typer.Context) -> None:
     if ctx.invoked_subcommand is not None:
         return
     from pipeline.attacks.gradient import attack_loss
-    from pipeline.evaluation.sequences import evaluate_sequences, fgsm_error_table, nan_to_none, per_eps_summary
     from pipeline.evaluation.lab import lab_to_synthetic_factor
+    from pipeline.evaluation.sequences import evaluate_sequences, fgsm_error_table, nan_to_none, per_eps_summary
 
     lab = params.lab
     torch_setup(params)
@@ -185,8 +187,8 @@ def shipped_alarms(p: Params, sequences: list[Sequence]) -> dict[str, Any]:
     mean pose errors (m, deg; synthetic-frame metres), and the share of the frames' non-zero channel values that
     its black-level clamp erases (the lab's noise and blur lift them off zero)."""
     from pipeline.defense.chain import run_sequence
-    from pipeline.stats import rate
     from pipeline.pose.metrics import pose_errors
+    from pipeline.stats import rate
 
     shipped = load_chain(p, SHIPPED)
     chain, model_hash, threshold = shipped.onboard, shipped.pose_hash, shipped.defended.settings.threshold

@@ -31,12 +31,12 @@ from typing import Any
 
 from pipeline.io.atomic import atomic_dir, file_hash, read_json, write_json
 from pipeline.seeds import seed_for
-from stages.artifacts.paths import (DETECT_METRICS, DETECTOR, LAB_MODELS, LAB_MODELS_SUMMARY, POSE, RENDER,
-                                   TRAIN_METRICS)
+from stages.artifacts.paths import DETECT_METRICS, DETECTOR, LAB_MODELS, LAB_MODELS_SUMMARY, POSE, RENDER, TRAIN_METRICS
 from stages.config.build import mockup, retrain_reason
 from stages.config.params import NONE, PARAMS_FILE, ROOT, write_params
 from stages.config.schema import Params
 from stages.errors import StageError
+
 
 def sub_params(p: Params) -> Params:
     """params.yaml of the synthetic-lab sub-pipeline: the main params with the mock-up as the target."""

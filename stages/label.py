@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.geometry.labels import POSITION, QUAT, SIXD
 from pipeline.io.atomic import atomic_write_text
 from pipeline.io.tables import write_parquet
-from pipeline.geometry.labels import POSITION, QUAT, SIXD
 from pipeline.seeds import seed_for
 from stages.artifacts.data import RENDER_KEY
-from stages.artifacts.paths import DATASET_CARD as CARD, IMAGES, LABELS, PREVIEWS, RENDER
+from stages.artifacts.paths import DATASET_CARD as CARD
+from stages.artifacts.paths import IMAGES, LABELS, PREVIEWS, RENDER
 from stages.artifacts.readers import read_render_store
 from stages.config import params as params_mod
 from stages.config.schema import Params

@@ -21,18 +21,20 @@ from typing import Any
 import numpy as np
 import typer
 
+from pipeline.io.atomic import atomic_dir, exclusive, remove_stale_temps, write_json
+from pipeline.io.tables import write_parquet
 from pipeline.seeds import seed_for
 from stages.artifacts import speed as speed_io
 from stages.artifacts.dvc import write_metrics
-from stages.artifacts.paths import PREVIEWS, RENDER as OUT, RENDER_METRICS as METRICS
+from stages.artifacts.paths import PREVIEWS
+from stages.artifacts.paths import RENDER as OUT
+from stages.artifacts.paths import RENDER_METRICS as METRICS
 from stages.artifacts.readers import read_render_store
 from stages.config import params as params_mod
 from stages.config.build import intrinsics, scene_settings
 from stages.config.schema import Params
 from stages.engine.chunks import keyed_store, render_to_store, replacing, store_url
 from stages.engine.pool import engine_settings
-from pipeline.io.atomic import atomic_dir, exclusive, remove_stale_temps, write_json
-from pipeline.io.tables import write_parquet
 from stages.errors import StageError
 
 PREVIEW_WIDTH = 480  # previews are upscaled (nearest neighbour) to about this width for viewing

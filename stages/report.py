@@ -26,8 +26,8 @@ import typer
 
 from pipeline.io.atomic import atomic_write_text, read_json, save_figure, write_json
 from stages.artifacts.dvc import make_hint
-from stages.artifacts.paths import (BENCHMARKS, PAGE, README, REPORT_FIGURES, ROC_DATA, SHAP as SHAP_STORE, SUMMARY,
-                                   VARIANCE)
+from stages.artifacts.paths import BENCHMARKS, PAGE, README, REPORT_FIGURES, ROC_DATA, SUMMARY, VARIANCE
+from stages.artifacts.paths import SHAP as SHAP_STORE
 from stages.config.params import PARAMS_FILE, load
 from stages.config.schema import Params
 from stages.errors import StageError
@@ -186,8 +186,8 @@ def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, s
 
 def _shap_means() -> dict[str, Any]:
     """Mean |phi| (9, F) over normal and adversarial samples of the SHAP store, read chunk by chunk."""
-    from pipeline.report.markdown import mean_abs_by_class
     from pipeline.io.store import open_zarr
+    from pipeline.report.markdown import mean_abs_by_class
 
     root = open_zarr(SHAP_STORE, "SHAP store")
     values, adv = root["values"], root["is_adversarial"][:].astype(bool)

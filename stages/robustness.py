@@ -31,21 +31,23 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.geometry.labels import TARGET
 from pipeline.io.atomic import atomic_write_text, read_json, save_figure
 from pipeline.io.errors import not_found
-from pipeline.geometry.labels import TARGET
 from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
-from stages.artifacts.paths import INTEGRITY_FIGURE, PAPER, ROBUST_METRICS, ROBUSTNESS_FIGURE as FIGURE, \
-    ROBUSTNESS_METRICS as METRICS, ROBUSTNESS_REPORT as REPORT, SHIPPED, SURROGATE
-from stages.artifacts.readers import read_eval_render
 from stages.artifacts.models import load_chain, load_pose
+from stages.artifacts.paths import INTEGRITY_FIGURE, PAPER, ROBUST_METRICS, SHIPPED, SURROGATE
+from stages.artifacts.paths import ROBUSTNESS_FIGURE as FIGURE
+from stages.artifacts.paths import ROBUSTNESS_METRICS as METRICS
+from stages.artifacts.paths import ROBUSTNESS_REPORT as REPORT
+from stages.artifacts.readers import read_eval_render
 from stages.config.device import torch_setup
 from stages.config.evaluation import Robustness, attack_name
 from stages.config.schema import Params
 from stages.errors import StageError
-from stages.pages.robustness import pose_models, robustness_page
 from stages.pages.calibrate import unmet_banner
+from stages.pages.robustness import pose_models, robustness_page
 
 
 def main(params: Params) -> None:
@@ -53,8 +55,8 @@ def main(params: Params) -> None:
     from tqdm import tqdm
 
     from pipeline.attacks.adaptive import PerFrameChain
-    from pipeline.report.figures import robustness_vs_eps
     from pipeline.evaluation.robustness import run_attack_rows, worst_by_eps
+    from pipeline.report.figures import robustness_vs_eps
 
     # the lambdas as floats, as the metrics echo them
     r = dataclasses.replace(params.robustness, lambdas=[float(v) for v in params.robustness.lambdas])
@@ -93,7 +95,8 @@ def main(params: Params) -> None:
                "clean_harmful_rate": clean_harm.value, "ci95_clean_harmful": clean_harm.ci(),
                "surrogate": {"best_epoch": int(surrogate.meta.get("epoch", 0)),
                              "validation_position_m": float(surrogate.meta.get("val_pos_m", float("nan")))},
-               "model": SHIPPED.value, "model_hash": shipped.pose_hash, "surrogate_hash": surrogate.hash, "seconds": seconds,
+               "model": SHIPPED.value, "model_hash": shipped.pose_hash, "surrogate_hash": surrogate.hash,
+               "seconds": seconds,
                "minutes": seconds / 60, "worst_harmful_undetected": worst_by_eps(rows), **fused,
                "worst_harmful_undetected_fused": worst_by_eps(fused["fused_rows"]), "integrity_standard": standard,
                "pose_models": pose_models(read_json(ROBUST_METRICS))}
@@ -134,11 +137,11 @@ def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Rob
                      shipped_threshold: float, progress: Any) -> tuple[Any, list[dict[str, Any]]]:
     """(rate of clean frames beyond harm_m, corruption rows: `none` first, then each corruption and strength;
     false alarms at the detector's own threshold and at the shipped one, models/defense.json's)."""
-    from pipeline.defense.chain import run_sequence
     from pipeline.attacks.corruptions import corrupt
+    from pipeline.defense.chain import run_sequence
     from pipeline.evaluation.robustness import corruption_row
-    from pipeline.stats import rate
     from pipeline.pose.metrics import pose_errors
+    from pipeline.stats import rate
 
     none = np.zeros(len(images), bool)
     clean = run_sequence(chain, images, targets, none, None, r.batch_size, progress)
@@ -166,7 +169,8 @@ def _standard_integrity(p: Params, r: Robustness, seed: int) -> dict[str, Any]:
     out = _integrity(p, r, paper, PerFrameChain(paper.model, chain.shap, chain.detector), seed,
                      list(i.standard_attackers), i.standard_trajectories)
     out.pop("figure")
-    return {**out["integrity"], "model": PAPER.value, "model_hash": paper.pose_hash, "trajectories": out["fused"]["trajectories"],
+    return {**out["integrity"], "model": PAPER.value, "model_hash": paper.pose_hash,
+            "trajectories": out["fused"]["trajectories"],
             "false_alarm_rate": out["fused"]["false_alarm_rate"], "ci95_false_alarm": out["fused"]["ci95_false_alarm"],
             "calibration_unmet": out["fused"]["calibration_unmet"]}
 

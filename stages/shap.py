@@ -31,17 +31,17 @@ from typing import Annotated, Any
 
 import numpy as np
 
+from pipeline.geometry.labels import TARGET
 from pipeline.io.atomic import atomic_dir
 from pipeline.io.store import create_array
-from pipeline.geometry.labels import TARGET
 from pipeline.seeds import seed_for
 from stages.artifacts.data import load_split
+from stages.artifacts.models import load_pose, model_option
 from stages.artifacts.paths import CHAINS, DETECT_RENDER, Model
 from stages.artifacts.readers import BATCH, SampleImages
-from stages.artifacts.models import load_pose, model_option
 from stages.config.device import torch_setup
-from stages.config.sections import Shap
 from stages.config.schema import Params
+from stages.config.sections import Shap
 from stages.errors import StageError
 
 

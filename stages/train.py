@@ -31,8 +31,19 @@ from pipeline.formats.renders import META
 from pipeline.io.atomic import atomic_outputs, atomic_write_text, file_hash, read_json
 from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
-from stages.artifacts.paths import LABELS, POSE, POSE_REPORT as REPORT, POSE_ROBUST, RENDER, ROBUST_LIVE, ROBUST_METRICS, \
-    ROBUST_REPORT, SURROGATE, TRAIN_LIVE, TRAIN_METRICS as METRICS
+from stages.artifacts.paths import (
+    LABELS,
+    POSE,
+    POSE_ROBUST,
+    RENDER,
+    ROBUST_LIVE,
+    ROBUST_METRICS,
+    ROBUST_REPORT,
+    SURROGATE,
+    TRAIN_LIVE,
+)
+from stages.artifacts.paths import POSE_REPORT as REPORT
+from stages.artifacts.paths import TRAIN_METRICS as METRICS
 from stages.config.schema import Params
 from stages.errors import StageError
 from stages.pages.pose import pose_page, robust_page
@@ -49,8 +60,8 @@ def main(
     """Train the pose CNN; keep the best checkpoint by validation error; report test errors next to the paper's."""
     import torch
 
-    from pipeline.pose.loss import PoseLoss
     from pipeline.formats.models import save_pose
+    from pipeline.pose.loss import PoseLoss
     from pipeline.pose.train import DivergenceError, fit
     from stages.artifacts import data
     from stages.config.device import distributed

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.attacks.adaptive import PerFrameChain
 from pipeline.attackers.base import AttackRun
-from pipeline.attackers.suite import get_attacker
 from pipeline.attackers.burst import BurstAttacker, bursts_of
 from pipeline.attackers.filter_mirror import FilterMirror
+from pipeline.attackers.suite import get_attacker
+from pipeline.attacks.adaptive import PerFrameChain
 from pipeline.attacks.gradient import attack_loss, pgd, quantize
 from pipeline.defense.fusion import Defense, DefenseSettings, run_defense
 from pipeline.defense.gate import MotionSettings

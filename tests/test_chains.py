@@ -8,13 +8,13 @@ from pathlib import Path
 
 import pytest
 import torch
+from test_predict import H, W, _save_models, defense_record
 
 from pipeline.formats.bundle import FILES, SOURCES
 from pipeline.io.atomic import file_hash, read_json, write_json
 from pipeline.io.errors import DataError
 from stages.artifacts.paths import CHAINS, PAPER, SHIPPED, Model
 from stages.config import params as params_mod
-from test_predict import H, W, _save_models, defense_record
 
 
 def _run(root: Path) -> Path:

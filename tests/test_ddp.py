@@ -8,11 +8,11 @@ import sys
 from pathlib import Path
 
 import torch
+from test_training import H, W, write_dataset
 
 from stages.artifacts import models
 from stages.artifacts.paths import POSE
 from stages.config import params as params_mod
-from test_training import H, W, write_dataset
 
 
 def test_torchrun_two_processes_gloo(tmp_path, monkeypatch):

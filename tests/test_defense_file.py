@@ -9,7 +9,8 @@ import json
 from typing import Any
 
 import pytest
-from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from pipeline.defense.chain import Defended
 from pipeline.defense.fusion import DefenseSettings
@@ -22,7 +23,7 @@ from rpodguard.api import BUNDLE
 RECORD = json.loads((BUNDLE / "defense.json").read_text())   # what `rpod calibrate` wrote for the shipped chain
 WHERE = "models/defense.json"
 EXAMPLES = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-CALIBRATED = {"threshold", "update_below", "cusum_threshold"}   # the settings calibrate chooses (checked against the file)
+CALIBRATED = {"threshold", "update_below", "cusum_threshold"}   # the settings calibrate chooses
 
 
 def paths(record: Any, prefix: tuple = ()) -> list[tuple]:
@@ -99,8 +100,7 @@ def test_a_value_of_the_wrong_type_or_not_finite_is_refused(path, bad):
 
 RANGED = {**{("settings", k): r for k, r in {**ranges(DefenseSettings), **ranges(MotionSettings)}.items()
              if k not in CALIBRATED},
-          ("alert_limit", "tolerance"): None, ("alert_limit", "max_step"): None, ("alert_limit", "collision_range"): None,
-          ("alert_limit", "fixed"): None}
+          **{("alert_limit", k): None for k in ("tolerance", "max_step", "collision_range", "fixed")}}
 
 
 @EXAMPLES
@@ -139,7 +139,8 @@ def test_the_probes_of_issue_42_are_refused_with_one_line(path, value, message):
 
 @pytest.mark.parametrize("change, message", [
     (lambda r: r["settings"].update(threshold=0.5), "must be the calibrated threshold"),
-    (lambda r: r["noise"]["knot_std"][0].__setitem__(0, -0.5), "noise.knot_std\\[0\\]\\[0\\] must be a positive number"),
+    (lambda r: r["noise"]["knot_std"][0].__setitem__(0, -0.5),
+     "noise.knot_std\\[0\\]\\[0\\] must be a positive number"),
     (lambda r: r["noise"].update(floor=0.5), "noise is not fitted_noise inflated"),
     (lambda r: (r["noise"].update(floor=10.0), r["fitted_noise"].update(floor=8.0)),
      "floor 10.0 must lie below its largest standard deviation"),

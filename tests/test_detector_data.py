@@ -64,8 +64,8 @@ def test_the_detector_split_has_enough_trajectories_of_its_own_seed():
 
 def _write_trajectories(folder: Path, p, n: int, seed: int) -> np.ndarray:
     """A stand-in detector split (what `rpod eval_render --detector` writes) of random images; returns them."""
-    from pipeline.geometry.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
     from pipeline.geometry.labels import pose_columns
+    from pipeline.geometry.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
 
     rng = np.random.default_rng(seed)
     h, w = p.render.height, p.render.width
@@ -87,12 +87,12 @@ def test_the_shap_stage_explains_only_images_the_pose_network_never_saw(tmp_path
     """The detector's sample plan has no image on both the pose-training and the detector side, and its
     clean and attacked samples share their source images (checked on the GAP features of what was explained)."""
     import torch
+    from test_lab import stand_in_models
+    from test_training import write_dataset
 
     from pipeline.shap import gap_features
     from stages import shap
     from stages.artifacts.data import load_split
-    from test_lab import stand_in_models
-    from test_training import write_dataset
 
     monkeypatch.chdir(tmp_path)
     torch.set_num_threads(1)

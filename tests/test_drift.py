@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.attacks.adaptive import PerFrameChain
 from pipeline.attackers.base import AttackRun
 from pipeline.attackers.drift import DriftAttacker, DriftSettings, drift_estimates, targeted_pgd
 from pipeline.attackers.suite import get_attacker
+from pipeline.attacks.adaptive import PerFrameChain
 from pipeline.defense.fusion import Defense, DefenseSettings, run_defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel

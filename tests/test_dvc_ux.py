@@ -200,7 +200,8 @@ def test_every_input_a_stage_reads_has_a_producer():
     ("shap", "datasets/shap.zarr not found: run `dvc repro shap` (or `rpod shap --model standard`)"),
 ])
 def test_missing_input_names_the_stage_that_writes_it(tmp_path, monkeypatch, load, message):
-    from stages.artifacts import models, readers as artifacts
+    from stages.artifacts import models
+    from stages.artifacts import readers as artifacts
     from stages.artifacts.paths import SHAP
     from stages.config.params import load as load_params
 

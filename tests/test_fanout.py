@@ -7,14 +7,14 @@ import sys
 
 import numpy as np
 import pytest
+from faults import exits_once
+from test_engine import two_nodes  # noqa: F401  (the two-node local cluster fixture)
 
 from pipeline.geometry.camera import reference_intrinsics
 from pipeline.guidance.grid import GridPilot, GridPlan, defended_grid, grid_counts, paper_grid
 from pipeline.guidance.law import Estimate, GuidanceSettings
-from faults import exits_once
 from stages.engine import pool as engine
 from stages.engine.guidance_worker import Flight, flights
-from test_engine import two_nodes  # noqa: F401  (the two-node local cluster fixture)
 
 K = reference_intrinsics().scaled(160, 90)
 
@@ -42,10 +42,10 @@ def attack_at(chain: str, eps: float, i: int):
 
 
 def defense():
+    from pipeline.defense.chain import Defended
     from pipeline.defense.fusion import DefenseSettings
     from pipeline.defense.gate import MotionSettings
     from pipeline.defense.noise import NoiseModel
-    from pipeline.defense.chain import Defended
 
     return Defended(DefenseSettings(hold_after=20), MotionSettings(false_alarm=0.005),
                     NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02))
@@ -123,11 +123,11 @@ def attack_sets(tmp_path, es: engine.EngineSettings) -> tuple:
     import torch
     import zarr
 
+    from pipeline.formats.models import save_pose
     from pipeline.pose.loss import PoseLoss
     from pipeline.pose.model import PoseNet
-    from pipeline.formats.models import save_pose
-    from stages.attack import _attack_into
     from pipeline.seeds import seed_for
+    from stages.attack import _attack_into
     from stages.config import params as params_mod
     from stages.config.schema import build
     from stages.engine.attack_worker import AttackSetup

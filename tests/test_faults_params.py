@@ -13,11 +13,12 @@ import typing
 from typing import Annotated, Any
 
 import pytest
-from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
+from pipeline.settings import In
 from stages.config.params import compose
 from stages.config.schema import Params, build
-from pipeline.settings import In
 from stages.config.sections import ParamsError
 
 

@@ -51,10 +51,11 @@ def _images(meta: dict) -> np.ndarray:
 def test_labels_of_another_render_are_refused_by_train_and_export(workdir, capsys):
     """The probe: `rpod render` with another seed, then `rpod train` / `rpod export speed` (before: seed-0 labels
     paired with seed-1 pixels, exit 0)."""
+    from typer.testing import CliRunner
+
     from stages import train
     from stages.cli import app
     from tests.test_training import write_dataset
-    from typer.testing import CliRunner
 
     write_dataset(workdir)
     seed0 = (workdir / "datasets/labels.parquet").read_bytes()
@@ -94,10 +95,10 @@ def _poses_from_labels(root: Path) -> None:
     """datasets/render/poses.parquet as `rpod render` writes it, from test_training's labels of the render."""
     import pandas as pd
 
+    from pipeline.geometry.labels import POSITION, QUAT
     from pipeline.geometry.rotations import quat_to_matrix
     from pipeline.geometry.trajectories import poses_table
     from pipeline.io.tables import write_parquet
-    from pipeline.geometry.labels import POSITION, QUAT
 
     df = pd.read_parquet(root / "datasets/labels.parquet")
     write_parquet(poses_table(df["index"].to_numpy(), df["sequence"].to_numpy(), df["frame"].to_numpy(),

@@ -9,12 +9,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
-
 from faults import exits_once
+
 from stages.config import params as params_mod
-from stages.engine.pool import engine_settings
 from stages.config.schema import build
 from stages.engine import pool as engine
+from stages.engine.pool import engine_settings
 from stages.errors import StageError
 
 

@@ -8,11 +8,20 @@ import numpy as np
 import pytest
 
 from pipeline.defense.fusion import COAST, HOLD, TRACK, DefenseTrace
-from pipeline.defense.integrity import (AlertLimitSettings, IntegrityFrames, alert_limit, attack_hmi, attack_mi,
-                                           clean_rates, concat, defense_frames, integrity_rates)
-from pipeline.stats import bootstrap_rate
+from pipeline.defense.integrity import (
+    AlertLimitSettings,
+    IntegrityFrames,
+    alert_limit,
+    attack_hmi,
+    attack_mi,
+    clean_rates,
+    concat,
+    defense_frames,
+    integrity_rates,
+)
 from pipeline.geometry.camera import reference_intrinsics
 from pipeline.guidance.law import GuidanceSettings, run_rendezvous
+from pipeline.stats import bootstrap_rate
 from stages.config import params as params_mod
 from stages.config.sections import ParamsError
 

@@ -10,17 +10,16 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+from test_burst import scene  # noqa: F401  (its tiny PoseNet and LSTM)
 
 from pipeline.attackers.burst import BurstAttacker
 from pipeline.attackers.drift import DriftSettings
-from pipeline.defense.chain import OnboardChain
+from pipeline.defense.chain import Defended, OnboardChain
 from pipeline.defense.fusion import DefenseSettings
 from pipeline.defense.gate import MotionSettings
-from pipeline.defense.noise import NoiseModel
 from pipeline.defense.integrity import AlertLimitSettings, defense_frames
+from pipeline.defense.noise import NoiseModel
 from pipeline.evaluation.integrity_runs import Track, burst_attack, clean_row, counted, drift_attack, fly, integrity_row
-from pipeline.defense.chain import Defended
-from test_burst import scene  # noqa: F401  (its tiny PoseNet and LSTM)
 
 N = 12
 NOISE = NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02)

@@ -2,11 +2,18 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from pipeline.evaluation.lab import (
+    LabDataError,
+    lab_to_synthetic_factor,
+    lab_to_synthetic_position,
+    match_frames,
+    paper_lab_factor,
+    relative_pose,
+    synthetic_recording,
+)
 from pipeline.geometry.camera import Intrinsics, project, reference_intrinsics
-from pipeline.evaluation.lab import (LabDataError, lab_to_synthetic_factor, lab_to_synthetic_position, match_frames,
-                                     paper_lab_factor, relative_pose, synthetic_recording)
-from pipeline.images import domain_shift, segment
 from pipeline.geometry.rotations import euler_to_matrix, matrix_to_quat, quat_to_matrix
+from pipeline.images import domain_shift, segment
 from pipeline.pose.metrics import attitude_error_deg
 from stages.config.schema import Params, build
 
@@ -150,8 +157,8 @@ def test_segmentation_and_domain_shift():
 
 
 def test_loader_round_trips_a_synthetic_lab_recording(tmp_path):
-    from pipeline.io.errors import DataError
     from pipeline.formats.recordings import read_recording, write_recording
+    from pipeline.io.errors import DataError
 
     rec = synthetic_recording(1.6, 1.0, 12, 30.0, 120.0, np.array([1.0, 0, 0, 0]), lateral=(0.01, 0.0))
     rng = np.random.default_rng(0)
@@ -203,10 +210,10 @@ def stand_in_models(p):
     import torch
 
     from pipeline.detectors.lstm import LSTMConfig, LSTMDetector, to_checkpoint
-    from pipeline.pose.loss import PoseLoss
-    from pipeline.pose.model import PoseNet
     from pipeline.formats.models import save_pose
     from pipeline.io.atomic import file_hash
+    from pipeline.pose.loss import PoseLoss
+    from pipeline.pose.model import PoseNet
 
     torch.manual_seed(0)
     h, w = p.render.height, p.render.width
@@ -231,8 +238,8 @@ def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
 
     from typer.testing import CliRunner
 
-    from stages.config import params as params_mod
     from stages.cli import app
+    from stages.config import params as params_mod
 
     monkeypatch.chdir(tmp_path)
     p = params_mod.compose("smoke", ["evaluate.frames=12", "lab.frames=6", "evaluate.eps=[0.5,0.05]"])
@@ -278,9 +285,9 @@ def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, mo
     import torch
     from typer.testing import CliRunner
 
-    from stages.config import params as params_mod
-    from stages.cli import app
     from pipeline.io.atomic import file_hash
+    from stages.cli import app
+    from stages.config import params as params_mod
 
     monkeypatch.chdir(tmp_path)
     p = params_mod.compose("smoke", ["lab.retrain=always", "lab.frames=4", "lab.train_frames_per_sequence=3",
@@ -338,8 +345,8 @@ def test_bad_lab_params_are_refused(edit, message):
 
 def test_when_the_lab_stage_retrains(tmp_path, monkeypatch):
     from stages.config import params as params_mod
-    from stages.errors import StageError
     from stages.config.build import retrain_reason
+    from stages.errors import StageError
     from stages.lab_models import sub_params
 
     def typed(profile: str, overrides: list[str] | None = None) -> Params:
@@ -363,7 +370,6 @@ def test_a_failing_retrain_step_is_one_clear_error(tmp_path, monkeypatch):
     from pathlib import Path
 
     from stages import lab_models
-
     from stages.config import params as params_mod
     from stages.errors import StageError
 

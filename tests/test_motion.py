@@ -8,8 +8,8 @@ from scipy.spatial.transform import Rotation
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.kalman import MotionFilter
 from pipeline.defense.noise import NoiseModel, fit_noise
+from pipeline.geometry.trajectories import approach_trajectory, look_at
 from pipeline.stats import rate
-from pipeline.geometry.trajectories import look_at, approach_trajectory
 
 NOISE = NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02)
 
@@ -29,7 +29,7 @@ def simulate(settings: MotionSettings, n: int, seed: int, start_xy=(20.0, -15.0)
     t = np.einsum("nji,nj->ni", R_cam, rel)
     t_pred = t + rng.normal(0, 1, (n, 3)) * np.array([NOISE.position_std(r) for r in np.linalg.norm(t, axis=1)])
     R_tw, w = [np.eye(3)], np.zeros(3)        # target attitude: the rate model's random walk
-    for k in range(1, n):
+    for _ in range(1, n):
         R_tw.append(R_tw[-1] @ Rotation.from_rotvec(w + rng.normal(0, np.radians(settings.attitude_noise_deg), 3))
                     .as_matrix())
         w = w + rng.normal(0, np.radians(settings.attitude_rate_noise_deg), 3)

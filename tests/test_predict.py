@@ -23,11 +23,11 @@ def _save_models(folder: Path, K: np.ndarray | None = None, black_level: float =
     `seed`; `K`: the camera matrix `rpod train` stores, None for a checkpoint from before it did; `black_level`: the
     robust model's input clamp, 0 for the standard model)."""
     from pipeline.detectors.lstm import LSTMConfig, LSTMDetector, to_checkpoint
-    from pipeline.pose.loss import PoseLoss
-    from pipeline.pose.model import PoseNet
     from pipeline.formats.models import DETECTOR_FORMAT, save_pose
     from pipeline.io.atomic import file_hash
     from pipeline.io.checkpoints import save_torch
+    from pipeline.pose.loss import PoseLoss
+    from pipeline.pose.model import PoseNet
 
     torch.manual_seed(seed)
     model = PoseNet(width=0.125, black_level=black_level).eval()

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from pipeline.detectors.metrics import detection_delays, frame_metrics, mean_over, undetected_mask
 from pipeline.attacks.schedule import attack_schedule, bursts, schedule_bursts
+from pipeline.detectors.metrics import detection_delays, frame_metrics, mean_over, undetected_mask
 
 
 @pytest.mark.parametrize("p, length", [(0.2, 5), (0.05, 10), (0.5, 3)])

@@ -15,12 +15,12 @@ import zarr
 
 from pipeline.formats.models import read_pose, save_pose
 from pipeline.geometry.camera import reference_intrinsics
-from pipeline.geometry.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
 from pipeline.geometry.labels import pose_columns
-from stages.artifacts import data, models
+from pipeline.geometry.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
 from pipeline.io.atomic import file_hash, write_json
 from pipeline.io.errors import DataError
 from pipeline.io.store import create_array, seal_zarr
+from stages.artifacts import data, models
 from stages.artifacts.paths import POSE
 from stages.config import params as params_mod
 from stages.config.params import load
@@ -244,9 +244,9 @@ def test_holdout_keeps_groups_whole():
 
 def test_checkpoint_bytes_do_not_depend_on_the_temporary_name(tmp_path):
     """The same weights saved twice give the same file hash (models/pose.pt's hash is in the reports)."""
+    from pipeline.io.atomic import file_hash
     from pipeline.pose.loss import PoseLoss
     from pipeline.pose.model import PoseNet
-    from pipeline.io.atomic import file_hash
 
     torch.manual_seed(0)
     model, loss = PoseNet(0.125), PoseLoss()

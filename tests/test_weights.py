@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 import yaml
 from PIL import Image
+from test_predict import _rpod
 
 from pipeline.formats.bundle import FILES, MANIFEST, SOURCES, check_bundle
 from pipeline.io.atomic import file_hash, read_json
 from pipeline.io.errors import DataError
 from rpodguard import load_chain
 from rpodguard.api import BUNDLE
-from test_predict import _rpod
 
 REPO = Path(__file__).resolve().parents[1]
 

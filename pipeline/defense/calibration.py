@@ -201,7 +201,8 @@ class UnmetShare(ValueError):
     """A check could not meet its share of the budget (`check`: its CheckResult)."""
 
     def __init__(self, check: CheckResult) -> None:
-        super().__init__(f"the {check.check} cannot meet its share {check.share:g}: it flags {min(check.rates.values()):g}")
+        best = min(check.rates.values())
+        super().__init__(f"the {check.check} cannot meet its share {check.share:g}: it flags {best:g} at best")
         self.check = check
 
 

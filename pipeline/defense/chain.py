@@ -206,7 +206,8 @@ class Defended:
     def new(self, fusion: str | None = None) -> Defense:
         """A fresh Defense (one per trajectory or closed-loop run), optionally with another fusion."""
         s = self.settings if fusion is None else dataclasses.replace(self.settings, fusion=fusion)
-        return Defense(s, self.motion, self.noise, None if self.alert is None else partial(alert_limit, settings=self.alert))
+        limit = None if self.alert is None else partial(alert_limit, settings=self.alert)
+        return Defense(s, self.motion, self.noise, limit)
 
     def defense(self) -> Defense:
         """`new()` by the name pipeline/evaluation/integrity_runs.py calls."""

@@ -13,8 +13,16 @@ import numpy as np
 
 from pipeline.defense.chain import Defended, OnboardChain
 from pipeline.defense.integrity import AlertLimitSettings
-from pipeline.evaluation.integrity_runs import (Flown, Track, burst_attack, clean_row, drift_attack, fly, integrity_row,
-                                                raw_errors)
+from pipeline.evaluation.integrity_runs import (
+    Flown,
+    Track,
+    burst_attack,
+    clean_row,
+    drift_attack,
+    fly,
+    integrity_row,
+    raw_errors,
+)
 from pipeline.evaluation.robustness import fused_row
 from pipeline.stats import Rate, bootstrap_rate
 
@@ -76,8 +84,8 @@ def fly_campaign(chain: OnboardChain, target: Any, defended: Defended, tracks: S
     for e in c.eps if c.drifts else []:
         stored = drift_attack(target, defended, tracks, clean, c.window, [s for _, s in c.drifts], e, c.drift_steps,
                               c.drift_seed, progress)
-        runs += [(name, e, [fly(chain, defended, t, c.limit, c.batch_size, s, f) for t, s, f in zip(tracks, per, clean)],
-                  masks) for (name, _), per in zip(c.drifts, stored)]
+        runs += [(name, e, [fly(chain, defended, t, c.limit, c.batch_size, s, f)
+                            for t, s, f in zip(tracks, per, clean)], masks) for (name, _), per in zip(c.drifts, stored)]
     rows = [integrity_row(name, e, flown, clean, masks, seed=c.seed) | ({"bursts_with_hmi": bursts_hmi[e]}
                                                                          if name == "burst" else {})
             for name, e, flown, masks in runs]

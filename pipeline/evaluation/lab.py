@@ -46,8 +46,8 @@ import pandas as pd
 from scipy.spatial.transform import Rotation, Slerp
 
 from pipeline.geometry.camera import Intrinsics
-from pipeline.geometry.rotations import UNIT_TOLERANCE, matrix_to_quat, normalize_quat, quat_to_matrix
 from pipeline.geometry.labels import QUAT
+from pipeline.geometry.rotations import UNIT_TOLERANCE, matrix_to_quat, normalize_quat, quat_to_matrix
 
 Match = Literal["nearest", "interpolate"]
 CAMERA_COLUMNS = ["frame", "timestamp"]
@@ -345,10 +345,11 @@ def loader_errors(recs: list[dict[str, Any]], truth: list[dict[str, Any]]) -> di
 def chain_sequences(recs: list[dict[str, Any]], K_syn: Intrinsics, K_lab: Intrinsics, scale: float, p_start: float,
                     length: int, seed: int) -> tuple[list[Any], list[dict[str, Any]]]:
     """Loaded recordings as safety-chain `Sequence`s (targets: synthetic-frame position in metres, then
-    the 6-D rotation; attack schedule seeded with the "lab.schedule" stream of `seed`, pipeline/seeds.py) and their range-table rows."""
-    from pipeline.geometry.rotations import quat_to_6d
+    the 6-D rotation; attack schedule seeded with the "lab.schedule" stream of `seed`, pipeline/seeds.py) and their
+    range-table rows."""
     from pipeline.attacks.schedule import attack_schedule
     from pipeline.evaluation.sequences import Sequence
+    from pipeline.geometry.rotations import quat_to_6d
     from pipeline.seeds import seed_for
 
     sequences, ranges = [], []
@@ -356,7 +357,8 @@ def chain_sequences(recs: list[dict[str, Any]], K_syn: Intrinsics, K_lab: Intrin
         t_syn = lab_to_synthetic_position(rec["t_lab"], K_syn, K_lab, scale)
         targets = np.concatenate([t_syn, quat_to_6d(rec["q"])], 1).astype(np.float32)
         sequences.append(Sequence(name=rec["name"], images=rec["images"], targets=targets,
-                                  attacked=attack_schedule(len(targets), p_start, length, seed_for(seed, "lab.schedule", i))))
+                                  attacked=attack_schedule(len(targets), p_start, length,
+                                                           seed_for(seed, "lab.schedule", i))))
         zl = rec["t_lab"][:, 2]
         ranges.append({"sequence": rec["name"], "frames": len(zl), "lab z start (m)": float(zl[0]),
                        "lab z end (m)": float(zl[-1]), "synthetic z start (m)": float(t_syn[0, 2]),

@@ -163,7 +163,8 @@ def check_settings(cal: DefenseFile, where: str, wanted: Defended, doubt: float 
     -> the key of `source` that gives it, for the message."""
     calibrated = {"threshold", "update_below", "cusum_threshold"}
     pairs = [(f"{part}.{f.name}", getattr(have, f.name), getattr(want, f.name), f.name)
-             for part, have, want in (("settings", cal.settings, wanted.settings), ("settings", cal.motion, wanted.motion),
+             for part, have, want in (("settings", cal.settings, wanted.settings),
+                                      ("settings", cal.motion, wanted.motion),
                                       ("alert_limit", cal.alert_limit, wanted.alert))
              for f in dataclasses.fields(want) if f.name not in calibrated]
     if (cal.settings.update_below is None) != (doubt is None):

@@ -148,8 +148,8 @@ def poses_table(idx: np.ndarray, seq: np.ndarray, frm: np.ndarray, R: np.ndarray
     q (qw, qx, qy, qz; target -> camera) and range (m)."""
     import pandas as pd
 
-    from pipeline.geometry.rotations import matrix_to_quat
     from pipeline.geometry.labels import pose_columns
+    from pipeline.geometry.rotations import matrix_to_quat
 
     q = matrix_to_quat(R)
     return pd.DataFrame({"index": idx, "sequence": seq, "frame": frm,

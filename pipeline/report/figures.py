@@ -365,7 +365,7 @@ def integrity_diagram(points: Mapping[str, Mapping[str, np.ndarray]], series: Ma
     axes[0].set(xlim=(lo, top), ylim=(lo, top))
     axes[0].set(xscale="log", yscale="log", xlabel=f"{names[0]} (m)", ylabel="trusted error (m)",
                 title=f"error against {names[0]}, counted frames")
-    for j, (label, err) in enumerate(series.items()):
+    for j, err in enumerate(series.values()):
         axes[1].plot(np.arange(len(err)), err, "-", lw=1.1, color=f"C{j}")
     axes[1].plot(np.arange(len(alert)), alert, "k--", lw=1, label="AL")
     axes[1].set(yscale="log", xlabel="frame", ylabel="trusted error (m)", title="one trajectory")

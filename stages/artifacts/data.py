@@ -17,15 +17,15 @@ import numpy as np
 import pandas as pd
 
 from pipeline.formats.renders import META, read_renders
+from pipeline.geometry.labels import POSITION, QUAT, SIXD
 from pipeline.io.atomic import read_json
 from pipeline.io.tables import read_parquet
-from pipeline.geometry.labels import POSITION, QUAT, SIXD
 from stages.artifacts.paths import IMAGES, LABELS, RENDER
 from stages.config.build import augment_config
-from stages.errors import StageError
 from stages.config.params import check_render_fingerprint
 from stages.config.schema import Params
 from stages.config.sections import Augment
+from stages.errors import StageError
 
 REQUIRED = ["index", *POSITION, *QUAT, *SIXD, "range", "split"]
 RENDER_KEY = "render_fingerprint"   # label table metadata (DataFrame.attrs): the fingerprint of the render it labels

@@ -12,7 +12,10 @@ from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
 
-from pipeline.formats.run import MODELS as MODEL_NAMES, MODELS_DIR, PAPER as PAPER_NAME, RUN_FILES, SHIPPED as SHIPPED_NAME
+from pipeline.formats.run import MODELS as MODEL_NAMES
+from pipeline.formats.run import MODELS_DIR, RUN_FILES
+from pipeline.formats.run import PAPER as PAPER_NAME
+from pipeline.formats.run import SHIPPED as SHIPPED_NAME
 from stages.config.params import ROOT
 
 DVC_YAML = ROOT / "dvc.yaml"

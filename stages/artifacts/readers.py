@@ -16,11 +16,15 @@ from typing import Any, Iterator
 import numpy as np
 
 from pipeline.formats.renders import read_renders
-from pipeline.io.store import open_zarr
 from pipeline.geometry.labels import POSITION, SIXD
-from stages.artifacts.paths import DETECT_RENDER, EVAL_RENDER, POSE, VAL_ENVELOPE, VAL_RENDER
-from stages.config.params import detect_render_fingerprint, eval_render_fingerprint, val_envelope_fingerprint, \
-    val_render_fingerprint
+from pipeline.io.store import open_zarr
+from stages.artifacts.paths import DETECT_RENDER, EVAL_RENDER, VAL_ENVELOPE, VAL_RENDER
+from stages.config.params import (
+    detect_render_fingerprint,
+    eval_render_fingerprint,
+    val_envelope_fingerprint,
+    val_render_fingerprint,
+)
 from stages.config.schema import Params
 from stages.errors import StageError
 

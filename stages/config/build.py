@@ -10,10 +10,10 @@ import typing
 from pathlib import Path
 from typing import Any
 
+from stages.config.evaluation import Defense
 from stages.config.params import given
 from stages.config.schema import Params
 from stages.config.sections import Adversarial, Attack, Augment, Guidance, Render, Train
-from stages.config.evaluation import Defense
 from stages.errors import StageError
 
 

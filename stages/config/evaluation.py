@@ -5,15 +5,28 @@ from __future__ import annotations
 
 import typing
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Annotated, Literal, Optional
 
 from pipeline.defense.gate import MotionSettings
 from pipeline.settings import In
-from stages.config.sections import (Batch, Count, Direction, Eps, Focal, Metres, ParamsError, Pixels, Principal,
-                                    Probability, Scale, Seed)
+from stages.config.sections import (
+    Batch,
+    Count,
+    Direction,
+    Eps,
+    Focal,
+    Metres,
+    ParamsError,
+    Pixels,
+    Principal,
+    Probability,
+    Scale,
+    Seed,
+)
 
 Frames = Annotated[int, In("[1, 10000000]", "frames")]
-FILTER = typing.get_type_hints(MotionSettings, include_extras=True)   # field -> its type and range, declared there
+FILTER = SimpleNamespace(**typing.get_type_hints(MotionSettings, include_extras=True))   # field: its type and range
 OpenProbability = Annotated[float, In("(0, 1)", "probability")]
 
 
@@ -57,15 +70,15 @@ class Defense:
 
     fusion: Literal["or", "paper", "motion"]   # or: any check | paper: detector alone | motion: gate + sequential test
     # the motion filter's settings: their types and ranges are pipeline.defense.gate.MotionSettings' (`FILTER`)
-    false_alarm: FILTER["false_alarm"]   # gate false-alarm probability per frame on consistent motion
-    position_noise: FILTER["position_noise"]   # metres per frame: std of the commanded displacement's execution error
-    attitude_noise_deg: FILTER["attitude_noise_deg"]   # std of the unmodelled target rotation
-    attitude_rate_noise_deg: FILTER["attitude_rate_noise_deg"]   # std of the rate change
-    soft_gate: FILTER["soft_gate"]   # NIS fraction above which frames are down-weighted
-    reacquire_after: FILTER["reacquire_after"]   # M: agreeing rejected frames that restart the filter
-    cusum_reference: FILTER["cusum_reference"]   # c of the sequential test
-    integrity_risk: FILTER["integrity_risk"]   # per frame, of the protection level's noise term
-    trusted_start: FILTER["trusted_start"]   # assumed attack-free after the filter's first start
+    false_alarm: FILTER.false_alarm   # gate false-alarm probability per frame on consistent motion
+    position_noise: FILTER.position_noise   # metres per frame: std of the commanded displacement's execution error
+    attitude_noise_deg: FILTER.attitude_noise_deg   # std of the unmodelled target rotation
+    attitude_rate_noise_deg: FILTER.attitude_rate_noise_deg   # std of the rate change
+    soft_gate: FILTER.soft_gate   # NIS fraction above which frames are down-weighted
+    reacquire_after: FILTER.reacquire_after   # M: agreeing rejected frames that restart the filter
+    cusum_reference: FILTER.cusum_reference   # c of the sequential test
+    integrity_risk: FILTER.integrity_risk   # per frame, of the protection level's noise term
+    trusted_start: FILTER.trusted_start   # assumed attack-free after the filter's first start
     hold_after: Frames             # K: consecutive flags that declare the estimate lost -> hold
     release_after: Frames          # consecutive clean frames that end a hold
     doubt_share: Optional[OpenProbability]  # of clean validation frames at or above the doubt level (calibrated),

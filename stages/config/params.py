@@ -33,7 +33,8 @@ def compose(profile: str = "default", overrides: list[str] | None = None) -> dic
     """Compose conf/config.yaml with one profile (and optional Hydra overrides) via Hydra."""
     if profile not in profiles():
         raise ParamsError(f"unknown profile {profile!r}; choose one of {', '.join(profiles())} (conf/profile/)")
-    from hydra import compose as hydra_compose, initialize_config_dir
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
     from omegaconf import OmegaConf
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base=None):

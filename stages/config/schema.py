@@ -17,10 +17,22 @@ import re
 from dataclasses import dataclass, field
 from typing import Annotated, Any, Optional
 
-from pipeline.settings import In, Source, ranges as settings_ranges, typed
+from pipeline.settings import In, Source, typed
+from pipeline.settings import ranges as settings_ranges
 from stages.config.evaluation import Defense, Evaluate, Integrity, Lab, Robustness
-from stages.config.sections import (Attack, Camera, Detect, Engine, Guidance, Label, ParamsError, Render, Seed, Shap,
-                                    Train)
+from stages.config.sections import (
+    Attack,
+    Camera,
+    Detect,
+    Engine,
+    Guidance,
+    Label,
+    ParamsError,
+    Render,
+    Seed,
+    Shap,
+    Train,
+)
 
 DEVICE = re.compile(r"auto|cpu|cuda(:\d+)?")   # values of the `device` param
 

@@ -50,9 +50,9 @@ class GuidanceWorker:
     run of the plan (pipeline.guidance.grid.GridPilot) -> (result, keys of the poses it rendered)."""
 
     def __init__(self, setup: GuidanceSetup) -> None:
+        from pipeline.attackers.in_loop import InLoopAttacker
         from pipeline.attacks.adaptive import PerFrameChain
         from pipeline.attacks.gradient import attack_loss, stored_attack
-        from pipeline.attackers.in_loop import InLoopAttacker
         from pipeline.guidance.grid import GridPilot
         from pipeline.guidance.law import CachedCamera
         from pipeline.render.scene import Renderer

@@ -3,6 +3,7 @@ stage metrics and params (so no number in it is copied by hand; `rpod report --c
 from __future__ import annotations
 
 from typing import Any
+
 from stages.config.schema import Params
 from stages.pages.paper import ATTITUDE_DEG, DETECTOR_ACCURACY, INTEGRATED, INTEGRATED_EPS, LAB, POSITION_M
 from stages.pages.readme import DETECTOR_NAMES

@@ -163,8 +163,8 @@ The full paper grid (eps 0.5, 0.3, 0.1, 0.05, 0.01; S = 60..10 m; K = 5..20) run
 
 def in_loop_section(d: dict[str, Any], i: Integrity) -> str:
     """Markdown: the in-loop attacker's collisions, lost and held rendezvous per (dynamics, variant, eps), and every run."""
-    from pipeline.stats import wilson
     from pipeline.report.markdown import markdown_table
+    from pipeline.stats import wilson
 
     summary = []
     for dyn, variants in d["counts"].items():

@@ -6,9 +6,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from stages.artifacts.paths import LAB as OUT, TRAIN_METRICS
-from stages.config.schema import Params
+from stages.artifacts.paths import LAB as OUT
+from stages.artifacts.paths import TRAIN_METRICS
 from stages.config.evaluation import Lab
+from stages.config.schema import Params
 from stages.pages.paper import LAB, LAB_EPS, LAB_RANGES, by_eps
 
 if TYPE_CHECKING:

@@ -9,7 +9,6 @@ import numpy as np
 
 from pipeline.geometry.labels import POSITION, QUAT
 
-
 RENDER_SETTINGS = ("samples", "denoiser", "denoise_quality", "threads", "mesh", "mesh_scale", "sun_direction",
                    "sun_strength", "pointing_jitter_deg", "max_target_rotation_deg", "chunk")
 
@@ -23,8 +22,8 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
     """reports/dataset.md: counts, ranges (m, px), attitude and pointing spread (deg), settings, where the time
     per image is kept; `previews` are PNG files shown relative to the card's folder `card_dir`."""
     from pipeline.geometry.camera import Intrinsics, project
-    from pipeline.report.markdown import markdown_table
     from pipeline.pose.metrics import attitude_error_deg
+    from pipeline.report.markdown import markdown_table
 
     q = labels[QUAT].to_numpy()
     t = labels[POSITION].to_numpy()

@@ -5,8 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from stages.pages.paper import (ATTITUDE_DEG, DETECTOR_ACCURACY, INTEGRATED, INTEGRATED_EPS, LAB, LAB_EPS,
-                                POSITION_M)
+from stages.pages.paper import ATTITUDE_DEG, DETECTOR_ACCURACY, INTEGRATED, INTEGRATED_EPS, LAB, LAB_EPS, POSITION_M
 
 DETECTOR_NAMES = {"lstm": "LSTM on SHAP (paper)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis (GAP)",
                   "lid": "LID (GAP)", "squeeze": "feature squeezing"}
@@ -83,7 +82,7 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
                             for r, v, p, s, sd in rows])
     eps_rows = []
     for e in sorted(set(ev["per_eps"]) | set(lab["per_eps"]), key=float, reverse=True):
-        get = lambda m, k: _with_ci(m["per_eps"][e], "accuracy") if e in m["per_eps"] else "-"  # noqa: E731
+        get = lambda m, k: _with_ci(m["per_eps"][e], "accuracy") if e in m["per_eps"] else "-"  # noqa: E731, B023
         eps_rows.append({"eps": e, "integrated (%)": get(ev, e), "paper, integrated (%)": _fmt(INTEGRATED_EPS.get(e)),
                          "lab, 10-frame attacks (%)": get(lab, e), "paper, lab (%)": _fmt(LAB_EPS.get(e))})
     profiles = sorted({m.get("profile", "unknown") for m in metrics.values()})
@@ -175,7 +174,7 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
               **{c: _sd(spread, sd) for c in sd_column}}
              for name, key, p, t, sd in rows]
     for dyn, variants in gd.get("defended", {}).get("dynamics", {}).items():
-        def held(variant: str) -> str:
+        def held(variant: str, variants: dict[str, Any] = variants) -> str:
             if variant not in variants:
                 return "-"
             k, n = (sum(v[i] for v in variants[variant]["held"].values()) for i in (0, 1))

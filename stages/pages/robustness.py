@@ -6,6 +6,8 @@ from __future__ import annotations
 from typing import Any
 
 from stages.config.schema import Params
+
+
 def _table(rows: list[dict[str, Any]], with_lambda: bool = False) -> str:
     from pipeline.report.markdown import markdown_table
     from pipeline.stats import percent_ci
@@ -135,8 +137,7 @@ frame by frame, the raw CNN estimate of each attacked frame against a fixed {m['
 
 def _paper_view(m: dict[str, Any], p: Params) -> str:
     """What the paper's per-frame view measures on how many frames, and its worst harmful-undetected rate per eps."""
-    from pipeline.stats import wilson
-    from pipeline.stats import percent_ci
+    from pipeline.stats import percent_ci, wilson
 
     mid = wilson(m["frames"] // 2, m["frames"])
     half = 100 * (mid.hi - mid.lo) / 2
