@@ -45,27 +45,16 @@ def per_call(fn: Callable[[], object], min_seconds: float = 1.0, max_calls: int 
 
 
 def load_models(width: float) -> tuple[PoseNet, LSTMDetector, str]:
-    """The trained models when present, else random ones of the default architecture."""
+    """The standard chain's trained pose model and detector when a run left them in models/ (read by the one door,
+    pipeline.formats.chain.load_chain), else random ones of the default architecture."""
     os.chdir(ROOT)
-    source = []
-    pose_path, det_path = Path("models/pose.pt"), Path("models/detector.pt")
-    if pose_path.exists():
-        from pipeline.formats.models import load_pose
+    if Path("models/pose.pt").exists() and Path("models/detector.pt").exists():
+        from pipeline.formats.chain import load_chain
 
-        pose = load_pose(pose_path).model
-        source.append("models/pose.pt")
-    else:
-        pose = PoseNet(width=width).eval()
-        source.append(f"random PoseNet(width={width})")
-    if det_path.exists():
-        from pipeline.formats.models import read_detector
-
-        det, _ = read_detector(det_path)
-        source.append("models/detector.pt")
-    else:
-        det = LSTMDetector(LSTMConfig()).eval()
-        source.append("random LSTM detector (100 units, dense [64])")
-    return pose, det, ", ".join(source)
+        chain = load_chain(Path("models"), "standard", defended=False)
+        return chain.model, chain.onboard.detector, "models/pose.pt, models/detector.pt"
+    return (PoseNet(width=width).eval(), LSTMDetector(LSTMConfig()).eval(),
+            f"random PoseNet(width={width}), random LSTM detector (100 units, dense [64])")
 
 
 def main() -> None:

@@ -239,3 +239,33 @@ def test_the_registry_literals_of_the_schema_are_the_registries() -> None:
     assert set(typing.get_args(hints["defense"]["fusion"])) == set(FUSIONS)
     assert set(typing.get_args(typing.get_args(hints["guidance"]["dynamics"])[0])) == set(VARIANTS)
     assert set(typing.get_args(typing.get_args(hints["guidance"]["defenses"])[0])) == set(DEFENSES) - {"undefended"}
+
+
+# a chain built from files goes through the one door; these build one from models in memory (a detector just
+# trained, random models for a benchmark)
+CHAIN_BUILDERS = {"pipeline/formats/chain.py", "stages/detect.py", "benchmarks/chain_latency.py"}
+
+
+def _calls(path: Path) -> set[str]:
+    """The names of the functions and methods a file calls."""
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Call):
+            f = node.func
+            out.add(f.attr if isinstance(f, ast.Attribute) else getattr(f, "id", ""))
+    return out
+
+
+def test_a_chain_has_one_door() -> None:
+    """Only pipeline/formats/chain.py reads a chain's detector and defense files (stages, rpodguard, benchmarks
+    and scripts call its `load_chain`), and only the door and the in-memory builders assemble an OnboardChain."""
+    files = {str(p.relative_to(REPO)): p for pkg in (*PACKAGES, "scripts", "benchmarks")
+             for p in sorted((REPO / pkg).rglob("*.py"))}
+    calls = {name: _calls(path) for name, path in files.items()}
+    readers = sorted(n for n, c in calls.items() if c & {"read_detector", "read_defense"})
+    assert readers == ["pipeline/formats/chain.py"], readers
+    builders = {n for n, c in calls.items() if c & {"from_model", "OnboardChain"}}
+    assert builders <= CHAIN_BUILDERS, builders - CHAIN_BUILDERS
+    doors = {n for n, c in calls.items() if "open_chain" in c or "load_chain" in c}
+    assert {"rpodguard/api.py", "stages/artifacts/models.py", "scripts/bundle_weights.py",
+            "benchmarks/explain_speed.py"} <= doors
