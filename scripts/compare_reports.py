@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 TIME_KEYS = {"produced", "seconds", "train_minutes", "train_images_per_s", "render_seconds", "images_per_s",
-             "seconds_per_image"}
+             "seconds_per_image", "minutes"}
 # Markdown text that reports times: masked before comparing
 TIME_TEXT = [re.compile(p) for p in (
     r"\d+(\.\d+)? s\b", r"\d+(\.\d+)? minutes", r"[\d.]+ s/image", r"[\d.]+ (training )?images/s", r"\d{4}-\d\d-\d\d \d\d:\d\d UTC",

@@ -1,4 +1,4 @@
-"""The lab domain: range rescaling, mocap-to-camera timestamp matching (lab images: lab_images.py).
+"""The lab domain: range rescaling, mocap-to-camera timestamp matching (lab images: pipeline/images.py).
 
 Range rescaling (pinhole model)
 -------------------------------
