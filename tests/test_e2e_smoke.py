@@ -218,7 +218,9 @@ def test_each_row_runs_on_its_chain(smoke_repo):
     assert (gd["model_hash"], gd["models"]["shipped"]["model_hash"]) == (standard, robust)
     assert (lab["model_hash"], lab["shipped"]["model_hash"]) == (standard, robust)
     assert (rob["model_hash"], rob["integrity_standard"]["model_hash"]) == (robust, standard)
-    assert load_chain(dst).files == (dst / "models" / "pose_robust.pt", dst / "models" / "detector_robust.pt")
+    chain = load_chain(dst)
+    assert chain.files == tuple(dst / "models" / n for n in ("pose_robust.pt", "detector_robust.pt", "defense.json"))
+    assert chain.safety.calibration.model == "robust" and chain.safety.defended is not None   # its own defense
 
 
 def test_forced_rerun_leaves_every_report_byte_identical(smoke_repo):
