@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import zarr
 
+from pipeline.io.atomic import OWNER
 from pipeline.io.errors import DataError
 from pipeline.io.store import create_array, open_zarr, seal_zarr
 from stages.config import params as params_mod
@@ -156,8 +157,9 @@ def test_a_refused_or_failed_render_leaves_the_previous_store(workdir, monkeypat
     np.testing.assert_array_equal(_images(before), kept)
     assert json.loads(Path("datasets/render/meta.json").read_text()) == before
     assert not [p for p in shared.iterdir() if p.name.endswith((".tmp", ".old"))]
-    killed = shared / f".render-{before['fingerprint']}.zarr.999999999.tmp"   # a killed render's (no such pid)
+    killed = shared / f".render-{before['fingerprint']}.zarr.999999999.abc.tmp"   # a killed render's (no such pid)
     killed.mkdir()
+    (killed / OWNER).write_text(killed.name)
     monkeypatch.setattr(chunks.RenderWorker, "run", real_run)
     _render([f"engine.store={shared}"])
     assert not killed.exists()                                    # removed by the next render

@@ -9,12 +9,13 @@ FOLDER/images/<train|test>/<filename>; FOLDER/camera.json if present, else SPEED
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pipeline.io.atomic import atomic_dir, read_json, write_json
+from pipeline.io.atomic import atomic_dir, file_hash, read_json, write_json
 from pipeline.io.errors import DataError
 from pipeline.pose.labels import POSITION, QUAT
 
@@ -104,6 +105,7 @@ def image_header(path: Path) -> tuple[tuple[int, int], str]:
 
 
 MARKER = ".rpodguard-export.json"        # written inside every export: the files it wrote (so a rerun may replace them)
+MARKER_FORMAT = "rpodguard-export/2"      # /2: each file with its sha256 (a rerun refuses edited files)
 
 
 SPLIT_FILES = {"train": "train.json", "test": "validation.json"}   # our split -> SPEED+'s label file
@@ -111,22 +113,28 @@ IMAGE_FORMATS = {"png": "png", "jpeg-gray": "jpg"}   # format -> file extension:
 JPEG_QUALITY = 95
 
 
-def write_speed(out: Path, images: Any, labels: Any, K: Any, image_format: str = "png") -> None:
+def write_speed(out: Path, images: Any, labels: Any, K: Any, image_format: str = "png",
+                overwrite: bool = False) -> None:
     """Write the labelled images as a SPEED+ folder `out` (camera.json, synthetic/train.json, the test split
     as synthetic/validation.json, synthetic/images/imgNNNNNN.png or .jpg, NNNNNN = label index + 1, and
     MARKER), atomically. `image_format`: "png" keeps every pixel; "jpeg-gray" writes grayscale JPEGs
     (quality JPEG_QUALITY) as SPEED+ does. An existing `out` is replaced only when it is empty or holds
-    nothing but an earlier export's files (its MARKER lists them); files 0644, folders 0755."""
+    nothing but an earlier export's files, unchanged (its MARKER lists them with their sha256; `overwrite`
+    replaces edited ones too); a symbolic link `out` is followed (its target is written); files 0644,
+    folders 0755."""
     import cv2
 
     from pipeline.formats.speed import camera_to_json, to_speed
-    from pipeline.io.atomic import remove_stale_temps
+    from pipeline.io.atomic import followed, remove_stale_temps
 
     if image_format not in IMAGE_FORMATS:
         raise DataError(f"image format {image_format!r} is not one of {', '.join(IMAGE_FORMATS)}")
     gray = image_format == "jpeg-gray"
-    check_replaceable(out)
-    remove_stale_temps(out)               # temporary folders of killed exports
+    if out.is_symlink() and not out.exists():
+        raise DataError(f"{out} is a symbolic link to {os.readlink(out)}, which does not exist; name a folder")
+    out = followed(out)
+    check_replaceable(out, overwrite)
+    remove_stale_temps(out)               # temporary folders of killed exports (those holding their token)
     labels = labels.sort_values("index").reset_index(drop=True)
     names = [f"img{int(i) + 1:06d}.{IMAGE_FORMATS[image_format]}" for i in labels["index"]]
     index, step = labels["index"].to_numpy(), int(images.chunks[0])
@@ -150,13 +158,15 @@ def write_speed(out: Path, images: Any, labels: Any, K: Any, image_format: str =
                        to_speed([n for n, keep in zip(names, rows) if keep], labels.loc[rows, POSITION],
                                 labels.loc[rows, QUAT]))
         write_json(tmp / "camera.json", camera_to_json(K))
-        write_json(tmp / MARKER, {"written_by": "rpod export speed", "files": sorted(_tree(tmp))})
+        write_json(tmp / MARKER, {"written_by": "rpod export speed", "format": MARKER_FORMAT,
+                                  "files": {name: file_hash(tmp / name, 64) for name in sorted(_tree(tmp))}})
         _world_readable(tmp)
 
 
-def check_replaceable(out: Path) -> None:
+def check_replaceable(out: Path, overwrite: bool = False) -> None:
     """A DataError unless `out` is missing, an empty folder, or an earlier export holding only the files
-    its MARKER lists (a rerun replaces the whole folder, so it must hold nothing else)."""
+    its MARKER lists, each as it was written (its sha256; an edited one is replaced only with `overwrite`):
+    a rerun replaces the whole folder, so it must hold nothing else."""
     if not out.exists():
         return
     if not out.is_dir():
@@ -165,16 +175,32 @@ def check_replaceable(out: Path) -> None:
         return
     marker = out / MARKER
     try:
-        written = set(read_json(marker)["files"]) if marker.is_file() else None
+        recorded = read_json(marker) if marker.is_file() else None
+        written = recorded["files"] if recorded is not None else None
     except (DataError, KeyError, TypeError):
         written = None
-    if written is None:
+    if not isinstance(written, (dict, list)):
         raise DataError(f"{out} exists and is not a SPEED folder written before by `rpod export speed` "
                          f"(no {MARKER}); name a new or empty folder")
-    extra = sorted(_tree(out) - written - {MARKER})
+    extra = sorted(_tree(out) - set(written) - {MARKER})
     if extra:
         raise DataError(f"{out} holds {out / extra[0]}, which `rpod export speed` did not write "
                          f"({len(extra)} such files); move them away or name a new folder")
+    if overwrite:
+        return
+    if isinstance(written, list) or recorded.get("format") != MARKER_FORMAT:
+        raise DataError(f"{marker} lists no sha256 of the files (an older export), so edits to them cannot be "
+                         f"found; pass --overwrite to replace them, or name a new folder")
+    edited = sorted(name for name, sha in written.items()
+                    if os.path.lexists(out / name) and not _unchanged(out / name, sha))
+    if edited:
+        raise DataError(f"{out / edited[0]} was changed since `rpod export speed` wrote it ({len(edited)} such "
+                         f"files; its sha256 is in {MARKER}); move it away, or pass --overwrite to replace it")
+
+
+def _unchanged(path: Path, sha256: Any) -> bool:
+    """Whether `path` is a regular file whose sha256 is `sha256`."""
+    return path.is_file() and not path.is_symlink() and file_hash(path, 64) == sha256
 
 
 def _tree(folder: Path) -> set[str]:
