@@ -17,6 +17,7 @@ import numpy as np
 
 from pipeline.io.atomic import atomic_dir, file_hash, read_json, write_json
 from pipeline.io.errors import DataError
+from pipeline.io.files import check_regular
 from pipeline.pose.labels import POSITION, QUAT
 
 TRAIN = ("synthetic/train.json", "train.json")   # training label files, the first found is read
@@ -40,7 +41,7 @@ def read_camera(folder: Path, speed_layout: bool) -> tuple[Any, np.ndarray]:
     from pipeline.formats.speed import SPEED_CAMERA, camera_from_json, dist_from_json
 
     path = folder / "camera.json"
-    if not path.is_file() and speed_layout:
+    if not path.exists() and speed_layout:     # a FIFO exists: read_json refuses it
         print(f"{path} not found: using SPEED's published camera {SPEED_CAMERA}")
         return camera_from_json(SPEED_CAMERA), dist_from_json(SPEED_CAMERA)
     try:
@@ -72,10 +73,9 @@ def read_image(path: Path, size: tuple[int, int], cam: Any, dist: np.ndarray) ->
     reduce = max([r for r in (2, 4, 8) if source_size[0] / r >= size[0] and source_size[1] / r >= size[1]], default=1)
     flag = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
             8: cv2.IMREAD_REDUCED_COLOR_8}[reduce]
-    img = cv2.imread(str(path), flag) if path.is_file() else None
+    img = cv2.imread(str(path), flag)    # image_header checked it is a regular file
     if img is None:
-        raise DataError(f"{path}: {'not found' if not path.is_file() else 'not a readable image'} "
-                         f"(named by its label file)")
+        raise DataError(f"{path}: not a readable image (named by its label file)")
     expect = (math.ceil(source_size[1] / reduce), math.ceil(source_size[0] / reduce))
     if img.shape[:2] != expect:
         raise DataError(f"{path}: image is {img.shape[1] * reduce}x{img.shape[0] * reduce} pixels but camera.json "
@@ -95,8 +95,10 @@ def image_header(path: Path) -> tuple[tuple[int, int], str]:
     naming the file."""
     from PIL import Image, UnidentifiedImageError
 
-    if not path.is_file():
-        raise DataError(f"{path}: not found (named by its label file)")
+    try:
+        check_regular(path, "image")      # missing, or a FIFO that would block: one line naming it
+    except DataError as e:
+        raise DataError(f"{e} (named by its label file)") from None
     try:
         with Image.open(path) as im:
             return im.size, im.mode

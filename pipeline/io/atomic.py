@@ -14,7 +14,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from pipeline.io.errors import DataError, not_found
+from pipeline.io.errors import DataError
+from pipeline.io.files import open_regular, read_bytes
 from pipeline.io.store import is_sealed, seal_zarr
 
 
@@ -47,13 +48,12 @@ def _json_default(o: Any) -> Any:
 
 
 def read_json(path: Path | str) -> Any:
-    """A JSON file; a DataError when it is missing (naming how to make it) or not valid JSON."""
+    """A JSON file; a DataError when it is missing (naming how to make it), not a regular file (a FIFO:
+    `pipeline.io.files.open_regular`, never blocking) or not valid JSON."""
     path = Path(path)
-    if not path.exists():
-        raise not_found(path)
     try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as e:
+        return json.loads(read_bytes(path))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise DataError(f"{path} is not valid JSON: {e}") from None
 
 
@@ -218,13 +218,8 @@ def save_figure(fig: Any, path: Path | str, dpi: int = 110) -> None:
 
 def file_hash(path: Path | str, n: int = 16) -> str:
     """Short sha256 of a file (used to tie derived artifacts to a checkpoint)."""
-    path = Path(path)
-    if not path.exists():
-        raise not_found(path)
-    if not path.is_file():       # a FIFO or device would block the read for ever
-        raise DataError(f"{path} is not a regular file")
     h = hashlib.sha256()
-    with open(path, "rb") as f:
+    with open_regular(path) as f:      # a FIFO or device would block the read for ever
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()[:n]

@@ -39,8 +39,8 @@ def labels_file(folder: Path, names: tuple[str, ...], given: str | None, what: s
             given = relative_name(given, "params.yaml render.source_test")
         except ValueError as e:
             raise StageError(str(e)) from None
-    found = [folder / given] if given else [folder / n for n in names if (folder / n).is_file()]
-    if not found or not found[0].is_file():
+    found = [folder / given] if given else [folder / n for n in names if (folder / n).exists()]
+    if not found or not found[0].exists():     # a FIFO exists: read_labels refuses it (not "not found")
         tried = given or ", ".join(names)
         raise StageError(f"params.yaml render.source={folder}: no {what} labels ({tried} not found); "
                          f"set render.source_test for the test labels (e.g. lightbox/test.json)")
@@ -54,7 +54,7 @@ def check_images(names: list[Path], n_train: int, train: Path, test: Path) -> No
     if both:
         raise StageError(f"{sorted(both)[0]} is labelled in both {train} and {test} ({len(both)} such images): "
                          f"a test image must never be trained on")
-    missing = [f for f in names if not f.is_file()]
+    missing = [f for f in names if not f.exists()]     # a FIFO exists: image_header refuses it
     if missing:
         raise StageError(f"{missing[0]}: not found, named by its label file ({len(missing)} of {len(names)} "
                          f"labelled images missing)")
