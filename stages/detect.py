@@ -40,7 +40,8 @@ from pipeline.io.atomic import atomic_outputs, atomic_write_text, file_hash
 from pipeline.io.checkpoints import save_torch
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import CHAINS, DETECT_RENDER, SEED_OFFSET, ChainFiles, Model
-from stages.artifacts.readers import SampleImages, read_detect_render, read_eval_render, read_shap_store
+from stages.artifacts.readers import SampleImages, check_shap_split, read_detect_render, read_eval_render, \
+    read_shap_store
 from stages.artifacts.models import load_pose, model_option
 from stages.config.device import torch_device
 from stages.config.schema import Params
@@ -89,6 +90,7 @@ def main(params: Params, model: ModelOption = Model.standard, eval_alarms: EvalA
     files = CHAINS[model]
     model_hash = file_hash(files.pose)
     data = read_shap_store(files.shap, model_hash)
+    check_shap_split(data["attrs"], params, files.shap)   # explains this detector split (after shap.seed changed: not)
     values, feats, eps = data["values"], data["features"], data["eps"].astype(np.float64)
     y = data["is_adversarial"].astype(np.int64)
     tr, va, te = split_indices(eps, data["source_index"], float(d.test_fraction), float(d.val_fraction), seed)

@@ -60,7 +60,6 @@ def test_labels_of_another_render_are_refused_by_train_and_export(workdir, capsy
     write_dataset(workdir)
     seed0 = (workdir / "datasets/labels.parquet").read_bytes()
     write_dataset(workdir, overrides=["seed=1"])                 # a render (and labels) of seed 1 ...
-    _poses_from_labels(workdir)                                  # (export reads the render's poses too)
     (workdir / "datasets/labels.parquet").write_bytes(seed0)     # ... with the labels of seed 0
     with pytest.raises(StageError, match=r"labels.parquet labels another render than datasets/render \(render "
                                          r"fingerprint \w+, datasets/render has \w+\): re-run `rpod label`"):
@@ -89,21 +88,6 @@ def test_a_model_trained_on_other_labels_is_refused(workdir):
     with pytest.raises(StageError, match=r"pose checkpoint models/pose.pt was trained on another "
                                          r"datasets/labels.parquet \(relabelled since\); re-run `rpod train`"):
         load_pose(load())
-
-
-def _poses_from_labels(root: Path) -> None:
-    """datasets/render/poses.parquet as `rpod render` writes it, from test_training's labels of the render."""
-    import pandas as pd
-
-    from pipeline.geometry.rotations import quat_to_matrix
-    from pipeline.geometry.trajectories import poses_table
-    from pipeline.io.tables import write_parquet
-    from pipeline.pose.labels import POSITION, QUAT
-
-    df = pd.read_parquet(root / "datasets/labels.parquet")
-    write_parquet(poses_table(df["index"].to_numpy(), df["sequence"].to_numpy(), df["frame"].to_numpy(),
-                              quat_to_matrix(df[QUAT].to_numpy()), df[POSITION].to_numpy()),
-                  root / "datasets/render/poses.parquet")
 
 
 # --- engine.store: keyed by fingerprint, checked, swapped in whole, locked -------------------------------------

@@ -8,6 +8,7 @@ FOLDER/images/<train|test>/<filename>; FOLDER/camera.json if present, else SPEED
 """
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 from pathlib import Path
@@ -106,6 +107,60 @@ def image_header(path: Path) -> tuple[tuple[int, int], str]:
         raise DataError(f"{path}: not a readable image (named by its label file): {e}") from None
 
 
+def check_source(folder: Path, label_files: list[Path], images: list[Path], n_train: int) -> str:
+    """The sha256 of a SPEED folder's content (`source_digest`: its label files, camera.json and images, by name
+    and bytes), once every label file and image resolves (symbolic links followed) inside `folder` and no test
+    image (`images[n_train:]`) is a training image, by path (a link to it) or by content (a byte-identical
+    copy); a DataError naming the file otherwise."""
+    root = folder.resolve()
+    for path in [*label_files, *images]:
+        real = path.resolve()
+        if not real.is_relative_to(root):
+            raise DataError(f"{path} resolves to {real}, outside the dataset folder {folder} (render.source); copy "
+                            f"the file into it")
+    hashes = [file_hash(p, 64) for p in images]
+    train = {**dict(zip(hashes[:n_train], images[:n_train])), **{p.resolve(): p for p in images[:n_train]}}
+    leaks = [(p, train.get(p.resolve()) or train[h]) for p, h in zip(images[n_train:], hashes[n_train:])
+             if p.resolve() in train or h in train]
+    if leaks:
+        raise DataError(f"test image {leaks[0][0]} is the training image {leaks[0][1]} (a link to it or a "
+                        f"byte-identical copy; {len(leaks)} such images): a test image must never be trained on")
+    return source_digest(folder, label_files, images, hashes)
+
+
+def source_digest(folder: Path, label_files: list[Path], images: list[Path], hashes: list[str] | None = None) -> str:
+    """sha256 (hex) of what a SPEED import reads: the label files, FOLDER/camera.json when there is one and the
+    images (their sha256 in `hashes` when known), each by its name relative to `folder` and its bytes, in order;
+    the same wherever the folder lies."""
+    camera = [folder / "camera.json"] if (folder / "camera.json").exists() else []
+    files = [*label_files, *camera, *images]
+    shas = [file_hash(p, 64) for p in [*label_files, *camera]] + (hashes or [file_hash(p, 64) for p in images])
+    h = hashlib.sha256()
+    for path, sha in zip(files, shas):
+        h.update(f"{path.relative_to(folder).as_posix()}\0{sha}\n".encode())
+    return h.hexdigest()
+
+
+def source_problem(meta: dict[str, Any], filenames: list[str]) -> str | None:
+    """What differs between an import's render folder (its meta.json `source`, `filenames` its poses' `filename`
+    column) and the SPEED folder it came from, now: None when they agree or the folder is gone (the import
+    holds the images itself)."""
+    source = meta.get("source") or {}
+    folder = Path(source.get("folder", ""))
+    if "sha256" not in source or not folder.is_dir():
+        return None
+    changed = f"render.source {folder} changed since `rpod render` imported it"
+    try:
+        now = source_digest(folder, [folder / source["train"], folder / source["test"]],
+                            [folder / f for f in filenames])
+    except DataError as e:
+        return f"{changed} ({e}); re-run `rpod render`"
+    if now == source["sha256"]:
+        return None
+    return (f"{changed} (sha256 of its label files, camera.json and images {now[:16]}, imported "
+            f"{source['sha256'][:16]}); re-run `rpod render`")
+
+
 MARKER = ".rpodguard-export.json"        # written inside every export: the files it wrote (so a rerun may replace them)
 MARKER_FORMAT = "rpodguard-export/2"      # /2: each file with its sha256 (a rerun refuses edited files)
 
@@ -140,9 +195,10 @@ def write_speed(out: Path, images: Any, labels: Any, K: Any, image_format: str =
     labels = labels.sort_values("index").reset_index(drop=True)
     names = [f"img{int(i) + 1:06d}.{IMAGE_FORMATS[image_format]}" for i in labels["index"]]
     index, step = labels["index"].to_numpy(), int(images.chunks[0])
-    if index.min() < 0 or index.max() >= images.shape[0]:
-        raise DataError(f"the labels name image {int(index.max())} but the render store holds {images.shape[0]}; "
-                         f"re-run `rpod label`")
+    outside = index[(index < 0) | (index >= images.shape[0])]
+    if len(outside):
+        raise DataError(f"the labels name image {int(outside[0])} but the render store holds {images.shape[0]} "
+                         f"(0..{images.shape[0] - 1}); re-run `rpod label`")
     with atomic_dir(out) as tmp:
         (tmp / EXPORT_DIR / "images").mkdir(parents=True)
         for lo in range(0, int(images.shape[0]), step):   # one stored chunk at a time
@@ -156,9 +212,12 @@ def write_speed(out: Path, images: Any, labels: Any, K: Any, image_format: str =
                     raise DataError(f"could not write {out / EXPORT_DIR / 'images' / names[k]}")
         for split, file in SPLIT_FILES.items():
             rows = (labels["split"] == split).to_numpy()
-            write_json(tmp / EXPORT_DIR / file,
-                       to_speed([n for n, keep in zip(names, rows) if keep], labels.loc[rows, POSITION],
-                                labels.loc[rows, QUAT]))
+            try:
+                records = to_speed([n for n, keep in zip(names, rows) if keep], labels.loc[rows, POSITION],
+                                   labels.loc[rows, QUAT])
+            except ValueError as e:
+                raise DataError(f"the labels of {e}; re-run `rpod label`") from None
+            write_json(tmp / EXPORT_DIR / file, records)
         write_json(tmp / "camera.json", camera_to_json(K))
         write_json(tmp / MARKER, {"written_by": "rpod export speed", "format": MARKER_FORMAT,
                                   "files": {name: file_hash(tmp / name, 64) for name in sorted(_tree(tmp))}})

@@ -22,6 +22,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from stages.engine import pool as engine
+from pipeline.evaluation.visibility import empty_problem, out_of_view
 from pipeline.io.store import chunk_crc32c, create_array, reopen_array, seal_zarr, store_fs
 from stages.errors import StageError
 
@@ -222,11 +223,14 @@ def render_to_store(url: str, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, 
                     fingerprint: str | None = None) -> float:
     """Render every pose into a new store at `url` (one job per chunk; `fingerprint`: of the render params,
     recorded in it) and seal it -> seconds taken; bad render settings are refused before any worker starts
-    (`prepare`)."""
+    (`prepare`). With `empty_hint` (how to fix it, naming the params), a first chunk without a lit pixel stops the
+    render at once and a store with more than MAX_EMPTY_SHARE of its frames out of view (the lit-pixel rule,
+    pipeline/evaluation/visibility.py) is refused once rendered (a StageError ending in the hint)."""
     from tqdm import tqdm
 
     scene, threads = prepare(K, scene, es)
     n = len(t)
+    chunk = max(1, min(chunk, n))      # a chunk longer than the store would allocate for frames that do not exist
     create_store(url, n, K.height, K.width, chunk, fingerprint)
     jobs = [FrameRange(lo, min(lo + chunk, n)) for lo in range(0, n, chunk)]
     crcs: dict[str, str] = {}
@@ -243,4 +247,8 @@ def render_to_store(url: str, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, 
         engine.run(RenderWorker, RenderSetup(K, scene, R, t, url, empty_hint), jobs, es, num_cpus=threads,
                    progress=done)
     seal_zarr(url, {"images": crcs})
+    if empty_hint:
+        problem = empty_problem(out_of_view(images), f"frames of {desc}")
+        if problem:
+            raise StageError(f"{problem}; {empty_hint}")
     return time.perf_counter() - t0
