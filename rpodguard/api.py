@@ -23,12 +23,9 @@ from pipeline.io.errors import DataError
 
 ASPECT_TOLERANCE = 0.01   # relative difference of width/height above which `predict` warns
 BATCH = 64                # images per forward pass
-# No target in view: under MIN_LIT_FRACTION of the pixels (at the model input) have a channel >= LIT_LEVEL.
-# Space behind the target renders black (0), so lit pixels are the target. Over the default profile's
-# 3,900 rendered frames (160x90, ranges 66.7..10 m) the least lit frame has 1.49% of its pixels at >= 16/255
-# (1st percentile 1.60%, median 4.7%); a quarter of that minimum leaves margin for a darker camera.
-LIT_LEVEL = 16 / 255          # pixel value in [0, 1] (brightest channel) from which a pixel counts as lit
-MIN_LIT_FRACTION = 0.0037     # fraction of lit pixels below which a frame has no target in view
+# No target in view: under MIN_LIT_FRACTION of the pixels (at the model input) have a channel >= LIT_LEVEL
+# (pipeline/evaluation/visibility.py, where the producers of data sets apply the same rule).
+from pipeline.evaluation.visibility import LIT_LEVEL, MIN_LIT_FRACTION  # noqa: E402
 
 Image = Union[str, Path, np.ndarray]
 BUNDLE = Path(__file__).resolve().parent / "weights" / "default"   # the default profile's trained chain (git)
@@ -239,7 +236,7 @@ def load_chain(folder: str | Path | None = None) -> Chain:
     the pose file's hash). A missing, changed or bad file is a DataError."""
     from pipeline.defense.chain import load_onboard_chain
     from pipeline.formats.bundle import MANIFEST, RUN_FILES, check_bundle
-    from pipeline.formats.models import model_from_checkpoint, read_pose
+    from pipeline.formats.models import check_role, model_from_checkpoint, read_pose
     from pipeline.io.atomic import file_hash
     from rpodguard.camera import model_camera
 
@@ -250,6 +247,8 @@ def load_chain(folder: str | Path | None = None) -> Chain:
     run = (folder / RUN_FILES["pose.pt"]).exists()   # a run's models/: the shipped chain's names there
     pose_path, detector_path = (folder / (RUN_FILES[n] if run else n) for n in ("pose.pt", "detector.pt"))
     ckpt = read_pose(pose_path)
+    if run:
+        check_role(ckpt, True, pose_path)   # models/pose_robust.pt: the chain that ships flies the robust model
     safety = load_onboard_chain(model_from_checkpoint(ckpt), file_hash(pose_path), pose_path, detector_path)
     height, width = (int(v) for v in ckpt["input_size"])
     return Chain(safety, (height, width), (pose_path, detector_path), manifest, model_camera(ckpt, manifest, pose_path))

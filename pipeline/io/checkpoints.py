@@ -31,7 +31,8 @@ def save_torch(path: Path | str, obj: Any) -> None:
 
 def load_torch(path: Path | str, fmt: str, redo: str) -> dict[str, Any]:
     """torch.load(weights_only=True) of an rpodguard checkpoint dict whose `format` is `fmt`; a missing,
-    unreadable, foreign or non-finite file is a DataError ending in `redo` (how to remake it)."""
+    unreadable, damaged (a record failing its CRC-32), foreign or non-finite file is a DataError ending in `redo`
+    (how to remake it)."""
     import torch
 
     path = Path(path)
@@ -39,6 +40,9 @@ def load_torch(path: Path | str, fmt: str, redo: str) -> dict[str, Any]:
         raise not_found(path, "checkpoint")
     if not path.is_file():       # a FIFO or device would block the read for ever
         raise DataError(f"checkpoint {path} is not a regular file; {redo}")
+    damaged = _damaged_record(path)
+    if damaged:
+        raise DataError(f"checkpoint {path} {damaged}; {redo}")
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:
@@ -49,6 +53,20 @@ def load_torch(path: Path | str, fmt: str, redo: str) -> dict[str, Any]:
     if bad:
         raise DataError(f"checkpoint {path} holds non-finite weights or values ({', '.join(bad[:3])}); {redo}")
     return ckpt
+
+
+def _damaged_record(path: Path) -> str | None:
+    """What is wrong with the zip archive torch.save writes, or None: every record (the pickled dict, each
+    tensor's bytes) carries a CRC-32 there that torch.load never checks, so a flipped byte inside a weight would
+    load as a wrong weight; zipfile checks them all (one read of the file)."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as archive:
+            bad = archive.testzip()
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as e:
+        return f"is unreadable (not the zip archive torch.save writes: {e})"
+    return None if bad is None else f"is damaged: record {bad} fails its CRC-32 (changed since it was written)"
 
 
 def _nonfinite(obj: Any, prefix: str = "") -> list[str]:

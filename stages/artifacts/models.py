@@ -8,9 +8,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pipeline.formats.models import loss_from_checkpoint, model_from_checkpoint, read_pose
+from pipeline.formats.models import check_role, loss_from_checkpoint, model_from_checkpoint, read_pose
 from pipeline.io.atomic import file_hash
-from stages.artifacts.paths import CHAINS, LABELS, POSE, Model
+from stages.artifacts.paths import CHAINS, LABELS, POSE, POSE_ROBUST, Model
 from stages.config.build import defense_settings
 from stages.config.schema import Params
 from stages.errors import StageError
@@ -39,6 +39,7 @@ def read_checked(path: Path | str = POSE, params: Params | None = None) -> dict[
     model trained on another datasets/labels.parquet than the one there (its recorded hash)."""
     path = Path(path)
     ckpt = read_pose(path)
+    check_role(ckpt, path.name == POSE_ROBUST.name, path)   # the robust model's file holds a clamped one, no other
     if params is not None:
         want = expected(params, "black_level" in ckpt["arch"])
         have = {"arch": ckpt["arch"], "input_size": list(ckpt["input_size"])}
