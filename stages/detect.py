@@ -121,12 +121,23 @@ def main(params: Params, model: ModelOption = Model.standard, eval_alarms: EvalA
                         dirs=(files.detect_live,)) as (det, met, rep, live_dir):
         save_torch(det, ckpt)
         write_metrics(met, nan_to_none(metrics), params.profile_name)
-        atomic_write_text(rep, detector_page(results, scores, counts, result, data["attrs"], d, files, alarms))
+        atomic_write_text(rep, detector_page(results, scores, counts, result, data["attrs"], _used(d, y[tr]), files,
+                                             alarms))
         _log_live(live_dir, d, result.history, results["lstm"]["all"], (y[te], {k: v[0] for k, v in scores.items()}))
     acc = results["lstm"]["all"]["accuracy"]
     fa = "" if alarms is None else f"; false alarms on clean evaluation frames {alarms['rate']:.4f}"
     print(f"detect: LSTM test accuracy {acc:.4f} (paper {DETECTOR_ACCURACY:.4f}){fa} -> {files.detector}, "
           f"{files.detect_report}")
+
+
+def _used(d: Detect, train_labels: np.ndarray) -> Detect:
+    """The detect params as the baselines ran: detect.lid_k capped by LID's minibatches (the report states that)."""
+    import dataclasses
+
+    from pipeline.detectors.lid import neighbours
+
+    k = neighbours(d.lid_k, train_labels, d.lid_batch)
+    return dataclasses.replace(d, lid_k=k) if 1 <= k < d.lid_k else d
 
 
 def _checkpoint(result: Any, attrs: dict[str, Any], model_hash: str, attacked_eps: np.ndarray,

@@ -33,6 +33,18 @@ def atomic_write_text(path: Path | str, text: str) -> None:
         raise
 
 
+def check_writable(*folders: Path | str) -> None:
+    """A DataError naming the first of `folders` (created when missing) where no file can be created (read-only,
+    not a folder, no permission): for a stage to find out before its expensive work, not after it."""
+    for folder in map(Path, folders):
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryFile(dir=folder):
+                pass
+        except OSError as e:
+            raise DataError(f"{folder} is not writable ({e.strerror or e}); the outputs go there") from None
+
+
 def write_json(path: Path | str, obj: Any) -> None:
     """`obj` as indented JSON with sorted keys (numpy scalars and arrays as numbers and lists), atomically."""
     atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n")
@@ -190,12 +202,17 @@ def atomic_outputs(*paths: Path | str, dirs: tuple[Path | str, ...] = ()) -> Ite
         missing = [str(p) for p, t in zip(files, tmps) if not t.exists()]
         if missing:
             raise RuntimeError(f"atomic_outputs: {missing} were not written")
-    except BaseException:
+    except BaseException as e:
         for t in tmps:
             if t.is_dir():
                 shutil.rmtree(t, ignore_errors=True)
             else:
                 t.unlink(missing_ok=True)
+        if isinstance(e, DataError):   # "could not write .pose.pt.PID.tmp": name the output, not its stand-in
+            message = str(e)
+            for p, t in zip(files + folders, tmps):
+                message = message.replace(str(t), str(p))
+            raise DataError(message) from e
         raise
     for p, t in zip(files + folders, tmps):
         if t.is_dir() and p.exists():

@@ -11,7 +11,8 @@ from pipeline.io.errors import DataError, not_found
 
 
 def save_torch(path: Path | str, obj: Any) -> None:
-    """torch.save via a temporary file in the same folder and a rename (never a half-written file).
+    """torch.save via a temporary file in the same folder and a rename (never a half-written file; a full disk
+    is a DataError naming `path`).
     Saved through a file object, so the zip's root folder is torch's fixed "archive", not the random
     temporary name: the same object gives the same bytes (and file hash) on every run."""
     import torch
@@ -24,8 +25,11 @@ def save_torch(path: Path | str, obj: Any) -> None:
         with open(tmp, "wb") as f:
             torch.save(obj, f)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         Path(tmp).unlink(missing_ok=True)
+        cause = e if isinstance(e, OSError) else e.__context__   # torch reports a failed write as a RuntimeError
+        if isinstance(cause, OSError):                             # disk full, quota, read-only, ...
+            raise DataError(f"could not write {path} ({cause.strerror or cause}); the file was left as it was") from e
         raise
 
 
