@@ -119,9 +119,9 @@ def check_source(folder: Path, label_files: list[Path], images: list[Path], n_tr
             raise DataError(f"{path} resolves to {real}, outside the dataset folder {folder} (render.source); copy "
                             f"the file into it")
     hashes = [file_hash(p, 64) for p in images]
-    train = {**dict(zip(hashes[:n_train], images[:n_train])), **{p.resolve(): p for p in images[:n_train]}}
-    leaks = [(p, train.get(p.resolve()) or train[h]) for p, h in zip(images[n_train:], hashes[n_train:])
-             if p.resolve() in train or h in train]
+    by_hash, by_file = dict(zip(hashes[:n_train], images[:n_train])), {p.resolve(): p for p in images[:n_train]}
+    leaks = [(p, by_file.get(p.resolve()) or by_hash[h]) for p, h in zip(images[n_train:], hashes[n_train:])
+             if p.resolve() in by_file or h in by_hash]
     if leaks:
         raise DataError(f"test image {leaks[0][0]} is the training image {leaks[0][1]} (a link to it or a "
                         f"byte-identical copy; {len(leaks)} such images): a test image must never be trained on")
