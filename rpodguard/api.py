@@ -23,12 +23,9 @@ from pipeline.io.errors import DataError
 
 ASPECT_TOLERANCE = 0.01   # relative difference of width/height above which `predict` warns
 BATCH = 64                # images per forward pass
-# No target in view: under MIN_LIT_FRACTION of the pixels (at the model input) have a channel >= LIT_LEVEL.
-# Space behind the target renders black (0), so lit pixels are the target. Over the default profile's
-# 3,900 rendered frames (160x90, ranges 66.7..10 m) the least lit frame has 1.49% of its pixels at >= 16/255
-# (1st percentile 1.60%, median 4.7%); a quarter of that minimum leaves margin for a darker camera.
-LIT_LEVEL = 16 / 255          # pixel value in [0, 1] (brightest channel) from which a pixel counts as lit
-MIN_LIT_FRACTION = 0.0037     # fraction of lit pixels below which a frame has no target in view
+# No target in view: under MIN_LIT_FRACTION of the pixels (at the model input) have a channel >= LIT_LEVEL
+# (pipeline/visibility.py, where the producers of data sets apply the same rule).
+from pipeline.visibility import LIT_LEVEL, MIN_LIT_FRACTION  # noqa: E402
 
 Image = Union[str, Path, np.ndarray]
 BUNDLE = Path(__file__).resolve().parent / "weights" / "default"   # the default profile's trained chain (git)

@@ -24,6 +24,7 @@ from pipeline.io.errors import DataError
 MOTION_COLUMNS = ("u_x", "u_y", "u_z", *(f"c{j}" for j in range(9)))
 """A motion file's columns: the commanded displacement of rel since the previous frame (world, m; the
 first row's is unused) and the camera attitude c0..c8 (camera -> world rotation, row-major)."""
+MAX_DISPLACEMENT_M = 1000.0   # m: a commanded displacement between two frames above this along an axis is refused
 
 
 @dataclass(frozen=True)
@@ -92,11 +93,15 @@ def _rotations(sixd: np.ndarray) -> np.ndarray:
 def read_motion(path: Path | str, frames: int) -> tuple[np.ndarray, np.ndarray]:
     """(commands (N, 3), camera attitudes (N, 3, 3)) from a CSV file with a header naming
     `MOTION_COLUMNS` and one row per frame; a missing file, a missing column, a row count other than
-    `frames`, a non-number or a camera matrix that is not a rotation is a DataError naming the file."""
+    `frames`, a non-number, a camera matrix that is not a rotation (a mirror, determinant -1, included), a
+displacement over MAX_DISPLACEMENT_M or a file that is not a regular one (a FIFO) is a DataError naming the
+file; a UTF-8 byte-order mark is skipped."""
+    from pipeline.io.files import open_regular
+
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise DataError(f"{path} not found (a motion CSV with columns {', '.join(MOTION_COLUMNS)})")
-    with open(path, newline="") as f:
+    with open_regular(path, "r", "motion CSV", newline="", encoding="utf-8-sig") as f:   # a BOM is not part of u_x
         rows = list(csv.DictReader(f))
     missing = [c for c in MOTION_COLUMNS if not rows or c not in rows[0]]
     if missing:
@@ -110,4 +115,13 @@ def read_motion(path: Path | str, frames: int) -> tuple[np.ndarray, np.ndarray]:
     camera = values[:, 3:].reshape(-1, 3, 3)
     if not np.isfinite(values).all() or not np.allclose(camera @ np.swapaxes(camera, 1, 2), np.eye(3), atol=1e-4):
         raise DataError(f"{path}: every value must be finite and c0..c8 a rotation matrix (row-major) per row")
+    mirrored = np.flatnonzero(np.linalg.det(camera) < 0)
+    if len(mirrored):
+        raise DataError(f"{path}: c0..c8 of data row {mirrored[0] + 1} is a mirror (determinant -1), not a rotation "
+                        f"({len(mirrored)} such rows)")
+    far = np.flatnonzero(np.abs(values[1:, :3]).max(axis=1) > MAX_DISPLACEMENT_M) + 1   # row 0 is unused
+    if len(far):
+        raise DataError(f"{path}: data row {far[0] + 1} commands a displacement of "
+                        f"{', '.join(f'{v:.3g}' for v in values[far[0], :3])} m between two frames (more than "
+                        f"{MAX_DISPLACEMENT_M:g} m along an axis; u_x, u_y, u_z are metres)")
     return values[:, :3], camera

@@ -42,7 +42,8 @@ from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.models import load_pose, model_option
 from stages.artifacts.paths import CHAINS, DETECT_RENDER, ChainFiles, Model
-from stages.artifacts.readers import SampleImages, read_detect_render, read_eval_render, read_shap_store
+from stages.artifacts.readers import SampleImages, check_shap_split, read_detect_render, read_eval_render, \
+    read_shap_store
 from stages.config.device import torch_device
 from stages.config.schema import Params
 from stages.config.sections import Detect
@@ -90,6 +91,7 @@ def main(params: Params, model: ModelOption = Model.standard, eval_alarms: EvalA
     files = CHAINS[model]
     model_hash = file_hash(files.pose)
     data = read_shap_store(files.shap, model_hash)
+    check_shap_split(data["attrs"], params, files.shap)   # explains this detector split (after shap.seed changed: not)
     values, eps = data["values"], data["eps"].astype(np.float64)
     y = data["is_adversarial"].astype(np.int64)
     tr, va, te = split_indices(eps, data["source_index"], float(d.test_fraction), float(d.val_fraction), seed)
@@ -120,12 +122,23 @@ def main(params: Params, model: ModelOption = Model.standard, eval_alarms: EvalA
                         dirs=(files.detect_live,)) as (det, met, rep, live_dir):
         save_torch(det, ckpt)
         write_metrics(met, nan_to_none(metrics), params.profile_name)
-        atomic_write_text(rep, detector_page(results, scores, counts, result, data["attrs"], d, files, alarms))
+        atomic_write_text(rep, detector_page(results, scores, counts, result, data["attrs"], _used(d, y[tr]), files,
+                                             alarms))
         _log_live(live_dir, d, result.history, results["lstm"]["all"], (y[te], {k: v[0] for k, v in scores.items()}))
     acc = results["lstm"]["all"]["accuracy"]
     fa = "" if alarms is None else f"; false alarms on clean evaluation frames {alarms['rate']:.4f}"
     print(f"detect: LSTM test accuracy {acc:.4f} (paper {DETECTOR_ACCURACY:.4f}){fa} -> {files.detector}, "
           f"{files.detect_report}")
+
+
+def _used(d: Detect, train_labels: np.ndarray) -> Detect:
+    """The detect params as the baselines ran: detect.lid_k capped by LID's minibatches (the report states that)."""
+    import dataclasses
+
+    from pipeline.detectors.lid import neighbours
+
+    k = neighbours(d.lid_k, train_labels, d.lid_batch)
+    return dataclasses.replace(d, lid_k=k) if 1 <= k < d.lid_k else d
 
 
 def _checkpoint(result: Any, attrs: dict[str, Any], model_hash: str, attacked_eps: np.ndarray,

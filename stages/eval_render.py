@@ -108,16 +108,19 @@ def main(
                                             envelope=True),
                  val_envelope_fingerprint(params))]
     timings: dict[str, Any] = {}
+    hint = f"check params.yaml evaluate.lateral_range={list(e.lateral_range)} (lateral start offsets, m)"
     with engine.session(es):
         for folder, seqs, fingerprint in sets:
-            timings[folder.name] = _render_set(K, scene, es, seqs, folder, fingerprint)
+            timings[folder.name] = _render_set(K, scene, es, seqs, folder, fingerprint, hint)
     write_metrics(DETECT_RENDER_METRICS if detector else EVAL_RENDER_METRICS,
                   {"workers": es.workers, "sets": timings}, params.profile_name)
 
 
-def _render_set(K: Any, scene: Any, es: Any, seqs: list[Any], folder: Path, fingerprint: str) -> dict[str, Any]:
+def _render_set(K: Any, scene: Any, es: Any, seqs: list[Any], folder: Path, fingerprint: str,
+                hint: str) -> dict[str, Any]:
     """Render the trajectories `seqs` into `folder` (images.zarr, poses.parquet, meta.json); returns the
-    frame count and render time (s) for the metrics JSON."""
+    frame count and render time (s) for the metrics JSON. A set mostly out of view is refused (`hint`: the params
+    that put it there)."""
     import pandas as pd
 
     from pipeline.geometry.rotations import matrix_to_6d, matrix_to_quat
@@ -133,7 +136,7 @@ def _render_set(K: Any, scene: Any, es: Any, seqs: list[Any], folder: Path, fing
         **{f"c{j}": R_cam[:, j // 3, j % 3] for j in range(9)}})
     with atomic_dir(folder) as tmp:
         seconds = render_to_store(store_url(tmp / "images.zarr"), K, scene, R, t, min(n, 100), es,
-                                  f"eval_render {folder.name}")
+                                  f"eval_render {folder.name}", empty_hint=hint)
         write_parquet(poses, tmp / "poses.parquet")
         write_json(tmp / "meta.json", {"complete": True, "fingerprint": fingerprint, "frames": n,
                                        "trajectories": len(seqs), "width": K.width, "height": K.height, "K": K.K,

@@ -7,8 +7,9 @@ OUT/synthetic/train.json and the test split as validation.json, SPEED+'s name (`
 images as OUT/synthetic/images/imgNNNNNN.png (lossless, so the pixels are the ones the pose model saw) or,
 with `--format jpeg-gray`, as grayscale imgNNNNNN.jpg like SPEED+'s.
 Not a DVC stage: run it after `dvc repro label`. The export is atomic: a temporary folder renamed to OUT.
-OUT/.rpodguard-export.json lists the files written; an existing OUT is replaced only when it holds nothing
-else (any other non-empty folder is refused, never deleted). Files are 0644.
+OUT/.rpodguard-export.json lists the files written with their sha256; an existing OUT is replaced only when it
+holds nothing else and none of them was edited since (`--overwrite` replaces edited ones; any other non-empty
+folder is refused, never deleted). A symbolic link OUT is followed. Files are 0644.
 """
 from __future__ import annotations
 
@@ -26,7 +27,10 @@ app = typer.Typer(help="Write the pipeline's data in another dataset layout (SPE
 def speed(out: Path = typer.Argument(..., help="Folder to write: new, empty, or an earlier export holding "
                                                 "only its own files (replaced)."),
           image_format: Annotated[str, typer.Option(
-              "--format", help="png (lossless RGB) or jpeg-gray (grayscale JPEG, as SPEED+ ships)")] = "png") -> None:
+              "--format", help="png (lossless RGB) or jpeg-gray (grayscale JPEG, as SPEED+ ships)")] = "png",
+          overwrite: Annotated[bool, typer.Option(
+              "--overwrite", help="replace files of an earlier export in OUT that were edited since (refused "
+                                  "without it)")] = False) -> None:
     """Write datasets/render + datasets/labels.parquet as a SPEED+ folder: camera.json,
     synthetic/{train,validation}.json, synthetic/images/*.png (or *.jpg). `render.source: OUT` imports it back."""
     import numpy as np
@@ -43,7 +47,7 @@ def speed(out: Path = typer.Argument(..., help="Folder to write: new, empty, or 
     labels = load_labels(LABELS)
     K = np.asarray(meta["K"], dtype=np.float64)
     K = Intrinsics(int(meta["width"]), int(meta["height"]), K[0, 0], K[1, 1], K[0, 2], K[1, 2])
-    write_speed(out, images, labels, K, image_format)
+    write_speed(out, images, labels, K, image_format, overwrite)
     counts = labels["split"].value_counts()
     typer.echo(f"{out}: camera.json, synthetic/train.json ({counts.get('train', 0)} images), synthetic/validation"
                f".json ({counts.get('test', 0)} images), synthetic/images/*.{IMAGE_FORMATS[image_format]}")

@@ -81,6 +81,30 @@ def _plan(g: Guidance) -> tuple[Any, list[tuple[float, float, int, Any]]]:
     return settings, grid
 
 
+HORIZON_H = 24.0   # hours: a grid projected to run longer on this machine is refused before the first run
+
+
+def check_duration(plan: Any, chain: Any, K: Any) -> None:
+    """Refuse a grid whose no-attack runs alone (`pipeline.guidance.grid.baseline_steps`, one chain forward a
+    step, the fastest of three timed here) would outlast HORIZON_H, naming guidance.max_steps."""
+    import torch
+
+    from pipeline.guidance.grid import baseline_steps
+
+    x = torch.zeros(1, 3, K.height, K.width, device=next(chain.model.parameters()).device)
+    seconds = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        chain(x).prob.cpu()
+        seconds.append(time.perf_counter() - t0)
+    steps = baseline_steps(plan)
+    hours = steps * min(seconds) / 3600
+    if hours > HORIZON_H:
+        raise StageError(f"params.yaml guidance.max_steps={plan.settings.max_steps}: the no-attack runs alone fly "
+                         f"{steps:,} closed-loop steps, about {hours:,.0f} h at {1000 * min(seconds):.2f} ms per step "
+                         f"on this machine (more than {HORIZON_H:g} h); lower it (the nominal approach takes 50 steps)")
+
+
 def main(params: Params) -> None:
     """Fly the closed loop without attack and under every (eps, S, K) attack window, on the engine's
     workers (each run on one; results in grid order); report outcomes."""
@@ -99,8 +123,9 @@ def main(params: Params) -> None:
     hashes = {m: chain.pose_hash for m, chain in chains.items()}
     shipped = chains[SHIPPED.value]
     K, es = intrinsics(params), engine.engine_settings(params)   # K: the model's input size
-    scene, threads = chunks.prepare(K, scene_settings(params.render), es)
     plan = GridPlan(settings, tuple(grid), g.slack_steps, tuple(g.dynamics), tuple(g.defenses), in_loop)
+    check_duration(plan, shipped.onboard, K)
+    scene, threads = chunks.prepare(K, scene_settings(params.render), es)
     runs = flights(plan)   # attacked runs last the no-attack arrival + slack_steps (the paper: 50 nominal steps + ~10)
     finished, t0, paper_done = [0], time.perf_counter(), [0.0]
 

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.geometry.labels import POSITION, QUAT, SIXD
+from pipeline.visibility import out_of_view, split_problem
+from pipeline.formats.renders import render_identity
+from pipeline.formats.speed_folder import source_problem
+from pipeline.geometry.labels import POSITION, QUAT, SIXD, table_problem
 from pipeline.io.atomic import atomic_write_text
 from pipeline.io.tables import write_parquet
 from pipeline.seeds import seed_for
@@ -45,10 +48,14 @@ def main(params: Params) -> None:
     """Label the rendered frames: datasets/labels.parquet (t, q, 6-D, sequence, frame, train/test split)
     and the dataset card reports/dataset.md. Parameters: `seed` and `label.test_fraction` in params.yaml
     (an imported SPEED/SPEED+ set keeps its own split). `rpod export speed OUT` writes a SPEED+ folder."""
-    _, poses, meta = read_render_store(RENDER)
+    images, poses, meta = read_render_store(RENDER)
     params_mod.check_render_fingerprint(meta, params, RENDER / "meta.json")
     labels = build_labels(poses, float(params.label.test_fraction), seed_for(params.seed, "label"))
-    labels.attrs[RENDER_KEY] = meta["fingerprint"]   # what every reader checks the render against (load_labels)
+    problem = (source_problem(meta, list(poses.sort_values("index").get("filename", []))) or table_problem(labels)
+               or split_problem(out_of_view(images), labels["index"].to_numpy(), labels["split"].to_numpy()))
+    if problem:   # the SPEED folder changed since the import, a bad pose, or a split mostly out of view
+        raise StageError(f"{RENDER}: {problem}")
+    labels.attrs[RENDER_KEY] = render_identity(meta)   # what every reader checks the render against (load_labels)
     write_parquet(labels, LABELS)
     atomic_write_text(CARD, dataset_card(labels, meta, sorted(PREVIEWS.glob("*.png")), CARD.parent))
     print(f"{LABELS}: {len(labels)} labels ({(labels.split == 'train').sum()} train, "

@@ -79,7 +79,7 @@ def render_all(p: Params, dest: Path) -> float:
     write_json(dest / "meta.json", {
         "complete": True, "fingerprint": fp, "frames": n, "width": K.width,
         "height": K.height, "K": K.K, "render": dataclasses.asdict(r), "camera": dataclasses.asdict(p.camera),
-        "seed": p.seed, "chunk": r.chunk, **({"store": url} if store else {})})
+        "seed": p.seed, "chunk": min(r.chunk, n), **({"store": url} if store else {})})
     return seconds
 
 

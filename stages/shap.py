@@ -38,7 +38,7 @@ from pipeline.seeds import seed_for
 from stages.artifacts.data import load_split
 from stages.artifacts.models import load_pose, model_option
 from stages.artifacts.paths import CHAINS, DETECT_RENDER, Model
-from stages.artifacts.readers import BATCH, SampleImages
+from stages.artifacts.readers import BATCH, SPLIT_KEY, SampleImages
 from stages.config.device import torch_setup
 from stages.config.schema import Params
 from stages.config.sections import Shap
@@ -112,7 +112,7 @@ def main(params: Params, model: Annotated[Model, model_option(
                        "shared": int(len(shared))},
             "source": {"folder": str(DETECT_RENDER), "images": len(src),
                        "trajectories": int(src.poses["trajectory"].nunique())},
-            "outputs": TARGET,
+            "outputs": TARGET, SPLIT_KEY: src.fingerprint,
         })
     print(f"shap: {n} samples in {time.perf_counter() - t0:.0f} s -> {out}")
 

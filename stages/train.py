@@ -28,7 +28,7 @@ from typing import Annotated, Any
 import typer
 
 from pipeline.formats.renders import META
-from pipeline.io.atomic import atomic_outputs, atomic_write_text, file_hash, read_json
+from pipeline.io.atomic import atomic_outputs, atomic_write_text, check_writable, file_hash, read_json
 from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import (
@@ -66,6 +66,10 @@ def main(
     from stages.artifacts import data
     from stages.config.device import distributed
 
+    check_writable(POSE.parent, REPORT.parent, METRICS.parent, TRAIN_LIVE.parent)   # found now, not after training
+    if not surrogate and not data.load_labels()["split"].eq("test").any():   # found now, not after training
+        raise StageError(f"{LABELS}: the 'test' split is empty (the test split is read after training); check "
+                         f"label.test_fraction and the number of rendered frames")
     if robust:
         return _robust(params, surrogate)
     seed = params.robustness.surrogate_seed if surrogate else params.seed

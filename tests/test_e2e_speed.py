@@ -27,6 +27,7 @@ def test_a_speedplus_folder_runs_through_dvc(tmp_path):
 
     assert yaml.safe_load((repo / "params.yaml").read_text())["render"]["source"] == str(data)
     meta = json.loads((repo / "datasets/render/meta.json").read_text())
+    assert len(meta["source"].pop("sha256")) == 64          # what it imported, by content (issue 42)
     assert meta["source"] == {"folder": str(data), "train": "synthetic/train.json", "test": "synthetic/test.json",
                               "train_images": 64, "test_images": 16}
     labels = pd.read_parquet(repo / "datasets/labels.parquet")

@@ -430,14 +430,17 @@ def test_label_refuses_a_stale_render_and_render_refuses_an_invisible_target(tmp
 def test_temporary_folders_of_live_runs_are_kept(tmp_path):
     import os
 
-    from pipeline.io.atomic import remove_stale_temps
+    from pipeline.io.atomic import OWNER, remove_stale_temps
 
     live = tmp_path / f".render.{os.getpid()}.abc.tmp"
     dead = tmp_path / ".render.999999999.def.tmp"
-    live.mkdir()
-    dead.mkdir()
+    foreign = tmp_path / ".render.999999999.ghi.tmp"     # no token inside: not a run's, never deleted
+    for d in (live, dead, foreign):
+        d.mkdir()
+    for d in (live, dead):
+        (d / OWNER).write_text(d.name)
     assert remove_stale_temps(tmp_path / "render") == [dead]
-    assert live.is_dir() and not dead.exists()
+    assert live.is_dir() and foreign.is_dir() and not dead.exists()
 
 
 def test_flipped_bit_in_a_parquet_table_is_refused(tmp_path):

@@ -69,3 +69,38 @@ def test_the_lab_loader_refuses_non_unit_quaternions(scale, ok):
     with pytest.raises(LabDataError, match=rf"mocap.csv line 7: body 'tgt' has a quaternion of norm "
                                            rf"{np.float64(scale):g}, not a unit quaternion"):
         match_frames(camera, mocap, "cam", "tgt", "nearest", max_gap=0.005)
+
+
+def _motion_csv(path, first_row: str | None = None, bom: bool = False, n: int = 3):
+    from rpodguard.sequence import MOTION_COLUMNS
+
+    rows = [",".join(MOTION_COLUMNS)] + ["0,0,-0.1," + ",".join(map(str, np.eye(3).ravel()))] * n
+    if first_row is not None:
+        rows[2] = first_row
+    path.write_text(("\ufeff" if bom else "") + "\n".join(rows) + "\n", encoding="utf-8")
+    return path
+
+
+def test_a_motion_csv_with_a_byte_order_mark_is_read():
+    """The issue's probe: a UTF-8 BOM (as spreadsheet programs write) was read as part of the first column's name."""
+    import tempfile
+    from pathlib import Path
+
+    from rpodguard.sequence import read_motion
+
+    with tempfile.TemporaryDirectory() as tmp:
+        commands, attitudes = read_motion(_motion_csv(Path(tmp) / "m.csv", bom=True), 3)
+    assert commands.shape == (3, 3) and np.allclose(attitudes, np.eye(3))
+
+
+@pytest.mark.parametrize("row, message", [
+    ("0,0,-0.1," + ",".join(map(str, np.diag([1.0, 1.0, -1.0]).ravel())),
+     r"m.csv: c0..c8 of data row 2 is a mirror \(determinant -1\), not a rotation \(1 such rows\)"),
+    ("1e300,0,0," + ",".join(map(str, np.eye(3).ravel())),
+     r"m.csv: data row 2 commands a displacement of 1e\+300, 0, 0 m between two frames \(more than 1000 m"),
+])
+def test_a_motion_csv_with_a_mirror_or_an_absurd_displacement_is_refused(tmp_path, row, message):
+    from rpodguard.sequence import read_motion
+
+    with pytest.raises(DataError, match=message):
+        read_motion(_motion_csv(tmp_path / "m.csv", row), 3)

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import zarr
 
+from pipeline.io.atomic import OWNER
 from pipeline.io.errors import DataError
 from pipeline.io.store import create_array, open_zarr, seal_zarr
 from stages.config import params as params_mod
@@ -60,7 +61,6 @@ def test_labels_of_another_render_are_refused_by_train_and_export(workdir, capsy
     write_dataset(workdir)
     seed0 = (workdir / "datasets/labels.parquet").read_bytes()
     write_dataset(workdir, overrides=["seed=1"])                 # a render (and labels) of seed 1 ...
-    _poses_from_labels(workdir)                                  # (export reads the render's poses too)
     (workdir / "datasets/labels.parquet").write_bytes(seed0)     # ... with the labels of seed 0
     with pytest.raises(StageError, match=r"labels.parquet labels another render than datasets/render \(render "
                                          r"fingerprint \w+, datasets/render has \w+\): re-run `rpod label`"):
@@ -89,21 +89,6 @@ def test_a_model_trained_on_other_labels_is_refused(workdir):
     with pytest.raises(StageError, match=r"pose checkpoint models/pose.pt was trained on another "
                                          r"datasets/labels.parquet \(relabelled since\); re-run `rpod train`"):
         load_pose(load())
-
-
-def _poses_from_labels(root: Path) -> None:
-    """datasets/render/poses.parquet as `rpod render` writes it, from test_training's labels of the render."""
-    import pandas as pd
-
-    from pipeline.geometry.labels import POSITION, QUAT
-    from pipeline.geometry.rotations import quat_to_matrix
-    from pipeline.geometry.trajectories import poses_table
-    from pipeline.io.tables import write_parquet
-
-    df = pd.read_parquet(root / "datasets/labels.parquet")
-    write_parquet(poses_table(df["index"].to_numpy(), df["sequence"].to_numpy(), df["frame"].to_numpy(),
-                              quat_to_matrix(df[QUAT].to_numpy()), df[POSITION].to_numpy()),
-                  root / "datasets/render/poses.parquet")
 
 
 # --- engine.store: keyed by fingerprint, checked, swapped in whole, locked -------------------------------------
@@ -157,8 +142,9 @@ def test_a_refused_or_failed_render_leaves_the_previous_store(workdir, monkeypat
     np.testing.assert_array_equal(_images(before), kept)
     assert json.loads(Path("datasets/render/meta.json").read_text()) == before
     assert not [p for p in shared.iterdir() if p.name.endswith((".tmp", ".old"))]
-    killed = shared / f".render-{before['fingerprint']}.zarr.999999999.tmp"   # a killed render's (no such pid)
+    killed = shared / f".render-{before['fingerprint']}.zarr.999999999.abc.tmp"   # a killed render's (no such pid)
     killed.mkdir()
+    (killed / OWNER).write_text(killed.name)
     monkeypatch.setattr(chunks.RenderWorker, "run", real_run)
     _render([f"engine.store={shared}"])
     assert not killed.exists()                                    # removed by the next render

@@ -105,3 +105,53 @@ def test_bad_cameras_are_refused(cam, message):
     with pytest.raises(ValueError, match=message):
         camera_from_json(cam)
     assert camera_from_json(camera_to_json(K_SRC)) == K_SRC
+
+
+@pytest.mark.parametrize("how", ["symlink", "copy"])
+def test_a_test_image_that_is_a_training_image_is_refused(tmp_path, how):
+    """The issue's probe: a test image linked to, or copied byte for byte from, a training image was imported (a
+    leak from training into the test split)."""
+    src = tmp_path / "src"
+    write_folder(src)
+    test, train = src / "synthetic/images/test001.png", src / "synthetic/images/train004.png"
+    test.unlink()
+    if how == "symlink":
+        test.symlink_to(train.name)
+    else:
+        test.write_bytes(train.read_bytes())
+    with pytest.raises(DataError, match=r"test image .*test001.png is the training image .*train004.png \(a link to it "
+                                        r"or a byte-identical copy; 1 such images\)"):
+        _import(src, tmp_path / "store")
+    assert not (tmp_path / "store").exists()
+
+
+def test_an_image_linked_from_outside_the_folder_is_refused(tmp_path):
+    src = tmp_path / "src"
+    write_folder(src)
+    outside = tmp_path / "elsewhere.png"
+    (src / "synthetic/images/train002.png").rename(outside)
+    (src / "synthetic/images/train002.png").symlink_to(outside)
+    with pytest.raises(DataError, match=r"train002.png resolves to .*elsewhere.png, outside the dataset folder .*src"):
+        _import(src, tmp_path / "store")
+
+
+@pytest.mark.parametrize("record, message", [
+    ({"r_Vo2To_vbs_true": [0.0, 0.0, -9.0]}, r"puts the target behind the camera or in its plane"),
+    ({"r_Vo2To_vbs_true": [0.0, 0.0, 0.0]}, r"puts the target behind the camera or in its plane"),
+    ({"r_Vo2To_vbs_true": [0.0, 0.0, 1e300]}, r"puts the target more than 10000 m away"),
+    ({"r_Vo2To_vbs_true": [True, False, True]}, r"r_Vo2To_vbs_true must be a list of 3 numbers, got \[True"),
+    ({"q_vbs2tango": [1.0, 0.0, 0.0, 0.0]}, r"has both 'q_vbs2tango_true' \(SPEED\+\) and 'q_vbs2tango' \(SPEED\)"),
+    ({"q_vbs2tango_true": [0.0, 0.0, 0.0, 0.0]}, r"has norm 0, not a unit quaternion"),
+])
+def test_implausible_records_are_refused(record, message):
+    t, q = poses(1)
+    good = to_speed(["a.png"], t, q)[0]
+    with pytest.raises(ValueError, match=r"record 0 \(a.png\): .*" + message):
+        from_speed([{**good, **record}])
+
+
+def test_export_refuses_a_zero_quaternion():
+    t, _ = poses(2)
+    q = np.array([[1.0, 0, 0, 0], [0.0, 0, 0, 0]])
+    with pytest.raises(ValueError, match=r"b.png: quaternion \[0.0, 0.0, 0.0, 0.0\] is not a unit quaternion"):
+        to_speed(["a.png", "b.png"], t, q)

@@ -98,12 +98,17 @@ def test_interrupted_render_leaves_no_dataset(workdir, monkeypatch):
     # the temporary folder is gone too (the writers' lock file, datasets/.render.lock, stays)
     assert not [p for p in (workdir / "datasets").glob(".render*") if p.name != ".render.lock"]
 
-    # A hard kill (no clean-up) leaves a temporary folder: never trusted, and removed by the next run.
-    leftover = workdir / "datasets" / ".render.killed.tmp"
-    (leftover / "images.zarr").mkdir(parents=True)
+    # A hard kill (no clean-up) leaves a temporary folder (its token inside, its pid gone): never trusted, and
+    # removed by the next run; a folder named alike without the token is not a run's and stays.
+    from pipeline.io.atomic import OWNER
+
+    leftover, foreign = workdir / "datasets" / ".render.999999999.abc.tmp", workdir / "datasets" / ".render.killed.tmp"
+    for d in (leftover, foreign):
+        (d / "render" / "images.zarr").mkdir(parents=True)
+    (leftover / OWNER).write_text(leftover.name)
     monkeypatch.setattr(scene.Renderer, "render", original)
     render.main(load())
-    assert not leftover.exists() and (workdir / "datasets/render/meta.json").exists()
+    assert not leftover.exists() and foreign.exists() and (workdir / "datasets/render/meta.json").exists()
 
 
 @pytest.mark.slow

@@ -17,10 +17,12 @@ from pipeline.formats.models import read_pose, save_pose
 from pipeline.geometry.camera import reference_intrinsics
 from pipeline.geometry.labels import pose_columns
 from pipeline.geometry.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
+from pipeline.geometry.trajectories import poses_table
+from stages.artifacts import data, models
 from pipeline.io.atomic import file_hash, write_json
 from pipeline.io.errors import DataError
 from pipeline.io.store import create_array, seal_zarr
-from stages.artifacts import data, models
+from pipeline.io.tables import write_parquet
 from stages.artifacts.paths import POSE
 from stages.config import params as params_mod
 from stages.config.params import load
@@ -60,6 +62,8 @@ def write_dataset(root: Path, n: int = 40, width: int = W, height: int = H, seed
     write_json(root / "datasets/render/meta.json", {"complete": True, "frames": n, "K": K.K,
                                                     "fingerprint": params_mod.render_fingerprint(typed)})
     labels.attrs[data.RENDER_KEY] = params_mod.render_fingerprint(typed)   # as `rpod label` records it
+    write_parquet(poses_table(np.arange(n), labels["sequence"].to_numpy(), labels["frame"].to_numpy(), R, t),
+                  root / "datasets/render/poses.parquet")                 # as `rpod render` writes them
     labels.to_parquet(root / "datasets/labels.parquet")
     return typed
 
@@ -91,9 +95,9 @@ def _edit_labels(fn) -> None:
     (lambda df: df.assign(tx=df["tx"].where(df.index != 3)), "NaN or infinite labels"),
     (lambda df: df.drop(columns=["r5"]), "r0..r5"),
     (lambda df: df.assign(r6=0.0), "r0..r5"),
-    (lambda df: df.assign(r0=df["r0"] * 2), "rotation matrix"),
+    (lambda df: df.assign(r0=df["r0"] * 2), r"r5'\] are not the 6-D rotation of its quaternion"),
     (lambda df: df.assign(split="train"), "'test' split is empty"),
-    (lambda df: df.assign(index=df["index"] + 100), "outside"),
+    (lambda df: df.assign(index=df["index"] + 100), r"index is no row of the render's poses \(0..39\)"),
 ])
 def test_bad_labels_are_refused_clearly(dataset, edit, message):
     _edit_labels(edit)

@@ -31,6 +31,14 @@ def lid_mle(x: np.ndarray, reference: np.ndarray, k: int, skip_self: bool = Fals
     return -1.0 / np.mean(np.log(dist / dist[:, -1:]), axis=1).clip(max=-1e-12)
 
 
+def neighbours(k: int, labels: np.ndarray, batch_size: int) -> int:
+    """The fewest neighbours `LIDDetector(k, batch_size).fit(features, labels)` estimates a LID from: k, or one
+    less than the clean samples of its smallest training minibatch when they are fewer (what a report states)."""
+    labels = np.asarray(labels)
+    n_batches = max(1, len(labels) // batch_size)
+    return min(k, int(np.sum(labels == 0)) // n_batches - 1)
+
+
 class LIDDetector:
     """LID features on minibatches + logistic regression; `score` is the probability of "attacked"."""
 

@@ -22,7 +22,7 @@ import numpy as np
 from pipeline.defense.chain import OnboardChain, SafetyChain
 from pipeline.formats.bundle import MANIFEST, check_bundle
 from pipeline.formats.defense import read_defense
-from pipeline.formats.models import load_pose, read_detector
+from pipeline.formats.models import check_role, load_pose, read_detector
 from pipeline.formats.run import BUNDLE_FILES, MODELS, MODELS_DIR, RUN_FILES, SHIPPED, ChainNames
 from pipeline.io.errors import DataError
 
@@ -53,7 +53,13 @@ def load_chain(folder: Path | str, model: str | None = None, *, device: Any = "c
     folder, names, name = chain_files(folder, model)
     manifest = check_bundle(folder) if bundle or (folder / MANIFEST).exists() else None
     pose_path, detector_path, defense_path = (folder / n for n in names)
-    pose = load_pose(pose_path, device, amp, check)
+
+    def checked(path: Path, ckpt: dict[str, Any]) -> None:   # the shipped chain flies a clamped model, no other
+        check_role(ckpt, name == SHIPPED, path)
+        if check is not None:
+            check(path, ckpt)
+
+    pose = load_pose(pose_path, device, amp, checked)
     detector, ckpt = read_detector(detector_path, model_hash=pose.hash)
     try:
         onboard = OnboardChain.from_model(pose.model, np.asarray(ckpt["background_mean"]), detector,

@@ -25,6 +25,15 @@ class Renders:
     meta: dict[str, Any]
 
 
+def render_identity(meta: dict[str, Any]) -> str:
+    """What a label table records of the render it labels (`rpod label`; its readers compare it): meta.json's
+    params fingerprint and, for a SPEED import, the first 16 hex digits of the sha256 of what it imported
+    (label files, camera.json, images), so a re-import of an edited folder under the same params is another
+    render."""
+    source = meta.get("source") or {}
+    return f"{meta.get('fingerprint')}:{source['sha256'][:16]}" if "sha256" in source else meta.get("fingerprint")
+
+
 def read_renders(folder: Path | str, what: str, redo: str, *, poses: str | None = None,
                  check: Callable[[dict[str, Any]], None] | None = None) -> Renders:
     """Open a render folder and verify it: meta.json, then `check(meta)` (the caller's own test, e.g. a

@@ -28,6 +28,7 @@ import numpy as np
 
 from pipeline.geometry.camera import Intrinsics
 from pipeline.geometry.rotations import UNIT_TOLERANCE, normalize_quat
+from pipeline.geometry.labels import MAX_RANGE_M
 
 POSITION_KEY = "r_Vo2To_vbs_true"
 QUAT_KEYS = ("q_vbs2tango_true", "q_vbs2tango")   # SPEED+, SPEED
@@ -37,18 +38,24 @@ SPEED_CAMERA = {"Nu": 1920, "Nv": 1200, "fx": 0.0176, "fy": 0.0176, "ppx": 5.86e
 
 
 def to_speed(filenames: list[str], t: np.ndarray, q: np.ndarray) -> list[dict[str, Any]]:
-    """Labels as SPEED+ JSON records: `filename`, `q_vbs2tango_true` (= our q), `r_Vo2To_vbs_true` (= t, m)."""
+    """Labels as SPEED+ JSON records: `filename`, `q_vbs2tango_true` (= our q), `r_Vo2To_vbs_true` (= t, m); a
+    ValueError naming the file when a q is not a unit quaternion (an all-zero one would be written as NaN)."""
+    q = np.asarray(q, np.float64)
+    bad = np.flatnonzero(~(np.abs(np.linalg.norm(q, axis=1) - 1) <= UNIT_TOLERANCE))
+    if len(bad):
+        raise ValueError(f"{filenames[bad[0]]}: quaternion {q[bad[0]].tolist()} is not a unit quaternion "
+                         f"({len(bad)} such labels)")
     return [{"filename": str(f), QUAT_KEYS[0]: [float(v) for v in qi], POSITION_KEY: [float(v) for v in ti]}
             for f, ti, qi in zip(filenames, np.asarray(t, np.float64), normalize_quat(q))]
 
 
 def _vector(record: dict[str, Any], key: str, n: int, where: str) -> np.ndarray:
-    try:
-        v = np.asarray(record[key], dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{where}: {key} must be a list of {n} numbers, got {record[key]!r}") from None
+    raw = record[key]
+    if not isinstance(raw, list) or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in raw):
+        raise ValueError(f"{where}: {key} must be a list of {n} numbers, got {raw!r}")
+    v = np.asarray(raw, dtype=np.float64)
     if v.shape != (n,) or not np.isfinite(v).all():
-        raise ValueError(f"{where}: {key} must be {n} finite numbers, got {record[key]!r}")
+        raise ValueError(f"{where}: {key} must be {n} finite numbers, got {raw!r}")
     return v
 
 
@@ -60,15 +67,26 @@ def _record(record: Any, i: int) -> tuple[str, np.ndarray, np.ndarray]:
         raise ValueError(f"{where}: missing key 'filename' (the image's file name)")
     where = f"record {i} ({record['filename']})"
     name = relative_name(record["filename"], where)
-    qkey = next((k for k in QUAT_KEYS if k in record), None)
-    if qkey is None:
+    qkeys = [k for k in QUAT_KEYS if k in record]
+    if not qkeys:
         raise ValueError(f"{where}: missing key '{QUAT_KEYS[0]}' (SPEED+) or '{QUAT_KEYS[1]}' (SPEED)")
+    if len(qkeys) > 1:
+        raise ValueError(f"{where}: has both '{QUAT_KEYS[0]}' (SPEED+) and '{QUAT_KEYS[1]}' (SPEED); a record gives "
+                         f"its attitude once")
     if POSITION_KEY not in record:
         raise ValueError(f"{where}: missing key '{POSITION_KEY}'")
+    qkey = qkeys[0]
     q = _vector(record, qkey, 4, where)
-    if abs(np.linalg.norm(q) - 1) > UNIT_TOLERANCE:
+    if not abs(np.linalg.norm(q) - 1) <= UNIT_TOLERANCE:
         raise ValueError(f"{where}: {qkey} has norm {np.linalg.norm(q):.6g}, not a unit quaternion")
-    return name, _vector(record, POSITION_KEY, 3, where), q
+    t = _vector(record, POSITION_KEY, 3, where)
+    if not t[2] > 0:
+        raise ValueError(f"{where}: {POSITION_KEY} {t.tolist()} puts the target behind the camera or in its plane "
+                         f"(z <= 0; z is along the boresight)")
+    if not np.linalg.norm(t) <= MAX_RANGE_M:
+        raise ValueError(f"{where}: {POSITION_KEY} {t.tolist()} puts the target more than {MAX_RANGE_M:g} m away "
+                         f"(metres expected)")
+    return name, t, q
 
 
 def relative_name(name: str, where: str) -> str:

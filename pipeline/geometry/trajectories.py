@@ -159,14 +159,15 @@ def poses_table(idx: np.ndarray, seq: np.ndarray, frm: np.ndarray, R: np.ndarray
 
 def preview_picks(sequence: np.ndarray, index: np.ndarray, n_previews: int) -> list[int]:
     """The `index` values of preview frames: the first (60 m) and last (10 m) frame of sequence 0,
-    then max(2, n_previews) - 2 frames spread evenly over the rotating sequences (5 and up)."""
+    then max(2, n_previews) - 2 frames spread evenly over the rotating sequences (5 and up); each frame once
+    (fewer picks when there are fewer frames than that)."""
     s0 = index[sequence == 0]
     picks = [int(s0[0]), int(s0[-1])]
     others = index[sequence >= 5]
     extra = max(2, n_previews) - 2
     if extra and len(others):
         picks += [int(i) for i in others[np.linspace(0, len(others) - 1, extra).round().astype(int)]]
-    return picks
+    return list(dict.fromkeys(picks))
 
 
 def flatten(seqs: list[Sequence]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -108,6 +108,12 @@ class GridPlan:
         return len(self.grid) + 1
 
 
+def baseline_steps(plan: GridPlan) -> int:
+    """Closed-loop steps of the plan's no-attack runs, one per (chain, dynamics, defense) block: each lasts
+    settings.max_steps steps unless it loses the target, so a grid costs at least these."""
+    return sum(cell is None for *_, cell in plan.runs()) * plan.settings.max_steps
+
+
 class GridPilot:
     """Flies single runs of a `GridPlan` with a `CachedCamera` per chain (`cameras`: {"paper": ..., "shipped": ...},
     or one camera for both): `fly(run)` -> (result, keys of the poses it rendered). An attacked run's length comes

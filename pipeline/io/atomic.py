@@ -3,6 +3,7 @@ figure and hash helpers."""
 from __future__ import annotations
 
 import contextlib
+import glob
 import hashlib
 import json
 import os
@@ -13,7 +14,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from pipeline.io.errors import DataError, not_found
+from pipeline.io.errors import DataError
+from pipeline.io.files import open_regular, read_bytes
 from pipeline.io.store import is_sealed, seal_zarr
 
 
@@ -31,6 +33,18 @@ def atomic_write_text(path: Path | str, text: str) -> None:
         raise
 
 
+def check_writable(*folders: Path | str) -> None:
+    """A DataError naming the first of `folders` (created when missing) where no file can be created (read-only,
+    not a folder, no permission): for a stage to find out before its expensive work, not after it."""
+    for folder in map(Path, folders):
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryFile(dir=folder):
+                pass
+        except OSError as e:
+            raise DataError(f"{folder} is not writable ({e.strerror or e}); the outputs go there") from None
+
+
 def write_json(path: Path | str, obj: Any) -> None:
     """`obj` as indented JSON with sorted keys (numpy scalars and arrays as numbers and lists), atomically."""
     atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n")
@@ -46,44 +60,75 @@ def _json_default(o: Any) -> Any:
 
 
 def read_json(path: Path | str) -> Any:
-    """A JSON file; a DataError when it is missing (naming how to make it) or not valid JSON."""
+    """A JSON file; a DataError when it is missing (naming how to make it), not a regular file (a FIFO:
+    `pipeline.io.files.open_regular`, never blocking) or not valid JSON."""
     path = Path(path)
-    if not path.exists():
-        raise not_found(path)
     try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as e:
+        return json.loads(read_bytes(path))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise DataError(f"{path} is not valid JSON: {e}") from None
+
+
+OWNER = ".rpodguard-owner"   # inside every temporary folder `owned_temp` makes: the folder's own name (its token)
+OLD = "previous"             # inside an `owned_temp`: the output being replaced, while atomic_dir swaps it
+
+
+def owned_temp(path: Path | str) -> Path:
+    """A new temporary folder beside `path`, `.NAME.PID.RANDOM.tmp`, holding the file OWNER with its own name: the
+    token `remove_stale_temps` checks before it deletes anything (a folder of the user's with a similar name
+    lacks it and is never touched)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.{os.getpid()}.", suffix=".tmp"))
+    (tmp / OWNER).write_text(tmp.name)
+    return tmp
+
+
+def _owned(folder: Path) -> bool:
+    """Whether `folder` is a real folder holding the token `owned_temp` wrote into it."""
+    token = folder / OWNER
+    try:
+        return (not folder.is_symlink() and folder.is_dir() and not token.is_symlink() and token.is_file()
+                and token.read_text() == folder.name)
+    except OSError:
+        return False
+
+
+def followed(path: Path | str) -> Path:
+    """`path`, or the path a symbolic link there points to (so a linked output folder is written, not replaced)."""
+    path = Path(path)
+    return Path(os.path.realpath(path)) if path.is_symlink() else path
 
 
 @contextlib.contextmanager
 def atomic_dir(path: Path | str) -> Iterator[Path]:
-    """Yield a temporary sibling folder; on success it replaces `path` whole, on error it is removed.
+    """Yield a temporary folder; on success it replaces `path` whole, on error it is removed.
 
     A later stage therefore never sees a half-written output folder. Every zarr store in it (the folder
     itself, or any `*.zarr` below it) is sealed with its manifest (`seal_zarr`), unless its writer
-    sealed it, before the rename. The temporary name carries the process id, so `remove_stale_temps`
-    never deletes a live run's folder.
+    sealed it, before the rename. The folder yielded lies inside an `owned_temp` beside `path` (a symbolic
+    link at `path` is followed: its target is replaced), which also holds the previous `path` while the two
+    are swapped: nothing outside it is ever deleted, and `remove_stale_temps` removes it once its run is gone.
     """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.{os.getpid()}.", suffix=".tmp"))
+    path = followed(path)
+    owner = owned_temp(path)
+    tmp = owner / path.name
+    tmp.mkdir()
     try:
         yield tmp
         for store in [tmp, *sorted(tmp.rglob("*.zarr"))]:
             if (store / "zarr.json").is_file() and not is_sealed(store):
                 seal_zarr(store)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    if path.exists():
-        old = path.with_name(f".{path.name}.old")
-        shutil.rmtree(old, ignore_errors=True)
-        os.replace(path, old)
-        os.replace(tmp, path)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, path)
+        if path.exists():
+            os.replace(path, owner / OLD)
+        try:
+            os.replace(tmp, path)
+        except BaseException:
+            if (owner / OLD).exists():
+                os.replace(owner / OLD, path)
+            raise
+    finally:
+        shutil.rmtree(owner, ignore_errors=True)
 
 
 @contextlib.contextmanager
@@ -112,14 +157,17 @@ def exclusive(lock: Path | str, what: str) -> Iterator[None]:
 
 
 def remove_stale_temps(path: Path | str) -> list[Path]:
-    """Delete the temporary folders `atomic_dir` left next to `path` in runs that were killed (their
-    process is gone); a concurrent live run's folder is kept. Returns the folders removed."""
-    path = Path(path)
+    """Delete the temporary folders (`owned_temp`) that runs killed since (their process is gone) left next to
+    `path`, putting back a previous output one of them held when `path` is missing; a concurrent live run's
+    folder, and any folder without the token, are kept. Returns the folders removed."""
+    path = followed(path)
     removed = []
-    for d in path.parent.glob(f".{path.name}.*.tmp"):
+    for d in sorted(path.parent.glob(f".{glob.escape(path.name)}.*.tmp")):
         pid = d.name[len(path.name) + 2:].split(".", 1)[0]
-        if pid.isdigit() and _alive(int(pid)):
+        if not _owned(d) or (pid.isdigit() and _alive(int(pid))):
             continue
+        if (d / OLD).is_dir() and not os.path.lexists(path):
+            os.replace(d / OLD, path)
         shutil.rmtree(d, ignore_errors=True)
         removed.append(d)
     return removed
@@ -154,12 +202,17 @@ def atomic_outputs(*paths: Path | str, dirs: tuple[Path | str, ...] = ()) -> Ite
         missing = [str(p) for p, t in zip(files, tmps) if not t.exists()]
         if missing:
             raise RuntimeError(f"atomic_outputs: {missing} were not written")
-    except BaseException:
+    except BaseException as e:
         for t in tmps:
             if t.is_dir():
                 shutil.rmtree(t, ignore_errors=True)
             else:
                 t.unlink(missing_ok=True)
+        if isinstance(e, DataError):   # "could not write .pose.pt.PID.tmp": name the output, not its stand-in
+            message = str(e)
+            for p, t in zip(files + folders, tmps):
+                message = message.replace(str(t), str(p))
+            raise DataError(message) from e
         raise
     for p, t in zip(files + folders, tmps):
         if t.is_dir() and p.exists():
@@ -182,13 +235,8 @@ def save_figure(fig: Any, path: Path | str, dpi: int = 110) -> None:
 
 def file_hash(path: Path | str, n: int = 16) -> str:
     """Short sha256 of a file (used to tie derived artifacts to a checkpoint)."""
-    path = Path(path)
-    if not path.exists():
-        raise not_found(path)
-    if not path.is_file():       # a FIFO or device would block the read for ever
-        raise DataError(f"{path} is not a regular file")
     h = hashlib.sha256()
-    with open(path, "rb") as f:
+    with open_regular(path) as f:      # a FIFO or device would block the read for ever
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()[:n]

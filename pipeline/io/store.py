@@ -48,6 +48,22 @@ def store_fs(path: Path | str) -> tuple[Any, str]:
     return url_to_fs(str(path))
 
 
+def cat(fs: Any, path: str) -> bytes:
+    """The bytes of one stored object: `fs.cat_file`, or for a local store `pipeline.io.files.read_bytes`, which
+    refuses a FIFO or other special file (with one DataError naming it) instead of blocking on it."""
+    from pipeline.io.files import read_bytes
+
+    protocols = fs.protocol if isinstance(fs.protocol, tuple) else (fs.protocol,)
+    if "file" in protocols or "local" in protocols:
+        try:
+            return read_bytes(path)
+        except DataError as e:
+            if not Path(path).exists():
+                raise FileNotFoundError(path) from None     # what the callers (as fs.cat_file) expect
+            raise DataError(f"zarr store object {e}; delete the store and re-run the stage that writes it") from None
+    return fs.cat_file(path)
+
+
 def chunk_crc32c(fs: Any, path: str) -> str:
     """crc32c (8 hex digits) of one stored chunk object's payload, as the manifest lists it: the bytes
     before the 4-byte crc32c the codec appends (the crc32c of data followed by its own crc32c is the
@@ -56,7 +72,7 @@ def chunk_crc32c(fs: Any, path: str) -> str:
     """
     import google_crc32c
 
-    data = fs.cat_file(path)
+    data = cat(fs, path)
     crc = google_crc32c.value(data[:-4])
     return f"{crc:08x}" if data[-4:] == crc.to_bytes(4, "little") else "damaged"
 
@@ -66,7 +82,7 @@ def _json_crc32c(fs: Any, root: str, name: str | None) -> str:
     the root group's attributes other than the manifest itself (`name` None), as canonical JSON."""
     import google_crc32c
 
-    raw = fs.cat_file(f"{root}/{name}/zarr.json" if name else f"{root}/zarr.json")
+    raw = cat(fs, f"{root}/{name}/zarr.json" if name else f"{root}/zarr.json")
     if name is None:
         attrs = json.loads(raw).get("attributes", {})
         raw = json.dumps({k: v for k, v in attrs.items() if k != MANIFEST}, sort_keys=True).encode()
@@ -117,7 +133,7 @@ def is_sealed(path: Path | str) -> bool:
     """Whether the store at `path` already carries its manifest."""
     fs, root = store_fs(path)
     try:
-        return MANIFEST in json.loads(fs.cat_file(f"{root}/zarr.json")).get("attributes", {})
+        return MANIFEST in json.loads(cat(fs, f"{root}/zarr.json")).get("attributes", {})
     except (FileNotFoundError, ValueError, AttributeError):
         return False
 
@@ -127,7 +143,7 @@ def _manifest(path: Path | str, what: str) -> dict[str, Any]:
     redo = "delete it and re-run the stage that writes it"
     fs, root = store_fs(path)
     try:
-        meta = json.loads(fs.cat_file(f"{root}/zarr.json"))
+        meta = json.loads(cat(fs, f"{root}/zarr.json"))
     except FileNotFoundError:
         raise DataError(f"{what} {path} is not a zarr store (no zarr.json); {redo}") from None
     except (json.JSONDecodeError, UnicodeDecodeError):

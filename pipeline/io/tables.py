@@ -6,7 +6,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from pipeline.io.errors import DataError, not_found
+from pipeline.io.errors import DataError
+from pipeline.io.files import open_regular
 
 
 def write_parquet(df: Any, path: Path | str) -> None:
@@ -28,9 +29,8 @@ def read_parquet(path: Path | str, what: str = "table") -> Any:
     import pandas as pd
 
     path = Path(path)
-    if not path.exists():
-        raise not_found(path, what)
-    try:
-        return pd.read_parquet(path, page_checksum_verification=True)
-    except Exception as e:
-        raise DataError(f"{what} {path} is unreadable ({type(e).__name__}: {e})") from None
+    with open_regular(path, "rb", what) as f:
+        try:
+            return pd.read_parquet(f, page_checksum_verification=True)
+        except Exception as e:
+            raise DataError(f"{what} {path} is unreadable ({type(e).__name__}: {e})") from None

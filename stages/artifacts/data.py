@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.formats.renders import META, read_renders
-from pipeline.geometry.labels import POSITION, QUAT, SIXD
+from pipeline.formats.renders import META, POSES, read_renders, render_identity
+from pipeline.geometry.labels import POSITION, QUAT, SIXD, against_poses, table_problem
 from pipeline.io.atomic import read_json
 from pipeline.io.tables import read_parquet
 from stages.artifacts.paths import IMAGES, LABELS, RENDER
@@ -65,11 +65,12 @@ class _Rows:
 
 def load_labels(path: Path | str = LABELS, render: Path | str = RENDER) -> pd.DataFrame:
     """Read and validate the label table: made from the render in the folder `render` (the fingerprint in
-    its meta.json, which `rpod label` copies into the table), required columns, no NaN or inf, a valid 6-D
-    rotation per row."""
+    its meta.json, which `rpod label` copies into the table), required columns, no NaN or inf, valid values
+    (`pipeline.geometry.labels.table_problem`: index, poses, 6-D = q, split) and the render's poses
+    (`against_poses`: position, quaternion, range per index)."""
     path = Path(path)
     df = read_parquet(path, "label table")
-    made, have = df.attrs.get(RENDER_KEY), read_json(Path(render) / META).get("fingerprint")
+    made, have = df.attrs.get(RENDER_KEY), render_identity(read_json(Path(render) / META))
     if made != have:
         raise StageError(f"{path} labels another render than {render} (render fingerprint "
                          f"{made or 'not recorded'}, {render} has {have}): re-run `rpod label`")
@@ -85,13 +86,9 @@ def load_labels(path: Path | str = LABELS, render: Path | str = RENDER) -> pd.Da
     nans = {c: int(n) for c, n in (~np.isfinite(df[numeric].astype(np.float64))).sum().items() if n}
     if nans:
         raise StageError(f"{path}: NaN or infinite labels in columns {nans} (re-run `rpod label`)")
-    r6 = df[SIXD].to_numpy(np.float64)
-    a, b = r6[:, :3], r6[:, 3:]
-    bad = ((np.abs(np.linalg.norm(a, axis=1) - 1) > 1e-3) | (np.abs(np.linalg.norm(b, axis=1) - 1) > 1e-3)
-           | (np.abs(np.sum(a * b, axis=1)) > 1e-3))
-    if bad.any():
-        raise StageError(f"{path}: {int(bad.sum())} rows have r0..r5 that are not the first two columns of a "
-                         f"rotation matrix (first: row {int(np.argmax(bad))}) (re-run `rpod label`)")
+    problem = table_problem(df) or against_poses(df, read_parquet(Path(render) / POSES, "render poses"))
+    if problem:   # a bad value, or labels of other poses than the render's (poses.parquet)
+        raise StageError(f"{path}: {problem} (re-run `rpod label`)")
     return df
 
 
@@ -125,8 +122,9 @@ def load_split(params: Params, split: str, *, images_path: Path | str = IMAGES,
         raise StageError(f"{labels_path}: the {split!r} split is empty (splits present: {found}); "
                          f"check label.test_fraction and the number of rendered frames")
     index = rows["index"].to_numpy(np.int64)
-    if index.min() < 0 or index.max() >= images.shape[0]:
-        raise StageError(f"{labels_path}: image index {int(index.max())} is outside {images_path}/images "
+    outside = index[(index < 0) | (index >= images.shape[0])]
+    if len(outside):
+        raise StageError(f"{labels_path}: image index {int(outside[0])} is outside {images_path}/images "
                          f"({images.shape[0]} images); re-run `rpod label` after `rpod render`")
     nbytes = len(index) * int(np.prod(images.shape[1:]))
     if preload is False or (preload is None and nbytes > PRELOAD_LIMIT_BYTES):

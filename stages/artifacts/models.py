@@ -11,8 +11,9 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+from pipeline.formats.models import check_role
 from pipeline.io.atomic import file_hash
-from stages.artifacts.paths import LABELS, MODELS, POSE, Model
+from stages.artifacts.paths import LABELS, MODELS, POSE, POSE_ROBUST, Model
 from stages.config.build import ALERT_LIMIT_KEYS, alert_limit_settings, defense_settings
 from stages.config.schema import Params
 from stages.errors import StageError
@@ -39,7 +40,9 @@ def expected(params: Params, clamped: bool = False) -> dict[str, Any]:
 def check_pose(params: Params, path: Path, ckpt: dict[str, Any]) -> None:
     """Refuse a pose checkpoint whose architecture or input size is not the one params.yaml asks for (a clamped
     checkpoint, models/pose_robust.pt, is checked against train.adversarial.black_level too), or that was trained on
-    another datasets/labels.parquet than the one there (its recorded hash)."""
+    another datasets/labels.parquet than the one there (its recorded hash); models/pose_robust.pt must hold the
+    robust (clamped) model and any other pose file a standard one (`check_role`)."""
+    check_role(ckpt, Path(path).name == POSE_ROBUST.name, path)
     want = expected(params, "black_level" in ckpt["arch"])
     have = {"arch": ckpt["arch"], "input_size": list(ckpt["input_size"])}
     diffs = [f"{k}={have['arch'].get(k)} (params: {v})" for k, v in want["arch"].items() if have["arch"].get(k) != v]

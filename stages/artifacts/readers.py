@@ -129,6 +129,19 @@ def read_shap_store(path: Path, model_hash: str) -> dict[str, Any]:
     return out
 
 
+SPLIT_KEY = "detect_render_fingerprint"   # SHAP store attribute: the fingerprint of the detector split it explains
+
+
+def check_shap_split(attrs: dict[str, Any], params: Params, path: Path) -> None:
+    """Refuse a SHAP store (its `attrs`) made from another detector split than params.yaml's (its fingerprint,
+    recorded by `rpod shap`): its source_index rows would name other images."""
+    want = detect_render_fingerprint(params)
+    if attrs.get(SPLIT_KEY) != want:
+        raise StageError(f"{path} explains another detector split than {DETECT_RENDER} of params.yaml (fingerprint "
+                         f"{attrs.get(SPLIT_KEY) or 'not recorded'}, params give {want}); re-run "
+                         f"`rpod shap --model {attrs.get('model', 'standard')}`")
+
+
 def _key(eps: float) -> float:
     """eps as the attack takes it: the SHAP store keeps eps as float32, params as float64 (0.05, not 0.0500000007)."""
     return round(float(eps), 6)
@@ -141,7 +154,8 @@ class SampleImages:
 
     def __init__(self, params: Params, model: Any, loss_fn: Any):
         self.model, self.loss_fn = model, loss_fn
-        images, self.poses, _ = read_detect_render(params)
+        images, self.poses, meta = read_detect_render(params)
+        self.fingerprint = meta["fingerprint"]      # of the detector split: what a SHAP store records (SPLIT_KEY)
         self.clean = images[:] if int(np.prod(images.shape)) <= PRELOAD_BYTES else images
         self.targets = self.poses[POSITION + SIXD].to_numpy(np.float32)   # (N, 9): m, 6-D
 

@@ -24,7 +24,8 @@ import numpy as np
 from pipeline.formats.speed import relative_name
 from pipeline.geometry.labels import pose_columns
 from stages.config import params as params_mod
-from pipeline.formats.speed_folder import TEST, TRAIN, image_path, read_camera, read_image, read_labels
+from pipeline.visibility import empty_problem, out_of_view
+from pipeline.formats.speed_folder import TEST, TRAIN, check_source, image_path, read_camera, read_image, read_labels
 from pipeline.io.atomic import atomic_dir, remove_stale_temps, write_json
 from pipeline.io.store import create_array
 from pipeline.io.tables import write_parquet
@@ -39,8 +40,8 @@ def labels_file(folder: Path, names: tuple[str, ...], given: str | None, what: s
             given = relative_name(given, "params.yaml render.source_test")
         except ValueError as e:
             raise StageError(str(e)) from None
-    found = [folder / given] if given else [folder / n for n in names if (folder / n).is_file()]
-    if not found or not found[0].is_file():
+    found = [folder / given] if given else [folder / n for n in names if (folder / n).exists()]
+    if not found or not found[0].exists():     # a FIFO exists: read_labels refuses it (not "not found")
         tried = given or ", ".join(names)
         raise StageError(f"params.yaml render.source={folder}: no {what} labels ({tried} not found); "
                          f"set render.source_test for the test labels (e.g. lightbox/test.json)")
@@ -54,7 +55,7 @@ def check_images(names: list[Path], n_train: int, train: Path, test: Path) -> No
     if both:
         raise StageError(f"{sorted(both)[0]} is labelled in both {train} and {test} ({len(both)} such images): "
                          f"a test image must never be trained on")
-    missing = [f for f in names if not f.is_file()]
+    missing = [f for f in names if not f.exists()]     # a FIFO exists: image_header refuses it
     if missing:
         raise StageError(f"{missing[0]}: not found, named by its label file ({len(missing)} of {len(names)} "
                          f"labelled images missing)")
@@ -83,9 +84,11 @@ def import_source(p: Params, out: Path) -> float:
     parts = [(split, f, *read_labels(f)) for split, f in (("train", train), ("test", test))]
     names = [image_path(f, n) for _, f, ns, _, _ in parts for n in ns]
     check_images(names, len(parts[0][2]), train, test)
+    digest = check_source(folder, [train, test], names, len(parts[0][2]))   # confined, no leak; what it holds
     t = np.concatenate([x[3] for x in parts])
     q = np.concatenate([x[4] for x in parts])
-    n, chunk = len(names), r.chunk
+    n = len(names)
+    chunk = min(r.chunk, n)
     for d in remove_stale_temps(out):
         print(f"removed {d}, left over from an interrupted run")
     t0 = time.perf_counter()
@@ -100,6 +103,9 @@ def import_source(p: Params, out: Path) -> float:
         if gray:
             print(f"warning: render.source: {gray} of {n} images are grayscale; each is copied into the pose "
                   f"model's 3 channels (R = G = B)")
+        problem = empty_problem(out_of_view(images), f"images imported from {folder}")
+        if problem:
+            raise StageError(f"params.yaml render.source: {problem}; check its images and camera.json's distCoeffs")
         write_parquet(pd.DataFrame({
             "index": np.arange(n), "sequence": np.arange(n), "frame": 0, **pose_columns(t, q),
             "range": np.linalg.norm(t, axis=1), "split": [s for s, _, ns, _, _ in parts for _ in ns],
@@ -110,7 +116,7 @@ def import_source(p: Params, out: Path) -> float:
             "height": H, "K": K.K, "render": dataclasses.asdict(r), "seed": p.seed, "chunk": chunk,
             "camera": {"ref_width": cam.width, "ref_height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
                        "cy": cam.cy, "dist_coeffs_removed": dist.tolist()},
-            "source": {"folder": str(folder), "train": str(train.relative_to(folder)),
+            "source": {"folder": str(folder), "sha256": digest, "train": str(train.relative_to(folder)),
                        "test": str(test.relative_to(folder)), "train_images": len(parts[0][2]),
                        "test_images": len(parts[1][2])}})
     return seconds

@@ -12,6 +12,7 @@ from typing import Any, Callable
 import yaml
 
 from pipeline.io.atomic import atomic_write_text
+from pipeline.io.files import read_yaml
 from stages.config.schema import Params, build
 from stages.config.sections import ParamsError
 
@@ -127,10 +128,7 @@ def load(path: Path = PARAMS_FILE) -> Params:
     path = Path(path)
     if not path.exists():
         raise ParamsError(f"{path} not found: run `rpod params default` (or another profile) first")
-    try:
-        params = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise ParamsError(f"{path} is not valid YAML: {e}") from None
+    params = read_yaml(path)   # a FIFO, invalid YAML or a key given twice: one DataError naming the file
     if not isinstance(params, dict):
         raise ParamsError(f"{path} must hold a mapping of sections")
     return build(params)   # unknown keys, types and ranges of every section (stages.config.schema), checked once here

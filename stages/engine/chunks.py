@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
+import secrets
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +22,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from stages.engine import pool as engine
+from pipeline.visibility import empty_problem, out_of_view
 from pipeline.io.store import chunk_crc32c, create_array, reopen_array, seal_zarr, store_fs
 from stages.errors import StageError
 
@@ -41,8 +43,10 @@ def replacing(url: str) -> Iterator[str]:
     """Yield a temporary sibling URL to write a store into; once the block ends it replaces `url` whole (the
     previous store stays until then, and stays as it was when the block fails: the temporary is removed).
     A local store is locked for the block (one writer at a time, one message for the others), and the
-    temporaries of killed writers beside it are removed first."""
-    from pipeline.io.atomic import exclusive, remove_stale_temps
+    temporaries of killed writers beside it are removed first. The temporary store lies inside a folder that
+    holds its token (`pipeline.io.atomic.owned_temp`), as the store being replaced does while they are
+    swapped: nothing else beside the store is ever deleted."""
+    from pipeline.io.atomic import OLD, OWNER, exclusive, remove_stale_temps
 
     with contextlib.ExitStack() as stack:
         try:
@@ -53,16 +57,22 @@ def replacing(url: str) -> Iterator[str]:
         except (OSError, ValueError, ImportError) as e:    # a path below a file, an unknown protocol, ...
             raise unwritable(url, e) from None
         parent, name = url.rstrip("/").rsplit("/", 1)
-        tmp, old = f"{parent}/.{name}.{os.getpid()}.tmp", f"{parent}/.{name}.{os.getpid()}.old"
+        owner = f".{name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"   # holds its token, as atomic.owned_temp's
+        held = store_fs(f"{parent}/{owner}")[1]
+        fs.makedirs(held)
+        fs.pipe_file(f"{held}/{OWNER}", owner.encode())
         try:
-            yield tmp
+            yield f"{parent}/{owner}/{name}"
             if fs.exists(root):
-                fs.mv(root, store_fs(old)[1], recursive=True)
-            fs.mv(store_fs(tmp)[1], root, recursive=True)
+                fs.mv(root, f"{held}/{OLD}", recursive=True)
+            try:
+                fs.mv(f"{held}/{name}", root, recursive=True)
+            except BaseException:
+                if fs.exists(f"{held}/{OLD}"):
+                    fs.mv(f"{held}/{OLD}", root, recursive=True)
+                raise
         finally:
-            for leftover in (tmp, old):
-                if fs.exists(store_fs(leftover)[1]):
-                    fs.rm(store_fs(leftover)[1], recursive=True)
+            fs.rm(held, recursive=True)
 
 
 def create_store(url: str, n: int, height: int, width: int, chunk: int, fingerprint: str | None = None) -> None:
@@ -213,11 +223,14 @@ def render_to_store(url: str, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, 
                     fingerprint: str | None = None) -> float:
     """Render every pose into a new store at `url` (one job per chunk; `fingerprint`: of the render params,
     recorded in it) and seal it -> seconds taken; bad render settings are refused before any worker starts
-    (`prepare`)."""
+    (`prepare`). With `empty_hint` (how to fix it, naming the params), a first chunk without a lit pixel stops the
+    render at once and a store with more than MAX_EMPTY_SHARE of its frames out of view (the lit-pixel rule,
+    pipeline/visibility.py) is refused once rendered (a StageError ending in the hint)."""
     from tqdm import tqdm
 
     scene, threads = prepare(K, scene, es)
     n = len(t)
+    chunk = max(1, min(chunk, n))      # a chunk longer than the store would allocate for frames that do not exist
     create_store(url, n, K.height, K.width, chunk, fingerprint)
     jobs = [FrameRange(lo, min(lo + chunk, n)) for lo in range(0, n, chunk)]
     crcs: dict[str, str] = {}
@@ -234,4 +247,8 @@ def render_to_store(url: str, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, 
         engine.run(RenderWorker, RenderSetup(K, scene, R, t, url, empty_hint), jobs, es, num_cpus=threads,
                    progress=done)
     seal_zarr(url, {"images": crcs})
+    if empty_hint:
+        problem = empty_problem(out_of_view(images), f"frames of {desc}")
+        if problem:
+            raise StageError(f"{problem}; {empty_hint}")
     return time.perf_counter() - t0
