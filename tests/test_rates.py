@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.evaluation.rates import detection_rates, rates_from_counts
+from pipeline.evaluation.rates import detection_rates, rates_by_eps, rates_from_counts, sequence_rates
 from pipeline.evaluation.schedule import attack_schedule, attacked_fraction
 from pipeline.evaluation.stats import bootstrap_rate, wilson
 
@@ -106,3 +106,43 @@ def test_the_papers_schedules_attack_five_ninths_and_five_sevenths_of_the_frames
     assert attacked_fraction(0.2, 10) == pytest.approx(5 / 7)     # lab, 10-frame attacks
     with pytest.raises(ValueError, match="p_start"):
         attacked_fraction(0.0, 5)
+
+
+def _rows(eps: float, counts: list[tuple[int, int, int, int]]) -> list[dict[str, object]]:
+    return [{"eps": eps, "sequence": f"T{i + 1}", "flagged_attacked": a, "attacked_frames": b, "flagged_clean": c,
+             "clean_frames": d} for i, (a, b, c, d) in enumerate(counts)]
+
+
+def test_sequence_rates_pool_the_sequences_per_eps():
+    rows = _rows(0.01, [(10, 110, 0, 90), (60, 100, 1, 100), (30, 120, 0, 80)]) + _rows(0.5, [(110, 110, 0, 90)] * 3)
+    r = sequence_rates(rows)
+    assert list(r) == [0.01, 0.5]
+    assert r[0.01].interval == "bootstrap" and r[0.01].tpr.value == pytest.approx(100 / 330)
+    assert r[0.01].attacked_fraction.value == pytest.approx(330 / 600)
+    assert r[0.5].accuracy_at(0.2).value == 1.0
+
+
+def test_rates_by_eps_keeps_every_clean_sample_in_each_eps_row():
+    attacked = np.r_[np.zeros(500, bool), np.ones(200, bool)]
+    eps = np.r_[np.zeros(500), np.full(100, 0.05), np.full(100, 0.01)]
+    flagged = np.r_[np.zeros(498, bool), np.ones(2, bool), np.ones(100, bool), np.ones(19, bool), np.zeros(81, bool)]
+    r = rates_by_eps(attacked, flagged, eps)
+    assert list(r) == ["all", "0.05", "0.01"]
+    assert r["0.01"].attacked_fraction.value == pytest.approx(100 / 600)
+    assert r["0.01"].accuracy.value == pytest.approx((19 + 498) / 600)       # 86%: mostly clean samples
+    assert r["0.01"].accuracy_at(5 / 9).value == pytest.approx(5 / 9 * 0.19 + 4 / 9 * 0.996)   # 55%
+
+
+def test_the_pages_rate_tables_reweight_to_the_papers_fraction():
+    from stages.pages.detect import paper_fraction, rates_section as detect_rates
+    from stages.pages.evaluate import rates_section
+
+    assert paper_fraction() == pytest.approx(5 / 9)
+    text = rates_section(_rows(0.01, [(28, 100, 0, 100), (30, 110, 1, 90)]), 5, {0.01: 97.67}, "trajectories")
+    row = next(line for line in text.splitlines() if line.startswith("| 0.01"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert "accuracy at the paper's f = 55.6% (%)" in text
+    assert cells[2].startswith("27.6 [") and cells[6] == "97.67"
+    assert cells[7] == f"{100 * (0.9767 - 4 / 9) / (5 / 9):.1f}"          # 95.8: the least TPR 97.67% needs
+    page = detect_rates({"all": detection_rates(*_frames(19, 100, 2, 500))})
+    assert "accuracy at f = 55.6% (%)" in page and "| all   | 600 | 16.7 [" in page

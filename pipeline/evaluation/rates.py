@@ -154,3 +154,27 @@ def detection_rates(attacked: np.ndarray, flagged: np.ndarray, groups: np.ndarra
     counts = np.array([[np.sum(attacked[m] & flagged[m]), np.sum(attacked[m]), np.sum(~attacked[m] & flagged[m]),
                         np.sum(~attacked[m])] for m in (g == i for i in ids)], dtype=np.int64).reshape(-1, 4)
     return rates_from_counts(counts, bootstrap=groups is not None)
+
+
+def rates_by_eps(attacked: np.ndarray, flagged: np.ndarray, eps: np.ndarray) -> dict[str, DetectionRates]:
+    """`detection_rates` (Wilson) overall ("all") and per attack eps (key f"{eps:g}": every clean sample plus that
+    eps's attacked ones), as `pipeline.detectors.metrics.metrics_by_eps` splits a detector's test samples."""
+    attacked = np.asarray(attacked, dtype=bool)
+    flagged = np.asarray(flagged, dtype=bool)
+    eps = np.asarray(eps, dtype=np.float64)
+    out = {"all": detection_rates(attacked, flagged)}
+    for e in sorted(set(eps[attacked].tolist()), reverse=True):
+        keep = ~attacked | np.isclose(eps, e)
+        out[f"{e:g}"] = detection_rates(attacked[keep], flagged[keep])
+    return out
+
+
+def sequence_rates(rows: list[dict[str, object]]) -> dict[float, DetectionRates]:
+    """Per eps, the rates of `pipeline.evaluation.sequences.evaluate_sequences` rows (one per eps and sequence,
+    with counts flagged_attacked, attacked_frames, flagged_clean, clean_frames) pooled over the sequences, with
+    the bootstrap over the sequences (their frames are correlated). Keys in the rows' order."""
+    out: dict[float, list[list[int]]] = {}
+    for r in rows:
+        out.setdefault(float(r["eps"]), []).append(
+            [int(r[k]) for k in ("flagged_attacked", "attacked_frames", "flagged_clean", "clean_frames")])
+    return {e: rates_from_counts(np.array(c), bootstrap=True) for e, c in out.items()}

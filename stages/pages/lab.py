@@ -9,7 +9,8 @@ import numpy as np
 from stages.artifacts.paths import LAB as OUT, TRAIN_METRICS
 from stages.config.schema import Params
 from stages.config.evaluation import Lab
-from stages.pages.paper import LAB, LAB_EPS, LAB_RANGES, by_eps
+from stages.pages.evaluate import rates_section
+from stages.pages.paper import LAB, LAB_ATTACK_LENGTH, LAB_EPS, LAB_RANGES, by_eps
 
 if TYPE_CHECKING:
     from pipeline.evaluation.sequences import Sequence
@@ -172,6 +173,7 @@ accuracy = correctly classified frames / all frames (%).
 Mean over eps: **{mean_acc:.2f}%** (paper: {LAB}% average).
 
 {markdown_table(detail_table(summary), decimals=2)}
+{rates_section(rows, LAB_ATTACK_LENGTH, by_eps(LAB_EPS), "sequences")}
 {shipped_section(m['shipped'])}"""
 
 

@@ -10,6 +10,9 @@ INTEGRATED_EPS = {"0.5": 100.0, "0.3": 99.99, "0.1": 99.97, "0.05": 99.99, "0.01
 LAB = 96.29                    # lab (mock-up) evaluation, average accuracy (%)
 LAB_EPS = {"0.5": 100.0, "0.3": 100.0, "0.1": 100.0, "0.05": 98.44, "0.01": 90.44}         # per eps (%)
 LAB_RANGES = {3.122: 51.18}    # representative-range table: lab z (m) -> synthetic z (m), as printed
+P_START = 0.2                  # integrated and lab evaluation: a frame outside an attack starts one with this probability
+ATTACK_LENGTH = 5              # integrated evaluation: frames per attack
+LAB_ATTACK_LENGTH = 10         # lab evaluation: frames per attack
 
 
 def by_eps(per_eps: dict[str, float]) -> dict[float, float]:
