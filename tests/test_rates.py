@@ -58,7 +58,7 @@ def test_the_mover_interval_recombines_the_wilson_limits():
 def test_a_term_without_frames_is_nan_unless_its_weight_is_zero():
     r = detection_rates(np.zeros(10, bool), np.zeros(10, bool))     # no attacked frame
     assert np.isnan(r.tpr.value) and r.tpr.n == 0
-    assert np.isnan(r.accuracy_at(0.5).value)
+    assert np.isnan(r.accuracy_at(0.5).value) and r.accuracy_at(0.5).pct() == "-"
     assert r.accuracy_at(0.0).value == 1.0
 
 
@@ -146,3 +146,14 @@ def test_the_pages_rate_tables_reweight_to_the_papers_fraction():
     assert cells[7] == f"{100 * (0.9767 - 4 / 9) / (5 / 9):.1f}"          # 95.8: the least TPR 97.67% needs
     page = detect_rates({"all": detection_rates(*_frames(19, 100, 2, 500))})
     assert "accuracy at f = 55.6% (%)" in page and "| all   | 600 | 16.7 [" in page
+
+
+def test_rate_difference_is_newcombes_method_10():
+    """Newcombe (1998), Table II: 56/70 - 48/80 = 0.2000 [0.0524, 0.3339]; 9/10 - 3/10 = 0.6 [0.1705, 0.8090]."""
+    from pipeline.evaluation.rates import rate_difference
+
+    for (k1, n1, k2, n2), (lo, hi) in (((56, 70, 48, 80), (0.0524, 0.3339)), ((9, 10, 3, 10), (0.1705, 0.8090))):
+        d, got_lo, got_hi = rate_difference(wilson(k1, n1), wilson(k2, n2))
+        assert d == pytest.approx(k1 / n1 - k2 / n2)
+        assert (round(got_lo, 4), round(got_hi, 4)) == (lo, hi)
+    assert np.isnan(rate_difference(wilson(0, 0), wilson(1, 2))[0])

@@ -84,7 +84,7 @@ def protocol_values(model: Any, shap: Callable[[torch.Tensor], torch.Tensor], lo
     for start in range(0, len(eps), batch_size):
         sl = slice(start, min(start + batch_size, len(eps)))
         x = torch.from_numpy(np.ascontiguousarray(images[sl])).permute(0, 3, 1, 2).float() / 255
-        y = torch.as_tensor(np.asarray(targets[sl], np.float32))
+        y = torch.tensor(np.asarray(targets[sl], np.float32))
         e = eps[sl]
         clean = _explain(model, shap, x)
         for v in VARIANTS:

@@ -53,7 +53,7 @@ class DetectionRates:
     def accuracy_at(self, f: float) -> Rate:
         """The accuracy f TPR + (1 - f)(1 - FPR) at attacked fraction `f` in [0, 1], with its 95% interval
         (MOVER-Wilson, or the bootstrap over groups; see the module). NaN when a term with a non-zero
-        weight has no frame (e.g. no attacked frame and f > 0); `n` is the number of frames."""
+        weight has no frame (e.g. no attacked frame and f > 0), with n = 0; else `n` is the number of frames."""
         f = float(f)
         if not 0.0 <= f <= 1.0:
             raise ValueError(f"attacked fraction must be in [0, 1], got {f}")
@@ -61,7 +61,7 @@ class DetectionRates:
         n = int(n_att + n_clean)
         value = _weighted(f, tp, n_att, fp, n_clean)
         if math.isnan(value):
-            return Rate(float("nan"), float("nan"), float("nan"), n)
+            return Rate(float("nan"), float("nan"), float("nan"), 0)
         if self.interval == "bootstrap":
             lo, hi = _bootstrap_weighted(f, self.counts)
             return Rate(value, min(lo, value), max(hi, value), n)
@@ -178,3 +178,14 @@ def sequence_rates(rows: list[dict[str, object]]) -> dict[float, DetectionRates]
         out.setdefault(float(r["eps"]), []).append(
             [int(r[k]) for k in ("flagged_attacked", "attacked_frames", "flagged_clean", "clean_frames")])
     return {e: rates_from_counts(np.array(c), bootstrap=True) for e, c in out.items()}
+
+
+def rate_difference(a: Rate, b: Rate) -> tuple[float, float, float]:
+    """a - b with its 95% interval (value, lo, hi) from the two rates' own intervals by MOVER (Newcombe 1998, method
+    10, when both are Wilson): lo = d - sqrt((a - a.lo)^2 + (b.hi - b)^2), hi = d + sqrt((a.hi - a)^2 + (b - b.lo)^2).
+    For independent samples; on the same test samples (a paired comparison) it is conservative. NaN when either
+    rate has no trial."""
+    if a.n == 0 or b.n == 0:
+        return float("nan"), float("nan"), float("nan")
+    d = a.value - b.value
+    return (d, d - math.hypot(a.value - a.lo, b.hi - b.value), d + math.hypot(a.hi - a.value, b.value - b.lo))

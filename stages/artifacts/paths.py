@@ -15,6 +15,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]   # the repository (package) root: code-side files only
 CONF_DIR = ROOT / "conf"
 DVC_YAML = ROOT / "dvc.yaml"
+OPTIONAL_DVC_YAML = ROOT / "optional" / "dvc.yaml"   # stages run on demand (`dvc repro optional/dvc.yaml`), not by `dvc repro`
 BENCHMARKS = ROOT / "reports" / "benchmarks.md"   # committed; `rpod report` adds its sections
 PARAMS_FILE = Path("params.yaml")
 README = Path("README.md")   # the project README: `rpod report --sync-readme` copies the results block into it
@@ -73,6 +74,9 @@ ROBUSTNESS_REPORT, ROBUSTNESS_FIGURE, ROBUSTNESS_METRICS, INTEGRITY_FIGURE = _ou
     "reports/figures/integrity.png")
 LAB_MODELS, LAB_MODELS_SUMMARY = _outputs("lab_models", "datasets/lab_models", "datasets/lab_models/summary.json")
 LAB, LAB_REPORT, LAB_METRICS = _outputs("lab", "datasets/lab", "reports/lab.md", "reports/metrics/lab.json")
+# issue 38's 2 x 2 ablation of the paper's detector: a stage of optional/dvc.yaml (`dvc repro optional/dvc.yaml`), not of
+# the default `dvc repro`
+ABLATION_REPORT, ABLATION_METRICS = _outputs("ablation", "reports/ablation.md", "reports/metrics/ablation.json")
 # the headline numbers (what `dvc metrics show` prints), then the report's own figures
 PAGE, SUMMARY, *_FIGURES = _outputs("report", "reports/README.md", "reports/metrics/summary.json",
                                     *(f"reports/figures/{name}.png"
@@ -117,5 +121,5 @@ SHIPPED = Model.robust     # what ships (rpod predict, rpodguard.load_chain, the
 # schedule adds it to evaluate.seed + the trajectory number), so no two stages draw the same stream
 SEED_OFFSET: dict[str, int] = {
     "render": 100, "label": 200, "train": 300, "attack": 400, "guidance": 500, "shap": 500, "detect": 600,
-    "lab_models": 700, "robustness": 1500, "lab": 0, "evaluate_schedule": 17, "robust": 1600,
+    "lab_models": 700, "robustness": 1500, "lab": 0, "evaluate_schedule": 17, "robust": 1600, "ablation": 1700,
 }

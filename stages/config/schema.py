@@ -22,6 +22,7 @@ import typing
 from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal, Optional
 
+from stages.config.ablation import Ablation
 from stages.config.evaluation import Defense, Evaluate, Integrity, Lab, Robustness
 from stages.config.sections import (Attack, Camera, Detect, Engine, Guidance, In, Label, ParamsError, Render, Seed,
                                     Shap, Train)
@@ -55,6 +56,7 @@ class Params:
     lab: Lab
     robustness: Robustness
     integrity: Integrity
+    ablation: Ablation
     report: Report = field(default_factory=Report)
 
     def __post_init__(self) -> None:
