@@ -32,7 +32,7 @@ from stages.config.device import torch_setup
 from stages.config.evaluation import Evaluate
 from stages.config.schema import Params
 from stages.pages.evaluate import chain_names, defense_section, rates_section
-from stages.pages.paper import ATTACK_LENGTH, INTEGRATED, INTEGRATED_EPS, P_START, by_eps
+from stages.pages.paper import ATTACK_LENGTH, INTEGRATED, INTEGRATED_EPS, P_START, by_eps, frames_note
 from stages.pages.calibrate import unmet_banner
 
 if TYPE_CHECKING:
@@ -201,7 +201,7 @@ frames / all frames (time: reports/metrics/evaluate.json).
 {markdown_table(accuracy_table(rows, summary, names, by_eps(INTEGRATED_EPS)), decimals=2)}
 Mean over eps: **{mean_acc:.2f}%** (paper: {INTEGRATED}% overall, from 2,500-frame trajectories at
 480x270 with the full-width network; ours: the {profile} profile's {e.frames} frames at
-{meta['width']}x{meta['height']}).
+{meta['width']}x{meta['height']}). {frames_note()}
 
 ## Rates and the attacked fraction
 

@@ -157,3 +157,10 @@ def test_rate_difference_is_newcombes_method_10():
         assert d == pytest.approx(k1 / n1 - k2 / n2)
         assert (round(got_lo, 4), round(got_hi, 4)) == (lo, hi)
     assert np.isnan(rate_difference(wilson(0, 0), wilson(1, 2))[0])
+
+
+def test_the_papers_frame_count_and_step_cannot_both_hold():
+    from stages.pages.paper import frames_note
+
+    note = frames_note()
+    assert "would each span 625 m" in note and "200 frames at 0.25 m" in note and "2 cm per frame" in note
