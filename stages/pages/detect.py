@@ -159,8 +159,8 @@ def rates_section(rates: dict[str, Any]) -> str:
     return f"""## Rates and the attacked fraction
 
 A test accuracy mixes the two rates with the share f of attacked samples: accuracy = f TPR + (1 - f)(1 - FPR),
-so a detector that flags nothing scores 1 - f. The "all" row has f = 50% (as the paper's 15,000 + 15,000 SHAP
-samples); an eps row holds every clean test sample and only that eps's attacks, so its f is small and its
+so a detector that flags nothing scores 1 - f. The "all" row has f = {100 * rates["all"].attacked_fraction.value:.1f}%
+(the paper's 15,000 + 15,000 SHAP samples: 50%); an eps row holds every clean test sample and only that eps's attacks, so its f is small and its
 accuracy mostly counts clean samples. The last column re-weights each row's TPR and FPR to the attacked fraction of
 the paper's integrated evaluation, f = {100 * f:.1f}% (a frame outside an attack starts one with probability
 {P_START:g} and attacks last {ATTACK_LENGTH} frames: on average {ATTACK_LENGTH} attacked of every
