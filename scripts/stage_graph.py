@@ -18,10 +18,12 @@ DVC = Path(sys.executable).with_name("dvc")
 
 
 def dag_edges(repo: Path = REPO) -> set[tuple[str, str]]:
-    """(upstream stage, downstream stage) pairs of `dvc dag --md` in `repo`."""
+    """(upstream stage, downstream stage) pairs of `dvc dag --md` in `repo`, of the default pipeline (dvc.yaml): the
+    on-demand stages of optional/dvc.yaml (addressed `optional/dvc.yaml:NAME`) are left out."""
     text = subprocess.run([str(DVC), "dag", "--md"], cwd=repo, check=True, capture_output=True, text=True).stdout
     names = dict(re.findall(r'^\s*(node\d+)\["([^"]+)"\]', text, re.M))
-    return {(names[a], names[b]) for a, b in re.findall(r"^\s*(node\d+)-->(node\d+)", text, re.M)}
+    return {(names[a], names[b]) for a, b in re.findall(r"^\s*(node\d+)-->(node\d+)", text, re.M)
+            if ":" not in names[a] + names[b]}
 
 
 def reduce(edges: set[tuple[str, str]]) -> set[tuple[str, str]]:

@@ -10,6 +10,8 @@ import re
 import sys
 from pathlib import Path
 
+import yaml
+
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 import test_dvc_deps as derive  # noqa: E402
 
@@ -29,18 +31,20 @@ def deps_block(deps: list[str]) -> str:
 
 
 def main() -> None:
-    path = derive.REPO / "dvc.yaml"
-    text = path.read_text()
-    for name, stage in derive.STAGES.items():
-        data = [d for d in stage.get("deps", []) if d.split("/")[0] in ("datasets", "models", "reports", "dvclive")
-                or d.startswith("${")]
-        code = sorted(str(f.relative_to(derive.REPO)) for f in derive.stage_files(name))
-        m = re.search(rf"(\n  {name}:\n(?:    (?!deps:).*\n)*?)    deps: \[[^\]]*\]\n", text)
-        if m is None:
-            raise SystemExit(f"dvc.yaml: stage {name} has no `deps: [...]` list to rewrite")
-        text = text[:m.start()] + m.group(1) + deps_block(data + code) + text[m.end():]
-    path.write_text(text)
-    print(f"{path}: code deps of {len(derive.STAGES)} stages rewritten")
+    for name in derive.PIPELINES:
+        path = derive.REPO / name
+        text = path.read_text()
+        stages = yaml.safe_load(text)["stages"]
+        for stage_name, stage in stages.items():
+            data = [d for d in stage.get("deps", []) if d.split("/")[0] in ("datasets", "models", "reports", "dvclive")
+                    or d.startswith("${")]
+            code = sorted(str(f.relative_to(derive.REPO)) for f in derive.stage_files(stage_name))
+            m = re.search(rf"(\n  {stage_name}:\n(?:    (?!deps:).*\n)*?)    deps: \[[^\]]*\]\n", text)
+            if m is None:
+                raise SystemExit(f"{name}: stage {stage_name} has no `deps: [...]` list to rewrite")
+            text = text[:m.start()] + m.group(1) + deps_block(data + code) + text[m.end():]
+        path.write_text(text)
+        print(f"{path}: code deps of {len(stages)} stages rewritten")
 
 
 if __name__ == "__main__":

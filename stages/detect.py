@@ -48,7 +48,7 @@ from stages.config.device import torch_device
 from stages.config.schema import Params
 from stages.config.sections import Detect
 from stages.errors import StageError
-from stages.pages.detect import detector_page
+from stages.pages.detect import detector_page, paper_fraction
 from stages.pages.paper import DETECTOR_ACCURACY
 
 
@@ -82,6 +82,7 @@ def main(params: Params, model: ModelOption = Model.standard, eval_alarms: EvalA
     import torch
 
     from pipeline.detectors.metrics import metrics_by_eps
+    from pipeline.evaluation.rates import rates_by_eps
     from pipeline.evaluation.sequences import nan_to_none
 
     d = params.detect
@@ -106,6 +107,7 @@ def main(params: Params, model: ModelOption = Model.standard, eval_alarms: EvalA
     for name in d.baselines if baselines else []:   # same split, thresholds on the same validation samples
         scores[name], seconds[name] = _fit_baseline(name, params, files, data, (y, tr, va, te), seed)
     results = {name: metrics_by_eps(y[te], s, eps[te], thr) for name, (s, thr) in scores.items()}
+    rates = rates_by_eps(y[te] == 1, scores["lstm"][0] >= scores["lstm"][1], eps[te])
     alarms = _eval_alarms(params, files, lstm, data["attrs"]) if eval_alarms else None
 
     ckpt = _checkpoint(result, data["attrs"], model_hash, eps[y == 1], results["lstm"]["all"]["accuracy"])
@@ -116,14 +118,14 @@ def main(params: Params, model: ModelOption = Model.standard, eval_alarms: EvalA
                "lstm_epochs": len(result.history), "lstm_best_epoch": result.best_epoch,
                "seconds": seconds, "paper_accuracy": DETECTOR_ACCURACY, "detectors": results,
                "composition": {**data["attrs"].get("counts", {}), **data["attrs"].get("source", {})},
-               "eval_alarms": alarms}
+               "eval_alarms": alarms, "lstm_rates": {k: r.as_json(paper_fraction()) for k, r in rates.items()}}
     # detector, metrics, report and the DVCLive folder move into place together, once all are written
     with atomic_outputs(files.detector, files.detect_metrics, files.detect_report,
                         dirs=(files.detect_live,)) as (det, met, rep, live_dir):
         save_torch(det, ckpt)
         write_metrics(met, nan_to_none(metrics), params.profile_name)
         atomic_write_text(rep, detector_page(results, scores, counts, result, data["attrs"], _used(d, y[tr]), files,
-                                             alarms))
+                                             alarms, rates))
         _log_live(live_dir, d, result.history, results["lstm"]["all"], (y[te], {k: v[0] for k, v in scores.items()}))
     acc = results["lstm"]["all"]["accuracy"]
     fa = "" if alarms is None else f"; false alarms on clean evaluation frames {alarms['rate']:.4f}"

@@ -35,8 +35,8 @@ from stages.config.device import torch_setup
 from stages.config.evaluation import Evaluate
 from stages.config.schema import Params
 from stages.pages.calibrate import unmet_banner
-from stages.pages.evaluate import chain_names, defense_section
-from stages.pages.paper import INTEGRATED, INTEGRATED_EPS, by_eps
+from stages.pages.evaluate import chain_names, defense_section, rates_section
+from stages.pages.paper import ATTACK_LENGTH, INTEGRATED, INTEGRATED_EPS, P_START, by_eps, frames_note
 
 if TYPE_CHECKING:
     from pipeline.evaluation.sequences import Sequence
@@ -58,6 +58,8 @@ def main(params: Params) -> None:
     Params: `evaluate` (trajectories, frames, lateral_range, p_start, attack_length, eps, seed,
     batch_size), `defense`, plus `render`/`camera` for the images and `attack.loss` for the FGSM loss.
     """
+    from pipeline.evaluation.rates import sequence_rates
+    from pipeline.attacks.schedule import attacked_fraction
     from pipeline.evaluation.sequences import nan_to_none, per_eps_summary, rates_json
     from pipeline.report.figures import detection_timeline
 
@@ -86,6 +88,8 @@ def main(params: Params) -> None:
                "per_eps": {f"{r['eps']:g}": r for r in summary}, "rows": res.rows, "clean": res.clean,
                "attacked_fraction": {s.name: float(s.attacked.mean()) for s in sequences},
                "start_xy": meta["start_xy"], "shipped": _shipped_metrics(shipped),
+               "rates": {f"{e:g}": r.as_json(attacked_fraction(P_START, ATTACK_LENGTH))
+                         for e, r in sequence_rates(res.rows).items()},
                "fused": {"fusion": shipped.chain.defended.settings.fusion, "harm_m": params.defense.harm_m,
                          "chains": chain_names(params.defense.fusion),
                          **{key: {f"{r['eps']:g}": r for r in rates_json(fused[name])} for key, name in
@@ -199,8 +203,11 @@ frames / all frames (time: reports/metrics/evaluate.json).
 {markdown_table(accuracy_table(rows, summary, names, by_eps(INTEGRATED_EPS)), decimals=2)}
 Mean over eps: **{mean_acc:.2f}%** (paper: {INTEGRATED}% overall, from 2,500-frame trajectories at
 480x270 with the full-width network; ours: the {profile} profile's {e.frames} frames at
-{meta['width']}x{meta['height']}).
+{meta['width']}x{meta['height']}). {frames_note()}
 
+## Rates and the attacked fraction
+
+{rates_section(rows, ATTACK_LENGTH, by_eps(INTEGRATED_EPS), "trajectories")}
 ## What the paper did not report
 
 Rates averaged over the trajectories; the delay is the number of frames from an attack's first

@@ -44,7 +44,7 @@ from stages.engine import pool as engine
 from stages.engine.chunks import render_poses
 from stages.errors import StageError
 from stages.pages.lab import lab_page
-from stages.pages.paper import LAB
+from stages.pages.paper import LAB, LAB_ATTACK_LENGTH, P_START
 
 if TYPE_CHECKING:
     from pipeline.evaluation.sequences import Sequence
@@ -135,6 +135,8 @@ def main(params: Params, ctx: typer.Context) -> None:
         return
     from pipeline.attacks.gradient import attack_loss
     from pipeline.evaluation.lab import lab_to_synthetic_factor
+    from pipeline.attacks.schedule import attacked_fraction
+    from pipeline.evaluation.rates import sequence_rates
     from pipeline.evaluation.sequences import evaluate_sequences, fgsm_error_table, nan_to_none, per_eps_summary
 
     lab = params.lab
@@ -171,7 +173,9 @@ def main(params: Params, ctx: typer.Context) -> None:
                "clean": clean_rows, "fgsm": fgsm_rows, "attack_length": length, "threshold": chain.threshold,
                "per_eps": {f"{x['eps']:g}": x for x in summary}, "rows": res.rows, "clean_detection": res.clean,
                "accuracy_mean": float(np.mean([x["accuracy"] for x in summary])), "seconds": seconds,
-               "render_seconds": render_s, "shipped": shipped_alarms(params, sequences)}
+               "render_seconds": render_s, "shipped": shipped_alarms(params, sequences),
+               "rates": {f"{x:g}": r.as_json(attacked_fraction(P_START, LAB_ATTACK_LENGTH))
+                         for x, r in sequence_rates(res.rows).items()}}
     write_metrics(METRICS, nan_to_none(metrics), params.profile_name)
     atomic_write_text(REPORT, lab_page(params, metrics, res.rows, summary, [s.name for s in sequences],
                                      train_metrics, K_syn, K_zed, sequences))

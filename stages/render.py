@@ -53,7 +53,7 @@ def frames(p: Params) -> tuple[Any, Any, Any, Any]:
     try:
         seqs = approach_sequences(r.frames_per_sequence, float(r.start_range), float(r.end_range),
                                   float(r.pointing_jitter_deg), float(r.max_target_rotation_deg),
-                                  seed=seed_for(p.seed, "render"))
+                                  seed=seed_for(p.seed, "render"), attitude=r.target_attitude)
     except ValueError as e:
         raise StageError(f"params.yaml render: {e}") from None
     return flatten(seqs)

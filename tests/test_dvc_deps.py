@@ -98,7 +98,9 @@ def files_of(entry: Path) -> set[Path]:
     return {f for f, _ in seen if f.name != "__init__.py"}
 
 
-STAGES = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
+# the default pipeline (`dvc repro`), then the stages run only on demand (`dvc repro optional/dvc.yaml`, wdir: the root)
+PIPELINES = ("dvc.yaml", "optional/dvc.yaml")
+STAGES = {name: st for f in PIPELINES for name, st in yaml.safe_load((REPO / f).read_text())["stages"].items()}
 
 
 def stage_files(name: str) -> set[Path]:

@@ -68,7 +68,7 @@ def test_every_output_path_is_an_out_of_the_stage_that_writes_it():
     from stages.artifacts.paths import WRITTEN_BY
 
     def listed(stage: str) -> set[Path]:
-        st = DVC_YAML["stages"][stage]
+        st = dvc_stages()[stage]   # dvc.yaml's or optional/dvc.yaml's
         return {Path(o if isinstance(o, str) else next(iter(o))) for o in st.get("outs", []) + st.get("metrics", [])}
 
     for path, stage in WRITTEN_BY.items():
@@ -143,7 +143,7 @@ def test_the_models_are_dvc_model_artifacts():
 
 
 # ----------------------------------------------------------------------------- help
-DVC_COMMANDS = [c for c in STAGES if any(st["cmd"].split()[:2] == ["rpod", c] for st in DVC_YAML["stages"].values())]
+DVC_COMMANDS = [c for c in STAGES if any(st["cmd"].split()[:2] == ["rpod", c] for st in dvc_stages().values())]
 
 
 def test_commands_outside_dvc_have_help_too():
@@ -158,7 +158,7 @@ def test_stage_help_lists_its_params_with_comments(command):
 
     comments = config_comments(CONFIG.read_text())
     keys = command_params(command, comments)
-    listed = {p for s, st in DVC_YAML["stages"].items() if st["cmd"].split()[:2] == ["rpod", command]
+    listed = {p for s, st in dvc_stages().items() if st["cmd"].split()[:2] == ["rpod", command]
               for p in st.get("params", [])}
     assert listed and all(any(k == p or k.startswith(p + ".") for k in keys) for p in listed), listed
     result = CliRunner().invoke(app, [command, "--help"], terminal_width=200)

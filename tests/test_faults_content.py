@@ -135,7 +135,8 @@ def test_a_shap_store_of_another_detector_split_is_refused():
 def test_a_render_mostly_out_of_view_is_refused(tmp_path):
     """The issue's probe: evaluate.lateral_range=[0, 100000] rendered 18 of 20 black frames, evaluated as 100%."""
     from pipeline.geometry.camera import reference_intrinsics
-    from stages.config.build import engine_settings, scene_settings
+    from stages.config.build import scene_settings
+    from stages.engine.pool import engine_settings
     from stages.config.schema import build
     from stages.engine.chunks import render_to_store
 

@@ -50,10 +50,10 @@ def _params(tmp: Path) -> Callable[[], object]:
 
 
 def _defense(tmp: Path) -> Callable[[], object]:
-    from pipeline.formats.defense import read_calibration
+    from pipeline.formats.defense import read_defense
 
     _fifo(tmp / "defense.json")
-    return lambda: read_calibration(tmp / "defense.json", "0" * 16, 0.5)
+    return lambda: read_defense(tmp / "defense.json", "0" * 16, 0.5)
 
 
 def _meta(tmp: Path) -> Callable[[], object]:

@@ -48,8 +48,11 @@ def test_lab_report_shows_the_paper_ranges_beside_ours():
 
     text = paper_ranges(K_SYN, K_ZED, 9.0, lab_to_synthetic_factor(K_SYN, K_ZED, 9.0))
     row = next(line for line in text.splitlines() if line.startswith("| 3.122 "))
-    assert [c.strip() for c in row.strip("|").split("|")] == ["3.122", "51.36", "51.17", "51.18"]
+    assert [c.strip() for c in row.strip("|").split("|")] == ["3.122", "51.36", "0.19", "51.17", "51.18"]
     assert "0.39% shorter" in text
+    # the paper's equation as printed gives 0.19 m; only its reciprocal gives the printed 51.18 m (issue 38)
+    assert "applied to 3.122 m it gives 0.19 m" in text and "only its reciprocal" in text
+    assert "only in rounding" not in text and "Only the 3.122 m row is printed" not in text
 
 
 def test_rescaled_position_projects_to_the_same_pixel():

@@ -9,9 +9,9 @@ images it delivers, as a camera stores them (uint8, 8-bit levels, `pipeline.atta
 An attacker may simulate the defense step by step on its own copy (`copy.deepcopy(defense)`); it
 never changes the caller's `defense`, chain or run.
 
-One module per attacker next to this one (pipeline/attacks/drift.py, pipeline/attacks/burst.py),
+One module per attacker next to this one (pipeline/attackers/drift.py, pipeline/attackers/burst.py),
 each a class with a `name` and `attack(chain, defense, run, eps)`; options (steps, restarts, rates)
-go to its constructor. The registry by name is pipeline/attacks/suite.py (`ATTACKERS`, `get_attacker`):
+go to its constructor. The registry by name is pipeline/attackers/suite.py (`ATTACKERS`, `get_attacker`):
 a new attacker adds its class there.
 """
 from __future__ import annotations

@@ -179,7 +179,7 @@ class _Burst:
 
 @dataclass(frozen=True)
 class BurstAttacker:
-    """The burst attacker (`pipeline.attacks.base.SequenceAttacker`); see the module docstring.
+    """The burst attacker (`pipeline.attackers.base.SequenceAttacker`); see the module docstring.
 
     alert_limit: AL (m), a number or a function of the true range (m) per frame; cap: c, the
     objective's ceiling in units of AL; steps (>= 1) and restarts (>= 1) per lambda of `lambdas`

@@ -241,7 +241,7 @@ def targeted_pgd(chain: DifferentiableChain, x: Tensor, target: Tensor, eps: flo
 
 
 class DriftAttacker:
-    """The drift at the pixel level (pipeline/attacks/base.py's interface): each attacked frame, in
+    """The drift at the pixel level (pipeline/attackers/base.py's interface): each attacked frame, in
     time order, is a targeted PGD (`steps` steps of `step_size`, default 2.5 eps / steps, one
     random start drawn from `seed`) toward the pose the `DriftPlanner` wants, with
     `margin_weight` times the detector's margin in the objective."""

@@ -8,13 +8,13 @@ For an attacked frame the attacker
 1. reads the clean estimate t0 (camera frame, m), its attitude and the detector's probability;
 2. looks one step ahead over candidate estimates t0 + b d, d each of +- the line of sight and +- the
    two axes across it (world axes, moved into the camera frame), b the largest bias whose innovation
-   stays under `gate_fraction` of the motion gate (`pipeline.attacks.drift.stealthy_bias`, the drift's
+   stays under `gate_fraction` of the motion gate (`pipeline.attackers.drift.stealthy_bias`, the drift's
    stealth) once the defense's filter runs, else each of `magnitudes` (m); for each it steps a copy of
    the defense and the guidance law (`pipeline.guidance.law.guidance_step`) as the loop will and keeps
    the estimate whose step brings the chaser nearest the target ("collide": the least distance from
    the target to the step's path) or farthest from the docking point ("miss"); the clean estimate is
    a candidate too, so the attacker never picks a worse step than none;
-3. crafts the frame by targeted L-inf PGD toward that estimate (`pipeline.attacks.drift.targeted_pgd`,
+3. crafts the frame by targeted L-inf PGD toward that estimate (`pipeline.attackers.drift.targeted_pgd`,
    attitude kept at the clean estimate's, `steps` steps from a seeded random start), with the
    detector's margin in the objective when a defense reads it, stored as 8 bits.
 It knows the chaser's true position (it watches the approach): the worst case. Greedy, one step of

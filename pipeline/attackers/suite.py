@@ -1,4 +1,4 @@
-"""The chain-level attackers by name (their interface: pipeline/attacks/base.py); a new attacker adds its class here."""
+"""The chain-level attackers by name (their interface: pipeline/attackers/base.py); a new attacker adds its class here."""
 from __future__ import annotations
 
 import inspect

@@ -15,7 +15,7 @@ The vocabulary is that of satellite-navigation integrity monitoring (RAIM/ARAIM)
 - availability: the fraction of frames that are available (of clean runs: the cost of the defense).
 - attack harm: an attacked run is compared frame by frame with the same frames of its clean
   counterpart; a frame counts as the attack's HMI (MI) only when it is not HMI (MI) without the attack.
-Rates carry 95% intervals by a bootstrap over trajectories (pipeline/evaluation/stats.py).
+Rates carry 95% intervals by a bootstrap over trajectories (pipeline/stats.py).
 
 Derivation of AL (pipeline/guidance/law.py, SPEC section 5, variant "paper"). Per axis, with step
 limit s (m per step), goal g (`rel` (0, 0, r_g)) and docking tolerance tol (m):

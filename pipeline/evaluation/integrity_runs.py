@@ -3,12 +3,12 @@
 Each trajectory (`Track`: uint8 frames (N, H, W, 3), labels (N, 9): camera-frame position (m) and 6-D
 rotation) is flown open loop along its planned commands (`pipeline.evaluation.robustness.world_motion`):
 the shipped chain reads every frame, a fresh defense runs over the whole trajectory, and its trace
-gives the integrity records of the trusted estimate (`pipeline.evaluation.integrity`: AL at the true
+gives the integrity records of the trusted estimate (`pipeline.defense.integrity`: AL at the true
 range, available, HMI; PL when the defense has one). The same trajectory without the attack is the
 clean counterpart, frame for frame, so harm counts only what the attack caused.
 - burst (`burst_attack`): `BurstAttacker.nested` on each trajectory through the increasing eps, its
   bursts at the given frames;
-- drift (`drift_attack`): the drift's planner and targeted PGD per frame (pipeline/attacks/drift.py),
+- drift (`drift_attack`): the drift's planner and targeted PGD per frame (pipeline/attackers/drift.py),
   run in lockstep over every trajectory and drift direction so that each PGD step is one batch of
   all of them: the `DriftAttacker`, batched, with the detector's margin taken against the
   probability at which the defense stops updating its filter (its doubt level `update_below`, else the threshold).

@@ -74,11 +74,16 @@ def _jittered_cameras(rel: np.ndarray, jitter_deg: float, rng: np.random.Generat
     return look_at(rel) @ euler_to_matrix(ang)
 
 
+ATTITUDES = ("per_frame", "per_sequence")   # the rotating sequences' target attitude: drawn every frame / once
+
+
 def _sequence(seq_id: int, rel: np.ndarray, jitter_deg: float, max_rot_deg: float,
-              rng: np.random.Generator) -> Sequence:
+              rng: np.random.Generator, attitude: str = "per_frame") -> Sequence:
     n = len(rel)
     R_cam = _jittered_cameras(rel, jitter_deg, rng)
-    if max_rot_deg > 0:
+    if max_rot_deg > 0 and attitude == "per_sequence":
+        R_target = np.broadcast_to(euler_to_matrix(rng.uniform(-max_rot_deg, max_rot_deg, size=3)), (n, 3, 3)).copy()
+    elif max_rot_deg > 0:
         R_target = euler_to_matrix(rng.uniform(-max_rot_deg, max_rot_deg, size=(n, 3)))
     else:
         R_target = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
@@ -96,17 +101,22 @@ def _check(frames: int, start_range: float, end_range: float, jitter_deg: float)
 
 
 def approach_sequences(frames_per_sequence: int, start_range: float = 60.0, end_range: float = 10.0,
-                       jitter_deg: float = 2.0, max_rot_deg: float = 10.0, seed: int = 0) -> list[Sequence]:
+                       jitter_deg: float = 2.0, max_rot_deg: float = 10.0, seed: int = 0,
+                       attitude: str = "per_frame") -> list[Sequence]:
     """The 13 approach sequences of the training set.
 
     Each runs in a straight line, in equal steps, from rel = (x, y, start_range) to
     (0, 0, end_range). Sequences 0-4 start at FIXED_STARTS with the target attitude fixed (identity);
-    sequences 5-12 start at ROTATING_STARTS (twice) with a fresh random target attitude on every frame,
-    uniform in +-max_rot_deg about each target axis (x, then y, then z). Every frame the camera points
-    at the target, turned by a uniform random pointing jitter of up to +-jitter_deg about its x and y
-    axes. Seeded: the same arguments give the same sequences.
+    sequences 5-12 start at ROTATING_STARTS (twice) with a random target attitude, uniform in
+    +-max_rot_deg about each target axis (x, then y, then z): `attitude` "per_frame" draws a fresh one on
+    every frame, "per_sequence" (paper-like labels: the paper's Table 1 gives each sequence one fixed
+    attitude, 0 or +-10 deg) draws one per sequence and holds it. Every frame the camera points at the
+    target, turned by a uniform random pointing jitter of up to +-jitter_deg about its x and y axes.
+    Seeded: the same arguments give the same sequences (and "per_frame" the ones it always gave).
     """
     _check(frames_per_sequence, start_range, end_range, jitter_deg)
+    if attitude not in ATTITUDES:
+        raise ValueError(f"target attitude must be one of {', '.join(ATTITUDES)}, got {attitude!r}")
     rng = np.random.default_rng(seed)
     s = np.linspace(0.0, 1.0, frames_per_sequence)[:, None]
     end = np.array([0.0, 0.0, end_range])
@@ -114,8 +124,15 @@ def approach_sequences(frames_per_sequence: int, start_range: float = 60.0, end_
     out = []
     for i, ((x, y), rot) in enumerate(starts):
         rel = (1 - s) * np.array([x, y, start_range]) + s * end
-        out.append(_sequence(i, rel, jitter_deg, rot, rng))
+        out.append(_sequence(i, rel, jitter_deg, rot, rng, attitude))
     return out
+
+
+def attitude_groups(sequence: np.ndarray) -> np.ndarray:
+    """The target-attitude group of each frame of `approach_sequences` from its sequence id: "fixed" for
+    sequences 0-4 (FIXED_STARTS, attitude identity), "rotating" for 5-12 (attitude drawn per frame or per
+    sequence)."""
+    return np.where(np.asarray(sequence) < len(FIXED_STARTS), "fixed", "rotating")
 
 
 PATHS = ("projectile", "straight")

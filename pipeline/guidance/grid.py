@@ -8,7 +8,7 @@ camera per chain (one camera may serve both).
 
 A grid cell is (eps, S = attack start range in metres, K = attacked frames, AttackWindow); runs use the
 closed loop of pipeline/guidance/law.py. An in-loop cell is (eps, goal, S): the in-loop attacker
-(pipeline/attacks/in_loop.py) attacks every frame from the first at range <= S to the end of the run.
+(pipeline/attackers/in_loop.py) attacks every frame from the first at range <= S to the end of the run.
 Rates count only the runs that met the attack (a run that never reached S was not attacked).
 """
 from __future__ import annotations
@@ -120,7 +120,7 @@ class GridPilot:
     from its block's no-attack baseline (flown here first when this pilot has not flown it: runs are
     deterministic, so any pilot gets the same one); `attack_at(chain, eps, i)` is the attack of run i of
     `plan.runs()` on that chain (seeded per run, so the outcome does not depend on which pilot flies it or in
-    what order); `in_loop_at(eps, goal, i)` the in-loop attacker (pipeline.attacks.in_loop.InLoopAttacker, on
+    what order); `in_loop_at(eps, goal, i)` the in-loop attacker (pipeline.attackers.in_loop.InLoopAttacker, on
     the shipped chain) of run i; `defense.new()` a fresh Defense per defended run."""
 
     def __init__(self, cameras: CachedCamera | dict[str, CachedCamera], K: Intrinsics, plan: GridPlan,

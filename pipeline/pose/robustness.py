@@ -80,7 +80,7 @@ def black_level_stats(images: Any, threshold: float, noise_std: float, blur_sigm
     - target_erased: share of the other pixels' channel values below t (what the clamp takes from the target);
     - lab_black_999: the 99.9th percentile of the channel values of the background (pixels at least
       `margin` px from any non-black pixel) under the lab domain shift (blur, then Gaussian noise,
-      pipeline.evaluation.lab_images.domain_shift): the lab black level;
+      pipeline.images.domain_shift): the lab black level;
     - lab_passed: the share of those background values at or above t (background the clamp lets through)."""
     import cv2
 

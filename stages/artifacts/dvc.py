@@ -10,18 +10,18 @@ from typing import Any
 
 from pipeline.io.atomic import write_json
 from pipeline.io.errors import GENERIC_HINT
-from stages.artifacts.paths import DVC_YAML
+from stages.artifacts.paths import DVC_YAML, OPTIONAL_DVC_YAML
 
 
 
 @functools.cache
 def dvc_stages() -> dict[str, dict[str, Any]]:
-    """dvc.yaml's stages (name -> its entry: cmd, deps, params, outs, ...); empty without dvc.yaml."""
+    """The stages of dvc.yaml, then of optional/dvc.yaml (name -> its entry: cmd, deps, params, outs, ...); empty
+    without them."""
     import yaml
 
-    if not DVC_YAML.is_file():
-        return {}
-    return yaml.safe_load(DVC_YAML.read_text()).get("stages", {})
+    return {name: st for path in (DVC_YAML, OPTIONAL_DVC_YAML) if path.is_file()
+            for name, st in yaml.safe_load(path.read_text()).get("stages", {}).items()}
 
 
 def _outputs(stage: dict[str, Any]) -> list[Path]:

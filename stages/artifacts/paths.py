@@ -19,6 +19,7 @@ from pipeline.formats.run import SHIPPED as SHIPPED_NAME
 from stages.config.params import ROOT
 
 DVC_YAML = ROOT / "dvc.yaml"
+OPTIONAL_DVC_YAML = ROOT / "optional" / "dvc.yaml"   # stages run on demand (`dvc repro optional/dvc.yaml`), not by `dvc repro`
 BENCHMARKS = ROOT / "reports" / "benchmarks.md"   # committed; `rpod report` adds its sections
 README = Path("README.md")   # the project README: `rpod report --sync-readme` copies the results block into it
 REPORTS = Path("reports")
@@ -78,6 +79,9 @@ ROBUSTNESS_REPORT, ROBUSTNESS_FIGURE, ROBUSTNESS_METRICS, INTEGRITY_FIGURE = _ou
     "reports/figures/integrity.png")
 LAB_MODELS, LAB_MODELS_SUMMARY = _outputs("lab_models", "datasets/lab_models", "datasets/lab_models/summary.json")
 LAB, LAB_REPORT, LAB_METRICS = _outputs("lab", "datasets/lab", "reports/lab.md", "reports/metrics/lab.json")
+# issue 38's 2 x 2 ablation of the paper's detector: a stage of optional/dvc.yaml (`dvc repro optional/dvc.yaml`), not of
+# the default `dvc repro`
+ABLATION_REPORT, ABLATION_METRICS = _outputs("ablation", "reports/ablation.md", "reports/metrics/ablation.json")
 # the headline numbers (what `dvc metrics show` prints), then the report's own figures
 PAGE, SUMMARY, *_FIGURES = _outputs("report", "reports/README.md", "reports/metrics/summary.json",
                                     *(f"reports/figures/{name}.png"

@@ -50,11 +50,14 @@ ENVELOPE = "operational-envelope-1"
 
 def render_key(params: Params) -> dict[str, Any]:
     """The `render` params as fingerprints hash them: unset external inputs (null or inputs/none) as
-    null and an unset SPEED source left out (the mapping params.yaml holds: stages.config.schema)."""
+    null, an unset SPEED source and the default target attitude (per_frame) left out (the mapping params.yaml
+    holds: stages.config.schema)."""
     r = dataclasses.asdict(params.render)
     r["mesh"] = given(r["mesh"])
     if given(r["source"]) is None:
         r.pop("source"), r.pop("source_test")
+    if r["target_attitude"] == "per_frame":   # the default, left out: renders made before the option keep their hash
+        r.pop("target_attitude")
     return r
 
 

@@ -19,6 +19,7 @@ from typing import Annotated, Any, Optional
 
 from pipeline.settings import In, Source, typed
 from pipeline.settings import ranges as settings_ranges
+from stages.config.ablation import Ablation
 from stages.config.evaluation import Defense, Evaluate, Integrity, Lab, Robustness
 from stages.config.sections import (
     Attack,
@@ -63,6 +64,7 @@ class Params:
     lab: Lab
     robustness: Robustness
     integrity: Integrity
+    ablation: Ablation
     report: Report = field(default_factory=Report)
 
     def __post_init__(self) -> None:

@@ -50,6 +50,7 @@ class Render:
     end_range: Metres       # metres
     pointing_jitter_deg: Annotated[float, In("[0, 90]", "degrees")]
     max_target_rotation_deg: Annotated[float, In("[0, 180]", "degrees")]
+    target_attitude: Literal["per_frame", "per_sequence"]   # rotating sequences: attitude drawn every frame / once
     samples: Annotated[int, In("[1, 65536]", "Cycles samples per pixel")]
     denoiser: str           # NONE | OPENIMAGEDENOISE
     denoise_quality: str    # FAST | BALANCED | HIGH

@@ -8,7 +8,7 @@ from typing import Any
 
 from stages.artifacts.paths import ChainFiles, Model
 from stages.config.sections import Detect
-from stages.pages.paper import DETECTOR_ACCURACY
+from stages.pages.paper import ATTACK_LENGTH, DETECTOR_ACCURACY, P_START
 
 NAMES = {"lstm": "LSTM on SHAP (paper)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis on GAP features",
          "lid": "LID on GAP features", "squeeze": "feature squeezing on images"}
@@ -142,17 +142,49 @@ Detection rate (recall) per eps:
 """
 
 
+def paper_fraction() -> float:
+    """The attacked fraction of the paper's integrated evaluation (its schedule: pipeline.attacks.schedule)."""
+    from pipeline.attacks.schedule import attacked_fraction
+
+    return attacked_fraction(P_START, ATTACK_LENGTH)
+
+
+def rates_section(rates: dict[str, Any]) -> str:
+    """The LSTM's rows as rates: per row the attacked fraction f, TPR, FPR, accuracy and the accuracy re-weighted
+    to the paper's integrated f (`rates`: row key -> pipeline.evaluation.rates.DetectionRates, Wilson)."""
+    f = paper_fraction()
+    rows = [{"eps": k, "n": r.accuracy.n, "attacked f (%)": r.attacked_fraction.pct(), "TPR (%)": r.tpr.pct(),
+             "FPR (%)": r.fpr.pct(), "accuracy (%)": r.accuracy.pct(),
+             f"accuracy at f = {100 * f:.1f}% (%)": r.accuracy_at(f).pct()} for k, r in rates.items()]
+    return f"""## Rates and the attacked fraction
+
+A test accuracy mixes the two rates with the share f of attacked samples: accuracy = f TPR + (1 - f)(1 - FPR),
+so a detector that flags nothing scores 1 - f. The "all" row has f = {100 * rates["all"].attacked_fraction.value:.1f}%
+(the paper's 15,000 + 15,000 SHAP samples: 50%); an eps row holds every clean test sample and only that eps's attacks, so its f is small and its
+accuracy mostly counts clean samples. The last column re-weights each row's TPR and FPR to the attacked fraction of
+the paper's integrated evaluation, f = {100 * f:.1f}% (a frame outside an attack starts one with probability
+{P_START:g} and attacks last {ATTACK_LENGTH} frames: on average {ATTACK_LENGTH} attacked of every
+{ATTACK_LENGTH} + (1 - {P_START:g}) / {P_START:g} = {ATTACK_LENGTH + (1 - P_START) / P_START:g} frames), the fraction
+behind its per-eps integrated accuracies (reports/integrated.md). Brackets:
+95% Wilson intervals over the test samples; the re-weighted accuracy holds f fixed and combines the Wilson limits
+of TPR and 1 - FPR (MOVER, pipeline/evaluation/rates.py).
+
+{_table(rows)}"""
+
+
 def detector_page(results: dict[str, dict[str, dict[str, float]]], scores: dict[str, Any], counts: dict[str, int],
                   result: Any, attrs: dict[str, Any], d: Detect, files: ChainFiles,
-                  alarms: dict[str, Any] | None = None) -> str:
-    """The detector page of one model (`files`): the LSTM per eps, the baselines on the same split (when run),
-    its false alarms on clean evaluation trajectories, and what the detectors see."""
+                  alarms: dict[str, Any] | None = None, rates: dict[str, Any] | None = None) -> str:
+    """The detector page of one model (`files`): the LSTM per eps (and, with `rates`, as rates beside the paper's
+    attacked fraction), the baselines on the same split (when run), its false alarms on clean evaluation
+    trajectories, and what the detectors see."""
     lstm = results["lstm"]
     lstm_table = _table([{"eps": k, **_row(m)} for k, m in lstm.items()])
     eps_keys = [k for k in lstm if k != "all"]
     reading = _reading(results, eps_keys)
     paper = f"{DETECTOR_ACCURACY * 100:.2f}%"
     ours = f"{_pct(lstm['all'], 'accuracy')}%"
+    rates_text = "" if rates is None else rates_section(rates) + "\n"
     return f"""{_intro(files)}
 The paper's detector reads the DeepSHAP values of the pose network's 1000 GAP features
 for its 9 outputs (a 9 x 1000 sequence per image, `rpod shap`) and says whether the image was
@@ -181,7 +213,7 @@ its recall is the detection rate at that eps and its FPR is the same clean-sampl
 TPR @ 1% FPR reads the ROC curve at 1% false positives (coarse when the test split has few clean samples).
 
 {lstm_table}
-{_comparison(results, eps_keys, d)}
+{rates_text}{_comparison(results, eps_keys, d)}
 {_alarms(alarms, files.model)}
 What the SHAP detectors see: with the linear heads, row j of a sample's SHAP values is
 `W[j] * (a - mean_background)` (pipeline/shap.py), an element-wise rescaling of the GAP features.

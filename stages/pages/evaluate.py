@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from stages.pages.paper import P_START
+
 TARGET_ACCURACY, TARGET_HARMFUL_FLAGGED, TARGET_FPR = 0.995, 0.995, 0.005   # issue 16's targets
 
 
@@ -72,6 +74,36 @@ before the filter starts left out.
 {markdown_table(defense_table(chains), decimals=2)}
 {verdict}
 """
+
+
+def rates_section(rows: list[dict[str, Any]], paper_length: int, paper: dict[float, float], what: str) -> str:
+    """Markdown: per eps the paper's-view detector as rates (`rows` of pipeline.evaluation.sequences.evaluate_sequences,
+    pooled over the sequences): attacked fraction f, TPR, FPR, accuracy, the accuracy re-weighted to the paper's f
+    (its schedule: p_start `stages.pages.paper.P_START`, `paper_length`-frame attacks), the paper's accuracy
+    (`paper`, % by eps) and the least TPR that accuracy needs at the paper's f; `what` names the sequences."""
+    from pipeline.evaluation.rates import sequence_rates
+    from pipeline.attacks.schedule import attacked_fraction
+    from pipeline.report.markdown import markdown_table
+
+    f = attacked_fraction(P_START, paper_length)
+    table = []
+    for eps, r in sequence_rates(rows).items():
+        acc = paper.get(eps)
+        table.append({"eps": f"{eps:g}", "attacked f (%)": r.attacked_fraction.pct(), "TPR (%)": r.tpr.pct(),
+                      "FPR (%)": r.fpr.pct(), "accuracy (%)": r.accuracy.pct(),
+                      f"accuracy at the paper's f = {100 * f:.1f}% (%)": r.accuracy_at(f).pct(),
+                      "paper, accuracy (%)": "-" if acc is None else f"{acc:.2f}",
+                      "TPR the paper's accuracy needs (%)": "-" if acc is None else
+                      f"{100 * max(0.0, (acc / 100 - (1 - f)) / f):.1f}"})
+    return f"""Rates beside the accuracy: accuracy = f TPR + (1 - f)(1 - FPR), with f the attacked fraction. The paper's
+schedule (a frame outside an attack starts one with probability {P_START:g}, attacks of {paper_length} frames) attacks
+on average {paper_length} of every {paper_length} + (1 - {P_START:g}) / {P_START:g} = {paper_length + (1 - P_START) / P_START:g}
+frames: f = {100 * f:.1f}% (pipeline/evaluation/schedule.py, `attacked_fraction`); each row's TPR and FPR are
+re-weighted to that f. The last column is the least TPR the paper's accuracy needs at its f (even with no false alarm):
+(accuracy - (1 - f)) / f. Frames pooled over the {what}; 95% bootstrap intervals over the {what}, the
+re-weighted accuracy resampled the same way (pipeline/evaluation/rates.py).
+
+{markdown_table(table, decimals=2)}"""
 
 
 def _why(fused: list[dict[str, Any]], calibration: dict[str, Any]) -> str:

@@ -10,7 +10,8 @@ from stages.artifacts.paths import LAB as OUT
 from stages.artifacts.paths import TRAIN_METRICS
 from stages.config.evaluation import Lab
 from stages.config.schema import Params
-from stages.pages.paper import LAB, LAB_EPS, LAB_RANGES, by_eps
+from stages.pages.evaluate import rates_section
+from stages.pages.paper import LAB, LAB_ATTACK_LENGTH, LAB_EPS, LAB_RANGES, by_eps, frames_note
 
 if TYPE_CHECKING:
     from pipeline.evaluation.sequences import Sequence
@@ -62,14 +63,18 @@ def paper_ranges(K_syn: Any, K_zed: Any, scale: float, factor: float) -> str:
     from pipeline.report.markdown import markdown_table
 
     k_paper = paper_lab_factor(K_syn, K_zed, scale)
-    rows = [{"lab z (m)": f"{z:g}", "ours (m)": z * factor, "paper's formula (m)": z * k_paper,
-             "paper, as printed (m)": LAB_RANGES.get(z, "-")} for z in (3.122, 3.0, 2.5, 2.0, 1.5, 1.0)]
+    z_ref, printed = next(iter(LAB_RANGES.items()))
+    rows = [{"lab z (m)": f"{z:g}", "ours (m)": z * factor, "paper's equation as printed (m)": z / k_paper,
+             "its reciprocal (m)": z * k_paper, "paper, as printed (m)": LAB_RANGES.get(z, "-")}
+            for z in (3.122, 3.0, 2.5, 2.0, 1.5, 1.0)]
     return f"""Representative ranges beside the paper's. The paper takes the 1920 -> 480 resize as
 cx_zed / cx_blender = {K_zed.cx:g} / {K_syn.cx:g} = {K_zed.cx / K_syn.cx:.4f} instead of the exact
 {K_zed.width}/{K_syn.width} = {K_zed.width / K_syn.width:g}, so its factor is {k_paper:.3f} against our {factor:.3f} and
-its synthetic ranges are {100 * (factor / k_paper - 1):.2f}% shorter; the printed 51.18 m differs from its own
-formula only in rounding. Only the 3.122 m row is printed in the paper text we have; the other rows
-apply its formula.
+its synthetic ranges are {100 * (factor / k_paper - 1):.2f}% shorter. Its rescaling equation as printed divides
+the lab range by that factor: applied to {z_ref:g} m it gives {z_ref / k_paper:.2f} m; only its reciprocal,
+z_syn = {k_paper:.3f} x z_lab, gives {z_ref * k_paper:.2f} m, the printed {printed:g} m up to rounding. The paper's table
+prints all three ranges; the one quoted here (stages/pages/paper.py) is the {z_ref:g} m row, and the other rows
+apply the reciprocal of its equation.
 
 {markdown_table(rows, decimals=2)}"""
 
@@ -170,9 +175,10 @@ Start probability {p.evaluate.p_start:g} per frame, {100 * att_frac:.1f}% of the
 accuracy = correctly classified frames / all frames (%).
 
 {markdown_table(accuracy_table(rows, summary, names, by_eps(LAB_EPS)), decimals=2)}
-Mean over eps: **{mean_acc:.2f}%** (paper: {LAB}% average).
+Mean over eps: **{mean_acc:.2f}%** (paper: {LAB}% average). {frames_note()}
 
 {markdown_table(detail_table(summary), decimals=2)}
+{rates_section(rows, LAB_ATTACK_LENGTH, by_eps(LAB_EPS), "sequences")}
 {shipped_section(m['shipped'])}"""
 
 
