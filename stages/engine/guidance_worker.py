@@ -2,8 +2,8 @@
 the standard model's; and the shipped one, the robust model's: stages.artifacts.paths.PAPER, SHIPPED), one
 flight of the grid (pipeline.guidance.grid.GridPlan) per job; stages/guidance.py builds the jobs.
 
-Each attacked run's attack is seeded by its place in the grid, so the flights do not depend on which
-worker flies which run.
+Each attacked run's attack is seeded by its place in the grid, and each rendered pose's background
+(render.background) by the pose itself, so the flights do not depend on which worker flies which run.
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ class GuidanceSetup:
     root: str                  # the folder holding models/, as an absolute path (a worker may run elsewhere)
     defense: Any               # stages.artifacts.models.DefenseModel of the shipped chain: a fresh one per run
     plan: Any                  # pipeline.guidance.law.GridPlan: every run of the grid
-    seed: int                  # the attack seed of run 0 (params seed + the stage's offset)
+    seed: int                  # the attack seed of run 0 (params seed + the stage's offset); the backgrounds'
     torch_threads: int | None  # torch threads of this worker; None: left as set up
 
 
@@ -55,6 +55,7 @@ class GuidanceWorker:
         from pipeline.attacks.in_loop import InLoopAttacker
         from pipeline.guidance.grid import GridPilot
         from pipeline.guidance.law import CachedCamera
+        from pipeline.render.backgrounds import draw, pose_key
         from pipeline.render.scene import Renderer
 
         if setup.torch_threads:
@@ -76,8 +77,15 @@ class GuidanceWorker:
             return InLoopAttacker(target, eps, in_loop_settings(setup.params, goal), seed + i)
 
         self.renderer = Renderer(setup.K, setup.scene)
+        background = setup.scene.background
+
+        def render_image(R: Any, t: Any) -> Any:
+            """The pose rendered over its background draw (render.background), keyed by the pose: the grid flies
+            the target at rest (pipeline.guidance.law.run_rendezvous), so the camera -> world rotation is R^T."""
+            return self.renderer.render(R, t, draw(background, R.T, setup.seed, pose_key(R, t)))
+
         images: dict[bytes, Any] = {}   # both chains see the same rendered poses: each is rendered once
-        cameras = {name: CachedCamera(self.renderer.render, c.model, chain=c, images=images)
+        cameras = {name: CachedCamera(render_image, c.model, chain=c, images=images)
                    for name, (c, _, _) in chains.items()}
         self.pilot = GridPilot(cameras, setup.K, setup.plan, attack_at, setup.defense, in_loop_at)
 
