@@ -242,3 +242,22 @@ def test_bad_background_params_are_one_line(scene):
 
     with pytest.raises(ParamsError, match=r"render.background.share must be a number in \[0, 1\]"):
         build(params_mod.compose("smoke", ["render.background.share=1.5"]))
+
+
+@pytest.mark.slow
+def test_the_guidance_loop_renders_each_pose_over_its_own_draw(scene):
+    """Off, the guidance loop's images are the renderer's black ones; on, a pose's image is the same every time
+    it is rendered (the loop's image cache relies on it), its draw keyed by the pose with the camera at R^T."""
+    from stages.engine.guidance_worker import pose_renderer
+
+    K = reference_intrinsics(fy=640.0).scaled(32, 18)
+    R, t = np.eye(3), np.array([0.5, 0.0, 15.0])
+    with scene.Renderer(K, scene.SceneSettings(samples=1)) as r:
+        assert np.array_equal(pose_renderer(r, 5)(R, t), r.render(R, t))
+    s = BackgroundSettings(share=1.0, stars=0.05, black_offset=0.1, noise_std=0.01)
+    with scene.Renderer(K, scene.SceneSettings(samples=1, background=s)) as r:
+        render = pose_renderer(r, 5)
+        first = render(R, t)
+        assert np.array_equal(first, render(R, t)) and first.min() > CLAMP * 255
+        assert np.array_equal(first, r.render(R, t, draw(s, R.T, 5, pose_key(R, t))))
+        assert not np.array_equal(first, render(R, t + np.array([0.0, 0.0, 1e-3])))   # another pose, another draw

@@ -8,7 +8,9 @@ Each attacked run's attack is seeded by its place in the grid, and each rendered
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
+
+import numpy as np
 
 from stages.artifacts.models import load_chain
 from stages.artifacts.paths import PAPER, SHIPPED
@@ -55,7 +57,6 @@ class GuidanceWorker:
         from pipeline.attacks.in_loop import InLoopAttacker
         from pipeline.guidance.grid import GridPilot
         from pipeline.guidance.law import CachedCamera
-        from pipeline.render.backgrounds import draw, pose_key
         from pipeline.render.scene import Renderer
 
         if setup.torch_threads:
@@ -77,14 +78,8 @@ class GuidanceWorker:
             return InLoopAttacker(target, eps, in_loop_settings(setup.params, goal), seed + i)
 
         self.renderer = Renderer(setup.K, setup.scene)
-        background = setup.scene.background
-
-        def render_image(R: Any, t: Any) -> Any:
-            """The pose rendered over its background draw (render.background), keyed by the pose: the grid flies
-            the target at rest (pipeline.guidance.law.run_rendezvous), so the camera -> world rotation is R^T."""
-            return self.renderer.render(R, t, draw(background, R.T, setup.seed, pose_key(R, t)))
-
         images: dict[bytes, Any] = {}   # both chains see the same rendered poses: each is rendered once
+        render_image = pose_renderer(self.renderer, setup.seed)
         cameras = {name: CachedCamera(render_image, c.model, chain=c, images=images)
                    for name, (c, _, _) in chains.items()}
         self.pilot = GridPilot(cameras, setup.K, setup.plan, attack_at, setup.defense, in_loop_at)
@@ -94,3 +89,18 @@ class GuidanceWorker:
 
     def close(self) -> None:
         self.renderer.close()
+
+
+def pose_renderer(renderer: Any, seed: int) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """`renderer.render` (a pipeline.render.scene.Renderer) for poses rendered on demand: each pose (R target ->
+    camera, t in metres) over its background draw of the renderer's settings.background from `seed`, keyed by the
+    pose itself. The grid flies the target at rest (pipeline.guidance.law.run_rendezvous: identity target
+    attitude), so the camera -> world rotation is R^T."""
+    from pipeline.render.backgrounds import draw, pose_key
+
+    background = renderer.settings.background
+
+    def render(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return renderer.render(R, t, draw(background, R.T, seed, pose_key(R, t)))
+
+    return render
