@@ -112,6 +112,11 @@ def test_stars_stay_behind_the_earth_and_the_offset_lifts_the_sky_above_the_clam
     none = np.zeros((90, 160), np.float32)
     dark = BackgroundSettings(share=1.0, nadir=(0.0, -1.0, 0.0))     # the Earth behind the camera's back
     assert composite(black, none, K160, dark, frame([0.0, -1.0, 0.0]), SUN_DOWN, 6.0).max() == 0
+    rng = np.random.default_rng(1)        # over an all-black backdrop: scene.py's black frame, byte for byte
+    straight = rng.integers(0, 256, (90, 160, 3)).astype(np.float32)
+    alpha = (rng.integers(0, 256, (90, 160)) / 255.0).astype(np.float32)
+    on_black = np.clip(np.rint(straight * alpha[..., None]), 0, 255).astype(np.uint8)
+    assert np.array_equal(composite(straight, alpha, K160, dark, frame([0.0, -1.0, 0.0]), SUN_DOWN, 6.0), on_black)
     lifted = BackgroundSettings(share=1.0, black_offset=0.1)
     out = composite(black, none, K160, lifted, frame([0.0, -1.0, 0.0]), SUN_DOWN, 6.0)
     assert (out == round(0.1 * 255)).all() and out.min() > CLAMP * 255

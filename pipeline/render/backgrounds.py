@@ -325,9 +325,10 @@ def composite(straight: np.ndarray, alpha: np.ndarray, K: Intrinsics, s: Backgro
     (H, W; [0, 1]) over the backdrop of `frame`, then the sensor's black offset and read noise, rounded once.
     `sun`: the direction sunlight travels, camera frame; `sun_strength`: W/m^2."""
     rng = np.random.default_rng(frame.seed)
-    b = 255.0 * backdrop(K, s, frame, sun, sun_strength, rng)
-    a = alpha.astype(np.float64)[..., None]
-    x = straight * a + b * (1 - a) + 255.0 * s.black_offset
+    b = (255.0 * backdrop(K, s, frame, sun, sun_strength, rng)).astype(np.float32)
+    a = alpha.astype(np.float32)[..., None]
+    # float32 as scene.py's black path: over a black backdrop, with no offset or noise, the same bytes
+    x = straight.astype(np.float32) * a + b * (1 - a) + np.float32(255.0 * s.black_offset)
     if s.noise_std > 0:
-        x = x + rng.normal(0.0, 255.0 * s.noise_std, x.shape)
+        x = x + rng.normal(0.0, 255.0 * s.noise_std, x.shape).astype(np.float32)
     return np.clip(np.rint(x), 0, 255).astype(np.uint8)
