@@ -68,7 +68,8 @@ class Camera:
 @dataclass(frozen=True)
 class Background:
     """render.background: a share of the frames with the Earth below the target, stars and a sensor black offset
-    (pipeline/render/backgrounds.py); the others stay black. Every render of the pipeline draws its frames' own."""
+    (pipeline/render/backgrounds.py); the others stay black. render, eval_render and the guidance loop each draw
+    their frames' own; the lab's frames stay black (segmented to black by their masks)."""
 
     share: Probability      # of the frames, each drawn on its own; 0 = off (every frame black, as before)
     altitude_km: Annotated[float, In("(0, 100000]", "km")]   # the target's orbit altitude above the Earth
