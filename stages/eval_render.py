@@ -48,7 +48,7 @@ from stages.config.params import (
 )
 from stages.config.schema import Params
 from stages.engine import pool as engine
-from stages.engine.chunks import render_to_store, store_url
+from stages.engine.chunks import frame_backgrounds, render_to_store, store_url
 
 
 def trajectories(p: Params, seed: int, count: int, frames: int | None = None, envelope: bool = False) -> list[Any]:
@@ -100,25 +100,28 @@ def main(
     d, e, s = params.defense, params.evaluate, params.shap
     if detector:
         sets = [(DETECT_RENDER, trajectories(params, s.seed, detector_trajectories(params), s.frames, envelope=True),
-                 detect_render_fingerprint(params))]
+                 detect_render_fingerprint(params), s.seed)]
     else:
-        sets = [(EVAL_RENDER, trajectories(params, e.seed, e.trajectories), eval_render_fingerprint(params)),
-                (VAL_RENDER, trajectories(params, d.val_seed, d.val_trajectories), val_render_fingerprint(params)),
-                (VAL_ENVELOPE, trajectories(params, seed_for(d.val_seed, "eval_render.envelope"), d.val_trajectories,
-                                            envelope=True),
-                 val_envelope_fingerprint(params))]
+        envelope_seed = seed_for(d.val_seed, "eval_render.envelope")
+        sets = [(EVAL_RENDER, trajectories(params, e.seed, e.trajectories), eval_render_fingerprint(params), e.seed),
+                (VAL_RENDER, trajectories(params, d.val_seed, d.val_trajectories), val_render_fingerprint(params),
+                 d.val_seed),
+                (VAL_ENVELOPE, trajectories(params, envelope_seed, d.val_trajectories, envelope=True),
+                 val_envelope_fingerprint(params), envelope_seed)]
     timings: dict[str, Any] = {}
     hint = f"check params.yaml evaluate.lateral_range={list(e.lateral_range)} (lateral start offsets, m)"
     with engine.session(es):
-        for folder, seqs, fingerprint in sets:
-            timings[folder.name] = _render_set(K, scene, es, seqs, folder, fingerprint, hint)
+        for folder, seqs, fingerprint, seed in sets:
+            timings[folder.name] = _render_set(K, scene, es, seqs, folder, fingerprint, hint,
+                                               seed_for(seed, "background"))
     write_metrics(DETECT_RENDER_METRICS if detector else EVAL_RENDER_METRICS,
                   {"workers": es.workers, "sets": timings}, params.profile_name)
 
 
 def _render_set(K: Any, scene: Any, es: Any, seqs: list[Any], folder: Path, fingerprint: str,
-                hint: str) -> dict[str, Any]:
-    """Render the trajectories `seqs` into `folder` (images.zarr, poses.parquet, meta.json); returns the
+                hint: str, seed: int) -> dict[str, Any]:
+    """Render the trajectories `seqs` into `folder` (images.zarr, poses.parquet, meta.json; the frames' background
+    draws from `seed`, their kinds in the poses' `background` column while render.background is on); returns the
     frame count and render time (s) for the metrics JSON. A set mostly out of view is refused (`hint`: the params
     that put it there)."""
     import pandas as pd
@@ -134,9 +137,12 @@ def _render_set(K: Any, scene: Any, es: Any, seqs: list[Any], folder: Path, fing
         "frame": np.concatenate([s.frame for s in seqs]), **pose_columns(t, q, r6),
         "range": np.linalg.norm(t, axis=1), **{f"rel_{a}": rel[:, j] for j, a in enumerate("xyz")},
         **{f"c{j}": R_cam[:, j // 3, j % 3] for j in range(9)}})
+    draws, kinds = frame_backgrounds(K, scene, R, R_cam, seed)
+    if kinds is not None:
+        poses["background"] = kinds
     with atomic_dir(folder) as tmp:
         seconds = render_to_store(store_url(tmp / "images.zarr"), K, scene, R, t, min(n, 100), es,
-                                  f"eval_render {folder.name}", empty_hint=hint)
+                                  f"eval_render {folder.name}", empty_hint=hint, backgrounds=draws)
         write_parquet(poses, tmp / "poses.parquet")
         write_json(tmp / "meta.json", {"complete": True, "fingerprint": fingerprint, "frames": n,
                                        "trajectories": len(seqs), "width": K.width, "height": K.height, "K": K.K,

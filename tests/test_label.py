@@ -83,15 +83,15 @@ def test_interrupted_render_leaves_no_dataset(workdir, monkeypatch):
     from stages import render
 
     calls = {"n": 0}
-    original = scene.Renderer.render
+    original = scene.Renderer.render_with_alpha
 
-    def flaky(self, R, t):
+    def flaky(self, R, t, background=None):
         calls["n"] += 1
         if calls["n"] > 5:
             raise KeyboardInterrupt
-        return original(self, R, t)
+        return original(self, R, t, background)
 
-    monkeypatch.setattr(scene.Renderer, "render", flaky)
+    monkeypatch.setattr(scene.Renderer, "render_with_alpha", flaky)
     with pytest.raises(KeyboardInterrupt):
         render.main(load())
     assert not (workdir / "datasets/render").exists()
@@ -106,7 +106,7 @@ def test_interrupted_render_leaves_no_dataset(workdir, monkeypatch):
     for d in (leftover, foreign):
         (d / "render" / "images.zarr").mkdir(parents=True)
     (leftover / OWNER).write_text(leftover.name)
-    monkeypatch.setattr(scene.Renderer, "render", original)
+    monkeypatch.setattr(scene.Renderer, "render_with_alpha", original)
     render.main(load())
     assert not leftover.exists() and foreign.exists() and (workdir / "datasets/render/meta.json").exists()
 

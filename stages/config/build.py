@@ -42,14 +42,16 @@ def settings_of(cls: type, section: Any, library_defaults: tuple[str, ...] = (),
 # params section -> the library settings dataclasses `settings_of` builds from it, and the section's fields that
 # no library settings take (the stages read them themselves: sizes, counts, file and calibration params)
 SECTION_SETTINGS: dict[str, tuple[str, ...]] = {
-    "render": ("pipeline.render.scene:SceneSettings",), "train": ("pipeline.pose.train:TrainConfig",),
+    "render": ("pipeline.render.scene:SceneSettings",),
+    "render.background": ("pipeline.render.backgrounds:BackgroundSettings",), "train": ("pipeline.pose.train:TrainConfig",),
     "train.adversarial": ("pipeline.pose.adversarial:AdversarialConfig",),
     "train.augment": ("pipeline.pose.augment:AugmentConfig",),
     "defense": ("pipeline.defense.fusion:DefenseSettings", "pipeline.defense.gate:MotionSettings"),
 }
 STAGE_ONLY: dict[str, tuple[str, ...]] = {
     "render": ("chunk", "end_range", "frames_per_sequence", "height", "max_target_rotation_deg", "pointing_jitter_deg",
-               "previews", "source", "source_test", "start_range", "width"),
+               "previews", "source", "source_test", "start_range", "target_attitude", "width"),
+    "render.background": (),
     "train": ("adversarial", "augment", "compile", "dropout", "range_bins", "val_fraction", "width"),
     "train.adversarial": ("black_level", "epochs", "eval_eps", "eval_frames", "eval_steps", "init", "lr_max",
                           "warmup_epochs"),
@@ -82,10 +84,13 @@ def intrinsics(params: Params) -> Any:
 
 
 def scene_settings(render: Render) -> Any:
-    """The Blender scene settings of a `render` params section (mesh None = the procedural target)."""
+    """The Blender scene settings of a `render` params section (mesh None = the procedural target), with its
+    background (`render.background`)."""
+    from pipeline.render.backgrounds import BackgroundSettings
     from pipeline.render.scene import SceneSettings
 
-    return settings_of(SceneSettings, render, ("ambient", "max_bounces"), mesh=given(render.mesh))
+    return settings_of(SceneSettings, render, ("ambient", "max_bounces"), mesh=given(render.mesh),
+                       background=settings_of(BackgroundSettings, render.background))
 
 
 def check_attack_params(section: Attack | Guidance, where: str) -> None:

@@ -14,7 +14,7 @@ import yaml
 from pipeline.io.atomic import atomic_write_text
 from pipeline.io.files import read_yaml
 from stages.config.schema import Params, build
-from stages.config.sections import ParamsError
+from stages.config.sections import ParamsError, Render
 
 ROOT = Path(__file__).resolve().parents[2]   # the repository (package) root: code-side files only
 CONF_DIR = ROOT / "conf"                      # the source of params.yaml: config.yaml and profile/*.yaml
@@ -48,16 +48,25 @@ def compose(profile: str = "default", overrides: list[str] | None = None) -> dic
 ENVELOPE = "operational-envelope-1"
 
 
+def render_record(render: Render) -> dict[str, Any]:
+    """The `render` params section as a mapping (meta.json's `render`), its `background` left out while it is off
+    (share 0) and the default target attitude (per_frame) left out: the renders made before these options existed
+    keep their meta.json and fingerprints."""
+    r = dataclasses.asdict(render)
+    if render.background.share == 0:
+        r.pop("background")
+    if r["target_attitude"] == "per_frame":
+        r.pop("target_attitude")
+    return r
+
+
 def render_key(params: Params) -> dict[str, Any]:
-    """The `render` params as fingerprints hash them: unset external inputs (null or inputs/none) as
-    null, an unset SPEED source and the default target attitude (per_frame) left out (the mapping params.yaml
-    holds: stages.config.schema)."""
-    r = dataclasses.asdict(params.render)
+    """The `render` params as fingerprints hash them (`render_record`): unset external inputs (null or inputs/none)
+    as null and an unset SPEED source left out (the mapping params.yaml holds: stages.config.schema)."""
+    r = render_record(params.render)
     r["mesh"] = given(r["mesh"])
     if given(r["source"]) is None:
         r.pop("source"), r.pop("source_test")
-    if r["target_attitude"] == "per_frame":   # the default, left out: renders made before the option keep their hash
-        r.pop("target_attitude")
     return r
 
 
