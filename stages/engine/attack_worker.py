@@ -53,7 +53,7 @@ class AttackWorker:
         self.a, self.seed, self.eps_list, self.batch = setup.params.attack, setup.seed, setup.eps, setup.batch
 
     def run(self, job: AttackBatch) -> dict[str, Any]:
-        from pipeline.attacks.stored import attack_every_eps
+        from pipeline.attacks.every_eps import attack_every_eps
 
         attack = make_attack(self.a, self.a.method, self.seed + job.first // self.batch)
         return attack_every_eps(self.model, self.loss_fn, attack, job.images, job.labels, self.eps_list)
