@@ -279,6 +279,9 @@ def test_suite_rows_capacity_and_sanity():
     assert suite_01["pos_m"] == pytest.approx(result.worst("position_m")[1].mean())
     assert suite_01["pos_ci"][0] <= suite_01["pos_m"] <= suite_01["pos_ci"][1] and suite_01["n"] == 5
     assert all(r["ok"] for r in sanity_rows(result))
+    assert all(r["seconds_per_frame"] > 0 and r["cpu_seconds_per_frame"] > 0 for r in rows[1:])
+    first = result.select(np.array([0, 2]))
+    assert first.frames == 2 and np.array_equal(first.worst("position_m"), result.worst("position_m")[:, [0, 2]])
     cap = frame_capacity(result)
     assert cap.along_m.shape == cap.across_m.shape == cap.attitude_deg.shape == (2, 5)
     assert np.allclose(cap.range_m, np.linalg.norm(targets[:, :3], axis=1))
@@ -296,7 +299,7 @@ def test_ratio_rows_flag_a_move_of_more_than_5_percent():
         e = np.array([[[1.0, 3.0], [2.0, 4.0]]]) * scale
         return SuiteResult((0.01, 0.05), ("apgd/position",), {"position_m": e, "attitude_deg": 10 * e},
                            {}, {"position_m": np.zeros(2), "attitude_deg": np.zeros(2)}, np.array([20.0, 30.0]),
-                           np.zeros((1, 2)))
+                           np.zeros((1, 2)), np.zeros((1, 2)))
 
     rows = ratio_rows(result(1.04), result(1.0))
     assert [r["ratio"] for r in rows] == pytest.approx([1.04] * 4) and all(r["ok"] for r in rows)

@@ -87,7 +87,7 @@ def _members(methods: Sequence[str], objectives: Sequence[str]) -> tuple[str, ..
 FULL = SuiteConfig(members=_members(["apgd"], OBJECTIVES) + _members(["bpda", "square"], ["position", "attitude"]),
                    steps=100, restarts=5, queries=1000, square_eps=0.05)
 LEAN = SuiteConfig(members=_members(["apgd"], ["position", "range_far", "range_near", "attitude"]), steps=25,
-                   restarts=2)
+                   restarts=2, starts=("lift", "random"))
 PGD50 = SuiteConfig(members=("pgd/position",), steps=50, restarts=1)   # the attack of the PGD-50 tables
 
 
@@ -95,8 +95,8 @@ PGD50 = SuiteConfig(members=("pgd/position",), steps=50, restarts=1)   # the att
 class SuiteResult:
     """A suite's run over N frames: `errors[k]` (M, E, N) per member, eps and frame (k in ERRORS; NaN where the
     member did not run: square off its eps), `shifts[k]` (M, E, N) likewise (k in SHIFTS), `clean[k]` (N,)
-    the clean errors, `range_m` (N,) the true range ||t_gt||, `seconds` (M, E) wall time per member and eps
-    over all frames (scoring included)."""
+    the clean errors, `range_m` (N,) the true range ||t_gt||, `seconds` and `cpu_seconds` (M, E) the wall and
+    process CPU time per frame of each member at each eps (scoring included), over the whole run."""
 
     eps: tuple[float, ...]
     members: tuple[str, ...]
@@ -105,10 +105,19 @@ class SuiteResult:
     clean: dict[str, np.ndarray]
     range_m: np.ndarray
     seconds: np.ndarray
+    cpu_seconds: np.ndarray
 
     @property
     def frames(self) -> int:
         return len(self.range_m)
+
+    def select(self, frames: np.ndarray) -> "SuiteResult":
+        """The same run restricted to `frames` (indices or a boolean mask over the N frames): e.g. a
+        subsample, or the frames of one background."""
+        return SuiteResult(self.eps, self.members, {k: v[..., frames] for k, v in self.errors.items()},
+                           {k: v[..., frames] for k, v in self.shifts.items()},
+                           {k: v[frames] for k, v in self.clean.items()}, self.range_m[frames], self.seconds,
+                           self.cpu_seconds)
 
     def worst(self, key: str) -> np.ndarray:
         """(E, N) the suite's nested worst case of error `key` (ERRORS) per eps and frame."""
@@ -221,7 +230,7 @@ def run_suite(model: nn.Module, images: np.ndarray, targets: np.ndarray, eps: Se
     errors = {k: np.full(shape, np.nan) for k in ERRORS}
     shifts = {k: np.full(shape, np.nan) for k in SHIFTS}
     clean = {k: np.zeros(n) for k in ERRORS}
-    seconds = np.zeros(shape[:2])
+    seconds, cpu_seconds = np.zeros(shape[:2]), np.zeros(shape[:2])
     with _eval_mode(model):
         for lo in range(0, n, config.batch_size):
             hi = min(lo + config.batch_size, n)
@@ -238,16 +247,18 @@ def run_suite(model: nn.Module, images: np.ndarray, targets: np.ndarray, eps: Se
                     if member.startswith("square/") and config.square_eps is not None \
                             and not np.isclose(config.square_eps, e):
                         continue
-                    t0 = time.perf_counter()
+                    t0, c0 = time.perf_counter(), time.process_time()
                     found = run_member(model, member, x, y, e, config, _generator(config.seed, e, member, lo), los_b)
                     with torch.no_grad():
                         err, shift = _score(model(found.images.float() / 255.0).double(), y.double(), p0, u)
-                    seconds[mi, ei] += time.perf_counter() - t0
+                    seconds[mi, ei] += (time.perf_counter() - t0) / n
+                    cpu_seconds[mi, ei] += (time.process_time() - c0) / n
                     for k in ERRORS:
                         errors[k][mi, ei, lo:hi] = err[k]
                     for k in SHIFTS:
                         shifts[k][mi, ei, lo:hi] = shift[k]
-    return SuiteResult(eps, members, errors, shifts, clean, np.linalg.norm(targets[:, :3], axis=1), seconds)
+    return SuiteResult(eps, members, errors, shifts, clean, np.linalg.norm(targets[:, :3], axis=1), seconds,
+                       cpu_seconds)
 
 
 def frame_capacity(result: SuiteResult) -> Capacity:
@@ -262,29 +273,30 @@ def _stats(values: np.ndarray) -> dict[str, Any]:
     return {"mean": mean, "ci": [lo, hi]}
 
 
-def _row(attack: str, eps: float, columns: dict[str, np.ndarray], seconds: float) -> dict[str, Any]:
+def _row(attack: str, eps: float, columns: dict[str, np.ndarray], seconds: tuple[float, float]) -> dict[str, Any]:
     """A table row in the keys of pipeline.pose.robustness.attack_table (pos_m, pos_ci, att_deg, att_ci) plus
-    range and lateral errors and the seconds per frame."""
+    range and lateral errors and the (wall, CPU) seconds per frame."""
     row: dict[str, Any] = {"attack": attack, "eps": float(eps), "n": int(len(columns["position_m"]))}
     for key, short in (("position_m", "pos_m"), ("attitude_deg", "att_deg"), ("range_m", "range_m"),
                        ("lateral_m", "lateral_m")):
         s = _stats(columns[key])
         row[short], row[short.rsplit("_", 1)[0] + "_ci"] = s["mean"], s["ci"]
-    return {**row, "seconds_per_frame": seconds}
+    return {**row, "seconds_per_frame": seconds[0], "cpu_seconds_per_frame": seconds[1]}
 
 
 def suite_rows(result: SuiteResult) -> list[dict[str, Any]]:
     """Table rows: the clean images (attack `clean`, eps 0), then per eps each member that ran (attack = its
     name, its own errors) and the suite's nested worst case (attack `suite`); errors as means over frames
-    with 95% intervals: pos_m/pos_ci, att_deg/att_ci, range_m/range_ci, lateral_m/lateral_ci; seconds_per_frame
-    of the member (of all members at that eps for `suite`)."""
-    n = result.frames
-    rows = [_row("clean", 0.0, result.clean, 0.0)]
+    with 95% intervals: pos_m/pos_ci, att_deg/att_ci, range_m/range_ci, lateral_m/lateral_ci; the wall and CPU
+    seconds per frame of the member (of every member at that eps for `suite`)."""
+    rows = [_row("clean", 0.0, result.clean, (0.0, 0.0))]
     for ei, e in enumerate(result.eps):
         for mi, member in enumerate(result.members):
             if not np.isnan(result.errors["position_m"][mi, ei]).any():
-                rows.append(_row(member, e, {k: result.errors[k][mi, ei] for k in ERRORS}, result.seconds[mi, ei] / n))
-        rows.append(_row("suite", e, {k: result.worst(k)[ei] for k in ERRORS}, result.seconds[:, ei].sum() / n))
+                rows.append(_row(member, e, {k: result.errors[k][mi, ei] for k in ERRORS},
+                                 (result.seconds[mi, ei], result.cpu_seconds[mi, ei])))
+        rows.append(_row("suite", e, {k: result.worst(k)[ei] for k in ERRORS},
+                         (result.seconds[:, ei].sum(), result.cpu_seconds[:, ei].sum())))
     return rows
 
 
