@@ -2,6 +2,7 @@
 BPDA, Square, 8-bit storage, nesting in eps, rows and capacity."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -288,8 +289,10 @@ def test_suite_rows_capacity_and_sanity():
     # every member's shift is within the capacity; the capacity is some member's shift
     assert np.all(np.nan_to_num(result.shifts["along_m"], nan=0) <= cap.along_m[None] + 1e-12)
     assert np.allclose(cap.attitude_deg[1], np.nanmax(result.shifts["attitude_deg"].reshape(-1, 5), axis=0))
-    # no bpda member on a model without a clamp; square_eps must be one of the eps
-    assert run_suite(ToyPose(), images, targets, [0.1], cfg).members == ("apgd/position", "square/position")
+    # without a clamp bpda is apgd: skipped beside the apgd member of its objective; square_eps must be one of the eps
+    assert run_suite(ToyPose(), images, targets, [0.1], cfg).members == cfg.members
+    both = dataclasses.replace(cfg, members=("apgd/position", "bpda/position", "bpda/attitude"))
+    assert run_suite(ToyPose(), images, targets, [0.1], both).members == ("apgd/position", "bpda/attitude")
     with pytest.raises(ValueError, match="square_eps"):
         run_suite(model, images, targets, [0.05], cfg)
 
