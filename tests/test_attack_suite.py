@@ -285,7 +285,7 @@ def test_suite_rows_capacity_and_sanity():
     assert first.frames == 2 and np.array_equal(first.worst("position_m"), result.worst("position_m")[:, [0, 2]])
     cap = frame_capacity(result)
     assert cap.along_m.shape == cap.across_m.shape == cap.attitude_deg.shape == (2, 5)
-    assert np.allclose(cap.range_m, np.linalg.norm(targets[:, :3], axis=1))
+    assert np.allclose(cap.target_range_m, np.linalg.norm(targets[:, :3], axis=1))
     # every member's shift is within the capacity; the capacity is some member's shift
     assert np.all(np.nan_to_num(result.shifts["along_m"], nan=0) <= cap.along_m[None] + 1e-12)
     assert np.allclose(cap.attitude_deg[1], np.nanmax(result.shifts["attitude_deg"].reshape(-1, 5), axis=0))

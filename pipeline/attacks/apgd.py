@@ -63,7 +63,7 @@ def _run(forward: Forward, x: Tensor, y: Tensor, eps: float, objective: Objectiv
         rises += new > value
         value = new
         improved = value > best.values
-        best = Found(torch.where(improved.view(shape), u8, best.images), torch.where(improved, value, best.values))
+        best = best.best(Found(u8, value))
         best_z = torch.where(improved.view(shape), z, best_z)
         best_grad = torch.where(improved.view(shape), grad, best_grad)
         since += 1

@@ -100,7 +100,7 @@ PGD50 = SuiteConfig(members=("pgd/position",), steps=50, restarts=1)   # the att
 class SuiteResult:
     """A suite's run over N frames: `errors[k]` (M, E, N) per member, eps and frame (k in ERRORS; NaN where the
     member did not run: square off its eps), `shifts[k]` (M, E, N) likewise (k in SHIFTS), `clean[k]` (N,)
-    the clean errors, `range_m` (N,) the true range ||t_gt||, `seconds` and `cpu_seconds` (M, E) the wall and
+    the clean errors, `target_range_m` (N,) the true range ||t_gt||, `seconds` and `cpu_seconds` (M, E) the wall and
     process CPU time per frame of each member at each eps (scoring included), over the whole run."""
 
     eps: tuple[float, ...]
@@ -108,20 +108,20 @@ class SuiteResult:
     errors: dict[str, np.ndarray]
     shifts: dict[str, np.ndarray]
     clean: dict[str, np.ndarray]
-    range_m: np.ndarray
+    target_range_m: np.ndarray
     seconds: np.ndarray
     cpu_seconds: np.ndarray
 
     @property
     def frames(self) -> int:
-        return len(self.range_m)
+        return len(self.target_range_m)
 
     def select(self, frames: np.ndarray) -> "SuiteResult":
         """The same run restricted to `frames` (indices or a boolean mask over the N frames): e.g. a
         subsample, or the frames of one background."""
         return SuiteResult(self.eps, self.members, {k: v[..., frames] for k, v in self.errors.items()},
                            {k: v[..., frames] for k, v in self.shifts.items()},
-                           {k: v[frames] for k, v in self.clean.items()}, self.range_m[frames], self.seconds,
+                           {k: v[frames] for k, v in self.clean.items()}, self.target_range_m[frames], self.seconds,
                            self.cpu_seconds)
 
     def worst(self, key: str) -> np.ndarray:
@@ -137,10 +137,10 @@ class SuiteResult:
 class Capacity:
     """Per frame (N) and eps (E, increasing): the largest shift of the estimate from the clean estimate that
     the suite reached, along the true line of sight (|.|, m), across it (m) and of the attitude (deg);
-    `range_m` (N,) the true range of each frame (m)."""
+    `target_range_m` (N,) the true range of each frame (m)."""
 
     eps: tuple[float, ...]
-    range_m: np.ndarray
+    target_range_m: np.ndarray
     along_m: np.ndarray
     across_m: np.ndarray
     attitude_deg: np.ndarray
@@ -270,7 +270,7 @@ def run_suite(model: nn.Module, images: np.ndarray, targets: np.ndarray, eps: Se
 
 def frame_capacity(result: SuiteResult) -> Capacity:
     """The per-frame attacker capacity of a suite run (nested in eps; `Capacity`)."""
-    return Capacity(result.eps, result.range_m, result.worst_shift("along_m"), result.worst_shift("across_m"),
+    return Capacity(result.eps, result.target_range_m, result.worst_shift("along_m"), result.worst_shift("across_m"),
                     result.worst_shift("attitude_deg"))
 
 
@@ -328,7 +328,7 @@ def ratio_rows(result: SuiteResult, reference: SuiteResult, tolerance: float = 0
     """Per eps and error (position_m, attitude_deg): the mean worst case of `result` over that of `reference`
     (the same frames and eps: e.g. the suite run with doubled steps and restarts over the suite, or the lean
     suite over the full one) and `ok` = the ratio within 1 +- tolerance."""
-    if result.eps != reference.eps or not np.array_equal(result.range_m, reference.range_m):
+    if result.eps != reference.eps or not np.array_equal(result.target_range_m, reference.target_range_m):
         raise ValueError("ratio rows need two runs over the same frames and eps")
     rows = []
     for key in ("position_m", "attitude_deg"):
