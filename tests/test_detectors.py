@@ -16,13 +16,7 @@ from pipeline.detectors.mlp import MLPDetector
 from pipeline.detectors.squeeze import SqueezeDetector, median_filter, reduce_bit_depth
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """Small LSTMs train several times faster on one thread, above all on a busy machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")   # tests/conftest.py
 
 
 def _shap_like(n: int, n_features: int, seed: int, shift: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
