@@ -186,3 +186,17 @@ def test_the_capacity_is_a_quantile_plus_margin_per_bin_and_monotone_in_eps() ->
 def test_a_proportional_placeholder_grows_with_range() -> None:
     cap = proportional_capacity(0.01, [10, 30, 60], 0.02, 0.005)
     np.testing.assert_allclose(cap.at(np.array([20.0, 50.0])), [[0.6, 0.15, 0.15], [1.2, 0.3, 0.3]])
+
+
+def test_a_restart_of_the_filter_ends_the_modelled_horizon() -> None:
+    """The filter starts on a frame 8 m off, rejects the clean frames after it and restarts on four of them:
+    the program models the frames before the restart and leaves the targets from it on unsolved (NaN)."""
+    rel, run = toy(30, 6, FLAT)
+    pose = run.pose.copy()
+    pose[0, 2] += 8.0
+    run = dataclasses.replace(run, pose=pose)
+    clean = record(SETTINGS, MOTION, FLAT, run)
+    assert clean.start == 0 and clean.horizon == 4 and (clean.kind[1:4] == REJECT).all()
+    w = worst_case(SETTINGS, MOTION, FLAT, run, rel, box(30, 0.5, 0.1), np.full(30, 6.0), targets=[0, 2, 4, 20])
+    assert np.isfinite(w.achieved[:2]).all() and np.isnan(w.upper[2:]).all() and np.isnan(w.achieved[2:]).all()
+    assert_passes(rel, run, FLAT, w.shift[1], 2)

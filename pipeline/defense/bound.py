@@ -104,7 +104,7 @@ class _Recorder(MotionFilter):
     def start(self, rel: np.ndarray, rel_cov: np.ndarray, R_tw: np.ndarray | None = None, offset: float = 0.0,
               trusted: int = 0) -> None:
         super().start(rel, rel_cov, R_tw, offset, trusted)
-        self.kind[self.frame] = START if self.kind[self.frame] == NONE else RESTART
+        self.kind[self.frame] = START if self.kind[self.frame] == NONE else RESTART   # reacquire checked it first
 
     def check(self, t_pred: np.ndarray, R_cam: np.ndarray, u: np.ndarray | None = None,
               R_pred: np.ndarray | None = None) -> MotionCheck:
@@ -133,12 +133,6 @@ class _Recorder(MotionFilter):
         if G is not None:
             self.gain[self.frame] = np.array(G) @ self.R_cam[self.frame].T
         super()._bound(G, sigma)
-
-    def reacquire(self) -> bool:
-        restarted = super().reacquire()
-        if restarted:
-            self.kind[self.frame] = RESTART
-        return restarted
 
 
 @dataclass(frozen=True, eq=False)
@@ -399,8 +393,13 @@ class WorstCase:
 
     @property
     def ratio(self) -> np.ndarray:
-        """(T,) upper / AL: the bound's safety index."""
+        """(T,) upper / AL: the bound's safety index against the alert limit."""
         return self.upper / self.alert
+
+    @property
+    def pl_index(self) -> np.ndarray:
+        """(T,) achieved / PL: above 1, the protection level missed a real attack (misleading information)."""
+        return self.achieved / self.pl
 
 
 def worst_case(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel, run: CleanRun,
