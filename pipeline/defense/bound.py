@@ -337,9 +337,10 @@ class _Program:
             self._dy(row, q, -sgn * ref.R_cam[q].T[axis] / ref.sigma[q, axis])
         self.rows.add(j, row, total - min(h * (1 + margin), total))
 
-    def maximize(self, n: int, d: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-        """(upper, eps_n, da): max d^T eps_n over the frames <= n: the solver's dual bound on it (m), and its
-        primal point's eps_n (3,) (world, m) and shift deviations da (N, 3) (capacity axes, m; zero after n)."""
+    def maximize(self, n: int, directions: Sequence[np.ndarray]) -> list[tuple[float, np.ndarray, np.ndarray]]:
+        """Per direction d (3,) (world): (upper, eps_n, da) of max d^T eps_n over the frames <= n: the solver's
+        dual bound on it (m), and its primal point's eps_n (3,) (world, m) and shift deviations da (N, 3)
+        (capacity axes, m; zero after n). One program, its objective updated per direction."""
         m = _WIDTH * (n + 1)
         lo, hi = self.lo[:m], self.hi[:m]
         free = lo < hi
@@ -350,23 +351,30 @@ class _Program:
         blocks.append((self.cones.A[:self.cones.ends[n], :m], self.cones.b[:self.cones.ends[n]]))
         A = sparse.vstack([a for a, _ in blocks], format="csc")
         b = np.concatenate([v for _, v in blocks]) - A[:, ~free] @ lo[~free]
-        q = np.zeros(m)
-        q[self.col(n, 3):self.col(n, 6)] = -d
         cones = [clarabel.ZeroConeT(blocks[0][0].shape[0]),
                  clarabel.NonnegativeConeT(blocks[1][0].shape[0] + blocks[2][0].shape[0])]
         cones += [clarabel.SecondOrderConeT(4)] * (blocks[3][0].shape[0] // 4)
         settings = clarabel.DefaultSettings()
         settings.verbose = False
         A = A[:, free]
-        sol = clarabel.DefaultSolver(sparse.csc_matrix((A.shape[1], A.shape[1])), q[free], A, b, cones,
-                                     settings).solve()
-        if sol.status not in (clarabel.SolverStatus.Solved, clarabel.SolverStatus.AlmostSolved):
-            raise RuntimeError(f"worst-case program of frame {n}: {sol.status}")
-        x = lo.copy()
-        x[free] = sol.x
-        da = np.zeros((self.n, 3))
-        da[:n + 1] = x.reshape(n + 1, _WIDTH)[:, :3]
-        return max(-sol.obj_val, -sol.obj_val_dual), x[self.col(n, 3):self.col(n, 6)], da
+        solver, out = None, []
+        for d in directions:
+            q = np.zeros(m)
+            q[self.col(n, 3):self.col(n, 6)] = -np.asarray(d, np.float64)
+            if solver is None:
+                solver = clarabel.DefaultSolver(sparse.csc_matrix((A.shape[1], A.shape[1])), q[free], A, b, cones,
+                                                settings)
+            else:
+                solver.update(q=q[free])
+            sol = solver.solve()
+            if sol.status not in (clarabel.SolverStatus.Solved, clarabel.SolverStatus.AlmostSolved):
+                raise RuntimeError(f"worst-case program of frame {n}: {sol.status}")
+            x = lo.copy()
+            x[free] = sol.x
+            da = np.zeros((self.n, 3))
+            da[:n + 1] = x.reshape(n + 1, _WIDTH)[:, :3]
+            out.append((max(-sol.obj_val, -sol.obj_val_dual), x[self.col(n, 3):self.col(n, 6)], da))
+        return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -375,9 +383,10 @@ class WorstCase:
     trusted error (m): the program's upper bound, a feasible sequence's error, that sequence's error in the
     real defense (module docstring); alert (T,) AL (m); pl (T,) the replay's protection level (m); available
     (T,) the replay's availability; exact (T,) the replay reproduced the program within the tolerance;
-    iterations (T,) programs solved around a replay; the replayed sequence always passes every check on
-    frames <= its target (the clean run's flags and modes: shrunk toward the clean run where it did not); shift (T, N, 3) the worst sequence per target, camera frame (m: what the pose network must
-    be made to output, added to its clean estimate); seconds: wall time of the whole call."""
+    iterations (T,) programs solved around a replay; shift (T, N, 3) the worst sequence per target, camera
+    frame (m: what the pose network must be made to output, added to its clean estimate), which passes every
+    check on the frames up to its target (the clean run's flags and modes; shrunk toward the clean run where
+    a replay did not); seconds: wall time of the whole call."""
 
     targets: np.ndarray
     upper: np.ndarray
@@ -445,13 +454,11 @@ def worst_case(settings: DefenseSettings, motion: MotionSettings, noise: NoiseMo
             continue
         e_ref = clean.trace.trusted[j] - truth[j]
         best, bounds = (-1.0, np.zeros(3), np.zeros((n, 3))), []
-        for k in range(3):
-            for sgn in (1.0, -1.0):
-                d = sgn * axes[j][:, k]
-                upper, eps, da = program.maximize(j, d)
-                bounds.append(max(upper + float(d @ e_ref), 0.0))
-                if np.linalg.norm(e_ref + eps) > best[0]:
-                    best = (float(np.linalg.norm(e_ref + eps)), d, da)
+        directions = [sgn * axes[j][:, k] for k in range(3) for sgn in (1.0, -1.0)]
+        for d, (upper, eps, da) in zip(directions, program.maximize(j, directions)):
+            bounds.append(max(upper + float(d @ e_ref), 0.0))
+            if np.linalg.norm(e_ref + eps) > best[0]:
+                best = (float(np.linalg.norm(e_ref + eps)), d, da)
         out["upper"][t] = math.sqrt(sum(max(bounds[2 * k], bounds[2 * k + 1]) ** 2 for k in range(3)))
         out["lower"][t], d, a = best
         rec, it = replay(a), 0
@@ -467,7 +474,7 @@ def worst_case(settings: DefenseSettings, motion: MotionSettings, noise: NoiseMo
             if abs(achieved - out["lower"][t]) <= tolerance or it == iterations or rec.horizon <= j:
                 break
             it += 1                                               # re-solve around the replay (its own gains)
-            _, eps, da = _Program(rec, axes, box - a[:, :, None], motion, margin).maximize(j, d)
+            _, eps, da = _Program(rec, axes, box - a[:, :, None], motion, margin).maximize(j, [d])[0]
             out["lower"][t] = float(np.linalg.norm(rec.trace.trusted[j] - truth[j] + eps))
             a = a + da
             rec = replay(a)
