@@ -16,7 +16,8 @@ restart. With those choices fixed the filter is linear in the shifts (protection
 eps_j of the trusted error from the reference run's obeys
     eps_s = B_s da_s (the start takes frame s's measurement),
     eps_j = eps_{j-1} + K_j (B_j da_j - eps_{j-1}) on an accepted frame, eps_j = eps_{j-1} otherwise,
-with K_j the gain the reference run used; the innovation is y_j = y_j^ref + B_j da_j - eps_{j-1}.
+with K_j the gain the reference run used; the innovation is y_j = y_j^ref + B_j da_j - eps_{j-1}
+(to first order in the range; below).
 The checks, on that same structure (each a constraint on (da, eps), all from the first frame on):
 - gate, on frames the reference accepted unweighted: NIS_j = y_j^T S_j^-1 y_j <= soft_gate x gate (the
   frame stays accepted and unweighted, so K_j stays the gain); on alarmed and untested checked frames:
@@ -52,9 +53,11 @@ cross axes). Results:
   relative `margin` (1%) of slack kept under every threshold (so that the replay passes where the real
   gains differ a little from the program's) solved again: its |e_n|, a feasible sequence's error, <= max;
 - achieved: that sequence replayed through the real defense (`record`): its trusted error at n.
-The noise model is taken at the predicted range, which the shifts move, so the real gains differ a
-little from the reference's; `worst_case` re-records the structure from the replay and re-solves the
-best direction around it (the deviation form above, with the replay as reference) until the replay
+The noise model is taken at the predicted range, which the shifts move: the program keeps the first-order
+effects of that range on the bias the model removes and on the sequential test's scales (`_range_terms`;
+the eps_{j-1} terms above become J_j eps_{j-1}), not those on the gains and the gate's S_j, so the real
+gains differ a little from the reference's; `worst_case` re-records the structure from the replay and
+re-solves the best direction around it (the deviation form above, with the replay as reference) until the replay
 reproduces the program's error within `tolerance` (`exact`), at most `iterations` times; a replay that
 flags a frame the clean run did not flag is first shrunk toward the clean run (bisection on the real
 defense) until it passes. `upper` is that of the clean run's structure (its gains).
@@ -102,6 +105,12 @@ class _Recorder(MotionFilter):
         self.innovation, self.sigma, self.r = np.zeros((n, 3)), np.ones((n, 3)), np.zeros((n, 3))
         self.nis = np.full(n, np.nan)
         self.statistic = np.zeros((n, 2, 3))    # CUSUM (g+, g-) after the frame's push, per camera axis
+        self.ranged = np.zeros((n, 3))          # the vector (world, m) whose norm the noise model was taken at
+
+    def start_from(self, t_pred: np.ndarray, R_cam: np.ndarray, R_pred: np.ndarray | None = None) -> None:
+        self.R_cam[self.frame] = R_cam
+        self.ranged[self.frame] = np.asarray(R_cam, np.float64) @ np.asarray(t_pred, np.float64)
+        super().start_from(t_pred, R_cam, R_pred)
 
     def start(self, rel: np.ndarray, rel_cov: np.ndarray, R_tw: np.ndarray | None = None, offset: float = 0.0,
               trusted: int = 0) -> None:
@@ -113,6 +122,7 @@ class _Recorder(MotionFilter):
         out = super().check(t_pred, R_cam, u, R_pred)
         pending = self._pending[1]
         self.kind[self.frame] = REJECT if out.inconsistent else SKIP
+        self.ranged[self.frame] = out.predicted
         if pending is not None:
             y, _, s_inv, _, r, sigma, R_cam = pending
             self.innovation[self.frame], self.s_inv[self.frame], self.r[self.frame] = y, s_inv, r
@@ -143,8 +153,9 @@ class Recording:
     `KINDS`; gain (N, 3, 3) the position gain K_j used (world, accepted frames; 0 elsewhere); s_inv (N, 3,
     3) S_j^-1 (1/m^2, checked frames); innovation (N, 3) y_j (world, m); sigma (N, 3) the sequential test's
     scales along the camera axes (m); r (N, 3) the normalized innovations it pushed; statistic (N, 2, 3) its
-    (g+, g-) after the push; R_cam (N, 3, 3) camera -> world of the checked frames; nis (N,) position NIS;
-    trace: the defense's DefenseTrace."""
+    (g+, g-) after the push; R_cam (N, 3, 3) camera -> world of the checked frames and the start; nis (N,)
+    position NIS; ranged (N, 3) the vector (world, m) whose norm is the range the noise model was taken at
+    (the predicted state on a checked frame, the estimate on the start frame); trace: the DefenseTrace."""
 
     kind: np.ndarray
     gain: np.ndarray
@@ -155,6 +166,7 @@ class Recording:
     statistic: np.ndarray
     R_cam: np.ndarray
     nis: np.ndarray
+    ranged: np.ndarray
     trace: DefenseTrace
 
     @property
@@ -189,7 +201,7 @@ def record(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel,
         rec.frame = i
         out.append(d.step(t[i], float(run.prob[i]), run.R_cam[i], run.u[i], R_pred[i]))
     return Recording(rec.kind, rec.gain, rec.s_inv, rec.innovation, rec.sigma, rec.r, rec.statistic, rec.R_cam,
-                     rec.nis, trace_of(out))
+                     rec.nis, rec.ranged, trace_of(out))
 
 
 def fault_axes(truth: np.ndarray) -> np.ndarray:
@@ -211,6 +223,29 @@ def same_flags(a: DefenseTrace, b: DefenseTrace, upto: int) -> bool:
     0..upto (what comes after cannot undo an error flown on at frame `upto`)."""
     return all(np.array_equal(getattr(a, k)[:upto + 1], getattr(b, k)[:upto + 1])
                for k in ("flag", "shap_flag", "motion_flag", "sequential_flag", "mode"))
+
+
+def _range_terms(ref: Recording, noise: NoiseModel, step: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """First-order effects of the range r = |ranged_j| at which the noise model is taken, per frame (N, 3, 3):
+    J: the model removes its bias b(r) (camera axes, m), so a state deviation eps moves a checked frame's
+    innovation by -J_j eps, J_j = I + R_j b'(r) rhat^T, and a start frame's shift delta moves the start by
+    J_s delta, J_s = I - R_s b'(r) rhat^T; G: the sequential test divides by sigma_k = sqrt(c_k^T (P + R_j
+    diag(s(r)^2) R_j^T) c_k), so eps moves its normalized innovation r_k by -G_j[k] . eps more, G_j[k] =
+    r_k s_k s'_k / sigma_k^2 rhat (s the model's std, camera axes, m). Derivatives by central differences of
+    `step` m; rhat = ranged / r."""
+    n = len(ref.kind)
+    J, G = np.repeat(np.eye(3)[None], n, axis=0), np.zeros((n, 3, 3))
+    for j in np.flatnonzero(np.isin(ref.kind, (START, ACCEPT, HUBER, REJECT, ALARM, SKIP))):
+        r = float(np.linalg.norm(ref.ranged[j]))
+        if r <= step:
+            continue
+        (b_hi, s_hi), (b_lo, s_lo) = noise.terms(r + step), noise.terms(r - step)
+        rhat = ref.ranged[j] / r
+        term = np.outer(ref.R_cam[j] @ ((np.array(b_hi) - np.array(b_lo)) / (2 * step)), rhat)
+        J[j] = np.eye(3) - term if ref.kind[j] == START else np.eye(3) + term
+        std, slope = np.array(noise.terms(r)[1]), (np.array(s_hi) - np.array(s_lo)) / (2 * step)
+        G[j] = np.outer(ref.r[j] * std * slope / ref.sigma[j] ** 2, rhat)
+    return J, G
 
 
 class _Rows:
@@ -247,8 +282,9 @@ class _Program:
     `da_bounds` (N, 3, 2): bounds of the shift's deviation from the reference (capacity axes, m)."""
 
     def __init__(self, ref: Recording, axes: np.ndarray, da_bounds: np.ndarray, motion: MotionSettings,
-                 margin: float):
+                 noise: NoiseModel, margin: float):
         self.ref, self.axes, self.n = ref, axes, len(ref.kind)
+        self.J, self.G = _range_terms(ref, noise)
         gate, soft = motion.gate, motion.soft_gate * motion.gate
         c, h = motion.cusum_reference, motion.cusum_threshold
         n, kind = self.n, ref.kind
@@ -263,17 +299,18 @@ class _Program:
             lo[j, 3:6], hi[j, 3:6] = -np.inf, np.inf
             if k in (START, ACCEPT, HUBER, ALARM):
                 lo[j, :3], hi[j, :3] = da_bounds[j, :, 0], da_bounds[j, :, 1]
-            if k == START:                                               # eps_s = B_s da_s
+            if k == START:                                               # eps_s = J_s B_s da_s
                 started, prev = True, None
+                JB = self.J[j] @ axes[j]
                 for i in range(3):
-                    self.eqs.add(j, {self.col(j, 3 + i): 1.0, **{self.col(j, m): -axes[j, i, m] for m in range(3)}}, 0.0)
+                    self.eqs.add(j, {self.col(j, 3 + i): 1.0, **{self.col(j, m): -JB[i, m] for m in range(3)}}, 0.0)
                 continue
             K = ref.gain[j] if k in (ACCEPT, HUBER) else np.zeros((3, 3))
-            KB = K @ axes[j]
-            for i in range(3):                                           # eps_j - (I - K) eps_{j-1} - K B da_j = 0
+            KB, KJ = K @ axes[j], K @ self.J[j]
+            for i in range(3):                                           # eps_j - (I - K J) eps_{j-1} - K B da_j = 0
                 row = {self.col(j, 3 + i): 1.0}
                 for m in range(3):
-                    row[self.col(j - 1, 3 + m)] = K[i, m] - (i == m)
+                    row[self.col(j - 1, 3 + m)] = KJ[i, m] - (i == m)
                     row[self.col(j, m)] = -KB[i, m]
                 self.eqs.add(j, row, 0.0)
             if not np.isfinite(ref.nis[j]):
@@ -293,12 +330,11 @@ class _Program:
                 for i in range(3):
                     self.cones.add(j, self._dy({}, j, -L[:, i]), u_ref[i])
             if k in (ACCEPT, HUBER):                                     # tested, no alarm: g <= h
-                D = ref.R_cam[j].T / ref.sigma[j][:, None]              # r = D y (camera axes)
                 for side, sgn in ((0, 1.0), (1, -1.0)):
                     for i in range(3):
                         g = self.col(j, 6 + 3 * side + i)
                         row = {g: -1.0} if prev is None else {g: -1.0, self.col(prev, 6 + 3 * side + i): 1.0}
-                        self.rows.add(j, self._dy(row, j, sgn * D[i]), c - sgn * ref.r[j, i])
+                        self.rows.add(j, self._dr(row, j, i, sgn), c - sgn * ref.r[j, i])
                         hi[j, 6 + 3 * side + i] = max(h * (1 - margin), ref.statistic[j, side, i])
                 prev = j
             elif k == ALARM:
@@ -313,11 +349,19 @@ class _Program:
         return _WIDTH * j + i
 
     def _dy(self, row: dict[int, float], j: int, w: np.ndarray) -> dict[int, float]:
-        """row + w^T dy_j with dy_j = B_j da_j - eps_{j-1} (the innovation's deviation, world, m)."""
-        wb = w @ self.axes[j]
+        """row + w^T dy_j with dy_j = B_j da_j - J_j eps_{j-1} (the innovation's deviation, world, m)."""
+        wb, wj = w @ self.axes[j], w @ self.J[j]
         for m in range(3):
             row[self.col(j, m)] = row.get(self.col(j, m), 0.0) + wb[m]
-            row[self.col(j - 1, 3 + m)] = row.get(self.col(j - 1, 3 + m), 0.0) - w[m]
+            row[self.col(j - 1, 3 + m)] = row.get(self.col(j - 1, 3 + m), 0.0) - wj[m]
+        return row
+
+    def _dr(self, row: dict[int, float], j: int, axis: int, sgn: float) -> dict[int, float]:
+        """row + sgn dr_{j,axis}, the deviation of the normalized innovation the sequential test pushes:
+        dr = c_k^T dy_j / sigma_k - G_j[k] . eps_{j-1} (`_range_terms`)."""
+        self._dy(row, j, sgn * self.ref.R_cam[j][:, axis] / self.ref.sigma[j, axis])
+        for m in range(3):
+            row[self.col(j - 1, 3 + m)] = row.get(self.col(j - 1, 3 + m), 0.0) - sgn * self.G[j, axis, m]
         return row
 
     def _alarm(self, j: int, prev: int | None, c: float, h: float, margin: float) -> None:
@@ -336,7 +380,7 @@ class _Program:
         total = sum(sgn * ref.r[q, axis] - c for q in frames)
         row: dict[int, float] = {}
         for q in frames:
-            self._dy(row, q, -sgn * ref.R_cam[q].T[axis] / ref.sigma[q, axis])
+            self._dr(row, q, axis, -sgn)
         self.rows.add(j, row, total - min(h * (1 + margin), total))
 
     def maximize(self, n: int, directions: Sequence[np.ndarray]) -> list[tuple[float, np.ndarray, np.ndarray]]:
@@ -443,7 +487,7 @@ def worst_case(settings: DefenseSettings, motion: MotionSettings, noise: NoiseMo
     axes = fault_axes(truth)
     box = np.stack([-capacity, capacity], axis=2)
     clean = record(settings, motion, noise, run, alert_limit=alert_limit)
-    program, attack = _Program(clean, axes, box, motion, 0.0), _Program(clean, axes, box, motion, margin)
+    program, attack = (_Program(clean, axes, box, motion, noise, m) for m in (0.0, margin))
     T = len(targets)
     out = {k: np.full(T, np.nan) for k in ("upper", "lower", "achieved", "pl")}
     flags = {k: np.zeros(T, bool) for k in ("available", "exact")}
@@ -486,7 +530,7 @@ def worst_case(settings: DefenseSettings, motion: MotionSettings, noise: NoiseMo
             if abs(achieved - out["lower"][t]) <= tolerance or it == iterations or rec.horizon <= j:
                 break
             it += 1                                               # re-solve around the replay (its own gains)
-            around = _Program(rec, axes[:j + 1], box[:j + 1] - a[:, :, None], motion, margin)
+            around = _Program(rec, axes[:j + 1], box[:j + 1] - a[:, :, None], motion, noise, margin)
             _, eps, da = around.maximize(j, [d])[0]
             out["lower"][t] = float(np.linalg.norm(rec.trace.trusted[j] - truth[j] + eps))
             a = a + da
