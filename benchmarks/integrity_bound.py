@@ -111,7 +111,8 @@ def main() -> None:
     print("\neps    trajectories  max upper (m)  max upper/AL  max achieved/PL  (sparing A)  exact  s/trajectory  "
           "s/trajectory at every frame (est.)")
     for e, rows in summary.items():
-        print(f"{e:<6} {len(rows):12d}  {max(r['upper_m'] for r in rows):13.2f}  {max(r['upper_al'] for r in rows):12.2f}  "
+        print(f"{e:<6} {len(rows):12d}  {max(r['upper_m'] for r in rows):13.2f}  "
+              f"{max(r['upper_al'] for r in rows):12.2f}  "
               f"{max(r['achieved_pl'] for r in rows):15.2f}  {max(spared[e]):11.2f}  "
               f"{np.mean([r['exact'] for r in rows]):5.2f}  {np.mean([r['seconds'] for r in rows]):12.1f}  "
               f"{np.mean([r['all_targets'] for r in rows]):10.0f}")

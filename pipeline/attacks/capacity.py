@@ -56,7 +56,8 @@ def measure_shifts(eps: float, t_true: np.ndarray, t_clean: np.ndarray, t_attack
     t_true, t_clean, t_attacked = (np.asarray(a, np.float64) for a in (t_true, t_clean, t_attacked))
     n = len(t_true)
     if t_true.shape != (n, 3) or t_clean.shape != (n, 3) or t_attacked.shape != (n, 3):
-        raise ValueError(f"measure_shifts needs (N, 3) positions, got {t_true.shape}, {t_clean.shape}, {t_attacked.shape}")
+        raise ValueError(f"measure_shifts needs (N, 3) positions, got {t_true.shape}, {t_clean.shape}, "
+                         f"{t_attacked.shape}")
     rng = np.linalg.norm(t_true, axis=1)
     if not (rng > 0).all():
         raise ValueError("measure_shifts: a true position at the camera has no line of sight")
@@ -91,7 +92,8 @@ class Capacity:
         the bin's values (pipeline/defense/bound.py `worst_case` takes it as `capacity`)."""
         r = np.asarray(range_m, np.float64)
         if r.ndim != 1 or not np.isfinite(r).all() or (r < self.edges[0]).any() or (r > self.edges[-1]).any():
-            raise ValueError(f"capacity: ranges must lie within the measured bins [{self.edges[0]}, {self.edges[-1]}] m")
+            raise ValueError(f"capacity: ranges must lie within the measured bins [{self.edges[0]}, "
+                             f"{self.edges[-1]}] m")
         b = np.clip(np.searchsorted(self.edges, r, side="right") - 1, 0, len(self.along) - 1)
         return np.column_stack([self.along[b], self.across[b], self.across[b]])
 
