@@ -20,6 +20,7 @@ from pipeline.geometry.rotations import matrix_to_6d
 
 NOISE = NoiseModel((0.05, 0.05, 0.1), (0.005, 0.005, 0.01), 1.0, 0.0)   # 0.2, 0.2, 0.4 m std at 30 m
 MOTION = MotionSettings()
+SHIPPED = MotionSettings(trusted_start=20)    # params.yaml defense.trusted_start
 
 
 def approach(n: int, seed: int, heavy: bool = False) -> tuple[np.ndarray, CleanRun]:
@@ -78,16 +79,40 @@ def test_bias_bound_is_the_worst_undetected_fault_of_a_linear_program(seed: int)
 
 def test_pl_covers_the_clean_error_and_is_finite_once_tracking() -> None:
     """Clean toy runs (the noise model holds): no frame's error exceeds its PL, PL is finite from the
-    start, grows slowly (the c term) and stays well under an 11 m alert limit."""
+    start, grows slowly (the c term) and, with the shipped trusted start, stays well under an 11 m alert
+    limit (without one the noise term is a single frame's: pipeline/defense/protection.py)."""
     errors, pls = [], []
     for seed in range(10):
         rel, run = approach(300, seed)
-        d = defend_runs(DefenseSettings(), MOTION, NOISE, [run])[0]
+        d = defend_runs(DefenseSettings(), SHIPPED, NOISE, [run])[0]
         errors.append(np.linalg.norm(d.trusted - rel, axis=1))
         pls.append(d.pl)
     err, pl = np.concatenate(errors), np.concatenate(pls)
     assert np.isfinite(pl).all() and not (err > pl).any()
-    assert pl.max() < 11.0 and pls[0][-1] > pls[0][1]
+    assert pl.max() < 5.0 and pls[0][-1] > pls[0][21]
+
+
+def test_the_noise_term_starts_from_the_covariance_after_the_trusted_frames() -> None:
+    """After the trusted frames the PL's noise term is that of the state covariance P_T then plus the execution
+    error's random walk, kappa sqrt(lambda_max(P_T + (n - T) Q)), not the shrinking P_n: an attacker who knows
+    the noise can cancel the innovations that would have averaged e_T away, unseen by any check."""
+    from pipeline.defense.kalman import MotionFilter
+    from pipeline.defense.protection import kappa
+
+    rel, run = approach(60, 0)
+    f = MotionFilter(SHIPPED, NOISE)
+    f.start_from(run.pose[0, :3], run.R_cam[0])
+    for k in range(1, 60):
+        f.check(run.pose[k, :3], run.R_cam[k], run.u[k])
+        f.test_sequence()
+        f.accept()
+        if k == SHIPPED.trusted_start:
+            P_T = f.pos.P
+            assert f.protection_level == pytest.approx(kappa(SHIPPED.integrity_risk) * np.sqrt(np.linalg.eigvalsh(P_T)[-1]))
+    C = P_T + (59 - SHIPPED.trusted_start) * SHIPPED.position_noise ** 2 * np.eye(3)
+    noise_term = kappa(SHIPPED.integrity_risk) * np.sqrt(np.linalg.eigvalsh(C)[-1])
+    assert f.protection_level == pytest.approx(noise_term + f.protection.bias())
+    assert noise_term > 1.5 * kappa(SHIPPED.integrity_risk) * np.sqrt(np.linalg.eigvalsh(f.pos.P)[-1])
 
 
 def test_calibrated_checks_meet_their_shares_on_heavy_tailed_clean_runs() -> None:
@@ -103,7 +128,7 @@ def test_calibrated_checks_meet_their_shares_on_heavy_tailed_clean_runs() -> Non
     noise = inflate(NOISE, gate.setting, attitude.setting)
     seq = sequential_threshold(DefenseSettings(), MOTION, noise, runs, 0.002)
     assert seq.met and list(seq.rates)[-1] == seq.setting
-    motion = dataclasses.replace(MOTION, cusum_threshold=seq.setting)
+    motion = dataclasses.replace(SHIPPED, cusum_threshold=seq.setting)
     summary = clean_summary(defend_runs(DefenseSettings(), motion, noise, runs), truths, AlertLimitSettings())
     assert summary["fused"].value <= 0.005 and summary["frames"] == 2000
     assert summary["availability"].value > 0.99

@@ -76,7 +76,8 @@ class MotionFilter:
         self.pos = Kalman3(settings.position_noise)
         self.att = IsoKalman6(math.radians(settings.attitude_noise_deg), math.radians(settings.attitude_rate_noise_deg))
         self.cusum = Cusum(settings.cusum_reference, settings.cusum_threshold)
-        self.protection = ProtectionLevel(settings.cusum_reference, settings.cusum_threshold, settings.integrity_risk)
+        self.protection = ProtectionLevel(settings.cusum_reference, settings.cusum_threshold, settings.integrity_risk,
+                                          settings.position_noise)
         self.R_tw = eye()             # attitude estimate (target -> world), 3x3 nested list
         self.started = False
         self._pending: tuple[MotionCheck, tuple | None] | None = None   # last check, its update terms
@@ -126,6 +127,8 @@ class MotionFilter:
         self.cusum.reset()
         self.protection.reset(offset)
         self._trusted = int(trusted)
+        if self._trusted == 0:
+            self.protection.anchor(self.pos.A)
         self._candidates = []
         self._history.clear()
         self._history.append([p - m for p, m in zip(self.pos.level, self._moved)])
@@ -164,6 +167,7 @@ class MotionFilter:
             self._moved = [m + d for m, d in zip(self._moved, u)]
         self._tested = False
         self.pos.predict(u)
+        self.protection.step()
         self.att.predict()
         self.R_tw = mm(self.R_tw, rotmat_list(self.att.take_level()))
         predicted = self.position
@@ -244,9 +248,12 @@ class MotionFilter:
 
     def _bound(self, G: Mat3 | None, sigma: list[float]) -> None:
         """Add a tested frame to the protection level's sums, unless it is one of the trusted frames
-        after the first start (assumption A of pipeline/defense/protection.py)."""
+        after the first start (assumption A of pipeline/defense/protection.py); after the last of them
+        the sums start, from the state's covariance then (the PL's noise term)."""
         if self._trusted > 0:
             self._trusted -= 1
+            if self._trusted == 0:
+                self.protection.anchor(self.pos.A)
         else:
             self.protection.add(G, sigma)
 
