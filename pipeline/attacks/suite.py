@@ -6,10 +6,12 @@ from typing import Callable
 
 from pipeline.attacks.base import SequenceAttacker
 from pipeline.attacks.burst import BurstAttacker
+from pipeline.attacks.capture import CaptureAttacker
 from pipeline.attacks.drift import DriftAttacker
 
 ATTACKERS: dict[str, Callable[..., SequenceAttacker]] = {DriftAttacker.name: DriftAttacker,
-                                                         BurstAttacker.name: BurstAttacker}
+                                                         BurstAttacker.name: BurstAttacker,
+                                                         CaptureAttacker.name: CaptureAttacker}
 
 
 def get_attacker(name: str, **options: object) -> SequenceAttacker:
