@@ -20,6 +20,8 @@ The primary outcome of an approach is the mission's: where the chaser docks.
   (available, PL < error <= AL), HMI (available, error > AL), unavailable (PL > AL or not flown,
   error <= PL), unavailable MI (not available, error > PL); without a PL (the undefended control) a
   flown frame is nominal or HMI by AL alone; frames without an estimate are "no estimate".
+- `nest_in_eps`: an attacker's per-trajectory results made nested in eps (what an attack found at a
+  smaller eps is within every larger ball, so the worst case at eps is the worst over eps' <= eps).
 - `worst_over_attackers`: per trajectory the largest indices over the attackers, and which attacker.
 - `breaking_point`: per chain, the smallest eps at which any attacker causes a failure (closed-loop
   mission failure, or error / AL > 1 on an available frame), None when none does in the grid.
@@ -180,6 +182,28 @@ def stanford_counts(frames: IntegrityFrames, mask: np.ndarray | None = None) -> 
     if mask is not None:
         regions = regions[np.asarray(mask, bool)]
     return {r: int((regions == r).sum()) for r in REGIONS}
+
+
+def _severity(m: TrajectoryMeasures) -> tuple[float, float]:
+    """How bad a trajectory's result is: (largest error / AL, final error), NaN as least."""
+    return tuple(v if np.isfinite(v) else -np.inf for v in (m.max_error_al, m.final_error))  # type: ignore[return-value]
+
+
+def nest_in_eps(by_eps: Mapping[float, Sequence[TrajectoryMeasures]]) -> dict[float, list[TrajectoryMeasures]]:
+    """One attacker's per-trajectory measures at each eps ({eps: measures, same trajectories in the same
+    order}) -> at each eps, per trajectory the worst (largest error / AL, then final error) over every eps'
+    <= eps: an image crafted within eps' is within eps, so the attacker's worst case cannot drop as eps
+    grows (8-bit storage rounds a perturbation up by less than one level: a ball's images stay inside a
+    larger eps's once eps grows by a level or more)."""
+    out: dict[float, list[TrajectoryMeasures]] = {}
+    worst: list[TrajectoryMeasures] | None = None
+    for e in sorted(by_eps):
+        ms = list(by_eps[e])
+        if worst is not None and [m.trajectory for m in ms] != [m.trajectory for m in worst]:
+            raise ValueError("nest_in_eps: every eps must hold the same trajectories in the same order")
+        worst = ms if worst is None else [max(a, b, key=_severity) for a, b in zip(worst, ms)]
+        out[float(e)] = worst
+    return out
 
 
 def worst_over_attackers(measures: Mapping[str, Sequence[TrajectoryMeasures]]) -> list[dict[str, Any]]:
