@@ -27,7 +27,7 @@ mean_k min(e_k / AL_k, c) (the safety index against the alert limit, e.g. the pe
 pipeline/evaluation/integrity.py) and "error_pl" mean_k min(e_k / PL_k, c) (against the protection
 level, replayed differentiably by `FilterMirror.protection_level`; a defended chain only). Their
 candidates are judged by (frames failing the index: HMI for "error_al", misleading (unflagged, tracking,
-error > PL) for "error_pl"; - flagged frames; the largest index over the available frames). Hinge
+error > PL) for "error_pl"; - flagged frames; the largest index over the frames flown). Hinge
 margins (`hinge` m): each margin term softplus(z) becomes max(0, z + m), so the attacker stops paying for
 stealth once a check is under its threshold by m (in the units of z: the logit, or the fraction of the
 gate / CUSUM threshold) instead of paying everywhere inside it. `WIDE_LAMBDAS` is a wider lambda search.
@@ -73,7 +73,7 @@ class BurstOutcome:
     found_at: the eps it was crafted at (<= eps); lam, restart: the run that found it; images: (K,
     3, H, W) uint8; pose (K, 9) [m, 6-D] and prob (K,) of the chain on them; trusted_error,
     raw_error (K,) m; flag, hmi (K,) bool; mode (K,) str; score: mean capped trusted error (m) (objective
-    "error"), else the largest error / AL or error / PL over the available frames; mi (K,) bool unflagged
+    "error"), else the largest error / AL or error / PL over the frames flown (unflagged, tracking); mi (K,) bool unflagged
     tracking frames with error > PL (None without a defense); objective: the one it was judged by.
     """
 
@@ -208,7 +208,7 @@ class _Burst:
             score = float(np.minimum(err, self.cap * self.alert_limit).mean())
         else:
             ratio = err / (pl if self.objective == "error_pl" else self.alert_limit)
-            score = float(np.max(ratio[available], initial=0.0))
+            score = float(np.max(ratio[flown], initial=0.0))
         return BurstOutcome(eps, found_at, lam, restart, images, pose, prob, err,
                             np.linalg.norm(pose[:, :3] - self.labels[:, :3].double().numpy(), axis=1), flag, mode, hmi,
                             score, mi, self.objective)
@@ -305,7 +305,7 @@ class BurstAttacker:
             rng = np.linalg.norm(y[:, :3].double().numpy(), axis=1)
             al = self._alert_limit(rng)
             burst = _Burst(chain, d, run.images[lo:hi], y, np.asarray(run.R_cam[lo:hi], np.float64),
-                           None if run.u is None else np.asarray(run.u[lo:hi], np.float64), np.asarray(al, np.float64),
+                           None if run.u is None else np.asarray(run.u[lo:hi], np.float64), np.array(al, np.float64),
                            float(self.cap), self.objective, self.hinge)
             worst = self._burst(burst, eps, None if previous is None else previous[b], gen)
             stored[lo:hi], pose[lo:hi], prob[lo:hi] = worst.images, worst.pose, worst.prob
