@@ -110,3 +110,13 @@ def margin_cost(z: Tensor, hinge: float | None) -> Tensor:
 def probability_logit(p: float) -> float:
     """log(p / (1 - p)): the logit of a detector's probability threshold p in (0, 1)."""
     return math.log(p / (1 - p))
+
+
+def doubt_logit(defense: Defense | None) -> float | None:
+    """The logit of the probability at which `defense` stops updating its filter (its doubt level,
+    `update_below`, else its threshold: a frame at or above it captures nothing); None without a defense
+    (nothing to evade)."""
+    if defense is None:
+        return None
+    s = defense.settings
+    return probability_logit(s.threshold if s.update_below is None else s.update_below)

@@ -33,19 +33,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from pipeline.attacks.adaptive import DifferentiableChain
-from pipeline.attacks.base import AttackRun, chain_outputs, probability_logit
+from pipeline.attacks.base import AttackRun, chain_outputs, doubt_logit
 from pipeline.attacks.drift import (DIRECTIONS, BiasPlanner, FrameAttack, TargetedPGD, drift_direction, planned_attack,
                                     stealthy_bias)
 from pipeline.attacks.gradient import check_eps
 from pipeline.defense.fusion import Defense
 from pipeline.defense.kalman import MotionFilter
-from pipeline.guidance.law import LoopState
 
 
 @dataclass(frozen=True)
@@ -124,15 +124,6 @@ class CapturePlanner(BiasPlanner):
         return np.asarray(t_clean, np.float64) + self.bias * d
 
 
-def doubt_logit(defense: Defense | None) -> float | None:
-    """The logit of the probability at which `defense` stops updating its filter (its doubt level,
-    `update_below`, else its threshold); None without a defense (nothing to evade)."""
-    if defense is None:
-        return None
-    s = defense.settings
-    return probability_logit(s.threshold if s.update_below is None else s.update_below)
-
-
 class CaptureAttacker:
     """The capture on recorded runs (pipeline/attacks/base.py's interface): `settings` the plan,
     `frame_attack` the per-frame attack (default `TargetedPGD()`), `seed` its random draws. Frames
@@ -164,11 +155,12 @@ class CaptureInLoop:
         self.chain, self.eps, self.settings = chain, check_eps(eps), settings
         self.frame_attack = TargetedPGD() if frame_attack is None else frame_attack
         self.generator = torch.Generator().manual_seed(int(seed))
-        self.state: LoopState | None = None
+        self.state: Any = None      # the loop's pipeline.guidance.law.LoopState (read only)
         self.direction: np.ndarray | None = None
         self.bias: list[float] = []
 
-    def observe(self, state: LoopState) -> None:
+    def observe(self, state: Any) -> None:
+        """The loop's observe hook: `state` is the pipeline.guidance.law.LoopState before the next frame."""
         self.state = state
 
     def __call__(self, x: Tensor, y: Tensor | None = None) -> Tensor:

@@ -152,8 +152,7 @@ def drift_attack(target: Any, defended: Any, tracks: Sequence[Track], clean: Seq
     pipeline.attacks.drift.FrameAttack; default targeted PGD of `steps` steps); `defended` None: the undefended
     control (no detector margin); `clean` the tracks' clean flights (the estimates the planners start from);
     `done()` after each attacked frame."""
-    from pipeline.attacks.base import chain_outputs
-    from pipeline.attacks.capture import doubt_logit
+    from pipeline.attacks.base import chain_outputs, doubt_logit
     from pipeline.attacks.drift import TargetedPGD
     from pipeline.geometry.rotations import sixd_to_matrix
 
