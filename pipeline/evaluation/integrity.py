@@ -71,7 +71,10 @@ goal; (c) the run lingers at the goal for at least one step (the slack), which t
 Hence, with the ratio of the lateral authority s per step to the approach speed s per step,
     AL_p(r) = tol + max(r - r_g, 0)                          (metres, r the true range),
 the cone that shrinks to the docking tolerance at the goal: 51 m at 60 m, 6 m at 15 m, 1 m at 10 m with
-the defaults (tol 1 m, r_g 10 m). Any bias sequence with |b_k| <= AL_p(r_k) on every frame docks within
+the defaults (tol 1 m, r_g 10 m). Off the goal's line of sight (a lateral offset d) the approach still
+to go is the longest per-axis distance to the goal, shorter than r - r_g by about d^2 / (2 r): on the
+evaluation trajectories (lateral starts up to 25 m per axis, projectile paths) up to ~10 m at the 60 m
+start, where AL_p is ~60 m, and under 0.1 m inside 20 m, where the limit matters. Any bias sequence with |b_k| <= AL_p(r_k) on every frame docks within
 tol + s one step after arrival (the law acts on the previous frame's bias: the one-step lag) and
 within tol once the chaser settles at the goal; it never collides, since the chaser moves inward only
 while rel > g - b >= r_g - tol - (r - r_g), so the truth stays above r_g - tol - s (8 m) > collision

@@ -216,8 +216,9 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
     pipeline.defense.fusion.Defense per run) is required unless settings.defense is "undefended".
     `observe` (an attacker in the loop) is shown the `LoopState` before each frame is estimated.
     The defense is told the chaser's displacement u (world, m) since the previous frame: -cmd in the
-    true_state variant (the command, never the executed step of `settings.execution`); in the paper variant the chaser lands where it believes it goes (act - cmd), so
-    u is that point minus the defense's trusted estimate, and a biased estimate is not read as motion.
+    true_state variant (the command, never the executed step of `settings.execution`); in the paper
+    variant the chaser lands where it believes it goes (act - cmd), so u is that point minus the
+    defense's trusted estimate, and a biased estimate is not read as motion.
     """
     if (settings.defense == "undefended") != (defense is None):
         raise ValueError(f"guidance defense {settings.defense!r} needs "
