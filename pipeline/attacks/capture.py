@@ -28,6 +28,8 @@ probability at which the defense stops updating its filter: a doubtful frame wou
   (pipeline.evaluation.integrity_runs.drift_attack).
 - In the closed loop: `CaptureInLoop`, an in-loop attacker (`observe` the loop's state, then
   `__call__(x, y)` as the camera's attack), reading the live defense's filter to stay under its checks.
+  A drift from acquisition in the loop is the same attacker with a small initial bias and a rate
+  (e.g. initial 0.05 m, rate 0.1 m/frame: the checks decide how fast it may grow).
 """
 from __future__ import annotations
 
