@@ -23,7 +23,7 @@ from pipeline.evaluation.integrity_runs import undefended_trace
 from pipeline.evaluation.stats import clopper_pearson
 from pipeline.geometry.camera import Intrinsics
 from pipeline.guidance.dynamics import ExecutionSettings
-from pipeline.guidance.law import GuidanceSettings, RendezvousResult, run_rendezvous
+from pipeline.guidance.law import LOST, GuidanceSettings, RendezvousResult, run_rendezvous
 
 WIDE = Intrinsics(160, 90, 20.0, 20.0, 79.5, 44.5)     # a wide camera: a displaced chaser keeps the target in view
 NOISE = NoiseModel((0.05, 0.05, 0.1), (0.002, 0.002, 0.01), 1.0, 0.0)
@@ -102,6 +102,8 @@ def test_docking_outcomes_split_the_miss_and_count_a_safe_hold_apart() -> None:
     assert crash.outcome == COLLISION and crash.failed and crash.closest_range < 1e-9
     by_modes = docking(_result([[0, 0, 30], [0, 0, 29]], None, np.array([HOLD])), goal, tol, 5.0)
     assert by_modes.ended_in_hold
+    lost = docking(dataclasses.replace(_result([[0, 0, 30], [0, 0, 29]], [False]), outcome=LOST), goal, tol, 5.0)
+    assert lost.outcome == "target lost" and lost.failed
     with pytest.raises(ValueError, match="goal"):
         docking(_result([[0, 0, 1], [0, 0, 1]]), (0.0, 0.0), tol, 5.0)
 

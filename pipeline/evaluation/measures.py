@@ -4,10 +4,11 @@ The primary outcome of an approach is the mission's: where the chaser docks.
 - Closed loop (`docking`, a pipeline.guidance.law.RendezvousResult): the final docking miss, split
   along the goal's line of sight (range miss, m, positive short of the goal) and across it (lateral
   miss, m); collision (the least true range along the path below `collision_range`); hold (the run
-  ended with the chaser holding: the defense declared the estimate lost or unavailable). Mission
-  failure = a collision, or a miss beyond the docking tolerance while the chaser still flew (it docked
-  in the wrong place believing it right); a run that ends held far from the goal is a safe abort,
-  counted apart (an availability loss, not an integrity failure).
+  ended with the chaser holding: the defense declared the estimate lost or unavailable); target lost
+  (the target left the camera's image: the run stopped there). Mission failure = a collision, a lost
+  target, or a miss beyond the docking tolerance while the chaser still flew (it docked in the wrong
+  place believing it right); a run that ends held far from the goal is a safe abort, counted apart (an
+  availability loss, not an integrity failure).
 - Open loop (`trajectory_measures`, the IntegrityFrames of one recorded trajectory through the chain):
   per frame the safety indices error / AL and error / PL (the Stanford-ESA diagram's axes, ARAIM's
   "maximum safety index"), with AL the persistent-bias alert limit (pipeline/evaluation/integrity.py:
@@ -37,18 +38,20 @@ import numpy as np
 
 from pipeline.evaluation.integrity import FLOWN, IntegrityFrames
 from pipeline.evaluation.stats import Rate, clopper_pearson
+from pipeline.guidance.law import LOST as TARGET_LOST
 
 NOMINAL, MI, HMI, UNAVAILABLE, UNAVAILABLE_MI, NO_ESTIMATE = (
     "nominal", "MI", "HMI", "unavailable", "unavailable MI", "no estimate")
 REGIONS = (NOMINAL, MI, HMI, UNAVAILABLE, UNAVAILABLE_MI, NO_ESTIMATE)
-DOCKED, MISSED, COLLISION, HELD = "docked", "missed", "collision", "held"
+DOCKED, MISSED, COLLISION, HELD, LOST = "docked", "missed", "collision", "held", "target lost"
 
 
 @dataclass(frozen=True)
 class Docking:
     """One closed-loop run's end (metres): range_miss along the goal's line of sight (positive: short
     of the goal), lateral_miss across it, miss = |rel - goal|, closest_range along the path, whether it
-    collided (closest range < collision range), ended in a hold, its hold steps, and the tolerance."""
+    collided (closest range < collision range), ended in a hold, its hold steps, the tolerance, and whether
+    the target was lost (the run stopped with the target out of the image)."""
 
     range_miss: float
     lateral_miss: float
@@ -58,20 +61,24 @@ class Docking:
     ended_in_hold: bool
     hold_steps: int
     tolerance: float
+    lost: bool = False
 
     @property
     def outcome(self) -> str:
-        """collision, docked (miss <= tolerance), held (a safe abort), or missed (docked in the wrong place)."""
+        """collision, target lost, docked (miss <= tolerance), held (a safe abort), or missed (docked in the
+        wrong place)."""
         if self.collided:
             return COLLISION
+        if self.lost:
+            return LOST
         if self.miss <= self.tolerance:
             return DOCKED
         return HELD if self.ended_in_hold else MISSED
 
     @property
     def failed(self) -> bool:
-        """Mission failure: a collision or a miss beyond the tolerance while still flying."""
-        return self.outcome in (COLLISION, MISSED)
+        """Mission failure: a collision, a lost target, or a miss beyond the tolerance while still flying."""
+        return self.outcome in (COLLISION, LOST, MISSED)
 
     def as_dict(self) -> dict[str, Any]:
         return {**asdict(self), "outcome": self.outcome, "failed": self.failed}
@@ -97,7 +104,8 @@ def docking(result: Any, goal: Sequence[float], tolerance: float, collision_rang
         steps = np.zeros(len(result.estimates), bool)
     return Docking(along, float(np.linalg.norm(d - along * los)), float(np.linalg.norm(d)),
                    float(result.closest_range), bool(result.closest_range < collision_range),
-                   bool(len(steps) and steps[-1]), int(steps.sum()), float(tolerance))
+                   bool(len(steps) and steps[-1]), int(steps.sum()), float(tolerance),
+                   result.outcome == TARGET_LOST)
 
 
 @dataclass(frozen=True)
