@@ -37,11 +37,11 @@ from pipeline.attacks.capacity import capacity_at, proportional_capacity  # noqa
 from pipeline.defense.bound import ACCEPT, ALARM, HUBER, RESTART, record, worst_case  # noqa: E402
 from pipeline.defense.calibration import CleanRun  # noqa: E402
 from pipeline.pose.certify import certified_shift  # noqa: E402
-from pipeline.evaluation.integrity import alert_limit  # noqa: E402
+from pipeline.defense.integrity import alert_limit  # noqa: E402
 from pipeline.evaluation.integrity_runs import Track  # noqa: E402
 from pipeline.evaluation.robustness import pose_estimates  # noqa: E402
-from pipeline.pose.labels import TARGET  # noqa: E402
-from stages.artifacts.models import load_defense, load_pose_chain  # noqa: E402
+from pipeline.geometry.labels import TARGET  # noqa: E402
+from stages.artifacts.models import load_chain  # noqa: E402
 from stages.artifacts.paths import SHIPPED  # noqa: E402
 from stages.artifacts.readers import read_eval_render  # noqa: E402
 from stages.config.params import load  # noqa: E402
@@ -61,8 +61,8 @@ def main() -> None:
     images, poses, _ = read_eval_render(params)
     labels = poses[TARGET].to_numpy(np.float64)
     trajs = [np.flatnonzero(poses["trajectory"].to_numpy() == t) for t in np.unique(poses["trajectory"])]
-    pose, chain = load_pose_chain(params, SHIPPED)
-    d = load_defense(params, pose.hash, chain.threshold, SHIPPED)
+    safety = load_chain(params, SHIPPED)
+    chain, d = safety.onboard, safety.defended
     limit = partial(alert_limit, settings=d.alert)
     caps = [proportional_capacity(e, EDGES, PGD_MEAN_ERROR_M[e] / MEAN_RANGE_M, PGD_MEAN_ERROR_M[e] / MEAN_RANGE_M)
             for e in sorted(PGD_MEAN_ERROR_M)]
@@ -116,7 +116,7 @@ def main() -> None:
               f"{max(r['achieved_pl'] for r in rows):15.2f}  {max(spared[e]):11.2f}  "
               f"{np.mean([r['exact'] for r in rows]):5.2f}  {np.mean([r['seconds'] for r in rows]):12.1f}  "
               f"{np.mean([r['all_targets'] for r in rows]):10.0f}")
-    certify(pose.model, Track("t0", images[trajs[0]], labels[trajs[0]]), caps, args.eps)
+    certify(safety.model, Track("t0", images[trajs[0]], labels[trajs[0]]), caps, args.eps)
 
 
 def certify(model: object, track: Track, caps: list, eps: list[float], every: int = 20) -> None:

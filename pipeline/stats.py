@@ -5,6 +5,9 @@
 - ``bootstrap_rate(hits, groups)``: percentile bootstrap over groups (trajectories, sequences) for
   rates whose frames are correlated within a group, from ``scipy.stats.bootstrap``; the statistic is
   the pooled rate sum(hits) / n over the resampled groups.
+- ``clopper_pearson(k, n)``: the exact (Clopper-Pearson) interval of k events in n independent trials
+  (trajectories: an HMI count over independent approaches), from SciPy's ``binomtest`` (method "exact",
+  beta quantiles), conservative at any n, [0, 1 - (alpha/2)^(1/n)] at k = 0.
 - ``Rate``: a rate with its interval, formatted as ``"96.5 [95.1, 97.6]"`` (percent) for reports.
 - ``percent_ci(value, ci)``: the one formatter of a percent with its interval in every report.
 """
@@ -49,12 +52,23 @@ class Rate:
 
 def wilson(k: int, n: int, level: float = LEVEL) -> Rate:
     """Wilson score interval of ``k`` successes in ``n`` independent trials."""
+    return _binomial(k, n, level, "wilson")
+
+
+def clopper_pearson(k: int, n: int, level: float = LEVEL) -> Rate:
+    """Clopper-Pearson (exact) interval of ``k`` events in ``n`` independent trials (two-sided, ``level``)."""
+    return _binomial(k, n, level, "exact")
+
+
+def _binomial(k: int, n: int, level: float, method: str) -> Rate:
+    """``k`` of ``n`` with SciPy's binomial interval ``method``; bad counts are one line naming the method."""
     k, n = int(k), int(n)
     if n < 0 or k < 0 or k > n:
-        raise ValueError(f"wilson: need 0 <= k <= n, got k={k}, n={n}")
+        name = "wilson" if method == "wilson" else "clopper_pearson"
+        raise ValueError(f"{name}: need 0 <= k <= n, got k={k}, n={n}")
     if n == 0:
         return Rate(float("nan"), float("nan"), float("nan"), 0)
-    ci = sps.binomtest(k, n).proportion_ci(confidence_level=level, method="wilson")
+    ci = sps.binomtest(k, n).proportion_ci(confidence_level=level, method=method)
     return Rate(k / n, float(ci.low), float(ci.high), n)
 
 

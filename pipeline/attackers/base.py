@@ -19,8 +19,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol
 
+import math
+
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from pipeline.attacks.adaptive import DifferentiableChain
@@ -96,3 +99,24 @@ def chain_outputs(chain: DifferentiableChain, images: Tensor, batch: int = 64) -
             poses.append(p.double())
             probs.append(torch.zeros(len(p), dtype=torch.float64) if logit is None else torch.sigmoid(logit.double()))
     return torch.cat(poses).numpy(), torch.cat(probs).numpy()
+
+
+def margin_cost(z: Tensor, hinge: float | None) -> Tensor:
+    """The price an attacker pays for a check's margin z (> 0 where the check stops the frame): softplus(z),
+    or with a hinge m, max(0, z + m): nothing once the check is under its threshold by m."""
+    return F.softplus(z) if hinge is None else F.relu(z + hinge)
+
+
+def probability_logit(p: float) -> float:
+    """log(p / (1 - p)): the logit of a detector's probability threshold p in (0, 1)."""
+    return math.log(p / (1 - p))
+
+
+def doubt_logit(defense: Defense | None) -> float | None:
+    """The logit of the probability at which `defense` stops updating its filter (its doubt level,
+    `update_below`, else its threshold: a frame at or above it captures nothing); None without a defense
+    (nothing to evade)."""
+    if defense is None:
+        return None
+    s = defense.settings
+    return probability_logit(s.threshold if s.update_below is None else s.update_below)

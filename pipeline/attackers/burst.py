@@ -22,6 +22,16 @@ chain and defense: the burst keeps the candidate with the most hazardously misle
 unflagged, tracking, PL <= AL (available), trusted error > AL), then the fewest flagged frames, then the largest mean
 capped trusted error (`BurstOutcome.key`): the best successful-and-undetected result.
 
+Objectives on what is judged (`BurstAttacker.objective`): "error" is the J above; "error_al" ascends
+mean_k min(e_k / AL_k, c) (the safety index against the alert limit, e.g. the persistent-bias AL of
+pipeline/defense/integrity.py) and "error_pl" mean_k min(e_k / PL_k, c) (against the protection
+level, replayed differentiably by `FilterMirror.protection_level`; a defended chain only). Their
+candidates are judged by (frames failing the index: HMI for "error_al", misleading (unflagged, tracking,
+error > PL) for "error_pl"; - flagged frames; the largest index over the frames flown). Hinge
+margins (`hinge` m): each margin term softplus(z) becomes max(0, z + m), so the attacker stops paying for
+stealth once a check is under its threshold by m (in the units of z: the logit, or the fraction of the
+gate / CUSUM threshold) instead of paying everywhere inside it. `WIDE_LAMBDAS` is a wider lambda search.
+
 Nested in eps (`BurstAttacker.nested`): for increasing eps, restart 0 starts from the burst's
 solution at the previous eps (projected into the new ball), and that stored solution is itself a
 candidate, so a burst's worst case cannot drop as eps grows (exactly so for the first burst of a
@@ -42,17 +52,18 @@ from typing import Callable
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from pipeline.attacks.adaptive import DifferentiableChain, check_lambdas
-from pipeline.attackers.base import AttackRun, chain_outputs, pose_logit
+from pipeline.attackers.base import AttackRun, chain_outputs, margin_cost, pose_logit
 from pipeline.attackers.filter_mirror import DTYPE, FilterMirror
 from pipeline.attacks.gradient import check_eps, project, quantize
 from pipeline.defense.fusion import TRACK, Defense
 from pipeline.geometry.rotations import sixd_to_matrix, sixd_to_matrix_t
 
 AlertLimit = float | Callable[[np.ndarray], np.ndarray]
+OBJECTIVES = ("error", "error_al", "error_pl")
+WIDE_LAMBDAS = (0.0, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)   # a wider lambda search than the default
 
 
 @dataclass(frozen=True)
@@ -61,7 +72,9 @@ class BurstOutcome:
 
     found_at: the eps it was crafted at (<= eps); lam, restart: the run that found it; images: (K,
     3, H, W) uint8; pose (K, 9) [m, 6-D] and prob (K,) of the chain on them; trusted_error,
-    raw_error (K,) m; flag, hmi (K,) bool; mode (K,) str; score: mean capped trusted error (m).
+    raw_error (K,) m; flag, hmi (K,) bool; mode (K,) str; score: mean capped trusted error (m) (objective
+    "error"), else the largest error / AL or error / PL over the frames flown (unflagged, tracking); mi (K,) bool unflagged
+    tracking frames with error > PL (None without a defense); objective: the one it was judged by.
     """
 
     eps: float
@@ -77,11 +90,15 @@ class BurstOutcome:
     mode: np.ndarray
     hmi: np.ndarray
     score: float
+    mi: np.ndarray | None = None
+    objective: str = "error"
 
     @property
     def key(self) -> tuple[int, int, float]:
-        """(HMI frames, - flagged frames, score): larger is worse for the defense."""
-        return int(self.hmi.sum()), -int(self.flag.sum()), float(self.score)
+        """(HMI frames, or misleading frames under "error_pl"; - flagged frames; score): larger is worse
+        for the defense."""
+        failing = self.mi if self.objective == "error_pl" else self.hmi
+        return int(failing.sum()), -int(self.flag.sum()), float(self.score)
 
 
 @dataclass(frozen=True)
@@ -113,6 +130,8 @@ class _Burst:
     u: np.ndarray | None           # (K, 3)
     alert_limit: np.ndarray        # (K,) m
     cap: float
+    objective: str = "error"
+    hinge: float | None = None
     truth: np.ndarray = field(init=False)        # (K, 3) true rel, world frame (m)
     logit_doubt: float | None = field(init=False)
 
@@ -123,28 +142,38 @@ class _Burst:
         if s is not None and s.fusion != "motion":
             doubt = s.threshold if s.update_below is None else s.update_below
         self.logit_doubt = None if doubt is None else float(np.log(doubt / (1 - doubt)))
+        if self.objective == "error_pl" and self.defense is None:
+            raise ValueError("burst objective error_pl needs a defense (the undefended chain has no protection level)")
 
-    def objective(self, X: Tensor, lam: Tensor) -> Tensor:
-        """J (R,) of R candidate bursts X (R, K, 3, H, W): capped trusted error - lam * margins."""
+    def objective_of(self, X: Tensor, lam: Tensor) -> Tensor:
+        """J (R,) of R candidate bursts X (R, K, 3, H, W): the capped index of `objective` - lam * margins."""
         R, K = X.shape[:2]
         pose, logit = pose_logit(self.chain(X.flatten(0, 1)))
         pose = pose.to(DTYPE).view(R, K, 9)
         margin = torch.zeros(R, dtype=DTYPE)
+        m = self.hinge
         if self.defense is None:
             trusted = torch.einsum("kij,rkj->rki", torch.as_tensor(self.R_cam), pose[..., :3])
         else:
-            mirror, levels = FilterMirror(self.defense.filter, R), []
+            mirror, levels, pls = FilterMirror(self.defense.filter, R), [], []
             for k in range(K):
                 level, nis_p, nis_a, cusum = mirror.step(pose[:, k, :3], sixd_to_matrix_t(pose[:, k, 3:]),
                                                          self.R_cam[k], None if self.u is None else self.u[k])
                 levels.append(level)
+                if self.objective == "error_pl":
+                    pls.append(mirror.protection_level())
                 g, h = mirror.gate, mirror.threshold
-                margin = margin + F.softplus((nis_p - g) / g) + F.softplus((nis_a - g) / g) + F.softplus((cusum - h) / h)
+                margin = (margin + margin_cost((nis_p - g) / g, m) + margin_cost((nis_a - g) / g, m)
+                          + margin_cost((cusum - h) / h, m))
             trusted = torch.stack(levels, 1)
             if self.logit_doubt is not None and logit is not None:
-                margin = margin + F.softplus(logit.to(DTYPE).view(R, K) - self.logit_doubt).sum(1)
+                margin = margin + margin_cost(logit.to(DTYPE).view(R, K) - self.logit_doubt, m).sum(1)
         err = (trusted - torch.as_tensor(self.truth)).norm(dim=2)
-        harm = torch.minimum(err, torch.as_tensor(self.cap * self.alert_limit)).mean(1)
+        if self.objective == "error":
+            harm = torch.minimum(err, torch.as_tensor(self.cap * self.alert_limit)).mean(1)
+        else:
+            bound = torch.stack(pls, 1) if self.objective == "error_pl" else torch.as_tensor(self.alert_limit)
+            harm = torch.clamp(err / bound, max=self.cap).mean(1)
         return harm - lam * margin / K
 
     def evaluate(self, stored: Tensor, eps: float, runs: list[tuple[float, int, float]]) -> list[BurstOutcome]:
@@ -171,10 +200,18 @@ class _Burst:
             flag, mode, pl = np.array([o.flag for o in out]), np.array([o.mode for o in out]), np.array([o.pl for o in out])
         err = np.linalg.norm(trusted - self.truth, axis=1)
         err = np.where(np.isfinite(err), err, 0.0)              # no estimate yet: nothing misleads
-        hmi = ~flag & (mode == TRACK) & (pl <= self.alert_limit) & (err > self.alert_limit)
+        flown = ~flag & (mode == TRACK)
+        available = flown & (pl <= self.alert_limit)
+        hmi = available & (err > self.alert_limit)
+        mi = None if self.defense is None else flown & (err > pl)
+        if self.objective == "error":
+            score = float(np.minimum(err, self.cap * self.alert_limit).mean())
+        else:
+            ratio = err / (pl if self.objective == "error_pl" else self.alert_limit)
+            score = float(np.max(ratio[flown], initial=0.0))
         return BurstOutcome(eps, found_at, lam, restart, images, pose, prob, err,
                             np.linalg.norm(pose[:, :3] - self.labels[:, :3].double().numpy(), axis=1), flag, mode, hmi,
-                            float(np.minimum(err, self.cap * self.alert_limit).mean()))
+                            score, mi, self.objective)
 
 
 @dataclass(frozen=True)
@@ -187,7 +224,8 @@ class BurstAttacker:
     seed: the random starts'; ladder: the eps (in (0, 1]) that `attack(..., eps)` climbs through
     below eps (the nesting); early_stop: skip the remaining lambdas of a burst (and a larger eps's
     search) once every frame of it is HMI: no candidate can count more HMI frames, though one might
-    have a larger error (False: always search the whole grid).
+    have a larger error (False: always search the whole grid); objective: one of OBJECTIVES (module
+    docstring); hinge: the margins' hinge m (>= 0; None: softplus, as before).
     """
 
     alert_limit: AlertLimit
@@ -199,9 +237,15 @@ class BurstAttacker:
     seed: int = 0
     ladder: tuple[float, ...] = ()
     early_stop: bool = True
+    objective: str = "error"
+    hinge: float | None = None
     name: str = field(default="burst", init=False)
 
     def __post_init__(self) -> None:
+        if self.objective not in OBJECTIVES:
+            raise ValueError(f"unknown burst objective {self.objective!r}; choose one of {', '.join(OBJECTIVES)}")
+        if self.hinge is not None and not (np.isfinite(self.hinge) and self.hinge >= 0):
+            raise ValueError(f"burst hinge must be a finite number >= 0 or None, got {self.hinge}")
         if not callable(self.alert_limit) and not float(self.alert_limit) > 0:
             raise ValueError(f"burst alert_limit (m) must be positive, got {self.alert_limit}")
         for key, value in (("cap", self.cap), ("step_size", self.step_size)):
@@ -261,8 +305,8 @@ class BurstAttacker:
             rng = np.linalg.norm(y[:, :3].double().numpy(), axis=1)
             al = self._alert_limit(rng)
             burst = _Burst(chain, d, run.images[lo:hi], y, np.asarray(run.R_cam[lo:hi], np.float64),
-                           None if run.u is None else np.asarray(run.u[lo:hi], np.float64), np.asarray(al, np.float64),
-                           float(self.cap))
+                           None if run.u is None else np.asarray(run.u[lo:hi], np.float64), np.array(al, np.float64),
+                           float(self.cap), self.objective, self.hinge)
             worst = self._burst(burst, eps, None if previous is None else previous[b], gen)
             stored[lo:hi], pose[lo:hi], prob[lo:hi] = worst.images, worst.pose, worst.prob
             outcomes.append(worst)
@@ -301,14 +345,14 @@ class BurstAttacker:
         return max(found, key=lambda o: o.key)
 
     def _ascend(self, burst: _Burst, x: Tensor, X: Tensor, lam: Tensor, eps: float) -> tuple[Tensor, Tensor]:
-        """Signed-gradient ascent of `burst.objective` from X (R, K, 3, H, W), projected into the
+        """Signed-gradient ascent of `burst.objective_of` from X (R, K, 3, H, W), projected into the
         eps ball and [0, 1]; returns (best iterate of each run by J, last iterate)."""
         alpha = float(self.step_size) * eps / int(self.steps)
         best, best_j = X.clone(), torch.full((len(X),), -torch.inf, dtype=DTYPE)
         for i in range(int(self.steps) + 1):
             X = X.detach().requires_grad_(i < int(self.steps))
             with torch.enable_grad() if X.requires_grad else torch.no_grad():
-                J = burst.objective(X, lam)
+                J = burst.objective_of(X, lam)
                 grad = torch.autograd.grad(J.sum(), X)[0] if X.requires_grad else None
             better = J.detach() > best_j
             best[better], best_j = X.detach()[better], torch.where(better, J.detach(), best_j)

@@ -21,34 +21,59 @@ term). `max_rate` (m/frame) caps the growth of b per frame. At `gate_fraction` <
 
 At the pixel level (`DriftAttacker`) each attacked frame is a targeted L-inf PGD toward the estimate
 the drift wants (the clean estimate + b d; attitude kept at the clean estimate's) with the
-detector's margin in the objective (its logit above the threshold's, through a softplus), stored
-as 8 bits (`pipeline.attacks.gradient.quantize`); the simulated defense then steps on what the
-chain reads from the stored image, so the plan follows what was actually delivered.
+detector's margin in the objective (its logit above the threshold's, through a softplus, or a hinge
+that stops paying once the logit is under the threshold's by a margin), stored as 8 bits
+(`pipeline.attacks.gradient.quantize`); the simulated defense then steps on what the chain reads from
+the stored image, so the plan follows what was actually delivered. The per-frame attack is a
+`FrameAttack` (`TargetedPGD` by default): any attack of that signature (e.g. a stronger suite's, with a
+start that lifts the black background above the pose network's clamp) drops in.
+
+Where the drift starts (`start_frame`): the filter starts on the first frame the detector lets through
+and the protection level assumes the `trusted_start` frames after it fault-free (its assumption A,
+pipeline/defense/protection.py). "acquisition" (frame 0) drifts from the filter's first update on,
+inside that blind window; "after_trusted" starts on the first frame the PL accounts for. Against the
+undefended chain (`defense` None) nothing checks the bias: it grows by `max_rate` every frame.
 """
 from __future__ import annotations
 
 import copy
 import math
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from pipeline.attacks.adaptive import DifferentiableChain
-from pipeline.attackers.base import AttackRun, chain_outputs
+from pipeline.attackers.base import AttackRun, chain_outputs, margin_cost, pose_logit, probability_logit
 from pipeline.attacks.gradient import LossFn, check_eps, pgd, quantize
 from pipeline.defense.fusion import Decision, Defense
+from pipeline.defense.gate import MotionSettings
 from pipeline.defense.kalman import MotionFilter
 from pipeline.geometry.rotations import sixd_to_matrix
 
-DIRECTIONS = ("los", "lateral")
+DIRECTIONS = ("los", "lateral", "near", "vertical")
+STARTS = ("acquisition", "after_trusted")
+
+
+def start_frame(start: str | int, motion: MotionSettings) -> int:
+    """The first attacked frame of a drift: "acquisition" 0 (the filter starts on frame 0 of a clean
+    trajectory and the drift takes its first update), "after_trusted" 1 + motion.trusted_start (the first
+    frame the protection level accounts for), or a frame number >= 0."""
+    if isinstance(start, str):
+        if start not in STARTS:
+            raise ValueError(f"unknown drift start {start!r}; choose one of {', '.join(STARTS)} or a frame number")
+        return 0 if start == "acquisition" else 1 + int(motion.trusted_start)
+    if int(start) != start or start < 0:
+        raise ValueError(f"drift start frame must be a whole number >= 0, got {start!r}")
+    return int(start)
 
 
 @dataclass(frozen=True)
 class DriftSettings:
-    """direction: "los" (along the line of sight, away from the chaser) or "lateral" (camera frame);
+    """direction: "los" (along the line of sight, away from the chaser), "near" (toward it), "lateral" or
+    "vertical" (the camera x or y axis across the line of sight);
     gate_fraction: every innovation's NIS stays under this fraction of the gate, in (0, 1];
     max_rate: cap on the growth of the bias per frame (m/frame), None for none; cusum_fraction:
     every CUSUM statistic of the sequential test stays under this fraction of its threshold, in (0,
@@ -69,15 +94,20 @@ class DriftSettings:
         if self.cusum_fraction is not None and not 0 < float(self.cusum_fraction) <= 1:
             raise ValueError(f"drift cusum_fraction must be in (0, 1] or None, got {self.cusum_fraction}")
 
+    def planner(self, defense: Defense | None) -> "DriftPlanner":
+        """This drift's planner against (a copy of) `defense` (None: the undefended chain)."""
+        return DriftPlanner(defense, self)
+
 
 def drift_direction(t: np.ndarray, direction: str) -> np.ndarray:
     """Unit vector (3,) of the camera frame along which the drift pushes an estimate at `t` (camera
-    frame, m): the line of sight t / |t| ("los") or the camera x axis made orthogonal to it ("lateral")."""
+    frame, m): the line of sight t / |t| ("los"), its opposite ("near"), or the camera x ("lateral") or y
+    ("vertical") axis made orthogonal to it."""
     los = np.asarray(t, np.float64) / np.linalg.norm(t)
-    if direction == "los":
-        return los
-    if direction == "lateral":
-        side = np.array([1.0, 0.0, 0.0]) - los[0] * los
+    if direction in ("los", "near"):
+        return los if direction == "los" else -los
+    if direction in ("lateral", "vertical"):
+        side = np.eye(3)[0 if direction == "lateral" else 1] - los[0 if direction == "lateral" else 1] * los
         return side / np.linalg.norm(side)
     raise ValueError(f"unknown drift direction {direction!r}; choose one of {', '.join(DIRECTIONS)}")
 
@@ -151,26 +181,51 @@ def _cusum_interval(y0: np.ndarray, g: np.ndarray, sigma: np.ndarray, high: np.n
     return both if both[0] <= both[1] else (c_lo, c_hi)
 
 
-class DriftPlanner:
-    """The drift against a copy of `defense` (left as it was): `target` gives the estimate the drift
-    wants for a frame, `deliver` steps the copy on the estimate actually delivered. `bias` (m) is
-    the last planned bias; before the filter starts (no trusted estimate yet) it is 0. `direction`
-    (world axes) is fixed when the drift starts, from the filter's state (its line of sight moved
-    by the command), not from a noisy estimate, and kept: a bias that turned with the dragged state
-    would turn across it."""
+class BiasPlanner:
+    """What a planner-driven attacker (drift, capture) keeps: a copy of `defense` (the caller's left as it
+    was; None: the undefended chain) that `deliver` steps on the estimate actually delivered, its
+    `settings`, the last planned `bias` (m) and its `direction` (world axes, fixed once chosen: a bias that
+    turned with the dragged state would turn across it). Subclasses give `target`."""
 
-    def __init__(self, defense: Defense, settings: DriftSettings):
+    def __init__(self, defense: Defense | None, settings: object):
         self.defense = copy.deepcopy(defense)
         self.settings = settings
         self.bias = 0.0
         self.direction: np.ndarray | None = None
 
     def target(self, t_clean: np.ndarray, R_cam: np.ndarray, u: np.ndarray | None) -> np.ndarray:
+        """The camera-frame estimate (m) wanted for a frame whose clean estimate is t_clean (camera frame, m)."""
+        raise NotImplementedError
+
+    def deliver(self, t: np.ndarray, prob: float, R_cam: np.ndarray, u: np.ndarray | None,
+                R_pred: np.ndarray | None = None) -> Decision | None:
+        """Step the simulated defense on the delivered estimate (`Defense.step`'s arguments; None undefended)."""
+        return None if self.defense is None else self.defense.step(t, prob, R_cam, u, R_pred)
+
+
+class DriftPlanner(BiasPlanner):
+    """The drift against a copy of `defense` (None: the undefended chain, the bias then grows by
+    `max_rate` every frame): `target` gives the estimate the drift wants for a frame. Before the filter
+    starts (no trusted estimate yet) the bias is 0. `direction` is fixed when the drift starts, from the
+    filter's state (its line of sight moved by the command; the clean estimate's without a defense), not
+    from a noisy estimate."""
+
+    def __init__(self, defense: Defense | None, settings: DriftSettings):
+        if defense is None and settings.max_rate is None:
+            raise ValueError("a drift against the undefended chain needs a max_rate (m/frame): nothing bounds it")
+        super().__init__(defense, settings)
+
+    def target(self, t_clean: np.ndarray, R_cam: np.ndarray, u: np.ndarray | None) -> np.ndarray:
         """The camera-frame estimate (m) the drift wants for a frame whose clean estimate is t_clean."""
-        motion, s = self.defense.filter, self.settings
+        s, R_cam = self.settings, np.asarray(R_cam, np.float64)
+        if self.defense is None:
+            if self.direction is None:
+                self.direction = R_cam @ drift_direction(t_clean, s.direction)
+            self.bias += s.max_rate
+            return np.asarray(t_clean, np.float64) + self.bias * (R_cam.T @ self.direction)
+        motion = self.defense.filter
         if not motion.started:
             return np.asarray(t_clean, np.float64)
-        R_cam = np.asarray(R_cam, np.float64)
         if self.direction is None:        # world axes, from the state's line of sight when the drift starts
             ahead = motion.position + (0.0 if u is None else np.asarray(u, np.float64))
             self.direction = R_cam @ drift_direction(R_cam.T @ ahead, s.direction)
@@ -179,11 +234,6 @@ class DriftPlanner:
         cusum = None if s.cusum_fraction is None else s.cusum_fraction * motion.cusum.threshold
         self.bias = stealthy_bias(motion, t_clean, R_cam, u, d, s.gate_fraction * motion.gate, wanted, cusum)
         return np.asarray(t_clean, np.float64) + self.bias * d
-
-    def deliver(self, t: np.ndarray, prob: float, R_cam: np.ndarray, u: np.ndarray | None,
-                R_pred: np.ndarray | None = None) -> Decision:
-        """Step the simulated defense on the delivered estimate (`Defense.step`'s arguments)."""
-        return self.defense.step(t, prob, R_cam, u, R_pred)
 
 
 @dataclass(frozen=True)
@@ -216,65 +266,113 @@ def drift_estimates(defense: Defense, settings: DriftSettings, t_clean: np.ndarr
     return DriftTrace(delivered, bias, flag, trusted)
 
 
-def targeted_objective(target: Tensor, logit_threshold: float, margin_weight: float) -> LossFn:
+def targeted_objective(target: Tensor, logit_threshold: float, margin_weight: float,
+                       hinge: float | None = None) -> LossFn:
     """What the targeted PGD ascends: -(|t - t*|^2 (m^2) + |r6 - r6*|^2) - margin_weight *
     softplus(logit - logit_threshold), with target (B, 9) = (t*, r6*) the wanted pose: the estimate
-    pulled to the target while the detector's logit is kept below its threshold's."""
+    pulled to the target while the detector's logit is kept below its threshold's. With `hinge` m the
+    margin is max(0, logit - logit_threshold + m): nothing is paid once the logit is m below it. A chain
+    without a detector (a bare pose model) pays no margin."""
 
-    def objective(out: tuple[Tensor, Tensor], _: Tensor) -> Tensor:
-        pose, logit = out
+    def objective(out: Tensor | tuple[Tensor, Tensor], _: Tensor) -> Tensor:
+        pose, logit = pose_logit(out)
         miss = ((pose[:, :3] - target[:, :3]) ** 2).sum(1) + ((pose[:, 3:] - target[:, 3:]) ** 2).sum(1)
-        return -(miss + margin_weight * F.softplus(logit - logit_threshold)).mean()
+        if logit is None or margin_weight == 0:
+            return -miss.mean()
+        return -(miss + margin_weight * margin_cost(logit - logit_threshold, hinge)).mean()
 
     return objective
 
 
 def targeted_pgd(chain: DifferentiableChain, x: Tensor, target: Tensor, eps: float, logit_threshold: float, *,
                  margin_weight: float = 1.0, steps: int = 20, step_size: float | None = None,
-                 generator: torch.Generator | None = None) -> Tensor:
+                 generator: torch.Generator | None = None, hinge: float | None = None) -> Tensor:
     """Frames x (B, 3, H, W) on the 8-bit grid pulled toward the pose `target` (B, 9) [m, 6-D] by
     L-inf PGD on `targeted_objective` through `chain` (detector margin against `logit_threshold`,
-    the logit of its probability threshold), stored as 8 bits: uint8 (B, 3, H, W)."""
-    objective = targeted_objective(target, logit_threshold, margin_weight)
+    the logit of its probability threshold; `hinge` its margin), stored as 8 bits: uint8 (B, 3, H, W)."""
+    objective = targeted_objective(target, logit_threshold, margin_weight, hinge)
     x_adv = pgd(chain, x, target, eps, objective, steps=steps, step_size=step_size, generator=generator)
     return quantize(x_adv, x)
 
 
+class FrameAttack(Protocol):
+    """A per-frame targeted attack the chain-level attackers call (drift, capture): frames x (B, 3, H, W)
+    on the 8-bit grid pulled toward the poses `target` (B, 9) [m, 6-D] within L-inf `eps`, with the
+    detector's logit kept under `logit_threshold` (None: no detector to evade, the undefended chain),
+    random draws from `generator` -> the stored frames, uint8 (B, 3, H, W)."""
+
+    def __call__(self, chain: DifferentiableChain, x: Tensor, target: Tensor, eps: float,
+                 logit_threshold: float | None, generator: torch.Generator) -> Tensor: ...
+
+
+@dataclass(frozen=True)
+class TargetedPGD:
+    """The default `FrameAttack`: `targeted_pgd` with `steps` steps of `step_size` (default 2.5 eps /
+    steps), one random start, `margin_weight` times the detector's margin (softplus, or a hinge of
+    `hinge` logits)."""
+
+    steps: int = 20
+    step_size: float | None = None
+    margin_weight: float = 1.0
+    hinge: float | None = None
+
+    def __post_init__(self) -> None:
+        if int(self.steps) < 1:
+            raise ValueError(f"targeted PGD steps (per frame) must be >= 1, got {self.steps}")
+        if not (math.isfinite(self.margin_weight) and self.margin_weight >= 0):
+            raise ValueError(f"targeted PGD margin_weight must be a finite number >= 0, got {self.margin_weight}")
+        if self.hinge is not None and not (math.isfinite(self.hinge) and self.hinge >= 0):
+            raise ValueError(f"targeted PGD hinge must be a finite number >= 0 or None, got {self.hinge}")
+
+    def __call__(self, chain: DifferentiableChain, x: Tensor, target: Tensor, eps: float,
+                 logit_threshold: float | None, generator: torch.Generator) -> Tensor:
+        weight = 0.0 if logit_threshold is None else self.margin_weight
+        return targeted_pgd(chain, x, target, eps, 0.0 if logit_threshold is None else logit_threshold,
+                            margin_weight=weight, steps=int(self.steps), step_size=self.step_size,
+                            generator=generator, hinge=self.hinge)
+
+
+def planned_attack(chain: DifferentiableChain, run: AttackRun, eps: float, planner: BiasPlanner,
+                   frame_attack: FrameAttack, logit_threshold: float | None, generator: torch.Generator) -> Tensor:
+    """The stored run (uint8 (N, 3, H, W)) of a planner-driven attacker (drift, capture): each attacked
+    frame of `run`, in time order, goes through `frame_attack` toward the pose the `planner` wants (its
+    clean attitude kept), and the planner then steps on what the chain reads from the stored frame."""
+    stored, mask = run.stored().clone(), run.mask
+    clean_pose, clean_prob = chain_outputs(chain, run.images)
+    for k in range(len(run)):
+        uk = None if run.u is None else run.u[k]
+        pose, prob = clean_pose[k], clean_prob[k]
+        if mask[k]:
+            wanted = planner.target(pose[:3], run.R_cam[k], uk)
+            target = torch.as_tensor(np.concatenate([wanted, pose[3:]]), dtype=run.images.dtype)[None]
+            stored[k] = frame_attack(chain, run.images[k:k + 1], target, eps, logit_threshold, generator)[0]
+            (pose,), (prob,) = chain_outputs(chain, stored[k:k + 1].float() / 255.0)
+        planner.deliver(pose[:3], float(prob), run.R_cam[k], uk, sixd_to_matrix(pose[3:]))
+    return stored
+
+
 class DriftAttacker:
     """The drift at the pixel level (pipeline/attackers/base.py's interface): each attacked frame, in
-    time order, is a targeted PGD (`steps` steps of `step_size`, default 2.5 eps / steps, one
-    random start drawn from `seed`) toward the pose the `DriftPlanner` wants, with
-    `margin_weight` times the detector's margin in the objective."""
+    time order, is a `frame_attack` (default `TargetedPGD(steps, step_size, margin_weight)`: `steps`
+    steps of `step_size`, default 2.5 eps / steps, one random start drawn from `seed`, `margin_weight`
+    times the detector's margin against its threshold) toward the pose the `DriftPlanner` wants.
+    `defense` None: the undefended chain (the drift then needs `settings.max_rate`)."""
 
     name = "drift"
 
     def __init__(self, settings: DriftSettings = DriftSettings(), *, steps: int = 20, step_size: float | None = None,
-                 margin_weight: float = 1.0, seed: int = 0):
+                 margin_weight: float = 1.0, seed: int = 0, frame_attack: FrameAttack | None = None):
         if int(steps) < 1:
             raise ValueError(f"drift steps (PGD steps per frame) must be >= 1, got {steps}")
         if not (math.isfinite(margin_weight) and margin_weight >= 0):
             raise ValueError(f"drift margin_weight must be a finite number >= 0, got {margin_weight}")
-        self.settings, self.steps, self.step_size = settings, int(steps), step_size
-        self.margin_weight, self.seed = float(margin_weight), int(seed)
+        self.settings, self.seed = settings, int(seed)
+        self.frame_attack = TargetedPGD(int(steps), step_size, float(margin_weight)) if frame_attack is None \
+            else frame_attack
 
-    def attack(self, chain: DifferentiableChain, defense: Defense, run: AttackRun, eps: float) -> Tensor:
+    def attack(self, chain: DifferentiableChain, defense: Defense | None, run: AttackRun, eps: float) -> Tensor:
         """The stored images (uint8 (N, 3, H, W)) the drift delivers for `run` at L-inf budget eps."""
         eps = check_eps(eps)
-        planner = DriftPlanner(defense, self.settings)
-        threshold = defense.settings.threshold
-        logit_threshold = math.log(threshold / (1 - threshold))
-        generator = torch.Generator().manual_seed(self.seed)
-        stored, mask = run.stored().clone(), run.mask
-        clean_pose, clean_prob = chain_outputs(chain, run.images)
-        for k in range(len(run)):
-            uk = None if run.u is None else run.u[k]
-            pose, prob = clean_pose[k], clean_prob[k]
-            if mask[k]:
-                wanted = planner.target(pose[:3], run.R_cam[k], uk)
-                target = torch.as_tensor(np.concatenate([wanted, pose[3:]]), dtype=run.images.dtype)[None]
-                stored[k] = targeted_pgd(chain, run.images[k:k + 1], target, eps, logit_threshold,
-                                         margin_weight=self.margin_weight, steps=self.steps,
-                                         step_size=self.step_size, generator=generator)[0]
-                (pose,), (prob,) = chain_outputs(chain, stored[k:k + 1].float() / 255.0)
-            planner.deliver(pose[:3], float(prob), run.R_cam[k], uk, sixd_to_matrix(pose[3:]))
-        return stored
+        threshold = None if defense is None else probability_logit(defense.settings.threshold)
+        return planned_attack(chain, run, eps, self.settings.planner(defense), self.frame_attack, threshold,
+                              torch.Generator().manual_seed(self.seed))

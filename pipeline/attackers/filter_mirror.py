@@ -12,6 +12,11 @@ what the defense would fly on if it accepted the frames, with the gradient of th
 both gates' NIS and of the CUSUM statistic with respect to the pose estimates. Frames the real
 defense flags coast instead; the attacker prices that with the margins and checks its result on
 the real defense. The caller's filter is only read.
+`FilterMirror.protection_level` replays the protection level's accumulators
+(pipeline/defense/protection.py, `ProtectionLevel`) on that path, differentiably: the gain-weighted
+camera axes W_j = K_j R_j diag(sigma_j) of every accepted frame (the trusted frames after a first start
+left out, as `MotionFilter._bound` does) and the state covariance, so an attacker can ascend trusted
+error / PL.
 """
 from __future__ import annotations
 
@@ -82,11 +87,15 @@ class FilterMirror:
         self.att_rate_std = 3 * math.radians(s.attitude_rate_noise_deg)
         self.reference, self.threshold = motion.cusum.reference, motion.cusum.threshold
         self.started = motion.started
+        self.trusted_start, self.trusted = s.trusted_start, motion._trusted
+        pl = motion.protection
+        self.kappa, self.offset = pl.kappa, pl.offset
 
         def rep(a: object) -> Tensor:
             return torch.as_tensor(np.asarray(a, np.float64)).expand(self.runs, *np.shape(a)).clone()
 
         self.high, self.low = rep(motion.cusum.high), rep(motion.cusum.low)
+        self.total, self.rise, self.last = rep(pl.total), rep(pl.rise), rep(pl.last)
         if self.started:
             self.level, self.A = rep(motion.pos.level), rep(motion.pos.A)
             self.att_rate, self.R_tw = rep(motion.att.rate), rep(motion.R_tw)
@@ -130,6 +139,8 @@ class FilterMirror:
         self.att_rate, self.R_tw = torch.zeros_like(z), R_meas
         self.p = (self._attitude_var(rng), torch.zeros_like(rng), torch.full_like(rng, self.att_rate_std ** 2))
         self.high, self.low = torch.zeros_like(z), torch.zeros_like(z)
+        self.total, self.rise, self.last = (torch.zeros(self.runs, 3, 3, dtype=DTYPE) for _ in range(3))
+        self.offset, self.trusted = 0.0, self.trusted_start
         self.started = True
 
     def _predict(self, u: np.ndarray | None) -> None:
@@ -147,16 +158,39 @@ class FilterMirror:
         Huber-inflated covariance."""
         S = self.A + Rz
         nis = (y * torch.linalg.solve(S, y.unsqueeze(2)).squeeze(2)).sum(1)
-        r = (y @ R_cam) / torch.diagonal(R_cam.T @ S @ R_cam, dim1=1, dim2=2).sqrt()
+        sigma = torch.diagonal(R_cam.T @ S @ R_cam, dim1=1, dim2=2).sqrt()
+        r = (y @ R_cam) / sigma
         self.high = torch.clamp(self.high + r - self.reference, min=0.0)
         self.low = torch.clamp(self.low - r - self.reference, min=0.0)
         cusum = torch.maximum(self.high.amax(1), self.low.amax(1))
         R = Rz * torch.clamp(nis / self.soft, min=1.0)[:, None, None]
         K = self.A @ torch.linalg.inv(self.A + R)
+        self._bound((K @ R_cam) * sigma[:, None, :])
         self.level = self.level + (K @ y.unsqueeze(2)).squeeze(2)
         M = torch.eye(3, dtype=DTYPE) - K
         self.A = _sym(M @ self.A @ M.transpose(1, 2) + K @ R @ K.transpose(1, 2))
         return nis, cusum
+
+    def _bound(self, W: Tensor) -> None:
+        """`ProtectionLevel.add` of an accepted frame's weights W (R, 3, 3) (world rows, camera columns, m),
+        unless it is one of the trusted frames after the first start."""
+        if self.trusted > 0:
+            self.trusted -= 1
+            return
+        pos, neg = W.clamp(min=0.0), (-W).clamp(min=0.0)
+        self.rise = (self.rise + (pos - self.last.clamp(min=0.0)).clamp(min=0.0)
+                     + (neg - (-self.last).clamp(min=0.0)).clamp(min=0.0))
+        self.total = self.total + W.abs()
+        self.last = W
+
+    def protection_level(self) -> Tensor:
+        """PL (R,) m of the current state: kappa sqrt(lambda_max(P)) + |b| + the carried offset
+        (`ProtectionLevel.level`); inf before the start."""
+        if not self.started:
+            return torch.full((self.runs,), math.inf, dtype=DTYPE)
+        b = (self.reference * self.total + self.threshold * self.rise).sum(2)          # (R, 3) world axes
+        lam = torch.linalg.eigvalsh(_sym(self.A))[:, -1].clamp(min=0.0)
+        return self.kappa * lam.sqrt() + b.norm(dim=1) + self.offset
 
     def _update_attitude(self, R_meas: Tensor, rng: Tensor) -> Tensor:
         """NIS of the attitude error, then `IsoKalman6.update` (Huber-inflated) moved into R_tw."""

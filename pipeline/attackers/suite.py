@@ -6,10 +6,12 @@ from typing import Callable
 
 from pipeline.attackers.base import SequenceAttacker
 from pipeline.attackers.burst import BurstAttacker
+from pipeline.attackers.capture import CaptureAttacker
 from pipeline.attackers.drift import DriftAttacker
 
 ATTACKERS: dict[str, Callable[..., SequenceAttacker]] = {DriftAttacker.name: DriftAttacker,
-                                                         BurstAttacker.name: BurstAttacker}
+                                                         BurstAttacker.name: BurstAttacker,
+                                                         CaptureAttacker.name: CaptureAttacker}
 
 
 def get_attacker(name: str, **options: object) -> SequenceAttacker:

@@ -44,6 +44,44 @@ does not grow with range: under a fixed deadline the line-of-sight axis has no s
 range. AL bounds one frame's error with the others exact: errors on several frames share the
 slack and compound toward the target (the paper law flies from each estimate), which the
 closed-loop (in-loop attacker) counts measure.
+
+The persistent-bias alert limit (`persistent_alert_limit`, the limit of `AlertLimitSettings.kind`
+"persistent"). The single-frame AL above misses the failure a navigator under attack is most exposed
+to: a bias that stays. The guidance law flies to where the estimate says the goal is, so a bias b
+(m, world) still present when the chaser settles docks it at g - b: a miss of |b|. AL_p bounds the
+trusted error E at true range r such that the mission still docks within the tolerance, in the
+dynamics that execute the command on the true state (variant "true_state": rel_next = rel - cmd,
+cmd = clip(rel + b - g, -s, s) per axis; the paper variant's prediction-is-truth dynamics are the
+single-frame AL's). Assumptions: (a) the nominal approach, at s per step along the line of sight, so
+from true range r it reaches the goal range r_g in (r - r_g) / s steps; (b) every axis may move s per
+step independently (the law clips per axis), so the axes across the approach have their whole budget
+free, and the line-of-sight axis runs at full speed as long as its estimate is more than s beyond the
+goal; (c) the run lingers at the goal for at least one step (the slack), which the AL does not spend.
+1. The chaser follows its bias without overshoot: per axis the law moves rel toward g - b by at most
+   s, never past it (rel_next - (g - b) = e - clip(e, -s, s) with e = rel + b - g: same sign, smaller).
+   So a chaser that has flown on biases bounded by B is displaced from its nominal path by at most B.
+2. A bias that disappears before docking is removed in time iff the remaining steps can close it: an
+   error E at range r displaces the chaser by at most E; once the estimate is exact again the law
+   closes that displacement at s per step and the approach has (r - r_g) / s steps left, so the
+   chaser docks within tol iff E - tol <= s (r - r_g) / s:  E <= tol + (r - r_g).
+   Along the line of sight the same bound holds: an estimate nearer than the truth by E < r - r_g - s
+   leaves the full-speed command unchanged, one farther than the truth changes nothing while it lasts
+   (the axis is already at full speed), and the displacement left when it ends is closed as above.
+3. A bias present at the goal is not removed: at r = r_g the chaser settles at g - b, so E <= tol.
+Hence, with the ratio of the lateral authority s per step to the approach speed s per step,
+    AL_p(r) = tol + max(r - r_g, 0)                          (metres, r the true range),
+the cone that shrinks to the docking tolerance at the goal: 51 m at 60 m, 6 m at 15 m, 1 m at 10 m with
+the defaults (tol 1 m, r_g 10 m). Off the goal's line of sight (a lateral offset d) the approach still
+to go is the longest per-axis distance to the goal, shorter than r - r_g by about d^2 / (2 r): on the
+evaluation trajectories (lateral starts up to 25 m per axis, projectile paths) up to ~10 m at the 60 m
+start, where AL_p is ~60 m, and under 0.1 m inside 20 m, where the limit matters. Any bias sequence with |b_k| <= AL_p(r_k) on every frame docks within
+tol + s one step after arrival (the law acts on the previous frame's bias: the one-step lag) and
+within tol once the chaser settles at the goal; it never collides, since the chaser moves inward only
+while rel > g - b >= r_g - tol - (r - r_g), so the truth stays above r_g - tol - s (8 m) > collision
+range (5 m). Against the single-frame AL, AL_p is looser far out (a bias the approach has time to remove
+is harmless) and tighter inside r_g + slack s (20 m): the frames near the goal are where a persistent
+bias becomes a miss. A trajectory whose trusted error exceeds AL_p on an available frame near the goal
+is a mission failure in waiting (pipeline/evaluation/measures.py counts it as one).
 """
 from __future__ import annotations
 
@@ -56,22 +94,29 @@ from pipeline.defense.fusion import COAST, MODES, TRACK, DefenseTrace
 from pipeline.stats import Rate, bootstrap_rate
 
 FLOWN = (TRACK, COAST)   # defense modes in which the guidance flies on the trusted estimate
+KINDS = ("single_frame", "persistent")   # which alert limit `alert_limit` gives (module docstring)
 
 
 @dataclass(frozen=True)
 class AlertLimitSettings:
     """The constants of `alert_limit`: docking tolerance (m), step limit (m per step per axis), slack
     steps of the run's budget beyond the nominal approach, collision range (m); `fixed` (m): a fixed AL at
-    every range instead of the derived AL(range) (None: derived)."""
+    every range instead of the derived AL(range) (None: derived); goal_range (m): the goal's range r_g;
+    kind: "single_frame" (one wrong frame, the others exact) or "persistent" (a bias that may stay to
+    docking), see the module docstring."""
 
     tolerance: float = 1.0
     max_step: float = 1.0
     slack_steps: int = 10
     collision_range: float = 5.0
     fixed: float | None = None
+    goal_range: float = 10.0
+    kind: str = "single_frame"
 
     def __post_init__(self) -> None:
-        for name in ("tolerance", "max_step", "collision_range"):
+        if self.kind not in KINDS:
+            raise ValueError(f"alert limit: unknown kind {self.kind!r}; choose one of {', '.join(KINDS)}")
+        for name in ("tolerance", "max_step", "collision_range", "goal_range"):
             if not float(getattr(self, name)) > 0:
                 raise ValueError(f"alert limit: {name} must be > 0 (metres), got {getattr(self, name)!r}")
         if int(self.slack_steps) != self.slack_steps or self.slack_steps < 0:
@@ -81,12 +126,28 @@ class AlertLimitSettings:
 
 
 def alert_limit(range_m: np.ndarray | float, settings: AlertLimitSettings = AlertLimitSettings()) -> np.ndarray:
-    """AL (m) at true range `range_m` (m): max(tol, min(tol + slack s, r + s - collision range)) (see the
-    module docstring for the derivation), or `settings.fixed` at every range when set."""
+    """AL (m) at true range `range_m` (m) of `settings.kind`: `single_frame_alert_limit` or
+    `persistent_alert_limit`, or `settings.fixed` at every range when set."""
+    r = np.asarray(range_m, dtype=np.float64)
+    if settings.fixed is not None:
+        return np.full_like(r, float(settings.fixed))
+    if settings.kind == "persistent":
+        return persistent_alert_limit(r, settings)
+    return single_frame_alert_limit(r, settings)
+
+
+def persistent_alert_limit(range_m: np.ndarray | float, settings: AlertLimitSettings = AlertLimitSettings()) -> np.ndarray:
+    """AL_p (m) at true range `range_m` (m): tol + max(r - r_g, 0), the largest error a bias that may stay
+    to docking can have there (derivation in the module docstring; `settings.fixed` is not applied)."""
+    r = np.asarray(range_m, dtype=np.float64)
+    return settings.tolerance + np.maximum(r - settings.goal_range, 0.0)
+
+
+def single_frame_alert_limit(range_m: np.ndarray | float, settings: AlertLimitSettings = AlertLimitSettings()) -> np.ndarray:
+    """AL (m) at true range `range_m` (m) for one wrong frame: max(tol, min(tol + slack s, r + s -
+    collision range)) (the module docstring's first derivation; `settings.fixed` is not applied)."""
     s = settings
     r = np.asarray(range_m, dtype=np.float64)
-    if s.fixed is not None:
-        return np.full_like(r, float(s.fixed))
     docking = s.tolerance + s.slack_steps * s.max_step
     collision = r + s.max_step - s.collision_range
     return np.maximum(s.tolerance, np.minimum(docking, collision))

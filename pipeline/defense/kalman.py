@@ -6,8 +6,9 @@ Frames (those of pipeline/geometry/trajectories.py). The filter works in the tar
 its own camera attitude R_c (camera -> world) and the displacement of `rel` it commanded since the
 previous frame (`u`, world axes, metres), so a camera-frame estimate t_pred becomes the world
 measurement z = R_c t_pred, and the position state is rel alone: rel_k = rel_{k-1} + u_k + w_k, w_k
-the command's execution error (std `position_noise` per axis, small: in our simulations the command
-is executed exactly). There is no free drift-velocity state: a chaser commands its own relative
+the command's execution error (std `position_noise` per axis; the truth's execution error, which the
+filter is never told, is pipeline/guidance/dynamics.py's: set position_noise to its `step_std`, or
+near zero where the commands are executed exactly). There is no free drift-velocity state: a chaser commands its own relative
 motion, and a velocity state would let a slowly growing bias (a drift attack) be absorbed as motion
 (Mo and Sinopoli 2010). The target attitude R_tw (target -> world, measured as R_c R_pred) follows a
 rate model (the target's tumble is not commanded): error state [rotation vector (3, rad), rate (3,

@@ -11,7 +11,13 @@ clean counterpart, frame for frame, so harm counts only what the attack caused.
 - drift (`drift_attack`): the drift's planner and targeted PGD per frame (pipeline/attackers/drift.py),
   run in lockstep over every trajectory and drift direction so that each PGD step is one batch of
   all of them: the `DriftAttacker`, batched, with the detector's margin taken against the
-  probability at which the defense stops updating its filter (its doubt level `update_below`, else the threshold).
+  probability at which the defense stops updating its filter (its doubt level `update_below`, else the threshold);
+  the same runner takes the capture's plans (pipeline/attackers/capture.py `CaptureSettings`) and any
+  per-frame `FrameAttack`.
+The undefended control (`defended` None): the chain's raw estimate is what the guidance flies on (the
+trusted estimate is the raw one, every frame tracked and available, no flags, no PL).
+A track's commands (`Track.commands`) are what the chaser commanded and its chain is told; by default
+the flown motion read from the labels (exact execution), with execution error the planned steps.
 An attacked flight reads through the chain only the frames the attack changed (`fly` with `base`):
 the chain is stateless, so the other frames' estimates are the clean flight's.
 Counted frames (`counted`): from a trajectory's first attacked frame to its end, every frame the attack
@@ -19,7 +25,6 @@ can reach; detection is over the attacked frames.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
@@ -34,11 +39,14 @@ from pipeline.stats import Rate, bootstrap_rate
 @dataclass(frozen=True)
 class Track:
     """One recorded trajectory: `name`, uint8 frames (N, H, W, 3), labels (N, 9) [m, 6-D]; R_cam (N, 3,
-    3) camera -> world and u (N, 3) the commanded displacement of rel (world, m), from the labels."""
+    3) camera -> world and u (N, 3) the commanded displacement of rel (world, m): `commands` when given
+    (the steps the chaser commanded, e.g. `pipeline.geometry.trajectories.Sequence.commands` of a
+    trajectory flown with execution error), else the flown motion read from the labels."""
 
     name: str
     images: np.ndarray
     labels: np.ndarray
+    commands: np.ndarray | None = None
     R_cam: np.ndarray = field(init=False)
     u: np.ndarray = field(init=False)
 
@@ -46,6 +54,10 @@ class Track:
         from pipeline.evaluation.robustness import world_motion
 
         R_cam, u = world_motion(np.asarray(self.labels, np.float64))
+        if self.commands is not None:
+            if np.shape(self.commands) != u.shape:
+                raise ValueError(f"track {self.name}: commands must be (N, 3) = {u.shape}, got {np.shape(self.commands)}")
+            u = np.asarray(self.commands, np.float64)
         object.__setattr__(self, "R_cam", R_cam)
         object.__setattr__(self, "u", u)
 
@@ -73,11 +85,24 @@ class Flown:
     frames: IntegrityFrames
 
 
+def undefended_trace(t_pred: np.ndarray, R_cam: np.ndarray) -> Any:
+    """The DefenseTrace of the undefended chain over camera-frame estimates t_pred (N, 3) (m): trusted =
+    the raw estimate in world axes (R_cam (N, 3, 3) camera -> world), every frame tracked and available,
+    no flags, no protection level."""
+    from pipeline.defense.fusion import TRACK, DefenseTrace
+
+    n = len(t_pred)
+    no = np.zeros(n, bool)
+    return DefenseTrace(no, no, no, np.einsum("nij,nj->ni", R_cam, np.asarray(t_pred, np.float64)),
+                        np.full(n, TRACK), np.full(n, np.nan), np.full(n, np.nan), no, None, np.ones(n, bool))
+
+
 def fly(chain: Any, defended: Any, track: Track, limit: AlertLimitSettings, batch_size: int,
         images: np.ndarray | None = None, base: Flown | None = None) -> Flown:
     """`track` (or its frames replaced by `images`, uint8 (N, H, W, 3)) through the OnboardChain `chain`
-    and a fresh defense (`defended`: pipeline.evaluation.robustness.Defended); with `base` (the clean
-    flight of `track`) only the frames that differ from the track's are read through the chain."""
+    and a fresh defense (`defended`: pipeline.evaluation.robustness.Defended; None: the undefended
+    control, `undefended_trace`); with `base` (the clean flight of `track`) only the frames that differ
+    from the track's are read through the chain."""
     from pipeline.defense.fusion import run_defense
     from pipeline.evaluation.robustness import pose_estimates
     from pipeline.geometry.rotations import sixd_to_matrix
@@ -88,9 +113,12 @@ def fly(chain: Any, defended: Any, track: Track, limit: AlertLimitSettings, batc
         changed = np.flatnonzero((images != track.images).reshape(len(images), -1).any(1))
         pose, prob = base.pose.copy(), base.prob.copy()
         pose[changed], prob[changed] = pose_estimates(chain, images[changed], batch_size)
-    d = defended.defense()
-    trace = run_defense(d.settings, d.filter.settings, d.filter.noise, pose[:, :3], prob, track.R_cam, track.u,
-                        sixd_to_matrix(pose[:, 3:]), d.alert_limit)
+    if defended is None:
+        trace = undefended_trace(pose[:, :3], track.R_cam)
+    else:
+        d = defended.defense()
+        trace = run_defense(d.settings, d.filter.settings, d.filter.noise, pose[:, :3], prob, track.R_cam, track.u,
+                            sixd_to_matrix(pose[:, 3:]), d.alert_limit)
     return Flown(pose, prob, trace, defense_frames(trace, track.truth, track.name, limit))
 
 
@@ -98,7 +126,8 @@ def burst_attack(target: Any, defended: Any, tracks: Sequence[Track], masks: Seq
                  eps: Sequence[float], done: Callable[[], None] = lambda: None) -> tuple[dict[float, list[Any]], ...]:
     """(eps -> the stored frames (uint8 (N, H, W, 3)) of each track, eps -> each track's bursts' worst cases
     (`BurstOutcome`s in time order)), its bursts (`masks` (N,) bool) crafted by `attacker` (a BurstAttacker)
-    through `target` (a DifferentiableChain), nested through the increasing `eps`; `done()` after each track."""
+    through `target` (a DifferentiableChain), nested through the increasing `eps` (`defended` None: the
+    undefended control); `done()` after each track."""
     from pipeline.attackers.base import AttackRun
 
     stored: dict[float, list[Any]] = {float(e): [] for e in eps}
@@ -106,7 +135,7 @@ def burst_attack(target: Any, defended: Any, tracks: Sequence[Track], masks: Seq
     for track, mask in zip(tracks, masks):
         run = AttackRun(track.frames(), torch.as_tensor(track.labels, dtype=torch.float32), track.R_cam, track.u,
                         np.asarray(mask, bool))
-        res = attacker.nested(target, defended.defense(), run, [float(e) for e in eps])
+        res = attacker.nested(target, None if defended is None else defended.defense(), run, [float(e) for e in eps])
         for e, images, bursts in zip(res.eps, res.images, res.bursts):
             stored[e].append(images.permute(0, 2, 3, 1).numpy())
             worst[e].append(bursts)
@@ -116,20 +145,22 @@ def burst_attack(target: Any, defended: Any, tracks: Sequence[Track], masks: Seq
 
 def drift_attack(target: Any, defended: Any, tracks: Sequence[Track], clean: Sequence[Flown], window: tuple[int, int],
                  settings: Sequence[Any], eps: float, steps: int, seed: int,
-                 done: Callable[[], None] = lambda: None) -> list[list[np.ndarray]]:
-    """Per drift of `settings` (DriftSettings), the stored frames (uint8 (N, H, W, 3)) of each track with
-    frames window = (start, stop) drifted at `eps`: every drift and track in lockstep, one batched targeted
-    PGD of `steps` steps per frame over all of them; `clean` the tracks' clean flights (the estimates the
-    planners start from); `done()` after each drifted frame."""
-    from pipeline.attackers.base import chain_outputs
-    from pipeline.attackers.drift import DriftPlanner, targeted_pgd
+                 done: Callable[[], None] = lambda: None, frame_attack: Any = None) -> list[list[np.ndarray]]:
+    """Per plan of `settings` (DriftSettings, or CaptureSettings: anything with `planner(defense)`), the stored
+    frames (uint8 (N, H, W, 3)) of each track with frames window = (start, stop) attacked at `eps`: every plan
+    and track in lockstep, one batched per-frame attack over all of them (`frame_attack`, a
+    pipeline.attackers.drift.FrameAttack; default targeted PGD of `steps` steps); `defended` None: the undefended
+    control (no detector margin); `clean` the tracks' clean flights (the estimates the planners start from);
+    `done()` after each attacked frame."""
+    from pipeline.attackers.base import chain_outputs, doubt_logit
+    from pipeline.attackers.drift import TargetedPGD
     from pipeline.geometry.rotations import sixd_to_matrix
 
     start, stop = window
-    s = defended.settings
-    doubt = s.threshold if s.update_below is None else s.update_below
-    pairs = [(j, i) for j in range(len(settings)) for i in range(len(tracks))]   # (drift, track)
-    planners = [DriftPlanner(defended.defense(), settings[j]) for j, _ in pairs]
+    attack = TargetedPGD(int(steps)) if frame_attack is None else frame_attack
+    logit = None if defended is None else doubt_logit(defended.defense())
+    pairs = [(j, i) for j in range(len(settings)) for i in range(len(tracks))]   # (plan, track)
+    planners = [settings[j].planner(None if defended is None else defended.defense()) for j, _ in pairs]
     stored = [[t.images.copy() for t in tracks] for _ in settings]
     generator = torch.Generator().manual_seed(int(seed))
     for k in range(stop):
@@ -141,8 +172,7 @@ def drift_attack(target: Any, defended: Any, tracks: Sequence[Track], clean: Seq
         wanted = [np.concatenate([p.target(clean[i].pose[k, :3], tracks[i].R_cam[k], tracks[i].u[k]),
                                   clean[i].pose[k, 3:]]) for p, (_, i) in zip(planners, pairs)]
         x = torch.cat([tracks[i].frames(slice(k, k + 1)) for _, i in pairs])
-        adv = targeted_pgd(target, x, torch.as_tensor(np.stack(wanted), dtype=x.dtype), eps,
-                           math.log(doubt / (1 - doubt)), steps=int(steps), generator=generator)
+        adv = attack(target, x, torch.as_tensor(np.stack(wanted), dtype=x.dtype), eps, logit, generator)
         pose, prob = chain_outputs(target, adv.float() / 255.0)
         for n, (p, (j, i)) in enumerate(zip(planners, pairs)):
             stored[j][i][k] = adv[n].permute(1, 2, 0).numpy()

@@ -15,6 +15,7 @@ plane, so looking along +z gives R_cam = identity (camera axes = world axes).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -36,6 +37,8 @@ class Sequence:
     rel: np.ndarray         # (n, 3) target relative to the chaser, world axes
     R_cam: np.ndarray       # (n, 3, 3) camera frame -> world
     R_target: np.ndarray    # (n, 3, 3) target frame -> world
+    commands: np.ndarray | None = None   # (n, 3) commanded displacement of rel per frame (world, m; row 0 zero),
+    #                                      when it differs from the flown one (None: u = diff(rel))
 
     def __len__(self) -> int:
         return len(self.frame)
@@ -78,7 +81,7 @@ ATTITUDES = ("per_frame", "per_sequence")   # the rotating sequences' target att
 
 
 def _sequence(seq_id: int, rel: np.ndarray, jitter_deg: float, max_rot_deg: float,
-              rng: np.random.Generator, attitude: str = "per_frame") -> Sequence:
+              rng: np.random.Generator, attitude: str = "per_frame", commands: np.ndarray | None = None) -> Sequence:
     n = len(rel)
     R_cam = _jittered_cameras(rel, jitter_deg, rng)
     if max_rot_deg > 0 and attitude == "per_sequence":
@@ -88,7 +91,7 @@ def _sequence(seq_id: int, rel: np.ndarray, jitter_deg: float, max_rot_deg: floa
     else:
         R_target = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
     R, t = pose_in_camera(rel, R_cam, R_target)
-    return Sequence(seq_id, np.arange(n), R, t, rel, R_cam, R_target)
+    return Sequence(seq_id, np.arange(n), R, t, rel, R_cam, R_target, commands)
 
 
 def _check(frames: int, start_range: float, end_range: float, jitter_deg: float) -> None:
@@ -140,13 +143,17 @@ PATHS = ("projectile", "straight")
 
 def approach_trajectory(n_frames: int, start_xy: tuple[float, float], start_range: float = 60.0,
                         end_range: float = 10.0, seed: int = 0, jitter_deg: float = 0.0,
-                        max_rot_deg: float = 0.0, sequence: int = 0, path: str = "projectile") -> Sequence:
+                        max_rot_deg: float = 0.0, sequence: int = 0, path: str = "projectile",
+                        execute: Callable[[np.ndarray], np.ndarray] | None = None) -> Sequence:
     """A fresh approach: uniform z steps from start_range to end_range (metres) while the lateral offset
     goes from start_xy to 0, arriving at (0, 0, end_range). `path` "projectile" (the evaluation
     trajectories): xy(s) = start_xy * (1 - s)^2 for s in [0, 1], bending in with zero lateral velocity at
     the end; "straight": xy(s) = start_xy * (1 - s), a straight line as in the training sequences (seen
     obliquely until the end). Camera pointing (optional jitter, degrees) and target attitude (uniform in
     +-max_rot_deg about each axis, drawn afresh every frame) as in `approach_sequences`. Seeded.
+    `execute` maps the planned rel (n, 3) to the rel actually flown (n, 3), e.g. with execution error
+    (pipeline.guidance.dynamics.execute_plan): the labels and the camera follow the flown rel and
+    `Sequence.commands` holds the planned steps, what the chaser commanded and its chain is told.
     """
     _check(n_frames, start_range, end_range, jitter_deg)
     if path not in PATHS:
@@ -157,7 +164,12 @@ def approach_trajectory(n_frames: int, start_xy: tuple[float, float], start_rang
     xy = np.asarray(start_xy, dtype=np.float64)[None, :] * decay[:, None]
     z = start_range + s * (end_range - start_range)
     rel = np.column_stack([xy, z])
-    return _sequence(sequence, rel, jitter_deg, max_rot_deg, rng)
+    if execute is None:
+        return _sequence(sequence, rel, jitter_deg, max_rot_deg, rng)
+    flown = np.asarray(execute(rel), np.float64)
+    if flown.shape != rel.shape:
+        raise ValueError(f"approach_trajectory: execute must return the flown rel of shape {rel.shape}, got {flown.shape}")
+    return _sequence(sequence, flown, jitter_deg, max_rot_deg, rng, commands=np.vstack([np.zeros(3), np.diff(rel, axis=0)]))
 
 
 def poses_table(idx: np.ndarray, seq: np.ndarray, frm: np.ndarray, R: np.ndarray, t: np.ndarray):

@@ -19,6 +19,7 @@ from typing import Any, Callable
 import numpy as np
 
 from pipeline.geometry.camera import Intrinsics
+from pipeline.guidance.dynamics import ExecutionSettings
 from pipeline.guidance.law import (HELD, AttackWindow, CachedCamera, GuidanceSettings, RendezvousResult,
                                    arrival_step, run_rendezvous)
 
@@ -78,7 +79,9 @@ class GridPlan:
     """The guidance grid: `settings`, the (eps, S, K, window) cells, `slack_steps`; the paper grid is
     flown on the paper chain under settings.variant undefended, the defended grid on the shipped chain under
     every (`dynamics`, undefended and each of `defenses`). `in_loop`: the in-loop attacker's (eps, goal, S)
-    cells, flown last on the shipped chain under every (dynamics, undefended and each defense)."""
+    cells, flown last on the shipped chain under every (dynamics, undefended and each defense). `execution`:
+    how every true_state run executes its commands (pipeline/guidance/dynamics.py; None: exactly); the
+    paper dynamics never take it."""
 
     settings: GuidanceSettings
     grid: tuple[tuple[Any, ...], ...]
@@ -86,6 +89,7 @@ class GridPlan:
     dynamics: tuple[str, ...] = ()
     defenses: tuple[str, ...] = ()
     in_loop: tuple[tuple[float, str, float], ...] = ()
+    execution: ExecutionSettings | None = None
 
     def _block(self, chain: str, dyn: str, defense: str) -> list[Run]:
         return [(chain, dyn, defense, None), *[(chain, dyn, defense, i) for i in range(len(self.grid))]]
@@ -137,7 +141,8 @@ class GridPilot:
         from dataclasses import replace
 
         p, camera = self.plan, self.cameras[chain]
-        s, window, observe = replace(p.settings, variant=dyn, defense=defense), None, None
+        execution = None if dyn == "paper" else p.execution   # the paper's dynamics: prediction = truth
+        s, window, observe = replace(p.settings, variant=dyn, defense=defense, execution=execution), None, None
         camera.attack = None
         if cell is not None:
             arrival = arrival_step(self._baseline(chain, dyn, defense), p.settings.goal, p.settings.tolerance)

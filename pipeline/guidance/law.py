@@ -10,8 +10,12 @@ becomes the world estimate R_c t_pred.
 
 Control law (per axis): cmd = clip(est - goal, -max_step, max_step).
 - variant "paper": the next true state is computed from the estimate, rel <- est - cmd (the
-  paper's simplification: the chaser ends up where it believes it goes);
-- variant "true_state": the command is applied to the true state, rel <- rel - cmd.
+  paper's simplification: the chaser ends up where it believes it goes; prediction = truth by
+  construction);
+- variant "true_state": the command is applied to the true state, rel <- rel - cmd, or, with
+  `GuidanceSettings.execution`, as the thrusters and the orbit execute it (pipeline/guidance/dynamics.py:
+  a few percent of scale error and centimetres of noise per step, Clohessy-Wiltshire motion over the
+  frame interval); the defense is still told the command.
 Defense (`GuidanceSettings.defense`, the chain inside the loop; pipeline/defense/fusion.py):
 - "undefended": the law acts on every estimate (the paper);
 - "hold": a flagged frame's estimate is not used: the chaser holds (no command) for that frame;
@@ -38,6 +42,7 @@ import numpy as np
 
 from pipeline.geometry.camera import Intrinsics
 from pipeline.defense.fusion import Defense
+from pipeline.guidance.dynamics import ExecutionSettings, Executor
 from pipeline.geometry.trajectories import look_at, pose_in_camera
 
 VARIANTS = ("paper", "true_state")
@@ -76,7 +81,8 @@ class AttackWindow:
 
 @dataclass(frozen=True)
 class GuidanceSettings:
-    """Start and goal of `rel` (world frame, metres), tolerance (m), per-axis step limit (m)."""
+    """Start and goal of `rel` (world frame, metres), tolerance (m), per-axis step limit (m); `execution`:
+    how the true_state variant executes a command (None: exactly; the paper variant takes none)."""
 
     start: tuple[float, float, float] = (0.0, 0.0, 60.0)
     goal: tuple[float, float, float] = (0.0, 0.0, 10.0)
@@ -85,6 +91,7 @@ class GuidanceSettings:
     max_steps: int = 60
     variant: str = "paper"
     defense: str = "undefended"
+    execution: ExecutionSettings | None = None
 
     def __post_init__(self) -> None:
         if self.variant not in VARIANTS:
@@ -96,6 +103,9 @@ class GuidanceSettings:
                              f"{self.tolerance}, {self.max_step}, {self.max_steps}")
         if np.linalg.norm(self.goal) >= np.linalg.norm(self.start):
             raise ValueError(f"the guidance goal {self.goal} must be closer to the target than the start {self.start}")
+        if self.execution is not None and self.variant == "paper":
+            raise ValueError("execution error applies to the true_state dynamics; the paper variant flies the chaser "
+                             "to its estimate (prediction = truth by construction)")
 
     def window(self, start_range: float, length: int) -> AttackWindow:
         """A validated attack window: S between the goal range and the start range, K >= 1."""
@@ -127,7 +137,8 @@ class LoopState:
 class RendezvousResult:
     """One closed-loop run. positions: (n+1, 3) true rel after each step (first row = start);
     estimates: (n, 3) world-frame estimates; attacked: (n,) bool; miss: final ||rel - goal|| (m);
-    with a defense: flags (n,) bool and modes (n,) str of pipeline/defense/fusion.py, else None."""
+    with a defense: flags (n,) bool and modes (n,) str of pipeline/defense/fusion.py, else None;
+    held: (n,) bool, the steps that sent no command (the chaser held), None in results made without it."""
 
     positions: np.ndarray
     estimates: np.ndarray
@@ -137,6 +148,7 @@ class RendezvousResult:
     attack_start: int | None
     flags: np.ndarray | None = None
     modes: np.ndarray | None = None
+    held: np.ndarray | None = None
 
     @property
     def attacked_frames(self) -> int:
@@ -204,8 +216,9 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
     pipeline.defense.fusion.Defense per run) is required unless settings.defense is "undefended".
     `observe` (an attacker in the loop) is shown the `LoopState` before each frame is estimated.
     The defense is told the chaser's displacement u (world, m) since the previous frame: -cmd in the
-    true_state variant; in the paper variant the chaser lands where it believes it goes (act - cmd), so
-    u is that point minus the defense's trusted estimate, and a biased estimate is not read as motion.
+    true_state variant (the command, never the executed step of `settings.execution`); in the paper
+    variant the chaser lands where it believes it goes (act - cmd), so u is that point minus the
+    defense's trusted estimate, and a biased estimate is not read as motion.
     """
     if (settings.defense == "undefended") != (defense is None):
         raise ValueError(f"guidance defense {settings.defense!r} needs "
@@ -214,7 +227,8 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
     goal = np.asarray(settings.goal, dtype=np.float64)
     rel = np.asarray(settings.start, dtype=np.float64)
     R_c = look_at(rel)
-    positions, estimates, attacked, flags, modes = [rel], [], [], [], []
+    executor = None if settings.execution is None else Executor(settings.execution)
+    positions, estimates, attacked, flags, modes, held = [rel], [], [], [], [], []
     attack_start: int | None = None
     lost = False
     u = np.zeros(3)
@@ -241,14 +255,18 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
                 act = d.trusted if d.available else None
         if act is None:  # hold: no command, the chaser and its camera stay as they are
             u = np.zeros(3)
+            if executor is not None:      # station kept; its draws keep the errors aligned with the steps
+                executor.step(rel, u)
         else:
-            rel, believed = guidance_step(act, rel, goal, settings.max_step, settings.variant)
+            nxt, believed = guidance_step(act, rel, goal, settings.max_step, settings.variant)
+            rel = nxt if executor is None else executor.step(rel, act - believed, R_c)
             u = believed - (act if trusted is None or settings.variant != "paper" else trusted)
             if np.linalg.norm(believed) > 1e-6:
                 R_c = look_at(believed)
         positions.append(rel)
         estimates.append(est)
         attacked.append(hit)
+        held.append(act is None)
         if not in_view(R_c.T @ rel, K):
             lost = True
             break
@@ -257,7 +275,7 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
     return RendezvousResult(np.array(positions), np.array(estimates).reshape(-1, 3), attacked_arr,
                             outcome(lost, miss, settings.tolerance, attacked_arr), miss, attack_start,
                             None if defense is None else np.array(flags, dtype=bool),
-                            None if defense is None else np.array(modes))
+                            None if defense is None else np.array(modes), np.array(held, dtype=bool))
 
 
 class CachedCamera:
