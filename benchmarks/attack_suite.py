@@ -33,7 +33,8 @@ sys.path.insert(0, str(ROOT))
 
 from pipeline.attacks.strongest import (FULL, LEAN, PGD50, SuiteResult, ratio_rows, run_suite,  # noqa: E402
                                         sanity_rows)
-from pipeline.pose.robustness import mean_interval, sample_rows  # noqa: E402
+from pipeline.pose.robustness import sample_rows  # noqa: E402
+from pipeline.stats import mean_interval  # noqa: E402
 from pipeline.report.markdown import markdown_table  # noqa: E402
 from stages.artifacts import data  # noqa: E402
 from stages.artifacts.models import load_pose  # noqa: E402
@@ -91,7 +92,7 @@ def main() -> None:
     rows = sample_rows(len(test), args.frames, args.seed)
     images = np.stack([test.images[int(i)] for i in rows])
     targets = np.asarray(test.targets[rows], np.float64)
-    sub = sample_rows(len(rows), args.full_frames, args.seed + 1)
+    sub = np.arange(min(args.full_frames, len(rows)))   # the first of the (already random) sample
     full_cfg = dataclasses.replace(FULL, square_eps=args.square_eps)
     load0 = os.getloadavg()[0]
     table, members, checks = [], {}, []

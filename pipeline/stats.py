@@ -104,3 +104,11 @@ def bootstrap_rate(hits: np.ndarray, groups: np.ndarray, level: float = LEVEL, n
                         random_state=np.random.default_rng(seed))
     lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
     return Rate(value, min(lo, value), max(hi, value), int(n.sum()))
+
+
+def mean_interval(values: np.ndarray) -> tuple[float, float, float]:
+    """(mean, low, high): the mean with its 95% normal-approximation interval (low = high = mean for n < 2)."""
+    values = np.asarray(values, np.float64)
+    mean = float(values.mean())
+    half = 1.96 * float(values.std(ddof=1)) / np.sqrt(len(values)) if len(values) > 1 else 0.0
+    return mean, mean - half, mean + half

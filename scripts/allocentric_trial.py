@@ -49,7 +49,7 @@ def egocentric_predictions(pred: np.ndarray) -> np.ndarray:
 def errors(pred: np.ndarray, target: np.ndarray) -> dict[str, float]:
     """Mean position (m), attitude, tilt and roll (deg) errors, with the attitude's 95% interval."""
     from pipeline.pose.metrics import pose_errors, tilt_roll_deg
-    from pipeline.pose.robustness import mean_interval
+    from pipeline.stats import mean_interval
 
     pos, att = pose_errors(pred, target)
     tilt, roll = tilt_roll_deg(pred, target)
@@ -65,7 +65,7 @@ def main(epochs: int | None = None) -> None:
     from pipeline.pose.loss import PoseLoss
     from pipeline.pose.metrics import pose_errors
     from pipeline.pose.model import PoseNet
-    from pipeline.pose.robustness import mean_interval
+    from pipeline.stats import mean_interval
     from pipeline.pose.train import fit, make_deterministic, predict
     from pipeline.report.markdown import markdown_table
     from pipeline.seeds import seed_for

@@ -12,7 +12,7 @@ floats: pipeline/attacks/literal.py), crossed with two detector protocols (pipel
 Both FGSM variants of a protocol attack the same images and use the same split. SHAP values are the closed form with
 the background mean of the standard model's own detector (models/detector.pt), so the explainer is the one `rpod shap`
 used; each cell trains one LSTM with the `detect` params (split fractions, architecture, fit) and is measured on its
-test part (rates per eps with Wilson intervals; pipeline/detectors/ablation.py).
+test part (rates per eps with Wilson intervals; pipeline/evaluation/ablation.py).
 """
 from __future__ import annotations
 
@@ -27,8 +27,8 @@ from pipeline.geometry.labels import POSITION, SIXD
 from pipeline.seeds import seed_for
 from stages.artifacts.data import load_split
 from stages.artifacts.dvc import write_metrics
-from stages.artifacts.models import load_pose
-from stages.artifacts.paths import ABLATION_METRICS, ABLATION_REPORT, DETECT_RENDER, DETECTOR, POSE
+from stages.artifacts.models import load_chain
+from stages.artifacts.paths import ABLATION_METRICS, ABLATION_REPORT, DETECT_RENDER, PAPER
 from stages.artifacts.readers import read_detect_render
 from stages.config.device import torch_setup
 from stages.config.schema import Params
@@ -42,24 +42,19 @@ def main(params: Params) -> None:
     import torch
 
     from pipeline.attacks.gradient import attack_loss
-    from pipeline.detectors.ablation import run_ablation
+    from pipeline.evaluation.ablation import run_ablation
     from pipeline.detectors.lstm import LSTMConfig
-    from pipeline.formats.models import read_detector
-    from pipeline.shap import ExactShap, affine_head
 
     a, d = params.ablation, params.detect
     device = torch_setup(params)
     seed = seed_for(params.seed, "ablation")
     rng = np.random.default_rng(seed)
-    pose = load_pose(params, POSE)
-    loss_fn = attack_loss(params.attack.loss, pose.loss)
-    background = np.asarray(read_detector(DETECTOR, pose.hash)[1]["background_mean"], np.float32)
-    head = affine_head(pose.model, len(background))
-    if head is None:
-        raise StageError(f"{POSE}: the ablation needs the closed-form SHAP values of a linear head after the GAP layer")
-    shap = ExactShap(head.weight, background)
+    chain = load_chain(params, PAPER, defended=False)   # the standard model and its detector's SHAP explainer
+    loss_fn = attack_loss(params.attack.loss, chain.loss)
+    shap = chain.onboard.shap
+    background = shap.background_mean
     t0 = time.perf_counter()
-    protocols = [_strict(params, rng, pose.model, shap, loss_fn), _paper(params, rng, pose.model, shap, loss_fn)]
+    protocols = [_strict(params, rng, chain.model, shap, loss_fn), _paper(params, rng, chain.model, shap, loss_fn)]
     explain_s = time.perf_counter() - t0
     torch.set_num_threads(1)   # the LSTM's matrices are small: extra threads cost more than they give (as rpod detect)
     config = LSTMConfig(n_rows=9, n_features=len(background), hidden=d.hidden, dense=list(d.dense))
@@ -70,7 +65,7 @@ def main(params: Params) -> None:
     except ValueError as e:   # also a diverged fit (DivergenceError)
         raise StageError(f"params.yaml ablation / detect: {e}") from None
     fit_s = time.perf_counter() - t1
-    metrics = {"model_hash": pose.hash, "eps": [float(e) for e in a.eps], "normal": a.normal, "per_eps": a.per_eps,
+    metrics = {"model_hash": chain.pose_hash, "eps": [float(e) for e in a.eps], "normal": a.normal, "per_eps": a.per_eps,
                "seconds": {"explain": explain_s, "fit": fit_s, "total": explain_s + fit_s},
                "cells": [cell_json(c) for c in cells]}
     write_metrics(ABLATION_METRICS, metrics, params.profile_name)
@@ -81,7 +76,7 @@ def main(params: Params) -> None:
 
 def _strict(p: Params, rng: np.random.Generator, model: Any, shap: Any, loss_fn: Any) -> Any:
     """Our protocol's samples: images of the detector split, each clean once and attacked at most once."""
-    from pipeline.detectors.ablation import ProtocolSamples
+    from pipeline.evaluation.ablation import ProtocolSamples
     from pipeline.shap import sample_plan
 
     a = p.ablation
@@ -103,7 +98,7 @@ def _paper(p: Params, rng: np.random.Generator, model: Any, shap: Any, loss_fn: 
     pose-test images."""
     import pandas as pd
 
-    from pipeline.detectors.ablation import ProtocolSamples
+    from pipeline.evaluation.ablation import ProtocolSamples
     from pipeline.evaluation.protocols import paper_plan
 
     a = p.ablation
@@ -124,10 +119,10 @@ def _paper(p: Params, rng: np.random.Generator, model: Any, shap: Any, loss_fn: 
 
 def _values(images: np.ndarray, targets: np.ndarray, eps: np.ndarray, model: Any, shap: Any, loss_fn: Any,
             protocol: str) -> dict[str, np.ndarray]:
-    """`pipeline.detectors.ablation.protocol_values` with a progress bar."""
+    """`pipeline.evaluation.ablation.protocol_values` with a progress bar."""
     from tqdm import tqdm
 
-    from pipeline.detectors.ablation import protocol_values
+    from pipeline.evaluation.ablation import protocol_values
 
     with tqdm(total=len(eps), desc=f"ablation: SHAP values ({protocol} protocol)", unit="sample") as bar:
         return protocol_values(model, shap, loss_fn, images, targets, eps, progress=bar.update)

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from pipeline.attacks.gradient import attack_loss
-from pipeline.detectors.ablation import ProtocolSamples, protocol_split, protocol_values, run_ablation
+from pipeline.evaluation.ablation import ProtocolSamples, protocol_split, protocol_values, run_ablation
 from pipeline.detectors.lstm import LSTMConfig
 from pipeline.evaluation.protocols import paper_plan
 from pipeline.shap import ExactShap, sample_plan

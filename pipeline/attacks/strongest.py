@@ -35,7 +35,7 @@ from pipeline.attacks.objectives import OBJECTIVES, along_across, geodesic_deg, 
 from pipeline.attacks.square import square
 from pipeline.attacks.starts import STARTS
 from pipeline.attacks.stored import Found, evaluate
-from pipeline.pose.robustness import mean_interval
+from pipeline.stats import mean_interval
 
 METHODS = ("apgd", "bpda", "square", "pgd")
 ERRORS = ("position_m", "range_m", "lateral_m", "attitude_deg")      # against the truth
@@ -275,7 +275,7 @@ def frame_capacity(result: SuiteResult) -> Capacity:
 
 
 def _stats(values: np.ndarray) -> dict[str, Any]:
-    """{mean, ci} of per-frame values, the 95% normal-approximation interval (pipeline.pose.robustness)."""
+    """{mean, ci} of per-frame values, the 95% normal-approximation interval (pipeline.stats.mean_interval)."""
     mean, lo, hi = mean_interval(values)
     return {"mean": mean, "ci": [lo, hi]}
 

@@ -16,6 +16,7 @@ from torch import nn
 
 from pipeline.attacks.gradient import attack_loss, fgsm, get_attack, stored_attack
 from pipeline.pose.metrics import pose_errors
+from pipeline.stats import mean_interval
 
 
 def sample_rows(n_total: int, n: int | None, seed: int) -> np.ndarray:
@@ -23,14 +24,6 @@ def sample_rows(n_total: int, n: int | None, seed: int) -> np.ndarray:
     if n is None or n >= n_total:
         return np.arange(n_total)
     return np.sort(np.random.default_rng(seed).permutation(n_total)[:n])
-
-
-def mean_interval(values: np.ndarray) -> tuple[float, float, float]:
-    """(mean, low, high): the mean with its 95% normal-approximation interval (low = high = mean for n < 2)."""
-    values = np.asarray(values, np.float64)
-    mean = float(values.mean())
-    half = 1.96 * float(values.std(ddof=1)) / np.sqrt(len(values)) if len(values) > 1 else 0.0
-    return mean, mean - half, mean + half
 
 
 def attacked_errors(model: nn.Module, apply: Any, images: np.ndarray, targets: np.ndarray,

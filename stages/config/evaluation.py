@@ -256,7 +256,7 @@ class Robustness:
 
 
 
-IntegrityAttacker = Literal["burst", "drift/los", "drift/lateral"]   # pipeline.attackers.suite.ATTACKERS[/direction]
+IntegrityAttacker = Literal["burst", "drift/los", "drift/lateral", "capture/los", "capture/lateral"]   # pipeline.attackers.suite.ATTACKERS[/direction]
 InLoopGoal = Literal["collide", "miss"]                              # pipeline.attackers.in_loop.GOALS
 Steps = Annotated[int, In("[1, 100000]", "PGD steps")]
 

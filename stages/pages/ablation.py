@@ -15,7 +15,7 @@ TARGET_POINTS = 5.0   # issue 38: the paper-protocol + paper-literal cell within
 
 
 def cell_json(cell: Any) -> dict[str, Any]:
-    """One cell (pipeline.detectors.ablation.CellResult) for reports/metrics/ablation.json: rates per row key with the
+    """One cell (pipeline.evaluation.ablation.CellResult) for reports/metrics/ablation.json: rates per row key with the
     accuracy re-weighted to the paper's integrated attacked fraction, the fit, and the split's leak."""
     return {"attack": cell.attack, "protocol": cell.protocol, "leaky": cell.leaky, "shared_source": cell.shared,
             "shared_neighbour": cell.neighbours, "counts": cell.counts, "threshold": cell.threshold,
