@@ -191,7 +191,7 @@ def test_render_stage_with_backgrounds_on_and_off(tmp_path, monkeypatch, scene):
     assert "background" not in poses and "background" not in labels and "background" not in meta["render"]
     assert "## Backgrounds" not in (tmp_path / "reports/dataset.md").read_text()
     without = params_mod.compose("smoke", TINY)
-    before = {k: v for k, v in without["render"].items() if k not in ("background", "source", "source_test")}
+    before = {k: v for k, v in without["render"].items() if k not in ("background", "source", "source_test", "target_attitude")}
     assert meta["fingerprint"] == params_mod.fingerprint({"seed": without["seed"], "camera": without["camera"],
                                                           "render": {**before, "mesh": None}})   # as before it
     on, poses, labels, meta = _render(tmp_path, ON)

@@ -54,8 +54,9 @@ def load_chain(folder: Path | str, model: str | None = None, *, device: Any = "c
     manifest = check_bundle(folder) if bundle or (folder / MANIFEST).exists() else None
     pose_path, detector_path, defense_path = (folder / n for n in names)
 
-    def checked(path: Path, ckpt: dict[str, Any]) -> None:   # the shipped chain flies a clamped model, no other
-        check_role(ckpt, name == SHIPPED, path)
+    def checked(path: Path, ckpt: dict[str, Any]) -> None:
+        if names != BUNDLE_FILES:   # a run's models/: pose_robust.pt holds the clamped model, pose.pt a standard one
+            check_role(ckpt, name == SHIPPED, path)
         if check is not None:
             check(path, ckpt)
 
