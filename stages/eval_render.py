@@ -34,7 +34,7 @@ from stages.config.params import detect_render_fingerprint, detector_trajectorie
     val_envelope_fingerprint, val_render_fingerprint
 from stages.config.schema import Params
 from stages.engine import pool as engine
-from stages.engine.chunks import render_to_store, store_url
+from stages.engine.chunks import frame_backgrounds, render_to_store, store_url
 from pipeline.io.atomic import atomic_dir, write_json
 from pipeline.io.tables import write_parquet
 
@@ -90,25 +90,29 @@ def main(
     """
     K, scene, es = intrinsics(params), scene_settings(params.render), engine_settings(params)
     d, e, s = params.defense, params.evaluate, params.shap
+    envelope_seed = d.val_seed + ENVELOPE_SEED_OFFSET
     if detector:
         sets = [(DETECT_RENDER, trajectories(params, s.seed, detector_trajectories(params), s.frames, envelope=True),
-                 detect_render_fingerprint(params))]
+                 detect_render_fingerprint(params), s.seed)]
     else:
-        sets = [(EVAL_RENDER, trajectories(params, e.seed, e.trajectories), eval_render_fingerprint(params)),
-                (VAL_RENDER, trajectories(params, d.val_seed, d.val_trajectories), val_render_fingerprint(params)),
-                (VAL_ENVELOPE, trajectories(params, d.val_seed + ENVELOPE_SEED_OFFSET, d.val_trajectories, envelope=True),
-                 val_envelope_fingerprint(params))]
+        sets = [(EVAL_RENDER, trajectories(params, e.seed, e.trajectories), eval_render_fingerprint(params), e.seed),
+                (VAL_RENDER, trajectories(params, d.val_seed, d.val_trajectories), val_render_fingerprint(params),
+                 d.val_seed),
+                (VAL_ENVELOPE, trajectories(params, envelope_seed, d.val_trajectories, envelope=True),
+                 val_envelope_fingerprint(params), envelope_seed)]
     timings: dict[str, Any] = {}
     with engine.session(es):
-        for folder, seqs, fingerprint in sets:
-            timings[folder.name] = _render_set(K, scene, es, seqs, folder, fingerprint)
+        for folder, seqs, fingerprint, seed in sets:
+            timings[folder.name] = _render_set(K, scene, es, seqs, folder, fingerprint, seed)
     write_metrics(DETECT_RENDER_METRICS if detector else EVAL_RENDER_METRICS,
                   {"workers": es.workers, "sets": timings}, params.profile_name)
 
 
-def _render_set(K: Any, scene: Any, es: Any, seqs: list[Any], folder: Path, fingerprint: str) -> dict[str, Any]:
-    """Render the trajectories `seqs` into `folder` (images.zarr, poses.parquet, meta.json); returns the
-    frame count and render time (s) for the metrics JSON."""
+def _render_set(K: Any, scene: Any, es: Any, seqs: list[Any], folder: Path, fingerprint: str,
+                seed: int) -> dict[str, Any]:
+    """Render the trajectories `seqs` into `folder` (images.zarr, poses.parquet, meta.json; the frames' background
+    draws from the set's `seed`, their kinds in the poses' `background` column while render.background is on);
+    returns the frame count and render time (s) for the metrics JSON."""
     import pandas as pd
 
     from pipeline.geometry.rotations import matrix_to_6d, matrix_to_quat
@@ -122,9 +126,12 @@ def _render_set(K: Any, scene: Any, es: Any, seqs: list[Any], folder: Path, fing
         "frame": np.concatenate([s.frame for s in seqs]), **pose_columns(t, q, r6),
         "range": np.linalg.norm(t, axis=1), **{f"rel_{a}": rel[:, j] for j, a in enumerate("xyz")},
         **{f"c{j}": R_cam[:, j // 3, j % 3] for j in range(9)}})
+    draws, kinds = frame_backgrounds(K, scene, R, R_cam, seed)
+    if kinds is not None:
+        poses["background"] = kinds
     with atomic_dir(folder) as tmp:
         seconds = render_to_store(store_url(tmp / "images.zarr"), K, scene, R, t, min(n, 100), es,
-                                  f"eval_render {folder.name}")
+                                  f"eval_render {folder.name}", backgrounds=draws)
         write_parquet(poses, tmp / "poses.parquet")
         write_json(tmp / "meta.json", {"complete": True, "fingerprint": fingerprint, "frames": n,
                                        "trajectories": len(seqs), "width": K.width, "height": K.height, "K": K.K,

@@ -84,7 +84,9 @@ def rescale(params: Params,
 # ----------------------------------------------------------------------------- synthetic lab sequences
 def render_lab(p: Params, dest: Path) -> list[dict[str, Any]]:
     """Render lab.sequences with the lab camera and the domain shift into dest/<seq>/ (lab layout), the
-    frames fanned out over the engine's workers and the domain shift drawn in frame order.
+    frames fanned out over the engine's workers and the domain shift drawn in frame order. A lab has no Earth
+    or stars behind the mock-up and its frames are segmented to black by their masks: render.background does
+    not apply (render_poses renders on black).
 
     Returns per sequence the exact lab labels (for checking the loader round trip).
     """

@@ -15,10 +15,15 @@ from stages.config.schema import Params
 from stages.errors import StageError
 from stages.pages.label import dataset_card
 
+# poses columns a label table keeps when the render wrote them: `background` (black, space or earth: what lies
+# behind the target, pipeline/render/backgrounds.py; absent = every frame black)
+OPTIONAL = ["background"]
+
 
 def build_labels(poses, test_fraction: float, seed: int):
-    """Poses table -> label table (contract columns, seeded train/test split of whole frames). An imported
-    SPEED set (columns `split` and `filename` in the poses) keeps its own split and names its files."""
+    """Poses table -> label table (contract columns, seeded train/test split of whole frames; the optional
+    `background` column carried over). An imported SPEED set (columns `split` and `filename` in the poses) keeps
+    its own split and names its files."""
     from pipeline.geometry.rotations import quat_to_6d
 
     if not 0 < test_fraction < 1:
@@ -36,7 +41,7 @@ def build_labels(poses, test_fraction: float, seed: int):
         split[np.random.default_rng(seed).permutation(len(df))[:n_test]] = "test"
         df["split"] = split
     cols = ["index", "image", "sequence", "frame", *POSITION, *QUAT, *SIXD, "range", "split"]
-    return df[cols]
+    return df[cols + [c for c in OPTIONAL if c in df]]
 
 
 def main(params: Params) -> None:

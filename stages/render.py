@@ -28,7 +28,7 @@ from stages.artifacts.readers import read_render_store
 from stages.config import params as params_mod
 from stages.config.build import engine_settings, intrinsics, scene_settings
 from stages.config.schema import Params
-from stages.engine.chunks import keyed_store, render_to_store, replacing, store_url
+from stages.engine.chunks import frame_backgrounds, keyed_store, render_to_store, replacing, store_url
 from pipeline.io.atomic import atomic_dir, exclusive, remove_stale_temps, write_json
 from pipeline.io.tables import write_parquet
 from stages.errors import StageError
@@ -38,7 +38,14 @@ PREVIEW_WIDTH = 480  # previews are upscaled (nearest neighbour) to about this w
 
 def frames(p: Params) -> tuple[Any, Any, Any, Any]:
     """All frames of the 13 sequences as flat arrays: sequence, frame, R (N,3,3), t (N,3)."""
-    from pipeline.geometry.trajectories import approach_sequences, flatten
+    from pipeline.geometry.trajectories import flatten
+
+    return flatten(sequences(p))
+
+
+def sequences(p: Params) -> list[Any]:
+    """The 13 approach sequences (pipeline.geometry.trajectories.Sequence) of the render params."""
+    from pipeline.geometry.trajectories import approach_sequences
 
     r = p.render
     K = intrinsics(p)
@@ -52,7 +59,7 @@ def frames(p: Params) -> tuple[Any, Any, Any, Any]:
                                   seed=p.seed + SEED_OFFSET["render"])
     except ValueError as e:
         raise StageError(f"params.yaml render: {e}") from None
-    return flatten(seqs)
+    return seqs
 
 
 def render_all(p: Params, dest: Path) -> float:
@@ -60,21 +67,28 @@ def render_all(p: Params, dest: Path) -> float:
     `engine.store`'s store for this fingerprint, which meta.json then names); `dest` is a fresh folder.
     Returns the render time (s): timings go to reports/metrics/render.json, never into meta.json, so the
     folder's hash is stable."""
-    from pipeline.geometry.trajectories import poses_table
+    from pipeline.geometry.trajectories import flatten, poses_table
 
     r, es, store = p.render, engine_settings(p), p.engine.store
     K, scene = intrinsics(p), scene_settings(r)
-    seq, frm, R, t = frames(p)
+    seqs = sequences(p)
+    seq, frm, R, t = flatten(seqs)
+    draws, kinds = frame_backgrounds(K, scene, R, np.concatenate([s.R_cam for s in seqs]),
+                                     p.seed + SEED_OFFSET["render"])
     fp = params_mod.render_fingerprint(p)
     url = keyed_store(store, fp) if store else store_url(dest / "images.zarr")
     with replacing(url) if store else contextlib.nullcontext(url) as target:
         seconds = render_to_store(target, K, scene, R, t, r.chunk, es, "render", fingerprint=fp,
-                                  empty_hint="check render.mesh and render.mesh_scale (metres per mesh unit)")
+                                  empty_hint="check render.mesh and render.mesh_scale (metres per mesh unit)",
+                                  backgrounds=draws)
     n = len(t)
-    write_parquet(poses_table(np.arange(n), seq, frm, R, t), dest / "poses.parquet")
+    poses = poses_table(np.arange(n), seq, frm, R, t)
+    if kinds is not None:
+        poses["background"] = kinds
+    write_parquet(poses, dest / "poses.parquet")
     write_json(dest / "meta.json", {
         "complete": True, "fingerprint": fp, "frames": n, "width": K.width,
-        "height": K.height, "K": K.K, "render": dataclasses.asdict(r), "camera": dataclasses.asdict(p.camera),
+        "height": K.height, "K": K.K, "render": params_mod.render_record(r), "camera": dataclasses.asdict(p.camera),
         "seed": p.seed, "chunk": r.chunk, **({"store": url} if store else {})})
     return seconds
 

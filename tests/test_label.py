@@ -83,15 +83,15 @@ def test_interrupted_render_leaves_no_dataset(workdir, monkeypatch):
     from stages import render
 
     calls = {"n": 0}
-    original = scene.Renderer.render
+    original = scene.Renderer.render_with_alpha
 
-    def flaky(self, R, t):
+    def flaky(self, R, t, background=None):
         calls["n"] += 1
         if calls["n"] > 5:
             raise KeyboardInterrupt
-        return original(self, R, t)
+        return original(self, R, t, background)
 
-    monkeypatch.setattr(scene.Renderer, "render", flaky)
+    monkeypatch.setattr(scene.Renderer, "render_with_alpha", flaky)
     with pytest.raises(KeyboardInterrupt):
         render.main(load())
     assert not (workdir / "datasets/render").exists()
@@ -101,7 +101,7 @@ def test_interrupted_render_leaves_no_dataset(workdir, monkeypatch):
     # A hard kill (no clean-up) leaves a temporary folder: never trusted, and removed by the next run.
     leftover = workdir / "datasets" / ".render.killed.tmp"
     (leftover / "images.zarr").mkdir(parents=True)
-    monkeypatch.setattr(scene.Renderer, "render", original)
+    monkeypatch.setattr(scene.Renderer, "render_with_alpha", original)
     render.main(load())
     assert not leftover.exists() and (workdir / "datasets/render/meta.json").exists()
 

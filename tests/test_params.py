@@ -81,6 +81,8 @@ def test_unset_external_inputs_leave_the_render_fingerprint_alone():
 def _raw_key(p: dict, *extra: tuple[str, tuple[str, ...]]) -> str:
     """A fingerprint as it was computed before params were typed: JSON of the params.yaml mapping itself."""
     r = dict(p["render"])
+    if r["background"]["share"] == 0:      # off: left out, as before render.background existed
+        r.pop("background")
     r["mesh"] = params_mod.given(r["mesh"])
     if params_mod.given(r["source"]) is None:
         r.pop("source"), r.pop("source_test")

@@ -29,6 +29,7 @@ import numpy as np
 from mathutils import Matrix
 
 from pipeline.geometry.camera import Intrinsics
+from pipeline.render.backgrounds import BackgroundSettings, FrameBackground, check_background, composite
 
 MESH_FORMATS = (".obj", ".glb", ".gltf", ".stl", ".ply")
 _FLIP = np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes <-> Blender camera axes
@@ -48,6 +49,7 @@ class SceneSettings:
     threads: int = 2
     ambient: float = 0.08              # world light strength (Earth-shine fill); the background stays black
     max_bounces: int = 2
+    background: BackgroundSettings = BackgroundSettings()   # behind the frames given a FrameBackground
 
 
 def _material(name: str, color: tuple[float, float, float], metallic: float, roughness: float) -> bpy.types.Material:
@@ -169,13 +171,15 @@ def check_settings(K: Intrinsics, settings: SceneSettings) -> None:
         if p.suffix.lower() not in MESH_FORMATS:
             raise ValueError(f"mesh file {settings.mesh!r}: unsupported format {p.suffix.lower() or '(none)'!r}; "
                              f"use one of {', '.join(MESH_FORMATS)}")
+    check_background(settings.background)
 
 
 class Renderer:
     """A headless Cycles scene of the target; `render(R, t)` returns an RGB image for one pose.
 
     Pose: R (3, 3) rotates target-frame vectors into the OpenCV camera frame, t (3,) is the target
-    origin in that frame (metres). The image is (H, W, 3) uint8 RGB with a black background.
+    origin in that frame (metres). The image is (H, W, 3) uint8 RGB with a black background, or with a
+    frame's draw of settings.background behind the target (pipeline/render/backgrounds.py).
     """
 
     def __init__(self, K: Intrinsics, settings: SceneSettings = SceneSettings()) -> None:
@@ -292,8 +296,10 @@ class Renderer:
         S[:3, :3] = np.column_stack([x, np.cross(z, x), z])
         self.sun.matrix_world = Matrix(S.tolist())
 
-    def render_with_alpha(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Render one pose -> (RGB (H, W, 3) uint8 on black, alpha (H, W) float in [0, 1])."""
+    def render_with_alpha(self, R: np.ndarray, t: np.ndarray,
+                          background: FrameBackground | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Render one pose -> (RGB (H, W, 3) uint8, the target's alpha (H, W) float in [0, 1]): on black, or
+        composited over `background` (this frame's draw of settings.background: backgrounds.composite)."""
         if np.asarray(t, dtype=np.float64).reshape(3)[2] <= 0:
             raise ValueError(f"target must be in front of the camera (tz > 0), got t={t}")
         self._place(R, t)
@@ -305,12 +311,17 @@ class Renderer:
             raise RuntimeError(f"Blender did not write the expected {self.K.width}x{self.K.height} "
                                f"image to {self._png}")
         alpha = bgra[..., 3].astype(np.float32) / 255.0
-        rgb = bgra[..., 2::-1].astype(np.float32) * alpha[..., None]  # straight alpha -> black space
+        straight = bgra[..., 2::-1].astype(np.float32)
+        if background is not None:
+            sun = np.asarray(R, dtype=np.float64).reshape(3, 3) @ self._sun_dir   # camera frame
+            return composite(straight, alpha, self.K, self.settings.background, background, sun,
+                             self.sun.data.energy), alpha
+        rgb = straight * alpha[..., None]  # straight alpha -> black space
         return np.clip(np.rint(rgb), 0, 255).astype(np.uint8), alpha
 
-    def render(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """Render one pose -> RGB (H, W, 3) uint8 with a black background."""
-        return self.render_with_alpha(R, t)[0]
+    def render(self, R: np.ndarray, t: np.ndarray, background: FrameBackground | None = None) -> np.ndarray:
+        """Render one pose -> RGB (H, W, 3) uint8: on black, or over `background` (`render_with_alpha`)."""
+        return self.render_with_alpha(R, t, background)[0]
 
     def close(self) -> None:
         """Remove the temporary image file and empty the Blender scene."""

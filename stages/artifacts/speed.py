@@ -15,7 +15,6 @@ image is one sequence, so the grouped splits downstream stay valid.
 """
 from __future__ import annotations
 
-import dataclasses
 import time
 from pathlib import Path
 
@@ -107,7 +106,7 @@ def import_source(p: Params, out: Path) -> float:
         seconds = time.perf_counter() - t0
         write_json(tmp / "meta.json", {
             "complete": True, "fingerprint": params_mod.render_fingerprint(p), "frames": n, "width": W,
-            "height": H, "K": K.K, "render": dataclasses.asdict(r), "seed": p.seed, "chunk": chunk,
+            "height": H, "K": K.K, "render": params_mod.render_record(r), "seed": p.seed, "chunk": chunk,
             "camera": {"ref_width": cam.width, "ref_height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
                        "cy": cam.cy, "dist_coeffs_removed": dist.tolist()},
             "source": {"folder": str(folder), "train": str(train.relative_to(folder)),

@@ -55,10 +55,13 @@ def intrinsics(params: Params) -> Any:
 
 
 def scene_settings(render: Render) -> Any:
-    """The Blender scene settings of a `render` params section (mesh None = the procedural target)."""
+    """The Blender scene settings of a `render` params section (mesh None = the procedural target), with its
+    background (`render.background`)."""
+    from pipeline.render.backgrounds import BackgroundSettings
     from pipeline.render.scene import SceneSettings
 
-    return settings_of(SceneSettings, render, mesh=given(render.mesh))
+    return settings_of(SceneSettings, render, mesh=given(render.mesh),
+                       background=settings_of(BackgroundSettings, render.background))
 
 
 def check_attack_params(section: Attack | Guidance, where: str) -> None:

@@ -14,7 +14,7 @@ import yaml
 from pipeline.io.atomic import atomic_write_text
 from stages.artifacts.paths import CONF_DIR, PARAMS_FILE
 from stages.config.schema import Params, build
-from stages.config.sections import ParamsError
+from stages.config.sections import ParamsError, Render
 
 # The value of an unset external input (render.mesh, render.source, lab.mesh, lab.real_data): a tracked
 # folder, because dvc.yaml lists these params' paths as deps and a dep must exist (null cannot be one).
@@ -43,10 +43,19 @@ def compose(profile: str = "default", overrides: list[str] | None = None) -> dic
 ENVELOPE = "operational-envelope-1"
 
 
+def render_record(render: Render) -> dict[str, Any]:
+    """The `render` params section as a mapping (meta.json's `render`), its `background` left out while it is off
+    (share 0): the renders made before it existed keep their meta.json and fingerprints."""
+    r = dataclasses.asdict(render)
+    if render.background.share == 0:
+        r.pop("background")
+    return r
+
+
 def render_key(params: Params) -> dict[str, Any]:
-    """The `render` params as fingerprints hash them: unset external inputs (null or inputs/none) as
-    null and an unset SPEED source left out (the mapping params.yaml holds: stages.config.schema)."""
-    r = dataclasses.asdict(params.render)
+    """The `render` params as fingerprints hash them (`render_record`): unset external inputs (null or inputs/none)
+    as null and an unset SPEED source left out (the mapping params.yaml holds: stages.config.schema)."""
+    r = render_record(params.render)
     r["mesh"] = given(r["mesh"])
     if given(r["source"]) is None:
         r.pop("source"), r.pop("source_test")

@@ -66,6 +66,22 @@ class Camera:
 
 
 @dataclass(frozen=True)
+class Background:
+    """render.background: a share of the frames with the Earth below the target, stars and a sensor black offset
+    (pipeline/render/backgrounds.py); the others stay black. render, eval_render and the guidance loop each draw
+    their frames' own; the lab's frames stay black (segmented to black by their masks)."""
+
+    share: Probability      # of the frames, each drawn on its own; 0 = off (every frame black, as before)
+    altitude_km: Annotated[float, In("(0, 100000]", "km")]   # the target's orbit altitude above the Earth
+    nadir: list[Direction]  # direction from the target to the Earth's centre, world frame (any length)
+    nadir_jitter_deg: Annotated[float, In("[0, 90]", "degrees")]   # per frame, uniform within this cone
+    stars: Annotated[float, In("[0, 1000]", "stars per square degree")]   # 0 = none
+    star_peak: Annotated[float, In("(0, 1]", "pixel units")]     # the brightest star's peak value
+    black_offset: Annotated[float, In("[0, 1)", "pixel units")]  # sensor black level added to every pixel
+    noise_std: Annotated[float, In("[0, 1]", "pixel units")]     # sensor read noise (Gaussian std)
+
+
+@dataclass(frozen=True)
 class Render:
     width: Annotated[int, In("[8, 8192]", "pixels")]    # also the pose model's input size
     height: Annotated[int, In("[8, 8192]", "pixels")]
@@ -86,6 +102,7 @@ class Render:
     sun_strength: Annotated[float, In("(0, 10000]", "W/m^2")]
     chunk: Annotated[int, In("[1, 1000000]", "frames per zarr chunk")]
     previews: Annotated[int, In("[1, 1000]", "images")]
+    background: Background
 
 
 @dataclass(frozen=True)

@@ -95,7 +95,8 @@ class RenderSetup:
     R: np.ndarray           # (N, 3, 3) target attitudes, target frame -> camera frame
     t: np.ndarray           # (N, 3) target positions in the camera frame, metres
     url: str                # the store (`store_url`: an absolute path or an fsspec URL)
-    empty_hint: str | None  # how to fix an all-black first chunk (refused); None: not checked
+    empty_hint: str | None  # how to fix a first chunk the target covers no pixel of (refused); None: not checked
+    backgrounds: tuple[Any, ...] | None = None   # per frame a backgrounds.FrameBackground or None (black)
 
 
 @dataclass(frozen=True)
@@ -118,14 +119,15 @@ class RenderWorker:
         self.fs, self.root = store_fs(setup.url)
         self.images = reopen_array(setup.url, "images") if visible(self.fs, self.root) else None
         self.R, self.t, self.empty_hint = setup.R, setup.t, setup.empty_hint
+        self.backgrounds = setup.backgrounds or (None,) * len(setup.t)
         self.renderer = Renderer(setup.K, setup.scene)   # settings checked by the driver (`prepare`)
 
     def run(self, job: FrameRange) -> dict[str, str] | np.ndarray:
         lo, hi = job.lo, job.hi
-        buf = np.stack([self.renderer.render(self.R[k], self.t[k]) for k in range(lo, hi)])
-        if self.empty_hint and lo == 0 and not buf.any():
-            raise StageError(f"render: the target covers no pixels in the first {hi} frames (all black); "
-                             f"{self.empty_hint}")
+        out = [self.renderer.render_with_alpha(self.R[k], self.t[k], self.backgrounds[k]) for k in range(lo, hi)]
+        buf = np.stack([rgb for rgb, _ in out])
+        if self.empty_hint and lo == 0 and not any(alpha.any() for _, alpha in out):
+            raise StageError(f"render: the target covers no pixels in the first {hi} frames; {self.empty_hint}")
         if self.images is None:
             return buf
         return write_chunk(self.images, self.fs, self.root, lo, buf)
@@ -179,17 +181,22 @@ class PoseRenderWorker:
         self.renderer.close()
 
 
-def prepare(K: Any, scene: Any, es: engine.EngineSettings) -> tuple[Any, int]:
-    """(scene settings for one worker, its Blender threads): settings checked before any worker starts
-    (StageError), the mesh path made absolute (workers may run elsewhere), and render.threads / workers
-    threads (at least 1) per Ray worker. Cycles gives the same pixels for any thread count and chunk
-    order, so the images equal the in-process ones."""
+def check(K: Any, scene: Any) -> None:
+    """StageError naming the first bad render setting (camera size, scene, background)."""
     from pipeline.render.scene import check_settings
 
     try:
         check_settings(K, scene)
     except ValueError as e:
         raise StageError(f"params.yaml render: {e}") from None
+
+
+def prepare(K: Any, scene: Any, es: engine.EngineSettings) -> tuple[Any, int]:
+    """(scene settings for one worker, its Blender threads): settings checked before any worker starts
+    (StageError), the mesh path made absolute (workers may run elsewhere), and render.threads / workers
+    threads (at least 1) per Ray worker. Cycles gives the same pixels for any thread count and chunk
+    order, so the images equal the in-process ones."""
+    check(K, scene)
     threads = es.threads(scene.threads)
     mesh = str(Path(scene.mesh).resolve()) if scene.mesh else None
     return dataclasses.replace(scene, threads=threads, mesh=mesh), threads
@@ -210,10 +217,10 @@ def render_poses(K: Any, scene: Any, R: np.ndarray, t: np.ndarray, chunk: int, e
 
 def render_to_store(url: str, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, chunk: int,
                     es: engine.EngineSettings, desc: str, empty_hint: str | None = None,
-                    fingerprint: str | None = None) -> float:
+                    fingerprint: str | None = None, backgrounds: list[Any] | None = None) -> float:
     """Render every pose into a new store at `url` (one job per chunk; `fingerprint`: of the render params,
-    recorded in it) and seal it -> seconds taken; bad render settings are refused before any worker starts
-    (`prepare`)."""
+    recorded in it; `backgrounds`: per frame its background draw or None, `frame_backgrounds`) and seal it ->
+    seconds taken; bad render settings are refused before any worker starts (`prepare`)."""
     from tqdm import tqdm
 
     scene, threads = prepare(K, scene, es)
@@ -231,7 +238,23 @@ def render_to_store(url: str, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, 
 
     t0 = time.perf_counter()
     with tqdm(total=n, unit="img", desc=desc, dynamic_ncols=True, mininterval=0.5) as bar:
-        engine.run(RenderWorker, RenderSetup(K, scene, R, t, url, empty_hint), jobs, es, num_cpus=threads,
-                   progress=done)
+        engine.run(RenderWorker, RenderSetup(K, scene, R, t, url, empty_hint, backgrounds and tuple(backgrounds)),
+                   jobs, es, num_cpus=threads, progress=done)
     seal_zarr(url, {"images": crcs})
     return time.perf_counter() - t0
+
+
+def frame_backgrounds(K: Any, scene: Any, R: np.ndarray, R_cam: np.ndarray,
+                      seed: int) -> tuple[list[Any] | None, list[str] | None]:
+    """The background draws of a render set's frames (R (N, 3, 3): target -> camera; R_cam (N, 3, 3): camera ->
+    world; seed: the set's), each keyed by its index in the set, and their `background` column values -> (draws,
+    kinds); (None, None) while scene.background is off (share 0: every frame black, no column)."""
+    from pipeline.render.backgrounds import draw, kind
+
+    check(K, scene)
+    bg = scene.background
+    if bg.share == 0:
+        return None, None
+    draws = [draw(bg, Rc, seed, k) for k, Rc in enumerate(R_cam)]
+    sun = np.asarray(scene.sun_direction, dtype=np.float64)
+    return draws, [kind(K, bg, d, Rk @ sun) for d, Rk in zip(draws, R)]

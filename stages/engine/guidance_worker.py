@@ -2,13 +2,15 @@
 the standard model's; and the shipped one, the robust model's: stages.artifacts.paths.PAPER, SHIPPED), one
 flight of the grid (pipeline.guidance.grid.GridPlan) per job; stages/guidance.py builds the jobs.
 
-Each attacked run's attack is seeded by its place in the grid, so the flights do not depend on which
-worker flies which run.
+Each attacked run's attack is seeded by its place in the grid, and each rendered pose's background
+(render.background) by the pose itself, so the flights do not depend on which worker flies which run.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable
+
+import numpy as np
 
 from stages.artifacts.models import load_chain
 from stages.artifacts.paths import PAPER, SHIPPED
@@ -26,7 +28,7 @@ class GuidanceSetup:
     root: str                  # the folder holding models/, as an absolute path (a worker may run elsewhere)
     defense: Any               # stages.artifacts.models.DefenseModel of the shipped chain: a fresh one per run
     plan: Any                  # pipeline.guidance.law.GridPlan: every run of the grid
-    seed: int                  # the attack seed of run 0 (params seed + the stage's offset)
+    seed: int                  # the attack seed of run 0 (params seed + the stage's offset); the backgrounds'
     torch_threads: int | None  # torch threads of this worker; None: left as set up
 
 
@@ -77,7 +79,8 @@ class GuidanceWorker:
 
         self.renderer = Renderer(setup.K, setup.scene)
         images: dict[bytes, Any] = {}   # both chains see the same rendered poses: each is rendered once
-        cameras = {name: CachedCamera(self.renderer.render, c.model, chain=c, images=images)
+        render_image = pose_renderer(self.renderer, setup.seed)
+        cameras = {name: CachedCamera(render_image, c.model, chain=c, images=images)
                    for name, (c, _, _) in chains.items()}
         self.pilot = GridPilot(cameras, setup.K, setup.plan, attack_at, setup.defense, in_loop_at)
 
@@ -86,3 +89,18 @@ class GuidanceWorker:
 
     def close(self) -> None:
         self.renderer.close()
+
+
+def pose_renderer(renderer: Any, seed: int) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+    """`renderer.render` (a pipeline.render.scene.Renderer) for poses rendered on demand: each pose (R target ->
+    camera, t in metres) over its background draw of the renderer's settings.background from `seed`, keyed by the
+    pose itself. The grid flies the target at rest (pipeline.guidance.law.run_rendezvous: identity target
+    attitude), so the camera -> world rotation is R^T."""
+    from pipeline.render.backgrounds import draw, pose_key
+
+    background = renderer.settings.background
+
+    def render(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        return renderer.render(R, t, draw(background, R.T, seed, pose_key(R, t)))
+
+    return render

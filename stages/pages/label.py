@@ -19,6 +19,19 @@ def _spread(quantity: str, values: Any) -> dict[str, Any]:
     return {"quantity": quantity, "min": float(values.min()), "mean": float(values.mean()), "max": float(values.max())}
 
 
+def _backgrounds(labels: Any, settings: dict[str, Any]) -> list[str]:
+    """The card's section on what lies behind the target (the labels' `background` column): frames per kind and
+    split, and the `render.background` settings."""
+    from pipeline.report.markdown import markdown_table
+
+    rows = [{"background": kind, "frames": len(g), "train": int((g.split == "train").sum()),
+             "test": int((g.split == "test").sum())} for kind, g in labels.groupby("background")]
+    return ["## Backgrounds", "",
+            "`render.background` (pipeline/render/backgrounds.py): black = as without it; space = stars, the sensor's "
+            "black offset and read noise; earth = also the sunlit Earth in view. Settings: "
+            + ", ".join(f"{k} = {v}" for k, v in settings.items()) + ".", "", markdown_table(rows)]
+
+
 def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_dir: Path) -> str:
     """reports/dataset.md: counts, ranges (m, px), attitude and pointing spread (deg), settings, where the time
     per image is kept; `previews` are PNG files shown relative to the card's folder `card_dir`."""
@@ -50,6 +63,7 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
         markdown_table([{"images": len(labels), "train": int((labels.split == "train").sum()),
                          "test": int((labels.split == "test").sum()), "sequences": int(labels.sequence.nunique()),
                          "size": f"{meta['width']}x{meta['height']}"}]),
+        *(_backgrounds(labels, r["background"]) if "background" in labels else []),
         "## Ranges",
         "",
         markdown_table([_spread(name, v) for name, v in (
