@@ -13,8 +13,9 @@ The caller passes a validation set carved from the training data (pipeline.evalu
 never sees the test split, so the checkpoint it keeps is not selected on test data.
 
 The model selection score is the ESA SPEED score (pipeline/pose/metrics.py); with an adversary, plus the
-mean relative position error ||p - p_gt|| / ||p_gt|| of its attacked validation images (`Adversary.validate`):
-the harm is a position error, and the attacked attitude (which training may leave undefended) is not scored.
+error of its attacked validation images (`Adversary.validate`, `Adversary.selection_error`): their mean relative
+position error ||p - p_gt|| / ||p_gt|| when training attacks the position-weighted loss (the harm is a position
+error), their SPEED score (position and attitude) when it attacks the suite's objectives.
 """
 from __future__ import annotations
 
@@ -376,7 +377,7 @@ def _epoch_stats(model: nn.Module, loss: PoseLoss, val_set: PoseDataset, cfg: Tr
         adv_pred, adv_targets = adversary.validate(model, val_set, device)
         adv_pos_errors, adv_att_errors = pose_errors(adv_pred, adv_targets)
         adv_pos, adv_att = float(adv_pos_errors.mean()), float(adv_att_errors.mean())
-        selection = score + float(np.mean(adv_pos_errors / np.linalg.norm(adv_targets[:, :3], axis=1)))
+        selection = score + adversary.selection_error(adv_pred, adv_targets)
     n = sums[3].item()
     return EpochStats(epoch=epoch + 1, loss=sums[0].item() / n, lr=float(sched.get_last_lr()[0]),
                       s_p=loss.s_p.item(), s_r=loss.s_r.item(), train_pos_m=sums[1].item() / n,
