@@ -164,3 +164,30 @@ def test_ablation_rows_split_each_models_suite_run_by_background():
     assert {r["background"] for r in whole} == {"black"} and whole[0]["n"] == 6
     with pytest.raises(ValueError, match="one background per frame"):
         ablation_rows(models, images, y.numpy(), [0.02], config, kinds[:4])
+
+
+def test_trades_fits_the_clean_batch_and_the_attacked_rows_consistency():
+    from pipeline.pose.train import _Objective
+
+    x, y = _batch(6)
+    model, loss = _net(0.0, x, y), PoseLoss()
+    cfg = AdversarialConfig(eps=0.03, steps=3, ramp_epochs=0, fraction=0.5, objectives=("position", "attitude"),
+                            trades=2.0)
+    adv = Adversary(cfg, loss, 1, 0)
+    inputs, skip, pairs = adv.batch(model, x, y, 0)
+    assert pairs == 3 and skip == 0 and torch.equal(inputs[:6], x) and (inputs[6:] - x[:3]).abs().max() <= 0.03 + 1e-6
+    with torch.no_grad():
+        clean, attacked = model(x[:3]), model(inputs[6:])
+    # the attack ascends the shift from the clean estimate (no truth): attitude rows turn, position rows move
+    assert attitude(attacked[1::2], clean[1::2]).min() > 1.0 and position(attacked[::2], clean[::2]).min() > 0.1
+    value, pred = _Objective(model, loss)(inputs, y, skip, pairs, cfg.trades)
+    with torch.no_grad():
+        assert torch.equal(pred, model(x))
+        expected = loss(pred, y) + 2.0 * loss.consistency(model(inputs[6:]), pred[:3])
+    assert value.item() == pytest.approx(expected.item()) and value.item() > loss(pred, y).item()
+    # the learned weights get no gradient from the consistency term
+    value.backward()
+    s_p_grad = loss.s_p.grad.clone()
+    loss.zero_grad()
+    loss(_Objective(model, loss)(inputs[:6], y)[1], y).backward()
+    assert loss.s_p.grad.item() == pytest.approx(s_p_grad.item())

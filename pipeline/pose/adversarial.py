@@ -26,6 +26,16 @@ The budget eps ramps linearly from 0 to `eps` over the first `ramp_epochs` epoch
 the whole batch, or with `attacked_rotation` off only the position of its attacked images (their rotation term
 is left out: the rotation is fitted on the clean share of each batch; an attitude objective needs it on).
 
+TRADES-style (Zhang et al. 2019, for regression), with `trades` = beta > 0: the attacked rows keep their clean
+images too. The inner maximisation ascends the shift of the estimate from the clean estimate f(x) (the same
+objectives, or inner loss, with f(x) in place of the truth), and the training loss (`batch`, PoseLoss
+`consistency`) fits the clean batch plus beta times the consistency of the attacked rows with their clean ones:
+
+    L(f(x), y) + beta [exp(-2 s_p) mean ||p' - p|| + exp(-2 s_r) mean ||r' - r||],   (p', r') = f(x'),
+
+the learned weights held fixed in the second term, so the clean fit is what the network is trained on and the
+attack only asks it to answer alike within the ball.
+
 Catastrophic overfitting guard: every epoch, `validate` attacks a fixed seeded subset of `val_frames`
 validation images with a stronger PGD (`val_steps` steps, full budget, the training attack's start and
 gradient; the position loss without `objectives`, else the objectives cycled over the rows), stored as
@@ -59,7 +69,7 @@ class AdversarialConfig:
     attacked images; attacked_rotation: fit the rotation of attacked images too (off: their position only);
     val_steps, val_frames: the per-epoch PGD check on validation images; objectives: the suite's objectives
     cycled over the attacked rows (empty: the inner loss); start: random | lift; bpda: the gradient passes
-    the black-level clamp as the identity."""
+    the black-level clamp as the identity; trades: beta of the TRADES-style loss (0: off, module doc)."""
 
     eps: float = 0.05
     steps: int = 2
@@ -72,9 +82,12 @@ class AdversarialConfig:
     objectives: tuple[str, ...] = ()
     start: str = "random"
     bpda: bool = False
+    trades: float = 0.0
 
     def __post_init__(self) -> None:
         check_eps(self.eps)
+        if not self.trades >= 0:
+            raise ValueError(f"trades (beta) must be >= 0, got {self.trades}")
         if self.steps < 1 or self.val_steps < 1 or self.val_frames < 1:
             raise ValueError(f"steps, val_steps and val_frames must be >= 1, got {self.steps}, {self.val_steps}, "
                              f"{self.val_frames}")
@@ -153,9 +166,25 @@ class Adversary:
     def perturb(self, model: nn.Module, x: Tensor, y: Tensor, step: int) -> Tensor:
         """The batch with its first `fraction` of images replaced by PGD-k examples at eps_at(step)."""
         n = self.attacked(len(x))
-        loss_fn = self.objectives_loss if self.cfg.objectives else self.inner_loss
-        x_adv = self.attack(model, x[:n], y[:n], self.eps_at(step), loss_fn, self.cfg.steps, self.generator)
+        x_adv = self.attack(model, x[:n], y[:n], self.eps_at(step), self._inner(), self.cfg.steps, self.generator)
         return x_adv if n == len(x) else torch.cat([x_adv, x[n:]])
+
+    def batch(self, model: nn.Module, x: Tensor, y: Tensor, step: int) -> tuple[Tensor, int, int]:
+        """What a training step fits at optimiser step `step`: (inputs, rows at their start left out of the
+        rotation term, pairs). Without `trades`: the batch `perturb`ed, pairs 0. With it: the clean batch
+        followed by PGD-k examples of its first n = `fraction` rows ascending the shift from their clean
+        estimate (module doc), pairs n: the last n inputs are attacked copies of the first n."""
+        if not self.cfg.trades:
+            return self.perturb(model, x, y, step), self.skip_rotation(len(x)), 0
+        n = self.attacked(len(x))
+        with torch.no_grad(), _eval_mode(model):
+            anchor = model(x[:n]).detach()
+        x_adv = self.attack(model, x[:n], anchor, self.eps_at(step), self._inner(), self.cfg.steps, self.generator)
+        return torch.cat([x, x_adv]), 0, n
+
+    def _inner(self) -> LossFn:
+        """What the training attack ascends: the objectives cycled over the rows, or the inner loss."""
+        return self.objectives_loss if self.cfg.objectives else self.inner_loss
 
     def selection_error(self, pred: np.ndarray, target: np.ndarray) -> float:
         """What the attacked validation images add to the checkpoint's score, from their (M, 9) predictions and

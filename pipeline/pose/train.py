@@ -222,9 +222,15 @@ class _Objective(nn.Module):
         super().__init__()
         self.model, self.loss = model, loss
 
-    def forward(self, x: torch.Tensor, y: torch.Tensor, skip_rotation: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, x: torch.Tensor, y: torch.Tensor, skip_rotation: int = 0, pairs: int = 0,
+                beta: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+        """(loss, predictions of the len(y) fitted images): with `pairs` > 0 the last `pairs` inputs are attacked
+        copies of the first ones and add beta x their consistency with them (Adversary.batch)."""
         pred = self.model(x)
-        return self.loss(pred, y, skip_rotation), pred
+        if not pairs:
+            return self.loss(pred, y, skip_rotation), pred
+        clean = pred[:len(y)]
+        return self.loss(clean, y, skip_rotation) + beta * self.loss.consistency(pred[len(y):], clean[:pairs]), clean
 
 
 def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, val_set: PoseDataset, cfg: TrainConfig,
@@ -326,10 +332,10 @@ class _Step:
 
     def __call__(self, x: torch.Tensor, y: torch.Tensor, where: str) -> tuple[float, torch.Tensor]:
         """One step on the batch (x, y) (its PGD-k examples with an adversary) -> (loss, predictions)."""
-        skip = 0
+        skip = pairs = 0
         if self.adversary is not None:
-            x, skip = self.adversary.perturb(self.model, x, y, self.step), self.adversary.skip_rotation(len(x))
-        value, pred = self.objective(x, y, skip)
+            x, skip, pairs = self.adversary.batch(self.model, x, y, self.step)
+        value, pred = self.objective(x, y, skip, pairs, self.adversary.cfg.trades if pairs else 0.0)
         check_loss(value.item(), where)
         self.opt.zero_grad(set_to_none=True)
         value.backward()
