@@ -67,6 +67,13 @@ def test_the_inner_attack_ascends_the_attitude_objective_on_its_rows():
     assert torch.all(attitude(attacked[rows], y[rows]) > attitude(clean[rows], y[rows]) + 1.0)
     assert attitude(attacked[rows], y[rows]).mean() > 1.5 * attitude(by_position[rows], y[rows]).mean()
     assert torch.all(position(attacked[::2], y[::2]) > position(clean[::2], y[::2]))
+    # each objective within its own budget, ramped alike
+    own = AdversarialConfig(eps=0.03, steps=3, ramp_epochs=1, objectives=("position", "attitude"),
+                            objective_eps=(0.03, 0.01))
+    x_own = Adversary(own, PoseLoss(), 2, 0).perturb(model, x, y, 0)          # half-way up the ramp
+    assert (x_own - x)[1::2].abs().max() <= 0.005 + 1e-6 < (x_own - x)[::2].abs().max() <= 0.015 + 1e-6
+    with pytest.raises(ValueError, match=r"objective_eps must give each of the 2 objectives a budget in \(0, eps"):
+        AdversarialConfig(eps=0.03, objectives=("position", "attitude"), objective_eps=(0.05, 0.01))
 
 
 def test_past_the_clamp_the_attack_lifts_the_background_and_passes_the_clamp(monkeypatch):
@@ -107,7 +114,7 @@ def test_the_default_params_reproduce_the_committed_training_step():
     inner = lambda p, t: w * e_p * loss.parts(p, t)[0] + (1 - w) * e_r * loss.parts(p, t)[1]   # noqa: E731
     ref = torch.cat([pgd(model, x[:n], y[:n], a.eps / 2, inner, steps=a.steps,
                          generator=torch.Generator().manual_seed(5)), x[n:]])
-    assert torch.equal(x_adv, ref) and skip == n and adv.eps_at(3) == a.eps / 2
+    assert torch.equal(x_adv, ref) and skip == n and adv.ramp(3) == 0.5
     model.train()
     assert loss(model(x_adv), y, skip).item() == loss(model(ref), y, n).item()
     pred, target = np.c_[y[:, :3] + 1.0, y[:, 3:]], y.numpy()

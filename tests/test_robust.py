@@ -140,8 +140,8 @@ def test_adversarial_training_lowers_the_pgd_error(dataset):
 
 def test_the_eps_ramp_and_the_attacked_share():
     adv = Adversary(AdversarialConfig(eps=0.04, steps=1, ramp_epochs=2, fraction=0.5), PoseLoss(), 10, 0)
-    assert adv.eps_at(0) == pytest.approx(0.002) and adv.eps_at(9) == pytest.approx(0.02)
-    assert adv.eps_at(19) == adv.eps_at(500) == pytest.approx(0.04)
+    assert 0.04 * adv.ramp(0) == pytest.approx(0.002) and 0.04 * adv.ramp(9) == pytest.approx(0.02)
+    assert adv.ramp(19) == adv.ramp(500) == 1.0
     model = PoseNet(0.125, 0.0).eval()
     x = torch.rand(4, 3, H, W)
     x_adv = adv.perturb(model, x, _target(), 100)

@@ -12,9 +12,9 @@ one of two inner objectives:
   with the training loss's current learned weights s_p, s_r (detached), so each term is in units of its own
   typical error;
 - `objectives` named: the strongest-attack suite's per-sample objectives (pipeline/attacks/objectives.py:
-  position and range in m, geodesic attitude in degrees), the attacked row i ascending objectives[i mod n].
-  Each row's input gradient depends on its own objective only (eval mode: no batch statistics), and a signed
-  step ignores its scale, so position and attitude need no common unit.
+  position and range in m, geodesic attitude in degrees), the attacked row i ascending objectives[i mod n]
+  within that objective's budget (`objective_eps`, default eps for every one; each ramps as eps does). A
+  signed step ignores the objective's scale, so position and attitude need no common unit.
 
 The start (`start`, pipeline/attacks/starts.py) is uniform in the ball (`random`) or, for a network with a
 black-level clamp, lifts every channel value under the clamp to the lowest grey level above it (`lift`);
@@ -37,7 +37,7 @@ the learned weights held fixed in the second term, so the clean fit is what the 
 attack only asks it to answer alike within the ball.
 
 Catastrophic overfitting guard: every epoch, `validate` attacks a fixed seeded subset of `val_frames`
-validation images with a stronger PGD (`val_steps` steps, full budget, the training attack's start and
+validation images with a stronger PGD (`val_steps` steps, full budgets, the training attack's start and
 gradient; the position loss without `objectives`, else the objectives cycled over the rows), stored as
 8 bits, so the checkpoint kept is chosen on clean + attacked validation error (pipeline/pose/train.py:
 `selection_error`). Images are float (B, 3, H, W) in [0, 1]; eps in the same pixel units.
@@ -69,7 +69,8 @@ class AdversarialConfig:
     attacked images; attacked_rotation: fit the rotation of attacked images too (off: their position only);
     val_steps, val_frames: the per-epoch PGD check on validation images; objectives: the suite's objectives
     cycled over the attacked rows (empty: the inner loss); start: random | lift; bpda: the gradient passes
-    the black-level clamp as the identity; trades: beta of the TRADES-style loss (0: off, module doc)."""
+    the black-level clamp as the identity; trades: beta of the TRADES-style loss (0: off, module doc);
+    objective_eps: each objective's budget, in (0, eps] (empty: eps for every one)."""
 
     eps: float = 0.05
     steps: int = 2
@@ -83,9 +84,14 @@ class AdversarialConfig:
     start: str = "random"
     bpda: bool = False
     trades: float = 0.0
+    objective_eps: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         check_eps(self.eps)
+        if self.objective_eps and (len(self.objective_eps) != len(self.objectives)
+                                   or not all(0 < e <= self.eps for e in self.objective_eps)):
+            raise ValueError(f"objective_eps must give each of the {len(self.objectives)} objectives a budget in "
+                             f"(0, eps = {self.eps:g}], got {list(self.objective_eps)}")
         if not self.trades >= 0:
             raise ValueError(f"trades (beta) must be >= 0, got {self.trades}")
         if self.steps < 1 or self.val_steps < 1 or self.val_frames < 1:
@@ -119,11 +125,9 @@ class Adversary:
         self.generator = torch.Generator().manual_seed(seed)
         self.seed = seed
 
-    def eps_at(self, step: int) -> float:
-        """The budget at optimiser step `step` (0-based): eps * (step + 1) / ramp steps, capped at eps."""
-        if self.ramp_steps <= 0:
-            return self.cfg.eps
-        return self.cfg.eps * min(1.0, (step + 1) / self.ramp_steps)
+    def ramp(self, step: int) -> float:
+        """The share of each budget reached at optimiser step `step` (0-based): (step + 1) / ramp steps, capped at 1."""
+        return 1.0 if self.ramp_steps <= 0 else min(1.0, (step + 1) / self.ramp_steps)
 
     def inner_loss(self, pred: Tensor, target: Tensor) -> Tensor:
         """The position-weighted loss PGD-k ascends without `objectives` (see the module doc)."""
@@ -131,12 +135,6 @@ class Adversary:
         w = self.cfg.position_weight
         s_p, s_r = self.loss.s_p.detach(), self.loss.s_r.detach()
         return w * torch.exp(-2 * s_p) * pos + (1 - w) * torch.exp(-2 * s_r) * rot
-
-    def objectives_loss(self, pred: Tensor, target: Tensor) -> Tensor:
-        """The sum over rows of objectives[row mod n] (m for position objectives, degrees for attitude)."""
-        rows = torch.arange(len(pred), device=pred.device) % len(self.cfg.objectives)
-        values = torch.stack([get_objective(name)(pred, target) for name in self.cfg.objectives])
-        return values.gather(0, rows.unsqueeze(0)).sum()
 
     def attacked(self, batch: int) -> int:
         """How many images of a batch of `batch` are attacked (the first ones): at least one."""
@@ -163,10 +161,27 @@ class Adversary:
                 z = project(z + alpha * _input_grad(forward, z, y, loss_fn).sign(), x, eps)
         return z.detach()
 
+    def attack_rows(self, model: nn.Module, x: Tensor, target: Tensor, share: float, steps: int,
+                    generator: torch.Generator, loss_fn: LossFn) -> Tensor:
+        """PGD-`steps` examples of every row of x: without `objectives` on `loss_fn` at eps x share; with them
+        row i on objectives[i mod n] at its budget x share (target (B, 9): the truth, or with trades the clean
+        estimate)."""
+        if not self.cfg.objectives:
+            return self.attack(model, x, target, self.cfg.eps * share, loss_fn, steps, generator)
+        out = x.clone()
+        budgets = self.cfg.objective_eps or (self.cfg.eps,) * len(self.cfg.objectives)
+        for k, (name, budget) in enumerate(zip(self.cfg.objectives, budgets)):
+            rows = slice(k, None, len(budgets))
+            if len(x[rows]):
+                objective = get_objective(name)
+                out[rows] = self.attack(model, x[rows], target[rows], budget * share,
+                                        lambda pred, t: objective(pred, t).sum(), steps, generator)
+        return out
+
     def perturb(self, model: nn.Module, x: Tensor, y: Tensor, step: int) -> Tensor:
-        """The batch with its first `fraction` of images replaced by PGD-k examples at eps_at(step)."""
+        """The batch with its first `fraction` of images replaced by PGD-k examples at the budgets of `step`."""
         n = self.attacked(len(x))
-        x_adv = self.attack(model, x[:n], y[:n], self.eps_at(step), self._inner(), self.cfg.steps, self.generator)
+        x_adv = self.attack_rows(model, x[:n], y[:n], self.ramp(step), self.cfg.steps, self.generator, self.inner_loss)
         return x_adv if n == len(x) else torch.cat([x_adv, x[n:]])
 
     def batch(self, model: nn.Module, x: Tensor, y: Tensor, step: int) -> tuple[Tensor, int, int]:
@@ -179,12 +194,8 @@ class Adversary:
         n = self.attacked(len(x))
         with torch.no_grad(), _eval_mode(model):
             anchor = model(x[:n]).detach()
-        x_adv = self.attack(model, x[:n], anchor, self.eps_at(step), self._inner(), self.cfg.steps, self.generator)
+        x_adv = self.attack_rows(model, x[:n], anchor, self.ramp(step), self.cfg.steps, self.generator, self.inner_loss)
         return torch.cat([x, x_adv]), 0, n
-
-    def _inner(self) -> LossFn:
-        """What the training attack ascends: the objectives cycled over the rows, or the inner loss."""
-        return self.objectives_loss if self.cfg.objectives else self.inner_loss
 
     def selection_error(self, pred: np.ndarray, target: np.ndarray) -> float:
         """What the attacked validation images add to the checkpoint's score, from their (M, 9) predictions and
@@ -197,18 +208,18 @@ class Adversary:
     def validate(self, model: nn.Module, val_set: torch.utils.data.Dataset,
                  device: torch.device | str = "cpu", batch_size: int = 64) -> tuple[np.ndarray, np.ndarray]:
         """(predictions (M, 9), targets (M, 9)) of `model` on the fixed subset of M = min(val_frames, N)
-        validation images under PGD-`val_steps` at the full eps (the position loss, or the objectives), stored
+        validation images under PGD-`val_steps` at the full budgets (the position loss, or the objectives), stored
         as 8 bits. The random start is re-seeded each call, so every epoch faces the same attack."""
         rng = np.random.default_rng(self.seed)
         rows = np.sort(rng.permutation(len(val_set))[:self.cfg.val_frames])
-        loss_fn = self.objectives_loss if self.cfg.objectives else attack_loss("position", self.loss)
+        position = attack_loss("position", self.loss)
         gen = torch.Generator().manual_seed(self.seed)
         preds, targets = [], []
         for lo in range(0, len(rows), batch_size):
             items = [val_set[int(i)] for i in rows[lo:lo + batch_size]]
             x = torch.stack([im for im, _ in items]).permute(0, 3, 1, 2).float().div(255.0).to(device)
             y = torch.stack([t for _, t in items]).to(device)
-            x_adv = self.attack(model, x, y, self.cfg.eps, loss_fn, self.cfg.val_steps, gen)
+            x_adv = self.attack_rows(model, x, y, 1.0, self.cfg.val_steps, gen, position)
             stored = quantize(x_adv, x).float() / 255.0
             with torch.no_grad():
                 was = model.training

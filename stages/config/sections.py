@@ -159,6 +159,7 @@ class Adversarial:
     objectives: list[Literal["position", "range_far", "range_near", "lateral", "attitude"]]  # cycled over attacked rows
     start: Literal["random", "lift"]   # the attack's start in the eps ball
     bpda: bool              # the attack's gradient passes the clamp as the identity
+    objective_eps: list[Eps]   # each objective's budget in (0, eps] ([] = eps for every one)
     trades: Annotated[float, In("[0, 1000]", "weight")]   # beta of the TRADES-style consistency term (0: off)
 
     def __post_init__(self) -> None:
