@@ -198,3 +198,15 @@ def test_trades_fits_the_clean_batch_and_the_attacked_rows_consistency():
     loss.zero_grad()
     loss(_Objective(model, loss)(inputs[:6], y)[1], y).backward()
     assert loss.s_p.grad.item() == pytest.approx(s_p_grad.item())
+
+
+def test_paired_forward_shares_each_pairs_dropout_mask():
+    torch.manual_seed(0)
+    model = PoseNet(0.125, 0.5).train()
+    x = torch.rand(4, 3, H, W)
+    torch.manual_seed(1)
+    paired = model.forward_paired(torch.cat([x, x[:2]]), 2)
+    torch.testing.assert_close(paired[4:], paired[:2])                 # same image, same mask: same output
+    assert not torch.allclose(paired[:2], model(x[:2]))                # a fresh mask otherwise
+    with torch.no_grad():
+        torch.testing.assert_close(model.eval().forward_paired(torch.cat([x, x[:2]]), 2)[:4], model(x))

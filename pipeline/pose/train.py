@@ -225,10 +225,12 @@ class _Objective(nn.Module):
     def forward(self, x: torch.Tensor, y: torch.Tensor, skip_rotation: int = 0, pairs: int = 0,
                 beta: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
         """(loss, predictions of the len(y) fitted images): with `pairs` > 0 the last `pairs` inputs are attacked
-        copies of the first ones and add beta x their consistency with them (Adversary.batch)."""
-        pred = self.model(x)
+        copies of the first ones and add beta x their consistency with them (Adversary.batch; one dropout mask
+        per pair: PoseNet.forward_paired)."""
         if not pairs:
+            pred = self.model(x)
             return self.loss(pred, y, skip_rotation), pred
+        pred = self.model.forward_paired(x, pairs)
         clean = pred[:len(y)]
         return self.loss(clean, y, skip_rotation) + beta * self.loss.consistency(pred[len(y):], clean[:pairs]), clean
 
