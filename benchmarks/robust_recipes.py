@@ -5,8 +5,9 @@ The committed render is black only, so Earth-background versions of seeded frame
 (`render`: the same draw a render with `render.background.share` > 0 gives those frames; settings EARTH) of the
 fit split (FIT_FRAMES), every validation frame and TEST_FRAMES test frames. A candidate (`train NAME`: a
 preset of RECIPES) is the robust stage's recipe (the standard model fine-tuned behind the clamp, its seeds,
-schedule and validation split) with overrides of train.adversarial, on the fit split with EARTH_SHARE of its
-frames (and of the validation frames it selects its checkpoint on) swapped for their Earth versions. `eval NAME`
+schedule and validation split) with overrides of train.adversarial, on the fit split with its FIT_FRAMES Earth
+renders swapped in (23%; or a recipe's `earth_share`, with the MORE_FIT_FRAMES renders) and EARTH_SHARE of the
+validation frames it selects its checkpoint on. `eval NAME`
 runs the LEAN suite (pipeline.attacks.strongest) on a seeded sample of validation (choosing) or test (reporting)
 frames, each frame black and over its Earth background (pipeline.pose.ablation.ablation_rows: rows per
 background kind: black, space = stars and the sensor's offset and noise, earth = the sunlit Earth in view), plus
@@ -48,10 +49,11 @@ from stages.config import params as params_mod  # noqa: E402
 OUT = ROOT / "datasets" / "robust_recipes"
 EARTH = {"share": 1.0, "stars": 0.05, "star_peak": 0.6, "black_offset": 0.02, "noise_std": 0.01}
 FIT_FRAMES, TEST_FRAMES, PICK_SEED = 640, 256, 37
+MORE_FIT_FRAMES = 764      # more fit frames (other seed), so that half the fit split can be swapped (640 + 764)
 EARTH_SHARE = 0.25
 EPS = (0.01, 0.05, 0.1)
 PAST_CLAMP = {"start": "lift", "bpda": True, "eps": 0.1}
-# name -> (overrides of train.adversarial, model options: black_level (None: the params'), clean = no attack)
+# name -> (overrides of train.adversarial, options: black_level (None: the params'), clean (no attack), earth_share)
 RECIPES: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
     "today+earth": ({}, {}),                 # the committed recipe (params.yaml), on the Earth-swapped frames
     "c1": ({**PAST_CLAMP, "objectives": ["position", "attitude"], "attacked_rotation": True}, {}),
@@ -59,6 +61,8 @@ RECIPES: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
     "c4": ({**PAST_CLAMP, "objectives": ["position", "attitude"], "objective_eps": [0.1, 0.02],
             "attacked_rotation": True}, {}),
     "c5": ({**PAST_CLAMP, "objectives": ["position"]}, {}),
+    "c7": ({**PAST_CLAMP, "objectives": ["position", "attitude"], "objective_eps": [0.1, 0.02],
+            "attacked_rotation": True}, {"earth_share": 0.5}),
     "c6": ({**PAST_CLAMP, "objectives": ["position", "attitude"], "objective_eps": [0.1, 0.03],
             "attacked_rotation": True, "trades": 0.3}, {}),
 }
@@ -91,6 +95,8 @@ def render(p: Any) -> None:
     picks = {"fit": np.sort(rng.choice(fit.labels["index"].to_numpy(), FIT_FRAMES, replace=False)),
              "val": np.sort(val.labels["index"].to_numpy()),
              "test": np.sort(rng.choice(test.labels["index"].to_numpy(), TEST_FRAMES, replace=False))}
+    rest = np.setdiff1d(fit.labels["index"].to_numpy(), picks["fit"])
+    picks["fit_more"] = np.sort(np.random.default_rng(PICK_SEED + 1).choice(rest, MORE_FIT_FRAMES, replace=False))
     sun, out, t0 = np.asarray(scene.sun_direction, np.float64), {}, time.perf_counter()
     with Renderer(K, scene) as renderer:
         for name, index in picks.items():
@@ -103,14 +109,18 @@ def render(p: Any) -> None:
     np.savez_compressed(OUT / "earth.npz", **out)
 
 
-def _swapped(split: Any, earth: dict[str, np.ndarray], key: str, share: float, seed: int) -> np.ndarray:
-    """The split's images with a seeded `share` of its frames (of those with an Earth render) swapped for it."""
+def _swapped(split: Any, earth: dict[str, np.ndarray], keys: tuple[str, ...], share: float, seed: int) -> np.ndarray:
+    """The split's images with a seeded `share` of its frames swapped for their Earth renders: those of the first
+    set of `keys` (a seeded choice when there are more), then a seeded choice of the next set's."""
     images, index = np.array(split.images), split.labels["index"].to_numpy()
-    where = {int(k): i for i, k in enumerate(earth[f"{key}_index"])}
-    have = np.flatnonzero([int(k) in where for k in index])
-    n = min(len(have), int(round(share * len(index))))
-    for i in np.random.default_rng(seed).choice(have, n, replace=False) if n else []:
-        images[i] = earth[f"{key}_images"][where[int(index[i])]]
+    left = int(round(share * len(index)))
+    for k, key in enumerate(keys):
+        where = {int(f): i for i, f in enumerate(earth[f"{key}_index"])}
+        have = np.flatnonzero([int(f) in where for f in index])
+        n = min(len(have), left)
+        for i in np.random.default_rng(seed + k).choice(have, n, replace=False) if n else []:
+            images[i] = earth[f"{key}_images"][where[int(index[i])]]
+        left -= n
     return images
 
 
@@ -131,9 +141,11 @@ def train(p: Any, name: str) -> None:
     model, loss = PoseNet(float(p.train.width), float(p.train.dropout), level), PoseLoss("mean")
     (fit_split, fit_set, _), (val_split, _) = data.training_sets(p, p.seed + SEED_OFFSET["train"])
     earth = _earth_frames(p)
-    train_set = PoseDataset(_swapped(fit_split, earth, "fit", EARTH_SHARE, 1), fit_split.targets,
+    share = options.get("earth_share", EARTH_SHARE)   # by default the FIT_FRAMES renders only (23%)
+    keys = ("fit", "fit_more") if "earth_share" in options else ("fit",)
+    train_set = PoseDataset(_swapped(fit_split, earth, keys, share, 1), fit_split.targets,
                             fit_set.augment_cfg, cfg.seed)
-    val_set = PoseDataset(_swapped(val_split, earth, "val", EARTH_SHARE, 2), val_split.targets)
+    val_set = PoseDataset(_swapped(val_split, earth, ("val",), share, 2), val_split.targets)
     standard = load_pose(p)
     model.load_state_dict(standard.model.state_dict())
     loss.load_state_dict(standard.loss.state_dict())
@@ -178,12 +190,13 @@ def evaluate(p: Any, name: str, split_name: str, frames: int) -> None:
     have = np.flatnonzero([int(k) in where for k in split.labels["index"].to_numpy()])
     rows = have[sample_rows(len(have), frames, 0)]
     ours = [where[int(split.labels["index"].iloc[r])] for r in rows]
-    images = np.concatenate([np.stack([split.images[int(r)] for r in rows]), earth[f"{split_name}_images"][ours]])
-    targets = np.tile(np.asarray(split.targets[rows], np.float64), (2, 1))
-    kinds = np.concatenate([np.full(len(rows), "black"), earth[f"{split_name}_kind"][ours]])
+    targets = np.asarray(split.targets[rows], np.float64)
     model = _model(p, name)
     t0, c0 = time.perf_counter(), time.process_time()
-    rows_out = ablation_rows({name: model}, images, targets, EPS, LEAN, kinds)
+    # one suite run on the black frames, one on the same frames over their backgrounds (split by kind)
+    rows_out = ablation_rows({name: model}, np.stack([split.images[int(r)] for r in rows]), targets, EPS, LEAN)
+    rows_out += ablation_rows({name: model}, earth[f"{split_name}_images"][ours], targets, EPS, LEAN,
+                              earth[f"{split_name}_kind"][ours])
     pos, att = pose_errors(predict(model, PoseDataset(np.asarray(split.images), split.targets), 64), split.targets)
     record = {"name": name, "split": split_name, "frames": int(len(rows)), "rows": rows_out,
               "whole_split_clean": {"n": int(len(pos)), "pos_m": float(pos.mean()), "att_deg": float(att.mean())},
