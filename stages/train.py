@@ -225,13 +225,14 @@ def _write_robust(params: Params, net: Any, best: dict[str, Any], result: Any, s
                      for split, ds, s in (("val", val_set, val_split), ("test", test_set, test_split))}
         out[name]["attacks"] = attack_table(model, loss, images, test_split.targets[rows], adv.eval_eps,
                                             adv.eval_steps, seed, 64, device)
-    # training cost: minutes (this machine) and gradients (weight-gradient + input-gradient image passes)
+    # training cost: minutes (this machine) and gradients (weight-gradient + input-gradient image passes; with
+    # trades the attacked rows' clean images are fitted too)
     standard_run, a = read_json(METRICS), adversarial_config(adv)
     per_epoch = len(train_split) // params.train.batch_size * params.train.batch_size
     out["standard"].update(train_minutes=standard_run.get("train_minutes"),
                            gradients=standard_run.get("epochs_run", 0) * per_epoch)
     out["robust"].update(train_minutes=result.seconds / 60,
-                         gradients=round(len(result.history) * per_epoch * (1 + a.steps * a.fraction)))
+                         gradients=round(len(result.history) * per_epoch * (1 + (a.steps + (a.trades > 0)) * a.fraction)))
     shift = params.lab.domain_shift
     metrics = {**out, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
                "stopped_early": result.stopped_early, "score": result.best_score, "eval_frames": int(len(rows)),

@@ -23,6 +23,7 @@ from pipeline.pose.train import TrainConfig, fit, make_deterministic
 from stages.artifacts import data, models
 from stages.artifacts.paths import POSE_ROBUST
 from stages.config import params as params_mod
+from stages.config.build import adversarial_config
 from stages.config.sections import ParamsError
 from stages.errors import StageError
 from test_training import H, W, write_dataset
@@ -139,8 +140,8 @@ def test_adversarial_training_lowers_the_pgd_error(dataset):
 
 def test_the_eps_ramp_and_the_attacked_share():
     adv = Adversary(AdversarialConfig(eps=0.04, steps=1, ramp_epochs=2, fraction=0.5), PoseLoss(), 10, 0)
-    assert adv.eps_at(0) == pytest.approx(0.002) and adv.eps_at(9) == pytest.approx(0.02)
-    assert adv.eps_at(19) == adv.eps_at(500) == pytest.approx(0.04)
+    assert 0.04 * adv.ramp(0) == pytest.approx(0.002) and 0.04 * adv.ramp(9) == pytest.approx(0.02)
+    assert adv.ramp(19) == adv.ramp(500) == 1.0
     model = PoseNet(0.125, 0.0).eval()
     x = torch.rand(4, 3, H, W)
     x_adv = adv.perturb(model, x, _target(), 100)
@@ -207,15 +208,30 @@ def test_tilt_and_roll_split_the_attitude_error_about_the_line_of_sight():
     ("black_level", 0.03, r"train.adversarial: black_level \(0.03\) must exceed eps \(0.05\)"),
     ("black_level", 1.0, r"train.adversarial.black_level must be a number in \[0, 1\)"),
     ("fraction", 1.0, r"train.adversarial: attacked_rotation: false needs fraction < 1"),   # the default is false
+    ("start", "lift", r"train.adversarial: black_level \(0.03\) must exceed eps \(0.05\) unless start: lift and "
+                      r"bpda: true"),                                                    # black_level 0.03, bpda off
+    ("objectives", ["speed"], r"train.adversarial.objectives"),
 ])
 def test_bad_adversarial_params_are_refused_in_one_line_naming_the_key(tmp_path, monkeypatch, key, value, message):
     monkeypatch.chdir(tmp_path)
     p = params_mod.compose("smoke")
     p["train"]["adversarial"][key] = value
+    if key == "start":
+        p["train"]["adversarial"]["black_level"] = 0.03
     params_mod.write_params(p)
     with pytest.raises(ParamsError, match=message) as err:
         params_mod.load()
     assert "\n" not in str(err.value)
+
+
+def test_a_budget_past_the_clamp_is_accepted_with_the_lifting_start_and_bpda(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    p = params_mod.compose("smoke")
+    p["train"]["adversarial"].update(eps=0.1, black_level=0.07, start="lift", bpda=True, objectives=["position", "attitude"],
+                                     attacked_rotation=True)
+    params_mod.write_params(p)
+    a = adversarial_config(params_mod.load().train.adversarial)
+    assert a.unmasked() and a.eps == 0.1 and a.objectives == ("position", "attitude")
 
 
 def test_robust_stage_writes_the_model_its_page_and_a_loader_reads_it(dataset):

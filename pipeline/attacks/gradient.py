@@ -54,8 +54,9 @@ def _eval_mode(model: nn.Module) -> Iterator[None]:
         model.train(was_training)
 
 
-def _input_grad(model: nn.Module, x: Tensor, y: Tensor, loss_fn: LossFn) -> Tensor:
-    """d loss_fn(model(x), y) / dx, without accumulating parameter gradients."""
+def _input_grad(model: Callable[[Tensor], Tensor], x: Tensor, y: Tensor, loss_fn: LossFn) -> Tensor:
+    """d loss_fn(model(x), y) / dx, without accumulating parameter gradients (`model`: a network, or any
+    differentiable forward such as pipeline/attacks/bpda.py's)."""
     x = x.detach().requires_grad_(True)
     with torch.enable_grad():
         loss = loss_fn(model(x), y)

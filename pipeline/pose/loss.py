@@ -35,6 +35,13 @@ class PoseLoss(nn.Module):
             return pos.mean(), rot.mean()
         return pos.sum(), rot.sum()
 
+    def consistency(self, pred: torch.Tensor, anchor: torch.Tensor) -> torch.Tensor:
+        """How far (B, 9) predictions are from anchors (the same images' clean predictions), in the loss's units:
+        exp(-2 s_p) A(||p - p_a||) + exp(-2 s_r) A(||r - r_a||) with the learned weights held fixed (no gradient
+        to s_p, s_r): the TRADES-style term of adversarial training (pipeline/pose/adversarial.py)."""
+        pos, rot = self.parts(pred, anchor)
+        return torch.exp(-2 * self.s_p.detach()) * pos + torch.exp(-2 * self.s_r.detach()) * rot
+
     def forward(self, pred: torch.Tensor, target: torch.Tensor, skip_rotation: int = 0) -> torch.Tensor:
         """The loss of (B, 9) predictions; `skip_rotation` > 0 leaves the first rows out of the rotation term
         (adversarial training that fits only the position of its attacked images, pipeline/pose/adversarial.py)."""

@@ -159,6 +159,15 @@ class PoseNet(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self._head(self._features(x.to(self.device, non_blocking=True))).to(x.device)
 
+    def forward_paired(self, x: torch.Tensor, pairs: int) -> torch.Tensor:
+        """forward(x) (B, 9) where the last `pairs` images of x are other views (attacked copies) of its first
+        `pairs` (TRADES-style training, pipeline/pose/adversarial.py): in training mode each pair shares one
+        dropout mask, so the two outputs of a pair differ by their images only."""
+        f = self._features(x.to(self.device, non_blocking=True))
+        keep = self.dropout(torch.ones_like(f[:len(f) - pairs]))
+        f = f * torch.cat([keep, keep[:pairs]])
+        return torch.cat([self.head_pos(f), self.head_rot(f)], dim=1).to(x.device)
+
     def arch(self) -> dict[str, float]:
         """The constructor arguments (stored in checkpoints; black_level only when the clamp is on, so a
         standard model's checkpoint reads as before)."""

@@ -13,8 +13,9 @@ The caller passes a validation set carved from the training data (pipeline.evalu
 never sees the test split, so the checkpoint it keeps is not selected on test data.
 
 The model selection score is the ESA SPEED score (pipeline/pose/metrics.py); with an adversary, plus the
-mean relative position error ||p - p_gt|| / ||p_gt|| of its attacked validation images (`Adversary.validate`):
-the harm is a position error, and the attacked attitude (which training may leave undefended) is not scored.
+error of its attacked validation images (`Adversary.validate`, `Adversary.selection_error`): their mean relative
+position error ||p - p_gt|| / ||p_gt|| when training attacks the position-weighted loss (the harm is a position
+error), their SPEED score (position and attitude) when it attacks the suite's objectives.
 """
 from __future__ import annotations
 
@@ -221,9 +222,17 @@ class _Objective(nn.Module):
         super().__init__()
         self.model, self.loss = model, loss
 
-    def forward(self, x: torch.Tensor, y: torch.Tensor, skip_rotation: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-        pred = self.model(x)
-        return self.loss(pred, y, skip_rotation), pred
+    def forward(self, x: torch.Tensor, y: torch.Tensor, skip_rotation: int = 0, pairs: int = 0,
+                beta: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+        """(loss, predictions of the len(y) fitted images): with `pairs` > 0 the last `pairs` inputs are attacked
+        copies of the first ones and add beta x their consistency with them (Adversary.batch; one dropout mask
+        per pair: PoseNet.forward_paired)."""
+        if not pairs:
+            pred = self.model(x)
+            return self.loss(pred, y, skip_rotation), pred
+        pred = self.model.forward_paired(x, pairs)
+        clean = pred[:len(y)]
+        return self.loss(clean, y, skip_rotation) + beta * self.loss.consistency(pred[len(y):], clean[:pairs]), clean
 
 
 def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, val_set: PoseDataset, cfg: TrainConfig,
@@ -325,10 +334,10 @@ class _Step:
 
     def __call__(self, x: torch.Tensor, y: torch.Tensor, where: str) -> tuple[float, torch.Tensor]:
         """One step on the batch (x, y) (its PGD-k examples with an adversary) -> (loss, predictions)."""
-        skip = 0
+        skip = pairs = 0
         if self.adversary is not None:
-            x, skip = self.adversary.perturb(self.model, x, y, self.step), self.adversary.skip_rotation(len(x))
-        value, pred = self.objective(x, y, skip)
+            x, skip, pairs = self.adversary.batch(self.model, x, y, self.step)
+        value, pred = self.objective(x, y, skip, pairs, self.adversary.cfg.trades if pairs else 0.0)
         check_loss(value.item(), where)
         self.opt.zero_grad(set_to_none=True)
         value.backward()
@@ -376,7 +385,7 @@ def _epoch_stats(model: nn.Module, loss: PoseLoss, val_set: PoseDataset, cfg: Tr
         adv_pred, adv_targets = adversary.validate(model, val_set, device)
         adv_pos_errors, adv_att_errors = pose_errors(adv_pred, adv_targets)
         adv_pos, adv_att = float(adv_pos_errors.mean()), float(adv_att_errors.mean())
-        selection = score + float(np.mean(adv_pos_errors / np.linalg.norm(adv_targets[:, :3], axis=1)))
+        selection = score + adversary.selection_error(adv_pred, adv_targets)
     n = sums[3].item()
     return EpochStats(epoch=epoch + 1, loss=sums[0].item() / n, lr=float(sched.get_last_lr()[0]),
                       s_p=loss.s_p.item(), s_r=loss.s_r.item(), train_pos_m=sums[1].item() / n,

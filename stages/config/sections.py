@@ -133,11 +133,17 @@ class Adversarial:
     eval_eps: list[Eps]     # budgets of the FGSM / PGD table of reports/pose_robust.md
     eval_steps: Annotated[int, In("[1, 100000]", "PGD steps")]
     eval_frames: Count      # test frames of that table (seeded sample)
+    objectives: list[Literal["position", "range_far", "range_near", "lateral", "attitude"]]  # cycled over attacked rows
+    start: Literal["random", "lift"]   # the attack's start in the eps ball
+    bpda: bool              # the attack's gradient passes the clamp as the identity
+    objective_eps: list[Eps]   # each objective's budget in (0, eps] ([] = eps for every one)
+    trades: Annotated[float, In("[0, 1000]", "weight")]   # beta of the TRADES-style consistency term (0: off)
 
     def __post_init__(self) -> None:
-        if 0 < self.eps <= 1 and not self.black_level > self.eps:   # (an eps out of range: its own message)
-            raise ValueError(f"black_level ({self.black_level}) must exceed eps ({self.eps}): the clamp must "
-                             f"swallow a black pixel lifted by the whole training budget")
+        unmasked = self.start == "lift" and self.bpda
+        if 0 < self.eps <= 1 and not self.black_level > self.eps and not unmasked:   # (an eps out of range: its own message)
+            raise ValueError(f"black_level ({self.black_level}) must exceed eps ({self.eps}) unless start: lift and "
+                             f"bpda: true: past the clamp a random start and its gradient mask the attack")
         if not self.attacked_rotation and self.fraction == 1:
             raise ValueError("attacked_rotation: false needs fraction < 1 (the rotation is fitted on the clean share)")
 

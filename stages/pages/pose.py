@@ -137,9 +137,9 @@ def robust_page(m: dict[str, Any], params: Params) -> str:
 
 The standard model (models/pose.pt, `rpod train`: the paper's reproduction) beside the robust one
 (models/pose_robust.pt): the same network with a black-level clamp in front, {'fine-tuned from the standard model' if a.init == 'standard' else 'trained from the seed'}
-with PGD-{a.steps} adversarial training (inner loss {a.position_weight:g} position / {1 - a.position_weight:g} rotation, eps ramped to
+with PGD-{a.steps} adversarial training ({_inner(a)}, eps ramped to
 {a.eps:g} over {a.ramp_epochs:g} epochs, {100 * a.fraction:g}% of each batch attacked, {_fitted(a.attacked_rotation)}) for {m['epochs_run']} epoch(s); best
-epoch {m['best_epoch']} by the clean validation SPEED score plus the mean relative position error under PGD-{a.val_steps}
+epoch {m['best_epoch']} by the clean validation SPEED score plus the {'SPEED score' if a.objectives else 'mean relative position error'} under PGD-{a.val_steps}
 at eps {a.eps:g} ({a.val_frames} validation frames attacked every epoch). Profile `{params.profile_name}`.
 
 {black_level_line(m['black_level'], a.eps)}
@@ -163,6 +163,14 @@ clamp no longer holds the background black.
 ## Errors per range bin (test)
 
 {markdown_table(_bins(m, models), decimals=3)}"""
+
+
+def _inner(a: Any) -> str:
+    """What the training attack ascends and where it starts, in words (train.adversarial)."""
+    inner = (f"the attack suite's objectives {', '.join(a.objectives)} cycled over the attacked images" if a.objectives
+             else f"inner loss {a.position_weight:g} position / {1 - a.position_weight:g} rotation")
+    start = ", from the background-lifting start" if a.start == "lift" else ""
+    return f"{inner}{start}{', the gradient through the clamp by BPDA' if a.bpda else ''}"
 
 
 def _fitted(attacked_rotation: bool) -> str:
