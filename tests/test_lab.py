@@ -374,6 +374,7 @@ def test_a_failing_retrain_step_is_one_clear_error(tmp_path, monkeypatch):
 
     from stages import lab_models
     from stages.config import params as params_mod
+    from stages.engine import subrun
     from stages.errors import StageError
 
     def run_step(args: list[str], folder: Path) -> None:
@@ -381,7 +382,7 @@ def test_a_failing_retrain_step_is_one_clear_error(tmp_path, monkeypatch):
         raise StageError("params.yaml render: boom")
 
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(lab_models, "run_step", run_step)
+    monkeypatch.setattr(subrun, "run_step", run_step)
     with pytest.raises(StageError, match=r"^lab.retrain \(render on the synthetic-lab set in final/\): params.yaml "
                                          r"render: boom$"):
         lab_models.retrain(build(params_mod.compose("smoke", ["lab.retrain=always"])), tmp_path / "sub", Path("final"))

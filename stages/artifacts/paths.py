@@ -82,11 +82,24 @@ LAB, LAB_REPORT, LAB_METRICS = _outputs("lab", "datasets/lab", "reports/lab.md",
 # issue 38's 2 x 2 ablation of the paper's detector: a stage of optional/dvc.yaml (`dvc repro optional/dvc.yaml`), not of
 # the default `dvc repro`
 ABLATION_REPORT, ABLATION_METRICS = _outputs("ablation", "reports/ablation.md", "reports/metrics/ablation.json")
+# issue 38's pose trials, also of optional/dvc.yaml: `rpod pose_trial VARIANT` (stage trial_VARIANT) retrains the standard
+# recipe on a variant of the data set; `rpod attitude` measures the attitude gap's causes with them, `rpod heldout`
+# re-checks the choices made on test or evaluation numbers on seeds no choice saw, `rpod differences` tabulates the gaps
+POSE_TRIALS = Path("datasets/pose_trials")
+TRIAL_STAGES = ("per_sequence", "320x180", "fy360")   # the variants with a stage (480x270: for a GPU box)
+for _variant in TRIAL_STAGES:
+    _outputs(f"trial_{_variant}", str(POSE_TRIALS / _variant))
+ATTITUDE_REPORT, ATTITUDE_METRICS = _outputs("attitude", "reports/attitude.md", "reports/metrics/attitude.json")
 # the headline numbers (what `dvc metrics show` prints), then the report's own figures
 PAGE, SUMMARY, *_FIGURES = _outputs("report", "reports/README.md", "reports/metrics/summary.json",
                                     *(f"reports/figures/{name}.png"
                                       for name in ("pose_errors", "error_vs_eps", "shap_heatmaps", "roc")))
 REPORT_FIGURES = {path.stem: path for path in _FIGURES}
+
+
+def trial_summary(variant: str) -> Path:
+    """summary.json of a pose trial's folder (`rpod pose_trial VARIANT`)."""
+    return POSE_TRIALS / variant / "summary.json"
 
 
 
