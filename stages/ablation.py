@@ -71,6 +71,7 @@ def main(params: Params) -> None:
     protocols = {mix: [_strict(params, rng, chain.model, shap, loss_fn, eps, n),
                        _paper(params, rng, chain.model, shap, loss_fn, eps, n)] for mix, (eps, n) in mixes.items()}
     explain_s = time.perf_counter() - t0
+    threads = torch.get_num_threads()   # as torch_setup left them, for the sequences' pose network
     torch.set_num_threads(1)   # the LSTM's matrices are small: extra threads cost more than they give (as rpod detect)
     config = LSTMConfig(n_rows=9, n_features=len(background), hidden=d.hidden, dense=list(d.dense))
     fit = {"epochs": d.epochs, "patience": d.patience, "batch_size": d.batch_size, "lr": float(d.lr)}
@@ -85,7 +86,7 @@ def main(params: Params) -> None:
     except ValueError as e:   # also a diverged fit (DivergenceError)
         raise StageError(f"params.yaml ablation / detect: {e}") from None
     fit_s = time.perf_counter() - t1
-    torch.set_num_threads(params.threads or torch.get_num_threads())
+    torch.set_num_threads(threads)
     t2 = time.perf_counter()
     sequences = {"integrated": _eval_sequences(params), **({"lab": _lab_sequences(params)}
                                                             if retrain_reason(params) is None else {})}
