@@ -2,7 +2,7 @@
 BIN := .venv/bin
 export PATH := $(CURDIR)/$(BIN):$(PATH)
 
-.PHONY: setup repro test smoke
+.PHONY: setup repro paper test smoke
 
 setup:
 	@bash scripts/setup.sh
@@ -10,6 +10,13 @@ setup:
 ## Run the whole pipeline on the profile in params.yaml (the default profile as committed).
 repro: setup
 	dvc repro
+
+## The paper profile end to end, for a GPU box (README, "GPU and the paper profile"): params.yaml switched to the
+## paper profile, the default pipeline, then the optional ablation. `rpod params default` switches back.
+paper: setup
+	rpod params paper
+	dvc repro
+	dvc repro optional/dvc.yaml:ablation
 
 ## Run the test suite (includes the smoke end-to-end run).
 test: setup

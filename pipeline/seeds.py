@@ -16,8 +16,9 @@ STREAMS: dict[str, int] = {
     # the stages' own streams, on their base seed
     "render": 100, "label": 200, "train": 300, "attack": 400, "guidance": 500, "shap": 500, "detect": 600,
     "lab_models": 700, "robustness": 1500, "lab": 0, "robust": 1600, "ablation": 1700,
-    "background": 1800,             # render.background draws (Earth, stars, sensor noise); index: none, per frame inside
+    "background": 1800,             # render.background draws (Earth, stars, sensor noise); index: none, per frame
     "evaluate.schedule": 17,        # on evaluate.seed; index: the trajectory
+    "evaluate.black_level": 41,     # on evaluate.seed: the clamp's held-out check (frames and the simulated lab shift)
     # streams within a stage or a library step, on the seed it was given
     "eval_render.trajectory": 1,    # index: the trajectory of the set
     "eval_render.envelope": 500,    # datasets/val_envelope on defense.val_seed: no draw shared with val_render

@@ -35,7 +35,7 @@ from stages.config.device import torch_setup
 from stages.config.evaluation import Evaluate
 from stages.config.schema import Params
 from stages.pages.calibrate import unmet_banner
-from stages.pages.evaluate import chain_names, defense_section, rates_section
+from stages.pages.evaluate import chain_names, clamp_section, defense_section, rates_section
 from stages.pages.paper import ATTACK_LENGTH, INTEGRATED, INTEGRATED_EPS, P_START, by_eps, frames_note
 
 if TYPE_CHECKING:
@@ -58,8 +58,8 @@ def main(params: Params) -> None:
     Params: `evaluate` (trajectories, frames, lateral_range, p_start, attack_length, eps, seed,
     batch_size), `defense`, plus `render`/`camera` for the images and `attack.loss` for the FGSM loss.
     """
-    from pipeline.evaluation.rates import sequence_rates
     from pipeline.attacks.schedule import attacked_fraction
+    from pipeline.evaluation.rates import sequence_rates
     from pipeline.evaluation.sequences import nan_to_none, per_eps_summary, rates_json
     from pipeline.report.figures import detection_timeline
 
@@ -81,13 +81,14 @@ def main(params: Params) -> None:
     save_figure(detection_timeline(s0.poses["tz"].to_numpy(), s0.attacked, res.traces[(eps_fig, s0.name)],
                                    chain.threshold, title), FIGURE)
     names = list(fused)
+    clamp = _clamp_heldout(params, images)
     metrics = {"model": PAPER.value, "model_hash": paper.chain.pose_hash, "frames_per_trajectory": e.frames,
                "trajectories": len(sequences), "p_start": e.p_start, "attack_length": e.attack_length,
                "threshold": chain.threshold, "seconds": seconds,
                "accuracy_mean": float(np.mean([r["accuracy"] for r in summary])),
                "per_eps": {f"{r['eps']:g}": r for r in summary}, "rows": res.rows, "clean": res.clean,
                "attacked_fraction": {s.name: float(s.attacked.mean()) for s in sequences},
-               "start_xy": meta["start_xy"], "shipped": _shipped_metrics(shipped),
+               "start_xy": meta["start_xy"], "shipped": _shipped_metrics(shipped), "black_level_heldout": clamp,
                "rates": {f"{e:g}": r.as_json(attacked_fraction(P_START, ATTACK_LENGTH))
                          for e, r in sequence_rates(res.rows).items()},
                "fused": {"fusion": shipped.chain.defended.settings.fusion, "harm_m": params.defense.harm_m,
@@ -99,10 +100,22 @@ def main(params: Params) -> None:
                       + report(res.rows, summary, res.clean, sequences, e, meta, chain.threshold, eps_fig,
                                params.profile_name)
                       + defense_section(fused, shipped_cal.to_json(), params.defense.harm_m, e.attack_length,
-                                        _shipped_clean(shipped)))
+                                        _shipped_clean(shipped))
+                      + clamp_section(clamp, params.evaluate.seed))
     typer.echo(f"evaluate: {len(sequences)} trajectories x {len(e.eps)} eps, standard and robust chain in "
                f"{seconds:.0f} s; mean accuracy (standard, paper's view) {100 * metrics['accuracy_mean']:.2f}% "
                f"-> {REPORT}, {FIGURE}")
+
+
+def _clamp_heldout(params: Params, images: Any) -> dict[str, float]:
+    """The black-level clamp's statistics (pipeline.pose.robustness.black_level_stats: the robust model's threshold
+    train.adversarial.black_level against the background under the simulated lab shift lab.domain_shift, and the
+    target values it erases) on the evaluation frames, which the threshold's choice did not read."""
+    from pipeline.pose.robustness import black_level_stats
+
+    shift = params.lab.domain_shift
+    return black_level_stats(images, float(params.train.adversarial.black_level), float(shift.noise_std),
+                             float(shift.blur_sigma), seed_for(params.evaluate.seed, "evaluate.black_level"))
 
 
 def _sequences(images: np.ndarray, poses: Any, e: Evaluate) -> list[Sequence]:

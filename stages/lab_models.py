@@ -22,10 +22,6 @@ written, so DVC runs this stage as a no-op and `rpod lab` is not re-run for it.
 from __future__ import annotations
 
 import dataclasses
-import os
-import subprocess
-import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -33,9 +29,9 @@ from pipeline.io.atomic import atomic_dir, file_hash, read_json, write_json
 from pipeline.seeds import seed_for
 from stages.artifacts.paths import DETECT_METRICS, DETECTOR, LAB_MODELS, LAB_MODELS_SUMMARY, POSE, RENDER, TRAIN_METRICS
 from stages.config.build import mockup, retrain_reason
-from stages.config.params import NONE, PARAMS_FILE, ROOT, write_params
+from stages.config.params import NONE
 from stages.config.schema import Params
-from stages.errors import StageError
+from stages.engine.subrun import run_steps
 
 
 def sub_params(p: Params) -> Params:
@@ -56,33 +52,11 @@ STEPS = {"render": ["render"], "label": ["label"], "train": ["train"], "detect_r
          "shap": ["shap"], "detect": ["detect", "--no-eval-alarms"]}
 
 
-def run_step(args: list[str], folder: Path) -> None:
-    """`rpod <args>` as a subprocess in `folder` (it reads ./params.yaml there); a failure is a StageError
-    carrying the command's own one-line error."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
-    out = subprocess.run([sys.executable, "-m", "stages.cli", *args], cwd=folder, env=env, stderr=subprocess.PIPE,
-                         text=True)
-    sys.stderr.write(out.stderr)
-    if out.returncode != 0:
-        lines = [ln for ln in out.stderr.strip().splitlines() if ln.strip()]
-        raise StageError((lines[-1] if lines else f"exit status {out.returncode}").removeprefix("error: "))
-
-
 def retrain(p: Params, dest: Path, final: Path) -> dict[str, Any]:
     """Render, label, train, explain and detect on the synthetic-lab set in `dest` (a fresh folder that
     becomes `final`); returns the summary the lab report and metrics show (seconds per step)."""
     sub = sub_params(p)
-    dest.mkdir(parents=True, exist_ok=True)
-    write_params(dataclasses.asdict(sub), dest / PARAMS_FILE)
-    seconds: dict[str, float] = {}
-    for i, (name, args) in enumerate(STEPS.items(), 1):
-        print(f"lab: synthetic-lab {name} ({i}/{len(STEPS)}) for {final}/", flush=True)
-        t0 = time.perf_counter()
-        try:
-            run_step(args, dest)
-        except (StageError, ValueError) as e:
-            raise StageError(f"lab.retrain ({name} on the synthetic-lab set in {final}/): {e}") from None
-        seconds[name] = time.perf_counter() - t0
+    seconds = run_steps(sub, STEPS, dest, final, "lab.retrain", "on the synthetic-lab set in")
     train_m = read_json(dest / TRAIN_METRICS)
     detect_m = read_json(dest / DETECT_METRICS)
     meta = read_json(dest / RENDER / "meta.json")

@@ -33,7 +33,7 @@ from stages.artifacts.readers import read_render_store
 from stages.config import params as params_mod
 from stages.config.build import intrinsics, scene_settings
 from stages.config.schema import Params
-from stages.engine.chunks import frame_backgrounds, keyed_store, render_to_store, replacing, store_url
+from stages.engine.chunks import device_record, frame_backgrounds, keyed_store, render_to_store, replacing, store_url
 from stages.engine.pool import engine_settings
 from stages.errors import StageError
 
@@ -66,15 +66,17 @@ def sequences(p: Params) -> list[Any]:
     return seqs
 
 
-def render_all(p: Params, dest: Path) -> float:
+def render_all(p: Params, dest: Path) -> tuple[float, dict[str, Any]]:
     """Render every frame into dest/{poses.parquet, meta.json} and the image store (dest/images.zarr, or
     `engine.store`'s store for this fingerprint, which meta.json then names); `dest` is a fresh folder.
-    Returns the render time (s): timings go to reports/metrics/render.json, never into meta.json, so the
-    folder's hash is stable."""
+    Returns the render time (s) and the Cycles device used (`device_record`): timings go to
+    reports/metrics/render.json, never into meta.json, so the folder's hash is stable; meta.json records the device
+    when render.device is not cpu (the CPU path's meta.json is as it was)."""
     from pipeline.geometry.trajectories import flatten, poses_table
 
     r, es, store = p.render, engine_settings(p), p.engine.store
     K, scene = intrinsics(p), scene_settings(r)
+    device = device_record(scene)
     seqs = sequences(p)
     seq, frm, R, t = flatten(seqs)
     draws, kinds = frame_backgrounds(K, scene, R, np.concatenate([s.R_cam for s in seqs]),
@@ -93,8 +95,9 @@ def render_all(p: Params, dest: Path) -> float:
     write_json(dest / "meta.json", {
         "complete": True, "fingerprint": fp, "frames": n, "width": K.width,
         "height": K.height, "K": K.K, "render": params_mod.render_record(r), "camera": dataclasses.asdict(p.camera),
-        "seed": p.seed, "chunk": min(r.chunk, n), **({"store": url} if store else {})})
-    return seconds
+        "seed": p.seed, "chunk": min(r.chunk, n), **({"store": url} if store else {}),
+        **({"cycles_device": device} if r.device != "cpu" else {})})
+    return seconds, device
 
 
 def remove_leftovers(path: Path) -> None:
@@ -127,24 +130,25 @@ def write_previews(images, poses, n_previews: int) -> list[Path]:
 
 
 def main(params: Params) -> None:
-    """Render the 13 approach sequences with Blender Cycles (CPU, headless), or import the SPEED/SPEED+
+    """Render the 13 approach sequences with Blender Cycles (headless; render.device: CPU or GPU), or import the SPEED/SPEED+
     folder of `render.source`. Writes datasets/render/ (images.zarr, poses.parquet, meta.json) atomically
     and PNG previews to reports/figures/previews/. Parameters: `seed`, `camera`, `render` and `engine`
     (workers, Ray cluster address, image store) in params.yaml.
     """
     imported = params_mod.given(params.render.source) is not None   # a SPEED/SPEED+ folder instead of rendering
     with exclusive(OUT.parent / ".render.lock", str(OUT)):
+        device = None
         if imported:
             seconds = speed_io.import_source(params, OUT)
         else:
             remove_leftovers(OUT)
             with atomic_dir(OUT) as tmp:
-                seconds = render_all(params, tmp)
+                seconds, device = render_all(params, tmp)
     images, poses, meta = read_render_store(OUT)
     previews = write_previews(images, poses, params.render.previews)
     n = int(meta["frames"])
     write_metrics(METRICS, {"frames": n, "seconds": seconds, "seconds_per_image": seconds / max(n, 1),
                             "workers": None if imported else engine_settings(params).workers,
-                            "imported": imported}, params.profile_name)
+                            "imported": imported, "cycles_device": device}, params.profile_name)
     typer.echo(f"{OUT}: {n} images {meta['width']}x{meta['height']}, {seconds / max(n, 1):.3f} s/image "
                f"(-> {METRICS}); previews: {', '.join(str(x) for x in previews)}")

@@ -103,13 +103,16 @@ PIPELINES = ("dvc.yaml", "optional/dvc.yaml")
 STAGES = {name: st for f in PIPELINES for name, st in yaml.safe_load((REPO / f).read_text())["stages"].items()}
 
 
+# commands that run other commands as subprocesses (stages/engine/subrun.py): lab_models with lab.retrain, pose_trial
+SUBPROCESSES = {"lab_models": ("render", "label", "train", "shap", "detect"), "pose_trial": ("render", "label", "train")}
+
+
 def stage_files(name: str) -> set[Path]:
     cmd = STAGES[name]["cmd"].split()
     assert cmd[0] == "rpod", f"stage {name}: command {cmd} is not an rpod command"
     files = files_of(REPO / "stages" / f"{cmd[1]}.py")
-    if name == "lab_models":   # with lab.retrain, stages/lab_models.py runs these commands as subprocesses
-        for sub in ("render", "label", "train", "shap", "detect"):
-            files |= files_of(REPO / "stages" / f"{sub}.py")
+    for sub in SUBPROCESSES.get(cmd[1], ()):
+        files |= files_of(REPO / "stages" / f"{sub}.py")
     return files
 
 

@@ -264,6 +264,10 @@ def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
     assert set(ev["fused"]["per_eps"]) == {"0.5", "0.05"} and ev["fused"]["per_eps"]["0.5"]["tpr"]["n"] > 0
     assert (tmp_path / "reports/figures/timeline.png").stat().st_size > 1000
     assert "| 0.5 " in (tmp_path / "reports/integrated.md").read_text()
+    held = ev["black_level_heldout"]   # the clamp's check on the evaluation frames (fewer here than its 200)
+    assert held["images"] == p["evaluate"]["trajectories"] * 12
+    assert held["threshold"] == p["train"]["adversarial"]["black_level"]
+    assert "## Held-out check of the black-level clamp" in (tmp_path / "reports/integrated.md").read_text()
     lab = json.loads((tmp_path / "reports/metrics/lab.json").read_text())
     assert lab["factor"] == pytest.approx(9 * 640 / (1400.41 / 4))
     assert max(v["position_max_m"] for v in lab["loader_error"].values()) < 1e-3   # lab metres
@@ -374,6 +378,7 @@ def test_a_failing_retrain_step_is_one_clear_error(tmp_path, monkeypatch):
 
     from stages import lab_models
     from stages.config import params as params_mod
+    from stages.engine import subrun
     from stages.errors import StageError
 
     def run_step(args: list[str], folder: Path) -> None:
@@ -381,7 +386,7 @@ def test_a_failing_retrain_step_is_one_clear_error(tmp_path, monkeypatch):
         raise StageError("params.yaml render: boom")
 
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(lab_models, "run_step", run_step)
+    monkeypatch.setattr(subrun, "run_step", run_step)
     with pytest.raises(StageError, match=r"^lab.retrain \(render on the synthetic-lab set in final/\): params.yaml "
                                          r"render: boom$"):
         lab_models.retrain(build(params_mod.compose("smoke", ["lab.retrain=always"])), tmp_path / "sub", Path("final"))

@@ -88,6 +88,8 @@ def _raw_key(p: dict, *extra: tuple[str, tuple[str, ...]]) -> str:
         r.pop("source"), r.pop("source_test")
     if r["target_attitude"] == "per_frame":   # the default: the hash renders had before the option
         r.pop("target_attitude")
+    if r["device"] == "cpu":                  # the default Cycles device, likewise
+        r.pop("device")
     key = {"seed": p["seed"], "camera": p["camera"], "render": r} | {s: {k: p[s][k] for k in ks} for s, ks in extra}
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.evaluation.rates import detection_rates, rates_by_eps, rates_from_counts, sequence_rates
 from pipeline.attacks.schedule import attack_schedule, attacked_fraction
+from pipeline.evaluation.rates import detection_rates, rates_by_eps, rates_from_counts, sequence_rates
 from pipeline.stats import bootstrap_rate, wilson
 
 
@@ -134,7 +134,8 @@ def test_rates_by_eps_keeps_every_clean_sample_in_each_eps_row():
 
 
 def test_the_pages_rate_tables_reweight_to_the_papers_fraction():
-    from stages.pages.detect import paper_fraction, rates_section as detect_rates
+    from stages.pages.detect import paper_fraction
+    from stages.pages.detect import rates_section as detect_rates
     from stages.pages.evaluate import rates_section
 
     assert paper_fraction() == pytest.approx(5 / 9)
@@ -164,3 +165,23 @@ def test_the_papers_frame_count_and_step_cannot_both_hold():
 
     note = frames_note()
     assert "would each span 625 m" in note and "200 frames at 0.25 m" in note and "2 cm per frame" in note
+
+
+def test_paired_difference_resamples_the_groups_together():
+    from pipeline.evaluation.rates import paired_difference
+
+    rng = np.random.default_rng(0)
+    b = np.array([[rng.integers(0, 50), 50, rng.integers(0, 5), 50] for _ in range(10)])
+    same = paired_difference(b, b)
+    assert same == (0.0, 0.0, 0.0)
+    a = b.copy()
+    a[:, 0] = np.minimum(a[:, 0] + 20, 50)   # the same trajectories, 20 more attacked frames flagged each
+    d, lo, hi = paired_difference(a, b)
+    assert d == pytest.approx(((a[:, 0] - b[:, 0]).sum()) / 1000) and 0 < lo <= d <= hi
+    d_f, lo_f, hi_f = paired_difference(a, b, f=0.5, f_b=0.5)
+    assert d_f == pytest.approx(0.5 * (a[:, 0].sum() - b[:, 0].sum()) / 500) and lo_f <= d_f <= hi_f
+    assert paired_difference(a[:1], b[:1])[1] == paired_difference(a[:1], b[:1])[0]   # one group: no interval
+    reweighted = paired_difference(b, b, f=0.5)              # one detector: re-weighted to f = 0.5 minus as measured
+    assert reweighted[0] == pytest.approx(0.0) and reweighted[1] <= 0 <= reweighted[2]   # b attacks half its frames
+    with pytest.raises(ValueError, match="both be"):
+        paired_difference(a, b[:3])

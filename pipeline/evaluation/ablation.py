@@ -6,7 +6,10 @@ recipe) on clean samples and the attacked samples of every eps, and reports its 
 The two FGSM variants of a protocol attack the same images (one sample plan per protocol, the clean samples shared),
 and both protocols' cells use the same split of their plan, so within a protocol only the attack differs and within
 an attack only the protocol. `protocol_values` computes a protocol's SHAP values (the closed form of
-`pipeline.shap.ExactShap`) for both variants; `run_ablation` fits and measures the four cells.
+`pipeline.shap.ExactShap`) for both variants; `run_ablation` fits and measures the four cells, `learning_curve` one
+cell on fractions of its training samples. On image sequences (the integrated evaluation's trajectories, the lab's),
+`attacked_features` gives the GAP features of the frames as onboard under either FGSM variant and `flag_counts` a
+detector's per-sequence counts on them.
 """
 from __future__ import annotations
 
@@ -51,6 +54,8 @@ class CellResult:
     counts: dict[str, int]               # train, validation, test samples
     shared: float                        # test samples whose source image is also a train/validation sample
     neighbours: float                    # ... or a frame of the same approach at most one frame away
+    eps_set: str = "ablation"            # its detector's eps: "ablation" (ablation.eps) | "paper" (the paper's five)
+    detector: Any = None                 # the fitted LSTMDetector (threshold set), for the sequences
 
     @property
     def leaky(self) -> bool:
@@ -105,7 +110,8 @@ def _explain(model: Any, shap: Callable[[torch.Tensor], torch.Tensor], x: torch.
 
 
 def run_cell(samples: ProtocolSamples, attack: str, split: tuple[np.ndarray, np.ndarray, np.ndarray],
-             config: LSTMConfig, fit: dict[str, Any], seed: int, device: str | torch.device = "cpu") -> CellResult:
+             config: LSTMConfig, fit: dict[str, Any], seed: int, device: str | torch.device = "cpu",
+             eps_set: str = "ablation") -> CellResult:
     """Fit the LSTM detector of one cell on `split`'s train part (early stopping and threshold on its validation
     part; `fit`: epochs, patience, batch_size, lr of `train_lstm`) and measure it on the test part."""
     tr, va, te = split
@@ -113,19 +119,66 @@ def run_cell(samples: ProtocolSamples, attack: str, split: tuple[np.ndarray, np.
     res = train_lstm(x[tr], y[tr], x[va], y[va], config, seed=seed, device=device, **fit)
     flagged = res.model.predict(x[te]).astype(bool)
     seen = np.concatenate([tr, va])
-    return CellResult(attack=attack, protocol=samples.protocol, rates=rates_by_eps(y[te] == 1, flagged, samples.eps[te]),
+    return CellResult(attack=attack, protocol=samples.protocol,
+                      rates=rates_by_eps(y[te] == 1, flagged, samples.eps[te]),
                       threshold=float(res.model.threshold), epochs=len(res.history), best_epoch=res.best_epoch,
                       counts={"train": len(tr), "validation": len(va), "test": len(te)},
                       shared=shared_fraction(samples.source, seen, te),
-                      neighbours=neighbour_fraction(samples.sequence, samples.frame, seen, te))
+                      neighbours=neighbour_fraction(samples.sequence, samples.frame, seen, te), eps_set=eps_set,
+                      detector=res.model)
 
 
 def run_ablation(protocols: list[ProtocolSamples], config: LSTMConfig, fit: dict[str, Any], test_fraction: float,
-                 val_fraction: float, seed: int, device: str | torch.device = "cpu") -> list[CellResult]:
+                 val_fraction: float, seed: int, device: str | torch.device = "cpu",
+                 eps_set: str = "ablation") -> list[CellResult]:
     """The cells FGSM variant x protocol, in the order (ours, strict), (paper, strict), (ours, paper), (paper, paper)
     for protocols given strict then paper: one split per protocol (seeded), one LSTM per cell (same seed)."""
     cells = []
     for p in protocols:
         split = protocol_split(p.protocol, p.source, p.eps, test_fraction, val_fraction, seed)
-        cells += [run_cell(p, attack, split, config, fit, seed, device) for attack in VARIANTS]
+        cells += [run_cell(p, attack, split, config, fit, seed, device, eps_set) for attack in VARIANTS]
     return cells
+
+
+def learning_curve(samples: ProtocolSamples, attack: str, fractions: list[float], config: LSTMConfig,
+                   fit: dict[str, Any], test_fraction: float, val_fraction: float, seed: int,
+                   device: str | torch.device = "cpu", eps_set: str = "ablation") -> list[CellResult]:
+    """One cell's detector fitted on the first `fractions` of its training samples (a seeded permutation of the
+    protocol's training part, so a smaller set lies inside a larger one; the validation and test parts as in
+    `run_ablation`): how its test rates grow with the training samples."""
+    tr, va, te = protocol_split(samples.protocol, samples.source, samples.eps, test_fraction, val_fraction, seed)
+    order = np.random.default_rng(seed).permutation(tr)
+    return [run_cell(samples, attack, (np.sort(order[:max(1, int(round(f * len(tr))))]), va, te), config, fit, seed,
+                     device, eps_set) for f in fractions]
+
+
+def attacked_features(model: Any, loss_fn: Any, images: np.ndarray, targets: np.ndarray, attacked: np.ndarray,
+                      variant: str, eps: float, batch_size: int = 64) -> np.ndarray:
+    """GAP features (N, F) float32 of a sequence's frames as onboard: the frames `attacked` ((N,) bool, a schedule)
+    replaced by the FGSM variant at `eps` against their own labels (`fgsm_variant`: "ours" stored as 8 bits, "paper"
+    unclipped floats), the others clean. `images` uint8 (N, H, W, 3), `targets` (N, 9) (m, 6-D)."""
+    attack = fgsm_variant(model, loss_fn, eps, variant)
+    out = []
+    for lo in range(0, len(images), batch_size):
+        hi = min(lo + batch_size, len(images))
+        x = torch.from_numpy(np.ascontiguousarray(images[lo:hi])).permute(0, 3, 1, 2).float() / 255
+        hit = torch.from_numpy(np.asarray(attacked[lo:hi], bool))
+        if hit.any():
+            x = x.clone()
+            x[hit] = attack(x[hit], torch.tensor(np.asarray(targets[lo:hi], np.float32))[hit])
+        with torch.no_grad():
+            out.append(model.forward_features(x).cpu().numpy().astype(np.float32))
+    return np.concatenate(out) if out else np.zeros((0, 0), np.float32)
+
+
+def flag_counts(features: list[np.ndarray], attacked: list[np.ndarray], shap: Callable[[torch.Tensor], torch.Tensor],
+                detector: Any, threshold: float) -> np.ndarray:
+    """Per sequence the counts (flagged attacked, attacked, flagged clean, clean) (G, 4) (`rates.COUNTS`) of a
+    detector (`predict_proba` of SHAP values) at `threshold` on the sequences' GAP features (`attacked_features`)."""
+    rows = []
+    for feats, att in zip(features, attacked):
+        with torch.no_grad():
+            values = shap(torch.from_numpy(feats)).cpu().numpy()
+        flag, att = detector.predict_proba(values) >= threshold, np.asarray(att, bool)
+        rows.append([int((flag & att).sum()), int(att.sum()), int((flag & ~att).sum()), int((~att).sum())])
+    return np.array(rows, dtype=np.int64).reshape(-1, 4)

@@ -189,3 +189,31 @@ def rate_difference(a: Rate, b: Rate) -> tuple[float, float, float]:
         return float("nan"), float("nan"), float("nan")
     d = a.value - b.value
     return (d, d - math.hypot(a.value - a.lo, b.hi - b.value), d + math.hypot(a.hi - a.value, b.value - b.lo))
+
+
+def paired_difference(a: np.ndarray, b: np.ndarray, f: float | None = None, f_b: float | None = None,
+                      n_resamples: int = 2000, seed: int = 0) -> tuple[float, float, float]:
+    """(difference, lo, hi): the accuracy of per-group counts `a` minus that of `b` (each (G, 4), `COUNTS`; the same G
+    groups in the same order, e.g. two detectors on the same trajectories, or one set of counts twice), each re-weighted
+    to an attacked fraction when one is given (`f` for a, `f_b` for b: `DetectionRates.accuracy_at`; None = the plain
+    accuracy), with the 95% percentile bootstrap interval that resamples the groups once for both (paired: what a
+    trajectory does to both cancels). Raises ValueError on counts of other shapes; with one group the interval is the
+    difference itself."""
+    a, b = (np.atleast_2d(np.asarray(c, dtype=float)) for c in (a, b))
+    if a.shape != b.shape or a.ndim != 2 or a.shape[1] != 4:
+        raise ValueError(f"paired counts must both be (groups, 4), got {a.shape} and {b.shape}")
+
+    def acc(c: np.ndarray, at: float | None) -> np.ndarray:   # c (..., G, 4) -> accuracy (...)
+        tp, n_att, fp, n_clean = (c[..., k].sum(axis=-1) for k in range(4))
+        if at is None:
+            return (tp + n_clean - fp) / (n_att + n_clean)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return at * tp / n_att + (1.0 - at) * (1.0 - fp / n_clean)
+
+    d = float(acc(a, f) - acc(b, f_b))
+    if len(a) < 2:
+        return d, d, d
+    idx = np.random.default_rng(seed).integers(0, len(a), size=(n_resamples, len(a)))
+    boot = acc(a[idx], f) - acc(b[idx], f_b)
+    lo, hi = np.nanpercentile(boot, [50 * (1 - LEVEL), 50 * (1 + LEVEL)])
+    return d, float(min(lo, d)), float(max(hi, d))

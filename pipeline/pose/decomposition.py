@@ -57,6 +57,26 @@ def bootstrap_difference(values: np.ndarray, sequence: np.ndarray, in_a: np.ndar
     return float(values[in_a].mean() - values[~in_a].mean()), float(lo), float(hi)
 
 
+def bootstrap_model_difference(a: np.ndarray, a_sequence: np.ndarray, b: np.ndarray, b_sequence: np.ndarray,
+                               n_resamples: int = 2000, seed: int = 0) -> tuple[float, float, float]:
+    """(difference, lo, hi): the mean of per-frame values `a` minus the mean of `b`, two models' errors on the
+    same sequences (their frames may differ, e.g. two renders of one approach), with the 95% percentile bootstrap
+    interval that draws the sequences once per resample for both sides (paired by sequence: what the sequences
+    share cancels). Raises ValueError when the two sides do not hold the same sequence ids."""
+    a, b = np.asarray(a, np.float64).ravel(), np.asarray(b, np.float64).ravel()
+    a_sequence, b_sequence = np.asarray(a_sequence).ravel(), np.asarray(b_sequence).ravel()
+    if a.shape != a_sequence.shape or b.shape != b_sequence.shape or not a.size or not b.size:
+        raise ValueError("need one sequence id per value on each side (> 0 values)")
+    ids = np.unique(a_sequence)
+    if not np.array_equal(ids, np.unique(b_sequence)):
+        raise ValueError("the two sides must hold the same sequences")
+    (sa, ca), (sb, cb) = _per_sequence(a, a_sequence), _per_sequence(b, b_sequence)
+    idx = np.random.default_rng(seed).integers(0, len(ids), size=(n_resamples, len(ids)))
+    boot = sa[idx].sum(axis=1) / ca[idx].sum(axis=1) - sb[idx].sum(axis=1) / cb[idx].sum(axis=1)
+    lo, hi = np.percentile(boot, [50 * (1 - LEVEL), 50 * (1 + LEVEL)])
+    return float(a.mean() - b.mean()), float(lo), float(hi)
+
+
 def group_errors(pred: np.ndarray, target: np.ndarray, sequence: np.ndarray,
                  group: np.ndarray) -> dict[str, dict[str, object]]:
     """Per group (`group`: a label per frame, e.g. `attitude_groups(sequence)`): frames, sequences, and the mean

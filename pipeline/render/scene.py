@@ -1,4 +1,5 @@
-"""Blender (bpy) scene of the target satellite, rendered headless with Cycles on the CPU.
+"""Blender (bpy) scene of the target satellite, rendered headless with Cycles on the CPU, or on a CUDA / OptiX GPU
+when asked (`SceneSettings.device`: cpu, gpu or auto; `resolve_device`).
 
 The scene is built once per `Renderer`; each frame only moves the target and the sun. The Blender
 camera stays at the world origin with identity orientation (looking down Blender's -z, y up), and
@@ -21,7 +22,7 @@ import tempfile
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import bpy
 import cv2
@@ -47,6 +48,7 @@ class SceneSettings:
     denoiser: str = "NONE"             # or OPENIMAGEDENOISE
     denoise_quality: str = "FAST"      # OIDN: FAST, BALANCED, HIGH
     threads: int = 2
+    device: str = "cpu"                # Cycles: cpu | gpu (OptiX or CUDA, refused without one) | auto (`resolve_device`)
     ambient: float = 0.08              # world light strength (Earth-shine fill); the background stays black
     max_bounces: int = 2
     background: BackgroundSettings = BackgroundSettings()   # behind the frames given a FrameBackground
@@ -151,6 +153,58 @@ def _quiet_stdout() -> Iterator[None]:
         os.close(devnull)
 
 
+DEVICES = ("cpu", "gpu", "auto")
+GPU_BACKENDS = ("OPTIX", "CUDA")   # Cycles' GPU backends, in the order tried
+
+
+@dataclass(frozen=True)
+class CyclesDevice:
+    """Where Cycles renders: `device` "CPU" or "GPU", the GPU `backend` (OPTIX or CUDA; None on the CPU) and a `note`
+    when `auto` fell back to the CPU."""
+
+    device: str
+    backend: str | None = None
+    note: str | None = None
+
+    def record(self, requested: str) -> dict[str, Any]:
+        """For a render's metadata: the device asked for and the one used."""
+        return {"requested": requested, "used": self.device.lower(), "backend": self.backend, "note": self.note}
+
+
+def gpu_backend() -> str | None:
+    """The first Cycles GPU backend (`GPU_BACKENDS`) for which bpy lists a device, its devices enabled for rendering;
+    None when bpy sees no GPU. Blender's preferences of this process are changed (compute device type)."""
+    prefs = bpy.context.preferences.addons["cycles"].preferences
+    for backend in GPU_BACKENDS:
+        try:
+            prefs.compute_device_type = backend
+        except TypeError:   # a Blender build without this backend
+            continue
+        with _quiet_stdout():   # Cycles prints a warning per backend library it cannot open
+            prefs.refresh_devices()
+        found = [d for d in prefs.devices if d.type == backend]
+        if found:
+            for d in prefs.devices:
+                d.use = d.type == backend
+            return backend
+    return None
+
+
+def resolve_device(requested: str, probe: Callable[[], str | None] = gpu_backend) -> CyclesDevice:
+    """The Cycles device for `render.device` `requested`: "cpu" the CPU (the probe is not run); "gpu" the GPU backend
+    `probe` finds, a ValueError when it finds none; "auto" the GPU when found, else the CPU with a note."""
+    if requested not in DEVICES:
+        raise ValueError(f"render device must be one of {', '.join(DEVICES)}, got {requested!r}")
+    if requested == "cpu":
+        return CyclesDevice("CPU")
+    backend = probe()
+    if backend is not None:
+        return CyclesDevice("GPU", backend)
+    if requested == "gpu":
+        raise ValueError("render device gpu: bpy sees no OptiX or CUDA device; use cpu or auto")
+    return CyclesDevice("CPU", note="render device auto: bpy sees no OptiX or CUDA device, so Cycles renders on the CPU")
+
+
 def check_settings(K: Intrinsics, settings: SceneSettings) -> None:
     """ValueError naming the first bad setting (resolution, scale, samples, denoiser, mesh file), so a
     caller can refuse them before starting any worker."""
@@ -160,6 +214,8 @@ def check_settings(K: Intrinsics, settings: SceneSettings) -> None:
         raise ValueError(f"mesh_scale must be positive, got {settings.mesh_scale}")
     if settings.samples < 1:
         raise ValueError(f"samples must be at least 1, got {settings.samples}")
+    if settings.device not in DEVICES:
+        raise ValueError(f"device must be one of {', '.join(DEVICES)}, got {settings.device!r}")
     if settings.denoiser.upper() not in ("NONE", "OPENIMAGEDENOISE"):
         raise ValueError(f"denoiser must be NONE or OPENIMAGEDENOISE, got {settings.denoiser!r}")
     if settings.denoise_quality.upper() not in ("FAST", "BALANCED", "HIGH"):
@@ -225,7 +281,8 @@ class Renderer:
         r.image_settings.compression = 0
         self.scene.view_settings.view_transform = "Standard"
         c = self.scene.cycles
-        c.device = "CPU"
+        self.cycles = resolve_device(s.device)   # after read_factory_settings, which resets the preferences
+        c.device = self.cycles.device
         c.samples = s.samples
         c.use_adaptive_sampling = False
         c.max_bounces = s.max_bounces

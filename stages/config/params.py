@@ -50,13 +50,15 @@ ENVELOPE = "operational-envelope-1"
 
 def render_record(render: Render) -> dict[str, Any]:
     """The `render` params section as a mapping (meta.json's `render`), its `background` left out while it is off
-    (share 0) and the default target attitude (per_frame) left out: the renders made before these options existed
-    keep their meta.json and fingerprints."""
+    (share 0), the default target attitude (per_frame) and the default Cycles device (cpu) left out: the renders
+    made before these options existed keep their meta.json and fingerprints."""
     r = dataclasses.asdict(render)
     if render.background.share == 0:
         r.pop("background")
     if r["target_attitude"] == "per_frame":
         r.pop("target_attitude")
+    if r["device"] == "cpu":
+        r.pop("device")
     return r
 
 

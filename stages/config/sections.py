@@ -71,6 +71,7 @@ class Render:
     denoiser: str           # NONE | OPENIMAGEDENOISE
     denoise_quality: str    # FAST | BALANCED | HIGH
     threads: Annotated[int, In("[1, 1024]", "Blender threads")]
+    device: Literal["cpu", "gpu", "auto"]   # Cycles on the CPU, on a CUDA/OptiX GPU, or the GPU when bpy sees one
     mesh: Optional[str]     # mesh file; inputs/none (or None) = the procedural Jason-1-like target
     source: Optional[str]   # SPEED/SPEED+ folder imported instead of rendering; inputs/none (or None) = render
     source_test: Optional[str]   # its test labels, relative to it; None = synthetic/test.json, ... (stages/artifacts/speed.py)

@@ -201,6 +201,18 @@ def check(K: Any, scene: Any) -> None:
         raise StageError(f"params.yaml render: {e}") from None
 
 
+def device_record(scene: Any) -> dict[str, Any]:
+    """Where Blender on this machine renders `scene` (render.device resolved by pipeline.render.scene.resolve_device:
+    requested, used, GPU backend, a note when auto fell back to the CPU), for a render's metadata; a `gpu` that bpy
+    cannot see is a StageError. Each worker resolves it again on its own machine."""
+    from pipeline.render.scene import resolve_device
+
+    try:
+        return resolve_device(scene.device).record(scene.device)
+    except ValueError as e:
+        raise StageError(f"params.yaml render.device: {e}") from None
+
+
 def prepare(K: Any, scene: Any, es: engine.EngineSettings) -> tuple[Any, int]:
     """(scene settings for one worker, its Blender threads): settings checked before any worker starts
     (StageError), the mesh path made absolute (workers may run elsewhere), and render.threads / workers

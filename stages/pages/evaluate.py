@@ -16,6 +16,22 @@ def chain_names(fusion: str) -> dict[str, str]:
             "shipped": f"defended ({fusion}), robust model (ships)"}
 
 
+def clamp_section(b: dict[str, float], seed: int) -> str:
+    """Markdown: the black-level clamp's held-out check (`b`: pipeline.pose.robustness.black_level_stats on the
+    evaluation frames, seed `seed`): does t still sit above the lab black level of frames its choice did not read."""
+    t, lab = b["threshold"], b["lab_black_999"]
+    return f"""
+## Held-out check of the black-level clamp
+
+The robust model's clamp t = {t:g} (pixels in [0, 1]) was set from training frames and their simulated lab shift
+(reports/pose_robust.md). The same statistics on {b['images']} frames of these trajectories (evaluate.seed {seed}),
+which that choice did not read: the background is exactly black in {100 * b['render_black']:.1f}% of the pixels;
+under the lab domain shift its 99.9th percentile is {lab:.4f}, so t is {'still above' if t > lab else 'NOT above'} the
+lab black level here; {100 * b['lab_passed']:.3f}% of the shifted background values pass the clamp and
+{100 * b['target_erased']:.1f}% of the target's channel values fall below t.
+"""
+
+
 def defense_section(chains: dict[str, list[dict[str, Any]]], calibration: dict[str, Any], harm_m: float,
                     attack_length: int, shipped_clean: dict[str, float]) -> str:
     """Markdown: the per-eps table of `pipeline.evaluation.sequences.defense_table` (the shipped chain last) and
@@ -35,8 +51,8 @@ def defense_section(chains: dict[str, list[dict[str, Any]]], calibration: dict[s
             misses.append(f"eps {r['eps']:g} ({', '.join(short)})")
     if fused and fused[0]["fpr_clean"].value > TARGET_FPR:
         misses.append(f"attack-free runs (FPR {fused[0]['fpr_clean'].pct(2)}%)")
-    verdict = ("The defended chain that ships meets issue 16's detection targets (accuracy and harmful frames flagged >= 99.5%, "
-               "FPR <= 0.5%) at every eps." if not misses else
+    verdict = ("The defended chain that ships meets issue 16's detection targets (accuracy and harmful frames flagged "
+               ">= 99.5%, FPR <= 0.5%) at every eps." if not misses else
                "Short of issue 16's detection targets (accuracy and harmful frames flagged >= 99.5%, FPR <= 0.5%) at: "
                + "; ".join(misses) + ".")
     verdict += _why(fused, calibration)
@@ -81,8 +97,8 @@ def rates_section(rows: list[dict[str, Any]], paper_length: int, paper: dict[flo
     pooled over the sequences): attacked fraction f, TPR, FPR, accuracy, the accuracy re-weighted to the paper's f
     (its schedule: p_start `stages.pages.paper.P_START`, `paper_length`-frame attacks), the paper's accuracy
     (`paper`, % by eps) and the least TPR that accuracy needs at the paper's f; `what` names the sequences."""
-    from pipeline.evaluation.rates import sequence_rates
     from pipeline.attacks.schedule import attacked_fraction
+    from pipeline.evaluation.rates import sequence_rates
     from pipeline.report.markdown import markdown_table
 
     f = attacked_fraction(P_START, paper_length)
