@@ -69,8 +69,12 @@ def lower_bounds(tables: dict[str, Any]) -> str:
 
     first = tables[MODELS[0]]
     if first["full_check"] is None:
-        full = ("The lean-vs-full check did not run here (suite.full_frames = 0), so every worst case above is a "
-                "lower bound of the full suite's; `rpod suite` (optional/dvc.yaml) runs both on every test frame.")
+        full = ("**Lower bounds.** The lean-vs-full check did not run here (suite.full_frames = 0), so every worst "
+                "case and member figure above is a lower bound of what the full suite (apgd and bpda on every "
+                "objective, Square, more restarts: suite.full) finds on these frames, most of all above the clamp "
+                "(eps > t), where one lifting start per member can miss a frame's basin. `rpod suite` "
+                "(optional/dvc.yaml) runs both suites on every test frame; the paper profile runs this check on a "
+                "subsample; reports/benchmarks.md (\"Strongest attack suite\") has an earlier lean-vs-full comparison.")
     else:
         bad = failing("full_check")
         full = (f"On {first['full_check']['frames']} of the frames the suite is within 5% of the full suite "
@@ -139,7 +143,7 @@ lifting start puts the background just above the clamp once eps exceeds it
 (t = {params.train.adversarial.black_level:g}).
 Every adversarial image is stored as 8 bits before it is scored; the worst case per frame is the largest error any
 member found at any eps up to the row's (nested: it cannot drop as eps grows), position and attitude each on its
-own.
+own. {_cost(m)}
 
 {markdown_table(worst_rows(tables))}
 ### Each member
@@ -161,6 +165,14 @@ def _ablation(rows: list[dict[str, Any]] | None) -> str:
     from pipeline.report.markdown import markdown_table
 
     return f"### Ablation: clamp only, adversarial training only, both\n\n{markdown_table(rows)}\n" if rows else ""
+
+
+def _cost(m: dict[str, Any]) -> str:
+    """What the suite cost in this run (`suite_seconds`: wall seconds of the table and of the capacity)."""
+    s = m.get("suite_seconds")
+    return "" if not s else (f"Cost in this run: {s['suite']:.0f} s for the table (both models, checks included) "
+                             f"and {s['capacity']:.0f} s for the attacker capacity below (wall time, device "
+                             f"{m.get('device', '?')}).")
 
 
 def _find(rows: list[dict[str, Any]], attack: str, eps: float) -> dict[str, Any]:
