@@ -34,6 +34,7 @@ from stages.config.sections import (
     Shap,
     Train,
 )
+from stages.config.suite import Suite
 
 DEVICE = re.compile(r"auto|cpu|cuda(:\d+)?")   # values of the `device` param
 
@@ -65,6 +66,7 @@ class Params:
     robustness: Robustness
     integrity: Integrity
     ablation: Ablation
+    suite: Suite
     report: Report = field(default_factory=Report)
 
     def __post_init__(self) -> None:

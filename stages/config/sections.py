@@ -131,9 +131,6 @@ class Adversarial:
     warmup_epochs: Annotated[float, In("[0, 1000000]", "epochs")]
     val_steps: Annotated[int, In("[1, 1000]", "PGD steps")]          # the per-epoch validation attack
     val_frames: Count       # validation images it attacks (seeded subset)
-    eval_eps: list[Eps]     # budgets of the FGSM / PGD table of reports/pose_robust.md
-    eval_steps: Annotated[int, In("[1, 100000]", "PGD steps")]
-    eval_frames: Count      # test frames of that table (seeded sample)
     objectives: list[Literal["position", "range_far", "range_near", "lateral", "attitude"]]  # cycled over attacked rows
     start: Literal["random", "lift"]   # the attack's start in the eps ball
     bpda: bool              # the attack's gradient passes the clamp as the identity
