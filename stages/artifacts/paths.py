@@ -82,6 +82,9 @@ LAB, LAB_REPORT, LAB_METRICS = _outputs("lab", "datasets/lab", "reports/lab.md",
 # issue 38's 2 x 2 ablation of the paper's detector: a stage of optional/dvc.yaml (`dvc repro optional/dvc.yaml`), not of
 # the default `dvc repro`
 ABLATION_REPORT, ABLATION_METRICS = _outputs("ablation", "reports/ablation.md", "reports/metrics/ablation.json")
+# issue 40's integrity bound under the attacker's capacity: a stage of optional/dvc.yaml (`rpod bound`)
+BOUND_REPORT, BOUND_METRICS = _outputs("bound", "reports/integrity_bound.md", "reports/metrics/bound.json")
+CAPACITY = Path("datasets/capacity")   # what it reads: each chain's attacker capacity (`rpod train --robust`)
 # the headline numbers (what `dvc metrics show` prints), then the report's own figures
 PAGE, SUMMARY, *_FIGURES = _outputs("report", "reports/README.md", "reports/metrics/summary.json",
                                     *(f"reports/figures/{name}.png"
