@@ -59,7 +59,7 @@ def _rows(chain: dict[str, Any], label: str, stride: int) -> list[dict[str, str]
                      "max upper (m)": _x(b["max_error_m"]), "replayed worst error (m)": _x(b["max_achieved_m"]),
                      "replayed / AL": _x(b["max_achieved_al"]),
                      f"target frames (1 in {stride}) with upper > AL (%)": _pct(b["frames_over_al"]),
-                     "max replayed / PL": _x(b["max_achieved_pl"]),
+                     "max upper / PL": _x(b["max_error_pl"]), "max replayed / PL": _x(b["max_achieved_pl"]),
                      "sparing the PL's trusted frames: max upper / AL": _x(s["max_error_al"]),
                      "... max replayed / PL": _x(s["max_achieved_pl"]),
                      "replays reproducing the program (%)": _x(None if b["exact"] is None else 100 * b["exact"], 0),
