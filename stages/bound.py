@@ -1,7 +1,8 @@
 """`rpod bound`: issue 40's integrity bound under the attacker's capacity -> reports/integrity_bound.md and
 reports/metrics/bound.json. A stage of optional/dvc.yaml (`dvc repro optional/dvc.yaml`), not of the default
-`dvc repro`: at stride 10 it costs about 11 s per trajectory, eps and attacker on 2 CPU cores (over 20 minutes for
-the default profile's 10 trajectories, 3 eps, 2 attackers and 2 chains).
+`dvc repro`: at stride 10 it cost 17-21 s per trajectory, eps and attacker on the shared 2-core machine (measured on
+the default eval_render data, robust chain, eps 0.01), so about 40 minutes for the default profile's 10 trajectories,
+3 eps, 2 attackers and 2 chains.
 
 Per chain of `bound.models` (loaded through the one door, stages/artifacts/models.py `load_chain`) and each of the
 first `bound.trajectories` eval_render trajectories: pipeline/evaluation/integrity_bound.py `bound_track` at each eps
