@@ -17,6 +17,7 @@ STREAMS: dict[str, int] = {
     "render": 100, "label": 200, "train": 300, "attack": 400, "guidance": 500, "shap": 500, "detect": 600,
     "lab_models": 700, "robustness": 1500, "lab": 0, "robust": 1600, "ablation": 1700,
     "background": 1800,             # render.background draws (Earth, stars, sensor noise); index: none, per frame inside
+    "suite": 1900,                  # the strongest-attack suite on the pose models: its test sample and attack draws
     "evaluate.schedule": 17,        # on evaluate.seed; index: the trajectory
     # streams within a stage or a library step, on the seed it was given
     "eval_render.trajectory": 1,    # index: the trajectory of the set
@@ -30,6 +31,9 @@ STREAMS: dict[str, int] = {
     "lab.schedule": 31,             # index: the lab sequence
     "splits.validation": 1,         # the validation fold, on the split's seed
     "lid.reference": 1,             # LID's reference minibatches, on the detector's seed
+    "suite.check": 1,               # the suite's stability-check subsample, on the suite's seed
+    "suite.full": 2,                # the suite's lean-vs-full subsample, on the suite's seed
+    "suite.capacity": 3,            # the capacity's validation frames and attack draws, on the suite's seed
 }
 
 

@@ -5,7 +5,8 @@ The chain that ships is the robust model (models/pose_robust.pt) with its own de
 standard model's chain (models/pose.pt, models/detector.pt, models/defense_standard.json: the paper's
 reproduction) gets the integrity rows of `integrity.standard_attackers` on the first
 `integrity.standard_trajectories` trajectories (the full suite on both chains does not fit the budget), and
-the page shows the two pose models side by side (clean, FGSM, PGD-50: reports/metrics/robust.json).
+the page shows the two pose models side by side (clean and under the strongest-attack suite:
+reports/metrics/robust.json).
 
 Reads the shipped chain, models/surrogate.pt (`rpod train --surrogate`) and a
 seeded sample of `robustness.frames` held-out test frames; every attacked image is stored as 8-bit

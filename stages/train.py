@@ -32,6 +32,7 @@ from pipeline.io.atomic import atomic_outputs, atomic_write_text, check_writable
 from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.paths import (
+    CAPACITY,
     LABELS,
     POSE,
     POSE_ROBUST,
@@ -197,34 +198,39 @@ def _robust(params: Params, surrogate: bool) -> None:
 
 def _write_robust(params: Params, net: Any, best: dict[str, Any], result: Any, splits: tuple[Any, Any, Any],
                   device: Any) -> None:
-    """Both models on validation and test (clean), and under FGSM / PGD on a seeded sample of test frames
-    (train.adversarial.eval_*); the clamp threshold against the data (training frames); then
-    models/pose_robust.pt, reports/metrics/robust.json, reports/pose_robust.md and dvclive/robust/ together.
-    `splits`: (fit split, validation split, its dataset). The test split is read here, after training."""
-    import numpy as np
+    """Both models on validation and test (clean), and under the strongest-attack suite (`suite` params) on a
+    seeded sample of test frames; each model's attacker capacity on the validation frames; the clamp threshold
+    against the data (training frames); then models/pose_robust.pt, datasets/capacity/,
+    reports/metrics/robust.json, reports/pose_robust.md and dvclive/robust/ together. `splits`: (fit split,
+    validation split, its dataset). The test split is read here, after training."""
+    import time
 
     from pipeline.formats.models import save_pose
     from pipeline.io.atomic import read_json
     from pipeline.pose.metrics import summarize_errors
-    from pipeline.pose.robustness import attack_table, black_level_stats, sample_rows
+    from pipeline.pose.robustness import black_level_stats
     from pipeline.pose.train import predict
     from stages.artifacts import data
     from stages.artifacts.models import load_pose
     from stages.config.build import adversarial_config
+    from stages.engine.suite import attacked_tables, capacities, write_capacities
 
     adv, bins, seed = params.train.adversarial, params.train.range_bins, seed_for(params.seed, "robust")
     train_split, val_split, val_set = splits
     test_split = data.load_split(params, "test")
     test_set = data.pose_dataset(test_split)
-    rows = sample_rows(len(test_split), adv.eval_frames, seed)
-    images = np.stack([test_split.images[int(i)] for i in rows])
     standard = load_pose(params)
     out: dict[str, Any] = {}
-    for name, model, loss in (("standard", standard.model, standard.loss), ("robust", net, best["loss"])):
+    for name, model in (("standard", standard.model), ("robust", net)):
         out[name] = {split: summarize_errors(predict(model, ds, 64, device), s.targets, s.labels["range"].to_numpy(), bins)
                      for split, ds, s in (("val", val_set, val_split), ("test", test_set, test_split))}
-        out[name]["attacks"] = attack_table(model, loss, images, test_split.targets[rows], adv.eval_eps,
-                                            adv.eval_steps, seed, 64, device)
+    t0 = time.perf_counter()
+    models = {"standard": standard.model, "robust": net}
+    for name, table in attacked_tables(params, models, test_split, device).items():
+        out[name]["suite"] = table
+    t1 = time.perf_counter()
+    capacity = capacities(params, models, val_split, device)
+    seconds = {"suite": t1 - t0, "capacity": time.perf_counter() - t1}
     # training cost: minutes (this machine) and gradients (weight-gradient + input-gradient image passes)
     standard_run, a = read_json(METRICS), adversarial_config(adv)
     per_epoch = len(train_split) // params.train.batch_size * params.train.batch_size
@@ -234,12 +240,15 @@ def _write_robust(params: Params, net: Any, best: dict[str, Any], result: Any, s
                          gradients=round(len(result.history) * per_epoch * (1 + a.steps * a.fraction)))
     shift = params.lab.domain_shift
     metrics = {**out, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
-               "stopped_early": result.stopped_early, "score": result.best_score, "eval_frames": int(len(rows)),
+               "stopped_early": result.stopped_early, "score": result.best_score,
                "black_level": black_level_stats(train_split.images, float(adv.black_level), float(shift.noise_std),
                                                 float(shift.blur_sigma), seed),
-               "train_images_per_s": result.train_images_per_s, "device": str(device)}
-    with atomic_outputs(POSE_ROBUST, ROBUST_METRICS, ROBUST_REPORT, dirs=(str(ROBUST_LIVE),)) as (pose, path, report, live):
+               "train_images_per_s": result.train_images_per_s, "device": str(device), "suite_seconds": seconds}
+    with atomic_outputs(POSE_ROBUST, ROBUST_METRICS, ROBUST_REPORT,
+                        dirs=(str(ROBUST_LIVE), str(CAPACITY))) as (pose, path, report, live, capacity_dir):
         save_pose(pose, net, best["loss"], (params.render.height, params.render.width), best["meta"], **_made_from())
+        metrics["capacity"] = write_capacities(capacity_dir, capacity, params, {"standard": file_hash(POSE),
+                                                                                "robust": file_hash(pose)})
         write_metrics(path, metrics, params.profile_name)
         atomic_write_text(report, robust_page(metrics, params))
         _log_curves(live, result.history, params)

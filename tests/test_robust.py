@@ -10,22 +10,25 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from test_training import H, W, write_dataset
 
-from pipeline.attacks.gradient import attack_loss, fgsm, quantize
+from pipeline.attacks.gradient import attack_loss, fgsm
+from pipeline.attacks.strongest import SuiteConfig, run_suite
+from pipeline.formats.capacity import read_capacity
 from pipeline.formats.models import model_from_checkpoint, read_pose, save_pose
-from pipeline.pose.adversarial import Adversary, AdversarialConfig
+from pipeline.pose.adversarial import AdversarialConfig, Adversary
 from pipeline.pose.loss import PoseLoss
 from pipeline.pose.metrics import tilt_roll_deg
 from pipeline.pose.model import PoseNet
 from pipeline.pose.optim import WeightEMA, cosine_factor, make_scheduler
-from pipeline.pose.robustness import attack_table, black_level_stats
+from pipeline.pose.robustness import black_level_stats
 from pipeline.pose.train import TrainConfig, fit, make_deterministic
+from pipeline.seeds import seed_for
 from stages.artifacts import data, models
 from stages.artifacts.paths import POSE_ROBUST
 from stages.config import params as params_mod
 from stages.config.sections import ParamsError
 from stages.errors import StageError
-from test_training import H, W, write_dataset
 
 
 @pytest.fixture
@@ -129,8 +132,9 @@ def test_adversarial_training_lowers_the_pgd_error(dataset):
         result = fit(m, l, fit_set, val_set, cfg, progress=False, adversary=adv)
         assert (result.history[0].val_adv_pos_m == result.history[0].val_adv_pos_m) == adversarial
         m.load_state_dict(result.best_state)
-        rows = attack_table(m, l, test.images, test.targets, [0.05], pgd_steps=10)
-        return {r["attack"]: r["pos_m"] for r in rows}
+        pgd10 = run_suite(m, np.asarray(test.images), test.targets, [0.05], SuiteConfig(("pgd/position",), steps=10,
+                                                                                         restarts=1))
+        return {"clean": pgd10.clean["position_m"].mean(), "pgd-10": pgd10.errors["position_m"][0, 0].mean()}
 
     plain, robust = tuned(False), tuned(True)
     assert robust["pgd-10"] < 0.9 * plain["pgd-10"]
@@ -159,22 +163,6 @@ def test_attacked_images_can_leave_the_rotation_term():
     assert loss(pred, target).item() > 0
     with pytest.raises(ValueError, match="needs fraction < 1"):
         AdversarialConfig(attacked_rotation=False)
-
-
-def test_attack_table_stores_8_bit_images_and_attacks_raise_the_error():
-    torch.manual_seed(0)
-    model = PoseNet(0.125, 0.0).eval()
-    rng = np.random.default_rng(0)
-    images = rng.integers(0, 256, (6, H, W, 3), dtype=np.uint8)
-    targets = _target(6).numpy()
-    rows = attack_table(model, PoseLoss(), images, targets, [0.01, 0.05], pgd_steps=3)
-    assert [(r["attack"], r["eps"]) for r in rows] == [("clean", 0.0), ("fgsm", 0.01), ("pgd-3", 0.01),
-                                                        ("fgsm", 0.05), ("pgd-3", 0.05)]
-    clean = rows[0]["pos_m"]
-    assert all(r["pos_m"] > clean and r["pos_ci"][0] <= r["pos_m"] <= r["pos_ci"][1] for r in rows[1:])
-    x = torch.tensor(images).permute(0, 3, 1, 2).float() / 255
-    stored = quantize(x + 0.01, x)
-    assert (stored.int() - torch.tensor(images).permute(0, 3, 1, 2).int()).abs().max() <= 3
 
 
 def test_black_level_stats_measure_the_render_and_the_lab_background():
@@ -224,13 +212,31 @@ def test_robust_stage_writes_the_model_its_page_and_a_loader_reads_it(dataset):
     main(params_mod.load())
     main(params_mod.load(), robust=True)
     m = json.loads(Path("reports/metrics/robust.json").read_text())
-    assert m["standard"]["test"]["n"] == m["robust"]["test"]["n"] == 16 and m["eval_frames"] == 8
-    assert [r["attack"] for r in m["robust"]["attacks"]] == ["clean", "fgsm", "pgd-3", "fgsm", "pgd-3"]
+    assert m["standard"]["test"]["n"] == m["robust"]["test"]["n"] == 16 and m["robust"]["suite"]["frames"] == 8
+    for name in ("standard", "robust"):   # the suite's worst case per eps, each member's rows and the checks
+        table = m[name]["suite"]
+        assert [(r["attack"], r["eps"]) for r in table["rows"] if r["attack"] in ("clean", "suite")] == [
+            ("clean", 0.0), ("suite", 0.01), ("suite", 0.1)]
+        assert {r["attack"] for r in table["rows"]} == {"clean", "suite", "bpda/position", "bpda/attitude"}
+        assert len(table["sanity"]) == 4 and all(r["ok"] for r in table["sanity"])
+        assert table["stability"]["frames"] == table["full_check"]["frames"] == 2
+        assert list(table["backgrounds"]) == ["black"] and table["backgrounds"]["black"][0]["n"] == 8
+    # the capacity comes from the validation frames (the standard model's split), never from test frames
+    val = data.fit_and_validation_splits(params_mod.load(), seed_for(params_mod.load().seed, "train"))[1]
+    test = set(data.load_split(params_mod.load(), "test").labels["index"])
+    for name in ("standard", "robust"):
+        frames, overbounds, meta = read_capacity("datasets/capacity", name)
+        assert set(frames["index"]) == set(val.labels["index"]) and not set(frames["index"]) & test
+        assert len(frames) == 2 * len(val) and [c.eps for c in overbounds] == [0.01, 0.05] and meta["split"] == "val"
+        wide = frames.pivot(index="index", columns="eps", values="along_m")
+        assert (wide[0.05] >= wide[0.01]).all()                             # nested in eps
+        assert m["capacity"][name]["per_eps"][0]["count"] == [len(val)]
     assert m["robust"]["train_minutes"] > 0 and m["standard"]["train_minutes"] > 0
     a = params_mod.load().train.adversarial   # 1 epoch each; PGD-k on a share of each batch
     assert m["robust"]["gradients"] == round((1 + a.steps * a.fraction) * m["standard"]["gradients"]) > 0
     page = Path("reports/pose_robust.md").read_text()
-    assert "Black-level clamp t = 0.07" in page and "| pgd-3    | 0.050" in page
+    assert "Black-level clamp t = 0.07" in page and "## Under the strongest attack suite" in page
+    assert "## Attacker capacity (validation frames)" in page and "no Earth frames to split" in page
     pose = models.load_pose(params_mod.load(), POSE_ROBUST)
     assert pose.model.black_level == 0.07 and pose.model(torch.rand(1, 3, H, W)).shape == (1, 9)
     assert list(Path("dvclive/robust").glob("**/val_adv_pos_m.tsv"))
@@ -239,3 +245,10 @@ def test_robust_stage_writes_the_model_its_page_and_a_loader_reads_it(dataset):
         other.train, adversarial=dataclasses.replace(other.train.adversarial, black_level=0.08)))
     with pytest.raises(StageError, match=r"black_level=0.07 \(params: 0.08\)"):
         models.load_pose(other, POSE_ROBUST)
+    # `rpod suite` (optional/dvc.yaml): the full suite and the lean one on every test frame of both models
+    from stages.suite import main as suite
+    suite(params_mod.load())
+    full = json.loads(Path("reports/metrics/suite.json").read_text())["models"]["robust"]
+    assert full["full"]["frames"] == full["lean"]["frames"] == 16 and len(full["full"]["members"]) == 12
+    assert full["lean"]["full_check"]["frames"] == 16 and all(r["ok"] for r in full["full"]["sanity"])
+    assert "## Worst case: the full suite" in Path("reports/suite.md").read_text()

@@ -145,6 +145,12 @@ def subset(split: Split, rows: np.ndarray, name: str) -> Split:
     return Split(name, split.labels.iloc[rows].reset_index(drop=True), images)
 
 
+def backgrounds(split: Split) -> np.ndarray | None:
+    """(N,) each frame's background kind (black, space, earth: the labels' `background` column); None when the
+    labels have none (every frame black)."""
+    return split.labels["background"].to_numpy(str) if "background" in split.labels else None
+
+
 def pose_dataset(split: Split, augment: Augment | None = None, seed: int = 0) -> Any:
     """A `pipeline.pose.train.PoseDataset` over a split; `augment` = the train.augment params (or None)."""
     from pipeline.pose.train import PoseDataset

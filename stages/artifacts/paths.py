@@ -69,9 +69,11 @@ DETECT_RENDER, DETECT_RENDER_METRICS = _outputs("detect_render", "datasets/detec
 (DEFENSE_STANDARD,) = _outputs("calibrate_standard", str(MODELS / _STANDARD.defense))   # the paper chain's
 EVALUATE_REPORT, EVALUATE_FIGURE, EVALUATE_METRICS = _outputs(
     "evaluate", "reports/integrated.md", "reports/figures/timeline.png", "reports/metrics/evaluate.json")
-# the robust pose model (`rpod train --robust`: adversarial training behind a black-level clamp) and its page
-POSE_ROBUST, ROBUST_REPORT, ROBUST_METRICS, ROBUST_LIVE = _outputs(
-    "robust", str(MODELS / _ROBUST.pose), "reports/pose_robust.md", "reports/metrics/robust.json", "dvclive/robust")
+# the robust pose model (`rpod train --robust`: adversarial training behind a black-level clamp), its page (both
+# models clean and under the strongest-attack suite) and each chain's attacker capacity (validation frames)
+POSE_ROBUST, ROBUST_REPORT, ROBUST_METRICS, ROBUST_LIVE, CAPACITY = _outputs(
+    "robust", str(MODELS / _ROBUST.pose), "reports/pose_robust.md", "reports/metrics/robust.json", "dvclive/robust",
+    "datasets/capacity")
 # a second pose model (`rpod train --surrogate`) for black-box transfer
 (SURROGATE,) = _outputs("surrogate", str(MODELS / "surrogate.pt"))
 ROBUSTNESS_REPORT, ROBUSTNESS_FIGURE, ROBUSTNESS_METRICS, INTEGRITY_FIGURE = _outputs(
@@ -79,12 +81,13 @@ ROBUSTNESS_REPORT, ROBUSTNESS_FIGURE, ROBUSTNESS_METRICS, INTEGRITY_FIGURE = _ou
     "reports/figures/integrity.png")
 LAB_MODELS, LAB_MODELS_SUMMARY = _outputs("lab_models", "datasets/lab_models", "datasets/lab_models/summary.json")
 LAB, LAB_REPORT, LAB_METRICS = _outputs("lab", "datasets/lab", "reports/lab.md", "reports/metrics/lab.json")
+# the full strongest-attack suite on every test frame (`rpod suite`): a stage of optional/dvc.yaml
+SUITE_REPORT, SUITE_METRICS = _outputs("suite", "reports/suite.md", "reports/metrics/suite.json")
 # issue 38's 2 x 2 ablation of the paper's detector: a stage of optional/dvc.yaml (`dvc repro optional/dvc.yaml`), not of
 # the default `dvc repro`
 ABLATION_REPORT, ABLATION_METRICS = _outputs("ablation", "reports/ablation.md", "reports/metrics/ablation.json")
 # issue 40's integrity bound under the attacker's capacity: a stage of optional/dvc.yaml (`rpod bound`)
 BOUND_REPORT, BOUND_METRICS = _outputs("bound", "reports/integrity_bound.md", "reports/metrics/bound.json")
-CAPACITY = Path("datasets/capacity")   # what it reads: each chain's attacker capacity (`rpod train --robust`)
 # the headline numbers (what `dvc metrics show` prints), then the report's own figures
 PAGE, SUMMARY, *_FIGURES = _outputs("report", "reports/README.md", "reports/metrics/summary.json",
                                     *(f"reports/figures/{name}.png"

@@ -14,6 +14,7 @@ from stages.config.evaluation import Defense
 from stages.config.params import given
 from stages.config.schema import Params
 from stages.config.sections import Adversarial, Attack, Augment, Guidance, Render, Train
+from stages.config.suite import Suite
 from stages.errors import StageError
 
 
@@ -45,7 +46,8 @@ SECTION_SETTINGS: dict[str, tuple[str, ...]] = {
     "render": ("pipeline.render.scene:SceneSettings",),
     "render.background": ("pipeline.render.backgrounds:BackgroundSettings",), "train": ("pipeline.pose.train:TrainConfig",),
     "train.adversarial": ("pipeline.pose.adversarial:AdversarialConfig",),
-    "train.augment": ("pipeline.pose.augment:AugmentConfig",),
+    "train.augment": ("pipeline.pose.augment:AugmentConfig",), "suite": ("pipeline.attacks.strongest:SuiteConfig",),
+    "suite.full": ("pipeline.attacks.strongest:SuiteConfig",),
     "defense": ("pipeline.defense.fusion:DefenseSettings", "pipeline.defense.gate:MotionSettings"),
 }
 STAGE_ONLY: dict[str, tuple[str, ...]] = {
@@ -53,9 +55,9 @@ STAGE_ONLY: dict[str, tuple[str, ...]] = {
                "previews", "source", "source_test", "start_range", "target_attitude", "width"),
     "render.background": (),
     "train": ("adversarial", "augment", "compile", "dropout", "range_bins", "val_fraction", "width"),
-    "train.adversarial": ("black_level", "epochs", "eval_eps", "eval_frames", "eval_steps", "init", "lr_max",
-                          "warmup_epochs"),
+    "train.adversarial": ("black_level", "epochs", "init", "lr_max", "warmup_epochs"),
     "train.augment": (),
+    "suite": ("capacity", "check_frames", "eps", "frames", "full", "full_frames"), "suite.full": (),
     "defense": ("allow_unmet", "doubt_share", "harm_m", "noise_bins", "shares", "target_false_alarm", "val_seed",
                 "val_trajectories"),
 }
@@ -68,7 +70,10 @@ def _as(value: Any, hint: Any) -> Any:
     if typing.get_origin(hint) in (typing.Union, types.UnionType):
         return _as(value, next(a for a in typing.get_args(hint) if a is not type(None)))
     if typing.get_origin(hint) is tuple:
-        return tuple(_as(v, a) for v, a in zip(value, typing.get_args(hint)))
+        args = typing.get_args(hint)
+        if len(args) == 2 and args[1] is Ellipsis:   # tuple[X, ...]: every item an X
+            return tuple(_as(v, args[0]) for v in value)
+        return tuple(_as(v, a) for v, a in zip(value, args))
     return float(value) if hint is float else value
 
 
@@ -153,6 +158,20 @@ def adversarial_config(adversarial: Adversarial) -> Any:
         return settings_of(AdversarialConfig, adversarial)
     except ValueError as e:
         raise StageError(f"params.yaml: bad train.adversarial ({e})") from None
+
+
+def suite_config(suite: Suite, seed: int, full: bool = False) -> Any:
+    """The SuiteConfig of the `suite` params section seeded `seed`: its members, steps, restarts and starts, or
+    with `full` the full suite (pipeline/attacks/strongest.py FULL's members and starts) at the sizes of suite.full."""
+    from pipeline.attacks.strongest import FULL, SuiteConfig
+
+    try:
+        if full:
+            return settings_of(SuiteConfig, suite.full, ("p_init",), members=FULL.members, starts=FULL.starts,
+                               seed=seed, batch_size=suite.batch_size)
+        return settings_of(SuiteConfig, suite, ("queries", "p_init", "square_eps"), seed=seed)
+    except ValueError as e:
+        raise StageError(f"params.yaml: bad suite section ({e})") from None
 
 
 def augment_config(augment: Augment) -> Any:

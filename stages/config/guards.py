@@ -4,8 +4,8 @@ item 10); each raises a ValueError naming the key, as the schema's own checks do
 stage refuse the value with one line before any work starts.
 
 To wire (section.field -> check):
-    attack.eps, shap.eps, guidance.eps, evaluate.eps, robustness.eps, robustness.unseen_eps, integrity.eps,
-    train.adversarial.eval_eps                        -> distinct(values, "section.field")
+    attack.eps, shap.eps, guidance.eps, evaluate.eps, robustness.eps, robustness.unseen_eps,
+    integrity.eps                                     -> distinct(values, "section.field")
     train.range_bins                                  -> range_bins(values)
     detect.squeeze_median                             -> odd(value, "detect.squeeze_median")
 """

@@ -35,6 +35,7 @@ from stages.config.sections import (
     Shap,
     Train,
 )
+from stages.config.suite import Suite
 
 DEVICE = re.compile(r"auto|cpu|cuda(:\d+)?")   # values of the `device` param
 
@@ -67,6 +68,7 @@ class Params:
     integrity: Integrity
     bound: Bound
     ablation: Ablation
+    suite: Suite
     report: Report = field(default_factory=Report)
 
     def __post_init__(self) -> None:

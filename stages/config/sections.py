@@ -130,9 +130,6 @@ class Adversarial:
     warmup_epochs: Annotated[float, In("[0, 1000000]", "epochs")]
     val_steps: Annotated[int, In("[1, 1000]", "PGD steps")]          # the per-epoch validation attack
     val_frames: Count       # validation images it attacks (seeded subset)
-    eval_eps: list[Eps]     # budgets of the FGSM / PGD table of reports/pose_robust.md
-    eval_steps: Annotated[int, In("[1, 100000]", "PGD steps")]
-    eval_frames: Count      # test frames of that table (seeded sample)
 
     def __post_init__(self) -> None:
         if 0 < self.eps <= 1 and not self.black_level > self.eps:   # (an eps out of range: its own message)

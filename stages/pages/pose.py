@@ -1,6 +1,7 @@
 """reports/pose.md, the page of `rpod train`: pose errors per split and per range bin beside the paper
 (attitude split into tilt and roll), and the guidance requirements on the test set; reports/pose_robust.md,
-the page of `rpod train --robust`: the standard and the robust model side by side, clean and attacked."""
+the page of `rpod train --robust`: the standard and the robust model side by side, clean and under the strongest
+attack suite (stages/pages/suite.py)."""
 from __future__ import annotations
 
 from typing import Any
@@ -119,8 +120,10 @@ def _levels(eps: float) -> int:
 
 
 def robust_page(m: dict[str, Any], params: Params) -> str:
-    """reports/pose_robust.md from the robust metrics: both models clean (validation, test) and attacked."""
+    """reports/pose_robust.md from the robust metrics: both models clean (validation, test), under the strongest
+    attack suite, and their attacker capacity."""
     from pipeline.report.markdown import markdown_table
+    from stages.pages.suite import suite_section
 
     a = params.train.adversarial
     models = ("standard", "robust")
@@ -128,11 +131,6 @@ def robust_page(m: dict[str, Any], params: Params) -> str:
               "attitude mean (deg)": m[k][s]["att_mean_deg"], "tilt mean (deg)": m[k][s]["tilt_mean_deg"],
               "roll mean (deg)": m[k][s]["roll_mean_deg"], "training cost (image gradients)": f"{m[k]['gradients']:,}"}
              for s in ("val", "test") for k in models]
-    attacked = [{"attack": r["attack"], "eps": r["eps"],
-                 **{f"{k} position (m)": _ci(row["pos_m"], row["pos_ci"]) for k, row in
-                    zip(models, (_row(m[k]["attacks"], r) for k in models))},
-                 **{f"{k} attitude (deg)": f"{_row(m[k]['attacks'], r)['att_deg']:.2f}" for k in models}}
-                for r in m["robust"]["attacks"]]
     return f"""# Robust pose model (`rpod train --robust`)
 
 The standard model (models/pose.pt, `rpod train`: the paper's reproduction) beside the robust one
@@ -152,33 +150,16 @@ gradient); the robust model's counts its own training only (fine-tuned, it also 
 Minutes on this machine: `train_minutes` in reports/metrics/robust.json.
 
 {markdown_table(clean, decimals=3)}
-## Under attack
-
-Mean error over {m['eval_frames']} test frames (a seeded sample) with its 95% interval; FGSM and PGD-{a.eval_steps}
-(random start, steps of 2.5 eps / {a.eval_steps}) ascend each model's own position error, through the clamp;
-every adversarial image is stored as 8 bits before it is scored. At eps above t = {a.black_level:g} the
-clamp no longer holds the background black.
-
-{markdown_table(attacked, decimals=3)}
 ## Errors per range bin (test)
 
-{markdown_table(_bins(m, models), decimals=3)}"""
+{markdown_table(_bins(m, models), decimals=3)}
+{suite_section(m, params)}"""
 
 
 def _fitted(attacked_rotation: bool) -> str:
     """What the training loss fits of the attacked images, in words."""
     return ("their whole pose fitted" if attacked_rotation else
             "only their position fitted: the rotation is fitted on the clean images")
-
-
-def _row(rows: list[dict[str, Any]], like: dict[str, Any]) -> dict[str, Any]:
-    """The row of `rows` with the attack and eps of `like`."""
-    return next(r for r in rows if r["attack"] == like["attack"] and r["eps"] == like["eps"])
-
-
-def _ci(value: float, ci: list[float]) -> str:
-    """A mean with its 95% interval: "1.23 [1.01, 1.45]"."""
-    return f"{value:.2f} [{ci[0]:.2f}, {ci[1]:.2f}]"
 
 
 def _bins(m: dict[str, Any], models: tuple[str, ...]) -> list[dict[str, Any]]:

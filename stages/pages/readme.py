@@ -102,23 +102,24 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
 
 
 def _robust_rows(rb: dict[str, Any] | None, spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
-    """The robust model's rows (reports/metrics/robust.json): clean test errors, and PGD position errors of
-    both models at eps 0.01 and 0.05 (none when the metrics are missing)."""
+    """The robust model's rows (reports/metrics/robust.json): clean test errors, and the strongest-attack suite's
+    worst-case position and attitude errors of both models at eps 0.01 and 0.05 (none when the metrics are
+    missing)."""
     if not rb:
         return []
     t = rb["robust"]["test"]
 
-    def pgd(model: str) -> str:
-        got = {f"{a['eps']:g}": a["pos_m"] for a in rb[model]["attacks"] if a["attack"].startswith("pgd")}
-        return " / ".join(_fmt(got.get(e), 2) for e in ("0.01", "0.05"))
+    def worst(model: str, key: str) -> str:
+        got = {f"{a['eps']:g}": a[key] for a in rb[model]["suite"]["rows"] if a["attack"] == "suite"}
+        return " / ".join(_fmt(got.get(e), 2 if key == "pos_m" else 1) for e in ("0.01", "0.05"))
 
-    name = next((a["attack"] for a in rb["robust"]["attacks"] if a["attack"].startswith("pgd")), "pgd")
     return [("pose, test mean position error (m), robust model (ships)", _fmt(t["pos_mean_m"]), "-", "robust",
              _sd(spread, "pose.robust_test_position_m")),
             ("pose, test mean attitude error (deg), robust model (ships)", _fmt(t["att_mean_deg"]), "-", "robust",
              _sd(spread, "pose.robust_test_attitude_deg")),
-            (f"{name.upper()} mean position error (m) at eps 0.01 / 0.05: robust model (ships) vs standard",
-             f"{pgd('robust')} vs {pgd('standard')}", "-", "robust", "-")]
+            *((f"attack-suite worst-case mean {what} at eps 0.01 / 0.05: robust model (ships) vs standard",
+               f"{worst('robust', key)} vs {worst('standard', key)}", "-", "robust", "-")
+              for what, key in (("position error (m)", "pos_m"), ("attitude error (deg)", "att_deg")))]
 
 
 def _shipped_detector_rows(dr: dict[str, Any] | None, lab: dict[str, Any],
