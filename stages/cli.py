@@ -69,8 +69,8 @@ def params_cmd(
 # A module exposes `main` (one command) or `app` (a command group, e.g. `rpod lab rescale`).
 # export, predict, remote: not DVC stages
 STAGES = ["render", "label", "train", "attack", "guidance", "shap", "detect", "eval_render", "calibrate", "evaluate",
-          "robustness", "lab_models", "lab", "report", "ablation", "pose_trial", "attitude", "suite", "export",
-          "predict", "remote"]
+          "robustness", "lab_models", "lab", "report", "ablation", "pose_trial", "attitude", "suite", "bound",
+          "export", "predict", "remote"]
 
 
 def _register() -> None:

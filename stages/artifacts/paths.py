@@ -94,6 +94,8 @@ TRIAL_STAGES = ("per_sequence", "320x180", "fy360")   # the variants with a stag
 for _variant in TRIAL_STAGES:
     _outputs(f"trial_{_variant}", str(POSE_TRIALS / _variant))
 ATTITUDE_REPORT, ATTITUDE_METRICS = _outputs("attitude", "reports/attitude.md", "reports/metrics/attitude.json")
+# issue 40's integrity bound under the attacker's capacity: a stage of optional/dvc.yaml (`rpod bound`)
+BOUND_REPORT, BOUND_METRICS = _outputs("bound", "reports/integrity_bound.md", "reports/metrics/bound.json")
 # the headline numbers (what `dvc metrics show` prints), then the report's own figures
 PAGE, SUMMARY, *_FIGURES = _outputs("report", "reports/README.md", "reports/metrics/summary.json",
                                     *(f"reports/figures/{name}.png"

@@ -20,6 +20,7 @@ from typing import Annotated, Any, Optional
 from pipeline.settings import In, Source, typed
 from pipeline.settings import ranges as settings_ranges
 from stages.config.ablation import Ablation
+from stages.config.bound import Bound
 from stages.config.evaluation import Defense, Evaluate, Integrity, Lab, Robustness
 from stages.config.sections import (
     Attack,
@@ -65,6 +66,7 @@ class Params:
     lab: Lab
     robustness: Robustness
     integrity: Integrity
+    bound: Bound
     ablation: Ablation
     suite: Suite
     report: Report = field(default_factory=Report)

@@ -1,0 +1,108 @@
+"""`rpod bound`: issue 40's integrity bound under the attacker's capacity -> reports/integrity_bound.md and
+reports/metrics/bound.json. A stage of optional/dvc.yaml (`dvc repro optional/dvc.yaml`), not of the default
+`dvc repro`: at stride 10 it cost 17-21 s per trajectory, eps and attacker on the shared 2-core machine (measured on
+the default eval_render data, robust chain, eps 0.01), so about 40 minutes for the default profile's 10 trajectories,
+3 eps, 2 attackers and 2 chains.
+
+Per chain of `bound.models` (loaded through the one door, stages/artifacts/models.py `load_chain`) and each of the
+first `bound.trajectories` eval_render trajectories: pipeline/evaluation/integrity_bound.py `bound_track` at each eps
+of `bound.eps`, with the chain's attacker capacity F(eps, range) read from datasets/capacity/ (`rpod train --robust`,
+pipeline/formats/capacity.py), the detector blind, the alert limit of params (the one the defense file records); then
+the largest indices over trajectories, the share of target frames whose bound exceeds AL (95% interval bootstrapped
+over trajectories) and, on `bound.certify_frames` frames of the first trajectory, the interval-bound certificate
+beside the capacity.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import typer
+
+from pipeline.geometry.labels import TARGET
+from pipeline.io.atomic import atomic_write_text
+from stages.artifacts.dvc import write_metrics
+from stages.artifacts.models import load_chain
+from stages.artifacts.paths import BOUND_METRICS, BOUND_REPORT, CAPACITY
+from stages.artifacts.readers import read_eval_render
+from stages.config.build import alert_limit_settings
+from stages.config.schema import Params
+from stages.errors import StageError
+from stages.pages.bound import bound_page
+
+
+def main(params: Params) -> None:
+    """The integrity bound of each chain of bound.models on the eval_render trajectories; its page and metrics."""
+    from pipeline.evaluation.integrity_runs import Track
+
+    b = params.bound
+    images, poses, _ = read_eval_render(params)
+    labels = poses[TARGET].to_numpy(np.float64)
+    trajs = [np.flatnonzero(poses["trajectory"].to_numpy() == t) for t in np.unique(poses["trajectory"])]
+    tracks = [Track(f"t{g}", images[ix], labels[ix]) for g, ix in enumerate(trajs[:b.trajectories])]
+    eps = sorted(float(e) for e in b.eps)
+    chains = {model: _chain(params, model, tracks, eps) for model in b.models}
+    metrics = {"eps": eps, "stride": b.stride, "trajectories": len(tracks), "frames": int(sum(len(t) for t in tracks)),
+               "chains": chains}
+    write_metrics(BOUND_METRICS, metrics, params.profile_name)
+    atomic_write_text(BOUND_REPORT, bound_page(metrics))
+    seconds = sum(c["seconds"] for c in chains.values())
+    typer.echo(f"bound: {len(chains)} chains x {len(tracks)} trajectories x {len(eps)} eps in {seconds:.0f} s "
+               f"-> {BOUND_REPORT}")
+
+
+def _capacities(model: str, eps: list[float]) -> tuple[list[Any], dict[str, Any]]:
+    """The fitted capacities F(eps, range) of `model` in datasets/capacity/ and their meta; a StageError when the
+    files are missing or measured below the largest eps asked."""
+    from pipeline.formats.capacity import capacity_paths, read_capacity
+
+    if not capacity_paths(CAPACITY, model)[1].is_file():
+        raise StageError(f"{CAPACITY}: no capacity of the {model} model; run `rpod train --robust` (dvc repro robust)")
+    _, caps, meta = read_capacity(CAPACITY, model)
+    if max(eps) > max(c.eps for c in caps):
+        raise StageError(f"params.yaml bound.eps: {max(eps):g} is above every eps the {model} model's capacity was "
+                         f"measured at ({', '.join(f'{c.eps:g}' for c in caps)}; suite.capacity.eps)")
+    return caps, meta
+
+
+def _chain(params: Params, model: str, tracks: list[Any], eps: list[float]) -> dict[str, Any]:
+    """One chain's per-trajectory bounds, summary per eps and certificate (JSON-ready)."""
+    from tqdm import tqdm
+
+    from pipeline.evaluation.integrity_bound import (
+        ATTACKERS,
+        bound_track,
+        certificate,
+        first_over,
+        over_al_rate,
+        worst_over_trajectories,
+    )
+
+    b = params.bound
+    caps, meta = _capacities(model, eps)
+    safety = load_chain(params, model)
+    limit = alert_limit_settings(params)
+    t0 = time.perf_counter()
+    rows = []
+    with tqdm(total=len(tracks) * len(eps) * len(ATTACKERS), desc=f"bound ({model})", unit="program") as bar:
+        for track in tracks:
+            try:
+                rows.append(bound_track(safety.onboard, safety.defended, track, caps, eps, b.stride, limit,
+                                        b.batch_size, lambda: bar.update(1)))
+            except ValueError as e:   # a range outside the capacity's bins
+                raise StageError(f"{CAPACITY} ({model}) on eval_render {track.name}: {e}; widen "
+                                 "suite.capacity.edges") from None
+    per_eps = {}
+    for e in (f"{v:g}" for v in eps):
+        worst = worst_over_trajectories(rows, e)
+        for who in ATTACKERS:
+            r = over_al_rate(rows, e, who)
+            worst[who]["frames_over_al"] = {"value": r.value if r.n else None, "ci": r.ci(), "n": r.n}
+        per_eps[e] = worst
+    cert = certificate(safety.model, tracks[0], caps, eps, b.certify_frames) if b.certify_frames and tracks else None
+    return {"model_hash": safety.pose_hash, "capacity": {"eps": [c.eps for c in caps], "quantile": caps[0].quantile,
+                                                         "margin": caps[0].margin, "edges": caps[0].edges.tolist(),
+                                                         "meta": meta},
+            "per_eps": per_eps, "first_over_al_eps": first_over(per_eps), "tracks": rows, "certificate": cert,
+            "seconds": time.perf_counter() - t0}

@@ -1,0 +1,123 @@
+"""reports/integrity_bound.md, the page of `rpod bound` (issue 40): per chain and eps the integrity bound's worst
+trusted error against the alert limit AL, the replayed (real-chain) worst error, the share of target frames whose bound
+exceeds AL with its 95% interval, the attacker sparing the protection level's trusted frames, the interval-bound
+certificate beside the capacity, and every assumption the bound rests on."""
+from __future__ import annotations
+
+from typing import Any
+
+CHAINS = {"robust": "robust (shipped)", "standard": "standard (paper's reproduction)"}
+
+ASSUMPTIONS = """\
+- **The capacity is an empirical overbound, not a certificate.** F(eps, range) is, per range bin, a quantile of the
+  shifts the strongest-attack suite reached on validation frames times (1 + margin) (datasets/capacity/,
+  pipeline/attacks/capacity.py): an attack stronger than the suite, or a frame beyond the quantile, can exceed it.
+  An eps between measured ones takes the capacity of the next larger measured eps; the cross-track capacity bounds
+  each cross axis separately (a square about the measured disk: conservative by up to sqrt(2)); the attitude is
+  left at its clean value.
+- **The certificate is vacuous.** Interval bound propagation through the pose network (pipeline/pose/certify.py)
+  certifies shifts far beyond the range itself (table below), so nothing here is certified: the bound is exact only
+  relative to the capacity.
+- **The detector is modelled as blind**: every frame keeps its clean-run detector probability (its doubt and flags).
+  The attacker is neither caught by it nor slowed by it.
+- **The attacker is white-box and starts at the first frame**: it knows the clean run (the pose network's noise,
+  every gain and choice of the filter) and may shift every frame, the start and the trusted-start frames included
+  (column "bound"). Column "sparing the PL's trusted frames" is the attacker the protection level's assumption A
+  bounds (no fault up to the trusted-start count); its replayed error / PL above 1 is misleading information the PL
+  should have covered.
+- **The filter's structure is fixed**: the program keeps the clean run's accept / reject / alarm choices (the gate,
+  the Huber zone and the sequential test as constraints, pipeline/defense/bound.py); an attack that changes them, or
+  triggers a restart, is not searched (targets after the first restart are unmodelled and counted). Within that
+  structure the bound is the program's upper bound (first order in the range terms of the noise model); the worst
+  sequence is replayed through the real defense ("replayed").
+- **Targets** are every `stride`-th frame from the filter's start and the last frame: the share of frames over AL
+  is over those target frames, its interval bootstrapped over trajectories (frames of one trajectory resample
+  together).
+- The protection level's own assumptions (its risk allocated per frame, not per approach; the fault-free noise
+  model white in time) are pipeline/defense/protection.py's.
+"""
+
+
+def _x(v: float | None, digits: int = 2) -> str:
+    return "-" if v is None else f"{v:.{digits}f}"
+
+
+def _pct(r: dict[str, Any]) -> str:
+    from pipeline.stats import percent_ci
+
+    return "-" if not r.get("n") else percent_ci(r["value"], r["ci"], 1)
+
+
+def _rows(chain: dict[str, Any], label: str, stride: int) -> list[dict[str, str]]:
+    """One row per eps: the bound's indices (from the first frame on) and the attacker sparing the trusted frames."""
+    rows = []
+    for e, row in chain["per_eps"].items():
+        b, s = row["bound"], row["spared"]
+        cap = next(t["per_eps"][e]["capacity_eps"] for t in chain["tracks"]) if chain["tracks"] else None
+        rows.append({"chain": label, "eps": e, "capacity measured at eps": _x(cap, 3),
+                     "max upper / AL": _x(b["max_error_al"]), "worst trajectory": b["worst_trajectory"] or "-",
+                     "max upper (m)": _x(b["max_error_m"]), "replayed worst error (m)": _x(b["max_achieved_m"]),
+                     "replayed / AL": _x(b["max_achieved_al"]),
+                     f"target frames (1 in {stride}) with upper > AL (%)": _pct(b["frames_over_al"]),
+                     "max upper / PL": _x(b["max_error_pl"]), "max replayed / PL": _x(b["max_achieved_pl"]),
+                     "sparing the PL's trusted frames: max upper / AL": _x(s["max_error_al"]),
+                     "... max replayed / PL": _x(s["max_achieved_pl"]),
+                     "replays reproducing the program (%)": _x(None if b["exact"] is None else 100 * b["exact"], 0),
+                     "unmodelled targets": str(b["unmodelled"])})
+    return rows
+
+
+def _certificates(chains: dict[str, Any]) -> list[dict[str, str]]:
+    """Per chain and eps: the IBP certificate's median shift along the line of sight beside the capacity's."""
+    rows = []
+    for model, c in chains.items():
+        cert = c.get("certificate")
+        for e, r in (cert or {}).get("per_eps", {}).items():
+            rows.append({"chain": CHAINS[model], "eps": e, "frames": str(len(cert["frames"])),
+                         "certified shift along the LOS, median (m)": f"{r['certified_along_median_m']:.3g}",
+                         "capacity along the LOS, median (m)": _x(r["capacity_along_median_m"]),
+                         "certificate / capacity": f"{r['ratio_median']:.3g}",
+                         "vacuous (beyond the range on every frame)": "yes" if r["vacuous"] else "no"})
+    return rows
+
+
+def bound_page(metrics: dict[str, Any]) -> str:
+    """The whole page from reports/metrics/bound.json's content."""
+    from pipeline.report.markdown import markdown_table
+
+    chains, stride = metrics["chains"], metrics["stride"]
+    rows = [r for model, c in chains.items() for r in _rows(c, CHAINS[model], stride)]
+    first = [f"- {CHAINS[m]}: " + ("the bound stays within AL at every eps" if c["first_over_al_eps"] is None
+                                    else f"the bound first exceeds AL at eps {c['first_over_al_eps']:g}")
+             for m, c in chains.items()]
+    cost = ", ".join(f"{CHAINS[m]} {c['seconds']:.0f} s" for m, c in chains.items())
+    caps = [f"- {CHAINS[m]}: measured at eps {', '.join(f'{e:g}' for e in c['capacity']['eps'])}; the "
+            f"{c['capacity']['quantile']:g} quantile x (1 + {c['capacity']['margin']:g}) per range bin "
+            f"({', '.join(f'{v:g}' for v in c['capacity']['edges'])} m)" for m, c in chains.items()]
+    certs = _certificates(chains)
+    return "\n".join([
+        "# Integrity bound under the attacker's capacity",
+        "",
+        "The worst trusted error of fault sequences within the attacker's capacity F(eps, range) that pass every "
+        f"check of the chain's defense, on {metrics['trajectories']} evaluation trajectories ({metrics['frames']} "
+        f"frames; every {stride}th frame from the filter's start and the last is a target), against the alert limit "
+        "AL at the true range. upper: the program's bound; replayed: the worst sequence flown through the real "
+        "chain's defense.",
+        "",
+        markdown_table(rows),
+        "Where the bound first exceeds AL:",
+        "",
+        *first,
+        "",
+        "## The capacity",
+        "",
+        *caps,
+        "",
+        "## Certificate",
+        "",
+        markdown_table(certs) if certs else "Not computed (bound.certify_frames = 0).\n",
+        "## Assumptions",
+        "",
+        ASSUMPTIONS,
+        f"Cost: {cost} on this machine (`rpod bound`, optional/dvc.yaml).",
+        ""])

@@ -1,0 +1,75 @@
+"""`rpod bound` (stages/bound.py): its params section, its reading of the capacity files, and its page built from
+bound_run outputs on a toy filter."""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline.attacks.capacity import proportional_capacity
+from pipeline.defense.integrity import AlertLimitSettings
+from pipeline.evaluation.integrity_bound import ATTACKERS, bound_run, first_over, over_al_rate, worst_over_trajectories
+from pipeline.formats.capacity import COLUMNS, write_capacity
+from stages.config.bound import Bound
+from stages.errors import StageError
+from stages.pages.bound import bound_page
+from tests.test_bound import FLAT, toy
+from tests.test_integrity_bound import DEFENDED, caps
+
+GOOD = dict(models=["robust"], eps=[0.01], stride=10, trajectories=None, certify_frames=0, batch_size=8)
+
+
+def test_the_section_refuses_no_eps_and_a_repeated_chain() -> None:
+    Bound(**GOOD)
+    with pytest.raises(ValueError, match="at least one"):
+        Bound(**{**GOOD, "eps": []})
+    with pytest.raises(ValueError, match="repeat"):
+        Bound(**{**GOOD, "models": ["robust", "robust"]})
+
+
+def _write(folder, eps: list[float]) -> None:
+    frames = pd.DataFrame([[i, 20.0 + i, e, 0.1, 0.1, 1.0] for e in eps for i in range(3)], columns=COLUMNS)
+    write_capacity(folder, "robust", frames, [proportional_capacity(e, [0.0, 100.0], 0.01, 0.01) for e in eps], {})
+
+
+def test_the_stage_reads_the_capacity_and_refuses_a_missing_one_or_an_eps_above_it(tmp_path, monkeypatch) -> None:
+    from stages.artifacts.paths import CAPACITY
+    from stages.bound import _capacities
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(StageError, match="rpod train --robust"):
+        _capacities("robust", [0.01])
+    _write(tmp_path / CAPACITY, [0.01, 0.05])
+    got, _ = _capacities("robust", [0.01, 0.02])
+    assert [c.eps for c in got] == [0.01, 0.05]
+    with pytest.raises(StageError, match="bound.eps"):
+        _capacities("robust", [0.1])
+
+
+def _metrics() -> dict:
+    """A one-chain metrics dict as stages/bound.py assembles it, from two toy trajectories."""
+    tracks = [bound_run(DEFENDED, f"t{s}", *toy(40, s, FLAT)[::-1], caps(0.01, 0.01), [0.01, 0.05], 10,
+                        AlertLimitSettings()) for s in (1, 2)]
+    per_eps = {}
+    for e in ("0.01", "0.05"):
+        per_eps[e] = worst_over_trajectories(tracks, e)
+        for who in ATTACKERS:
+            r = over_al_rate(tracks, e, who)
+            per_eps[e][who]["frames_over_al"] = {"value": r.value if r.n else None, "ci": r.ci(), "n": r.n}
+    chain = {"capacity": {"eps": [0.01, 0.05], "quantile": 0.99, "margin": 0.25, "edges": [0.0, 100.0]},
+             "per_eps": per_eps, "first_over_al_eps": first_over(per_eps), "tracks": tracks, "certificate": None,
+             "seconds": 1.0}
+    return {"eps": [0.01, 0.05], "stride": 10, "trajectories": 2, "frames": 80, "chains": {"robust": chain}}
+
+
+def test_the_page_states_the_bound_its_replay_its_rate_with_an_interval_and_its_assumptions() -> None:
+    m = _metrics()
+    page = bound_page(m)
+    b = m["chains"]["robust"]["per_eps"]["0.05"]["bound"]
+    assert f"{b['max_error_al']:.2f}" in page and f"{b['max_achieved_m']:.2f}" in page
+    rate = b["frames_over_al"]
+    assert rate["n"] > 0 and f"{100 * rate['ci'][1]:.1f}]" in page            # the share comes with its interval
+    for words in ("empirical overbound, not a certificate", "certificate is vacuous", "detector is modelled as blind",
+                  "trusted-start frames", "Not computed"):
+        assert words in page
+    assert np.isfinite(b["max_error_m"])
