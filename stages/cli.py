@@ -119,15 +119,53 @@ def known_error(e: BaseException) -> str | None:
 
 
 def main() -> None:
-    """Console entry point: one line and exit status 1 for known errors, a traceback with --debug."""
+    """Console entry point: one line and exit status 1 for known errors (a traceback with --debug), one line and exit
+    status 130 when SIGINT (Ctrl-C) or SIGTERM stops a command (pipeline/interrupt.py: temporaries and locks are
+    removed on the way out, and under DVC the git-tracked outputs it deleted before the stage come back)."""
+    from pipeline import interrupt
+    from pipeline.io.store import release_zarr
+
+    interrupt.install()
+    try:
+        _run()
+    finally:
+        release_zarr()
+
+
+def _run() -> None:
+    """`app()` with the error, interrupt and restore paths of `main`."""
+    from pipeline.interrupt import EXIT_STATUS, Interrupted
+    from stages.artifacts.dvc import restore_tracked_outputs
+
+    command = " ".join(["rpod", *[a for a in sys.argv[1:] if not a.startswith("-")][:1]])
     try:
         app()
+    except SystemExit as e:
+        if e.code not in (0, None):
+            _note_restored(restore_tracked_outputs())
+        raise
+    except Interrupted as e:
+        restored = restore_tracked_outputs()
+        under_dvc = "; DVC records nothing" if os.environ.get("DVC_STAGE") else ""
+        back = f" (put back from git: {', '.join(restored)})" if restored else ""
+        typer.secho(f"{command}: stopped by {e}; no half-written output left{under_dvc}{back}", fg=typer.colors.RED,
+                    err=True)
+        sys.exit(EXIT_STATUS)
     except Exception as e:
         message = known_error(e)
         if message is None or _DEBUG["on"]:
+            _note_restored(restore_tracked_outputs())
             raise
         typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
+        _note_restored(restore_tracked_outputs())
         sys.exit(1)
+
+
+def _note_restored(restored: list[str]) -> None:
+    """Say which git-tracked outputs a failed stage put back (none: nothing said)."""
+    if restored:
+        typer.secho(f"note: put back from git the outputs DVC deleted before the stage: {', '.join(restored)}",
+                    err=True)
 
 
 if __name__ == "__main__":

@@ -117,8 +117,9 @@ def session(es: EngineSettings) -> Iterator[None]:
     if es.address:
         _check_reachable(es.address, es.timeout_s)
     try:
-        ray.init(address=es.address or "local", num_cpus=None if es.address else es.workers,
-                 include_dashboard=False, logging_level=logging.WARNING, log_to_driver=True)
+        with _signal_handlers_kept():
+            ray.init(address=es.address or "local", num_cpus=None if es.address else es.workers,
+                     include_dashboard=False, logging_level=logging.WARNING, log_to_driver=True)
     except (ConnectionError, RuntimeError, ValueError) as e:
         where = f"the Ray cluster at {es.address}" if es.address else "a local Ray"
         raise StageError(f"could not start or reach {where} ({type(e).__name__}: {str(e).splitlines()[0]}); "
@@ -182,6 +183,26 @@ def _check_ray_head(address: str, timeout_s: float) -> None:
         raise StageError(f"Ray cluster address {address!r} (engine.address or $RAY_ADDRESS) accepts connections but "
                          f"is not a Ray head ({why} within engine.timeout_s = {timeout_s:g} s); give the port "
                          f"`ray start --head` printed, or unset it to run on this machine")
+
+
+@contextlib.contextmanager
+def _signal_handlers_kept() -> Iterator[None]:
+    """Put back this process's SIGINT and SIGTERM handlers after the block: ray.init replaces SIGTERM's with
+    `sys.exit` (the driver would exit with status 15, no clean-up line), where the command line's stop path
+    (pipeline/interrupt.py) ends the stage with one line and exit 130; `ray.shutdown` then stops the workers."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    kept = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in kept.items():
+            if handler is not None:
+                signal.signal(sig, handler)
 
 
 def _run_on_ray(worker_cls: Callable[[Any], Worker], setup: Any, jobs: list[Any], es: EngineSettings,
