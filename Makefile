@@ -9,6 +9,7 @@ setup:
 
 ## Run the whole pipeline on the profile in params.yaml (the default profile as committed).
 repro: setup
+	rpod params --check
 	dvc repro
 
 ## Run the test suite (includes the smoke end-to-end run).

@@ -55,12 +55,18 @@ def _root(debug: bool = typer.Option(False, "--debug", help="Show the full trace
 def params_cmd(
     profile: str = typer.Argument("default", help="Profile in conf/profile/: default, smoke or paper."),
     set_: list[str] = typer.Option([], "--set", "-S", help="Hydra override, e.g. train.epochs=5 (repeatable)."),
+    check: bool = typer.Option(False, "--check", help="Only check that params.yaml is up to date with conf/."),
 ) -> None:
-    """Write params.yaml from conf/config.yaml and a profile, checked against the params schema, and make the
-    profile the one conf/config.yaml composes from (so `dvc exp run -S key=value` keeps it)."""
+    """Write params.yaml from conf/config.yaml and a profile, checked against the params schema and stamped with
+    conf/'s hash (conf_sha: stages refuse it once conf/ is edited), and make the profile the one conf/config.yaml
+    composes from (so `dvc exp run -S key=value` keeps it). --check: only check params.yaml (`make repro` does)."""
+    if check:
+        params_mod.load()
+        typer.echo("params.yaml is up to date with conf/")
+        return
     composed = compose_mod.compose_checked(profile, set_)
-    params_mod.write_params(composed)
     recorded = compose_mod.record_profile(profile)
+    params_mod.write_params(params_mod.stamped(composed))
     typer.echo(f"params.yaml <- conf/config.yaml + conf/profile/{profile}.yaml" + (f" + {set_}" if set_ else "")
                + (f"; conf/config.yaml now composes {profile!r} (dvc exp run -S)" if recorded else ""))
 
