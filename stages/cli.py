@@ -134,6 +134,15 @@ def main() -> None:
     interrupt.install()
     try:
         _run()
+    except SystemExit as e:
+        release_zarr()
+        if e.code == interrupt.EXIT_STATUS and interrupt.requested() is not None:
+            # Stopped: every clean-up ran in the `finally` blocks on the way here; leave without the interpreter's
+            # finalization, where Ray's core worker, interrupted inside ray.wait, crashed (exit -11 after the line)
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(interrupt.EXIT_STATUS)
+        raise
     finally:
         release_zarr()
 

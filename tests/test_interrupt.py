@@ -38,9 +38,11 @@ def copy(tmp_path) -> tuple[Path, dict[str, str]]:
     return dst, env
 
 
-def _interrupt(args: list[str], cwd: Path, env: dict[str, str], sig: int, log: Path) -> tuple[int, str, float]:
-    """Start `args` in its own process group, wait for the render's progress bar, send `sig` to the whole group
-    (as a terminal's Ctrl-C does) -> (exit status, stderr, seconds from the signal to the exit)."""
+def _interrupt(args: list[str], cwd: Path, env: dict[str, str], sig: int, log: Path, delay_s: float = 0.0,
+               group: bool = True) -> tuple[int, str, float]:
+    """Start `args` in its own process group, wait for the render's progress bar and `delay_s` seconds more, send
+    `sig` to the whole group (as a terminal's Ctrl-C does) or, `group` False, to the command alone (as `kill` does)
+    -> (exit status, stderr, seconds from the signal to the exit)."""
     with open(log, "w") as err:
         proc = subprocess.Popen(args, cwd=cwd, env=env, stdout=subprocess.DEVNULL, stderr=err, start_new_session=True)
         deadline = time.monotonic() + STARTED_S
@@ -48,8 +50,9 @@ def _interrupt(args: list[str], cwd: Path, env: dict[str, str], sig: int, log: P
             assert proc.poll() is None, log.read_text()[-3000:]
             assert time.monotonic() < deadline, "the render never started"
             time.sleep(0.1)
+        time.sleep(delay_s)
         signalled = time.monotonic()
-        os.killpg(proc.pid, sig)
+        (os.killpg if group else os.kill)(proc.pid, sig)
         code = proc.wait(timeout=STOPPED_S)
     return code, log.read_text(), time.monotonic() - signalled
 
@@ -73,6 +76,20 @@ def test_a_signal_stops_rpod_render_between_frames_with_one_line(copy, tmp_path,
     assert not (root / "datasets" / "render").exists() and _leftovers(root) == []
     status = subprocess.run(["git", "status", "--porcelain"], cwd=root, capture_output=True, text=True).stdout
     assert status == "", status                                  # the tracked outputs (previews, metrics) untouched
+
+
+@pytest.mark.parametrize("sig, group", [(signal.SIGINT, True), (signal.SIGTERM, False)])
+def test_a_signal_stops_a_render_on_ray_workers_with_one_line(copy, tmp_path, sig, group):
+    """On Ray (engine.workers 2) the driver waits in Ray's core worker: before issue 41 SIGTERM exited 15 (Ray's own
+    handler), or 1 with a SystemError from ray.wait, leaving the lock and a temporary folder; SIGINT crashed at exit."""
+    root, env = copy
+    subprocess.run(["rpod", "params", "smoke", *SLOW_RENDER, "-S", "engine.workers=2", "-S",
+                    "render.frames_per_sequence=40"], cwd=root, env=env, check=True, capture_output=True)
+    code, err, _ = _interrupt(["rpod", "render"], root, env, sig, tmp_path / "err.txt", delay_s=8.0, group=group)
+    assert code == 130, err[-3000:]
+    said = [line for line in err.splitlines() if "stopped by" in line]
+    assert said == [f"rpod render: stopped by {signal.Signals(sig).name}; no half-written output left"], err[-3000:]
+    assert "Traceback" not in err and not (root / "datasets" / "render").exists() and _leftovers(root) == []
 
 
 def test_an_interrupted_dvc_repro_records_nothing_and_leaves_tracked_outputs_as_they_were(copy, tmp_path):
