@@ -9,6 +9,7 @@ setup:
 
 ## Run the whole pipeline on the profile in params.yaml (the default profile as committed).
 repro: setup
+	rpod params --check
 	dvc repro
 
 ## The paper profile end to end, for a GPU box (README, "GPU and the paper profile"): params.yaml switched to the

@@ -8,7 +8,13 @@ models/detector_robust.pt; or any folder holding pose.pt and detector.pt (anothe
 Images are resized to the model's input as the lab loader resizes them (pipeline.images.resize:
 area averaging when shrinking), without keeping their aspect. Given the camera the images were taken with,
 `predict` warns when it is not the one the model was trained for (rpodguard/camera.py).
-A frame with too few lit pixels has no target in view: it gets no pose (NaN) and no attack flag.
+
+Each image's verdict is the shipped chain's: "attack" from the calibrated threshold of the chain's defense file,
+"doubt" from its doubt level (a frame the defended chain would not let update its motion filter), else "clean"
+(`VerdictRule`; a folder without defense.json falls back on the detector checkpoint's own threshold, no doubt level,
+and says so). An image that is not a camera frame with the target in view gets no pose (NaN) and no verdict on an
+attack: too few lit pixels ("no target") or neighbouring pixels that do not correlate, as in noise ("not a frame";
+pipeline/visibility.py says what the two rules can and cannot tell).
 """
 from __future__ import annotations
 
@@ -24,11 +30,58 @@ from pipeline.io.errors import DataError
 ASPECT_TOLERANCE = 0.01   # relative difference of width/height above which `predict` warns
 BATCH = 64                # images per forward pass
 # No target in view: under MIN_LIT_FRACTION of the pixels (at the model input) have a channel >= LIT_LEVEL
-# (pipeline/visibility.py, where the producers of data sets apply the same rule).
-from pipeline.visibility import LIT_LEVEL, MIN_LIT_FRACTION  # noqa: E402
+# (pipeline/visibility.py, where the producers of data sets apply the same rule); not a camera frame: the
+# correlation of neighbouring pixels under MIN_STRUCTURE (noise).
+from pipeline.visibility import LIT_LEVEL, MIN_LIT_FRACTION, MIN_STRUCTURE  # noqa: E402
+
+NO_TARGET, NOT_A_FRAME = "no target", "not a frame"   # the verdicts of an image that gets no pose
 
 Image = Union[str, Path, np.ndarray]
 BUNDLE = Path(__file__).resolve().parent / "weights" / "default"   # the default profile's trained chain (git)
+
+
+@dataclass(frozen=True)
+class VerdictRule:
+    """How `predict` judges an image by its attack probability, as the defended chain does: `settings` (the chain's
+    pipeline.defense.fusion.DefenseSettings: "attack" at or above its threshold, "doubt" at or above its doubt level
+    `update_below`, else "clean": `DefenseSettings.word`), `calibrated`: whether they are the defense file's
+    (`path`), else the detector checkpoint's own threshold (`path`: the detector) with no doubt level."""
+
+    settings: Any
+    calibrated: bool
+    path: Path
+
+    @property
+    def threshold(self) -> float:
+        """The attack threshold on the probability."""
+        return float(self.settings.threshold)
+
+    @property
+    def doubt(self) -> float | None:
+        """The doubt level on the probability (None: none)."""
+        return None if self.settings.update_below is None else float(self.settings.update_below)
+
+    def verdict(self, prob: float) -> str:
+        """"attack", "doubt" or "clean" for an attack probability."""
+        return str(self.settings.word(float(prob)))
+
+    def describe(self) -> str:
+        """One line: the levels in full and where they come from."""
+        levels = f"attack at P(attack) >= {self.threshold!r}" + (
+            f", doubt at >= {self.doubt!r}" if self.doubt is not None else "")
+        if self.calibrated:
+            fusion = self.settings.fusion
+            note = "" if fusion != "motion" else (f"; its fusion {fusion!r} flies on the motion checks alone, so the "
+                                                  f"chain would act on neither")
+            return f"verdict: {levels} (the chain's calibrated defense, {self.path}{note})"
+        return (f"verdict: {levels} (the detector's own threshold, no doubt level: {self.path.parent} has no "
+                f"defense.json, which `rpod calibrate` writes)")
+
+    def records(self) -> dict[str, Any]:
+        """The rule as JSON-ready fields of a record."""
+        return {"threshold": self.threshold, "doubt_level": self.doubt,
+                "rule": "calibrated defense" if self.calibrated else "detector threshold (no defense file)",
+                "rule_file": str(self.path)}
 
 
 @dataclass(frozen=True)
@@ -38,10 +91,12 @@ class Prediction:
     position (N, 3): target origin in the camera frame (m; OpenCV axes x right, y down, z forward);
     quaternion (N, 4): (qw, qx, qy, qz), qw >= 0, rotating target-frame vectors into the camera frame;
     rotation_6d (N, 6): the network's 6-D rotation (first two columns of R, column-wise, before
-    Gram-Schmidt); attack_probability (N,): the detector's P(attacked); attack_flag (N,) bool:
-    probability >= the detector's threshold (chosen on validation data by `rpod detect`);
-    lit_fraction (N,): the fraction of lit pixels (LIT_LEVEL); in_view (N,) bool: lit_fraction >=
-    MIN_LIT_FRACTION. A frame with no target in view has NaN pose and probability and no flag.
+    Gram-Schmidt); attack_probability (N,): the detector's P(attacked); verdict (N,) str: "attack", "doubt"
+    or "clean" by `rule` (the chain's calibrated levels, `VerdictRule`), or NO_TARGET / NOT_A_FRAME for an image
+    that gets no pose; attack_flag (N,) bool: verdict "attack"; lit_fraction (N,): the fraction of lit pixels
+    (LIT_LEVEL); structure (N,): the correlation of neighbouring pixels (pipeline.visibility.structure);
+    in_view (N,) bool: a camera frame with the target in view (lit_fraction >= MIN_LIT_FRACTION and structure
+    >= MIN_STRUCTURE). An image not in view has NaN pose and probability and no flag.
     """
 
     sources: tuple[str, ...]
@@ -49,23 +104,43 @@ class Prediction:
     quaternion: np.ndarray
     rotation_6d: np.ndarray
     attack_probability: np.ndarray
-    attack_flag: np.ndarray
+    verdict: tuple[str, ...]
     lit_fraction: np.ndarray
-    in_view: np.ndarray
+    structure: np.ndarray
+    rule: VerdictRule
+
+    @property
+    def in_view(self) -> np.ndarray:
+        """(N,) bool: a camera frame with the target in view (a pose was estimated)."""
+        return np.array([v not in (NO_TARGET, NOT_A_FRAME) for v in self.verdict], dtype=bool)
+
+    @property
+    def attack_flag(self) -> np.ndarray:
+        """(N,) bool: the verdict is "attack"."""
+        return np.array([v == "attack" for v in self.verdict], dtype=bool)
 
     def __len__(self) -> int:
         return len(self.sources)
 
+    def why_no_pose(self, k: int) -> str:
+        """Why image k got no pose, in words (for an image not in view)."""
+        if self.verdict[k] == NO_TARGET:
+            return f"no target in view ({100 * self.lit_fraction[k]:.2f}% lit pixels, under {MIN_LIT_FRACTION:.2%})"
+        return (f"not a camera frame: neighbouring pixels correlate {self.structure[k]:.2f}, under "
+                f"{MIN_STRUCTURE} (noise?)")
+
     def records(self) -> list[dict[str, Any]]:
-        """One JSON-ready dict per image (position in m, quaternion qw first, 6-D, probability, flag; null
-        for each of these when no target is in view)."""
+        """One JSON-ready dict per image (position in m, quaternion qw first, 6-D, probability, verdict and the
+        rule it was judged by; null for the pose and probability when the image got no pose)."""
         def values(a: np.ndarray) -> Any:
             return None if np.isnan(a).any() else a.tolist()
 
+        rule = self.rule.records()
         return [{"image": name, "in_view": bool(self.in_view[k]), "lit_fraction": float(self.lit_fraction[k]),
-                 "position_m": values(self.position[k]), "quaternion": values(self.quaternion[k]),
-                 "rotation_6d": values(self.rotation_6d[k]), "attack_probability": values(self.attack_probability[k]),
-                 "attack_flag": bool(self.attack_flag[k])} for k, name in enumerate(self.sources)]
+                 "structure": float(self.structure[k]), "position_m": values(self.position[k]),
+                 "quaternion": values(self.quaternion[k]), "rotation_6d": values(self.rotation_6d[k]),
+                 "attack_probability": values(self.attack_probability[k]), "verdict": self.verdict[k],
+                 "attack_flag": bool(self.attack_flag[k]), **rule} for k, name in enumerate(self.sources)]
 
 
 class Chain:
@@ -86,20 +161,32 @@ class Chain:
         self.camera = camera                      # the model's camera at its input size (Intrinsics), None: unknown
 
     @property
+    def rule(self) -> VerdictRule:
+        """How `predict` judges an image (`VerdictRule`): the defended chain's calibrated threshold and doubt level
+        from its defense file, else the detector checkpoint's own threshold."""
+        from pipeline.defense.fusion import DefenseSettings
+
+        _, detector, defense = self.files
+        if self.safety.defended is not None:
+            return VerdictRule(self.safety.defended.settings, True, Path(defense))
+        return VerdictRule(DefenseSettings(threshold=self.safety.threshold), False, Path(detector))
+
+    @property
     def threshold(self) -> float:
-        """The detector's flag threshold on the attack probability."""
-        return self.safety.threshold
+        """The attack threshold on the probability that `predict` flags at (`rule`)."""
+        return self.rule.threshold
 
     def predict(self, images: Image | Sequence[Image], batch_size: int = BATCH, camera: Any = None) -> Prediction:
-        """Pose and attack flag per image. `images`: a path, an array (H, W, 3) or (N, H, W, 3) (RGB,
+        """Pose and verdict per image. `images`: a path, an array (H, W, 3) or (N, H, W, 3) (RGB,
         uint8 or float in [0, 1]), or a list of paths and arrays; any size (resized to the model
         input, with a UserWarning when the aspect differs from the model's). `camera`: the images' camera,
         a 3x3 K (pixels, at the images' size) or a SPEED+ camera.json dict; a UserWarning when it is not the
-        model's camera (rpodguard.camera). A frame with no target in view (`MIN_LIT_FRACTION`) gets NaN
-        pose and probability and no flag."""
+        model's camera (rpodguard.camera). The verdict is the chain's (`rule`); an image that is not a camera
+        frame with the target in view (`MIN_LIT_FRACTION`, `MIN_STRUCTURE`) gets NaN pose and probability."""
         import torch
 
         from pipeline.geometry.rotations import sixd_to_quat
+        from pipeline.visibility import structure
         from rpodguard.camera import camera_warnings
 
         names, fitted, said = [], [], []
@@ -113,19 +200,23 @@ class Chain:
         if not names:
             raise ValueError("no images given (pass one or more image files or arrays)")
         x = torch.from_numpy(np.stack(fitted)).permute(0, 3, 1, 2)
-        pose, prob, flag = [], [], []
+        pose, prob = [], []
         for lo in range(0, len(x), batch_size):
             out = self.safety.onboard(x[lo:lo + batch_size])
             pose.append(out.pose.numpy().astype(np.float64))
             prob.append(out.prob.numpy().astype(np.float64))
-            flag.append(out.flag.numpy())
-        lit = (x.numpy().max(axis=1) >= LIT_LEVEL).mean(axis=(1, 2))
-        seen = lit >= MIN_LIT_FRACTION
+        pixels = np.stack(fitted)
+        lit = (pixels.max(axis=3) >= LIT_LEVEL).mean(axis=(1, 2))
+        smooth = structure(pixels)
+        rule = self.rule
+        verdict = tuple(NO_TARGET if lit[k] < MIN_LIT_FRACTION else NOT_A_FRAME if smooth[k] < MIN_STRUCTURE
+                        else rule.verdict(p) for k, p in enumerate(np.concatenate(prob)))
+        seen = np.array([v not in (NO_TARGET, NOT_A_FRAME) for v in verdict], dtype=bool)
         p = np.where(seen[:, None], np.concatenate(pose), np.nan)
         quaternion = np.full((len(p), 4), np.nan)
         quaternion[seen] = sixd_to_quat(p[seen, 3:9]).reshape(-1, 4)
         return Prediction(tuple(names), p[:, :3], quaternion, p[:, 3:9], np.where(seen, np.concatenate(prob), np.nan),
-                          np.concatenate(flag).astype(bool) & seen, lit, seen)
+                          verdict, lit, smooth, rule)
 
     def track(self, images: Image | Sequence[Image], commands: np.ndarray, attitudes: np.ndarray,
               batch_size: int = BATCH, camera: Any = None) -> Any:

@@ -74,7 +74,7 @@ def main() -> None:
     chain = load_chain(out)      # the detector must belong to this pose model; the hashes just written must hold
     size = sum(f["bytes"] for f in manifest["files"].values())
     print(f"{out}: {', '.join(manifest['files'])} ({size / 1e6:.1f} MB), profile {profile}, commit {commit[:12]}"
-          + (f", {len(changes)} changed code files" if changes else "") + f", detector threshold {chain.threshold:.3f}")
+          + (f", {len(changes)} changed code files" if changes else "") + f"; {chain.rule.describe()}")
 
 
 if __name__ == "__main__":

@@ -22,3 +22,5 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   .venv/bin/python -m pip install -q -e '.[test,bench]'
   touch "$stamp"
 fi
+# `make repro` and `make test` put .venv/bin first on PATH themselves; a shell needs it once
+[ "$(command -v rpod || true)" = "$PWD/.venv/bin/rpod" ] || echo "setup: done; run \`source .venv/bin/activate\` to put rpod and dvc on PATH (or call .venv/bin/rpod)"

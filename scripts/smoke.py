@@ -3,7 +3,7 @@ tracked files (params.yaml, conf/config.yaml, reports/, dvc.lock, dvclive/) stay
 
     python scripts/smoke.py                              # every stage, in a new temporary folder
     python scripts/smoke.py --dir /tmp/s --stages render label   # those stages (and what they need)
-    python scripts/smoke.py --dry                        # `dvc repro --dry`: what would run
+    python scripts/smoke.py --dry                        # `dvc repro --dry --force`: the stages that would run
 
 The copy holds the tracked and untracked-but-not-ignored files (a clean clone plus local edits) as a
 one-commit git repository; it is kept, and its path is printed at the end (reports in DIR/reports).
@@ -59,7 +59,9 @@ def smoke(dst: Path, stages: list[str], dry: bool) -> None:
     `dvc repro` there (only `stages` and what they need, when given), streaming the output; a command
     that fails ends the script with one line (its own message is above it)."""
     env = copy_repo(ROOT, dst)
-    for args in (["rpod", "params", "smoke"], ["dvc", "repro", *(["--dry"] if dry else []), *stages]):
+    # --dry is forced: the copy has no data, every stage of the smoke profile runs there, and an unforced dry run
+    # stops at the first stage whose input folder another stage would write ("failed to reproduce 'label'")
+    for args in (["rpod", "params", "smoke"], ["dvc", "repro", *(["--dry", "--force"] if dry else []), *stages]):
         done = subprocess.run(args, cwd=dst, env=env)
         if done.returncode != 0:
             sys.exit(f"smoke: `{' '.join(args)}` failed in {dst} (exit {done.returncode})")

@@ -55,12 +55,18 @@ def _root(debug: bool = typer.Option(False, "--debug", help="Show the full trace
 def params_cmd(
     profile: str = typer.Argument("default", help="Profile in conf/profile/: default, smoke or paper."),
     set_: list[str] = typer.Option([], "--set", "-S", help="Hydra override, e.g. train.epochs=5 (repeatable)."),
+    check: bool = typer.Option(False, "--check", help="Only check that params.yaml is up to date with conf/."),
 ) -> None:
-    """Write params.yaml from conf/config.yaml and a profile, checked against the params schema, and make the
-    profile the one conf/config.yaml composes from (so `dvc exp run -S key=value` keeps it)."""
+    """Write params.yaml from conf/config.yaml and a profile, checked against the params schema and stamped with
+    conf/'s hash (conf_sha: stages refuse it once conf/ is edited), and make the profile the one conf/config.yaml
+    composes from (so `dvc exp run -S key=value` keeps it). --check: only check params.yaml (`make repro` does)."""
+    if check:
+        params_mod.load()
+        typer.echo("params.yaml is up to date with conf/")
+        return
     composed = compose_mod.compose_checked(profile, set_)
-    params_mod.write_params(composed)
     recorded = compose_mod.record_profile(profile)
+    params_mod.write_params(params_mod.stamped(composed))
     typer.echo(f"params.yaml <- conf/config.yaml + conf/profile/{profile}.yaml" + (f" + {set_}" if set_ else "")
                + (f"; conf/config.yaml now composes {profile!r} (dvc exp run -S)" if recorded else ""))
 
@@ -120,15 +126,62 @@ def known_error(e: BaseException) -> str | None:
 
 
 def main() -> None:
-    """Console entry point: one line and exit status 1 for known errors, a traceback with --debug."""
+    """Console entry point: one line and exit status 1 for known errors (a traceback with --debug), one line and exit
+    status 130 when SIGINT (Ctrl-C) or SIGTERM stops a command (pipeline/interrupt.py: temporaries and locks are
+    removed on the way out, and under DVC the git-tracked outputs it deleted before the stage come back)."""
+    from pipeline import interrupt
+    from pipeline.io.store import release_zarr
+
+    interrupt.install()
+    try:
+        _run()
+    except SystemExit as e:
+        release_zarr()
+        if e.code == interrupt.EXIT_STATUS and interrupt.requested() is not None:
+            # Stopped: every clean-up ran in the `finally` blocks on the way here; leave without the interpreter's
+            # finalization, where Ray's core worker, interrupted inside ray.wait, crashed (exit -11 after the line)
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(interrupt.EXIT_STATUS)
+        raise
+    finally:
+        release_zarr()
+
+
+def _run() -> None:
+    """`app()` with the error, interrupt and restore paths of `main`."""
+    from pipeline.interrupt import EXIT_STATUS, Interrupted
+    from stages.artifacts.dvc import restore_tracked_outputs
+
+    command = " ".join(["rpod", *[a for a in sys.argv[1:] if not a.startswith("-")][:1]])
     try:
         app()
+    except SystemExit as e:
+        if e.code not in (0, None):
+            _note_restored(restore_tracked_outputs())
+        raise
+    except Interrupted as e:
+        restored = restore_tracked_outputs()
+        under_dvc = "; DVC records nothing" if os.environ.get("DVC_STAGE") else ""
+        back = f" (put back from git: {', '.join(restored)})" if restored else ""
+        typer.secho(f"{command}: stopped by {e}; no half-written output left{under_dvc}{back}", fg=typer.colors.RED,
+                    err=True)
+        sys.exit(EXIT_STATUS)
     except Exception as e:
         message = known_error(e)
         if message is None or _DEBUG["on"]:
+            _note_restored(restore_tracked_outputs())
             raise
         typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
+        _note_restored(restore_tracked_outputs())
         sys.exit(1)
+
+
+def _note_restored(restored: list[str]) -> None:
+    """Say which git-tracked outputs a failed stage put back (none: nothing said)."""
+    if restored:
+        typer.secho(f"note: put back from git the outputs DVC deleted before the stage: {', '.join(restored)}",
+                    err=True)
 
 
 if __name__ == "__main__":

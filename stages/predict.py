@@ -1,12 +1,14 @@
 """`rpod predict IMAGES...`: the trained chain on your own images (not a DVC stage; reads no params.yaml).
 
-Prints per image the position (m, camera frame), the quaternion (qw, qx, qy, qz) and the detector's
-attack probability and flag as a table, or with --json everything including the 6-D rotation. With
+Prints per image the position (m, camera frame), the quaternion (qw, qx, qy, qz), the detector's attack
+probability and the chain's verdict (attack / doubt / clean at the calibrated levels of its defense file, printed
+in full above the table; rpodguard.api.VerdictRule) as a table, or with --json everything including the 6-D
+rotation and the rule. With
 --motion CSV (the chaser's commanded displacement and camera attitude per image: rpodguard.sequence)
 the images are a sequence in time order through the defended chain, and it prints per frame the trusted
 estimate (world frame, m), its protection level (m), whether the guidance may fly on it, and the flag. The image
-paths are checked before the model loads; a frame with no target in view (too few lit pixels:
-rpodguard.api.MIN_LIT_FRACTION) gets no pose and says so. Without --models it uses the weights bundle
+paths are checked before the model loads; an image that is not a camera frame with the target in view (too few
+lit pixels, or noise: pipeline/visibility.py) gets no pose and says why. Without --models it uses the weights bundle
 shipped in git (rpodguard/weights/default/), so it works right after `make setup`. With --camera (a
 camera.json as SPEED+ and `rpod export speed` write it) it warns when the images' camera is not the one the
 model was trained for (its K is stored in pose.pt; rpodguard/camera.py).
@@ -39,9 +41,10 @@ def main(
                                      "c0..c8: camera -> world rotation, row-major): the images are then a sequence "
                                      "through the defended chain (needs defense.json beside the models)."),
 ) -> None:
-    """Pose (position m, quaternion, 6-D) and attack flag of each image through the trained chain.
+    """Pose (position m, quaternion, 6-D) and the shipped chain's verdict (attack / doubt / clean) of each image.
 
-    Each image is judged alone (pose CNN -> SHAP signature -> LSTM detector); the motion filter needs a sequence.
+    Each image is judged alone (pose CNN -> SHAP signature -> LSTM detector) at the calibrated threshold and doubt
+    level of the chain's defense.json (printed in full); the motion filter needs a sequence (--motion).
 
     Positions assume the camera the model was trained with; another aspect is stretched to fit, with a warning.
     """
@@ -76,12 +79,11 @@ def main(
         return
     from tabulate import tabulate
 
-    rows = [[name, *out.position[k], *out.quaternion[k], out.attack_probability[k],
-             "ATTACK" if out.attack_flag[k] else "-"] if out.in_view[k] else
-            [name, f"no target in view ({100 * out.lit_fraction[k]:.2f}% lit pixels)"]
-            for k, name in enumerate(out.sources)]
-    typer.echo(tabulate(rows, ["image", "x (m)", "y (m)", "z (m)", "qw", "qx", "qy", "qz", "P(attack)",
-                               f"flag (>= {chain.threshold:.2f})"], floatfmt=".3f"))
+    rows = [[name, *out.position[k], *out.quaternion[k], out.attack_probability[k], out.verdict[k]]
+            if out.in_view[k] else [name, *[None] * 8, out.why_no_pose(k)] for k, name in enumerate(out.sources)]
+    typer.echo(out.rule.describe())
+    typer.echo(tabulate(rows, ["image", "x (m)", "y (m)", "z (m)", "qw", "qx", "qy", "qz", "P(attack)", "verdict"],
+                        floatfmt=".3f", missingval="-"))
 
 
 def _print_track(out: Any, as_json: bool) -> None:

@@ -14,14 +14,13 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import shutil
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import typer
 
-from pipeline.io.atomic import atomic_dir, exclusive, remove_stale_temps, write_json
+from pipeline.io.atomic import atomic_dir, atomic_outputs, exclusive, remove_stale_temps, write_json
 from pipeline.io.tables import write_parquet
 from pipeline.seeds import seed_for
 from stages.artifacts import speed as speed_io
@@ -109,23 +108,23 @@ def remove_leftovers(path: Path) -> None:
 
 def write_previews(images, poses, n_previews: int) -> list[Path]:
     """PNG previews: the first (60 m) and last (10 m) frame of sequence 0, then frames spread over the
-    rotating sequences; upscaled by an integer factor (nearest neighbour) for viewing."""
+    rotating sequences; upscaled by an integer factor (nearest neighbour) for viewing. Written into a temporary
+    folder that replaces the previews folder whole once every image is in (an interrupted run leaves the old one)."""
     import cv2
 
     from pipeline.geometry.trajectories import preview_picks
 
-    shutil.rmtree(PREVIEWS, ignore_errors=True)
-    PREVIEWS.mkdir(parents=True, exist_ok=True)
     out = []
-    for k, idx in enumerate(preview_picks(poses["sequence"].to_numpy(), poses["index"].to_numpy(), n_previews)):
-        img = np.asarray(images[idx])
-        row = poses.iloc[idx]
-        scale = max(1, round(PREVIEW_WIDTH / img.shape[1]))
-        big = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
-        path = PREVIEWS / f"{k:02d}_seq{int(row.sequence):02d}_frame{int(row.frame):04d}_{row.tz:.0f}m.png"
-        if not cv2.imwrite(str(path), big[..., ::-1]):
-            raise StageError(f"could not write {path}")
-        out.append(path)
+    with atomic_outputs(dirs=(PREVIEWS,)) as (tmp,):
+        for k, idx in enumerate(preview_picks(poses["sequence"].to_numpy(), poses["index"].to_numpy(), n_previews)):
+            img = np.asarray(images[idx])
+            row = poses.iloc[idx]
+            scale = max(1, round(PREVIEW_WIDTH / img.shape[1]))
+            big = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+            name = f"{k:02d}_seq{int(row.sequence):02d}_frame{int(row.frame):04d}_{row.tz:.0f}m.png"
+            if not cv2.imwrite(str(tmp / name), big[..., ::-1]):
+                raise StageError(f"could not write {PREVIEWS / name}")
+            out.append(PREVIEWS / name)
     return out
 
 

@@ -22,15 +22,15 @@ def _module_name(path: Path) -> str:
 MODULES = {_module_name(p): p for pkg in PACKAGES for p in sorted((REPO / pkg).rglob("*.py"))}
 
 # The layers, lowest first: a unit (a subpackage, or a module directly under pipeline/) imports only units
-# before it. The library: files and errors; typed settings (ranges, checks); every seed; intervals; frames and
-# cameras; image operations; whether a frame shows the target; the
-# Blender scene; the SHAP closed form; attacks on images (FGSM, PGD, the adaptive one) and their schedules;
+# before it. The library: files and errors; the stop flag of signals; typed settings (ranges, checks); every seed;
+# intervals; frames and cameras; image operations; whether a frame shows the target; the Blender scene; the SHAP
+# closed form; attacks on images (FGSM, PGD, the adaptive one) and their schedules;
 # the pose network (its adversarial training uses the attacks); the detectors; the defense (filter, fusion,
 # protection level, integrity, calibration, the onboard chain); the guidance law; the attackers of the
 # defended chain (burst, drift, in-loop: they model the defense and the guidance); evaluation campaigns;
 # file formats (a chain's files and the one door that loads a chain); report building blocks.
-PIPELINE_ORDER = ("io", "settings", "seeds", "stats", "geometry", "images", "visibility", "render", "shap", "attacks", "pose",
-                  "detectors", "defense", "guidance", "attackers", "evaluation", "formats", "report")
+PIPELINE_ORDER = ("io", "interrupt", "settings", "seeds", "stats", "geometry", "images", "visibility", "render", "shap",
+                  "attacks", "pose", "detectors", "defense", "guidance", "attackers", "evaluation", "formats", "report")
 # The commands' support, lowest first: errors; params (schema, composition, params -> library settings);
 # artifacts (paths, readers, checks); the Ray engine and its workers; report pages; then the commands
 # (one module per stage, the CLI and its --help), which no other unit imports.

@@ -144,7 +144,7 @@ def test_the_bundle_script_copies_the_shipped_chain(run):
     from pipeline.formats.bundle import write_bundle
     from rpodguard import load_chain
 
-    write_json(run / "defense.json", _defense(run, SHIPPED, load_chain(run).threshold))
+    write_json(run / "defense.json", _defense(run, SHIPPED, load_chain(run).safety.threshold))
     manifest = write_bundle(run.parent / "bundle", run, {"profile_name": "smoke"}, "0" * 40, [], "rebuild")
     assert manifest["sources"]["pose.pt"] == "models/pose_robust.pt"
     assert file_hash(run.parent / "bundle" / "pose.pt") == file_hash(run / "pose_robust.pt")

@@ -121,6 +121,23 @@ def test_clean_frames_after_a_bad_start_restart_the_filter():
     assert np.linalg.norm(tr.trusted[-1] - rel[-1]) < 0.2
 
 
+@pytest.mark.parametrize("prob, word", [(0.2, "clean"), (0.4, "doubt"), (0.6, "attack"), (float("nan"), "attack")])
+def test_the_detector_word_is_what_the_defense_acts_on(prob, word):
+    """`DefenseSettings.word` (rpodguard's per-image verdict) is the defended chain's own reading of a frame: "attack"
+    flags it, "doubt" coasts it unflagged, "clean" lets it update the filter."""
+    rel, t_pred, R_cam, u = straight(40, seed=5)
+    t_pred = t_pred.copy()
+    t_pred[30, 0] += 0.25                      # a small error the gate lets through: an update would move the state
+    probs = np.zeros(40)
+    probs[30] = prob
+    settings = DefenseSettings(threshold=0.5, update_below=0.3)
+    assert settings.word(prob) == word
+    tr = run_defense(settings, MOTION, NOISE, t_pred, probs, R_cam, u)
+    assert tr.shap_flag[30] == (word == "attack") and tr.flag[30] == (word == "attack")
+    coasted = np.allclose(tr.trusted[30], tr.trusted[29] + u[30], atol=1e-9)
+    assert coasted == (word != "clean")
+
+
 def test_a_doubtful_frame_is_not_flagged_but_does_not_update_the_filter():
     rel, t_pred, R_cam, u = straight(40, seed=5)
     t_pred = t_pred.copy()

@@ -41,7 +41,7 @@ def test_summary_is_grouped_readable_and_has_every_headline():
         group, name = key.split(".")
         assert isinstance(value, float) and name.endswith(UNITS) and len(key) <= 40, key
         assert summary(_committed_metrics())[group][name] == value
-    assert 0 < values["pose.test_position_m"] < 50
+    assert 0 < values["pose.standard_position_m"] < 50
     assert all(0 <= v <= 100 for k, v in values.items() if k.endswith("_pct"))
 
 
@@ -51,7 +51,7 @@ def test_summary_leaves_out_a_stage_that_did_not_run():
     metrics = _committed_metrics()
     del metrics["robustness"]
     s = summary(metrics)
-    assert "robustness" not in s and "integrity" not in s and "test_position_m" in s["pose"]
+    assert "robustness" not in s and "integrity" not in s and "standard_position_m" in s["pose"]
 
 
 def test_only_the_summary_is_a_dvc_metric_and_details_stay_outputs():

@@ -116,7 +116,7 @@ def test_dvc_metrics_and_plots_show_after_repro(smoke_repo):
     summary = json.loads((dst / "reports" / "metrics" / "summary.json").read_text())
     keys = {f"{g}.{k}" for g, group in summary.items() for k in group}
     # on smoke no closed-loop run may meet its attack: a rate over zero runs is left out, never made up
-    closed_loop = {"guidance.defended_held_pct", "in_loop.recover_collisions_pct"}
+    closed_loop = {"guidance.shipped_held_pct", "in_loop.shipped_recover_collisions_pct"}
     assert keys <= {h.key for h in HEADLINES} and {h.key for h in HEADLINES} - keys <= closed_loop
     header, row = _run(["dvc", "metrics", "show"], dst, env).splitlines()
     assert header.split()[1:] == sorted(keys) and len(row.split()) == 1 + len(keys)

@@ -11,7 +11,6 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-
 from test_e2e_smoke import _run, copy_repo
 from test_speed import write_folder
 
@@ -36,7 +35,7 @@ def test_a_speedplus_folder_runs_through_dvc(tmp_path):
     assert train["profile"] == "smoke" and train["test"]["n"] == 16
     for stage in ("evaluate", "guidance", "robustness", "lab"):
         assert json.loads((repo / f"reports/metrics/{stage}.json").read_text())["profile"] == "smoke", stage
-    assert json.loads((repo / "reports/metrics/summary.json").read_text())["pose"]["test_position_m"] > 0
+    assert json.loads((repo / "reports/metrics/summary.json").read_text())["pose"]["standard_position_m"] > 0
     assert "## " in (repo / "reports/README.md").read_text()
     lock = yaml.safe_load((repo / "dvc.lock").read_text())["stages"]["render"]
     assert str(data) in [d["path"] for d in lock["deps"]]

@@ -424,7 +424,7 @@ def test_label_refuses_a_stale_render_and_render_refuses_an_invisible_target(tmp
     with pytest.raises(StageError, match="the target covers no pixels in the first 4 frames"):
         render.main(load())
     assert {p: p.read_bytes() for p in Path("datasets/render").rglob("*") if p.is_file()} == rendered
-    assert sorted(p.name for p in Path("datasets").iterdir()) == [".render.lock", "render"]   # the lock stays
+    assert sorted(p.name for p in Path("datasets").iterdir()) == ["render"]   # no temporary, no lock left
 
 
 def test_temporary_folders_of_live_runs_are_kept(tmp_path):

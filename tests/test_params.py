@@ -2,12 +2,12 @@
 `stages.config.params.load` with a message naming the key."""
 from __future__ import annotations
 
-import pytest
-
 import dataclasses
 import hashlib
 import json
 from dataclasses import replace
+
+import pytest
 
 from stages.config import params as params_mod
 from stages.config.device import torch_device, torch_setup
@@ -149,3 +149,29 @@ def test_threads_param_sets_torch_threads():
         assert torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(before)
+
+
+def test_an_edit_of_conf_without_rpod_params_is_refused_with_one_line(tmp_path, monkeypatch):
+    """Issue 41: editing conf/ was silently ignored until `rpod params` ran again; params.yaml's conf_sha catches it."""
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from stages.cli import app
+
+    shutil.copytree(params_mod.CONF_DIR, tmp_path / "conf")
+    monkeypatch.chdir(tmp_path)
+    runner = CliRunner()
+    assert runner.invoke(app, ["params", "smoke"]).exit_code == 0
+    stamp = params_mod.read_yaml(tmp_path / "params.yaml")[params_mod.CONF_STAMP]
+    assert stamp == params_mod.conf_sha() and params_mod.load().profile_name == "smoke"
+    assert runner.invoke(app, ["params", "--check"]).exit_code == 0
+    config = tmp_path / "conf" / "profile" / "smoke.yaml"
+    config.write_text(config.read_text() + "\n# an edit\n")
+    with pytest.raises(ParamsError, match=r"params.yaml is stale: conf/ changed since it was composed .* run "
+                                          r"`rpod params smoke`"):
+        params_mod.load()
+    checked = runner.invoke(app, ["params", "--check"])
+    assert checked.exit_code == 1 and "is stale" in str(checked.exception)   # main() prints it as one line
+    assert runner.invoke(app, ["params", "smoke"]).exit_code == 0
+    assert params_mod.load().profile_name == "smoke"

@@ -54,7 +54,10 @@ def camera_models(tmp_path_factory) -> Path:
 
 
 def _images(n: int, h: int = H, w: int = W, seed: int = 0) -> np.ndarray:
-    return np.random.default_rng(seed).integers(0, 256, size=(n, h, w, 3), dtype=np.uint8)
+    """N random camera-like frames: blocks of 4 x 4 pixels of one random colour (neighbouring pixels correlate, as
+    in a lens image; pixel noise is not a frame: pipeline.visibility.MIN_STRUCTURE)."""
+    blocks = np.random.default_rng(seed).integers(0, 256, size=(n, -(-h // 4), -(-w // 4), 3), dtype=np.uint8)
+    return np.ascontiguousarray(blocks.repeat(4, axis=1).repeat(4, axis=2)[:, :h, :w])
 
 
 def _png(path: Path, image: np.ndarray) -> Path:
@@ -147,23 +150,30 @@ def test_cli_bad_inputs_stop_with_one_line(models, tmp_path, monkeypatch, capsys
     assert code == 1 and "pose.pt not found" in err
 
 
-def test_a_frame_with_no_target_in_view_gets_no_pose(models, tmp_path, monkeypatch, capsys):
-    from rpodguard.api import LIT_LEVEL, MIN_LIT_FRACTION
+def test_an_image_that_is_not_a_frame_with_the_target_in_view_gets_no_pose(models, tmp_path, monkeypatch, capsys):
+    from rpodguard.api import LIT_LEVEL, MIN_LIT_FRACTION, MIN_STRUCTURE
 
     dark = np.zeros((H, W, 3), np.uint8)
     speck = dark.copy()
     speck[:2, :2] = 255                                   # 4 of 2304 lit pixels: under MIN_LIT_FRACTION
     target = dark.copy()
     target[10:20, 20:40] = int(LIT_LEVEL * 255) + 10      # a dim 20x10 target: 8.7% lit
+    noise = np.random.default_rng(5).integers(0, 256, size=(H, W, 3), dtype=np.uint8)   # every pixel lit
+    grey = np.full((H, W, 3), 128, np.uint8)              # lit, but no structure at all
     assert 4 / (H * W) < MIN_LIT_FRACTION < 200 / (H * W)
-    out = load_chain(models).predict(np.stack([dark, speck, target]))
-    assert out.in_view.tolist() == [False, False, True]
-    assert np.isnan(out.position[:2]).all() and np.isnan(out.quaternion[:2]).all() and not out.attack_flag[:2].any()
+    out = load_chain(models).predict(np.stack([dark, speck, target, noise, grey]))
+    assert out.verdict[:2] == ("no target", "no target") and out.verdict[3:] == ("not a frame", "not a frame")
+    assert out.in_view.tolist() == [False, False, True, False, False]
+    assert out.structure[2] > 0.9 and out.structure[3] < 0.1 < MIN_STRUCTURE and out.structure[4] == 0
+    seen = out.in_view
+    assert np.isnan(out.position[~seen]).all() and np.isnan(out.quaternion[~seen]).all()
+    assert not out.attack_flag[~seen].any() and np.isnan(out.attack_probability[~seen]).all()
     assert np.isfinite(out.position[2]).all() and np.isfinite(out.attack_probability[2])
     assert out.records()[0]["position_m"] is None and out.records()[2]["position_m"] is not None
-    code, text, err = _rpod(monkeypatch, capsys, "predict", str(_png(tmp_path / "dark.png", dark)), "--models",
-                            str(models))
-    assert code == 0 and "no target in view (0.00% lit pixels)" in text and err == ""
+    code, text, err = _rpod(monkeypatch, capsys, "predict", str(_png(tmp_path / "dark.png", dark)),
+                            str(_png(tmp_path / "noise.png", noise)), "--models", str(models))
+    assert code == 0 and "no target in view (0.00% lit pixels" in text and err == ""
+    assert "not a camera frame: neighbouring pixels correlate" in text.splitlines()[-1]
     code, text, _ = _rpod(monkeypatch, capsys, "predict", str(_png(tmp_path / "dark.png", dark)), "--json",
                           "--models", str(models))
     assert json.loads(text)[0]["in_view"] is False and json.loads(text)[0]["quaternion"] is None
@@ -265,7 +275,53 @@ def _calibrate(models: Path) -> None:
     """models/defense.json as `rpod calibrate` writes it (pipeline/formats/defense.py), for the tiny chain."""
     from pipeline.io.atomic import write_json
 
-    write_json(models / "defense.json", defense_record(models / "pose.pt", load_chain(models).threshold))
+    write_json(models / "defense.json", defense_record(models / "pose.pt", load_chain(models).safety.threshold))
+
+
+def test_the_verdict_is_the_calibrated_chain_s_and_a_folder_without_defense_file_says_its_rule(
+        models, tmp_path, monkeypatch, capsys):
+    """predict judges at the defense file's calibrated threshold and doubt level (the chain's verdict), printed in
+    full; without a defense file at the detector's own threshold, saying so."""
+    from pipeline.defense.fusion import DefenseSettings
+    from pipeline.io.atomic import write_json
+
+    folder = tmp_path / "chain"
+    folder.mkdir()
+    for name in ("pose.pt", "detector.pt"):
+        (folder / name).write_bytes((models / name).read_bytes())
+    images = _images(24, seed=6)
+    bare = load_chain(folder)
+    own = bare.safety.threshold
+    out = bare.predict(images)
+    assert not out.rule.calibrated and out.rule.threshold == own and out.rule.doubt is None
+    assert list(out.verdict) == ["attack" if p >= own else "clean" for p in out.attack_probability]
+    paths = [str(_png(tmp_path / f"v{k}.png", image)) for k, image in enumerate(images[:3])]
+    code, text, _ = _rpod(monkeypatch, capsys, "predict", *paths, "--models", str(folder))
+    assert code == 0 and text.splitlines()[0] == (f"verdict: attack at P(attack) >= {own!r} (the detector's own "
+                                                  f"threshold, no doubt level: {folder} has no defense.json, which "
+                                                  f"`rpod calibrate` writes)")
+    probs = np.sort(out.attack_probability)
+    threshold, doubt = float(probs[-4]), float(probs[8])          # three levels, each reached by some image
+    assert doubt < threshold and threshold != own
+    levels = DefenseSettings(threshold=threshold, update_below=doubt)
+    write_json(folder / "defense.json", defense_record(folder / "pose.pt", own, threshold=threshold, settings=levels))
+    recorded = json.loads((folder / "defense.json").read_text())
+    level, below = recorded["threshold"], recorded["settings"]["update_below"]
+    calibrated = load_chain(folder).predict(images)
+    assert calibrated.rule.calibrated and calibrated.rule.threshold == level and calibrated.rule.doubt == below
+    want = ["attack" if p >= level else "doubt" if p >= below else "clean" for p in calibrated.attack_probability]
+    assert list(calibrated.verdict) == want and set(want) == {"attack", "doubt", "clean"}
+    assert list(calibrated.verdict) != list(out.verdict)                         # the detector's own rule differs
+    np.testing.assert_array_equal(calibrated.attack_flag, [w == "attack" for w in want])
+    code, text, _ = _rpod(monkeypatch, capsys, "predict", *paths, "--json", "--models", str(folder))
+    records = json.loads(text)
+    assert [r["verdict"] for r in records] == want[:3]
+    assert records[0]["threshold"] == level and records[0]["doubt_level"] == below
+    assert records[0]["rule"] == "calibrated defense" and records[0]["rule_file"] == str(folder / "defense.json")
+    code, text, _ = _rpod(monkeypatch, capsys, "predict", *paths, "--models", str(folder))
+    assert text.splitlines()[0] == (f"verdict: attack at P(attack) >= {level!r}, doubt at >= {below!r} (the chain's "
+                                    f"calibrated defense, {folder / 'defense.json'})")
+    assert [line.split()[-1] for line in text.splitlines()[3:]] == want[:3]
 
 
 def test_track_gives_the_trusted_estimate_pl_and_availability_per_frame(models, tmp_path):

@@ -39,6 +39,15 @@ def test_a_dry_smoke_run_works_in_a_copy_and_leaves_the_checkout_alone(tmp_path)
                                                       text=True).stdout.split())
 
 
+def test_a_dry_run_of_every_stage_lists_them_all(tmp_path):
+    """Unforced, `dvc repro --dry` stopped at label in the copy (no datasets/render there): issue 41."""
+    out = subprocess.run([sys.executable, str(SCRIPT), "--dir", str(tmp_path / "c"), "--dry"], capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    stages = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
+    assert set(re.findall(r"Running stage '(\w+)'", out.stdout)) == set(stages), out.stdout
+
+
 def test_a_folder_that_is_not_empty_is_refused(tmp_path):
     (tmp_path / "keep.txt").write_text("mine")
     out = subprocess.run([sys.executable, str(SCRIPT), "--dir", str(tmp_path), "--dry"], capture_output=True,
@@ -52,5 +61,5 @@ def test_an_unknown_stage_stops_with_one_line(tmp_path):
                          capture_output=True, text=True, timeout=300)
     assert out.returncode != 0
     last = out.stderr.strip().splitlines()[-1]
-    assert re.fullmatch(rf"smoke: `dvc repro --dry nosuch` failed in {re.escape(str(tmp_path.resolve()))}/c \(exit \d+\)",
-                        last), last
+    where = re.escape(str(tmp_path.resolve()))
+    assert re.fullmatch(rf"smoke: `dvc repro --dry --force nosuch` failed in {where}/c \(exit \d+\)", last), last

@@ -37,12 +37,12 @@ def _run(root: Path, seed: int, pos: float, detect_acc: float | None) -> Path:
 def test_rows_count_the_runs_that_have_each_number(tmp_path):
     runs = [_run(tmp_path, 0, 0.40, 0.93), _run(tmp_path, 1, 0.46, 0.91), _run(tmp_path, 2, 0.43, None)]
     rows = {r["key"]: r for r in _load().variance_rows(runs)}
-    pos = rows["pose.test_position_m"]
+    pos = rows["pose.standard_position_m"]
     assert pos["runs"] == 3 and pos["mean"] == pytest.approx(0.43) and pos["sd"] == pytest.approx(0.03)
     assert (pos["min"], pos["max"]) == (0.40, 0.46)
-    acc = rows["detector.lstm_accuracy_pct"]
+    acc = rows["detector.standard_accuracy_pct"]
     assert acc["runs"] == 2 and acc["mean"] == pytest.approx(92.0)
-    assert "lab.accuracy_pct" not in rows                                  # no run has it: no row
+    assert "lab.standard_accuracy_pct" not in rows                                  # no run has it: no row
 
 
 def test_a_single_run_has_no_spread(tmp_path):
@@ -55,7 +55,7 @@ def test_metrics_of_another_pose_model_do_not_count(tmp_path):
     run = _run(tmp_path, 1, 0.40, 0.93)
     (run / "models" / "pose.pt").write_bytes(b"retrained")      # detect.json now belongs to another model
     rows = {r["key"]: r for r in _load().variance_rows([run])}
-    assert "detector.lstm_accuracy_pct" not in rows and rows["pose.test_position_m"]["runs"] == 1
+    assert "detector.standard_accuracy_pct" not in rows and rows["pose.standard_position_m"]["runs"] == 1
 
 
 
@@ -75,7 +75,7 @@ def test_readme_results_show_the_spread_of_each_headline_number():
     # in variance.md only: the README shows these per eps or per dynamics (or not at all)
     not_shown = {"pose_tz_pct", "lstm_recall_0.01_pct", "lstm_eval_fa_pct", "integrated_0.01_pct", "shipped_test_fa_pct",
                  "shipped_lab_max_prob",
-                 "robustness.harmful_undetected_pct", "guidance.defended_held_pct"}
+                 "robustness.shipped_harmful_missed_pct", "guidance.shipped_held_pct"}
     keys = [k for k, *_ in _load().HEADLINES if k not in not_shown]
     spread = {"profile": "default", "seeds": ["0", "1", "2"],
               "numbers": {k: {"runs": 3, "mean": 1.0, "sd": 1.01 + 0.01 * i, "min": 0.0, "max": 2.0}
@@ -112,10 +112,23 @@ def test_the_spread_covers_every_summary_json_number():
 
 
 def test_the_committed_spread_names_only_headline_numbers():
-    """reports/variance.json (read by `rpod report`) uses the headline keys: a renamed key would drop its sd
+    """reports/variance.json (read by `rpod report`) uses the headline keys, or the former names of renamed ones
+    (stages.pages.summary.FORMER_KEYS, which the README's sd column reads too): an unknown key would drop its sd
     (a headline added after the runs has no spread until they are re-run)."""
+    from stages.pages.summary import FORMER_KEYS
+
     spread = json.loads((REPO / "reports" / "variance.json").read_text())
-    assert set(spread["numbers"]) <= {h.key for h in _load().HEADLINES}
+    assert set(spread["numbers"]) <= {h.key for h in _load().HEADLINES} | set(FORMER_KEYS.values())
+
+
+def test_a_spread_under_former_keys_still_lands_in_the_readme():
+    """Issue 41 renamed the headline keys; the committed spread, run before, names the former ones."""
+    from stages.pages.readme import _sd
+    from stages.pages.summary import FORMER_KEYS
+
+    spread = {"numbers": {old: {"runs": 3, "sd": 0.5} for old in FORMER_KEYS.values()}}
+    assert all(_sd(spread, new) == "0.50 (3 seeds)" for new in FORMER_KEYS)
+    assert _sd(spread, "pose.no_such_m") == "-"
 
 
 def test_runs_of_two_instruction_sets_make_a_seed_by_isa_table(tmp_path, monkeypatch):
@@ -131,7 +144,7 @@ def test_runs_of_two_instruction_sets_make_a_seed_by_isa_table(tmp_path, monkeyp
     isas = [mod.run_isa(mod.run_metrics(r)) for r in runs]
     assert isas == ["AVX2", "AVX512", "AVX2", "AVX512"]
     rows = {r["key"]: r for r in mod.isa_rows(runs, ["0", "0", "1", "1"], isas)}
-    pos = rows["pose.test_position_m"]
+    pos = rows["pose.standard_position_m"]
     assert pos["seed 0, AVX2"] == 0.40 and pos["seed 1, AVX512"] == 0.47
     assert pos["largest ISA difference at one seed"] == pytest.approx(0.03)
     assert pos["sd over seeds, one ISA"] == pytest.approx(((0.06 ** 2 / 2 + 0.04 ** 2 / 2) / 2) ** 0.5)

@@ -142,3 +142,24 @@ def test_the_bundle_is_the_chain_of_the_committed_run() -> None:
         assert source == f"models/{SOURCES[name]}" and source in recorded, source
         md5 = hashlib.md5((BUNDLE / name).read_bytes()).hexdigest()
         assert md5 == recorded[source], f"{name} is not the {source} of dvc.lock: run scripts/bundle_weights.py"
+
+
+def test_predict_gives_the_shipped_chain_verdict_on_the_bundle(monkeypatch, capsys):
+    """On the shipped images (the render previews and the example sequence) the verdict of `load_chain().predict`
+    and `rpod predict` is the shipped chain's: its defense file's calibrated threshold and doubt level (read here
+    straight from the JSON), not the detector checkpoint's own threshold."""
+    chain = load_chain()
+    record = read_json(BUNDLE / "defense.json")
+    level, doubt = record["threshold"], record["settings"]["update_below"]
+    images = sorted((REPO / "reports" / "figures" / "previews").glob("*.png")) + sorted(
+        (REPO / "examples" / "approach").glob("*.png"))
+    assert len(images) >= 4
+    out = chain.predict(images)
+    assert out.rule.calibrated and out.rule.threshold == level != chain.safety.threshold and out.rule.doubt == doubt
+    assert out.in_view.all()
+    want = ["attack" if p >= level else "doubt" if p >= doubt else "clean" for p in out.attack_probability]
+    assert list(out.verdict) == want
+    code, text, _ = _rpod(monkeypatch, capsys, "predict", *map(str, images))
+    assert code == 0 and text.splitlines()[0].startswith(f"verdict: attack at P(attack) >= {level!r}, doubt at >= "
+                                                         f"{doubt!r} (the chain's calibrated defense, ")
+    assert [line.split()[-1] for line in text.splitlines()[3:]] == want

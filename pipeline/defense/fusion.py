@@ -43,6 +43,7 @@ from pipeline.defense.noise import NoiseModel
 from pipeline.settings import In
 
 FUSIONS = ("paper", "motion", "or")
+ATTACK, DOUBT, CLEAN = "attack", "doubt", "clean"   # the detector's word on a frame (`DefenseSettings.word`)
 TRACK, COAST, HOLD = "track", "coast", "hold"
 MODES = (TRACK, COAST, HOLD)
 
@@ -72,6 +73,15 @@ class DefenseSettings:
             raise ValueError(f"detector threshold must be in (0, 1), got {self.threshold}")
         if self.update_below is not None and not 0 < float(self.update_below) <= float(self.threshold):
             raise ValueError(f"defense.update_below must be in (0, threshold = {self.threshold}], got {self.update_below}")
+
+    def word(self, prob: float) -> str:
+        """The detector's word on one frame of probability `prob`: ATTACK at or above the threshold (or a
+        non-finite probability), DOUBT at or above the doubt level `update_below`, else CLEAN. `Defense.step`
+        flags on ATTACK and keeps a frame that is not CLEAN out of the filter (unless fusion is "motion");
+        a per-image verdict (rpodguard's `predict`) is this word."""
+        if not math.isfinite(prob) or prob >= self.threshold:
+            return ATTACK
+        return DOUBT if self.update_below is not None and prob >= self.update_below else CLEAN
 
 
 @dataclass(frozen=True)
@@ -115,7 +125,8 @@ class Defense:
         world, u commanded displacement of rel since the previous frame (world, m), R_pred target ->
         camera estimate (optional; enables the attitude check)."""
         s = self.settings
-        shap_flag = bool(prob >= s.threshold) or not math.isfinite(prob)
+        word = s.word(prob)
+        shap_flag = word == ATTACK
         if not self.filter.started:
             if shap_flag or not np.isfinite(t_pred).all():
                 return Decision(True, shap_flag, False, np.full(3, np.nan), HOLD, np.nan, np.nan)
@@ -124,8 +135,7 @@ class Defense:
             return self._decide(False, False, False, False, TRACK, np.nan, np.nan)
         check = self.filter.check(t_pred, R_cam, u, R_pred)
         motion_flag, sequential_flag = check.inconsistent, False
-        doubt = s.threshold if s.update_below is None else s.update_below
-        suspect = (prob >= doubt or shap_flag) and s.fusion != "motion"   # the detector's word, where it counts
+        suspect = word != CLEAN and s.fusion != "motion"   # the detector's word, where it counts
         finite = math.isfinite(check.nis_position)
         if not finite or (suspect and motion_flag):
             self.filter.coast()

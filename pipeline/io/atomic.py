@@ -135,24 +135,36 @@ def atomic_dir(path: Path | str) -> Iterator[Path]:
 def exclusive(lock: Path | str, what: str) -> Iterator[None]:
     """Hold an exclusive lock on the file `lock` (created if missing) while the block runs: fcntl.flock, which
     the system releases when the holder ends, also when it is killed. A DataError naming `what` and the
-    holder's process id when another process holds it (no waiting)."""
+    holder's process id when another process holds it (no waiting). The lock file is removed when the block
+    ends (a killed holder's file stays, unlocked: the next run takes it over)."""
     import fcntl
 
     lock = Path(lock)
     lock.parent.mkdir(parents=True, exist_ok=True)
-    with open(lock, "a+") as f:
+    while True:
+        f = open(lock, "a+")
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             f.seek(0)
-            raise DataError(f"{what} is being written by another process (pid {f.read().strip() or '?'}, lock "
-                            f"{lock}); wait for it to finish") from None
+            holder = f.read().strip() or "?"
+            f.close()
+            raise DataError(f"{what} is being written by another process (pid {holder}, lock {lock}); wait for it "
+                            f"to finish") from None
+        try:   # the file locked is still the one at `lock` (its last holder did not remove it in between)
+            if os.stat(lock).st_ino == os.fstat(f.fileno()).st_ino:
+                break
+        except FileNotFoundError:
+            pass
+        f.close()
+    with f:
         f.truncate(0)
         f.write(str(os.getpid()))
         f.flush()
         try:
             yield
         finally:
+            lock.unlink(missing_ok=True)   # while still held: a process that opened it meanwhile tries again
             fcntl.flock(f, fcntl.LOCK_UN)
 
 

@@ -211,3 +211,32 @@ def open_zarr(path: Path | str, what: str = "zarr store") -> Any:
         raise DataError(f"{what} {path}: arrays {changed} differ from its checksum manifest; "
                          f"delete it and re-run the stage that writes it")
     return group
+
+
+IO_THREAD_JOIN_S = 30.0   # seconds `release_zarr` waits for zarr's I/O thread to stop
+
+
+def release_zarr() -> None:
+    """Stop zarr's I/O event loop and its thread, waiting for the thread, before the interpreter exits. zarr's own
+    exit hook (zarr.core.sync.cleanup_resources) waits 0.2 s for the thread and then closes the loop anyway: on a busy
+    machine the thread is still running it and the hook prints a traceback ("RuntimeError: Cannot close a running
+    event loop") after a command that succeeded. With the loop gone the hook has nothing left to do. Nothing when
+    zarr was never imported."""
+    import sys
+
+    sync = sys.modules.get("zarr.core.sync")
+    if sync is None:
+        return
+    if sync._executor is not None:   # zarr's module state (zarr 3.1: loop, iothread, _executor)
+        sync._executor.shutdown(wait=True, cancel_futures=True)
+        sync._executor = None
+    loop, thread = sync.loop[0], sync.iothread[0]
+    if loop is None:
+        return
+    loop.call_soon_threadsafe(loop.stop)
+    if thread is not None:
+        thread.join(IO_THREAD_JOIN_S)
+        if thread.is_alive():
+            return   # still busy: leave it to zarr's hook
+    loop.close()
+    sync.loop[0], sync.iothread[0] = None, None

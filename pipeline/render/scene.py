@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 from mathutils import Matrix
 
+from pipeline import interrupt
 from pipeline.geometry.camera import Intrinsics
 from pipeline.render.backgrounds import BackgroundSettings, FrameBackground, check_background, composite
 
@@ -242,6 +243,15 @@ class Renderer:
         check_settings(K, settings)
         self.K = K
         self.settings = settings
+        # Blender runs Python of its own whenever it is called (its factory settings, Cycles' render engine) and
+        # swallows what that raises: inside a Blender call a signal only sets the stop flag (pipeline/interrupt.py),
+        # which stops the scene here, once built, or between two frames
+        with interrupt.deferred():
+            self._build()
+
+    def _build(self) -> None:
+        """The empty scene, the camera, the target (procedural or `settings.mesh`) and the sun."""
+        settings = self.settings
         bpy.ops.wm.read_factory_settings(use_empty=True)
         self.scene = bpy.context.scene
         self._setup_render()
@@ -359,8 +369,8 @@ class Renderer:
         composited over `background` (this frame's draw of settings.background: backgrounds.composite)."""
         if np.asarray(t, dtype=np.float64).reshape(3)[2] <= 0:
             raise ValueError(f"target must be in front of the camera (tz > 0), got t={t}")
-        self._place(R, t)
-        with _quiet_stdout():
+        with _quiet_stdout(), interrupt.deferred():   # a signal stops the render after the frame (`__init__`)
+            self._place(R, t)
             bpy.ops.render.render(write_still=True)
         bgra = cv2.imread(self._png, cv2.IMREAD_UNCHANGED)
         Path(self._png).unlink(missing_ok=True)   # a worker killed between frames leaves no file behind
@@ -383,7 +393,8 @@ class Renderer:
     def close(self) -> None:
         """Remove the temporary image file and empty the Blender scene."""
         Path(self._png).unlink(missing_ok=True)
-        bpy.ops.wm.read_factory_settings(use_empty=True)
+        with interrupt.deferred():
+            bpy.ops.wm.read_factory_settings(use_empty=True)
 
     def __enter__(self) -> "Renderer":
         return self

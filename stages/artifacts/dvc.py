@@ -1,5 +1,5 @@
-"""dvc.yaml as the stages read it: which stage writes a file (for the hint of a missing input) and
-the metrics JSON every stage writes."""
+"""dvc.yaml as the stages read it: which stage writes a file (for the hint of a missing input), the metrics JSON
+every stage writes, and the git-tracked outputs a failed stage puts back (`restore_tracked_outputs`)."""
 from __future__ import annotations
 
 import functools
@@ -11,7 +11,6 @@ from typing import Any
 from pipeline.io.atomic import write_json
 from pipeline.io.errors import GENERIC_HINT
 from stages.artifacts.paths import DVC_YAML, OPTIONAL_DVC_YAML
-
 
 
 @functools.cache
@@ -45,6 +44,41 @@ def make_hint(path: Path | str) -> str:
     if stage is None:
         return GENERIC_HINT
     return f"run `dvc repro {stage}` (or `{dvc_stages()[stage]['cmd']}`)"
+
+
+def restore_tracked_outputs() -> list[str]:
+    """After a stage that DVC ran ($DVC_STAGE, working folder $DVC_ROOT) failed or was interrupted: DVC deletes a
+    stage's outputs before it runs it and puts back nothing when it fails, so the outputs git tracks (reports,
+    figures, metrics, curves: `cache: false`) are checked out again from git's index (what the last successful run
+    left there: `core.autostage`, else the commit), and files the failed run added inside such an output folder are
+    removed. The cached outputs (datasets/, models/) come back with `dvc checkout`. Returns the outputs put back;
+    nothing outside DVC, or without git."""
+    import subprocess
+
+    stage, root = os.environ.get("DVC_STAGE"), os.environ.get("DVC_ROOT")
+    if not stage or not root or not Path(root).is_dir() or not Path(root).samefile(Path.cwd()):
+        return []
+    entry = dvc_stages().get(stage.rsplit(":", 1)[-1])
+    if entry is None:
+        return []
+
+    def git(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(["git", *args], capture_output=True, text=True, timeout=60)
+
+    restored = []
+    for out in map(str, _outputs(entry)):
+        try:
+            listed = git("ls-files", "--", out)
+        except (OSError, subprocess.SubprocessError):   # no git here
+            return restored
+        if listed.returncode != 0 or not listed.stdout.strip():
+            continue
+        changed = git("status", "--porcelain", "--untracked-files=all", "--", out).stdout.strip()
+        if changed and git("checkout", "--", out).returncode == 0:
+            if Path(out).is_dir():
+                git("clean", "-fdq", "--", out)
+            restored.append(out)
+    return restored
 
 
 def write_metrics(path: Path | str, metrics: dict[str, Any], profile: str) -> None:

@@ -136,15 +136,55 @@ def write_params(params: dict[str, Any], path: Path = PARAMS_FILE) -> None:
     atomic_write_text(path, yaml.safe_dump(params, sort_keys=False, default_flow_style=None, width=100))
 
 
+# The key of params.yaml that stamps the conf/ it was composed from (`conf_sha`): `rpod params` and `dvc exp run`
+# write it, every stage checks it, so an edit of conf/ without composing params.yaml again is refused, not ignored.
+CONF_STAMP = "conf_sha"
+CONF = Path("conf")   # conf/ in the working folder (the repository DVC composes in), relative like params.yaml
+
+
+def conf_sha(conf: Path = CONF) -> str | None:
+    """16 hex digits of the SHA-256 over the YAML files of `conf` (relative names and bytes, sorted): what
+    params.yaml's `conf_sha` records; None where the working folder has no conf/config.yaml."""
+    if not (conf / "config.yaml").is_file():
+        return None
+    h = hashlib.sha256()
+    for f in sorted(conf.rglob("*.yaml")):
+        h.update(f.relative_to(conf).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+def stamped(params: dict[str, Any], conf: Path = CONF) -> dict[str, Any]:
+    """`params` with `conf_sha` (after `profile_name`) of the conf/ they were composed from; unchanged without it."""
+    sha = conf_sha(conf)
+    if sha is None:
+        return params
+    out = {k: v for k, v in params.items() if k != CONF_STAMP}
+    keys = list(out)
+    at = keys.index("profile_name") + 1 if "profile_name" in keys else 0
+    return dict([*list(out.items())[:at], (CONF_STAMP, sha), *list(out.items())[at:]])
+
+
+def check_stamp(params: dict[str, Any], path: Path, conf: Path = CONF) -> None:
+    """Refuse a params.yaml whose `conf_sha` is not the working folder's conf/ (edited since `rpod params`); one
+    without the stamp, or a folder without conf/, is not checked."""
+    stamp, now = params.get(CONF_STAMP), conf_sha(conf)
+    if stamp is not None and now is not None and stamp != now:
+        profile = params.get("profile_name", "default")
+        raise ParamsError(f"{path} is stale: conf/ changed since it was composed (conf_sha {stamp}, conf/ now "
+                          f"{now}); run `rpod params {profile}` (with your -S overrides) to compose it again")
+
+
 def load(path: Path = PARAMS_FILE) -> Params:
-    """Read params.yaml and check it against stages.config.schema (unknown keys refused with a suggestion):
-    the typed params every stage command reads."""
+    """Read params.yaml and check it against stages.config.schema (unknown keys refused with a suggestion) and
+    against conf/ (`check_stamp`): the typed params every stage command reads."""
     path = Path(path)
     if not path.exists():
         raise ParamsError(f"{path} not found: run `rpod params default` (or another profile) first")
     params = read_yaml(path)   # a FIFO, invalid YAML or a key given twice: one DataError naming the file
     if not isinstance(params, dict):
         raise ParamsError(f"{path} must hold a mapping of sections")
+    check_stamp(params, path)
+    params.pop(CONF_STAMP, None)
     return build(params)   # unknown keys, types and ranges of every section (stages.config.schema), checked once here
 
 

@@ -22,6 +22,7 @@ import tempfile
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator, Protocol
 
+from pipeline import interrupt
 from pipeline.io.errors import DataError
 from stages.config.schema import Params
 from stages.errors import StageError
@@ -117,12 +118,16 @@ def session(es: EngineSettings) -> Iterator[None]:
     if es.address:
         _check_reachable(es.address, es.timeout_s)
     try:
-        ray.init(address=es.address or "local", num_cpus=None if es.address else es.workers,
-                 include_dashboard=False, logging_level=logging.WARNING, log_to_driver=True)
+        with _signal_handlers_kept():
+            ray.init(address=es.address or "local", num_cpus=None if es.address else es.workers,
+                     include_dashboard=False, logging_level=logging.WARNING, log_to_driver=True)
     except (ConnectionError, RuntimeError, ValueError) as e:
         where = f"the Ray cluster at {es.address}" if es.address else "a local Ray"
         raise StageError(f"could not start or reach {where} ({type(e).__name__}: {str(e).splitlines()[0]}); "
                          f"check engine.address / $RAY_ADDRESS, or set engine.workers: 1 to run in-process") from None
+    except BaseException:   # stopped while Ray started (pipeline/interrupt.py): stop what it started
+        ray.shutdown()
+        raise
     try:
         yield
     finally:
@@ -184,6 +189,33 @@ def _check_ray_head(address: str, timeout_s: float) -> None:
                          f"`ray start --head` printed, or unset it to run on this machine")
 
 
+@contextlib.contextmanager
+def _signal_handlers_kept() -> Iterator[None]:
+    """Keep this process's SIGINT and SIGTERM handlers through the block (ray.init): Ray sets SIGTERM's to
+    `sys.exit` (the driver exited with status 15 and no line, also when the signal came while Ray was starting),
+    where the command line's stop path (pipeline/interrupt.py) ends the stage with one line and exit 130 and
+    `ray.shutdown` stops the workers. Ray's setter (ray._private.utils.set_sigterm_handler, ray 2.x) does nothing
+    within the block, and the handlers are put back after it in case Ray set them otherwise."""
+    import signal
+    import threading
+
+    import ray._private.utils as ray_utils
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    kept = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    setter = ray_utils.set_sigterm_handler
+    ray_utils.set_sigterm_handler = lambda handler: None
+    try:
+        yield
+    finally:
+        ray_utils.set_sigterm_handler = setter
+        for sig, handler in kept.items():
+            if handler is not None:
+                signal.signal(sig, handler)
+
+
 def _run_on_ray(worker_cls: Callable[[Any], Worker], setup: Any, jobs: list[Any], es: EngineSettings,
                 num_cpus: float, progress: Callable[[int, Any], None] | None) -> list[Any]:
     """Dispatch jobs to idle actors as they free up; results come back in job order."""
@@ -204,22 +236,43 @@ def _run_on_ray(worker_cls: Callable[[Any], Worker], setup: Any, jobs: list[Any]
             pending[a.run.remote(jobs[i])] = (a, i)
     try:
         while pending:
-            done, _ = ray.wait(list(pending), num_returns=1, timeout=es.timeout_s)
+            done = _wait_one(list(pending), es.timeout_s)
             if not done:
                 raise StageError(f"no chunk finished within engine.timeout_s = {es.timeout_s:g} s on {len(actors)} "
                                  f"Ray workers; check `ray status` (free CPUs, live nodes) or raise engine.timeout_s")
             a, i = pending.pop(done[0])
-            out[i] = _get(done[0], i, es)
+            with interrupt.deferred():
+                out[i] = _get(done[0], i, es)
             if progress:
                 progress(i, out[i])
             if todo:
                 j = todo.pop()
                 pending[a.run.remote(jobs[j])] = (a, j)
-        ray.get([a.close.remote() for a in actors], timeout=es.timeout_s)   # e.g. a scene's temporary files
+        with interrupt.deferred():
+            ray.get([a.close.remote() for a in actors], timeout=es.timeout_s)   # e.g. a scene's temporary files
     finally:
         for a in actors:
             ray.kill(a)
     return out
+
+
+POLL_S = 1.0   # seconds one ray.wait blocks before the driver checks for a stop signal
+
+
+def _wait_one(refs: list[Any], timeout_s: float) -> list[Any]:
+    """The first of `refs` to finish within timeout_s seconds ([] if none). Ray's wait runs in its C++ core worker,
+    where an exception raised by a signal handler came back as a SystemError: it runs deferred, POLL_S at a time,
+    and a stop signal raises between two waits (pipeline/interrupt.py)."""
+    import time
+
+    import ray
+
+    end = time.monotonic() + timeout_s
+    while True:
+        with interrupt.deferred():
+            done, _ = ray.wait(refs, num_returns=1, timeout=max(0.0, min(POLL_S, end - time.monotonic())))
+        if done or time.monotonic() >= end:
+            return done
 
 
 class Pinned:

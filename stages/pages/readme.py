@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 from stages.pages.paper import ATTITUDE_DEG, DETECTOR_ACCURACY, INTEGRATED, INTEGRATED_EPS, LAB, LAB_EPS, POSITION_M
+from stages.pages.summary import FORMER_KEYS
 
 DETECTOR_NAMES = {"lstm": "LSTM on SHAP (paper)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis (GAP)",
                   "lid": "LID (GAP)", "squeeze": "feature squeezing"}
@@ -29,7 +30,8 @@ def _eps_keys(d: dict[str, Any]) -> list[str]:
 
 def _sd(spread: dict[str, Any] | None, key: str | None, note: str = "") -> str:
     """The seed spread of one headline number from reports/variance.json: "0.022 (3 seeds)", or "-"."""
-    got = (spread or {}).get("numbers", {}).get(key or "")
+    numbers = (spread or {}).get("numbers", {})
+    got = numbers.get(key or "") or numbers.get(FORMER_KEYS.get(key or "", ""))   # a spread run before a rename
     if not got or not isinstance(got.get("sd"), (int, float)):
         return "-"
     unit = "runs" if len(set((spread or {}).get("isas") or [])) > 1 else "seeds"
@@ -50,9 +52,9 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
     best_base = max((k for k in dets if k != "lstm"), key=lambda k: dets[k]["all"]["accuracy"])
     rows = [
         ("pose, test mean position error (m), standard model", _fmt(tr["test"]["pos_mean_m"]), _fmt(POSITION_M),
-         "train", _sd(spread, "pose.test_position_m")),
+         "train", _sd(spread, "pose.standard_position_m")),
         ("pose, test mean attitude error (deg), standard model", _fmt(tr["test"]["att_mean_deg"]), _fmt(ATTITUDE_DEG),
-         "train", _sd(spread, "pose.test_attitude_deg")),
+         "train", _sd(spread, "pose.standard_attitude_deg")),
         *_robust_rows(metrics.get("robust"), spread),
         ("FGSM mean position error (m) at eps " + " / ".join(eps_at) + ", standard model",
          " / ".join(_fmt(at["eps"][e]["position_mean_m"], 1) for e in eps_at), "-", "attack",
@@ -64,16 +66,16 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
          _sd(spread, "undefended_lost_pct", " %")),
         ("(paper's view) LSTM detector accuracy, SHAP test split (%), standard model",
          _with_ci(dets["lstm"]["all"], "accuracy"), _fmt(100 * DETECTOR_ACCURACY), "detect",
-         _sd(spread, "detector.lstm_accuracy_pct")),
+         _sd(spread, "detector.standard_accuracy_pct")),
         *_shipped_detector_rows(metrics.get("detect_robust"), lab, spread),
         (f"best baseline detector accuracy (%), standard model: {DETECTOR_NAMES.get(best_base, best_base)}",
          _with_ci(dets[best_base]["all"], "accuracy"), "-", "detect", "-"),
         ("(paper's view) integrated per-frame detection accuracy, mean over eps (%; per eps below), standard model",
          _fmt(100 * ev["accuracy_mean"]),
-         _fmt(INTEGRATED), "evaluate", _sd(spread, "integrated.accuracy_pct")),
+         _fmt(INTEGRATED), "evaluate", _sd(spread, "integrated.standard_accuracy_pct")),
         ("(paper's view) lab detection accuracy, mean over eps (%): synthetic lab-like render, "
          + ("same mesh, reused standard models" if lab.get("reused_models", True) else "retrained models"),
-         _fmt(100 * lab["accuracy_mean"]), _fmt(LAB), "lab", _sd(spread, "lab.accuracy_pct")),
+         _fmt(100 * lab["accuracy_mean"]), _fmt(LAB), "lab", _sd(spread, "lab.standard_accuracy_pct")),
         *_robustness_rows(metrics["robustness"], spread),
         *_integrity_rows(metrics["robustness"], gd, spread),
     ]
@@ -114,9 +116,9 @@ def _robust_rows(rb: dict[str, Any] | None, spread: dict[str, Any] | None) -> li
         return " / ".join(_fmt(got.get(e), 2 if key == "pos_m" else 1) for e in ("0.01", "0.05"))
 
     return [("pose, test mean position error (m), robust model (ships)", _fmt(t["pos_mean_m"]), "-", "robust",
-             _sd(spread, "pose.robust_test_position_m")),
+             _sd(spread, "pose.shipped_position_m")),
             ("pose, test mean attitude error (deg), robust model (ships)", _fmt(t["att_mean_deg"]), "-", "robust",
-             _sd(spread, "pose.robust_test_attitude_deg")),
+             _sd(spread, "pose.shipped_attitude_deg")),
             *((f"attack-suite worst-case mean {what} at eps 0.01 / 0.05: robust model (ships) vs standard",
                f"{worst('robust', key)} vs {worst('standard', key)}", "-", "robust", "-")
               for what, key in (("position error (m)", "pos_m"), ("attitude error (deg)", "att_deg")))]
@@ -132,7 +134,7 @@ def _shipped_detector_rows(dr: dict[str, Any] | None, lab: dict[str, Any],
     if dr:
         out.append(("shipped chain's LSTM detector accuracy, SHAP test split (%), robust model",
                     _with_ci(dr["detectors"]["lstm"]["all"], "accuracy"), "-", "detect_robust",
-                    _sd(spread, "detector.robust_lstm_accuracy_pct")))
+                    _sd(spread, "detector.shipped_accuracy_pct")))
     s = lab.get("shipped")
     if s:
         out.append(("shipped chain (robust model): detector false alarms on clean lab-like frames (%)",
@@ -160,13 +162,13 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
     e = "0.01" if "0.01" in fused["per_eps"] else min(fused["per_eps"], key=float)
     paper, ours = fused["paper_per_eps"][e], fused["per_eps"][e]
     rows = [(f"integrated accuracy at eps {e} (%)", "accuracy", _fmt(INTEGRATED_EPS.get(e)), ">= 99.5",
-             "defended.accuracy_pct" if e == min(fused["per_eps"], key=float) else None),   # summary.json key
+             "defended.shipped_accuracy_min_eps_pct" if e == min(fused["per_eps"], key=float) else None),   # its key
             (f"attacked frames flagged at eps {e} (TPR, %)", "tpr", "-", "-", None),
             (f"harmful frames (error > {fused['harm_m']:g} m) flagged at eps {e} (%)", "harmful_flagged", "-", ">= 99.5",
              None),
             (f"harmful and undetected, of the attacked frames at eps {e} (%)", "harmful_undetected", "-", "<= 1", None),
             (f"false alarms on clean frames between attacks at eps {e} (%)", "fpr", "-", "<= 0.5", None),
-            ("false alarms on attack-free runs (%)", "fpr_clean", "-", "<= 0.5", "defended.clean_false_alarm_pct")]
+            ("false alarms on attack-free runs (%)", "fpr_clean", "-", "<= 0.5", "defended.shipped_clean_false_alarm_pct")]
     sd_column = {"sd over seeds, defended": None} if spread else {}
     standard = fused.get("standard_per_eps", {}).get(e)
     ours_col, std_col = f"defended chain ({fused['fusion']}), robust model (ships)", f"defended ({fused['fusion']}), standard model"
@@ -229,16 +231,16 @@ def _integrity_rows(rb: dict[str, Any], gd: dict[str, Any],
         w = integrity.get("worst_hmi", {}).get(e)
         value = "-" if w is None else f"{_rate(w['hmi'])} ({attacker_names(w['attacker'])})"
         out.append((f"integrity: worst HMI (%) a chain-level attack caused at eps {e} (trusted error > AL, "
-                    f"available), shipped chain (robust model)", value, "-", "robustness", _sd(spread, f"integrity.worst_hmi_eps_{e.replace('.', '_')}_pct")))
+                    f"available), shipped chain (robust model)", value, "-", "robustness", _sd(spread, f"integrity.shipped_hmi_eps_{e.replace('.', '_')}_pct")))
     std = rb.get("integrity_standard", {})
     for e in ("0.01", "0.05") if std.get("attackers") else ():
         w = std.get("worst_hmi", {}).get(e)
         out.append((f"integrity: worst HMI (%) at eps {e}, standard model's chain ({', '.join(std['attackers'])} on "
                     f"{std['trajectories']} trajectories)", "-" if w is None else _rate(w["hmi"]), "-", "robustness",
-                    _sd(spread, f"integrity.standard_worst_hmi_{e.replace('.', '_')}_pct")))
+                    _sd(spread, f"integrity.standard_hmi_eps_{e.replace('.', '_')}_pct")))
     clean = integrity.get("clean")
     out.append(("integrity: availability of the trusted estimate without attack (%), shipped chain (robust model)",
-                "-" if clean is None else _rate(clean["availability"]), "-", "robustness", _sd(spread, "integrity.clean_availability_pct")))
+                "-" if clean is None else _rate(clean["availability"]), "-", "robustness", _sd(spread, "integrity.shipped_clean_availability_pct")))
     counts = gd.get("in_loop", {}).get("counts", {})
     cells = []
     for variant in ("undefended", "hold", "recover"):
@@ -248,5 +250,5 @@ def _integrity_rows(rb: dict[str, Any], gd: dict[str, Any],
     out.append(("closed loop, in-loop attacker at eps " + " and ".join(sorted({f"{r['eps']:g}" for r in
                 gd.get("in_loop", {}).get("runs", [])})) + ": collisions of attacked runs (%), shipped chain (robust "
                 "model), undefended / detect-and-hold / detect-and-recover", " / ".join(cells), "-", "guidance",
-                _sd(spread, "in_loop.recover_collisions_pct")))
+                _sd(spread, "in_loop.shipped_recover_collisions_pct")))
     return out

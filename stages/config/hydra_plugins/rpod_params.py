@@ -17,6 +17,7 @@ from hydra._internal.config_loader_impl import ConfigLoaderImpl
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from stages.config.compose import checked
+from stages.config.params import CONF_STAMP, conf_sha
 from stages.config.sections import ParamsError
 
 _load = ConfigLoaderImpl.load_configuration
@@ -37,7 +38,12 @@ def _checked_load(self: ConfigLoaderImpl, config_name: str | None, overrides: li
         raise InvalidArgumentError(str(e)) from None
     print(f"params.yaml <- profile {composed.get('profile_name')!r}"   # what the run (or --dry) will use
           + (f" with {' '.join(overrides)}" if overrides else ""), file=sys.stderr)
-    return _load(self, config_name, overrides, *args, **kwargs)
+    cfg = _load(self, config_name, overrides, *args, **kwargs)
+    sha = conf_sha()
+    if sha is not None:   # the conf/ it was composed from, as `rpod params` stamps it (stages check it)
+        with open_dict(cfg):
+            cfg[CONF_STAMP] = sha
+    return cfg
 
 
 ConfigLoaderImpl.load_configuration = _checked_load   # type: ignore[method-assign]
