@@ -69,7 +69,7 @@ def params_cmd(
 # A module exposes `main` (one command) or `app` (a command group, e.g. `rpod lab rescale`).
 # export, predict, remote: not DVC stages
 STAGES = ["render", "label", "train", "attack", "guidance", "shap", "detect", "eval_render", "calibrate", "evaluate",
-          "robustness", "lab_models", "lab", "report", "ablation", "export", "predict", "remote"]
+          "robustness", "lab_models", "lab", "report", "ablation", "integrity", "export", "predict", "remote"]
 
 
 def _register() -> None:

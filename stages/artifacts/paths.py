@@ -82,6 +82,9 @@ LAB, LAB_REPORT, LAB_METRICS = _outputs("lab", "datasets/lab", "reports/lab.md",
 # issue 38's 2 x 2 ablation of the paper's detector: a stage of optional/dvc.yaml (`dvc repro optional/dvc.yaml`), not of
 # the default `dvc repro`
 ABLATION_REPORT, ABLATION_METRICS = _outputs("ablation", "reports/ablation.md", "reports/metrics/ablation.json")
+# issue 39's full integrity grid (`rpod integrity`, optional/dvc.yaml): every attacker on every chain, trajectory and eps
+INTEGRITY_REPORT, INTEGRITY_METRICS = _outputs("integrity", "reports/integrity_full.md",
+                                               "reports/metrics/integrity_full.json")
 # the headline numbers (what `dvc metrics show` prints), then the report's own figures
 PAGE, SUMMARY, *_FIGURES = _outputs("report", "reports/README.md", "reports/metrics/summary.json",
                                     *(f"reports/figures/{name}.png"

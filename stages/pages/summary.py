@@ -30,16 +30,32 @@ def _defended(m: Metrics, rate: str) -> float:
 
 
 def _held(m: Metrics) -> float:
-    """Closed-loop attacked runs (that met the attack) whose rendezvous held with detect-and-recover, all
-    dynamics (%)."""
-    held = [v for d in m["guidance"]["defended"]["dynamics"].values() for v in d["recover"]["held"].values()]
+    """Closed-loop attacked runs (that met the attack) whose rendezvous held with detect-and-recover, true-state
+    dynamics (the paper dynamics, prediction = truth by construction, leave the headline) (%)."""
+    held = list(m["guidance"]["defended"]["dynamics"]["true_state"]["recover"]["held"].values())
     return 100 * sum(k for k, _ in held) / sum(n for _, n in held)
 
 
-def worst_hmi(m: Metrics, eps: str, chain: str = "integrity") -> float:
+def worst_hmi(m: Metrics, eps: str, chain: str = "robust") -> float:
     """The HMI the worst chain-level attacker caused at `eps` (%; integrity rows) on the shipped chain (`chain` =
-    "integrity") or the standard model's ("integrity_standard")."""
-    return 100 * m["robustness"][chain]["worst_hmi"][eps]["hmi"]["value"]
+    "robust") or the standard model's ("standard")."""
+    return 100 * m["robustness"]["integrity"]["chains"][chain]["worst_hmi"][eps]["hmi"]["value"]
+
+
+def breaking_eps(m: Metrics, chain: str) -> float:
+    """The chain's breaking point (the smallest eps at which an attacker fails a trajectory; integrity.chains);
+    a chain that held over the grid has none (left out)."""
+    value = m["robustness"]["integrity"]["breaking_eps"][chain]
+    if value is None:
+        raise KeyError(chain)
+    return value
+
+
+def docking_miss(m: Metrics, eps: str | None = None) -> float:
+    """Detect-and-recover under true-state dynamics (closed loop): the no-attack run's docking miss (m), or with
+    `eps` the largest miss of the attacked runs at it."""
+    v = m["guidance"]["closed_loop"]["variants"]["true_state"]["recover"]
+    return v["clean"]["miss"] if eps is None else v["per_eps"][eps]["largest_miss_m"]
 
 
 def in_loop_collisions(m: Metrics, defense: str = "recover") -> float:
@@ -83,13 +99,27 @@ HEADLINES: list[Headline] = [
     Headline("integrity.worst_hmi_eps_0_05_pct", "integrity (ships): worst HMI caused by a chain-level attack at eps "
              "0.05 (%)", lambda m: worst_hmi(m, "0.05")),
     Headline("integrity.standard_worst_hmi_0_01_pct", "integrity, standard model's chain: worst HMI at eps 0.01 (%)",
-             lambda m: worst_hmi(m, "0.01", "integrity_standard")),
+             lambda m: worst_hmi(m, "0.01", "standard")),
     Headline("integrity.standard_worst_hmi_0_05_pct", "integrity, standard model's chain: worst HMI at eps 0.05 (%)",
-             lambda m: worst_hmi(m, "0.05", "integrity_standard")),
+             lambda m: worst_hmi(m, "0.05", "standard")),
     Headline("integrity.clean_availability_pct", "integrity (ships): availability of the trusted estimate without "
              "attack (%)", lambda m: 100 * m["robustness"]["integrity"]["clean"]["availability"]["value"]),
     Headline("in_loop.recover_collisions_pct", "closed loop (ships), in-loop attacker: collisions with "
              "detect-and-recover (%)", in_loop_collisions),
+    # issue 39: the evidence that can fail (eps is the breaking point's unit: an L-inf budget, pixels in [0, 1])
+    Headline("integrity.shipped_breaking_eps", "breaking point of the shipped chain: smallest eps at which an attacker "
+             "fails a trajectory (error / AL > 1 on an available frame)", lambda m: breaking_eps(m, "robust"), 3),
+    Headline("integrity.standard_breaking_eps", "breaking point of the standard model's chain",
+             lambda m: breaking_eps(m, "standard"), 3),
+    Headline("integrity.control_breaking_eps", "breaking point of the undefended robust control",
+             lambda m: breaking_eps(m, "control"), 3),
+    Headline("integrity.shipped_max_error_al_eps_0_05_ratio", "shipped chain: largest trusted error / AL (persistent "
+             "AL, available frames) at eps 0.05, worst over attackers and trajectories",
+             lambda m: m["robustness"]["integrity"]["chains"]["robust"]["summary"]["per_eps"]["0.05"]["max_error_al"]),
+    Headline("closed_loop.recover_docking_miss_m", "closed loop (ships, detect-and-recover, true-state dynamics): "
+             "docking miss without attack (m)", docking_miss),
+    Headline("closed_loop.recover_worst_miss_eps_0_05_m", "closed loop (ships, detect-and-recover, true-state "
+             "dynamics): largest docking miss of the attacked runs at eps 0.05 (m)", lambda m: docking_miss(m, "0.05")),
 ]
 
 
