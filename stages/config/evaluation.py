@@ -269,6 +269,8 @@ class Integrity:
     alert_limit_kind: Literal["single_frame", "persistent"]   # pipeline.defense.integrity.KINDS: the AL judged against
     eps: list[Eps]               # L-inf budgets of the integrity attacks, pixels in [0, 1], increasing: the breaking point's grid
     attackers: list[IntegrityAttacker]   # run on every chain: the shipped one, the standard one, the undefended control
+    trajectories: Optional[Annotated[int, In("[1, 100000]", "trajectories")]]   # rpod robustness: the first N
+                                 # eval_render trajectories the shipped chain flies; None: all
     comparison_trajectories: Optional[Annotated[int, In("[1, 100000]", "trajectories")]]   # the first N the standard
                                  # chain and the undefended control fly; None: all
     stop_at_break: bool          # a chain's eps ladder stops after the eps where it breaks (its breaking point)

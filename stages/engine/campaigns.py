@@ -29,10 +29,11 @@ CONTROL = "control"   # the undefended robust chain: the shipped pose network, n
 def integrity_campaign(p: Params, shipped: Any, seed: int, full: bool = False,
                        trajectories: int | None = None) -> dict[str, Any]:
     """The integrity campaign (pipeline.evaluation.campaign) on the three chains: the shipped one (`shipped`, a
-    SafetyChain) on every eval_render trajectory, the standard one and the undefended robust control on the first
-    `integrity.comparison_trajectories`; each chain's safety evidence (`safety_summary`), its descriptive integrity
-    rows, and the figure's data (the shipped chain). `full`: every attacker of the schema on every chain and
-    trajectory at every eps (no stop at the breaking point); `trajectories`: only the first N eval_render ones.
+    SafetyChain) on the first `integrity.trajectories` eval_render ones, the standard one and the undefended robust
+    control on the first `integrity.comparison_trajectories` of those; each chain's safety evidence
+    (`safety_summary`), its descriptive integrity rows, and the figure's data (the shipped chain). `full`: every attacker of the schema on every chain and
+    trajectory at every eps (no stop at the breaking point); `trajectories` (with `full` only): the first N
+    eval_render ones (None: all).
     Returns {"fused_rows", "fused" (facts about the shipped defense), "integrity" (the metrics), "figure"}."""
     from tqdm import tqdm
 
@@ -47,6 +48,7 @@ def integrity_campaign(p: Params, shipped: Any, seed: int, full: bool = False,
                                 comparison_trajectories=None)
         p = dataclasses.replace(p, integrity=i)
     tracks, bursts, info = _tracks(p, shipped)
+    trajectories = trajectories if full else i.trajectories
     tracks, bursts = tracks[:trajectories], bursts[:trajectories]
     paper = load_chain(p, PAPER)
     n = i.comparison_trajectories

@@ -60,7 +60,8 @@ def targets(integrity: dict[str, Any]) -> list[tuple[str, str, str]]:
     unflown = [e for e in small if e not in flown]
     worst = max((flown[e]["max_error_al"] or 0.0 for e in small if e in flown), default=None)
     verdict = "**missed**" if failed or unflown else "met"
-    out.append((f"shipped chain, every attacker, eps <= {TARGET_SHIPPED_EPS:g}: max error / AL < 1 on every trajectory",
+    out.append((f"shipped chain, every attacker flown, eps <= {TARGET_SHIPPED_EPS:g}: max error / AL < 1 on every "
+                "trajectory",
                 verdict, f"largest error / AL {_m(worst)}" + (f"; failed at eps {', '.join(f'{e:g}' for e in failed)}"
                                                               if failed else "")))
     b = shipped["breaking_eps"]
