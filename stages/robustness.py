@@ -1,10 +1,10 @@
 """`rpod robustness`: the safety evidence that can fail, and the shipped chain against attacks its detector never saw.
 
-The chain that ships is the robust model (models/pose_robust.pt) with its own detector
-(models/detector_robust.pt) and defense (models/defense.json). The integrity campaign (issue 39,
-pipeline/evaluation/campaign.py) flies it over the first `integrity.trajectories` eval_render trajectories (flown
-with execution error, the chain told the commands), and beside it the standard model's chain (models/pose.pt,
-models/detector.pt, models/defense_standard.json: the paper's reproduction) and the undefended robust control (the shipped pose network,
+The chain that ships is the robust model (models/pose_robust.pt) with its own detector (models/detector_robust.pt)
+and defense (models/defense.json). The integrity campaign (issue 39, pipeline/evaluation/campaign.py) flies it over
+the first `integrity.trajectories` eval_render trajectories (flown with execution error, the chain told the
+commands), and beside it the standard model's chain (models/pose.pt, models/detector.pt,
+models/defense_standard.json: the paper's reproduction) and the undefended robust control (the shipped pose network,
 no detector, no defense) over the first `integrity.comparison_trajectories`: every attacker of `integrity.attackers`
 (capture from acquisition, drift, burst) at each eps of `integrity.eps` in increasing order (stopping after a
 chain's breaking point with `integrity.stop_at_break`), judged by the measures that can fail: per trajectory the

@@ -31,6 +31,7 @@ from stages.config.sections import ParamsError
     ("eps", [0.01, 0.01], r"^params.yaml integrity.eps must be a non-empty list without repeats"),
     ("collision_range_m", -1.0, r"^params.yaml integrity.collision_range_m must be > 0 \(metres\), got -1.0$"),
     ("burst_restarts", 0, r"^params.yaml integrity.burst_restarts must be a positive whole number"),
+    ("trajectories", 0, r"^params.yaml integrity.trajectories must be a positive whole number in \[1, 100000\]"),
 ])
 def test_bad_integrity_params_are_one_line_naming_the_param(tmp_path, monkeypatch, key, value, message):
     monkeypatch.chdir(tmp_path)

@@ -31,9 +31,9 @@ def integrity_campaign(p: Params, shipped: Any, seed: int, full: bool = False,
     """The integrity campaign (pipeline.evaluation.campaign) on the three chains: the shipped one (`shipped`, a
     SafetyChain) on the first `integrity.trajectories` eval_render ones, the standard one and the undefended robust
     control on the first `integrity.comparison_trajectories` of those; each chain's safety evidence
-    (`safety_summary`), its descriptive integrity rows, and the figure's data (the shipped chain). `full`: every attacker of the schema on every chain and
-    trajectory at every eps (no stop at the breaking point); `trajectories` (with `full` only): the first N
-    eval_render ones (None: all).
+    (`safety_summary`), its descriptive integrity rows, and the figure's data (the shipped chain). `full`: every
+    attacker of the schema on every chain and trajectory at every eps (no stop at the breaking point);
+    `trajectories` (with `full` only): the first N eval_render ones (None: all).
     Returns {"fused_rows", "fused" (facts about the shipped defense), "integrity" (the metrics), "figure"}."""
     from tqdm import tqdm
 

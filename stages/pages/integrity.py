@@ -197,7 +197,8 @@ Assumptions of every row below:
   {integrity['frame_steps']} steps from the background-lifting start with BPDA through the clamp, warm-started from
   the previous frame's perturbation, the detector's margin against its doubt level; each attacker nested in eps.
   {'Each chain stops after the eps at which it breaks (`integrity.stop_at_break`).' if integrity['stop_at_break']
-   else 'Every eps is flown on every chain.'}
+   else 'Every eps is flown on every chain.'} The full grid (`rpod integrity`, optional/dvc.yaml) flies every
+  attacker of the schema on every chain, trajectory and eps.
 """
 
 
