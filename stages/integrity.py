@@ -1,6 +1,7 @@
-"""`rpod integrity`: issue 39's full integrity grid -> reports/integrity_full.md and reports/metrics/integrity_full.json.
-A stage of optional/dvc.yaml (`dvc repro optional/dvc.yaml`), not of the default `dvc repro`: it does not fit the
-default profile's 40-minute budget (reports/benchmarks.md, "Integrity campaign": its cost per trajectory).
+"""`rpod integrity`: issue 39's full integrity grid -> reports/integrity_full.md and
+reports/metrics/integrity_full.json. A stage of optional/dvc.yaml (`dvc repro optional/dvc.yaml`), not of the
+default `dvc repro`: it does not fit the default profile's 40-minute budget (its cost per attacked frame and
+attacker: conf/config.yaml, integrity.attackers).
 
 The campaign of `rpod robustness` (stages/engine/campaigns.py, pipeline/evaluation/campaign.py) with nothing left out:
 every attacker of the schema (the captures per direction and `integrity.capture_initial`, the drifts, the nested
@@ -49,5 +50,6 @@ def main(
     atomic_write_text(INTEGRITY_REPORT, unmet_banner(out["fused"]["calibration_unmet"])
                       + unmet_banner(integrity["chains"][PAPER.value]["calibration_unmet"], PAPER)
                       + integrity_page(integrity, params))
-    typer.echo(f"integrity: breaking eps {integrity['breaking_eps']} on {integrity['chains'][SHIPPED.value]['trajectories']} "
+    flown = integrity["chains"][SHIPPED.value]["trajectories"]
+    typer.echo(f"integrity: breaking eps {integrity['breaking_eps']} on {flown} "
                f"trajectories in {seconds:.0f} s -> {INTEGRITY_REPORT}, {INTEGRITY_METRICS}")
