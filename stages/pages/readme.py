@@ -239,23 +239,25 @@ def _integrity_rows(rb: dict[str, Any], gd: dict[str, Any],
     out.append(("integrity: largest trusted error / AL at eps 0.05, worst over attackers and trajectories, shipped "
                 "chain (robust model)", "-" if at is None or at["max_error_al"] is None else _fmt(at["max_error_al"]),
                 "-", "robustness", _sd(spread, "integrity.shipped_max_error_al_eps_0_05_ratio")))
-    recover = gd.get("closed_loop", {}).get("variants", {}).get("true_state", {}).get("recover")
-    if recover is not None:
-        worst = recover["per_eps"].get("0.05")
-        out.append(("closed loop: docking miss (m) without attack / largest at eps 0.05, shipped chain "
-                    "(detect-and-recover, true-state dynamics, execution error)",
-                    f"{_fmt(recover['clean']['miss'])} ({recover['clean']['outcome']}) / "
-                    + ("-" if worst is None else _fmt(worst["largest_miss_m"])), "-", "guidance",
-                    _sd(spread, "closed_loop.recover_docking_miss_m")))
+    recover = gd.get("closed_loop", {}).get("variants", {}).get("true_state", {}).get("recover")   # "-": not flown
+    worst = None if recover is None else recover["per_eps"].get("0.05")
+    where = "shipped chain (detect-and-recover, true-state dynamics, execution error)"
+    out.append((f"closed loop: docking miss (m) without attack, {where}", "-" if recover is None else
+                f"{_fmt(recover['clean']['miss'])} ({recover['clean']['outcome']})", "-", "guidance",
+                _sd(spread, "closed_loop.recover_docking_miss_m")))
+    out.append((f"closed loop: largest docking miss (m) of the attacked runs at eps 0.05, {where}",
+                "-" if worst is None else _fmt(worst["largest_miss_m"]), "-", "guidance",
+                _sd(spread, "closed_loop.recover_worst_miss_eps_0_05_m")))
     for e in ("0.01", "0.05"):
         w = integrity.get("worst_hmi", {}).get(e)
         value = "-" if w is None else f"{_rate(w['hmi'])} ({attacker_names(w['attacker'])})"
         out.append((f"integrity: worst HMI (%) a chain-level attack caused at eps {e} (trusted error > AL, "
                     f"available), shipped chain (robust model)", value, "-", "robustness", _sd(spread, f"integrity.worst_hmi_eps_{e.replace('.', '_')}_pct")))
     std = chains.get("standard", {})
-    for e in ("0.01", "0.05") if std else ():
+    for e in ("0.01", "0.05"):   # "-" where the standard chain was not flown (as the breaking points above)
         w = std.get("worst_hmi", {}).get(e)
-        out.append((f"integrity: worst HMI (%) at eps {e}, standard model's chain ({std['trajectories']} trajectories)",
+        out.append((f"integrity: worst HMI (%) at eps {e}, standard model's chain ({std.get('trajectories', '-')} "
+                    "trajectories)",
                     "-" if w is None else _rate(w["hmi"]), "-", "robustness",
                     _sd(spread, f"integrity.standard_worst_hmi_{e.replace('.', '_')}_pct")))
     clean = integrity.get("clean")
