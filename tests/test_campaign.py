@@ -123,6 +123,7 @@ def _integrity(breaking: dict[str, float | None], shipped_failed: int = 0, avail
             "drift": {"start": "acquisition", "gate_fraction": 0.5, "undefended_rate_m": 0.05}, "frame_steps": 3,
             "stop_at_break": True,
             "assumptions": {"trusted_start_frames": 20, "position_noise_m": 0.022, "noise_model": "fitted",
+                            "detector": {"fusion": "or", "threshold": 0.61},
                             "execution": {"scale_std": 0.02, "noise_std_m": 0.01, "mean_motion_rad_s": 0.0011,
                                           "frame_interval_s": 10.0, "approach": "vbar"},
                             "integrity_risk": 1e-5, "cusum_reference": 1.0}}
@@ -137,6 +138,7 @@ def test_the_robustness_page_leads_with_the_breaking_point_and_says_which_target
     assert [v for _, v, _ in targets(held)] == ["met", "met", "met", "met", "met"]
     page = lead(held, p)
     assert page.startswith("## Safety evidence that can fail") and "Every target of issue 39 is met" in page
+    assert "**Trusted start**" in page and "**Detector**" in page and "threshold\n  0.61" in page
     assert "**Breaking point (smallest eps at which an attacker fails a trajectory): shipped none in the grid, " \
            "standard 0.01, undefended robust control 0.02.**" in page.splitlines()[2]
     broken = _integrity({"robust": 0.05, "standard": 0.01, "control": 0.05}, shipped_failed=2, availability=0.946)
@@ -184,6 +186,10 @@ def test_the_closed_loop_breaking_point_and_docking_table_per_variant() -> None:
     page = closed_loop_section(out, params_mod.build(params_mod.compose("default")))
     assert page.startswith("# Closed-loop rendezvous: where the shipped chain docks")
     assert "undefended 0.01; detect-and-recover 0.01" in page.splitlines()[2] and "Targets not met" in page
+    assert "nan" not in page   # a variant without runs at an eps shows "-"
+    v["undefended"]["breaking_eps"] = 0.0   # failing without attack says nothing about the attacks
+    page = closed_loop_section(out, params_mod.build(params_mod.compose("default")))
+    assert "not shown" in next(line for line in page.splitlines() if line.startswith("| falsifiable"))
 
 
 def test_a_campaign_on_the_undefended_control_needs_a_drift_rate(tracks) -> None:

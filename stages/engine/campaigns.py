@@ -132,10 +132,11 @@ def _campaign(p: Params, seed: int, defended: Any, bursts: list[list[tuple[int, 
 
 
 def _assumptions(p: Params, shipped: Any) -> dict[str, Any]:
-    """What every integrity row rests on, for the reports: the trusted-start frames, the noise model, the dynamics
-    and execution error of the trajectories, the AL kind."""
+    """What every integrity row rests on, for the reports: the trusted-start frames, the shipped detector (fusion,
+    threshold), the noise model, the dynamics and execution error of the trajectories, the AL kind."""
     x, d = p.guidance.execution, p.defense
     return {"trusted_start_frames": d.trusted_start, "position_noise_m": d.position_noise,
+            "detector": {"fusion": d.fusion, "threshold": float(shipped.defended.settings.threshold)},
             "noise_model": "pose-network noise and bias per range bin fitted on the validation trajectories "
                            f"(defense.noise_bins = {d.noise_bins}), inflated x{shipped.calibration.inflation:g} "
                            "(rpod calibrate)",

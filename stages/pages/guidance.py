@@ -228,12 +228,12 @@ def closed_loop_section(d: dict[str, Any], p: Params) -> str:
     ts = v.get("true_state", {})
     if ts:
         und, rec = ts.get("undefended", {}).get("breaking_eps"), ts.get("recover", {}).get("breaking_eps")
-        falsifiable = und is not None
+        falsifiable = und is not None and und > 0   # failing without attack shows nothing about the attacks
         small = [x for k, x in ts.get("recover", {}).get("per_eps", {}).items() if float(k) <= TARGET_EPS]
         failed = sum(x["failed"] for x in small)
         clean_ok = ts.get("recover", {}).get("clean", {}) or {}
         lines = [("falsifiable: the undefended chain fails its mission at some eps", "met" if falsifiable else
-                  "**missed**", f"undefended breaking eps {_break(und)}"),
+                  "not shown" if und == 0 else "**missed**", f"undefended breaking eps {_break(und)}"),
                  (f"detect-and-recover, every attack up to eps {TARGET_EPS:g}: docking miss <= tolerance",
                   "met" if small and not failed and clean_ok.get("outcome") == "docked" else "**missed**",
                   f"no-attack run {clean_ok.get('outcome', '-')} ({clean_ok.get('miss', float('nan')):.2f} m); "
@@ -255,6 +255,8 @@ def closed_loop_section(d: dict[str, Any], p: Params) -> str:
             for eps, k in x["per_eps"].items():
                 row[f"eps {eps}: failed / met, largest miss (m)"] = f"{k['failed']}/{k['met']}, {k['largest_miss_m']:.2f}"
             rows.append(row)
+    columns = list(dict.fromkeys(k for row in rows for k in row))
+    rows = [{k: row.get(k, "-") for k in columns} for row in rows]   # "-": no attacked run at that eps
     runs = [{"dynamics": r["dynamics"], "variant": VARIANTS[r["defense"]], "attack": r["attack"],
              "eps": "-" if r["eps"] is None else f"{r['eps']:g}", "outcome": ("**" + r["outcome"] + "**") if r["failed"]
              else r["outcome"], "range miss (m)": r["range_miss"], "lateral miss (m)": r["lateral_miss"],

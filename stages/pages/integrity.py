@@ -187,6 +187,11 @@ Assumptions of every row below:
 - **Trusted start**: the protection level assumes no fault on the {a['trusted_start_frames']} frames after the
   filter's first start (assumption A, pipeline/defense/protection.py); the captures and a drift from acquisition
   attack inside them.
+- **Detector**: the shipped chain's SHAP + LSTM detector at its calibrated threshold
+  {a['detector']['threshold']:.4g} (models/defense.json), fused with the filter's checks (`defense.fusion`
+  {a['detector']['fusion']}); it alone guards the trusted-start frames, and every attacker knows it and carries its
+  margin in the objective (an adaptive attack, not the paper's FGSM it was trained on). The undefended control has
+  none.
 - **AL and availability**: {_kind(integrity, p)}; a frame is available when the guidance flies on it (mode track or
   coast) and PL <= AL at the true range; failure = error / AL > 1 on an available frame. The single-frame AL is the
   second column.
