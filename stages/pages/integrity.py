@@ -242,7 +242,8 @@ def integrity_page(integrity: dict[str, Any], p: Params) -> str:
     """reports/integrity_full.md (`rpod integrity`): the full grid's evidence and descriptive rows."""
     return ("# The full integrity grid (`rpod integrity`)\n\nEvery attacker on the shipped chain, the standard one and "
             "the undefended robust control, every trajectory and every eps (the default profile's `rpod robustness` "
-            "flies a reduced ladder: reports/robustness.md).\n\n" + lead(integrity, p)
+            "flies fewer attackers on fewer trajectories and stops each chain at its breaking point: "
+            "reports/robustness.md).\n\n" + lead(integrity, p)
             + integrity_section(integrity, p, figure=False))
 
 
