@@ -238,7 +238,7 @@ def _integrity_rows(rb: dict[str, Any], gd: dict[str, Any],
     at = chains.get("robust", {}).get("summary", {}).get("per_eps", {}).get("0.05")
     out.append(("integrity: largest trusted error / AL at eps 0.05, worst over attackers and trajectories, shipped "
                 "chain (robust model)", "-" if at is None or at["max_error_al"] is None else _fmt(at["max_error_al"]),
-                "-", "robustness", _sd(spread, "integrity.shipped_max_error_al_eps_0_05_ratio")))
+                "-", "robustness", _sd(spread, "integrity.shipped_error_al_0_05_ratio")))
     recover = gd.get("closed_loop", {}).get("variants", {}).get("true_state", {}).get("recover")   # "-": not flown
     worst = None if recover is None else recover["per_eps"].get("0.05")
     where = "shipped chain (detect-and-recover, true-state dynamics, execution error)"
@@ -247,7 +247,7 @@ def _integrity_rows(rb: dict[str, Any], gd: dict[str, Any],
                 _sd(spread, "closed_loop.recover_docking_miss_m")))
     out.append((f"closed loop: largest docking miss (m) of the attacked runs at eps 0.05, {where}",
                 "-" if worst is None else _fmt(worst["largest_miss_m"]), "-", "guidance",
-                _sd(spread, "closed_loop.recover_worst_miss_eps_0_05_m")))
+                _sd(spread, "closed_loop.recover_miss_0_05_m")))
     for e in ("0.01", "0.05"):
         w = integrity.get("worst_hmi", {}).get(e)
         value = "-" if w is None else f"{_rate(w['hmi'])} ({attacker_names(w['attacker'])})"

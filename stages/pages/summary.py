@@ -1,7 +1,10 @@
 """reports/metrics/summary.json, what `dvc metrics show` and `dvc exp show` print: the run's headline
 numbers, no times, grouped by what they measure ({"pose": {"test_position_m": ...}, ...}), so DVC's columns
-read `pose.test_position_m`. Each name ends in its unit: `_m`, `_deg`, or `_pct` (every rate in percent);
-a number whose stage did not produce it is left out.
+read `pose.test_position_m`. Each name ends in its unit: `_m`, `_deg`, `_pct` (every rate in percent), `_eps`
+(an L-inf budget, pixels in [0, 1]) or `_ratio` (dimensionless); a number whose stage did not produce it is left
+out, and an `optional` one may be absent from a complete run (a chain that held over the whole eps grid has no
+breaking point; one that broke below eps 0.05 has no rows there, integrity.stop_at_break; the burst flies only
+where integrity.attackers has it).
 
 The per-stage metrics JSONs (reports/metrics/<stage>.json) keep every detail; this file only picks from them.
 """
@@ -17,6 +20,7 @@ class Headline(NamedTuple):
     what: str                                 # what the number is, with its unit
     get: Callable[[Metrics], float]           # from the stage metrics (keyed by metrics file stem)
     decimals: int = 2                         # rounding in summary.json
+    optional: bool = False                    # may be absent from a complete run (module docstring)
 
 
 def _smallest_eps(per_eps: dict[str, Any]) -> str:
@@ -88,7 +92,8 @@ HEADLINES: list[Headline] = [
     Headline("robustness.harmful_undetected_pct",
              "worst harmful-undetected rate of the burst attack on the defended chain (ships), any eps (%; paper's view)",
              lambda m: 100 * max(w["harmful_undetected_rate"]
-                                 for w in m["robustness"]["worst_harmful_undetected_fused"].values())),
+                                 for w in m["robustness"]["worst_harmful_undetected_fused"].values()),
+             2, True),   # the burst flies where integrity.attackers has it (the paper profile, rpod integrity)
     Headline("lab.accuracy_pct", "lab detection accuracy, mean over eps, standard model (%)",
              lambda m: 100 * m["lab"]["accuracy_mean"]),
     Headline("lab.shipped_clean_false_alarm_pct", "lab: the shipped chain's detector false alarms on clean frames (%)",
@@ -97,28 +102,29 @@ HEADLINES: list[Headline] = [
     Headline("integrity.worst_hmi_eps_0_01_pct", "integrity (ships): worst HMI caused by a chain-level attack at eps "
              "0.01 (%)", lambda m: worst_hmi(m, "0.01")),
     Headline("integrity.worst_hmi_eps_0_05_pct", "integrity (ships): worst HMI caused by a chain-level attack at eps "
-             "0.05 (%)", lambda m: worst_hmi(m, "0.05")),
+             "0.05 (%)", lambda m: worst_hmi(m, "0.05"), 2, True),
     Headline("integrity.standard_worst_hmi_0_01_pct", "integrity, standard model's chain: worst HMI at eps 0.01 (%)",
              lambda m: worst_hmi(m, "0.01", "standard")),
     Headline("integrity.standard_worst_hmi_0_05_pct", "integrity, standard model's chain: worst HMI at eps 0.05 (%)",
-             lambda m: worst_hmi(m, "0.05", "standard")),
+             lambda m: worst_hmi(m, "0.05", "standard"), 2, True),
     Headline("integrity.clean_availability_pct", "integrity (ships): availability of the trusted estimate without "
              "attack (%)", lambda m: 100 * m["robustness"]["integrity"]["clean"]["availability"]["value"]),
     Headline("in_loop.recover_collisions_pct", "closed loop (ships), in-loop attacker: collisions with "
              "detect-and-recover (%)", in_loop_collisions),
     # issue 39: the evidence that can fail (eps is the breaking point's unit: an L-inf budget, pixels in [0, 1])
     Headline("integrity.shipped_breaking_eps", "breaking point of the shipped chain: smallest eps at which an attacker "
-             "fails a trajectory (error / AL > 1 on an available frame)", lambda m: breaking_eps(m, "robust"), 3),
+             "fails a trajectory (error / AL > 1 on an available frame)", lambda m: breaking_eps(m, "robust"), 3, True),
     Headline("integrity.standard_breaking_eps", "breaking point of the standard model's chain",
-             lambda m: breaking_eps(m, "standard"), 3),
+             lambda m: breaking_eps(m, "standard"), 3, True),
     Headline("integrity.control_breaking_eps", "breaking point of the undefended robust control",
-             lambda m: breaking_eps(m, "control"), 3),
-    Headline("integrity.shipped_max_error_al_eps_0_05_ratio", "shipped chain: largest trusted error / AL (persistent "
+             lambda m: breaking_eps(m, "control"), 3, True),
+    Headline("integrity.shipped_error_al_0_05_ratio", "shipped chain: largest trusted error / AL (persistent "
              "AL, available frames) at eps 0.05, worst over attackers and trajectories",
-             lambda m: m["robustness"]["integrity"]["chains"]["robust"]["summary"]["per_eps"]["0.05"]["max_error_al"]),
+             lambda m: m["robustness"]["integrity"]["chains"]["robust"]["summary"]["per_eps"]["0.05"]["max_error_al"],
+             2, True),
     Headline("closed_loop.recover_docking_miss_m", "closed loop (ships, detect-and-recover, true-state dynamics): "
              "docking miss without attack (m)", docking_miss),
-    Headline("closed_loop.recover_worst_miss_eps_0_05_m", "closed loop (ships, detect-and-recover, true-state "
+    Headline("closed_loop.recover_miss_0_05_m", "closed loop (ships, detect-and-recover, true-state "
              "dynamics): largest docking miss of the attacked runs at eps 0.05 (m)", lambda m: docking_miss(m, "0.05")),
 ]
 
