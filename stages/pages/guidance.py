@@ -188,18 +188,19 @@ def in_loop_section(d: dict[str, Any], i: Integrity) -> str:
              "hold steps": "-" if r["hold_steps"] is None else r["hold_steps"]} for r in d["runs"]]
     return f"""
 
-## The in-loop attacker: collision course and miss
+## The in-loop attacker: collision course, miss and capture
 
-On the chain that ships (robust model, its detector and defense). Every frame from the first step at range
-<= S (S in {', '.join(f'{s:g}' for s in i.in_loop_start_ranges)} m) to the end of the run is crafted by an
-attacker who knows the chain (pose network and detector), the defense with its
-state, the guidance law and where the chaser truly is (pipeline/attacks/in_loop.py): it looks one step
-ahead over estimates pushed along and across the line of sight (as far as keeps the innovation under
-{i.drift_gate_fraction:g} of the motion gate once the filter runs), keeps the one whose step brings the chaser
-nearest the target (goal "collide") or farthest from the docking point ("miss"), and crafts the frame
-by targeted L-inf PGD ({i.in_loop_steps} steps, the detector's margin in the objective) at eps
-{', '.join(f'{e:g}' for e in sorted(i.eps))}, stored as 8 bits. Greedy: a course that needs a detour is not found. A **collision**
-is a true range below `integrity.collision_range_m` = {d['collision_range_m']:g} m anywhere on the path; **lost
+On the chain that ships (robust model, its detector and defense). Goals "collide" and "miss": every frame from the
+first step at range <= S (S in {', '.join(f'{s:g}' for s in i.in_loop_start_ranges)} m) to the end of the run is
+crafted by an attacker who knows the chain (pose network and detector), the defense with its state, the guidance law
+and where the chaser truly is (pipeline/attackers/in_loop.py): it looks one step ahead over estimates pushed along
+and across the line of sight (as far as keeps the innovation under {i.drift_gate_fraction:g} of the motion gate once
+the filter runs), keeps the one whose step brings the chaser nearest the target ("collide") or farthest from the
+docking point ("miss"). Goal "capture" (pipeline/attackers/capture.py): a bias of
+{i.capture_initial[0]:g} m across the line of sight from the first frame (acquisition, S = the start range), held
+to the end under the same stealth bound. Each frame by targeted L-inf PGD ({i.in_loop_steps} steps, the detector's
+margin in the objective) at eps {', '.join(f'{e:g}' for e in sorted(i.in_loop_eps))}, stored as 8 bits. Greedy: a
+course that needs a detour is not found. A **collision** is a true range below `integrity.collision_range_m` = {d['collision_range_m']:g} m anywhere on the path; **lost
 rendezvous** a run that ends outside the tolerance or loses the target without a collision; **held**
 a run that ends docked. Horizon: the variant's no-attack arrival + `guidance.slack_steps`, plus as
 many again for the defended variants (a chaser that holds on flags arrives late). Only the runs that
