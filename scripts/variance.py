@@ -134,7 +134,7 @@ def variance_rows(runs: list[Path]) -> list[dict[str, Any]]:
     """One row per headline number: runs that have it, mean, standard deviation (n - 1), min, max."""
     rows = []
     metrics = [run_metrics(r) for r in runs]
-    for key, name, get, _ in HEADLINES:
+    for key, name, get, *_ in HEADLINES:
         values = [v for v in (_value(m, get) for m in metrics) if v is not None]
         if not values:
             continue
@@ -151,7 +151,7 @@ def isa_rows(runs: list[Path], seeds: list[str], isas: list[str]) -> list[dict[s
     metrics = [run_metrics(r) for r in runs]
     names = [f"seed {s}, {i}" for s, i in zip(seeds, isas)]
     rows = []
-    for key, name, get, _ in HEADLINES:
+    for key, name, get, *_ in HEADLINES:
         values = [_value(m, get) for m in metrics]
         if all(v is None for v in values):
             continue

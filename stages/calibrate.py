@@ -4,9 +4,10 @@ models/defense.json; the standard model's (the paper's reproduction, stage `cali
 integrity and defended rows beside the shipped chain's) -> models/defense_standard.json.
 
 Runs the safety chain clean over the validation approaches `rpod eval_render` rendered into
-datasets/val_render/ (seed `defense.val_seed`, never the evaluation seed; the same kind of mission as the
-evaluation's) and over the frames of datasets/val_envelope/ (every kind of clean view the pose network was
-trained for: the detector's threshold must meet its share on both), fits the pose model's
+datasets/val_render/ (their base seed follows `seed`, never the evaluation's; the same kind of mission as the
+evaluation's, flown with the execution error the filter is not told: `defense.position_noise` is its std per
+step) and over the frames of datasets/val_envelope/ (every kind of clean view the pose network was trained for:
+the detector's threshold must meet its share on both), fits the pose model's
 range-dependent measurement noise and bias (`pipeline.defense.noise.fit_noise`, `defense.noise_bins`
 range bins), then sets each check to its own share (`defense.shares`) of the false-alarm budget
 `defense.target_false_alarm` (pipeline/defense/calibration.py): the detector's threshold (a quantile of
@@ -38,6 +39,7 @@ from stages.artifacts.paths import CHAINS, Model
 from stages.artifacts.readers import chaser_motion, read_eval_render, read_val_envelope
 from stages.config.build import alert_limit_settings, defense_settings
 from stages.config.device import torch_setup
+from stages.config.params import validation_seed
 from stages.config.schema import Params
 from stages.errors import StageError
 from stages.pages.calibrate import summary_line, unmet_line
@@ -48,8 +50,8 @@ ModelOption = Annotated[Model, model_option("Writes models/defense.json (robust)
 def main(params: Params, model: ModelOption = Model.robust) -> None:
     """Calibrate the defense's checks of one chain on clean validation trajectories -> its defense file.
 
-    Params: `defense` (noise_bins, target_false_alarm, shares, allow_unmet, val_trajectories, val_seed and the
-    filter settings), `evaluate.batch_size`, the alert limit's (`guidance.tolerance`, `max_step`,
+    Params: `defense` (noise_bins, target_false_alarm, shares, allow_unmet, val_trajectories and the filter
+    settings), `evaluate.batch_size`, the alert limit's (`guidance.tolerance`, `max_step`,
     `slack_steps`, `integrity.collision_range_m`) for the availability it records.
     """
     from pipeline.defense.calibration import Budget, CleanRun, UnmetShare, calibrate_to_target
@@ -133,7 +135,7 @@ def _validation(params: Params, frames: int, checks: list[Any], final: dict[str,
         return {"pct": round(100 * r.value, 4), "ci95_pct": [round(100 * v, 4) for v in r.ci()]}
 
     alarms = float(np.mean(envelope_prob >= checks[0].setting))
-    return {"trajectories": d.val_trajectories, "seed": d.val_seed, "frames": frames,
+    return {"trajectories": d.val_trajectories, "seed": validation_seed(params), "frames": frames,
             "envelope": {"frames": int(envelope_prob.size), "detector_pct": round(100 * alarms, 4)},
             "doubt": {"level": doubt, "share_pct": None if d.doubt_share is None else 100 * d.doubt_share,
                       "reached_pct": None if doubt is None else round(100 * float(np.mean(prob >= doubt)), 4)},

@@ -76,7 +76,7 @@ def params_cmd(
 # export, predict, remote: not DVC stages
 STAGES = ["render", "label", "train", "attack", "guidance", "shap", "detect", "eval_render", "calibrate", "evaluate",
           "robustness", "lab_models", "lab", "report", "ablation", "pose_trial", "attitude", "suite", "bound",
-          "export", "predict", "remote"]
+          "integrity", "export", "predict", "remote"]
 
 
 def _register() -> None:

@@ -33,6 +33,7 @@ from stages.artifacts.paths import PAPER, SHIPPED, Model
 from stages.artifacts.readers import chaser_motion, read_eval_render
 from stages.config.device import torch_setup
 from stages.config.evaluation import Evaluate
+from stages.config.params import evaluation_seed
 from stages.config.schema import Params
 from stages.pages.calibrate import unmet_banner
 from stages.pages.evaluate import chain_names, clamp_section, defense_section, rates_section
@@ -55,8 +56,8 @@ class ChainRun:
 def main(params: Params) -> None:
     """Detect FGSM attacks frame by frame on fresh trajectories with the paper's and the shipped chain.
 
-    Params: `evaluate` (trajectories, frames, lateral_range, p_start, attack_length, eps, seed,
-    batch_size), `defense`, plus `render`/`camera` for the images and `attack.loss` for the FGSM loss.
+    Params: `seed` (the trajectories' base seed follows it), `evaluate` (trajectories, frames, lateral_range,
+    p_start, attack_length, eps, batch_size), `defense`, plus `render`/`camera` for the images and `attack.loss` for the FGSM loss.
     """
     from pipeline.attacks.schedule import attacked_fraction
     from pipeline.evaluation.rates import sequence_rates
@@ -66,7 +67,8 @@ def main(params: Params) -> None:
     e = params.evaluate
     torch_setup(params)
     images, poses, meta = read_eval_render(params)
-    sequences = _sequences(images, poses, e)
+    base = evaluation_seed(params)
+    sequences = _sequences(images, poses, e, base)
     t0 = time.perf_counter()
     paper, shipped = (_run_chain(params, model, sequences) for model in (PAPER, SHIPPED))
     fused = _defended(params, paper, shipped, sequences)
@@ -98,10 +100,10 @@ def main(params: Params) -> None:
     write_metrics(METRICS, nan_to_none(metrics), params.profile_name)
     atomic_write_text(REPORT, unmet_banner(shipped_cal.unmet) + unmet_banner(paper.chain.calibration.unmet, PAPER)
                       + report(res.rows, summary, res.clean, sequences, e, meta, chain.threshold, eps_fig,
-                               params.profile_name)
+                               params.profile_name, base)
                       + defense_section(fused, shipped_cal.to_json(), params.defense.harm_m, e.attack_length,
                                         _shipped_clean(shipped))
-                      + clamp_section(clamp, params.evaluate.seed))
+                      + clamp_section(clamp, base))
     typer.echo(f"evaluate: {len(sequences)} trajectories x {len(e.eps)} eps, standard and robust chain in "
                f"{seconds:.0f} s; mean accuracy (standard, paper's view) {100 * metrics['accuracy_mean']:.2f}% "
                f"-> {REPORT}, {FIGURE}")
@@ -115,11 +117,11 @@ def _clamp_heldout(params: Params, images: Any) -> dict[str, float]:
 
     shift = params.lab.domain_shift
     return black_level_stats(images, float(params.train.adversarial.black_level), float(shift.noise_std),
-                             float(shift.blur_sigma), seed_for(params.evaluate.seed, "evaluate.black_level"))
+                             float(shift.blur_sigma), seed_for(evaluation_seed(params), "evaluate.black_level"))
 
 
-def _sequences(images: np.ndarray, poses: Any, e: Evaluate) -> list[Sequence]:
-    """The evaluation trajectories as chain sequences with their motion and seeded attack schedules."""
+def _sequences(images: np.ndarray, poses: Any, e: Evaluate, base: int) -> list[Sequence]:
+    """The evaluation trajectories as chain sequences with their motion and attack schedules seeded from `base`."""
     from pipeline.attacks.schedule import attack_schedule
     from pipeline.evaluation.sequences import Sequence
 
@@ -131,7 +133,7 @@ def _sequences(images: np.ndarray, poses: Any, e: Evaluate) -> list[Sequence]:
                             targets=g[TARGET].to_numpy(np.float32), R_cam=R_cam, u=u,
                             rel=g[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64),
                             attacked=attack_schedule(len(idx), e.p_start, e.attack_length,
-                                                     seed_for(e.seed, "evaluate.schedule", int(tr)))))
+                                                     seed_for(base, "evaluate.schedule", int(tr)))))
     return out
 
 
@@ -182,7 +184,7 @@ def _shipped_clean(run: ChainRun) -> dict[str, float]:
 
 def report(rows: list[dict[str, Any]], summary: list[dict[str, Any]], clean: dict[str, dict[str, float]],
            sequences: list[Sequence], e: Evaluate, meta: dict[str, Any], threshold: float,
-           eps_fig: float, profile: str) -> str:
+           eps_fig: float, profile: str, evaluation_base: int) -> str:
     from pipeline.evaluation.sequences import accuracy_table, detail_table, pct
     from pipeline.report.markdown import markdown_table
 
@@ -202,8 +204,9 @@ Which model: every table above "The defended chains" is the paper's reproduction
 model** (models/pose.pt) with its own detector (models/detector.pt); the defended section adds the chain
 that ships, the **robust model** (models/pose_robust.pt) with its own detector (models/detector_robust.pt).
 
-{len(names)} fresh trajectories (never seen in training; seed {e.seed}), {e.frames} frames each, from 60 m
-with lateral start offsets {starts} along a projectile-shaped path to (0, 0, 10) m. Every frame goes
+{len(names)} fresh trajectories (never seen in training; base seed {evaluation_base}, following `seed`), {e.frames} frames each, from 60 m
+with lateral start offsets {starts} along a projectile-shaped path to (0, 0, 10) m, each planned step flown
+with the thrusters' execution error (`guidance.execution`; the defense is told the commands). Every frame goes
 through the chain as onboard: image -> (FGSM against that frame's true label, stored as an 8-bit
 image, when the schedule attacks it) -> pose -> exact SHAP of the GAP features -> LSTM detector
 (threshold {threshold:.3f}). A frame outside an attack starts one with probability {e.p_start:g};

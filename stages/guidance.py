@@ -12,8 +12,14 @@ every cell again for each of `guidance.dynamics` and each of undefended / `guida
 (detect-and-hold, detect-and-recover; a fresh calibrated defense from models/defense.json per run; FGSM on
 the robust model) -> the defended section of the report, metrics `defended`, and
 reports/figures/guidance_defended.png (one run per variant). Last, the in-loop attacker
-(pipeline/attackers/in_loop.py) on the shipped chain at each `integrity.eps`, goal and start range under every
-dynamics and variant -> the in-loop section, metrics `in_loop`. Rates count only the runs that met the attack.
+(pipeline/attackers/in_loop.py; goal capture: pipeline/attackers/capture.py) on the shipped chain at each
+`integrity.in_loop_eps`, goal and start range under the true_state dynamics (the paper dynamics place the chaser at
+its estimate: prediction = truth by construction, no integrity evidence) and every variant -> the in-loop section,
+metrics `in_loop`. Every true_state run executes its commands with the thrusters' error and Clohessy-Wiltshire
+motion (`guidance.execution`, pipeline/guidance/dynamics.py; the defense is told the commands). Every run of the
+shipped chain is judged by where it docks (pipeline/evaluation/closed_loop.py: range and lateral miss, collision,
+lost target, hold; the breaking point per dynamics and variant) -> metrics `closed_loop`, the section the page
+leads with. Rates count only the runs that met the attack.
 """
 from __future__ import annotations
 
@@ -35,7 +41,7 @@ from stages.artifacts.paths import GUIDANCE_FIGURE as FIGURE
 from stages.artifacts.paths import GUIDANCE_METRICS as METRICS
 from stages.artifacts.paths import GUIDANCE_REPORT as REPORT
 from stages.artifacts.paths import PAPER, SHIPPED
-from stages.config.build import check_attack_params, intrinsics, make_attack, scene_settings
+from stages.config.build import check_attack_params, execution_settings, intrinsics, make_attack, scene_settings
 from stages.config.device import torch_setup
 from stages.config.evaluation import Integrity
 from stages.config.schema import Params
@@ -45,18 +51,20 @@ from stages.engine import pool as engine
 from stages.engine.guidance_worker import GuidanceSetup, GuidanceWorker, flights
 from stages.errors import StageError
 from stages.pages.calibrate import unmet_banner
-from stages.pages.guidance import defended_section, guidance_page, in_loop_section
+from stages.pages.guidance import closed_loop_section, defended_section, guidance_page, in_loop_section
 
 
 def _in_loop(i: Integrity, settings: Any) -> tuple[tuple[float, str, float], ...]:
-    """The in-loop attacker's (eps, goal, S) cells of params.integrity, S checked against the approach."""
+    """The in-loop attacker's (eps, goal, S) cells of params.integrity, S checked against the approach; the capture
+    attacks from the first frame (S = the start range: acquisition)."""
     for s in i.in_loop_start_ranges:
         try:
             settings.window(float(s), 1)
         except ValueError as e:
             raise StageError(f"params.yaml integrity.in_loop_start_ranges: {e}") from None
-    return tuple((float(e), goal, float(s)) for e, goal, s in itertools.product(sorted(i.eps), i.in_loop_goals,
-                                                                                i.in_loop_start_ranges))
+    start = float(np.linalg.norm(settings.start))
+    return tuple((float(e), goal, float(s)) for e, goal in itertools.product(sorted(i.in_loop_eps), i.in_loop_goals)
+                 for s in ((start,) if goal == "capture" else i.in_loop_start_ranges))
 
 
 def _plan(g: Guidance) -> tuple[Any, list[tuple[float, float, int, Any]]]:
@@ -110,6 +118,7 @@ def main(params: Params) -> None:
     workers (each run on one; results in grid order); report outcomes."""
     from tqdm import tqdm
 
+    from pipeline.evaluation.closed_loop import closed_loop_outcomes
     from pipeline.guidance.grid import GridPlan, defended_grid, grid_counts, in_loop_grid, paper_grid
     from pipeline.report.figures import guidance_trajectories, guidance_variants
 
@@ -123,7 +132,9 @@ def main(params: Params) -> None:
     hashes = {m: chain.pose_hash for m, chain in chains.items()}
     shipped = chains[SHIPPED.value]
     K, es = intrinsics(params), engine.engine_settings(params)   # K: the model's input size
-    plan = GridPlan(settings, tuple(grid), g.slack_steps, tuple(g.dynamics), tuple(g.defenses), in_loop)
+    plan = GridPlan(settings, tuple(grid), g.slack_steps, tuple(g.dynamics), tuple(g.defenses), in_loop,
+                    execution_settings(params, seed_for(params.seed, "execution")),
+                    ("true_state",) if "true_state" in g.dynamics else ())
     check_duration(plan, shipped.onboard, K)
     scene, threads = chunks.prepare(K, scene_settings(params.render), es)
     runs = flights(plan)   # attacked runs last the no-attack arrival + slack_steps (the paper: 50 nominal steps + ~10)
@@ -151,10 +162,13 @@ def main(params: Params) -> None:
     defended.update(grid_counts(flown[plan.paper_size:len(flown) - looped], frozenset().union(*(k for _, k in paper))))
     metrics = _metrics(settings, g, params.attack, hashes, seconds, counts, (baseline, arrival, horizon, attacked),
                        defended)
-    metrics |= {"in_loop": in_loop_grid(plan, [r for r, _ in flown], params.integrity.collision_range_m)
-                | grid_counts(flown[len(flown) - looped:]), "minutes": (time.perf_counter() - t0) / 60}
+    collision = params.integrity.collision_range_m
+    metrics |= {"in_loop": in_loop_grid(plan, [r for r, _ in flown], collision) | grid_counts(flown[len(flown) - looped:]),
+                "closed_loop": closed_loop_outcomes(plan, [r for r, _ in flown], collision),
+                "execution": dataclasses.asdict(g.execution), "minutes": (time.perf_counter() - t0) / 60}
     write_metrics(METRICS, metrics, params.profile_name)
-    atomic_write_text(REPORT, unmet_banner(shipped.calibration.unmet) + guidance_page(metrics, g, params.render)
+    atomic_write_text(REPORT, unmet_banner(shipped.calibration.unmet)
+                      + closed_loop_section(metrics["closed_loop"], params) + guidance_page(metrics, g, params.render)
                       + defended_section(metrics["defended"], g) + in_loop_section(metrics["in_loop"], params.integrity))
     first = attacked[0][0] if attacked else None
     save_figure(guidance_trajectories(baseline, [(s, k, r) for e, s, k, r in attacked if e == first], first,

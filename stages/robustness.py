@@ -1,11 +1,17 @@
-"""`rpod robustness`: the shipped safety chain against attacks its detector never saw.
+"""`rpod robustness`: the safety evidence that can fail, and the shipped chain against attacks its detector never saw.
 
-The chain that ships is the robust model (models/pose_robust.pt) with its own detector
-(models/detector_robust.pt) and defense (models/defense.json): every row below runs on it. Beside it, the
-standard model's chain (models/pose.pt, models/detector.pt, models/defense_standard.json: the paper's
-reproduction) gets the integrity rows of `integrity.standard_attackers` on the first
-`integrity.standard_trajectories` trajectories (the full suite on both chains does not fit the budget), and
-the page shows the two pose models side by side (clean and under the strongest-attack suite:
+The chain that ships is the robust model (models/pose_robust.pt) with its own detector (models/detector_robust.pt)
+and defense (models/defense.json). The integrity campaign (issue 39, pipeline/evaluation/campaign.py) flies it over
+the first `integrity.trajectories` eval_render trajectories (flown with execution error, the chain told the
+commands), and beside it the standard model's chain (models/pose.pt, models/detector.pt,
+models/defense_standard.json: the paper's reproduction) and the undefended robust control (the shipped pose network,
+no detector, no defense) over the first `integrity.comparison_trajectories`: every attacker of `integrity.attackers`
+(capture from acquisition, drift, burst) at each eps of `integrity.eps` in increasing order (stopping after a
+chain's breaking point with `integrity.stop_at_break`), judged by the measures that can fail: per trajectory the
+largest error / AL (`integrity.alert_limit_kind`, the persistent-bias AL by default) on an available frame beside
+the single-frame AL, error / PL, the final error; the worst over attackers; the breaking point per chain; Stanford
+counts; HMI trajectories with Clopper-Pearson intervals. The page leads with them. The per-frame rows below run on
+the shipped chain, and the page shows the two pose models side by side (clean and under the strongest-attack suite:
 reports/metrics/robust.json).
 
 Reads the shipped chain, models/surrogate.pt (`rpod train --surrogate`) and a
@@ -32,7 +38,6 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.geometry.labels import TARGET
 from pipeline.io.atomic import atomic_write_text, read_json, save_figure
 from pipeline.io.errors import not_found
 from pipeline.seeds import seed_for
@@ -42,11 +47,10 @@ from stages.artifacts.paths import INTEGRITY_FIGURE, PAPER, ROBUST_METRICS, SHIP
 from stages.artifacts.paths import ROBUSTNESS_FIGURE as FIGURE
 from stages.artifacts.paths import ROBUSTNESS_METRICS as METRICS
 from stages.artifacts.paths import ROBUSTNESS_REPORT as REPORT
-from stages.artifacts.readers import read_eval_render
 from stages.config.device import torch_setup
 from stages.config.evaluation import Robustness, attack_name
 from stages.config.schema import Params
-from stages.errors import StageError
+from stages.engine.campaigns import integrity_campaign
 from stages.pages.calibrate import unmet_banner
 from stages.pages.robustness import pose_models, robustness_page
 
@@ -87,8 +91,7 @@ def main(params: Params) -> None:
     shipped_threshold = shipped.defended.settings.threshold
     clean_harm, corruptions = _corruption_rows(chain, images, targets, r, seed, shipped_threshold, progress)
     bar.close()
-    fused = _integrity(params, r, shipped, target, seed)
-    standard = _standard_integrity(params, r, seed)
+    fused = integrity_campaign(params, shipped, seed)
     seconds, figure = time.perf_counter() - t0, fused.pop("figure")
     metrics = {"rows": rows, "corruptions": corruptions, "frames": n, "test_frames": n_test, "harm_m": r.harm_m,
                "steps": r.steps, "gradients_per_frame": sum(s.cost for s in specs), "lambdas": r.lambdas,
@@ -99,11 +102,11 @@ def main(params: Params) -> None:
                "model": SHIPPED.value, "model_hash": shipped.pose_hash, "surrogate_hash": surrogate.hash,
                "seconds": seconds,
                "minutes": seconds / 60, "worst_harmful_undetected": worst_by_eps(rows), **fused,
-               "worst_harmful_undetected_fused": worst_by_eps(fused["fused_rows"]), "integrity_standard": standard,
+               "worst_harmful_undetected_fused": worst_by_eps(fused["fused_rows"]),
                "pose_models": pose_models(read_json(ROBUST_METRICS))}
     write_metrics(METRICS, metrics, params.profile_name)
     atomic_write_text(REPORT, unmet_banner(fused["fused"]["calibration_unmet"])
-                      + unmet_banner(standard.get("calibration_unmet", []), PAPER)
+                      + unmet_banner(fused["integrity"]["chains"][PAPER.value]["calibration_unmet"], PAPER)
                       + robustness_page(metrics, params))
     worst_fused = [row for row in fused["fused_rows"] if row["lambda"] is None]
     save_figure(robustness_vs_eps([row for row in rows if row["attack"] != "adaptive pgd"] + worst_fused), FIGURE)
@@ -156,99 +159,16 @@ def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Rob
     return rate(clean_pos > r.harm_m), rows
 
 
-def _standard_integrity(p: Params, r: Robustness, seed: int) -> dict[str, Any]:
-    """The integrity rows of the standard model's chain (the paper's reproduction, with the defense calibrated
-    for it): `integrity.standard_attackers` on the first `integrity.standard_trajectories` trajectories
-    ({"attackers": []} when none are asked for)."""
-    from pipeline.attacks.adaptive import PerFrameChain
-
-    i = p.integrity
-    if not i.standard_attackers:
-        return {"attackers": [], "model": PAPER.value}
-    paper = load_chain(p, PAPER)
-    chain = paper.onboard
-    out = _integrity(p, r, paper, PerFrameChain(paper.model, chain.shap, chain.detector), seed,
-                     list(i.standard_attackers), i.standard_trajectories)
-    out.pop("figure")
-    return {**out["integrity"], "model": PAPER.value, "model_hash": paper.pose_hash,
-            "trajectories": out["fused"]["trajectories"],
-            "false_alarm_rate": out["fused"]["false_alarm_rate"], "ci95_false_alarm": out["fused"]["ci95_false_alarm"],
-            "calibration_unmet": out["fused"]["calibration_unmet"]}
-
-
-def _integrity(p: Params, r: Robustness, safety: Any, target: Any, seed: int, attackers: list[str] | None = None,
-               n_traj: int | None = None) -> dict[str, Any]:
-    """The chain-level attackers (`attackers`, default integrity.attackers, at integrity.eps) on the eval_render
-    trajectories (the first `n_traj`; None: all) through one chain (`safety`: a SafetyChain; `target`: its
-    PerFrameChain) and the defense calibrated for it: pipeline.evaluation.campaign.fly_campaign. Returns the
-    metrics and the figure's data."""
-    from tqdm import tqdm
-
-    from pipeline.evaluation.campaign import Campaign, fly_campaign
-    from pipeline.evaluation.integrity_runs import Track
-    from stages.config.build import alert_limit_settings, burst_attacker, drift_settings
-    from stages.pages.integrity import worst_hmi
-
-    t0 = time.perf_counter()
-    images, labels, trajs, bursts, defended, info = _fused_setup(p, r, safety, n_traj)
-    tracks = [Track(f"t{g}", images[ix], labels[ix]) for g, ix in enumerate(trajs)]
-    i = p.integrity
-    attackers = list(i.attackers) if attackers is None else attackers
-    eps = sorted(float(e) for e in i.eps)
-    drifts = [(a, drift_settings(p, a.split("/")[1])) for a in attackers if a != "burst"]
-    campaign = Campaign(eps, burst_attacker(p, seed_for(seed, "robustness.burst")) if "burst" in attackers else None,
-                        bursts, drifts, (i.drift_start, i.drift_start + i.drift_frames), i.drift_steps,
-                        seed_for(seed, "robustness.drift"), alert_limit_settings(p), r.batch_size, r.harm_m, seed)
-    with tqdm(total=len(tracks) * ("burst" in attackers) + bool(drifts) * len(eps) * i.drift_frames,
-              desc="robustness (integrity)", unit="step", dynamic_ncols=True) as bar:
-        flown = fly_campaign(safety.onboard, target, defended, tracks, campaign, lambda: bar.update(1))
-    info.update(false_alarm_rate=flown.alarms.value, ci95_false_alarm=flown.alarms.ci())
-    top = [(name, runs, masks) for name, e, runs, masks in flown.runs if e == eps[-1]]
-    return {"fused_rows": flown.fused_rows, "fused": info,
-            "integrity": {"rows": flown.rows, "worst_hmi": worst_hmi({"rows": flown.rows}), "clean": flown.clean_row,
-                          "eps": eps, "attackers": attackers,
-                          "alert_limit_m": i.alert_limit_m, "collision_range_m": i.collision_range_m,
-                          "burst": {"steps": i.burst_steps, "restarts": i.burst_restarts,
-                                    "lambdas": [float(v) for v in i.burst_lambdas], "cap": i.burst_cap,
-                                    "bursts": info["bursts"], "burst_length": info["burst_length"]},
-                          "drift": {"start": i.drift_start, "frames": i.drift_frames, "steps": i.drift_steps,
-                                    "gate_fraction": i.drift_gate_fraction}, "seconds": time.perf_counter() - t0},
-            "figure": (flown.clean, top, eps[-1])}
-
-
 def _integrity_figure(clean: list[Any], top: list[tuple[str, list[Any], list[np.ndarray]]], eps: float) -> Any:
     """The Stanford diagram of every attacker at the largest eps (and the clean runs), and trajectory 0 over frames."""
     from pipeline.evaluation.integrity_runs import diagram_points
     from pipeline.report.figures import integrity_diagram
-    from stages.pages.integrity import NAMES
+    from stages.pages.integrity import attacker_names
 
     every = [np.ones(len(c.pose), bool) for c in clean]
-    points = {"no attack": diagram_points(clean, every), **{f"{NAMES[name]}, eps {eps:g}": diagram_points(flown, masks)
-                                                            for name, flown, masks in top}}
-    series = {"no attack": clean[0].frames.error, **{f"{NAMES[name]}, eps {eps:g}": flown[0].frames.error
+    points = {"no attack": diagram_points(clean, every),
+              **{f"{attacker_names(name)}, eps {eps:g}": diagram_points(flown, masks) for name, flown, masks in top}}
+    series = {"no attack": clean[0].frames.error, **{f"{attacker_names(name)}, eps {eps:g}": flown[0].frames.error
                                                      for name, flown, _ in top}}
     return integrity_diagram(points, series, clean[0].frames.alert,
                              f"Trusted estimate against its bound, eps {eps:g} (counted frames: from the first attacked one)")
-
-
-def _fused_setup(p: Params, r: Robustness, safety: Any, n_traj: int | None) -> tuple[Any, ...]:
-    """(eval_render images, labels (N, 9), frame indices per trajectory (the first `n_traj`; None: all), bursts per
-    trajectory, the defended-chain settings of the chain `safety`, facts about the defense)."""
-    from pipeline.evaluation.robustness import burst_schedule
-
-    images, poses, _ = read_eval_render(p)
-    labels = poses[TARGET].to_numpy(np.float64)
-    trajs = [np.flatnonzero(poses["trajectory"].to_numpy() == t) for t in np.unique(poses["trajectory"])][:n_traj]
-    # the chain's defense as `rpod calibrate` recorded it (the noise model fitted on validation trajectories)
-    defended, cal = safety.defended, safety.calibration
-    length = p.integrity.burst_length
-    try:
-        bursts = [burst_schedule(len(ix), length, r.burst_every) for ix in trajs]
-    except ValueError as e:
-        raise StageError(f"params.yaml robustness.burst_every / integrity.burst_length: {e}") from None
-    info = {"trajectories": len(trajs), "bursts": sum(len(b) for b in bursts), "burst_length": length,
-            "burst_every": r.burst_every, "noise_model": defended.noise.as_dict(), "gate": defended.motion.gate,
-            "gate_false_alarm": defended.motion.false_alarm, "noise_inflation": cal.inflation,
-            "fusion": defended.settings.fusion, "calibration_unmet": list(cal.unmet),
-            "noise_fitted_on": "validation trajectories (models/defense.json, rpod calibrate)"}
-    return images, labels, trajs, bursts, defended, info

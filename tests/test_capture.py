@@ -22,7 +22,7 @@ from pipeline.defense.fusion import Defense, DefenseSettings
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel
 from pipeline.defense.integrity import AlertLimitSettings
-from pipeline.evaluation.integrity_runs import Track, drift_attack, fly
+from pipeline.evaluation.integrity_runs import Track, fly, plan_attack
 from pipeline.evaluation.measures import HELD, MISSED, docking, trajectory_measures
 from pipeline.defense.chain import Defended
 from pipeline.geometry.camera import Intrinsics
@@ -70,9 +70,10 @@ def encode(t: np.ndarray) -> np.ndarray:
     return out.reshape(4, 4, 3)
 
 
-def shift(chain: ToyPose, x: torch.Tensor, target: torch.Tensor, eps: float, logit_threshold, generator) -> torch.Tensor:
+def shift(chain: ToyPose, x: torch.Tensor, target: torch.Tensor, eps: float, logit_threshold, generator,
+          start: torch.Tensor | None = None) -> torch.Tensor:
     """The toy's exact FrameAttack: each channel's mean moved toward the target's axis by whole 8-bit levels
-    spread over its 16 pixels, at most floor(255 eps) levels per pixel."""
+    spread over its 16 pixels, at most floor(255 eps) levels per pixel (a start changes nothing: it is exact)."""
     levels = int(np.floor(eps * 255 + 1e-9))
     with torch.no_grad():
         t = chain(x)[0][:, :3]
@@ -190,14 +191,14 @@ def test_on_a_recorded_trajectory_capture_and_drift_stay_unflagged_where_the_pla
 
 
 def test_the_batched_runner_takes_capture_plans_and_the_undefended_control(recorded) -> None:
-    """drift_attack runs CaptureSettings plans like drift ones, and the undefended control (no defense: the
+    """plan_attack runs CaptureSettings plans like drift ones, and the undefended control (no defense: the
     wanted bias delivered as is, no detector margin)."""
     track, _ = recorded
     chain = ToyPose()
     clean = [fly(ToyOnboard(chain), Defended(DefenseSettings(), EXACT, NOISE), track, AlertLimitSettings(), 8)]
     plans = [CaptureSettings("los", initial=1.0), DriftSettings("lateral", max_rate=0.05)]
     for defended in (Defended(DefenseSettings(), EXACT, NOISE), None):
-        stored = drift_attack(chain, defended, [track], clean, (0, len(track)), plans, EPS, 5, 0, frame_attack=shift)
+        stored = plan_attack(chain, defended, [track], clean, [(plan, 0) for plan in plans], EPS, 0, frame_attack=shift)
         f = [fly(ToyOnboard(chain), defended, track, AlertLimitSettings(), 8, s[0]) for s in stored]
         los = np.einsum("ij,ij->i", f[0].pose[:, :3] - clean[0].pose[:, :3], track.labels[:, :3]
                         / np.linalg.norm(track.labels[:, :3], axis=1, keepdims=True))

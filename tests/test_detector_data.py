@@ -59,7 +59,7 @@ def test_the_detector_split_has_enough_trajectories_of_its_own_seed():
     moved = params_mod.build(params_mod.compose("default", ["shap.seed=4001"]))
     assert params_mod.detect_render_fingerprint(moved) != params_mod.detect_render_fingerprint(p)
     assert params_mod.eval_render_fingerprint(moved) == params_mod.eval_render_fingerprint(p)
-    assert p.shap.seed not in (p.evaluate.seed, p.defense.val_seed)
+    assert p.shap.seed not in (params_mod.evaluation_seed(p), params_mod.validation_seed(p))
 
 
 def _write_trajectories(folder: Path, p, n: int, seed: int) -> np.ndarray:

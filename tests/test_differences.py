@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from stages.config.params import load
+from stages.config.params import evaluation_seed, load, validation_seed
 from stages.pages.differences import _choices
 from stages.pages.evaluate import clamp_section
 
@@ -17,8 +17,8 @@ def test_the_choices_bullet_names_each_choice_its_data_and_follows_the_metrics()
     p = load()
     robust = {"black_level": TRAIN}
     text = _choices(p, robust, {"shipped": {"clamp_erased": 0.006}}, {"black_level_heldout": HELD})
-    assert "square pixels" in text and f"seed {p.defense.val_seed}" in text
-    assert f"the evaluation's seed {p.evaluate.seed} is never read" in text
+    assert "square pixels" in text and f"base seed {validation_seed(p)}" in text
+    assert f"the evaluation's base {evaluation_seed(p)} is never read" in text
     assert "t = 0.07 was set from 200 training frames" in text and "erases 0.60%" in text
     assert "percentile is 0.0612 (training frames: 0.0627), so t is still above it" in text
     assert "5.1% of the target's channel values fall below t (training frames: 4.8%" in text
@@ -34,4 +34,4 @@ def test_the_choices_bullet_names_each_choice_its_data_and_follows_the_metrics()
 def test_the_held_out_clamp_section_says_whether_t_still_holds():
     assert "t is still above the\nlab black level" in clamp_section(HELD, 1000)
     text = clamp_section({**HELD, "lab_black_999": 0.09}, 1000)
-    assert "t is NOT above the\nlab black level" in text and "evaluate.seed 1000" in text
+    assert "t is NOT above the\nlab black level" in text and "base seed 1000" in text

@@ -29,14 +29,14 @@ def _committed_metrics() -> dict[str, dict]:
 
 
 # ----------------------------------------------------------------------------- metrics
-UNITS = ("_m", "_deg", "_pct")   # every headline name ends in its unit
+UNITS = ("_m", "_deg", "_pct", "_eps", "_ratio")   # every headline name ends in its unit (stages/pages/summary.py)
 
 
 def test_summary_is_grouped_readable_and_has_every_headline():
     from stages.pages.summary import HEADLINES, headline_values, summary
 
     values = headline_values(_committed_metrics())
-    assert list(values) == [h.key for h in HEADLINES]
+    assert list(values) == [h.key for h in HEADLINES if not h.optional or h.key in values]
     for key, value in values.items():
         group, name = key.split(".")
         assert isinstance(value, float) and name.endswith(UNITS) and len(key) <= 40, key
@@ -79,16 +79,18 @@ def test_every_output_path_is_an_out_of_the_stage_that_writes_it():
 def test_dvc_metrics_show_prints_one_row_of_readable_names(tmp_path):
     """One header and one row; every column is `<group>.<what>_<unit>` (DVC joins the nested keys with dots)."""
     from pipeline.io.atomic import write_json
-    from stages.pages.summary import HEADLINES, summary
+    from stages.pages.summary import HEADLINES, headline_values, summary
 
+    values = headline_values(_committed_metrics())
+    assert set(values) >= {h.key for h in HEADLINES if not h.optional}
     for name in ("dvc.yaml", "params.yaml"):   # dvc.yaml templates external-input deps from params.yaml
         shutil.copy(REPO / name, tmp_path / name)
     write_json(tmp_path / "reports" / "metrics" / "summary.json", summary(_committed_metrics()))
     subprocess.run([str(DVC), "init", "--no-scm", "-q"], cwd=tmp_path, check=True)
     out = subprocess.run([str(DVC), "metrics", "show"], cwd=tmp_path, check=True, capture_output=True, text=True)
     header, row = out.stdout.splitlines()
-    assert header.split() == ["Path", *sorted(h.key for h in HEADLINES)], header
-    assert row.split()[0] == "reports/metrics/summary.json" and len(row.split()) == 1 + len(HEADLINES)
+    assert header.split() == ["Path", *sorted(values)], header
+    assert row.split()[0] == "reports/metrics/summary.json" and len(row.split()) == 1 + len(values)
 
 
 # ----------------------------------------------------------------------------- plots

@@ -159,3 +159,26 @@ def test_bad_execution_settings_are_one_line(change: dict, word: str) -> None:
         ExecutionSettings(**change)
     with pytest.raises(ValueError, match="execute_plan"):
         execute_plan(np.zeros((4, 2)), ExecutionSettings())
+
+
+def test_eval_render_writes_the_planned_commands_and_flies_the_poses_with_their_error() -> None:
+    """The eval_render path (stages/eval_render.py, stages/artifacts/readers.py): the trajectories are flown with
+    guidance.execution's error, poses.parquet holds the flown truth (rel, labels) and the planned steps as cmd_*,
+    and what the chain is told (`chaser_motion`) are those commands, not the flown steps."""
+    from stages.artifacts.readers import chaser_motion
+    from stages.config import params as params_mod
+    from stages.eval_render import poses_table, trajectories
+
+    p = params_mod.build(params_mod.compose("smoke"))
+    base = params_mod.evaluation_seed(p)
+    flown, planned = trajectories(p, base, 2, flown=True), trajectories(p, base, 2)
+    poses = poses_table(flown)
+    _, u = chaser_motion(poses)
+    for k, (f, q) in enumerate(zip(flown, planned)):
+        rows = (poses["trajectory"] == f.sequence).to_numpy()
+        rel = poses.loc[rows, ["rel_x", "rel_y", "rel_z"]].to_numpy()
+        assert np.allclose(u[rows][1:], np.diff(q.rel, axis=0)) and not u[rows][0].any()   # the planned steps
+        assert np.allclose(rel, f.rel) and not np.allclose(rel, q.rel, atol=1e-3)           # the truth is flown
+        assert np.allclose(rel[0], q.rel[0]) and np.allclose(np.linalg.norm(poses.loc[rows, ["tx", "ty", "tz"]], axis=1),
+                                                               np.linalg.norm(rel, axis=1))
+    assert not np.allclose(flown[0].rel - planned[0].rel, flown[1].rel - planned[1].rel)    # each its own draws

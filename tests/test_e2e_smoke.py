@@ -170,25 +170,36 @@ def test_every_table_has_the_expected_rows(smoke_repo):
     assert rows_under(page("robustness"), "Benign corruptions", "corruption")[0] == "none"
     i = p["integrity"]
     fused = [(row["eps"], row["lambda"]) for row in rob["fused_rows"]]
-    assert fused == [(e, None) for e in sorted(map(float, i["eps"]))]    # the nested burst, per frame
+    burst = "burst" in i["attackers"]   # the nested burst, per frame, where the profile flies it
+    assert fused == ([(e, None) for e in sorted(map(float, i["eps"]))] if burst else [])
     assert all(row["n"] > 0 and row["ci_method"] == "bootstrap over trajectories" for row in rob["fused_rows"])
-    integrity = [(row["attacker"], row["eps"]) for row in rob["integrity"]["rows"]]
-    assert sorted(integrity) == sorted((a, float(e)) for a in i["attackers"] for e in i["eps"])
-    assert set(rob["integrity"]["worst_hmi"]) == set(eps(i["eps"]))
-    assert len(rows_under(page("robustness"), "Integrity of the shipped", "attacker")) == len(integrity)
-    standard = [(row["attacker"], row["eps"]) for row in rob["integrity_standard"]["rows"]]
-    assert sorted(standard) == sorted((a, float(e)) for a in i["standard_attackers"] for e in i["eps"])
-    assert len(rows_under(page("robustness"), "Integrity of the standard", "attacker")) == len(standard)
+    names = [n for a in i["attackers"] if a != "burst"
+             for n in ([f"{a} {b:g} m" for b in i["capture_initial"]] if a.startswith("capture") else [a])]
+    chains = rob["integrity"]["chains"]
+    assert set(chains) == {"robust", "standard", "control"} and not chains["control"]["defended"]
+    for key, chain in chains.items():   # every planned attacker at every eps the chain flew (its ladder)
+        flown = chain["summary"]["eps_flown"]
+        assert flown and flown == sorted(flown) and set(flown) <= set(map(float, i["eps"])), key
+        assert sorted((row["attacker"], row["eps"]) for row in chain["rows"] if row["attacker"] != "burst") == sorted(
+            (n, e) for n in names for e in flown), key
+    assert set(rob["integrity"]["worst_hmi"]) == set(eps(chains["robust"]["summary"]["eps_flown"]))
+    assert page("robustness").split("\n## ")[1].startswith("Safety evidence that can fail")   # the page leads with it
+    assert len(rows_under(page("robustness"), "Breaking point per chain", "chain")) == 3
+    assert len(rows_under(page("robustness"), "Shipped (robust model", "attacker")) == len(chains["robust"]["rows"])
+    assert len(rows_under(page("robustness"), "Standard (the paper", "attacker")) == len(chains["standard"]["rows"])
     assert rows_under(page("robustness"), "The two pose models", "measure")[0].startswith("clean test position")
-    in_loop = rows_under(page("guidance"), "The in-loop attacker", "dynamics")
-    assert in_loop == [d for d in p["guidance"]["dynamics"] for _ in range(1 + len(p["guidance"]["defenses"]))
-                       for _ in i["eps"]]
+    in_loop = rows_under(page("guidance"), "The in-loop attacker", "dynamics")   # true-state dynamics only
+    assert in_loop == ["true_state"] * (1 + len(p["guidance"]["defenses"])) * len(i["in_loop_eps"])
     runs = json.loads((dst / "reports" / "metrics" / "guidance.json").read_text())["in_loop"]["runs"]
-    assert len(runs) == len(in_loop) * len(i["in_loop_goals"]) * len(i["in_loop_start_ranges"])
+    per_cell = sum(1 if g == "capture" else len(i["in_loop_start_ranges"]) for g in i["in_loop_goals"])
+    assert len(runs) == len(in_loop) * per_cell   # the capture attacks from acquisition: one start per cell
+    assert page("guidance").startswith("# Closed-loop rendezvous: where the shipped chain docks")
 
     summary = rows_under(page("README"), "Summary against the paper", "result")
-    assert len(summary) == 24 and summary[0].startswith("pose")
-    assert sum(r.startswith("integrity") for r in summary) == 5
+    assert len(summary) == 30 and summary[0].startswith("pose")
+    # 3 breaking points, error / AL at eps 0.05, 2 + 2 worst-HMI rows (shipped, standard), availability
+    assert sum(r.startswith("integrity") for r in summary) == 9
+    assert sum(r.startswith("closed loop: ") for r in summary) == 2   # the shipped chain's docking misses
     defended = [r for h, head, r in tables(page("README")) if any(c.startswith("defended chain (or)") for c in head)]
     assert defended and defended[0][0].startswith("integrated accuracy at eps")
     assert sum(r.startswith("closed loop") for r in defended[0]) == len(p["guidance"]["dynamics"])
@@ -218,7 +229,8 @@ def test_each_row_runs_on_its_chain(smoke_repo):
     assert (ev["model_hash"], ev["shipped"]["model_hash"]) == (standard, robust)        # paper rows, defended rows
     assert (gd["model_hash"], gd["models"]["shipped"]["model_hash"]) == (standard, robust)
     assert (lab["model_hash"], lab["shipped"]["model_hash"]) == (standard, robust)
-    assert (rob["model_hash"], rob["integrity_standard"]["model_hash"]) == (robust, standard)
+    assert (rob["model_hash"], rob["integrity"]["chains"]["standard"]["model_hash"]) == (robust, standard)
+    assert rob["integrity"]["chains"]["control"]["model_hash"] == robust
     chain = load_chain(dst)
     assert chain.files == tuple(dst / "models" / n for n in ("pose_robust.pt", "detector_robust.pt", "defense.json"))
     assert chain.safety.calibration.model == "robust" and chain.safety.defended is not None   # its own defense

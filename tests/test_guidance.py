@@ -8,7 +8,7 @@ import pytest
 
 from pipeline.geometry.camera import reference_intrinsics
 from pipeline.guidance.law import HELD, LOST, MISSED, SUCCEEDED, GuidanceSettings, guidance_step, run_rendezvous
-from stages.config.sections import Guidance
+from stages.config.sections import Execution, Guidance
 
 K = reference_intrinsics().scaled(160, 90)
 
@@ -111,7 +111,9 @@ def test_bad_inputs_raise_clear_errors():
 def _params(**changes: object) -> Guidance:
     g = {"eps": [0.5, 0.05], "start_ranges": [60, 40, 20, 10], "lengths": [5, 15], "start": [0.0, 0.0, 60.0],
          "target": [0.0, 0.0, 10.0], "tolerance": 1.0, "max_step": 1.0, "max_steps": 60, "slack_steps": 10, "variant": "paper",
-         "method": "fgsm", "dynamics": ["paper"], "defenses": ["hold"]}
+         "method": "fgsm", "dynamics": ["paper"], "defenses": ["hold"],
+         "execution": Execution(scale_std=0.02, noise_std=0.01, mean_motion=0.0011, frame_interval=10.0,
+                                approach="vbar")}
     return Guidance(**{**g, **changes})
 
 

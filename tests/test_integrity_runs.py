@@ -19,7 +19,7 @@ from pipeline.defense.fusion import DefenseSettings
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.integrity import AlertLimitSettings, defense_frames
 from pipeline.defense.noise import NoiseModel
-from pipeline.evaluation.integrity_runs import Track, burst_attack, clean_row, counted, drift_attack, fly, integrity_row
+from pipeline.evaluation.integrity_runs import Track, burst_attack, clean_row, counted, fly, integrity_row, plan_attack
 
 N = 12
 NOISE = NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02)
@@ -67,16 +67,21 @@ def test_the_nested_burst_through_the_runner_is_monotone_in_eps_and_within_eps(r
     assert clean_row(clean)["frames"] == 2 * N
 
 
-def test_the_batched_drift_changes_only_its_window_within_eps(runs) -> None:
+def test_the_batched_plans_change_only_their_frames_within_eps(runs) -> None:
+    """Each plan attacks from its own first frame to the end of every track; with the lifting start, BPDA and
+    warm starts too (a model without a clamp: the random start and the plain gradient)."""
+    from pipeline.attackers.drift import TargetedPGD
+
     chain, target, defended, tracks = runs
     clean = [fly(chain, defended, t, AlertLimitSettings(), 8) for t in tracks]
-    stored = drift_attack(target, defended, tracks, clean, (3, 9), [DriftSettings("lateral"), DriftSettings("los")],
-                          0.03, 2, seed=0)
-    assert len(stored) == 2 and all(len(per) == len(tracks) for per in stored)
-    for per in stored:
-        for t, s, m in zip(tracks, per, _masks(tracks, 3, 9)):
-            delta = np.abs(s.astype(int) - t.images.astype(int))
-            assert delta[~m].max() == 0 and 0 < delta[m].max() <= round(0.03 * 255 + 0.5)
+    for attack in (TargetedPGD(2), TargetedPGD(2, start="lift", bpda=True)):
+        stored = plan_attack(target, defended, tracks, clean, [(DriftSettings("lateral"), 3), (DriftSettings("los"), 5)],
+                             0.03, seed=0, frame_attack=attack)
+        assert len(stored) == 2 and all(len(per) == len(tracks) for per in stored)
+        for per, first in zip(stored, (3, 5)):
+            for t, s, m in zip(tracks, per, _masks(tracks, first, N)):
+                delta = np.abs(s.astype(int) - t.images.astype(int))
+                assert delta[~m].max() == 0 and 0 < delta[m].max() <= round(0.03 * 255 + 0.5)
     # an attacked flight reads only the changed frames through the chain: the same as reading them all
     again = fly(chain, defended, tracks[0], AlertLimitSettings(), 8, stored[0][0], clean[0])
     full = fly(chain, defended, tracks[0], AlertLimitSettings(), 8, stored[0][0])

@@ -258,7 +258,7 @@ def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
         out = runner.invoke(app, args)
         assert out.exit_code == 0, (args, out.output, out.exception)
     cal = json.loads((tmp_path / "models/defense.json").read_text())
-    assert cal["validation"]["frames"] == 2 * 12 and cal["validation"]["seed"] == p["defense"]["val_seed"]
+    assert cal["validation"]["frames"] == 2 * 12 and cal["validation"]["seed"] == 3000 + 100_000 * p["seed"]
     ev = json.loads((tmp_path / "reports/metrics/evaluate.json").read_text())
     assert set(ev["per_eps"]) == {"0.5", "0.05"} and len(ev["rows"]) == 2
     assert set(ev["fused"]["per_eps"]) == {"0.5", "0.05"} and ev["fused"]["per_eps"]["0.5"]["tpr"]["n"] > 0

@@ -49,7 +49,7 @@ def test_every_profile_builds_typed_params(profile):
     (("defense", "fusion", "and"), r"defense.fusion must be one of or, paper, motion"),
     (("defense", "doubt_share", None), None),
     (("defense", "doubt_share", 1.0), r"defense.doubt_share must be null or a fraction in \(0, 1\), got 1.0"),
-    (("defense", "val_seed", 1000), r"defense.val_seed must differ from evaluate.seed"),
+    (("defense", "val_seed", 3000), r"unknown parameter 'defense.val_seed'"),   # it follows `seed` now
     (("defense", "harm_m", 0.0), r"defense.harm_m must be > 0"),
     (("guidance", "defenses", ["hold", "pray"]), r"guidance.defenses\[1\] must be one of hold, recover"),
 ])
@@ -90,7 +90,9 @@ def _raw_key(p: dict, *extra: tuple[str, tuple[str, ...]]) -> str:
         r.pop("target_attitude")
     if r["device"] == "cpu":                  # the default Cycles device, likewise
         r.pop("device")
-    key = {"seed": p["seed"], "camera": p["camera"], "render": r} | {s: {k: p[s][k] for k in ks} for s, ks in extra}
+    key = {"seed": p["seed"], "camera": p["camera"], "render": r} | {s: {k: p[s][k] for k in ks} for s, ks in extra
+                                                                     if s in p}
+    key |= {s: dict(ks) for s, ks in extra if s not in p}   # derived values, given as (name, value) pairs
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -103,10 +105,16 @@ def test_typed_params_keep_the_yaml_values_and_every_fingerprint(profile):
     p = build(raw)
     assert dataclasses.asdict(p) == raw and type(p.guidance.start_ranges[0]) is type(raw["guidance"]["start_ranges"][0])
     assert params_mod.render_fingerprint(p) == _raw_key(raw)
+    flown = ("execution", (*raw["guidance"]["execution"].items(), ("max_step", raw["guidance"]["max_step"])))
+    evaluate = {"evaluate": {k: raw["evaluate"][k] for k in ("trajectories", "frames", "lateral_range")}
+                | {"seed": 1000 + 100_000 * raw["seed"]}}   # the evaluation's base seed follows `seed`
     assert params_mod.eval_render_fingerprint(p) == _raw_key(
-        raw, ("evaluate", ("trajectories", "frames", "lateral_range", "seed")))
+        {**raw, **evaluate}, ("evaluate", ("trajectories", "frames", "lateral_range", "seed")), flown)
+    validation = {"defense": {"val_trajectories": raw["defense"]["val_trajectories"],
+                              "val_seed": 3000 + 100_000 * raw["seed"]}}
     assert params_mod.val_render_fingerprint(p) == _raw_key(
-        raw, ("evaluate", ("frames", "lateral_range")), ("defense", ("val_trajectories", "val_seed")))
+        {**raw, **validation}, ("evaluate", ("frames", "lateral_range")), ("defense", ("val_trajectories", "val_seed")),
+        flown)
 
 
 def test_device_param_resolves_in_one_place(monkeypatch):

@@ -25,7 +25,7 @@ default) toward the clean estimate + b_k d, the detector's margin taken against 
 probability at which the defense stops updating its filter: a doubtful frame would not capture it).
 - On recorded trajectories: `CaptureAttacker` (the chain-level interface of pipeline/attackers/base.py),
   or its planner (`CaptureSettings.planner`) in the batched runner
-  (pipeline.evaluation.integrity_runs.drift_attack).
+  (pipeline.evaluation.integrity_runs.plan_attack).
 - In the closed loop: `CaptureInLoop`, an in-loop attacker (`observe` the loop's state, then
   `__call__(x, y)` as the camera's attack), reading the live defense's filter to stay under its checks.
   A drift from acquisition in the loop is the same attacker with a small initial bias and a rate

@@ -25,8 +25,11 @@ detector's margin in the objective (its logit above the threshold's, through a s
 that stops paying once the logit is under the threshold's by a margin), stored as 8 bits
 (`pipeline.attacks.gradient.quantize`); the simulated defense then steps on what the chain reads from
 the stored image, so the plan follows what was actually delivered. The per-frame attack is a
-`FrameAttack` (`TargetedPGD` by default): any attack of that signature (e.g. a stronger suite's, with a
-start that lifts the black background above the pose network's clamp) drops in.
+`FrameAttack` (`TargetedPGD` by default): any attack of that signature drops in. `TargetedPGD(start="lift",
+bpda=True)` is the one strong enough past the robust model's black-level clamp (0.07): it starts from the
+background-lifting start (pipeline/attacks/starts.py) and differentiates through the clamp as the identity
+(BPDA, pipeline/attacks/bpda.py); a frame attack may also be given a start (`start`: e.g. the previous frame's
+perturbation on the next frame, a warm start: consecutive frames of an approach differ little).
 
 Where the drift starts (`start_frame`): the filter starts on the first frame the detector lets through
 and the protection level assumes the `trusted_start` frames after it fault-free (its assumption A,
@@ -36,6 +39,7 @@ undefended chain (`defense` None) nothing checks the bias: it grows by `max_rate
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 from dataclasses import dataclass
@@ -45,9 +49,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pipeline.attacks.adaptive import DifferentiableChain
 from pipeline.attackers.base import AttackRun, chain_outputs, margin_cost, pose_logit, probability_logit
-from pipeline.attacks.gradient import LossFn, check_eps, pgd, quantize
+from pipeline.attacks.adaptive import DifferentiableChain
+from pipeline.attacks.bpda import black_level, bpda_forward
+from pipeline.attacks.gradient import LossFn, check_eps, pgd, project, quantize
+from pipeline.attacks.starts import STARTS as FRAME_STARTS
+from pipeline.attacks.starts import get_start
 from pipeline.defense.fusion import Decision, Defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.kalman import MotionFilter
@@ -299,22 +306,27 @@ class FrameAttack(Protocol):
     """A per-frame targeted attack the chain-level attackers call (drift, capture): frames x (B, 3, H, W)
     on the 8-bit grid pulled toward the poses `target` (B, 9) [m, 6-D] within L-inf `eps`, with the
     detector's logit kept under `logit_threshold` (None: no detector to evade, the undefended chain),
-    random draws from `generator` -> the stored frames, uint8 (B, 3, H, W)."""
+    random draws from `generator`, from the images `start` (B, 3, H, W) when given (projected into the ball;
+    None: the attack's own start) -> the stored frames, uint8 (B, 3, H, W)."""
 
     def __call__(self, chain: DifferentiableChain, x: Tensor, target: Tensor, eps: float,
-                 logit_threshold: float | None, generator: torch.Generator) -> Tensor: ...
+                 logit_threshold: float | None, generator: torch.Generator, start: Tensor | None = None) -> Tensor: ...
 
 
 @dataclass(frozen=True)
 class TargetedPGD:
     """The default `FrameAttack`: `targeted_pgd` with `steps` steps of `step_size` (default 2.5 eps /
-    steps), one random start, `margin_weight` times the detector's margin (softplus, or a hinge of
-    `hinge` logits)."""
+    steps), `margin_weight` times the detector's margin (softplus, or a hinge of `hinge` logits), from
+    `start` (pipeline.attacks.starts.STARTS: "random", or "lift" above a black-level clamp) or the caller's
+    start images; `bpda`: the gradient through the pose network's black-level clamp as the identity (a chain
+    whose pose network, `chain.model`, has one; no effect on a network without a clamp)."""
 
     steps: int = 20
     step_size: float | None = None
     margin_weight: float = 1.0
     hinge: float | None = None
+    start: str = "random"
+    bpda: bool = False
 
     def __post_init__(self) -> None:
         if int(self.steps) < 1:
@@ -323,13 +335,30 @@ class TargetedPGD:
             raise ValueError(f"targeted PGD margin_weight must be a finite number >= 0, got {self.margin_weight}")
         if self.hinge is not None and not (math.isfinite(self.hinge) and self.hinge >= 0):
             raise ValueError(f"targeted PGD hinge must be a finite number >= 0 or None, got {self.hinge}")
+        if self.start not in FRAME_STARTS:
+            raise ValueError(f"unknown targeted PGD start {self.start!r}; choose one of {', '.join(FRAME_STARTS)}")
 
     def __call__(self, chain: DifferentiableChain, x: Tensor, target: Tensor, eps: float,
-                 logit_threshold: float | None, generator: torch.Generator) -> Tensor:
+                 logit_threshold: float | None, generator: torch.Generator, start: Tensor | None = None) -> Tensor:
         weight = 0.0 if logit_threshold is None else self.margin_weight
-        return targeted_pgd(chain, x, target, eps, 0.0 if logit_threshold is None else logit_threshold,
-                            margin_weight=weight, steps=int(self.steps), step_size=self.step_size,
-                            generator=generator, hinge=self.hinge)
+        threshold = 0.0 if logit_threshold is None else logit_threshold
+        if start is None and self.start == "random" and not self.bpda:   # plain PGD, as `targeted_pgd`
+            return targeted_pgd(chain, x, target, eps, threshold, margin_weight=weight, steps=int(self.steps),
+                                step_size=self.step_size, generator=generator, hinge=self.hinge)
+        eps = check_eps(eps)
+        objective = targeted_objective(target, threshold, weight, self.hinge)
+        model = getattr(chain, "model", chain)     # the pose network (a PerFrameChain's), whose clamp BPDA passes
+        alpha = 2.5 * eps / int(self.steps) if self.step_size is None else float(self.step_size)
+        x = x.detach()
+        x_adv = get_start(self.start, x, eps, black_level(model), generator) if start is None else \
+            project(start.detach(), x, eps)
+        with bpda_forward(model, chain) if self.bpda else contextlib.nullcontext(chain) as forward:
+            for _ in range(int(self.steps)):
+                x_adv = x_adv.detach().requires_grad_(True)
+                with torch.enable_grad():
+                    (grad,) = torch.autograd.grad(objective(forward(x_adv), target), x_adv)
+                x_adv = project(x_adv.detach() + alpha * grad.sign(), x, eps)
+        return quantize(x_adv, x)
 
 
 def planned_attack(chain: DifferentiableChain, run: AttackRun, eps: float, planner: BiasPlanner,

@@ -19,6 +19,8 @@ For an attacked frame the attacker
    detector's margin in the objective when a defense reads it, stored as 8 bits.
 It knows the chaser's true position (it watches the approach): the worst case. Greedy, one step of
 lookahead: a course that needs a detour is not found; the counts measure what this attacker does.
+The third in-loop goal, "capture" (`GOALS`), is pipeline/attackers/capture.py's `CaptureInLoop`: a consistent
+bias from the first frame, held to docking (the chaser docks where the bias says the goal is).
 Cost: `steps` frame-gradients per attacked frame (batch 1) and 7 copies of the defense stepped.
 """
 from __future__ import annotations
@@ -39,7 +41,8 @@ from pipeline.defense.fusion import HOLD
 from pipeline.geometry.rotations import sixd_to_matrix
 from pipeline.guidance.law import LoopState, guidance_step, segment_range
 
-GOALS = ("collide", "miss")
+GREEDY = ("collide", "miss")   # the goals of this module's greedy one-step attacker (`InLoopAttacker`)
+GOALS = GREEDY + ("capture",)  # every in-loop goal: "capture" is pipeline/attackers/capture.py's `CaptureInLoop`
 
 
 @dataclass(frozen=True)
@@ -58,8 +61,9 @@ class InLoopSettings:
     magnitudes: tuple[float, ...] = (0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
 
     def __post_init__(self) -> None:
-        if self.goal not in GOALS:
-            raise ValueError(f"unknown in-loop attack goal {self.goal!r}; choose one of {', '.join(GOALS)}")
+        if self.goal not in GREEDY:
+            raise ValueError(f"unknown in-loop attack goal {self.goal!r}; choose one of {', '.join(GREEDY)} "
+                             f"(capture: pipeline.attackers.capture.CaptureInLoop)")
         if int(self.steps) < 1:
             raise ValueError(f"in-loop attack steps must be >= 1, got {self.steps}")
         if not 0 < float(self.gate_fraction) <= 1:

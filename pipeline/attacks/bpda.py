@@ -8,12 +8,10 @@ identical anyway: the forward is unchanged).
 from __future__ import annotations
 
 import contextlib
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import torch
 from torch import Tensor, nn
-
-from pipeline.attacks.stored import Forward
 
 
 class _ClampIdentityBackward(torch.autograd.Function):
@@ -34,16 +32,19 @@ def black_level(model: nn.Module) -> float:
 
 
 @contextlib.contextmanager
-def bpda_forward(model: nn.Module) -> Iterator[Forward]:
+def bpda_forward(model: nn.Module, through: Callable[[Tensor], Any] | None = None) -> Iterator[Callable[[Tensor], Any]]:
     """Within the block, a forward `(B, 3, H, W) in [0, 1] -> (B, 9)` equal to `model` whose input gradient
     passes its clamp as the identity; `model` itself when it has no clamp. The model's clamp is switched
-    off inside the block (the clamp is applied before it instead) and restored on exit."""
+    off inside the block (the clamp is applied before it instead) and restored on exit. `through`: a module
+    built on `model` (e.g. a chain whose pose network it is: pose and detector logit) forwarded the same way
+    instead of `model` alone."""
     level = black_level(model)
+    outer = model if through is None else through
     if level <= 0:
-        yield model
+        yield outer
         return
     model.black_level = 0.0
     try:
-        yield lambda x: model(_ClampIdentityBackward.apply(x, level))
+        yield lambda x: outer(_ClampIdentityBackward.apply(x, level))
     finally:
         model.black_level = level

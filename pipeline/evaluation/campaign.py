@@ -1,8 +1,24 @@
-"""The integrity campaign of one chain (what `rpod robustness` runs on the shipped chain and the standard one):
-the defended chain flown clean over recorded trajectories, then every chain-level attacker at every eps (the
-nested burst on scheduled bursts, the slow drifts in a window of frames), each judged by integrity against the
-same trajectories unattacked (pipeline/evaluation/integrity_runs.py), and the nested burst's attacked frames
-seen per frame (raw error above the harm threshold and unflagged: pipeline/evaluation/robustness.py).
+"""The integrity campaign of one chain (`rpod robustness`: the shipped chain, the standard one and the undefended
+robust control): the chain flown clean over recorded trajectories, then every chain-level attacker at every eps of
+an increasing ladder. Each attacked flight is judged twice: against the same trajectory unattacked (the
+descriptive integrity rows: HMI and MI the attack caused, detection, availability;
+pipeline/evaluation/integrity_runs.py) and by the measures that can fail (pipeline/evaluation/measures.py: per
+trajectory the largest error / AL on an available frame, AL of the campaign's kind, the persistent-bias one by
+default, beside the single-frame AL; the largest error / PL; the trusted error on the last frame, the bias the chaser
+would dock with; flags; availability; Stanford regions). The nested burst's attacked frames are also seen per frame
+(the paper's view: pipeline/evaluation/robustness.py).
+
+The planner-driven attackers (`Plan`: capture, drift) run from their first attacked frame to the end of every
+trajectory, all plans and trajectories of one eps in lockstep (`plan_attack`). The ladder may stop once the chain
+has broken (`Campaign.stop_at_break`): after the first eps at which some attacker fails some trajectory the breaking
+point is known, and the larger eps are not flown (their rows are absent, not zero). The burst, nested through the
+whole ladder by construction, runs first.
+
+`safety_summary` turns a campaign's flights into the safety evidence of the chain: per eps the worst over attackers
+per trajectory (each attacker nested in eps first: an attack found within a smaller ball is within every larger
+one), the trajectories failed, the largest indices, the Stanford counts and the trajectories with an HMI frame
+(Clopper-Pearson over independent trajectories, a descriptive count); the breaking point; the clean trajectories'
+measures (availability, false alarms).
 """
 from __future__ import annotations
 
@@ -12,50 +28,76 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from pipeline.defense.chain import Defended, OnboardChain
-from pipeline.defense.integrity import AlertLimitSettings
+from pipeline.defense.integrity import AlertLimitSettings, single_frame_alert_limit
 from pipeline.evaluation.integrity_runs import (
     Flown,
     Track,
+    as_json,
     burst_attack,
     clean_row,
-    drift_attack,
+    counted,
     fly,
     integrity_row,
+    plan_attack,
     raw_errors,
 )
+from pipeline.evaluation.measures import (
+    REGIONS,
+    TrajectoryMeasures,
+    breaking_point,
+    nest_in_eps,
+    stanford_counts,
+    trajectory_measures,
+    worst_over_attackers,
+)
 from pipeline.evaluation.robustness import fused_row
-from pipeline.stats import Rate, bootstrap_rate
+from pipeline.stats import Rate, bootstrap_rate, clopper_pearson
 
 BURST_ROW = "fused chain: burst (nested, worst over lambda and restarts)"   # its per-frame row's name
 
 
 @dataclass(frozen=True)
+class Plan:
+    """A planner-driven attacker: `name` (e.g. "capture/lateral 5 m"), its `settings` (DriftSettings or
+    CaptureSettings: anything with `planner(defense)`) and its first attacked frame `start` (it attacks every frame
+    from there to the end)."""
+
+    name: str
+    settings: Any
+    start: int
+
+
+@dataclass(frozen=True)
 class Campaign:
-    """What a campaign flies: `eps` (sorted; L-inf, pixels in [0, 1]); the burst attacker (pipeline/attackers/
-    burst.py, seeded; None: not flown) on the `bursts` (start, stop) of each track; the drift attackers, each
-    (name, e.g. "drift/los", and its DriftSettings), in the frames `window` (first, stop) with `drift_steps` PGD steps
-    per frame, seeded `drift_seed`; the alert limit, the batch size of the chain's passes, the harm threshold of
-    the per-frame rows (m) and the seed of the rows' bootstrap."""
+    """What a campaign flies: `eps` (increasing; L-inf, pixels in [0, 1]); the planner-driven attackers `plans`, each
+    frame crafted by `frame_attack` (a pipeline.attackers.drift.FrameAttack) seeded `frame_seed`; the burst attacker
+    (pipeline/attackers/burst.py, seeded; None: not flown) on the `bursts` (start, stop) of each track; `limit` the
+    AL judged against, `single` the single-frame AL (the second column); the batch size of the chain's passes, the
+    harm threshold of the per-frame rows (m), the seed of the rows' bootstrap; `stop_at_break`: stop the ladder
+    after the eps at which the chain breaks."""
 
     eps: list[float]
+    plans: list[Plan]
+    frame_attack: Any
+    frame_seed: int
     burst: Any
     bursts: list[list[tuple[int, int]]]
-    drifts: list[tuple[str, Any]]
-    window: tuple[int, int]
-    drift_steps: int
-    drift_seed: int
     limit: AlertLimitSettings
+    single: AlertLimitSettings
     batch_size: int
     harm_m: float
     seed: int
+    stop_at_break: bool = False
 
 
 @dataclass(frozen=True)
 class Flights:
-    """A campaign's outcome: the clean flights and their false alarms (bootstrap over tracks), every attacked
-    run (attacker, eps, its flights, the attacked frames per track), the integrity rows (the burst's with
-    `bursts_with_hmi`: per eps [bursts with an HMI frame, bursts] as the attacker judged its own worst cases),
-    the clean row, and the nested burst's per-frame rows."""
+    """A campaign's outcome: the clean flights and their false alarms (bootstrap over tracks); every attacked run
+    (attacker, eps, its flights, the attacked frames per track); the descriptive integrity rows (the burst's with
+    `bursts_with_hmi`), the clean row and the nested burst's per-frame rows; the measures per attacker and eps
+    flown (per track, as flown: `safety_summary` nests them), the clean tracks' measures; the Stanford region
+    counts per eps over every attacker's counted frames, and the clean frames'; `stopped`: the eps at which the
+    ladder stopped (the chain broke there), None when every eps was flown."""
 
     clean: list[Flown]
     alarms: Rate
@@ -63,29 +105,62 @@ class Flights:
     rows: list[dict[str, Any]]
     clean_row: dict[str, Any]
     fused_rows: list[dict[str, Any]]
+    measures: dict[str, dict[float, list[TrajectoryMeasures]]]
+    clean_measures: list[TrajectoryMeasures]
+    stanford: dict[float, dict[str, int]]
+    stanford_clean: dict[str, int]
+    stopped: float | None
 
 
-def fly_campaign(chain: OnboardChain, target: Any, defended: Defended, tracks: Sequence[Track], campaign: Campaign,
-                 progress: Callable[[], Any] = lambda: None) -> Flights:
-    """The campaign of the module docstring on `chain` (its differentiable copy `target`: a PerFrameChain) with a
-    fresh `defended` defense per flight; `progress()` after each attacked track or drift step."""
+def judge(flown: Flown, mask: np.ndarray, single: AlertLimitSettings) -> TrajectoryMeasures:
+    """The measures of one flight over its counted frames (from the first attacked frame of `mask` (N,) to the end;
+    every frame when none is attacked), with the single-frame AL of `single` at the true ranges as second column."""
+    mask = np.asarray(mask, bool)
+    keep = counted(mask) if mask.any() else np.ones(len(mask), bool)
+    single_al = single_frame_alert_limit(np.linalg.norm(flown.frames.truth, axis=1), single)
+    return trajectory_measures(flown.frames, flown.trace.flag, single_al, keep)
+
+
+def fly_campaign(chain: OnboardChain, target: Any, defended: Defended | None, tracks: Sequence[Track],
+                 campaign: Campaign, progress: Callable[[], Any] = lambda: None) -> Flights:
+    """The campaign of the module docstring on `chain` (its differentiable copy `target`: a PerFrameChain, or the
+    bare pose network for the undefended control) with a fresh `defended` defense per flight (None: the undefended
+    control); `progress()` after each attacked track of the burst and each attacked frame of the plans."""
     c = campaign
     clean = [fly(chain, defended, t, c.limit, c.batch_size) for t in tracks]
     flags = np.concatenate([f.trace.flag for f in clean])
     alarms = bootstrap_rate(flags, np.concatenate([np.full(len(t), g) for g, t in enumerate(tracks)]))
-    runs, bursts_hmi = [], {}
+    runs: list[tuple[str, float, list[Flown], list[np.ndarray]]] = []
+    measures: dict[str, dict[float, list[TrajectoryMeasures]]] = {}
+    bursts_hmi: dict[float, list[int]] = {}
+    broken: float | None = None
+
+    def record(name: str, e: float, flights: list[Flown], masks: list[np.ndarray]) -> None:
+        nonlocal broken
+        runs.append((name, e, flights, masks))
+        ms = [judge(f, m, c.single) for f, m in zip(flights, masks)]
+        measures.setdefault(name, {})[e] = ms
+        if any(m.failed for m in ms):
+            broken = e if broken is None else min(broken, e)
+
     if c.burst is not None:
         masks = [np.isin(np.arange(len(t)), [k for a, b in bs for k in range(a, b)]) for t, bs in zip(tracks, c.bursts)]
         stored, worst = burst_attack(target, defended, tracks, masks, c.burst, c.eps, progress)
-        runs += [("burst", e, [fly(chain, defended, t, c.limit, c.batch_size, s, f) for t, s, f in
-                               zip(tracks, stored[e], clean)], masks) for e in c.eps]
+        for e in c.eps:
+            record("burst", e, [fly(chain, defended, t, c.limit, c.batch_size, s, f)
+                                for t, s, f in zip(tracks, stored[e], clean)], masks)
         bursts_hmi = {e: [sum(int(b.hmi.any()) for bs in worst[e] for b in bs), sum(map(len, worst[e]))] for e in c.eps}
-    masks = [(np.arange(len(t)) >= c.window[0]) & (np.arange(len(t)) < c.window[1]) for t in tracks]
-    for e in c.eps if c.drifts else []:
-        stored = drift_attack(target, defended, tracks, clean, c.window, [s for _, s in c.drifts], e, c.drift_steps,
-                              c.drift_seed, progress)
-        runs += [(name, e, [fly(chain, defended, t, c.limit, c.batch_size, s, f)
-                            for t, s, f in zip(tracks, per, clean)], masks) for (name, _), per in zip(c.drifts, stored)]
+    stopped = None
+    for e in c.eps if c.plans else []:
+        if c.stop_at_break and broken is not None and e > broken:
+            stopped = broken
+            break
+        stored = plan_attack(target, defended, tracks, clean, [(p.settings, p.start) for p in c.plans], e,
+                             c.frame_seed, c.frame_attack, done=progress)
+        for plan, per in zip(c.plans, stored):
+            record(plan.name, e, [fly(chain, defended, t, c.limit, c.batch_size, s, f)
+                                  for t, s, f in zip(tracks, per, clean)],
+                   [np.arange(len(t)) >= plan.start for t in tracks])
     rows = [integrity_row(name, e, flown, clean, masks, seed=c.seed) | ({"bursts_with_hmi": bursts_hmi[e]}
                                                                          if name == "burst" else {})
             for name, e, flown, masks in runs]
@@ -94,4 +169,75 @@ def fly_campaign(chain: OnboardChain, target: Any, defended: Defended, tracks: S
         if name == "burst":
             err, flag, group = raw_errors(flown, tracks, masks)
             fused.append(fused_row(BURST_ROW, e, None, err, flag, group, c.harm_m))
-    return Flights(clean, alarms, runs, rows, clean_row(clean, seed=c.seed), fused)
+    stanford: dict[float, dict[str, int]] = {}
+    for _, e, flown, masks in runs:
+        counts = stanford.setdefault(e, dict.fromkeys(REGIONS, 0))
+        for f, m in zip(flown, masks):
+            for region, k in stanford_counts(f.frames, counted(m)).items():
+                counts[region] += k
+    every = [np.zeros(len(t), bool) for t in tracks]
+    clean_stanford = dict.fromkeys(REGIONS, 0)
+    for f in clean:
+        for region, k in stanford_counts(f.frames).items():
+            clean_stanford[region] += k
+    return Flights(clean, alarms, runs, rows, clean_row(clean, seed=c.seed), fused, measures,
+                   [judge(f, m, c.single) for f, m in zip(clean, every)], stanford, clean_stanford, stopped)
+
+
+def _largest(values: Sequence[float]) -> float | None:
+    """The largest finite value, None when there is none (the JSON's missing number)."""
+    finite = [float(v) for v in values if np.isfinite(v)]
+    return max(finite) if finite else None
+
+
+def _plain(row: dict[str, Any]) -> dict[str, Any]:
+    """A measures row for JSON: a NaN (no such frame) as None."""
+    return {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in row.items()}
+
+
+def _cp_json(r: Rate) -> dict[str, Any]:
+    return {"value": None if r.n == 0 else float(r.value), "ci": r.ci(), "n": int(r.n),
+            "ci_method": "Clopper-Pearson over trajectories"}
+
+
+def safety_summary(flights: Flights) -> dict[str, Any]:
+    """The chain's safety evidence (module docstring) as the metrics JSON holds it: `breaking_eps` (None: held over
+    every eps flown), `eps_flown`, `stopped_at`, `per_eps` {"%g": worst over attackers: largest error / AL (the
+    campaign's AL, on available frames), error / AL single-frame, error / PL, final error (m), failed trajectories
+    of `trajectories`, the attacker behind the largest error / AL, trajectories with an HMI frame (Clopper-Pearson),
+    Stanford counts, `per_trajectory` rows}, `attackers` {name: {"%g": per-trajectory measures, nested in eps}},
+    `clean` {per-trajectory measures, largest indices, mean availability over trajectories, the availability and
+    false alarms over frames with their bootstrap intervals, Stanford counts}."""
+    f = flights
+    nested = {a: nest_in_eps(by_eps) for a, by_eps in f.measures.items()}
+    flown = sorted({e for by_eps in f.measures.values() for e in by_eps})
+    per_eps: dict[str, Any] = {}
+    for e in flown:
+        at = {a: nested[a][e] for a in nested if e in nested[a]}
+        worst = worst_over_attackers(at)
+        hmi = sum(any(ms[i].hmi > 0 for ms in at.values()) for i in range(len(worst)))
+        top = max(worst, key=lambda w: w["max_error_al"] if np.isfinite(w["max_error_al"]) else -np.inf)
+        per_eps[f"{e:g}"] = {
+            "max_error_al": _largest([w["max_error_al"] for w in worst]),
+            "max_error_al_single": _largest([w["max_error_al_single"] for w in worst]),
+            "max_error_pl": _largest([w["max_error_pl"] for w in worst]),
+            "final_error_max_m": _largest([w["final_error"] for w in worst]),
+            "failed": sum(bool(w["failed"]) for w in worst), "trajectories": len(worst),
+            "worst_attacker": top["worst_attacker"], "hmi_trajectories": _cp_json(clopper_pearson(hmi, len(worst))),
+            "stanford": f.stanford.get(e, {}),
+            "per_trajectory": [_plain(w) for w in worst]}
+    records = [(e, m.failed) for by_eps in f.measures.values() for e, ms in by_eps.items() for m in ms]
+    clean = f.clean_measures
+    return {"breaking_eps": breaking_point(records), "eps_flown": flown, "stopped_at": f.stopped,
+            "trajectories": len(f.clean), "per_eps": per_eps,
+            "attackers": {a: {f"{e:g}": [_plain(m.as_dict()) for m in ms] for e, ms in by_eps.items()}
+                          for a, by_eps in nested.items()},
+            "clean": {"trajectories": [_plain(m.as_dict()) for m in clean],
+                      "max_error_al": _largest([m.max_error_al for m in clean]),
+                      "max_error_al_single": _largest([m.max_error_al_single for m in clean]),
+                      "max_error_pl": _largest([m.max_error_pl for m in clean]),
+                      "final_error_max_m": _largest([m.final_error for m in clean]),
+                      "failed": sum(m.failed for m in clean),
+                      "availability": f.clean_row["availability"],
+                      "false_alarms": as_json(f.alarms, len(f.clean)),
+                      "stanford": f.stanford_clean}}

@@ -8,12 +8,12 @@ range, available, HMI; PL when the defense has one). The same trajectory without
 clean counterpart, frame for frame, so harm counts only what the attack caused.
 - burst (`burst_attack`): `BurstAttacker.nested` on each trajectory through the increasing eps, its
   bursts at the given frames;
-- drift (`drift_attack`): the drift's planner and targeted PGD per frame (pipeline/attackers/drift.py),
-  run in lockstep over every trajectory and drift direction so that each PGD step is one batch of
-  all of them: the `DriftAttacker`, batched, with the detector's margin taken against the
-  probability at which the defense stops updating its filter (its doubt level `update_below`, else the threshold);
-  the same runner takes the capture's plans (pipeline/attackers/capture.py `CaptureSettings`) and any
-  per-frame `FrameAttack`.
+- drift and capture (`plan_attack`): the planner of each (pipeline/attackers/drift.py, capture.py) and a
+  targeted per-frame attack, run in lockstep over every trajectory and plan so that each PGD step is one
+  batch of all of them: the `DriftAttacker` and `CaptureAttacker`, batched, each plan from its own first
+  frame to the end of the trajectory, with the detector's margin taken against the probability at which
+  the defense stops updating its filter (its doubt level `update_below`, else the threshold), any
+  per-frame `FrameAttack`, warm-started from the previous frame's perturbation.
 The undefended control (`defended` None): the chain's raw estimate is what the guidance flies on (the
 trusted estimate is the raw one, every frame tracked and available, no flags, no PL).
 A track's commands (`Track.commands`) are what the chaser commanded and its chain is told; by default
@@ -33,7 +33,6 @@ import torch
 
 from pipeline.defense.integrity import AlertLimitSettings, IntegrityFrames, concat, defense_frames, integrity_rates
 from pipeline.stats import Rate, bootstrap_rate
-
 
 
 @dataclass(frozen=True)
@@ -143,40 +142,57 @@ def burst_attack(target: Any, defended: Any, tracks: Sequence[Track], masks: Seq
     return stored, worst
 
 
-def drift_attack(target: Any, defended: Any, tracks: Sequence[Track], clean: Sequence[Flown], window: tuple[int, int],
-                 settings: Sequence[Any], eps: float, steps: int, seed: int,
-                 done: Callable[[], None] = lambda: None, frame_attack: Any = None) -> list[list[np.ndarray]]:
-    """Per plan of `settings` (DriftSettings, or CaptureSettings: anything with `planner(defense)`), the stored
-    frames (uint8 (N, H, W, 3)) of each track with frames window = (start, stop) attacked at `eps`: every plan
-    and track in lockstep, one batched per-frame attack over all of them (`frame_attack`, a
-    pipeline.attackers.drift.FrameAttack; default targeted PGD of `steps` steps); `defended` None: the undefended
-    control (no detector margin); `clean` the tracks' clean flights (the estimates the planners start from);
-    `done()` after each attacked frame."""
+def plan_attack(target: Any, defended: Any, tracks: Sequence[Track], clean: Sequence[Flown],
+                plans: Sequence[tuple[Any, int]], eps: float, seed: int, frame_attack: Any = None, warm: bool = True,
+                done: Callable[[], None] = lambda: None) -> list[list[np.ndarray]]:
+    """Per plan of `plans` ((settings, first attacked frame): DriftSettings or CaptureSettings, anything with
+    `planner(defense)`), the stored frames (uint8 (N, H, W, 3)) of each track attacked at `eps` from that frame to
+    the end: every plan and track in lockstep, one batched per-frame attack over the pairs attacking a frame
+    (`frame_attack`, a pipeline.attackers.drift.FrameAttack; default targeted PGD), seeded `seed`; `warm`: each
+    pair's attack starts from its previous frame's perturbation (consecutive frames differ little) once every
+    pair of the frame has one. `defended` None: the undefended control (no detector margin); `clean` the tracks'
+    clean flights (the estimates the planners start from and are fed before a plan's first frame); `done()` after
+    each attacked frame."""
     from pipeline.attackers.base import chain_outputs, doubt_logit
     from pipeline.attackers.drift import TargetedPGD
     from pipeline.geometry.rotations import sixd_to_matrix
 
-    start, stop = window
-    attack = TargetedPGD(int(steps)) if frame_attack is None else frame_attack
+    attack = TargetedPGD() if frame_attack is None else frame_attack
     logit = None if defended is None else doubt_logit(defended.defense())
-    pairs = [(j, i) for j in range(len(settings)) for i in range(len(tracks))]   # (plan, track)
-    planners = [settings[j].planner(None if defended is None else defended.defense()) for j, _ in pairs]
-    stored = [[t.images.copy() for t in tracks] for _ in settings]
+    pairs = [(j, i) for j in range(len(plans)) for i in range(len(tracks))]   # (plan, track)
+    planners = [plans[j][0].planner(None if defended is None else defended.defense()) for j, _ in pairs]
+    stored = [[t.images.copy() for t in tracks] for _ in plans]
     generator = torch.Generator().manual_seed(int(seed))
-    for k in range(stop):
-        if k < start:
-            for p, (_, i) in zip(planners, pairs):
-                c, t = clean[i], tracks[i]
-                p.deliver(c.pose[k, :3], float(c.prob[k]), t.R_cam[k], t.u[k], sixd_to_matrix(c.pose[k, 3:]))
-            continue
-        wanted = [np.concatenate([p.target(clean[i].pose[k, :3], tracks[i].R_cam[k], tracks[i].u[k]),
-                                  clean[i].pose[k, 3:]]) for p, (_, i) in zip(planners, pairs)]
-        x = torch.cat([tracks[i].frames(slice(k, k + 1)) for _, i in pairs])
-        adv = attack(target, x, torch.as_tensor(np.stack(wanted), dtype=x.dtype), eps, logit, generator)
-        pose, prob = chain_outputs(target, adv.float() / 255.0)
+    shift: dict[int, torch.Tensor] = {}    # pair -> its last perturbation (3, H, W), floats
+    for k in range(max(len(t) for t in tracks)):
+        active = []
         for n, (p, (j, i)) in enumerate(zip(planners, pairs)):
-            stored[j][i][k] = adv[n].permute(1, 2, 0).numpy()
-            p.deliver(pose[n, :3], float(prob[n]), tracks[i].R_cam[k], tracks[i].u[k], sixd_to_matrix(pose[n, 3:]))
+            c, t = clean[i], tracks[i]
+            if k >= len(t):
+                continue
+            if k < plans[j][1]:
+                p.deliver(c.pose[k, :3], float(c.prob[k]), t.R_cam[k], t.u[k], sixd_to_matrix(c.pose[k, 3:]))
+            else:
+                active.append(n)
+        if not active:
+            continue
+        wanted = []
+        for n in active:
+            c, t = clean[pairs[n][1]], tracks[pairs[n][1]]
+            wanted.append(np.concatenate([planners[n].target(c.pose[k, :3], t.R_cam[k], t.u[k]), c.pose[k, 3:]]))
+        x = torch.cat([tracks[pairs[n][1]].frames(slice(k, k + 1)) for n in active])
+        goal = torch.as_tensor(np.stack(wanted), dtype=x.dtype)
+        if warm and all(n in shift for n in active):
+            adv = attack(target, x, goal, eps, logit, generator, start=x + torch.stack([shift[n] for n in active]))
+        else:
+            adv = attack(target, x, goal, eps, logit, generator)
+        pose, prob = chain_outputs(target, adv.float() / 255.0)
+        for row, n in enumerate(active):
+            j, i = pairs[n]
+            t = tracks[i]
+            stored[j][i][k] = adv[row].permute(1, 2, 0).numpy()
+            shift[n] = adv[row].float() / 255.0 - x[row]
+            planners[n].deliver(pose[row, :3], float(prob[row]), t.R_cam[k], t.u[k], sixd_to_matrix(pose[row, 3:]))
         done()
     return stored
 
@@ -229,6 +245,23 @@ def integrity_row(attacker: str, eps: float, attacked: Sequence[Flown], clean: S
             "detected_clean": as_json(bootstrap_rate(clean_flag[hit], groups[hit], seed=seed), len(attacked)),
             "trusted_error_mean_m": mean, "trusted_error_max_m": worst,
             "clean_error_mean_m": clean_mean, "clean_error_max_m": clean_worst}
+
+
+def worst_hmi(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per eps ("%g") of `integrity_row`s: the attacker whose caused HMI is highest, with its rate ({"value", "ci",
+    "n"}); attackers that tie are named together ("drift/los = capture/los 2 m"), the widest interval kept."""
+    out: dict[str, dict[str, Any]] = {}
+    for r in rows:
+        key, value = f"{r['eps']:g}", r["hmi"]["value"]
+        if value is None:
+            continue
+        w = out.get(key)
+        if w is None or value > w["hmi"]["value"]:
+            out[key] = {"attacker": r["attacker"], "hmi": r["hmi"]}
+        elif value == w["hmi"]["value"]:
+            wider = r["hmi"]["ci"][1] - r["hmi"]["ci"][0] > w["hmi"]["ci"][1] - w["hmi"]["ci"][0]
+            out[key] = {"attacker": f"{w['attacker']} = {r['attacker']}", "hmi": r["hmi"] if wider else w["hmi"]}
+    return out
 
 
 def clean_row(clean: Sequence[Flown], seed: int = 0) -> dict[str, Any]:

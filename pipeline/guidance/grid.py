@@ -79,9 +79,9 @@ class GridPlan:
     """The guidance grid: `settings`, the (eps, S, K, window) cells, `slack_steps`; the paper grid is
     flown on the paper chain under settings.variant undefended, the defended grid on the shipped chain under
     every (`dynamics`, undefended and each of `defenses`). `in_loop`: the in-loop attacker's (eps, goal, S)
-    cells, flown last on the shipped chain under every (dynamics, undefended and each defense). `execution`:
-    how every true_state run executes its commands (pipeline/guidance/dynamics.py; None: exactly); the
-    paper dynamics never take it."""
+    cells, flown last on the shipped chain under every (dynamics of `in_loop_dynamics`, default every one of
+    `dynamics`; undefended and each defense). `execution`: how every true_state run executes its commands
+    (pipeline/guidance/dynamics.py; None: exactly); the paper dynamics never take it."""
 
     settings: GuidanceSettings
     grid: tuple[tuple[Any, ...], ...]
@@ -90,6 +90,7 @@ class GridPlan:
     defenses: tuple[str, ...] = ()
     in_loop: tuple[tuple[float, str, float], ...] = ()
     execution: ExecutionSettings | None = None
+    in_loop_dynamics: tuple[str, ...] = ()
 
     def _block(self, chain: str, dyn: str, defense: str) -> list[Run]:
         return [(chain, dyn, defense, None), *[(chain, dyn, defense, i) for i in range(len(self.grid))]]
@@ -103,8 +104,10 @@ class GridPlan:
         return out + self.in_loop_runs()
 
     def in_loop_runs(self) -> list[Run]:
-        """The in-loop runs: per dynamics (settings.variant when none), undefended and each defense, each cell."""
-        return [("shipped", dyn, d, InLoopRun(i)) for dyn in self.dynamics or (self.settings.variant,)
+        """The in-loop runs: per dynamics (`in_loop_dynamics`, else `dynamics`, else settings.variant), undefended and
+        each defense, each cell."""
+        return [("shipped", dyn, d, InLoopRun(i)) for dyn in self.in_loop_dynamics or self.dynamics
+                or (self.settings.variant,)
                 for d in ("undefended", *self.defenses) for i in range(len(self.in_loop))]
 
     @property

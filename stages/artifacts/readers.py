@@ -80,14 +80,20 @@ def _trajectory_renders(folder: Path, fingerprint: str, command: str, stage: str
     return read_renders(folder, f"{what} renders", f"run `{command}`", poses=f"{what} poses", check=check)
 
 
+COMMANDS = ["cmd_x", "cmd_y", "cmd_z"]   # eval_render poses: the commanded displacement of rel (world, m)
+
+
 def chaser_motion(poses: Any) -> tuple[np.ndarray, np.ndarray]:
     """What the chaser knows of itself on an eval_render trajectory table: camera attitudes (N, 3, 3,
     camera -> world) and the commanded displacement of rel since the previous frame (N, 3, world, m;
-    zero on each trajectory's first frame)."""
+    zero on each trajectory's first frame): the planned step it commanded (`cmd_*`), not the flown one (the
+    truth, `rel_*`, carries the execution error it is not told)."""
+    missing = [c for c in COMMANDS if c not in poses.columns]
+    if missing:
+        raise StageError(f"eval_render poses lack the commands {missing} (rendered before execution error); "
+                         f"run `rpod eval_render` (dvc repro eval_render)")
     R_cam = poses[[f"c{j}" for j in range(9)]].to_numpy(np.float64).reshape(-1, 3, 3)
-    rel = poses[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64)
-    u = np.zeros_like(rel)
-    u[1:] = np.diff(rel, axis=0)
+    u = poses[COMMANDS].to_numpy(np.float64).copy()
     u[np.r_[True, np.diff(poses["trajectory"].to_numpy()) != 0]] = 0.0
     return R_cam, u
 

@@ -1,6 +1,7 @@
 """Params -> library objects: the one place where typed params (stages.config.schema) become the settings
 pipeline/ takes (Intrinsics, SceneSettings, the attack, TrainConfig, AdversarialConfig, AugmentConfig, DefenseSettings,
-MotionSettings, AlertLimitSettings, EngineSettings) and the lab mock-up policy. Bad values raise a StageError naming the key.
+MotionSettings, AlertLimitSettings, ExecutionSettings, the chain-level attackers, EngineSettings) and the lab mock-up
+policy. Bad values raise a StageError naming the key.
 """
 from __future__ import annotations
 
@@ -49,6 +50,7 @@ SECTION_SETTINGS: dict[str, tuple[str, ...]] = {
     "train.augment": ("pipeline.pose.augment:AugmentConfig",), "suite": ("pipeline.attacks.strongest:SuiteConfig",),
     "suite.full": ("pipeline.attacks.strongest:SuiteConfig",),
     "defense": ("pipeline.defense.fusion:DefenseSettings", "pipeline.defense.gate:MotionSettings"),
+    "guidance.execution": ("pipeline.guidance.dynamics:ExecutionSettings",),
 }
 STAGE_ONLY: dict[str, tuple[str, ...]] = {
     "render": ("chunk", "end_range", "frames_per_sequence", "height", "max_target_rotation_deg", "pointing_jitter_deg",
@@ -58,8 +60,9 @@ STAGE_ONLY: dict[str, tuple[str, ...]] = {
     "train.adversarial": ("black_level", "epochs", "init", "lr_max", "warmup_epochs"),
     "train.augment": (),
     "suite": ("capacity", "check_frames", "eps", "frames", "full", "full_frames"), "suite.full": (),
-    "defense": ("allow_unmet", "doubt_share", "harm_m", "noise_bins", "shares", "target_false_alarm", "val_seed",
+    "defense": ("allow_unmet", "doubt_share", "harm_m", "noise_bins", "shares", "target_false_alarm",
                 "val_trajectories"),
+    "guidance.execution": (),
 }
 
 
@@ -199,28 +202,47 @@ def defense_settings(defense: Defense, threshold: float, update_below: float | N
         raise StageError(f"params.yaml: {e}") from None
 
 
+def execution_settings(params: Params, seed: int, step: float | None = None) -> Any:
+    """The ExecutionSettings of params.guidance.execution with the errors' `seed` (pipeline/seeds.py); `step` (m per
+    frame, e.g. an evaluation trajectory's 0.25 m): the frame interval of that step at the closed loop's speed
+    (guidance.max_step per guidance.execution.frame_interval); None: the closed loop's own."""
+    from pipeline.guidance.dynamics import ExecutionSettings
+
+    x, g = params.guidance.execution, params.guidance
+    interval = float(x.frame_interval) * (1.0 if step is None else float(step) / float(g.max_step))
+    try:
+        return settings_of(ExecutionSettings, x, seed=int(seed), frame_interval=interval)
+    except ValueError as e:
+        raise StageError(f"params.yaml guidance.execution: {e}") from None
+
+
 # AlertLimitSettings field -> the param that feeds it (the guidance law's constants are guidance's own)
 ALERT_LIMIT_KEYS = {"tolerance": "guidance.tolerance", "max_step": "guidance.max_step",
                     "slack_steps": "guidance.slack_steps", "collision_range": "integrity.collision_range_m",
-                    "fixed": "integrity.alert_limit_m"}
+                    "fixed": "integrity.alert_limit_m", "goal_range": "guidance.target",
+                    "kind": "integrity.alert_limit_kind"}
 
 
-def alert_limit_settings(params: Params) -> Any:
-    """The AlertLimitSettings of pipeline.defense.integrity: the guidance law's tolerance, step limit and
-    slack (params.guidance) with params.integrity's collision range, or integrity.alert_limit_m (m) when set."""
+def alert_limit_settings(params: Params, kind: str | None = None) -> Any:
+    """The AlertLimitSettings of pipeline.defense.integrity: the guidance law's tolerance, step limit, slack and goal
+    range |guidance.target| (params.guidance) with params.integrity's collision range and AL kind (`kind` instead
+    when given: the reports' second column), or integrity.alert_limit_m (m) when set."""
     from pipeline.defense.integrity import AlertLimitSettings
 
     g, i = params.guidance, params.integrity
+    goal = sum(float(v) ** 2 for v in g.target) ** 0.5
     try:
         return AlertLimitSettings(float(g.tolerance), float(g.max_step), g.slack_steps, float(i.collision_range_m),
-                                  None if i.alert_limit_m is None else float(i.alert_limit_m))
+                                  None if i.alert_limit_m is None else float(i.alert_limit_m), goal,
+                                  i.alert_limit_kind if kind is None else kind)
     except ValueError as e:
-        name = next(k for k in ALERT_LIMIT_KEYS if f" {k} must" in str(e))
+        name = next((k for k in ALERT_LIMIT_KEYS if f" {k} must" in str(e)), "kind")
         raise StageError(f"params.yaml {ALERT_LIMIT_KEYS[name]}: {e}") from None
 
 
 def burst_attacker(params: Params, seed: int) -> Any:
-    """The BurstAttacker of params.integrity (AL as a function of the true range, as the integrity rows judge it)."""
+    """The BurstAttacker of params.integrity (AL as a function of the true range, as the integrity rows judge it;
+    its objective and hinge margins)."""
     from pipeline.attackers.suite import get_attacker
     from pipeline.defense.integrity import alert_limit
 
@@ -228,7 +250,8 @@ def burst_attacker(params: Params, seed: int) -> Any:
     al = lambda rng: alert_limit(rng, limit)  # noqa: E731
     try:
         return get_attacker("burst", alert_limit=al, cap=float(i.burst_cap), steps=i.burst_steps,
-                            restarts=i.burst_restarts, lambdas=tuple(float(v) for v in i.burst_lambdas), seed=seed)
+                            restarts=i.burst_restarts, lambdas=tuple(float(v) for v in i.burst_lambdas), seed=seed,
+                            objective=i.burst_objective, hinge=None if i.burst_hinge is None else float(i.burst_hinge))
     except ValueError as e:
         raise StageError(f"params.yaml integrity: {e}") from None
 
@@ -241,6 +264,35 @@ def drift_settings(params: Params, direction: str) -> Any:
         return DriftSettings(direction=direction, gate_fraction=float(params.integrity.drift_gate_fraction))
     except ValueError as e:
         raise StageError(f"params.yaml integrity.attackers / drift_gate_fraction: {e}") from None
+
+
+def capture_settings(params: Params, direction: str, initial: float) -> Any:
+    """The CaptureSettings of params.integrity for `direction` (los or lateral) and the held bias `initial` (m)."""
+    from pipeline.attackers.capture import CaptureSettings
+
+    i = params.integrity
+    try:
+        return CaptureSettings(direction=direction, initial=float(initial), rate=float(i.capture_rate),
+                               gate_fraction=float(i.drift_gate_fraction))
+    except ValueError as e:
+        raise StageError(f"params.yaml integrity.capture_initial / capture_rate: {e}") from None
+
+
+def frame_attack(params: Params) -> Any:
+    """The per-frame attack of the drift and the capture: targeted PGD of integrity.frame_steps steps from the
+    background-lifting start, with BPDA through the robust model's black-level clamp (pipeline/attacks/starts.py,
+    bpda.py; a model without a clamp gets a random start and its plain gradient)."""
+    from pipeline.attackers.drift import TargetedPGD
+
+    return TargetedPGD(steps=params.integrity.frame_steps, start="lift", bpda=True)
+
+
+def in_loop_attack(params: Params) -> Any:
+    """The per-frame attack of the in-loop capture: targeted PGD of integrity.in_loop_steps steps from the lifting
+    start with BPDA through the clamp (as `frame_attack`)."""
+    from pipeline.attackers.drift import TargetedPGD
+
+    return TargetedPGD(steps=params.integrity.in_loop_steps, start="lift", bpda=True)
 
 
 def in_loop_settings(params: Params, goal: str) -> Any:

@@ -38,7 +38,6 @@ class Evaluate:
     p_start: Probability         # per-frame probability that an attack starts
     attack_length: Frames        # frames
     eps: list[Eps]
-    seed: Seed
     batch_size: Batch
 
     def __post_init__(self) -> None:
@@ -88,7 +87,6 @@ class Defense:
     shares: Shares               # of target_false_alarm: detector, gate, sequential test
     allow_unmet: bool            # calibrate continues when a check cannot meet its share (reports say so)
     val_trajectories: Annotated[int, In("[1, 100000]", "trajectories")]   # validation approaches the noise is fitted on
-    val_seed: Seed               # their seed: never evaluate.seed
     harm_m: Metres               # metres: an attacked frame with a larger position error is harmful
 
     def __post_init__(self) -> None:
@@ -257,32 +255,43 @@ class Robustness:
 
 
 IntegrityAttacker = Literal["burst", "drift/los", "drift/lateral", "capture/los", "capture/lateral"]   # pipeline.attackers.suite.ATTACKERS[/direction]
-InLoopGoal = Literal["collide", "miss"]                              # pipeline.attackers.in_loop.GOALS
+InLoopGoal = Literal["collide", "miss", "capture"]                   # pipeline.attackers.in_loop.GOALS
 Steps = Annotated[int, In("[1, 100000]", "PGD steps")]
 
 
 @dataclass(frozen=True)
 class Integrity:
-    """Integrity metrics and the chain-level attackers (pipeline/defense/integrity.py, pipeline/attacks/;
-    the alert limit's other constants are guidance's)."""
+    """Integrity metrics and the chain-level attackers (pipeline/defense/integrity.py, pipeline/attackers/,
+    pipeline/evaluation/measures.py; the alert limit's other constants are guidance's)."""
 
     collision_range_m: Metres    # metres: a true range below this is a collision, > 0
     alert_limit_m: Optional[Metres]   # metres: a fixed AL instead of AL(range) from the guidance law; None: derived
-    eps: list[Eps]               # L-inf budgets of the integrity attacks, pixels in [0, 1] (the burst nests through them)
-    attackers: list[IntegrityAttacker]
-    standard_attackers: list[IntegrityAttacker]   # also run on the standard model's chain ([] = none)
-    standard_trajectories: Optional[Annotated[int, In("[1, 100000]", "trajectories")]]   # the first N; None: all
+    alert_limit_kind: Literal["single_frame", "persistent"]   # pipeline.defense.integrity.KINDS: the AL judged against
+    eps: list[Eps]               # L-inf budgets of the integrity attacks, pixels in [0, 1], increasing: the breaking point's grid
+    attackers: list[IntegrityAttacker]   # run on every chain: the shipped one, the standard one, the undefended control
+    trajectories: Optional[Annotated[int, In("[1, 100000]", "trajectories")]]   # rpod robustness: the first N
+                                 # eval_render trajectories the shipped chain flies; None: all
+    comparison_trajectories: Optional[Annotated[int, In("[1, 100000]", "trajectories")]]   # the first N the standard
+                                 # chain and the undefended control fly; None: all
+    stop_at_break: bool          # a chain's eps ladder stops after the eps where it breaks (its breaking point)
+    capture_initial: list[Metres]   # metres: capture biases held from acquisition, one capture per value and direction
+    capture_rate: Annotated[float, In("[0, 1000]", "metres per frame")]   # growth of the capture bias; 0: held
     burst_length: Frames         # frames per burst (one every robustness.burst_every frames of each trajectory)
     burst_steps: Steps           # PGD steps per restart and lambda
     burst_restarts: Annotated[int, In("[1, 1000]", "random starts")]
     burst_lambdas: list[Annotated[float, In("[0, 1000000000]", "weight")]]   # searched in increasing order
     burst_cap: Annotated[float, In("(0, 1000]", "units of AL")]   # the objective's ceiling
-    drift_start: Annotated[int, In("[1, 10000000]", "frame")]   # first drifted frame of each trajectory
-    drift_frames: Frames         # drifted frames per trajectory
-    drift_steps: Steps           # targeted PGD steps per drifted frame
+    burst_objective: Literal["error", "error_al", "error_pl"]   # pipeline.attackers.burst.OBJECTIVES
+    burst_hinge: Optional[Annotated[float, In("[0, 1000]", "margin units")]]   # stop paying for stealth this far
+                                 # under each threshold; None: softplus margins
+    drift_start: Literal["acquisition", "after_trusted"]   # pipeline.attackers.drift.STARTS: first drifted frame
+    undefended_drift_rate: Annotated[float, In("(0, 1000]", "metres per frame")]   # the drift's growth against the
+                                 # undefended control, which no check bounds
+    frame_steps: Steps           # targeted PGD steps per attacked frame of the drift and the capture
     drift_gate_fraction: Annotated[float, In("(0, 1]", "fraction of the gate")]
     in_loop_goals: list[InLoopGoal]
-    in_loop_start_ranges: list[Metres]   # metres: the in-loop attacker attacks from the first step at range <= S
+    in_loop_eps: list[Eps]       # L-inf budgets of the in-loop attacker (rpod guidance)
+    in_loop_start_ranges: list[Metres]   # metres: collide / miss attack every frame from the first step at range <= S
     in_loop_steps: Steps         # targeted PGD steps per attacked closed-loop frame
 
     def __post_init__(self) -> None:
@@ -292,13 +301,14 @@ class Integrity:
         if self.alert_limit_m is not None and not self.alert_limit_m > 0:
             raise ParamsError(f"params.yaml integrity.alert_limit_m must be null or > 0 (metres), "
                               f"got {self.alert_limit_m!r}")
-        for key in ("eps", "attackers", "burst_lambdas", "in_loop_goals", "in_loop_start_ranges"):
+        for key in ("eps", "attackers", "burst_lambdas", "capture_initial", "in_loop_goals", "in_loop_eps",
+                    "in_loop_start_ranges"):
             values = getattr(self, key)
             if not values or len(set(values)) != len(values):
                 raise ParamsError(f"params.yaml integrity.{key} must be a non-empty list without repeats, got {values!r}")
-        if len(set(self.standard_attackers)) != len(self.standard_attackers):
-            raise ParamsError(f"params.yaml integrity.standard_attackers must be a list without repeats, "
-                              f"got {self.standard_attackers!r}")
-        bad = [e for e in self.eps if not 0 < e <= 1]
-        if bad:
-            raise ParamsError(f"params.yaml integrity.eps: {bad[0]!r} is not in (0, 1] (pixels are in [0, 1])")
+        for key in ("eps", "in_loop_eps"):
+            bad = [e for e in getattr(self, key) if not 0 < e <= 1]
+            if bad:
+                raise ParamsError(f"params.yaml integrity.{key}: {bad[0]!r} is not in (0, 1] (pixels are in [0, 1])")
+        if list(self.eps) != sorted(self.eps):
+            raise ParamsError(f"params.yaml integrity.eps must be increasing (the breaking point's grid), got {self.eps!r}")

@@ -13,6 +13,7 @@ import yaml
 
 from pipeline.io.atomic import atomic_write_text
 from pipeline.io.files import read_yaml
+from pipeline.seeds import run_base
 from stages.config.schema import Params, build
 from stages.config.sections import ParamsError, Render
 
@@ -83,12 +84,31 @@ def render_fingerprint(params: Params) -> str:
     return fingerprint({"seed": params.seed, "camera": dataclasses.asdict(params.camera), "render": render_key(params)})
 
 
+def evaluation_seed(params: Params) -> int:
+    """The base seed of the evaluation trajectories (their paths, pointing jitter, execution errors and attack
+    schedules): it follows `seed` (pipeline/seeds.py run_base; 1000 at seed 0, the former evaluate.seed)."""
+    return run_base(params.seed, "evaluate")
+
+
+def validation_seed(params: Params) -> int:
+    """The base seed of the defense's validation trajectories (datasets/val_render, val_envelope): it follows `seed`
+    (pipeline/seeds.py run_base; 3000 at seed 0, the former defense.val_seed), never the evaluation's."""
+    return run_base(params.seed, "validation")
+
+
+def _execution_key(params: Params) -> dict[str, Any]:
+    """What decides the flown motion of the evaluation and validation trajectories: guidance.execution and the
+    closed loop's step (their frame interval is taken at its speed)."""
+    return {**dataclasses.asdict(params.guidance.execution), "max_step": params.guidance.max_step}
+
+
 def eval_render_fingerprint(params: Params) -> str:
     """Hash of the params that decide the `eval_render` images (so a stale render is refused)."""
     e = params.evaluate
     return fingerprint({"seed": params.seed, "camera": dataclasses.asdict(params.camera), "render": render_key(params),
                         "evaluate": {"trajectories": e.trajectories, "frames": e.frames,
-                                     "lateral_range": e.lateral_range, "seed": e.seed}})
+                                     "lateral_range": e.lateral_range, "seed": evaluation_seed(params)},
+                        "execution": _execution_key(params)})
 
 
 def val_render_fingerprint(params: Params) -> str:
@@ -96,15 +116,17 @@ def val_render_fingerprint(params: Params) -> str:
     e, d = params.evaluate, params.defense
     return fingerprint({"seed": params.seed, "camera": dataclasses.asdict(params.camera), "render": render_key(params),
                         "evaluate": {"frames": e.frames, "lateral_range": e.lateral_range},
-                        "defense": {"val_trajectories": d.val_trajectories, "val_seed": d.val_seed}})
+                        "defense": {"val_trajectories": d.val_trajectories, "val_seed": validation_seed(params)},
+                        "execution": _execution_key(params)})
 
 
 def val_envelope_fingerprint(params: Params) -> str:
-    """Hash of the params that decide the envelope validation images (datasets/val_envelope)."""
+    """Hash of the params that decide the envelope validation images (datasets/val_envelope: views, not a flown
+    approach, so no execution error)."""
     e, d = params.evaluate, params.defense
     return fingerprint({"seed": params.seed, "camera": dataclasses.asdict(params.camera), "render": render_key(params),
                         "evaluate": {"frames": e.frames, "lateral_range": e.lateral_range},
-                        "defense": {"val_trajectories": d.val_trajectories, "val_seed": d.val_seed},
+                        "defense": {"val_trajectories": d.val_trajectories, "val_seed": validation_seed(params)},
                         "envelope": ENVELOPE})
 
 

@@ -76,17 +76,10 @@ class Params:
             raise ValueError(f"threads must be null or a whole number >= 1, got {self.threads}")
         if not DEVICE.fullmatch(self.device):
             raise ValueError(f"device must be auto, cpu, cuda or cuda:N, got {self.device!r}")
-        if self.defense.val_seed == self.evaluate.seed:
-            raise ValueError("defense.val_seed must differ from evaluate.seed: the defense is fitted on "
-                             "validation trajectories, never on the evaluation ones")
         goal = sum(float(v) ** 2 for v in self.guidance.target) ** 0.5
         if not self.integrity.collision_range_m < goal:
             raise ValueError(f"integrity.collision_range_m must be below the goal range |guidance.target| = {goal:g} m, "
                              f"got {self.integrity.collision_range_m!r}")
-        i = self.integrity
-        if i.drift_start + i.drift_frames > self.evaluate.frames:
-            raise ValueError(f"integrity.drift_start + integrity.drift_frames ({i.drift_start} + {i.drift_frames}) must "
-                             f"be at most evaluate.frames = {self.evaluate.frames}: the drift is held inside a trajectory")
 
 
 PARAMS_SOURCE = Source("params.yaml", ParamsError, "parameter", "run `rpod params <profile>`", required=False)

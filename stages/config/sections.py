@@ -188,6 +188,19 @@ class Attack:
 
 
 @dataclass(frozen=True)
+class Execution:
+    """guidance.execution: how the thrusters and the orbit execute a commanded step (pipeline/guidance/dynamics.py
+    ExecutionSettings, which checks them again; declared here rather than imported from there, so that every params
+    load, and every stage's code deps, do not take the guidance package); the seed comes from pipeline/seeds.py."""
+
+    scale_std: Annotated[float, In("[0, 1]", "fraction of the step")]   # 1-sigma per thruster axis and step
+    noise_std: Annotated[float, In("[0, 100]", "metres per step")]      # 1-sigma per axis (the part independent of it)
+    mean_motion: Annotated[float, In("[0, 0.1]", "rad/s")]              # the target's orbit (Clohessy-Wiltshire); 0: none
+    frame_interval: Annotated[float, In("(0, 100000]", "seconds per step")]   # per closed-loop step of max_step metres
+    approach: Literal["vbar", "rbar"]      # pipeline.guidance.dynamics.APPROACHES
+
+
+@dataclass(frozen=True)
 class Guidance:
     eps: list[Eps]
     start_ranges: list[Metres]   # metres (S)
@@ -202,6 +215,7 @@ class Guidance:
     method: str
     dynamics: list[Literal["paper", "true_state"]]   # dynamics of the defended comparison
     defenses: list[Literal["hold", "recover"]]       # defended variants flown beside the undefended one
+    execution: Execution         # the truth's executed motion (true_state runs, evaluation and validation trajectories)
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ import numpy as np
 
 from stages.artifacts.models import load_chain
 from stages.artifacts.paths import PAPER, SHIPPED
-from stages.config.build import in_loop_settings, make_attack
+from stages.config.build import capture_settings, in_loop_attack, in_loop_settings, make_attack
 from stages.config.schema import Params
 
 
@@ -52,6 +52,7 @@ class GuidanceWorker:
     run of the plan (pipeline.guidance.grid.GridPilot) -> (result, keys of the poses it rendered)."""
 
     def __init__(self, setup: GuidanceSetup) -> None:
+        from pipeline.attackers.capture import CaptureInLoop
         from pipeline.attackers.in_loop import InLoopAttacker
         from pipeline.attacks.adaptive import PerFrameChain
         from pipeline.attacks.gradient import attack_loss, stored_attack
@@ -74,8 +75,14 @@ class GuidanceWorker:
         shipped = chains["shipped"].onboard
         target = PerFrameChain(shipped.model, shipped.shap, shipped.detector)
 
+        p = setup.params
+        capture = capture_settings(p, "lateral", p.integrity.capture_initial[0]) if "capture" in \
+            p.integrity.in_loop_goals else None
+
         def in_loop_at(eps: float, goal: str, i: int) -> Any:
-            return InLoopAttacker(target, eps, in_loop_settings(setup.params, goal), seed + i)
+            if goal == "capture":
+                return CaptureInLoop(target, eps, capture, frame_attack=in_loop_attack(p), seed=seed + i)
+            return InLoopAttacker(target, eps, in_loop_settings(p, goal), seed + i)
 
         self.renderer = Renderer(setup.K, setup.scene)
         images: dict[bytes, Any] = {}   # both chains see the same rendered poses: each is rendered once

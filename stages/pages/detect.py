@@ -96,7 +96,7 @@ def _alarms(alarms: dict[str, Any] | None, model: Model) -> str:
     return f"""## False alarms on fresh clean trajectories
 
 The LSTM at its own threshold ({alarms['threshold']:.4f}, chosen on the SHAP validation samples) on every frame
-of the {alarms['trajectories']} clean evaluation trajectories (`datasets/eval_render`, seed `evaluate.seed`),
+of the {alarms['trajectories']} clean evaluation trajectories (`datasets/eval_render`, their base seed following `seed`),
 run through the onboard chain (pose -> exact SHAP -> LSTM; no motion filter): it flags
 **{alarms['false_alarms']} of {alarms['frames']} frames, {percent_ci(alarms['rate'], alarms['rate_ci95'], 2)}%**
 (Wilson interval over frames, optimistic: frames of one trajectory are correlated; per trajectory:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from stages.config.params import evaluation_seed, validation_seed
 from stages.config.schema import Params
 from stages.pages.paper import ATTITUDE_DEG, DETECTOR_ACCURACY, INTEGRATED, INTEGRATED_EPS, LAB, POSITION_M
 from stages.pages.readme import DETECTOR_NAMES
@@ -123,8 +124,8 @@ def _choices(params: Params, robust: dict[str, Any], lab: dict[str, Any], ev: di
             f"({pixels}) was chosen on the pose test split's and the lab's errors, one run per camera "
             "([reports/camera.md](reports/camera.md)); no held-out check yet (optional/dvc.yaml's `trial_fy360` "
             "trains the alternative for one). The motion checks are calibrated on validation trajectories of the "
-            f"mission's kind ({d.val_trajectories} trajectories, seed {d.val_seed}; the evaluation's seed "
-            f"{params.evaluate.seed} is never read by the calibration), but keeping that calibration over the "
+            f"mission's kind ({d.val_trajectories} trajectories, base seed {validation_seed(params)}; the evaluation's "
+            f"base {evaluation_seed(params)} is never read by the calibration), but keeping that calibration over the "
             "envelope one was decided on the evaluation trajectories' availability, so reports/integrated.md's "
             "availability is not held out for that decision; no held-out check yet. The black-level clamp "
             f"t = {b.get('threshold', float(params.train.adversarial.black_level)):g} was set from "

@@ -1,14 +1,34 @@
-"""The Integrity section of reports/robustness.md (`rpod robustness`): the trusted estimate the guidance flies
-on, against the chain-level attackers, beside the same frames without the attack; and the words for
-the in-loop attacker's table of reports/guidance.md."""
+"""The integrity sections of reports/robustness.md (`rpod robustness`): the safety evidence that can fail (the
+breaking point per chain, the safety-index table, the Stanford counts, the issue's targets met or missed, the
+assumptions every row rests on) and the descriptive rows of the shipped chain (what each attack caused beside the
+same frames unattacked); the attackers' names in words for the other pages."""
 from __future__ import annotations
 
 from typing import Any
 
 from stages.config.schema import Params
 
-TARGET_HMI = 0.01   # issue 27's target: the upper 95% bound of the attack's HMI at most 1%
-NAMES = {"burst": "burst (nested)", "drift/los": "drift along the line of sight", "drift/lateral": "drift across it"}
+CHAINS = {"robust": "shipped (robust model, its detector and defense)",
+          "standard": "standard (the paper's reproduction, its detector and defense)",
+          "control": "undefended robust control (the shipped pose network alone)"}
+KINDS = {"capture": "capture", "drift": "drift", "burst": "burst (nested)"}
+DIRECTIONS = {"los": "along the line of sight", "lateral": "across it"}
+TARGET_SHIPPED_EPS = 0.05       # issue 39: the shipped chain holds at every eps up to this
+TARGET_RATIO = 2.0              # ... and breaks at least this many times the control's eps
+TARGET_AVAILABILITY = 0.99      # clean availability at least this
+TARGET_FALSE_ALARMS = 0.005     # clean false alarms at most this
+
+
+def attacker_names(name: str) -> str:
+    """An attacker's name in words: "capture/lateral 2 m" -> "capture across it, 2 m held"; names joined by " = "
+    (a tie) each in words."""
+    out = []
+    for one in name.split(" = "):
+        kind, _, rest = one.partition("/")
+        direction, _, size = rest.partition(" ")
+        words = KINDS.get(kind, kind) + (f" {DIRECTIONS.get(direction, direction)}" if direction else "")
+        out.append(words + (f", {size} held" if size else ""))
+    return " = ".join(out)
 
 
 def _pct(r: dict[str, Any] | None) -> str:
@@ -18,8 +38,173 @@ def _pct(r: dict[str, Any] | None) -> str:
     return "-" if not r or not r.get("n") else percent_ci(r["value"], r["ci"], 1)
 
 
-def _m(x: float) -> str:
-    return "-" if x != x else f"{x:.2f}"
+def _m(x: float | None) -> str:
+    return "-" if x is None or x != x else f"{x:.2f}"
+
+
+def _eps(x: float | None) -> str:
+    return "none in the grid" if x is None else f"{x:g}"
+
+
+def targets(integrity: dict[str, Any]) -> list[tuple[str, str, str]]:
+    """Issue 39's targets on the open-loop evidence: (target, "met" / "**missed**" / "not shown", evidence)."""
+    chains = integrity["chains"]
+    shipped, control = chains["robust"]["summary"], chains["control"]["summary"]
+    out = []
+    c = control["breaking_eps"]
+    out.append(("falsifiable: the undefended control fails at some eps of the grid", "met" if c is not None else
+                "**missed**", f"control breaking eps {_eps(c)} ({chains['control']['trajectories']} trajectories)"))
+    small = [e for e in integrity["eps"] if e <= TARGET_SHIPPED_EPS]
+    flown = {float(e): shipped["per_eps"][f"{e:g}"] for e in shipped["eps_flown"]}
+    failed = [e for e in small if e in flown and flown[e]["failed"]]
+    unflown = [e for e in small if e not in flown]
+    worst = max((flown[e]["max_error_al"] or 0.0 for e in small if e in flown), default=None)
+    verdict = "**missed**" if failed or unflown else "met"
+    out.append((f"shipped chain, every attacker flown, eps <= {TARGET_SHIPPED_EPS:g}: max error / AL < 1 on every "
+                "trajectory",
+                verdict, f"largest error / AL {_m(worst)}" + (f"; failed at eps {', '.join(f'{e:g}' for e in failed)}"
+                                                              if failed else "")))
+    b = shipped["breaking_eps"]
+    top = max(shipped["eps_flown"], default=None)
+    if c is None:
+        ratio = ("not shown", "the control did not break in the grid")
+    elif b is None:
+        ratio = ("met" if top is not None and top >= TARGET_RATIO * c else "not shown",
+                 f"shipped held to eps {_eps(top)}, control broke at {c:g}")
+    else:
+        ratio = ("met" if b >= TARGET_RATIO * c - 1e-12 else "**missed**", f"shipped {b:g}, control {c:g}")
+    out.append((f"shipped breaking eps >= {TARGET_RATIO:g} x the control's", *ratio))
+    avail = shipped["clean"]["availability"]
+    alarms = shipped["clean"]["false_alarms"]
+    out.append((f"clean availability >= {100 * TARGET_AVAILABILITY:g}% (execution error on)",
+                "met" if avail["value"] is not None and avail["value"] >= TARGET_AVAILABILITY else "**missed**",
+                f"{_pct(avail)}%"))
+    out.append((f"clean false alarms <= {100 * TARGET_FALSE_ALARMS:g}% (execution error on)",
+                "met" if alarms["value"] is not None and alarms["value"] <= TARGET_FALSE_ALARMS else "**missed**",
+                f"{_pct(alarms)}%"))
+    return out
+
+
+def lead(integrity: dict[str, Any], p: Params) -> str:
+    """The section reports/robustness.md leads with: targets missed first, the breaking point per chain, the
+    safety-index table, Stanford counts, the shipped chain per trajectory, and the assumptions."""
+    from pipeline.report.markdown import markdown_table
+
+    chains = integrity["chains"]
+    verdicts = targets(integrity)
+    missed = [t for t in verdicts if t[1] != "met"]
+    breaks = ", ".join(f"{CHAINS[k].split(' (')[0]} {_eps(v)}" for k, v in integrity["breaking_eps"].items())
+    head = (f"**Breaking point (smallest eps at which an attacker fails a trajectory): {breaks}.** "
+            + (f"Targets of issue 39 not met: {'; '.join(f'{t} ({v}: {e})' for t, v, e in missed)}."
+               if missed else "Every target of issue 39 is met on this evidence."))
+    points = [{"chain": CHAINS[k], "trajectories": v["trajectories"], "breaking eps": _eps(v["summary"]["breaking_eps"]),
+               "eps flown": ", ".join(f"{e:g}" for e in v["summary"]["eps_flown"]),
+               "clean availability (%)": _pct(v["summary"]["clean"]["availability"]),
+               "clean false alarms (%)": _pct(v["summary"]["clean"]["false_alarms"]),
+               "clean max error / AL": _m(v["summary"]["clean"]["max_error_al"]),
+               "clean max error / PL": _m(v["summary"]["clean"]["max_error_pl"])} for k, v in chains.items()]
+    index, regions = [], []
+    for k, v in chains.items():
+        s = v["summary"]
+        for e in integrity["eps"]:
+            row = s["per_eps"].get(f"{e:g}")
+            if row is None:
+                index.append({"chain": k, "eps": f"{e:g}", "max error / AL": "not flown (broken at "
+                              f"{_eps(s['breaking_eps'])})"})
+                continue
+            index.append({"chain": k, "eps": f"{e:g}", "max error / AL": _m(row["max_error_al"]),
+                          "max error / AL single-frame": _m(row["max_error_al_single"]),
+                          "max error / PL": _m(row["max_error_pl"]), "largest final error (m)": _m(row["final_error_max_m"]),
+                          "trajectories failed": f"{row['failed']}/{row['trajectories']}",
+                          "worst attacker": attacker_names(row["worst_attacker"] or "-"),
+                          "trajectories with HMI (%)": _pct(row["hmi_trajectories"])})
+            regions.append({"chain": k, "eps": f"{e:g}", **row["stanford"]})
+        regions.append({"chain": k, "eps": "no attack", **s["clean"]["stanford"]})
+    shipped = chains["robust"]["summary"]
+    at = shipped["per_eps"].get(f"{TARGET_SHIPPED_EPS:g}")
+    per_trajectory = "" if at is None else (
+        f"\nThe shipped chain per trajectory at eps {TARGET_SHIPPED_EPS:g} (worst over attackers, nested in eps):\n\n"
+        + markdown_table([{"trajectory": w["trajectory"], "max error / AL": _m(w["max_error_al"]),
+                           "single-frame": _m(w["max_error_al_single"]), "max error / PL": _m(w["max_error_pl"]),
+                           "final error (m)": _m(w["final_error"]), "worst attacker": attacker_names(w["worst_attacker"] or "-"),
+                           "failed": "**yes**" if w["failed"] else "no"} for w in at["per_trajectory"]]))
+    return f"""## Safety evidence that can fail (issue 39)
+
+{head}
+
+Which issue 39 targets this page's evidence meets (the docking-miss targets of the closed loop are in
+reports/guidance.md):
+
+{markdown_table([{"target": t, "verdict": v, "evidence": e} for t, v, e in verdicts])}
+{assumptions(integrity, p)}
+
+### Breaking point per chain
+
+{markdown_table(points)}
+### Safety index per chain and eps (worst over attackers, per trajectory; the largest over trajectories)
+
+error / AL over the available frames (AL: {_kind(integrity, p)}); "single-frame": the same errors against the
+single-frame AL; error / PL over the frames with a protection level (none on the undefended control); final error:
+the trusted error on the last frame, the bias the chaser would dock with; "trajectories with HMI": a descriptive
+count over independent trajectories (Clopper-Pearson 95%), of the attacks tried only.
+
+{markdown_table(index)}{per_trajectory}
+### Stanford-ESA regions (frames counted from each attack's first frame, every attacker summed)
+
+{markdown_table(regions)}
+"""
+
+
+def _kind(integrity: dict[str, Any], p: Params) -> str:
+    """The AL the rows judge against, in words, with its values at the goal and at 15 m."""
+    from pipeline.defense.integrity import alert_limit
+    from stages.config.build import alert_limit_settings
+
+    if integrity.get("alert_limit_m") is not None:
+        return f"a fixed {integrity['alert_limit_m']:g} m (`integrity.alert_limit_m`)"
+    s = alert_limit_settings(p)
+    at = f"{float(alert_limit(s.goal_range, s)):g} m at the goal, {float(alert_limit(15.0, s)):g} m at 15 m"
+    if integrity["alert_limit_kind"] == "persistent":
+        return (f"the persistent-bias AL, tol + max(range - goal range, 0), the largest error a bias that may stay to "
+                f"docking can have (derived in pipeline/defense/integrity.py): {at}")
+    return f"the single-frame AL (pipeline/defense/integrity.py): {at}"
+
+
+def assumptions(integrity: dict[str, Any], p: Params) -> str:
+    """The assumptions every integrity row rests on, in words (metrics `integrity.assumptions`)."""
+    a, cap, d = integrity["assumptions"], integrity["capture"], integrity["drift"]
+    x = a["execution"]
+    attackers = ", ".join(attacker_names(n) for n in integrity["attackers"])
+    return f"""
+Assumptions of every row below:
+- **Trajectories and dynamics**: the {integrity['chains']['robust']['trajectories']} eval_render approaches, 60 m to
+  10 m, each planned step flown open loop with the thrusters' execution error ({100 * x['scale_std']:g}% of the step
+  and {100 * x['noise_std_m']:g} cm per axis, 1-sigma per step) and Clohessy-Wiltshire motion (mean motion
+  {x['mean_motion_rad_s']:g} rad/s, {x['approach']}); the chain is told the commands only. The standard chain and the
+  control fly the first {integrity['chains']['control']['trajectories']}.
+- **Noise model and process noise**: {a['noise_model']}; the filter's process noise {a['position_noise_m']:g} m per
+  frame; the CUSUM reference c = {a['cusum_reference']:g}; integrity risk {a['integrity_risk']:g} per frame.
+- **Trusted start**: the protection level assumes no fault on the {a['trusted_start_frames']} frames after the
+  filter's first start (assumption A, pipeline/defense/protection.py); the captures and a drift from acquisition
+  attack inside them.
+- **Detector**: the shipped chain's SHAP + LSTM detector at its calibrated threshold
+  {a['detector']['threshold']:.4g} (models/defense.json), fused with the filter's checks (`defense.fusion`
+  {a['detector']['fusion']}); it alone guards the trusted-start frames, and every attacker knows it and carries its
+  margin in the objective (an adaptive attack, not the paper's FGSM it was trained on). The undefended control has
+  none.
+- **AL and availability**: {_kind(integrity, p)}; a frame is available when the guidance flies on it (mode track or
+  coast) and PL <= AL at the true range; failure = error / AL > 1 on an available frame. The single-frame AL is the
+  second column.
+- **Attackers** ({attackers}): the captures hold a world-frame bias of {', '.join(f'{b:g}' for b in cap['initial_m'])}
+  m from the first frame (growth {cap['rate_m']:g} m per frame), the drifts grow from {d['start']} as far as keeps
+  every innovation under {d['gate_fraction']:g} of the gate and every CUSUM statistic under half its threshold
+  ({d['undefended_rate_m']:g} m per frame against the control); each frame a targeted PGD of
+  {integrity['frame_steps']} steps from the background-lifting start with BPDA through the clamp, warm-started from
+  the previous frame's perturbation, the detector's margin against its doubt level; each attacker nested in eps.
+  {'Each chain stops after the eps at which it breaks (`integrity.stop_at_break`).' if integrity['stop_at_break']
+   else 'Every eps is flown on every chain.'} The full grid (`rpod integrity`, optional/dvc.yaml) flies every
+  attacker of the schema on every chain, trajectory and eps.
+"""
 
 
 def integrity_table(rows: list[dict[str, Any]], with_mi: bool) -> str:
@@ -28,7 +213,7 @@ def integrity_table(rows: list[dict[str, Any]], with_mi: bool) -> str:
 
     out = []
     for r in rows:
-        cells = {"attacker": NAMES.get(r["attacker"], r["attacker"]), "eps": f"{r['eps']:g}", "frames": r["frames"],
+        cells = {"attacker": attacker_names(r["attacker"]), "eps": f"{r['eps']:g}", "frames": r["frames"],
                  "HMI caused (%)": _pct(r["hmi"]), "HMI without attack (%)": _pct(r["hmi_clean"])}
         if with_mi:
             cells["MI caused (%)"] = _pct(r["mi"])
@@ -41,58 +226,11 @@ def integrity_table(rows: list[dict[str, Any]], with_mi: bool) -> str:
     return markdown_table(out)
 
 
-def worst_hmi(integrity: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """Per eps ("%g"): the attacker whose caused HMI is highest, with its rate ({"value", "ci", "n"}); attackers
-    that tie are named together ("burst = drift/los"), the widest interval kept."""
-    out: dict[str, dict[str, Any]] = {}
-    for r in integrity["rows"]:
-        key, value = f"{r['eps']:g}", r["hmi"]["value"]
-        if value is None:
-            continue
-        w = out.get(key)
-        if w is None or value > w["hmi"]["value"]:
-            out[key] = {"attacker": r["attacker"], "hmi": r["hmi"]}
-        elif value == w["hmi"]["value"]:
-            wider = r["hmi"]["ci"][1] - r["hmi"]["ci"][0] > w["hmi"]["ci"][1] - w["hmi"]["ci"][0]
-            out[key] = {"attacker": f"{w['attacker']} = {r['attacker']}", "hmi": r["hmi"] if wider else w["hmi"]}
-    return out
-
-
-def attacker_names(attacker: str) -> str:
-    """`worst_hmi`'s attacker (names joined by " = ") in words."""
-    return " = ".join(NAMES.get(a, a) for a in attacker.split(" = "))
-
-
-def _al_text(integrity: dict[str, Any], p: Params) -> str:
-    from pipeline.defense.integrity import AlertLimitSettings, alert_limit
-
-    if integrity.get("alert_limit_m") is not None:
-        return f"a fixed alert limit AL = {integrity['alert_limit_m']:g} m (`integrity.alert_limit_m`)"
-    g = p.guidance
-    s = AlertLimitSettings(float(g.tolerance), float(g.max_step), g.slack_steps, float(integrity["collision_range_m"]))
-    at = ", ".join(f"{alert_limit(r, s):g} m at {r:g} m" for r in (60.0, 15.0, 10.0))
-    return (f"the alert limit AL(range) = max(tol, min(tol + slack x step, range + step - collision range)), the largest "
-            f"single-frame error the guidance law and the docking tolerance absorb (derived in "
-            f"`pipeline/evaluation/integrity.py` from `guidance.tolerance`, `max_step`, `slack_steps` and "
-            f"`integrity.collision_range_m` = {integrity['collision_range_m']:g} m): {at}")
-
-
-def _verdict(worst: dict[str, dict[str, Any]]) -> str:
-    lines = []
-    for e, w in sorted(worst.items(), key=lambda kv: float(kv[0])):
-        value, hi = w["hmi"]["value"], w["hmi"]["ci"][1]
-        verdict = ("met" if hi is not None and hi <= TARGET_HMI else "**not met**" if value > TARGET_HMI else
-                   "**not shown** (the interval reaches above it at this sample size)")
-        lines.append(f"- eps {e}: {_pct(w['hmi'])}% ({attacker_names(w['attacker'])}); the target (upper "
-                     f"bound <= {100 * TARGET_HMI:g}%) is {verdict}")
-    return "\n".join(lines)
-
-
-def _bursts(integrity: dict[str, Any]) -> str:
+def _bursts(rows: list[dict[str, Any]]) -> str:
     """A line: bursts whose worst case has an HMI frame, per eps (the nested attacker's own count)."""
     from pipeline.stats import wilson
 
-    counts = [(r["eps"], r["bursts_with_hmi"]) for r in integrity["rows"] if "bursts_with_hmi" in r]
+    counts = [(r["eps"], r["bursts_with_hmi"]) for r in rows if "bursts_with_hmi" in r]
     if not counts:
         return ""
     return ("\nBursts whose worst case holds at least one HMI frame (the burst attacker's own count, on the real "
@@ -100,85 +238,40 @@ def _bursts(integrity: dict[str, Any]) -> str:
             + ".\n")
 
 
-def integrity_section(integrity: dict[str, Any], fused: dict[str, Any], p: Params) -> str:
-    """Markdown: the Integrity section (definitions, attackers, clean line, table, worst case, figure)."""
-    c, b, d = integrity["clean"], integrity["burst"], integrity["drift"]
-    with_mi = bool(c.get("has_pl"))
-    bound = "PL" if with_mi else "AL"
-    return f"""## Integrity of the shipped chain (robust model): is the trusted estimate safe to fly on?
+def integrity_page(integrity: dict[str, Any], p: Params) -> str:
+    """reports/integrity_full.md (`rpod integrity`): the full grid's evidence and descriptive rows."""
+    return ("# The full integrity grid (`rpod integrity`)\n\nEvery attacker on the shipped chain, the standard one and "
+            "the undefended robust control, every trajectory and every eps (the default profile's `rpod robustness` "
+            "flies fewer attackers on fewer trajectories and stops each chain at its breaking point: "
+            "reports/robustness.md).\n\n" + lead(integrity, p)
+            + integrity_section(integrity, p, figure=False))
 
-Guidance flies on the defense's **trusted estimate** (the motion filter's state; its prediction on
-flagged frames), not on the raw CNN estimate, so this section judges that estimate, with the
-vocabulary of satellite-navigation integrity monitoring. Per frame: the trusted estimate's error
-against the truth (m) and {_al_text(integrity, p)}. A frame is **available** when the guidance flies on
-it (defense mode track or coast{', and PL <= AL' if with_mi else ''}); **HMI** (hazardously misleading
-information) = available and error > AL{'; **MI** = error > PL' if with_mi else ''}. Each attacked trajectory is
-compared frame by frame with the same trajectory unattacked: "HMI caused" counts only the frames
-that are HMI with the attack and not without it. Counted frames: from a trajectory's first attacked
-frame to its end (every frame the attack can reach); flagged: over the attacked frames. Rates are
-percent with 95% percentile-bootstrap intervals over the {c['trajectories']} eval_render trajectories; where the
-bootstrap has no spread (no hit on any trajectory, or hits on every frame), the Wilson interval of the
-{c['trajectories']} trajectories as trials instead: all that {c['trajectories']} trajectories without a hit can bound.
 
-The attackers know the whole chain: the pose network, the detector (threshold and
-its doubt level, calibrated from `defense.doubt_share`) and the calibrated defense with its state (pipeline/attacks/):
-- **burst**: bursts of {b['burst_length']} frames every {fused['burst_every']} frames ({b['bursts']} bursts per eps), each crafted
-  jointly by L-inf PGD on min(trusted error, {b['cap']:g} AL) minus lambda times the margins of every check (the
-  detector's logit, both gates' NIS through a differentiable copy of the filter), {b['steps']} steps from
-  {b['restarts']} starts per lambda, lambda searched over {', '.join(f'{v:g}' for v in b['lambdas'])}, the best candidate chosen on
-  the real chain and defense (most HMI frames, then fewest flags, then largest error); nested in eps
-  (the larger eps starts from the smaller one's solution), so its worst case cannot drop as eps grows;
-- **drift**: from frame {d['start']} for {d['frames']} frames, a bias along the line of sight (the target looks
-  farther away) or across it, growing each frame as far as keeps every innovation under
-  {d['gate_fraction']:g} of the gate (Mo and Sinopoli 2010), each frame a targeted PGD ({d['steps']} steps) toward
-  that estimate with the detector's margin in the objective.
+def integrity_section(integrity: dict[str, Any], p: Params, figure: bool = True) -> str:
+    """Markdown: the descriptive rows of every chain (HMI and MI the attack caused beside the same frames
+    unattacked, detection, availability, trusted error) and, with `figure`, the integrity figure."""
+    parts = []
+    for key, chain in integrity["chains"].items():
+        c = chain["clean"]
+        parts.append(f"""### {CHAINS[key][0].upper() + CHAINS[key][1:]}
 
-Without any attack, on all {c['frames']} frames: availability {_pct(c['availability'])}%, HMI {_pct(c['hmi'])}%,
-trusted error mean {_m(c['trusted_error_mean_m'])} m, max {_m(c['trusted_error_max_m'])} m.
+Without any attack, on all {c['frames']} frames of its {c['trajectories']} trajectories: availability
+{_pct(c['availability'])}%, HMI {_pct(c['hmi'])}%, trusted error mean {_m(c['trusted_error_mean_m'])} m, max
+{_m(c['trusted_error_max_m'])} m.
 
-{integrity_table(integrity['rows'], with_mi)}
-Worst HMI the attack caused, any attacker (the integrity headline; issue 27's target is an upper
-bound of at most {100 * TARGET_HMI:g}%):
+{integrity_table(chain['rows'], bool(c.get('has_pl')))}{_bursts(chain['rows'])}""")
+    return f"""## What each attack caused (descriptive)
 
-{_verdict(integrity.get("worst_hmi") or worst_hmi(integrity))}
-{_bursts(integrity)}
-The sanity checks of the burst attacker (with every check removed it reaches at least plain PGD's raw
-error; doubling its steps and restarts) are in reports/benchmarks.md, "Chain-level attacks".
+Each attacked trajectory beside the same trajectory unattacked, frame by frame: "HMI caused" counts only the
+frames that are HMI (available, error > AL) with the attack and not without it; MI = error > PL. Counted frames:
+from a trajectory's first attacked frame to its end; flagged: over the attacked frames. Rates are percent with 95%
+percentile-bootstrap intervals over trajectories; where the bootstrap has no spread, the Wilson interval of the
+trajectories as trials. These counts speak only of the attacks tried; the section above is the evidence.
 
-![trusted error against {bound} (Stanford diagram) at the largest eps, and one trajectory over frames](figures/integrity.png)
-
+{chr(10).join(parts)}
+{FIGURE if figure else ""}
 """
 
 
-def standard_integrity_section(standard: dict[str, Any], shipped: dict[str, Any], p: Params) -> str:
-    """Markdown: the integrity rows of the standard model's chain (the paper's reproduction) beside the shipped
-    chain's worst case (`standard`: metrics `integrity_standard`; `shipped`: metrics `integrity`)."""
-    from pipeline.report.markdown import markdown_table
-
-    head = "## Integrity of the standard model's chain (the paper's reproduction)\n\n"
-    if not standard.get("attackers"):
-        return head + "Not run (`integrity.standard_attackers` is empty).\n\n"
-    c = standard["clean"]
-    with_mi = bool(c.get("has_pl"))
-    names = ", ".join(NAMES.get(a, a) for a in standard["attackers"])
-    both = [{"eps": e, "shipped chain (robust model), any attacker (%)": _pct(w["hmi"]) + f" ({attacker_names(w['attacker'])})",
-             f"standard model's chain, {names} (%)": _pct(standard["worst_hmi"][e]["hmi"]) if e in standard["worst_hmi"]
-             else "-"} for e, w in sorted(shipped.get("worst_hmi", {}).items(), key=lambda kv: float(kv[0]))]
-    n, total = standard["trajectories"], shipped["clean"]["trajectories"]
-    scope = (f"on all {n} eval_render trajectories" if n == total else
-             f"on the first **{n} of the {total}** eval_render trajectories, so its intervals are wider than the shipped "
-             f"chain's")
-    return head + f"""The definitions and attackers of the section above, on the standard model (models/pose.pt) with its
-own detector (models/detector.pt) and the defense calibrated for it (models/defense_standard.json, `rpod
-calibrate --model standard`): **{names}** {scope} (`integrity.standard_attackers`,
-`integrity.standard_trajectories`: the whole suite on both chains does not fit the default budget). Without any
-attack, on all {c['frames']} frames of these trajectories: availability {_pct(c['availability'])}%, HMI
-{_pct(c['hmi'])}%, trusted error mean {_m(c['trusted_error_mean_m'])} m, max {_m(c['trusted_error_max_m'])} m.
-
-{integrity_table(standard['rows'], with_mi)}
-Worst HMI caused per eps, both chains (the shipped chain over every attacker and trajectory above; the standard
-one over the attackers and trajectories named here):
-
-{markdown_table(both)}
-{_bursts(standard)}
-"""
+FIGURE = ("![trusted error against its bound (Stanford diagram) at the largest eps flown on the shipped chain, and one "
+          "trajectory over frames](figures/integrity.png)\n")

@@ -220,23 +220,48 @@ def _robustness_rows(m: dict[str, Any], spread: dict[str, Any] | None) -> list[t
 
 def _integrity_rows(rb: dict[str, Any], gd: dict[str, Any],
                     spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
-    """The integrity headline rows: the worst HMI a chain-level attack caused on the shipped chain (robust model) at
-    eps 0.01 and 0.05, beside it on the standard model's chain (its attackers and trajectories), availability without
-    attack, and the in-loop attacker's collisions per variant on the shipped chain ("-" where not run)."""
+    """The integrity headline rows, the evidence that can fail first: the breaking point per chain (shipped, standard,
+    undefended robust control), the shipped chain's largest error / AL at eps 0.05, its docking miss in the closed
+    loop (detect-and-recover, true-state dynamics) without attack and at eps 0.05; then the worst HMI a chain-level
+    attack caused on the shipped chain (descriptive) and on the standard one, availability without attack, and the
+    in-loop attacker's collisions per variant on the shipped chain ("-" where not run)."""
     from pipeline.stats import wilson
     from stages.pages.integrity import attacker_names
 
     integrity, out = rb.get("integrity", {}), []
+    chains = integrity.get("chains", {})
+    names = {"robust": "shipped chain (robust model)", "standard": "standard model's chain",
+             "control": "undefended robust control"}
+    for key, what in names.items():
+        b = integrity.get("breaking_eps", {}).get(key)
+        value = "-" if key not in chains else ("none in the grid" if b is None else f"{b:g}")
+        out.append((f"integrity: breaking eps (smallest eps at which an attacker fails a trajectory: error / AL > 1 on "
+                    f"an available frame), {what}", value, "-", "robustness",
+                    _sd(spread, f"integrity.{'shipped' if key == 'robust' else key}_breaking_eps")))
+    at = chains.get("robust", {}).get("summary", {}).get("per_eps", {}).get("0.05")
+    out.append(("integrity: largest trusted error / AL at eps 0.05, worst over attackers and trajectories, shipped "
+                "chain (robust model)", "-" if at is None or at["max_error_al"] is None else _fmt(at["max_error_al"]),
+                "-", "robustness", _sd(spread, "integrity.shipped_error_al_0_05_ratio")))
+    recover = gd.get("closed_loop", {}).get("variants", {}).get("true_state", {}).get("recover")   # "-": not flown
+    worst = None if recover is None else recover["per_eps"].get("0.05")
+    where = "shipped chain (detect-and-recover, true-state dynamics, execution error)"
+    out.append((f"closed loop: docking miss (m) without attack, {where}", "-" if recover is None else
+                f"{_fmt(recover['clean']['miss'])} ({recover['clean']['outcome']})", "-", "guidance",
+                _sd(spread, "closed_loop.recover_docking_miss_m")))
+    out.append((f"closed loop: largest docking miss (m) of the attacked runs at eps 0.05, {where}",
+                "-" if worst is None else _fmt(worst["largest_miss_m"]), "-", "guidance",
+                _sd(spread, "closed_loop.recover_miss_0_05_m")))
     for e in ("0.01", "0.05"):
         w = integrity.get("worst_hmi", {}).get(e)
         value = "-" if w is None else f"{_rate(w['hmi'])} ({attacker_names(w['attacker'])})"
         out.append((f"integrity: worst HMI (%) a chain-level attack caused at eps {e} (trusted error > AL, "
                     f"available), shipped chain (robust model)", value, "-", "robustness", _sd(spread, f"integrity.shipped_hmi_eps_{e.replace('.', '_')}_pct")))
-    std = rb.get("integrity_standard", {})
-    for e in ("0.01", "0.05") if std.get("attackers") else ():
+    std = chains.get("standard", {})
+    for e in ("0.01", "0.05"):   # "-" where the standard chain was not flown (as the breaking points above)
         w = std.get("worst_hmi", {}).get(e)
-        out.append((f"integrity: worst HMI (%) at eps {e}, standard model's chain ({', '.join(std['attackers'])} on "
-                    f"{std['trajectories']} trajectories)", "-" if w is None else _rate(w["hmi"]), "-", "robustness",
+        out.append((f"integrity: worst HMI (%) at eps {e}, standard model's chain ({std.get('trajectories', '-')} "
+                    "trajectories)",
+                    "-" if w is None else _rate(w["hmi"]), "-", "robustness",
                     _sd(spread, f"integrity.standard_hmi_eps_{e.replace('.', '_')}_pct")))
     clean = integrity.get("clean")
     out.append(("integrity: availability of the trusted estimate without attack (%), shipped chain (robust model)",

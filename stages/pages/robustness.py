@@ -41,11 +41,10 @@ def _meaning(rows: list[dict[str, Any]], what: str) -> str:
 
 def robustness_page(m: dict[str, Any], p: Params) -> str:
     """reports/robustness.md: results only (no times)."""
-    from stages.pages.integrity import integrity_section, standard_integrity_section
+    from stages.pages.integrity import integrity_section, lead
 
-    return _intro(m, p) + _models_section(m["pose_models"]) + integrity_section(m["integrity"], m["fused"], p) \
-        + standard_integrity_section(m["integrity_standard"], m["integrity"], p) + _paper_view(m, p) + _fused(m, p) \
-        + _sections(m, p) + _corruptions(m)
+    return _intro(m, p) + lead(m["integrity"], p) + _models_section(m["pose_models"]) \
+        + integrity_section(m["integrity"], p) + _paper_view(m, p) + _fused(m, p) + _sections(m, p) + _corruptions(m)
 
 
 def pose_models(robust: dict[str, Any]) -> dict[str, Any]:
@@ -103,7 +102,8 @@ def _fused(m: dict[str, Any], p: Params) -> str:
     f = m["fused"]
     rows = m["fused_rows"]
     if not rows:
-        return ""
+        return ("### The burst attack on the fused chain, per frame\n\nNot flown in this profile (`integrity.attackers` "
+                "has no burst: 3-frame bursts never come close to a converged filter; the optional full grid runs it).\n\n")
     return f"""### The burst attack on the fused chain, per frame
 
 The same bursts as the Integrity section's burst rows ({f['bursts']} bursts of {f['burst_length']} frames, one every
@@ -127,10 +127,11 @@ def _intro(m: dict[str, Any], p: Params) -> str:
     return f"""# Robustness of the safety chain (`rpod robustness`)
 
 The shipped chain is the robust pose model (models/pose_robust.pt) with its own detector
-(models/detector_robust.pt) and defense (models/defense.json). Two views of it under attack. The
-section **Integrity** judges what the guidance flies on: the defended chain's trusted estimate over whole trajectories, against attackers
-that know the chain and the defense with its state. The sections after it are **the paper's view**:
-frame by frame, the raw CNN estimate of each attacked frame against a fixed {m['harm_m']:g} m threshold.
+(models/detector_robust.pt) and defense (models/defense.json). Two views of it under attack. The first
+sections judge what the guidance flies on: the defended chain's trusted estimate over whole trajectories, against
+attackers that know the chain and the defense with its state, beside the standard model's chain and the undefended
+robust control, by measures that can fail. The sections after them are **the paper's view**: frame by frame, the
+raw CNN estimate of each attacked frame against a fixed {m['harm_m']:g} m threshold.
 
 """
 

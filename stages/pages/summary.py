@@ -1,9 +1,12 @@
 """reports/metrics/summary.json, what `dvc metrics show` and `dvc exp show` print: the run's headline
 numbers, no times, grouped by what they measure ({"pose": {"standard_position_m": ...}, ...}), so DVC's columns
 read `pose.standard_position_m`. Each name is `<chain>_<what>[_eps_<eps>]_<unit>`: the chain (`standard`, the
-paper's reproduction, or `shipped`, the robust model's defended chain), the attack budget where the number is at one
-(`_eps_0_01`; `min_eps` at the smallest evaluated), and the unit: `_m`, `_deg`, or `_pct` (every rate in percent);
-a number whose stage did not produce it is left out.
+paper's reproduction, `shipped`, the robust model's defended chain, or `control`, the undefended robust model), the
+attack budget where the number is at one (`_eps_0_01`; `min_eps` at the smallest evaluated), and the unit: `_m`,
+`_deg`, `_pct` (every rate in percent), `_eps` (an L-inf budget, pixels in [0, 1]) or `_ratio` (dimensionless); a
+number whose stage did not produce it is left out, and an `optional` one may be absent from a complete run (a chain
+that held over the whole eps grid has no breaking point; one that broke below eps 0.05 has no rows there,
+integrity.stop_at_break; the burst flies only where integrity.attackers has it).
 
 The per-stage metrics JSONs (reports/metrics/<stage>.json) keep every detail; this file only picks from them.
 """
@@ -19,6 +22,7 @@ class Headline(NamedTuple):
     what: str                                 # what the number is, with its unit
     get: Callable[[Metrics], float]           # from the stage metrics (keyed by metrics file stem)
     decimals: int = 2                         # rounding in summary.json
+    optional: bool = False                    # may be absent from a complete run (module docstring)
 
 
 def _smallest_eps(per_eps: dict[str, Any]) -> str:
@@ -32,16 +36,32 @@ def _defended(m: Metrics, rate: str) -> float:
 
 
 def _held(m: Metrics) -> float:
-    """Closed-loop attacked runs (that met the attack) whose rendezvous held with detect-and-recover, all
-    dynamics (%)."""
-    held = [v for d in m["guidance"]["defended"]["dynamics"].values() for v in d["recover"]["held"].values()]
+    """Closed-loop attacked runs (that met the attack) whose rendezvous held with detect-and-recover, true-state
+    dynamics (the paper dynamics, prediction = truth by construction, leave the headline) (%)."""
+    held = list(m["guidance"]["defended"]["dynamics"]["true_state"]["recover"]["held"].values())
     return 100 * sum(k for k, _ in held) / sum(n for _, n in held)
 
 
-def worst_hmi(m: Metrics, eps: str, chain: str = "integrity") -> float:
+def worst_hmi(m: Metrics, eps: str, chain: str = "robust") -> float:
     """The HMI the worst chain-level attacker caused at `eps` (%; integrity rows) on the shipped chain (`chain` =
-    "integrity") or the standard model's ("integrity_standard")."""
-    return 100 * m["robustness"][chain]["worst_hmi"][eps]["hmi"]["value"]
+    "robust") or the standard model's ("standard")."""
+    return 100 * m["robustness"]["integrity"]["chains"][chain]["worst_hmi"][eps]["hmi"]["value"]
+
+
+def breaking_eps(m: Metrics, chain: str) -> float:
+    """The chain's breaking point (the smallest eps at which an attacker fails a trajectory; integrity.chains);
+    a chain that held over the grid has none (left out)."""
+    value = m["robustness"]["integrity"]["breaking_eps"][chain]
+    if value is None:
+        raise KeyError(chain)
+    return value
+
+
+def docking_miss(m: Metrics, eps: str | None = None) -> float:
+    """Detect-and-recover under true-state dynamics (closed loop): the no-attack run's docking miss (m), or with
+    `eps` the largest miss of the attacked runs at it."""
+    v = m["guidance"]["closed_loop"]["variants"]["true_state"]["recover"]
+    return v["clean"]["miss"] if eps is None else v["per_eps"][eps]["largest_miss_m"]
 
 
 def in_loop_collisions(m: Metrics, defense: str = "recover") -> float:
@@ -74,7 +94,8 @@ HEADLINES: list[Headline] = [
     Headline("robustness.shipped_harmful_missed_pct",
              "worst harmful-undetected rate of the burst attack on the defended chain (ships), any eps (%; paper's view)",
              lambda m: 100 * max(w["harmful_undetected_rate"]
-                                 for w in m["robustness"]["worst_harmful_undetected_fused"].values())),
+                                 for w in m["robustness"]["worst_harmful_undetected_fused"].values()),
+             2, True),   # the burst flies where integrity.attackers has it (the paper profile, rpod integrity)
     Headline("lab.standard_accuracy_pct", "lab detection accuracy, mean over eps, standard model (%)",
              lambda m: 100 * m["lab"]["accuracy_mean"]),
     Headline("lab.shipped_clean_false_alarm_pct", "lab: the shipped chain's detector false alarms on clean frames (%)",
@@ -83,15 +104,30 @@ HEADLINES: list[Headline] = [
     Headline("integrity.shipped_hmi_eps_0_01_pct", "integrity (ships): worst HMI caused by a chain-level attack at eps "
              "0.01 (%)", lambda m: worst_hmi(m, "0.01")),
     Headline("integrity.shipped_hmi_eps_0_05_pct", "integrity (ships): worst HMI caused by a chain-level attack at eps "
-             "0.05 (%)", lambda m: worst_hmi(m, "0.05")),
+             "0.05 (%)", lambda m: worst_hmi(m, "0.05"), 2, True),
     Headline("integrity.standard_hmi_eps_0_01_pct", "integrity, standard model's chain: worst HMI at eps 0.01 (%)",
-             lambda m: worst_hmi(m, "0.01", "integrity_standard")),
+             lambda m: worst_hmi(m, "0.01", "standard")),
     Headline("integrity.standard_hmi_eps_0_05_pct", "integrity, standard model's chain: worst HMI at eps 0.05 (%)",
-             lambda m: worst_hmi(m, "0.05", "integrity_standard")),
+             lambda m: worst_hmi(m, "0.05", "standard"), 2, True),
     Headline("integrity.shipped_clean_availability_pct", "integrity (ships): availability of the trusted estimate "
              "without attack (%)", lambda m: 100 * m["robustness"]["integrity"]["clean"]["availability"]["value"]),
     Headline("in_loop.shipped_recover_collisions_pct", "closed loop (ships), in-loop attacker: collisions with "
              "detect-and-recover (%)", in_loop_collisions),
+    # issue 39: the evidence that can fail (eps is the breaking point's unit: an L-inf budget, pixels in [0, 1])
+    Headline("integrity.shipped_breaking_eps", "breaking point of the shipped chain: smallest eps at which an attacker "
+             "fails a trajectory (error / AL > 1 on an available frame)", lambda m: breaking_eps(m, "robust"), 3, True),
+    Headline("integrity.standard_breaking_eps", "breaking point of the standard model's chain",
+             lambda m: breaking_eps(m, "standard"), 3, True),
+    Headline("integrity.control_breaking_eps", "breaking point of the undefended robust control",
+             lambda m: breaking_eps(m, "control"), 3, True),
+    Headline("integrity.shipped_error_al_0_05_ratio", "shipped chain: largest trusted error / AL (persistent "
+             "AL, available frames) at eps 0.05, worst over attackers and trajectories",
+             lambda m: m["robustness"]["integrity"]["chains"]["robust"]["summary"]["per_eps"]["0.05"]["max_error_al"],
+             2, True),
+    Headline("closed_loop.recover_docking_miss_m", "closed loop (ships, detect-and-recover, true-state dynamics): "
+             "docking miss without attack (m)", docking_miss),
+    Headline("closed_loop.recover_miss_0_05_m", "closed loop (ships, detect-and-recover, true-state "
+             "dynamics): largest docking miss of the attacked runs at eps 0.05 (m)", lambda m: docking_miss(m, "0.05")),
 ]
 
 

@@ -1,0 +1,63 @@
+"""The closed loop's mission outcomes (`rpod guidance`): where the shipped chain's runs dock.
+
+Every run of the shipped chain in a guidance grid (pipeline/guidance/grid.py `GridPlan`: the defended grid's
+no-attack and attacked runs per dynamics and defense variant, and the in-loop attacker's runs) is judged by
+`pipeline.evaluation.measures.docking`: range and lateral miss against the goal (m), collision, target lost, hold;
+mission failure = a collision, a lost target, or a miss beyond the tolerance while the chaser still flew (a run that
+ends held far from the goal is a safe abort). Per (dynamics, defense variant): the no-attack run's outcome, per eps
+the attacked runs that met the attack, how many failed and the largest miss, and the breaking point: the smallest
+eps at which an attacked run failed its mission (0 when the no-attack run already fails), None when none failed.
+Only the runs that met the attack count (a run that never reached the attack's start range was not attacked).
+"""
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+from pipeline.evaluation.measures import breaking_point, docking
+from pipeline.guidance.grid import GridPlan, InLoopRun
+from pipeline.guidance.law import RendezvousResult
+
+
+def _attack(plan: GridPlan, cell: int | InLoopRun | None) -> tuple[str, float | None]:
+    """(what attacked the run, its eps): "none", "fgsm S=.. m K=..", or "in-loop <goal>" (S)."""
+    if cell is None:
+        return "none", None
+    if isinstance(cell, InLoopRun):
+        eps, goal, start = plan.in_loop[cell.index]
+        return f"in-loop {goal} from {start:g} m", float(eps)
+    eps, start, k, _ = plan.grid[cell]
+    return f"grid S={start:g} m K={k}", float(eps)
+
+
+def closed_loop_outcomes(plan: GridPlan, results: Sequence[RendezvousResult], collision_range: float) -> dict[str, Any]:
+    """The docking of every shipped-chain run of `plan.runs()`'s `results` (module docstring) -> {"runs": one record
+    per run (dynamics, defense, attack, eps, met: the run met the attack, and `Docking.as_dict()`), "variants":
+    {dynamics: {defense: {"clean": the no-attack run's docking, "per_eps": {"%g": {"met", "failed", "largest_miss_m",
+    "outcomes": {outcome: count}}}, "breaking_eps"}}}, "tolerance_m", "collision_range_m"}."""
+    s = plan.settings
+    runs, variants = [], {}
+    for (chain, dyn, defense, cell), r in zip(plan.runs(), results):
+        if chain != "shipped":
+            continue
+        d = docking(r, s.goal, s.tolerance, collision_range)
+        attack, eps = _attack(plan, cell)
+        met = cell is None or r.attacked_frames > 0
+        runs.append({"dynamics": dyn, "defense": defense, "attack": attack, "eps": eps, "met": bool(met),
+                     "steps": len(r.estimates), **d.as_dict()})
+        v = variants.setdefault(dyn, {}).setdefault(defense, {"clean": None, "per_eps": {}, "records": []})
+        if cell is None:
+            v["clean"] = d.as_dict()
+            v["records"].append((0.0, d.failed))
+        elif met:
+            k = v["per_eps"].setdefault(f"{eps:g}", {"met": 0, "failed": 0, "largest_miss_m": 0.0, "outcomes": {}})
+            k["met"] += 1
+            k["failed"] += int(d.failed)
+            k["largest_miss_m"] = max(k["largest_miss_m"], d.miss)
+            k["outcomes"][d.outcome] = k["outcomes"].get(d.outcome, 0) + 1
+            v["records"].append((eps, d.failed))
+    for by_defense in variants.values():
+        for v in by_defense.values():
+            v["breaking_eps"] = breaking_point(v.pop("records"))
+            v["per_eps"] = dict(sorted(v["per_eps"].items(), key=lambda kv: float(kv[0])))
+    return {"runs": runs, "variants": variants, "tolerance_m": float(s.tolerance),
+            "collision_range_m": float(collision_range)}

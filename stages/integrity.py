@@ -1,0 +1,55 @@
+"""`rpod integrity`: issue 39's full integrity grid -> reports/integrity_full.md and
+reports/metrics/integrity_full.json. A stage of optional/dvc.yaml (`dvc repro optional/dvc.yaml`), not of the
+default `dvc repro`: it does not fit the default profile's 40-minute budget (its cost per attacked frame and
+attacker: conf/config.yaml, integrity.attackers).
+
+The campaign of `rpod robustness` (stages/engine/campaigns.py, pipeline/evaluation/campaign.py) with nothing left out:
+every attacker of the schema (the captures per direction and `integrity.capture_initial`, the drifts, the nested
+burst on its error / AL objective) on the shipped chain, the standard one and the undefended robust control, every
+eval_render trajectory (or the first `--trajectories N`) and every eps of `integrity.eps` (no stop at a chain's
+breaking point). The page has the same sections as the head of reports/robustness.md.
+"""
+from __future__ import annotations
+
+import time
+from typing import Annotated, Optional
+
+import typer
+
+from pipeline.io.atomic import atomic_write_text
+from pipeline.seeds import seed_for
+from stages.artifacts.dvc import write_metrics
+from stages.artifacts.models import load_chain
+from stages.artifacts.paths import INTEGRITY_METRICS, INTEGRITY_REPORT, PAPER, SHIPPED
+from stages.config.device import torch_setup
+from stages.config.schema import Params
+from stages.engine.campaigns import integrity_campaign
+from stages.pages.calibrate import unmet_banner
+from stages.pages.integrity import integrity_page
+
+
+def main(
+    params: Params,
+    trajectories: Annotated[Optional[int], typer.Option(
+        "--trajectories", min=1, help="Fly only the first N eval_render trajectories (default: all of them).")] = None,
+) -> None:
+    """Fly the full integrity grid (every attacker, chain, trajectory and eps) and write its page and metrics.
+
+    Params: `integrity` (eps, capture_initial and capture_rate, the burst's and the drift's settings, frame_steps,
+    alert_limit_kind), `robustness.burst_every`, `batch_size`, `harm_m`, `defense`, `guidance` (the AL's constants
+    and the execution error the page states), and the eval_render params its trajectories were rendered with.
+    """
+    torch_setup(params)
+    t0 = time.perf_counter()
+    shipped = load_chain(params, SHIPPED)
+    out = integrity_campaign(params, shipped, seed_for(params.seed, "robustness"), full=True, trajectories=trajectories)
+    integrity = out["integrity"]
+    seconds = time.perf_counter() - t0
+    write_metrics(INTEGRITY_METRICS, {"integrity": integrity, "fused_rows": out["fused_rows"], "fused": out["fused"],
+                                      "seconds": seconds}, params.profile_name)
+    atomic_write_text(INTEGRITY_REPORT, unmet_banner(out["fused"]["calibration_unmet"])
+                      + unmet_banner(integrity["chains"][PAPER.value]["calibration_unmet"], PAPER)
+                      + integrity_page(integrity, params))
+    flown = integrity["chains"][SHIPPED.value]["trajectories"]
+    typer.echo(f"integrity: breaking eps {integrity['breaking_eps']} on {flown} "
+               f"trajectories in {seconds:.0f} s -> {INTEGRITY_REPORT}, {INTEGRITY_METRICS}")
