@@ -52,6 +52,13 @@ def test_every_profile_builds_typed_params(profile):
     (("defense", "val_seed", 3000), r"unknown parameter 'defense.val_seed'"),   # it follows `seed` now
     (("defense", "harm_m", 0.0), r"defense.harm_m must be > 0"),
     (("guidance", "defenses", ["hold", "pray"]), r"guidance.defenses\[1\] must be one of hold, recover"),
+    (("attack", "eps", [0.1, 0.05, 0.1]), r"attack.eps lists 0.1 twice"),      # issue 42 item 10: the guards
+    (("shap", "eps", [0.05, 0.05]), r"shap.eps lists 0.05 twice"),
+    (("evaluate", "eps", [0.01, 0.01]), r"evaluate.eps lists 0.01 twice"),
+    (("robustness", "unseen_eps", [0.2, 0.2]), r"robustness.unseen_eps lists 0.2 twice"),
+    (("train", "range_bins", [60, 30, 30]), r"train.range_bins lists 30 twice"),
+    (("train", "range_bins", []), r"train.range_bins is empty"),
+    (("detect", "squeeze_median", 2), r"detect.squeeze_median=2 must be odd"),
 ])
 def test_load_refuses_bad_params_naming_the_key(tmp_path, monkeypatch, edit, message):
     monkeypatch.chdir(tmp_path)

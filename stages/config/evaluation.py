@@ -10,6 +10,7 @@ from typing import Annotated, Literal, Optional
 
 from pipeline.defense.gate import MotionSettings
 from pipeline.settings import In
+from stages.config.guards import distinct
 from stages.config.sections import (
     Batch,
     Count,
@@ -48,6 +49,7 @@ class Evaluate:
         if not 0 <= self.p_start <= 1 or self.attack_length < 1:
             raise ValueError(f"p_start must be in [0, 1] and attack_length >= 1, got {self.p_start} and "
                              f"{self.attack_length}")
+        distinct(self.eps, "evaluate.eps")
         if not self.eps or not all(0 < e <= 1 for e in self.eps):
             raise ValueError(f"eps must be a non-empty list of values in (0, 1], got {self.eps}")
         if self.batch_size < 1:
@@ -238,6 +240,7 @@ class Robustness:
             for e in values:
                 if not 0 < e <= 1:
                     raise ValueError(f"{key}: {e!r} is not in (0, 1] (pixels are in [0, 1])")
+            distinct(values, f"robustness.{key}")
         if not self.lambdas or not all(0 <= v < float("inf") for v in self.lambdas):
             raise ValueError(f"lambdas must be a non-empty list of finite values >= 0, got {self.lambdas}")
         for key in ("transfer", "surrogate_attacks"):

@@ -1,13 +1,8 @@
-"""Checks of params that belong in the typed schema (stages/config/sections.py, evaluation.py), written as small
-functions for the schema to call from its sections' `__post_init__` once the params layer is rewritten (issue 42,
-item 10); each raises a ValueError naming the key, as the schema's own checks do, so `rpod params` and every
-stage refuse the value with one line before any work starts.
-
-To wire (section.field -> check):
-    attack.eps, shap.eps, guidance.eps, evaluate.eps, robustness.eps, robustness.unseen_eps,
-    integrity.eps                                     -> distinct(values, "section.field")
-    train.range_bins                                  -> range_bins(values)
-    detect.squeeze_median                             -> odd(value, "detect.squeeze_median")
+"""Checks of params that the typed schema's sections call from their `__post_init__` (stages/config/sections.py,
+evaluation.py; issue 42, item 10); each raises a ValueError naming the key, as the schema's own checks do, so
+`rpod params` and every stage refuse the value with one line before any work starts:
+    attack.eps, shap.eps, guidance.eps, evaluate.eps, robustness.eps, robustness.unseen_eps -> distinct
+    (integrity.eps checks its repeats itself), train.range_bins -> range_bins, detect.squeeze_median -> odd
 """
 from __future__ import annotations
 

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from typing import Annotated, Literal, Optional
 
 from pipeline.settings import In
+from stages.config.guards import distinct, odd, range_bins
 
 
 class ParamsError(ValueError):
@@ -172,6 +173,7 @@ class Train:
     def __post_init__(self) -> None:
         if not 0 < self.val_fraction < 1:
             raise ValueError(f"val_fraction must be in (0, 1), got {self.val_fraction!r}")
+        range_bins(self.range_bins, "train.range_bins")
 
 
 @dataclass(frozen=True)
@@ -185,6 +187,9 @@ class Attack:
     momentum: Annotated[float, In("[0, 10]", "MI-FGSM decay")]
     batch_size: Batch
     max_images: Optional[Count]  # None = the whole test set
+
+    def __post_init__(self) -> None:
+        distinct(self.eps, "attack.eps")
 
 
 @dataclass(frozen=True)
@@ -217,6 +222,9 @@ class Guidance:
     defenses: list[Literal["hold", "recover"]]       # defended variants flown beside the undefended one
     execution: Execution         # the truth's executed motion (true_state runs, evaluation and validation trajectories)
 
+    def __post_init__(self) -> None:
+        distinct(self.eps, "guidance.eps")
+
 
 @dataclass(frozen=True)
 class Shap:
@@ -228,6 +236,9 @@ class Shap:
     chunk: Annotated[int, In("[1, 1000000]", "samples per zarr chunk")]
     frames: Annotated[int, In("[2, 10000000]", "frames per detector trajectory")]
     seed: Seed                   # of the detector split's trajectories (datasets/detect_render)
+
+    def __post_init__(self) -> None:
+        distinct(self.eps, "shap.eps")
 
 
 @dataclass(frozen=True)
@@ -251,3 +262,4 @@ class Detect:
         for key in ("test_fraction", "val_fraction"):
             if not 0 < getattr(self, key) < 1:
                 raise ValueError(f"{key} must be in (0, 1), got {getattr(self, key)!r}")
+        odd(self.squeeze_median, "detect.squeeze_median")
