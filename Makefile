@@ -21,6 +21,7 @@ paper: setup
 
 ## Run the test suite (includes the smoke end-to-end run).
 test: setup
+	ruff check . && ruff format --check .
 	python -m pytest -q
 
 ## Run every stage end to end on the smoke profile in a temporary copy of the repository (a few minutes);

@@ -8,6 +8,7 @@ gradient: its gradients/s = images/s x (k + 1), to compare with plain training's
 images/s within 1.3x of the adversarial gradients/s). Writes the `## Adversarial training` section of
 reports/benchmarks.md.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,7 +23,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import torch  # noqa: E402
 
-from pipeline.pose.adversarial import Adversary, AdversarialConfig  # noqa: E402
+from pipeline.pose.adversarial import AdversarialConfig, Adversary  # noqa: E402
 from pipeline.pose.loss import PoseLoss  # noqa: E402
 from pipeline.pose.model import PoseNet  # noqa: E402
 from pipeline.report.markdown import markdown_table  # noqa: E402
@@ -32,8 +33,9 @@ from stages.report import write_benchmark  # noqa: E402
 TARGET_RATIO = 1.3
 
 
-def step_seconds(width: float, black_level: float, h: int, w: int, batch: int, k: int, batches: int,
-                 eps: float) -> tuple[float, float]:
+def step_seconds(
+    width: float, black_level: float, h: int, w: int, batch: int, k: int, batches: int, eps: float
+) -> tuple[float, float]:
     """Median seconds of (a plain training step, an adversarial PGD-k one) on (batch, 3, h, w) inputs."""
     torch.manual_seed(0)
     model = PoseNet(width, black_level=black_level).to(memory_format=torch.channels_last)
@@ -67,25 +69,44 @@ def main() -> None:
     load0 = os.getloadavg()[0]
     rows = []
     for k in sorted({1, a.steps}):
-        plain, adv = step_seconds(float(p.train.width), float(a.black_level), p.render.height, p.render.width,
-                                  batch, k, args.batches, float(a.eps))
+        plain, adv = step_seconds(
+            float(p.train.width),
+            float(a.black_level),
+            p.render.height,
+            p.render.width,
+            batch,
+            k,
+            args.batches,
+            float(a.eps),
+        )
         plain_ips, adv_ips = batch / plain, batch / adv
-        rows.append({"PGD steps k": k, "plain images/s": plain_ips, "adversarial images/s": adv_ips,
-                     "adversarial gradients/s": adv_ips * (k + 1),
-                     "plain images/s / adversarial gradients/s": plain_ips / (adv_ips * (k + 1))})
-        print(f"k={k}: plain {plain_ips:.1f} img/s, adversarial {adv_ips:.1f} img/s = "
-              f"{adv_ips * (k + 1):.1f} gradients/s", flush=True)
+        rows.append(
+            {
+                "PGD steps k": k,
+                "plain images/s": plain_ips,
+                "adversarial images/s": adv_ips,
+                "adversarial gradients/s": adv_ips * (k + 1),
+                "plain images/s / adversarial gradients/s": plain_ips / (adv_ips * (k + 1)),
+            }
+        )
+        print(
+            f"k={k}: plain {plain_ips:.1f} img/s, adversarial {adv_ips:.1f} img/s = "
+            f"{adv_ips * (k + 1):.1f} gradients/s",
+            flush=True,
+        )
     load1 = os.getloadavg()[0]
     table = markdown_table(rows, decimals=2)
     met = all(r["plain images/s / adversarial gradients/s"] <= TARGET_RATIO for r in rows)
-    body = (f"`benchmarks/adversarial_speed.py` on {platform.machine()}, torch {torch.__version__}, {args.threads} "
-            f"threads, width {p.train.width:g}, {p.render.width}x{p.render.height}, batch {batch}, channels_last, "
-            f"float32, the black-level clamp on; plain and adversarial steps alternated, median of {args.batches} "
-            f"each after a warm-up; load average {load0:.1f} at the start, {load1:.1f} at the end (other processes "
-            f"were not stopped).\n\n{table}\n"
-            f"An adversarial image costs k input gradients (PGD, eval mode: no weight gradients) and one training "
-            f"step; target: plain images/s at most {TARGET_RATIO}x the adversarial gradients/s "
-            f"({'met' if met else 'not met'}). Data loading and augmentation are not included.")
+    body = (
+        f"`benchmarks/adversarial_speed.py` on {platform.machine()}, torch {torch.__version__}, {args.threads} "
+        f"threads, width {p.train.width:g}, {p.render.width}x{p.render.height}, batch {batch}, channels_last, "
+        f"float32, the black-level clamp on; plain and adversarial steps alternated, median of {args.batches} "
+        f"each after a warm-up; load average {load0:.1f} at the start, {load1:.1f} at the end (other processes "
+        f"were not stopped).\n\n{table}\n"
+        f"An adversarial image costs k input gradients (PGD, eval mode: no weight gradients) and one training "
+        f"step; target: plain images/s at most {TARGET_RATIO}x the adversarial gradients/s "
+        f"({'met' if met else 'not met'}). Data loading and augmentation are not included."
+    )
     print(table)
     print(f"-> {write_benchmark('Adversarial training', body)} (## Adversarial training)")
 

@@ -17,6 +17,7 @@ model stages first); writes the `## Chain-level attacks` section of reports/benc
 
     .venv/bin/python benchmarks/attack_speed.py [--tracks 3] [--per-track 2] [--eps 0.05]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -90,12 +91,17 @@ def speed(p: Any, pose: Any, target: nn.Module, defended: Any, run: AttackRun) -
     from stages.config.build import burst_attacker
 
     lo, hi = bursts_of(run.mask)[0]
-    one = dataclasses.replace(run, attacked=(np.arange(len(run)) >= lo) & (np.arange(len(run)) < hi))   # one burst
+    one = dataclasses.replace(run, attacked=(np.arange(len(run)) >= lo) & (np.arange(len(run)) < hi))  # one burst
     counting = Counting(target).eval()
     t0 = time.perf_counter()
     burst_attacker(p, 0).nested(counting, Defense(defended.settings, defended.motion, defended.noise), one, [0.05])
-    rows = [{"what": "burst attack (chain + filter mirror + verdicts), eps 0.05, one burst (batch: restarts x K)",
-             "batch": p.integrity.burst_restarts * (hi - lo), "images/s": counting.images / (time.perf_counter() - t0)}]
+    rows = [
+        {
+            "what": "burst attack (chain + filter mirror + verdicts), eps 0.05, one burst (batch: restarts x K)",
+            "batch": p.integrity.burst_restarts * (hi - lo),
+            "images/s": counting.images / (time.perf_counter() - t0),
+        }
+    ]
     model = pose.model.eval()
     for batch in (1, p.integrity.burst_restarts * (hi - lo), 64):
         x = run.images[:1].expand(batch, -1, -1, -1).clone().requires_grad_(True)
@@ -103,12 +109,18 @@ def speed(p: Any, pose: Any, target: nn.Module, defended: Any, run: AttackRun) -
         n, t0 = max(3, 192 // batch), time.perf_counter()
         for _ in range(n):
             torch.autograd.grad(model(x)[:, :3].sum(), x)
-        rows.append({"what": "input gradient of the pose network", "batch": batch,
-                     "images/s": n * batch / (time.perf_counter() - t0)})
+        rows.append(
+            {
+                "what": "input gradient of the pose network",
+                "batch": batch,
+                "images/s": n * batch / (time.perf_counter() - t0),
+            }
+        )
     h, w = run.images.shape[2:]
     train_ips, _ = throughput(float(p.train.width), h, w, p.train.batch_size, 3)
-    rows.append({"what": "training loop (forward, backward, Adam step)", "batch": p.train.batch_size,
-                 "images/s": train_ips})
+    rows.append(
+        {"what": "training loop (forward, backward, Adam step)", "batch": p.train.batch_size, "images/s": train_ips}
+    )
     return rows
 
 
@@ -129,12 +141,19 @@ def no_checks(p: Any, pose: Any, runs: list[AttackRun], seed: int = 3) -> list[d
                     out = pose.model(quantize(adv, x).float() / 255)
                 plain.append(float((out[:, :3] - y[:, :3]).double().norm(dim=1).mean()))
                 sub = AttackRun(x, y, run.R_cam[lo:hi], None if run.u is None else run.u[lo:hi])
-                res = BurstAttacker(alert_limit=1e6, steps=i.burst_steps, restarts=i.burst_restarts, lambdas=(0.0,),
-                                    seed=seed).nested(pose.model, None, sub, [e])
+                res = BurstAttacker(
+                    alert_limit=1e6, steps=i.burst_steps, restarts=i.burst_restarts, lambdas=(0.0,), seed=seed
+                ).nested(pose.model, None, sub, [e])
                 ours.append(float(res.bursts[0][0].raw_error.mean()))
-        rows.append({"eps": f"{e:g}", "bursts": len(plain), "plain PGD raw error (m)": float(np.mean(plain)),
-                     "burst, no checks (m)": float(np.mean(ours)),
-                     "bursts where burst >= PGD - 1 cm": f"{sum(b >= a - 0.01 for a, b in zip(plain, ours))}/{len(plain)}"})
+        rows.append(
+            {
+                "eps": f"{e:g}",
+                "bursts": len(plain),
+                "plain PGD raw error (m)": float(np.mean(plain)),
+                "burst, no checks (m)": float(np.mean(ours)),
+                "bursts where burst >= PGD - 1 cm": f"{sum(b >= a - 0.01 for a, b in zip(plain, ours))}/{len(plain)}",
+            }
+        )
     return rows
 
 
@@ -145,8 +164,9 @@ def convergence(p: Any, target: nn.Module, defended: Any, runs: list[AttackRun],
 
     rows = []
     for k in (1, 2):
-        attacker = dataclasses.replace(burst_attacker(p, 0), steps=k * p.integrity.burst_steps,
-                                       restarts=k * p.integrity.burst_restarts)
+        attacker = dataclasses.replace(
+            burst_attacker(p, 0), steps=k * p.integrity.burst_steps, restarts=k * p.integrity.burst_restarts
+        )
         hmi, group, score = [], [], []
         for r, run in enumerate(runs):
             res = attacker.nested(target, Defense(defended.settings, defended.motion, defended.noise), run, [eps])
@@ -155,12 +175,18 @@ def convergence(p: Any, target: nn.Module, defended: Any, runs: list[AttackRun],
                 group.append(np.full(len(o.hmi), 100 * r + b))
                 score.append(o.score)
         rate = bootstrap_rate(np.concatenate(hmi), np.concatenate(group))
-        means = np.random.default_rng(0).choice(score, (2000, len(score))).mean(1)   # bootstrap over bursts
+        means = np.random.default_rng(0).choice(score, (2000, len(score))).mean(1)  # bootstrap over bursts
         lo, hi = np.percentile(means, [2.5, 97.5])
-        rows.append({"steps x restarts": f"{attacker.steps} x {attacker.restarts}", "bursts": len(score),
-                     "HMI frames (%)": percent_ci(rate.value, rate.ci()), "rate": rate,
-                     "mean capped trusted error (m)": f"{np.mean(score):.2f} [{lo:.2f}, {hi:.2f}]",
-                     "score": (float(np.mean(score)), float(lo), float(hi))})
+        rows.append(
+            {
+                "steps x restarts": f"{attacker.steps} x {attacker.restarts}",
+                "bursts": len(score),
+                "HMI frames (%)": percent_ci(rate.value, rate.ci()),
+                "rate": rate,
+                "mean capped trusted error (m)": f"{np.mean(score):.2f} [{lo:.2f}, {hi:.2f}]",
+                "score": (float(np.mean(score)), float(lo), float(hi)),
+            }
+        )
     return rows
 
 
@@ -169,13 +195,17 @@ def verdict(rows: list[dict[str, Any]]) -> str:
     error) by less than the base run's 95% interval."""
     a, b = rows[0]["rate"], rows[1]["rate"]
     (m0, lo, hi), (m1, _, _) = rows[0]["score"], rows[1]["score"]
-    hmi = (f"the HMI rate moved by {100 * abs(b.value - a.value):.1f} points (base interval "
-           f"[{100 * a.lo:.1f}, {100 * a.hi:.1f}])")
+    hmi = (
+        f"the HMI rate moved by {100 * abs(b.value - a.value):.1f} points (base interval "
+        f"[{100 * a.lo:.1f}, {100 * a.hi:.1f}])"
+    )
     score = f"the mean capped trusted error by {m1 - m0:+.2f} m (base interval [{lo:.2f}, {hi:.2f}] m)"
     if a.lo <= b.value <= a.hi and lo <= m1 <= hi:
         return f"Doubling steps and restarts: {hmi}, {score}: both within the base run's interval, converged at this scale."
-    return (f"Doubling steps and restarts: {hmi}, {score}: outside the base run's interval, so **the burst attack "
-            f"has not converged** at {rows[0]['steps x restarts']}; its worst cases are lower bounds.")
+    return (
+        f"Doubling steps and restarts: {hmi}, {score}: outside the base run's interval, so **the burst attack "
+        f"has not converged** at {rows[0]['steps x restarts']}; its worst cases are lower bounds."
+    )
 
 
 def main() -> None:
@@ -193,19 +223,21 @@ def main() -> None:
     fast = speed(p, pose, target, defended, runs[0])
     checks = no_checks(p, pose, runs)
     conv = convergence(p, target, defended, runs, args.eps)
-    text = (f"`benchmarks/attack_speed.py` on {platform.machine()}, torch {torch.__version__}, {p.threads} threads, "
-            f"the {p.profile_name} profile's models and eval_render trajectories ({args.tracks} trajectories, their "
-            f"first {args.per_track} bursts of {p.integrity.burst_length} frames: the reduced scale of checks 2 and 3); "
-            f"load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end (other processes were not "
-            f"stopped); {time.perf_counter() - t0:.0f} s in all.\n\n"
-            f"Speed (frame-gradients per second):\n\n{markdown_table(fast, decimals=1)}\n"
-            f"With every check removed (no defense, no detector, lambda 0), the burst against plain PGD, "
-            f"{p.integrity.burst_steps} steps each (the burst from {p.integrity.burst_restarts} starts):\n\n"
-            f"{markdown_table(checks, decimals=2)}\n"
-            f"Convergence on the shipped chain and defense at eps {args.eps:g} (HMI frames as the attacker judges its "
-            f"worst case on the real chain; 95% bootstrap over bursts):\n\n"
-            f"{markdown_table([{k: v for k, v in r.items() if k not in ('rate', 'score')} for r in conv], decimals=2)}\n"
-            f"{verdict(conv)}")
+    text = (
+        f"`benchmarks/attack_speed.py` on {platform.machine()}, torch {torch.__version__}, {p.threads} threads, "
+        f"the {p.profile_name} profile's models and eval_render trajectories ({args.tracks} trajectories, their "
+        f"first {args.per_track} bursts of {p.integrity.burst_length} frames: the reduced scale of checks 2 and 3); "
+        f"load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end (other processes were not "
+        f"stopped); {time.perf_counter() - t0:.0f} s in all.\n\n"
+        f"Speed (frame-gradients per second):\n\n{markdown_table(fast, decimals=1)}\n"
+        f"With every check removed (no defense, no detector, lambda 0), the burst against plain PGD, "
+        f"{p.integrity.burst_steps} steps each (the burst from {p.integrity.burst_restarts} starts):\n\n"
+        f"{markdown_table(checks, decimals=2)}\n"
+        f"Convergence on the shipped chain and defense at eps {args.eps:g} (HMI frames as the attacker judges its "
+        f"worst case on the real chain; 95% bootstrap over bursts):\n\n"
+        f"{markdown_table([{k: v for k, v in r.items() if k not in ('rate', 'score')} for r in conv], decimals=2)}\n"
+        f"{verdict(conv)}"
+    )
     print(text)
     print(f"-> {write_benchmark('Chain-level attacks', text)} (## Chain-level attacks)")
 

@@ -12,6 +12,7 @@ finds each worst case.
 
     .venv/bin/python benchmarks/attack_suite.py [--frames 32] [--full-frames 8] [--eps 0.01 0.05 0.1]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,11 +32,18 @@ import torch  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from pipeline.attacks.strongest import (FULL, LEAN, PGD50, SuiteResult, ratio_rows, run_suite,  # noqa: E402
-                                        sanity_rows)
+from pipeline.attacks.strongest import (  # noqa: E402
+    FULL,
+    LEAN,
+    PGD50,
+    SuiteResult,
+    ratio_rows,
+    run_suite,  # noqa: E402
+    sanity_rows,
+)
 from pipeline.pose.robustness import sample_rows  # noqa: E402
-from pipeline.stats import mean_interval  # noqa: E402
 from pipeline.report.markdown import markdown_table  # noqa: E402
+from pipeline.stats import mean_interval  # noqa: E402
 from stages.artifacts import data  # noqa: E402
 from stages.artifacts.models import load_pose  # noqa: E402
 from stages.artifacts.paths import POSE, POSE_ROBUST  # noqa: E402
@@ -52,15 +60,30 @@ def comparison_rows(model: str, runs: dict[str, SuiteResult]) -> list[dict[str, 
     """Per eps and run: the worst case's position and attitude means with 95% intervals and CPU s/frame."""
     rows = []
     first = next(iter(runs.values()))
-    rows.append({"model": model, "eps": 0.0, "attack": "clean", "frames": first.frames,
-                 "position (m)": _ci(first.clean["position_m"]), "attitude (deg)": _ci(first.clean["attitude_deg"]),
-                 "CPU s / frame": 0.0})
+    rows.append(
+        {
+            "model": model,
+            "eps": 0.0,
+            "attack": "clean",
+            "frames": first.frames,
+            "position (m)": _ci(first.clean["position_m"]),
+            "attitude (deg)": _ci(first.clean["attitude_deg"]),
+            "CPU s / frame": 0.0,
+        }
+    )
     for ei, e in enumerate(first.eps):
         for name, r in runs.items():
-            rows.append({"model": model, "eps": e, "attack": name, "frames": r.frames,
-                         "position (m)": _ci(r.worst("position_m")[ei]),
-                         "attitude (deg)": _ci(r.worst("attitude_deg")[ei]),
-                         "CPU s / frame": float(r.cpu_seconds[:, ei].sum())})
+            rows.append(
+                {
+                    "model": model,
+                    "eps": e,
+                    "attack": name,
+                    "frames": r.frames,
+                    "position (m)": _ci(r.worst("position_m")[ei]),
+                    "attitude (deg)": _ci(r.worst("attitude_deg")[ei]),
+                    "CPU s / frame": float(r.cpu_seconds[:, ei].sum()),
+                }
+            )
     return rows
 
 
@@ -71,8 +94,7 @@ def strongest_members(model: str, full: SuiteResult) -> list[dict[str, Any]]:
         values = np.where(np.isnan(full.errors[key]), -np.inf, full.errors[key])
         for ei, e in enumerate(full.eps):
             top = np.bincount(values[:, ei].argmax(0), minlength=len(full.members))
-            rows.append({"model": model, "eps": e, "error": key,
-                         **{m: int(c) for m, c in zip(full.members, top)}})
+            rows.append({"model": model, "eps": e, "error": key, **{m: int(c) for m, c in zip(full.members, top)}})
     return rows
 
 
@@ -92,45 +114,63 @@ def main() -> None:
     rows = sample_rows(len(test), args.frames, args.seed)
     images = np.stack([test.images[int(i)] for i in rows])
     targets = np.asarray(test.targets[rows], np.float64)
-    sub = np.arange(min(args.full_frames, len(rows)))   # the first of the (already random) sample
+    sub = np.arange(min(args.full_frames, len(rows)))  # the first of the (already random) sample
     full_cfg = dataclasses.replace(FULL, square_eps=args.square_eps)
     load0 = os.getloadavg()[0]
     table, members, checks = [], {}, []
     for model in args.models:
         net = load_pose(p, POSE if model == "standard" else POSE_ROBUST).model
         print(f"{model}: PGD-50 and lean on {len(rows)} frames", flush=True)
-        runs = {"pgd-50": run_suite(net, images, targets, args.eps, PGD50),
-                "lean": run_suite(net, images, targets, args.eps, LEAN)}
+        runs = {
+            "pgd-50": run_suite(net, images, targets, args.eps, PGD50),
+            "lean": run_suite(net, images, targets, args.eps, LEAN),
+        }
         table += comparison_rows(model, runs)
         print(f"{model}: full and doubled lean on {len(sub)} frames", flush=True)
-        on_sub = {"pgd-50": runs["pgd-50"].select(sub), "lean": runs["lean"].select(sub),
-                  "lean x2": run_suite(net, images[sub], targets[sub], args.eps, LEAN.doubled()),
-                  "full": run_suite(net, images[sub], targets[sub], args.eps, full_cfg)}
+        on_sub = {
+            "pgd-50": runs["pgd-50"].select(sub),
+            "lean": runs["lean"].select(sub),
+            "lean x2": run_suite(net, images[sub], targets[sub], args.eps, LEAN.doubled()),
+            "full": run_suite(net, images[sub], targets[sub], args.eps, full_cfg),
+        }
         table += comparison_rows(model, on_sub)[1:]
         members[model] = strongest_members(model, on_sub["full"])
-        for name, r, ref in (("lean / full", on_sub["lean"], on_sub["full"]),
-                             ("pgd-50 / full", on_sub["pgd-50"], on_sub["full"]),
-                             ("lean x2 / lean", on_sub["lean x2"], on_sub["lean"])):
+        for name, r, ref in (
+            ("lean / full", on_sub["lean"], on_sub["full"]),
+            ("pgd-50 / full", on_sub["pgd-50"], on_sub["full"]),
+            ("lean x2 / lean", on_sub["lean x2"], on_sub["lean"]),
+        ):
             checks += [{"model": model, "check": name, **row} for row in ratio_rows(r, ref)]
-        checks += [{"model": model, "check": "full >= each member (reference: the strongest)", "eps": row["eps"],
-                    "error": row["error"], "result": row["suite"], "reference": row["strongest_mean"],
-                    "ratio": row["suite"] / row["strongest_mean"], "ok": row["ok"]}
-                   for row in sanity_rows(on_sub["full"])]
+        checks += [
+            {
+                "model": model,
+                "check": "full >= each member (reference: the strongest)",
+                "eps": row["eps"],
+                "error": row["error"],
+                "result": row["suite"],
+                "reference": row["strongest_mean"],
+                "ratio": row["suite"] / row["strongest_mean"],
+                "ok": row["ok"],
+            }
+            for row in sanity_rows(on_sub["full"])
+        ]
         print(markdown_table([r for r in table if r["model"] == model]), flush=True)
     load1 = os.getloadavg()[0]
-    body = (f"`benchmarks/attack_suite.py` on {platform.machine()}, torch {torch.__version__}, {args.threads} "
-            f"thread(s), CPU; {len(rows)} seeded test frames (seed {args.seed}), the full suite and the doubled "
-            f"lean suite on a seeded subsample of {len(sub)} of them; load average {load0:.1f} at the start, "
-            f"{load1:.1f} at the end (other processes were not stopped). Worst case per frame nested in eps; "
-            f"means with 95% intervals (normal approximation); CPU s / frame: process time per frame at that eps "
-            f"(all members).\n\nLean: {', '.join(LEAN.members)}; {LEAN.steps} steps, {LEAN.restarts} restarts "
-            f"({'/'.join(LEAN.starts)} starts). Full: {', '.join(full_cfg.members)}; {full_cfg.steps} steps, "
-            f"{full_cfg.restarts} restarts ({'/'.join(full_cfg.starts)}), Square {full_cfg.queries} queries at eps "
-            f"{full_cfg.square_eps:g}; on a model without a clamp a bpda member is skipped beside the apgd member of "
-            f"its objective (the same attack).\n\n"
-            f"{markdown_table(table)}\nRatios of mean worst cases on the subsample (ok: within 5%):\n\n"
-            f"{markdown_table(checks, decimals=3)}\nFrames whose full-suite worst case each member found:\n\n"
-            + "\n".join(markdown_table(rows) for rows in members.values()))
+    body = (
+        f"`benchmarks/attack_suite.py` on {platform.machine()}, torch {torch.__version__}, {args.threads} "
+        f"thread(s), CPU; {len(rows)} seeded test frames (seed {args.seed}), the full suite and the doubled "
+        f"lean suite on a seeded subsample of {len(sub)} of them; load average {load0:.1f} at the start, "
+        f"{load1:.1f} at the end (other processes were not stopped). Worst case per frame nested in eps; "
+        f"means with 95% intervals (normal approximation); CPU s / frame: process time per frame at that eps "
+        f"(all members).\n\nLean: {', '.join(LEAN.members)}; {LEAN.steps} steps, {LEAN.restarts} restarts "
+        f"({'/'.join(LEAN.starts)} starts). Full: {', '.join(full_cfg.members)}; {full_cfg.steps} steps, "
+        f"{full_cfg.restarts} restarts ({'/'.join(full_cfg.starts)}), Square {full_cfg.queries} queries at eps "
+        f"{full_cfg.square_eps:g}; on a model without a clamp a bpda member is skipped beside the apgd member of "
+        f"its objective (the same attack).\n\n"
+        f"{markdown_table(table)}\nRatios of mean worst cases on the subsample (ok: within 5%):\n\n"
+        f"{markdown_table(checks, decimals=3)}\nFrames whose full-suite worst case each member found:\n\n"
+        + "\n".join(markdown_table(rows) for rows in members.values())
+    )
     print(body)
     print(f"-> {write_benchmark('Strongest attack suite', body)} (## Strongest attack suite)")
 

@@ -11,6 +11,7 @@ Prints a table and writes the `## Safety chain latency` section of reports/bench
 
     .venv/bin/python benchmarks/chain_latency.py [--threads 1] [--seconds 20]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -29,12 +30,12 @@ sys.path.insert(0, str(ROOT))
 
 from pipeline.defense.chain import OnboardChain  # noqa: E402
 from pipeline.defense.fusion import Defense, DefenseSettings  # noqa: E402
-from pipeline.detectors.lstm import LSTMConfig, LSTMDetector  # noqa: E402
-from pipeline.pose.model import PoseNet  # noqa: E402
 from pipeline.defense.gate import MotionSettings  # noqa: E402
 from pipeline.defense.noise import NoiseModel  # noqa: E402
-from pipeline.report.markdown import markdown_table  # noqa: E402
+from pipeline.detectors.lstm import LSTMConfig, LSTMDetector  # noqa: E402
 from pipeline.geometry.trajectories import look_at  # noqa: E402
+from pipeline.pose.model import PoseNet  # noqa: E402
+from pipeline.report.markdown import markdown_table  # noqa: E402
 from stages.report import write_benchmark  # noqa: E402
 
 CONFIGS = [("default", 0.25, 90, 160), ("paper", 1.0, 270, 480)]
@@ -98,6 +99,7 @@ def defended(chain: OnboardChain, x: torch.Tensor, frames: int = 5000) -> Callab
         out = chain(x)
         k = next(frame)
         return defense.step(t_cam[k], float(out.prob[0]), R_cam[k], u, R_pred[k])
+
     return step
 
 
@@ -124,6 +126,7 @@ def defense_alone(seconds: float) -> float:
     def step() -> object:
         state["rel"] = state["rel"] + u
         return d.step(R_cam.T @ state["rel"], 0.0, R_cam, u, R_cam.T)
+
     return alone(step, seconds)
 
 
@@ -134,24 +137,40 @@ def row(name: str, width: float, h: int, w: int, seconds: float) -> dict[str, ob
     with torch.inference_mode():
         features = fast.model.forward_features(x)
         tail = alone(lambda: fast._fast(features), seconds / 8)
-    t = interleaved({"pose": lambda: fast.pose_only(x), "chain": lambda: fast(x),
-                     "defended": defended(fast, x), "plain": lambda: plain(x)}, seconds)
+    t = interleaved(
+        {
+            "pose": lambda: fast.pose_only(x),
+            "chain": lambda: fast(x),
+            "defended": defended(fast, x),
+            "plain": lambda: plain(x),
+        },
+        seconds,
+    )
     pose = t["pose"]["cpu"]
     ratio = t["defended"]["cpu"] / pose
-    return {"config": name, "input": f"{w}x{h}", "width": width, "pose CPU (ms)": pose * 1e3,
-            "chain CPU (ms)": t["chain"]["cpu"] * 1e3, "SHAP + detector alone (ms)": tail * 1e3,
-            "chain ratio": t["chain"]["cpu"] / pose,
-            "chain wall ratio": t["chain"]["wall"] / t["pose"]["wall"],
-            "defense in the loop (ms)": (t["defended"]["cpu"] - t["chain"]["cpu"]) * 1e3,
-            "chain + defense ratio": ratio, "plain chain ratio": t["plain"]["cpu"] / pose,
-            "max prob diff to plain": f"{diff:.1e}", "pose identical": "yes" if same_pose else "no",
-            "target <= 1.05x": "yes" if ratio <= 1.05 else "no"}
+    return {
+        "config": name,
+        "input": f"{w}x{h}",
+        "width": width,
+        "pose CPU (ms)": pose * 1e3,
+        "chain CPU (ms)": t["chain"]["cpu"] * 1e3,
+        "SHAP + detector alone (ms)": tail * 1e3,
+        "chain ratio": t["chain"]["cpu"] / pose,
+        "chain wall ratio": t["chain"]["wall"] / t["pose"]["wall"],
+        "defense in the loop (ms)": (t["defended"]["cpu"] - t["chain"]["cpu"]) * 1e3,
+        "chain + defense ratio": ratio,
+        "plain chain ratio": t["plain"]["cpu"] / pose,
+        "max prob diff to plain": f"{diff:.1e}",
+        "pose identical": "yes" if same_pose else "no",
+        "target <= 1.05x": "yes" if ratio <= 1.05 else "no",
+    }
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--threads", type=int, default=1,
-                    help="torch CPU threads (1: steadier on a CPU shared with other jobs)")
+    ap.add_argument(
+        "--threads", type=int, default=1, help="torch CPU threads (1: steadier on a CPU shared with other jobs)"
+    )
     ap.add_argument("--seconds", type=float, default=20.0, help="timing budget per configuration")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -172,7 +191,7 @@ def body(table: str, rows: list[dict[str, object]], defense: float, threads: int
     """The benchmark section's text around `table`."""
     d = rows[0]
     in_chain = float(d["chain CPU (ms)"]) - float(d["pose CPU (ms)"])
-    verdict = ("meets" if float(d["chain + defense ratio"]) <= 1.05 else "does not meet")
+    verdict = "meets" if float(d["chain + defense ratio"]) <= 1.05 else "does not meet"
     return f"""`benchmarks/chain_latency.py` on {platform.processor() or platform.machine()}, torch
 {torch.__version__}, {threads} thread(s), batch 1, random weights, medians of interleaved calls on the
 same model object; load average {load:.1f} at the start, {os.getloadavg()[0]:.1f} at the end, on

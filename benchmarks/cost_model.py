@@ -12,6 +12,7 @@ GPU` with --device cuda; other sections are kept).
 Usage: .venv/bin/python benchmarks/cost_model.py [--device cpu|cuda] [--repeats 2] [--render-rate R] [--no-write]
 --render-rate: frames/s of the Cycles unit, given instead of measured (a GPU box whose Python has no bpy).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -23,9 +24,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-TARGET_S = 2 * 3600                 # the issue's target: paper profile end to end in under 2 hours
-TARGET_CORES = 16                   # ... on one H100-class GPU with 16 cores
-BATCHES = {"cpu": (4, 8), "cuda": (32, 64)}   # (training / gradient batch, forward batch): seconds per unit here
+TARGET_S = 2 * 3600  # the issue's target: paper profile end to end in under 2 hours
+TARGET_CORES = 16  # ... on one H100-class GPU with 16 cores
+BATCHES = {"cpu": (4, 8), "cuda": (32, 64)}  # (training / gradient batch, forward batch): seconds per unit here
 UNITS = {
     "render": "one 480x270 Cycles frame (paper samples)",
     "train": "one training image: forward + backward + Adam (width 1, 480x270)",
@@ -59,9 +60,13 @@ def detector_counts(p: dict[str, Any]) -> dict[str, float]:
     attacked = s["per_eps"] * len(s["eps"])
     samples = s["normal"] + attacked
     fit = samples * (1 - d["test_fraction"])
-    return {"render": -(-max(s["normal"], attacked) // s["frames"]) * s["frames"], "gradient": attacked,
-            "shap_forward": s["background"] + samples, "lstm": d["epochs"] * fit,
-            "squeeze_forward": 2 * samples * ("squeeze" in d["baselines"])}
+    return {
+        "render": -(-max(s["normal"], attacked) // s["frames"]) * s["frames"],
+        "gradient": attacked,
+        "shap_forward": s["background"] + samples,
+        "lstm": d["epochs"] * fit,
+        "squeeze_forward": 2 * samples * ("squeeze" in d["baselines"]),
+    }
 
 
 def guidance_counts(p: dict[str, Any], renders_per_step: float) -> dict[str, float]:
@@ -119,22 +124,36 @@ def paper_counts(p: dict[str, Any], renders_per_step: float = 1.0) -> dict[str, 
         "calibrate": {"forward": 2 * 2 * val_frames},
         "evaluate": {"forward": eval_frames * (1 + len(e["eps"])), "gradient": eval_frames * len(e["eps"]) * frac},
         "surrogate": training_counts(n, p, p["robustness"]["surrogate_epochs"]),
-        "robustness": {"gradient": p["robustness"]["frames"] * robustness_gradients_per_frame(p),
-                       "forward": p["robustness"]["frames"] * robustness_rows(p)},
-        "lab": {"render": lab_frames, "forward": lab_frames * (1 + len(a["eps"])),
-                "gradient": lab_frames * len(a["eps"]) * attacked_fraction(e["p_start"], lab["attack_length"])},
+        "robustness": {
+            "gradient": p["robustness"]["frames"] * robustness_gradients_per_frame(p),
+            "forward": p["robustness"]["frames"] * robustness_rows(p),
+        },
+        "lab": {
+            "render": lab_frames,
+            "forward": lab_frames * (1 + len(a["eps"])),
+            "gradient": lab_frames * len(a["eps"]) * attacked_fraction(e["p_start"], lab["attack_length"]),
+        },
     }
-    if lab["retrain"] == "always":   # the synthetic-lab sub-pipeline: render, train, shap, detect again
+    if lab["retrain"] == "always":  # the synthetic-lab sub-pipeline: render, train, shap, detect again
         sub = training_counts(n, p, p["train"]["epochs"])
-        counts["lab_models"] = {"render": n + det["render"], "train": sub["train"], "gradient": det["gradient"],
-                                "forward": sub["forward"] + det["shap_forward"], "lstm": det["lstm"]}
+        counts["lab_models"] = {
+            "render": n + det["render"],
+            "train": sub["train"],
+            "gradient": det["gradient"],
+            "forward": sub["forward"] + det["shap_forward"],
+            "lstm": det["lstm"],
+        }
     return counts
 
 
 def predict(counts: dict[str, dict[str, float]], seconds: dict[str, float]) -> list[dict[str, Any]]:
     """One row per (stage, unit): count, measured rate (units/s) and predicted seconds = count x s/unit."""
-    return [{"stage": stage, "unit": unit, "count": count, "rate": 1 / seconds[unit], "seconds": count * seconds[unit]}
-            for stage, units in counts.items() for unit, count in units.items() if count > 0]
+    return [
+        {"stage": stage, "unit": unit, "count": count, "rate": 1 / seconds[unit], "seconds": count * seconds[unit]}
+        for stage, units in counts.items()
+        for unit, count in units.items()
+        if count > 0
+    ]
 
 
 def stage_totals(rows: list[dict[str, Any]]) -> dict[str, float]:
@@ -215,8 +234,12 @@ def measure_lstm(repeats: int, n: int = 256) -> tuple[float, float]:
     x = rng.normal(size=(n, 9, 1000)).astype(np.float32)
     y = (rng.random(n) < 0.5).astype(np.float32)
     epochs = max(1, repeats)
-    fit = lambda: train_lstm(x[: n * 3 // 4], y[: n * 3 // 4], x[n * 3 // 4:], y[n * 3 // 4:],  # noqa: E731
-                             LSTMConfig(), epochs=epochs)
+
+    def fit() -> Any:
+        return train_lstm(
+            x[: n * 3 // 4], y[: n * 3 // 4], x[n * 3 // 4 :], y[n * 3 // 4 :], LSTMConfig(), epochs=epochs
+        )
+
     return per(timed(fit, 1, lambda: None), epochs * n)
 
 
@@ -230,11 +253,13 @@ def measure_render(p: dict[str, Any], repeats: int) -> tuple[float, float]:
     typed = build(p)
     _, _, R, t = frames(typed)
     idx = np.linspace(0, len(t) - 1, repeats + 1).round().astype(int)
-    poses = iter(idx)                  # the warm-up and each timed call render a pose of their own
+    poses = iter(idx)  # the warm-up and each timed call render a pose of their own
     with Renderer(intrinsics(typed), scene_settings(typed.render)) as r:
+
         def one() -> None:
             i = next(poses)
             r.render(R[i], t[i])
+
         return timed(one, repeats, lambda: None)
 
 
@@ -249,8 +274,10 @@ def renders_per_step() -> tuple[float, str]:
         return 1.0, "no guidance metrics: every step renders"
     m = json.loads(path.read_text())
     renders, steps = m["renders"] + m["defended"]["renders"], m["steps"] + m["defended"]["steps"]
-    return renders / steps, (f"{renders / steps:.2f} renders per step, as in the last guidance run "
-                             f"({m.get('profile', 'default')} profile, reports/metrics/guidance.json)")
+    return renders / steps, (
+        f"{renders / steps:.2f} renders per step, as in the last guidance run "
+        f"({m.get('profile', 'default')} profile, reports/metrics/guidance.json)"
+    )
 
 
 def unit_totals(rows: list[dict[str, Any]]) -> dict[str, float]:
@@ -268,59 +295,95 @@ def body(rows: list[dict[str, Any]], idle: list[dict[str, Any]], facts: dict[str
 
     totals, idle_totals = stage_totals(rows), stage_totals(idle)
     total, idle_total = sum(totals.values()), sum(idle_totals.values())
-    table = markdown_table([{"stage": r["stage"], "unit": r["unit"], "count": f"{r['count']:,.0f}",
-                             "measured rate (units/s)": f"{r['rate']:.3g}",
-                             "predicted time (h)": f"{r['seconds'] / 3600:.2f}",
-                             "idle-machine estimate (h)": f"{q['seconds'] / 3600:.2f}"} for r, q in zip(rows, idle)])
-    stages = markdown_table([{"stage": k, "predicted time (h)": f"{v / 3600:.1f}",
-                              "idle-machine estimate (h)": f"{idle_totals[k] / 3600:.1f}", "share": f"{v / total:.1%}"}
-                             for k, v in totals.items()])
+    table = markdown_table(
+        [
+            {
+                "stage": r["stage"],
+                "unit": r["unit"],
+                "count": f"{r['count']:,.0f}",
+                "measured rate (units/s)": f"{r['rate']:.3g}",
+                "predicted time (h)": f"{r['seconds'] / 3600:.2f}",
+                "idle-machine estimate (h)": f"{q['seconds'] / 3600:.2f}",
+            }
+            for r, q in zip(rows, idle)
+        ]
+    )
+    stages = markdown_table(
+        [
+            {
+                "stage": k,
+                "predicted time (h)": f"{v / 3600:.1f}",
+                "idle-machine estimate (h)": f"{idle_totals[k] / 3600:.1f}",
+                "share": f"{v / total:.1%}",
+            }
+            for k, v in totals.items()
+        ]
+    )
     need, rate = required_rates(idle, TARGET_S), {r["unit"]: r["rate"] for r in idle}
-    req = markdown_table([{"unit": u, "what": UNITS[u], "count": f"{n:,.0f}",
-                           "idle-machine rate here (units/s)": f"{rate[u]:.3g}",
-                           "REQUIRED floor: alone in 2 h (units/s)": f"{n / TARGET_S:.3g}",
-                           "REQUIRED at its share of 2 h (units/s)": f"{need[u]:.3g}"}
-                          for u, n in unit_totals(rows).items()])
+    req = markdown_table(
+        [
+            {
+                "unit": u,
+                "what": UNITS[u],
+                "count": f"{n:,.0f}",
+                "idle-machine rate here (units/s)": f"{rate[u]:.3g}",
+                "REQUIRED floor: alone in 2 h (units/s)": f"{n / TARGET_S:.3g}",
+                "REQUIRED at its share of 2 h (units/s)": f"{need[u]:.3g}",
+            }
+            for u, n in unit_totals(rows).items()
+        ]
+    )
     top = ", ".join(f"{k} {v / total:.0%}" for k, v in list(totals.items())[:4])
     renders = unit_totals(rows)["render"]
     on = f"one {facts['gpu']} and " if facts["gpu"] else ""
     rendering = sum(r["seconds"] for r in rows if r["unit"] == "render")
-    dominant = (f"The Cycles renders dominate ({rendering / 3600:,.1f} h); every torch unit together takes "
-                f"{(total - rendering) / 3600:,.2f} h." if rendering > total / 2 else
-                f"Three trainings of the width-1 network at 480x270 (train, surrogate and the synthetic-lab retraining "
-                f"of lab_models, 50 epochs each) and the robustness stage's "
-                f"{robustness_gradients_per_frame(facts['params']):.0f} input gradients per held-out frame dominate.")
+    dominant = (
+        f"The Cycles renders dominate ({rendering / 3600:,.1f} h); every torch unit together takes "
+        f"{(total - rendering) / 3600:,.2f} h."
+        if rendering > total / 2
+        else f"Three trainings of the width-1 network at 480x270 (train, surrogate and the synthetic-lab retraining "
+        f"of lab_models, 50 epochs each) and the robustness stage's "
+        f"{robustness_gradients_per_frame(facts['params']):.0f} input gradients per held-out frame dominate."
+    )
     given = facts["render_given"]
-    render_note = ("" if given is None else
-                   f" The Cycles frame was not rendered here (this Python has no bpy): its rate, {given:g} frames/s at "
-                   f"{facts['render_threads']} threads, is given (--render-rate), as measured on the 2-core CPU machine.")
-    gpu_note = (f"The torch units above ran on {facts['gpu']} (CUDA, bf16 autocast, channels_last); the LSTM's "
-                f"training runs on the CPU." if facts["gpu"] else
-                f"The CUDA path of the torch stages is written (device param, bf16 autocast, channels_last, pinned "
-                f"uint8 batches, NCCL under torchrun); its rates are measured with `--device cuda` on a GPU box "
-                f"(section \"Paper-profile cost model on a GPU\", when one was run).")
-    return (f"`benchmarks/cost_model.py --device {facts['device']}` on {on}{platform.machine()}, "
-            f"{os.cpu_count()} cores, torch {facts['torch']}, {facts['threads']} threads, AMP "
-            f"{'bf16' if facts['amp'] else 'off (CPU)'}; median of {facts['repeats']} repeats after a warm-up per "
-            f"unit (training and gradients at batch {facts['batches'][0]}, batched forwards at batch "
-            f"{facts['batches'][1]}: small batches keep the measurement to seconds); load average "
-            f"{facts['load'][0]:.1f} at the start, {facts['load'][1]:.1f} at the end (other jobs were not "
-            f"stopped, so the wall rates are pessimistic; the idle-machine estimate is CPU time per unit over the "
-            f"threads). Counts from conf/config.yaml + conf/profile/paper.yaml (`paper_counts`); guidance: "
-            f"{facts['rps_note']}; detect: every one of detect.epochs (early stopping ends sooner: an upper "
-            f"bound); evaluate and lab: the expected attacked fraction of the schedule. Label and report are "
-            f"left out (seconds).{render_note}\n\n{table}\n"
-            f"Predicted per stage on this machine: **{total / 3600:,.0f} h** as measured, **{idle_total / 3600:,.0f} "
-            f"h** idle (largest: {top}). {dominant}\n\n"
-            f"{stages}\n"
-            f"**Requirement, not a measurement.** The issue's target is the paper profile end to end in under 2 h "
-            f"on one H100-class GPU with {TARGET_CORES} cores: {idle_total / TARGET_S:,.0f}x this machine's idle "
-            f"estimate. The floor is the rate a unit needs even if it had the whole 2 h; at its share, every unit "
-            f"keeps the share of the time it has here:\n\n{req}\n"
-            f"Rendering stays on the CPU (Cycles, pipeline/render/scene.py): at {TARGET_CORES} instead of "
-            f"{facts['render_threads']} threads, with linear scaling, the {renders:,.0f} renders would take "
-            f"{renders / (rate['render'] * TARGET_CORES / facts['render_threads']) / 60:.0f} min of the 120, so the "
-            f"target also needs Cycles on the GPU or more render machines (Ray). {gpu_note}")
+    render_note = (
+        ""
+        if given is None
+        else f" The Cycles frame was not rendered here (this Python has no bpy): its rate, {given:g} frames/s at "
+        f"{facts['render_threads']} threads, is given (--render-rate), as measured on the 2-core CPU machine."
+    )
+    gpu_note = (
+        f"The torch units above ran on {facts['gpu']} (CUDA, bf16 autocast, channels_last); the LSTM's "
+        f"training runs on the CPU."
+        if facts["gpu"]
+        else "The CUDA path of the torch stages is written (device param, bf16 autocast, channels_last, pinned "
+        "uint8 batches, NCCL under torchrun); its rates are measured with `--device cuda` on a GPU box "
+        '(section "Paper-profile cost model on a GPU", when one was run).'
+    )
+    return (
+        f"`benchmarks/cost_model.py --device {facts['device']}` on {on}{platform.machine()}, "
+        f"{os.cpu_count()} cores, torch {facts['torch']}, {facts['threads']} threads, AMP "
+        f"{'bf16' if facts['amp'] else 'off (CPU)'}; median of {facts['repeats']} repeats after a warm-up per "
+        f"unit (training and gradients at batch {facts['batches'][0]}, batched forwards at batch "
+        f"{facts['batches'][1]}: small batches keep the measurement to seconds); load average "
+        f"{facts['load'][0]:.1f} at the start, {facts['load'][1]:.1f} at the end (other jobs were not "
+        f"stopped, so the wall rates are pessimistic; the idle-machine estimate is CPU time per unit over the "
+        f"threads). Counts from conf/config.yaml + conf/profile/paper.yaml (`paper_counts`); guidance: "
+        f"{facts['rps_note']}; detect: every one of detect.epochs (early stopping ends sooner: an upper "
+        f"bound); evaluate and lab: the expected attacked fraction of the schedule. Label and report are "
+        f"left out (seconds).{render_note}\n\n{table}\n"
+        f"Predicted per stage on this machine: **{total / 3600:,.0f} h** as measured, **{idle_total / 3600:,.0f} "
+        f"h** idle (largest: {top}). {dominant}\n\n"
+        f"{stages}\n"
+        f"**Requirement, not a measurement.** The issue's target is the paper profile end to end in under 2 h "
+        f"on one H100-class GPU with {TARGET_CORES} cores: {idle_total / TARGET_S:,.0f}x this machine's idle "
+        f"estimate. The floor is the rate a unit needs even if it had the whole 2 h; at its share, every unit "
+        f"keeps the share of the time it has here:\n\n{req}\n"
+        f"Rendering stays on the CPU (Cycles, pipeline/render/scene.py): at {TARGET_CORES} instead of "
+        f"{facts['render_threads']} threads, with linear scaling, the {renders:,.0f} renders would take "
+        f"{renders / (rate['render'] * TARGET_CORES / facts['render_threads']) / 60:.0f} min of the 120, so the "
+        f"target also needs Cycles on the GPU or more render machines (Ray). {gpu_note}"
+    )
 
 
 def main() -> None:
@@ -333,8 +396,12 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (torch units; rendering is Cycles on the CPU)")
     ap.add_argument("--repeats", type=int, default=2, help="timed repeats per unit (after one warm-up)")
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="torch CPU threads")
-    ap.add_argument("--render-rate", type=float, default=None,
-                    help="frames/s of the 480x270 Cycles frame measured elsewhere (where this Python has no bpy)")
+    ap.add_argument(
+        "--render-rate",
+        type=float,
+        default=None,
+        help="frames/s of the 480x270 Cycles frame measured elsewhere (where this Python has no bpy)",
+    )
     ap.add_argument("--no-write", action="store_true", help="print only; leave reports/benchmarks.md alone")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -347,17 +414,26 @@ def main() -> None:
         measured["render"] = measure_render(p, args.repeats)
     elif not args.render_rate > 0:
         raise SystemExit(f"--render-rate must be frames/s > 0, got {args.render_rate}")
-    else:                              # wall and CPU of an idle machine at render.threads
+    else:  # wall and CPU of an idle machine at render.threads
         measured["render"] = (1 / args.render_rate, threads["render"] / args.render_rate)
     rps, note = renders_per_step()
     counts = paper_counts(p, rps)
     rows = predict(counts, {u: wall for u, (wall, _) in measured.items()})
     idle = rows if amp else predict(counts, {u: cpu / threads[u] for u, (_, cpu) in measured.items()})
-    facts = {"device": args.device, "torch": torch.__version__, "threads": args.threads, "amp": amp,
-             "repeats": args.repeats, "batches": BATCHES["cpu" if args.device == "cpu" else "cuda"],
-             "load": (load0, os.getloadavg()[0]), "rps_note": note, "params": p, "render_threads": threads["render"],
-             "render_given": args.render_rate,
-             "gpu": torch.cuda.get_device_name(args.device) if args.device.startswith("cuda") else None}
+    facts = {
+        "device": args.device,
+        "torch": torch.__version__,
+        "threads": args.threads,
+        "amp": amp,
+        "repeats": args.repeats,
+        "batches": BATCHES["cpu" if args.device == "cpu" else "cuda"],
+        "load": (load0, os.getloadavg()[0]),
+        "rps_note": note,
+        "params": p,
+        "render_threads": threads["render"],
+        "render_given": args.render_rate,
+        "gpu": torch.cuda.get_device_name(args.device) if args.device.startswith("cuda") else None,
+    }
     text = body(rows, idle, facts)
     print(text)
     section = "Paper-profile cost model" + (" on a GPU" if facts["gpu"] else "")

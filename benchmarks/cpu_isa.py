@@ -16,6 +16,7 @@ stages/config/cpu.py).
 
 Usage: python benchmarks/cpu_isa.py [--rounds 3] [--epochs 2] [--data /work/main] [--frames 40]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -45,15 +46,22 @@ CONFIGS: dict[str, dict[str, str]] = {
 def env_of(pins: dict[str, str]) -> dict[str, str]:
     """The environment of a configuration: these pins and no others (`rpod` adds none: RPOD_CPU_ISA=native)."""
     env = {k: v for k, v in os.environ.items() if k not in PINS}
-    env.update({"RPOD_CPU_ISA": "native", "OMP_WAIT_POLICY": "PASSIVE", **pins,
-                "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))})
+    env.update(
+        {
+            "RPOD_CPU_ISA": "native",
+            "OMP_WAIT_POLICY": "PASSIVE",
+            **pins,
+            "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])),
+        }
+    )
     return env
 
 
 def probe(kind: str, pins: dict[str, str], *extra: str) -> dict[str, Any]:
     """Run this script's `--probe kind` in a fresh process with `pins`; its JSON answer (last line)."""
-    out = subprocess.run([sys.executable, __file__, "--probe", kind, *extra], env=env_of(pins), cwd=ROOT,
-                         capture_output=True, text=True)
+    out = subprocess.run(
+        [sys.executable, __file__, "--probe", kind, *extra], env=env_of(pins), cwd=ROOT, capture_output=True, text=True
+    )
     if out.returncode != 0:
         raise SystemExit(f"probe {kind} failed:\n{out.stderr[-2000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -88,8 +96,13 @@ def speed_probe(batches: int) -> dict[str, Any]:
     one = x[:1].contiguous(memory_format=torch.channels_last)
     with torch.inference_mode():
         forward = _timed(lambda: model(one), 4 * batches)
-    return {"train_ips": b / train[0], "train_cpu_ms": 1000 * train[1] / b, "forward_ms": 1000 * forward[0],
-            "forward_cpu_ms": 1000 * forward[1], "kernels": torch.backends.cpu.get_cpu_capability()}
+    return {
+        "train_ips": b / train[0],
+        "train_cpu_ms": 1000 * train[1] / b,
+        "forward_ms": 1000 * forward[0],
+        "forward_cpu_ms": 1000 * forward[1],
+        "kernels": torch.backends.cpu.get_cpu_capability(),
+    }
 
 
 def _timed(call: Any, n: int) -> tuple[float, float]:
@@ -107,9 +120,9 @@ def _timed(call: Any, n: int) -> tuple[float, float]:
 def render_probe(frames: int) -> dict[str, Any]:
     """(in a probe process) Cycles: images/s and a pixel hash per kernel and thread setting."""
     import bpy
+    from render_speed import poses
 
     from pipeline.render.scene import Renderer
-    from render_speed import poses
     from stages.config import params as params_mod
     from stages.config.build import intrinsics, scene_settings
 
@@ -117,11 +130,13 @@ def render_probe(frames: int) -> dict[str, Any]:
     K, base = intrinsics(p), scene_settings(p.render)
     R, t = poses(p, frames)
     out = {}
-    for name, threads, avx2 in ((f"AVX2 kernel, {base.threads} threads", base.threads, True),
-                                ("AVX2 kernel, 1 thread", 1, True),
-                                (f"SSE4.2 kernel, {base.threads} threads", base.threads, False)):
+    for name, threads, avx2 in (
+        (f"AVX2 kernel, {base.threads} threads", base.threads, True),
+        ("AVX2 kernel, 1 thread", 1, True),
+        (f"SSE4.2 kernel, {base.threads} threads", base.threads, False),
+    ):
         r = Renderer(K, dataclasses.replace(base, threads=threads))
-        prefs = bpy.context.preferences   # the scene's Cycles debug flags apply only with these two set
+        prefs = bpy.context.preferences  # the scene's Cycles debug flags apply only with these two set
         prefs.experimental.use_cycles_debug = prefs.view.show_developer_ui = not avx2
         r.scene.cycles.debug_use_cpu_avx2 = avx2
         try:
@@ -129,8 +144,11 @@ def render_probe(frames: int) -> dict[str, Any]:
             digest, t0, c0 = hashlib.sha256(), time.perf_counter(), time.process_time()
             for Ri, ti in zip(R, t):
                 digest.update(r.render(Ri, ti).tobytes())
-            out[name] = {"images_per_s": len(R) / (time.perf_counter() - t0),
-                         "cpu_ms": 1000 * (time.process_time() - c0) / len(R), "pixels": digest.hexdigest()[:16]}
+            out[name] = {
+                "images_per_s": len(R) / (time.perf_counter() - t0),
+                "cpu_ms": 1000 * (time.process_time() - c0) / len(R),
+                "pixels": digest.hexdigest()[:16],
+            }
         finally:
             r.close()
     return out
@@ -150,15 +168,24 @@ def train_runs(data: Path, epochs: int, work: Path) -> list[dict[str, Any]]:
         env = env_of({})
         env["RPOD_CPU_ISA"] = cap
         t0 = time.perf_counter()
-        out = subprocess.run([sys.executable, "-m", "stages.cli", "train"], cwd=work, env=env, capture_output=True,
-                             text=True)
+        out = subprocess.run(
+            [sys.executable, "-m", "stages.cli", "train"], cwd=work, env=env, capture_output=True, text=True
+        )
         if out.returncode != 0:
             raise SystemExit(f"rpod train ({cap}) failed:\n{out.stderr[-2000:]}")
         m = json.loads((work / "reports/metrics/train.json").read_text())
         ckpt = work / f"pose_{i}_{cap}.pt"
         shutil.copy(work / "models/pose.pt", ckpt)
-        runs.append({"cap": cap, "checkpoint": ckpt, "seconds": time.perf_counter() - t0,
-                     "kernels": m["cpu_isa"]["kernels"], "val": m["val"], "test": m["test"]})
+        runs.append(
+            {
+                "cap": cap,
+                "checkpoint": ckpt,
+                "seconds": time.perf_counter() - t0,
+                "kernels": m["cpu_isa"]["kernels"],
+                "val": m["val"],
+                "test": m["test"],
+            }
+        )
     return runs
 
 
@@ -168,8 +195,11 @@ def weight_gap(a: Path, b: Path) -> tuple[bool, float]:
     import torch
 
     wa, wb = (torch.load(x, weights_only=True)["model"] for x in (a, b))
-    gap = max(float((wa[k].double() - wb[k].double()).abs().max() / max(float(wa[k].double().abs().max()), 1e-12))
-              for k in wa if wa[k].numel())
+    gap = max(
+        float((wa[k].double() - wb[k].double()).abs().max() / max(float(wa[k].double().abs().max()), 1e-12))
+        for k in wa
+        if wa[k].numel()
+    )
     return all(torch.equal(wa[k], wb[k]) for k in wa), gap
 
 
@@ -183,39 +213,73 @@ def speed_table(rounds: int, batches: int) -> list[dict[str, Any]]:
     keys = ("train_ips", "train_cpu_ms", "forward_ms", "forward_cpu_ms")
     med = {name: {k: statistics.median(x[k] for x in v) for k in keys} for name, v in seen.items()}
     base = med["native"]
-    return [{"configuration": name, "torch kernels": seen[name][0]["kernels"],
-             "training CPU ms/image": m["train_cpu_ms"],
-             "training cost vs native": m["train_cpu_ms"] / base["train_cpu_ms"],
-             "training images/s (wall)": m["train_ips"], "forward CPU ms": m["forward_cpu_ms"],
-             "forward cost vs native": m["forward_cpu_ms"] / base["forward_cpu_ms"],
-             "forward ms (wall)": m["forward_ms"]} for name, m in med.items()]
+    return [
+        {
+            "configuration": name,
+            "torch kernels": seen[name][0]["kernels"],
+            "training CPU ms/image": m["train_cpu_ms"],
+            "training cost vs native": m["train_cpu_ms"] / base["train_cpu_ms"],
+            "training images/s (wall)": m["train_ips"],
+            "forward CPU ms": m["forward_cpu_ms"],
+            "forward cost vs native": m["forward_cpu_ms"] / base["forward_cpu_ms"],
+            "forward ms (wall)": m["forward_ms"],
+        }
+        for name, m in med.items()
+    ]
 
 
 def train_table(runs: list[dict[str, Any]]) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Rows per training run and the comparisons: capped twice, native twice, capped against native."""
-    rows = [{"run": f"{i + 1}: {r['cap']}", "torch kernels": r["kernels"], "seconds": r["seconds"],
-             "val position (m)": r["val"]["pos_mean_m"], "val attitude (deg)": r["val"]["att_mean_deg"],
-             "test position (m)": r["test"]["pos_mean_m"], "test attitude (deg)": r["test"]["att_mean_deg"]}
-            for i, r in enumerate(runs)]
+    rows = [
+        {
+            "run": f"{i + 1}: {r['cap']}",
+            "torch kernels": r["kernels"],
+            "seconds": r["seconds"],
+            "val position (m)": r["val"]["pos_mean_m"],
+            "val attitude (deg)": r["val"]["att_mean_deg"],
+            "test position (m)": r["test"]["pos_mean_m"],
+            "test attitude (deg)": r["test"]["att_mean_deg"],
+        }
+        for i, r in enumerate(runs)
+    ]
     ck = [r["checkpoint"] for r in runs]
-    same = {"capped twice": weight_gap(ck[0], ck[2]), "native twice": weight_gap(ck[1], ck[3]),
-            "capped vs native": weight_gap(ck[0], ck[1])}
+    same = {
+        "capped twice": weight_gap(ck[0], ck[2]),
+        "native twice": weight_gap(ck[1], ck[3]),
+        "capped vs native": weight_gap(ck[0], ck[1]),
+    }
     return rows, same
 
 
-def write(speed: list[dict[str, Any]], train: tuple[list[dict[str, Any]], dict[str, Any]],
-          render: dict[str, Any], args: argparse.Namespace, load: tuple[float, float]) -> None:
+def write(
+    speed: list[dict[str, Any]],
+    train: tuple[list[dict[str, Any]], dict[str, Any]],
+    render: dict[str, Any],
+    args: argparse.Namespace,
+    load: tuple[float, float],
+) -> None:
     from pipeline.report.markdown import markdown_table
     from stages.report import write_benchmark
 
     rows, same = train
-    verdict = "; ".join(f"{k}: {'bit-identical' if eq else f'differ (largest relative weight difference {gap:.1e})'}"
-                        for k, (eq, gap) in same.items())
+    verdict = "; ".join(
+        f"{k}: {'bit-identical' if eq else f'differ (largest relative weight difference {gap:.1e})'}"
+        for k, (eq, gap) in same.items()
+    )
     capped = speed[-1]
-    cost = (f"Capping all three costs {100 * (capped['training cost vs native'] - 1):+.0f}% CPU time per training "
-            f"image and {100 * (capped['forward cost vs native'] - 1):+.0f}% per 1-image forward here.")
-    rrows = [{"Cycles setting": k, "images/s": v["images_per_s"], "CPU ms/image (all threads)": v["cpu_ms"],
-              "pixels (sha256 of all frames)": v["pixels"]} for k, v in render.items()]
+    cost = (
+        f"Capping all three costs {100 * (capped['training cost vs native'] - 1):+.0f}% CPU time per training "
+        f"image and {100 * (capped['forward cost vs native'] - 1):+.0f}% per 1-image forward here."
+    )
+    rrows = [
+        {
+            "Cycles setting": k,
+            "images/s": v["images_per_s"],
+            "CPU ms/image (all threads)": v["cpu_ms"],
+            "pixels (sha256 of all frames)": v["pixels"],
+        }
+        for k, v in render.items()
+    ]
     body = f"""`benchmarks/cpu_isa.py` on {platform.processor() or platform.machine()}, {os.cpu_count()} cores; load
 average {load[0]:.1f} at the start, {load[1]:.1f} at the end (other processes were not stopped: the
 configurations take turns, {args.rounds} rounds, medians; the CPU-time columns, all threads of the
@@ -245,8 +309,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rounds", type=int, default=3, help="speed rounds (the configurations take turns)")
     ap.add_argument("--epochs", type=int, default=2, help="epochs of each `rpod train` run")
-    ap.add_argument("--data", type=Path, default=ROOT,
-                    help="repository whose datasets/render and datasets/labels.parquet to train on")
+    ap.add_argument(
+        "--data",
+        type=Path,
+        default=ROOT,
+        help="repository whose datasets/render and datasets/labels.parquet to train on",
+    )
     ap.add_argument("--frames", type=int, default=40, help="frames per Cycles setting")
     ap.add_argument("--batches", type=int, default=12, help="timed training steps per speed probe")
     ap.add_argument("--probe", choices=["speed", "render"], help=argparse.SUPPRESS)

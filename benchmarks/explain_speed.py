@@ -9,6 +9,7 @@ the default architecture (timings do not depend on the weights). Prints a table 
 
     .venv/bin/python benchmarks/explain_speed.py [--background 200] [--threads 1]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -53,8 +54,11 @@ def load_models(width: float) -> tuple[PoseNet, LSTMDetector, str]:
 
         chain = load_chain(Path("models"), "standard", defended=False)
         return chain.model, chain.onboard.detector, "models/pose.pt, models/detector.pt"
-    return (PoseNet(width=width).eval(), LSTMDetector(LSTMConfig()).eval(),
-            f"random PoseNet(width={width}), random LSTM detector (100 units, dense [64])")
+    return (
+        PoseNet(width=width).eval(),
+        LSTMDetector(LSTMConfig()).eval(),
+        f"random PoseNet(width={width}), random LSTM detector (100 units, dense [64])",
+    )
 
 
 def main() -> None:
@@ -91,9 +95,12 @@ def main() -> None:
         head = Head(pose).eval()
         dls = DeepLiftShap(head)
         bg_t, x_t = torch.as_tensor(background), torch.as_tensor(feats[:k])
-        t_captum = per_call(lambda: [dls.attribute(x_t, baselines=bg_t, target=j) for j in range(9)],
-                            min_seconds=3.0) / k
-        rows.append({"method": f"captum DeepLiftShap on the head (9 targets), batch of {k}", "ms / image": t_captum * 1e3})
+        t_captum = (
+            per_call(lambda: [dls.attribute(x_t, baselines=bg_t, target=j) for j in range(9)], min_seconds=3.0) / k
+        )
+        rows.append(
+            {"method": f"captum DeepLiftShap on the head (9 targets), batch of {k}", "ms / image": t_captum * 1e3}
+        )
     except ImportError:
         rows.append({"method": "captum DeepLiftShap", "ms / image": "not installed"})
 

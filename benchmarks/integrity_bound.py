@@ -20,6 +20,7 @@ average, not an overbound, and all of it taken as the attack's shift.
 
     .venv/bin/python benchmarks/integrity_bound.py [--trajectories 3] [--stride 10] [--eps 0.01 0.05]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -36,19 +37,19 @@ sys.path.insert(0, str(ROOT))
 from pipeline.attacks.capacity import capacity_at, proportional_capacity  # noqa: E402
 from pipeline.defense.bound import ACCEPT, ALARM, HUBER, RESTART, record, worst_case  # noqa: E402
 from pipeline.defense.calibration import CleanRun  # noqa: E402
-from pipeline.pose.certify import certified_shift  # noqa: E402
 from pipeline.defense.integrity import alert_limit  # noqa: E402
 from pipeline.evaluation.integrity_runs import Track  # noqa: E402
 from pipeline.evaluation.robustness import pose_estimates  # noqa: E402
 from pipeline.geometry.labels import TARGET  # noqa: E402
+from pipeline.pose.certify import certified_shift  # noqa: E402
 from stages.artifacts.models import load_chain  # noqa: E402
 from stages.artifacts.paths import SHIPPED  # noqa: E402
 from stages.artifacts.readers import read_eval_render  # noqa: E402
 from stages.config.params import load  # noqa: E402
 
-PGD_MEAN_ERROR_M = {0.01: 0.67, 0.02: 0.83, 0.05: 1.46}   # reports/pose_robust.md, robust model, PGD-50
-MEAN_RANGE_M = 36.0                                       # the test frames' mean range there
-EDGES = np.arange(0.0, 85.0, 5.0)                         # m: the capacity's range bins
+PGD_MEAN_ERROR_M = {0.01: 0.67, 0.02: 0.83, 0.05: 1.46}  # reports/pose_robust.md, robust model, PGD-50
+MEAN_RANGE_M = 36.0  # the test frames' mean range there
+EDGES = np.arange(0.0, 85.0, 5.0)  # m: the capacity's range bins
 
 
 def main() -> None:
@@ -64,14 +65,18 @@ def main() -> None:
     safety = load_chain(params, SHIPPED)
     chain, d = safety.onboard, safety.defended
     limit = partial(alert_limit, settings=d.alert)
-    caps = [proportional_capacity(e, EDGES, PGD_MEAN_ERROR_M[e] / MEAN_RANGE_M, PGD_MEAN_ERROR_M[e] / MEAN_RANGE_M)
-            for e in sorted(PGD_MEAN_ERROR_M)]
-    print(f"shipped defense: gate {d.motion.gate:.2f} (soft {d.motion.soft_gate}), CUSUM c {d.motion.cusum_reference} "
-          f"h {d.motion.cusum_threshold}, trusted start {d.motion.trusted_start}, fusion {d.settings.fusion}; "
-          f"{len(trajs)} eval trajectories, first {args.trajectories}")
+    caps = [
+        proportional_capacity(e, EDGES, PGD_MEAN_ERROR_M[e] / MEAN_RANGE_M, PGD_MEAN_ERROR_M[e] / MEAN_RANGE_M)
+        for e in sorted(PGD_MEAN_ERROR_M)
+    ]
+    print(
+        f"shipped defense: gate {d.motion.gate:.2f} (soft {d.motion.soft_gate}), CUSUM c {d.motion.cusum_reference} "
+        f"h {d.motion.cusum_threshold}, trusted start {d.motion.trusted_start}, fusion {d.settings.fusion}; "
+        f"{len(trajs)} eval trajectories, first {args.trajectories}"
+    )
     summary: dict[float, list[dict[str, float]]] = {e: [] for e in args.eps}
     spared: dict[float, list[float]] = {e: [] for e in args.eps}
-    for g, ix in enumerate(trajs[:args.trajectories]):
+    for g, ix in enumerate(trajs[: args.trajectories]):
         track = Track(f"t{g}", images[ix], labels[ix])
         t0 = time.perf_counter()
         est, prob = pose_estimates(chain, track.images, 32)
@@ -80,42 +85,61 @@ def main() -> None:
         rng, al = np.linalg.norm(truth, axis=1), alert_limit(np.linalg.norm(truth, axis=1), d.alert)
         clean = record(d.settings, d.motion, d.noise, run, alert_limit=limit)
         err = np.linalg.norm(clean.trace.trusted - truth, axis=1)
-        print(f"\n{track.name}: {n} frames, range {rng[0]:.1f} -> {rng[-1]:.1f} m; chain {chain_s:.1f} s; clean: "
-              f"start frame {clean.start}, restart at {clean.horizon if clean.horizon < n else 'none'}, "
-              f"{int((clean.kind == HUBER).sum())} Huber, {int(clean.trace.flag.sum())} flags, "
-              f"{int(clean.trace.available.sum())} available, max error {np.nanmax(err):.2f} m, "
-              f"max error/PL {np.nanmax(err / clean.trace.pl):.2f}, restarts {int((clean.kind == RESTART).sum())}")
+        print(
+            f"\n{track.name}: {n} frames, range {rng[0]:.1f} -> {rng[-1]:.1f} m; chain {chain_s:.1f} s; clean: "
+            f"start frame {clean.start}, restart at {clean.horizon if clean.horizon < n else 'none'}, "
+            f"{int((clean.kind == HUBER).sum())} Huber, {int(clean.trace.flag.sum())} flags, "
+            f"{int(clean.trace.available.sum())} available, max error {np.nanmax(err):.2f} m, "
+            f"max error/PL {np.nanmax(err / clean.trace.pl):.2f}, restarts {int((clean.kind == RESTART).sum())}"
+        )
         targets = sorted(set(range(0, n, args.stride)) | {n - 1})
         for e in args.eps:
             cap = capacity_at(caps, e, rng)
             w = worst_case(d.settings, d.motion, d.noise, run, truth, cap, al, targets=targets, alert_limit=limit)
-            print(f"  eps {e}: {w.seconds:.1f} s for {len(targets)} targets "
-                  f"({w.seconds / len(targets):.2f} s per target); capacity at the start {cap[0, 0]:.2f} m")
+            print(
+                f"  eps {e}: {w.seconds:.1f} s for {len(targets)} targets "
+                f"({w.seconds / len(targets):.2f} s per target); capacity at the start {cap[0, 0]:.2f} m"
+            )
             print("    frame  range  AL    clean  upper  achieved  PL     upper/AL  achieved/PL  exact  available")
             for t, j in enumerate(w.targets):
-                print(f"    {j:5d}  {rng[j]:5.1f}  {w.alert[t]:4.1f}  {err[j]:5.2f}  {w.upper[t]:5.2f}  "
-                      f"{w.achieved[t]:8.2f}  {w.pl[t]:5.2f}  {w.ratio[t]:8.2f}  {w.achieved[t] / w.pl[t]:11.2f}  "
-                      f"{str(bool(w.exact[t])):5s}  {bool(w.available[t])}")
+                print(
+                    f"    {j:5d}  {rng[j]:5.1f}  {w.alert[t]:4.1f}  {err[j]:5.2f}  {w.upper[t]:5.2f}  "
+                    f"{w.achieved[t]:8.2f}  {w.pl[t]:5.2f}  {w.ratio[t]:8.2f}  {w.achieved[t] / w.pl[t]:11.2f}  "
+                    f"{str(bool(w.exact[t])):5s}  {bool(w.available[t])}"
+                )
             trusted = np.flatnonzero(np.isin(clean.kind, (ACCEPT, HUBER, ALARM)))[d.motion.trusted_start - 1]
             assumed = cap.copy()
-            assumed[:trusted + 1] = 0.0                           # the PL's assumption A: those frames fault-free
+            assumed[: trusted + 1] = 0.0  # the PL's assumption A: those frames fault-free
             later = [j for j in targets if j > trusted]
             a = worst_case(d.settings, d.motion, d.noise, run, truth, assumed, al, targets=later, alert_limit=limit)
             spared[e].append(float(np.nanmax(a.pl_index)))
-            print(f"    sparing frames <= {trusted} (assumption A): max achieved {np.nanmax(a.achieved):.2f} m, "
-                  f"max achieved/PL {np.nanmax(a.pl_index):.2f}")
-            summary[e].append({"upper_al": float(np.nanmax(w.ratio)), "achieved_pl": float(np.nanmax(w.pl_index)),
-                               "upper_m": float(np.nanmax(w.upper)), "exact": float(np.mean(w.exact)),
-                               "seconds": w.seconds, "per_target": w.seconds / len(targets),
-                               "all_targets": w.seconds / len(targets) * (n - clean.start)})
-    print("\neps    trajectories  max upper (m)  max upper/AL  max achieved/PL  (sparing A)  exact  s/trajectory  "
-          "s/trajectory at every frame (est.)")
+            print(
+                f"    sparing frames <= {trusted} (assumption A): max achieved {np.nanmax(a.achieved):.2f} m, "
+                f"max achieved/PL {np.nanmax(a.pl_index):.2f}"
+            )
+            summary[e].append(
+                {
+                    "upper_al": float(np.nanmax(w.ratio)),
+                    "achieved_pl": float(np.nanmax(w.pl_index)),
+                    "upper_m": float(np.nanmax(w.upper)),
+                    "exact": float(np.mean(w.exact)),
+                    "seconds": w.seconds,
+                    "per_target": w.seconds / len(targets),
+                    "all_targets": w.seconds / len(targets) * (n - clean.start),
+                }
+            )
+    print(
+        "\neps    trajectories  max upper (m)  max upper/AL  max achieved/PL  (sparing A)  exact  s/trajectory  "
+        "s/trajectory at every frame (est.)"
+    )
     for e, rows in summary.items():
-        print(f"{e:<6} {len(rows):12d}  {max(r['upper_m'] for r in rows):13.2f}  "
-              f"{max(r['upper_al'] for r in rows):12.2f}  "
-              f"{max(r['achieved_pl'] for r in rows):15.2f}  {max(spared[e]):11.2f}  "
-              f"{np.mean([r['exact'] for r in rows]):5.2f}  {np.mean([r['seconds'] for r in rows]):12.1f}  "
-              f"{np.mean([r['all_targets'] for r in rows]):10.0f}")
+        print(
+            f"{e:<6} {len(rows):12d}  {max(r['upper_m'] for r in rows):13.2f}  "
+            f"{max(r['upper_al'] for r in rows):12.2f}  "
+            f"{max(r['achieved_pl'] for r in rows):15.2f}  {max(spared[e]):11.2f}  "
+            f"{np.mean([r['exact'] for r in rows]):5.2f}  {np.mean([r['seconds'] for r in rows]):12.1f}  "
+            f"{np.mean([r['all_targets'] for r in rows]):10.0f}"
+        )
     certify(safety.model, Track("t0", images[trajs[0]], labels[trajs[0]]), caps, args.eps)
 
 
@@ -128,17 +152,21 @@ def certify(model: object, track: Track, caps: list, eps: list[float], every: in
     x = track.frames(ix)
     los = track.labels[ix, :3] / np.linalg.norm(track.labels[ix, :3], axis=1, keepdims=True)
     rng = np.linalg.norm(track.labels[ix, :3], axis=1)
-    print(f"\ninterval bound propagation on {len(ix)} frames of {track.name} (camera frame; along the LOS: "
-          f"sum_i |los_i| max shift_i)")
+    print(
+        f"\ninterval bound propagation on {len(ix)} frames of {track.name} (camera frame; along the LOS: "
+        f"sum_i |los_i| max shift_i)"
+    )
     for e in eps:
         t0 = time.perf_counter()
         with torch.no_grad():
             m = certified_shift(model, x, e).numpy()
         along = np.einsum("ni,ni->n", np.abs(los), m)
         cap = capacity_at(caps, e, rng)[:, 0]
-        print(f"  eps {e}: certified along-LOS shift median {np.median(along):.3g} m (min {along.min():.3g}, "
-              f"max {along.max():.3g}); capacity there median {np.median(cap):.2f} m: the certificate is "
-              f"{np.median(along / cap):.3g}x the capacity; {time.perf_counter() - t0:.1f} s")
+        print(
+            f"  eps {e}: certified along-LOS shift median {np.median(along):.3g} m (min {along.min():.3g}, "
+            f"max {along.max():.3g}); capacity there median {np.median(cap):.2f} m: the certificate is "
+            f"{np.median(along / cap):.3g}x the capacity; {time.perf_counter() - t0:.1f} s"
+        )
 
 
 if __name__ == "__main__":

@@ -6,6 +6,7 @@ Usage: .venv/bin/python benchmarks/render_scale.py [--frames 320 120] [--chunk 2
 Settings from params.yaml (render.*, camera.*); poses spread over the approach sequences (60 to 10 m).
 Every path writes a real zarr store through stages/engine/chunks.py, the same code `rpod render` runs.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -21,10 +22,10 @@ import numpy as np
 import psutil
 
 from pipeline.report.markdown import markdown_table
-from stages.engine import pool as engine
 from stages.config import params as params_mod
 from stages.config.build import intrinsics, scene_settings
 from stages.config.schema import Params
+from stages.engine import pool as engine
 from stages.engine.chunks import FrameRange, render_to_store
 from stages.report import write_benchmark
 
@@ -84,7 +85,9 @@ class CpuMeter:
         return sum(self.seen.values()) - self.start
 
 
-def timed_render(p: Params, w: int, h: int, n: int, chunk: int, es: engine.EngineSettings) -> tuple[float, float, np.ndarray]:
+def timed_render(
+    p: Params, w: int, h: int, n: int, chunk: int, es: engine.EngineSettings
+) -> tuple[float, float, np.ndarray]:
     """(wall s, CPU s of all processes, images) of rendering n poses at w x h into a fresh store."""
     import zarr
 
@@ -116,7 +119,7 @@ def ray_overhead(p: Params, cores: int, jobs: int = 200) -> dict[str, float]:
         engine.run(Noop, NoSetup(), [FrameRange(0, 1)], es)
         first = time.perf_counter() - t0
         t0 = time.perf_counter()
-        engine.run(Noop, NoSetup(), [FrameRange(0, 1)], es)   # a warm worker pool: the baseline for the per-chunk cost
+        engine.run(Noop, NoSetup(), [FrameRange(0, 1)], es)  # a warm worker pool: the baseline for the per-chunk cost
         one = time.perf_counter() - t0
         t0 = time.perf_counter()
         engine.run(Noop, NoSetup(), [FrameRange(i, i + 1) for i in range(jobs + 1)], es)
@@ -125,8 +128,13 @@ def ray_overhead(p: Params, cores: int, jobs: int = 200) -> dict[str, float]:
         t0 = time.perf_counter()
     down = time.perf_counter() - t0
     assert not ray.is_initialized()
-    return {"Ray start-up (s)": up, "Ray shut-down (s)": down, "worker start + first chunk (s)": first,
-            "per chunk (s)": max(per_chunk, 0.0), "Blender worker start + 1 frame (s)": blender}
+    return {
+        "Ray start-up (s)": up,
+        "Ray shut-down (s)": down,
+        "worker start + first chunk (s)": first,
+        "per chunk (s)": max(per_chunk, 0.0),
+        "Blender worker start + 1 frame (s)": blender,
+    }
 
 
 def main() -> None:
@@ -142,28 +150,44 @@ def main() -> None:
     rows = []
     for (w, h), n in zip(SIZES, args.frames):
         ref = None
-        for label, es in [("one process", engine.EngineSettings(1, None, 600, 2)),
-                          ("Ray, 1 worker", engine.EngineSettings(1, "local", 600, 2)),
-                          ("Ray, 2 workers", engine.EngineSettings(2, None, 600, 2))]:
+        for label, es in [
+            ("one process", engine.EngineSettings(1, None, 600, 2)),
+            ("Ray, 1 worker", engine.EngineSettings(1, "local", 600, 2)),
+            ("Ray, 2 workers", engine.EngineSettings(2, None, 600, 2)),
+        ]:
             with engine.session(engine.EngineSettings(cores, None, 600, 2) if es.address else es):
                 wall, cpu, images = timed_render(p, w, h, n, args.chunk, es)
             ref = images if ref is None else ref
-            rows.append({"size": f"{w}x{h}", "path": label, "images": n, "wall s": wall, "images/s": n / wall,
-                         "CPU s/image (all processes)": cpu / n, "same pixels as one process": np.array_equal(images, ref)})
+            rows.append(
+                {
+                    "size": f"{w}x{h}",
+                    "path": label,
+                    "images": n,
+                    "wall s": wall,
+                    "images/s": n / wall,
+                    "CPU s/image (all processes)": cpu / n,
+                    "same pixels as one process": np.array_equal(images, ref),
+                }
+            )
             print(rows[-1], flush=True)
-    body = [f"`benchmarks/render_scale.py` ({platform.processor() or platform.machine()}, {cores} CPU cores; "
-            f"load average {load[0]:.1f} at the start, {os.getloadavg()[0]:.1f} at the end: other processes on "
-            f"the machine were not stopped). {p.render.samples} samples, denoiser {p.render.denoiser}; "
-            f"chunks of {args.chunk} frames written straight into one zarr store by whichever path renders them. "
-            f"Wall times include starting the workers (Ray's own start-up is in the second table); a Ray worker "
-            f"renders with render.threads / workers Blender threads ({p.render.threads} / 1, 1 each for 2) and "
-            f"is bound to as many cores of its own (`stages.engine.pool.pin_cores`): unbound, a Blender scene at 1 thread "
-            f"still used both cores (its scene sync runs on a pool sized to the machine) and two workers collided.",
-            "", markdown_table(rows, decimals=3), "",
-            "Ray's overhead, measured with a worker that does nothing (one local Ray started and stopped once per "
-            "stage; every stage builds its workers and their Blender scenes once), and the start of one Blender "
-            "worker:",
-            "", markdown_table([over], decimals=3)]
+    body = [
+        f"`benchmarks/render_scale.py` ({platform.processor() or platform.machine()}, {cores} CPU cores; "
+        f"load average {load[0]:.1f} at the start, {os.getloadavg()[0]:.1f} at the end: other processes on "
+        f"the machine were not stopped). {p.render.samples} samples, denoiser {p.render.denoiser}; "
+        f"chunks of {args.chunk} frames written straight into one zarr store by whichever path renders them. "
+        f"Wall times include starting the workers (Ray's own start-up is in the second table); a Ray worker "
+        f"renders with render.threads / workers Blender threads ({p.render.threads} / 1, 1 each for 2) and "
+        f"is bound to as many cores of its own (`stages.engine.pool.pin_cores`): unbound, a Blender scene at 1 thread "
+        f"still used both cores (its scene sync runs on a pool sized to the machine) and two workers collided.",
+        "",
+        markdown_table(rows, decimals=3),
+        "",
+        "Ray's overhead, measured with a worker that does nothing (one local Ray started and stopped once per "
+        "stage; every stage builds its workers and their Blender scenes once), and the start of one Blender "
+        "worker:",
+        "",
+        markdown_table([over], decimals=3),
+    ]
     if args.stage:
         body += ["", stage_times(p)]
     print(f"wrote the Rendering on Ray section of {write_benchmark('Rendering on Ray', chr(10).join(body))}")
@@ -182,17 +206,26 @@ def stage_times(p: Params) -> str:
             meter, t0 = CpuMeter(), time.perf_counter()
             render_all(q, Path(d))
             wall = time.perf_counter() - t0
-            rows.append({"render stage": label, "frames": 13 * p.render.frames_per_sequence,
-                         "wall s": wall, "CPU s (all processes)": meter.stop(), "load average after": os.getloadavg()[0]})
+            rows.append(
+                {
+                    "render stage": label,
+                    "frames": 13 * p.render.frames_per_sequence,
+                    "wall s": wall,
+                    "CPU s (all processes)": meter.stop(),
+                    "load average after": os.getloadavg()[0],
+                }
+            )
         print(rows[-1], flush=True)
     mean = {label: np.mean([r["wall s"] for r in rows if r["render stage"] == label]) for label, _ in ways}
     (one, _), (ray_, _) = ways
-    return ("The whole default render stage (params.yaml, previews left out), both ways, twice (in the order "
-            "in-process, Ray, Ray, in-process); the Ray rows include starting and stopping Ray, and their CPU time "
-            "that of Ray's own service processes (raylet, GCS server) and of each worker's bpy import:\n\n"
-            + markdown_table(rows, decimals=1)
-            + f"\n\nMean wall time: in-process {mean[one]:.1f} s, Ray {mean[ray_]:.1f} s "
-              f"({mean[one] / mean[ray_]:.2f}x the in-process speed).")
+    return (
+        "The whole default render stage (params.yaml, previews left out), both ways, twice (in the order "
+        "in-process, Ray, Ray, in-process); the Ray rows include starting and stopping Ray, and their CPU time "
+        "that of Ray's own service processes (raylet, GCS server) and of each worker's bpy import:\n\n"
+        + markdown_table(rows, decimals=1)
+        + f"\n\nMean wall time: in-process {mean[one]:.1f} s, Ray {mean[ray_]:.1f} s "
+        f"({mean[one] / mean[ray_]:.2f}x the in-process speed)."
+    )
 
 
 if __name__ == "__main__":

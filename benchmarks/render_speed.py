@@ -5,6 +5,7 @@ reports/benchmarks.md (other sections are kept).
 Usage: .venv/bin/python benchmarks/render_speed.py [--frames 30]
 Settings come from params.yaml (render.*, camera.*); poses from the approach sequences (60 to 10 m).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -19,8 +20,8 @@ from pipeline.report.markdown import markdown_table
 from stages.config import params as params_mod
 from stages.config.build import intrinsics, scene_settings
 from stages.config.schema import Params
-from stages.report import write_benchmark
 from stages.render import frames
+from stages.report import write_benchmark
 
 SIZES = [(160, 90), (240, 135), (480, 270)]
 
@@ -65,7 +66,7 @@ def psnr(a: list[np.ndarray], ref: list[np.ndarray]) -> float:
         mask = cv2.dilate((y.max(-1) > 0).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
         err += float(((x[mask].astype(np.float64) - y[mask].astype(np.float64)) ** 2).sum())
         n += int(mask.sum()) * 3
-    return float(10 * np.log10(255.0 ** 2 / max(err / max(n, 1), 1e-12)))
+    return float(10 * np.log10(255.0**2 / max(err / max(n, 1), 1e-12)))
 
 
 def main() -> None:
@@ -81,50 +82,82 @@ def main() -> None:
         K = intrinsics(dataclasses.replace(p, render=dataclasses.replace(p.render, width=w, height=h)))
         build, per, cpu, _ = speed(K, base, R, t)
         idle = f"{1 / cpu:.1f} to {base.threads / cpu:.1f}"  # wall time per image lies in [cpu / threads, cpu]
-        rows.append({"size": f"{w}x{h}", "images/s": 1 / per, "median s/image": per, "CPU s/image": cpu,
-                     "images/s on an idle machine (est.)": idle, "scene build (s)": build})
-        print(f"{w}x{h}: {1 / per:.1f} images/s ({per * 1000:.0f} ms/image; CPU {cpu * 1000:.0f} ms/image, "
-              f"idle estimate {idle} images/s), scene build {build:.2f} s", flush=True)
+        rows.append(
+            {
+                "size": f"{w}x{h}",
+                "images/s": 1 / per,
+                "median s/image": per,
+                "CPU s/image": cpu,
+                "images/s on an idle machine (est.)": idle,
+                "scene build (s)": build,
+            }
+        )
+        print(
+            f"{w}x{h}: {1 / per:.1f} images/s ({per * 1000:.0f} ms/image; CPU {cpu * 1000:.0f} ms/image, "
+            f"idle estimate {idle} images/s), scene build {build:.2f} s",
+            flush=True,
+        )
 
     # Quality vs time at the default size: PSNR against a 256-sample, undenoised reference of the same poses.
     K = intrinsics(p)
     nq = min(10, args.frames)
     Rq, tq = poses(p, nq)
     ref = speed(K, dataclasses.replace(base, samples=256, denoiser="NONE"), Rq, tq)[3]
-    variants = [(2, "NONE"), (4, "NONE"), (8, "NONE"), (16, "NONE"), (32, "NONE"), (2, "OPENIMAGEDENOISE"),
-                (4, "OPENIMAGEDENOISE"), (8, "OPENIMAGEDENOISE"), (16, "OPENIMAGEDENOISE")]
+    variants = [
+        (2, "NONE"),
+        (4, "NONE"),
+        (8, "NONE"),
+        (16, "NONE"),
+        (32, "NONE"),
+        (2, "OPENIMAGEDENOISE"),
+        (4, "OPENIMAGEDENOISE"),
+        (8, "OPENIMAGEDENOISE"),
+        (16, "OPENIMAGEDENOISE"),
+    ]
     qrows = []
     for spp, den in variants:
         s = dataclasses.replace(base, samples=spp, denoiser=den)
         _, per, cpu, imgs = speed(K, s, Rq, tq)
         chosen = spp == base.samples and den == base.denoiser.upper()
-        qrows.append({"samples": spp, "denoiser": den + (" (FAST)" if den != "NONE" else ""),
-                      "median s/image": per, "CPU s/image": cpu,
-                      "PSNR vs reference (dB)": psnr(imgs, ref), "chosen": "yes" if chosen else ""})
-        print(f"{spp:3d} spp {den:17s} {per * 1000:6.0f} ms/image  CPU {cpu * 1000:6.0f} ms  PSNR {qrows[-1]['PSNR vs reference (dB)']:.1f} dB",
-              flush=True)
+        qrows.append(
+            {
+                "samples": spp,
+                "denoiser": den + (" (FAST)" if den != "NONE" else ""),
+                "median s/image": per,
+                "CPU s/image": cpu,
+                "PSNR vs reference (dB)": psnr(imgs, ref),
+                "chosen": "yes" if chosen else "",
+            }
+        )
+        print(
+            f"{spp:3d} spp {den:17s} {per * 1000:6.0f} ms/image  CPU {cpu * 1000:6.0f} ms  "
+            f"PSNR {qrows[-1]['PSNR vs reference (dB)']:.1f} dB",
+            flush=True,
+        )
 
-    body = "\n".join([
-        f"`benchmarks/render_speed.py` ({args.frames} poses spread over the 13 approach sequences, after one "
-        f"warm-up frame; {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
-        f"threads={base.threads}; load average {load[0]:.1f} at the start, {os.getloadavg()[0]:.1f} at the end: "
-        f"other processes on the machine were not stopped). Settings from params.yaml: "
-        f"{base.samples} samples, denoiser {base.denoiser}"
-        f"{f' ({base.denoise_quality}, prefilter FAST)' if base.denoiser.upper() != 'NONE' else ''}, "
-        f"Cycles CPU, scene built once and the target moved per frame.",
-        "",
-        markdown_table(rows, decimals=3),
-        "`images/s` is measured as is (median wall time per frame, so it depends on what else runs); the "
-        "idle-machine range, 1 / (CPU time per image) to threads / (CPU time per image), depends much less "
-        "on other load. Issue 2 asks for at least 10 images/s at 160x90 and 1 image/s at 480x270. The "
-        "OpenImageDenoise rows show why the default renders without a denoiser: at these sizes it adds "
-        "50-75% CPU time and no PSNR.",
-        "",
-        f"Quality against time at {K.width}x{K.height} ({nq} poses; PSNR over the pixels near the target "
-        "against a 256-sample render without denoising).",
-        "",
-        markdown_table(qrows, decimals=3),
-    ])
+    body = "\n".join(
+        [
+            f"`benchmarks/render_speed.py` ({args.frames} poses spread over the 13 approach sequences, after one "
+            f"warm-up frame; {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
+            f"threads={base.threads}; load average {load[0]:.1f} at the start, {os.getloadavg()[0]:.1f} at the end: "
+            f"other processes on the machine were not stopped). Settings from params.yaml: "
+            f"{base.samples} samples, denoiser {base.denoiser}"
+            f"{f' ({base.denoise_quality}, prefilter FAST)' if base.denoiser.upper() != 'NONE' else ''}, "
+            f"Cycles CPU, scene built once and the target moved per frame.",
+            "",
+            markdown_table(rows, decimals=3),
+            "`images/s` is measured as is (median wall time per frame, so it depends on what else runs); the "
+            "idle-machine range, 1 / (CPU time per image) to threads / (CPU time per image), depends much less "
+            "on other load. Issue 2 asks for at least 10 images/s at 160x90 and 1 image/s at 480x270. The "
+            "OpenImageDenoise rows show why the default renders without a denoiser: at these sizes it adds "
+            "50-75% CPU time and no PSNR.",
+            "",
+            f"Quality against time at {K.width}x{K.height} ({nq} poses; PSNR over the pixels near the target "
+            "against a 256-sample render without denoising).",
+            "",
+            markdown_table(qrows, decimals=3),
+        ]
+    )
     print(f"wrote the Rendering section of {write_benchmark('Rendering', body)}")
 
 

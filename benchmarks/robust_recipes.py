@@ -18,6 +18,7 @@ reports/benchmarks.md from the stored evaluations. Files go to datasets/robust_r
     .venv/bin/python benchmarks/robust_recipes.py train c4 && .venv/bin/python benchmarks/robust_recipes.py eval c4
     .venv/bin/python benchmarks/robust_recipes.py table
 """
+
 from __future__ import annotations
 
 import argparse
@@ -49,22 +50,34 @@ from stages.config import params as params_mod  # noqa: E402
 OUT = ROOT / "datasets" / "robust_recipes"
 EARTH = {"share": 1.0, "stars": 0.05, "star_peak": 0.6, "black_offset": 0.02, "noise_std": 0.01}
 FIT_FRAMES, TEST_FRAMES, PICK_SEED, MORE_PICK_SEED = 640, 256, 37, 38
-MORE_FIT_FRAMES = 764      # more fit frames (other seed), so that half the fit split can be swapped (640 + 764)
+MORE_FIT_FRAMES = 764  # more fit frames (other seed), so that half the fit split can be swapped (640 + 764)
 EARTH_SHARE = 0.25
 EPS = (0.01, 0.05, 0.1)
 PAST_CLAMP = {"start": "lift", "bpda": True, "eps": 0.1}
 # name -> (overrides of train.adversarial, options: black_level (None: the params'), clean (no attack), earth_share)
 RECIPES: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
-    "today+earth": ({}, {}),                 # the committed recipe (params.yaml), on the Earth-swapped frames
+    "today+earth": ({}, {}),  # the committed recipe (params.yaml), on the Earth-swapped frames
     "c1": ({**PAST_CLAMP, "objectives": ["position", "attitude"], "attacked_rotation": True}, {}),
     "c2": ({**PAST_CLAMP, "eps": 0.05, "objectives": ["position", "attitude"], "attacked_rotation": True}, {}),
-    "c4": ({**PAST_CLAMP, "objectives": ["position", "attitude"], "objective_eps": [0.1, 0.02],
-            "attacked_rotation": True}, {}),
+    "c4": (
+        {**PAST_CLAMP, "objectives": ["position", "attitude"], "objective_eps": [0.1, 0.02], "attacked_rotation": True},
+        {},
+    ),
     "c5": ({**PAST_CLAMP, "objectives": ["position"]}, {}),
-    "c7": ({**PAST_CLAMP, "objectives": ["position", "attitude"], "objective_eps": [0.1, 0.02],
-            "attacked_rotation": True}, {"earth_share": 0.5}),
-    "c6": ({**PAST_CLAMP, "objectives": ["position", "attitude"], "objective_eps": [0.1, 0.03],
-            "attacked_rotation": True, "trades": 0.3}, {}),
+    "c7": (
+        {**PAST_CLAMP, "objectives": ["position", "attitude"], "objective_eps": [0.1, 0.02], "attacked_rotation": True},
+        {"earth_share": 0.5},
+    ),
+    "c6": (
+        {
+            **PAST_CLAMP,
+            "objectives": ["position", "attitude"],
+            "objective_eps": [0.1, 0.03],
+            "attacked_rotation": True,
+            "trades": 0.3,
+        },
+        {},
+    ),
 }
 
 
@@ -92,9 +105,11 @@ def render(p: Any) -> None:
     fit, val = data.fit_and_validation_splits(p, seed_for(p.seed, "train"))
     test = data.load_split(p, "test")
     rng = np.random.default_rng(PICK_SEED)
-    picks = {"fit": np.sort(rng.choice(fit.labels["index"].to_numpy(), FIT_FRAMES, replace=False)),
-             "val": np.sort(val.labels["index"].to_numpy()),
-             "test": np.sort(rng.choice(test.labels["index"].to_numpy(), TEST_FRAMES, replace=False))}
+    picks = {
+        "fit": np.sort(rng.choice(fit.labels["index"].to_numpy(), FIT_FRAMES, replace=False)),
+        "val": np.sort(val.labels["index"].to_numpy()),
+        "test": np.sort(rng.choice(test.labels["index"].to_numpy(), TEST_FRAMES, replace=False)),
+    }
     rest = np.setdiff1d(fit.labels["index"].to_numpy(), picks["fit"])
     picks["fit_more"] = np.sort(np.random.default_rng(MORE_PICK_SEED).choice(rest, MORE_FIT_FRAMES, replace=False))
     sun, out, t0 = np.asarray(scene.sun_direction, np.float64), {}, time.perf_counter()
@@ -141,26 +156,50 @@ def train(p: Any, name: str) -> None:
     model, loss = PoseNet(float(p.train.width), float(p.train.dropout), level), PoseLoss("mean")
     (fit_split, fit_set, _), (val_split, _) = data.training_sets(p, seed_for(p.seed, "train"))
     earth = _earth_frames(p)
-    share = options.get("earth_share", EARTH_SHARE)   # by default the FIT_FRAMES renders only (23%)
+    share = options.get("earth_share", EARTH_SHARE)  # by default the FIT_FRAMES renders only (23%)
     keys = ("fit", "fit_more") if "earth_share" in options else ("fit",)
-    train_set = PoseDataset(_swapped(fit_split, earth, keys, share, 1), fit_split.targets,
-                            fit_set.augment_cfg, cfg.seed)
+    train_set = PoseDataset(
+        _swapped(fit_split, earth, keys, share, 1), fit_split.targets, fit_set.augment_cfg, cfg.seed
+    )
     val_set = PoseDataset(_swapped(val_split, earth, ("val",), share, 2), val_split.targets)
     standard = load_pose(p)
     model.load_state_dict(standard.model.state_dict())
     loss.load_state_dict(standard.loss.state_dict())
-    adversary = None if options.get("clean") else Adversary(adversarial_config(adv), loss,
-                                                            len(train_set) // cfg.batch_size, cfg.seed)
+    adversary = (
+        None
+        if options.get("clean")
+        else Adversary(adversarial_config(adv), loss, len(train_set) // cfg.batch_size, cfg.seed)
+    )
     t0, c0 = time.perf_counter(), time.process_time()
-    result = fit(model, loss, train_set, val_set, cfg, "cpu", progress=False, adversary=adversary,
-                 on_epoch=lambda s, best, net: print(f"{name} epoch {s.epoch}: val {s.val_pos_m:.3f} m "
-                                                     f"{s.val_att_deg:.2f} deg, attacked {s.val_adv_pos_m:.2f} m "
-                                                     f"{s.val_adv_att_deg:.2f} deg, {s.seconds:.0f} s"
-                                                     f"{' *' if best else ''}", flush=True))
+    result = fit(
+        model,
+        loss,
+        train_set,
+        val_set,
+        cfg,
+        "cpu",
+        progress=False,
+        adversary=adversary,
+        on_epoch=lambda s, best, net: print(
+            f"{name} epoch {s.epoch}: val {s.val_pos_m:.3f} m "
+            f"{s.val_att_deg:.2f} deg, attacked {s.val_adv_pos_m:.2f} m "
+            f"{s.val_adv_att_deg:.2f} deg, {s.seconds:.0f} s"
+            f"{' *' if best else ''}",
+            flush=True,
+        ),
+    )
     OUT.mkdir(parents=True, exist_ok=True)
-    torch.save({"state": result.best_state, "black_level": level, "best_epoch": result.best_epoch,
-                "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
-                "epoch_s": [s.seconds for s in result.history]}, OUT / f"{name}.pt")
+    torch.save(
+        {
+            "state": result.best_state,
+            "black_level": level,
+            "best_epoch": result.best_epoch,
+            "wall_s": time.perf_counter() - t0,
+            "cpu_s": time.process_time() - c0,
+            "epoch_s": [s.seconds for s in result.history],
+        },
+        OUT / f"{name}.pt",
+    )
 
 
 def _model(p: Any, name: str) -> Any:
@@ -184,8 +223,11 @@ def evaluate(p: Any, name: str, split_name: str, frames: int) -> None:
     from pipeline.pose.train import PoseDataset, predict
 
     earth = _earth_frames(p)
-    split = (data.fit_and_validation_splits(p, seed_for(p.seed, "train"))[1] if split_name == "val"
-             else data.load_split(p, "test"))
+    split = (
+        data.fit_and_validation_splits(p, seed_for(p.seed, "train"))[1]
+        if split_name == "val"
+        else data.load_split(p, "test")
+    )
     where = {int(k): i for i, k in enumerate(earth[f"{split_name}_index"])}
     have = np.flatnonzero([int(k) in where for k in split.labels["index"].to_numpy()])
     rows = have[sample_rows(len(have), frames, 0)]
@@ -195,17 +237,27 @@ def evaluate(p: Any, name: str, split_name: str, frames: int) -> None:
     t0, c0 = time.perf_counter(), time.process_time()
     # one suite run on the black frames, one on the same frames over their backgrounds (split by kind)
     rows_out = ablation_rows({name: model}, np.stack([split.images[int(r)] for r in rows]), targets, EPS, LEAN)
-    rows_out += ablation_rows({name: model}, earth[f"{split_name}_images"][ours], targets, EPS, LEAN,
-                              earth[f"{split_name}_kind"][ours])
+    rows_out += ablation_rows(
+        {name: model}, earth[f"{split_name}_images"][ours], targets, EPS, LEAN, earth[f"{split_name}_kind"][ours]
+    )
     pos, att = pose_errors(predict(model, PoseDataset(np.asarray(split.images), split.targets), 64), split.targets)
-    record = {"name": name, "split": split_name, "frames": int(len(rows)), "rows": rows_out,
-              "whole_split_clean": {"n": int(len(pos)), "pos_m": float(pos.mean()), "att_deg": float(att.mean())},
-              "suite_wall_s": time.perf_counter() - t0, "suite_cpu_s": time.process_time() - c0}
+    record = {
+        "name": name,
+        "split": split_name,
+        "frames": int(len(rows)),
+        "rows": rows_out,
+        "whole_split_clean": {"n": int(len(pos)), "pos_m": float(pos.mean()), "att_deg": float(att.mean())},
+        "suite_wall_s": time.perf_counter() - t0,
+        "suite_cpu_s": time.process_time() - c0,
+    }
     (OUT / f"{name}_{split_name}.json").write_text(json.dumps(record, indent=1))
     for r in rows_out:
-        print(f"{name} {r['background']:6s} eps {r['eps']:.2f} n {r['n']}: {r['pos_m']:.2f} m "
-              f"[{r['pos_ci'][0]:.2f}, {r['pos_ci'][1]:.2f}], {r['att_deg']:.1f} deg "
-              f"[{r['att_ci'][0]:.1f}, {r['att_ci'][1]:.1f}]", flush=True)
+        print(
+            f"{name} {r['background']:6s} eps {r['eps']:.2f} n {r['n']}: {r['pos_m']:.2f} m "
+            f"[{r['pos_ci'][0]:.2f}, {r['pos_ci'][1]:.2f}], {r['att_deg']:.1f} deg "
+            f"[{r['att_ci'][0]:.1f}, {r['att_ci'][1]:.1f}]",
+            flush=True,
+        )
 
 
 def _ci(mean: float, ci: list[float], digits: int) -> str:
@@ -237,23 +289,36 @@ def table() -> None:
     for name, (overrides, options) in RECIPES.items():
         path = OUT / f"{name}.pt"
         ckpt = torch.load(path) if path.exists() else {}
-        costs.append({"recipe": name,
-                      "train.adversarial overrides": json.dumps(overrides) if overrides else "(params.yaml)",
-                      "model": json.dumps(options) if options else "",
-                      "best epoch": ckpt.get("best_epoch", ""),
-                      "CPU s / epoch": f"{ckpt['cpu_s'] / len(ckpt['epoch_s']):.0f}" if ckpt else "",
-                      "wall s / epoch": f"{np.mean(ckpt['epoch_s']):.0f}" if ckpt else ""})
-    clean = [{"model": r["name"], "split": r["split"], "frames": r["whole_split_clean"]["n"],
-              "position (m)": f"{r['whole_split_clean']['pos_m']:.3f}",
-              "attitude (deg)": f"{r['whole_split_clean']['att_deg']:.2f}"} for r in records]
-    body = (f"`benchmarks/robust_recipes.py` on {platform.machine()}, torch {torch.__version__}, 1 thread, CPU, niced, "
-            f"beside other sessions on the same 2 cores (wall times are not the idle machine's). Earth frames: "
-            f"{json.dumps(EARTH)} (pipeline/render/backgrounds.py; `space` = stars and the sensor only, `earth` = the "
-            f"sunlit Earth in view); training swaps {EARTH_SHARE:.0%} of the fit and validation frames for their Earth "
-            f"versions. Attacks: LEAN ({', '.join(LEAN.members)}; {LEAN.steps} steps, lifting start), worst case per "
-            f"frame nested in eps, means with 95% intervals; each sampled frame scored black and over its Earth "
-            f"background.\n\n{markdown_table(costs)}\n{markdown_table(table_rows(records))}\n"
-            f"Clean errors of the whole black split:\n\n{markdown_table(clean)}")
+        costs.append(
+            {
+                "recipe": name,
+                "train.adversarial overrides": json.dumps(overrides) if overrides else "(params.yaml)",
+                "model": json.dumps(options) if options else "",
+                "best epoch": ckpt.get("best_epoch", ""),
+                "CPU s / epoch": f"{ckpt['cpu_s'] / len(ckpt['epoch_s']):.0f}" if ckpt else "",
+                "wall s / epoch": f"{np.mean(ckpt['epoch_s']):.0f}" if ckpt else "",
+            }
+        )
+    clean = [
+        {
+            "model": r["name"],
+            "split": r["split"],
+            "frames": r["whole_split_clean"]["n"],
+            "position (m)": f"{r['whole_split_clean']['pos_m']:.3f}",
+            "attitude (deg)": f"{r['whole_split_clean']['att_deg']:.2f}",
+        }
+        for r in records
+    ]
+    body = (
+        f"`benchmarks/robust_recipes.py` on {platform.machine()}, torch {torch.__version__}, 1 thread, CPU, niced, "
+        f"beside other sessions on the same 2 cores (wall times are not the idle machine's). Earth frames: "
+        f"{json.dumps(EARTH)} (pipeline/render/backgrounds.py; `space` = stars and the sensor only, `earth` = the "
+        f"sunlit Earth in view); training swaps {EARTH_SHARE:.0%} of the fit and validation frames for their Earth "
+        f"versions. Attacks: LEAN ({', '.join(LEAN.members)}; {LEAN.steps} steps, lifting start), worst case per "
+        f"frame nested in eps, means with 95% intervals; each sampled frame scored black and over its Earth "
+        f"background.\n\n{markdown_table(costs)}\n{markdown_table(table_rows(records))}\n"
+        f"Clean errors of the whole black split:\n\n{markdown_table(clean)}"
+    )
     print(body)
     print(f"-> {write_benchmark('Robust training recipes', body)} (## Robust training recipes)")
 

@@ -1,5 +1,6 @@
 """Lab images: background segmentation, resizing to the network's input size, and the sensor domain
 shift (blur, noise) applied to rendered lab recordings. Images are RGB uint8 (H, W, 3)."""
+
 from __future__ import annotations
 
 import cv2
@@ -40,8 +41,9 @@ def domain_shift(image: np.ndarray, noise_std: float, blur_sigma: float, rng: np
     return np.clip(np.rint(x * 255.0), 0, 255).astype(np.uint8)
 
 
-def shift_recording(rgb: np.ndarray, alpha: np.ndarray, noise_std: float, blur_sigma: float,
-                    rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def shift_recording(
+    rgb: np.ndarray, alpha: np.ndarray, noise_std: float, blur_sigma: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """A lab recording's rendered frames (RGB (N, H, W, 3) uint8 on black, alpha (N, H, W) in [0, 1])
     with the domain shift applied frame by frame in order (one rng stream) -> images (N, H, W, 3)
     uint8 and target masks (N, H, W) uint8 (255 = target)."""

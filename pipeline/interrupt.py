@@ -9,6 +9,7 @@ the first one's clean-up runs is recorded, not raised, so the clean-up finishes.
 
 `Interrupted` derives from BaseException, as KeyboardInterrupt does: no `except Exception` stops it.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -16,7 +17,7 @@ import signal
 from typing import Any, Iterator
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
-EXIT_STATUS = 130          # the status a command stopped by a signal exits with (the shell's 128 + SIGINT)
+EXIT_STATUS = 130  # the status a command stopped by a signal exits with (the shell's 128 + SIGINT)
 
 _state: dict[str, Any] = {"signal": None, "deferred": 0, "raised": False}
 

@@ -17,39 +17,50 @@ These offsets are the values the committed outputs (dvc.lock) were made with, in
 base seed). The switch to seeds derived from hashed stream names (issue 36) changes every output, so it is made
 with the next output-changing run, not before.
 """
+
 from __future__ import annotations
 
 STREAMS: dict[str, int] = {
     # the stages' own streams, on their base seed
-    "render": 100, "label": 200, "train": 300, "attack": 400, "guidance": 500, "shap": 500, "detect": 600,
-    "lab_models": 700, "robustness": 1500, "lab": 0, "robust": 1600, "ablation": 1700,
-    "background": 1800,             # render.background draws (Earth, stars, sensor noise); index: none, per frame inside
-    "suite": 2000,                  # the strongest-attack suite on the pose models: its test sample and attack draws
-    "evaluate.schedule": 17,        # on the evaluation's base; index: the trajectory
-    "evaluate.black_level": 41,     # on the evaluation's base: the clamp's held-out check (frames, simulated lab shift)
-    "evaluate": 1000,               # run_base: the evaluation trajectories' base (was the param evaluate.seed)
-    "validation": 3000,             # run_base: the defense's validation trajectories' base (was defense.val_seed)
-    "execution": 1900,              # the closed loop's execution errors (pipeline/guidance/dynamics.py), on `seed`
+    "render": 100,
+    "label": 200,
+    "train": 300,
+    "attack": 400,
+    "guidance": 500,
+    "shap": 500,
+    "detect": 600,
+    "lab_models": 700,
+    "robustness": 1500,
+    "lab": 0,
+    "robust": 1600,
+    "ablation": 1700,
+    "background": 1800,  # render.background draws (Earth, stars, sensor noise); index: none, per frame inside
+    "suite": 2000,  # the strongest-attack suite on the pose models: its test sample and attack draws
+    "evaluate.schedule": 17,  # on the evaluation's base; index: the trajectory
+    "evaluate.black_level": 41,  # on the evaluation's base: the clamp's held-out check (frames, simulated lab shift)
+    "evaluate": 1000,  # run_base: the evaluation trajectories' base (was the param evaluate.seed)
+    "validation": 3000,  # run_base: the defense's validation trajectories' base (was defense.val_seed)
+    "execution": 1900,  # the closed loop's execution errors (pipeline/guidance/dynamics.py), on `seed`
     # streams within a stage or a library step, on the seed it was given
-    "eval_render.trajectory": 1,    # index: the trajectory of the set
-    "eval_render.envelope": 500,    # datasets/val_envelope on the validation base: no draw shared with val_render
+    "eval_render.trajectory": 1,  # index: the trajectory of the set
+    "eval_render.envelope": 500,  # datasets/val_envelope on the validation base: no draw shared with val_render
     "eval_render.execution": 10000,  # index: the trajectory; its execution errors, on the set's base
-    "robustness.fgsm": 0,           # the FGSM rows' generator: the robustness seed itself
-    "robustness.pgd": 100,          # index: the eps (PGD and the adaptive attack at lambda = 0 share it)
-    "robustness.transfer": 200,     # index: 10 x the attack + the eps
-    "robustness.surrogate": 500,    # index: 10 x the attack + the eps
+    "robustness.fgsm": 0,  # the FGSM rows' generator: the robustness seed itself
+    "robustness.pgd": 100,  # index: the eps (PGD and the adaptive attack at lambda = 0 share it)
+    "robustness.transfer": 200,  # index: 10 x the attack + the eps
+    "robustness.surrogate": 500,  # index: 10 x the attack + the eps
     "robustness.burst": 800,
     "robustness.drift": 900,
-    "lab.schedule": 31,             # index: the lab sequence
-    "splits.validation": 1,         # the validation fold, on the split's seed
-    "lid.reference": 1,             # LID's reference minibatches, on the detector's seed
-    "suite.check": 1,               # the suite's stability-check subsample, on the suite's seed
-    "suite.full": 2,                # the suite's lean-vs-full subsample, on the suite's seed
-    "suite.capacity": 3,            # the capacity's validation frames and attack draws, on the suite's seed
+    "lab.schedule": 31,  # index: the lab sequence
+    "splits.validation": 1,  # the validation fold, on the split's seed
+    "lid.reference": 1,  # LID's reference minibatches, on the detector's seed
+    "suite.check": 1,  # the suite's stability-check subsample, on the suite's seed
+    "suite.full": 2,  # the suite's lean-vs-full subsample, on the suite's seed
+    "suite.capacity": 3,  # the capacity's validation frames and attack draws, on the suite's seed
 }
 
 
-RUN_STRIDE = 100_000   # run_base: seed runs' trajectory bases lie this far apart
+RUN_STRIDE = 100_000  # run_base: seed runs' trajectory bases lie this far apart
 
 
 def run_base(seed: int, stream: str) -> int:

@@ -7,6 +7,7 @@ A value keeps the type its file gave it: a whole number where a float is expecte
 numeric tower), so `dataclasses.asdict` of the result is the mapping read. A list is read as a tuple where the
 field is a tuple.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -37,8 +38,9 @@ class In:
     def rule(self, whole: bool) -> str:
         """What a value must be, for a message: "a positive whole number in [1, 10] (frames)"."""
         low = self.bounds()[0]
-        kind = ("a positive " if low > 0 or (low == 0 and self.interval[0] == "(") else "a ") + \
-            ("whole number" if whole else "number")
+        kind = ("a positive " if low > 0 or (low == 0 and self.interval[0] == "(") else "a ") + (
+            "whole number" if whole else "number"
+        )
         return f"{kind} in {self.interval}" + (f" ({self.unit})" if self.unit else "")
 
 
@@ -78,7 +80,7 @@ def ranges(cls: type, prefix: str = "") -> dict[str, In]:
     return out
 
 
-OPTIONAL = {"optional": True}   # field metadata: a key a file may leave out (the field keeps its default)
+OPTIONAL = {"optional": True}  # field metadata: a key a file may leave out (the field keeps its default)
 _WHAT = {int: "a whole number", float: "a number", bool: "true or false", str: "a string"}
 
 
@@ -114,9 +116,12 @@ def _check(value: Any, hint: Any, key: str, source: Source) -> Any:
         return value
     if dataclasses.is_dataclass(hint):
         return value if isinstance(value, hint) else _build(hint, value, key, source)
-    ok = {int: isinstance(value, int) and not isinstance(value, bool),
-          float: isinstance(value, (int, float)) and not isinstance(value, bool),
-          bool: isinstance(value, bool), str: isinstance(value, str)}[hint]
+    ok = {
+        int: isinstance(value, int) and not isinstance(value, bool),
+        float: isinstance(value, (int, float)) and not isinstance(value, bool),
+        bool: isinstance(value, bool),
+        str: isinstance(value, str),
+    }[hint]
     if not ok:
         raise fail(f"{source.name} {key} must be {_WHAT[hint]}, got {value!r}")
     if isinstance(value, float) and not math.isfinite(value):
@@ -126,7 +131,7 @@ def _check(value: Any, hint: Any, key: str, source: Source) -> Any:
 
 def _build(cls: type, section: Any, key: str, source: Source) -> Any:
     if not isinstance(section, dict):
-        if key:   # a section replaced by a value (e.g. `-S train=1`)
+        if key:  # a section replaced by a value (e.g. `-S train=1`)
             raise source.error(f"{source.name}: {key!r} must be a section of {source.noun}s, got {section!r}")
         raise source.error(f"{source.name} top level must be a mapping, got {section!r}")
     hints = typing.get_type_hints(cls, include_extras=True)
@@ -135,24 +140,28 @@ def _build(cls: type, section: Any, key: str, source: Source) -> Any:
     for name in section:
         if name not in fields:
             hint = difflib.get_close_matches(str(name), list(fields), n=1)
-            raise source.error(f"{source.name}: unknown {source.noun} {prefix + str(name)!r}"
-                               + (f" (did you mean {prefix + hint[0]!r}?)" if hint else ""))
+            raise source.error(
+                f"{source.name}: unknown {source.noun} {prefix + str(name)!r}"
+                + (f" (did you mean {prefix + hint[0]!r}?)" if hint else "")
+            )
     values = {}
     for name, f in fields.items():
         if name not in section:
             defaulted = f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING  # type: ignore[misc]
             if defaulted and (f.metadata.get("optional") or not source.required):
                 continue
-            raise source.error(f"{source.name}: missing {source.noun} {prefix + name!r}"
-                               + (f" ({source.remake})" if source.remake else ""))
+            raise source.error(
+                f"{source.name}: missing {source.noun} {prefix + name!r}"
+                + (f" ({source.remake})" if source.remake else "")
+            )
         values[name] = _check(section[name], hints[name], prefix + name, source)
     try:
         built = cls(**values)
     except source.error:
-        raise                        # already names its key in full
+        raise  # already names its key in full
     except (TypeError, ValueError) as e:
         raise source.error(f"{source.name} {key + ': ' if key else ''}{e}") from None
-    for name, value in values.items():   # after the section's own checks, so their messages come first
+    for name, value in values.items():  # after the section's own checks, so their messages come first
         _check_range(value, hints[name], prefix + name, source)
     return built
 

@@ -10,6 +10,7 @@ so a (9, 1000) explanation per image costs one broadcast multiply. For a head th
 `deep_shap` runs the `shap` library's DeepExplainer on the head module (about 10^5 times slower).
 `explain(..., method="auto")` picks the closed form when the head is affine.
 """
+
 from __future__ import annotations
 
 import copy
@@ -42,8 +43,9 @@ class AffineHead:
     bias: np.ndarray
 
 
-def affine_head(model: nn.Module, n_features: int, probe: np.ndarray | None = None,
-                rtol: float = 1e-5, seed: int = 0) -> AffineHead | None:
+def affine_head(
+    model: nn.Module, n_features: int, probe: np.ndarray | None = None, rtol: float = 1e-5, seed: int = 0
+) -> AffineHead | None:
     """Read the head of `model` as an affine map, or None when it is not affine.
 
     Works from `model.forward_head` alone (no attribute names): in float64 and eval mode, the bias
@@ -53,8 +55,7 @@ def affine_head(model: nn.Module, n_features: int, probe: np.ndarray | None = No
     """
     head = Head(copy.deepcopy(model)).double().eval()
     with torch.no_grad():
-        basis = torch.cat([torch.zeros(1, n_features, dtype=torch.float64),
-                           torch.eye(n_features, dtype=torch.float64)])
+        basis = torch.cat([torch.zeros(1, n_features, dtype=torch.float64), torch.eye(n_features, dtype=torch.float64)])
         out = head(basis)
         bias = out[0]
         weight = (out[1:] - bias).T
@@ -80,8 +81,9 @@ def background_mean(features: np.ndarray) -> np.ndarray:
     return features.astype(np.float64).mean(0).astype(np.float32)
 
 
-def exact_shap(features: np.ndarray | torch.Tensor, weight: np.ndarray | torch.Tensor,
-               bg_mean: np.ndarray | torch.Tensor) -> torch.Tensor:
+def exact_shap(
+    features: np.ndarray | torch.Tensor, weight: np.ndarray | torch.Tensor, bg_mean: np.ndarray | torch.Tensor
+) -> torch.Tensor:
     """Closed-form DeepSHAP of an affine head: (B, D) features -> (B, n_outputs, D) values.
 
     phi[b, j, i] = weight[j, i] * (features[b, i] - bg_mean[i]); the values of one output sum to
@@ -101,19 +103,21 @@ class ExactShap(nn.Module):
     def __init__(self, weight: np.ndarray | torch.Tensor, background_mean: np.ndarray | torch.Tensor):
         super().__init__()
         self.register_buffer("weight", torch.as_tensor(np.asarray(weight), dtype=torch.float32).contiguous())
-        self.register_buffer("background_mean",
-                             torch.as_tensor(np.asarray(background_mean), dtype=torch.float32).contiguous())
+        self.register_buffer(
+            "background_mean", torch.as_tensor(np.asarray(background_mean), dtype=torch.float32).contiguous()
+        )
         if self.weight.ndim != 2 or self.background_mean.shape != (self.weight.shape[1],):
-            raise ValueError(f"head weight {tuple(self.weight.shape)} and background mean "
-                             f"{tuple(self.background_mean.shape)} do not fit (need (9, D) and (D,))")
+            raise ValueError(
+                f"head weight {tuple(self.weight.shape)} and background mean "
+                f"{tuple(self.background_mean.shape)} do not fit (need (9, D) and (D,))"
+            )
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
         """GAP features (B, D) -> SHAP values (B, 9, D), float32, on the features' device."""
         return exact_shap(features, self.weight, self.background_mean)
 
 
-def deep_shap(model: nn.Module, features: np.ndarray, background: np.ndarray,
-              batch_size: int = 64) -> np.ndarray:
+def deep_shap(model: nn.Module, features: np.ndarray, background: np.ndarray, batch_size: int = 64) -> np.ndarray:
     """DeepSHAP of the head through `shap.DeepExplainer`: (B, D) -> (B, n_outputs, D) float32.
 
     For any head (affine or not); `shap` is imported here because only this path needs it.
@@ -121,12 +125,12 @@ def deep_shap(model: nn.Module, features: np.ndarray, background: np.ndarray,
     import shap
 
     head = Head(model).eval()
-    device = next(head.parameters()).device   # the explainer's tensors live with the head's weights
+    device = next(head.parameters()).device  # the explainer's tensors live with the head's weights
     bg = torch.as_tensor(np.asarray(background), dtype=torch.float32, device=device)
     explainer = shap.DeepExplainer(head, bg)
     out = []
     for start in range(0, len(features), batch_size):
-        x = torch.as_tensor(np.asarray(features[start:start + batch_size]), dtype=torch.float32, device=device)
+        x = torch.as_tensor(np.asarray(features[start : start + batch_size]), dtype=torch.float32, device=device)
         values = explainer.shap_values(x, check_additivity=False)  # (B, D, n_outputs)
         out.append(np.transpose(np.asarray(values), (0, 2, 1)))
     return np.concatenate(out).astype(np.float32)
@@ -149,8 +153,9 @@ class Explainer:
         n_features = background.shape[1]
         self.affine = affine_head(model, n_features, probe=background) if method != "deep" else None
         if method == "exact" and self.affine is None:
-            raise ValueError("method 'exact' needs an affine (linear) head after the GAP layer; "
-                             "use 'deep' or 'auto' for this model")
+            raise ValueError(
+                "method 'exact' needs an affine (linear) head after the GAP layer; use 'deep' or 'auto' for this model"
+            )
         self.method: str = "exact" if self.affine is not None else "deep"
 
     def __call__(self, features: np.ndarray) -> np.ndarray:
@@ -182,8 +187,9 @@ def plan_sources(normal: int, per_eps: int, n_eps: int) -> int:
     return max(int(normal), int(per_eps) * int(n_eps))
 
 
-def sample_plan(normal: int, per_eps: int, eps: list[float], pool: np.ndarray,
-                rng: np.random.Generator) -> dict[str, np.ndarray]:
+def sample_plan(
+    normal: int, per_eps: int, eps: list[float], pool: np.ndarray, rng: np.random.Generator
+) -> dict[str, np.ndarray]:
     """The samples to explain: `normal` clean ones, then `per_eps` attacked ones per eps (L-inf, pixels
     in [0, 1]), all from the same source images of `pool` (indices of images the pose network never saw).
 
@@ -197,7 +203,9 @@ def sample_plan(normal: int, per_eps: int, eps: list[float], pool: np.ndarray,
     if n > len(pool):
         raise ValueError(f"{n} source images needed but the pool holds {len(pool)}")
     sources = rng.choice(np.asarray(pool, dtype=np.int64), n, replace=False)
-    attacked = rng.permutation(sources)[:int(per_eps) * len(eps)]
+    attacked = rng.permutation(sources)[: int(per_eps) * len(eps)]
     eps_out = np.concatenate([np.zeros(int(normal)), np.repeat(np.asarray(eps, dtype=np.float64), int(per_eps))])
-    return {"index": np.concatenate([sources[:int(normal)], attacked]).astype(np.int64),
-            "eps": eps_out.astype(np.float32)}
+    return {
+        "index": np.concatenate([sources[: int(normal)], attacked]).astype(np.int64),
+        "eps": eps_out.astype(np.float32),
+    }

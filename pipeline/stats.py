@@ -11,6 +11,7 @@
 - ``Rate``: a rate with its interval, formatted as ``"96.5 [95.1, 97.6]"`` (percent) for reports.
 - ``percent_ci(value, ci)``: the one formatter of a percent with its interval in every report.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -22,8 +23,7 @@ from scipy import stats as sps
 LEVEL = 0.95
 
 
-def percent_ci(value: float | None, ci: Sequence[float | None] | None = None, decimals: int = 1,
-               unit: str = "") -> str:
+def percent_ci(value: float | None, ci: Sequence[float | None] | None = None, decimals: int = 1, unit: str = "") -> str:
     """A rate in [0, 1] as `100 * value` with `decimals` places and `unit` (e.g. "%"; "-" when None),
     then its 95% interval " [lo, hi]" in percent when `ci` holds one: "94.1 [92.4, 95.4]".
     Every percent-with-interval in the reports is written by this one function."""
@@ -78,8 +78,9 @@ def rate(mask: np.ndarray, level: float = LEVEL) -> Rate:
     return wilson(int(mask.sum()), mask.size, level)
 
 
-def bootstrap_rate(hits: np.ndarray, groups: np.ndarray, level: float = LEVEL, n_resamples: int = 2000,
-                   seed: int = 0) -> Rate:
+def bootstrap_rate(
+    hits: np.ndarray, groups: np.ndarray, level: float = LEVEL, n_resamples: int = 2000, seed: int = 0
+) -> Rate:
     """Rate of ``hits`` (boolean per frame) with a percentile bootstrap over ``groups`` (ids per frame).
 
     Frames of one group (a trajectory) are resampled together, so correlation inside a group widens
@@ -99,9 +100,16 @@ def bootstrap_rate(hits: np.ndarray, groups: np.ndarray, level: float = LEVEL, n
     if ids.size < 2:
         w = wilson(int(k.sum()), int(n.sum()), level)
         return Rate(value, w.lo, w.hi, int(n.sum()))
-    res = sps.bootstrap((k, n), lambda kk, nn, axis=-1: kk.sum(axis=axis) / nn.sum(axis=axis), paired=True,
-                        vectorized=True, n_resamples=n_resamples, confidence_level=level, method="percentile",
-                        random_state=np.random.default_rng(seed))
+    res = sps.bootstrap(
+        (k, n),
+        lambda kk, nn, axis=-1: kk.sum(axis=axis) / nn.sum(axis=axis),
+        paired=True,
+        vectorized=True,
+        n_resamples=n_resamples,
+        confidence_level=level,
+        method="percentile",
+        random_state=np.random.default_rng(seed),
+    )
     lo, hi = float(res.confidence_interval.low), float(res.confidence_interval.high)
     return Rate(value, min(lo, value), max(hi, value), int(n.sum()))
 

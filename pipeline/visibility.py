@@ -16,16 +16,17 @@ What the rules cannot tell: with the Earth or a sensor offset behind it every fr
 Earth alone (no target) passes the lit-pixel rule and gets the network's guess of a pose; the rules keep out
 black frames, specks and noise, not every image without the target.
 """
+
 from __future__ import annotations
 
 from typing import Any
 
 import numpy as np
 
-LIT_LEVEL = 16 / 255          # pixel value in [0, 1] (brightest channel) from which a pixel counts as lit
-MIN_LIT_FRACTION = 0.0037     # fraction of lit pixels below which a frame has no target in view
-MIN_STRUCTURE = 0.3           # correlation of neighbouring pixels below which an image is not a camera frame (noise)
-MAX_EMPTY_SHARE = 0.25        # a producer refuses a store or split with more of its frames than this out of view
+LIT_LEVEL = 16 / 255  # pixel value in [0, 1] (brightest channel) from which a pixel counts as lit
+MIN_LIT_FRACTION = 0.0037  # fraction of lit pixels below which a frame has no target in view
+MIN_STRUCTURE = 0.3  # correlation of neighbouring pixels below which an image is not a camera frame (noise)
+MAX_EMPTY_SHARE = 0.25  # a producer refuses a store or split with more of its frames than this out of view
 
 
 def lit_fraction(images: np.ndarray) -> np.ndarray:
@@ -53,18 +54,21 @@ def out_of_view(images: Any) -> np.ndarray:
     chunks = getattr(images, "chunks", None)
     n = int(images.shape[0])
     step = int(chunks[0]) if chunks else max(n, 1)
-    return np.concatenate([lit_fraction(images[lo:lo + step]) < MIN_LIT_FRACTION
-                           for lo in range(0, n, step)] or [np.zeros(0, bool)])
+    return np.concatenate(
+        [lit_fraction(images[lo : lo + step]) < MIN_LIT_FRACTION for lo in range(0, n, step)] or [np.zeros(0, bool)]
+    )
 
 
 def empty_problem(empty: np.ndarray, what: str) -> str | None:
-    """"K of N WHAT have no target in view ..." when more than MAX_EMPTY_SHARE of the frames flagged in
+    """ "K of N WHAT have no target in view ..." when more than MAX_EMPTY_SHARE of the frames flagged in
     `empty` ((N,) bool) are out of view, else None."""
     n, k = len(empty), int(np.sum(empty))
     if k <= MAX_EMPTY_SHARE * n:
         return None
-    return (f"{k} of {n} {what} have no target in view (under {MIN_LIT_FRACTION:.2%} of their pixels lit; at most "
-            f"{MAX_EMPTY_SHARE:.0%} may be)")
+    return (
+        f"{k} of {n} {what} have no target in view (under {MIN_LIT_FRACTION:.2%} of their pixels lit; at most "
+        f"{MAX_EMPTY_SHARE:.0%} may be)"
+    )
 
 
 def split_problem(empty: np.ndarray, index: np.ndarray, split: np.ndarray) -> str | None:
@@ -76,6 +80,7 @@ def split_problem(empty: np.ndarray, index: np.ndarray, split: np.ndarray) -> st
             return f"the {name} split is empty (check label.test_fraction and the number of frames)"
         problem = empty_problem(empty[index[split == name]], f"{name} frames")
         if problem:
-            return (f"{problem}; the render is degenerate (check render.mesh, render.mesh_scale, or render.source's "
-                    f"images)")
+            return (
+                f"{problem}; the render is degenerate (check render.mesh, render.mesh_scale, or render.source's images)"
+            )
     return None

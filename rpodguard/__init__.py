@@ -14,6 +14,7 @@ qz), the 6-D rotation, the detector's attack probability and its flag, or that n
 `track` (a `Track`) holds per frame the defended chain's trusted estimate (world frame, m), its
 protection level (m) and whether the guidance may fly on it (`rpod predict IMAGES... --motion CSV`).
 """
+
 from rpodguard.api import Chain, Prediction, load_chain
 from rpodguard.sequence import Track
 

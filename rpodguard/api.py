@@ -16,6 +16,7 @@ and says so). An image that is not a camera frame with the target in view gets n
 attack: too few lit pixels ("no target") or neighbouring pixels that do not correlate, as in noise ("not a frame";
 pipeline/visibility.py says what the two rules can and cannot tell).
 """
+
 from __future__ import annotations
 
 import warnings
@@ -27,17 +28,17 @@ import numpy as np
 
 from pipeline.io.errors import DataError
 
-ASPECT_TOLERANCE = 0.01   # relative difference of width/height above which `predict` warns
-BATCH = 64                # images per forward pass
+ASPECT_TOLERANCE = 0.01  # relative difference of width/height above which `predict` warns
+BATCH = 64  # images per forward pass
 # No target in view: under MIN_LIT_FRACTION of the pixels (at the model input) have a channel >= LIT_LEVEL
 # (pipeline/visibility.py, where the producers of data sets apply the same rule); not a camera frame: the
 # correlation of neighbouring pixels under MIN_STRUCTURE (noise).
 from pipeline.visibility import LIT_LEVEL, MIN_LIT_FRACTION, MIN_STRUCTURE  # noqa: E402
 
-NO_TARGET, NOT_A_FRAME = "no target", "not a frame"   # the verdicts of an image that gets no pose
+NO_TARGET, NOT_A_FRAME = "no target", "not a frame"  # the verdicts of an image that gets no pose
 
 Image = Union[str, Path, np.ndarray]
-BUNDLE = Path(__file__).resolve().parent / "weights" / "default"   # the default profile's trained chain (git)
+BUNDLE = Path(__file__).resolve().parent / "weights" / "default"  # the default profile's trained chain (git)
 
 
 @dataclass(frozen=True)
@@ -62,26 +63,35 @@ class VerdictRule:
         return None if self.settings.update_below is None else float(self.settings.update_below)
 
     def verdict(self, prob: float) -> str:
-        """"attack", "doubt" or "clean" for an attack probability."""
+        """ "attack", "doubt" or "clean" for an attack probability."""
         return str(self.settings.word(float(prob)))
 
     def describe(self) -> str:
         """One line: the levels in full and where they come from."""
         levels = f"attack at P(attack) >= {self.threshold!r}" + (
-            f", doubt at >= {self.doubt!r}" if self.doubt is not None else "")
+            f", doubt at >= {self.doubt!r}" if self.doubt is not None else ""
+        )
         if self.calibrated:
             fusion = self.settings.fusion
-            note = "" if fusion != "motion" else (f"; its fusion {fusion!r} flies on the motion checks alone, so the "
-                                                  f"chain would act on neither")
+            note = (
+                ""
+                if fusion != "motion"
+                else (f"; its fusion {fusion!r} flies on the motion checks alone, so the chain would act on neither")
+            )
             return f"verdict: {levels} (the chain's calibrated defense, {self.path}{note})"
-        return (f"verdict: {levels} (the detector's own threshold, no doubt level: {self.path.parent} has no "
-                f"defense.json, which `rpod calibrate` writes)")
+        return (
+            f"verdict: {levels} (the detector's own threshold, no doubt level: {self.path.parent} has no "
+            f"defense.json, which `rpod calibrate` writes)"
+        )
 
     def records(self) -> dict[str, Any]:
         """The rule as JSON-ready fields of a record."""
-        return {"threshold": self.threshold, "doubt_level": self.doubt,
-                "rule": "calibrated defense" if self.calibrated else "detector threshold (no defense file)",
-                "rule_file": str(self.path)}
+        return {
+            "threshold": self.threshold,
+            "doubt_level": self.doubt,
+            "rule": "calibrated defense" if self.calibrated else "detector threshold (no defense file)",
+            "rule_file": str(self.path),
+        }
 
 
 @dataclass(frozen=True)
@@ -126,21 +136,34 @@ class Prediction:
         """Why image k got no pose, in words (for an image not in view)."""
         if self.verdict[k] == NO_TARGET:
             return f"no target in view ({100 * self.lit_fraction[k]:.2f}% lit pixels, under {MIN_LIT_FRACTION:.2%})"
-        return (f"not a camera frame: neighbouring pixels correlate {self.structure[k]:.2f}, under "
-                f"{MIN_STRUCTURE} (noise?)")
+        return (
+            f"not a camera frame: neighbouring pixels correlate {self.structure[k]:.2f}, under {MIN_STRUCTURE} (noise?)"
+        )
 
     def records(self) -> list[dict[str, Any]]:
         """One JSON-ready dict per image (position in m, quaternion qw first, 6-D, probability, verdict and the
         rule it was judged by; null for the pose and probability when the image got no pose)."""
+
         def values(a: np.ndarray) -> Any:
             return None if np.isnan(a).any() else a.tolist()
 
         rule = self.rule.records()
-        return [{"image": name, "in_view": bool(self.in_view[k]), "lit_fraction": float(self.lit_fraction[k]),
-                 "structure": float(self.structure[k]), "position_m": values(self.position[k]),
-                 "quaternion": values(self.quaternion[k]), "rotation_6d": values(self.rotation_6d[k]),
-                 "attack_probability": values(self.attack_probability[k]), "verdict": self.verdict[k],
-                 "attack_flag": bool(self.attack_flag[k]), **rule} for k, name in enumerate(self.sources)]
+        return [
+            {
+                "image": name,
+                "in_view": bool(self.in_view[k]),
+                "lit_fraction": float(self.lit_fraction[k]),
+                "structure": float(self.structure[k]),
+                "position_m": values(self.position[k]),
+                "quaternion": values(self.quaternion[k]),
+                "rotation_6d": values(self.rotation_6d[k]),
+                "attack_probability": values(self.attack_probability[k]),
+                "verdict": self.verdict[k],
+                "attack_flag": bool(self.attack_flag[k]),
+                **rule,
+            }
+            for k, name in enumerate(self.sources)
+        ]
 
 
 class Chain:
@@ -152,13 +175,14 @@ class Chain:
     field of view gives ranges off by the ratio of the focal lengths (pixels per image width).
     """
 
-    def __init__(self, safety: Any, input_size: tuple[int, int], manifest: dict[str, Any] | None = None,
-                 camera: Any = None):
-        self.safety = safety                      # pipeline.defense.chain.SafetyChain
-        self.height, self.width = input_size      # model input, pixels
-        self.files = safety.files                 # (pose.pt, detector.pt, defense.json)
-        self.manifest = manifest                  # a weights bundle's manifest (profile, commit, params), else None
-        self.camera = camera                      # the model's camera at its input size (Intrinsics), None: unknown
+    def __init__(
+        self, safety: Any, input_size: tuple[int, int], manifest: dict[str, Any] | None = None, camera: Any = None
+    ):
+        self.safety = safety  # pipeline.defense.chain.SafetyChain
+        self.height, self.width = input_size  # model input, pixels
+        self.files = safety.files  # (pose.pt, detector.pt, defense.json)
+        self.manifest = manifest  # a weights bundle's manifest (profile, commit, params), else None
+        self.camera = camera  # the model's camera at its input size (Intrinsics), None: unknown
 
     @property
     def rule(self) -> VerdictRule:
@@ -195,31 +219,48 @@ class Chain:
             fitted.append(self._fit(image, name))
             if camera is not None:
                 said += camera_warnings(self.camera, camera, image.shape[1], image.shape[0], name)
-        for text in dict.fromkeys(said):   # each once
+        for text in dict.fromkeys(said):  # each once
             warnings.warn(text, UserWarning, stacklevel=2)
         if not names:
             raise ValueError("no images given (pass one or more image files or arrays)")
         x = torch.from_numpy(np.stack(fitted)).permute(0, 3, 1, 2)
         pose, prob = [], []
         for lo in range(0, len(x), batch_size):
-            out = self.safety.onboard(x[lo:lo + batch_size])
+            out = self.safety.onboard(x[lo : lo + batch_size])
             pose.append(out.pose.numpy().astype(np.float64))
             prob.append(out.prob.numpy().astype(np.float64))
         pixels = np.stack(fitted)
         lit = (pixels.max(axis=3) >= LIT_LEVEL).mean(axis=(1, 2))
         smooth = structure(pixels)
         rule = self.rule
-        verdict = tuple(NO_TARGET if lit[k] < MIN_LIT_FRACTION else NOT_A_FRAME if smooth[k] < MIN_STRUCTURE
-                        else rule.verdict(p) for k, p in enumerate(np.concatenate(prob)))
+        verdict = tuple(
+            NO_TARGET if lit[k] < MIN_LIT_FRACTION else NOT_A_FRAME if smooth[k] < MIN_STRUCTURE else rule.verdict(p)
+            for k, p in enumerate(np.concatenate(prob))
+        )
         seen = np.array([v not in (NO_TARGET, NOT_A_FRAME) for v in verdict], dtype=bool)
         p = np.where(seen[:, None], np.concatenate(pose), np.nan)
         quaternion = np.full((len(p), 4), np.nan)
         quaternion[seen] = sixd_to_quat(p[seen, 3:9]).reshape(-1, 4)
-        return Prediction(tuple(names), p[:, :3], quaternion, p[:, 3:9], np.where(seen, np.concatenate(prob), np.nan),
-                          verdict, lit, smooth, rule)
+        return Prediction(
+            tuple(names),
+            p[:, :3],
+            quaternion,
+            p[:, 3:9],
+            np.where(seen, np.concatenate(prob), np.nan),
+            verdict,
+            lit,
+            smooth,
+            rule,
+        )
 
-    def track(self, images: Image | Sequence[Image], commands: np.ndarray, attitudes: np.ndarray,
-              batch_size: int = BATCH, camera: Any = None) -> Any:
+    def track(
+        self,
+        images: Image | Sequence[Image],
+        commands: np.ndarray,
+        attitudes: np.ndarray,
+        batch_size: int = BATCH,
+        camera: Any = None,
+    ) -> Any:
         """The defended chain over a sequence (rpodguard/sequence.py): `images` in time order, the chaser's
         commanded displacement of the target's relative position per frame `commands` (N, 3; world axes,
         m; row 0 unused) and camera `attitudes` (N, 3, 3; camera -> world) -> a `Track`: per frame the
@@ -244,8 +285,12 @@ class Chain:
         h, w = image.shape[:2]
         want = self.width / self.height
         if abs(w / h - want) > ASPECT_TOLERANCE * want:
-            warnings.warn(f"{name} is {w}x{h} (aspect {w / h:.3f}), the model's input {self.width}x{self.height} "
-                          f"(aspect {want:.3f}): stretched to fit, so the pose may be off", UserWarning, stacklevel=3)
+            warnings.warn(
+                f"{name} is {w}x{h} (aspect {w / h:.3f}), the model's input {self.width}x{self.height} "
+                f"(aspect {want:.3f}): stretched to fit, so the pose may be off",
+                UserWarning,
+                stacklevel=3,
+            )
         out = resize(np.ascontiguousarray(image), self.width, self.height)
         return out.astype(np.float32) / 255.0 if out.dtype == np.uint8 else out.astype(np.float32)
 
@@ -286,8 +331,9 @@ def read_image(path: Path) -> np.ndarray:
     try:
         with PILImage.open(path) as im:
             if getattr(im, "n_frames", 1) > 1:
-                raise DataError(f"{path} holds {im.n_frames} frames (an animation or a multi-page file); give "
-                                f"one image per file")
+                raise DataError(
+                    f"{path} holds {im.n_frames} frames (an animation or a multi-page file); give one image per file"
+                )
             im.load()
             return _rgb(ImageOps.exif_transpose(im), path)
     except DataError:
@@ -300,13 +346,16 @@ def _rgb(im: Any, path: Path) -> np.ndarray:
     """uint8 (H, W, 3) RGB of a decoded Pillow image (see `read_image`)."""
     if im.mode.startswith("I;16") or im.mode in ("F", "I"):
         if im.mode == "I":
-            raise DataError(f"{path} has 32-bit integer pixels (no defined white level); save it as an 8- or "
-                            f"16-bit image")
+            raise DataError(
+                f"{path} has 32-bit integer pixels (no defined white level); save it as an 8- or 16-bit image"
+            )
         grey = np.asarray(im)
         if im.mode == "F":
             if not np.isfinite(grey).all() or grey.min() < 0 or grey.max() > 1:
-                raise DataError(f"{path} has float pixels outside [0, 1] (min {grey.min():g}, max "
-                                f"{grey.max():g}); save it scaled to [0, 1] or as an 8-bit image")
+                raise DataError(
+                    f"{path} has float pixels outside [0, 1] (min {grey.min():g}, max "
+                    f"{grey.max():g}); save it scaled to [0, 1] or as an 8-bit image"
+                )
             grey = np.round(grey * 255)
         else:
             grey = grey.astype(np.uint16) >> 8

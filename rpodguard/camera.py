@@ -6,6 +6,7 @@ about f_m / f times the true ones. pose.pt stores the training images' K (`rpod 
 checkpoint of a weights bundle the manifest's params give it (the synthetic camera, `camera` scaled to
 `render.width` x `render.height`); otherwise it is unknown and nothing can be checked.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -14,7 +15,7 @@ from typing import Any
 from pipeline.geometry.camera import Intrinsics, camera_difference
 from pipeline.io.errors import DataError
 
-CAMERA_TOLERANCE = 0.01   # relative difference (pipeline.geometry.camera.camera_difference) above which it warns
+CAMERA_TOLERANCE = 0.01  # relative difference (pipeline.geometry.camera.camera_difference) above which it warns
 
 
 def model_camera(ckpt: dict[str, Any], manifest: dict[str, Any] | None, path: Path) -> Intrinsics | None:
@@ -29,10 +30,11 @@ def model_camera(ckpt: dict[str, Any], manifest: dict[str, Any] | None, path: Pa
     params = (manifest or {}).get("params") or {}
     cam, render = params.get("camera"), params.get("render") or {}
     source = str(render.get("source") or "inputs/none")
-    if not cam or not source.endswith("inputs/none"):       # an imported data set's camera is not in params
+    if not cam or not source.endswith("inputs/none"):  # an imported data set's camera is not in params
         return None
-    return Intrinsics(cam["ref_width"], cam["ref_height"], cam["fx"], cam["fy"], cam["cx"],
-                      cam["cy"]).scaled(width, height)
+    return Intrinsics(cam["ref_width"], cam["ref_height"], cam["fx"], cam["fy"], cam["cx"], cam["cy"]).scaled(
+        width, height
+    )
 
 
 def read_camera(path: Path | str) -> dict[str, Any]:
@@ -61,15 +63,21 @@ def camera_warnings(model: Intrinsics | None, camera: Any, width: int, height: i
         given = Intrinsics.from_K(camera, width, height)
     out = []
     if (given.width, given.height) != (width, height):
-        out.append(f"{name} is {width}x{height} but its camera is given at {given.width}x{given.height}: K is "
-                   f"scaled to the image (a cropped image needs its own K)")
+        out.append(
+            f"{name} is {width}x{height} but its camera is given at {given.width}x{given.height}: K is "
+            f"scaled to the image (a cropped image needs its own K)"
+        )
         given = given.scaled(width, height)
     if model is None:
-        return out + ["the pose model records no camera matrix (a checkpoint from before it was stored): the "
-                      "camera given is not checked"]
+        return out + [
+            "the pose model records no camera matrix (a checkpoint from before it was stored): the "
+            "camera given is not checked"
+        ]
     if camera_difference(model, given) > CAMERA_TOLERANCE:
         m = model.scaled(width, height)
-        out.append(f"{name}: its camera (fx {given.fx:.1f}, fy {given.fy:.1f}, cx {given.cx:.1f}, cy {given.cy:.1f} "
-                   f"px at {width}x{height}) is not the one the model was trained for (fx {m.fx:.1f}, fy {m.fy:.1f}, "
-                   f"cx {m.cx:.1f}, cy {m.cy:.1f}): ranges come out about {m.fx / given.fx:.2f} times the true ones")
+        out.append(
+            f"{name}: its camera (fx {given.fx:.1f}, fy {given.fy:.1f}, cx {given.cx:.1f}, cy {given.cy:.1f} "
+            f"px at {width}x{height}) is not the one the model was trained for (fx {m.fx:.1f}, fy {m.fy:.1f}, "
+            f"cx {m.cx:.1f}, cy {m.cy:.1f}): ranges come out about {m.fx / given.fx:.2f} times the true ones"
+        )
     return out

@@ -9,6 +9,7 @@ thresholds and settings; pipeline/formats/defense.py, read with the chain by pip
 (pipeline/geometry/trajectories.py):
 world axes centred on the target; `rel` is the target's position relative to the chaser camera (m).
 """
+
 from __future__ import annotations
 
 import csv
@@ -24,7 +25,7 @@ from pipeline.io.errors import DataError
 MOTION_COLUMNS = ("u_x", "u_y", "u_z", *(f"c{j}" for j in range(9)))
 """A motion file's columns: the commanded displacement of rel since the previous frame (world, m; the
 first row's is unused) and the camera attitude c0..c8 (camera -> world rotation, row-major)."""
-MAX_DISPLACEMENT_M = 1000.0   # m: a commanded displacement between two frames above this along an axis is refused
+MAX_DISPLACEMENT_M = 1000.0  # m: a commanded displacement between two frames above this along an axis is refused
 
 
 @dataclass(frozen=True)
@@ -44,16 +45,26 @@ class Track:
 
     def records(self) -> list[dict[str, Any]]:
         """One JSON-ready dict per frame (null where there is no trusted estimate or no finite PL)."""
+
         def finite(v: np.ndarray) -> Any:
             return v.tolist() if np.isfinite(v).all() else None
 
-        return [{"image": name, "trusted_rel_m": finite(self.trusted[k]), "pl_m": finite(self.pl[k]),
-                 "available": bool(self.available[k]), "flag": bool(self.flag[k]), "mode": str(self.mode[k])}
-                for k, name in enumerate(self.prediction.sources)]
+        return [
+            {
+                "image": name,
+                "trusted_rel_m": finite(self.trusted[k]),
+                "pl_m": finite(self.pl[k]),
+                "available": bool(self.available[k]),
+                "flag": bool(self.flag[k]),
+                "mode": str(self.mode[k]),
+            }
+            for k, name in enumerate(self.prediction.sources)
+        ]
 
 
-def track(chain: Any, images: Any, commands: np.ndarray, attitudes: np.ndarray, batch_size: int = 64,
-          camera: Any = None) -> Track:
+def track(
+    chain: Any, images: Any, commands: np.ndarray, attitudes: np.ndarray, batch_size: int = 64, camera: Any = None
+) -> Track:
     """The defended chain over `images` in time order (see rpodguard.api.Chain.predict for what
     images may be), with the chaser's `commands` (N, 3; world, m: the commanded displacement of rel
     since the previous frame, row 0 unused) and camera `attitudes` (N, 3, 3; camera -> world); `camera` the
@@ -63,19 +74,32 @@ def track(chain: Any, images: Any, commands: np.ndarray, attitudes: np.ndarray, 
 
     defended = chain.safety.defended
     if defended is None:
-        raise DataError(f"{chain.files[2]} not found (`rpod calibrate` writes a run's defense: the chain's checks and "
-                        f"their thresholds)")
+        raise DataError(
+            f"{chain.files[2]} not found (`rpod calibrate` writes a run's defense: the chain's checks and "
+            f"their thresholds)"
+        )
     pred = chain.predict(images, batch_size, camera=camera)
     n = len(pred)
     commands, attitudes = np.asarray(commands, np.float64), np.asarray(attitudes, np.float64)
     if commands.shape != (n, 3) or attitudes.shape != (n, 3, 3):
-        raise ValueError(f"track needs commands (N, 3) and camera attitudes (N, 3, 3) for the N = {n} images, got "
-                         f"{commands.shape} and {attitudes.shape}")
+        raise ValueError(
+            f"track needs commands (N, 3) and camera attitudes (N, 3, 3) for the N = {n} images, got "
+            f"{commands.shape} and {attitudes.shape}"
+        )
     if not (np.isfinite(commands).all() and np.isfinite(attitudes).all()):
         raise ValueError("track: commands and camera attitudes must be finite")
     R_pred = _rotations(pred.rotation_6d)
-    trace = run_defense(defended.settings, defended.motion, defended.noise, pred.position, pred.attack_probability,
-                        attitudes, commands, R_pred, partial(alert_limit, settings=defended.alert))
+    trace = run_defense(
+        defended.settings,
+        defended.motion,
+        defended.noise,
+        pred.position,
+        pred.attack_probability,
+        attitudes,
+        commands,
+        R_pred,
+        partial(alert_limit, settings=defended.alert),
+    )
     return Track(trace.trusted, trace.pl, trace.available, trace.flag, trace.mode, pred)
 
 
@@ -92,16 +116,16 @@ def _rotations(sixd: np.ndarray) -> np.ndarray:
 
 def read_motion(path: Path | str, frames: int) -> tuple[np.ndarray, np.ndarray]:
     """(commands (N, 3), camera attitudes (N, 3, 3)) from a CSV file with a header naming
-    `MOTION_COLUMNS` and one row per frame; a missing file, a missing column, a row count other than
-    `frames`, a non-number, a camera matrix that is not a rotation (a mirror, determinant -1, included), a
-displacement over MAX_DISPLACEMENT_M or a file that is not a regular one (a FIFO) is a DataError naming the
-file; a UTF-8 byte-order mark is skipped."""
+        `MOTION_COLUMNS` and one row per frame; a missing file, a missing column, a row count other than
+        `frames`, a non-number, a camera matrix that is not a rotation (a mirror, determinant -1, included), a
+    displacement over MAX_DISPLACEMENT_M or a file that is not a regular one (a FIFO) is a DataError naming the
+    file; a UTF-8 byte-order mark is skipped."""
     from pipeline.io.files import open_regular
 
     path = Path(path)
     if not path.exists():
         raise DataError(f"{path} not found (a motion CSV with columns {', '.join(MOTION_COLUMNS)})")
-    with open_regular(path, "r", "motion CSV", newline="", encoding="utf-8-sig") as f:   # a BOM is not part of u_x
+    with open_regular(path, "r", "motion CSV", newline="", encoding="utf-8-sig") as f:  # a BOM is not part of u_x
         rows = list(csv.DictReader(f))
     missing = [c for c in MOTION_COLUMNS if not rows or c not in rows[0]]
     if missing:
@@ -117,11 +141,15 @@ file; a UTF-8 byte-order mark is skipped."""
         raise DataError(f"{path}: every value must be finite and c0..c8 a rotation matrix (row-major) per row")
     mirrored = np.flatnonzero(np.linalg.det(camera) < 0)
     if len(mirrored):
-        raise DataError(f"{path}: c0..c8 of data row {mirrored[0] + 1} is a mirror (determinant -1), not a rotation "
-                        f"({len(mirrored)} such rows)")
-    far = np.flatnonzero(np.abs(values[1:, :3]).max(axis=1) > MAX_DISPLACEMENT_M) + 1   # row 0 is unused
+        raise DataError(
+            f"{path}: c0..c8 of data row {mirrored[0] + 1} is a mirror (determinant -1), not a rotation "
+            f"({len(mirrored)} such rows)"
+        )
+    far = np.flatnonzero(np.abs(values[1:, :3]).max(axis=1) > MAX_DISPLACEMENT_M) + 1  # row 0 is unused
     if len(far):
-        raise DataError(f"{path}: data row {far[0] + 1} commands a displacement of "
-                        f"{', '.join(f'{v:.3g}' for v in values[far[0], :3])} m between two frames (more than "
-                        f"{MAX_DISPLACEMENT_M:g} m along an axis; u_x, u_y, u_z are metres)")
+        raise DataError(
+            f"{path}: data row {far[0] + 1} commands a displacement of "
+            f"{', '.join(f'{v:.3g}' for v in values[far[0], :3])} m between two frames (more than "
+            f"{MAX_DISPLACEMENT_M:g} m along an axis; u_x, u_y, u_z are metres)"
+        )
     return values[:, :3], camera

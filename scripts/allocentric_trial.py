@@ -12,6 +12,7 @@ run under one instruction-set cap, reports/benchmarks.md). Writes reports/trials
 Usage (in a checkout that ran `dvc repro train`): python scripts/allocentric_trial.py [--epochs N]
 (--epochs: fewer than train.epochs for a quick check only; the comparison is fair at train.epochs).
 """
+
 from __future__ import annotations
 
 import os
@@ -54,8 +55,13 @@ def errors(pred: np.ndarray, target: np.ndarray) -> dict[str, float]:
     pos, att = pose_errors(pred, target)
     tilt, roll = tilt_roll_deg(pred, target)
     _, lo, hi = mean_interval(att)
-    return {"position_m": float(pos.mean()), "attitude_deg": float(att.mean()), "attitude_ci": (lo, hi),
-            "tilt_deg": float(tilt.mean()), "roll_deg": float(roll.mean())}
+    return {
+        "position_m": float(pos.mean()),
+        "attitude_deg": float(att.mean()),
+        "attitude_ci": (lo, hi),
+        "tilt_deg": float(tilt.mean()),
+        "roll_deg": float(roll.mean()),
+    }
 
 
 def main(epochs: int | None = None) -> None:
@@ -65,10 +71,10 @@ def main(epochs: int | None = None) -> None:
     from pipeline.pose.loss import PoseLoss
     from pipeline.pose.metrics import pose_errors
     from pipeline.pose.model import PoseNet
-    from pipeline.stats import mean_interval
     from pipeline.pose.train import fit, make_deterministic, predict
     from pipeline.report.markdown import markdown_table
     from pipeline.seeds import seed_for
+    from pipeline.stats import mean_interval
     from stages.artifacts import data
     from stages.artifacts.paths import POSE
     from stages.config import params as params_mod
@@ -77,7 +83,7 @@ def main(epochs: int | None = None) -> None:
 
     os.chdir(ROOT)
     missing = [str(p) for p in (POSE, Path("datasets/labels.parquet")) if not (ROOT / p).exists()]
-    if missing:   # before ten minutes of training, not after
+    if missing:  # before ten minutes of training, not after
         raise SystemExit(f"allocentric trial: {', '.join(missing)} not found: run `dvc repro train` first")
     params = params_mod.load()
     device = torch_setup(params)
@@ -90,17 +96,23 @@ def main(epochs: int | None = None) -> None:
         ds.targets = torch.tensor(allocentric_targets(ds.targets.numpy()), dtype=torch.float32)
     model.set_output_bias(train_set.targets[:, :3].mean(0), train_set.targets[:, 3:].mean(0))
     model.place(device, params.amp)
-    print(f"allocentric trial: {len(train_split)} train / {len(val_split)} validation images, {cfg.epochs} epochs",
-          flush=True)
+    print(
+        f"allocentric trial: {len(train_split)} train / {len(val_split)} validation images, {cfg.epochs} epochs",
+        flush=True,
+    )
     result = fit(model, PoseLoss("mean"), train_set, val_set, cfg, device)
     model.load_state_dict(result.best_state)
     allo = egocentric_predictions(predict(model, val_set, device=device))
     ego_model = _load_standard(ROOT / POSE)
     ego = predict(ego_model, val_set).astype(np.float64)
     diff = mean_interval(pose_errors(allo, ego_val)[1] - pose_errors(ego, ego_val)[1])
-    rows = [{"attitude parametrisation": name, "best epoch": epoch, **_row(errors(p, ego_val))}
-            for name, p, epoch in (("egocentric (models/pose.pt, `rpod train`)", ego, "-"),
-                                   ("allocentric (this trial)", allo, result.best_epoch))]
+    rows = [
+        {"attitude parametrisation": name, "best epoch": epoch, **_row(errors(p, ego_val))}
+        for name, p, epoch in (
+            ("egocentric (models/pose.pt, `rpod train`)", ego, "-"),
+            ("allocentric (this trial)", allo, result.best_epoch),
+        )
+    ]
     text = f"""# Trials
 
 ## Allocentric attitude (issue 28, item 3)
@@ -120,8 +132,12 @@ Paired over the same images, allocentric minus egocentric attitude error: {diff[
 
 def _row(e: dict[str, float]) -> dict[str, str]:
     lo, hi = e["attitude_ci"]
-    return {"position (m)": f"{e['position_m']:.3f}", "attitude (deg)": f"{e['attitude_deg']:.2f} [{lo:.2f}, {hi:.2f}]",
-            "tilt (deg)": f"{e['tilt_deg']:.2f}", "roll (deg)": f"{e['roll_deg']:.2f}"}
+    return {
+        "position (m)": f"{e['position_m']:.3f}",
+        "attitude (deg)": f"{e['attitude_deg']:.2f} [{lo:.2f}, {hi:.2f}]",
+        "tilt (deg)": f"{e['tilt_deg']:.2f}",
+        "roll (deg)": f"{e['roll_deg']:.2f}",
+    }
 
 
 def _load_standard(path: Path):

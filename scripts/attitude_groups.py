@@ -10,6 +10,7 @@ model, not a choice.
 Usage (in a checkout with the default run's datasets/ and models/, e.g. after `dvc checkout`):
 python scripts/attitude_groups.py [--splits test train]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -53,18 +54,36 @@ def main(argv: list[str]) -> None:
         data = load_split(params, split)
         x = np.asarray(data.images)
         with torch.no_grad():
-            pred = np.concatenate([pose.model(torch.from_numpy(x[i:i + 64]).permute(0, 3, 1, 2).float() / 255).numpy()
-                                   for i in range(0, len(x), 64)])
+            pred = np.concatenate(
+                [
+                    pose.model(torch.from_numpy(x[i : i + 64]).permute(0, 3, 1, 2).float() / 255).numpy()
+                    for i in range(0, len(x), 64)
+                ]
+            )
         seq = data.labels["sequence"].to_numpy()
         groups = attitude_groups(seq)
         for g, e in group_errors(pred, data.targets, seq, groups).items():
-            rows.append({"split": split, "group": g, "sequences": e["sequences"], "frames": e["frames"],
-                         "position (m)": _ci(e["position_m"], 3), "attitude (deg)": _ci(e["attitude_deg"], 2),
-                         "tilt (deg)": _ci(e["tilt_deg"], 2), "roll (deg)": _ci(e["roll_deg"], 2)})
+            rows.append(
+                {
+                    "split": split,
+                    "group": g,
+                    "sequences": e["sequences"],
+                    "frames": e["frames"],
+                    "position (m)": _ci(e["position_m"], 3),
+                    "attitude (deg)": _ci(e["attitude_deg"], 2),
+                    "tilt (deg)": _ci(e["tilt_deg"], 2),
+                    "roll (deg)": _ci(e["roll_deg"], 2),
+                }
+            )
         pos, att = pose_errors(pred, data.targets)
         rotating = groups == "rotating"
-        diffs.append({"split": split, "attitude, rotating - fixed (deg)": _ci(bootstrap_difference(att, seq, rotating), 2),
-                      "position, rotating - fixed (m)": _ci(bootstrap_difference(pos, seq, rotating), 3)})
+        diffs.append(
+            {
+                "split": split,
+                "attitude, rotating - fixed (deg)": _ci(bootstrap_difference(att, seq, rotating), 2),
+                "position, rotating - fixed (m)": _ci(bootstrap_difference(pos, seq, rotating), 3),
+            }
+        )
     print(f"models/pose.pt (hash {pose.hash}); 95% percentile bootstrap over sequences\n")
     print(markdown_table(rows))
     print(markdown_table(diffs))

@@ -13,6 +13,7 @@ not committed yet, the HEAD of the git repository holding --models with the code
 rpodguard/, conf/) that differ from it listed as code_changes. The bundle is loaded back before the script
 reports it.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -30,15 +31,18 @@ from pipeline.formats.bundle import FILES, SOURCES, write_bundle  # noqa: E402
 from pipeline.io.errors import DataError  # noqa: E402
 from rpodguard import load_chain  # noqa: E402
 
-CODE = ("pipeline", "stages", "rpodguard", "conf")   # folders whose changes alter what a run trains
-REBUILD = ("git checkout {commit} -- pipeline stages conf && rpod params {profile} && dvc repro calibrate && "
-           "python scripts/bundle_weights.py")
+CODE = ("pipeline", "stages", "rpodguard", "conf")  # folders whose changes alter what a run trains
+REBUILD = (
+    "git checkout {commit} -- pipeline stages conf && rpod params {profile} && dvc repro calibrate && "
+    "python scripts/bundle_weights.py"
+)
 
 
 def provenance(models: Path) -> tuple[str, list[str]]:
     """(commit, changed code files) for the run in MODELS: the first commit whose dvc.lock records the md5 of all
     three files (that commit's code made them; no changes), else the checkout's HEAD with its changed or
     untracked code files."""
+
     def git(*args: str) -> str:
         return subprocess.run(["git", *args], cwd=models, capture_output=True, text=True, check=True).stdout
 
@@ -47,20 +51,32 @@ def provenance(models: Path) -> tuple[str, list[str]]:
         for commit in git("log", "--reverse", "--format=%H", "-S", md5[-1], "--", ":/dvc.lock").split():
             if all(m in git("show", f"{commit}:dvc.lock") for m in md5):
                 return commit, []
-        status = git("status", "--porcelain", "--untracked-files=all", "--", *[f":/{c}" for c in CODE],
-                     ":(exclude,top)rpodguard/weights")
+        status = git(
+            "status",
+            "--porcelain",
+            "--untracked-files=all",
+            "--",
+            *[f":/{c}" for c in CODE],
+            ":(exclude,top)rpodguard/weights",
+        )
         return git("rev-parse", "HEAD").strip(), [line[3:] for line in status.splitlines() if line.strip()]
     except (OSError, subprocess.CalledProcessError) as e:
-        raise DataError(f"{models}: not inside a git checkout with a commit, so the bundle's code commit is "
-                        f"unknown ({e})") from None
+        raise DataError(
+            f"{models}: not inside a git checkout with a commit, so the bundle's code commit is unknown ({e})"
+        ) from None
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--models", type=Path, default=REPO / "models",
-                        help="a run's models/ folder (pose_robust.pt, detector_robust.pt, defense.json)")
-    parser.add_argument("--params", type=Path, default=REPO / "params.yaml",
-                        help="the params.yaml they were trained with")
+    parser.add_argument(
+        "--models",
+        type=Path,
+        default=REPO / "models",
+        help="a run's models/ folder (pose_robust.pt, detector_robust.pt, defense.json)",
+    )
+    parser.add_argument(
+        "--params", type=Path, default=REPO / "params.yaml", help="the params.yaml they were trained with"
+    )
     parser.add_argument("--out", type=Path, default=None, help="bundle folder (default rpodguard/weights/PROFILE)")
     args = parser.parse_args()
     if not args.params.is_file():
@@ -71,10 +87,13 @@ def main() -> None:
     commit, changes = provenance(args.models.resolve())
     rebuild = REBUILD.format(commit=commit[:12], profile=profile)
     manifest = write_bundle(out, args.models, params, commit, changes, rebuild)
-    chain = load_chain(out)      # the detector must belong to this pose model; the hashes just written must hold
+    chain = load_chain(out)  # the detector must belong to this pose model; the hashes just written must hold
     size = sum(f["bytes"] for f in manifest["files"].values())
-    print(f"{out}: {', '.join(manifest['files'])} ({size / 1e6:.1f} MB), profile {profile}, commit {commit[:12]}"
-          + (f", {len(changes)} changed code files" if changes else "") + f"; {chain.rule.describe()}")
+    print(
+        f"{out}: {', '.join(manifest['files'])} ({size / 1e6:.1f} MB), profile {profile}, commit {commit[:12]}"
+        + (f", {len(changes)} changed code files" if changes else "")
+        + f"; {chain.rule.describe()}"
+    )
 
 
 if __name__ == "__main__":

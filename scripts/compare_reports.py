@@ -4,6 +4,7 @@ reports/); prints every other difference and exits 1 when there is one.
 
 Used to check that a refactor leaves the results unchanged (same artifacts and numbers on the same seeds).
 """
+
 from __future__ import annotations
 
 import difflib
@@ -13,13 +14,28 @@ import sys
 from pathlib import Path
 from typing import Any
 
-TIME_KEYS = {"produced", "seconds", "train_minutes", "train_images_per_s", "render_seconds", "images_per_s",
-             "seconds_per_image", "minutes"}
+TIME_KEYS = {
+    "produced",
+    "seconds",
+    "train_minutes",
+    "train_images_per_s",
+    "render_seconds",
+    "images_per_s",
+    "seconds_per_image",
+    "minutes",
+}
 # Markdown text that reports times: masked before comparing
-TIME_TEXT = [re.compile(p) for p in (
-    r"\d+(\.\d+)? s\b", r"\d+(\.\d+)? minutes", r"[\d.]+ s/image", r"[\d.]+ (training )?images/s", r"\d{4}-\d\d-\d\d \d\d:\d\d UTC",
-    r"img/s",
-)]
+TIME_TEXT = [
+    re.compile(p)
+    for p in (
+        r"\d+(\.\d+)? s\b",
+        r"\d+(\.\d+)? minutes",
+        r"[\d.]+ s/image",
+        r"[\d.]+ (training )?images/s",
+        r"\d{4}-\d\d-\d\d \d\d:\d\d UTC",
+        r"img/s",
+    )
+]
 
 
 def strip_times(obj: Any) -> Any:
@@ -57,8 +73,10 @@ def mask_fit_column(lines: list[str]) -> list[str]:
 
 def compare(a: Path, b: Path) -> list[str]:
     diffs = []
-    files = sorted({p.relative_to(a) for p in (a / "reports").rglob("*") if p.suffix in (".md", ".json", ".csv")}
-                   | {p.relative_to(b) for p in (b / "reports").rglob("*") if p.suffix in (".md", ".json", ".csv")})
+    files = sorted(
+        {p.relative_to(a) for p in (a / "reports").rglob("*") if p.suffix in (".md", ".json", ".csv")}
+        | {p.relative_to(b) for p in (b / "reports").rglob("*") if p.suffix in (".md", ".json", ".csv")}
+    )
     for rel in files:
         fa, fb = a / rel, b / rel
         if not fa.exists() or not fb.exists():

@@ -7,6 +7,7 @@ world rotation, row-major). The approach is pipeline.geometry.trajectories.appro
 own (not a training, validation or test trajectory). A few seconds on one core. Run from the repository root:
 `python scripts/example_sequence.py` (params.yaml on the default profile).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -19,10 +20,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 OUT = ROOT / "examples" / "approach"
-FRAMES = 8                   # images in the sequence
-START_XY = (6.0, -4.0)       # m: lateral offset at the first frame (world x, y)
-START_RANGE, END_RANGE = 40.0, 12.0   # m: range at the first and last frame
-SEED = 4141                  # the example's own trajectory seed
+FRAMES = 8  # images in the sequence
+START_XY = (6.0, -4.0)  # m: lateral offset at the first frame (world x, y)
+START_RANGE, END_RANGE = 40.0, 12.0  # m: range at the first and last frame
+SEED = 4141  # the example's own trajectory seed
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -9,6 +9,7 @@ The copy holds the tracked and untracked-but-not-ignored files (a clean clone pl
 one-commit git repository; it is kept, and its path is printed at the end (reports in DIR/reports).
 tests/test_e2e_*.py build their copies with `copy_repo` too.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -26,15 +27,23 @@ BIN = Path(sys.executable).parent
 def run(args: list[str], cwd: Path, env: dict[str, str], timeout: float = 900) -> str:
     """Run a command in `cwd`; its stdout, or AssertionError with the tail of its output when it fails."""
     out = subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
-    assert out.returncode == 0, f"{' '.join(args)} failed ({out.returncode}):\n{out.stdout[-3000:]}\n{out.stderr[-3000:]}"
+    assert out.returncode == 0, (
+        f"{' '.join(args)} failed ({out.returncode}):\n{out.stdout[-3000:]}\n{out.stderr[-3000:]}"
+    )
     return out.stdout
 
 
 def copy_env(dst: Path) -> dict[str, str]:
     """The environment to run this venv's `rpod` and `dvc` on the code of the copy `dst` (and git there)."""
-    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", "PYTHONPATH": str(dst),
-           "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@example.org", "GIT_COMMITTER_NAME": "t",
-           "GIT_COMMITTER_EMAIL": "t@example.org"}
+    env = {
+        **os.environ,
+        "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}",
+        "PYTHONPATH": str(dst),
+        "GIT_AUTHOR_NAME": "t",
+        "GIT_AUTHOR_EMAIL": "t@example.org",
+        "GIT_COMMITTER_NAME": "t",
+        "GIT_COMMITTER_EMAIL": "t@example.org",
+    }
     env.pop("RPOD_DEBUG", None)
     return env
 
@@ -42,8 +51,11 @@ def copy_env(dst: Path) -> dict[str, str]:
 def copy_repo(src: Path, dst: Path) -> dict[str, str]:
     """Copy `src`'s working-tree files (tracked and untracked-not-ignored) into the folder `dst` as a
     one-commit git repository; returns the environment to run `rpod` and `dvc` there (`copy_env`)."""
-    files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=src, check=True,
-                           capture_output=True).stdout.decode().split("\0")
+    files = (
+        subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=src, check=True, capture_output=True)
+        .stdout.decode()
+        .split("\0")
+    )
     for name in filter(None, files):
         if (src / name).is_file():
             (dst / name).parent.mkdir(parents=True, exist_ok=True)

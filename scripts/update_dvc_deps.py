@@ -4,6 +4,7 @@ order.
 
 Run after adding a stage or changing what a stage imports: `python scripts/update_dvc_deps.py`.
 """
+
 from __future__ import annotations
 
 import re
@@ -36,13 +37,16 @@ def main() -> None:
         text = path.read_text()
         stages = yaml.safe_load(text)["stages"]
         for stage_name, stage in stages.items():
-            data = [d for d in stage.get("deps", []) if d.split("/")[0] in ("datasets", "models", "reports", "dvclive")
-                    or d.startswith("${")]
+            data = [
+                d
+                for d in stage.get("deps", [])
+                if d.split("/")[0] in ("datasets", "models", "reports", "dvclive") or d.startswith("${")
+            ]
             code = sorted(str(f.relative_to(derive.REPO)) for f in derive.stage_files(stage_name))
             m = re.search(rf"(\n  {stage_name}:\n(?:    (?!deps:).*\n)*?)    deps: \[[^\]]*\]\n", text)
             if m is None:
                 raise SystemExit(f"{name}: stage {stage_name} has no `deps: [...]` list to rewrite")
-            text = text[:m.start()] + m.group(1) + deps_block(data + code) + text[m.end():]
+            text = text[: m.start()] + m.group(1) + deps_block(data + code) + text[m.end() :]
         path.write_text(text)
         print(f"{path}: code deps of {len(stages)} stages rewritten")
 

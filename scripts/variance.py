@@ -18,6 +18,7 @@ With runs of more than one instruction set, reports/variance.md also carries the
 every run's value and the largest difference between instruction sets at one seed, beside the
 spread over seeds at one instruction set. Results only (no times), so `git diff reports/` shows what changed.
 """
+
 from __future__ import annotations
 
 import json
@@ -29,9 +30,11 @@ from typing import Any, Callable
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from pipeline.report.markdown import markdown_table  # noqa: E402
 from pipeline.io.atomic import atomic_write_text  # noqa: E402
-from stages.pages.summary import HEADLINES as SUMMARY_HEADLINES, Headline, Metrics  # noqa: E402
+from pipeline.report.markdown import markdown_table  # noqa: E402
+from stages.pages.summary import HEADLINES as SUMMARY_HEADLINES  # noqa: E402
+from stages.pages.summary import Headline, Metrics  # noqa: E402
+
 
 # The headline numbers: summary.json's (stages/pages/summary.py: `dvc metrics show`: the integrity rows among
 # them) and a few more that only the seed spread needs. Keys name them in reports/variance.json, which
@@ -55,29 +58,60 @@ def _worst(m: Metrics, key: str, eps: str) -> float:
 HEADLINES: list[Headline] = [
     *SUMMARY_HEADLINES,
     Headline("pose_tz_pct", "pose, tz error at 10-30 m (% of range)", lambda m: m["train"]["test"]["tz_pct_10_30"]),
-    Headline("fgsm_position_m_0.05", "FGSM position error at eps 0.05 (m)",
-             lambda m: m["attack"]["eps"]["0.05"]["position_mean_m"]),
+    Headline(
+        "fgsm_position_m_0.05",
+        "FGSM position error at eps 0.05 (m)",
+        lambda m: m["attack"]["eps"]["0.05"]["position_mean_m"],
+    ),
     Headline("undefended_lost_pct", "closed loop, attacked runs that lost the rendezvous, undefended (%)", _lost),
-    Headline("recover_held_pct", "closed loop, attacked runs held, detect-and-recover, paper dynamics (%)",
-             _paper_held),
-    Headline("lstm_recall_0.01_pct", "LSTM detection rate at eps 0.01 (%)",
-             lambda m: 100 * m["detect"]["detectors"]["lstm"]["0.01"]["recall"]),
-    Headline("lstm_eval_fa_pct", "LSTM alone at its own threshold, false alarms on clean evaluation frames (%)",
-             lambda m: 100 * m["detect"]["eval_alarms"]["rate"]),
-    Headline("shipped_test_fa_pct", "shipped detector at its calibrated threshold, clean pose-test frames flagged (%)",
-             lambda m: 100 * m["robustness"]["corruptions"][0]["shipped_false_alarm_rate"]),
-    Headline("shipped_lab_max_prob", "shipped detector, largest probability on clean lab frames (threshold ~0.99-1)",
-             lambda m: m["lab"]["shipped"]["probability_max"]),
-    Headline("integrated_0.01_pct", "integrated accuracy at eps 0.01 (%)",
-             lambda m: 100 * m["evaluate"]["per_eps"]["0.01"]["accuracy"]),
-    Headline("fused_hu_0.05_pct", "worst harmful-undetected at eps 0.05, fused chain (%)",
-             lambda m: _worst(m, "worst_harmful_undetected_fused", "0.05")),
-    Headline("fused_hu_0.01_pct", "worst harmful-undetected at eps 0.01, fused chain (%)",
-             lambda m: _worst(m, "worst_harmful_undetected_fused", "0.01")),
-    Headline("lstm_hu_0.05_pct", "worst harmful-undetected at eps 0.05, LSTM alone (%)",
-             lambda m: _worst(m, "worst_harmful_undetected", "0.05")),
-    Headline("lstm_hu_0.01_pct", "worst harmful-undetected at eps 0.01, LSTM alone (%)",
-             lambda m: _worst(m, "worst_harmful_undetected", "0.01")),
+    Headline(
+        "recover_held_pct", "closed loop, attacked runs held, detect-and-recover, paper dynamics (%)", _paper_held
+    ),
+    Headline(
+        "lstm_recall_0.01_pct",
+        "LSTM detection rate at eps 0.01 (%)",
+        lambda m: 100 * m["detect"]["detectors"]["lstm"]["0.01"]["recall"],
+    ),
+    Headline(
+        "lstm_eval_fa_pct",
+        "LSTM alone at its own threshold, false alarms on clean evaluation frames (%)",
+        lambda m: 100 * m["detect"]["eval_alarms"]["rate"],
+    ),
+    Headline(
+        "shipped_test_fa_pct",
+        "shipped detector at its calibrated threshold, clean pose-test frames flagged (%)",
+        lambda m: 100 * m["robustness"]["corruptions"][0]["shipped_false_alarm_rate"],
+    ),
+    Headline(
+        "shipped_lab_max_prob",
+        "shipped detector, largest probability on clean lab frames (threshold ~0.99-1)",
+        lambda m: m["lab"]["shipped"]["probability_max"],
+    ),
+    Headline(
+        "integrated_0.01_pct",
+        "integrated accuracy at eps 0.01 (%)",
+        lambda m: 100 * m["evaluate"]["per_eps"]["0.01"]["accuracy"],
+    ),
+    Headline(
+        "fused_hu_0.05_pct",
+        "worst harmful-undetected at eps 0.05, fused chain (%)",
+        lambda m: _worst(m, "worst_harmful_undetected_fused", "0.05"),
+    ),
+    Headline(
+        "fused_hu_0.01_pct",
+        "worst harmful-undetected at eps 0.01, fused chain (%)",
+        lambda m: _worst(m, "worst_harmful_undetected_fused", "0.01"),
+    ),
+    Headline(
+        "lstm_hu_0.05_pct",
+        "worst harmful-undetected at eps 0.05, LSTM alone (%)",
+        lambda m: _worst(m, "worst_harmful_undetected", "0.05"),
+    ),
+    Headline(
+        "lstm_hu_0.01_pct",
+        "worst harmful-undetected at eps 0.01, LSTM alone (%)",
+        lambda m: _worst(m, "worst_harmful_undetected", "0.01"),
+    ),
 ]
 
 
@@ -139,8 +173,17 @@ def variance_rows(runs: list[Path]) -> list[dict[str, Any]]:
         if not values:
             continue
         sd: float | str = statistics.stdev(values) if len(values) > 1 else "-"  # no spread from one run
-        rows.append({"key": key, "headline number": name, "runs": len(values), "mean": statistics.mean(values),
-                     "sd": sd, "min": min(values), "max": max(values)})
+        rows.append(
+            {
+                "key": key,
+                "headline number": name,
+                "runs": len(values),
+                "mean": statistics.mean(values),
+                "sd": sd,
+                "min": min(values),
+                "max": max(values),
+            }
+        )
     return rows
 
 
@@ -188,14 +231,18 @@ def main(args: list[str]) -> None:
     text = f"""# Seed variance
 
 The headline numbers over runs of the `{profile}` profile that differ only in `seed`
-({', '.join(seeds)}){_isa_note(isas)}: a change smaller than about two standard deviations here is
+({", ".join(seeds)}){_isa_note(isas)}: a change smaller than about two standard deviations here is
 not a result. "runs" counts the runs that produced the number (a run may stop after `train`).
 Written by `scripts/variance.py`, with reports/variance.json (read by `rpod report` to show the spread
 beside the headline numbers in README.md).
 
 {_unmet_note(runs, seeds, isas)}{table}{_isa_section(runs, seeds, isas)}"""
-    spread = {"profile": profile, "seeds": seeds, "isas": isas,
-              "numbers": {r["key"]: {k: r[k] for k in ("runs", "mean", "sd", "min", "max")} for r in rows}}
+    spread = {
+        "profile": profile,
+        "seeds": seeds,
+        "isas": isas,
+        "numbers": {r["key"]: {k: r[k] for k in ("runs", "mean", "sd", "min", "max")} for r in rows},
+    }
     atomic_write_text(ROOT / "reports" / "variance.json", json.dumps(spread, indent=1) + "\n")
     atomic_write_text(ROOT / "reports" / "variance.md", text)
     print(text)
@@ -208,8 +255,10 @@ def _unmet_note(runs: list[Path], seeds: list[str], isas: list[str]) -> str:
     for run, seed, isa in zip(runs, seeds, isas):
         for path in sorted((run / "models").glob("defense*.json")):
             for line in json.loads(path.read_text()).get("unmet") or []:
-                lines.append(f"- seed {seed}, {isa}: {path.name}: {line.split('; set defense.allow_unmet')[0]} "
-                             "(the run went on with `defense.allow_unmet: true`)")
+                lines.append(
+                    f"- seed {seed}, {isa}: {path.name}: {line.split('; set defense.allow_unmet')[0]} "
+                    "(the run went on with `defense.allow_unmet: true`)"
+                )
     return "Calibrations that missed their target:\n\n" + "\n".join(lines) + "\n\n" if lines else ""
 
 

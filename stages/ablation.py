@@ -24,6 +24,7 @@ by either FGSM variant: the standard detector (models/detector.pt, the one `rpod
 both, each cell's detector under its own; rates per eps with the bootstrap over the sequences, and the per-sequence
 counts (for paired differences on the same sequences).
 """
+
 from __future__ import annotations
 
 import time
@@ -62,17 +63,22 @@ def main(params: Params) -> None:
     device = torch_setup(params)
     seed = seed_for(params.seed, "ablation")
     rng = np.random.default_rng(seed)
-    chain = load_chain(params, PAPER, defended=False)   # the standard model and its detector's SHAP explainer
+    chain = load_chain(params, PAPER, defended=False)  # the standard model and its detector's SHAP explainer
     loss_fn = attack_loss(params.attack.loss, chain.loss)
     shap = chain.onboard.shap
     background = shap.background_mean
     t0 = time.perf_counter()
-    mixes = {"ablation": (a.eps, a.per_eps), "paper": (a.paper_eps, a.paper_per_eps)}   # drawn in this order
-    protocols = {mix: [_strict(params, rng, chain.model, shap, loss_fn, eps, n),
-                       _paper(params, rng, chain.model, shap, loss_fn, eps, n)] for mix, (eps, n) in mixes.items()}
+    mixes = {"ablation": (a.eps, a.per_eps), "paper": (a.paper_eps, a.paper_per_eps)}  # drawn in this order
+    protocols = {
+        mix: [
+            _strict(params, rng, chain.model, shap, loss_fn, eps, n),
+            _paper(params, rng, chain.model, shap, loss_fn, eps, n),
+        ]
+        for mix, (eps, n) in mixes.items()
+    }
     explain_s = time.perf_counter() - t0
-    threads = torch.get_num_threads()   # as torch_setup left them, for the sequences' pose network
-    torch.set_num_threads(1)   # the LSTM's matrices are small: extra threads cost more than they give (as rpod detect)
+    threads = torch.get_num_threads()  # as torch_setup left them, for the sequences' pose network
+    torch.set_num_threads(1)  # the LSTM's matrices are small: extra threads cost more than they give (as rpod detect)
     config = LSTMConfig(n_rows=9, n_features=len(background), hidden=d.hidden, dense=list(d.dense))
     fit = {"epochs": d.epochs, "patience": d.patience, "batch_size": d.batch_size, "lr": float(d.lr)}
     split = (float(d.test_fraction), float(d.val_fraction), seed)
@@ -80,40 +86,68 @@ def main(params: Params) -> None:
     try:
         cells = [c for mix, prot in protocols.items() for c in run_ablation(prot, config, fit, *split, device, mix)]
         strict, paper = protocols["paper"]
-        curves = {f"{attack}/{p.protocol}": learning_curve(p, attack, list(a.fractions), config, fit, *split,
-                                                            device, "paper")
-                  for attack, p in (("ours", strict), ("paper", paper))}
-    except ValueError as e:   # also a diverged fit (DivergenceError)
+        curves = {
+            f"{attack}/{p.protocol}": learning_curve(p, attack, list(a.fractions), config, fit, *split, device, "paper")
+            for attack, p in (("ours", strict), ("paper", paper))
+        }
+    except ValueError as e:  # also a diverged fit (DivergenceError)
         raise StageError(f"params.yaml ablation / detect: {e}") from None
     fit_s = time.perf_counter() - t1
     torch.set_num_threads(threads)
     t2 = time.perf_counter()
-    sequences = {"integrated": _eval_sequences(params), **({"lab": _lab_sequences(params)}
-                                                            if retrain_reason(params) is None else {})}
+    sequences = {
+        "integrated": _eval_sequences(params),
+        **({"lab": _lab_sequences(params)} if retrain_reason(params) is None else {}),
+    }
     onboard = chain.onboard
-    detectors = {**{f"standard/{v}": (onboard.detector, onboard.threshold, v) for v in VARIANTS},
-                 **{cell_key(c): (c.detector, c.threshold, c.attack) for c in cells}}
-    runs = {where: sequence_counts(chain.model, loss_fn, shap, seqs, detectors, [float(x) for x in a.eps])
-            for where, seqs in sequences.items()}
+    detectors = {
+        **{f"standard/{v}": (onboard.detector, onboard.threshold, v) for v in VARIANTS},
+        **{cell_key(c): (c.detector, c.threshold, c.attack) for c in cells},
+    }
+    runs = {
+        where: sequence_counts(chain.model, loss_fn, shap, seqs, detectors, [float(x) for x in a.eps])
+        for where, seqs in sequences.items()
+    }
     sequence_s = time.perf_counter() - t2
-    metrics = {"model_hash": chain.pose_hash, "eps": [float(e) for e in a.eps], "normal": a.normal,
-               "per_eps": a.per_eps,
-               "paper_eps": [float(e) for e in a.paper_eps], "paper_per_eps": a.paper_per_eps,
-               "seconds": {"explain": explain_s, "fit": fit_s, "sequences": sequence_s,
-                           "total": explain_s + fit_s + sequence_s},
-               "cells": [cell_json(c) for c in cells],
-               "curves": {k: [cell_json(c) for c in v] for k, v in curves.items()},
-               "sequences": {where: sequences_json(r, where) for where, r in runs.items()}}
+    metrics = {
+        "model_hash": chain.pose_hash,
+        "eps": [float(e) for e in a.eps],
+        "normal": a.normal,
+        "per_eps": a.per_eps,
+        "paper_eps": [float(e) for e in a.paper_eps],
+        "paper_per_eps": a.paper_per_eps,
+        "seconds": {
+            "explain": explain_s,
+            "fit": fit_s,
+            "sequences": sequence_s,
+            "total": explain_s + fit_s + sequence_s,
+        },
+        "cells": [cell_json(c) for c in cells],
+        "curves": {k: [cell_json(c) for c in v] for k, v in curves.items()},
+        "sequences": {where: sequences_json(r, where) for where, r in runs.items()},
+    }
     write_metrics(ABLATION_METRICS, metrics, params.profile_name)
-    atomic_write_text(ABLATION_REPORT, ablation_page(cells, curves, metrics["sequences"], a, d,
-                                                     (params.render.frames_per_sequence, params.shap.frames)))
-    typer.echo(f"ablation: {len(cells)} cells in {explain_s + fit_s:.0f} s (SHAP values {explain_s:.0f} s, LSTM fits "
-               f"{fit_s:.0f} s), {len(detectors)} detectors on {', '.join(runs)} sequences in {sequence_s:.0f} s "
-               f"-> {ABLATION_REPORT}")
+    atomic_write_text(
+        ABLATION_REPORT,
+        ablation_page(
+            cells, curves, metrics["sequences"], a, d, (params.render.frames_per_sequence, params.shap.frames)
+        ),
+    )
+    typer.echo(
+        f"ablation: {len(cells)} cells in {explain_s + fit_s:.0f} s (SHAP values {explain_s:.0f} s, LSTM fits "
+        f"{fit_s:.0f} s), {len(detectors)} detectors on {', '.join(runs)} sequences in {sequence_s:.0f} s "
+        f"-> {ABLATION_REPORT}"
+    )
 
 
-def sequence_counts(model: Any, loss_fn: Any, shap: Any, sequences: list[Any],
-                    detectors: dict[str, tuple[Any, float, str]], eps_list: list[float]) -> dict[str, dict[str, Any]]:
+def sequence_counts(
+    model: Any,
+    loss_fn: Any,
+    shap: Any,
+    sequences: list[Any],
+    detectors: dict[str, tuple[Any, float, str]],
+    eps_list: list[float],
+) -> dict[str, dict[str, Any]]:
     """Per detector (name -> (detector, threshold, the FGSM variant it is run under)) and eps, the per-sequence
     counts (G, 4) on `sequences` (pipeline.evaluation.sequences.Sequence: images, targets, attack schedule), each
     sequence's frames attacked once per variant and eps (pipeline.evaluation.ablation.attacked_features)."""
@@ -138,11 +172,17 @@ def _eval_sequences(p: Params) -> list[Any]:
 
     e = p.evaluate
     images, poses, _ = read_eval_render(p)
-    return [Sequence(name=f"T{int(tr) + 1}", images=images[g["index"].to_numpy()],
-                     targets=g[TARGET].to_numpy(np.float32),
-                     attacked=attack_schedule(len(g), e.p_start, e.attack_length,
-                                              seed_for(e.seed, "evaluate.schedule", int(tr))))
-            for tr, g in poses.groupby("trajectory", sort=True)]
+    return [
+        Sequence(
+            name=f"T{int(tr) + 1}",
+            images=images[g["index"].to_numpy()],
+            targets=g[TARGET].to_numpy(np.float32),
+            attacked=attack_schedule(
+                len(g), e.p_start, e.attack_length, seed_for(e.seed, "evaluate.schedule", int(tr))
+            ),
+        )
+        for tr, g in poses.groupby("trajectory", sort=True)
+    ]
 
 
 def _lab_sequences(p: Params) -> list[Any]:
@@ -157,17 +197,30 @@ def _lab_sequences(p: Params) -> list[Any]:
 
     lab, r, c, z = p.lab, p.render, p.camera, p.lab.zed
     source = Path(given(lab.real_data) or LAB)
-    recs = [read_recording(f, r.width, r.height, dataclasses.asdict(lab.bodies), lab.match, float(lab.max_gap_s),
-                           float(lab.segment_threshold), lab.max_image_pixels, float(lab.empty_frame_tolerance))
-            for f in recording_folders(source)]
+    recs = [
+        read_recording(
+            f,
+            r.width,
+            r.height,
+            dataclasses.asdict(lab.bodies),
+            lab.match,
+            float(lab.max_gap_s),
+            float(lab.segment_threshold),
+            lab.max_image_pixels,
+            float(lab.empty_frame_tolerance),
+        )
+        for f in recording_folders(source)
+    ]
     K_syn = Intrinsics(c.ref_width, c.ref_height, c.fx, c.fy, c.cx, c.cy)
     K_zed = Intrinsics(z.width, z.height, z.fx, z.fy, z.cx, z.cy)
-    return chain_sequences(recs, K_syn, K_zed, float(lab.scale), float(p.evaluate.p_start), lab.attack_length,
-                           lab.seed)[0]
+    return chain_sequences(
+        recs, K_syn, K_zed, float(lab.scale), float(p.evaluate.p_start), lab.attack_length, lab.seed
+    )[0]
 
 
-def _strict(p: Params, rng: np.random.Generator, model: Any, shap: Any, loss_fn: Any, eps: list[float],
-            per_eps: int) -> Any:
+def _strict(
+    p: Params, rng: np.random.Generator, model: Any, shap: Any, loss_fn: Any, eps: list[float], per_eps: int
+) -> Any:
     """Our protocol's samples: images of the detector split, each clean once and attacked at most once."""
     from pipeline.evaluation.ablation import ProtocolSamples
     from pipeline.shap import sample_plan
@@ -177,18 +230,29 @@ def _strict(p: Params, rng: np.random.Generator, model: Any, shap: Any, loss_fn:
     try:
         plan = sample_plan(a.normal, per_eps, eps, np.arange(len(poses)), rng)
     except ValueError as e:
-        raise StageError(f"{DETECT_RENDER}: {e}; lower ablation.normal / ablation.per_eps / ablation.paper_per_eps or "
-                         "raise shap.frames") from None
+        raise StageError(
+            f"{DETECT_RENDER}: {e}; lower ablation.normal / ablation.per_eps / ablation.paper_per_eps or "
+            "raise shap.frames"
+        ) from None
     idx = plan["index"]
     rows = poses.iloc[idx]
-    values = _values(np.asarray(images[:])[idx], rows[POSITION + SIXD].to_numpy(np.float32), plan["eps"], model,
-                     shap, loss_fn, "strict")
-    return ProtocolSamples("strict", plan["eps"].astype(np.float64), idx, rows["trajectory"].to_numpy(),
-                           rows["frame"].to_numpy(), values)
+    values = _values(
+        np.asarray(images[:])[idx],
+        rows[POSITION + SIXD].to_numpy(np.float32),
+        plan["eps"],
+        model,
+        shap,
+        loss_fn,
+        "strict",
+    )
+    return ProtocolSamples(
+        "strict", plan["eps"].astype(np.float64), idx, rows["trajectory"].to_numpy(), rows["frame"].to_numpy(), values
+    )
 
 
-def _paper(p: Params, rng: np.random.Generator, model: Any, shap: Any, loss_fn: Any, eps: list[float],
-           per_eps: int) -> Any:
+def _paper(
+    p: Params, rng: np.random.Generator, model: Any, shap: Any, loss_fn: Any, eps: list[float], per_eps: int
+) -> Any:
     """The paper's protocol's samples: pose-test images topped up with pose-training ones (clean) and attacked
     pose-test images."""
     import pandas as pd
@@ -202,19 +266,27 @@ def _paper(p: Params, rng: np.random.Generator, model: Any, shap: Any, loss_fn: 
     try:
         plan = paper_plan(table["split"].to_numpy(), a.normal, per_eps, eps, rng)
     except ValueError as e:
-        raise StageError(f"datasets/labels.parquet: {e}; lower ablation.normal / ablation.per_eps / "
-                         "ablation.paper_per_eps") from None
+        raise StageError(
+            f"datasets/labels.parquet: {e}; lower ablation.normal / ablation.per_eps / ablation.paper_per_eps"
+        ) from None
     idx = plan["index"]
     n_test = len(splits[0])
     images = np.stack([splits[0].images[i] if i < n_test else splits[1].images[i - n_test] for i in idx.tolist()])
     rows = table.iloc[idx]
     values = _values(images, rows[POSITION + SIXD].to_numpy(np.float32), plan["eps"], model, shap, loss_fn, "paper")
-    return ProtocolSamples("paper", plan["eps"].astype(np.float64), rows["index"].to_numpy(np.int64),
-                           rows["sequence"].to_numpy(), rows["frame"].to_numpy(), values)
+    return ProtocolSamples(
+        "paper",
+        plan["eps"].astype(np.float64),
+        rows["index"].to_numpy(np.int64),
+        rows["sequence"].to_numpy(),
+        rows["frame"].to_numpy(),
+        values,
+    )
 
 
-def _values(images: np.ndarray, targets: np.ndarray, eps: np.ndarray, model: Any, shap: Any, loss_fn: Any,
-            protocol: str) -> dict[str, np.ndarray]:
+def _values(
+    images: np.ndarray, targets: np.ndarray, eps: np.ndarray, model: Any, shap: Any, loss_fn: Any, protocol: str
+) -> dict[str, np.ndarray]:
     """`pipeline.evaluation.ablation.protocol_values` with a progress bar."""
     from tqdm import tqdm
 

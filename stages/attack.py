@@ -8,6 +8,7 @@ The batches fan out over the engine's workers on the CPU (stages/engine/attack_w
 stages/engine/pool.py; in-process with one worker or on a GPU), each batch's attack seeded by its place,
 so adv.zarr does not depend on the workers.
 """
+
 from __future__ import annotations
 
 import os
@@ -49,7 +50,7 @@ def main(params: Params) -> None:
     check_attack_params(a, "attack")
     eps_list = [float(e) for e in a.eps]
     torch_setup(params)
-    make_attack(a, a.method, 0)   # refuses bad attack params before anything is loaded
+    make_attack(a, a.method, 0)  # refuses bad attack params before anything is loaded
     pose = load_pose(params)
     split = load_split(params, "test")
     n = len(split) if a.max_images is None else min(len(split), a.max_images)
@@ -61,29 +62,68 @@ def main(params: Params) -> None:
     y_all = torch.tensor(labels[TARGET].to_numpy(np.float32))
     k = int(np.argmin(np.abs(t_gt[:, 2] - np.median(t_gt[:, 2]))))  # figure: a mid-range test image
     es, threads = _engine(params, pose.model.device)
-    setup = AttackSetup(params=params, pose_path=str(POSE.resolve()), eps=tuple(eps_list), batch=a.batch_size,
-                        seed=seed_for(params.seed, "attack"), torch_threads=None if es.in_process else threads)
+    setup = AttackSetup(
+        params=params,
+        pose_path=str(POSE.resolve()),
+        eps=tuple(eps_list),
+        batch=a.batch_size,
+        seed=seed_for(params.seed, "attack"),
+        torch_threads=None if es.in_process else threads,
+    )
     t0 = time.perf_counter()
     # adv.zarr, the metrics, the report and the figure move into place together, once all are written
     with atomic_outputs(METRICS, REPORT, FIGURE, dirs=(ADV.parent,)) as (metrics_tmp, report_tmp, figure_tmp, adv):
         out = _attack_into(adv / ADV.name, setup, images, labels["index"].to_numpy(np.int64), y_all, k, es, threads)
-        out["root"].attrs.update({"eps": eps_list, "method": a.method, "loss": a.loss, "model_hash": pose.hash,
-                                  "quantisation": "round to nearest 8-bit level, at least one level, sign kept"})
+        out["root"].attrs.update(
+            {
+                "eps": eps_list,
+                "method": a.method,
+                "loss": a.loss,
+                "model_hash": pose.hash,
+                "quantisation": "round to nearest 8-bit level, at least one level, sign kept",
+            }
+        )
         seal_zarr(adv / ADV.name)
         seconds = time.perf_counter() - t0
         rows = _rows(out, eps_list, t_gt, q_gt)
-        write_metrics(metrics_tmp, {
-            "method": a.method, "loss": a.loss, "images": n, "seconds": seconds, "model_hash": pose.hash,
-            "measured_on": "stored uint8 images", "clean": {key: v for key, v in rows[0].items() if key != "eps"},
-            "eps": {r["eps"]: {key: v for key, v in r.items() if key != "eps"} for r in rows[1:]}}, params.profile_name)
+        write_metrics(
+            metrics_tmp,
+            {
+                "method": a.method,
+                "loss": a.loss,
+                "images": n,
+                "seconds": seconds,
+                "model_hash": pose.hash,
+                "measured_on": "stored uint8 images",
+                "clean": {key: v for key, v in rows[0].items() if key != "eps"},
+                "eps": {r["eps"]: {key: v for key, v in r.items() if key != "eps"} for r in rows[1:]},
+            },
+            params.profile_name,
+        )
         atomic_write_text(report_tmp, attack_page(rows, a, n))
-        save_figure(attack_example(np.asarray(images[k]), out["example"], t_gt[k],
-                                   {e: out["preds"][e][k] for e in ["clean", *eps_list]}, a.method), figure_tmp)
+        save_figure(
+            attack_example(
+                np.asarray(images[k]),
+                out["example"],
+                t_gt[k],
+                {e: out["preds"][e][k] for e in ["clean", *eps_list]},
+                a.method,
+            ),
+            figure_tmp,
+        )
     typer.echo(f"attack: {n} test images x {len(eps_list)} eps in {seconds:.0f} s -> {ADV}, {REPORT}")
 
 
-def _attack_into(path: Path, setup: AttackSetup, images: Any, source_index: np.ndarray, y_all: Any,
-                 k: int, es: engine.EngineSettings, threads: int) -> dict[str, Any]:
+def _attack_into(
+    path: Path,
+    setup: AttackSetup,
+    images: Any,
+    source_index: np.ndarray,
+    y_all: Any,
+    k: int,
+    es: engine.EngineSettings,
+    threads: int,
+) -> dict[str, Any]:
     """Attack the first len(source_index) images at every eps into a new zarr group at `path` (one uint8
     array per eps), one batch per engine job on `AttackWorker(setup)`; returns the group, the pose
     outputs (clean, stored uint8, float), the stored L-inf per eps and image k's stored adversarial
@@ -99,8 +139,10 @@ def _attack_into(path: Path, setup: AttackSetup, images: Any, source_index: np.n
     example: dict[float, np.ndarray] = {}
     root = zarr.open_group(str(path), mode="w")
     h, w = np.asarray(images[0]).shape[:2]
-    arrays = {e: create_array(root, adv_array_name(e), shape=(n, h, w, 3), chunks=(min(batch, n), h, w, 3),
-                             dtype="uint8") for e in eps_list}
+    arrays = {
+        e: create_array(root, adv_array_name(e), shape=(n, h, w, 3), chunks=(min(batch, n), h, w, 3), dtype="uint8")
+        for e in eps_list
+    }
     create_array(root, "source_index", data=source_index)
     starts = list(range(0, n, batch))
 
@@ -116,8 +158,10 @@ def _attack_into(path: Path, setup: AttackSetup, images: Any, source_index: np.n
                 example[e] = out[e][0][k - i]
         bar.update(1)
 
-    jobs = [AttackBatch(i, np.stack([np.asarray(images[j]) for j in range(i, min(i + batch, n))]), y_all[i:i + batch])
-            for i in starts]
+    jobs = [
+        AttackBatch(i, np.stack([np.asarray(images[j]) for j in range(i, min(i + batch, n))]), y_all[i : i + batch])
+        for i in starts
+    ]
     desc = f"attack ({setup.params.attack.method}, {len(eps_list)} eps)"
     with tqdm(total=len(jobs), desc=desc, unit="batch") as bar:
         engine.run(AttackWorker, setup, jobs, es, num_cpus=threads, progress=done)
@@ -131,8 +175,15 @@ def _rows(out: dict[str, Any], eps_list: list[float], t_gt: np.ndarray, q_gt: np
     rows = [{"eps": "clean", "stored_linf": 0.0, **_errors(preds["clean"], t_gt, q_gt)}]
     for e in eps_list:
         f = _errors(out["preds_float"][e], t_gt, q_gt)
-        rows.append({"eps": f"{e:g}", "stored_linf": out["linf"][e], **_errors(preds[e], t_gt, q_gt),
-                     "float_position_mean_m": f["position_mean_m"], "float_attitude_mean_deg": f["attitude_mean_deg"]})
+        rows.append(
+            {
+                "eps": f"{e:g}",
+                "stored_linf": out["linf"][e],
+                **_errors(preds[e], t_gt, q_gt),
+                "float_position_mean_m": f["position_mean_m"],
+                "float_attitude_mean_deg": f["attitude_mean_deg"],
+            }
+        )
     return rows
 
 
@@ -143,8 +194,12 @@ def _errors(pred: np.ndarray, t_gt: np.ndarray, q_gt: np.ndarray) -> dict[str, f
 
     pos = position_error(pred[:, :3], t_gt)
     att = attitude_error_deg(sixd_to_quat(pred[:, 3:]), q_gt)
-    return {"position_mean_m": float(pos.mean()), "position_median_m": float(np.median(pos)),
-            "attitude_mean_deg": float(att.mean()), "attitude_median_deg": float(np.median(att))}
+    return {
+        "position_mean_m": float(pos.mean()),
+        "position_median_m": float(np.median(pos)),
+        "attitude_mean_deg": float(att.mean()),
+        "attitude_median_deg": float(np.median(att)),
+    }
 
 
 def _engine(p: Params, device: Any) -> tuple[engine.EngineSettings, int]:

@@ -10,6 +10,7 @@ gap is the standard model's mean attitude error minus the variant model's, paire
 images have the standard model's input size (per_sequence) the standard model also runs on them: the part of the
 contribution that the frames themselves bring (the standard model on them) and the part that training on them brings.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -31,10 +32,16 @@ SPLITS = ("validation", "test")
 STANDARD = "standard"
 
 
-def main(params: Params,
-         variants: Annotated[list[str], typer.Argument(help="Pose trials to compare (datasets/pose_trials/VARIANT, "
-                                                             "`rpod pose_trial VARIANT`), e.g. per_sequence 320x180.")]
-         ) -> None:
+def main(
+    params: Params,
+    variants: Annotated[
+        list[str],
+        typer.Argument(
+            help="Pose trials to compare (datasets/pose_trials/VARIANT, "
+            "`rpod pose_trial VARIANT`), e.g. per_sequence 320x180."
+        ),
+    ],
+) -> None:
     """Compare the standard model with the pose trials' models, per split and target-attitude group."""
     from stages.artifacts.models import load_pose
     from stages.config.device import torch_setup
@@ -52,19 +59,33 @@ def main(params: Params,
         frames[v] = _frames(trials[v], folder, seed)
         models[v] = _trial_model(trials[v], folder, device)
     errors = {name: {s: _errors(models[name], frames[name][s], device) for s in SPLITS} for name in models}
-    cross = {v: {s: _errors(models[STANDARD], frames[v][s], device) for s in SPLITS}
-             for v, p in trials.items() if (p.render.width, p.render.height) == (params.render.width, params.render.height)}
-    metrics = {"model_hash": file_hash(POSE), "seed": seed, "variants": variants,
-               "models": {name: {"size": _size(trials.get(name, params)),
-                                 **{s: _summary(e) for s, e in per.items()}} for name, per in errors.items()},
-               "cross": {v: {s: _summary(e) for s, e in per.items()} for v, per in cross.items()},
-               "contributions": {v: {s: _contribution(errors[STANDARD][s], errors[v][s], cross.get(v, {}).get(s))
-                                     for s in SPLITS} for v in variants}}
+    cross = {
+        v: {s: _errors(models[STANDARD], frames[v][s], device) for s in SPLITS}
+        for v, p in trials.items()
+        if (p.render.width, p.render.height) == (params.render.width, params.render.height)
+    }
+    metrics = {
+        "model_hash": file_hash(POSE),
+        "seed": seed,
+        "variants": variants,
+        "models": {
+            name: {"size": _size(trials.get(name, params)), **{s: _summary(e) for s, e in per.items()}}
+            for name, per in errors.items()
+        },
+        "cross": {v: {s: _summary(e) for s, e in per.items()} for v, per in cross.items()},
+        "contributions": {
+            v: {s: _contribution(errors[STANDARD][s], errors[v][s], cross.get(v, {}).get(s)) for s in SPLITS}
+            for v in variants
+        },
+    }
     write_metrics(ATTITUDE_METRICS, metrics, params.profile_name)
     atomic_write_text(ATTITUDE_REPORT, attitude_page(metrics, {v: _changes(v) for v in variants}))
     c = metrics["contributions"]
-    typer.echo("attitude: " + "; ".join(f"{v}: {c[v]['validation']['attitude_deg'][0]:+.2f} deg (validation)"
-                                        for v in variants) + f" -> {ATTITUDE_REPORT}")
+    typer.echo(
+        "attitude: "
+        + "; ".join(f"{v}: {c[v]['validation']['attitude_deg'][0]:+.2f} deg (validation)" for v in variants)
+        + f" -> {ATTITUDE_REPORT}"
+    )
 
 
 def _changes(variant: str) -> str:
@@ -99,8 +120,10 @@ def _trial_model(p: Params, folder: Path, device: Any) -> Any:
         if ckpt.get("labels_hash") != file_hash(folder / LABELS):
             raise StageError(f"{path} was not trained on {folder / LABELS}: re-run its pose trial")
         if list(ckpt["input_size"]) != [p.render.height, p.render.width]:
-            raise StageError(f"{path} takes {ckpt['input_size']} (HxW), its params.yaml renders "
-                             f"{p.render.height}x{p.render.width}: re-run its pose trial")
+            raise StageError(
+                f"{path} takes {ckpt['input_size']} (HxW), its params.yaml renders "
+                f"{p.render.height}x{p.render.width}: re-run its pose trial"
+            )
 
     return read(folder / POSE, device, p.amp, check).model
 
@@ -116,8 +139,14 @@ def _errors(model: Any, split: Any, device: Any) -> dict[str, np.ndarray]:
     pos, att = pose_errors(pred, split.targets)
     tilt, roll = tilt_roll_deg(pred, split.targets)
     seq = split.labels["sequence"].to_numpy()
-    return {"position_m": pos, "attitude_deg": att, "tilt_deg": tilt, "roll_deg": roll, "sequence": seq,
-            "group": attitude_groups(seq)}
+    return {
+        "position_m": pos,
+        "attitude_deg": att,
+        "tilt_deg": tilt,
+        "roll_deg": roll,
+        "sequence": seq,
+        "group": attitude_groups(seq),
+    }
 
 
 def _summary(e: dict[str, np.ndarray]) -> dict[str, Any]:
@@ -125,17 +154,24 @@ def _summary(e: dict[str, np.ndarray]) -> dict[str, Any]:
     from pipeline.pose.decomposition import bootstrap_mean
 
     keys = ("position_m", "attitude_deg", "tilt_deg", "roll_deg")
-    out: dict[str, Any] = {"frames": int(len(e["sequence"])), **{k: bootstrap_mean(e[k], e["sequence"]) for k in keys},
-                           "groups": {}}
+    out: dict[str, Any] = {
+        "frames": int(len(e["sequence"])),
+        **{k: bootstrap_mean(e[k], e["sequence"]) for k in keys},
+        "groups": {},
+    }
     for g in np.unique(e["group"]):
         m = e["group"] == g
-        out["groups"][str(g)] = {"frames": int(m.sum()), "sequences": int(len(np.unique(e["sequence"][m]))),
-                                 **{k: bootstrap_mean(e[k][m], e["sequence"][m]) for k in keys}}
+        out["groups"][str(g)] = {
+            "frames": int(m.sum()),
+            "sequences": int(len(np.unique(e["sequence"][m]))),
+            **{k: bootstrap_mean(e[k][m], e["sequence"][m]) for k in keys},
+        }
     return out
 
 
-def _contribution(standard: dict[str, np.ndarray], variant: dict[str, np.ndarray],
-                  cross: dict[str, np.ndarray] | None) -> dict[str, Any]:
+def _contribution(
+    standard: dict[str, np.ndarray], variant: dict[str, np.ndarray], cross: dict[str, np.ndarray] | None
+) -> dict[str, Any]:
     """The standard model's mean error minus the variant model's (deg, m; paired by sequence), and with `cross` (the
     standard model on the variant's frames) its two parts: the frames (standard on its frames - standard on the
     variant's) and the training (standard on the variant's frames - the variant model on them)."""
@@ -144,8 +180,10 @@ def _contribution(standard: dict[str, np.ndarray], variant: dict[str, np.ndarray
     def diff(a: dict[str, np.ndarray], b: dict[str, np.ndarray], key: str) -> tuple[float, float, float]:
         return bootstrap_model_difference(a[key], a["sequence"], b[key], b["sequence"])
 
-    out: dict[str, Any] = {"attitude_deg": diff(standard, variant, "attitude_deg"),
-                           "position_m": diff(standard, variant, "position_m")}
+    out: dict[str, Any] = {
+        "attitude_deg": diff(standard, variant, "attitude_deg"),
+        "position_m": diff(standard, variant, "position_m"),
+    }
     if cross is not None:
         out["frames_part_deg"] = diff(standard, cross, "attitude_deg")
         out["training_part_deg"] = diff(cross, variant, "attitude_deg")

@@ -12,6 +12,7 @@ the largest indices over trajectories, the share of target frames whose bound ex
 over trajectories) and, on `bound.certify_frames` frames of the first trajectory, the interval-bound certificate
 beside the capacity.
 """
+
 from __future__ import annotations
 
 import time
@@ -40,16 +41,23 @@ def main(params: Params) -> None:
     images, poses, _ = read_eval_render(params)
     labels = poses[TARGET].to_numpy(np.float64)
     trajs = [np.flatnonzero(poses["trajectory"].to_numpy() == t) for t in np.unique(poses["trajectory"])]
-    tracks = [Track(f"t{g}", images[ix], labels[ix]) for g, ix in enumerate(trajs[:b.trajectories])]
+    tracks = [Track(f"t{g}", images[ix], labels[ix]) for g, ix in enumerate(trajs[: b.trajectories])]
     eps = sorted(float(e) for e in b.eps)
     chains = {model: _chain(params, model, tracks, eps) for model in b.models}
-    metrics = {"eps": eps, "stride": b.stride, "trajectories": len(tracks), "frames": int(sum(len(t) for t in tracks)),
-               "chains": chains}
+    metrics = {
+        "eps": eps,
+        "stride": b.stride,
+        "trajectories": len(tracks),
+        "frames": int(sum(len(t) for t in tracks)),
+        "chains": chains,
+    }
     write_metrics(BOUND_METRICS, metrics, params.profile_name)
     atomic_write_text(BOUND_REPORT, bound_page(metrics))
     seconds = sum(c["seconds"] for c in chains.values())
-    typer.echo(f"bound: {len(chains)} chains x {len(tracks)} trajectories x {len(eps)} eps in {seconds:.0f} s "
-               f"-> {BOUND_REPORT}")
+    typer.echo(
+        f"bound: {len(chains)} chains x {len(tracks)} trajectories x {len(eps)} eps in {seconds:.0f} s "
+        f"-> {BOUND_REPORT}"
+    )
 
 
 def _capacities(model: str, eps: list[float]) -> tuple[list[Any], dict[str, Any]]:
@@ -61,8 +69,10 @@ def _capacities(model: str, eps: list[float]) -> tuple[list[Any], dict[str, Any]
         raise StageError(f"{CAPACITY}: no capacity of the {model} model; run `rpod train --robust` (dvc repro robust)")
     _, caps, meta = read_capacity(CAPACITY, model)
     if max(eps) > max(c.eps for c in caps):
-        raise StageError(f"params.yaml bound.eps: {max(eps):g} is above every eps the {model} model's capacity was "
-                         f"measured at ({', '.join(f'{c.eps:g}' for c in caps)}; suite.capacity.eps)")
+        raise StageError(
+            f"params.yaml bound.eps: {max(eps):g} is above every eps the {model} model's capacity was "
+            f"measured at ({', '.join(f'{c.eps:g}' for c in caps)}; suite.capacity.eps)"
+        )
     return caps, meta
 
 
@@ -88,11 +98,23 @@ def _chain(params: Params, model: str, tracks: list[Any], eps: list[float]) -> d
     with tqdm(total=len(tracks) * len(eps) * len(ATTACKERS), desc=f"bound ({model})", unit="program") as bar:
         for track in tracks:
             try:
-                rows.append(bound_track(safety.onboard, safety.defended, track, caps, eps, b.stride, limit,
-                                        b.batch_size, lambda: bar.update(1)))
-            except ValueError as e:   # a range outside the capacity's bins
-                raise StageError(f"{CAPACITY} ({model}) on eval_render {track.name}: {e}; widen "
-                                 "suite.capacity.edges") from None
+                rows.append(
+                    bound_track(
+                        safety.onboard,
+                        safety.defended,
+                        track,
+                        caps,
+                        eps,
+                        b.stride,
+                        limit,
+                        b.batch_size,
+                        lambda: bar.update(1),
+                    )
+                )
+            except ValueError as e:  # a range outside the capacity's bins
+                raise StageError(
+                    f"{CAPACITY} ({model}) on eval_render {track.name}: {e}; widen suite.capacity.edges"
+                ) from None
     per_eps = {}
     for e in (f"{v:g}" for v in eps):
         worst = worst_over_trajectories(rows, e)
@@ -101,8 +123,18 @@ def _chain(params: Params, model: str, tracks: list[Any], eps: list[float]) -> d
             worst[who]["frames_over_al"] = {"value": r.value if r.n else None, "ci": r.ci(), "n": r.n}
         per_eps[e] = worst
     cert = certificate(safety.model, tracks[0], caps, eps, b.certify_frames) if b.certify_frames and tracks else None
-    return {"model_hash": safety.pose_hash, "capacity": {"eps": [c.eps for c in caps], "quantile": caps[0].quantile,
-                                                         "margin": caps[0].margin, "edges": caps[0].edges.tolist(),
-                                                         "meta": meta},
-            "per_eps": per_eps, "first_over_al_eps": first_over(per_eps), "tracks": rows, "certificate": cert,
-            "seconds": time.perf_counter() - t0}
+    return {
+        "model_hash": safety.pose_hash,
+        "capacity": {
+            "eps": [c.eps for c in caps],
+            "quantile": caps[0].quantile,
+            "margin": caps[0].margin,
+            "edges": caps[0].edges.tolist(),
+            "meta": meta,
+        },
+        "per_eps": per_eps,
+        "first_over_al_eps": first_over(per_eps),
+        "tracks": rows,
+        "certificate": cert,
+        "seconds": time.perf_counter() - t0,
+    }

@@ -24,6 +24,7 @@ update the filter: at most `defense.doubt_share` of the clean validation frames 
 the defended chain's false alarms of each check, availability and protection levels on those clean
 validation frames.
 """
+
 from __future__ import annotations
 
 from typing import Annotated, Any
@@ -71,11 +72,13 @@ def main(params: Params, model: ModelOption = Model.robust) -> None:
     runs = [CleanRun(pose[i], prob[i], R_cam[i], u[i]) for i in groups]
     truths = [poses[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64)[i] for i in groups]
     alert = alert_limit_settings(params)
-    budget = Budget(d.target_false_alarm, d.shares.detector, d.shares.gate, d.shares.sequential, d.doubt_share,
-                    d.allow_unmet)
+    budget = Budget(
+        d.target_false_alarm, d.shares.detector, d.shares.gate, d.shares.sequential, d.doubt_share, d.allow_unmet
+    )
     try:
-        c = calibrate_to_target(*defense_settings(d, chain.threshold), fitted, runs, (prob, envelope_prob), truths,
-                                alert, budget)
+        c = calibrate_to_target(
+            *defense_settings(d, chain.threshold), fitted, runs, (prob, envelope_prob), truths, alert, budget
+        )
     except UnmetShare as e:
         raise StageError(unmet_line(e.check, len(images))) from None
     checks, settings, motion, noise, final = c.checks, c.settings, c.motion, c.noise, c.final
@@ -86,11 +89,24 @@ def main(params: Params, model: ModelOption = Model.robust) -> None:
             raise StageError(unmet[-1])
     out = CHAINS[model].defense
     record = DefenseFile(
-        DEFENSE_FORMAT, model.value, model_hash, chain.threshold, settings.threshold, motion.cusum_threshold,
-        checks[2].setting, checks[1].setting, noise, fitted, settings, motion, alert, tuple(unmet),
+        DEFENSE_FORMAT,
+        model.value,
+        model_hash,
+        chain.threshold,
+        settings.threshold,
+        motion.cusum_threshold,
+        checks[2].setting,
+        checks[1].setting,
+        noise,
+        fitted,
+        settings,
+        motion,
+        alert,
+        tuple(unmet),
         Validation(**_validation(params, len(images), checks, final, envelope_prob, prob, settings.update_below)),
-        {"shares_scale": c.scale, "before": c.tightened} if c.tightened else None).to_json()
-    parse_defense(record, str(out))   # what every reader will require of it
+        {"shares_scale": c.scale, "before": c.tightened} if c.tightened else None,
+    ).to_json()
+    parse_defense(record, str(out))  # what every reader will require of it
     write_json(out, record)
     typer.echo(summary_line(record, out))
 
@@ -102,13 +118,15 @@ def _chain_outputs(chain: Any, images: np.ndarray, batch: int) -> tuple[np.ndarr
     from pipeline.defense.chain import run_sequence
 
     with tqdm(total=-(-len(images) // batch), desc="calibrate", unit="batch", dynamic_ncols=True) as bar:
+
         def progress(it):
             for i in it:
                 yield i
                 bar.update(1)
 
-        res = run_sequence(chain, images, np.zeros((len(images), 9), np.float32), np.zeros(len(images), bool),
-                           None, batch, progress)
+        res = run_sequence(
+            chain, images, np.zeros((len(images), 9), np.float32), np.zeros(len(images), bool), None, batch, progress
+        )
     return res.pose.astype(np.float64), res.prob.astype(np.float64)
 
 
@@ -117,15 +135,24 @@ def _fit_noise(targets: np.ndarray, pose: np.ndarray, bins: int, frames: int) ->
     from pipeline.geometry.rotations import sixd_to_matrix
 
     try:
-        return fit_noise(targets[:, :3], pose[:, :3], sixd_to_matrix(targets[:, 3:]), sixd_to_matrix(pose[:, 3:]),
-                         bins=bins)
+        return fit_noise(
+            targets[:, :3], pose[:, :3], sixd_to_matrix(targets[:, 3:]), sixd_to_matrix(pose[:, 3:]), bins=bins
+        )
     except ValueError as e:
-        raise StageError(f"calibrate on {frames} validation frames (defense.val_trajectories, "
-                         f"defense.noise_bins): {e}") from None
+        raise StageError(
+            f"calibrate on {frames} validation frames (defense.val_trajectories, defense.noise_bins): {e}"
+        ) from None
 
 
-def _validation(params: Params, frames: int, checks: list[Any], final: dict[str, Any], envelope_prob: np.ndarray,
-                prob: np.ndarray, doubt: float | None) -> dict[str, Any]:
+def _validation(
+    params: Params,
+    frames: int,
+    checks: list[Any],
+    final: dict[str, Any],
+    envelope_prob: np.ndarray,
+    prob: np.ndarray,
+    doubt: float | None,
+) -> dict[str, Any]:
     """defense.json's record of the validation frames: each check's calibration and the fused chain, the
     detector's false alarms on the envelope frames at its threshold, and the share of the validation frames
     (probabilities `prob`) at or above the doubt level `doubt`."""
@@ -135,14 +162,30 @@ def _validation(params: Params, frames: int, checks: list[Any], final: dict[str,
         return {"pct": round(100 * r.value, 4), "ci95_pct": [round(100 * v, 4) for v in r.ci()]}
 
     alarms = float(np.mean(envelope_prob >= checks[0].setting))
-    return {"trajectories": d.val_trajectories, "seed": validation_seed(params), "frames": frames,
-            "envelope": {"frames": int(envelope_prob.size), "detector_pct": round(100 * alarms, 4)},
-            "doubt": {"level": doubt, "share_pct": None if d.doubt_share is None else 100 * d.doubt_share,
-                      "reached_pct": None if doubt is None else round(100 * float(np.mean(prob >= doubt)), 4)},
-            "target_pct": 100 * d.target_false_alarm,
-            "checks": {c.check: {"setting": c.setting, "share_pct": round(100 * c.share, 4),
-                                 "reached_pct": round(100 * c.reached, 4), "met": c.met,
-                                 "tried": {f"{k:g}": round(100 * v, 4) for k, v in c.rates.items()}} for c in checks},
-            "false_alarms": {k: pct(final[k]) for k in ("detector", "gate", "sequential", "fused")},
-            "availability": pct(final["availability"]), "mi": pct(final["mi"]),
-            "pl_m": final["pl_m"], "error_m": final["error_m"]}
+    return {
+        "trajectories": d.val_trajectories,
+        "seed": validation_seed(params),
+        "frames": frames,
+        "envelope": {"frames": int(envelope_prob.size), "detector_pct": round(100 * alarms, 4)},
+        "doubt": {
+            "level": doubt,
+            "share_pct": None if d.doubt_share is None else 100 * d.doubt_share,
+            "reached_pct": None if doubt is None else round(100 * float(np.mean(prob >= doubt)), 4),
+        },
+        "target_pct": 100 * d.target_false_alarm,
+        "checks": {
+            c.check: {
+                "setting": c.setting,
+                "share_pct": round(100 * c.share, 4),
+                "reached_pct": round(100 * c.reached, 4),
+                "met": c.met,
+                "tried": {f"{k:g}": round(100 * v, 4) for k, v in c.rates.items()},
+            }
+            for c in checks
+        },
+        "false_alarms": {k: pct(final[k]) for k in ("detector", "gate", "sequential", "fused")},
+        "availability": pct(final["availability"]),
+        "mi": pct(final["mi"]),
+        "pl_m": final["pl_m"],
+        "error_m": final["error_m"],
+    }

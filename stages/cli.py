@@ -3,6 +3,7 @@
 Known errors (bad params, missing or corrupt artifacts, a refused training run) print one line and exit
 with status 1; `rpod --debug COMMAND` (or RPOD_DEBUG=1) shows the full traceback instead.
 """
+
 from __future__ import annotations
 
 import os
@@ -67,16 +68,41 @@ def params_cmd(
     composed = compose_mod.compose_checked(profile, set_)
     recorded = compose_mod.record_profile(profile)
     params_mod.write_params(params_mod.stamped(composed))
-    typer.echo(f"params.yaml <- conf/config.yaml + conf/profile/{profile}.yaml" + (f" + {set_}" if set_ else "")
-               + (f"; conf/config.yaml now composes {profile!r} (dvc exp run -S)" if recorded else ""))
+    typer.echo(
+        f"params.yaml <- conf/config.yaml + conf/profile/{profile}.yaml"
+        + (f" + {set_}" if set_ else "")
+        + (f"; conf/config.yaml now composes {profile!r} (dvc exp run -S)" if recorded else "")
+    )
 
 
 # Stage modules keep heavy imports (bpy, torch) inside their commands so `rpod --help` is fast.
 # A module exposes `main` (one command) or `app` (a command group, e.g. `rpod lab rescale`).
 # export, predict, remote: not DVC stages
-STAGES = ["render", "label", "train", "attack", "guidance", "shap", "detect", "eval_render", "calibrate", "evaluate",
-          "robustness", "lab_models", "lab", "report", "ablation", "pose_trial", "attitude", "suite", "bound",
-          "integrity", "export", "predict", "remote"]
+STAGES = [
+    "render",
+    "label",
+    "train",
+    "attack",
+    "guidance",
+    "shap",
+    "detect",
+    "eval_render",
+    "calibrate",
+    "evaluate",
+    "robustness",
+    "lab_models",
+    "lab",
+    "report",
+    "ablation",
+    "pose_trial",
+    "attitude",
+    "suite",
+    "bound",
+    "integrity",
+    "export",
+    "predict",
+    "remote",
+]
 
 
 def _register() -> None:
@@ -102,7 +128,7 @@ def _takes_params(command: object) -> bool:
     """Whether a stage command takes the typed params first (`main(params: Params, ...)`): the CLI loads them."""
     import inspect
 
-    first = next(iter(inspect.signature(command).parameters), None)   # type: ignore[arg-type]
+    first = next(iter(inspect.signature(command).parameters), None)  # type: ignore[arg-type]
     return first == "params"
 
 
@@ -114,7 +140,7 @@ def known_error(e: BaseException) -> str | None:
     text = " ".join(str(e).split())
     if isinstance(e, KeyError):
         return f"missing field {e.args[0]!r} in params.yaml or an input artifact (rpod --debug shows where)"
-    if isinstance(e, (DataError, ValueError, OSError)):   # a StageError is a DataError
+    if isinstance(e, (DataError, ValueError, OSError)):  # a StageError is a DataError
         return text or type(e).__name__
     tb = e.__traceback__
     while tb is not None and tb.tb_next is not None:
@@ -164,8 +190,9 @@ def _run() -> None:
         restored = restore_tracked_outputs()
         under_dvc = "; DVC records nothing" if os.environ.get("DVC_STAGE") else ""
         back = f" (put back from git: {', '.join(restored)})" if restored else ""
-        typer.secho(f"{command}: stopped by {e}; no half-written output left{under_dvc}{back}", fg=typer.colors.RED,
-                    err=True)
+        typer.secho(
+            f"{command}: stopped by {e}; no half-written output left{under_dvc}{back}", fg=typer.colors.RED, err=True
+        )
         sys.exit(EXIT_STATUS)
     except Exception as e:
         message = known_error(e)
@@ -180,8 +207,9 @@ def _run() -> None:
 def _note_restored(restored: list[str]) -> None:
     """Say which git-tracked outputs a failed stage put back (none: nothing said)."""
     if restored:
-        typer.secho(f"note: put back from git the outputs DVC deleted before the stage: {', '.join(restored)}",
-                    err=True)
+        typer.secho(
+            f"note: put back from git the outputs DVC deleted before the stage: {', '.join(restored)}", err=True
+        )
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ hash and the SHAP background mean; `pipeline.formats.models.read_detector` reads
 detect params, the LSTM's training curves and test metrics, and every detector's ROC on the test split as
 plots/sklearn/<name>.json), the report and the metrics.
 """
+
 from __future__ import annotations
 
 import time
@@ -42,8 +43,13 @@ from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.models import load_pose, model_option
 from stages.artifacts.paths import CHAINS, DETECT_RENDER, ChainFiles, Model
-from stages.artifacts.readers import SampleImages, check_shap_split, read_detect_render, read_eval_render, \
-    read_shap_store
+from stages.artifacts.readers import (
+    SampleImages,
+    check_shap_split,
+    read_detect_render,
+    read_eval_render,
+    read_shap_store,
+)
 from stages.config.device import torch_device
 from stages.config.schema import Params
 from stages.config.sections import Detect
@@ -52,8 +58,9 @@ from stages.pages.detect import detector_page, paper_fraction
 from stages.pages.paper import DETECTOR_ACCURACY
 
 
-def split_indices(eps: np.ndarray, source: np.ndarray, test_fraction: float, val_fraction: float,
-                  seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def split_indices(
+    eps: np.ndarray, source: np.ndarray, test_fraction: float, val_fraction: float, seed: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Train / validation / test indices grouped by source image (all eps versions of a frame on one
     side) and stratified by eps (clean = 0) as far as the groups allow (pipeline.evaluation.splits.grouped_split)."""
     from pipeline.evaluation.splits import grouped_split
@@ -61,23 +68,43 @@ def split_indices(eps: np.ndarray, source: np.ndarray, test_fraction: float, val
     try:
         return grouped_split(source, np.round(eps, 6), test_fraction, val_fraction, seed)
     except ValueError as e:
-        raise StageError(f"cannot split {len(eps)} SHAP samples from {len(np.unique(source))} source images with "
-                         f"detect.test_fraction={test_fraction}, detect.val_fraction={val_fraction}: {e} "
-                         f"(raise shap.normal / shap.per_eps)") from None
+        raise StageError(
+            f"cannot split {len(eps)} SHAP samples from {len(np.unique(source))} source images with "
+            f"detect.test_fraction={test_fraction}, detect.val_fraction={val_fraction}: {e} "
+            f"(raise shap.normal / shap.per_eps)"
+        ) from None
 
 
-ModelOption = Annotated[Model, model_option("Reads datasets/shap.zarr or datasets/shap_robust.zarr; writes "
-                                           "models/detector.pt or models/detector_robust.pt and their report.")]
-EvalAlarmsOption = Annotated[bool, typer.Option(
-    "--eval-alarms/--no-eval-alarms", help="Measure the LSTM's false alarms on the clean evaluation "
-    "trajectories (datasets/eval_render); off for the lab's synthetic-lab detector.")]
-BaselinesOption = Annotated[bool, typer.Option(
-    "--baselines/--no-baselines", help="Fit detect.baselines on the same split (the paper's comparison); off for "
-    "the robust model's detector.")]
+ModelOption = Annotated[
+    Model,
+    model_option(
+        "Reads datasets/shap.zarr or datasets/shap_robust.zarr; writes "
+        "models/detector.pt or models/detector_robust.pt and their report."
+    ),
+]
+EvalAlarmsOption = Annotated[
+    bool,
+    typer.Option(
+        "--eval-alarms/--no-eval-alarms",
+        help="Measure the LSTM's false alarms on the clean evaluation "
+        "trajectories (datasets/eval_render); off for the lab's synthetic-lab detector.",
+    ),
+]
+BaselinesOption = Annotated[
+    bool,
+    typer.Option(
+        "--baselines/--no-baselines",
+        help="Fit detect.baselines on the same split (the paper's comparison); off for the robust model's detector.",
+    ),
+]
 
 
-def main(params: Params, model: ModelOption = Model.standard, eval_alarms: EvalAlarmsOption = True,
-         baselines: BaselinesOption = True) -> None:
+def main(
+    params: Params,
+    model: ModelOption = Model.standard,
+    eval_alarms: EvalAlarmsOption = True,
+    baselines: BaselinesOption = True,
+) -> None:
     """Train the LSTM detector (and the baselines) on one split of a pose model's SHAP store; write the report."""
     import torch
 
@@ -92,45 +119,68 @@ def main(params: Params, model: ModelOption = Model.standard, eval_alarms: EvalA
     files = CHAINS[model]
     model_hash = file_hash(files.pose)
     data = read_shap_store(files.shap, model_hash)
-    check_shap_split(data["attrs"], params, files.shap)   # explains this detector split (after shap.seed changed: not)
+    check_shap_split(data["attrs"], params, files.shap)  # explains this detector split (after shap.seed changed: not)
     values, eps = data["values"], data["eps"].astype(np.float64)
     y = data["is_adversarial"].astype(np.int64)
     tr, va, te = split_indices(eps, data["source_index"], float(d.test_fraction), float(d.val_fraction), seed)
-    print(f"detect ({model.value} model): {len(y)} SHAP samples ({int(y.sum())} adversarial) -> train {len(tr)}, "
-          f"validation {len(va)}, test {len(te)}", flush=True)
+    print(
+        f"detect ({model.value} model): {len(y)} SHAP samples ({int(y.sum())} adversarial) -> train {len(tr)}, "
+        f"validation {len(va)}, test {len(te)}",
+        flush=True,
+    )
 
-    result, lstm_seconds = _train_lstm(values, y, tr, va, d, seed, device)   # the paper's LSTM detector
+    result, lstm_seconds = _train_lstm(values, y, tr, va, d, seed, device)  # the paper's LSTM detector
     lstm = result.model
-    scores: dict[str, tuple[np.ndarray, float]] = {
-        "lstm": (lstm.predict_proba(values[te]), float(lstm.threshold))}
+    scores: dict[str, tuple[np.ndarray, float]] = {"lstm": (lstm.predict_proba(values[te]), float(lstm.threshold))}
     seconds = {"lstm": lstm_seconds}
-    for name in d.baselines if baselines else []:   # same split, thresholds on the same validation samples
+    for name in d.baselines if baselines else []:  # same split, thresholds on the same validation samples
         scores[name], seconds[name] = _fit_baseline(name, params, files, data, (y, tr, va, te), seed)
     results = {name: metrics_by_eps(y[te], s, eps[te], thr) for name, (s, thr) in scores.items()}
     rates = rates_by_eps(y[te] == 1, scores["lstm"][0] >= scores["lstm"][1], eps[te])
     alarms = _eval_alarms(params, files, lstm, data["attrs"]) if eval_alarms else None
 
     ckpt = _checkpoint(result, data["attrs"], model_hash, eps[y == 1], results["lstm"]["all"]["accuracy"])
-    counts = {"samples": int(len(y)), "train": int(len(tr)), "validation": int(len(va)), "test": int(len(te)),
-              "test_clean": int((y[te] == 0).sum()), "test_adversarial": int(y[te].sum())}
-    metrics = {"model": model.value, "model_hash": model_hash, "counts": counts,
-               "threshold": {k: v[1] for k, v in scores.items()},
-               "lstm_epochs": len(result.history), "lstm_best_epoch": result.best_epoch,
-               "seconds": seconds, "paper_accuracy": DETECTOR_ACCURACY, "detectors": results,
-               "composition": {**data["attrs"].get("counts", {}), **data["attrs"].get("source", {})},
-               "eval_alarms": alarms, "lstm_rates": {k: r.as_json(paper_fraction()) for k, r in rates.items()}}
+    counts = {
+        "samples": int(len(y)),
+        "train": int(len(tr)),
+        "validation": int(len(va)),
+        "test": int(len(te)),
+        "test_clean": int((y[te] == 0).sum()),
+        "test_adversarial": int(y[te].sum()),
+    }
+    metrics = {
+        "model": model.value,
+        "model_hash": model_hash,
+        "counts": counts,
+        "threshold": {k: v[1] for k, v in scores.items()},
+        "lstm_epochs": len(result.history),
+        "lstm_best_epoch": result.best_epoch,
+        "seconds": seconds,
+        "paper_accuracy": DETECTOR_ACCURACY,
+        "detectors": results,
+        "composition": {**data["attrs"].get("counts", {}), **data["attrs"].get("source", {})},
+        "eval_alarms": alarms,
+        "lstm_rates": {k: r.as_json(paper_fraction()) for k, r in rates.items()},
+    }
     # detector, metrics, report and the DVCLive folder move into place together, once all are written
-    with atomic_outputs(files.detector, files.detect_metrics, files.detect_report,
-                        dirs=(files.detect_live,)) as (det, met, rep, live_dir):
+    with atomic_outputs(files.detector, files.detect_metrics, files.detect_report, dirs=(files.detect_live,)) as (
+        det,
+        met,
+        rep,
+        live_dir,
+    ):
         save_torch(det, ckpt)
         write_metrics(met, nan_to_none(metrics), params.profile_name)
-        atomic_write_text(rep, detector_page(results, scores, counts, result, data["attrs"], _used(d, y[tr]), files,
-                                             alarms, rates))
+        atomic_write_text(
+            rep, detector_page(results, scores, counts, result, data["attrs"], _used(d, y[tr]), files, alarms, rates)
+        )
         _log_live(live_dir, d, result.history, results["lstm"]["all"], (y[te], {k: v[0] for k, v in scores.items()}))
     acc = results["lstm"]["all"]["accuracy"]
     fa = "" if alarms is None else f"; false alarms on clean evaluation frames {alarms['rate']:.4f}"
-    print(f"detect: LSTM test accuracy {acc:.4f} (paper {DETECTOR_ACCURACY:.4f}){fa} -> {files.detector}, "
-          f"{files.detect_report}")
+    print(
+        f"detect: LSTM test accuracy {acc:.4f} (paper {DETECTOR_ACCURACY:.4f}){fa} -> {files.detector}, "
+        f"{files.detect_report}"
+    )
 
 
 def _used(d: Detect, train_labels: np.ndarray) -> Detect:
@@ -143,18 +193,27 @@ def _used(d: Detect, train_labels: np.ndarray) -> Detect:
     return dataclasses.replace(d, lid_k=k) if 1 <= k < d.lid_k else d
 
 
-def _checkpoint(result: Any, attrs: dict[str, Any], model_hash: str, attacked_eps: np.ndarray,
-                accuracy: float) -> dict[str, Any]:
+def _checkpoint(
+    result: Any, attrs: dict[str, Any], model_hash: str, attacked_eps: np.ndarray, accuracy: float
+) -> dict[str, Any]:
     """models/detector.pt's content: the LSTM and what the safety chain needs (pose-model hash, SHAP background mean)."""
     import torch
 
     from pipeline.detectors.lstm import to_checkpoint
 
-    return to_checkpoint(result.model, {
-        "format": DETECTOR_FORMAT, "pose_model_hash": model_hash, "shap_method": attrs.get("method"),
-        "background_mean": torch.tensor(attrs["background_mean"], dtype=torch.float32),
-        "background_size": int(attrs["background_size"]), "eps": sorted({float(e) for e in attacked_eps}, reverse=True),
-        "best_epoch": result.best_epoch, "test_accuracy": accuracy})
+    return to_checkpoint(
+        result.model,
+        {
+            "format": DETECTOR_FORMAT,
+            "pose_model_hash": model_hash,
+            "shap_method": attrs.get("method"),
+            "background_mean": torch.tensor(attrs["background_mean"], dtype=torch.float32),
+            "background_size": int(attrs["background_size"]),
+            "eps": sorted({float(e) for e in attacked_eps}, reverse=True),
+            "best_epoch": result.best_epoch,
+            "test_accuracy": accuracy,
+        },
+    )
 
 
 def _eval_alarms(p: Params, files: ChainFiles, lstm: Any, attrs: dict[str, Any]) -> dict[str, Any]:
@@ -174,35 +233,64 @@ def _eval_alarms(p: Params, files: ChainFiles, lstm: Any, attrs: dict[str, Any])
     except ValueError as e:
         raise StageError(f"{files.pose}: {e}") from None
     n = len(images)
-    res = run_sequence(chain, images, np.zeros((n, 9), np.float32), np.zeros(n, bool), None, p.evaluate.batch_size,
-                       progress=lambda r: tqdm(r, desc="detect: clean evaluation frames", unit="batch", leave=False))
+    res = run_sequence(
+        chain,
+        images,
+        np.zeros((n, 9), np.float32),
+        np.zeros(n, bool),
+        None,
+        p.evaluate.batch_size,
+        progress=lambda r: tqdm(r, desc="detect: clean evaluation frames", unit="batch", leave=False),
+    )
     traj = poses["trajectory"].to_numpy()
     r = rate(res.flag)
-    return {"frames": n, "trajectories": int(len(np.unique(traj))), "false_alarms": int(res.flag.sum()),
-            "rate": r.value, "rate_ci95": r.ci(), "threshold": float(lstm.threshold),
-            "per_trajectory": {str(int(t)): int(res.flag[traj == t].sum()) for t in np.unique(traj)}}
+    return {
+        "frames": n,
+        "trajectories": int(len(np.unique(traj))),
+        "false_alarms": int(res.flag.sum()),
+        "rate": r.value,
+        "rate_ci95": r.ci(),
+        "threshold": float(lstm.threshold),
+        "per_trajectory": {str(int(t)): int(res.flag[traj == t].sum()) for t in np.unique(traj)},
+    }
 
 
-def _train_lstm(values: np.ndarray, y: np.ndarray, tr: np.ndarray, va: np.ndarray, d: Detect,
-                seed: int, device: Any) -> tuple[Any, float]:
+def _train_lstm(
+    values: np.ndarray, y: np.ndarray, tr: np.ndarray, va: np.ndarray, d: Detect, seed: int, device: Any
+) -> tuple[Any, float]:
     """Fit the LSTM on the training indices with early stopping on the validation ones; returns the fit
     result and its seconds. Bad settings or a diverged fit are a StageError (nothing is written)."""
     from pipeline.detectors.lstm import LSTMConfig, train_lstm
 
-    config = LSTMConfig(n_rows=values.shape[1], n_features=values.shape[2], hidden=d.hidden,
-                        dense=list(d.dense))
+    config = LSTMConfig(n_rows=values.shape[1], n_features=values.shape[2], hidden=d.hidden, dense=list(d.dense))
     t0 = time.perf_counter()
     try:
-        result = train_lstm(values[tr], y[tr], values[va], y[va], config, epochs=d.epochs,
-                            patience=d.patience, batch_size=d.batch_size, lr=float(d.lr),
-                            seed=seed, progress="detect: LSTM", device=device)
+        result = train_lstm(
+            values[tr],
+            y[tr],
+            values[va],
+            y[va],
+            config,
+            epochs=d.epochs,
+            patience=d.patience,
+            batch_size=d.batch_size,
+            lr=float(d.lr),
+            seed=seed,
+            progress="detect: LSTM",
+            device=device,
+        )
     except ValueError as e:  # also DivergenceError
         raise StageError(f"params.yaml detect: {e} (the detector and its reports were left as they were)") from None
     return result, time.perf_counter() - t0
 
 
-def _log_live(folder: Path, d: Detect, history: list[dict[str, float]], test: dict[str, float],
-              roc: tuple[np.ndarray, dict[str, np.ndarray]]) -> None:
+def _log_live(
+    folder: Path,
+    d: Detect,
+    history: list[dict[str, float]],
+    test: dict[str, float],
+    roc: tuple[np.ndarray, dict[str, np.ndarray]],
+) -> None:
     """Into a DVCLive folder (for `dvc plots show`; dvc.yaml's `plots` draw them): the detect params, the
     LSTM's per-epoch curves and test metrics, and each detector's ROC curve on the test split (`roc`: the
     test labels, 1 = attacked, and each detector's scores) as DVCLive's plots/sklearn/<detector>.json."""
@@ -212,7 +300,7 @@ def _log_live(folder: Path, d: Detect, history: list[dict[str, float]], test: di
     from dvclive import Live
 
     live = Live(dir=str(folder), dvcyaml=False, save_dvc_exp=False, report=None)
-    live.log_params(json.loads(json.dumps(dataclasses.asdict(d))))   # plain lists, as params.yaml has them
+    live.log_params(json.loads(json.dumps(dataclasses.asdict(d))))  # plain lists, as params.yaml has them
     labels, scores = roc
     for name, score in scores.items():
         live.log_sklearn_plot("roc", labels, score, name=name)
@@ -226,9 +314,14 @@ def _log_live(folder: Path, d: Detect, history: list[dict[str, float]], test: di
     live.end()
 
 
-def _fit_baseline(name: str, p: Params, files: ChainFiles, data: dict[str, Any],
-                  split: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-                  seed: int) -> tuple[tuple[np.ndarray, float], float]:
+def _fit_baseline(
+    name: str,
+    p: Params,
+    files: ChainFiles,
+    data: dict[str, Any],
+    split: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    seed: int,
+) -> tuple[tuple[np.ndarray, float], float]:
     """((test scores, threshold chosen on the validation scores), seconds) of one baseline."""
     from pipeline.detectors.metrics import choose_threshold
 
@@ -239,8 +332,14 @@ def _fit_baseline(name: str, p: Params, files: ChainFiles, data: dict[str, Any],
     return (s_test, choose_threshold(s_val, split[0][split[2]])), seconds
 
 
-def _baseline(name: str, p: Params, files: ChainFiles, data: dict[str, Any],
-              split: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], seed: int) -> tuple[np.ndarray, np.ndarray]:
+def _baseline(
+    name: str,
+    p: Params,
+    files: ChainFiles,
+    data: dict[str, Any],
+    split: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    seed: int,
+) -> tuple[np.ndarray, np.ndarray]:
     """Validation and test scores of one baseline fitted on the training indices (`split`: labels, then the
     train, validation and test indices)."""
     d = p.detect
@@ -256,7 +355,9 @@ def _baseline(name: str, p: Params, files: ChainFiles, data: dict[str, Any],
 
         poses = read_detect_render(p)[1]
         if data["source_index"].max() >= len(poses):
-            raise StageError(f"{files.shap}/source_index names images missing from {DETECT_RENDER} (re-run `rpod shap`)")
+            raise StageError(
+                f"{files.shap}/source_index names images missing from {DETECT_RENDER} (re-run `rpod shap`)"
+            )
         ranges = poses["range"].to_numpy(np.float64)[data["source_index"]]
         groups = np.digitize(ranges, np.sort(np.asarray(p.train.range_bins, dtype=np.float64)))
         clean_tr = tr[y[tr] == 0]
@@ -270,8 +371,9 @@ def _baseline(name: str, p: Params, files: ChainFiles, data: dict[str, Any],
     return _squeeze(p, files, data, y, tr, va, te)
 
 
-def _squeeze(p: Params, files: ChainFiles, data: dict[str, Any], y: np.ndarray, tr: np.ndarray, va: np.ndarray,
-             te: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _squeeze(
+    p: Params, files: ChainFiles, data: dict[str, Any], y: np.ndarray, tr: np.ndarray, va: np.ndarray, te: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Feature squeezing needs the images and the pose model: rebuild each sample's image from its
     source (stages.artifacts.readers.SampleImages: the detector-split render, or the same FGSM) and score it."""
     from tqdm import tqdm
@@ -283,13 +385,21 @@ def _squeeze(p: Params, files: ChainFiles, data: dict[str, Any], y: np.ndarray, 
     pose = load_pose(p, files.pose)
     src = SampleImages(p, pose.model, attack_loss(p.attack.loss, pose.loss))
     keys = (data["source_index"], data["eps"].astype(np.float64))
-    det = SqueezeDetector(model_predictor(pose.model), bits=d.squeeze_bits,
-                          median_size=d.squeeze_median)
+    det = SqueezeDetector(model_predictor(pose.model), bits=d.squeeze_bits, median_size=d.squeeze_median)
     clean_tr = tr[y[tr] == 0][:512]
     det.fit(src.images(*(k[clean_tr] for k in keys)))
 
     def score(rows: np.ndarray, what: str) -> np.ndarray:
-        return score_batches(det, tqdm(src.iter_images(*(k[rows] for k in keys)), desc=f"detect: squeeze ({what})",
-                                       total=-(-len(rows) // 64), unit="batch", leave=False), len(rows))
+        return score_batches(
+            det,
+            tqdm(
+                src.iter_images(*(k[rows] for k in keys)),
+                desc=f"detect: squeeze ({what})",
+                total=-(-len(rows) // 64),
+                unit="batch",
+                leave=False,
+            ),
+            len(rows),
+        )
 
     return score(va, "validation"), score(te, "test")

@@ -22,6 +22,7 @@ same unseen images (issue 27: clean samples partly from the pose-training split 
 read as "attacked"). Render times go to reports/metrics/{eval_render,detect_render}.json, never into
 meta.json, so the same params give byte-identical folders (stable DVC hashes).
 """
+
 from __future__ import annotations
 
 from functools import partial
@@ -59,8 +60,9 @@ from stages.engine import pool as engine
 from stages.engine.chunks import frame_backgrounds, render_to_store, store_url
 
 
-def trajectories(p: Params, seed: int, count: int, frames: int | None = None, envelope: bool = False,
-                 flown: bool = False) -> list[Any]:
+def trajectories(
+    p: Params, seed: int, count: int, frames: int | None = None, envelope: bool = False, flown: bool = False
+) -> list[Any]:
     """`count` approaches from `seed`, `frames` (default evaluate.frames) frames each; `flown`: each executed with
     guidance.execution's error (seeded per trajectory), the planned steps kept as its commands.
 
@@ -81,7 +83,7 @@ def trajectories(p: Params, seed: int, count: int, frames: int | None = None, en
     rng = np.random.default_rng(seed)
     lo, hi = e.lateral_range
     n = frames or e.frames
-    step = (float(r.start_range) - float(r.end_range)) / (n - 1)   # m per frame along the approach
+    step = (float(r.start_range) - float(r.end_range)) / (n - 1)  # m per frame along the approach
     out = []
     for i in range(count):
         if envelope:
@@ -89,19 +91,37 @@ def trajectories(p: Params, seed: int, count: int, frames: int | None = None, en
             rot = float(r.max_target_rotation_deg) if i % 4 >= 2 else 0.0
         else:
             xy, path, rot = rng.uniform(lo, hi, 2) * rng.choice([-1.0, 1.0], 2), "projectile", 0.0
-        execute = partial(execute_plan, settings=execution_settings(p, seed_for(seed, "eval_render.execution", i),
-                                                                    step)) if flown else None
-        out.append(approach_trajectory(n, (float(xy[0]), float(xy[1])), float(r.start_range),
-                                       float(r.end_range), seed=seed_for(seed, "eval_render.trajectory", i),
-                                       jitter_deg=float(r.pointing_jitter_deg), max_rot_deg=rot, sequence=i,
-                                       path=path, execute=execute))
+        execute = (
+            partial(execute_plan, settings=execution_settings(p, seed_for(seed, "eval_render.execution", i), step))
+            if flown
+            else None
+        )
+        out.append(
+            approach_trajectory(
+                n,
+                (float(xy[0]), float(xy[1])),
+                float(r.start_range),
+                float(r.end_range),
+                seed=seed_for(seed, "eval_render.trajectory", i),
+                jitter_deg=float(r.pointing_jitter_deg),
+                max_rot_deg=rot,
+                sequence=i,
+                path=path,
+                execute=execute,
+            )
+        )
     return out
 
 
 def main(
     params: Params,
-    detector: Annotated[bool, typer.Option("--detector", help="Render the detector split instead "
-                                           "(datasets/detect_render: shap.seed, shap.frames per trajectory).")] = False,
+    detector: Annotated[
+        bool,
+        typer.Option(
+            "--detector",
+            help="Render the detector split instead (datasets/detect_render: shap.seed, shap.frames per trajectory).",
+        ),
+    ] = False,
 ) -> None:
     """Render the fresh evaluation trajectories into datasets/eval_render/, the defense's validation
     trajectories (the same kind of mission) into datasets/val_render/ and validation frames over the whole
@@ -115,29 +135,54 @@ def main(
     K, scene, es = intrinsics(params), scene_settings(params.render), engine.engine_settings(params)
     d, e, s = params.defense, params.evaluate, params.shap
     if detector:
-        sets = [(DETECT_RENDER, trajectories(params, s.seed, detector_trajectories(params), s.frames, envelope=True),
-                 detect_render_fingerprint(params), s.seed)]
+        sets = [
+            (
+                DETECT_RENDER,
+                trajectories(params, s.seed, detector_trajectories(params), s.frames, envelope=True),
+                detect_render_fingerprint(params),
+                s.seed,
+            )
+        ]
     else:
         evaluation, validation = evaluation_seed(params), validation_seed(params)
         envelope_seed = seed_for(validation, "eval_render.envelope")
-        sets = [(EVAL_RENDER, trajectories(params, evaluation, e.trajectories, flown=True),
-                 eval_render_fingerprint(params), evaluation),
-                (VAL_RENDER, trajectories(params, validation, d.val_trajectories, flown=True),
-                 val_render_fingerprint(params), validation),
-                (VAL_ENVELOPE, trajectories(params, envelope_seed, d.val_trajectories, envelope=True),
-                 val_envelope_fingerprint(params), envelope_seed)]
+        sets = [
+            (
+                EVAL_RENDER,
+                trajectories(params, evaluation, e.trajectories, flown=True),
+                eval_render_fingerprint(params),
+                evaluation,
+            ),
+            (
+                VAL_RENDER,
+                trajectories(params, validation, d.val_trajectories, flown=True),
+                val_render_fingerprint(params),
+                validation,
+            ),
+            (
+                VAL_ENVELOPE,
+                trajectories(params, envelope_seed, d.val_trajectories, envelope=True),
+                val_envelope_fingerprint(params),
+                envelope_seed,
+            ),
+        ]
     timings: dict[str, Any] = {}
     hint = f"check params.yaml evaluate.lateral_range={list(e.lateral_range)} (lateral start offsets, m)"
     with engine.session(es):
         for folder, seqs, fingerprint, seed in sets:
-            timings[folder.name] = _render_set(K, scene, es, seqs, folder, fingerprint, hint,
-                                               seed_for(seed, "background"))
-    write_metrics(DETECT_RENDER_METRICS if detector else EVAL_RENDER_METRICS,
-                  {"workers": es.workers, "sets": timings}, params.profile_name)
+            timings[folder.name] = _render_set(
+                K, scene, es, seqs, folder, fingerprint, hint, seed_for(seed, "background")
+            )
+    write_metrics(
+        DETECT_RENDER_METRICS if detector else EVAL_RENDER_METRICS,
+        {"workers": es.workers, "sets": timings},
+        params.profile_name,
+    )
 
 
-def _render_set(K: Any, scene: Any, es: Any, seqs: list[Any], folder: Path, fingerprint: str,
-                hint: str, seed: int) -> dict[str, Any]:
+def _render_set(
+    K: Any, scene: Any, es: Any, seqs: list[Any], folder: Path, fingerprint: str, hint: str, seed: int
+) -> dict[str, Any]:
     """Render the trajectories `seqs` into `folder` (images.zarr, poses.parquet, meta.json; the frames' background
     draws from `seed`, their kinds in the poses' `background` column while render.background is on); returns the
     frame count and render time (s) for the metrics JSON. A set mostly out of view is refused (`hint`: the params
@@ -150,12 +195,32 @@ def _render_set(K: Any, scene: Any, es: Any, seqs: list[Any], folder: Path, fing
     if kinds is not None:
         poses["background"] = kinds
     with atomic_dir(folder) as tmp:
-        seconds = render_to_store(store_url(tmp / "images.zarr"), K, scene, R, t, min(n, 100), es,
-                                  f"eval_render {folder.name}", empty_hint=hint, backgrounds=draws)
+        seconds = render_to_store(
+            store_url(tmp / "images.zarr"),
+            K,
+            scene,
+            R,
+            t,
+            min(n, 100),
+            es,
+            f"eval_render {folder.name}",
+            empty_hint=hint,
+            backgrounds=draws,
+        )
         write_parquet(poses, tmp / "poses.parquet")
-        write_json(tmp / "meta.json", {"complete": True, "fingerprint": fingerprint, "frames": n,
-                                       "trajectories": len(seqs), "width": K.width, "height": K.height, "K": K.K,
-                                       "start_xy": [s.rel[0, :2].tolist() for s in seqs]})
+        write_json(
+            tmp / "meta.json",
+            {
+                "complete": True,
+                "fingerprint": fingerprint,
+                "frames": n,
+                "trajectories": len(seqs),
+                "width": K.width,
+                "height": K.height,
+                "K": K.K,
+                "start_xy": [s.rel[0, :2].tolist() for s in seqs],
+            },
+        )
     typer.echo(f"eval_render: {n} images ({len(seqs)} trajectories) in {seconds:.0f} s -> {folder}")
     return {"frames": n, "seconds": seconds, "images_per_s": n / seconds if seconds > 0 else None}
 
@@ -172,12 +237,19 @@ def poses_table(seqs: list[Any]) -> Any:
     n = sum(len(s) for s in seqs)
     R, t = np.concatenate([s.R for s in seqs]), np.concatenate([s.t for s in seqs])
     rel, R_cam = np.concatenate([s.rel for s in seqs]), np.concatenate([s.R_cam for s in seqs])
-    cmd = np.concatenate([np.vstack([np.zeros(3), np.diff(s.rel, axis=0)]) if s.commands is None else s.commands
-                          for s in seqs])
+    cmd = np.concatenate(
+        [np.vstack([np.zeros(3), np.diff(s.rel, axis=0)]) if s.commands is None else s.commands for s in seqs]
+    )
     q, r6 = matrix_to_quat(R), matrix_to_6d(R)
-    return pd.DataFrame({
-        "index": np.arange(n), "trajectory": np.concatenate([np.full(len(s), s.sequence) for s in seqs]),
-        "frame": np.concatenate([s.frame for s in seqs]), **pose_columns(t, q, r6),
-        "range": np.linalg.norm(t, axis=1), **{f"rel_{a}": rel[:, j] for j, a in enumerate("xyz")},
-        **{f"cmd_{a}": cmd[:, j] for j, a in enumerate("xyz")},
-        **{f"c{j}": R_cam[:, j // 3, j % 3] for j in range(9)}})
+    return pd.DataFrame(
+        {
+            "index": np.arange(n),
+            "trajectory": np.concatenate([np.full(len(s), s.sequence) for s in seqs]),
+            "frame": np.concatenate([s.frame for s in seqs]),
+            **pose_columns(t, q, r6),
+            "range": np.linalg.norm(t, axis=1),
+            **{f"rel_{a}": rel[:, j] for j, a in enumerate("xyz")},
+            **{f"cmd_{a}": cmd[:, j] for j, a in enumerate("xyz")},
+            **{f"c{j}": R_cam[:, j // 3, j % 3] for j in range(9)},
+        }
+    )

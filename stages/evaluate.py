@@ -12,6 +12,7 @@ the paper's LSTM alone (standard model), the defended standard chain, and the de
 that ships (metrics `fused`). Writes reports/integrated.md, reports/figures/timeline.png and
 reports/metrics/evaluate.json.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -78,35 +79,62 @@ def main(params: Params) -> None:
     summary = per_eps_summary(res.rows)
     eps_fig = min(e.eps)
     s0 = sequences[0]
-    title = (f"{s0.name}: FGSM eps={eps_fig:g} on {int(s0.attacked.sum())} of {len(s0.attacked)} "
-             f"frames ({e.attack_length}-frame attacks, p_start={e.p_start:g}); standard model")
-    save_figure(detection_timeline(s0.poses["tz"].to_numpy(), s0.attacked, res.traces[(eps_fig, s0.name)],
-                                   chain.threshold, title), FIGURE)
+    title = (
+        f"{s0.name}: FGSM eps={eps_fig:g} on {int(s0.attacked.sum())} of {len(s0.attacked)} "
+        f"frames ({e.attack_length}-frame attacks, p_start={e.p_start:g}); standard model"
+    )
+    save_figure(
+        detection_timeline(
+            s0.poses["tz"].to_numpy(), s0.attacked, res.traces[(eps_fig, s0.name)], chain.threshold, title
+        ),
+        FIGURE,
+    )
     names = list(fused)
     clamp = _clamp_heldout(params, images)
-    metrics = {"model": PAPER.value, "model_hash": paper.chain.pose_hash, "frames_per_trajectory": e.frames,
-               "trajectories": len(sequences), "p_start": e.p_start, "attack_length": e.attack_length,
-               "threshold": chain.threshold, "seconds": seconds,
-               "accuracy_mean": float(np.mean([r["accuracy"] for r in summary])),
-               "per_eps": {f"{r['eps']:g}": r for r in summary}, "rows": res.rows, "clean": res.clean,
-               "attacked_fraction": {s.name: float(s.attacked.mean()) for s in sequences},
-               "start_xy": meta["start_xy"], "shipped": _shipped_metrics(shipped), "black_level_heldout": clamp,
-               "rates": {f"{e:g}": r.as_json(attacked_fraction(P_START, ATTACK_LENGTH))
-                         for e, r in sequence_rates(res.rows).items()},
-               "fused": {"fusion": shipped.chain.defended.settings.fusion, "harm_m": params.defense.harm_m,
-                         "chains": chain_names(params.defense.fusion),
-                         **{key: {f"{r['eps']:g}": r for r in rates_json(fused[name])} for key, name in
-                            zip(("paper_per_eps", "standard_per_eps", "per_eps"), names)}}}
+    metrics = {
+        "model": PAPER.value,
+        "model_hash": paper.chain.pose_hash,
+        "frames_per_trajectory": e.frames,
+        "trajectories": len(sequences),
+        "p_start": e.p_start,
+        "attack_length": e.attack_length,
+        "threshold": chain.threshold,
+        "seconds": seconds,
+        "accuracy_mean": float(np.mean([r["accuracy"] for r in summary])),
+        "per_eps": {f"{r['eps']:g}": r for r in summary},
+        "rows": res.rows,
+        "clean": res.clean,
+        "attacked_fraction": {s.name: float(s.attacked.mean()) for s in sequences},
+        "start_xy": meta["start_xy"],
+        "shipped": _shipped_metrics(shipped),
+        "black_level_heldout": clamp,
+        "rates": {
+            f"{e:g}": r.as_json(attacked_fraction(P_START, ATTACK_LENGTH)) for e, r in sequence_rates(res.rows).items()
+        },
+        "fused": {
+            "fusion": shipped.chain.defended.settings.fusion,
+            "harm_m": params.defense.harm_m,
+            "chains": chain_names(params.defense.fusion),
+            **{
+                key: {f"{r['eps']:g}": r for r in rates_json(fused[name])}
+                for key, name in zip(("paper_per_eps", "standard_per_eps", "per_eps"), names)
+            },
+        },
+    }
     write_metrics(METRICS, nan_to_none(metrics), params.profile_name)
-    atomic_write_text(REPORT, unmet_banner(shipped_cal.unmet) + unmet_banner(paper.chain.calibration.unmet, PAPER)
-                      + report(res.rows, summary, res.clean, sequences, e, meta, chain.threshold, eps_fig,
-                               params.profile_name, base)
-                      + defense_section(fused, shipped_cal.to_json(), params.defense.harm_m, e.attack_length,
-                                        _shipped_clean(shipped))
-                      + clamp_section(clamp, base))
-    typer.echo(f"evaluate: {len(sequences)} trajectories x {len(e.eps)} eps, standard and robust chain in "
-               f"{seconds:.0f} s; mean accuracy (standard, paper's view) {100 * metrics['accuracy_mean']:.2f}% "
-               f"-> {REPORT}, {FIGURE}")
+    atomic_write_text(
+        REPORT,
+        unmet_banner(shipped_cal.unmet)
+        + unmet_banner(paper.chain.calibration.unmet, PAPER)
+        + report(res.rows, summary, res.clean, sequences, e, meta, chain.threshold, eps_fig, params.profile_name, base)
+        + defense_section(fused, shipped_cal.to_json(), params.defense.harm_m, e.attack_length, _shipped_clean(shipped))
+        + clamp_section(clamp, base),
+    )
+    typer.echo(
+        f"evaluate: {len(sequences)} trajectories x {len(e.eps)} eps, standard and robust chain in "
+        f"{seconds:.0f} s; mean accuracy (standard, paper's view) {100 * metrics['accuracy_mean']:.2f}% "
+        f"-> {REPORT}, {FIGURE}"
+    )
 
 
 def _clamp_heldout(params: Params, images: Any) -> dict[str, float]:
@@ -116,8 +144,13 @@ def _clamp_heldout(params: Params, images: Any) -> dict[str, float]:
     from pipeline.pose.robustness import black_level_stats
 
     shift = params.lab.domain_shift
-    return black_level_stats(images, float(params.train.adversarial.black_level), float(shift.noise_std),
-                             float(shift.blur_sigma), seed_for(evaluation_seed(params), "evaluate.black_level"))
+    return black_level_stats(
+        images,
+        float(params.train.adversarial.black_level),
+        float(shift.noise_std),
+        float(shift.blur_sigma),
+        seed_for(evaluation_seed(params), "evaluate.black_level"),
+    )
 
 
 def _sequences(images: np.ndarray, poses: Any, e: Evaluate, base: int) -> list[Sequence]:
@@ -129,11 +162,20 @@ def _sequences(images: np.ndarray, poses: Any, e: Evaluate, base: int) -> list[S
     for tr, g in poses.groupby("trajectory", sort=True):
         idx = g["index"].to_numpy()
         R_cam, u = chaser_motion(g)
-        out.append(Sequence(name=f"T{int(tr) + 1}", images=images[idx], poses=g.reset_index(drop=True),
-                            targets=g[TARGET].to_numpy(np.float32), R_cam=R_cam, u=u,
-                            rel=g[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64),
-                            attacked=attack_schedule(len(idx), e.p_start, e.attack_length,
-                                                     seed_for(base, "evaluate.schedule", int(tr)))))
+        out.append(
+            Sequence(
+                name=f"T{int(tr) + 1}",
+                images=images[idx],
+                poses=g.reset_index(drop=True),
+                targets=g[TARGET].to_numpy(np.float32),
+                R_cam=R_cam,
+                u=u,
+                rel=g[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64),
+                attacked=attack_schedule(
+                    len(idx), e.p_start, e.attack_length, seed_for(base, "evaluate.schedule", int(tr))
+                ),
+            )
+        )
     return out
 
 
@@ -145,8 +187,15 @@ def _run_chain(params: Params, model: Model, sequences: list[Sequence]) -> Chain
 
     e = params.evaluate
     chain = load_chain(params, model)
-    res = evaluate_sequences(chain.onboard, attack_loss(params.attack.loss, chain.loss), sequences, e.eps,
-                             e.attack_length, e.batch_size, f"evaluate ({model.value} model)")
+    res = evaluate_sequences(
+        chain.onboard,
+        attack_loss(params.attack.loss, chain.loss),
+        sequences,
+        e.eps,
+        e.attack_length,
+        e.batch_size,
+        f"evaluate ({model.value} model)",
+    )
     return ChainRun(model, chain, res)
 
 
@@ -157,12 +206,30 @@ def _defended(params: Params, paper: ChainRun, shipped: ChainRun, sequences: lis
 
     e, harm, names = params.evaluate, params.defense.harm_m, chain_names(params.defense.fusion)
     d = paper.chain.defended
-    lstm_alone = dataclasses.replace(d.settings, fusion="paper", threshold=paper.chain.threshold,
-                                     update_below=min(d.settings.update_below or 1.0, paper.chain.threshold))
-    cases = ((names["paper"], paper, lstm_alone), (names["standard"], paper, d.settings),
-             (names["shipped"], shipped, shipped.chain.defended.settings))
-    return {name: defended_summary(run.result.traces, sequences, e.eps, settings, run.chain.defended.motion,
-                                   run.chain.defended.noise, e.attack_length, harm) for name, run, settings in cases}
+    lstm_alone = dataclasses.replace(
+        d.settings,
+        fusion="paper",
+        threshold=paper.chain.threshold,
+        update_below=min(d.settings.update_below or 1.0, paper.chain.threshold),
+    )
+    cases = (
+        (names["paper"], paper, lstm_alone),
+        (names["standard"], paper, d.settings),
+        (names["shipped"], shipped, shipped.chain.defended.settings),
+    )
+    return {
+        name: defended_summary(
+            run.result.traces,
+            sequences,
+            e.eps,
+            settings,
+            run.chain.defended.motion,
+            run.chain.defended.noise,
+            e.attack_length,
+            harm,
+        )
+        for name, run, settings in cases
+    }
 
 
 def _shipped_metrics(run: ChainRun) -> dict[str, Any]:
@@ -170,21 +237,37 @@ def _shipped_metrics(run: ChainRun) -> dict[str, Any]:
     detection at that threshold (its defended rows are under `fused`)."""
     from pipeline.evaluation.sequences import per_eps_summary
 
-    return {"model": run.model.value, "model_hash": run.chain.pose_hash, "threshold": run.chain.threshold,
-            "defense_threshold": run.chain.defended.settings.threshold, "clean": run.result.clean,
-            "per_eps": {f"{r['eps']:g}": r for r in per_eps_summary(run.result.rows)}}
+    return {
+        "model": run.model.value,
+        "model_hash": run.chain.pose_hash,
+        "threshold": run.chain.threshold,
+        "defense_threshold": run.chain.defended.settings.threshold,
+        "clean": run.result.clean,
+        "per_eps": {f"{r['eps']:g}": r for r in per_eps_summary(run.result.rows)},
+    }
 
 
 def _shipped_clean(run: ChainRun) -> dict[str, float]:
     """The shipped chain's clean pose errors over the evaluation trajectories (m, deg; equal frames each)."""
     clean = run.result.clean.values()
-    return {"position_m": float(np.mean([c["position_mean_m"] for c in clean])),
-            "attitude_deg": float(np.mean([c["attitude_mean_deg"] for c in clean]))}
+    return {
+        "position_m": float(np.mean([c["position_mean_m"] for c in clean])),
+        "attitude_deg": float(np.mean([c["attitude_mean_deg"] for c in clean])),
+    }
 
 
-def report(rows: list[dict[str, Any]], summary: list[dict[str, Any]], clean: dict[str, dict[str, float]],
-           sequences: list[Sequence], e: Evaluate, meta: dict[str, Any], threshold: float,
-           eps_fig: float, profile: str, evaluation_base: int) -> str:
+def report(
+    rows: list[dict[str, Any]],
+    summary: list[dict[str, Any]],
+    clean: dict[str, dict[str, float]],
+    sequences: list[Sequence],
+    e: Evaluate,
+    meta: dict[str, Any],
+    threshold: float,
+    eps_fig: float,
+    profile: str,
+    evaluation_base: int,
+) -> str:
     from pipeline.evaluation.sequences import accuracy_table, detail_table, pct
     from pipeline.report.markdown import markdown_table
 
@@ -192,12 +275,23 @@ def report(rows: list[dict[str, Any]], summary: list[dict[str, Any]], clean: dic
     att_frac = np.mean([s.attacked.mean() for s in sequences])
     mean_acc = 100 * np.mean([s["accuracy"] for s in summary])
     starts = ", ".join(f"{n} ({x:+.1f}, {y:+.1f}) m" for n, (x, y) in zip(names, meta["start_xy"]))
-    clean_rows = [{"trajectory": n, "FPR % (no attack)": pct(c["fpr"]), "position error (m)": c["position_mean_m"],
-                   "attitude error (deg)": c["attitude_mean_deg"]} for n, c in clean.items()]
-    clean_rows.append({"trajectory": "all (equal frames each)",
-                       "FPR % (no attack)": pct(float(np.mean([c["fpr"] for c in clean.values()]))),
-                       "position error (m)": float(np.mean([c["position_mean_m"] for c in clean.values()])),
-                       "attitude error (deg)": float(np.mean([c["attitude_mean_deg"] for c in clean.values()]))})
+    clean_rows = [
+        {
+            "trajectory": n,
+            "FPR % (no attack)": pct(c["fpr"]),
+            "position error (m)": c["position_mean_m"],
+            "attitude error (deg)": c["attitude_mean_deg"],
+        }
+        for n, c in clean.items()
+    ]
+    clean_rows.append(
+        {
+            "trajectory": "all (equal frames each)",
+            "FPR % (no attack)": pct(float(np.mean([c["fpr"] for c in clean.values()]))),
+            "position error (m)": float(np.mean([c["position_mean_m"] for c in clean.values()])),
+            "attitude error (deg)": float(np.mean([c["attitude_mean_deg"] for c in clean.values()])),
+        }
+    )
     return f"""# Integrated evaluation: the safety chains frame by frame
 
 Which model: every table above "The defended chains" is the paper's reproduction, the **standard
@@ -219,7 +313,7 @@ frames / all frames (time: reports/metrics/evaluate.json).
 {markdown_table(accuracy_table(rows, summary, names, by_eps(INTEGRATED_EPS)), decimals=2)}
 Mean over eps: **{mean_acc:.2f}%** (paper: {INTEGRATED}% overall, from 2,500-frame trajectories at
 480x270 with the full-width network; ours: the {profile} profile's {e.frames} frames at
-{meta['width']}x{meta['height']}). {frames_note()}
+{meta["width"]}x{meta["height"]}). {frames_note()}
 
 ## Rates and the attacked fraction
 

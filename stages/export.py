@@ -11,6 +11,7 @@ OUT/.rpodguard-export.json lists the files written with their sha256; an existin
 holds nothing else and none of them was edited since (`--overwrite` replaces edited ones; any other non-empty
 folder is refused, never deleted). A symbolic link OUT is followed. Files are 0644.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -24,22 +25,29 @@ app = typer.Typer(help="Write the pipeline's data in another dataset layout (SPE
 
 
 @app.command("speed")
-def speed(out: Path = typer.Argument(..., help="Folder to write: new, empty, or an earlier export holding "
-                                                "only its own files (replaced)."),
-          image_format: Annotated[str, typer.Option(
-              "--format", help="png (lossless RGB) or jpeg-gray (grayscale JPEG, as SPEED+ ships)")] = "png",
-          overwrite: Annotated[bool, typer.Option(
-              "--overwrite", help="replace files of an earlier export in OUT that were edited since (refused "
-                                  "without it)")] = False) -> None:
+def speed(
+    out: Path = typer.Argument(
+        ..., help="Folder to write: new, empty, or an earlier export holding only its own files (replaced)."
+    ),
+    image_format: Annotated[
+        str, typer.Option("--format", help="png (lossless RGB) or jpeg-gray (grayscale JPEG, as SPEED+ ships)")
+    ] = "png",
+    overwrite: Annotated[
+        bool,
+        typer.Option(
+            "--overwrite", help="replace files of an earlier export in OUT that were edited since (refused without it)"
+        ),
+    ] = False,
+) -> None:
     """Write datasets/render + datasets/labels.parquet as a SPEED+ folder: camera.json,
     synthetic/{train,validation}.json, synthetic/images/*.png (or *.jpg). `render.source: OUT` imports it back."""
     import numpy as np
 
     from pipeline.formats.speed_folder import IMAGE_FORMATS, write_speed
     from pipeline.geometry.camera import Intrinsics
+    from stages.artifacts.data import load_labels
     from stages.artifacts.paths import LABELS, RENDER
     from stages.artifacts.readers import read_render_store
-    from stages.artifacts.data import load_labels
 
     if image_format not in IMAGE_FORMATS:
         raise StageError(f"--format {image_format}: not one of {', '.join(IMAGE_FORMATS)}")
@@ -49,5 +57,7 @@ def speed(out: Path = typer.Argument(..., help="Folder to write: new, empty, or 
     K = Intrinsics(int(meta["width"]), int(meta["height"]), K[0, 0], K[1, 1], K[0, 2], K[1, 2])
     write_speed(out, images, labels, K, image_format, overwrite)
     counts = labels["split"].value_counts()
-    typer.echo(f"{out}: camera.json, synthetic/train.json ({counts.get('train', 0)} images), synthetic/validation"
-               f".json ({counts.get('test', 0)} images), synthetic/images/*.{IMAGE_FORMATS[image_format]}")
+    typer.echo(
+        f"{out}: camera.json, synthetic/train.json ({counts.get('train', 0)} images), synthetic/validation"
+        f".json ({counts.get('test', 0)} images), synthetic/images/*.{IMAGE_FORMATS[image_format]}"
+    )

@@ -21,6 +21,7 @@ shipped chain is judged by where it docks (pipeline/evaluation/closed_loop.py: r
 lost target, hold; the breaking point per dynamics and variant) -> metrics `closed_loop`, the section the page
 leads with. Rates count only the runs that met the attack.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -63,8 +64,11 @@ def _in_loop(i: Integrity, settings: Any) -> tuple[tuple[float, str, float], ...
         except ValueError as e:
             raise StageError(f"params.yaml integrity.in_loop_start_ranges: {e}") from None
     start = float(np.linalg.norm(settings.start))
-    return tuple((float(e), goal, float(s)) for e, goal in itertools.product(sorted(i.in_loop_eps), i.in_loop_goals)
-                 for s in ((start,) if goal == "capture" else i.in_loop_start_ranges))
+    return tuple(
+        (float(e), goal, float(s))
+        for e, goal in itertools.product(sorted(i.in_loop_eps), i.in_loop_goals)
+        for s in ((start,) if goal == "capture" else i.in_loop_start_ranges)
+    )
 
 
 def _plan(g: Guidance) -> tuple[Any, list[tuple[float, float, int, Any]]]:
@@ -73,9 +77,14 @@ def _plan(g: Guidance) -> tuple[Any, list[tuple[float, float, int, Any]]]:
 
     check_attack_params(g, "guidance")
     try:
-        settings = GuidanceSettings(start=tuple(map(float, g.start)), goal=tuple(map(float, g.target)),
-                                    tolerance=float(g.tolerance), max_step=float(g.max_step),
-                                    max_steps=g.max_steps, variant=g.variant)
+        settings = GuidanceSettings(
+            start=tuple(map(float, g.start)),
+            goal=tuple(map(float, g.target)),
+            tolerance=float(g.tolerance),
+            max_step=float(g.max_step),
+            max_steps=g.max_steps,
+            variant=g.variant,
+        )
     except ValueError as e:
         raise StageError(f"params.yaml guidance: {e}") from None
     if g.slack_steps < 0:
@@ -89,7 +98,7 @@ def _plan(g: Guidance) -> tuple[Any, list[tuple[float, float, int, Any]]]:
     return settings, grid
 
 
-HORIZON_H = 24.0   # hours: a grid projected to run longer on this machine is refused before the first run
+HORIZON_H = 24.0  # hours: a grid projected to run longer on this machine is refused before the first run
 
 
 def check_duration(plan: Any, chain: Any, K: Any) -> None:
@@ -108,9 +117,11 @@ def check_duration(plan: Any, chain: Any, K: Any) -> None:
     steps = baseline_steps(plan)
     hours = steps * min(seconds) / 3600
     if hours > HORIZON_H:
-        raise StageError(f"params.yaml guidance.max_steps={plan.settings.max_steps}: the no-attack runs alone fly "
-                         f"{steps:,} closed-loop steps, about {hours:,.0f} h at {1000 * min(seconds):.2f} ms per step "
-                         f"on this machine (more than {HORIZON_H:g} h); lower it (the nominal approach takes 50 steps)")
+        raise StageError(
+            f"params.yaml guidance.max_steps={plan.settings.max_steps}: the no-attack runs alone fly "
+            f"{steps:,} closed-loop steps, about {hours:,.0f} h at {1000 * min(seconds):.2f} ms per step "
+            f"on this machine (more than {HORIZON_H:g} h); lower it (the nominal approach takes 50 steps)"
+        )
 
 
 def main(params: Params) -> None:
@@ -125,19 +136,26 @@ def main(params: Params) -> None:
     g = params.guidance
     settings, grid = _plan(g)
     in_loop = _in_loop(params.integrity, settings)
-    make_attack(params.attack, g.method, 0)   # refuses bad attack params before anything runs
+    make_attack(params.attack, g.method, 0)  # refuses bad attack params before anything runs
     torch_setup(params)
     # each refuses a pose model whose input size is not render.width x height, or a detector of another model
     chains = {m.value: load_chain(params, m, defended=m == SHIPPED) for m in (PAPER, SHIPPED)}
     hashes = {m: chain.pose_hash for m, chain in chains.items()}
     shipped = chains[SHIPPED.value]
-    K, es = intrinsics(params), engine.engine_settings(params)   # K: the model's input size
-    plan = GridPlan(settings, tuple(grid), g.slack_steps, tuple(g.dynamics), tuple(g.defenses), in_loop,
-                    execution_settings(params, seed_for(params.seed, "execution")),
-                    ("true_state",) if "true_state" in g.dynamics else ())
+    K, es = intrinsics(params), engine.engine_settings(params)  # K: the model's input size
+    plan = GridPlan(
+        settings,
+        tuple(grid),
+        g.slack_steps,
+        tuple(g.dynamics),
+        tuple(g.defenses),
+        in_loop,
+        execution_settings(params, seed_for(params.seed, "execution")),
+        ("true_state",) if "true_state" in g.dynamics else (),
+    )
     check_duration(plan, shipped.onboard, K)
     scene, threads = chunks.prepare(K, scene_settings(params.render), es)
-    runs = flights(plan)   # attacked runs last the no-attack arrival + slack_steps (the paper: 50 nominal steps + ~10)
+    runs = flights(plan)  # attacked runs last the no-attack arrival + slack_steps (the paper: 50 nominal steps + ~10)
     finished, t0, paper_done = [0], time.perf_counter(), [0.0]
 
     def progress(i: int, _: Any) -> None:
@@ -147,62 +165,118 @@ def main(params: Params) -> None:
         bar.update(1)
 
     with tqdm(total=len(runs), desc="guidance runs", unit="run") as bar:
-        on_cpu = params if es.in_process else dataclasses.replace(params, device="cpu")   # Ray workers hold no GPU
-        setup = GuidanceSetup(params=on_cpu, K=K, scene=scene, root=str(Path.cwd()), defense=shipped.defended,
-                              plan=plan,
-                              seed=seed_for(params.seed, "guidance"), torch_threads=None if es.in_process else threads)
+        on_cpu = params if es.in_process else dataclasses.replace(params, device="cpu")  # Ray workers hold no GPU
+        setup = GuidanceSetup(
+            params=on_cpu,
+            K=K,
+            scene=scene,
+            root=str(Path.cwd()),
+            defense=shipped.defended,
+            plan=plan,
+            seed=seed_for(params.seed, "guidance"),
+            torch_threads=None if es.in_process else threads,
+        )
         flown = engine.run(GuidanceWorker, setup, runs, es, num_cpus=threads, progress=progress)
     seconds = paper_done[0]
-    paper = flown[:plan.paper_size]
-    counts = grid_counts(paper)      # the paper's grid alone
+    paper = flown[: plan.paper_size]
+    counts = grid_counts(paper)  # the paper's grid alone
     baseline, arrival, horizon, attacked = paper_grid(plan, [r for r, _ in flown])
     defended = defended_grid(plan, [r for r, _ in flown])
-    defended["seconds"] = time.perf_counter() - t0 - seconds   # with the in-loop runs: they share the workers
+    defended["seconds"] = time.perf_counter() - t0 - seconds  # with the in-loop runs: they share the workers
     looped = len(plan.in_loop_runs())
-    defended.update(grid_counts(flown[plan.paper_size:len(flown) - looped], frozenset().union(*(k for _, k in paper))))
-    metrics = _metrics(settings, g, params.attack, hashes, seconds, counts, (baseline, arrival, horizon, attacked),
-                       defended)
+    defended.update(
+        grid_counts(flown[plan.paper_size : len(flown) - looped], frozenset().union(*(k for _, k in paper)))
+    )
+    metrics = _metrics(
+        settings, g, params.attack, hashes, seconds, counts, (baseline, arrival, horizon, attacked), defended
+    )
     collision = params.integrity.collision_range_m
-    metrics |= {"in_loop": in_loop_grid(plan, [r for r, _ in flown], collision) | grid_counts(flown[len(flown) - looped:]),
-                "closed_loop": closed_loop_outcomes(plan, [r for r, _ in flown], collision),
-                "execution": dataclasses.asdict(g.execution), "minutes": (time.perf_counter() - t0) / 60}
+    metrics |= {
+        "in_loop": in_loop_grid(plan, [r for r, _ in flown], collision) | grid_counts(flown[len(flown) - looped :]),
+        "closed_loop": closed_loop_outcomes(plan, [r for r, _ in flown], collision),
+        "execution": dataclasses.asdict(g.execution),
+        "minutes": (time.perf_counter() - t0) / 60,
+    }
     write_metrics(METRICS, metrics, params.profile_name)
-    atomic_write_text(REPORT, unmet_banner(shipped.calibration.unmet)
-                      + closed_loop_section(metrics["closed_loop"], params) + guidance_page(metrics, g, params.render)
-                      + defended_section(metrics["defended"], g) + in_loop_section(metrics["in_loop"], params.integrity))
+    atomic_write_text(
+        REPORT,
+        unmet_banner(shipped.calibration.unmet)
+        + closed_loop_section(metrics["closed_loop"], params)
+        + guidance_page(metrics, g, params.render)
+        + defended_section(metrics["defended"], g)
+        + in_loop_section(metrics["in_loop"], params.integrity),
+    )
     first = attacked[0][0] if attacked else None
-    save_figure(guidance_trajectories(baseline, [(s, k, r) for e, s, k, r in attacked if e == first], first,
-                                      settings.goal), FIGURE)
-    save_figure(guidance_variants(defended["example"]["runs"], settings.goal, defended["example"]["title"],
-                                  settings.tolerance), DEFENDED_FIGURE)
-    typer.echo(f"guidance: baseline {baseline.outcome} ({baseline.miss:.2f} m); {len(attacked)} attacked runs in "
-               f"{seconds:.0f} s; defended grid and {looped} in-loop runs in {defended['seconds']:.0f} s -> {REPORT}")
+    save_figure(
+        guidance_trajectories(baseline, [(s, k, r) for e, s, k, r in attacked if e == first], first, settings.goal),
+        FIGURE,
+    )
+    save_figure(
+        guidance_variants(defended["example"]["runs"], settings.goal, defended["example"]["title"], settings.tolerance),
+        DEFENDED_FIGURE,
+    )
+    typer.echo(
+        f"guidance: baseline {baseline.outcome} ({baseline.miss:.2f} m); {len(attacked)} attacked runs in "
+        f"{seconds:.0f} s; defended grid and {looped} in-loop runs in {defended['seconds']:.0f} s -> {REPORT}"
+    )
     if baseline.outcome != "rendezvous held":
-        typer.secho(f"warning: the no-attack baseline did not reach the target ({baseline.outcome}, miss "
-                    f"{baseline.miss:.2f} m): the pose model is not good enough for closed-loop guidance, so the "
-                    f"attack tables say little; see {REPORT}", fg=typer.colors.YELLOW, err=True)
+        typer.secho(
+            f"warning: the no-attack baseline did not reach the target ({baseline.outcome}, miss "
+            f"{baseline.miss:.2f} m): the pose model is not good enough for closed-loop guidance, so the "
+            f"attack tables say little; see {REPORT}",
+            fg=typer.colors.YELLOW,
+            err=True,
+        )
 
 
-def _metrics(settings: Any, g: Guidance, a: Attack, hashes: dict[str, str], seconds: float,
-             counts: dict[str, int], flown: tuple[Any, int | None, int, list[Any]],
-             defended: dict[str, Any]) -> dict[str, Any]:
+def _metrics(
+    settings: Any,
+    g: Guidance,
+    a: Attack,
+    hashes: dict[str, str],
+    seconds: float,
+    counts: dict[str, int],
+    flown: tuple[Any, int | None, int, list[Any]],
+    defended: dict[str, Any],
+) -> dict[str, Any]:
     """reports/metrics/guidance.json: the paper grid's runs and success rates (standard model: `model_hash`),
     and the defended grid (the shipped chain: `models`); `hashes`: pose-model hash per model name."""
     baseline, arrival, horizon, runs = flown
     metrics = {
-        "variant": settings.variant, "method": g.method, "loss": a.loss, "max_steps": settings.max_steps,
-        "tolerance": settings.tolerance, "model_hash": hashes[PAPER.value], "seconds": seconds, **counts,
-        "models": {"paper": {"model": PAPER.value, "model_hash": hashes[PAPER.value]},
-                   "shipped": {"model": SHIPPED.value, "model_hash": hashes[SHIPPED.value]}},
+        "variant": settings.variant,
+        "method": g.method,
+        "loss": a.loss,
+        "max_steps": settings.max_steps,
+        "tolerance": settings.tolerance,
+        "model_hash": hashes[PAPER.value],
+        "seconds": seconds,
+        **counts,
+        "models": {
+            "paper": {"model": PAPER.value, "model_hash": hashes[PAPER.value]},
+            "shipped": {"model": SHIPPED.value, "model_hash": hashes[SHIPPED.value]},
+        },
         "baseline": {"outcome": baseline.outcome, "miss_m": baseline.miss, "arrival_step": arrival},
-        "horizon": horizon, "slack_steps": g.slack_steps,
-        "runs": [{"eps": e, "start_range": s, "length": k, "outcome": r.outcome, "miss_m": r.miss,
-                  "attack_start": r.attack_start, "attacked_frames": r.attacked_frames, "steps": len(r.estimates)}
-                 for e, s, k, r in runs],
+        "horizon": horizon,
+        "slack_steps": g.slack_steps,
+        "runs": [
+            {
+                "eps": e,
+                "start_range": s,
+                "length": k,
+                "outcome": r.outcome,
+                "miss_m": r.miss,
+                "attack_start": r.attack_start,
+                "attacked_frames": r.attacked_frames,
+                "steps": len(r.estimates),
+            }
+            for e, s, k, r in runs
+        ],
     }
     # of the runs that met the attack (a run that never reached S was not attacked)
-    met = {e: [r.outcome != "rendezvous held" for e2, _, _, r in runs if e2 == e and r.attacked_frames > 0]
-           for e in dict.fromkeys(e for e, *_ in runs)}
+    met = {
+        e: [r.outcome != "rendezvous held" for e2, _, _, r in runs if e2 == e and r.attacked_frames > 0]
+        for e in dict.fromkeys(e for e, *_ in runs)
+    }
     metrics["attack_success_rate"] = {f"{e:g}": float(np.mean(v)) if v else None for e, v in met.items()}
     metrics["defended"] = {k: v for k, v in defended.items() if k != "example"}
     return metrics

@@ -5,6 +5,7 @@ One source for each: the params of a command are dvc.yaml's `params:` of the sta
 the comments beside them in conf/config.yaml, and a numeric param's range is its `In` in the schema
 (stages/config/schema.py `ranges`). Built only when --help is asked for.
 """
+
 from __future__ import annotations
 
 import re
@@ -22,13 +23,13 @@ _KEY = re.compile(r"^(?P<indent> *)(?P<key>\w+):(?P<value>[^#]*?)\s*(?:#\s?(?P<c
 def config_comments(text: str) -> dict[str, tuple[bool, str]]:
     """Dotted key of conf/config.yaml -> (is a leaf, its comment with continuation lines; "" when none)."""
     out: dict[str, tuple[bool, str]] = {}
-    path: list[tuple[int, str]] = []   # (indent, key) of the enclosing sections
+    path: list[tuple[int, str]] = []  # (indent, key) of the enclosing sections
     last: tuple[int, str] | None = None
     for line in text.splitlines():
         stripped = line.lstrip()
         indent = len(line) - len(stripped)
         if stripped.startswith("#"):
-            if last is not None and indent > last[0]:   # a comment continued under the key's own
+            if last is not None and indent > last[0]:  # a comment continued under the key's own
                 leaf, comment = out[last[1]]
                 out[last[1]] = (leaf, f"{comment} {stripped.lstrip('#').strip()}".strip())
             continue
@@ -39,10 +40,10 @@ def config_comments(text: str) -> dict[str, tuple[bool, str]]:
         path = [(i, k) for i, k in path if i < indent]
         key = ".".join([k for _, k in path] + [m["key"]])
         value = m["value"].strip()
-        out[key] = (value not in ("", "{}"), (m["comment"] or "").strip())   # "{}": an empty section
+        out[key] = (value not in ("", "{}"), (m["comment"] or "").strip())  # "{}": an empty section
         path.append((indent, m["key"]))
         last = (indent, key)
-    out.pop("defaults", None)   # Hydra's composition list, not a param
+    out.pop("defaults", None)  # Hydra's composition list, not a param
     return out
 
 
@@ -54,8 +55,9 @@ def command_stages(command: str) -> list[str]:
 def command_params(command: str, comments: dict[str, tuple[bool, str]]) -> list[str]:
     """Every param (leaf key of conf/config.yaml) that dvc.yaml lists for the stages of `rpod <command>`."""
     listed = {p for name in command_stages(command) for p in dvc_stages()[name].get("params", [])}
-    return [key for key, (leaf, _) in comments.items()
-            if leaf and any(key == p or key.startswith(p + ".") for p in listed)]
+    return [
+        key for key, (leaf, _) in comments.items() if leaf and any(key == p or key.startswith(p + ".") for p in listed)
+    ]
 
 
 def params_epilog(command: str) -> str:
@@ -70,10 +72,12 @@ def params_epilog(command: str) -> str:
     from stages.config.schema import ranges
 
     limits = ranges()
-    lines = [f"  {k}: {comments[k][1] or '(no description)'}"
-             + (f"; range {limits[k].interval} {limits[k].unit}".rstrip() if k in limits else "")
-             for k in keys]
-    return (f"Params read (params.yaml, from conf/config.yaml; dvc.yaml stage {stages}):\n\n" + "\n".join(lines))
+    lines = [
+        f"  {k}: {comments[k][1] or '(no description)'}"
+        + (f"; range {limits[k].interval} {limits[k].unit}".rstrip() if k in limits else "")
+        for k in keys
+    ]
+    return f"Params read (params.yaml, from conf/config.yaml; dvc.yaml stage {stages}):\n\n" + "\n".join(lines)
 
 
 def _escape(text: str) -> str:

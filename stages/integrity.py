@@ -9,6 +9,7 @@ burst on its error / AL objective) on the shipped chain, the standard one and th
 eval_render trajectory (or the first `--trajectories N`) and every eps of `integrity.eps` (no stop at a chain's
 breaking point). The page has the same sections as the head of reports/robustness.md.
 """
+
 from __future__ import annotations
 
 import time
@@ -30,8 +31,12 @@ from stages.pages.integrity import integrity_page
 
 def main(
     params: Params,
-    trajectories: Annotated[Optional[int], typer.Option(
-        "--trajectories", min=1, help="Fly only the first N eval_render trajectories (default: all of them).")] = None,
+    trajectories: Annotated[
+        Optional[int],
+        typer.Option(
+            "--trajectories", min=1, help="Fly only the first N eval_render trajectories (default: all of them)."
+        ),
+    ] = None,
 ) -> None:
     """Fly the full integrity grid (every attacker, chain, trajectory and eps) and write its page and metrics.
 
@@ -45,11 +50,19 @@ def main(
     out = integrity_campaign(params, shipped, seed_for(params.seed, "robustness"), full=True, trajectories=trajectories)
     integrity = out["integrity"]
     seconds = time.perf_counter() - t0
-    write_metrics(INTEGRITY_METRICS, {"integrity": integrity, "fused_rows": out["fused_rows"], "fused": out["fused"],
-                                      "seconds": seconds}, params.profile_name)
-    atomic_write_text(INTEGRITY_REPORT, unmet_banner(out["fused"]["calibration_unmet"])
-                      + unmet_banner(integrity["chains"][PAPER.value]["calibration_unmet"], PAPER)
-                      + integrity_page(integrity, params))
+    write_metrics(
+        INTEGRITY_METRICS,
+        {"integrity": integrity, "fused_rows": out["fused_rows"], "fused": out["fused"], "seconds": seconds},
+        params.profile_name,
+    )
+    atomic_write_text(
+        INTEGRITY_REPORT,
+        unmet_banner(out["fused"]["calibration_unmet"])
+        + unmet_banner(integrity["chains"][PAPER.value]["calibration_unmet"], PAPER)
+        + integrity_page(integrity, params),
+    )
     flown = integrity["chains"][SHIPPED.value]["trajectories"]
-    typer.echo(f"integrity: breaking eps {integrity['breaking_eps']} on {flown} "
-               f"trajectories in {seconds:.0f} s -> {INTEGRITY_REPORT}, {INTEGRITY_METRICS}")
+    typer.echo(
+        f"integrity: breaking eps {integrity['breaking_eps']} on {flown} "
+        f"trajectories in {seconds:.0f} s -> {INTEGRITY_REPORT}, {INTEGRITY_METRICS}"
+    )

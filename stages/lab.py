@@ -17,6 +17,7 @@ models/pose_robust.pt behind its black-level clamp, its detector models/detector
 
 The lab recording layout (images/, masks/, camera.csv, mocap.csv) is described in pipeline/formats/recordings.py.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -48,11 +49,14 @@ from stages.pages.paper import LAB, LAB_ATTACK_LENGTH, P_START
 
 if TYPE_CHECKING:
     from pipeline.evaluation.sequences import Sequence
-LAB_CHUNK = 30              # frames per render job of the synthetic lab sequences (stages/engine/pool.py)
+LAB_CHUNK = 30  # frames per render job of the synthetic lab sequences (stages/engine/pool.py)
 
-app = typer.Typer(help="The lab domain: lab-like sequences through the real-data loader, pose "
-                       "error, FGSM errors and integrated detection; `rpod lab rescale` converts ranges.",
-                  pretty_exceptions_enable=False, add_completion=False)
+app = typer.Typer(
+    help="The lab domain: lab-like sequences through the real-data loader, pose "
+    "error, FGSM errors and integrated detection; `rpod lab rescale` converts ranges.",
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
 
 
 def cameras(p: Params) -> tuple[Any, Any]:
@@ -61,14 +65,17 @@ def cameras(p: Params) -> tuple[Any, Any]:
 
     c, z = p.camera, p.lab.zed
     try:
-        return (Intrinsics(c.ref_width, c.ref_height, c.fx, c.fy, c.cx, c.cy),
-                Intrinsics(z.width, z.height, z.fx, z.fy, z.cx, z.cy))
+        return (
+            Intrinsics(c.ref_width, c.ref_height, c.fx, c.fy, c.cx, c.cy),
+            Intrinsics(z.width, z.height, z.fx, z.fy, z.cx, z.cy),
+        )
     except ValueError as e:
         raise StageError(f"params.yaml camera / lab.zed: {e}") from None
 
 
-def rescale(params: Params,
-            z: list[float] = typer.Option(..., "--z", help="Lab range(s) in metres (repeatable).")) -> None:
+def rescale(
+    params: Params, z: list[float] = typer.Option(..., "--z", help="Lab range(s) in metres (repeatable).")
+) -> None:
     """Print the equivalent synthetic range of lab ranges (same apparent size in pixels; pinhole model)."""
     from pipeline.evaluation.lab import lab_to_synthetic_factor
 
@@ -76,8 +83,10 @@ def rescale(params: Params,
     scale = float(params.lab.scale)
     k = lab_to_synthetic_factor(K_syn, K_zed, scale)
     f_eff = K_zed.fx * K_syn.width / K_zed.width
-    typer.echo(f"factor = scale * fx_syn / fx_lab_eff = {scale:g} * {K_syn.fx:g} / ({K_zed.fx:g} * "
-               f"{K_syn.width}/{K_zed.width} = {f_eff:.2f}) = {k:.4f}")
+    typer.echo(
+        f"factor = scale * fx_syn / fx_lab_eff = {scale:g} * {K_syn.fx:g} / ({K_zed.fx:g} * "
+        f"{K_syn.width}/{K_zed.width} = {f_eff:.2f}) = {k:.4f}"
+    )
     for zi in z:
         if zi <= 0:
             raise StageError(f"--z must be a positive range in metres, got {zi}")
@@ -100,25 +109,38 @@ def render_lab(p: Params, dest: Path) -> list[dict[str, Any]]:
     lab, r = p.lab, p.render
     ds = lab.domain_shift
     _, K_zed = cameras(p)
-    k_cal = 1.0 + float(ds.calib_error)       # the true lens differs from the calibration used for labels
+    k_cal = 1.0 + float(ds.calib_error)  # the true lens differs from the calibration used for labels
     K_lab = K_zed.scaled(r.width, r.height)
     K_true = dataclasses.replace(K_lab, fx=K_lab.fx * k_cal, fy=K_lab.fy * k_cal)
-    mesh, mesh_scale = mockup(p)       # the mock-up at scale x its size (= the real target's size)
-    settings = dataclasses.replace(scene_settings(r), mesh=mesh, mesh_scale=mesh_scale,
-                                   sun_direction=tuple(float(v) for v in ds.sun_direction),
-                                   sun_strength=float(ds.sun_strength))
+    mesh, mesh_scale = mockup(p)  # the mock-up at scale x its size (= the real target's size)
+    settings = dataclasses.replace(
+        scene_settings(r),
+        mesh=mesh,
+        mesh_scale=mesh_scale,
+        sun_direction=tuple(float(v) for v in ds.sun_direction),
+        sun_strength=float(ds.sun_strength),
+    )
     rng = np.random.default_rng(seed_for(lab.seed, "lab"))
     scale, n, truth, es = float(lab.scale), lab.frames, [], engine.engine_settings(p)
     with engine.session(es):
         for i, (z0, z1) in enumerate(lab.sequences):
-            lateral = tuple(rng.uniform(-0.03, 0.03, 2) * float(z1))   # lab m, target off-centre
-            rec = synthetic_recording(float(z0), float(z1), n, float(lab.fps), float(lab.mocap_hz),
-                                      np.array([1.0, 0, 0, 0]), lateral=lateral,
-                                      clock_offset=float(rng.uniform(0, 1 / float(lab.mocap_hz))),
-                                      camera_body=lab.bodies.camera, target_body=lab.bodies.target)
+            lateral = tuple(rng.uniform(-0.03, 0.03, 2) * float(z1))  # lab m, target off-centre
+            rec = synthetic_recording(
+                float(z0),
+                float(z1),
+                n,
+                float(lab.fps),
+                float(lab.mocap_hz),
+                np.array([1.0, 0, 0, 0]),
+                lateral=lateral,
+                clock_offset=float(rng.uniform(0, 1 / float(lab.mocap_hz))),
+                camera_body=lab.bodies.camera,
+                target_body=lab.bodies.target,
+            )
             # the 1/scale mock-up at the lab label t looks like the full-size target at scale * t
-            rgb, alpha = render_poses(K_true, settings, quat_to_matrix(rec.q), scale * rec.t, LAB_CHUNK, es,
-                                      f"lab render seq{i + 1}")
+            rgb, alpha = render_poses(
+                K_true, settings, quat_to_matrix(rec.q), scale * rec.t, LAB_CHUNK, es, f"lab render seq{i + 1}"
+            )
             images, masks = shift_recording(rgb, alpha, float(ds.noise_std), float(ds.blur_sigma), rng)
             write_recording(dest / f"seq{i + 1}", rec.camera, rec.mocap, images, masks)
             truth.append({"name": f"seq{i + 1}", "t_lab": rec.t, "q": rec.q, "z_range": (float(z0), float(z1))})
@@ -136,8 +158,8 @@ def main(params: Params, ctx: typer.Context) -> None:
     if ctx.invoked_subcommand is not None:
         return
     from pipeline.attacks.gradient import attack_loss
-    from pipeline.evaluation.lab import lab_to_synthetic_factor
     from pipeline.attacks.schedule import attacked_fraction
+    from pipeline.evaluation.lab import lab_to_synthetic_factor
     from pipeline.evaluation.rates import sequence_rates
     from pipeline.evaluation.sequences import evaluate_sequences, fgsm_error_table, nan_to_none, per_eps_summary
 
@@ -159,31 +181,59 @@ def main(params: Params, ctx: typer.Context) -> None:
     render_s = time.perf_counter() - t0
     sequences, ranges, loader_err = _sequences(params, source, truth, K_syn, K_zed)
     e, length = params.evaluate, lab.attack_length
-    clean_rows, fgsm_rows = fgsm_error_table(chain, loss_fn, sequences, [float(x) for x in params.attack.eps],
-                                             e.batch_size)   # pose error (clean), FGSM errors: every lab frame
-    res = evaluate_sequences(chain, loss_fn, sequences, [float(x) for x in e.eps], length, e.batch_size,
-                             "lab evaluate")
+    clean_rows, fgsm_rows = fgsm_error_table(
+        chain, loss_fn, sequences, [float(x) for x in params.attack.eps], e.batch_size
+    )  # pose error (clean), FGSM errors: every lab frame
+    res = evaluate_sequences(chain, loss_fn, sequences, [float(x) for x in e.eps], length, e.batch_size, "lab evaluate")
     summary = per_eps_summary(res.rows)
     seconds = time.perf_counter() - t0
     train_path = TRAIN_METRICS if synthetic_lab is None else LAB_MODELS / TRAIN_METRICS
     train_metrics = read_json(train_path) if train_path.exists() else None
-    models = ({"pose": str(CHAINS[PAPER].pose), "detector": str(CHAINS[PAPER].detector)} if synthetic_lab is None else
-              {"pose": synthetic_lab["pose"], "detector": synthetic_lab["detector"]})
-    metrics = {"model_hash": model_hash, "source": str(source), "synthetic": not real, "factor": factor,
-               "retrain": lab.retrain, "reused_models": synthetic_lab is None, "retrain_reason": reason,
-               "models": models, "synthetic_lab": synthetic_lab, "ranges": ranges, "loader_error": loader_err,
-               "clean": clean_rows, "fgsm": fgsm_rows, "attack_length": length, "threshold": chain.threshold,
-               "per_eps": {f"{x['eps']:g}": x for x in summary}, "rows": res.rows, "clean_detection": res.clean,
-               "accuracy_mean": float(np.mean([x["accuracy"] for x in summary])), "seconds": seconds,
-               "render_seconds": render_s, "shipped": shipped_alarms(params, sequences),
-               "rates": {f"{x:g}": r.as_json(attacked_fraction(P_START, LAB_ATTACK_LENGTH))
-                         for x, r in sequence_rates(res.rows).items()}}
+    models = (
+        {"pose": str(CHAINS[PAPER].pose), "detector": str(CHAINS[PAPER].detector)}
+        if synthetic_lab is None
+        else {"pose": synthetic_lab["pose"], "detector": synthetic_lab["detector"]}
+    )
+    metrics = {
+        "model_hash": model_hash,
+        "source": str(source),
+        "synthetic": not real,
+        "factor": factor,
+        "retrain": lab.retrain,
+        "reused_models": synthetic_lab is None,
+        "retrain_reason": reason,
+        "models": models,
+        "synthetic_lab": synthetic_lab,
+        "ranges": ranges,
+        "loader_error": loader_err,
+        "clean": clean_rows,
+        "fgsm": fgsm_rows,
+        "attack_length": length,
+        "threshold": chain.threshold,
+        "per_eps": {f"{x['eps']:g}": x for x in summary},
+        "rows": res.rows,
+        "clean_detection": res.clean,
+        "accuracy_mean": float(np.mean([x["accuracy"] for x in summary])),
+        "seconds": seconds,
+        "render_seconds": render_s,
+        "shipped": shipped_alarms(params, sequences),
+        "rates": {
+            f"{x:g}": r.as_json(attacked_fraction(P_START, LAB_ATTACK_LENGTH))
+            for x, r in sequence_rates(res.rows).items()
+        },
+    }
     write_metrics(METRICS, nan_to_none(metrics), params.profile_name)
-    atomic_write_text(REPORT, lab_page(params, metrics, res.rows, summary, [s.name for s in sequences],
-                                     train_metrics, K_syn, K_zed, sequences))
-    typer.echo(f"lab: {'reused' if synthetic_lab is None else 'retrained'} models {models['pose']}, "
-               f"{models['detector']}; {len(sequences)} sequences from {source}; mean detection accuracy "
-               f"{100 * metrics['accuracy_mean']:.2f}% (paper {LAB}%) in {seconds:.0f} s -> {REPORT}")
+    atomic_write_text(
+        REPORT,
+        lab_page(
+            params, metrics, res.rows, summary, [s.name for s in sequences], train_metrics, K_syn, K_zed, sequences
+        ),
+    )
+    typer.echo(
+        f"lab: {'reused' if synthetic_lab is None else 'retrained'} models {models['pose']}, "
+        f"{models['detector']}; {len(sequences)} sequences from {source}; mean detection accuracy "
+        f"{100 * metrics['accuracy_mean']:.2f}% (paper {LAB}%) in {seconds:.0f} s -> {REPORT}"
+    )
 
 
 def shipped_alarms(p: Params, sequences: list[Sequence]) -> dict[str, Any]:
@@ -199,19 +249,31 @@ def shipped_alarms(p: Params, sequences: list[Sequence]) -> dict[str, Any]:
     shipped = load_chain(p, SHIPPED)
     chain, model_hash, threshold = shipped.onboard, shipped.pose_hash, shipped.defended.settings.threshold
     level = float(getattr(chain.model, "black_level", 0.0))
-    runs = [run_sequence(chain, s.images, s.targets, np.zeros(len(s.images), bool), None, p.evaluate.batch_size)
-            for s in sequences]
+    runs = [
+        run_sequence(chain, s.images, s.targets, np.zeros(len(s.images), bool), None, p.evaluate.batch_size)
+        for s in sequences
+    ]
     flags = [res.prob >= threshold for res in runs]
     pos, att = (np.concatenate(e) for e in zip(*(pose_errors(res.pose, s.targets) for res, s in zip(runs, sequences))))
     values = np.concatenate([s.images[s.images > 0] for s in sequences]).astype(np.float64) / 255
     r = rate(np.concatenate(flags))
     probs = np.concatenate([res.prob for res in runs]).astype(np.float64)
-    return {"model": SHIPPED.value, "model_hash": model_hash, "threshold": threshold, "frames": int(r.n),
-            "probability_median": float(np.median(probs)), "probability_max": float(probs.max()),
-            "false_alarms": int(np.concatenate(flags).sum()), "rate": r.value, "rate_ci95": r.ci(),
-            "per_sequence": {s.name: int(f.sum()) for s, f in zip(sequences, flags)}, "position_m": float(pos.mean()),
-            "attitude_deg": float(att.mean()), "black_level": level,
-            "clamp_erased": float((values < level).mean()) if values.size else None}
+    return {
+        "model": SHIPPED.value,
+        "model_hash": model_hash,
+        "threshold": threshold,
+        "frames": int(r.n),
+        "probability_median": float(np.median(probs)),
+        "probability_max": float(probs.max()),
+        "false_alarms": int(np.concatenate(flags).sum()),
+        "rate": r.value,
+        "rate_ci95": r.ci(),
+        "per_sequence": {s.name: int(f.sum()) for s, f in zip(sequences, flags)},
+        "position_m": float(pos.mean()),
+        "attitude_deg": float(att.mean()),
+        "black_level": level,
+        "clamp_erased": float((values < level).mean()) if values.size else None,
+    }
 
 
 def _lab_models(reason: str | None) -> dict[str, Any] | None:
@@ -219,24 +281,39 @@ def _lab_models(reason: str | None) -> dict[str, Any] | None:
     None; refuses a datasets/lab_models/ made for other params."""
     summary = read_json(LAB_MODELS_SUMMARY)
     if summary.get("reason") != reason:
-        raise StageError(f"{LAB_MODELS} was made for other lab params (retrain reason {summary.get('reason')!r}, "
-                         f"now {reason!r}); run `rpod lab_models` (dvc repro lab_models)")
+        raise StageError(
+            f"{LAB_MODELS} was made for other lab params (retrain reason {summary.get('reason')!r}, "
+            f"now {reason!r}); run `rpod lab_models` (dvc repro lab_models)"
+        )
     return summary if summary["retrained"] else None
 
 
-def _sequences(p: Params, source: Path, truth: list[dict[str, Any]], K_syn: Any,
-               K_zed: Any) -> tuple[list[Sequence], list[dict[str, Any]], dict[str, dict[str, float]]]:
+def _sequences(
+    p: Params, source: Path, truth: list[dict[str, Any]], K_syn: Any, K_zed: Any
+) -> tuple[list[Sequence], list[dict[str, Any]], dict[str, dict[str, float]]]:
     """The recordings in `source` read through the real-data loader, as chain sequences (synthetic-frame
     targets in metres, seeded attack schedules), their range table rows, and the loader's label error
     against the exact render poses (`truth`, synthetic lab only)."""
     from pipeline.evaluation.lab import chain_sequences, loader_errors
 
     lab, r = p.lab, p.render
-    recs = [read_recording(f, r.width, r.height, dataclasses.asdict(lab.bodies), lab.match, float(lab.max_gap_s),
-                           float(lab.segment_threshold), lab.max_image_pixels,
-                           float(lab.empty_frame_tolerance)) for f in recording_folders(source)]
-    sequences, ranges = chain_sequences(recs, K_syn, K_zed, float(lab.scale), float(p.evaluate.p_start),
-                                        lab.attack_length, lab.seed)
+    recs = [
+        read_recording(
+            f,
+            r.width,
+            r.height,
+            dataclasses.asdict(lab.bodies),
+            lab.match,
+            float(lab.max_gap_s),
+            float(lab.segment_threshold),
+            lab.max_image_pixels,
+            float(lab.empty_frame_tolerance),
+        )
+        for f in recording_folders(source)
+    ]
+    sequences, ranges = chain_sequences(
+        recs, K_syn, K_zed, float(lab.scale), float(p.evaluate.p_start), lab.attack_length, lab.seed
+    )
     return sequences, ranges, loader_errors(recs, truth)
 
 

@@ -19,6 +19,7 @@ reports/metrics/{train,detect}.json, plus summary.json (what `rpod lab` reads: w
 retrained, the model paths, the synthetic-lab test errors). Without retraining only summary.json is
 written, so DVC runs this stage as a no-op and `rpod lab` is not re-run for it.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -41,15 +42,25 @@ def sub_params(p: Params) -> Params:
     frames = p.render.frames_per_sequence if lab.train_frames_per_sequence is None else lab.train_frames_per_sequence
     # source: the synthetic-lab set is rendered, never a SPEED import
     render = dataclasses.replace(p.render, mesh=mesh, mesh_scale=mesh_scale, source=NONE, frames_per_sequence=frames)
-    return dataclasses.replace(p, seed=seed_for(lab.seed, "lab_models"), render=render,
-                               detect=dataclasses.replace(p.detect, baselines=[]),
-                               engine=dataclasses.replace(p.engine, store=None))   # its renders stay in its folder
+    return dataclasses.replace(
+        p,
+        seed=seed_for(lab.seed, "lab_models"),
+        render=render,
+        detect=dataclasses.replace(p.detect, baselines=[]),
+        engine=dataclasses.replace(p.engine, store=None),
+    )  # its renders stay in its folder
 
 
 # the sub-pipeline, in order: dvc.yaml stage name -> its `rpod` command (the detector's false alarms on
 # evaluation trajectories are left out: the lab stage measures this detector on the lab frames)
-STEPS = {"render": ["render"], "label": ["label"], "train": ["train"], "detect_render": ["eval_render", "--detector"],
-         "shap": ["shap"], "detect": ["detect", "--no-eval-alarms"]}
+STEPS = {
+    "render": ["render"],
+    "label": ["label"],
+    "train": ["train"],
+    "detect_render": ["eval_render", "--detector"],
+    "shap": ["shap"],
+    "detect": ["detect", "--no-eval-alarms"],
+}
 
 
 def retrain(p: Params, dest: Path, final: Path) -> dict[str, Any]:
@@ -61,15 +72,26 @@ def retrain(p: Params, dest: Path, final: Path) -> dict[str, Any]:
     detect_m = read_json(dest / DETECT_METRICS)
     meta = read_json(dest / RENDER / "meta.json")
     r = sub.render
-    return {"retrained": True, "folder": str(final), "reason": retrain_reason(p), "seed": sub.seed, "mesh": r.mesh,
-            "mesh_scale": r.mesh_scale, "frames_per_sequence": r.frames_per_sequence,
-            "images": int(meta["frames"]), "size": [int(meta["width"]), int(meta["height"])],
-            "pose": str(final / POSE), "pose_hash": file_hash(dest / POSE),
-            "detector": str(final / DETECTOR),
-            "train_test": {k: train_m["test"][k] for k in ("n", "pos_mean_m", "att_mean_deg")},
-            "best_epoch": train_m["best_epoch"], "epochs_run": train_m["epochs_run"],
-            "shap_samples": int(detect_m["counts"]["samples"]),
-            "detector_test_accuracy": detect_m["detectors"]["lstm"]["all"]["accuracy"], "seconds": seconds}
+    return {
+        "retrained": True,
+        "folder": str(final),
+        "reason": retrain_reason(p),
+        "seed": sub.seed,
+        "mesh": r.mesh,
+        "mesh_scale": r.mesh_scale,
+        "frames_per_sequence": r.frames_per_sequence,
+        "images": int(meta["frames"]),
+        "size": [int(meta["width"]), int(meta["height"])],
+        "pose": str(final / POSE),
+        "pose_hash": file_hash(dest / POSE),
+        "detector": str(final / DETECTOR),
+        "train_test": {k: train_m["test"][k] for k in ("n", "pos_mean_m", "att_mean_deg")},
+        "best_epoch": train_m["best_epoch"],
+        "epochs_run": train_m["epochs_run"],
+        "shap_samples": int(detect_m["counts"]["samples"]),
+        "detector_test_accuracy": detect_m["detectors"]["lstm"]["all"]["accuracy"],
+        "seconds": seconds,
+    }
 
 
 def main(params: Params) -> None:
@@ -84,5 +106,7 @@ def main(params: Params) -> None:
             print(f"lab_models: retraining the pose model and detector on a synthetic-lab set ({reason})", flush=True)
             summary = retrain(params, tmp, LAB_MODELS)
         write_json(tmp / LAB_MODELS_SUMMARY.name, summary)
-    print(f"lab_models: {'retrained' if reason else 'nothing to train (the lab reuses the main models)'} "
-          f"-> {LAB_MODELS_SUMMARY}")
+    print(
+        f"lab_models: {'retrained' if reason else 'nothing to train (the lab reuses the main models)'} "
+        f"-> {LAB_MODELS_SUMMARY}"
+    )

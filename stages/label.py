@@ -1,16 +1,17 @@
 """`rpod label`: the label table of the rendered (or imported) dataset and the dataset card.
 (`rpod export speed OUT` writes the labelled set as a SPEED+ folder.)"""
+
 from __future__ import annotations
 
 import numpy as np
 
-from pipeline.visibility import out_of_view, split_problem
 from pipeline.formats.renders import render_identity
 from pipeline.formats.speed_folder import source_problem
 from pipeline.geometry.labels import POSITION, QUAT, SIXD, table_problem
 from pipeline.io.atomic import atomic_write_text
 from pipeline.io.tables import write_parquet
 from pipeline.seeds import seed_for
+from pipeline.visibility import out_of_view, split_problem
 from stages.artifacts.data import RENDER_KEY
 from stages.artifacts.paths import DATASET_CARD as CARD
 from stages.artifacts.paths import IMAGES, LABELS, PREVIEWS, RENDER
@@ -56,12 +57,17 @@ def main(params: Params) -> None:
     images, poses, meta = read_render_store(RENDER)
     params_mod.check_render_fingerprint(meta, params, RENDER / "meta.json")
     labels = build_labels(poses, float(params.label.test_fraction), seed_for(params.seed, "label"))
-    problem = (source_problem(meta, list(poses.sort_values("index").get("filename", []))) or table_problem(labels)
-               or split_problem(out_of_view(images), labels["index"].to_numpy(), labels["split"].to_numpy()))
-    if problem:   # the SPEED folder changed since the import, a bad pose, or a split mostly out of view
+    problem = (
+        source_problem(meta, list(poses.sort_values("index").get("filename", [])))
+        or table_problem(labels)
+        or split_problem(out_of_view(images), labels["index"].to_numpy(), labels["split"].to_numpy())
+    )
+    if problem:  # the SPEED folder changed since the import, a bad pose, or a split mostly out of view
         raise StageError(f"{RENDER}: {problem}")
-    labels.attrs[RENDER_KEY] = render_identity(meta)   # what every reader checks the render against (load_labels)
+    labels.attrs[RENDER_KEY] = render_identity(meta)  # what every reader checks the render against (load_labels)
     write_parquet(labels, LABELS)
     atomic_write_text(CARD, dataset_card(labels, meta, sorted(PREVIEWS.glob("*.png")), CARD.parent))
-    print(f"{LABELS}: {len(labels)} labels ({(labels.split == 'train').sum()} train, "
-          f"{(labels.split == 'test').sum()} test); {CARD}")
+    print(
+        f"{LABELS}: {len(labels)} labels ({(labels.split == 'train').sum()} train, "
+        f"{(labels.split == 'test').sum()} test); {CARD}"
+    )

@@ -18,6 +18,7 @@ Variants (`VARIANTS`):
 - 480x270: the paper's image size (for a GPU box: about 9x the default training's work);
 - fy360: the paper's printed camera, fy = 360 at 480x270 (the camera default's held-out check).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -34,13 +35,15 @@ from stages.errors import StageError
 
 # variant -> (what it changes, in words; the params it sets: section -> {field: value})
 VARIANTS: dict[str, tuple[str, dict[str, dict[str, Any]]]] = {
-    "per_sequence": ("target attitude fixed per sequence (the paper's Table 1)",
-                     {"render": {"target_attitude": "per_sequence"}}),
+    "per_sequence": (
+        "target attitude fixed per sequence (the paper's Table 1)",
+        {"render": {"target_attitude": "per_sequence"}},
+    ),
     "320x180": ("images at 320x180 (twice our 160x90)", {"render": {"width": 320, "height": 180}}),
     "480x270": ("images at 480x270 (the paper's size)", {"render": {"width": 480, "height": 270}}),
     "fy360": ("the paper's printed camera, fy = 360 at 480x270", {"camera": {"fy": 360.0}}),
 }
-STEPS = {"render": ["render"], "label": ["label"], "train": ["train"]}   # dvc.yaml stage name -> its `rpod` command
+STEPS = {"render": ["render"], "label": ["label"], "train": ["train"]}  # dvc.yaml stage name -> its `rpod` command
 
 
 def trial_params(p: Params, variant: str) -> Params:
@@ -48,24 +51,35 @@ def trial_params(p: Params, variant: str) -> Params:
     if variant not in VARIANTS:
         raise StageError(f"unknown pose trial {variant!r}; choose one of {', '.join(VARIANTS)}")
     if given(p.render.source):
-        raise StageError(f"params.yaml render.source={p.render.source!r}: a pose trial re-renders the procedural data "
-                         "set, so it compares nothing with an imported one; unset render.source")
-    changes = {section: dataclasses.replace(getattr(p, section), **fields)
-               for section, fields in VARIANTS[variant][1].items()}
+        raise StageError(
+            f"params.yaml render.source={p.render.source!r}: a pose trial re-renders the procedural data "
+            "set, so it compares nothing with an imported one; unset render.source"
+        )
+    changes = {
+        section: dataclasses.replace(getattr(p, section), **fields) for section, fields in VARIANTS[variant][1].items()
+    }
     changes["engine"] = dataclasses.replace(changes.get("engine", p.engine), store=None)
     return dataclasses.replace(p, **changes)
 
 
-def main(params: Params,
-         variant: Annotated[str, typer.Argument(help=f"The variant: {', '.join(VARIANTS)}.")]) -> None:
+def main(params: Params, variant: Annotated[str, typer.Argument(help=f"The variant: {', '.join(VARIANTS)}.")]) -> None:
     """Render, label and train the standard recipe on one variant of the data set -> datasets/pose_trials/VARIANT/."""
     sub = trial_params(params, variant)
     final = POSE_TRIALS / variant
     with atomic_dir(final) as tmp:
         seconds = run_steps(sub, STEPS, tmp, final, f"pose_trial {variant}", "in")
         train = read_json(tmp / TRAIN_METRICS)
-        write_json(tmp / trial_summary(variant).name,
-                   {"variant": variant, "changes": VARIANTS[variant][0], "settings": VARIANTS[variant][1],
-                    "size": [sub.render.width, sub.render.height], "seconds": seconds,
-                    "best_epoch": train.get("best_epoch"), "validation": train.get("val"), "test": train.get("test")})
+        write_json(
+            tmp / trial_summary(variant).name,
+            {
+                "variant": variant,
+                "changes": VARIANTS[variant][0],
+                "settings": VARIANTS[variant][1],
+                "size": [sub.render.width, sub.render.height],
+                "seconds": seconds,
+                "best_epoch": train.get("best_epoch"),
+                "validation": train.get("val"),
+                "test": train.get("test"),
+            },
+        )
     print(f"pose_trial {variant}: {sum(seconds.values()):.0f} s -> {final}/")

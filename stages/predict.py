@@ -13,6 +13,7 @@ shipped in git (rpodguard/weights/default/), so it works right after `make setup
 camera.json as SPEED+ and `rpod export speed` write it) it warns when the images' camera is not the one the
 model was trained for (its K is stored in pose.pt; rpodguard/camera.py).
 """
+
 from __future__ import annotations
 
 import json
@@ -24,22 +25,35 @@ import typer
 
 
 def main(
-    images: list[Path] = typer.Argument(None, help="Image files (PNG, JPG, any size; resized to the model input).",
-                                        show_default=False),
+    images: list[Path] = typer.Argument(
+        None, help="Image files (PNG, JPG, any size; resized to the model input).", show_default=False
+    ),
     as_json: bool = typer.Option(False, "--json", help="Print a JSON list (one object per image) instead of a table."),
-    models: Path = typer.Option(None, "--models", show_default=False,
-                                help="A run's models/ folder (or the project root holding it: the chain that ships, "
-                                     "pose_robust.pt and detector_robust.pt), or a folder with pose.pt and detector.pt. "
-                                     "Default: the bundled weights (rpodguard/weights/default, the default profile's "
-                                     "shipped chain)."),
-    camera: Path = typer.Option(None, "--camera", show_default=False,
-                                help="camera.json of the images' camera (SPEED+ layout: Nu, Nv and cameraMatrix, or "
-                                     "fx, fy, ppx, ppy); warns when it is not the camera the model was trained for."),
-    motion: Path = typer.Option(None, "--motion", show_default=False,
-                                help="CSV with the chaser's motion per image (columns u_x,u_y,u_z: commanded displacement "
-                                     "of the target's relative position since the previous image, world axes, m; "
-                                     "c0..c8: camera -> world rotation, row-major): the images are then a sequence "
-                                     "through the defended chain (needs defense.json beside the models)."),
+    models: Path = typer.Option(
+        None,
+        "--models",
+        show_default=False,
+        help="A run's models/ folder (or the project root holding it: the chain that ships, "
+        "pose_robust.pt and detector_robust.pt), or a folder with pose.pt and detector.pt. "
+        "Default: the bundled weights (rpodguard/weights/default, the default profile's "
+        "shipped chain).",
+    ),
+    camera: Path = typer.Option(
+        None,
+        "--camera",
+        show_default=False,
+        help="camera.json of the images' camera (SPEED+ layout: Nu, Nv and cameraMatrix, or "
+        "fx, fy, ppx, ppy); warns when it is not the camera the model was trained for.",
+    ),
+    motion: Path = typer.Option(
+        None,
+        "--motion",
+        show_default=False,
+        help="CSV with the chaser's motion per image (columns u_x,u_y,u_z: commanded displacement "
+        "of the target's relative position since the previous image, world axes, m; "
+        "c0..c8: camera -> world rotation, row-major): the images are then a sequence "
+        "through the defended chain (needs defense.json beside the models).",
+    ),
 ) -> None:
     """Pose (position m, quaternion, 6-D) and the shipped chain's verdict (attack / doubt / clean) of each image.
 
@@ -55,7 +69,7 @@ def main(
 
     if not images:
         raise StageError("rpod predict: no images given (pass one or more PNG or JPG files)")
-    check_files(images)   # a typo stops here, before the ~10 s of loading torch and the models
+    check_files(images)  # a typo stops here, before the ~10 s of loading torch and the models
     cam = read_camera(camera) if camera is not None else None
     if motion is not None:
         from rpodguard.sequence import read_motion
@@ -64,12 +78,18 @@ def main(
     chain = load_chain(models)
     if models is None:
         bundle = chain.manifest or {}
-        typer.secho(f"note: the bundled weights ({bundle.get('profile')} profile, commit "
-                    f"{str(bundle.get('commit'))[:12]}); --models models for this project's own run", err=True)
+        typer.secho(
+            f"note: the bundled weights ({bundle.get('profile')} profile, commit "
+            f"{str(bundle.get('commit'))[:12]}); --models models for this project's own run",
+            err=True,
+        )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        out = chain.predict(images, camera=cam) if motion is None else \
-            chain.track(images, commands, attitudes, camera=cam)
+        out = (
+            chain.predict(images, camera=cam)
+            if motion is None
+            else chain.track(images, commands, attitudes, camera=cam)
+        )
     for w in caught:
         typer.secho(f"warning: {' '.join(str(w.message).split())}", fg=typer.colors.YELLOW, err=True)
     if motion is not None:
@@ -79,11 +99,21 @@ def main(
         return
     from tabulate import tabulate
 
-    rows = [[name, *out.position[k], *out.quaternion[k], out.attack_probability[k], out.verdict[k]]
-            if out.in_view[k] else [name, *[None] * 8, out.why_no_pose(k)] for k, name in enumerate(out.sources)]
+    rows = [
+        [name, *out.position[k], *out.quaternion[k], out.attack_probability[k], out.verdict[k]]
+        if out.in_view[k]
+        else [name, *[None] * 8, out.why_no_pose(k)]
+        for k, name in enumerate(out.sources)
+    ]
     typer.echo(out.rule.describe())
-    typer.echo(tabulate(rows, ["image", "x (m)", "y (m)", "z (m)", "qw", "qx", "qy", "qz", "P(attack)", "verdict"],
-                        floatfmt=".3f", missingval="-"))
+    typer.echo(
+        tabulate(
+            rows,
+            ["image", "x (m)", "y (m)", "z (m)", "qw", "qx", "qy", "qz", "P(attack)", "verdict"],
+            floatfmt=".3f",
+            missingval="-",
+        )
+    )
 
 
 def _print_track(out: Any, as_json: bool) -> None:
@@ -93,7 +123,19 @@ def _print_track(out: Any, as_json: bool) -> None:
         return
     from tabulate import tabulate
 
-    rows = [[name, *out.trusted[k], out.pl[k], "yes" if out.available[k] else "no", "FLAG" if out.flag[k] else "-",
-             out.mode[k]] for k, name in enumerate(out.prediction.sources)]
-    typer.echo(tabulate(rows, ["image", "trusted x (m)", "y (m)", "z (m)", "PL (m)", "available", "flag", "mode"],
-                        floatfmt=".3f"))
+    rows = [
+        [
+            name,
+            *out.trusted[k],
+            out.pl[k],
+            "yes" if out.available[k] else "no",
+            "FLAG" if out.flag[k] else "-",
+            out.mode[k],
+        ]
+        for k, name in enumerate(out.prediction.sources)
+    ]
+    typer.echo(
+        tabulate(
+            rows, ["image", "trusted x (m)", "y (m)", "z (m)", "PL (m)", "available", "flag", "mode"], floatfmt=".3f"
+        )
+    )

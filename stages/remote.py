@@ -10,6 +10,7 @@ other schemes need their DVC plugin and one bounded answer. Not a DVC stage; rea
 Credentials are never written: S3 takes them from AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY, ~/.aws, or
 `dvc remote modify --local NAME access_key_id ...` (.dvc/config.local, not in git).
 """
+
 from __future__ import annotations
 
 import os
@@ -25,19 +26,26 @@ from stages.errors import StageError
 
 app = typer.Typer(help="Set up the DVC remote that `dvc push` and `dvc pull` use.", no_args_is_help=True)
 
-AWS_ENDPOINT = "https://s3.amazonaws.com"    # where an s3:// URL goes without --endpoint
+AWS_ENDPOINT = "https://s3.amazonaws.com"  # where an s3:// URL goes without --endpoint
 DEFAULT_PORTS = {"http": 80, "https": 443}
-TIMED = ("s3", "http", "https")              # schemes whose DVC config takes connect_timeout / read_timeout (s)
+TIMED = ("s3", "http", "https")  # schemes whose DVC config takes connect_timeout / read_timeout (s)
 
 
 @app.command("add")
-def add(target: str = typer.Argument(..., metavar="PATH_OR_URL",
-                                     help="A local folder (created if missing) or a URL DVC can use, e.g. s3://BUCKET/PATH."),
-        name: str = typer.Option("storage", "--name", help="Remote name in .dvc/config."),
-        endpoint: str = typer.Option(None, "--endpoint", help="S3-compatible endpoint URL (MinIO, Ceph, ...), e.g. "
-                                                              "http://127.0.0.1:9000; AWS S3 when not given."),
-        timeout: float = typer.Option(10.0, "--timeout", min=0.1,
-                                      help="Seconds to wait for the remote's answer.")) -> None:
+def add(
+    target: str = typer.Argument(
+        ...,
+        metavar="PATH_OR_URL",
+        help="A local folder (created if missing) or a URL DVC can use, e.g. s3://BUCKET/PATH.",
+    ),
+    name: str = typer.Option("storage", "--name", help="Remote name in .dvc/config."),
+    endpoint: str = typer.Option(
+        None,
+        "--endpoint",
+        help="S3-compatible endpoint URL (MinIO, Ceph, ...), e.g. http://127.0.0.1:9000; AWS S3 when not given.",
+    ),
+    timeout: float = typer.Option(10.0, "--timeout", min=0.1, help="Seconds to wait for the remote's answer."),
+) -> None:
     """Make PATH_OR_URL the default DVC remote (.dvc/config), after checking it can be reached."""
     from dvc.config import Config
     from dvc.exceptions import NotDvcRepoError
@@ -46,23 +54,27 @@ def add(target: str = typer.Argument(..., metavar="PATH_OR_URL",
     try:
         root = Path(Repo.find_root())
     except NotDvcRepoError:
-        raise StageError("rpod remote add: not inside a DVC project (run it in the project folder; `dvc init` "
-                         "makes one)") from None
+        raise StageError(
+            "rpod remote add: not inside a DVC project (run it in the project folder; `dvc init` makes one)"
+        ) from None
     section = remote_section(target, endpoint, timeout)
     config = Config(dvc_dir=str(root / ".dvc"))
     with config.edit("repo") as conf:
         replaced = name in conf["remote"]
         conf["remote"][name] = section
         conf["core"]["remote"] = name
-    typer.echo(f".dvc/config: remote {name!r} -> {section['url']}"
-               + (f" (endpoint {endpoint})" if endpoint else "") + (", replacing the old one" if replaced else "")
-               + "; it is the default: `dvc push`, `dvc pull`")
+    typer.echo(
+        f".dvc/config: remote {name!r} -> {section['url']}"
+        + (f" (endpoint {endpoint})" if endpoint else "")
+        + (", replacing the old one" if replaced else "")
+        + "; it is the default: `dvc push`, `dvc pull`"
+    )
 
 
 def remote_section(target: str, endpoint: str | None, timeout: float) -> dict[str, str]:
     """The .dvc/config remote section for TARGET, once it is known to be usable (StageError otherwise)."""
     parsed = urlparse(target)
-    if not parsed.scheme or len(parsed.scheme) == 1 or parsed.scheme == "file":   # a path (C:/... on Windows)
+    if not parsed.scheme or len(parsed.scheme) == 1 or parsed.scheme == "file":  # a path (C:/... on Windows)
         if endpoint:
             raise StageError("rpod remote add: --endpoint is for an s3:// URL, not a local folder")
         return {"url": str(local_folder(Path(parsed.path if parsed.scheme == "file" else target)))}
@@ -119,9 +131,11 @@ def _filesystem(section: dict[str, str], timeout: float) -> tuple[Any, str]:
     try:
         cls, conf, path = get_cloud_fs(None, **section, **timed)
         return cls(**conf), path
-    except ImportError as e:      # "s3 is supported, but requires 'dvc-s3' to be installed"
-        raise StageError(f"rpod remote add: DVC cannot use {section['url']} here: {e} (pip install it into the "
-                         f"project's environment)") from None
+    except ImportError as e:  # "s3 is supported, but requires 'dvc-s3' to be installed"
+        raise StageError(
+            f"rpod remote add: DVC cannot use {section['url']} here: {e} (pip install it into the "
+            f"project's environment)"
+        ) from None
     except ConfigError as e:
         reason = str(e).removeprefix("config file error: ")
         raise StageError(f"rpod remote add: DVC cannot use {section['url']}: {reason}") from None
@@ -132,12 +146,14 @@ def _connect(url: str, timeout: float) -> None:
     parsed = urlparse(url)
     port = parsed.port or DEFAULT_PORTS.get(parsed.scheme)
     if not parsed.hostname or port is None:
-        return                                   # no host to dial (the filesystem's own answer decides)
+        return  # no host to dial (the filesystem's own answer decides)
     try:
         socket.create_connection((parsed.hostname, port), timeout=timeout).close()
     except OSError as e:
-        raise StageError(f"rpod remote add: cannot reach {parsed.hostname}:{port} for {url} "
-                         f"({e.strerror or type(e).__name__}); check the URL, the endpoint and the network") from None
+        raise StageError(
+            f"rpod remote add: cannot reach {parsed.hostname}:{port} for {url} "
+            f"({e.strerror or type(e).__name__}); check the URL, the endpoint and the network"
+        ) from None
 
 
 def _answer(probe: Callable[[], Any], what: str, timeout: float) -> None:
@@ -148,7 +164,7 @@ def _answer(probe: Callable[[], Any], what: str, timeout: float) -> None:
         try:
             probe()
             outcome["error"] = None
-        except BaseException as e:   # reported below, in the caller's thread
+        except BaseException as e:  # reported below, in the caller's thread
             outcome["error"] = e
 
     worker = threading.Thread(target=run, daemon=True)
@@ -164,8 +180,11 @@ def _answer(probe: Callable[[], Any], what: str, timeout: float) -> None:
     if isinstance(error, PermissionError):
         raise StageError(f"rpod remote add: access to {what} denied; check the credentials")
     if type(error).__name__ == "NoCredentialsError":
-        raise StageError(f"rpod remote add: no credentials for {what}: set AWS_ACCESS_KEY_ID and "
-                         f"AWS_SECRET_ACCESS_KEY (or `dvc remote modify --local NAME access_key_id ...`)")
+        raise StageError(
+            f"rpod remote add: no credentials for {what}: set AWS_ACCESS_KEY_ID and "
+            f"AWS_SECRET_ACCESS_KEY (or `dvc remote modify --local NAME access_key_id ...`)"
+        )
     message = " ".join(str(error).split())
-    raise StageError(f"rpod remote add: {what} did not answer as a DVC remote can use "
-                     f"({type(error).__name__}: {message})")
+    raise StageError(
+        f"rpod remote add: {what} did not answer as a DVC remote can use ({type(error).__name__}: {message})"
+    )

@@ -3,13 +3,15 @@ SPEED/SPEED+ folder of `render.source`: stages/artifacts/speed.py, pipeline/form
 
 Writes datasets/render/{images.zarr, poses.parquet, meta.json} in one atomic step, plus PNG
 previews in reports/figures/previews/ and the render time in reports/metrics/render.json (never in
-meta.json: the same params give a byte-identical folder, so its DVC hash is stable). The frames' chunks fan out over `engine.workers` workers (Ray
+meta.json: the same params give a byte-identical folder, so its DVC hash is stable). The frames' chunks fan out
+over `engine.workers` workers (Ray
 actors, each with one Blender scene; a Ray cluster via `engine.address` or $RAY_ADDRESS) that write
 straight into one store: datasets/render/images.zarr, or in the shared folder or fsspec URL `engine.store`
 the store of this render's params fingerprint, render-<fingerprint>.zarr (written beside it and swapped in
 when complete, so a failed or refused render leaves the previous one; a local one is locked while written).
 Two renders into one checkout are refused too: datasets/.render.lock.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -54,12 +56,20 @@ def sequences(p: Params) -> list[Any]:
     K = intrinsics(p)
     half_fov = min(K.fov_deg) / 2
     if r.pointing_jitter_deg > 0.8 * half_fov:
-        raise StageError(f"params.yaml render.pointing_jitter_deg={r.pointing_jitter_deg} would push the "
-                         f"target out of view; keep it below {0.8 * half_fov:.1f} deg (80% of the half FOV)")
+        raise StageError(
+            f"params.yaml render.pointing_jitter_deg={r.pointing_jitter_deg} would push the "
+            f"target out of view; keep it below {0.8 * half_fov:.1f} deg (80% of the half FOV)"
+        )
     try:
-        seqs = approach_sequences(r.frames_per_sequence, float(r.start_range), float(r.end_range),
-                                  float(r.pointing_jitter_deg), float(r.max_target_rotation_deg),
-                                  seed=seed_for(p.seed, "render"), attitude=r.target_attitude)
+        seqs = approach_sequences(
+            r.frames_per_sequence,
+            float(r.start_range),
+            float(r.end_range),
+            float(r.pointing_jitter_deg),
+            float(r.max_target_rotation_deg),
+            seed=seed_for(p.seed, "render"),
+            attitude=r.target_attitude,
+        )
     except ValueError as e:
         raise StageError(f"params.yaml render: {e}") from None
     return seqs
@@ -78,24 +88,47 @@ def render_all(p: Params, dest: Path) -> tuple[float, dict[str, Any]]:
     device = device_record(scene)
     seqs = sequences(p)
     seq, frm, R, t = flatten(seqs)
-    draws, kinds = frame_backgrounds(K, scene, R, np.concatenate([s.R_cam for s in seqs]),
-                                     seed_for(p.seed, "background"))
+    draws, kinds = frame_backgrounds(
+        K, scene, R, np.concatenate([s.R_cam for s in seqs]), seed_for(p.seed, "background")
+    )
     fp = params_mod.render_fingerprint(p)
     url = keyed_store(store, fp) if store else store_url(dest / "images.zarr")
     with replacing(url) if store else contextlib.nullcontext(url) as target:
-        seconds = render_to_store(target, K, scene, R, t, r.chunk, es, "render", fingerprint=fp,
-                                  empty_hint="check render.mesh and render.mesh_scale (metres per mesh unit)",
-                                  backgrounds=draws)
+        seconds = render_to_store(
+            target,
+            K,
+            scene,
+            R,
+            t,
+            r.chunk,
+            es,
+            "render",
+            fingerprint=fp,
+            empty_hint="check render.mesh and render.mesh_scale (metres per mesh unit)",
+            backgrounds=draws,
+        )
     n = len(t)
     poses = poses_table(np.arange(n), seq, frm, R, t)
     if kinds is not None:
         poses["background"] = kinds
     write_parquet(poses, dest / "poses.parquet")
-    write_json(dest / "meta.json", {
-        "complete": True, "fingerprint": fp, "frames": n, "width": K.width,
-        "height": K.height, "K": K.K, "render": params_mod.render_record(r), "camera": dataclasses.asdict(p.camera),
-        "seed": p.seed, "chunk": min(r.chunk, n), **({"store": url} if store else {}),
-        **({"cycles_device": device} if r.device != "cpu" else {})})
+    write_json(
+        dest / "meta.json",
+        {
+            "complete": True,
+            "fingerprint": fp,
+            "frames": n,
+            "width": K.width,
+            "height": K.height,
+            "K": K.K,
+            "render": params_mod.render_record(r),
+            "camera": dataclasses.asdict(p.camera),
+            "seed": p.seed,
+            "chunk": min(r.chunk, n),
+            **({"store": url} if store else {}),
+            **({"cycles_device": device} if r.device != "cpu" else {}),
+        },
+    )
     return seconds, device
 
 
@@ -134,7 +167,7 @@ def main(params: Params) -> None:
     and PNG previews to reports/figures/previews/. Parameters: `seed`, `camera`, `render` and `engine`
     (workers, Ray cluster address, image store) in params.yaml.
     """
-    imported = params_mod.given(params.render.source) is not None   # a SPEED/SPEED+ folder instead of rendering
+    imported = params_mod.given(params.render.source) is not None  # a SPEED/SPEED+ folder instead of rendering
     with exclusive(OUT.parent / ".render.lock", str(OUT)):
         device = None
         if imported:
@@ -146,8 +179,19 @@ def main(params: Params) -> None:
     images, poses, meta = read_render_store(OUT)
     previews = write_previews(images, poses, params.render.previews)
     n = int(meta["frames"])
-    write_metrics(METRICS, {"frames": n, "seconds": seconds, "seconds_per_image": seconds / max(n, 1),
-                            "workers": None if imported else engine_settings(params).workers,
-                            "imported": imported, "cycles_device": device}, params.profile_name)
-    typer.echo(f"{OUT}: {n} images {meta['width']}x{meta['height']}, {seconds / max(n, 1):.3f} s/image "
-               f"(-> {METRICS}); previews: {', '.join(str(x) for x in previews)}")
+    write_metrics(
+        METRICS,
+        {
+            "frames": n,
+            "seconds": seconds,
+            "seconds_per_image": seconds / max(n, 1),
+            "workers": None if imported else engine_settings(params).workers,
+            "imported": imported,
+            "cycles_device": device,
+        },
+        params.profile_name,
+    )
+    typer.echo(
+        f"{OUT}: {n} images {meta['width']}x{meta['height']}, {seconds / max(n, 1):.3f} s/image "
+        f"(-> {METRICS}); previews: {', '.join(str(x) for x in previews)}"
+    )

@@ -17,6 +17,7 @@ default profile's numbers, so a smoke run or a `dvc exp run` sweep leaves it alo
 nothing and fails if README and reports/README.md drifted apart or if a stage report changed after the
 page was built from it.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -43,9 +44,13 @@ README_PROFILE = "default"  # the only profile whose numbers README.md publishes
 
 def main(
     sync_readme: bool = typer.Option(False, "--sync-readme", help="Also copy the summary table into README.md."),
-    check: bool = typer.Option(False, "--check", help="Write nothing; fail if README.md's results or differences "
-                               "block differs from reports/README.md's, or a stage report changed since the page "
-                               "was built."),
+    check: bool = typer.Option(
+        False,
+        "--check",
+        help="Write nothing; fail if README.md's results or differences "
+        "block differs from reports/README.md's, or a stage report changed since the page "
+        "was built.",
+    ),
 ) -> None:
     """Gather all stage metrics into reports/README.md (tables beside the paper's numbers, figures)."""
     if check:
@@ -63,8 +68,10 @@ def main(
     if sync_readme:
         profile = params.profile_name
         if profile != README_PROFILE:
-            typer.echo(f"report: profile {profile!r}, so {README} is left as it is (it shows the {README_PROFILE} "
-                       "profile's results)")
+            typer.echo(
+                f"report: profile {profile!r}, so {README} is left as it is (it shows the {README_PROFILE} "
+                "profile's results)"
+            )
             return
         if not README.exists():
             raise StageError(f"{README} not found: run `rpod report` from the repository root")
@@ -100,13 +107,18 @@ def _check() -> None:
             missing = PAGE if ours is None else README
             raise StageError(f"{missing} has no <!-- {block}:start --> ... <!-- {block}:end --> block")
         if ours != theirs:
-            raise StageError(f"{README}'s {block} block differs from {PAGE}'s: run `rpod report --sync-readme` "
-                             f"on the {README_PROFILE} profile")
+            raise StageError(
+                f"{README}'s {block} block differs from {PAGE}'s: run `rpod report --sync-readme` "
+                f"on the {README_PROFILE} profile"
+            )
     stale = [report for _, report, _ in SECTIONS if report.exists() and _section_body(report) not in page]
     if stale:
         raise StageError(f"{PAGE} is older than {', '.join(str(r) for r in stale)}: run `rpod report`")
-    compared = (f"{README} results and differences match {PAGE}" if profile == README_PROFILE
-                else f"profile {profile!r}: {README} (the {README_PROFILE} profile's results) not compared")
+    compared = (
+        f"{README} results and differences match {PAGE}"
+        if profile == README_PROFILE
+        else f"profile {profile!r}: {README} (the {README_PROFILE} profile's results) not compared"
+    )
     typer.echo(f"report: {compared}; {PAGE} holds every stage report")
 
 
@@ -125,11 +137,13 @@ def _load_metrics() -> dict[str, dict[str, Any]]:
     missing = [p for p in missing if not p.exists()]
     metrics = {} if missing else {m.stem: read_json(m) for _, _, m in SECTIONS if m}
     if metrics:
-        missing = [p for p in [SHAP_STORE, *(ROC_DATA / f"{d}.json" for d in metrics["detect"]["detectors"])]
-                   if not p.exists()]
+        missing = [
+            p for p in [SHAP_STORE, *(ROC_DATA / f"{d}.json" for d in metrics["detect"]["detectors"])] if not p.exists()
+        ]
     if missing:
-        raise StageError("report: missing inputs (`dvc repro` makes them all): "
-                         + "; ".join(f"{p}: {make_hint(p)}" for p in missing))
+        raise StageError(
+            "report: missing inputs (`dvc repro` makes them all): " + "; ".join(f"{p}: {make_hint(p)}" for p in missing)
+        )
     return metrics
 
 
@@ -149,9 +163,13 @@ def build_page(metrics: dict[str, dict[str, Any]], params: Params, figures: list
     page = replace_block(page, DIFFERENCES, differences(metrics, params))
     for stage, report, metric in SECTIONS:
         if report.exists():
-            page += section(stage, report.name, metrics.get(metric.stem, {}) if metric else None,
-                            demote_headings(report.read_text().strip(), 1),
-                            [(title, name) for st, title, name in figures if st == stage])
+            page += section(
+                stage,
+                report.name,
+                metrics.get(metric.stem, {}) if metric else None,
+                demote_headings(report.read_text().strip(), 1),
+                [(title, name) for st, title, name in figures if st == stage],
+            )
     return page
 
 
@@ -162,22 +180,37 @@ def _write_figures(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, s
     from pipeline.report import figures as F
 
     tr, at, de = metrics["train"], metrics["attack"], metrics["detect"]
-    save_figure(F.pose_error_bars({"train": tr["train"]["bins"], "test": tr["test"]["bins"]}),
-                REPORT_FIGURES["pose_errors"])
+    save_figure(
+        F.pose_error_bars({"train": tr["train"]["bins"], "test": tr["test"]["bins"]}), REPORT_FIGURES["pose_errors"]
+    )
     eps = sorted(at["eps"], key=float)
-    save_figure(F.error_vs_eps([float(e) for e in eps], [at["eps"][e]["position_mean_m"] for e in eps],
-                               [at["eps"][e]["attitude_mean_deg"] for e in eps], at["clean"]["position_mean_m"],
-                               at["clean"]["attitude_mean_deg"], at["method"]), REPORT_FIGURES["error_vs_eps"])
-    out = [("train", "Mean error per range bin, train and test", "pose_errors.png"),
-           ("attack", "Pose error against eps", "error_vs_eps.png")]
+    save_figure(
+        F.error_vs_eps(
+            [float(e) for e in eps],
+            [at["eps"][e]["position_mean_m"] for e in eps],
+            [at["eps"][e]["attitude_mean_deg"] for e in eps],
+            at["clean"]["position_mean_m"],
+            at["clean"]["attitude_mean_deg"],
+            at["method"],
+        ),
+        REPORT_FIGURES["error_vs_eps"],
+    )
+    out = [
+        ("train", "Mean error per range bin, train and test", "pose_errors.png"),
+        ("attack", "Pose error against eps", "error_vs_eps.png"),
+    ]
     save_figure(F.shap_heatmaps(_shap_means()), REPORT_FIGURES["shap_heatmaps"])
-    out.append(("detect", "SHAP signatures: mean |phi| per output and GAP feature, normal vs adversarial",
-                "shap_heatmaps.png"))
+    out.append(
+        ("detect", "SHAP signatures: mean |phi| per output and GAP feature, normal vs adversarial", "shap_heatmaps.png")
+    )
     curves = {}
     for name in de["detectors"]:
-        roc = pd.DataFrame(read_json(ROC_DATA / f"{name}.json")["roc"])   # DVCLive: [{fpr, tpr, threshold}]
-        curves[DETECTOR_NAMES.get(name, name)] = (roc["fpr"].to_numpy(), roc["tpr"].to_numpy(),
-                                                   float(de["detectors"][name]["all"]["roc_auc"]))
+        roc = pd.DataFrame(read_json(ROC_DATA / f"{name}.json")["roc"])  # DVCLive: [{fpr, tpr, threshold}]
+        curves[DETECTOR_NAMES.get(name, name)] = (
+            roc["fpr"].to_numpy(),
+            roc["tpr"].to_numpy(),
+            float(de["detectors"][name]["all"]["roc_auc"]),
+        )
     if curves:
         save_figure(F.roc_curves(curves, highlight=DETECTOR_NAMES["lstm"]), REPORT_FIGURES["roc"])
         out.append(("detect", "ROC curves of all detectors on the SHAP test split", "roc.png"))
@@ -192,5 +225,6 @@ def _shap_means() -> dict[str, Any]:
     root = open_zarr(SHAP_STORE, "SHAP store")
     values, adv = root["values"], root["is_adversarial"][:].astype(bool)
     step = values.chunks[0]
-    return mean_abs_by_class(((values[i:i + step], adv[i:i + step]) for i in range(0, values.shape[0], step)),
-                             values.shape[1:])
+    return mean_abs_by_class(
+        ((values[i : i + step], adv[i : i + step]) for i in range(0, values.shape[0], step)), values.shape[1:]
+    )

@@ -30,6 +30,7 @@ seeded sample of `robustness.frames` held-out test frames; every attacked image 
 Params are checked on load (stages.config.evaluation.Robustness). Writes reports/robustness.md,
 reports/metrics/robustness.json, reports/figures/robustness.png (text: stages/pages/robustness.py).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -77,8 +78,9 @@ def main(params: Params) -> None:
     target = PerFrameChain(shipped.model, chain.shap, chain.detector)
     specs = _specs(params, r, target, shipped, surrogate, seed)
     n_corr = sum(len(v) for v in dataclasses.asdict(r.corruptions).values())
-    bar = tqdm(total=-(-n // r.batch_size) * (len(specs) + n_corr + 1), desc="robustness", unit="batch",
-               dynamic_ncols=True)
+    bar = tqdm(
+        total=-(-n // r.batch_size) * (len(specs) + n_corr + 1), desc="robustness", unit="batch", dynamic_ncols=True
+    )
 
     def progress(it: Any) -> Any:
         for item in it:
@@ -86,33 +88,63 @@ def main(params: Params) -> None:
             bar.update(1)
 
     t0 = time.perf_counter()
-    rows = run_attack_rows(chain, images, targets, specs, r.harm_m, r.batch_size, progress,
-                           pgd_is_lambda0="pgd" in r.transfer and 0.0 in r.lambdas)
+    rows = run_attack_rows(
+        chain,
+        images,
+        targets,
+        specs,
+        r.harm_m,
+        r.batch_size,
+        progress,
+        pgd_is_lambda0="pgd" in r.transfer and 0.0 in r.lambdas,
+    )
     shipped_threshold = shipped.defended.settings.threshold
     clean_harm, corruptions = _corruption_rows(chain, images, targets, r, seed, shipped_threshold, progress)
     bar.close()
     fused = integrity_campaign(params, shipped, seed)
     seconds, figure = time.perf_counter() - t0, fused.pop("figure")
-    metrics = {"rows": rows, "corruptions": corruptions, "frames": n, "test_frames": n_test, "harm_m": r.harm_m,
-               "steps": r.steps, "gradients_per_frame": sum(s.cost for s in specs), "lambdas": r.lambdas,
-               "eps": r.eps, "threshold": chain.threshold, "shipped_threshold": shipped_threshold,
-               "clean_harmful_rate": clean_harm.value, "ci95_clean_harmful": clean_harm.ci(),
-               "surrogate": {"best_epoch": int(surrogate.meta.get("epoch", 0)),
-                             "validation_position_m": float(surrogate.meta.get("val_pos_m", float("nan")))},
-               "model": SHIPPED.value, "model_hash": shipped.pose_hash, "surrogate_hash": surrogate.hash,
-               "seconds": seconds,
-               "minutes": seconds / 60, "worst_harmful_undetected": worst_by_eps(rows), **fused,
-               "worst_harmful_undetected_fused": worst_by_eps(fused["fused_rows"]),
-               "pose_models": pose_models(read_json(ROBUST_METRICS))}
+    metrics = {
+        "rows": rows,
+        "corruptions": corruptions,
+        "frames": n,
+        "test_frames": n_test,
+        "harm_m": r.harm_m,
+        "steps": r.steps,
+        "gradients_per_frame": sum(s.cost for s in specs),
+        "lambdas": r.lambdas,
+        "eps": r.eps,
+        "threshold": chain.threshold,
+        "shipped_threshold": shipped_threshold,
+        "clean_harmful_rate": clean_harm.value,
+        "ci95_clean_harmful": clean_harm.ci(),
+        "surrogate": {
+            "best_epoch": int(surrogate.meta.get("epoch", 0)),
+            "validation_position_m": float(surrogate.meta.get("val_pos_m", float("nan"))),
+        },
+        "model": SHIPPED.value,
+        "model_hash": shipped.pose_hash,
+        "surrogate_hash": surrogate.hash,
+        "seconds": seconds,
+        "minutes": seconds / 60,
+        "worst_harmful_undetected": worst_by_eps(rows),
+        **fused,
+        "worst_harmful_undetected_fused": worst_by_eps(fused["fused_rows"]),
+        "pose_models": pose_models(read_json(ROBUST_METRICS)),
+    }
     write_metrics(METRICS, metrics, params.profile_name)
-    atomic_write_text(REPORT, unmet_banner(fused["fused"]["calibration_unmet"])
-                      + unmet_banner(fused["integrity"]["chains"][PAPER.value]["calibration_unmet"], PAPER)
-                      + robustness_page(metrics, params))
+    atomic_write_text(
+        REPORT,
+        unmet_banner(fused["fused"]["calibration_unmet"])
+        + unmet_banner(fused["integrity"]["chains"][PAPER.value]["calibration_unmet"], PAPER)
+        + robustness_page(metrics, params),
+    )
     worst_fused = [row for row in fused["fused_rows"] if row["lambda"] is None]
     save_figure(robustness_vs_eps([row for row in rows if row["attack"] != "adaptive pgd"] + worst_fused), FIGURE)
     save_figure(_integrity_figure(*figure), INTEGRITY_FIGURE)
-    print(f"robustness: {len(rows)} attack rows, {len(corruptions)} corruption rows on {n} test frames and "
-          f"{len(fused['integrity']['rows'])} integrity rows in {seconds:.0f} s -> {REPORT}, {METRICS}, {INTEGRITY_FIGURE}")
+    print(
+        f"robustness: {len(rows)} attack rows, {len(corruptions)} corruption rows on {n} test frames and "
+        f"{len(fused['integrity']['rows'])} integrity rows in {seconds:.0f} s -> {REPORT}, {METRICS}, {INTEGRITY_FIGURE}"
+    )
 
 
 def _test_frames(p: Params, frames: int, seed: int) -> tuple[np.ndarray, np.ndarray, int]:
@@ -132,13 +164,32 @@ def _specs(p: Params, r: Robustness, target: Any, pose: Any, surrogate: Any, see
     a = p.attack
     transfer = [(name, *attack_name(name, "transfer")) for name in r.transfer]
     on_surrogate = [(name, *attack_name(name, "surrogate_attacks")) for name in r.surrogate_attacks]
-    return attack_specs(pose, surrogate, target, eps=r.eps, unseen_eps=r.unseen_eps, transfer=transfer,
-                        lambdas=r.lambdas, surrogate_attacks=on_surrogate, steps=r.steps, mi_steps=a.steps,
-                        momentum=float(a.momentum), loss=a.loss, seed=seed)
+    return attack_specs(
+        pose,
+        surrogate,
+        target,
+        eps=r.eps,
+        unseen_eps=r.unseen_eps,
+        transfer=transfer,
+        lambdas=r.lambdas,
+        surrogate_attacks=on_surrogate,
+        steps=r.steps,
+        mi_steps=a.steps,
+        momentum=float(a.momentum),
+        loss=a.loss,
+        seed=seed,
+    )
 
 
-def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Robustness, seed: int,
-                     shipped_threshold: float, progress: Any) -> tuple[Any, list[dict[str, Any]]]:
+def _corruption_rows(
+    chain: Any,
+    images: np.ndarray,
+    targets: np.ndarray,
+    r: Robustness,
+    seed: int,
+    shipped_threshold: float,
+    progress: Any,
+) -> tuple[Any, list[dict[str, Any]]]:
     """(rate of clean frames beyond harm_m, corruption rows: `none` first, then each corruption and strength;
     false alarms at the detector's own threshold and at the shipped one, models/defense.json's)."""
     from pipeline.attacks.corruptions import corrupt
@@ -154,8 +205,9 @@ def _corruption_rows(chain: Any, images: np.ndarray, targets: np.ndarray, r: Rob
     for name, strengths in dataclasses.asdict(r.corruptions).items():
         for s in strengths:
             res = run_sequence(chain, corrupt(name, s, seed)(images), targets, none, None, r.batch_size, progress)
-            rows.append(corruption_row(name, s, pose_errors(res.pose, targets)[0], res.flag,
-                                       res.prob >= shipped_threshold))
+            rows.append(
+                corruption_row(name, s, pose_errors(res.pose, targets)[0], res.flag, res.prob >= shipped_threshold)
+            )
     return rate(clean_pos > r.harm_m), rows
 
 
@@ -166,9 +218,17 @@ def _integrity_figure(clean: list[Any], top: list[tuple[str, list[Any], list[np.
     from stages.pages.integrity import attacker_names
 
     every = [np.ones(len(c.pose), bool) for c in clean]
-    points = {"no attack": diagram_points(clean, every),
-              **{f"{attacker_names(name)}, eps {eps:g}": diagram_points(flown, masks) for name, flown, masks in top}}
-    series = {"no attack": clean[0].frames.error, **{f"{attacker_names(name)}, eps {eps:g}": flown[0].frames.error
-                                                     for name, flown, _ in top}}
-    return integrity_diagram(points, series, clean[0].frames.alert,
-                             f"Trusted estimate against its bound, eps {eps:g} (counted frames: from the first attacked one)")
+    points = {
+        "no attack": diagram_points(clean, every),
+        **{f"{attacker_names(name)}, eps {eps:g}": diagram_points(flown, masks) for name, flown, masks in top},
+    }
+    series = {
+        "no attack": clean[0].frames.error,
+        **{f"{attacker_names(name)}, eps {eps:g}": flown[0].frames.error for name, flown, _ in top},
+    }
+    return integrity_diagram(
+        points,
+        series,
+        clean[0].frames.alert,
+        f"Trusted estimate against its bound, eps {eps:g} (counted frames: from the first attacked one)",
+    )

@@ -24,6 +24,7 @@ Store (zarr, written atomically, chunked by `shap.chunk` samples):
   (1000 floats), method (exact | deep), eps, attack, attack_loss, counts (clean, per_eps, source
   images, images explained both clean and attacked), source (the detector split and its fingerprint).
 """
+
 from __future__ import annotations
 
 import time
@@ -56,12 +57,16 @@ def check_params(s: Shap) -> None:
     if s.method not in ("auto", "exact", "deep"):
         raise StageError(f"params.yaml shap.method must be auto, exact or deep, got {s.method!r}")
     if s.normal == 0 or (s.per_eps == 0 or not s.eps):
-        raise StageError("params.yaml shap: need clean (shap.normal > 0) and adversarial samples "
-                         "(shap.per_eps > 0 and a non-empty shap.eps) for a detector to learn from")
+        raise StageError(
+            "params.yaml shap: need clean (shap.normal > 0) and adversarial samples "
+            "(shap.per_eps > 0 and a non-empty shap.eps) for a detector to learn from"
+        )
 
 
-def main(params: Params, model: Annotated[Model, model_option(
-        "Writes datasets/shap.zarr or datasets/shap_robust.zarr.")] = Model.standard) -> None:
+def main(
+    params: Params,
+    model: Annotated[Model, model_option("Writes datasets/shap.zarr or datasets/shap_robust.zarr.")] = Model.standard,
+) -> None:
     """Explain clean and FGSM images of the detector split with DeepSHAP (closed form for the linear heads)
     into the chosen model's SHAP store."""
     import zarr
@@ -80,12 +85,17 @@ def main(params: Params, model: Annotated[Model, model_option(
     net, model_hash = pose.model, pose.hash
     train = load_split(params, "train")
     if s.background > len(train):
-        raise StageError(f"params.yaml shap.background = {s.background} but the training split has only "
-                         f"{len(train)} images")
+        raise StageError(
+            f"params.yaml shap.background = {s.background} but the training split has only {len(train)} images"
+        )
     t0 = time.perf_counter()
     bg_rows = draw_background(len(train), s.background, rng)
-    bg_features = np.concatenate([gap_features(net, np.stack([train.images[r] for r in bg_rows[i:i + BATCH]]))[0]
-                                  for i in range(0, len(bg_rows), BATCH)])
+    bg_features = np.concatenate(
+        [
+            gap_features(net, np.stack([train.images[r] for r in bg_rows[i : i + BATCH]]))[0]
+            for i in range(0, len(bg_rows), BATCH)
+        ]
+    )
     try:
         explainer = Explainer(net, bg_features, s.method)
     except ValueError as e:
@@ -98,27 +108,46 @@ def main(params: Params, model: Annotated[Model, model_option(
     n, clean = len(todo["index"]), todo["eps"] == 0
     sources = np.unique(todo["index"])
     shared = np.intersect1d(todo["index"][clean], todo["index"][~clean])
-    print(f"shap ({model.value} model): {n} samples ({s.normal} clean + {s.per_eps} x eps {s.eps}) of {len(sources)} "
-          f"detector-split images ({len(shared)} both clean and attacked), background {s.background}, method {explainer.method}",
-          flush=True)
+    print(
+        f"shap ({model.value} model): {n} samples ({s.normal} clean + {s.per_eps} x eps {s.eps}) of {len(sources)} "
+        f"detector-split images ({len(shared)} both clean and attacked), background {s.background}, method {explainer.method}",
+        flush=True,
+    )
     with atomic_dir(out) as tmp:
         root = zarr.open_group(str(tmp), mode="w")
         _explain_into(root, src, net, explainer, todo, bg_features.shape[1], s.chunk)
-        root.attrs.update({
-            "model": model.value, "model_hash": model_hash, "background_size": s.background, "background_seed": seed,
-            "background_mean": explainer.bg_mean.astype(float).tolist(), "method": explainer.method,
-            "eps": [float(e) for e in s.eps], "attack": "fgsm", "attack_loss": params.attack.loss,
-            "counts": {"clean": s.normal, "per_eps": s.per_eps, "sources": int(len(sources)),
-                       "shared": int(len(shared))},
-            "source": {"folder": str(DETECT_RENDER), "images": len(src),
-                       "trajectories": int(src.poses["trajectory"].nunique())},
-            "outputs": TARGET, SPLIT_KEY: src.fingerprint,
-        })
+        root.attrs.update(
+            {
+                "model": model.value,
+                "model_hash": model_hash,
+                "background_size": s.background,
+                "background_seed": seed,
+                "background_mean": explainer.bg_mean.astype(float).tolist(),
+                "method": explainer.method,
+                "eps": [float(e) for e in s.eps],
+                "attack": "fgsm",
+                "attack_loss": params.attack.loss,
+                "counts": {
+                    "clean": s.normal,
+                    "per_eps": s.per_eps,
+                    "sources": int(len(sources)),
+                    "shared": int(len(shared)),
+                },
+                "source": {
+                    "folder": str(DETECT_RENDER),
+                    "images": len(src),
+                    "trajectories": int(src.poses["trajectory"].nunique()),
+                },
+                "outputs": TARGET,
+                SPLIT_KEY: src.fingerprint,
+            }
+        )
     print(f"shap: {n} samples in {time.perf_counter() - t0:.0f} s -> {out}")
 
 
-def _explain_into(root: Any, src: SampleImages, model: Any, explainer: Any, todo: dict[str, np.ndarray],
-                  n_features: int, chunk: int) -> None:
+def _explain_into(
+    root: Any, src: SampleImages, model: Any, explainer: Any, todo: dict[str, np.ndarray], n_features: int, chunk: int
+) -> None:
     """Explain the planned samples into the zarr group `root` (values, features, outputs and the sample
     columns), `chunk` samples at a time so that every write fills whole zarr chunks."""
     from tqdm import tqdm

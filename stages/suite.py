@@ -9,6 +9,7 @@ strongest.py FULL's members and starts at the sizes of `suite.full`) and the lea
 each, and the lean suite over the full one per eps (within 5%: the lean figures of reports/pose_robust.md stand;
 otherwise they are lower bounds).
 """
+
 from __future__ import annotations
 
 import time
@@ -49,8 +50,13 @@ def main(params: Params) -> None:
         out[name] = {k: {**table(r, kinds), "stability": None, "full_check": None} for k, r in runs.items()}
         out[name]["lean"]["full_check"] = compare(runs["lean"], runs["full"])
         typer.echo(f"suite: {name} model, {len(test)} test frames, {len(s.eps)} eps in {seconds[name]:.0f} s")
-    metrics = {"models": out, "frames": len(test), "eps": [float(e) for e in s.eps], "device": str(device),
-               "seconds": seconds}
+    metrics = {
+        "models": out,
+        "frames": len(test),
+        "eps": [float(e) for e in s.eps],
+        "device": str(device),
+        "seconds": seconds,
+    }
     write_metrics(SUITE_METRICS, metrics, params.profile_name)
     atomic_write_text(SUITE_REPORT, suite_page(metrics, params))
     typer.echo(f"suite: -> {SUITE_REPORT}, {SUITE_METRICS}")

@@ -20,6 +20,7 @@ Device: the `device` param (auto = CUDA when present), with bf16 autocast there 
 CPU threads: `threads` (stages.config.device.distributed). Scale-out: `torchrun --nproc_per_node N
 .venv/bin/rpod train` runs DistributedDataParallel (gloo on the CPU, NCCL on CUDA, one GPU per process); only rank 0 writes files.
 """
+
 from __future__ import annotations
 
 import copy
@@ -52,11 +53,23 @@ from stages.pages.pose import pose_page, robust_page
 
 def main(
     params: Params,
-    surrogate: Annotated[bool, typer.Option("--surrogate", help="Train the robustness stage's surrogate instead: "
-                                            "seed robustness.surrogate_seed, robustness.surrogate_epochs epochs, "
-                                            "writes models/surrogate.pt and no reports.")] = False,
-    robust: Annotated[bool, typer.Option("--robust", help="Train the robust model instead (train.adversarial): "
-                                         "writes models/pose_robust.pt and reports/pose_robust.md.")] = False,
+    surrogate: Annotated[
+        bool,
+        typer.Option(
+            "--surrogate",
+            help="Train the robustness stage's surrogate instead: "
+            "seed robustness.surrogate_seed, robustness.surrogate_epochs epochs, "
+            "writes models/surrogate.pt and no reports.",
+        ),
+    ] = False,
+    robust: Annotated[
+        bool,
+        typer.Option(
+            "--robust",
+            help="Train the robust model instead (train.adversarial): "
+            "writes models/pose_robust.pt and reports/pose_robust.md.",
+        ),
+    ] = False,
 ) -> None:
     """Train the pose CNN; keep the best checkpoint by validation error; report test errors next to the paper's."""
     import torch
@@ -67,16 +80,19 @@ def main(
     from stages.artifacts import data
     from stages.config.device import distributed
 
-    check_writable(POSE.parent, REPORT.parent, METRICS.parent, TRAIN_LIVE.parent)   # found now, not after training
-    if not surrogate and not data.load_labels()["split"].eq("test").any():   # found now, not after training
-        raise StageError(f"{LABELS}: the 'test' split is empty (the test split is read after training); check "
-                         f"label.test_fraction and the number of rendered frames")
+    check_writable(POSE.parent, REPORT.parent, METRICS.parent, TRAIN_LIVE.parent)  # found now, not after training
+    if not surrogate and not data.load_labels()["split"].eq("test").any():  # found now, not after training
+        raise StageError(
+            f"{LABELS}: the 'test' split is empty (the test split is read after training); check "
+            f"label.test_fraction and the number of rendered frames"
+        )
     if robust:
         return _robust(params, surrogate)
     seed = params.robustness.surrogate_seed if surrogate else params.seed
     rank, world, device = distributed(params)
-    model, cfg = _model(params, params.robustness.surrogate_epochs if surrogate else params.train.epochs,
-                        seed_for(seed, "train"))
+    model, cfg = _model(
+        params, params.robustness.surrogate_epochs if surrogate else params.train.epochs, seed_for(seed, "train")
+    )
     (train_split, train_set, train_eval_set), (val_split, val_set) = data.training_sets(params, cfg.seed)
     targets = train_split.targets
     model.set_output_bias(targets[:, :3].mean(0), targets[:, 3:].mean(0))
@@ -87,26 +103,42 @@ def main(
     input_size = (params.render.height, params.render.width)
     best: dict[str, Any] = {}  # the learned loss weights and facts of the best epoch so far
     if rank == 0:
-        print(f"train: {len(train_split)} train / {len(val_split)} validation images at {input_size[1]}x{input_size[0]}, "
-              f"width {params.train.width}, {cfg.epochs} epochs, batch {cfg.batch_size} x {world} process(es), "
-              f"{torch.get_num_threads()} threads, device {device}{' (bf16 autocast)' if _plain(model).amp else ''}",
-              flush=True)
+        print(
+            f"train: {len(train_split)} train / {len(val_split)} validation images at {input_size[1]}x{input_size[0]}, "
+            f"width {params.train.width}, {cfg.epochs} epochs, batch {cfg.batch_size} x {world} process(es), "
+            f"{torch.get_num_threads()} threads, device {device}{' (bf16 autocast)' if _plain(model).amp else ''}",
+            flush=True,
+        )
     on_epoch = _epoch_logger(rank, loss, best)
     try:
         result = fit(model, loss, train_set, val_set, cfg, device, on_epoch=on_epoch)
     except DivergenceError as e:
-        raise StageError(f"{e}; lower train.lr_base / train.lr_max in params.yaml "
-                         f"({SURROGATE if surrogate else POSE} and the reports were left as they were)") from None
+        raise StageError(
+            f"{e}; lower train.lr_base / train.lr_max in params.yaml "
+            f"({SURROGATE if surrogate else POSE} and the reports were left as they were)"
+        ) from None
     if rank == 0:
         net = _plain(model)
         net.load_state_dict(result.best_state)
         if surrogate:  # the surrogate only: no metrics, reports or curves
             save_pose(SURROGATE, net, best["loss"], input_size, best["meta"], **_made_from())
-            print(f"train --surrogate: seed {seed}, best epoch {result.best_epoch} of {len(result.history)}: "
-                  f"validation {best['meta']['val_pos_m']:.3f} m -> {SURROGATE}")
+            print(
+                f"train --surrogate: seed {seed}, best epoch {result.best_epoch} of {len(result.history)}: "
+                f"validation {best['meta']['val_pos_m']:.3f} m -> {SURROGATE}"
+            )
         else:
-            _write_results(params, net, best, input_size, result, cfg, device, world,
-                           (train_split, train_eval_set), (val_split, val_set))
+            _write_results(
+                params,
+                net,
+                best,
+                input_size,
+                result,
+                cfg,
+                device,
+                world,
+                (train_split, train_eval_set),
+                (val_split, val_set),
+            )
     _finish(world)
 
 
@@ -122,6 +154,7 @@ def _finish(world: int) -> None:
 def _epoch_logger(rank: int, loss: Any, best: dict[str, Any]) -> Any:
     """fit's per-epoch callback: on rank 0, keep the best epoch's loss weights and facts in `best`
     (validation error, m and deg) and print one line per epoch."""
+
     def on_epoch(stats: Any, is_best: bool, net: Any) -> None:
         if rank != 0:
             return
@@ -129,12 +162,22 @@ def _epoch_logger(rank: int, loss: Any, best: dict[str, Any]) -> Any:
 
         attacked = "" if stats.val_adv_pos_m != stats.val_adv_pos_m else f"  PGD {stats.val_adv_pos_m:6.2f} m"
         if is_best:
-            best.update(loss=copy.deepcopy(loss), meta={"epoch": stats.epoch, "val_score": stats.val_score,
-                                                        "val_pos_m": stats.val_pos_m,
-                                                        "val_att_deg": stats.val_att_deg, "score": stats.score})
-        tqdm.write(f"epoch {stats.epoch:3d}  loss {stats.loss:7.3f}  train {stats.train_pos_m:6.2f} m "
-                   f"{stats.train_att_deg:5.2f} deg  val {stats.val_pos_m:6.2f} m {stats.val_att_deg:5.2f} deg"
-                   f"{attacked}  {stats.images_per_s:5.0f} img/s  {stats.seconds:5.1f} s{'  *best' if is_best else ''}")
+            best.update(
+                loss=copy.deepcopy(loss),
+                meta={
+                    "epoch": stats.epoch,
+                    "val_score": stats.val_score,
+                    "val_pos_m": stats.val_pos_m,
+                    "val_att_deg": stats.val_att_deg,
+                    "score": stats.score,
+                },
+            )
+        tqdm.write(
+            f"epoch {stats.epoch:3d}  loss {stats.loss:7.3f}  train {stats.train_pos_m:6.2f} m "
+            f"{stats.train_att_deg:5.2f} deg  val {stats.val_pos_m:6.2f} m {stats.val_att_deg:5.2f} deg"
+            f"{attacked}  {stats.images_per_s:5.0f} img/s  {stats.seconds:5.1f} s{'  *best' if is_best else ''}"
+        )
+
     return on_epoch
 
 
@@ -173,7 +216,10 @@ def _robust(params: Params, surrogate: bool) -> None:
     except ValueError as e:
         raise StageError(f"params.yaml: bad train.adversarial section ({e})") from None
     make_deterministic(cfg.seed)
-    model, loss = PoseNet(float(params.train.width), float(params.train.dropout), float(adv.black_level)), PoseLoss("mean")
+    model, loss = (
+        PoseNet(float(params.train.width), float(params.train.dropout), float(adv.black_level)),
+        PoseLoss("mean"),
+    )
     # the standard model's split: its validation frames were never fitted by either model
     (train_split, train_set, _), (val_split, val_set) = data.training_sets(params, seed_for(params.seed, "train"))
     if adv.init == "standard":
@@ -186,8 +232,9 @@ def _robust(params: Params, surrogate: bool) -> None:
     adversary = Adversary(adversarial_config(adv), loss, len(train_set) // (cfg.batch_size * world), cfg.seed)
     best: dict[str, Any] = {}
     try:
-        result = fit(model, loss, train_set, val_set, cfg, device, on_epoch=_epoch_logger(rank, loss, best),
-                     adversary=adversary)
+        result = fit(
+            model, loss, train_set, val_set, cfg, device, on_epoch=_epoch_logger(rank, loss, best), adversary=adversary
+        )
     except DivergenceError as e:
         raise StageError(f"{e}; lower train.adversarial.lr_max ({POSE_ROBUST} was left as it was)") from None
     if rank == 0:
@@ -196,8 +243,9 @@ def _robust(params: Params, surrogate: bool) -> None:
     _finish(world)
 
 
-def _write_robust(params: Params, net: Any, best: dict[str, Any], result: Any, splits: tuple[Any, Any, Any],
-                  device: Any) -> None:
+def _write_robust(
+    params: Params, net: Any, best: dict[str, Any], result: Any, splits: tuple[Any, Any, Any], device: Any
+) -> None:
     """Both models on validation and test (clean), and under the strongest-attack suite (`suite` params) on a
     seeded sample of test frames; each model's attacker capacity on the validation frames; the clamp threshold
     against the data (training frames); then models/pose_robust.pt, datasets/capacity/,
@@ -222,8 +270,10 @@ def _write_robust(params: Params, net: Any, best: dict[str, Any], result: Any, s
     standard = load_pose(params)
     out: dict[str, Any] = {}
     for name, model in (("standard", standard.model), ("robust", net)):
-        out[name] = {split: summarize_errors(predict(model, ds, 64, device), s.targets, s.labels["range"].to_numpy(), bins)
-                     for split, ds, s in (("val", val_set, val_split), ("test", test_set, test_split))}
+        out[name] = {
+            split: summarize_errors(predict(model, ds, 64, device), s.targets, s.labels["range"].to_numpy(), bins)
+            for split, ds, s in (("val", val_set, val_split), ("test", test_set, test_split))
+        }
     t0 = time.perf_counter()
     models = {"standard": standard.model, "robust": net}
     for name, table in attacked_tables(params, models, test_split, device).items():
@@ -235,30 +285,59 @@ def _write_robust(params: Params, net: Any, best: dict[str, Any], result: Any, s
     # trades the attacked rows' clean images are fitted too)
     standard_run, a = read_json(METRICS), adversarial_config(adv)
     per_epoch = len(train_split) // params.train.batch_size * params.train.batch_size
-    out["standard"].update(train_minutes=standard_run.get("train_minutes"),
-                           gradients=standard_run.get("epochs_run", 0) * per_epoch)
-    out["robust"].update(train_minutes=result.seconds / 60,
-                         gradients=round(len(result.history) * per_epoch * (1 + (a.steps + (a.trades > 0)) * a.fraction)))
+    out["standard"].update(
+        train_minutes=standard_run.get("train_minutes"), gradients=standard_run.get("epochs_run", 0) * per_epoch
+    )
+    out["robust"].update(
+        train_minutes=result.seconds / 60,
+        gradients=round(len(result.history) * per_epoch * (1 + (a.steps + (a.trades > 0)) * a.fraction)),
+    )
     shift = params.lab.domain_shift
-    metrics = {**out, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
-               "stopped_early": result.stopped_early, "score": result.best_score,
-               "black_level": black_level_stats(train_split.images, float(adv.black_level), float(shift.noise_std),
-                                                float(shift.blur_sigma), seed),
-               "train_images_per_s": result.train_images_per_s, "device": str(device), "suite_seconds": seconds}
-    with atomic_outputs(POSE_ROBUST, ROBUST_METRICS, ROBUST_REPORT,
-                        dirs=(str(ROBUST_LIVE), str(CAPACITY))) as (pose, path, report, live, capacity_dir):
+    metrics = {
+        **out,
+        "best_epoch": result.best_epoch,
+        "epochs_run": len(result.history),
+        "stopped_early": result.stopped_early,
+        "score": result.best_score,
+        "black_level": black_level_stats(
+            train_split.images, float(adv.black_level), float(shift.noise_std), float(shift.blur_sigma), seed
+        ),
+        "train_images_per_s": result.train_images_per_s,
+        "device": str(device),
+        "suite_seconds": seconds,
+    }
+    with atomic_outputs(POSE_ROBUST, ROBUST_METRICS, ROBUST_REPORT, dirs=(str(ROBUST_LIVE), str(CAPACITY))) as (
+        pose,
+        path,
+        report,
+        live,
+        capacity_dir,
+    ):
         save_pose(pose, net, best["loss"], (params.render.height, params.render.width), best["meta"], **_made_from())
-        metrics["capacity"] = write_capacities(capacity_dir, capacity, params, {"standard": file_hash(POSE),
-                                                                                "robust": file_hash(pose)})
+        metrics["capacity"] = write_capacities(
+            capacity_dir, capacity, params, {"standard": file_hash(POSE), "robust": file_hash(pose)}
+        )
         write_metrics(path, metrics, params.profile_name)
         atomic_write_text(report, robust_page(metrics, params))
         _log_curves(live, result.history, params)
-    print(f"train --robust: best epoch {result.best_epoch}: test {out['robust']['test']['pos_mean_m']:.3f} m, "
-          f"{out['robust']['test']['att_mean_deg']:.2f} deg -> {POSE_ROBUST}, {ROBUST_REPORT}, {ROBUST_METRICS}")
+    print(
+        f"train --robust: best epoch {result.best_epoch}: test {out['robust']['test']['pos_mean_m']:.3f} m, "
+        f"{out['robust']['test']['att_mean_deg']:.2f} deg -> {POSE_ROBUST}, {ROBUST_REPORT}, {ROBUST_METRICS}"
+    )
 
 
-def _write_results(params: Params, net: Any, best: dict[str, Any], input_size: tuple[int, int], result: Any,
-                   cfg: Any, device: Any, world: int, train: tuple[Any, Any], val: tuple[Any, Any]) -> None:
+def _write_results(
+    params: Params,
+    net: Any,
+    best: dict[str, Any],
+    input_size: tuple[int, int],
+    result: Any,
+    cfg: Any,
+    device: Any,
+    world: int,
+    train: tuple[Any, Any],
+    val: tuple[Any, Any],
+) -> None:
     """Errors of the best checkpoint on the train, validation and test splits (and the always-the-mean-label
     floor), then models/pose.pt (`net` with the best epoch's loss weights and facts, `best`),
     reports/metrics/train.json, reports/pose.md and dvclive/train/ moved into place together. `train`, `val`:
@@ -275,28 +354,48 @@ def _write_results(params: Params, net: Any, best: dict[str, Any], input_size: t
     test_split = data.load_split(params, "test")
     test_set = data.pose_dataset(test_split)
     bins = params.train.range_bins
-    summary = {name: summarize_errors(predict(net, ds, 2 * cfg.batch_size, device, cfg.channels_last),
-                                      split.targets, split.labels["range"].to_numpy(), bins)
-               for name, ds, split in (("train", train_eval_set, train_split), ("val", val_set, val_split),
-                                       ("test", test_set, test_split))}
+    summary = {
+        name: summarize_errors(
+            predict(net, ds, 2 * cfg.batch_size, device, cfg.channels_last),
+            split.targets,
+            split.labels["range"].to_numpy(),
+            bins,
+        )
+        for name, ds, split in (
+            ("train", train_eval_set, train_split),
+            ("val", val_set, val_split),
+            ("test", test_set, test_split),
+        )
+    }
     # the floor any useful model must beat: always answer the mean training label
     mean_pred = np.broadcast_to(train_split.targets.mean(0), test_split.targets.shape)
-    summary["test_mean_baseline"] = summarize_errors(mean_pred, test_split.targets,
-                                                     test_split.labels["range"].to_numpy(), bins)
-    metrics = {**summary, "best_epoch": result.best_epoch, "epochs_run": len(result.history),
-               "stopped_early": result.stopped_early, "train_minutes": result.seconds / 60,
-               "train_images_per_s": result.train_images_per_s, "val_score": result.best_score,
-               "processes": world, "device": str(device)}
+    summary["test_mean_baseline"] = summarize_errors(
+        mean_pred, test_split.targets, test_split.labels["range"].to_numpy(), bins
+    )
+    metrics = {
+        **summary,
+        "best_epoch": result.best_epoch,
+        "epochs_run": len(result.history),
+        "stopped_early": result.stopped_early,
+        "train_minutes": result.seconds / 60,
+        "train_images_per_s": result.train_images_per_s,
+        "val_score": result.best_score,
+        "processes": world,
+        "device": str(device),
+    }
     # model, metrics, report and curves move into place together, only now: a crashed, killed or
     # diverged run leaves the previous run's files as they were
     with atomic_outputs(POSE, METRICS, REPORT, dirs=(str(TRAIN_LIVE),)) as (pose, metrics_path, report, live):
         save_pose(pose, net, best["loss"], input_size, best["meta"], **_made_from())
         write_metrics(metrics_path, metrics, params.profile_name)
-        atomic_write_text(report, pose_page(metrics, params, len(train_split), len(val_split), len(test_split),
-                                            str(TRAIN_LIVE)))
+        atomic_write_text(
+            report, pose_page(metrics, params, len(train_split), len(val_split), len(test_split), str(TRAIN_LIVE))
+        )
         _log_curves(live, result.history, params)
-    print(f"train: best epoch {result.best_epoch}: test {summary['test']['pos_mean_m']:.3f} m, "
-          f"{summary['test']['att_mean_deg']:.2f} deg -> {POSE}, {REPORT}, {METRICS}")
+    print(
+        f"train: best epoch {result.best_epoch}: test {summary['test']['pos_mean_m']:.3f} m, "
+        f"{summary['test']['att_mean_deg']:.2f} deg -> {POSE}, {REPORT}, {METRICS}"
+    )
 
 
 def _made_from() -> dict[str, Any]:
@@ -314,13 +413,34 @@ def _log_curves(folder: Any, history: list[Any], params: Params) -> None:
     from dvclive import Live
 
     live = Live(dir=str(folder), dvcyaml=False, save_dvc_exp=False, report=None)
-    live.log_params(json.loads(json.dumps({"seed": params.seed, "render": {"width": params.render.width,
-                                                                          "height": params.render.height},
-                                           "train": dataclasses.asdict(params.train)})))
+    live.log_params(
+        json.loads(
+            json.dumps(
+                {
+                    "seed": params.seed,
+                    "render": {"width": params.render.width, "height": params.render.height},
+                    "train": dataclasses.asdict(params.train),
+                }
+            )
+        )
+    )
     for stats in history:
-        adversarial = ("val_adv_pos_m", "val_adv_att_deg", "score") if stats.val_adv_pos_m == stats.val_adv_pos_m else ()
-        for key in ("loss", "lr", "s_p", "s_r", "train_pos_m", "train_att_deg", "val_pos_m", "val_att_deg",
-                    "val_score", "images_per_s", *adversarial):
+        adversarial = (
+            ("val_adv_pos_m", "val_adv_att_deg", "score") if stats.val_adv_pos_m == stats.val_adv_pos_m else ()
+        )
+        for key in (
+            "loss",
+            "lr",
+            "s_p",
+            "s_r",
+            "train_pos_m",
+            "train_att_deg",
+            "val_pos_m",
+            "val_att_deg",
+            "val_score",
+            "images_per_s",
+            *adversarial,
+        ):
             live.log_metric(key, getattr(stats, key))
         live.next_step()
     live.end()

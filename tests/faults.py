@@ -1,4 +1,5 @@
 """Fault injection for the engine's tests: worker classes whose process dies on a job, once."""
+
 from __future__ import annotations
 
 import os

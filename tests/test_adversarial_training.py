@@ -1,6 +1,7 @@
 """Adversarial training that covers attitude and eps past the black-level clamp (issue 37, item 3): the suite's
 objectives in the inner maximisation, the background-lifting start and BPDA, and the defaults that keep the
 committed robust model's training step."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -11,14 +12,14 @@ import pipeline.pose.adversarial as adversarial
 from pipeline.attacks.gradient import pgd
 from pipeline.attacks.objectives import attitude, position
 from pipeline.geometry.rotations import quat_to_6d
-from pipeline.pose.adversarial import Adversary, AdversarialConfig
+from pipeline.pose.adversarial import AdversarialConfig, Adversary
 from pipeline.pose.loss import PoseLoss
 from pipeline.pose.metrics import pose_errors
 from pipeline.pose.model import PoseNet
 from stages.config import params as params_mod
 from stages.config.build import adversarial_config
 
-pytestmark = pytest.mark.usefixtures("one_thread")   # tests/conftest.py
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 H, W = 27, 48
 
@@ -58,19 +59,21 @@ def test_the_inner_attack_ascends_the_attitude_objective_on_its_rows():
     cfg = AdversarialConfig(eps=0.03, steps=3, ramp_epochs=0, objectives=("position", "attitude"))
     x_adv = Adversary(cfg, PoseLoss(), 1, 0).perturb(model, x, y, 0)
     # the position-weighted inner loss (the committed recipe) as the reference: attitude only as a side effect
-    x_pos = Adversary(AdversarialConfig(eps=0.03, steps=3, ramp_epochs=0, position_weight=1.0), PoseLoss(), 1, 0
-                      ).perturb(model, x, y, 0)
+    x_pos = Adversary(
+        AdversarialConfig(eps=0.03, steps=3, ramp_epochs=0, position_weight=1.0), PoseLoss(), 1, 0
+    ).perturb(model, x, y, 0)
     assert (x_adv - x).abs().max() <= 0.03 + 1e-6
     with torch.no_grad():
         clean, attacked, by_position = model(x), model(x_adv), model(x_pos)
-    rows = slice(1, None, 2)                                    # odd rows ascend the attitude, even the position
+    rows = slice(1, None, 2)  # odd rows ascend the attitude, even the position
     assert torch.all(attitude(attacked[rows], y[rows]) > attitude(clean[rows], y[rows]) + 1.0)
     assert attitude(attacked[rows], y[rows]).mean() > 1.5 * attitude(by_position[rows], y[rows]).mean()
     assert torch.all(position(attacked[::2], y[::2]) > position(clean[::2], y[::2]))
     # each objective within its own budget, ramped alike
-    own = AdversarialConfig(eps=0.03, steps=3, ramp_epochs=1, objectives=("position", "attitude"),
-                            objective_eps=(0.03, 0.01))
-    x_own = Adversary(own, PoseLoss(), 2, 0).perturb(model, x, y, 0)          # half-way up the ramp
+    own = AdversarialConfig(
+        eps=0.03, steps=3, ramp_epochs=1, objectives=("position", "attitude"), objective_eps=(0.03, 0.01)
+    )
+    x_own = Adversary(own, PoseLoss(), 2, 0).perturb(model, x, y, 0)  # half-way up the ramp
     assert (x_own - x)[1::2].abs().max() <= 0.005 + 1e-6 < (x_own - x)[::2].abs().max() <= 0.015 + 1e-6
     with pytest.raises(ValueError, match=r"objective_eps must give each of the 2 objectives a budget in \(0, eps"):
         AdversarialConfig(eps=0.03, objectives=("position", "attitude"), objective_eps=(0.05, 0.01))
@@ -85,10 +88,12 @@ def test_past_the_clamp_the_attack_lifts_the_background_and_passes_the_clamp(mon
     monkeypatch.setattr(adversarial, "bpda_forward", lambda m: passed.append(m) or bpda_forward(m))
     cfg = AdversarialConfig(eps=0.1, steps=2, ramp_epochs=0, objectives=("position",), start="lift", bpda=True)
     x_adv = Adversary(cfg, PoseLoss(), 1, 0).perturb(model, x, y, 0)
-    assert starts == ["lift"] and passed == [model] and model.black_level == 0.07   # the clamp is restored
+    assert starts == ["lift"] and passed == [model] and model.black_level == 0.07  # the clamp is restored
     background = (x == 0).all(1, keepdim=True).expand_as(x)
-    assert (model.clamp(x_adv)[background] > 0).float().mean() > 0.5             # the background reaches the network
-    masked = pgd(model, x, y, 0.1, lambda p, t: position(p, t).sum(), steps=2, generator=torch.Generator().manual_seed(0))
+    assert (model.clamp(x_adv)[background] > 0).float().mean() > 0.5  # the background reaches the network
+    masked = pgd(
+        model, x, y, 0.1, lambda p, t: position(p, t).sum(), steps=2, generator=torch.Generator().manual_seed(0)
+    )
     with torch.no_grad():
         assert position(model(x_adv), y).mean() > position(model(masked), y).mean() > position(model(x), y).mean()
     for start, bpda in (("random", True), ("lift", False)):
@@ -111,21 +116,25 @@ def test_the_default_params_reproduce_the_committed_training_step():
     # seeded random start, on the first `fraction` of the batch; the rotation of those rows left out of the loss
     n = round(a.fraction * len(x))
     w, e_p, e_r = a.position_weight, torch.exp(torch.tensor(-0.6)), torch.exp(torch.tensor(0.4))
-    inner = lambda p, t: w * e_p * loss.parts(p, t)[0] + (1 - w) * e_r * loss.parts(p, t)[1]   # noqa: E731
-    ref = torch.cat([pgd(model, x[:n], y[:n], a.eps / 2, inner, steps=a.steps,
-                         generator=torch.Generator().manual_seed(5)), x[n:]])
+    inner = lambda p, t: w * e_p * loss.parts(p, t)[0] + (1 - w) * e_r * loss.parts(p, t)[1]  # noqa: E731
+    ref = torch.cat(
+        [pgd(model, x[:n], y[:n], a.eps / 2, inner, steps=a.steps, generator=torch.Generator().manual_seed(5)), x[n:]]
+    )
     assert torch.equal(x_adv, ref) and skip == n and adv.ramp(3) == 0.5
     model.train()
     assert loss(model(x_adv), y, skip).item() == loss(model(ref), y, n).item()
     pred, target = np.c_[y[:, :3] + 1.0, y[:, 3:]], y.numpy()
-    assert adv.selection_error(pred, target) == pytest.approx(np.mean(np.sqrt(3) / np.linalg.norm(target[:, :3], axis=1)))
+    assert adv.selection_error(pred, target) == pytest.approx(
+        np.mean(np.sqrt(3) / np.linalg.norm(target[:, :3], axis=1))
+    )
 
 
 def test_suite_objectives_validate_and_select_on_the_attacked_speed_score():
     from pipeline.pose.train import PoseDataset
 
-    cfg = AdversarialConfig(eps=0.03, steps=1, ramp_epochs=0, val_steps=3, val_frames=6,
-                            objectives=("position", "attitude"))
+    cfg = AdversarialConfig(
+        eps=0.03, steps=1, ramp_epochs=0, val_steps=3, val_frames=6, objectives=("position", "attitude")
+    )
     adv = Adversary(cfg, PoseLoss(), 1, 0)
     x, y = _batch(10)
     val_set = PoseDataset((x * 255).round().to(torch.uint8).permute(0, 2, 3, 1).numpy(), y.numpy())
@@ -140,10 +149,14 @@ def test_suite_objectives_validate_and_select_on_the_attacked_speed_score():
     pred[:, 3:] = _batch(6, seed=1)[1].numpy()[:, 3:]
     att = pose_errors(pred, target)[1]
     assert adv.selection_error(pred, target) == pytest.approx(np.mean(np.deg2rad(att)))
-    for bad, message in (({"objectives": ("speed",)}, "unknown attack objective 'speed'"),
-                         ({"objectives": ("attitude",), "attacked_rotation": False, "fraction": 0.5},
-                          "an attitude objective needs attacked_rotation on"),
-                         ({"start": "zero"}, "unknown start 'zero'")):
+    for bad, message in (
+        ({"objectives": ("speed",)}, "unknown attack objective 'speed'"),
+        (
+            {"objectives": ("attitude",), "attacked_rotation": False, "fraction": 0.5},
+            "an attitude objective needs attacked_rotation on",
+        ),
+        ({"start": "zero"}, "unknown start 'zero'"),
+    ):
         with pytest.raises(ValueError, match=message):
             AdversarialConfig(**bad)
     assert AdversarialConfig(objectives=("position", "range_near"), attacked_rotation=False, fraction=0.5).objectives
@@ -155,17 +168,18 @@ def test_ablation_rows_split_each_models_suite_run_by_background():
 
     x, y = _batch(6, black=True)
     images = (x * 255).round().to(torch.uint8).permute(0, 2, 3, 1).numpy()
-    images[3:, :4] = 200                                        # three frames with a bright backdrop
+    images[3:, :4] = 200  # three frames with a bright backdrop
     models = {"clamp only": _net(0.07, x, y), "no clamp": _net(0.0, x, y)}
     config = SuiteConfig(members=("apgd/position", "bpda/attitude"), steps=3, restarts=1, starts=("lift",))
     kinds = np.array(["black"] * 3 + ["earth"] * 3)
     rows = ablation_rows(models, images, y.numpy(), [0.02, 0.1], config, kinds)
     assert [(r["model"], r["background"], r["eps"], r["n"]) for r in rows] == [
-        (m, b, e, 3) for m in models for b in ("black", "earth") for e in (0.0, 0.02, 0.1)]
+        (m, b, e, 3) for m in models for b in ("black", "earth") for e in (0.0, 0.02, 0.1)
+    ]
     for m in models:
         for b in ("black", "earth"):
             clean, *attacked = [r for r in rows if r["model"] == m and r["background"] == b]
-            assert clean["pos_m"] <= attacked[0]["pos_m"] <= attacked[1]["pos_m"]   # nested in eps
+            assert clean["pos_m"] <= attacked[0]["pos_m"] <= attacked[1]["pos_m"]  # nested in eps
             assert attacked[0]["pos_ci"][0] <= attacked[0]["pos_m"] <= attacked[0]["pos_ci"][1]
     whole = ablation_rows({"both": models["no clamp"]}, images, y.numpy(), [0.02], config)
     assert {r["background"] for r in whole} == {"black"} and whole[0]["n"] == 6
@@ -178,8 +192,9 @@ def test_trades_fits_the_clean_batch_and_the_attacked_rows_consistency():
 
     x, y = _batch(6)
     model, loss = _net(0.0, x, y), PoseLoss()
-    cfg = AdversarialConfig(eps=0.03, steps=3, ramp_epochs=0, fraction=0.5, objectives=("position", "attitude"),
-                            trades=2.0)
+    cfg = AdversarialConfig(
+        eps=0.03, steps=3, ramp_epochs=0, fraction=0.5, objectives=("position", "attitude"), trades=2.0
+    )
     adv = Adversary(cfg, loss, 1, 0)
     inputs, skip, pairs = adv.batch(model, x, y, 0)
     assert pairs == 3 and skip == 0 and torch.equal(inputs[:6], x) and (inputs[6:] - x[:3]).abs().max() <= 0.03 + 1e-6
@@ -206,7 +221,7 @@ def test_paired_forward_shares_each_pairs_dropout_mask():
     x = torch.rand(4, 3, H, W)
     torch.manual_seed(1)
     paired = model.forward_paired(torch.cat([x, x[:2]]), 2)
-    torch.testing.assert_close(paired[4:], paired[:2])                 # same image, same mask: same output
-    assert not torch.allclose(paired[:2], model(x[:2]))                # a fresh mask otherwise
+    torch.testing.assert_close(paired[4:], paired[:2])  # same image, same mask: same output
+    assert not torch.allclose(paired[:2], model(x[:2]))  # a fresh mask otherwise
     with torch.no_grad():
         torch.testing.assert_close(model.eval().forward_paired(torch.cat([x, x[:2]]), 2)[:4], model(x))

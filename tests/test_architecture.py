@@ -4,6 +4,7 @@ only the packages below it (so no two packages import each other); no modules im
 
 Every import statement counts, also those inside functions (a deferred import is still a dependency).
 """
+
 from __future__ import annotations
 
 import ast
@@ -29,8 +30,27 @@ MODULES = {_module_name(p): p for pkg in PACKAGES for p in sorted((REPO / pkg).r
 # protection level, integrity, calibration, the onboard chain); the guidance law; the attackers of the
 # defended chain (burst, drift, in-loop: they model the defense and the guidance); evaluation campaigns;
 # file formats (a chain's files and the one door that loads a chain); report building blocks.
-PIPELINE_ORDER = ("io", "interrupt", "settings", "seeds", "stats", "geometry", "images", "visibility", "render", "shap",
-                  "attacks", "pose", "detectors", "defense", "guidance", "attackers", "evaluation", "formats", "report")
+PIPELINE_ORDER = (
+    "io",
+    "interrupt",
+    "settings",
+    "seeds",
+    "stats",
+    "geometry",
+    "images",
+    "visibility",
+    "render",
+    "shap",
+    "attacks",
+    "pose",
+    "detectors",
+    "defense",
+    "guidance",
+    "attackers",
+    "evaluation",
+    "formats",
+    "report",
+)
 # The commands' support, lowest first: errors; params (schema, composition, params -> library settings);
 # artifacts (paths, readers, checks); the Ray engine and its workers; report pages; then the commands
 # (one module per stage, the CLI and its --help), which no other unit imports.
@@ -61,7 +81,7 @@ def imports(name: str) -> set[str]:
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
-                base = ".".join([*package[:len(package) - node.level + 1], *([base] if base else [])])
+                base = ".".join([*package[: len(package) - node.level + 1], *([base] if base else [])])
             for a in node.names:
                 sub = f"{base}.{a.name}"
                 out |= {sub} if sub in MODULES else ({base} if base in MODULES else set())
@@ -98,8 +118,13 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 
 def test_library_and_api_never_import_the_stages() -> None:
-    bad = [f"{name} imports {dep}" for name in MODULES if not name.startswith("stages")
-           for dep in sorted(imports(name)) if dep.split(".")[0] == "stages"]
+    bad = [
+        f"{name} imports {dep}"
+        for name in MODULES
+        if not name.startswith("stages")
+        for dep in sorted(imports(name))
+        if dep.split(".")[0] == "stages"
+    ]
     assert not bad, bad
 
 
@@ -116,8 +141,13 @@ def test_every_unit_has_its_place_in_the_order() -> None:
 
 def test_packages_import_only_the_layers_below() -> None:
     rank = {u: i for i, u in enumerate(ORDER)}
-    bad = sorted(f"{name} ({unit(name)}) imports {dep} ({unit(dep)})" for name in MODULES if name != "pipeline"
-                 for dep in imports(name) if rank[unit(dep)] > rank[unit(name)])
+    bad = sorted(
+        f"{name} ({unit(name)}) imports {dep} ({unit(dep)})"
+        for name in MODULES
+        if name != "pipeline"
+        for dep in imports(name)
+        if rank[unit(dep)] > rank[unit(name)]
+    )
     assert not bad, bad
 
 
@@ -133,8 +163,13 @@ SEED_ARITHMETIC = re.compile(r"seed\w*\s*\+\s*\d|\d\s*\+\s*\w*seed\b|SEED_OFFSET
 def test_seeds_have_one_home() -> None:
     """Only pipeline/seeds.py holds seed offsets: no other module adds a literal number to a seed."""
     files = [p for pkg in (*PACKAGES, "scripts", "benchmarks") for p in sorted((REPO / pkg).rglob("*.py"))]
-    bad = [f"{p.relative_to(REPO)}:{i}: {line.strip()}" for p in files if p != REPO / "pipeline" / "seeds.py"
-           for i, line in enumerate(p.read_text().splitlines(), 1) if SEED_ARITHMETIC.search(line)]
+    bad = [
+        f"{p.relative_to(REPO)}:{i}: {line.strip()}"
+        for p in files
+        if p != REPO / "pipeline" / "seeds.py"
+        for i, line in enumerate(p.read_text().splitlines(), 1)
+        if SEED_ARITHMETIC.search(line)
+    ]
     assert not bad, bad
     assert SEED_ARITHMETIC.search("rng(self.seed + 1)") and SEED_ARITHMETIC.search("seed=p.seed + SEED_OFFSET[x]")
     assert not SEED_ARITHMETIC.search("seed_for(seed, 'lab.schedule', i)")
@@ -259,13 +294,20 @@ def _calls(path: Path) -> set[str]:
 def test_a_chain_has_one_door() -> None:
     """Only pipeline/formats/chain.py reads a chain's detector and defense files (stages, rpodguard, benchmarks
     and scripts call its `load_chain`), and only the door and the in-memory builders assemble an OnboardChain."""
-    files = {str(p.relative_to(REPO)): p for pkg in (*PACKAGES, "scripts", "benchmarks")
-             for p in sorted((REPO / pkg).rglob("*.py"))}
+    files = {
+        str(p.relative_to(REPO)): p
+        for pkg in (*PACKAGES, "scripts", "benchmarks")
+        for p in sorted((REPO / pkg).rglob("*.py"))
+    }
     calls = {name: _calls(path) for name, path in files.items()}
     readers = sorted(n for n, c in calls.items() if c & {"read_detector", "read_defense"})
     assert readers == ["pipeline/formats/chain.py"], readers
     builders = {n for n, c in calls.items() if c & {"from_model", "OnboardChain"}}
     assert builders <= CHAIN_BUILDERS, builders - CHAIN_BUILDERS
     doors = {n for n, c in calls.items() if "open_chain" in c or "load_chain" in c}
-    assert {"rpodguard/api.py", "stages/artifacts/models.py", "scripts/bundle_weights.py",
-            "benchmarks/explain_speed.py"} <= doors
+    assert {
+        "rpodguard/api.py",
+        "stages/artifacts/models.py",
+        "scripts/bundle_weights.py",
+        "benchmarks/explain_speed.py",
+    } <= doors

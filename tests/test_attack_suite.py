@@ -1,5 +1,6 @@
 """The strongest-attack suite (issue 37) on tiny stand-in pose regressors: objectives, APGD, the lifting start,
 BPDA, Square, 8-bit storage, nesting in eps, rows and capacity."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -16,8 +17,18 @@ from pipeline.attacks.objectives import OBJECTIVES, attitude, lateral, position,
 from pipeline.attacks.square import square, window_share
 from pipeline.attacks.starts import lift_level, lifting_start
 from pipeline.attacks.stored import levels
-from pipeline.attacks.strongest import (PGD50, SuiteConfig, SuiteResult, frame_capacity, nested_worst, ratio_rows,
-                                        run_member, run_suite, sanity_rows, suite_rows)
+from pipeline.attacks.strongest import (
+    PGD50,
+    SuiteConfig,
+    SuiteResult,
+    frame_capacity,
+    nested_worst,
+    ratio_rows,
+    run_member,
+    run_suite,
+    sanity_rows,
+    suite_rows,
+)
 from pipeline.geometry.rotations import matrix_to_6d, quat_to_6d, rotvec_to_matrix
 from pipeline.pose.metrics import pose_errors
 
@@ -30,10 +41,18 @@ class ToyPose(nn.Module):
         super().__init__()
         torch.manual_seed(seed)
         self.black_level = black_level
-        self.net = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.BatchNorm2d(8), nn.ReLU(),
-                                 nn.Conv2d(8, 8, 3, stride=2, padding=1), nn.ReLU(),
-                                 nn.Conv2d(8, 8, 3, padding=1), nn.ReLU(),
-                                 nn.AdaptiveAvgPool2d(2), nn.Flatten(), nn.Linear(32, 9))
+        self.net = nn.Sequential(
+            nn.Conv2d(3, 8, 3, padding=1),
+            nn.BatchNorm2d(8),
+            nn.ReLU(),
+            nn.Conv2d(8, 8, 3, stride=2, padding=1),
+            nn.ReLU(),
+            nn.Conv2d(8, 8, 3, padding=1),
+            nn.ReLU(),
+            nn.AdaptiveAvgPool2d(2),
+            nn.Flatten(),
+            nn.Linear(32, 9),
+        )
         with torch.no_grad():
             self.net[-1].weight.mul_(100.0)
             self.net[-1].bias.copy_(torch.tensor([0.0, 0.0, 30.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]))
@@ -42,7 +61,7 @@ class ToyPose(nn.Module):
         return self.net(torch.relu(x - self.black_level) if self.black_level > 0 else x)
 
 
-pytestmark = pytest.mark.usefixtures("one_thread")   # tests/conftest.py
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 def frames(n: int = 6, seed: int = 0, black: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -66,6 +85,7 @@ def as_tensors(images: np.ndarray, targets: np.ndarray) -> tuple[torch.Tensor, t
 
 
 # --- objectives ----------------------------------------------------------------------------------------------
+
 
 def _pose_pairs(angles: list[float], seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """(pred, target) float64 (B, 9): random true rotations, predictions turned by `angles` (rad) about random
@@ -101,7 +121,7 @@ def test_attitude_objective_value_and_gradient_against_finite_differences():
 @pytest.mark.parametrize("angle", [0.0, math.pi])
 def test_attitude_objective_is_finite_at_0_and_pi(angle):
     pred, target = _pose_pairs([angle])
-    if angle == 0.0:   # exactly the same rotation, not a Gram-Schmidt round trip of it: gradient exactly 0
+    if angle == 0.0:  # exactly the same rotation, not a Gram-Schmidt round trip of it: gradient exactly 0
         pred = torch.cat([pred[:, :3], target[:, 3:]], 1).detach().requires_grad_(True)
     value = attitude(pred, target)
     (g,) = torch.autograd.grad(value.sum(), pred)
@@ -109,7 +129,7 @@ def test_attitude_objective_is_finite_at_0_and_pi(angle):
     assert torch.isfinite(g).all()
     if angle == 0.0:
         assert float(g.abs().max()) < 1e-12
-    else:   # the cone's slope beside pi, as at pi - 1e-3
+    else:  # the cone's slope beside pi, as at pi - 1e-3
         near, target = _pose_pairs([math.pi - 1e-3])
         (g_near,) = torch.autograd.grad(attitude(near, target).sum(), near)
         assert float(g.norm()) < 2 * float(g_near.norm())
@@ -118,7 +138,7 @@ def test_attitude_objective_is_finite_at_0_and_pi(angle):
 def test_position_objectives_split_along_and_across_the_line_of_sight():
     pred, target = _pose_pairs([0.1] * 5, seed=3)
     pos, far, near, lat = (f(pred, target) for f in (position, range_far, range_near, lateral))
-    assert torch.allclose(pos ** 2, far ** 2 + lat ** 2)
+    assert torch.allclose(pos**2, far**2 + lat**2)
     assert torch.equal(far, -near)
     u = target[:, :3] / target[:, :3].norm(dim=1, keepdim=True)
     assert torch.allclose(far, ((pred[:, :3] - target[:, :3]) * u).sum(1))
@@ -133,8 +153,10 @@ def test_position_objectives_split_along_and_across_the_line_of_sight():
 
 # --- 8-bit storage and the attacks' contract -----------------------------------------------------------------
 
-@pytest.mark.parametrize("member", ["apgd/position", "apgd/attitude", "bpda/range_near", "square/lateral",
-                                    "pgd/range_far"])
+
+@pytest.mark.parametrize(
+    "member", ["apgd/position", "apgd/attitude", "bpda/range_near", "square/lateral", "pgd/range_far"]
+)
 @pytest.mark.parametrize("eps", [0.01, 0.1])
 def test_every_stored_image_is_within_eps_in_grey_levels_and_scored_as_stored(member, eps):
     images, targets = frames()
@@ -158,11 +180,18 @@ def test_levels_round_to_the_nearest_grey_level():
     assert [levels(e) for e in (0.001, 0.01, 0.05, 0.1, 0.2, 1.0)] == [1, 3, 13, 26, 51, 255]
 
 
-@pytest.mark.parametrize("bad", [
-    dict(eps=0.0), dict(eps=1.5),
-    dict(x=torch.full((2, 3, 4, 4), 0.5001)), dict(x=torch.full((2, 3, 4, 4), float("nan"))),
-    dict(x=torch.zeros(2, 4, 4)), dict(y=torch.zeros(2, 6)), dict(y=torch.full((2, 9), float("nan"))),
-])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        dict(eps=0.0),
+        dict(eps=1.5),
+        dict(x=torch.full((2, 3, 4, 4), 0.5001)),
+        dict(x=torch.full((2, 3, 4, 4), float("nan"))),
+        dict(x=torch.zeros(2, 4, 4)),
+        dict(y=torch.zeros(2, 6)),
+        dict(y=torch.full((2, 9), float("nan"))),
+    ],
+)
 def test_attacks_refuse_bad_inputs_in_one_line(bad):
     args = {"x": torch.zeros(2, 3, 4, 4), "y": torch.ones(2, 9), "eps": 0.05, **bad}
     for attack in (apgd, square):
@@ -179,11 +208,12 @@ def test_apgd_checkpoints_follow_the_published_schedule():
 
 def test_square_window_share_halves_on_the_rescaled_schedule():
     assert window_share(0.8, 0, 1000) == 0.8
-    assert window_share(0.8, 2, 1000) == 0.4     # query 20 of 10,000 after rescaling
-    assert window_share(0.8, 999, 1000) == 0.8 / 2 ** 9
+    assert window_share(0.8, 2, 1000) == 0.4  # query 20 of 10,000 after rescaling
+    assert window_share(0.8, 999, 1000) == 0.8 / 2**9
 
 
 # --- the clamp: lifting start and BPDA -------------------------------------------------------------------------
+
 
 def test_lifting_start_puts_dark_pixels_just_above_the_clamp_within_eps():
     images, _ = frames(black=True)
@@ -193,7 +223,7 @@ def test_lifting_start_puts_dark_pixels_just_above_the_clamp_within_eps():
     dark = x < 0.07
     assert torch.all(start[dark] == 18 / 255) and torch.all((start - x).abs() <= 0.1 + 1e-7)
     low = lifting_start(x, 0.03, 0.07, torch.Generator().manual_seed(0))
-    assert torch.allclose(low[dark], x[dark] + 0.03)      # out of reach: lifted by eps
+    assert torch.allclose(low[dark], x[dark] + 0.03)  # out of reach: lifted by eps
 
 
 def test_bpda_forward_is_the_model_and_its_gradient_passes_the_clamp():
@@ -221,16 +251,22 @@ def test_lifting_start_finds_larger_errors_than_the_random_start_above_the_clamp
     f = OBJECTIVES[objective]
     with torch.no_grad():
         clean = f(model.eval()(x), y)
-    runs = {kind: apgd(model, x, y, 0.1, f, generator=torch.Generator().manual_seed(1), steps=20, restarts=2,
-                       starts=(kind,)).values - clean for kind in ("random", "lift")}
+    runs = {
+        kind: apgd(
+            model, x, y, 0.1, f, generator=torch.Generator().manual_seed(1), steps=20, restarts=2, starts=(kind,)
+        ).values
+        - clean
+        for kind in ("random", "lift")
+    }
     assert float(runs["lift"].mean()) > 1.5 * float(runs["random"].mean())
     assert float((runs["lift"] > runs["random"]).float().mean()) >= 0.75
 
 
 # --- the suite -----------------------------------------------------------------------------------------------
 
-SMALL = SuiteConfig(members=("apgd/position", "apgd/range_far", "apgd/range_near", "apgd/attitude"), steps=20,
-                    restarts=2, batch_size=4)
+SMALL = SuiteConfig(
+    members=("apgd/position", "apgd/range_far", "apgd/range_near", "apgd/attitude"), steps=20, restarts=2, batch_size=4
+)
 
 
 def test_suite_worst_case_beats_pgd50_on_a_toy_model():
@@ -241,8 +277,10 @@ def test_suite_worst_case_beats_pgd50_on_a_toy_model():
     for key in ("position_m", "attitude_deg"):
         assert np.all(suite.worst(key) >= baseline.errors[key][0] - 1e-6)
     # past the clamp (eps 0.1) the lifting start moves the position much farther than PGD-50's random start
-    harm = {name: r.errors["position_m"][:, 1].max(0).mean() - r.clean["position_m"].mean()
-            for name, r in (("suite", suite), ("pgd", baseline))}
+    harm = {
+        name: r.errors["position_m"][:, 1].max(0).mean() - r.clean["position_m"].mean()
+        for name, r in (("suite", suite), ("pgd", baseline))
+    }
     assert harm["suite"] > 1.5 * harm["pgd"] > 0
     # the attitude objective: PGD-50 on the position hardly moves the attitude
     assert suite.worst("attitude_deg")[1].mean() > baseline.errors["attitude_deg"][0, 1].mean() + 2.0
@@ -253,8 +291,13 @@ def test_nesting_makes_the_worst_case_monotone_in_eps():
     assert np.array_equal(nested_worst(values), [[3.0, 1.0], [3.0, 5.0], [3.0, 5.0]])
     assert np.array_equal(nested_worst(values, floor=np.array([4.0, 0.0])), [[4.0, 1.0], [4.0, 5.0], [4.0, 5.0]])
     images, targets = frames(n=4, black=True)
-    result = run_suite(ToyPose(black_level=0.07), images, targets, [0.02, 0.05, 0.1, 0.2],
-                       SuiteConfig(members=("pgd/position", "pgd/attitude"), steps=3, restarts=1))
+    result = run_suite(
+        ToyPose(black_level=0.07),
+        images,
+        targets,
+        [0.02, 0.05, 0.1, 0.2],
+        SuiteConfig(members=("pgd/position", "pgd/attitude"), steps=3, restarts=1),
+    )
     for key in ("position_m", "attitude_deg"):
         assert np.all(np.diff(result.worst(key), axis=0) >= 0)
         assert np.all(result.worst(key) >= result.clean[key])
@@ -267,15 +310,28 @@ def test_nesting_makes_the_worst_case_monotone_in_eps():
 def test_suite_rows_capacity_and_sanity():
     images, targets = frames(n=5, black=True)
     model = ToyPose(black_level=0.07)
-    cfg = SuiteConfig(members=("apgd/position", "bpda/attitude", "square/position"), steps=4, restarts=1,
-                      queries=10, square_eps=0.1, batch_size=3)
+    cfg = SuiteConfig(
+        members=("apgd/position", "bpda/attitude", "square/position"),
+        steps=4,
+        restarts=1,
+        queries=10,
+        square_eps=0.1,
+        batch_size=3,
+    )
     result = run_suite(model, images, targets, [0.05, 0.1], cfg)
     assert result.members == cfg.members
     assert np.isnan(result.errors["position_m"][2, 0]).all() and not np.isnan(result.errors["position_m"][2, 1]).any()
     rows = suite_rows(result)
-    assert [(r["attack"], r["eps"]) for r in rows] == [("clean", 0.0), ("apgd/position", 0.05), ("bpda/attitude", 0.05),
-                                                       ("suite", 0.05), ("apgd/position", 0.1), ("bpda/attitude", 0.1),
-                                                       ("square/position", 0.1), ("suite", 0.1)]
+    assert [(r["attack"], r["eps"]) for r in rows] == [
+        ("clean", 0.0),
+        ("apgd/position", 0.05),
+        ("bpda/attitude", 0.05),
+        ("suite", 0.05),
+        ("apgd/position", 0.1),
+        ("bpda/attitude", 0.1),
+        ("square/position", 0.1),
+        ("suite", 0.1),
+    ]
     suite_01 = rows[-1]
     assert suite_01["pos_m"] == pytest.approx(result.worst("position_m")[1].mean())
     assert suite_01["pos_ci"][0] <= suite_01["pos_m"] <= suite_01["pos_ci"][1] and suite_01["n"] == 5
@@ -300,9 +356,16 @@ def test_suite_rows_capacity_and_sanity():
 def test_ratio_rows_flag_a_move_of_more_than_5_percent():
     def result(scale: float) -> SuiteResult:
         e = np.array([[[1.0, 3.0], [2.0, 4.0]]]) * scale
-        return SuiteResult((0.01, 0.05), ("apgd/position",), {"position_m": e, "attitude_deg": 10 * e},
-                           {}, {"position_m": np.zeros(2), "attitude_deg": np.zeros(2)}, np.array([20.0, 30.0]),
-                           np.zeros((1, 2)), np.zeros((1, 2)))
+        return SuiteResult(
+            (0.01, 0.05),
+            ("apgd/position",),
+            {"position_m": e, "attitude_deg": 10 * e},
+            {},
+            {"position_m": np.zeros(2), "attitude_deg": np.zeros(2)},
+            np.array([20.0, 30.0]),
+            np.zeros((1, 2)),
+            np.zeros((1, 2)),
+        )
 
     rows = ratio_rows(result(1.04), result(1.0))
     assert [r["ratio"] for r in rows] == pytest.approx([1.04] * 4) and all(r["ok"] for r in rows)

@@ -1,4 +1,5 @@
 """Attacks on a tiny stand-in pose regressor (9 outputs) with a Kendall-style loss."""
+
 from __future__ import annotations
 
 import pytest
@@ -13,9 +14,15 @@ class TinyPose(nn.Module):
 
     def __init__(self) -> None:
         super().__init__()
-        self.features = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.BatchNorm2d(8), nn.LeakyReLU(0.1),
-                                      nn.Conv2d(8, 16, 3, stride=2, padding=1), nn.LeakyReLU(0.1),
-                                      nn.AdaptiveAvgPool2d(1), nn.Flatten())
+        self.features = nn.Sequential(
+            nn.Conv2d(3, 8, 3, padding=1),
+            nn.BatchNorm2d(8),
+            nn.LeakyReLU(0.1),
+            nn.Conv2d(8, 16, 3, stride=2, padding=1),
+            nn.LeakyReLU(0.1),
+            nn.AdaptiveAvgPool2d(1),
+            nn.Flatten(),
+        )
         self.head = nn.Linear(16, 9)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -123,7 +130,7 @@ def test_loss_kinds_pick_their_term(setup):
 
 def _check_terms(loss, pred, target):
     assert float(attack_loss("rotation", loss)(pred, target)) == 0.0
-    assert float(attack_loss("position", loss)(pred, target)) == pytest.approx(4 * 3 ** 0.5, rel=1e-5)
+    assert float(attack_loss("position", loss)(pred, target)) == pytest.approx(4 * 3**0.5, rel=1e-5)
     assert float(attack_loss("full", loss)(pred, target)) == pytest.approx(float(loss(pred, target)))
 
 
@@ -148,7 +155,7 @@ def test_stored_attack_is_the_attack_on_the_8_bit_grid(setup, name):
     assert out.dtype == torch.float32 and out.shape == x.shape
     assert torch.equal(out, quantize(attack_again(model, x, y, 0.05, loss), x).float() / 255)
     levels = out * 255
-    assert torch.equal(levels, torch.round(levels))                       # every pixel on the 8-bit grid
+    assert torch.equal(levels, torch.round(levels))  # every pixel on the 8-bit grid
     assert (out - x).abs().max() <= 0.05 + 0.5 / 255 + 1e-6 and (out != x).any()
     with pytest.raises(ValueError, match="eps must be in"):
         stored_attack(model, loss, 0.0)

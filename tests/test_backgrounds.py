@@ -1,5 +1,6 @@
 """Space backgrounds (pipeline/render/backgrounds.py): the per-frame draw, the Earth's place in the image, the
 composite under the target's alpha, and the render stages with render.background on and off."""
+
 import json
 
 import numpy as np
@@ -7,15 +8,23 @@ import pandas as pd
 import pytest
 
 from pipeline.geometry.camera import Intrinsics, reference_intrinsics
-from pipeline.render.backgrounds import BackgroundSettings, FrameBackground, backdrop, composite, draw, earth, \
-    kind, pose_key
+from pipeline.render.backgrounds import (
+    BackgroundSettings,
+    FrameBackground,
+    backdrop,
+    composite,
+    draw,
+    earth,
+    kind,
+    pose_key,
+)
 from stages.config import params as params_mod
 from stages.config.params import load
 from stages.errors import StageError
 
 K160 = reference_intrinsics(fy=640.0).scaled(160, 90)
-SUN_DOWN = np.array([0.0, 1.0, 0.0])   # sunlight travelling towards image-down (camera frame): the Earth below lit
-CLAMP = 0.07                           # the robust model's black level (pipeline/pose/model.py), pixel units
+SUN_DOWN = np.array([0.0, 1.0, 0.0])  # sunlight travelling towards image-down (camera frame): the Earth below lit
+CLAMP = 0.07  # the robust model's black level (pipeline/pose/model.py), pixel units
 
 
 def frame(nadir, seed=0):
@@ -42,9 +51,9 @@ def test_share_is_binomial_nested_and_deterministic():
 def test_nadir_follows_the_camera_attitude_within_the_jitter():
     """The nadir in the camera frame is R_cam^T nadir_world, tilted by at most nadir_jitter_deg."""
     nadir = np.array([0.0, 0.848, 0.530]) / np.linalg.norm([0.0, 0.848, 0.530])
-    rolled = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])   # camera x (image right) = world +y
+    rolled = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # camera x (image right) = world +y
     exact = draw(BackgroundSettings(share=1.0, nadir=tuple(nadir), nadir_jitter_deg=0.0), rolled, 0, 3)
-    assert np.allclose(exact.nadir, [0.848, 0.0, 0.530] / np.hypot(0.848, 0.530))   # the Earth on the right
+    assert np.allclose(exact.nadir, [0.848, 0.0, 0.530] / np.hypot(0.848, 0.530))  # the Earth on the right
     s = BackgroundSettings(share=1.0, nadir=tuple(nadir), nadir_jitter_deg=10.0)
     tilts = [np.degrees(np.arccos(np.clip(np.dot(draw(s, np.eye(3), 0, k).nadir, nadir), -1, 1))) for k in range(500)]
     assert max(tilts) <= 10.0 + 1e-9 and max(tilts) > 9.0 and min(tilts) < 3.0
@@ -60,12 +69,12 @@ def test_the_limb_lies_where_the_geometry_puts_it():
     dip = np.degrees(np.arccos(6371.0 / (6371.0 + 1336.0)))
     row = K160.cy + K160.fy * np.tan(np.radians(dip - np.degrees(np.arcsin(0.530 / np.hypot(0.848, 0.530)))))
     col = coverage[:, 80]
-    assert (col[:int(row) - 1] == 0).all() and (col[int(row) + 2:] == 1).all()
-    assert 0 < col[int(round(row))] < 1                        # the limb pixel is partly covered
+    assert (col[: int(row) - 1] == 0).all() and (col[int(row) + 2 :] == 1).all()
+    assert 0 < col[int(round(row))] < 1  # the limb pixel is partly covered
     centred = Intrinsics(160, 90, K160.fx, K160.fy, 79.5, 44.5)
     _, up = earth(centred, s, f, SUN_DOWN, 6.0, np.random.default_rng(0))
     _, down = earth(centred, s, frame([0.0, -0.848, 0.530]), -SUN_DOWN, 6.0, np.random.default_rng(0))
-    assert np.array_equal(down, up[::-1, ::-1]) and up[-1].all()   # a rolled camera: the Earth at the top
+    assert np.array_equal(down, up[::-1, ::-1]) and up[-1].all()  # a rolled camera: the Earth at the top
 
 
 def test_kind_says_what_the_frame_shows():
@@ -73,8 +82,8 @@ def test_kind_says_what_the_frame_shows():
     below = frame([0.0, 0.848, 0.530])
     assert kind(K160, s, None, SUN_DOWN) == "black"
     assert kind(K160, s, below, SUN_DOWN) == "earth"
-    assert kind(K160, s, below, -SUN_DOWN) == "space"          # the Earth in view is its night side
-    assert kind(K160, s, frame([0.0, 1.0, 0.0]), SUN_DOWN) == "space"   # straight down: below the view
+    assert kind(K160, s, below, -SUN_DOWN) == "space"  # the Earth in view is its night side
+    assert kind(K160, s, frame([0.0, 1.0, 0.0]), SUN_DOWN) == "space"  # straight down: below the view
 
 
 def test_composite_keeps_the_target_and_blends_without_seams():
@@ -89,7 +98,7 @@ def test_composite_keeps_the_target_and_blends_without_seams():
     alpha[:, 50:100] = rng.integers(0, 256, (90, 50)) / 255.0
     out = composite(straight, alpha, K160, s, f, SUN_DOWN, 6.0).astype(np.float64)
     back = 255.0 * backdrop(K160, s, f, SUN_DOWN, 6.0, np.random.default_rng(f.seed))
-    assert back[60:].min() > CLAMP * 255 and back.max() <= 255     # the Earth fills the bottom, above the clamp
+    assert back[60:].min() > CLAMP * 255 and back.max() <= 255  # the Earth fills the bottom, above the clamp
     assert np.array_equal(out[:, :50], np.rint(straight[:, :50]))
     assert np.array_equal(out[:, 100:], np.rint(back[:, 100:]))
     edge = slice(50, 100)
@@ -104,15 +113,15 @@ def test_stars_stay_behind_the_earth_and_the_offset_lifts_the_sky_above_the_clam
     s = BackgroundSettings(share=1.0, stars=0.5)
     f = frame([0.0, 0.848, 0.530], seed=5)
     rng = np.random.default_rng(f.seed)
-    _, coverage = earth(K160, s, f, -SUN_DOWN, 6.0, rng)          # the night side: black Earth
+    _, coverage = earth(K160, s, f, -SUN_DOWN, 6.0, rng)  # the night side: black Earth
     sky = backdrop(K160, s, f, -SUN_DOWN, 6.0, np.random.default_rng(f.seed))
-    assert sky[coverage == 0].max() > 0.05                          # stars in the sky
-    assert sky[coverage == 1].max() == 0                            # none through the night-side Earth
+    assert sky[coverage == 0].max() > 0.05  # stars in the sky
+    assert sky[coverage == 1].max() == 0  # none through the night-side Earth
     black = np.zeros((90, 160, 3), np.float32)
     none = np.zeros((90, 160), np.float32)
-    dark = BackgroundSettings(share=1.0, nadir=(0.0, -1.0, 0.0))     # the Earth behind the camera's back
+    dark = BackgroundSettings(share=1.0, nadir=(0.0, -1.0, 0.0))  # the Earth behind the camera's back
     assert composite(black, none, K160, dark, frame([0.0, -1.0, 0.0]), SUN_DOWN, 6.0).max() == 0
-    rng = np.random.default_rng(1)        # over an all-black backdrop: scene.py's black frame, byte for byte
+    rng = np.random.default_rng(1)  # over an all-black backdrop: scene.py's black frame, byte for byte
     straight = rng.integers(0, 256, (90, 160, 3)).astype(np.float32)
     alpha = (rng.integers(0, 256, (90, 160)) / 255.0).astype(np.float32)
     on_black = np.clip(np.rint(straight * alpha[..., None]), 0, 255).astype(np.uint8)
@@ -129,7 +138,7 @@ def test_pose_key_matches_poses_to_1e_9():
     R, t = np.eye(3), np.array([0.1, -0.2, 30.0])
     assert pose_key(R, t) == pose_key(R + 1e-12, t - 1e-12)
     assert pose_key(R, t) != pose_key(R, t + np.array([0, 0, 1e-6]))
-    assert 0 <= pose_key(R, t) < 2 ** 63
+    assert 0 <= pose_key(R, t) < 2**63
 
 
 # ---------------------------------------------------------------------------- Blender and the render stages
@@ -142,10 +151,22 @@ def scene():
     return scene
 
 
-TINY = ["render.width=48", "render.height=27", "render.frames_per_sequence=3", "render.samples=2",
-        "render.chunk=4", "render.previews=1", "engine.workers=1"]
-ON = ["render.background.share=0.5", "render.background.stars=0.05", "render.background.black_offset=0.1",
-      "render.background.noise_std=0.005", "render.sun_direction=[-0.5,0.3,1.0]"]
+TINY = [
+    "render.width=48",
+    "render.height=27",
+    "render.frames_per_sequence=3",
+    "render.samples=2",
+    "render.chunk=4",
+    "render.previews=1",
+    "engine.workers=1",
+]
+ON = [
+    "render.background.share=0.5",
+    "render.background.stars=0.05",
+    "render.background.black_offset=0.1",
+    "render.background.noise_std=0.005",
+    "render.sun_direction=[-0.5,0.3,1.0]",
+]
 
 
 @pytest.mark.slow
@@ -155,7 +176,7 @@ def test_the_target_keeps_its_pixels_over_any_background(scene):
     K = reference_intrinsics(fy=640.0).scaled(48, 27)
     R, t = np.eye(3), np.array([0.0, 0.0, 12.0])
     s = BackgroundSettings(share=1.0, stars=0.05)
-    sun = (0.0, 1.0, 0.5)        # light travelling down and away: the Earth below in daylight
+    sun = (0.0, 1.0, 0.5)  # light travelling down and away: the Earth below in daylight
     with scene.Renderer(K, scene.SceneSettings(samples=2, sun_direction=sun)) as r:
         plain = r.render(R, t)
     with scene.Renderer(K, scene.SceneSettings(samples=2, sun_direction=sun, background=s)) as r:
@@ -176,8 +197,12 @@ def _render(workdir, overrides):
     render.main(load())
     label.main(load())
     out = workdir / "datasets/render"
-    return (open_zarr(out / "images.zarr")["images"][:], pd.read_parquet(out / "poses.parquet"),
-            pd.read_parquet(workdir / "datasets/labels.parquet"), json.loads((out / "meta.json").read_text()))
+    return (
+        open_zarr(out / "images.zarr")["images"][:],
+        pd.read_parquet(out / "poses.parquet"),
+        pd.read_parquet(workdir / "datasets/labels.parquet"),
+        json.loads((out / "meta.json").read_text()),
+    )
 
 
 @pytest.mark.slow
@@ -191,9 +216,14 @@ def test_render_stage_with_backgrounds_on_and_off(tmp_path, monkeypatch, scene):
     assert "background" not in poses and "background" not in labels and "background" not in meta["render"]
     assert "## Backgrounds" not in (tmp_path / "reports/dataset.md").read_text()
     without = params_mod.compose("smoke", TINY)
-    before = {k: v for k, v in without["render"].items() if k not in ("background", "source", "source_test", "target_attitude")}
-    assert meta["fingerprint"] == params_mod.fingerprint({"seed": without["seed"], "camera": without["camera"],
-                                                          "render": {**before, "mesh": None}})   # as before it
+    before = {
+        k: v
+        for k, v in without["render"].items()
+        if k not in ("background", "source", "source_test", "target_attitude")
+    }
+    assert meta["fingerprint"] == params_mod.fingerprint(
+        {"seed": without["seed"], "camera": without["camera"], "render": {**before, "mesh": None}}
+    )  # as before it
     on, poses, labels, meta = _render(tmp_path, ON)
     assert meta["render"]["background"]["share"] == 0.5
     assert set(poses.background) <= {"black", "space", "earth"} and (poses.background == "earth").any()
@@ -211,9 +241,9 @@ def test_render_stage_with_backgrounds_on_and_off(tmp_path, monkeypatch, scene):
 @pytest.mark.slow
 def test_workers_render_the_same_frames_in_any_order(tmp_path, scene):
     """Chunks rendered by separate workers, in reverse order, give the images of one worker in order."""
-    from stages.engine.chunks import FrameRange, RenderSetup, RenderWorker, create_store, frame_backgrounds
     from pipeline.geometry.trajectories import approach_sequences, flatten
     from pipeline.io.store import reopen_array
+    from stages.engine.chunks import FrameRange, RenderSetup, RenderWorker, create_store, frame_backgrounds
 
     K = reference_intrinsics(fy=640.0).scaled(32, 18)
     settings = scene.SceneSettings(samples=1, background=BackgroundSettings(share=0.5, stars=0.05, noise_std=0.01))
@@ -226,7 +256,7 @@ def test_workers_render_the_same_frames_in_any_order(tmp_path, scene):
         create_store(url, len(t), K.height, K.width, 4)
         setup = RenderSetup(K, settings, R, t, url, None, tuple(draws))
         for lo, hi in order:
-            worker = RenderWorker(setup)     # a fresh worker (Blender scene) per chunk
+            worker = RenderWorker(setup)  # a fresh worker (Blender scene) per chunk
             worker.run(FrameRange(lo, hi))
             worker.close()
         out[name] = reopen_array(url, "images")[:]
@@ -239,8 +269,13 @@ def test_bad_background_params_are_one_line(scene):
 
     K = reference_intrinsics(fy=640.0).scaled(32, 18)
     with pytest.raises(StageError, match=r"params.yaml render: background.nadir must be a non-zero 3-vector") as e:
-        frame_backgrounds(K, scene.SceneSettings(background=BackgroundSettings(share=0.5, nadir=(0.0, 0.0, 0.0))),
-                          np.eye(3)[None], np.eye(3)[None], 0)
+        frame_backgrounds(
+            K,
+            scene.SceneSettings(background=BackgroundSettings(share=0.5, nadir=(0.0, 0.0, 0.0))),
+            np.eye(3)[None],
+            np.eye(3)[None],
+            0,
+        )
     assert "\n" not in str(e.value)
     from stages.config.schema import build
     from stages.config.sections import ParamsError
@@ -265,4 +300,4 @@ def test_the_guidance_loop_renders_each_pose_over_its_own_draw(scene):
         first = render(R, t)
         assert np.array_equal(first, render(R, t)) and first.min() > CLAMP * 255
         assert np.array_equal(first, r.render(R, t, draw(s, R.T, 5, pose_key(R, t))))
-        assert not np.array_equal(first, render(R, t + np.array([0.0, 0.0, 1e-3])))   # another pose, another draw
+        assert not np.array_equal(first, render(R, t + np.array([0.0, 0.0, 1e-3])))  # another pose, another draw

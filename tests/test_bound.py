@@ -1,5 +1,6 @@
 """The worst case of the defended chain under an attacker's capacity (pipeline/defense/bound.py) and the
 capacity overbound (pipeline/attacks/capacity.py), on toy filters: no network."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -17,7 +18,7 @@ from pipeline.defense.noise import NoiseModel
 from pipeline.geometry.rotations import matrix_to_6d
 from pipeline.geometry.trajectories import approach_trajectory, look_at
 
-FLAT = NoiseModel((0.1, 0.1, 0.4), (0.0, 0.0, 0.0), 1.0, 0.0)      # range-free: the program is exact at once
+FLAT = NoiseModel((0.1, 0.1, 0.4), (0.0, 0.0, 0.0), 1.0, 0.0)  # range-free: the program is exact at once
 SLOPED = NoiseModel((0.05, 0.05, 0.1), (0.002, 0.002, 0.01), 1.0, 0.0, bias_slope=(0.0, 0.0, 0.005))
 MOTION = MotionSettings(cusum_threshold=5.0, trusted_start=5)
 SETTINGS = DefenseSettings()
@@ -44,19 +45,20 @@ def in_axes(rel: np.ndarray, run: CleanRun, shift: np.ndarray) -> np.ndarray:
     return np.einsum("njk,nji,ni->nk", fault_axes(rel), run.R_cam, shift)
 
 
-def assert_passes(rel: np.ndarray, run: CleanRun, noise: NoiseModel, shift: np.ndarray, upto: int,
-                  motion: MotionSettings = MOTION) -> None:
+def assert_passes(
+    rel: np.ndarray, run: CleanRun, noise: NoiseModel, shift: np.ndarray, upto: int, motion: MotionSettings = MOTION
+) -> None:
     """The shifted run through the real defense makes the clean run's accept / reject choices on frames
     <= upto and flags the same frames, with every accepted frame under the gate (unweighted ones under the
     soft gate) and every CUSUM statistic at most h."""
     clean, attacked = record(SETTINGS, motion, noise, run), record(SETTINGS, motion, noise, run, shift)
-    choices = [np.where(r.kind[:upto + 1] == HUBER, ACCEPT, r.kind[:upto + 1]) for r in (clean, attacked)]
+    choices = [np.where(r.kind[: upto + 1] == HUBER, ACCEPT, r.kind[: upto + 1]) for r in (clean, attacked)]
     assert np.array_equal(*choices)
-    assert np.array_equal(attacked.trace.flag[:upto + 1], clean.trace.flag[:upto + 1])
+    assert np.array_equal(attacked.trace.flag[: upto + 1], clean.trace.flag[: upto + 1])
     accepted = choices[1] == ACCEPT
-    assert (attacked.nis[:upto + 1][accepted] <= motion.gate).all()
-    assert (attacked.nis[:upto + 1][attacked.kind[:upto + 1] == ACCEPT] <= motion.soft_gate * motion.gate).all()
-    assert (attacked.statistic[:upto + 1][accepted] <= motion.cusum_threshold).all()
+    assert (attacked.nis[: upto + 1][accepted] <= motion.gate).all()
+    assert (attacked.nis[: upto + 1][attacked.kind[: upto + 1] == ACCEPT] <= motion.soft_gate * motion.gate).all()
+    assert (attacked.statistic[: upto + 1][accepted] <= motion.cusum_threshold).all()
 
 
 def test_the_worst_sequence_replays_through_the_real_defense_to_the_programs_error() -> None:
@@ -67,10 +69,10 @@ def test_the_worst_sequence_replays_through_the_real_defense_to_the_programs_err
     np.testing.assert_allclose(w.achieved, w.lower, atol=1e-6)
     assert (w.upper >= w.lower - 1e-6).all() and (w.upper <= np.sqrt(3) * w.lower + 1e-6).all()
     clean = np.linalg.norm(record(SETTINGS, MOTION, FLAT, run).trace.trusted - rel, axis=1)[w.targets]
-    assert (w.achieved > clean + 0.2).all()              # the attack moves the trusted estimate
+    assert (w.achieved > clean + 0.2).all()  # the attack moves the trusted estimate
     for t, j in enumerate(w.targets):
-        assert (np.abs(in_axes(rel, run, w.shift[t])) <= cap + 1e-9).all()      # never outside F
-        assert not w.shift[t][j + 1:].any()
+        assert (np.abs(in_axes(rel, run, w.shift[t])) <= cap + 1e-9).all()  # never outside F
+        assert not w.shift[t][j + 1 :].any()
         assert_passes(rel, run, FLAT, w.shift[t], j)
     np.testing.assert_allclose(w.ratio, w.upper / 6.0)
 
@@ -89,8 +91,10 @@ def test_the_start_frame_is_not_trusted_its_bound_is_the_clean_error_plus_the_ca
 def test_a_looser_capacity_gives_a_larger_bound_and_none_gives_the_clean_error() -> None:
     rel, run = toy(50, 2, FLAT)
     targets = [5, 20, 49]
-    runs = [worst_case(SETTINGS, MOTION, FLAT, run, rel, box(50, f, f / 4), np.full(50, 6.0), targets=targets)
-            for f in (0.0, 0.2, 0.6)]
+    runs = [
+        worst_case(SETTINGS, MOTION, FLAT, run, rel, box(50, f, f / 4), np.full(50, 6.0), targets=targets)
+        for f in (0.0, 0.2, 0.6)
+    ]
     clean = np.linalg.norm(record(SETTINGS, MOTION, FLAT, run).trace.trusted - rel, axis=1)[targets]
     np.testing.assert_allclose(runs[0].achieved, clean, atol=1e-9)
     np.testing.assert_allclose(runs[0].upper, clean, atol=1e-5)
@@ -104,8 +108,8 @@ def test_the_program_keeps_the_gate_rejections_and_the_alarms_of_the_clean_run()
     keeps every rejection and alarm where they were (the same restarts of the test) and replays exactly."""
     rel, run = toy(70, 3, FLAT)
     pose = run.pose.copy()
-    pose[[12, 40], 2] += 6.0                                   # rejected by the gate
-    pose[20:32, 2] += 0.35 * np.arange(12)                     # a ramp: the sequential test alarms
+    pose[[12, 40], 2] += 6.0  # rejected by the gate
+    pose[20:32, 2] += 0.35 * np.arange(12)  # a ramp: the sequential test alarms
     run = dataclasses.replace(run, pose=pose)
     clean = record(SETTINGS, MOTION, FLAT, run)
     assert (clean.kind == REJECT).sum() >= 2 and (clean.kind == ALARM).any()
@@ -161,8 +165,10 @@ def test_shifts_split_along_and_across_the_line_of_sight() -> None:
 def test_the_capacity_is_a_quantile_plus_margin_per_bin_and_monotone_in_eps() -> None:
     rng = np.random.default_rng(0)
     r = rng.uniform(10, 60, 4000)
-    shifts = [Shifts(e, r, k * 0.02 * r * rng.uniform(0, 1, 4000), k * 0.005 * r * rng.uniform(0, 1, 4000),
-                     np.zeros(4000)) for e, k in ((0.01, 1.0), (0.05, 3.0))]
+    shifts = [
+        Shifts(e, r, k * 0.02 * r * rng.uniform(0, 1, 4000), k * 0.005 * r * rng.uniform(0, 1, 4000), np.zeros(4000))
+        for e, k in ((0.01, 1.0), (0.05, 3.0))
+    ]
     edges = [10, 20, 40, 60]
     caps = [fit_capacity(s, edges, quantile=0.99, margin=0.25) for s in shifts]
     low = caps[0]
@@ -171,10 +177,10 @@ def test_the_capacity_is_a_quantile_plus_margin_per_bin_and_monotone_in_eps() ->
     assert (low.count >= 20).all() and low.count.sum() == 4000
     F = low.at(np.array([15.0, 30.0, 60.0]))
     np.testing.assert_allclose(F, [[low.along[k], low.across[k], low.across[k]] for k in (0, 1, 2)])
-    between = capacity_at(caps, 0.02, np.array([15.0, 55.0]))       # the next measured eps, 0.05
+    between = capacity_at(caps, 0.02, np.array([15.0, 55.0]))  # the next measured eps, 0.05
     np.testing.assert_allclose(between, caps[1].at(np.array([15.0, 55.0])))
-    weaker = dataclasses.replace(caps[1], along=caps[1].along * 0.1)    # a larger eps that measured less
-    assert (capacity_at([low, weaker], 0.05, np.array([30.0]))[0, 0] == low.along[1])
+    weaker = dataclasses.replace(caps[1], along=caps[1].along * 0.1)  # a larger eps that measured less
+    assert capacity_at([low, weaker], 0.05, np.array([30.0]))[0, 0] == low.along[1]
     with pytest.raises(ValueError, match="above every measured eps"):
         capacity_at(caps, 0.1, np.array([30.0]))
     with pytest.raises(ValueError, match=r"within the measured bins \[10.0, 60.0\]"):

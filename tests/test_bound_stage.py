@@ -1,5 +1,6 @@
 """`rpod bound` (stages/bound.py): its params section, its reading of the capacity files, and its page built from
 bound_run outputs on a toy filter."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -48,17 +49,24 @@ def test_the_stage_reads_the_capacity_and_refuses_a_missing_one_or_an_eps_above_
 
 def _metrics() -> dict:
     """A one-chain metrics dict as stages/bound.py assembles it, from two toy trajectories."""
-    tracks = [bound_run(DEFENDED, f"t{s}", *toy(40, s, FLAT)[::-1], caps(0.01, 0.01), [0.01, 0.05], 10,
-                        AlertLimitSettings()) for s in (1, 2)]
+    tracks = [
+        bound_run(DEFENDED, f"t{s}", *toy(40, s, FLAT)[::-1], caps(0.01, 0.01), [0.01, 0.05], 10, AlertLimitSettings())
+        for s in (1, 2)
+    ]
     per_eps = {}
     for e in ("0.01", "0.05"):
         per_eps[e] = worst_over_trajectories(tracks, e)
         for who in ATTACKERS:
             r = over_al_rate(tracks, e, who)
             per_eps[e][who]["frames_over_al"] = {"value": r.value if r.n else None, "ci": r.ci(), "n": r.n}
-    chain = {"capacity": {"eps": [0.01, 0.05], "quantile": 0.99, "margin": 0.25, "edges": [0.0, 100.0]},
-             "per_eps": per_eps, "first_over_al_eps": first_over(per_eps), "tracks": tracks, "certificate": None,
-             "seconds": 1.0}
+    chain = {
+        "capacity": {"eps": [0.01, 0.05], "quantile": 0.99, "margin": 0.25, "edges": [0.0, 100.0]},
+        "per_eps": per_eps,
+        "first_over_al_eps": first_over(per_eps),
+        "tracks": tracks,
+        "certificate": None,
+        "seconds": 1.0,
+    }
     return {"eps": [0.01, 0.05], "stride": 10, "trajectories": 2, "frames": 80, "chains": {"robust": chain}}
 
 
@@ -68,8 +76,13 @@ def test_the_page_states_the_bound_its_replay_its_rate_with_an_interval_and_its_
     b = m["chains"]["robust"]["per_eps"]["0.05"]["bound"]
     assert f"{b['max_error_al']:.2f}" in page and f"{b['max_achieved_m']:.2f}" in page
     rate = b["frames_over_al"]
-    assert rate["n"] > 0 and f"{100 * rate['ci'][1]:.1f}]" in page            # the share comes with its interval
-    for words in ("empirical overbound, not a certificate", "certificate is vacuous", "detector is modelled as blind",
-                  "trusted-start frames", "Not computed"):
+    assert rate["n"] > 0 and f"{100 * rate['ci'][1]:.1f}]" in page  # the share comes with its interval
+    for words in (
+        "empirical overbound, not a certificate",
+        "certificate is vacuous",
+        "detector is modelled as blind",
+        "trusted-start frames",
+        "Not computed",
+    ):
         assert words in page
     assert np.isfinite(b["max_error_m"])

@@ -1,5 +1,6 @@
 """The burst attacker: nesting in eps, no weaker than plain PGD without checks, 8-bit storage,
 seeded restarts, the filter mirror, bad options (a tiny random PoseNet on 18 x 32 frames, CPU)."""
+
 from __future__ import annotations
 
 import copy
@@ -72,11 +73,11 @@ def test_the_mirror_replays_the_motion_filter(scene) -> None:
     rng = np.random.default_rng(0)
     with torch.no_grad():
         pose = model(torch.clamp(run.images + 0.05 * torch.randn(run.images.shape), 0, 1)).double()
-    pose[5:7, :3] += torch.tensor([0.4, -0.3, 1.5], dtype=torch.float64)     # jumps past the soft gate
+    pose[5:7, :3] += torch.tensor([0.4, -0.3, 1.5], dtype=torch.float64)  # jumps past the soft gate
     pose[6, 3:] = torch.tensor([1.0, 0.2, 0.0, 0.0, 1.0, 0.3], dtype=torch.float64)
     R_cam = np.stack([rotvec_to_matrix(rng.normal(0, 0.3, 3)) for _ in range(N)])
     u = rng.normal(0, 0.05, (N, 3))
-    quiet = dataclasses.replace(MOTION, cusum_threshold=1e9)   # the mirror follows accepted frames: no alarm
+    quiet = dataclasses.replace(MOTION, cusum_threshold=1e9)  # the mirror follows accepted frames: no alarm
     real, soft = MotionFilter(quiet, NOISE), MOTION.soft_gate * MOTION.gate
     mirror, nis = FilterMirror(real, 2), []
     for k in range(N):
@@ -94,9 +95,9 @@ def test_the_mirror_replays_the_motion_filter(scene) -> None:
             nis.append((check.nis_position, check.nis_attitude))
         assert np.allclose(level.numpy(), real.position, rtol=1e-9, atol=1e-9)
         if k == 3:
-            mirror = FilterMirror(real, 1)   # taken over from a started filter
-    assert np.max(nis, axis=0).min() > soft    # both Huber paths were taken
-    assert real.cusum.statistic > 0            # and the CUSUM moved
+            mirror = FilterMirror(real, 1)  # taken over from a started filter
+    assert np.max(nis, axis=0).min() > soft  # both Huber paths were taken
+    assert real.cusum.statistic > 0  # and the CUSUM moved
 
 
 def test_nested_worst_case_is_monotone_in_eps(scene) -> None:
@@ -115,10 +116,17 @@ def test_without_checks_the_burst_reaches_plain_pgd(scene) -> None:
     """No defense, no detector, lambda 0: at the same eps and steps the burst's raw position error
     is at least that of pipeline.attacks.gradient.pgd on the position loss (same seed)."""
     model, _, run, _ = scene
-    x, y = run.images[N - K:], run.labels[N - K:]
+    x, y = run.images[N - K :], run.labels[N - K :]
     for eps in (0.01, 0.05):
-        plain = pgd(model, x, y, eps, attack_loss("position", PoseLoss("mean")), steps=6,
-                    generator=torch.Generator().manual_seed(3))
+        plain = pgd(
+            model,
+            x,
+            y,
+            eps,
+            attack_loss("position", PoseLoss("mean")),
+            steps=6,
+            generator=torch.Generator().manual_seed(3),
+        )
         with torch.no_grad():
             stored = model(quantize(plain, x).float() / 255)
         plain_err = float((stored[:, :3].double() - y[:, :3].double()).norm(dim=1).mean())
@@ -133,7 +141,7 @@ def test_stored_images_respect_eps_and_leave_clean_frames(scene) -> None:
     res = _attacker().nested(chain, _defense(threshold), run, eps)
     for e, stored in zip(eps, res.images):
         assert stored.dtype == torch.uint8
-        assert torch.equal(stored[:N - K], run.stored()[:N - K])
+        assert torch.equal(stored[: N - K], run.stored()[: N - K])
         # quantize rounds each perturbation to the nearest level (at least one): within eps + half a level
         assert float((stored.float() / 255 - run.images).abs().max()) <= e + 0.5 / 255 + 1e-6
 
@@ -144,15 +152,23 @@ def test_outcomes_are_what_the_real_defense_sees_on_the_stored_run(scene, mask: 
     outcomes are those of the real defense over the whole stored run."""
     _, chain, run, threshold = scene
     run = dataclasses.replace(run, attacked=mask)
-    attacker = _attacker(alert_limit=lambda rng: 0.001 * rng)   # AL as a function of the true range (m)
+    attacker = _attacker(alert_limit=lambda rng: 0.001 * rng)  # AL as a function of the true range (m)
     stored = attacker.attack(chain, _defense(threshold), run, 0.03)
     res = attacker.nested(chain, _defense(threshold), run, [0.03])
     assert torch.equal(stored, res.images[0])
     with torch.no_grad():
         pose, logit = chain(stored.float() / 255)
     pose = pose.double().numpy()
-    trace = run_defense(DefenseSettings(threshold=threshold), MOTION, NOISE, pose[:, :3],
-                        torch.sigmoid(logit.double()).numpy(), run.R_cam, run.u, sixd_to_matrix(pose[:, 3:]))
+    trace = run_defense(
+        DefenseSettings(threshold=threshold),
+        MOTION,
+        NOISE,
+        pose[:, :3],
+        torch.sigmoid(logit.double()).numpy(),
+        run.R_cam,
+        run.u,
+        sixd_to_matrix(pose[:, 3:]),
+    )
     assert len(res.bursts[0]) == len(bursts_of(mask))
     for (lo, hi), burst in zip(bursts_of(mask), res.bursts[0]):
         truth = run.labels[lo:hi, :3].double().numpy()
@@ -160,8 +176,9 @@ def test_outcomes_are_what_the_real_defense_sees_on_the_stored_run(scene, mask: 
         error = np.linalg.norm(trace.trusted[lo:hi] - truth, axis=1)
         assert np.allclose(error, burst.trusted_error, atol=1e-6)
         al = 0.001 * np.linalg.norm(truth, axis=1)
-        assert np.array_equal(burst.hmi, ~trace.flag[lo:hi] & (trace.mode[lo:hi] == "track")
-                              & (trace.pl[lo:hi] <= al) & (error > al))
+        assert np.array_equal(
+            burst.hmi, ~trace.flag[lo:hi] & (trace.mode[lo:hi] == "track") & (trace.pl[lo:hi] <= al) & (error > al)
+        )
 
 
 def test_restarts_are_seeded(scene) -> None:
@@ -171,7 +188,7 @@ def test_restarts_are_seeded(scene) -> None:
     a, b, c = (_attacker(seed=seed, steps=2, lambdas=(1.0,)).attack(chain, defense, run, 0.02) for seed in (5, 5, 6))
     assert torch.equal(a, b)
     assert not torch.equal(a, c)
-    assert defense.filter.__dict__.keys() == before.keys() and not defense.filter.started   # only copies stepped
+    assert defense.filter.__dict__.keys() == before.keys() and not defense.filter.started  # only copies stepped
 
 
 @pytest.mark.parametrize("eps, word", [([0.0], "eps"), ([1.5], "eps"), ([0.05, 0.01], "increasing")])

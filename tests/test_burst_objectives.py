@@ -2,6 +2,7 @@
 real filter's on the accepted path (first start with its trusted frames, and taken over mid-run), the
 error / PL objective ascends it through the mirror, the hinge margin stops paying inside the threshold,
 and the candidates are judged by the failing frames of their index (test_burst's tiny PoseNet, CPU)."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -9,6 +10,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from test_burst import MOTION, NOISE, N, scene  # noqa: F401  (its tiny PoseNet, LSTM and run)
 
 from pipeline.attackers.base import margin_cost
 from pipeline.attackers.burst import WIDE_LAMBDAS, BurstAttacker
@@ -16,7 +18,6 @@ from pipeline.attackers.filter_mirror import FilterMirror
 from pipeline.defense.fusion import Defense, DefenseSettings
 from pipeline.defense.kalman import MotionFilter
 from pipeline.geometry.rotations import rotvec_to_matrix, sixd_to_matrix, sixd_to_matrix_t
-from test_burst import MOTION, NOISE, N, scene  # noqa: F401  (its tiny PoseNet, LSTM and run)
 
 
 @pytest.mark.parametrize("trusted_start", [0, 3])
@@ -25,7 +26,7 @@ def test_the_mirror_replays_the_protection_level(scene, trusted_start: int) -> N
     rng = np.random.default_rng(1)
     with torch.no_grad():
         pose = model(torch.clamp(run.images + 0.05 * torch.randn(run.images.shape), 0, 1)).double()
-    pose[5, :3] += torch.tensor([0.4, -0.3, 1.5], dtype=torch.float64)          # a Huber-weighted frame
+    pose[5, :3] += torch.tensor([0.4, -0.3, 1.5], dtype=torch.float64)  # a Huber-weighted frame
     R_cam = np.stack([rotvec_to_matrix(rng.normal(0, 0.3, 3)) for _ in range(N)])
     u = rng.normal(0, 0.05, (N, 3))
     motion = dataclasses.replace(MOTION, cusum_threshold=1e9, trusted_start=trusted_start)
@@ -43,14 +44,14 @@ def test_the_mirror_replays_the_protection_level(scene, trusted_start: int) -> N
             real.accept()
         np.testing.assert_allclose(mirror.protection_level().numpy(), real.protection_level, rtol=1e-9)
         if k == 4:
-            mirror = FilterMirror(real, 2)          # taken over from a started filter
+            mirror = FilterMirror(real, 2)  # taken over from a started filter
     assert real.protection_level > 0
 
 
 def test_the_hinge_stops_paying_inside_the_threshold() -> None:
     z = torch.tensor([-2.0, -0.6, -0.4, 0.5])
     np.testing.assert_allclose(margin_cost(z, 0.5).numpy(), [0.0, 0.0, 0.1, 1.0], atol=1e-7)
-    assert (margin_cost(z, None) > 0).all()                                     # softplus pays everywhere
+    assert (margin_cost(z, None) > 0).all()  # softplus pays everywhere
 
 
 @pytest.mark.parametrize("objective", ["error_al", "error_pl"])
@@ -62,7 +63,7 @@ def test_index_objectives_run_nested_and_are_judged_by_their_failing_frames(scen
     assert [w.objective for w in worst] == [objective] * 2 and worst[0].mi is not None
     failing = worst[-1].mi if objective == "error_pl" else worst[-1].hmi
     assert worst[-1].key[0] == int(failing.sum())
-    assert [w.key for w in worst] == sorted(w.key for w in worst)                # nested: never weaker
+    assert [w.key for w in worst] == sorted(w.key for w in worst)  # nested: never weaker
     assert worst[-1].score > 0
 
 

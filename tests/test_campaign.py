@@ -4,6 +4,7 @@ can deliver it, per chain (the defended toy and the undefended control); the lad
 when asked; the summary nests each attacker in eps, takes the worst over attackers per trajectory and counts HMI
 trajectories with Clopper-Pearson intervals; the robustness page leads with the breaking point and the targets;
 the closed loop's docking table and breaking point per variant."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -37,8 +38,10 @@ def tracks() -> list[Track]:
 
 
 def _campaign(eps: list[float], stop: bool, defended: bool) -> Campaign:
-    plans = [Plan("capture/lateral 2 m", CaptureSettings("lateral", initial=2.0), 0),
-             Plan("drift/los", DriftSettings("los", max_rate=None if defended else 0.02), 21)]
+    plans = [
+        Plan("capture/lateral 2 m", CaptureSettings("lateral", initial=2.0), 0),
+        Plan("drift/los", DriftSettings("los", max_rate=None if defended else 0.02), 21),
+    ]
     return Campaign(eps, plans, shift, 0, None, [], PERSISTENT, SINGLE, 8, 1.0, 0, stop)
 
 
@@ -87,16 +90,22 @@ def test_the_summary_nests_each_attacker_in_eps_and_takes_the_worst_over_attacke
     from pipeline.evaluation.campaign import Flights
     from pipeline.stats import Rate
 
-    measures = {"a": {0.01: [_measures("t0", 0.5), _measures("t1", 1.2, hmi=2)],
-                      0.05: [_measures("t0", 0.3), _measures("t1", 0.4)]},
-                "b": {0.01: [_measures("t0", 0.2), _measures("t1", 0.1)],
-                      0.05: [_measures("t0", 0.9, final=2.0), _measures("t1", 0.2)]}}
+    measures = {
+        "a": {
+            0.01: [_measures("t0", 0.5), _measures("t1", 1.2, hmi=2)],
+            0.05: [_measures("t0", 0.3), _measures("t1", 0.4)],
+        },
+        "b": {
+            0.01: [_measures("t0", 0.2), _measures("t1", 0.1)],
+            0.05: [_measures("t0", 0.9, final=2.0), _measures("t1", 0.2)],
+        },
+    }
     rate = {"value": 1.0, "ci": [0.9, 1.0], "n": 20}
     flights = Flights([], Rate(0.0, 0.0, 0.0, 20), [], [], {"availability": rate}, [], measures, [], {}, {}, None)
     s = safety_summary(flights)
     assert s["breaking_eps"] == 0.01
     at = s["per_eps"]["0.05"]
-    assert at["max_error_al"] == 1.2 and at["failed"] == 1 and at["final_error_max_m"] == 2.0   # t1 nested from 0.01
+    assert at["max_error_al"] == 1.2 and at["failed"] == 1 and at["final_error_max_m"] == 2.0  # t1 nested from 0.01
     assert [w["worst_attacker"] for w in at["per_trajectory"]] == ["b", "a"]
     assert at["hmi_trajectories"]["value"] == 0.5 and at["hmi_trajectories"]["ci"][1] > 0.9
     assert s["attackers"]["a"]["0.05"][1]["max_error_al"] == 1.2 and s["per_eps"]["0.01"]["max_error_pl"] is None
@@ -104,29 +113,72 @@ def test_the_summary_nests_each_attacker_in_eps_and_takes_the_worst_over_attacke
 
 def _integrity(breaking: dict[str, float | None], shipped_failed: int = 0, availability: float = 0.999) -> dict:
     """A minimal metrics `integrity` block as rpod robustness writes it (stages/engine/campaigns.py)."""
+
     def chain(b: float | None, failed: int) -> dict:
-        per = {f"{e:g}": {"max_error_al": 1.5 if failed and e >= 0.05 else 0.4, "max_error_al_single": 0.2,
-                          "max_error_pl": 0.9, "final_error_max_m": 0.3, "failed": failed if e >= 0.05 else 0,
-                          "trajectories": 10, "worst_attacker": "capture/lateral 2 m",
-                          "hmi_trajectories": {"value": 0.0, "ci": [0.0, 0.31], "n": 10}, "stanford": {"nominal": 5},
-                          "per_trajectory": [{"trajectory": "t0", "max_error_al": 0.4, "max_error_al_single": 0.2,
-                                              "max_error_pl": 0.9, "final_error": 0.3, "worst_attacker": "drift/los",
-                                              "failed": False}]} for e in (0.01, 0.05)}
-        clean = {"availability": {"value": availability, "ci": [0.99, 1.0], "n": 2000},
-                 "false_alarms": {"value": 0.001, "ci": [0.0, 0.004], "n": 2000}, "max_error_al": 0.3,
-                 "max_error_pl": 0.5, "stanford": {"nominal": 100}}
-        return {"trajectories": 10, "summary": {"breaking_eps": b, "eps_flown": [0.01, 0.05], "per_eps": per,
-                                                "clean": clean}}
-    return {"chains": {k: chain(b, shipped_failed if k == "robust" else 0) for k, b in breaking.items()},
-            "breaking_eps": breaking, "eps": [0.01, 0.05], "alert_limit_m": None, "alert_limit_kind": "persistent",
-            "attackers": ["capture/lateral", "drift/los"], "capture": {"initial_m": [2.0], "rate_m": 0.0},
-            "drift": {"start": "acquisition", "gate_fraction": 0.5, "undefended_rate_m": 0.05}, "frame_steps": 3,
-            "stop_at_break": True,
-            "assumptions": {"trusted_start_frames": 20, "position_noise_m": 0.022, "noise_model": "fitted",
-                            "detector": {"fusion": "or", "threshold": 0.61},
-                            "execution": {"scale_std": 0.02, "noise_std_m": 0.01, "mean_motion_rad_s": 0.0011,
-                                          "frame_interval_s": 10.0, "approach": "vbar"},
-                            "integrity_risk": 1e-5, "cusum_reference": 1.0}}
+        per = {
+            f"{e:g}": {
+                "max_error_al": 1.5 if failed and e >= 0.05 else 0.4,
+                "max_error_al_single": 0.2,
+                "max_error_pl": 0.9,
+                "final_error_max_m": 0.3,
+                "failed": failed if e >= 0.05 else 0,
+                "trajectories": 10,
+                "worst_attacker": "capture/lateral 2 m",
+                "hmi_trajectories": {"value": 0.0, "ci": [0.0, 0.31], "n": 10},
+                "stanford": {"nominal": 5},
+                "per_trajectory": [
+                    {
+                        "trajectory": "t0",
+                        "max_error_al": 0.4,
+                        "max_error_al_single": 0.2,
+                        "max_error_pl": 0.9,
+                        "final_error": 0.3,
+                        "worst_attacker": "drift/los",
+                        "failed": False,
+                    }
+                ],
+            }
+            for e in (0.01, 0.05)
+        }
+        clean = {
+            "availability": {"value": availability, "ci": [0.99, 1.0], "n": 2000},
+            "false_alarms": {"value": 0.001, "ci": [0.0, 0.004], "n": 2000},
+            "max_error_al": 0.3,
+            "max_error_pl": 0.5,
+            "stanford": {"nominal": 100},
+        }
+        return {
+            "trajectories": 10,
+            "summary": {"breaking_eps": b, "eps_flown": [0.01, 0.05], "per_eps": per, "clean": clean},
+        }
+
+    return {
+        "chains": {k: chain(b, shipped_failed if k == "robust" else 0) for k, b in breaking.items()},
+        "breaking_eps": breaking,
+        "eps": [0.01, 0.05],
+        "alert_limit_m": None,
+        "alert_limit_kind": "persistent",
+        "attackers": ["capture/lateral", "drift/los"],
+        "capture": {"initial_m": [2.0], "rate_m": 0.0},
+        "drift": {"start": "acquisition", "gate_fraction": 0.5, "undefended_rate_m": 0.05},
+        "frame_steps": 3,
+        "stop_at_break": True,
+        "assumptions": {
+            "trusted_start_frames": 20,
+            "position_noise_m": 0.022,
+            "noise_model": "fitted",
+            "detector": {"fusion": "or", "threshold": 0.61},
+            "execution": {
+                "scale_std": 0.02,
+                "noise_std_m": 0.01,
+                "mean_motion_rad_s": 0.0011,
+                "frame_interval_s": 10.0,
+                "approach": "vbar",
+            },
+            "integrity_risk": 1e-5,
+            "cusum_reference": 1.0,
+        },
+    }
 
 
 def test_the_robustness_page_leads_with_the_breaking_point_and_says_which_targets_are_missed() -> None:
@@ -139,13 +191,15 @@ def test_the_robustness_page_leads_with_the_breaking_point_and_says_which_target
     page = lead(held, p)
     assert page.startswith("## Safety evidence that can fail") and "Every target of issue 39 is met" in page
     assert "**Trusted start**" in page and "**Detector**" in page and "threshold\n  0.61" in page
-    assert "**Breaking point (smallest eps at which an attacker fails a trajectory): shipped none in the grid, " \
-           "standard 0.01, undefended robust control 0.02.**" in page.splitlines()[2]
+    assert (
+        "**Breaking point (smallest eps at which an attacker fails a trajectory): shipped none in the grid, "
+        "standard 0.01, undefended robust control 0.02.**" in page.splitlines()[2]
+    )
     broken = _integrity({"robust": 0.05, "standard": 0.01, "control": 0.05}, shipped_failed=2, availability=0.946)
     verdicts = dict((t.split(":")[0] if ":" in t else t, v) for t, v, _ in targets(broken))
     first = lead(broken, p).splitlines()[2]
     assert "Targets of issue 39 not met" in first and "clean availability" in first and "shipped 0.05" in first
-    assert list(verdicts.values()).count("**missed**") == 3   # shipped at eps <= 0.05, the ratio, availability
+    assert list(verdicts.values()).count("**missed**") == 3  # shipped at eps <= 0.05, the ratio, availability
     no_control = _integrity({"robust": None, "standard": 0.01, "control": None})
     assert targets(no_control)[0][1] == "**missed**" and targets(no_control)[2][1] == "not shown"
 
@@ -167,27 +221,46 @@ def test_the_closed_loop_breaking_point_and_docking_table_per_variant() -> None:
 
     def run(end: tuple[float, float, float], attacked: int = 0, held: bool = False) -> SimpleNamespace:
         positions = np.array([[0.0, 0.0, 60.0], end])
-        return SimpleNamespace(positions=positions, estimates=np.zeros((1, 3)), held=np.array([held]), modes=None,
-                               outcome="", attacked_frames=attacked, closest_range=float(np.linalg.norm(end)))
+        return SimpleNamespace(
+            positions=positions,
+            estimates=np.zeros((1, 3)),
+            held=np.array([held]),
+            modes=None,
+            outcome="",
+            attacked_frames=attacked,
+            closest_range=float(np.linalg.norm(end)),
+        )
 
     runs = plan.runs()
     results = {("paper", None): run((0, 0, 30)), ("paper", 0): run((0, 0, 30), 5)}
-    results |= {("undefended", None): run((0, 0, 10.2)), ("undefended", 0): run((3.0, 0, 10.0), 5),
-                ("recover", None): run((0, 0, 13.0), held=True), ("recover", 0): run((0, 0, 13.0), 5, held=True)}
-    order = [results.get((d if c != "paper" else "paper", k if not isinstance(k, InLoopRun) else "loop"),
-                         run((0.0, 2.0, 10.0), 30)) for c, _, d, k in runs]
+    results |= {
+        ("undefended", None): run((0, 0, 10.2)),
+        ("undefended", 0): run((3.0, 0, 10.0), 5),
+        ("recover", None): run((0, 0, 13.0), held=True),
+        ("recover", 0): run((0, 0, 13.0), 5, held=True),
+    }
+    order = [
+        results.get(
+            (d if c != "paper" else "paper", k if not isinstance(k, InLoopRun) else "loop"), run((0.0, 2.0, 10.0), 30)
+        )
+        for c, _, d, k in runs
+    ]
     out = closed_loop_outcomes(plan, order, 5.0)
     v = out["variants"]["true_state"]
     assert {r["defense"] for r in out["runs"]} == {"undefended", "recover"}
     assert v["undefended"]["clean"]["outcome"] == "docked" and v["undefended"]["breaking_eps"] == 0.01
-    assert v["undefended"]["per_eps"]["0.05"] == {"met": 1, "failed": 1, "largest_miss_m": 3.0,
-                                                  "outcomes": {"missed": 1}}
-    assert v["recover"]["clean"]["outcome"] == "held" and v["recover"]["breaking_eps"] == 0.01   # the capture's miss
+    assert v["undefended"]["per_eps"]["0.05"] == {
+        "met": 1,
+        "failed": 1,
+        "largest_miss_m": 3.0,
+        "outcomes": {"missed": 1},
+    }
+    assert v["recover"]["clean"]["outcome"] == "held" and v["recover"]["breaking_eps"] == 0.01  # the capture's miss
     page = closed_loop_section(out, params_mod.build(params_mod.compose("default")))
     assert page.startswith("# Closed-loop rendezvous: where the shipped chain docks")
     assert "undefended 0.01; detect-and-recover 0.01" in page.splitlines()[2] and "Targets not met" in page
-    assert "nan" not in page   # a variant without runs at an eps shows "-"
-    v["undefended"]["breaking_eps"] = 0.0   # failing without attack says nothing about the attacks
+    assert "nan" not in page  # a variant without runs at an eps shows "-"
+    v["undefended"]["breaking_eps"] = 0.0  # failing without attack says nothing about the attacks
     page = closed_loop_section(out, params_mod.build(params_mod.compose("default")))
     assert "not shown" in next(line for line in page.splitlines() if line.startswith("| falsifiable"))
 

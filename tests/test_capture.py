@@ -6,6 +6,7 @@ fails error / AL_p at the goal, and the drift inside the protection level's trus
 where the same drift right after it is not. Toy chain: each channel's mean of a 4 x 4 image encodes one
 camera-frame axis (75 m per unit), so an eps moves the estimate by at most 75 eps per axis (1.47 m at eps
 0.02 as 8-bit levels); its per-frame attack is exact (`shift`), the capture's default PGD is checked apart."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -17,24 +18,23 @@ from pipeline.attackers.base import AttackRun
 from pipeline.attackers.capture import CaptureAttacker, CaptureInLoop, CaptureSettings
 from pipeline.attackers.drift import DriftAttacker, DriftSettings, start_frame
 from pipeline.attackers.suite import get_attacker
-from pipeline.defense.chain import ChainOutput
+from pipeline.defense.chain import ChainOutput, Defended
 from pipeline.defense.fusion import Defense, DefenseSettings
 from pipeline.defense.gate import MotionSettings
-from pipeline.defense.noise import NoiseModel
 from pipeline.defense.integrity import AlertLimitSettings
+from pipeline.defense.noise import NoiseModel
 from pipeline.evaluation.integrity_runs import Track, fly, plan_attack
 from pipeline.evaluation.measures import HELD, MISSED, docking, trajectory_measures
-from pipeline.defense.chain import Defended
 from pipeline.geometry.camera import Intrinsics
 from pipeline.guidance.dynamics import ExecutionSettings
 from pipeline.guidance.law import AttackWindow, Estimate, GuidanceSettings, run_rendezvous
 
-G, OFFSET = 75.0, np.array([37.5, 37.5, 0.0])      # metres per unit of channel mean; offset (m)
+G, OFFSET = 75.0, np.array([37.5, 37.5, 0.0])  # metres per unit of channel mean; offset (m)
 EPS = 0.02
 WIDE = Intrinsics(160, 90, 20.0, 20.0, 79.5, 44.5)
 NOISE = NoiseModel((0.12, 0.12, 0.12), (0.0, 0.0, 0.0), 1.0, 0.0)
-MOTION = MotionSettings(trusted_start=20, position_noise=0.03)   # the closed loop: commands executed with error
-EXACT = MotionSettings(trusted_start=20)                          # recorded trajectories: commands executed exactly
+MOTION = MotionSettings(trusted_start=20, position_noise=0.03)  # the closed loop: commands executed with error
+EXACT = MotionSettings(trusted_start=20)  # recorded trajectories: commands executed exactly
 IDENTITY6 = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0]
 
 
@@ -45,7 +45,9 @@ class ToyPose(nn.Module):
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         t = G * x.mean(dim=(2, 3)) - torch.as_tensor(OFFSET, dtype=x.dtype)
-        return torch.cat([t, torch.tensor(IDENTITY6, dtype=x.dtype).expand(len(x), 6)], 1), -5.0 + 0.0 * x.sum((1, 2, 3))
+        return torch.cat([t, torch.tensor(IDENTITY6, dtype=x.dtype).expand(len(x), 6)], 1), -5.0 + 0.0 * x.sum(
+            (1, 2, 3)
+        )
 
 
 class ToyOnboard:
@@ -70,8 +72,15 @@ def encode(t: np.ndarray) -> np.ndarray:
     return out.reshape(4, 4, 3)
 
 
-def shift(chain: ToyPose, x: torch.Tensor, target: torch.Tensor, eps: float, logit_threshold, generator,
-          start: torch.Tensor | None = None) -> torch.Tensor:
+def shift(
+    chain: ToyPose,
+    x: torch.Tensor,
+    target: torch.Tensor,
+    eps: float,
+    logit_threshold,
+    generator,
+    start: torch.Tensor | None = None,
+) -> torch.Tensor:
     """The toy's exact FrameAttack: each channel's mean moved toward the target's axis by whole 8-bit levels
     spread over its 16 pixels, at most floor(255 eps) levels per pixel (a start changes nothing: it is exact)."""
     levels = int(np.floor(eps * 255 + 1e-9))
@@ -116,14 +125,21 @@ def _fly_loop(attacker: str, seed: int, defended: bool = True):
     """One closed-loop approach (true_state with execution error, recover defense or undefended) attacked on
     every frame from acquisition by `attacker` -> (its Docking, flags (or None))."""
     chain = ToyPose()
-    s = GuidanceSettings(variant="true_state", defense="recover" if defended else "undefended", max_steps=60,
-                         execution=ExecutionSettings(seed=seed))
+    s = GuidanceSettings(
+        variant="true_state",
+        defense="recover" if defended else "undefended",
+        max_steps=60,
+        execution=ExecutionSettings(seed=seed),
+    )
     cam, observe = ToyCamera(chain, seed), None
     if attacker == "plain":
         cam.attack = lambda x, y: plain(chain, x, y).float() / 255
     else:
-        plan = (CaptureSettings("lateral", initial=1.5) if attacker == "capture"
-                else CaptureSettings("lateral", initial=0.05, rate=0.1))       # a drift from frame 0, grown under the checks
+        plan = (
+            CaptureSettings("lateral", initial=1.5)
+            if attacker == "capture"
+            else CaptureSettings("lateral", initial=0.05, rate=0.1)
+        )  # a drift from frame 0, grown under the checks
         loop = CaptureInLoop(chain, EPS, plan, frame_attack=shift, seed=seed)
         cam.attack, observe = loop, loop.observe
     d = Defense(DefenseSettings(), MOTION, NOISE) if defended else None
@@ -159,8 +175,14 @@ def recorded():
 
 def _measures(track: Track, stored: torch.Tensor | None):
     defended = Defended(DefenseSettings(), EXACT, NOISE)
-    f = fly(ToyOnboard(ToyPose()), defended, track, AlertLimitSettings(kind="persistent"), 8,
-            None if stored is None else stored.permute(0, 2, 3, 1).numpy())
+    f = fly(
+        ToyOnboard(ToyPose()),
+        defended,
+        track,
+        AlertLimitSettings(kind="persistent"),
+        8,
+        None if stored is None else stored.permute(0, 2, 3, 1).numpy(),
+    )
     return trajectory_measures(f.frames, f.trace.flag), f
 
 
@@ -169,24 +191,27 @@ def test_on_a_recorded_trajectory_capture_and_drift_stay_unflagged_where_the_pla
     chain, defense = ToyPose(), Defense(DefenseSettings(), EXACT, NOISE)
     clean, _ = _measures(track, None)
     assert clean.flags == 0 and not clean.failed and clean.final_error < 0.3
-    after = AttackRun(run.images, run.labels, run.R_cam, run.u, np.arange(len(run)) >= 1)   # acquisition left clean
+    after = AttackRun(run.images, run.labels, run.R_cam, run.u, np.arange(len(run)) >= 1)  # acquisition left clean
     stored = run.stored().clone()
     stored[1:] = plain(chain, run.images[1:], run.labels[1:])
     p, _ = _measures(track, stored)
-    assert p.flags > 0.75 * len(run) and p.availability < 0.3 and not p.failed      # flagged, held: the chain knows
-    cap, _ = _measures(track, CaptureAttacker(CaptureSettings("lateral", initial=1.5), frame_attack=shift)
-                       .attack(chain, defense, run, EPS))
+    assert p.flags > 0.75 * len(run) and p.availability < 0.3 and not p.failed  # flagged, held: the chain knows
+    cap, _ = _measures(
+        track,
+        CaptureAttacker(CaptureSettings("lateral", initial=1.5), frame_attack=shift).attack(chain, defense, run, EPS),
+    )
     assert cap.flags == 0 and cap.availability == 1.0 and cap.failed and cap.final_error > 1.3
     drifts = {}
     for start in ("acquisition", "after_trusted"):
         mask = np.arange(len(run)) >= start_frame(start, EXACT)
         drifted = DriftAttacker(DriftSettings("lateral"), frame_attack=shift).attack(
-            chain, defense, AttackRun(run.images, run.labels, run.R_cam, run.u, mask), EPS)
+            chain, defense, AttackRun(run.images, run.labels, run.R_cam, run.u, mask), EPS
+        )
         drifts[start] = _measures(track, drifted)
     early, late = (drifts[k][0] for k in ("acquisition", "after_trusted"))
     assert early.flags == late.flags == 0 and early.availability == late.availability == 1.0
     assert early.final_error > max(0.6, 3 * late.final_error, 2 * p.max_error_al)
-    assert early.mi > 0.8 * len(run) and late.mi == 0       # inside the PL's trusted window the PL misleads
+    assert early.mi > 0.8 * len(run) and late.mi == 0  # inside the PL's trusted window the PL misleads
     assert after.mask[0] == 0 and start_frame("acquisition", EXACT) == 0 and start_frame("after_trusted", EXACT) == 21
 
 
@@ -200,11 +225,14 @@ def test_the_batched_runner_takes_capture_plans_and_the_undefended_control(recor
     for defended in (Defended(DefenseSettings(), EXACT, NOISE), None):
         stored = plan_attack(chain, defended, [track], clean, [(plan, 0) for plan in plans], EPS, 0, frame_attack=shift)
         f = [fly(ToyOnboard(chain), defended, track, AlertLimitSettings(), 8, s[0]) for s in stored]
-        los = np.einsum("ij,ij->i", f[0].pose[:, :3] - clean[0].pose[:, :3], track.labels[:, :3]
-                        / np.linalg.norm(track.labels[:, :3], axis=1, keepdims=True))
-        assert np.median(los) > 0.8                                          # the capture's 1 m, outward
-        grown = abs(f[1].pose[-1, 0] - clean[0].pose[-1, 0])                # the drift grew across the LOS:
-        assert grown > (0.3 if defended else 1.0)                            # under the checks, or freely
+        los = np.einsum(
+            "ij,ij->i",
+            f[0].pose[:, :3] - clean[0].pose[:, :3],
+            track.labels[:, :3] / np.linalg.norm(track.labels[:, :3], axis=1, keepdims=True),
+        )
+        assert np.median(los) > 0.8  # the capture's 1 m, outward
+        grown = abs(f[1].pose[-1, 0] - clean[0].pose[-1, 0])  # the drift grew across the LOS:
+        assert grown > (0.3 if defended else 1.0)  # under the checks, or freely
         assert defended is not None or not f[0].trace.flag.any()
 
 
@@ -212,7 +240,8 @@ def test_the_capture_default_pgd_stays_within_eps_and_moves_the_estimate_its_way
     track, run = recorded
     chain = ToyPose()
     stored = get_attacker("capture", settings=CaptureSettings("lateral", initial=1.0)).attack(
-        chain, Defense(DefenseSettings(), EXACT, NOISE), run, EPS)
+        chain, Defense(DefenseSettings(), EXACT, NOISE), run, EPS
+    )
     delta = (stored.float() - run.stored().float()).abs().max()
     assert delta <= np.ceil(EPS * 255) and delta > 0
     with torch.no_grad():
@@ -220,14 +249,22 @@ def test_the_capture_default_pgd_stays_within_eps_and_moves_the_estimate_its_way
     assert np.median(moved) > 0.5
 
 
-@pytest.mark.parametrize("change, word", [({"direction": "up"}, "direction"), ({"initial": 0.0}, "initial"),
-                                          ({"rate": -1.0}, "rate"), ({"final": 0.5}, "final"),
-                                          ({"gate_fraction": 1.5}, "gate_fraction")])
+@pytest.mark.parametrize(
+    "change, word",
+    [
+        ({"direction": "up"}, "direction"),
+        ({"initial": 0.0}, "initial"),
+        ({"rate": -1.0}, "rate"),
+        ({"final": 0.5}, "final"),
+        ({"gate_fraction": 1.5}, "gate_fraction"),
+    ],
+)
 def test_bad_capture_settings_are_one_line(change: dict, word: str) -> None:
     with pytest.raises(ValueError, match=word):
         CaptureSettings(**change)
     with pytest.raises(ValueError, match="max_rate"):
-        DriftAttacker(DriftSettings("los")).attack(ToyPose(), None, AttackRun(torch.zeros(1, 3, 4, 4),
-                                                   torch.zeros(1, 9), np.eye(3)[None]), EPS)
+        DriftAttacker(DriftSettings("los")).attack(
+            ToyPose(), None, AttackRun(torch.zeros(1, 3, 4, 4), torch.zeros(1, 9), np.eye(3)[None]), EPS
+        )
     with pytest.raises(ValueError, match="start"):
         start_frame("later", MOTION)

@@ -5,8 +5,8 @@ from torch import nn
 
 from pipeline.defense.chain import OnboardChain
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
-from pipeline.shap import Explainer
 from pipeline.pose.model import PoseNet
+from pipeline.shap import Explainer
 
 
 @pytest.fixture(scope="module")
@@ -44,8 +44,8 @@ def test_chain_is_stateless_per_frame(parts):
     batch = chain(x)
     for i in range(len(x)):
         one = chain(x[i])
-        torch.testing.assert_close(one.prob, batch.prob[i:i + 1], rtol=1e-4, atol=1e-6)
-        torch.testing.assert_close(one.pose, batch.pose[i:i + 1], rtol=1e-4, atol=1e-5)
+        torch.testing.assert_close(one.prob, batch.prob[i : i + 1], rtol=1e-4, atol=1e-6)
+        torch.testing.assert_close(one.pose, batch.pose[i : i + 1], rtol=1e-4, atol=1e-5)
 
 
 class _ReluHead(nn.Module):
@@ -93,7 +93,6 @@ def test_run_sequence_attacks_only_scheduled_frames_with_their_own_labels(parts)
         run_sequence(chain, images, targets, attacked, None)
 
 
-
 def test_fast_path_equals_the_plain_chain_at_real_sizes():
     """1000 features, 100 LSTM units, 9 rows, random weights: the folded path (`FoldedShapLSTM`) gives the
     plain chain's pose and SHAP values exactly and its probabilities within 1e-4, batched or not."""
@@ -105,7 +104,7 @@ def test_fast_path_equals_the_plain_chain_at_real_sizes():
     det = LSTMDetector(LSTMConfig()).eval()
     plain = OnboardChain.from_model(model, bg.mean(0), det, fast=False)
     det.set_normalisation(plain(x).shap.numpy())
-    with torch.no_grad():   # sharper than the initialisation, so that the probabilities spread
+    with torch.no_grad():  # sharper than the initialisation, so that the probabilities spread
         det.lstm.input_proj.weight.mul_(5.0)
         det.classifier[0].weight.mul_(5.0)
     fast = OnboardChain.from_model(model, bg.mean(0), det, threshold=0.5)
@@ -116,4 +115,4 @@ def test_fast_path_equals_the_plain_chain_at_real_sizes():
     np.testing.assert_allclose(a.prob.numpy(), b.prob.numpy(), rtol=0, atol=1e-4)
     assert torch.equal(a.flag, a.prob >= 0.5)
     for i in (0, 5):
-        np.testing.assert_allclose(fast(x[i]).prob.numpy(), b.prob.numpy()[i:i + 1], rtol=0, atol=1e-4)
+        np.testing.assert_allclose(fast(x[i]).prob.numpy(), b.prob.numpy()[i : i + 1], rtol=0, atol=1e-4)

@@ -1,6 +1,7 @@
 """The two chains (issue 28): the chain that ships is the robust pose model with its own detector and defense,
 the paper's reproduction is the standard model with its own; every loader picks them by model (stages.artifacts.
 paths.CHAINS) and refuses a detector or defense made for the other model (hash checks). Tiny random models."""
+
 from __future__ import annotations
 
 import shutil
@@ -38,8 +39,11 @@ def _defense(models: Path, model: Model, threshold: float, params=None) -> dict:
     changes = {}
     if params is not None:
         settings, motion = defense_settings(params.defense, 0.9, None if params.defense.doubt_share is None else 0.5)
-        changes = {"settings": settings, "motion": dataclasses.replace(motion, cusum_threshold=8.0),
-                   "alert_limit": alert_limit_settings(params)}
+        changes = {
+            "settings": settings,
+            "motion": dataclasses.replace(motion, cusum_threshold=8.0),
+            "alert_limit": alert_limit_settings(params),
+        }
     return defense_record(models / CHAINS[model].pose.name, threshold, model.value, **changes)
 
 
@@ -55,12 +59,21 @@ def run(tmp_path, monkeypatch) -> Path:
 def test_the_shipped_chain_is_the_robust_model_and_the_paper_rows_the_standard_one():
     assert SHIPPED == Model.robust and PAPER == Model.standard
     assert (CHAINS[SHIPPED].pose, CHAINS[SHIPPED].detector, CHAINS[SHIPPED].defense) == (
-        Path("models/pose_robust.pt"), Path("models/detector_robust.pt"), Path("models/defense.json"))
+        Path("models/pose_robust.pt"),
+        Path("models/detector_robust.pt"),
+        Path("models/defense.json"),
+    )
     assert (CHAINS[PAPER].pose, CHAINS[PAPER].detector, CHAINS[PAPER].defense) == (
-        Path("models/pose.pt"), Path("models/detector.pt"), Path("models/defense_standard.json"))
+        Path("models/pose.pt"),
+        Path("models/detector.pt"),
+        Path("models/defense_standard.json"),
+    )
     # the weights bundle and rpodguard read the shipped chain's files of a run by the same names
     assert {n: Path("models") / SOURCES[n] for n in FILES} == {
-        "pose.pt": CHAINS[SHIPPED].pose, "detector.pt": CHAINS[SHIPPED].detector, "defense.json": CHAINS[SHIPPED].defense}
+        "pose.pt": CHAINS[SHIPPED].pose,
+        "detector.pt": CHAINS[SHIPPED].detector,
+        "defense.json": CHAINS[SHIPPED].defense,
+    }
 
 
 def test_the_stage_loader_gives_each_model_its_own_chain(run):
@@ -78,7 +91,7 @@ def test_the_stage_loader_gives_each_model_its_own_chain(run):
 def test_a_detector_of_the_other_model_is_refused(run):
     from stages.artifacts.models import load_chain
 
-    shutil.copy(run / "detector.pt", run / "detector_robust.pt")     # the standard model's detector
+    shutil.copy(run / "detector.pt", run / "detector_robust.pt")  # the standard model's detector
     with pytest.raises(DataError, match="detector_robust.pt was trained for pose checkpoint"):
         load_chain(params_mod.load(), SHIPPED, defended=False)
 
@@ -90,14 +103,16 @@ def test_each_defense_file_belongs_to_its_own_chain(run):
     threshold = {m: load_chain(params, m, defended=False).threshold for m in Model}
     for model in Model:
         write_json(CHAINS[model].defense, _defense(run, model, threshold[model], params))
-        chain = load_chain(params, model)          # flies what the file records: the params' settings, calibrated
+        chain = load_chain(params, model)  # flies what the file records: the params' settings, calibrated
         assert chain.defended.settings.threshold == 0.9 and chain.defended.motion.cusum_threshold == 8.0
         assert chain.calibration.model == model.value
     shutil.copy(run / "defense_standard.json", run / "defense.json")
     with pytest.raises(DataError, match="defense.json was calibrated for another pose model"):
         load_chain(params, SHIPPED)
-    write_json(run / "defense.json", _defense(run, PAPER, threshold[SHIPPED], params) | {
-        "pose_model_hash": file_hash(run / "pose_robust.pt")})
+    write_json(
+        run / "defense.json",
+        _defense(run, PAPER, threshold[SHIPPED], params) | {"pose_model_hash": file_hash(run / "pose_robust.pt")},
+    )
     with pytest.raises(DataError, match="calibrated for the standard chain, not the robust one"):
         load_chain(params, SHIPPED)
 
@@ -112,13 +127,19 @@ def test_a_defense_file_calibrated_under_other_params_is_refused_naming_both_val
     threshold = load_chain(params, SHIPPED, defended=False).threshold
     write_json(run / "defense.json", _defense(run, SHIPPED, threshold, params))
     load_chain(params, SHIPPED)
-    changed = {"defense.false_alarm": dataclasses.replace(params.defense, false_alarm=0.3),
-               "defense.hold_after": dataclasses.replace(params.defense, hold_after=params.defense.hold_after + 1),
-               "defense.doubt_share": dataclasses.replace(params.defense, doubt_share=None if
-                                                          params.defense.doubt_share else 0.05)}
+    changed = {
+        "defense.false_alarm": dataclasses.replace(params.defense, false_alarm=0.3),
+        "defense.hold_after": dataclasses.replace(params.defense, hold_after=params.defense.hold_after + 1),
+        "defense.doubt_share": dataclasses.replace(
+            params.defense, doubt_share=None if params.defense.doubt_share else 0.05
+        ),
+    }
     for key, defense in changed.items():
-        with pytest.raises(DataError, match=rf"defense.json records settings\.\w+ = .* but params.yaml gives {key} = "
-                                            r".*: calibrated under other settings") as e:
+        with pytest.raises(
+            DataError,
+            match=rf"defense.json records settings\.\w+ = .* but params.yaml gives {key} = "
+            r".*: calibrated under other settings",
+        ) as e:
             load_chain(dataclasses.replace(params, defense=defense), SHIPPED)
         assert "\n" not in str(e.value)
     guidance = dataclasses.replace(params.guidance, tolerance=params.guidance.tolerance * 2)
@@ -129,7 +150,7 @@ def test_a_defense_file_calibrated_under_other_params_is_refused_naming_both_val
 def test_rpodguard_and_rpod_predict_load_the_shipped_chain_of_a_run(run):
     from rpodguard import load_chain
 
-    for folder in (run, run.parent):                     # models/, or the project root holding it
+    for folder in (run, run.parent):  # models/, or the project root holding it
         chain = load_chain(folder)
         assert chain.files == (run / "pose_robust.pt", run / "detector_robust.pt", run / "defense.json")
         assert chain.safety.model.black_level == 0.07
@@ -159,24 +180,30 @@ def test_the_guidance_plan_flies_the_paper_grid_on_the_paper_chain_and_the_rest_
     from pipeline.guidance.law import GuidanceSettings
 
     s = GuidanceSettings(max_steps=70)
-    plan = GridPlan(s, ((0.5, 40, 5, s.window(40, 5)),), 10, ("paper", "true_state"), ("recover",),
-                    ((0.05, "collide", 20.0),))
+    plan = GridPlan(
+        s, ((0.5, 40, 5, s.window(40, 5)),), 10, ("paper", "true_state"), ("recover",), ((0.05, "collide", 20.0),)
+    )
     runs = plan.runs()
-    assert {r[0] for r in runs[:plan.paper_size]} == {"paper"}
-    assert {r[0] for r in runs[plan.paper_size:]} == {"shipped"}
-    assert ("shipped", "paper", "undefended", None) in runs                      # its own undefended reference
+    assert {r[0] for r in runs[: plan.paper_size]} == {"paper"}
+    assert {r[0] for r in runs[plan.paper_size :]} == {"shipped"}
+    assert ("shipped", "paper", "undefended", None) in runs  # its own undefended reference
     assert [r for r in runs if isinstance(r[3], InLoopRun)] == plan.in_loop_runs() and len(set(runs)) == len(runs)
 
 
-@pytest.mark.parametrize("doubt, message", [("0.3", r"settings.update_below must be a number, got '0.3'"),
-                                            (1.5, r"settings: defense.update_below must be in \(0, threshold"),
-                                            (0.0, r"settings: defense.update_below must be in \(0, threshold")])
+@pytest.mark.parametrize(
+    "doubt, message",
+    [
+        ("0.3", r"settings.update_below must be a number, got '0.3'"),
+        (1.5, r"settings: defense.update_below must be in \(0, threshold"),
+        (0.0, r"settings: defense.update_below must be in \(0, threshold"),
+    ],
+)
 def test_a_defense_file_with_a_bad_doubt_level_is_refused_with_one_line(tmp_path, doubt, message):
     from pipeline.formats.defense import read_defense
     from rpodguard.api import BUNDLE
 
     cal = read_json(BUNDLE / "defense.json")
-    read_defense(BUNDLE / "defense.json", cal["pose_model_hash"], cal["detector_threshold"])   # as calibrated
+    read_defense(BUNDLE / "defense.json", cal["pose_model_hash"], cal["detector_threshold"])  # as calibrated
     cal["settings"]["update_below"] = doubt
     write_json(tmp_path / "defense.json", cal)
     with pytest.raises(DataError, match=r"defense.json:? " + message) as e:

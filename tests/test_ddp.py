@@ -1,4 +1,5 @@
 """`rpod train` under torchrun: 2 processes, DistributedDataParallel with gloo on CPU (smoke profile)."""
+
 from __future__ import annotations
 
 import json
@@ -18,12 +19,23 @@ from stages.config import params as params_mod
 def test_torchrun_two_processes_gloo(tmp_path, monkeypatch):
     write_dataset(tmp_path, n=80, overrides=["train.epochs=2"])
     rpod = Path(sys.executable).parent / "rpod"
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "RPOD_DEBUG": "1",
-           "PYTHONPATH": os.pathsep.join(filter(None, [str(Path(__file__).resolve().parent.parent),
-                                                        os.environ.get("PYTHONPATH")]))}
+    env = {
+        **os.environ,
+        "OMP_NUM_THREADS": "1",
+        "RPOD_DEBUG": "1",
+        "PYTHONPATH": os.pathsep.join(
+            filter(None, [str(Path(__file__).resolve().parent.parent), os.environ.get("PYTHONPATH")])
+        ),
+    }
     env.pop("WORLD_SIZE", None)
-    proc = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-                           str(rpod), "train"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", str(rpod), "train"],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "x 2 process(es)" in proc.stdout
     metrics = json.loads((tmp_path / "reports/metrics/train.json").read_text())

@@ -1,5 +1,6 @@
 """Issue 38's attitude decomposition: errors split by target-attitude group with bootstrap intervals over sequences,
 and the paper-like labels option (one target attitude per rotating sequence)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -16,9 +17,9 @@ def test_the_default_sequences_are_unchanged_and_paper_like_ones_hold_one_attitu
     paper = approach_sequences(20, seed=3, attitude="per_sequence")
     for s in paper:
         same = np.allclose(s.R_target, s.R_target[0])
-        assert same                                                    # one attitude for the whole sequence
-        assert np.allclose(s.R_target[0], np.eye(3)) == (s.sequence < 5)   # 0 on the fixed, drawn on the rotating
-    assert not np.allclose(default[7].R_target, default[7].R_target[0])   # today's: afresh every frame
+        assert same  # one attitude for the whole sequence
+        assert np.allclose(s.R_target[0], np.eye(3)) == (s.sequence < 5)  # 0 on the fixed, drawn on the rotating
+    assert not np.allclose(default[7].R_target, default[7].R_target[0])  # today's: afresh every frame
     angle = np.rad2deg(np.arccos((np.trace(paper[7].R_target[0]) - 1) / 2))
     assert 0 < angle <= np.sqrt(3) * 10 + 1e-6
     with pytest.raises(ValueError, match="per_frame, per_sequence"):
@@ -35,7 +36,7 @@ def test_bootstrap_over_sequences_is_wider_when_sequences_differ():
     rng = np.random.default_rng(0)
     seq = np.repeat(np.arange(8), 100)
     alike = rng.normal(2.0, 0.5, 800)
-    unlike = alike + np.repeat(rng.normal(0, 1.0, 8), 100)          # a per-sequence offset: correlated frames
+    unlike = alike + np.repeat(rng.normal(0, 1.0, 8), 100)  # a per-sequence offset: correlated frames
     m, lo, hi = bootstrap_mean(alike, seq)
     m2, lo2, hi2 = bootstrap_mean(unlike, seq)
     assert lo < m < hi and lo2 < m2 < hi2
@@ -58,10 +59,12 @@ def test_group_errors_split_the_errors_by_group():
     seq, _, R, t = flatten(approach_sequences(6, seed=0))
     target = np.column_stack([t, matrix_to_6d(R)])
     pred = target.copy()
-    pred[:, 2] += np.where(seq < 5, 0.1, 0.4)          # range errors 0.1 m (fixed) and 0.4 m (rotating)
+    pred[:, 2] += np.where(seq < 5, 0.1, 0.4)  # range errors 0.1 m (fixed) and 0.4 m (rotating)
     out = group_errors(pred, target, seq, attitude_groups(seq))
     assert out["fixed"]["frames"] == 30 and out["rotating"]["sequences"] == 8
-    assert out["fixed"]["position_m"][0] == pytest.approx(0.1) and out["rotating"]["position_m"][0] == pytest.approx(0.4)
+    assert out["fixed"]["position_m"][0] == pytest.approx(0.1) and out["rotating"]["position_m"][0] == pytest.approx(
+        0.4
+    )
     assert out["fixed"]["attitude_deg"][0] == pytest.approx(0.0, abs=1e-5)
 
 

@@ -1,4 +1,5 @@
 """The defended chain: fusion, coast on flags, hold after K flags and release, bad settings."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -28,9 +29,9 @@ def straight(n: int = 60, seed: int = 0):
 def test_fusion_decides_which_check_flags(fusion, expect):
     rel, t_pred, R_cam, u = straight()
     prob = np.zeros(len(rel))
-    prob[20] = 0.9                      # the detector fires on a clean-looking frame
+    prob[20] = 0.9  # the detector fires on a clean-looking frame
     t_pred = t_pred.copy()
-    t_pred[40, 2] += 3.0                # the detector misses a 3 m jump
+    t_pred[40, 2] += 3.0  # the detector misses a 3 m jump
     tr = run_defense(DefenseSettings(fusion=fusion), MOTION, NOISE, t_pred, prob, R_cam, u)
     assert [bool(tr.flag[20]), bool(tr.flag[40])] == expect
     assert tr.shap_flag[20] and not tr.shap_flag[40] and tr.motion_flag[40]
@@ -43,19 +44,20 @@ def test_flagged_frames_coast_on_the_prediction():
     tr = run_defense(DefenseSettings(hold_after=5), MOTION, NOISE, t_pred, np.zeros(len(rel)), R_cam, u)
     assert tr.flag[30:33].all() and not tr.flag[33:].any()
     assert list(tr.mode[30:33]) == [COAST] * 3 and tr.mode[33] == TRACK
-    assert np.abs(tr.trusted[30:33] - rel[30:33]).max() < 0.3      # the prediction, not the attacked estimate
+    assert np.abs(tr.trusted[30:33] - rel[30:33]).max() < 0.3  # the prediction, not the attacked estimate
     assert np.linalg.norm(t_pred[30] - np.einsum("ji,j->i", R_cam[30], rel[30])) > 4
 
 
 def test_hold_engages_after_k_flags_and_releases_on_clean_frames():
     rel, t_pred, R_cam, u = straight()
     prob = np.zeros(len(rel))
-    prob[10:18] = 0.99                  # 8 flagged frames in a row
-    tr = run_defense(DefenseSettings(fusion="paper", hold_after=3, release_after=2), MOTION, NOISE,
-                     t_pred, prob, R_cam, u)
+    prob[10:18] = 0.99  # 8 flagged frames in a row
+    tr = run_defense(
+        DefenseSettings(fusion="paper", hold_after=3, release_after=2), MOTION, NOISE, t_pred, prob, R_cam, u
+    )
     assert list(tr.mode[10:12]) == [COAST, COAST]
     assert (tr.mode[12:18] == HOLD).all()
-    assert list(tr.mode[18:20]) == [HOLD, TRACK]      # released after 2 clean frames (18 and 19)
+    assert list(tr.mode[18:20]) == [HOLD, TRACK]  # released after 2 clean frames (18 and 19)
     assert (tr.mode[20:] == TRACK).all()
 
 
@@ -67,12 +69,15 @@ def test_before_a_trusted_frame_the_defense_holds():
     assert np.allclose(tr.trusted[2], R_cam[2] @ t_pred[2])
 
 
-@pytest.mark.parametrize("changes, message", [
-    ({"hold_after": 0}, r"defense.hold_after \(K consecutive flags before a hold\) must be >= 1"),
-    ({"release_after": 0}, "defense.release_after must be >= 1"),
-    ({"fusion": "and"}, "unknown defense.fusion 'and'"),
-    ({"threshold": 1.5}, r"threshold must be in \(0, 1\)"),
-])
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({"hold_after": 0}, r"defense.hold_after \(K consecutive flags before a hold\) must be >= 1"),
+        ({"release_after": 0}, "defense.release_after must be >= 1"),
+        ({"fusion": "and"}, "unknown defense.fusion 'and'"),
+        ({"threshold": 1.5}, r"threshold must be in \(0, 1\)"),
+    ],
+)
 def test_bad_settings_name_the_parameter(changes, message):
     with pytest.raises(ValueError, match=message):
         DefenseSettings(**changes)
@@ -100,7 +105,7 @@ def test_a_slow_ramp_is_flagged_and_the_state_recovers_after_it():
     rel, t_pred, R_cam, u = straight(70, seed=3)
     t_pred = t_pred.copy()
     ramp = np.zeros((70, 3))
-    ramp[20:40, 0] = 0.05 * np.arange(1, 21)          # up to 1 m sideways, 5 cm per frame
+    ramp[20:40, 0] = 0.05 * np.arange(1, 21)  # up to 1 m sideways, 5 cm per frame
     t_pred += np.einsum("nji,nj->ni", R_cam, ramp)
     tr = run_defense(DefenseSettings(fusion="motion"), MOTION, NOISE, t_pred, np.zeros(70), R_cam, u)
     assert tr.sequential_flag[20:40].any() and not tr.flag[:20].any() and not tr.flag[40:].any()
@@ -127,7 +132,7 @@ def test_the_detector_word_is_what_the_defense_acts_on(prob, word):
     flags it, "doubt" coasts it unflagged, "clean" lets it update the filter."""
     rel, t_pred, R_cam, u = straight(40, seed=5)
     t_pred = t_pred.copy()
-    t_pred[30, 0] += 0.25                      # a small error the gate lets through: an update would move the state
+    t_pred[30, 0] += 0.25  # a small error the gate lets through: an update would move the state
     probs = np.zeros(40)
     probs[30] = prob
     settings = DefenseSettings(threshold=0.5, update_below=0.3)
@@ -141,14 +146,14 @@ def test_the_detector_word_is_what_the_defense_acts_on(prob, word):
 def test_a_doubtful_frame_is_not_flagged_but_does_not_update_the_filter():
     rel, t_pred, R_cam, u = straight(40, seed=5)
     t_pred = t_pred.copy()
-    t_pred[30, 0] += 0.25                      # a small error the gate lets through
+    t_pred[30, 0] += 0.25  # a small error the gate lets through
     prob = np.zeros(40)
-    prob[30] = 0.4                             # doubtful: above update_below, below the threshold
+    prob[30] = 0.4  # doubtful: above update_below, below the threshold
     settings = DefenseSettings(threshold=0.5, update_below=0.3)
     tr = run_defense(settings, MOTION, NOISE, t_pred, prob, R_cam, u)
     trusting = run_defense(DefenseSettings(threshold=0.5), MOTION, NOISE, t_pred, prob, R_cam, u)
     assert not tr.flag[30] and not trusting.flag[30]
-    assert np.allclose(tr.trusted[30], tr.trusted[29] + u[30], atol=0.05)        # coasted
-    assert not np.allclose(tr.trusted[30], trusting.trusted[30], atol=1e-6)      # the other one updated
+    assert np.allclose(tr.trusted[30], tr.trusted[29] + u[30], atol=0.05)  # coasted
+    assert not np.allclose(tr.trusted[30], trusting.trusted[30], atol=1e-6)  # the other one updated
     with pytest.raises(ValueError, match="defense.update_below must be in"):
         DefenseSettings(threshold=0.5, update_below=0.7)

@@ -1,6 +1,7 @@
 """defense.json as a schema (issue 42, item 1; pipeline/formats/defense.py): every key required, typed, finite and in
 range, no unknown key; what calibrate writes reads back equal; a file calibrated under other params is refused naming
 both values. Property tests (hypothesis) over the committed shipped chain's defense file, mutated."""
+
 from __future__ import annotations
 
 import copy
@@ -20,10 +21,10 @@ from pipeline.io.errors import DataError
 from pipeline.settings import ranges
 from rpodguard.api import BUNDLE
 
-RECORD = json.loads((BUNDLE / "defense.json").read_text())   # what `rpod calibrate` wrote for the shipped chain
+RECORD = json.loads((BUNDLE / "defense.json").read_text())  # what `rpod calibrate` wrote for the shipped chain
 WHERE = "models/defense.json"
 EXAMPLES = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-CALIBRATED = {"threshold", "update_below", "cusum_threshold"}   # the settings calibrate chooses
+CALIBRATED = {"threshold", "update_below", "cusum_threshold"}  # the settings calibrate chooses
 
 
 def paths(record: Any, prefix: tuple = ()) -> list[tuple]:
@@ -61,15 +62,20 @@ def test_every_key_is_required(path):
     record = copy.deepcopy(RECORD)
     parent, key = at(record, path)
     del parent[key]
-    with pytest.raises(DataError, match=rf"{WHERE}.*(missing key '{'.'.join(path)}'|is not a rpodguard-defense|"
-                                        rf"settings must be a mapping)") as e:
+    with pytest.raises(
+        DataError,
+        match=rf"{WHERE}.*(missing key '{'.'.join(path)}'|is not a rpodguard-defense|"
+        rf"settings must be a mapping)",
+    ) as e:
         parse_defense(record, WHERE)
     assert "\n" not in str(e.value)
 
 
 @EXAMPLES
-@given(st.sampled_from([(), ("settings",), ("alert_limit",), ("noise",), ("fitted_noise",), ("validation",)]),
-       st.text(alphabet="abcdefghijklmnopqrstuvwxyz_", min_size=1, max_size=12))
+@given(
+    st.sampled_from([(), ("settings",), ("alert_limit",), ("noise",), ("fitted_noise",), ("validation",)]),
+    st.text(alphabet="abcdefghijklmnopqrstuvwxyz_", min_size=1, max_size=12),
+)
 def test_an_unknown_key_is_refused(where, name):
     record = copy.deepcopy(RECORD)
     parent = record
@@ -91,16 +97,21 @@ def test_a_value_of_the_wrong_type_or_not_finite_is_refused(path, bad):
     record = copy.deepcopy(RECORD)
     parent, key = at(record, path)
     if isinstance(parent[key], list) and isinstance(bad, list) or isinstance(parent[key], str) and isinstance(bad, str):
-        return   # a list for a list (its elements are checked below), a string for a string
+        return  # a list for a list (its elements are checked below), a string for a string
     parent[key] = bad
     with pytest.raises(DataError, match=WHERE) as e:
         parse_defense(record, WHERE)
     assert "\n" not in str(e.value)
 
 
-RANGED = {**{("settings", k): r for k, r in {**ranges(DefenseSettings), **ranges(MotionSettings)}.items()
-             if k not in CALIBRATED},
-          **{("alert_limit", k): None for k in ("tolerance", "max_step", "collision_range", "fixed")}}
+RANGED = {
+    **{
+        ("settings", k): r
+        for k, r in {**ranges(DefenseSettings), **ranges(MotionSettings)}.items()
+        if k not in CALIBRATED
+    },
+    **{("alert_limit", k): None for k in ("tolerance", "max_step", "collision_range", "fixed")},
+}
 
 
 @EXAMPLES
@@ -117,17 +128,20 @@ def test_a_number_out_of_its_range_is_refused(path, bad):
     assert "\n" not in str(e.value)
 
 
-@pytest.mark.parametrize("path, value, message", [
-    (("settings", "hold_after"), 1.5, "settings.hold_after must be a whole number, got 1.5"),
-    (("settings", "hold_after"), "5", "settings.hold_after must be a whole number, got '5'"),
-    (("alert_limit", "tolerance"), float("inf"), "alert_limit.tolerance must be a finite number"),
-    (("alert_limit", "fixed"), 1e300, "alert_limit.fixed must be a positive number in"),
-    (("noise", "floor"), 1e6, "noise.floor must be a positive number in"),
-    (("detector_threshold",), float("nan"), "detector_threshold must be a positive number in \\(0, 1\\)"),
-    (("settings", "threshold"), 1.0, "settings: detector threshold must be in \\(0, 1\\), got 1.0"),
-    (("settings", "fusion"), "and", "settings.fusion must be one of paper, motion, or"),
-    (("model",), "paper", "model must be one of standard, robust"),
-])
+@pytest.mark.parametrize(
+    "path, value, message",
+    [
+        (("settings", "hold_after"), 1.5, "settings.hold_after must be a whole number, got 1.5"),
+        (("settings", "hold_after"), "5", "settings.hold_after must be a whole number, got '5'"),
+        (("alert_limit", "tolerance"), float("inf"), "alert_limit.tolerance must be a finite number"),
+        (("alert_limit", "fixed"), 1e300, "alert_limit.fixed must be a positive number in"),
+        (("noise", "floor"), 1e6, "noise.floor must be a positive number in"),
+        (("detector_threshold",), float("nan"), "detector_threshold must be a positive number in \\(0, 1\\)"),
+        (("settings", "threshold"), 1.0, "settings: detector threshold must be in \\(0, 1\\), got 1.0"),
+        (("settings", "fusion"), "and", "settings.fusion must be one of paper, motion, or"),
+        (("model",), "paper", "model must be one of standard, robust"),
+    ],
+)
 def test_the_probes_of_issue_42_are_refused_with_one_line(path, value, message):
     record = copy.deepcopy(RECORD)
     parent, key = at(record, path)
@@ -137,16 +151,23 @@ def test_the_probes_of_issue_42_are_refused_with_one_line(path, value, message):
     assert str(e.value).startswith(WHERE) and "\n" not in str(e.value)
 
 
-@pytest.mark.parametrize("change, message", [
-    (lambda r: r["settings"].update(threshold=0.5), "must be the calibrated threshold"),
-    (lambda r: r["noise"]["knot_std"][0].__setitem__(0, -0.5),
-     "noise.knot_std\\[0\\]\\[0\\] must be a positive number"),
-    (lambda r: r["noise"].update(floor=0.5), "noise is not fitted_noise inflated"),
-    (lambda r: (r["noise"].update(floor=10.0), r["fitted_noise"].update(floor=8.0)),
-     "floor 10.0 must lie below its largest standard deviation"),
-    (lambda r: r.update(settings={}), "missing key 'settings.fusion'"),
-    (lambda r: r.update(alert_limit={}), "missing key 'alert_limit.tolerance'"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda r: r["settings"].update(threshold=0.5), "must be the calibrated threshold"),
+        (
+            lambda r: r["noise"]["knot_std"][0].__setitem__(0, -0.5),
+            "noise.knot_std\\[0\\]\\[0\\] must be a positive number",
+        ),
+        (lambda r: r["noise"].update(floor=0.5), "noise is not fitted_noise inflated"),
+        (
+            lambda r: (r["noise"].update(floor=10.0), r["fitted_noise"].update(floor=8.0)),
+            "floor 10.0 must lie below its largest standard deviation",
+        ),
+        (lambda r: r.update(settings={}), "missing key 'settings.fusion'"),
+        (lambda r: r.update(alert_limit={}), "missing key 'alert_limit.tolerance'"),
+    ],
+)
 def test_a_record_that_contradicts_itself_or_is_empty_is_refused(change, message):
     record = copy.deepcopy(RECORD)
     change(record)
@@ -154,12 +175,19 @@ def test_a_record_that_contradicts_itself_or_is_empty_is_refused(change, message
         parse_defense(record, WHERE)
 
 
-settings_values = st.fixed_dictionaries({
-    "hold_after": st.integers(1, 10_000_000), "release_after": st.integers(1, 10_000_000),
-    "fusion": st.sampled_from(["paper", "motion", "or"]),
-    "false_alarm": st.floats(1e-9, 1 - 1e-9), "position_noise": st.floats(1e-6, 1000),
-    "soft_gate": st.floats(1e-6, 1), "reacquire_after": st.integers(2, 10_000_000),
-    "trusted_start": st.integers(0, 10_000_000), "cusum_reference": st.floats(0, 100)})
+settings_values = st.fixed_dictionaries(
+    {
+        "hold_after": st.integers(1, 10_000_000),
+        "release_after": st.integers(1, 10_000_000),
+        "fusion": st.sampled_from(["paper", "motion", "or"]),
+        "false_alarm": st.floats(1e-9, 1 - 1e-9),
+        "position_noise": st.floats(1e-6, 1000),
+        "soft_gate": st.floats(1e-6, 1),
+        "reacquire_after": st.integers(2, 10_000_000),
+        "trusted_start": st.integers(0, 10_000_000),
+        "cusum_reference": st.floats(0, 100),
+    }
+)
 
 
 @EXAMPLES
@@ -173,7 +201,7 @@ def test_any_valid_record_reads_back_equal_and_flies_what_it_records(values, tol
     flown = cal.defended
     assert all(getattr(flown.settings, k, getattr(flown.motion, k, None)) == v for k, v in values.items())
     assert flown.alert.tolerance == tolerance and flown.alert.slack_steps == slack
-    assert flown.new() is not flown.new()        # a fresh defense per run
+    assert flown.new() is not flown.new()  # a fresh defense per run
 
 
 @EXAMPLES
@@ -181,13 +209,16 @@ def test_any_valid_record_reads_back_equal_and_flies_what_it_records(values, tol
 def test_a_file_calibrated_under_other_settings_is_refused_naming_both_values(name):
     cal = parse_defense(copy.deepcopy(RECORD), WHERE)
     wanted = cal.defended
-    check_settings(cal, WHERE, wanted, 0.05, "params.yaml", {})   # as calibrated
+    check_settings(cal, WHERE, wanted, 0.05, "params.yaml", {})  # as calibrated
     part = "settings" if name in {f.name for f in dataclasses.fields(DefenseSettings)} else "motion"
     old = getattr(getattr(wanted, part), name)
     new = old + 1 if isinstance(old, int) and not isinstance(old, bool) else old * 0.5
     other = dataclasses.replace(wanted, **{part: dataclasses.replace(getattr(wanted, part), **{name: new})})
-    with pytest.raises(DataError, match=rf"{WHERE} records settings.{name} = {old!r} but params.yaml gives "
-                                        rf"defense.{name} = {new!r}: calibrated under other settings"):
+    with pytest.raises(
+        DataError,
+        match=rf"{WHERE} records settings.{name} = {old!r} but params.yaml gives "
+        rf"defense.{name} = {new!r}: calibrated under other settings",
+    ):
         check_settings(cal, WHERE, other, 0.05, "params.yaml", {name: f"defense.{name}"})
     with pytest.raises(DataError, match="records settings.update_below = 0.39.* but params.yaml gives doubt = None"):
         check_settings(cal, WHERE, wanted, None, "params.yaml", {})
@@ -202,9 +233,10 @@ def test_the_committed_params_fly_exactly_what_the_committed_defense_file_record
     p = load()
     cal = parse_defense(copy.deepcopy(RECORD), WHERE)
     settings, motion = defense_settings(p.defense, cal.threshold, cal.settings.update_below)
-    before = Defended(settings, dataclasses.replace(motion, cusum_threshold=cal.cusum_threshold), cal.noise,
-                      alert_limit_settings(p))
-    assert repr(before) == repr(cal.defended)     # equal values of equal types
+    before = Defended(
+        settings, dataclasses.replace(motion, cusum_threshold=cal.cusum_threshold), cal.noise, alert_limit_settings(p)
+    )
+    assert repr(before) == repr(cal.defended)  # equal values of equal types
     check_settings(cal, WHERE, before, p.defense.doubt_share, "params.yaml", {})
 
 

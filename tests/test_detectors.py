@@ -1,4 +1,5 @@
 """The attack detectors in pipeline/detectors/ on small synthetic data with a known answer."""
+
 from __future__ import annotations
 
 import io
@@ -8,15 +9,13 @@ import pytest
 import torch
 
 from pipeline.detectors.lid import LIDDetector, lid_mle
-from pipeline.detectors.lstm import (LSTMConfig, LSTMDetector, ReLULSTMCell, from_checkpoint, to_checkpoint,
-                                     train_lstm)
+from pipeline.detectors.lstm import LSTMConfig, LSTMDetector, ReLULSTMCell, from_checkpoint, to_checkpoint, train_lstm
 from pipeline.detectors.mahalanobis import MahalanobisDetector
 from pipeline.detectors.metrics import choose_threshold, detection_metrics, metrics_by_eps
 from pipeline.detectors.mlp import MLPDetector
 from pipeline.detectors.squeeze import SqueezeDetector, median_filter, reduce_bit_depth
 
-
-pytestmark = pytest.mark.usefixtures("one_thread")   # tests/conftest.py
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 def _shap_like(n: int, n_features: int, seed: int, shift: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
@@ -70,8 +69,18 @@ def test_lstm_early_stopping_stops_on_noise():
     y = rng.integers(0, 2, 64)
     xv = rng.normal(size=(32, 9, 12)).astype(np.float32)
     yv = rng.integers(0, 2, 32)
-    result = train_lstm(x, y, xv, yv, LSTMConfig(n_features=12, hidden=8, dense=[4]), epochs=200, patience=3,
-                        batch_size=16, lr=1.0, seed=0)
+    result = train_lstm(
+        x,
+        y,
+        xv,
+        yv,
+        LSTMConfig(n_features=12, hidden=8, dense=[4]),
+        epochs=200,
+        patience=3,
+        batch_size=16,
+        lr=1.0,
+        seed=0,
+    )
     assert len(result.history) < 200
     assert len(result.history) - result.best_epoch == 3
 
@@ -154,8 +163,9 @@ def test_squeezers():
 def test_squeeze_detector_flags_high_frequency_perturbations():
     rng = np.random.default_rng(8)
     # smooth images (vertical gradients of random brightness) and the same with +-40 sign noise
-    base = (np.linspace(0, 1, 16)[None, :, None, None] * rng.uniform(60, 200, (40, 1, 1, 1))
-            * np.ones((1, 1, 16, 3))).astype(np.uint8)
+    base = (
+        np.linspace(0, 1, 16)[None, :, None, None] * rng.uniform(60, 200, (40, 1, 1, 1)) * np.ones((1, 1, 16, 3))
+    ).astype(np.uint8)
     noise = rng.choice([-40, 40], size=base.shape)
     adv = np.clip(base.astype(int) + noise, 0, 255).astype(np.uint8)
 

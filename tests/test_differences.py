@@ -1,5 +1,6 @@
 """The README's generated bullet on choices made on reported numbers (issue 38 item 5): it names the data of each
 choice and follows the metrics and params it is given; the evaluate page's held-out clamp check."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -9,8 +10,14 @@ from stages.pages.differences import _choices
 from stages.pages.evaluate import clamp_section
 
 TRAIN = {"threshold": 0.07, "images": 200, "lab_black_999": 0.0627, "target_erased": 0.048}
-HELD = {"threshold": 0.07, "images": 200, "render_black": 0.9, "lab_black_999": 0.0612, "lab_passed": 0.0002,
-        "target_erased": 0.051}
+HELD = {
+    "threshold": 0.07,
+    "images": 200,
+    "render_black": 0.9,
+    "lab_black_999": 0.0612,
+    "lab_passed": 0.0002,
+    "target_erased": 0.051,
+}
 
 
 def test_the_choices_bullet_names_each_choice_its_data_and_follows_the_metrics():
@@ -23,7 +30,7 @@ def test_the_choices_bullet_names_each_choice_its_data_and_follows_the_metrics()
     assert "percentile is 0.0612 (training frames: 0.0627), so t is still above it" in text
     assert "5.1% of the target's channel values fall below t (training frames: 4.8%" in text
     assert text.count("no held-out check yet") == 2
-    bare = _choices(p, robust, {}, {})                                       # neither check ran: no clause
+    bare = _choices(p, robust, {}, {})  # neither check ran: no clause
     assert "erases" not in bare and "evaluation frames" not in bare
     above = _choices(p, robust, {}, {"black_level_heldout": {**HELD, "lab_black_999": 0.08}})
     assert "so t is NOT above it" in above

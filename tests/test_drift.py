@@ -6,6 +6,7 @@ state, past the alert limit unflagged) is caught by the sequential test before i
 the alert limit, and a drift that also keeps under the sequential test stays within the protection
 level; a jump of the same final size is flagged by the gate. On a tiny random PoseNet the pixel-level attack moves the estimate
 toward its target and stays within eps once stored as 8 bits."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -26,9 +27,9 @@ from pipeline.geometry.rotations import matrix_to_6d
 from pipeline.pose.model import PoseNet
 from pipeline.shap import ExactShap
 
-NOISE = NoiseModel((0.05, 0.05, 0.1), (0.005, 0.005, 0.01), 1.0, 0.0)   # 0.2, 0.2, 0.4 m std at 30 m
+NOISE = NoiseModel((0.05, 0.05, 0.1), (0.005, 0.005, 0.01), 1.0, 0.0)  # 0.2, 0.2, 0.4 m std at 30 m
 MOTION = MotionSettings()
-START, FRAMES = 20, 100     # clean frames, then drift frames
+START, FRAMES = 20, 100  # clean frames, then drift frames
 
 
 def approach(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -41,8 +42,14 @@ def approach(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     return rel, t_clean, np.repeat(np.eye(3)[None], n, 0), u
 
 
-def drifted(direction: str, rate: float, cusum_fraction: float | None, motion: MotionSettings = MOTION, seed: int = 0,
-            alert_limit: float | None = None):
+def drifted(
+    direction: str,
+    rate: float,
+    cusum_fraction: float | None,
+    motion: MotionSettings = MOTION,
+    seed: int = 0,
+    alert_limit: float | None = None,
+):
     """The drift planned on the toy approach (START clean frames, then FRAMES attacked) against a
     defense with `motion` settings, and that defense (its availability judged against a constant
     `alert_limit`, m) over what it delivered -> (true rel, clean estimates, the planner's trace, the
@@ -51,11 +58,25 @@ def drifted(direction: str, rate: float, cusum_fraction: float | None, motion: M
     rel, t_clean, R_cam, u = approach(n, seed)
     attacked = np.arange(n) >= START
     defense = Defense(DefenseSettings(), motion, NOISE)
-    trace = drift_estimates(defense, DriftSettings(direction, 0.5, rate, cusum_fraction), t_clean, np.zeros(n), R_cam,
-                            u, attacked)
-    assert not defense.filter.started                         # the caller's defense is left alone
-    return rel, t_clean, trace, run_defense(DefenseSettings(), motion, NOISE, trace.delivered, np.zeros(n), R_cam, u,
-                                            alert_limit=None if alert_limit is None else lambda _: alert_limit)
+    trace = drift_estimates(
+        defense, DriftSettings(direction, 0.5, rate, cusum_fraction), t_clean, np.zeros(n), R_cam, u, attacked
+    )
+    assert not defense.filter.started  # the caller's defense is left alone
+    return (
+        rel,
+        t_clean,
+        trace,
+        run_defense(
+            DefenseSettings(),
+            motion,
+            NOISE,
+            trace.delivered,
+            np.zeros(n),
+            R_cam,
+            u,
+            alert_limit=None if alert_limit is None else lambda _: alert_limit,
+        ),
+    )
 
 
 @pytest.mark.parametrize("direction", ["los", "lateral"])
@@ -68,26 +89,33 @@ def test_a_drift_under_the_gate_is_caught_or_bounded(direction: str, alert_limit
     AL) before the error passes AL. With a tighter reference value (c = 0.5) the test flags it, and
     the same holds."""
     loose = dataclasses.replace(MOTION, position_noise=0.05)
-    rate = 1.25 * alert_limit / FRAMES                       # m/frame: past AL within the 100 frames
+    rate = 1.25 * alert_limit / FRAMES  # m/frame: past AL within the 100 frames
     rel, t_clean, _, off = drifted(direction, rate, None, dataclasses.replace(loose, cusum_threshold=1e12))
     error = np.linalg.norm(off.trusted - rel, axis=1)
     assert not off.flag.any() and np.nanmax(off.nis_position) <= MOTION.gate
     assert error[:START].max() < alert_limit < error[-1]
     _, _, trace, d = drifted(direction, rate, None, loose, alert_limit=alert_limit)
     error = np.linalg.norm(d.trusted - rel, axis=1)
-    assert not d.motion_flag.any()                             # the gate still sees nothing
-    assert not (d.available & (error > alert_limit)).any()     # no hazardous frame
-    assert not (error > d.pl).any()                            # no misleading frame
-    _, _, _, tight = drifted(direction, rate, None, dataclasses.replace(loose, cusum_reference=0.5),
-                             alert_limit=alert_limit)
+    assert not d.motion_flag.any()  # the gate still sees nothing
+    assert not (d.available & (error > alert_limit)).any()  # no hazardous frame
+    assert not (error > d.pl).any()  # no misleading frame
+    _, _, _, tight = drifted(
+        direction, rate, None, dataclasses.replace(loose, cusum_reference=0.5), alert_limit=alert_limit
+    )
     error = np.linalg.norm(tight.trusted - rel, axis=1)
     assert not tight.sequential_flag[:START].any() and tight.sequential_flag[START:].any()
     assert not (tight.available & (error > alert_limit)).any() and not (error > tight.pl).any()
     offset = trace.delivered - t_clean
-    jumped = run_defense(DefenseSettings(), loose, NOISE, np.where(np.arange(len(rel))[:, None] >= START,
-                         t_clean + offset[-1], t_clean), np.zeros(len(rel)), np.repeat(np.eye(3)[None], len(rel), 0),
-                         np.vstack([np.zeros(3), np.diff(rel, axis=0)]))
-    assert jumped.flag[START]                                  # the gate catches the same offset as a jump
+    jumped = run_defense(
+        DefenseSettings(),
+        loose,
+        NOISE,
+        np.where(np.arange(len(rel))[:, None] >= START, t_clean + offset[-1], t_clean),
+        np.zeros(len(rel)),
+        np.repeat(np.eye(3)[None], len(rel), 0),
+        np.vstack([np.zeros(3), np.diff(rel, axis=0)]),
+    )
+    assert jumped.flag[START]  # the gate catches the same offset as a jump
 
 
 @pytest.mark.parametrize("direction", ["los", "lateral"])
@@ -99,17 +127,24 @@ def test_a_drift_that_keeps_under_both_tests_stays_within_the_protection_level(d
     error = np.linalg.norm(d.trusted - rel, axis=1)
     assert not d.flag.any() and d.available[1:].all()
     assert (error <= d.pl).all() and error.max() < 1.5
-    np.testing.assert_allclose(d.trusted, trace.trusted)       # the attacker's simulation is the defense
-    assert np.abs(trace.bias[-1]) > 0.3                        # it did drift
+    np.testing.assert_allclose(d.trusted, trace.trusted)  # the attacker's simulation is the defense
+    assert np.abs(trace.bias[-1]) > 0.3  # it did drift
 
 
 def test_drift_grows_along_its_direction_at_its_rate() -> None:
     n = START + FRAMES
     _, t_clean, R_cam, u = approach(n, seed=1)
     attacked = np.arange(n) >= START
-    loose = dataclasses.replace(MOTION, position_noise=0.05, cusum_threshold=1e12)     # a state that follows
-    trace = drift_estimates(Defense(DefenseSettings(), loose, NOISE), DriftSettings("los", 0.5, 0.03, None),
-                            t_clean, np.zeros(n), R_cam, u, attacked)
+    loose = dataclasses.replace(MOTION, position_noise=0.05, cusum_threshold=1e12)  # a state that follows
+    trace = drift_estimates(
+        Defense(DefenseSettings(), loose, NOISE),
+        DriftSettings("los", 0.5, 0.03, None),
+        t_clean,
+        np.zeros(n),
+        R_cam,
+        u,
+        attacked,
+    )
     assert (trace.bias[~attacked] == 0).all() and (np.diff(trace.bias[attacked]) <= 0.03 + 1e-9).all()
     offset = trace.delivered - t_clean
     along = offset[attacked] @ np.array([0.0, 0.0, 1.0])
@@ -121,7 +156,7 @@ def tiny_chain() -> PerFrameChain:
     model = PoseNet(width=0.125).eval()
     model.set_output_bias((0.0, 0.0, 30.0), tuple(matrix_to_6d(np.eye(3))))
     with torch.no_grad():
-        model.head_pos.weight.normal_(0.0, 0.05)             # a pose that responds to the image (m)
+        model.head_pos.weight.normal_(0.0, 0.05)  # a pose that responds to the image (m)
         background = model.forward_features(torch.rand(8, 3, 18, 32))
     weight = torch.cat([model.head_pos.weight, model.head_rot.weight]).detach()
     detector = LSTMDetector(LSTMConfig(n_rows=9, n_features=weight.shape[1], hidden=4, dense=[4])).eval()
@@ -137,7 +172,7 @@ def test_targeted_pgd_moves_the_estimate_toward_its_target_within_eps() -> None:
     with torch.no_grad():
         clean = chain(x)[0]
     target = clean.clone()
-    target[:, 2] += 1.0                                       # 1 m farther along the boresight
+    target[:, 2] += 1.0  # 1 m farther along the boresight
     stored = targeted_pgd(chain, x, target, eps, 0.0, steps=5, generator=torch.Generator().manual_seed(0))
     assert stored.dtype == torch.uint8
     assert (stored.float() / 255 - x).abs().max() <= eps + 0.5 / 255 + 1e-6
@@ -158,8 +193,8 @@ def test_drift_attacker_delivers_stored_frames_within_eps() -> None:
     assert (stored.float() / 255 - x).abs().max() <= eps + 0.5 / 255 + 1e-6
     with torch.no_grad():
         delivered, clean = chain(stored.float() / 255)[0], chain(x)[0]
-    assert (delivered[attacked, 2] - clean[attacked, 2]).mean() > 0.1   # pushed away along the line of sight
-    assert not defense.filter.started and defense.holding          # the caller's defense is left alone
+    assert (delivered[attacked, 2] - clean[attacked, 2]).mean() > 0.1  # pushed away along the line of sight
+    assert not defense.filter.started and defense.holding  # the caller's defense is left alone
 
 
 def test_unknown_attacker_and_bad_settings_are_one_line_errors() -> None:

@@ -7,6 +7,7 @@ uses (module-level and in-function imports, `module.attr` references, calls to f
 same module), and collect the files reached. Function granularity keeps, e.g., `rpod render` off
 pipeline/attacks/gradient.py although stages/config/build.py (which it uses) has an attack helper.
 """
+
 from __future__ import annotations
 
 import ast
@@ -18,7 +19,7 @@ import yaml
 
 REPO = Path(__file__).resolve().parent.parent
 PACKAGES = ("pipeline", "stages")
-TOP = "<module>"   # the unit of a module's top-level statements
+TOP = "<module>"  # the unit of a module's top-level statements
 
 
 def module_file(name: str) -> Path | None:
@@ -60,9 +61,9 @@ def bindings(nodes: list[ast.AST]) -> dict[str, tuple[Path, str]]:
                 base = module_file(node.module)
                 for a in node.names:
                     sub = module_file(f"{node.module}.{a.name}")
-                    if sub is not None:                     # `from stages import params`
+                    if sub is not None:  # `from stages import params`
                         out[a.asname or a.name] = (sub, TOP)
-                    elif base is not None:                  # `from stages.errors import StageError`
+                    elif base is not None:  # `from stages.errors import StageError`
                         out[a.asname or a.name] = (base, a.name)
     return out
 
@@ -82,7 +83,7 @@ def reached(path: Path, unit: str) -> set[tuple[Path, str]]:
                     out.add((path, node.id))
             elif isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in names:
                 f, attr = names[node.value.id]
-                if attr == TOP:                              # module.attr
+                if attr == TOP:  # module.attr
                     out.add((f, node.attr))
     return out
 
@@ -104,7 +105,10 @@ STAGES = {name: st for f in PIPELINES for name, st in yaml.safe_load((REPO / f).
 
 
 # commands that run other commands as subprocesses (stages/engine/subrun.py): lab_models with lab.retrain, pose_trial
-SUBPROCESSES = {"lab_models": ("render", "label", "train", "shap", "detect"), "pose_trial": ("render", "label", "train")}
+SUBPROCESSES = {
+    "lab_models": ("render", "label", "train", "shap", "detect"),
+    "pose_trial": ("render", "label", "train"),
+}
 
 
 def stage_files(name: str) -> set[Path]:
@@ -129,19 +133,35 @@ def test_every_module_a_stage_runs_is_a_dependency(name):
 
 def test_the_derivation_follows_functions_not_whole_modules():
     render = {str(f.relative_to(REPO)) for f in stage_files("render")}
-    assert {"pipeline/render/scene.py", "stages/config/build.py", "stages/artifacts/readers.py",
-            "pipeline/geometry/trajectories.py"} <= render
-    assert "pipeline/attacks/gradient.py" not in render          # build.make_attack is not used by render
-    for later in ("evaluate", "lab"):   # editing the detector's code or page does not re-run them
+    assert {
+        "pipeline/render/scene.py",
+        "stages/config/build.py",
+        "stages/artifacts/readers.py",
+        "pipeline/geometry/trajectories.py",
+    } <= render
+    assert "pipeline/attacks/gradient.py" not in render  # build.make_attack is not used by render
+    for later in ("evaluate", "lab"):  # editing the detector's code or page does not re-run them
         assert "stages/detect.py" not in {str(f.relative_to(REPO)) for f in stage_files(later)}
 
 
 def test_no_stage_imports_another_stage():
-    shared = {"artifacts", "errors", "params", "schema", "cli", "checkpoint", "data", "help", "speed",
-              "engine", "chunks"}
+    shared = {
+        "artifacts",
+        "errors",
+        "params",
+        "schema",
+        "cli",
+        "checkpoint",
+        "data",
+        "help",
+        "speed",
+        "engine",
+        "chunks",
+    }
     for path in sorted((REPO / "stages").glob("*.py")):
         _, top = parse(path)
         imported = {f for f, _ in top.values()} | {f for u in parse(path)[0].values() for f, _ in bindings(u).values()}
         for f in imported:
-            assert f.parent.name != "stages" or f.stem in shared or f == path, \
+            assert f.parent.name != "stages" or f.stem in shared or f == path, (
                 f"{path.name} imports the stage module {f.name}"
+            )

@@ -10,6 +10,7 @@ the ones given), and take only the branch a command-line flag selects (`--surrog
 anything else counts as read whole. The derivation over-approximates, so it can only show a listed key
 unread, which is what these tests check (tests/test_dvc_deps.py does the same for code deps).
 """
+
 from __future__ import annotations
 
 import ast
@@ -17,7 +18,6 @@ from pathlib import Path
 
 import pytest
 import yaml
-
 from test_dvc_deps import REPO, STAGES, TOP, bindings, parse
 
 Key = tuple[str, ...]
@@ -45,8 +45,12 @@ class Reads:
             for child in branch if isinstance(branch, list) else [branch]:
                 self.visit(child, env, path, scope)
             return
-        if isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name) \
-                and (key := _rooted(node.value, env)) is not None:
+        if (
+            isinstance(node, ast.Assign)
+            and len(node.targets) == 1
+            and isinstance(node.targets[0], ast.Name)
+            and (key := _rooted(node.value, env)) is not None
+        ):
             env[node.targets[0].id] = key
             return
         if (key := _rooted(node, env)) is not None:
@@ -74,8 +78,7 @@ class Reads:
         if not isinstance(fn, ast.FunctionDef):
             return False
         names = [a.arg for a in fn.args.posonlyargs + fn.args.args]
-        bound = {names[i]: k for i, a in enumerate(node.args)
-                 if i < len(names) and (k := _rooted(a, env)) is not None}
+        bound = {names[i]: k for i, a in enumerate(node.args) if i < len(names) and (k := _rooted(a, env)) is not None}
         bound |= {kw.arg: k for kw in node.keywords if kw.arg and (k := _rooted(kw.value, env)) is not None}
         for arg in [*node.args, *(kw.value for kw in node.keywords)]:
             if _rooted(arg, env) is None:
@@ -128,8 +131,14 @@ def command_reads(stage: str) -> set[Key]:
     flags = frozenset(a.removeprefix("--") for a in cmd[2:] if a.startswith("--"))
     main = parse(REPO / "stages" / f"{cmd[1]}.py")[0]["main"][0]
     # the command's other boolean flags (parameters defaulting to False) are off
-    off = frozenset(a.arg for a, d in zip(main.args.args[::-1], main.args.defaults[::-1])
-                    if isinstance(d, ast.Constant) and d.value is False) - flags
+    off = (
+        frozenset(
+            a.arg
+            for a, d in zip(main.args.args[::-1], main.args.defaults[::-1])
+            if isinstance(d, ast.Constant) and d.value is False
+        )
+        - flags
+    )
     reads = Reads(flags, off)
     reads.function(REPO / "stages" / f"{cmd[1]}.py", "main", {"params": ()})
     return reads.keys
@@ -150,14 +159,15 @@ def leaves(key: Key) -> list[Key]:
 def unread(stage: str, reads: set[Key]) -> list[str]:
     """Keys in the stage's `params:` (a section: each key in it) that no derived read covers (a read covers a
     key when it is the key or a section holding it)."""
-    return sorted(".".join(leaf) for k in listed(stage) for leaf in leaves(k)
-                  if not any(leaf[:len(r)] == r for r in reads))
+    return sorted(
+        ".".join(leaf) for k in listed(stage) for leaf in leaves(k) if not any(leaf[: len(r)] == r for r in reads)
+    )
 
 
 def test_the_surrogate_lists_only_what_it_reads():
     reads = command_reads("surrogate")
     assert ("robustness", "surrogate_epochs") in reads and ("train", "lr_max") in reads
-    assert ("train", "epochs") not in reads and ("train", "range_bins") not in reads   # the --surrogate branch
+    assert ("train", "epochs") not in reads and ("train", "range_bins") not in reads  # the --surrogate branch
     assert not unread("surrogate", reads)
     train_read = {leaf for k in reads if k[0] == "train" for leaf in leaves(k)}
     assert train_read == {leaf for k in listed("surrogate") if k[0] == "train" for leaf in leaves(k)}

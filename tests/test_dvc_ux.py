@@ -1,6 +1,7 @@
 """DVC conventions and standalone help: `dvc metrics show` prints one row of readable names, plots carry
 titles and axis units with no duplicates, every stage's --help lists the params dvc.yaml gives it
 (with conf/config.yaml's comments), and a missing input names the stage that writes it."""
+
 from __future__ import annotations
 
 import json
@@ -24,12 +25,13 @@ DVC_YAML = yaml.safe_load((REPO / "dvc.yaml").read_text())
 
 
 def _committed_metrics() -> dict[str, dict]:
-    return {p.stem: json.loads(p.read_text()) for p in (REPO / "reports" / "metrics").glob("*.json")
-            if p.stem != "summary"}
+    return {
+        p.stem: json.loads(p.read_text()) for p in (REPO / "reports" / "metrics").glob("*.json") if p.stem != "summary"
+    }
 
 
 # ----------------------------------------------------------------------------- metrics
-UNITS = ("_m", "_deg", "_pct", "_eps", "_ratio")   # every headline name ends in its unit (stages/pages/summary.py)
+UNITS = ("_m", "_deg", "_pct", "_eps", "_ratio")  # every headline name ends in its unit (stages/pages/summary.py)
 
 
 def test_summary_is_grouped_readable_and_has_every_headline():
@@ -68,7 +70,7 @@ def test_every_output_path_is_an_out_of_the_stage_that_writes_it():
     from stages.artifacts.paths import WRITTEN_BY
 
     def listed(stage: str) -> set[Path]:
-        st = dvc_stages()[stage]   # dvc.yaml's or optional/dvc.yaml's
+        st = dvc_stages()[stage]  # dvc.yaml's or optional/dvc.yaml's
         return {Path(o if isinstance(o, str) else next(iter(o))) for o in st.get("outs", []) + st.get("metrics", [])}
 
     for path, stage in WRITTEN_BY.items():
@@ -83,7 +85,7 @@ def test_dvc_metrics_show_prints_one_row_of_readable_names(tmp_path):
 
     values = headline_values(_committed_metrics())
     assert set(values) >= {h.key for h in HEADLINES if not h.optional}
-    for name in ("dvc.yaml", "params.yaml"):   # dvc.yaml templates external-input deps from params.yaml
+    for name in ("dvc.yaml", "params.yaml"):  # dvc.yaml templates external-input deps from params.yaml
         shutil.copy(REPO / name, tmp_path / name)
     write_json(tmp_path / "reports" / "metrics" / "summary.json", summary(_committed_metrics()))
     subprocess.run([str(DVC), "init", "--no-scm", "-q"], cwd=tmp_path, check=True)
@@ -98,10 +100,10 @@ def test_plots_have_titles_axis_units_and_no_duplicates():
     assert not [s for s, st in DVC_YAML["stages"].items() if "plots" in st], "stage-level plots draw curves twice"
     curves, images = [], []
     for entry in DVC_YAML["plots"]:
-        if isinstance(entry, str):            # an image plot: a PNG figure or a folder of them
+        if isinstance(entry, str):  # an image plot: a PNG figure or a folder of them
             images.append(entry)
             continue
-        (name, plot), = entry.items()
+        ((name, plot),) = entry.items()
         assert plot.get("title") and plot.get("x_label") and plot.get("y_label"), name
         assert "(" in plot["y_label"] and "(" in plot["x_label"], f"{name}: axis names give units"
         curves += [(path, field) for path, field in plot["y"].items()]
@@ -137,10 +139,14 @@ def test_the_models_are_dvc_model_artifacts():
 
     with Repo(str(REPO)) as repo:
         found = {name: (a.path, a.type) for a in repo.artifacts.read().values() for name, a in a.items()}
-    assert found == {"pose": (str(POSE), "model"), "detector": (str(DETECTOR), "model"),
-                     "defense": (str(DEFENSE), "model"), "pose_robust": (str(POSE_ROBUST), "model"),
-                     "detector_robust": (str(DETECTOR_ROBUST), "model"),
-                     "defense_standard": (str(DEFENSE_STANDARD), "model")}
+    assert found == {
+        "pose": (str(POSE), "model"),
+        "detector": (str(DETECTOR), "model"),
+        "defense": (str(DEFENSE), "model"),
+        "pose_robust": (str(POSE_ROBUST), "model"),
+        "detector_robust": (str(DETECTOR_ROBUST), "model"),
+        "defense_standard": (str(DEFENSE_STANDARD), "model"),
+    }
     assert all(producer(path) for path, _ in found.values())
 
 
@@ -149,7 +155,7 @@ DVC_COMMANDS = [c for c in STAGES if any(st["cmd"].split()[:2] == ["rpod", c] fo
 
 
 def test_commands_outside_dvc_have_help_too():
-    for command in sorted(set(STAGES) - set(DVC_COMMANDS)):      # e.g. `rpod export`
+    for command in sorted(set(STAGES) - set(DVC_COMMANDS)):  # e.g. `rpod export`
         result = CliRunner().invoke(app, [command, "--help"], terminal_width=200)
         assert result.exit_code == 0 and "SPEC" not in result.output, command
 
@@ -160,8 +166,9 @@ def test_stage_help_lists_its_params_with_comments(command):
 
     comments = config_comments(CONFIG.read_text())
     keys = command_params(command, comments)
-    listed = {p for s, st in dvc_stages().items() if st["cmd"].split()[:2] == ["rpod", command]
-              for p in st.get("params", [])}
+    listed = {
+        p for s, st in dvc_stages().items() if st["cmd"].split()[:2] == ["rpod", command] for p in st.get("params", [])
+    }
     assert listed and all(any(k == p or k.startswith(p + ".") for k in keys) for p in listed), listed
     result = CliRunner().invoke(app, [command, "--help"], terminal_width=200)
     assert result.exit_code == 0, result.output
@@ -174,11 +181,19 @@ def test_stage_help_lists_its_params_with_comments(command):
 def test_config_comments_parse_sections_and_continuations():
     from stages.help import config_comments
 
-    text = ("defaults:\n  - _self_\nseed: 0   # base\nsec:      # a section\n  a: [1, 2]   # metres;\n"
-            "              # more\n  sub:\n    b: 3\nempty: {}\n")
+    text = (
+        "defaults:\n  - _self_\nseed: 0   # base\nsec:      # a section\n  a: [1, 2]   # metres;\n"
+        "              # more\n  sub:\n    b: 3\nempty: {}\n"
+    )
     c = config_comments(text)
-    assert c == {"seed": (True, "base"), "sec": (False, "a section"), "sec.a": (True, "metres; more"),
-                 "sec.sub": (False, ""), "sec.sub.b": (True, ""), "empty": (False, "")}
+    assert c == {
+        "seed": (True, "base"),
+        "sec": (False, "a section"),
+        "sec.a": (True, "metres; more"),
+        "sec.sub": (False, ""),
+        "sec.sub.b": (True, ""),
+        "empty": (False, ""),
+    }
 
 
 # ----------------------------------------------------------------------------- missing inputs
@@ -188,19 +203,25 @@ def test_every_input_a_stage_reads_has_a_producer():
     for name, st in dvc_stages().items():
         for dep in st.get("deps", []):
             scripted = ("reports/benchmarks.md", "reports/variance.json")
-            external = dep.startswith("${")           # a user's file named by a param (inputs/none when unset)
+            external = dep.startswith("${")  # a user's file named by a param (inputs/none when unset)
             if not dep.startswith(("pipeline/", "stages/")) and dep not in scripted and not external:
                 assert producer(dep) not in (None, name), f"{name}: {dep}"
     assert producer(REPO / "models" / "pose.pt") == "train" and producer("datasets/render/meta.json") == "render"
     assert producer("somewhere/else.json") is None
 
 
-@pytest.mark.parametrize("load, message", [
-    ("pose", "models/pose.pt not found: run `dvc repro train` (or `rpod train`)"),
-    ("surrogate", "models/surrogate.pt not found: run `dvc repro surrogate` (or `rpod train --surrogate`)"),
-    ("eval_render", "datasets/eval_render/meta.json not found: run `dvc repro eval_render` (or `rpod eval_render`)"),
-    ("shap", "datasets/shap.zarr not found: run `dvc repro shap` (or `rpod shap --model standard`)"),
-])
+@pytest.mark.parametrize(
+    "load, message",
+    [
+        ("pose", "models/pose.pt not found: run `dvc repro train` (or `rpod train`)"),
+        ("surrogate", "models/surrogate.pt not found: run `dvc repro surrogate` (or `rpod train --surrogate`)"),
+        (
+            "eval_render",
+            "datasets/eval_render/meta.json not found: run `dvc repro eval_render` (or `rpod eval_render`)",
+        ),
+        ("shap", "datasets/shap.zarr not found: run `dvc repro shap` (or `rpod shap --model standard`)"),
+    ],
+)
 def test_missing_input_names_the_stage_that_writes_it(tmp_path, monkeypatch, load, message):
     from stages.artifacts import models
     from stages.artifacts import readers as artifacts
@@ -209,10 +230,12 @@ def test_missing_input_names_the_stage_that_writes_it(tmp_path, monkeypatch, loa
 
     params = load_params(REPO / "params.yaml")
     monkeypatch.chdir(tmp_path)
-    call = {"pose": lambda: models.load_pose(params),
-            "surrogate": lambda: models.load_pose(params, "models/surrogate.pt"),
-            "eval_render": lambda: artifacts.read_eval_render(params),
-            "shap": lambda: artifacts.read_shap_store(SHAP, "hash")}[load]
+    call = {
+        "pose": lambda: models.load_pose(params),
+        "surrogate": lambda: models.load_pose(params, "models/surrogate.pt"),
+        "eval_render": lambda: artifacts.read_eval_render(params),
+        "shap": lambda: artifacts.read_shap_store(SHAP, "hash"),
+    }[load]
     with pytest.raises(DataError) as err:
         call()
     assert message in str(err.value)
@@ -224,13 +247,13 @@ def test_report_refuses_a_missing_figure_input(tmp_path, monkeypatch):
     from stages.artifacts.paths import ROC_DATA
 
     shutil.copytree(REPO / "reports/metrics", tmp_path / "reports/metrics")
-    for name in _committed_metrics()["detect"]["detectors"]:      # DVCLive's ROC data, as `rpod detect` writes it
+    for name in _committed_metrics()["detect"]["detectors"]:  # DVCLive's ROC data, as `rpod detect` writes it
         (tmp_path / ROC_DATA).mkdir(parents=True, exist_ok=True)
         (tmp_path / ROC_DATA / f"{name}.json").write_text('{"roc": [{"fpr": 0, "tpr": 0, "threshold": 1}]}')
     for md in (REPO / "reports").glob("*.md"):
         shutil.copy(md, tmp_path / "reports" / md.name)
     (tmp_path / "reports" / "README.md").unlink()
-    (tmp_path / "reports" / "metrics" / "summary.json").unlink()   # committed, written by `rpod report`
+    (tmp_path / "reports" / "metrics" / "summary.json").unlink()  # committed, written by `rpod report`
     (tmp_path / "dvclive" / "detect" / "plots" / "sklearn" / "lid.json").unlink()
     shutil.copy(REPO / "params.yaml", tmp_path / "params.yaml")
     monkeypatch.chdir(tmp_path)

@@ -2,6 +2,7 @@
 filter (its prediction is the last state moved by the command alone), in the closed loop and on open-loop
 trajectories; the Clohessy-Wiltshire step matches the equations of motion; a loop that flies on its
 estimates still docks with the error on (no Blender, no torch)."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -52,32 +53,39 @@ def test_execution_error_reaches_the_truth_and_not_the_filter(execution) -> None
     """Closed loop, recover defense, a perfect estimator: the filter's prediction is its last state plus
     the command, exactly, with or without execution error; the truth moved by the command exactly
     without it, and by centimetres more with it (the filter never sees that part)."""
-    s = GuidanceSettings(start=(-4.0, 3.0, 60.0), variant="true_state", defense="recover", max_steps=60,
-                         execution=execution)
+    s = GuidanceSettings(
+        start=(-4.0, 3.0, 60.0), variant="true_state", defense="recover", max_steps=60, execution=execution
+    )
     defense, seen = _spied_defense(MotionSettings(position_noise=0.03))
     r = run_rendezvous(blank, perfect, K, s, defense=defense)
     assert len(seen) == len(r.estimates) - 1 and not r.held.any()
     for before, u, predicted in seen:
         np.testing.assert_allclose(predicted, before + u, atol=1e-12)
-    commanded = np.array([u for _, u, _ in seen])                     # u of frame k: rel's commanded step k-1 -> k
-    flown = np.diff(r.positions[:len(seen) + 1], axis=0)
+    commanded = np.array([u for _, u, _ in seen])  # u of frame k: rel's commanded step k-1 -> k
+    flown = np.diff(r.positions[: len(seen) + 1], axis=0)
     gap = np.linalg.norm(flown - commanded, axis=1)
     if execution is None:
         assert gap.max() < 1e-12
     else:
         assert np.median(gap) > 0.02 and gap.max() < 0.5
-    assert r.miss <= s.tolerance and r.outcome == "rendezvous held"   # the loop flies on its estimates: it docks
+    assert r.miss <= s.tolerance and r.outcome == "rendezvous held"  # the loop flies on its estimates: it docks
 
 
 def test_the_paper_dynamics_take_no_execution_and_a_grid_flies_it_only_on_true_state() -> None:
     with pytest.raises(ValueError, match="prediction = truth"):
         GuidanceSettings(variant="paper", execution=ExecutionSettings())
-    plan = GridPlan(GuidanceSettings(max_steps=55), (), 5, ("paper", "true_state"), (),
-                    execution=ExecutionSettings(scale_std=0.05, noise_std=0.03))
+    plan = GridPlan(
+        GuidanceSettings(max_steps=55),
+        (),
+        5,
+        ("paper", "true_state"),
+        (),
+        execution=ExecutionSettings(scale_std=0.05, noise_std=0.03),
+    )
     pilot = GridPilot(_Camera(), K, plan, None)
     paper, _ = pilot.fly("shipped", "paper", "undefended", None)
     true, _ = pilot.fly("shipped", "true_state", "undefended", None)
-    assert np.allclose(np.abs(np.diff(paper.positions, axis=0)).max(1)[:40], 1.0)   # exact 1 m steps
+    assert np.allclose(np.abs(np.diff(paper.positions, axis=0)).max(1)[:40], 1.0)  # exact 1 m steps
     assert np.abs(np.abs(np.diff(true.positions, axis=0))[:40, 2] - 1.0).max() > 0.01
 
 
@@ -97,7 +105,7 @@ def test_executor_without_errors_moves_by_the_command_and_holds_station() -> Non
     ex = Executor(EXACT)
     rel = np.array([3.0, -2.0, 40.0])
     np.testing.assert_allclose(ex.step(rel, np.array([0.5, -1.0, 1.0])), rel - [0.5, -1.0, 1.0], atol=1e-12)
-    np.testing.assert_allclose(Executor(ExecutionSettings()).step(rel, np.zeros(3)), rel)   # a hold keeps station
+    np.testing.assert_allclose(Executor(ExecutionSettings()).step(rel, np.zeros(3)), rel)  # a hold keeps station
 
 
 def test_execution_errors_are_seeded_scaled_per_axis_and_sized_as_stated() -> None:
@@ -107,7 +115,7 @@ def test_execution_errors_are_seeded_scaled_per_axis_and_sized_as_stated() -> No
     rel, cmd = np.array([0.0, 0.0, 50.0]), np.array([0.0, 0.0, 1.0])
     errs = np.array([Executor(dataclasses.replace(s, seed=k)).step(rel, cmd) - (rel - cmd) for k in range(400)])
     assert abs(errs[:, 2].std() / s.step_std(1.0) - 1) < 0.15
-    assert abs(errs[:, 0].std() / s.noise_std - 1) < 0.15             # across the command: the fixed part only
+    assert abs(errs[:, 0].std() / s.noise_std - 1) < 0.15  # across the command: the fixed part only
     np.testing.assert_array_equal(Executor(s).step(rel, cmd), Executor(s).step(rel, cmd))
     assert abs(s.step_std(1.0) - np.hypot(0.02, 0.01)) < 1e-12
 
@@ -147,13 +155,20 @@ def test_open_loop_trajectories_fly_the_plan_with_errors_and_record_the_commands
     assert plain.commands is None
     np.testing.assert_allclose(flown.commands[1:], np.diff(plain.rel, axis=0))
     drift = np.linalg.norm(flown.rel - plain.rel, axis=1)
-    assert drift[0] == 0 and 0.05 < drift[-1] < 2.0                      # a random walk of centimetres per step
+    assert drift[0] == 0 and 0.05 < drift[-1] < 2.0  # a random walk of centimetres per step
     np.testing.assert_allclose(np.einsum("nji,nj->ni", flown.R_cam, flown.rel), flown.t, atol=1e-9)
     np.testing.assert_allclose(execute_plan(plain.rel, EXACT), plain.rel, atol=1e-9)
 
 
-@pytest.mark.parametrize("change, word", [({"scale_std": -0.1}, "scale_std"), ({"noise_std": float("nan")}, "noise_std"),
-                                          ({"frame_interval": 0.0}, "frame_interval"), ({"approach": "hbar"}, "approach")])
+@pytest.mark.parametrize(
+    "change, word",
+    [
+        ({"scale_std": -0.1}, "scale_std"),
+        ({"noise_std": float("nan")}, "noise_std"),
+        ({"frame_interval": 0.0}, "frame_interval"),
+        ({"approach": "hbar"}, "approach"),
+    ],
+)
 def test_bad_execution_settings_are_one_line(change: dict, word: str) -> None:
     with pytest.raises(ValueError, match=word):
         ExecutionSettings(**change)
@@ -174,11 +189,12 @@ def test_eval_render_writes_the_planned_commands_and_flies_the_poses_with_their_
     flown, planned = trajectories(p, base, 2, flown=True), trajectories(p, base, 2)
     poses = poses_table(flown)
     _, u = chaser_motion(poses)
-    for k, (f, q) in enumerate(zip(flown, planned)):
+    for f, q in zip(flown, planned):
         rows = (poses["trajectory"] == f.sequence).to_numpy()
         rel = poses.loc[rows, ["rel_x", "rel_y", "rel_z"]].to_numpy()
-        assert np.allclose(u[rows][1:], np.diff(q.rel, axis=0)) and not u[rows][0].any()   # the planned steps
-        assert np.allclose(rel, f.rel) and not np.allclose(rel, q.rel, atol=1e-3)           # the truth is flown
-        assert np.allclose(rel[0], q.rel[0]) and np.allclose(np.linalg.norm(poses.loc[rows, ["tx", "ty", "tz"]], axis=1),
-                                                               np.linalg.norm(rel, axis=1))
-    assert not np.allclose(flown[0].rel - planned[0].rel, flown[1].rel - planned[1].rel)    # each its own draws
+        assert np.allclose(u[rows][1:], np.diff(q.rel, axis=0)) and not u[rows][0].any()  # the planned steps
+        assert np.allclose(rel, f.rel) and not np.allclose(rel, q.rel, atol=1e-3)  # the truth is flown
+        assert np.allclose(rel[0], q.rel[0]) and np.allclose(
+            np.linalg.norm(poses.loc[rows, ["tx", "ty", "tz"]], axis=1), np.linalg.norm(rel, axis=1)
+        )
+    assert not np.allclose(flown[0].rel - planned[0].rel, flown[1].rel - planned[1].rel)  # each its own draws

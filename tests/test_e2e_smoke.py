@@ -5,6 +5,7 @@ temporary copy of the repo), which must leave this checkout exactly as it was (`
 The copy (scripts/smoke.py's `copy_repo`) holds the tracked and untracked-but-not-ignored files (what a clean
 clone plus local edits has), so the test sees exactly the working tree. A few minutes on 2 cores.
 """
+
 from __future__ import annotations
 
 import importlib.util
@@ -22,11 +23,33 @@ spec = importlib.util.spec_from_file_location("smoke_script", REPO / "scripts" /
 smoke_script = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(smoke_script)
 _run = smoke_script.run
-REPORTS = ["dataset", "pose", "pose_robust", "attack", "guidance", "detector", "detector_robust", "integrated",
-           "robustness", "lab", "benchmarks", "README"]
+REPORTS = [
+    "dataset",
+    "pose",
+    "pose_robust",
+    "attack",
+    "guidance",
+    "detector",
+    "detector_robust",
+    "integrated",
+    "robustness",
+    "lab",
+    "benchmarks",
+    "README",
+]
 METRICS = ["train", "robust", "attack", "guidance", "detect", "detect_robust", "evaluate", "robustness", "lab"]
-FIGURES = ["fgsm_example", "guidance_trajectories", "guidance_defended", "timeline", "robustness", "pose_errors",
-           "error_vs_eps", "shap_heatmaps", "roc", "integrity"]
+FIGURES = [
+    "fgsm_example",
+    "guidance_trajectories",
+    "guidance_defended",
+    "timeline",
+    "robustness",
+    "pose_errors",
+    "error_vs_eps",
+    "shap_heatmaps",
+    "roc",
+    "integrity",
+]
 
 
 def tables(md: str) -> list[tuple[str, list[str], list[str]]]:
@@ -61,8 +84,9 @@ def copy_repo(dst: Path) -> dict[str, str]:
 
 
 def _status() -> str:
-    return subprocess.run(["git", "status", "--porcelain", "--untracked-files=all"], cwd=REPO, check=True,
-                          capture_output=True, text=True).stdout
+    return subprocess.run(
+        ["git", "status", "--porcelain", "--untracked-files=all"], cwd=REPO, check=True, capture_output=True, text=True
+    ).stdout
 
 
 @pytest.fixture(scope="module")
@@ -73,14 +97,18 @@ def smoke_repo(tmp_path_factory) -> tuple[Path, dict[str, str]]:
         pytest.skip("git is needed to list the repository's files")
     dst = tmp_path_factory.mktemp("smoke") / "repo"
     before = _status(), subprocess.run(["git", "diff", "HEAD"], cwd=REPO, capture_output=True).stdout
-    _run([sys.executable, str(REPO / "scripts" / "smoke.py"), "--dir", str(dst)], REPO, smoke_script.copy_env(REPO),
-         timeout=1800)
+    _run(
+        [sys.executable, str(REPO / "scripts" / "smoke.py"), "--dir", str(dst)],
+        REPO,
+        smoke_script.copy_env(REPO),
+        timeout=1800,
+    )
     SMOKE_CHECKOUT["before"] = before
     SMOKE_CHECKOUT["after"] = _status(), subprocess.run(["git", "diff", "HEAD"], cwd=REPO, capture_output=True).stdout
     return dst, smoke_script.copy_env(dst)
 
 
-SMOKE_CHECKOUT: dict[str, tuple[str, bytes]] = {}   # the checkout's git status and diff around `make smoke`
+SMOKE_CHECKOUT: dict[str, tuple[str, bytes]] = {}  # the checkout's git status and diff around `make smoke`
 
 
 def test_make_smoke_leaves_the_checkout_as_it_was(smoke_repo):
@@ -101,7 +129,9 @@ def test_every_stage_ran_on_the_smoke_profile(smoke_repo):
         m = json.loads((dst / "reports" / "metrics" / f"{name}.json").read_text())
         assert m["profile"] == "smoke", f"{name}.json was not produced by this run"
     # the default pipeline's stages (optional/dvc.yaml's run only on demand, so `dvc status` lists them as not run)
-    assert "changed" not in _run(["dvc", "status", "dvc.yaml"], dst, env), "dvc status: stages left stale after dvc repro"
+    assert "changed" not in _run(["dvc", "status", "dvc.yaml"], dst, env), (
+        "dvc status: stages left stale after dvc repro"
+    )
     _run(["rpod", "report", "--check"], dst, env)
 
 
@@ -123,9 +153,12 @@ def test_dvc_metrics_and_plots_show_after_repro(smoke_repo):
     _run(["dvc", "plots", "show"], dst, env)
     page = (dst / "dvc_plots" / "index.html").read_text()
     for entry in yaml.safe_load((dst / "dvc.yaml").read_text())["plots"]:
-        if isinstance(entry, str):                               # an image plot: the file, or a folder of them
-            images = [entry] if entry.endswith(".png") else sorted(str(p.relative_to(dst))
-                                                                   for p in (dst / entry).glob("*.png"))
+        if isinstance(entry, str):  # an image plot: the file, or a folder of them
+            images = (
+                [entry]
+                if entry.endswith(".png")
+                else sorted(str(p.relative_to(dst)) for p in (dst / entry).glob("*.png"))
+            )
             assert images and all(f"<p>{image}" in page for image in images), entry
             continue
         (plot,) = entry.values()
@@ -149,12 +182,15 @@ def test_every_table_has_the_expected_rows(smoke_repo):
     assert len(detectors) == 5 and detectors[0].startswith("LSTM")
     assert rows_under(page("integrated"), "Detection accuracy", "eps") == [*eps(p["evaluate"]["eps"]), "average"]
     assert "Not run for this detector" in page("detector_robust") and page("detector_robust").startswith(
-        "# Attack detector of the shipped chain (robust model)")
+        "# Attack detector of the shipped chain (robust model)"
+    )
     fused = [r for h, head, r in tables(page("integrated")) if h.startswith("The defended chain") and "chain" in head]
-    assert fused and fused[0] == [e for e in eps(p["evaluate"]["eps"]) for _ in range(3)]   # paper's, standard, shipped
+    assert fused and fused[0] == [e for e in eps(p["evaluate"]["eps"]) for _ in range(3)]  # paper's, standard, shipped
     m = json.loads((dst / "reports" / "metrics" / "evaluate.json").read_text())
     assert set(m["fused"]["per_eps"]) == set(m["fused"]["standard_per_eps"]) == set(eps(p["evaluate"]["eps"]))
-    assert {"accuracy", "tpr", "fpr", "fpr_clean", "harmful_undetected"} <= set(m["fused"]["per_eps"][eps(p["evaluate"]["eps"])[0]])
+    assert {"accuracy", "tpr", "fpr", "fpr_clean", "harmful_undetected"} <= set(
+        m["fused"]["per_eps"][eps(p["evaluate"]["eps"])[0]]
+    )
     variants = rows_under(page("guidance"), "The chain inside the loop", "dynamics")
     assert variants == [d for d in p["guidance"]["dynamics"] for _ in range(1 + len(p["guidance"]["defenses"]))]
     assert rows_under(page("lab"), "Integrated detection", "eps") == [*eps(p["evaluate"]["eps"]), "average"]
@@ -164,42 +200,48 @@ def test_every_table_has_the_expected_rows(smoke_repo):
     rob = json.loads((dst / "reports" / "metrics" / "robustness.json").read_text())
     adaptive = [row for row in rob["rows"] if row["adaptive"] and row["lambda"] is not None]
     assert sorted((row["eps"], row["lambda"]) for row in adaptive) == sorted(
-        (float(e), float(v)) for e in r["eps"] for v in r["lambdas"])
+        (float(e), float(v)) for e in r["eps"] for v in r["lambdas"]
+    )
     assert {row["attack"] for row in rob["rows"]} >= {*r["transfer"], "adaptive pgd, worst over lambda"}
     assert len(rob["corruptions"]) == 1 + sum(len(v) for v in r["corruptions"].values())
     assert rows_under(page("robustness"), "Benign corruptions", "corruption")[0] == "none"
     i = p["integrity"]
     fused = [(row["eps"], row["lambda"]) for row in rob["fused_rows"]]
-    burst = "burst" in i["attackers"]   # the nested burst, per frame, where the profile flies it
+    burst = "burst" in i["attackers"]  # the nested burst, per frame, where the profile flies it
     assert fused == ([(e, None) for e in sorted(map(float, i["eps"]))] if burst else [])
     assert all(row["n"] > 0 and row["ci_method"] == "bootstrap over trajectories" for row in rob["fused_rows"])
-    names = [n for a in i["attackers"] if a != "burst"
-             for n in ([f"{a} {b:g} m" for b in i["capture_initial"]] if a.startswith("capture") else [a])]
+    names = [
+        n
+        for a in i["attackers"]
+        if a != "burst"
+        for n in ([f"{a} {b:g} m" for b in i["capture_initial"]] if a.startswith("capture") else [a])
+    ]
     chains = rob["integrity"]["chains"]
     assert set(chains) == {"robust", "standard", "control"} and not chains["control"]["defended"]
-    for key, chain in chains.items():   # every planned attacker at every eps the chain flew (its ladder)
+    for key, chain in chains.items():  # every planned attacker at every eps the chain flew (its ladder)
         flown = chain["summary"]["eps_flown"]
         assert flown and flown == sorted(flown) and set(flown) <= set(map(float, i["eps"])), key
         assert sorted((row["attacker"], row["eps"]) for row in chain["rows"] if row["attacker"] != "burst") == sorted(
-            (n, e) for n in names for e in flown), key
+            (n, e) for n in names for e in flown
+        ), key
     assert set(rob["integrity"]["worst_hmi"]) == set(eps(chains["robust"]["summary"]["eps_flown"]))
-    assert page("robustness").split("\n## ")[1].startswith("Safety evidence that can fail")   # the page leads with it
+    assert page("robustness").split("\n## ")[1].startswith("Safety evidence that can fail")  # the page leads with it
     assert len(rows_under(page("robustness"), "Breaking point per chain", "chain")) == 3
     assert len(rows_under(page("robustness"), "Shipped (robust model", "attacker")) == len(chains["robust"]["rows"])
     assert len(rows_under(page("robustness"), "Standard (the paper", "attacker")) == len(chains["standard"]["rows"])
     assert rows_under(page("robustness"), "The two pose models", "measure")[0].startswith("clean test position")
-    in_loop = rows_under(page("guidance"), "The in-loop attacker", "dynamics")   # true-state dynamics only
+    in_loop = rows_under(page("guidance"), "The in-loop attacker", "dynamics")  # true-state dynamics only
     assert in_loop == ["true_state"] * (1 + len(p["guidance"]["defenses"])) * len(i["in_loop_eps"])
     runs = json.loads((dst / "reports" / "metrics" / "guidance.json").read_text())["in_loop"]["runs"]
     per_cell = sum(1 if g == "capture" else len(i["in_loop_start_ranges"]) for g in i["in_loop_goals"])
-    assert len(runs) == len(in_loop) * per_cell   # the capture attacks from acquisition: one start per cell
+    assert len(runs) == len(in_loop) * per_cell  # the capture attacks from acquisition: one start per cell
     assert page("guidance").startswith("# Closed-loop rendezvous: where the shipped chain docks")
 
     summary = rows_under(page("README"), "Summary against the paper", "result")
     assert len(summary) == 30 and summary[0].startswith("pose")
     # 3 breaking points, error / AL at eps 0.05, 2 + 2 worst-HMI rows (shipped, standard), availability
     assert sum(r.startswith("integrity") for r in summary) == 9
-    assert sum(r.startswith("closed loop: ") for r in summary) == 2   # the shipped chain's docking misses
+    assert sum(r.startswith("closed loop: ") for r in summary) == 2  # the shipped chain's docking misses
     defended = [r for h, head, r in tables(page("README")) if any(c.startswith("defended chain (or)") for c in head)]
     assert defended and defended[0][0].startswith("integrated accuracy at eps")
     assert sum(r.startswith("closed loop") for r in defended[0]) == len(p["guidance"]["dynamics"])
@@ -226,14 +268,14 @@ def test_each_row_runs_on_its_chain(smoke_repo):
         assert json.loads((dst / "models" / name).read_text())["pose_model_hash"] == model_hash
     ev, gd, lab, rob = (metrics(n) for n in ("evaluate", "guidance", "lab", "robustness"))
     assert (metrics("detect")["model_hash"], metrics("detect_robust")["model_hash"]) == (standard, robust)
-    assert (ev["model_hash"], ev["shipped"]["model_hash"]) == (standard, robust)        # paper rows, defended rows
+    assert (ev["model_hash"], ev["shipped"]["model_hash"]) == (standard, robust)  # paper rows, defended rows
     assert (gd["model_hash"], gd["models"]["shipped"]["model_hash"]) == (standard, robust)
     assert (lab["model_hash"], lab["shipped"]["model_hash"]) == (standard, robust)
     assert (rob["model_hash"], rob["integrity"]["chains"]["standard"]["model_hash"]) == (robust, standard)
     assert rob["integrity"]["chains"]["control"]["model_hash"] == robust
     chain = load_chain(dst)
     assert chain.files == tuple(dst / "models" / n for n in ("pose_robust.pt", "detector_robust.pt", "defense.json"))
-    assert chain.safety.calibration.model == "robust" and chain.safety.defended is not None   # its own defense
+    assert chain.safety.calibration.model == "robust" and chain.safety.defended is not None  # its own defense
 
 
 def test_forced_rerun_leaves_every_report_byte_identical(smoke_repo):

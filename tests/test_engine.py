@@ -1,24 +1,30 @@
 """The Ray engine: a two-node local cluster renders the same store as one process, a killed worker's
 chunk is retried, and bad engine settings stop with one line (no hang)."""
+
 import socket
 import time
 
 import numpy as np
 import pytest
-
-from stages.engine import pool as engine
-
-from stages.config import params as params_mod
 from faults import exits_once
+
 from pipeline.io.store import open_zarr
+from stages.config import params as params_mod
 from stages.config.params import load
 from stages.config.schema import build
 from stages.config.sections import ParamsError
+from stages.engine import pool as engine
 from stages.engine.chunks import FrameRange, RenderSetup, RenderWorker
 from stages.errors import StageError
 
-TINY = ["render.width=32", "render.height=18", "render.frames_per_sequence=2", "render.samples=2",
-        "render.chunk=4", "render.previews=1"]
+TINY = [
+    "render.width=32",
+    "render.height=18",
+    "render.frames_per_sequence=2",
+    "render.samples=2",
+    "render.chunk=4",
+    "render.previews=1",
+]
 
 
 def _render(workdir, overrides):
@@ -61,30 +67,30 @@ def test_two_node_cluster_matches_one_process_and_retries_a_killed_worker(workdi
 
     cluster, marker = two_nodes
     one = _render(workdir, ["engine.workers=1"])
-    monkeypatch.setattr(chunks, "RenderWorker", exits_once(RenderWorker, marker, nth=2))   # dies on its 2nd chunk, once
+    monkeypatch.setattr(chunks, "RenderWorker", exits_once(RenderWorker, marker, nth=2))  # dies on its 2nd chunk, once
     two = _render(workdir, ["engine.workers=2", f"engine.address={cluster.address}"])
-    assert marker.exists()                           # one worker died mid-chunk: its chunk was retried
+    assert marker.exists()  # one worker died mid-chunk: its chunk was retried
     assert two.shape == one.shape == (26, 18, 32, 3) and one.max() > 0
-    assert np.array_equal(one, two)                  # image for image, bit for bit
-    with pytest.raises(StageError, match="covers no pixels") as err:   # a worker's own error, as one line
+    assert np.array_equal(one, two)  # image for image, bit for bit
+    with pytest.raises(StageError, match="covers no pixels") as err:  # a worker's own error, as one line
         _render(workdir, ["engine.workers=2", f"engine.address={cluster.address}", "render.mesh_scale=0.0001"])
     assert "\n" not in str(err.value) and "Traceback" not in str(err.value)
     with pytest.raises(StageError, match="no chunk finished within engine.timeout_s"):
         es = engine.EngineSettings(workers=1, address=cluster.address, timeout_s=2.0, retries=0)
         setup = RenderSetup(K=None, scene=None, R=np.zeros((4, 3, 3)), t=np.zeros((4, 3)), url="", empty_hint=None)
-        engine.run(RenderWorker, setup, [FrameRange(0, 4)], es, num_cpus=8)   # 8 CPUs never free up: no hang
+        engine.run(RenderWorker, setup, [FrameRange(0, 4)], es, num_cpus=8)  # 8 CPUs never free up: no hang
 
 
 def test_setups_and_jobs_are_frozen_records():
     es = engine.EngineSettings(workers=1, address=None, timeout_s=1.0, retries=0)
     with pytest.raises(TypeError, match="frozen dataclasses, got tuple"):
-        engine.run(RenderWorker, (None,) * 6, [FrameRange(0, 4)], es)     # no positional tuples
+        engine.run(RenderWorker, (None,) * 6, [FrameRange(0, 4)], es)  # no positional tuples
     with pytest.raises(TypeError, match="frozen dataclasses, got tuple"):
         engine.run(RenderWorker, RenderSetup(None, None, None, None, "", None), [(0, 4)], es)
 
 
 def test_unreachable_address_stops_at_once(workdir):
-    with socket.socket() as s:                       # a port nobody listens on
+    with socket.socket() as s:  # a port nobody listens on
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     t0 = time.perf_counter()
@@ -116,7 +122,7 @@ def test_store_elsewhere_is_named_in_meta_and_read_back(workdir):
 
     render.main(load())
     meta = json.loads((workdir / RENDER / "meta.json").read_text())
-    assert meta["store"] == f"{store}/render-{meta['fingerprint']}.zarr"          # one store per render there
+    assert meta["store"] == f"{store}/render-{meta['fingerprint']}.zarr"  # one store per render there
     assert not (workdir / RENDER / "images.zarr").exists()
     images, poses, _ = read_render_store(RENDER)
     assert images.shape[0] == len(poses) == 26 and np.asarray(images[:]).max() > 0
@@ -129,7 +135,7 @@ def test_a_worker_that_cannot_see_the_store_sends_its_pixels(workdir, monkeypatc
     asked = []
     monkeypatch.setattr(chunks, "visible", lambda fs, root: asked.append(root) and False)  # "another machine"
     sent = _render(workdir, ["engine.workers=1"])
-    assert asked and np.array_equal(direct, sent)   # the driver wrote every chunk: same store, same manifest
+    assert asked and np.array_equal(direct, sent)  # the driver wrote every chunk: same store, same manifest
 
 
 HOLDER = """
@@ -152,24 +158,31 @@ def test_pin_cores_gives_each_worker_cores_of_its_own(tmp_path):
     if not hasattr(os, "sched_setaffinity"):
         pytest.skip("no CPU affinity on this OS")
     cores = sorted(os.sched_getaffinity(0))
-    env = {**os.environ, "TMPDIR": str(tmp_path)}   # lock files of this test only, not of live workers
+    env = {**os.environ, "TMPDIR": str(tmp_path)}  # lock files of this test only, not of live workers
     procs = []
 
     def hold(n: int, scope: str = "/a/repository") -> tuple[list[int], list[int]]:
-        procs.append(subprocess.Popen([sys.executable, "-c", HOLDER, str(n), scope], stdin=subprocess.PIPE,
-                                      stdout=subprocess.PIPE, text=True, env=env))
+        procs.append(
+            subprocess.Popen(
+                [sys.executable, "-c", HOLDER, str(n), scope],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                text=True,
+                env=env,
+            )
+        )
         got, bound = procs[-1].stdout.readline().split("] [")
         return ast.literal_eval(got + "]"), ast.literal_eval("[" + bound)
 
     try:
         first = hold(1)
         assert first == ([cores[0]], [cores[0]])
-        assert hold(len(cores)) == ([], cores)                     # one core is taken: none bound
+        assert hold(len(cores)) == ([], cores)  # one core is taken: none bound
         if len(cores) > 1:
             assert hold(1) == ([cores[1]], [cores[1]])
-        assert hold(1, "/another/repository") == ([cores[0]], [cores[0]])   # a second pipeline pins its own
+        assert hold(1, "/another/repository") == ([cores[0]], [cores[0]])  # a second pipeline pins its own
         procs[0].communicate("")
-        assert hold(1) == ([cores[0]], [cores[0]])                 # freed by the exit of its holder
+        assert hold(1) == ([cores[0]], [cores[0]])  # freed by the exit of its holder
         assert engine.core_locks("/a/repository") != engine.core_locks("/another/repository")
     finally:
         for p in procs:

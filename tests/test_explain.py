@@ -1,4 +1,5 @@
 """The closed-form DeepSHAP of pipeline/shap.py against the shap library, on PoseNet-shaped models."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -16,8 +17,9 @@ class TinyPoseNet(nn.Module):
 
     def __init__(self, nonlinear_head: bool = False):
         super().__init__()
-        self.backbone = nn.Sequential(nn.Conv2d(3, 8, 3, stride=2, padding=1), nn.LeakyReLU(0.1),
-                                      nn.Conv2d(8, N_FEATURES, 1), nn.LeakyReLU(0.1))
+        self.backbone = nn.Sequential(
+            nn.Conv2d(3, 8, 3, stride=2, padding=1), nn.LeakyReLU(0.1), nn.Conv2d(8, N_FEATURES, 1), nn.LeakyReLU(0.1)
+        )
         nn.init.normal_(self.backbone[2].weight, std=1.0)  # GAP features of order 1, like a trained net
         self.dropout = nn.Dropout(0.2)
         self.nonlinear_head = nonlinear_head

@@ -1,6 +1,7 @@
 """The guidance grid and the attack sets on the engine: pilots that fly runs in any order, on any worker,
 give the same runs, outcomes and counts as one in-process pilot (stand-in camera: no Blender, no
 torch), and two Ray workers write the adversarial sets of one process (a tiny random pose model)."""
+
 from __future__ import annotations
 
 import sys
@@ -47,8 +48,11 @@ def defense():
     from pipeline.defense.gate import MotionSettings
     from pipeline.defense.noise import NoiseModel
 
-    return Defended(DefenseSettings(hold_after=20), MotionSettings(false_alarm=0.005),
-                    NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02))
+    return Defended(
+        DefenseSettings(hold_after=20),
+        MotionSettings(false_alarm=0.005),
+        NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02),
+    )
 
 
 class StubWorker:
@@ -76,11 +80,17 @@ def summary(p: GridPlan, flown: list) -> tuple:
     results = [r for r, _ in flown]
     baseline, arrival, horizon, runs = paper_grid(p, results)
     defended = defended_grid(p, results)
-    paper_keys = frozenset().union(*(k for _, k in flown[:p.paper_size]))
-    return ([(r.outcome, r.miss, r.positions.tolist()) for r in results], arrival, horizon,
-            [(e, s, k, r.outcome) for e, s, k, r in runs], {k: v for k, v in defended.items() if k != "example"},
-            [(name, r.positions.tolist()) for name, r in defended["example"]["runs"]],
-            grid_counts(flown[:p.paper_size]), grid_counts(flown[p.paper_size:], paper_keys))
+    paper_keys = frozenset().union(*(k for _, k in flown[: p.paper_size]))
+    return (
+        [(r.outcome, r.miss, r.positions.tolist()) for r in results],
+        arrival,
+        horizon,
+        [(e, s, k, r.outcome) for e, s, k, r in runs],
+        {k: v for k, v in defended.items() if k != "example"},
+        [(name, r.positions.tolist()) for name, r in defended["example"]["runs"]],
+        grid_counts(flown[: p.paper_size]),
+        grid_counts(flown[p.paper_size :], paper_keys),
+    )
 
 
 def in_process(p: GridPlan) -> list:
@@ -91,11 +101,11 @@ def test_runs_flown_by_separate_pilots_in_any_order_match_one_pilot():
     p = plan()
     one = in_process(p)
     outcomes = {r.outcome for r, _ in one}
-    assert len(outcomes) > 1 and len(one) == 1 + 8 + 6 * 9   # attacks change outcomes: the test can fail
+    assert len(outcomes) > 1 and len(one) == 1 + 8 + 6 * 9  # attacks change outcomes: the test can fail
     runs = flights(p)
     order = np.random.default_rng(0).permutation(len(runs))
     apart = [None] * len(runs)
-    for j, i in enumerate(order):                   # three pilots, each starting cold, runs shuffled
+    for j, i in enumerate(order):  # three pilots, each starting cold, runs shuffled
         apart[i] = StubWorker(p).run(runs[i]) if j % 3 == 0 else None
     pilots = [StubWorker(p), StubWorker(p)]
     for j, i in enumerate(order):
@@ -112,8 +122,8 @@ def test_counts_are_those_of_one_shared_camera():
     steps = sum(len(r.estimates) for r, _ in flown)
     assert counts["steps"] == steps and 0 < counts["renders"] < steps
     assert counts["attacked"] == sum(r.attacked.sum() for r, _ in flown) > 0
-    paper = grid_counts(flown[:p.paper_size])
-    rest = grid_counts(flown[p.paper_size:], frozenset().union(*(k for _, k in flown[:p.paper_size])))
+    paper = grid_counts(flown[: p.paper_size])
+    rest = grid_counts(flown[p.paper_size :], frozenset().union(*(k for _, k in flown[: p.paper_size])))
     assert paper["renders"] + rest["renders"] == counts["renders"] and rest["renders"] > 0
 
 
@@ -132,25 +142,47 @@ def attack_sets(tmp_path, es: engine.EngineSettings) -> tuple:
     from stages.config.schema import build
     from stages.engine.attack_worker import AttackSetup
 
-    p = build(params_mod.compose("smoke", ["render.width=32", "render.height=18", "train.width=0.125",
-                                           "attack.method=pgd", "attack.steps=2", "attack.eps=[0.5,0.05]",
-                                           "attack.batch_size=4"]))
+    p = build(
+        params_mod.compose(
+            "smoke",
+            [
+                "render.width=32",
+                "render.height=18",
+                "train.width=0.125",
+                "attack.method=pgd",
+                "attack.steps=2",
+                "attack.eps=[0.5,0.05]",
+                "attack.batch_size=4",
+            ],
+        )
+    )
     torch.manual_seed(0)
     save_pose(tmp_path / "pose.pt", PoseNet(0.125, float(p.train.dropout)).eval(), PoseLoss(), (18, 32), {})
     rng = np.random.default_rng(0)
     images = rng.integers(0, 256, (10, 18, 32, 3), dtype=np.uint8)
     y = torch.randn(10, 9, generator=torch.Generator().manual_seed(0))
     # one torch thread on both paths: convolution gradients are not bit-identical across thread counts
-    setup = AttackSetup(params=p, pose_path=str(tmp_path / "pose.pt"), eps=(0.5, 0.05), batch=4,
-                        seed=seed_for(p.seed, "attack"), torch_threads=1)
+    setup = AttackSetup(
+        params=p,
+        pose_path=str(tmp_path / "pose.pt"),
+        eps=(0.5, 0.05),
+        batch=4,
+        seed=seed_for(p.seed, "attack"),
+        torch_threads=1,
+    )
     threads = torch.get_num_threads()
     try:
         out = _attack_into(tmp_path / f"adv{es.workers}.zarr", setup, images, np.arange(10), y, 6, es, 1)
     finally:
         torch.set_num_threads(threads)
     root = zarr.open_group(str(tmp_path / f"adv{es.workers}.zarr"), mode="r")
-    return ({name: root[name][:] for name in sorted(root.array_keys())}, out["preds"], out["preds_float"],
-            out["linf"], out["example"]), (setup, images, y)
+    return (
+        {name: root[name][:] for name in sorted(root.array_keys())},
+        out["preds"],
+        out["preds_float"],
+        out["linf"],
+        out["example"],
+    ), (setup, images, y)
 
 
 def test_attack_sets_are_seeded_per_batch(tmp_path):
@@ -161,7 +193,7 @@ def test_attack_sets_are_seeded_per_batch(tmp_path):
     assert set(arrays) == {"eps_0.05", "eps_0.5", "source_index"} and arrays["eps_0.5"].shape == (10, 18, 32, 3)
     assert 0.4 < linf[0.5] <= 0.5 + 1 / 510 + 1e-6 and np.array_equal(example[0.5], arrays["eps_0.5"][6])
     assert not np.array_equal(preds["clean"], preds[0.5])
-    alone = AttackWorker(setup).run(AttackBatch(4, images[4:8], y[4:8]))   # the second batch on a fresh worker, first
+    alone = AttackWorker(setup).run(AttackBatch(4, images[4:8], y[4:8]))  # the second batch on a fresh worker, first
     assert all(np.array_equal(alone[e][0], arrays[f"eps_{e:g}"][4:8]) for e in (0.5, 0.05))
 
 
@@ -179,11 +211,11 @@ def test_two_ray_workers_fly_the_grid_and_attack_the_sets_of_one_process(two_nod
     import ray
 
     cluster, marker = two_nodes
-    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])   # the stand-ins live in this test file
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the stand-ins live in this test file
     p = plan()
     one = in_process(p)
     two = engine.run(exits_once(StubWorker, marker), p, flights(p), engine.EngineSettings(2, cluster.address, 60.0, 2))
-    assert marker.exists()                          # a worker died mid-run: its run was flown again
+    assert marker.exists()  # a worker died mid-run: its run was flown again
     assert summary(p, two) == summary(p, one)
     sets = attack_sets(tmp_path, engine.EngineSettings(1, None, 60.0, 0))[0]
     assert _equal(attack_sets(tmp_path, engine.EngineSettings(2, cluster.address, 60.0, 2))[0], sets)

@@ -1,5 +1,6 @@
 """Fault injection: each probe ends in one clear error (DataError/StageError/ValueError naming the file or
 parameter) and leaves every downstream artifact as it was."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -53,7 +54,7 @@ def test_a_chunk_swapped_in_from_elsewhere_is_named(tmp_path):
     _store(tmp_path / "images.zarr")
     chunks = tmp_path / "images.zarr/images/c"
     entries = open_zarr(tmp_path / "images.zarr").attrs["rpodguard_manifest"]["arrays"]["images"]["crc32c"]
-    assert len(set(entries.values())) == len(entries)                 # no two chunks share a checksum
+    assert len(set(entries.values())) == len(entries)  # no two chunks share a checksum
     (chunks / "1/0/0/0").write_bytes((chunks / "2/0/0/0").read_bytes())
     with pytest.raises(DataError, match=r"chunk images/c/1/0/0/0 fails its crc32c checksum"):
         open_zarr(tmp_path / "images.zarr", "image store")
@@ -66,7 +67,9 @@ def test_a_store_of_an_older_manifest_format_is_named(tmp_path):
     meta = json.loads((tmp_path / "images.zarr/zarr.json").read_text())
     meta["attributes"]["rpodguard_manifest"]["format"] = "rpodguard-zarr-manifest/1"
     (tmp_path / "images.zarr/zarr.json").write_text(json.dumps(meta))
-    with pytest.raises(DataError, match=r"written by an older rpodguard \(checksum manifest rpodguard-zarr-manifest/1\)"):
+    with pytest.raises(
+        DataError, match=r"written by an older rpodguard \(checksum manifest rpodguard-zarr-manifest/1\)"
+    ):
         open_zarr(tmp_path / "images.zarr")
 
 
@@ -84,16 +87,21 @@ def test_a_failed_write_leaves_the_old_store(tmp_path):
     images = _store(tmp_path / "images.zarr")
     with pytest.raises(RuntimeError, match="never written"):
         with atomic_dir(tmp_path / "images.zarr") as tmp:  # a writer that fills only half the array
-            create_array(zarr.open_group(str(tmp), mode="w"), "images", shape=(40, 9, 16, 3),
-                         chunks=(8, 9, 16, 3), dtype="uint8")[:16] = 0
+            create_array(
+                zarr.open_group(str(tmp), mode="w"), "images", shape=(40, 9, 16, 3), chunks=(8, 9, 16, 3), dtype="uint8"
+            )[:16] = 0
     np.testing.assert_array_equal(open_zarr(tmp_path / "images.zarr")["images"][:], images)
     assert [p.name for p in tmp_path.iterdir()] == ["images.zarr"]
 
 
 # --- training: divergence, non-finite labels, killed runs --------------------------------------------------
 
-TRAIN_OUTPUTS = ["models/pose.pt", "reports/metrics/train.json", "reports/pose.md",
-                 "dvclive/train/plots/metrics/val_pos_m.tsv"]
+TRAIN_OUTPUTS = [
+    "models/pose.pt",
+    "reports/metrics/train.json",
+    "reports/pose.md",
+    "dvclive/train/plots/metrics/val_pos_m.tsv",
+]
 
 
 @pytest.fixture(scope="module")
@@ -146,8 +154,10 @@ def _set_params(**overrides: object) -> None:
 def test_diverging_learning_rate_is_refused_and_keeps_the_old_model(run_dir):
     from stages.train import main
 
-    _set_params(train__lr_base=10.0, train__lr_max=10.0)   # the largest learning rate params accept
-    with pytest.raises(StageError, match=r"(training diverged: loss (nan|inf)|no epoch of \d+ improved).*lower train.lr_base"):
+    _set_params(train__lr_base=10.0, train__lr_max=10.0)  # the largest learning rate params accept
+    with pytest.raises(
+        StageError, match=r"(training diverged: loss (nan|inf)|no epoch of \d+ improved).*lower train.lr_base"
+    ):
         main(load())
     _unchanged(run_dir)
 
@@ -183,9 +193,13 @@ def test_killed_train_leaves_old_model_and_metrics(run_dir):
 
     _set_params(train__epochs=50, train__max_minutes=None)
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent), "OMP_NUM_THREADS": "1"}
-    proc = subprocess.Popen([sys.executable, "-c", "from stages.config.params import load; from stages.train import main; "
-                             "main(load())"], env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "from stages.config.params import load; from stages.train import main; main(load())"],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     for line in proc.stdout:  # wait for the second finished epoch (the first was a new best)
         if line.startswith("epoch   2"):
             break
@@ -207,10 +221,15 @@ def test_checkpoint_with_nan_weights_is_refused(run_dir):
         read_pose("models/pose.pt")
 
 
-@pytest.mark.parametrize("setting, message", [
-    ({"epochs": 0}, "epochs=0"), ({"hidden": 0}, "hidden=0"), ({"dense": [0]}, r"dense\[0\]=0"),
-    ({"lr": 1e30}, "training diverged|improved"),
-])
+@pytest.mark.parametrize(
+    "setting, message",
+    [
+        ({"epochs": 0}, "epochs=0"),
+        ({"hidden": 0}, "hidden=0"),
+        ({"dense": [0]}, r"dense\[0\]=0"),
+        ({"lr": 1e30}, "training diverged|improved"),
+    ],
+)
 def test_lstm_detector_refuses_zero_sizes_and_divergence(setting, message):
     from pipeline.detectors.lstm import LSTMConfig, train_lstm
 
@@ -218,11 +237,21 @@ def test_lstm_detector_refuses_zero_sizes_and_divergence(setting, message):
     x, y = rng.normal(size=(40, 9, 8)).astype(np.float32), np.arange(40) % 2
     cfg = LSTMConfig(n_rows=9, n_features=8, hidden=setting.get("hidden", 4), dense=setting.get("dense", [4]))
     with pytest.raises(ValueError, match=message):
-        train_lstm(x[:30], y[:30], x[30:], y[30:], cfg, epochs=setting.get("epochs", 3), patience=2,
-                   batch_size=8, lr=setting.get("lr", 1.0))
+        train_lstm(
+            x[:30],
+            y[:30],
+            x[30:],
+            y[30:],
+            cfg,
+            epochs=setting.get("epochs", 3),
+            patience=2,
+            batch_size=8,
+            lr=setting.get("lr", 1.0),
+        )
 
 
 # --- the CLI: one line, exit status 1; --debug for the traceback --------------------------------------------
+
 
 def _rpod(monkeypatch, capsys, *args: str) -> tuple[int, str]:
     import sys
@@ -242,10 +271,10 @@ def test_cli_prints_one_line_for_known_errors(tmp_path, monkeypatch, capsys):
     assert code == 1 and err.count("\n") == 1 and err.startswith("error: ") and "nosuchkey" in err
     code, err = _rpod(monkeypatch, capsys, "train")  # no params.yaml
     assert code == 1 and err == "error: params.yaml not found: run `rpod params default` (or another profile) first\n"
-    code, err = _rpod(monkeypatch, capsys, "params", "smoke", "-S", "train=1")   # refused when composed
+    code, err = _rpod(monkeypatch, capsys, "params", "smoke", "-S", "train=1")  # refused when composed
     assert code == 1 and err == "error: params.yaml: 'train' must be a section of parameters, got 1\n"
     assert not Path("params.yaml").exists()
-    params_mod.write_params({**params_mod.compose("smoke"), "train": 1})   # e.g. edited by hand
+    params_mod.write_params({**params_mod.compose("smoke"), "train": 1})  # e.g. edited by hand
     code, err = _rpod(monkeypatch, capsys, "label")  # params.yaml with a section replaced by a number
     assert code == 1 and err == "error: params.yaml: 'train' must be a section of parameters, got 1\n"
     assert not Path("datasets").exists()
@@ -257,7 +286,7 @@ def test_cli_debug_shows_the_traceback(tmp_path, monkeypatch):
     from stages import cli
 
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setitem(cli._DEBUG, "on", False)   # restored after the test: --debug sets it for the process
+    monkeypatch.setitem(cli._DEBUG, "on", False)  # restored after the test: --debug sets it for the process
     monkeypatch.setattr(sys, "argv", ["rpod", "--debug", "train"])
     with pytest.raises(ValueError, match="params.yaml not found"):
         cli.main()
@@ -271,8 +300,10 @@ def test_cli_reports_a_corrupt_chunk_in_one_line(trained, tmp_path, monkeypatch,
     Path("datasets/render/images.zarr/images/c/1/0/0/0").unlink()
     before = {p: Path(p).read_bytes() for p in TRAIN_OUTPUTS}
     code, err = _rpod(monkeypatch, capsys, "train")
-    assert code == 1 and err == ("error: image store datasets/render/images.zarr is missing chunk images/c/1/0/0/0; "
-                                 "delete it and re-run the stage that writes it\n")
+    assert code == 1 and err == (
+        "error: image store datasets/render/images.zarr is missing chunk images/c/1/0/0/0; "
+        "delete it and re-run the stage that writes it\n"
+    )
     _unchanged(before)
 
 
@@ -347,10 +378,16 @@ def test_lab_oversized_image_is_refused_from_its_header(recording):
         _read(recording)
 
 
-@pytest.mark.parametrize("edit, message", [
-    (lambda df: df.assign(x=df["x"].where(df.index != 3, np.inf)), r"mocap.csv line 5: column 'x' is not finite \(inf\)"),
-    (lambda df: df.assign(z=df["z"].where(df.index != 4, "nan")), r"mocap.csv line 6: column 'z' is not a number"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (
+            lambda df: df.assign(x=df["x"].where(df.index != 3, np.inf)),
+            r"mocap.csv line 5: column 'x' is not finite \(inf\)",
+        ),
+        (lambda df: df.assign(z=df["z"].where(df.index != 4, "nan")), r"mocap.csv line 6: column 'z' is not a number"),
+    ],
+)
 def test_lab_non_finite_mocap_is_refused(recording, edit, message):
     _edit_csv(recording / "mocap.csv", edit)
     with pytest.raises(DataError, match=message):
@@ -392,11 +429,14 @@ def test_lab_nan_image_name_is_refused(recording):
 
 # --- stale inputs: render fingerprints, wrong mesh scale ------------------------------------------------------
 
+
 def test_train_refuses_a_stale_render(run_dir):
     from stages.train import main
 
     _set_params(render__frames_per_sequence=7)
-    with pytest.raises(ValueError, match=r"datasets/render/meta.json was rendered with other seed/camera/render params"):
+    with pytest.raises(
+        ValueError, match=r"datasets/render/meta.json was rendered with other seed/camera/render params"
+    ):
         main(load())
     _unchanged(run_dir)
 
@@ -418,13 +458,15 @@ def test_label_refuses_a_stale_render_and_render_refuses_an_invisible_target(tmp
     assert not Path("datasets/labels.parquet").exists()
 
     # a mesh in millimetres declared as metres: 1000x too small, nothing visible at 60 m
-    Path("cube.obj").write_text("".join(f"v {x} {y} {z}\n" for x in (-1, 1) for y in (-1, 1) for z in (-1, 1))
-                                + "f 1 2 4 3\nf 5 6 8 7\nf 1 2 6 5\nf 3 4 8 7\nf 1 3 7 5\nf 2 4 8 6\n")
+    Path("cube.obj").write_text(
+        "".join(f"v {x} {y} {z}\n" for x in (-1, 1) for y in (-1, 1) for z in (-1, 1))
+        + "f 1 2 4 3\nf 5 6 8 7\nf 1 2 6 5\nf 3 4 8 7\nf 1 3 7 5\nf 2 4 8 6\n"
+    )
     params_mod.write_params(params_mod.compose("smoke", [*tiny, "render.mesh=cube.obj", "render.mesh_scale=0.001"]))
     with pytest.raises(StageError, match="the target covers no pixels in the first 4 frames"):
         render.main(load())
     assert {p: p.read_bytes() for p in Path("datasets/render").rglob("*") if p.is_file()} == rendered
-    assert sorted(p.name for p in Path("datasets").iterdir()) == ["render"]   # no temporary, no lock left
+    assert sorted(p.name for p in Path("datasets").iterdir()) == ["render"]  # no temporary, no lock left
 
 
 def test_temporary_folders_of_live_runs_are_kept(tmp_path):
@@ -434,7 +476,7 @@ def test_temporary_folders_of_live_runs_are_kept(tmp_path):
 
     live = tmp_path / f".render.{os.getpid()}.abc.tmp"
     dead = tmp_path / ".render.999999999.def.tmp"
-    foreign = tmp_path / ".render.999999999.ghi.tmp"     # no token inside: not a run's, never deleted
+    foreign = tmp_path / ".render.999999999.ghi.tmp"  # no token inside: not a run's, never deleted
     for d in (live, dead, foreign):
         d.mkdir()
     for d in (live, dead):

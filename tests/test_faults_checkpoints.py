@@ -2,6 +2,7 @@
 weights out of range, garbled or extra keys, weights that do not fit the arch, a detector's short background mean
 or a threshold that is no probability, and a pose model of the other role (the robust model in the standard
 model's place) are each refused on load with one line naming the file."""
+
 from __future__ import annotations
 
 import shutil
@@ -38,9 +39,15 @@ def _pose(path: Path, black_level: float = 0.0, **change) -> Path:
 def _detector(path: Path, **change) -> Path:
     from pipeline.detectors.lstm import LSTMConfig, LSTMDetector, to_checkpoint
 
-    lstm = LSTMDetector(LSTMConfig(n_features=16, hidden=4, dense=[4]))   # threshold 0.5
-    ckpt = {**to_checkpoint(lstm), "format": DETECTOR_FORMAT, "pose_model_hash": "0" * 16, "shap_method": "exact",
-            "background_mean": torch.zeros(16), "background_size": 4}
+    lstm = LSTMDetector(LSTMConfig(n_features=16, hidden=4, dense=[4]))  # threshold 0.5
+    ckpt = {
+        **to_checkpoint(lstm),
+        "format": DETECTOR_FORMAT,
+        "pose_model_hash": "0" * 16,
+        "shap_method": "exact",
+        "background_mean": torch.zeros(16),
+        "background_size": 4,
+    }
     save_torch(path, {**ckpt, **change})
     return path
 
@@ -54,23 +61,35 @@ def test_a_flipped_byte_inside_a_weight_record_is_refused(tmp_path):
     assert at > 0
     raw[at + 5] ^= 0x40
     path.write_bytes(bytes(raw))
-    assert not torch.equal(torch.load(path, weights_only=True)["model"]["head_pos.weight"], weight)   # loads silently
-    with pytest.raises(DataError, match=r"checkpoint .*pose.pt is damaged: record \S+/data/\d+ fails its CRC-32 "
-                                        r"\(changed since it was written\); re-run `rpod train`"):
+    assert not torch.equal(torch.load(path, weights_only=True)["model"]["head_pos.weight"], weight)  # loads silently
+    with pytest.raises(
+        DataError,
+        match=r"checkpoint .*pose.pt is damaged: record \S+/data/\d+ fails its CRC-32 "
+        r"\(changed since it was written\); re-run `rpod train`",
+    ):
         read_pose(path)
 
 
-@pytest.mark.parametrize("change, message", [
-    ({"loss": lambda loss: {**loss, "s_p": 1e30}}, r"loss s_p = 1e\+30 is no learned log-variance \(\|s\| <= 10"),
-    ({"loss": lambda loss: {**loss, "s_r": "0.1"}}, r"loss s_r = '0.1' is no learned log-variance"),
-    ({"arch": lambda arch: {**arch, "widht": 0.5}}, r"arch must hold numbers width, dropout"),
-    ({"arch": lambda arch: {**arch, "width": 0.25}}, r"its weights do not fit arch .*'width': 0.25.*misshapen, first "),
-    ({"arch": lambda arch: {**arch, "width": -1.0}}, r"arch .*width must be positive"),
-    ({"extra": 1}, r"keys missing none, unknown \['extra'\]"),
-    ({"loss": None}, r"keys missing \['loss'\]"),
-    ({"input_size": [18.5, 32]}, r"input_size must be \[height, width\] in pixels"),
-    ({"model": lambda m: {**m, "head_pos.extra": torch.zeros(1)}}, r"its weights do not fit .*first head_pos.extra: \(1,\) for none"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"loss": lambda loss: {**loss, "s_p": 1e30}}, r"loss s_p = 1e\+30 is no learned log-variance \(\|s\| <= 10"),
+        ({"loss": lambda loss: {**loss, "s_r": "0.1"}}, r"loss s_r = '0.1' is no learned log-variance"),
+        ({"arch": lambda arch: {**arch, "widht": 0.5}}, r"arch must hold numbers width, dropout"),
+        (
+            {"arch": lambda arch: {**arch, "width": 0.25}},
+            r"its weights do not fit arch .*'width': 0.25.*misshapen, first ",
+        ),
+        ({"arch": lambda arch: {**arch, "width": -1.0}}, r"arch .*width must be positive"),
+        ({"extra": 1}, r"keys missing none, unknown \['extra'\]"),
+        ({"loss": None}, r"keys missing \['loss'\]"),
+        ({"input_size": [18.5, 32]}, r"input_size must be \[height, width\] in pixels"),
+        (
+            {"model": lambda m: {**m, "head_pos.extra": torch.zeros(1)}},
+            r"its weights do not fit .*first head_pos.extra: \(1,\) for none",
+        ),
+    ],
+)
 def test_a_garbled_pose_checkpoint_is_one_line(tmp_path, change, message):
     path = _pose(tmp_path / "pose.pt", **change)
     with pytest.raises(DataError, match=r"pose checkpoint .*pose.pt: " + message) as e:
@@ -78,14 +97,22 @@ def test_a_garbled_pose_checkpoint_is_one_line(tmp_path, change, message):
     assert "\n" not in str(e.value)
 
 
-@pytest.mark.parametrize("change, message", [
-    ({"background_mean": torch.zeros(10)}, r"background_mean must hold the 16 features' SHAP background mean, got "
-                                           r"shape \(10,\)"),
-    ({"threshold": 1.5}, r"threshold 1.5 is no probability in \(0, 1\)"),
-    ({"config": {"n_rows": 9, "n_features": 16, "hidden": 4, "dense": [4], "typo": 1}},
-     r"does not hold an LSTM detector \(TypeError"),
-    ({"state_dict": {}}, r"does not hold an LSTM detector \(RuntimeError"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (
+            {"background_mean": torch.zeros(10)},
+            r"background_mean must hold the 16 features' SHAP background mean, got "
+            r"shape \(10,\)",
+        ),
+        ({"threshold": 1.5}, r"threshold 1.5 is no probability in \(0, 1\)"),
+        (
+            {"config": {"n_rows": 9, "n_features": 16, "hidden": 4, "dense": [4], "typo": 1}},
+            r"does not hold an LSTM detector \(TypeError",
+        ),
+        ({"state_dict": {}}, r"does not hold an LSTM detector \(RuntimeError"),
+    ],
+)
 def test_a_garbled_detector_checkpoint_is_one_line(tmp_path, change, message):
     """A threshold of 1.5 was reported as "calibrated for another pose model" by the defense's check."""
     path = _detector(tmp_path / "detector.pt", **change)
@@ -106,16 +133,22 @@ def test_the_robust_model_in_the_standard_models_place_is_refused(tmp_path):
     (models / "pose.pt").symlink_to("pose_robust.pt")
     with pytest.raises(DataError, match="detector"):
         load_chain(models, "robust", defended=False)
-    with pytest.raises(DataError, match=r"models/pose.pt holds the robust pose model \(arch .*black_level.*\) where "
-                                        r"the standard one belongs"):
+    with pytest.raises(
+        DataError,
+        match=r"models/pose.pt holds the robust pose model \(arch .*black_level.*\) where "
+        r"the standard one belongs",
+    ):
         load_chain(models, "standard", defended=False)
     (models / "pose.pt").unlink()
     _pose(models / "pose.pt")
     with pytest.raises(DataError, match="detector"):
         load_chain(models, "standard", defended=False)
     shutil.copyfile(models / "pose.pt", models / "pose_robust.pt")
-    with pytest.raises(DataError, match=r"pose_robust.pt holds the standard pose model .* where the robust one "
-                                        r"belongs; re-run `rpod train --robust`"):
+    with pytest.raises(
+        DataError,
+        match=r"pose_robust.pt holds the standard pose model .* where the robust one "
+        r"belongs; re-run `rpod train --robust`",
+    ):
         load_chain(models, "robust", defended=False)
 
 

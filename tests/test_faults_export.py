@@ -1,6 +1,7 @@
 """`rpod export speed OUT` never deletes what it did not write: a non-empty folder without its marker (or
 with files the marker does not list) is refused and left as it was; killed exports' temporary folders are
 cleaned up on the next run; the exported files are world-readable."""
+
 from __future__ import annotations
 
 import json
@@ -16,8 +17,8 @@ import pytest
 import zarr
 
 from pipeline.formats.speed_folder import MARKER, write_speed
-from pipeline.io.atomic import OWNER
 from pipeline.geometry.camera import Intrinsics
+from pipeline.io.atomic import OWNER
 from pipeline.io.errors import DataError
 
 K = Intrinsics(16, 9, 20.0, 20.0, 8.0, 4.5)
@@ -25,12 +26,23 @@ K = Intrinsics(16, 9, 20.0, 20.0, 8.0, 4.5)
 
 def _data(tmp_path: Path, n: int = 6) -> tuple[zarr.Array, pd.DataFrame]:
     """A chunked (n, 9, 16, 3) uint8 image array and labels (index, split, t, q) for it."""
-    images = zarr.open_array(str(tmp_path / "images.zarr"), mode="w", shape=(n, 9, 16, 3), chunks=(4, 9, 16, 3),
-                             dtype="uint8")
+    images = zarr.open_array(
+        str(tmp_path / "images.zarr"), mode="w", shape=(n, 9, 16, 3), chunks=(4, 9, 16, 3), dtype="uint8"
+    )
     images[:] = np.random.default_rng(0).integers(0, 256, (n, 9, 16, 3), dtype=np.uint8)
-    labels = pd.DataFrame({"index": np.arange(n), "split": ["train"] * (n - 2) + ["test"] * 2,
-                           "tx": 0.0, "ty": 0.0, "tz": np.linspace(10, 20, n),
-                           "qw": 1.0, "qx": 0.0, "qy": 0.0, "qz": 0.0})
+    labels = pd.DataFrame(
+        {
+            "index": np.arange(n),
+            "split": ["train"] * (n - 2) + ["test"] * 2,
+            "tx": 0.0,
+            "ty": 0.0,
+            "tz": np.linspace(10, 20, n),
+            "qw": 1.0,
+            "qx": 0.0,
+            "qy": 0.0,
+            "qz": 0.0,
+        }
+    )
     return images, labels
 
 
@@ -61,7 +73,7 @@ def test_rerun_replaces_its_own_export_but_refuses_added_files(tmp_path):
     write_speed(out, *_data(tmp_path), K)
     listed = json.loads((out / MARKER).read_text())["files"]
     assert "camera.json" in listed and "synthetic/images/img000006.png" in listed
-    write_speed(out, *_data(tmp_path, n=5), K)            # an earlier export: replaced whole
+    write_speed(out, *_data(tmp_path, n=5), K)  # an earlier export: replaced whole
     assert not (out / "synthetic/images/img000006.png").exists()
     (out / "synthetic/notes.txt").write_text("mine")
     _refused_intact(out, tmp_path, r"synthetic/notes.txt, which `rpod export speed` did not write")
@@ -112,7 +124,7 @@ def _killed_temp(out: Path) -> Path:
 def test_a_killed_exports_temporary_folder_is_removed_next_run(tmp_path):
     """A temporary folder of a process that is gone (SIGKILL mid-export) is deleted by the next export."""
     stale = _killed_temp(tmp_path / "out")
-    live = tmp_path / f".out.{os.getpid()}.def.tmp"        # a live run's folder is kept
+    live = tmp_path / f".out.{os.getpid()}.def.tmp"  # a live run's folder is kept
     live.mkdir()
     (live / OWNER).write_text(live.name)
     write_speed(tmp_path / "out", *_data(tmp_path), K)
@@ -131,17 +143,22 @@ def test_the_users_folders_beside_out_are_never_deleted(tmp_path):
     write_speed(tmp_path / "out", *_data(tmp_path, n=5), K)
     assert all((d / "keep.txt").read_text() == "mine" for d in mine)
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
-        [".out.999999999.abc.tmp", ".out.backup.tmp", ".out.old", "images.zarr", "out"])
+        [".out.999999999.abc.tmp", ".out.backup.tmp", ".out.old", "images.zarr", "out"]
+    )
 
 
 def test_an_edited_export_is_refused_unless_overwritten(tmp_path):
     out = tmp_path / "out"
     write_speed(out, *_data(tmp_path), K)
     files = json.loads((out / MARKER).read_text())["files"]
-    assert len(files["camera.json"]) == 64                      # each file's sha256
-    (out / "synthetic/train.json").write_text("[]")           # the user's edit
-    _refused_intact(out, tmp_path, r"synthetic/train.json was changed since `rpod export speed` wrote it "
-                                   r"\(1 such files.*pass --overwrite")
+    assert len(files["camera.json"]) == 64  # each file's sha256
+    (out / "synthetic/train.json").write_text("[]")  # the user's edit
+    _refused_intact(
+        out,
+        tmp_path,
+        r"synthetic/train.json was changed since `rpod export speed` wrote it "
+        r"\(1 such files.*pass --overwrite",
+    )
     write_speed(out, *_data(tmp_path), K, overwrite=True)
     assert len(json.loads((out / "synthetic/train.json").read_text())) == 4
 
@@ -159,7 +176,7 @@ def test_a_symlinked_out_is_followed_not_replaced(tmp_path):
     target, link = tmp_path / "disk/export", tmp_path / "out"
     target.mkdir(parents=True)
     link.symlink_to(target)
-    for n in (6, 5):                                          # a first export, then a rerun replacing it
+    for n in (6, 5):  # a first export, then a rerun replacing it
         write_speed(link, *_data(tmp_path, n=n), K)
         assert link.is_symlink() and os.readlink(link) == str(target)
         assert (target / "camera.json").is_file() and len(list((target / "synthetic/images").iterdir())) == n

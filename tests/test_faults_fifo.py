@@ -2,6 +2,7 @@
 through `pipeline.io.files.open_regular`, so a FIFO (or another special file) in its place is one DataError naming
 it, at once, instead of a read that waits for ever; and a guidance grid projected to run for days is refused before
 its first run, naming guidance.max_steps."""
+
 from __future__ import annotations
 
 import json
@@ -27,6 +28,7 @@ def _fifo(path: Path) -> Path:
     """Replace `path` (made first, so the reader gets that far) by a FIFO no one writes to."""
     if path.is_dir():
         import shutil
+
         shutil.rmtree(path)
     else:
         path.unlink(missing_ok=True)
@@ -89,7 +91,7 @@ def _speed_camera(tmp: Path) -> Callable[[], object]:
     from pipeline.formats.speed_folder import read_camera
 
     _fifo(tmp / "camera.json")
-    return lambda: read_camera(tmp, speed_layout=True)    # a SPEED folder without camera.json has a default one
+    return lambda: read_camera(tmp, speed_layout=True)  # a SPEED folder without camera.json has a default one
 
 
 def _speed_labels(tmp: Path) -> Callable[[], object]:
@@ -143,11 +145,22 @@ def _file_hash(tmp: Path) -> Callable[[], object]:
     return lambda: file_hash(tmp / "pose.pt")
 
 
-READERS = {"params.yaml": _params, "defense.json": _defense, "meta.json": _meta, "labels.parquet": _labels,
-           "--camera JSON": _camera, "bundle manifest.json": _manifest, "SPEED camera.json": _speed_camera,
-           "SPEED train.json": _speed_labels, "SPEED image": _speed_image, "an array's zarr.json": _zarr_json,
-           "the root zarr.json": _root_zarr_json, "a zarr chunk": _chunk, "motion CSV": _motion,
-           "a hashed model file": _file_hash}
+READERS = {
+    "params.yaml": _params,
+    "defense.json": _defense,
+    "meta.json": _meta,
+    "labels.parquet": _labels,
+    "--camera JSON": _camera,
+    "bundle manifest.json": _manifest,
+    "SPEED camera.json": _speed_camera,
+    "SPEED train.json": _speed_labels,
+    "SPEED image": _speed_image,
+    "an array's zarr.json": _zarr_json,
+    "the root zarr.json": _root_zarr_json,
+    "a zarr chunk": _chunk,
+    "motion CSV": _motion,
+    "a hashed model file": _file_hash,
+}
 
 
 @pytest.mark.parametrize("reader", READERS)
@@ -170,7 +183,7 @@ def test_open_regular_names_other_special_files(tmp_path):
     with pytest.raises(DataError, match=r"label table .*x.parquet not found"):
         open_regular(tmp_path / "x.parquet", what="label table")
     (tmp_path / "real.json").write_text("{}")
-    (tmp_path / "link.json").symlink_to(tmp_path / "real.json")       # a link to a regular file is read
+    (tmp_path / "link.json").symlink_to(tmp_path / "real.json")  # a link to a regular file is read
     assert read_bytes(tmp_path / "link.json") == b"{}"
 
 
@@ -207,15 +220,19 @@ def test_a_guidance_grid_projected_beyond_the_horizon_is_refused_before_it_start
 
     p = build(compose("smoke", [f"guidance.max_steps={max_steps}"]))
     settings, grid = guidance._plan(p.guidance)
-    plan = GridPlan(settings, tuple(grid), p.guidance.slack_steps, tuple(p.guidance.dynamics),
-                    tuple(p.guidance.defenses))
-    check = lambda: guidance.check_duration(plan, _SlowChain(0.005), intrinsics(p))   # noqa: E731
+    plan = GridPlan(
+        settings, tuple(grid), p.guidance.slack_steps, tuple(p.guidance.dynamics), tuple(p.guidance.defenses)
+    )
+    check = lambda: guidance.check_duration(plan, _SlowChain(0.005), intrinsics(p))  # noqa: E731
     if not refused:
         check()
         return
-    with pytest.raises(StageError, match=r"guidance.max_steps=10000000: the no-attack runs alone fly [\d,]+ "
-                                         r"closed-loop steps, about [\d,]+ h at 5\.\d+ ms per step on this machine "
-                                         r"\(more than 24 h\)"):
+    with pytest.raises(
+        StageError,
+        match=r"guidance.max_steps=10000000: the no-attack runs alone fly [\d,]+ "
+        r"closed-loop steps, about [\d,]+ h at 5\.\d+ ms per step on this machine "
+        r"\(more than 24 h\)",
+    ):
         check()
 
 

@@ -1,6 +1,7 @@
 """Smaller input faults: a non-finite number in a checkpoint (a detector's threshold) is refused on load, a FIFO
 named as a checkpoint is refused instead of blocking for ever, and the lab loader refuses a mocap quaternion
 that is not unit length (as the SPEED importer does) instead of normalising it."""
+
 from __future__ import annotations
 
 import contextlib
@@ -23,6 +24,7 @@ from pipeline.io.errors import DataError
 @contextlib.contextmanager
 def _deadline(seconds: int) -> Iterator[None]:
     """Fail instead of hanging: SIGALRM interrupts a blocking open() after `seconds`."""
+
     def stop(*_: object) -> None:
         raise TimeoutError(f"still blocked after {seconds} s")
 
@@ -38,12 +40,14 @@ def _deadline(seconds: int) -> Iterator[None]:
 @pytest.mark.parametrize("threshold", [float("nan"), float("inf")])
 def test_a_non_finite_threshold_is_refused_on_load(tmp_path, threshold):
     path = tmp_path / "detector.pt"
-    save_torch(path, {"format": DETECTOR_FORMAT, "threshold": threshold, "weights": torch.zeros(3),
-                      "sizes": [1.0, 2.0]})
+    save_torch(
+        path, {"format": DETECTOR_FORMAT, "threshold": threshold, "weights": torch.zeros(3), "sizes": [1.0, 2.0]}
+    )
     with pytest.raises(DataError, match=r"detector.pt holds non-finite weights or values \(threshold\); re-run"):
         load_torch(path, DETECTOR_FORMAT, "re-run `rpod detect`")
-    save_torch(path, {"format": DETECTOR_FORMAT, "threshold": 0.5, "weights": torch.zeros(3),
-                      "sizes": [1.0, float("nan")]})
+    save_torch(
+        path, {"format": DETECTOR_FORMAT, "threshold": 0.5, "weights": torch.zeros(3), "sizes": [1.0, float("nan")]}
+    )
     with pytest.raises(DataError, match=r"\(sizes.1\)"):
         load_torch(path, DETECTOR_FORMAT, "re-run `rpod detect`")
 
@@ -62,12 +66,15 @@ def test_a_fifo_as_checkpoint_is_refused_not_waited_on(tmp_path):
 def test_the_lab_loader_refuses_non_unit_quaternions(scale, ok):
     camera, mocap = _hand_made()
     quat = ["qw", "qx", "qy", "qz"]
-    mocap.loc[5, quat] = mocap.loc[5, quat].to_numpy(dtype=float) * scale      # body 'tgt', data row 5
-    if ok:                                                                      # rounding noise: normalised
+    mocap.loc[5, quat] = mocap.loc[5, quat].to_numpy(dtype=float) * scale  # body 'tgt', data row 5
+    if ok:  # rounding noise: normalised
         match_frames(camera, mocap, "cam", "tgt", "nearest", max_gap=0.005)
         return
-    with pytest.raises(LabDataError, match=rf"mocap.csv line 7: body 'tgt' has a quaternion of norm "
-                                           rf"{np.float64(scale):g}, not a unit quaternion"):
+    with pytest.raises(
+        LabDataError,
+        match=rf"mocap.csv line 7: body 'tgt' has a quaternion of norm "
+        rf"{np.float64(scale):g}, not a unit quaternion",
+    ):
         match_frames(camera, mocap, "cam", "tgt", "nearest", max_gap=0.005)
 
 
@@ -93,12 +100,19 @@ def test_a_motion_csv_with_a_byte_order_mark_is_read():
     assert commands.shape == (3, 3) and np.allclose(attitudes, np.eye(3))
 
 
-@pytest.mark.parametrize("row, message", [
-    ("0,0,-0.1," + ",".join(map(str, np.diag([1.0, 1.0, -1.0]).ravel())),
-     r"m.csv: c0..c8 of data row 2 is a mirror \(determinant -1\), not a rotation \(1 such rows\)"),
-    ("1e300,0,0," + ",".join(map(str, np.eye(3).ravel())),
-     r"m.csv: data row 2 commands a displacement of 1e\+300, 0, 0 m between two frames \(more than 1000 m"),
-])
+@pytest.mark.parametrize(
+    "row, message",
+    [
+        (
+            "0,0,-0.1," + ",".join(map(str, np.diag([1.0, 1.0, -1.0]).ravel())),
+            r"m.csv: c0..c8 of data row 2 is a mirror \(determinant -1\), not a rotation \(1 such rows\)",
+        ),
+        (
+            "1e300,0,0," + ",".join(map(str, np.eye(3).ravel())),
+            r"m.csv: data row 2 commands a displacement of 1e\+300, 0, 0 m between two frames \(more than 1000 m",
+        ),
+    ],
+)
 def test_a_motion_csv_with_a_mirror_or_an_absurd_displacement_is_refused(tmp_path, row, message):
     from rpodguard.sequence import read_motion
 

@@ -1,6 +1,7 @@
 """A stage's outputs move into place together or not at all: `rpod attack` failing at its last write (the
 figure) leaves adv.zarr, the metrics and the report of the previous run, never a new adv.zarr beside old
 metrics (the issue's "adv.zarr says eps [0.3], attack.json 0.5/0.05")."""
+
 from __future__ import annotations
 
 import json
@@ -38,5 +39,5 @@ def test_a_failed_attack_keeps_all_previous_outputs(run_dir, monkeypatch):  # no
         attack.main(load())
     assert _outputs() == before
     assert zarr.open_group(str(ADV), mode="r").attrs["eps"] == [0.5, 0.05]
-    assert not [p for p in Path("datasets").iterdir() if p.name.startswith(".")]     # no temporary left
+    assert not [p for p in Path("datasets").iterdir() if p.name.startswith(".")]  # no temporary left
     assert not [p for p in Path("reports").rglob(".*")]

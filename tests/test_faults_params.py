@@ -1,6 +1,7 @@
 """One schema rule for every numeric param: finite and inside its documented range (`In`, declared beside
 the field in stages/config/{schema,sections,evaluation}.py), refused with one line naming the key, both
 when a stage loads params.yaml and when `rpod params` composes it (then nothing is written)."""
+
 from __future__ import annotations
 
 import copy
@@ -98,19 +99,24 @@ def test_every_profile_lies_inside_the_ranges():
         build(compose(name))
 
 
-BAD = st.one_of(st.sampled_from([math.nan, math.inf, -math.inf, 0, 0.0, -1, -0.5, -1e-9, 1e300, 10 ** 18,
-                                 -10 ** 18]),
-                st.floats(allow_nan=True, allow_infinity=True), st.integers(-10 ** 20, 10 ** 20))
+BAD = st.one_of(
+    st.sampled_from([math.nan, math.inf, -math.inf, 0, 0.0, -1, -0.5, -1e-9, 1e300, 10**18, -(10**18)]),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.integers(-(10**20), 10**20),
+)
 
 
 @settings(max_examples=600, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(param=st.sampled_from(NUMERIC), value=BAD)
 def test_out_of_range_values_are_refused_naming_the_param(param, value):
     key, kind, rule, depth = param
-    fits = (kind is float or isinstance(value, int)) and not (isinstance(value, float) and math.isnan(value)) \
+    fits = (
+        (kind is float or isinstance(value, int))
+        and not (isinstance(value, float) and math.isnan(value))
         and rule.contains(value)
+    )
     if fits:
-        return                         # inside the documented range (other sections' cross-checks aside)
+        return  # inside the documented range (other sections' cross-checks aside)
     with pytest.raises(ParamsError) as refused:
         build(_with(key, depth, value))
     message = str(refused.value)
@@ -118,12 +124,30 @@ def test_out_of_range_values_are_refused_naming_the_param(param, value):
     assert "\n" not in message and message.startswith("params.yaml") and section in message and leaf in message
 
 
-@pytest.mark.parametrize("override", [
-    "attack.momentum=nan", "attack.step_size=nan", "render.max_target_rotation_deg=nan",
-    "render.max_target_rotation_deg=-10", "render.sun_strength=nan", "render.sun_strength=inf",
-    "render.sun_strength=0", "render.sun_strength=-5", "detect.squeeze_bits=0", "train.weight_decay=-1",
-    "train.max_minutes=0", "train.max_minutes=-1", "train.max_minutes=nan", "render.chunk=0", "render.chunk=-5",
-    "train.cycle_epochs=nan", "render.width=2", "engine.timeout_s=nan", "attack.eps=[0.5,nan]"])
+@pytest.mark.parametrize(
+    "override",
+    [
+        "attack.momentum=nan",
+        "attack.step_size=nan",
+        "render.max_target_rotation_deg=nan",
+        "render.max_target_rotation_deg=-10",
+        "render.sun_strength=nan",
+        "render.sun_strength=inf",
+        "render.sun_strength=0",
+        "render.sun_strength=-5",
+        "detect.squeeze_bits=0",
+        "train.weight_decay=-1",
+        "train.max_minutes=0",
+        "train.max_minutes=-1",
+        "train.max_minutes=nan",
+        "render.chunk=0",
+        "render.chunk=-5",
+        "train.cycle_epochs=nan",
+        "render.width=2",
+        "engine.timeout_s=nan",
+        "attack.eps=[0.5,nan]",
+    ],
+)
 def test_rpod_params_refuses_the_issues_probes_and_writes_nothing(tmp_path, monkeypatch, capsys, override):
     from stages import cli
 
@@ -135,4 +159,4 @@ def test_rpod_params_refuses_the_issues_probes_and_writes_nothing(tmp_path, monk
     err = capsys.readouterr().err.strip()
     key = override.split("=")[0]
     assert exit_.value.code == 1 and len(err.splitlines()) == 1 and f"params.yaml {key}" in err, err
-    assert list(tmp_path.iterdir()) == []          # no params.yaml, nothing else
+    assert list(tmp_path.iterdir()) == []  # no params.yaml, nothing else

@@ -4,6 +4,7 @@ loading it checks them); a shared `engine.store` keeps one store per
 render fingerprint, which the store itself records and readers check; a refused or failed render leaves
 the previous store; a second writer gets one line. Item 6: each array's zarr.json and the root's attributes
 are in the checksum manifest."""
+
 from __future__ import annotations
 
 import json
@@ -22,10 +23,19 @@ from stages.config import params as params_mod
 from stages.config.params import load
 from stages.errors import StageError
 
-TINY = ["render.width=32", "render.height=18", "render.frames_per_sequence=2", "render.samples=2",
-        "render.chunk=4", "render.previews=1", "engine.workers=1"]
-HOLD = ("import sys; from pipeline.io.atomic import exclusive\n"
-        "with exclusive(sys.argv[1], 'x'):\n    print('held', flush=True); sys.stdin.read()")
+TINY = [
+    "render.width=32",
+    "render.height=18",
+    "render.frames_per_sequence=2",
+    "render.samples=2",
+    "render.chunk=4",
+    "render.previews=1",
+    "engine.workers=1",
+]
+HOLD = (
+    "import sys; from pipeline.io.atomic import exclusive\n"
+    "with exclusive(sys.argv[1], 'x'):\n    print('held', flush=True); sys.stdin.read()"
+)
 
 
 @pytest.fixture
@@ -49,6 +59,7 @@ def _images(meta: dict) -> np.ndarray:
 
 # --- labels.parquet names the render it labels ----------------------------------------------------------------
 
+
 def test_labels_of_another_render_are_refused_by_train_and_export(workdir, capsys):
     """The probe: `rpod render` with another seed, then `rpod train` / `rpod export speed` (before: seed-0 labels
     paired with seed-1 pixels, exit 0)."""
@@ -60,10 +71,13 @@ def test_labels_of_another_render_are_refused_by_train_and_export(workdir, capsy
 
     write_dataset(workdir)
     seed0 = (workdir / "datasets/labels.parquet").read_bytes()
-    write_dataset(workdir, overrides=["seed=1"])                 # a render (and labels) of seed 1 ...
-    (workdir / "datasets/labels.parquet").write_bytes(seed0)     # ... with the labels of seed 0
-    with pytest.raises(StageError, match=r"labels.parquet labels another render than datasets/render \(render "
-                                         r"fingerprint \w+, datasets/render has \w+\): re-run `rpod label`"):
+    write_dataset(workdir, overrides=["seed=1"])  # a render (and labels) of seed 1 ...
+    (workdir / "datasets/labels.parquet").write_bytes(seed0)  # ... with the labels of seed 0
+    with pytest.raises(
+        StageError,
+        match=r"labels.parquet labels another render than datasets/render \(render "
+        r"fingerprint \w+, datasets/render has \w+\): re-run `rpod label`",
+    ):
         train.main(load())
     assert not (workdir / "models/pose.pt").exists()
     result = CliRunner().invoke(app, ["export", "speed", str(workdir / "out")])
@@ -86,12 +100,16 @@ def test_a_model_trained_on_other_labels_is_refused(workdir):
     df = pd.read_parquet("datasets/labels.parquet")
     df.loc[df.index[0], "split"] = "test" if df.loc[df.index[0], "split"] == "train" else "train"
     df.to_parquet("datasets/labels.parquet")
-    with pytest.raises(StageError, match=r"pose checkpoint models/pose.pt was trained on another "
-                                         r"datasets/labels.parquet \(relabelled since\); re-run `rpod train`"):
+    with pytest.raises(
+        StageError,
+        match=r"pose checkpoint models/pose.pt was trained on another "
+        r"datasets/labels.parquet \(relabelled since\); re-run `rpod train`",
+    ):
         load_pose(load())
 
 
 # --- engine.store: keyed by fingerprint, checked, swapped in whole, locked -------------------------------------
+
 
 def test_a_shared_store_keeps_one_store_per_render_and_readers_check_it(tmp_path, monkeypatch):
     """Two checkouts sharing engine.store with other params no longer overwrite each other (before: A's poses
@@ -105,17 +123,21 @@ def test_a_shared_store_keeps_one_store_per_render_and_readers_check_it(tmp_path
     monkeypatch.chdir(tmp_path / "b")
     b = _render([f"engine.store={shared}", "seed=1"])
     assert a["store"] == f"{shared}/render-{a['fingerprint']}.zarr" != b["store"]
-    assert sorted(p.name for p in shared.iterdir()) == sorted(   # the stores, their locks gone with the writers
-        [f"render-{a['fingerprint']}.zarr", f"render-{b['fingerprint']}.zarr"])
+    assert sorted(p.name for p in shared.iterdir()) == sorted(  # the stores, their locks gone with the writers
+        [f"render-{a['fingerprint']}.zarr", f"render-{b['fingerprint']}.zarr"]
+    )
     assert not np.array_equal(_images(a), _images(b))
     monkeypatch.chdir(tmp_path / "a")
     images, _, _ = read_render_store(Path("datasets/render"))
-    np.testing.assert_array_equal(images[:], _images(a))          # A still reads its own pixels
+    np.testing.assert_array_equal(images[:], _images(a))  # A still reads its own pixels
     meta = json.loads(Path("datasets/render/meta.json").read_text())
-    meta["store"] = b["store"]                                    # meta.json naming another render's store
+    meta["store"] = b["store"]  # meta.json naming another render's store
     Path("datasets/render/meta.json").write_text(json.dumps(meta))
-    with pytest.raises(DataError, match=r"holds the images of another render \(fingerprint \w+; "
-                                        r"datasets/render/meta.json says \w+\)"):
+    with pytest.raises(
+        DataError,
+        match=r"holds the images of another render \(fingerprint \w+; "
+        r"datasets/render/meta.json says \w+\)",
+    ):
         read_render_store(Path("datasets/render"))
 
 
@@ -136,17 +158,17 @@ def test_a_refused_or_failed_render_leaves_the_previous_store(workdir, monkeypat
         return real_run(self, job)
 
     monkeypatch.setattr(chunks.RenderWorker, "run", dies_on_the_second_chunk)
-    with pytest.raises(RuntimeError, match="worker lost"):        # the same params: the same store, half rewritten
+    with pytest.raises(RuntimeError, match="worker lost"):  # the same params: the same store, half rewritten
         _render([f"engine.store={shared}"])
     np.testing.assert_array_equal(_images(before), kept)
     assert json.loads(Path("datasets/render/meta.json").read_text()) == before
     assert not [p for p in shared.iterdir() if p.name.endswith((".tmp", ".old"))]
-    killed = shared / f".render-{before['fingerprint']}.zarr.999999999.abc.tmp"   # a killed render's (no such pid)
+    killed = shared / f".render-{before['fingerprint']}.zarr.999999999.abc.tmp"  # a killed render's (no such pid)
     killed.mkdir()
     (killed / OWNER).write_text(killed.name)
     monkeypatch.setattr(chunks.RenderWorker, "run", real_run)
     _render([f"engine.store={shared}"])
-    assert not killed.exists()                                    # removed by the next render
+    assert not killed.exists()  # removed by the next render
 
 
 @pytest.mark.parametrize("which", ["checkout", "store"])
@@ -156,24 +178,28 @@ def test_a_second_writer_stops_with_one_line(workdir, which):
     params_mod.write_params(params_mod.compose("smoke", TINY + [f"engine.store={shared}"]))
     store = f"{shared}/render-{params_mod.render_fingerprint(load())}.zarr"
     lock = workdir / "datasets/.render.lock" if which == "checkout" else Path(f"{store}.lock")
-    holder = subprocess.Popen([sys.executable, "-c", HOLD, str(lock)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                              text=True)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLD, str(lock)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
     try:
         assert holder.stdout.readline().strip() == "held"
         from stages import render
 
         with pytest.raises(DataError) as err:
             render.main(load())
-        what, named = ("datasets/render", "datasets/.render.lock") if which == "checkout" else (f"image store {store}",
-                                                                                               lock)
-        assert str(err.value) == (f"{what} is being written by another process (pid {holder.pid}, lock {named}); "
-                                  f"wait for it to finish")
+        what, named = (
+            ("datasets/render", "datasets/.render.lock") if which == "checkout" else (f"image store {store}", lock)
+        )
+        assert str(err.value) == (
+            f"{what} is being written by another process (pid {holder.pid}, lock {named}); wait for it to finish"
+        )
         assert not (workdir / "datasets/render").exists() and not Path(store).exists()
     finally:
         holder.communicate("")
 
 
 # --- item 6: the manifest covers zarr.json -----------------------------------------------------------------------
+
 
 def _sealed(path: Path) -> None:
     group = zarr.open_group(str(path), mode="w")

@@ -1,6 +1,7 @@
 """Ray faults: a cluster address that answers but is not Ray stops within engine.timeout_s with one line, and
 a worker killed mid-run (after its constructor, with a setup large enough for Ray's object store) is
 restarted and its job retried, the results equal to those of one process."""
+
 import socket
 import sys
 import threading
@@ -20,7 +21,7 @@ from stages.errors import StageError
 
 @dataclass(frozen=True)
 class Setup:
-    table: np.ndarray          # 1 MB: above Ray's 100 kB inline limit, so it goes to the object store
+    table: np.ndarray  # 1 MB: above Ray's 100 kB inline limit, so it goes to the object store
 
 
 @dataclass(frozen=True)
@@ -35,7 +36,7 @@ class TableWorker:
         self.table = setup.table
 
     def run(self, job: Job) -> np.ndarray:
-        time.sleep(0.3)          # a job takes a while: Ray has freed what it stored for the constructor
+        time.sleep(0.3)  # a job takes a while: Ray has freed what it stored for the constructor
         return np.roll(self.table[:64], job.index) * (job.index + 1)
 
     def close(self) -> None:
@@ -81,18 +82,18 @@ def test_a_ray_address_that_is_not_ray_stops_within_timeout(not_ray, monkeypatch
         engine.run(TableWorker, Setup(np.zeros(4)), [Job(0)], es)
     assert time.perf_counter() - t0 < es.timeout_s + 5
     assert address in str(err.value) and "\n" not in str(err.value)
-    assert len(served) >= 2                          # the TCP check and the Ray client both reached it
+    assert len(served) >= 2  # the TCP check and the Ray client both reached it
 
 
 def test_a_worker_killed_mid_run_is_restarted_and_its_job_retried(tmp_path, monkeypatch):
     ray = pytest.importorskip("ray")
     monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
-    monkeypatch.chdir(tmp_path)                      # its own core locks
-    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])   # the stand-ins live in this test file
+    monkeypatch.chdir(tmp_path)  # its own core locks
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the stand-ins live in this test file
     setup = Setup(np.random.default_rng(0).random(1 << 17))
     jobs = [Job(i) for i in range(6)]
     one = engine.run(TableWorker, setup, jobs, engine.EngineSettings(1, None, 60.0, 0))
     marker = tmp_path / "exited"
     two = engine.run(exits_once(TableWorker, marker, nth=2), setup, jobs, engine.EngineSettings(2, None, 60.0, 2))
-    assert marker.exists()                           # a worker died on its second job: that job ran again
+    assert marker.exists()  # a worker died on its second job: that job ran again
     assert len(two) == len(one) and all(np.array_equal(a, b) for a, b in zip(one, two))

@@ -1,5 +1,6 @@
 """The smaller faults of issue 42 (item 10): a key given twice in params.yaml, duplicated eps entries, values a
 report claims but did not use, and late or misleading errors; each refused with one line naming what is wrong."""
+
 from __future__ import annotations
 
 import pytest
@@ -30,12 +31,15 @@ def test_a_repeated_eps_is_refused(key):
         distinct([0.5, 0.05, 0.01, 0.05], key)
 
 
-@pytest.mark.parametrize("bins, message", [
-    ([], r"train.range_bins is empty"),
-    ([60, float("nan")], r"nan is not a range in metres"),
-    ([60, -5], r"-5 is not a range in metres"),
-    ([60, 30, 30], r"train.range_bins lists 30 twice"),
-])
+@pytest.mark.parametrize(
+    "bins, message",
+    [
+        ([], r"train.range_bins is empty"),
+        ([60, float("nan")], r"nan is not a range in metres"),
+        ([60, -5], r"-5 is not a range in metres"),
+        ([60, 30, 30], r"train.range_bins lists 30 twice"),
+    ],
+)
 def test_range_bins_the_tables_cannot_use_are_refused(bins, message):
     """The issue's probe: train.range_bins=[] crashed after training had finished (8.5 min lost)."""
     from stages.config.guards import range_bins
@@ -66,16 +70,21 @@ def test_the_lid_report_states_the_neighbours_used(monkeypatch):
 
     used = []
     real = lid.lid_mle
-    monkeypatch.setattr(lid, "lid_mle", lambda x, ref, k, skip_self=False: (
-        used.append(min(k, len(ref) - int(skip_self))), real(x, ref, k, skip_self))[1])
+    monkeypatch.setattr(
+        lid,
+        "lid_mle",
+        lambda x, ref, k, skip_self=False: (used.append(min(k, len(ref) - int(skip_self))), real(x, ref, k, skip_self))[
+            1
+        ],
+    )
     rng = np.random.default_rng(0)
     labels = np.r_[np.zeros(23, int), np.ones(17, int)]
     lid.LIDDetector(k=20, batch_size=16).fit(rng.normal(size=(40, 5)), labels)
-    assert min(used) == lid.neighbours(20, labels, 16) == 10           # 23 clean in 2 minibatches: 11 and 12
+    assert min(used) == lid.neighbours(20, labels, 16) == 10  # 23 clean in 2 minibatches: 11 and 12
     d = build(compose("smoke", ["detect.lid_k=20", "detect.lid_batch=16"])).detect
-    assert _used(d, labels).lid_k == 10 and _used(d, np.zeros(400, int)).lid_k == 15      # 25 batches of 16 clean
+    assert _used(d, labels).lid_k == 10 and _used(d, np.zeros(400, int)).lid_k == 15  # 25 batches of 16 clean
     few = build(compose("smoke", ["detect.lid_k=5", "detect.lid_batch=16"])).detect
-    assert _used(few, labels) == few                                                     # not capped: as asked
+    assert _used(few, labels) == few  # not capped: as asked
 
 
 def test_a_read_only_models_folder_and_an_empty_test_split_are_found_before_training(tmp_path, monkeypatch):
@@ -85,19 +94,19 @@ def test_a_read_only_models_folder_and_an_empty_test_split_are_found_before_trai
     import tempfile
 
     import pandas as pd
+    from test_training import write_dataset
 
     from pipeline.pose import train as fitting
     from stages import train
     from stages.config.params import load
     from stages.errors import StageError
-    from test_training import write_dataset
 
     monkeypatch.chdir(tmp_path)
     write_dataset(tmp_path)
     monkeypatch.setattr(fitting, "fit", lambda *a, **k: pytest.fail("training started"))
     real = tempfile.TemporaryFile
 
-    def read_only(*args, dir=None, **kwargs):                   # models/ on a read-only mount (root ignores modes)
+    def read_only(*args, dir=None, **kwargs):  # models/ on a read-only mount (root ignores modes)
         if str(dir).endswith("models"):
             raise OSError(errno.EROFS, os.strerror(errno.EROFS))
         return real(*args, dir=dir, **kwargs)
@@ -123,12 +132,17 @@ def test_disk_full_while_saving_a_checkpoint_names_the_output(tmp_path, monkeypa
 
     real = builtins.open
 
-    def full(path, mode="r", *args, **kwargs):                 # every temporary file lands on a full disk
-        return real("/dev/full", mode) if str(path).endswith(".tmp") and "w" in mode else real(path, mode, *args, **kwargs)
+    def full(path, mode="r", *args, **kwargs):  # every temporary file lands on a full disk
+        return (
+            real("/dev/full", mode) if str(path).endswith(".tmp") and "w" in mode else real(path, mode, *args, **kwargs)
+        )
 
     monkeypatch.setattr(builtins, "open", full)
-    with pytest.raises(DataError, match=r"could not write .*models/pose.pt \(No space left on device\); the file was "
-                                        r"left as it was"):
+    with pytest.raises(
+        DataError,
+        match=r"could not write .*models/pose.pt \(No space left on device\); the file was "
+        r"left as it was",
+    ):
         with atomic_outputs(tmp_path / "models/pose.pt") as (pose,):
             save_torch(pose, {"model": torch.zeros(100_000)})
     assert not list((tmp_path / "models").iterdir())

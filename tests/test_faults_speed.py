@@ -1,6 +1,7 @@
 """SPEED / SPEED+ import faults: file names confined to the dataset folder and normalised before the duplicate
 check, no image in both splits, image sizes exact from the header, K checked, every labelled file checked to
 exist before the first image is read; each refused with one line naming the file or field."""
+
 from __future__ import annotations
 
 import json
@@ -21,8 +22,9 @@ from stages.errors import StageError
 def _import(src: Path, out: Path) -> None:
     from stages.artifacts.speed import import_source
 
-    import_source(build(compose("smoke", [f"render.source={src}", "render.width=24", "render.height=15",
-                                          "render.chunk=4"])), out)
+    import_source(
+        build(compose("smoke", [f"render.source={src}", "render.width=24", "render.height=15", "render.chunk=4"])), out
+    )
 
 
 def _relabel(src: Path, split: str, names: list[str]) -> None:
@@ -41,12 +43,17 @@ def test_names_are_normalised_before_the_duplicate_check():
     assert from_speed(to_speed(["sub/./a.png", "b.png"], t, q))[0] == ["sub/a.png", "b.png"]
 
 
-@pytest.mark.parametrize("split, name, error, message", [
-    *[("train", n, DataError, r"train.json: record 0 .*filename must be a path inside the dataset folder")
-      for n in ("../../../../x.png", "/etc/passwd", "a/../../x.png", "C:/data/x.png")],
-    ("test", "train002.png", StageError, r"train002.png is labelled in both .*train.json and .*test.json"),
-    ("test", "./train002.png", StageError, r"train002.png is labelled in both"),
-])
+@pytest.mark.parametrize(
+    "split, name, error, message",
+    [
+        *[
+            ("train", n, DataError, r"train.json: record 0 .*filename must be a path inside the dataset folder")
+            for n in ("../../../../x.png", "/etc/passwd", "a/../../x.png", "C:/data/x.png")
+        ],
+        ("test", "train002.png", StageError, r"train002.png is labelled in both .*train.json and .*test.json"),
+        ("test", "./train002.png", StageError, r"train002.png is labelled in both"),
+    ],
+)
 def test_names_outside_the_folder_or_in_both_splits_are_refused(tmp_path, split, name, error, message):
     src = tmp_path / "src"
     write_folder(src)
@@ -91,16 +98,21 @@ def _cam(**change) -> dict:
     return {**cam, "cameraMatrix": K.tolist(), **change}
 
 
-@pytest.mark.parametrize("cam, message", [
-    (_cam(cameraMatrix=K_SRC.K.T.tolist()), r"no skew; not transposed"),
-    (_cam(K={(0, 1): 0.5}), r"no skew"),
-    (_cam(K={(0, 2): -5000}), r"principal point \(-5000, 15\) lies outside the 48x30 image"),
-    (_cam(K={(1, 2): 31}), r"principal point \(24, 31\) lies outside"),
-    (_cam(K={(0, 0): 1e-12}), r"focal lengths must be at least 1 pixel"),
-    (_cam(Nu=64.9), r"Nu must be a whole number of pixels, got 64.9"),
-    ({"Nu": 48, "Nv": 30, "fx": 0.0176, "fy": 0.0176, "ppx": 5.86e-6, "ppy": 5.86e-6, "ccx": 5000},
-     r"principal point \(5000, 15\) lies outside"),
-])
+@pytest.mark.parametrize(
+    "cam, message",
+    [
+        (_cam(cameraMatrix=K_SRC.K.T.tolist()), r"no skew; not transposed"),
+        (_cam(K={(0, 1): 0.5}), r"no skew"),
+        (_cam(K={(0, 2): -5000}), r"principal point \(-5000, 15\) lies outside the 48x30 image"),
+        (_cam(K={(1, 2): 31}), r"principal point \(24, 31\) lies outside"),
+        (_cam(K={(0, 0): 1e-12}), r"focal lengths must be at least 1 pixel"),
+        (_cam(Nu=64.9), r"Nu must be a whole number of pixels, got 64.9"),
+        (
+            {"Nu": 48, "Nv": 30, "fx": 0.0176, "fy": 0.0176, "ppx": 5.86e-6, "ppy": 5.86e-6, "ccx": 5000},
+            r"principal point \(5000, 15\) lies outside",
+        ),
+    ],
+)
 def test_bad_cameras_are_refused(cam, message):
     with pytest.raises(ValueError, match=message):
         camera_from_json(cam)
@@ -119,8 +131,11 @@ def test_a_test_image_that_is_a_training_image_is_refused(tmp_path, how):
         test.symlink_to(train.name)
     else:
         test.write_bytes(train.read_bytes())
-    with pytest.raises(DataError, match=r"test image .*test001.png is the training image .*train004.png \(a link to it "
-                                        r"or a byte-identical copy; 1 such images\)"):
+    with pytest.raises(
+        DataError,
+        match=r"test image .*test001.png is the training image .*train004.png \(a link to it "
+        r"or a byte-identical copy; 1 such images\)",
+    ):
         _import(src, tmp_path / "store")
     assert not (tmp_path / "store").exists()
 
@@ -135,14 +150,17 @@ def test_an_image_linked_from_outside_the_folder_is_refused(tmp_path):
         _import(src, tmp_path / "store")
 
 
-@pytest.mark.parametrize("record, message", [
-    ({"r_Vo2To_vbs_true": [0.0, 0.0, -9.0]}, r"puts the target behind the camera or in its plane"),
-    ({"r_Vo2To_vbs_true": [0.0, 0.0, 0.0]}, r"puts the target behind the camera or in its plane"),
-    ({"r_Vo2To_vbs_true": [0.0, 0.0, 1e300]}, r"puts the target more than 10000 m away"),
-    ({"r_Vo2To_vbs_true": [True, False, True]}, r"r_Vo2To_vbs_true must be a list of 3 numbers, got \[True"),
-    ({"q_vbs2tango": [1.0, 0.0, 0.0, 0.0]}, r"has both 'q_vbs2tango_true' \(SPEED\+\) and 'q_vbs2tango' \(SPEED\)"),
-    ({"q_vbs2tango_true": [0.0, 0.0, 0.0, 0.0]}, r"has norm 0, not a unit quaternion"),
-])
+@pytest.mark.parametrize(
+    "record, message",
+    [
+        ({"r_Vo2To_vbs_true": [0.0, 0.0, -9.0]}, r"puts the target behind the camera or in its plane"),
+        ({"r_Vo2To_vbs_true": [0.0, 0.0, 0.0]}, r"puts the target behind the camera or in its plane"),
+        ({"r_Vo2To_vbs_true": [0.0, 0.0, 1e300]}, r"puts the target more than 10000 m away"),
+        ({"r_Vo2To_vbs_true": [True, False, True]}, r"r_Vo2To_vbs_true must be a list of 3 numbers, got \[True"),
+        ({"q_vbs2tango": [1.0, 0.0, 0.0, 0.0]}, r"has both 'q_vbs2tango_true' \(SPEED\+\) and 'q_vbs2tango' \(SPEED\)"),
+        ({"q_vbs2tango_true": [0.0, 0.0, 0.0, 0.0]}, r"has norm 0, not a unit quaternion"),
+    ],
+)
 def test_implausible_records_are_refused(record, message):
     t, q = poses(1)
     good = to_speed(["a.png"], t, q)[0]

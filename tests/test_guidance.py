@@ -1,4 +1,5 @@
 """Closed-loop guidance with stand-in renderers and estimators (no Blender, no torch)."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -109,25 +110,41 @@ def test_bad_inputs_raise_clear_errors():
 
 
 def _params(**changes: object) -> Guidance:
-    g = {"eps": [0.5, 0.05], "start_ranges": [60, 40, 20, 10], "lengths": [5, 15], "start": [0.0, 0.0, 60.0],
-         "target": [0.0, 0.0, 10.0], "tolerance": 1.0, "max_step": 1.0, "max_steps": 60, "slack_steps": 10, "variant": "paper",
-         "method": "fgsm", "dynamics": ["paper"], "defenses": ["hold"],
-         "execution": Execution(scale_std=0.02, noise_std=0.01, mean_motion=0.0011, frame_interval=10.0,
-                                approach="vbar")}
+    g = {
+        "eps": [0.5, 0.05],
+        "start_ranges": [60, 40, 20, 10],
+        "lengths": [5, 15],
+        "start": [0.0, 0.0, 60.0],
+        "target": [0.0, 0.0, 10.0],
+        "tolerance": 1.0,
+        "max_step": 1.0,
+        "max_steps": 60,
+        "slack_steps": 10,
+        "variant": "paper",
+        "method": "fgsm",
+        "dynamics": ["paper"],
+        "defenses": ["hold"],
+        "execution": Execution(
+            scale_std=0.02, noise_std=0.01, mean_motion=0.0011, frame_interval=10.0, approach="vbar"
+        ),
+    }
     return Guidance(**{**g, **changes})
 
 
-@pytest.mark.parametrize("changes, message", [
-    ({"eps": [0.5, 1.5]}, r"guidance.eps: 1.5 is not in \(0, 1\]"),
-    ({"eps": [0.0]}, r"guidance.eps: 0.0 is not in \(0, 1\]"),
-    ({"method": "deepfool"}, "guidance.method: unknown attack 'deepfool'"),
-    ({"start_ranges": [60, 70]}, "S=70.0 m is outside the trajectory"),
-    ({"start_ranges": [5]}, "S=5.0 m is outside the trajectory"),
-    ({"variant": "teleport"}, "unknown guidance variant 'teleport'"),
-])
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({"eps": [0.5, 1.5]}, r"guidance.eps: 1.5 is not in \(0, 1\]"),
+        ({"eps": [0.0]}, r"guidance.eps: 0.0 is not in \(0, 1\]"),
+        ({"method": "deepfool"}, "guidance.method: unknown attack 'deepfool'"),
+        ({"start_ranges": [60, 70]}, "S=70.0 m is outside the trajectory"),
+        ({"start_ranges": [5]}, "S=5.0 m is outside the trajectory"),
+        ({"variant": "teleport"}, "unknown guidance variant 'teleport'"),
+    ],
+)
 def test_stage_refuses_bad_params_before_rendering(changes, message):
-    from stages.guidance import _plan
     from stages.errors import StageError
+    from stages.guidance import _plan
 
     with pytest.raises(StageError, match=message):
         _plan(_params(**changes))
@@ -138,15 +155,23 @@ def test_stage_plans_the_whole_grid():
 
     settings, grid = _plan(_params())
     assert settings.max_steps == 60 and len(grid) == 2 * 4 * 2
-    assert {(e, s, k) for e, s, k, _ in grid} == {(e, s, k) for e in (0.5, 0.05) for s in (60, 40, 20, 10) for k in (5, 15)}
+    assert {(e, s, k) for e, s, k, _ in grid} == {
+        (e, s, k) for e in (0.5, 0.05) for s in (60, 40, 20, 10) for k in (5, 15)
+    }
 
 
 def test_arrival_step_is_when_the_chaser_reaches_the_goal_for_good():
     from pipeline.guidance.law import RendezvousResult, arrival_step
 
-    z = np.array([60.0, 30.0, 10.5, 14.0, 10.2, 10.0, 10.0])       # in, out again, then in for good
-    run = RendezvousResult(np.stack([np.zeros_like(z), np.zeros_like(z), z], axis=1), np.zeros((6, 3)),
-                           np.zeros(6, bool), "rendezvous held", 0.0, None)
+    z = np.array([60.0, 30.0, 10.5, 14.0, 10.2, 10.0, 10.0])  # in, out again, then in for good
+    run = RendezvousResult(
+        np.stack([np.zeros_like(z), np.zeros_like(z), z], axis=1),
+        np.zeros((6, 3)),
+        np.zeros(6, bool),
+        "rendezvous held",
+        0.0,
+        None,
+    )
     assert arrival_step(run, (0.0, 0.0, 10.0), 1.0) == 4
     short = RendezvousResult(run.positions[:4], np.zeros((3, 3)), np.zeros(3, bool), "missed without attack", 4.0, None)
     assert arrival_step(short, (0.0, 0.0, 10.0), 1.0) is None
@@ -157,8 +182,11 @@ def _defense():
     from pipeline.defense.gate import MotionSettings
     from pipeline.defense.noise import NoiseModel
 
-    return Defense(DefenseSettings(hold_after=20), MotionSettings(false_alarm=0.005),
-                   NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02))
+    return Defense(
+        DefenseSettings(hold_after=20),
+        MotionSettings(false_alarm=0.005),
+        NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02),
+    )
 
 
 def noisy_attacked(offset, seed=0):
@@ -167,7 +195,9 @@ def noisy_attacked(offset, seed=0):
     from pipeline.guidance.law import Estimate
 
     rng = np.random.default_rng(seed)
-    return lambda image, attacked, pose: Estimate(pose[1] + rng.normal(0, 0.03, 3) + (np.asarray(offset) if attacked else 0.0), 0.0)
+    return lambda image, attacked, pose: Estimate(
+        pose[1] + rng.normal(0, 0.03, 3) + (np.asarray(offset) if attacked else 0.0), 0.0
+    )
 
 
 @pytest.mark.parametrize("variant", ["paper", "true_state"])
@@ -178,8 +208,14 @@ def test_recovery_keeps_the_rendezvous_on_course_through_a_15_frame_attack(varia
     attack = noisy_attacked([5.0, 0.0, 3.0])
     undefended = run_rendezvous(blank, attack, K, s, s.window(20, 15))
     assert undefended.outcome in (SUCCEEDED, LOST)
-    r = run_rendezvous(blank, noisy_attacked([5.0, 0.0, 3.0]), K, dataclasses.replace(s, defense="recover"),
-                       s.window(20, 15), defense=_defense())
+    r = run_rendezvous(
+        blank,
+        noisy_attacked([5.0, 0.0, 3.0]),
+        K,
+        dataclasses.replace(s, defense="recover"),
+        s.window(20, 15),
+        defense=_defense(),
+    )
     assert r.outcome == HELD and r.miss < 0.5
     assert r.flags[r.attacked].all() and (r.modes[r.attacked] == COAST).all()
     assert not r.flags[~r.attacked].any()
@@ -192,7 +228,7 @@ def test_detect_and_hold_stops_the_chaser_while_flagged_and_resumes():
     r = run_rendezvous(blank, noisy_attacked([5.0, 0.0, 3.0]), K, s, s.window(20, 15), defense=_defense())
     hit = np.flatnonzero(r.attacked)
     assert r.flags[hit].all()
-    assert np.allclose(r.positions[hit + 1], r.positions[hit[0]])     # held in place during the attack
+    assert np.allclose(r.positions[hit + 1], r.positions[hit[0]])  # held in place during the attack
     assert r.outcome == HELD
 
 
@@ -227,11 +263,19 @@ def test_the_defended_page_explains_the_paper_dynamics_clean_flags_and_only_when
     g = build(params_mod.compose("default")).guidance
 
     def block(flags, arrival):
-        return {"baseline": {"outcome": "rendezvous held", "miss_m": 0.0, "arrival_step": arrival, "flags": flags},
-                "held": {}, "not_met": {}, "runs": []}
+        return {
+            "baseline": {"outcome": "rendezvous held", "miss_m": 0.0, "arrival_step": arrival, "flags": flags},
+            "held": {},
+            "not_met": {},
+            "runs": [],
+        }
 
-    d = {"dynamics": {"paper": {"undefended": block(None, 36), "recover": block(28, 46)},
-                      "true_state": {"undefended": block(None, 50), "recover": block(4, 50)}}}
+    d = {
+        "dynamics": {
+            "paper": {"undefended": block(None, 36), "recover": block(28, 46)},
+            "true_state": {"undefended": block(None, 50), "recover": block(4, 50)},
+        }
+    }
     text = defended_section(d, g)
     assert "Flags without an attack" in text and "28 flags with detect-and-recover" in text
     assert "arrives after 36 steps, not 50: about 0.39 m" in text and "(true_state: 4 with detect-and-recover)" in text

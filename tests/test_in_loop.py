@@ -2,6 +2,7 @@
 undefended toy chain it puts the chaser on a collision course; it never steps the live defense; runs that
 never met the attack do not count. Toy chain: each image channel's mean encodes one axis of the
 camera-frame position, so an eps of 0.05 moves the estimate by up to 10 m (no Blender, tiny tensors)."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -22,7 +23,7 @@ from pipeline.guidance.grid import GridPilot, GridPlan, held_counts, in_loop_gri
 from pipeline.guidance.law import Estimate, GuidanceSettings, LoopState, RendezvousResult, segment_range
 
 K = reference_intrinsics().scaled(160, 90)
-SCALE = 200.0   # metres per unit of channel mean: t = SCALE * mean - SCALE / 2
+SCALE = 200.0  # metres per unit of channel mean: t = SCALE * mean - SCALE / 2
 
 
 class ToyChain(nn.Module):
@@ -69,7 +70,7 @@ def _fly(goal: str, eps: float = 0.05, start: float = 20.0) -> tuple[GridPlan, l
 
 def test_the_in_loop_attacker_puts_the_undefended_chaser_on_a_collision_course() -> None:
     plan, results, attackers = _fly("collide")
-    _, baseline, attacked = results          # the paper chain's baseline, then the shipped chain's runs
+    _, baseline, attacked = results  # the paper chain's baseline, then the shipped chain's runs
     assert baseline.outcome == "rendezvous held" and baseline.closest_range > 9
     out = in_loop_grid(plan, results, collision_range=5.0)
     (run,) = out["runs"]
@@ -85,7 +86,7 @@ def test_the_miss_variant_loses_the_rendezvous() -> None:
 
 
 def test_a_run_that_never_meets_the_attack_is_not_counted() -> None:
-    plan, results, _ = _fly("collide", start=10.0 - 1e-3)   # S below the goal range: never reached
+    plan, results, _ = _fly("collide", start=10.0 - 1e-3)  # S below the goal range: never reached
     assert results[-1].attacked_frames == 0
     assert in_loop_grid(plan, results, collision_range=5.0)["counts"]["paper"]["undefended"]["0.05"] == [0, 0, 0, 0, 1]
     held = RendezvousResult(np.zeros((2, 3)), np.zeros((1, 3)), np.array([True]), "rendezvous held", 0.0, 0)
@@ -105,7 +106,10 @@ def test_aiming_reads_the_defense_and_leaves_it_as_it_was() -> None:
     settings = dataclasses.replace(GuidanceSettings(), defense="recover")
     attacker.observe(LoopState(2, rel, R_c, np.zeros(3), defense, settings))
     wanted = attacker.aim(t, 0.0, np.eye(3))
-    assert np.array_equal(defense.filter.position, before[0]) and (defense.flags_in_a_row, defense.clean_in_a_row) == before[1:]
+    assert (
+        np.array_equal(defense.filter.position, before[0])
+        and (defense.flags_in_a_row, defense.clean_in_a_row) == before[1:]
+    )
     # under the gate: a push, but far smaller than the undefended attacker's metres
     assert 0 < np.linalg.norm(wanted - t) < 5
 
@@ -114,13 +118,19 @@ def test_axes_and_segment_range() -> None:
     d = axes(np.array([3.0, 0.0, 4.0]))
     assert np.allclose(np.linalg.norm(d, axis=1), 1) and np.allclose(d[:3] @ d[:3].T, np.eye(3), atol=1e-12)
     assert np.allclose(d[0], [0.6, 0, 0.8]) and np.allclose(d[3], -d[0])
-    assert segment_range(np.array([0.0, 0.0, 10.0]), np.array([0.0, 0.0, -10.0])) == 0.0   # jumped past the target
+    assert segment_range(np.array([0.0, 0.0, 10.0]), np.array([0.0, 0.0, -10.0])) == 0.0  # jumped past the target
     assert segment_range(np.array([0.0, 3.0, 10.0]), np.array([0.0, 3.0, 12.0])) == pytest.approx(np.hypot(3, 10))
 
 
-@pytest.mark.parametrize("change, word", [({"goal": "ram"}, "goal"), ({"steps": 0}, "steps"),
-                                          ({"gate_fraction": 0.0}, "gate_fraction"),
-                                          ({"magnitudes": (1.0, -2.0)}, "magnitudes")])
+@pytest.mark.parametrize(
+    "change, word",
+    [
+        ({"goal": "ram"}, "goal"),
+        ({"steps": 0}, "steps"),
+        ({"gate_fraction": 0.0}, "gate_fraction"),
+        ({"magnitudes": (1.0, -2.0)}, "magnitudes"),
+    ],
+)
 def test_bad_in_loop_settings_are_one_line(change: dict, word: str) -> None:
     with pytest.raises(ValueError, match=word) as e:
         InLoopSettings(**change)

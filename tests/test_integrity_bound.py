@@ -1,4 +1,5 @@
 """pipeline/evaluation/integrity_bound.py: the integrity bound assembled per trajectory and over trajectories."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -24,8 +25,10 @@ DEFENDED = Defended(SETTINGS, MOTION, FLAT, AlertLimitSettings())
 
 def caps(along: float, across: float) -> list:
     """Range-proportional capacities at eps 0.01 and 0.05 (m per m of range; the larger eps twice as far)."""
-    return [proportional_capacity(0.01, EDGES, along, across),
-            proportional_capacity(0.05, EDGES, 2 * along, 2 * across)]
+    return [
+        proportional_capacity(0.01, EDGES, along, across),
+        proportional_capacity(0.05, EDGES, 2 * along, 2 * across),
+    ]
 
 
 def test_targets_start_at_the_filters_start_and_end_at_the_last_frame() -> None:
@@ -41,9 +44,9 @@ def test_the_trusted_frame_counts_the_frames_the_sequential_test_saw() -> None:
         start = 1
 
     assert trusted_frame(Rec(), 0) == 1
-    assert trusted_frame(Rec(), 2) == 4      # frames 3 and 4 were tested; the gate's rejection at 2 was not
+    assert trusted_frame(Rec(), 2) == 4  # frames 3 and 4 were tested; the gate's rejection at 2 was not
     assert trusted_frame(Rec(), 4) == 7
-    assert trusted_frame(Rec(), 9) == 7      # never that many: the last frame
+    assert trusted_frame(Rec(), 9) == 7  # never that many: the last frame
 
 
 def test_one_trajectory_bound_covers_its_replay_grows_with_capacity_and_spares_nothing_it_should_not() -> None:
@@ -55,8 +58,8 @@ def test_one_trajectory_bound_covers_its_replay_grows_with_capacity_and_spares_n
     for e in ("0.01", "0.05"):
         b, s = small["per_eps"][e]["bound"], small["per_eps"][e]["spared"]
         assert b["unmodelled"] == 0 and len(b["ratio"]) == len(small["targets"])
-        assert b["max_achieved_m"] <= b["max_error_m"] + 1e-3     # the replayed attack never beats the bound
-        assert b["max_error_m"] >= s["max_error_m"] - 1e-6          # sparing the trusted frames can only help the PL
+        assert b["max_achieved_m"] <= b["max_error_m"] + 1e-3  # the replayed attack never beats the bound
+        assert b["max_error_m"] >= s["max_error_m"] - 1e-6  # sparing the trusted frames can only help the PL
     assert small["per_eps"]["0.05"]["bound"]["max_error_m"] > small["per_eps"]["0.01"]["bound"]["max_error_m"]
     assert large["per_eps"]["0.01"]["bound"]["max_error_m"] > small["per_eps"]["0.01"]["bound"]["max_error_m"]
     assert zero["per_eps"]["0.01"]["bound"]["max_error_m"] == pytest.approx(zero["clean"]["max_error_m"], abs=1e-4)
@@ -83,7 +86,10 @@ def test_the_share_of_frames_over_al_has_an_interval_over_trajectories() -> None
 
 
 def test_first_over_is_the_smallest_eps_whose_bound_exceeds_al() -> None:
-    rows = {"0.01": {"bound": {"max_error_al": 0.4}}, "0.02": {"bound": {"max_error_al": 1.2}},
-            "0.05": {"bound": {"max_error_al": 3.0}}}
+    rows = {
+        "0.01": {"bound": {"max_error_al": 0.4}},
+        "0.02": {"bound": {"max_error_al": 1.2}},
+        "0.05": {"bound": {"max_error_al": 3.0}},
+    }
     assert first_over(rows) == 0.02
     assert first_over({"0.01": {"bound": {"max_error_al": None}}}) is None

@@ -2,6 +2,7 @@
 attacker, goal or AL kind, eps outside (0, 1] or not increasing, a collision range that is not positive, a drift
 start that is not a start, a capture bias that is not positive, an execution error out of range, an in-loop start
 range off the approach; and the builders hand the library what params say."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -13,26 +14,41 @@ from stages.config import params as params_mod
 from stages.config.sections import ParamsError
 
 
-@pytest.mark.parametrize("key, value, message", [
-    ("alert_limit_m", 0.0, r"^params.yaml integrity.alert_limit_m must be null or > 0 \(metres\), got 0.0$"),
-    ("alert_limit_m", -3, r"^params.yaml integrity.alert_limit_m must be null or > 0 \(metres\), got -3$"),
-    ("attackers", ["burst", "jitter"], r"^params.yaml integrity.attackers\[1\] must be one of burst, drift/los, "
-                                        r"drift/lateral, capture/los, capture/lateral, got 'jitter'$"),
-    ("in_loop_goals", ["ram"], r"^params.yaml integrity.in_loop_goals\[0\] must be one of collide, miss, capture, "
-                               r"got 'ram'$"),
-    ("alert_limit_kind", "both", r"^params.yaml integrity.alert_limit_kind must be one of single_frame, persistent"),
-    ("eps", [0.05, 0.01], r"^params.yaml integrity.eps must be increasing \(the breaking point's grid\)"),
-    ("in_loop_eps", [0.05, 2.0], r"^params.yaml integrity.in_loop_eps: 2.0 is not in \(0, 1\]"),
-    ("capture_initial", [0.0], r"^params.yaml integrity.capture_initial\[0\] must be a positive number"),
-    ("drift_start", 40, r"^params.yaml integrity.drift_start must be one of acquisition, after_trusted"),
-    ("undefended_drift_rate", 0.0, r"^params.yaml integrity.undefended_drift_rate must be a positive number"),
-    ("eps", [0.01, 1.5], r"^params.yaml integrity.eps: 1.5 is not in \(0, 1\]"),
-    ("eps", [0.0], r"^params.yaml integrity.eps: 0.0 is not in \(0, 1\]"),
-    ("eps", [0.01, 0.01], r"^params.yaml integrity.eps must be a non-empty list without repeats"),
-    ("collision_range_m", -1.0, r"^params.yaml integrity.collision_range_m must be > 0 \(metres\), got -1.0$"),
-    ("burst_restarts", 0, r"^params.yaml integrity.burst_restarts must be a positive whole number"),
-    ("trajectories", 0, r"^params.yaml integrity.trajectories must be a positive whole number in \[1, 100000\]"),
-])
+@pytest.mark.parametrize(
+    "key, value, message",
+    [
+        ("alert_limit_m", 0.0, r"^params.yaml integrity.alert_limit_m must be null or > 0 \(metres\), got 0.0$"),
+        ("alert_limit_m", -3, r"^params.yaml integrity.alert_limit_m must be null or > 0 \(metres\), got -3$"),
+        (
+            "attackers",
+            ["burst", "jitter"],
+            r"^params.yaml integrity.attackers\[1\] must be one of burst, drift/los, "
+            r"drift/lateral, capture/los, capture/lateral, got 'jitter'$",
+        ),
+        (
+            "in_loop_goals",
+            ["ram"],
+            r"^params.yaml integrity.in_loop_goals\[0\] must be one of collide, miss, capture, "
+            r"got 'ram'$",
+        ),
+        (
+            "alert_limit_kind",
+            "both",
+            r"^params.yaml integrity.alert_limit_kind must be one of single_frame, persistent",
+        ),
+        ("eps", [0.05, 0.01], r"^params.yaml integrity.eps must be increasing \(the breaking point's grid\)"),
+        ("in_loop_eps", [0.05, 2.0], r"^params.yaml integrity.in_loop_eps: 2.0 is not in \(0, 1\]"),
+        ("capture_initial", [0.0], r"^params.yaml integrity.capture_initial\[0\] must be a positive number"),
+        ("drift_start", 40, r"^params.yaml integrity.drift_start must be one of acquisition, after_trusted"),
+        ("undefended_drift_rate", 0.0, r"^params.yaml integrity.undefended_drift_rate must be a positive number"),
+        ("eps", [0.01, 1.5], r"^params.yaml integrity.eps: 1.5 is not in \(0, 1\]"),
+        ("eps", [0.0], r"^params.yaml integrity.eps: 0.0 is not in \(0, 1\]"),
+        ("eps", [0.01, 0.01], r"^params.yaml integrity.eps must be a non-empty list without repeats"),
+        ("collision_range_m", -1.0, r"^params.yaml integrity.collision_range_m must be > 0 \(metres\), got -1.0$"),
+        ("burst_restarts", 0, r"^params.yaml integrity.burst_restarts must be a positive whole number"),
+        ("trajectories", 0, r"^params.yaml integrity.trajectories must be a positive whole number in \[1, 100000\]"),
+    ],
+)
 def test_bad_integrity_params_are_one_line_naming_the_param(tmp_path, monkeypatch, key, value, message):
     monkeypatch.chdir(tmp_path)
     p = params_mod.compose("default")
@@ -50,30 +66,36 @@ def test_an_in_loop_start_range_off_the_approach_is_one_line():
 
     p = build(params_mod.compose("default"))
     settings, _ = _plan(p.guidance)
-    assert _in_loop(p.integrity, settings) == tuple((e, g, 60.0 if g == "capture" else 20.0) for e in (0.01, 0.05, 0.1)
-                                                    for g in ("collide", "miss", "capture"))
+    assert _in_loop(p.integrity, settings) == tuple(
+        (e, g, 60.0 if g == "capture" else 20.0) for e in (0.01, 0.05, 0.1) for g in ("collide", "miss", "capture")
+    )
     bad = dataclasses.replace(p.integrity, in_loop_start_ranges=[30.0, 80.0])
     with pytest.raises(StageError, match=r"^params.yaml integrity.in_loop_start_ranges: attack start range S=80.0 m"):
         _in_loop(bad, settings)
 
 
 def test_the_builders_follow_the_params():
-    from pipeline.defense.integrity import alert_limit
     from pipeline.attackers.burst import WIDE_LAMBDAS
+    from pipeline.defense.integrity import alert_limit
     from stages.config.build import alert_limit_settings, burst_attacker, drift_settings, in_loop_settings
     from stages.config.schema import build
 
     p = build(params_mod.compose("default"))
     attacker = burst_attacker(p, seed=7)
-    assert (attacker.steps, attacker.restarts, attacker.lambdas, attacker.cap, attacker.seed) == (50, 3, WIDE_LAMBDAS,
-                                                                                                  2.0, 7)
+    assert (attacker.steps, attacker.restarts, attacker.lambdas, attacker.cap, attacker.seed) == (
+        50,
+        3,
+        WIDE_LAMBDAS,
+        2.0,
+        7,
+    )
     assert (attacker.objective, attacker.hinge) == ("error_al", 0.5)
-    assert float(attacker.alert_limit(60.0)) == float(alert_limit(60.0, alert_limit_settings(p))) == 51.0   # persistent
-    assert float(alert_limit(10.0, alert_limit_settings(p))) == 1.0                                   # the tolerance
+    assert float(attacker.alert_limit(60.0)) == float(alert_limit(60.0, alert_limit_settings(p))) == 51.0  # persistent
+    assert float(alert_limit(10.0, alert_limit_settings(p))) == 1.0  # the tolerance
     assert float(alert_limit(10.0, alert_limit_settings(p, "single_frame"))) == 6.0
     fixed = dataclasses.replace(p, integrity=dataclasses.replace(p.integrity, alert_limit_m=2.5))
     assert alert_limit_settings(fixed).fixed == 2.5 and float(burst_attacker(fixed, 0).alert_limit(30.0)) == 2.5
-    assert float(alert_limit(60.0, alert_limit_settings(fixed))) == 2.5   # the defense's AL too (PL > AL: unavailable)
+    assert float(alert_limit(60.0, alert_limit_settings(fixed))) == 2.5  # the defense's AL too (PL > AL: unavailable)
     assert drift_settings(p, "lateral").direction == "lateral" and drift_settings(p, "los").gate_fraction == 0.5
     assert in_loop_settings(p, "miss").goal == "miss" and in_loop_settings(p, "collide").steps == 10
 
@@ -89,14 +111,22 @@ def test_the_execution_error_and_the_frame_attack_follow_the_params():
     p = build(params_mod.compose("default"))
     loop, frames = execution_settings(p, 5), execution_settings(p, 6, step=0.25)
     assert (loop.scale_std, loop.noise_std, loop.mean_motion, loop.frame_interval, loop.approach, loop.seed) == (
-        0.02, 0.01, 0.0011, 10.0, "vbar", 5)
+        0.02,
+        0.01,
+        0.0011,
+        10.0,
+        "vbar",
+        5,
+    )
     assert (frames.frame_interval, frames.seed) == (2.5, 6)
     assert abs(p.defense.position_noise - loop.step_std(p.guidance.max_step)) < 1e-3
     assert frame_attack(p) == TargetedPGD(steps=p.integrity.frame_steps, start="lift", bpda=True)
     c = capture_settings(p, "los", 5.0)
     assert (c.direction, c.initial, c.rate, c.gate_fraction) == ("los", 5.0, 0.0, 0.5)
-    bad = dataclasses.replace(p, guidance=dataclasses.replace(p.guidance, execution=dataclasses.replace(
-        p.guidance.execution, approach="hbar")))
+    bad = dataclasses.replace(
+        p,
+        guidance=dataclasses.replace(p.guidance, execution=dataclasses.replace(p.guidance.execution, approach="hbar")),
+    )
     with pytest.raises(Exception, match="approach"):
         execution_settings(bad, 0)
 
@@ -111,9 +141,16 @@ def test_the_evaluation_and_validation_trajectories_follow_the_seed():
     runs = [build(params_mod.compose("default", [f"seed={k}"])) for k in range(6)]
     assert (params_mod.evaluation_seed(runs[0]), params_mod.validation_seed(runs[0])) == (1000, 3000)
     bases = [(params_mod.evaluation_seed(p), params_mod.validation_seed(p)) for p in runs]
-    drawn = [{seed_for(b, s, i) for b in pair for s in ("eval_render.trajectory", "eval_render.execution")
-              for i in range(p.defense.val_trajectories)} for pair, p in zip(bases, runs)]
-    assert all(not (a & b) for i, a in enumerate(drawn) for b in drawn[i + 1:])
+    drawn = [
+        {
+            seed_for(b, s, i)
+            for b in pair
+            for s in ("eval_render.trajectory", "eval_render.execution")
+            for i in range(p.defense.val_trajectories)
+        }
+        for pair, p in zip(bases, runs)
+    ]
+    assert all(not (a & b) for i, a in enumerate(drawn) for b in drawn[i + 1 :])
     assert len({params_mod.eval_render_fingerprint(p) for p in runs}) == len(runs)
     assert len({params_mod.val_render_fingerprint(p) for p in runs}) == len(runs)
     starts = [tuple(np.round(s.rel[0], 6)) for p, (e, _) in zip(runs[:2], bases) for s in trajectories(p, e, 3)]

@@ -3,6 +3,7 @@ the nested burst's worst case is monotone in eps through the runner, attacked fr
 and clean frames untouched (burst and the batched drift), the rows pair each run with its clean
 counterpart, a fixed AL and a trace's protection level reach the integrity records. test_burst's tiny
 random PoseNet and LSTM on 18 x 32 frames, CPU."""
+
 from __future__ import annotations
 
 from types import SimpleNamespace
@@ -39,7 +40,12 @@ def runs(scene):
         top = max(top, float(torch.sigmoid(logit).max()))
     threshold = min(0.99, top + 0.05)
     chain = OnboardChain.from_model(model, target.shap.background_mean.numpy(), target.detector, threshold=threshold)
-    return chain, target, Defended(DefenseSettings(threshold=threshold), MotionSettings(false_alarm=0.01), NOISE), tracks
+    return (
+        chain,
+        target,
+        Defended(DefenseSettings(threshold=threshold), MotionSettings(false_alarm=0.01), NOISE),
+        tracks,
+    )
 
 
 def _masks(tracks, lo: int, hi: int) -> list[np.ndarray]:
@@ -54,7 +60,7 @@ def test_the_nested_burst_through_the_runner_is_monotone_in_eps_and_within_eps(r
     stored, worst = burst_attack(target, defended, tracks, masks, attacker, eps)
     for i, (t, m) in enumerate(zip(tracks, masks)):
         keys = [worst[e][i][0].key for e in eps]
-        assert keys == sorted(keys) and keys[-1][2] > 0       # a trajectory's first burst never weakens as eps grows
+        assert keys == sorted(keys) and keys[-1][2] > 0  # a trajectory's first burst never weakens as eps grows
         for e in eps:
             delta = np.abs(stored[e][i].astype(int) - t.images.astype(int))
             assert delta[~m].max() == 0 and delta[m].max() <= round(e * 255 + 0.5)
@@ -63,7 +69,10 @@ def test_the_nested_burst_through_the_runner_is_monotone_in_eps_and_within_eps(r
     row = integrity_row("burst", 0.05, attacked, clean, masks)
     assert row["frames"] == sum(int(counted(m).sum()) for m in masks) == 2 * (N - 6)
     assert row["attacked_frames"] == 8 and row["trajectories"] == 2
-    assert row["hmi"]["value"] <= row["hmi_attacked"]["value"] and row["trusted_error_max_m"] >= row["trusted_error_mean_m"]
+    assert (
+        row["hmi"]["value"] <= row["hmi_attacked"]["value"]
+        and row["trusted_error_max_m"] >= row["trusted_error_mean_m"]
+    )
     assert clean_row(clean)["frames"] == 2 * N
 
 
@@ -75,8 +84,16 @@ def test_the_batched_plans_change_only_their_frames_within_eps(runs) -> None:
     chain, target, defended, tracks = runs
     clean = [fly(chain, defended, t, AlertLimitSettings(), 8) for t in tracks]
     for attack in (TargetedPGD(2), TargetedPGD(2, start="lift", bpda=True)):
-        stored = plan_attack(target, defended, tracks, clean, [(DriftSettings("lateral"), 3), (DriftSettings("los"), 5)],
-                             0.03, seed=0, frame_attack=attack)
+        stored = plan_attack(
+            target,
+            defended,
+            tracks,
+            clean,
+            [(DriftSettings("lateral"), 3), (DriftSettings("los"), 5)],
+            0.03,
+            seed=0,
+            frame_attack=attack,
+        )
         assert len(stored) == 2 and all(len(per) == len(tracks) for per in stored)
         for per, first in zip(stored, (3, 5)):
             for t, s, m in zip(tracks, per, _masks(tracks, first, N)):
@@ -99,7 +116,7 @@ def test_a_fixed_alert_limit_and_a_protection_level_reach_the_records() -> None:
     trace.pl = np.array([1.0, 3.0, np.nan, 20.0])
     with_pl = defense_frames(trace, truth, "a", AlertLimitSettings())
     assert with_pl.mi.tolist() == [True, False, False, False]
-    assert with_pl.available.tolist() == [True, True, False, False]   # PL > AL or no PL: not available
+    assert with_pl.available.tolist() == [True, True, False, False]  # PL > AL or no PL: not available
 
 
 def test_a_bootstrap_without_spread_falls_back_to_trajectories_as_trials() -> None:
@@ -107,7 +124,9 @@ def test_a_bootstrap_without_spread_falls_back_to_trajectories_as_trials() -> No
     from pipeline.stats import Rate, wilson
 
     none = as_json(Rate(0.0, 0.0, 0.0, 1550), trajectories=10)
-    assert none["ci"] == pytest.approx([0.0, wilson(0, 10).hi]) and none["ci"][1] > 0.25 and "Wilson" in none["ci_method"]
+    assert (
+        none["ci"] == pytest.approx([0.0, wilson(0, 10).hi]) and none["ci"][1] > 0.25 and "Wilson" in none["ci_method"]
+    )
     every = as_json(Rate(1.0, 1.0, 1.0, 1550), trajectories=10)
     assert every["ci"][0] == pytest.approx(wilson(10, 10).lo) and every["ci"][1] == 1.0
     spread = as_json(Rate(0.2, 0.1, 0.3, 100), trajectories=10)

@@ -2,6 +2,7 @@
 smoke profile. The render stops between two frames (Blender's Cycles swallows the signal inside a frame:
 pipeline/interrupt.py), exits 130 with one line, leaves no lock or temporary; under `dvc repro` nothing is recorded in
 dvc.lock and the git-tracked outputs DVC deleted before the stage are back as they were."""
+
 from __future__ import annotations
 
 import os
@@ -18,13 +19,17 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO / "scripts"))
 from smoke import copy_repo  # noqa: E402
 
-pytestmark = [pytest.mark.slow,
-              pytest.mark.skipif(shutil.which("git") is None or not (Path(sys.executable).parent / "dvc").exists(),
-                                 reason="git and dvc (beside python) are needed")]
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(
+        shutil.which("git") is None or not (Path(sys.executable).parent / "dvc").exists(),
+        reason="git and dvc (beside python) are needed",
+    ),
+]
 # enough frames that the signal lands while Blender renders (about 0.05 s a frame here), few enough to stay cheap
 SLOW_RENDER = ["-S", "render.frames_per_sequence=20", "-S", "render.samples=32"]
-STARTED_S = 300    # seconds to wait for the render's progress bar
-STOPPED_S = 60     # seconds the command may take to stop once signalled
+STARTED_S = 300  # seconds to wait for the render's progress bar
+STOPPED_S = 60  # seconds the command may take to stop once signalled
 
 
 @pytest.fixture
@@ -38,8 +43,9 @@ def copy(tmp_path) -> tuple[Path, dict[str, str]]:
     return dst, env
 
 
-def _interrupt(args: list[str], cwd: Path, env: dict[str, str], sig: int, log: Path, delay_s: float = 0.0,
-               group: bool = True) -> tuple[int, str, float]:
+def _interrupt(
+    args: list[str], cwd: Path, env: dict[str, str], sig: int, log: Path, delay_s: float = 0.0, group: bool = True
+) -> tuple[int, str, float]:
     """Start `args` in its own process group, wait for the render's progress bar and `delay_s` seconds more, send
     `sig` to the whole group (as a terminal's Ctrl-C does) or, `group` False, to the command alone (as `kill` does)
     -> (exit status, stderr, seconds from the signal to the exit)."""
@@ -59,8 +65,13 @@ def _interrupt(args: list[str], cwd: Path, env: dict[str, str], sig: int, log: P
 
 def _leftovers(root: Path) -> list[str]:
     """Locks and temporaries beside the outputs (dot files other than git's .gitkeep placeholders)."""
-    return sorted(str(p.relative_to(root)) for d in (root / "datasets", root / "reports" / "figures") if d.is_dir()
-                  for p in d.iterdir() if p.name.startswith(".") and p.name != ".gitkeep")
+    return sorted(
+        str(p.relative_to(root))
+        for d in (root / "datasets", root / "reports" / "figures")
+        if d.is_dir()
+        for p in d.iterdir()
+        if p.name.startswith(".") and p.name != ".gitkeep"
+    )
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
@@ -75,7 +86,7 @@ def test_a_signal_stops_rpod_render_between_frames_with_one_line(copy, tmp_path,
     assert seconds < STOPPED_S
     assert not (root / "datasets" / "render").exists() and _leftovers(root) == []
     status = subprocess.run(["git", "status", "--porcelain"], cwd=root, capture_output=True, text=True).stdout
-    assert status == "", status                                  # the tracked outputs (previews, metrics) untouched
+    assert status == "", status  # the tracked outputs (previews, metrics) untouched
 
 
 @pytest.mark.parametrize("sig, group", [(signal.SIGINT, True), (signal.SIGTERM, False)])
@@ -83,8 +94,13 @@ def test_a_signal_stops_a_render_on_ray_workers_with_one_line(copy, tmp_path, si
     """On Ray (engine.workers 2) the driver waits in Ray's core worker: before issue 41 SIGTERM exited 15 (Ray's own
     handler), or 1 with a SystemError from ray.wait, leaving the lock and a temporary folder; SIGINT crashed at exit."""
     root, env = copy
-    subprocess.run(["rpod", "params", "smoke", *SLOW_RENDER, "-S", "engine.workers=2", "-S",
-                    "render.frames_per_sequence=40"], cwd=root, env=env, check=True, capture_output=True)
+    subprocess.run(
+        ["rpod", "params", "smoke", *SLOW_RENDER, "-S", "engine.workers=2", "-S", "render.frames_per_sequence=40"],
+        cwd=root,
+        env=env,
+        check=True,
+        capture_output=True,
+    )
     code, err, _ = _interrupt(["rpod", "render"], root, env, sig, tmp_path / "err.txt", delay_s=8.0, group=group)
     assert code == 130, err[-3000:]
     said = [line for line in err.splitlines() if "stopped by" in line]
@@ -100,8 +116,10 @@ def test_an_interrupted_dvc_repro_records_nothing_and_leaves_tracked_outputs_as_
     code, err, _ = _interrupt(["dvc", "repro", "render"], root, env, signal.SIGINT, tmp_path / "err.txt")
     assert code != 0, err[-3000:]
     said = [line for line in err.splitlines() if "stopped by" in line]
-    assert len(said) == 1 and said[0].startswith("rpod render: stopped by SIGINT; no half-written output left; DVC "
-                                                 "records nothing (put back from git: reports/figures/previews"), err
+    assert len(said) == 1 and said[0].startswith(
+        "rpod render: stopped by SIGINT; no half-written output left; DVC "
+        "records nothing (put back from git: reports/figures/previews"
+    ), err
     assert "exited with 130" in err and "Traceback" not in err, err[-3000:]
     assert (root / "dvc.lock").read_bytes() == lock
     assert {p.name: p.read_bytes() for p in (root / "reports" / "figures" / "previews").iterdir()} == previews
@@ -126,13 +144,13 @@ def test_a_deferred_signal_sets_the_flag_and_raises_at_the_end_of_the_block(hand
     handlers.install()
     reached = False
     with pytest.raises(handlers.Interrupted, match="SIGTERM"):
-        with handlers.deferred():          # as around a Blender call, which would swallow the exception
+        with handlers.deferred():  # as around a Blender call, which would swallow the exception
             os.kill(os.getpid(), signal.SIGTERM)
             time.sleep(0.05)
             assert handlers.requested() == signal.SIGTERM
             reached = True
     assert reached
-    os.kill(os.getpid(), signal.SIGINT)   # a second signal during the clean-up is recorded, not raised
+    os.kill(os.getpid(), signal.SIGINT)  # a second signal during the clean-up is recorded, not raised
     time.sleep(0.05)
 
 

@@ -40,7 +40,9 @@ def test_paper_factor_reproduces_the_printed_range_and_the_039_percent_gap():
     k, k_paper = lab_to_synthetic_factor(K_SYN, K_ZED, 9.0), paper_lab_factor(K_SYN, K_ZED, 9.0)
     assert 3.122 * k_paper == pytest.approx(51.18, abs=0.02)  # the paper's table, 3.122 m -> 51.18 m
     assert 3.122 * k == pytest.approx(51.36, abs=0.01)
-    assert k / k_paper == pytest.approx(4 / (956.29 / 240)) and 100 * (k / k_paper - 1) == pytest.approx(0.39, abs=0.005)
+    assert k / k_paper == pytest.approx(4 / (956.29 / 240)) and 100 * (k / k_paper - 1) == pytest.approx(
+        0.39, abs=0.005
+    )
 
 
 def test_lab_report_shows_the_paper_ranges_beside_ours():
@@ -72,7 +74,7 @@ def test_relative_pose_matches_the_camera_frame_label():
     x = rng.normal(size=3)
     world = p_tgt + R_tgt @ x
     np.testing.assert_allclose(R_cam.T @ (world - p_cam), quat_to_matrix(q) @ x + t, atol=1e-12)
-    np.testing.assert_allclose(t, -R_cam.T @ (p_cam - p_tgt), atol=1e-12)   # d = p_cam - p_tgt (SPEC 9)
+    np.testing.assert_allclose(t, -R_cam.T @ (p_cam - p_tgt), atol=1e-12)  # d = p_cam - p_tgt (SPEC 9)
 
 
 def _hand_made():
@@ -92,7 +94,7 @@ def test_timestamp_matching_nearest_and_interpolated():
     frames, t, q = match_frames(camera, mocap, "cam", "tgt", "nearest", max_gap=0.005)
     assert frames.tolist() == [0, 1, 2, 3]
     nearest = np.round(camera.timestamp.to_numpy() * 120) / 120
-    np.testing.assert_allclose(t[:, 0], -1.2 * nearest)             # t = R^T (p_tgt - p_cam)
+    np.testing.assert_allclose(t[:, 0], -1.2 * nearest)  # t = R^T (p_tgt - p_cam)
     np.testing.assert_allclose(t[:, 2], 3.0)
     _, t_i, q_i = match_frames(camera, mocap, "cam", "tgt", "interpolate", max_gap=0.005)
     np.testing.assert_allclose(t_i[:, 0], -1.2 * camera.timestamp.to_numpy(), atol=1e-12)
@@ -102,9 +104,15 @@ def test_timestamp_matching_nearest_and_interpolated():
 def test_interpolation_slerps_the_attitude():
     ts = np.array([0.0, 1 / 120])
     qz90 = matrix_to_quat(euler_to_matrix([0, 0, 90]))
-    mocap = pd.DataFrame([[ts[0], "cam", 0, 0, 0, 1, 0, 0, 0], [ts[0], "tgt", 0, 0, 1, 1, 0, 0, 0],
-                          [ts[1], "cam", 0, 0, 0, 1, 0, 0, 0], [ts[1], "tgt", 0, 0, 1, *qz90]],
-                         columns=["timestamp", "body", "x", "y", "z", "qw", "qx", "qy", "qz"])
+    mocap = pd.DataFrame(
+        [
+            [ts[0], "cam", 0, 0, 0, 1, 0, 0, 0],
+            [ts[0], "tgt", 0, 0, 1, 1, 0, 0, 0],
+            [ts[1], "cam", 0, 0, 0, 1, 0, 0, 0],
+            [ts[1], "tgt", 0, 0, 1, *qz90],
+        ],
+        columns=["timestamp", "body", "x", "y", "z", "qw", "qx", "qy", "qz"],
+    )
     camera = pd.DataFrame({"frame": [0], "timestamp": [0.25 / 120]})
     _, _, q = match_frames(camera, mocap, "cam", "tgt", "interpolate", max_gap=0.01)
     assert attitude_error_deg(q, [1, 0, 0, 0])[0] == pytest.approx(22.5, abs=1e-6)
@@ -113,7 +121,7 @@ def test_interpolation_slerps_the_attitude():
 def test_bad_mocap_and_camera_tables_name_the_line():
     camera, mocap = _hand_made()
     swapped = mocap.copy()
-    swapped.iloc[[4, 6]] = swapped.iloc[[6, 4]].to_numpy()           # rows of body 'cam' out of order
+    swapped.iloc[[4, 6]] = swapped.iloc[[6, 4]].to_numpy()  # rows of body 'cam' out of order
     with pytest.raises(LabDataError, match=r"mocap.csv line 8: body 'cam'.*time order"):
         match_frames(camera, swapped, "cam", "tgt", "nearest", 0.005)
     with pytest.raises(LabDataError, match=r"no rows for body 'chaser'"):
@@ -135,7 +143,7 @@ def test_synthetic_recording_matches_back_to_its_labels():
     rec = synthetic_recording(3.1, 2.6, 40, 30.0, 120.0, q_label, lateral=(0.02, -0.01))
     assert len(rec.camera) == 40 and set(rec.mocap.body) == {"camera", "target"}
     assert np.all(np.diff(rec.mocap[rec.mocap.body == "camera"].timestamp) == pytest.approx(1 / 120))
-    speed = (3.1 - 2.6) / (39 / 30)                                   # lab m/s
+    speed = (3.1 - 2.6) / (39 / 30)  # lab m/s
     for mode, tol in (("nearest", speed * 0.5 / 120 * 1.001), ("interpolate", 1e-9)):
         frames, t, q = match_frames(rec.camera, rec.mocap, "camera", "target", mode, max_gap=0.01)
         assert np.abs(t - rec.t).max() <= tol
@@ -145,7 +153,7 @@ def test_synthetic_recording_matches_back_to_its_labels():
 def test_segmentation_and_domain_shift():
     img = np.zeros((10, 12, 3), np.uint8)
     img[2:5, 3:7] = 200
-    img[8, 1] = 10                                                    # faint noise on the background
+    img[8, 1] = 10  # faint noise on the background
     seg = segment(img, threshold=0.08)
     assert seg[8, 1].sum() == 0 and np.array_equal(seg[2:5, 3:7], img[2:5, 3:7])
     mask = np.zeros((10, 12), np.uint8)
@@ -165,17 +173,17 @@ def test_loader_round_trips_a_synthetic_lab_recording(tmp_path):
 
     rec = synthetic_recording(1.6, 1.0, 12, 30.0, 120.0, np.array([1.0, 0, 0, 0]), lateral=(0.01, 0.0))
     rng = np.random.default_rng(0)
-    images = rng.integers(0, 20, (12, 36, 64, 3), dtype=np.uint8)     # dark, noisy background
-    images[:, 10:26, 20:44] = rng.integers(120, 256, (12, 16, 24, 3), dtype=np.uint8)   # the target
+    images = rng.integers(0, 20, (12, 36, 64, 3), dtype=np.uint8)  # dark, noisy background
+    images[:, 10:26, 20:44] = rng.integers(120, 256, (12, 16, 24, 3), dtype=np.uint8)  # the target
     masks = np.zeros((12, 36, 64), np.uint8)
     masks[:, 10:26, 20:44] = 255
     write_recording(tmp_path / "seq", rec.camera, rec.mocap, images, masks)
     bodies = {"camera": "camera", "target": "target"}
     got = read_recording(tmp_path / "seq", 32, 18, bodies, "interpolate", 0.01, 0.08)
     assert got["images"].shape == (12, 18, 32, 3) and got["frames"].tolist() == list(range(12))
-    np.testing.assert_allclose(got["t_lab"], rec.t, atol=2e-6)        # CSVs keep 6 decimals
+    np.testing.assert_allclose(got["t_lab"], rec.t, atol=2e-6)  # CSVs keep 6 decimals
     assert attitude_error_deg(got["q"], rec.q).max() < 1e-3
-    assert got["images"][:, :4].max() == 0                            # background segmented to black
+    assert got["images"][:, :4].max() == 0  # background segmented to black
     assert got["images"][:, 6:12, 11:21].min() > 0
     # without masks the grey-level threshold segments it the same way here
     (tmp_path / "seq" / "masks" / "000003.png").unlink()
@@ -200,7 +208,7 @@ def test_rescale_command_prints_the_synthetic_range(monkeypatch):
 
     from stages.lab import app
 
-    monkeypatch.chdir(Path(__file__).resolve().parent.parent)          # the committed params.yaml
+    monkeypatch.chdir(Path(__file__).resolve().parent.parent)  # the committed params.yaml
     out = CliRunner().invoke(app, ["rescale", "--z", "3.122"])
     assert out.exit_code == 0, out.output
     k = lab_to_synthetic_factor(K_SYN, K_ZED, 9.0)
@@ -228,10 +236,19 @@ def stand_in_models(p):
             feats = model.forward_features(torch.rand(8, 3, h, w))
         det = LSTMDetector(LSTMConfig(hidden=8, dense=[4]))
         det.set_normalisation((feats - feats.mean(0)).unsqueeze(1).repeat(1, 9, 1).numpy())
-        torch.save(to_checkpoint(det, {"format": "rpodguard-detector/1",
-                                       "pose_model_hash": file_hash(f"models/pose{suffix}.pt"),
-                                       "background_mean": feats.mean(0), "background_size": 8, "shap_method": "exact"}),
-                   f"models/detector{suffix}.pt")
+        torch.save(
+            to_checkpoint(
+                det,
+                {
+                    "format": "rpodguard-detector/1",
+                    "pose_model_hash": file_hash(f"models/pose{suffix}.pt"),
+                    "background_mean": feats.mean(0),
+                    "background_size": 8,
+                    "shap_method": "exact",
+                },
+            ),
+            f"models/detector{suffix}.pt",
+        )
 
 
 @pytest.mark.slow
@@ -250,7 +267,7 @@ def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
     stand_in_models(build(p))
     runner = CliRunner()
     out = runner.invoke(app, ["evaluate"])
-    assert out.exit_code != 0 and "eval_render" in str(out.exception)       # renders not there yet
+    assert out.exit_code != 0 and "eval_render" in str(out.exception)  # renders not there yet
     assert runner.invoke(app, ["eval_render"]).exit_code == 0
     out = runner.invoke(app, ["evaluate"])
     assert out.exit_code != 0 and "not found" in str(out.exception) and "calibrate" in str(out.exception)
@@ -264,13 +281,13 @@ def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
     assert set(ev["fused"]["per_eps"]) == {"0.5", "0.05"} and ev["fused"]["per_eps"]["0.5"]["tpr"]["n"] > 0
     assert (tmp_path / "reports/figures/timeline.png").stat().st_size > 1000
     assert "| 0.5 " in (tmp_path / "reports/integrated.md").read_text()
-    held = ev["black_level_heldout"]   # the clamp's check on the evaluation frames (fewer here than its 200)
+    held = ev["black_level_heldout"]  # the clamp's check on the evaluation frames (fewer here than its 200)
     assert held["images"] == p["evaluate"]["trajectories"] * 12
     assert held["threshold"] == p["train"]["adversarial"]["black_level"]
     assert "## Held-out check of the black-level clamp" in (tmp_path / "reports/integrated.md").read_text()
     lab = json.loads((tmp_path / "reports/metrics/lab.json").read_text())
     assert lab["factor"] == pytest.approx(9 * 640 / (1400.41 / 4))
-    assert max(v["position_max_m"] for v in lab["loader_error"].values()) < 1e-3   # lab metres
+    assert max(v["position_max_m"] for v in lab["loader_error"].values()) < 1e-3  # lab metres
     seq = tmp_path / "datasets/lab/seq1"
     assert len(list((seq / "images").glob("*.png"))) == 6 and (seq / "mocap.csv").exists()
     assert lab["reused_models"] and lab["models"]["pose"] == "models/pose.pt" and lab["synthetic_lab"] is None
@@ -297,16 +314,28 @@ def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, mo
     from stages.config import params as params_mod
 
     monkeypatch.chdir(tmp_path)
-    p = params_mod.compose("smoke", ["lab.retrain=always", "lab.frames=4", "lab.train_frames_per_sequence=3",
-                                     "evaluate.eps=[0.5]", "attack.eps=[0.5]", "shap.normal=12", "shap.per_eps=6",
-                                     "shap.eps=[0.5]", "shap.background=4", "detect.epochs=2"])
+    p = params_mod.compose(
+        "smoke",
+        [
+            "lab.retrain=always",
+            "lab.frames=4",
+            "lab.train_frames_per_sequence=3",
+            "evaluate.eps=[0.5]",
+            "attack.eps=[0.5]",
+            "shap.normal=12",
+            "shap.per_eps=6",
+            "shap.eps=[0.5]",
+            "shap.background=4",
+            "detect.epochs=2",
+        ],
+    )
     params_mod.write_params(p)
     stand_in_models(build(p))
     main_hash = file_hash("models/pose.pt")
     threads = torch.get_num_threads()
     out = CliRunner().invoke(app, ["lab"])
-    assert out.exit_code != 0 and "lab_models" in str(out.exception)      # not trained yet
-    for args in (["eval_render"], ["calibrate"], ["lab_models"], ["lab"]):   # lab reads the shipped chain's threshold
+    assert out.exit_code != 0 and "lab_models" in str(out.exception)  # not trained yet
+    for args in (["eval_render"], ["calibrate"], ["lab_models"], ["lab"]):  # lab reads the shipped chain's threshold
         out = CliRunner().invoke(app, args)
         assert out.exit_code == 0, (args, out.output, out.exception)
     assert torch.get_num_threads() == threads
@@ -314,32 +343,43 @@ def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, mo
     lab = json.loads((tmp_path / "reports/metrics/lab.json").read_text())
     assert not lab["reused_models"] and lab["retrain_reason"] == "lab.retrain is always"
     assert lab["model_hash"] == file_hash(sub / "models/pose.pt") != main_hash
-    assert lab["models"] == {"pose": "datasets/lab_models/models/pose.pt",
-                             "detector": "datasets/lab_models/models/detector.pt"}
+    assert lab["models"] == {
+        "pose": "datasets/lab_models/models/pose.pt",
+        "detector": "datasets/lab_models/models/detector.pt",
+    }
     det = torch.load(sub / "models/detector.pt", weights_only=True)
     assert det["pose_model_hash"] == lab["model_hash"]
     s = lab["synthetic_lab"]
     assert s["images"] == 13 * 3 and s["size"] == [64, 36] and s["mesh"] is None and s["mesh_scale"] == 1.0
-    assert s["seed"] == p["lab"]["seed"] + 700 and set(s["seconds"]) == {"render", "label", "train", "detect_render", "shap",
-                                                                       "detect"}
-    sub_p = params_mod.load(sub / "params.yaml")            # the same recipe; only the data differ
+    assert s["seed"] == p["lab"]["seed"] + 700 and set(s["seconds"]) == {
+        "render",
+        "label",
+        "train",
+        "detect_render",
+        "shap",
+        "detect",
+    }
+    sub_p = params_mod.load(sub / "params.yaml")  # the same recipe; only the data differ
     assert sub_p.train == build(p).train and sub_p.detect.baselines == []
     assert sub_p.render.frames_per_sequence == 3 and sub_p.render.width == 64
     assert (sub / "reports/pose.md").exists() and (sub / "datasets/shap.zarr").is_dir()
-    assert (tmp_path / "datasets/lab/seq1/camera.csv").exists()     # the lab recordings
+    assert (tmp_path / "datasets/lab/seq1/camera.csv").exists()  # the lab recordings
     text = (tmp_path / "reports/lab.md").read_text()
     assert "## Models: retrained on a synthetic-lab set" in text and lab["model_hash"] in text
     assert "datasets/lab_models/models/detector.pt" in text and "not the main models/pose.pt" in text
     assert "the synthetic-lab model" in text
-    assert not (tmp_path / "reports/metrics/train.json").exists()   # the main reports are untouched
+    assert not (tmp_path / "reports/metrics/train.json").exists()  # the main reports are untouched
 
 
-@pytest.mark.parametrize("edit, message", [
-    ({"retrain": "sometimes"}, r"lab.retrain must be one of auto, always, got 'sometimes'"),
-    ({"train_frames_per_sequence": 1}, "lab: train_frames_per_sequence must be null or a whole number >= 2"),
-    ({"mesh_scale": 0.0}, "lab: scale and mesh_scale must be > 0"),
-    ({"sequences": [[1.6, -1.0]]}, r"lab: sequences: each entry must be \[z_start, z_end\] in metres > 0"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        ({"retrain": "sometimes"}, r"lab.retrain must be one of auto, always, got 'sometimes'"),
+        ({"train_frames_per_sequence": 1}, "lab: train_frames_per_sequence must be null or a whole number >= 2"),
+        ({"mesh_scale": 0.0}, "lab: scale and mesh_scale must be > 0"),
+        ({"sequences": [[1.6, -1.0]]}, r"lab: sequences: each entry must be \[z_start, z_end\] in metres > 0"),
+    ],
+)
 def test_bad_lab_params_are_refused(edit, message):
     from stages.config import params as params_mod
     from stages.config.sections import ParamsError
@@ -360,15 +400,15 @@ def test_when_the_lab_stage_retrains(tmp_path, monkeypatch):
         return build(params_mod.compose(profile, overrides))
 
     monkeypatch.chdir(tmp_path)
-    assert retrain_reason(typed("default")) is None                         # default: the main target, reused
+    assert retrain_reason(typed("default")) is None  # default: the main target, reused
     assert retrain_reason(typed("paper")) == "lab.retrain is always"
     (tmp_path / "mockup.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0 0.1 0\nf 1 2 3\n")
     other = typed("default", ["lab.mesh=mockup.obj", "lab.mesh_scale=0.001"])
-    assert "is not the main target" in retrain_reason(other)                # another mock-up: retrain
+    assert "is not the main target" in retrain_reason(other)  # another mock-up: retrain
     sub = sub_params(other)
     assert sub.render.mesh == str(tmp_path / "mockup.obj") and sub.render.mesh_scale == pytest.approx(0.009)
     same = typed("default", ["render.mesh=mockup.obj", "render.mesh_scale=9", "lab.mesh=mockup.obj"])
-    assert retrain_reason(same) is None                                     # the main mesh, built at 1/9
+    assert retrain_reason(same) is None  # the main mesh, built at 1/9
     with pytest.raises(StageError, match="lab.mesh: mock-up mesh file missing.obj not found"):
         retrain_reason(typed("default", ["lab.mesh=missing.obj"]))
 
@@ -382,12 +422,15 @@ def test_a_failing_retrain_step_is_one_clear_error(tmp_path, monkeypatch):
     from stages.errors import StageError
 
     def run_step(args: list[str], folder: Path) -> None:
-        assert args == ["render"] and (folder / "params.yaml").exists()   # the step runs in the synthetic-lab folder
+        assert args == ["render"] and (folder / "params.yaml").exists()  # the step runs in the synthetic-lab folder
         raise StageError("params.yaml render: boom")
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(subrun, "run_step", run_step)
-    with pytest.raises(StageError, match=r"^lab.retrain \(render on the synthetic-lab set in final/\): params.yaml "
-                                         r"render: boom$"):
+    with pytest.raises(
+        StageError,
+        match=r"^lab.retrain \(render on the synthetic-lab set in final/\): params.yaml "
+        r"render: boom$",
+    ):
         lab_models.retrain(build(params_mod.compose("smoke", ["lab.retrain=always"])), tmp_path / "sub", Path("final"))
     assert Path.cwd() == tmp_path

@@ -1,4 +1,5 @@
 """The render and label stages end to end on a tiny dataset, plus their failure modes."""
+
 import json
 
 import numpy as np
@@ -12,16 +13,44 @@ from stages.config.params import load
 from stages.errors import StageError
 from stages.label import build_labels
 
-CONTRACT = ["index", "image", "sequence", "frame", "tx", "ty", "tz", "qw", "qx", "qy", "qz",
-            "r0", "r1", "r2", "r3", "r4", "r5", "range", "split"]
+CONTRACT = [
+    "index",
+    "image",
+    "sequence",
+    "frame",
+    "tx",
+    "ty",
+    "tz",
+    "qw",
+    "qx",
+    "qy",
+    "qz",
+    "r0",
+    "r1",
+    "r2",
+    "r3",
+    "r4",
+    "r5",
+    "range",
+    "split",
+]
 
 
 @pytest.fixture
 def workdir(tmp_path, monkeypatch):
     """A project folder with a tiny params.yaml (13 x 2 frames at 32x18)."""
     monkeypatch.chdir(tmp_path)
-    p = params_mod.compose("smoke", ["render.width=32", "render.height=18", "render.frames_per_sequence=2",
-                                     "render.samples=1", "render.chunk=4", "render.previews=3"])
+    p = params_mod.compose(
+        "smoke",
+        [
+            "render.width=32",
+            "render.height=18",
+            "render.frames_per_sequence=2",
+            "render.samples=1",
+            "render.chunk=4",
+            "render.previews=3",
+        ],
+    )
     params_mod.write_params(p)
     return tmp_path
 
@@ -30,9 +59,20 @@ def test_build_labels_contract_and_split():
     rng = np.random.default_rng(0)
     q = rng.normal(size=(100, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
-    poses = pd.DataFrame({"index": np.arange(100)[::-1], "sequence": 0, "frame": np.arange(100)[::-1],
-                          "tx": 0.0, "ty": 0.0, "tz": rng.uniform(10, 60, 100),
-                          "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3]})
+    poses = pd.DataFrame(
+        {
+            "index": np.arange(100)[::-1],
+            "sequence": 0,
+            "frame": np.arange(100)[::-1],
+            "tx": 0.0,
+            "ty": 0.0,
+            "tz": rng.uniform(10, 60, 100),
+            "qw": q[:, 0],
+            "qx": q[:, 1],
+            "qy": q[:, 2],
+            "qz": q[:, 3],
+        }
+    )
     poses["range"] = poses.tz
     a = build_labels(poses, 0.2, seed=3)
     assert list(a.columns) == CONTRACT
@@ -60,7 +100,7 @@ def test_render_and_label_stages(workdir):
     assert np.asarray(images[0]).max() > 0  # something was rendered
     meta = json.loads(open("datasets/render/meta.json").read())
     assert meta["complete"] and meta["frames"] == 26
-    assert not {"seconds", "seconds_per_image", "workers"} & set(meta)   # timings: the metrics JSON (stable hash)
+    assert not {"seconds", "seconds_per_image", "workers"} & set(meta)  # timings: the metrics JSON (stable hash)
     assert json.loads(open("reports/metrics/render.json").read())["seconds_per_image"] > 0
     previews = sorted(p.name for p in (workdir / "reports/figures/previews").glob("*.png"))
     assert len(previews) == 3 and "60m" in previews[0] and "10m" in previews[1]
@@ -70,7 +110,7 @@ def test_render_and_label_stages(workdir):
     assert list(labels.columns) == CONTRACT and len(labels) == 26
     assert labels.tz.max() > 59 and abs(labels.tz.min() - 10) < 0.01
     assert set(labels.sequence) == set(range(13))
-    assert not (workdir / "datasets/speed_labels.json").exists()   # `rpod export speed` writes SPEED+ folders
+    assert not (workdir / "datasets/speed_labels.json").exists()  # `rpod export speed` writes SPEED+ folders
     card = open("reports/dataset.md").read()
     assert "| 26 " in card and "figures/previews/" in card
     assert "Rendering took" not in card and "seconds_per_image" in card  # no wall-clock time in a report
@@ -134,8 +174,11 @@ def test_corrupt_or_missing_store_is_refused(workdir):
 def test_bad_params(workdir):
     from stages import render
 
-    for override, msg in [("render.width=0", "positive"), ("render.pointing_jitter_deg=30", "out of view"),
-                          ("render.mesh=/nope/sat.obj", "not found")]:
+    for override, msg in [
+        ("render.width=0", "positive"),
+        ("render.pointing_jitter_deg=30", "out of view"),
+        ("render.mesh=/nope/sat.obj", "not found"),
+    ]:
         params_mod.write_params(params_mod.compose("smoke", [override]))
         with pytest.raises((StageError, ValueError), match=msg):
             render.main(load())

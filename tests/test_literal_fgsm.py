@@ -1,12 +1,13 @@
 """The paper-literal FGSM (unclipped floats) beside ours (clipped, stored as 8 bits), on a black background."""
+
 from __future__ import annotations
 
 import pytest
 import torch
+from test_attacks import TinyLoss, TinyPose
 
 from pipeline.attacks.gradient import attack_loss, fgsm
 from pipeline.attacks.literal import fgsm_literal, fgsm_variant
-from test_attacks import TinyLoss, TinyPose
 
 
 @pytest.fixture()
@@ -24,8 +25,8 @@ def test_the_paper_literal_fgsm_puts_negative_pixels_on_a_black_background(black
     model, loss_fn, x, y = black
     x_adv = fgsm_variant(model, loss_fn, eps, "paper")(x, y)
     assert x_adv.dtype == torch.float32
-    background = (x == 0)
-    assert torch.allclose((x_adv - x).abs(), torch.full_like(x, eps), atol=1e-7)   # every pixel moved by eps
+    background = x == 0
+    assert torch.allclose((x_adv - x).abs(), torch.full_like(x, eps), atol=1e-7)  # every pixel moved by eps
     negative = x_adv < 0
     assert negative.any() and bool(background[negative].all())
     assert torch.isclose(x_adv.min(), torch.tensor(-eps))
@@ -42,9 +43,9 @@ def test_our_fgsm_stays_in_0_1_on_the_8_bit_grid_and_loses_the_negative_half(bla
     paper = fgsm_variant(model, loss_fn, eps, "paper")(x, y)
     assert ours.min() >= 0 and ours.max() <= 1
     levels = ours * 255
-    assert torch.equal(levels, torch.round(levels))                                 # stored as 8 bits
-    assert bool((ours[paper < 0] == 0).all())       # the background's negative half is clipped away
-    assert ((ours - x).abs().max() * 255).round() == max(1, round(eps * 255))      # a whole number of grey levels
+    assert torch.equal(levels, torch.round(levels))  # stored as 8 bits
+    assert bool((ours[paper < 0] == 0).all())  # the background's negative half is clipped away
+    assert ((ours - x).abs().max() * 255).round() == max(1, round(eps * 255))  # a whole number of grey levels
     with torch.no_grad():
         gain_paper, gain_ours, clean = (loss_fn(model(v), y) for v in (paper, ours, x))
     assert gain_paper > clean and gain_ours > clean

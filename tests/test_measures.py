@@ -3,6 +3,7 @@
 in the closed loop (docking miss > tolerance) and on a recorded trajectory (error / AL > 1), where the
 single-frame AL let it through; the persistent AL is tight in the closed loop; Stanford regions, the
 breaking point, nesting in eps, the worst over attackers and Clopper-Pearson counts."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -12,20 +13,43 @@ import pytest
 
 from pipeline.defense.fusion import COAST, HOLD, TRACK, Defense, DefenseSettings, run_defense
 from pipeline.defense.gate import MotionSettings
+from pipeline.defense.integrity import (
+    AlertLimitSettings,
+    IntegrityFrames,
+    alert_limit,
+    defense_frames,
+    persistent_alert_limit,
+    single_frame_alert_limit,
+)
 from pipeline.defense.noise import NoiseModel
-from pipeline.defense.integrity import (AlertLimitSettings, IntegrityFrames, alert_limit, defense_frames,
-                                           persistent_alert_limit, single_frame_alert_limit)
-from pipeline.evaluation.measures import (COLLISION, DOCKED, HELD, HMI, MI, MISSED, NO_ESTIMATE, NOMINAL, UNAVAILABLE,
-                                          UNAVAILABLE_MI, TrajectoryMeasures, breaking_point, docking, hmi_trajectories,
-                                          nest_in_eps, stanford_counts, stanford_regions, trajectory_measures,
-                                          worst_over_attackers)
 from pipeline.evaluation.integrity_runs import undefended_trace
-from pipeline.stats import clopper_pearson
+from pipeline.evaluation.measures import (
+    COLLISION,
+    DOCKED,
+    HELD,
+    HMI,
+    MI,
+    MISSED,
+    NO_ESTIMATE,
+    NOMINAL,
+    UNAVAILABLE,
+    UNAVAILABLE_MI,
+    TrajectoryMeasures,
+    breaking_point,
+    docking,
+    hmi_trajectories,
+    nest_in_eps,
+    stanford_counts,
+    stanford_regions,
+    trajectory_measures,
+    worst_over_attackers,
+)
 from pipeline.geometry.camera import Intrinsics
 from pipeline.guidance.dynamics import ExecutionSettings
 from pipeline.guidance.law import LOST, GuidanceSettings, RendezvousResult, run_rendezvous
+from pipeline.stats import clopper_pearson
 
-WIDE = Intrinsics(160, 90, 20.0, 20.0, 79.5, 44.5)     # a wide camera: a displaced chaser keeps the target in view
+WIDE = Intrinsics(160, 90, 20.0, 20.0, 79.5, 44.5)  # a wide camera: a displaced chaser keeps the target in view
 NOISE = NoiseModel((0.05, 0.05, 0.1), (0.002, 0.002, 0.01), 1.0, 0.0)
 PERSISTENT = AlertLimitSettings(kind="persistent")
 
@@ -38,9 +62,11 @@ def biased_world(b_world: np.ndarray, while_z: float = 0.0):
     """An estimator that reports the truth plus a world-frame bias, on frames whose true rel_z (the approach
     still to go, m) is >= while_z: t = R_c^T (rel + b), R_c the camera's attitude (from the true pose:
     R = R_c^T R_target, R_target = I)."""
+
     def estimate(image, attacked, pose):
         R, t = pose
         return t + (R @ b_world if (R.T @ t)[2] >= while_z else 0.0)
+
     return estimate
 
 
@@ -48,7 +74,7 @@ def test_persistent_alert_limit_is_the_docking_cone_and_the_single_frame_one_is_
     r = np.array([60.0, 30.0, 15.0, 10.0, 8.0])
     np.testing.assert_allclose(persistent_alert_limit(r), [51.0, 21.0, 6.0, 1.0, 1.0])
     np.testing.assert_allclose(alert_limit(r, PERSISTENT), persistent_alert_limit(r))
-    np.testing.assert_allclose(alert_limit(r), single_frame_alert_limit(r))            # the default is unchanged
+    np.testing.assert_allclose(alert_limit(r), single_frame_alert_limit(r))  # the default is unchanged
     np.testing.assert_allclose(single_frame_alert_limit(r), [11.0, 11.0, 11.0, 6.0, 4.0])
     with pytest.raises(ValueError, match="kind"):
         AlertLimitSettings(kind="sometimes")
@@ -71,8 +97,12 @@ def test_a_bias_that_disappears_is_removed_within_the_persistent_alert_limit_and
 def test_a_planted_persistent_bias_fails_the_closed_loop(defended) -> None:
     """A 2 m lateral world bias from the first frame (capture at acquisition): consistent with the commanded
     motion, so the defense never flags it; the chaser docks 2 m off: a mission failure (missed), lateral."""
-    s = GuidanceSettings(variant="true_state", max_steps=60, defense="recover" if defended else "undefended",
-                         execution=ExecutionSettings(seed=1))
+    s = GuidanceSettings(
+        variant="true_state",
+        max_steps=60,
+        defense="recover" if defended else "undefended",
+        execution=ExecutionSettings(seed=1),
+    )
     defense = Defense(DefenseSettings(), MotionSettings(position_noise=0.03), NOISE) if defended else None
     r = run_rendezvous(blank, biased_world(np.array([2.0, 0.0, 0.0])), WIDE, s, defense=defense)
     d = docking(r, s.goal, s.tolerance, 5.0)
@@ -80,8 +110,13 @@ def test_a_planted_persistent_bias_fails_the_closed_loop(defended) -> None:
     assert abs(d.lateral_miss - 2.0) < 0.3 and abs(d.range_miss) < 0.3 and d.lateral_miss > s.tolerance
     if defended:
         assert not r.flags.any()
-    clean = run_rendezvous(blank, biased_world(np.zeros(3)), WIDE, s, defense=None if not defended else
-                           Defense(DefenseSettings(), MotionSettings(position_noise=0.03), NOISE))
+    clean = run_rendezvous(
+        blank,
+        biased_world(np.zeros(3)),
+        WIDE,
+        s,
+        defense=None if not defended else Defense(DefenseSettings(), MotionSettings(position_noise=0.03), NOISE),
+    )
     assert not docking(clean, s.goal, s.tolerance, 5.0).failed
 
 
@@ -115,7 +150,7 @@ def _approach(n: int = 60, seed: int = 0, scatter: float = 0.05):
     return rel, R_cam, u, np.random.default_rng(seed).normal(size=(n, 3)) * scatter
 
 
-FINE = NoiseModel((0.01, 0.01, 0.02), (0.0005, 0.0005, 0.001), 1.0, 0.0, floor=0.01)   # a PL under 1 m at the goal
+FINE = NoiseModel((0.01, 0.01, 0.02), (0.0005, 0.0005, 0.001), 1.0, 0.0, floor=0.01)  # a PL under 1 m at the goal
 
 
 @pytest.mark.parametrize("bias, defended, fails", [(2.0, True, True), (2.0, False, True), (0.5, True, False)])
@@ -127,8 +162,9 @@ def test_a_planted_persistent_bias_fails_the_recorded_trajectory_measures(bias, 
     rel, R_cam, u, scatter = _approach(scatter=0.015)
     t_pred = rel + scatter + np.array([bias, 0.0, 0.0])
     if defended:
-        trace = run_defense(DefenseSettings(), MotionSettings(trusted_start=20), FINE, t_pred, np.zeros(len(rel)),
-                            R_cam, u)
+        trace = run_defense(
+            DefenseSettings(), MotionSettings(trusted_start=20), FINE, t_pred, np.zeros(len(rel)), R_cam, u
+        )
         assert not trace.flag.any() and trace.pl[-1] < 1.0
     else:
         trace = undefended_trace(t_pred, R_cam)
@@ -141,7 +177,8 @@ def test_a_planted_persistent_bias_fails_the_recorded_trajectory_measures(bias, 
 
 @pytest.mark.parametrize("trusted_start", [0, 20])
 def test_the_capture_is_unavailable_under_a_protection_level_that_counts_it_and_hmi_inside_its_blind_window(
-        trusted_start: int) -> None:
+    trusted_start: int,
+) -> None:
     """The same 2 m capture with a coarser noise model. A PL that counts every frame after the start
     (trusted_start 0) covers it: error < PL everywhere and the frames near the goal, where AL_p < PL, are
     unavailable (a hold, not a failure; the final error still reports the miss it would have caused). A PL
@@ -150,8 +187,15 @@ def test_the_capture_is_unavailable_under_a_protection_level_that_counts_it_and_
     since the PL's noise term covers the whole innovations after the trusted window (pipeline/defense/protection.py),
     it exceeds AL_p near the goal here, so those frames are unavailable (a hold) rather than HMI."""
     rel, R_cam, u, scatter = _approach()
-    trace = run_defense(DefenseSettings(), MotionSettings(trusted_start=trusted_start), NOISE,
-                        rel + scatter + [2.0, 0.0, 0.0], np.zeros(len(rel)), R_cam, u)
+    trace = run_defense(
+        DefenseSettings(),
+        MotionSettings(trusted_start=trusted_start),
+        NOISE,
+        rel + scatter + [2.0, 0.0, 0.0],
+        np.zeros(len(rel)),
+        R_cam,
+        u,
+    )
     m = trajectory_measures(defense_frames(trace, rel, "T1", PERSISTENT), trace.flag)
     assert not trace.flag.any() and abs(m.final_error - 2.0) < 0.3 and np.isnan(m.max_error_al_single)
     if trusted_start == 0:
@@ -181,11 +225,14 @@ def _m(name: str, al: float, final: float = 0.0, hmi: int = 0) -> TrajectoryMeas
 def test_breaking_point_nesting_and_worst_over_attackers() -> None:
     assert breaking_point([(0.05, False), (0.1, True), (0.02, False), (0.2, True)]) == 0.1
     assert breaking_point([(0.05, False)]) is None
-    nested = nest_in_eps({0.05: [_m("a", 1.5), _m("b", 0.2)], 0.01: [_m("a", 0.4), _m("b", 0.9)],
-                          0.1: [_m("a", 0.7), _m("b", 0.1)]})
-    assert [m.max_error_al for m in nested[0.1]] == [1.5, 0.9]             # never drops as eps grows
+    nested = nest_in_eps(
+        {0.05: [_m("a", 1.5), _m("b", 0.2)], 0.01: [_m("a", 0.4), _m("b", 0.9)], 0.1: [_m("a", 0.7), _m("b", 0.1)]}
+    )
+    assert [m.max_error_al for m in nested[0.1]] == [1.5, 0.9]  # never drops as eps grows
     assert breaking_point((e, any(m.failed for m in ms)) for e, ms in nested.items()) == 0.05
-    rows = worst_over_attackers({"capture": [_m("a", 0.5, 0.3), _m("b", 1.2)], "drift": [_m("a", 0.8), _m("b", 0.1, 0.7)]})
+    rows = worst_over_attackers(
+        {"capture": [_m("a", 0.5, 0.3), _m("b", 1.2)], "drift": [_m("a", 0.8), _m("b", 0.1, 0.7)]}
+    )
     assert [r["worst_attacker"] for r in rows] == ["drift", "capture"] and [r["failed"] for r in rows] == [False, True]
     assert rows[1]["final_error"] == 0.7 and rows[0]["max_error_pl"] == pytest.approx(2.4)
     with pytest.raises(ValueError, match="same trajectories"):

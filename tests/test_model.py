@@ -1,4 +1,5 @@
 """PoseNet, PoseLoss and the augmentations: shapes, valid rotations, gradients, overfitting."""
+
 from __future__ import annotations
 
 import time
@@ -8,10 +9,10 @@ import pytest
 import torch
 from torch import nn
 
+from pipeline.geometry.rotations import quat_to_6d, sixd_to_matrix
 from pipeline.pose.augment import AugmentConfig, augment
 from pipeline.pose.loss import PoseLoss
 from pipeline.pose.model import N_FEATURES, PoseNet
-from pipeline.geometry.rotations import quat_to_6d, sixd_to_matrix
 
 
 @pytest.fixture(autouse=True)

@@ -1,4 +1,5 @@
 """Motion-consistency filter: gate calibration on simulated clean motion, steps, noise fit, bad input."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -28,10 +29,11 @@ def simulate(settings: MotionSettings, n: int, seed: int, start_xy=(20.0, -15.0)
     R_cam = look_at(rel) @ Rotation.from_rotvec(rng.normal(0, np.radians(1.0), (n, 3))).as_matrix()
     t = np.einsum("nji,nj->ni", R_cam, rel)
     t_pred = t + rng.normal(0, 1, (n, 3)) * np.array([NOISE.position_std(r) for r in np.linalg.norm(t, axis=1)])
-    R_tw, w = [np.eye(3)], np.zeros(3)        # target attitude: the rate model's random walk
+    R_tw, w = [np.eye(3)], np.zeros(3)  # target attitude: the rate model's random walk
     for _ in range(1, n):
-        R_tw.append(R_tw[-1] @ Rotation.from_rotvec(w + rng.normal(0, np.radians(settings.attitude_noise_deg), 3))
-                    .as_matrix())
+        R_tw.append(
+            R_tw[-1] @ Rotation.from_rotvec(w + rng.normal(0, np.radians(settings.attitude_noise_deg), 3)).as_matrix()
+        )
         w = w + rng.normal(0, np.radians(settings.attitude_rate_noise_deg), 3)
     R_true = np.swapaxes(R_cam, 1, 2) @ np.array(R_tw)
     att = rng.normal(0, 1, (n, 3)) * np.array([NOISE.attitude_std(r) for r in np.linalg.norm(t, axis=1)])[:, None]
@@ -78,13 +80,13 @@ def test_a_three_metre_step_is_flagged_and_does_not_corrupt_the_state(axis):
     rel, t_pred, R_cam, u, R_pred = simulate(s, 200, 7)
     step = np.zeros(3)
     step[axis] = 3.0
-    hit = 120                                # range about 30 m
+    hit = 120  # range about 30 m
     t_pred = t_pred.copy()
     t_pred[hit] += step
     f, out = run(s, t_pred, R_cam, u, R_pred)
     assert out[hit - 1].inconsistent
     assert np.linalg.norm(f.position - rel[-1]) < 0.5
-    assert sum(c.inconsistent for c in out[hit:]) <= 3   # the clean frames after the step pass again
+    assert sum(c.inconsistent for c in out[hit:]) <= 3  # the clean frames after the step pass again
 
 
 def test_fault_exclusion_survives_a_five_frame_attack_that_moves_the_estimates():
@@ -115,7 +117,7 @@ def test_fit_noise_recovers_a_linear_noise_model():
     t_pred = t + rng.normal(0, 1, (n, 3)) * np.array([NOISE.position_std(x) for x in r])
     R_true = Rotation.random(n, random_state=1).as_matrix()
     att = rng.normal(0, 1, (n, 3)) * np.radians(NOISE.attitude_intercept + NOISE.attitude_slope * r)[:, None]
-    t_pred = t_pred + np.outer(r, [0.0, 0.01, -0.02]) + [0.1, 0.0, 0.3]     # a range-dependent bias
+    t_pred = t_pred + np.outer(r, [0.0, 0.01, -0.02]) + [0.1, 0.0, 0.3]  # a range-dependent bias
     fit = fit_noise(t, t_pred, R_true, R_true @ Rotation.from_rotvec(att).as_matrix())
     for x in (15.0, 35.0, 55.0):
         assert np.allclose(fit.position_std(x), NOISE.position_std(x), rtol=0.1)
@@ -123,17 +125,20 @@ def test_fit_noise_recovers_a_linear_noise_model():
         assert fit.attitude_std(x) == pytest.approx(NOISE.attitude_std(x), rel=0.1)
 
 
-@pytest.mark.parametrize("changes, message", [
-    ({"position_noise": 0.0}, "defense.position_noise must be a finite number > 0"),
-    ({"cusum_threshold": -1.0}, "defense.cusum_threshold must be a finite number > 0"),
-    ({"cusum_reference": float("nan")}, "defense.cusum_reference must be a finite number >= 0"),
-    ({"integrity_risk": 1.0}, r"defense.integrity_risk must be a probability in \(0, 1\)"),
-    ({"attitude_noise_deg": float("nan")}, "defense.attitude_noise_deg must be a finite number > 0"),
-    ({"attitude_rate_noise_deg": 0}, "defense.attitude_rate_noise_deg must be a finite number > 0"),
-    ({"false_alarm": 0.0}, r"defense.false_alarm is a gate probability and must be in \(0, 1\)"),
-    ({"false_alarm": 1.0}, r"defense.false_alarm is a gate probability and must be in \(0, 1\)"),
-    ({"soft_gate": 0.0}, r"defense.soft_gate must be in \(0, 1\]"),
-])
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({"position_noise": 0.0}, "defense.position_noise must be a finite number > 0"),
+        ({"cusum_threshold": -1.0}, "defense.cusum_threshold must be a finite number > 0"),
+        ({"cusum_reference": float("nan")}, "defense.cusum_reference must be a finite number >= 0"),
+        ({"integrity_risk": 1.0}, r"defense.integrity_risk must be a probability in \(0, 1\)"),
+        ({"attitude_noise_deg": float("nan")}, "defense.attitude_noise_deg must be a finite number > 0"),
+        ({"attitude_rate_noise_deg": 0}, "defense.attitude_rate_noise_deg must be a finite number > 0"),
+        ({"false_alarm": 0.0}, r"defense.false_alarm is a gate probability and must be in \(0, 1\)"),
+        ({"false_alarm": 1.0}, r"defense.false_alarm is a gate probability and must be in \(0, 1\)"),
+        ({"soft_gate": 0.0}, r"defense.soft_gate must be in \(0, 1\]"),
+    ],
+)
 def test_bad_settings_name_the_parameter(changes, message):
     with pytest.raises(ValueError, match=message):
         MotionSettings(**changes)
@@ -162,8 +167,9 @@ def test_rotation_vector_helpers_match_scipy():
     from pipeline.geometry.rotations import matrix_to_rotvec, rotvec_to_matrix
 
     rng = np.random.default_rng(0)
-    w = np.vstack([rng.normal(0, 1, (200, 3)), rng.normal(0, 1e-9, (5, 3)),
-                   np.pi * np.eye(3) * (1 - 1e-7), [[0.0, 0.0, 0.0]]])
+    w = np.vstack(
+        [rng.normal(0, 1, (200, 3)), rng.normal(0, 1e-9, (5, 3)), np.pi * np.eye(3) * (1 - 1e-7), [[0.0, 0.0, 0.0]]]
+    )
     for v in w:
         R = Rotation.from_rotvec(v).as_matrix()
         assert np.allclose(rotvec_to_matrix(v), R, atol=1e-9)
@@ -188,14 +194,14 @@ def test_first_meeting_meets_the_target_or_says_it_cannot():
     from pipeline.defense.calibration import first_meeting
 
     k, rates = first_meeting(lambda k: 0.05 / k, target=0.02, grid=(1.0, 2.0, 3.0, 4.0))
-    assert k == 3.0 and list(rates) == [1.0, 2.0, 3.0]          # stops at the first factor that meets it
+    assert k == 3.0 and list(rates) == [1.0, 2.0, 3.0]  # stops at the first factor that meets it
     k, rates = first_meeting(lambda k: 0.5, target=0.02, grid=(1.0, 2.0))
-    assert k == 2.0 and rates == {1.0: 0.5, 2.0: 0.5}            # none meets it: the largest, with every rate
+    assert k == 2.0 and rates == {1.0: 0.5, 2.0: 0.5}  # none meets it: the largest, with every rate
 
 
 def _spd(rng, scale):
     a = rng.normal(0, scale, (3, 3))
-    return a @ a.T + np.eye(3) * scale ** 2
+    return a @ a.T + np.eye(3) * scale**2
 
 
 def test_float_filters_follow_the_matrix_equations():
@@ -214,7 +220,7 @@ def test_float_filters_follow_the_matrix_equations():
         cov = np.eye(3) * 0.3 if iso else _spd(rng, 0.5)
         x, P = np.r_[rng.normal(0, 5, 3) * (not iso), np.zeros(d - 3)], np.zeros((d, d))
         P[:3, :3] = cov
-        P[3:, 3:] = np.eye(d - 3) * 0.03 ** 2
+        P[3:, 3:] = np.eye(d - 3) * 0.03**2
         kf.reset(0.3, 0.03) if iso else kf.reset(x.tolist(), cov.tolist())
         for _ in range(6):
             u = np.zeros(3) if iso else rng.normal(0, 0.1, 3)

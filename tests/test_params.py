@@ -1,5 +1,6 @@
 """Typed params (stages/config/schema.py): every profile builds; bad keys, types and ranges are refused by
 `stages.config.params.load` with a message naming the key."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -23,43 +24,49 @@ def test_every_profile_builds_typed_params(profile):
     assert p.lab.zed.width == 1920 and (p.threads is None or p.threads >= 1)
 
 
-@pytest.mark.parametrize("edit, message", [
-    (("train", "widht", 1), r"unknown parameter 'train.widht' \(did you mean 'train.width'\?\)"),
-    (("render", "width", 1.5), r"render.width must be a whole number, got 1.5"),
-    (("attack", "eps", "0.5"), r"attack.eps must be a list"),
-    (("attack", "max_images", None), None),                          # null allowed where Optional
-    (("train", "max_minutes", None), None),
-    (("render", "samples", True), r"render.samples must be a whole number, got True"),
-    (("evaluate", "p_start", 1.5), r"evaluate: p_start must be in \[0, 1\]"),
-    (("evaluate", "lateral_range", [20.0, 10.0]), r"evaluate: lateral_range must be \[low, high\]"),
-    ((None, "threads", 0), r"threads must be null or a whole number >= 1, got 0"),
-    ((None, "threads", None), None),
-    ((None, "device", "gpu"), r"device must be auto, cpu, cuda or cuda:N, got 'gpu'"),
-    ((None, "device", "cuda:x"), r"device must be auto, cpu, cuda or cuda:N, got 'cuda:x'"),
-    ((None, "device", "cuda:1"), None),                              # checked against the GPUs when a stage runs
-    ((None, "amp", "yes"), r"params.yaml amp must be true or false, got 'yes'"),
-    (("lab", "zed", {"width": 1920}), r"missing parameter 'lab.zed.height'"),
-    (("detect", "baselines", ["mlp", "knn"]), r"detect.baselines\[1\] must be one of mlp, mahalanobis, lid, squeeze"),
-    (("detect", "val_fraction", 1.0), r"detect: val_fraction must be in \(0, 1\), got 1.0"),
-    (("defense", "position_noise", 0.0), r"defense.position_noise must be > 0 \(a noise std\), got 0.0"),
-    (("defense", "attitude_noise_deg", -1.0), r"defense.attitude_noise_deg must be > 0"),
-    (("defense", "false_alarm", 1.0), r"defense.false_alarm must be a gate probability in \(0, 1\), got 1.0"),
-    (("defense", "false_alarm", 0), r"defense.false_alarm must be a gate probability in \(0, 1\), got 0$"),
-    (("defense", "hold_after", 0), r"defense.hold_after must be a whole number >= 1, got 0"),
-    (("defense", "fusion", "and"), r"defense.fusion must be one of or, paper, motion"),
-    (("defense", "doubt_share", None), None),
-    (("defense", "doubt_share", 1.0), r"defense.doubt_share must be null or a fraction in \(0, 1\), got 1.0"),
-    (("defense", "val_seed", 3000), r"unknown parameter 'defense.val_seed'"),   # it follows `seed` now
-    (("defense", "harm_m", 0.0), r"defense.harm_m must be > 0"),
-    (("guidance", "defenses", ["hold", "pray"]), r"guidance.defenses\[1\] must be one of hold, recover"),
-    (("attack", "eps", [0.1, 0.05, 0.1]), r"attack.eps lists 0.1 twice"),      # issue 42 item 10: the guards
-    (("shap", "eps", [0.05, 0.05]), r"shap.eps lists 0.05 twice"),
-    (("evaluate", "eps", [0.01, 0.01]), r"evaluate.eps lists 0.01 twice"),
-    (("robustness", "unseen_eps", [0.2, 0.2]), r"robustness.unseen_eps lists 0.2 twice"),
-    (("train", "range_bins", [60, 30, 30]), r"train.range_bins lists 30 twice"),
-    (("train", "range_bins", []), r"train.range_bins is empty"),
-    (("detect", "squeeze_median", 2), r"detect.squeeze_median=2 must be odd"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (("train", "widht", 1), r"unknown parameter 'train.widht' \(did you mean 'train.width'\?\)"),
+        (("render", "width", 1.5), r"render.width must be a whole number, got 1.5"),
+        (("attack", "eps", "0.5"), r"attack.eps must be a list"),
+        (("attack", "max_images", None), None),  # null allowed where Optional
+        (("train", "max_minutes", None), None),
+        (("render", "samples", True), r"render.samples must be a whole number, got True"),
+        (("evaluate", "p_start", 1.5), r"evaluate: p_start must be in \[0, 1\]"),
+        (("evaluate", "lateral_range", [20.0, 10.0]), r"evaluate: lateral_range must be \[low, high\]"),
+        ((None, "threads", 0), r"threads must be null or a whole number >= 1, got 0"),
+        ((None, "threads", None), None),
+        ((None, "device", "gpu"), r"device must be auto, cpu, cuda or cuda:N, got 'gpu'"),
+        ((None, "device", "cuda:x"), r"device must be auto, cpu, cuda or cuda:N, got 'cuda:x'"),
+        ((None, "device", "cuda:1"), None),  # checked against the GPUs when a stage runs
+        ((None, "amp", "yes"), r"params.yaml amp must be true or false, got 'yes'"),
+        (("lab", "zed", {"width": 1920}), r"missing parameter 'lab.zed.height'"),
+        (
+            ("detect", "baselines", ["mlp", "knn"]),
+            r"detect.baselines\[1\] must be one of mlp, mahalanobis, lid, squeeze",
+        ),
+        (("detect", "val_fraction", 1.0), r"detect: val_fraction must be in \(0, 1\), got 1.0"),
+        (("defense", "position_noise", 0.0), r"defense.position_noise must be > 0 \(a noise std\), got 0.0"),
+        (("defense", "attitude_noise_deg", -1.0), r"defense.attitude_noise_deg must be > 0"),
+        (("defense", "false_alarm", 1.0), r"defense.false_alarm must be a gate probability in \(0, 1\), got 1.0"),
+        (("defense", "false_alarm", 0), r"defense.false_alarm must be a gate probability in \(0, 1\), got 0$"),
+        (("defense", "hold_after", 0), r"defense.hold_after must be a whole number >= 1, got 0"),
+        (("defense", "fusion", "and"), r"defense.fusion must be one of or, paper, motion"),
+        (("defense", "doubt_share", None), None),
+        (("defense", "doubt_share", 1.0), r"defense.doubt_share must be null or a fraction in \(0, 1\), got 1.0"),
+        (("defense", "val_seed", 3000), r"unknown parameter 'defense.val_seed'"),  # it follows `seed` now
+        (("defense", "harm_m", 0.0), r"defense.harm_m must be > 0"),
+        (("guidance", "defenses", ["hold", "pray"]), r"guidance.defenses\[1\] must be one of hold, recover"),
+        (("attack", "eps", [0.1, 0.05, 0.1]), r"attack.eps lists 0.1 twice"),  # issue 42 item 10: the guards
+        (("shap", "eps", [0.05, 0.05]), r"shap.eps lists 0.05 twice"),
+        (("evaluate", "eps", [0.01, 0.01]), r"evaluate.eps lists 0.01 twice"),
+        (("robustness", "unseen_eps", [0.2, 0.2]), r"robustness.unseen_eps lists 0.2 twice"),
+        (("train", "range_bins", [60, 30, 30]), r"train.range_bins lists 30 twice"),
+        (("train", "range_bins", []), r"train.range_bins is empty"),
+        (("detect", "squeeze_median", 2), r"detect.squeeze_median=2 must be odd"),
+    ],
+)
 def test_load_refuses_bad_params_naming_the_key(tmp_path, monkeypatch, edit, message):
     monkeypatch.chdir(tmp_path)
     p = params_mod.compose("smoke")
@@ -88,18 +95,19 @@ def test_unset_external_inputs_leave_the_render_fingerprint_alone():
 def _raw_key(p: dict, *extra: tuple[str, tuple[str, ...]]) -> str:
     """A fingerprint as it was computed before params were typed: JSON of the params.yaml mapping itself."""
     r = dict(p["render"])
-    if r["background"]["share"] == 0:      # off: left out, as before render.background existed
+    if r["background"]["share"] == 0:  # off: left out, as before render.background existed
         r.pop("background")
     r["mesh"] = params_mod.given(r["mesh"])
     if params_mod.given(r["source"]) is None:
         r.pop("source"), r.pop("source_test")
-    if r["target_attitude"] == "per_frame":   # the default: the hash renders had before the option
+    if r["target_attitude"] == "per_frame":  # the default: the hash renders had before the option
         r.pop("target_attitude")
-    if r["device"] == "cpu":                  # the default Cycles device, likewise
+    if r["device"] == "cpu":  # the default Cycles device, likewise
         r.pop("device")
-    key = {"seed": p["seed"], "camera": p["camera"], "render": r} | {s: {k: p[s][k] for k in ks} for s, ks in extra
-                                                                     if s in p}
-    key |= {s: dict(ks) for s, ks in extra if s not in p}   # derived values, given as (name, value) pairs
+    key = {"seed": p["seed"], "camera": p["camera"], "render": r} | {
+        s: {k: p[s][k] for k in ks} for s, ks in extra if s in p
+    }
+    key |= {s: dict(ks) for s, ks in extra if s not in p}  # derived values, given as (name, value) pairs
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -113,15 +121,22 @@ def test_typed_params_keep_the_yaml_values_and_every_fingerprint(profile):
     assert dataclasses.asdict(p) == raw and type(p.guidance.start_ranges[0]) is type(raw["guidance"]["start_ranges"][0])
     assert params_mod.render_fingerprint(p) == _raw_key(raw)
     flown = ("execution", (*raw["guidance"]["execution"].items(), ("max_step", raw["guidance"]["max_step"])))
-    evaluate = {"evaluate": {k: raw["evaluate"][k] for k in ("trajectories", "frames", "lateral_range")}
-                | {"seed": 1000 + 100_000 * raw["seed"]}}   # the evaluation's base seed follows `seed`
+    evaluate = {
+        "evaluate": {k: raw["evaluate"][k] for k in ("trajectories", "frames", "lateral_range")}
+        | {"seed": 1000 + 100_000 * raw["seed"]}
+    }  # the evaluation's base seed follows `seed`
     assert params_mod.eval_render_fingerprint(p) == _raw_key(
-        {**raw, **evaluate}, ("evaluate", ("trajectories", "frames", "lateral_range", "seed")), flown)
-    validation = {"defense": {"val_trajectories": raw["defense"]["val_trajectories"],
-                              "val_seed": 3000 + 100_000 * raw["seed"]}}
+        {**raw, **evaluate}, ("evaluate", ("trajectories", "frames", "lateral_range", "seed")), flown
+    )
+    validation = {
+        "defense": {"val_trajectories": raw["defense"]["val_trajectories"], "val_seed": 3000 + 100_000 * raw["seed"]}
+    }
     assert params_mod.val_render_fingerprint(p) == _raw_key(
-        {**raw, **validation}, ("evaluate", ("frames", "lateral_range")), ("defense", ("val_trajectories", "val_seed")),
-        flown)
+        {**raw, **validation},
+        ("evaluate", ("frames", "lateral_range")),
+        ("defense", ("val_trajectories", "val_seed")),
+        flown,
+    )
 
 
 def test_device_param_resolves_in_one_place(monkeypatch):
@@ -136,8 +151,11 @@ def test_device_param_resolves_in_one_place(monkeypatch):
     assert torch_device(replace(p, device="auto")) == torch.device("cpu")
     assert torch_device(replace(p, device="cpu")) == torch.device("cpu")
     for value in ("cuda", "cuda:0"):
-        with pytest.raises(StageError, match=rf"^params.yaml device: '{value}' asks for a CUDA GPU but torch \S+ "
-                                             r"sees none; set device: auto or cpu$"):
+        with pytest.raises(
+            StageError,
+            match=rf"^params.yaml device: '{value}' asks for a CUDA GPU but torch \S+ "
+            r"sees none; set device: auto or cpu$",
+        ):
             torch_device(replace(p, device=value))
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 2)
@@ -183,10 +201,13 @@ def test_an_edit_of_conf_without_rpod_params_is_refused_with_one_line(tmp_path, 
     assert runner.invoke(app, ["params", "--check"]).exit_code == 0
     config = tmp_path / "conf" / "profile" / "smoke.yaml"
     config.write_text(config.read_text() + "\n# an edit\n")
-    with pytest.raises(ParamsError, match=r"params.yaml is stale: conf/ changed since it was composed .* run "
-                                          r"`rpod params smoke`"):
+    with pytest.raises(
+        ParamsError,
+        match=r"params.yaml is stale: conf/ changed since it was composed .* run "
+        r"`rpod params smoke`",
+    ):
         params_mod.load()
     checked = runner.invoke(app, ["params", "--check"])
-    assert checked.exit_code == 1 and "is stale" in str(checked.exception)   # main() prints it as one line
+    assert checked.exit_code == 1 and "is stale" in str(checked.exception)  # main() prints it as one line
     assert runner.invoke(app, ["params", "smoke"]).exit_code == 0
     assert params_mod.load().profile_name == "smoke"

@@ -1,5 +1,6 @@
 """`rpod pose_trial VARIANT` (issue 38, items 3 and 5): a variant of the data set differs from the main params in its
 own settings only, and a failing step is one clear error naming the trial."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -12,9 +13,14 @@ from stages.config.schema import build
 from stages.errors import StageError
 
 
-@pytest.mark.parametrize("variant, section, changed", [
-    ("per_sequence", "render", {"target_attitude": "per_sequence"}), ("320x180", "render", {"width": 320, "height": 180}),
-    ("fy360", "camera", {"fy": 360.0})])
+@pytest.mark.parametrize(
+    "variant, section, changed",
+    [
+        ("per_sequence", "render", {"target_attitude": "per_sequence"}),
+        ("320x180", "render", {"width": 320, "height": 180}),
+        ("fy360", "camera", {"fy": 360.0}),
+    ],
+)
 def test_a_trial_changes_its_own_settings_only(variant, section, changed):
     from stages.pose_trial import trial_params
 
@@ -39,7 +45,10 @@ def test_a_failing_trial_step_is_one_clear_error(tmp_path, monkeypatch):
 
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(subrun, "run_step", run_step)
-    with pytest.raises(StageError, match=r"^pose_trial per_sequence \(render in datasets/pose_trials/per_sequence/\): "
-                                         r"params.yaml render: boom$"):
+    with pytest.raises(
+        StageError,
+        match=r"^pose_trial per_sequence \(render in datasets/pose_trials/per_sequence/\): "
+        r"params.yaml render: boom$",
+    ):
         pose_trial.main(build(params_mod.compose("smoke", [])), "per_sequence")
     assert not (tmp_path / "datasets" / "pose_trials" / "per_sequence").exists()

@@ -1,4 +1,5 @@
 """`rpodguard.load_chain` / `Chain.predict` and `rpod predict` on a tiny random pose model and detector."""
+
 from __future__ import annotations
 
 import json
@@ -14,7 +15,7 @@ from PIL import Image
 from pipeline.geometry.camera import reference_intrinsics
 from rpodguard import load_chain
 
-H, W = 36, 64   # model input of the tiny checkpoint
+H, W = 36, 64  # model input of the tiny checkpoint
 CAMERA = reference_intrinsics().scaled(W, H)
 
 
@@ -36,8 +37,17 @@ def _save_models(folder: Path, K: np.ndarray | None = None, black_level: float =
         background = model.forward_features(torch.rand(6, 3, H, W)).mean(0)
     det = LSTMDetector(LSTMConfig(hidden=8, dense=[4])).eval()
     det.set_normalisation(np.random.default_rng(0).normal(size=(5, 9, 1000)).astype(np.float32) * 0.01)
-    save_torch(folder / "detector.pt", to_checkpoint(det, {"format": DETECTOR_FORMAT, "background_mean": background,
-                                                           "pose_model_hash": file_hash(folder / "pose.pt")}))
+    save_torch(
+        folder / "detector.pt",
+        to_checkpoint(
+            det,
+            {
+                "format": DETECTOR_FORMAT,
+                "background_mean": background,
+                "pose_model_hash": file_hash(folder / "pose.pt"),
+            },
+        ),
+    )
     return folder
 
 
@@ -74,8 +84,8 @@ def test_predict_gives_pose_and_flag_per_image(models):
     assert (out.quaternion[:, 0] >= 0).all()
     assert ((out.attack_probability >= 0) & (out.attack_probability <= 1)).all()
     np.testing.assert_array_equal(out.attack_flag, out.attack_probability >= chain.threshold)
-    assert len(chain.predict(_images(1)[0])) == 1          # one (H, W, 3) image
-    assert load_chain(models.parent).files == chain.files   # a project root holding models/
+    assert len(chain.predict(_images(1)[0])) == 1  # one (H, W, 3) image
+    assert load_chain(models.parent).files == chain.files  # a project root holding models/
 
 
 def test_png_float_and_array_inputs_agree(models, tmp_path):
@@ -94,7 +104,7 @@ def test_png_float_and_array_inputs_agree(models, tmp_path):
 def test_other_sizes_are_resized_and_another_aspect_warns(models, tmp_path):
     chain = load_chain(models)
     with warnings.catch_warnings():
-        warnings.simplefilter("error")          # twice the size, same aspect: no warning
+        warnings.simplefilter("error")  # twice the size, same aspect: no warning
         big = chain.predict(_png(tmp_path / "big.png", _images(1, 2 * H, 2 * W)[0]))
     assert big.position.shape == (1, 3)
     with pytest.warns(UserWarning, match=r"square\.png is 50x50 .*stretched"):
@@ -139,11 +149,13 @@ def test_cli_bad_inputs_stop_with_one_line(models, tmp_path, monkeypatch, capsys
     (tmp_path / "text.png").write_text("not an image")
     truncated = tmp_path / "cut.png"
     truncated.write_bytes(good.read_bytes()[:200])
-    for args, named in (([str(tmp_path / "missing.png")], "missing.png not found"),
-                        ([str(good), str(tmp_path / "text.png")], "text.png cannot be read as an image"),
-                        ([str(truncated)], "cut.png cannot be read as an image"),
-                        ([str(tmp_path)], "is not a file"),
-                        ([], "no images given")):
+    for args, named in (
+        ([str(tmp_path / "missing.png")], "missing.png not found"),
+        ([str(good), str(tmp_path / "text.png")], "text.png cannot be read as an image"),
+        ([str(truncated)], "cut.png cannot be read as an image"),
+        ([str(tmp_path)], "is not a file"),
+        ([], "no images given"),
+    ):
         code, out, err = _rpod(monkeypatch, capsys, "predict", *args, "--models", str(models))
         assert code == 1 and out == "" and err.count("\n") == 1 and err.startswith("error: ") and named in err, err
     code, _, err = _rpod(monkeypatch, capsys, "predict", str(good), "--models", str(tmp_path / "none"))
@@ -155,11 +167,11 @@ def test_an_image_that_is_not_a_frame_with_the_target_in_view_gets_no_pose(model
 
     dark = np.zeros((H, W, 3), np.uint8)
     speck = dark.copy()
-    speck[:2, :2] = 255                                   # 4 of 2304 lit pixels: under MIN_LIT_FRACTION
+    speck[:2, :2] = 255  # 4 of 2304 lit pixels: under MIN_LIT_FRACTION
     target = dark.copy()
-    target[10:20, 20:40] = int(LIT_LEVEL * 255) + 10      # a dim 20x10 target: 8.7% lit
-    noise = np.random.default_rng(5).integers(0, 256, size=(H, W, 3), dtype=np.uint8)   # every pixel lit
-    grey = np.full((H, W, 3), 128, np.uint8)              # lit, but no structure at all
+    target[10:20, 20:40] = int(LIT_LEVEL * 255) + 10  # a dim 20x10 target: 8.7% lit
+    noise = np.random.default_rng(5).integers(0, 256, size=(H, W, 3), dtype=np.uint8)  # every pixel lit
+    grey = np.full((H, W, 3), 128, np.uint8)  # lit, but no structure at all
     assert 4 / (H * W) < MIN_LIT_FRACTION < 200 / (H * W)
     out = load_chain(models).predict(np.stack([dark, speck, target, noise, grey]))
     assert out.verdict[:2] == ("no target", "no target") and out.verdict[3:] == ("not a frame", "not a frame")
@@ -170,12 +182,20 @@ def test_an_image_that_is_not_a_frame_with_the_target_in_view_gets_no_pose(model
     assert not out.attack_flag[~seen].any() and np.isnan(out.attack_probability[~seen]).all()
     assert np.isfinite(out.position[2]).all() and np.isfinite(out.attack_probability[2])
     assert out.records()[0]["position_m"] is None and out.records()[2]["position_m"] is not None
-    code, text, err = _rpod(monkeypatch, capsys, "predict", str(_png(tmp_path / "dark.png", dark)),
-                            str(_png(tmp_path / "noise.png", noise)), "--models", str(models))
+    code, text, err = _rpod(
+        monkeypatch,
+        capsys,
+        "predict",
+        str(_png(tmp_path / "dark.png", dark)),
+        str(_png(tmp_path / "noise.png", noise)),
+        "--models",
+        str(models),
+    )
     assert code == 0 and "no target in view (0.00% lit pixels" in text and err == ""
     assert "not a camera frame: neighbouring pixels correlate" in text.splitlines()[-1]
-    code, text, _ = _rpod(monkeypatch, capsys, "predict", str(_png(tmp_path / "dark.png", dark)), "--json",
-                          "--models", str(models))
+    code, text, _ = _rpod(
+        monkeypatch, capsys, "predict", str(_png(tmp_path / "dark.png", dark)), "--json", "--models", str(models)
+    )
     assert json.loads(text)[0]["in_view"] is False and json.loads(text)[0]["quaternion"] is None
 
 
@@ -190,17 +210,18 @@ def test_image_paths_are_checked_before_the_models_load(tmp_path, monkeypatch, c
 def test_the_model_camera_is_read_and_another_camera_warns(camera_models):
     chain = load_chain(camera_models)
     assert chain.camera == CAMERA
-    image = _images(1, 2 * H, 2 * W)[0]                  # the same camera at twice the resolution: no warning
+    image = _images(1, 2 * H, 2 * W)[0]  # the same camera at twice the resolution: no warning
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         chain.predict(image, camera=CAMERA.scaled(2 * W, 2 * H).K)
         chain.predict(image, camera={"Nu": 2 * W, "Nv": 2 * H, "cameraMatrix": CAMERA.scaled(2 * W, 2 * H).K.tolist()})
     wide = CAMERA.K * [[0.5], [0.5], [1]] + [[0, 0, 0.5 * CAMERA.cx], [0, 0, 0.5 * CAMERA.cy], [0, 0, 0]]
     with pytest.warns(UserWarning, match=r"array\[0\]: its camera \(fx 42\.7.* ranges come out about 2\.00 times"):
-        chain.predict(_images(1)[0], camera=wide)          # half the focal length: twice the field of view
+        chain.predict(_images(1)[0], camera=wide)  # half the focal length: twice the field of view
     with pytest.warns(UserWarning, match=r"array\[0\] is 64x36 but its camera is given at 128x72"):
-        chain.predict(_images(1)[0], camera={"Nu": 2 * W, "Nv": 2 * H,
-                                             "cameraMatrix": CAMERA.scaled(2 * W, 2 * H).K.tolist()})
+        chain.predict(
+            _images(1)[0], camera={"Nu": 2 * W, "Nv": 2 * H, "cameraMatrix": CAMERA.scaled(2 * W, 2 * H).K.tolist()}
+        )
 
 
 def test_an_older_checkpoint_without_k_loads_and_says_it_cannot_check(models):
@@ -208,7 +229,7 @@ def test_an_older_checkpoint_without_k_loads_and_says_it_cannot_check(models):
     assert chain.camera is None and len(chain.predict(_images(1))) == 1
     with pytest.warns(UserWarning, match="records no camera matrix") as caught:
         chain.predict(_images(3), camera=CAMERA.K)
-    assert len(caught) == 1                               # once per call, not per image
+    assert len(caught) == 1  # once per call, not per image
 
 
 def test_the_bundled_weights_know_their_camera_from_the_manifest():
@@ -222,7 +243,8 @@ def test_the_bundled_weights_know_their_camera_from_the_manifest():
     c, r = manifest["params"]["camera"], manifest["params"]["render"]
     got = model_camera({"input_size": [r["height"], r["width"]]}, manifest, BUNDLE / "pose.pt")
     assert got == Intrinsics(c["ref_width"], c["ref_height"], c["fx"], c["fy"], c["cx"], c["cy"]).scaled(
-        r["width"], r["height"])
+        r["width"], r["height"]
+    )
     imported = {**manifest, "params": {**manifest["params"], "render": {**r, "source": "/data/speedplus"}}}
     assert model_camera({"input_size": [r["height"], r["width"]]}, imported, BUNDLE / "pose.pt") is None
 
@@ -231,13 +253,15 @@ def test_cli_camera_mismatch_warns_and_a_bad_camera_file_stops_first(camera_mode
     image = _png(tmp_path / "a.png", _images(1)[0])
     other = tmp_path / "camera.json"
     other.write_text(json.dumps({"Nu": W, "Nv": H, "cameraMatrix": (CAMERA.K * [[2], [1], [1]]).tolist()}))
-    code, out, err = _rpod(monkeypatch, capsys, "predict", str(image), "--camera", str(other), "--models",
-                           str(camera_models))
+    code, out, err = _rpod(
+        monkeypatch, capsys, "predict", str(image), "--camera", str(other), "--models", str(camera_models)
+    )
     assert code == 0 and "a.png" in out and err.count("\n") == 1 and "ranges come out about 0.50 times" in err
     same = tmp_path / "same.json"
     same.write_text(json.dumps({"Nu": W, "Nv": H, "cameraMatrix": CAMERA.K.tolist()}))
-    code, _, err = _rpod(monkeypatch, capsys, "predict", str(image), "--camera", str(same), "--models",
-                         str(camera_models))
+    code, _, err = _rpod(
+        monkeypatch, capsys, "predict", str(image), "--camera", str(same), "--models", str(camera_models)
+    )
     assert code == 0 and err == ""
     import rpodguard
 
@@ -262,12 +286,37 @@ def defense_record(pose: Path, detector_threshold: float, model: str = "robust",
     from pipeline.io.atomic import file_hash
 
     noise = NoiseModel((0.05, 0.05, 0.1), (0.005, 0.005, 0.01), 1.0, 0.0)
-    validation = Validation(3, 1, 60, 0.5, {"level": None, "share_pct": None, "reached_pct": None},
-                            {"frames": 10, "detector_pct": 0.0}, {}, {}, {"pct": 100.0, "ci95_pct": [90.0, 100.0]},
-                            {"pct": 0.0, "ci95_pct": [0.0, 5.0]}, {}, {})
-    record = DefenseFile(DEFENSE_FORMAT, model, file_hash(pose), detector_threshold, 0.9, 8.0, 1.0, 1.0, noise, noise,
-                         DefenseSettings(threshold=0.9), MotionSettings(cusum_threshold=8.0), AlertLimitSettings(), (),
-                         validation)
+    validation = Validation(
+        3,
+        1,
+        60,
+        0.5,
+        {"level": None, "share_pct": None, "reached_pct": None},
+        {"frames": 10, "detector_pct": 0.0},
+        {},
+        {},
+        {"pct": 100.0, "ci95_pct": [90.0, 100.0]},
+        {"pct": 0.0, "ci95_pct": [0.0, 5.0]},
+        {},
+        {},
+    )
+    record = DefenseFile(
+        DEFENSE_FORMAT,
+        model,
+        file_hash(pose),
+        detector_threshold,
+        0.9,
+        8.0,
+        1.0,
+        1.0,
+        noise,
+        noise,
+        DefenseSettings(threshold=0.9),
+        MotionSettings(cusum_threshold=8.0),
+        AlertLimitSettings(),
+        (),
+        validation,
+    )
     return dataclasses.replace(record, **changes).to_json()
 
 
@@ -279,7 +328,8 @@ def _calibrate(models: Path) -> None:
 
 
 def test_the_verdict_is_the_calibrated_chain_s_and_a_folder_without_defense_file_says_its_rule(
-        models, tmp_path, monkeypatch, capsys):
+    models, tmp_path, monkeypatch, capsys
+):
     """predict judges at the defense file's calibrated threshold and doubt level (the chain's verdict), printed in
     full; without a defense file at the detector's own threshold, saying so."""
     from pipeline.defense.fusion import DefenseSettings
@@ -297,11 +347,13 @@ def test_the_verdict_is_the_calibrated_chain_s_and_a_folder_without_defense_file
     assert list(out.verdict) == ["attack" if p >= own else "clean" for p in out.attack_probability]
     paths = [str(_png(tmp_path / f"v{k}.png", image)) for k, image in enumerate(images[:3])]
     code, text, _ = _rpod(monkeypatch, capsys, "predict", *paths, "--models", str(folder))
-    assert code == 0 and text.splitlines()[0] == (f"verdict: attack at P(attack) >= {own!r} (the detector's own "
-                                                  f"threshold, no doubt level: {folder} has no defense.json, which "
-                                                  f"`rpod calibrate` writes)")
+    assert code == 0 and text.splitlines()[0] == (
+        f"verdict: attack at P(attack) >= {own!r} (the detector's own "
+        f"threshold, no doubt level: {folder} has no defense.json, which "
+        f"`rpod calibrate` writes)"
+    )
     probs = np.sort(out.attack_probability)
-    threshold, doubt = float(probs[-4]), float(probs[8])          # three levels, each reached by some image
+    threshold, doubt = float(probs[-4]), float(probs[8])  # three levels, each reached by some image
     assert doubt < threshold and threshold != own
     levels = DefenseSettings(threshold=threshold, update_below=doubt)
     write_json(folder / "defense.json", defense_record(folder / "pose.pt", own, threshold=threshold, settings=levels))
@@ -311,7 +363,7 @@ def test_the_verdict_is_the_calibrated_chain_s_and_a_folder_without_defense_file
     assert calibrated.rule.calibrated and calibrated.rule.threshold == level and calibrated.rule.doubt == below
     want = ["attack" if p >= level else "doubt" if p >= below else "clean" for p in calibrated.attack_probability]
     assert list(calibrated.verdict) == want and set(want) == {"attack", "doubt", "clean"}
-    assert list(calibrated.verdict) != list(out.verdict)                         # the detector's own rule differs
+    assert list(calibrated.verdict) != list(out.verdict)  # the detector's own rule differs
     np.testing.assert_array_equal(calibrated.attack_flag, [w == "attack" for w in want])
     code, text, _ = _rpod(monkeypatch, capsys, "predict", *paths, "--json", "--models", str(folder))
     records = json.loads(text)
@@ -319,8 +371,10 @@ def test_the_verdict_is_the_calibrated_chain_s_and_a_folder_without_defense_file
     assert records[0]["threshold"] == level and records[0]["doubt_level"] == below
     assert records[0]["rule"] == "calibrated defense" and records[0]["rule_file"] == str(folder / "defense.json")
     code, text, _ = _rpod(monkeypatch, capsys, "predict", *paths, "--models", str(folder))
-    assert text.splitlines()[0] == (f"verdict: attack at P(attack) >= {level!r}, doubt at >= {below!r} (the chain's "
-                                    f"calibrated defense, {folder / 'defense.json'})")
+    assert text.splitlines()[0] == (
+        f"verdict: attack at P(attack) >= {level!r}, doubt at >= {below!r} (the chain's "
+        f"calibrated defense, {folder / 'defense.json'})"
+    )
     assert [line.split()[-1] for line in text.splitlines()[3:]] == want[:3]
 
 
@@ -355,18 +409,34 @@ def test_cli_motion_file_gives_one_row_per_frame_and_bad_files_one_line(models, 
     paths = [str(_png(tmp_path / f"f{k}.png", image)) for k, image in enumerate(_images(3, seed=4))]
     rows = [",".join(MOTION_COLUMNS)] + ["0,0,-0.1," + ",".join(map(str, np.eye(3).ravel()))] * 3
     (tmp_path / "motion.csv").write_text("\n".join(rows) + "\n")
-    code, out, err = _rpod(monkeypatch, capsys, "predict", *paths, "--motion", str(tmp_path / "motion.csv"), "--json",
-                           "--models", str(models))
+    code, out, err = _rpod(
+        monkeypatch,
+        capsys,
+        "predict",
+        *paths,
+        "--motion",
+        str(tmp_path / "motion.csv"),
+        "--json",
+        "--models",
+        str(models),
+    )
     assert code == 0, err
     records = json.loads(out)
-    assert [r["image"] for r in records] == paths and {"trusted_rel_m", "pl_m", "available", "flag", "mode"} <= set(records[0])
-    code, out, _ = _rpod(monkeypatch, capsys, "predict", *paths, "--motion", str(tmp_path / "motion.csv"), "--models",
-                         str(models))
+    assert [r["image"] for r in records] == paths and {"trusted_rel_m", "pl_m", "available", "flag", "mode"} <= set(
+        records[0]
+    )
+    code, out, _ = _rpod(
+        monkeypatch, capsys, "predict", *paths, "--motion", str(tmp_path / "motion.csv"), "--models", str(models)
+    )
     assert code == 0 and "PL (m)" in out and "f2.png" in out
     (tmp_path / "short.csv").write_text("\n".join(rows[:3]) + "\n")
     (tmp_path / "cols.csv").write_text("u_x,u_y\n0,0\n")
-    for name, message in (("short.csv", "has 2 rows for 3 images"), ("cols.csv", "lacks the column(s) u_z"),
-                          ("none.csv", "none.csv not found")):
-        code, out, err = _rpod(monkeypatch, capsys, "predict", *paths, "--motion", str(tmp_path / name), "--models",
-                               str(models))
+    for name, message in (
+        ("short.csv", "has 2 rows for 3 images"),
+        ("cols.csv", "lacks the column(s) u_z"),
+        ("none.csv", "none.csv not found"),
+    ):
+        code, out, err = _rpod(
+            monkeypatch, capsys, "predict", *paths, "--motion", str(tmp_path / name), "--models", str(models)
+        )
         assert code == 1 and out == "" and err.count("\n") == 1 and message in err, err

@@ -1,5 +1,6 @@
 """The sequential test (CUSUM), the protection level and the defense's calibration, one check at a time
 (pipeline/defense/{sequential,protection,calibration}.py, stages/calibrate.py), on toy filters: no network."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -18,9 +19,9 @@ from pipeline.defense.protection import ProtectionLevel, largest_eigenvalue
 from pipeline.defense.sequential import Cusum
 from pipeline.geometry.rotations import matrix_to_6d
 
-NOISE = NoiseModel((0.05, 0.05, 0.1), (0.005, 0.005, 0.01), 1.0, 0.0)   # 0.2, 0.2, 0.4 m std at 30 m
+NOISE = NoiseModel((0.05, 0.05, 0.1), (0.005, 0.005, 0.01), 1.0, 0.0)  # 0.2, 0.2, 0.4 m std at 30 m
 MOTION = MotionSettings()
-SHIPPED = MotionSettings(trusted_start=20)    # params.yaml defense.trusted_start
+SHIPPED = MotionSettings(trusted_start=20)  # params.yaml defense.trusted_start
 
 
 def approach(n: int, seed: int, heavy: bool = False) -> tuple[np.ndarray, CleanRun]:
@@ -31,15 +32,17 @@ def approach(n: int, seed: int, heavy: bool = False) -> tuple[np.ndarray, CleanR
     std = np.array([NOISE.position_std(float(np.linalg.norm(r))) for r in rel])
     noise = rng.standard_t(5, (n, 3)) if heavy else rng.normal(size=(n, 3))
     pose = np.hstack([rel + noise * std, np.repeat(matrix_to_6d(np.eye(3))[None], n, 0)])
-    return rel, CleanRun(pose, np.zeros(n), np.repeat(np.eye(3)[None], n, 0), np.vstack([np.zeros(3), np.diff(rel, axis=0)]))
+    return rel, CleanRun(
+        pose, np.zeros(n), np.repeat(np.eye(3)[None], n, 0), np.vstack([np.zeros(3), np.diff(rel, axis=0)])
+    )
 
 
 def test_cusum_alarms_on_a_persistent_shift_and_resets() -> None:
     c = Cusum(0.5, 4.0)
-    assert [c.push([1.5, 0.0, 0.0]) for _ in range(5)] == [False, False, False, False, True]   # 1 per frame over c
+    assert [c.push([1.5, 0.0, 0.0]) for _ in range(5)] == [False, False, False, False, True]  # 1 per frame over c
     assert c.statistic == pytest.approx(5.0)
     c.reset()
-    assert [c.push([0.0, -2.5, 0.0]) for _ in range(3)] == [False, False, True]                # the lower side
+    assert [c.push([0.0, -2.5, 0.0]) for _ in range(3)] == [False, False, True]  # the lower side
     with pytest.raises(ValueError, match="defense.cusum_threshold must be > 0"):
         Cusum(0.5, 0.0)
 
@@ -65,7 +68,7 @@ def test_bias_bound_is_the_worst_undetected_fault_of_a_linear_program(seed: int)
     for a in range(n):
         for b in range(a, n):
             row = np.zeros(n)
-            row[a:b + 1] = 1
+            row[a : b + 1] = 1
             rows += [row, -row]
             bounds += [c * (b - a + 1) + h] * 2
     best = -linprog(-w, A_ub=np.array(rows), b_ub=bounds, bounds=[(None, None)] * n).fun
@@ -108,8 +111,10 @@ def test_the_noise_term_starts_from_the_covariance_after_the_trusted_frames() ->
         f.accept()
         if k == SHIPPED.trusted_start:
             P_T = f.pos.P
-            assert f.protection_level == pytest.approx(kappa(SHIPPED.integrity_risk) * np.sqrt(np.linalg.eigvalsh(P_T)[-1]))
-    C = P_T + (59 - SHIPPED.trusted_start) * SHIPPED.position_noise ** 2 * np.eye(3)
+            assert f.protection_level == pytest.approx(
+                kappa(SHIPPED.integrity_risk) * np.sqrt(np.linalg.eigvalsh(P_T)[-1])
+            )
+    C = P_T + (59 - SHIPPED.trusted_start) * SHIPPED.position_noise**2 * np.eye(3)
     noise_term = kappa(SHIPPED.integrity_risk) * np.sqrt(np.linalg.eigvalsh(C)[-1])
     assert f.protection_level == pytest.approx(noise_term + f.protection.bias())
     assert noise_term > 1.5 * kappa(SHIPPED.integrity_risk) * np.sqrt(np.linalg.eigvalsh(f.pos.P)[-1])
@@ -138,16 +143,16 @@ def test_the_detector_threshold_is_a_quantile_of_clean_frames_or_says_it_cannot(
     prob = np.linspace(0.0, 0.5, 1001)
     r = detector_threshold(prob, 0.002)
     assert r.met and r.reached <= 0.002 and np.mean(prob >= r.setting) == r.reached and 0.49 < r.setting < 0.5
-    saturated = np.r_[np.zeros(990), np.ones(10)]                    # 1% of clean frames at probability 1
+    saturated = np.r_[np.zeros(990), np.ones(10)]  # 1% of clean frames at probability 1
     r = detector_threshold(saturated, 0.002)
     assert not r.met and r.reached == pytest.approx(0.01) and r.setting < 1.0
 
 
 def test_the_doubt_level_leaves_its_share_of_clean_frames_and_stays_under_the_threshold() -> None:
-    prob = np.random.default_rng(0).beta(2, 5, 5000)                  # clean probabilities, 42% of them >= 0.25
+    prob = np.random.default_rng(0).beta(2, 5, 5000)  # clean probabilities, 42% of them >= 0.25
     level = doubt_level(prob, 0.05, 0.9997)
     assert np.mean(prob >= level) <= 0.05 < np.mean(prob >= np.nextafter(level, 0.0) - 1e-3) and level > 0.25
-    assert doubt_level(prob, 0.05, 0.3) == 0.3                        # never above the detector's threshold
+    assert doubt_level(prob, 0.05, 0.3) == 0.3  # never above the detector's threshold
 
 
 def test_a_calibrated_doubt_level_lets_a_filter_started_on_an_attack_recover() -> None:
@@ -199,8 +204,9 @@ def _budget(p):
     from pipeline.defense.calibration import Budget
 
     d = p.defense
-    return Budget(d.target_false_alarm, d.shares.detector, d.shares.gate, d.shares.sequential, d.doubt_share,
-                  d.allow_unmet)
+    return Budget(
+        d.target_false_alarm, d.shares.detector, d.shares.gate, d.shares.sequential, d.doubt_share, d.allow_unmet
+    )
 
 
 def test_calibrate_refuses_an_unreachable_share_with_one_line() -> None:
@@ -214,23 +220,27 @@ def test_calibrate_refuses_an_unreachable_share_with_one_line() -> None:
     prob = np.concatenate([r.prob for r in runs])
     with pytest.raises(UnmetShare) as e:
         calibrate_checks(DefenseSettings(), MOTION, NOISE, runs, (prob,), _budget(p))
-    message = unmet_line(e.value.check, len(prob))      # what `rpod calibrate` stops with
-    assert "\n" not in message and message.startswith("calibrate: the gate cannot meet its share 0.200% of "
-                                                      "defense.target_false_alarm on 800 clean validation frames")
+    message = unmet_line(e.value.check, len(prob))  # what `rpod calibrate` stops with
+    assert "\n" not in message and message.startswith(
+        "calibrate: the gate cannot meet its share 0.200% of defense.target_false_alarm on 800 clean validation frames"
+    )
     assert "at best (position noise inflation x8)" in message and "defense.allow_unmet" in message
     allow = dataclasses.replace(_budget(p), allow_unmet=True)
     checks, settings, motion = calibrate_checks(DefenseSettings(), MOTION, NOISE, runs, (prob,), allow)
     assert [c.check for c in checks if not c.met] == ["gate"] and motion.cusum_threshold == checks[3].setting
     assert settings.threshold == checks[0].setting
-    assert settings.update_below == doubt_level(prob, p.defense.doubt_share, settings.threshold)   # calibrated too
+    assert settings.update_below == doubt_level(prob, p.defense.doubt_share, settings.threshold)  # calibrated too
 
 
-@pytest.mark.parametrize("key, value, message", [
-    ("shares", {"detector": 0.5, "gate": 0.4, "sequential": 0.4}, r"defense.shares must add up to 1 .*got 1.3$"),
-    ("cusum_reference", -1.0, r"^params.yaml defense.cusum_reference must be a number in \[0, 100\]"),
-    ("integrity_risk", 0.0, r"^params.yaml defense.integrity_risk must be a positive number in \(0, 1\)"),
-    ("allow_unmet", "maybe", r"defense.allow_unmet"),
-])
+@pytest.mark.parametrize(
+    "key, value, message",
+    [
+        ("shares", {"detector": 0.5, "gate": 0.4, "sequential": 0.4}, r"defense.shares must add up to 1 .*got 1.3$"),
+        ("cusum_reference", -1.0, r"^params.yaml defense.cusum_reference must be a number in \[0, 100\]"),
+        ("integrity_risk", 0.0, r"^params.yaml defense.integrity_risk must be a positive number in \(0, 1\)"),
+        ("allow_unmet", "maybe", r"defense.allow_unmet"),
+    ],
+)
 def test_bad_defense_params_give_one_line_naming_the_param(tmp_path, monkeypatch, key, value, message) -> None:
     from stages.config import params as params_mod
     from stages.config.sections import ParamsError
@@ -274,10 +284,10 @@ def test_calibrate_tightens_every_share_when_only_the_fusion_overshoots(monkeypa
     start = (DefenseSettings(threshold=0.5), MOTION)
     out = cal.calibrate_to_target(*start, NOISE, [], (np.zeros(0),), [], None, budget)
     assert out.final["fused"].value == pytest.approx(0.0045)
-    assert scales == pytest.approx([1.0, cal.TIGHTEN_STEP, cal.TIGHTEN_STEP ** 2])   # at least a step each time
+    assert scales == pytest.approx([1.0, cal.TIGHTEN_STEP, cal.TIGHTEN_STEP**2])  # at least a step each time
     assert [t["fused_pct"] for t in out.tightened] == [0.6, 0.55] and out.scale == pytest.approx(scales[-1])
     scales.clear()
-    fused = iter([0.02, 0.004])                                                     # a large overshoot: x 0.25
+    fused = iter([0.02, 0.004])  # a large overshoot: x 0.25
     cal.calibrate_to_target(*start, NOISE, [], (np.zeros(0),), [], None, budget)
     assert scales == pytest.approx([1.0, 0.25])
 

@@ -1,5 +1,6 @@
 """The paper's detector protocol (clean = pose-test + pose-training images, attacked = attacked pose-test images,
 random per-sample split) shares source images between training and test: leaky, by design. Ours does not."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -26,7 +27,7 @@ def test_the_paper_plan_is_test_images_topped_up_with_training_images_and_attack
     clean, attacked = plan["index"][plan["eps"] == 0], plan["index"][plan["eps"] > 0]
     n_test = int((split == "test").sum())
     assert len(clean) == 1000 and len(attacked) == 1000
-    assert (split[clean] == "test").sum() == n_test and len(np.unique(clean)) == 1000   # every test image, once
+    assert (split[clean] == "test").sum() == n_test and len(np.unique(clean)) == 1000  # every test image, once
     assert (split[attacked] == "test").all()
     for e in EPS:
         assert len(np.unique(plan["index"][np.isclose(plan["eps"], e)])) == 500
@@ -42,7 +43,7 @@ def test_the_paper_protocol_shares_source_images_across_its_split():
     assert len(np.intersect1d(np.r_[tr, va], te)) == 0
     src = plan["index"]
     leak = shared_fraction(src, tr, te)
-    assert leak > 0.3                     # most test samples' images are also training samples: leaky
+    assert leak > 0.3  # most test samples' images are also training samples: leaky
     assert neighbour_fraction(sequence[src], frame[src], tr, te) > leak
 
 

@@ -1,5 +1,6 @@
 """The README's quick start runs as written: its sample image and example sequence are committed, the motion file
 fits the sequence, and the commands give a pose and a verdict on the shipped weights (issue 41)."""
+
 from __future__ import annotations
 
 import re
@@ -18,7 +19,7 @@ def _section() -> str:
     text = README.read_text()
     start = text.index(SECTION)
     assert start < 3000, "the quick start is on the README's first screen"
-    return text[start:text.index("\n<!-- ", start)]
+    return text[start : text.index("\n<!-- ", start)]
 
 
 def _commands() -> list[list[str]]:
@@ -34,7 +35,7 @@ def test_the_quick_start_names_committed_files_and_a_matching_motion_file():
     frames = sorted((REPO / "examples/approach").glob("*.png"))
     assert sequence[2] == "examples/approach/*.png" and len(frames) == 8
     commands, attitudes = read_motion(REPO / sequence[sequence.index("--motion") + 1], len(frames))
-    assert np.allclose(commands[0], 0) and (commands[1:, 2] < 0).all()   # closing in, every step
+    assert np.allclose(commands[0], 0) and (commands[1:, 2] < 0).all()  # closing in, every step
     assert "source .venv/bin/activate" in _section()
 
 
@@ -56,4 +57,4 @@ def test_the_quick_start_commands_give_a_pose_and_a_verdict(monkeypatch, capsys)
     assert many.exit_code == 0, many.output
     rows = [line for line in many.output.splitlines() if line.startswith("examples/approach/")]
     assert len(rows) == 8
-    assert abs(float(rows[-1].split()[3]) - 12.0) < 2.0   # the last frame's trusted range: the approach ends at 12 m
+    assert abs(float(rows[-1].split()[3]) - 12.0) < 2.0  # the last frame's trusted range: the approach ends at 12 m

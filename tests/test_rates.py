@@ -1,5 +1,6 @@
 """Accuracy, TPR, FPR and the attacked fraction with intervals; accuracy re-weighted to another attacked fraction;
 the attacked fraction of the paper's schedule."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -47,7 +48,7 @@ def test_the_mover_interval_recombines_the_wilson_limits():
     r = detection_rates(*_frames(60, 100, 5, 100))
     f = 0.3
     at = r.accuracy_at(f)
-    t, s = wilson(60, 100), wilson(95, 100)    # TPR and the specificity 1 - FPR
+    t, s = wilson(60, 100), wilson(95, 100)  # TPR and the specificity 1 - FPR
     lo = at.value - np.hypot(f * (t.value - t.lo), (1 - f) * (s.value - s.lo))
     hi = at.value + np.hypot(f * (t.hi - t.value), (1 - f) * (s.hi - s.value))
     assert (at.lo, at.hi) == (pytest.approx(lo), pytest.approx(hi))
@@ -56,7 +57,7 @@ def test_the_mover_interval_recombines_the_wilson_limits():
 
 
 def test_a_term_without_frames_is_nan_unless_its_weight_is_zero():
-    r = detection_rates(np.zeros(10, bool), np.zeros(10, bool))     # no attacked frame
+    r = detection_rates(np.zeros(10, bool), np.zeros(10, bool))  # no attacked frame
     assert np.isnan(r.tpr.value) and r.tpr.n == 0
     assert np.isnan(r.accuracy_at(0.5).value) and r.accuracy_at(0.5).pct() == "-"
     assert r.accuracy_at(0.0).value == 1.0
@@ -66,13 +67,13 @@ def test_grouped_rates_use_the_bootstrap_over_groups():
     rng = np.random.default_rng(1)
     groups = np.repeat(np.arange(8), 150)
     attacked = rng.random(groups.size) < 0.55
-    p_flag = np.repeat(rng.uniform(0.05, 0.95, 8), 150)     # very different TPR per group
+    p_flag = np.repeat(rng.uniform(0.05, 0.95, 8), 150)  # very different TPR per group
     flagged = np.where(attacked, rng.random(groups.size) < p_flag, rng.random(groups.size) < 0.01)
     g = detection_rates(attacked, flagged, groups)
     w = detection_rates(attacked, flagged)
     assert g.interval == "bootstrap"
     b = bootstrap_rate(flagged[attacked], groups[attacked])
-    assert (g.tpr.lo, g.tpr.hi) == (b.lo, b.hi)                 # the same interval the pages already print
+    assert (g.tpr.lo, g.tpr.hi) == (b.lo, b.hi)  # the same interval the pages already print
     assert g.tpr.value == pytest.approx(w.tpr.value)
     assert g.tpr.hi - g.tpr.lo > 2 * (w.tpr.hi - w.tpr.lo)
     at_g, at_w = g.accuracy_at(0.2), w.accuracy_at(0.2)
@@ -102,15 +103,24 @@ def test_the_schedule_fraction_is_the_long_run_share_of_attacked_frames(p, lengt
 
 
 def test_the_papers_schedules_attack_five_ninths_and_five_sevenths_of_the_frames():
-    assert attacked_fraction(0.2, 5) == pytest.approx(5 / 9)      # integrated evaluation, 5-frame attacks
-    assert attacked_fraction(0.2, 10) == pytest.approx(5 / 7)     # lab, 10-frame attacks
+    assert attacked_fraction(0.2, 5) == pytest.approx(5 / 9)  # integrated evaluation, 5-frame attacks
+    assert attacked_fraction(0.2, 10) == pytest.approx(5 / 7)  # lab, 10-frame attacks
     with pytest.raises(ValueError, match="p_start"):
         attacked_fraction(0.0, 5)
 
 
 def _rows(eps: float, counts: list[tuple[int, int, int, int]]) -> list[dict[str, object]]:
-    return [{"eps": eps, "sequence": f"T{i + 1}", "flagged_attacked": a, "attacked_frames": b, "flagged_clean": c,
-             "clean_frames": d} for i, (a, b, c, d) in enumerate(counts)]
+    return [
+        {
+            "eps": eps,
+            "sequence": f"T{i + 1}",
+            "flagged_attacked": a,
+            "attacked_frames": b,
+            "flagged_clean": c,
+            "clean_frames": d,
+        }
+        for i, (a, b, c, d) in enumerate(counts)
+    ]
 
 
 def test_sequence_rates_pool_the_sequences_per_eps():
@@ -129,8 +139,8 @@ def test_rates_by_eps_keeps_every_clean_sample_in_each_eps_row():
     r = rates_by_eps(attacked, flagged, eps)
     assert list(r) == ["all", "0.05", "0.01"]
     assert r["0.01"].attacked_fraction.value == pytest.approx(100 / 600)
-    assert r["0.01"].accuracy.value == pytest.approx((19 + 498) / 600)       # 86%: mostly clean samples
-    assert r["0.01"].accuracy_at(5 / 9).value == pytest.approx(5 / 9 * 0.19 + 4 / 9 * 0.996)   # 55%
+    assert r["0.01"].accuracy.value == pytest.approx((19 + 498) / 600)  # 86%: mostly clean samples
+    assert r["0.01"].accuracy_at(5 / 9).value == pytest.approx(5 / 9 * 0.19 + 4 / 9 * 0.996)  # 55%
 
 
 def test_the_pages_rate_tables_reweight_to_the_papers_fraction():
@@ -144,7 +154,7 @@ def test_the_pages_rate_tables_reweight_to_the_papers_fraction():
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert "accuracy at the paper's f = 55.6% (%)" in text
     assert cells[2].startswith("27.6 [") and cells[6] == "97.67"
-    assert cells[7] == f"{100 * (0.9767 - 4 / 9) / (5 / 9):.1f}"          # 95.8: the least TPR 97.67% needs
+    assert cells[7] == f"{100 * (0.9767 - 4 / 9) / (5 / 9):.1f}"  # 95.8: the least TPR 97.67% needs
     page = detect_rates({"all": detection_rates(*_frames(19, 100, 2, 500))})
     assert "accuracy at f = 55.6% (%)" in page and "| all   | 600 | 16.7 [" in page
 
@@ -175,13 +185,13 @@ def test_paired_difference_resamples_the_groups_together():
     same = paired_difference(b, b)
     assert same == (0.0, 0.0, 0.0)
     a = b.copy()
-    a[:, 0] = np.minimum(a[:, 0] + 20, 50)   # the same trajectories, 20 more attacked frames flagged each
+    a[:, 0] = np.minimum(a[:, 0] + 20, 50)  # the same trajectories, 20 more attacked frames flagged each
     d, lo, hi = paired_difference(a, b)
     assert d == pytest.approx(((a[:, 0] - b[:, 0]).sum()) / 1000) and 0 < lo <= d <= hi
     d_f, lo_f, hi_f = paired_difference(a, b, f=0.5, f_b=0.5)
     assert d_f == pytest.approx(0.5 * (a[:, 0].sum() - b[:, 0].sum()) / 500) and lo_f <= d_f <= hi_f
-    assert paired_difference(a[:1], b[:1])[1] == paired_difference(a[:1], b[:1])[0]   # one group: no interval
-    reweighted = paired_difference(b, b, f=0.5)              # one detector: re-weighted to f = 0.5 minus as measured
-    assert reweighted[0] == pytest.approx(0.0) and reweighted[1] <= 0 <= reweighted[2]   # b attacks half its frames
+    assert paired_difference(a[:1], b[:1])[1] == paired_difference(a[:1], b[:1])[0]  # one group: no interval
+    reweighted = paired_difference(b, b, f=0.5)  # one detector: re-weighted to f = 0.5 minus as measured
+    assert reweighted[0] == pytest.approx(0.0) and reweighted[1] <= 0 <= reweighted[2]  # b attacks half its frames
     with pytest.raises(ValueError, match="both be"):
         paired_difference(a, b[:3])

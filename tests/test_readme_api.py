@@ -1,5 +1,6 @@
 """The README's Python examples (section "Use the trained chain on your own images") run as written on the shipped
 weights, and what the README says of those weights holds (they hold the camera matrix K)."""
+
 from __future__ import annotations
 
 import re
@@ -14,7 +15,7 @@ SECTION = "## Use the trained chain on your own images"
 def _examples() -> list[str]:
     text = README.read_text()
     start = text.index(SECTION)
-    section = text[start:text.index("\n## ", start + len(SECTION))]
+    section = text[start : text.index("\n## ", start + len(SECTION))]
     return re.findall(r"```python\n(.*?)```", section, flags=re.S)
 
 
@@ -24,10 +25,14 @@ def test_the_readme_python_examples_run():
     assert len(examples) == 2 and "chain.track(images, commands, attitudes)" in examples[1]
     n = 3
     images = np.zeros((n, 90, 160, 3), np.uint8)
-    images[:, 35:55, 70:90] = 180                                # a lit target in view
-    scope = {"images": images, "commands": np.tile([0.0, 0.0, -0.5], (n, 1)), "attitudes": np.tile(np.eye(3), (n, 1, 1))}
+    images[:, 35:55, 70:90] = 180  # a lit target in view
+    scope = {
+        "images": images,
+        "commands": np.tile([0.0, 0.0, -0.5], (n, 1)),
+        "attitudes": np.tile(np.eye(3), (n, 1, 1)),
+    }
     for code in examples:
-        exec(compile(code, str(README), "exec"), scope)           # noqa: S102  (the README's own code)
+        exec(compile(code, str(README), "exec"), scope)  # noqa: S102  (the README's own code)
     assert scope["out"].position.shape == (n, 3)
     assert scope["trusted"].shape == (n, 3) and scope["pl"].shape == (n,) and scope["available"].dtype == bool
 

@@ -1,4 +1,5 @@
 """The README's results block is a copy of reports/README.md's, and `rpod report --check` catches drift."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -26,7 +27,8 @@ def test_check_flags_a_drifted_readme(tmp_path, monkeypatch, drift):
     table = "| result | this run |\n|---|---|\n| pose (m) | 0.48 |"
     bullets = "- **Scale.** 3,900 images"
     (tmp_path / "reports" / "README.md").write_text(
-        replace_block(replace_block("# results\n", "results", table), "differences", bullets))
+        replace_block(replace_block("# results\n", "results", table), "differences", bullets)
+    )
     readme = replace_block("# rpodguard\n", "results", table.replace("0.48", "0.50") if drift else table)
     (tmp_path / "README.md").write_text(replace_block(readme, "differences", bullets))
     monkeypatch.chdir(tmp_path)

@@ -1,6 +1,7 @@
 """`rpod remote add`, end to end: a small DVC project pushed to a real S3 API (moto's server, on 127.0.0.1 only,
 stopped at the end) and to a local folder, pulled into a fresh clone, `dvc status` clean and the files
 identical; addresses that can't be used are refused with one line and leave .dvc/config as it was."""
+
 from __future__ import annotations
 
 import os
@@ -16,8 +17,12 @@ moto_server = pytest.importorskip("moto.server", reason="the test extra (moto[se
 
 REPO = Path(__file__).resolve().parents[1]
 BUCKET = "rpod-remote-test"
-FILES = {"data/table.csv": b"a,b\n1,2\n", "data/images/0.bin": bytes(range(256)) * 8,
-         "data/images/1.bin": b"\x00\xff" * 1000, "data/images/sub/2.txt": b"nested\n"}
+FILES = {
+    "data/table.csv": b"a,b\n1,2\n",
+    "data/images/0.bin": bytes(range(256)) * 8,
+    "data/images/1.bin": b"\x00\xff" * 1000,
+    "data/images/sub/2.txt": b"nested\n",
+}
 
 
 @pytest.fixture(scope="module")
@@ -25,11 +30,21 @@ def env(tmp_path_factory) -> dict[str, str]:
     """Subprocess environment: this tree first, dummy S3 credentials, no AWS files or instance metadata, a git
     identity."""
     home = tmp_path_factory.mktemp("home")
-    return {**os.environ, "PYTHONPATH": str(REPO), "AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing",
-            "AWS_DEFAULT_REGION": "us-east-1", "AWS_EC2_METADATA_DISABLED": "true",
-            "AWS_CONFIG_FILE": str(home / "aws-config"), "AWS_SHARED_CREDENTIALS_FILE": str(home / "aws-credentials"),
-            "DVC_NO_ANALYTICS": "1", "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@example.org",
-            "GIT_COMMITTER_NAME": "t", "GIT_COMMITTER_EMAIL": "t@example.org"}
+    return {
+        **os.environ,
+        "PYTHONPATH": str(REPO),
+        "AWS_ACCESS_KEY_ID": "testing",
+        "AWS_SECRET_ACCESS_KEY": "testing",
+        "AWS_DEFAULT_REGION": "us-east-1",
+        "AWS_EC2_METADATA_DISABLED": "true",
+        "AWS_CONFIG_FILE": str(home / "aws-config"),
+        "AWS_SHARED_CREDENTIALS_FILE": str(home / "aws-credentials"),
+        "DVC_NO_ANALYTICS": "1",
+        "GIT_AUTHOR_NAME": "t",
+        "GIT_AUTHOR_EMAIL": "t@example.org",
+        "GIT_COMMITTER_NAME": "t",
+        "GIT_COMMITTER_EMAIL": "t@example.org",
+    }
 
 
 @pytest.fixture(scope="module")
@@ -42,8 +57,13 @@ def endpoint(env):
     try:
         host, port = server.get_host_and_port()
         url = f"http://{host}:{port}"
-        boto3.client("s3", endpoint_url=url, region_name="us-east-1", aws_access_key_id="testing",
-                     aws_secret_access_key="testing").create_bucket(Bucket=BUCKET)
+        boto3.client(
+            "s3",
+            endpoint_url=url,
+            region_name="us-east-1",
+            aws_access_key_id="testing",
+            aws_secret_access_key="testing",
+        ).create_bucket(Bucket=BUCKET)
         yield url
     finally:
         server.stop()
@@ -75,8 +95,14 @@ def _dvc(args: list[str], cwd: Path, env: dict[str, str]) -> subprocess.Complete
 
 
 def _rpod_remote(cwd: Path, env: dict[str, str], *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "stages.cli", "remote", "add", *args], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=60)
+    return subprocess.run(
+        [sys.executable, "-m", "stages.cli", "remote", "add", *args],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
 
 
 def _round_trip(origin: Path, env: dict[str, str], clone: Path) -> None:
@@ -84,7 +110,7 @@ def _round_trip(origin: Path, env: dict[str, str], clone: Path) -> None:
     _run(["git", "commit", "-qam", "remote"], origin, env)
     _dvc(["push", "-q"], origin, env)
     _run(["git", "clone", "-q", str(origin), str(clone)], clone.parent, env)
-    assert not (clone / "data/table.csv").exists()         # git holds only the .dvc files
+    assert not (clone / "data/table.csv").exists()  # git holds only the .dvc files
     _dvc(["pull", "-q"], clone, env)
     for name, data in FILES.items():
         assert (clone / name).read_bytes() == data, name
@@ -100,16 +126,21 @@ def test_s3_remote_push_then_pull_in_a_fresh_clone(origin, endpoint, env, tmp_pa
     assert done.returncode == 0, done.stderr
     config = (origin / ".dvc/config").read_text()
     assert "remote = storage" in config and f"url = s3://{BUCKET}/cache" in config
-    assert f"endpointurl = {endpoint}" in config and "testing" not in config     # no credentials written
+    assert f"endpointurl = {endpoint}" in config and "testing" not in config  # no credentials written
     _round_trip(origin, env, tmp_path / "clone")
-    s3 = boto3.client("s3", endpoint_url=endpoint, region_name="us-east-1", aws_access_key_id="testing",
-                      aws_secret_access_key="testing")
+    s3 = boto3.client(
+        "s3",
+        endpoint_url=endpoint,
+        region_name="us-east-1",
+        aws_access_key_id="testing",
+        aws_secret_access_key="testing",
+    )
     keys = [o["Key"] for o in s3.list_objects_v2(Bucket=BUCKET).get("Contents", [])]
     assert len(keys) >= len(FILES) and all(k.startswith("cache/") for k in keys)
 
 
 def test_local_folder_remote_round_trip(origin, env, tmp_path):
-    store = tmp_path / "store" / "dvc"                      # created by the command
+    store = tmp_path / "store" / "dvc"  # created by the command
     done = _rpod_remote(origin, env, str(store))
     assert done.returncode == 0, done.stderr
     assert f"remote 'storage' -> {store}" in done.stdout
@@ -158,15 +189,24 @@ def test_an_empty_http_remote_is_accepted(origin, env, web):
         (origin / ".dvc/config").write_text(before)
 
 
-@pytest.mark.parametrize("args, message", [
-    (["s3://rpod-remote-test/x", "--endpoint", "http://127.0.0.1:{closed}"], "cannot reach 127.0.0.1:{closed}"),
-    (["http://127.0.0.1:{closed}/store"], "cannot reach 127.0.0.1:{closed}"),
-    (["{web}/upgrade/store"], "{web}/upgrade/store did not answer as a DVC remote can use (ConnectionError: HTTP 426"),
-    (["{web}/private/store"], "access to {web}/private/store denied"),
-    (["s3://no-such-bucket/x", "--endpoint", "{endpoint}"], "s3 bucket 'no-such-bucket' at {endpoint} does not exist"),
-    (["ftp://example.org/store"], "DVC cannot use ftp://example.org/store: Unsupported URL type"),
-    (["{blocked}/sub"], "cannot create the folder"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["s3://rpod-remote-test/x", "--endpoint", "http://127.0.0.1:{closed}"], "cannot reach 127.0.0.1:{closed}"),
+        (["http://127.0.0.1:{closed}/store"], "cannot reach 127.0.0.1:{closed}"),
+        (
+            ["{web}/upgrade/store"],
+            "{web}/upgrade/store did not answer as a DVC remote can use (ConnectionError: HTTP 426",
+        ),
+        (["{web}/private/store"], "access to {web}/private/store denied"),
+        (
+            ["s3://no-such-bucket/x", "--endpoint", "{endpoint}"],
+            "s3 bucket 'no-such-bucket' at {endpoint} does not exist",
+        ),
+        (["ftp://example.org/store"], "DVC cannot use ftp://example.org/store: Unsupported URL type"),
+        (["{blocked}/sub"], "cannot create the folder"),
+    ],
+)
 def test_unusable_addresses_are_refused_with_one_line(origin, endpoint, web, env, tmp_path, args, message):
     blocked = tmp_path / "a-file"
     blocked.write_text("not a folder")

@@ -1,4 +1,5 @@
 """Blender scene tests: the rendered image agrees with K and the label pose to well under 1 px."""
+
 import base64
 import json
 
@@ -19,10 +20,16 @@ K160 = reference_intrinsics().scaled(160, 90)
 def sphere(centre, radius, n=24):
     """Vertices and quad faces (0-based) of a UV sphere."""
     th, ph = np.linspace(0, np.pi, n // 2 + 1), np.linspace(0, 2 * np.pi, n, endpoint=False)
-    v = [np.asarray(centre) + radius * np.array([np.sin(a) * np.cos(b), np.sin(a) * np.sin(b), np.cos(a)])
-         for a in th for b in ph]
-    f = [(i * n + j, i * n + (j + 1) % n, (i + 1) * n + (j + 1) % n, (i + 1) * n + j)
-         for i in range(n // 2) for j in range(n)]
+    v = [
+        np.asarray(centre) + radius * np.array([np.sin(a) * np.cos(b), np.sin(a) * np.sin(b), np.cos(a)])
+        for a in th
+        for b in ph
+    ]
+    f = [
+        (i * n + j, i * n + (j + 1) % n, (i + 1) * n + (j + 1) % n, (i + 1) * n + j)
+        for i in range(n // 2)
+        for j in range(n)
+    ]
     return np.array(v), f
 
 
@@ -44,15 +51,32 @@ def write_gltf(path, v, quads):
     pos = v.astype(np.float32).tobytes()
     idx = tris.tobytes()
     doc = {
-        "asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
+        "asset": {"version": "2.0"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0}],
         "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1}]}],
-        "buffers": [{"byteLength": len(pos) + len(idx),
-                     "uri": "data:application/octet-stream;base64," + base64.b64encode(pos + idx).decode()}],
-        "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": len(pos), "target": 34962},
-                        {"buffer": 0, "byteOffset": len(pos), "byteLength": len(idx), "target": 34963}],
-        "accessors": [{"bufferView": 0, "componentType": 5126, "count": len(v), "type": "VEC3",
-                       "min": v.min(0).tolist(), "max": v.max(0).tolist()},
-                      {"bufferView": 1, "componentType": 5125, "count": tris.size, "type": "SCALAR"}],
+        "buffers": [
+            {
+                "byteLength": len(pos) + len(idx),
+                "uri": "data:application/octet-stream;base64," + base64.b64encode(pos + idx).decode(),
+            }
+        ],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": len(pos), "target": 34962},
+            {"buffer": 0, "byteOffset": len(pos), "byteLength": len(idx), "target": 34963},
+        ],
+        "accessors": [
+            {
+                "bufferView": 0,
+                "componentType": 5126,
+                "count": len(v),
+                "type": "VEC3",
+                "min": v.min(0).tolist(),
+                "max": v.max(0).tolist(),
+            },
+            {"bufferView": 1, "componentType": 5125, "count": tris.size, "type": "SCALAR"},
+        ],
     }
     path.write_text(json.dumps(doc))
     return str(path)
@@ -95,9 +119,11 @@ def test_gltf_and_obj_agree_and_mesh_scale(tmp_path):
     v, quads = box([0.5, 0.2, -0.3], [1.5, 0.8, 0.1])
     R, t = euler_to_matrix(np.array([10.0, 25.0, -5.0])), np.array([0.3, 0.2, 8.0])
     alphas = {}
-    for name, path, scale in [("obj", write_obj(tmp_path / "b.obj", v, quads), 1.0),
-                              ("gltf", write_gltf(tmp_path / "b.gltf", v, quads), 1.0),
-                              ("half", write_obj(tmp_path / "h.obj", 2 * v, quads), 0.5)]:
+    for name, path, scale in [
+        ("obj", write_obj(tmp_path / "b.obj", v, quads), 1.0),
+        ("gltf", write_gltf(tmp_path / "b.gltf", v, quads), 1.0),
+        ("half", write_obj(tmp_path / "h.obj", 2 * v, quads), 0.5),
+    ]:
         with Renderer(K160, SceneSettings(mesh=path, mesh_scale=scale, **FAST)) as r:
             alphas[name] = r.render_with_alpha(R, t)[1] > 0.5
     a = alphas["obj"]
@@ -113,7 +139,7 @@ def test_procedural_satellite_is_visible_and_sunlit():
     with Renderer(K160, SceneSettings(samples=4, denoiser="NONE")) as r:
         far, a_far = r.render_with_alpha(np.eye(3), np.array([0, 0, 60.0]))
         near, a_near = r.render_with_alpha(np.eye(3), np.array([0, 0, 10.0]))
-        r.set_sun((0, 0, 1.0), 6.0)   # light travels from the camera to the target
+        r.set_sun((0, 0, 1.0), 6.0)  # light travels from the camera to the target
         lit = r.render(np.eye(3), np.array([0, 0, 20.0]))
         r.set_sun((0, 0, -1.0), 6.0)  # light from behind the target
         back = r.render(np.eye(3), np.array([0, 0, 20.0]))

@@ -1,6 +1,7 @@
 """`render.device` (issue 38, item 6): Cycles on the CPU, on a CUDA / OptiX GPU, or the GPU when bpy sees one; `auto`
 falls back to the CPU with a note on a machine without one, `gpu` is refused there, the CPU path is unchanged and the
 choice is recorded in the render metadata."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -22,8 +23,12 @@ def test_the_device_is_resolved_as_asked():
     assert resolve_device("cpu", _never).device == "CPU"
     cuda = resolve_device("auto", lambda: "CUDA")
     assert (cuda.device, cuda.backend, cuda.note) == ("GPU", "CUDA", None)
-    assert resolve_device("gpu", lambda: "OPTIX").record("gpu") == {"requested": "gpu", "used": "gpu",
-                                                                    "backend": "OPTIX", "note": None}
+    assert resolve_device("gpu", lambda: "OPTIX").record("gpu") == {
+        "requested": "gpu",
+        "used": "gpu",
+        "backend": "OPTIX",
+        "note": None,
+    }
     fallback = resolve_device("auto", lambda: None)
     assert fallback.device == "CPU" and "no OptiX or CUDA device" in fallback.note
     with pytest.raises(ValueError, match="bpy sees no OptiX or CUDA device"):

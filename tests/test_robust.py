@@ -1,5 +1,6 @@
 """The robust pose model (issue 28): the black-level clamp inside the network, the cosine schedule and the
 weights' moving average, PGD-k adversarial training, the attacked-error table, `rpod train --robust`."""
+
 from __future__ import annotations
 
 import copy
@@ -47,8 +48,8 @@ def test_the_clamp_is_inside_the_model_and_zeroes_the_gradient_on_black_pixels(t
     torch.manual_seed(0)
     model = PoseNet(0.125, 0.0, black_level=0.07).eval()
     x = torch.zeros(4, 3, H, W)
-    x[:, :, 10:17, 20:30] = torch.rand(4, 3, 7, 10) * 0.9 + 0.1      # a bright target on black
-    x[:, :, 0, :5] = 0.069                                           # dark pixels just under t
+    x[:, :, 10:17, 20:30] = torch.rand(4, 3, 7, 10) * 0.9 + 0.1  # a bright target on black
+    x[:, :, 0, :5] = 0.069  # dark pixels just under t
     x = x.requires_grad_(True)
     loss = attack_loss("position", PoseLoss())
     (grad,) = torch.autograd.grad(loss(model(x), _target()), x)
@@ -78,8 +79,8 @@ def test_the_cosine_schedule_reaches_its_floor_at_the_last_step():
         sched.step()
     assert used[0] == pytest.approx([1e-4, 1e-3]) and used[5] == pytest.approx([1e-3, 1e-2])
     assert used[-1] == pytest.approx([1e-6, 1e-5]) and min(u[0] for u in used) == pytest.approx(1e-6)
-    assert all(a[0] >= b[0] for a, b in zip(used[5:], used[6:]))            # monotone after the warm-up
-    assert cosine_factor(80, 50, 5, 1e-4, 1e-3, 1e-6) * 1e-3 == pytest.approx(1e-6)   # held after the end
+    assert all(a[0] >= b[0] for a, b in zip(used[5:], used[6:]))  # monotone after the warm-up
+    assert cosine_factor(80, 50, 5, 1e-4, 1e-3, 1e-6) * 1e-3 == pytest.approx(1e-6)  # held after the end
 
 
 def test_ema_weights_are_what_is_validated_and_kept(dataset):
@@ -94,8 +95,9 @@ def test_ema_weights_are_what_is_validated_and_kept(dataset):
             kept.update({k: v.clone() for k, v in net.state_dict().items()})
 
     cfg = TrainConfig(epochs=3, batch_size=8, schedule="cosine", warmup_epochs=0, ema=0.9)
-    result = fit(model, PoseLoss(), data.pose_dataset(train), data.pose_dataset(test), cfg, on_epoch=on_epoch,
-                 progress=False)
+    result = fit(
+        model, PoseLoss(), data.pose_dataset(train), data.pose_dataset(test), cfg, on_epoch=on_epoch, progress=False
+    )
     assert result.history[-1].lr == pytest.approx(cfg.lr_min)
     for k, v in result.best_state.items():
         torch.testing.assert_close(v, kept[k])
@@ -110,7 +112,7 @@ def test_weight_ema_averages_with_a_warm_up():
     ema = WeightEMA(net, 0.5)
     with torch.no_grad():
         net.weight.fill_(1.0)
-    ema.update(net)   # d = min(0.5, 2 / 11)
+    ema.update(net)  # d = min(0.5, 2 / 11)
     assert ema.model.weight.item() == pytest.approx(1 - 2 / 11)
     with pytest.raises(ValueError, match="EMA decay"):
         WeightEMA(net, 1.0)
@@ -122,19 +124,31 @@ def test_adversarial_training_lowers_the_pgd_error(dataset):
     make_deterministic(0)
     model, loss = PoseNet(0.125, 0.0), PoseLoss()
     model.set_output_bias(train.targets[:, :3].mean(0), train.targets[:, 3:].mean(0))
-    fit(model, loss, fit_set, val_set, TrainConfig(epochs=6, batch_size=8, lr_max=2e-3, schedule="cosine",
-                                                   warmup_epochs=0), progress=False)
+    fit(
+        model,
+        loss,
+        fit_set,
+        val_set,
+        TrainConfig(epochs=6, batch_size=8, lr_max=2e-3, schedule="cosine", warmup_epochs=0),
+        progress=False,
+    )
 
     def tuned(adversarial: bool) -> dict[str, float]:
-        m, l = copy.deepcopy(model), copy.deepcopy(loss)
+        m, lo = copy.deepcopy(model), copy.deepcopy(loss)
         cfg = TrainConfig(epochs=3, batch_size=8, lr_max=5e-4, schedule="cosine", warmup_epochs=0, seed=1)
-        adv = Adversary(AdversarialConfig(eps=0.05, steps=2, ramp_epochs=0, val_frames=8, val_steps=2), l,
-                        len(fit_set) // 8, 1) if adversarial else None
-        result = fit(m, l, fit_set, val_set, cfg, progress=False, adversary=adv)
+        adv = (
+            Adversary(
+                AdversarialConfig(eps=0.05, steps=2, ramp_epochs=0, val_frames=8, val_steps=2), lo, len(fit_set) // 8, 1
+            )
+            if adversarial
+            else None
+        )
+        result = fit(m, lo, fit_set, val_set, cfg, progress=False, adversary=adv)
         assert (result.history[0].val_adv_pos_m == result.history[0].val_adv_pos_m) == adversarial
         m.load_state_dict(result.best_state)
-        pgd10 = run_suite(m, np.asarray(test.images), test.targets, [0.05], SuiteConfig(("pgd/position",), steps=10,
-                                                                                         restarts=1))
+        pgd10 = run_suite(
+            m, np.asarray(test.images), test.targets, [0.05], SuiteConfig(("pgd/position",), steps=10, restarts=1)
+        )
         return {"clean": pgd10.clean["position_m"].mean(), "pgd-10": pgd10.errors["position_m"][0, 0].mean()}
 
     plain, robust = tuned(False), tuned(True)
@@ -159,7 +173,7 @@ def test_attacked_images_can_leave_the_rotation_term():
     assert Adversary(AdversarialConfig(fraction=0.5), PoseLoss(), 1, 0).skip_rotation(8) == 0
     loss, target = PoseLoss(), _target(4)
     pred = target.clone()
-    pred[:2, 3:] += 1.0                   # wrong rotations on the two attacked rows only
+    pred[:2, 3:] += 1.0  # wrong rotations on the two attacked rows only
     assert loss(pred, target, skip_rotation=2).item() == pytest.approx(0.0)
     assert loss(pred, target).item() > 0
     with pytest.raises(ValueError, match="needs fraction < 1"):
@@ -169,7 +183,7 @@ def test_attacked_images_can_leave_the_rotation_term():
 def test_black_level_stats_measure_the_render_and_the_lab_background():
     images = np.zeros((5, 40, 60, 3), np.uint8)
     images[:, 15:25, 25:35] = 200
-    images[:, 15, 25:35] = 10                  # a dark rim of the target, below t = 0.07
+    images[:, 15, 25:35] = 10  # a dark rim of the target, below t = 0.07
     b = black_level_stats(images, 0.07, 0.02, 0.0, seed=0)
     assert b["render_black"] == pytest.approx(1 - 100 / 2400) and b["target_erased"] == pytest.approx(0.1)
     assert 0.05 < b["lab_black_999"] < 0.08 and 0 < b["lab_passed"] < 0.01
@@ -179,8 +193,11 @@ def test_tilt_and_roll_split_the_attitude_error_about_the_line_of_sight():
     from pipeline.geometry.rotations import matrix_to_6d, rotvec_to_matrix
 
     t = np.array([[0.0, 0.0, 30.0]] * 3)
-    r = [rotvec_to_matrix([0, 0, np.deg2rad(4)]), rotvec_to_matrix([np.deg2rad(3), 0, 0]),
-         rotvec_to_matrix([0, np.deg2rad(3), np.deg2rad(4)])]
+    r = [
+        rotvec_to_matrix([0, 0, np.deg2rad(4)]),
+        rotvec_to_matrix([np.deg2rad(3), 0, 0]),
+        rotvec_to_matrix([0, np.deg2rad(3), np.deg2rad(4)]),
+    ]
     pred = np.concatenate([t, matrix_to_6d(np.stack(r))], 1)
     target = np.concatenate([t, matrix_to_6d(np.stack([np.eye(3)] * 3))], 1)
     tilt, roll = tilt_roll_deg(pred, target)
@@ -189,17 +206,24 @@ def test_tilt_and_roll_split_the_attitude_error_about_the_line_of_sight():
     assert 2.5 < tilt[2] < 3.5 and 3.5 < roll[2] < 4.5
 
 
-@pytest.mark.parametrize("key, value, message", [
-    ("eps", 0.0, r"train.adversarial.eps must be a positive number in \(0, 1\]"),
-    ("eps", 1.5, r"train.adversarial.eps must be a positive number in \(0, 1\]"),
-    ("steps", 0, r"train.adversarial.steps must be a positive whole number in \[1, 1000\]"),
-    ("black_level", 0.03, r"train.adversarial: black_level \(0.03\) must exceed eps \(0.05\)"),
-    ("black_level", 1.0, r"train.adversarial.black_level must be a number in \[0, 1\)"),
-    ("fraction", 1.0, r"train.adversarial: attacked_rotation: false needs fraction < 1"),   # the default is false
-    ("start", "lift", r"train.adversarial: black_level \(0.03\) must exceed eps \(0.05\) unless start: lift and "
-                      r"bpda: true"),                                                    # black_level 0.03, bpda off
-    ("objectives", ["speed"], r"train.adversarial.objectives"),
-])
+@pytest.mark.parametrize(
+    "key, value, message",
+    [
+        ("eps", 0.0, r"train.adversarial.eps must be a positive number in \(0, 1\]"),
+        ("eps", 1.5, r"train.adversarial.eps must be a positive number in \(0, 1\]"),
+        ("steps", 0, r"train.adversarial.steps must be a positive whole number in \[1, 1000\]"),
+        ("black_level", 0.03, r"train.adversarial: black_level \(0.03\) must exceed eps \(0.05\)"),
+        ("black_level", 1.0, r"train.adversarial.black_level must be a number in \[0, 1\)"),
+        ("fraction", 1.0, r"train.adversarial: attacked_rotation: false needs fraction < 1"),  # the default is false
+        (
+            "start",
+            "lift",
+            r"train.adversarial: black_level \(0.03\) must exceed eps \(0.05\) unless start: lift and "
+            r"bpda: true",
+        ),  # black_level 0.03, bpda off
+        ("objectives", ["speed"], r"train.adversarial.objectives"),
+    ],
+)
 def test_bad_adversarial_params_are_refused_in_one_line_naming_the_key(tmp_path, monkeypatch, key, value, message):
     monkeypatch.chdir(tmp_path)
     p = params_mod.compose("smoke")
@@ -215,8 +239,9 @@ def test_bad_adversarial_params_are_refused_in_one_line_naming_the_key(tmp_path,
 def test_a_budget_past_the_clamp_is_accepted_with_the_lifting_start_and_bpda(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     p = params_mod.compose("smoke")
-    p["train"]["adversarial"].update(eps=0.1, black_level=0.07, start="lift", bpda=True, objectives=["position", "attitude"],
-                                     attacked_rotation=True)
+    p["train"]["adversarial"].update(
+        eps=0.1, black_level=0.07, start="lift", bpda=True, objectives=["position", "attitude"], attacked_rotation=True
+    )
     params_mod.write_params(p)
     a = adversarial_config(params_mod.load().train.adversarial)
     assert a.unmasked() and a.eps == 0.1 and a.objectives == ("position", "attitude")
@@ -229,10 +254,13 @@ def test_robust_stage_writes_the_model_its_page_and_a_loader_reads_it(dataset):
     main(params_mod.load(), robust=True)
     m = json.loads(Path("reports/metrics/robust.json").read_text())
     assert m["standard"]["test"]["n"] == m["robust"]["test"]["n"] == 16 and m["robust"]["suite"]["frames"] == 8
-    for name in ("standard", "robust"):   # the suite's worst case per eps, each member's rows and the checks
+    for name in ("standard", "robust"):  # the suite's worst case per eps, each member's rows and the checks
         table = m[name]["suite"]
         assert [(r["attack"], r["eps"]) for r in table["rows"] if r["attack"] in ("clean", "suite")] == [
-            ("clean", 0.0), ("suite", 0.01), ("suite", 0.1)]
+            ("clean", 0.0),
+            ("suite", 0.01),
+            ("suite", 0.1),
+        ]
         assert {r["attack"] for r in table["rows"]} == {"clean", "suite", "bpda/position", "bpda/attitude"}
         assert len(table["sanity"]) == 4 and all(r["ok"] for r in table["sanity"])
         assert table["stability"]["frames"] == table["full_check"]["frames"] == 2
@@ -245,10 +273,10 @@ def test_robust_stage_writes_the_model_its_page_and_a_loader_reads_it(dataset):
         assert set(frames["index"]) == set(val.labels["index"]) and not set(frames["index"]) & test
         assert len(frames) == 2 * len(val) and [c.eps for c in overbounds] == [0.01, 0.05] and meta["split"] == "val"
         wide = frames.pivot(index="index", columns="eps", values="along_m")
-        assert (wide[0.05] >= wide[0.01]).all()                             # nested in eps
+        assert (wide[0.05] >= wide[0.01]).all()  # nested in eps
         assert m["capacity"][name]["per_eps"][0]["count"] == [len(val)]
     assert m["robust"]["train_minutes"] > 0 and m["standard"]["train_minutes"] > 0
-    a = params_mod.load().train.adversarial   # 1 epoch each; PGD-k on a share of each batch
+    a = params_mod.load().train.adversarial  # 1 epoch each; PGD-k on a share of each batch
     assert m["robust"]["gradients"] == round((1 + a.steps * a.fraction) * m["standard"]["gradients"]) > 0
     page = Path("reports/pose_robust.md").read_text()
     assert "Black-level clamp t = 0.07" in page and "## Under the strongest attack suite" in page
@@ -257,12 +285,17 @@ def test_robust_stage_writes_the_model_its_page_and_a_loader_reads_it(dataset):
     assert pose.model.black_level == 0.07 and pose.model(torch.rand(1, 3, H, W)).shape == (1, 9)
     assert list(Path("dvclive/robust").glob("**/val_adv_pos_m.tsv"))
     other = params_mod.load()
-    other = dataclasses.replace(other, train=dataclasses.replace(
-        other.train, adversarial=dataclasses.replace(other.train.adversarial, black_level=0.08)))
+    other = dataclasses.replace(
+        other,
+        train=dataclasses.replace(
+            other.train, adversarial=dataclasses.replace(other.train.adversarial, black_level=0.08)
+        ),
+    )
     with pytest.raises(StageError, match=r"black_level=0.07 \(params: 0.08\)"):
         models.load_pose(other, POSE_ROBUST)
     # `rpod suite` (optional/dvc.yaml): the full suite and the lean one on every test frame of both models
     from stages.suite import main as suite
+
     suite(params_mod.load())
     full = json.loads(Path("reports/metrics/suite.json").read_text())["models"]["robust"]
     assert full["full"]["frames"] == full["lean"]["frames"] == 16 and len(full["full"]["members"]) == 12

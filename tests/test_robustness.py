@@ -1,4 +1,5 @@
 """Robustness stage: adaptive attack through the chain, corruptions, rows and their intervals, bad params."""
+
 from __future__ import annotations
 
 import copy
@@ -11,11 +12,11 @@ import torch
 from torch import nn
 
 from pipeline.attacks.adaptive import PerFrameChain, adaptive_objective, adaptive_pgd, check_lambdas
-from pipeline.attacks.gradient import pgd, quantize
 from pipeline.attacks.corruptions import CORRUPTIONS, corrupt
+from pipeline.attacks.gradient import pgd, quantize
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
-from pipeline.pose.loss import PoseLoss
 from pipeline.evaluation.robustness import attack_row, corruption_row, worst_by_eps, worst_over_lambda
+from pipeline.pose.loss import PoseLoss
 from pipeline.shap import ExactShap
 from stages.config.params import load
 
@@ -27,9 +28,15 @@ class TinyPose(nn.Module):
 
     def __init__(self) -> None:
         super().__init__()
-        self.features = nn.Sequential(nn.Conv2d(3, 8, 3, padding=1), nn.BatchNorm2d(8), nn.LeakyReLU(0.1),
-                                      nn.Conv2d(8, D, 3, stride=2, padding=1), nn.LeakyReLU(0.1),
-                                      nn.AdaptiveAvgPool2d(1), nn.Flatten())
+        self.features = nn.Sequential(
+            nn.Conv2d(3, 8, 3, padding=1),
+            nn.BatchNorm2d(8),
+            nn.LeakyReLU(0.1),
+            nn.Conv2d(8, D, 3, stride=2, padding=1),
+            nn.LeakyReLU(0.1),
+            nn.AdaptiveAvgPool2d(1),
+            nn.Flatten(),
+        )
         self.head = nn.Linear(D, 9)
 
     def forward_features(self, x: torch.Tensor) -> torch.Tensor:
@@ -156,8 +163,9 @@ def test_rows_refuse_nan_and_shape_mismatch() -> None:
 
 
 def test_corruption_row_false_alarms() -> None:
-    row = corruption_row("jpeg", 40, np.array([0.1, 0.2, 0.3, 0.4]), np.array([0, 1, 0, 0], bool),
-                         np.array([0, 0, 0, 0], bool))
+    row = corruption_row(
+        "jpeg", 40, np.array([0.1, 0.2, 0.3, 0.4]), np.array([0, 1, 0, 0], bool), np.array([0, 0, 0, 0], bool)
+    )
     assert row["false_alarm_rate"] == pytest.approx(0.25)
     assert row["shipped_false_alarm_rate"] == 0.0
     assert row["ci95_false_alarm"] == pytest.approx(list(_wilson(1, 4)), abs=1e-9)
@@ -179,9 +187,11 @@ def test_worst_over_lambda_keeps_the_attackers_best_image_per_frame() -> None:
 
 def test_worst_by_eps_picks_the_highest_harmful_undetected_row_per_eps() -> None:
     pos, none, some = np.full(10, 2.0), np.zeros(10, bool), np.arange(10) < 6
-    rows = [attack_row("fgsm", "seen", 0.05, pos, some, 1.0),
-            attack_row("adaptive pgd", "adaptive", 0.05, pos, none, 1.0, 10),
-            attack_row("pgd", "transfer", 0.01, pos, some, 1.0)]
+    rows = [
+        attack_row("fgsm", "seen", 0.05, pos, some, 1.0),
+        attack_row("adaptive pgd", "adaptive", 0.05, pos, none, 1.0, 10),
+        attack_row("pgd", "transfer", 0.01, pos, some, 1.0),
+    ]
     worst = worst_by_eps(rows)
     assert set(worst) == {"0.05", "0.01"}
     assert worst["0.05"]["attack"] == "adaptive pgd" and worst["0.05"]["lambda"] == 10.0
@@ -194,8 +204,9 @@ def frames() -> np.ndarray:
     return rng.integers(20, 230, size=(3, 18, 32, 3), dtype=np.uint8)
 
 
-@pytest.mark.parametrize("name,strength", [("noise", 0.03), ("blur", 1.5), ("jpeg", 40), ("brightness", 1.4),
-                                           ("contrast", 0.7)])
+@pytest.mark.parametrize(
+    "name,strength", [("noise", 0.03), ("blur", 1.5), ("jpeg", 40), ("brightness", 1.4), ("contrast", 0.7)]
+)
 def test_corruptions_change_frames_deterministically(frames: np.ndarray, name: str, strength: float) -> None:
     out = corrupt(name, strength, seed=3)(frames)
     assert out.dtype == np.uint8 and out.shape == frames.shape
@@ -216,8 +227,15 @@ def test_corruption_strengths_have_their_units(frames: np.ndarray) -> None:
     assert set(CORRUPTIONS) == {"noise", "blur", "jpeg", "brightness", "contrast"}
 
 
-@pytest.mark.parametrize("name,strength,match", [("fog", 1.0, "unknown corruption"), ("jpeg", 0, "out of range"),
-                                                 ("noise", -0.1, "out of range"), ("blur", float("nan"), "out of range")])
+@pytest.mark.parametrize(
+    "name,strength,match",
+    [
+        ("fog", 1.0, "unknown corruption"),
+        ("jpeg", 0, "out of range"),
+        ("noise", -0.1, "out of range"),
+        ("blur", float("nan"), "out of range"),
+    ],
+)
 def test_bad_corruptions_refused(name: str, strength: float, match: str) -> None:
     with pytest.raises(ValueError, match=match):
         corrupt(name, strength)
@@ -229,19 +247,22 @@ def _params() -> dict:
     return compose("smoke")
 
 
-@pytest.mark.parametrize("key,value,match", [
-    ("transfer", ["pgd", "cw"], r"robustness: transfer: unknown attack 'cw'"),
-    ("transfer", ["fgsm/angle"], r"robustness: transfer: unknown attack 'fgsm/angle'"),
-    ("surrogate_attacks", ["deepfool"], r"robustness: surrogate_attacks: unknown attack"),
-    ("lambdas", [0, -1, 10], r"robustness: lambdas must be"),
-    ("eps", [0.05, 1.5], r"robustness: eps: 1\.5 is not in \(0, 1\]"),
-    ("eps", [0.0], r"robustness: eps: 0\.0 is not in \(0, 1\]"),
-    ("unseen_eps", [-0.2], r"robustness: unseen_eps"),
-    ("steps", 5, r"robustness: steps"),
-    ("harm_m", 0, r"robustness: harm_m"),
-    ("corruptions", {"jpeg": [0]}, r"robustness\.corruptions: jpeg"),
-    ("corruptions", {"fog": [1]}, r"unknown parameter 'robustness\.corruptions\.fog'"),
-])
+@pytest.mark.parametrize(
+    "key,value,match",
+    [
+        ("transfer", ["pgd", "cw"], r"robustness: transfer: unknown attack 'cw'"),
+        ("transfer", ["fgsm/angle"], r"robustness: transfer: unknown attack 'fgsm/angle'"),
+        ("surrogate_attacks", ["deepfool"], r"robustness: surrogate_attacks: unknown attack"),
+        ("lambdas", [0, -1, 10], r"robustness: lambdas must be"),
+        ("eps", [0.05, 1.5], r"robustness: eps: 1\.5 is not in \(0, 1\]"),
+        ("eps", [0.0], r"robustness: eps: 0\.0 is not in \(0, 1\]"),
+        ("unseen_eps", [-0.2], r"robustness: unseen_eps"),
+        ("steps", 5, r"robustness: steps"),
+        ("harm_m", 0, r"robustness: harm_m"),
+        ("corruptions", {"jpeg": [0]}, r"robustness\.corruptions: jpeg"),
+        ("corruptions", {"fog": [1]}, r"unknown parameter 'robustness\.corruptions\.fog'"),
+    ],
+)
 def test_bad_params_stop_with_one_message(key: str, value: object, match: str) -> None:
     from stages.config.schema import build
     from stages.config.sections import ParamsError

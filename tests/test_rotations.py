@@ -1,8 +1,15 @@
 import numpy as np
-import pytest
 
-from pipeline.geometry.rotations import (euler_to_matrix, matrix_to_6d, matrix_to_quat, normalize_quat, quat_to_6d,
-                                         quat_to_matrix, sixd_to_matrix, sixd_to_quat)
+from pipeline.geometry.rotations import (
+    euler_to_matrix,
+    matrix_to_6d,
+    matrix_to_quat,
+    normalize_quat,
+    quat_to_6d,
+    quat_to_matrix,
+    sixd_to_matrix,
+    sixd_to_quat,
+)
 from pipeline.pose.metrics import attitude_error_deg, position_error
 
 
@@ -56,11 +63,11 @@ def test_ray_rotation_takes_the_optical_axis_onto_the_ray_and_allocentric_round_
 
     rng = np.random.default_rng(0)
     t = np.concatenate([rng.normal(0, 5, (50, 2)), rng.uniform(10, 60, (50, 1))], 1)
-    t[0] = (0.0, 0.0, 30.0)                                               # on the axis: identity
+    t[0] = (0.0, 0.0, 30.0)  # on the axis: identity
     Rr = ray_rotation(t)
     assert np.allclose(Rr @ np.array([0.0, 0.0, 1.0]), t / np.linalg.norm(t, axis=1, keepdims=True))
     assert np.allclose(Rr @ np.swapaxes(Rr, 1, 2), np.eye(3)) and np.allclose(np.linalg.det(Rr), 1.0)
     assert np.allclose(Rr[0], np.eye(3))
     R = sixd_to_matrix(rng.normal(size=(50, 6)))
     assert np.allclose(to_egocentric(to_allocentric(R, t), t), R)
-    assert not np.allclose(to_allocentric(R[1:], t[1:]), R[1:])          # off the axis it differs
+    assert not np.allclose(to_allocentric(R[1:], t[1:]), R[1:])  # off the axis it differs

@@ -45,8 +45,8 @@ def test_metrics_on_a_hand_made_sequence():
     m = frame_metrics(np.array(attacked, bool), np.array(flagged, bool))
     # correct: frames 0,2,3,5,6,10 -> 6 of 12
     assert m.accuracy == pytest.approx(6 / 12)
-    assert m.tpr == pytest.approx(2 / 6)      # frames 2, 3 of 1,2,3,7,8,9
-    assert m.fpr == pytest.approx(2 / 6)      # frames 4, 11 of 0,4,5,6,10,11
+    assert m.tpr == pytest.approx(2 / 6)  # frames 2, 3 of 1,2,3,7,8,9
+    assert m.fpr == pytest.approx(2 / 6)  # frames 4, 11 of 0,4,5,6,10,11
     assert (m.frames, m.attacked, m.flagged) == (12, 6, 4)
     assert (m.bursts, m.missed_bursts) == (2, 1)
     assert m.mean_delay == pytest.approx(1.0)  # first burst starts at 1, first flag at 2

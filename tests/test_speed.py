@@ -1,5 +1,6 @@
 """SPEED / SPEED+ interop: the label and camera formats (pipeline/formats/speed.py), the import as `rpod render`'s
 output, `rpod export speed`, and one clear error per kind of bad input."""
+
 import json
 from dataclasses import replace
 
@@ -8,24 +9,27 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from pipeline.formats.speed import SPEED_CAMERA, camera_from_json, camera_to_json, from_speed, to_speed
 from pipeline.geometry.camera import Intrinsics
 from pipeline.geometry.rotations import normalize_quat, quat_to_matrix
-from pipeline.formats.speed import SPEED_CAMERA, camera_from_json, camera_to_json, from_speed, to_speed
-from stages.config import params as params_mod
 from pipeline.io.errors import DataError
+from stages.config import params as params_mod
 from stages.config.params import load
 
-SIZE = (48, 30)                                        # source images, Nu x Nv (16:10 like SPEED+)
+SIZE = (48, 30)  # source images, Nu x Nv (16:10 like SPEED+)
 K_SRC = Intrinsics(*SIZE, 60.0, 60.0, 24.0, 15.0)
 
 
 def speed_dcm(q):
     """SPEED's direction cosine matrix of q (camera -> target coordinates), written out from its definition."""
     q0, q1, q2, q3 = q / np.linalg.norm(q)
-    return np.array([
-        [q0 ** 2 + q1 ** 2 - q2 ** 2 - q3 ** 2, 2 * (q1 * q2 + q0 * q3), 2 * (q1 * q3 - q0 * q2)],
-        [2 * (q1 * q2 - q0 * q3), q0 ** 2 - q1 ** 2 + q2 ** 2 - q3 ** 2, 2 * (q2 * q3 + q0 * q1)],
-        [2 * (q1 * q3 + q0 * q2), 2 * (q2 * q3 - q0 * q1), q0 ** 2 - q1 ** 2 - q2 ** 2 + q3 ** 2]])
+    return np.array(
+        [
+            [q0**2 + q1**2 - q2**2 - q3**2, 2 * (q1 * q2 + q0 * q3), 2 * (q1 * q3 - q0 * q2)],
+            [2 * (q1 * q2 - q0 * q3), q0**2 - q1**2 + q2**2 - q3**2, 2 * (q2 * q3 + q0 * q1)],
+            [2 * (q1 * q3 + q0 * q2), 2 * (q2 * q3 - q0 * q1), q0**2 - q1**2 - q2**2 + q3**2],
+        ]
+    )
 
 
 def poses(n, seed=0):
@@ -37,9 +41,9 @@ def test_speed_quaternion_is_our_q():
     """SPEED projects target points as dcm(q).T @ x + r: the rotation our q gives (target -> camera)."""
     t, q = poses(20)
     x_target = np.random.default_rng(1).normal(size=(20, 3))
-    for ti, qi, xi in zip(t, q, x_target):
+    for qi, xi in zip(q, x_target):
         assert np.allclose(quat_to_matrix(qi), speed_dcm(qi).T, atol=1e-12)
-        assert np.allclose(speed_dcm(qi) @ (quat_to_matrix(qi) @ xi), xi)     # vbs -> tango undoes it
+        assert np.allclose(speed_dcm(qi) @ (quat_to_matrix(qi) @ xi), xi)  # vbs -> tango undoes it
     names, t2, q2 = from_speed(json.loads(json.dumps(to_speed([f"img{i}.jpg" for i in range(20)], t, q))))
     assert names[3] == "img3.jpg" and np.abs(t2 - t).max() < 1e-12 and np.abs(q2 - q).max() < 1e-12
 
@@ -47,14 +51,18 @@ def test_speed_quaternion_is_our_q():
 def test_both_key_sets_and_bad_records():
     t, q = poses(2)
     speed = [{"filename": "a.jpg", "q_vbs2tango": list(-q[0]), "r_Vo2To_vbs_true": list(t[0])}]
-    names, t2, q2 = from_speed(speed)                  # SPEED's key; -q is the same attitude, stored qw >= 0
+    names, t2, q2 = from_speed(speed)  # SPEED's key; -q is the same attitude, stored qw >= 0
     assert names == ["a.jpg"] and np.allclose(q2[0], q[0]) and np.allclose(t2[0], t[0])
-    bad = [({"filename": "b.jpg", "q_vbs2tango_true": [1, 0, 0, 0]}, "record 0 \\(b.jpg\\).*r_Vo2To_vbs_true"),
-           ({"filename": "b.jpg", "r_Vo2To_vbs_true": [0, 0, 9]}, "missing key 'q_vbs2tango_true'"),
-           ({"filename": "b.jpg", "q_vbs2tango_true": [0.5, 0, 0, 0], "r_Vo2To_vbs_true": [0, 0, 9]},
-            "q_vbs2tango_true has norm 0.5, not a unit"),
-           ({"filename": "b.jpg", "q_vbs2tango_true": [1, 0, 0], "r_Vo2To_vbs_true": [0, 0, 9]}, "4 finite"),
-           ({"q_vbs2tango_true": [1, 0, 0, 0], "r_Vo2To_vbs_true": [0, 0, 9]}, "'filename'")]
+    bad = [
+        ({"filename": "b.jpg", "q_vbs2tango_true": [1, 0, 0, 0]}, "record 0 \\(b.jpg\\).*r_Vo2To_vbs_true"),
+        ({"filename": "b.jpg", "r_Vo2To_vbs_true": [0, 0, 9]}, "missing key 'q_vbs2tango_true'"),
+        (
+            {"filename": "b.jpg", "q_vbs2tango_true": [0.5, 0, 0, 0], "r_Vo2To_vbs_true": [0, 0, 9]},
+            "q_vbs2tango_true has norm 0.5, not a unit",
+        ),
+        ({"filename": "b.jpg", "q_vbs2tango_true": [1, 0, 0], "r_Vo2To_vbs_true": [0, 0, 9]}, "4 finite"),
+        ({"q_vbs2tango_true": [1, 0, 0, 0], "r_Vo2To_vbs_true": [0, 0, 9]}, "'filename'"),
+    ]
     for record, message in bad:
         with pytest.raises(ValueError, match=message):
             from_speed([record])
@@ -65,12 +73,14 @@ def test_both_key_sets_and_bad_records():
 def test_camera_json():
     K = camera_from_json(camera_to_json(K_SRC))
     assert K == K_SRC
-    speed = camera_from_json(SPEED_CAMERA)              # SPEED's published camera: f / pixel pitch
+    speed = camera_from_json(SPEED_CAMERA)  # SPEED's published camera: f / pixel pitch
     assert speed.width == 1920 and speed.fx == pytest.approx(0.0176 / 5.86e-6) and speed.cx == 960
     assert camera_from_json({"cameraMatrix": K_SRC.K.tolist()}, size=SIZE) == K_SRC
-    for cam, message in [({"Nu": 48, "Nv": 30}, "no camera matrix.*cameraMatrix"),
-                         ({"Nu": 48, "Nv": 30, "cameraMatrix": [[1, 0], [0, 1]]}, "cameraMatrix must be a 3x3"),
-                         ({"cameraMatrix": K_SRC.K.tolist()}, "missing key 'Nu'")]:
+    for cam, message in [
+        ({"Nu": 48, "Nv": 30}, "no camera matrix.*cameraMatrix"),
+        ({"Nu": 48, "Nv": 30, "cameraMatrix": [[1, 0], [0, 1]]}, "cameraMatrix must be a 3x3"),
+        ({"cameraMatrix": K_SRC.K.tolist()}, "missing key 'Nu'"),
+    ]:
         with pytest.raises(ValueError, match=message):
             camera_from_json(cam)
 
@@ -101,8 +111,19 @@ def project(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
 
     def use(source, *extra):
-        params_mod.write_params(params_mod.compose("smoke", [f"render.source={source}", f"render.width={SIZE[0]}",
-                                                             f"render.height={SIZE[1]}", "render.chunk=4", *extra]))
+        params_mod.write_params(
+            params_mod.compose(
+                "smoke",
+                [
+                    f"render.source={source}",
+                    f"render.width={SIZE[0]}",
+                    f"render.height={SIZE[1]}",
+                    "render.chunk=4",
+                    *extra,
+                ],
+            )
+        )
+
     return tmp_path, use
 
 
@@ -143,7 +164,7 @@ def test_import_export_round_trip(project):
         assert np.abs(np.array([row2.qw, row2.qx, row2.qy, row2.qz]) - q).max() < 1e-6
     assert list(again.split) == list(labels.split)
 
-    with pytest.raises(DataError, match="not a SPEED folder"):   # never replaces an unrelated folder
+    with pytest.raises(DataError, match="not a SPEED folder"):  # never replaces an unrelated folder
         (root / "keep").mkdir()
         (root / "keep/notes.txt").write_text("mine")
         export_speed(root / "keep")
@@ -165,23 +186,39 @@ def test_speed_layout_resized_with_scaled_k(project):
     assert json.loads((root / "store/meta.json").read_text())["width"] == 64
 
 
-@pytest.mark.parametrize("damage, message", [
-    (lambda r: (r / "synthetic/images/train001.png").write_bytes(b"not an image"),
-     "train001.png: not a readable image"),
-    (lambda r: (r / "synthetic/images/test002.png").unlink(), "test002.png: not found"),
-    (lambda r: cv2.imwrite(str(r / "synthetic/images/train000.png"), np.zeros((10, 10, 3), np.uint8)),
-     "train000.png: image is 10x10 pixels but camera.json gives Nu x Nv = 48x30"),
-    (lambda r: (r / "synthetic/train.json").write_text(json.dumps([{"filename": "train000.png",
-                                                                   "q_vbs2tango_true": [1, 0, 0, 0]}])),
-     "synthetic/train.json: record 0 \\(train000.png\\): missing key 'r_Vo2To_vbs_true'"),
-    (lambda r: (r / "synthetic/test.json").write_text(json.dumps([{"filename": "test000.png",
-                                                                  "r_Vo2To_vbs_true": [0, 0, 9],
-                                                                  "q_vbs2tango_true": [0.9, 0.1, 0, 0]}])),
-     "synthetic/test.json: record 0 \\(test000.png\\): q_vbs2tango_true has norm 0.905539, not a unit"),
-    (lambda r: (r / "camera.json").write_text(json.dumps({"Nu": 48, "Nv": 30, "distCoeffs": [0] * 5})),
-     "camera.json: no camera matrix: needs 'cameraMatrix'"),
-    (lambda r: (r / "synthetic/test.json").unlink(), "no test labels"),
-])
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        (
+            lambda r: (r / "synthetic/images/train001.png").write_bytes(b"not an image"),
+            "train001.png: not a readable image",
+        ),
+        (lambda r: (r / "synthetic/images/test002.png").unlink(), "test002.png: not found"),
+        (
+            lambda r: cv2.imwrite(str(r / "synthetic/images/train000.png"), np.zeros((10, 10, 3), np.uint8)),
+            "train000.png: image is 10x10 pixels but camera.json gives Nu x Nv = 48x30",
+        ),
+        (
+            lambda r: (r / "synthetic/train.json").write_text(
+                json.dumps([{"filename": "train000.png", "q_vbs2tango_true": [1, 0, 0, 0]}])
+            ),
+            "synthetic/train.json: record 0 \\(train000.png\\): missing key 'r_Vo2To_vbs_true'",
+        ),
+        (
+            lambda r: (r / "synthetic/test.json").write_text(
+                json.dumps(
+                    [{"filename": "test000.png", "r_Vo2To_vbs_true": [0, 0, 9], "q_vbs2tango_true": [0.9, 0.1, 0, 0]}]
+                )
+            ),
+            "synthetic/test.json: record 0 \\(test000.png\\): q_vbs2tango_true has norm 0.905539, not a unit",
+        ),
+        (
+            lambda r: (r / "camera.json").write_text(json.dumps({"Nu": 48, "Nv": 30, "distCoeffs": [0] * 5})),
+            "camera.json: no camera matrix: needs 'cameraMatrix'",
+        ),
+        (lambda r: (r / "synthetic/test.json").unlink(), "no test labels"),
+    ],
+)
 def test_bad_input_stops_with_one_message(project, damage, message):
     from stages.artifacts import speed as speed_io
 

@@ -1,4 +1,5 @@
 """The README's stage graph is generated from `dvc dag` (scripts/stage_graph.py) and matches it."""
+
 from __future__ import annotations
 
 import importlib.util
@@ -18,8 +19,9 @@ def test_the_readme_graph_is_the_dvc_dag():
     assert ("render", "label") in edges and ("evaluate", "lab") not in edges
     assert ("label", "surrogate") in edges and ("train", "surrogate") not in edges
     text = stage_graph.README.read_text()
-    assert stage_graph.rewrite(text, stage_graph.block(edges)) == text, \
+    assert stage_graph.rewrite(text, stage_graph.block(edges)) == text, (
         "README.md's stage graph differs from `dvc dag`: run `python scripts/stage_graph.py`"
+    )
 
 
 def test_the_reduction_keeps_paths_and_drops_implied_edges():

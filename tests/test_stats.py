@@ -1,4 +1,5 @@
 """Intervals: Wilson against the closed form computed by hand, bootstrap over groups."""
+
 from __future__ import annotations
 
 import math

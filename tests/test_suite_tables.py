@@ -1,6 +1,7 @@
 """The strongest-attack suite as the stages report it (pipeline/evaluation/strongest.py, pipeline/formats/capacity.py,
 stages/pages/suite.py): the attacked-error table with its checks, the split by background, the per-frame capacity
 and its overbound, on a tiny stand-in pose regressor."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -12,23 +13,37 @@ from pipeline.evaluation.strongest import attacked_table, background_rows, capac
 from pipeline.formats.capacity import read_capacity, write_capacity
 from pipeline.io.errors import DataError
 
-pytestmark = pytest.mark.usefixtures("one_thread")   # tests/conftest.py
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 EPS = [0.01, 0.05, 0.1]
 LEAN = SuiteConfig(members=("bpda/position", "bpda/attitude"), steps=3, restarts=1, starts=("lift",), batch_size=4)
-FULL = SuiteConfig(members=("apgd/position", "bpda/position", "bpda/attitude", "square/attitude"), steps=4,
-                   restarts=2, queries=8, square_eps=0.05, batch_size=4)
+FULL = SuiteConfig(
+    members=("apgd/position", "bpda/position", "bpda/attitude", "square/attitude"),
+    steps=4,
+    restarts=2,
+    queries=8,
+    square_eps=0.05,
+    batch_size=4,
+)
 
 
 def test_the_table_has_the_suite_rows_and_its_checks():
     images, targets = frames(6, black=True)
-    out = attacked_table(ToyPose(black_level=0.07), images, targets, EPS, LEAN, check=np.array([1, 4]),
-                         full_check=np.array([0, 2, 5]), full=FULL)
+    out = attacked_table(
+        ToyPose(black_level=0.07),
+        images,
+        targets,
+        EPS,
+        LEAN,
+        check=np.array([1, 4]),
+        full_check=np.array([0, 2, 5]),
+        full=FULL,
+    )
     suite = [r for r in out["rows"] if r["attack"] == "suite"]
     assert [r["eps"] for r in suite] == EPS and out["frames"] == 6 and out["cpu_seconds"] > 0
-    assert [r["pos_m"] for r in suite] == sorted(r["pos_m"] for r in suite)         # nested: never drops
+    assert [r["pos_m"] for r in suite] == sorted(r["pos_m"] for r in suite)  # nested: never drops
     assert {r["attack"] for r in out["rows"]} == {"clean", "suite", *LEAN.members}
-    for r in suite:   # the worst case is >= each member's mean at its eps
+    for r in suite:  # the worst case is >= each member's mean at its eps
         members = [m for m in out["rows"] if m["eps"] == r["eps"] and m["attack"] in LEAN.members]
         assert all(r["pos_m"] >= m["pos_m"] - 1e-9 and r["att_deg"] >= m["att_deg"] - 1e-9 for m in members)
     assert len(out["sanity"]) == 2 * len(EPS) and all(r["ok"] for r in out["sanity"])
@@ -48,13 +63,13 @@ def test_the_background_split_selects_each_kinds_frames():
     result = run_suite(ToyPose(black_level=0.07), images, targets, EPS, LEAN)
     kinds = np.array(["earth", "black", "earth", "space", "black", "black"])
     split = background_rows(result, kinds)
-    assert list(split) == ["black", "space", "earth"]                   # KINDS order, only those present
+    assert list(split) == ["black", "space", "earth"]  # KINDS order, only those present
     for kind, rows in split.items():
         mask = kinds == kind
         assert [r["attack"] for r in rows] == ["clean", *["suite"] * len(EPS)] and rows[0]["n"] == mask.sum()
         assert rows[0]["pos_m"] == pytest.approx(result.clean["position_m"][mask].mean())
         assert [r["att_deg"] for r in rows[1:]] == pytest.approx(result.worst("attitude_deg")[:, mask].mean(1))
-    assert list(background_rows(result, None)) == ["black"]           # no column: every frame black
+    assert list(background_rows(result, None)) == ["black"]  # no column: every frame black
     with pytest.raises(ValueError, match="kinds of black, space, earth"):
         background_rows(result, np.array(["cloud"] * 6))
 
@@ -67,7 +82,7 @@ def test_capacity_is_per_frame_and_eps_nested_and_its_files_round_trip(tmp_path)
     assert len(table) == len(EPS) * 8 and sorted(set(table["index"])) == index.tolist()
     for key in ("along_m", "across_m", "attitude_deg"):
         wide = table.pivot(index="index", columns="eps", values=key)
-        assert (np.diff(wide[EPS].to_numpy(), axis=1) >= 0).all()         # a frame's shift cannot drop as eps grows
+        assert (np.diff(wide[EPS].to_numpy(), axis=1) >= 0).all()  # a frame's shift cannot drop as eps grows
     np.testing.assert_allclose(table["range_m"][:8], np.linalg.norm(targets[:, :3], axis=1))
     overbounds = fit_overbound(table, [0, 30, 100], 0.9, 0.25, 1)
     assert [c.eps for c in overbounds] == EPS and all(c.count.sum() == 8 for c in overbounds)

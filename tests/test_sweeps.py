@@ -1,6 +1,7 @@
 """Profiles and sweeps (issue 29): `rpod params NAME` makes NAME the profile DVC's Hydra composition starts
 from, so `dvc exp run -S key=value` changes one value of it; both entry points refuse an unknown name or a
 bad value at once with the schema's one-line message. No stage runs here."""
+
 from __future__ import annotations
 
 import os
@@ -18,9 +19,11 @@ from stages.config.sections import ParamsError
 REPO = Path(__file__).resolve().parent.parent
 DVC = Path(sys.executable).with_name("dvc")
 # DVC's own code path for `dvc exp run -S` (BaseStashQueue._update_params), without stashing or running stages
-UPDATE_PARAMS = ("import sys, types; from dvc.repo import Repo; from dvc.repo.experiments.queue.base import "
-                 "BaseStashQueue as Q; r = Repo('.'); Q._update_params(types.SimpleNamespace(repo=r, scm=r.scm), "
-                 "{'params.yaml': sys.argv[1:]})")
+UPDATE_PARAMS = (
+    "import sys, types; from dvc.repo import Repo; from dvc.repo.experiments.queue.base import "
+    "BaseStashQueue as Q; r = Repo('.'); Q._update_params(types.SimpleNamespace(repo=r, scm=r.scm), "
+    "{'params.yaml': sys.argv[1:]})"
+)
 pytestmark = pytest.mark.skipif(not DVC.exists(), reason="dvc not installed beside python")
 
 
@@ -32,8 +35,14 @@ def repo(tmp_path) -> tuple[Path, dict[str, str]]:
     for name in ("dvc.yaml", "params.yaml", ".dvc/config"):
         (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(REPO / name, tmp_path / name)
-    env = {**os.environ, "PYTHONPATH": str(REPO), "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@example.org",
-           "GIT_COMMITTER_NAME": "t", "GIT_COMMITTER_EMAIL": "t@example.org"}
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(REPO),
+        "GIT_AUTHOR_NAME": "t",
+        "GIT_AUTHOR_EMAIL": "t@example.org",
+        "GIT_COMMITTER_NAME": "t",
+        "GIT_COMMITTER_EMAIL": "t@example.org",
+    }
     for cmd in (["git", "init", "-q"], ["git", "add", "-A"], ["git", "commit", "-qm", "copy"]):
         subprocess.run(cmd, cwd=tmp_path, env=env, check=True)
     return tmp_path, env
@@ -56,9 +65,9 @@ def test_a_sweep_keeps_the_profile_rpod_params_chose(repo):
     assert done.returncode == 0, done.stderr
     swept = yaml.safe_load((cwd / "params.yaml").read_text())
     assert swept["profile_name"] == "smoke" and swept["train"]["epochs"] == 2
-    assert swept["render"] == smoke["render"] and swept["render"]["width"] < 100      # smoke-sized stages
+    assert swept["render"] == smoke["render"] and swept["render"]["width"] < 100  # smoke-sized stages
     swept["train"]["epochs"] = smoke["train"]["epochs"]
-    assert swept == smoke                                                            # one value changed
+    assert swept == smoke  # one value changed
     assert _rpod_params(cwd, env, "default").returncode == 0
     assert "  - profile: default" in (cwd / "conf/config.yaml").read_text()
 
@@ -76,12 +85,15 @@ def test_a_dry_sweep_says_it_keeps_the_profile(repo):
     assert yaml.safe_load((cwd / "params.yaml").read_text())["profile_name"] == "smoke"
 
 
-@pytest.mark.parametrize("override, message", [
-    ("trian.epochs=3", "params.yaml: unknown parameter 'trian' (did you mean 'train'?)"),
-    ("+trian.epochs=3", "params.yaml: unknown parameter 'trian' (did you mean 'train'?)"),
-    ("train.epoch=3", "params.yaml: unknown parameter 'train.epoch' (did you mean 'train.epochs'?)"),
-    ("train.epochs=abc", "params.yaml train.epochs must be a whole number, got 'abc'"),
-])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("trian.epochs=3", "params.yaml: unknown parameter 'trian' (did you mean 'train'?)"),
+        ("+trian.epochs=3", "params.yaml: unknown parameter 'trian' (did you mean 'train'?)"),
+        ("train.epoch=3", "params.yaml: unknown parameter 'train.epoch' (did you mean 'train.epochs'?)"),
+        ("train.epochs=abc", "params.yaml train.epochs must be a whole number, got 'abc'"),
+    ],
+)
 def test_both_entry_points_refuse_a_typo_in_one_line(repo, override, message):
     cwd, env = repo
     before = {p: (cwd / p).read_text() for p in ("params.yaml", "conf/config.yaml")}
@@ -108,6 +120,9 @@ def test_record_profile_needs_the_defaults_line(tmp_path):
 
 def test_the_committed_params_are_the_profile_conf_picks():
     """params.yaml and conf/config.yaml's defaults list are committed together (`rpod params NAME` writes both)."""
-    picked = next(line.split(":")[1].split()[0] for line in (REPO / "conf/config.yaml").read_text().splitlines()
-                  if line.startswith("  - profile:"))
+    picked = next(
+        line.split(":")[1].split()[0]
+        for line in (REPO / "conf/config.yaml").read_text().splitlines()
+        if line.startswith("  - profile:")
+    )
     assert yaml.safe_load((REPO / "params.yaml").read_text())["profile_name"] == picked

@@ -1,4 +1,5 @@
 """The train stage on a tiny synthetic dataset: data checks, checkpoints, the loop, the report."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -18,11 +19,11 @@ from pipeline.geometry.camera import reference_intrinsics
 from pipeline.geometry.labels import pose_columns
 from pipeline.geometry.rotations import euler_to_matrix, matrix_to_6d, matrix_to_quat
 from pipeline.geometry.trajectories import poses_table
-from stages.artifacts import data, models
 from pipeline.io.atomic import file_hash, write_json
 from pipeline.io.errors import DataError
 from pipeline.io.store import create_array, seal_zarr
 from pipeline.io.tables import write_parquet
+from stages.artifacts import data, models
 from stages.artifacts.paths import POSE
 from stages.config import params as params_mod
 from stages.config.params import load
@@ -32,8 +33,9 @@ from stages.errors import StageError
 W, H = 48, 27
 
 
-def write_dataset(root: Path, n: int = 40, width: int = W, height: int = H, seed: int = 0,
-                  overrides: list[str] | None = None) -> dict:
+def write_dataset(
+    root: Path, n: int = 40, width: int = W, height: int = H, seed: int = 0, overrides: list[str] | None = None
+) -> dict:
     """A tiny stand-in for render + label under `root`: a bright rectangle at the projected target
     position, sized by 1/range, shaded by the attitude; params.yaml = the smoke profile at this size."""
     rng = np.random.default_rng(seed)
@@ -46,24 +48,34 @@ def write_dataset(root: Path, n: int = 40, width: int = W, height: int = H, seed
         u, v = K.fx * t[i, 0] / t[i, 2] + K.cx, K.fy * t[i, 1] / t[i, 2] + K.cy
         half = max(1, int(round(K.fx * 1.5 / t[i, 2])))
         shade = (128 + 100 * R[i, :, 0]).clip(0, 255)
-        images[i, max(0, int(v) - half):int(v) + half + 1, max(0, int(u) - half):int(u) + half + 1] = shade
+        images[i, max(0, int(v) - half) : int(v) + half + 1, max(0, int(u) - half) : int(u) + half + 1] = shade
     group = zarr.open_group(str(root / "datasets/render/images.zarr"), mode="w")
     create_array(group, "images", shape=images.shape, chunks=(16, height, width, 3), dtype="uint8")[:] = images
     seal_zarr(root / "datasets/render/images.zarr")
     r6 = matrix_to_6d(R)
-    labels = pd.DataFrame({"index": np.arange(n), "image": [f"images/{i}" for i in range(n)],
-                           "sequence": np.arange(n) % 13, "frame": np.arange(n) // 13,
-                           **pose_columns(t, matrix_to_quat(R), r6),
-                           "range": np.linalg.norm(t, axis=1),
-                           "split": np.where(np.arange(n) % 5 == 0, "test", "train")})
+    labels = pd.DataFrame(
+        {
+            "index": np.arange(n),
+            "image": [f"images/{i}" for i in range(n)],
+            "sequence": np.arange(n) % 13,
+            "frame": np.arange(n) // 13,
+            **pose_columns(t, matrix_to_quat(R), r6),
+            "range": np.linalg.norm(t, axis=1),
+            "split": np.where(np.arange(n) % 5 == 0, "test", "train"),
+        }
+    )
     params = params_mod.compose("smoke", [f"render.width={width}", f"render.height={height}", *(overrides or [])])
     params_mod.write_params(params, root / "params.yaml")
     typed = build(params)
-    write_json(root / "datasets/render/meta.json", {"complete": True, "frames": n, "K": K.K,
-                                                    "fingerprint": params_mod.render_fingerprint(typed)})
-    labels.attrs[data.RENDER_KEY] = params_mod.render_fingerprint(typed)   # as `rpod label` records it
-    write_parquet(poses_table(np.arange(n), labels["sequence"].to_numpy(), labels["frame"].to_numpy(), R, t),
-                  root / "datasets/render/poses.parquet")                 # as `rpod render` writes them
+    write_json(
+        root / "datasets/render/meta.json",
+        {"complete": True, "frames": n, "K": K.K, "fingerprint": params_mod.render_fingerprint(typed)},
+    )
+    labels.attrs[data.RENDER_KEY] = params_mod.render_fingerprint(typed)  # as `rpod label` records it
+    write_parquet(
+        poses_table(np.arange(n), labels["sequence"].to_numpy(), labels["frame"].to_numpy(), R, t),
+        root / "datasets/render/poses.parquet",
+    )  # as `rpod render` writes them
     labels.to_parquet(root / "datasets/labels.parquet")
     return typed
 
@@ -91,14 +103,17 @@ def _edit_labels(fn) -> None:
     fn(df).to_parquet("datasets/labels.parquet")
 
 
-@pytest.mark.parametrize("edit, message", [
-    (lambda df: df.assign(tx=df["tx"].where(df.index != 3)), "NaN or infinite labels"),
-    (lambda df: df.drop(columns=["r5"]), "r0..r5"),
-    (lambda df: df.assign(r6=0.0), "r0..r5"),
-    (lambda df: df.assign(r0=df["r0"] * 2), r"r5'\] are not the 6-D rotation of its quaternion"),
-    (lambda df: df.assign(split="train"), "'test' split is empty"),
-    (lambda df: df.assign(index=df["index"] + 100), r"index is no row of the render's poses \(0..39\)"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda df: df.assign(tx=df["tx"].where(df.index != 3)), "NaN or infinite labels"),
+        (lambda df: df.drop(columns=["r5"]), "r0..r5"),
+        (lambda df: df.assign(r6=0.0), "r0..r5"),
+        (lambda df: df.assign(r0=df["r0"] * 2), r"r5'\] are not the 6-D rotation of its quaternion"),
+        (lambda df: df.assign(split="train"), "'test' split is empty"),
+        (lambda df: df.assign(index=df["index"] + 100), r"index is no row of the render's poses \(0..39\)"),
+    ],
+)
 def test_bad_labels_are_refused_clearly(dataset, edit, message):
     _edit_labels(edit)
     with pytest.raises(StageError, match=message):
@@ -147,8 +162,15 @@ def test_fit_improves_and_tracks_the_best_epoch(dataset):
     model.set_output_bias(train.targets[:, :3].mean(0), train.targets[:, 3:].mean(0))
     seen = []
     cfg = TrainConfig(epochs=4, batch_size=8, lr_base=1e-4, lr_max=2e-3, cycle_epochs=2)
-    result = fit(model, PoseLoss(), data.pose_dataset(train, dataset.train.augment), data.pose_dataset(test), cfg,
-                 on_epoch=lambda stats, best, net: seen.append((stats.epoch, best)), progress=False)
+    result = fit(
+        model,
+        PoseLoss(),
+        data.pose_dataset(train, dataset.train.augment),
+        data.pose_dataset(test),
+        cfg,
+        on_epoch=lambda stats, best, net: seen.append((stats.epoch, best)),
+        progress=False,
+    )
     assert [e for e, _ in seen] == [1, 2, 3, 4] and len(result.history) == 4
     scores = [h.val_score for h in result.history]
     assert result.best_epoch == int(np.argmin(scores)) + 1 and result.best_score == min(scores)
@@ -180,10 +202,10 @@ def test_train_stage_writes_checkpoint_report_and_metrics(dataset):
     assert "0.490" in report and "Guidance requirements" in report and "60-45" in report
     model = models.load_pose(params_mod.load(), POSE).model
     assert model(torch.rand(1, 3, H, W)).shape == (1, 9)
-    assert read_pose(POSE)["K"] == reference_intrinsics().scaled(W, H).K.tolist()   # the training images' camera
-    assert read_pose(POSE)["labels_hash"] == file_hash("datasets/labels.parquet")     # and their labels
+    assert read_pose(POSE)["K"] == reference_intrinsics().scaled(W, H).K.tolist()  # the training images' camera
+    assert read_pose(POSE)["labels_hash"] == file_hash("datasets/labels.parquet")  # and their labels
     assert Path("dvclive/train/plots/metrics/val_pos_m.tsv").exists()
-    logged = yaml.safe_load(Path("dvclive/train/params.yaml").read_text())          # DVCLive's log_params
+    logged = yaml.safe_load(Path("dvclive/train/params.yaml").read_text())  # DVCLive's log_params
     assert logged["train"]["epochs"] == dataset.train.epochs and logged["render"] == {"width": W, "height": H}
 
 
@@ -273,7 +295,7 @@ def test_train_stage_on_the_cpu_device_and_a_missing_gpu_in_one_line(tmp_path, m
     write_dataset(tmp_path, overrides=["device=cpu"])
     train.main(load())
     assert json.loads(Path("reports/metrics/train.json").read_text())["device"] == "cpu"
-    capsys.readouterr()                      # the training run's own output
+    capsys.readouterr()  # the training run's own output
     params_mod.write_params({**dataclasses.asdict(params_mod.load()), "device": "cuda"})
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     monkeypatch.setitem(cli._DEBUG, "on", False)
@@ -283,5 +305,7 @@ def test_train_stage_on_the_cpu_device_and_a_missing_gpu_in_one_line(tmp_path, m
             cli.main()
         err = capsys.readouterr().err
         assert exit_info.value.code == 1 and err.count("\n") == 1
-        assert err.startswith("error: params.yaml device: 'cuda' asks for a CUDA GPU but torch ") and "auto or cpu" in err
+        assert (
+            err.startswith("error: params.yaml device: 'cuda' asks for a CUDA GPU but torch ") and "auto or cpu" in err
+        )
     assert not Path("reports/metrics/attack.json").exists()

@@ -2,9 +2,15 @@ import numpy as np
 import pytest
 
 from pipeline.geometry.rotations import matrix_to_quat
+from pipeline.geometry.trajectories import (
+    FIXED_STARTS,
+    ROTATING_STARTS,
+    approach_sequences,
+    approach_trajectory,
+    look_at,
+    pose_in_camera,
+)
 from pipeline.pose.metrics import attitude_error_deg
-from pipeline.geometry.trajectories import (FIXED_STARTS, ROTATING_STARTS, approach_sequences, look_at, pose_in_camera,
-                                   approach_trajectory)
 
 
 def angle_deg(a, b):
@@ -81,7 +87,7 @@ def test_approach_trajectory():
 def test_straight_path_and_a_target_turned_every_frame():
     s = approach_trajectory(101, (20.0, -10.0), 60.0, 10.0, seed=0, path="straight")
     assert np.allclose(s.rel[0], [20, -10, 60]) and np.allclose(s.rel[-1], [0, 0, 10])
-    assert np.allclose(np.diff(s.rel, axis=0), np.diff(s.rel, axis=0)[0])   # a straight line in equal steps
+    assert np.allclose(np.diff(s.rel, axis=0), np.diff(s.rel, axis=0)[0])  # a straight line in equal steps
     tumbling = approach_trajectory(50, (5.0, 5.0), seed=1, max_rot_deg=10.0)
     assert attitude_error_deg(matrix_to_quat(tumbling.R_target[:-1]), matrix_to_quat(tumbling.R_target[1:])).min() > 0.1
     with pytest.raises(ValueError, match="path"):
@@ -103,9 +109,9 @@ def test_detector_split_and_envelope_validation_span_the_training_envelope():
     assert not any(np.allclose(np.diff(s.rel[:, :2], axis=0), np.diff(s.rel[:2, :2], axis=0)) for s in spec)
     seqs = trajectories(p, 3000, 8, 20, envelope=True)
     starts = np.array([s.rel[0, :2] for s in seqs])
-    assert np.all(np.abs(starts) <= hi) and np.abs(starts).min() < lo     # offsets from 0 to the widest
+    assert np.all(np.abs(starts) <= hi) and np.abs(starts).min() < lo  # offsets from 0 to the widest
     straight = [np.allclose(np.diff(s.rel[:, :2], axis=0), np.diff(s.rel[:2, :2], axis=0)) for s in seqs]
     assert any(straight) and not all(straight)
     turned = [not np.allclose(s.R_target, np.eye(3)) for s in seqs]
     assert any(turned) and not all(turned)
-    assert all(not np.allclose(s.R_target, s.R_target[0]) for s, t in zip(seqs, turned) if t)   # afresh per frame
+    assert all(not np.allclose(s.R_target, s.R_target[0]) for s, t in zip(seqs, turned) if t)  # afresh per frame

@@ -1,4 +1,5 @@
 """scripts/variance.py: mean and spread of the headline numbers over runs that differ only in seed."""
+
 from __future__ import annotations
 
 import importlib.util
@@ -28,8 +29,10 @@ def _run(root: Path, seed: int, pos: float, detect_acc: float | None) -> Path:
     if detect_acc is not None:
         from pipeline.io.atomic import file_hash
 
-        detect = {"detectors": {"lstm": {"all": {"accuracy": detect_acc}, "0.01": {"recall": 0.5}}},
-                  "model_hash": file_hash(run / "models" / "pose.pt")}
+        detect = {
+            "detectors": {"lstm": {"all": {"accuracy": detect_acc}, "0.01": {"recall": 0.5}}},
+            "model_hash": file_hash(run / "models" / "pose.pt"),
+        }
         (run / "reports" / "metrics" / "detect.json").write_text(json.dumps(detect))
     return run
 
@@ -42,7 +45,7 @@ def test_rows_count_the_runs_that_have_each_number(tmp_path):
     assert (pos["min"], pos["max"]) == (0.40, 0.46)
     acc = rows["detector.standard_accuracy_pct"]
     assert acc["runs"] == 2 and acc["mean"] == pytest.approx(92.0)
-    assert "lab.standard_accuracy_pct" not in rows                                  # no run has it: no row
+    assert "lab.standard_accuracy_pct" not in rows  # no run has it: no row
 
 
 def test_a_single_run_has_no_spread(tmp_path):
@@ -53,10 +56,9 @@ def test_a_single_run_has_no_spread(tmp_path):
 def test_metrics_of_another_pose_model_do_not_count(tmp_path):
     """A copy of the repository carries committed metrics of stages it never ran: they name another model."""
     run = _run(tmp_path, 1, 0.40, 0.93)
-    (run / "models" / "pose.pt").write_bytes(b"retrained")      # detect.json now belongs to another model
+    (run / "models" / "pose.pt").write_bytes(b"retrained")  # detect.json now belongs to another model
     rows = {r["key"]: r for r in _load().variance_rows([run])}
     assert "detector.standard_accuracy_pct" not in rows and rows["pose.standard_position_m"]["runs"] == 1
-
 
 
 def test_every_headline_has_a_unique_key():
@@ -69,17 +71,29 @@ def test_readme_results_show_the_spread_of_each_headline_number():
     (a typo in a key would leave a "-" there), and without a spread there is no such column."""
     from stages.pages.readme import summary_tables
 
-    metrics = {m: json.loads((REPO / "reports" / "metrics" / f"{m}.json").read_text())
-               for m in ("train", "robust", "attack", "guidance", "detect", "detect_robust", "evaluate", "lab",
-                         "robustness")}
+    metrics = {
+        m: json.loads((REPO / "reports" / "metrics" / f"{m}.json").read_text())
+        for m in ("train", "robust", "attack", "guidance", "detect", "detect_robust", "evaluate", "lab", "robustness")
+    }
     # in variance.md only: the README shows these per eps or per dynamics (or not at all)
-    not_shown = {"pose_tz_pct", "lstm_recall_0.01_pct", "lstm_eval_fa_pct", "integrated_0.01_pct", "shipped_test_fa_pct",
-                 "shipped_lab_max_prob",
-                 "robustness.shipped_harmful_missed_pct", "guidance.shipped_held_pct"}
+    not_shown = {
+        "pose_tz_pct",
+        "lstm_recall_0.01_pct",
+        "lstm_eval_fa_pct",
+        "integrated_0.01_pct",
+        "shipped_test_fa_pct",
+        "shipped_lab_max_prob",
+        "robustness.shipped_harmful_missed_pct",
+        "guidance.shipped_held_pct",
+    }
     keys = [k for k, *_ in _load().HEADLINES if k not in not_shown]
-    spread = {"profile": "default", "seeds": ["0", "1", "2"],
-              "numbers": {k: {"runs": 3, "mean": 1.0, "sd": 1.01 + 0.01 * i, "min": 0.0, "max": 2.0}
-                          for i, k in enumerate(keys)}}
+    spread = {
+        "profile": "default",
+        "seeds": ["0", "1", "2"],
+        "numbers": {
+            k: {"runs": 3, "mean": 1.0, "sd": 1.01 + 0.01 * i, "min": 0.0, "max": 2.0} for i, k in enumerate(keys)
+        },
+    }
     text = summary_tables(metrics, spread)
     assert "sd over seeds" in text and "differ only in `seed`" in text
     for i, k in enumerate(keys):
@@ -108,7 +122,7 @@ def test_the_spread_covers_every_summary_json_number():
     from stages.pages.summary import HEADLINES as SUMMARY
 
     keys = [h.key for h in _load().HEADLINES]
-    assert keys[:len(SUMMARY)] == [h.key for h in SUMMARY]
+    assert keys[: len(SUMMARY)] == [h.key for h in SUMMARY]
 
 
 def test_the_committed_spread_names_only_headline_numbers():
@@ -147,9 +161,9 @@ def test_runs_of_two_instruction_sets_make_a_seed_by_isa_table(tmp_path, monkeyp
     pos = rows["pose.standard_position_m"]
     assert pos["seed 0, AVX2"] == 0.40 and pos["seed 1, AVX512"] == 0.47
     assert pos["largest ISA difference at one seed"] == pytest.approx(0.03)
-    assert pos["sd over seeds, one ISA"] == pytest.approx(((0.06 ** 2 / 2 + 0.04 ** 2 / 2) / 2) ** 0.5)
+    assert pos["sd over seeds, one ISA"] == pytest.approx(((0.06**2 / 2 + 0.04**2 / 2) / 2) ** 0.5)
     assert mod.parse_runs([f"AVX2={runs[0]}", str(runs[1])]) == [(runs[0], "AVX2"), (runs[1], None)]
-    assert mod.run_isa({"train": {}}) == "?"                                # a run from before the stamp
+    assert mod.run_isa({"train": {}}) == "?"  # a run from before the stamp
     monkeypatch.setattr(mod, "ROOT", tmp_path)
     (tmp_path / "reports").mkdir()
     mod.main([str(r) for r in runs])
@@ -165,9 +179,16 @@ def test_a_run_whose_calibration_missed_its_target_is_named(tmp_path):
     for run in (ok, missed):
         (run / "models").mkdir(parents=True)
         (run / "models" / "defense.json").write_text(json.dumps({"unmet": []}))
-    (missed / "models" / "defense_standard.json").write_text(json.dumps({"unmet": [
-        "calibrate: the fused chain flags 0.520% of 5000 clean validation frames, above defense.target_false_alarm "
-        "0.5%, although each check met its share; set defense.allow_unmet: true to continue anyway"]}))
+    (missed / "models" / "defense_standard.json").write_text(
+        json.dumps(
+            {
+                "unmet": [
+                    "calibrate: the fused chain flags 0.520% of 5000 clean validation frames, above defense.target_false_alarm "
+                    "0.5%, although each check met its share; set defense.allow_unmet: true to continue anyway"
+                ]
+            }
+        )
+    )
     note = _load()._unmet_note([ok, missed], ["0", "2"], ["AVX2", "AVX2"])
     assert "seed 2, AVX2: defense_standard.json: calibrate: the fused chain flags 0.520%" in note
     assert "seed 0" not in note and note.count("\n- ") == 1

@@ -1,5 +1,6 @@
 """The weights bundle shipped in git (rpodguard/weights/default/): `load_chain()` and `rpod predict` use it from any
 folder with no stage run, its hashes are checked, and scripts/bundle_weights.py rebuilds it identically."""
+
 from __future__ import annotations
 
 import shutil
@@ -28,27 +29,27 @@ def satellite(scale: float, height: int = 90, width: int = 160) -> np.ndarray:
     image = np.zeros((height, width, 3), np.uint8)
     cy, cx = height // 2, width // 2
     bus, panel, thick = int(6 * scale), int(14 * scale), max(1, int(2 * scale))
-    image[cy - bus:cy + bus, cx - bus:cx + bus] = (180, 170, 150)
-    image[cy - thick:cy + thick, cx - bus - panel:cx - bus] = (40, 60, 120)
-    image[cy - thick:cy + thick, cx + bus:cx + bus + panel] = (40, 60, 120)
+    image[cy - bus : cy + bus, cx - bus : cx + bus] = (180, 170, 150)
+    image[cy - thick : cy + thick, cx - bus - panel : cx - bus] = (40, 60, 120)
+    image[cy - thick : cy + thick, cx + bus : cx + bus + panel] = (40, 60, 120)
     return image
 
 
 def test_load_chain_with_no_argument_is_the_bundle_from_any_folder(tmp_path, monkeypatch):
-    monkeypatch.chdir(tmp_path)                           # no models/ here: nothing but the bundle to load
+    monkeypatch.chdir(tmp_path)  # no models/ here: nothing but the bundle to load
     chain = load_chain()
     assert chain.files == (BUNDLE / "pose.pt", BUNDLE / "detector.pt", BUNDLE / "defense.json")
     assert chain.safety.defended is not None and chain.safety.calibration.model == "robust"
     manifest = chain.manifest
     assert manifest["profile"] == "default" and len(manifest["commit"]) == 40
-    render = manifest["params"]["render"]                 # trained with the params it lists
+    render = manifest["params"]["render"]  # trained with the params it lists
     assert (chain.height, chain.width) == (render["height"], render["width"])
     assert read_json(BUNDLE / "defense.json")["pose_model_hash"] == file_hash(BUNDLE / "pose.pt")
     out = chain.predict(np.stack([satellite(s, render["height"], render["width"]) for s in (1, 2, 3)]))
     assert out.in_view.all() and np.isfinite(out.position).all()
     z = out.position[:, 2]
-    assert (np.diff(z) < 0).all() and z[-1] > 0           # a larger target is nearer: a trained model
-    assert (np.abs(out.position[:, :2]) < 0.1 * z[:, None]).all()   # a centred target is on the boresight
+    assert (np.diff(z) < 0).all() and z[-1] > 0  # a larger target is nearer: a trained model
+    assert (np.abs(out.position[:, :2]) < 0.1 * z[:, None]).all()  # a centred target is on the boresight
 
 
 def test_rpod_predict_without_models_uses_the_bundle(tmp_path, monkeypatch, capsys):
@@ -69,7 +70,7 @@ def copy(tmp_path) -> Path:
 @pytest.mark.parametrize("name", FILES)
 def test_a_changed_bundle_file_is_refused_with_one_line(copy, name):
     data = bytearray((copy / name).read_bytes())
-    data[len(data) // 2] ^= 0x01                         # one bit
+    data[len(data) // 2] ^= 0x01  # one bit
     (copy / name).write_bytes(bytes(data))
     with pytest.raises(DataError, match=rf"{name} does not match its sha256 in .*manifest\.json") as info:
         load_chain(copy)
@@ -93,12 +94,14 @@ def test_the_bundle_is_the_shipped_chain_the_robust_model_and_its_own_detector()
 
     assert SHIPPED == Model.robust
     shipped = CHAINS[SHIPPED]
-    assert {n: f"models/{SOURCES[n]}" for n in FILES} == {"pose.pt": str(shipped.pose),
-                                                          "detector.pt": str(shipped.detector),
-                                                          "defense.json": str(shipped.defense)}
+    assert {n: f"models/{SOURCES[n]}" for n in FILES} == {
+        "pose.pt": str(shipped.pose),
+        "detector.pt": str(shipped.detector),
+        "defense.json": str(shipped.defense),
+    }
     assert read_json(BUNDLE / MANIFEST)["sources"] == {n: f"models/{SOURCES[n]}" for n in FILES}
-    assert read_pose(BUNDLE / "pose.pt")["arch"].get("black_level", 0) > 0        # the clamp: the robust model
-    assert read_detector(BUNDLE / "detector.pt", model_hash=file_hash(BUNDLE / "pose.pt"))   # its own detector
+    assert read_pose(BUNDLE / "pose.pt")["arch"].get("black_level", 0) > 0  # the clamp: the robust model
+    assert read_detector(BUNDLE / "detector.pt", model_hash=file_hash(BUNDLE / "pose.pt"))  # its own detector
 
 
 def test_the_script_rebuilds_the_bundle_naming_the_commit_that_recorded_the_files(copy, tmp_path):
@@ -106,7 +109,7 @@ def test_the_script_rebuilds_the_bundle_naming_the_commit_that_recorded_the_file
 
     git = ["git", "-c", "user.name=t", "-c", "user.email=t@example.org", "-C", str(tmp_path)]
     subprocess.run([*git, "init", "-q"], check=True)
-    run = tmp_path / "models"                              # a run's models/: the shipped chain under its run names
+    run = tmp_path / "models"  # a run's models/: the shipped chain under its run names
     run.mkdir()
     for name in FILES:
         shutil.copy(copy / name, run / SOURCES[name])
@@ -118,9 +121,21 @@ def test_the_script_rebuilds_the_bundle_naming_the_commit_that_recorded_the_file
     commit = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
     params = tmp_path / "params.yaml"
     params.write_text(yaml.safe_dump(read_json(BUNDLE / MANIFEST)["params"]))
-    done = subprocess.run([sys.executable, str(REPO / "scripts/bundle_weights.py"), "--models", str(copy),
-                           "--params", str(params), "--out", str(tmp_path / "out")],
-                          capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(REPO / "scripts/bundle_weights.py"),
+            "--models",
+            str(copy),
+            "--params",
+            str(params),
+            "--out",
+            str(tmp_path / "out"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr
     rebuilt, shipped = read_json(tmp_path / "out" / MANIFEST), read_json(BUNDLE / MANIFEST)
     assert rebuilt["files"] == shipped["files"] and rebuilt["params"] == shipped["params"]
@@ -152,7 +167,8 @@ def test_predict_gives_the_shipped_chain_verdict_on_the_bundle(monkeypatch, caps
     record = read_json(BUNDLE / "defense.json")
     level, doubt = record["threshold"], record["settings"]["update_below"]
     images = sorted((REPO / "reports" / "figures" / "previews").glob("*.png")) + sorted(
-        (REPO / "examples" / "approach").glob("*.png"))
+        (REPO / "examples" / "approach").glob("*.png")
+    )
     assert len(images) >= 4
     out = chain.predict(images)
     assert out.rule.calibrated and out.rule.threshold == level != chain.safety.threshold and out.rule.doubt == doubt
@@ -160,6 +176,7 @@ def test_predict_gives_the_shipped_chain_verdict_on_the_bundle(monkeypatch, caps
     want = ["attack" if p >= level else "doubt" if p >= doubt else "clean" for p in out.attack_probability]
     assert list(out.verdict) == want
     code, text, _ = _rpod(monkeypatch, capsys, "predict", *map(str, images))
-    assert code == 0 and text.splitlines()[0].startswith(f"verdict: attack at P(attack) >= {level!r}, doubt at >= "
-                                                         f"{doubt!r} (the chain's calibrated defense, ")
+    assert code == 0 and text.splitlines()[0].startswith(
+        f"verdict: attack at P(attack) >= {level!r}, doubt at >= {doubt!r} (the chain's calibrated defense, "
+    )
     assert [line.split()[-1] for line in text.splitlines()[3:]] == want

@@ -14,12 +14,12 @@ each a class with a `name` and `attack(chain, defense, run, eps)`; options (step
 go to its constructor. The registry by name is pipeline/attackers/suite.py (`ATTACKERS`, `get_attacker`):
 a new attacker adds its class there.
 """
+
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Protocol
-
-import math
 
 import numpy as np
 import torch
@@ -95,7 +95,7 @@ def chain_outputs(chain: DifferentiableChain, images: Tensor, batch: int = 64) -
     poses, probs = [], []
     with torch.no_grad():
         for lo in range(0, len(images), batch):
-            p, logit = pose_logit(chain(images[lo:lo + batch]))
+            p, logit = pose_logit(chain(images[lo : lo + batch]))
             poses.append(p.double())
             probs.append(torch.zeros(len(p), dtype=torch.float64) if logit is None else torch.sigmoid(logit.double()))
     return torch.cat(poses).numpy(), torch.cat(probs).numpy()

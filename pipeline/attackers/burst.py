@@ -44,6 +44,7 @@ and a cap the errors never reach, restart 0 of the run's first burst at the firs
 Cost: steps x restarts x K frame-gradients per lambda tried, per burst and eps (the chain's
 forward and backward; the filter mirror and the real defense add little).
 """
+
 from __future__ import annotations
 
 import copy
@@ -54,16 +55,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pipeline.attacks.adaptive import DifferentiableChain, check_lambdas
 from pipeline.attackers.base import AttackRun, chain_outputs, margin_cost, pose_logit
 from pipeline.attackers.filter_mirror import DTYPE, FilterMirror
+from pipeline.attacks.adaptive import DifferentiableChain, check_lambdas
 from pipeline.attacks.gradient import check_eps, project, quantize
 from pipeline.defense.fusion import TRACK, Defense
 from pipeline.geometry.rotations import sixd_to_matrix, sixd_to_matrix_t
 
 AlertLimit = float | Callable[[np.ndarray], np.ndarray]
 OBJECTIVES = ("error", "error_al", "error_pl")
-WIDE_LAMBDAS = (0.0, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)   # a wider lambda search than the default
+WIDE_LAMBDAS = (0.0, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0)  # a wider lambda search than the default
 
 
 @dataclass(frozen=True)
@@ -124,15 +125,15 @@ class _Burst:
 
     chain: DifferentiableChain
     defense: Defense | None
-    x: Tensor                      # (K, 3, H, W) clean frames, 8-bit grid
-    labels: Tensor                 # (K, 9)
-    R_cam: np.ndarray              # (K, 3, 3)
-    u: np.ndarray | None           # (K, 3)
-    alert_limit: np.ndarray        # (K,) m
+    x: Tensor  # (K, 3, H, W) clean frames, 8-bit grid
+    labels: Tensor  # (K, 9)
+    R_cam: np.ndarray  # (K, 3, 3)
+    u: np.ndarray | None  # (K, 3)
+    alert_limit: np.ndarray  # (K,) m
     cap: float
     objective: str = "error"
     hinge: float | None = None
-    truth: np.ndarray = field(init=False)        # (K, 3) true rel, world frame (m)
+    truth: np.ndarray = field(init=False)  # (K, 3) true rel, world frame (m)
     logit_doubt: float | None = field(init=False)
 
     def __post_init__(self) -> None:
@@ -157,14 +158,22 @@ class _Burst:
         else:
             mirror, levels, pls = FilterMirror(self.defense.filter, R), [], []
             for k in range(K):
-                level, nis_p, nis_a, cusum = mirror.step(pose[:, k, :3], sixd_to_matrix_t(pose[:, k, 3:]),
-                                                         self.R_cam[k], None if self.u is None else self.u[k])
+                level, nis_p, nis_a, cusum = mirror.step(
+                    pose[:, k, :3],
+                    sixd_to_matrix_t(pose[:, k, 3:]),
+                    self.R_cam[k],
+                    None if self.u is None else self.u[k],
+                )
                 levels.append(level)
                 if self.objective == "error_pl":
                     pls.append(mirror.protection_level())
                 g, h = mirror.gate, mirror.threshold
-                margin = (margin + margin_cost((nis_p - g) / g, m) + margin_cost((nis_a - g) / g, m)
-                          + margin_cost((cusum - h) / h, m))
+                margin = (
+                    margin
+                    + margin_cost((nis_p - g) / g, m)
+                    + margin_cost((nis_a - g) / g, m)
+                    + margin_cost((cusum - h) / h, m)
+                )
             trusted = torch.stack(levels, 1)
             if self.logit_doubt is not None and logit is not None:
                 margin = margin + margin_cost(logit.to(DTYPE).view(R, K) - self.logit_doubt, m).sum(1)
@@ -186,20 +195,33 @@ class _Burst:
         prob = np.zeros((C, K)) if logit is None else torch.sigmoid(logit.double()).view(C, K).numpy()
         return [self._outcome(stored[c], pose[c], prob[c], eps, *runs[c]) for c in range(C)]
 
-    def _outcome(self, images: Tensor, pose: np.ndarray, prob: np.ndarray, eps: float, lam: float, restart: int,
-                 found_at: float) -> BurstOutcome:
+    def _outcome(
+        self, images: Tensor, pose: np.ndarray, prob: np.ndarray, eps: float, lam: float, restart: int, found_at: float
+    ) -> BurstOutcome:
         K = len(pose)
-        pl = np.zeros(K)                                        # undefended: no protection level
+        pl = np.zeros(K)  # undefended: no protection level
         if self.defense is None:
             trusted, flag, mode = np.einsum("kij,kj->ki", self.R_cam, pose[:, :3]), np.zeros(K, bool), np.full(K, TRACK)
         else:
             d = copy.deepcopy(self.defense)
-            out = [d.step(pose[k, :3], float(prob[k]), self.R_cam[k], None if self.u is None else self.u[k],
-                          sixd_to_matrix(pose[k, 3:])) for k in range(K)]
+            out = [
+                d.step(
+                    pose[k, :3],
+                    float(prob[k]),
+                    self.R_cam[k],
+                    None if self.u is None else self.u[k],
+                    sixd_to_matrix(pose[k, 3:]),
+                )
+                for k in range(K)
+            ]
             trusted = np.array([o.trusted for o in out])
-            flag, mode, pl = np.array([o.flag for o in out]), np.array([o.mode for o in out]), np.array([o.pl for o in out])
+            flag, mode, pl = (
+                np.array([o.flag for o in out]),
+                np.array([o.mode for o in out]),
+                np.array([o.pl for o in out]),
+            )
         err = np.linalg.norm(trusted - self.truth, axis=1)
-        err = np.where(np.isfinite(err), err, 0.0)              # no estimate yet: nothing misleads
+        err = np.where(np.isfinite(err), err, 0.0)  # no estimate yet: nothing misleads
         flown = ~flag & (mode == TRACK)
         available = flown & (pl <= self.alert_limit)
         hmi = available & (err > self.alert_limit)
@@ -209,9 +231,23 @@ class _Burst:
         else:
             ratio = err / (pl if self.objective == "error_pl" else self.alert_limit)
             score = float(np.max(ratio[flown], initial=0.0))
-        return BurstOutcome(eps, found_at, lam, restart, images, pose, prob, err,
-                            np.linalg.norm(pose[:, :3] - self.labels[:, :3].double().numpy(), axis=1), flag, mode, hmi,
-                            score, mi, self.objective)
+        return BurstOutcome(
+            eps,
+            found_at,
+            lam,
+            restart,
+            images,
+            pose,
+            prob,
+            err,
+            np.linalg.norm(pose[:, :3] - self.labels[:, :3].double().numpy(), axis=1),
+            flag,
+            mode,
+            hmi,
+            score,
+            mi,
+            self.objective,
+        )
 
 
 @dataclass(frozen=True)
@@ -264,8 +300,9 @@ class BurstAttacker:
         eps = check_eps(eps)
         return self.nested(chain, defense, run, [e for e in sorted(self.ladder) if e < eps] + [eps]).images[-1]
 
-    def nested(self, chain: DifferentiableChain, defense: Defense | None, run: AttackRun,
-               eps: list[float]) -> NestedResult:
+    def nested(
+        self, chain: DifferentiableChain, defense: Defense | None, run: AttackRun, eps: list[float]
+    ) -> NestedResult:
         """Every burst of `run` at each eps of the increasing list `eps`, the larger eps starting
         from the smaller one's solutions. `defense`: the defense in the state before the run (only
         copies are stepped); None: undefended."""
@@ -286,9 +323,17 @@ class BurstAttacker:
             chain.train(was_training)
         return NestedResult(tuple(eps), images, bursts)
 
-    def _pass(self, chain: DifferentiableChain, defense: Defense | None, run: AttackRun, eps: float, pose: np.ndarray,
-              prob: np.ndarray, previous: list[BurstOutcome] | None,
-              gen: torch.Generator) -> tuple[Tensor, list[BurstOutcome]]:
+    def _pass(
+        self,
+        chain: DifferentiableChain,
+        defense: Defense | None,
+        run: AttackRun,
+        eps: float,
+        pose: np.ndarray,
+        prob: np.ndarray,
+        previous: list[BurstOutcome] | None,
+        gen: torch.Generator,
+    ) -> tuple[Tensor, list[BurstOutcome]]:
         """One eps over the run: clean frames and crafted bursts fed in time order to a copy of the defense."""
         d, pose, prob = copy.deepcopy(defense), pose.copy(), prob.copy()
         stored, outcomes, done = run.stored(), [], 0
@@ -304,9 +349,18 @@ class BurstAttacker:
             y = run.labels[lo:hi]
             rng = np.linalg.norm(y[:, :3].double().numpy(), axis=1)
             al = self._alert_limit(rng)
-            burst = _Burst(chain, d, run.images[lo:hi], y, np.asarray(run.R_cam[lo:hi], np.float64),
-                           None if run.u is None else np.asarray(run.u[lo:hi], np.float64), np.array(al, np.float64),
-                           float(self.cap), self.objective, self.hinge)
+            burst = _Burst(
+                chain,
+                d,
+                run.images[lo:hi],
+                y,
+                np.asarray(run.R_cam[lo:hi], np.float64),
+                None if run.u is None else np.asarray(run.u[lo:hi], np.float64),
+                np.array(al, np.float64),
+                float(self.cap),
+                self.objective,
+                self.hinge,
+            )
             worst = self._burst(burst, eps, None if previous is None else previous[b], gen)
             stored[lo:hi], pose[lo:hi], prob[lo:hi] = worst.images, worst.pose, worst.prob
             outcomes.append(worst)
@@ -334,8 +388,11 @@ class BurstAttacker:
             else:
                 noise = torch.rand(x.shape, generator=gen, dtype=x.dtype)
                 starts.append(project(x + (2 * noise - 1) * eps, x, eps))
-        found = [] if previous is None else burst.evaluate(
-            previous.images[None], eps, [(previous.lam, previous.restart, previous.found_at)])
+        found = (
+            []
+            if previous is None
+            else burst.evaluate(previous.images[None], eps, [(previous.lam, previous.restart, previous.found_at)])
+        )
         for lam in sorted(float(v) for v in self.lambdas):
             if self.early_stop and found and max(o.key for o in found)[0] == len(x):
                 break

@@ -31,6 +31,7 @@ probability at which the defense stops updating its filter: a doubtful frame wou
   A drift from acquisition in the loop is the same attacker with a small initial bias and a rate
   (e.g. initial 0.05 m, rate 0.1 m/frame: the checks decide how fast it may grow).
 """
+
 from __future__ import annotations
 
 import math
@@ -41,10 +42,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pipeline.attacks.adaptive import DifferentiableChain
 from pipeline.attackers.base import AttackRun, chain_outputs, doubt_logit
-from pipeline.attackers.drift import (DIRECTIONS, BiasPlanner, FrameAttack, TargetedPGD, drift_direction, planned_attack,
-                                    stealthy_bias)
+from pipeline.attackers.drift import (
+    DIRECTIONS,
+    BiasPlanner,
+    FrameAttack,
+    TargetedPGD,
+    drift_direction,
+    planned_attack,
+    stealthy_bias,
+)
+from pipeline.attacks.adaptive import DifferentiableChain
 from pipeline.attacks.gradient import check_eps
 from pipeline.defense.fusion import Defense
 from pipeline.defense.kalman import MotionFilter
@@ -72,7 +80,9 @@ class CaptureSettings:
         if not (math.isfinite(self.rate) and self.rate >= 0):
             raise ValueError(f"capture rate (m/frame) must be a finite number >= 0, got {self.rate}")
         if self.final is not None and not (math.isfinite(self.final) and self.final >= self.initial):
-            raise ValueError(f"capture final bias (m) must be None or at least the initial {self.initial}, got {self.final}")
+            raise ValueError(
+                f"capture final bias (m) must be None or at least the initial {self.initial}, got {self.final}"
+            )
         if not 0 < float(self.gate_fraction) <= 1:
             raise ValueError(f"capture gate_fraction must be in (0, 1], got {self.gate_fraction}")
         if self.cusum_fraction is not None and not 0 < float(self.cusum_fraction) <= 1:
@@ -88,8 +98,15 @@ class CaptureSettings:
         return CapturePlanner(defense, self)
 
 
-def capture_bias(settings: CaptureSettings, k: int, motion: MotionFilter | None, t_clean: np.ndarray,
-                 R_cam: np.ndarray, u: np.ndarray | None, d_cam: np.ndarray) -> float:
+def capture_bias(
+    settings: CaptureSettings,
+    k: int,
+    motion: MotionFilter | None,
+    t_clean: np.ndarray,
+    R_cam: np.ndarray,
+    u: np.ndarray | None,
+    d_cam: np.ndarray,
+) -> float:
     """The bias (m) along the camera-frame unit vector d_cam for the k-th attacked frame whose clean
     estimate is t_clean (camera frame, m): `settings.wanted(k)` before the filter `motion` runs (or
     without one), else the stealthy bias nearest it (pipeline.attackers.drift.stealthy_bias)."""
@@ -133,15 +150,23 @@ class CaptureAttacker:
 
     name = "capture"
 
-    def __init__(self, settings: CaptureSettings = CaptureSettings(), *, frame_attack: FrameAttack | None = None,
-                 seed: int = 0):
+    def __init__(
+        self, settings: CaptureSettings = CaptureSettings(), *, frame_attack: FrameAttack | None = None, seed: int = 0
+    ):
         self.settings, self.seed = settings, int(seed)
         self.frame_attack = TargetedPGD() if frame_attack is None else frame_attack
 
     def attack(self, chain: DifferentiableChain, defense: Defense | None, run: AttackRun, eps: float) -> Tensor:
         """The stored images (uint8 (N, 3, H, W)) the capture delivers for `run` at L-inf budget eps."""
-        return planned_attack(chain, run, check_eps(eps), self.settings.planner(defense), self.frame_attack,
-                              doubt_logit(defense), torch.Generator().manual_seed(self.seed))
+        return planned_attack(
+            chain,
+            run,
+            check_eps(eps),
+            self.settings.planner(defense),
+            self.frame_attack,
+            doubt_logit(defense),
+            torch.Generator().manual_seed(self.seed),
+        )
 
 
 class CaptureInLoop:
@@ -152,12 +177,19 @@ class CaptureInLoop:
 
     name = "capture_in_loop"
 
-    def __init__(self, chain: DifferentiableChain, eps: float, settings: CaptureSettings = CaptureSettings(), *,
-                 frame_attack: FrameAttack | None = None, seed: int = 0):
+    def __init__(
+        self,
+        chain: DifferentiableChain,
+        eps: float,
+        settings: CaptureSettings = CaptureSettings(),
+        *,
+        frame_attack: FrameAttack | None = None,
+        seed: int = 0,
+    ):
         self.chain, self.eps, self.settings = chain, check_eps(eps), settings
         self.frame_attack = TargetedPGD() if frame_attack is None else frame_attack
         self.generator = torch.Generator().manual_seed(int(seed))
-        self.state: Any = None      # the loop's pipeline.guidance.law.LoopState (read only)
+        self.state: Any = None  # the loop's pipeline.guidance.law.LoopState (read only)
         self.direction: np.ndarray | None = None
         self.bias: list[float] = []
 

@@ -37,6 +37,7 @@ pipeline/defense/protection.py). "acquisition" (frame 0) drifts from the filter'
 inside that blind window; "after_trusted" starts on the first frame the PL accounts for. Against the
 undefended chain (`defense` None) nothing checks the bias: it grows by `max_rate` every frame.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -119,9 +120,16 @@ def drift_direction(t: np.ndarray, direction: str) -> np.ndarray:
     raise ValueError(f"unknown drift direction {direction!r}; choose one of {', '.join(DIRECTIONS)}")
 
 
-def stealthy_bias(motion: MotionFilter, t_clean: np.ndarray, R_cam: np.ndarray, u: np.ndarray | None,
-                  direction: np.ndarray, limit: float, wanted: float = math.inf,
-                  cusum_limit: float | None = None) -> float:
+def stealthy_bias(
+    motion: MotionFilter,
+    t_clean: np.ndarray,
+    R_cam: np.ndarray,
+    u: np.ndarray | None,
+    direction: np.ndarray,
+    limit: float,
+    wanted: float = math.inf,
+    cusum_limit: float | None = None,
+) -> float:
     """The bias b (m) nearest `wanted` among those whose estimate t_clean + b * direction (camera
     frame, m) passes `motion`'s next check with a position NIS <= `limit` and, with `cusum_limit`,
     leaves every CUSUM statistic of its sequential test <= `cusum_limit` (the b of least NIS, or of
@@ -159,25 +167,35 @@ def stealthy_bias(motion: MotionFilter, t_clean: np.ndarray, R_cam: np.ndarray, 
         a, beta, gamma = g @ S_inv @ g, g @ S_inv @ y0, y0 @ S_inv @ y0
         half = math.sqrt(max(beta * beta - a * (gamma - limit), 0.0)) / a
         lo, hi = -beta / a - half, -beta / a + half
-        if cusum_limit is not None:       # the test works along the camera axes (kalman._camera_normalized)
-            lo, hi = _cusum_interval(R_cam.T @ y0, direction, np.sqrt(np.diag(R_cam.T @ S @ R_cam)), high, low, c,
-                                     cusum_limit, lo, hi)
+        if cusum_limit is not None:  # the test works along the camera axes (kalman._camera_normalized)
+            lo, hi = _cusum_interval(
+                R_cam.T @ y0, direction, np.sqrt(np.diag(R_cam.T @ S @ R_cam)), high, low, c, cusum_limit, lo, hi
+            )
         b = float(min(max(wanted, lo), hi))
     inside = (lo + hi) / 2 if hi >= lo else lo
     if ok(b) or not ok(inside):
         return b if ok(b) else float(inside)
-    for _ in range(30):                   # inside passes, b does not: bisect on the segment
+    for _ in range(30):  # inside passes, b does not: bisect on the segment
         mid = (inside + b) / 2
         inside, b = (mid, b) if ok(mid) else (inside, mid)
     return float(inside)
 
 
-def _cusum_interval(y0: np.ndarray, g: np.ndarray, sigma: np.ndarray, high: np.ndarray, low: np.ndarray,
-                    c: float, limit: float, lo: float, hi: float) -> tuple[float, float]:
+def _cusum_interval(
+    y0: np.ndarray,
+    g: np.ndarray,
+    sigma: np.ndarray,
+    high: np.ndarray,
+    low: np.ndarray,
+    c: float,
+    limit: float,
+    lo: float,
+    hi: float,
+) -> tuple[float, float]:
     """[lo, hi] narrowed to the b whose normalized innovations r = (y0 + g b) / sigma (3,) keep both
     CUSUM statistics of each axis (high + r - c, low - r - c) <= limit; an empty intersection comes
     back as the CUSUM interval's own ends (what the sequential test allows, the gate aside)."""
-    r_hi, r_lo = limit + c - high, low - c - limit            # r must lie in [r_lo, r_hi] per axis
+    r_hi, r_lo = limit + c - high, low - c - limit  # r must lie in [r_lo, r_hi] per axis
     c_lo, c_hi = -math.inf, math.inf
     for i in range(3):
         if abs(g[i]) < 1e-12:
@@ -204,8 +222,9 @@ class BiasPlanner:
         """The camera-frame estimate (m) wanted for a frame whose clean estimate is t_clean (camera frame, m)."""
         raise NotImplementedError
 
-    def deliver(self, t: np.ndarray, prob: float, R_cam: np.ndarray, u: np.ndarray | None,
-                R_pred: np.ndarray | None = None) -> Decision | None:
+    def deliver(
+        self, t: np.ndarray, prob: float, R_cam: np.ndarray, u: np.ndarray | None, R_pred: np.ndarray | None = None
+    ) -> Decision | None:
         """Step the simulated defense on the delivered estimate (`Defense.step`'s arguments; None undefended)."""
         return None if self.defense is None else self.defense.step(t, prob, R_cam, u, R_pred)
 
@@ -233,7 +252,7 @@ class DriftPlanner(BiasPlanner):
         motion = self.defense.filter
         if not motion.started:
             return np.asarray(t_clean, np.float64)
-        if self.direction is None:        # world axes, from the state's line of sight when the drift starts
+        if self.direction is None:  # world axes, from the state's line of sight when the drift starts
             ahead = motion.position + (0.0 if u is None else np.asarray(u, np.float64))
             self.direction = R_cam @ drift_direction(R_cam.T @ ahead, s.direction)
         d = R_cam.T @ self.direction
@@ -255,8 +274,15 @@ class DriftTrace:
     trusted: np.ndarray
 
 
-def drift_estimates(defense: Defense, settings: DriftSettings, t_clean: np.ndarray, prob: np.ndarray,
-                    R_cam: np.ndarray, u: np.ndarray | None = None, attacked: np.ndarray | None = None) -> DriftTrace:
+def drift_estimates(
+    defense: Defense,
+    settings: DriftSettings,
+    t_clean: np.ndarray,
+    prob: np.ndarray,
+    R_cam: np.ndarray,
+    u: np.ndarray | None = None,
+    attacked: np.ndarray | None = None,
+) -> DriftTrace:
     """The drift fed directly as the measurement error (no network): each attacked frame's estimate
     is its clean estimate t_clean (N, 3) (camera frame, m) + the planned bias; prob (N,) the
     detector's probabilities, R_cam (N, 3, 3), u (N, 3) or None, attacked (N,) bool or None (all)."""
@@ -273,8 +299,9 @@ def drift_estimates(defense: Defense, settings: DriftSettings, t_clean: np.ndarr
     return DriftTrace(delivered, bias, flag, trusted)
 
 
-def targeted_objective(target: Tensor, logit_threshold: float, margin_weight: float,
-                       hinge: float | None = None) -> LossFn:
+def targeted_objective(
+    target: Tensor, logit_threshold: float, margin_weight: float, hinge: float | None = None
+) -> LossFn:
     """What the targeted PGD ascends: -(|t - t*|^2 (m^2) + |r6 - r6*|^2) - margin_weight *
     softplus(logit - logit_threshold), with target (B, 9) = (t*, r6*) the wanted pose: the estimate
     pulled to the target while the detector's logit is kept below its threshold's. With `hinge` m the
@@ -291,9 +318,19 @@ def targeted_objective(target: Tensor, logit_threshold: float, margin_weight: fl
     return objective
 
 
-def targeted_pgd(chain: DifferentiableChain, x: Tensor, target: Tensor, eps: float, logit_threshold: float, *,
-                 margin_weight: float = 1.0, steps: int = 20, step_size: float | None = None,
-                 generator: torch.Generator | None = None, hinge: float | None = None) -> Tensor:
+def targeted_pgd(
+    chain: DifferentiableChain,
+    x: Tensor,
+    target: Tensor,
+    eps: float,
+    logit_threshold: float,
+    *,
+    margin_weight: float = 1.0,
+    steps: int = 20,
+    step_size: float | None = None,
+    generator: torch.Generator | None = None,
+    hinge: float | None = None,
+) -> Tensor:
     """Frames x (B, 3, H, W) on the 8-bit grid pulled toward the pose `target` (B, 9) [m, 6-D] by
     L-inf PGD on `targeted_objective` through `chain` (detector margin against `logit_threshold`,
     the logit of its probability threshold; `hinge` its margin), stored as 8 bits: uint8 (B, 3, H, W)."""
@@ -309,8 +346,16 @@ class FrameAttack(Protocol):
     random draws from `generator`, from the images `start` (B, 3, H, W) when given (projected into the ball;
     None: the attack's own start) -> the stored frames, uint8 (B, 3, H, W)."""
 
-    def __call__(self, chain: DifferentiableChain, x: Tensor, target: Tensor, eps: float,
-                 logit_threshold: float | None, generator: torch.Generator, start: Tensor | None = None) -> Tensor: ...
+    def __call__(
+        self,
+        chain: DifferentiableChain,
+        x: Tensor,
+        target: Tensor,
+        eps: float,
+        logit_threshold: float | None,
+        generator: torch.Generator,
+        start: Tensor | None = None,
+    ) -> Tensor: ...
 
 
 @dataclass(frozen=True)
@@ -338,20 +383,41 @@ class TargetedPGD:
         if self.start not in FRAME_STARTS:
             raise ValueError(f"unknown targeted PGD start {self.start!r}; choose one of {', '.join(FRAME_STARTS)}")
 
-    def __call__(self, chain: DifferentiableChain, x: Tensor, target: Tensor, eps: float,
-                 logit_threshold: float | None, generator: torch.Generator, start: Tensor | None = None) -> Tensor:
+    def __call__(
+        self,
+        chain: DifferentiableChain,
+        x: Tensor,
+        target: Tensor,
+        eps: float,
+        logit_threshold: float | None,
+        generator: torch.Generator,
+        start: Tensor | None = None,
+    ) -> Tensor:
         weight = 0.0 if logit_threshold is None else self.margin_weight
         threshold = 0.0 if logit_threshold is None else logit_threshold
-        if start is None and self.start == "random" and not self.bpda:   # plain PGD, as `targeted_pgd`
-            return targeted_pgd(chain, x, target, eps, threshold, margin_weight=weight, steps=int(self.steps),
-                                step_size=self.step_size, generator=generator, hinge=self.hinge)
+        if start is None and self.start == "random" and not self.bpda:  # plain PGD, as `targeted_pgd`
+            return targeted_pgd(
+                chain,
+                x,
+                target,
+                eps,
+                threshold,
+                margin_weight=weight,
+                steps=int(self.steps),
+                step_size=self.step_size,
+                generator=generator,
+                hinge=self.hinge,
+            )
         eps = check_eps(eps)
         objective = targeted_objective(target, threshold, weight, self.hinge)
-        model = getattr(chain, "model", chain)     # the pose network (a PerFrameChain's), whose clamp BPDA passes
+        model = getattr(chain, "model", chain)  # the pose network (a PerFrameChain's), whose clamp BPDA passes
         alpha = 2.5 * eps / int(self.steps) if self.step_size is None else float(self.step_size)
         x = x.detach()
-        x_adv = get_start(self.start, x, eps, black_level(model), generator) if start is None else \
-            project(start.detach(), x, eps)
+        x_adv = (
+            get_start(self.start, x, eps, black_level(model), generator)
+            if start is None
+            else project(start.detach(), x, eps)
+        )
         with bpda_forward(model, chain) if self.bpda else contextlib.nullcontext(chain) as forward:
             for _ in range(int(self.steps)):
                 x_adv = x_adv.detach().requires_grad_(True)
@@ -361,8 +427,15 @@ class TargetedPGD:
         return quantize(x_adv, x)
 
 
-def planned_attack(chain: DifferentiableChain, run: AttackRun, eps: float, planner: BiasPlanner,
-                   frame_attack: FrameAttack, logit_threshold: float | None, generator: torch.Generator) -> Tensor:
+def planned_attack(
+    chain: DifferentiableChain,
+    run: AttackRun,
+    eps: float,
+    planner: BiasPlanner,
+    frame_attack: FrameAttack,
+    logit_threshold: float | None,
+    generator: torch.Generator,
+) -> Tensor:
     """The stored run (uint8 (N, 3, H, W)) of a planner-driven attacker (drift, capture): each attacked
     frame of `run`, in time order, goes through `frame_attack` toward the pose the `planner` wants (its
     clean attitude kept), and the planner then steps on what the chain reads from the stored frame."""
@@ -374,8 +447,8 @@ def planned_attack(chain: DifferentiableChain, run: AttackRun, eps: float, plann
         if mask[k]:
             wanted = planner.target(pose[:3], run.R_cam[k], uk)
             target = torch.as_tensor(np.concatenate([wanted, pose[3:]]), dtype=run.images.dtype)[None]
-            stored[k] = frame_attack(chain, run.images[k:k + 1], target, eps, logit_threshold, generator)[0]
-            (pose,), (prob,) = chain_outputs(chain, stored[k:k + 1].float() / 255.0)
+            stored[k] = frame_attack(chain, run.images[k : k + 1], target, eps, logit_threshold, generator)[0]
+            (pose,), (prob,) = chain_outputs(chain, stored[k : k + 1].float() / 255.0)
         planner.deliver(pose[:3], float(prob), run.R_cam[k], uk, sixd_to_matrix(pose[3:]))
     return stored
 
@@ -389,19 +462,35 @@ class DriftAttacker:
 
     name = "drift"
 
-    def __init__(self, settings: DriftSettings = DriftSettings(), *, steps: int = 20, step_size: float | None = None,
-                 margin_weight: float = 1.0, seed: int = 0, frame_attack: FrameAttack | None = None):
+    def __init__(
+        self,
+        settings: DriftSettings = DriftSettings(),
+        *,
+        steps: int = 20,
+        step_size: float | None = None,
+        margin_weight: float = 1.0,
+        seed: int = 0,
+        frame_attack: FrameAttack | None = None,
+    ):
         if int(steps) < 1:
             raise ValueError(f"drift steps (PGD steps per frame) must be >= 1, got {steps}")
         if not (math.isfinite(margin_weight) and margin_weight >= 0):
             raise ValueError(f"drift margin_weight must be a finite number >= 0, got {margin_weight}")
         self.settings, self.seed = settings, int(seed)
-        self.frame_attack = TargetedPGD(int(steps), step_size, float(margin_weight)) if frame_attack is None \
-            else frame_attack
+        self.frame_attack = (
+            TargetedPGD(int(steps), step_size, float(margin_weight)) if frame_attack is None else frame_attack
+        )
 
     def attack(self, chain: DifferentiableChain, defense: Defense | None, run: AttackRun, eps: float) -> Tensor:
         """The stored images (uint8 (N, 3, H, W)) the drift delivers for `run` at L-inf budget eps."""
         eps = check_eps(eps)
         threshold = None if defense is None else probability_logit(defense.settings.threshold)
-        return planned_attack(chain, run, eps, self.settings.planner(defense), self.frame_attack, threshold,
-                              torch.Generator().manual_seed(self.seed))
+        return planned_attack(
+            chain,
+            run,
+            eps,
+            self.settings.planner(defense),
+            self.frame_attack,
+            threshold,
+            torch.Generator().manual_seed(self.seed),
+        )

@@ -18,6 +18,7 @@ camera axes W_j = K_j R_j diag(sigma_j) of every accepted frame (the trusted fra
 left out, as `MotionFilter._bound` does) and the state covariance, so an attacker can ascend trusted
 error / PL.
 """
+
 from __future__ import annotations
 
 import math
@@ -39,8 +40,14 @@ def rotmat_t(w: Tensor) -> Tensor:
     th = th2.sqrt()
     s, k = (torch.sin(th) / th)[:, None, None], ((1 - torch.cos(th)) / th2)[:, None, None]
     zero = torch.zeros_like(w[:, 0])
-    W = torch.stack([torch.stack([zero, -w[:, 2], w[:, 1]], 1), torch.stack([w[:, 2], zero, -w[:, 0]], 1),
-                     torch.stack([-w[:, 1], w[:, 0], zero], 1)], 1)
+    W = torch.stack(
+        [
+            torch.stack([zero, -w[:, 2], w[:, 1]], 1),
+            torch.stack([w[:, 2], zero, -w[:, 0]], 1),
+            torch.stack([-w[:, 1], w[:, 0], zero], 1),
+        ],
+        1,
+    )
     return torch.eye(3, dtype=w.dtype) + s * W + k * (W @ W)
 
 
@@ -51,11 +58,11 @@ def noise_terms_t(noise: NoiseModel, rng: Tensor) -> tuple[Tensor, Tensor]:
         bias = as_t(noise.bias_intercept) + as_t(noise.bias_slope) * rng
         return bias, torch.clamp(as_t(noise.position_intercept) + as_t(noise.position_slope) * rng, min=noise.floor)
     x = as_t(noise.knots)
-    k = torch.searchsorted(x, rng.detach().contiguous()).clamp(1, len(x) - 1)          # (R, 1)
+    k = torch.searchsorted(x, rng.detach().contiguous()).clamp(1, len(x) - 1)  # (R, 1)
     w = ((rng - x[k - 1]) / (x[k] - x[k - 1])).clamp(0.0, 1.0)
 
     def lerp(table: tuple) -> Tensor:
-        v = as_t(table)                                                                 # (knots, 3)
+        v = as_t(table)  # (knots, 3)
         return v[k[:, 0] - 1] + w * (v[k[:, 0]] - v[k[:, 0] - 1])
 
     return lerp(noise.knot_bias), torch.clamp(lerp(noise.knot_std), min=noise.floor)
@@ -101,8 +108,9 @@ class FilterMirror:
             self.att_rate, self.R_tw = rep(motion.att.rate), rep(motion.R_tw)
             self.p = tuple(torch.full((self.runs,), float(v), dtype=DTYPE) for v in motion.att.p)
 
-    def step(self, t: Tensor, R_pred: Tensor, R_cam: np.ndarray,
-             u: np.ndarray | None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def step(
+        self, t: Tensor, R_pred: Tensor, R_cam: np.ndarray, u: np.ndarray | None
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """One accepted frame: t (R, 3) camera-frame estimates (m), R_pred (R, 3, 3) target -> camera,
         R_cam (3, 3) camera -> world, u (3,) commanded displacement (world, m) or None.
         Returns (trusted rel after the frame (R, 3), world, m; NIS of position (R,); NIS of attitude
@@ -117,7 +125,7 @@ class FilterMirror:
             zero = torch.zeros(self.runs, dtype=DTYPE)
             return self.level, zero, zero, zero
         self._predict(u)
-        rng = self.level.norm(dim=1)                  # the noise model at the predicted range, as the filter
+        rng = self.level.norm(dim=1)  # the noise model at the predicted range, as the filter
         z, Rz = self._measurement(t, rng, R_cam_t)
         nis_p, cusum = self._update_position(z - self.level, Rz, R_cam_t)
         nis_a = self._update_attitude(R_meas, rng)
@@ -127,7 +135,7 @@ class FilterMirror:
         """(z (R, 3), Rz (R, 3, 3)): `MotionFilter.measurement`, bias removed, covariance in world axes."""
         bias, std = noise_terms_t(self.noise, rng[:, None])
         z = (t - bias) @ R_cam.T
-        return z, R_cam @ torch.diag_embed(std ** 2) @ R_cam.T
+        return z, R_cam @ torch.diag_embed(std**2) @ R_cam.T
 
     def _attitude_var(self, rng: Tensor) -> Tensor:
         return attitude_std_t(self.noise, rng) ** 2
@@ -137,7 +145,7 @@ class FilterMirror:
         rng = z.norm(dim=1)
         self.level, self.A = z, Rz
         self.att_rate, self.R_tw = torch.zeros_like(z), R_meas
-        self.p = (self._attitude_var(rng), torch.zeros_like(rng), torch.full_like(rng, self.att_rate_std ** 2))
+        self.p = (self._attitude_var(rng), torch.zeros_like(rng), torch.full_like(rng, self.att_rate_std**2))
         self.high, self.low = torch.zeros_like(z), torch.zeros_like(z)
         self.total, self.rise, self.last = (torch.zeros(self.runs, 3, 3, dtype=DTYPE) for _ in range(3))
         self.offset, self.trusted = 0.0, self.trusted_start
@@ -178,8 +186,11 @@ class FilterMirror:
             self.trusted -= 1
             return
         pos, neg = W.clamp(min=0.0), (-W).clamp(min=0.0)
-        self.rise = (self.rise + (pos - self.last.clamp(min=0.0)).clamp(min=0.0)
-                     + (neg - (-self.last).clamp(min=0.0)).clamp(min=0.0))
+        self.rise = (
+            self.rise
+            + (pos - self.last.clamp(min=0.0)).clamp(min=0.0)
+            + (neg - (-self.last).clamp(min=0.0)).clamp(min=0.0)
+        )
         self.total = self.total + W.abs()
         self.last = W
 
@@ -188,7 +199,7 @@ class FilterMirror:
         (`ProtectionLevel.level`); inf before the start."""
         if not self.started:
             return torch.full((self.runs,), math.inf, dtype=DTYPE)
-        b = (self.reference * self.total + self.threshold * self.rise).sum(2)          # (R, 3) world axes
+        b = (self.reference * self.total + self.threshold * self.rise).sum(2)  # (R, 3) world axes
         lam = torch.linalg.eigvalsh(_sym(self.A))[:, -1].clamp(min=0.0)
         return self.kappa * lam.sqrt() + b.norm(dim=1) + self.offset
 
@@ -201,7 +212,10 @@ class FilterMirror:
         r = var * torch.clamp(nis / self.soft, min=1.0)
         ka, kb = a / (a + r), b / (a + r)
         self.att_rate = self.att_rate + kb[:, None] * dth
-        self.p = ((1 - ka) ** 2 * a + ka * ka * r, (1 - ka) * (b - kb * a) + ka * kb * r,
-                  kb * kb * a - 2 * kb * b + c + kb * kb * r)
+        self.p = (
+            (1 - ka) ** 2 * a + ka * ka * r,
+            (1 - ka) * (b - kb * a) + ka * kb * r,
+            kb * kb * a - 2 * kb * b + c + kb * kb * r,
+        )
         self.R_tw = self.R_tw @ rotmat_t(ka[:, None] * dth)
         return nis

@@ -23,6 +23,7 @@ The third in-loop goal, "capture" (`GOALS`), is pipeline/attackers/capture.py's 
 bias from the first frame, held to docking (the chaser docks where the bias says the goal is).
 Cost: `steps` frame-gradients per attacked frame (batch 1) and 7 copies of the defense stepped.
 """
+
 from __future__ import annotations
 
 import copy
@@ -33,15 +34,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pipeline.attacks.adaptive import DifferentiableChain
 from pipeline.attackers.base import chain_outputs
 from pipeline.attackers.drift import stealthy_bias, targeted_pgd
+from pipeline.attacks.adaptive import DifferentiableChain
 from pipeline.attacks.gradient import check_eps
 from pipeline.defense.fusion import HOLD
 from pipeline.geometry.rotations import sixd_to_matrix
 from pipeline.guidance.law import LoopState, guidance_step, segment_range
 
-GREEDY = ("collide", "miss")   # the goals of this module's greedy one-step attacker (`InLoopAttacker`)
+GREEDY = ("collide", "miss")  # the goals of this module's greedy one-step attacker (`InLoopAttacker`)
 GOALS = GREEDY + ("capture",)  # every in-loop goal: "capture" is pipeline/attackers/capture.py's `CaptureInLoop`
 
 
@@ -62,8 +63,10 @@ class InLoopSettings:
 
     def __post_init__(self) -> None:
         if self.goal not in GREEDY:
-            raise ValueError(f"unknown in-loop attack goal {self.goal!r}; choose one of {', '.join(GREEDY)} "
-                             f"(capture: pipeline.attackers.capture.CaptureInLoop)")
+            raise ValueError(
+                f"unknown in-loop attack goal {self.goal!r}; choose one of {', '.join(GREEDY)} "
+                f"(capture: pipeline.attackers.capture.CaptureInLoop)"
+            )
         if int(self.steps) < 1:
             raise ValueError(f"in-loop attack steps must be >= 1, got {self.steps}")
         if not 0 < float(self.gate_fraction) <= 1:
@@ -92,12 +95,13 @@ class InLoopAttacker:
 
     name = "in_loop"
 
-    def __init__(self, chain: DifferentiableChain, eps: float, settings: InLoopSettings = InLoopSettings(),
-                 seed: int = 0):
+    def __init__(
+        self, chain: DifferentiableChain, eps: float, settings: InLoopSettings = InLoopSettings(), seed: int = 0
+    ):
         self.chain, self.eps, self.settings = chain, check_eps(eps), settings
         self.generator = torch.Generator().manual_seed(int(seed))
         self.state: LoopState | None = None
-        self.wanted: list[np.ndarray] = []     # the camera-frame estimate aimed at, per attacked frame (m)
+        self.wanted: list[np.ndarray] = []  # the camera-frame estimate aimed at, per attacked frame (m)
 
     def observe(self, state: LoopState) -> None:
         self.state = state
@@ -113,9 +117,16 @@ class InLoopAttacker:
         defense = self.state.defense
         threshold = 0.5 if defense is None else (defense.settings.update_below or defense.settings.threshold)
         target = torch.as_tensor(np.concatenate([wanted, pose[3:]]), dtype=x.dtype)[None]
-        stored = targeted_pgd(self.chain, x, target, self.eps, math.log(threshold / (1 - threshold)),
-                              margin_weight=0.0 if defense is None else self.settings.margin_weight,
-                              steps=int(self.settings.steps), generator=self.generator)
+        stored = targeted_pgd(
+            self.chain,
+            x,
+            target,
+            self.eps,
+            math.log(threshold / (1 - threshold)),
+            margin_weight=0.0 if defense is None else self.settings.margin_weight,
+            steps=int(self.settings.steps),
+            generator=self.generator,
+        )
         return stored.float() / 255.0
 
     def aim(self, t0: np.ndarray, prob: float, R_pred: np.ndarray) -> np.ndarray:
@@ -137,8 +148,9 @@ class InLoopAttacker:
         motion = defense.filter
         s = self.settings
         cusum = None if s.cusum_fraction is None else s.cusum_fraction * motion.cusum.threshold
-        b = stealthy_bias(motion, t0, self.state.R_c, self.state.u, d_cam, s.gate_fraction * motion.gate,
-                          cusum_limit=cusum)
+        b = stealthy_bias(
+            motion, t0, self.state.R_c, self.state.u, d_cam, s.gate_fraction * motion.gate, cusum_limit=cusum
+        )
         return (b,) if b > 0 else ()
 
     def _next(self, t: np.ndarray, prob: float, R_pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

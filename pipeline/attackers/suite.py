@@ -1,4 +1,5 @@
 """The chain-level attackers by name (their interface: pipeline/attackers/base.py); a new attacker adds its class here."""
+
 from __future__ import annotations
 
 import inspect
@@ -9,9 +10,11 @@ from pipeline.attackers.burst import BurstAttacker
 from pipeline.attackers.capture import CaptureAttacker
 from pipeline.attackers.drift import DriftAttacker
 
-ATTACKERS: dict[str, Callable[..., SequenceAttacker]] = {DriftAttacker.name: DriftAttacker,
-                                                         BurstAttacker.name: BurstAttacker,
-                                                         CaptureAttacker.name: CaptureAttacker}
+ATTACKERS: dict[str, Callable[..., SequenceAttacker]] = {
+    DriftAttacker.name: DriftAttacker,
+    BurstAttacker.name: BurstAttacker,
+    CaptureAttacker.name: CaptureAttacker,
+}
 
 
 def get_attacker(name: str, **options: object) -> SequenceAttacker:

@@ -17,6 +17,7 @@ temporal detector) plugs in as another `DifferentiableChain` with `temporal = Tr
 batch as one burst in time order, and the caller then attacks whole bursts (one burst per call),
 so the attack optimises the burst jointly, never one frame alone.
 """
+
 from __future__ import annotations
 
 from typing import Protocol
@@ -100,14 +101,33 @@ def adaptive_objective(loss_fn: LossFn, lam: float) -> LossFn:
     return objective
 
 
-def adaptive_pgd(chain: DifferentiableChain, x: Tensor, y: Tensor, eps: float, loss_fn: LossFn, lam: float, *,
-                 steps: int = DEFAULT_STEPS, step_size: float | None = None, random_start: bool = True,
-                 generator: torch.Generator | None = None) -> Tensor:
+def adaptive_pgd(
+    chain: DifferentiableChain,
+    x: Tensor,
+    y: Tensor,
+    eps: float,
+    loss_fn: LossFn,
+    lam: float,
+    *,
+    steps: int = DEFAULT_STEPS,
+    step_size: float | None = None,
+    random_start: bool = True,
+    generator: torch.Generator | None = None,
+) -> Tensor:
     """L-inf PGD (random start, `steps` signed steps of `step_size`, default 2.5 eps / steps) on
     `loss_fn(pose, y) - lam * mean(logit)` through `chain`; returns float images in [0, 1]
     within eps of `x` (store them with `pipeline.attacks.gradient.quantize`, as every attack).
 
     `x` (B, 3, H, W) in [0, 1], `y` (B, 9) labels [m, 6-D]; for a temporal chain the batch is one burst.
     """
-    return pgd(chain, x, y, eps, adaptive_objective(loss_fn, lam), steps=steps, step_size=step_size,
-               random_start=random_start, generator=generator)
+    return pgd(
+        chain,
+        x,
+        y,
+        eps,
+        adaptive_objective(loss_fn, lam),
+        steps=steps,
+        step_size=step_size,
+        random_start=random_start,
+        generator=generator,
+    )

@@ -13,6 +13,7 @@ its objective and gradient are taken at the stored image (the rounding passed st
 best iterate kept is the best stored image. Restarts cycle through `starts`; the best over restarts is
 returned. `bpda`: the gradient passes the network's black-level clamp as the identity (pipeline/attacks/bpda.py).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -43,8 +44,9 @@ def checkpoints(steps: int) -> list[int]:
     return out
 
 
-def _run(forward: Forward, x: Tensor, y: Tensor, eps: float, objective: Objective, z: Tensor, steps: int,
-         los: Tensor | None) -> Found:
+def _run(
+    forward: Forward, x: Tensor, y: Tensor, eps: float, objective: Objective, z: Tensor, steps: int, los: Tensor | None
+) -> Found:
     """One APGD run from the start z (module doc): the best stored image per sample and its value."""
     shape = (-1,) + (1,) * (x.dim() - 1)
     u8, value, grad = evaluate(forward, z, x, y, objective, los, grad=True)
@@ -78,9 +80,20 @@ def _run(forward: Forward, x: Tensor, y: Tensor, eps: float, objective: Objectiv
     return best
 
 
-def apgd(model: nn.Module, x: Tensor, y: Tensor, eps: float, objective: Objective, *,
-         generator: torch.Generator | None = None, los: Tensor | None = None, steps: int = 100, restarts: int = 5,
-         starts: Sequence[str] = ("random",), bpda: bool = False) -> Found:
+def apgd(
+    model: nn.Module,
+    x: Tensor,
+    y: Tensor,
+    eps: float,
+    objective: Objective,
+    *,
+    generator: torch.Generator | None = None,
+    los: Tensor | None = None,
+    steps: int = 100,
+    restarts: int = 5,
+    starts: Sequence[str] = ("random",),
+    bpda: bool = False,
+) -> Found:
     """APGD-`steps` with `restarts` restarts (start kinds cycled from `starts`: random | lift) ascending
     `objective` per sample within the L-inf ball eps of the clean x (B, 3, H, W, 8-bit grid, [0, 1]); y the
     (B, 9) true poses (m, 6-D). Returns the best stored image per sample over all restarts and its value.
@@ -89,7 +102,8 @@ def apgd(model: nn.Module, x: Tensor, y: Tensor, eps: float, objective: Objectiv
     if int(steps) < 1 or int(restarts) < 1 or not starts:
         raise ValueError(f"APGD needs steps >= 1, restarts >= 1 and a start kind, got {steps}, {restarts}, {starts}")
     x, level = x.detach(), black_level(model)
-    with _eval_mode(model), (bpda_forward(model) if bpda else contextlib.nullcontext(model)) as forward:
+    with _eval_mode(model), bpda_forward(model) if bpda else contextlib.nullcontext(model) as forward:
+
         def restart(r: int) -> Found:
             z = get_start(starts[r % len(starts)], x, eps, level, generator)
             return _run(forward, x, y, eps, objective, z, int(steps), los)

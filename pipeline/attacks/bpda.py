@@ -5,6 +5,7 @@ sees at its clamped input and an attack learns which dark pixels to lift past t.
 attack's direction; every score comes from the stored image through the true network (the values are
 identical anyway: the forward is unchanged).
 """
+
 from __future__ import annotations
 
 import contextlib

@@ -18,6 +18,7 @@ lets the attacker reach up to sqrt(2) further on the diagonals than measured (co
 The attitude capacity is recorded for completeness; the position bound does not use it (the attacker it
 models leaves the attitude at its clean value).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -48,16 +49,23 @@ class Shifts:
             raise ValueError(f"shifts: eps must be > 0, got {self.eps}")
 
 
-def measure_shifts(eps: float, t_true: np.ndarray, t_clean: np.ndarray, t_attacked: np.ndarray,
-                   R_clean: np.ndarray | None = None, R_attacked: np.ndarray | None = None) -> Shifts:
+def measure_shifts(
+    eps: float,
+    t_true: np.ndarray,
+    t_clean: np.ndarray,
+    t_attacked: np.ndarray,
+    R_clean: np.ndarray | None = None,
+    R_attacked: np.ndarray | None = None,
+) -> Shifts:
     """`Shifts` of N frames from the true, clean and attacked positions (N, 3) (camera frame, m) and,
     optionally, the clean and attacked attitudes (N, 3, 3) (target -> camera; without them the attitude
     change is 0)."""
     t_true, t_clean, t_attacked = (np.asarray(a, np.float64) for a in (t_true, t_clean, t_attacked))
     n = len(t_true)
     if t_true.shape != (n, 3) or t_clean.shape != (n, 3) or t_attacked.shape != (n, 3):
-        raise ValueError(f"measure_shifts needs (N, 3) positions, got {t_true.shape}, {t_clean.shape}, "
-                         f"{t_attacked.shape}")
+        raise ValueError(
+            f"measure_shifts needs (N, 3) positions, got {t_true.shape}, {t_clean.shape}, {t_attacked.shape}"
+        )
     rng = np.linalg.norm(t_true, axis=1)
     if not (rng > 0).all():
         raise ValueError("measure_shifts: a true position at the camera has no line of sight")
@@ -92,14 +100,16 @@ class Capacity:
         the bin's values (pipeline/defense/bound.py `worst_case` takes it as `capacity`)."""
         r = np.asarray(range_m, np.float64)
         if r.ndim != 1 or not np.isfinite(r).all() or (r < self.edges[0]).any() or (r > self.edges[-1]).any():
-            raise ValueError(f"capacity: ranges must lie within the measured bins [{self.edges[0]}, "
-                             f"{self.edges[-1]}] m")
+            raise ValueError(
+                f"capacity: ranges must lie within the measured bins [{self.edges[0]}, {self.edges[-1]}] m"
+            )
         b = np.clip(np.searchsorted(self.edges, r, side="right") - 1, 0, len(self.along) - 1)
         return np.column_stack([self.along[b], self.across[b], self.across[b]])
 
 
-def fit_capacity(shifts: Shifts, edges: Sequence[float], quantile: float = 0.99, margin: float = 0.25,
-                 min_count: int = 20) -> Capacity:
+def fit_capacity(
+    shifts: Shifts, edges: Sequence[float], quantile: float = 0.99, margin: float = 0.25, min_count: int = 20
+) -> Capacity:
     """F(eps, range) of one eps's `shifts`: per range bin of `edges` (m, increasing) the `quantile` of each
     shift times (1 + `margin`); a bin with fewer than `min_count` frames is refused."""
     edges = np.asarray(edges, np.float64)
@@ -112,10 +122,13 @@ def fit_capacity(shifts: Shifts, edges: Sequence[float], quantile: float = 0.99,
     count = np.bincount(b[inside], minlength=len(edges) - 1)
     if (count < min_count).any():
         k = int(np.argmax(count < min_count))
-        raise ValueError(f"capacity: range bin {edges[k]:g}-{edges[k + 1]:g} m has {count[k]} frames, fewer than "
-                         f"{min_count}")
-    q = [[np.quantile(getattr(shifts, name)[inside & (b == k)], quantile) * (1 + margin)
-          for k in range(len(edges) - 1)] for name in ("along", "across", "attitude_deg")]
+        raise ValueError(
+            f"capacity: range bin {edges[k]:g}-{edges[k + 1]:g} m has {count[k]} frames, fewer than {min_count}"
+        )
+    q = [
+        [np.quantile(getattr(shifts, name)[inside & (b == k)], quantile) * (1 + margin) for k in range(len(edges) - 1)]
+        for name in ("along", "across", "attitude_deg")
+    ]
     return Capacity(shifts.eps, edges, *(np.array(v) for v in q), count, float(quantile), float(margin))
 
 
@@ -129,7 +142,7 @@ def capacity_at(capacities: Sequence[Capacity], eps: float, range_m: np.ndarray)
     if any(not np.array_equal(c.edges, caps[0].edges) for c in caps):
         raise ValueError("capacity: the capacities of different eps must share their range bins")
     upto = next(i for i, c in enumerate(caps) if c.eps >= eps)
-    return np.max([c.at(range_m) for c in caps[:upto + 1]], axis=0)
+    return np.max([c.at(range_m) for c in caps[: upto + 1]], axis=0)
 
 
 def proportional_capacity(eps: float, edges: Sequence[float], along_per_m: float, across_per_m: float) -> Capacity:
@@ -139,5 +152,6 @@ def proportional_capacity(eps: float, edges: Sequence[float], along_per_m: float
     if edges.ndim != 1 or len(edges) < 2 or not (np.diff(edges) > 0).all() or min(along_per_m, across_per_m) < 0:
         raise ValueError("capacity: edges must be increasing ranges (m) and the slopes >= 0")
     far = edges[1:]
-    return Capacity(float(eps), edges, along_per_m * far, across_per_m * far, np.zeros(len(far)),
-                    np.zeros(len(far), int), 1.0, 0.0)
+    return Capacity(
+        float(eps), edges, along_per_m * far, across_per_m * far, np.zeros(len(far)), np.zeros(len(far), int), 1.0, 0.0
+    )

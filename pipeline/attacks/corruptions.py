@@ -9,6 +9,7 @@ takes a seeded generator). Strengths and units:
 - brightness: multiplicative gain (exposure), 1 = unchanged;
 - contrast: scale of each pixel's distance from its image's mean grey level, 1 = unchanged.
 """
+
 from __future__ import annotations
 
 from typing import Callable
@@ -67,8 +68,13 @@ def contrast(images: np.ndarray, factor: float) -> np.ndarray:
 def check_strength(name: str, strength: float) -> float:
     """Validate a corruption strength (see the module docstring for units)."""
     s = float(strength)
-    ok = {"noise": 0 <= s <= 1, "blur": 0 < s <= 20, "jpeg": 1 <= s <= 100,
-          "brightness": 0 < s <= 10, "contrast": 0 <= s <= 10}
+    ok = {
+        "noise": 0 <= s <= 1,
+        "blur": 0 < s <= 20,
+        "jpeg": 1 <= s <= 100,
+        "brightness": 0 < s <= 10,
+        "contrast": 0 <= s <= 10,
+    }
     if name not in ok:
         raise ValueError(f"unknown corruption {name!r}; choose one of {', '.join(CORRUPTIONS)}")
     if not np.isfinite(s) or not ok[name]:
@@ -82,5 +88,9 @@ def corrupt(name: str, strength: float, seed: int = 0) -> Callable[[np.ndarray],
     if name == "noise":
         rng = np.random.default_rng(seed)
         return lambda images: noise(images, s, rng)
-    return {"blur": lambda im: blur(im, s), "jpeg": lambda im: jpeg(im, s),
-            "brightness": lambda im: brightness(im, s), "contrast": lambda im: contrast(im, s)}[name]
+    return {
+        "blur": lambda im: blur(im, s),
+        "jpeg": lambda im: jpeg(im, s),
+        "brightness": lambda im: brightness(im, s),
+        "contrast": lambda im: contrast(im, s),
+    }[name]

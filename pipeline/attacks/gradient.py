@@ -6,6 +6,7 @@ Images are float tensors (B, 3, H, W) in [0, 1]; targets are the (B, 9) labels (
 Every attack runs the model in eval mode (BatchNorm statistics frozen, no dropout), restores the
 model's mode afterwards, never touches its parameters' gradients, and returns images in [0, 1].
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -88,9 +89,18 @@ def _check_steps(steps: int, step_size: float | None, default_per_eps: float, ep
     return int(steps), alpha
 
 
-def pgd(model: nn.Module, x: Tensor, y: Tensor, eps: float, loss_fn: LossFn, *, steps: int = 10,
-        step_size: float | None = None, random_start: bool = True,
-        generator: torch.Generator | None = None) -> Tensor:
+def pgd(
+    model: nn.Module,
+    x: Tensor,
+    y: Tensor,
+    eps: float,
+    loss_fn: LossFn,
+    *,
+    steps: int = 10,
+    step_size: float | None = None,
+    random_start: bool = True,
+    generator: torch.Generator | None = None,
+) -> Tensor:
     """Projected gradient descent on the loss, L-inf ball (Madry et al. 2018).
 
     Starts at a uniform random point of the eps ball (or at x), then `steps` signed-gradient steps
@@ -112,8 +122,17 @@ def pgd(model: nn.Module, x: Tensor, y: Tensor, eps: float, loss_fn: LossFn, *, 
     return x_adv.detach()
 
 
-def mifgsm(model: nn.Module, x: Tensor, y: Tensor, eps: float, loss_fn: LossFn, *, steps: int = 10,
-           step_size: float | None = None, momentum: float = 1.0) -> Tensor:
+def mifgsm(
+    model: nn.Module,
+    x: Tensor,
+    y: Tensor,
+    eps: float,
+    loss_fn: LossFn,
+    *,
+    steps: int = 10,
+    step_size: float | None = None,
+    momentum: float = 1.0,
+) -> Tensor:
     """Momentum iterative FGSM (Dong et al. 2018), L-inf.
 
     g <- momentum * g + grad / ||grad||_1 (per image); x' <- clip_eps(x' + step_size * sign(g)),
@@ -136,14 +155,20 @@ def mifgsm(model: nn.Module, x: Tensor, y: Tensor, eps: float, loss_fn: LossFn, 
 ATTACKS: dict[str, Callable[..., Tensor]] = {"fgsm": fgsm, "pgd": pgd, "mifgsm": mifgsm}
 
 
-def get_attack(name: str, *, steps: int = 10, step_size: float | None = None, random_start: bool = True,
-               momentum: float = 1.0, generator: torch.Generator | None = None) -> AttackFn:
+def get_attack(
+    name: str,
+    *,
+    steps: int = 10,
+    step_size: float | None = None,
+    random_start: bool = True,
+    momentum: float = 1.0,
+    generator: torch.Generator | None = None,
+) -> AttackFn:
     """An attack from ATTACKS as `attack(model, x, y, eps, loss_fn)`, with its options bound."""
     if name not in ATTACKS:
         raise ValueError(f"unknown attack {name!r}; choose one of {', '.join(ATTACKS)}")
     if name == "pgd":
-        return functools.partial(pgd, steps=steps, step_size=step_size, random_start=random_start,
-                                 generator=generator)
+        return functools.partial(pgd, steps=steps, step_size=step_size, random_start=random_start, generator=generator)
     if name == "mifgsm":
         return functools.partial(mifgsm, steps=steps, step_size=step_size, momentum=momentum)
     return fgsm
@@ -161,7 +186,9 @@ def quantize(x_adv: Tensor, x: Tensor) -> Tensor:
     return torch.clamp(torch.round(x * 255.0) + levels, 0, 255).to(torch.uint8)
 
 
-def stored_attack(model: nn.Module, loss_fn: LossFn, eps: float, attack: AttackFn = fgsm) -> Callable[[Tensor, Tensor], Tensor]:
+def stored_attack(
+    model: nn.Module, loss_fn: LossFn, eps: float, attack: AttackFn = fgsm
+) -> Callable[[Tensor, Tensor], Tensor]:
     """`attack` at `eps` as a camera would deliver it: `(x, y) -> x'` with x' the adversarial image
     stored as 8 bits (`quantize`) and read back as floats in [0, 1], (B, 3, H, W).
 

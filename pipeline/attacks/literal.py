@@ -11,6 +11,7 @@
 the 8-bit grid, y the (B, 9) labels in metres and 6-D). The attacks of `ATTACKS` all keep images in [0, 1]; this
 one is deliberately outside them.
 """
+
 from __future__ import annotations
 
 from typing import Callable
@@ -19,7 +20,7 @@ from torch import Tensor, nn
 
 from pipeline.attacks.gradient import LossFn, _eval_mode, _input_grad, check_eps, fgsm, stored_attack
 
-VARIANTS = ("ours", "paper")   # clipped and stored as 8 bits / the paper's equation: unclipped floats
+VARIANTS = ("ours", "paper")  # clipped and stored as 8 bits / the paper's equation: unclipped floats
 
 
 def fgsm_literal(model: nn.Module, x: Tensor, y: Tensor, eps: float, loss_fn: LossFn) -> Tensor:
@@ -32,8 +33,9 @@ def fgsm_literal(model: nn.Module, x: Tensor, y: Tensor, eps: float, loss_fn: Lo
     return (x + eps * grad.sign()).detach()
 
 
-def float_attack(model: nn.Module, loss_fn: LossFn, eps: float,
-                 attack: Callable[..., Tensor] = fgsm_literal) -> Callable[[Tensor, Tensor], Tensor]:
+def float_attack(
+    model: nn.Module, loss_fn: LossFn, eps: float, attack: Callable[..., Tensor] = fgsm_literal
+) -> Callable[[Tensor, Tensor], Tensor]:
     """`attack` at `eps` delivered as floats, neither clipped nor quantised: `(x, y) -> x'` (B, 3, H, W)."""
     eps = check_eps(eps)
 

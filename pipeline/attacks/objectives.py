@@ -22,6 +22,7 @@ derivative is infinite. The angle is a cone at 0 and at pi (not differentiable t
 finite everywhere (a tiny constant under the square root), exactly 0 where the skew part is exactly 0
 (the same rotation), the analytic one everywhere else.
 """
+
 from __future__ import annotations
 
 from typing import Callable
@@ -98,8 +99,13 @@ def attitude(pred: Tensor, target: Tensor, los: Tensor | None = None) -> Tensor:
     return geodesic_deg(pred[:, 3:], target[:, 3:])
 
 
-OBJECTIVES: dict[str, Objective] = {"position": position, "range_far": range_far, "range_near": range_near,
-                                    "lateral": lateral, "attitude": attitude}
+OBJECTIVES: dict[str, Objective] = {
+    "position": position,
+    "range_far": range_far,
+    "range_near": range_near,
+    "lateral": lateral,
+    "attitude": attitude,
+}
 
 
 def get_objective(name: str) -> Objective:

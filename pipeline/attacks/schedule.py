@@ -6,6 +6,7 @@ with probability `p_start`; an attack then covers exactly `length` consecutive f
 cut short only by the end of the sequence). Once a burst ends, the very next frame may start a new
 one, so bursts can touch but never overlap.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -24,7 +25,7 @@ def attack_schedule(n_frames: int, p_start: float, length: int, seed: int) -> np
     i = 0
     while i < n_frames:
         if draws[i] < p_start:
-            attacked[i:i + length] = True
+            attacked[i : i + length] = True
             i += length
         else:
             i += 1

@@ -9,6 +9,7 @@ square window of side s at a random place and a random sign per channel, sets th
 share p of the image starts at p_init and halves on the published schedule (queries 10, 50, 200, 500,
 1000, 2000, 4000, 6000, 8000 of 10,000, rescaled to `queries`); s = round(sqrt(p H W)), in [1, min(H, W)].
 """
+
 from __future__ import annotations
 
 import math
@@ -20,7 +21,7 @@ from pipeline.attacks.gradient import _eval_mode, project
 from pipeline.attacks.objectives import Objective
 from pipeline.attacks.stored import Found, check_attack_inputs, evaluate
 
-HALVINGS = (10, 50, 200, 500, 1000, 2000, 4000, 6000, 8000)   # of 10,000 queries
+HALVINGS = (10, 50, 200, 500, 1000, 2000, 4000, 6000, 8000)  # of 10,000 queries
 
 
 def window_share(p_init: float, query: int, queries: int) -> float:
@@ -34,9 +35,18 @@ def _signs(shape: tuple[int, ...], generator: torch.Generator | None, like: Tens
     return (torch.randint(0, 2, shape, generator=generator) * 2 - 1).to(like.device, like.dtype)
 
 
-def square(model: nn.Module, x: Tensor, y: Tensor, eps: float, objective: Objective, *,
-           generator: torch.Generator | None = None, los: Tensor | None = None, queries: int = 1000,
-           p_init: float = 0.8) -> Found:
+def square(
+    model: nn.Module,
+    x: Tensor,
+    y: Tensor,
+    eps: float,
+    objective: Objective,
+    *,
+    generator: torch.Generator | None = None,
+    los: Tensor | None = None,
+    queries: int = 1000,
+    p_init: float = 0.8,
+) -> Found:
     """Square attack with `queries` forward passes ascending `objective` per sample within the L-inf ball eps
     of the clean x (B, 3, H, W, 8-bit grid, [0, 1]); y the (B, 9) true poses (m, 6-D). Returns the best stored
     image per sample and its value. Model in eval mode during the attack (its mode restored)."""

@@ -10,6 +10,7 @@ CPU and a CUDA run start at the same point.
   others uniformly in the ball as `random` does. Adversarial training (issue 37, item 3) can start its
   inner maximisation here too.
 """
+
 from __future__ import annotations
 
 import math
@@ -44,8 +45,9 @@ def lifting_start(x: Tensor, eps: float, black_level: float, generator: torch.Ge
     return torch.where(x < black_level, lifted, start)
 
 
-def get_start(kind: str, x: Tensor, eps: float, black_level: float = 0.0,
-              generator: torch.Generator | None = None) -> Tensor:
+def get_start(
+    kind: str, x: Tensor, eps: float, black_level: float = 0.0, generator: torch.Generator | None = None
+) -> Tensor:
     """The start `kind` of STARTS; `lift` on a network without a clamp (`black_level` 0) is `random`."""
     if kind not in STARTS:
         raise ValueError(f"unknown attack start {kind!r}; choose one of {', '.join(STARTS)}")

@@ -14,6 +14,7 @@ each pixel's perturbation to the nearest level (never to 0), so a stored image i
 13, 0.1 -> 26 (25.5 rounds half to even), 0.2 -> 51): up to half a level (0.002) past eps, as every
 stored attack of this project (the PGD-50 table included).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -38,8 +39,9 @@ class Found:
     def best(self, other: "Found") -> "Found":
         """Per sample, whichever of self and other has the larger value (self on ties)."""
         take = other.values > self.values
-        return Found(torch.where(take.view(-1, 1, 1, 1), other.images, self.images),
-                     torch.where(take, other.values, self.values))
+        return Found(
+            torch.where(take.view(-1, 1, 1, 1), other.images, self.images), torch.where(take, other.values, self.values)
+        )
 
 
 def levels(eps: float) -> int:
@@ -59,14 +61,18 @@ def check_attack_inputs(x: Tensor, y: Tensor, eps: float, los: Tensor | None = N
         raise ValueError("attack images must be on the 8-bit grid (uint8 / 255)")
     if y.shape != (len(x), 9) or not bool(torch.isfinite(y).all()):
         raise ValueError(f"attack targets must be finite (B, 9) = ({len(x)}, 9), got {tuple(y.shape)}")
-    if los is not None and (los.shape != (len(x), 3) or not bool(torch.isfinite(los).all())
-                            or bool((torch.linalg.vector_norm(los, dim=1) == 0).any())):
+    if los is not None and (
+        los.shape != (len(x), 3)
+        or not bool(torch.isfinite(los).all())
+        or bool((torch.linalg.vector_norm(los, dim=1) == 0).any())
+    ):
         raise ValueError(f"lines of sight must be finite non-zero (B, 3) = ({len(x)}, 3), got {tuple(los.shape)}")
     return eps
 
 
-def evaluate(forward: Forward, z: Tensor, x: Tensor, y: Tensor, objective: Objective, los: Tensor | None,
-             grad: bool = False) -> tuple[Tensor, Tensor, Tensor | None]:
+def evaluate(
+    forward: Forward, z: Tensor, x: Tensor, y: Tensor, objective: Objective, los: Tensor | None, grad: bool = False
+) -> tuple[Tensor, Tensor, Tensor | None]:
     """(stored image uint8, objective (B,), gradient of the objective's sum with respect to the stored image
     (B, 3, H, W), or None without `grad`) of the iterate z: the gradient at the stored point is the
     ascent direction for z (the rounding passed straight through)."""

@@ -16,6 +16,7 @@ member at every eps_j <= eps_i (and the clean image): it cannot drop as eps grow
 (`frame_capacity`: the largest shift along and across the line of sight and of the attitude, per frame and
 eps) is what the integrity bound consumes.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -38,8 +39,8 @@ from pipeline.attacks.stored import Found, evaluate
 from pipeline.stats import mean_interval
 
 METHODS = ("apgd", "bpda", "square", "pgd")
-ERRORS = ("position_m", "range_m", "lateral_m", "attitude_deg")      # against the truth
-SHIFTS = ("along_m", "across_m", "attitude_deg")                    # against the clean estimate
+ERRORS = ("position_m", "range_m", "lateral_m", "attitude_deg")  # against the truth
+SHIFTS = ("along_m", "across_m", "attitude_deg")  # against the clean estimate
 
 
 @dataclass(frozen=True)
@@ -65,11 +66,15 @@ class SuiteConfig:
         for m in self.members:
             method, _, objective = m.partition("/")
             if method not in METHODS or objective not in OBJECTIVES:
-                raise ValueError(f"suite member {m!r} must be method/objective with a method of {', '.join(METHODS)} "
-                                 f"and an objective of {', '.join(OBJECTIVES)}")
+                raise ValueError(
+                    f"suite member {m!r} must be method/objective with a method of {', '.join(METHODS)} "
+                    f"and an objective of {', '.join(OBJECTIVES)}"
+                )
         if min(self.steps, self.restarts, self.queries, self.batch_size) < 1:
-            raise ValueError(f"suite steps, restarts, queries and batch_size must be >= 1, got {self.steps}, "
-                             f"{self.restarts}, {self.queries}, {self.batch_size}")
+            raise ValueError(
+                f"suite steps, restarts, queries and batch_size must be >= 1, got {self.steps}, "
+                f"{self.restarts}, {self.queries}, {self.batch_size}"
+            )
         if not self.starts or any(s not in STARTS for s in self.starts):
             raise ValueError(f"suite starts must be some of {', '.join(STARTS)}, got {self.starts}")
         if self.square_eps is not None:
@@ -89,11 +94,20 @@ def _members(methods: Sequence[str], objectives: Sequence[str]) -> tuple[str, ..
 # benchmarks.md): past the clamp (eps > 0.07) the robust model's worst cases come from bpda members and need
 # more than one objective to find the basin, and range_near finds more position error than range_far. On a
 # model without a clamp LEAN is apgd on position, attitude and range_near.
-FULL = SuiteConfig(members=_members(["apgd", "bpda"], OBJECTIVES) + _members(["square"], ["position", "attitude"]),
-                   steps=100, restarts=5, queries=1000, square_eps=0.05)
-LEAN = SuiteConfig(members=_members(["apgd"], ["position", "attitude"])
-                   + _members(["bpda"], ["position", "range_near", "attitude"]), steps=50, restarts=1, starts=("lift",))
-PGD50 = SuiteConfig(members=("pgd/position",), steps=50, restarts=1)   # the attack of the PGD-50 tables
+FULL = SuiteConfig(
+    members=_members(["apgd", "bpda"], OBJECTIVES) + _members(["square"], ["position", "attitude"]),
+    steps=100,
+    restarts=5,
+    queries=1000,
+    square_eps=0.05,
+)
+LEAN = SuiteConfig(
+    members=_members(["apgd"], ["position", "attitude"]) + _members(["bpda"], ["position", "range_near", "attitude"]),
+    steps=50,
+    restarts=1,
+    starts=("lift",),
+)
+PGD50 = SuiteConfig(members=("pgd/position",), steps=50, restarts=1)  # the attack of the PGD-50 tables
 
 
 @dataclass(frozen=True)
@@ -119,10 +133,16 @@ class SuiteResult:
     def select(self, frames: np.ndarray) -> "SuiteResult":
         """The same run restricted to `frames` (indices or a boolean mask over the N frames): e.g. a
         subsample, or the frames of one background."""
-        return SuiteResult(self.eps, self.members, {k: v[..., frames] for k, v in self.errors.items()},
-                           {k: v[..., frames] for k, v in self.shifts.items()},
-                           {k: v[frames] for k, v in self.clean.items()}, self.target_range_m[frames], self.seconds,
-                           self.cpu_seconds)
+        return SuiteResult(
+            self.eps,
+            self.members,
+            {k: v[..., frames] for k, v in self.errors.items()},
+            {k: v[..., frames] for k, v in self.shifts.items()},
+            {k: v[frames] for k, v in self.clean.items()},
+            self.target_range_m[frames],
+            self.seconds,
+            self.cpu_seconds,
+        )
 
     def worst(self, key: str) -> np.ndarray:
         """(E, N) the suite's nested worst case of error `key` (ERRORS) per eps and frame."""
@@ -162,12 +182,23 @@ def _generator(seed: int, eps: float, member: str, first: int) -> torch.Generato
     return torch.Generator().manual_seed(int(state.generate_state(1)[0]))
 
 
-def _pgd(model: nn.Module, x: Tensor, y: Tensor, eps: float, objective: Any, generator: torch.Generator,
-         los: Tensor | None, steps: int, restarts: int) -> Found:
+def _pgd(
+    model: nn.Module,
+    x: Tensor,
+    y: Tensor,
+    eps: float,
+    objective: Any,
+    generator: torch.Generator,
+    los: Tensor | None,
+    steps: int,
+    restarts: int,
+) -> Found:
     """PGD-`steps` on the objective's sum, last iterate stored and scored; the best of `restarts` runs."""
+
     def run() -> Found:
-        z = pgd(model, x, y, eps, lambda pred, target: objective(pred, target, los).sum(), steps=steps,
-                generator=generator)
+        z = pgd(
+            model, x, y, eps, lambda pred, target: objective(pred, target, los).sum(), steps=steps, generator=generator
+        )
         u8, value, _ = evaluate(model, z, x, y, objective, los)
         return Found(u8, value)
 
@@ -177,35 +208,65 @@ def _pgd(model: nn.Module, x: Tensor, y: Tensor, eps: float, objective: Any, gen
     return found
 
 
-def run_member(model: nn.Module, member: str, x: Tensor, y: Tensor, eps: float, config: SuiteConfig,
-               generator: torch.Generator, los: Tensor | None = None) -> Found:
+def run_member(
+    model: nn.Module,
+    member: str,
+    x: Tensor,
+    y: Tensor,
+    eps: float,
+    config: SuiteConfig,
+    generator: torch.Generator,
+    los: Tensor | None = None,
+) -> Found:
     """One `method/objective` member on clean x (B, 3, H, W, 8-bit grid) with true poses y (B, 9) at eps (model
     in eval mode during the attack, its mode restored)."""
     method, _, name = member.partition("/")
     objective = get_objective(name)
     with _eval_mode(model):
         if method == "square":
-            return square(model, x, y, eps, objective, generator=generator, los=los, queries=config.queries,
-                          p_init=config.p_init)
+            return square(
+                model, x, y, eps, objective, generator=generator, los=los, queries=config.queries, p_init=config.p_init
+            )
         if method == "pgd":
             return _pgd(model, x, y, eps, objective, generator, los, config.steps, config.restarts)
-        return apgd(model, x, y, eps, objective, generator=generator, los=los, steps=config.steps,
-                    restarts=config.restarts, starts=config.starts, bpda=method == "bpda")
+        return apgd(
+            model,
+            x,
+            y,
+            eps,
+            objective,
+            generator=generator,
+            los=los,
+            steps=config.steps,
+            restarts=config.restarts,
+            starts=config.starts,
+            bpda=method == "bpda",
+        )
 
 
-def _score(pred: Tensor, target: Tensor, clean: Tensor, u: Tensor) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+def _score(
+    pred: Tensor, target: Tensor, clean: Tensor, u: Tensor
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """(errors (ERRORS) against the truth, shifts (SHIFTS) from the clean estimate) of (B, 9) estimates,
     per frame; u (B, 3) the unit lines of sight."""
     along, across = along_across(pred[:, :3] - target[:, :3], u)
     s_along, s_across = along_across(pred[:, :3] - clean[:, :3], u)
-    errors = {"position_m": position(pred, target), "range_m": along.abs(), "lateral_m": across,
-              "attitude_deg": geodesic_deg(pred[:, 3:], target[:, 3:])}
+    errors = {
+        "position_m": position(pred, target),
+        "range_m": along.abs(),
+        "lateral_m": across,
+        "attitude_deg": geodesic_deg(pred[:, 3:], target[:, 3:]),
+    }
     shifts = {"along_m": s_along.abs(), "across_m": s_across, "attitude_deg": geodesic_deg(pred[:, 3:], clean[:, 3:])}
-    return ({k: v.detach().cpu().numpy() for k, v in errors.items()},
-            {k: v.detach().cpu().numpy() for k, v in shifts.items()})
+    return (
+        {k: v.detach().cpu().numpy() for k, v in errors.items()},
+        {k: v.detach().cpu().numpy() for k, v in shifts.items()},
+    )
 
 
-def _check_run(images: np.ndarray, targets: np.ndarray, eps: Sequence[float], los: np.ndarray | None) -> tuple[float, ...]:
+def _check_run(
+    images: np.ndarray, targets: np.ndarray, eps: Sequence[float], los: np.ndarray | None
+) -> tuple[float, ...]:
     if images.dtype != np.uint8 or images.ndim != 4 or images.shape[-1] != 3:
         raise ValueError(f"suite images must be uint8 (N, H, W, 3), got {images.dtype} {images.shape}")
     if targets.shape != (len(images), 9) or not np.isfinite(targets).all():
@@ -218,8 +279,16 @@ def _check_run(images: np.ndarray, targets: np.ndarray, eps: Sequence[float], lo
     return eps
 
 
-def run_suite(model: nn.Module, images: np.ndarray, targets: np.ndarray, eps: Sequence[float], config: SuiteConfig,
-              *, device: str | torch.device = "cpu", los: np.ndarray | None = None) -> SuiteResult:
+def run_suite(
+    model: nn.Module,
+    images: np.ndarray,
+    targets: np.ndarray,
+    eps: Sequence[float],
+    config: SuiteConfig,
+    *,
+    device: str | torch.device = "cpu",
+    los: np.ndarray | None = None,
+) -> SuiteResult:
     """The suite `config` on clean uint8 images (N, H, W, 3) with true poses `targets` (N, 9: camera-frame
     position in m, 6-D rotation) at every eps of the increasing list `eps` (L-inf, pixel units); `los` (N, 3)
     camera-frame lines of sight (default: the true target directions). Attacks run on `device` (the draws on
@@ -228,11 +297,17 @@ def run_suite(model: nn.Module, images: np.ndarray, targets: np.ndarray, eps: Se
     (a ValueError when it is not in `eps`)."""
     images, targets = np.asarray(images), np.asarray(targets, np.float64)
     eps = _check_run(images, targets, eps, los)
-    if config.square_eps is not None and any(m.startswith("square/") for m in config.members) \
-            and not any(np.isclose(config.square_eps, e) for e in eps):
+    if (
+        config.square_eps is not None
+        and any(m.startswith("square/") for m in config.members)
+        and not any(np.isclose(config.square_eps, e) for e in eps)
+    ):
         raise ValueError(f"square_eps {config.square_eps} is not one of the suite's eps {list(eps)}")
-    members = tuple(m for m in config.members if not (m.startswith("bpda/") and black_level(model) <= 0
-                                                      and "apgd/" + m.partition("/")[2] in config.members))
+    members = tuple(
+        m
+        for m in config.members
+        if not (m.startswith("bpda/") and black_level(model) <= 0 and "apgd/" + m.partition("/")[2] in config.members)
+    )
     n, shape = len(images), (len(members), len(eps), len(images))
     errors = {k: np.full(shape, np.nan) for k in ERRORS}
     shifts = {k: np.full(shape, np.nan) for k in SHIFTS}
@@ -251,8 +326,11 @@ def run_suite(model: nn.Module, images: np.ndarray, targets: np.ndarray, eps: Se
                 clean[k][lo:hi] = v
             for ei, e in enumerate(eps):
                 for mi, member in enumerate(members):
-                    if member.startswith("square/") and config.square_eps is not None \
-                            and not np.isclose(config.square_eps, e):
+                    if (
+                        member.startswith("square/")
+                        and config.square_eps is not None
+                        and not np.isclose(config.square_eps, e)
+                    ):
                         continue
                     t0, c0 = time.perf_counter(), time.process_time()
                     found = run_member(model, member, x, y, e, config, _generator(config.seed, e, member, lo), los_b)
@@ -264,14 +342,20 @@ def run_suite(model: nn.Module, images: np.ndarray, targets: np.ndarray, eps: Se
                         errors[k][mi, ei, lo:hi] = err[k]
                     for k in SHIFTS:
                         shifts[k][mi, ei, lo:hi] = shift[k]
-    return SuiteResult(eps, members, errors, shifts, clean, np.linalg.norm(targets[:, :3], axis=1), seconds,
-                       cpu_seconds)
+    return SuiteResult(
+        eps, members, errors, shifts, clean, np.linalg.norm(targets[:, :3], axis=1), seconds, cpu_seconds
+    )
 
 
 def frame_capacity(result: SuiteResult) -> Capacity:
     """The per-frame attacker capacity of a suite run (nested in eps; `Capacity`)."""
-    return Capacity(result.eps, result.target_range_m, result.worst_shift("along_m"), result.worst_shift("across_m"),
-                    result.worst_shift("attitude_deg"))
+    return Capacity(
+        result.eps,
+        result.target_range_m,
+        result.worst_shift("along_m"),
+        result.worst_shift("across_m"),
+        result.worst_shift("attitude_deg"),
+    )
 
 
 def _stats(values: np.ndarray) -> dict[str, Any]:
@@ -284,8 +368,12 @@ def _row(attack: str, eps: float, columns: dict[str, np.ndarray], seconds: tuple
     """A table row in the keys of pipeline.pose.robustness.attack_table (pos_m, pos_ci, att_deg, att_ci) plus
     range and lateral errors and the (wall, CPU) seconds per frame."""
     row: dict[str, Any] = {"attack": attack, "eps": float(eps), "n": int(len(columns["position_m"]))}
-    for key, short in (("position_m", "pos_m"), ("attitude_deg", "att_deg"), ("range_m", "range_m"),
-                       ("lateral_m", "lateral_m")):
+    for key, short in (
+        ("position_m", "pos_m"),
+        ("attitude_deg", "att_deg"),
+        ("range_m", "range_m"),
+        ("lateral_m", "lateral_m"),
+    ):
         s = _stats(columns[key])
         row[short], row[short.rsplit("_", 1)[0] + "_ci"] = s["mean"], s["ci"]
     return {**row, "seconds_per_frame": seconds[0], "cpu_seconds_per_frame": seconds[1]}
@@ -300,10 +388,22 @@ def suite_rows(result: SuiteResult) -> list[dict[str, Any]]:
     for ei, e in enumerate(result.eps):
         for mi, member in enumerate(result.members):
             if not np.isnan(result.errors["position_m"][mi, ei]).any():
-                rows.append(_row(member, e, {k: result.errors[k][mi, ei] for k in ERRORS},
-                                 (result.seconds[mi, ei], result.cpu_seconds[mi, ei])))
-        rows.append(_row("suite", e, {k: result.worst(k)[ei] for k in ERRORS},
-                         (result.seconds[:, ei].sum(), result.cpu_seconds[:, ei].sum())))
+                rows.append(
+                    _row(
+                        member,
+                        e,
+                        {k: result.errors[k][mi, ei] for k in ERRORS},
+                        (result.seconds[mi, ei], result.cpu_seconds[mi, ei]),
+                    )
+                )
+        rows.append(
+            _row(
+                "suite",
+                e,
+                {k: result.worst(k)[ei] for k in ERRORS},
+                (result.seconds[:, ei].sum(), result.cpu_seconds[:, ei].sum()),
+            )
+        )
     return rows
 
 
@@ -319,8 +419,16 @@ def sanity_rows(result: SuiteResult) -> list[dict[str, Any]]:
             means = np.where(ran, result.errors[key][:, ei].mean(axis=1), -np.inf)
             top = int(np.argmax(means))
             above = bool(np.all(result.errors[key][ran, ei] <= worst[ei][None, :]))
-            rows.append({"eps": e, "error": key, "suite": float(worst[ei].mean()), "strongest": result.members[top],
-                         "strongest_mean": float(means[top]), "ok": above and monotone})
+            rows.append(
+                {
+                    "eps": e,
+                    "error": key,
+                    "suite": float(worst[ei].mean()),
+                    "strongest": result.members[top],
+                    "strongest_mean": float(means[top]),
+                    "ok": above and monotone,
+                }
+            )
     return rows
 
 
@@ -334,6 +442,14 @@ def ratio_rows(result: SuiteResult, reference: SuiteResult, tolerance: float = 0
     for key in ("position_m", "attitude_deg"):
         a, b = result.worst(key).mean(axis=1), reference.worst(key).mean(axis=1)
         for e, va, vb in zip(result.eps, a, b):
-            rows.append({"eps": e, "error": key, "result": float(va), "reference": float(vb),
-                         "ratio": float(va / vb), "ok": bool(abs(va / vb - 1) < tolerance)})
+            rows.append(
+                {
+                    "eps": e,
+                    "error": key,
+                    "result": float(va),
+                    "reference": float(vb),
+                    "ratio": float(va / vb),
+                    "ok": bool(abs(va / vb - 1) < tolerance),
+                }
+            )
     return rows

@@ -72,6 +72,7 @@ triggers a restart), uses the Huber zone above the soft gate, or plays the detec
 The protection level (protection.py) is the analytic upper bound over structures; `achieved` above a
 frame's PL is misleading information.
 """
+
 from __future__ import annotations
 
 import math
@@ -94,7 +95,7 @@ NONE, START, ACCEPT, HUBER, REJECT, ALARM, SKIP, RESTART = range(8)
 KINDS = ("none", "start", "accept", "huber", "reject", "alarm", "skip", "restart")
 """Per-frame choices of the filter (`Recording.kind`): before the start, start, accepted unweighted, accepted
 Huber-weighted, rejected by the gate, alarmed by the sequential test, left out untested, restarted."""
-_WIDTH = 12   # LP variables per frame: da (3), eps (3), g+ (3), g- (3)
+_WIDTH = 12  # LP variables per frame: da (3), eps (3), g+ (3), g- (3)
 
 
 class _Recorder(MotionFilter):
@@ -107,21 +108,28 @@ class _Recorder(MotionFilter):
         self.gain, self.s_inv, self.R_cam = np.zeros((n, 3, 3)), np.zeros((n, 3, 3)), np.zeros((n, 3, 3))
         self.innovation, self.sigma, self.r = np.zeros((n, 3)), np.ones((n, 3)), np.zeros((n, 3))
         self.nis = np.full(n, np.nan)
-        self.statistic = np.zeros((n, 2, 3))    # CUSUM (g+, g-) after the frame's push, per camera axis
-        self.ranged = np.zeros((n, 3))          # the vector (world, m) whose norm the noise model was taken at
+        self.statistic = np.zeros((n, 2, 3))  # CUSUM (g+, g-) after the frame's push, per camera axis
+        self.ranged = np.zeros((n, 3))  # the vector (world, m) whose norm the noise model was taken at
 
     def start_from(self, t_pred: np.ndarray, R_cam: np.ndarray, R_pred: np.ndarray | None = None) -> None:
         self.R_cam[self.frame] = R_cam
         self.ranged[self.frame] = np.asarray(R_cam, np.float64) @ np.asarray(t_pred, np.float64)
         super().start_from(t_pred, R_cam, R_pred)
 
-    def start(self, rel: np.ndarray, rel_cov: np.ndarray, R_tw: np.ndarray | None = None, offset: float = 0.0,
-              trusted: int = 0) -> None:
+    def start(
+        self,
+        rel: np.ndarray,
+        rel_cov: np.ndarray,
+        R_tw: np.ndarray | None = None,
+        offset: float = 0.0,
+        trusted: int = 0,
+    ) -> None:
         super().start(rel, rel_cov, R_tw, offset, trusted)
-        self.kind[self.frame] = START if self.kind[self.frame] == NONE else RESTART   # reacquire checked it first
+        self.kind[self.frame] = START if self.kind[self.frame] == NONE else RESTART  # reacquire checked it first
 
-    def check(self, t_pred: np.ndarray, R_cam: np.ndarray, u: np.ndarray | None = None,
-              R_pred: np.ndarray | None = None) -> MotionCheck:
+    def check(
+        self, t_pred: np.ndarray, R_cam: np.ndarray, u: np.ndarray | None = None, R_pred: np.ndarray | None = None
+    ) -> MotionCheck:
         out = super().check(t_pred, R_cam, u, R_pred)
         pending = self._pending[1]
         self.kind[self.frame] = REJECT if out.inconsistent else SKIP
@@ -185,8 +193,14 @@ class Recording:
         return int(hit[0]) if hit.size else len(self.kind)
 
 
-def record(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel, run: CleanRun,
-           shift: np.ndarray | None = None, alert_limit: Callable[[float], float] | None = None) -> Recording:
+def record(
+    settings: DefenseSettings,
+    motion: MotionSettings,
+    noise: NoiseModel,
+    run: CleanRun,
+    shift: np.ndarray | None = None,
+    alert_limit: Callable[[float], float] | None = None,
+) -> Recording:
     """`run` (pose (N, 9) camera frame m + 6-D, prob, R_cam, u) through a fresh real defense, each frame's
     estimate moved by `shift` (N, 3) (camera frame, m; None: clean), the detector's probabilities and the
     attitudes as recorded (a blind detector), `alert_limit` AL(range) for the availability; the trace
@@ -203,8 +217,19 @@ def record(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel,
     for i in range(n):
         rec.frame = i
         out.append(d.step(t[i], float(run.prob[i]), run.R_cam[i], run.u[i], R_pred[i]))
-    return Recording(rec.kind, rec.gain, rec.s_inv, rec.innovation, rec.sigma, rec.r, rec.statistic, rec.R_cam,
-                     rec.nis, rec.ranged, trace_of(out))
+    return Recording(
+        rec.kind,
+        rec.gain,
+        rec.s_inv,
+        rec.innovation,
+        rec.sigma,
+        rec.r,
+        rec.statistic,
+        rec.R_cam,
+        rec.nis,
+        rec.ranged,
+        trace_of(out),
+    )
 
 
 def fault_axes(truth: np.ndarray) -> np.ndarray:
@@ -224,8 +249,10 @@ def fault_axes(truth: np.ndarray) -> np.ndarray:
 def same_flags(a: DefenseTrace, b: DefenseTrace, upto: int) -> bool:
     """Whether two traces of one run flag the same frames by every check and fly the same modes on frames
     0..upto (what comes after cannot undo an error flown on at frame `upto`)."""
-    return all(np.array_equal(getattr(a, k)[:upto + 1], getattr(b, k)[:upto + 1])
-               for k in ("flag", "shap_flag", "motion_flag", "sequential_flag", "mode"))
+    return all(
+        np.array_equal(getattr(a, k)[: upto + 1], getattr(b, k)[: upto + 1])
+        for k in ("flag", "shap_flag", "motion_flag", "sequential_flag", "mode")
+    )
 
 
 def _range_terms(ref: Recording, noise: NoiseModel, step: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
@@ -284,8 +311,15 @@ class _Program:
     of its whitened innovation u_j = L_j^T y_j (`cones`: 4 rows each, b - A x = (sqrt(bound), u_j)).
     `da_bounds` (N, 3, 2): bounds of the shift's deviation from the reference (capacity axes, m)."""
 
-    def __init__(self, ref: Recording, axes: np.ndarray, da_bounds: np.ndarray, motion: MotionSettings,
-                 noise: NoiseModel, margin: float):
+    def __init__(
+        self,
+        ref: Recording,
+        axes: np.ndarray,
+        da_bounds: np.ndarray,
+        motion: MotionSettings,
+        noise: NoiseModel,
+        margin: float,
+    ):
         self.ref, self.axes, self.n = ref, axes, len(ref.kind)
         self.J, self.G = _range_terms(ref, noise)
         gate, soft = motion.gate, motion.soft_gate * motion.gate
@@ -293,7 +327,7 @@ class _Program:
         n, kind = self.n, ref.kind
         lo, hi = np.zeros((n, _WIDTH)), np.zeros((n, _WIDTH))
         self.eqs, self.rows, self.cones = _Rows(), _Rows(), _Rows()
-        prev: int | None = None                                          # last tested frame of the CUSUM segment
+        prev: int | None = None  # last tested frame of the CUSUM segment
         started = False
         for j in range(min(ref.horizon, n)):
             k = kind[j]
@@ -302,7 +336,7 @@ class _Program:
             lo[j, 3:6], hi[j, 3:6] = -np.inf, np.inf
             if k in (START, ACCEPT, HUBER, ALARM):
                 lo[j, :3], hi[j, :3] = da_bounds[j, :, 0], da_bounds[j, :, 1]
-            if k == START:                                               # eps_s = J_s B_s da_s
+            if k == START:  # eps_s = J_s B_s da_s
                 started, prev = True, None
                 JB = self.J[j] @ axes[j]
                 for i in range(3):
@@ -310,7 +344,7 @@ class _Program:
                 continue
             K = ref.gain[j] if k in (ACCEPT, HUBER) else np.zeros((3, 3))
             KB, KJ = K @ axes[j], K @ self.J[j]
-            for i in range(3):                                           # eps_j - (I - K J) eps_{j-1} - K B da_j = 0
+            for i in range(3):  # eps_j - (I - K J) eps_{j-1} - K B da_j = 0
                 row = {self.col(j, 3 + i): 1.0}
                 for m in range(3):
                     row[self.col(j - 1, 3 + m)] = KJ[i, m] - (i == m)
@@ -320,19 +354,19 @@ class _Program:
                 continue
             L = np.linalg.cholesky(0.5 * (ref.s_inv[j] + ref.s_inv[j].T))
             u_ref = L.T @ ref.innovation[j]
-            if k == HUBER:                                               # y_j = y_j^ref
+            if k == HUBER:  # y_j = y_j^ref
                 for i in range(3):
                     self.eqs.add(j, self._dy({}, j, np.eye(3)[i]), 0.0)
-            elif k == REJECT:                                            # u0^T L^T y_j >= sqrt(gate)
+            elif k == REJECT:  # u0^T L^T y_j >= sqrt(gate)
                 u0 = u_ref / np.linalg.norm(u_ref)
                 need = min(math.sqrt(gate * (1 + margin)), float(np.linalg.norm(u_ref)))
                 self.rows.add(j, self._dy({}, j, -(L @ u0)), float(u0 @ u_ref) - need)
-            else:                                                        # ACCEPT, ALARM, SKIP: ||u_j|| <= sqrt(bound)
+            else:  # ACCEPT, ALARM, SKIP: ||u_j|| <= sqrt(bound)
                 bound = soft if k == ACCEPT else gate
                 self.cones.add(j, {}, math.sqrt(max(bound * (1 - margin), float(u_ref @ u_ref))))
                 for i in range(3):
                     self.cones.add(j, self._dy({}, j, -L[:, i]), u_ref[i])
-            if k in (ACCEPT, HUBER):                                     # tested, no alarm: g <= h
+            if k in (ACCEPT, HUBER):  # tested, no alarm: g <= h
                 for side, sgn in ((0, 1.0), (1, -1.0)):
                     for i in range(3):
                         g = self.col(j, 6 + 3 * side + i)
@@ -374,7 +408,7 @@ class _Program:
         side, axis = np.unravel_index(int(np.argmax(ref.statistic[j])), (2, 3))
         sgn = 1.0 if side == 0 else -1.0
         frames, p = [j], prev
-        while p is not None and ref.statistic[p, side, axis] > 0:       # back through the segment's tested frames
+        while p is not None and ref.statistic[p, side, axis] > 0:  # back through the segment's tested frames
             frames.append(p)
             p -= 1
             while p >= 0 and ref.kind[p] in (REJECT, SKIP):
@@ -393,15 +427,17 @@ class _Program:
         m = _WIDTH * (n + 1)
         lo, hi = self.lo[:m], self.hi[:m]
         free = lo < hi
-        blocks = [(r.A[:r.ends[n], :m], r.b[:r.ends[n]]) for r in (self.eqs, self.rows)]
+        blocks = [(r.A[: r.ends[n], :m], r.b[: r.ends[n]]) for r in (self.eqs, self.rows)]
         upper, lower = free & np.isfinite(hi), free & np.isfinite(lo)
         eye = sparse.identity(m, format="csr")
         blocks.append((sparse.vstack([eye[upper], -eye[lower]]), np.r_[hi[upper], -lo[lower]]))
-        blocks.append((self.cones.A[:self.cones.ends[n], :m], self.cones.b[:self.cones.ends[n]]))
+        blocks.append((self.cones.A[: self.cones.ends[n], :m], self.cones.b[: self.cones.ends[n]]))
         A = sparse.vstack([a for a, _ in blocks], format="csc")
         b = np.concatenate([v for _, v in blocks]) - A[:, ~free] @ lo[~free]
-        cones = [clarabel.ZeroConeT(blocks[0][0].shape[0]),
-                 clarabel.NonnegativeConeT(blocks[1][0].shape[0] + blocks[2][0].shape[0])]
+        cones = [
+            clarabel.ZeroConeT(blocks[0][0].shape[0]),
+            clarabel.NonnegativeConeT(blocks[1][0].shape[0] + blocks[2][0].shape[0]),
+        ]
         cones += [clarabel.SecondOrderConeT(4)] * (blocks[3][0].shape[0] // 4)
         settings = clarabel.DefaultSettings()
         settings.verbose = False
@@ -409,10 +445,11 @@ class _Program:
         solver, out = None, []
         for d in directions:
             q = np.zeros(m)
-            q[self.col(n, 3):self.col(n, 6)] = -np.asarray(d, np.float64)
+            q[self.col(n, 3) : self.col(n, 6)] = -np.asarray(d, np.float64)
             if solver is None:
-                solver = clarabel.DefaultSolver(sparse.csc_matrix((A.shape[1], A.shape[1])), q[free], A, b, cones,
-                                                settings)
+                solver = clarabel.DefaultSolver(
+                    sparse.csc_matrix((A.shape[1], A.shape[1])), q[free], A, b, cones, settings
+                )
             else:
                 solver.update(q=q[free])
             sol = solver.solve()
@@ -421,8 +458,8 @@ class _Program:
             x = lo.copy()
             x[free] = sol.x
             da = np.zeros((self.n, 3))
-            da[:n + 1] = x.reshape(n + 1, _WIDTH)[:, :3]
-            out.append((max(-sol.obj_val, -sol.obj_val_dual), x[self.col(n, 3):self.col(n, 6)], da))
+            da[: n + 1] = x.reshape(n + 1, _WIDTH)[:, :3]
+            out.append((max(-sol.obj_val, -sol.obj_val_dual), x[self.col(n, 3) : self.col(n, 6)], da))
         return out
 
 
@@ -472,10 +509,20 @@ class WorstCase:
         return self.achieved / self.pl
 
 
-def worst_case(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel, run: CleanRun,
-               truth: np.ndarray, capacity: np.ndarray, alert: np.ndarray, targets: Sequence[int] | None = None,
-               tolerance: float = 1e-4, iterations: int = 5, margin: float = 0.01,
-               alert_limit: Callable[[float], float] | None = None) -> WorstCase:
+def worst_case(
+    settings: DefenseSettings,
+    motion: MotionSettings,
+    noise: NoiseModel,
+    run: CleanRun,
+    truth: np.ndarray,
+    capacity: np.ndarray,
+    alert: np.ndarray,
+    targets: Sequence[int] | None = None,
+    tolerance: float = 1e-4,
+    iterations: int = 5,
+    margin: float = 0.01,
+    alert_limit: Callable[[float], float] | None = None,
+) -> WorstCase:
     """The worst trusted error at each target frame over shift sequences within `capacity` that pass every
     check of the defense (module docstring: the program, what it assumes, exact vs bound).
 
@@ -492,8 +539,10 @@ def worst_case(settings: DefenseSettings, motion: MotionSettings, noise: NoiseMo
     n = len(run.pose)
     capacity, alert = np.asarray(capacity, np.float64), np.asarray(alert, np.float64)
     if truth.shape != (n, 3) or capacity.shape != (n, 3) or alert.shape != (n,):
-        raise ValueError(f"worst_case needs truth (N, 3), capacity (N, 3), alert (N,) for N = {n} frames, got "
-                         f"{truth.shape}, {capacity.shape}, {alert.shape}")
+        raise ValueError(
+            f"worst_case needs truth (N, 3), capacity (N, 3), alert (N,) for N = {n} frames, got "
+            f"{truth.shape}, {capacity.shape}, {alert.shape}"
+        )
     if not (np.isfinite(capacity).all() and (capacity >= 0).all()):
         raise ValueError("worst_case: capacity must be finite and >= 0 (m)")
     targets = np.arange(n) if targets is None else np.asarray(targets, int)
@@ -510,24 +559,30 @@ def worst_case(settings: DefenseSettings, motion: MotionSettings, noise: NoiseMo
 
     def camera(a: np.ndarray) -> np.ndarray:
         """Shifts a (m, 3) of the first m frames (capacity axes) in the camera frame."""
-        return np.einsum("nji,njk,nk->ni", run.R_cam[:len(a)], axes[:len(a)], a)
+        return np.einsum("nji,njk,nk->ni", run.R_cam[: len(a)], axes[: len(a)], a)
 
     def replay(a: np.ndarray) -> Recording:
         """The first len(a) frames through the real defense, shifted by a (capacity axes)."""
         m = len(a)
-        return record(settings, motion, noise, CleanRun(run.pose[:m], run.prob[:m], run.R_cam[:m], run.u[:m]),
-                      camera(a), alert_limit)
+        return record(
+            settings,
+            motion,
+            noise,
+            CleanRun(run.pose[:m], run.prob[:m], run.R_cam[:m], run.u[:m]),
+            camera(a),
+            alert_limit,
+        )
 
     for t, j in enumerate(targets):
         if j < clean.start or j >= clean.horizon:
             continue
         e_ref = clean.trace.trusted[j] - truth[j]
         out["upper"][t], d = _box_bound(program, j, e_ref, axes[j])
-        _, eps, da = attack.maximize(j, [d])[0]                    # the attack: that direction, with the margin
-        out["lower"][t], a = float(np.linalg.norm(e_ref + eps)), da[:j + 1]   # frames after j: not replayed
+        _, eps, da = attack.maximize(j, [d])[0]  # the attack: that direction, with the margin
+        out["lower"][t], a = float(np.linalg.norm(e_ref + eps)), da[: j + 1]  # frames after j: not replayed
         rec, it = replay(a), 0
         while True:
-            if not same_flags(rec.trace, clean.trace, j):        # shrink toward the clean run until it passes
+            if not same_flags(rec.trace, clean.trace, j):  # shrink toward the clean run until it passes
                 lo, hi = 0.0, 1.0
                 for _ in range(8):
                     mid = 0.5 * (lo + hi)
@@ -537,18 +592,29 @@ def worst_case(settings: DefenseSettings, motion: MotionSettings, noise: NoiseMo
             achieved = float(np.linalg.norm(rec.trace.trusted[j] - truth[j]))
             if abs(achieved - out["lower"][t]) <= tolerance or it == iterations or rec.horizon <= j:
                 break
-            it += 1                                               # re-solve around the replay (its own gains)
-            around = _Program(rec, axes[:j + 1], box[:j + 1] - a[:, :, None], motion, noise, margin)
+            it += 1  # re-solve around the replay (its own gains)
+            around = _Program(rec, axes[: j + 1], box[: j + 1] - a[:, :, None], motion, noise, margin)
             _, eps, da = around.maximize(j, [d])[0]
             out["lower"][t] = float(np.linalg.norm(rec.trace.trusted[j] - truth[j] + eps))
             a = a + da
             rec = replay(a)
-        if it:                                                    # the bound around the final replay's gains too
-            final = _Program(rec, axes[:j + 1], box[:j + 1] - a[:, :, None], motion, noise, 0.0)
+        if it:  # the bound around the final replay's gains too
+            final = _Program(rec, axes[: j + 1], box[: j + 1] - a[:, :, None], motion, noise, 0.0)
             out["upper"][t] = max(out["upper"][t], _box_bound(final, j, rec.trace.trusted[j] - truth[j], axes[j])[0])
         out["achieved"][t], out["pl"][t] = achieved, rec.trace.pl[j]
         flags["available"][t] = bool(rec.trace.available[j])
         flags["exact"][t] = abs(achieved - out["lower"][t]) <= tolerance
-        its[t], shift[t, :j + 1] = it, camera(a)
-    return WorstCase(targets, out["upper"], out["lower"], out["achieved"], alert[targets], out["pl"],
-                     flags["available"], flags["exact"], its, shift, time.perf_counter() - start_time)
+        its[t], shift[t, : j + 1] = it, camera(a)
+    return WorstCase(
+        targets,
+        out["upper"],
+        out["lower"],
+        out["achieved"],
+        alert[targets],
+        out["pl"],
+        flags["available"],
+        flags["exact"],
+        its,
+        shift,
+        time.perf_counter() - start_time,
+    )

@@ -22,6 +22,7 @@ frame leaves the filter to coast, which can raise the next innovations), every s
 overshoot (at least by TIGHTEN_STEP) and the checks are calibrated again, at most TIGHTEN_TRIES times; the
 caller judges the last attempt against the target.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -39,8 +40,28 @@ from pipeline.defense.noise import NoiseModel, inflate
 from pipeline.geometry.rotations import sixd_to_matrix
 
 INFLATIONS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0)
-CUSUM_THRESHOLDS = (1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 5.0, 6.0, 7.0, 8.0, 10.0, 12.0, 15.0, 20.0, 25.0, 30.0, 40.0, 50.0)
-OFF = 1e12          # a CUSUM threshold no statistic reaches: the sequential test off
+CUSUM_THRESHOLDS = (
+    1.0,
+    1.5,
+    2.0,
+    2.5,
+    3.0,
+    3.5,
+    4.0,
+    5.0,
+    6.0,
+    7.0,
+    8.0,
+    10.0,
+    12.0,
+    15.0,
+    20.0,
+    25.0,
+    30.0,
+    40.0,
+    50.0,
+)
+OFF = 1e12  # a CUSUM threshold no statistic reaches: the sequential test off
 # times the shares are tightened (each by the fused chain's overshoot) before the search gives up on the target
 TIGHTEN_TRIES = 3
 # the least tightening per try: the checks' settings move on coarse grids (gate inflation, CUSUM h), and a share
@@ -76,15 +97,25 @@ class CleanRun:
     u: np.ndarray
 
 
-def defend_runs(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel, runs: Sequence[CleanRun],
-                alert_limit: Callable[[float], float] | None = None) -> list[DefenseTrace]:
+def defend_runs(
+    settings: DefenseSettings,
+    motion: MotionSettings,
+    noise: NoiseModel,
+    runs: Sequence[CleanRun],
+    alert_limit: Callable[[float], float] | None = None,
+) -> list[DefenseTrace]:
     """A fresh defense over each run (open loop)."""
-    return [run_defense(settings, motion, noise, r.pose[:, :3], r.prob, r.R_cam, r.u, sixd_to_matrix(r.pose[:, 3:9]),
-                        alert_limit) for r in runs]
+    return [
+        run_defense(
+            settings, motion, noise, r.pose[:, :3], r.prob, r.R_cam, r.u, sixd_to_matrix(r.pose[:, 3:9]), alert_limit
+        )
+        for r in runs
+    ]
 
 
-def first_meeting(rate_at: Callable[[float], float], target: float,
-                  grid: Sequence[float]) -> tuple[float, dict[float, float]]:
+def first_meeting(
+    rate_at: Callable[[float], float], target: float, grid: Sequence[float]
+) -> tuple[float, dict[float, float]]:
     """The first setting of `grid` whose rate `rate_at(setting)` is at most `target`, and every rate
     measured (it stops there); the last setting when none is (check the rate before using it)."""
     rates: dict[float, float] = {}
@@ -102,11 +133,11 @@ def detector_threshold(prob: np.ndarray, share: float) -> CheckResult:
     p = np.sort(np.asarray(prob, np.float64))[::-1]
     if p.size == 0 or not np.isfinite(p).all():
         raise ValueError("detector calibration needs clean probabilities, finite, at least one")
-    allowed = int(math.floor(share * p.size + 1e-9))            # frames that may reach the threshold
+    allowed = int(math.floor(share * p.size + 1e-9))  # frames that may reach the threshold
     if allowed >= p.size:
         t = float(np.nextafter(0.0, 1.0))
     else:
-        t = float(np.nextafter(p[allowed], 1.0))                 # just above the first frame that may not
+        t = float(np.nextafter(p[allowed], 1.0))  # just above the first frame that may not
     t = min(max(t, float(np.nextafter(0.0, 1.0))), float(np.nextafter(1.0, 0.0)))
     reached = float(np.mean(p >= t))
     return CheckResult("detector", t, reached, share, {t: reached})
@@ -121,8 +152,14 @@ def doubt_level(prob: np.ndarray, share: float, threshold: float) -> float:
     return min(detector_threshold(prob, share).setting, float(threshold))
 
 
-def gate_inflation(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel, runs: Sequence[CleanRun],
-                   share: float, grid: Sequence[float] = INFLATIONS) -> tuple[CheckResult, CheckResult]:
+def gate_inflation(
+    settings: DefenseSettings,
+    motion: MotionSettings,
+    noise: NoiseModel,
+    runs: Sequence[CleanRun],
+    share: float,
+    grid: Sequence[float] = INFLATIONS,
+) -> tuple[CheckResult, CheckResult]:
     """The gate's two tests, attitude then position: the smallest attitude-noise inflation at which the
     attitude test flags at most half of `share` of the frames, then (with it) the smallest
     position-noise inflation at which the gate (either test) flags at most `share` (fusion "motion",
@@ -139,13 +176,20 @@ def gate_inflation(settings: DefenseSettings, motion: MotionSettings, noise: Noi
 
     k_att, att_rates = first_meeting(lambda a: flags(max(grid), a)[1], share / 2, grid)
     k, rates = first_meeting(lambda k: flags(k, k_att)[0], share, grid)
-    return (CheckResult("attitude gate", k_att, att_rates[k_att], share / 2, att_rates),
-            CheckResult("gate", k, rates[k], share, rates))
+    return (
+        CheckResult("attitude gate", k_att, att_rates[k_att], share / 2, att_rates),
+        CheckResult("gate", k, rates[k], share, rates),
+    )
 
 
-def sequential_threshold(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel,
-                         runs: Sequence[CleanRun], share: float,
-                         grid: Sequence[float] = CUSUM_THRESHOLDS) -> CheckResult:
+def sequential_threshold(
+    settings: DefenseSettings,
+    motion: MotionSettings,
+    noise: NoiseModel,
+    runs: Sequence[CleanRun],
+    share: float,
+    grid: Sequence[float] = CUSUM_THRESHOLDS,
+) -> CheckResult:
     """The smallest CUSUM threshold h at which the sequential test flags at most `share` of the frames
     (the gate on, with `noise` as calibrated for it)."""
     alone = dataclasses.replace(settings, fusion="motion")
@@ -167,9 +211,15 @@ def clean_summary(traces: Sequence[DefenseTrace], truths: Sequence[np.ndarray], 
     from pipeline.stats import bootstrap_rate
 
     groups = np.concatenate([np.full(len(t.flag), i) for i, t in enumerate(traces)])
-    out: dict[str, Any] = {name: bootstrap_rate(np.concatenate([getattr(t, attr) for t in traces]), groups)
-                           for name, attr in (("detector", "shap_flag"), ("gate", "motion_flag"),
-                                              ("sequential", "sequential_flag"), ("fused", "flag"))}
+    out: dict[str, Any] = {
+        name: bootstrap_rate(np.concatenate([getattr(t, attr) for t in traces]), groups)
+        for name, attr in (
+            ("detector", "shap_flag"),
+            ("gate", "motion_flag"),
+            ("sequential", "sequential_flag"),
+            ("fused", "flag"),
+        )
+    }
     frames = concat([defense_frames(t, truth, i, alert) for i, (t, truth) in enumerate(zip(traces, truths))])
     has = frames.has_pl
     out["availability"] = bootstrap_rate(frames.available, groups)
@@ -177,8 +227,10 @@ def clean_summary(traces: Sequence[DefenseTrace], truths: Sequence[np.ndarray], 
     out["frames"] = int(len(groups))
     err = frames.error[np.isfinite(frames.error)]
     for name, v in (("pl_m", frames.pl[has]), ("error_m", err)):
-        out[name] = {"median": float(np.median(v)) if v.size else math.nan,
-                     "p95": float(np.quantile(v, 0.95)) if v.size else math.nan}
+        out[name] = {
+            "median": float(np.median(v)) if v.size else math.nan,
+            "p95": float(np.quantile(v, 0.95)) if v.size else math.nan,
+        }
     return out
 
 
@@ -216,13 +268,20 @@ class Calibrated(NamedTuple):
     motion: MotionSettings
     noise: NoiseModel
     final: dict[str, Any]
-    scale: float                    # the factor the shares were calibrated with (1: not tightened)
+    scale: float  # the factor the shares were calibrated with (1: not tightened)
     tightened: list[dict[str, Any]]  # each overshooting attempt: its scale and fused false alarms (%)
 
 
-def calibrate_to_target(settings: DefenseSettings, motion: MotionSettings, fitted: NoiseModel, runs: Sequence[CleanRun],
-                        prob: tuple[np.ndarray, ...], truths: Sequence[np.ndarray], alert: AlertLimitSettings | None,
-                        budget: Budget) -> Calibrated:
+def calibrate_to_target(
+    settings: DefenseSettings,
+    motion: MotionSettings,
+    fitted: NoiseModel,
+    runs: Sequence[CleanRun],
+    prob: tuple[np.ndarray, ...],
+    truths: Sequence[np.ndarray],
+    alert: AlertLimitSettings | None,
+    budget: Budget,
+) -> Calibrated:
     """The search of the module docstring, from the chain's `settings` and `motion` (the params', with the
     detector checkpoint's threshold), the `fitted` noise model, the clean validation `runs` (their true rel
     `truths`, world m), the clean probabilities `prob` (`calibrate_checks`) and the alert limit `alert`."""
@@ -239,9 +298,15 @@ def calibrate_to_target(settings: DefenseSettings, motion: MotionSettings, fitte
         scale *= min(budget.target / fused, TIGHTEN_STEP)
 
 
-def calibrate_checks(settings: DefenseSettings, motion: MotionSettings, fitted: NoiseModel, runs: Sequence[CleanRun],
-                     prob: tuple[np.ndarray, ...], budget: Budget,
-                     scale: float = 1.0) -> tuple[list[CheckResult], DefenseSettings, MotionSettings]:
+def calibrate_checks(
+    settings: DefenseSettings,
+    motion: MotionSettings,
+    fitted: NoiseModel,
+    runs: Sequence[CleanRun],
+    prob: tuple[np.ndarray, ...],
+    budget: Budget,
+    scale: float = 1.0,
+) -> tuple[list[CheckResult], DefenseSettings, MotionSettings]:
     """The detector, the gate (its attitude test, then both) and the sequential test, each to its share of the
     budget (times `scale` <= 1, when the fused chain overshot the target), in that order (each later one with the
     earlier ones' settings); an unmet share raises UnmetShare there unless `budget.allow_unmet`. The detector's
@@ -258,7 +323,10 @@ def calibrate_checks(settings: DefenseSettings, motion: MotionSettings, fitted: 
     doubt = None if budget.doubt_share is None else doubt_level(prob[0], budget.doubt_share, detector.setting)
     settings = dataclasses.replace(settings, threshold=detector.setting, update_below=doubt)
     attitude, gate = (judged(c) for c in gate_inflation(settings, motion, fitted, runs, budget.gate * total))
-    sequential = judged(sequential_threshold(settings, motion, inflate(fitted, gate.setting, attitude.setting), runs,
-                                             budget.sequential * total))
+    sequential = judged(
+        sequential_threshold(
+            settings, motion, inflate(fitted, gate.setting, attitude.setting), runs, budget.sequential * total
+        )
+    )
     motion = dataclasses.replace(motion, cusum_threshold=sequential.setting)
     return [detector, attitude, gate, sequential], settings, motion

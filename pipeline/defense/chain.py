@@ -9,6 +9,7 @@ signature the detector reads. So the chain costs the pose forward plus one broad
 the detector's small LSTM over 9 steps. The chain keeps no state between frames: a batch of frames
 gives the same result as the frames one at a time.
 """
+
 from __future__ import annotations
 
 import copy
@@ -61,20 +62,25 @@ class FoldedShapLSTM(nn.Module):
         super().__init__()
         h = self.hidden = detector.config.hidden
         order = torch.cat([torch.arange(2 * h), torch.arange(3 * h, 4 * h), torch.arange(2 * h, 3 * h)])
-        inv_scale = 1.0 / detector.scale.detach().double()                        # (n_rows, 1)
+        inv_scale = 1.0 / detector.scale.detach().double()  # (n_rows, 1)
         cell = detector.lstm
         weight = shap.weight
-        buffers = {"weight": weight, "background_mean": shap.background_mean,
-                   "scaled": weight.double() * inv_scale, "shift": -detector.mean.detach().double() * inv_scale,
-                   "w_in": cell.input_proj.weight.detach()[order], "b_in": cell.input_proj.bias.detach()[order],
-                   "w_hidden": cell.hidden_proj.weight.detach()[order].T}
+        buffers = {
+            "weight": weight,
+            "background_mean": shap.background_mean,
+            "scaled": weight.double() * inv_scale,
+            "shift": -detector.mean.detach().double() * inv_scale,
+            "w_in": cell.input_proj.weight.detach()[order],
+            "b_in": cell.input_proj.bias.detach()[order],
+            "w_hidden": cell.hidden_proj.weight.detach()[order].T,
+        }
         for name, value in buffers.items():
             self.register_buffer(name, value.float().contiguous())
         self.classifier = copy.deepcopy(detector.classifier)
 
     def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        centred = (features - self.background_mean).unsqueeze(1)                   # (B, 1, D)
-        x = torch.addcmul(self.shift, self.scaled, centred)                         # (B, n_rows, D)
+        centred = (features - self.background_mean).unsqueeze(1)  # (B, 1, D)
+        x = torch.addcmul(self.shift, self.scaled, centred)  # (B, n_rows, D)
         steps = torch.nn.functional.linear(x, self.w_in, self.b_in).unbind(1)
         sizes = [3 * self.hidden, self.hidden]
         ifo, g = steps[0].split(sizes, dim=1)
@@ -102,9 +108,15 @@ class OnboardChain:
     frames on another device, take the plain path. benchmarks/chain_latency.py measures the cost.
     """
 
-    def __init__(self, model: nn.Module, weight: np.ndarray | torch.Tensor,
-                 background_mean: np.ndarray | torch.Tensor, detector: nn.Module, threshold: float = 0.5,
-                 fast: bool = True):
+    def __init__(
+        self,
+        model: nn.Module,
+        weight: np.ndarray | torch.Tensor,
+        background_mean: np.ndarray | torch.Tensor,
+        detector: nn.Module,
+        threshold: float = 0.5,
+        fast: bool = True,
+    ):
         self.model = model.eval()
         self.detector = detector.eval()
         self.shap = ExactShap(weight, background_mean)
@@ -120,8 +132,14 @@ class OnboardChain:
                 self._fast = torch.jit.freeze(torch.jit.trace(module, example))
 
     @classmethod
-    def from_model(cls, model: nn.Module, background_mean: np.ndarray | torch.Tensor, detector: nn.Module,
-                   threshold: float = 0.5, fast: bool = True) -> "OnboardChain":
+    def from_model(
+        cls,
+        model: nn.Module,
+        background_mean: np.ndarray | torch.Tensor,
+        detector: nn.Module,
+        threshold: float = 0.5,
+        fast: bool = True,
+    ) -> "OnboardChain":
         """Read the head weights from `model` (they must form an affine map, as in PoseNet)."""
         mu = np.asarray(torch.as_tensor(background_mean, dtype=torch.float32))
         head = affine_head(model, n_features=len(mu))
@@ -163,9 +181,15 @@ class SequenceResult:
     flag: np.ndarray
 
 
-def run_sequence(chain: OnboardChain, images: np.ndarray, targets: np.ndarray, attacked: np.ndarray,
-                 attack: AttackFn | None, batch_size: int = 64,
-                 progress: Callable[[Iterable[int]], Iterable[int]] = iter) -> SequenceResult:
+def run_sequence(
+    chain: OnboardChain,
+    images: np.ndarray,
+    targets: np.ndarray,
+    attacked: np.ndarray,
+    attack: AttackFn | None,
+    batch_size: int = 64,
+    progress: Callable[[Iterable[int]], Iterable[int]] = iter,
+) -> SequenceResult:
     """Frames as onboard: attacked frames are replaced by `attack(x, y)` against their own true label.
 
     images: (N, H, W, 3) uint8; targets: (N, 9) labels (m, 6-D); attacked: (N,) bool. `attack`

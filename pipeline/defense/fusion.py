@@ -29,6 +29,7 @@ commanded displacement) into (flag, trusted estimate, mode, protection level, av
 Before the first unflagged frame there is no estimate to trust: such frames are in mode "hold" and
 the filter starts on the first frame the detector does not flag.
 """
+
 from __future__ import annotations
 
 import math
@@ -43,7 +44,7 @@ from pipeline.defense.noise import NoiseModel
 from pipeline.settings import In
 
 FUSIONS = ("paper", "motion", "or")
-ATTACK, DOUBT, CLEAN = "attack", "doubt", "clean"   # the detector's word on a frame (`DefenseSettings.word`)
+ATTACK, DOUBT, CLEAN = "attack", "doubt", "clean"  # the detector's word on a frame (`DefenseSettings.word`)
 TRACK, COAST, HOLD = "track", "coast", "hold"
 MODES = (TRACK, COAST, HOLD)
 
@@ -66,13 +67,17 @@ class DefenseSettings:
         if self.fusion not in FUSIONS:
             raise ValueError(f"unknown defense.fusion {self.fusion!r}; choose one of {', '.join(FUSIONS)}")
         if int(self.hold_after) < 1:
-            raise ValueError(f"defense.hold_after (K consecutive flags before a hold) must be >= 1, got {self.hold_after}")
+            raise ValueError(
+                f"defense.hold_after (K consecutive flags before a hold) must be >= 1, got {self.hold_after}"
+            )
         if int(self.release_after) < 1:
             raise ValueError(f"defense.release_after must be >= 1, got {self.release_after}")
         if not 0 < float(self.threshold) < 1:
             raise ValueError(f"detector threshold must be in (0, 1), got {self.threshold}")
         if self.update_below is not None and not 0 < float(self.update_below) <= float(self.threshold):
-            raise ValueError(f"defense.update_below must be in (0, threshold = {self.threshold}], got {self.update_below}")
+            raise ValueError(
+                f"defense.update_below must be in (0, threshold = {self.threshold}], got {self.update_below}"
+            )
 
     def word(self, prob: float) -> str:
         """The detector's word on one frame of probability `prob`: ATTACK at or above the threshold (or a
@@ -110,8 +115,13 @@ class Defense:
     """Stateful per-frame defense; one instance per trajectory or closed-loop run. `alert_limit`:
     AL(range) (m) for the availability (None: available wherever the PL is finite and flown)."""
 
-    def __init__(self, settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel,
-                 alert_limit: AlertLimitFn | None = None):
+    def __init__(
+        self,
+        settings: DefenseSettings,
+        motion: MotionSettings,
+        noise: NoiseModel,
+        alert_limit: AlertLimitFn | None = None,
+    ):
         self.settings = settings
         self.filter = MotionFilter(motion, noise)
         self.alert_limit = alert_limit
@@ -119,8 +129,14 @@ class Defense:
         self.clean_in_a_row = 0
         self.holding = True
 
-    def step(self, t_pred: np.ndarray, prob: float, R_cam: np.ndarray, u: np.ndarray | None = None,
-             R_pred: np.ndarray | None = None) -> Decision:
+    def step(
+        self,
+        t_pred: np.ndarray,
+        prob: float,
+        R_cam: np.ndarray,
+        u: np.ndarray | None = None,
+        R_pred: np.ndarray | None = None,
+    ) -> Decision:
         """One frame: t_pred camera-frame estimate (m), prob detector probability, R_cam camera ->
         world, u commanded displacement of rel since the previous frame (world, m), R_pred target ->
         camera estimate (optional; enables the attitude check)."""
@@ -135,7 +151,7 @@ class Defense:
             return self._decide(False, False, False, False, TRACK, np.nan, np.nan)
         check = self.filter.check(t_pred, R_cam, u, R_pred)
         motion_flag, sequential_flag = check.inconsistent, False
-        suspect = word != CLEAN and s.fusion != "motion"   # the detector's word, where it counts
+        suspect = word != CLEAN and s.fusion != "motion"  # the detector's word, where it counts
         finite = math.isfinite(check.nis_position)
         if not finite or (suspect and motion_flag):
             self.filter.coast()
@@ -150,8 +166,11 @@ class Defense:
             self.filter.coast()
         else:
             self.filter.accept()
-        checks = {"paper": shap_flag, "motion": motion_flag or sequential_flag,
-                  "or": shap_flag or motion_flag or sequential_flag}
+        checks = {
+            "paper": shap_flag,
+            "motion": motion_flag or sequential_flag,
+            "or": shap_flag or motion_flag or sequential_flag,
+        }
         flag = checks[s.fusion] or not finite
         if flag:
             self.flags_in_a_row += 1
@@ -164,18 +183,35 @@ class Defense:
             if self.holding and self.clean_in_a_row >= s.release_after:
                 self.holding = False
         mode = HOLD if self.holding else (COAST if flag else TRACK)
-        return self._decide(flag, shap_flag, motion_flag, sequential_flag, mode, check.nis_position,
-                            check.nis_attitude)
+        return self._decide(flag, shap_flag, motion_flag, sequential_flag, mode, check.nis_position, check.nis_attitude)
 
-    def _decide(self, flag: bool, shap_flag: bool, motion_flag: bool, sequential_flag: bool, mode: str,
-                nis_position: float, nis_attitude: float) -> Decision:
+    def _decide(
+        self,
+        flag: bool,
+        shap_flag: bool,
+        motion_flag: bool,
+        sequential_flag: bool,
+        mode: str,
+        nis_position: float,
+        nis_attitude: float,
+    ) -> Decision:
         """The Decision with the filter's state, its PL and the availability."""
         trusted, pl = self.filter.position, self.filter.protection_level
         available = mode != HOLD and pl < math.inf
         if available and self.alert_limit is not None:
             available = bool(pl <= self.alert_limit(math.sqrt(float(trusted @ trusted))))
-        return Decision(bool(flag), bool(shap_flag), bool(motion_flag), trusted, mode, nis_position, nis_attitude,
-                        bool(sequential_flag), pl, bool(available))
+        return Decision(
+            bool(flag),
+            bool(shap_flag),
+            bool(motion_flag),
+            trusted,
+            mode,
+            nis_position,
+            nis_attitude,
+            bool(sequential_flag),
+            pl,
+            bool(available),
+        )
 
 
 @dataclass(frozen=True)
@@ -196,9 +232,17 @@ class DefenseTrace:
     available: np.ndarray | None = None
 
 
-def run_defense(settings: DefenseSettings, motion: MotionSettings, noise: NoiseModel, t_pred: np.ndarray,
-                prob: np.ndarray, R_cam: np.ndarray, u: np.ndarray | None = None,
-                R_pred: np.ndarray | None = None, alert_limit: AlertLimitFn | None = None) -> DefenseTrace:
+def run_defense(
+    settings: DefenseSettings,
+    motion: MotionSettings,
+    noise: NoiseModel,
+    t_pred: np.ndarray,
+    prob: np.ndarray,
+    R_cam: np.ndarray,
+    u: np.ndarray | None = None,
+    R_pred: np.ndarray | None = None,
+    alert_limit: AlertLimitFn | None = None,
+) -> DefenseTrace:
     """The defense over a recorded sequence (open loop, as in the integrated evaluation).
 
     t_pred (N, 3) camera-frame estimates (m); prob (N,) detector probabilities; R_cam (N, 3, 3)
@@ -209,15 +253,19 @@ def run_defense(settings: DefenseSettings, motion: MotionSettings, noise: NoiseM
     t_pred, prob, R_cam = np.asarray(t_pred, np.float64), np.asarray(prob, np.float64), np.asarray(R_cam, np.float64)
     n = len(t_pred)
     if t_pred.shape != (n, 3) or prob.shape != (n,) or R_cam.shape != (n, 3, 3):
-        raise ValueError(f"run_defense needs t_pred (N, 3), prob (N,), R_cam (N, 3, 3); got {t_pred.shape}, "
-                         f"{prob.shape}, {R_cam.shape}")
+        raise ValueError(
+            f"run_defense needs t_pred (N, 3), prob (N,), R_cam (N, 3, 3); got {t_pred.shape}, "
+            f"{prob.shape}, {R_cam.shape}"
+        )
     if u is not None and np.shape(u) != (n, 3):
         raise ValueError(f"run_defense: u must be (N, 3) = ({n}, 3), got {np.shape(u)}")
     if R_pred is not None and np.shape(R_pred) != (n, 3, 3):
         raise ValueError(f"run_defense: R_pred must be (N, 3, 3), got {np.shape(R_pred)}")
     d = Defense(settings, motion, noise, alert_limit)
-    out = [d.step(t_pred[i], prob[i], R_cam[i], None if u is None else u[i], None if R_pred is None else R_pred[i])
-           for i in range(n)]
+    out = [
+        d.step(t_pred[i], prob[i], R_cam[i], None if u is None else u[i], None if R_pred is None else R_pred[i])
+        for i in range(n)
+    ]
     return trace_of(out)
 
 
@@ -228,7 +276,15 @@ def trace_of(decisions: list[Decision]) -> DefenseTrace:
     def col(name: str) -> np.ndarray:
         return np.array([getattr(o, name) for o in decisions])
 
-    return DefenseTrace(col("flag").astype(bool), col("shap_flag").astype(bool), col("motion_flag").astype(bool),
-                        col("trusted").reshape(n, 3), col("mode"), col("nis_position").astype(float),
-                        col("nis_attitude").astype(float), col("sequential_flag").astype(bool),
-                        col("pl").astype(float), col("available").astype(bool))
+    return DefenseTrace(
+        col("flag").astype(bool),
+        col("shap_flag").astype(bool),
+        col("motion_flag").astype(bool),
+        col("trusted").reshape(n, 3),
+        col("mode"),
+        col("nis_position").astype(float),
+        col("nis_attitude").astype(float),
+        col("sequential_flag").astype(bool),
+        col("pl").astype(float),
+        col("available").astype(bool),
+    )

@@ -12,6 +12,7 @@ A filter whose state was nevertheless dragged away (or started on a bad frame) w
 clean frame after; `reacquire` restarts it on M rejected frames that agree with one another and
 with the accepted history, never on a steady offset that jumped away from that history.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field

@@ -74,7 +74,8 @@ the cone that shrinks to the docking tolerance at the goal: 51 m at 60 m, 6 m at
 the defaults (tol 1 m, r_g 10 m). Off the goal's line of sight (a lateral offset d) the approach still
 to go is the longest per-axis distance to the goal, shorter than r - r_g by about d^2 / (2 r): on the
 evaluation trajectories (lateral starts up to 25 m per axis, projectile paths) up to ~10 m at the 60 m
-start, where AL_p is ~60 m, and under 0.1 m inside 20 m, where the limit matters. Any bias sequence with |b_k| <= AL_p(r_k) on every frame docks within
+start, where AL_p is ~60 m, and under 0.1 m inside 20 m, where the limit matters. Any bias sequence with
+|b_k| <= AL_p(r_k) on every frame docks within
 tol + s one step after arrival (the law acts on the previous frame's bias: the one-step lag) and
 within tol once the chaser settles at the goal; it never collides, since the chaser moves inward only
 while rel > g - b >= r_g - tol - (r - r_g), so the truth stays above r_g - tol - s (8 m) > collision
@@ -83,6 +84,7 @@ is harmless) and tighter inside r_g + slack s (20 m): the frames near the goal a
 bias becomes a miss. A trajectory whose trusted error exceeds AL_p on an available frame near the goal
 is a mission failure in waiting (pipeline/evaluation/measures.py counts it as one).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -93,8 +95,8 @@ import numpy as np
 from pipeline.defense.fusion import COAST, MODES, TRACK, DefenseTrace
 from pipeline.stats import Rate, bootstrap_rate
 
-FLOWN = (TRACK, COAST)   # defense modes in which the guidance flies on the trusted estimate
-KINDS = ("single_frame", "persistent")   # which alert limit `alert_limit` gives (module docstring)
+FLOWN = (TRACK, COAST)  # defense modes in which the guidance flies on the trusted estimate
+KINDS = ("single_frame", "persistent")  # which alert limit `alert_limit` gives (module docstring)
 
 
 @dataclass(frozen=True)
@@ -136,14 +138,18 @@ def alert_limit(range_m: np.ndarray | float, settings: AlertLimitSettings = Aler
     return single_frame_alert_limit(r, settings)
 
 
-def persistent_alert_limit(range_m: np.ndarray | float, settings: AlertLimitSettings = AlertLimitSettings()) -> np.ndarray:
+def persistent_alert_limit(
+    range_m: np.ndarray | float, settings: AlertLimitSettings = AlertLimitSettings()
+) -> np.ndarray:
     """AL_p (m) at true range `range_m` (m): tol + max(r - r_g, 0), the largest error a bias that may stay
     to docking can have there (derivation in the module docstring; `settings.fixed` is not applied)."""
     r = np.asarray(range_m, dtype=np.float64)
     return settings.tolerance + np.maximum(r - settings.goal_range, 0.0)
 
 
-def single_frame_alert_limit(range_m: np.ndarray | float, settings: AlertLimitSettings = AlertLimitSettings()) -> np.ndarray:
+def single_frame_alert_limit(
+    range_m: np.ndarray | float, settings: AlertLimitSettings = AlertLimitSettings()
+) -> np.ndarray:
     """AL (m) at true range `range_m` (m) for one wrong frame: max(tol, min(tol + slack s, r + s -
     collision range)) (the module docstring's first derivation; `settings.fixed` is not applied)."""
     s = settings
@@ -177,8 +183,9 @@ class IntegrityFrames:
             shapes["pl"] = (n,)
         for name, shape in shapes.items():
             if np.shape(getattr(self, name)) != shape:
-                raise ValueError(f"integrity frames: {name} must have shape {shape}, "
-                                 f"got {np.shape(getattr(self, name))}")
+                raise ValueError(
+                    f"integrity frames: {name} must have shape {shape}, got {np.shape(getattr(self, name))}"
+                )
         unknown = set(np.unique(self.mode).tolist()) - set(MODES)
         if unknown:
             raise ValueError(f"integrity frames: unknown defense modes {sorted(unknown)}; expected {', '.join(MODES)}")
@@ -211,8 +218,9 @@ class IntegrityFrames:
         return self.has_pl & (self.error > (np.inf if self.pl is None else self.pl))
 
 
-def defense_frames(trace: DefenseTrace, truth: np.ndarray, trajectory: Any, settings: AlertLimitSettings,
-                   pl: np.ndarray | None = None) -> IntegrityFrames:
+def defense_frames(
+    trace: DefenseTrace, truth: np.ndarray, trajectory: Any, settings: AlertLimitSettings, pl: np.ndarray | None = None
+) -> IntegrityFrames:
     """The integrity records of one run through the defense: `trace` its DefenseTrace (e.g. of
     pipeline.evaluation.sequences.defend_trace or pipeline.defense.fusion.run_defense), `truth` (N, 3) the true rel (world, m), e.g.
     `Sequence.rel`, `trajectory` the run's id, `pl` (N,) protection levels (m): by default the trace's own
@@ -222,9 +230,15 @@ def defense_frames(trace: DefenseTrace, truth: np.ndarray, trajectory: Any, sett
     n = len(trace.mode)
     if truth.shape != (n, 3):
         raise ValueError(f"defense_frames: truth must be (N, 3) = ({n}, 3), got {truth.shape}")
-    return IntegrityFrames(np.full(n, trajectory, dtype=object), np.arange(n), np.asarray(trace.trusted, np.float64),
-                           truth, np.asarray(trace.mode), alert_limit(np.linalg.norm(truth, axis=1), settings),
-                           None if pl is None else np.asarray(pl, np.float64))
+    return IntegrityFrames(
+        np.full(n, trajectory, dtype=object),
+        np.arange(n),
+        np.asarray(trace.trusted, np.float64),
+        truth,
+        np.asarray(trace.mode),
+        alert_limit(np.linalg.norm(truth, axis=1), settings),
+        None if pl is None else np.asarray(pl, np.float64),
+    )
 
 
 def concat(runs: list[IntegrityFrames]) -> IntegrityFrames:
@@ -234,16 +248,24 @@ def concat(runs: list[IntegrityFrames]) -> IntegrityFrames:
     if len({r.pl is None for r in runs}) > 1:
         raise ValueError("concat: some runs have a protection level and some do not")
     pl = None if runs[0].pl is None else np.concatenate([r.pl for r in runs])
-    return IntegrityFrames(*(np.concatenate([getattr(r, k) for r in runs])
-                             for k in ("trajectory", "frame", "trusted", "truth", "mode", "alert")), pl)
+    return IntegrityFrames(
+        *(
+            np.concatenate([getattr(r, k) for r in runs])
+            for k in ("trajectory", "frame", "trusted", "truth", "mode", "alert")
+        ),
+        pl,
+    )
 
 
 def _check_paired(attacked: IntegrityFrames, clean: IntegrityFrames) -> None:
     """Refuse an attacked / clean pair whose frames are not the same frames of the same runs."""
     if len(attacked.frame) != len(clean.frame) or not (
-            np.array_equal(attacked.frame, clean.frame) and np.array_equal(attacked.trajectory, clean.trajectory)):
-        raise ValueError("integrity: the attacked runs and their clean counterparts must hold the same frames "
-                         "of the same trajectories, in the same order")
+        np.array_equal(attacked.frame, clean.frame) and np.array_equal(attacked.trajectory, clean.trajectory)
+    ):
+        raise ValueError(
+            "integrity: the attacked runs and their clean counterparts must hold the same frames "
+            "of the same trajectories, in the same order"
+        )
 
 
 def attack_hmi(attacked: IntegrityFrames, clean: IntegrityFrames) -> np.ndarray:
@@ -262,12 +284,15 @@ def _error_stats(frames: IntegrityFrames, mask: np.ndarray) -> dict[str, float]:
     """Mean and max trusted error (m) over the masked frames that have an estimate (NaN when none)."""
     err = frames.error[mask]
     err = err[np.isfinite(err)]
-    return {"trusted_error_mean_m": float(err.mean()) if err.size else float("nan"),
-            "trusted_error_max_m": float(err.max()) if err.size else float("nan")}
+    return {
+        "trusted_error_mean_m": float(err.mean()) if err.size else float("nan"),
+        "trusted_error_max_m": float(err.max()) if err.size else float("nan"),
+    }
 
 
-def integrity_rates(attacked: IntegrityFrames, clean: IntegrityFrames, mask: np.ndarray | None = None,
-                    seed: int = 0) -> dict[str, Any]:
+def integrity_rates(
+    attacked: IntegrityFrames, clean: IntegrityFrames, mask: np.ndarray | None = None, seed: int = 0
+) -> dict[str, Any]:
     """Integrity of attacked runs beside the same frames without the attack (`mask` (N,): the frames to
     count, e.g. the attacked ones; all by default). Every rate is a `Rate` with a 95% interval by a
     bootstrap over trajectories:
@@ -288,10 +313,16 @@ def integrity_rates(attacked: IntegrityFrames, clean: IntegrityFrames, mask: np.
         return bootstrap_rate(hits[where], g[where], seed=seed)
 
     with_pl = keep & attacked.has_pl & clean.has_pl
-    return {"hmi": rate(attack_hmi(attacked, clean), keep), "hmi_attacked": rate(attacked.hmi, keep),
-            "hmi_clean": rate(clean.hmi, keep), "mi": rate(attack_mi(attacked, clean), with_pl),
-            "availability": rate(attacked.available, keep), "availability_clean": rate(clean.available, keep),
-            "frames": int(keep.sum()), **_error_stats(attacked, keep)}
+    return {
+        "hmi": rate(attack_hmi(attacked, clean), keep),
+        "hmi_attacked": rate(attacked.hmi, keep),
+        "hmi_clean": rate(clean.hmi, keep),
+        "mi": rate(attack_mi(attacked, clean), with_pl),
+        "availability": rate(attacked.available, keep),
+        "availability_clean": rate(clean.available, keep),
+        "frames": int(keep.sum()),
+        **_error_stats(attacked, keep),
+    }
 
 
 def clean_rates(clean: IntegrityFrames, seed: int = 0) -> dict[str, Any]:
@@ -300,6 +331,10 @@ def clean_rates(clean: IntegrityFrames, seed: int = 0) -> dict[str, Any]:
     g = clean.trajectory.astype(str)
     every = np.ones(len(clean.frame), bool)
     has = clean.has_pl
-    return {"availability": bootstrap_rate(clean.available, g, seed=seed),
-            "hmi": bootstrap_rate(clean.hmi, g, seed=seed), "mi": bootstrap_rate(clean.mi[has], g[has], seed=seed),
-            "frames": len(clean.frame), **_error_stats(clean, every)}
+    return {
+        "availability": bootstrap_rate(clean.available, g, seed=seed),
+        "hmi": bootstrap_rate(clean.hmi, g, seed=seed),
+        "mi": bootstrap_rate(clean.mi[has], g[has], seed=seed),
+        "frames": len(clean.frame),
+        **_error_stats(clean, every),
+    }

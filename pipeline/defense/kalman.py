@@ -33,6 +33,7 @@ the pose network, whose convolutions leave the caches cold: there a small numpy 
 equal scalar filters (its covariances are multiples of I3 per block: isotropic noise), closed-form
 3x3 inverses reused between the gate and the update.
 """
+
 from __future__ import annotations
 
 import math
@@ -43,10 +44,10 @@ import numpy as np
 from scipy.stats import chi2
 
 from pipeline.defense.gate import MotionCheck, MotionSettings
+from pipeline.defense.linear import IsoKalman6, Kalman3, add, eye, mm, mm_t, mv, transpose
 from pipeline.defense.noise import NoiseModel
 from pipeline.defense.protection import ProtectionLevel, largest_eigenvalue
 from pipeline.defense.sequential import Cusum
-from pipeline.defense.linear import IsoKalman6, Kalman3, add, eye, mm, mm_t, mv, transpose
 from pipeline.geometry.rotations import Mat3, float_lists, rotmat_list, rotvec_list
 
 
@@ -77,14 +78,15 @@ class MotionFilter:
         self.pos = Kalman3(settings.position_noise)
         self.att = IsoKalman6(math.radians(settings.attitude_noise_deg), math.radians(settings.attitude_rate_noise_deg))
         self.cusum = Cusum(settings.cusum_reference, settings.cusum_threshold)
-        self.protection = ProtectionLevel(settings.cusum_reference, settings.cusum_threshold, settings.integrity_risk,
-                                          settings.position_noise)
-        self.R_tw = eye()             # attitude estimate (target -> world), 3x3 nested list
+        self.protection = ProtectionLevel(
+            settings.cusum_reference, settings.cusum_threshold, settings.integrity_risk, settings.position_noise
+        )
+        self.R_tw = eye()  # attitude estimate (target -> world), 3x3 nested list
         self.started = False
-        self._pending: tuple[MotionCheck, tuple | None] | None = None   # last check, its update terms
-        self._tested = False           # the pending frame went through the sequential test
-        self._trusted = 0              # frames after the start the protection level assumes fault-free
-        self._moved = [0.0] * 3        # sum of the commanded displacements so far (world, m)
+        self._pending: tuple[MotionCheck, tuple | None] | None = None  # last check, its update terms
+        self._tested = False  # the pending frame went through the sequential test
+        self._trusted = 0  # frames after the start the protection level assumes fault-free
+        self._moved = [0.0] * 3  # sum of the commanded displacements so far (world, m)
         self._candidates: list[tuple[list[float], Mat3, Mat3 | None]] = []
         self._history: deque[list[float]] = deque(maxlen=2 * settings.reacquire_after)
         self._last: tuple[list[float], Mat3, Mat3 | None] | None = None
@@ -114,15 +116,21 @@ class MotionFilter:
             return math.inf
         return self.protection.level(self.pos.A)
 
-    def start(self, rel: np.ndarray, rel_cov: np.ndarray, R_tw: np.ndarray | None = None, offset: float = 0.0,
-              trusted: int = 0) -> None:
+    def start(
+        self,
+        rel: np.ndarray,
+        rel_cov: np.ndarray,
+        R_tw: np.ndarray | None = None,
+        offset: float = 0.0,
+        trusted: int = 0,
+    ) -> None:
         """Start (or restart) at rel (world, m) with covariance rel_cov (3, 3, m^2), optionally an
         attitude; `offset` (m): the bias bound the new run carries, `trusted`: the frames after the
         start that the protection level assumes fault-free (see protection.py, assumption A)."""
         rel = np.asarray(rel, np.float64)
         self.pos.reset(rel.tolist(), np.asarray(rel_cov, np.float64).tolist())
         att_std = self.noise.attitude_std(float(np.linalg.norm(rel)))
-        self.att.reset(att_std ** 2, 3 * math.radians(self.settings.attitude_rate_noise_deg))
+        self.att.reset(att_std**2, 3 * math.radians(self.settings.attitude_rate_noise_deg))
         self.R_tw = eye() if R_tw is None else np.asarray(R_tw, np.float64).tolist()
         self.started = True
         self.cusum.reset()
@@ -134,8 +142,9 @@ class MotionFilter:
         self._history.clear()
         self._history.append([p - m for p, m in zip(self.pos.level, self._moved)])
 
-    def measurement(self, t_pred: np.ndarray, R_cam: np.ndarray,
-                    rng: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def measurement(
+        self, t_pred: np.ndarray, R_cam: np.ndarray, rng: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(z world-frame measurement of rel (m), its covariance (3, 3)) from a camera-frame estimate,
         the noise model's bias removed; the noise model at range `rng` (m; default |t_pred|: `check`
         takes the predicted state's range, which a single estimate cannot move)."""
@@ -157,8 +166,9 @@ class MotionFilter:
         z, Rz = self.measurement(t_pred, R_cam)
         self.start(z, Rz, None if R_pred is None else R_cam @ R_pred, trusted=self.settings.trusted_start)
 
-    def check(self, t_pred: np.ndarray, R_cam: np.ndarray, u: np.ndarray | None = None,
-              R_pred: np.ndarray | None = None) -> MotionCheck:
+    def check(
+        self, t_pred: np.ndarray, R_cam: np.ndarray, u: np.ndarray | None = None, R_pred: np.ndarray | None = None
+    ) -> MotionCheck:
         """Predict with the commanded displacement u (world, m) and test the estimate (t_pred camera
         frame, m; R_pred target -> camera, optional) against the prediction."""
         if not self.started:
@@ -210,7 +220,7 @@ class MotionFilter:
         self._tested = True
         if not self.cusum.push(self._pending[1][4]):
             return False
-        self.cusum.reset()                 # a new segment of the test (and of the PL's fault bound) starts
+        self.cusum.reset()  # a new segment of the test (and of the PL's fault bound) starts
         self.protection.add(None, self._pending[1][5])
         self._tested = False
         return True
@@ -222,7 +232,7 @@ class MotionFilter:
             raise RuntimeError("MotionFilter.accept needs a checked, finite frame")
         check, (y, Rz, s_inv, att, _, sigma, R_cam) = self._pending  # type: ignore[misc]
         soft = self.settings.soft_gate * self.gate
-        if check.nis_position > soft:                 # Huber: the inflated covariance has its own S
+        if check.nis_position > soft:  # Huber: the inflated covariance has its own S
             K = self.pos.update(y, [[v * (check.nis_position / soft) for v in row] for row in Rz])
         else:
             K = self.pos.update(y, Rz, s_inv)
@@ -240,9 +250,9 @@ class MotionFilter:
         (the gate or the sequential test rejected it but nothing else suspects it) the frame may
         restart the filter: see `reacquire`."""
         if self._tested and self._pending is not None and self._pending[1] is not None:
-            self._bound(None, self._pending[1][5])             # a tested frame left out: weight 0
+            self._bound(None, self._pending[1][5])  # a tested frame left out: weight 0
         if candidate and self._pending is not None and self._pending[1] is not None and self._last is not None:
-            self._candidates = (self._candidates + [self._last])[-self.settings.reacquire_after:]
+            self._candidates = (self._candidates + [self._last])[-self.settings.reacquire_after :]
         else:
             self._candidates = []
         self._pending = None
@@ -281,13 +291,17 @@ class MotionFilter:
         scatter = sum(float((zi - mean) @ w @ (zi - mean)) for w, zi in zip(W, z))
         if scatter > self._agree:
             return False
-        if len(self._history) >= M:   # a history shorter than the candidates does not outvote them
+        if len(self._history) >= M:  # a history shorter than the candidates does not outvote them
             d = mean - (np.median(np.array(self._history), axis=0) + moved)
             if float(d @ np.linalg.inv(cov + np.array(self._candidates[-1][1])) @ d) > self.gate:
                 return False
         candidates = self._candidates
         tolerance = 2.0 * math.sqrt(self.gate * largest_eigenvalue((cov + np.array(candidates[-1][1])).tolist()))
-        self.start(mean, cov + np.eye(3) * (M * self.settings.position_noise) ** 2, candidates[-1][2],
-                   offset=self.protection.bias() + tolerance)
+        self.start(
+            mean,
+            cov + np.eye(3) * (M * self.settings.position_noise) ** 2,
+            candidates[-1][2],
+            offset=self.protection.bias() + tolerance,
+        )
         self._history.extend(c[0] for c in candidates)
         return True

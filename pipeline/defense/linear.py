@@ -5,6 +5,7 @@ caches cold after the pose network). `Kalman3`: the position filter on rel (worl
 commanded displacement; `IsoKalman6`: the attitude error state [rotation vector, rate] with isotropic
 covariances. Tested against the matrix equations in tests/test_motion.py.
 """
+
 from __future__ import annotations
 
 from typing import Sequence
@@ -19,18 +20,22 @@ def inv3(S: Mat3) -> Mat3:
     (a, b, c), (d, e, f), (g, h, i) = S
     A, B, C = e * i - f * h, f * g - d * i, d * h - e * g
     r = 1.0 / (a * A + b * B + c * C)
-    return [[A * r, (c * h - b * i) * r, (b * f - c * e) * r],
-            [B * r, (a * i - c * g) * r, (c * d - a * f) * r],
-            [C * r, (b * g - a * h) * r, (a * e - b * d) * r]]
+    return [
+        [A * r, (c * h - b * i) * r, (b * f - c * e) * r],
+        [B * r, (a * i - c * g) * r, (c * d - a * f) * r],
+        [C * r, (b * g - a * h) * r, (a * e - b * d) * r],
+    ]
 
 
 def mm(A: Mat3, B: Mat3) -> Mat3:
     """A @ B for 3x3 nested lists."""
     (a0, a1, a2), (a3, a4, a5), (a6, a7, a8) = A
     (b0, b1, b2), (b3, b4, b5), (b6, b7, b8) = B
-    return [[a0 * b0 + a1 * b3 + a2 * b6, a0 * b1 + a1 * b4 + a2 * b7, a0 * b2 + a1 * b5 + a2 * b8],
-            [a3 * b0 + a4 * b3 + a5 * b6, a3 * b1 + a4 * b4 + a5 * b7, a3 * b2 + a4 * b5 + a5 * b8],
-            [a6 * b0 + a7 * b3 + a8 * b6, a6 * b1 + a7 * b4 + a8 * b7, a6 * b2 + a7 * b5 + a8 * b8]]
+    return [
+        [a0 * b0 + a1 * b3 + a2 * b6, a0 * b1 + a1 * b4 + a2 * b7, a0 * b2 + a1 * b5 + a2 * b8],
+        [a3 * b0 + a4 * b3 + a5 * b6, a3 * b1 + a4 * b4 + a5 * b7, a3 * b2 + a4 * b5 + a5 * b8],
+        [a6 * b0 + a7 * b3 + a8 * b6, a6 * b1 + a7 * b4 + a8 * b7, a6 * b2 + a7 * b5 + a8 * b8],
+    ]
 
 
 def mm_t(A: Mat3, B: Mat3) -> Mat3:
@@ -68,7 +73,7 @@ class Kalman3:
     measurement a. In plain floats (see the module docstring); `x` and `P` give numpy copies."""
 
     def __init__(self, q_level: float):
-        self.q_level = q_level ** 2
+        self.q_level = q_level**2
         self.level = [0.0] * 3
         self.A = eye()
 
@@ -113,7 +118,7 @@ class IsoKalman6:
     are 3-lists."""
 
     def __init__(self, q_level: float, q_rate: float):
-        self.q_level, self.q_rate = q_level ** 2, q_rate ** 2
+        self.q_level, self.q_rate = q_level**2, q_rate**2
         self.level, self.rate = [0.0] * 3, [0.0] * 3
         self.p = (1.0, 0.0, 1.0)
 
@@ -129,7 +134,7 @@ class IsoKalman6:
     def reset(self, level_var: float, rate_std: float) -> None:
         """Zero state, level variance `level_var`, rate std `rate_std` (per axis)."""
         self.level, self.rate = [0.0] * 3, [0.0] * 3
-        self.p = (level_var, 0.0, rate_std ** 2)
+        self.p = (level_var, 0.0, rate_std**2)
 
     def predict(self) -> None:
         self.level = [v + r for v, r in zip(self.level, self.rate)]
@@ -153,6 +158,9 @@ class IsoKalman6:
         d_level = [ka * v for v in y]
         self.level = [v + dv for v, dv in zip(self.level, d_level)]
         self.rate = [v + kb * w for v, w in zip(self.rate, y)]
-        self.p = ((1 - ka) ** 2 * a + ka * ka * r, (1 - ka) * (b - kb * a) + ka * kb * r,
-                  kb * kb * a - 2 * kb * b + c + kb * kb * r)
+        self.p = (
+            (1 - ka) ** 2 * a + ka * ka * r,
+            (1 - ka) * (b - kb * a) + ka * kb * r,
+            kb * kb * a - 2 * kb * b + c + kb * kb * r,
+        )
         return d_level

@@ -6,6 +6,7 @@ camera boresight: `NoiseModel` holds per-camera-axis standard deviations and bia
 split); `inflate` widens it (pipeline/defense/calibration.py chooses by how much, on clean validation
 frames).
 """
+
 from __future__ import annotations
 
 import bisect
@@ -18,8 +19,8 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.settings import In
 
-Range = Annotated[float, In("(0, 100000]", "metres")]   # a range knot
-Std = Annotated[float, In("(0, 100000]", "metres")]     # a position standard deviation at a knot
+Range = Annotated[float, In("(0, 100000]", "metres")]  # a range knot
+Std = Annotated[float, In("(0, 100000]", "metres")]  # a position standard deviation at a knot
 
 
 def check_positive(name: str, value: float) -> float:
@@ -44,7 +45,7 @@ class NoiseModel:
     position_slope: tuple[float, float, float]
     attitude_intercept: float
     attitude_slope: float
-    floor: Annotated[float, In("(0, 1000]", "metres")] = 0.02   # smallest position std used (a fit can go to 0)
+    floor: Annotated[float, In("(0, 1000]", "metres")] = 0.02  # smallest position std used (a fit can go to 0)
     bias_intercept: tuple[float, float, float] = (0.0, 0.0, 0.0)
     bias_slope: tuple[float, float, float] = (0.0, 0.0, 0.0)
     knots: tuple[Range, ...] = ()
@@ -53,8 +54,12 @@ class NoiseModel:
     knot_attitude: tuple[Annotated[float, In("(0, 180]", "degrees")], ...] = ()
 
     def __post_init__(self) -> None:
-        for name, v in (("position_intercept", self.position_intercept), ("position_slope", self.position_slope),
-                        ("bias_intercept", self.bias_intercept), ("bias_slope", self.bias_slope)):
+        for name, v in (
+            ("position_intercept", self.position_intercept),
+            ("position_slope", self.position_slope),
+            ("bias_intercept", self.bias_intercept),
+            ("bias_slope", self.bias_slope),
+        ):
             if len(v) != 3 or not np.all(np.isfinite(v)):
                 raise ValueError(f"noise model {name} must be 3 finite numbers, got {v}")
         if not np.isfinite(self.attitude_intercept) or not np.isfinite(self.attitude_slope):
@@ -66,10 +71,15 @@ class NoiseModel:
             att = tuple(float(v) for v in self.knot_attitude)
             shaped = len(knots) >= 2 and all(len(t) == len(knots) and all(len(r) == 3 for r in t) for t in (std, bias))
             shaped = shaped and len(att) == len(knots)
-            if not shaped or not np.all(np.diff(knots) > 0) or not np.isfinite([*knots, *att, *np.ravel(std),
-                                                                                 *np.ravel(bias)]).all():
-                raise ValueError("noise model knots must be >= 2 increasing finite ranges with one finite (x, y, z) "
-                                 "std and bias and one attitude std each")
+            if (
+                not shaped
+                or not np.all(np.diff(knots) > 0)
+                or not np.isfinite([*knots, *att, *np.ravel(std), *np.ravel(bias)]).all()
+            ):
+                raise ValueError(
+                    "noise model knots must be >= 2 increasing finite ranges with one finite (x, y, z) "
+                    "std and bias and one attitude std each"
+                )
             object.__setattr__(self, "knot_attitude", att)
         object.__setattr__(self, "knots", knots)
         object.__setattr__(self, "knot_std", std)
@@ -82,8 +92,10 @@ class NoiseModel:
             return ([a[i] + b[i] * rng for i in range(3)], [max(sa[i] + sb[i] * rng, self.floor) for i in range(3)])
         k, w = self._knot(rng)
         b0, b1, s0, s1 = self.knot_bias[k - 1], self.knot_bias[k], self.knot_std[k - 1], self.knot_std[k]
-        return ([b0[i] + w * (b1[i] - b0[i]) for i in range(3)],
-                [max(s0[i] + w * (s1[i] - s0[i]), self.floor) for i in range(3)])
+        return (
+            [b0[i] + w * (b1[i] - b0[i]) for i in range(3)],
+            [max(s0[i] + w * (s1[i] - s0[i]), self.floor) for i in range(3)],
+        )
 
     def _knot(self, rng: float) -> tuple[int, float]:
         """(k, w): `rng` (m) lies a fraction w of the way from knot k - 1 to knot k (clamped to [0, 1])."""
@@ -108,11 +120,19 @@ class NoiseModel:
         return math.radians(max(a[k - 1] + w * (a[k] - a[k - 1]), 0.1))
 
     def as_dict(self) -> dict[str, object]:
-        return {"position_intercept": list(self.position_intercept), "position_slope": list(self.position_slope),
-                "attitude_intercept": self.attitude_intercept, "attitude_slope": self.attitude_slope,
-                "floor": self.floor, "bias_intercept": list(self.bias_intercept), "bias_slope": list(self.bias_slope),
-                "knots": list(self.knots), "knot_std": [list(r) for r in self.knot_std],
-                "knot_bias": [list(r) for r in self.knot_bias], "knot_attitude": list(self.knot_attitude)}
+        return {
+            "position_intercept": list(self.position_intercept),
+            "position_slope": list(self.position_slope),
+            "attitude_intercept": self.attitude_intercept,
+            "attitude_slope": self.attitude_slope,
+            "floor": self.floor,
+            "bias_intercept": list(self.bias_intercept),
+            "bias_slope": list(self.bias_slope),
+            "knots": list(self.knots),
+            "knot_std": [list(r) for r in self.knot_std],
+            "knot_bias": [list(r) for r in self.knot_bias],
+            "knot_attitude": list(self.knot_attitude),
+        }
 
 
 def inflate(noise: "NoiseModel", k: float, attitude: float | None = None) -> "NoiseModel":
@@ -123,15 +143,24 @@ def inflate(noise: "NoiseModel", k: float, attitude: float | None = None) -> "No
     check_positive("noise inflation", k)
     a = check_positive("attitude noise inflation", k if attitude is None else attitude)
     return dataclasses.replace(
-        noise, position_intercept=tuple(k * v for v in noise.position_intercept),
-        position_slope=tuple(k * v for v in noise.position_slope), attitude_intercept=a * noise.attitude_intercept,
-        attitude_slope=a * noise.attitude_slope, floor=k * noise.floor,
+        noise,
+        position_intercept=tuple(k * v for v in noise.position_intercept),
+        position_slope=tuple(k * v for v in noise.position_slope),
+        attitude_intercept=a * noise.attitude_intercept,
+        attitude_slope=a * noise.attitude_slope,
+        floor=k * noise.floor,
         knot_std=tuple(tuple(k * v for v in row) for row in noise.knot_std),
-        knot_attitude=tuple(a * v for v in noise.knot_attitude))
+        knot_attitude=tuple(a * v for v in noise.knot_attitude),
+    )
 
 
-def fit_noise(t_true: np.ndarray, t_pred: np.ndarray, R_true: np.ndarray | None = None,
-              R_pred: np.ndarray | None = None, bins: int = 8) -> NoiseModel:
+def fit_noise(
+    t_true: np.ndarray,
+    t_pred: np.ndarray,
+    R_true: np.ndarray | None = None,
+    R_pred: np.ndarray | None = None,
+    bins: int = 8,
+) -> NoiseModel:
     """Fit a `NoiseModel` to clean validation estimates.
 
     t_true, t_pred: (N, 3) camera-frame positions (m); R_true, R_pred: optional (N, 3, 3) target ->
@@ -149,13 +178,15 @@ def fit_noise(t_true: np.ndarray, t_pred: np.ndarray, R_true: np.ndarray | None 
         raise ValueError("fit_noise: positions contain NaN or inf")
     bins = int(bins)
     if bins < 2 or len(t_true) < 4 * bins:
-        raise ValueError(f"fit_noise needs at least {4 * max(bins, 2)} frames for {max(bins, 2)} range bins, got {len(t_true)}")
+        raise ValueError(
+            f"fit_noise needs at least {4 * max(bins, 2)} frames for {max(bins, 2)} range bins, got {len(t_true)}"
+        )
     rng = np.linalg.norm(t_true, axis=1)
     err = t_pred - t_true
     att = None
     if R_true is not None and R_pred is not None:
         rel = np.swapaxes(np.asarray(R_true), -1, -2) @ np.asarray(R_pred)
-        att = np.degrees(Rotation.from_matrix(rel).as_rotvec())   # (N, 3) degrees, target frame
+        att = np.degrees(Rotation.from_matrix(rel).as_rotvec())  # (N, 3) degrees, target frame
     order = np.argsort(rng)
     centres, pos_std, att_std, bias = [], [], [], []
     for idx in np.array_split(order, bins):
@@ -167,14 +198,21 @@ def fit_noise(t_true: np.ndarray, t_pred: np.ndarray, R_true: np.ndarray | None 
             a = att[idx]
             att_std.append(float(np.mean(1.4826 * np.median(np.abs(a - np.median(a, 0)), 0))))
     A = np.column_stack([np.ones(bins), centres])
-    coef = np.linalg.lstsq(A, np.asarray(pos_std), rcond=None)[0]       # (2, 3)
+    coef = np.linalg.lstsq(A, np.asarray(pos_std), rcond=None)[0]  # (2, 3)
     bcoef = np.linalg.lstsq(A, np.asarray(bias), rcond=None)[0]
     if att is not None:
         a0, a1 = np.linalg.lstsq(A, np.asarray(att_std), rcond=None)[0]
     else:
         a0, a1 = 5.0, 0.0
-    return NoiseModel(tuple(map(float, coef[0])), tuple(map(float, coef[1])), float(a0), float(a1),
-                      bias_intercept=tuple(map(float, bcoef[0])), bias_slope=tuple(map(float, bcoef[1])),
-                      knots=tuple(map(float, centres)), knot_std=tuple(tuple(map(float, v)) for v in pos_std),
-                      knot_bias=tuple(tuple(map(float, v)) for v in bias),
-                      knot_attitude=tuple(map(float, att_std)) if att is not None else (5.0,) * bins)
+    return NoiseModel(
+        tuple(map(float, coef[0])),
+        tuple(map(float, coef[1])),
+        float(a0),
+        float(a1),
+        bias_intercept=tuple(map(float, bcoef[0])),
+        bias_slope=tuple(map(float, bcoef[1])),
+        knots=tuple(map(float, centres)),
+        knot_std=tuple(tuple(map(float, v)) for v in pos_std),
+        knot_bias=tuple(tuple(map(float, v)) for v in bias),
+        knot_attitude=tuple(map(float, att_std)) if att is not None else (5.0,) * bins,
+    )

@@ -88,6 +88,7 @@ Assumptions the PL rests on (each one a way for it to fail):
 (F) |x| <= kappa sqrt(lambda_max(C)) for x ~ N(0, C) uses the largest eigenvalue in every direction
     (conservative); the fault bound's norm |b| adds the per-axis bounds in quadrature over world axes.
 """
+
 from __future__ import annotations
 
 import math
@@ -107,8 +108,9 @@ def largest_eigenvalue(A: Mat3) -> float:
         return max(A[0][0], A[1][1], A[2][2])
     q = (A[0][0] + A[1][1] + A[2][2]) / 3.0
     p = math.sqrt(((A[0][0] - q) ** 2 + (A[1][1] - q) ** 2 + (A[2][2] - q) ** 2 + 2.0 * p1) / 6.0)
-    (a, b, c), (_, e, f), (_, _, i) = [[(v - (q if r == k else 0.0)) / p for k, v in enumerate(row)]
-                                       for r, row in enumerate(A)]
+    (a, b, c), (_, e, f), (_, _, i) = [
+        [(v - (q if r == k else 0.0)) / p for k, v in enumerate(row)] for r, row in enumerate(A)
+    ]
     half_det = (a * (e * i - f * f) - b * (b * i - f * c) + c * (b * f - e * c)) / 2.0
     phi = math.acos(max(-1.0, min(1.0, half_det))) / 3.0
     return q + 2.0 * p * math.cos(phi)
@@ -140,11 +142,11 @@ class ProtectionLevel:
         """A new filter run, carrying `offset` (m) of bias bound from the previous one; its sums start at
         `anchor`."""
         self.offset = float(offset)
-        self.start: Mat3 | None = None                    # P_T, once the sums have started
-        self.steps = 0                                    # frames predicted since T
-        self.total = [[0.0] * 3 for _ in range(3)]        # sum_j |W_j[i, k]|
-        self.rise = [[0.0] * 3 for _ in range(3)]         # TV+(W+) + TV+(W-)
-        self.last = [[0.0] * 3 for _ in range(3)]         # W_{j-1}[i, k] (signed)
+        self.start: Mat3 | None = None  # P_T, once the sums have started
+        self.steps = 0  # frames predicted since T
+        self.total = [[0.0] * 3 for _ in range(3)]  # sum_j |W_j[i, k]|
+        self.rise = [[0.0] * 3 for _ in range(3)]  # TV+(W+) + TV+(W-)
+        self.last = [[0.0] * 3 for _ in range(3)]  # W_{j-1}[i, k] (signed)
 
     def anchor(self, P: Mat3) -> None:
         """The sums start at this frame T, whose state covariance is P (3x3, m^2)."""

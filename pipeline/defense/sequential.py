@@ -20,6 +20,7 @@ because the pose model's errors are correlated from frame to frame, which the wh
 not see. Within a segment (between alarms), every window a..b of the frames the filter accepted
 satisfies -c (b - a + 1) - h <= sum r_i <= c (b - a + 1) + h: the bound the protection level rests on.
 """
+
 from __future__ import annotations
 
 import math
@@ -53,8 +54,7 @@ class Cusum:
     def after(self, r: Sequence[float]) -> tuple[list[float], list[float]]:
         """(g+, g-) after the normalized innovations `r` (3,), without pushing them."""
         c = self.reference
-        return ([max(0.0, g + v - c) for g, v in zip(self.high, r)],
-                [max(0.0, g - v - c) for g, v in zip(self.low, r)])
+        return ([max(0.0, g + v - c) for g, v in zip(self.high, r)], [max(0.0, g - v - c) for g, v in zip(self.low, r)])
 
     def push(self, r: Sequence[float]) -> bool:
         """Add one frame's normalized innovations r (3,); returns whether the test alarms."""

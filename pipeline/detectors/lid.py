@@ -8,6 +8,7 @@ never counts itself), and a logistic regression on the LID separates the classes
 sample is compared with random clean minibatches from training (averaged over `n_reference`
 draws), so a frame is scored on its own, without other test frames. One layer (GAP) only.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -27,7 +28,7 @@ def lid_mle(x: np.ndarray, reference: np.ndarray, k: int, skip_self: bool = Fals
         raise ValueError(f"LID needs at least 2 neighbours; the reference has {len(reference)} samples")
     nn = NearestNeighbors(n_neighbors=k + int(skip_self)).fit(reference)
     dist, _ = nn.kneighbors(x)
-    dist = np.maximum(dist[:, int(skip_self):], 1e-12)
+    dist = np.maximum(dist[:, int(skip_self) :], 1e-12)
     return -1.0 / np.mean(np.log(dist / dist[:, -1:]), axis=1).clip(max=-1e-12)
 
 
@@ -53,7 +54,9 @@ class LIDDetector:
         n_batches = max(1, len(labels) // self.batch_size)
         lid = np.zeros(len(features))
         # each minibatch gets its share of both classes, so every one has clean references
-        for c, a in zip(np.array_split(rng.permutation(clean), n_batches), np.array_split(rng.permutation(adv), n_batches)):
+        for c, a in zip(
+            np.array_split(rng.permutation(clean), n_batches), np.array_split(rng.permutation(adv), n_batches)
+        ):
             ref = features[c]
             lid[c] = lid_mle(ref, ref, self.k, skip_self=True)
             if len(a):
@@ -68,8 +71,10 @@ class LIDDetector:
         large as the clean part of a training minibatch, since the estimate depends on that size)."""
         rng = np.random.default_rng(seed_for(self.seed, "lid.reference"))
         size = min(self.ref_size_, len(self.reference_))
-        draws = [lid_mle(features, self.reference_[rng.choice(len(self.reference_), size, replace=False)], self.k)
-                 for _ in range(self.n_reference)]
+        draws = [
+            lid_mle(features, self.reference_[rng.choice(len(self.reference_), size, replace=False)], self.k)
+            for _ in range(self.n_reference)
+        ]
         return np.mean(draws, axis=0)
 
     def score(self, features: np.ndarray) -> np.ndarray:

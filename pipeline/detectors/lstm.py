@@ -12,6 +12,7 @@ heads a row is W[j] * (a - mean_bg): a per-feature standardisation would make th
 sign); it also came out a little more accurate than a per-feature standardisation in a rehearsal. The decision threshold on the
 probability is a buffer too, chosen on validation data, so a checkpoint carries everything.
 """
+
 from __future__ import annotations
 
 import copy
@@ -39,7 +40,7 @@ class ReLULSTMCell(nn.Module):
         self.hidden_proj = nn.Linear(hidden_size, 4 * hidden_size, bias=False)
         with torch.no_grad():  # forget-gate bias 1 (Jozefowicz et al. 2015), as Keras' unit_forget_bias
             self.input_proj.bias.zero_()
-            self.input_proj.bias[hidden_size:2 * hidden_size] = 1.0
+            self.input_proj.bias[hidden_size : 2 * hidden_size] = 1.0
 
     def step(self, x_proj: torch.Tensor, h: torch.Tensor, c: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """One step from the already projected input `x_proj` (B, 4H) and the state (h, c) (B, H)."""
@@ -101,7 +102,7 @@ class LSTMDetector(nn.Module):
         """Probability of "attacked" per sample, (N,) float64."""
         self.eval()
         v = torch.as_tensor(np.asarray(values), dtype=torch.float32)
-        out = [torch.sigmoid(self(v[s:s + batch_size])) for s in range(0, len(v), batch_size)]
+        out = [torch.sigmoid(self(v[s : s + batch_size])) for s in range(0, len(v), batch_size)]
         return torch.cat(out).double().numpy() if out else np.zeros(0)
 
     def predict(self, values: np.ndarray | torch.Tensor) -> np.ndarray:
@@ -111,8 +112,13 @@ class LSTMDetector(nn.Module):
 
 def to_checkpoint(model: LSTMDetector, extra: dict[str, Any] | None = None) -> dict[str, Any]:
     """A dict of tensors and plain values (loadable with torch.load(weights_only=True))."""
-    return {"kind": "lstm", "config": asdict(model.config), "threshold": float(model.threshold),
-            "state_dict": model.state_dict(), **(extra or {})}
+    return {
+        "kind": "lstm",
+        "config": asdict(model.config),
+        "threshold": float(model.threshold),
+        "state_dict": model.state_dict(),
+        **(extra or {}),
+    }
 
 
 def from_checkpoint(ckpt: dict[str, Any]) -> LSTMDetector:
@@ -131,11 +137,22 @@ class TrainResult:
     best_epoch: int
 
 
-def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_val: np.ndarray,
-               config: LSTMConfig, *, epochs: int = 200, patience: int = 20, batch_size: int = 64,
-               lr: float = 1.0, seed: int = 0,
-               on_epoch: Callable[[dict[str, float]], None] | None = None,
-               progress: str | None = None, device: str | torch.device = "cpu") -> TrainResult:
+def train_lstm(
+    x_train: np.ndarray,
+    y_train: np.ndarray,
+    x_val: np.ndarray,
+    y_val: np.ndarray,
+    config: LSTMConfig,
+    *,
+    epochs: int = 200,
+    patience: int = 20,
+    batch_size: int = 64,
+    lr: float = 1.0,
+    seed: int = 0,
+    on_epoch: Callable[[dict[str, float]], None] | None = None,
+    progress: str | None = None,
+    device: str | torch.device = "cpu",
+) -> TrainResult:
     """Fit with Adadelta and binary cross-entropy; early stopping on the validation loss.
 
     Training stops after `patience` epochs without a lower validation loss; the weights of the
@@ -146,9 +163,25 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
     the returned model is on the CPU, where the chain runs it.
     """
     if progress is not None:
-        return _with_progress(progress, epochs, on_epoch, lambda cb: train_lstm(
-            x_train, y_train, x_val, y_val, config, epochs=epochs, patience=patience, batch_size=batch_size, lr=lr,
-            seed=seed, on_epoch=cb, device=device))
+        return _with_progress(
+            progress,
+            epochs,
+            on_epoch,
+            lambda cb: train_lstm(
+                x_train,
+                y_train,
+                x_val,
+                y_val,
+                config,
+                epochs=epochs,
+                patience=patience,
+                batch_size=batch_size,
+                lr=lr,
+                seed=seed,
+                on_epoch=cb,
+                device=device,
+            ),
+        )
     _check_settings(config, epochs, patience, batch_size, lr)
     if not (np.isfinite(x_train).all() and np.isfinite(x_val).all()):
         raise ValueError("LSTM detector inputs hold NaN or infinite values")
@@ -156,8 +189,9 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
     model = LSTMDetector(config)
     model.set_normalisation(x_train)
     model.to(device)
-    xt, yt, xv, yv = (torch.as_tensor(np.asarray(a), dtype=torch.float32).to(device)
-                      for a in (x_train, y_train, x_val, y_val))
+    xt, yt, xv, yv = (
+        torch.as_tensor(np.asarray(a), dtype=torch.float32).to(device) for a in (x_train, y_train, x_val, y_val)
+    )
     opt = torch.optim.Adadelta(model.parameters(), lr=lr)
     loss_fn = nn.BCEWithLogitsLoss()
     gen = torch.Generator().manual_seed(seed)
@@ -167,7 +201,7 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
         total = _train_epoch(model, xt, yt, opt, loss_fn, torch.randperm(len(xt), generator=gen), batch_size, epoch)
         model.eval()
         with torch.no_grad():
-            logits = torch.cat([model(xv[s:s + 1024]) for s in range(0, len(xv), 1024)])
+            logits = torch.cat([model(xv[s : s + 1024]) for s in range(0, len(xv), 1024)])
             val_loss = float(loss_fn(logits, yv))
             val_acc = float(((logits >= 0).float() == yv).float().mean())
         record = {"epoch": epoch, "train_loss": total / len(xt), "val_loss": val_loss, "val_accuracy": val_acc}
@@ -189,20 +223,33 @@ def train_lstm(x_train: np.ndarray, y_train: np.ndarray, x_val: np.ndarray, y_va
 
 def _check_settings(config: LSTMConfig, epochs: int, patience: int, batch_size: int, lr: float) -> None:
     """Refuse sizes below 1 and a learning rate that is not > 0, naming them."""
-    sizes = {"epochs": epochs, "patience": patience, "batch_size": batch_size, "hidden": config.hidden,
-             **{f"dense[{i}]": w for i, w in enumerate(config.dense)}}
+    sizes = {
+        "epochs": epochs,
+        "patience": patience,
+        "batch_size": batch_size,
+        "hidden": config.hidden,
+        **{f"dense[{i}]": w for i, w in enumerate(config.dense)},
+    }
     small = [f"{k}={v}" for k, v in sizes.items() if int(v) < 1]
     if small or not lr > 0:
         raise ValueError(f"LSTM detector settings must be positive: {', '.join(small) or f'lr={lr}'}")
 
 
-def _train_epoch(model: LSTMDetector, xt: torch.Tensor, yt: torch.Tensor, opt: torch.optim.Optimizer,
-                 loss_fn: nn.Module, perm: torch.Tensor, batch_size: int, epoch: int) -> float:
+def _train_epoch(
+    model: LSTMDetector,
+    xt: torch.Tensor,
+    yt: torch.Tensor,
+    opt: torch.optim.Optimizer,
+    loss_fn: nn.Module,
+    perm: torch.Tensor,
+    batch_size: int,
+    epoch: int,
+) -> float:
     """One pass over the training set in the order `perm` (drawn on the CPU) -> sum of loss * batch size."""
     model.train()
     total = 0.0
     for s in range(0, len(xt), batch_size):
-        idx = perm[s:s + batch_size].to(xt.device)
+        idx = perm[s : s + batch_size].to(xt.device)
         loss = loss_fn(model(xt[idx]), yt[idx])
         check_loss(loss.item(), f"epoch {epoch}")
         opt.zero_grad()
@@ -212,8 +259,12 @@ def _train_epoch(model: LSTMDetector, xt: torch.Tensor, yt: torch.Tensor, opt: t
     return total
 
 
-def _with_progress(desc: str, epochs: int, on_epoch: Callable[[dict[str, float]], None] | None,
-                   fit: Callable[[Callable[[dict[str, float]], None]], TrainResult]) -> TrainResult:
+def _with_progress(
+    desc: str,
+    epochs: int,
+    on_epoch: Callable[[dict[str, float]], None] | None,
+    fit: Callable[[Callable[[dict[str, float]], None]], TrainResult],
+) -> TrainResult:
     """Run `fit(callback)` with a tqdm bar over the epochs (closed when the fit returns)."""
     from tqdm import tqdm
 

@@ -7,6 +7,7 @@ regressor has no classes, so the caller passes groups (e.g. range bins). The sha
 shrinkage (scikit-learn). Lee et al.'s input preprocessing and multi-layer ensemble are left out:
 one layer, the GAP layer the other detectors see too.
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -7,6 +7,7 @@ attacked frames, FPR = flagged clean frames / clean frames. The detection delay 
 number of frames from its first frame to its first flagged frame (0 = flagged at once); bursts
 with no flag at all are counted as missed and have no delay.
 """
+
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
@@ -70,8 +71,9 @@ def detection_metrics(labels: np.ndarray, scores: np.ndarray, threshold: float) 
     return out
 
 
-def metrics_by_eps(labels: np.ndarray, scores: np.ndarray, eps: np.ndarray,
-                   threshold: float) -> dict[str, dict[str, float]]:
+def metrics_by_eps(
+    labels: np.ndarray, scores: np.ndarray, eps: np.ndarray, threshold: float
+) -> dict[str, dict[str, float]]:
     """`detection_metrics` overall ("all") and per attack eps: all clean samples + that eps's attacks."""
     labels, scores, eps = np.asarray(labels).astype(int), np.asarray(scores), np.asarray(eps, dtype=np.float64)
     out = {"all": detection_metrics(labels, scores, threshold)}
@@ -105,7 +107,7 @@ class FrameMetrics:
     fpr: float
     bursts: int
     missed_bursts: int
-    mean_delay: float            # frames, over bursts that were flagged at least once
+    mean_delay: float  # frames, over bursts that were flagged at least once
 
     def as_dict(self) -> dict[str, float | int]:
         return asdict(self)
@@ -116,8 +118,9 @@ def _rate(num: int, den: int) -> float:
     return float(num) / den if den else float("nan")
 
 
-def frame_metrics(attacked: np.ndarray, flagged: np.ndarray,
-                  attacked_bursts: list[tuple[int, int]] | None = None) -> FrameMetrics:
+def frame_metrics(
+    attacked: np.ndarray, flagged: np.ndarray, attacked_bursts: list[tuple[int, int]] | None = None
+) -> FrameMetrics:
     """Accuracy (correct flags / all frames), TPR, FPR and burst delays of one flag sequence.
 
     `attacked_bursts` defaults to the runs of `attacked`; pass `schedule_bursts(...)` to count
@@ -135,9 +138,14 @@ def frame_metrics(attacked: np.ndarray, flagged: np.ndarray,
     delays = detection_delays(b, flagged)
     hit = delays[~np.isnan(delays)]
     return FrameMetrics(
-        frames=n, attacked=int(attacked.sum()), flagged=int(flagged.sum()),
-        accuracy=_rate(tp + tn, n), tpr=_rate(tp, int(attacked.sum())), fpr=_rate(fp, int((~attacked).sum())),
-        bursts=len(b), missed_bursts=int(np.isnan(delays).sum()),
+        frames=n,
+        attacked=int(attacked.sum()),
+        flagged=int(flagged.sum()),
+        accuracy=_rate(tp + tn, n),
+        tpr=_rate(tp, int(attacked.sum())),
+        fpr=_rate(fp, int((~attacked).sum())),
+        bursts=len(b),
+        missed_bursts=int(np.isnan(delays).sum()),
         mean_delay=float(hit.mean()) if len(hit) else float("nan"),
     )
 

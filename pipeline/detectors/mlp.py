@@ -1,4 +1,5 @@
 """Baseline: a multilayer perceptron on the flattened SHAP values (B, 9 * 1000), scikit-learn."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -13,8 +14,14 @@ class MLPDetector:
     def __init__(self, hidden: tuple[int, ...] = (100,), max_iter: int = 200, seed: int = 0):
         self.pipeline: Pipeline = make_pipeline(
             StandardScaler(),
-            MLPClassifier(hidden_layer_sizes=tuple(hidden), max_iter=max_iter, early_stopping=True,
-                          n_iter_no_change=20, random_state=seed))
+            MLPClassifier(
+                hidden_layer_sizes=tuple(hidden),
+                max_iter=max_iter,
+                early_stopping=True,
+                n_iter_no_change=20,
+                random_state=seed,
+            ),
+        )
 
     def fit(self, values: np.ndarray, labels: np.ndarray) -> "MLPDetector":
         """values (N, 9, 1000) SHAP; labels 1 = attacked."""

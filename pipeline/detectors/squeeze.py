@@ -6,6 +6,7 @@ the 9 outputs over the squeezers, an L1 distance (Xu et al. use L1 between softm
 position (metres) and the 6-D rotation (unitless) have different scales, each output is divided
 by its standard deviation over clean images first (set by `fit`).
 """
+
 from __future__ import annotations
 
 from typing import Callable, Iterable
@@ -18,7 +19,7 @@ Predict = Callable[[np.ndarray], np.ndarray]  # uint8 images (N, H, W, 3) -> pos
 
 def reduce_bit_depth(images: np.ndarray, bits: int) -> np.ndarray:
     """uint8 images with each channel quantised to 2**bits levels (rounded, back on 0..255)."""
-    levels = 2 ** bits - 1
+    levels = 2**bits - 1
     return (np.round(np.asarray(images, dtype=np.float32) / 255.0 * levels) / levels * 255.0).round().astype(np.uint8)
 
 
@@ -42,8 +43,10 @@ class SqueezeDetector:
 
     def score(self, images: np.ndarray) -> np.ndarray:
         base = np.asarray(self.predict(images), dtype=np.float64)
-        changes = [np.abs(base - np.asarray(self.predict(sq), dtype=np.float64)) / self.scale_
-                   for sq in (reduce_bit_depth(images, self.bits), median_filter(images, self.median_size))]
+        changes = [
+            np.abs(base - np.asarray(self.predict(sq), dtype=np.float64)) / self.scale_
+            for sq in (reduce_bit_depth(images, self.bits), median_filter(images, self.median_size))
+        ]
         return np.max([c.sum(1) for c in changes], axis=0)
 
 

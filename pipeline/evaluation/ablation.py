@@ -11,6 +11,7 @@ cell on fractions of its training samples. On image sequences (the integrated ev
 `attacked_features` gives the GAP features of the frames as onboard under either FGSM variant and `flag_counts` a
 detector's per-sequence counts on them.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -25,7 +26,7 @@ from pipeline.evaluation.protocols import neighbour_fraction, random_split, shar
 from pipeline.evaluation.rates import DetectionRates, rates_by_eps
 from pipeline.evaluation.splits import grouped_split
 
-PROTOCOLS = ("strict", "paper")   # ours: grouped by source image / the paper's: random per sample (leaky)
+PROTOCOLS = ("strict", "paper")  # ours: grouped by source image / the paper's: random per sample (leaky)
 
 
 @dataclass(frozen=True, eq=False)
@@ -34,10 +35,10 @@ class ProtocolSamples:
     (`pipeline.attacks.literal.VARIANTS`), the SHAP values (N, 9, F) float32; the clean rows are the same in each."""
 
     protocol: str
-    eps: np.ndarray        # (N,) float: 0 = clean, else the FGSM budget (pixels in [0, 1])
-    source: np.ndarray     # (N,) int: the source image of each sample
-    sequence: np.ndarray   # (N,) int: the approach (sequence or trajectory) of the source image
-    frame: np.ndarray      # (N,) int: its frame number in that approach
+    eps: np.ndarray  # (N,) float: 0 = clean, else the FGSM budget (pixels in [0, 1])
+    source: np.ndarray  # (N,) int: the source image of each sample
+    sequence: np.ndarray  # (N,) int: the approach (sequence or trajectory) of the source image
+    frame: np.ndarray  # (N,) int: its frame number in that approach
     values: dict[str, np.ndarray]
 
 
@@ -45,17 +46,17 @@ class ProtocolSamples:
 class CellResult:
     """One cell: its detector's test rates ("all" and per eps, Wilson), the LSTM fit, and how leaky its split is."""
 
-    attack: str                          # "ours" | "paper"
-    protocol: str                        # "strict" | "paper"
+    attack: str  # "ours" | "paper"
+    protocol: str  # "strict" | "paper"
     rates: dict[str, DetectionRates]
-    threshold: float                     # on the detector's probability, chosen on the validation samples
+    threshold: float  # on the detector's probability, chosen on the validation samples
     epochs: int
     best_epoch: int
-    counts: dict[str, int]               # train, validation, test samples
-    shared: float                        # test samples whose source image is also a train/validation sample
-    neighbours: float                    # ... or a frame of the same approach at most one frame away
-    eps_set: str = "ablation"            # its detector's eps: "ablation" (ablation.eps) | "paper" (the paper's five)
-    detector: Any = None                 # the fitted LSTMDetector (threshold set), for the sequences
+    counts: dict[str, int]  # train, validation, test samples
+    shared: float  # test samples whose source image is also a train/validation sample
+    neighbours: float  # ... or a frame of the same approach at most one frame away
+    eps_set: str = "ablation"  # its detector's eps: "ablation" (ablation.eps) | "paper" (the paper's five)
+    detector: Any = None  # the fitted LSTMDetector (threshold set), for the sequences
 
     @property
     def leaky(self) -> bool:
@@ -63,8 +64,9 @@ class CellResult:
         return self.shared > 0
 
 
-def protocol_split(protocol: str, source: np.ndarray, eps: np.ndarray, test_fraction: float, val_fraction: float,
-                   seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def protocol_split(
+    protocol: str, source: np.ndarray, eps: np.ndarray, test_fraction: float, val_fraction: float, seed: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(train, validation, test) sample indices of a protocol: "strict" grouped by source image and stratified by eps
     (`grouped_split`), "paper" random per sample (`random_split`). Raises ValueError for another protocol."""
     if protocol == "strict":
@@ -74,9 +76,16 @@ def protocol_split(protocol: str, source: np.ndarray, eps: np.ndarray, test_frac
     raise ValueError(f"unknown detector protocol {protocol!r}; choose one of {', '.join(PROTOCOLS)}")
 
 
-def protocol_values(model: Any, shap: Callable[[torch.Tensor], torch.Tensor], loss_fn: Any, images: np.ndarray,
-                    targets: np.ndarray, eps: np.ndarray, batch_size: int = 64,
-                    progress: Callable[[int], None] | None = None) -> dict[str, np.ndarray]:
+def protocol_values(
+    model: Any,
+    shap: Callable[[torch.Tensor], torch.Tensor],
+    loss_fn: Any,
+    images: np.ndarray,
+    targets: np.ndarray,
+    eps: np.ndarray,
+    batch_size: int = 64,
+    progress: Callable[[int], None] | None = None,
+) -> dict[str, np.ndarray]:
     """SHAP values (N, 9, F) float32 of a protocol's samples under each FGSM variant.
 
     `images` uint8 (N, H, W, 3) are the source images of the samples, `targets` (N, 9) their labels (m, 6-D), `eps`
@@ -109,9 +118,16 @@ def _explain(model: Any, shap: Callable[[torch.Tensor], torch.Tensor], x: torch.
         return shap(model.forward_features(x)).cpu().numpy().astype(np.float32)
 
 
-def run_cell(samples: ProtocolSamples, attack: str, split: tuple[np.ndarray, np.ndarray, np.ndarray],
-             config: LSTMConfig, fit: dict[str, Any], seed: int, device: str | torch.device = "cpu",
-             eps_set: str = "ablation") -> CellResult:
+def run_cell(
+    samples: ProtocolSamples,
+    attack: str,
+    split: tuple[np.ndarray, np.ndarray, np.ndarray],
+    config: LSTMConfig,
+    fit: dict[str, Any],
+    seed: int,
+    device: str | torch.device = "cpu",
+    eps_set: str = "ablation",
+) -> CellResult:
     """Fit the LSTM detector of one cell on `split`'s train part (early stopping and threshold on its validation
     part; `fit`: epochs, patience, batch_size, lr of `train_lstm`) and measure it on the test part."""
     tr, va, te = split
@@ -119,18 +135,31 @@ def run_cell(samples: ProtocolSamples, attack: str, split: tuple[np.ndarray, np.
     res = train_lstm(x[tr], y[tr], x[va], y[va], config, seed=seed, device=device, **fit)
     flagged = res.model.predict(x[te]).astype(bool)
     seen = np.concatenate([tr, va])
-    return CellResult(attack=attack, protocol=samples.protocol,
-                      rates=rates_by_eps(y[te] == 1, flagged, samples.eps[te]),
-                      threshold=float(res.model.threshold), epochs=len(res.history), best_epoch=res.best_epoch,
-                      counts={"train": len(tr), "validation": len(va), "test": len(te)},
-                      shared=shared_fraction(samples.source, seen, te),
-                      neighbours=neighbour_fraction(samples.sequence, samples.frame, seen, te), eps_set=eps_set,
-                      detector=res.model)
+    return CellResult(
+        attack=attack,
+        protocol=samples.protocol,
+        rates=rates_by_eps(y[te] == 1, flagged, samples.eps[te]),
+        threshold=float(res.model.threshold),
+        epochs=len(res.history),
+        best_epoch=res.best_epoch,
+        counts={"train": len(tr), "validation": len(va), "test": len(te)},
+        shared=shared_fraction(samples.source, seen, te),
+        neighbours=neighbour_fraction(samples.sequence, samples.frame, seen, te),
+        eps_set=eps_set,
+        detector=res.model,
+    )
 
 
-def run_ablation(protocols: list[ProtocolSamples], config: LSTMConfig, fit: dict[str, Any], test_fraction: float,
-                 val_fraction: float, seed: int, device: str | torch.device = "cpu",
-                 eps_set: str = "ablation") -> list[CellResult]:
+def run_ablation(
+    protocols: list[ProtocolSamples],
+    config: LSTMConfig,
+    fit: dict[str, Any],
+    test_fraction: float,
+    val_fraction: float,
+    seed: int,
+    device: str | torch.device = "cpu",
+    eps_set: str = "ablation",
+) -> list[CellResult]:
     """The cells FGSM variant x protocol, in the order (ours, strict), (paper, strict), (ours, paper), (paper, paper)
     for protocols given strict then paper: one split per protocol (seeded), one LSTM per cell (same seed)."""
     cells = []
@@ -140,20 +169,48 @@ def run_ablation(protocols: list[ProtocolSamples], config: LSTMConfig, fit: dict
     return cells
 
 
-def learning_curve(samples: ProtocolSamples, attack: str, fractions: list[float], config: LSTMConfig,
-                   fit: dict[str, Any], test_fraction: float, val_fraction: float, seed: int,
-                   device: str | torch.device = "cpu", eps_set: str = "ablation") -> list[CellResult]:
+def learning_curve(
+    samples: ProtocolSamples,
+    attack: str,
+    fractions: list[float],
+    config: LSTMConfig,
+    fit: dict[str, Any],
+    test_fraction: float,
+    val_fraction: float,
+    seed: int,
+    device: str | torch.device = "cpu",
+    eps_set: str = "ablation",
+) -> list[CellResult]:
     """One cell's detector fitted on the first `fractions` of its training samples (a seeded permutation of the
     protocol's training part, so a smaller set lies inside a larger one; the validation and test parts as in
     `run_ablation`): how its test rates grow with the training samples."""
     tr, va, te = protocol_split(samples.protocol, samples.source, samples.eps, test_fraction, val_fraction, seed)
     order = np.random.default_rng(seed).permutation(tr)
-    return [run_cell(samples, attack, (np.sort(order[:max(1, int(round(f * len(tr))))]), va, te), config, fit, seed,
-                     device, eps_set) for f in fractions]
+    return [
+        run_cell(
+            samples,
+            attack,
+            (np.sort(order[: max(1, int(round(f * len(tr))))]), va, te),
+            config,
+            fit,
+            seed,
+            device,
+            eps_set,
+        )
+        for f in fractions
+    ]
 
 
-def attacked_features(model: Any, loss_fn: Any, images: np.ndarray, targets: np.ndarray, attacked: np.ndarray,
-                      variant: str, eps: float, batch_size: int = 64) -> np.ndarray:
+def attacked_features(
+    model: Any,
+    loss_fn: Any,
+    images: np.ndarray,
+    targets: np.ndarray,
+    attacked: np.ndarray,
+    variant: str,
+    eps: float,
+    batch_size: int = 64,
+) -> np.ndarray:
     """GAP features (N, F) float32 of a sequence's frames as onboard: the frames `attacked` ((N,) bool, a schedule)
     replaced by the FGSM variant at `eps` against their own labels (`fgsm_variant`: "ours" stored as 8 bits, "paper"
     unclipped floats), the others clean. `images` uint8 (N, H, W, 3), `targets` (N, 9) (m, 6-D)."""
@@ -171,8 +228,13 @@ def attacked_features(model: Any, loss_fn: Any, images: np.ndarray, targets: np.
     return np.concatenate(out) if out else np.zeros((0, 0), np.float32)
 
 
-def flag_counts(features: list[np.ndarray], attacked: list[np.ndarray], shap: Callable[[torch.Tensor], torch.Tensor],
-                detector: Any, threshold: float) -> np.ndarray:
+def flag_counts(
+    features: list[np.ndarray],
+    attacked: list[np.ndarray],
+    shap: Callable[[torch.Tensor], torch.Tensor],
+    detector: Any,
+    threshold: float,
+) -> np.ndarray:
     """Per sequence the counts (flagged attacked, attacked, flagged clean, clean) (G, 4) (`rates.COUNTS`) of a
     detector (`predict_proba` of SHAP values) at `threshold` on the sequences' GAP features (`attacked_features`)."""
     rows = []

@@ -20,6 +20,7 @@ one), the trajectories failed, the largest indices, the Stanford counts and the 
 (Clopper-Pearson over independent trajectories, a descriptive count); the breaking point; the clean trajectories'
 measures (availability, false alarms).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -53,7 +54,7 @@ from pipeline.evaluation.measures import (
 from pipeline.evaluation.robustness import fused_row
 from pipeline.stats import Rate, bootstrap_rate, clopper_pearson
 
-BURST_ROW = "fused chain: burst (nested, worst over lambda and restarts)"   # its per-frame row's name
+BURST_ROW = "fused chain: burst (nested, worst over lambda and restarts)"  # its per-frame row's name
 
 
 @dataclass(frozen=True)
@@ -121,8 +122,14 @@ def judge(flown: Flown, mask: np.ndarray, single: AlertLimitSettings) -> Traject
     return trajectory_measures(flown.frames, flown.trace.flag, single_al, keep)
 
 
-def fly_campaign(chain: OnboardChain, target: Any, defended: Defended | None, tracks: Sequence[Track],
-                 campaign: Campaign, progress: Callable[[], Any] = lambda: None) -> Flights:
+def fly_campaign(
+    chain: OnboardChain,
+    target: Any,
+    defended: Defended | None,
+    tracks: Sequence[Track],
+    campaign: Campaign,
+    progress: Callable[[], Any] = lambda: None,
+) -> Flights:
     """The campaign of the module docstring on `chain` (its differentiable copy `target`: a PerFrameChain, or the
     bare pose network for the undefended control) with a fresh `defended` defense per flight (None: the undefended
     control); `progress()` after each attacked track of the burst and each attacked frame of the plans."""
@@ -147,23 +154,41 @@ def fly_campaign(chain: OnboardChain, target: Any, defended: Defended | None, tr
         masks = [np.isin(np.arange(len(t)), [k for a, b in bs for k in range(a, b)]) for t, bs in zip(tracks, c.bursts)]
         stored, worst = burst_attack(target, defended, tracks, masks, c.burst, c.eps, progress)
         for e in c.eps:
-            record("burst", e, [fly(chain, defended, t, c.limit, c.batch_size, s, f)
-                                for t, s, f in zip(tracks, stored[e], clean)], masks)
+            record(
+                "burst",
+                e,
+                [fly(chain, defended, t, c.limit, c.batch_size, s, f) for t, s, f in zip(tracks, stored[e], clean)],
+                masks,
+            )
         bursts_hmi = {e: [sum(int(b.hmi.any()) for bs in worst[e] for b in bs), sum(map(len, worst[e]))] for e in c.eps}
     stopped = None
     for e in c.eps if c.plans else []:
         if c.stop_at_break and broken is not None and e > broken:
             stopped = broken
             break
-        stored = plan_attack(target, defended, tracks, clean, [(p.settings, p.start) for p in c.plans], e,
-                             c.frame_seed, c.frame_attack, done=progress)
+        stored = plan_attack(
+            target,
+            defended,
+            tracks,
+            clean,
+            [(p.settings, p.start) for p in c.plans],
+            e,
+            c.frame_seed,
+            c.frame_attack,
+            done=progress,
+        )
         for plan, per in zip(c.plans, stored):
-            record(plan.name, e, [fly(chain, defended, t, c.limit, c.batch_size, s, f)
-                                  for t, s, f in zip(tracks, per, clean)],
-                   [np.arange(len(t)) >= plan.start for t in tracks])
-    rows = [integrity_row(name, e, flown, clean, masks, seed=c.seed) | ({"bursts_with_hmi": bursts_hmi[e]}
-                                                                         if name == "burst" else {})
-            for name, e, flown, masks in runs]
+            record(
+                plan.name,
+                e,
+                [fly(chain, defended, t, c.limit, c.batch_size, s, f) for t, s, f in zip(tracks, per, clean)],
+                [np.arange(len(t)) >= plan.start for t in tracks],
+            )
+    rows = [
+        integrity_row(name, e, flown, clean, masks, seed=c.seed)
+        | ({"bursts_with_hmi": bursts_hmi[e]} if name == "burst" else {})
+        for name, e, flown, masks in runs
+    ]
     fused = []
     for name, e, flown, masks in runs:
         if name == "burst":
@@ -180,8 +205,19 @@ def fly_campaign(chain: OnboardChain, target: Any, defended: Defended | None, tr
     for f in clean:
         for region, k in stanford_counts(f.frames).items():
             clean_stanford[region] += k
-    return Flights(clean, alarms, runs, rows, clean_row(clean, seed=c.seed), fused, measures,
-                   [judge(f, m, c.single) for f, m in zip(clean, every)], stanford, clean_stanford, stopped)
+    return Flights(
+        clean,
+        alarms,
+        runs,
+        rows,
+        clean_row(clean, seed=c.seed),
+        fused,
+        measures,
+        [judge(f, m, c.single) for f, m in zip(clean, every)],
+        stanford,
+        clean_stanford,
+        stopped,
+    )
 
 
 def _largest(values: Sequence[float]) -> float | None:
@@ -196,8 +232,12 @@ def _plain(row: dict[str, Any]) -> dict[str, Any]:
 
 
 def _cp_json(r: Rate) -> dict[str, Any]:
-    return {"value": None if r.n == 0 else float(r.value), "ci": r.ci(), "n": int(r.n),
-            "ci_method": "Clopper-Pearson over trajectories"}
+    return {
+        "value": None if r.n == 0 else float(r.value),
+        "ci": r.ci(),
+        "n": int(r.n),
+        "ci_method": "Clopper-Pearson over trajectories",
+    }
 
 
 def safety_summary(flights: Flights) -> dict[str, Any]:
@@ -222,22 +262,33 @@ def safety_summary(flights: Flights) -> dict[str, Any]:
             "max_error_al_single": _largest([w["max_error_al_single"] for w in worst]),
             "max_error_pl": _largest([w["max_error_pl"] for w in worst]),
             "final_error_max_m": _largest([w["final_error"] for w in worst]),
-            "failed": sum(bool(w["failed"]) for w in worst), "trajectories": len(worst),
-            "worst_attacker": top["worst_attacker"], "hmi_trajectories": _cp_json(clopper_pearson(hmi, len(worst))),
+            "failed": sum(bool(w["failed"]) for w in worst),
+            "trajectories": len(worst),
+            "worst_attacker": top["worst_attacker"],
+            "hmi_trajectories": _cp_json(clopper_pearson(hmi, len(worst))),
             "stanford": f.stanford.get(e, {}),
-            "per_trajectory": [_plain(w) for w in worst]}
+            "per_trajectory": [_plain(w) for w in worst],
+        }
     records = [(e, m.failed) for by_eps in f.measures.values() for e, ms in by_eps.items() for m in ms]
     clean = f.clean_measures
-    return {"breaking_eps": breaking_point(records), "eps_flown": flown, "stopped_at": f.stopped,
-            "trajectories": len(f.clean), "per_eps": per_eps,
-            "attackers": {a: {f"{e:g}": [_plain(m.as_dict()) for m in ms] for e, ms in by_eps.items()}
-                          for a, by_eps in nested.items()},
-            "clean": {"trajectories": [_plain(m.as_dict()) for m in clean],
-                      "max_error_al": _largest([m.max_error_al for m in clean]),
-                      "max_error_al_single": _largest([m.max_error_al_single for m in clean]),
-                      "max_error_pl": _largest([m.max_error_pl for m in clean]),
-                      "final_error_max_m": _largest([m.final_error for m in clean]),
-                      "failed": sum(m.failed for m in clean),
-                      "availability": f.clean_row["availability"],
-                      "false_alarms": as_json(f.alarms, len(f.clean)),
-                      "stanford": f.stanford_clean}}
+    return {
+        "breaking_eps": breaking_point(records),
+        "eps_flown": flown,
+        "stopped_at": f.stopped,
+        "trajectories": len(f.clean),
+        "per_eps": per_eps,
+        "attackers": {
+            a: {f"{e:g}": [_plain(m.as_dict()) for m in ms] for e, ms in by_eps.items()} for a, by_eps in nested.items()
+        },
+        "clean": {
+            "trajectories": [_plain(m.as_dict()) for m in clean],
+            "max_error_al": _largest([m.max_error_al for m in clean]),
+            "max_error_al_single": _largest([m.max_error_al_single for m in clean]),
+            "max_error_pl": _largest([m.max_error_pl for m in clean]),
+            "final_error_max_m": _largest([m.final_error for m in clean]),
+            "failed": sum(m.failed for m in clean),
+            "availability": f.clean_row["availability"],
+            "false_alarms": as_json(f.alarms, len(f.clean)),
+            "stanford": f.stanford_clean,
+        },
+    }

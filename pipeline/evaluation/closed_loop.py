@@ -9,6 +9,7 @@ the attacked runs that met the attack, how many failed and the largest miss, and
 eps at which an attacked run failed its mission (0 when the no-attack run already fails), None when none failed.
 Only the runs that met the attack count (a run that never reached the attack's start range was not attacked).
 """
+
 from __future__ import annotations
 
 from typing import Any, Sequence
@@ -42,8 +43,17 @@ def closed_loop_outcomes(plan: GridPlan, results: Sequence[RendezvousResult], co
         d = docking(r, s.goal, s.tolerance, collision_range)
         attack, eps = _attack(plan, cell)
         met = cell is None or r.attacked_frames > 0
-        runs.append({"dynamics": dyn, "defense": defense, "attack": attack, "eps": eps, "met": bool(met),
-                     "steps": len(r.estimates), **d.as_dict()})
+        runs.append(
+            {
+                "dynamics": dyn,
+                "defense": defense,
+                "attack": attack,
+                "eps": eps,
+                "met": bool(met),
+                "steps": len(r.estimates),
+                **d.as_dict(),
+            }
+        )
         v = variants.setdefault(dyn, {}).setdefault(defense, {"clean": None, "per_eps": {}, "records": []})
         if cell is None:
             v["clean"] = d.as_dict()
@@ -59,5 +69,9 @@ def closed_loop_outcomes(plan: GridPlan, results: Sequence[RendezvousResult], co
         for v in by_defense.values():
             v["breaking_eps"] = breaking_point(v.pop("records"))
             v["per_eps"] = dict(sorted(v["per_eps"].items(), key=lambda kv: float(kv[0])))
-    return {"runs": runs, "variants": variants, "tolerance_m": float(s.tolerance),
-            "collision_range_m": float(collision_range)}
+    return {
+        "runs": runs,
+        "variants": variants,
+        "tolerance_m": float(s.tolerance),
+        "collision_range_m": float(collision_range),
+    }

@@ -29,6 +29,7 @@ Over trajectories (`worst_over_trajectories`) the largest of each index, the tra
 and `first_over(per_eps)`: the smallest eps whose bound exceeds AL on some trajectory; `over_al_rate`: the share
 of target frames whose bound exceeds AL, with a 95% interval bootstrapped over trajectories.
 """
+
 from __future__ import annotations
 
 import time
@@ -46,8 +47,8 @@ from pipeline.evaluation.integrity_runs import Track
 from pipeline.evaluation.robustness import pose_estimates
 from pipeline.stats import Rate, bootstrap_rate
 
-ATTACKERS = ("bound", "spared")   # F from the first frame on | F after the PL's trusted frames only (assumption A)
-TESTED = (ACCEPT, HUBER, ALARM)   # the filter choices on frames the sequential test saw (the trusted-start count)
+ATTACKERS = ("bound", "spared")  # F from the first frame on | F after the PL's trusted frames only (assumption A)
+TESTED = (ACCEPT, HUBER, ALARM)  # the filter choices on frames the sequential test saw (the trusted-start count)
 
 
 def targets_of(n: int, start: int, stride: int) -> list[int]:
@@ -85,17 +86,33 @@ def _measures(w: WorstCase, range_m: np.ndarray) -> dict[str, Any]:
     ratio = np.where(ok, w.ratio, -np.inf)
     k = int(np.argmax(ratio))
     over = ok & (w.ratio > 1)
-    return {**out, "max_error_al": float(w.ratio[k]), "frame": int(w.targets[k]),
-            "range_m": float(range_m[w.targets[k]]), "max_error_m": _largest(w.upper),
-            "max_achieved_m": _largest(w.achieved), "max_achieved_al": _largest(w.achieved / w.alert),
-            "max_error_pl": _largest(w.upper / w.pl), "max_achieved_pl": _largest(w.pl_index),
-            "over_al": int(over.sum()), "over_al_available": int((over & w.available).sum()),
-            "exact": float(np.mean(w.exact[ok]))}
+    return {
+        **out,
+        "max_error_al": float(w.ratio[k]),
+        "frame": int(w.targets[k]),
+        "range_m": float(range_m[w.targets[k]]),
+        "max_error_m": _largest(w.upper),
+        "max_achieved_m": _largest(w.achieved),
+        "max_achieved_al": _largest(w.achieved / w.alert),
+        "max_error_pl": _largest(w.upper / w.pl),
+        "max_achieved_pl": _largest(w.pl_index),
+        "over_al": int(over.sum()),
+        "over_al_available": int((over & w.available).sum()),
+        "exact": float(np.mean(w.exact[ok])),
+    }
 
 
-def bound_run(defended: Defended, name: str, run: CleanRun, truth: np.ndarray, capacities: Sequence[Capacity],
-              eps: Sequence[float], stride: int, limit: AlertLimitSettings,
-              progress: Callable[[], Any] = lambda: None) -> dict[str, Any]:
+def bound_run(
+    defended: Defended,
+    name: str,
+    run: CleanRun,
+    truth: np.ndarray,
+    capacities: Sequence[Capacity],
+    eps: Sequence[float],
+    stride: int,
+    limit: AlertLimitSettings,
+    progress: Callable[[], Any] = lambda: None,
+) -> dict[str, Any]:
     """One trajectory's clean run `run` (pose network estimates and detector probabilities, camera attitudes,
     commands) with the true rel `truth` (N, 3) (world, m) through `defended` (module docstring): per eps of `eps`
     (L-inf, pixels in [0, 1]) and attacker of ATTACKERS the `_measures` of `worst_case` at the target frames, with F
@@ -111,37 +128,64 @@ def bound_run(defended: Defended, name: str, run: CleanRun, truth: np.ndarray, c
     targets = targets_of(n, clean.start, stride)
     error = np.linalg.norm(clean.trace.trusted - truth, axis=1)
     out: dict[str, Any] = {
-        "name": name, "frames": n, "start": clean.start, "trusted_frame": trusted,
-        "restart": None if clean.horizon == n else clean.horizon, "range_m": [float(rng[0]), float(rng[-1])],
+        "name": name,
+        "frames": n,
+        "start": clean.start,
+        "trusted_frame": trusted,
+        "restart": None if clean.horizon == n else clean.horizon,
+        "range_m": [float(rng[0]), float(rng[-1])],
         "targets": targets,
-        "clean": {"max_error_m": _largest(error), "max_error_al": _largest(error / al),
-                  "max_error_pl": _largest(error / clean.trace.pl)},
-        "per_eps": {}}
+        "clean": {
+            "max_error_m": _largest(error),
+            "max_error_al": _largest(error / al),
+            "max_error_pl": _largest(error / clean.trace.pl),
+        },
+        "per_eps": {},
+    }
     for e in eps:
         cap = capacity_at(capacities, float(e), rng)
         spared = cap.copy()
-        spared[:trusted + 1] = 0.0
+        spared[: trusted + 1] = 0.0
         row = {}
         for who, box, frames in (("bound", cap, targets), ("spared", spared, [j for j in targets if j > trusted])):
             w = worst_case(d.settings, d.motion, d.noise, run, truth, box, al, targets=frames, alert_limit=limit_fn)
             row[who] = {**_measures(w, rng), "ratio": [float(v) if np.isfinite(v) else None for v in w.ratio]}
             progress()
-        out["per_eps"][f"{float(e):g}"] = {"capacity_eps": min(c.eps for c in capacities if c.eps >= float(e)),
-                                           "capacity_start_m": cap[clean.start].tolist() if clean.start < n else None,
-                                           **row}
+        out["per_eps"][f"{float(e):g}"] = {
+            "capacity_eps": min(c.eps for c in capacities if c.eps >= float(e)),
+            "capacity_start_m": cap[clean.start].tolist() if clean.start < n else None,
+            **row,
+        }
     return out
 
 
-def bound_track(chain: OnboardChain, defended: Defended, track: Track, capacities: Sequence[Capacity],
-                eps: Sequence[float], stride: int, limit: AlertLimitSettings, batch_size: int = 64,
-                progress: Callable[[], Any] = lambda: None) -> dict[str, Any]:
+def bound_track(
+    chain: OnboardChain,
+    defended: Defended,
+    track: Track,
+    capacities: Sequence[Capacity],
+    eps: Sequence[float],
+    stride: int,
+    limit: AlertLimitSettings,
+    batch_size: int = 64,
+    progress: Callable[[], Any] = lambda: None,
+) -> dict[str, Any]:
     """`bound_run` of one recorded trajectory: `chain` reads each frame once (its clean run), then the program
     runs over it; `chain_seconds`: the chain's wall time (s)."""
     t0 = time.perf_counter()
     est, prob = pose_estimates(chain, track.images, batch_size)
     chain_s = time.perf_counter() - t0
-    out = bound_run(defended, track.name, CleanRun(est, prob, track.R_cam, track.u), track.truth, capacities, eps,
-                    stride, limit, progress)
+    out = bound_run(
+        defended,
+        track.name,
+        CleanRun(est, prob, track.R_cam, track.u),
+        track.truth,
+        capacities,
+        eps,
+        stride,
+        limit,
+        progress,
+    )
     return {**out, "chain_seconds": chain_s}
 
 
@@ -166,14 +210,25 @@ def worst_over_trajectories(tracks: Sequence[dict[str, Any]], eps: str) -> dict[
         rows = [(t["name"], t["per_eps"][eps][name]) for t in tracks]
         exact = [m["exact"] for _, m in rows if "exact" in m]
         found = [(m["max_error_al"], t) for t, m in rows if m["max_error_al"] is not None]
-        out[name] = {key: _largest([m.get(key) if m.get(key) is not None else np.nan for _, m in rows])
-                     for key in ("max_error_al", "max_error_m", "max_achieved_m", "max_achieved_al", "max_error_pl",
-                                 "max_achieved_pl")}
-        out[name].update(worst_trajectory=max(found)[1] if found else None,
-                         over_al=sum(bool(m.get("over_al")) for _, m in rows),
-                         over_al_available=sum(bool(m.get("over_al_available")) for _, m in rows),
-                         trajectories=len(rows), unmodelled=sum(m["unmodelled"] for _, m in rows),
-                         exact=float(np.mean(exact)) if exact else None)
+        out[name] = {
+            key: _largest([m.get(key) if m.get(key) is not None else np.nan for _, m in rows])
+            for key in (
+                "max_error_al",
+                "max_error_m",
+                "max_achieved_m",
+                "max_achieved_al",
+                "max_error_pl",
+                "max_achieved_pl",
+            )
+        }
+        out[name].update(
+            worst_trajectory=max(found)[1] if found else None,
+            over_al=sum(bool(m.get("over_al")) for _, m in rows),
+            over_al_available=sum(bool(m.get("over_al_available")) for _, m in rows),
+            trajectories=len(rows),
+            unmodelled=sum(m["unmodelled"] for _, m in rows),
+            exact=float(np.mean(exact)) if exact else None,
+        )
     return out
 
 
@@ -184,8 +239,9 @@ def first_over(per_eps: dict[str, dict[str, Any]], attacker: str = "bound") -> f
     return min(over) if over else None
 
 
-def certificate(model: Any, track: Track, capacities: Sequence[Capacity], eps: Sequence[float],
-                frames: int) -> dict[str, Any]:
+def certificate(
+    model: Any, track: Track, capacities: Sequence[Capacity], eps: Sequence[float], frames: int
+) -> dict[str, Any]:
     """Interval bound propagation's certified shift of the estimated position along the true line of sight
     (sum_i |los_i| x the certified shift on camera axis i, m; pipeline/pose/certify.py) on `frames` frames of
     `track` spread evenly over it, per eps beside the capacity F along the line of sight there (m): medians, their
@@ -208,8 +264,11 @@ def certificate(model: Any, track: Track, capacities: Sequence[Capacity], eps: S
         along = np.einsum("ni,ni->n", np.abs(los), shift)
         cap = capacity_at(capacities, float(e), rng)[:, 0]
         out["per_eps"][f"{float(e):g}"] = {
-            "certified_along_median_m": float(np.median(along)), "certified_along_min_m": float(along.min()),
-            "capacity_along_median_m": float(np.median(cap)), "ratio_median": float(np.median(along / cap)),
-            "vacuous": bool((along > rng).all())}
+            "certified_along_median_m": float(np.median(along)),
+            "certified_along_min_m": float(along.min()),
+            "capacity_along_median_m": float(np.median(cap)),
+            "ratio_median": float(np.median(along / cap)),
+            "vacuous": bool((along > rng).all()),
+        }
     out["seconds"] = time.perf_counter() - t0
     return out

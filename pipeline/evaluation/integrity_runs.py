@@ -23,6 +23,7 @@ the chain is stateless, so the other frames' estimates are the clean flight's.
 Counted frames (`counted`): from a trajectory's first attacked frame to its end, every frame the attack
 can reach; detection is over the attacked frames.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -55,7 +56,9 @@ class Track:
         R_cam, u = world_motion(np.asarray(self.labels, np.float64))
         if self.commands is not None:
             if np.shape(self.commands) != u.shape:
-                raise ValueError(f"track {self.name}: commands must be (N, 3) = {u.shape}, got {np.shape(self.commands)}")
+                raise ValueError(
+                    f"track {self.name}: commands must be (N, 3) = {u.shape}, got {np.shape(self.commands)}"
+                )
             u = np.asarray(self.commands, np.float64)
         object.__setattr__(self, "R_cam", R_cam)
         object.__setattr__(self, "u", u)
@@ -92,12 +95,29 @@ def undefended_trace(t_pred: np.ndarray, R_cam: np.ndarray) -> Any:
 
     n = len(t_pred)
     no = np.zeros(n, bool)
-    return DefenseTrace(no, no, no, np.einsum("nij,nj->ni", R_cam, np.asarray(t_pred, np.float64)),
-                        np.full(n, TRACK), np.full(n, np.nan), np.full(n, np.nan), no, None, np.ones(n, bool))
+    return DefenseTrace(
+        no,
+        no,
+        no,
+        np.einsum("nij,nj->ni", R_cam, np.asarray(t_pred, np.float64)),
+        np.full(n, TRACK),
+        np.full(n, np.nan),
+        np.full(n, np.nan),
+        no,
+        None,
+        np.ones(n, bool),
+    )
 
 
-def fly(chain: Any, defended: Any, track: Track, limit: AlertLimitSettings, batch_size: int,
-        images: np.ndarray | None = None, base: Flown | None = None) -> Flown:
+def fly(
+    chain: Any,
+    defended: Any,
+    track: Track,
+    limit: AlertLimitSettings,
+    batch_size: int,
+    images: np.ndarray | None = None,
+    base: Flown | None = None,
+) -> Flown:
     """`track` (or its frames replaced by `images`, uint8 (N, H, W, 3)) through the OnboardChain `chain`
     and a fresh defense (`defended`: pipeline.evaluation.robustness.Defended; None: the undefended
     control, `undefended_trace`); with `base` (the clean flight of `track`) only the frames that differ
@@ -116,13 +136,29 @@ def fly(chain: Any, defended: Any, track: Track, limit: AlertLimitSettings, batc
         trace = undefended_trace(pose[:, :3], track.R_cam)
     else:
         d = defended.defense()
-        trace = run_defense(d.settings, d.filter.settings, d.filter.noise, pose[:, :3], prob, track.R_cam, track.u,
-                            sixd_to_matrix(pose[:, 3:]), d.alert_limit)
+        trace = run_defense(
+            d.settings,
+            d.filter.settings,
+            d.filter.noise,
+            pose[:, :3],
+            prob,
+            track.R_cam,
+            track.u,
+            sixd_to_matrix(pose[:, 3:]),
+            d.alert_limit,
+        )
     return Flown(pose, prob, trace, defense_frames(trace, track.truth, track.name, limit))
 
 
-def burst_attack(target: Any, defended: Any, tracks: Sequence[Track], masks: Sequence[np.ndarray], attacker: Any,
-                 eps: Sequence[float], done: Callable[[], None] = lambda: None) -> tuple[dict[float, list[Any]], ...]:
+def burst_attack(
+    target: Any,
+    defended: Any,
+    tracks: Sequence[Track],
+    masks: Sequence[np.ndarray],
+    attacker: Any,
+    eps: Sequence[float],
+    done: Callable[[], None] = lambda: None,
+) -> tuple[dict[float, list[Any]], ...]:
     """(eps -> the stored frames (uint8 (N, H, W, 3)) of each track, eps -> each track's bursts' worst cases
     (`BurstOutcome`s in time order)), its bursts (`masks` (N,) bool) crafted by `attacker` (a BurstAttacker)
     through `target` (a DifferentiableChain), nested through the increasing `eps` (`defended` None: the
@@ -132,8 +168,13 @@ def burst_attack(target: Any, defended: Any, tracks: Sequence[Track], masks: Seq
     stored: dict[float, list[Any]] = {float(e): [] for e in eps}
     worst: dict[float, list[Any]] = {float(e): [] for e in eps}
     for track, mask in zip(tracks, masks):
-        run = AttackRun(track.frames(), torch.as_tensor(track.labels, dtype=torch.float32), track.R_cam, track.u,
-                        np.asarray(mask, bool))
+        run = AttackRun(
+            track.frames(),
+            torch.as_tensor(track.labels, dtype=torch.float32),
+            track.R_cam,
+            track.u,
+            np.asarray(mask, bool),
+        )
         res = attacker.nested(target, None if defended is None else defended.defense(), run, [float(e) for e in eps])
         for e, images, bursts in zip(res.eps, res.images, res.bursts):
             stored[e].append(images.permute(0, 2, 3, 1).numpy())
@@ -142,9 +183,18 @@ def burst_attack(target: Any, defended: Any, tracks: Sequence[Track], masks: Seq
     return stored, worst
 
 
-def plan_attack(target: Any, defended: Any, tracks: Sequence[Track], clean: Sequence[Flown],
-                plans: Sequence[tuple[Any, int]], eps: float, seed: int, frame_attack: Any = None, warm: bool = True,
-                done: Callable[[], None] = lambda: None) -> list[list[np.ndarray]]:
+def plan_attack(
+    target: Any,
+    defended: Any,
+    tracks: Sequence[Track],
+    clean: Sequence[Flown],
+    plans: Sequence[tuple[Any, int]],
+    eps: float,
+    seed: int,
+    frame_attack: Any = None,
+    warm: bool = True,
+    done: Callable[[], None] = lambda: None,
+) -> list[list[np.ndarray]]:
     """Per plan of `plans` ((settings, first attacked frame): DriftSettings or CaptureSettings, anything with
     `planner(defense)`), the stored frames (uint8 (N, H, W, 3)) of each track attacked at `eps` from that frame to
     the end: every plan and track in lockstep, one batched per-frame attack over the pairs attacking a frame
@@ -159,11 +209,11 @@ def plan_attack(target: Any, defended: Any, tracks: Sequence[Track], clean: Sequ
 
     attack = TargetedPGD() if frame_attack is None else frame_attack
     logit = None if defended is None else doubt_logit(defended.defense())
-    pairs = [(j, i) for j in range(len(plans)) for i in range(len(tracks))]   # (plan, track)
+    pairs = [(j, i) for j in range(len(plans)) for i in range(len(tracks))]  # (plan, track)
     planners = [plans[j][0].planner(None if defended is None else defended.defense()) for j, _ in pairs]
     stored = [[t.images.copy() for t in tracks] for _ in plans]
     generator = torch.Generator().manual_seed(int(seed))
-    shift: dict[int, torch.Tensor] = {}    # pair -> its last perturbation (3, H, W), floats
+    shift: dict[int, torch.Tensor] = {}  # pair -> its last perturbation (3, H, W), floats
     for k in range(max(len(t) for t in tracks)):
         active = []
         for n, (p, (j, i)) in enumerate(zip(planners, pairs)):
@@ -224,8 +274,14 @@ def _errors(frames: IntegrityFrames, mask: np.ndarray) -> tuple[float, float]:
     return (float(err.mean()), float(err.max())) if err.size else (float("nan"), float("nan"))
 
 
-def integrity_row(attacker: str, eps: float, attacked: Sequence[Flown], clean: Sequence[Flown],
-                  masks: Sequence[np.ndarray], seed: int = 0) -> dict[str, Any]:
+def integrity_row(
+    attacker: str,
+    eps: float,
+    attacked: Sequence[Flown],
+    clean: Sequence[Flown],
+    masks: Sequence[np.ndarray],
+    seed: int = 0,
+) -> dict[str, Any]:
     """One attacker at one eps over every track (attacked flights, their clean counterparts, the attacked
     frames (N,) of each): the HMI the attack caused and the rest of `integrity_rates` over the counted
     frames, detection over the attacked frames, and the same frames without the attack beside them."""
@@ -237,14 +293,24 @@ def integrity_row(attacker: str, eps: float, attacked: Sequence[Flown], clean: S
     flag = np.concatenate([f.trace.flag for f in attacked])
     clean_flag = np.concatenate([f.trace.flag for f in clean])
     (mean, worst), (clean_mean, clean_worst) = _errors(a, keep), _errors(c, keep)
-    return {"attacker": attacker, "eps": float(eps), "frames": int(keep.sum()), "attacked_frames": int(hit.sum()),
-            "trajectories": len(attacked), "ci_method": "bootstrap over trajectories",
-            **{k: as_json(r[k], len(attacked)) for k in ("hmi", "hmi_attacked", "hmi_clean", "mi", "availability",
-                                                         "availability_clean")},
-            "detected": as_json(bootstrap_rate(flag[hit], groups[hit], seed=seed), len(attacked)),
-            "detected_clean": as_json(bootstrap_rate(clean_flag[hit], groups[hit], seed=seed), len(attacked)),
-            "trusted_error_mean_m": mean, "trusted_error_max_m": worst,
-            "clean_error_mean_m": clean_mean, "clean_error_max_m": clean_worst}
+    return {
+        "attacker": attacker,
+        "eps": float(eps),
+        "frames": int(keep.sum()),
+        "attacked_frames": int(hit.sum()),
+        "trajectories": len(attacked),
+        "ci_method": "bootstrap over trajectories",
+        **{
+            k: as_json(r[k], len(attacked))
+            for k in ("hmi", "hmi_attacked", "hmi_clean", "mi", "availability", "availability_clean")
+        },
+        "detected": as_json(bootstrap_rate(flag[hit], groups[hit], seed=seed), len(attacked)),
+        "detected_clean": as_json(bootstrap_rate(clean_flag[hit], groups[hit], seed=seed), len(attacked)),
+        "trusted_error_mean_m": mean,
+        "trusted_error_max_m": worst,
+        "clean_error_mean_m": clean_mean,
+        "clean_error_max_m": clean_worst,
+    }
 
 
 def worst_hmi(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -269,9 +335,14 @@ def clean_row(clean: Sequence[Flown], seed: int = 0) -> dict[str, Any]:
     from pipeline.defense.integrity import clean_rates
 
     r = clean_rates(concat([f.frames for f in clean]), seed=seed)
-    return {**{k: as_json(r[k], len(clean)) for k in ("availability", "hmi", "mi")}, "frames": r["frames"],
-            "trajectories": len(clean), "trusted_error_mean_m": r["trusted_error_mean_m"],
-            "trusted_error_max_m": r["trusted_error_max_m"], "has_pl": bool(clean[0].frames.pl is not None)}
+    return {
+        **{k: as_json(r[k], len(clean)) for k in ("availability", "hmi", "mi")},
+        "frames": r["frames"],
+        "trajectories": len(clean),
+        "trusted_error_mean_m": r["trusted_error_mean_m"],
+        "trusted_error_max_m": r["trusted_error_max_m"],
+        "has_pl": bool(clean[0].frames.pl is not None),
+    }
 
 
 def raw_errors(flown: Sequence[Flown], tracks: Sequence[Track], masks: Sequence[np.ndarray]) -> tuple[np.ndarray, ...]:
@@ -292,5 +363,9 @@ def diagram_points(flown: Sequence[Flown], masks: Sequence[np.ndarray]) -> dict[
     fr = concat([f.frames for f in flown])
     keep = np.concatenate([counted(m) for m in masks]) & np.isfinite(fr.error)
     bound = fr.alert if fr.pl is None else fr.pl
-    return {"bound": bound[keep].tolist(), "error": fr.error[keep].tolist(),
-            "available": fr.available[keep].tolist(), "bound_is": "AL" if fr.pl is None else "PL"}
+    return {
+        "bound": bound[keep].tolist(),
+        "error": fr.error[keep].tolist(),
+        "available": fr.available[keep].tolist(),
+        "bound_is": "AL" if fr.pl is None else "PL",
+    }

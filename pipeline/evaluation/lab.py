@@ -33,6 +33,7 @@ rigid body) and the target body's frame the target (mesh) frame. The lab's relat
 camera frame, t = R_cam^T (p_target - p_camera) = -R_cam^T d, and the label attitude (target
 frame -> camera frame) is R = R_cam^T R_target, i.e. q = conj(q_cam) * q_target.
 """
+
 from __future__ import annotations
 
 import os
@@ -79,8 +80,7 @@ def paper_lab_factor(K_syn: Intrinsics, K_lab: Intrinsics, scale: float) -> floa
     return scale * K_syn.fx / K_lab.fx * K_lab.cx / K_syn.cx
 
 
-def lab_to_synthetic_position(t_lab: np.ndarray, K_syn: Intrinsics, K_lab: Intrinsics,
-                              scale: float) -> np.ndarray:
+def lab_to_synthetic_position(t_lab: np.ndarray, K_syn: Intrinsics, K_lab: Intrinsics, scale: float) -> np.ndarray:
     """Lab camera-frame positions (..., 3) of the mock-up -> equivalent synthetic positions (m).
 
     z is multiplied by `lab_to_synthetic_factor`; x and y are set so the target origin projects to
@@ -96,12 +96,13 @@ def lab_to_synthetic_position(t_lab: np.ndarray, K_syn: Intrinsics, K_lab: Intri
 
 
 # ----------------------------------------------------------------------------- poses and matching
-def relative_pose(p_cam: np.ndarray, q_cam: np.ndarray, p_tgt: np.ndarray,
-                  q_tgt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def relative_pose(
+    p_cam: np.ndarray, q_cam: np.ndarray, p_tgt: np.ndarray, q_tgt: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """World poses of camera and target bodies -> label (t in the camera frame (m), q target->camera)."""
     R_cam = quat_to_matrix(q_cam)
     R_tgt = quat_to_matrix(q_tgt)
-    d = np.asarray(p_cam, np.float64) - np.asarray(p_tgt, np.float64)   # world frame
+    d = np.asarray(p_cam, np.float64) - np.asarray(p_tgt, np.float64)  # world frame
     t = -np.einsum("...ji,...j->...i", R_cam, d)
     q = matrix_to_quat(np.swapaxes(R_cam, -1, -2) @ R_tgt)
     return t, q
@@ -173,20 +174,25 @@ def parse_mocap(df: pd.DataFrame, bodies: list[str], source: str = "mocap.csv") 
         bad = np.flatnonzero(np.diff(t) <= 0)
         if len(bad):
             i = rows[bad[0] + 1]
-            raise LabDataError(f"{source} line {_line(i)}: body {body!r} timestamp {t[bad[0] + 1]} is not after "
-                               f"its previous sample ({t[bad[0]]}); mocap rows must be in time order")
+            raise LabDataError(
+                f"{source} line {_line(i)}: body {body!r} timestamp {t[bad[0] + 1]} is not after "
+                f"its previous sample ({t[bad[0]]}); mocap rows must be in time order"
+            )
         q = df[QUAT].to_numpy()[rows]
         norm = np.linalg.norm(q, axis=1)
         off = np.flatnonzero(np.abs(norm - 1) > UNIT_TOLERANCE)
         if len(off):
-            raise LabDataError(f"{source} line {_line(rows[off[0]])}: body {body!r} has a quaternion of norm "
-                               f"{norm[off[0]]:.6g}, not a unit quaternion")
+            raise LabDataError(
+                f"{source} line {_line(rows[off[0]])}: body {body!r} has a quaternion of norm "
+                f"{norm[off[0]]:.6g}, not a unit quaternion"
+            )
         tracks[body] = Track(t, df[["x", "y", "z"]].to_numpy()[rows], normalize_quat(q))
     return tracks
 
 
-def sample_track(track: Track, times: np.ndarray, mode: Match, max_gap: float, body: str = "body",
-                 source: str = "camera.csv") -> tuple[np.ndarray, np.ndarray]:
+def sample_track(
+    track: Track, times: np.ndarray, mode: Match, max_gap: float, body: str = "body", source: str = "camera.csv"
+) -> tuple[np.ndarray, np.ndarray]:
     """A body's pose at each camera timestamp: (positions (N, 3), quats (N, 4)).
 
     The gap of a frame is the time to its nearest mocap sample; a frame whose gap exceeds
@@ -205,8 +211,10 @@ def sample_track(track: Track, times: np.ndarray, mode: Match, max_gap: float, b
     bad = np.flatnonzero(gap > max_gap)
     if len(bad):
         i = bad[0]
-        raise LabDataError(f"{source} line {_line(i)}: no mocap sample of body {body!r} within {max_gap} s of "
-                           f"timestamp {times[i]} (nearest is {gap[i]:.4f} s away)")
+        raise LabDataError(
+            f"{source} line {_line(i)}: no mocap sample of body {body!r} within {max_gap} s of "
+            f"timestamp {times[i]} (nearest is {gap[i]:.4f} s away)"
+        )
     pos, quat = track.positions[nearest].copy(), track.quats[nearest].copy()
     if mode == "interpolate" and len(tt) > 1:
         inside = (times >= tt[0]) & (times <= tt[-1])
@@ -218,9 +226,16 @@ def sample_track(track: Track, times: np.ndarray, mode: Match, max_gap: float, b
     return pos, quat
 
 
-def match_frames(camera: pd.DataFrame, mocap: pd.DataFrame, camera_body: str, target_body: str,
-                 mode: Match, max_gap: float, camera_source: str = "camera.csv",
-                 mocap_source: str = "mocap.csv") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def match_frames(
+    camera: pd.DataFrame,
+    mocap: pd.DataFrame,
+    camera_body: str,
+    target_body: str,
+    mode: Match,
+    max_gap: float,
+    camera_source: str = "camera.csv",
+    mocap_source: str = "mocap.csv",
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """camera.csv + mocap.csv tables -> (frame numbers (N,), labels t (N, 3) m, q (N, 4))."""
     frames, times = parse_camera(camera, camera_source)
     tracks = parse_mocap(mocap, [camera_body, target_body], mocap_source)
@@ -230,8 +245,10 @@ def match_frames(camera: pd.DataFrame, mocap: pd.DataFrame, camera_body: str, ta
     behind = np.flatnonzero(t[:, 2] <= 0)
     if len(behind):
         i = behind[0]
-        raise LabDataError(f"{camera_source} line {_line(i)}: the target is behind the camera (z = {t[i, 2]:.3f} m "
-                           f"in the camera frame); check the mocap bodies and their axes")
+        raise LabDataError(
+            f"{camera_source} line {_line(i)}: the target is behind the camera (z = {t[i, 2]:.3f} m "
+            f"in the camera frame); check the mocap bodies and their axes"
+        )
     return frames, t, q
 
 
@@ -267,9 +284,11 @@ def check_target_pixels(images: np.ndarray, tolerance: float, source: str) -> No
     have no target pixel: all-black frames mean a wrong threshold, mask or exposure."""
     empty = np.flatnonzero(images.reshape(len(images), -1).max(axis=1) == 0)
     if len(empty) > tolerance * len(images):
-        raise LabDataError(f"{source}: {len(empty)} of {len(images)} frames have no target pixels after segmentation "
-                           f"(first: frame index {empty[0]}), above the tolerance of {tolerance:.0%}; check "
-                           f"lab.segment_threshold or the masks")
+        raise LabDataError(
+            f"{source}: {len(empty)} of {len(images)} frames have no target pixels after segmentation "
+            f"(first: frame index {empty[0]}), above the tolerance of {tolerance:.0%}; check "
+            f"lab.segment_threshold or the masks"
+        )
 
 
 # ----------------------------------------------------------------------------- synthetic recordings
@@ -282,17 +301,25 @@ R_WORLD_CAM = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 class LabRecording:
     """A lab sequence as tables in the real-data layout plus the exact labels at frame times."""
 
-    camera: pd.DataFrame          # frame, timestamp
-    mocap: pd.DataFrame           # timestamp, body, x, y, z, qw, qx, qy, qz
-    t: np.ndarray                 # (N, 3) exact label at each frame time, camera frame, lab metres
-    q: np.ndarray                 # (N, 4) exact label attitude, target -> camera
+    camera: pd.DataFrame  # frame, timestamp
+    mocap: pd.DataFrame  # timestamp, body, x, y, z, qw, qx, qy, qz
+    t: np.ndarray  # (N, 3) exact label at each frame time, camera frame, lab metres
+    q: np.ndarray  # (N, 4) exact label attitude, target -> camera
 
 
-def synthetic_recording(z_start: float, z_end: float, n_frames: int, fps: float, mocap_hz: float,
-                        q_label: np.ndarray, lateral: tuple[float, float] = (0.0, 0.0),
-                        target_position: tuple[float, float, float] = (1.5, 0.4, 1.2),
-                        clock_offset: float = 0.0013, camera_body: str = "camera",
-                        target_body: str = "target") -> LabRecording:
+def synthetic_recording(
+    z_start: float,
+    z_end: float,
+    n_frames: int,
+    fps: float,
+    mocap_hz: float,
+    q_label: np.ndarray,
+    lateral: tuple[float, float] = (0.0, 0.0),
+    target_position: tuple[float, float, float] = (1.5, 0.4, 1.2),
+    clock_offset: float = 0.0013,
+    camera_body: str = "camera",
+    target_body: str = "target",
+) -> LabRecording:
     """A straight approach along the optical axis from z_start to z_end (lab metres) as mocap data.
 
     The target body sits still at `target_position` (world, m) with the attitude that gives the
@@ -316,14 +343,26 @@ def synthetic_recording(z_start: float, z_end: float, n_frames: int, fps: float,
         z = z_start + (z_end - z_start) * s
         return np.stack([np.full_like(z, lateral[0]), np.full_like(z, lateral[1]), z], -1)
 
-    def p_cam(time: np.ndarray) -> np.ndarray:      # t = R_cam^T (p_tgt - p_cam)
+    def p_cam(time: np.ndarray) -> np.ndarray:  # t = R_cam^T (p_tgt - p_cam)
         return p_tgt - t_label(time) @ R_WORLD_CAM.T
 
     rows = []
-    for body, pos, q in ((camera_body, p_cam(mocap_t), np.tile(q_cam, (len(mocap_t), 1))),
-                         (target_body, np.tile(p_tgt, (len(mocap_t), 1)), np.tile(q_tgt, (len(mocap_t), 1)))):
-        rows.append(pd.DataFrame({"timestamp": mocap_t, "body": body, "x": pos[:, 0], "y": pos[:, 1],
-                                  "z": pos[:, 2], **{c: q[:, k] for k, c in enumerate(QUAT)}}))
+    for body, pos, q in (
+        (camera_body, p_cam(mocap_t), np.tile(q_cam, (len(mocap_t), 1))),
+        (target_body, np.tile(p_tgt, (len(mocap_t), 1)), np.tile(q_tgt, (len(mocap_t), 1))),
+    ):
+        rows.append(
+            pd.DataFrame(
+                {
+                    "timestamp": mocap_t,
+                    "body": body,
+                    "x": pos[:, 0],
+                    "y": pos[:, 1],
+                    "z": pos[:, 2],
+                    **{c: q[:, k] for k, c in enumerate(QUAT)},
+                }
+            )
+        )
     mocap = pd.concat(rows).sort_values("timestamp", kind="stable").reset_index(drop=True)
     camera = pd.DataFrame({"frame": np.arange(n_frames), "timestamp": frame_t})
     return LabRecording(camera, mocap, t_label(frame_t), np.tile(normalize_quat(q_label), (n_frames, 1)))
@@ -337,13 +376,22 @@ def loader_errors(recs: list[dict[str, Any]], truth: list[dict[str, Any]]) -> di
     out = {}
     for tr in truth:
         rec = next(x for x in recs if x["name"] == tr["name"])
-        out[tr["name"]] = {"position_max_m": float(np.abs(rec["t_lab"] - tr["t_lab"]).max()),
-                           "attitude_max_deg": float(attitude_error_deg(rec["q"], tr["q"]).max())}
+        out[tr["name"]] = {
+            "position_max_m": float(np.abs(rec["t_lab"] - tr["t_lab"]).max()),
+            "attitude_max_deg": float(attitude_error_deg(rec["q"], tr["q"]).max()),
+        }
     return out
 
 
-def chain_sequences(recs: list[dict[str, Any]], K_syn: Intrinsics, K_lab: Intrinsics, scale: float, p_start: float,
-                    length: int, seed: int) -> tuple[list[Any], list[dict[str, Any]]]:
+def chain_sequences(
+    recs: list[dict[str, Any]],
+    K_syn: Intrinsics,
+    K_lab: Intrinsics,
+    scale: float,
+    p_start: float,
+    length: int,
+    seed: int,
+) -> tuple[list[Any], list[dict[str, Any]]]:
     """Loaded recordings as safety-chain `Sequence`s (targets: synthetic-frame position in metres, then
     the 6-D rotation; attack schedule seeded with the "lab.schedule" stream of `seed`, pipeline/seeds.py) and their
     range-table rows."""
@@ -356,11 +404,23 @@ def chain_sequences(recs: list[dict[str, Any]], K_syn: Intrinsics, K_lab: Intrin
     for i, rec in enumerate(recs):
         t_syn = lab_to_synthetic_position(rec["t_lab"], K_syn, K_lab, scale)
         targets = np.concatenate([t_syn, quat_to_6d(rec["q"])], 1).astype(np.float32)
-        sequences.append(Sequence(name=rec["name"], images=rec["images"], targets=targets,
-                                  attacked=attack_schedule(len(targets), p_start, length,
-                                                           seed_for(seed, "lab.schedule", i))))
+        sequences.append(
+            Sequence(
+                name=rec["name"],
+                images=rec["images"],
+                targets=targets,
+                attacked=attack_schedule(len(targets), p_start, length, seed_for(seed, "lab.schedule", i)),
+            )
+        )
         zl = rec["t_lab"][:, 2]
-        ranges.append({"sequence": rec["name"], "frames": len(zl), "lab z start (m)": float(zl[0]),
-                       "lab z end (m)": float(zl[-1]), "synthetic z start (m)": float(t_syn[0, 2]),
-                       "synthetic z end (m)": float(t_syn[-1, 2])})
+        ranges.append(
+            {
+                "sequence": rec["name"],
+                "frames": len(zl),
+                "lab z start (m)": float(zl[0]),
+                "lab z end (m)": float(zl[-1]),
+                "synthetic z start (m)": float(t_syn[0, 2]),
+                "synthetic z end (m)": float(t_syn[-1, 2]),
+            }
+        )
     return sequences, ranges

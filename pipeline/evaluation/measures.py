@@ -29,6 +29,7 @@ The primary outcome of an approach is the mission's: where the chaser docks.
 - `hmi_trajectories`: the trajectories with an HMI frame, with the Clopper-Pearson interval over
   independent trajectories (a descriptive count: it speaks only of the attacks tried).
 """
+
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
@@ -37,11 +38,17 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from pipeline.defense.integrity import FLOWN, IntegrityFrames
-from pipeline.stats import Rate, clopper_pearson
 from pipeline.guidance.law import LOST as TARGET_LOST
+from pipeline.stats import Rate, clopper_pearson
 
 NOMINAL, MI, HMI, UNAVAILABLE, UNAVAILABLE_MI, NO_ESTIMATE = (
-    "nominal", "MI", "HMI", "unavailable", "unavailable MI", "no estimate")
+    "nominal",
+    "MI",
+    "HMI",
+    "unavailable",
+    "unavailable MI",
+    "no estimate",
+)
 REGIONS = (NOMINAL, MI, HMI, UNAVAILABLE, UNAVAILABLE_MI, NO_ESTIMATE)
 DOCKED, MISSED, COLLISION, HELD, LOST = "docked", "missed", "collision", "held", "target lost"
 
@@ -92,7 +99,9 @@ def docking(result: Any, goal: Sequence[float], tolerance: float, collision_rang
     if g.shape != (3,) or not np.linalg.norm(g) > 0:
         raise ValueError(f"docking: the goal must be a non-zero rel (3,) in metres, got {goal!r}")
     if not (tolerance > 0 and collision_range >= 0):
-        raise ValueError(f"docking: tolerance must be > 0 and collision_range >= 0 (m), got {tolerance}, {collision_range}")
+        raise ValueError(
+            f"docking: tolerance must be > 0 and collision_range >= 0 (m), got {tolerance}, {collision_range}"
+        )
     d = np.asarray(result.positions[-1], np.float64) - g
     los = g / np.linalg.norm(g)
     along = float(d @ los)
@@ -102,10 +111,17 @@ def docking(result: Any, goal: Sequence[float], tolerance: float, collision_rang
         steps = np.asarray(result.modes) == "hold"
     else:
         steps = np.zeros(len(result.estimates), bool)
-    return Docking(along, float(np.linalg.norm(d - along * los)), float(np.linalg.norm(d)),
-                   float(result.closest_range), bool(result.closest_range < collision_range),
-                   bool(len(steps) and steps[-1]), int(steps.sum()), float(tolerance),
-                   result.outcome == TARGET_LOST)
+    return Docking(
+        along,
+        float(np.linalg.norm(d - along * los)),
+        float(np.linalg.norm(d)),
+        float(result.closest_range),
+        bool(result.closest_range < collision_range),
+        bool(len(steps) and steps[-1]),
+        int(steps.sum()),
+        float(tolerance),
+        result.outcome == TARGET_LOST,
+    )
 
 
 @dataclass(frozen=True)
@@ -141,8 +157,12 @@ def _max(x: np.ndarray) -> float:
     return float(x.max()) if x.size else float("nan")
 
 
-def trajectory_measures(frames: IntegrityFrames, flags: np.ndarray, single_frame_al: np.ndarray | None = None,
-                        mask: np.ndarray | None = None) -> TrajectoryMeasures:
+def trajectory_measures(
+    frames: IntegrityFrames,
+    flags: np.ndarray,
+    single_frame_al: np.ndarray | None = None,
+    mask: np.ndarray | None = None,
+) -> TrajectoryMeasures:
     """The `TrajectoryMeasures` of one trajectory's records `frames` (its `alert` the AL judged against:
     build them with AlertLimitSettings(kind="persistent")), the chain's flags (N,), the single-frame AL
     (N,) m at the same frames (optional) and the frames to count (N,) bool (all by default)."""
@@ -152,18 +172,30 @@ def trajectory_measures(frames: IntegrityFrames, flags: np.ndarray, single_frame
     if keep.shape != (n,) or flags.shape != (n,):
         raise ValueError(f"trajectory_measures: flags and mask must have shape ({n},), got {flags.shape}, {keep.shape}")
     if single_frame_al is not None and np.shape(single_frame_al) != (n,):
-        raise ValueError(f"trajectory_measures: single_frame_al must have shape ({n},), got {np.shape(single_frame_al)}")
+        raise ValueError(
+            f"trajectory_measures: single_frame_al must have shape ({n},), got {np.shape(single_frame_al)}"
+        )
     if len(np.unique(frames.trajectory)) > 1:
         raise ValueError("trajectory_measures: the frames must be one trajectory's")
     err, avail = frames.error, frames.available & keep
-    single = (np.full(n, np.nan) if single_frame_al is None
-              else np.where(avail, err / np.asarray(single_frame_al, np.float64), np.nan))
+    single = (
+        np.full(n, np.nan)
+        if single_frame_al is None
+        else np.where(avail, err / np.asarray(single_frame_al, np.float64), np.nan)
+    )
     pl = np.full(n, np.nan) if frames.pl is None else np.where(keep & frames.has_pl, err / frames.pl, np.nan)
-    return TrajectoryMeasures(str(frames.trajectory[0]) if n else "", int(keep.sum()),
-                              _max(np.where(avail, err / frames.alert, np.nan)), _max(single), _max(pl),
-                              float(err[-1]) if n else float("nan"), int((flags & keep).sum()),
-                              int((frames.hmi & keep).sum()), int((frames.mi & keep).sum()),
-                              float(avail.sum() / keep.sum()) if keep.any() else float("nan"))
+    return TrajectoryMeasures(
+        str(frames.trajectory[0]) if n else "",
+        int(keep.sum()),
+        _max(np.where(avail, err / frames.alert, np.nan)),
+        _max(single),
+        _max(pl),
+        float(err[-1]) if n else float("nan"),
+        int((flags & keep).sum()),
+        int((frames.hmi & keep).sum()),
+        int((frames.mi & keep).sum()),
+        float(avail.sum() / keep.sum()) if keep.any() else float("nan"),
+    )
 
 
 def stanford_regions(frames: IntegrityFrames) -> np.ndarray:

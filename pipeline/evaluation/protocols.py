@@ -12,13 +12,15 @@ how they are split into train / validation / test.
   (2 cm apart at the paper's 2,500 frames per 50 m), then sit in training and test: the split is **leaky**, which
   `shared_fraction` and `neighbour_fraction` measure.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
 
-def paper_plan(split: np.ndarray, normal: int, per_eps: int, eps: list[float],
-               rng: np.random.Generator) -> dict[str, np.ndarray]:
+def paper_plan(
+    split: np.ndarray, normal: int, per_eps: int, eps: list[float], rng: np.random.Generator
+) -> dict[str, np.ndarray]:
     """The paper's SHAP samples from a label table's `split` column ("train" / "test" per row).
 
     Clean: every test row (in random order; `normal` of them when there are more), topped up to `normal` with
@@ -33,18 +35,21 @@ def paper_plan(split: np.ndarray, normal: int, per_eps: int, eps: list[float],
         raise ValueError(f"{per_eps} attacked samples per eps need as many test images, the table has {len(test)}")
     n_test_clean = min(normal, len(test))
     if normal - n_test_clean > len(train):
-        raise ValueError(f"{normal} clean samples need {normal - n_test_clean} training images, the table has "
-                         f"{len(train)}")
-    clean = np.concatenate([rng.permutation(test)[:n_test_clean], rng.choice(train, normal - n_test_clean,
-                                                                              replace=False)])
+        raise ValueError(
+            f"{normal} clean samples need {normal - n_test_clean} training images, the table has {len(train)}"
+        )
+    clean = np.concatenate(
+        [rng.permutation(test)[:n_test_clean], rng.choice(train, normal - n_test_clean, replace=False)]
+    )
     attacked = [rng.choice(test, per_eps, replace=False) for _ in eps]
     index = np.concatenate([clean, *attacked]).astype(np.int64)
     eps_out = np.concatenate([np.zeros(normal), np.repeat(np.asarray(eps, dtype=np.float64), per_eps)])
     return {"index": index, "eps": eps_out.astype(np.float32)}
 
 
-def random_split(n: int, test_fraction: float, val_fraction: float,
-                 seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def random_split(
+    n: int, test_fraction: float, val_fraction: float, seed: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sorted (train, validation, test) sample indices of a random per-sample split, as the paper's: round(n
     test_fraction) samples to test, then round(val_fraction x the rest) to validation. Raises ValueError when a
     fraction is not in (0, 1) or a part would be empty."""
@@ -56,7 +61,7 @@ def random_split(n: int, test_fraction: float, val_fraction: float,
     n_val = int(round((n - n_test) * val_fraction))
     if min(n_test, n_val, n - n_test - n_val) < 1:
         raise ValueError(f"{n} samples cannot be split with test {test_fraction} and validation {val_fraction}")
-    test, val, train = order[:n_test], order[n_test:n_test + n_val], order[n_test + n_val:]
+    test, val, train = order[:n_test], order[n_test : n_test + n_val], order[n_test + n_val :]
     return np.sort(train), np.sort(val), np.sort(test)
 
 
@@ -69,14 +74,17 @@ def shared_fraction(source: np.ndarray, train: np.ndarray, test: np.ndarray) -> 
     return float(np.isin(source[test], source[train]).mean())
 
 
-def neighbour_fraction(sequence: np.ndarray, frame: np.ndarray, train: np.ndarray, test: np.ndarray,
-                       within: int = 1) -> float:
+def neighbour_fraction(
+    sequence: np.ndarray, frame: np.ndarray, train: np.ndarray, test: np.ndarray, within: int = 1
+) -> float:
     """Share of the `test` samples with a training sample of the same sequence at most `within` frames away (the
     same frame included): what a split leaks through near-identical neighbouring frames. NaN without test samples."""
     sequence, frame = np.asarray(sequence), np.asarray(frame, dtype=np.int64)
     if len(test) == 0:
         return float("nan")
     seen = {(s, f) for s, f in zip(sequence[train].tolist(), frame[train].tolist())}
-    hit = [any((s, f + d) in seen for d in range(-within, within + 1))
-           for s, f in zip(sequence[test].tolist(), frame[test].tolist())]
+    hit = [
+        any((s, f + d) in seen for d in range(-within, within + 1))
+        for s, f in zip(sequence[test].tolist(), frame[test].tolist())
+    ]
     return float(np.mean(hit))

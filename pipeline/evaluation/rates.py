@@ -22,6 +22,7 @@ Intervals (`interval` says which):
   intervals the integrated pages already print), and the same resampling of whole groups for the
   re-weighted accuracy. With a single group it falls back to "wilson".
 """
+
 from __future__ import annotations
 
 import math
@@ -32,7 +33,7 @@ from scipy import stats as sps
 
 from pipeline.stats import LEVEL, Rate, bootstrap_rate, wilson
 
-COUNTS = ("flagged_attacked", "attacked", "flagged_clean", "clean")   # the columns of `DetectionRates.counts`
+COUNTS = ("flagged_attacked", "attacked", "flagged_clean", "clean")  # the columns of `DetectionRates.counts`
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,8 +67,11 @@ class DetectionRates:
             lo, hi = _bootstrap_weighted(f, self.counts)
             return Rate(value, min(lo, value), max(hi, value), n)
         spec = (1.0 - self.fpr.value, 1.0 - self.fpr.hi, 1.0 - self.fpr.lo)
-        terms = [(w, p, lo, hi) for w, (p, lo, hi) in ((f, (self.tpr.value, self.tpr.lo, self.tpr.hi)),
-                                                       (1.0 - f, spec)) if w > 0]
+        terms = [
+            (w, p, lo, hi)
+            for w, (p, lo, hi) in ((f, (self.tpr.value, self.tpr.lo, self.tpr.hi)), (1.0 - f, spec))
+            if w > 0
+        ]
         lo = value - math.sqrt(sum((w * (p - lo)) ** 2 for w, p, lo, _ in terms))
         hi = value + math.sqrt(sum((w * (hi - p)) ** 2 for w, p, _, hi in terms))
         return Rate(value, max(lo, 0.0), min(hi, 1.0), n)
@@ -75,6 +79,7 @@ class DetectionRates:
     def as_json(self, f: float | None = None) -> dict[str, object]:
         """For a metrics JSON: each rate as {"value", "ci": [lo, hi], "n"}, the interval method, and with `f`
         the re-weighted accuracy under "accuracy_at" (plus its "f"). NaN values become None."""
+
         def one(r: Rate) -> dict[str, object]:
             return {"value": None if math.isnan(r.value) else float(r.value), "ci": r.ci(), "n": int(r.n)}
 
@@ -100,6 +105,7 @@ def _weighted(f: float, tp: float, n_att: float, fp: float, n_clean: float) -> f
 def _bootstrap_weighted(f: float, counts: np.ndarray, n_resamples: int = 2000, seed: int = 0) -> tuple[float, float]:
     """Percentile bootstrap interval over the groups (rows of `counts`) of f TPR + (1 - f)(1 - FPR), resampling
     whole groups as `pipeline.stats.bootstrap_rate` does (same resamples and seed)."""
+
     def stat(tp: np.ndarray, n_att: np.ndarray, fp: np.ndarray, n_clean: np.ndarray, axis: int = -1) -> np.ndarray:
         with np.errstate(invalid="ignore", divide="ignore"):
             tpr = tp.sum(axis=axis) / n_att.sum(axis=axis)
@@ -107,8 +113,16 @@ def _bootstrap_weighted(f: float, counts: np.ndarray, n_resamples: int = 2000, s
         return (f * tpr if f > 0 else 0.0) + ((1.0 - f) * (1.0 - fpr) if f < 1 else 0.0)
 
     cols = tuple(np.asarray(counts, dtype=float).T)
-    res = sps.bootstrap(cols, stat, paired=True, vectorized=True, n_resamples=n_resamples, confidence_level=LEVEL,
-                        method="percentile", random_state=np.random.default_rng(seed))
+    res = sps.bootstrap(
+        cols,
+        stat,
+        paired=True,
+        vectorized=True,
+        n_resamples=n_resamples,
+        confidence_level=LEVEL,
+        method="percentile",
+        random_state=np.random.default_rng(seed),
+    )
     return float(res.confidence_interval.low), float(res.confidence_interval.high)
 
 
@@ -132,11 +146,22 @@ def rates_from_counts(counts: np.ndarray, bootstrap: bool = False) -> DetectionR
             hits = np.concatenate([np.r_[np.ones(a, bool), np.zeros(b - a, bool)] for a, b in zip(k, m)])
             return bootstrap_rate(hits, np.repeat(groups, m))
 
-        return DetectionRates(accuracy=boot(c[:, 0] + c[:, 3] - c[:, 2], c[:, 1] + c[:, 3]),
-                              tpr=boot(c[:, 0], c[:, 1]), fpr=boot(c[:, 2], c[:, 3]),
-                              attacked_fraction=boot(c[:, 1], c[:, 1] + c[:, 3]), counts=c, interval="bootstrap")
-    return DetectionRates(accuracy=wilson(tp + n_clean - fp, n), tpr=wilson(tp, n_att), fpr=wilson(fp, n_clean),
-                          attacked_fraction=wilson(n_att, n), counts=c, interval="wilson")
+        return DetectionRates(
+            accuracy=boot(c[:, 0] + c[:, 3] - c[:, 2], c[:, 1] + c[:, 3]),
+            tpr=boot(c[:, 0], c[:, 1]),
+            fpr=boot(c[:, 2], c[:, 3]),
+            attacked_fraction=boot(c[:, 1], c[:, 1] + c[:, 3]),
+            counts=c,
+            interval="bootstrap",
+        )
+    return DetectionRates(
+        accuracy=wilson(tp + n_clean - fp, n),
+        tpr=wilson(tp, n_att),
+        fpr=wilson(fp, n_clean),
+        attacked_fraction=wilson(n_att, n),
+        counts=c,
+        interval="wilson",
+    )
 
 
 def detection_rates(attacked: np.ndarray, flagged: np.ndarray, groups: np.ndarray | None = None) -> DetectionRates:
@@ -151,8 +176,18 @@ def detection_rates(attacked: np.ndarray, flagged: np.ndarray, groups: np.ndarra
     if g.shape != attacked.shape:
         raise ValueError(f"groups {g.shape} and attacked {attacked.shape} differ in shape")
     ids = np.unique(g)
-    counts = np.array([[np.sum(attacked[m] & flagged[m]), np.sum(attacked[m]), np.sum(~attacked[m] & flagged[m]),
-                        np.sum(~attacked[m])] for m in (g == i for i in ids)], dtype=np.int64).reshape(-1, 4)
+    counts = np.array(
+        [
+            [
+                np.sum(attacked[m] & flagged[m]),
+                np.sum(attacked[m]),
+                np.sum(~attacked[m] & flagged[m]),
+                np.sum(~attacked[m]),
+            ]
+            for m in (g == i for i in ids)
+        ],
+        dtype=np.int64,
+    ).reshape(-1, 4)
     return rates_from_counts(counts, bootstrap=groups is not None)
 
 
@@ -176,7 +211,8 @@ def sequence_rates(rows: list[dict[str, object]]) -> dict[float, DetectionRates]
     out: dict[float, list[list[int]]] = {}
     for r in rows:
         out.setdefault(float(r["eps"]), []).append(
-            [int(r[k]) for k in ("flagged_attacked", "attacked_frames", "flagged_clean", "clean_frames")])
+            [int(r[k]) for k in ("flagged_attacked", "attacked_frames", "flagged_clean", "clean_frames")]
+        )
     return {e: rates_from_counts(np.array(c), bootstrap=True) for e, c in out.items()}
 
 
@@ -191,8 +227,14 @@ def rate_difference(a: Rate, b: Rate) -> tuple[float, float, float]:
     return (d, d - math.hypot(a.value - a.lo, b.hi - b.value), d + math.hypot(a.hi - a.value, b.value - b.lo))
 
 
-def paired_difference(a: np.ndarray, b: np.ndarray, f: float | None = None, f_b: float | None = None,
-                      n_resamples: int = 2000, seed: int = 0) -> tuple[float, float, float]:
+def paired_difference(
+    a: np.ndarray,
+    b: np.ndarray,
+    f: float | None = None,
+    f_b: float | None = None,
+    n_resamples: int = 2000,
+    seed: int = 0,
+) -> tuple[float, float, float]:
     """(difference, lo, hi): the accuracy of per-group counts `a` minus that of `b` (each (G, 4), `COUNTS`; the same G
     groups in the same order, e.g. two detectors on the same trajectories, or one set of counts twice), each re-weighted
     to an attacked fraction when one is given (`f` for a, `f_b` for b: `DetectionRates.accuracy_at`; None = the plain
@@ -203,7 +245,7 @@ def paired_difference(a: np.ndarray, b: np.ndarray, f: float | None = None, f_b:
     if a.shape != b.shape or a.ndim != 2 or a.shape[1] != 4:
         raise ValueError(f"paired counts must both be (groups, 4), got {a.shape} and {b.shape}")
 
-    def acc(c: np.ndarray, at: float | None) -> np.ndarray:   # c (..., G, 4) -> accuracy (...)
+    def acc(c: np.ndarray, at: float | None) -> np.ndarray:  # c (..., G, 4) -> accuracy (...)
         tp, n_att, fp, n_clean = (c[..., k].sum(axis=-1) for k in range(4))
         if at is None:
             return (tp + n_clean - fp) / (n_att + n_clean)

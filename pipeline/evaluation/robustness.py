@@ -9,6 +9,7 @@ Every rate carries its 95% Wilson interval (`pipeline.stats`): the frames are di
 test frames, each attacked once, so they are independent trials of the attack.
 For benign corruptions, the false-alarm rate = flagged frames / corrupted frames.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -19,7 +20,7 @@ import torch
 
 from pipeline.stats import rate
 
-Craft = Callable[[Any, Any], Any]   # (x (B, 3, H, W) in [0, 1], y (B, 9)) -> float adversarial images in [0, 1]
+Craft = Callable[[Any, Any], Any]  # (x (B, 3, H, W) in [0, 1], y (B, 9)) -> float adversarial images in [0, 1]
 
 
 @dataclass(frozen=True)
@@ -51,8 +52,15 @@ def harmful_undetected(position_error: np.ndarray, flag: np.ndarray, harm_m: flo
     return (pos > harm_m) & ~flag
 
 
-def attack_row(attack: str, group: str, eps: float, position_error: np.ndarray, flag: np.ndarray, harm_m: float,
-               lam: float | None = None) -> dict[str, Any]:
+def attack_row(
+    attack: str,
+    group: str,
+    eps: float,
+    position_error: np.ndarray,
+    flag: np.ndarray,
+    harm_m: float,
+    lam: float | None = None,
+) -> dict[str, Any]:
     """One attack's row: rates with Wilson 95% intervals and the mean position error (m).
 
     `group`: transfer, adaptive, surrogate or seen (the detector's own training attack);
@@ -63,28 +71,47 @@ def attack_row(attack: str, group: str, eps: float, position_error: np.ndarray, 
     det = rate(flag)
     hu = rate(harmful_undetected(pos, flag, harm_m))
     harmful = rate(pos > harm_m)
-    return {"attack": attack, "group": group, "eps": float(eps), "adaptive": group == "adaptive",
-            "lambda": None if lam is None else float(lam), "n": int(pos.size),
-            "detection_rate": det.value, "harmful_undetected_rate": hu.value, "position_error_m": float(pos.mean()),
-            "ci95_detection": det.ci(), "ci95_harmful_undetected": hu.ci(),
-            "harmful_rate": harmful.value, "ci95_harmful": harmful.ci()}
+    return {
+        "attack": attack,
+        "group": group,
+        "eps": float(eps),
+        "adaptive": group == "adaptive",
+        "lambda": None if lam is None else float(lam),
+        "n": int(pos.size),
+        "detection_rate": det.value,
+        "harmful_undetected_rate": hu.value,
+        "position_error_m": float(pos.mean()),
+        "ci95_detection": det.ci(),
+        "ci95_harmful_undetected": hu.ci(),
+        "harmful_rate": harmful.value,
+        "ci95_harmful": harmful.ci(),
+    }
 
 
-def corruption_row(corruption: str, strength: float, position_error: np.ndarray, flag: np.ndarray,
-                   shipped_flag: np.ndarray) -> dict[str, Any]:
+def corruption_row(
+    corruption: str, strength: float, position_error: np.ndarray, flag: np.ndarray, shipped_flag: np.ndarray
+) -> dict[str, Any]:
     """One benign corruption's row: the false-alarm rates of the detector at its own threshold (`flag`) and at
     the threshold the shipped chain flies with (`shipped_flag`), each with its Wilson 95% interval, and the
     mean position error (m)."""
     pos, flag = _check(position_error, flag)
     _, shipped_flag = _check(position_error, shipped_flag)
     fa, shipped = rate(flag), rate(shipped_flag)
-    return {"corruption": corruption, "strength": float(strength), "n": int(pos.size), "false_alarm_rate": fa.value,
-            "ci95_false_alarm": fa.ci(), "shipped_false_alarm_rate": shipped.value,
-            "ci95_shipped_false_alarm": shipped.ci(), "position_error_m": float(pos.mean())}
+    return {
+        "corruption": corruption,
+        "strength": float(strength),
+        "n": int(pos.size),
+        "false_alarm_rate": fa.value,
+        "ci95_false_alarm": fa.ci(),
+        "shipped_false_alarm_rate": shipped.value,
+        "ci95_shipped_false_alarm": shipped.ci(),
+        "position_error_m": float(pos.mean()),
+    }
 
 
-def worst_over_lambda(position_errors: Sequence[np.ndarray], flags: Sequence[np.ndarray],
-                      harm_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def worst_over_lambda(
+    position_errors: Sequence[np.ndarray], flags: Sequence[np.ndarray], harm_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The attacker who tries every lambda and keeps, per frame, the best image for them.
 
     Inputs: one (N,) position-error and one (N,) flag array per lambda, same frames in the same
@@ -111,8 +138,10 @@ def worst_by_eps(rows: Sequence[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     for row in rows:
         key = f"{row['eps']:g}"
         if key not in out or row["harmful_undetected_rate"] > out[key]["harmful_undetected_rate"]:
-            out[key] = {k: row[k] for k in ("attack", "group", "lambda", "n", "harmful_undetected_rate",
-                                             "ci95_harmful_undetected")}
+            out[key] = {
+                k: row[k]
+                for k in ("attack", "group", "lambda", "n", "harmful_undetected_rate", "ci95_harmful_undetected")
+            }
     return out
 
 
@@ -123,9 +152,16 @@ def _stored(craft: Craft) -> Craft:
     return lambda x, y: quantize(craft(x, y), x).float() / 255.0
 
 
-def run_attack_rows(chain: Any, images: np.ndarray, targets: np.ndarray, specs: Sequence[AttackSpec], harm_m: float,
-                    batch_size: int, progress: Callable[[Iterable[int]], Iterable[int]] = iter,
-                    pgd_is_lambda0: bool = False) -> list[dict[str, Any]]:
+def run_attack_rows(
+    chain: Any,
+    images: np.ndarray,
+    targets: np.ndarray,
+    specs: Sequence[AttackSpec],
+    harm_m: float,
+    batch_size: int,
+    progress: Callable[[Iterable[int]], Iterable[int]] = iter,
+    pgd_is_lambda0: bool = False,
+) -> list[dict[str, Any]]:
     """Every spec's row on the frames (uint8 (N, H, W, 3), labels (N, 9) [m, 6-D]), each attacked
     image stored as 8-bit (`pipeline.attacks.gradient.quantize`) before `chain` (a OnboardChain) reads it;
     then per eps the adaptive attack's worst case over lambda. With `pgd_is_lambda0`, the adaptive
@@ -151,10 +187,22 @@ def run_attack_rows(chain: Any, images: np.ndarray, targets: np.ndarray, specs: 
     return sorted(rows, key=lambda row: order.get(row["group"], len(order)))
 
 
-def attack_specs(pose: Any, surrogate: Any, target: Any, *, eps: Sequence[float], unseen_eps: Sequence[float],
-                 transfer: Sequence[tuple[str, str, str | None]], lambdas: Sequence[float],
-                 surrogate_attacks: Sequence[tuple[str, str, str | None]], steps: int, mi_steps: int,
-                 momentum: float, loss: str, seed: int) -> list[AttackSpec]:
+def attack_specs(
+    pose: Any,
+    surrogate: Any,
+    target: Any,
+    *,
+    eps: Sequence[float],
+    unseen_eps: Sequence[float],
+    transfer: Sequence[tuple[str, str, str | None]],
+    lambdas: Sequence[float],
+    surrogate_attacks: Sequence[tuple[str, str, str | None]],
+    steps: int,
+    mi_steps: int,
+    momentum: float,
+    loss: str,
+    seed: int,
+) -> list[AttackSpec]:
     """The attack rows to run, in report order, on `pose` (and `surrogate`: objects with `.model` and
     `.loss`, the learned training loss) and the adaptive `target` (pipeline.attacks.adaptive.PerFrameChain).
     `transfer`, `surrogate_attacks`: (name, method, loss or None = `loss`). PGD takes `steps`
@@ -171,8 +219,9 @@ def attack_specs(pose: Any, surrogate: Any, target: Any, *, eps: Sequence[float]
     def cost(method: str) -> int:
         return {"fgsm": 1, "pgd": steps}.get(method, mi_steps)
 
-    def spec(name: str, method: str, lname: str | None, group: str, e: float, g: torch.Generator,
-             model: Any = pose) -> AttackSpec:
+    def spec(
+        name: str, method: str, lname: str | None, group: str, e: float, g: torch.Generator, model: Any = pose
+    ) -> AttackSpec:
         fn = get_attack(method, steps=cost(method), step_size=None, random_start=True, momentum=momentum, generator=g)
         lf = attack_loss(lname or loss, model.loss)
         return AttackSpec(name, group, e, None, lambda x, y: fn(model.model, x, y, e, lf), cost(method))
@@ -180,19 +229,42 @@ def attack_specs(pose: Any, surrogate: Any, target: Any, *, eps: Sequence[float]
     out = [spec("fgsm", "fgsm", None, "seen", e, gen("robustness.fgsm", 0)) for e in eps]
     out += [spec("fgsm", "fgsm", None, "transfer", e, gen("robustness.fgsm", 0)) for e in unseen_eps]
     pgd_is_lambda0 = "pgd" in [name for name, _, _ in transfer] and 0.0 in lambdas
-    out += [spec(name, method, lname, "transfer", e,
-                 gen("robustness.pgd", i) if name == "pgd" else gen("robustness.transfer", 10 * j + i))
-            for j, (name, method, lname) in enumerate(transfer) for i, e in enumerate(eps)
-            if not (name == "pgd" and pgd_is_lambda0)]
+    out += [
+        spec(
+            name,
+            method,
+            lname,
+            "transfer",
+            e,
+            gen("robustness.pgd", i) if name == "pgd" else gen("robustness.transfer", 10 * j + i),
+        )
+        for j, (name, method, lname) in enumerate(transfer)
+        for i, e in enumerate(eps)
+        if not (name == "pgd" and pgd_is_lambda0)
+    ]
     full = attack_loss(loss, pose.loss)
-    out += [AttackSpec("adaptive pgd", "adaptive", e, lam,
-                       lambda x, y, e=e, lam=lam, g=gen("robustness.pgd", i): adaptive_pgd(target, x, y, e, full, lam,
-                                                                                          steps=steps, generator=g),
-                       steps)
-            for i, e in enumerate(eps) for lam in lambdas]
-    out += [replace(spec(name, method, lname, "surrogate", e, gen("robustness.surrogate", 10 * j + i), surrogate),
-                    attack=f"surrogate {name}")
-            for j, (name, method, lname) in enumerate(surrogate_attacks) for i, e in enumerate(eps)]
+    out += [
+        AttackSpec(
+            "adaptive pgd",
+            "adaptive",
+            e,
+            lam,
+            lambda x, y, e=e, lam=lam, g=gen("robustness.pgd", i): adaptive_pgd(
+                target, x, y, e, full, lam, steps=steps, generator=g
+            ),
+            steps,
+        )
+        for i, e in enumerate(eps)
+        for lam in lambdas
+    ]
+    out += [
+        replace(
+            spec(name, method, lname, "surrogate", e, gen("robustness.surrogate", 10 * j + i), surrogate),
+            attack=f"surrogate {name}",
+        )
+        for j, (name, method, lname) in enumerate(surrogate_attacks)
+        for i, e in enumerate(eps)
+    ]
     return out
 
 
@@ -217,19 +289,25 @@ def burst_schedule(n_frames: int, length: int, every: int) -> list[tuple[int, in
     return [(s, s + length) for s in range(every, n_frames - length + 1, every)]
 
 
-
-
 def pose_estimates(chain: Any, images: np.ndarray, batch_size: int) -> tuple[np.ndarray, np.ndarray]:
     """The chain on clean uint8 frames (N, H, W, 3): (pose (N, 9) [m, 6-D], detector probability (N,))."""
     from pipeline.defense.chain import run_sequence
 
-    res = run_sequence(chain, images, np.zeros((len(images), 9), np.float32), np.zeros(len(images), bool), None,
-                       batch_size)
+    res = run_sequence(
+        chain, images, np.zeros((len(images), 9), np.float32), np.zeros(len(images), bool), None, batch_size
+    )
     return res.pose.astype(np.float64), res.prob
 
 
-def fused_row(attack: str, eps: float, lam: float | None, position_error: np.ndarray, flag: np.ndarray,
-              groups: np.ndarray, harm_m: float) -> dict[str, Any]:
+def fused_row(
+    attack: str,
+    eps: float,
+    lam: float | None,
+    position_error: np.ndarray,
+    flag: np.ndarray,
+    groups: np.ndarray,
+    harm_m: float,
+) -> dict[str, Any]:
     """A row against the fused chain: the attacked frames of whole trajectories, rates with a
     percentile bootstrap over trajectories (`groups`: trajectory id per frame; frames of a burst,
     and bursts of one filter run, are not independent)."""
@@ -239,9 +317,21 @@ def fused_row(attack: str, eps: float, lam: float | None, position_error: np.nda
     det = bootstrap_rate(flag, groups)
     hu = bootstrap_rate(harmful_undetected(pos, flag, harm_m), groups)
     harmful = bootstrap_rate(pos > harm_m, groups)
-    return {"attack": attack, "group": "fused", "chain": "fused", "eps": float(eps), "adaptive": True,
-            "lambda": None if lam is None else float(lam), "n": int(pos.size),
-            "trajectories": int(len(np.unique(groups))), "ci_method": "bootstrap over trajectories",
-            "detection_rate": det.value, "harmful_undetected_rate": hu.value, "position_error_m": float(pos.mean()),
-            "ci95_detection": det.ci(), "ci95_harmful_undetected": hu.ci(),
-            "harmful_rate": harmful.value, "ci95_harmful": harmful.ci()}
+    return {
+        "attack": attack,
+        "group": "fused",
+        "chain": "fused",
+        "eps": float(eps),
+        "adaptive": True,
+        "lambda": None if lam is None else float(lam),
+        "n": int(pos.size),
+        "trajectories": int(len(np.unique(groups))),
+        "ci_method": "bootstrap over trajectories",
+        "detection_rate": det.value,
+        "harmful_undetected_rate": hu.value,
+        "position_error_m": float(pos.mean()),
+        "ci95_detection": det.ci(),
+        "ci95_harmful_undetected": hu.ci(),
+        "harmful_rate": harmful.value,
+        "ci95_harmful": harmful.ci(),
+    }

@@ -7,6 +7,7 @@ grouped by source image, so the clean version of a frame and all its adversarial
 sign pattern does not depend on eps) sit on the same side, and stratified by eps as far as the
 groups allow (scikit-learn's StratifiedGroupKFold).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -25,14 +26,16 @@ def holdout(groups: np.ndarray, fraction: float, seed: int) -> tuple[np.ndarray,
     unique = np.unique(groups)
     n_out = int(round(fraction * len(unique)))
     if not 0 < n_out < len(unique):
-        raise ValueError(f"{len(unique)} groups cannot be split {1 - fraction:.0%} / {fraction:.0%} "
-                         f"with both sides non-empty")
+        raise ValueError(
+            f"{len(unique)} groups cannot be split {1 - fraction:.0%} / {fraction:.0%} with both sides non-empty"
+        )
     out = np.isin(groups, np.random.default_rng(seed).permutation(unique)[:n_out])
     return np.flatnonzero(~out), np.flatnonzero(out)
 
 
-def grouped_split(groups: np.ndarray, strata: np.ndarray, test_fraction: float, val_fraction: float,
-                  seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def grouped_split(
+    groups: np.ndarray, strata: np.ndarray, test_fraction: float, val_fraction: float, seed: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sorted (train, validation, test) indices, grouped by `groups` and stratified by `strata`.
 
     The test part is one fold of StratifiedGroupKFold with round(1 / test_fraction) folds (0.2 -> 5),

@@ -18,6 +18,7 @@ Capacity (`capacity_frames`, `fit_overbound`): per validation frame and eps the 
 from its clean estimate that the suite reached (along the true line of sight, across it, attitude change; the
 frame's true range), and per eps its overbound in range bins (`fit_capacity`: a quantile times 1 + margin).
 """
+
 from __future__ import annotations
 
 from typing import Any, Sequence
@@ -40,13 +41,22 @@ from pipeline.attacks.strongest import (
 )
 from pipeline.render.backgrounds import KINDS
 
-TOLERANCE = 0.05   # the stability and lean-vs-full checks: mean worst cases within 5% of each other
+TOLERANCE = 0.05  # the stability and lean-vs-full checks: mean worst cases within 5% of each other
 
 
-def attacked_table(model: nn.Module, images: np.ndarray, targets: np.ndarray, eps: Sequence[float],
-                   config: SuiteConfig, *, backgrounds: Sequence[str] | None = None,
-                   check: np.ndarray | None = None, full_check: np.ndarray | None = None,
-                   full: SuiteConfig | None = None, device: str | torch.device = "cpu") -> dict[str, Any]:
+def attacked_table(
+    model: nn.Module,
+    images: np.ndarray,
+    targets: np.ndarray,
+    eps: Sequence[float],
+    config: SuiteConfig,
+    *,
+    backgrounds: Sequence[str] | None = None,
+    check: np.ndarray | None = None,
+    full_check: np.ndarray | None = None,
+    full: SuiteConfig | None = None,
+    device: str | torch.device = "cpu",
+) -> dict[str, Any]:
     """The suite `config` on clean uint8 images (N, H, W, 3) with true poses `targets` (N, 9: camera-frame
     position in m, 6-D rotation) at the increasing L-inf budgets `eps` (pixel units): its `table` (`backgrounds`
     (N,) each frame's background kind) with `stability` (the suite with doubled steps and restarts over it on the
@@ -69,9 +79,14 @@ def attacked_table(model: nn.Module, images: np.ndarray, targets: np.ndarray, ep
 def table(result: SuiteResult, backgrounds: Sequence[str] | None = None) -> dict[str, Any]:
     """A suite run as {frames, eps, members, rows (`suite_rows`), sanity (`sanity_rows`), backgrounds
     (`background_rows`)}."""
-    return {"frames": result.frames, "eps": list(result.eps), "members": list(result.members),
-            "rows": suite_rows(result), "sanity": sanity_rows(result),
-            "backgrounds": background_rows(result, backgrounds)}
+    return {
+        "frames": result.frames,
+        "eps": list(result.eps),
+        "members": list(result.members),
+        "rows": suite_rows(result),
+        "sanity": sanity_rows(result),
+        "backgrounds": background_rows(result, backgrounds),
+    }
 
 
 def compare(result: SuiteResult, reference: SuiteResult) -> dict[str, Any]:
@@ -84,30 +99,62 @@ def background_rows(result: SuiteResult, backgrounds: Sequence[str] | None) -> d
     the clean row and the suite's worst case per eps; `backgrounds` (N,) each frame's kind, None = all black."""
     kinds = np.full(result.frames, KINDS[0]) if backgrounds is None else np.asarray(backgrounds, str)
     if kinds.shape != (result.frames,) or not set(kinds) <= set(KINDS):
-        raise ValueError(f"backgrounds must be ({result.frames},) kinds of {', '.join(KINDS)}, got "
-                         f"{kinds.shape} {sorted(set(kinds.ravel()))}")
-    return {kind: [r for r in suite_rows(result.select(kinds == kind)) if r["attack"] in ("clean", "suite")]
-            for kind in KINDS if (kinds == kind).any()}
+        raise ValueError(
+            f"backgrounds must be ({result.frames},) kinds of {', '.join(KINDS)}, got "
+            f"{kinds.shape} {sorted(set(kinds.ravel()))}"
+        )
+    return {
+        kind: [r for r in suite_rows(result.select(kinds == kind)) if r["attack"] in ("clean", "suite")]
+        for kind in KINDS
+        if (kinds == kind).any()
+    }
 
 
-def capacity_frames(model: nn.Module, images: np.ndarray, targets: np.ndarray, eps: Sequence[float],
-                    config: SuiteConfig, index: np.ndarray, device: str | torch.device = "cpu") -> pd.DataFrame:
+def capacity_frames(
+    model: nn.Module,
+    images: np.ndarray,
+    targets: np.ndarray,
+    eps: Sequence[float],
+    config: SuiteConfig,
+    index: np.ndarray,
+    device: str | torch.device = "cpu",
+) -> pd.DataFrame:
     """The per-frame attacker capacity of the suite `config` on N (validation) frames, one row per frame and eps
     (eps increasing, nested: a frame's shift cannot drop as eps grows): index (the frame's label index, `index`
     (N,)), range_m (true range, m), eps, along_m and across_m (|shift| of the estimate from the clean estimate
     along and across the true line of sight, m), attitude_deg (attitude change, deg)."""
     cap = frame_capacity(run_suite(model, images, targets, eps, config, device=device))
     n, e = len(cap.target_range_m), len(cap.eps)
-    return pd.DataFrame({"index": np.tile(np.asarray(index, np.int64), e), "range_m": np.tile(cap.target_range_m, e),
-                         "eps": np.repeat(np.asarray(cap.eps, np.float64), n), "along_m": cap.along_m.ravel(),
-                         "across_m": cap.across_m.ravel(), "attitude_deg": cap.attitude_deg.ravel()})
+    return pd.DataFrame(
+        {
+            "index": np.tile(np.asarray(index, np.int64), e),
+            "range_m": np.tile(cap.target_range_m, e),
+            "eps": np.repeat(np.asarray(cap.eps, np.float64), n),
+            "along_m": cap.along_m.ravel(),
+            "across_m": cap.across_m.ravel(),
+            "attitude_deg": cap.attitude_deg.ravel(),
+        }
+    )
 
 
-def fit_overbound(frames: pd.DataFrame, edges: Sequence[float], quantile: float, margin: float,
-                  min_count: int) -> list[Overbound]:
+def fit_overbound(
+    frames: pd.DataFrame, edges: Sequence[float], quantile: float, margin: float, min_count: int
+) -> list[Overbound]:
     """Per eps of a `capacity_frames` table (increasing) the fitted overbound F(eps, range) in the range bins
     `edges` (m): `fit_capacity` with `quantile`, `margin` and `min_count`."""
-    return [fit_capacity(Shifts(float(e), g["range_m"].to_numpy(), g["along_m"].to_numpy(), g["across_m"].to_numpy(),
-                                g["attitude_deg"].to_numpy()), edges, quantile, margin, min_count)
-            for e, g in frames.groupby("eps", sort=True)]
-
+    return [
+        fit_capacity(
+            Shifts(
+                float(e),
+                g["range_m"].to_numpy(),
+                g["along_m"].to_numpy(),
+                g["across_m"].to_numpy(),
+                g["attitude_deg"].to_numpy(),
+            ),
+            edges,
+            quantile,
+            margin,
+            min_count,
+        )
+        for e, g in frames.groupby("eps", sort=True)
+    ]

@@ -9,6 +9,7 @@ and FOLDER/manifest.json:
     files: {name: {sha256, bytes}}, sources: {name: the file of a run's models/ it was copied from},
     params: the params.yaml they were trained with, rebuild: how to remake it.
 """
+
 from __future__ import annotations
 
 import shutil
@@ -22,29 +23,38 @@ from pipeline.io.errors import DataError
 BUNDLE_FORMAT = "rpodguard-weights/1"
 MANIFEST = "manifest.json"
 FILES = tuple(BUNDLE_FILES)
-SOURCES = dict(zip(BUNDLE_FILES, RUN_FILES[SHIPPED]))   # bundle file -> the shipped chain's file in a run's models/
+SOURCES = dict(zip(BUNDLE_FILES, RUN_FILES[SHIPPED]))  # bundle file -> the shipped chain's file in a run's models/
 
 
-def write_bundle(out: Path | str, models: Path | str, params: dict[str, Any], commit: str,
-                 code_changes: list[str], rebuild: str) -> dict[str, Any]:
+def write_bundle(
+    out: Path | str, models: Path | str, params: dict[str, Any], commit: str, code_changes: list[str], rebuild: str
+) -> dict[str, Any]:
     """Copy the shipped chain of a run's MODELS folder (`SOURCES`: pose_robust.pt, detector_robust.pt, defense.json)
     into the folder OUT as FILES (replaced whole, atomically) with its manifest; returns the manifest. defense.json
     must name the robust pose model's hash (calibrated on that model)."""
     models, names = Path(models), RUN_FILES[SHIPPED]
     defense, pose = read_json(models / names.defense), models / names.pose
     if defense.get("pose_model_hash") != file_hash(pose):
-        raise DataError(f"{models / names.defense} was calibrated for another pose model than {pose}; "
-                        f"re-run `rpod calibrate`")
+        raise DataError(
+            f"{models / names.defense} was calibrated for another pose model than {pose}; re-run `rpod calibrate`"
+        )
     with atomic_dir(out) as tmp:
         for name in FILES:
             shutil.copyfile(models / SOURCES[name], tmp / name)
-        manifest = {"format": BUNDLE_FORMAT, "profile": params.get("profile_name"), "commit": commit,
-                    "code_changes": sorted(code_changes), "params": params, "rebuild": rebuild,
-                    "sources": {name: f"{MODELS_DIR}/{SOURCES[name]}" for name in FILES},
-                    "files": {name: {"sha256": file_hash(tmp / name, 64), "bytes": (tmp / name).stat().st_size}
-                              for name in FILES}}
+        manifest = {
+            "format": BUNDLE_FORMAT,
+            "profile": params.get("profile_name"),
+            "commit": commit,
+            "code_changes": sorted(code_changes),
+            "params": params,
+            "rebuild": rebuild,
+            "sources": {name: f"{MODELS_DIR}/{SOURCES[name]}" for name in FILES},
+            "files": {
+                name: {"sha256": file_hash(tmp / name, 64), "bytes": (tmp / name).stat().st_size} for name in FILES
+            },
+        }
         write_json(tmp / MANIFEST, manifest)
-        tmp.chmod(0o755)                       # a temporary folder and file are private; a bundle is for everyone
+        tmp.chmod(0o755)  # a temporary folder and file are private; a bundle is for everyone
         for path in tmp.iterdir():
             path.chmod(0o644)
     return manifest
@@ -62,6 +72,8 @@ def check_bundle(folder: Path | str) -> dict[str, Any]:
         if not path.is_file():
             raise DataError(f"{path} is missing from the weights bundle (restore it with `git checkout -- {folder}`)")
         if file_hash(path, 64) != entry.get("sha256"):
-            raise DataError(f"{path} does not match its sha256 in {folder / MANIFEST} (changed or damaged; restore "
-                            f"it with `git checkout -- {folder}` or rebuild: {manifest.get('rebuild')})")
+            raise DataError(
+                f"{path} does not match its sha256 in {folder / MANIFEST} (changed or damaged; restore "
+                f"it with `git checkout -- {folder}` or rebuild: {manifest.get('rebuild')})"
+            )
     return manifest

@@ -23,6 +23,7 @@ API (stable; other stages read it):
 
 - `capacity_paths(folder, model) -> (parquet, json)`: the two files' paths.
 """
+
 from __future__ import annotations
 
 import re
@@ -49,8 +50,9 @@ def capacity_paths(folder: Path | str, model: str) -> tuple[Path, Path]:
     return Path(folder) / f"{model}.parquet", Path(folder) / f"{model}.json"
 
 
-def write_capacity(folder: Path | str, model: str, frames: pd.DataFrame, overbounds: Sequence[Capacity],
-                   meta: dict[str, Any]) -> dict[str, Any]:
+def write_capacity(
+    folder: Path | str, model: str, frames: pd.DataFrame, overbounds: Sequence[Capacity], meta: dict[str, Any]
+) -> dict[str, Any]:
     """A chain's capacity files (module doc) into `folder`: `frames` (COLUMNS), `overbounds` (one per eps of
     `frames`, any order); returns the JSON file's content. A ValueError when they do not fit together."""
     overbounds = sorted(overbounds, key=lambda c: c.eps)
@@ -58,10 +60,24 @@ def write_capacity(folder: Path | str, model: str, frames: pd.DataFrame, overbou
     _check_overbounds(overbounds, frames)
     table, fitted = capacity_paths(folder, model)
     first = overbounds[0]
-    content = {"format": CAPACITY_FORMAT, "model": model, "meta": meta, "edges": first.edges.tolist(),
-               "quantile": float(first.quantile), "margin": float(first.margin),
-               "per_eps": [{"eps": float(c.eps), "along_m": c.along.tolist(), "across_m": c.across.tolist(),
-                            "attitude_deg": c.attitude_deg.tolist(), "count": c.count.tolist()} for c in overbounds]}
+    content = {
+        "format": CAPACITY_FORMAT,
+        "model": model,
+        "meta": meta,
+        "edges": first.edges.tolist(),
+        "quantile": float(first.quantile),
+        "margin": float(first.margin),
+        "per_eps": [
+            {
+                "eps": float(c.eps),
+                "along_m": c.along.tolist(),
+                "across_m": c.across.tolist(),
+                "attitude_deg": c.attitude_deg.tolist(),
+                "count": c.count.tolist(),
+            }
+            for c in overbounds
+        ],
+    }
     write_parquet(frames, table)
     write_json(fitted, content)
     return content
@@ -76,10 +92,19 @@ def read_capacity(folder: Path | str, model: str) -> tuple[pd.DataFrame, list[Ca
         if not isinstance(data, dict) or data.get("format") != CAPACITY_FORMAT or data.get("model") != model:
             raise ValueError("wrong format or model")
         edges = np.asarray(data["edges"], np.float64)
-        overbounds = [Capacity(float(e["eps"]), edges, np.asarray(e["along_m"], np.float64),
-                               np.asarray(e["across_m"], np.float64), np.asarray(e["attitude_deg"], np.float64),
-                               np.asarray(e["count"], np.int64), float(data["quantile"]), float(data["margin"]))
-                      for e in data["per_eps"]]
+        overbounds = [
+            Capacity(
+                float(e["eps"]),
+                edges,
+                np.asarray(e["along_m"], np.float64),
+                np.asarray(e["across_m"], np.float64),
+                np.asarray(e["attitude_deg"], np.float64),
+                np.asarray(e["count"], np.int64),
+                float(data["quantile"]),
+                float(data["margin"]),
+            )
+            for e in data["per_eps"]
+        ]
     except (KeyError, TypeError, ValueError) as e:
         raise DataError(f"{fitted} is not a {CAPACITY_FORMAT} file of the {model} model ({e})") from None
     frames = read_parquet(table, "capacity table")
@@ -112,8 +137,9 @@ def _check_overbounds(overbounds: Sequence[Capacity], frames: pd.DataFrame) -> N
     if edges.ndim != 1 or len(edges) < 2 or not np.isfinite(edges).all() or not (np.diff(edges) > 0).all():
         raise ValueError(f"capacity: edges must be >= 2 increasing finite ranges (m), got {edges}")
     if len(set(eps)) != len(eps) or sorted(set(frames["eps"].astype(float))) != eps:
-        raise ValueError(f"capacity: the overbounds' eps {eps} must be distinct and those of the frames "
-                         f"{sorted(set(frames['eps']))}")
+        raise ValueError(
+            f"capacity: the overbounds' eps {eps} must be distinct and those of the frames {sorted(set(frames['eps']))}"
+        )
     for c in overbounds:
         if not np.array_equal(c.edges, edges) or c.quantile != first.quantile or c.margin != first.margin:
             raise ValueError("capacity: every overbound must share the range bins, quantile and margin")

@@ -12,6 +12,7 @@ pose file's hash), the pose head must be affine (exact SHAP), and the defense fi
 must have been calibrated for this pose model and detector, and be whole and sound. Each is a DataError naming
 the file.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -38,14 +39,21 @@ def chain_files(folder: Path | str, model: str | None = None) -> tuple[Path, Cha
     shipped = RUN_FILES[SHIPPED]
     if not any((folder / n).exists() for n in (BUNDLE_FILES.pose, shipped.pose)) and (folder / MODELS_DIR).is_dir():
         folder = folder / MODELS_DIR
-    if (folder / shipped.pose).exists():   # a run's models/: the shipped chain's names there
+    if (folder / shipped.pose).exists():  # a run's models/: the shipped chain's names there
         return folder, shipped, SHIPPED
     return folder, BUNDLE_FILES, SHIPPED
 
 
-def load_chain(folder: Path | str, model: str | None = None, *, device: Any = "cpu", amp: bool = False,
-               defended: bool | None = True, bundle: bool = False,
-               check: Callable[[Path, dict[str, Any]], None] | None = None) -> SafetyChain:
+def load_chain(
+    folder: Path | str,
+    model: str | None = None,
+    *,
+    device: Any = "cpu",
+    amp: bool = False,
+    defended: bool | None = True,
+    bundle: bool = False,
+    check: Callable[[Path, dict[str, Any]], None] | None = None,
+) -> SafetyChain:
     """The SafetyChain `model` of `folder` (`chain_files`), its pose network on `device` (`amp`: bf16 autocast on
     CUDA). `defended`: read its defense file (True), not (False: e.g. to calibrate it), or when present (None).
     `bundle` (or a manifest in the folder): check the weights bundle's sha256 first. `check(path, checkpoint)`
@@ -55,7 +63,7 @@ def load_chain(folder: Path | str, model: str | None = None, *, device: Any = "c
     pose_path, detector_path, defense_path = (folder / n for n in names)
 
     def checked(path: Path, ckpt: dict[str, Any]) -> None:
-        if names != BUNDLE_FILES:   # a run's models/: pose_robust.pt holds the clamped model, pose.pt a standard one
+        if names != BUNDLE_FILES:  # a run's models/: pose_robust.pt holds the clamped model, pose.pt a standard one
             check_role(ckpt, name == SHIPPED, path)
         if check is not None:
             check(path, ckpt)
@@ -63,15 +71,26 @@ def load_chain(folder: Path | str, model: str | None = None, *, device: Any = "c
     pose = load_pose(pose_path, device, amp, checked)
     detector, ckpt = read_detector(detector_path, model_hash=pose.hash)
     try:
-        onboard = OnboardChain.from_model(pose.model, np.asarray(ckpt["background_mean"]), detector,
-                                          threshold=float(ckpt["threshold"]))
+        onboard = OnboardChain.from_model(
+            pose.model, np.asarray(ckpt["background_mean"]), detector, threshold=float(ckpt["threshold"])
+        )
     except ValueError as err:
         raise DataError(f"{pose_path}: {err}") from None
     read = defended or (defended is None and defense_path.exists())
     calibration = read_defense(defense_path, pose.hash, onboard.threshold) if read else None
     if calibration is not None and model is not None and calibration.model != name:
-        raise DataError(f"{defense_path} was calibrated for the {calibration.model} chain, not the {name} one; "
-                        f"re-run `rpod calibrate --model {name}`")
+        raise DataError(
+            f"{defense_path} was calibrated for the {calibration.model} chain, not the {name} one; "
+            f"re-run `rpod calibrate --model {name}`"
+        )
     facts = {**pose.checkpoint, **({} if manifest is None else {"manifest": manifest})}
-    return SafetyChain(name, onboard, pose.loss, pose.hash, facts, (pose_path, detector_path, defense_path),
-                       None if calibration is None else calibration.defended, calibration)
+    return SafetyChain(
+        name,
+        onboard,
+        pose.loss,
+        pose.hash,
+        facts,
+        (pose_path, detector_path, defense_path),
+        None if calibration is None else calibration.defended,
+        calibration,
+    )

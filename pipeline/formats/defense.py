@@ -16,6 +16,7 @@ Format `DEFENSE_FORMAT` (JSON), every key required but `tightened`:
     (calibrated with defense.allow_unmet; empty otherwise); validation: what it measured on the validation
     frames (`Validation`); tightened: how the shares were tightened when the fused chain first overshot.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -88,12 +89,15 @@ class DefenseFile:
 
     def __post_init__(self) -> None:
         if self.settings.threshold != self.threshold or self.motion.cusum_threshold != self.cusum_threshold:
-            raise ValueError(f"settings.threshold {self.settings.threshold!r} and settings.cusum_threshold "
-                             f"{self.motion.cusum_threshold!r} must be the calibrated threshold {self.threshold!r} "
-                             f"and cusum_threshold {self.cusum_threshold!r}")
+            raise ValueError(
+                f"settings.threshold {self.settings.threshold!r} and settings.cusum_threshold "
+                f"{self.motion.cusum_threshold!r} must be the calibrated threshold {self.threshold!r} "
+                f"and cusum_threshold {self.cusum_threshold!r}"
+            )
         if self.noise != inflate(self.fitted_noise, self.inflation, self.attitude_inflation):
-            raise ValueError(f"noise is not fitted_noise inflated by {self.inflation!r} (attitude "
-                             f"{self.attitude_inflation!r})")
+            raise ValueError(
+                f"noise is not fitted_noise inflated by {self.inflation!r} (attitude {self.attitude_inflation!r})"
+            )
         for name in ("tolerance", "max_step", "collision_range", "fixed"):
             value = getattr(self.alert_limit, name)
             if value is not None and not AL_RANGE.contains(value):
@@ -101,8 +105,9 @@ class DefenseFile:
         for name in ("noise", "fitted_noise"):
             noise = getattr(self, name)
             if noise.knot_std and noise.floor > max(max(row) for row in noise.knot_std):
-                raise ValueError(f"{name}.floor {noise.floor!r} must lie below its largest standard deviation "
-                                 f"(knot_std)")
+                raise ValueError(
+                    f"{name}.floor {noise.floor!r} must lie below its largest standard deviation (knot_std)"
+                )
 
     @property
     def defended(self) -> Defended:
@@ -111,14 +116,22 @@ class DefenseFile:
 
     def to_json(self) -> dict[str, Any]:
         """The file's JSON record (what `read_defense` reads back into an equal DefenseFile)."""
-        out = {"format": self.format, "model": self.model, "pose_model_hash": self.pose_model_hash,
-               "detector_threshold": self.detector_threshold, "threshold": self.threshold,
-               "cusum_threshold": self.cusum_threshold, "inflation": self.inflation,
-               "attitude_inflation": self.attitude_inflation, "noise": self.noise.as_dict(),
-               "fitted_noise": self.fitted_noise.as_dict(),
-               "settings": {**dataclasses.asdict(self.settings), **dataclasses.asdict(self.motion)},
-               "alert_limit": dataclasses.asdict(self.alert_limit), "unmet": list(self.unmet),
-               "validation": dataclasses.asdict(self.validation)}
+        out = {
+            "format": self.format,
+            "model": self.model,
+            "pose_model_hash": self.pose_model_hash,
+            "detector_threshold": self.detector_threshold,
+            "threshold": self.threshold,
+            "cusum_threshold": self.cusum_threshold,
+            "inflation": self.inflation,
+            "attitude_inflation": self.attitude_inflation,
+            "noise": self.noise.as_dict(),
+            "fitted_noise": self.fitted_noise.as_dict(),
+            "settings": {**dataclasses.asdict(self.settings), **dataclasses.asdict(self.motion)},
+            "alert_limit": dataclasses.asdict(self.alert_limit),
+            "unmet": list(self.unmet),
+            "validation": dataclasses.asdict(self.validation),
+        }
         return out if self.tightened is None else {**out, "tightened": self.tightened}
 
 
@@ -137,10 +150,14 @@ def parse_defense(record: Any, where: str) -> DefenseFile:
     unknown = sorted(set(flown) - names[DefenseSettings] - names[MotionSettings])
     if unknown:
         raise DataError(f"{where}: unknown key {'settings.' + str(unknown[0])!r}; {DEFENSE_REDO}")
-    split = {"settings": typed(DefenseSettings, {k: v for k, v in flown.items() if k in names[DefenseSettings]},
-                               source, "settings"),
-             "motion": typed(MotionSettings, {k: v for k, v in flown.items() if k in names[MotionSettings]},
-                             source, "settings")}
+    split = {
+        "settings": typed(
+            DefenseSettings, {k: v for k, v in flown.items() if k in names[DefenseSettings]}, source, "settings"
+        ),
+        "motion": typed(
+            MotionSettings, {k: v for k, v in flown.items() if k in names[MotionSettings]}, source, "settings"
+        ),
+    }
     return typed(DefenseFile, {**record, **split}, source)
 
 
@@ -154,22 +171,30 @@ def read_defense(path: Path | str, model_hash: str, detector_threshold: float) -
     return cal
 
 
-def check_settings(cal: DefenseFile, where: str, wanted: Defended, doubt: float | None, source: str,
-                   keys: dict[str, str]) -> None:
+def check_settings(
+    cal: DefenseFile, where: str, wanted: Defended, doubt: float | None, source: str, keys: dict[str, str]
+) -> None:
     """Refuse (one DataError naming both values) a defense file whose recorded settings differ from those a run
     asks for: `wanted`'s settings, motion settings and alert limit (as `source`, e.g. params.yaml, gives them),
     their calibrated fields (the thresholds, h, the doubt level) aside, and a doubt level recorded exactly when
     the run asks for one (`doubt`: its share of the clean frames, None: none). `keys`: setting name (or "doubt")
     -> the key of `source` that gives it, for the message."""
     calibrated = {"threshold", "update_below", "cusum_threshold"}
-    pairs = [(f"{part}.{f.name}", getattr(have, f.name), getattr(want, f.name), f.name)
-             for part, have, want in (("settings", cal.settings, wanted.settings),
-                                      ("settings", cal.motion, wanted.motion),
-                                      ("alert_limit", cal.alert_limit, wanted.alert))
-             for f in dataclasses.fields(want) if f.name not in calibrated]
+    pairs = [
+        (f"{part}.{f.name}", getattr(have, f.name), getattr(want, f.name), f.name)
+        for part, have, want in (
+            ("settings", cal.settings, wanted.settings),
+            ("settings", cal.motion, wanted.motion),
+            ("alert_limit", cal.alert_limit, wanted.alert),
+        )
+        for f in dataclasses.fields(want)
+        if f.name not in calibrated
+    ]
     if (cal.settings.update_below is None) != (doubt is None):
         pairs.append(("settings.update_below", cal.settings.update_below, doubt, "doubt"))
     for key, recorded, asked, name in pairs:
         if recorded != asked:
-            raise DataError(f"{where} records {key} = {recorded!r} but {source} gives {keys.get(name, name)} = "
-                            f"{asked!r}: calibrated under other settings; {DEFENSE_REDO}")
+            raise DataError(
+                f"{where} records {key} = {recorded!r} but {source} gives {keys.get(name, name)} = "
+                f"{asked!r}: calibrated under other settings; {DEFENSE_REDO}"
+            )

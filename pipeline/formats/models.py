@@ -11,6 +11,7 @@ Detector (`DETECTOR_FORMAT`, written by `rpod detect`): pipeline.detectors.lstm.
 plus format, threshold, pose_model_hash (the pose file's `file_hash`), background_mean (D,) and
 shap_method.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -22,12 +23,19 @@ from pipeline.io.errors import DataError
 
 POSE_FORMAT = "rpodguard-pose/1"
 DETECTOR_FORMAT = "rpodguard-detector/1"
-POSE_REDO = "re-run `rpod train`"      # how a bad pose checkpoint is remade, in messages
+POSE_REDO = "re-run `rpod train`"  # how a bad pose checkpoint is remade, in messages
 DETECTOR_REDO = "re-run `rpod detect`"
 
 
-def save_pose(path: Path | str, model: Any, loss: Any, input_size: tuple[int, int], meta: dict[str, Any],
-              K: Any = None, labels_hash: str | None = None) -> None:
+def save_pose(
+    path: Path | str,
+    model: Any,
+    loss: Any,
+    input_size: tuple[int, int],
+    meta: dict[str, Any],
+    K: Any = None,
+    labels_hash: str | None = None,
+) -> None:
     """Write a pose checkpoint atomically (temporary file + rename); `input_size` = (height, width) pixels,
     `K` the camera matrix (3x3, pixels at that size) of the training images and `labels_hash` the label
     table's file hash, when known."""
@@ -44,9 +52,9 @@ def save_pose(path: Path | str, model: Any, loss: Any, input_size: tuple[int, in
     save_torch(path, state)
 
 
-POSE_KEYS = {"format", "arch", "input_size", "model", "loss", "meta"}   # required; K and labels_hash optional
-ARCH_KEYS = {"width", "dropout", "black_level"}                        # PoseNet's arguments (black_level: robust)
-LOG_VARIANCE_LIMIT = 10.0   # |s_p|, |s_r| above this (weights exp(-2 s) beyond 5e8 or 2e-9) are no learned loss
+POSE_KEYS = {"format", "arch", "input_size", "model", "loss", "meta"}  # required; K and labels_hash optional
+ARCH_KEYS = {"width", "dropout", "black_level"}  # PoseNet's arguments (black_level: robust)
+LOG_VARIANCE_LIMIT = 10.0  # |s_p|, |s_r| above this (weights exp(-2 s) beyond 5e8 or 2e-9) are no learned loss
 
 
 def read_pose(path: Path | str) -> dict[str, Any]:
@@ -70,33 +78,43 @@ def pose_problem(ckpt: dict[str, Any]) -> str | None:
     if not POSE_KEYS <= keys or keys - POSE_KEYS - {"K", "labels_hash"}:
         return f"keys missing {sorted(POSE_KEYS - keys) or 'none'}, unknown {sorted(keys - POSE_KEYS - {'K', 'labels_hash'}) or 'none'}"
     arch, size, loss = ckpt["arch"], ckpt["input_size"], ckpt["loss"]
-    if not isinstance(arch, dict) or not {"width", "dropout"} <= set(arch) <= ARCH_KEYS or \
-            not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in arch.values()):
+    if (
+        not isinstance(arch, dict)
+        or not {"width", "dropout"} <= set(arch) <= ARCH_KEYS
+        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in arch.values())
+    ):
         return f"arch must hold numbers width, dropout and optionally black_level, got {arch!r}"
     if not (isinstance(size, (list, tuple)) and len(size) == 2 and all(type(v) is int and v > 0 for v in size)):
         return f"input_size must be [height, width] in pixels, got {size!r}"
     if not isinstance(ckpt["model"], dict) or not all(isinstance(v, torch.Tensor) for v in ckpt["model"].values()):
         return "model must be a state dict of tensors"
+
     class Shapes(PoseNet):
-        def _init_weights(self) -> None:     # random init of meta tensors is slow and needless: shapes only
+        def _init_weights(self) -> None:  # random init of meta tensors is slow and needless: shapes only
             pass
 
     try:
-        with torch.device("meta"):           # nothing allocated, whatever width the arch claims
+        with torch.device("meta"):  # nothing allocated, whatever width the arch claims
             want = {k: tuple(v.shape) for k, v in Shapes(**arch).state_dict().items()}
     except ValueError as e:
         return f"arch {arch}: {e}"
     have = {k: tuple(v.shape) for k, v in ckpt["model"].items()}
     if want != have:
         odd = sorted(k for k in want.keys() | have.keys() if want.get(k) != have.get(k))
-        return (f"its weights do not fit arch {arch} ({len(odd)} tensors missing, unknown or misshapen, first "
-                f"{odd[0]}: {have.get(odd[0], 'missing')} for {want.get(odd[0], 'none')})")
-    if not (isinstance(loss, dict) and set(loss) == {"s_p", "s_r", "reduction"} and loss["reduction"] in ("mean", "sum")):
+        return (
+            f"its weights do not fit arch {arch} ({len(odd)} tensors missing, unknown or misshapen, first "
+            f"{odd[0]}: {have.get(odd[0], 'missing')} for {want.get(odd[0], 'none')})"
+        )
+    if not (
+        isinstance(loss, dict) and set(loss) == {"s_p", "s_r", "reduction"} and loss["reduction"] in ("mean", "sum")
+    ):
         return f"loss must hold s_p, s_r and reduction 'mean' or 'sum', got {loss!r}"
     bad = [k for k in ("s_p", "s_r") if not isinstance(loss[k], (int, float)) or abs(loss[k]) > LOG_VARIANCE_LIMIT]
     if bad:
-        return (f"loss {bad[0]} = {loss[bad[0]]!r} is no learned log-variance (|s| <= {LOG_VARIANCE_LIMIT:g}; the "
-                f"loss weighs its term by exp(-2 s))")
+        return (
+            f"loss {bad[0]} = {loss[bad[0]]!r} is no learned log-variance (|s| <= {LOG_VARIANCE_LIMIT:g}; the "
+            f"loss weighs its term by exp(-2 s))"
+        )
     if not isinstance(ckpt["meta"], dict):
         return "meta must be a dict"
     return None
@@ -108,8 +126,10 @@ def check_role(ckpt: dict[str, Any], robust: bool, path: Path | str) -> None:
     clamped = "black_level" in ckpt["arch"]
     if clamped != robust:
         have, want = ("robust", "standard") if clamped else ("standard", "robust")
-        raise DataError(f"{path} holds the {have} pose model (arch {ckpt['arch']}) where the {want} one belongs; "
-                        f"{'re-run `rpod train --robust`' if robust else POSE_REDO} or restore the file")
+        raise DataError(
+            f"{path} holds the {have} pose model (arch {ckpt['arch']}) where the {want} one belongs; "
+            f"{'re-run `rpod train --robust`' if robust else POSE_REDO} or restore the file"
+        )
 
 
 def model_from_checkpoint(ckpt: dict[str, Any], device: Any = "cpu", amp: bool = False) -> Any:
@@ -150,8 +170,12 @@ class Pose:
         return dict(self.checkpoint.get("meta", {}))
 
 
-def load_pose(path: Path | str, device: Any = "cpu", amp: bool = False,
-              check: Callable[[Path, dict[str, Any]], None] | None = None) -> Pose:
+def load_pose(
+    path: Path | str,
+    device: Any = "cpu",
+    amp: bool = False,
+    check: Callable[[Path, dict[str, Any]], None] | None = None,
+) -> Pose:
     """The pose checkpoint at `path` read once (`read_pose`; `check(path, checkpoint)` may refuse it before the
     network is built), its network placed on `device` (with `amp`: bf16 autocast on CUDA)."""
     from pipeline.io.atomic import file_hash
@@ -174,20 +198,27 @@ def read_detector(path: Path | str, model_hash: str | None = None) -> tuple[Any,
     ckpt = load_torch(path, DETECTOR_FORMAT, DETECTOR_REDO)
     threshold, mean = ckpt.get("threshold"), ckpt.get("background_mean")
     if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not 0 < threshold < 1:
-        raise DataError(f"detector checkpoint {path}: threshold {threshold!r} is no probability in (0, 1); "
-                        f"{DETECTOR_REDO}")
+        raise DataError(
+            f"detector checkpoint {path}: threshold {threshold!r} is no probability in (0, 1); {DETECTOR_REDO}"
+        )
     try:
         detector = from_checkpoint(ckpt)
         width = detector.config.n_features
     except (KeyError, TypeError, ValueError, RuntimeError) as e:
         first = str(e).split("\n\t")[1:2] or [str(e)]
-        raise DataError(f"detector checkpoint {path} does not hold an LSTM detector ({type(e).__name__}: "
-                        f"{first[0].strip()}); {DETECTOR_REDO}") from None
+        raise DataError(
+            f"detector checkpoint {path} does not hold an LSTM detector ({type(e).__name__}: "
+            f"{first[0].strip()}); {DETECTOR_REDO}"
+        ) from None
     if not hasattr(mean, "shape") or tuple(mean.shape) != (width,):
-        raise DataError(f"detector checkpoint {path}: background_mean must hold the {width} features' SHAP "
-                        f"background mean, got shape {tuple(getattr(mean, 'shape', ())) or type(mean).__name__}; "
-                        f"{DETECTOR_REDO}")
+        raise DataError(
+            f"detector checkpoint {path}: background_mean must hold the {width} features' SHAP "
+            f"background mean, got shape {tuple(getattr(mean, 'shape', ())) or type(mean).__name__}; "
+            f"{DETECTOR_REDO}"
+        )
     if model_hash is not None and ckpt.get("pose_model_hash") != model_hash:
-        raise DataError(f"{path} was trained for pose checkpoint {ckpt.get('pose_model_hash')!r}, not {model_hash!r}; "
-                        f"re-run `rpod shap` and `rpod detect`")
+        raise DataError(
+            f"{path} was trained for pose checkpoint {ckpt.get('pose_model_hash')!r}, not {model_hash!r}; "
+            f"re-run `rpod shap` and `rpod detect`"
+        )
     return detector, ckpt

@@ -12,6 +12,7 @@ One folder per sequence (a folder of such folders also works):
 The CSV parsing and frame matching are pipeline/evaluation/lab.py's; this module does the file I/O and turns
 every problem into a DataError naming the file (and line).
 """
+
 from __future__ import annotations
 
 import warnings
@@ -52,8 +53,17 @@ def recording_folders(root: Path) -> list[Path]:
     return subs
 
 
-def read_recording(folder: Path, width: int, height: int, bodies: dict[str, str], match: str, max_gap: float,
-                   threshold: float, max_pixels: int = 1 << 25, empty_tolerance: float = 0.0) -> dict[str, Any]:
+def read_recording(
+    folder: Path,
+    width: int,
+    height: int,
+    bodies: dict[str, str],
+    match: str,
+    max_gap: float,
+    threshold: float,
+    max_pixels: int = 1 << 25,
+    empty_tolerance: float = 0.0,
+) -> dict[str, Any]:
     """Load one recording: segmented images resized to width x height (uint8), frames, lab labels t, q.
 
     Every problem is a DataError naming the file (and line for the CSVs): files outside the folder or
@@ -66,8 +76,17 @@ def read_recording(folder: Path, width: int, height: int, bodies: dict[str, str]
         raise DataError(str(e)) from None
 
 
-def _read_recording(folder: Path, width: int, height: int, bodies: dict[str, str], match: str, max_gap: float,
-                    threshold: float, max_pixels: int, empty_tolerance: float) -> dict[str, Any]:
+def _read_recording(
+    folder: Path,
+    width: int,
+    height: int,
+    bodies: dict[str, str],
+    match: str,
+    max_gap: float,
+    threshold: float,
+    max_pixels: int,
+    empty_tolerance: float,
+) -> dict[str, Any]:
     import cv2
     import pandas as pd
     from PIL import Image
@@ -86,8 +105,16 @@ def _read_recording(folder: Path, width: int, height: int, bodies: dict[str, str
             tables[name] = pd.read_csv(path)
         except Exception as e:
             raise DataError(f"{folder / name} is not a readable CSV ({type(e).__name__}: {e})") from None
-    frames, t, q = match_frames(tables["camera.csv"], tables["mocap.csv"], bodies["camera"], bodies["target"],
-                                match, max_gap, str(folder / "camera.csv"), str(folder / "mocap.csv"))
+    frames, t, q = match_frames(
+        tables["camera.csv"],
+        tables["mocap.csv"],
+        bodies["camera"],
+        bodies["target"],
+        match,
+        max_gap,
+        str(folder / "camera.csv"),
+        str(folder / "mocap.csv"),
+    )
     names = image_names(tables["camera.csv"], frames, str(folder / "camera.csv"))
     images = np.zeros((len(frames), height, width, 3), np.uint8)
     for k, name in enumerate(tqdm(names, desc=f"read {folder.name}", unit="img", leave=False)):
@@ -103,15 +130,19 @@ def _read_recording(folder: Path, width: int, height: int, bodies: dict[str, str
         except Exception:
             raise DataError(f"{folder / 'images' / name} cannot be read as an image {where}") from None
         if w * h > max_pixels:
-            raise DataError(f"{folder / 'images' / name} is {w}x{h} = {w * h} pixels, above lab.max_image_pixels "
-                             f"= {max_pixels} {where}")
+            raise DataError(
+                f"{folder / 'images' / name} is {w}x{h} = {w * h} pixels, above lab.max_image_pixels "
+                f"= {max_pixels} {where}"
+            )
         bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if bgr is None:
             raise DataError(f"{folder / 'images' / name} cannot be read as an image {where}")
         h, w = bgr.shape[:2]
         if abs(w / h - width / height) > 0.01 * width / height:
-            raise DataError(f"{folder / 'images' / name} is {w}x{h}; the lab images must have the model input's "
-                             f"aspect {width}:{height} {where}")
+            raise DataError(
+                f"{folder / 'images' / name} is {w}x{h}; the lab images must have the model input's "
+                f"aspect {width}:{height} {where}"
+            )
         mask = None
         mpath = folder / "masks" / name
         if (folder / "masks").is_dir():

@@ -1,6 +1,7 @@
 """Render folders as `rpod render`, `rpod eval_render` and a SPEED import write them: meta.json, the
 image store (FOLDER/images.zarr, or the folder or fsspec URL that meta.json's `store` names: one zarr
 array `images` (N, H, W, 3) uint8 RGB, checksummed) and poses.parquet (one row per image)."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -34,8 +35,14 @@ def render_identity(meta: dict[str, Any]) -> str:
     return f"{meta.get('fingerprint')}:{source['sha256'][:16]}" if "sha256" in source else meta.get("fingerprint")
 
 
-def read_renders(folder: Path | str, what: str, redo: str, *, poses: str | None = None,
-                 check: Callable[[dict[str, Any]], None] | None = None) -> Renders:
+def read_renders(
+    folder: Path | str,
+    what: str,
+    redo: str,
+    *,
+    poses: str | None = None,
+    check: Callable[[dict[str, Any]], None] | None = None,
+) -> Renders:
     """Open a render folder and verify it: meta.json, then `check(meta)` (the caller's own test, e.g. a
     params fingerprint), the image store against its checksum manifest (named `what` in messages) and against
     meta.json's render fingerprint (the one the store records), and with `poses` (its name in messages)
@@ -50,10 +57,12 @@ def read_renders(folder: Path | str, what: str, redo: str, *, poses: str | None 
     table = read_parquet(folder / POSES, poses) if poses is not None else None
     if not meta.get("complete") or "images" not in group:
         raise DataError(f"{folder} is incomplete; delete it and {redo}")
-    held = group.attrs.get("render_fingerprint", meta.get("fingerprint"))   # older stores do not record it
+    held = group.attrs.get("render_fingerprint", meta.get("fingerprint"))  # older stores do not record it
     if held != meta.get("fingerprint"):
-        raise DataError(f"{what} {store} holds the images of another render (fingerprint {held}; "
-                        f"{folder / META} says {meta.get('fingerprint')}); {redo}")
+        raise DataError(
+            f"{what} {store} holds the images of another render (fingerprint {held}; "
+            f"{folder / META} says {meta.get('fingerprint')}); {redo}"
+        )
     n = group["images"].shape[0]
     if n != meta["frames"] or (table is not None and n != len(table)):
         counts = f"{n} images" + (f", {len(table)} poses" if table is not None else "")

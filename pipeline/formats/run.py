@@ -2,13 +2,14 @@
 by pose model: `MODELS`); a weights bundle, or any folder holding one chain, holds one under `BUNDLE_FILES`.
 The chain that ships is the robust one (`SHIPPED`); the paper's reproduction rows run on the standard one (`PAPER`).
 """
+
 from __future__ import annotations
 
 from dataclasses import astuple, dataclass
 
-MODELS = ("standard", "robust")   # the pose models: `rpod train` and `rpod train --robust`
+MODELS = ("standard", "robust")  # the pose models: `rpod train` and `rpod train --robust`
 PAPER, SHIPPED = MODELS
-MODELS_DIR = "models"             # a run's folder of model files (under its working folder)
+MODELS_DIR = "models"  # a run's folder of model files (under its working folder)
 
 
 @dataclass(frozen=True)
@@ -20,10 +21,12 @@ class ChainNames:
     detector: str
     defense: str
 
-    def __iter__(self):   # noqa: ANN204 - (pose, detector, defense), for unpacking
+    def __iter__(self):  # noqa: ANN204 - (pose, detector, defense), for unpacking
         return iter(astuple(self))
 
 
-RUN_FILES = {"standard": ChainNames("pose.pt", "detector.pt", "defense_standard.json"),
-             "robust": ChainNames("pose_robust.pt", "detector_robust.pt", "defense.json")}
+RUN_FILES = {
+    "standard": ChainNames("pose.pt", "detector.pt", "defense_standard.json"),
+    "robust": ChainNames("pose_robust.pt", "detector_robust.pt", "defense.json"),
+}
 BUNDLE_FILES = ChainNames("pose.pt", "detector.pt", "defense.json")

@@ -19,6 +19,7 @@ and fx = K's focal length in pixels times it, so fx / ppx and the field of view 
 Nothing here reads files: records and camera dicts come parsed from JSON, errors are ValueErrors that
 name the field (the caller adds the file).
 """
+
 from __future__ import annotations
 
 import posixpath
@@ -27,13 +28,13 @@ from typing import Any
 import numpy as np
 
 from pipeline.geometry.camera import Intrinsics
-from pipeline.geometry.rotations import UNIT_TOLERANCE, normalize_quat
 from pipeline.geometry.labels import MAX_RANGE_M
+from pipeline.geometry.rotations import UNIT_TOLERANCE, normalize_quat
 
 POSITION_KEY = "r_Vo2To_vbs_true"
-QUAT_KEYS = ("q_vbs2tango_true", "q_vbs2tango")   # SPEED+, SPEED
-PIXEL_PITCH = 5.86e-6                             # m per pixel: SPEED+'s sensor, given to exported cameras
-DIST_LENGTHS = (4, 5, 8, 12, 14)                  # the distCoeffs lengths OpenCV accepts
+QUAT_KEYS = ("q_vbs2tango_true", "q_vbs2tango")  # SPEED+, SPEED
+PIXEL_PITCH = 5.86e-6  # m per pixel: SPEED+'s sensor, given to exported cameras
+DIST_LENGTHS = (4, 5, 8, 12, 14)  # the distCoeffs lengths OpenCV accepts
 SPEED_CAMERA = {"Nu": 1920, "Nv": 1200, "fx": 0.0176, "fy": 0.0176, "ppx": 5.86e-6, "ppy": 5.86e-6}
 
 
@@ -43,10 +44,13 @@ def to_speed(filenames: list[str], t: np.ndarray, q: np.ndarray) -> list[dict[st
     q = np.asarray(q, np.float64)
     bad = np.flatnonzero(~(np.abs(np.linalg.norm(q, axis=1) - 1) <= UNIT_TOLERANCE))
     if len(bad):
-        raise ValueError(f"{filenames[bad[0]]}: quaternion {q[bad[0]].tolist()} is not a unit quaternion "
-                         f"({len(bad)} such labels)")
-    return [{"filename": str(f), QUAT_KEYS[0]: [float(v) for v in qi], POSITION_KEY: [float(v) for v in ti]}
-            for f, ti, qi in zip(filenames, np.asarray(t, np.float64), normalize_quat(q))]
+        raise ValueError(
+            f"{filenames[bad[0]]}: quaternion {q[bad[0]].tolist()} is not a unit quaternion ({len(bad)} such labels)"
+        )
+    return [
+        {"filename": str(f), QUAT_KEYS[0]: [float(v) for v in qi], POSITION_KEY: [float(v) for v in ti]}
+        for f, ti, qi in zip(filenames, np.asarray(t, np.float64), normalize_quat(q))
+    ]
 
 
 def _vector(record: dict[str, Any], key: str, n: int, where: str) -> np.ndarray:
@@ -71,8 +75,10 @@ def _record(record: Any, i: int) -> tuple[str, np.ndarray, np.ndarray]:
     if not qkeys:
         raise ValueError(f"{where}: missing key '{QUAT_KEYS[0]}' (SPEED+) or '{QUAT_KEYS[1]}' (SPEED)")
     if len(qkeys) > 1:
-        raise ValueError(f"{where}: has both '{QUAT_KEYS[0]}' (SPEED+) and '{QUAT_KEYS[1]}' (SPEED); a record gives "
-                         f"its attitude once")
+        raise ValueError(
+            f"{where}: has both '{QUAT_KEYS[0]}' (SPEED+) and '{QUAT_KEYS[1]}' (SPEED); a record gives "
+            f"its attitude once"
+        )
     if POSITION_KEY not in record:
         raise ValueError(f"{where}: missing key '{POSITION_KEY}'")
     qkey = qkeys[0]
@@ -81,11 +87,14 @@ def _record(record: Any, i: int) -> tuple[str, np.ndarray, np.ndarray]:
         raise ValueError(f"{where}: {qkey} has norm {np.linalg.norm(q):.6g}, not a unit quaternion")
     t = _vector(record, POSITION_KEY, 3, where)
     if not t[2] > 0:
-        raise ValueError(f"{where}: {POSITION_KEY} {t.tolist()} puts the target behind the camera or in its plane "
-                         f"(z <= 0; z is along the boresight)")
+        raise ValueError(
+            f"{where}: {POSITION_KEY} {t.tolist()} puts the target behind the camera or in its plane "
+            f"(z <= 0; z is along the boresight)"
+        )
     if not np.linalg.norm(t) <= MAX_RANGE_M:
-        raise ValueError(f"{where}: {POSITION_KEY} {t.tolist()} puts the target more than {MAX_RANGE_M:g} m away "
-                         f"(metres expected)")
+        raise ValueError(
+            f"{where}: {POSITION_KEY} {t.tolist()} puts the target more than {MAX_RANGE_M:g} m away (metres expected)"
+        )
     return name, t, q
 
 
@@ -150,12 +159,15 @@ def camera_from_json(cam: Any, size: tuple[int, int] | None = None) -> Intrinsic
         if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ValueError(f"cameraMatrix must be a 3x3 K with fx, fy > 0, got {cam['cameraMatrix']!r}")
         if K[0, 1] != 0 or K[1, 0] != 0 or list(K[2]) != [0, 0, 1]:
-            raise ValueError(f"cameraMatrix must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew; not "
-                             f"transposed), got {cam['cameraMatrix']!r}")
+            raise ValueError(
+                f"cameraMatrix must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew; not "
+                f"transposed), got {cam['cameraMatrix']!r}"
+            )
         return _checked(Intrinsics(w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])))
     if not {"fx", "ppx"} <= set(cam):
-        raise ValueError("no camera matrix: needs 'cameraMatrix' (3x3 K in pixels) or 'fx', 'fy' (m) with "
-                         "'ppx', 'ppy' (m per pixel)")
+        raise ValueError(
+            "no camera matrix: needs 'cameraMatrix' (3x3 K in pixels) or 'fx', 'fy' (m) with 'ppx', 'ppy' (m per pixel)"
+        )
     fx, fy = _number(cam, "fx") / _number(cam, "ppx"), _number(cam, "fy") / _number(cam, "ppy")
     cx = _number(cam, "ccx") if "ccx" in cam else w / 2
     return _checked(Intrinsics(w, h, fx, fy, cx, _number(cam, "ccy") if "ccy" in cam else h / 2))
@@ -170,14 +182,25 @@ def dist_from_json(cam: dict[str, Any]) -> np.ndarray:
     except (TypeError, ValueError):
         dist = np.zeros(0)
     if len(dist) not in DIST_LENGTHS or not np.isfinite(dist).all():
-        raise ValueError(f"distCoeffs must be {', '.join(map(str, DIST_LENGTHS))} finite numbers (OpenCV's "
-                         f"k1, k2, p1, p2[, k3, ...]), got {raw!r}")
+        raise ValueError(
+            f"distCoeffs must be {', '.join(map(str, DIST_LENGTHS))} finite numbers (OpenCV's "
+            f"k1, k2, p1, p2[, k3, ...]), got {raw!r}"
+        )
     return dist
 
 
 def camera_to_json(K: Intrinsics) -> dict[str, Any]:
     """A SPEED+ camera.json dict of a pinhole camera (no lens distortion): K in pixels, and the physical
     fx, fy (m) and ppx, ppy (m per pixel) at the nominal `PIXEL_PITCH`."""
-    return {"Nu": int(K.width), "Nv": int(K.height), "ppx": PIXEL_PITCH, "ppy": PIXEL_PITCH,
-            "fx": float(K.fx) * PIXEL_PITCH, "fy": float(K.fy) * PIXEL_PITCH, "ccx": float(K.cx),
-            "ccy": float(K.cy), "cameraMatrix": K.K.tolist(), "distCoeffs": [0.0] * 5}
+    return {
+        "Nu": int(K.width),
+        "Nv": int(K.height),
+        "ppx": PIXEL_PITCH,
+        "ppy": PIXEL_PITCH,
+        "fx": float(K.fx) * PIXEL_PITCH,
+        "fy": float(K.fy) * PIXEL_PITCH,
+        "ccx": float(K.cx),
+        "ccy": float(K.cy),
+        "cameraMatrix": K.K.tolist(),
+        "distCoeffs": [0.0] * 5,
+    }

@@ -6,6 +6,7 @@ Layouts: SPEED+: FOLDER/camera.json, FOLDER/synthetic/{train,validation}.json (t
 exports), images <folder of the JSON>/images/<filename>. SPEED: FOLDER/train.json and FOLDER/test.json, images
 FOLDER/images/<train|test>/<filename>; FOLDER/camera.json if present, else SPEED's published camera.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -16,14 +17,14 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.geometry.labels import POSITION, QUAT
 from pipeline.io.atomic import atomic_dir, file_hash, read_json, write_json
 from pipeline.io.errors import DataError
-from pipeline.geometry.labels import POSITION, QUAT
 from pipeline.io.files import check_regular
 
-TRAIN = ("synthetic/train.json", "train.json")   # training label files, the first found is read
-TEST = ("synthetic/validation.json", "synthetic/test.json", "test.json")   # SPEED+'s, older exports', SPEED's
-EXPORT_DIR = "synthetic"                 # SPEED+'s domain folder of synthetic images
+TRAIN = ("synthetic/train.json", "train.json")  # training label files, the first found is read
+TEST = ("synthetic/validation.json", "synthetic/test.json", "test.json")  # SPEED+'s, older exports', SPEED's
+EXPORT_DIR = "synthetic"  # SPEED+'s domain folder of synthetic images
 
 
 def read_labels(path: Path) -> tuple[list[str], np.ndarray, np.ndarray]:
@@ -42,7 +43,7 @@ def read_camera(folder: Path, speed_layout: bool) -> tuple[Any, np.ndarray]:
     from pipeline.formats.speed import SPEED_CAMERA, camera_from_json, dist_from_json
 
     path = folder / "camera.json"
-    if not path.exists() and speed_layout:     # a FIFO exists: read_json refuses it
+    if not path.exists() and speed_layout:  # a FIFO exists: read_json refuses it
         print(f"{path} not found: using SPEED's published camera {SPEED_CAMERA}")
         return camera_from_json(SPEED_CAMERA), dist_from_json(SPEED_CAMERA)
     try:
@@ -69,26 +70,34 @@ def read_image(path: Path, size: tuple[int, int], cam: Any, dist: np.ndarray) ->
     source_size = (cam.width, cam.height)
     header, mode = image_header(path)
     if header != tuple(source_size):
-        raise DataError(f"{path}: image is {header[0]}x{header[1]} pixels but camera.json gives Nu x Nv = "
-                         f"{source_size[0]}x{source_size[1]}")
+        raise DataError(
+            f"{path}: image is {header[0]}x{header[1]} pixels but camera.json gives Nu x Nv = "
+            f"{source_size[0]}x{source_size[1]}"
+        )
     reduce = max([r for r in (2, 4, 8) if source_size[0] / r >= size[0] and source_size[1] / r >= size[1]], default=1)
-    flag = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4,
-            8: cv2.IMREAD_REDUCED_COLOR_8}[reduce]
-    img = cv2.imread(str(path), flag)    # image_header checked it is a regular file
+    flag = {
+        1: cv2.IMREAD_COLOR,
+        2: cv2.IMREAD_REDUCED_COLOR_2,
+        4: cv2.IMREAD_REDUCED_COLOR_4,
+        8: cv2.IMREAD_REDUCED_COLOR_8,
+    }[reduce]
+    img = cv2.imread(str(path), flag)  # image_header checked it is a regular file
     if img is None:
         raise DataError(f"{path}: not a readable image (named by its label file)")
     expect = (math.ceil(source_size[1] / reduce), math.ceil(source_size[0] / reduce))
     if img.shape[:2] != expect:
-        raise DataError(f"{path}: image is {img.shape[1] * reduce}x{img.shape[0] * reduce} pixels but camera.json "
-                         f"gives Nu x Nv = {source_size[0]}x{source_size[1]}")
+        raise DataError(
+            f"{path}: image is {img.shape[1] * reduce}x{img.shape[0] * reduce} pixels but camera.json "
+            f"gives Nu x Nv = {source_size[0]}x{source_size[1]}"
+        )
     if np.any(dist):
-        s = 1 / reduce                    # pixel centres: u_reduced = (u + 0.5) * s - 0.5
+        s = 1 / reduce  # pixel centres: u_reduced = (u + 0.5) * s - 0.5
         K = np.array([[cam.fx * s, 0, (cam.cx + 0.5) * s - 0.5], [0, cam.fy * s, (cam.cy + 0.5) * s - 0.5], [0, 0, 1]])
         img = cv2.undistort(img, K, dist)
     return cv2.resize(img, size, interpolation=cv2.INTER_AREA)[..., ::-1], mode in GRAY_MODES
 
 
-GRAY_MODES = ("1", "L", "LA", "I", "I;16", "F")   # Pillow modes of single-channel images
+GRAY_MODES = ("1", "L", "LA", "I", "I;16", "F")  # Pillow modes of single-channel images
 
 
 def image_header(path: Path) -> tuple[tuple[int, int], str]:
@@ -97,7 +106,7 @@ def image_header(path: Path) -> tuple[tuple[int, int], str]:
     from PIL import Image, UnidentifiedImageError
 
     try:
-        check_regular(path, "image")      # missing, or a FIFO that would block: one line naming it
+        check_regular(path, "image")  # missing, or a FIFO that would block: one line naming it
     except DataError as e:
         raise DataError(f"{e} (named by its label file)") from None
     try:
@@ -116,15 +125,21 @@ def check_source(folder: Path, label_files: list[Path], images: list[Path], n_tr
     for path in [*label_files, *images]:
         real = path.resolve()
         if not real.is_relative_to(root):
-            raise DataError(f"{path} resolves to {real}, outside the dataset folder {folder} (render.source); copy "
-                            f"the file into it")
+            raise DataError(
+                f"{path} resolves to {real}, outside the dataset folder {folder} (render.source); copy the file into it"
+            )
     hashes = [file_hash(p, 64) for p in images]
     by_hash, by_file = dict(zip(hashes[:n_train], images[:n_train])), {p.resolve(): p for p in images[:n_train]}
-    leaks = [(p, by_file.get(p.resolve()) or by_hash[h]) for p, h in zip(images[n_train:], hashes[n_train:])
-             if p.resolve() in by_file or h in by_hash]
+    leaks = [
+        (p, by_file.get(p.resolve()) or by_hash[h])
+        for p, h in zip(images[n_train:], hashes[n_train:])
+        if p.resolve() in by_file or h in by_hash
+    ]
     if leaks:
-        raise DataError(f"test image {leaks[0][0]} is the training image {leaks[0][1]} (a link to it or a "
-                        f"byte-identical copy; {len(leaks)} such images): a test image must never be trained on")
+        raise DataError(
+            f"test image {leaks[0][0]} is the training image {leaks[0][1]} (a link to it or a "
+            f"byte-identical copy; {len(leaks)} such images): a test image must never be trained on"
+        )
     return source_digest(folder, label_files, images, hashes)
 
 
@@ -151,27 +166,31 @@ def source_problem(meta: dict[str, Any], filenames: list[str]) -> str | None:
         return None
     changed = f"render.source {folder} changed since `rpod render` imported it"
     try:
-        now = source_digest(folder, [folder / source["train"], folder / source["test"]],
-                            [folder / f for f in filenames])
+        now = source_digest(
+            folder, [folder / source["train"], folder / source["test"]], [folder / f for f in filenames]
+        )
     except DataError as e:
         return f"{changed} ({e}); re-run `rpod render`"
     if now == source["sha256"]:
         return None
-    return (f"{changed} (sha256 of its label files, camera.json and images {now[:16]}, imported "
-            f"{source['sha256'][:16]}); re-run `rpod render`")
+    return (
+        f"{changed} (sha256 of its label files, camera.json and images {now[:16]}, imported "
+        f"{source['sha256'][:16]}); re-run `rpod render`"
+    )
 
 
-MARKER = ".rpodguard-export.json"        # written inside every export: the files it wrote (so a rerun may replace them)
-MARKER_FORMAT = "rpodguard-export/2"      # /2: each file with its sha256 (a rerun refuses edited files)
+MARKER = ".rpodguard-export.json"  # written inside every export: the files it wrote (so a rerun may replace them)
+MARKER_FORMAT = "rpodguard-export/2"  # /2: each file with its sha256 (a rerun refuses edited files)
 
 
-SPLIT_FILES = {"train": "train.json", "test": "validation.json"}   # our split -> SPEED+'s label file
-IMAGE_FORMATS = {"png": "png", "jpeg-gray": "jpg"}   # format -> file extension: lossless RGB; grayscale JPEG as SPEED+
+SPLIT_FILES = {"train": "train.json", "test": "validation.json"}  # our split -> SPEED+'s label file
+IMAGE_FORMATS = {"png": "png", "jpeg-gray": "jpg"}  # format -> file extension: lossless RGB; grayscale JPEG as SPEED+
 JPEG_QUALITY = 95
 
 
-def write_speed(out: Path, images: Any, labels: Any, K: Any, image_format: str = "png",
-                overwrite: bool = False) -> None:
+def write_speed(
+    out: Path, images: Any, labels: Any, K: Any, image_format: str = "png", overwrite: bool = False
+) -> None:
     """Write the labelled images as a SPEED+ folder `out` (camera.json, synthetic/train.json, the test split
     as synthetic/validation.json, synthetic/images/imgNNNNNN.png or .jpg, NNNNNN = label index + 1, and
     MARKER), atomically. `image_format`: "png" keeps every pixel; "jpeg-gray" writes grayscale JPEGs
@@ -191,19 +210,21 @@ def write_speed(out: Path, images: Any, labels: Any, K: Any, image_format: str =
         raise DataError(f"{out} is a symbolic link to {os.readlink(out)}, which does not exist; name a folder")
     out = followed(out)
     check_replaceable(out, overwrite)
-    remove_stale_temps(out)               # temporary folders of killed exports (those holding their token)
+    remove_stale_temps(out)  # temporary folders of killed exports (those holding their token)
     labels = labels.sort_values("index").reset_index(drop=True)
     names = [f"img{int(i) + 1:06d}.{IMAGE_FORMATS[image_format]}" for i in labels["index"]]
     index, step = labels["index"].to_numpy(), int(images.chunks[0])
     outside = index[(index < 0) | (index >= images.shape[0])]
     if len(outside):
-        raise DataError(f"the labels name image {int(outside[0])} but the render store holds {images.shape[0]} "
-                         f"(0..{images.shape[0] - 1}); re-run `rpod label`")
+        raise DataError(
+            f"the labels name image {int(outside[0])} but the render store holds {images.shape[0]} "
+            f"(0..{images.shape[0] - 1}); re-run `rpod label`"
+        )
     with atomic_dir(out) as tmp:
         (tmp / EXPORT_DIR / "images").mkdir(parents=True)
-        for lo in range(0, int(images.shape[0]), step):   # one stored chunk at a time
+        for lo in range(0, int(images.shape[0]), step):  # one stored chunk at a time
             rows = np.flatnonzero((index >= lo) & (index < lo + step))
-            block = np.asarray(images[lo:lo + step]) if len(rows) else None
+            block = np.asarray(images[lo : lo + step]) if len(rows) else None
             for k in rows:
                 rgb = block[index[k] - lo]
                 pixels = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if gray else rgb[..., ::-1]
@@ -213,14 +234,21 @@ def write_speed(out: Path, images: Any, labels: Any, K: Any, image_format: str =
         for split, file in SPLIT_FILES.items():
             rows = (labels["split"] == split).to_numpy()
             try:
-                records = to_speed([n for n, keep in zip(names, rows) if keep], labels.loc[rows, POSITION],
-                                   labels.loc[rows, QUAT])
+                records = to_speed(
+                    [n for n, keep in zip(names, rows) if keep], labels.loc[rows, POSITION], labels.loc[rows, QUAT]
+                )
             except ValueError as e:
                 raise DataError(f"the labels of {e}; re-run `rpod label`") from None
             write_json(tmp / EXPORT_DIR / file, records)
         write_json(tmp / "camera.json", camera_to_json(K))
-        write_json(tmp / MARKER, {"written_by": "rpod export speed", "format": MARKER_FORMAT,
-                                  "files": {name: file_hash(tmp / name, 64) for name in sorted(_tree(tmp))}})
+        write_json(
+            tmp / MARKER,
+            {
+                "written_by": "rpod export speed",
+                "format": MARKER_FORMAT,
+                "files": {name: file_hash(tmp / name, 64) for name in sorted(_tree(tmp))},
+            },
+        )
         _world_readable(tmp)
 
 
@@ -241,22 +269,31 @@ def check_replaceable(out: Path, overwrite: bool = False) -> None:
     except (DataError, KeyError, TypeError):
         written = None
     if not isinstance(written, (dict, list)):
-        raise DataError(f"{out} exists and is not a SPEED folder written before by `rpod export speed` "
-                         f"(no {MARKER}); name a new or empty folder")
+        raise DataError(
+            f"{out} exists and is not a SPEED folder written before by `rpod export speed` "
+            f"(no {MARKER}); name a new or empty folder"
+        )
     extra = sorted(_tree(out) - set(written) - {MARKER})
     if extra:
-        raise DataError(f"{out} holds {out / extra[0]}, which `rpod export speed` did not write "
-                         f"({len(extra)} such files); move them away or name a new folder")
+        raise DataError(
+            f"{out} holds {out / extra[0]}, which `rpod export speed` did not write "
+            f"({len(extra)} such files); move them away or name a new folder"
+        )
     if overwrite:
         return
     if isinstance(written, list) or recorded.get("format") != MARKER_FORMAT:
-        raise DataError(f"{marker} lists no sha256 of the files (an older export), so edits to them cannot be "
-                         f"found; pass --overwrite to replace them, or name a new folder")
-    edited = sorted(name for name, sha in written.items()
-                    if os.path.lexists(out / name) and not _unchanged(out / name, sha))
+        raise DataError(
+            f"{marker} lists no sha256 of the files (an older export), so edits to them cannot be "
+            f"found; pass --overwrite to replace them, or name a new folder"
+        )
+    edited = sorted(
+        name for name, sha in written.items() if os.path.lexists(out / name) and not _unchanged(out / name, sha)
+    )
     if edited:
-        raise DataError(f"{out / edited[0]} was changed since `rpod export speed` wrote it ({len(edited)} such "
-                         f"files; its sha256 is in {MARKER}); move it away, or pass --overwrite to replace it")
+        raise DataError(
+            f"{out / edited[0]} was changed since `rpod export speed` wrote it ({len(edited)} such "
+            f"files; its sha256 is in {MARKER}); move it away, or pass --overwrite to replace it"
+        )
 
 
 def _unchanged(path: Path, sha256: Any) -> bool:

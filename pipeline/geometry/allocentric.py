@@ -3,6 +3,7 @@ OpenCV axes, conventions of pipeline/geometry/rotations.py). A target seen off t
 the ray's angle although its egocentric attitude is unchanged; the allocentric one is what its appearance
 shows, the same anywhere in the image (Kundu et al. 2018; used by GDR-Net and other pose networks).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -12,7 +13,7 @@ def ray_rotation(t: np.ndarray) -> np.ndarray:
     """(..., 3) camera-frame positions (m) -> (..., 3, 3) the smallest rotation taking the optical axis
     (0, 0, 1) onto the viewing ray t / |t| (identity on the axis; Rodrigues about z x ray)."""
     d = np.asarray(t, np.float64) / np.linalg.norm(t, axis=-1, keepdims=True)
-    axis = np.stack([-d[..., 1], d[..., 0], np.zeros_like(d[..., 0])], -1)          # z x d
+    axis = np.stack([-d[..., 1], d[..., 0], np.zeros_like(d[..., 0])], -1)  # z x d
     s, c = np.linalg.norm(axis, axis=-1), d[..., 2]
     k = axis / np.where(s > 1e-12, s, 1.0)[..., None]
     K = np.zeros(k.shape[:-1] + (3, 3))

@@ -1,4 +1,5 @@
 """Pinhole camera in the OpenCV frame (x right, y down, z forward), pixel centres at integers."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -40,26 +41,31 @@ class Intrinsics:
     def scaled(self, width: int, height: int) -> "Intrinsics":
         """The same camera resampled to width x height (pixel-centre convention kept exact)."""
         sx, sy = width / self.width, height / self.height
-        return Intrinsics(width, height, self.fx * sx, self.fy * sy,
-                          (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5)
+        return Intrinsics(
+            width, height, self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5
+        )
 
     @property
     def fov_deg(self) -> tuple[float, float]:
         """Full horizontal and vertical field of view in degrees."""
-        return (float(np.rad2deg(2 * np.arctan(self.width / (2 * self.fx)))),
-                float(np.rad2deg(2 * np.arctan(self.height / (2 * self.fy)))))
+        return (
+            float(np.rad2deg(2 * np.arctan(self.width / (2 * self.fx)))),
+            float(np.rad2deg(2 * np.arctan(self.height / (2 * self.fy)))),
+        )
 
 
 def camera_difference(a: Intrinsics, b: Intrinsics) -> float:
     """How far camera `b` is from `a`, both at a's image size (b scaled to it): the largest relative difference
     of fx and fy (over a's) and of cx and cy (over the image width and height); 0 for the same camera."""
     b = b.scaled(a.width, a.height)
-    return max(abs(b.fx - a.fx) / a.fx, abs(b.fy - a.fy) / a.fy, abs(b.cx - a.cx) / a.width,
-               abs(b.cy - a.cy) / a.height)
+    return max(
+        abs(b.fx - a.fx) / a.fx, abs(b.fy - a.fy) / a.fy, abs(b.cx - a.cx) / a.width, abs(b.cy - a.cy) / a.height
+    )
 
 
-def reference_intrinsics(width: int = 480, height: int = 270, fx: float = 640.0, fy: float = 360.0,
-                         cx: float = 240.0, cy: float = 135.0) -> Intrinsics:
+def reference_intrinsics(
+    width: int = 480, height: int = 270, fx: float = 640.0, fy: float = 360.0, cx: float = 240.0, cy: float = 135.0
+) -> Intrinsics:
     """The paper's synthetic camera as printed, K given at 480x270. Its fy = 360 is most
     likely a slip for fy = fx (square pixels); the params default (`camera.fy`) is fy = fx."""
     return Intrinsics(width, height, fx, fy, cx, cy)

@@ -8,6 +8,7 @@ The numpy functions are batched over leading axes; the `_t` ones are their diffe
 counterparts on (B, ...) tensors; the `_list` ones work on one rotation as plain floats and 3x3 nested
 lists (the motion filter's per-frame path, pipeline/defense/kalman.py).
 """
+
 from __future__ import annotations
 
 import math
@@ -18,7 +19,9 @@ import torch
 from torch import Tensor
 
 Mat3 = list[list[float]]
-UNIT_TOLERANCE = 1e-3   # |norm(q) - 1| of a stored quaternion above this is refused (SPEED labels, mocap), not normalised
+UNIT_TOLERANCE = (
+    1e-3  # |norm(q) - 1| of a stored quaternion above this is refused (SPEED labels, mocap), not normalised
+)
 
 
 def normalize_quat(q: np.ndarray) -> np.ndarray:
@@ -31,11 +34,14 @@ def normalize_quat(q: np.ndarray) -> np.ndarray:
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """(..., 4) scalar-first quaternion -> (..., 3, 3) rotation matrix."""
     w, x, y, z = np.moveaxis(normalize_quat(q), -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
 
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
@@ -119,9 +125,11 @@ def rotmat_list(w: Sequence[float]) -> Mat3:
         s, k = math.sin(th) / th, (1.0 - math.cos(th)) / th2
     d = 1.0 - k * th2
     kxy, kxz, kyz = k * w0 * w1, k * w0 * w2, k * w1 * w2
-    return [[d + k * w0 * w0, kxy - s * w2, kxz + s * w1],
-            [kxy + s * w2, d + k * w1 * w1, kyz - s * w0],
-            [kxz - s * w1, kyz + s * w0, d + k * w2 * w2]]
+    return [
+        [d + k * w0 * w0, kxy - s * w2, kxz + s * w1],
+        [kxy + s * w2, d + k * w1 * w1, kyz - s * w0],
+        [kxz - s * w1, kyz + s * w0, d + k * w2 * w2],
+    ]
 
 
 def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
@@ -135,7 +143,7 @@ def rotvec_list(R: Mat3) -> tuple[float, float, float]:
     (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R
     th = math.acos(max(-1.0, min(1.0, (r00 + r11 + r22 - 1.0) / 2.0)))
     v0, v1, v2 = r21 - r12, r02 - r20, r10 - r01
-    if th >= math.pi - 1e-4:                       # near pi: axis from the symmetric part
+    if th >= math.pi - 1e-4:  # near pi: axis from the symmetric part
         B = (np.array(R) + np.eye(3)) / 2.0
         i = int(np.argmax(np.diag(B)))
         axis = B[:, i] / math.sqrt(B[i, i])

@@ -12,6 +12,7 @@ the chaser camera, in world axes (metres); the nominal approach runs along world
 Up convention of `look_at`: the camera y axis (image down) is world +y projected onto the image
 plane, so looking along +z gives R_cam = identity (camera axes = world axes).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -30,14 +31,14 @@ ROTATING_STARTS = [(-15.0, -10.0), (-15.0, 10.0), (15.0, 10.0), (15.0, -10.0)]
 class Sequence:
     """One trajectory: per-frame arrays of length n (metres, rotation matrices)."""
 
-    sequence: int           # sequence id
-    frame: np.ndarray       # (n,) frame index within the sequence
-    R: np.ndarray           # (n, 3, 3) target frame -> camera frame (the label rotation)
-    t: np.ndarray           # (n, 3) target origin in the camera frame (the label position)
-    rel: np.ndarray         # (n, 3) target relative to the chaser, world axes
-    R_cam: np.ndarray       # (n, 3, 3) camera frame -> world
-    R_target: np.ndarray    # (n, 3, 3) target frame -> world
-    commands: np.ndarray | None = None   # (n, 3) commanded displacement of rel per frame (world, m; row 0 zero),
+    sequence: int  # sequence id
+    frame: np.ndarray  # (n,) frame index within the sequence
+    R: np.ndarray  # (n, 3, 3) target frame -> camera frame (the label rotation)
+    t: np.ndarray  # (n, 3) target origin in the camera frame (the label position)
+    rel: np.ndarray  # (n, 3) target relative to the chaser, world axes
+    R_cam: np.ndarray  # (n, 3, 3) camera frame -> world
+    R_target: np.ndarray  # (n, 3, 3) target frame -> world
+    commands: np.ndarray | None = None  # (n, 3) commanded displacement of rel per frame (world, m; row 0 zero),
     #                                      when it differs from the flown one (None: u = diff(rel))
 
     def __len__(self) -> int:
@@ -77,11 +78,18 @@ def _jittered_cameras(rel: np.ndarray, jitter_deg: float, rng: np.random.Generat
     return look_at(rel) @ euler_to_matrix(ang)
 
 
-ATTITUDES = ("per_frame", "per_sequence")   # the rotating sequences' target attitude: drawn every frame / once
+ATTITUDES = ("per_frame", "per_sequence")  # the rotating sequences' target attitude: drawn every frame / once
 
 
-def _sequence(seq_id: int, rel: np.ndarray, jitter_deg: float, max_rot_deg: float,
-              rng: np.random.Generator, attitude: str = "per_frame", commands: np.ndarray | None = None) -> Sequence:
+def _sequence(
+    seq_id: int,
+    rel: np.ndarray,
+    jitter_deg: float,
+    max_rot_deg: float,
+    rng: np.random.Generator,
+    attitude: str = "per_frame",
+    commands: np.ndarray | None = None,
+) -> Sequence:
     n = len(rel)
     R_cam = _jittered_cameras(rel, jitter_deg, rng)
     if max_rot_deg > 0 and attitude == "per_sequence":
@@ -103,9 +111,15 @@ def _check(frames: int, start_range: float, end_range: float, jitter_deg: float)
         raise ValueError(f"pointing jitter must be in [0, 45) degrees, got {jitter_deg}")
 
 
-def approach_sequences(frames_per_sequence: int, start_range: float = 60.0, end_range: float = 10.0,
-                       jitter_deg: float = 2.0, max_rot_deg: float = 10.0, seed: int = 0,
-                       attitude: str = "per_frame") -> list[Sequence]:
+def approach_sequences(
+    frames_per_sequence: int,
+    start_range: float = 60.0,
+    end_range: float = 10.0,
+    jitter_deg: float = 2.0,
+    max_rot_deg: float = 10.0,
+    seed: int = 0,
+    attitude: str = "per_frame",
+) -> list[Sequence]:
     """The 13 approach sequences of the training set.
 
     Each runs in a straight line, in equal steps, from rel = (x, y, start_range) to
@@ -141,10 +155,18 @@ def attitude_groups(sequence: np.ndarray) -> np.ndarray:
 PATHS = ("projectile", "straight")
 
 
-def approach_trajectory(n_frames: int, start_xy: tuple[float, float], start_range: float = 60.0,
-                        end_range: float = 10.0, seed: int = 0, jitter_deg: float = 0.0,
-                        max_rot_deg: float = 0.0, sequence: int = 0, path: str = "projectile",
-                        execute: Callable[[np.ndarray], np.ndarray] | None = None) -> Sequence:
+def approach_trajectory(
+    n_frames: int,
+    start_xy: tuple[float, float],
+    start_range: float = 60.0,
+    end_range: float = 10.0,
+    seed: int = 0,
+    jitter_deg: float = 0.0,
+    max_rot_deg: float = 0.0,
+    sequence: int = 0,
+    path: str = "projectile",
+    execute: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> Sequence:
     """A fresh approach: uniform z steps from start_range to end_range (metres) while the lateral offset
     goes from start_xy to 0, arriving at (0, 0, end_range). `path` "projectile" (the evaluation
     trajectories): xy(s) = start_xy * (1 - s)^2 for s in [0, 1], bending in with zero lateral velocity at
@@ -168,8 +190,12 @@ def approach_trajectory(n_frames: int, start_xy: tuple[float, float], start_rang
         return _sequence(sequence, rel, jitter_deg, max_rot_deg, rng)
     flown = np.asarray(execute(rel), np.float64)
     if flown.shape != rel.shape:
-        raise ValueError(f"approach_trajectory: execute must return the flown rel of shape {rel.shape}, got {flown.shape}")
-    return _sequence(sequence, flown, jitter_deg, max_rot_deg, rng, commands=np.vstack([np.zeros(3), np.diff(rel, axis=0)]))
+        raise ValueError(
+            f"approach_trajectory: execute must return the flown rel of shape {rel.shape}, got {flown.shape}"
+        )
+    return _sequence(
+        sequence, flown, jitter_deg, max_rot_deg, rng, commands=np.vstack([np.zeros(3), np.diff(rel, axis=0)])
+    )
 
 
 def poses_table(idx: np.ndarray, seq: np.ndarray, frm: np.ndarray, R: np.ndarray, t: np.ndarray):
@@ -181,9 +207,9 @@ def poses_table(idx: np.ndarray, seq: np.ndarray, frm: np.ndarray, R: np.ndarray
     from pipeline.geometry.rotations import matrix_to_quat
 
     q = matrix_to_quat(R)
-    return pd.DataFrame({"index": idx, "sequence": seq, "frame": frm,
-                         **pose_columns(t, q),
-                         "range": np.linalg.norm(t, axis=1)})
+    return pd.DataFrame(
+        {"index": idx, "sequence": seq, "frame": frm, **pose_columns(t, q), "range": np.linalg.norm(t, axis=1)}
+    )
 
 
 def preview_picks(sequence: np.ndarray, index: np.ndarray, n_previews: int) -> list[int]:
@@ -201,5 +227,9 @@ def preview_picks(sequence: np.ndarray, index: np.ndarray, n_previews: int) -> l
 
 def flatten(seqs: list[Sequence]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Sequences as flat per-frame arrays: sequence id, frame, R (N, 3, 3), t (N, 3)."""
-    return (np.concatenate([np.full(len(s), s.sequence) for s in seqs]), np.concatenate([s.frame for s in seqs]),
-            np.concatenate([s.R for s in seqs]), np.concatenate([s.t for s in seqs]))
+    return (
+        np.concatenate([np.full(len(s), s.sequence) for s in seqs]),
+        np.concatenate([s.frame for s in seqs]),
+        np.concatenate([s.R for s in seqs]),
+        np.concatenate([s.t for s in seqs]),
+    )

@@ -49,6 +49,7 @@ four times the filter's default process noise (`MotionSettings.position_noise`, 
 the figure to set the process noise to (the filter must not be told the truth, only how uncertain the
 commands are).
 """
+
 from __future__ import annotations
 
 import math
@@ -60,8 +61,10 @@ from pipeline.geometry.trajectories import look_at
 
 APPROACHES = ("vbar", "rbar")
 # Hill (x radial, y along-track, z orbit normal) <- world, per approach: rows are the Hill axes in world axes
-_HILL_FROM_WORLD = {"vbar": np.array([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]]),
-                    "rbar": np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])}
+_HILL_FROM_WORLD = {
+    "vbar": np.array([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]]),
+    "rbar": np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]),
+}
 
 
 @dataclass(frozen=True)
@@ -106,8 +109,7 @@ def cw_matrices(mean_motion: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
         return np.eye(3), t * np.eye(3)
     s, c = math.sin(n * t), math.cos(n * t)
     rr = np.array([[4 - 3 * c, 0.0, 0.0], [6 * (s - n * t), 1.0, 0.0], [0.0, 0.0, c]])
-    rv = np.array([[s / n, 2 * (1 - c) / n, 0.0], [-2 * (1 - c) / n, (4 * s - 3 * n * t) / n, 0.0],
-                   [0.0, 0.0, s / n]])
+    rv = np.array([[s / n, 2 * (1 - c) / n, 0.0], [-2 * (1 - c) / n, (4 * s - 3 * n * t) / n, 0.0], [0.0, 0.0, s / n]])
     return rr, rv
 
 
@@ -120,7 +122,7 @@ class Executor:
         self.rng = settings.draws()
         H = _HILL_FROM_WORLD[settings.approach]
         rr, rv = cw_matrices(settings.mean_motion, settings.frame_interval)
-        self._rr, self._rv = H.T @ rr @ H, H.T @ rv @ H / settings.frame_interval   # world axes; rv per metre of step
+        self._rr, self._rv = H.T @ rr @ H, H.T @ rv @ H / settings.frame_interval  # world axes; rv per metre of step
 
     def step(self, rel: np.ndarray, cmd: np.ndarray, axes: np.ndarray | None = None) -> np.ndarray:
         """The next true rel (world, m) after commanding the chaser to move by `cmd` (world, m) from

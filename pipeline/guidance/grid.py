@@ -11,6 +11,7 @@ closed loop of pipeline/guidance/law.py. An in-loop cell is (eps, goal, S): the 
 (pipeline/attackers/in_loop.py) attacks every frame from the first at range <= S to the end of the run.
 Rates count only the runs that met the attack (a run that never reached S was not attacked).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -20,8 +21,15 @@ import numpy as np
 
 from pipeline.geometry.camera import Intrinsics
 from pipeline.guidance.dynamics import ExecutionSettings
-from pipeline.guidance.law import (HELD, AttackWindow, CachedCamera, GuidanceSettings, RendezvousResult,
-                                   arrival_step, run_rendezvous)
+from pipeline.guidance.law import (
+    HELD,
+    AttackWindow,
+    CachedCamera,
+    GuidanceSettings,
+    RendezvousResult,
+    arrival_step,
+    run_rendezvous,
+)
 
 
 def horizon(arrival: int | None, max_steps: int, slack: int) -> int:
@@ -51,13 +59,29 @@ def defended_record(base: RendezvousResult, arrival: int | None, cells: list[tup
     runs held of those that met the attack (`held`: [held, met]) and the runs that never met it."""
     counts = held_counts(cells)
     return {
-        "baseline": {"outcome": base.outcome, "miss_m": base.miss, "arrival_step": arrival,
-                     "flags": _count(base.flags)},
-        "runs": [{"eps": e, "start_range": S, "length": k, "outcome": r.outcome, "miss_m": r.miss,
-                  "attacked_frames": r.attacked_frames, "steps": len(r.estimates),
-                  "flags": _count(r.flags), "hold_steps": _count(r.modes, "hold")}
-                 for e, S, k, r in cells],
-        "held": {e: v[:2] for e, v in counts.items()}, "not_met": {e: v[2] for e, v in counts.items()}}
+        "baseline": {
+            "outcome": base.outcome,
+            "miss_m": base.miss,
+            "arrival_step": arrival,
+            "flags": _count(base.flags),
+        },
+        "runs": [
+            {
+                "eps": e,
+                "start_range": S,
+                "length": k,
+                "outcome": r.outcome,
+                "miss_m": r.miss,
+                "attacked_frames": r.attacked_frames,
+                "steps": len(r.estimates),
+                "flags": _count(r.flags),
+                "hold_steps": _count(r.modes, "hold"),
+            }
+            for e, S, k, r in cells
+        ],
+        "held": {e: v[:2] for e, v in counts.items()},
+        "not_met": {e: v[2] for e, v in counts.items()},
+    }
 
 
 @dataclass(frozen=True)
@@ -67,7 +91,7 @@ class InLoopRun:
     index: int
 
 
-CHAINS = ("paper", "shipped")   # the chain a run flies: the paper grid's, or the one that ships
+CHAINS = ("paper", "shipped")  # the chain a run flies: the paper grid's, or the one that ships
 
 Run = tuple[str, str, str, "int | InLoopRun | None"]
 """One closed-loop run of a `GridPlan`: (chain: "paper" or "shipped", dynamics = settings.variant, defense,
@@ -106,9 +130,12 @@ class GridPlan:
     def in_loop_runs(self) -> list[Run]:
         """The in-loop runs: per dynamics (`in_loop_dynamics`, else `dynamics`, else settings.variant), undefended and
         each defense, each cell."""
-        return [("shipped", dyn, d, InLoopRun(i)) for dyn in self.in_loop_dynamics or self.dynamics
-                or (self.settings.variant,)
-                for d in ("undefended", *self.defenses) for i in range(len(self.in_loop))]
+        return [
+            ("shipped", dyn, d, InLoopRun(i))
+            for dyn in self.in_loop_dynamics or self.dynamics or (self.settings.variant,)
+            for d in ("undefended", *self.defenses)
+            for i in range(len(self.in_loop))
+        ]
 
     @property
     def paper_size(self) -> int:
@@ -130,40 +157,54 @@ class GridPilot:
     what order); `in_loop_at(eps, goal, i)` the in-loop attacker (pipeline.attackers.in_loop.InLoopAttacker, on
     the shipped chain) of run i; `defense.new()` a fresh Defense per defended run."""
 
-    def __init__(self, cameras: CachedCamera | dict[str, CachedCamera], K: Intrinsics, plan: GridPlan,
-                 attack_at: Callable[[str, float, int], Any] | None, defense: Any = None,
-                 in_loop_at: Callable[[float, str, int], Any] | None = None) -> None:
+    def __init__(
+        self,
+        cameras: CachedCamera | dict[str, CachedCamera],
+        K: Intrinsics,
+        plan: GridPlan,
+        attack_at: Callable[[str, float, int], Any] | None,
+        defense: Any = None,
+        in_loop_at: Callable[[float, str, int], Any] | None = None,
+    ) -> None:
         self.cameras = cameras if isinstance(cameras, dict) else dict.fromkeys(CHAINS, cameras)
         self.K, self.plan, self.attack_at, self.defense = K, plan, attack_at, defense
         self.in_loop_at = in_loop_at
         self.index = {r: i for i, r in enumerate(plan.runs())}
         self.baselines: dict[tuple[str, str, str], RendezvousResult] = {}
 
-    def fly(self, chain: str, dyn: str, defense: str,
-            cell: int | InLoopRun | None) -> tuple[RendezvousResult, frozenset[bytes]]:
+    def fly(
+        self, chain: str, dyn: str, defense: str, cell: int | InLoopRun | None
+    ) -> tuple[RendezvousResult, frozenset[bytes]]:
         from dataclasses import replace
 
         p, camera = self.plan, self.cameras[chain]
-        execution = None if dyn == "paper" else p.execution   # the paper's dynamics: prediction = truth
+        execution = None if dyn == "paper" else p.execution  # the paper's dynamics: prediction = truth
         s, window, observe = replace(p.settings, variant=dyn, defense=defense, execution=execution), None, None
         camera.attack = None
         if cell is not None:
             arrival = arrival_step(self._baseline(chain, dyn, defense), p.settings.goal, p.settings.tolerance)
             i = self.index[(chain, dyn, defense, cell)]
-            if isinstance(cell, InLoopRun):   # attacked to the end; a defended chaser may hold for slack more steps
+            if isinstance(cell, InLoopRun):  # attacked to the end; a defended chaser may hold for slack more steps
                 eps, goal, start = p.in_loop[cell.index]
                 window, extra = AttackWindow(start, p.settings.max_steps), p.slack_steps
                 camera.attack = attacker = self.in_loop_at(eps, goal, i)
                 observe = attacker.observe
             else:
                 eps, _, k, window = p.grid[cell]
-                extra = k                      # a held chaser may arrive up to K steps late
+                extra = k  # a held chaser may arrive up to K steps late
                 camera.attack = self.attack_at(chain, eps, i)
             extra = 0 if defense == "undefended" else extra
             s = replace(s, max_steps=horizon(arrival, p.settings.max_steps, p.slack_steps + extra))
         camera.keys = set()
-        result = run_rendezvous(camera.render, camera.estimate, self.K, s, window,
-                                defense=None if defense == "undefended" else self.defense.new(), observe=observe)
+        result = run_rendezvous(
+            camera.render,
+            camera.estimate,
+            self.K,
+            s,
+            window,
+            defense=None if defense == "undefended" else self.defense.new(),
+            observe=observe,
+        )
         if cell is None:
             self.baselines[(chain, dyn, defense)] = result
         return result, frozenset(camera.keys)
@@ -174,22 +215,27 @@ class GridPilot:
         return self.baselines[(chain, dyn, defense)]
 
 
-def grid_counts(flown: list[tuple[RendezvousResult, frozenset[bytes]]], seen: frozenset[bytes] = frozenset()
-                ) -> dict[str, int]:
+def grid_counts(
+    flown: list[tuple[RendezvousResult, frozenset[bytes]]], seen: frozenset[bytes] = frozenset()
+) -> dict[str, int]:
     """Guidance steps, distinct rendered poses not in `seen`, attacked frames of these runs: the same
     counts whichever pilots flew them (a shared image cache renders each distinct pose once)."""
     keys = frozenset().union(*(k for _, k in flown)) - seen
-    return {"steps": sum(len(r.estimates) for r, _ in flown), "renders": len(keys),
-            "attacked": sum(r.attacked_frames for r, _ in flown)}
+    return {
+        "steps": sum(len(r.estimates) for r, _ in flown),
+        "renders": len(keys),
+        "attacked": sum(r.attacked_frames for r, _ in flown),
+    }
 
 
-def paper_grid(plan: GridPlan, results: list[RendezvousResult]
-               ) -> tuple[RendezvousResult, int | None, int, list[tuple[Any, ...]]]:
+def paper_grid(
+    plan: GridPlan, results: list[RendezvousResult]
+) -> tuple[RendezvousResult, int | None, int, list[tuple[Any, ...]]]:
     """The paper grid's results (the first `plan.paper_size` of `plan.runs()`) -> (baseline, arrival,
     horizon of the attacked runs, [(eps, S, K, result)] in grid order)."""
     baseline = results[0]
     arrival = arrival_step(baseline, plan.settings.goal, plan.settings.tolerance)
-    runs = [(eps, s, k, r) for (eps, s, k, _), r in zip(plan.grid, results[1:plan.paper_size])]
+    runs = [(eps, s, k, r) for (eps, s, k, _), r in zip(plan.grid, results[1 : plan.paper_size])]
     return baseline, arrival, horizon(arrival, plan.settings.max_steps, plan.slack_steps), runs
 
 
@@ -199,12 +245,17 @@ def defended_grid(plan: GridPlan, results: list[RendezvousResult]) -> dict[str, 
     longest, latest-starting cell that every variant flew under attack (a variant that never reached the
     attack's start range is no example of a defense), for a figure}."""
     n = len(plan.grid) + 1
-    blocks = {run[1:3]: results[i:i + n] for i, run in enumerate(plan.runs()) if run[0] == "shipped" and run[3] is None}
+    blocks = {
+        run[1:3]: results[i : i + n] for i, run in enumerate(plan.runs()) if run[0] == "shipped" and run[3] is None
+    }
     out: dict[str, Any] = {"dynamics": {}, "defenses": list(plan.defenses)}
     last = [blocks[(plan.dynamics[-1], d)][1:] for d in ("undefended", *plan.defenses)] if plan.dynamics else []
     attacked_by_all = [i for i in range(len(plan.grid)) if all(flown[i].attacked_frames > 0 for flown in last)]
-    pick = max(attacked_by_all or range(len(plan.grid)),
-               key=lambda i: (plan.grid[i][0], plan.grid[i][2], -plan.grid[i][1]), default=None)
+    pick = max(
+        attacked_by_all or range(len(plan.grid)),
+        key=lambda i: (plan.grid[i][0], plan.grid[i][2], -plan.grid[i][1]),
+        default=None,
+    )
     example: list[tuple[str, Any]] = []
     for dyn in plan.dynamics:
         out["dynamics"][dyn] = {}
@@ -231,11 +282,24 @@ def in_loop_grid(plan: GridPlan, results: list[RendezvousResult], collision_rang
     for (_, dyn, defense, cell), r in zip(plan.in_loop_runs(), results[first:]):
         eps, goal, start = plan.in_loop[cell.index]
         collided = r.closest_range < collision_range
-        runs.append({"dynamics": dyn, "defense": defense, "eps": eps, "goal": goal, "start_range": start,
-                     "outcome": r.outcome, "collided": bool(collided), "closest_range_m": r.closest_range,
-                     "miss_m": r.miss, "steps": len(r.estimates), "attacked_frames": r.attacked_frames,
-                     "flags": _count(r.flags), "hold_steps": _count(r.modes, "hold"),
-                     "ended_in_hold": None if r.modes is None or not len(r.modes) else bool(r.modes[-1] == "hold")})
+        runs.append(
+            {
+                "dynamics": dyn,
+                "defense": defense,
+                "eps": eps,
+                "goal": goal,
+                "start_range": start,
+                "outcome": r.outcome,
+                "collided": bool(collided),
+                "closest_range_m": r.closest_range,
+                "miss_m": r.miss,
+                "steps": len(r.estimates),
+                "attacked_frames": r.attacked_frames,
+                "flags": _count(r.flags),
+                "hold_steps": _count(r.modes, "hold"),
+                "ended_in_hold": None if r.modes is None or not len(r.modes) else bool(r.modes[-1] == "hold"),
+            }
+        )
         k = counts.setdefault(dyn, {}).setdefault(defense, {}).setdefault(f"{eps:g}", [0, 0, 0, 0, 0])
         met = r.attacked_frames > 0
         k[0] += int(met and collided)

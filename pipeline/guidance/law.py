@@ -33,6 +33,7 @@ image ("target lost"). The attack starts at the first step whose true range is a
 and lasts K consecutive frames (fewer if the run ends first). An attacker in the loop may watch it:
 `observe` gets the loop's state (`LoopState`) before every frame is estimated.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -40,10 +41,10 @@ from typing import Any, Callable
 
 import numpy as np
 
-from pipeline.geometry.camera import Intrinsics
 from pipeline.defense.fusion import Defense
-from pipeline.guidance.dynamics import ExecutionSettings, Executor
+from pipeline.geometry.camera import Intrinsics
 from pipeline.geometry.trajectories import look_at, pose_in_camera
+from pipeline.guidance.dynamics import ExecutionSettings, Executor
 
 VARIANTS = ("paper", "true_state")
 DEFENSES = ("undefended", "hold", "recover")
@@ -99,20 +100,26 @@ class GuidanceSettings:
         if self.defense not in DEFENSES:
             raise ValueError(f"unknown guidance defense {self.defense!r}; choose one of {', '.join(DEFENSES)}")
         if self.tolerance <= 0 or self.max_step <= 0 or self.max_steps < 1:
-            raise ValueError("guidance tolerance and max_step must be positive and max_steps >= 1, got "
-                             f"{self.tolerance}, {self.max_step}, {self.max_steps}")
+            raise ValueError(
+                "guidance tolerance and max_step must be positive and max_steps >= 1, got "
+                f"{self.tolerance}, {self.max_step}, {self.max_steps}"
+            )
         if np.linalg.norm(self.goal) >= np.linalg.norm(self.start):
             raise ValueError(f"the guidance goal {self.goal} must be closer to the target than the start {self.start}")
         if self.execution is not None and self.variant == "paper":
-            raise ValueError("execution error applies to the true_state dynamics; the paper variant flies the chaser "
-                             "to its estimate (prediction = truth by construction)")
+            raise ValueError(
+                "execution error applies to the true_state dynamics; the paper variant flies the chaser "
+                "to its estimate (prediction = truth by construction)"
+            )
 
     def window(self, start_range: float, length: int) -> AttackWindow:
         """A validated attack window: S between the goal range and the start range, K >= 1."""
         lo, hi = float(np.linalg.norm(self.goal)), float(np.linalg.norm(self.start))
         if not lo <= start_range <= hi:
-            raise ValueError(f"attack start range S={start_range} m is outside the trajectory: the range goes "
-                             f"from {hi:g} m to {lo:g} m")
+            raise ValueError(
+                f"attack start range S={start_range} m is outside the trajectory: the range goes "
+                f"from {hi:g} m to {lo:g} m"
+            )
         if int(length) < 1:
             raise ValueError(f"attack length K must be at least 1 frame, got {length}")
         return AttackWindow(float(start_range), int(length))
@@ -158,8 +165,11 @@ class RendezvousResult:
     def closest_range(self) -> float:
         """The least true range over the run (m): the distance from the target to the path between
         consecutive positions (a step may jump past the target under the paper dynamics)."""
-        return float(min(segment_range(a, b) for a, b in zip(self.positions[:-1], self.positions[1:]))
-                     if len(self.positions) > 1 else np.linalg.norm(self.positions[0]))
+        return float(
+            min(segment_range(a, b) for a, b in zip(self.positions[:-1], self.positions[1:]))
+            if len(self.positions) > 1
+            else np.linalg.norm(self.positions[0])
+        )
 
 
 def segment_range(a: np.ndarray, b: np.ndarray) -> float:
@@ -177,8 +187,9 @@ def in_view(t: np.ndarray, K: Intrinsics) -> bool:
     return bool(-0.5 <= u <= K.width - 0.5 and -0.5 <= v <= K.height - 0.5)
 
 
-def arrival_step(result: "RendezvousResult", goal: tuple[float, float, float] | np.ndarray,
-                 tolerance: float) -> int | None:
+def arrival_step(
+    result: "RendezvousResult", goal: tuple[float, float, float] | np.ndarray, tolerance: float
+) -> int | None:
     """Steps after which the chaser is within `tolerance` (m) of `goal` and stays there to the end of
     the run, or None when the run does not end there."""
     inside = np.linalg.norm(result.positions - np.asarray(goal, dtype=np.float64), axis=1) <= tolerance
@@ -188,8 +199,9 @@ def arrival_step(result: "RendezvousResult", goal: tuple[float, float, float] | 
     return int(outside[-1] + 1) if len(outside) else 0
 
 
-def guidance_step(est: np.ndarray, rel: np.ndarray, goal: np.ndarray, max_step: float,
-                  variant: str) -> tuple[np.ndarray, np.ndarray]:
+def guidance_step(
+    est: np.ndarray, rel: np.ndarray, goal: np.ndarray, max_step: float, variant: str
+) -> tuple[np.ndarray, np.ndarray]:
     """One application of the control law -> (next true rel, rel the chaser believes it reaches)."""
     cmd = np.clip(est - goal, -max_step, max_step)
     believed = est - cmd
@@ -206,10 +218,16 @@ def outcome(lost: bool, miss: float, tolerance: float, attacked: np.ndarray) -> 
     return SUCCEEDED if attacked.any() else MISSED
 
 
-def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settings: GuidanceSettings,
-                   window: AttackWindow | None = None, target_attitude: np.ndarray | None = None,
-                   defense: Defense | None = None,
-                   observe: Callable[[LoopState], None] | None = None) -> RendezvousResult:
+def run_rendezvous(
+    render: RenderFn,
+    estimate: EstimateFn,
+    K: Intrinsics,
+    settings: GuidanceSettings,
+    window: AttackWindow | None = None,
+    target_attitude: np.ndarray | None = None,
+    defense: Defense | None = None,
+    observe: Callable[[LoopState], None] | None = None,
+) -> RendezvousResult:
     """Fly the closed loop: render the true pose, estimate it (attacked inside the window), move.
 
     `target_attitude` is the target -> world rotation (identity by default). `defense` (a fresh
@@ -221,8 +239,10 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
     defense's trusted estimate, and a biased estimate is not read as motion.
     """
     if (settings.defense == "undefended") != (defense is None):
-        raise ValueError(f"guidance defense {settings.defense!r} needs "
-                         + ("no Defense" if defense is not None else "a Defense (pipeline/defense/fusion.py)"))
+        raise ValueError(
+            f"guidance defense {settings.defense!r} needs "
+            + ("no Defense" if defense is not None else "a Defense (pipeline/defense/fusion.py)")
+        )
     R_tw = np.eye(3) if target_attitude is None else np.asarray(target_attitude, dtype=np.float64)
     goal = np.asarray(settings.goal, dtype=np.float64)
     rel = np.asarray(settings.start, dtype=np.float64)
@@ -255,7 +275,7 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
                 act = d.trusted if d.available else None
         if act is None:  # hold: no command, the chaser and its camera stay as they are
             u = np.zeros(3)
-            if executor is not None:      # station kept; its draws keep the errors aligned with the steps
+            if executor is not None:  # station kept; its draws keep the errors aligned with the steps
                 executor.step(rel, u)
         else:
             nxt, believed = guidance_step(act, rel, goal, settings.max_step, settings.variant)
@@ -272,10 +292,17 @@ def run_rendezvous(render: RenderFn, estimate: EstimateFn, K: Intrinsics, settin
             break
     attacked_arr = np.array(attacked, dtype=bool)
     miss = float(np.linalg.norm(rel - goal))
-    return RendezvousResult(np.array(positions), np.array(estimates).reshape(-1, 3), attacked_arr,
-                            outcome(lost, miss, settings.tolerance, attacked_arr), miss, attack_start,
-                            None if defense is None else np.array(flags, dtype=bool),
-                            None if defense is None else np.array(modes), np.array(held, dtype=bool))
+    return RendezvousResult(
+        np.array(positions),
+        np.array(estimates).reshape(-1, 3),
+        attacked_arr,
+        outcome(lost, miss, settings.tolerance, attacked_arr),
+        miss,
+        attack_start,
+        None if defense is None else np.array(flags, dtype=bool),
+        None if defense is None else np.array(modes),
+        np.array(held, dtype=bool),
+    )
 
 
 class CachedCamera:
@@ -292,14 +319,19 @@ class CachedCamera:
     rendered, attacked frames.
     """
 
-    def __init__(self, render_image: Callable[[np.ndarray, np.ndarray], np.ndarray], model: Any,
-                 attack: Callable[[Any, Any], Any] | None = None, chain: Any | None = None,
-                 images: dict[bytes, np.ndarray] | None = None):
+    def __init__(
+        self,
+        render_image: Callable[[np.ndarray, np.ndarray], np.ndarray],
+        model: Any,
+        attack: Callable[[Any, Any], Any] | None = None,
+        chain: Any | None = None,
+        images: dict[bytes, np.ndarray] | None = None,
+    ):
         self.render_image, self.model, self.attack, self.chain = render_image, model, attack, chain
         self.images = {} if images is None else images
-        self.cache: dict[bytes, np.ndarray | Estimate] = {}   # pose -> this chain's clean estimate
+        self.cache: dict[bytes, np.ndarray | Estimate] = {}  # pose -> this chain's clean estimate
         self.counts = {"steps": 0, "renders": 0, "attacked": 0}
-        self.keys: set[bytes] = set()   # the poses rendered (or read from the cache) since it was last cleared
+        self.keys: set[bytes] = set()  # the poses rendered (or read from the cache) since it was last cleared
 
     @staticmethod
     def _input(image: np.ndarray) -> Any:
@@ -330,8 +362,9 @@ class CachedCamera:
         self.keys.add(key)
         return key, self.images[key]
 
-    def estimate(self, rendered: tuple[bytes, np.ndarray], attacked: bool,
-                 pose: tuple[np.ndarray, np.ndarray]) -> np.ndarray | Estimate:
+    def estimate(
+        self, rendered: tuple[bytes, np.ndarray], attacked: bool, pose: tuple[np.ndarray, np.ndarray]
+    ) -> np.ndarray | Estimate:
         import torch
 
         from pipeline.geometry.rotations import matrix_to_6d

@@ -1,5 +1,6 @@
 """Atomic file writes (temporary file or folder + rename: a reader never sees half a file) and JSON,
 figure and hash helpers."""
+
 from __future__ import annotations
 
 import contextlib
@@ -69,8 +70,8 @@ def read_json(path: Path | str) -> Any:
         raise DataError(f"{path} is not valid JSON: {e}") from None
 
 
-OWNER = ".rpodguard-owner"   # inside every temporary folder `owned_temp` makes: the folder's own name (its token)
-OLD = "previous"             # inside an `owned_temp`: the output being replaced, while atomic_dir swaps it
+OWNER = ".rpodguard-owner"  # inside every temporary folder `owned_temp` makes: the folder's own name (its token)
+OLD = "previous"  # inside an `owned_temp`: the output being replaced, while atomic_dir swaps it
 
 
 def owned_temp(path: Path | str) -> Path:
@@ -88,8 +89,13 @@ def _owned(folder: Path) -> bool:
     """Whether `folder` is a real folder holding the token `owned_temp` wrote into it."""
     token = folder / OWNER
     try:
-        return (not folder.is_symlink() and folder.is_dir() and not token.is_symlink() and token.is_file()
-                and token.read_text() == folder.name)
+        return (
+            not folder.is_symlink()
+            and folder.is_dir()
+            and not token.is_symlink()
+            and token.is_file()
+            and token.read_text() == folder.name
+        )
     except OSError:
         return False
 
@@ -149,9 +155,10 @@ def exclusive(lock: Path | str, what: str) -> Iterator[None]:
             f.seek(0)
             holder = f.read().strip() or "?"
             f.close()
-            raise DataError(f"{what} is being written by another process (pid {holder}, lock {lock}); wait for it "
-                            f"to finish") from None
-        try:   # the file locked is still the one at `lock` (its last holder did not remove it in between)
+            raise DataError(
+                f"{what} is being written by another process (pid {holder}, lock {lock}); wait for it to finish"
+            ) from None
+        try:  # the file locked is still the one at `lock` (its last holder did not remove it in between)
             if os.stat(lock).st_ino == os.fstat(f.fileno()).st_ino:
                 break
         except FileNotFoundError:
@@ -164,7 +171,7 @@ def exclusive(lock: Path | str, what: str) -> Iterator[None]:
         try:
             yield
         finally:
-            lock.unlink(missing_ok=True)   # while still held: a process that opened it meanwhile tries again
+            lock.unlink(missing_ok=True)  # while still held: a process that opened it meanwhile tries again
             fcntl.flock(f, fcntl.LOCK_UN)
 
 
@@ -175,7 +182,7 @@ def remove_stale_temps(path: Path | str) -> list[Path]:
     path = followed(path)
     removed = []
     for d in sorted(path.parent.glob(f".{glob.escape(path.name)}.*.tmp")):
-        pid = d.name[len(path.name) + 2:].split(".", 1)[0]
+        pid = d.name[len(path.name) + 2 :].split(".", 1)[0]
         if not _owned(d) or (pid.isdigit() and _alive(int(pid))):
             continue
         if (d / OLD).is_dir() and not os.path.lexists(path):
@@ -207,7 +214,7 @@ def atomic_outputs(*paths: Path | str, dirs: tuple[Path | str, ...] = ()) -> Ite
         p.parent.mkdir(parents=True, exist_ok=True)
         tmps.append(p.with_name(f".{p.name}.{os.getpid()}.tmp"))
     try:
-        for t in tmps[len(files):]:
+        for t in tmps[len(files) :]:
             shutil.rmtree(t, ignore_errors=True)
             t.mkdir()
         yield tmps
@@ -220,7 +227,7 @@ def atomic_outputs(*paths: Path | str, dirs: tuple[Path | str, ...] = ()) -> Ite
                 shutil.rmtree(t, ignore_errors=True)
             else:
                 t.unlink(missing_ok=True)
-        if isinstance(e, DataError):   # "could not write .pose.pt.PID.tmp": name the output, not its stand-in
+        if isinstance(e, DataError):  # "could not write .pose.pt.PID.tmp": name the output, not its stand-in
             message = str(e)
             for p, t in zip(files + folders, tmps):
                 message = message.replace(str(t), str(p))
@@ -248,7 +255,7 @@ def save_figure(fig: Any, path: Path | str, dpi: int = 110) -> None:
 def file_hash(path: Path | str, n: int = 16) -> str:
     """Short sha256 of a file (used to tie derived artifacts to a checkpoint)."""
     h = hashlib.sha256()
-    with open_regular(path) as f:      # a FIFO or device would block the read for ever
+    with open_regular(path) as f:  # a FIFO or device would block the read for ever
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()[:n]

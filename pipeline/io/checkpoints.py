@@ -1,4 +1,5 @@
 """torch checkpoints: written atomically with reproducible bytes, read safely (weights_only=True)."""
+
 from __future__ import annotations
 
 import math
@@ -27,8 +28,8 @@ def save_torch(path: Path | str, obj: Any) -> None:
         os.replace(tmp, path)
     except BaseException as e:
         Path(tmp).unlink(missing_ok=True)
-        cause = e if isinstance(e, OSError) else e.__context__   # torch reports a failed write as a RuntimeError
-        if isinstance(cause, OSError):                             # disk full, quota, read-only, ...
+        cause = e if isinstance(e, OSError) else e.__context__  # torch reports a failed write as a RuntimeError
+        if isinstance(cause, OSError):  # disk full, quota, read-only, ...
             raise DataError(f"could not write {path} ({cause.strerror or cause}); the file was left as it was") from e
         raise
 
@@ -42,7 +43,7 @@ def load_torch(path: Path | str, fmt: str, redo: str) -> dict[str, Any]:
     path = Path(path)
     if not path.exists():
         raise not_found(path, "checkpoint")
-    if not path.is_file():       # a FIFO or device would block the read for ever
+    if not path.is_file():  # a FIFO or device would block the read for ever
         raise DataError(f"checkpoint {path} is not a regular file; {redo}")
     damaged = _damaged_record(path)
     if damaged:

@@ -1,4 +1,5 @@
 """`DataError`: a problem with an input file that the user can fix; the message names the file."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -10,7 +11,7 @@ class DataError(RuntimeError):
     (no traceback), so it names the file and says what to do."""
 
 
-GENERIC_HINT = "run the stage that writes it first"   # when the application names no way to make the file
+GENERIC_HINT = "run the stage that writes it first"  # when the application names no way to make the file
 _HINT: list[Callable[[Path], str]] = [lambda path: GENERIC_HINT]
 
 

@@ -3,6 +3,7 @@ file (opened with O_NONBLOCK, so a FIFO without a writer answers at once, then c
 device, socket or folder given as an input is one DataError naming it. `check_regular` is the same check for
 the libraries that open a path themselves (OpenCV, Pillow, zarr); `read_yaml` reads a YAML mapping through it,
 refusing a key given twice."""
+
 from __future__ import annotations
 
 import os
@@ -12,8 +13,13 @@ from typing import IO, Any
 
 from pipeline.io.errors import DataError, not_found
 
-_KINDS = {stat.S_ISFIFO: "a FIFO", stat.S_ISDIR: "a folder", stat.S_ISCHR: "a character device",
-          stat.S_ISBLK: "a block device", stat.S_ISSOCK: "a socket"}
+_KINDS = {
+    stat.S_ISFIFO: "a FIFO",
+    stat.S_ISDIR: "a folder",
+    stat.S_ISCHR: "a character device",
+    stat.S_ISBLK: "a block device",
+    stat.S_ISSOCK: "a socket",
+}
 
 
 def open_regular(path: Path | str, mode: str = "rb", what: str = "", **kwargs: Any) -> IO[Any]:

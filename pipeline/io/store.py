@@ -3,6 +3,7 @@ manifest (written last, in the root group's attributes) listing per array its sh
 of its metadata document (its zarr.json: dtype, codecs, fill value) and of every chunk object, and the
 crc32c of the root group's other attributes; `open_zarr` refuses a store that does not match it. Stores
 are local paths or fsspec URLs."""
+
 from __future__ import annotations
 
 import json
@@ -20,8 +21,9 @@ def create_array(group: Any, name: str, **kwargs: Any) -> Any:
     and every chunk written (also all-zero ones) so a missing chunk file is always an error."""
     from zarr.codecs import Crc32cCodec, ZstdCodec
 
-    return group.create_array(name, compressors=[ZstdCodec(level=0), Crc32cCodec()],
-                              config={"write_empty_chunks": True}, **kwargs)
+    return group.create_array(
+        name, compressors=[ZstdCodec(level=0), Crc32cCodec()], config={"write_empty_chunks": True}, **kwargs
+    )
 
 
 def reopen_array(path: Path | str, name: str) -> Any:
@@ -59,7 +61,7 @@ def cat(fs: Any, path: str) -> bytes:
             return read_bytes(path)
         except DataError as e:
             if not Path(path).exists():
-                raise FileNotFoundError(path) from None     # what the callers (as fs.cat_file) expect
+                raise FileNotFoundError(path) from None  # what the callers (as fs.cat_file) expect
             raise DataError(f"zarr store object {e}; delete the store and re-run the stage that writes it") from None
     return fs.cat_file(path)
 
@@ -92,7 +94,7 @@ def _json_crc32c(fs: Any, root: str, name: str | None) -> str:
 def _chunk_files(fs: Any, root: str, name: str) -> set[str]:
     """Keys (c/i/j/...) of the chunk objects stored under array `name`."""
     base = f"{root.rstrip('/')}/{name}/"
-    return {f[len(base):] for f in fs.find(base) if f.startswith(base) and f[len(base):].startswith("c/")}
+    return {f[len(base) :] for f in fs.find(base) if f.startswith(base) and f[len(base) :].startswith("c/")}
 
 
 def seal_zarr(path: Path | str, crc32c: dict[str, dict[str, str]] | None = None) -> None:
@@ -111,7 +113,9 @@ def seal_zarr(path: Path | str, crc32c: dict[str, dict[str, str]] | None = None)
     arrays: dict[str, Any] = {}
     for name, arr in sorted(group.arrays()):
         if not any(type(c).__name__ == "Crc32cCodec" for c in arr.compressors):
-            raise RuntimeError(f"{path}/{name} was written without the crc32c codec (use pipeline.io.store.create_array)")
+            raise RuntimeError(
+                f"{path}/{name} was written without the crc32c codec (use pipeline.io.store.create_array)"
+            )
         keys = _chunk_keys(arr.shape, arr.chunks)
         given = (crc32c or {}).get(name)
         missing = set(keys) - _chunk_files(fs, root, name)
@@ -123,10 +127,17 @@ def seal_zarr(path: Path | str, crc32c: dict[str, dict[str, str]] | None = None)
         crcs = {k: given[k] for k in keys} if given else {k: chunk_crc32c(fs, f"{root}/{name}/{k}") for k in keys}
         if "damaged" in crcs.values():
             raise RuntimeError(f"{path}/{name}: a chunk was damaged while it was written")
-        arrays[name] = {"shape": list(arr.shape), "chunks": list(arr.chunks), "zarr_json": _json_crc32c(fs, root, name),
-                        "crc32c": crcs}
-    zarr.open_group(str(path), mode="r+").attrs[MANIFEST] = {"format": MANIFEST_FORMAT, "arrays": arrays,
-                                                              "attributes": _json_crc32c(fs, root, None)}
+        arrays[name] = {
+            "shape": list(arr.shape),
+            "chunks": list(arr.chunks),
+            "zarr_json": _json_crc32c(fs, root, name),
+            "crc32c": crcs,
+        }
+    zarr.open_group(str(path), mode="r+").attrs[MANIFEST] = {
+        "format": MANIFEST_FORMAT,
+        "arrays": arrays,
+        "attributes": _json_crc32c(fs, root, None),
+    }
 
 
 def is_sealed(path: Path | str) -> bool:
@@ -150,8 +161,7 @@ def _manifest(path: Path | str, what: str) -> dict[str, Any]:
         raise DataError(f"{what} {path}/zarr.json is damaged; {redo}") from None
     manifest = meta.get("attributes", {}).get(MANIFEST) if isinstance(meta, dict) else None
     if manifest is None:
-        raise DataError(f"{what} {path} has no checksum manifest (an interrupted write or an older "
-                         f"rpodguard); {redo}")
+        raise DataError(f"{what} {path} has no checksum manifest (an interrupted write or an older rpodguard); {redo}")
     fmt = manifest.get("format") if isinstance(manifest, dict) else None
     if isinstance(fmt, str) and fmt.startswith("rpodguard-zarr-manifest/") and fmt != MANIFEST_FORMAT:
         raise DataError(f"{what} {path} was written by an older rpodguard (checksum manifest {fmt}); {redo}")
@@ -177,8 +187,9 @@ def verify_zarr(path: Path | str, what: str = "zarr store") -> None:
         except FileNotFoundError:
             raise DataError(f"{what} {path} is missing {name}/zarr.json; {redo}") from None
         if changed:
-            raise DataError(f"{what} {path}: {name}/zarr.json (dtype, codecs, shape) changed since it was sealed; "
-                            f"{redo}")
+            raise DataError(
+                f"{what} {path}: {name}/zarr.json (dtype, codecs, shape) changed since it was sealed; {redo}"
+            )
         stored = _chunk_files(fs, root, name)
         for key, crc in entry["crc32c"].items():
             if key not in stored:
@@ -203,17 +214,22 @@ def open_zarr(path: Path | str, what: str = "zarr store") -> Any:
         listed = _manifest(path, what)["arrays"]
         stored = {name: arr for name, arr in group.arrays()}
     except Exception as e:  # zarr raises several types for a damaged store
-        raise DataError(f"{what} {path} is unreadable or corrupt ({type(e).__name__}: {e}); "
-                         f"delete it and re-run the stage that writes it") from None
+        raise DataError(
+            f"{what} {path} is unreadable or corrupt ({type(e).__name__}: {e}); "
+            f"delete it and re-run the stage that writes it"
+        ) from None
     changed = sorted(set(stored) ^ set(listed)) or [
-        n for n, a in stored.items() if [list(a.shape), list(a.chunks)] != [listed[n]["shape"], listed[n]["chunks"]]]
+        n for n, a in stored.items() if [list(a.shape), list(a.chunks)] != [listed[n]["shape"], listed[n]["chunks"]]
+    ]
     if changed:
-        raise DataError(f"{what} {path}: arrays {changed} differ from its checksum manifest; "
-                         f"delete it and re-run the stage that writes it")
+        raise DataError(
+            f"{what} {path}: arrays {changed} differ from its checksum manifest; "
+            f"delete it and re-run the stage that writes it"
+        )
     return group
 
 
-IO_THREAD_JOIN_S = 30.0   # seconds `release_zarr` waits for zarr's I/O thread to stop
+IO_THREAD_JOIN_S = 30.0  # seconds `release_zarr` waits for zarr's I/O thread to stop
 
 
 def release_zarr() -> None:
@@ -227,7 +243,7 @@ def release_zarr() -> None:
     sync = sys.modules.get("zarr.core.sync")
     if sync is None:
         return
-    if sync._executor is not None:   # zarr's module state (zarr 3.1: loop, iothread, _executor)
+    if sync._executor is not None:  # zarr's module state (zarr 3.1: loop, iothread, _executor)
         sync._executor.shutdown(wait=True, cancel_futures=True)
         sync._executor = None
     loop, thread = sync.loop[0], sync.iothread[0]
@@ -237,6 +253,6 @@ def release_zarr() -> None:
     if thread is not None:
         thread.join(IO_THREAD_JOIN_S)
         if thread.is_alive():
-            return   # still busy: leave it to zarr's hook
+            return  # still busy: leave it to zarr's hook
     loop.close()
     sync.loop[0], sync.iothread[0] = None, None

@@ -1,4 +1,5 @@
 """Parquet tables with a CRC checksum on every page, written atomically."""
+
 from __future__ import annotations
 
 import os

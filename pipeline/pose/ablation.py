@@ -8,6 +8,7 @@ the frames' background (the labels' `background` column: black, space, earth; or
 model, background and eps: the clean errors (eps 0) or the suite's worst case nested in eps, as means over the
 frames with 95% intervals: position (m), attitude (deg), range and lateral error (m).
 """
+
 from __future__ import annotations
 
 from typing import Any, Mapping, Sequence
@@ -20,9 +21,15 @@ from pipeline.attacks.strongest import SuiteConfig, run_suite, suite_rows
 ROW_KEYS = ("n", "pos_m", "pos_ci", "att_deg", "att_ci", "range_m", "range_ci", "lateral_m", "lateral_ci")
 
 
-def ablation_rows(models: Mapping[str, nn.Module], images: np.ndarray, targets: np.ndarray, eps: Sequence[float],
-                  config: SuiteConfig, backgrounds: np.ndarray | None = None,
-                  device: str = "cpu") -> list[dict[str, Any]]:
+def ablation_rows(
+    models: Mapping[str, nn.Module],
+    images: np.ndarray,
+    targets: np.ndarray,
+    eps: Sequence[float],
+    config: SuiteConfig,
+    backgrounds: np.ndarray | None = None,
+    device: str = "cpu",
+) -> list[dict[str, Any]]:
     """Rows (module doc) of each model of `models` (name -> pose network) on clean uint8 images (N, H, W, 3) with
     true poses `targets` (N, 9: camera-frame position in m, 6-D rotation), under `config` at the increasing
     budgets `eps` (L-inf, pixel units): per model, per background (the distinct values of `backgrounds` (N,) in
@@ -38,6 +45,7 @@ def ablation_rows(models: Mapping[str, nn.Module], images: np.ndarray, targets: 
         for group in groups:
             for row in suite_rows(result.select(kinds == group)):
                 if row["attack"] in ("clean", "suite"):
-                    rows.append({"model": name, "background": group, "eps": row["eps"],
-                                 **{k: row[k] for k in ROW_KEYS}})
+                    rows.append(
+                        {"model": name, "background": group, "eps": row["eps"], **{k: row[k] for k in ROW_KEYS}}
+                    )
     return rows

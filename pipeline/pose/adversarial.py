@@ -42,6 +42,7 @@ gradient; the position loss without `objectives`, else the objectives cycled ove
 8 bits, so the checkpoint kept is chosen on clean + attacked validation error (pipeline/pose/train.py:
 `selection_error`). Images are float (B, 3, H, W) in [0, 1]; eps in the same pixel units.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -52,8 +53,16 @@ import torch
 from torch import Tensor, nn
 
 from pipeline.attacks.bpda import black_level, bpda_forward
-from pipeline.attacks.gradient import LossFn, _check_steps, _eval_mode, _input_grad, attack_loss, check_eps, project, \
-    quantize
+from pipeline.attacks.gradient import (
+    LossFn,
+    _check_steps,
+    _eval_mode,
+    _input_grad,
+    attack_loss,
+    check_eps,
+    project,
+    quantize,
+)
 from pipeline.attacks.objectives import get_objective
 from pipeline.attacks.starts import STARTS, get_start
 from pipeline.pose.loss import PoseLoss
@@ -88,18 +97,24 @@ class AdversarialConfig:
 
     def __post_init__(self) -> None:
         check_eps(self.eps)
-        if self.objective_eps and (len(self.objective_eps) != len(self.objectives)
-                                   or not all(0 < e <= self.eps for e in self.objective_eps)):
-            raise ValueError(f"objective_eps must give each of the {len(self.objectives)} objectives a budget in "
-                             f"(0, eps = {self.eps:g}], got {list(self.objective_eps)}")
+        if self.objective_eps and (
+            len(self.objective_eps) != len(self.objectives) or not all(0 < e <= self.eps for e in self.objective_eps)
+        ):
+            raise ValueError(
+                f"objective_eps must give each of the {len(self.objectives)} objectives a budget in "
+                f"(0, eps = {self.eps:g}], got {list(self.objective_eps)}"
+            )
         if not self.trades >= 0:
             raise ValueError(f"trades (beta) must be >= 0, got {self.trades}")
         if self.steps < 1 or self.val_steps < 1 or self.val_frames < 1:
-            raise ValueError(f"steps, val_steps and val_frames must be >= 1, got {self.steps}, {self.val_steps}, "
-                             f"{self.val_frames}")
+            raise ValueError(
+                f"steps, val_steps and val_frames must be >= 1, got {self.steps}, {self.val_steps}, {self.val_frames}"
+            )
         if self.ramp_epochs < 0 or not 0 <= self.position_weight <= 1 or not 0 < self.fraction <= 1:
-            raise ValueError(f"need ramp_epochs >= 0, position_weight in [0, 1] and fraction in (0, 1], got "
-                             f"{self.ramp_epochs}, {self.position_weight}, {self.fraction}")
+            raise ValueError(
+                f"need ramp_epochs >= 0, position_weight in [0, 1] and fraction in (0, 1], got "
+                f"{self.ramp_epochs}, {self.position_weight}, {self.fraction}"
+            )
         if not self.attacked_rotation and self.fraction == 1:
             raise ValueError("attacked_rotation off needs fraction < 1: the rotation is fitted on the clean share")
         for name in self.objectives:
@@ -144,25 +159,43 @@ class Adversary:
         """Rows at the start of a batch left out of the training loss's rotation term (PoseLoss)."""
         return 0 if self.cfg.attacked_rotation else min(self.attacked(batch), batch - 1)
 
-    def attack(self, model: nn.Module, x: Tensor, y: Tensor, eps: float, loss_fn: LossFn, steps: int,
-               generator: torch.Generator) -> Tensor:
+    def attack(
+        self,
+        model: nn.Module,
+        x: Tensor,
+        y: Tensor,
+        eps: float,
+        loss_fn: LossFn,
+        steps: int,
+        generator: torch.Generator,
+    ) -> Tensor:
         """PGD-`steps` (steps of 2.5 eps / steps) ascending `loss_fn` from the configured start, with the
         gradient through BPDA when set; the last iterate (B, 3, H, W) in [0, 1]. A ValueError when eps exceeds
         the model's black level and the attack is not `unmasked` (module doc)."""
         eps, level = check_eps(eps), black_level(model)
         if 0 < level < eps and not self.cfg.unmasked():
-            raise ValueError(f"eps {eps:g} exceeds the black-level clamp {level:g}: a random start and the clamp's "
-                             f"gradient would mask the attack; set start: lift and bpda: true")
+            raise ValueError(
+                f"eps {eps:g} exceeds the black-level clamp {level:g}: a random start and the clamp's "
+                f"gradient would mask the attack; set start: lift and bpda: true"
+            )
         steps, alpha = _check_steps(steps, None, 2.5, eps)
         x = x.detach()
-        with _eval_mode(model), (bpda_forward(model) if self.cfg.bpda else contextlib.nullcontext(model)) as forward:
+        with _eval_mode(model), bpda_forward(model) if self.cfg.bpda else contextlib.nullcontext(model) as forward:
             z = get_start(self.cfg.start, x, eps, level, generator)
             for _ in range(steps):
                 z = project(z + alpha * _input_grad(forward, z, y, loss_fn).sign(), x, eps)
         return z.detach()
 
-    def attack_rows(self, model: nn.Module, x: Tensor, target: Tensor, share: float, steps: int,
-                    generator: torch.Generator, loss_fn: LossFn) -> Tensor:
+    def attack_rows(
+        self,
+        model: nn.Module,
+        x: Tensor,
+        target: Tensor,
+        share: float,
+        steps: int,
+        generator: torch.Generator,
+        loss_fn: LossFn,
+    ) -> Tensor:
         """PGD-`steps` examples of every row of x: without `objectives` on `loss_fn` at eps x share; with them
         row i on objectives[i mod n] at its budget x share (target (B, 9): the truth, or with trades the clean
         estimate)."""
@@ -174,8 +207,15 @@ class Adversary:
             rows = slice(k, None, len(budgets))
             if len(x[rows]):
                 objective = get_objective(name)
-                out[rows] = self.attack(model, x[rows], target[rows], budget * share,
-                                        lambda pred, t: objective(pred, t).sum(), steps, generator)
+                out[rows] = self.attack(
+                    model,
+                    x[rows],
+                    target[rows],
+                    budget * share,
+                    lambda pred, t, objective=objective: objective(pred, t).sum(),
+                    steps,
+                    generator,
+                )
         return out
 
     def perturb(self, model: nn.Module, x: Tensor, y: Tensor, step: int) -> Tensor:
@@ -205,18 +245,23 @@ class Adversary:
             return speed_score(pred, target)
         return float(np.mean(pose_errors(pred, target)[0] / np.linalg.norm(target[:, :3], axis=1)))
 
-    def validate(self, model: nn.Module, val_set: torch.utils.data.Dataset,
-                 device: torch.device | str = "cpu", batch_size: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    def validate(
+        self,
+        model: nn.Module,
+        val_set: torch.utils.data.Dataset,
+        device: torch.device | str = "cpu",
+        batch_size: int = 64,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(predictions (M, 9), targets (M, 9)) of `model` on the fixed subset of M = min(val_frames, N)
         validation images under PGD-`val_steps` at the full budgets (the position loss, or the objectives), stored
         as 8 bits. The random start is re-seeded each call, so every epoch faces the same attack."""
         rng = np.random.default_rng(self.seed)
-        rows = np.sort(rng.permutation(len(val_set))[:self.cfg.val_frames])
+        rows = np.sort(rng.permutation(len(val_set))[: self.cfg.val_frames])
         position = attack_loss("position", self.loss)
         gen = torch.Generator().manual_seed(self.seed)
         preds, targets = [], []
         for lo in range(0, len(rows), batch_size):
-            items = [val_set[int(i)] for i in rows[lo:lo + batch_size]]
+            items = [val_set[int(i)] for i in rows[lo : lo + batch_size]]
             x = torch.stack([im for im, _ in items]).permute(0, 3, 1, 2).float().div(255.0).to(device)
             y = torch.stack([t for _, t in items]).to(device)
             x_adv = self.attack_rows(model, x, y, 1.0, self.cfg.val_steps, gen, position)

@@ -4,6 +4,7 @@ Each augmentation is applied independently with probability `p`, in a fixed orde
 Gaussian blur, Gaussian noise, JPEG compression (the camera chain: scene light, optics, sensor,
 encoder). Geometry is never changed, so the pose labels stay valid.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

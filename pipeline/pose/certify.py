@@ -11,6 +11,7 @@ and the residual adds ignore that both terms come from the same input. The integ
 empirical capacity (pipeline/attacks/capacity.py); this says how far it sits below a certificate.
 (auto-LiRPA's CROWN would be tighter; its last release predates the torch we pin.)
 """
+
 from __future__ import annotations
 
 import torch
@@ -19,7 +20,7 @@ from torch import nn
 
 from pipeline.pose.model import PoseNet, Residual
 
-Box = tuple[torch.Tensor, torch.Tensor]     # (centre, radius), float64
+Box = tuple[torch.Tensor, torch.Tensor]  # (centre, radius), float64
 
 
 def _through(module: nn.Module, box: Box) -> Box:
@@ -57,7 +58,7 @@ def output_bounds(model: PoseNet, x: torch.Tensor, eps: float) -> tuple[torch.Te
         raise ValueError(f"interval bounds: eps must be >= 0, got {eps}")
     x = x.detach().to(model.device).double()
     lo, hi = (x - eps).clamp(0, 1), (x + eps).clamp(0, 1)
-    if model.black_level > 0:                                   # the clamp is monotone
+    if model.black_level > 0:  # the clamp is monotone
         lo, hi = torch.relu(lo - model.black_level), torch.relu(hi - model.black_level)
     c, r = _through(model.backbone, ((lo + hi) / 2, (hi - lo) / 2))
     c, r = c.mean(dim=(2, 3)), r.mean(dim=(2, 3))

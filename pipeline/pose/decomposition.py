@@ -7,6 +7,7 @@ bootstrap interval over the sequences: sequences are resampled whole (within the
 pooled mean over the resampled sequences' frames. With the 5 fixed and 8 rotating sequences of the training set the
 intervals are coarse, as they should be.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -28,8 +29,9 @@ def _draw(sums: np.ndarray, counts: np.ndarray, rng: np.random.Generator, n_resa
     return sums[idx].sum(axis=1) / counts[idx].sum(axis=1)
 
 
-def bootstrap_mean(values: np.ndarray, sequence: np.ndarray, n_resamples: int = 2000,
-                   seed: int = 0) -> tuple[float, float, float]:
+def bootstrap_mean(
+    values: np.ndarray, sequence: np.ndarray, n_resamples: int = 2000, seed: int = 0
+) -> tuple[float, float, float]:
     """(mean, lo, hi): the mean of per-frame `values` and its 95% percentile bootstrap interval over the sequences
     (`sequence`: an id per frame). With one sequence the interval is the mean itself (nothing to resample)."""
     values, sequence = np.asarray(values, np.float64).ravel(), np.asarray(sequence).ravel()
@@ -41,12 +43,16 @@ def bootstrap_mean(values: np.ndarray, sequence: np.ndarray, n_resamples: int = 
     return float(values.mean()), float(lo), float(hi)
 
 
-def bootstrap_difference(values: np.ndarray, sequence: np.ndarray, in_a: np.ndarray, n_resamples: int = 2000,
-                         seed: int = 0) -> tuple[float, float, float]:
+def bootstrap_difference(
+    values: np.ndarray, sequence: np.ndarray, in_a: np.ndarray, n_resamples: int = 2000, seed: int = 0
+) -> tuple[float, float, float]:
     """(difference, lo, hi): mean of `values` over the frames `in_a` minus the mean over the others, with the 95%
     percentile bootstrap interval that resamples each side's sequences independently (a sequence lies on one side)."""
-    values, sequence, in_a = (np.asarray(values, np.float64).ravel(), np.asarray(sequence).ravel(),
-                              np.asarray(in_a, bool).ravel())
+    values, sequence, in_a = (
+        np.asarray(values, np.float64).ravel(),
+        np.asarray(sequence).ravel(),
+        np.asarray(in_a, bool).ravel(),
+    )
     if len(np.intersect1d(sequence[in_a], sequence[~in_a])):
         raise ValueError("a sequence lies on both sides of the difference")
     if in_a.all() or not in_a.any():
@@ -57,8 +63,9 @@ def bootstrap_difference(values: np.ndarray, sequence: np.ndarray, in_a: np.ndar
     return float(values[in_a].mean() - values[~in_a].mean()), float(lo), float(hi)
 
 
-def bootstrap_model_difference(a: np.ndarray, a_sequence: np.ndarray, b: np.ndarray, b_sequence: np.ndarray,
-                               n_resamples: int = 2000, seed: int = 0) -> tuple[float, float, float]:
+def bootstrap_model_difference(
+    a: np.ndarray, a_sequence: np.ndarray, b: np.ndarray, b_sequence: np.ndarray, n_resamples: int = 2000, seed: int = 0
+) -> tuple[float, float, float]:
     """(difference, lo, hi): the mean of per-frame values `a` minus the mean of `b`, two models' errors on the
     same sequences (their frames may differ, e.g. two renders of one approach), with the 95% percentile bootstrap
     interval that draws the sequences once per resample for both sides (paired by sequence: what the sequences
@@ -77,8 +84,9 @@ def bootstrap_model_difference(a: np.ndarray, a_sequence: np.ndarray, b: np.ndar
     return float(a.mean() - b.mean()), float(lo), float(hi)
 
 
-def group_errors(pred: np.ndarray, target: np.ndarray, sequence: np.ndarray,
-                 group: np.ndarray) -> dict[str, dict[str, object]]:
+def group_errors(
+    pred: np.ndarray, target: np.ndarray, sequence: np.ndarray, group: np.ndarray
+) -> dict[str, dict[str, object]]:
     """Per group (`group`: a label per frame, e.g. `attitude_groups(sequence)`): frames, sequences, and the mean
     position (m), attitude, tilt and roll (deg) errors of (N, 9) predictions against targets (m, 6-D), each as
     (mean, lo, hi) with the bootstrap over the group's sequences (`bootstrap_mean`)."""
@@ -88,7 +96,12 @@ def group_errors(pred: np.ndarray, target: np.ndarray, sequence: np.ndarray,
     out: dict[str, dict[str, object]] = {}
     for g in np.unique(group):
         m = group == g
-        out[str(g)] = {"frames": int(m.sum()), "sequences": int(len(np.unique(sequence[m]))),
-                       **{k: bootstrap_mean(v[m], sequence[m]) for k, v in
-                          (("position_m", pos), ("attitude_deg", att), ("tilt_deg", tilt), ("roll_deg", roll))}}
+        out[str(g)] = {
+            "frames": int(m.sum()),
+            "sequences": int(len(np.unique(sequence[m]))),
+            **{
+                k: bootstrap_mean(v[m], sequence[m])
+                for k, v in (("position_m", pos), ("attitude_deg", att), ("tilt_deg", tilt), ("roll_deg", roll))
+            },
+        }
     return out

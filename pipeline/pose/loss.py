@@ -8,6 +8,7 @@ s_p, s_r: learnable scalars (start at 0). A aggregates the per-sample L2 norms o
 independent of the batch size (at the optimum exp(-2 s) equals 1 / A, so the weights track the
 batch-mean error instead of the batch-sum).
 """
+
 from __future__ import annotations
 
 import torch

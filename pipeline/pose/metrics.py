@@ -10,6 +10,7 @@ into tilt, out of the image plane (the angle by which the error rotation moves u
 target's silhouette only through foreshortening) and roll, in the image plane (the error rotation's
 twist about u: a rotation of the silhouette). Neither exceeds the total attitude error.
 """
+
 from __future__ import annotations
 
 from typing import Any, Sequence
@@ -33,8 +34,10 @@ def attitude_error_deg(q_pred: np.ndarray, q_gt: np.ndarray) -> np.ndarray:
 def pose_errors(pred: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(N, 9) predictions and targets -> position error (m) and attitude error (deg), per sample."""
     pred, target = np.asarray(pred, np.float64), np.asarray(target, np.float64)
-    return (position_error(pred[:, :3], target[:, :3]),
-            attitude_error_deg(sixd_to_quat(pred[:, 3:]), sixd_to_quat(target[:, 3:])))
+    return (
+        position_error(pred[:, :3], target[:, :3]),
+        attitude_error_deg(sixd_to_quat(pred[:, 3:]), sixd_to_quat(target[:, 3:])),
+    )
 
 
 def tilt_roll_deg(pred: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -56,8 +59,7 @@ def speed_score(pred: np.ndarray, target: np.ndarray) -> float:
     return float(np.mean(pos / np.linalg.norm(target[:, :3], axis=1)) + np.mean(np.deg2rad(att)))
 
 
-def summarize_errors(pred: np.ndarray, target: np.ndarray, ranges: np.ndarray,
-                     bins: Sequence[float]) -> dict[str, Any]:
+def summarize_errors(pred: np.ndarray, target: np.ndarray, ranges: np.ndarray, bins: Sequence[float]) -> dict[str, Any]:
     """Error statistics of (N, 9) predictions: position (m) and attitude (deg) mean/median, mean tilt and
     roll (deg, `tilt_roll_deg`), the SPEED score (`speed_score`), mean |tz| error as % of range, mean lateral
     error sqrt(dx^2 + dy^2) (m) at ranges 10-30 m, and the same (but the score) per range bin (`bins`: edges in
@@ -73,10 +75,17 @@ def summarize_errors(pred: np.ndarray, target: np.ndarray, ranges: np.ndarray,
     def stats(m: np.ndarray) -> dict[str, float]:
         if not m.any():
             return {"n": 0}
-        return {"n": int(m.sum()), "pos_mean_m": float(pos[m].mean()), "pos_median_m": float(np.median(pos[m])),
-                "att_mean_deg": float(att[m].mean()), "att_median_deg": float(np.median(att[m])),
-                "tilt_mean_deg": float(tilt[m].mean()), "roll_mean_deg": float(roll[m].mean()),
-                "tz_pct_range": float(tz_pct[m].mean()), "lateral_m": float(lateral[m].mean())}
+        return {
+            "n": int(m.sum()),
+            "pos_mean_m": float(pos[m].mean()),
+            "pos_median_m": float(np.median(pos[m])),
+            "att_mean_deg": float(att[m].mean()),
+            "att_median_deg": float(np.median(att[m])),
+            "tilt_mean_deg": float(tilt[m].mean()),
+            "roll_mean_deg": float(roll[m].mean()),
+            "tz_pct_range": float(tz_pct[m].mean()),
+            "lateral_m": float(lateral[m].mean()),
+        }
 
     edges = sorted(float(b) for b in bins)
     per_bin = []

@@ -26,6 +26,7 @@ perturbation of at most eps < t cannot lift a black background pixel out of the 
 x * [x > t], which an attacker could use to drop a pixel just above t by t + eps. How the robust
 model's t is chosen from data: stages/pages/pose.py (`black_level_line`).
 """
+
 from __future__ import annotations
 
 import torch
@@ -56,8 +57,9 @@ class Residual(nn.Module):
 
     def __init__(self, channels: int):
         super().__init__()
-        self.body = nn.Sequential(conv_bn_act(channels, max(channels // 2, 1), 1),
-                                  conv_bn_act(max(channels // 2, 1), channels, 3))
+        self.body = nn.Sequential(
+            conv_bn_act(channels, max(channels // 2, 1), 1), conv_bn_act(max(channels // 2, 1), channels, 3)
+        )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return x + self.body(x)
@@ -85,7 +87,7 @@ class PoseNet(nn.Module):
         if not 0 <= black_level < 1:
             raise ValueError(f"black_level must be in [0, 1) (pixel units), got {black_level}")
         self.width, self.dropout_p, self.black_level = float(width), float(dropout), float(black_level)
-        self.amp = False   # bf16 autocast of the backbone (CUDA only; set by `place`)
+        self.amp = False  # bf16 autocast of the backbone (CUDA only; set by `place`)
         c = scaled(STEM_CHANNELS, width)
         layers: list[nn.Module] = [conv_bn_act(3, c, 7)]
         for channels, blocks in STAGES:
@@ -110,8 +112,9 @@ class PoseNet(nn.Module):
             nn.init.normal_(head.weight, std=0.01)
 
     @torch.no_grad()
-    def set_output_bias(self, position: tuple[float, ...] | torch.Tensor,
-                        rotation6d: tuple[float, ...] | torch.Tensor) -> None:
+    def set_output_bias(
+        self, position: tuple[float, ...] | torch.Tensor, rotation6d: tuple[float, ...] | torch.Tensor
+    ) -> None:
         """Set the heads' biases (position in metres, 6-D rotation), e.g. to the training-label mean."""
         self.head_pos.bias.copy_(torch.as_tensor(position, dtype=torch.float32))
         self.head_rot.bias.copy_(torch.as_tensor(rotation6d, dtype=torch.float32))
@@ -164,7 +167,7 @@ class PoseNet(nn.Module):
         `pairs` (TRADES-style training, pipeline/pose/adversarial.py): in training mode each pair shares one
         dropout mask, so the two outputs of a pair differ by their images only."""
         f = self._features(x.to(self.device, non_blocking=True))
-        keep = self.dropout(torch.ones_like(f[:len(f) - pairs]))
+        keep = self.dropout(torch.ones_like(f[: len(f) - pairs]))
         f = f * torch.cat([keep, keep[:pairs]])
         return torch.cat([self.head_pos(f), self.head_rot(f)], dim=1).to(x.device)
 

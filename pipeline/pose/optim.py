@@ -7,11 +7,11 @@ optimiser step i = 0 .. total - 1 (the rate step i uses):
 - cosine: a linear warm-up from lr_base to lr_max over `warmup` steps, then a half cosine from lr_max
   down to the floor lr_min, reached exactly at the last step (and held after it).
 """
+
 from __future__ import annotations
 
 import copy
 import math
-from typing import Callable
 
 import torch
 from torch import nn
@@ -28,20 +28,36 @@ def cosine_factor(step: int, total: int, warmup: int, lr_base: float, lr_max: fl
     return (lr_min + 0.5 * (lr_max - lr_min) * (1 + math.cos(math.pi * progress))) / lr_max
 
 
-def make_scheduler(opt: torch.optim.Optimizer, schedule: str, total: int, *, lr_base: float, lr_max: float,
-                   lr_min: float, cycle: int, warmup: int) -> torch.optim.lr_scheduler.LRScheduler:
+def make_scheduler(
+    opt: torch.optim.Optimizer,
+    schedule: str,
+    total: int,
+    *,
+    lr_base: float,
+    lr_max: float,
+    lr_min: float,
+    cycle: int,
+    warmup: int,
+) -> torch.optim.lr_scheduler.LRScheduler:
     """The scheduler of `schedule` for `opt`, whose groups were created with lr = f * lr_base (any f per
     group: the schedule scales every group alike); `total` steps in all, `cycle` and `warmup` in steps."""
     if schedule == "cyclic":
         return torch.optim.lr_scheduler.CyclicLR(
-            opt, base_lr=[g["lr"] for g in opt.param_groups],
-            max_lr=[g["lr"] * lr_max / lr_base for g in opt.param_groups], mode="triangular2",
-            step_size_up=max(1, cycle), cycle_momentum=False)
+            opt,
+            base_lr=[g["lr"] for g in opt.param_groups],
+            max_lr=[g["lr"] * lr_max / lr_base for g in opt.param_groups],
+            mode="triangular2",
+            step_size_up=max(1, cycle),
+            cycle_momentum=False,
+        )
     if schedule != "cosine":
         raise ValueError(f"unknown learning-rate schedule {schedule!r}; choose one of {', '.join(SCHEDULES)}")
-    for g in opt.param_groups:   # LambdaLR multiplies the initial rate: start from lr_max's
+    for g in opt.param_groups:  # LambdaLR multiplies the initial rate: start from lr_max's
         g["lr"] *= lr_max / lr_base
-    factor: Callable[[int], float] = lambda i: cosine_factor(i, total, warmup, lr_base, lr_max, lr_min)
+
+    def factor(i: int) -> float:
+        return cosine_factor(i, total, warmup, lr_base, lr_max, lr_min)
+
     return torch.optim.lr_scheduler.LambdaLR(opt, factor)
 
 

@@ -1,6 +1,7 @@
 """Robustness helpers of the pose models: a seeded sample of rows (the test frames the strongest-attack suite
 attacks, stages/engine/suite.py) and how the black-level clamp's threshold meets the data.
 """
+
 from __future__ import annotations
 
 from typing import Any
@@ -15,8 +16,9 @@ def sample_rows(n_total: int, n: int | None, seed: int) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).permutation(n_total)[:n])
 
 
-def black_level_stats(images: Any, threshold: float, noise_std: float, blur_sigma: float, seed: int,
-                      n: int = 200, margin: int = 3) -> dict[str, float]:
+def black_level_stats(
+    images: Any, threshold: float, noise_std: float, blur_sigma: float, seed: int, n: int = 200, margin: int = 3
+) -> dict[str, float]:
     """How a clamp threshold t (pixel units in [0, 1]) meets the data, on n seeded images of `images` (uint8
     (N, H, W, 3) renders on a black background; anything indexable by an int):
     - render_black: share of the pixels whose three channels are exactly 0 (the background);
@@ -40,7 +42,11 @@ def black_level_stats(images: Any, threshold: float, noise_std: float, blur_sigm
         lit.append(image[~dark].ravel().astype(np.float32) / 255.0)
         lab.append(domain_shift(image, noise_std, blur_sigma, rng)[far].ravel().astype(np.float32) / 255.0)
     lit_all, lab_all = np.concatenate(lit), np.concatenate(lab)
-    return {"threshold": float(threshold), "render_black": float(np.concatenate(black).mean()),
-            "target_erased": float((lit_all < threshold).mean()) if lit_all.size else 0.0,
-            "lab_black_999": float(np.quantile(lab_all, 0.999)) if lab_all.size else 0.0,
-            "lab_passed": float((lab_all >= threshold).mean()) if lab_all.size else 0.0, "images": len(black)}
+    return {
+        "threshold": float(threshold),
+        "render_black": float(np.concatenate(black).mean()),
+        "target_erased": float((lit_all < threshold).mean()) if lit_all.size else 0.0,
+        "lab_black_999": float(np.quantile(lab_all, 0.999)) if lab_all.size else 0.0,
+        "lab_passed": float((lab_all >= threshold).mean()) if lab_all.size else 0.0,
+        "images": len(black),
+    }

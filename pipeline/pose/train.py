@@ -17,6 +17,7 @@ error of its attacked validation images (`Adversary.validate`, `Adversary.select
 position error ||p - p_gt|| / ||p_gt|| when training attacks the position-weighted loss (the harm is a position
 error), their SPEED score (position and attitude) when it attacks the suite's objectives.
 """
+
 from __future__ import annotations
 
 import copy
@@ -39,7 +40,6 @@ from pipeline.pose.loss import PoseLoss
 from pipeline.pose.metrics import pose_errors, speed_score
 from pipeline.pose.optim import SCHEDULES, WeightEMA, make_scheduler
 
-
 LOSS_WEIGHT_LR_FACTOR = 10.0
 
 
@@ -56,8 +56,9 @@ def check_loss(value: float, where: str) -> None:
 def check_improved(best_epoch: int, epochs_run: int) -> None:
     """Raise DivergenceError when no epoch gave a finite, better validation score (best_epoch < 1)."""
     if best_epoch < 1:
-        raise DivergenceError(f"no epoch of {epochs_run} improved on the untrained model (every score non-finite); "
-                              f"nothing to save")
+        raise DivergenceError(
+            f"no epoch of {epochs_run} improved on the untrained model (every score non-finite); nothing to save"
+        )
 
 
 class PoseDataset(Dataset):
@@ -113,21 +114,30 @@ def _distributed() -> tuple[int, int]:
 
 
 @torch.no_grad()
-def predict(model: nn.Module, dataset: Dataset, batch_size: int = 128, device: str | torch.device = "cpu",
-            channels_last: bool = True, indices: Sequence[int] | None = None) -> np.ndarray:
+def predict(
+    model: nn.Module,
+    dataset: Dataset,
+    batch_size: int = 128,
+    device: str | torch.device = "cpu",
+    channels_last: bool = True,
+    indices: Sequence[int] | None = None,
+) -> np.ndarray:
     """Eval-mode outputs (N, 9) for a PoseDataset (or the subset `indices`), in dataset order."""
     was_training = model.training
     model.eval()
     subset = dataset if indices is None else torch.utils.data.Subset(dataset, list(indices))
     pin = torch.device(device).type == "cuda"
-    out = [model(to_input(x.to(device, non_blocking=pin), channels_last)).float().cpu()   # uint8 over the bus
-           for x, _ in DataLoader(subset, batch_size=batch_size, shuffle=False, pin_memory=pin)]
+    out = [
+        model(to_input(x.to(device, non_blocking=pin), channels_last)).float().cpu()  # uint8 over the bus
+        for x, _ in DataLoader(subset, batch_size=batch_size, shuffle=False, pin_memory=pin)
+    ]
     model.train(was_training)
     return torch.cat(out).numpy() if out else np.zeros((0, 9), np.float32)
 
 
-def predict_distributed(model: nn.Module, dataset: PoseDataset, batch_size: int, device: torch.device,
-                        channels_last: bool) -> np.ndarray:
+def predict_distributed(
+    model: nn.Module, dataset: PoseDataset, batch_size: int, device: torch.device, channels_last: bool
+) -> np.ndarray:
     """`predict` sharded over the ranks (rank r takes items r, r + world, ...), gathered on all ranks."""
     rank, world = _distributed()
     if world == 1:
@@ -170,8 +180,9 @@ class TrainConfig:
         if not 0 < self.lr_base <= self.lr_max:
             raise ValueError(f"need 0 < lr_base <= lr_max, got {self.lr_base}, {self.lr_max}")
         if self.cycle_epochs <= 0 or self.warmup_epochs < 0:
-            raise ValueError(f"need cycle_epochs > 0 and warmup_epochs >= 0, got {self.cycle_epochs}, "
-                             f"{self.warmup_epochs}")
+            raise ValueError(
+                f"need cycle_epochs > 0 and warmup_epochs >= 0, got {self.cycle_epochs}, {self.warmup_epochs}"
+            )
         if self.schedule not in SCHEDULES:
             raise ValueError(f"schedule must be one of {', '.join(SCHEDULES)}, got {self.schedule!r}")
         if not 0 < self.lr_min <= self.lr_base:
@@ -196,9 +207,9 @@ class EpochStats:
     val_score: float
     images_per_s: float
     seconds: float
-    val_adv_pos_m: float = math.nan    # with an adversary: validation subset under its PGD check
+    val_adv_pos_m: float = math.nan  # with an adversary: validation subset under its PGD check
     val_adv_att_deg: float = math.nan
-    score: float = math.nan            # what selects the checkpoint (val_score, + attacked position with an adversary)
+    score: float = math.nan  # what selects the checkpoint (val_score, + attacked position with an adversary)
 
     def as_dict(self) -> dict[str, float]:
         return dict(self.__dict__)
@@ -222,8 +233,9 @@ class _Objective(nn.Module):
         super().__init__()
         self.model, self.loss = model, loss
 
-    def forward(self, x: torch.Tensor, y: torch.Tensor, skip_rotation: int = 0, pairs: int = 0,
-                beta: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(
+        self, x: torch.Tensor, y: torch.Tensor, skip_rotation: int = 0, pairs: int = 0, beta: float = 0.0
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """(loss, predictions of the len(y) fitted images): with `pairs` > 0 the last `pairs` inputs are attacked
         copies of the first ones and add beta x their consistency with them (Adversary.batch; one dropout mask
         per pair: PoseNet.forward_paired)."""
@@ -231,14 +243,21 @@ class _Objective(nn.Module):
             pred = self.model(x)
             return self.loss(pred, y, skip_rotation), pred
         pred = self.model.forward_paired(x, pairs)
-        clean = pred[:len(y)]
-        return self.loss(clean, y, skip_rotation) + beta * self.loss.consistency(pred[len(y):], clean[:pairs]), clean
+        clean = pred[: len(y)]
+        return self.loss(clean, y, skip_rotation) + beta * self.loss.consistency(pred[len(y) :], clean[:pairs]), clean
 
 
-def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, val_set: PoseDataset, cfg: TrainConfig,
-        device: str | torch.device = "cpu",
-        on_epoch: Callable[[EpochStats, bool, nn.Module], None] | None = None,
-        progress: bool = True, adversary: Adversary | None = None) -> FitResult:
+def fit(
+    model: nn.Module,
+    loss: PoseLoss,
+    train_set: PoseDataset,
+    val_set: PoseDataset,
+    cfg: TrainConfig,
+    device: str | torch.device = "cpu",
+    on_epoch: Callable[[EpochStats, bool, nn.Module], None] | None = None,
+    progress: bool = True,
+    adversary: Adversary | None = None,
+) -> FitResult:
     """Train `model` in place; return the history and the best state (by the validation score).
 
     `on_epoch(stats, is_best, evaluated)` runs on every rank after each epoch (write files on rank 0 only);
@@ -254,7 +273,9 @@ def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, val_set: PoseD
         model.to(memory_format=torch.channels_last)
     objective: nn.Module = _Objective(model, loss)
     if world > 1:
-        objective = nn.parallel.DistributedDataParallel(objective, device_ids=[device.index] if device.type == "cuda" else None)
+        objective = nn.parallel.DistributedDataParallel(
+            objective, device_ids=[device.index] if device.type == "cuda" else None
+        )
     loader, sampler = _loader(train_set, cfg, device, rank, world)
     opt, sched = _optimiser(model, loss, cfg, len(loader))
     ema = WeightEMA(model, cfg.ema) if cfg.ema > 0 else None
@@ -263,7 +284,11 @@ def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, val_set: PoseD
     best_score, best_epoch, best_state = math.inf, -1, copy.deepcopy(evaluated.state_dict())
     start, stopped_early, train_seconds, train_images = time.perf_counter(), False, 0.0, 0
     for epoch in range(cfg.epochs):
-        if cfg.max_minutes is not None and history and _should_stop(start, history[-1].seconds, cfg.max_minutes, device):
+        if (
+            cfg.max_minutes is not None
+            and history
+            and _should_stop(start, history[-1].seconds, cfg.max_minutes, device)
+        ):
             stopped_early = True
             break
         t0 = time.perf_counter()
@@ -275,8 +300,9 @@ def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, val_set: PoseD
         epoch_train_seconds = time.perf_counter() - t0
         if world > 1:
             dist.all_reduce(sums)
-        stats = _epoch_stats(evaluated, loss, val_set, cfg, device, epoch, sums, sched, epoch_train_seconds, t0,
-                             adversary)
+        stats = _epoch_stats(
+            evaluated, loss, val_set, cfg, device, epoch, sums, sched, epoch_train_seconds, t0, adversary
+        )
         train_seconds += epoch_train_seconds
         train_images += int(sums[3].item())
         history.append(stats)
@@ -287,35 +313,67 @@ def fit(model: nn.Module, loss: PoseLoss, train_set: PoseDataset, val_set: PoseD
         if on_epoch is not None:
             on_epoch(stats, is_best, evaluated)
     check_improved(best_epoch, len(history))
-    return FitResult(history, best_epoch, best_score, best_state, time.perf_counter() - start, stopped_early,
-                     train_images / train_seconds if train_seconds else 0.0)
+    return FitResult(
+        history,
+        best_epoch,
+        best_score,
+        best_state,
+        time.perf_counter() - start,
+        stopped_early,
+        train_images / train_seconds if train_seconds else 0.0,
+    )
 
 
-def _loader(train_set: PoseDataset, cfg: TrainConfig, device: torch.device, rank: int,
-            world: int) -> tuple[DataLoader, DistributedSampler | None]:
+def _loader(
+    train_set: PoseDataset, cfg: TrainConfig, device: torch.device, rank: int, world: int
+) -> tuple[DataLoader, DistributedSampler | None]:
     """The shuffled training batches (sharded over ranks under DDP) and their sampler (None alone)."""
-    sampler = DistributedSampler(train_set, world, rank, shuffle=True, seed=cfg.seed, drop_last=True) if world > 1 else None
+    sampler = (
+        DistributedSampler(train_set, world, rank, shuffle=True, seed=cfg.seed, drop_last=True) if world > 1 else None
+    )
     gen = torch.Generator().manual_seed(cfg.seed)
-    loader = DataLoader(train_set, batch_size=cfg.batch_size, shuffle=sampler is None, sampler=sampler, drop_last=True,
-                        num_workers=cfg.workers, generator=gen, pin_memory=device.type == "cuda",
-                        persistent_workers=False)
+    loader = DataLoader(
+        train_set,
+        batch_size=cfg.batch_size,
+        shuffle=sampler is None,
+        sampler=sampler,
+        drop_last=True,
+        num_workers=cfg.workers,
+        generator=gen,
+        pin_memory=device.type == "cuda",
+        persistent_workers=False,
+    )
     if len(loader) == 0:
-        raise ValueError(f"the training set ({len(train_set)} images over {world} process(es)) is smaller than "
-                         f"one batch of {cfg.batch_size}")
+        raise ValueError(
+            f"the training set ({len(train_set)} images over {world} process(es)) is smaller than "
+            f"one batch of {cfg.batch_size}"
+        )
     return loader, sampler
 
 
-def _optimiser(model: nn.Module, loss: PoseLoss, cfg: TrainConfig,
-               steps: int) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.LRScheduler]:
+def _optimiser(
+    model: nn.Module, loss: PoseLoss, cfg: TrainConfig, steps: int
+) -> tuple[torch.optim.Adam, torch.optim.lr_scheduler.LRScheduler]:
     """Adam on the model and the loss's weights, with the LR schedule of `cfg` (`steps` batches per epoch)."""
     # The loss's two weights get LOSS_WEIGHT_LR_FACTOR x the learning rate (no weight decay) so they reach
     # their balance (exp(-2 s) ~ 1 / error) within the first epochs instead of lagging the whole run.
-    opt = torch.optim.Adam([{"params": list(model.parameters()), "weight_decay": cfg.weight_decay, "lr": cfg.lr_base},
-                            {"params": list(loss.parameters()), "weight_decay": 0.0,
-                             "lr": LOSS_WEIGHT_LR_FACTOR * cfg.lr_base}], lr=cfg.lr_base)
-    sched = make_scheduler(opt, cfg.schedule, cfg.epochs * steps, lr_base=cfg.lr_base, lr_max=cfg.lr_max,
-                           lr_min=cfg.lr_min, cycle=round(cfg.cycle_epochs * steps),
-                           warmup=round(cfg.warmup_epochs * steps))
+    opt = torch.optim.Adam(
+        [
+            {"params": list(model.parameters()), "weight_decay": cfg.weight_decay, "lr": cfg.lr_base},
+            {"params": list(loss.parameters()), "weight_decay": 0.0, "lr": LOSS_WEIGHT_LR_FACTOR * cfg.lr_base},
+        ],
+        lr=cfg.lr_base,
+    )
+    sched = make_scheduler(
+        opt,
+        cfg.schedule,
+        cfg.epochs * steps,
+        lr_base=cfg.lr_base,
+        lr_max=cfg.lr_max,
+        lr_min=cfg.lr_min,
+        cycle=round(cfg.cycle_epochs * steps),
+        warmup=round(cfg.warmup_epochs * steps),
+    )
     return opt, sched
 
 
@@ -349,14 +407,23 @@ class _Step:
         return value.item(), pred.detach()
 
 
-def _train_epoch(step: _Step, loader: DataLoader, cfg: TrainConfig, device: torch.device, epoch: int, world: int,
-                 show: bool, t0: float) -> torch.Tensor:
+def _train_epoch(
+    step: _Step,
+    loader: DataLoader,
+    cfg: TrainConfig,
+    device: torch.device,
+    epoch: int,
+    world: int,
+    show: bool,
+    t0: float,
+) -> torch.Tensor:
     """One pass over this rank's batches -> float64 sums (loss * n, position error (m), attitude error
     (deg), n) of the rank; `show` draws a tqdm bar (images per second since `t0`)."""
     step.objective.train()
     sums = torch.zeros(4, dtype=torch.float64)  # loss * n, position error, attitude error, n
-    bar = tqdm(loader, desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="batch", disable=not show,
-               leave=False, dynamic_ncols=True)
+    bar = tqdm(
+        loader, desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="batch", disable=not show, leave=False, dynamic_ncols=True
+    )
     for x, y in bar:
         # the pinned uint8 batch crosses to the device, then becomes float there
         x, y = to_input(x.to(device, non_blocking=True), cfg.channels_last), y.to(device, non_blocking=True)
@@ -370,9 +437,19 @@ def _train_epoch(step: _Step, loader: DataLoader, cfg: TrainConfig, device: torc
     return sums
 
 
-def _epoch_stats(model: nn.Module, loss: PoseLoss, val_set: PoseDataset, cfg: TrainConfig, device: torch.device,
-                 epoch: int, sums: torch.Tensor, sched: Any, train_seconds: float, t0: float,
-                 adversary: Adversary | None) -> EpochStats:
+def _epoch_stats(
+    model: nn.Module,
+    loss: PoseLoss,
+    val_set: PoseDataset,
+    cfg: TrainConfig,
+    device: torch.device,
+    epoch: int,
+    sums: torch.Tensor,
+    sched: Any,
+    train_seconds: float,
+    t0: float,
+    adversary: Adversary | None,
+) -> EpochStats:
     """The epoch's record: training sums (all ranks), the validation errors and SPEED score of `model`
     (the network validated), and with an adversary its attacked validation errors."""
     val_pred = predict_distributed(model, val_set, 2 * cfg.batch_size, device, cfg.channels_last)
@@ -387,18 +464,31 @@ def _epoch_stats(model: nn.Module, loss: PoseLoss, val_set: PoseDataset, cfg: Tr
         adv_pos, adv_att = float(adv_pos_errors.mean()), float(adv_att_errors.mean())
         selection = score + adversary.selection_error(adv_pred, adv_targets)
     n = sums[3].item()
-    return EpochStats(epoch=epoch + 1, loss=sums[0].item() / n, lr=float(sched.get_last_lr()[0]),
-                      s_p=loss.s_p.item(), s_r=loss.s_r.item(), train_pos_m=sums[1].item() / n,
-                      train_att_deg=sums[2].item() / n, val_pos_m=float(pos.mean()),
-                      val_att_deg=float(att.mean()), val_score=score, images_per_s=n / train_seconds,
-                      seconds=time.perf_counter() - t0, val_adv_pos_m=adv_pos, val_adv_att_deg=adv_att,
-                      score=selection)
+    return EpochStats(
+        epoch=epoch + 1,
+        loss=sums[0].item() / n,
+        lr=float(sched.get_last_lr()[0]),
+        s_p=loss.s_p.item(),
+        s_r=loss.s_r.item(),
+        train_pos_m=sums[1].item() / n,
+        train_att_deg=sums[2].item() / n,
+        val_pos_m=float(pos.mean()),
+        val_att_deg=float(att.mean()),
+        val_score=score,
+        images_per_s=n / train_seconds,
+        seconds=time.perf_counter() - t0,
+        val_adv_pos_m=adv_pos,
+        val_adv_att_deg=adv_att,
+        score=selection,
+    )
 
 
 def _should_stop(start: float, last_epoch_seconds: float, max_minutes: float, device: torch.device) -> bool:
     """True when another epoch as long as the last would end past the limit (rank 0 decides for all)."""
-    stop = torch.tensor([float(time.perf_counter() - start + last_epoch_seconds > 60 * max_minutes)],
-                        device=device if device.type == "cuda" else "cpu")
+    stop = torch.tensor(
+        [float(time.perf_counter() - start + last_epoch_seconds > 60 * max_minutes)],
+        device=device if device.type == "cuda" else "cpu",
+    )
     if _distributed()[1] > 1:
         dist.broadcast(stop, src=0)
     return bool(stop.item())

@@ -34,6 +34,7 @@ its index in its render set, or for a frame rendered on demand (the guidance loo
 pixels do not depend on which worker renders which chunk. The draw for a frame is the same for every share
 (only the comparison with `share` changes), so raising the share only turns more black frames into space ones.
 """
+
 from __future__ import annotations
 
 import functools
@@ -46,33 +47,33 @@ import numpy as np
 from pipeline.geometry.camera import Intrinsics
 
 EARTH_RADIUS_KM = 6371.0
-KINDS = ("black", "space", "earth")   # a poses/labels table's `background` column (absent: black): `kind`
-_STREAM = 0x6267           # keeps a set's background draws apart from its other draws of the same seed
-_SUPERSAMPLE = 4           # rays per pixel side for the Earth's coverage (an antialiased limb)
-_LATTICE = 32              # period of the texture's noise lattice, lattice cells
-_OCEAN = np.array([0.03, 0.06, 0.14])      # linear albedos
-_LAND = np.array([[0.09, 0.11, 0.05], [0.30, 0.25, 0.16]])   # vegetation, desert
+KINDS = ("black", "space", "earth")  # a poses/labels table's `background` column (absent: black): `kind`
+_STREAM = 0x6267  # keeps a set's background draws apart from its other draws of the same seed
+_SUPERSAMPLE = 4  # rays per pixel side for the Earth's coverage (an antialiased limb)
+_LATTICE = 32  # period of the texture's noise lattice, lattice cells
+_OCEAN = np.array([0.03, 0.06, 0.14])  # linear albedos
+_LAND = np.array([[0.09, 0.11, 0.05], [0.30, 0.25, 0.16]])  # vegetation, desert
 _CLOUD = np.array([0.72, 0.72, 0.72])
-_HAZE = np.array([0.20, 0.32, 0.65])       # the atmosphere's albedo seen at grazing incidence
-_HAZE_DEPTH = 0.05                         # the atmosphere's optical depth seen straight down
-_GLOW_KM = 25.0                            # scale height of the limb's glow above the surface, km
-_STAR_SIGMA = 0.6                          # star image (Gaussian PSF) standard deviation, pixels
-_STAR_RANGE = 10.0                         # faintest drawn star = star_peak / this (2.5 magnitudes)
-_STAR_SLOPE = 1.25                         # star counts N(> flux) ~ flux^-slope (about x3 per magnitude)
+_HAZE = np.array([0.20, 0.32, 0.65])  # the atmosphere's albedo seen at grazing incidence
+_HAZE_DEPTH = 0.05  # the atmosphere's optical depth seen straight down
+_GLOW_KM = 25.0  # scale height of the limb's glow above the surface, km
+_STAR_SIGMA = 0.6  # star image (Gaussian PSF) standard deviation, pixels
+_STAR_RANGE = 10.0  # faintest drawn star = star_peak / this (2.5 magnitudes)
+_STAR_SLOPE = 1.25  # star counts N(> flux) ~ flux^-slope (about x3 per magnitude)
 
 
 @dataclass(frozen=True)
 class BackgroundSettings:
     """What the frames of the share see behind the target; every other frame stays black."""
 
-    share: float = 0.0                 # of the frames, each drawn on its own; 0 = every frame black (off)
-    altitude_km: float = 1336.0        # the target's orbit altitude above the Earth's surface, km (Jason-1)
-    nadir: tuple[float, float, float] = (0.0, 0.848, 0.530)   # to the Earth's centre, world frame (any length)
-    nadir_jitter_deg: float = 10.0     # per frame the nadir tilts uniformly within this cone, degrees
-    stars: float = 0.0                 # mean stars per square degree of sky (Poisson); 0 = none
-    star_peak: float = 0.6             # the brightest star's peak pixel value, pixel units (0, 1]
-    black_offset: float = 0.0          # sensor black level added to every pixel, pixel units [0, 1)
-    noise_std: float = 0.0             # sensor read noise, Gaussian standard deviation, pixel units
+    share: float = 0.0  # of the frames, each drawn on its own; 0 = every frame black (off)
+    altitude_km: float = 1336.0  # the target's orbit altitude above the Earth's surface, km (Jason-1)
+    nadir: tuple[float, float, float] = (0.0, 0.848, 0.530)  # to the Earth's centre, world frame (any length)
+    nadir_jitter_deg: float = 10.0  # per frame the nadir tilts uniformly within this cone, degrees
+    stars: float = 0.0  # mean stars per square degree of sky (Poisson); 0 = none
+    star_peak: float = 0.6  # the brightest star's peak pixel value, pixel units (0, 1]
+    black_offset: float = 0.0  # sensor black level added to every pixel, pixel units [0, 1)
+    noise_std: float = 0.0  # sensor read noise, Gaussian standard deviation, pixel units
 
 
 @dataclass(frozen=True)
@@ -80,7 +81,7 @@ class FrameBackground:
     """One frame's draw of the space background."""
 
     nadir: tuple[float, float, float]  # unit vector from the camera to the Earth's centre, camera frame
-    seed: int                          # of the frame's Earth texture, stars and read noise
+    seed: int  # of the frame's Earth texture, stars and read noise
 
 
 def check_background(s: BackgroundSettings) -> None:
@@ -95,11 +96,14 @@ def check_background(s: BackgroundSettings) -> None:
     if not 0 <= s.nadir_jitter_deg <= 90:
         raise ValueError(f"background.nadir_jitter_deg must be in [0, 90] degrees, got {s.nadir_jitter_deg}")
     if not s.stars >= 0 or not 0 < s.star_peak <= 1:
-        raise ValueError(f"background: need stars >= 0 per square degree and star_peak in (0, 1], "
-                         f"got {s.stars} and {s.star_peak}")
+        raise ValueError(
+            f"background: need stars >= 0 per square degree and star_peak in (0, 1], got {s.stars} and {s.star_peak}"
+        )
     if not 0 <= s.black_offset < 1 or not s.noise_std >= 0:
-        raise ValueError(f"background: need black_offset in [0, 1) and noise_std >= 0 (pixel units), "
-                         f"got {s.black_offset} and {s.noise_std}")
+        raise ValueError(
+            f"background: need black_offset in [0, 1) and noise_std >= 0 (pixel units), "
+            f"got {s.black_offset} and {s.noise_std}"
+        )
 
 
 def pose_key(R: np.ndarray, t: np.ndarray) -> int:
@@ -113,14 +117,14 @@ def draw(s: BackgroundSettings, R_cam: np.ndarray, seed: int, key: int) -> Frame
     """Frame `key`'s background in the set seeded `seed`: None (black) with probability 1 - share, else the
     Earth at the jittered nadir (R_cam (3, 3): camera -> world) and the seed of its texture, stars and noise."""
     rng = np.random.default_rng([_STREAM, seed, key])
-    u, seed_out = rng.random(), int(rng.integers(2 ** 63))
+    u, seed_out = rng.random(), int(rng.integers(2**63))
     n = np.asarray(s.nadir, dtype=np.float64)
     n = n / np.linalg.norm(n)
     # uniform over the cone: cos(tilt) uniform in [cos(jitter), 1], azimuth uniform
     cos_tilt = 1 - rng.random() * (1 - np.cos(np.deg2rad(s.nadir_jitter_deg)))
     azimuth = rng.random() * 2 * np.pi
     a, b = _basis(n)
-    sin_tilt = np.sqrt(max(0.0, 1 - cos_tilt ** 2))
+    sin_tilt = np.sqrt(max(0.0, 1 - cos_tilt**2))
     n_world = cos_tilt * n + sin_tilt * (np.cos(azimuth) * a + np.sin(azimuth) * b)
     if u >= s.share:
         return None
@@ -166,7 +170,7 @@ def _rays(K: Intrinsics, u: np.ndarray, v: np.ndarray, sub: int) -> np.ndarray:
 @functools.lru_cache(maxsize=4)
 def _pixel_rays(K: Intrinsics) -> np.ndarray:
     """Unit ray directions (H, W, 3), camera frame, through the pixel centres of the image K."""
-    v, u = np.mgrid[0:K.height, 0:K.width]
+    v, u = np.mgrid[0 : K.height, 0 : K.width]
     return _rays(K, u.ravel().astype(np.float64), v.ravel().astype(np.float64), 1)[:, 0].reshape(K.height, K.width, 3)
 
 
@@ -175,14 +179,14 @@ def _sphere(d: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nd
     hits it, the distance along it to its closest approach to the centre (km), that approach's squared distance
     from the centre (km^2))."""
     tc = d @ c
-    b2 = np.maximum(c @ c - tc ** 2, 0.0)
-    return (tc > 0) & (b2 < EARTH_RADIUS_KM ** 2), tc, b2
+    b2 = np.maximum(c @ c - tc**2, 0.0)
+    return (tc > 0) & (b2 < EARTH_RADIUS_KM**2), tc, b2
 
 
 def _normals(d: np.ndarray, tc: np.ndarray, b2: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Outward unit normals (M, 3) where the rays d (M, 3) (`_sphere`'s tc, b2) first meet the Earth centred at c,
     or for a ray that passes it, at the tangent point below its closest approach (the limb)."""
-    p = (tc - np.sqrt(np.maximum(EARTH_RADIUS_KM ** 2 - b2, 0.0)))[:, None] * d - c
+    p = (tc - np.sqrt(np.maximum(EARTH_RADIUS_KM**2 - b2, 0.0)))[:, None] * d - c
     return p / np.linalg.norm(p, axis=1, keepdims=True)
 
 
@@ -193,7 +197,7 @@ def _coverage(K: Intrinsics, hit: np.ndarray, c: np.ndarray) -> np.ndarray:
     pad = np.pad(hit, 1, mode="edge")
     edge = np.zeros_like(hit)
     for dy, dx in itertools.product((0, 1, 2), repeat=2):
-        edge |= pad[dy:dy + K.height, dx:dx + K.width] != hit
+        edge |= pad[dy : dy + K.height, dx : dx + K.width] != hit
     coverage = hit.astype(np.float64)
     v, u = np.nonzero(edge)
     coverage[v, u] = _sphere(_rays(K, u, v, _SUPERSAMPLE), c)[0].mean(-1)
@@ -207,7 +211,7 @@ def _value_noise(p: np.ndarray, table: np.ndarray) -> np.ndarray:
     i = np.floor(p)
     f = (p - i).astype(np.float32)
     w = f * f * (3 - 2 * f)
-    lo = i.astype(np.int64) & (g - 1)   # g is a power of two
+    lo = i.astype(np.int64) & (g - 1)  # g is a power of two
     hi = (lo + 1) & (g - 1)
     flat = table.ravel()
 
@@ -231,8 +235,8 @@ def _fbm(p: np.ndarray, rng: np.random.Generator, octaves: int = 5) -> np.ndarra
     p = p.astype(np.float32)
     total, norm = np.zeros(len(p), dtype=np.float32), 0.0
     for k in range(octaves):
-        total += 0.5 ** k * _value_noise(p * 2 ** k + 7.3 * k, table)
-        norm += 0.5 ** k
+        total += 0.5**k * _value_noise(p * 2**k + 7.3 * k, table)
+        norm += 0.5**k
     return total / norm
 
 
@@ -257,8 +261,14 @@ def _srgb(linear: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
-def earth(K: Intrinsics, s: BackgroundSettings, frame: FrameBackground, sun: np.ndarray,
-          sun_strength: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def earth(
+    K: Intrinsics,
+    s: BackgroundSettings,
+    frame: FrameBackground,
+    sun: np.ndarray,
+    sun_strength: float,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray]:
     """The Earth as the camera sees it -> (display colour (H, W, 3) in [0, 1], coverage (H, W) in [0, 1]).
 
     A sphere of radius R_E at distance R_E + altitude along frame.nadir (camera frame), Lambertian, lit by
@@ -271,7 +281,7 @@ def earth(K: Intrinsics, s: BackgroundSettings, frame: FrameBackground, sun: np.
     d = _pixel_rays(K)
     hit, tc, b2 = _sphere(d, c)
     coverage = _coverage(K, hit, c)
-    height = np.sqrt(b2) - EARTH_RADIUS_KM                 # of each ray's closest approach above the surface, km
+    height = np.sqrt(b2) - EARTH_RADIUS_KM  # of each ray's closest approach above the surface, km
     near = (tc > 0) & ((coverage > 0) | (height < 8 * _GLOW_KM))
     out = np.zeros((K.height, K.width, 3))
     if not near.any():
@@ -279,7 +289,7 @@ def earth(K: Intrinsics, s: BackgroundSettings, frame: FrameBackground, sun: np.
     dn = d[near]
     normal = _normals(dn, tc[near], b2[near], c)
     lit = np.clip(-(normal @ sun), 0.0, None) * sun_strength / np.pi
-    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))          # the texture's orientation this frame
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))  # the texture's orientation this frame
     cos_view = np.clip(-np.sum(normal * dn, axis=1), 1e-3, 1.0)
     haze = 1 - np.exp(-_HAZE_DEPTH / cos_view)
     surface = ((1 - haze)[:, None] * _albedo(normal @ q, rng) + haze[:, None] * _HAZE) * lit[:, None]
@@ -302,25 +312,38 @@ def stars(K: Intrinsics, s: BackgroundSettings, rng: np.random.Generator) -> np.
     u, v = rng.uniform(-0.5, K.width - 0.5, n), rng.uniform(-0.5, K.height - 0.5, n)
     cos3 = (1 + ((u - K.cx) / K.fx) ** 2 + ((v - K.cy) / K.fy) ** 2) ** -1.5
     keep = rng.random(n) < cos3
-    low = 1 / _STAR_RANGE ** _STAR_SLOPE
+    low = 1 / _STAR_RANGE**_STAR_SLOPE
     peak = s.star_peak / _STAR_RANGE * (1 - rng.random(n) * (1 - low)) ** (-1 / _STAR_SLOPE)
     r = int(np.ceil(3 * _STAR_SIGMA))
     for x, y, a in zip(u[keep], v[keep], peak[keep]):
         x0, y0 = int(round(x)), int(round(y))
-        ys, xs = np.mgrid[max(0, y0 - r):min(K.height, y0 + r + 1), max(0, x0 - r):min(K.width, x0 + r + 1)]
-        out[ys, xs] += a * np.exp(-((xs - x) ** 2 + (ys - y) ** 2) / (2 * _STAR_SIGMA ** 2))
+        ys, xs = np.mgrid[max(0, y0 - r) : min(K.height, y0 + r + 1), max(0, x0 - r) : min(K.width, x0 + r + 1)]
+        out[ys, xs] += a * np.exp(-((xs - x) ** 2 + (ys - y) ** 2) / (2 * _STAR_SIGMA**2))
     return out
 
 
-def backdrop(K: Intrinsics, s: BackgroundSettings, frame: FrameBackground, sun: np.ndarray,
-             sun_strength: float, rng: np.random.Generator) -> np.ndarray:
+def backdrop(
+    K: Intrinsics,
+    s: BackgroundSettings,
+    frame: FrameBackground,
+    sun: np.ndarray,
+    sun_strength: float,
+    rng: np.random.Generator,
+) -> np.ndarray:
     """What lies behind the target (H, W, 3), display units in [0, 1]: the Earth, and stars where it is not."""
     colour, coverage = earth(K, s, frame, sun, sun_strength, rng)
     return np.minimum(colour + (stars(K, s, rng) * (1 - coverage))[..., None], 1.0)
 
 
-def composite(straight: np.ndarray, alpha: np.ndarray, K: Intrinsics, s: BackgroundSettings,
-              frame: FrameBackground, sun: np.ndarray, sun_strength: float) -> np.ndarray:
+def composite(
+    straight: np.ndarray,
+    alpha: np.ndarray,
+    K: Intrinsics,
+    s: BackgroundSettings,
+    frame: FrameBackground,
+    sun: np.ndarray,
+    sun_strength: float,
+) -> np.ndarray:
     """The frame (H, W, 3) uint8: the target's straight colour `straight` (H, W, 3; 0..255) with `alpha`
     (H, W; [0, 1]) over the backdrop of `frame`, then the sensor's black offset and read noise, rounded once.
     `sun`: the direction sunlight travels, camera frame; `sun_strength`: W/m^2."""

@@ -13,6 +13,7 @@ centres at integer coordinates (OpenCV convention).
 
 Importing this module imports bpy; stages import it only inside their commands.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -41,18 +42,18 @@ _FLIP = np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes <-> Blender camera axes
 class SceneSettings:
     """Scene and render settings. Lengths in metres; directions are vectors in the target frame."""
 
-    mesh: str | None = None            # None = procedural Jason-1-like satellite; else OBJ/GLB/GLTF/STL/PLY
-    mesh_scale: float = 1.0            # metres per mesh unit
+    mesh: str | None = None  # None = procedural Jason-1-like satellite; else OBJ/GLB/GLTF/STL/PLY
+    mesh_scale: float = 1.0  # metres per mesh unit
     sun_direction: tuple[float, float, float] = (-0.5, -0.3, 1.0)  # direction sunlight travels, target frame
-    sun_strength: float = 6.0          # W/m^2 (Blender sun strength)
-    samples: int = 8                   # Cycles samples per pixel
-    denoiser: str = "NONE"             # or OPENIMAGEDENOISE
-    denoise_quality: str = "FAST"      # OIDN: FAST, BALANCED, HIGH
+    sun_strength: float = 6.0  # W/m^2 (Blender sun strength)
+    samples: int = 8  # Cycles samples per pixel
+    denoiser: str = "NONE"  # or OPENIMAGEDENOISE
+    denoise_quality: str = "FAST"  # OIDN: FAST, BALANCED, HIGH
     threads: int = 2
-    device: str = "cpu"                # Cycles: cpu | gpu (OptiX or CUDA, refused without one) | auto (`resolve_device`)
-    ambient: float = 0.08              # world light strength (Earth-shine fill); the background stays black
+    device: str = "cpu"  # Cycles: cpu | gpu (OptiX or CUDA, refused without one) | auto (`resolve_device`)
+    ambient: float = 0.08  # world light strength (Earth-shine fill); the background stays black
     max_bounces: int = 2
-    background: BackgroundSettings = BackgroundSettings()   # behind the frames given a FrameBackground
+    background: BackgroundSettings = BackgroundSettings()  # behind the frames given a FrameBackground
 
 
 def _material(name: str, color: tuple[float, float, float], metallic: float, roughness: float) -> bpy.types.Material:
@@ -72,8 +73,13 @@ def _add(obj: bpy.types.Object, parent: bpy.types.Object, mat: bpy.types.Materia
     return obj
 
 
-def _box(name: str, size: tuple[float, float, float], loc: tuple[float, float, float],
-         parent: bpy.types.Object, mat: bpy.types.Material) -> bpy.types.Object:
+def _box(
+    name: str,
+    size: tuple[float, float, float],
+    loc: tuple[float, float, float],
+    parent: bpy.types.Object,
+    mat: bpy.types.Material,
+) -> bpy.types.Object:
     bpy.ops.mesh.primitive_cube_add(size=1.0, location=loc)
     obj = bpy.context.active_object
     obj.name = name
@@ -155,7 +161,7 @@ def _quiet_stdout() -> Iterator[None]:
 
 
 DEVICES = ("cpu", "gpu", "auto")
-GPU_BACKENDS = ("OPTIX", "CUDA")   # Cycles' GPU backends, in the order tried
+GPU_BACKENDS = ("OPTIX", "CUDA")  # Cycles' GPU backends, in the order tried
 
 
 @dataclass(frozen=True)
@@ -179,9 +185,9 @@ def gpu_backend() -> str | None:
     for backend in GPU_BACKENDS:
         try:
             prefs.compute_device_type = backend
-        except TypeError:   # a Blender build without this backend
+        except TypeError:  # a Blender build without this backend
             continue
-        with _quiet_stdout():   # Cycles prints a warning per backend library it cannot open
+        with _quiet_stdout():  # Cycles prints a warning per backend library it cannot open
             prefs.refresh_devices()
         found = [d for d in prefs.devices if d.type == backend]
         if found:
@@ -203,7 +209,9 @@ def resolve_device(requested: str, probe: Callable[[], str | None] = gpu_backend
         return CyclesDevice("GPU", backend)
     if requested == "gpu":
         raise ValueError("render device gpu: bpy sees no OptiX or CUDA device; use cpu or auto")
-    return CyclesDevice("CPU", note="render device auto: bpy sees no OptiX or CUDA device, so Cycles renders on the CPU")
+    return CyclesDevice(
+        "CPU", note="render device auto: bpy sees no OptiX or CUDA device, so Cycles renders on the CPU"
+    )
 
 
 def check_settings(K: Intrinsics, settings: SceneSettings) -> None:
@@ -226,8 +234,10 @@ def check_settings(K: Intrinsics, settings: SceneSettings) -> None:
         if not p.is_file():
             raise ValueError(f"mesh file {settings.mesh!r} not found")
         if p.suffix.lower() not in MESH_FORMATS:
-            raise ValueError(f"mesh file {settings.mesh!r}: unsupported format {p.suffix.lower() or '(none)'!r}; "
-                             f"use one of {', '.join(MESH_FORMATS)}")
+            raise ValueError(
+                f"mesh file {settings.mesh!r}: unsupported format {p.suffix.lower() or '(none)'!r}; "
+                f"use one of {', '.join(MESH_FORMATS)}"
+            )
     check_background(settings.background)
 
 
@@ -272,10 +282,13 @@ class Renderer:
         self.scene.collection.objects.link(self.sun)
         self._sun_dir = np.asarray(settings.sun_direction, dtype=np.float64)
         self.set_sun(settings.sun_direction, settings.sun_strength)
-        fd, self._png = tempfile.mkstemp(prefix=f"rpod_{os.getpid()}_{uuid.uuid4().hex[:8]}_", suffix=".png",
-                                         dir="/dev/shm" if os.path.isdir("/dev/shm") else None)
+        fd, self._png = tempfile.mkstemp(
+            prefix=f"rpod_{os.getpid()}_{uuid.uuid4().hex[:8]}_",
+            suffix=".png",
+            dir="/dev/shm" if os.path.isdir("/dev/shm") else None,
+        )
         os.close(fd)
-        os.unlink(self._png)   # only the unique name is kept: Blender writes the file per frame
+        os.unlink(self._png)  # only the unique name is kept: Blender writes the file per frame
         self.scene.render.filepath = self._png
 
     def _setup_render(self) -> None:
@@ -291,7 +304,7 @@ class Renderer:
         r.image_settings.compression = 0
         self.scene.view_settings.view_transform = "Standard"
         c = self.scene.cycles
-        self.cycles = resolve_device(s.device)   # after read_factory_settings, which resets the preferences
+        self.cycles = resolve_device(s.device)  # after read_factory_settings, which resets the preferences
         c.device = self.cycles.device
         c.samples = s.samples
         c.use_adaptive_sampling = False
@@ -363,26 +376,29 @@ class Renderer:
         S[:3, :3] = np.column_stack([x, np.cross(z, x), z])
         self.sun.matrix_world = Matrix(S.tolist())
 
-    def render_with_alpha(self, R: np.ndarray, t: np.ndarray,
-                          background: FrameBackground | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def render_with_alpha(
+        self, R: np.ndarray, t: np.ndarray, background: FrameBackground | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Render one pose -> (RGB (H, W, 3) uint8, the target's alpha (H, W) float in [0, 1]): on black, or
         composited over `background` (this frame's draw of settings.background: backgrounds.composite)."""
         if np.asarray(t, dtype=np.float64).reshape(3)[2] <= 0:
             raise ValueError(f"target must be in front of the camera (tz > 0), got t={t}")
-        with _quiet_stdout(), interrupt.deferred():   # a signal stops the render after the frame (`__init__`)
+        with _quiet_stdout(), interrupt.deferred():  # a signal stops the render after the frame (`__init__`)
             self._place(R, t)
             bpy.ops.render.render(write_still=True)
         bgra = cv2.imread(self._png, cv2.IMREAD_UNCHANGED)
-        Path(self._png).unlink(missing_ok=True)   # a worker killed between frames leaves no file behind
+        Path(self._png).unlink(missing_ok=True)  # a worker killed between frames leaves no file behind
         if bgra is None or bgra.shape[:2] != (self.K.height, self.K.width):
-            raise RuntimeError(f"Blender did not write the expected {self.K.width}x{self.K.height} "
-                               f"image to {self._png}")
+            raise RuntimeError(
+                f"Blender did not write the expected {self.K.width}x{self.K.height} image to {self._png}"
+            )
         alpha = bgra[..., 3].astype(np.float32) / 255.0
         straight = bgra[..., 2::-1].astype(np.float32)
         if background is not None:
-            sun = np.asarray(R, dtype=np.float64).reshape(3, 3) @ self._sun_dir   # camera frame
-            return composite(straight, alpha, self.K, self.settings.background, background, sun,
-                             self.sun.data.energy), alpha
+            sun = np.asarray(R, dtype=np.float64).reshape(3, 3) @ self._sun_dir  # camera frame
+            return composite(
+                straight, alpha, self.K, self.settings.background, background, sun, self.sun.data.energy
+            ), alpha
         rgb = straight * alpha[..., None]  # straight alpha -> black space
         return np.clip(np.rint(rgb), 0, 255).astype(np.uint8), alpha
 

@@ -5,6 +5,7 @@ caller decides where to save it and nothing leaks between figures. Figures are a
 with text of at least 8.5 pt, so they are shown unscaled and readable in a rendered Markdown page
 (about 880 pixels wide: 8 in at the 110 dpi of pipeline.io.atomic.save_figure); legends sit outside the data.
 """
+
 from __future__ import annotations
 
 import functools
@@ -17,16 +18,24 @@ from matplotlib.figure import Figure
 from pipeline.attacks.schedule import bursts
 from pipeline.geometry.labels import TARGET
 
-WIDTH_IN = 8.0          # figure width (in)
-TICK_PT = 9.0           # tick label size (pt)
-STYLE = {"font.size": 10, "axes.titlesize": 10, "axes.labelsize": 10, "legend.fontsize": 8.5,
-         "figure.titlesize": 10.5, "xtick.labelsize": TICK_PT, "ytick.labelsize": TICK_PT}
-LATERAL_VISIBLE_M = 0.01   # guidance figures draw the lateral offset only when a run leaves the axis by more (m)
+WIDTH_IN = 8.0  # figure width (in)
+TICK_PT = 9.0  # tick label size (pt)
+STYLE = {
+    "font.size": 10,
+    "axes.titlesize": 10,
+    "axes.labelsize": 10,
+    "legend.fontsize": 8.5,
+    "figure.titlesize": 10.5,
+    "xtick.labelsize": TICK_PT,
+    "ytick.labelsize": TICK_PT,
+}
+LATERAL_VISIBLE_M = 0.01  # guidance figures draw the lateral offset only when a run leaves the axis by more (m)
 
 
 def _readable(build: Callable[..., Figure]) -> Callable[..., Figure]:
     """Build a figure with STYLE's font sizes (tick labels are made when the figure is drawn, after
     the style is gone, so their size is set on every axes)."""
+
     @functools.wraps(build)
     def wrapper(*args: Any, **kwargs: Any) -> Figure:
         with matplotlib.rc_context(STYLE):
@@ -34,6 +43,7 @@ def _readable(build: Callable[..., Figure]) -> Callable[..., Figure]:
         for ax in fig.axes:
             ax.tick_params(labelsize=TICK_PT)
         return fig
+
     return wrapper
 
 
@@ -74,15 +84,23 @@ def _far_first(label: str) -> float:
 
 
 @_readable
-def error_vs_eps(eps: Sequence[float], position_m: Sequence[float], attitude_deg: Sequence[float],
-                 clean_position_m: float, clean_attitude_deg: float, method: str = "fgsm") -> Figure:
+def error_vs_eps(
+    eps: Sequence[float],
+    position_m: Sequence[float],
+    attitude_deg: Sequence[float],
+    clean_position_m: float,
+    clean_attitude_deg: float,
+    method: str = "fgsm",
+) -> Figure:
     """Mean pose error under the attack `method` against eps (log axis), the clean error dashed."""
     fig = Figure(figsize=(WIDTH_IN, 3.4), layout="constrained")
     axes = fig.subplots(1, 2)
     order = np.argsort(eps)
     e = np.asarray(eps, dtype=float)[order]
-    for ax, values, clean, ylabel in ((axes[0], position_m, clean_position_m, "mean position error (m)"),
-                                      (axes[1], attitude_deg, clean_attitude_deg, "mean attitude error (deg)")):
+    for ax, values, clean, ylabel in (
+        (axes[0], position_m, clean_position_m, "mean position error (m)"),
+        (axes[1], attitude_deg, clean_attitude_deg, "mean attitude error (deg)"),
+    ):
         ax.plot(e, np.asarray(values, dtype=float)[order], "o-", label=method.upper())
         ax.axhline(clean, color="grey", linestyle="--", label="clean")
         ax.set_xscale("log")
@@ -128,9 +146,15 @@ def roc_curves(curves: Mapping[str, tuple[np.ndarray, np.ndarray, float]], highl
         for j, name in enumerate(names):
             fpr, tpr, auc = curves[name]
             top = name == highlight
-            ax.plot(fpr, tpr, color="black" if top else f"C{j}", lw=2.4 if top else 1.2, zorder=3 if top else 2,
-                    label=f"{name} (AUC {auc:.3f})")
-        chance = np.logspace(np.log10(smallest / 1.5), 0, 50)   # many points: a straight line on either axis
+            ax.plot(
+                fpr,
+                tpr,
+                color="black" if top else f"C{j}",
+                lw=2.4 if top else 1.2,
+                zorder=3 if top else 2,
+                label=f"{name} (AUC {auc:.3f})",
+            )
+        chance = np.logspace(np.log10(smallest / 1.5), 0, 50)  # many points: a straight line on either axis
         ax.plot(chance, chance, color="grey", linestyle="--", linewidth=0.8, label="chance")
         ax.set_xlabel("false-positive rate" + (" (log axis)" if log else ""))
         ax.set_ylabel("true-positive rate")
@@ -149,8 +173,9 @@ def roc_curves(curves: Mapping[str, tuple[np.ndarray, np.ndarray, float]], highl
 
 
 @_readable
-def attack_example(clean: np.ndarray, adv: Mapping[float, np.ndarray], t_gt: np.ndarray,
-                   pred: Mapping[Any, np.ndarray], method: str) -> Figure:
+def attack_example(
+    clean: np.ndarray, adv: Mapping[float, np.ndarray], t_gt: np.ndarray, pred: Mapping[Any, np.ndarray], method: str
+) -> Figure:
     """The clean uint8 image, the stored adversarial image per eps (ascending), and the perturbation of
     the smallest eps amplified to fill the grey range (mid-grey = unchanged), in rows of at most 4.
 
@@ -161,9 +186,11 @@ def attack_example(clean: np.ndarray, adv: Mapping[float, np.ndarray], t_gt: np.
     err = {k: float(np.linalg.norm(v[:3] - t_gt)) for k, v in pred.items()}
     delta = adv[eps_list[0]].astype(np.float64) / 255 - clean.astype(np.float64) / 255
     gain = 0.5 / max(float(np.abs(delta).max()), 1e-12)
-    panels = ([(f"original\nerror {err['clean']:.2f} m", clean)]
-              + [(f"eps = {e:g}\nerror {err[e]:.1f} m", adv[e]) for e in eps_list]
-              + [(f"perturbation at eps = {eps_list[0]:g}\namplified x{gain:.3g}", np.clip(0.5 + gain * delta, 0, 1))])
+    panels = (
+        [(f"original\nerror {err['clean']:.2f} m", clean)]
+        + [(f"eps = {e:g}\nerror {err[e]:.1f} m", adv[e]) for e in eps_list]
+        + [(f"perturbation at eps = {eps_list[0]:g}\namplified x{gain:.3g}", np.clip(0.5 + gain * delta, 0, 1))]
+    )
     cols = min(4, len(panels))
     rows = -(-len(panels) // cols)
     h, w = clean.shape[:2]
@@ -174,8 +201,10 @@ def attack_example(clean: np.ndarray, adv: Mapping[float, np.ndarray], t_gt: np.
     for ax, (title, image) in zip(axes, panels):
         ax.imshow(image, interpolation="nearest")
         ax.set_title(title)
-    fig.suptitle(f"{method.upper()} on one test image (target at {t_gt[2]:.1f} m): stored 8-bit attacks and the "
-                 f"position error of the estimate")
+    fig.suptitle(
+        f"{method.upper()} on one test image (target at {t_gt[2]:.1f} m): stored 8-bit attacks and the "
+        f"position error of the estimate"
+    )
     return fig
 
 
@@ -186,12 +215,13 @@ def _lateral(r: Any) -> np.ndarray:
 
 def _estimate_error(r: Any) -> np.ndarray:
     """Position error (m) of each step's estimate against the true position it was taken at."""
-    return np.linalg.norm(r.estimates - r.positions[:len(r.estimates)], axis=1)
+    return np.linalg.norm(r.estimates - r.positions[: len(r.estimates)], axis=1)
 
 
 @_readable
-def guidance_trajectories(baseline: Any, runs: Sequence[tuple[float, int, Any]], eps: float | None,
-                          goal: Sequence[float]) -> Figure:
+def guidance_trajectories(
+    baseline: Any, runs: Sequence[tuple[float, int, Any]], eps: float | None, goal: Sequence[float]
+) -> Figure:
     """The no-attack run and the attacked runs (S, K, RendezvousResult) of one eps, step by step: the
     true range z (m) with the goal dashed, and the error of the position estimate (m, log axis); dots
     mark attacked frames. A third panel, the distance from the approach axis (m), is drawn only when
@@ -200,7 +230,8 @@ def guidance_trajectories(baseline: Any, runs: Sequence[tuple[float, int, Any]],
 
     cmap = matplotlib.colormaps["viridis"]
     curves = [("no attack", baseline, "black", 2.0)] + [
-        (f"S={s:g} m, K={k}: {r.outcome}", r, cmap(j / max(len(runs) - 1, 1)), 1.2) for j, (s, k, r) in enumerate(runs)]
+        (f"S={s:g} m, K={k}: {r.outcome}", r, cmap(j / max(len(runs) - 1, 1)), 1.2) for j, (s, k, r) in enumerate(runs)
+    ]
     lateral = max(float(_lateral(r).max()) for _, r, _, _ in curves) > LATERAL_VISIBLE_M
     fig = Figure(figsize=(WIDTH_IN, 5.4), layout="constrained")
     axes = fig.subplots(1, 3 if lateral else 2, sharex=True)
@@ -219,18 +250,20 @@ def guidance_trajectories(baseline: Any, runs: Sequence[tuple[float, int, Any]],
         ax.set_xlabel("guidance step")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
-    if runs:   # the no-attack run may fly longer than the attacked runs are judged
+    if runs:  # the no-attack run may fly longer than the attacked runs are judged
         axes[0].set_xlim(-1, max(len(r.positions) for _, _, r in runs) + 1)
     fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncols=3)
     note = "" if lateral else "\nevery run stays on the approach axis (x = y = 0 m): lateral positions not drawn"
-    fig.suptitle("Closed-loop approach" + (f" under attack, eps = {eps:g}" if eps is not None else "")
-                 + f"; dots: attacked frames{note}")
+    fig.suptitle(
+        "Closed-loop approach"
+        + (f" under attack, eps = {eps:g}" if eps is not None else "")
+        + f"; dots: attacked frames{note}"
+    )
     return fig
 
 
 @_readable
-def detection_timeline(true_z: np.ndarray, attacked: np.ndarray, trace: Any, threshold: float,
-                       title: str) -> Figure:
+def detection_timeline(true_z: np.ndarray, attacked: np.ndarray, trace: Any, threshold: float, title: str) -> Figure:
     """One trajectory frame by frame: true and estimated range t_z (m), attacked frames, the detector's
     probability and flags, and the position error (m), from its `Trace` (pipeline/evaluation/sequences.py)."""
     frames = np.arange(len(attacked))
@@ -239,8 +272,14 @@ def detection_timeline(true_z: np.ndarray, attacked: np.ndarray, trace: Any, thr
 
     def shade(ax: Any, label: bool = False) -> None:
         for k, (a, b) in enumerate(bursts(attacked)):
-            ax.axvspan(a - 0.5, b - 0.5, color="tab:red", alpha=0.15, lw=0,
-                       label="attacked frames" if label and k == 0 else None)
+            ax.axvspan(
+                a - 0.5,
+                b - 0.5,
+                color="tab:red",
+                alpha=0.15,
+                lw=0,
+                label="attacked frames" if label and k == 0 else None,
+            )
 
     ax = axes[0]
     shade(ax, label=True)
@@ -270,8 +309,9 @@ def detection_timeline(true_z: np.ndarray, attacked: np.ndarray, trace: Any, thr
 
 
 @_readable
-def guidance_variants(runs: Sequence[tuple[str, Any]], goal: Sequence[float], title: str,
-                      tolerance: float | None = None) -> Figure:
+def guidance_variants(
+    runs: Sequence[tuple[str, Any]], goal: Sequence[float], title: str, tolerance: float | None = None
+) -> Figure:
     """One attacked cell flown by each variant (label, RendezvousResult): the distance from the approach
     axis (m) against the range z, and the distance to the target point (m) step by step from a few
     steps before the first attack (before it the variants fly the same path), with `tolerance` (m)
@@ -296,8 +336,10 @@ def guidance_variants(runs: Sequence[tuple[str, Any]], goal: Sequence[float], ti
     axes[0].invert_xaxis()
     if tolerance is not None:
         axes[1].axhline(tolerance, color="r", ls="--", lw=1, label=f"tolerance ({tolerance:g} m)")
-    for ax, sub, xlabel, ylabel in ((axes[0], "distance from the axis", "range z (m)", "sqrt(x^2 + y^2) (m)"),
-                                    (axes[1], "distance to the target point", "guidance step", "distance (m)")):
+    for ax, sub, xlabel, ylabel in (
+        (axes[0], "distance from the axis", "range z (m)", "sqrt(x^2 + y^2) (m)"),
+        (axes[1], "distance to the target point", "guidance step", "distance (m)"),
+    ):
         ax.set_title(sub)
         ax.set_xlabel(xlabel)
         ax.set_ylabel(ylabel)
@@ -325,8 +367,10 @@ def robustness_vs_eps(rows: Sequence[Mapping[str, object]]) -> Figure:
         pts = sorted((r for r in rows if r["attack"] == name), key=lambda r: float(r["eps"]))
         # attacks at the same eps are dodged sideways by a few percent so their intervals stay apart
         e = np.array([float(r["eps"]) for r in pts]) * 1.04 ** (k - (len(names) - 1) / 2)
-        for ax, key, ci in ((axes[0], "detection_rate", "ci95_detection"),
-                            (axes[1], "harmful_undetected_rate", "ci95_harmful_undetected")):
+        for ax, key, ci in (
+            (axes[0], "detection_rate", "ci95_detection"),
+            (axes[1], "harmful_undetected_rate", "ci95_harmful_undetected"),
+        ):
             v = 100 * np.array([float(r[key]) for r in pts])
             lo = 100 * np.array([float(r[ci][0]) for r in pts])
             hi = 100 * np.array([float(r[ci][1]) for r in pts])
@@ -345,8 +389,9 @@ def robustness_vs_eps(rows: Sequence[Mapping[str, object]]) -> Figure:
 
 
 @_readable
-def integrity_diagram(points: Mapping[str, Mapping[str, np.ndarray]], series: Mapping[str, np.ndarray],
-                      alert: np.ndarray, title: str) -> Figure:
+def integrity_diagram(
+    points: Mapping[str, Mapping[str, np.ndarray]], series: Mapping[str, np.ndarray], alert: np.ndarray, title: str
+) -> Figure:
     """Left, the Stanford diagram: per run label, the trusted estimate's error (m) against the frame's
     bound (`points[label]`: "bound", "error" (n,), "bound_is" "PL" when the chain gives a protection
     level, else "AL"); above the diagonal the error exceeds it (HMI against AL, MI against PL). Right,
@@ -355,16 +400,28 @@ def integrity_diagram(points: Mapping[str, Mapping[str, np.ndarray]], series: Ma
     axes = fig.subplots(1, 2)
     names = [str(p.get("bound_is", "AL")) for p in points.values()]
     for j, (label, p) in enumerate(points.items()):
-        axes[0].plot(np.maximum(p["bound"], 1e-2), np.maximum(p["error"], 1e-2), ".", ms=2.5, alpha=0.5,
-                     color=f"C{j}", label=label)
+        axes[0].plot(
+            np.maximum(p["bound"], 1e-2),
+            np.maximum(p["error"], 1e-2),
+            ".",
+            ms=2.5,
+            alpha=0.5,
+            color=f"C{j}",
+            label=label,
+        )
     every = np.concatenate([np.concatenate([p["bound"], p["error"]]) for p in points.values()] + [np.ones(1)])
     lo, top = max(1e-2, 0.5 * float(np.nanmin(every))), 2 * float(np.nanmax(every))
     line = np.array([lo, top])
     axes[0].plot(line, line, "k-", lw=1)
     axes[0].fill_between(line, line, top, color="r", alpha=0.07, label=f"error > {names[0]}")
     axes[0].set(xlim=(lo, top), ylim=(lo, top))
-    axes[0].set(xscale="log", yscale="log", xlabel=f"{names[0]} (m)", ylabel="trusted error (m)",
-                title=f"error against {names[0]}, counted frames")
+    axes[0].set(
+        xscale="log",
+        yscale="log",
+        xlabel=f"{names[0]} (m)",
+        ylabel="trusted error (m)",
+        title=f"error against {names[0]}, counted frames",
+    )
     for j, err in enumerate(series.values()):
         axes[1].plot(np.arange(len(err)), err, "-", lw=1.1, color=f"C{j}")
     axes[1].plot(np.arange(len(alert)), alert, "k--", lw=1, label="AL")

@@ -3,6 +3,7 @@
 Tables keep the row order they are given and format every float with the same decimals, so a
 re-run diffs cleanly in review.
 """
+
 from __future__ import annotations
 
 import re
@@ -12,8 +13,9 @@ import numpy as np
 import pandas as pd
 
 
-def markdown_table(rows: Sequence[Mapping[str, Any]] | pd.DataFrame, columns: Sequence[str] | None = None,
-                   decimals: int = 2) -> str:
+def markdown_table(
+    rows: Sequence[Mapping[str, Any]] | pd.DataFrame, columns: Sequence[str] | None = None, decimals: int = 2
+) -> str:
     """Rows (dicts or a DataFrame) -> a GitHub Markdown table; floats with `decimals` places."""
     df = rows.copy() if isinstance(rows, pd.DataFrame) else pd.DataFrame(list(rows))
     if columns is not None:
@@ -24,7 +26,6 @@ def markdown_table(rows: Sequence[Mapping[str, Any]] | pd.DataFrame, columns: Se
     fmt = f"{{:.{decimals}f}}"
     df = df.map(lambda v: fmt.format(v) if isinstance(v, float) else ("" if v is None else v))
     return df.to_markdown(index=False, disable_numparse=True) + "\n"
-
 
 
 def demote_headings(md: str, levels: int = 1) -> str:
@@ -50,7 +51,7 @@ def extract_block(text: str, name: str) -> str | None:
     start, end = _BLOCK.format(name=name, edge="start"), _BLOCK.format(name=name, edge="end")
     if start not in text or end not in text:
         return None
-    return text[text.index(start) + len(start):text.index(end)].strip()
+    return text[text.index(start) + len(start) : text.index(end)].strip()
 
 
 def replace_section(md: str, heading: str, body: str) -> str:
@@ -62,8 +63,9 @@ def replace_section(md: str, heading: str, body: str) -> str:
     return (md.rstrip("\n") + "\n\n" if md.strip() else "") + section
 
 
-def mean_abs_by_class(blocks: Iterable[tuple[np.ndarray, np.ndarray]],
-                      shape: tuple[int, ...]) -> dict[str, np.ndarray] | None:
+def mean_abs_by_class(
+    blocks: Iterable[tuple[np.ndarray, np.ndarray]], shape: tuple[int, ...]
+) -> dict[str, np.ndarray] | None:
     """Mean |phi| (`shape`, e.g. (9, F)) over normal and over adversarial samples, from blocks of
     (values (B, *shape), is_adversarial (B,) bool) read in order; keys `normal (n)` and
     `adversarial (n)`; None when either class has no sample."""
@@ -76,5 +78,7 @@ def mean_abs_by_class(blocks: Iterable[tuple[np.ndarray, np.ndarray]],
             counts[flag] += int((flags == flag).sum())
     if not all(counts.values()):
         return None
-    return {f"normal ({counts[False]})": sums[False] / counts[False],
-            f"adversarial ({counts[True]})": sums[True] / counts[True]}
+    return {
+        f"normal ({counts[False]})": sums[False] / counts[False],
+        f"adversarial ({counts[True]})": sums[True] / counts[True],
+    }

@@ -7,6 +7,7 @@ returns the split's rows with
 their uint8 (N, H, W, 3) RGB images. `pose_dataset(split, ...)` wraps it as a torch Dataset.
 Label column `index` is the image's row in the zarr array `images`.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -28,7 +29,7 @@ from stages.config.sections import Augment
 from stages.errors import StageError
 
 REQUIRED = ["index", *POSITION, *QUAT, *SIXD, "range", "split"]
-RENDER_KEY = "render_fingerprint"   # label table metadata (DataFrame.attrs): the fingerprint of the render it labels
+RENDER_KEY = "render_fingerprint"  # label table metadata (DataFrame.attrs): the fingerprint of the render it labels
 # Above this many bytes a split is read from the store item by item instead of into memory.
 PRELOAD_LIMIT_BYTES = 8 << 30
 
@@ -72,13 +73,17 @@ def load_labels(path: Path | str = LABELS, render: Path | str = RENDER) -> pd.Da
     df = read_parquet(path, "label table")
     made, have = df.attrs.get(RENDER_KEY), render_identity(read_json(Path(render) / META))
     if made != have:
-        raise StageError(f"{path} labels another render than {render} (render fingerprint "
-                         f"{made or 'not recorded'}, {render} has {have}): re-run `rpod label`")
+        raise StageError(
+            f"{path} labels another render than {render} (render fingerprint "
+            f"{made or 'not recorded'}, {render} has {have}): re-run `rpod label`"
+        )
     extra6 = sorted(c for c in df.columns if c.startswith("r") and c[1:].isdigit() and c not in SIXD)
     missing6 = [c for c in SIXD if c not in df.columns]
     if missing6 or extra6:
-        raise StageError(f"{path}: the 6-D rotation must be exactly the 6 columns r0..r5; "
-                         f"missing {missing6 or 'none'}, unexpected {extra6 or 'none'} (re-run `rpod label`)")
+        raise StageError(
+            f"{path}: the 6-D rotation must be exactly the 6 columns r0..r5; "
+            f"missing {missing6 or 'none'}, unexpected {extra6 or 'none'} (re-run `rpod label`)"
+        )
     missing = [c for c in REQUIRED if c not in df.columns]
     if missing:
         raise StageError(f"{path}: missing columns {missing} (re-run `rpod label`)")
@@ -87,7 +92,7 @@ def load_labels(path: Path | str = LABELS, render: Path | str = RENDER) -> pd.Da
     if nans:
         raise StageError(f"{path}: NaN or infinite labels in columns {nans} (re-run `rpod label`)")
     problem = table_problem(df) or against_poses(df, read_parquet(Path(render) / POSES, "render poses"))
-    if problem:   # a bad value, or labels of other poses than the render's (poses.parquet)
+    if problem:  # a bad value, or labels of other poses than the render's (poses.parquet)
         raise StageError(f"{path}: {problem} (re-run `rpod label`)")
     return df
 
@@ -103,14 +108,22 @@ def open_images(params: Params, path: Path | str = IMAGES) -> Any:
         raise StageError(f"{path}/images must be uint8 (N, H, W, 3), got {arr.dtype} {tuple(arr.shape)}")
     h, w = params.render.height, params.render.width
     if arr.shape[1:3] != (h, w):
-        raise StageError(f"{path}/images are {arr.shape[2]}x{arr.shape[1]} pixels but params.yaml has "
-                         f"render.width x render.height = {w}x{h} (re-run `rpod render`, or fix params)")
+        raise StageError(
+            f"{path}/images are {arr.shape[2]}x{arr.shape[1]} pixels but params.yaml has "
+            f"render.width x render.height = {w}x{h} (re-run `rpod render`, or fix params)"
+        )
     check_render_fingerprint(meta, params, path.parent / "meta.json")
     return arr
 
 
-def load_split(params: Params, split: str, *, images_path: Path | str = IMAGES,
-               labels_path: Path | str = LABELS, preload: bool | None = None) -> Split:
+def load_split(
+    params: Params,
+    split: str,
+    *,
+    images_path: Path | str = IMAGES,
+    labels_path: Path | str = LABELS,
+    preload: bool | None = None,
+) -> Split:
     """Rows of `split` ("train" or "test") with their images; `preload` None = when it fits in memory."""
     from tqdm import tqdm
 
@@ -119,13 +132,17 @@ def load_split(params: Params, split: str, *, images_path: Path | str = IMAGES,
     rows = labels[labels["split"] == split].sort_values("index").reset_index(drop=True)
     if rows.empty:
         found = sorted(map(str, labels["split"].unique()))
-        raise StageError(f"{labels_path}: the {split!r} split is empty (splits present: {found}); "
-                         f"check label.test_fraction and the number of rendered frames")
+        raise StageError(
+            f"{labels_path}: the {split!r} split is empty (splits present: {found}); "
+            f"check label.test_fraction and the number of rendered frames"
+        )
     index = rows["index"].to_numpy(np.int64)
     outside = index[(index < 0) | (index >= images.shape[0])]
     if len(outside):
-        raise StageError(f"{labels_path}: image index {int(outside[0])} is outside {images_path}/images "
-                         f"({images.shape[0]} images); re-run `rpod label` after `rpod render`")
+        raise StageError(
+            f"{labels_path}: image index {int(outside[0])} is outside {images_path}/images "
+            f"({images.shape[0]} images); re-run `rpod label` after `rpod render`"
+        )
     nbytes = len(index) * int(np.prod(images.shape[1:]))
     if preload is False or (preload is None and nbytes > PRELOAD_LIMIT_BYTES):
         return Split(split, rows, _Rows(images, index))
@@ -134,14 +151,16 @@ def load_split(params: Params, split: str, *, images_path: Path | str = IMAGES,
     for start in tqdm(range(0, images.shape[0], step), desc=f"read {split} images", unit="chunk", leave=False):
         sel = (index >= start) & (index < start + step)
         if sel.any():
-            out[sel] = images[start:start + step][index[sel] - start]
+            out[sel] = images[start : start + step][index[sel] - start]
     return Split(split, rows, out)
 
 
 def subset(split: Split, rows: np.ndarray, name: str) -> Split:
     """The rows `rows` (positions in `split`) of a split as a new split called `name`."""
     rows = np.asarray(rows, np.int64)
-    images = _Rows(split.images.array, split.images.rows[rows]) if isinstance(split.images, _Rows) else split.images[rows]
+    images = (
+        _Rows(split.images.array, split.images.rows[rows]) if isinstance(split.images, _Rows) else split.images[rows]
+    )
     return Split(name, split.labels.iloc[rows].reset_index(drop=True), images)
 
 
@@ -161,8 +180,10 @@ def pose_dataset(split: Split, augment: Augment | None = None, seed: int = 0) ->
 def training_sets(params: Params, seed: int) -> tuple[tuple[Any, Any, Any], tuple[Any, Any]]:
     """((fit split, its augmented dataset, its plain dataset), (validation split, its dataset))."""
     train_split, val_split = fit_and_validation_splits(params, seed)
-    return ((train_split, pose_dataset(train_split, params.train.augment, seed=seed),
-             pose_dataset(train_split)), (val_split, pose_dataset(val_split)))
+    return (
+        (train_split, pose_dataset(train_split, params.train.augment, seed=seed), pose_dataset(train_split)),
+        (val_split, pose_dataset(val_split)),
+    )
 
 
 def fit_and_validation_splits(params: Params, seed: int) -> tuple[Any, Any]:

@@ -1,5 +1,6 @@
 """dvc.yaml as the stages read it: which stage writes a file (for the hint of a missing input), the metrics JSON
 every stage writes, and the git-tracked outputs a failed stage puts back (`restore_tracked_outputs`)."""
+
 from __future__ import annotations
 
 import functools
@@ -19,14 +20,21 @@ def dvc_stages() -> dict[str, dict[str, Any]]:
     without them."""
     import yaml
 
-    return {name: st for path in (DVC_YAML, OPTIONAL_DVC_YAML) if path.is_file()
-            for name, st in yaml.safe_load(path.read_text()).get("stages", {}).items()}
+    return {
+        name: st
+        for path in (DVC_YAML, OPTIONAL_DVC_YAML)
+        if path.is_file()
+        for name, st in yaml.safe_load(path.read_text()).get("stages", {}).items()
+    }
 
 
 def _outputs(stage: dict[str, Any]) -> list[Path]:
     """A dvc.yaml stage's outputs: its outs, metrics and plots."""
-    return [Path(next(iter(o)) if isinstance(o, dict) else o) for kind in ("outs", "metrics", "plots")
-            for o in stage.get(kind, [])]
+    return [
+        Path(next(iter(o)) if isinstance(o, dict) else o)
+        for kind in ("outs", "metrics", "plots")
+        for o in stage.get(kind, [])
+    ]
 
 
 def producer(path: Path | str) -> str | None:
@@ -34,8 +42,10 @@ def producer(path: Path | str) -> str | None:
     path = Path(path)
     if path.is_absolute():
         path = Path(os.path.relpath(path, DVC_YAML.parent if path.is_relative_to(DVC_YAML.parent) else Path.cwd()))
-    return next((name for name, st in dvc_stages().items()
-                 if any(path == out or out in path.parents for out in _outputs(st))), None)
+    return next(
+        (name for name, st in dvc_stages().items() if any(path == out or out in path.parents for out in _outputs(st))),
+        None,
+    )
 
 
 def make_hint(path: Path | str) -> str:
@@ -69,7 +79,7 @@ def restore_tracked_outputs() -> list[str]:
     for out in map(str, _outputs(entry)):
         try:
             listed = git("ls-files", "--", out)
-        except (OSError, subprocess.SubprocessError):   # no git here
+        except (OSError, subprocess.SubprocessError):  # no git here
             return restored
         if listed.returncode != 0 or not listed.stdout.strip():
             continue
@@ -86,6 +96,9 @@ def write_metrics(path: Path | str, metrics: dict[str, Any], profile: str) -> No
     instruction-set cap torch ran with (stages/config/cpu.py: scripts/variance.py reads it) and the UTC time."""
     from stages.config.cpu import isa_stamp
 
-    stamp = {"profile": profile, "cpu_isa": isa_stamp(),
-             "produced": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")}
+    stamp = {
+        "profile": profile,
+        "cpu_isa": isa_stamp(),
+        "produced": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+    }
     write_json(path, {**metrics, **stamp})

@@ -4,6 +4,7 @@ built on (stages.artifacts.paths.CHAINS: `standard`, the paper's reproduction; `
 with its calibrated defense, whose recorded settings must be the params' (pipeline.formats.defense.check_settings),
 or a pose model alone; each pose checkpoint with the architecture, input size and label table params.yaml asks for.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -24,8 +25,11 @@ def model_option(outputs: str) -> Any:
     what each model's run writes."""
     import typer
 
-    return typer.Option("--model", help="The pose model: standard (models/pose.pt, `rpod train`, the paper's "
-                                        f"reproduction) or robust (models/pose_robust.pt, the one that ships). {outputs}")
+    return typer.Option(
+        "--model",
+        help="The pose model: standard (models/pose.pt, `rpod train`, the paper's "
+        f"reproduction) or robust (models/pose_robust.pt, the one that ships). {outputs}",
+    )
 
 
 def expected(params: Params, clamped: bool = False) -> dict[str, Any]:
@@ -49,11 +53,14 @@ def check_pose(params: Params, path: Path, ckpt: dict[str, Any]) -> None:
     if have["input_size"] != want["input_size"]:
         diffs.append(f"input_size HxW={have['input_size']} (params: {want['input_size']})")
     if diffs:
-        raise StageError(f"pose checkpoint {path} does not match params.yaml: {', '.join(diffs)}; "
-                         f"re-run `rpod train` or restore the params it was trained with")
+        raise StageError(
+            f"pose checkpoint {path} does not match params.yaml: {', '.join(diffs)}; "
+            f"re-run `rpod train` or restore the params it was trained with"
+        )
     if "labels_hash" in ckpt and LABELS.exists() and file_hash(LABELS) != ckpt["labels_hash"]:
-        raise StageError(f"pose checkpoint {path} was trained on another {LABELS} (relabelled since); "
-                         f"re-run `rpod train`")
+        raise StageError(
+            f"pose checkpoint {path} was trained on another {LABELS} (relabelled since); re-run `rpod train`"
+        )
 
 
 def load_pose(params: Params, path: Path | str = POSE) -> Any:
@@ -76,12 +83,21 @@ def load_chain(params: Params, model: Model | str, root: Path | str = ".", defen
     from pipeline.formats.defense import check_settings
     from stages.config.device import torch_device
 
-    chain = open_chain(Path(root) / MODELS, Model(model).value, device=torch_device(params), amp=params.amp,
-                       defended=defended, check=partial(check_pose, params))
+    chain = open_chain(
+        Path(root) / MODELS,
+        Model(model).value,
+        device=torch_device(params),
+        amp=params.amp,
+        defended=defended,
+        check=partial(check_pose, params),
+    )
     if defended:
         settings, motion = defense_settings(params.defense, chain.defended.settings.threshold)
         wanted = Defended(settings, motion, chain.defended.noise, alert_limit_settings(params))
-        keys = {**{f.name: f"defense.{f.name}" for s in (settings, motion) for f in dataclasses.fields(s)},
-                **ALERT_LIMIT_KEYS, "doubt": "defense.doubt_share"}
+        keys = {
+            **{f.name: f"defense.{f.name}" for s in (settings, motion) for f in dataclasses.fields(s)},
+            **ALERT_LIMIT_KEYS,
+            "doubt": "defense.doubt_share",
+        }
         check_settings(chain.calibration, str(chain.files[2]), wanted, params.defense.doubt_share, "params.yaml", keys)
     return chain

@@ -8,6 +8,7 @@ Readers check what they read and raise a DataError (or StageError) naming the fi
 - `SampleImages`: the image of a SHAP sample (detector-split index, eps): the clean render, or the same
   FGSM with the same 8-bit quantisation (shared by `rpod shap` and `rpod detect`).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -28,8 +29,8 @@ from stages.config.params import (
 from stages.config.schema import Params
 from stages.errors import StageError
 
-BATCH = 64                              # images per forward pass when rebuilding SHAP sample images
-PRELOAD_BYTES = 8 << 30                 # a detector split up to this size is read into memory at once
+BATCH = 64  # images per forward pass when rebuilding SHAP sample images
+PRELOAD_BYTES = 8 << 30  # a detector split up to this size is read into memory at once
 
 
 def adv_array_name(eps: float) -> str:
@@ -47,8 +48,9 @@ def read_render_store(path: Path, what: str = "render output") -> tuple[Any, Any
 def read_eval_render(p: Params, validation: bool = False) -> tuple[np.ndarray, Any, dict[str, Any]]:
     """The `eval_render` output: (images (N, H, W, 3) uint8, poses table, meta), checked against the
     current params; the evaluation trajectories, or with `validation` the defense's (datasets/val_render)."""
-    folder, fingerprint = (VAL_RENDER, val_render_fingerprint(p)) if validation else (EVAL_RENDER,
-                                                                                   eval_render_fingerprint(p))
+    folder, fingerprint = (
+        (VAL_RENDER, val_render_fingerprint(p)) if validation else (EVAL_RENDER, eval_render_fingerprint(p))
+    )
     r = _trajectory_renders(folder, fingerprint, "rpod eval_render", "eval_render", "evaluation")
     return r.images[:], r.poses, r.meta
 
@@ -56,31 +58,35 @@ def read_eval_render(p: Params, validation: bool = False) -> tuple[np.ndarray, A
 def read_val_envelope(p: Params) -> np.ndarray:
     """The envelope validation frames (`rpod eval_render` -> datasets/val_envelope): images (N, H, W, 3) uint8,
     checked against the current params; the detector's calibration reads them beside datasets/val_render."""
-    r = _trajectory_renders(VAL_ENVELOPE, val_envelope_fingerprint(p), "rpod eval_render", "eval_render",
-                            "envelope validation")
+    r = _trajectory_renders(
+        VAL_ENVELOPE, val_envelope_fingerprint(p), "rpod eval_render", "eval_render", "envelope validation"
+    )
     return r.images[:]
 
 
 def read_detect_render(p: Params) -> tuple[Any, Any, dict[str, Any]]:
     """The detector split (`rpod eval_render --detector`): (images: zarr array (N, H, W, 3) uint8, read
     lazily; poses table; meta), checked against the current params."""
-    r = _trajectory_renders(DETECT_RENDER, detect_render_fingerprint(p), "rpod eval_render --detector",
-                            "detect_render", "detector-split")
+    r = _trajectory_renders(
+        DETECT_RENDER, detect_render_fingerprint(p), "rpod eval_render --detector", "detect_render", "detector-split"
+    )
     return r.images, r.poses, r.meta
 
 
 def _trajectory_renders(folder: Path, fingerprint: str, command: str, stage: str, what: str) -> Any:
     """A folder of rendered trajectories (pipeline.formats.renders), refused when params changed since;
     `what` names them in messages ("evaluation": evaluation renders, evaluation poses)."""
+
     def check(meta: dict[str, Any]) -> None:
         if not meta.get("complete") or meta.get("fingerprint") != fingerprint:
-            raise StageError(f"{folder} was rendered with other params (or is incomplete); "
-                             f"run `{command}` (dvc repro {stage})")
+            raise StageError(
+                f"{folder} was rendered with other params (or is incomplete); run `{command}` (dvc repro {stage})"
+            )
 
     return read_renders(folder, f"{what} renders", f"run `{command}`", poses=f"{what} poses", check=check)
 
 
-COMMANDS = ["cmd_x", "cmd_y", "cmd_z"]   # eval_render poses: the commanded displacement of rel (world, m)
+COMMANDS = ["cmd_x", "cmd_y", "cmd_z"]  # eval_render poses: the commanded displacement of rel (world, m)
 
 
 def chaser_motion(poses: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -90,8 +96,10 @@ def chaser_motion(poses: Any) -> tuple[np.ndarray, np.ndarray]:
     truth, `rel_*`, carries the execution error it is not told)."""
     missing = [c for c in COMMANDS if c not in poses.columns]
     if missing:
-        raise StageError(f"eval_render poses lack the commands {missing} (rendered before execution error); "
-                         f"run `rpod eval_render` (dvc repro eval_render)")
+        raise StageError(
+            f"eval_render poses lack the commands {missing} (rendered before execution error); "
+            f"run `rpod eval_render` (dvc repro eval_render)"
+        )
     R_cam = poses[[f"c{j}" for j in range(9)]].to_numpy(np.float64).reshape(-1, 3, 3)
     u = poses[COMMANDS].to_numpy(np.float64).copy()
     u[np.r_[True, np.diff(poses["trajectory"].to_numpy()) != 0]] = 0.0
@@ -107,13 +115,16 @@ def read_shap_store(path: Path, model_hash: str) -> dict[str, Any]:
         raise StageError(f"{path} lacks arrays {missing} (re-run `rpod shap`)")
     attrs = dict(root.attrs)
     if attrs.get("model_hash") != model_hash:
-        raise StageError(f"{path} was made with another pose checkpoint (hash {attrs.get('model_hash')!r}, "
-                         f"the pose model's is {model_hash!r}); re-run `rpod shap`")
+        raise StageError(
+            f"{path} was made with another pose checkpoint (hash {attrs.get('model_hash')!r}, "
+            f"the pose model's is {model_hash!r}); re-run `rpod shap`"
+        )
     values = root["values"]
     n = values.shape[0]
     if values.ndim != 3 or values.shape[1] != 9 or n == 0:
-        raise StageError(f"{path}/values must be (N, 9, n_features) with N > 0, got {tuple(values.shape)} "
-                         f"(re-run `rpod shap`)")
+        raise StageError(
+            f"{path}/values must be (N, 9, n_features) with N > 0, got {tuple(values.shape)} (re-run `rpod shap`)"
+        )
     out = {k: root[k][:] for k in need}
     out["attrs"] = attrs
     for k in need[1:]:
@@ -124,18 +135,22 @@ def read_shap_store(path: Path, model_hash: str) -> dict[str, Any]:
     for k in ("values", "features", "eps"):
         bad = ~np.isfinite(out[k].reshape(n, -1)).all(axis=1)
         if bad.any():
-            raise StageError(f"{path}/{k} has NaN or infinite entries in {int(bad.sum())} samples "
-                             f"(first: sample {int(np.argmax(bad))}); re-run `rpod shap`")
+            raise StageError(
+                f"{path}/{k} has NaN or infinite entries in {int(bad.sum())} samples "
+                f"(first: sample {int(np.argmax(bad))}); re-run `rpod shap`"
+            )
     y = out["is_adversarial"].astype(bool)
     if y.all() or not y.any():
-        raise StageError(f"{path} holds only {'adversarial' if y.all() else 'clean'} samples; a detector needs both "
-                         f"(check shap.normal, shap.per_eps and shap.eps)")
+        raise StageError(
+            f"{path} holds only {'adversarial' if y.all() else 'clean'} samples; a detector needs both "
+            f"(check shap.normal, shap.per_eps and shap.eps)"
+        )
     if not np.array_equal(y, out["eps"] > 0):
         raise StageError(f"{path}: is_adversarial disagrees with eps > 0 (re-run `rpod shap`)")
     return out
 
 
-SPLIT_KEY = "detect_render_fingerprint"   # SHAP store attribute: the fingerprint of the detector split it explains
+SPLIT_KEY = "detect_render_fingerprint"  # SHAP store attribute: the fingerprint of the detector split it explains
 
 
 def check_shap_split(attrs: dict[str, Any], params: Params, path: Path) -> None:
@@ -143,9 +158,11 @@ def check_shap_split(attrs: dict[str, Any], params: Params, path: Path) -> None:
     recorded by `rpod shap`): its source_index rows would name other images."""
     want = detect_render_fingerprint(params)
     if attrs.get(SPLIT_KEY) != want:
-        raise StageError(f"{path} explains another detector split than {DETECT_RENDER} of params.yaml (fingerprint "
-                         f"{attrs.get(SPLIT_KEY) or 'not recorded'}, params give {want}); re-run "
-                         f"`rpod shap --model {attrs.get('model', 'standard')}`")
+        raise StageError(
+            f"{path} explains another detector split than {DETECT_RENDER} of params.yaml (fingerprint "
+            f"{attrs.get(SPLIT_KEY) or 'not recorded'}, params give {want}); re-run "
+            f"`rpod shap --model {attrs.get('model', 'standard')}`"
+        )
 
 
 def _key(eps: float) -> float:
@@ -161,9 +178,9 @@ class SampleImages:
     def __init__(self, params: Params, model: Any, loss_fn: Any):
         self.model, self.loss_fn = model, loss_fn
         images, self.poses, meta = read_detect_render(params)
-        self.fingerprint = meta["fingerprint"]      # of the detector split: what a SHAP store records (SPLIT_KEY)
+        self.fingerprint = meta["fingerprint"]  # of the detector split: what a SHAP store records (SPLIT_KEY)
         self.clean = images[:] if int(np.prod(images.shape)) <= PRELOAD_BYTES else images
-        self.targets = self.poses[POSITION + SIXD].to_numpy(np.float32)   # (N, 9): m, 6-D
+        self.targets = self.poses[POSITION + SIXD].to_numpy(np.float32)  # (N, 9): m, 6-D
 
     def __len__(self) -> int:
         return len(self.targets)

@@ -13,6 +13,7 @@ is scaled with it; images are first undistorted with camera.json's distCoeffs (c
 pinhole camera's; grayscale images are copied into the model's 3 channels (one warning per import). Each
 image is one sequence, so the grouped splits downstream stay valid.
 """
+
 from __future__ import annotations
 
 import time
@@ -21,13 +22,13 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.formats.speed import relative_name
-from pipeline.geometry.labels import pose_columns
-from stages.config import params as params_mod
-from pipeline.visibility import empty_problem, out_of_view
 from pipeline.formats.speed_folder import TEST, TRAIN, check_source, image_path, read_camera, read_image, read_labels
+from pipeline.geometry.labels import pose_columns
 from pipeline.io.atomic import atomic_dir, remove_stale_temps, write_json
 from pipeline.io.store import create_array
 from pipeline.io.tables import write_parquet
+from pipeline.visibility import empty_problem, out_of_view
+from stages.config import params as params_mod
 from stages.config.schema import Params
 from stages.errors import StageError
 
@@ -40,10 +41,12 @@ def labels_file(folder: Path, names: tuple[str, ...], given: str | None, what: s
         except ValueError as e:
             raise StageError(str(e)) from None
     found = [folder / given] if given else [folder / n for n in names if (folder / n).exists()]
-    if not found or not found[0].exists():     # a FIFO exists: read_labels refuses it (not "not found")
+    if not found or not found[0].exists():  # a FIFO exists: read_labels refuses it (not "not found")
         tried = given or ", ".join(names)
-        raise StageError(f"params.yaml render.source={folder}: no {what} labels ({tried} not found); "
-                         f"set render.source_test for the test labels (e.g. lightbox/test.json)")
+        raise StageError(
+            f"params.yaml render.source={folder}: no {what} labels ({tried} not found); "
+            f"set render.source_test for the test labels (e.g. lightbox/test.json)"
+        )
     return found[0]
 
 
@@ -52,12 +55,15 @@ def check_images(names: list[Path], n_train: int, train: Path, test: Path) -> No
     before the first image is read)."""
     both = set(names[:n_train]) & set(names[n_train:])
     if both:
-        raise StageError(f"{sorted(both)[0]} is labelled in both {train} and {test} ({len(both)} such images): "
-                         f"a test image must never be trained on")
-    missing = [f for f in names if not f.exists()]     # a FIFO exists: image_header refuses it
+        raise StageError(
+            f"{sorted(both)[0]} is labelled in both {train} and {test} ({len(both)} such images): "
+            f"a test image must never be trained on"
+        )
+    missing = [f for f in names if not f.exists()]  # a FIFO exists: image_header refuses it
     if missing:
-        raise StageError(f"{missing[0]}: not found, named by its label file ({len(missing)} of {len(names)} "
-                         f"labelled images missing)")
+        raise StageError(
+            f"{missing[0]}: not found, named by its label file ({len(missing)} of {len(names)} labelled images missing)"
+        )
 
 
 def import_source(p: Params, out: Path) -> float:
@@ -78,12 +84,14 @@ def import_source(p: Params, out: Path) -> float:
     W, H = r.width, r.height
     K = cam.scaled(W, H)
     if abs(W / H - cam.width / cam.height) > 0.01 * W / H:
-        print(f"render.source: {cam.width}x{cam.height} images resized to {W}x{H} change the aspect; "
-              f"K is scaled per axis (fy/fx = {K.fy / K.fx:.3f})")
+        print(
+            f"render.source: {cam.width}x{cam.height} images resized to {W}x{H} change the aspect; "
+            f"K is scaled per axis (fy/fx = {K.fy / K.fx:.3f})"
+        )
     parts = [(split, f, *read_labels(f)) for split, f in (("train", train), ("test", test))]
     names = [image_path(f, n) for _, f, ns, _, _ in parts for n in ns]
     check_images(names, len(parts[0][2]), train, test)
-    digest = check_source(folder, [train, test], names, len(parts[0][2]))   # confined, no leak; what it holds
+    digest = check_source(folder, [train, test], names, len(parts[0][2]))  # confined, no leak; what it holds
     t = np.concatenate([x[3] for x in parts])
     q = np.concatenate([x[4] for x in parts])
     n = len(names)
@@ -92,30 +100,70 @@ def import_source(p: Params, out: Path) -> float:
         print(f"removed {d}, left over from an interrupted run")
     t0 = time.perf_counter()
     with atomic_dir(out) as tmp:
-        images = create_array(zarr.open_group(str(tmp / "images.zarr"), mode="w"), "images", shape=(n, H, W, 3),
-                              chunks=(chunk, H, W, 3), dtype="uint8")
+        images = create_array(
+            zarr.open_group(str(tmp / "images.zarr"), mode="w"),
+            "images",
+            shape=(n, H, W, 3),
+            chunks=(chunk, H, W, 3),
+            dtype="uint8",
+        )
         gray = 0
         for lo in tqdm(range(0, n, chunk), desc="import", unit="chunk"):
-            read = [read_image(f, (W, H), cam, dist) for f in names[lo:lo + chunk]]
-            images[lo:lo + chunk] = np.stack([img for img, _ in read])
+            read = [read_image(f, (W, H), cam, dist) for f in names[lo : lo + chunk]]
+            images[lo : lo + chunk] = np.stack([img for img, _ in read])
             gray += sum(g for _, g in read)
         if gray:
-            print(f"warning: render.source: {gray} of {n} images are grayscale; each is copied into the pose "
-                  f"model's 3 channels (R = G = B)")
+            print(
+                f"warning: render.source: {gray} of {n} images are grayscale; each is copied into the pose "
+                f"model's 3 channels (R = G = B)"
+            )
         problem = empty_problem(out_of_view(images), f"images imported from {folder}")
         if problem:
             raise StageError(f"params.yaml render.source: {problem}; check its images and camera.json's distCoeffs")
-        write_parquet(pd.DataFrame({
-            "index": np.arange(n), "sequence": np.arange(n), "frame": 0, **pose_columns(t, q),
-            "range": np.linalg.norm(t, axis=1), "split": [s for s, _, ns, _, _ in parts for _ in ns],
-            "filename": [str(f.relative_to(folder)) for f in names]}), tmp / "poses.parquet")
+        write_parquet(
+            pd.DataFrame(
+                {
+                    "index": np.arange(n),
+                    "sequence": np.arange(n),
+                    "frame": 0,
+                    **pose_columns(t, q),
+                    "range": np.linalg.norm(t, axis=1),
+                    "split": [s for s, _, ns, _, _ in parts for _ in ns],
+                    "filename": [str(f.relative_to(folder)) for f in names],
+                }
+            ),
+            tmp / "poses.parquet",
+        )
         seconds = time.perf_counter() - t0
-        write_json(tmp / "meta.json", {
-            "complete": True, "fingerprint": params_mod.render_fingerprint(p), "frames": n, "width": W,
-            "height": H, "K": K.K, "render": params_mod.render_record(r), "seed": p.seed, "chunk": chunk,
-            "camera": {"ref_width": cam.width, "ref_height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
-                       "cy": cam.cy, "dist_coeffs_removed": dist.tolist()},
-            "source": {"folder": str(folder), "sha256": digest, "train": str(train.relative_to(folder)),
-                       "test": str(test.relative_to(folder)), "train_images": len(parts[0][2]),
-                       "test_images": len(parts[1][2])}})
+        write_json(
+            tmp / "meta.json",
+            {
+                "complete": True,
+                "fingerprint": params_mod.render_fingerprint(p),
+                "frames": n,
+                "width": W,
+                "height": H,
+                "K": K.K,
+                "render": params_mod.render_record(r),
+                "seed": p.seed,
+                "chunk": chunk,
+                "camera": {
+                    "ref_width": cam.width,
+                    "ref_height": cam.height,
+                    "fx": cam.fx,
+                    "fy": cam.fy,
+                    "cx": cam.cx,
+                    "cy": cam.cy,
+                    "dist_coeffs_removed": dist.tolist(),
+                },
+                "source": {
+                    "folder": str(folder),
+                    "sha256": digest,
+                    "train": str(train.relative_to(folder)),
+                    "test": str(test.relative_to(folder)),
+                    "train_images": len(parts[0][2]),
+                    "test_images": len(parts[1][2]),
+                },
+            },
+        )
     return seconds

@@ -3,6 +3,7 @@ pipeline/ takes (Intrinsics, SceneSettings, the attack, TrainConfig, Adversarial
 MotionSettings, AlertLimitSettings, ExecutionSettings, the chain-level attackers, EngineSettings) and the lab mock-up
 policy. Bad values raise a StageError naming the key.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -30,8 +31,10 @@ def settings_of(cls: type, section: Any, library_defaults: tuple[str, ...] = (),
     names = {f.name for f in dataclasses.fields(cls)}
     missing = sorted(names - set(extra) - {n for n in names if hasattr(section, n)} - set(library_defaults))
     if missing or not set(library_defaults) <= names:
-        raise TypeError(f"{cls.__name__} from params section {type(section).__name__}: no value for {missing}, "
-                        f"unknown library defaults {sorted(set(library_defaults) - names)}")
+        raise TypeError(
+            f"{cls.__name__} from params section {type(section).__name__}: no value for {missing}, "
+            f"unknown library defaults {sorted(set(library_defaults) - names)}"
+        )
     values = {}
     for f in dataclasses.fields(cls):
         if f.name in extra:
@@ -45,23 +48,45 @@ def settings_of(cls: type, section: Any, library_defaults: tuple[str, ...] = (),
 # no library settings take (the stages read them themselves: sizes, counts, file and calibration params)
 SECTION_SETTINGS: dict[str, tuple[str, ...]] = {
     "render": ("pipeline.render.scene:SceneSettings",),
-    "render.background": ("pipeline.render.backgrounds:BackgroundSettings",), "train": ("pipeline.pose.train:TrainConfig",),
+    "render.background": ("pipeline.render.backgrounds:BackgroundSettings",),
+    "train": ("pipeline.pose.train:TrainConfig",),
     "train.adversarial": ("pipeline.pose.adversarial:AdversarialConfig",),
-    "train.augment": ("pipeline.pose.augment:AugmentConfig",), "suite": ("pipeline.attacks.strongest:SuiteConfig",),
+    "train.augment": ("pipeline.pose.augment:AugmentConfig",),
+    "suite": ("pipeline.attacks.strongest:SuiteConfig",),
     "suite.full": ("pipeline.attacks.strongest:SuiteConfig",),
     "defense": ("pipeline.defense.fusion:DefenseSettings", "pipeline.defense.gate:MotionSettings"),
     "guidance.execution": ("pipeline.guidance.dynamics:ExecutionSettings",),
 }
 STAGE_ONLY: dict[str, tuple[str, ...]] = {
-    "render": ("chunk", "end_range", "frames_per_sequence", "height", "max_target_rotation_deg", "pointing_jitter_deg",
-               "previews", "source", "source_test", "start_range", "target_attitude", "width"),
+    "render": (
+        "chunk",
+        "end_range",
+        "frames_per_sequence",
+        "height",
+        "max_target_rotation_deg",
+        "pointing_jitter_deg",
+        "previews",
+        "source",
+        "source_test",
+        "start_range",
+        "target_attitude",
+        "width",
+    ),
     "render.background": (),
     "train": ("adversarial", "augment", "compile", "dropout", "range_bins", "val_fraction", "width"),
     "train.adversarial": ("black_level", "epochs", "init", "lr_max", "warmup_epochs"),
     "train.augment": (),
-    "suite": ("capacity", "check_frames", "eps", "frames", "full", "full_frames"), "suite.full": (),
-    "defense": ("allow_unmet", "doubt_share", "harm_m", "noise_bins", "shares", "target_false_alarm",
-                "val_trajectories"),
+    "suite": ("capacity", "check_frames", "eps", "frames", "full", "full_frames"),
+    "suite.full": (),
+    "defense": (
+        "allow_unmet",
+        "doubt_share",
+        "harm_m",
+        "noise_bins",
+        "shares",
+        "target_false_alarm",
+        "val_trajectories",
+    ),
     "guidance.execution": (),
 }
 
@@ -74,7 +99,7 @@ def _as(value: Any, hint: Any) -> Any:
         return _as(value, next(a for a in typing.get_args(hint) if a is not type(None)))
     if typing.get_origin(hint) is tuple:
         args = typing.get_args(hint)
-        if len(args) == 2 and args[1] is Ellipsis:   # tuple[X, ...]: every item an X
+        if len(args) == 2 and args[1] is Ellipsis:  # tuple[X, ...]: every item an X
             return tuple(_as(v, args[0]) for v in value)
         return tuple(_as(v, a) for v, a in zip(value, args))
     return float(value) if hint is float else value
@@ -97,8 +122,13 @@ def scene_settings(render: Render) -> Any:
     from pipeline.render.backgrounds import BackgroundSettings
     from pipeline.render.scene import SceneSettings
 
-    return settings_of(SceneSettings, render, ("ambient", "max_bounces"), mesh=given(render.mesh),
-                       background=settings_of(BackgroundSettings, render.background))
+    return settings_of(
+        SceneSettings,
+        render,
+        ("ambient", "max_bounces"),
+        mesh=given(render.mesh),
+        background=settings_of(BackgroundSettings, render.background),
+    )
 
 
 def check_attack_params(section: Attack | Guidance, where: str) -> None:
@@ -126,8 +156,14 @@ def make_attack(attack: Attack, method: str, seed: int) -> Any:
     if attack.loss not in LOSSES:
         raise StageError(f"params.yaml attack.loss: unknown loss {attack.loss!r}; choose one of {', '.join(LOSSES)}")
     try:
-        return get_attack(method, steps=attack.steps, step_size=attack.step_size, random_start=attack.random_start,
-                          momentum=float(attack.momentum), generator=torch.Generator().manual_seed(seed))
+        return get_attack(
+            method,
+            steps=attack.steps,
+            step_size=attack.step_size,
+            random_start=attack.random_start,
+            momentum=float(attack.momentum),
+            generator=torch.Generator().manual_seed(seed),
+        )
     except ValueError as e:
         raise StageError(f"params.yaml attack: {e}") from None
 
@@ -148,9 +184,16 @@ def robust_train_config(train: Train, seed: int) -> Any:
     adv = train.adversarial
     if adv.init == "scratch":
         return settings_of(TrainConfig, train, epochs=adv.epochs, seed=seed)
-    return settings_of(TrainConfig, train, epochs=adv.epochs, seed=seed, schedule="cosine",
-                       lr_base=min(float(train.lr_base), float(adv.lr_max)), lr_max=float(adv.lr_max),
-                       warmup_epochs=float(adv.warmup_epochs))
+    return settings_of(
+        TrainConfig,
+        train,
+        epochs=adv.epochs,
+        seed=seed,
+        schedule="cosine",
+        lr_base=min(float(train.lr_base), float(adv.lr_max)),
+        lr_max=float(adv.lr_max),
+        warmup_epochs=float(adv.warmup_epochs),
+    )
 
 
 def adversarial_config(adversarial: Adversarial) -> Any:
@@ -170,8 +213,15 @@ def suite_config(suite: Suite, seed: int, full: bool = False) -> Any:
 
     try:
         if full:
-            return settings_of(SuiteConfig, suite.full, ("p_init",), members=FULL.members, starts=FULL.starts,
-                               seed=seed, batch_size=suite.batch_size)
+            return settings_of(
+                SuiteConfig,
+                suite.full,
+                ("p_init",),
+                members=FULL.members,
+                starts=FULL.starts,
+                seed=seed,
+                batch_size=suite.batch_size,
+            )
         return settings_of(SuiteConfig, suite, ("queries", "p_init", "square_eps"), seed=seed)
     except ValueError as e:
         raise StageError(f"params.yaml: bad suite section ({e})") from None
@@ -196,8 +246,10 @@ def defense_settings(defense: Defense, threshold: float, update_below: float | N
 
     doubt = None if update_below is None else min(float(update_below), threshold)
     try:
-        return (settings_of(DefenseSettings, defense, threshold=threshold, update_below=doubt),
-                settings_of(MotionSettings, defense, ("cusum_threshold",)))
+        return (
+            settings_of(DefenseSettings, defense, threshold=threshold, update_below=doubt),
+            settings_of(MotionSettings, defense, ("cusum_threshold",)),
+        )
     except ValueError as e:
         raise StageError(f"params.yaml: {e}") from None
 
@@ -217,10 +269,15 @@ def execution_settings(params: Params, seed: int, step: float | None = None) -> 
 
 
 # AlertLimitSettings field -> the param that feeds it (the guidance law's constants are guidance's own)
-ALERT_LIMIT_KEYS = {"tolerance": "guidance.tolerance", "max_step": "guidance.max_step",
-                    "slack_steps": "guidance.slack_steps", "collision_range": "integrity.collision_range_m",
-                    "fixed": "integrity.alert_limit_m", "goal_range": "guidance.target",
-                    "kind": "integrity.alert_limit_kind"}
+ALERT_LIMIT_KEYS = {
+    "tolerance": "guidance.tolerance",
+    "max_step": "guidance.max_step",
+    "slack_steps": "guidance.slack_steps",
+    "collision_range": "integrity.collision_range_m",
+    "fixed": "integrity.alert_limit_m",
+    "goal_range": "guidance.target",
+    "kind": "integrity.alert_limit_kind",
+}
 
 
 def alert_limit_settings(params: Params, kind: str | None = None) -> Any:
@@ -232,9 +289,15 @@ def alert_limit_settings(params: Params, kind: str | None = None) -> Any:
     g, i = params.guidance, params.integrity
     goal = sum(float(v) ** 2 for v in g.target) ** 0.5
     try:
-        return AlertLimitSettings(float(g.tolerance), float(g.max_step), g.slack_steps, float(i.collision_range_m),
-                                  None if i.alert_limit_m is None else float(i.alert_limit_m), goal,
-                                  i.alert_limit_kind if kind is None else kind)
+        return AlertLimitSettings(
+            float(g.tolerance),
+            float(g.max_step),
+            g.slack_steps,
+            float(i.collision_range_m),
+            None if i.alert_limit_m is None else float(i.alert_limit_m),
+            goal,
+            i.alert_limit_kind if kind is None else kind,
+        )
     except ValueError as e:
         name = next((k for k in ALERT_LIMIT_KEYS if f" {k} must" in str(e)), "kind")
         raise StageError(f"params.yaml {ALERT_LIMIT_KEYS[name]}: {e}") from None
@@ -249,9 +312,17 @@ def burst_attacker(params: Params, seed: int) -> Any:
     i, limit = params.integrity, alert_limit_settings(params)
     al = lambda rng: alert_limit(rng, limit)  # noqa: E731
     try:
-        return get_attacker("burst", alert_limit=al, cap=float(i.burst_cap), steps=i.burst_steps,
-                            restarts=i.burst_restarts, lambdas=tuple(float(v) for v in i.burst_lambdas), seed=seed,
-                            objective=i.burst_objective, hinge=None if i.burst_hinge is None else float(i.burst_hinge))
+        return get_attacker(
+            "burst",
+            alert_limit=al,
+            cap=float(i.burst_cap),
+            steps=i.burst_steps,
+            restarts=i.burst_restarts,
+            lambdas=tuple(float(v) for v in i.burst_lambdas),
+            seed=seed,
+            objective=i.burst_objective,
+            hinge=None if i.burst_hinge is None else float(i.burst_hinge),
+        )
     except ValueError as e:
         raise StageError(f"params.yaml integrity: {e}") from None
 
@@ -272,8 +343,12 @@ def capture_settings(params: Params, direction: str, initial: float) -> Any:
 
     i = params.integrity
     try:
-        return CaptureSettings(direction=direction, initial=float(initial), rate=float(i.capture_rate),
-                               gate_fraction=float(i.drift_gate_fraction))
+        return CaptureSettings(
+            direction=direction,
+            initial=float(initial),
+            rate=float(i.capture_rate),
+            gate_fraction=float(i.drift_gate_fraction),
+        )
     except ValueError as e:
         raise StageError(f"params.yaml integrity.capture_initial / capture_rate: {e}") from None
 
@@ -306,12 +381,11 @@ def in_loop_settings(params: Params, goal: str) -> Any:
         raise StageError(f"params.yaml integrity.in_loop_goals / in_loop_steps: {e}") from None
 
 
-
 def mockup(params: Params) -> tuple[str | None, float]:
     """(mesh file or None = procedural target, metres per mesh unit) of the mock-up rendered at lab.scale x
     its size, i.e. at the size of the real target. Relative paths are resolved against the working folder."""
     lab, r = params.lab, params.render
-    if given(lab.mesh) is None:   # the main target, built at 1/scale: rendered at scale x it is the main mesh
+    if given(lab.mesh) is None:  # the main target, built at 1/scale: rendered at scale x it is the main mesh
         mesh, unit = given(r.mesh), float(r.mesh_scale)
     else:
         mesh, unit = lab.mesh, float(lab.mesh_scale) * float(lab.scale)
@@ -332,6 +406,8 @@ def retrain_reason(params: Params) -> str | None:
     mesh, unit = mockup(params)
     main = None if given(r.mesh) is None else str(Path(r.mesh).resolve())
     if mesh != main or abs(unit - float(r.mesh_scale)) > 1e-9 * max(unit, 1.0):
-        return (f"the mock-up (lab.mesh {lab.mesh}, {lab.mesh_scale:g} m per unit, x{lab.scale:g}) is not "
-                f"the main target (render.mesh {r.mesh}, {r.mesh_scale:g} m per unit)")
+        return (
+            f"the mock-up (lab.mesh {lab.mesh}, {lab.mesh_scale:g} m per unit, x{lab.scale:g}) is not "
+            f"the main target (render.mesh {r.mesh}, {r.mesh_scale:g} m per unit)"
+        )
     return None

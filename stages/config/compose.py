@@ -1,6 +1,7 @@
 """Composition checked against the params schema, for both entry points: `rpod params` (stages/cli.py) and
 DVC's `dvc exp run -S` (stages/config/hydra_plugins/rpod_params.py); and the profile conf/config.yaml
 composes from, which `rpod params NAME` sets so a sweep keeps it. No stage imports this module."""
+
 from __future__ import annotations
 
 import json
@@ -28,7 +29,7 @@ def checked(compose_fn: Callable[[list[str]], dict[str, Any]], overrides: list[s
     for override in overrides:
         keys = _override_key(override).split(".")
         if override not in groups and not _has(base, keys):
-            build(_with_key(base, keys))   # raises the schema's "unknown parameter ... (did you mean ...)"
+            build(_with_key(base, keys))  # raises the schema's "unknown parameter ... (did you mean ...)"
     composed = compose_fn(list(overrides))
     build(composed)
     return composed
@@ -70,7 +71,7 @@ def _with_key(tree: dict[str, Any], keys: list[str]) -> dict[str, Any]:
     node = out
     for key in keys[:-1]:
         node = node.setdefault(key, {})
-        if not isinstance(node, dict):   # below a value (train.epochs.x): Hydra's own error says so
+        if not isinstance(node, dict):  # below a value (train.epochs.x): Hydra's own error says so
             return out
     node[keys[-1]] = None
     return out

@@ -13,6 +13,7 @@ A variable the user set themselves wins over the cap. Other architectures (arm64
 Blender's Cycles needs no pin: its CPU kernels are SSE4.2 and AVX2 only and it takes AVX2 wherever
 the CPU has it. Only the standard library here: this module runs before anything heavy is imported.
 """
+
 from __future__ import annotations
 
 import os

@@ -1,4 +1,5 @@
 """The torch side of params: CPU threads, the device (`threads`, `device`) and torchrun's process group."""
+
 from __future__ import annotations
 
 import os
@@ -29,8 +30,10 @@ def torch_device(params: Params, local_rank: int | None = None) -> Any:
     if value == "cpu" or (value == "auto" and not cuda):
         return torch.device("cpu")
     if not cuda:
-        raise StageError(f"params.yaml device: {value!r} asks for a CUDA GPU but torch {torch.__version__} sees none; "
-                         f"set device: auto or cpu")
+        raise StageError(
+            f"params.yaml device: {value!r} asks for a CUDA GPU but torch {torch.__version__} sees none; "
+            f"set device: auto or cpu"
+        )
     index = local_rank if local_rank is not None else int(value.partition(":")[2] or 0)
     if index >= torch.cuda.device_count():
         raise StageError(f"params.yaml device: GPU {index} asked for but torch sees {torch.cuda.device_count()}")

@@ -4,6 +4,7 @@ evaluation.py; issue 42, item 10); each raises a ValueError naming the key, as t
     attack.eps, shap.eps, guidance.eps, evaluate.eps, robustness.eps, robustness.unseen_eps -> distinct
     (integrity.eps checks its repeats itself), train.range_bins -> range_bins, detect.squeeze_median -> odd
 """
+
 from __future__ import annotations
 
 import math
@@ -24,8 +25,11 @@ def range_bins(values: Sequence[Any], key: str = "train.range_bins") -> None:
     an edge given twice (an empty bin)."""
     if not values:
         raise ValueError(f"{key} is empty; give the range-bin edges in metres, e.g. [60, 45, 30, 20, 10]")
-    bad = [v for v in values if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-                                     and v > 0)]
+    bad = [
+        v
+        for v in values
+        if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0)
+    ]
     if bad:
         raise ValueError(f"{key}: {bad[0]!r} is not a range in metres (finite, > 0)")
     distinct(values, key)

@@ -1,4 +1,5 @@
 """Params: compose profiles into params.yaml, load it typed for a stage, and the fingerprints of its sections."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -17,9 +18,9 @@ from pipeline.seeds import run_base
 from stages.config.schema import Params, build
 from stages.config.sections import ParamsError, Render
 
-ROOT = Path(__file__).resolve().parents[2]   # the repository (package) root: code-side files only
-CONF_DIR = ROOT / "conf"                      # the source of params.yaml: config.yaml and profile/*.yaml
-PARAMS_FILE = Path("params.yaml")             # in the working folder, like every output
+ROOT = Path(__file__).resolve().parents[2]  # the repository (package) root: code-side files only
+CONF_DIR = ROOT / "conf"  # the source of params.yaml: config.yaml and profile/*.yaml
+PARAMS_FILE = Path("params.yaml")  # in the working folder, like every output
 
 # The value of an unset external input (render.mesh, render.source, lab.mesh, lab.real_data): a tracked
 # folder, because dvc.yaml lists these params' paths as deps and a dep must exist (null cannot be one).
@@ -105,38 +106,66 @@ def _execution_key(params: Params) -> dict[str, Any]:
 def eval_render_fingerprint(params: Params) -> str:
     """Hash of the params that decide the `eval_render` images (so a stale render is refused)."""
     e = params.evaluate
-    return fingerprint({"seed": params.seed, "camera": dataclasses.asdict(params.camera), "render": render_key(params),
-                        "evaluate": {"trajectories": e.trajectories, "frames": e.frames,
-                                     "lateral_range": e.lateral_range, "seed": evaluation_seed(params)},
-                        "execution": _execution_key(params)})
+    return fingerprint(
+        {
+            "seed": params.seed,
+            "camera": dataclasses.asdict(params.camera),
+            "render": render_key(params),
+            "evaluate": {
+                "trajectories": e.trajectories,
+                "frames": e.frames,
+                "lateral_range": e.lateral_range,
+                "seed": evaluation_seed(params),
+            },
+            "execution": _execution_key(params),
+        }
+    )
 
 
 def val_render_fingerprint(params: Params) -> str:
     """Hash of the params that decide the defense's validation images (datasets/val_render)."""
     e, d = params.evaluate, params.defense
-    return fingerprint({"seed": params.seed, "camera": dataclasses.asdict(params.camera), "render": render_key(params),
-                        "evaluate": {"frames": e.frames, "lateral_range": e.lateral_range},
-                        "defense": {"val_trajectories": d.val_trajectories, "val_seed": validation_seed(params)},
-                        "execution": _execution_key(params)})
+    return fingerprint(
+        {
+            "seed": params.seed,
+            "camera": dataclasses.asdict(params.camera),
+            "render": render_key(params),
+            "evaluate": {"frames": e.frames, "lateral_range": e.lateral_range},
+            "defense": {"val_trajectories": d.val_trajectories, "val_seed": validation_seed(params)},
+            "execution": _execution_key(params),
+        }
+    )
 
 
 def val_envelope_fingerprint(params: Params) -> str:
     """Hash of the params that decide the envelope validation images (datasets/val_envelope: views, not a flown
     approach, so no execution error)."""
     e, d = params.evaluate, params.defense
-    return fingerprint({"seed": params.seed, "camera": dataclasses.asdict(params.camera), "render": render_key(params),
-                        "evaluate": {"frames": e.frames, "lateral_range": e.lateral_range},
-                        "defense": {"val_trajectories": d.val_trajectories, "val_seed": validation_seed(params)},
-                        "envelope": ENVELOPE})
+    return fingerprint(
+        {
+            "seed": params.seed,
+            "camera": dataclasses.asdict(params.camera),
+            "render": render_key(params),
+            "evaluate": {"frames": e.frames, "lateral_range": e.lateral_range},
+            "defense": {"val_trajectories": d.val_trajectories, "val_seed": validation_seed(params)},
+            "envelope": ENVELOPE,
+        }
+    )
 
 
 def detect_render_fingerprint(params: Params) -> str:
     """Hash of the params that decide the detector split's images (datasets/detect_render)."""
     s = params.shap
-    return fingerprint({"seed": params.seed, "camera": dataclasses.asdict(params.camera), "render": render_key(params),
-                        "evaluate": {"lateral_range": params.evaluate.lateral_range},
-                        "shap": {"frames": s.frames, "seed": s.seed, "trajectories": detector_trajectories(params)},
-                        "envelope": ENVELOPE})
+    return fingerprint(
+        {
+            "seed": params.seed,
+            "camera": dataclasses.asdict(params.camera),
+            "render": render_key(params),
+            "evaluate": {"lateral_range": params.evaluate.lateral_range},
+            "shap": {"frames": s.frames, "seed": s.seed, "trajectories": detector_trajectories(params)},
+            "envelope": ENVELOPE,
+        }
+    )
 
 
 def detector_trajectories(params: Params) -> int:
@@ -149,9 +178,11 @@ def detector_trajectories(params: Params) -> int:
 def check_render_fingerprint(meta: dict[str, Any], params: Params, path: Path | str) -> None:
     """Refuse renders (meta.json at `path`) made with other `seed`/`camera`/`render` params than params.yaml."""
     if meta.get("fingerprint") != render_fingerprint(params):
-        raise ParamsError(f"{path} was rendered with other seed/camera/render params than params.yaml "
-                          f"(fingerprint {meta.get('fingerprint')!r}, params give {render_fingerprint(params)!r}); "
-                          f"re-run `rpod render` (or `dvc repro`)")
+        raise ParamsError(
+            f"{path} was rendered with other seed/camera/render params than params.yaml "
+            f"(fingerprint {meta.get('fingerprint')!r}, params give {render_fingerprint(params)!r}); "
+            f"re-run `rpod render` (or `dvc repro`)"
+        )
 
 
 def write_params(params: dict[str, Any], path: Path = PARAMS_FILE) -> None:
@@ -161,7 +192,7 @@ def write_params(params: dict[str, Any], path: Path = PARAMS_FILE) -> None:
 # The key of params.yaml that stamps the conf/ it was composed from (`conf_sha`): `rpod params` and `dvc exp run`
 # write it, every stage checks it, so an edit of conf/ without composing params.yaml again is refused, not ignored.
 CONF_STAMP = "conf_sha"
-CONF = Path("conf")   # conf/ in the working folder (the repository DVC composes in), relative like params.yaml
+CONF = Path("conf")  # conf/ in the working folder (the repository DVC composes in), relative like params.yaml
 
 
 def conf_sha(conf: Path = CONF) -> str | None:
@@ -192,8 +223,10 @@ def check_stamp(params: dict[str, Any], path: Path, conf: Path = CONF) -> None:
     stamp, now = params.get(CONF_STAMP), conf_sha(conf)
     if stamp is not None and now is not None and stamp != now:
         profile = params.get("profile_name", "default")
-        raise ParamsError(f"{path} is stale: conf/ changed since it was composed (conf_sha {stamp}, conf/ now "
-                          f"{now}); run `rpod params {profile}` (with your -S overrides) to compose it again")
+        raise ParamsError(
+            f"{path} is stale: conf/ changed since it was composed (conf_sha {stamp}, conf/ now "
+            f"{now}); run `rpod params {profile}` (with your -S overrides) to compose it again"
+        )
 
 
 def load(path: Path = PARAMS_FILE) -> Params:
@@ -202,18 +235,18 @@ def load(path: Path = PARAMS_FILE) -> Params:
     path = Path(path)
     if not path.exists():
         raise ParamsError(f"{path} not found: run `rpod params default` (or another profile) first")
-    params = read_yaml(path)   # a FIFO, invalid YAML or a key given twice: one DataError naming the file
+    params = read_yaml(path)  # a FIFO, invalid YAML or a key given twice: one DataError naming the file
     if not isinstance(params, dict):
         raise ParamsError(f"{path} must hold a mapping of sections")
     check_stamp(params, path)
     params.pop(CONF_STAMP, None)
-    return build(params)   # unknown keys, types and ranges of every section (stages.config.schema), checked once here
+    return build(params)  # unknown keys, types and ranges of every section (stages.config.schema), checked once here
 
 
 def with_params(command: Callable[..., None]) -> Callable[..., None]:
     """A stage command `command(params, ...)` as the CLI registers it: params.yaml loaded once (`load`) and
     passed in; Typer sees the command's other options (signature, --help text) unchanged."""
-    signature = inspect.signature(command, eval_str=True)   # real annotations: Typer reads Annotated options
+    signature = inspect.signature(command, eval_str=True)  # real annotations: Typer reads Annotated options
 
     @functools.wraps(command)
     def run(*args: Any, **kwargs: Any) -> None:

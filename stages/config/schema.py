@@ -11,6 +11,7 @@ numeric tower), so `dataclasses.asdict` of a section is the mapping params.yaml 
 fingerprints and reports that hash or echo it are those of the YAML. The sections live in
 stages/config/sections.py (pose pipeline) and stages/config/evaluation.py (evaluation).
 """
+
 from __future__ import annotations
 
 import re
@@ -37,7 +38,7 @@ from stages.config.sections import (
 )
 from stages.config.suite import Suite
 
-DEVICE = re.compile(r"auto|cpu|cuda(:\d+)?")   # values of the `device` param
+DEVICE = re.compile(r"auto|cpu|cuda(:\d+)?")  # values of the `device` param
 
 
 @dataclass(frozen=True)
@@ -49,9 +50,11 @@ class Report:
 class Params:
     profile_name: str
     seed: Seed
-    threads: Optional[Annotated[int, In("[1, 65536]", "threads")]]   # torch CPU threads per torch stage; None = all cores
-    device: str                  # auto | cpu | cuda | cuda:N (stages.config.device.torch_device resolves it)
-    amp: bool                    # bf16 autocast of the pose network on CUDA; no effect on CPU
+    threads: Optional[
+        Annotated[int, In("[1, 65536]", "threads")]
+    ]  # torch CPU threads per torch stage; None = all cores
+    device: str  # auto | cpu | cuda | cuda:N (stages.config.device.torch_device resolves it)
+    amp: bool  # bf16 autocast of the pose network on CUDA; no effect on CPU
     camera: Camera
     render: Render
     engine: Engine
@@ -78,8 +81,10 @@ class Params:
             raise ValueError(f"device must be auto, cpu, cuda or cuda:N, got {self.device!r}")
         goal = sum(float(v) ** 2 for v in self.guidance.target) ** 0.5
         if not self.integrity.collision_range_m < goal:
-            raise ValueError(f"integrity.collision_range_m must be below the goal range |guidance.target| = {goal:g} m, "
-                             f"got {self.integrity.collision_range_m!r}")
+            raise ValueError(
+                f"integrity.collision_range_m must be below the goal range |guidance.target| = {goal:g} m, "
+                f"got {self.integrity.collision_range_m!r}"
+            )
 
 
 PARAMS_SOURCE = Source("params.yaml", ParamsError, "parameter", "run `rpod params <profile>`", required=False)

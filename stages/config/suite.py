@@ -3,6 +3,7 @@ models: `rpod train --robust` runs it (its members, steps, restarts and starts) 
 frames and for the attacker capacity on validation frames (`suite.capacity`); `rpod suite` (optional/dvc.yaml) runs
 the full suite (pipeline/attacks/strongest.py FULL's members at the sizes of `suite.full`) on every test frame
 beside it."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -24,12 +25,12 @@ class SuiteCapacity:
     """suite.capacity: the per-frame attacker capacity of each chain on validation frames (the train split's
     validation fraction: never the test split) and its fitted overbound F(eps, range) -> datasets/capacity/."""
 
-    eps: list[Eps]               # L-inf budgets, pixels in [0, 1], increasing
-    frames: Optional[Count]      # validation frames attacked (seeded sample); null = every one
-    edges: list[Metres]          # range-bin edges of the overbound, metres, increasing
-    quantile: Annotated[float, In("(0, 1]", "quantile")]      # of each bin's shifts
-    margin: Annotated[float, In("[0, 100]", "relative margin")]   # the overbound is quantile x (1 + margin)
-    min_count: Count             # frames a range bin needs (fewer: the stage stops)
+    eps: list[Eps]  # L-inf budgets, pixels in [0, 1], increasing
+    frames: Optional[Count]  # validation frames attacked (seeded sample); null = every one
+    edges: list[Metres]  # range-bin edges of the overbound, metres, increasing
+    quantile: Annotated[float, In("(0, 1]", "quantile")]  # of each bin's shifts
+    margin: Annotated[float, In("[0, 100]", "relative margin")]  # the overbound is quantile x (1 + margin)
+    min_count: Count  # frames a range bin needs (fewer: the stage stops)
 
     def __post_init__(self) -> None:
         _increasing(self.eps, "suite.capacity.eps")
@@ -41,23 +42,23 @@ class SuiteCapacity:
 class SuiteFull:
     """suite.full: the full suite (pipeline/attacks/strongest.py FULL's members and starts) at these sizes."""
 
-    steps: Steps                 # APGD steps per restart
+    steps: Steps  # APGD steps per restart
     restarts: Annotated[int, In("[1, 1000]", "restarts")]
-    queries: Annotated[int, In("[1, 1000000]", "queries")]   # Square's, per frame
-    square_eps: Eps              # the one eps Square runs at: one of suite.eps
+    queries: Annotated[int, In("[1, 1000000]", "queries")]  # Square's, per frame
+    square_eps: Eps  # the one eps Square runs at: one of suite.eps
 
 
 @dataclass(frozen=True)
 class Suite:
-    eps: list[Eps]               # L-inf budgets, pixels in [0, 1], increasing
-    frames: Optional[Count]      # test frames of the attacked-error table (seeded sample); null = every one
-    members: list[str]           # method/objective pairs (pipeline/attacks/strongest.py METHODS x OBJECTIVES)
-    steps: Steps                 # APGD steps per restart
+    eps: list[Eps]  # L-inf budgets, pixels in [0, 1], increasing
+    frames: Optional[Count]  # test frames of the attacked-error table (seeded sample); null = every one
+    members: list[str]  # method/objective pairs (pipeline/attacks/strongest.py METHODS x OBJECTIVES)
+    steps: Steps  # APGD steps per restart
     restarts: Annotated[int, In("[1, 1000]", "restarts")]
-    starts: list[Literal["random", "lift"]]   # start kinds the restarts cycle through
-    batch_size: Batch            # frames per attack batch (part of the seeding)
-    check_frames: Annotated[int, In("[0, 1000000000]", "frames")]   # stability check's subsample (0 = not run)
-    full_frames: Annotated[int, In("[0, 1000000000]", "frames")]    # lean-vs-full check's subsample (0 = not run)
+    starts: list[Literal["random", "lift"]]  # start kinds the restarts cycle through
+    batch_size: Batch  # frames per attack batch (part of the seeding)
+    check_frames: Annotated[int, In("[0, 1000000000]", "frames")]  # stability check's subsample (0 = not run)
+    full_frames: Annotated[int, In("[0, 1000000000]", "frames")]  # lean-vs-full check's subsample (0 = not run)
     full: SuiteFull
     capacity: SuiteCapacity
 

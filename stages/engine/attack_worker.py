@@ -3,6 +3,7 @@
 Each batch's attack is seeded by its place (`AttackSetup.seed` + first row // batch), so the stored
 adversarial images do not depend on which worker attacks which batch (stages/attack.py builds the jobs).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -19,11 +20,11 @@ from stages.config.schema import Params
 class AttackSetup:
     """What one AttackWorker holds: the pose model and the attack settings."""
 
-    params: Params     # typed params (the pose model's device and `attack` section)
-    pose_path: str             # models/pose.pt as an absolute path (a worker may run elsewhere)
-    eps: tuple[float, ...]     # L-inf budgets, in units of the [0, 1] pixel range
-    batch: int                 # images per job (the last may hold fewer)
-    seed: int                  # the attack seed of the first batch (params seed + the stage's offset)
+    params: Params  # typed params (the pose model's device and `attack` section)
+    pose_path: str  # models/pose.pt as an absolute path (a worker may run elsewhere)
+    eps: tuple[float, ...]  # L-inf budgets, in units of the [0, 1] pixel range
+    batch: int  # images per job (the last may hold fewer)
+    seed: int  # the attack seed of the first batch (params seed + the stage's offset)
     torch_threads: int | None  # torch threads of this worker; None: left as set up
 
 
@@ -31,9 +32,9 @@ class AttackSetup:
 class AttackBatch:
     """One attack job: test rows first .. first + B - 1."""
 
-    first: int          # test row of the first image (a multiple of the batch size)
+    first: int  # test row of the first image (a multiple of the batch size)
     images: np.ndarray  # (B, H, W, 3) uint8 test images
-    labels: Any         # torch.Tensor (B, 9) float32: position (camera frame, metres), 6-D rotation
+    labels: Any  # torch.Tensor (B, 9) float32: position (camera frame, metres), 6-D rotation
 
 
 class AttackWorker:

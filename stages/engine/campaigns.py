@@ -5,6 +5,7 @@ standard one (its own detector and defense) and the undefended robust control (t
 chain's safety evidence (`safety_summary`), its descriptive integrity rows, the assumptions they rest on, and the
 integrity figure (the shipped chain at the largest eps it flew).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -23,11 +24,12 @@ from stages.config.evaluation import IntegrityAttacker
 from stages.config.schema import Params
 from stages.errors import StageError
 
-CONTROL = "control"   # the undefended robust chain: the shipped pose network, no detector, no defense
+CONTROL = "control"  # the undefended robust chain: the shipped pose network, no detector, no defense
 
 
-def integrity_campaign(p: Params, shipped: Any, seed: int, full: bool = False,
-                       trajectories: int | None = None) -> dict[str, Any]:
+def integrity_campaign(
+    p: Params, shipped: Any, seed: int, full: bool = False, trajectories: int | None = None
+) -> dict[str, Any]:
     """The integrity campaign (pipeline.evaluation.campaign) on the three chains: the shipped one (`shipped`, a
     SafetyChain) on the first `integrity.trajectories` eval_render ones, the standard one and the undefended robust
     control on the first `integrity.comparison_trajectories` of those; each chain's safety evidence
@@ -44,55 +46,95 @@ def integrity_campaign(p: Params, shipped: Any, seed: int, full: bool = False,
     t0 = time.perf_counter()
     i = p.integrity
     if full:
-        i = dataclasses.replace(i, attackers=list(typing.get_args(IntegrityAttacker)), stop_at_break=False,
-                                comparison_trajectories=None)
+        i = dataclasses.replace(
+            i, attackers=list(typing.get_args(IntegrityAttacker)), stop_at_break=False, comparison_trajectories=None
+        )
         p = dataclasses.replace(p, integrity=i)
     tracks, bursts, info = _tracks(p, shipped)
     trajectories = trajectories if full else i.trajectories
     tracks, bursts = tracks[:trajectories], bursts[:trajectories]
     paper = load_chain(p, PAPER)
     n = i.comparison_trajectories
-    chains = [(SHIPPED.value, shipped, shipped.defended, PerFrameChain(shipped.model, shipped.onboard.shap,
-                                                                       shipped.onboard.detector), len(tracks)),
-              (PAPER.value, paper, paper.defended, PerFrameChain(paper.model, paper.onboard.shap, paper.onboard.detector),
-               n),
-              (CONTROL, shipped, None, shipped.model, n)]
+    chains = [
+        (
+            SHIPPED.value,
+            shipped,
+            shipped.defended,
+            PerFrameChain(shipped.model, shipped.onboard.shap, shipped.onboard.detector),
+            len(tracks),
+        ),
+        (PAPER.value, paper, paper.defended, PerFrameChain(paper.model, paper.onboard.shap, paper.onboard.detector), n),
+        (CONTROL, shipped, None, shipped.model, n),
+    ]
     out: dict[str, Any] = {}
     figure = None
     for key, safety, defended, target, count in chains:
         k = len(tracks) if count is None else min(count, len(tracks))
         campaign = _campaign(p, seed, defended, bursts[:k])
         steps = len(campaign.eps) * sum(len(t) for t in tracks[:k]) if campaign.plans else 0
-        with tqdm(total=k * ("burst" in i.attackers) + steps // max(k, 1), desc=f"robustness (integrity, {key})",
-                  unit="step", dynamic_ncols=True) as bar:
+        with tqdm(
+            total=k * ("burst" in i.attackers) + steps // max(k, 1),
+            desc=f"robustness (integrity, {key})",
+            unit="step",
+            dynamic_ncols=True,
+        ) as bar:
             flown = fly_campaign(safety.onboard, target, defended, tracks[:k], campaign, lambda: bar.update(1))
-        out[key] = {"model": safety.name, "model_hash": safety.pose_hash, "defended": defended is not None,
-                    "trajectories": k, "summary": safety_summary(flown), "rows": flown.rows,
-                    "worst_hmi": worst_hmi(flown.rows), "clean": flown.clean_row,
-                    "false_alarm_rate": flown.alarms.value, "ci95_false_alarm": flown.alarms.ci(),
-                    "calibration_unmet": [] if defended is None else list(safety.calibration.unmet)}
+        out[key] = {
+            "model": safety.name,
+            "model_hash": safety.pose_hash,
+            "defended": defended is not None,
+            "trajectories": k,
+            "summary": safety_summary(flown),
+            "rows": flown.rows,
+            "worst_hmi": worst_hmi(flown.rows),
+            "clean": flown.clean_row,
+            "false_alarm_rate": flown.alarms.value,
+            "ci95_false_alarm": flown.alarms.ci(),
+            "calibration_unmet": [] if defended is None else list(safety.calibration.unmet),
+        }
         if key == SHIPPED.value:
             info.update(false_alarm_rate=flown.alarms.value, ci95_false_alarm=flown.alarms.ci())
             fused_rows = flown.fused_rows
             top = max(e for _, e, _, _ in flown.runs) if flown.runs else None
             figure = (flown.clean, [(a, runs, masks) for a, e, runs, masks in flown.runs if e == top], top)
     shipped_out = out[SHIPPED.value]
-    return {"fused_rows": fused_rows, "fused": info,
-            "integrity": {"chains": out, "breaking_eps": {key: v["summary"]["breaking_eps"] for key, v in out.items()},
-                          "rows": shipped_out["rows"], "worst_hmi": shipped_out["worst_hmi"],
-                          "clean": shipped_out["clean"], "eps": [float(e) for e in i.eps], "attackers": list(i.attackers),
-                          "assumptions": _assumptions(p, shipped), "alert_limit_m": i.alert_limit_m,
-                          "alert_limit_kind": i.alert_limit_kind, "collision_range_m": i.collision_range_m,
-                          "burst": {"steps": i.burst_steps, "restarts": i.burst_restarts,
-                                    "lambdas": [float(v) for v in i.burst_lambdas], "cap": i.burst_cap,
-                                    "objective": i.burst_objective, "hinge": i.burst_hinge,
-                                    "bursts": info["bursts"], "burst_length": info["burst_length"]},
-                          "capture": {"initial_m": [float(b) for b in i.capture_initial], "rate_m": i.capture_rate},
-                          "drift": {"start": i.drift_start, "gate_fraction": i.drift_gate_fraction,
-                                    "undefended_rate_m": i.undefended_drift_rate},
-                          "frame_steps": i.frame_steps, "stop_at_break": i.stop_at_break,
-                          "seconds": time.perf_counter() - t0},
-            "figure": figure}
+    return {
+        "fused_rows": fused_rows,
+        "fused": info,
+        "integrity": {
+            "chains": out,
+            "breaking_eps": {key: v["summary"]["breaking_eps"] for key, v in out.items()},
+            "rows": shipped_out["rows"],
+            "worst_hmi": shipped_out["worst_hmi"],
+            "clean": shipped_out["clean"],
+            "eps": [float(e) for e in i.eps],
+            "attackers": list(i.attackers),
+            "assumptions": _assumptions(p, shipped),
+            "alert_limit_m": i.alert_limit_m,
+            "alert_limit_kind": i.alert_limit_kind,
+            "collision_range_m": i.collision_range_m,
+            "burst": {
+                "steps": i.burst_steps,
+                "restarts": i.burst_restarts,
+                "lambdas": [float(v) for v in i.burst_lambdas],
+                "cap": i.burst_cap,
+                "objective": i.burst_objective,
+                "hinge": i.burst_hinge,
+                "bursts": info["bursts"],
+                "burst_length": info["burst_length"],
+            },
+            "capture": {"initial_m": [float(b) for b in i.capture_initial], "rate_m": i.capture_rate},
+            "drift": {
+                "start": i.drift_start,
+                "gate_fraction": i.drift_gate_fraction,
+                "undefended_rate_m": i.undefended_drift_rate,
+            },
+            "frame_steps": i.frame_steps,
+            "stop_at_break": i.stop_at_break,
+            "seconds": time.perf_counter() - t0,
+        },
+        "figure": figure,
+    }
 
 
 def _campaign(p: Params, seed: int, defended: Any, bursts: list[list[tuple[int, int]]]) -> Any:
@@ -114,7 +156,7 @@ def _campaign(p: Params, seed: int, defended: Any, bursts: list[list[tuple[int, 
     )
 
     i = p.integrity
-    motion = defense_settings(p.defense, 0.5)[1]   # the filter settings (trusted_start) the drift's start counts on
+    motion = defense_settings(p.defense, 0.5)[1]  # the filter settings (trusted_start) the drift's start counts on
     plans = []
     for name in i.attackers:
         kind, _, direction = name.partition("/")
@@ -125,27 +167,46 @@ def _campaign(p: Params, seed: int, defended: Any, bursts: list[list[tuple[int, 
             if defended is None:
                 drift = dc.replace(drift, max_rate=float(i.undefended_drift_rate))
             plans.append(Plan(name, drift, start_frame(i.drift_start, motion)))
-    return Campaign([float(e) for e in i.eps], plans, frame_attack(p), seed_for(seed, "robustness.drift"),
-                    burst_attacker(p, seed_for(seed, "robustness.burst")) if "burst" in i.attackers else None, bursts,
-                    alert_limit_settings(p), alert_limit_settings(p, "single_frame"), p.robustness.batch_size,
-                    p.robustness.harm_m, seed, i.stop_at_break)
+    return Campaign(
+        [float(e) for e in i.eps],
+        plans,
+        frame_attack(p),
+        seed_for(seed, "robustness.drift"),
+        burst_attacker(p, seed_for(seed, "robustness.burst")) if "burst" in i.attackers else None,
+        bursts,
+        alert_limit_settings(p),
+        alert_limit_settings(p, "single_frame"),
+        p.robustness.batch_size,
+        p.robustness.harm_m,
+        seed,
+        i.stop_at_break,
+    )
 
 
 def _assumptions(p: Params, shipped: Any) -> dict[str, Any]:
     """What every integrity row rests on, for the reports: the trusted-start frames, the shipped detector (fusion,
     threshold), the noise model, the dynamics and execution error of the trajectories, the AL kind."""
     x, d = p.guidance.execution, p.defense
-    return {"trusted_start_frames": d.trusted_start, "position_noise_m": d.position_noise,
-            "detector": {"fusion": d.fusion, "threshold": float(shipped.defended.settings.threshold)},
-            "noise_model": "pose-network noise and bias per range bin fitted on the validation trajectories "
-                           f"(defense.noise_bins = {d.noise_bins}), inflated x{shipped.calibration.inflation:g} "
-                           "(rpod calibrate)",
-            "execution": {"scale_std": x.scale_std, "noise_std_m": x.noise_std, "mean_motion_rad_s": x.mean_motion,
-                          "frame_interval_s": x.frame_interval, "approach": x.approach},
-            "dynamics": "open loop: each evaluation trajectory flown along its planned commands with execution error "
-                        "and Clohessy-Wiltshire motion; the chain is told the commands only",
-            "alert_limit_kind": p.integrity.alert_limit_kind, "integrity_risk": d.integrity_risk,
-            "cusum_reference": d.cusum_reference}
+    return {
+        "trusted_start_frames": d.trusted_start,
+        "position_noise_m": d.position_noise,
+        "detector": {"fusion": d.fusion, "threshold": float(shipped.defended.settings.threshold)},
+        "noise_model": "pose-network noise and bias per range bin fitted on the validation trajectories "
+        f"(defense.noise_bins = {d.noise_bins}), inflated x{shipped.calibration.inflation:g} "
+        "(rpod calibrate)",
+        "execution": {
+            "scale_std": x.scale_std,
+            "noise_std_m": x.noise_std,
+            "mean_motion_rad_s": x.mean_motion,
+            "frame_interval_s": x.frame_interval,
+            "approach": x.approach,
+        },
+        "dynamics": "open loop: each evaluation trajectory flown along its planned commands with execution error "
+        "and Clohessy-Wiltshire motion; the chain is told the commands only",
+        "alert_limit_kind": p.integrity.alert_limit_kind,
+        "integrity_risk": d.integrity_risk,
+        "cusum_reference": d.cusum_reference,
+    }
 
 
 def _tracks(p: Params, safety: Any) -> tuple[list[Any], list[list[tuple[int, int]]], dict[str, Any]]:
@@ -166,9 +227,17 @@ def _tracks(p: Params, safety: Any) -> tuple[list[Any], list[list[tuple[int, int
         bursts = [burst_schedule(len(ix), length, r.burst_every) for ix in trajs]
     except ValueError as e:
         raise StageError(f"params.yaml robustness.burst_every / integrity.burst_length: {e}") from None
-    info = {"trajectories": len(trajs), "bursts": sum(len(b) for b in bursts), "burst_length": length,
-            "burst_every": r.burst_every, "noise_model": defended.noise.as_dict(), "gate": defended.motion.gate,
-            "gate_false_alarm": defended.motion.false_alarm, "noise_inflation": cal.inflation,
-            "fusion": defended.settings.fusion, "calibration_unmet": list(cal.unmet),
-            "noise_fitted_on": "validation trajectories (models/defense.json, rpod calibrate)"}
+    info = {
+        "trajectories": len(trajs),
+        "bursts": sum(len(b) for b in bursts),
+        "burst_length": length,
+        "burst_every": r.burst_every,
+        "noise_model": defended.noise.as_dict(),
+        "gate": defended.motion.gate,
+        "gate_false_alarm": defended.motion.false_alarm,
+        "noise_inflation": cal.inflation,
+        "fusion": defended.settings.fusion,
+        "calibration_unmet": list(cal.unmet),
+        "noise_fitted_on": "validation trajectories (models/defense.json, rpod calibrate)",
+    }
     return tracks, bursts, info

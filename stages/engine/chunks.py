@@ -8,6 +8,7 @@ No merge step: the store is complete when the manifest is there. A `RenderWorker
 and one `FrameRange` per job; a `PoseRenderWorker` (poses rendered and sent back, `render_poses`) gets a
 `PoseSetup` and one `PoseBatch` per job.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -21,9 +22,9 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from stages.engine import pool as engine
-from pipeline.visibility import empty_problem, out_of_view
 from pipeline.io.store import chunk_crc32c, create_array, reopen_array, seal_zarr, store_fs
+from pipeline.visibility import empty_problem, out_of_view
+from stages.engine import pool as engine
 from stages.errors import StageError
 
 
@@ -54,10 +55,10 @@ def replacing(url: str) -> Iterator[str]:
             if "file" in (fs.protocol if isinstance(fs.protocol, tuple) else (fs.protocol,)):
                 stack.enter_context(exclusive(f"{root}.lock", f"image store {url}"))
                 remove_stale_temps(root)
-        except (OSError, ValueError, ImportError) as e:    # a path below a file, an unknown protocol, ...
+        except (OSError, ValueError, ImportError) as e:  # a path below a file, an unknown protocol, ...
             raise unwritable(url, e) from None
         parent, name = url.rstrip("/").rsplit("/", 1)
-        owner = f".{name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"   # holds its token, as atomic.owned_temp's
+        owner = f".{name}.{os.getpid()}.{secrets.token_hex(4)}.tmp"  # holds its token, as atomic.owned_temp's
         held = store_fs(f"{parent}/{owner}")[1]
         fs.makedirs(held)
         fs.pipe_file(f"{held}/{OWNER}", owner.encode())
@@ -92,29 +93,31 @@ def create_store(url: str, n: int, height: int, width: int, chunk: int, fingerpr
 
 def unwritable(url: str, e: Exception) -> StageError:
     """The one-line refusal of an image store that cannot be written."""
-    return StageError(f"image store {url} cannot be written ({type(e).__name__}: {e}); set engine.store to a "
-                      f"writable folder or fsspec URL")
+    return StageError(
+        f"image store {url} cannot be written ({type(e).__name__}: {e}); set engine.store to a "
+        f"writable folder or fsspec URL"
+    )
 
 
 @dataclass(frozen=True)
 class RenderSetup:
     """What one RenderWorker holds: the camera, the scene and every pose of the store."""
 
-    K: Any                  # pipeline.geometry.camera.Intrinsics (pixels)
-    scene: Any              # pipeline.render.scene.SceneSettings, checked by `prepare`
-    R: np.ndarray           # (N, 3, 3) target attitudes, target frame -> camera frame
-    t: np.ndarray           # (N, 3) target positions in the camera frame, metres
-    url: str                # the store (`store_url`: an absolute path or an fsspec URL)
+    K: Any  # pipeline.geometry.camera.Intrinsics (pixels)
+    scene: Any  # pipeline.render.scene.SceneSettings, checked by `prepare`
+    R: np.ndarray  # (N, 3, 3) target attitudes, target frame -> camera frame
+    t: np.ndarray  # (N, 3) target positions in the camera frame, metres
+    url: str  # the store (`store_url`: an absolute path or an fsspec URL)
     empty_hint: str | None  # how to fix a first chunk the target covers no pixel of (refused); None: not checked
-    backgrounds: tuple[Any, ...] | None = None   # per frame a backgrounds.FrameBackground or None (black)
+    backgrounds: tuple[Any, ...] | None = None  # per frame a backgrounds.FrameBackground or None (black)
 
 
 @dataclass(frozen=True)
 class FrameRange:
     """One render job: the frames lo .. hi - 1 of the store, exactly one chunk."""
 
-    lo: int   # first frame (a multiple of the store's chunk length)
-    hi: int   # one past the last frame
+    lo: int  # first frame (a multiple of the store's chunk length)
+    hi: int  # one past the last frame
 
 
 class RenderWorker:
@@ -130,7 +133,7 @@ class RenderWorker:
         self.images = reopen_array(setup.url, "images") if visible(self.fs, self.root) else None
         self.R, self.t, self.empty_hint = setup.R, setup.t, setup.empty_hint
         self.backgrounds = setup.backgrounds or (None,) * len(setup.t)
-        self.renderer = Renderer(setup.K, setup.scene)   # settings checked by the driver (`prepare`)
+        self.renderer = Renderer(setup.K, setup.scene)  # settings checked by the driver (`prepare`)
 
     def run(self, job: FrameRange) -> dict[str, str] | np.ndarray:
         lo, hi = job.lo, job.hi
@@ -153,7 +156,7 @@ def visible(fs: Any, root: str) -> bool:
 
 def write_chunk(images: Any, fs: Any, root: str, lo: int, buf: np.ndarray) -> dict[str, str]:
     """Write one whole chunk (frames lo .. lo + len(buf)) into the array `images` -> {its key: crc32c}."""
-    images[lo:lo + len(buf)] = buf
+    images[lo : lo + len(buf)] = buf
     key = f"c/{lo // images.chunks[0]}/0/0/0"
     return {key: chunk_crc32c(fs, f"{root}/images/{key}")}
 
@@ -162,16 +165,16 @@ def write_chunk(images: Any, fs: Any, root: str, lo: int, buf: np.ndarray) -> di
 class PoseSetup:
     """What one PoseRenderWorker holds: the camera and the scene."""
 
-    K: Any       # pipeline.geometry.camera.Intrinsics (pixels)
-    scene: Any   # pipeline.render.scene.SceneSettings, checked by `prepare`
+    K: Any  # pipeline.geometry.camera.Intrinsics (pixels)
+    scene: Any  # pipeline.render.scene.SceneSettings, checked by `prepare`
 
 
 @dataclass(frozen=True)
 class PoseBatch:
     """One pose render job: n poses sent to the worker, rendered and sent back."""
 
-    R: np.ndarray   # (n, 3, 3) target attitudes, target frame -> camera frame
-    t: np.ndarray   # (n, 3) target positions in the camera frame, metres
+    R: np.ndarray  # (n, 3, 3) target attitudes, target frame -> camera frame
+    t: np.ndarray  # (n, 3) target positions in the camera frame, metres
 
 
 class PoseRenderWorker:
@@ -224,22 +227,39 @@ def prepare(K: Any, scene: Any, es: engine.EngineSettings) -> tuple[Any, int]:
     return dataclasses.replace(scene, threads=threads, mesh=mesh), threads
 
 
-def render_poses(K: Any, scene: Any, R: np.ndarray, t: np.ndarray, chunk: int, es: engine.EngineSettings,
-                 desc: str) -> tuple[np.ndarray, np.ndarray]:
+def render_poses(
+    K: Any, scene: Any, R: np.ndarray, t: np.ndarray, chunk: int, es: engine.EngineSettings, desc: str
+) -> tuple[np.ndarray, np.ndarray]:
     """Every pose rendered by the engine's workers, `chunk` poses per job -> (RGB, alpha) in pose order."""
     from tqdm import tqdm
 
     scene, threads = prepare(K, scene, es)
-    jobs = [PoseBatch(R[lo:lo + chunk], t[lo:lo + chunk]) for lo in range(0, len(t), chunk)]
+    jobs = [PoseBatch(R[lo : lo + chunk], t[lo : lo + chunk]) for lo in range(0, len(t), chunk)]
     with tqdm(total=len(t), unit="img", desc=desc, dynamic_ncols=True, mininterval=0.5) as bar:
-        out = engine.run(PoseRenderWorker, PoseSetup(K, scene), jobs, es, num_cpus=threads,
-                         progress=lambda i, _: bar.update(len(jobs[i].t)))
+        out = engine.run(
+            PoseRenderWorker,
+            PoseSetup(K, scene),
+            jobs,
+            es,
+            num_cpus=threads,
+            progress=lambda i, _: bar.update(len(jobs[i].t)),
+        )
     return np.concatenate([rgb for rgb, _ in out]), np.concatenate([alpha for _, alpha in out])
 
 
-def render_to_store(url: str, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, chunk: int,
-                    es: engine.EngineSettings, desc: str, empty_hint: str | None = None,
-                    fingerprint: str | None = None, backgrounds: list[Any] | None = None) -> float:
+def render_to_store(
+    url: str,
+    K: Any,
+    scene: Any,
+    R: np.ndarray,
+    t: np.ndarray,
+    chunk: int,
+    es: engine.EngineSettings,
+    desc: str,
+    empty_hint: str | None = None,
+    fingerprint: str | None = None,
+    backgrounds: list[Any] | None = None,
+) -> float:
     """Render every pose into a new store at `url` (one job per chunk; `fingerprint`: of the render params,
     recorded in it; `backgrounds`: per frame its background draw or None, `frame_backgrounds`) and seal it ->
     seconds taken; bad render settings are refused before any worker starts (`prepare`). With `empty_hint` (how to
@@ -250,7 +270,7 @@ def render_to_store(url: str, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, 
 
     scene, threads = prepare(K, scene, es)
     n = len(t)
-    chunk = max(1, min(chunk, n))      # a chunk longer than the store would allocate for frames that do not exist
+    chunk = max(1, min(chunk, n))  # a chunk longer than the store would allocate for frames that do not exist
     create_store(url, n, K.height, K.width, chunk, fingerprint)
     jobs = [FrameRange(lo, min(lo + chunk, n)) for lo in range(0, n, chunk)]
     crcs: dict[str, str] = {}
@@ -264,8 +284,14 @@ def render_to_store(url: str, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, 
 
     t0 = time.perf_counter()
     with tqdm(total=n, unit="img", desc=desc, dynamic_ncols=True, mininterval=0.5) as bar:
-        engine.run(RenderWorker, RenderSetup(K, scene, R, t, url, empty_hint, backgrounds and tuple(backgrounds)),
-                   jobs, es, num_cpus=threads, progress=done)
+        engine.run(
+            RenderWorker,
+            RenderSetup(K, scene, R, t, url, empty_hint, backgrounds and tuple(backgrounds)),
+            jobs,
+            es,
+            num_cpus=threads,
+            progress=done,
+        )
     seal_zarr(url, {"images": crcs})
     if empty_hint:
         problem = empty_problem(out_of_view(images), f"frames of {desc}")
@@ -274,8 +300,9 @@ def render_to_store(url: str, K: Any, scene: Any, R: np.ndarray, t: np.ndarray, 
     return time.perf_counter() - t0
 
 
-def frame_backgrounds(K: Any, scene: Any, R: np.ndarray, R_cam: np.ndarray,
-                      seed: int) -> tuple[list[Any] | None, list[str] | None]:
+def frame_backgrounds(
+    K: Any, scene: Any, R: np.ndarray, R_cam: np.ndarray, seed: int
+) -> tuple[list[Any] | None, list[str] | None]:
     """The background draws of a render set's frames (R (N, 3, 3): target -> camera; R_cam (N, 3, 3): camera ->
     world; seed: the set's), each keyed by its index in the set, and their `background` column values -> (draws,
     kinds); (None, None) while scene.background is off (share 0: every frame black, no column)."""

@@ -5,6 +5,7 @@ flight of the grid (pipeline.guidance.grid.GridPlan) per job; stages/guidance.py
 Each attacked run's attack is seeded by its place in the grid, and each rendered pose's background
 (render.background) by the pose itself, so the flights do not depend on which worker flies which run.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -22,13 +23,13 @@ from stages.config.schema import Params
 class GuidanceSetup:
     """What one GuidanceWorker holds: the camera, the scene, where the chains' model files are and the grid."""
 
-    params: Params     # typed params (device, `attack` section, `guidance.method`, the in-loop attacker's `integrity`)
-    K: Any                     # pipeline.geometry.camera.Intrinsics: the pose model's input size (pixels)
-    scene: Any                 # pipeline.render.scene.SceneSettings, checked by stages.engine.chunks.prepare
-    root: str                  # the folder holding models/, as an absolute path (a worker may run elsewhere)
-    defense: Any               # pipeline.defense.chain.Defended of the shipped chain: a fresh Defense per run
-    plan: Any                  # pipeline.guidance.law.GridPlan: every run of the grid
-    seed: int                  # the attack seed of run 0 (params seed + the stage's offset); the backgrounds'
+    params: Params  # typed params (device, `attack` section, `guidance.method`, the in-loop attacker's `integrity`)
+    K: Any  # pipeline.geometry.camera.Intrinsics: the pose model's input size (pixels)
+    scene: Any  # pipeline.render.scene.SceneSettings, checked by stages.engine.chunks.prepare
+    root: str  # the folder holding models/, as an absolute path (a worker may run elsewhere)
+    defense: Any  # pipeline.defense.chain.Defended of the shipped chain: a fresh Defense per run
+    plan: Any  # pipeline.guidance.law.GridPlan: every run of the grid
+    seed: int  # the attack seed of run 0 (params seed + the stage's offset); the backgrounds'
     torch_threads: int | None  # torch threads of this worker; None: left as set up
 
 
@@ -36,10 +37,10 @@ class GuidanceSetup:
 class Flight:
     """One guidance job: one run of the plan."""
 
-    chain: str        # "paper" (the paper grid) or "shipped" (pipeline.guidance.grid.CHAINS)
-    dynamics: str     # the chaser's dynamics (a name of guidance.dynamics)
-    defense: str      # "undefended" or a name of guidance.defenses
-    cell: Any         # index of the (eps, S, K) attack window in plan.grid, an InLoopRun, or None: the no-attack run
+    chain: str  # "paper" (the paper grid) or "shipped" (pipeline.guidance.grid.CHAINS)
+    dynamics: str  # the chaser's dynamics (a name of guidance.dynamics)
+    defense: str  # "undefended" or a name of guidance.defenses
+    cell: Any  # index of the (eps, S, K) attack window in plan.grid, an InLoopRun, or None: the no-attack run
 
 
 def flights(plan: Any) -> list[Flight]:
@@ -64,8 +65,10 @@ class GuidanceWorker:
             import torch
 
             torch.set_num_threads(setup.torch_threads)
-        chains = {"paper": load_chain(setup.params, PAPER, setup.root, defended=False),
-                  "shipped": load_chain(setup.params, SHIPPED, setup.root, defended=False)}
+        chains = {
+            "paper": load_chain(setup.params, PAPER, setup.root, defended=False),
+            "shipped": load_chain(setup.params, SHIPPED, setup.root, defended=False),
+        }
         losses = {name: attack_loss(setup.params.attack.loss, chain.loss) for name, chain in chains.items()}
         a, method, seed = setup.params.attack, setup.params.guidance.method, setup.seed
 
@@ -76,8 +79,11 @@ class GuidanceWorker:
         target = PerFrameChain(shipped.model, shipped.shap, shipped.detector)
 
         p = setup.params
-        capture = capture_settings(p, "lateral", p.integrity.capture_initial[0]) if "capture" in \
-            p.integrity.in_loop_goals else None
+        capture = (
+            capture_settings(p, "lateral", p.integrity.capture_initial[0])
+            if "capture" in p.integrity.in_loop_goals
+            else None
+        )
 
         def in_loop_at(eps: float, goal: str, i: int) -> Any:
             if goal == "capture":
@@ -85,10 +91,11 @@ class GuidanceWorker:
             return InLoopAttacker(target, eps, in_loop_settings(p, goal), seed + i)
 
         self.renderer = Renderer(setup.K, setup.scene)
-        images: dict[bytes, Any] = {}   # both chains see the same rendered poses: each is rendered once
+        images: dict[bytes, Any] = {}  # both chains see the same rendered poses: each is rendered once
         render_image = pose_renderer(self.renderer, setup.seed)
-        cameras = {name: CachedCamera(render_image, c.model, chain=c.onboard, images=images)
-                   for name, c in chains.items()}
+        cameras = {
+            name: CachedCamera(render_image, c.model, chain=c.onboard, images=images) for name, c in chains.items()
+        }
         self.pilot = GridPilot(cameras, setup.K, setup.plan, attack_at, setup.defense, in_loop_at)
 
     def run(self, job: Flight) -> tuple[Any, frozenset[bytes]]:

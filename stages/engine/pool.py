@@ -11,6 +11,7 @@ itself to as many cores of its machine as the CPUs it asked for (`pin_cores`), a
 of the same pipeline (the driver's working folder: the repository `dvc repro` runs in) hold, so another
 pipeline on the machine pins its own workers too.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -27,7 +28,7 @@ from pipeline.io.errors import DataError
 from stages.config.schema import Params
 from stages.errors import StageError
 
-CONNECT_TIMEOUT_S = 10.0   # seconds to open a TCP connection to a cluster's head before calling it unreachable
+CONNECT_TIMEOUT_S = 10.0  # seconds to open a TCP connection to a cluster's head before calling it unreachable
 
 
 def core_locks(scope: str) -> str:
@@ -49,10 +50,10 @@ class Worker(Protocol):
 class EngineSettings:
     """How a stage's jobs fan out (the params `engine` section, resolved by `engine_settings`)."""
 
-    workers: int | None       # actors (1 = in-process); None = every core (of the cluster, with an address)
-    address: str | None       # Ray cluster address, None = a local Ray (or in-process)
-    timeout_s: float          # seconds without a finished chunk before giving up
-    retries: int              # restarts of a dead worker (and retries of its chunk)
+    workers: int | None  # actors (1 = in-process); None = every core (of the cluster, with an address)
+    address: str | None  # Ray cluster address, None = a local Ray (or in-process)
+    timeout_s: float  # seconds without a finished chunk before giving up
+    retries: int  # restarts of a dead worker (and retries of its chunk)
 
     @property
     def in_process(self) -> bool:
@@ -64,6 +65,7 @@ class EngineSettings:
             return render_threads
         return max(1, render_threads // (self.workers or (1 if self.address else os.cpu_count() or 1)))
 
+
 def engine_settings(params: Params) -> EngineSettings:
     """The engine section of params, with address None -> $RAY_ADDRESS; workers None is every core of
     this machine, or of the cluster when there is an address."""
@@ -73,8 +75,14 @@ def engine_settings(params: Params) -> EngineSettings:
     return EngineSettings(workers, address, float(e.timeout_s), e.retries)
 
 
-def run(worker_cls: Callable[[Any], Worker], setup: Any, jobs: list[Any], es: EngineSettings,
-        num_cpus: float = 1, progress: Callable[[int, Any], None] | None = None) -> list[Any]:
+def run(
+    worker_cls: Callable[[Any], Worker],
+    setup: Any,
+    jobs: list[Any],
+    es: EngineSettings,
+    num_cpus: float = 1,
+    progress: Callable[[int, Any], None] | None = None,
+) -> list[Any]:
     """`worker.run(job)` for every job (in order) on workers built as `worker_cls(setup)`, each using
     `num_cpus` CPUs; `progress(i, result)` is called in the driver as each job finishes."""
     _check_records(setup, jobs)
@@ -119,13 +127,20 @@ def session(es: EngineSettings) -> Iterator[None]:
         _check_reachable(es.address, es.timeout_s)
     try:
         with _signal_handlers_kept():
-            ray.init(address=es.address or "local", num_cpus=None if es.address else es.workers,
-                     include_dashboard=False, logging_level=logging.WARNING, log_to_driver=True)
+            ray.init(
+                address=es.address or "local",
+                num_cpus=None if es.address else es.workers,
+                include_dashboard=False,
+                logging_level=logging.WARNING,
+                log_to_driver=True,
+            )
     except (ConnectionError, RuntimeError, ValueError) as e:
         where = f"the Ray cluster at {es.address}" if es.address else "a local Ray"
-        raise StageError(f"could not start or reach {where} ({type(e).__name__}: {str(e).splitlines()[0]}); "
-                         f"check engine.address / $RAY_ADDRESS, or set engine.workers: 1 to run in-process") from None
-    except BaseException:   # stopped while Ray started (pipeline/interrupt.py): stop what it started
+        raise StageError(
+            f"could not start or reach {where} ({type(e).__name__}: {str(e).splitlines()[0]}); "
+            f"check engine.address / $RAY_ADDRESS, or set engine.workers: 1 to run in-process"
+        ) from None
+    except BaseException:  # stopped while Ray started (pipeline/interrupt.py): stop what it started
         ray.shutdown()
         raise
     try:
@@ -143,10 +158,12 @@ def _check_reachable(address: str, timeout_s: float) -> None:
     try:
         socket.create_connection((host, int(port)), timeout=min(CONNECT_TIMEOUT_S, timeout_s)).close()
     except (OSError, ValueError) as e:
-        raise StageError(f"Ray cluster address {address!r} (engine.address or $RAY_ADDRESS) is unreachable "
-                         f"({type(e).__name__}: {e}); start its head with `ray start --head`, or unset it "
-                         f"to run on this machine") from None
-    if "://" not in address:   # a Ray Client address (ray://) bounds its own connection attempts
+        raise StageError(
+            f"Ray cluster address {address!r} (engine.address or $RAY_ADDRESS) is unreachable "
+            f"({type(e).__name__}: {e}); start its head with `ray start --head`, or unset it "
+            f"to run on this machine"
+        ) from None
+    if "://" not in address:  # a Ray Client address (ray://) bounds its own connection attempts
         _check_ray_head(address, timeout_s)
 
 
@@ -170,7 +187,7 @@ thread.join(float(sys.argv[2]))
 print(got[0] if got else "no answer", flush=True)
 os._exit(0 if got == [""] else 1)
 """
-PROBE_IMPORT_S = 120   # seconds the probe may take to import Ray, beyond engine.timeout_s of waiting for the head
+PROBE_IMPORT_S = 120  # seconds the probe may take to import Ray, beyond engine.timeout_s of waiting for the head
 
 
 def _check_ray_head(address: str, timeout_s: float) -> None:
@@ -178,15 +195,22 @@ def _check_ray_head(address: str, timeout_s: float) -> None:
     import subprocess
 
     try:
-        done = subprocess.run([sys.executable, "-c", _PROBE, address, str(timeout_s)], stdout=subprocess.PIPE,
-                              stderr=subprocess.DEVNULL, text=True, timeout=timeout_s + PROBE_IMPORT_S)
+        done = subprocess.run(
+            [sys.executable, "-c", _PROBE, address, str(timeout_s)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+            timeout=timeout_s + PROBE_IMPORT_S,
+        )
         why = done.stdout.strip() or f"probe exit status {done.returncode}" if done.returncode else None
     except subprocess.TimeoutExpired:
         why = "no answer"
     if why is not None:
-        raise StageError(f"Ray cluster address {address!r} (engine.address or $RAY_ADDRESS) accepts connections but "
-                         f"is not a Ray head ({why} within engine.timeout_s = {timeout_s:g} s); give the port "
-                         f"`ray start --head` printed, or unset it to run on this machine")
+        raise StageError(
+            f"Ray cluster address {address!r} (engine.address or $RAY_ADDRESS) accepts connections but "
+            f"is not a Ray head ({why} within engine.timeout_s = {timeout_s:g} s); give the port "
+            f"`ray start --head` printed, or unset it to run on this machine"
+        )
 
 
 @contextlib.contextmanager
@@ -216,15 +240,21 @@ def _signal_handlers_kept() -> Iterator[None]:
                 signal.signal(sig, handler)
 
 
-def _run_on_ray(worker_cls: Callable[[Any], Worker], setup: Any, jobs: list[Any], es: EngineSettings,
-                num_cpus: float, progress: Callable[[int, Any], None] | None) -> list[Any]:
+def _run_on_ray(
+    worker_cls: Callable[[Any], Worker],
+    setup: Any,
+    jobs: list[Any],
+    es: EngineSettings,
+    num_cpus: float,
+    progress: Callable[[int, Any], None] | None,
+) -> list[Any]:
     """Dispatch jobs to idle actors as they free up; results come back in job order."""
     import ray
 
     actor = ray.remote(Pinned).options(num_cpus=num_cpus, max_restarts=es.retries, max_task_retries=es.retries)
     workers = es.workers or max(1, int(ray.cluster_resources().get("CPU", 1) // num_cpus))
     cores = int(num_cpus) if float(num_cpus).is_integer() else 0
-    scope = os.path.abspath(os.getcwd())   # the pipeline: its workers share one set of core locks
+    scope = os.path.abspath(os.getcwd())  # the pipeline: its workers share one set of core locks
     # The constructor state by reference, held here until the actors are gone: Ray frees an argument it
     # stored itself once the first constructor ran, so a restarted actor could not be rebuilt (ray#53727).
     state = ray.put((worker_cls, setup))
@@ -238,8 +268,10 @@ def _run_on_ray(worker_cls: Callable[[Any], Worker], setup: Any, jobs: list[Any]
         while pending:
             done = _wait_one(list(pending), es.timeout_s)
             if not done:
-                raise StageError(f"no chunk finished within engine.timeout_s = {es.timeout_s:g} s on {len(actors)} "
-                                 f"Ray workers; check `ray status` (free CPUs, live nodes) or raise engine.timeout_s")
+                raise StageError(
+                    f"no chunk finished within engine.timeout_s = {es.timeout_s:g} s on {len(actors)} "
+                    f"Ray workers; check `ray status` (free CPUs, live nodes) or raise engine.timeout_s"
+                )
             a, i = pending.pop(done[0])
             with interrupt.deferred():
                 out[i] = _get(done[0], i, es)
@@ -249,14 +281,14 @@ def _run_on_ray(worker_cls: Callable[[Any], Worker], setup: Any, jobs: list[Any]
                 j = todo.pop()
                 pending[a.run.remote(jobs[j])] = (a, j)
         with interrupt.deferred():
-            ray.get([a.close.remote() for a in actors], timeout=es.timeout_s)   # e.g. a scene's temporary files
+            ray.get([a.close.remote() for a in actors], timeout=es.timeout_s)  # e.g. a scene's temporary files
     finally:
         for a in actors:
             ray.kill(a)
     return out
 
 
-POLL_S = 1.0   # seconds one ray.wait blocks before the driver checks for a stop signal
+POLL_S = 1.0  # seconds one ray.wait blocks before the driver checks for a stop signal
 
 
 def _wait_one(refs: list[Any], timeout_s: float) -> list[Any]:
@@ -291,7 +323,7 @@ class Pinned:
         self.worker.close()
 
 
-_held: list[int] = []   # lock-file descriptors of the cores this process holds, open until it exits
+_held: list[int] = []  # lock-file descriptors of the cores this process holds, open until it exits
 
 
 def pin_cores(n: int, scope: str) -> list[int]:
@@ -327,7 +359,7 @@ def pin_cores(n: int, scope: str) -> list[int]:
         for tid in os.listdir("/proc/self/task"):
             try:
                 os.sched_setaffinity(int(tid), got)
-            except OSError:   # a thread that has just exited
+            except OSError:  # a thread that has just exited
                 pass
     except OSError:
         for fd in fds:
@@ -353,4 +385,3 @@ def _get(ref: Any, i: int, es: EngineSettings) -> Any:
             raise StageError(str(err)) from None
         first = (str(e).strip().splitlines() or [type(e).__name__])[-1]
         raise StageError(f"chunk {i} failed on its Ray worker after {es.retries} retries: {first}") from None
-

@@ -7,6 +7,7 @@ stability and lean-vs-full subsamples and the capacity's frames and draws on str
 frames are the train split's validation fraction (`data.fit_and_validation_splits` with the standard model's
 seed: never fitted by either model); the test split is never read for it.
 """
+
 from __future__ import annotations
 
 from typing import Any
@@ -37,9 +38,21 @@ def attacked_tables(params: Params, models: dict[str, Any], test: data.Split, de
     check = sample_rows(len(sample), s.check_frames, seed_for(seed, "suite.check"))
     full_check = sample_rows(len(sample), s.full_frames, seed_for(seed, "suite.full"))
     lean, full = suite_config(s, seed), suite_config(s, seed, full=True)
-    return {name: attacked_table(model, images, targets, s.eps, lean, backgrounds=data.backgrounds(sample),
-                                 check=check, full_check=full_check, full=full, device=device)
-            for name, model in models.items()}
+    return {
+        name: attacked_table(
+            model,
+            images,
+            targets,
+            s.eps,
+            lean,
+            backgrounds=data.backgrounds(sample),
+            check=check,
+            full_check=full_check,
+            full=full,
+            device=device,
+        )
+        for name, model in models.items()
+    }
 
 
 def capacities(params: Params, models: dict[str, Any], val: data.Split, device: Any) -> dict[str, Any]:
@@ -60,8 +73,10 @@ def capacities(params: Params, models: dict[str, Any], val: data.Split, device: 
         try:
             out[name] = (table, fit_overbound(table, c.edges, c.quantile, c.margin, c.min_count))
         except ValueError as e:
-            raise StageError(f"params.yaml suite.capacity ({len(sample)} validation frames): {e}; widen "
-                             f"suite.capacity.edges, lower min_count or attack more frames") from None
+            raise StageError(
+                f"params.yaml suite.capacity ({len(sample)} validation frames): {e}; widen "
+                f"suite.capacity.edges, lower min_count or attack more frames"
+            ) from None
     return out
 
 
@@ -73,9 +88,13 @@ def write_capacities(folder: Any, capacity: dict[str, Any], params: Params, hash
     s = params.suite
     out = {}
     for name, (table, overbounds) in capacity.items():
-        meta = {"model_hash": hashes[name], "split": "val", "frames": int(table["index"].nunique()),
-                "eps": [float(e) for e in s.capacity.eps], "min_count": s.capacity.min_count,
-                "suite": {"members": list(s.members), "steps": s.steps, "restarts": s.restarts,
-                          "starts": list(s.starts)}}
+        meta = {
+            "model_hash": hashes[name],
+            "split": "val",
+            "frames": int(table["index"].nunique()),
+            "eps": [float(e) for e in s.capacity.eps],
+            "min_count": s.capacity.min_count,
+            "suite": {"members": list(s.members), "steps": s.steps, "restarts": s.restarts, "starts": list(s.starts)},
+        }
         out[name] = write_capacity(folder, name, table, overbounds, meta)
     return out

@@ -1,5 +1,6 @@
 """reports/ablation.md, the page of `rpod ablation`: issue 38's 2 x 2 ablation of the paper's detector (FGSM ours |
 paper-literal x protocol strict | paper) beside the paper's numbers, and each factor's measured effect."""
+
 from __future__ import annotations
 
 from typing import Any
@@ -12,7 +13,7 @@ from stages.pages.paper import ATTACK_LENGTH, DETECTOR_ACCURACY, INTEGRATED_EPS,
 ATTACK = {"ours": "ours (clipped, 8-bit)", "paper": "paper-literal (unclipped float)"}
 PROTOCOL = {"strict": "strict (ours)", "paper": "paper (leaky)"}
 MIX = {"ablation": "ablation.eps", "paper": "the paper's five eps"}
-TARGET_POINTS = 5.0   # issue 38: the paper-protocol + paper-literal cell within 5 points of the paper at eps 0.01
+TARGET_POINTS = 5.0  # issue 38: the paper-protocol + paper-literal cell within 5 points of the paper at eps 0.01
 SEQUENCES = {"integrated": "integrated evaluation (eval_render trajectories)", "lab": "lab (lab-like recordings)"}
 
 
@@ -24,10 +25,19 @@ def cell_key(cell: Any) -> str:
 def cell_json(cell: Any) -> dict[str, Any]:
     """One cell (pipeline.evaluation.ablation.CellResult) for reports/metrics/ablation.json: rates per row key with the
     accuracy re-weighted to the paper's integrated attacked fraction, the fit, and the split's leak."""
-    return {"attack": cell.attack, "protocol": cell.protocol, "eps_set": cell.eps_set, "leaky": cell.leaky,
-            "shared_source": cell.shared, "shared_neighbour": cell.neighbours, "counts": cell.counts,
-            "threshold": cell.threshold, "epochs": cell.epochs, "best_epoch": cell.best_epoch,
-            "rates": {k: r.as_json(paper_fraction()) for k, r in cell.rates.items()}}
+    return {
+        "attack": cell.attack,
+        "protocol": cell.protocol,
+        "eps_set": cell.eps_set,
+        "leaky": cell.leaky,
+        "shared_source": cell.shared,
+        "shared_neighbour": cell.neighbours,
+        "counts": cell.counts,
+        "threshold": cell.threshold,
+        "epochs": cell.epochs,
+        "best_epoch": cell.best_epoch,
+        "rates": {k: r.as_json(paper_fraction()) for k, r in cell.rates.items()},
+    }
 
 
 def sequence_fraction(where: str) -> float:
@@ -43,9 +53,15 @@ def sequences_json(runs: dict[str, dict[str, Any]], where: str) -> dict[str, Any
     from pipeline.evaluation.rates import rates_from_counts
 
     f = sequence_fraction(where)
-    return {"paper_fraction": f, "detectors": {
-        name: {eps: {"counts": c.tolist(), **rates_from_counts(c, bootstrap=True).as_json(f)} for eps, c in per.items()}
-        for name, per in runs.items()}}
+    return {
+        "paper_fraction": f,
+        "detectors": {
+            name: {
+                eps: {"counts": c.tolist(), **rates_from_counts(c, bootstrap=True).as_json(f)} for eps, c in per.items()
+            }
+            for name, per in runs.items()
+        },
+    }
 
 
 def _rows(cells: list[Any], f: float) -> list[dict[str, str]]:
@@ -53,12 +69,21 @@ def _rows(cells: list[Any], f: float) -> list[dict[str, str]]:
     rows = []
     for c in cells:
         for key, r in c.rates.items():
-            rows.append({"FGSM": ATTACK[c.attack], "protocol": PROTOCOL[c.protocol], "eps": key,
-                         "test samples": str(r.accuracy.n), "attacked f (%)": r.attacked_fraction.pct(),
-                         "TPR (%)": r.tpr.pct(), "FPR (%)": r.fpr.pct(), "accuracy (%)": r.accuracy.pct(),
-                         f"accuracy at f = {100 * f:.1f}% (%)": r.accuracy_at(f).pct(),
-                         "test images also in training (%)": f"{100 * c.shared:.1f}",
-                         "... or a neighbouring frame (%)": f"{100 * c.neighbours:.1f}"})
+            rows.append(
+                {
+                    "FGSM": ATTACK[c.attack],
+                    "protocol": PROTOCOL[c.protocol],
+                    "eps": key,
+                    "test samples": str(r.accuracy.n),
+                    "attacked f (%)": r.attacked_fraction.pct(),
+                    "TPR (%)": r.tpr.pct(),
+                    "FPR (%)": r.fpr.pct(),
+                    "accuracy (%)": r.accuracy.pct(),
+                    f"accuracy at f = {100 * f:.1f}% (%)": r.accuracy_at(f).pct(),
+                    "test images also in training (%)": f"{100 * c.shared:.1f}",
+                    "... or a neighbouring frame (%)": f"{100 * c.neighbours:.1f}",
+                }
+            )
     return rows
 
 
@@ -76,25 +101,45 @@ def _effects(cells: list[Any], f: float) -> list[dict[str, str]]:
     by = {(c.attack, c.protocol, c.eps_set): c for c in cells}
     pairs = []
     for mix in MIX:
-        pairs += [(f"paper-literal FGSM - ours, strict protocol ({MIX[mix]})", ("paper", "strict", mix),
-                   ("ours", "strict", mix)),
-                  (f"paper-literal FGSM - ours, paper protocol ({MIX[mix]})", ("paper", "paper", mix),
-                   ("ours", "paper", mix)),
-                  (f"paper protocol - strict, our FGSM ({MIX[mix]})", ("ours", "paper", mix), ("ours", "strict", mix)),
-                  (f"paper protocol - strict, paper-literal FGSM ({MIX[mix]})", ("paper", "paper", mix),
-                   ("paper", "strict", mix)),
-                  (f"both (paper's setting - ours) ({MIX[mix]})", ("paper", "paper", mix), ("ours", "strict", mix))]
-    pairs += [(f"the paper's eps mix - {MIX['ablation']}, FGSM {a}, protocol {p}", (a, p, "paper"), (a, p, "ablation"))
-              for a in ATTACK for p in PROTOCOL]
+        pairs += [
+            (
+                f"paper-literal FGSM - ours, strict protocol ({MIX[mix]})",
+                ("paper", "strict", mix),
+                ("ours", "strict", mix),
+            ),
+            (
+                f"paper-literal FGSM - ours, paper protocol ({MIX[mix]})",
+                ("paper", "paper", mix),
+                ("ours", "paper", mix),
+            ),
+            (f"paper protocol - strict, our FGSM ({MIX[mix]})", ("ours", "paper", mix), ("ours", "strict", mix)),
+            (
+                f"paper protocol - strict, paper-literal FGSM ({MIX[mix]})",
+                ("paper", "paper", mix),
+                ("paper", "strict", mix),
+            ),
+            (f"both (paper's setting - ours) ({MIX[mix]})", ("paper", "paper", mix), ("ours", "strict", mix)),
+        ]
+    pairs += [
+        (f"the paper's eps mix - {MIX['ablation']}, FGSM {a}, protocol {p}", (a, p, "paper"), (a, p, "ablation"))
+        for a in ATTACK
+        for p in PROTOCOL
+    ]
     rows = []
     for name, a, b in pairs:
         if a not in by or b not in by:
             continue
-        for key in [k for k in by[a].rates if k in by[b].rates]:   # a small test split can lack an eps
+        for key in [k for k in by[a].rates if k in by[b].rates]:  # a small test split can lack an eps
             ra, rb = by[a].rates[key], by[b].rates[key]
-            rows.append({"effect": name, "eps": key, "TPR (points)": _diff(ra.tpr, rb.tpr),
-                         "FPR (points)": _diff(ra.fpr, rb.fpr),
-                         f"accuracy at f = {100 * f:.1f}% (points)": _diff(ra.accuracy_at(f), rb.accuracy_at(f))})
+            rows.append(
+                {
+                    "effect": name,
+                    "eps": key,
+                    "TPR (points)": _diff(ra.tpr, rb.tpr),
+                    "FPR (points)": _diff(ra.fpr, rb.fpr),
+                    f"accuracy at f = {100 * f:.1f}% (points)": _diff(ra.accuracy_at(f), rb.accuracy_at(f)),
+                }
+            )
     return rows
 
 
@@ -112,8 +157,10 @@ def _verdict(cells: list[Any], f: float) -> str:
         cell, ours = by[("paper", "paper")], by[("ours", "strict")]
         r, r0 = cell.rates.get("0.01"), ours.rates.get("0.01")
         if r is None or r0 is None or paper is None:
-            out.append(f"With {MIX[mix]}, a cell has no attacked test sample at eps 0.01: the paper's eps-0.01 "
-                       "accuracy has no counterpart there.")
+            out.append(
+                f"With {MIX[mix]}, a cell has no attacked test sample at eps 0.01: the paper's eps-0.01 "
+                "accuracy has no counterpart there."
+            )
             continue
         at, at0 = r.accuracy_at(f), r0.accuracy_at(f)
         gap = paper - 100 * at.value
@@ -128,7 +175,8 @@ def _verdict(cells: list[Any], f: float) -> str:
             f"{100 * hi:+.1f}] points. On all its test samples (f = {cell.rates['all'].attacked_fraction.pct()}%) "
             f"the cell's accuracy is {cell.rates['all'].accuracy.pct()}% against the paper's "
             f"{100 * DETECTOR_ACCURACY:.2f}% on its SHAP test split ({cell.counts['train']} training samples; the "
-            "paper's 80% of 30,000).")
+            "paper's 80% of 30,000)."
+        )
     return "\n\n".join(out)
 
 
@@ -141,11 +189,16 @@ def _curve_rows(curves: dict[str, list[Any]], full: dict[str, Any], f: float) ->
             if c is None:
                 continue
             r = c.rates.get("0.01")
-            rows.append({"cell (paper's eps mix)": f"FGSM {ATTACK[c.attack]}, protocol {PROTOCOL[c.protocol]}",
-                         "training samples": str(c.counts["train"]), "TPR at eps 0.01 (%)": r.tpr.pct() if r else "-",
-                         "FPR (%)": c.rates["all"].fpr.pct(),
-                         f"accuracy at eps 0.01, f = {100 * f:.1f}% (%)": r.accuracy_at(f).pct() if r else "-",
-                         "accuracy, all test samples (%)": c.rates["all"].accuracy.pct()})
+            rows.append(
+                {
+                    "cell (paper's eps mix)": f"FGSM {ATTACK[c.attack]}, protocol {PROTOCOL[c.protocol]}",
+                    "training samples": str(c.counts["train"]),
+                    "TPR at eps 0.01 (%)": r.tpr.pct() if r else "-",
+                    "FPR (%)": c.rates["all"].fpr.pct(),
+                    f"accuracy at eps 0.01, f = {100 * f:.1f}% (%)": r.accuracy_at(f).pct() if r else "-",
+                    "accuracy, all test samples (%)": c.rates["all"].accuracy.pct(),
+                }
+            )
     return rows
 
 
@@ -175,14 +228,18 @@ def _curve_note(curves: dict[str, list[Any]], full: dict[str, Any], f: float) ->
         n, top = pts[-1]
         what = f"FGSM {ATTACK[cells[0].attack]}, protocol {PROTOCOL[cells[0].protocol]}"
         if not slope > 0:
-            notes.append(f"{what}: no gain at eps 0.01 from {pts[0][0]} to {n} training samples (slope "
-                         f"{100 * slope:+.1f} points per doubling): more samples of this kind do not close the gap.")
+            notes.append(
+                f"{what}: no gain at eps 0.01 from {pts[0][0]} to {n} training samples (slope "
+                f"{100 * slope:+.1f} points per doubling): more samples of this kind do not close the gap."
+            )
             continue
         need = n * 2 ** ((paper - top) / slope)
-        notes.append(f"{what}: {100 * slope:+.1f} points per doubling of the training samples at eps 0.01 (measured "
-                     f"from {pts[0][0]} to {n}); if that trend held (an extrapolation, not a measurement) the paper's "
-                     f"{100 * paper:.2f}% would need about {need:,.0f} training samples"
-                     f"{' (more than the paper had: 80% of 30,000)' if need > 24000 else ''}.")
+        notes.append(
+            f"{what}: {100 * slope:+.1f} points per doubling of the training samples at eps 0.01 (measured "
+            f"from {pts[0][0]} to {n}); if that trend held (an extrapolation, not a measurement) the paper's "
+            f"{100 * paper:.2f}% would need about {need:,.0f} training samples"
+            f"{' (more than the paper had: 80% of 30,000)' if need > 24000 else ''}."
+        )
     return " ".join(notes) if notes else "No learning curve was fitted (ablation.fractions is empty)."
 
 
@@ -191,10 +248,13 @@ def _sequence_rows(sequences: dict[str, Any], cells: list[Any]) -> list[dict[str
     the sequences)."""
     from pipeline.stats import Rate
 
-    names = {"standard/ours": ("standard (models/detector.pt)", "ours"),
-             "standard/paper": ("standard (models/detector.pt)", "paper")}
-    names |= {cell_key(c): (f"cell: protocol {PROTOCOL[c.protocol]}, trained on {MIX[c.eps_set]}", c.attack)
-              for c in cells}
+    names = {
+        "standard/ours": ("standard (models/detector.pt)", "ours"),
+        "standard/paper": ("standard (models/detector.pt)", "paper"),
+    }
+    names |= {
+        cell_key(c): (f"cell: protocol {PROTOCOL[c.protocol]}, trained on {MIX[c.eps_set]}", c.attack) for c in cells
+    }
 
     def pct(x: dict[str, Any]) -> str:
         return Rate(x["value"] if x["value"] is not None else float("nan"), *x["ci"], x["n"]).pct()
@@ -205,10 +265,19 @@ def _sequence_rows(sequences: dict[str, Any], cells: list[Any]) -> list[dict[str
         for key, per in run["detectors"].items():
             detector, attack = names.get(key, (key, "-"))
             for eps, r in per.items():
-                rows.append({"sequences": where, "detector": detector, "FGSM": ATTACK.get(attack, attack), "eps": eps,
-                             "attacked f (%)": pct(r["attacked_fraction"]), "TPR (%)": pct(r["tpr"]),
-                             "FPR (%)": pct(r["fpr"]), "accuracy (%)": pct(r["accuracy"]),
-                             "accuracy at the paper's f (%)": f"{pct(r['accuracy_at'])} (f = {100 * f:.1f}%)"})
+                rows.append(
+                    {
+                        "sequences": where,
+                        "detector": detector,
+                        "FGSM": ATTACK.get(attack, attack),
+                        "eps": eps,
+                        "attacked f (%)": pct(r["attacked_fraction"]),
+                        "TPR (%)": pct(r["tpr"]),
+                        "FPR (%)": pct(r["fpr"]),
+                        "accuracy (%)": pct(r["accuracy"]),
+                        "accuracy at the paper's f (%)": f"{pct(r['accuracy_at'])} (f = {100 * f:.1f}%)",
+                    }
+                )
     return rows
 
 
@@ -220,12 +289,17 @@ def sequence_effects(sequences: dict[str, Any], eps: str = "0.01") -> list[dict[
 
     from pipeline.evaluation.rates import paired_difference
 
-    pairs = [("fgsm", "paper-literal FGSM - ours, standard detector", "standard/paper", "standard/ours"),
-             ("fgsm_cells", "paper-literal FGSM - ours, strict cells (paper's eps mix)", "paper/strict/paper",
-              "ours/strict/paper"),
-             ("protocol", "paper protocol - strict, our FGSM (paper's eps mix)", "ours/paper/paper",
-              "ours/strict/paper"),
-             ("both", "both (paper's setting - ours) (paper's eps mix)", "paper/paper/paper", "ours/strict/paper")]
+    pairs = [
+        ("fgsm", "paper-literal FGSM - ours, standard detector", "standard/paper", "standard/ours"),
+        (
+            "fgsm_cells",
+            "paper-literal FGSM - ours, strict cells (paper's eps mix)",
+            "paper/strict/paper",
+            "ours/strict/paper",
+        ),
+        ("protocol", "paper protocol - strict, our FGSM (paper's eps mix)", "ours/paper/paper", "ours/strict/paper"),
+        ("both", "both (paper's setting - ours) (paper's eps mix)", "paper/paper/paper", "ours/strict/paper"),
+    ]
     out = []
     for where, run in sequences.items():
         det, f = run["detectors"], run["paper_fraction"]
@@ -233,15 +307,27 @@ def sequence_effects(sequences: dict[str, Any], eps: str = "0.01") -> list[dict[
             if eps not in det.get(a, {}) or eps not in det.get(b, {}):
                 continue
             ca, cb = np.array(det[a][eps]["counts"]), np.array(det[b][eps]["counts"])
-            out.append({"sequences": where, "effect": name, "key": key, "eps": eps,
-                        "accuracy": paired_difference(ca, cb), "accuracy_at": paired_difference(ca, cb, f, f)})
+            out.append(
+                {
+                    "sequences": where,
+                    "effect": name,
+                    "key": key,
+                    "eps": eps,
+                    "accuracy": paired_difference(ca, cb),
+                    "accuracy_at": paired_difference(ca, cb, f, f),
+                }
+            )
     return out
 
 
 def _sequence_counts(sequences: dict[str, Any]) -> str:
-    """"10 integrated, 3 lab": the number of sequences each set's bootstrap resamples."""
-    sizes = {where: len(next(iter(per.values()))["counts"]) for where, run in sequences.items()
-             for per in list(run["detectors"].values())[:1] if per}
+    """ "10 integrated, 3 lab": the number of sequences each set's bootstrap resamples."""
+    sizes = {
+        where: len(next(iter(per.values()))["counts"])
+        for where, run in sequences.items()
+        for per in list(run["detectors"].values())[:1]
+        if per
+    }
     return ", ".join(f"{n} {where}" for where, n in sizes.items()) or "none"
 
 
@@ -249,13 +335,26 @@ def _effect_rows(effects: list[dict[str, Any]]) -> list[dict[str, str]]:
     def pts(v: tuple[float, float, float]) -> str:
         return f"{100 * v[0]:+.1f} [{100 * v[1]:+.1f}, {100 * v[2]:+.1f}]"
 
-    return [{"sequences": e["sequences"], "effect": e["effect"], "eps": e["eps"],
-             "accuracy (points)": pts(e["accuracy"]), "accuracy at the paper's f (points)": pts(e["accuracy_at"])}
-            for e in effects]
+    return [
+        {
+            "sequences": e["sequences"],
+            "effect": e["effect"],
+            "eps": e["eps"],
+            "accuracy (points)": pts(e["accuracy"]),
+            "accuracy at the paper's f (points)": pts(e["accuracy_at"]),
+        }
+        for e in effects
+    ]
 
 
-def ablation_page(cells: list[Any], curves: dict[str, list[Any]], sequences: dict[str, Any], a: Ablation, d: Detect,
-                  frames: tuple[int, int]) -> str:
+def ablation_page(
+    cells: list[Any],
+    curves: dict[str, list[Any]],
+    sequences: dict[str, Any],
+    a: Ablation,
+    d: Detect,
+    frames: tuple[int, int],
+) -> str:
     """reports/ablation.md: the cells on both eps mixes, each factor's effect, the cell closest to the paper against
     it, the learning curve and the detectors on the evaluation and lab sequences; `frames`: frames per approach of
     the pose data set and of the detector split (render.frames_per_sequence, shap.frames), each approach 50 m of
@@ -271,8 +370,8 @@ def ablation_page(cells: list[Any], curves: dict[str, list[Any]], sequences: dic
     return f"""# Ablation: the paper's FGSM and detector protocol (issue 38)
 
 The paper's LSTM detector on the SHAP values of the standard model (models/pose.pt; the `rpod detect` recipe and
-params), trained and tested in four settings, twice: its detectors trained on eps {', '.join(f'{e:g}' for e in a.eps)}
-and on the paper's eps mix ({', '.join(f'{e:g}' for e in a.paper_eps)}: the eps `rpod detect` trains on too):
+params), trained and tested in four settings, twice: its detectors trained on eps {", ".join(f"{e:g}" for e in a.eps)}
+and on the paper's eps mix ({", ".join(f"{e:g}" for e in a.paper_eps)}: the eps `rpod detect` trains on too):
 
 - **FGSM ours**: x' = clip(x + eps sign(grad), 0, 1), stored as 8 bits, as a camera would deliver it (the attack of
   every other page). **Paper-literal**: x' = x + eps sign(grad) as the paper's equation prints it, neither clipped nor
@@ -289,21 +388,21 @@ and on the paper's eps mix ({', '.join(f'{e:g}' for e in a.paper_eps)}: the eps 
   detector-split trajectory can sit on both sides.
 
 Both FGSM variants of a protocol attack the same images and share one split; each cell trains its own detector on
-the clean samples and the attacks of its eps together ({counts['train']} train, {counts['validation']} validation,
-{counts['test']} test samples; on the paper's mix {paper_counts['train']}, {paper_counts['validation']},
-{paper_counts['test']}: detect.test_fraction {d.test_fraction:g}, detect.val_fraction {d.val_fraction:g}; threshold on
+the clean samples and the attacks of its eps together ({counts["train"]} train, {counts["validation"]} validation,
+{counts["test"]} test samples; on the paper's mix {paper_counts["train"]}, {paper_counts["validation"]},
+{paper_counts["test"]}: detect.test_fraction {d.test_fraction:g}, detect.val_fraction {d.val_fraction:g}; threshold on
 the validation samples). An eps row holds every clean test sample and that eps's attacks. Accuracy = f TPR + (1 - f)(1 -
 FPR) depends on the attacked fraction f; the column "accuracy at f" re-weights TPR and FPR to the paper's integrated
 evaluation, f = {100 * f:.1f}% (a frame outside an attack starts one with probability 0.2, 5-frame attacks), where the
 paper reports 97.67% at eps 0.01. Brackets: 95% Wilson intervals over the test samples (the re-weighted accuracy:
 MOVER-Wilson; pipeline/evaluation/rates.py).
 
-Detectors trained on eps {', '.join(f'{e:g}' for e in a.eps)}:
+Detectors trained on eps {", ".join(f"{e:g}" for e in a.eps)}:
 
-{markdown_table(_rows(mix['ablation'], f))}
+{markdown_table(_rows(mix["ablation"], f))}
 Detectors trained on the paper's eps mix:
 
-{markdown_table(_rows(mix['paper'], f))}
+{markdown_table(_rows(mix["paper"], f))}
 {_verdict(cells, f)}
 
 ## Each factor's effect
@@ -315,7 +414,7 @@ an FGSM effect test the same images; the two eps mixes draw their samples indepe
 {markdown_table(_effects(cells, f))}
 ## Training samples
 
-The paper's-mix cells ours/strict and paper/paper refitted on {', '.join(f'{x:g}' for x in a.fractions)} of their
+The paper's-mix cells ours/strict and paper/paper refitted on {", ".join(f"{x:g}" for x in a.fractions)} of their
 training samples (a seeded subset, each inside the next; the same validation and test samples):
 
 {markdown_table(_curve_rows(curves, full, f))}
@@ -326,15 +425,15 @@ training samples (a seeded subset, each inside the next; the same validation and
 The detectors as onboard, frame by frame, on the integrated evaluation's trajectories (`rpod evaluate`'s frames and
 attack schedule) and on the lab's recordings (`rpod lab`'s): the standard detector (models/detector.pt, the one those
 stages run) under either FGSM variant, and each cell's detector under its own, at eps
-{', '.join(f'{e:g}' for e in a.eps)}. Brackets: 95% percentile bootstrap over the sequences
+{", ".join(f"{e:g}" for e in a.eps)}. Brackets: 95% percentile bootstrap over the sequences
 ({_sequence_counts(sequences)}: coarse). The accuracy at the paper's f re-weights to its integrated
-({ATTACK_LENGTH}-frame attacks, {100 * sequence_fraction('integrated'):.1f}%) or lab
-({LAB_ATTACK_LENGTH}-frame attacks, {100 * sequence_fraction('lab'):.1f}%) schedule.
+({ATTACK_LENGTH}-frame attacks, {100 * sequence_fraction("integrated"):.1f}%) or lab
+({LAB_ATTACK_LENGTH}-frame attacks, {100 * sequence_fraction("lab"):.1f}%) schedule.
 
-{markdown_table(_sequence_rows(sequences, cells)) if sequences else 'No sequence was run.'}
+{markdown_table(_sequence_rows(sequences, cells)) if sequences else "No sequence was run."}
 Paired differences on the same sequences (bootstrap over the sequences, resampled together for both detectors):
 
-{markdown_table(_effect_rows(effects)) if effects else 'None.'}
+{markdown_table(_effect_rows(effects)) if effects else "None."}
 Metrics, fit epochs, thresholds and per-sequence counts: reports/metrics/ablation.json (`rpod ablation`,
 optional/dvc.yaml).
 """

@@ -1,4 +1,5 @@
 """reports/attack.md, the page of `rpod attack`: pose errors per eps on the stored and the float adversarial images."""
+
 from __future__ import annotations
 
 from typing import Any
@@ -10,17 +11,42 @@ def attack_page(rows: list[dict[str, Any]], a: Attack, n: int) -> str:
     from pipeline.report.markdown import markdown_table
 
     table = markdown_table(
-        [{"eps": r["eps"], "stored L-inf": r["stored_linf"], "pos. mean (m)": r["position_mean_m"],
-          "pos. median (m)": r["position_median_m"], "att. mean (deg)": r["attitude_mean_deg"],
-          "att. median (deg)": r["attitude_median_deg"]} for r in rows], decimals=3)
+        [
+            {
+                "eps": r["eps"],
+                "stored L-inf": r["stored_linf"],
+                "pos. mean (m)": r["position_mean_m"],
+                "pos. median (m)": r["position_median_m"],
+                "att. mean (deg)": r["attitude_mean_deg"],
+                "att. median (deg)": r["attitude_median_deg"],
+            }
+            for r in rows
+        ],
+        decimals=3,
+    )
     float_table = markdown_table(
-        [{"eps": r["eps"], "pos. mean, stored uint8 (m)": r["position_mean_m"],
-          "pos. mean, float (m)": r["float_position_mean_m"], "att. mean, stored uint8 (deg)": r["attitude_mean_deg"],
-          "att. mean, float (deg)": r["float_attitude_mean_deg"]} for r in rows[1:]], decimals=3)
-    step = "" if a.method == "fgsm" else (
-        f" ({a.steps} steps, step size {a.step_size if a.step_size is not None else 'default'}"
-        + (", random start" if a.method == "pgd" and a.random_start else "")
-        + (f", momentum {a.momentum}" if a.method == "mifgsm" else "") + ")")
+        [
+            {
+                "eps": r["eps"],
+                "pos. mean, stored uint8 (m)": r["position_mean_m"],
+                "pos. mean, float (m)": r["float_position_mean_m"],
+                "att. mean, stored uint8 (deg)": r["attitude_mean_deg"],
+                "att. mean, float (deg)": r["float_attitude_mean_deg"],
+            }
+            for r in rows[1:]
+        ],
+        decimals=3,
+    )
+    step = (
+        ""
+        if a.method == "fgsm"
+        else (
+            f" ({a.steps} steps, step size {a.step_size if a.step_size is not None else 'default'}"
+            + (", random start" if a.method == "pgd" and a.random_start else "")
+            + (f", momentum {a.momentum}" if a.method == "mifgsm" else "")
+            + ")"
+        )
+    )
     return f"""# Adversarial attack on the pose estimator
 
 Attack: **{a.method}**{step} on the **{a.loss}** loss (`full` = the training loss with its
@@ -50,6 +76,8 @@ def trend(rows: list[dict[str, Any]]) -> str:
     for key, what in (("position_mean_m", "position"), ("attitude_mean_deg", "attitude")):
         vals = [rows[0][key]] + [r[key] for r in by_eps]
         grows = all(b >= a for a, b in zip(vals, vals[1:]))
-        out.append(f"the mean {what} error {'grows' if grows else 'does not grow'} monotonically from clean "
-                   f"through eps = {', '.join(r['eps'] for r in by_eps)}")
+        out.append(
+            f"the mean {what} error {'grows' if grows else 'does not grow'} monotonically from clean "
+            f"through eps = {', '.join(r['eps'] for r in by_eps)}"
+        )
     return "Over this test set, " + "; ".join(out) + "."

@@ -1,5 +1,6 @@
 """reports/attitude.md, the page of `rpod attitude`: issue 38's attitude decomposition (the standard model beside the
 pose trials' models, per split and target-attitude group, and each trial's measured contribution to the gap)."""
+
 from __future__ import annotations
 
 from typing import Any
@@ -19,12 +20,24 @@ def _model_rows(metrics: dict[str, Any], split: str) -> list[dict[str, Any]]:
     """Per model (and the standard model on a trial's frames), overall and per group."""
     rows = []
     runs = [(name, "its own", m[split], m["size"]) for name, m in metrics["models"].items()]
-    runs += [("standard", f"{v}'s", c[split], metrics["models"]["standard"]["size"]) for v, c in metrics["cross"].items()]
+    runs += [
+        ("standard", f"{v}'s", c[split], metrics["models"]["standard"]["size"]) for v, c in metrics["cross"].items()
+    ]
     for name, frames, s, size in runs:
         for group, g in [("all", s), *((GROUPS.get(k, k), x) for k, x in s["groups"].items())]:
-            rows.append({"model": name, "frames of": frames, "input": f"{size[0]}x{size[1]}", "group": group,
-                         "frames": g["frames"], "attitude (deg)": ci(g["attitude_deg"]), "tilt (deg)": ci(g["tilt_deg"]),
-                         "roll (deg)": ci(g["roll_deg"]), "position (m)": ci(g["position_m"], 3)})
+            rows.append(
+                {
+                    "model": name,
+                    "frames of": frames,
+                    "input": f"{size[0]}x{size[1]}",
+                    "group": group,
+                    "frames": g["frames"],
+                    "attitude (deg)": ci(g["attitude_deg"]),
+                    "tilt (deg)": ci(g["tilt_deg"]),
+                    "roll (deg)": ci(g["roll_deg"]),
+                    "position (m)": ci(g["position_m"], 3),
+                }
+            )
     return rows
 
 
@@ -32,12 +45,21 @@ def _contribution_rows(metrics: dict[str, Any], changes: dict[str, str]) -> list
     rows = []
     for v, per in metrics["contributions"].items():
         for split, c in per.items():
-            rows.append({"trial": v, "what it changes": changes.get(v, v), "split": split,
-                         "attitude: standard - trial (deg)": ci(c["attitude_deg"], sign=True),
-                         "... the frames' part (deg)": ci(c["frames_part_deg"], sign=True) if "frames_part_deg" in c else "-",
-                         "... the training's part (deg)": ci(c["training_part_deg"], sign=True)
-                         if "training_part_deg" in c else "-",
-                         "position: standard - trial (m)": ci(c["position_m"], 3, sign=True)})
+            rows.append(
+                {
+                    "trial": v,
+                    "what it changes": changes.get(v, v),
+                    "split": split,
+                    "attitude: standard - trial (deg)": ci(c["attitude_deg"], sign=True),
+                    "... the frames' part (deg)": ci(c["frames_part_deg"], sign=True)
+                    if "frames_part_deg" in c
+                    else "-",
+                    "... the training's part (deg)": ci(c["training_part_deg"], sign=True)
+                    if "training_part_deg" in c
+                    else "-",
+                    "position: standard - trial (m)": ci(c["position_m"], 3, sign=True),
+                }
+            )
     return rows
 
 

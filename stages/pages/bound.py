@@ -2,6 +2,7 @@
 trusted error against the alert limit AL, the replayed (real-chain) worst error, the share of target frames whose bound
 exceeds AL with its 95% interval, the attacker sparing the protection level's trusted frames, the interval-bound
 certificate beside the capacity, and every assumption the bound rests on."""
+
 from __future__ import annotations
 
 from typing import Any
@@ -54,16 +55,25 @@ def _rows(chain: dict[str, Any], label: str, stride: int) -> list[dict[str, str]
     for e, row in chain["per_eps"].items():
         b, s = row["bound"], row["spared"]
         cap = next(t["per_eps"][e]["capacity_eps"] for t in chain["tracks"]) if chain["tracks"] else None
-        rows.append({"chain": label, "eps": e, "capacity measured at eps": _x(cap, 3),
-                     "max upper / AL": _x(b["max_error_al"]), "worst trajectory": b["worst_trajectory"] or "-",
-                     "max upper (m)": _x(b["max_error_m"]), "replayed worst error (m)": _x(b["max_achieved_m"]),
-                     "replayed / AL": _x(b["max_achieved_al"]),
-                     f"target frames (1 in {stride}) with upper > AL (%)": _pct(b["frames_over_al"]),
-                     "max upper / PL": _x(b["max_error_pl"]), "max replayed / PL": _x(b["max_achieved_pl"]),
-                     "sparing the PL's trusted frames: max upper / AL": _x(s["max_error_al"]),
-                     "... max replayed / PL": _x(s["max_achieved_pl"]),
-                     "replays reproducing the program (%)": _x(None if b["exact"] is None else 100 * b["exact"], 0),
-                     "unmodelled targets": str(b["unmodelled"])})
+        rows.append(
+            {
+                "chain": label,
+                "eps": e,
+                "capacity measured at eps": _x(cap, 3),
+                "max upper / AL": _x(b["max_error_al"]),
+                "worst trajectory": b["worst_trajectory"] or "-",
+                "max upper (m)": _x(b["max_error_m"]),
+                "replayed worst error (m)": _x(b["max_achieved_m"]),
+                "replayed / AL": _x(b["max_achieved_al"]),
+                f"target frames (1 in {stride}) with upper > AL (%)": _pct(b["frames_over_al"]),
+                "max upper / PL": _x(b["max_error_pl"]),
+                "max replayed / PL": _x(b["max_achieved_pl"]),
+                "sparing the PL's trusted frames: max upper / AL": _x(s["max_error_al"]),
+                "... max replayed / PL": _x(s["max_achieved_pl"]),
+                "replays reproducing the program (%)": _x(None if b["exact"] is None else 100 * b["exact"], 0),
+                "unmodelled targets": str(b["unmodelled"]),
+            }
+        )
     return rows
 
 
@@ -73,11 +83,17 @@ def _certificates(chains: dict[str, Any]) -> list[dict[str, str]]:
     for model, c in chains.items():
         cert = c.get("certificate")
         for e, r in (cert or {}).get("per_eps", {}).items():
-            rows.append({"chain": CHAINS[model], "eps": e, "frames": str(len(cert["frames"])),
-                         "certified shift along the LOS, median (m)": f"{r['certified_along_median_m']:.3g}",
-                         "capacity along the LOS, median (m)": _x(r["capacity_along_median_m"]),
-                         "certificate / capacity": f"{r['ratio_median']:.3g}",
-                         "vacuous (beyond the range on every frame)": "yes" if r["vacuous"] else "no"})
+            rows.append(
+                {
+                    "chain": CHAINS[model],
+                    "eps": e,
+                    "frames": str(len(cert["frames"])),
+                    "certified shift along the LOS, median (m)": f"{r['certified_along_median_m']:.3g}",
+                    "capacity along the LOS, median (m)": _x(r["capacity_along_median_m"]),
+                    "certificate / capacity": f"{r['ratio_median']:.3g}",
+                    "vacuous (beyond the range on every frame)": "yes" if r["vacuous"] else "no",
+                }
+            )
     return rows
 
 
@@ -87,37 +103,49 @@ def bound_page(metrics: dict[str, Any]) -> str:
 
     chains, stride = metrics["chains"], metrics["stride"]
     rows = [r for model, c in chains.items() for r in _rows(c, CHAINS[model], stride)]
-    first = [f"- {CHAINS[m]}: " + ("the bound stays within AL at every eps" if c["first_over_al_eps"] is None
-                                    else f"the bound first exceeds AL at eps {c['first_over_al_eps']:g}")
-             for m, c in chains.items()]
+    first = [
+        f"- {CHAINS[m]}: "
+        + (
+            "the bound stays within AL at every eps"
+            if c["first_over_al_eps"] is None
+            else f"the bound first exceeds AL at eps {c['first_over_al_eps']:g}"
+        )
+        for m, c in chains.items()
+    ]
     cost = ", ".join(f"{CHAINS[m]} {c['seconds']:.0f} s" for m, c in chains.items())
-    caps = [f"- {CHAINS[m]}: measured at eps {', '.join(f'{e:g}' for e in c['capacity']['eps'])}; the "
-            f"{c['capacity']['quantile']:g} quantile x (1 + {c['capacity']['margin']:g}) per range bin "
-            f"({', '.join(f'{v:g}' for v in c['capacity']['edges'])} m)" for m, c in chains.items()]
+    caps = [
+        f"- {CHAINS[m]}: measured at eps {', '.join(f'{e:g}' for e in c['capacity']['eps'])}; the "
+        f"{c['capacity']['quantile']:g} quantile x (1 + {c['capacity']['margin']:g}) per range bin "
+        f"({', '.join(f'{v:g}' for v in c['capacity']['edges'])} m)"
+        for m, c in chains.items()
+    ]
     certs = _certificates(chains)
-    return "\n".join([
-        "# Integrity bound under the attacker's capacity",
-        "",
-        "The worst trusted error of fault sequences within the attacker's capacity F(eps, range) that pass every "
-        f"check of the chain's defense, on {metrics['trajectories']} evaluation trajectories ({metrics['frames']} "
-        f"frames; every {stride}th frame from the filter's start and the last is a target), against the alert limit "
-        "AL at the true range. upper: the program's bound; replayed: the worst sequence flown through the real "
-        "chain's defense.",
-        "",
-        markdown_table(rows),
-        "Where the bound first exceeds AL:",
-        "",
-        *first,
-        "",
-        "## The capacity",
-        "",
-        *caps,
-        "",
-        "## Certificate",
-        "",
-        markdown_table(certs) if certs else "Not computed (bound.certify_frames = 0).\n",
-        "## Assumptions",
-        "",
-        ASSUMPTIONS,
-        f"Cost: {cost} on this machine (`rpod bound`, optional/dvc.yaml).",
-        ""])
+    return "\n".join(
+        [
+            "# Integrity bound under the attacker's capacity",
+            "",
+            "The worst trusted error of fault sequences within the attacker's capacity F(eps, range) that pass every "
+            f"check of the chain's defense, on {metrics['trajectories']} evaluation trajectories ({metrics['frames']} "
+            f"frames; every {stride}th frame from the filter's start and the last is a target), against the alert limit "
+            "AL at the true range. upper: the program's bound; replayed: the worst sequence flown through the real "
+            "chain's defense.",
+            "",
+            markdown_table(rows),
+            "Where the bound first exceeds AL:",
+            "",
+            *first,
+            "",
+            "## The capacity",
+            "",
+            *caps,
+            "",
+            "## Certificate",
+            "",
+            markdown_table(certs) if certs else "Not computed (bound.certify_frames = 0).\n",
+            "## Assumptions",
+            "",
+            ASSUMPTIONS,
+            f"Cost: {cost} on this machine (`rpod bound`, optional/dvc.yaml).",
+            "",
+        ]
+    )

@@ -1,19 +1,23 @@
 """The defended chains' section of reports/integrated.md (`rpod evaluate`): the paper's detector alone and
 the detector fused with the motion check on the standard model's recorded frames, and the chain that ships
 (robust model, its own detector and defense) on its own."""
+
 from __future__ import annotations
 
 from typing import Any
 
 from stages.pages.paper import P_START
 
-TARGET_ACCURACY, TARGET_HARMFUL_FLAGGED, TARGET_FPR = 0.995, 0.995, 0.005   # issue 16's targets
+TARGET_ACCURACY, TARGET_HARMFUL_FLAGGED, TARGET_FPR = 0.995, 0.995, 0.005  # issue 16's targets
 
 
 def chain_names(fusion: str) -> dict[str, str]:
     """The defended section's chains (and the keys of metrics `fused.chains`), each naming its pose model."""
-    return {"paper": "paper (LSTM alone), standard model", "standard": f"defended ({fusion}), standard model",
-            "shipped": f"defended ({fusion}), robust model (ships)"}
+    return {
+        "paper": "paper (LSTM alone), standard model",
+        "standard": f"defended ({fusion}), standard model",
+        "shipped": f"defended ({fusion}), robust model (ships)",
+    }
 
 
 def clamp_section(b: dict[str, float], seed: int) -> str:
@@ -24,16 +28,21 @@ def clamp_section(b: dict[str, float], seed: int) -> str:
 ## Held-out check of the black-level clamp
 
 The robust model's clamp t = {t:g} (pixels in [0, 1]) was set from training frames and their simulated lab shift
-(reports/pose_robust.md). The same statistics on {b['images']} frames of these trajectories (base seed {seed}),
-which that choice did not read: the background is exactly black in {100 * b['render_black']:.1f}% of the pixels;
-under the lab domain shift its 99.9th percentile is {lab:.4f}, so t is {'still above' if t > lab else 'NOT above'} the
-lab black level here; {100 * b['lab_passed']:.3f}% of the shifted background values pass the clamp and
-{100 * b['target_erased']:.1f}% of the target's channel values fall below t.
+(reports/pose_robust.md). The same statistics on {b["images"]} frames of these trajectories (base seed {seed}),
+which that choice did not read: the background is exactly black in {100 * b["render_black"]:.1f}% of the pixels;
+under the lab domain shift its 99.9th percentile is {lab:.4f}, so t is {"still above" if t > lab else "NOT above"} the
+lab black level here; {100 * b["lab_passed"]:.3f}% of the shifted background values pass the clamp and
+{100 * b["target_erased"]:.1f}% of the target's channel values fall below t.
 """
 
 
-def defense_section(chains: dict[str, list[dict[str, Any]]], calibration: dict[str, Any], harm_m: float,
-                    attack_length: int, shipped_clean: dict[str, float]) -> str:
+def defense_section(
+    chains: dict[str, list[dict[str, Any]]],
+    calibration: dict[str, Any],
+    harm_m: float,
+    attack_length: int,
+    shipped_clean: dict[str, float],
+) -> str:
     """Markdown: the per-eps table of `pipeline.evaluation.sequences.defense_table` (the shipped chain last) and
     what the defenses were fitted on."""
     from pipeline.evaluation.sequences import defense_table
@@ -42,19 +51,31 @@ def defense_section(chains: dict[str, list[dict[str, Any]]], calibration: dict[s
     fused = list(chains.values())[-1]
     misses = []
     for r in fused:
-        short = [f"{name} {rate.pct(2)}%" for name, rate, ok in (
-            ("accuracy", r["accuracy"], r["accuracy"].value >= TARGET_ACCURACY),
-            ("harmful flagged", r["harmful_flagged"], r["harmful_flagged"].n == 0
-             or r["harmful_flagged"].value >= TARGET_HARMFUL_FLAGGED),
-            ("FPR between attacks", r["fpr"], r["fpr"].value <= TARGET_FPR)) if not ok]
+        short = [
+            f"{name} {rate.pct(2)}%"
+            for name, rate, ok in (
+                ("accuracy", r["accuracy"], r["accuracy"].value >= TARGET_ACCURACY),
+                (
+                    "harmful flagged",
+                    r["harmful_flagged"],
+                    r["harmful_flagged"].n == 0 or r["harmful_flagged"].value >= TARGET_HARMFUL_FLAGGED,
+                ),
+                ("FPR between attacks", r["fpr"], r["fpr"].value <= TARGET_FPR),
+            )
+            if not ok
+        ]
         if short:
             misses.append(f"eps {r['eps']:g} ({', '.join(short)})")
     if fused and fused[0]["fpr_clean"].value > TARGET_FPR:
         misses.append(f"attack-free runs (FPR {fused[0]['fpr_clean'].pct(2)}%)")
-    verdict = ("The defended chain that ships meets issue 16's detection targets (accuracy and harmful frames flagged "
-               ">= 99.5%, FPR <= 0.5%) at every eps." if not misses else
-               "Short of issue 16's detection targets (accuracy and harmful frames flagged >= 99.5%, FPR <= 0.5%) at: "
-               + "; ".join(misses) + ".")
+    verdict = (
+        "The defended chain that ships meets issue 16's detection targets (accuracy and harmful frames flagged "
+        ">= 99.5%, FPR <= 0.5%) at every eps."
+        if not misses
+        else "Short of issue 16's detection targets (accuracy and harmful frames flagged >= 99.5%, FPR <= 0.5%) at: "
+        + "; ".join(misses)
+        + "."
+    )
     verdict += _why(fused, calibration)
     val = calibration.get("validation", {})
     fpr_val = val.get("false_alarms", {}).get("fused", {}).get("pct", "-")
@@ -66,7 +87,7 @@ model's recorded frames above (FGSM on the standard model, its detector; the def
 models/defense_standard.json); "defended, robust model (ships)" is the chain that ships: the robust
 model's own pass over the same trajectories and attack schedule (FGSM crafted on the robust model, its
 own detector models/detector_robust.pt, the defense models/defense.json). Clean, the robust model's mean
-errors on these trajectories are {shipped_clean['position_m']:.2f} m and {shipped_clean['attitude_deg']:.2f} deg
+errors on these trajectories are {shipped_clean["position_m"]:.2f} m and {shipped_clean["attitude_deg"]:.2f} deg
 (the standard model's: the table above).
 
 The recorded frames (same attacks, same detector probabilities) go through the defense of
@@ -76,8 +97,8 @@ each estimate with a chi-square gate; a frame is flagged when the detector or th
 (`defense.fusion`), and a flagged frame's estimate is replaced by the filter's prediction (the
 trusted estimate). "paper (LSTM alone)" is the paper's detector through the same bookkeeping (its
 flags equal the table above). Each defense's measurement noise was fitted by `rpod calibrate` on
-{val.get('trajectories', '?')} validation trajectories of their own seed ({val.get('frames', '?')} clean
-frames, seed {val.get('seed', '?')}), never on these; the shipped chain's fused FPR on its clean validation
+{val.get("trajectories", "?")} validation trajectories of their own seed ({val.get("frames", "?")} clean
+frames, seed {val.get("seed", "?")}), never on these; the shipped chain's fused FPR on its clean validation
 frames {fpr_val}%. Rates are pooled over the trajectories, with 95% bootstrap intervals over
 trajectories (frames of one trajectory are correlated; with one trajectory the interval is Wilson's,
 which is then optimistic). FPR "between attacks" counts the clean frames of the attacked runs,
@@ -105,12 +126,20 @@ def rates_section(rows: list[dict[str, Any]], paper_length: int, paper: dict[flo
     table = []
     for eps, r in sequence_rates(rows).items():
         acc = paper.get(eps)
-        table.append({"eps": f"{eps:g}", "attacked f (%)": r.attacked_fraction.pct(), "TPR (%)": r.tpr.pct(),
-                      "FPR (%)": r.fpr.pct(), "accuracy (%)": r.accuracy.pct(),
-                      f"accuracy at the paper's f = {100 * f:.1f}% (%)": r.accuracy_at(f).pct(),
-                      "paper, accuracy (%)": "-" if acc is None else f"{acc:.2f}",
-                      "TPR the paper's accuracy needs (%)": "-" if acc is None else
-                      f"{100 * max(0.0, (acc / 100 - (1 - f)) / f):.1f}"})
+        table.append(
+            {
+                "eps": f"{eps:g}",
+                "attacked f (%)": r.attacked_fraction.pct(),
+                "TPR (%)": r.tpr.pct(),
+                "FPR (%)": r.fpr.pct(),
+                "accuracy (%)": r.accuracy.pct(),
+                f"accuracy at the paper's f = {100 * f:.1f}% (%)": r.accuracy_at(f).pct(),
+                "paper, accuracy (%)": "-" if acc is None else f"{acc:.2f}",
+                "TPR the paper's accuracy needs (%)": "-"
+                if acc is None
+                else f"{100 * max(0.0, (acc / 100 - (1 - f)) / f):.1f}",
+            }
+        )
     return f"""Rates beside the accuracy: accuracy = f TPR + (1 - f)(1 - FPR), with f the attacked fraction. The paper's
 schedule (a frame outside an attack starts one with probability {P_START:g}, attacks of {paper_length} frames) attacks
 on average {paper_length} of every {paper_length} + (1 - {P_START:g}) / {P_START:g} = {paper_length + (1 - P_START) / P_START:g}
@@ -132,14 +161,21 @@ def _why(fused: list[dict[str, Any]], calibration: dict[str, Any]) -> str:
     alarms = [f"{r['eps']:g}" for r in fused if r["fpr"].n and r["fpr"].value > TARGET_FPR]
     clean = [f"{r['eps']:g}" for r in fused if r["tpr"].n and r["tpr"].value >= 1.0 and r["fpr"].value <= TARGET_FPR]
     at = ", ".join(f"{r['eps']:g}" for r in missed)
-    text = (f" Why: the attacked frames both checks miss (at eps {at}) carry "
-            "errors that stay inside the gate of the pose model's own range-dependent noise (fitted on validation "
-            f"frames and inflated x{calibration.get('inflation', 1):g} so that clean frames pass), which a consistency "
-            "check cannot separate from noise without more false alarms.")
+    text = (
+        f" Why: the attacked frames both checks miss (at eps {at}) carry "
+        "errors that stay inside the gate of the pose model's own range-dependent noise (fitted on validation "
+        f"frames and inflated x{calibration.get('inflation', 1):g} so that clean frames pass), which a consistency "
+        "check cannot separate from noise without more false alarms."
+    )
     if alarms:
-        text += (f" False alarms between attacks occur at eps {', '.join(alarms)}, where attacked frames slipped "
-                 "through and updated the filter: clean frames after the attack then disagree with its biased state "
-                 "until it re-acquires" + (f"; at eps {', '.join(clean)}, where every attacked frame is flagged and "
-                                           "left out, there are none." if clean else "."))
+        text += (
+            f" False alarms between attacks occur at eps {', '.join(alarms)}, where attacked frames slipped "
+            "through and updated the filter: clean frames after the attack then disagree with its biased state "
+            "until it re-acquires"
+            + (
+                f"; at eps {', '.join(clean)}, where every attacked frame is flagged and left out, there are none."
+                if clean
+                else "."
+            )
+        )
     return text
-

@@ -3,6 +3,7 @@ per dynamics and variant, the docking-miss table, issue 39's docking targets, th
 per eps (the paper's grid, on the standard model); its defended section (the chain that ships, on the robust
 model): closed-loop rendezvous success per variant (undefended, detect-and-hold, detect-and-recover) and dynamics;
 the in-loop attacker."""
+
 from __future__ import annotations
 
 from typing import Any
@@ -13,11 +14,13 @@ from stages.config.evaluation import Integrity
 from stages.config.schema import Params
 from stages.config.sections import Guidance, Render
 
-DYNAMICS = {"paper": "paper (the chaser is placed at its estimate minus the command: prediction = truth by "
-                     "construction, the paper's reproduction, no integrity evidence)",
-            "true_state": "true state (the chaser moves by the command it sent, executed with the thrusters' error "
-                          "and Clohessy-Wiltshire motion)"}
-TARGET_EPS = 0.05   # issue 39: the shipped chain docks within the tolerance under every attack up to this eps
+DYNAMICS = {
+    "paper": "paper (the chaser is placed at its estimate minus the command: prediction = truth by "
+    "construction, the paper's reproduction, no integrity evidence)",
+    "true_state": "true state (the chaser moves by the command it sent, executed with the thrusters' error "
+    "and Clohessy-Wiltshire motion)",
+}
+TARGET_EPS = 0.05  # issue 39: the shipped chain docks within the tolerance under every attack up to this eps
 VARIANTS = {"undefended": "undefended", "hold": "detect-and-hold", "recover": "detect-and-recover"}
 
 
@@ -29,26 +32,40 @@ def defended_section(d: dict[str, Any], g: Guidance) -> str:
     summary, cells = [], []
     for dyn, variants in d["dynamics"].items():
         for variant, v in variants.items():
-            row = {"dynamics": dyn, "variant": VARIANTS[variant],
-                   "no-attack run": f"{v['baseline']['outcome']}, {v['baseline']['miss_m']:.2f} m"
-                   + ("" if v["baseline"]["flags"] is None else f", {v['baseline']['flags']} flags")}
+            row = {
+                "dynamics": dyn,
+                "variant": VARIANTS[variant],
+                "no-attack run": f"{v['baseline']['outcome']}, {v['baseline']['miss_m']:.2f} m"
+                + ("" if v["baseline"]["flags"] is None else f", {v['baseline']['flags']} flags"),
+            }
             for eps, (k, n) in v["held"].items():
                 unmet = v.get("not_met", {}).get(eps, 0)
-                row[f"held % at eps {eps}"] = f"{wilson(k, n).pct()} ({k}/{n})" + (f", {unmet} not met" if unmet else "")
+                row[f"held % at eps {eps}"] = f"{wilson(k, n).pct()} ({k}/{n})" + (
+                    f", {unmet} not met" if unmet else ""
+                )
             summary.append(row)
             for r in v["runs"]:
-                cells.append({"dynamics": dyn, "variant": VARIANTS[variant], "eps": f"{r['eps']:g}",
-                              "S (m)": f"{r['start_range']:g}", "K": r["length"],
-                              "outcome": r["outcome"], "miss (m)": r["miss_m"], "steps": r["steps"],
-                              "flags": "-" if r["flags"] is None else r["flags"],
-                              "hold steps": "-" if r["hold_steps"] is None else r["hold_steps"]})
+                cells.append(
+                    {
+                        "dynamics": dyn,
+                        "variant": VARIANTS[variant],
+                        "eps": f"{r['eps']:g}",
+                        "S (m)": f"{r['start_range']:g}",
+                        "K": r["length"],
+                        "outcome": r["outcome"],
+                        "miss (m)": r["miss_m"],
+                        "steps": r["steps"],
+                        "flags": "-" if r["flags"] is None else r["flags"],
+                        "hold steps": "-" if r["hold_steps"] is None else r["hold_steps"],
+                    }
+                )
     return f"""
 ## The chain inside the loop: undefended, detect-and-hold, detect-and-recover
 
 Every cell of the grid above flown again with the chain that ships: the **robust model**
 (models/pose_robust.pt; FGSM now crafted on it), its own detector (models/detector_robust.pt) and the
 defense calibrated for it (models/defense.json, pipeline/defense/fusion.py) inside the loop, one fresh
-defense per run, for each dynamics: {'; '.join(DYNAMICS[k] for k in d['dynamics'])}. Undefended: guidance
+defense per run, for each dynamics: {"; ".join(DYNAMICS[k] for k in d["dynamics"])}. Undefended: guidance
 acts on every estimate of the robust model (as the paper's grid above does on the standard model's).
 Detect-and-hold: a
 flagged frame's estimate is not used and the chaser sends no command for that step.
@@ -77,32 +94,54 @@ def _clean_flags_text(d: dict[str, Any], g: Guidance) -> str:
         return ""
     arrival = paper.get("undefended", {}).get("baseline", {}).get("arrival_step")
     distance = float(np.linalg.norm(np.subtract(g.start, g.target)))
-    pace = ("" if not arrival else f" (the undefended run arrives after {arrival} steps, not "
-            f"{distance / g.max_step:.0f}: about {distance / arrival - g.max_step:.2f} m of range more per step than commanded)")
-    beside = "" if other is None else " (true_state: " + ", ".join(
-        f"{v['baseline']['flags']} with {VARIANTS[k]}" for k, v in other.items() if v["baseline"]["flags"] is not None) + ")"
-    return (f"\nFlags without an attack: in the paper dynamics the chaser lands where it believes it goes, so the "
-            f"motion filter's prediction is the true state whatever its estimate was. A steady error of the pose model "
-            f"on these views{pace}, which under true-state dynamics the filter carries in its state, here reaches the "
-            f"innovations whole, and the sequential test flags it: "
-            + ", ".join(f"{n} flags with {VARIANTS[k]}" for k, n in flags.items()) + f" in the no-attack runs{beside}. "
-            f"A flag there costs the frame's update (detect-and-recover flies on the prediction, which is exact) or a "
-            f"step (detect-and-hold waits), not the approach.\n")
+    pace = (
+        ""
+        if not arrival
+        else f" (the undefended run arrives after {arrival} steps, not "
+        f"{distance / g.max_step:.0f}: about {distance / arrival - g.max_step:.2f} m of range more per step than commanded)"
+    )
+    beside = (
+        ""
+        if other is None
+        else " (true_state: "
+        + ", ".join(
+            f"{v['baseline']['flags']} with {VARIANTS[k]}"
+            for k, v in other.items()
+            if v["baseline"]["flags"] is not None
+        )
+        + ")"
+    )
+    return (
+        f"\nFlags without an attack: in the paper dynamics the chaser lands where it believes it goes, so the "
+        f"motion filter's prediction is the true state whatever its estimate was. A steady error of the pose model "
+        f"on these views{pace}, which under true-state dynamics the filter carries in its state, here reaches the "
+        f"innovations whole, and the sequential test flags it: "
+        + ", ".join(f"{n} flags with {VARIANTS[k]}" for k, n in flags.items())
+        + f" in the no-attack runs{beside}. "
+        f"A flag there costs the frame's update (detect-and-recover flies on the prediction, which is exact) or a "
+        f"step (detect-and-hold waits), not the approach.\n"
+    )
 
 
 def _horizon_text(m: dict[str, Any]) -> str:
     arrival = m["baseline"]["arrival_step"]
     if arrival is None:
         return f"Every run lasts {m['horizon']} steps (guidance.max_steps; the no-attack baseline did not arrive)."
-    return (f"The no-attack baseline arrived after {arrival} steps (the nominal approach takes 50; in the paper "
-            f"variant a bias of the estimate along the range changes how far the chaser moves per step), so every attacked run lasts {m['horizon']} steps: "
-            f"that arrival plus guidance.slack_steps = {m['slack_steps']}, at most guidance.max_steps = {m['max_steps']}. "
-            "An attack succeeds when the chaser is not at the target point by then.")
+    return (
+        f"The no-attack baseline arrived after {arrival} steps (the nominal approach takes 50; in the paper "
+        f"variant a bias of the estimate along the range changes how far the chaser moves per step), so every attacked run lasts {m['horizon']} steps: "
+        f"that arrival plus guidance.slack_steps = {m['slack_steps']}, at most guidance.max_steps = {m['max_steps']}. "
+        "An attack succeeds when the chaser is not at the target point by then."
+    )
 
 
 def _cell(r: dict[str, Any]) -> str:
-    text = {"rendezvous held": "held", "attack succeeded": "**attack succeeded**",
-            "target lost": f"**target lost** (step {r['steps']})", "missed without attack": "missed"}[r["outcome"]]
+    text = {
+        "rendezvous held": "held",
+        "attack succeeded": "**attack succeeded**",
+        "target lost": f"**target lost** (step {r['steps']})",
+        "missed without attack": "missed",
+    }[r["outcome"]]
     frames = "" if r["attacked_frames"] == r["length"] else f", {r['attacked_frames']} attacked frames"
     return f"{text}, {r['miss_m']:.2f} m{frames}"
 
@@ -121,20 +160,27 @@ def guidance_page(m: dict[str, Any], g: Guidance, render: Render) -> str:
                     row[f"K = {r['length']}"] = _cell(r)
             rows.append(row)
         rate = m["attack_success_rate"][f"{eps:g}"]
-        share = "no run met the attack" if rate is None or rate != rate else \
-            f"the chaser missed or lost the target in {rate:.0%} of the runs that met the attack"
+        share = (
+            "no run met the attack"
+            if rate is None or rate != rate
+            else f"the chaser missed or lost the target in {rate:.0%} of the runs that met the attack"
+        )
         tables.append(f"### eps = {eps:g}: {share}\n\n{markdown_table(rows)}")
-    law = ("the next true position is computed from the estimate, `p_new = p_est - clip(p_est - p_tar, -1, 1)` "
-           "(the paper's variant: the chaser ends up where it believes it goes, so one wrong estimate moves the true "
-           "chaser by as much as the estimate is wrong, and any estimate within 1 m per axis of the target point puts "
-           "it exactly there; `guidance.variant: true_state` applies the command to the true state instead)"
-           if m["variant"] == "paper" else
-           "the command `clip(p_est - p_tar, -1, 1)` is computed from the estimate and applied to the true state")
+    law = (
+        "the next true position is computed from the estimate, `p_new = p_est - clip(p_est - p_tar, -1, 1)` "
+        "(the paper's variant: the chaser ends up where it believes it goes, so one wrong estimate moves the true "
+        "chaser by as much as the estimate is wrong, and any estimate within 1 m per axis of the target point puts "
+        "it exactly there; `guidance.variant: true_state` applies the command to the true state instead)"
+        if m["variant"] == "paper"
+        else "the command `clip(p_est - p_tar, -1, 1)` is computed from the estimate and applied to the true state"
+    )
     start, goal = (", ".join(f"{float(v):g}" for v in vs) for vs in (g.start, g.target))
     baseline = f"**No-attack baseline: {m['baseline']['outcome']}, final miss {m['baseline']['miss_m']:.2f} m.**"
     if m["baseline"]["outcome"] != "rendezvous held":
-        baseline += (" The pose model cannot guide the chaser even without an attack, so a miss in the tables "
-                     "below cannot be blamed on the attack.")
+        baseline += (
+            " The pose model cannot guide the chaser even without an attack, so a miss in the tables "
+            "below cannot be blamed on the attack."
+        )
     return f"""## The paper's grid: closed-loop rendezvous under attack
 
 The paper's grid (the tables below) flies the **standard model** (models/pose.pt, the paper's reproduction)
@@ -146,8 +192,8 @@ approach along +z) and steers to ({goal}) m with at most {g.max_step:g} m per ax
 Every step renders a new {render.width}x{render.height} Blender image (the pose model's input size)
 at the true pose, the pose CNN estimates the target position, and the chaser re-points its camera
 at where it believes the target is. {_horizon_text(m)} A run succeeds for
-the chaser when it ends within {m['tolerance']:g} m of the target point; "target lost" means the
-target's centre left the image, which ends the run. The attack ({m['method']} on the {m['loss']}
+the chaser when it ends within {m["tolerance"]:g} m of the target point; "target lost" means the
+target's centre left the image, which ends the run. The attack ({m["method"]} on the {m["loss"]}
 loss, images quantised to 8 bits as in `rpod attack`) starts at the first step at range <= S and
 lasts K frames (fewer when the run ends first; the cell then says how many).
 
@@ -156,8 +202,8 @@ lasts K frames (fewer when the run ends first; the cell then says how many).
 Cells: outcome, final distance to the target point.
 
 {chr(10).join(tables)}
-{m['renders']} rendered frames for {m['steps']} guidance steps (runs share the baseline's frames until
-their attack starts), {m['attacked']} attacked frames (time: reports/metrics/guidance.json).
+{m["renders"]} rendered frames for {m["steps"]} guidance steps (runs share the baseline's frames until
+their attack starts), {m["attacked"]} attacked frames (time: reports/metrics/guidance.json).
 
 ![true range and estimate error per step, no attack and each (S, K)](figures/guidance_trajectories.png)
 
@@ -176,22 +222,41 @@ def in_loop_section(d: dict[str, Any], i: Integrity) -> str:
     for dyn, variants in d["counts"].items():
         for variant in [v for v in VARIANTS if v in variants]:
             for eps, (col, lost, held, met, unmet) in sorted(variants[variant].items(), key=lambda kv: float(kv[0])):
-                summary.append({"dynamics": dyn, "variant": VARIANTS[variant], "eps": eps, "runs met": met,
-                                "collisions (%)": f"{wilson(col, met).pct()} ({col}/{met})",
-                                "lost rendezvous, no collision (%)": f"{wilson(lost, met).pct()} ({lost}/{met})",
-                                "rendezvous held (%)": f"{wilson(held, met).pct()} ({held}/{met})",
-                                "not met": unmet})
-    runs = [{"dynamics": r["dynamics"], "variant": VARIANTS[r["defense"]], "eps": f"{r['eps']:g}", "goal": r["goal"],
-             "S (m)": f"{r['start_range']:g}", "outcome": ("**collision**, " if r["collided"] else "") + r["outcome"],
-             "closest range (m)": r["closest_range_m"], "miss (m)": r["miss_m"], "steps": r["steps"],
-             "attacked": r["attacked_frames"], "flags": "-" if r["flags"] is None else r["flags"],
-             "hold steps": "-" if r["hold_steps"] is None else r["hold_steps"]} for r in d["runs"]]
+                summary.append(
+                    {
+                        "dynamics": dyn,
+                        "variant": VARIANTS[variant],
+                        "eps": eps,
+                        "runs met": met,
+                        "collisions (%)": f"{wilson(col, met).pct()} ({col}/{met})",
+                        "lost rendezvous, no collision (%)": f"{wilson(lost, met).pct()} ({lost}/{met})",
+                        "rendezvous held (%)": f"{wilson(held, met).pct()} ({held}/{met})",
+                        "not met": unmet,
+                    }
+                )
+    runs = [
+        {
+            "dynamics": r["dynamics"],
+            "variant": VARIANTS[r["defense"]],
+            "eps": f"{r['eps']:g}",
+            "goal": r["goal"],
+            "S (m)": f"{r['start_range']:g}",
+            "outcome": ("**collision**, " if r["collided"] else "") + r["outcome"],
+            "closest range (m)": r["closest_range_m"],
+            "miss (m)": r["miss_m"],
+            "steps": r["steps"],
+            "attacked": r["attacked_frames"],
+            "flags": "-" if r["flags"] is None else r["flags"],
+            "hold steps": "-" if r["hold_steps"] is None else r["hold_steps"],
+        }
+        for r in d["runs"]
+    ]
     return f"""
 
 ## The in-loop attacker: collision course, miss and capture
 
 On the chain that ships (robust model, its detector and defense). Goals "collide" and "miss": every frame from the
-first step at range <= S (S in {', '.join(f'{s:g}' for s in i.in_loop_start_ranges)} m) to the end of the run is
+first step at range <= S (S in {", ".join(f"{s:g}" for s in i.in_loop_start_ranges)} m) to the end of the run is
 crafted by an attacker who knows the chain (pose network and detector), the defense with its state, the guidance law
 and where the chaser truly is (pipeline/attackers/in_loop.py): it looks one step ahead over estimates pushed along
 and across the line of sight (as far as keeps the innovation under {i.drift_gate_fraction:g} of the motion gate once
@@ -199,8 +264,8 @@ the filter runs), keeps the one whose step brings the chaser nearest the target 
 docking point ("miss"). Goal "capture" (pipeline/attackers/capture.py): a bias of
 {i.capture_initial[0]:g} m across the line of sight from the first frame (acquisition, S = the start range), held
 to the end under the same stealth bound. Each frame by targeted L-inf PGD ({i.in_loop_steps} steps, the detector's
-margin in the objective) at eps {', '.join(f'{e:g}' for e in sorted(i.in_loop_eps))}, stored as 8 bits. Greedy: a
-course that needs a detour is not found. A **collision** is a true range below `integrity.collision_range_m` = {d['collision_range_m']:g} m anywhere on the path; **lost
+margin in the objective) at eps {", ".join(f"{e:g}" for e in sorted(i.in_loop_eps))}, stored as 8 bits. Greedy: a
+course that needs a detour is not found. A **collision** is a true range below `integrity.collision_range_m` = {d["collision_range_m"]:g} m anywhere on the path; **lost
 rendezvous** a run that ends outside the tolerance or loses the target without a collision; **held**
 a run that ends docked. Horizon: the variant's no-attack arrival + `guidance.slack_steps`, plus as
 many again for the defended variants (a chaser that holds on flags arrives late). Only the runs that
@@ -229,40 +294,70 @@ def closed_loop_section(d: dict[str, Any], p: Params) -> str:
     ts = v.get("true_state", {})
     if ts:
         und, rec = ts.get("undefended", {}).get("breaking_eps"), ts.get("recover", {}).get("breaking_eps")
-        falsifiable = und is not None and und > 0   # failing without attack shows nothing about the attacks
+        falsifiable = und is not None and und > 0  # failing without attack shows nothing about the attacks
         small = [x for k, x in ts.get("recover", {}).get("per_eps", {}).items() if float(k) <= TARGET_EPS]
         failed = sum(x["failed"] for x in small)
         clean_ok = ts.get("recover", {}).get("clean", {}) or {}
-        lines = [("falsifiable: the undefended chain fails its mission at some eps", "met" if falsifiable else
-                  "not shown" if und == 0 else "**missed**", f"undefended breaking eps {_break(und)}"),
-                 (f"detect-and-recover, every attack up to eps {TARGET_EPS:g}: docking miss <= tolerance",
-                  "met" if small and not failed and clean_ok.get("outcome") == "docked" else "**missed**",
-                  f"no-attack run {clean_ok.get('outcome', '-')} ({clean_ok.get('miss', float('nan')):.2f} m); "
-                  f"{failed} failed of {sum(x['met'] for x in small)} attacked runs up to eps {TARGET_EPS:g}"),
-                 ("detect-and-recover breaking eps >= 2 x the undefended chain's",
-                  "not shown" if und in (None, 0.0) else "met" if rec is None or rec >= 2 * und - 1e-12 else
-                  "**missed**", f"recover {_break(rec)}, undefended {_break(und)}")]
+        lines = [
+            (
+                "falsifiable: the undefended chain fails its mission at some eps",
+                "met" if falsifiable else "not shown" if und == 0 else "**missed**",
+                f"undefended breaking eps {_break(und)}",
+            ),
+            (
+                f"detect-and-recover, every attack up to eps {TARGET_EPS:g}: docking miss <= tolerance",
+                "met" if small and not failed and clean_ok.get("outcome") == "docked" else "**missed**",
+                f"no-attack run {clean_ok.get('outcome', '-')} ({clean_ok.get('miss', float('nan')):.2f} m); "
+                f"{failed} failed of {sum(x['met'] for x in small)} attacked runs up to eps {TARGET_EPS:g}",
+            ),
+            (
+                "detect-and-recover breaking eps >= 2 x the undefended chain's",
+                "not shown" if und in (None, 0.0) else "met" if rec is None or rec >= 2 * und - 1e-12 else "**missed**",
+                f"recover {_break(rec)}, undefended {_break(und)}",
+            ),
+        ]
     missed = [t for t in lines if t[1] != "met"]
-    head = (f"**Breaking point in the closed loop (true-state dynamics; smallest eps at which an attacked run failed "
-            f"its mission): {breaks or 'no true-state runs'}.** "
-            + (f"Targets not met: {'; '.join(f'{t} ({w}: {e})' for t, w, e in missed)}." if missed else
-               "Every docking target of issue 39 is met in this grid."))
+    head = (
+        f"**Breaking point in the closed loop (true-state dynamics; smallest eps at which an attacked run failed "
+        f"its mission): {breaks or 'no true-state runs'}.** "
+        + (
+            f"Targets not met: {'; '.join(f'{t} ({w}: {e})' for t, w, e in missed)}."
+            if missed
+            else "Every docking target of issue 39 is met in this grid."
+        )
+    )
     rows = []
     for dyn in order:
         for variant, x in v[dyn].items():
             c = x["clean"] or {}
-            row = {"dynamics": dyn, "variant": VARIANTS[variant], "breaking eps": _break(x["breaking_eps"]),
-                   "no attack: outcome, miss (m)": f"{c.get('outcome', '-')}, {c.get('miss', float('nan')):.2f}"}
+            row = {
+                "dynamics": dyn,
+                "variant": VARIANTS[variant],
+                "breaking eps": _break(x["breaking_eps"]),
+                "no attack: outcome, miss (m)": f"{c.get('outcome', '-')}, {c.get('miss', float('nan')):.2f}",
+            }
             for eps, k in x["per_eps"].items():
-                row[f"eps {eps}: failed / met, largest miss (m)"] = f"{k['failed']}/{k['met']}, {k['largest_miss_m']:.2f}"
+                row[f"eps {eps}: failed / met, largest miss (m)"] = (
+                    f"{k['failed']}/{k['met']}, {k['largest_miss_m']:.2f}"
+                )
             rows.append(row)
     columns = list(dict.fromkeys(k for row in rows for k in row))
-    rows = [{k: row.get(k, "-") for k in columns} for row in rows]   # "-": no attacked run at that eps
-    runs = [{"dynamics": r["dynamics"], "variant": VARIANTS[r["defense"]], "attack": r["attack"],
-             "eps": "-" if r["eps"] is None else f"{r['eps']:g}", "outcome": ("**" + r["outcome"] + "**") if r["failed"]
-             else r["outcome"], "range miss (m)": r["range_miss"], "lateral miss (m)": r["lateral_miss"],
-             "closest range (m)": r["closest_range"], "hold steps": r["hold_steps"]}
-            for r in d["runs"] if r["dynamics"] == "true_state" and r["met"]]
+    rows = [{k: row.get(k, "-") for k in columns} for row in rows]  # "-": no attacked run at that eps
+    runs = [
+        {
+            "dynamics": r["dynamics"],
+            "variant": VARIANTS[r["defense"]],
+            "attack": r["attack"],
+            "eps": "-" if r["eps"] is None else f"{r['eps']:g}",
+            "outcome": ("**" + r["outcome"] + "**") if r["failed"] else r["outcome"],
+            "range miss (m)": r["range_miss"],
+            "lateral miss (m)": r["lateral_miss"],
+            "closest range (m)": r["closest_range"],
+            "hold steps": r["hold_steps"],
+        }
+        for r in d["runs"]
+        if r["dynamics"] == "true_state" and r["met"]
+    ]
     x = p.guidance.execution
     return f"""# Closed-loop rendezvous: where the shipped chain docks
 
@@ -275,13 +370,13 @@ True-state dynamics: the chaser moves by the command it sent, executed with the 
 in every run) and Clohessy-Wiltshire motion over {x.frame_interval:g} s per step (mean motion {x.mean_motion:g} rad/s,
 {x.approach}); the defense is told the commands only (process noise {p.defense.position_noise:g} m per step).
 Detect-and-recover flies on the trusted estimate where it is available (PL <= AL, the
-{p.integrity.alert_limit_kind.replace('_', '-')} AL at the trusted estimate's range) and holds elsewhere; the protection
+{p.integrity.alert_limit_kind.replace("_", "-")} AL at the trusted estimate's range) and holds elsewhere; the protection
 level assumes no fault on the {p.defense.trusted_start} frames after the filter's first start. Mission failure: a
-collision (true range below {d['collision_range_m']:g} m), a lost target, or a miss beyond {d['tolerance_m']:g} m while
+collision (true range below {d["collision_range_m"]:g} m), a lost target, or a miss beyond {d["tolerance_m"]:g} m while
 the chaser still flew; a run that ends held far from the goal is a safe abort (an availability loss, not a
 failure). The paper dynamics rows are the paper's reproduction (prediction = truth by construction) and no part of
-the breaking point's headline. The in-loop attackers: {', '.join(attacker_names(g) for g in p.integrity.in_loop_goals)}
-at eps {', '.join(f'{e:g}' for e in p.integrity.in_loop_eps)}; the grid's FGSM at eps {', '.join(f'{e:g}' for e in p.guidance.eps)}.
+the breaking point's headline. The in-loop attackers: {", ".join(attacker_names(g) for g in p.integrity.in_loop_goals)}
+at eps {", ".join(f"{e:g}" for e in p.integrity.in_loop_eps)}; the grid's FGSM at eps {", ".join(f"{e:g}" for e in p.guidance.eps)}.
 
 Docking per dynamics and variant (only the attacked runs that met the attack count):
 

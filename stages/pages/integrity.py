@@ -2,21 +2,24 @@
 breaking point per chain, the safety-index table, the Stanford counts, the issue's targets met or missed, the
 assumptions every row rests on) and the descriptive rows of the shipped chain (what each attack caused beside the
 same frames unattacked); the attackers' names in words for the other pages."""
+
 from __future__ import annotations
 
 from typing import Any
 
 from stages.config.schema import Params
 
-CHAINS = {"robust": "shipped (robust model, its detector and defense)",
-          "standard": "standard (the paper's reproduction, its detector and defense)",
-          "control": "undefended robust control (the shipped pose network alone)"}
+CHAINS = {
+    "robust": "shipped (robust model, its detector and defense)",
+    "standard": "standard (the paper's reproduction, its detector and defense)",
+    "control": "undefended robust control (the shipped pose network alone)",
+}
 KINDS = {"capture": "capture", "drift": "drift", "burst": "burst (nested)"}
 DIRECTIONS = {"los": "along the line of sight", "lateral": "across it"}
-TARGET_SHIPPED_EPS = 0.05       # issue 39: the shipped chain holds at every eps up to this
-TARGET_RATIO = 2.0              # ... and breaks at least this many times the control's eps
-TARGET_AVAILABILITY = 0.99      # clean availability at least this
-TARGET_FALSE_ALARMS = 0.005     # clean false alarms at most this
+TARGET_SHIPPED_EPS = 0.05  # issue 39: the shipped chain holds at every eps up to this
+TARGET_RATIO = 2.0  # ... and breaks at least this many times the control's eps
+TARGET_AVAILABILITY = 0.99  # clean availability at least this
+TARGET_FALSE_ALARMS = 0.005  # clean false alarms at most this
 
 
 def attacker_names(name: str) -> str:
@@ -52,36 +55,56 @@ def targets(integrity: dict[str, Any]) -> list[tuple[str, str, str]]:
     shipped, control = chains["robust"]["summary"], chains["control"]["summary"]
     out = []
     c = control["breaking_eps"]
-    out.append(("falsifiable: the undefended control fails at some eps of the grid", "met" if c is not None else
-                "**missed**", f"control breaking eps {_eps(c)} ({chains['control']['trajectories']} trajectories)"))
+    out.append(
+        (
+            "falsifiable: the undefended control fails at some eps of the grid",
+            "met" if c is not None else "**missed**",
+            f"control breaking eps {_eps(c)} ({chains['control']['trajectories']} trajectories)",
+        )
+    )
     small = [e for e in integrity["eps"] if e <= TARGET_SHIPPED_EPS]
     flown = {float(e): shipped["per_eps"][f"{e:g}"] for e in shipped["eps_flown"]}
     failed = [e for e in small if e in flown and flown[e]["failed"]]
     unflown = [e for e in small if e not in flown]
     worst = max((flown[e]["max_error_al"] or 0.0 for e in small if e in flown), default=None)
     verdict = "**missed**" if failed or unflown else "met"
-    out.append((f"shipped chain, every attacker flown, eps <= {TARGET_SHIPPED_EPS:g}: max error / AL < 1 on every "
-                "trajectory",
-                verdict, f"largest error / AL {_m(worst)}" + (f"; failed at eps {', '.join(f'{e:g}' for e in failed)}"
-                                                              if failed else "")))
+    out.append(
+        (
+            f"shipped chain, every attacker flown, eps <= {TARGET_SHIPPED_EPS:g}: max error / AL < 1 on every "
+            "trajectory",
+            verdict,
+            f"largest error / AL {_m(worst)}"
+            + (f"; failed at eps {', '.join(f'{e:g}' for e in failed)}" if failed else ""),
+        )
+    )
     b = shipped["breaking_eps"]
     top = max(shipped["eps_flown"], default=None)
     if c is None:
         ratio = ("not shown", "the control did not break in the grid")
     elif b is None:
-        ratio = ("met" if top is not None and top >= TARGET_RATIO * c else "not shown",
-                 f"shipped held to eps {_eps(top)}, control broke at {c:g}")
+        ratio = (
+            "met" if top is not None and top >= TARGET_RATIO * c else "not shown",
+            f"shipped held to eps {_eps(top)}, control broke at {c:g}",
+        )
     else:
         ratio = ("met" if b >= TARGET_RATIO * c - 1e-12 else "**missed**", f"shipped {b:g}, control {c:g}")
     out.append((f"shipped breaking eps >= {TARGET_RATIO:g} x the control's", *ratio))
     avail = shipped["clean"]["availability"]
     alarms = shipped["clean"]["false_alarms"]
-    out.append((f"clean availability >= {100 * TARGET_AVAILABILITY:g}% (execution error on)",
-                "met" if avail["value"] is not None and avail["value"] >= TARGET_AVAILABILITY else "**missed**",
-                f"{_pct(avail)}%"))
-    out.append((f"clean false alarms <= {100 * TARGET_FALSE_ALARMS:g}% (execution error on)",
-                "met" if alarms["value"] is not None and alarms["value"] <= TARGET_FALSE_ALARMS else "**missed**",
-                f"{_pct(alarms)}%"))
+    out.append(
+        (
+            f"clean availability >= {100 * TARGET_AVAILABILITY:g}% (execution error on)",
+            "met" if avail["value"] is not None and avail["value"] >= TARGET_AVAILABILITY else "**missed**",
+            f"{_pct(avail)}%",
+        )
+    )
+    out.append(
+        (
+            f"clean false alarms <= {100 * TARGET_FALSE_ALARMS:g}% (execution error on)",
+            "met" if alarms["value"] is not None and alarms["value"] <= TARGET_FALSE_ALARMS else "**missed**",
+            f"{_pct(alarms)}%",
+        )
+    )
     return out
 
 
@@ -94,40 +117,72 @@ def lead(integrity: dict[str, Any], p: Params) -> str:
     verdicts = targets(integrity)
     missed = [t for t in verdicts if t[1] != "met"]
     breaks = ", ".join(f"{CHAINS[k].split(' (')[0]} {_eps(v)}" for k, v in integrity["breaking_eps"].items())
-    head = (f"**Breaking point (smallest eps at which an attacker fails a trajectory): {breaks}.** "
-            + (f"Targets of issue 39 not met: {'; '.join(f'{t} ({v}: {e})' for t, v, e in missed)}."
-               if missed else "Every target of issue 39 is met on this evidence."))
-    points = [{"chain": CHAINS[k], "trajectories": v["trajectories"], "breaking eps": _eps(v["summary"]["breaking_eps"]),
-               "eps flown": ", ".join(f"{e:g}" for e in v["summary"]["eps_flown"]),
-               "clean availability (%)": _pct(v["summary"]["clean"]["availability"]),
-               "clean false alarms (%)": _pct(v["summary"]["clean"]["false_alarms"]),
-               "clean max error / AL": _m(v["summary"]["clean"]["max_error_al"]),
-               "clean max error / PL": _m(v["summary"]["clean"]["max_error_pl"])} for k, v in chains.items()]
+    head = f"**Breaking point (smallest eps at which an attacker fails a trajectory): {breaks}.** " + (
+        f"Targets of issue 39 not met: {'; '.join(f'{t} ({v}: {e})' for t, v, e in missed)}."
+        if missed
+        else "Every target of issue 39 is met on this evidence."
+    )
+    points = [
+        {
+            "chain": CHAINS[k],
+            "trajectories": v["trajectories"],
+            "breaking eps": _eps(v["summary"]["breaking_eps"]),
+            "eps flown": ", ".join(f"{e:g}" for e in v["summary"]["eps_flown"]),
+            "clean availability (%)": _pct(v["summary"]["clean"]["availability"]),
+            "clean false alarms (%)": _pct(v["summary"]["clean"]["false_alarms"]),
+            "clean max error / AL": _m(v["summary"]["clean"]["max_error_al"]),
+            "clean max error / PL": _m(v["summary"]["clean"]["max_error_pl"]),
+        }
+        for k, v in chains.items()
+    ]
     index, regions = [], []
     for k, v in chains.items():
         s = v["summary"]
         for e in integrity["eps"]:
             row = s["per_eps"].get(f"{e:g}")
             if row is None:
-                index.append({"chain": k, "eps": f"{e:g}", "max error / AL": "not flown (broken at "
-                              f"{_eps(s['breaking_eps'])})"})
+                index.append(
+                    {"chain": k, "eps": f"{e:g}", "max error / AL": f"not flown (broken at {_eps(s['breaking_eps'])})"}
+                )
                 continue
-            index.append({"chain": k, "eps": f"{e:g}", "max error / AL": _m(row["max_error_al"]),
-                          "max error / AL single-frame": _m(row["max_error_al_single"]),
-                          "max error / PL": _m(row["max_error_pl"]), "largest final error (m)": _m(row["final_error_max_m"]),
-                          "trajectories failed": f"{row['failed']}/{row['trajectories']}",
-                          "worst attacker": attacker_names(row["worst_attacker"] or "-"),
-                          "trajectories with HMI (%)": _pct(row["hmi_trajectories"])})
+            index.append(
+                {
+                    "chain": k,
+                    "eps": f"{e:g}",
+                    "max error / AL": _m(row["max_error_al"]),
+                    "max error / AL single-frame": _m(row["max_error_al_single"]),
+                    "max error / PL": _m(row["max_error_pl"]),
+                    "largest final error (m)": _m(row["final_error_max_m"]),
+                    "trajectories failed": f"{row['failed']}/{row['trajectories']}",
+                    "worst attacker": attacker_names(row["worst_attacker"] or "-"),
+                    "trajectories with HMI (%)": _pct(row["hmi_trajectories"]),
+                }
+            )
             regions.append({"chain": k, "eps": f"{e:g}", **row["stanford"]})
         regions.append({"chain": k, "eps": "no attack", **s["clean"]["stanford"]})
     shipped = chains["robust"]["summary"]
     at = shipped["per_eps"].get(f"{TARGET_SHIPPED_EPS:g}")
-    per_trajectory = "" if at is None else (
-        f"\nThe shipped chain per trajectory at eps {TARGET_SHIPPED_EPS:g} (worst over attackers, nested in eps):\n\n"
-        + markdown_table([{"trajectory": w["trajectory"], "max error / AL": _m(w["max_error_al"]),
-                           "single-frame": _m(w["max_error_al_single"]), "max error / PL": _m(w["max_error_pl"]),
-                           "final error (m)": _m(w["final_error"]), "worst attacker": attacker_names(w["worst_attacker"] or "-"),
-                           "failed": "**yes**" if w["failed"] else "no"} for w in at["per_trajectory"]]))
+    per_trajectory = (
+        ""
+        if at is None
+        else (
+            f"\nThe shipped chain per trajectory at eps {TARGET_SHIPPED_EPS:g} (worst over attackers, nested in eps):\n\n"
+            + markdown_table(
+                [
+                    {
+                        "trajectory": w["trajectory"],
+                        "max error / AL": _m(w["max_error_al"]),
+                        "single-frame": _m(w["max_error_al_single"]),
+                        "max error / PL": _m(w["max_error_pl"]),
+                        "final error (m)": _m(w["final_error"]),
+                        "worst attacker": attacker_names(w["worst_attacker"] or "-"),
+                        "failed": "**yes**" if w["failed"] else "no",
+                    }
+                    for w in at["per_trajectory"]
+                ]
+            )
+        )
+    )
     return f"""## Safety evidence that can fail (issue 39)
 
 {head}
@@ -165,8 +220,10 @@ def _kind(integrity: dict[str, Any], p: Params) -> str:
     s = alert_limit_settings(p)
     at = f"{float(alert_limit(s.goal_range, s)):g} m at the goal, {float(alert_limit(15.0, s)):g} m at 15 m"
     if integrity["alert_limit_kind"] == "persistent":
-        return (f"the persistent-bias AL, tol + max(range - goal range, 0), the largest error a bias that may stay to "
-                f"docking can have (derived in pipeline/defense/integrity.py): {at}")
+        return (
+            f"the persistent-bias AL, tol + max(range - goal range, 0), the largest error a bias that may stay to "
+            f"docking can have (derived in pipeline/defense/integrity.py): {at}"
+        )
     return f"the single-frame AL (pipeline/defense/integrity.py): {at}"
 
 
@@ -177,32 +234,35 @@ def assumptions(integrity: dict[str, Any], p: Params) -> str:
     attackers = ", ".join(attacker_names(n) for n in integrity["attackers"])
     return f"""
 Assumptions of every row below:
-- **Trajectories and dynamics**: the {integrity['chains']['robust']['trajectories']} eval_render approaches, 60 m to
-  10 m, each planned step flown open loop with the thrusters' execution error ({100 * x['scale_std']:g}% of the step
-  and {100 * x['noise_std_m']:g} cm per axis, 1-sigma per step) and Clohessy-Wiltshire motion (mean motion
-  {x['mean_motion_rad_s']:g} rad/s, {x['approach']}); the chain is told the commands only. The standard chain and the
-  control fly the first {integrity['chains']['control']['trajectories']}.
-- **Noise model and process noise**: {a['noise_model']}; the filter's process noise {a['position_noise_m']:g} m per
-  frame; the CUSUM reference c = {a['cusum_reference']:g}; integrity risk {a['integrity_risk']:g} per frame.
-- **Trusted start**: the protection level assumes no fault on the {a['trusted_start_frames']} frames after the
+- **Trajectories and dynamics**: the {integrity["chains"]["robust"]["trajectories"]} eval_render approaches, 60 m to
+  10 m, each planned step flown open loop with the thrusters' execution error ({100 * x["scale_std"]:g}% of the step
+  and {100 * x["noise_std_m"]:g} cm per axis, 1-sigma per step) and Clohessy-Wiltshire motion (mean motion
+  {x["mean_motion_rad_s"]:g} rad/s, {x["approach"]}); the chain is told the commands only. The standard chain and the
+  control fly the first {integrity["chains"]["control"]["trajectories"]}.
+- **Noise model and process noise**: {a["noise_model"]}; the filter's process noise {a["position_noise_m"]:g} m per
+  frame; the CUSUM reference c = {a["cusum_reference"]:g}; integrity risk {a["integrity_risk"]:g} per frame.
+- **Trusted start**: the protection level assumes no fault on the {a["trusted_start_frames"]} frames after the
   filter's first start (assumption A, pipeline/defense/protection.py); the captures and a drift from acquisition
   attack inside them.
 - **Detector**: the shipped chain's SHAP + LSTM detector at its calibrated threshold
-  {a['detector']['threshold']:.4g} (models/defense.json), fused with the filter's checks (`defense.fusion`
-  {a['detector']['fusion']}); it alone guards the trusted-start frames, and every attacker knows it and carries its
+  {a["detector"]["threshold"]:.4g} (models/defense.json), fused with the filter's checks (`defense.fusion`
+  {a["detector"]["fusion"]}); it alone guards the trusted-start frames, and every attacker knows it and carries its
   margin in the objective (an adaptive attack, not the paper's FGSM it was trained on). The undefended control has
   none.
 - **AL and availability**: {_kind(integrity, p)}; a frame is available when the guidance flies on it (mode track or
   coast) and PL <= AL at the true range; failure = error / AL > 1 on an available frame. The single-frame AL is the
   second column.
-- **Attackers** ({attackers}): the captures hold a world-frame bias of {', '.join(f'{b:g}' for b in cap['initial_m'])}
-  m from the first frame (growth {cap['rate_m']:g} m per frame), the drifts grow from {d['start']} as far as keeps
-  every innovation under {d['gate_fraction']:g} of the gate and every CUSUM statistic under half its threshold
-  ({d['undefended_rate_m']:g} m per frame against the control); each frame a targeted PGD of
-  {integrity['frame_steps']} steps from the background-lifting start with BPDA through the clamp, warm-started from
+- **Attackers** ({attackers}): the captures hold a world-frame bias of {", ".join(f"{b:g}" for b in cap["initial_m"])}
+  m from the first frame (growth {cap["rate_m"]:g} m per frame), the drifts grow from {d["start"]} as far as keeps
+  every innovation under {d["gate_fraction"]:g} of the gate and every CUSUM statistic under half its threshold
+  ({d["undefended_rate_m"]:g} m per frame against the control); each frame a targeted PGD of
+  {integrity["frame_steps"]} steps from the background-lifting start with BPDA through the clamp, warm-started from
   the previous frame's perturbation, the detector's margin against its doubt level; each attacker nested in eps.
-  {'Each chain stops after the eps at which it breaks (`integrity.stop_at_break`).' if integrity['stop_at_break']
-   else 'Every eps is flown on every chain.'} The full grid (`rpod integrity`, optional/dvc.yaml) flies every
+  {
+        "Each chain stops after the eps at which it breaks (`integrity.stop_at_break`)."
+        if integrity["stop_at_break"]
+        else "Every eps is flown on every chain."
+    } The full grid (`rpod integrity`, optional/dvc.yaml) flies every
   attacker of the schema on every chain, trajectory and eps.
 """
 
@@ -213,15 +273,23 @@ def integrity_table(rows: list[dict[str, Any]], with_mi: bool) -> str:
 
     out = []
     for r in rows:
-        cells = {"attacker": attacker_names(r["attacker"]), "eps": f"{r['eps']:g}", "frames": r["frames"],
-                 "HMI caused (%)": _pct(r["hmi"]), "HMI without attack (%)": _pct(r["hmi_clean"])}
+        cells = {
+            "attacker": attacker_names(r["attacker"]),
+            "eps": f"{r['eps']:g}",
+            "frames": r["frames"],
+            "HMI caused (%)": _pct(r["hmi"]),
+            "HMI without attack (%)": _pct(r["hmi_clean"]),
+        }
         if with_mi:
             cells["MI caused (%)"] = _pct(r["mi"])
-        cells |= {"attacked frames flagged (%)": _pct(r["detected"]),
-                  "same frames flagged without attack (%)": _pct(r["detected_clean"]),
-                  "availability (%)": _pct(r["availability"]), "availability without attack (%)": _pct(r["availability_clean"]),
-                  "trusted error mean / max (m)": f"{_m(r['trusted_error_mean_m'])} / {_m(r['trusted_error_max_m'])}",
-                  "without attack (m)": f"{_m(r['clean_error_mean_m'])} / {_m(r['clean_error_max_m'])}"}
+        cells |= {
+            "attacked frames flagged (%)": _pct(r["detected"]),
+            "same frames flagged without attack (%)": _pct(r["detected_clean"]),
+            "availability (%)": _pct(r["availability"]),
+            "availability without attack (%)": _pct(r["availability_clean"]),
+            "trusted error mean / max (m)": f"{_m(r['trusted_error_mean_m'])} / {_m(r['trusted_error_max_m'])}",
+            "without attack (m)": f"{_m(r['clean_error_mean_m'])} / {_m(r['clean_error_max_m'])}",
+        }
         out.append(cells)
     return markdown_table(out)
 
@@ -233,18 +301,22 @@ def _bursts(rows: list[dict[str, Any]]) -> str:
     counts = [(r["eps"], r["bursts_with_hmi"]) for r in rows if "bursts_with_hmi" in r]
     if not counts:
         return ""
-    return ("\nBursts whose worst case holds at least one HMI frame (the burst attacker's own count, on the real "
-            "chain and defense): " + "; ".join(f"eps {e:g}: {wilson(k, n).pct()}% ({k}/{n})" for e, (k, n) in counts)
-            + ".\n")
+    return (
+        "\nBursts whose worst case holds at least one HMI frame (the burst attacker's own count, on the real "
+        "chain and defense): "
+        + "; ".join(f"eps {e:g}: {wilson(k, n).pct()}% ({k}/{n})" for e, (k, n) in counts)
+        + ".\n"
+    )
 
 
 def integrity_page(integrity: dict[str, Any], p: Params) -> str:
     """reports/integrity_full.md (`rpod integrity`): the full grid's evidence and descriptive rows."""
-    return ("# The full integrity grid (`rpod integrity`)\n\nEvery attacker on the shipped chain, the standard one and "
-            "the undefended robust control, every trajectory and every eps (the default profile's `rpod robustness` "
-            "flies fewer attackers on fewer trajectories and stops each chain at its breaking point: "
-            "reports/robustness.md).\n\n" + lead(integrity, p)
-            + integrity_section(integrity, p, figure=False))
+    return (
+        "# The full integrity grid (`rpod integrity`)\n\nEvery attacker on the shipped chain, the standard one and "
+        "the undefended robust control, every trajectory and every eps (the default profile's `rpod robustness` "
+        "flies fewer attackers on fewer trajectories and stops each chain at its breaking point: "
+        "reports/robustness.md).\n\n" + lead(integrity, p) + integrity_section(integrity, p, figure=False)
+    )
 
 
 def integrity_section(integrity: dict[str, Any], p: Params, figure: bool = True) -> str:
@@ -255,11 +327,11 @@ def integrity_section(integrity: dict[str, Any], p: Params, figure: bool = True)
         c = chain["clean"]
         parts.append(f"""### {CHAINS[key][0].upper() + CHAINS[key][1:]}
 
-Without any attack, on all {c['frames']} frames of its {c['trajectories']} trajectories: availability
-{_pct(c['availability'])}%, HMI {_pct(c['hmi'])}%, trusted error mean {_m(c['trusted_error_mean_m'])} m, max
-{_m(c['trusted_error_max_m'])} m.
+Without any attack, on all {c["frames"]} frames of its {c["trajectories"]} trajectories: availability
+{_pct(c["availability"])}%, HMI {_pct(c["hmi"])}%, trusted error mean {_m(c["trusted_error_mean_m"])} m, max
+{_m(c["trusted_error_max_m"])} m.
 
-{integrity_table(chain['rows'], bool(c.get('has_pl')))}{_bursts(chain['rows'])}""")
+{integrity_table(chain["rows"], bool(c.get("has_pl")))}{_bursts(chain["rows"])}""")
     return f"""## What each attack caused (descriptive)
 
 Each attacked trajectory beside the same trajectory unattacked, frame by frame: "HMI caused" counts only the
@@ -273,5 +345,7 @@ trajectories as trials. These counts speak only of the attacks tried; the sectio
 """
 
 
-FIGURE = ("![trusted error against its bound (Stanford diagram) at the largest eps flown on the shipped chain, and one "
-          "trajectory over frames](figures/integrity.png)\n")
+FIGURE = (
+    "![trusted error against its bound (Stanford diagram) at the largest eps flown on the shipped chain, and one "
+    "trajectory over frames](figures/integrity.png)\n"
+)

@@ -1,4 +1,5 @@
 """reports/dataset.md, the dataset card of `rpod label`: counts, ranges, sequences, render settings."""
+
 from __future__ import annotations
 
 import os
@@ -9,8 +10,19 @@ import numpy as np
 
 from pipeline.geometry.labels import POSITION, QUAT
 
-RENDER_SETTINGS = ("samples", "denoiser", "denoise_quality", "threads", "mesh", "mesh_scale", "sun_direction",
-                   "sun_strength", "pointing_jitter_deg", "max_target_rotation_deg", "chunk")
+RENDER_SETTINGS = (
+    "samples",
+    "denoiser",
+    "denoise_quality",
+    "threads",
+    "mesh",
+    "mesh_scale",
+    "sun_direction",
+    "sun_strength",
+    "pointing_jitter_deg",
+    "max_target_rotation_deg",
+    "chunk",
+)
 
 
 def _spread(quantity: str, values: Any) -> dict[str, Any]:
@@ -23,12 +35,25 @@ def _backgrounds(labels: Any, settings: dict[str, Any]) -> list[str]:
     split, and the `render.background` settings."""
     from pipeline.report.markdown import markdown_table
 
-    rows = [{"background": kind, "frames": len(g), "train": int((g.split == "train").sum()),
-             "test": int((g.split == "test").sum())} for kind, g in labels.groupby("background")]
-    return ["## Backgrounds", "",
-            "`render.background` (pipeline/render/backgrounds.py): black = as without it; space = stars, the sensor's "
-            "black offset and read noise; earth = also the sunlit Earth in view. Settings: "
-            + ", ".join(f"{k} = {v}" for k, v in settings.items()) + ".", "", markdown_table(rows)]
+    rows = [
+        {
+            "background": kind,
+            "frames": len(g),
+            "train": int((g.split == "train").sum()),
+            "test": int((g.split == "test").sum()),
+        }
+        for kind, g in labels.groupby("background")
+    ]
+    return [
+        "## Backgrounds",
+        "",
+        "`render.background` (pipeline/render/backgrounds.py): black = as without it; space = stars, the sensor's "
+        "black offset and read noise; earth = also the sunlit Earth in view. Settings: "
+        + ", ".join(f"{k} = {v}" for k, v in settings.items())
+        + ".",
+        "",
+        markdown_table(rows),
+    ]
 
 
 def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_dir: Path) -> str:
@@ -46,8 +71,12 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
     r, source = meta["render"], meta.get("source")
     if not source:
         seqs = labels.groupby("sequence").agg(
-            frames=("index", "size"), train=("split", lambda s: int((s == "train").sum())), tz_start=("tz", "max"),
-            tz_end=("tz", "min"), attitude_mean_deg=("index", lambda i: float(angle[i.to_numpy()].mean())))
+            frames=("index", "size"),
+            train=("split", lambda s: int((s == "train").sum())),
+            tz_start=("tz", "max"),
+            tz_end=("tz", "min"),
+            attitude_mean_deg=("index", lambda i: float(angle[i.to_numpy()].mean())),
+        )
         seqs = seqs.reset_index()
     lines = [
         "# Dataset card: " + ("imported SPEED/SPEED+ set" if source else "synthetic Jason-1-like target, 60 m to 10 m"),
@@ -58,26 +87,57 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
         "",
         "## Counts",
         "",
-        markdown_table([{"images": len(labels), "train": int((labels.split == "train").sum()),
-                         "test": int((labels.split == "test").sum()), "sequences": int(labels.sequence.nunique()),
-                         "size": f"{meta['width']}x{meta['height']}"}]),
+        markdown_table(
+            [
+                {
+                    "images": len(labels),
+                    "train": int((labels.split == "train").sum()),
+                    "test": int((labels.split == "test").sum()),
+                    "sequences": int(labels.sequence.nunique()),
+                    "size": f"{meta['width']}x{meta['height']}",
+                }
+            ]
+        ),
         *(_backgrounds(labels, r["background"]) if "background" in labels else []),
         "## Ranges",
         "",
-        markdown_table([_spread(name, v) for name, v in (
-            ("tz (m)", t[:, 2]), ("range = norm of t (m)", labels["range"]), ("tx (m)", t[:, 0]), ("ty (m)", t[:, 1]),
-            ("target centre u (px)", uv[:, 0]), ("target centre v (px)", uv[:, 1]),
-            ("attitude angle from camera axes (deg)", angle))]),
+        markdown_table(
+            [
+                _spread(name, v)
+                for name, v in (
+                    ("tz (m)", t[:, 2]),
+                    ("range = norm of t (m)", labels["range"]),
+                    ("tx (m)", t[:, 0]),
+                    ("ty (m)", t[:, 1]),
+                    ("target centre u (px)", uv[:, 0]),
+                    ("target centre v (px)", uv[:, 1]),
+                    ("attitude angle from camera axes (deg)", angle),
+                )
+            ]
+        ),
         "The attitude angle is the rotation angle of `q`: it combines the camera's look-at rotation towards "
         "laterally offset chasers, the pointing jitter, and (sequences 5-12) the random target rotation.",
         "",
-        *(_source_section(source) if source else [
-            "## Sequences", "", markdown_table(seqs, decimals=1), "## Render settings", "",
-            markdown_table([{"setting": k, "value": str(r[k])} for k in RENDER_SETTINGS])]),
+        *(
+            _source_section(source)
+            if source
+            else [
+                "## Sequences",
+                "",
+                markdown_table(seqs, decimals=1),
+                "## Render settings",
+                "",
+                markdown_table([{"setting": k, "value": str(r[k])} for k in RENDER_SETTINGS]),
+            ]
+        ),
         f"Camera K at {meta['width']}x{meta['height']}: fx={cam.fx:.3f}, fy={cam.fy:.3f}, cx={cam.cx:.3f}, "
         f"cy={cam.cy:.3f} (scaled from the reference K at {meta['camera']['ref_width']}x"
-        f"{meta['camera']['ref_height']}). " + ("Images resized with an area filter; lens distortion is not removed."
-                                                if source else "Renderer: Blender Cycles, CPU."),
+        f"{meta['camera']['ref_height']}). "
+        + (
+            "Images resized with an area filter; lens distortion is not removed."
+            if source
+            else "Renderer: Blender Cycles, CPU."
+        ),
         "",
         f"Pixel aspect fy/fx = {cam.fy / cam.fx:.4g} (`camera.fy`). The paper prints K_Blender with fy = 360 beside "
         "fx = 640 at 480x270; 360 = 270 x 48/36 is the sensor-width ratio applied to the image height, a common "
@@ -97,7 +157,16 @@ def _source_section(source: dict[str, Any]) -> list[str]:
     """The card's section on an imported SPEED/SPEED+ folder: which label files made which split."""
     from pipeline.report.markdown import markdown_table
 
-    return ["## Source", "", f"Imported by `rpod render` from `render.source` = {source['folder']} (each image is "
-            "its own sequence; the folder's own train/test split is kept).", "",
-            markdown_table([{"split": "train", "labels": source["train"], "images": source["train_images"]},
-                            {"split": "test", "labels": source["test"], "images": source["test_images"]}])]
+    return [
+        "## Source",
+        "",
+        f"Imported by `rpod render` from `render.source` = {source['folder']} (each image is "
+        "its own sequence; the folder's own train/test split is kept).",
+        "",
+        markdown_table(
+            [
+                {"split": "train", "labels": source["train"], "images": source["train_images"]},
+                {"split": "test", "labels": source["test"], "images": source["test_images"]},
+            ]
+        ),
+    ]

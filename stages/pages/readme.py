@@ -1,6 +1,7 @@
 """The summary block of reports/README.md (and of README.md, `rpod report --sync-readme`): this run's
 headline results beside the paper's, each row naming the pose model it ran on: the standard model (the paper's
 reproduction) or the robust one (the chain that ships)."""
+
 from __future__ import annotations
 
 from typing import Any
@@ -8,8 +9,13 @@ from typing import Any
 from stages.pages.paper import ATTITUDE_DEG, DETECTOR_ACCURACY, INTEGRATED, INTEGRATED_EPS, LAB, LAB_EPS, POSITION_M
 from stages.pages.summary import FORMER_KEYS
 
-DETECTOR_NAMES = {"lstm": "LSTM on SHAP (paper)", "mlp": "MLP on SHAP", "mahalanobis": "Mahalanobis (GAP)",
-                  "lid": "LID (GAP)", "squeeze": "feature squeezing"}
+DETECTOR_NAMES = {
+    "lstm": "LSTM on SHAP (paper)",
+    "mlp": "MLP on SHAP",
+    "mahalanobis": "Mahalanobis (GAP)",
+    "lid": "LID (GAP)",
+    "squeeze": "feature squeezing",
+}
 
 
 def _fmt(x: float | None, decimals: int = 2) -> str:
@@ -31,7 +37,7 @@ def _eps_keys(d: dict[str, Any]) -> list[str]:
 def _sd(spread: dict[str, Any] | None, key: str | None, note: str = "") -> str:
     """The seed spread of one headline number from reports/variance.json: "0.022 (3 seeds)", or "-"."""
     numbers = (spread or {}).get("numbers", {})
-    got = numbers.get(key or "") or numbers.get(FORMER_KEYS.get(key or "", ""))   # a spread run before a rename
+    got = numbers.get(key or "") or numbers.get(FORMER_KEYS.get(key or "", ""))  # a spread run before a rename
     if not got or not isinstance(got.get("sd"), (int, float)):
         return "-"
     unit = "runs" if len(set((spread or {}).get("isas") or [])) > 1 else "seeds"
@@ -51,56 +57,113 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
     dets = de["detectors"]
     best_base = max((k for k in dets if k != "lstm"), key=lambda k: dets[k]["all"]["accuracy"])
     rows = [
-        ("pose, test mean position error (m), standard model", _fmt(tr["test"]["pos_mean_m"]), _fmt(POSITION_M),
-         "train", _sd(spread, "pose.standard_position_m")),
-        ("pose, test mean attitude error (deg), standard model", _fmt(tr["test"]["att_mean_deg"]), _fmt(ATTITUDE_DEG),
-         "train", _sd(spread, "pose.standard_attitude_deg")),
+        (
+            "pose, test mean position error (m), standard model",
+            _fmt(tr["test"]["pos_mean_m"]),
+            _fmt(POSITION_M),
+            "train",
+            _sd(spread, "pose.standard_position_m"),
+        ),
+        (
+            "pose, test mean attitude error (deg), standard model",
+            _fmt(tr["test"]["att_mean_deg"]),
+            _fmt(ATTITUDE_DEG),
+            "train",
+            _sd(spread, "pose.standard_attitude_deg"),
+        ),
         *_robust_rows(metrics.get("robust"), spread),
-        ("FGSM mean position error (m) at eps " + " / ".join(eps_at) + ", standard model",
-         " / ".join(_fmt(at["eps"][e]["position_mean_m"], 1) for e in eps_at), "-", "attack",
-         _sd(spread, "fgsm_position_m_0.05", " at eps 0.05")),
-        ("closed loop, no attack, standard model", f"{gd['baseline']['outcome']} (miss {_fmt(gd['baseline']['miss_m'])} m)",
-         "reaches the target", "guidance", "-"),
-        ("closed loop, attacked runs that lost the rendezvous (undefended, standard model)",
-         f"{broken} of {len(runs)} ({wilson(broken, len(runs)).pct()} %)", "-", "guidance",
-         _sd(spread, "undefended_lost_pct", " %")),
-        ("(paper's view) LSTM detector accuracy, SHAP test split (%), standard model",
-         _with_ci(dets["lstm"]["all"], "accuracy"), _fmt(100 * DETECTOR_ACCURACY), "detect",
-         _sd(spread, "detector.standard_accuracy_pct")),
+        (
+            "FGSM mean position error (m) at eps " + " / ".join(eps_at) + ", standard model",
+            " / ".join(_fmt(at["eps"][e]["position_mean_m"], 1) for e in eps_at),
+            "-",
+            "attack",
+            _sd(spread, "fgsm_position_m_0.05", " at eps 0.05"),
+        ),
+        (
+            "closed loop, no attack, standard model",
+            f"{gd['baseline']['outcome']} (miss {_fmt(gd['baseline']['miss_m'])} m)",
+            "reaches the target",
+            "guidance",
+            "-",
+        ),
+        (
+            "closed loop, attacked runs that lost the rendezvous (undefended, standard model)",
+            f"{broken} of {len(runs)} ({wilson(broken, len(runs)).pct()} %)",
+            "-",
+            "guidance",
+            _sd(spread, "undefended_lost_pct", " %"),
+        ),
+        (
+            "(paper's view) LSTM detector accuracy, SHAP test split (%), standard model",
+            _with_ci(dets["lstm"]["all"], "accuracy"),
+            _fmt(100 * DETECTOR_ACCURACY),
+            "detect",
+            _sd(spread, "detector.standard_accuracy_pct"),
+        ),
         *_shipped_detector_rows(metrics.get("detect_robust"), lab, spread),
-        (f"best baseline detector accuracy (%), standard model: {DETECTOR_NAMES.get(best_base, best_base)}",
-         _with_ci(dets[best_base]["all"], "accuracy"), "-", "detect", "-"),
-        ("(paper's view) integrated per-frame detection accuracy, mean over eps (%; per eps below), standard model",
-         _fmt(100 * ev["accuracy_mean"]),
-         _fmt(INTEGRATED), "evaluate", _sd(spread, "integrated.standard_accuracy_pct")),
-        ("(paper's view) lab detection accuracy, mean over eps (%): synthetic lab-like render, "
-         + ("same mesh, reused standard models" if lab.get("reused_models", True) else "retrained models"),
-         _fmt(100 * lab["accuracy_mean"]), _fmt(LAB), "lab", _sd(spread, "lab.standard_accuracy_pct")),
+        (
+            f"best baseline detector accuracy (%), standard model: {DETECTOR_NAMES.get(best_base, best_base)}",
+            _with_ci(dets[best_base]["all"], "accuracy"),
+            "-",
+            "detect",
+            "-",
+        ),
+        (
+            "(paper's view) integrated per-frame detection accuracy, mean over eps (%; per eps below), standard model",
+            _fmt(100 * ev["accuracy_mean"]),
+            _fmt(INTEGRATED),
+            "evaluate",
+            _sd(spread, "integrated.standard_accuracy_pct"),
+        ),
+        (
+            "(paper's view) lab detection accuracy, mean over eps (%): synthetic lab-like render, "
+            + ("same mesh, reused standard models" if lab.get("reused_models", True) else "retrained models"),
+            _fmt(100 * lab["accuracy_mean"]),
+            _fmt(LAB),
+            "lab",
+            _sd(spread, "lab.standard_accuracy_pct"),
+        ),
         *_robustness_rows(metrics["robustness"], spread),
         *_integrity_rows(metrics["robustness"], gd, spread),
     ]
     columns = ("result", "this run", "paper", "stage", "sd over seeds")
-    table = markdown_table([dict(zip(columns, (r, v, p, f"`{s}`", sd) if spread else (r, v, p, f"`{s}`")))
-                            for r, v, p, s, sd in rows])
+    table = markdown_table(
+        [dict(zip(columns, (r, v, p, f"`{s}`", sd) if spread else (r, v, p, f"`{s}`"))) for r, v, p, s, sd in rows]
+    )
     eps_rows = []
     for e in sorted(set(ev["per_eps"]) | set(lab["per_eps"]), key=float, reverse=True):
         get = lambda m, k: _with_ci(m["per_eps"][e], "accuracy") if e in m["per_eps"] else "-"  # noqa: E731, B023
-        eps_rows.append({"eps": e, "integrated (%)": get(ev, e), "paper, integrated (%)": _fmt(INTEGRATED_EPS.get(e)),
-                         "lab, 10-frame attacks (%)": get(lab, e), "paper, lab (%)": _fmt(LAB_EPS.get(e))})
+        eps_rows.append(
+            {
+                "eps": e,
+                "integrated (%)": get(ev, e),
+                "paper, integrated (%)": _fmt(INTEGRATED_EPS.get(e)),
+                "lab, 10-frame attacks (%)": get(lab, e),
+                "paper, lab (%)": _fmt(LAB_EPS.get(e)),
+            }
+        )
     profiles = sorted({m.get("profile", "unknown") for m in metrics.values()})
-    head = (f"Profile `{'`, `'.join(profiles)}`. Paper: 480x270 images, full-width network, "
-            "50 epochs, 32,500 images; each stage's section of the results page says what differs and why.")
-    per_eps = ("Detection accuracy per eps (correct flags over all frames; 95% intervals by a bootstrap over the "
-               "trajectories):")
+    head = (
+        f"Profile `{'`, `'.join(profiles)}`. Paper: 480x270 images, full-width network, "
+        "50 epochs, 32,500 images; each stage's section of the results page says what differs and why."
+    )
+    per_eps = (
+        "Detection accuracy per eps (correct flags over all frames; 95% intervals by a bootstrap over the "
+        "trajectories):"
+    )
     if spread:
         isas = sorted(set(spread.get("isas") or []))
         seeds = ", ".join(sorted(set(spread["seeds"]), key=str))
-        what = (f"differ only in `seed` ({seeds}) and in torch's CPU kernels ({', '.join(isas)})" if len(isas) > 1
-                else "differ only in `seed`")
-        head += (f" The last column is the standard deviation of the number over {len(spread['seeds'])} runs that "
-                 f"{what} (reports/variance.md); a difference smaller than about twice it is noise.")
-    return (f"{head}\n\n{table}\n{per_eps}\n\n{markdown_table(eps_rows)}"
-            + defended_table(ev, gd, spread))
+        what = (
+            f"differ only in `seed` ({seeds}) and in torch's CPU kernels ({', '.join(isas)})"
+            if len(isas) > 1
+            else "differ only in `seed`"
+        )
+        head += (
+            f" The last column is the standard deviation of the number over {len(spread['seeds'])} runs that "
+            f"{what} (reports/variance.md); a difference smaller than about twice it is noise."
+        )
+    return f"{head}\n\n{table}\n{per_eps}\n\n{markdown_table(eps_rows)}" + defended_table(ev, gd, spread)
 
 
 def _robust_rows(rb: dict[str, Any] | None, spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
@@ -115,31 +178,63 @@ def _robust_rows(rb: dict[str, Any] | None, spread: dict[str, Any] | None) -> li
         got = {f"{a['eps']:g}": a[key] for a in rb[model]["suite"]["rows"] if a["attack"] == "suite"}
         return " / ".join(_fmt(got.get(e), 2 if key == "pos_m" else 1) for e in ("0.01", "0.05"))
 
-    return [("pose, test mean position error (m), robust model (ships)", _fmt(t["pos_mean_m"]), "-", "robust",
-             _sd(spread, "pose.shipped_position_m")),
-            ("pose, test mean attitude error (deg), robust model (ships)", _fmt(t["att_mean_deg"]), "-", "robust",
-             _sd(spread, "pose.shipped_attitude_deg")),
-            *((f"attack-suite worst-case mean {what} at eps 0.01 / 0.05: robust model (ships) vs standard",
-               f"{worst('robust', key)} vs {worst('standard', key)}", "-", "robust", "-")
-              for what, key in (("position error (m)", "pos_m"), ("attitude error (deg)", "att_deg")))]
+    return [
+        (
+            "pose, test mean position error (m), robust model (ships)",
+            _fmt(t["pos_mean_m"]),
+            "-",
+            "robust",
+            _sd(spread, "pose.shipped_position_m"),
+        ),
+        (
+            "pose, test mean attitude error (deg), robust model (ships)",
+            _fmt(t["att_mean_deg"]),
+            "-",
+            "robust",
+            _sd(spread, "pose.shipped_attitude_deg"),
+        ),
+        *(
+            (
+                f"attack-suite worst-case mean {what} at eps 0.01 / 0.05: robust model (ships) vs standard",
+                f"{worst('robust', key)} vs {worst('standard', key)}",
+                "-",
+                "robust",
+                "-",
+            )
+            for what, key in (("position error (m)", "pos_m"), ("attitude error (deg)", "att_deg"))
+        ),
+    ]
 
 
-def _shipped_detector_rows(dr: dict[str, Any] | None, lab: dict[str, Any],
-                           spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
+def _shipped_detector_rows(
+    dr: dict[str, Any] | None, lab: dict[str, Any], spread: dict[str, Any] | None
+) -> list[tuple[str, str, str, str, str]]:
     """The shipped chain's detector (robust model): its SHAP test accuracy, and the chain's clean false alarms on the
     lab-like frames at its calibrated threshold (rows left out when not measured)."""
     from pipeline.stats import percent_ci
 
     out = []
     if dr:
-        out.append(("shipped chain's LSTM detector accuracy, SHAP test split (%), robust model",
-                    _with_ci(dr["detectors"]["lstm"]["all"], "accuracy"), "-", "detect_robust",
-                    _sd(spread, "detector.shipped_accuracy_pct")))
+        out.append(
+            (
+                "shipped chain's LSTM detector accuracy, SHAP test split (%), robust model",
+                _with_ci(dr["detectors"]["lstm"]["all"], "accuracy"),
+                "-",
+                "detect_robust",
+                _sd(spread, "detector.shipped_accuracy_pct"),
+            )
+        )
     s = lab.get("shipped")
     if s:
-        out.append(("shipped chain (robust model): detector false alarms on clean lab-like frames (%)",
-                    f"{percent_ci(s['rate'], s['rate_ci95'], 2)} ({s['false_alarms']}/{s['frames']})", "-", "lab",
-                    _sd(spread, "lab.shipped_clean_false_alarm_pct")))
+        out.append(
+            (
+                "shipped chain (robust model): detector false alarms on clean lab-like frames (%)",
+                f"{percent_ci(s['rate'], s['rate_ci95'], 2)} ({s['false_alarms']}/{s['frames']})",
+                "-",
+                "lab",
+                _sd(spread, "lab.shipped_clean_false_alarm_pct"),
+            )
+        )
     return out
 
 
@@ -161,39 +256,71 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
         return ""
     e = "0.01" if "0.01" in fused["per_eps"] else min(fused["per_eps"], key=float)
     paper, ours = fused["paper_per_eps"][e], fused["per_eps"][e]
-    rows = [(f"integrated accuracy at eps {e} (%)", "accuracy", _fmt(INTEGRATED_EPS.get(e)), ">= 99.5",
-             "defended.shipped_accuracy_min_eps_pct" if e == min(fused["per_eps"], key=float) else None),   # its key
-            (f"attacked frames flagged at eps {e} (TPR, %)", "tpr", "-", "-", None),
-            (f"harmful frames (error > {fused['harm_m']:g} m) flagged at eps {e} (%)", "harmful_flagged", "-", ">= 99.5",
-             None),
-            (f"harmful and undetected, of the attacked frames at eps {e} (%)", "harmful_undetected", "-", "<= 1", None),
-            (f"false alarms on clean frames between attacks at eps {e} (%)", "fpr", "-", "<= 0.5", None),
-            ("false alarms on attack-free runs (%)", "fpr_clean", "-", "<= 0.5", "defended.shipped_clean_false_alarm_pct")]
+    rows = [
+        (
+            f"integrated accuracy at eps {e} (%)",
+            "accuracy",
+            _fmt(INTEGRATED_EPS.get(e)),
+            ">= 99.5",
+            "defended.shipped_accuracy_min_eps_pct" if e == min(fused["per_eps"], key=float) else None,
+        ),  # its key
+        (f"attacked frames flagged at eps {e} (TPR, %)", "tpr", "-", "-", None),
+        (
+            f"harmful frames (error > {fused['harm_m']:g} m) flagged at eps {e} (%)",
+            "harmful_flagged",
+            "-",
+            ">= 99.5",
+            None,
+        ),
+        (f"harmful and undetected, of the attacked frames at eps {e} (%)", "harmful_undetected", "-", "<= 1", None),
+        (f"false alarms on clean frames between attacks at eps {e} (%)", "fpr", "-", "<= 0.5", None),
+        ("false alarms on attack-free runs (%)", "fpr_clean", "-", "<= 0.5", "defended.shipped_clean_false_alarm_pct"),
+    ]
     sd_column = {"sd over seeds, defended": None} if spread else {}
     standard = fused.get("standard_per_eps", {}).get(e)
-    ours_col, std_col = f"defended chain ({fused['fusion']}), robust model (ships)", f"defended ({fused['fusion']}), standard model"
-    table = [{"result": name, "paper's detector, standard model (this run)": _rate(paper[key]),
-              std_col: _rate(standard[key]) if standard else "-", ours_col: _rate(ours[key]), "paper": p, "target": t,
-              **{c: _sd(spread, sd) for c in sd_column}}
-             for name, key, p, t, sd in rows]
+    ours_col, std_col = (
+        f"defended chain ({fused['fusion']}), robust model (ships)",
+        f"defended ({fused['fusion']}), standard model",
+    )
+    table = [
+        {
+            "result": name,
+            "paper's detector, standard model (this run)": _rate(paper[key]),
+            std_col: _rate(standard[key]) if standard else "-",
+            ours_col: _rate(ours[key]),
+            "paper": p,
+            "target": t,
+            **{c: _sd(spread, sd) for c in sd_column},
+        }
+        for name, key, p, t, sd in rows
+    ]
     for dyn, variants in gd.get("defended", {}).get("dynamics", {}).items():
+
         def held(variant: str, variants: dict[str, Any] = variants) -> str:
             if variant not in variants:
                 return "-"
             k, n = (sum(v[i] for v in variants[variant]["held"].values()) for i in (0, 1))
             return f"{wilson(k, n).pct()} ({k}/{n})"
 
-        table.append({"result": f"closed loop, attacked runs held (%), {dyn} dynamics, detect-and-recover (robust "
-                                f"model: undefended {held('undefended')}, detect-and-hold {held('hold')})",
-                      "paper's detector, standard model (this run)": "-", std_col: "-", ours_col: held("recover"),
-                      "paper": "-", "target": ">= 95",
-                      **{c: _sd(spread, "recover_held_pct" if dyn == "paper" else None, " %") for c in sd_column}})
-    return ("\n\nThe defended chains (motion check fused with the detector, recovery and hold) beside the "
-            "paper's detector, on the same trajectories and attack schedule, each on its own model's frames (FGSM "
-            "crafted on that model; 95% intervals); the per-frame rows are the paper's view (the raw estimate of each "
-            "frame against a fixed threshold), the closed-loop rows count only the runs that met the attack:\n\n"
-            + markdown_table(table))
-
+        table.append(
+            {
+                "result": f"closed loop, attacked runs held (%), {dyn} dynamics, detect-and-recover (robust "
+                f"model: undefended {held('undefended')}, detect-and-hold {held('hold')})",
+                "paper's detector, standard model (this run)": "-",
+                std_col: "-",
+                ours_col: held("recover"),
+                "paper": "-",
+                "target": ">= 95",
+                **{c: _sd(spread, "recover_held_pct" if dyn == "paper" else None, " %") for c in sd_column},
+            }
+        )
+    return (
+        "\n\nThe defended chains (motion check fused with the detector, recovery and hold) beside the "
+        "paper's detector, on the same trajectories and attack schedule, each on its own model's frames (FGSM "
+        "crafted on that model; 95% intervals); the per-frame rows are the paper's view (the raw estimate of each "
+        "frame against a fixed threshold), the closed-loop rows count only the runs that met the attack:\n\n"
+        + markdown_table(table)
+    )
 
 
 def _robustness_rows(m: dict[str, Any], spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
@@ -203,23 +330,34 @@ def _robustness_rows(m: dict[str, Any], spread: dict[str, Any] | None) -> list[t
     from pipeline.stats import percent_ci
 
     out = []
-    for key, what, short in (("worst_harmful_undetected_fused", "fused chain (ships, robust model), nested burst attack",
-                              "fused"),
-                             ("worst_harmful_undetected", "the shipped chain's LSTM detector alone (robust model), any "
-                              "attack incl. adaptive", "lstm")):
+    for key, what, short in (
+        ("worst_harmful_undetected_fused", "fused chain (ships, robust model), nested burst attack", "fused"),
+        (
+            "worst_harmful_undetected",
+            "the shipped chain's LSTM detector alone (robust model), any attack incl. adaptive",
+            "lstm",
+        ),
+    ):
         for e in ("0.05", "0.01"):
             w = m.get(key, {}).get(e)
             value = "-"
             if w is not None:
                 value = f"{percent_ci(w['harmful_undetected_rate'], w['ci95_harmful_undetected'])} ({w['attack']})"
-            out.append((f"(paper's view, per frame) worst harmful-undetected rate (%) at eps {e}, {what}", value, "-",
-                        "robustness",
-                        _sd(spread, f"{short}_hu_{e}_pct")))
+            out.append(
+                (
+                    f"(paper's view, per frame) worst harmful-undetected rate (%) at eps {e}, {what}",
+                    value,
+                    "-",
+                    "robustness",
+                    _sd(spread, f"{short}_hu_{e}_pct"),
+                )
+            )
     return out
 
 
-def _integrity_rows(rb: dict[str, Any], gd: dict[str, Any],
-                    spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
+def _integrity_rows(
+    rb: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any] | None
+) -> list[tuple[str, str, str, str, str]]:
     """The integrity headline rows, the evidence that can fail first: the breaking point per chain (shipped, standard,
     undefended robust control), the shipped chain's largest error / AL at eps 0.05, its docking miss in the closed
     loop (detect-and-recover, true-state dynamics) without attack and at eps 0.05; then the worst HMI a chain-level
@@ -230,50 +368,108 @@ def _integrity_rows(rb: dict[str, Any], gd: dict[str, Any],
 
     integrity, out = rb.get("integrity", {}), []
     chains = integrity.get("chains", {})
-    names = {"robust": "shipped chain (robust model)", "standard": "standard model's chain",
-             "control": "undefended robust control"}
+    names = {
+        "robust": "shipped chain (robust model)",
+        "standard": "standard model's chain",
+        "control": "undefended robust control",
+    }
     for key, what in names.items():
         b = integrity.get("breaking_eps", {}).get(key)
         value = "-" if key not in chains else ("none in the grid" if b is None else f"{b:g}")
-        out.append((f"integrity: breaking eps (smallest eps at which an attacker fails a trajectory: error / AL > 1 on "
-                    f"an available frame), {what}", value, "-", "robustness",
-                    _sd(spread, f"integrity.{'shipped' if key == 'robust' else key}_breaking_eps")))
+        out.append(
+            (
+                f"integrity: breaking eps (smallest eps at which an attacker fails a trajectory: error / AL > 1 on "
+                f"an available frame), {what}",
+                value,
+                "-",
+                "robustness",
+                _sd(spread, f"integrity.{'shipped' if key == 'robust' else key}_breaking_eps"),
+            )
+        )
     at = chains.get("robust", {}).get("summary", {}).get("per_eps", {}).get("0.05")
-    out.append(("integrity: largest trusted error / AL at eps 0.05, worst over attackers and trajectories, shipped "
-                "chain (robust model)", "-" if at is None or at["max_error_al"] is None else _fmt(at["max_error_al"]),
-                "-", "robustness", _sd(spread, "integrity.shipped_error_al_0_05_ratio")))
-    recover = gd.get("closed_loop", {}).get("variants", {}).get("true_state", {}).get("recover")   # "-": not flown
+    out.append(
+        (
+            "integrity: largest trusted error / AL at eps 0.05, worst over attackers and trajectories, shipped "
+            "chain (robust model)",
+            "-" if at is None or at["max_error_al"] is None else _fmt(at["max_error_al"]),
+            "-",
+            "robustness",
+            _sd(spread, "integrity.shipped_error_al_0_05_ratio"),
+        )
+    )
+    recover = gd.get("closed_loop", {}).get("variants", {}).get("true_state", {}).get("recover")  # "-": not flown
     worst = None if recover is None else recover["per_eps"].get("0.05")
     where = "shipped chain (detect-and-recover, true-state dynamics, execution error)"
-    out.append((f"closed loop: docking miss (m) without attack, {where}", "-" if recover is None else
-                f"{_fmt(recover['clean']['miss'])} ({recover['clean']['outcome']})", "-", "guidance",
-                _sd(spread, "closed_loop.recover_docking_miss_m")))
-    out.append((f"closed loop: largest docking miss (m) of the attacked runs at eps 0.05, {where}",
-                "-" if worst is None else _fmt(worst["largest_miss_m"]), "-", "guidance",
-                _sd(spread, "closed_loop.recover_miss_0_05_m")))
+    out.append(
+        (
+            f"closed loop: docking miss (m) without attack, {where}",
+            "-" if recover is None else f"{_fmt(recover['clean']['miss'])} ({recover['clean']['outcome']})",
+            "-",
+            "guidance",
+            _sd(spread, "closed_loop.recover_docking_miss_m"),
+        )
+    )
+    out.append(
+        (
+            f"closed loop: largest docking miss (m) of the attacked runs at eps 0.05, {where}",
+            "-" if worst is None else _fmt(worst["largest_miss_m"]),
+            "-",
+            "guidance",
+            _sd(spread, "closed_loop.recover_miss_0_05_m"),
+        )
+    )
     for e in ("0.01", "0.05"):
         w = integrity.get("worst_hmi", {}).get(e)
         value = "-" if w is None else f"{_rate(w['hmi'])} ({attacker_names(w['attacker'])})"
-        out.append((f"integrity: worst HMI (%) a chain-level attack caused at eps {e} (trusted error > AL, "
-                    f"available), shipped chain (robust model)", value, "-", "robustness", _sd(spread, f"integrity.shipped_hmi_eps_{e.replace('.', '_')}_pct")))
+        out.append(
+            (
+                f"integrity: worst HMI (%) a chain-level attack caused at eps {e} (trusted error > AL, "
+                f"available), shipped chain (robust model)",
+                value,
+                "-",
+                "robustness",
+                _sd(spread, f"integrity.shipped_hmi_eps_{e.replace('.', '_')}_pct"),
+            )
+        )
     std = chains.get("standard", {})
-    for e in ("0.01", "0.05"):   # "-" where the standard chain was not flown (as the breaking points above)
+    for e in ("0.01", "0.05"):  # "-" where the standard chain was not flown (as the breaking points above)
         w = std.get("worst_hmi", {}).get(e)
-        out.append((f"integrity: worst HMI (%) at eps {e}, standard model's chain ({std.get('trajectories', '-')} "
-                    "trajectories)",
-                    "-" if w is None else _rate(w["hmi"]), "-", "robustness",
-                    _sd(spread, f"integrity.standard_hmi_eps_{e.replace('.', '_')}_pct")))
+        out.append(
+            (
+                f"integrity: worst HMI (%) at eps {e}, standard model's chain ({std.get('trajectories', '-')} "
+                "trajectories)",
+                "-" if w is None else _rate(w["hmi"]),
+                "-",
+                "robustness",
+                _sd(spread, f"integrity.standard_hmi_eps_{e.replace('.', '_')}_pct"),
+            )
+        )
     clean = integrity.get("clean")
-    out.append(("integrity: availability of the trusted estimate without attack (%), shipped chain (robust model)",
-                "-" if clean is None else _rate(clean["availability"]), "-", "robustness", _sd(spread, "integrity.shipped_clean_availability_pct")))
+    out.append(
+        (
+            "integrity: availability of the trusted estimate without attack (%), shipped chain (robust model)",
+            "-" if clean is None else _rate(clean["availability"]),
+            "-",
+            "robustness",
+            _sd(spread, "integrity.shipped_clean_availability_pct"),
+        )
+    )
     counts = gd.get("in_loop", {}).get("counts", {})
     cells = []
     for variant in ("undefended", "hold", "recover"):
         c = [v for d in counts.values() for v in d.get(variant, {}).values()]
         k, n = sum(x[0] for x in c), sum(x[3] for x in c)
         cells.append("-" if not c else f"{wilson(k, n).pct()} ({k}/{n})")
-    out.append(("closed loop, in-loop attacker at eps " + " and ".join(sorted({f"{r['eps']:g}" for r in
-                gd.get("in_loop", {}).get("runs", [])})) + ": collisions of attacked runs (%), shipped chain (robust "
-                "model), undefended / detect-and-hold / detect-and-recover", " / ".join(cells), "-", "guidance",
-                _sd(spread, "in_loop.shipped_recover_collisions_pct")))
+    out.append(
+        (
+            "closed loop, in-loop attacker at eps "
+            + " and ".join(sorted({f"{r['eps']:g}" for r in gd.get("in_loop", {}).get("runs", [])}))
+            + ": collisions of attacked runs (%), shipped chain (robust "
+            "model), undefended / detect-and-hold / detect-and-recover",
+            " / ".join(cells),
+            "-",
+            "guidance",
+            _sd(spread, "in_loop.shipped_recover_collisions_pct"),
+        )
+    )
     return out

@@ -8,6 +8,7 @@ stability, full_check, backgrounds), the fitted capacity per model (pipeline/for
 when the robust model's metrics have it, `ablation`: a list of display-ready rows (column -> value, e.g. variant
 "clamp only" / "adversarial training only" / "both", eps, background, position and attitude errors), rendered as
 given."""
+
 from __future__ import annotations
 
 from typing import Any
@@ -30,62 +31,98 @@ def worst_rows(tables: dict[str, Any]) -> list[dict[str, Any]]:
         if row["attack"] not in ("clean", "suite"):
             continue
         got = {k: _find(tables[k]["rows"], row["attack"], row["eps"]) for k in tables}
-        rows.append({"eps": "clean" if row["attack"] == "clean" else f"{row['eps']:g}",
-                     **{f"{k} position (m)": ci(r["pos_m"], r["pos_ci"]) for k, r in got.items()},
-                     **{f"{k} attitude (deg)": ci(r["att_deg"], r["att_ci"]) for k, r in got.items()}})
+        rows.append(
+            {
+                "eps": "clean" if row["attack"] == "clean" else f"{row['eps']:g}",
+                **{f"{k} position (m)": ci(r["pos_m"], r["pos_ci"]) for k, r in got.items()},
+                **{f"{k} attitude (deg)": ci(r["att_deg"], r["att_ci"]) for k, r in got.items()},
+            }
+        )
     return rows
 
 
 def member_rows(tables: dict[str, Any]) -> list[dict[str, Any]]:
     """Per model, eps and member that ran: its mean errors (position, attitude, range, lateral) with intervals."""
-    return [{"model": k, "eps": f"{r['eps']:g}", "member": r["attack"], "position (m)": ci(r["pos_m"], r["pos_ci"]),
-             "attitude (deg)": ci(r["att_deg"], r["att_ci"]), "range (m)": ci(r["range_m"], r["range_ci"]),
-             "lateral (m)": ci(r["lateral_m"], r["lateral_ci"])}
-            for k, t in tables.items() for r in t["rows"] if r["attack"] not in ("clean", "suite")]
+    return [
+        {
+            "model": k,
+            "eps": f"{r['eps']:g}",
+            "member": r["attack"],
+            "position (m)": ci(r["pos_m"], r["pos_ci"]),
+            "attitude (deg)": ci(r["att_deg"], r["att_ci"]),
+            "range (m)": ci(r["range_m"], r["range_ci"]),
+            "lateral (m)": ci(r["lateral_m"], r["lateral_ci"]),
+        }
+        for k, t in tables.items()
+        for r in t["rows"]
+        if r["attack"] not in ("clean", "suite")
+    ]
 
 
 def check_rows(tables: dict[str, Any]) -> list[dict[str, Any]]:
     """Per model, eps and error: the sanity check and the ratios of the stability and lean-vs-full checks."""
+
     def ratio(check: dict[str, Any] | None, eps: float, error: str) -> str:
         if check is None:
             return "not run"
         r = next(r for r in check["rows"] if r["eps"] == eps and r["error"] == error)
         return f"{r['ratio']:.3f}" + ("" if r["ok"] else " (NOT within 5%)")
 
-    return [{"model": k, "eps": f"{s['eps']:g}", "error": ERRORS[s["error"]],
-             "suite >= every member, monotone in eps": "yes" if s["ok"] else "NO",
-             "strongest member": s["strongest"],
-             "doubled steps and restarts / suite": ratio(t["stability"], s["eps"], s["error"]),
-             "suite / full suite": ratio(t["full_check"], s["eps"], s["error"])}
-            for k, t in tables.items() for s in t["sanity"]]
+    return [
+        {
+            "model": k,
+            "eps": f"{s['eps']:g}",
+            "error": ERRORS[s["error"]],
+            "suite >= every member, monotone in eps": "yes" if s["ok"] else "NO",
+            "strongest member": s["strongest"],
+            "doubled steps and restarts / suite": ratio(t["stability"], s["eps"], s["error"]),
+            "suite / full suite": ratio(t["full_check"], s["eps"], s["error"]),
+        }
+        for k, t in tables.items()
+        for s in t["sanity"]
+    ]
 
 
 def lower_bounds(tables: dict[str, Any]) -> str:
     """Where the suite's figures are lower bounds: the lean-vs-full check not run, or a ratio outside 5% (of it or,
     when it ran, of the stability check)."""
+
     def failing(key: str) -> list[str]:
-        return [f"{k} {ERRORS[r['error']]} at eps {r['eps']:g}" for k, t in tables.items() if t[key]
-                for r in t[key]["rows"] if not r["ok"]]
+        return [
+            f"{k} {ERRORS[r['error']]} at eps {r['eps']:g}"
+            for k, t in tables.items()
+            if t[key]
+            for r in t[key]["rows"]
+            if not r["ok"]
+        ]
 
     first = tables[MODELS[0]]
     if first["full_check"] is None:
-        full = ("**Lower bounds.** The lean-vs-full check did not run here (suite.full_frames = 0), so every worst "
-                "case and member figure above is a lower bound of what the full suite (apgd and bpda on every "
-                "objective, Square, more restarts: suite.full) finds on these frames, most of all above the clamp "
-                "(eps > t), where one lifting start per member can miss a frame's basin. `rpod suite` "
-                "(optional/dvc.yaml) runs both suites on every test frame; the paper profile runs this check on a "
-                "subsample; reports/benchmarks.md (\"Strongest attack suite\") has an earlier lean-vs-full comparison.")
+        full = (
+            "**Lower bounds.** The lean-vs-full check did not run here (suite.full_frames = 0), so every worst "
+            "case and member figure above is a lower bound of what the full suite (apgd and bpda on every "
+            "objective, Square, more restarts: suite.full) finds on these frames, most of all above the clamp "
+            "(eps > t), where one lifting start per member can miss a frame's basin. `rpod suite` "
+            "(optional/dvc.yaml) runs both suites on every test frame; the paper profile runs this check on a "
+            'subsample; reports/benchmarks.md ("Strongest attack suite") has an earlier lean-vs-full comparison.'
+        )
     else:
         bad = failing("full_check")
-        full = (f"On {first['full_check']['frames']} of the frames the suite is within 5% of the full suite "
-                + (f"except {', '.join(bad)}: there its figure is a lower bound of the full suite's." if bad
-                   else "everywhere."))
+        full = f"On {first['full_check']['frames']} of the frames the suite is within 5% of the full suite " + (
+            f"except {', '.join(bad)}: there its figure is a lower bound of the full suite's." if bad else "everywhere."
+        )
     if first["stability"] is None:
         return full
     bad = failing("stability")
-    return (full + f" Doubling the steps and restarts on {first['stability']['frames']} of the frames moved the "
-            + (f"worst case by more than 5% at {', '.join(bad)} (not converged there: a lower bound)." if bad
-               else "worst case by less than 5% everywhere."))
+    return (
+        full
+        + f" Doubling the steps and restarts on {first['stability']['frames']} of the frames moved the "
+        + (
+            f"worst case by more than 5% at {', '.join(bad)} (not converged there: a lower bound)."
+            if bad
+            else "worst case by less than 5% everywhere."
+        )
+    )
 
 
 def background_section(tables: dict[str, Any]) -> str:
@@ -94,12 +131,23 @@ def background_section(tables: dict[str, Any]) -> str:
 
     kinds = {kind for t in tables.values() for kind in t["backgrounds"]}
     if kinds == {"black"}:
-        return ("Every attacked test frame has a black background in this profile (render.background.share = 0): "
-                "there are no Earth frames to split.\n")
-    rows = [{"model": k, "background": kind, "frames": r["n"], "eps": "clean" if r["attack"] == "clean" else
-             f"{r['eps']:g}", "position (m)": ci(r["pos_m"], r["pos_ci"]),
-             "attitude (deg)": ci(r["att_deg"], r["att_ci"])}
-            for k, t in tables.items() for kind, rs in t["backgrounds"].items() for r in rs]
+        return (
+            "Every attacked test frame has a black background in this profile (render.background.share = 0): "
+            "there are no Earth frames to split.\n"
+        )
+    rows = [
+        {
+            "model": k,
+            "background": kind,
+            "frames": r["n"],
+            "eps": "clean" if r["attack"] == "clean" else f"{r['eps']:g}",
+            "position (m)": ci(r["pos_m"], r["pos_ci"]),
+            "attitude (deg)": ci(r["att_deg"], r["att_ci"]),
+        }
+        for k, t in tables.items()
+        for kind, rs in t["backgrounds"].items()
+        for r in rs
+    ]
     return markdown_table(rows)
 
 
@@ -108,19 +156,30 @@ def capacity_section(capacity: dict[str, Any], params: Params) -> str:
     from pipeline.report.markdown import markdown_table
 
     first = capacity[MODELS[0]]
-    rows = [{"model": k, "eps": f"{e['eps']:g}", "range (m)": f"{lo:g}-{hi:g}", "frames": n, "along (m)": a,
-             "across (m)": c, "attitude (deg)": d}
-            for k, cap in capacity.items() for e in cap["per_eps"]
-            for lo, hi, n, a, c, d in zip(cap["edges"], cap["edges"][1:], e["count"], e["along_m"], e["across_m"],
-                                          e["attitude_deg"])]
+    rows = [
+        {
+            "model": k,
+            "eps": f"{e['eps']:g}",
+            "range (m)": f"{lo:g}-{hi:g}",
+            "frames": n,
+            "along (m)": a,
+            "across (m)": c,
+            "attitude (deg)": d,
+        }
+        for k, cap in capacity.items()
+        for e in cap["per_eps"]
+        for lo, hi, n, a, c, d in zip(
+            cap["edges"], cap["edges"][1:], e["count"], e["along_m"], e["across_m"], e["attitude_deg"]
+        )
+    ]
     return f"""## Attacker capacity (validation frames)
 
-What the integrity bound consumes (issue 40): on {first['meta']['frames']} validation frames (train.val_fraction of
+What the integrity bound consumes (issue 40): on {first["meta"]["frames"]} validation frames (train.val_fraction of
 the training split, the standard model's validation split: never fitted by either model; the test split is not
-read), the suite above at eps {', '.join(f'{e:g}' for e in first['meta']['eps'])} (nested) moves each frame's
+read), the suite above at eps {", ".join(f"{e:g}" for e in first["meta"]["eps"])} (nested) moves each frame's
 estimate from its clean estimate by at most `along` along the true line of sight, `across` across it and `attitude`
-in attitude. The overbound F(eps, range) per range bin is the {first['quantile']:g} quantile of those per-frame
-shifts times 1 + {first['margin']:g} (suite.capacity.quantile, margin; a bin needs {first['meta']['min_count']}
+in attitude. The overbound F(eps, range) per range bin is the {first["quantile"]:g} quantile of those per-frame
+shifts times 1 + {first["margin"]:g} (suite.capacity.quantile, margin; a bin needs {first["meta"]["min_count"]}
 frames). Per-frame values: datasets/capacity/<model>.parquet; the overbound: datasets/capacity/<model>.json.
 
 {markdown_table(rows)}"""
@@ -135,9 +194,9 @@ def suite_section(m: dict[str, Any], params: Params) -> str:
     s, first = params.suite, tables[MODELS[0]]
     return f"""## Under the strongest attack suite
 
-Mean error over {first['frames']} test frames (a seeded sample) with its 95% interval, under the strongest-attack
-suite (pipeline/attacks/strongest.py): {', '.join(first['members'])}, each {s.steps} APGD steps with momentum and
-the best iterate kept, {s.restarts} restart(s) from the {'/'.join(s.starts)} start. `bpda` passes the gradient
+Mean error over {first["frames"]} test frames (a seeded sample) with its 95% interval, under the strongest-attack
+suite (pipeline/attacks/strongest.py): {", ".join(first["members"])}, each {s.steps} APGD steps with momentum and
+the best iterate kept, {s.restarts} restart(s) from the {"/".join(s.starts)} start. `bpda` passes the gradient
 through the black-level clamp as the identity (on the standard model, which has no clamp, it is plain APGD); the
 lifting start puts the background just above the clamp once eps exceeds it
 (t = {params.train.adversarial.black_level:g}).
@@ -157,7 +216,7 @@ own. {_cost(m)}
 ### By background
 
 {background_section(tables)}
-{_ablation(m.get("ablation"))}{capacity_section(m['capacity'], params)}"""
+{_ablation(m.get("ablation"))}{capacity_section(m["capacity"], params)}"""
 
 
 def _ablation(rows: list[dict[str, Any]] | None) -> str:
@@ -170,9 +229,15 @@ def _ablation(rows: list[dict[str, Any]] | None) -> str:
 def _cost(m: dict[str, Any]) -> str:
     """What the suite cost in this run (`suite_seconds`: wall seconds of the table and of the capacity)."""
     s = m.get("suite_seconds")
-    return "" if not s else (f"Cost in this run: {s['suite']:.0f} s for the table (both models, checks included) "
-                             f"and {s['capacity']:.0f} s for the attacker capacity below (wall time, device "
-                             f"{m.get('device', '?')}).")
+    return (
+        ""
+        if not s
+        else (
+            f"Cost in this run: {s['suite']:.0f} s for the table (both models, checks included) "
+            f"and {s['capacity']:.0f} s for the attacker capacity below (wall time, device "
+            f"{m.get('device', '?')})."
+        )
+    )
 
 
 def _find(rows: list[dict[str, Any]], attack: str, eps: float) -> dict[str, Any]:
@@ -190,11 +255,11 @@ def suite_page(m: dict[str, Any], params: Params) -> str:
     first = full[MODELS[0]]
     return f"""# The full strongest-attack suite (`rpod suite`)
 
-Both pose models on all {m['frames']} test frames, profile `{params.profile_name}`. The full suite:
-{', '.join(first['members'])}; {s.full.steps} APGD steps with momentum and the best iterate kept, {s.full.restarts}
+Both pose models on all {m["frames"]} test frames, profile `{params.profile_name}`. The full suite:
+{", ".join(first["members"])}; {s.full.steps} APGD steps with momentum and the best iterate kept, {s.full.restarts}
 restart(s) alternating the random and the background-lifting start, Square with {s.full.queries} queries at eps
 {s.full.square_eps:g}. The lean suite is the one `rpod train --robust` runs for reports/pose_robust.md:
-{', '.join(lean[MODELS[0]]['members'])}; {s.steps} steps, {s.restarts} restart(s), {'/'.join(s.starts)} start.
+{", ".join(lean[MODELS[0]]["members"])}; {s.steps} steps, {s.restarts} restart(s), {"/".join(s.starts)} start.
 Every adversarial image is stored as 8 bits before it is scored; the worst case per frame is the largest error any
 member found at any eps up to the row's (nested in eps). Means with 95% intervals.
 

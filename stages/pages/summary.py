@@ -10,6 +10,7 @@ integrity.stop_at_break; the burst flies only where integrity.attackers has it).
 
 The per-stage metrics JSONs (reports/metrics/<stage>.json) keep every detail; this file only picks from them.
 """
+
 from __future__ import annotations
 
 from typing import Any, Callable, NamedTuple
@@ -18,11 +19,11 @@ Metrics = dict[str, dict[str, Any]]
 
 
 class Headline(NamedTuple):
-    key: str                                  # dotted summary.json key, <group>.<what>_<unit> (DVC's column)
-    what: str                                 # what the number is, with its unit
-    get: Callable[[Metrics], float]           # from the stage metrics (keyed by metrics file stem)
-    decimals: int = 2                         # rounding in summary.json
-    optional: bool = False                    # may be absent from a complete run (module docstring)
+    key: str  # dotted summary.json key, <group>.<what>_<unit> (DVC's column)
+    what: str  # what the number is, with its unit
+    get: Callable[[Metrics], float]  # from the stage metrics (keyed by metrics file stem)
+    decimals: int = 2  # rounding in summary.json
+    optional: bool = False  # may be absent from a complete run (module docstring)
 
 
 def _smallest_eps(per_eps: dict[str, Any]) -> str:
@@ -73,61 +74,149 @@ def in_loop_collisions(m: Metrics, defense: str = "recover") -> float:
 # Which model: the paper's reproduction rows run on the standard model (`standard_*`); everything else on the chain
 # that ships (`shipped_*`: the robust model, its detector and defense).
 HEADLINES: list[Headline] = [
-    Headline("pose.standard_position_m", "pose, standard model: test mean position error (m)",
-             lambda m: m["train"]["test"]["pos_mean_m"], 3),
-    Headline("pose.standard_attitude_deg", "pose, standard model: test mean attitude error (deg)",
-             lambda m: m["train"]["test"]["att_mean_deg"]),
-    Headline("pose.shipped_position_m", "pose, robust model (ships): test mean position error (m)",
-             lambda m: m["robust"]["robust"]["test"]["pos_mean_m"], 3),
-    Headline("pose.shipped_attitude_deg", "pose, robust model (ships): test mean attitude error (deg)",
-             lambda m: m["robust"]["robust"]["test"]["att_mean_deg"]),
-    Headline("detector.standard_accuracy_pct", "LSTM detector accuracy on the SHAP test split, standard model (%)",
-             lambda m: 100 * m["detect"]["detectors"]["lstm"]["all"]["accuracy"]),
-    Headline("detector.shipped_accuracy_pct", "the shipped detector's accuracy on its SHAP test split, robust "
-             "model (%)", lambda m: 100 * m["detect_robust"]["detectors"]["lstm"]["all"]["accuracy"]),
-    Headline("integrated.standard_accuracy_pct", "integrated detection accuracy, mean over eps, standard model (%)",
-             lambda m: 100 * m["evaluate"]["accuracy_mean"]),
-    Headline("defended.shipped_accuracy_min_eps_pct", "defended chain (ships) accuracy at the smallest eps (%)",
-             lambda m: _defended(m, "accuracy")),
-    Headline("defended.shipped_clean_false_alarm_pct", "defended chain (ships) false alarms on attack-free runs (%)",
-             lambda m: _defended(m, "fpr_clean")),
-    Headline("robustness.shipped_harmful_missed_pct",
-             "worst harmful-undetected rate of the burst attack on the defended chain (ships), any eps (%; paper's view)",
-             lambda m: 100 * max(w["harmful_undetected_rate"]
-                                 for w in m["robustness"]["worst_harmful_undetected_fused"].values()),
-             2, True),   # the burst flies where integrity.attackers has it (the paper profile, rpod integrity)
-    Headline("lab.standard_accuracy_pct", "lab detection accuracy, mean over eps, standard model (%)",
-             lambda m: 100 * m["lab"]["accuracy_mean"]),
-    Headline("lab.shipped_clean_false_alarm_pct", "lab: the shipped chain's detector false alarms on clean frames (%)",
-             lambda m: 100 * m["lab"]["shipped"]["rate"]),
+    Headline(
+        "pose.standard_position_m",
+        "pose, standard model: test mean position error (m)",
+        lambda m: m["train"]["test"]["pos_mean_m"],
+        3,
+    ),
+    Headline(
+        "pose.standard_attitude_deg",
+        "pose, standard model: test mean attitude error (deg)",
+        lambda m: m["train"]["test"]["att_mean_deg"],
+    ),
+    Headline(
+        "pose.shipped_position_m",
+        "pose, robust model (ships): test mean position error (m)",
+        lambda m: m["robust"]["robust"]["test"]["pos_mean_m"],
+        3,
+    ),
+    Headline(
+        "pose.shipped_attitude_deg",
+        "pose, robust model (ships): test mean attitude error (deg)",
+        lambda m: m["robust"]["robust"]["test"]["att_mean_deg"],
+    ),
+    Headline(
+        "detector.standard_accuracy_pct",
+        "LSTM detector accuracy on the SHAP test split, standard model (%)",
+        lambda m: 100 * m["detect"]["detectors"]["lstm"]["all"]["accuracy"],
+    ),
+    Headline(
+        "detector.shipped_accuracy_pct",
+        "the shipped detector's accuracy on its SHAP test split, robust model (%)",
+        lambda m: 100 * m["detect_robust"]["detectors"]["lstm"]["all"]["accuracy"],
+    ),
+    Headline(
+        "integrated.standard_accuracy_pct",
+        "integrated detection accuracy, mean over eps, standard model (%)",
+        lambda m: 100 * m["evaluate"]["accuracy_mean"],
+    ),
+    Headline(
+        "defended.shipped_accuracy_min_eps_pct",
+        "defended chain (ships) accuracy at the smallest eps (%)",
+        lambda m: _defended(m, "accuracy"),
+    ),
+    Headline(
+        "defended.shipped_clean_false_alarm_pct",
+        "defended chain (ships) false alarms on attack-free runs (%)",
+        lambda m: _defended(m, "fpr_clean"),
+    ),
+    Headline(
+        "robustness.shipped_harmful_missed_pct",
+        "worst harmful-undetected rate of the burst attack on the defended chain (ships), any eps (%; paper's view)",
+        lambda m: (
+            100 * max(w["harmful_undetected_rate"] for w in m["robustness"]["worst_harmful_undetected_fused"].values())
+        ),
+        2,
+        True,
+    ),  # the burst flies where integrity.attackers has it (the paper profile, rpod integrity)
+    Headline(
+        "lab.standard_accuracy_pct",
+        "lab detection accuracy, mean over eps, standard model (%)",
+        lambda m: 100 * m["lab"]["accuracy_mean"],
+    ),
+    Headline(
+        "lab.shipped_clean_false_alarm_pct",
+        "lab: the shipped chain's detector false alarms on clean frames (%)",
+        lambda m: 100 * m["lab"]["shipped"]["rate"],
+    ),
     Headline("guidance.shipped_held_pct", "closed loop (ships): attacked runs held with detect-and-recover (%)", _held),
-    Headline("integrity.shipped_hmi_eps_0_01_pct", "integrity (ships): worst HMI caused by a chain-level attack at eps "
-             "0.01 (%)", lambda m: worst_hmi(m, "0.01")),
-    Headline("integrity.shipped_hmi_eps_0_05_pct", "integrity (ships): worst HMI caused by a chain-level attack at eps "
-             "0.05 (%)", lambda m: worst_hmi(m, "0.05"), 2, True),
-    Headline("integrity.standard_hmi_eps_0_01_pct", "integrity, standard model's chain: worst HMI at eps 0.01 (%)",
-             lambda m: worst_hmi(m, "0.01", "standard")),
-    Headline("integrity.standard_hmi_eps_0_05_pct", "integrity, standard model's chain: worst HMI at eps 0.05 (%)",
-             lambda m: worst_hmi(m, "0.05", "standard"), 2, True),
-    Headline("integrity.shipped_clean_availability_pct", "integrity (ships): availability of the trusted estimate "
-             "without attack (%)", lambda m: 100 * m["robustness"]["integrity"]["clean"]["availability"]["value"]),
-    Headline("in_loop.shipped_recover_collisions_pct", "closed loop (ships), in-loop attacker: collisions with "
-             "detect-and-recover (%)", in_loop_collisions),
+    Headline(
+        "integrity.shipped_hmi_eps_0_01_pct",
+        "integrity (ships): worst HMI caused by a chain-level attack at eps 0.01 (%)",
+        lambda m: worst_hmi(m, "0.01"),
+    ),
+    Headline(
+        "integrity.shipped_hmi_eps_0_05_pct",
+        "integrity (ships): worst HMI caused by a chain-level attack at eps 0.05 (%)",
+        lambda m: worst_hmi(m, "0.05"),
+        2,
+        True,
+    ),
+    Headline(
+        "integrity.standard_hmi_eps_0_01_pct",
+        "integrity, standard model's chain: worst HMI at eps 0.01 (%)",
+        lambda m: worst_hmi(m, "0.01", "standard"),
+    ),
+    Headline(
+        "integrity.standard_hmi_eps_0_05_pct",
+        "integrity, standard model's chain: worst HMI at eps 0.05 (%)",
+        lambda m: worst_hmi(m, "0.05", "standard"),
+        2,
+        True,
+    ),
+    Headline(
+        "integrity.shipped_clean_availability_pct",
+        "integrity (ships): availability of the trusted estimate without attack (%)",
+        lambda m: 100 * m["robustness"]["integrity"]["clean"]["availability"]["value"],
+    ),
+    Headline(
+        "in_loop.shipped_recover_collisions_pct",
+        "closed loop (ships), in-loop attacker: collisions with detect-and-recover (%)",
+        in_loop_collisions,
+    ),
     # issue 39: the evidence that can fail (eps is the breaking point's unit: an L-inf budget, pixels in [0, 1])
-    Headline("integrity.shipped_breaking_eps", "breaking point of the shipped chain: smallest eps at which an attacker "
-             "fails a trajectory (error / AL > 1 on an available frame)", lambda m: breaking_eps(m, "robust"), 3, True),
-    Headline("integrity.standard_breaking_eps", "breaking point of the standard model's chain",
-             lambda m: breaking_eps(m, "standard"), 3, True),
-    Headline("integrity.control_breaking_eps", "breaking point of the undefended robust control",
-             lambda m: breaking_eps(m, "control"), 3, True),
-    Headline("integrity.shipped_error_al_0_05_ratio", "shipped chain: largest trusted error / AL (persistent "
-             "AL, available frames) at eps 0.05, worst over attackers and trajectories",
-             lambda m: m["robustness"]["integrity"]["chains"]["robust"]["summary"]["per_eps"]["0.05"]["max_error_al"],
-             2, True),
-    Headline("closed_loop.recover_docking_miss_m", "closed loop (ships, detect-and-recover, true-state dynamics): "
-             "docking miss without attack (m)", docking_miss),
-    Headline("closed_loop.recover_miss_0_05_m", "closed loop (ships, detect-and-recover, true-state "
-             "dynamics): largest docking miss of the attacked runs at eps 0.05 (m)", lambda m: docking_miss(m, "0.05")),
+    Headline(
+        "integrity.shipped_breaking_eps",
+        "breaking point of the shipped chain: smallest eps at which an attacker "
+        "fails a trajectory (error / AL > 1 on an available frame)",
+        lambda m: breaking_eps(m, "robust"),
+        3,
+        True,
+    ),
+    Headline(
+        "integrity.standard_breaking_eps",
+        "breaking point of the standard model's chain",
+        lambda m: breaking_eps(m, "standard"),
+        3,
+        True,
+    ),
+    Headline(
+        "integrity.control_breaking_eps",
+        "breaking point of the undefended robust control",
+        lambda m: breaking_eps(m, "control"),
+        3,
+        True,
+    ),
+    Headline(
+        "integrity.shipped_error_al_0_05_ratio",
+        "shipped chain: largest trusted error / AL (persistent "
+        "AL, available frames) at eps 0.05, worst over attackers and trajectories",
+        lambda m: m["robustness"]["integrity"]["chains"]["robust"]["summary"]["per_eps"]["0.05"]["max_error_al"],
+        2,
+        True,
+    ),
+    Headline(
+        "closed_loop.recover_docking_miss_m",
+        "closed loop (ships, detect-and-recover, true-state dynamics): docking miss without attack (m)",
+        docking_miss,
+    ),
+    Headline(
+        "closed_loop.recover_miss_0_05_m",
+        "closed loop (ships, detect-and-recover, true-state "
+        "dynamics): largest docking miss of the attacked runs at eps 0.05 (m)",
+        lambda m: docking_miss(m, "0.05"),
+    ),
 ]
 
 

@@ -7,6 +7,7 @@ accepted one is said in one line on stderr (the profile and the overrides), also
 Hydra (pinned, 1.3.8) has no public hook after composition, so this wraps
 `ConfigLoaderImpl.load_configuration`; tests/test_dvc_ux.py runs DVC's own composition through it.
 """
+
 from __future__ import annotations
 
 import sys
@@ -23,27 +24,32 @@ from stages.config.sections import ParamsError
 _load = ConfigLoaderImpl.load_configuration
 
 
-def _checked_load(self: ConfigLoaderImpl, config_name: str | None, overrides: list[str], *args: Any,
-                  **kwargs: Any) -> DictConfig:
+def _checked_load(
+    self: ConfigLoaderImpl, config_name: str | None, overrides: list[str], *args: Any, **kwargs: Any
+) -> DictConfig:
     """Hydra's composition, refused with DVC's one-line error unless the params schema accepts it."""
+
     def compose(some: list[str]) -> dict[str, Any]:
         cfg = _load(self, config_name, some, *args, **kwargs)
         with open_dict(cfg):
             cfg.pop("hydra", None)
-        return OmegaConf.to_container(cfg, resolve=True)   # type: ignore[return-value]
+        return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
 
     try:
         composed = checked(compose, list(overrides))
     except ParamsError as e:
         raise InvalidArgumentError(str(e)) from None
-    print(f"params.yaml <- profile {composed.get('profile_name')!r}"   # what the run (or --dry) will use
-          + (f" with {' '.join(overrides)}" if overrides else ""), file=sys.stderr)
+    print(
+        f"params.yaml <- profile {composed.get('profile_name')!r}"  # what the run (or --dry) will use
+        + (f" with {' '.join(overrides)}" if overrides else ""),
+        file=sys.stderr,
+    )
     cfg = _load(self, config_name, overrides, *args, **kwargs)
     sha = conf_sha()
-    if sha is not None:   # the conf/ it was composed from, as `rpod params` stamps it (stages check it)
+    if sha is not None:  # the conf/ it was composed from, as `rpod params` stamps it (stages check it)
         with open_dict(cfg):
             cfg[CONF_STAMP] = sha
     return cfg
 
 
-ConfigLoaderImpl.load_configuration = _checked_load   # type: ignore[method-assign]
+ConfigLoaderImpl.load_configuration = _checked_load  # type: ignore[method-assign]
