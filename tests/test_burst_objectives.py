@@ -42,7 +42,9 @@ def test_the_mirror_replays_the_protection_level(scene, trusted_start: int) -> N
             real.check(t.numpy(), R_cam[k], u[k], sixd_to_matrix(R6.numpy()))
             real.test_sequence()
             real.accept()
-        np.testing.assert_allclose(mirror.protection_level().numpy(), real.protection_level, rtol=1e-9)
+        np.testing.assert_allclose(
+            mirror.protection_level().numpy(), real.protection_level, rtol=1e-8
+        )  # float64, summed in another order
         if k == 4:
             mirror = FilterMirror(real, 2)  # taken over from a started filter
     assert real.protection_level > 0
