@@ -63,7 +63,7 @@ def _with(key: str, depth: int, value: Any) -> dict[str, Any]:
     p = copy.deepcopy(_base())
     *path, last = key.split(".")
     section = functools.reduce(lambda d, k: d[k], path, p)
-    if depth == 0 or section[last] is None:
+    if depth == 0 or not section[last]:  # null or an empty list ([] = a default, e.g. objective_eps)
         section[last] = value if depth == 0 else [value] * 2 if depth == 1 else [[value] * 2]
     else:
         target = section[last]

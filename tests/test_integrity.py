@@ -231,6 +231,9 @@ def test_alert_limit_builder_names_the_guidance_param(key, value, name):
         float(p.guidance.max_step),
         p.guidance.slack_steps,
         float(p.integrity.collision_range_m),
+        None,
+        float(np.linalg.norm(p.guidance.target)),  # the goal range, metres
+        p.integrity.alert_limit_kind,
     )
     bad = dataclasses.replace(p, guidance=dataclasses.replace(p.guidance, **{key: value}))
     with pytest.raises(StageError, match=rf"^params.yaml {name}: alert limit: {key} must be"):

@@ -227,16 +227,12 @@ def _ablation(rows: list[dict[str, Any]] | None) -> str:
 
 
 def _cost(m: dict[str, Any]) -> str:
-    """What the suite cost in this run (`suite_seconds`: wall seconds of the table and of the capacity)."""
-    s = m.get("suite_seconds")
+    """Where the suite's cost is: the metrics, never the page (a page holds results only, so a re-run is identical)."""
     return (
-        ""
-        if not s
-        else (
-            f"Cost in this run: {s['suite']:.0f} s for the table (both models, checks included) "
-            f"and {s['capacity']:.0f} s for the attacker capacity below (wall time, device "
-            f"{m.get('device', '?')})."
-        )
+        "Its cost in this run is in reports/metrics/robust.json (`suite_seconds`: wall seconds of the table and of the "
+        "attacker capacity)."
+        if m.get("suite_seconds")
+        else ""
     )
 
 
