@@ -44,7 +44,7 @@ from stages.artifacts.paths import ABLATION_METRICS, ABLATION_REPORT, DETECT_REN
 from stages.artifacts.readers import read_detect_render, read_eval_render
 from stages.config.build import retrain_reason
 from stages.config.device import torch_setup
-from stages.config.params import given
+from stages.config.params import evaluation_seed, given
 from stages.config.schema import Params
 from stages.errors import StageError
 from stages.pages.ablation import ablation_page, cell_json, cell_key, sequences_json
@@ -178,7 +178,7 @@ def _eval_sequences(p: Params) -> list[Any]:
             images=images[g["index"].to_numpy()],
             targets=g[TARGET].to_numpy(np.float32),
             attacked=attack_schedule(
-                len(g), e.p_start, e.attack_length, seed_for(e.seed, "evaluate.schedule", int(tr))
+                len(g), e.p_start, e.attack_length, seed_for(evaluation_seed(p), "evaluate.schedule", int(tr))
             ),
         )
         for tr, g in poses.groupby("trajectory", sort=True)

@@ -219,7 +219,7 @@ def test_render_stage_with_backgrounds_on_and_off(tmp_path, monkeypatch, scene):
     before = {
         k: v
         for k, v in without["render"].items()
-        if k not in ("background", "source", "source_test", "target_attitude")
+        if k not in ("background", "source", "source_test", "target_attitude", "device")  # device: cpu
     }
     assert meta["fingerprint"] == params_mod.fingerprint(
         {"seed": without["seed"], "camera": without["camera"], "render": {**before, "mesh": None}}

@@ -161,7 +161,7 @@ def test_the_probes_of_issue_42_are_refused_with_one_line(path, value, message):
         ),
         (lambda r: r["noise"].update(floor=0.5), "noise is not fitted_noise inflated"),
         (
-            lambda r: (r["noise"].update(floor=10.0), r["fitted_noise"].update(floor=8.0)),
+            lambda r: (r["noise"].update(floor=10.0), r["fitted_noise"].update(floor=10.0 / r["inflation"])),
             "floor 10.0 must lie below its largest standard deviation",
         ),
         (lambda r: r.update(settings={}), "missing key 'settings.fusion'"),
