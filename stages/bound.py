@@ -115,6 +115,11 @@ def _chain(params: Params, model: str, tracks: list[Any], eps: list[float]) -> d
                 raise StageError(
                     f"{CAPACITY} ({model}) on eval_render {track.name}: {e}; widen suite.capacity.edges"
                 ) from None
+            except RuntimeError as e:  # the conic solver gave no solution (pipeline/defense/bound.py)
+                raise StageError(
+                    f"rpod bound ({model}) on eval_render {track.name}: {e}; no bound for this chain (a larger "
+                    f"bound.stride changes the target frames)"
+                ) from None
     per_eps = {}
     for e in (f"{v:g}" for v in eps):
         worst = worst_over_trajectories(rows, e)

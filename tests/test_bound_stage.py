@@ -86,3 +86,24 @@ def test_the_page_states_the_bound_its_replay_its_rate_with_an_interval_and_its_
     ):
         assert words in page
     assert np.isfinite(b["max_error_m"])
+
+
+def test_a_solver_failure_stops_the_stage_with_one_line(monkeypatch) -> None:
+    """The conic solver's failure (clarabel NumericalError on the default run's standard chain) is one line naming
+    the chain and trajectory, not a traceback."""
+    import types
+
+    import pipeline.evaluation.integrity_bound as integrity_bound
+    import stages.bound as stage
+    from stages.config import params as params_mod
+    from stages.config.schema import build
+
+    def failing(*args, **kwargs):
+        raise RuntimeError("worst-case program of frame 190: NumericalError")
+
+    monkeypatch.setattr(stage, "_capacities", lambda model, eps: ([], {}))
+    monkeypatch.setattr(stage, "load_chain", lambda params, model: types.SimpleNamespace(onboard=None, defended=None))
+    monkeypatch.setattr(integrity_bound, "bound_track", failing)
+    track = types.SimpleNamespace(name="t0")
+    with pytest.raises(StageError, match=r"^rpod bound \(standard\) on eval_render t0: .*NumericalError; no bound"):
+        stage._chain(build(params_mod.compose("smoke")), "standard", [track], [0.01])
