@@ -27,11 +27,13 @@ import typer  # noqa: E402
 from pipeline.io.errors import DataError  # noqa: E402
 from stages.config import compose as compose_mod  # noqa: E402
 from stages.config import params as params_mod  # noqa: E402
+from stages.help import RootGroup  # noqa: E402
 
 app = typer.Typer(
     help="rpodguard: render a target satellite, train a pose CNN, attack it, explain it with SHAP, "
-    "detect the attacks, and report. Each command is one DVC stage (see dvc.yaml); run `dvc repro` "
-    "to run them all in order.",
+    "detect the attacks, and report. Each DVC stage runs one command (some with a flag: the map below); "
+    "`dvc repro` runs them all in order. params, predict, export and remote are commands only.",
+    cls=RootGroup,
     no_args_is_help=True,
     pretty_exceptions_enable=False,
     add_completion=False,
@@ -43,12 +45,25 @@ _DEBUG = {"on": bool(os.environ.get("RPOD_DEBUG"))}
 _LIBRARIES = ("zarr", "numcodecs", "google_crc32c", "pyarrow", "hydra", "omegaconf", "yaml")
 
 
-@app.callback()
-def _root(debug: bool = typer.Option(False, "--debug", help="Show the full traceback of an error.")) -> None:
-    """rpodguard: render, train, attack, explain (SHAP), detect, evaluate and report.
+def _version(show: bool) -> None:
+    """--version: print the installed rpodguard's version and stop."""
+    if show:
+        from importlib.metadata import version
 
-    Each command is one DVC stage (see dvc.yaml); `dvc repro` runs them all in order.
-    """
+        typer.echo(f"rpodguard {version('rpodguard')}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    debug: bool = typer.Option(False, "--debug", help="Show the full traceback of an error."),
+    version: bool = typer.Option(
+        False, "--version", callback=_version, is_eager=True, help="Print rpodguard's version and exit."
+    ),
+) -> None:
+    """rpodguard: render a target satellite, train a pose CNN, attack it, explain it with SHAP, detect the
+    attacks, and report. Each DVC stage runs one command (some with a flag: the map below); `dvc repro` runs them
+    all in order. params, predict, export and remote are commands only."""
     _DEBUG["on"] = _DEBUG["on"] or debug
 
 

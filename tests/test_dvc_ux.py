@@ -173,9 +173,72 @@ def test_stage_help_lists_its_params_with_comments(command):
     result = CliRunner().invoke(app, [command, "--help"], terminal_width=200)
     assert result.exit_code == 0, result.output
     assert "SPEC" not in result.output
+    from stages.help import _shown, current_values
+
+    now = current_values()
+    text = " ".join(result.output.split())
     for key in keys:
         assert comments[key][1], f"conf/config.yaml: {key} has no comment"
-        assert f"{key}: {comments[key][1][:30]}" in " ".join(result.output.split()), key
+        value = f" = {' '.join(_shown(now[key]).split())}" if key in now else ""
+        assert f"{key}{value}: {comments[key][1][:30]}" in text, key
+    assert "dvc exp run -S key=value" in text
+
+
+def test_stage_help_shows_the_value_params_yaml_holds_now(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "params.yaml").write_text("train:\n  epochs: 7\n  max_minutes: null\n")
+    text = " ".join(CliRunner().invoke(app, ["train", "--help"], terminal_width=200).output.split())
+    assert "train.epochs = 7: " in text and "train.max_minutes = null: " in text
+    assert "train.batch_size: " in text  # not in this params.yaml: no value shown
+
+
+def _plain(output: str) -> str:
+    """A CLI error as one line: the box Rich draws around it (80 columns whatever the terminal) taken away."""
+    return " ".join(output.replace("│", " ").split())
+
+
+@pytest.mark.parametrize(
+    "args, key",
+    [
+        (["train", "--epochs", "3"], "train.epochs"),
+        (["attack", "--eps", "0.1"], "attack.eps"),
+        (["render", "--samples", "8"], "render.samples"),
+    ],
+)
+def test_an_option_that_is_a_param_says_how_to_set_it(args, key, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "params.yaml").write_text(f"profile_name: smoke\n{key.split('.')[0]}:\n  {key.split('.')[1]}: 5\n")
+    result = CliRunner().invoke(app, args, terminal_width=300)
+    text = _plain(result.output)
+    assert result.exit_code == 2, result.output
+    assert f"No such option: {args[1]}. {key} is a param (now 5 in params.yaml)" in text, text
+    assert f"rpod params smoke -S {key}=VALUE" in text and f"dvc exp run -S {key}=VALUE" in text, text
+
+
+def test_an_unknown_option_is_still_refused_plainly():
+    result = CliRunner().invoke(app, ["train", "--no-such-thing"], terminal_width=200)
+    assert result.exit_code == 2 and "No such option: --no-such-thing" in result.output and "param" not in result.output
+
+
+def test_a_stage_name_that_is_a_flag_names_its_command():
+    flagged = {n: st["cmd"] for n, st in dvc_stages().items() if st["cmd"].split()[:2] != ["rpod", n]}
+    assert {"robust", "surrogate", "shap_robust", "detect_robust", "detect_render", "calibrate_standard"} <= set(
+        flagged
+    )
+    for name, cmd in flagged.items():
+        result = CliRunner().invoke(app, [name], terminal_width=300)
+        assert result.exit_code == 2 and f"runs `{cmd}`" in _plain(result.output), (name, result.output)
+
+
+def test_root_help_maps_every_stage_to_its_command_and_version_is_the_installed_one():
+    from importlib.metadata import version
+
+    text = CliRunner().invoke(app, ["--help"], terminal_width=200).output
+    rows = {tuple(line.strip(" │").split(None, 1)) for line in text.splitlines()}
+    assert all((name, st["cmd"]) in rows for name, st in dvc_stages().items()), text
+    assert "Each command is one DVC stage" not in text
+    result = CliRunner().invoke(app, ["--version"])
+    assert result.exit_code == 0 and result.output == f"rpodguard {version('rpodguard')}\n"
 
 
 def test_config_comments_parse_sections_and_continuations():
