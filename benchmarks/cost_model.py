@@ -375,7 +375,7 @@ def body(rows: list[dict[str, Any]], idle: list[dict[str, Any]], facts: dict[str
         f"Predicted per stage on this machine: **{total / 3600:,.0f} h** as measured, **{idle_total / 3600:,.0f} "
         f"h** idle (largest: {top}). {dominant}\n\n"
         f"{stages}\n"
-        f"**Requirement, not a measurement.** The issue's target is the paper profile end to end in under 2 h "
+        f"**Requirement, not a measurement.** The target is the paper profile end to end in under 2 h "
         f"on one H100-class GPU with {TARGET_CORES} cores: {idle_total / TARGET_S:,.0f}x this machine's idle "
         f"estimate. The floor is the rate a unit needs even if it had the whole 2 h; at its share, every unit "
         f"keeps the share of the time it has here:\n\n{req}\n"

@@ -286,7 +286,7 @@ configurations take turns, {args.rounds} rounds, medians; the CPU-time columns, 
 process, are the ones other processes disturb least, the wall-clock ones are as measured). `rpod` caps
 torch's CPU kernels at AVX2
 (stages/config/cpu.py; `RPOD_CPU_ISA=native` lifts the cap) so that a seed trains the same pose model on
-machines with and without AVX-512 (issue 27: another model, then another detector verdict, on an AVX2 machine).
+machines with and without AVX-512 (without the cap: another model, then another detector verdict, on an AVX2 machine).
 
 {markdown_table(speed, decimals=3)}
 {cost}

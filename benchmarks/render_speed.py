@@ -148,7 +148,7 @@ def main() -> None:
             markdown_table(rows, decimals=3),
             "`images/s` is measured as is (median wall time per frame, so it depends on what else runs); the "
             "idle-machine range, 1 / (CPU time per image) to threads / (CPU time per image), depends much less "
-            "on other load. Issue 2 asks for at least 10 images/s at 160x90 and 1 image/s at 480x270. The "
+            "on other load. The target is at least 10 images/s at 160x90 and 1 image/s at 480x270. The "
             "OpenImageDenoise rows show why the default renders without a denoiser: at these sizes it adds "
             "50-75% CPU time and no PSNR.",
             "",

@@ -115,7 +115,7 @@ def main(epochs: int | None = None) -> None:
     ]
     text = f"""# Trials
 
-## Allocentric attitude (issue 28, item 3)
+## Allocentric attitude
 
 `scripts/allocentric_trial.py`: the standard recipe (`train` params, seed {params.seed}, {cfg.epochs} epochs,
 {params.render.width}x{params.render.height}) trained with allocentric attitude targets (relative to the viewing ray,

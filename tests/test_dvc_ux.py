@@ -35,14 +35,18 @@ UNITS = ("_m", "_deg", "_pct", "_eps", "_ratio")  # every headline name ends in 
 
 
 def test_summary_is_grouped_readable_and_has_every_headline():
-    from stages.pages.summary import HEADLINES, headline_values, summary
+    from stages.pages.summary import DVC_METRICS, HEADLINES, headline_values, summary
 
     values = headline_values(_committed_metrics())
     assert list(values) == [h.key for h in HEADLINES if not h.optional or h.key in values]
+    assert set(DVC_METRICS) <= {h.key for h in HEADLINES} and len(set(DVC_METRICS)) == len(DVC_METRICS) <= 14
+    shown = summary(_committed_metrics())
+    assert sum(map(len, shown.values())) == len([k for k in values if k in DVC_METRICS])
     for key, value in values.items():
         group, name = key.split(".")
         assert isinstance(value, float) and name.endswith(UNITS) and len(key) <= 40, key
-        assert summary(_committed_metrics())[group][name] == value
+        if key in DVC_METRICS:
+            assert shown[group][name] == value
     assert 0 < values["pose.standard_position_m"] < 50
     assert all(0 <= v <= 100 for k, v in values.items() if k.endswith("_pct"))
 
@@ -81,17 +85,18 @@ def test_every_output_path_is_an_out_of_the_stage_that_writes_it():
 def test_dvc_metrics_show_prints_one_row_of_readable_names(tmp_path):
     """One header and one row; every column is `<group>.<what>_<unit>` (DVC joins the nested keys with dots)."""
     from pipeline.io.atomic import write_json
-    from stages.pages.summary import HEADLINES, headline_values, summary
+    from stages.pages.summary import DVC_METRICS, HEADLINES, headline_values, summary
 
     values = headline_values(_committed_metrics())
     assert set(values) >= {h.key for h in HEADLINES if not h.optional}
+    values = [k for k in values if k in DVC_METRICS]
     for name in ("dvc.yaml", "params.yaml"):  # dvc.yaml templates external-input deps from params.yaml
         shutil.copy(REPO / name, tmp_path / name)
     write_json(tmp_path / "reports" / "metrics" / "summary.json", summary(_committed_metrics()))
     subprocess.run([str(DVC), "init", "--no-scm", "-q"], cwd=tmp_path, check=True)
     out = subprocess.run([str(DVC), "metrics", "show"], cwd=tmp_path, check=True, capture_output=True, text=True)
     header, row = out.stdout.splitlines()
-    assert header.split() == ["Path", *sorted(values)], header
+    assert header.split() == ["Path", *sorted(values)] and len(values) >= 10, header
     assert row.split()[0] == "reports/metrics/summary.json" and len(row.split()) == 1 + len(values)
 
 
@@ -114,6 +119,26 @@ def test_plots_have_titles_axis_units_and_no_duplicates():
     assert subprocess.run(["git", "check-ignore", "-q", "dvc_plots/index.html"], cwd=REPO).returncode == 0
 
 
+def test_dvc_plots_show_draws_offline_with_the_vega_dvc_render_names():
+    """.dvc/config points `dvc plots show` at conf/plots/offline.html: dvc-render's page with the Vega, Vega-Lite and
+    Vega-Embed it loads from a CDN written in (same versions, so a dvc-render upgrade that moves them fails here)."""
+    import configparser
+    import re
+
+    from dvc_render.vega import VegaRenderer
+
+    config = configparser.ConfigParser()
+    config.read(REPO / ".dvc" / "config")
+    template = (REPO / ".dvc" / config["plots"]["html_template"]).resolve()
+    assert template == REPO / "conf" / "plots" / "offline.html"
+    page = template.read_text()
+    assert "{plot_divs}" in page and "{scripts}" not in page and "<script src" not in page
+    wanted = re.findall(r"npm/([\w-]+)@([\d.]+)", VegaRenderer.SCRIPTS)
+    assert len(wanted) == 3
+    for name, version in wanted:
+        assert f"/* {name} {version} (npm, build/{name}.min.js) */" in page, (name, version)
+
+
 def test_every_figure_is_an_image_plot():
     from stages.artifacts.paths import WRITTEN_BY
 
@@ -128,6 +153,14 @@ def test_the_roc_curves_are_dvclive_sklearn_plots_of_every_detector():
     (roc,) = [e["roc"] for e in DVC_YAML["plots"] if isinstance(e, dict) and "roc" in e]
     detectors = ["lstm", *yaml.safe_load((REPO / "params.yaml").read_text())["detect"]["baselines"]]
     assert roc["y"] == {str(ROC_DATA / f"{d}.json"): "tpr" for d in detectors} and roc["x"] == "fpr"
+
+
+def test_the_shipped_detector_has_its_roc_and_training_curves():
+    """The chain that ships has its own detector (detect_robust): its ROC and training curves are plotted too."""
+    plots = {name: plot for e in DVC_YAML["plots"] if isinstance(e, dict) for name, plot in e.items()}
+    assert plots["roc_shipped"]["y"] == {"dvclive/detect_robust/plots/sklearn/lstm.json": "tpr"}
+    for name in ("detector_loss", "detector_accuracy"):
+        assert {Path(p).parts[1] for p in plots[name]["y"]} == {"detect", "detect_robust"}, name
 
 
 @pytest.mark.skipif(not DVC.exists(), reason="dvc not installed beside python")

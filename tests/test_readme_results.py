@@ -88,3 +88,60 @@ def test_report_names_the_missing_inputs(tmp_path, monkeypatch):
     assert "reports/metrics/attack.json: run `dvc repro attack` (or `rpod attack`)" in message
     assert "reports/pose.md: run `dvc repro train` (or `rpod train`)" in message
     assert "train.json" not in message and not (tmp_path / "reports" / "README.md").exists()
+
+
+# ----------------------------------------------------------------------------- the results' lead: targets met or missed
+def _committed_metrics() -> dict:
+    import json
+
+    return {p.stem: json.loads(p.read_text()) for p in (REPO / "reports" / "metrics").glob("*.json")}
+
+
+@pytest.mark.parametrize(
+    "value, target, verdict",
+    [
+        (99.6, ">= 99.5", "met"),
+        (99.4, ">= 99.5", "**missed**"),
+        (1.0, "<= 1", "met"),
+        (1.01, "<= 1", "**missed**"),
+        (None, "<= 1", "not shown"),
+        (float("nan"), ">= 95", "not shown"),
+    ],
+)
+def test_a_target_is_judged_on_the_point_estimate(value, target, verdict):
+    from stages.pages.readme import judge
+
+    assert judge(value, target) == verdict
+
+
+def test_the_lead_counts_every_target_and_marks_each_in_the_tables():
+    """Every target of the shipped chain appears once in the lead's table with its verdict, the counts in the
+    sentence add up, and every target cell of the defended table carries a met / missed mark."""
+    from stages.pages.readme import headline, shipped_targets, summary_tables
+
+    metrics = _committed_metrics()
+    verdicts = shipped_targets(metrics)
+    assert len(verdicts) >= 10 and {v for _, v, _ in verdicts} <= {"met", "**missed**", "not shown"}
+    met = sum(v == "met" for _, v, _ in verdicts)
+    lead = headline(metrics)
+    assert lead.startswith(f"**{met} of {len(verdicts)} targets met**")
+    for target, verdict, evidence in verdicts:
+        assert f"| {target}" in lead and verdict in lead and evidence in lead, target
+    text = summary_tables(metrics)
+    defended = text[text.index("The defended chains") :]
+    lines = [line for line in defended.splitlines() if line.startswith("| ")]
+    column = [c.strip() for c in lines[0].split("|")].index("target")
+    cells = [line.split("|")[column].strip() for line in lines[1:]]
+    assert cells and all(c == "-" or c.endswith(("(met)", "(**missed**)", "(not shown)")) for c in cells), cells
+    assert "the interval's upper end is all this run rules out" in text
+    assert "issue" not in text.lower()
+
+
+def test_the_lead_drops_a_target_whose_stage_did_not_run():
+    from stages.pages.readme import shipped_targets
+
+    metrics = _committed_metrics()
+    full = shipped_targets(metrics)
+    del metrics["guidance"]
+    partial = shipped_targets(metrics)
+    assert len(partial) < len(full) and not any("closed loop" in t or "docking" in t for t, _, _ in partial)

@@ -169,7 +169,7 @@ def _verdict(cells: list[Any], f: float) -> str:
         out.append(
             f"**Paper-literal FGSM with the paper's protocol, detectors trained on {MIX[mix]}, eps 0.01**: accuracy "
             f"at the paper's f = {100 * f:.1f}% {at.pct()}% against the paper's {paper:.2f}% (its integrated "
-            f"evaluation at eps 0.01): {abs(gap):.1f} points {'below' if gap > 0 else 'above'} it, {within} issue 38's "
+            f"evaluation at eps 0.01): {abs(gap):.1f} points {'below' if gap > 0 else 'above'} it, {within} the target's "
             f"{TARGET_POINTS:g} points (TPR {r.tpr.pct()}%, FPR {r.fpr.pct()}%). From our setting (our FGSM, strict "
             f"protocol: {at0.pct()}%) the two factors together move it by {100 * d:+.1f} [{100 * lo:+.1f}, "
             f"{100 * hi:+.1f}] points. On all its test samples (f = {cell.rates['all'].attacked_fraction.pct()}%) "
@@ -367,7 +367,7 @@ def ablation_page(
     paper_counts = mix["paper"][0].counts if mix["paper"] else counts
     full = {f"{c.attack}/{c.protocol}": c for c in mix["paper"]}
     effects = [*sequence_effects(sequences, "0.01"), *sequence_effects(sequences, "0.05")]
-    return f"""# Ablation: the paper's FGSM and detector protocol (issue 38)
+    return f"""# Ablation: the paper's FGSM and detector protocol
 
 The paper's LSTM detector on the SHAP values of the standard model (models/pose.pt; the `rpod detect` recipe and
 params), trained and tested in four settings, twice: its detectors trained on eps {", ".join(f"{e:g}" for e in a.eps)}

@@ -72,7 +72,7 @@ def attitude_page(metrics: dict[str, Any], changes: dict[str, str]) -> str:
     gap = test[0] - ATTITUDE_DEG
     parts = [(v, c["validation"]["attitude_deg"]) for v, c in metrics["contributions"].items()]
     measured = "; ".join(f"{v} {ci(d, sign=True)} deg" for v, d in parts) or "none"
-    return f"""# Attitude: the gap to the paper decomposed (issue 38)
+    return f"""# Attitude: the gap to the paper decomposed
 
 The standard model's mean test attitude error is {ci(test)} deg (validation {ci(val)} deg) against the paper's
 {ATTITUDE_DEG} deg: a gap of {gap:.2f} deg. Pose trials (`rpod pose_trial VARIANT`, optional/dvc.yaml) retrain the

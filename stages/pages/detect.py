@@ -97,7 +97,7 @@ def _composition(attrs: dict[str, Any]) -> str:
         f"lateral offsets from 0 to the widest, the target at rest or turned afresh every frame): "
         f"{c.get('sources')} source images, each explained clean once and attacked at one "
         f"eps ({c.get('shared')} images are in both classes), so clean and attacked samples differ only by the "
-        f"attack. (The paper drew its clean samples from the pose data set; until issue 27 ours came "
+        f"attack. (The paper drew its clean samples from the pose data set; in earlier versions ours came "
         f"mostly from the pose-training images while every attacked one was a test image; then, until the "
         f"envelope fix, only from projectile paths with the target at rest, and the shipped detector flagged "
         f"46% of clean pose-test frames and 51% of clean lab-like ones at its calibrated threshold.)"

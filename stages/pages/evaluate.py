@@ -69,10 +69,10 @@ def defense_section(
     if fused and fused[0]["fpr_clean"].value > TARGET_FPR:
         misses.append(f"attack-free runs (FPR {fused[0]['fpr_clean'].pct(2)}%)")
     verdict = (
-        "The defended chain that ships meets issue 16's detection targets (accuracy and harmful frames flagged "
+        "The defended chain that ships meets the detection targets (accuracy and harmful frames flagged "
         ">= 99.5%, FPR <= 0.5%) at every eps."
         if not misses
-        else "Short of issue 16's detection targets (accuracy and harmful frames flagged >= 99.5%, FPR <= 0.5%) at: "
+        else "Short of the detection targets (accuracy and harmful frames flagged >= 99.5%, FPR <= 0.5%) at: "
         + "; ".join(misses)
         + "."
     )

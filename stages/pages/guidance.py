@@ -1,5 +1,5 @@
 """reports/guidance.md, the page of `rpod guidance`: first where the shipped chain's runs dock (the breaking point
-per dynamics and variant, the docking-miss table, issue 39's docking targets, the assumptions); then one S x K table
+per dynamics and variant, the docking-miss table, the docking targets, the assumptions); then one S x K table
 per eps (the paper's grid, on the standard model); its defended section (the chain that ships, on the robust
 model): closed-loop rendezvous success per variant (undefended, detect-and-hold, detect-and-recover) and dynamics;
 the in-loop attacker."""
@@ -281,8 +281,39 @@ def _break(x: float | None) -> str:
     return "none in the grid" if x is None else ("fails without attack" if x == 0 else f"{x:g}")
 
 
+def docking_targets(d: dict[str, Any]) -> list[tuple[str, str, str]]:
+    """The docking targets on the closed loop's true-state runs (`d`: guidance.json's closed_loop): (target,
+    "met" / "**missed**" / "not shown", evidence); none without true-state runs."""
+    ts = d["variants"].get("true_state", {})
+    if not ts:
+        return []
+    und, rec = ts.get("undefended", {}).get("breaking_eps"), ts.get("recover", {}).get("breaking_eps")
+    falsifiable = und is not None and und > 0  # failing without attack shows nothing about the attacks
+    small = [x for k, x in ts.get("recover", {}).get("per_eps", {}).items() if float(k) <= TARGET_EPS]
+    failed = sum(x["failed"] for x in small)
+    clean_ok = ts.get("recover", {}).get("clean", {}) or {}
+    return [
+        (
+            "falsifiable: the undefended chain fails its mission at some eps",
+            "met" if falsifiable else "not shown" if und == 0 else "**missed**",
+            f"undefended breaking eps {_break(und)}",
+        ),
+        (
+            f"detect-and-recover, every attack up to eps {TARGET_EPS:g}: docking miss <= tolerance",
+            "met" if small and not failed and clean_ok.get("outcome") == "docked" else "**missed**",
+            f"no-attack run {clean_ok.get('outcome', '-')} ({clean_ok.get('miss', float('nan')):.2f} m); "
+            f"{failed} failed of {sum(x['met'] for x in small)} attacked runs up to eps {TARGET_EPS:g}",
+        ),
+        (
+            "detect-and-recover breaking eps >= 2 x the undefended chain's",
+            "not shown" if und in (None, 0.0) else "met" if rec is None or rec >= 2 * und - 1e-12 else "**missed**",
+            f"recover {_break(rec)}, undefended {_break(und)}",
+        ),
+    ]
+
+
 def closed_loop_section(d: dict[str, Any], p: Params) -> str:
-    """Markdown the page leads with: the breaking point per dynamics and variant, issue 39's docking targets, the
+    """Markdown the page leads with: the breaking point per dynamics and variant, the docking targets, the
     docking-miss table (true-state dynamics first), and what the runs assume."""
     from pipeline.report.markdown import markdown_table
     from stages.pages.integrity import attacker_names
@@ -290,32 +321,7 @@ def closed_loop_section(d: dict[str, Any], p: Params) -> str:
     v = d["variants"]
     order = [k for k in ("true_state", "paper") if k in v]
     breaks = "; ".join(f"{VARIANTS[k]} {_break(x['breaking_eps'])}" for k, x in v.get("true_state", {}).items())
-    lines = []
-    ts = v.get("true_state", {})
-    if ts:
-        und, rec = ts.get("undefended", {}).get("breaking_eps"), ts.get("recover", {}).get("breaking_eps")
-        falsifiable = und is not None and und > 0  # failing without attack shows nothing about the attacks
-        small = [x for k, x in ts.get("recover", {}).get("per_eps", {}).items() if float(k) <= TARGET_EPS]
-        failed = sum(x["failed"] for x in small)
-        clean_ok = ts.get("recover", {}).get("clean", {}) or {}
-        lines = [
-            (
-                "falsifiable: the undefended chain fails its mission at some eps",
-                "met" if falsifiable else "not shown" if und == 0 else "**missed**",
-                f"undefended breaking eps {_break(und)}",
-            ),
-            (
-                f"detect-and-recover, every attack up to eps {TARGET_EPS:g}: docking miss <= tolerance",
-                "met" if small and not failed and clean_ok.get("outcome") == "docked" else "**missed**",
-                f"no-attack run {clean_ok.get('outcome', '-')} ({clean_ok.get('miss', float('nan')):.2f} m); "
-                f"{failed} failed of {sum(x['met'] for x in small)} attacked runs up to eps {TARGET_EPS:g}",
-            ),
-            (
-                "detect-and-recover breaking eps >= 2 x the undefended chain's",
-                "not shown" if und in (None, 0.0) else "met" if rec is None or rec >= 2 * und - 1e-12 else "**missed**",
-                f"recover {_break(rec)}, undefended {_break(und)}",
-            ),
-        ]
+    lines = docking_targets(d)
     missed = [t for t in lines if t[1] != "met"]
     head = (
         f"**Breaking point in the closed loop (true-state dynamics; smallest eps at which an attacked run failed "
@@ -323,7 +329,7 @@ def closed_loop_section(d: dict[str, Any], p: Params) -> str:
         + (
             f"Targets not met: {'; '.join(f'{t} ({w}: {e})' for t, w, e in missed)}."
             if missed
-            else "Every docking target of issue 39 is met in this grid."
+            else "Every docking target is met in this grid."
         )
     )
     rows = []

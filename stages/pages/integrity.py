@@ -118,9 +118,9 @@ def lead(integrity: dict[str, Any], p: Params) -> str:
     missed = [t for t in verdicts if t[1] != "met"]
     breaks = ", ".join(f"{CHAINS[k].split(' (')[0]} {_eps(v)}" for k, v in integrity["breaking_eps"].items())
     head = f"**Breaking point (smallest eps at which an attacker fails a trajectory): {breaks}.** " + (
-        f"Targets of issue 39 not met: {'; '.join(f'{t} ({v}: {e})' for t, v, e in missed)}."
+        f"Targets not met: {'; '.join(f'{t} ({v}: {e})' for t, v, e in missed)}."
         if missed
-        else "Every target of issue 39 is met on this evidence."
+        else "Every target is met on this evidence."
     )
     points = [
         {
@@ -183,11 +183,11 @@ def lead(integrity: dict[str, Any], p: Params) -> str:
             )
         )
     )
-    return f"""## Safety evidence that can fail (issue 39)
+    return f"""## Safety evidence that can fail
 
 {head}
 
-Which issue 39 targets this page's evidence meets (the docking-miss targets of the closed loop are in
+Which safety targets this page's evidence meets (the docking-miss targets of the closed loop are in
 reports/guidance.md):
 
 {markdown_table([{"target": t, "verdict": v, "evidence": e} for t, v, e in verdicts])}

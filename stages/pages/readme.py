@@ -163,7 +163,9 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
             f" The last column is the standard deviation of the number over {len(spread['seeds'])} runs that "
             f"{what} (reports/variance.md); a difference smaller than about twice it is noise."
         )
-    return f"{head}\n\n{table}\n{per_eps}\n\n{markdown_table(eps_rows)}" + defended_table(ev, gd, spread)
+    return f"{headline(metrics)}{head}\n\n{table}\n{per_eps}\n\n{markdown_table(eps_rows)}" + defended_table(
+        ev, gd, spread
+    )
 
 
 def _robust_rows(rb: dict[str, Any] | None, spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
@@ -238,6 +240,107 @@ def _shipped_detector_rows(
     return out
 
 
+def judge(value: float | None, target: str) -> str:
+    """Whether `value` meets a target written ">= 99.5" or "<= 1" (same unit): "met", "**missed**", or "not shown"
+    when there is no value. The point estimate is judged; its interval stands beside it."""
+    if value is None or value != value:
+        return "not shown"
+    op, bound = target.split()
+    return "met" if (value >= float(bound) if op == ">=" else value <= float(bound)) else "**missed**"
+
+
+def _pct_value(r: dict[str, Any] | None) -> float | None:
+    """A metrics rate ({"value", "n", ...}) in percent, None where it has no samples."""
+    return None if not r or not r.get("n") or r["value"] is None else 100 * r["value"]
+
+
+# The detection and closed-loop targets of the defended chain (`defended_table` rows; key in fused per_eps)
+DETECTION_TARGETS = {"accuracy": ">= 99.5", "harmful_flagged": ">= 99.5", "harmful_undetected": "<= 1", "fpr": "<= 0.5"}
+CLEAN_ALARMS_TARGET, HELD_TARGET = "<= 0.5", ">= 95"
+
+
+def _held_counts(variants: dict[str, Any], variant: str) -> tuple[int, int] | None:
+    """(held, attacked runs that met the attack) of one closed-loop variant, None where it was not flown."""
+    if variant not in variants:
+        return None
+    k, n = (sum(v[i] for v in variants[variant]["held"].values()) for i in (0, 1))
+    return k, n
+
+
+def shipped_targets(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, str]]:
+    """Every target the shipped chain is held to, judged on this run: the integrity targets (open loop), the docking
+    targets (closed loop), and the detection and rendezvous targets of the defended chain -> (target, verdict,
+    evidence), in that order; a stage that did not run adds none."""
+    from stages.pages.guidance import docking_targets
+    from stages.pages.integrity import targets
+
+    out: list[tuple[str, str, str]] = []
+    integrity = metrics.get("robustness", {}).get("integrity")
+    if integrity and "chains" in integrity:
+        out += targets(integrity)
+    gd = metrics.get("guidance", {})
+    if "closed_loop" in gd:
+        out += docking_targets(gd["closed_loop"])
+    fused = metrics.get("evaluate", {}).get("fused")
+    if fused and fused["per_eps"]:
+        e = min(fused["per_eps"], key=float)
+        ours = fused["per_eps"][e]
+        names = {
+            "accuracy": "integrated accuracy",
+            "harmful_flagged": "harmful frames flagged",
+            "harmful_undetected": "harmful and undetected",
+            "fpr": "false alarms between attacks",
+        }
+        for key, target in DETECTION_TARGETS.items():
+            out.append(
+                (f"{names[key]} at eps {e} {target}%", judge(_pct_value(ours[key]), target), f"{_rate(ours[key])}%")
+            )
+        clean = ours["fpr_clean"]
+        out.append(
+            (
+                f"false alarms on attack-free runs {CLEAN_ALARMS_TARGET}%",
+                judge(_pct_value(clean), CLEAN_ALARMS_TARGET),
+                f"{_rate(clean)}%",
+            )
+        )
+    for dyn, variants in gd.get("defended", {}).get("dynamics", {}).items():
+        counts = _held_counts(variants, "recover")
+        if counts is not None:
+            k, n = counts
+            out.append(
+                (
+                    f"closed loop, {dyn} dynamics: attacked runs held with detect-and-recover {HELD_TARGET}%",
+                    judge(100 * k / n if n else None, HELD_TARGET),
+                    f"{k}/{n}",
+                )
+            )
+    return out
+
+
+def headline(metrics: dict[str, dict[str, Any]]) -> str:
+    """The results' lead: what holds and what does not (each target of `shipped_targets`, met or missed), what the
+    safety numbers rest on, and the targets table."""
+    from pipeline.report.markdown import markdown_table
+
+    verdicts = shipped_targets(metrics)
+    if not verdicts:
+        return ""
+    met = [t for t, v, _ in verdicts if v == "met"]
+    missed = [t for t, v, _ in verdicts if v == "**missed**"]
+    text = f"**{len(met)} of {len(verdicts)} targets met** (the table below gives the evidence). What holds: "
+    text += ("; ".join(met) or "none") + ". **What does not**: " + ("; ".join(missed) or "nothing") + "."
+    chains = metrics.get("robustness", {}).get("integrity", {}).get("chains", {})
+    if "robust" in chains:
+        text += (
+            f" The open-loop safety numbers come from {chains['robust']['trajectories']} evaluation trajectories per "
+            "chain: a worst HMI of 0 with a 95% interval up to tens of percent says no attacker we built broke the "
+            "chain there, not that none can; the breaking points, and the controls that do break, are the evidence "
+            "that can fail."
+        )
+    table = markdown_table([{"target (shipped chain)": t, "verdict": v, "this run": e} for t, v, e in verdicts])
+    return f"{text}\n\n{table}\n\n"
+
+
 def _rate(r: dict[str, Any] | None) -> str:
     """A rate of the metrics JSON ({"value", "ci": [lo, hi], "n"}) as "96.5 [95.1, 97.6]" (%)."""
     from pipeline.stats import percent_ci
@@ -261,7 +364,7 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
             f"integrated accuracy at eps {e} (%)",
             "accuracy",
             _fmt(INTEGRATED_EPS.get(e)),
-            ">= 99.5",
+            DETECTION_TARGETS["accuracy"],
             "defended.shipped_accuracy_min_eps_pct" if e == min(fused["per_eps"], key=float) else None,
         ),  # its key
         (f"attacked frames flagged at eps {e} (TPR, %)", "tpr", "-", "-", None),
@@ -269,12 +372,24 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
             f"harmful frames (error > {fused['harm_m']:g} m) flagged at eps {e} (%)",
             "harmful_flagged",
             "-",
-            ">= 99.5",
+            DETECTION_TARGETS["harmful_flagged"],
             None,
         ),
-        (f"harmful and undetected, of the attacked frames at eps {e} (%)", "harmful_undetected", "-", "<= 1", None),
-        (f"false alarms on clean frames between attacks at eps {e} (%)", "fpr", "-", "<= 0.5", None),
-        ("false alarms on attack-free runs (%)", "fpr_clean", "-", "<= 0.5", "defended.shipped_clean_false_alarm_pct"),
+        (
+            f"harmful and undetected, of the attacked frames at eps {e} (%)",
+            "harmful_undetected",
+            "-",
+            DETECTION_TARGETS["harmful_undetected"],
+            None,
+        ),
+        (f"false alarms on clean frames between attacks at eps {e} (%)", "fpr", "-", DETECTION_TARGETS["fpr"], None),
+        (
+            "false alarms on attack-free runs (%)",
+            "fpr_clean",
+            "-",
+            CLEAN_ALARMS_TARGET,
+            "defended.shipped_clean_false_alarm_pct",
+        ),
     ]
     sd_column = {"sd over seeds, defended": None} if spread else {}
     standard = fused.get("standard_per_eps", {}).get(e)
@@ -289,7 +404,7 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
             std_col: _rate(standard[key]) if standard else "-",
             ours_col: _rate(ours[key]),
             "paper": p,
-            "target": t,
+            "target": t if t == "-" else f"{t} ({judge(_pct_value(ours[key]), t)})",
             **{c: _sd(spread, sd) for c in sd_column},
         }
         for name, key, p, t, sd in rows
@@ -297,10 +412,11 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
     for dyn, variants in gd.get("defended", {}).get("dynamics", {}).items():
 
         def held(variant: str, variants: dict[str, Any] = variants) -> str:
-            if variant not in variants:
-                return "-"
-            k, n = (sum(v[i] for v in variants[variant]["held"].values()) for i in (0, 1))
-            return f"{wilson(k, n).pct()} ({k}/{n})"
+            counts = _held_counts(variants, variant)
+            return "-" if counts is None else f"{wilson(*counts).pct()} ({counts[0]}/{counts[1]})"
+
+        recovered = _held_counts(variants, "recover")
+        mark = judge(100 * recovered[0] / recovered[1] if recovered and recovered[1] else None, HELD_TARGET)
 
         table.append(
             {
@@ -310,7 +426,7 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
                 std_col: "-",
                 ours_col: held("recover"),
                 "paper": "-",
-                "target": ">= 95",
+                "target": f"{HELD_TARGET} ({mark})",
                 **{c: _sd(spread, "recover_held_pct" if dyn == "paper" else None, " %") for c in sd_column},
             }
         )
@@ -318,8 +434,8 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
         "\n\nThe defended chains (motion check fused with the detector, recovery and hold) beside the "
         "paper's detector, on the same trajectories and attack schedule, each on its own model's frames (FGSM "
         "crafted on that model; 95% intervals); the per-frame rows are the paper's view (the raw estimate of each "
-        "frame against a fixed threshold), the closed-loop rows count only the runs that met the attack:\n\n"
-        + markdown_table(table)
+        "frame against a fixed threshold), the closed-loop rows count only the runs that met the attack; each "
+        "target is judged on the shipped chain's point estimate:\n\n" + markdown_table(table)
     )
 
 
@@ -424,7 +540,8 @@ def _integrity_rows(
         out.append(
             (
                 f"integrity: worst HMI (%) a chain-level attack caused at eps {e} (trusted error > AL, "
-                f"available), shipped chain (robust model)",
+                f"available), shipped chain (robust model; {chains.get('robust', {}).get('trajectories', '-')} "
+                "trajectories: the interval's upper end is all this run rules out)",
                 value,
                 "-",
                 "robustness",
@@ -437,7 +554,7 @@ def _integrity_rows(
         out.append(
             (
                 f"integrity: worst HMI (%) at eps {e}, standard model's chain ({std.get('trajectories', '-')} "
-                "trajectories)",
+                "trajectories: the interval's upper end is all this run rules out)",
                 "-" if w is None else _rate(w["hmi"]),
                 "-",
                 "robustness",

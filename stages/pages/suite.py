@@ -174,7 +174,7 @@ def capacity_section(capacity: dict[str, Any], params: Params) -> str:
     ]
     return f"""## Attacker capacity (validation frames)
 
-What the integrity bound consumes (issue 40): on {first["meta"]["frames"]} validation frames (train.val_fraction of
+What the integrity bound consumes: on {first["meta"]["frames"]} validation frames (train.val_fraction of
 the training split, the standard model's validation split: never fitted by either model; the test split is not
 read), the suite above at eps {", ".join(f"{e:g}" for e in first["meta"]["eps"])} (nested) moves each frame's
 estimate from its clean estimate by at most `along` along the true line of sight, `across` across it and `attitude`
