@@ -259,12 +259,19 @@ DETECTION_TARGETS = {"accuracy": ">= 99.5", "harmful_flagged": ">= 99.5", "harmf
 CLEAN_ALARMS_TARGET, HELD_TARGET = "<= 0.5", ">= 95"
 
 
-def _held_counts(variants: dict[str, Any], variant: str) -> tuple[int, int] | None:
-    """(held, attacked runs that met the attack) of one closed-loop variant, None where it was not flown."""
-    if variant not in variants:
+def _held_counts(variants: dict[str, Any], variant: str, key: str = "held") -> tuple[int, int] | None:
+    """(held, attacked runs that met the attack) of one closed-loop variant (`key` "caused": (failures the attack
+    caused, met)), None where it was not flown or does not record them."""
+    if variant not in variants or key not in variants[variant]:
         return None
-    k, n = (sum(v[i] for v in variants[variant]["held"].values()) for i in (0, 1))
+    k, n = (sum(v[i] for v in variants[variant][key].values()) for i in (0, 1))
     return k, n
+
+
+def _not_failed_pct(variants: dict[str, Any]) -> float | None:
+    """Detect-and-recover's attacked runs that the attack did not fail (%): what the rendezvous target judges."""
+    caused = _held_counts(variants, "recover", "caused")
+    return None if not caused or not caused[1] else 100 * (caused[1] - caused[0]) / caused[1]
 
 
 def shipped_targets(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, str]]:
@@ -304,14 +311,14 @@ def shipped_targets(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, 
             )
         )
     for dyn, variants in gd.get("defended", {}).get("dynamics", {}).items():
-        counts = _held_counts(variants, "recover")
-        if counts is not None:
-            k, n = counts
+        counts, caused = _held_counts(variants, "recover"), _held_counts(variants, "recover", "caused")
+        if counts is not None and caused is not None:
             out.append(
                 (
-                    f"closed loop, {dyn} dynamics: attacked runs held with detect-and-recover {HELD_TARGET}%",
-                    judge(100 * k / n if n else None, HELD_TARGET),
-                    f"{k}/{n}",
+                    f"closed loop, {dyn} dynamics: attacked runs the attack did not fail, detect-and-recover "
+                    f"{HELD_TARGET}%",
+                    judge(_not_failed_pct(variants), HELD_TARGET),
+                    f"{caused[0]} of {caused[1]} failed by the attack ({counts[0]} held)",
                 )
             )
     return out
@@ -415,16 +422,18 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
             counts = _held_counts(variants, variant)
             return "-" if counts is None else f"{wilson(*counts).pct()} ({counts[0]}/{counts[1]})"
 
-        recovered = _held_counts(variants, "recover")
-        mark = judge(100 * recovered[0] / recovered[1] if recovered and recovered[1] else None, HELD_TARGET)
+        caused = _held_counts(variants, "recover", "caused")
+        mark = judge(_not_failed_pct(variants), HELD_TARGET)
 
         table.append(
             {
                 "result": f"closed loop, attacked runs held (%), {dyn} dynamics, detect-and-recover (robust "
-                f"model: undefended {held('undefended')}, detect-and-hold {held('hold')})",
+                f"model: undefended {held('undefended')}, detect-and-hold {held('hold')}); the target counts the "
+                "runs the attack did not fail",
                 "paper's detector, standard model (this run)": "-",
                 std_col: "-",
-                ours_col: held("recover"),
+                ours_col: held("recover")
+                + ("" if caused is None else f"; {caused[0]}/{caused[1]} failed by the attack"),
                 "paper": "-",
                 "target": f"{HELD_TARGET} ({mark})",
                 **{c: _sd(spread, "recover_held_pct" if dyn == "paper" else None, " %") for c in sd_column},
