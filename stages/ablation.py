@@ -188,29 +188,15 @@ def _eval_sequences(p: Params) -> list[Any]:
 def _lab_sequences(p: Params) -> list[Any]:
     """The lab recordings (datasets/lab, or lab.real_data) through the real-data loader, with `rpod lab`'s attack
     schedules and synthetic-frame targets."""
-    import dataclasses
     from pathlib import Path
 
     from pipeline.evaluation.lab import chain_sequences
-    from pipeline.formats.recordings import read_recording, recording_folders
     from pipeline.geometry.camera import Intrinsics
+    from stages.artifacts.recordings import read_recordings
 
-    lab, r, c, z = p.lab, p.render, p.camera, p.lab.zed
+    lab, c, z = p.lab, p.camera, p.lab.zed
     source = Path(given(lab.real_data) or LAB)
-    recs = [
-        read_recording(
-            f,
-            r.width,
-            r.height,
-            dataclasses.asdict(lab.bodies),
-            lab.match,
-            float(lab.max_gap_s),
-            float(lab.segment_threshold),
-            lab.max_image_pixels,
-            float(lab.empty_frame_tolerance),
-        )
-        for f in recording_folders(source)
-    ]
+    recs = read_recordings(p, source)
     K_syn = Intrinsics(c.ref_width, c.ref_height, c.fx, c.fy, c.cx, c.cy)
     K_zed = Intrinsics(z.width, z.height, z.fx, z.fy, z.cx, z.cy)
     return chain_sequences(

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import typer
 
-from pipeline.formats.recordings import read_recording, recording_folders, write_recording
+from pipeline.formats.recordings import write_recording
 from pipeline.io.atomic import atomic_dir, atomic_write_text, read_json
 from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
@@ -37,6 +37,7 @@ from stages.artifacts.paths import CHAINS, LAB_MODELS, LAB_MODELS_SUMMARY, PAPER
 from stages.artifacts.paths import LAB as OUT
 from stages.artifacts.paths import LAB_METRICS as METRICS
 from stages.artifacts.paths import LAB_REPORT as REPORT
+from stages.artifacts.recordings import read_recordings
 from stages.config.build import mockup, retrain_reason, scene_settings
 from stages.config.device import torch_setup
 from stages.config.params import given, with_params
@@ -296,21 +297,8 @@ def _sequences(
     against the exact render poses (`truth`, synthetic lab only)."""
     from pipeline.evaluation.lab import chain_sequences, loader_errors
 
-    lab, r = p.lab, p.render
-    recs = [
-        read_recording(
-            f,
-            r.width,
-            r.height,
-            dataclasses.asdict(lab.bodies),
-            lab.match,
-            float(lab.max_gap_s),
-            float(lab.segment_threshold),
-            lab.max_image_pixels,
-            float(lab.empty_frame_tolerance),
-        )
-        for f in recording_folders(source)
-    ]
+    lab = p.lab
+    recs = read_recordings(p, source)
     sequences, ranges = chain_sequences(
         recs, K_syn, K_zed, float(lab.scale), float(p.evaluate.p_start), lab.attack_length, lab.seed
     )

@@ -206,3 +206,49 @@ def test_a_restart_of_the_filter_ends_the_modelled_horizon() -> None:
     w = worst_case(SETTINGS, MOTION, FLAT, run, rel, box(30, 0.5, 0.1), np.full(30, 6.0), targets=[0, 2, 4, 20])
     assert np.isfinite(w.achieved[:2]).all() and np.isnan(w.upper[2:]).all() and np.isnan(w.achieved[2:]).all()
     assert_passes(rel, run, FLAT, w.shift[1], 2)
+
+
+def test_a_program_the_solver_stops_on_is_solved_again_with_more_regularization(monkeypatch) -> None:
+    """Clarabel stopped with a numerical error on a standard-chain program (capacities of tens of metres): the
+    program is solved again with its static regularization raised and gives the bound an unhindered solve gives;
+    a program no setting solves stops with the frame named."""
+    from types import SimpleNamespace
+
+    import clarabel
+
+    from pipeline.defense import bound
+
+    rel, run = toy(40, 3, FLAT)
+    args = (SETTINGS, MOTION, FLAT, run, rel, box(40, 0.5, 0.1), np.full(40, 6.0))
+    clean = worst_case(*args, targets=[12, 39])
+    real, seen = clarabel.DefaultSolver, []
+
+    default = clarabel.DefaultSettings().static_regularization_constant
+
+    class Stalling:
+        """Clarabel, except that a solver built with the default regularization (mode "first") or any solver
+        (mode "always") reports a numerical error."""
+
+        def __init__(self, P, q, A, b, cones, settings) -> None:
+            self.regularization = settings.static_regularization_constant
+            seen.append(self.regularization)
+            self.inner = real(P, q, A, b, cones, settings)
+
+        def update(self, **kwargs) -> None:
+            self.inner.update(**kwargs)
+
+        def solve(self):
+            sol = self.inner.solve()
+            stalled = fails[0] == "always" or self.regularization == default
+            status = clarabel.SolverStatus.NumericalError if stalled else sol.status
+            return SimpleNamespace(x=sol.x, obj_val=sol.obj_val, obj_val_dual=sol.obj_val_dual, status=status)
+
+    fails = ["first"]
+    monkeypatch.setattr(bound.clarabel, "DefaultSolver", Stalling)
+    retried = worst_case(*args, targets=[12, 39])
+    np.testing.assert_allclose(retried.upper, clean.upper, rtol=1e-5)
+    np.testing.assert_allclose(retried.achieved, clean.achieved, atol=1e-6)
+    assert bound.RETRY_REGULARIZATION[0] in seen
+    fails[0] = "always"
+    with pytest.raises(RuntimeError, match="worst-case program of frame 12: NumericalError"):
+        worst_case(*args, targets=[12])

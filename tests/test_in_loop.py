@@ -135,3 +135,26 @@ def test_bad_in_loop_settings_are_one_line(change: dict, word: str) -> None:
     with pytest.raises(ValueError, match=word) as e:
         InLoopSettings(**change)
     assert "\n" not in str(e.value)
+
+
+def _run(outcome: str, miss: float, attacked: bool = True) -> RendezvousResult:
+    return RendezvousResult(np.zeros((2, 3)), np.zeros((1, 3)), np.array([attacked]), outcome, miss, 0)
+
+
+@pytest.mark.parametrize(
+    "base, run, caused",
+    [
+        (_run("rendezvous held", 0.2, False), _run("attack succeeded", 1.2), True),  # it held without attack
+        (_run("missed without attack", 1.1, False), _run("attack succeeded", 1.2), False),  # it missed as much anyway
+        (_run("missed without attack", 1.1, False), _run("attack succeeded", 3.0), True),  # > 1 m further
+        (_run("rendezvous held", 0.2, False), _run("rendezvous held", 0.9), False),  # held
+        (_run("rendezvous held", 0.2, False), _run("missed without attack", 4.0, False), False),  # never met
+    ],
+)
+def test_only_the_harm_the_attack_caused_counts(base, run, caused) -> None:
+    from pipeline.guidance.grid import attack_caused, defended_record
+
+    assert attack_caused(run, base, tolerance=1.0) is caused
+    record = defended_record(base, None, [(0.05, 40, 5, run)], tolerance=1.0)
+    assert record["runs"][0]["attack_caused"] is caused
+    assert record["caused"] == ({"0.05": [int(caused), 1]} if run.attacked_frames else {})

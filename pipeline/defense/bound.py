@@ -42,7 +42,8 @@ same protection level (it depends on the gains alone).
 The program, per target frame n and direction d: maximize d^T (e_n^ref + eps_n) over da, eps, g
 subject to the above (frames <= n: a later check cannot undo an error already flown on), a
 second-order cone program (one cone per gated frame), solved by Clarabel (an interior-point conic
-solver; on a 200-frame toy run it took 0.06-0.3 s per program, 7 to 13 times less than HiGHS linear
+solver; a program it stops on with a numerical error is solved again with its static regularization raised,
+`RETRY_REGULARIZATION`; on a 200-frame toy run it took 0.06-0.3 s per program, 7 to 13 times less than HiGHS linear
 programs refining an outer polytope of each ellipsoid by cutting planes, which need several solves
 each). `worst_case` solves it for the six directions +-B_n[:, k] (the target frame's line of sight and
 cross axes). Results:
@@ -78,7 +79,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import clarabel
 import numpy as np
@@ -439,21 +440,22 @@ class _Program:
             clarabel.NonnegativeConeT(blocks[1][0].shape[0] + blocks[2][0].shape[0]),
         ]
         cones += [clarabel.SecondOrderConeT(4)] * (blocks[3][0].shape[0] // 4)
-        settings = clarabel.DefaultSettings()
-        settings.verbose = False
         A = A[:, free]
+        P = sparse.csc_matrix((A.shape[1], A.shape[1]))
         solver, out = None, []
         for d in directions:
             q = np.zeros(m)
             q[self.col(n, 3) : self.col(n, 6)] = -np.asarray(d, np.float64)
             if solver is None:
-                solver = clarabel.DefaultSolver(
-                    sparse.csc_matrix((A.shape[1], A.shape[1])), q[free], A, b, cones, settings
-                )
+                solver = clarabel.DefaultSolver(P, q[free], A, b, cones, _settings(None))
             else:
                 solver.update(q=q[free])
             sol = solver.solve()
-            if sol.status not in (clarabel.SolverStatus.Solved, clarabel.SolverStatus.AlmostSolved):
+            for regularization in RETRY_REGULARIZATION:
+                if sol.status in SOLVED:
+                    break
+                sol = clarabel.DefaultSolver(P, q[free], A, b, cones, _settings(regularization)).solve()
+            if sol.status not in SOLVED:
                 raise RuntimeError(f"worst-case program of frame {n}: {sol.status}")
             x = lo.copy()
             x[free] = sol.x
@@ -461,6 +463,23 @@ class _Program:
             da[: n + 1] = x.reshape(n + 1, _WIDTH)[:, :3]
             out.append((max(-sol.obj_val, -sol.obj_val_dual), x[self.col(n, 3) : self.col(n, 6)], da))
         return out
+
+
+SOLVED = (clarabel.SolverStatus.Solved, clarabel.SolverStatus.AlmostSolved)
+# Clarabel's static regularization (its default 1e-8) raised, in turn, for a program it stops on with a numerical
+# error: met on the standard chain's programs (capacities of tens of metres beside centimetre-level noise), where
+# 1e-7 solved every direction to the objective the stalled run had reached.
+RETRY_REGULARIZATION = (1e-7, 1e-6)
+
+
+def _settings(regularization: float | None) -> Any:
+    """Clarabel's default settings, quiet, with `regularization` as the static regularization constant (None:
+    the default)."""
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    if regularization is not None:
+        settings.static_regularization_constant = regularization
+    return settings
 
 
 def _box_bound(program: _Program, j: int, e_ref: np.ndarray, axes: np.ndarray) -> tuple[float, np.ndarray]:

@@ -54,10 +54,29 @@ def held_counts(cells: list[tuple[Any, ...]]) -> dict[str, list[int]]:
     return out
 
 
-def defended_record(base: RendezvousResult, arrival: int | None, cells: list[tuple[Any, ...]]) -> dict[str, Any]:
-    """One (dynamics, defense) block of `defended_grid`: its no-attack run, every cell, and per eps the
-    runs held of those that met the attack (`held`: [held, met]) and the runs that never met it."""
+def attack_caused(run: RendezvousResult, base: RendezvousResult, tolerance: float) -> bool:
+    """Whether an attacked run's failure is the attack's doing: it met the attack, did not hold the rendezvous,
+    and either its no-attack run (same chain, dynamics and defense) held, or it ended more than `tolerance` (m)
+    further from the target point than that run did. A chain that misses by 1.1 m without attack and by 1.2 m
+    under it lost nothing to the attack."""
+    if run.attacked_frames == 0 or run.outcome == HELD:
+        return False
+    return base.outcome == HELD or run.miss > base.miss + tolerance
+
+
+def defended_record(
+    base: RendezvousResult, arrival: int | None, cells: list[tuple[Any, ...]], tolerance: float
+) -> dict[str, Any]:
+    """One (dynamics, defense) block of `defended_grid`: its no-attack run, every cell (`attack_caused`, with the
+    docking `tolerance` in metres), and per eps the runs held of those that met the attack (`held`: [held, met]),
+    the failures the attack caused (`caused`: [caused, met]) and the runs that never met it."""
     counts = held_counts(cells)
+    caused: dict[str, list[int]] = {}
+    for e, *_, r in cells:
+        if r.attacked_frames > 0:
+            k = caused.setdefault(f"{e:g}", [0, 0])
+            k[0] += int(attack_caused(r, base, tolerance))
+            k[1] += 1
     return {
         "baseline": {
             "outcome": base.outcome,
@@ -76,10 +95,12 @@ def defended_record(base: RendezvousResult, arrival: int | None, cells: list[tup
                 "steps": len(r.estimates),
                 "flags": _count(r.flags),
                 "hold_steps": _count(r.modes, "hold"),
+                "attack_caused": attack_caused(r, base, tolerance),
             }
             for e, S, k, r in cells
         ],
         "held": {e: v[:2] for e, v in counts.items()},
+        "caused": caused,
         "not_met": {e: v[2] for e, v in counts.items()},
     }
 
@@ -263,7 +284,7 @@ def defended_grid(plan: GridPlan, results: list[RendezvousResult]) -> dict[str, 
             base, *flown = blocks[(dyn, defense)]
             cells = [(eps, s, k, r) for (eps, s, k, _), r in zip(plan.grid, flown)]
             arrival = arrival_step(base, plan.settings.goal, plan.settings.tolerance)
-            out["dynamics"][dyn][defense] = defended_record(base, arrival, cells)
+            out["dynamics"][dyn][defense] = defended_record(base, arrival, cells, plan.settings.tolerance)
             if pick is not None and dyn == plan.dynamics[-1]:
                 example.append((defense, flown[pick]))
     e, S, k, _ = plan.grid[pick] if pick is not None else (0.0, 0.0, 0, None)

@@ -40,8 +40,11 @@ def defended_section(d: dict[str, Any], g: Guidance) -> str:
             }
             for eps, (k, n) in v["held"].items():
                 unmet = v.get("not_met", {}).get(eps, 0)
-                row[f"held % at eps {eps}"] = f"{wilson(k, n).pct()} ({k}/{n})" + (
-                    f", {unmet} not met" if unmet else ""
+                caused = v.get("caused", {}).get(eps, [None])[0]
+                row[f"held % at eps {eps}"] = (
+                    f"{wilson(k, n).pct()} ({k}/{n})"
+                    + ("" if caused is None else f", {caused} failed by the attack")
+                    + (f", {unmet} not met" if unmet else "")
                 )
             summary.append(row)
             for r in v["runs"]:
@@ -52,7 +55,11 @@ def defended_section(d: dict[str, Any], g: Guidance) -> str:
                         "eps": f"{r['eps']:g}",
                         "S (m)": f"{r['start_range']:g}",
                         "K": r["length"],
-                        "outcome": r["outcome"],
+                        "outcome": (
+                            "missed, as without attack"
+                            if r["outcome"] == "attack succeeded" and not r.get("attack_caused", True)
+                            else r["outcome"]
+                        ),
                         "miss (m)": r["miss_m"],
                         "steps": r["steps"],
                         "flags": "-" if r["flags"] is None else r["flags"],
@@ -76,7 +83,10 @@ as above; a defended run lasts its own no-attack run's arrival + {g.slack_steps}
 holding on a flag costs a step per flagged frame: a defended chaser that arrives late by at most the
 attack's length counts as held, one diverted or still short after that counts as lost. Success
 rates count only the runs that met the attack (a run that never reached S was not attacked: "not
-met") and carry 95% Wilson intervals over them (few runs: wide intervals).
+met") and carry 95% Wilson intervals over them (few runs: wide intervals). Only the harm the attack caused
+counts against a chain: a run that did not hold fails by the attack when its own no-attack run held, or when
+it ended more than the docking tolerance further from the target point than that run; otherwise it reads
+"missed, as without attack".
 
 {markdown_table(summary)}{_clean_flags_text(d, g)}
 ![one attacked cell per variant: distance from the approach axis and to the target point](figures/guidance_defended.png)

@@ -45,18 +45,43 @@ def _sd(spread: dict[str, Any] | None, key: str | None, note: str = "") -> str:
 
 
 def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | None = None) -> str:
-    """The headline results against the paper, as Markdown (this is what README.md shows). `spread`
-    (reports/variance.json of the same profile) adds the standard deviation over seeds of each number."""
+    """The headline results against the paper, as Markdown (this is what README.md shows), led by the targets
+    (`headline`). `spread` (reports/variance.json of the same profile) adds the standard deviation over seeds of
+    each number."""
     from pipeline.report.markdown import markdown_table
+
+    ev, gd = metrics["evaluate"], metrics["guidance"]
+    rows = [
+        *_paper_rows(metrics, spread),
+        *_robustness_rows(metrics["robustness"], spread),
+        *_integrity_rows(metrics["robustness"], gd, spread),
+    ]
+    columns = ("result", "this run", "paper", "stage", "sd over seeds")
+    table = markdown_table(
+        [dict(zip(columns, (r, v, p, f"`{s}`", sd) if spread else (r, v, p, f"`{s}`"))) for r, v, p, s, sd in rows]
+    )
+    per_eps = (
+        "Detection accuracy per eps (correct flags over all frames; 95% intervals by a bootstrap over the "
+        "trajectories):"
+    )
+    return (
+        f"{headline(metrics)}{_lead(metrics, spread)}\n\n{table}\n{per_eps}\n\n{markdown_table(_per_eps_rows(ev, metrics['lab']))}"
+        + defended_table(ev, gd, spread)
+    )
+
+
+def _paper_rows(
+    metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | None
+) -> list[tuple[str, str, str, str, str]]:
+    """The rows beside the paper's numbers: pose, attacks, the paper's closed loop (`_detection_rows`: detectors,
+    integrated and lab detection) as (result, this run, paper, stage, sd over seeds)."""
     from pipeline.stats import wilson
 
-    tr, at, gd, de, ev, lab = (metrics[k] for k in ("train", "attack", "guidance", "detect", "evaluate", "lab"))
+    tr, at, gd = (metrics[k] for k in ("train", "attack", "guidance"))
     eps_at = _eps_keys(at["eps"])
     runs = [r for r in gd["runs"] if r.get("attacked_frames", 1) > 0]
     broken = sum(r["outcome"] != "rendezvous held" for r in runs)
-    dets = de["detectors"]
-    best_base = max((k for k in dets if k != "lstm"), key=lambda k: dets[k]["all"]["accuracy"])
-    rows = [
+    return [
         (
             "pose, test mean position error (m), standard model",
             _fmt(tr["test"]["pos_mean_m"]),
@@ -93,6 +118,19 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
             "guidance",
             _sd(spread, "undefended_lost_pct", " %"),
         ),
+        *_detection_rows(metrics, spread),
+    ]
+
+
+def _detection_rows(
+    metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | None
+) -> list[tuple[str, str, str, str, str]]:
+    """The detector rows beside the paper's: the paper's LSTM, the shipped one, the best baseline, integrated and
+    lab detection."""
+    de, ev, lab = (metrics[k] for k in ("detect", "evaluate", "lab"))
+    dets = de["detectors"]
+    best_base = max((k for k in dets if k != "lstm"), key=lambda k: dets[k]["all"]["accuracy"])
+    return [
         (
             "(paper's view) LSTM detector accuracy, SHAP test split (%), standard model",
             _with_ci(dets["lstm"]["all"], "accuracy"),
@@ -123,13 +161,11 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
             "lab",
             _sd(spread, "lab.standard_accuracy_pct"),
         ),
-        *_robustness_rows(metrics["robustness"], spread),
-        *_integrity_rows(metrics["robustness"], gd, spread),
     ]
-    columns = ("result", "this run", "paper", "stage", "sd over seeds")
-    table = markdown_table(
-        [dict(zip(columns, (r, v, p, f"`{s}`", sd) if spread else (r, v, p, f"`{s}`"))) for r, v, p, s, sd in rows]
-    )
+
+
+def _per_eps_rows(ev: dict[str, Any], lab: dict[str, Any]) -> list[dict[str, str]]:
+    """Detection accuracy per eps, integrated and lab, beside the paper's."""
     eps_rows = []
     for e in sorted(set(ev["per_eps"]) | set(lab["per_eps"]), key=float, reverse=True):
         get = lambda m, k: _with_ci(m["per_eps"][e], "accuracy") if e in m["per_eps"] else "-"  # noqa: E731, B023
@@ -142,14 +178,15 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
                 "paper, lab (%)": _fmt(LAB_EPS.get(e)),
             }
         )
+    return eps_rows
+
+
+def _lead(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | None) -> str:
+    """The sentence above the table: the profile, the paper's scale, and what the sd column is."""
     profiles = sorted({m.get("profile", "unknown") for m in metrics.values()})
     head = (
         f"Profile `{'`, `'.join(profiles)}`. Paper: 480x270 images, full-width network, "
         "50 epochs, 32,500 images; each stage's section of the results page says what differs and why."
-    )
-    per_eps = (
-        "Detection accuracy per eps (correct flags over all frames; 95% intervals by a bootstrap over the "
-        "trajectories):"
     )
     if spread:
         isas = sorted(set(spread.get("isas") or []))
@@ -163,9 +200,7 @@ def summary_tables(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | 
             f" The last column is the standard deviation of the number over {len(spread['seeds'])} runs that "
             f"{what} (reports/variance.md); a difference smaller than about twice it is noise."
         )
-    return f"{headline(metrics)}{head}\n\n{table}\n{per_eps}\n\n{markdown_table(eps_rows)}" + defended_table(
-        ev, gd, spread
-    )
+    return head
 
 
 def _robust_rows(rb: dict[str, Any] | None, spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
@@ -259,12 +294,19 @@ DETECTION_TARGETS = {"accuracy": ">= 99.5", "harmful_flagged": ">= 99.5", "harmf
 CLEAN_ALARMS_TARGET, HELD_TARGET = "<= 0.5", ">= 95"
 
 
-def _held_counts(variants: dict[str, Any], variant: str) -> tuple[int, int] | None:
-    """(held, attacked runs that met the attack) of one closed-loop variant, None where it was not flown."""
-    if variant not in variants:
+def _held_counts(variants: dict[str, Any], variant: str, key: str = "held") -> tuple[int, int] | None:
+    """(held, attacked runs that met the attack) of one closed-loop variant (`key` "caused": (failures the attack
+    caused, met)), None where it was not flown or does not record them."""
+    if variant not in variants or key not in variants[variant]:
         return None
-    k, n = (sum(v[i] for v in variants[variant]["held"].values()) for i in (0, 1))
+    k, n = (sum(v[i] for v in variants[variant][key].values()) for i in (0, 1))
     return k, n
+
+
+def _not_failed_pct(variants: dict[str, Any]) -> float | None:
+    """Detect-and-recover's attacked runs that the attack did not fail (%): what the rendezvous target judges."""
+    caused = _held_counts(variants, "recover", "caused")
+    return None if not caused or not caused[1] else 100 * (caused[1] - caused[0]) / caused[1]
 
 
 def shipped_targets(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, str]]:
@@ -304,14 +346,14 @@ def shipped_targets(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, 
             )
         )
     for dyn, variants in gd.get("defended", {}).get("dynamics", {}).items():
-        counts = _held_counts(variants, "recover")
-        if counts is not None:
-            k, n = counts
+        counts, caused = _held_counts(variants, "recover"), _held_counts(variants, "recover", "caused")
+        if counts is not None and caused is not None:
             out.append(
                 (
-                    f"closed loop, {dyn} dynamics: attacked runs held with detect-and-recover {HELD_TARGET}%",
-                    judge(100 * k / n if n else None, HELD_TARGET),
-                    f"{k}/{n}",
+                    f"closed loop, {dyn} dynamics: attacked runs the attack did not fail, detect-and-recover "
+                    f"{HELD_TARGET}%",
+                    judge(_not_failed_pct(variants), HELD_TARGET),
+                    f"{caused[0]} of {caused[1]} failed by the attack ({counts[0]} held)",
                 )
             )
     return out
@@ -352,14 +394,46 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
     """The defended chain beside the paper's detector: integrated detection at the smallest
     eps, harmful-undetected, false alarms, and closed-loop rendezvous held per variant (Markdown)."""
     from pipeline.report.markdown import markdown_table
-    from pipeline.stats import wilson
 
     fused = ev.get("fused")
     if not fused or not fused["per_eps"]:
         return ""
     e = "0.01" if "0.01" in fused["per_eps"] else min(fused["per_eps"], key=float)
     paper, ours = fused["paper_per_eps"][e], fused["per_eps"][e]
-    rows = [
+    rows = _defended_rows(fused, e)
+    sd_column = {"sd over seeds, defended": None} if spread else {}
+    standard = fused.get("standard_per_eps", {}).get(e)
+    ours_col, std_col = (
+        f"defended chain ({fused['fusion']}), robust model (ships)",
+        f"defended ({fused['fusion']}), standard model",
+    )
+    table = [
+        {
+            "result": name,
+            "paper's detector, standard model (this run)": _rate(paper[key]),
+            std_col: _rate(standard[key]) if standard else "-",
+            ours_col: _rate(ours[key]),
+            "paper": p,
+            "target": t if t == "-" else f"{t} ({judge(_pct_value(ours[key]), t)})",
+            **{c: _sd(spread, sd) for c in sd_column},
+        }
+        for name, key, p, t, sd in rows
+    ]
+    for dyn, variants in gd.get("defended", {}).get("dynamics", {}).items():
+        table.append(_held_row(dyn, variants, ours_col, std_col, spread))
+    return (
+        "\n\nThe defended chains (motion check fused with the detector, recovery and hold) beside the "
+        "paper's detector, on the same trajectories and attack schedule, each on its own model's frames (FGSM "
+        "crafted on that model; 95% intervals); the per-frame rows are the paper's view (the raw estimate of each "
+        "frame against a fixed threshold), the closed-loop rows count only the runs that met the attack; each "
+        "target is judged on the shipped chain's point estimate:\n\n" + markdown_table(table)
+    )
+
+
+def _defended_rows(fused: dict[str, Any], e: str) -> list[tuple[str, str, str, str, str | None]]:
+    """`defended_table`'s per-frame rows at eps `e`: (result, key in the fused per-eps rates, paper, target, the
+    headline key of its sd over seeds)."""
+    return [
         (
             f"integrated accuracy at eps {e} (%)",
             "accuracy",
@@ -391,52 +465,35 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
             "defended.shipped_clean_false_alarm_pct",
         ),
     ]
-    sd_column = {"sd over seeds, defended": None} if spread else {}
-    standard = fused.get("standard_per_eps", {}).get(e)
-    ours_col, std_col = (
-        f"defended chain ({fused['fusion']}), robust model (ships)",
-        f"defended ({fused['fusion']}), standard model",
-    )
-    table = [
-        {
-            "result": name,
-            "paper's detector, standard model (this run)": _rate(paper[key]),
-            std_col: _rate(standard[key]) if standard else "-",
-            ours_col: _rate(ours[key]),
-            "paper": p,
-            "target": t if t == "-" else f"{t} ({judge(_pct_value(ours[key]), t)})",
-            **{c: _sd(spread, sd) for c in sd_column},
-        }
-        for name, key, p, t, sd in rows
-    ]
-    for dyn, variants in gd.get("defended", {}).get("dynamics", {}).items():
 
-        def held(variant: str, variants: dict[str, Any] = variants) -> str:
-            counts = _held_counts(variants, variant)
-            return "-" if counts is None else f"{wilson(*counts).pct()} ({counts[0]}/{counts[1]})"
 
-        recovered = _held_counts(variants, "recover")
-        mark = judge(100 * recovered[0] / recovered[1] if recovered and recovered[1] else None, HELD_TARGET)
+def _held_row(
+    dyn: str, variants: dict[str, Any], ours_col: str, std_col: str, spread: dict[str, Any] | None
+) -> dict[str, str]:
+    """`defended_table`'s closed-loop row of one dynamics: attacked runs held per variant, the failures the attack
+    caused with detect-and-recover, and its target (judged on the runs the attack did not fail)."""
+    from pipeline.stats import wilson
 
-        table.append(
-            {
-                "result": f"closed loop, attacked runs held (%), {dyn} dynamics, detect-and-recover (robust "
-                f"model: undefended {held('undefended')}, detect-and-hold {held('hold')})",
-                "paper's detector, standard model (this run)": "-",
-                std_col: "-",
-                ours_col: held("recover"),
-                "paper": "-",
-                "target": f"{HELD_TARGET} ({mark})",
-                **{c: _sd(spread, "recover_held_pct" if dyn == "paper" else None, " %") for c in sd_column},
-            }
-        )
-    return (
-        "\n\nThe defended chains (motion check fused with the detector, recovery and hold) beside the "
-        "paper's detector, on the same trajectories and attack schedule, each on its own model's frames (FGSM "
-        "crafted on that model; 95% intervals); the per-frame rows are the paper's view (the raw estimate of each "
-        "frame against a fixed threshold), the closed-loop rows count only the runs that met the attack; each "
-        "target is judged on the shipped chain's point estimate:\n\n" + markdown_table(table)
-    )
+    def held(variant: str) -> str:
+        counts = _held_counts(variants, variant)
+        return "-" if counts is None else f"{wilson(*counts).pct()} ({counts[0]}/{counts[1]})"
+
+    caused = _held_counts(variants, "recover", "caused")
+    return {
+        "result": f"closed loop, attacked runs held (%), {dyn} dynamics, detect-and-recover (robust "
+        f"model: undefended {held('undefended')}, detect-and-hold {held('hold')}); the target counts the "
+        "runs the attack did not fail",
+        "paper's detector, standard model (this run)": "-",
+        std_col: "-",
+        ours_col: held("recover") + ("" if caused is None else f"; {caused[0]}/{caused[1]} failed by the attack"),
+        "paper": "-",
+        "target": f"{HELD_TARGET} ({judge(_not_failed_pct(variants), HELD_TARGET)})",
+        **(
+            {"sd over seeds, defended": _sd(spread, "recover_held_pct" if dyn == "paper" else None, " %")}
+            if spread
+            else {}
+        ),
+    }
 
 
 def _robustness_rows(m: dict[str, Any], spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
@@ -479,11 +536,18 @@ def _integrity_rows(
     loop (detect-and-recover, true-state dynamics) without attack and at eps 0.05; then the worst HMI a chain-level
     attack caused on the shipped chain (descriptive) and on the standard one, availability without attack, and the
     in-loop attacker's collisions per variant on the shipped chain ("-" where not run)."""
-    from pipeline.stats import wilson
-    from stages.pages.integrity import attacker_names
+    integrity = rb.get("integrity", {})
+    return [
+        *_breaking_rows(integrity, spread),
+        *_docking_rows(gd, spread),
+        *_hmi_rows(integrity, spread),
+        _in_loop_row(gd, spread),
+    ]
 
-    integrity, out = rb.get("integrity", {}), []
-    chains = integrity.get("chains", {})
+
+def _breaking_rows(integrity: dict[str, Any], spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
+    """The breaking point per chain and the shipped chain's largest error / AL at eps 0.05."""
+    chains, out = integrity.get("chains", {}), []
     names = {
         "robust": "shipped chain (robust model)",
         "standard": "standard model's chain",
@@ -513,6 +577,13 @@ def _integrity_rows(
             _sd(spread, "integrity.shipped_error_al_0_05_ratio"),
         )
     )
+    return out
+
+
+def _docking_rows(gd: dict[str, Any], spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
+    """The shipped chain's docking miss in the closed loop (detect-and-recover, true-state dynamics), without
+    attack and the largest at eps 0.05."""
+    out = []
     recover = gd.get("closed_loop", {}).get("variants", {}).get("true_state", {}).get("recover")  # "-": not flown
     worst = None if recover is None else recover["per_eps"].get("0.05")
     where = "shipped chain (detect-and-recover, true-state dynamics, execution error)"
@@ -534,6 +605,15 @@ def _integrity_rows(
             _sd(spread, "closed_loop.recover_miss_0_05_m"),
         )
     )
+    return out
+
+
+def _hmi_rows(integrity: dict[str, Any], spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
+    """The worst HMI a chain-level attack caused on the shipped and the standard chain, and the shipped chain's
+    availability without attack."""
+    from stages.pages.integrity import attacker_names
+
+    chains, out = integrity.get("chains", {}), []
     for e in ("0.01", "0.05"):
         w = integrity.get("worst_hmi", {}).get(e)
         value = "-" if w is None else f"{_rate(w['hmi'])} ({attacker_names(w['attacker'])})"
@@ -571,22 +651,26 @@ def _integrity_rows(
             _sd(spread, "integrity.shipped_clean_availability_pct"),
         )
     )
+    return out
+
+
+def _in_loop_row(gd: dict[str, Any], spread: dict[str, Any] | None) -> tuple[str, str, str, str, str]:
+    """The in-loop attacker's collisions per variant on the shipped chain."""
+    from pipeline.stats import wilson
+
     counts = gd.get("in_loop", {}).get("counts", {})
     cells = []
     for variant in ("undefended", "hold", "recover"):
         c = [v for d in counts.values() for v in d.get(variant, {}).values()]
         k, n = sum(x[0] for x in c), sum(x[3] for x in c)
         cells.append("-" if not c else f"{wilson(k, n).pct()} ({k}/{n})")
-    out.append(
-        (
-            "closed loop, in-loop attacker at eps "
-            + " and ".join(sorted({f"{r['eps']:g}" for r in gd.get("in_loop", {}).get("runs", [])}))
-            + ": collisions of attacked runs (%), shipped chain (robust "
-            "model), undefended / detect-and-hold / detect-and-recover",
-            " / ".join(cells),
-            "-",
-            "guidance",
-            _sd(spread, "in_loop.shipped_recover_collisions_pct"),
-        )
+    return (
+        "closed loop, in-loop attacker at eps "
+        + " and ".join(sorted({f"{r['eps']:g}" for r in gd.get("in_loop", {}).get("runs", [])}))
+        + ": collisions of attacked runs (%), shipped chain (robust "
+        "model), undefended / detect-and-hold / detect-and-recover",
+        " / ".join(cells),
+        "-",
+        "guidance",
+        _sd(spread, "in_loop.shipped_recover_collisions_pct"),
     )
-    return out
