@@ -189,7 +189,7 @@ def test_the_robustness_page_leads_with_the_breaking_point_and_says_which_target
     held = _integrity({"robust": None, "standard": 0.01, "control": 0.02})
     assert [v for _, v, _ in targets(held)] == ["met", "met", "met", "met", "met"]
     page = lead(held, p)
-    assert page.startswith("## Safety evidence that can fail") and "Every target of issue 39 is met" in page
+    assert page.startswith("## Safety evidence that can fail") and "Every target is met" in page
     assert "**Trusted start**" in page and "**Detector**" in page and "threshold\n  0.61" in page
     assert (
         "**Breaking point (smallest eps at which an attacker fails a trajectory): shipped none in the grid, "
@@ -198,7 +198,7 @@ def test_the_robustness_page_leads_with_the_breaking_point_and_says_which_target
     broken = _integrity({"robust": 0.05, "standard": 0.01, "control": 0.05}, shipped_failed=2, availability=0.946)
     verdicts = dict((t.split(":")[0] if ":" in t else t, v) for t, v, _ in targets(broken))
     first = lead(broken, p).splitlines()[2]
-    assert "Targets of issue 39 not met" in first and "clean availability" in first and "shipped 0.05" in first
+    assert "Targets not met" in first and "clean availability" in first and "shipped 0.05" in first
     assert list(verdicts.values()).count("**missed**") == 3  # shipped at eps <= 0.05, the ratio, availability
     no_control = _integrity({"robust": None, "standard": 0.01, "control": None})
     assert targets(no_control)[0][1] == "**missed**" and targets(no_control)[2][1] == "not shown"
