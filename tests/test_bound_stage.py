@@ -86,6 +86,29 @@ def test_the_page_states_the_bound_its_replay_its_rate_with_an_interval_and_its_
     ):
         assert words in page
     assert np.isfinite(b["max_error_m"])
+    assert " s on this machine" not in page and "Cost:" not in page  # no timings in a report (bound.json has them)
+
+
+def test_the_page_sets_the_image_attacks_worst_beside_the_bound(tmp_path, monkeypatch) -> None:
+    """The largest error / AL the robustness campaign's image-space attackers reached, per chain and eps, from
+    reports/metrics/robustness.json; "-" for an eps it did not fly or without the file."""
+    import json
+
+    from stages import bound
+
+    monkeypatch.chdir(tmp_path)
+    assert bound._empirical("robust", [0.01, 0.05]) == {"0.01": None, "0.05": None}
+    (tmp_path / "reports" / "metrics").mkdir(parents=True)
+    flown = {"integrity": {"chains": {"robust": {"summary": {"per_eps": {"0.01": {"max_error_al": 0.0213}}}}}}}
+    (tmp_path / "reports" / "metrics" / "robustness.json").write_text(json.dumps(flown))
+    empirical = bound._empirical("robust", [0.01, 0.05])
+    assert empirical == {"0.01": 0.0213, "0.05": None}
+    m = _metrics()
+    m["chains"]["robust"]["empirical"] = empirical
+    lines = [line for line in bound_page(m).splitlines() if line.startswith("| robust")]
+    header = next(line for line in bound_page(m).splitlines() if line.startswith("| chain") and "image" in line)
+    column = [c.strip() for c in header.split("|")].index("image attacks' worst error / AL")
+    assert [line.split("|")[column].strip() for line in lines[:2]] == ["0.02", "-"]
 
 
 def test_a_solver_failure_stops_the_stage_with_one_line(monkeypatch) -> None:
