@@ -19,18 +19,19 @@ from __future__ import annotations
 import json
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Optional
 
 import typer
 
-
-def main(
-    images: list[Path] = typer.Argument(
-        None, help="Image files (PNG, JPG, any size; resized to the model input).", show_default=False
-    ),
-    as_json: bool = typer.Option(False, "--json", help="Print a JSON list (one object per image) instead of a table."),
-    models: Path = typer.Option(
-        None,
+# The command's arguments and options (Typer reads the Annotated metadata)
+Images = Annotated[
+    Optional[list[Path]],
+    typer.Argument(help="Image files (PNG, JPG, any size; resized to the model input).", show_default=False),
+]
+AsJson = Annotated[bool, typer.Option("--json", help="Print a JSON list (one object per image) instead of a table.")]
+Models = Annotated[
+    Optional[Path],
+    typer.Option(
         "--models",
         show_default=False,
         help="A run's models/ folder (or the project root holding it: the chain that ships, "
@@ -38,15 +39,19 @@ def main(
         "Default: the bundled weights (rpodguard/weights/default, the default profile's "
         "shipped chain).",
     ),
-    camera: Path = typer.Option(
-        None,
+]
+Camera = Annotated[
+    Optional[Path],
+    typer.Option(
         "--camera",
         show_default=False,
         help="camera.json of the images' camera (SPEED+ layout: Nu, Nv and cameraMatrix, or "
         "fx, fy, ppx, ppy); warns when it is not the camera the model was trained for.",
     ),
-    motion: Path = typer.Option(
-        None,
+]
+Motion = Annotated[
+    Optional[Path],
+    typer.Option(
         "--motion",
         show_default=False,
         help="CSV with the chaser's motion per image (columns u_x,u_y,u_z: commanded displacement "
@@ -54,6 +59,11 @@ def main(
         "c0..c8: camera -> world rotation, row-major): the images are then a sequence "
         "through the defended chain (needs defense.json beside the models).",
     ),
+]
+
+
+def main(
+    images: Images = None, as_json: AsJson = False, models: Models = None, camera: Camera = None, motion: Motion = None
 ) -> None:
     """Pose (position m, quaternion, 6-D) and the shipped chain's verdict (attack / doubt / clean) of each image.
 
@@ -92,8 +102,11 @@ def main(
         )
     for w in caught:
         typer.secho(f"warning: {' '.join(str(w.message).split())}", fg=typer.colors.YELLOW, err=True)
-    if motion is not None:
-        return _print_track(out, as_json)
+    (_print_predictions if motion is None else _print_track)(out, as_json)
+
+
+def _print_predictions(out: Any, as_json: bool) -> None:
+    """A rpodguard.api.Prediction as a JSON list (one object per image) or the verdict rule and a table."""
     if as_json:
         typer.echo("[\n" + ",\n".join(json.dumps(r) for r in out.records()) + "\n]")  # one image per line
         return
