@@ -37,11 +37,8 @@ def integrity_campaign(
     attacker of the schema on every chain and trajectory at every eps (no stop at the breaking point);
     `trajectories` (with `full` only): the first N eval_render ones (None: all).
     Returns {"fused_rows", "fused" (facts about the shipped defense), "integrity" (the metrics), "figure"}."""
-    from tqdm import tqdm
 
     from pipeline.attacks.adaptive import PerFrameChain
-    from pipeline.evaluation.campaign import fly_campaign, safety_summary
-    from pipeline.evaluation.integrity_runs import worst_hmi
 
     t0 = time.perf_counter()
     i = p.integrity
@@ -70,70 +67,92 @@ def integrity_campaign(
     figure = None
     for key, safety, defended, target, count in chains:
         k = len(tracks) if count is None else min(count, len(tracks))
-        campaign = _campaign(p, seed, defended, bursts[:k])
-        steps = len(campaign.eps) * sum(len(t) for t in tracks[:k]) if campaign.plans else 0
-        with tqdm(
-            total=k * ("burst" in i.attackers) + steps // max(k, 1),
-            desc=f"robustness (integrity, {key})",
-            unit="step",
-            dynamic_ncols=True,
-        ) as bar:
-            flown = fly_campaign(safety.onboard, target, defended, tracks[:k], campaign, lambda: bar.update(1))
-        out[key] = {
-            "model": safety.name,
-            "model_hash": safety.pose_hash,
-            "defended": defended is not None,
-            "trajectories": k,
-            "summary": safety_summary(flown),
-            "rows": flown.rows,
-            "worst_hmi": worst_hmi(flown.rows),
-            "clean": flown.clean_row,
-            "false_alarm_rate": flown.alarms.value,
-            "ci95_false_alarm": flown.alarms.ci(),
-            "calibration_unmet": [] if defended is None else list(safety.calibration.unmet),
-        }
+        out[key], flown = _fly_chain(p, seed, key, safety, defended, target, tracks[:k], bursts[:k])
         if key == SHIPPED.value:
             info.update(false_alarm_rate=flown.alarms.value, ci95_false_alarm=flown.alarms.ci())
             fused_rows = flown.fused_rows
             top = max(e for _, e, _, _ in flown.runs) if flown.runs else None
             figure = (flown.clean, [(a, runs, masks) for a, e, runs, masks in flown.runs if e == top], top)
-    shipped_out = out[SHIPPED.value]
     return {
         "fused_rows": fused_rows,
         "fused": info,
-        "integrity": {
-            "chains": out,
-            "breaking_eps": {key: v["summary"]["breaking_eps"] for key, v in out.items()},
-            "rows": shipped_out["rows"],
-            "worst_hmi": shipped_out["worst_hmi"],
-            "clean": shipped_out["clean"],
-            "eps": [float(e) for e in i.eps],
-            "attackers": list(i.attackers),
-            "assumptions": _assumptions(p, shipped),
-            "alert_limit_m": i.alert_limit_m,
-            "alert_limit_kind": i.alert_limit_kind,
-            "collision_range_m": i.collision_range_m,
-            "burst": {
-                "steps": i.burst_steps,
-                "restarts": i.burst_restarts,
-                "lambdas": [float(v) for v in i.burst_lambdas],
-                "cap": i.burst_cap,
-                "objective": i.burst_objective,
-                "hinge": i.burst_hinge,
-                "bursts": info["bursts"],
-                "burst_length": info["burst_length"],
-            },
-            "capture": {"initial_m": [float(b) for b in i.capture_initial], "rate_m": i.capture_rate},
-            "drift": {
-                "start": i.drift_start,
-                "gate_fraction": i.drift_gate_fraction,
-                "undefended_rate_m": i.undefended_drift_rate,
-            },
-            "frame_steps": i.frame_steps,
-            "stop_at_break": i.stop_at_break,
-            "seconds": time.perf_counter() - t0,
-        },
+        "integrity": _integrity_metrics(p, shipped, out, info, time.perf_counter() - t0),
         "figure": figure,
+    }
+
+
+def _fly_chain(
+    p: Params, seed: int, key: str, safety: Any, defended: Any, target: Any, tracks: list[Any], bursts: list[Any]
+) -> tuple[dict[str, Any], Any]:
+    """One chain's campaign on `tracks` (with a progress bar) -> (its metrics record, the flown campaign)."""
+    from tqdm import tqdm
+
+    from pipeline.evaluation.campaign import fly_campaign, safety_summary
+    from pipeline.evaluation.integrity_runs import worst_hmi
+
+    k = len(tracks)
+    campaign = _campaign(p, seed, defended, bursts)
+    steps = len(campaign.eps) * sum(len(t) for t in tracks) if campaign.plans else 0
+    with tqdm(
+        total=k * ("burst" in p.integrity.attackers) + steps // max(k, 1),
+        desc=f"robustness (integrity, {key})",
+        unit="step",
+        dynamic_ncols=True,
+    ) as bar:
+        flown = fly_campaign(safety.onboard, target, defended, tracks, campaign, lambda: bar.update(1))
+    record = {
+        "model": safety.name,
+        "model_hash": safety.pose_hash,
+        "defended": defended is not None,
+        "trajectories": k,
+        "summary": safety_summary(flown),
+        "rows": flown.rows,
+        "worst_hmi": worst_hmi(flown.rows),
+        "clean": flown.clean_row,
+        "false_alarm_rate": flown.alarms.value,
+        "ci95_false_alarm": flown.alarms.ci(),
+        "calibration_unmet": [] if defended is None else list(safety.calibration.unmet),
+    }
+    return record, flown
+
+
+def _integrity_metrics(
+    p: Params, shipped: Any, out: dict[str, Any], info: dict[str, Any], seconds: float
+) -> dict[str, Any]:
+    """robustness.json's "integrity": every chain's record (`out`), the breaking points, the shipped chain's rows,
+    worst HMI and clean run, and the campaign's settings and assumptions."""
+    i = p.integrity
+    return {
+        "chains": out,
+        "breaking_eps": {key: v["summary"]["breaking_eps"] for key, v in out.items()},
+        "rows": out[SHIPPED.value]["rows"],
+        "worst_hmi": out[SHIPPED.value]["worst_hmi"],
+        "clean": out[SHIPPED.value]["clean"],
+        "eps": [float(e) for e in i.eps],
+        "attackers": list(i.attackers),
+        "assumptions": _assumptions(p, shipped),
+        "alert_limit_m": i.alert_limit_m,
+        "alert_limit_kind": i.alert_limit_kind,
+        "collision_range_m": i.collision_range_m,
+        "burst": {
+            "steps": i.burst_steps,
+            "restarts": i.burst_restarts,
+            "lambdas": [float(v) for v in i.burst_lambdas],
+            "cap": i.burst_cap,
+            "objective": i.burst_objective,
+            "hinge": i.burst_hinge,
+            "bursts": info["bursts"],
+            "burst_length": info["burst_length"],
+        },
+        "capture": {"initial_m": [float(b) for b in i.capture_initial], "rate_m": i.capture_rate},
+        "drift": {
+            "start": i.drift_start,
+            "gate_fraction": i.drift_gate_fraction,
+            "undefended_rate_m": i.undefended_drift_rate,
+        },
+        "frame_steps": i.frame_steps,
+        "stop_at_break": i.stop_at_break,
+        "seconds": seconds,
     }
 
 
