@@ -71,11 +71,12 @@ HOW_TO_SET = (
 def current_values(path: Path = PARAMS_FILE) -> dict[str, Any]:
     """Dotted key -> value in params.yaml as it stands (empty when it is missing or not a YAML mapping): what a
     command would read now, shown in --help whether or not the file is up to date with conf/."""
-    import yaml
+    from pipeline.io.errors import DataError
+    from pipeline.io.files import read_yaml
 
     try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError):
+        data = read_yaml(path)  # never blocks on a FIFO; an unreadable file shows no values rather than no help
+    except (DataError, OSError):
         return {}
 
     def flat(node: Any, prefix: str) -> dict[str, Any]:

@@ -225,6 +225,17 @@ def test_stage_help_shows_the_value_params_yaml_holds_now(tmp_path, monkeypatch)
     assert "train.batch_size: " in text  # not in this params.yaml: no value shown
 
 
+def test_stage_help_does_not_block_on_a_fifo_params_yaml(tmp_path, monkeypatch):
+    """--help reads params.yaml for the values it shows: a FIFO there shows none instead of hanging."""
+    import os
+
+    monkeypatch.chdir(tmp_path)
+    os.mkfifo(tmp_path / "params.yaml")
+    result = CliRunner().invoke(app, ["train", "--help"], terminal_width=200)
+    text = " ".join(result.output.split())
+    assert result.exit_code == 0 and "train.epochs: " in text and "train.epochs = " not in text
+
+
 def _plain(output: str) -> str:
     """A CLI error as one line: the box Rich draws around it (80 columns whatever the terminal) taken away."""
     return " ".join(output.replace("│", " ").split())

@@ -40,10 +40,14 @@ def defended_section(d: dict[str, Any], g: Guidance) -> str:
             }
             for eps, (k, n) in v["held"].items():
                 unmet = v.get("not_met", {}).get(eps, 0)
-                caused = v.get("caused", {}).get(eps, [None])[0]
+                caused = v.get("caused", {}).get(eps)
                 row[f"held % at eps {eps}"] = (
                     f"{wilson(k, n).pct()} ({k}/{n})"
-                    + ("" if caused is None else f", {caused} failed by the attack")
+                    + (
+                        ""
+                        if caused is None
+                        else f", failed by the attack {wilson(*caused).pct()} ({caused[0]}/{caused[1]})"
+                    )
                     + (f", {unmet} not met" if unmet else "")
                 )
             summary.append(row)

@@ -313,6 +313,7 @@ def shipped_targets(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, 
     """Every target the shipped chain is held to, judged on this run: the integrity targets (open loop), the docking
     targets (closed loop), and the detection and rendezvous targets of the defended chain -> (target, verdict,
     evidence), in that order; a stage that did not run adds none."""
+    from pipeline.stats import wilson
     from stages.pages.guidance import docking_targets
     from stages.pages.integrity import targets
 
@@ -353,7 +354,7 @@ def shipped_targets(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, 
                     f"closed loop, {dyn} dynamics: attacked runs the attack did not fail, detect-and-recover "
                     f"{HELD_TARGET}%",
                     judge(_not_failed_pct(variants), HELD_TARGET),
-                    f"{caused[0]} of {caused[1]} failed by the attack ({counts[0]} held)",
+                    f"{caused[0]} of {caused[1]} failed by the attack, {wilson(*caused).pct()}% ({counts[0]} held)",
                 )
             )
     return out
@@ -485,7 +486,8 @@ def _held_row(
         "runs the attack did not fail",
         "paper's detector, standard model (this run)": "-",
         std_col: "-",
-        ours_col: held("recover") + ("" if caused is None else f"; {caused[0]}/{caused[1]} failed by the attack"),
+        ours_col: held("recover")
+        + ("" if caused is None else f"; failed by the attack {wilson(*caused).pct()} ({caused[0]}/{caused[1]})"),
         "paper": "-",
         "target": f"{HELD_TARGET} ({judge(_not_failed_pct(variants), HELD_TARGET)})",
         **(
