@@ -10,7 +10,9 @@ pipeline/formats/capacity.py), the detector blind, the alert limit of params (th
 the largest indices over trajectories, the share of target frames whose bound exceeds AL (95% interval bootstrapped
 over trajectories) and, on `bound.certify_frames` frames of the first trajectory, the interval-bound certificate
 beside the capacity; beside the bound, the largest error / AL the image-space attackers of `rpod robustness` reached
-(reports/metrics/robustness.json, when present).
+(reports/metrics/robustness.json, when present); and per eps the worst trajectory's worst sequence pursued in images by
+a targeted attack (the lean suite's APGD budget, `suite.steps`) and flown through the real chain
+(pipeline/evaluation/bound_images.py), which measures how much of the bound images reach.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ def main(params: Params) -> None:
     chains = {model: _chain(params, model, tracks, eps) for model in b.models}
     for model, chain in chains.items():
         chain["empirical"] = _empirical(model, eps)
+        chain["realized"] = _realized(params, model, chain, tracks, eps)
     metrics = {
         "eps": eps,
         "stride": b.stride,
@@ -71,6 +74,42 @@ def _empirical(model: str, eps: list[float]) -> dict[str, float | None]:
     chains = read_json(ROBUSTNESS_METRICS).get("integrity", {}).get("chains", {})
     flown = chains.get(model, {}).get("summary", {}).get("per_eps", {})
     return {f"{e:g}": flown.get(f"{e:g}", {}).get("max_error_al") for e in eps}
+
+
+def _realized(params: Params, model: str, chain: dict[str, Any], tracks: list[Any], eps: list[float]) -> dict[str, Any]:
+    """Per eps ("%g"): the worst trajectory's worst sequence (the largest upper / AL) realised in images by the
+    targeted attack (the lean suite's APGD budget: suite.steps, restarts and starts) and flown through the real chain
+    (pipeline/evaluation/bound_images.py `realize_worst`)."""
+    from tqdm import tqdm
+
+    from pipeline.evaluation.bound_images import RealizeSettings, realize_worst
+
+    caps, _ = _capacities(model, eps)
+    safety, limit, out = load_chain(params, model), alert_limit_settings(params), {}
+    by_name = {t.name: t for t in tracks}
+    # the random starts draw on params `seed` itself: a stream of their own in pipeline/seeds.py would re-run every
+    # stage that imports it, so it comes with issue 36's switch to hashed seeds (which re-runs them anyway)
+    s = params.suite
+    settings = RealizeSettings(s.steps, s.restarts, tuple(s.starts), params.bound.batch_size, params.seed)
+    with tqdm(total=len(eps), desc=f"bound in images ({model})", unit="eps") as bar:
+        for e in eps:
+            worst = chain["per_eps"][f"{e:g}"]["bound"]["worst_trajectory"]
+            if worst is None:
+                bar.update(1)
+                continue
+            row = next(t for t in chain["tracks"] if t["name"] == worst)
+            out[f"{e:g}"] = realize_worst(
+                safety.onboard,
+                safety.defended,
+                by_name[worst],
+                caps,
+                e,
+                limit,
+                int(row["per_eps"][f"{e:g}"]["bound"]["frame"]),
+                settings,
+            )
+            bar.update(1)
+    return out
 
 
 def _capacities(model: str, eps: list[float]) -> tuple[list[Any], dict[str, Any]]:

@@ -111,6 +111,22 @@ def test_the_page_sets_the_image_attacks_worst_beside_the_bound(tmp_path, monkey
     assert [line.split("|")[column].strip() for line in lines[:2]] == ["0.02", "-"]
 
 
+def test_the_page_measures_each_step_from_the_bound_to_the_worst_sequence_in_images() -> None:
+    """The realised worst sequence (tests/test_bound_images.py's toy network) on the page: its table, and per chain
+    the steps bound -> requested -> detector blind -> real chain with their figures."""
+    from tests.test_bound_images import _realize
+
+    m = _metrics()
+    r = _realize(reach=0.05, along=0.05)
+    m["chains"]["robust"]["realized"] = {"0.05": r}
+    page = bound_page(m)
+    assert "## The worst sequence in images" in page and "Not run" not in page
+    line = next(x for x in page.splitlines() if x.startswith("- robust (shipped), eps 0.05: the worst sequence"))
+    for v in (r["bound_m"], r["requested"]["error_m"], r["blind"]["error_m"], r["live"]["error_m"]):
+        assert f"{v:.2f} m" in line
+    assert f"{r['residual_p90_m']:.2f} m" in line
+
+
 def test_a_solver_failure_stops_the_stage_with_one_line(monkeypatch) -> None:
     """The conic solver's failure (clarabel NumericalError on the default run's standard chain) is one line naming
     the chain and trajectory, not a traceback."""

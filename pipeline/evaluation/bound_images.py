@@ -1,0 +1,144 @@
+"""The integrity bound's worst fault sequence realised in images (issue 40: why the image attackers reach a small share
+of the bound): at one target frame of one trajectory, the sequence of per-frame shifts that `worst_case`
+(pipeline/defense/bound.py) found within the capacity F(eps, range) is pursued frame by frame by a targeted attack
+(pipeline/attacks/toward.py) of the same eps, and the attacked frames are flown through the real chain.
+
+Three replays of frames 0..target through the real defense separate the bound's two modelling steps:
+- `requested`: the program's sequence itself (the estimates moved by exactly the shifts): the bound's feasible
+  attack, as `worst_case` replays it;
+- `blind`: the attacked images' estimates with the clean detector probabilities: what the images can do against the
+  motion checks when the detector is blind, as the bound models it. Well below `requested`: per-frame shifts inside
+  F are not all reachable at once (F is a box of separately measured maxima, and a frame's shift must also land
+  where the program put it);
+- `live`: the attacked images' estimates and detector probabilities: the real chain. Well below `blind`: the
+  detector, which the bound takes as blind, is what stops the sequence.
+Per attacked frame: the requested shift s and the reached shift r (estimate minus clean estimate, camera frame, m):
+the share r.s / |s|^2 reached along the request, and the residual |r - s|.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from functools import partial
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+
+from pipeline.attacks.capacity import Capacity, capacity_at
+from pipeline.attacks.toward import toward
+from pipeline.defense.bound import record, worst_case
+from pipeline.defense.calibration import CleanRun
+from pipeline.defense.chain import Defended, OnboardChain
+from pipeline.defense.integrity import AlertLimitSettings, alert_limit
+from pipeline.evaluation.integrity_runs import Track
+from pipeline.evaluation.robustness import pose_estimates
+
+MOVED_M = 1e-6  # a frame whose requested shift is shorter than this (m) is left clean
+
+
+@dataclass(frozen=True)
+class RealizeSettings:
+    """The targeted attack per frame: APGD `steps` x `restarts` from `starts` (random | lift), frames per batch, the
+    seed of its random starts."""
+
+    steps: int = 100
+    restarts: int = 1
+    starts: tuple[str, ...] = ("random",)
+    batch_size: int = 32
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if min(self.steps, self.restarts, self.batch_size) < 1 or not self.starts:
+            raise ValueError(f"realize: steps, restarts and batch_size must be >= 1 and starts not empty, got {self}")
+
+
+def _attack_frames(
+    chain: OnboardChain, track: Track, index: np.ndarray, goal: np.ndarray, eps: float, s: RealizeSettings
+) -> np.ndarray:
+    """Track frames `index` attacked toward the goal poses (len(index), 9) (camera frame, m): uint8 (n, H, W, 3)."""
+    generator = torch.Generator().manual_seed(int(s.seed))
+    out = np.empty((len(index),) + track.images.shape[1:], np.uint8)
+    for lo in range(0, len(index), s.batch_size):
+        part = slice(lo, lo + s.batch_size)
+        found = toward(
+            chain.model,
+            track.frames(index[part]),
+            torch.as_tensor(goal[part], dtype=torch.float32),
+            eps,
+            generator=generator,
+            steps=s.steps,
+            restarts=s.restarts,
+            starts=s.starts,
+        )
+        out[part] = found.images.permute(0, 2, 3, 1).numpy()
+    return out
+
+
+def realize_worst(
+    chain: OnboardChain,
+    defended: Defended,
+    track: Track,
+    capacities: Sequence[Capacity],
+    eps: float,
+    limit: AlertLimitSettings,
+    target: int,
+    settings: RealizeSettings = RealizeSettings(),
+    progress: Callable[[], Any] = lambda: None,
+) -> dict[str, Any]:
+    """The bound's worst sequence at frame `target` of `track` at `eps` (L-inf, pixels in [0, 1]) realised in images
+    (module docstring), JSON-ready: the bound (m), the trusted error at the target of the requested, blind and live
+    replays and of the clean run (m), AL there (m), the frames attacked, the share of the request reached (median)
+    and the residual (median, 90th percentile, m) beside the requested shift's median length (m), and the frames
+    flagged (any check; the detector) up to the target in the clean and each attacked replay."""
+    t0 = time.perf_counter()
+    d, truth = defended, track.truth
+    range_m = np.linalg.norm(truth, axis=1)
+    limit_fn = partial(alert_limit, settings=limit)
+    est, prob = pose_estimates(chain, track.images, settings.batch_size)
+    run = CleanRun(est, prob, track.R_cam, track.u)
+    cap = capacity_at(capacities, float(eps), range_m)
+    al = alert_limit(range_m, limit)
+    w = worst_case(d.settings, d.motion, d.noise, run, truth, cap, al, targets=[target], alert_limit=limit_fn)
+    out: dict[str, Any] = {"trajectory": track.name, "frame": int(target), "range_m": float(range_m[target])}
+    if not np.isfinite(w.upper[0]):
+        return {**out, "modelled": False}
+    m = target + 1
+    shift = w.shift[0, :m]
+    index = np.flatnonzero(np.linalg.norm(shift, axis=1) > MOVED_M)
+    goal = est[index].copy()
+    goal[:, :3] += shift[index]
+    images = track.images[:m].copy()
+    images[index] = _attack_frames(chain, track, index, goal, float(eps), settings)
+    progress()
+    est_a, prob_a = pose_estimates(chain, images, settings.batch_size)
+
+    def fly(pose: np.ndarray, p: np.ndarray, moved: np.ndarray | None = None) -> dict[str, Any]:
+        rec = record(d.settings, d.motion, d.noise, CleanRun(pose, p, track.R_cam[:m], track.u[:m]), moved, limit_fn)
+        return {
+            "error_m": float(np.linalg.norm(rec.trace.trusted[target] - truth[target])),
+            "flagged": int(rec.trace.flag.sum()),
+            "detector_flagged": int(rec.trace.shap_flag.sum()),
+        }
+
+    s, r = shift[index], est_a[index, :3] - est[index, :3]
+    length = np.linalg.norm(s, axis=1)
+    residual = np.linalg.norm(r - s, axis=1)
+    return {
+        **out,
+        "modelled": True,
+        "eps": float(eps),
+        "bound_m": float(w.upper[0]),
+        "alert_m": float(al[target]),
+        "attacked_frames": int(len(index)),
+        "requested_length_median_m": float(np.median(length)) if len(index) else 0.0,
+        "reached_share_median": float(np.median(np.einsum("ni,ni->n", r, s) / length**2)) if len(index) else None,
+        "residual_median_m": float(np.median(residual)) if len(index) else 0.0,
+        "residual_p90_m": float(np.percentile(residual, 90)) if len(index) else 0.0,
+        "clean": fly(est[:m], prob[:m]),
+        "requested": fly(est[:m], prob[:m], shift),
+        "blind": fly(est_a, prob[:m]),
+        "live": fly(est_a, prob_a),
+        "seconds": time.perf_counter() - t0,
+    }
