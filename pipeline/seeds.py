@@ -36,6 +36,7 @@ STREAMS: dict[str, int] = {
     "ablation": 1700,
     "background": 1800,  # render.background draws (Earth, stars, sensor noise); index: none, per frame inside
     "suite": 2000,  # the strongest-attack suite on the pose models: its test sample and attack draws
+    "bound": 2100,  # rpod bound's targeted attacks that realise the worst sequences in images; index: chain x eps
     "evaluate.schedule": 17,  # on the evaluation's base; index: the trajectory
     "evaluate.black_level": 41,  # on the evaluation's base: the clamp's held-out check (frames, simulated lab shift)
     "evaluate": 1000,  # run_base: the evaluation trajectories' base (was the param evaluate.seed)

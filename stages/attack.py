@@ -33,6 +33,7 @@ from stages.artifacts.readers import adv_array_name
 from stages.config.build import check_attack_params, make_attack
 from stages.config.device import torch_setup
 from stages.config.schema import Params
+from stages.config.sections import Attack
 from stages.engine import pool as engine
 from stages.engine.attack_worker import AttackBatch, AttackSetup, AttackWorker
 from stages.errors import StageError
@@ -43,20 +44,13 @@ def main(params: Params) -> None:
     """Attack the test set at every attack.eps with attack.method on attack.loss; report the pose errors."""
     import torch
 
-    from pipeline.report.figures import attack_example
-    from stages.artifacts.data import load_split
-
     a = params.attack
     check_attack_params(a, "attack")
     eps_list = [float(e) for e in a.eps]
     torch_setup(params)
     make_attack(a, a.method, 0)  # refuses bad attack params before anything is loaded
     pose = load_pose(params)
-    split = load_split(params, "test")
-    n = len(split) if a.max_images is None else min(len(split), a.max_images)
-    if n < 1:
-        raise StageError(f"params.yaml attack.max_images must be at least 1, got {a.max_images}")
-    images, labels = split.images, split.labels.iloc[:n]
+    images, labels, n = _test_set(params)
     t_gt = labels[POSITION].to_numpy(np.float64)
     q_gt = labels[QUAT].to_numpy(np.float64)
     y_all = torch.tensor(labels[TARGET].to_numpy(np.float32))
@@ -86,32 +80,52 @@ def main(params: Params) -> None:
         seal_zarr(adv / ADV.name)
         seconds = time.perf_counter() - t0
         rows = _rows(out, eps_list, t_gt, q_gt)
-        write_metrics(
-            metrics_tmp,
-            {
-                "method": a.method,
-                "loss": a.loss,
-                "images": n,
-                "seconds": seconds,
-                "model_hash": pose.hash,
-                "measured_on": "stored uint8 images",
-                "clean": {key: v for key, v in rows[0].items() if key != "eps"},
-                "eps": {r["eps"]: {key: v for key, v in r.items() if key != "eps"} for r in rows[1:]},
-            },
-            params.profile_name,
-        )
+        write_metrics(metrics_tmp, _metrics(a, n, seconds, pose.hash, rows), params.profile_name)
         atomic_write_text(report_tmp, attack_page(rows, a, n))
-        save_figure(
-            attack_example(
-                np.asarray(images[k]),
-                out["example"],
-                t_gt[k],
-                {e: out["preds"][e][k] for e in ["clean", *eps_list]},
-                a.method,
-            ),
-            figure_tmp,
-        )
+        save_figure(_figure(images, k, t_gt, out, eps_list, a.method), figure_tmp)
     typer.echo(f"attack: {n} test images x {len(eps_list)} eps in {seconds:.0f} s -> {ADV}, {REPORT}")
+
+
+def _test_set(params: Params) -> tuple[Any, Any, int]:
+    """The test split's images, the labels of the first n of them and n (attack.max_images, else every test
+    image); n < 1 stops the stage."""
+    from stages.artifacts.data import load_split
+
+    a = params.attack
+    split = load_split(params, "test")
+    n = len(split) if a.max_images is None else min(len(split), a.max_images)
+    if n < 1:
+        raise StageError(f"params.yaml attack.max_images must be at least 1, got {a.max_images}")
+    return split.images, split.labels.iloc[:n], n
+
+
+def _metrics(a: Attack, n: int, seconds: float, model_hash: str, rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """reports/metrics/attack.json: the attack, the image count, the seconds and the pose errors of `rows`
+    (clean, then per eps)."""
+    return {
+        "method": a.method,
+        "loss": a.loss,
+        "images": n,
+        "seconds": seconds,
+        "model_hash": model_hash,
+        "measured_on": "stored uint8 images",
+        "clean": {key: v for key, v in rows[0].items() if key != "eps"},
+        "eps": {r["eps"]: {key: v for key, v in r.items() if key != "eps"} for r in rows[1:]},
+    }
+
+
+def _figure(images: Any, k: int, t_gt: np.ndarray, out: dict[str, Any], eps_list: list[float], method: str) -> Any:
+    """reports/figures/fgsm_example.png's figure: test image k, its stored adversarial images and the pose
+    predictions, clean and per eps."""
+    from pipeline.report.figures import attack_example
+
+    return attack_example(
+        np.asarray(images[k]),
+        out["example"],
+        t_gt[k],
+        {e: out["preds"][e][k] for e in ["clean", *eps_list]},
+        method,
+    )
 
 
 def _attack_into(

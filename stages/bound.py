@@ -83,16 +83,16 @@ def _realized(params: Params, model: str, chain: dict[str, Any], tracks: list[An
     from tqdm import tqdm
 
     from pipeline.evaluation.bound_images import RealizeSettings, realize_worst
+    from pipeline.seeds import seed_for
 
     caps, _ = _capacities(model, eps)
     safety, limit, out = load_chain(params, model), alert_limit_settings(params), {}
     by_name = {t.name: t for t in tracks}
-    # the random starts draw on params `seed` itself: a stream of their own in pipeline/seeds.py would re-run every
-    # stage that imports it, so it comes with issue 36's switch to hashed seeds (which re-runs them anyway)
     s = params.suite
-    settings = RealizeSettings(s.steps, s.restarts, tuple(s.starts), params.bound.batch_size, params.seed)
     with tqdm(total=len(eps), desc=f"bound in images ({model})", unit="eps") as bar:
-        for e in eps:
+        for i, e in enumerate(eps):
+            seed = seed_for(params.seed, "bound", len(eps) * params.bound.models.index(model) + i)
+            settings = RealizeSettings(s.steps, s.restarts, tuple(s.starts), params.bound.batch_size, seed)
             worst = chain["per_eps"][f"{e:g}"]["bound"]["worst_trajectory"]
             if worst is None:
                 bar.update(1)

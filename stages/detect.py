@@ -117,37 +117,16 @@ def main(
     device = torch_device(params)  # a missing CUDA GPU stops here; the LSTM fit and the squeeze baseline run on it
     seed = seed_for(params.seed, "detect")
     files = CHAINS[model]
-    model_hash = file_hash(files.pose)
-    data = read_shap_store(files.shap, model_hash)
-    check_shap_split(data["attrs"], params, files.shap)  # explains this detector split (after shap.seed changed: not)
-    values, eps = data["values"], data["eps"].astype(np.float64)
-    y = data["is_adversarial"].astype(np.int64)
-    tr, va, te = split_indices(eps, data["source_index"], float(d.test_fraction), float(d.val_fraction), seed)
-    print(
-        f"detect ({model.value} model): {len(y)} SHAP samples ({int(y.sum())} adversarial) -> train {len(tr)}, "
-        f"validation {len(va)}, test {len(te)}",
-        flush=True,
-    )
+    data, model_hash, eps, (y, tr, va, te) = _split_store(params, model, seed)
 
-    result, lstm_seconds = _train_lstm(values, y, tr, va, d, seed, device)  # the paper's LSTM detector
+    result, scores, seconds = _fit_detectors(params, files, data, (y, tr, va, te), seed, device, baselines)
     lstm = result.model
-    scores: dict[str, tuple[np.ndarray, float]] = {"lstm": (lstm.predict_proba(values[te]), float(lstm.threshold))}
-    seconds = {"lstm": lstm_seconds}
-    for name in d.baselines if baselines else []:  # same split, thresholds on the same validation samples
-        scores[name], seconds[name] = _fit_baseline(name, params, files, data, (y, tr, va, te), seed)
     results = {name: metrics_by_eps(y[te], s, eps[te], thr) for name, (s, thr) in scores.items()}
     rates = rates_by_eps(y[te] == 1, scores["lstm"][0] >= scores["lstm"][1], eps[te])
     alarms = _eval_alarms(params, files, lstm, data["attrs"]) if eval_alarms else None
 
     ckpt = _checkpoint(result, data["attrs"], model_hash, eps[y == 1], results["lstm"]["all"]["accuracy"])
-    counts = {
-        "samples": int(len(y)),
-        "train": int(len(tr)),
-        "validation": int(len(va)),
-        "test": int(len(te)),
-        "test_clean": int((y[te] == 0).sum()),
-        "test_adversarial": int(y[te].sum()),
-    }
+    counts = _counts(y, tr, va, te)
     metrics = {
         "model": model.value,
         "model_hash": model_hash,
@@ -175,12 +154,73 @@ def main(
             rep, detector_page(results, scores, counts, result, data["attrs"], _used(d, y[tr]), files, alarms, rates)
         )
         _log_live(live_dir, d, result.history, results["lstm"]["all"], (y[te], {k: v[0] for k, v in scores.items()}))
-    acc = results["lstm"]["all"]["accuracy"]
+    print(_closing_line(results["lstm"]["all"]["accuracy"], alarms, files))
+
+
+def _closing_line(acc: float, alarms: dict[str, Any] | None, files: ChainFiles) -> str:
+    """The stage's last line: the LSTM's test accuracy next to the paper's, its false-alarm rate on the clean
+    evaluation frames (when measured) and the files written."""
     fa = "" if alarms is None else f"; false alarms on clean evaluation frames {alarms['rate']:.4f}"
-    print(
+    return (
         f"detect: LSTM test accuracy {acc:.4f} (paper {DETECTOR_ACCURACY:.4f}){fa} -> {files.detector}, "
         f"{files.detect_report}"
     )
+
+
+def _split_store(
+    params: Params, model: Model, seed: int
+) -> tuple[dict[str, Any], str, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """The model's SHAP store (checked against its checkpoint and the detector split), the checkpoint's hash, the
+    samples' eps (0 = clean) and (labels, 1 = attacked; train, validation and test indices); prints the sizes."""
+    d = params.detect
+    files = CHAINS[model]
+    model_hash = file_hash(files.pose)
+    data = read_shap_store(files.shap, model_hash)
+    check_shap_split(data["attrs"], params, files.shap)  # explains this detector split (after shap.seed changed: not)
+    eps = data["eps"].astype(np.float64)
+    y = data["is_adversarial"].astype(np.int64)
+    tr, va, te = split_indices(eps, data["source_index"], float(d.test_fraction), float(d.val_fraction), seed)
+    print(
+        f"detect ({model.value} model): {len(y)} SHAP samples ({int(y.sum())} adversarial) -> train {len(tr)}, "
+        f"validation {len(va)}, test {len(te)}",
+        flush=True,
+    )
+    return data, model_hash, eps, (y, tr, va, te)
+
+
+def _fit_detectors(
+    params: Params,
+    files: ChainFiles,
+    data: dict[str, Any],
+    split: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    seed: int,
+    device: Any,
+    baselines: bool,
+) -> tuple[Any, dict[str, tuple[np.ndarray, float]], dict[str, float]]:
+    """The paper's LSTM and (with `baselines`) detect.baselines fitted on `split` (labels; train, validation, test
+    indices): (the LSTM's fit result, each detector's (test scores, threshold), each fit's seconds)."""
+    d = params.detect
+    values = data["values"]
+    y, tr, va, te = split
+    result, lstm_seconds = _train_lstm(values, y, tr, va, d, seed, device)  # the paper's LSTM detector
+    lstm = result.model
+    scores: dict[str, tuple[np.ndarray, float]] = {"lstm": (lstm.predict_proba(values[te]), float(lstm.threshold))}
+    seconds = {"lstm": lstm_seconds}
+    for name in d.baselines if baselines else []:  # same split, thresholds on the same validation samples
+        scores[name], seconds[name] = _fit_baseline(name, params, files, data, (y, tr, va, te), seed)
+    return result, scores, seconds
+
+
+def _counts(y: np.ndarray, tr: np.ndarray, va: np.ndarray, te: np.ndarray) -> dict[str, int]:
+    """Sample counts: all, per split, and the test split's clean and adversarial ones."""
+    return {
+        "samples": int(len(y)),
+        "train": int(len(tr)),
+        "validation": int(len(va)),
+        "test": int(len(te)),
+        "test_clean": int((y[te] == 0).sum()),
+        "test_adversarial": int(y[te].sum()),
+    }
 
 
 def _used(d: Detect, train_labels: np.ndarray) -> Detect:

@@ -127,12 +127,6 @@ def check_duration(plan: Any, chain: Any, K: Any) -> None:
 def main(params: Params) -> None:
     """Fly the closed loop without attack and under every (eps, S, K) attack window, on the engine's
     workers (each run on one; results in grid order); report outcomes."""
-    from tqdm import tqdm
-
-    from pipeline.evaluation.closed_loop import closed_loop_outcomes
-    from pipeline.guidance.grid import GridPlan, defended_grid, grid_counts, in_loop_grid, paper_grid
-    from pipeline.report.figures import guidance_trajectories, guidance_variants
-
     g = params.guidance
     settings, grid = _plan(g)
     in_loop = _in_loop(params.integrity, settings)
@@ -143,7 +137,40 @@ def main(params: Params) -> None:
     hashes = {m: chain.pose_hash for m, chain in chains.items()}
     shipped = chains[SHIPPED.value]
     K, es = intrinsics(params), engine.engine_settings(params)  # K: the model's input size
-    plan = GridPlan(
+    plan = _grid_plan(params, settings, grid, in_loop)
+    check_duration(plan, shipped.onboard, K)
+    flown, t0, seconds = _fly(params, plan, shipped, K, es)
+    counts, paper_runs, defended, looped = _grids(plan, flown, t0, seconds)
+    baseline, _, _, attacked = paper_runs
+    metrics = _metrics(settings, g, params.attack, hashes, seconds, counts, paper_runs, defended)
+    metrics |= _shipped_metrics(params, plan, flown, looped, t0)
+    _write_outputs(params, metrics, shipped, settings, (baseline, attacked), defended)
+    typer.echo(
+        f"guidance: baseline {baseline.outcome} ({baseline.miss:.2f} m); {len(attacked)} attacked runs in "
+        f"{seconds:.0f} s; defended grid and {looped} in-loop runs in {defended['seconds']:.0f} s -> {REPORT}"
+    )
+    if baseline.outcome != "rendezvous held":
+        typer.secho(
+            f"warning: the no-attack baseline did not reach the target ({baseline.outcome}, miss "
+            f"{baseline.miss:.2f} m): the pose model is not good enough for closed-loop guidance, so the "
+            f"attack tables say little; see {REPORT}",
+            fg=typer.colors.YELLOW,
+            err=True,
+        )
+
+
+def _grid_plan(
+    params: Params,
+    settings: Any,
+    grid: list[tuple[float, float, int, Any]],
+    in_loop: tuple[tuple[float, str, float], ...],
+) -> Any:
+    """The GridPlan of every run: the paper grid, the defended grid per `guidance.dynamics` and defense, and the
+    in-loop cells (under true_state when guidance.dynamics has it), with the seeded execution settings."""
+    from pipeline.guidance.grid import GridPlan
+
+    g = params.guidance
+    return GridPlan(
         settings,
         tuple(grid),
         g.slack_steps,
@@ -153,7 +180,13 @@ def main(params: Params) -> None:
         execution_settings(params, seed_for(params.seed, "execution")),
         ("true_state",) if "true_state" in g.dynamics else (),
     )
-    check_duration(plan, shipped.onboard, K)
+
+
+def _fly(params: Params, plan: Any, shipped: Any, K: Any, es: engine.EngineSettings) -> tuple[list[Any], float, float]:
+    """Fly every run of `plan` on the engine's workers: ((result, rendered keys) per run in plan order, the
+    time.perf_counter() reading at the start (s), the seconds until the paper grid's last run finished)."""
+    from tqdm import tqdm
+
     scene, threads = chunks.prepare(K, scene_settings(params.render), es)
     runs = flights(plan)  # attacked runs last the no-attack arrival + slack_steps (the paper: 50 nominal steps + ~10)
     finished, t0, paper_done = [0], time.perf_counter(), [0.0]
@@ -177,26 +210,57 @@ def main(params: Params) -> None:
             torch_threads=None if es.in_process else threads,
         )
         flown = engine.run(GuidanceWorker, setup, runs, es, num_cpus=threads, progress=progress)
-    seconds = paper_done[0]
+    return flown, t0, paper_done[0]
+
+
+def _grids(
+    plan: Any, flown: list[Any], t0: float, seconds: float
+) -> tuple[dict[str, int], tuple[Any, int | None, int, list[Any]], dict[str, Any], int]:
+    """(the paper grid's counts, its (baseline, arrival step, horizon, attacked runs), the defended grid with its
+    seconds (the in-loop runs included) and counts, the number of in-loop runs)."""
+    from pipeline.guidance.grid import defended_grid, grid_counts, paper_grid
+
     paper = flown[: plan.paper_size]
     counts = grid_counts(paper)  # the paper's grid alone
-    baseline, arrival, horizon, attacked = paper_grid(plan, [r for r, _ in flown])
+    paper_runs = paper_grid(plan, [r for r, _ in flown])
     defended = defended_grid(plan, [r for r, _ in flown])
     defended["seconds"] = time.perf_counter() - t0 - seconds  # with the in-loop runs: they share the workers
     looped = len(plan.in_loop_runs())
     defended.update(
         grid_counts(flown[plan.paper_size : len(flown) - looped], frozenset().union(*(k for _, k in paper)))
     )
-    metrics = _metrics(
-        settings, g, params.attack, hashes, seconds, counts, (baseline, arrival, horizon, attacked), defended
-    )
+    return counts, paper_runs, defended, looped
+
+
+def _shipped_metrics(params: Params, plan: Any, flown: list[Any], looped: int, t0: float) -> dict[str, Any]:
+    """The metrics of the shipped chain's in-loop and closed-loop judgement, the execution params and the
+    stage's minutes so far."""
+    from pipeline.evaluation.closed_loop import closed_loop_outcomes
+    from pipeline.guidance.grid import grid_counts, in_loop_grid
+
     collision = params.integrity.collision_range_m
-    metrics |= {
+    return {
         "in_loop": in_loop_grid(plan, [r for r, _ in flown], collision) | grid_counts(flown[len(flown) - looped :]),
         "closed_loop": closed_loop_outcomes(plan, [r for r, _ in flown], collision),
-        "execution": dataclasses.asdict(g.execution),
+        "execution": dataclasses.asdict(params.guidance.execution),
         "minutes": (time.perf_counter() - t0) / 60,
     }
+
+
+def _write_outputs(
+    params: Params,
+    metrics: dict[str, Any],
+    shipped: Any,
+    settings: Any,
+    paper: tuple[Any, list[Any]],
+    defended: dict[str, Any],
+) -> None:
+    """reports/metrics/guidance.json, reports/guidance.md and the two figures; `paper`: the paper grid's
+    (baseline, attacked runs)."""
+    from pipeline.report.figures import guidance_trajectories, guidance_variants
+
+    g = params.guidance
+    baseline, attacked = paper
     write_metrics(METRICS, metrics, params.profile_name)
     atomic_write_text(
         REPORT,
@@ -215,18 +279,6 @@ def main(params: Params) -> None:
         guidance_variants(defended["example"]["runs"], settings.goal, defended["example"]["title"], settings.tolerance),
         DEFENDED_FIGURE,
     )
-    typer.echo(
-        f"guidance: baseline {baseline.outcome} ({baseline.miss:.2f} m); {len(attacked)} attacked runs in "
-        f"{seconds:.0f} s; defended grid and {looped} in-loop runs in {defended['seconds']:.0f} s -> {REPORT}"
-    )
-    if baseline.outcome != "rendezvous held":
-        typer.secho(
-            f"warning: the no-attack baseline did not reach the target ({baseline.outcome}, miss "
-            f"{baseline.miss:.2f} m): the pose model is not good enough for closed-loop guidance, so the "
-            f"attack tables say little; see {REPORT}",
-            fg=typer.colors.YELLOW,
-            err=True,
-        )
 
 
 def _metrics(

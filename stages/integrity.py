@@ -8,6 +8,10 @@ every attacker of the schema (the captures per direction and `integrity.capture_
 burst on its error / AL objective) on the shipped chain, the standard one and the undefended robust control, every
 eval_render trajectory (or the first `--trajectories N`) and every eps of `integrity.eps` (no stop at a chain's
 breaking point). The page has the same sections as the head of reports/robustness.md.
+
+Each chain flies one trajectory at a time, each trajectory's attacks on their own seeds, and keeps the trajectory's
+share of the campaign in datasets/integrity_shards/<chain>/ (a persistent DVC output): a killed run, re-run with the
+same params, models and data, reads the shares it finished and flies the rest (stages/artifacts/shards.py).
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from pipeline.io.atomic import atomic_write_text
 from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.models import load_chain
-from stages.artifacts.paths import INTEGRITY_METRICS, INTEGRITY_REPORT, PAPER, SHIPPED
+from stages.artifacts.paths import INTEGRITY_METRICS, INTEGRITY_REPORT, INTEGRITY_SHARDS, PAPER, SHIPPED
 from stages.config.device import torch_setup
 from stages.config.schema import Params
 from stages.engine.campaigns import integrity_campaign
@@ -40,6 +44,9 @@ def main(
 ) -> None:
     """Fly the full integrity grid (every attacker, chain, trajectory and eps) and write its page and metrics.
 
+    Resumable: each chain and trajectory's share is kept in datasets/integrity_shards/ once flown, and a re-run with
+    the same params, models and data reads it instead of flying it again.
+
     Params: `integrity` (eps, capture_initial and capture_rate, the burst's and the drift's settings, frame_steps,
     alert_limit_kind), `robustness.burst_every`, `batch_size`, `harm_m`, `defense`, `guidance` (the AL's constants
     and the execution error the page states), and the eval_render params its trajectories were rendered with.
@@ -47,7 +54,8 @@ def main(
     torch_setup(params)
     t0 = time.perf_counter()
     shipped = load_chain(params, SHIPPED)
-    out = integrity_campaign(params, shipped, seed_for(params.seed, "robustness"), full=True, trajectories=trajectories)
+    seed = seed_for(params.seed, "robustness")
+    out = integrity_campaign(params, shipped, seed, full=True, trajectories=trajectories, shards=INTEGRITY_SHARDS)
     integrity = out["integrity"]
     seconds = time.perf_counter() - t0
     write_metrics(

@@ -72,7 +72,6 @@ def main(
     import zarr
 
     from pipeline.attacks.gradient import attack_loss
-    from pipeline.shap import Explainer, draw_background, gap_features, sample_plan
 
     s = params.shap
     check_params(s)
@@ -89,6 +88,29 @@ def main(
             f"params.yaml shap.background = {s.background} but the training split has only {len(train)} images"
         )
     t0 = time.perf_counter()
+    explainer, n_features = _explainer(net, train, s, rng)
+    src = SampleImages(params, net, attack_loss(params.attack.loss, pose.loss))
+    todo = _sample_plan(s, len(src), rng)
+    n, clean = len(todo["index"]), todo["eps"] == 0
+    sources = np.unique(todo["index"])
+    shared = np.intersect1d(todo["index"][clean], todo["index"][~clean])
+    print(
+        f"shap ({model.value} model): {n} samples ({s.normal} clean + {s.per_eps} x eps {s.eps}) of {len(sources)} "
+        f"detector-split images ({len(shared)} both clean and attacked), background {s.background}, method {explainer.method}",
+        flush=True,
+    )
+    with atomic_dir(out) as tmp:
+        root = zarr.open_group(str(tmp), mode="w")
+        _explain_into(root, src, net, explainer, todo, n_features, s.chunk)
+        root.attrs.update(_attrs(params, model, model_hash, seed, explainer, src, (len(sources), len(shared))))
+    print(f"shap: {n} samples in {time.perf_counter() - t0:.0f} s -> {out}")
+
+
+def _explainer(net: Any, train: Any, s: Shap, rng: np.random.Generator) -> tuple[Any, int]:
+    """(the SHAP explainer of `net` against the GAP features of shap.background training images drawn with `rng`,
+    the number of GAP features)."""
+    from pipeline.shap import Explainer, draw_background, gap_features
+
     bg_rows = draw_background(len(train), s.background, rng)
     bg_features = np.concatenate(
         [
@@ -100,49 +122,57 @@ def main(
         explainer = Explainer(net, bg_features, s.method)
     except ValueError as e:
         raise StageError(f"params.yaml shap.method: {e}") from None
-    src = SampleImages(params, net, attack_loss(params.attack.loss, pose.loss))
+    return explainer, bg_features.shape[1]
+
+
+def _sample_plan(s: Shap, n_images: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """The samples to explain (pipeline.shap.sample_plan: source image index and eps, 0 = clean) of the
+    `n_images` detector-split images, drawn with `rng`."""
+    from pipeline.shap import sample_plan
+
     try:
-        todo = sample_plan(s.normal, s.per_eps, s.eps, np.arange(len(src)), rng)
+        return sample_plan(s.normal, s.per_eps, s.eps, np.arange(n_images), rng)
     except ValueError as e:
         raise StageError(f"{DETECT_RENDER}: {e}; re-run `rpod eval_render --detector`") from None
-    n, clean = len(todo["index"]), todo["eps"] == 0
-    sources = np.unique(todo["index"])
-    shared = np.intersect1d(todo["index"][clean], todo["index"][~clean])
-    print(
-        f"shap ({model.value} model): {n} samples ({s.normal} clean + {s.per_eps} x eps {s.eps}) of {len(sources)} "
-        f"detector-split images ({len(shared)} both clean and attacked), background {s.background}, method {explainer.method}",
-        flush=True,
-    )
-    with atomic_dir(out) as tmp:
-        root = zarr.open_group(str(tmp), mode="w")
-        _explain_into(root, src, net, explainer, todo, bg_features.shape[1], s.chunk)
-        root.attrs.update(
-            {
-                "model": model.value,
-                "model_hash": model_hash,
-                "background_size": s.background,
-                "background_seed": seed,
-                "background_mean": explainer.bg_mean.astype(float).tolist(),
-                "method": explainer.method,
-                "eps": [float(e) for e in s.eps],
-                "attack": "fgsm",
-                "attack_loss": params.attack.loss,
-                "counts": {
-                    "clean": s.normal,
-                    "per_eps": s.per_eps,
-                    "sources": int(len(sources)),
-                    "shared": int(len(shared)),
-                },
-                "source": {
-                    "folder": str(DETECT_RENDER),
-                    "images": len(src),
-                    "trajectories": int(src.poses["trajectory"].nunique()),
-                },
-                "outputs": TARGET,
-                SPLIT_KEY: src.fingerprint,
-            }
-        )
-    print(f"shap: {n} samples in {time.perf_counter() - t0:.0f} s -> {out}")
+
+
+def _attrs(
+    params: Params,
+    model: Model,
+    model_hash: str,
+    seed: int,
+    explainer: Any,
+    src: SampleImages,
+    counts: tuple[int, int],
+) -> dict[str, Any]:
+    """The store's attrs: the model and its checkpoint's hash, the background, the method, the attack, the
+    composition (`counts`: source images, those explained both clean and attacked) and the source split."""
+    s = params.shap
+    sources, shared = counts
+    return {
+        "model": model.value,
+        "model_hash": model_hash,
+        "background_size": s.background,
+        "background_seed": seed,
+        "background_mean": explainer.bg_mean.astype(float).tolist(),
+        "method": explainer.method,
+        "eps": [float(e) for e in s.eps],
+        "attack": "fgsm",
+        "attack_loss": params.attack.loss,
+        "counts": {
+            "clean": s.normal,
+            "per_eps": s.per_eps,
+            "sources": sources,
+            "shared": shared,
+        },
+        "source": {
+            "folder": str(DETECT_RENDER),
+            "images": len(src),
+            "trajectories": int(src.poses["trajectory"].nunique()),
+        },
+        "outputs": TARGET,
+        SPLIT_KEY: src.fingerprint,
+    }
 
 
 def _explain_into(

@@ -72,60 +72,26 @@ def main(
     ] = False,
 ) -> None:
     """Train the pose CNN; keep the best checkpoint by validation error; report test errors next to the paper's."""
-    import torch
-
-    from pipeline.formats.models import save_pose
-    from pipeline.pose.loss import PoseLoss
-    from pipeline.pose.train import DivergenceError, fit
-    from stages.artifacts import data
     from stages.config.device import distributed
 
-    check_writable(POSE.parent, REPORT.parent, METRICS.parent, TRAIN_LIVE.parent)  # found now, not after training
-    if not surrogate and not data.load_labels()["split"].eq("test").any():  # found now, not after training
-        raise StageError(
-            f"{LABELS}: the 'test' split is empty (the test split is read after training); check "
-            f"label.test_fraction and the number of rendered frames"
-        )
+    _check_inputs(surrogate)
     if robust:
         return _robust(params, surrogate)
     seed = params.robustness.surrogate_seed if surrogate else params.seed
     rank, world, device = distributed(params)
-    model, cfg = _model(
-        params, params.robustness.surrogate_epochs if surrogate else params.train.epochs, seed_for(seed, "train")
+    model, cfg, loss, (train_split, train_set, train_eval_set), (val_split, val_set) = _build(
+        params, params.robustness.surrogate_epochs if surrogate else params.train.epochs, seed, device
     )
-    (train_split, train_set, train_eval_set), (val_split, val_set) = data.training_sets(params, cfg.seed)
-    targets = train_split.targets
-    model.set_output_bias(targets[:, :3].mean(0), targets[:, 3:].mean(0))
-    model.place(device, params.amp)
-    loss = PoseLoss("mean")
-    if params.train.compile:
-        model = torch.compile(model)  # type: ignore[assignment]
     input_size = (params.render.height, params.render.width)
     best: dict[str, Any] = {}  # the learned loss weights and facts of the best epoch so far
     if rank == 0:
-        print(
-            f"train: {len(train_split)} train / {len(val_split)} validation images at {input_size[1]}x{input_size[0]}, "
-            f"width {params.train.width}, {cfg.epochs} epochs, batch {cfg.batch_size} x {world} process(es), "
-            f"{torch.get_num_threads()} threads, device {device}{' (bf16 autocast)' if _plain(model).amp else ''}",
-            flush=True,
-        )
-    on_epoch = _epoch_logger(rank, loss, best)
-    try:
-        result = fit(model, loss, train_set, val_set, cfg, device, on_epoch=on_epoch)
-    except DivergenceError as e:
-        raise StageError(
-            f"{e}; lower train.lr_base / train.lr_max in params.yaml "
-            f"({SURROGATE if surrogate else POSE} and the reports were left as they were)"
-        ) from None
+        _announce(params, (len(train_split), len(val_split)), cfg, world, device, model)
+    result = _fit(model, loss, (train_set, val_set), cfg, device, _epoch_logger(rank, loss, best), surrogate)
     if rank == 0:
         net = _plain(model)
         net.load_state_dict(result.best_state)
         if surrogate:  # the surrogate only: no metrics, reports or curves
-            save_pose(SURROGATE, net, best["loss"], input_size, best["meta"], **_made_from())
-            print(
-                f"train --surrogate: seed {seed}, best epoch {result.best_epoch} of {len(result.history)}: "
-                f"validation {best['meta']['val_pos_m']:.3f} m -> {SURROGATE}"
-            )
+            _write_surrogate(net, best, input_size, seed, result)
         else:
             _write_results(
                 params,
@@ -140,6 +106,80 @@ def main(
                 (val_split, val_set),
             )
     _finish(world)
+
+
+def _announce(params: Params, sizes: tuple[int, int], cfg: Any, world: int, device: Any, model: Any) -> None:
+    """Print one line on the run about to start: the (train, validation) image counts of `sizes`, input size,
+    network width, epochs, batch, processes, torch threads and device."""
+    import torch
+
+    print(
+        f"train: {sizes[0]} train / {sizes[1]} validation images at {params.render.width}x{params.render.height}, "
+        f"width {params.train.width}, {cfg.epochs} epochs, batch {cfg.batch_size} x {world} process(es), "
+        f"{torch.get_num_threads()} threads, device {device}{' (bf16 autocast)' if _plain(model).amp else ''}",
+        flush=True,
+    )
+
+
+def _check_inputs(surrogate: bool) -> None:
+    """Refuse, before any training, outputs that cannot be written and (but for the surrogate) an empty test split."""
+    from stages.artifacts import data
+
+    check_writable(POSE.parent, REPORT.parent, METRICS.parent, TRAIN_LIVE.parent)  # found now, not after training
+    if not surrogate and not data.load_labels()["split"].eq("test").any():  # found now, not after training
+        raise StageError(
+            f"{LABELS}: the 'test' split is empty (the test split is read after training); check "
+            f"label.test_fraction and the number of rendered frames"
+        )
+
+
+def _build(
+    params: Params, epochs: int, seed: int, device: Any
+) -> tuple[Any, Any, Any, tuple[Any, Any, Any], tuple[Any, Any]]:
+    """(the network on `device`, its output bias at the mean training label, compiled with train.compile; its
+    TrainConfig; the PoseLoss; (train split, its training and un-augmented datasets); (validation split, its
+    dataset)). Torch is seeded from `seed` before the network is built."""
+    import torch
+
+    from pipeline.pose.loss import PoseLoss
+    from stages.artifacts import data
+
+    model, cfg = _model(params, epochs, seed_for(seed, "train"))
+    (train_split, train_set, train_eval_set), (val_split, val_set) = data.training_sets(params, cfg.seed)
+    targets = train_split.targets
+    model.set_output_bias(targets[:, :3].mean(0), targets[:, 3:].mean(0))
+    model.place(device, params.amp)
+    loss = PoseLoss("mean")
+    if params.train.compile:
+        model = torch.compile(model)  # type: ignore[assignment]
+    return model, cfg, loss, (train_split, train_set, train_eval_set), (val_split, val_set)
+
+
+def _fit(model: Any, loss: Any, sets: tuple[Any, Any], cfg: Any, device: Any, on_epoch: Any, surrogate: bool) -> Any:
+    """fit's result of training `model` on `sets` (train, validation datasets); a diverged run is a StageError
+    naming the learning rates."""
+    from pipeline.pose.train import DivergenceError, fit
+
+    train_set, val_set = sets
+    try:
+        return fit(model, loss, train_set, val_set, cfg, device, on_epoch=on_epoch)
+    except DivergenceError as e:
+        raise StageError(
+            f"{e}; lower train.lr_base / train.lr_max in params.yaml "
+            f"({SURROGATE if surrogate else POSE} and the reports were left as they were)"
+        ) from None
+
+
+def _write_surrogate(net: Any, best: dict[str, Any], input_size: tuple[int, int], seed: int, result: Any) -> None:
+    """Write models/surrogate.pt (`net` with the best epoch's loss weights and facts) and print its validation
+    error (m)."""
+    from pipeline.formats.models import save_pose
+
+    save_pose(SURROGATE, net, best["loss"], input_size, best["meta"], **_made_from())
+    print(
+        f"train --surrogate: seed {seed}, best epoch {result.best_epoch} of {len(result.history)}: "
+        f"validation {best['meta']['val_pos_m']:.3f} m -> {SURROGATE}"
+    )
 
 
 def _finish(world: int) -> None:
@@ -251,17 +291,11 @@ def _write_robust(
     against the data (training frames); then models/pose_robust.pt, datasets/capacity/,
     reports/metrics/robust.json, reports/pose_robust.md and dvclive/robust/ together. `splits`: (fit split,
     validation split, its dataset). The test split is read here, after training."""
-    import time
-
-    from pipeline.formats.models import save_pose
-    from pipeline.io.atomic import read_json
     from pipeline.pose.metrics import summarize_errors
     from pipeline.pose.robustness import black_level_stats
     from pipeline.pose.train import predict
     from stages.artifacts import data
     from stages.artifacts.models import load_pose
-    from stages.config.build import adversarial_config
-    from stages.engine.suite import attacked_tables, capacities, write_capacities
 
     adv, bins, seed = params.train.adversarial, params.train.range_bins, seed_for(params.seed, "robust")
     train_split, val_split, val_set = splits
@@ -274,24 +308,8 @@ def _write_robust(
             split: summarize_errors(predict(model, ds, 64, device), s.targets, s.labels["range"].to_numpy(), bins)
             for split, ds, s in (("val", val_set, val_split), ("test", test_set, test_split))
         }
-    t0 = time.perf_counter()
-    models = {"standard": standard.model, "robust": net}
-    for name, table in attacked_tables(params, models, test_split, device).items():
-        out[name]["suite"] = table
-    t1 = time.perf_counter()
-    capacity = capacities(params, models, val_split, device)
-    seconds = {"suite": t1 - t0, "capacity": time.perf_counter() - t1}
-    # training cost: minutes (this machine) and gradients (weight-gradient + input-gradient image passes; with
-    # trades the attacked rows' clean images are fitted too)
-    standard_run, a = read_json(METRICS), adversarial_config(adv)
-    per_epoch = len(train_split) // params.train.batch_size * params.train.batch_size
-    out["standard"].update(
-        train_minutes=standard_run.get("train_minutes"), gradients=standard_run.get("epochs_run", 0) * per_epoch
-    )
-    out["robust"].update(
-        train_minutes=result.seconds / 60,
-        gradients=round(len(result.history) * per_epoch * (1 + (a.steps + (a.trades > 0)) * a.fraction)),
-    )
+    capacity, seconds = _attacked(params, out, (standard.model, net), (test_split, val_split), device)
+    _training_cost(params, out, result, len(train_split))
     shift = params.lab.domain_shift
     metrics = {
         **out,
@@ -306,6 +324,58 @@ def _write_robust(
         "device": str(device),
         "suite_seconds": seconds,
     }
+    _save_robust(params, net, best, metrics, capacity, result.history)
+    print(
+        f"train --robust: best epoch {result.best_epoch}: test {out['robust']['test']['pos_mean_m']:.3f} m, "
+        f"{out['robust']['test']['att_mean_deg']:.2f} deg -> {POSE_ROBUST}, {ROBUST_REPORT}, {ROBUST_METRICS}"
+    )
+
+
+def _attacked(
+    params: Params, out: dict[str, Any], nets: tuple[Any, Any], splits: tuple[Any, Any], device: Any
+) -> tuple[Any, dict[str, float]]:
+    """Both models (`nets`: standard, robust) under the attack suite on the test split (`splits`: test,
+    validation) into out[model]["suite"], then their attacker capacities on the validation split: (the
+    capacities, the seconds of each step)."""
+    import time
+
+    from stages.engine.suite import attacked_tables, capacities
+
+    standard, net = nets
+    test_split, val_split = splits
+    t0 = time.perf_counter()
+    models = {"standard": standard, "robust": net}
+    for name, table in attacked_tables(params, models, test_split, device).items():
+        out[name]["suite"] = table
+    t1 = time.perf_counter()
+    capacity = capacities(params, models, val_split, device)
+    return capacity, {"suite": t1 - t0, "capacity": time.perf_counter() - t1}
+
+
+def _training_cost(params: Params, out: dict[str, Any], result: Any, n_train: int) -> None:
+    """Add each model's training cost to out[model]: train_minutes (this machine) and gradients (weight-gradient
+    + input-gradient image passes; with trades the attacked rows' clean images are fitted too)."""
+    from stages.config.build import adversarial_config
+
+    standard_run, a = read_json(METRICS), adversarial_config(params.train.adversarial)
+    per_epoch = n_train // params.train.batch_size * params.train.batch_size
+    out["standard"].update(
+        train_minutes=standard_run.get("train_minutes"), gradients=standard_run.get("epochs_run", 0) * per_epoch
+    )
+    out["robust"].update(
+        train_minutes=result.seconds / 60,
+        gradients=round(len(result.history) * per_epoch * (1 + (a.steps + (a.trades > 0)) * a.fraction)),
+    )
+
+
+def _save_robust(
+    params: Params, net: Any, best: dict[str, Any], metrics: dict[str, Any], capacity: Any, history: list[Any]
+) -> None:
+    """models/pose_robust.pt, datasets/capacity/ (its summary added to `metrics`), reports/metrics/robust.json,
+    reports/pose_robust.md and dvclive/robust/, moved into place together."""
+    from pipeline.formats.models import save_pose
+    from stages.engine.suite import write_capacities
+
     with atomic_outputs(POSE_ROBUST, ROBUST_METRICS, ROBUST_REPORT, dirs=(str(ROBUST_LIVE), str(CAPACITY))) as (
         pose,
         path,
@@ -319,11 +389,7 @@ def _write_robust(
         )
         write_metrics(path, metrics, params.profile_name)
         atomic_write_text(report, robust_page(metrics, params))
-        _log_curves(live, result.history, params)
-    print(
-        f"train --robust: best epoch {result.best_epoch}: test {out['robust']['test']['pos_mean_m']:.3f} m, "
-        f"{out['robust']['test']['att_mean_deg']:.2f} deg -> {POSE_ROBUST}, {ROBUST_REPORT}, {ROBUST_METRICS}"
-    )
+        _log_curves(live, history, params)
 
 
 def _write_results(
@@ -343,35 +409,12 @@ def _write_results(
     reports/metrics/train.json, reports/pose.md and dvclive/train/ moved into place together. `train`, `val`:
     (split, its un-augmented dataset). The test split is read here, after training, for the first time:
     the final evaluation."""
-    import numpy as np
-
     from pipeline.formats.models import save_pose
-    from pipeline.pose.metrics import summarize_errors
-    from pipeline.pose.train import predict
     from stages.artifacts import data
 
-    (train_split, train_eval_set), (val_split, val_set) = train, val
+    train_split, val_split = train[0], val[0]
     test_split = data.load_split(params, "test")
-    test_set = data.pose_dataset(test_split)
-    bins = params.train.range_bins
-    summary = {
-        name: summarize_errors(
-            predict(net, ds, 2 * cfg.batch_size, device, cfg.channels_last),
-            split.targets,
-            split.labels["range"].to_numpy(),
-            bins,
-        )
-        for name, ds, split in (
-            ("train", train_eval_set, train_split),
-            ("val", val_set, val_split),
-            ("test", test_set, test_split),
-        )
-    }
-    # the floor any useful model must beat: always answer the mean training label
-    mean_pred = np.broadcast_to(train_split.targets.mean(0), test_split.targets.shape)
-    summary["test_mean_baseline"] = summarize_errors(
-        mean_pred, test_split.targets, test_split.labels["range"].to_numpy(), bins
-    )
+    summary = _summary(params, net, cfg, device, (train, val, test_split))
     metrics = {
         **summary,
         "best_epoch": result.best_epoch,
@@ -396,6 +439,42 @@ def _write_results(
         f"train: best epoch {result.best_epoch}: test {summary['test']['pos_mean_m']:.3f} m, "
         f"{summary['test']['att_mean_deg']:.2f} deg -> {POSE}, {REPORT}, {METRICS}"
     )
+
+
+def _summary(
+    params: Params, net: Any, cfg: Any, device: Any, splits: tuple[tuple[Any, Any], tuple[Any, Any], Any]
+) -> dict[str, Any]:
+    """Errors (pipeline.pose.metrics.summarize_errors: m, deg) of `net` on the train, validation and test splits, and
+    of always answering the mean training label on test; `splits`: (train, val: (split, its un-augmented dataset),
+    the test split)."""
+    import numpy as np
+
+    from pipeline.pose.metrics import summarize_errors
+    from pipeline.pose.train import predict
+    from stages.artifacts import data
+
+    (train_split, train_eval_set), (val_split, val_set), test_split = splits
+    test_set = data.pose_dataset(test_split)
+    bins = params.train.range_bins
+    summary = {
+        name: summarize_errors(
+            predict(net, ds, 2 * cfg.batch_size, device, cfg.channels_last),
+            split.targets,
+            split.labels["range"].to_numpy(),
+            bins,
+        )
+        for name, ds, split in (
+            ("train", train_eval_set, train_split),
+            ("val", val_set, val_split),
+            ("test", test_set, test_split),
+        )
+    }
+    # the floor any useful model must beat: always answer the mean training label
+    mean_pred = np.broadcast_to(train_split.targets.mean(0), test_split.targets.shape)
+    summary["test_mean_baseline"] = summarize_errors(
+        mean_pred, test_split.targets, test_split.labels["range"].to_numpy(), bins
+    )
+    return summary
 
 
 def _made_from() -> dict[str, Any]:

@@ -146,3 +146,15 @@ def test_a_solver_failure_stops_the_stage_with_one_line(monkeypatch) -> None:
     track = types.SimpleNamespace(name="t0")
     with pytest.raises(StageError, match=r"^rpod bound \(standard\) on eval_render t0: .*NumericalError; no bound"):
         stage._chain(build(params_mod.compose("smoke")), "standard", [track], [0.01])
+
+
+def test_the_first_eps_over_al_names_the_capacity_it_was_measured_on() -> None:
+    """An eps between measured capacities borrows the next larger one's: the line says so."""
+    from stages.pages.bound import _first_lines
+
+    chain = {"first_over_al_eps": 0.02, "capacity": {"eps": [0.01, 0.05]}}
+    line = _first_lines({"robust": chain})[0]
+    assert line.endswith("first exceeds AL at eps 0.02 (on the capacity measured at eps 0.05: none at 0.02)")
+    chain["capacity"]["eps"] = [0.01, 0.02, 0.05]
+    assert _first_lines({"robust": chain})[0].endswith("first exceeds AL at eps 0.02")
+    assert _first_lines({"robust": {**chain, "first_over_al_eps": None}})[0].endswith("stays within AL at every eps")

@@ -101,7 +101,7 @@ def test_the_summary_nests_each_attacker_in_eps_and_takes_the_worst_over_attacke
         },
     }
     rate = {"value": 1.0, "ci": [0.9, 1.0], "n": 20}
-    flights = Flights([], Rate(0.0, 0.0, 0.0, 20), [], [], {"availability": rate}, [], measures, [], {}, {}, None)
+    flights = Flights([], Rate(0.0, 0.0, 0.0, 20), [], [], {"availability": rate}, [], measures, [], {}, {}, None, {})
     s = safety_summary(flights)
     assert s["breaking_eps"] == 0.01
     at = s["per_eps"]["0.05"]
@@ -269,3 +269,23 @@ def test_a_campaign_on_the_undefended_control_needs_a_drift_rate(tracks) -> None
     c = dataclasses.replace(_campaign([0.03], False, False), plans=[Plan("drift/los", DriftSettings("los"), 0)])
     with pytest.raises(ValueError, match="max_rate"):
         fly_campaign(ToyOnboard(ToyPose()), ToyPose(), None, tracks, c)
+
+
+def test_per_track_shares_assemble_into_the_campaign_over_every_track(tracks) -> None:
+    """The toy's frame attack draws nothing, so each track flown alone (`fly_track`, a resumable share) and joined
+    (`assemble`) gives the same rows, measures and summary as one campaign over both tracks; a campaign that stops
+    at the breaking point cannot be split, and shares of different campaigns do not join."""
+    from pipeline.evaluation.campaign import assemble, fly_track
+
+    d = Defended(DefenseSettings(), EXACT, NOISE)
+    c = _campaign([0.004, 0.03], False, True)
+    whole = fly_campaign(ToyOnboard(ToyPose()), ToyPose(), d, tracks, c)
+    shares = [fly_track(ToyOnboard(ToyPose()), ToyPose(), d, t, c) for t in tracks]
+    joined = assemble(tracks, shares, c)
+    assert joined.rows == whole.rows and joined.clean_row == whole.clean_row
+    assert safety_summary(joined) == safety_summary(whole) and joined.stanford == whole.stanford
+    with pytest.raises(ValueError, match="must not stop"):
+        fly_track(ToyOnboard(ToyPose()), ToyPose(), d, tracks[0], dataclasses.replace(c, stop_at_break=True))
+    other = fly_track(ToyOnboard(ToyPose()), ToyPose(), d, tracks[1], dataclasses.replace(c, eps=[0.004]))
+    with pytest.raises(ValueError, match="different attackers or eps"):
+        assemble(tracks, [shares[0], other], c)

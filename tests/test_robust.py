@@ -271,9 +271,10 @@ def test_robust_stage_writes_the_model_its_page_and_a_loader_reads_it(dataset):
     for name in ("standard", "robust"):
         frames, overbounds, meta = read_capacity("datasets/capacity", name)
         assert set(frames["index"]) == set(val.labels["index"]) and not set(frames["index"]) & test
-        assert len(frames) == 2 * len(val) and [c.eps for c in overbounds] == [0.01, 0.05] and meta["split"] == "val"
+        eps = [c.eps for c in overbounds]
+        assert len(frames) == len(eps) * len(val) and eps == [0.01, 0.02, 0.05] and meta["split"] == "val"
         wide = frames.pivot(index="index", columns="eps", values="along_m")
-        assert (wide[0.05] >= wide[0.01]).all()  # nested in eps
+        assert (wide[0.05] >= wide[0.02]).all() and (wide[0.02] >= wide[0.01]).all()  # nested in eps
         assert m["capacity"][name]["per_eps"][0]["count"] == [len(val)]
     assert m["robust"]["train_minutes"] > 0 and m["standard"]["train_minutes"] > 0
     a = params_mod.load().train.adversarial  # 1 epoch each; PGD-k on a share of each batch

@@ -76,6 +76,45 @@ def _attack_frames(
     return out
 
 
+def _reach(s: np.ndarray, r: np.ndarray) -> dict[str, Any]:
+    """Requested shifts s and reached shifts r (n, 3) (camera frame, m): the request's median length, the median
+    share reached along it, the residual |r - s| (median, 90th percentile)."""
+    if not len(s):
+        return {
+            "requested_length_median_m": 0.0,
+            "reached_share_median": None,
+            "residual_median_m": 0.0,
+            "residual_p90_m": 0.0,
+        }
+    length, residual = np.linalg.norm(s, axis=1), np.linalg.norm(r - s, axis=1)
+    return {
+        "requested_length_median_m": float(np.median(length)),
+        "reached_share_median": float(np.median(np.einsum("ni,ni->n", r, s) / length**2)),
+        "residual_median_m": float(np.median(residual)),
+        "residual_p90_m": float(np.percentile(residual, 90)),
+    }
+
+
+def _fly(
+    d: Defended,
+    track: Track,
+    target: int,
+    limit_fn: Callable[[float], float],
+    pose: np.ndarray,
+    prob: np.ndarray,
+    moved: np.ndarray | None = None,
+) -> dict[str, Any]:
+    """Frames 0..target with estimates `pose` (moved by `moved`, camera frame, m) and detector probabilities `prob`
+    through the real defense: the trusted error at the target (m) and the frames flagged (any check; the detector)."""
+    m = target + 1
+    rec = record(d.settings, d.motion, d.noise, CleanRun(pose, prob, track.R_cam[:m], track.u[:m]), moved, limit_fn)
+    return {
+        "error_m": float(np.linalg.norm(rec.trace.trusted[target] - track.truth[target])),
+        "flagged": int(rec.trace.flag.sum()),
+        "detector_flagged": int(rec.trace.shap_flag.sum()),
+    }
+
+
 def realize_worst(
     chain: OnboardChain,
     defended: Defended,
@@ -85,7 +124,6 @@ def realize_worst(
     limit: AlertLimitSettings,
     target: int,
     settings: RealizeSettings = RealizeSettings(),
-    progress: Callable[[], Any] = lambda: None,
 ) -> dict[str, Any]:
     """The bound's worst sequence at frame `target` of `track` at `eps` (L-inf, pixels in [0, 1]) realised in images
     (module docstring), JSON-ready: the bound (m), the trusted error at the target of the requested, blind and live
@@ -93,14 +131,12 @@ def realize_worst(
     and the residual (median, 90th percentile, m) beside the requested shift's median length (m), and the frames
     flagged (any check; the detector) up to the target in the clean and each attacked replay."""
     t0 = time.perf_counter()
-    d, truth = defended, track.truth
-    range_m = np.linalg.norm(truth, axis=1)
+    d, range_m = defended, np.linalg.norm(track.truth, axis=1)
     limit_fn = partial(alert_limit, settings=limit)
     est, prob = pose_estimates(chain, track.images, settings.batch_size)
-    run = CleanRun(est, prob, track.R_cam, track.u)
-    cap = capacity_at(capacities, float(eps), range_m)
+    run, cap = CleanRun(est, prob, track.R_cam, track.u), capacity_at(capacities, float(eps), range_m)
     al = alert_limit(range_m, limit)
-    w = worst_case(d.settings, d.motion, d.noise, run, truth, cap, al, targets=[target], alert_limit=limit_fn)
+    w = worst_case(d.settings, d.motion, d.noise, run, track.truth, cap, al, targets=[target], alert_limit=limit_fn)
     out: dict[str, Any] = {"trajectory": track.name, "frame": int(target), "range_m": float(range_m[target])}
     if not np.isfinite(w.upper[0]):
         return {**out, "modelled": False}
@@ -111,20 +147,8 @@ def realize_worst(
     goal[:, :3] += shift[index]
     images = track.images[:m].copy()
     images[index] = _attack_frames(chain, track, index, goal, float(eps), settings)
-    progress()
     est_a, prob_a = pose_estimates(chain, images, settings.batch_size)
-
-    def fly(pose: np.ndarray, p: np.ndarray, moved: np.ndarray | None = None) -> dict[str, Any]:
-        rec = record(d.settings, d.motion, d.noise, CleanRun(pose, p, track.R_cam[:m], track.u[:m]), moved, limit_fn)
-        return {
-            "error_m": float(np.linalg.norm(rec.trace.trusted[target] - truth[target])),
-            "flagged": int(rec.trace.flag.sum()),
-            "detector_flagged": int(rec.trace.shap_flag.sum()),
-        }
-
-    s, r = shift[index], est_a[index, :3] - est[index, :3]
-    length = np.linalg.norm(s, axis=1)
-    residual = np.linalg.norm(r - s, axis=1)
+    fly = partial(_fly, d, track, target, limit_fn)
     return {
         **out,
         "modelled": True,
@@ -132,10 +156,7 @@ def realize_worst(
         "bound_m": float(w.upper[0]),
         "alert_m": float(al[target]),
         "attacked_frames": int(len(index)),
-        "requested_length_median_m": float(np.median(length)) if len(index) else 0.0,
-        "reached_share_median": float(np.median(np.einsum("ni,ni->n", r, s) / length**2)) if len(index) else None,
-        "residual_median_m": float(np.median(residual)) if len(index) else 0.0,
-        "residual_p90_m": float(np.percentile(residual, 90)) if len(index) else 0.0,
+        **_reach(shift[index], est_a[index, :3] - est[index, :3]),
         "clean": fly(est[:m], prob[:m]),
         "requested": fly(est[:m], prob[:m], shift),
         "blind": fly(est_a, prob[:m]),

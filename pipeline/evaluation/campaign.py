@@ -98,7 +98,8 @@ class Flights:
     `bursts_with_hmi`), the clean row and the nested burst's per-frame rows; the measures per attacker and eps
     flown (per track, as flown: `safety_summary` nests them), the clean tracks' measures; the Stanford region
     counts per eps over every attacker's counted frames, and the clean frames'; `stopped`: the eps at which the
-    ladder stopped (the chain broke there), None when every eps was flown."""
+    ladder stopped (the chain broke there), None when every eps was flown; `bursts_hmi`: the burst's [bursts with
+    an HMI frame, bursts] per eps ({} without the burst)."""
 
     clean: list[Flown]
     alarms: Rate
@@ -111,6 +112,7 @@ class Flights:
     stanford: dict[float, dict[str, int]]
     stanford_clean: dict[str, int]
     stopped: float | None
+    bursts_hmi: dict[float, list[int]]
 
 
 def judge(flown: Flown, mask: np.ndarray, single: AlertLimitSettings) -> TrajectoryMeasures:
@@ -135,19 +137,14 @@ def fly_campaign(
     control); `progress()` after each attacked track of the burst and each attacked frame of the plans."""
     c = campaign
     clean = [fly(chain, defended, t, c.limit, c.batch_size) for t in tracks]
-    flags = np.concatenate([f.trace.flag for f in clean])
-    alarms = bootstrap_rate(flags, np.concatenate([np.full(len(t), g) for g, t in enumerate(tracks)]))
     runs: list[tuple[str, float, list[Flown], list[np.ndarray]]] = []
-    measures: dict[str, dict[float, list[TrajectoryMeasures]]] = {}
     bursts_hmi: dict[float, list[int]] = {}
     broken: float | None = None
 
     def record(name: str, e: float, flights: list[Flown], masks: list[np.ndarray]) -> None:
         nonlocal broken
         runs.append((name, e, flights, masks))
-        ms = [judge(f, m, c.single) for f, m in zip(flights, masks)]
-        measures.setdefault(name, {})[e] = ms
-        if any(m.failed for m in ms):
+        if any(judge(f, m, c.single).failed for f, m in zip(flights, masks)):
             broken = e if broken is None else min(broken, e)
 
     if c.burst is not None:
@@ -184,6 +181,65 @@ def fly_campaign(
                 [fly(chain, defended, t, c.limit, c.batch_size, s, f) for t, s, f in zip(tracks, per, clean)],
                 [np.arange(len(t)) >= plan.start for t in tracks],
             )
+    return _flights(tracks, clean, runs, bursts_hmi, stopped, c)
+
+
+@dataclass(frozen=True)
+class TrackFlights:
+    """One trajectory's share of a campaign flown to the end of its ladder (`fly_track`): its clean flight; per
+    attacked run (attacker, eps, its flight, the attacked frames (N,) bool) in the campaign's order; the burst's
+    [bursts with an HMI frame, bursts] per eps ({} without the burst)."""
+
+    clean: Flown
+    runs: list[tuple[str, float, Flown, np.ndarray]]
+    bursts_hmi: dict[float, list[int]]
+
+
+def fly_track(
+    chain: OnboardChain,
+    target: Any,
+    defended: Defended | None,
+    track: Track,
+    campaign: Campaign,
+    progress: Callable[[], Any] = lambda: None,
+) -> TrackFlights:
+    """`fly_campaign` on one track (`campaign.bursts` holds that track's bursts only) at every eps of the ladder
+    (no stop at the breaking point: a track alone cannot know it): a resumable share of the campaign, which
+    `assemble` joins with the other tracks' into the campaign's Flights. The attacks draw on the campaign's seeds
+    as given (the caller gives each track its own)."""
+    if campaign.stop_at_break:
+        raise ValueError("fly_track flies the whole ladder: the campaign must not stop at the breaking point")
+    f = fly_campaign(chain, target, defended, [track], campaign, progress)
+    return TrackFlights(f.clean[0], [(a, e, fl[0], m[0]) for a, e, fl, m in f.runs], f.bursts_hmi)
+
+
+def assemble(tracks: Sequence[Track], shares: Sequence[TrackFlights], campaign: Campaign) -> Flights:
+    """The campaign's Flights from each track's `fly_track` share (in the order of `tracks`): the same rows,
+    measures and counts as one `fly_campaign` over every track that draws the same attacks."""
+    if len(shares) != len(tracks) or not shares:
+        raise ValueError(f"assemble needs one share per track, got {len(shares)} for {len(tracks)} tracks")
+    keys = [(a, e) for a, e, _, _ in shares[0].runs]
+    if any([(a, e) for a, e, _, _ in s.runs] != keys for s in shares):
+        raise ValueError("assemble: the tracks' shares flew different attackers or eps (one campaign's shares only)")
+    runs = [(a, e, [s.runs[k][2] for s in shares], [s.runs[k][3] for s in shares]) for k, (a, e) in enumerate(keys)]
+    hmi = {e: [sum(s.bursts_hmi[e][i] for s in shares) for i in (0, 1)] for e in shares[0].bursts_hmi}
+    return _flights(tracks, [s.clean for s in shares], runs, hmi, None, campaign)
+
+
+def _flights(
+    tracks: Sequence[Track],
+    clean: list[Flown],
+    runs: list[tuple[str, float, list[Flown], list[np.ndarray]]],
+    bursts_hmi: dict[float, list[int]],
+    stopped: float | None,
+    c: Campaign,
+) -> Flights:
+    """The Flights of the clean flights and the attacked runs: false alarms, measures, rows, Stanford counts."""
+    flags = np.concatenate([f.trace.flag for f in clean])
+    alarms = bootstrap_rate(flags, np.concatenate([np.full(len(t), g) for g, t in enumerate(tracks)]))
+    measures: dict[str, dict[float, list[TrajectoryMeasures]]] = {}
+    for name, e, flown, masks in runs:
+        measures.setdefault(name, {})[e] = [judge(f, m, c.single) for f, m in zip(flown, masks)]
     rows = [
         integrity_row(name, e, flown, clean, masks, seed=c.seed)
         | ({"bursts_with_hmi": bursts_hmi[e]} if name == "burst" else {})
@@ -217,6 +273,7 @@ def fly_campaign(
         stanford,
         clean_stanford,
         stopped,
+        bursts_hmi,
     )
 
 

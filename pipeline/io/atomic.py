@@ -22,12 +22,23 @@ from pipeline.io.store import is_sealed, seal_zarr
 
 def atomic_write_text(path: Path | str, text: str) -> None:
     """Write text to path via a temporary file in the same folder and a rename."""
+    _atomic_write(path, "w", text)
+
+
+def atomic_write_bytes(path: Path | str, data: bytes) -> None:
+    """Write bytes to path via a temporary file in the same folder and a rename."""
+    _atomic_write(path, "wb", data)
+
+
+def _atomic_write(path: Path | str, mode: str, payload: str | bytes) -> None:
+    """`payload` to path in `mode` ("w" or "wb") through a temporary file in the same folder and a rename: a kill
+    leaves the previous file or none, never half of one."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
+        with os.fdopen(fd, mode) as f:
+            f.write(payload)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

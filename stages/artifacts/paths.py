@@ -133,8 +133,9 @@ ATTITUDE_REPORT, ATTITUDE_METRICS = _outputs("attitude", "reports/attitude.md", 
 # issue 40's integrity bound under the attacker's capacity: a stage of optional/dvc.yaml (`rpod bound`)
 BOUND_REPORT, BOUND_METRICS = _outputs("bound", "reports/integrity_bound.md", "reports/metrics/bound.json")
 # issue 39's full integrity grid (`rpod integrity`, optional/dvc.yaml): every attacker on every chain, trajectory and eps
-INTEGRITY_REPORT, INTEGRITY_METRICS = _outputs(
-    "integrity", "reports/integrity_full.md", "reports/metrics/integrity_full.json"
+# (its per-trajectory shards persist across runs: a killed run resumes from them; stages/artifacts/shards.py)
+INTEGRITY_REPORT, INTEGRITY_METRICS, INTEGRITY_SHARDS = _outputs(
+    "integrity", "reports/integrity_full.md", "reports/metrics/integrity_full.json", "datasets/integrity_shards"
 )
 # the headline numbers (what `dvc metrics show` prints), then the report's own figures
 PAGE, SUMMARY, *_FIGURES = _outputs(

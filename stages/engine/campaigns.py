@@ -9,18 +9,22 @@ integrity figure (the shipped chain at the largest eps it flew).
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 import typing
-from typing import Any
+from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 
 from pipeline.geometry.labels import TARGET
+from pipeline.io.atomic import file_hash
 from pipeline.seeds import seed_for
 from stages.artifacts.models import load_chain
 from stages.artifacts.paths import PAPER, SHIPPED
 from stages.artifacts.readers import chaser_motion, read_eval_render
 from stages.config.evaluation import IntegrityAttacker
+from stages.config.params import fingerprint
 from stages.config.schema import Params
 from stages.errors import StageError
 
@@ -28,14 +32,16 @@ CONTROL = "control"  # the undefended robust chain: the shipped pose network, no
 
 
 def integrity_campaign(
-    p: Params, shipped: Any, seed: int, full: bool = False, trajectories: int | None = None
+    p: Params, shipped: Any, seed: int, full: bool = False, trajectories: int | None = None, shards: Path | None = None
 ) -> dict[str, Any]:
     """The integrity campaign (pipeline.evaluation.campaign) on the three chains: the shipped one (`shipped`, a
     SafetyChain) on the first `integrity.trajectories` eval_render ones, the standard one and the undefended robust
     control on the first `integrity.comparison_trajectories` of those; each chain's safety evidence
     (`safety_summary`), its descriptive integrity rows, and the figure's data (the shipped chain). `full`: every
     attacker of the schema on every chain and trajectory at every eps (no stop at the breaking point);
-    `trajectories` (with `full` only): the first N eval_render ones (None: all).
+    `trajectories` (with `full` only): the first N eval_render ones (None: all); `shards` (with `full` only): fly
+    each chain one trajectory at a time, each trajectory's share kept in that folder, and reuse the shares a killed
+    run left (`_fly_shards`).
     Returns {"fused_rows", "fused" (facts about the shipped defense), "integrity" (the metrics), "figure"}."""
 
     from pipeline.attacks.adaptive import PerFrameChain
@@ -47,6 +53,8 @@ def integrity_campaign(
             i, attackers=list(typing.get_args(IntegrityAttacker)), stop_at_break=False, comparison_trajectories=None
         )
         p = dataclasses.replace(p, integrity=i)
+    if shards is not None and not full:
+        raise ValueError("integrity_campaign: shards need the full grid (a ladder that stops cannot be split)")
     tracks, bursts, info = _tracks(p, shipped)
     trajectories = trajectories if full else i.trajectories
     tracks, bursts = tracks[:trajectories], bursts[:trajectories]
@@ -67,7 +75,7 @@ def integrity_campaign(
     figure = None
     for key, safety, defended, target, count in chains:
         k = len(tracks) if count is None else min(count, len(tracks))
-        out[key], flown = _fly_chain(p, seed, key, safety, defended, target, tracks[:k], bursts[:k])
+        out[key], flown = _fly_chain(p, seed, key, safety, defended, target, tracks[:k], bursts[:k], shards)
         if key == SHIPPED.value:
             info.update(false_alarm_rate=flown.alarms.value, ci95_false_alarm=flown.alarms.ci())
             fused_rows = flown.fused_rows
@@ -82,12 +90,21 @@ def integrity_campaign(
 
 
 def _fly_chain(
-    p: Params, seed: int, key: str, safety: Any, defended: Any, target: Any, tracks: list[Any], bursts: list[Any]
+    p: Params,
+    seed: int,
+    key: str,
+    safety: Any,
+    defended: Any,
+    target: Any,
+    tracks: list[Any],
+    bursts: list[Any],
+    shards: Path | None = None,
 ) -> tuple[dict[str, Any], Any]:
-    """One chain's campaign on `tracks` (with a progress bar) -> (its metrics record, the flown campaign)."""
+    """One chain's campaign on `tracks` (with a progress bar) -> (its metrics record, the flown campaign); with
+    `shards` (a folder) one trajectory at a time, each share kept there and reused by a later run (`_fly_shards`)."""
     from tqdm import tqdm
 
-    from pipeline.evaluation.campaign import fly_campaign, safety_summary
+    from pipeline.evaluation.campaign import assemble, fly_campaign, fly_track, safety_summary
     from pipeline.evaluation.integrity_runs import worst_hmi
 
     k = len(tracks)
@@ -95,11 +112,22 @@ def _fly_chain(
     steps = len(campaign.eps) * sum(len(t) for t in tracks) if campaign.plans else 0
     with tqdm(
         total=k * ("burst" in p.integrity.attackers) + steps // max(k, 1),
-        desc=f"robustness (integrity, {key})",
+        desc=f"robustness (integrity, {key})" if shards is None else f"integrity ({key}, shards in {shards})",
         unit="step",
         dynamic_ncols=True,
     ) as bar:
-        flown = fly_campaign(safety.onboard, target, defended, tracks, campaign, lambda: bar.update(1))
+        if shards is None:
+            flown = fly_campaign(safety.onboard, target, defended, tracks, campaign, lambda: bar.update(1))
+        else:  # one trajectory at a time, each on item g of the attacks' streams
+            shares = _fly_shards(
+                _shard_base(p, seed, key, safety),
+                tracks,
+                lambda g: _campaign(p, seed, defended, [bursts[g]], index=g),
+                lambda t, c: fly_track(safety.onboard, target, defended, t, c, lambda: bar.update(1)),
+                shards,
+                bar,
+            )
+            flown = assemble(tracks, shares, campaign)
     record = {
         "model": safety.name,
         "model_hash": safety.pose_hash,
@@ -114,6 +142,47 @@ def _fly_chain(
         "calibration_unmet": [] if defended is None else list(safety.calibration.unmet),
     }
     return record, flown
+
+
+def _shard_base(p: Params, seed: int, key: str, safety: Any) -> dict[str, Any]:
+    """What every share of chain `key` depends on besides its trajectory: the params, the chain's files, the seed."""
+    return {
+        "params": json.loads(json.dumps(dataclasses.asdict(p), default=str)),
+        "files": [file_hash(f) for f in safety.files if f is not None],
+        "chain": key,
+        "seed": seed,
+    }
+
+
+def _fly_shards(
+    base: dict[str, Any],
+    tracks: list[Any],
+    campaign_of: Callable[[int], Any],
+    fly: Callable[[Any, Any], Any],
+    folder: Path,
+    bar: Any,
+) -> list[Any]:
+    """Each track's share of a chain's campaign, in order: read from `folder` when its key (`base`, the track's
+    name, index and data) matches (stages/artifacts/shards.py: a killed run resumes), else flown by
+    `fly(track, campaign_of(g))` and written there; `bar` advances by a whole trajectory's steps for a share read."""
+    import hashlib
+
+    from stages.artifacts.shards import read_shard, shard_path, write_shard
+
+    shares = []
+    for g, track in enumerate(tracks):
+        campaign = campaign_of(g)
+        data = hashlib.sha256(track.images.tobytes() + np.asarray(track.labels).tobytes() + track.u.tobytes())
+        name = fingerprint({**base, "track": track.name, "index": g, "data": data.hexdigest()})
+        path = shard_path(folder, base["chain"], track.name)
+        share = read_shard(path, name)
+        if share is None:
+            share = fly(track, campaign)
+            write_shard(path, name, share)
+        else:
+            bar.update(int(campaign.burst is not None) + (len(campaign.eps) * len(track) if campaign.plans else 0))
+        shares.append(share)
+    return shares
 
 
 def _integrity_metrics(
@@ -156,11 +225,11 @@ def _integrity_metrics(
     }
 
 
-def _campaign(p: Params, seed: int, defended: Any, bursts: list[list[tuple[int, int]]]) -> Any:
+def _campaign(p: Params, seed: int, defended: Any, bursts: list[list[tuple[int, int]]], index: int = 0) -> Any:
     """The Campaign of params.integrity against `defended` (None: the undefended control, whose drift grows by
     integrity.undefended_drift_rate per frame): the captures per direction and initial bias from frame 0, the
     drifts from integrity.drift_start, the burst on `bursts`, the AL of integrity.alert_limit_kind beside the
-    single-frame one."""
+    single-frame one; its attacks draw on item `index` of their streams (a trajectory's own in the sharded grid)."""
     import dataclasses as dc
 
     from pipeline.attackers.drift import start_frame
@@ -190,8 +259,8 @@ def _campaign(p: Params, seed: int, defended: Any, bursts: list[list[tuple[int, 
         [float(e) for e in i.eps],
         plans,
         frame_attack(p),
-        seed_for(seed, "robustness.drift"),
-        burst_attacker(p, seed_for(seed, "robustness.burst")) if "burst" in i.attackers else None,
+        seed_for(seed, "robustness.drift", index),
+        burst_attacker(p, seed_for(seed, "robustness.burst", index)) if "burst" in i.attackers else None,
         bursts,
         alert_limit_settings(p),
         alert_limit_settings(p, "single_frame"),

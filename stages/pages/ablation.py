@@ -359,14 +359,24 @@ def ablation_page(
     it, the learning curve and the detectors on the evaluation and lab sequences; `frames`: frames per approach of
     the pose data set and of the detector split (render.frames_per_sequence, shap.frames), each approach 50 m of
     range."""
-    from pipeline.report.markdown import markdown_table
-
     f = paper_fraction()
     counts = cells[0].counts
     mix = {m: [c for c in cells if c.eps_set == m] for m in MIX}
     paper_counts = mix["paper"][0].counts if mix["paper"] else counts
     full = {f"{c.attack}/{c.protocol}": c for c in mix["paper"]}
     effects = [*sequence_effects(sequences, "0.01"), *sequence_effects(sequences, "0.05")]
+    return (
+        _settings_text(a, d, frames, counts, paper_counts, f)
+        + _cells_text(cells, curves, mix, full, a, f)
+        + _sequences_text(sequences, cells, effects, a)
+    )
+
+
+def _settings_text(
+    a: Ablation, d: Detect, frames: tuple[int, int], counts: dict[str, int], paper_counts: dict[str, int], f: float
+) -> str:
+    """The page's title and its account of the four settings, the split sizes (samples) and the rates' intervals;
+    `f` is the paper's attacked fraction."""
     return f"""# Ablation: the paper's FGSM and detector protocol
 
 The paper's LSTM detector on the SHAP values of the standard model (models/pose.pt; the `rpod detect` recipe and
@@ -397,7 +407,22 @@ evaluation, f = {100 * f:.1f}% (a frame outside an attack starts one with probab
 paper reports 97.67% at eps 0.01. Brackets: 95% Wilson intervals over the test samples (the re-weighted accuracy:
 MOVER-Wilson; pipeline/evaluation/rates.py).
 
-Detectors trained on eps {", ".join(f"{e:g}" for e in a.eps)}:
+"""
+
+
+def _cells_text(
+    cells: list[Any],
+    curves: dict[str, list[Any]],
+    mix: dict[str, list[Any]],
+    full: dict[str, Any],
+    a: Ablation,
+    f: float,
+) -> str:
+    """The page's cell tables per eps mix, the verdict against the paper, each factor's effect (points) and the
+    learning curve over training samples; `f` is the paper's attacked fraction."""
+    from pipeline.report.markdown import markdown_table
+
+    return f"""Detectors trained on eps {", ".join(f"{e:g}" for e in a.eps)}:
 
 {markdown_table(_rows(mix["ablation"], f))}
 Detectors trained on the paper's eps mix:
@@ -420,7 +445,15 @@ training samples (a seeded subset, each inside the next; the same validation and
 {markdown_table(_curve_rows(curves, full, f))}
 {_curve_note(curves, full, f)}
 
-## On the evaluation and lab sequences
+"""
+
+
+def _sequences_text(sequences: dict[str, Any], cells: list[Any], effects: list[dict[str, Any]], a: Ablation) -> str:
+    """The page's section on the evaluation and lab sequences: the detectors' rates and the paired differences
+    (points) of `effects`."""
+    from pipeline.report.markdown import markdown_table
+
+    return f"""## On the evaluation and lab sequences
 
 The detectors as onboard, frame by frame, on the integrated evaluation's trajectories (`rpod evaluate`'s frames and
 attack schedule) and on the lab's recordings (`rpod lab`'s): the standard detector (models/detector.pt, the one those

@@ -49,34 +49,7 @@ def defense_section(
     from pipeline.report.markdown import markdown_table
 
     fused = list(chains.values())[-1]
-    misses = []
-    for r in fused:
-        short = [
-            f"{name} {rate.pct(2)}%"
-            for name, rate, ok in (
-                ("accuracy", r["accuracy"], r["accuracy"].value >= TARGET_ACCURACY),
-                (
-                    "harmful flagged",
-                    r["harmful_flagged"],
-                    r["harmful_flagged"].n == 0 or r["harmful_flagged"].value >= TARGET_HARMFUL_FLAGGED,
-                ),
-                ("FPR between attacks", r["fpr"], r["fpr"].value <= TARGET_FPR),
-            )
-            if not ok
-        ]
-        if short:
-            misses.append(f"eps {r['eps']:g} ({', '.join(short)})")
-    if fused and fused[0]["fpr_clean"].value > TARGET_FPR:
-        misses.append(f"attack-free runs (FPR {fused[0]['fpr_clean'].pct(2)}%)")
-    verdict = (
-        "The defended chain that ships meets the detection targets (accuracy and harmful frames flagged "
-        ">= 99.5%, FPR <= 0.5%) at every eps."
-        if not misses
-        else "Short of the detection targets (accuracy and harmful frames flagged >= 99.5%, FPR <= 0.5%) at: "
-        + "; ".join(misses)
-        + "."
-    )
-    verdict += _why(fused, calibration)
+    verdict = _defense_verdict(fused, calibration)
     val = calibration.get("validation", {})
     fpr_val = val.get("false_alarms", {}).get("fused", {}).get("pct", "-")
     return f"""
@@ -111,6 +84,39 @@ before the filter starts left out.
 {markdown_table(defense_table(chains), decimals=2)}
 {verdict}
 """
+
+
+def _defense_verdict(fused: list[dict[str, Any]], calibration: dict[str, Any]) -> str:
+    """The shipped chain's verdict on the detection targets: the eps (and attack-free runs) short of them with the
+    rates that miss (%), and why."""
+    misses = []
+    for r in fused:
+        short = [
+            f"{name} {rate.pct(2)}%"
+            for name, rate, ok in (
+                ("accuracy", r["accuracy"], r["accuracy"].value >= TARGET_ACCURACY),
+                (
+                    "harmful flagged",
+                    r["harmful_flagged"],
+                    r["harmful_flagged"].n == 0 or r["harmful_flagged"].value >= TARGET_HARMFUL_FLAGGED,
+                ),
+                ("FPR between attacks", r["fpr"], r["fpr"].value <= TARGET_FPR),
+            )
+            if not ok
+        ]
+        if short:
+            misses.append(f"eps {r['eps']:g} ({', '.join(short)})")
+    if fused and fused[0]["fpr_clean"].value > TARGET_FPR:
+        misses.append(f"attack-free runs (FPR {fused[0]['fpr_clean'].pct(2)}%)")
+    verdict = (
+        "The defended chain that ships meets the detection targets (accuracy and harmful frames flagged "
+        ">= 99.5%, FPR <= 0.5%) at every eps."
+        if not misses
+        else "Short of the detection targets (accuracy and harmful frames flagged >= 99.5%, FPR <= 0.5%) at: "
+        + "; ".join(misses)
+        + "."
+    )
+    return verdict + _why(fused, calibration)
 
 
 def rates_section(rows: list[dict[str, Any]], paper_length: int, paper: dict[float, float], what: str) -> str:

@@ -27,49 +27,13 @@ VARIANTS = {"undefended": "undefended", "hold": "detect-and-hold", "recover": "d
 def defended_section(d: dict[str, Any], g: Guidance) -> str:
     """Markdown: success rates with Wilson intervals per (dynamics, variant) and eps, and per S x K cell."""
     from pipeline.report.markdown import markdown_table
-    from pipeline.stats import wilson
 
     summary, cells = [], []
     for dyn, variants in d["dynamics"].items():
         for variant, v in variants.items():
-            row = {
-                "dynamics": dyn,
-                "variant": VARIANTS[variant],
-                "no-attack run": f"{v['baseline']['outcome']}, {v['baseline']['miss_m']:.2f} m"
-                + ("" if v["baseline"]["flags"] is None else f", {v['baseline']['flags']} flags"),
-            }
-            for eps, (k, n) in v["held"].items():
-                unmet = v.get("not_met", {}).get(eps, 0)
-                caused = v.get("caused", {}).get(eps)
-                row[f"held % at eps {eps}"] = (
-                    f"{wilson(k, n).pct()} ({k}/{n})"
-                    + (
-                        ""
-                        if caused is None
-                        else f", failed by the attack {wilson(*caused).pct()} ({caused[0]}/{caused[1]})"
-                    )
-                    + (f", {unmet} not met" if unmet else "")
-                )
-            summary.append(row)
+            summary.append(_defended_row(dyn, variant, v))
             for r in v["runs"]:
-                cells.append(
-                    {
-                        "dynamics": dyn,
-                        "variant": VARIANTS[variant],
-                        "eps": f"{r['eps']:g}",
-                        "S (m)": f"{r['start_range']:g}",
-                        "K": r["length"],
-                        "outcome": (
-                            "missed, as without attack"
-                            if r["outcome"] == "attack succeeded" and not r.get("attack_caused", True)
-                            else r["outcome"]
-                        ),
-                        "miss (m)": r["miss_m"],
-                        "steps": r["steps"],
-                        "flags": "-" if r["flags"] is None else r["flags"],
-                        "hold steps": "-" if r["hold_steps"] is None else r["hold_steps"],
-                    }
-                )
+                cells.append(_defended_run(dyn, variant, r))
     return f"""
 ## The chain inside the loop: undefended, detect-and-hold, detect-and-recover
 
@@ -98,6 +62,48 @@ it ended more than the docking tolerance further from the target point than that
 Every run:
 
 {markdown_table(cells, decimals=2)}"""
+
+
+def _defended_row(dyn: str, variant: str, v: dict[str, Any]) -> dict[str, Any]:
+    """A row of the defended summary: the no-attack run (miss in m) and per eps the runs held (%, Wilson) and
+    those the attack failed."""
+    from pipeline.stats import wilson
+
+    row = {
+        "dynamics": dyn,
+        "variant": VARIANTS[variant],
+        "no-attack run": f"{v['baseline']['outcome']}, {v['baseline']['miss_m']:.2f} m"
+        + ("" if v["baseline"]["flags"] is None else f", {v['baseline']['flags']} flags"),
+    }
+    for eps, (k, n) in v["held"].items():
+        unmet = v.get("not_met", {}).get(eps, 0)
+        caused = v.get("caused", {}).get(eps)
+        row[f"held % at eps {eps}"] = (
+            f"{wilson(k, n).pct()} ({k}/{n})"
+            + ("" if caused is None else f", failed by the attack {wilson(*caused).pct()} ({caused[0]}/{caused[1]})")
+            + (f", {unmet} not met" if unmet else "")
+        )
+    return row
+
+
+def _defended_run(dyn: str, variant: str, r: dict[str, Any]) -> dict[str, Any]:
+    """A row of the defended runs' table: the cell (S in m, K), its outcome, miss (m), steps, flags and holds."""
+    return {
+        "dynamics": dyn,
+        "variant": VARIANTS[variant],
+        "eps": f"{r['eps']:g}",
+        "S (m)": f"{r['start_range']:g}",
+        "K": r["length"],
+        "outcome": (
+            "missed, as without attack"
+            if r["outcome"] == "attack succeeded" and not r.get("attack_caused", True)
+            else r["outcome"]
+        ),
+        "miss (m)": r["miss_m"],
+        "steps": r["steps"],
+        "flags": "-" if r["flags"] is None else r["flags"],
+        "hold steps": "-" if r["hold_steps"] is None else r["hold_steps"],
+    }
 
 
 def _clean_flags_text(d: dict[str, Any], g: Guidance) -> str:
@@ -162,24 +168,7 @@ def _cell(r: dict[str, Any]) -> str:
 
 def guidance_page(m: dict[str, Any], g: Guidance, render: Render) -> str:
     """reports/guidance.md without the defended section: one S x K table per eps, from the metrics."""
-    from pipeline.report.markdown import markdown_table
-
-    tables = []
-    for eps in dict.fromkeys(r["eps"] for r in m["runs"]):
-        rows = []
-        for s in g.start_ranges:
-            row = {"S (m)": f"{float(s):g}"}
-            for r in m["runs"]:
-                if r["eps"] == eps and r["start_range"] == float(s):
-                    row[f"K = {r['length']}"] = _cell(r)
-            rows.append(row)
-        rate = m["attack_success_rate"][f"{eps:g}"]
-        share = (
-            "no run met the attack"
-            if rate is None or rate != rate
-            else f"the chaser missed or lost the target in {rate:.0%} of the runs that met the attack"
-        )
-        tables.append(f"### eps = {eps:g}: {share}\n\n{markdown_table(rows)}")
+    tables = _grid_tables(m, g)
     law = (
         "the next true position is computed from the estimate, `p_new = p_est - clip(p_est - p_tar, -1, 1)` "
         "(the paper's variant: the chaser ends up where it believes it goes, so one wrong estimate moves the true "
@@ -227,27 +216,35 @@ The full paper grid (eps 0.5, 0.3, 0.1, 0.05, 0.01; S = 60..10 m; K = 5..20) run
 """
 
 
+def _grid_tables(m: dict[str, Any], g: Guidance) -> list[str]:
+    """Per eps of the paper's grid: a heading with the share of runs the attack made miss, and its S x K table
+    (S in m)."""
+    from pipeline.report.markdown import markdown_table
+
+    tables = []
+    for eps in dict.fromkeys(r["eps"] for r in m["runs"]):
+        rows = []
+        for s in g.start_ranges:
+            row = {"S (m)": f"{float(s):g}"}
+            for r in m["runs"]:
+                if r["eps"] == eps and r["start_range"] == float(s):
+                    row[f"K = {r['length']}"] = _cell(r)
+            rows.append(row)
+        rate = m["attack_success_rate"][f"{eps:g}"]
+        share = (
+            "no run met the attack"
+            if rate is None or rate != rate
+            else f"the chaser missed or lost the target in {rate:.0%} of the runs that met the attack"
+        )
+        tables.append(f"### eps = {eps:g}: {share}\n\n{markdown_table(rows)}")
+    return tables
+
+
 def in_loop_section(d: dict[str, Any], i: Integrity) -> str:
     """Markdown: the in-loop attacker's collisions, lost and held rendezvous per (dynamics, variant, eps), and every run."""
     from pipeline.report.markdown import markdown_table
-    from pipeline.stats import wilson
 
-    summary = []
-    for dyn, variants in d["counts"].items():
-        for variant in [v for v in VARIANTS if v in variants]:
-            for eps, (col, lost, held, met, unmet) in sorted(variants[variant].items(), key=lambda kv: float(kv[0])):
-                summary.append(
-                    {
-                        "dynamics": dyn,
-                        "variant": VARIANTS[variant],
-                        "eps": eps,
-                        "runs met": met,
-                        "collisions (%)": f"{wilson(col, met).pct()} ({col}/{met})",
-                        "lost rendezvous, no collision (%)": f"{wilson(lost, met).pct()} ({lost}/{met})",
-                        "rendezvous held (%)": f"{wilson(held, met).pct()} ({held}/{met})",
-                        "not met": unmet,
-                    }
-                )
+    summary = _in_loop_summary(d)
     runs = [
         {
             "dynamics": r["dynamics"],
@@ -291,6 +288,29 @@ Every in-loop run:
 {markdown_table(runs, decimals=2)}"""
 
 
+def _in_loop_summary(d: dict[str, Any]) -> list[dict[str, Any]]:
+    """Rows per (dynamics, variant, eps) of the in-loop runs: collisions, lost and held rendezvous (%, Wilson)."""
+    from pipeline.stats import wilson
+
+    summary = []
+    for dyn, variants in d["counts"].items():
+        for variant in [v for v in VARIANTS if v in variants]:
+            for eps, (col, lost, held, met, unmet) in sorted(variants[variant].items(), key=lambda kv: float(kv[0])):
+                summary.append(
+                    {
+                        "dynamics": dyn,
+                        "variant": VARIANTS[variant],
+                        "eps": eps,
+                        "runs met": met,
+                        "collisions (%)": f"{wilson(col, met).pct()} ({col}/{met})",
+                        "lost rendezvous, no collision (%)": f"{wilson(lost, met).pct()} ({lost}/{met})",
+                        "rendezvous held (%)": f"{wilson(held, met).pct()} ({held}/{met})",
+                        "not met": unmet,
+                    }
+                )
+    return summary
+
+
 def _break(x: float | None) -> str:
     return "none in the grid" if x is None else ("fails without attack" if x == 0 else f"{x:g}")
 
@@ -329,9 +349,6 @@ def docking_targets(d: dict[str, Any]) -> list[tuple[str, str, str]]:
 def closed_loop_section(d: dict[str, Any], p: Params) -> str:
     """Markdown the page leads with: the breaking point per dynamics and variant, the docking targets, the
     docking-miss table (true-state dynamics first), and what the runs assume."""
-    from pipeline.report.markdown import markdown_table
-    from stages.pages.integrity import attacker_names
-
     v = d["variants"]
     order = [k for k in ("true_state", "paper") if k in v]
     breaks = "; ".join(f"{VARIANTS[k]} {_break(x['breaking_eps'])}" for k, x in v.get("true_state", {}).items())
@@ -346,6 +363,28 @@ def closed_loop_section(d: dict[str, Any], p: Params) -> str:
             else "Every docking target is met in this grid."
         )
     )
+    rows = _docking_rows(v, order)
+    runs = [
+        {
+            "dynamics": r["dynamics"],
+            "variant": VARIANTS[r["defense"]],
+            "attack": r["attack"],
+            "eps": "-" if r["eps"] is None else f"{r['eps']:g}",
+            "outcome": ("**" + r["outcome"] + "**") if r["failed"] else r["outcome"],
+            "range miss (m)": r["range_miss"],
+            "lateral miss (m)": r["lateral_miss"],
+            "closest range (m)": r["closest_range"],
+            "hold steps": r["hold_steps"],
+        }
+        for r in d["runs"]
+        if r["dynamics"] == "true_state" and r["met"]
+    ]
+    return _closed_loop_text(d, p, head, lines, rows, runs)
+
+
+def _docking_rows(v: dict[str, Any], order: list[str]) -> list[dict[str, Any]]:
+    """Rows per dynamics (in `order`) and variant: breaking eps, the no-attack outcome and miss (m), and per eps
+    the failed and met runs and the largest miss (m); "-" where no attacked run flew that eps."""
     rows = []
     for dyn in order:
         for variant, x in v[dyn].items():
@@ -362,22 +401,22 @@ def closed_loop_section(d: dict[str, Any], p: Params) -> str:
                 )
             rows.append(row)
     columns = list(dict.fromkeys(k for row in rows for k in row))
-    rows = [{k: row.get(k, "-") for k in columns} for row in rows]  # "-": no attacked run at that eps
-    runs = [
-        {
-            "dynamics": r["dynamics"],
-            "variant": VARIANTS[r["defense"]],
-            "attack": r["attack"],
-            "eps": "-" if r["eps"] is None else f"{r['eps']:g}",
-            "outcome": ("**" + r["outcome"] + "**") if r["failed"] else r["outcome"],
-            "range miss (m)": r["range_miss"],
-            "lateral miss (m)": r["lateral_miss"],
-            "closest range (m)": r["closest_range"],
-            "hold steps": r["hold_steps"],
-        }
-        for r in d["runs"]
-        if r["dynamics"] == "true_state" and r["met"]
-    ]
+    return [{k: row.get(k, "-") for k in columns} for row in rows]
+
+
+def _closed_loop_text(
+    d: dict[str, Any],
+    p: Params,
+    head: str,
+    lines: list[tuple[str, str, str]],
+    rows: list[dict[str, Any]],
+    runs: list[dict[str, Any]],
+) -> str:
+    """The closed-loop section's text around its lead `head`: the docking targets `lines`, the assumptions, the
+    docking table `rows` and the attacked true-state `runs` (misses in m)."""
+    from pipeline.report.markdown import markdown_table
+    from stages.pages.integrity import attacker_names
+
     x = p.guidance.execution
     return f"""# Closed-loop rendezvous: where the shipped chain docks
 

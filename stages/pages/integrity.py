@@ -115,74 +115,10 @@ def lead(integrity: dict[str, Any], p: Params) -> str:
 
     chains = integrity["chains"]
     verdicts = targets(integrity)
-    missed = [t for t in verdicts if t[1] != "met"]
-    breaks = ", ".join(f"{CHAINS[k].split(' (')[0]} {_eps(v)}" for k, v in integrity["breaking_eps"].items())
-    head = f"**Breaking point (smallest eps at which an attacker fails a trajectory): {breaks}.** " + (
-        f"Targets not met: {'; '.join(f'{t} ({v}: {e})' for t, v, e in missed)}."
-        if missed
-        else "Every target is met on this evidence."
-    )
-    points = [
-        {
-            "chain": CHAINS[k],
-            "trajectories": v["trajectories"],
-            "breaking eps": _eps(v["summary"]["breaking_eps"]),
-            "eps flown": ", ".join(f"{e:g}" for e in v["summary"]["eps_flown"]),
-            "clean availability (%)": _pct(v["summary"]["clean"]["availability"]),
-            "clean false alarms (%)": _pct(v["summary"]["clean"]["false_alarms"]),
-            "clean max error / AL": _m(v["summary"]["clean"]["max_error_al"]),
-            "clean max error / PL": _m(v["summary"]["clean"]["max_error_pl"]),
-        }
-        for k, v in chains.items()
-    ]
-    index, regions = [], []
-    for k, v in chains.items():
-        s = v["summary"]
-        for e in integrity["eps"]:
-            row = s["per_eps"].get(f"{e:g}")
-            if row is None:
-                index.append(
-                    {"chain": k, "eps": f"{e:g}", "max error / AL": f"not flown (broken at {_eps(s['breaking_eps'])})"}
-                )
-                continue
-            index.append(
-                {
-                    "chain": k,
-                    "eps": f"{e:g}",
-                    "max error / AL": _m(row["max_error_al"]),
-                    "max error / AL single-frame": _m(row["max_error_al_single"]),
-                    "max error / PL": _m(row["max_error_pl"]),
-                    "largest final error (m)": _m(row["final_error_max_m"]),
-                    "trajectories failed": f"{row['failed']}/{row['trajectories']}",
-                    "worst attacker": attacker_names(row["worst_attacker"] or "-"),
-                    "trajectories with HMI (%)": _pct(row["hmi_trajectories"]),
-                }
-            )
-            regions.append({"chain": k, "eps": f"{e:g}", **row["stanford"]})
-        regions.append({"chain": k, "eps": "no attack", **s["clean"]["stanford"]})
-    shipped = chains["robust"]["summary"]
-    at = shipped["per_eps"].get(f"{TARGET_SHIPPED_EPS:g}")
-    per_trajectory = (
-        ""
-        if at is None
-        else (
-            f"\nThe shipped chain per trajectory at eps {TARGET_SHIPPED_EPS:g} (worst over attackers, nested in eps):\n\n"
-            + markdown_table(
-                [
-                    {
-                        "trajectory": w["trajectory"],
-                        "max error / AL": _m(w["max_error_al"]),
-                        "single-frame": _m(w["max_error_al_single"]),
-                        "max error / PL": _m(w["max_error_pl"]),
-                        "final error (m)": _m(w["final_error"]),
-                        "worst attacker": attacker_names(w["worst_attacker"] or "-"),
-                        "failed": "**yes**" if w["failed"] else "no",
-                    }
-                    for w in at["per_trajectory"]
-                ]
-            )
-        )
-    )
+    head = _head(integrity, verdicts)
+    points = _points(chains)
+    index, regions = _safety_index(integrity, chains)
+    per_trajectory = _per_trajectory(chains["robust"]["summary"])
     return f"""## Safety evidence that can fail
 
 {head}
@@ -208,6 +144,97 @@ count over independent trajectories (Clopper-Pearson 95%), of the attacks tried 
 
 {markdown_table(regions)}
 """
+
+
+def _head(integrity: dict[str, Any], verdicts: list[tuple[str, str, str]]) -> str:
+    """The lead's first paragraph: the breaking eps per chain, then the targets not met (or that all are)."""
+    missed = [t for t in verdicts if t[1] != "met"]
+    breaks = ", ".join(f"{CHAINS[k].split(' (')[0]} {_eps(v)}" for k, v in integrity["breaking_eps"].items())
+    return f"**Breaking point (smallest eps at which an attacker fails a trajectory): {breaks}.** " + (
+        f"Targets not met: {'; '.join(f'{t} ({v}: {e})' for t, v, e in missed)}."
+        if missed
+        else "Every target is met on this evidence."
+    )
+
+
+def _points(chains: dict[str, Any]) -> list[dict[str, Any]]:
+    """Rows of the breaking-point table: per chain its breaking eps, the eps flown and its clean rates (%) and
+    errors (error / AL, error / PL)."""
+    return [
+        {
+            "chain": CHAINS[k],
+            "trajectories": v["trajectories"],
+            "breaking eps": _eps(v["summary"]["breaking_eps"]),
+            "eps flown": ", ".join(f"{e:g}" for e in v["summary"]["eps_flown"]),
+            "clean availability (%)": _pct(v["summary"]["clean"]["availability"]),
+            "clean false alarms (%)": _pct(v["summary"]["clean"]["false_alarms"]),
+            "clean max error / AL": _m(v["summary"]["clean"]["max_error_al"]),
+            "clean max error / PL": _m(v["summary"]["clean"]["max_error_pl"]),
+        }
+        for k, v in chains.items()
+    ]
+
+
+def _safety_index(
+    integrity: dict[str, Any], chains: dict[str, Any]
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Rows of the safety-index table (per chain and eps; errors in m or over AL / PL) and of the Stanford-ESA
+    regions table (per chain and eps, then without attack)."""
+    index, regions = [], []
+    for k, v in chains.items():
+        s = v["summary"]
+        for e in integrity["eps"]:
+            row = s["per_eps"].get(f"{e:g}")
+            if row is None:
+                index.append(
+                    {"chain": k, "eps": f"{e:g}", "max error / AL": f"not flown (broken at {_eps(s['breaking_eps'])})"}
+                )
+                continue
+            index.append(
+                {
+                    "chain": k,
+                    "eps": f"{e:g}",
+                    "max error / AL": _m(row["max_error_al"]),
+                    "max error / AL single-frame": _m(row["max_error_al_single"]),
+                    "max error / PL": _m(row["max_error_pl"]),
+                    "largest final error (m)": _m(row["final_error_max_m"]),
+                    "trajectories failed": f"{row['failed']}/{row['trajectories']}",
+                    "worst attacker": attacker_names(row["worst_attacker"] or "-"),
+                    "trajectories with HMI (%)": _pct(row["hmi_trajectories"]),
+                }
+            )
+            regions.append({"chain": k, "eps": f"{e:g}", **row["stanford"]})
+        regions.append({"chain": k, "eps": "no attack", **s["clean"]["stanford"]})
+    return index, regions
+
+
+def _per_trajectory(shipped: dict[str, Any]) -> str:
+    """The shipped chain's table per trajectory at the target eps (errors over AL / PL, final error in m), or ""
+    when that eps was not flown."""
+    from pipeline.report.markdown import markdown_table
+
+    at = shipped["per_eps"].get(f"{TARGET_SHIPPED_EPS:g}")
+    return (
+        ""
+        if at is None
+        else (
+            f"\nThe shipped chain per trajectory at eps {TARGET_SHIPPED_EPS:g} (worst over attackers, nested in eps):\n\n"
+            + markdown_table(
+                [
+                    {
+                        "trajectory": w["trajectory"],
+                        "max error / AL": _m(w["max_error_al"]),
+                        "single-frame": _m(w["max_error_al_single"]),
+                        "max error / PL": _m(w["max_error_pl"]),
+                        "final error (m)": _m(w["final_error"]),
+                        "worst attacker": attacker_names(w["worst_attacker"] or "-"),
+                        "failed": "**yes**" if w["failed"] else "no",
+                    }
+                    for w in at["per_trajectory"]
+                ]
+            )
+        )
+    )
 
 
 def _kind(integrity: dict[str, Any], p: Params) -> str:

@@ -9,7 +9,7 @@ import numpy as np
 
 from stages.artifacts.paths import LAB as OUT
 from stages.artifacts.paths import TRAIN_METRICS
-from stages.config.evaluation import Lab
+from stages.config.evaluation import DomainShift, Lab
 from stages.config.schema import Params
 from stages.pages.evaluate import rates_section
 from stages.pages.paper import LAB, LAB_ATTACK_LENGTH, LAB_EPS, LAB_RANGES, by_eps, frames_note
@@ -159,9 +159,6 @@ def lab_page(
     sequences: list[Sequence],
 ) -> str:
     """reports/lab.md: models, range rescaling, loader round trip, pose and FGSM errors, integrated detection."""
-    from pipeline.evaluation.sequences import accuracy_table, detail_table
-    from pipeline.report.markdown import markdown_table
-
     lab, ds = p.lab, p.lab.domain_shift
     f_eff = K_zed.fx * K_syn.width / K_zed.width
     src = (
@@ -172,6 +169,18 @@ def lab_page(
     clean_table, fgsm_table = _error_tables(m)
     att_frac = np.mean([s.attacked.mean() for s in sequences])
     mean_acc = 100 * m["accuracy_mean"]
+    return (
+        _rescaling_text(p, m, lab, src, K_syn, K_zed, f_eff)
+        + _errors_text(p, m, lab, ds, train_metrics, clean_table, fgsm_table)
+        + _detection_text(p, m, rows, summary, names, att_frac, mean_acc)
+    )
+
+
+def _rescaling_text(p: Params, m: dict[str, Any], lab: Lab, src: str, K_syn: Any, K_zed: Any, f_eff: float) -> str:
+    """The page's title, source and models, the range rescaling (lab to synthetic metres, `f_eff` in px) beside the
+    paper's, and the loader round trip."""
+    from pipeline.report.markdown import markdown_table
+
     return f"""# Lab domain
 
 Source: {src}.
@@ -192,7 +201,23 @@ pixel position. The match is on the horizontal size; K_blender has fy/fx = {K_sy
 
 {markdown_table(m["ranges"], decimals=2)}
 {_loader_note(m, lab)}
-## Pose error
+"""
+
+
+def _errors_text(
+    p: Params,
+    m: dict[str, Any],
+    lab: Lab,
+    ds: DomainShift,
+    train_metrics: dict[str, Any] | None,
+    clean_table: list[dict[str, Any]],
+    fgsm_table: list[dict[str, Any]],
+) -> str:
+    """The page's sections on the lab frames' pose errors (m, deg), clean per sequence and under FGSM per eps;
+    `ds` is the lab's domain shift (`lab.domain_shift`)."""
+    from pipeline.report.markdown import markdown_table
+
+    return f"""## Pose error
 
 Lab frames: {lab.frames} per sequence at {lab.fps} fps, mocap at {lab.mocap_hz} Hz, rendered with the
 ZED geometry (fx scaled by 1 + {ds.calib_error:g}: a calibration error), sun direction {ds.sun_direction}
@@ -208,7 +233,24 @@ synthetic frame (metres x {m["factor"]:.2f} of lab metres).
 Mean error over all lab frames (attack.eps, loss `{p.attack.loss}`, 8-bit images).
 
 {markdown_table(fgsm_table, decimals=3)}
-## Integrated detection, {m["attack_length"]}-frame attacks
+"""
+
+
+def _detection_text(
+    p: Params,
+    m: dict[str, Any],
+    rows: list[dict[str, Any]],
+    summary: list[dict[str, Any]],
+    names: list[str],
+    att_frac: float,
+    mean_acc: float,
+) -> str:
+    """The page's sections on integrated detection (accuracy in %, `att_frac` the attacked fraction of the frames)
+    and on the chain that ships."""
+    from pipeline.evaluation.sequences import accuracy_table, detail_table
+    from pipeline.report.markdown import markdown_table
+
+    return f"""## Integrated detection, {m["attack_length"]}-frame attacks
 
 Start probability {p.evaluate.p_start:g} per frame, {100 * att_frac:.1f}% of the frames attacked;
 accuracy = correctly classified frames / all frames (%).

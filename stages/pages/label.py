@@ -61,7 +61,6 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
     per image is kept; `previews` are PNG files shown relative to the card's folder `card_dir`."""
     from pipeline.geometry.camera import Intrinsics, project
     from pipeline.pose.metrics import attitude_error_deg
-    from pipeline.report.markdown import markdown_table
 
     q = labels[QUAT].to_numpy()
     t = labels[POSITION].to_numpy()
@@ -70,15 +69,36 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
     angle = attitude_error_deg(q, np.tile([1.0, 0, 0, 0], (len(q), 1)))  # rotation angle from camera axes
     r, source = meta["render"], meta.get("source")
     if not source:
-        seqs = labels.groupby("sequence").agg(
-            frames=("index", "size"),
-            train=("split", lambda s: int((s == "train").sum())),
-            tz_start=("tz", "max"),
-            tz_end=("tz", "min"),
-            attitude_mean_deg=("index", lambda i: float(angle[i.to_numpy()].mean())),
-        )
-        seqs = seqs.reset_index()
+        seqs = _sequences(labels, angle)
     lines = [
+        *_counts(labels, meta, source),
+        *(_backgrounds(labels, r["background"]) if "background" in labels else []),
+        *_ranges(labels, t, uv, angle),
+        *(_source_section(source) if source else _render_section(seqs, r)),
+        *_camera_notes(meta, cam, source),
+    ]
+    if previews:
+        lines += ["## Preview", "", *[f"![{p.stem}]({os.path.relpath(p, card_dir)})" for p in previews[:2]], ""]
+    return "\n".join(lines)
+
+
+def _sequences(labels: Any, angle: Any) -> Any:
+    """Per sequence: frames, train frames, first and last tz (m) and mean attitude angle (deg), a DataFrame."""
+    seqs = labels.groupby("sequence").agg(
+        frames=("index", "size"),
+        train=("split", lambda s: int((s == "train").sum())),
+        tz_start=("tz", "max"),
+        tz_end=("tz", "min"),
+        attitude_mean_deg=("index", lambda i: float(angle[i.to_numpy()].mean())),
+    )
+    return seqs.reset_index()
+
+
+def _counts(labels: Any, meta: dict[str, Any], source: dict[str, Any] | None) -> list[str]:
+    """The card's title, what its columns mean, and the counts table (images, split, sequences, size in px)."""
+    from pipeline.report.markdown import markdown_table
+
+    return [
         "# Dataset card: " + ("imported SPEED/SPEED+ set" if source else "synthetic Jason-1-like target, 60 m to 10 m"),
         "",
         "Written by `rpod label` from `datasets/render/` (`rpod render`). Frames and labels: "
@@ -98,7 +118,14 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
                 }
             ]
         ),
-        *(_backgrounds(labels, r["background"]) if "background" in labels else []),
+    ]
+
+
+def _ranges(labels: Any, t: Any, uv: Any, angle: Any) -> list[str]:
+    """The card's section on ranges: min, mean and max of position (m), image position (px) and attitude (deg)."""
+    from pipeline.report.markdown import markdown_table
+
+    return [
         "## Ranges",
         "",
         markdown_table(
@@ -118,18 +145,26 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
         "The attitude angle is the rotation angle of `q`: it combines the camera's look-at rotation towards "
         "laterally offset chasers, the pointing jitter, and (sequences 5-12) the random target rotation.",
         "",
-        *(
-            _source_section(source)
-            if source
-            else [
-                "## Sequences",
-                "",
-                markdown_table(seqs, decimals=1),
-                "## Render settings",
-                "",
-                markdown_table([{"setting": k, "value": str(r[k])} for k in RENDER_SETTINGS]),
-            ]
-        ),
+    ]
+
+
+def _render_section(seqs: Any, r: dict[str, Any]) -> list[str]:
+    """The card's sections on a rendered set: the per-sequence table and the render settings."""
+    from pipeline.report.markdown import markdown_table
+
+    return [
+        "## Sequences",
+        "",
+        markdown_table(seqs, decimals=1),
+        "## Render settings",
+        "",
+        markdown_table([{"setting": k, "value": str(r[k])} for k in RENDER_SETTINGS]),
+    ]
+
+
+def _camera_notes(meta: dict[str, Any], cam: Any, source: dict[str, Any] | None) -> list[str]:
+    """The card's lines on the camera K (px), its pixel aspect, and where the rendering time is kept."""
+    return [
         f"Camera K at {meta['width']}x{meta['height']}: fx={cam.fx:.3f}, fy={cam.fy:.3f}, cx={cam.cx:.3f}, "
         f"cy={cam.cy:.3f} (scaled from the reference K at {meta['camera']['ref_width']}x"
         f"{meta['camera']['ref_height']}). "
@@ -148,9 +183,6 @@ def dataset_card(labels: Any, meta: dict[str, Any], previews: list[Path], card_d
         "Rendering time per image: `reports/metrics/render.json` (`seconds_per_image`) and reports/benchmarks.md.",
         "",
     ]
-    if previews:
-        lines += ["## Preview", "", *[f"![{p.stem}]({os.path.relpath(p, card_dir)})" for p in previews[:2]], ""]
-    return "\n".join(lines)
 
 
 def _source_section(source: dict[str, Any]) -> list[str]:
