@@ -1,6 +1,6 @@
 """`rpod bound`: issue 40's integrity bound under the attacker's capacity -> reports/integrity_bound.md and
 reports/metrics/bound.json. A stage of optional/dvc.yaml (`dvc repro optional/dvc.yaml`), not of the default
-`dvc repro`: on the default profile (10 trajectories, 3 eps, 2 attackers, 2 chains, stride 10) it took 18 minutes on
+`dvc repro`: on the default profile (10 trajectories, 3 eps, 2 attackers, 2 chains, stride 10) it took 21 minutes on
 the shared 2-core machine (reports/metrics/bound.json, seconds per chain).
 
 Per chain of `bound.models` (loaded through the one door, stages/artifacts/models.py `load_chain`) and each of the
