@@ -55,7 +55,7 @@ def main(params: Params, model: ModelOption = Model.robust) -> None:
     settings), `evaluate.batch_size`, the alert limit's (`guidance.tolerance`, `max_step`,
     `slack_steps`, `integrity.collision_range_m`) for the availability it records.
     """
-    from pipeline.defense.calibration import Budget, CleanRun, UnmetShare, calibrate_to_target
+    from pipeline.defense.calibration import Budget, UnmetShare, calibrate_to_target
 
     d = params.defense
     torch_setup(params)
@@ -67,10 +67,7 @@ def main(params: Params, model: ModelOption = Model.robust) -> None:
     _, envelope_prob = _chain_outputs(chain, envelope, params.evaluate.batch_size)
     targets = poses[TARGET].to_numpy(np.float32)
     fitted = _fit_noise(targets, pose, d.noise_bins, len(images))
-    R_cam, u = chaser_motion(poses)
-    groups = [g.index.to_numpy() for _, g in poses.groupby("trajectory", sort=True)]
-    runs = [CleanRun(pose[i], prob[i], R_cam[i], u[i]) for i in groups]
-    truths = [poses[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64)[i] for i in groups]
+    runs, truths = _clean_runs(poses, pose, prob)
     alert = alert_limit_settings(params)
     budget = Budget(
         d.target_false_alarm, d.shares.detector, d.shares.gate, d.shares.sequential, d.doubt_share, d.allow_unmet
@@ -82,11 +79,7 @@ def main(params: Params, model: ModelOption = Model.robust) -> None:
     except UnmetShare as e:
         raise StageError(unmet_line(e.check, len(images))) from None
     checks, settings, motion, noise, final = c.checks, c.settings, c.motion, c.noise, c.final
-    unmet = [unmet_line(check, len(images)) for check in checks if not check.met]
-    if final["fused"].value > d.target_false_alarm:
-        unmet.append(unmet_line(None, len(images), final["fused"].value, d.target_false_alarm, len(c.tightened)))
-        if not d.allow_unmet:
-            raise StageError(unmet[-1])
+    unmet = _unmet(params, c, len(images))
     out = CHAINS[model].defense
     record = DefenseFile(
         DEFENSE_FORMAT,
@@ -128,6 +121,30 @@ def _chain_outputs(chain: Any, images: np.ndarray, batch: int) -> tuple[np.ndarr
             chain, images, np.zeros((len(images), 9), np.float32), np.zeros(len(images), bool), None, batch, progress
         )
     return res.pose.astype(np.float64), res.prob.astype(np.float64)
+
+
+def _clean_runs(poses: Any, pose: np.ndarray, prob: np.ndarray) -> tuple[list[Any], list[np.ndarray]]:
+    """Per validation trajectory (in trajectory order): (its clean run: pose, detector probability, chaser motion;
+    its true relative positions (n, 3), m)."""
+    from pipeline.defense.calibration import CleanRun
+
+    R_cam, u = chaser_motion(poses)
+    groups = [g.index.to_numpy() for _, g in poses.groupby("trajectory", sort=True)]
+    runs = [CleanRun(pose[i], prob[i], R_cam[i], u[i]) for i in groups]
+    truths = [poses[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64)[i] for i in groups]
+    return runs, truths
+
+
+def _unmet(params: Params, c: Any, frames: int) -> list[str]:
+    """The lines naming each check that missed its share and, when the fused chain flags more than the target, the
+    fusion's; raises a StageError on the latter unless `defense.allow_unmet`."""
+    d = params.defense
+    unmet = [unmet_line(check, frames) for check in c.checks if not check.met]
+    if c.final["fused"].value > d.target_false_alarm:
+        unmet.append(unmet_line(None, frames, c.final["fused"].value, d.target_false_alarm, len(c.tightened)))
+        if not d.allow_unmet:
+            raise StageError(unmet[-1])
+    return unmet
 
 
 def _fit_noise(targets: np.ndarray, pose: np.ndarray, bins: int, frames: int) -> Any:

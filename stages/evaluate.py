@@ -60,10 +60,7 @@ def main(params: Params) -> None:
     Params: `seed` (the trajectories' base seed follows it), `evaluate` (trajectories, frames, lateral_range,
     p_start, attack_length, eps, batch_size), `defense`, plus `render`/`camera` for the images and `attack.loss` for the FGSM loss.
     """
-    from pipeline.attacks.schedule import attacked_fraction
-    from pipeline.evaluation.rates import sequence_rates
-    from pipeline.evaluation.sequences import nan_to_none, per_eps_summary, rates_json
-    from pipeline.report.figures import detection_timeline
+    from pipeline.evaluation.sequences import nan_to_none, per_eps_summary
 
     e = params.evaluate
     torch_setup(params)
@@ -77,6 +74,30 @@ def main(params: Params) -> None:
     res, chain = paper.result, paper.chain
     shipped_cal = shipped.chain.calibration
     summary = per_eps_summary(res.rows)
+    eps_fig = _timeline(e, sequences, res, chain.threshold)
+    clamp = _clamp_heldout(params, images)
+    metrics = _metrics(params, paper, shipped, fused, sequences, summary, meta, seconds, clamp)
+    write_metrics(METRICS, nan_to_none(metrics), params.profile_name)
+    atomic_write_text(
+        REPORT,
+        unmet_banner(shipped_cal.unmet)
+        + unmet_banner(paper.chain.calibration.unmet, PAPER)
+        + report(res.rows, summary, res.clean, sequences, e, meta, chain.threshold, eps_fig, params.profile_name, base)
+        + defense_section(fused, shipped_cal.to_json(), params.defense.harm_m, e.attack_length, _shipped_clean(shipped))
+        + clamp_section(clamp, base),
+    )
+    typer.echo(
+        f"evaluate: {len(sequences)} trajectories x {len(e.eps)} eps, standard and robust chain in "
+        f"{seconds:.0f} s; mean accuracy (standard, paper's view) {100 * metrics['accuracy_mean']:.2f}% "
+        f"-> {REPORT}, {FIGURE}"
+    )
+
+
+def _timeline(e: Evaluate, sequences: list[Sequence], res: Any, threshold: float) -> float:
+    """Save the detection timeline of the first trajectory at the smallest eps (reports/figures/timeline.png);
+    returns that eps."""
+    from pipeline.report.figures import detection_timeline
+
     eps_fig = min(e.eps)
     s0 = sequences[0]
     title = (
@@ -84,14 +105,33 @@ def main(params: Params) -> None:
         f"frames ({e.attack_length}-frame attacks, p_start={e.p_start:g}); standard model"
     )
     save_figure(
-        detection_timeline(
-            s0.poses["tz"].to_numpy(), s0.attacked, res.traces[(eps_fig, s0.name)], chain.threshold, title
-        ),
+        detection_timeline(s0.poses["tz"].to_numpy(), s0.attacked, res.traces[(eps_fig, s0.name)], threshold, title),
         FIGURE,
     )
+    return eps_fig
+
+
+def _metrics(
+    params: Params,
+    paper: ChainRun,
+    shipped: ChainRun,
+    fused: dict[str, Any],
+    sequences: list[Sequence],
+    summary: list[dict[str, Any]],
+    meta: dict[str, Any],
+    seconds: float,
+    clamp: dict[str, float],
+) -> dict[str, Any]:
+    """reports/metrics/evaluate.json: the standard chain's detection (per eps, rates), the shipped chain's, the
+    defended chains' rows (`fused`), the clamp's held-out statistics and the run's time (`seconds`, s)."""
+    from pipeline.attacks.schedule import attacked_fraction
+    from pipeline.evaluation.rates import sequence_rates
+    from pipeline.evaluation.sequences import rates_json
+
+    e = params.evaluate
+    res, chain = paper.result, paper.chain
     names = list(fused)
-    clamp = _clamp_heldout(params, images)
-    metrics = {
+    return {
         "model": PAPER.value,
         "model_hash": paper.chain.pose_hash,
         "frames_per_trajectory": e.frames,
@@ -121,20 +161,6 @@ def main(params: Params) -> None:
             },
         },
     }
-    write_metrics(METRICS, nan_to_none(metrics), params.profile_name)
-    atomic_write_text(
-        REPORT,
-        unmet_banner(shipped_cal.unmet)
-        + unmet_banner(paper.chain.calibration.unmet, PAPER)
-        + report(res.rows, summary, res.clean, sequences, e, meta, chain.threshold, eps_fig, params.profile_name, base)
-        + defense_section(fused, shipped_cal.to_json(), params.defense.harm_m, e.attack_length, _shipped_clean(shipped))
-        + clamp_section(clamp, base),
-    )
-    typer.echo(
-        f"evaluate: {len(sequences)} trajectories x {len(e.eps)} eps, standard and robust chain in "
-        f"{seconds:.0f} s; mean accuracy (standard, paper's view) {100 * metrics['accuracy_mean']:.2f}% "
-        f"-> {REPORT}, {FIGURE}"
-    )
 
 
 def _clamp_heldout(params: Params, images: Any) -> dict[str, float]:
@@ -268,30 +294,13 @@ def report(
     profile: str,
     evaluation_base: int,
 ) -> str:
-    from pipeline.evaluation.sequences import accuracy_table, detail_table, pct
+    from pipeline.evaluation.sequences import accuracy_table
     from pipeline.report.markdown import markdown_table
 
     names = [s.name for s in sequences]
     att_frac = np.mean([s.attacked.mean() for s in sequences])
     mean_acc = 100 * np.mean([s["accuracy"] for s in summary])
     starts = ", ".join(f"{n} ({x:+.1f}, {y:+.1f}) m" for n, (x, y) in zip(names, meta["start_xy"]))
-    clean_rows = [
-        {
-            "trajectory": n,
-            "FPR % (no attack)": pct(c["fpr"]),
-            "position error (m)": c["position_mean_m"],
-            "attitude error (deg)": c["attitude_mean_deg"],
-        }
-        for n, c in clean.items()
-    ]
-    clean_rows.append(
-        {
-            "trajectory": "all (equal frames each)",
-            "FPR % (no attack)": pct(float(np.mean([c["fpr"] for c in clean.values()]))),
-            "position error (m)": float(np.mean([c["position_mean_m"] for c in clean.values()])),
-            "attitude error (deg)": float(np.mean([c["attitude_mean_deg"] for c in clean.values()])),
-        }
-    )
     return f"""# Integrated evaluation: the safety chains frame by frame
 
 Which model: every table above "The defended chains" is the paper's reproduction, the **standard
@@ -318,7 +327,19 @@ Mean over eps: **{mean_acc:.2f}%** (paper: {INTEGRATED}% overall, from 2,500-fra
 ## Rates and the attacked fraction
 
 {rates_section(rows, ATTACK_LENGTH, by_eps(INTEGRATED_EPS), "trajectories")}
-## What the paper did not report
+""" + _detail_section(summary, clean, names[0], eps_fig)
+
+
+def _detail_section(
+    summary: list[dict[str, Any]], clean: dict[str, dict[str, float]], first: str, eps_fig: float
+) -> str:
+    """The report's tail: the rates and pose errors the paper did not report, the clean held-out-trajectory errors
+    and the timeline of trajectory `first` at `eps_fig`."""
+    from pipeline.evaluation.sequences import detail_table
+    from pipeline.report.markdown import markdown_table
+
+    clean_rows = _clean_rows(clean)
+    return f"""## What the paper did not report
 
 Rates averaged over the trajectories; the delay is the number of frames from an attack's first
 frame to its first flag (0 = flagged at once), over the attacks flagged at all; a missed attack
@@ -333,6 +354,31 @@ split's (reports/pose.md, whose test frames lie between training frames of the s
 {markdown_table(clean_rows, decimals=2)}
 ![timeline](figures/timeline.png)
 
-Timeline of {names[0]} at eps = {eps_fig:g}: true and estimated range, the detector's probability and
+Timeline of {first} at eps = {eps_fig:g}: true and estimated range, the detector's probability and
 flags, and the position error (red crosses: attacked frames that were not flagged).
 """
+
+
+def _clean_rows(clean: dict[str, dict[str, float]]) -> list[dict[str, Any]]:
+    """The clean pose-error table rows: per trajectory its false-positive rate (%) and mean position (m) and attitude
+    (deg) errors, then their means over the trajectories."""
+    from pipeline.evaluation.sequences import pct
+
+    clean_rows = [
+        {
+            "trajectory": n,
+            "FPR % (no attack)": pct(c["fpr"]),
+            "position error (m)": c["position_mean_m"],
+            "attitude error (deg)": c["attitude_mean_deg"],
+        }
+        for n, c in clean.items()
+    ]
+    clean_rows.append(
+        {
+            "trajectory": "all (equal frames each)",
+            "FPR % (no attack)": pct(float(np.mean([c["fpr"] for c in clean.values()]))),
+            "position error (m)": float(np.mean([c["position_mean_m"] for c in clean.values()])),
+            "attitude error (deg)": float(np.mean([c["attitude_mean_deg"] for c in clean.values()])),
+        }
+    )
+    return clean_rows

@@ -159,10 +159,7 @@ def main(params: Params, ctx: typer.Context) -> None:
     if ctx.invoked_subcommand is not None:
         return
     from pipeline.attacks.gradient import attack_loss
-    from pipeline.attacks.schedule import attacked_fraction
     from pipeline.evaluation.lab import lab_to_synthetic_factor
-    from pipeline.evaluation.rates import sequence_rates
-    from pipeline.evaluation.sequences import evaluate_sequences, fgsm_error_table, nan_to_none, per_eps_summary
 
     lab = params.lab
     torch_setup(params)
@@ -173,28 +170,14 @@ def main(params: Params, ctx: typer.Context) -> None:
     paper = load_chain(params, PAPER, "." if synthetic_lab is None else LAB_MODELS, defended=False)
     chain, loss_fn, model_hash = paper.onboard, attack_loss(params.attack.loss, paper.loss), paper.pose_hash
     t0 = time.perf_counter()
-    truth: list[dict[str, Any]] = []
     real = given(lab.real_data)
-    source = Path(real) if real else OUT
-    if not real:
-        with atomic_dir(OUT) as tmp:
-            truth = render_lab(params, tmp)
+    source, truth = _lab_source(params, real)
     render_s = time.perf_counter() - t0
     sequences, ranges, loader_err = _sequences(params, source, truth, K_syn, K_zed)
-    e, length = params.evaluate, lab.attack_length
-    clean_rows, fgsm_rows = fgsm_error_table(
-        chain, loss_fn, sequences, [float(x) for x in params.attack.eps], e.batch_size
-    )  # pose error (clean), FGSM errors: every lab frame
-    res = evaluate_sequences(chain, loss_fn, sequences, [float(x) for x in e.eps], length, e.batch_size, "lab evaluate")
-    summary = per_eps_summary(res.rows)
+    clean_rows, fgsm_rows, res, summary = _evaluate(params, chain, loss_fn, sequences)
     seconds = time.perf_counter() - t0
-    train_path = TRAIN_METRICS if synthetic_lab is None else LAB_MODELS / TRAIN_METRICS
-    train_metrics = read_json(train_path) if train_path.exists() else None
-    models = (
-        {"pose": str(CHAINS[PAPER].pose), "detector": str(CHAINS[PAPER].detector)}
-        if synthetic_lab is None
-        else {"pose": synthetic_lab["pose"], "detector": synthetic_lab["detector"]}
-    )
+    train_metrics = _train_metrics(synthetic_lab)
+    models = _models(synthetic_lab)
     metrics = {
         "model_hash": model_hash,
         "source": str(source),
@@ -209,7 +192,7 @@ def main(params: Params, ctx: typer.Context) -> None:
         "loader_error": loader_err,
         "clean": clean_rows,
         "fgsm": fgsm_rows,
-        "attack_length": length,
+        "attack_length": lab.attack_length,
         "threshold": chain.threshold,
         "per_eps": {f"{x['eps']:g}": x for x in summary},
         "rows": res.rows,
@@ -218,23 +201,81 @@ def main(params: Params, ctx: typer.Context) -> None:
         "seconds": seconds,
         "render_seconds": render_s,
         "shipped": shipped_alarms(params, sequences),
-        "rates": {
-            f"{x:g}": r.as_json(attacked_fraction(P_START, LAB_ATTACK_LENGTH))
-            for x, r in sequence_rates(res.rows).items()
-        },
+        "rates": _rates(res.rows),
     }
-    write_metrics(METRICS, nan_to_none(metrics), params.profile_name)
-    atomic_write_text(
-        REPORT,
-        lab_page(
-            params, metrics, res.rows, summary, [s.name for s in sequences], train_metrics, K_syn, K_zed, sequences
-        ),
-    )
+    _write_outputs(params, metrics, res.rows, summary, sequences, train_metrics, K_syn, K_zed)
     typer.echo(
         f"lab: {'reused' if synthetic_lab is None else 'retrained'} models {models['pose']}, "
         f"{models['detector']}; {len(sequences)} sequences from {source}; mean detection accuracy "
         f"{100 * metrics['accuracy_mean']:.2f}% (paper {LAB}%) in {seconds:.0f} s -> {REPORT}"
     )
+
+
+def _evaluate(
+    p: Params, chain: Any, loss_fn: Any, sequences: list[Sequence]
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]], Any, list[dict[str, Any]]]:
+    """(pose error rows clean, FGSM error rows at `attack.eps`: every lab frame; the integrated evaluation at
+    `evaluate.eps`; its per-eps summary rows) of the paper's chain on the lab sequences."""
+    from pipeline.evaluation.sequences import evaluate_sequences, fgsm_error_table, per_eps_summary
+
+    e, length = p.evaluate, p.lab.attack_length
+    clean_rows, fgsm_rows = fgsm_error_table(chain, loss_fn, sequences, [float(x) for x in p.attack.eps], e.batch_size)
+    res = evaluate_sequences(chain, loss_fn, sequences, [float(x) for x in e.eps], length, e.batch_size, "lab evaluate")
+    return clean_rows, fgsm_rows, res, per_eps_summary(res.rows)
+
+
+def _train_metrics(synthetic_lab: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The training metrics of the paper's rows' pose model (main or synthetic-lab), or None when absent."""
+    train_path = TRAIN_METRICS if synthetic_lab is None else LAB_MODELS / TRAIN_METRICS
+    return read_json(train_path) if train_path.exists() else None
+
+
+def _write_outputs(
+    p: Params,
+    metrics: dict[str, Any],
+    rows: list[dict[str, Any]],
+    summary: list[dict[str, Any]],
+    sequences: list[Sequence],
+    train_metrics: dict[str, Any] | None,
+    K_syn: Any,
+    K_zed: Any,
+) -> None:
+    """Write reports/metrics/lab.json (NaN as null) and reports/lab.md."""
+    from pipeline.evaluation.sequences import nan_to_none
+
+    write_metrics(METRICS, nan_to_none(metrics), p.profile_name)
+    atomic_write_text(
+        REPORT,
+        lab_page(p, metrics, rows, summary, [s.name for s in sequences], train_metrics, K_syn, K_zed, sequences),
+    )
+
+
+def _lab_source(p: Params, real: str | None) -> tuple[Path, list[dict[str, Any]]]:
+    """(the folder of the lab recordings: `real` when given, else datasets/lab/ freshly rendered, the exact lab
+    labels of the rendered sequences: empty for a real recording)."""
+    truth: list[dict[str, Any]] = []
+    source = Path(real) if real else OUT
+    if not real:
+        with atomic_dir(OUT) as tmp:
+            truth = render_lab(p, tmp)
+    return source, truth
+
+
+def _models(synthetic_lab: dict[str, Any] | None) -> dict[str, Any]:
+    """metrics `models`: the pose model and detector files the paper's rows used (reused main ones, or retrained)."""
+    return (
+        {"pose": str(CHAINS[PAPER].pose), "detector": str(CHAINS[PAPER].detector)}
+        if synthetic_lab is None
+        else {"pose": synthetic_lab["pose"], "detector": synthetic_lab["detector"]}
+    )
+
+
+def _rates(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """metrics `rates`: per eps the sequence rates with the attacked fraction of the paper's lab schedule."""
+    from pipeline.attacks.schedule import attacked_fraction
+    from pipeline.evaluation.rates import sequence_rates
+
+    return {f"{x:g}": r.as_json(attacked_fraction(P_START, LAB_ATTACK_LENGTH)) for x, r in sequence_rates(rows).items()}
 
 
 def shipped_alarms(p: Params, sequences: list[Sequence]) -> dict[str, Any]:

@@ -58,11 +58,8 @@ from stages.pages.robustness import pose_models, robustness_page
 
 def main(params: Params) -> None:
     """Run every attack and corruption row on held-out test frames; write the report, metrics and figure."""
-    from tqdm import tqdm
-
     from pipeline.attacks.adaptive import PerFrameChain
-    from pipeline.evaluation.robustness import run_attack_rows, worst_by_eps
-    from pipeline.report.figures import robustness_vs_eps
+    from pipeline.evaluation.robustness import run_attack_rows
 
     # the lambdas as floats, as the metrics echo them
     r = dataclasses.replace(params.robustness, lambdas=[float(v) for v in params.robustness.lambdas])
@@ -78,15 +75,7 @@ def main(params: Params) -> None:
     target = PerFrameChain(shipped.model, chain.shap, chain.detector)
     specs = _specs(params, r, target, shipped, surrogate, seed)
     n_corr = sum(len(v) for v in dataclasses.asdict(r.corruptions).values())
-    bar = tqdm(
-        total=-(-n // r.batch_size) * (len(specs) + n_corr + 1), desc="robustness", unit="batch", dynamic_ncols=True
-    )
-
-    def progress(it: Any) -> Any:
-        for item in it:
-            yield item
-            bar.update(1)
-
+    bar, progress = _progress_bar(-(-n // r.batch_size) * (len(specs) + n_corr + 1))
     t0 = time.perf_counter()
     rows = run_attack_rows(
         chain,
@@ -103,7 +92,46 @@ def main(params: Params) -> None:
     bar.close()
     fused = integrity_campaign(params, shipped, seed)
     seconds, figure = time.perf_counter() - t0, fused.pop("figure")
-    metrics = {
+    metrics = _metrics(r, shipped, surrogate, specs, rows, corruptions, clean_harm, fused, n, n_test, seconds)
+    _write_outputs(params, metrics, rows, fused, figure)
+    print(
+        f"robustness: {len(rows)} attack rows, {len(corruptions)} corruption rows on {n} test frames and "
+        f"{len(fused['integrity']['rows'])} integrity rows in {seconds:.0f} s -> {REPORT}, {METRICS}, {INTEGRITY_FIGURE}"
+    )
+
+
+def _progress_bar(total: int) -> tuple[Any, Any]:
+    """(the stage's progress bar over `total` batches, a wrapper of an iterable that advances it per item)."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, desc="robustness", unit="batch", dynamic_ncols=True)
+
+    def progress(it: Any) -> Any:
+        for item in it:
+            yield item
+            bar.update(1)
+
+    return bar, progress
+
+
+def _metrics(
+    r: Robustness,
+    shipped: Any,
+    surrogate: Any,
+    specs: list[Any],
+    rows: list[dict[str, Any]],
+    corruptions: list[dict[str, Any]],
+    clean_harm: Any,
+    fused: dict[str, Any],
+    n: int,
+    n_test: int,
+    seconds: float,
+) -> dict[str, Any]:
+    """reports/metrics/robustness.json: the attack and corruption rows on `n` of `n_test` test frames, the integrity
+    campaign's blocks (`fused`), the run's time (`seconds`, s) and the models' hashes."""
+    from pipeline.evaluation.robustness import worst_by_eps
+
+    return {
         "rows": rows,
         "corruptions": corruptions,
         "frames": n,
@@ -113,8 +141,8 @@ def main(params: Params) -> None:
         "gradients_per_frame": sum(s.cost for s in specs),
         "lambdas": r.lambdas,
         "eps": r.eps,
-        "threshold": chain.threshold,
-        "shipped_threshold": shipped_threshold,
+        "threshold": shipped.onboard.threshold,
+        "shipped_threshold": shipped.defended.settings.threshold,
         "clean_harmful_rate": clean_harm.value,
         "ci95_clean_harmful": clean_harm.ci(),
         "surrogate": {
@@ -131,6 +159,14 @@ def main(params: Params) -> None:
         "worst_harmful_undetected_fused": worst_by_eps(fused["fused_rows"]),
         "pose_models": pose_models(read_json(ROBUST_METRICS)),
     }
+
+
+def _write_outputs(
+    params: Params, metrics: dict[str, Any], rows: list[dict[str, Any]], fused: dict[str, Any], figure: Any
+) -> None:
+    """Write the metrics, the report (behind the unmet-calibration banners) and both figures."""
+    from pipeline.report.figures import robustness_vs_eps
+
     write_metrics(METRICS, metrics, params.profile_name)
     atomic_write_text(
         REPORT,
@@ -141,10 +177,6 @@ def main(params: Params) -> None:
     worst_fused = [row for row in fused["fused_rows"] if row["lambda"] is None]
     save_figure(robustness_vs_eps([row for row in rows if row["attack"] != "adaptive pgd"] + worst_fused), FIGURE)
     save_figure(_integrity_figure(*figure), INTEGRITY_FIGURE)
-    print(
-        f"robustness: {len(rows)} attack rows, {len(corruptions)} corruption rows on {n} test frames and "
-        f"{len(fused['integrity']['rows'])} integrity rows in {seconds:.0f} s -> {REPORT}, {METRICS}, {INTEGRITY_FIGURE}"
-    )
 
 
 def _test_frames(p: Params, frames: int, seed: int) -> tuple[np.ndarray, np.ndarray, int]:
