@@ -21,7 +21,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from pipeline.io.atomic import atomic_write_text
+from pipeline.io.atomic import atomic_write_text, check_writable
 from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
 from stages.artifacts.models import load_chain
@@ -51,6 +51,7 @@ def main(
     alert_limit_kind), `robustness.burst_every`, `batch_size`, `harm_m`, `defense`, `guidance` (the AL's constants
     and the execution error the page states), and the eval_render params its trajectories were rendered with.
     """
+    check_writable(INTEGRITY_SHARDS, INTEGRITY_REPORT.parent, INTEGRITY_METRICS.parent)  # found now, not after flying
     torch_setup(params)
     t0 = time.perf_counter()
     shipped = load_chain(params, SHIPPED)

@@ -76,3 +76,27 @@ def test_a_rerun_reads_the_finished_shares_and_flies_only_what_is_missing(flying
     changed[2].images[0, 0, 0, 0] ^= 1  # so is a trajectory whose frames changed
     run(changed)
     assert flown == [("t1", 1), ("t2", 2)]
+
+
+def test_a_shards_folder_that_cannot_be_written_stops_rpod_integrity_before_it_flies(tmp_path, monkeypatch) -> None:
+    import errno
+    import os
+    import tempfile
+
+    from pipeline.io.errors import DataError
+    from stages import integrity
+    from stages.config import params as params_mod
+    from stages.config.schema import build
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(integrity, "load_chain", lambda *a, **k: pytest.fail("the chain was loaded"))
+    real = tempfile.TemporaryFile
+
+    def read_only(*args, dir=None, **kwargs):  # the shards folder on a read-only mount (root ignores modes)
+        if str(dir).endswith("integrity_shards"):
+            raise OSError(errno.EROFS, os.strerror(errno.EROFS))
+        return real(*args, dir=dir, **kwargs)
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", read_only)
+    with pytest.raises(DataError, match=r"^datasets/integrity_shards is not writable \(Read-only file system\)"):
+        integrity.main(build(params_mod.compose("smoke")))
