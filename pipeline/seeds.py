@@ -1,10 +1,10 @@
 """Every random stream's seed, in one place: `seed_for(base, stream, index)`.
 
-A stage's streams start from its base seed (params `seed`; `lab.seed` for lab and lab_models; the evaluation's and
-the validation trajectories' bases, `run_base(seed, "evaluate" | "validation")`, for their renders and attack
-schedules) plus the stream's offset below, plus the index of the item drawn (a trajectory, an eps, a batch) when a
-stream has several. Only this module holds a seed offset (tests/test_architecture.py checks that no other module
-adds a literal number to a seed).
+A stage's streams start from its base seed (params `seed`; `lab.seed` for lab and lab_models; the evaluation's,
+the validation trajectories' and the final held-out set's bases, `run_base(seed, "evaluate" | "validation" |
+"heldout")`, for their renders and attack schedules) plus the stream's offset below, plus the index of the item
+drawn (a trajectory, an eps, a batch) when a stream has several. Only this module holds a seed offset
+(tests/test_architecture.py checks that no other module adds a literal number to a seed).
 
 `run_base` gives the base of a set of trajectories that must differ from one seed run to the next (issue 39, item
 5: seed runs pool to independent trajectories): the stream's offset plus RUN_STRIDE times the run's `seed`. The
@@ -41,6 +41,7 @@ STREAMS: dict[str, int] = {
     "evaluate.black_level": 41,  # on the evaluation's base: the clamp's held-out check (frames, simulated lab shift)
     "evaluate": 1000,  # run_base: the evaluation trajectories' base (was the param evaluate.seed)
     "validation": 3000,  # run_base: the defense's validation trajectories' base (was defense.val_seed)
+    "heldout": 7000,  # run_base: the final held-out trajectories (rpod heldout), read by no choice or calibration
     "execution": 1900,  # the closed loop's execution errors (pipeline/guidance/dynamics.py), on `seed`
     # streams within a stage or a library step, on the seed it was given
     "eval_render.trajectory": 1,  # index: the trajectory of the set
@@ -62,13 +63,14 @@ STREAMS: dict[str, int] = {
 
 
 RUN_STRIDE = 100_000  # run_base: seed runs' trajectory bases lie this far apart
+RUN_STREAMS = ("evaluate", "validation", "heldout")  # the trajectory sets with a base per seed run
 
 
 def run_base(seed: int, stream: str) -> int:
-    """The base seed of `stream` ("evaluate" or "validation") in the seed run `seed`: STREAMS[stream] + RUN_STRIDE
+    """The base seed of `stream` (one of RUN_STREAMS) in the seed run `seed`: STREAMS[stream] + RUN_STRIDE
     * seed (module docstring), so every seed run draws its own trajectories."""
-    if stream not in ("evaluate", "validation"):
-        raise KeyError(f"run_base is for the trajectory sets evaluate and validation, not {stream!r}")
+    if stream not in RUN_STREAMS:
+        raise KeyError(f"run_base is for the trajectory sets {', '.join(RUN_STREAMS)}, not {stream!r}")
     return STREAMS[stream] + RUN_STRIDE * int(seed)
 
 

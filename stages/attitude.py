@@ -43,7 +43,7 @@ def main(
     ],
 ) -> None:
     """Compare the standard model with the pose trials' models, per split and target-attitude group."""
-    from stages.artifacts.models import load_pose
+    from stages.artifacts.models import load_pose, load_trial_pose
     from stages.config.device import torch_setup
 
     device = torch_setup(params)
@@ -57,7 +57,7 @@ def main(
             raise StageError(f"{folder} not found: run `rpod pose_trial {v}` (dvc repro optional/dvc.yaml:trial_{v})")
         trials[v] = load(folder / PARAMS_FILE)
         frames[v] = _frames(trials[v], folder, seed)
-        models[v] = _trial_model(trials[v], folder, device)
+        models[v] = load_trial_pose(trials[v], folder, device)
     errors = {name: {s: _errors(models[name], frames[name][s], device) for s in SPLITS} for name in models}
     cross = {
         v: {s: _errors(models[STANDARD], frames[v][s], device) for s in SPLITS}
@@ -110,22 +110,6 @@ def _frames(p: Params, root: Path, seed: int) -> dict[str, Any]:
     labelled = load_split(p, "train", **paths)
     _, val_rows = holdout(labelled.labels["index"].to_numpy(), float(p.train.val_fraction), seed)
     return {"validation": subset(labelled, val_rows, "val"), "test": load_split(p, "test", **paths)}
-
-
-def _trial_model(p: Params, folder: Path, device: Any) -> Any:
-    """A pose trial's models/pose.pt, refused unless it was trained on its folder's labels at its input size."""
-    from pipeline.formats.models import load_pose as read
-
-    def check(path: Path, ckpt: dict[str, Any]) -> None:
-        if ckpt.get("labels_hash") != file_hash(folder / LABELS):
-            raise StageError(f"{path} was not trained on {folder / LABELS}: re-run its pose trial")
-        if list(ckpt["input_size"]) != [p.render.height, p.render.width]:
-            raise StageError(
-                f"{path} takes {ckpt['input_size']} (HxW), its params.yaml renders "
-                f"{p.render.height}x{p.render.width}: re-run its pose trial"
-            )
-
-    return read(folder / POSE, device, p.amp, check).model
 
 
 def _errors(model: Any, split: Any, device: Any) -> dict[str, np.ndarray]:

@@ -35,9 +35,10 @@ import typer
 from pipeline.formats.defense import DEFENSE_FORMAT, DefenseFile, Validation, parse_defense
 from pipeline.geometry.labels import TARGET
 from pipeline.io.atomic import write_json
+from stages.artifacts.clean_runs import chain_outputs, clean_runs, fit_pose_noise
 from stages.artifacts.models import load_chain, model_option
 from stages.artifacts.paths import CHAINS, Model
-from stages.artifacts.readers import chaser_motion, read_eval_render, read_val_envelope
+from stages.artifacts.readers import read_eval_render, read_val_envelope
 from stages.config.build import alert_limit_settings, defense_settings
 from stages.config.device import torch_setup
 from stages.config.params import validation_seed
@@ -60,14 +61,16 @@ def main(params: Params, model: ModelOption = Model.robust) -> None:
     d = params.defense
     torch_setup(params)
     images, poses, _ = read_eval_render(params, validation=True)
-    envelope = read_val_envelope(params)
+    envelope, _ = read_val_envelope(params)
     safety = load_chain(params, model, defended=False)
     chain, model_hash = safety.onboard, safety.pose_hash
-    pose, prob = _chain_outputs(chain, images, params.evaluate.batch_size)
-    _, envelope_prob = _chain_outputs(chain, envelope, params.evaluate.batch_size)
+    pose, prob = chain_outputs(chain, images, params.evaluate.batch_size, "calibrate")
+    _, envelope_prob = chain_outputs(chain, envelope, params.evaluate.batch_size, "calibrate")
     targets = poses[TARGET].to_numpy(np.float32)
-    fitted = _fit_noise(targets, pose, d.noise_bins, len(images))
-    runs, truths = _clean_runs(poses, pose, prob)
+    fitted = fit_pose_noise(
+        targets, pose, d.noise_bins, f"{len(images)} validation frames (defense.val_trajectories, defense.noise_bins)"
+    )
+    runs, truths = clean_runs(poses, pose, prob)
     alert = alert_limit_settings(params)
     budget = Budget(
         d.target_false_alarm, d.shares.detector, d.shares.gate, d.shares.sequential, d.doubt_share, d.allow_unmet
@@ -104,37 +107,6 @@ def main(params: Params, model: ModelOption = Model.robust) -> None:
     typer.echo(summary_line(record, out))
 
 
-def _chain_outputs(chain: Any, images: np.ndarray, batch: int) -> tuple[np.ndarray, np.ndarray]:
-    """The chain on the clean frames: (pose (N, 9), detector probability (N,)), with a progress bar."""
-    from tqdm import tqdm
-
-    from pipeline.defense.chain import run_sequence
-
-    with tqdm(total=-(-len(images) // batch), desc="calibrate", unit="batch", dynamic_ncols=True) as bar:
-
-        def progress(it):
-            for i in it:
-                yield i
-                bar.update(1)
-
-        res = run_sequence(
-            chain, images, np.zeros((len(images), 9), np.float32), np.zeros(len(images), bool), None, batch, progress
-        )
-    return res.pose.astype(np.float64), res.prob.astype(np.float64)
-
-
-def _clean_runs(poses: Any, pose: np.ndarray, prob: np.ndarray) -> tuple[list[Any], list[np.ndarray]]:
-    """Per validation trajectory (in trajectory order): (its clean run: pose, detector probability, chaser motion;
-    its true relative positions (n, 3), m)."""
-    from pipeline.defense.calibration import CleanRun
-
-    R_cam, u = chaser_motion(poses)
-    groups = [g.index.to_numpy() for _, g in poses.groupby("trajectory", sort=True)]
-    runs = [CleanRun(pose[i], prob[i], R_cam[i], u[i]) for i in groups]
-    truths = [poses[["rel_x", "rel_y", "rel_z"]].to_numpy(np.float64)[i] for i in groups]
-    return runs, truths
-
-
 def _unmet(params: Params, c: Any, frames: int) -> list[str]:
     """The lines naming each check that missed its share and, when the fused chain flags more than the target, the
     fusion's; raises a StageError on the latter unless `defense.allow_unmet`."""
@@ -145,20 +117,6 @@ def _unmet(params: Params, c: Any, frames: int) -> list[str]:
         if not d.allow_unmet:
             raise StageError(unmet[-1])
     return unmet
-
-
-def _fit_noise(targets: np.ndarray, pose: np.ndarray, bins: int, frames: int) -> Any:
-    from pipeline.defense.noise import fit_noise
-    from pipeline.geometry.rotations import sixd_to_matrix
-
-    try:
-        return fit_noise(
-            targets[:, :3], pose[:, :3], sixd_to_matrix(targets[:, 3:]), sixd_to_matrix(pose[:, 3:]), bins=bins
-        )
-    except ValueError as e:
-        raise StageError(
-            f"calibrate on {frames} validation frames (defense.val_trajectories, defense.noise_bins): {e}"
-        ) from None
 
 
 def _validation(

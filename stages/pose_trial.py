@@ -7,8 +7,8 @@ the variant's settings only (`trial_params`): the same seed (so the same poses, 
 variant leaves them), the same frame count, recipe and epochs. That folder then holds what the main pipeline
 holds at the top level (datasets/render/, datasets/labels.parquet, models/pose.pt, reports/pose.md,
 reports/metrics/train.json) plus summary.json (the variant, its settings, seconds per step). `rpod attitude`
-compares the variants' models with the committed standard model; the `fy360` model is for a held-out check of the
-camera default (not written yet).
+compares the variants' models with the committed standard model; `rpod heldout` re-checks the camera default with the
+`fy360` model.
 
 Variants (`VARIANTS`):
 - per_sequence: render.target_attitude per_sequence (paper-like labels: the paper's Table 1 gives each

@@ -29,7 +29,7 @@ def test_the_choices_bullet_names_each_choice_its_data_and_follows_the_metrics()
     assert "t = 0.07 was set from 200 training frames" in text and "erases 0.60%" in text
     assert "percentile is 0.0612 (training frames: 0.0627), so t is still above it" in text
     assert "5.1% of the target's channel values fall below t (training frames: 4.8%" in text
-    assert text.count("no held-out check yet") == 2
+    assert text.count("no held-out check yet") == 0 and text.count("`rpod heldout`") == 2
     bare = _choices(p, robust, {}, {})  # neither check ran: no clause
     assert "erases" not in bare and "evaluation frames" not in bare
     above = _choices(p, robust, {}, {"black_level_heldout": {**HELD, "lab_black_999": 0.08}})

@@ -136,7 +136,7 @@ def test_the_evaluation_and_validation_trajectories_follow_the_seed():
     runs fly other trajectories: other starts, other per-trajectory seeds (no run shares one), other fingerprints."""
     from pipeline.seeds import seed_for
     from stages.config.schema import build
-    from stages.eval_render import trajectories
+    from stages.engine.trajectory_sets import trajectories
 
     runs = [build(params_mod.compose("default", [f"seed={k}"])) for k in range(6)]
     assert (params_mod.evaluation_seed(runs[0]), params_mod.validation_seed(runs[0])) == (1000, 3000)

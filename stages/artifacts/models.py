@@ -73,6 +73,23 @@ def load_pose(params: Params, path: Path | str = POSE) -> Any:
     return read(path, torch_device(params), params.amp, partial(check_pose, params))
 
 
+def load_trial_pose(trial: Params, folder: Path, device: Any) -> Any:
+    """A pose trial's network (`rpod pose_trial`: folder/models/pose.pt; `trial`: its params.yaml), refused unless it
+    was trained on its folder's labels at its params' input size."""
+    from pipeline.formats.models import load_pose as read
+
+    def check(path: Path, ckpt: dict[str, Any]) -> None:
+        if ckpt.get("labels_hash") != file_hash(folder / LABELS):
+            raise StageError(f"{path} was not trained on {folder / LABELS}: re-run its pose trial")
+        if list(ckpt["input_size"]) != [trial.render.height, trial.render.width]:
+            raise StageError(
+                f"{path} takes {ckpt['input_size']} (HxW), its params.yaml renders "
+                f"{trial.render.height}x{trial.render.width}: re-run its pose trial"
+            )
+
+    return read(folder / POSE, device, trial.amp, check).model
+
+
 def load_chain(params: Params, model: Model | str, root: Path | str = ".", defended: bool = True) -> Any:
     """The pipeline.defense.chain.SafetyChain of one chain (`model`: standard or robust) in ROOT/models/ (the
     working folder, or e.g. datasets/lab_models): its pose model checked against params (`check_pose`) on the

@@ -3,7 +3,8 @@
 Readers check what they read and raise a DataError (or StageError) naming the file and the stage that writes it:
 - `read_render_store` (render output), `read_eval_render` (eval_render output, the evaluation or the
   defense's validation trajectories, checked against params), `read_detect_render` (the detector split,
-  `rpod eval_render --detector`), `chaser_motion` (what the chaser knows of itself on those),
+  `rpod eval_render --detector`), `read_heldout` (the final held-out sets of `rpod heldout`), `chaser_motion`
+  (what the chaser knows of itself on those),
   `read_shap_store` (checked SHAP store);
 - `SampleImages`: the image of a SHAP sample (detector-split index, eps): the clean render, or the same
   FGSM with the same 8-bit quantisation (shared by `rpod shap` and `rpod detect`).
@@ -23,6 +24,7 @@ from stages.artifacts.paths import DETECT_RENDER, EVAL_RENDER, VAL_ENVELOPE, VAL
 from stages.config.params import (
     detect_render_fingerprint,
     eval_render_fingerprint,
+    heldout_fingerprint,
     val_envelope_fingerprint,
     val_render_fingerprint,
 )
@@ -55,13 +57,21 @@ def read_eval_render(p: Params, validation: bool = False) -> tuple[np.ndarray, A
     return r.images[:], r.poses, r.meta
 
 
-def read_val_envelope(p: Params) -> np.ndarray:
-    """The envelope validation frames (`rpod eval_render` -> datasets/val_envelope): images (N, H, W, 3) uint8,
-    checked against the current params; the detector's calibration reads them beside datasets/val_render."""
+def read_val_envelope(p: Params) -> tuple[np.ndarray, Any]:
+    """The envelope validation frames (`rpod eval_render` -> datasets/val_envelope): (images (N, H, W, 3) uint8,
+    poses table), checked against the current params; the detector's calibration reads them beside
+    datasets/val_render."""
     r = _trajectory_renders(
         VAL_ENVELOPE, val_envelope_fingerprint(p), "rpod eval_render", "eval_render", "envelope validation"
     )
-    return r.images[:]
+    return r.images[:], r.poses
+
+
+def read_heldout(p: Params, folder: Path) -> tuple[np.ndarray, Any]:
+    """A final held-out set (`rpod heldout` -> datasets/heldout/<camera>, rendered with `p`'s camera): (images (N,
+    H, W, 3) uint8, poses table), checked against `p`."""
+    r = _trajectory_renders(folder, heldout_fingerprint(p), "rpod heldout", "heldout", "held-out")
+    return r.images[:], r.poses
 
 
 def read_detect_render(p: Params) -> tuple[Any, Any, dict[str, Any]]:

@@ -97,6 +97,12 @@ def validation_seed(params: Params) -> int:
     return run_base(params.seed, "validation")
 
 
+def heldout_seed(params: Params) -> int:
+    """The base seed of the final held-out trajectories (`rpod heldout`): it follows `seed` (pipeline/seeds.py
+    run_base; 7000 at seed 0), never the evaluation's or the validation's, and no choice or calibration reads them."""
+    return run_base(params.seed, "heldout")
+
+
 def _execution_key(params: Params) -> dict[str, Any]:
     """What decides the flown motion of the evaluation and validation trajectories: guidance.execution and the
     closed loop's step (their frame interval is taken at its speed)."""
@@ -117,6 +123,22 @@ def eval_render_fingerprint(params: Params) -> str:
                 "lateral_range": e.lateral_range,
                 "seed": evaluation_seed(params),
             },
+            "execution": _execution_key(params),
+        }
+    )
+
+
+def heldout_fingerprint(params: Params) -> str:
+    """Hash of the params that decide a held-out set's images (datasets/heldout/<camera>: the evaluation's kind of
+    approach from the held-out base, with `params`' camera)."""
+    e = params.evaluate
+    return fingerprint(
+        {
+            "seed": params.seed,
+            "camera": dataclasses.asdict(params.camera),
+            "render": render_key(params),
+            "evaluate": {"trajectories": e.trajectories, "frames": e.frames, "lateral_range": e.lateral_range},
+            "heldout": heldout_seed(params),
             "execution": _execution_key(params),
         }
     )

@@ -1,0 +1,113 @@
+"""`rpod heldout` (issue 38, item 5): the held-out set never meets a set a choice read, the verdicts follow the
+measured differences (they can come out "reversed"), and a missing pose trial is one clear error."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.evaluation.heldout import (
+    calibration_verdict,
+    clamp_verdict,
+    compare_models,
+    pose_errors_by_frame,
+    verdict,
+)
+from pipeline.seeds import STREAMS, run_base, seed_for
+from pipeline.stats import Rate
+
+
+def _poses(n: int, rng: np.random.Generator, ranges: np.ndarray) -> np.ndarray:
+    """Poses (n, 9): t along the optical axis at `ranges` (m) plus a small lateral offset, identity rotation."""
+    t = np.column_stack([rng.normal(0, 0.5, n), rng.normal(0, 0.5, n), ranges])
+    return np.column_stack([t, np.tile([1.0, 0, 0, 0, 1.0, 0], (n, 1))])
+
+
+def test_the_heldout_trajectories_meet_no_evaluation_or_validation_draw():
+    items = {"eval_render.trajectory": 200, "eval_render.execution": 200, "background": 1}
+    for seed in range(4):
+        drawn = {}
+        for stream in ("evaluate", "validation", "heldout"):
+            base = run_base(seed, stream)
+            seeds = {seed_for(base, s, i) for s, n in items.items() for i in range(n)}
+            if stream == "validation":  # the envelope set of the validation base
+                env = seed_for(base, "eval_render.envelope")
+                seeds |= {seed_for(env, s, i) for s, n in items.items() for i in range(n)}
+            drawn[stream] = seeds
+        assert not drawn["heldout"] & (drawn["evaluate"] | drawn["validation"])
+    assert run_base(0, "heldout") == STREAMS["heldout"] and run_base(1, "heldout") != run_base(0, "heldout")
+
+
+def test_pose_errors_by_frame_measures_depth_only_within_the_band():
+    rng = np.random.default_rng(0)
+    ranges = np.array([5.0, 12.0, 25.0, 40.0])
+    target = _poses(4, rng, ranges)
+    pred = target.copy()
+    pred[:, 2] += 0.5  # 0.5 m too far on every frame
+    e = pose_errors_by_frame(pred, target, np.array([0, 0, 1, 1]))
+    assert np.isnan(e["tz_near_pct"][[0, 3]]).all()
+    np.testing.assert_allclose(e["tz_near_pct"][1:3], 100 * 0.5 / np.linalg.norm(target[1:3, :3], axis=1))
+    np.testing.assert_allclose(e["position_m"], 0.5)
+    with pytest.raises(ValueError, match="poses"):
+        pose_errors_by_frame(pred[:, :3], target, np.zeros(4))
+
+
+@pytest.mark.parametrize(
+    "difference, expected",
+    [
+        ((-0.2, -0.3, -0.1), "holds"),
+        ((-0.05, -0.2, 0.1), "holds (not significant)"),
+        ((0.05, -0.1, 0.2), "reversed (not significant)"),
+        ((0.2, 0.1, 0.3), "reversed"),
+    ],
+)
+def test_verdict_follows_the_interval(difference, expected):
+    assert verdict(difference) == expected
+
+
+def test_compare_models_says_reversed_when_the_alternative_is_better():
+    rng = np.random.default_rng(1)
+    n, traj = 400, np.repeat(np.arange(8), 50)
+    ranges = np.linspace(60.0, 10.0, n)
+    target = _poses(n, rng, ranges)
+    small, large = target.copy(), target.copy()
+    small[:, :3] += rng.normal(0, 0.05, (n, 3))
+    large[:, :3] += rng.normal(0, 0.5, (n, 3))
+    good, bad = (pose_errors_by_frame(p, target, traj) for p in (small, large))
+    better = compare_models(good, bad)
+    worse = compare_models(bad, good)
+    assert better["position_m"]["verdict"] == "holds" and worse["position_m"]["verdict"] == "reversed"
+    assert better["tz_near_pct"]["frames"] == int(((ranges >= 10) & (ranges <= 30)).sum())
+    assert better["position_m"]["difference"][0] < 0 < worse["position_m"]["difference"][0]
+
+
+def _summary(availability: float, lo: float, fused: float) -> dict:
+    return {
+        "availability": Rate(availability, lo, min(1.0, availability + 0.01), 100),
+        "fused": Rate(fused, 0, 0.01, 100),
+    }
+
+
+def test_calibration_verdict():
+    assert calibration_verdict(_summary(0.9, 0.85, 0.001), _summary(0.8, 0.75, 0.0), 0.005) == "holds"
+    assert calibration_verdict(_summary(0.9, 0.85, 0.01), _summary(0.8, 0.75, 0.0), 0.005) == (
+        "misses its false-alarm target"
+    )
+    assert calibration_verdict(_summary(0.8, 0.7, 0.0), _summary(0.82, 0.78, 0.0), 0.005).startswith("holds (")
+    assert calibration_verdict(_summary(0.7, 0.6, 0.0), _summary(0.9, 0.85, 0.0), 0.005) == "reversed"
+
+
+def test_clamp_verdict():
+    assert clamp_verdict({"threshold": 0.07, "lab_black_999": 0.063}) == "holds"
+    assert clamp_verdict({"threshold": 0.07, "lab_black_999": 0.08}) == "reversed"
+
+
+def test_a_missing_fy360_trial_is_one_clear_error(tmp_path, monkeypatch):
+    from stages import heldout
+    from stages.config import params as params_mod
+    from stages.config.schema import build
+    from stages.errors import StageError
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(StageError, match="pose_trial fy360"):
+        heldout.main(build(params_mod.compose("smoke", [])))
