@@ -11,13 +11,17 @@ breaking point). The page has the same sections as the head of reports/robustnes
 
 Each chain flies one trajectory at a time, each trajectory's attacks on their own seeds, and keeps the trajectory's
 share of the campaign in datasets/integrity_shards/<chain>/ (a persistent DVC output): a killed run, re-run with the
-same params, models and data, reads the shares it finished and flies the rest (stages/artifacts/shards.py).
+same params, models and data, reads the shares it finished and flies the rest (stages/artifacts/shards.py). The
+trajectories still to fly fan out on the engine (stages/engine/pool.py: `engine.workers` Ray workers, each holding
+the chain once, one trajectory per job, each share written as its job finishes): on the CPU over Ray workers that
+share the cores out, on a CUDA GPU (`device`) in this process, where the GPU does the work (as `rpod attack`).
 """
 
 from __future__ import annotations
 
+import os
 import time
-from typing import Annotated, Optional
+from typing import Annotated, Any, Callable, Optional
 
 import typer
 
@@ -28,6 +32,7 @@ from stages.artifacts.models import load_chain
 from stages.artifacts.paths import INTEGRITY_METRICS, INTEGRITY_REPORT, INTEGRITY_SHARDS, PAPER, SHIPPED
 from stages.config.device import torch_setup
 from stages.config.schema import Params
+from stages.engine import pool as engine
 from stages.engine.campaigns import integrity_campaign
 from stages.pages.calibrate import unmet_banner
 from stages.pages.integrity import integrity_page
@@ -49,14 +54,18 @@ def main(
 
     Params: `integrity` (eps, capture_initial and capture_rate, the burst's and the drift's settings, frame_steps,
     alert_limit_kind), `robustness.burst_every`, `batch_size`, `harm_m`, `defense`, `guidance` (the AL's constants
-    and the execution error the page states), and the eval_render params its trajectories were rendered with.
+    and the execution error the page states), and the eval_render params its trajectories were rendered with;
+    `engine` (workers, address): where the trajectories still to fly fan out.
     """
     check_writable(INTEGRITY_SHARDS, INTEGRITY_REPORT.parent, INTEGRITY_METRICS.parent)  # found now, not after flying
-    torch_setup(params)
+    es, fan_out = shard_engine(params, torch_setup(params))
     t0 = time.perf_counter()
     shipped = load_chain(params, SHIPPED)
     seed = seed_for(params.seed, "robustness")
-    out = integrity_campaign(params, shipped, seed, full=True, trajectories=trajectories, shards=INTEGRITY_SHARDS)
+    with engine.session(es):  # one Ray for the three chains
+        out = integrity_campaign(
+            params, shipped, seed, full=True, trajectories=trajectories, shards=INTEGRITY_SHARDS, fan_out=fan_out
+        )
     integrity = out["integrity"]
     seconds = time.perf_counter() - t0
     write_metrics(
@@ -75,3 +84,21 @@ def main(
         f"integrity: breaking eps {integrity['breaking_eps']} on {flown} "
         f"trajectories in {seconds:.0f} s -> {INTEGRITY_REPORT}, {INTEGRITY_METRICS}"
     )
+
+
+def shard_engine(params: Params, device: Any) -> tuple[engine.EngineSettings, Callable[..., list[Any]]]:
+    """(the engine settings, the campaign's `fan_out`: stages/engine/pool.py `run` on them): the missing shares fan
+    out over CPU workers (the params' torch threads shared out, each worker's chain on the CPU); on a GPU they are
+    flown in this process, where the GPU does the work."""
+    import dataclasses
+
+    es = engine.engine_settings(params)
+    if device.type != "cpu":
+        es = dataclasses.replace(es, workers=1, address=None)
+    threads = es.threads(params.threads or os.cpu_count() or 1)
+
+    def fan_out(worker_cls: Any, setup: Any, jobs: list[Any], progress: Callable[[int, Any], None]) -> list[Any]:
+        on_ray = setup if es.in_process else setup.on_ray(threads)
+        return engine.run(worker_cls, on_ray, jobs, es, num_cpus=threads, progress=progress)
+
+    return es, fan_out

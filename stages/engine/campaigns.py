@@ -12,6 +12,7 @@ import dataclasses
 import json
 import time
 import typing
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -32,7 +33,13 @@ CONTROL = "control"  # the undefended robust chain: the shipped pose network, no
 
 
 def integrity_campaign(
-    p: Params, shipped: Any, seed: int, full: bool = False, trajectories: int | None = None, shards: Path | None = None
+    p: Params,
+    shipped: Any,
+    seed: int,
+    full: bool = False,
+    trajectories: int | None = None,
+    shards: Path | None = None,
+    fan_out: FanOut | None = None,
 ) -> dict[str, Any]:
     """The integrity campaign (pipeline.evaluation.campaign) on the three chains: the shipped one (`shipped`, a
     SafetyChain) on the first `integrity.trajectories` eval_render ones, the standard one and the undefended robust
@@ -41,41 +48,35 @@ def integrity_campaign(
     attacker of the schema on every chain and trajectory at every eps (no stop at the breaking point);
     `trajectories` (with `full` only): the first N eval_render ones (None: all); `shards` (with `full` only): fly
     each chain one trajectory at a time, each trajectory's share kept in that folder, and reuse the shares a killed
-    run left (`_fly_shards`).
+    run left (`_fly_shards`); `fan_out` (with `shards` only): the engine that flies the missing shares, one
+    `ShardWorker` job per trajectory (stages/integrity.py: stages/engine/pool.py `run` on the stage's engine settings;
+    None: flown here, one after another).
     Returns {"fused_rows", "fused" (facts about the shipped defense), "integrity" (the metrics), "figure"}."""
 
-    from pipeline.attacks.adaptive import PerFrameChain
-
     t0 = time.perf_counter()
-    i = p.integrity
     if full:
-        i = dataclasses.replace(
-            i, attackers=list(typing.get_args(IntegrityAttacker)), stop_at_break=False, comparison_trajectories=None
-        )
-        p = dataclasses.replace(p, integrity=i)
+        p = full_grid(p)
+    i = p.integrity
     if shards is not None and not full:
         raise ValueError("integrity_campaign: shards need the full grid (a ladder that stops cannot be split)")
+    if fan_out is not None and shards is None:
+        raise ValueError("integrity_campaign: fan_out flies shards: give the shards folder")
     tracks, bursts, info = _tracks(p, shipped)
     trajectories = trajectories if full else i.trajectories
     tracks, bursts = tracks[:trajectories], bursts[:trajectories]
     paper = load_chain(p, PAPER)
     n = i.comparison_trajectories
     chains = [
-        (
-            SHIPPED.value,
-            shipped,
-            shipped.defended,
-            PerFrameChain(shipped.model, shipped.onboard.shap, shipped.onboard.detector),
-            len(tracks),
-        ),
-        (PAPER.value, paper, paper.defended, PerFrameChain(paper.model, paper.onboard.shap, paper.onboard.detector), n),
-        (CONTROL, shipped, None, shipped.model, n),
+        (SHIPPED.value, shipped, shipped.defended, len(tracks)),
+        (PAPER.value, paper, paper.defended, n),
+        (CONTROL, shipped, None, n),
     ]
     out: dict[str, Any] = {}
     figure = None
-    for key, safety, defended, target, count in chains:
+    for key, safety, defended, count in chains:
         k = len(tracks) if count is None else min(count, len(tracks))
-        out[key], flown = _fly_chain(p, seed, key, safety, defended, target, tracks[:k], bursts[:k], shards)
+        target = attack_target(safety.onboard, defended)
+        out[key], flown = _fly_chain(p, seed, key, safety, defended, target, tracks[:k], bursts[:k], shards, fan_out)
         if key == SHIPPED.value:
             info.update(false_alarm_rate=flown.alarms.value, ci95_false_alarm=flown.alarms.ci())
             fused_rows = flown.fused_rows
@@ -89,6 +90,18 @@ def integrity_campaign(
     }
 
 
+def full_grid(p: Params) -> Params:
+    """The params of the full grid (`rpod integrity`): every attacker of the schema, no stop at a chain's breaking
+    point, every trajectory on every chain."""
+    i = dataclasses.replace(
+        p.integrity,
+        attackers=list(typing.get_args(IntegrityAttacker)),
+        stop_at_break=False,
+        comparison_trajectories=None,
+    )
+    return dataclasses.replace(p, integrity=i)
+
+
 def _fly_chain(
     p: Params,
     seed: int,
@@ -99,9 +112,11 @@ def _fly_chain(
     tracks: list[Any],
     bursts: list[Any],
     shards: Path | None = None,
+    fan_out: FanOut | None = None,
 ) -> tuple[dict[str, Any], Any]:
     """One chain's campaign on `tracks` (with a progress bar) -> (its metrics record, the flown campaign); with
-    `shards` (a folder) one trajectory at a time, each share kept there and reused by a later run (`_fly_shards`)."""
+    `shards` (a folder) one trajectory at a time, each share kept there and reused by a later run (`_fly_shards`),
+    the missing ones flown on `fan_out` (one `ShardWorker` job per trajectory) or, without it, here."""
     from tqdm import tqdm
 
     from pipeline.evaluation.campaign import assemble, fly_campaign, fly_track, safety_summary
@@ -110,8 +125,9 @@ def _fly_chain(
     k = len(tracks)
     campaign = _campaign(p, seed, defended, bursts)
     steps = len(campaign.eps) * sum(len(t) for t in tracks) if campaign.plans else 0
-    with tqdm(
-        total=k * ("burst" in p.integrity.attackers) + steps // max(k, 1),
+    fly_all = None if fan_out is None else _on_engine(fan_out, shard_setup(p, safety, defended, seed), tracks, bursts)
+    with tqdm(  # the plans step every track's frame together; shards one track at a time (`_steps`)
+        total=k * ("burst" in p.integrity.attackers) + (steps // max(k, 1) if shards is None else steps),
         desc=f"robustness (integrity, {key})" if shards is None else f"integrity ({key}, shards in {shards})",
         unit="step",
         dynamic_ncols=True,
@@ -126,6 +142,7 @@ def _fly_chain(
                 lambda t, c: fly_track(safety.onboard, target, defended, t, c, lambda: bar.update(1)),
                 shards,
                 bar,
+                fly_all,
             )
             flown = assemble(tracks, shares, campaign)
     record = {
@@ -161,28 +178,145 @@ def _fly_shards(
     fly: Callable[[Any, Any], Any],
     folder: Path,
     bar: Any,
+    fly_all: Callable[[list[int], Callable[[int, Any], None]], None] | None = None,
 ) -> list[Any]:
     """Each track's share of a chain's campaign, in order: read from `folder` when its key (`base`, the track's
-    name, index and data) matches (stages/artifacts/shards.py: a killed run resumes), else flown by
-    `fly(track, campaign_of(g))` and written there; `bar` advances by a whole trajectory's steps for a share read."""
+    name, index and data) matches (stages/artifacts/shards.py: a killed run resumes), else flown and written there
+    as soon as it is (a kill loses only the shares in flight): by `fly_all(missing, done)` (the engine, `_on_engine`:
+    it flies the tracks at the indices `missing` in any order and calls `done(g, share)` here as each finishes), or
+    without it by `fly(track, campaign_of(g))` one after another. `bar` advances by a whole trajectory's steps for a
+    share read or flown by `fly_all` (`fly` advances it itself)."""
     import hashlib
 
     from stages.artifacts.shards import read_shard, shard_path, write_shard
 
-    shares = []
+    shares: list[Any] = [None] * len(tracks)
+    keys: dict[int, tuple[Path, str]] = {}
     for g, track in enumerate(tracks):
-        campaign = campaign_of(g)
         data = hashlib.sha256(track.images.tobytes() + np.asarray(track.labels).tobytes() + track.u.tobytes())
         name = fingerprint({**base, "track": track.name, "index": g, "data": data.hexdigest()})
         path = shard_path(folder, base["chain"], track.name)
-        share = read_shard(path, name)
-        if share is None:
-            share = fly(track, campaign)
-            write_shard(path, name, share)
+        shares[g] = read_shard(path, name)
+        if shares[g] is None:
+            keys[g] = (path, name)
         else:
-            bar.update(int(campaign.burst is not None) + (len(campaign.eps) * len(track) if campaign.plans else 0))
-        shares.append(share)
+            bar.update(_steps(campaign_of(g), track))
+
+    def done(g: int, share: Any) -> None:
+        write_shard(*keys[g], share)
+        shares[g] = share
+
+    missing = list(keys)
+    if fly_all is None:
+        for g in missing:
+            done(g, fly(tracks[g], campaign_of(g)))
+    else:
+
+        def finished(g: int, share: Any) -> None:
+            done(g, share)
+            bar.update(_steps(campaign_of(g), tracks[g]))
+
+        fly_all(missing, finished)
     return shares
+
+
+def _steps(campaign: Any, track: Any) -> int:
+    """A trajectory's steps on the progress bar: one for the burst, one per attacked frame and eps of the plans."""
+    return int(campaign.burst is not None) + (len(campaign.eps) * len(track) if campaign.plans else 0)
+
+
+FanOut = Callable[[Callable[[Any], Any], Any, list[Any], Callable[[int, Any], None]], list[Any]]
+"""The engine `rpod integrity` flies its missing shares on: `fan_out(worker_cls, setup, jobs, progress)` builds
+`worker_cls(setup)` once per worker, runs every job and calls `progress(i, result)` in the driver as job i finishes
+(stages/engine/pool.py `run` on the stage's engine settings, bound by stages/integrity.py)."""
+
+
+@dataclass(frozen=True)
+class ShardSetup:
+    """What one ShardWorker holds: where the chain's model files are, its defense, the campaign's params and seed."""
+
+    params: Params  # the campaign's typed params (the full grid's `integrity`; `device`: where the chain runs)
+    root: str  # the folder holding the chain's models/, as an absolute path (a worker may run elsewhere)
+    model: str  # the chain's pose model: "robust" (the shipped chain and the undefended control) or "standard"
+    defended: Any  # pipeline.defense.chain.Defended as the driver loaded it; None: the undefended control
+    seed: int  # the campaign's seed (each trajectory's attacks draw on item `ShardJob.index` of its streams)
+    torch_threads: int | None = None  # torch threads of this worker; None: left as set up
+
+    def on_ray(self, threads: int) -> ShardSetup:
+        """This setup for a Ray worker: the chain on the CPU (Ray workers hold no GPU), `threads` torch threads."""
+        return dataclasses.replace(self, params=dataclasses.replace(self.params, device="cpu"), torch_threads=threads)
+
+
+@dataclass(frozen=True)
+class ShardJob:
+    """One trajectory of a chain's campaign: its index among the eval_render ones, the track and its bursts."""
+
+    index: int  # g: the trajectory's place (its attacks' seed streams, its shard's key)
+    track: Any  # pipeline.evaluation.integrity_runs.Track
+    bursts: list[tuple[int, int]]  # the (start, stop) frames of its bursts
+
+
+def shard_setup(p: Params, safety: Any, defended: Any, seed: int) -> ShardSetup:
+    """The ShardSetup of a chain the driver loaded (`safety`, a SafetyChain from ROOT/models/) flown against
+    `defended` (None: the undefended control): the workers load the same model files."""
+    return ShardSetup(p, str(Path(safety.files[0]).resolve().parent.parent), safety.name, defended, seed)
+
+
+class ShardWorker:
+    """One chain (pose network, SHAP and detector, loaded once per engine worker on its setup's device):
+    `run(ShardJob)` flies that trajectory's share of the campaign (pipeline.evaluation.campaign.fly_track, every
+    eps of the ladder) on the Campaign of its index, as the driver would -> the TrackFlights pickled (`_on_engine`
+    unpickles it: Ray hands numpy arrays back read-only, zero-copy, and a read-only array pickles to other bytes,
+    so the shards written would differ from the in-process ones)."""
+
+    def __init__(self, setup: ShardSetup) -> None:
+        if setup.torch_threads:
+            import torch
+
+            torch.set_num_threads(setup.torch_threads)
+        chain = load_chain(setup.params, setup.model, setup.root, defended=False)
+        self.onboard, self.defended = chain.onboard, setup.defended
+        self.target = attack_target(chain.onboard, setup.defended)
+        self.params, self.seed = setup.params, setup.seed
+
+    def run(self, job: ShardJob) -> bytes:
+        import pickle
+
+        from pipeline.evaluation.campaign import fly_track
+
+        track = job.track
+        if not track.images.flags.writeable:  # a Ray job's arrays arrive read-only: torch takes a writable copy
+            track = dataclasses.replace(track, images=np.array(track.images), labels=np.array(track.labels))
+        campaign = _campaign(self.params, self.seed, self.defended, [job.bursts], index=job.index)
+        share = fly_track(self.onboard, self.target, self.defended, track, campaign)
+        return pickle.dumps(share, protocol=pickle.HIGHEST_PROTOCOL)
+
+    def close(self) -> None:
+        pass
+
+
+def _on_engine(
+    fan_out: FanOut, setup: ShardSetup, tracks: list[Any], bursts: list[Any]
+) -> Callable[[list[int], Callable[[int, Any], None]], None]:
+    """`_fly_shards`' `fly_all` on `fan_out`: one ShardJob per missing trajectory, each share handed to `done` as
+    its job finishes (the engine's progress call, in the driver)."""
+
+    import pickle
+
+    def fly_all(missing: list[int], done: Callable[[int, Any], None]) -> None:
+        if missing:
+            jobs = [ShardJob(g, tracks[g], bursts[g]) for g in missing]
+            fan_out(ShardWorker, setup, jobs, lambda i, share: done(missing[i], pickle.loads(share)))
+
+    return fly_all
+
+
+def attack_target(onboard: Any, defended: Any) -> Any:
+    """What a chain's attacks differentiate (`onboard`: an OnboardChain): the defended chain's pose network and
+    detector frame by frame (a PerFrameChain), the undefended control's (`defended` None) pose network alone."""
+    from pipeline.attacks.adaptive import PerFrameChain
+
+    return onboard.model if defended is None else PerFrameChain(onboard.model, onboard.shap, onboard.detector)
 
 
 def _integrity_metrics(

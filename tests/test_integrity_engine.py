@@ -1,0 +1,145 @@
+"""`rpod integrity` on the engine (stages/engine/campaigns.py `ShardWorker`, stages/integrity.py `shard_engine`): the
+trajectories whose shard is missing fan out as one job each, in any order, on workers that load the chain themselves,
+and the shards they write are those the driver writes flying them itself, byte for byte (each trajectory's attacks
+draw on its own seed streams; same torch threads per flight); a run that finds some shards flies only the others; the
+CPU fans out over Ray workers holding the chain on the CPU, a GPU flies in-process. Tiny random chains on 3 toy
+trajectories of the full grid (smoke profile); the last test starts a local Ray with 2 workers (~20 s)."""
+
+from __future__ import annotations
+
+import dataclasses
+import pickle
+
+import numpy as np
+import pytest
+import torch
+from test_chains import _defense, _run
+from test_predict import H, W
+
+from pipeline.evaluation.integrity_runs import Track
+from pipeline.evaluation.robustness import burst_schedule
+from pipeline.io.atomic import write_json
+from stages.artifacts.models import load_chain
+from stages.artifacts.paths import CHAINS, SHIPPED, Model
+from stages.config import params as params_mod
+from stages.config.schema import build
+from stages.engine import campaigns
+from stages.engine import pool as engine
+
+pytestmark = pytest.mark.usefixtures("one_thread")  # the driver's flights on 1 torch thread, as each Ray worker's
+SEED = 5
+IN_PROCESS = engine.EngineSettings(1, None, 60.0, 0)
+
+
+@pytest.fixture(scope="module")
+def grid(tmp_path_factory):
+    """(full-grid smoke params for the tiny models, root holding models/ with both chains calibrated, 3 tracks of
+    12 frames approaching 40 -> 20 m, their bursts)."""
+    root = tmp_path_factory.mktemp("run")
+    overrides = [f"render.width={W}", f"render.height={H}", "train.width=0.125", "threads=2", "engine.workers=1"]
+    p = build(params_mod.compose("smoke", overrides))
+    models = _run(root)
+    for m in Model:
+        write_json(root / CHAINS[m].defense, _defense(models, m, load_chain(p, m, root, defended=False).threshold, p))
+    rng, n = np.random.default_rng(0), 12
+    labels = np.column_stack(
+        [np.linspace(1, -1, n), np.zeros(n), np.linspace(40, 20, n), np.tile([1, 0, 0, 0, 1, 0], (n, 1))]
+    )
+    tracks = [Track(f"t{g}", rng.integers(0, 255, (n, H, W, 3), dtype=np.uint8), labels) for g in range(3)]
+    p = campaigns.full_grid(p)
+    bursts = [burst_schedule(n, p.integrity.burst_length, p.robustness.burst_every) for _ in tracks]
+    return p, root, tracks, bursts
+
+
+def fly(grid, key: str, folder, fan_out=None) -> tuple[dict, dict[str, bytes]]:
+    """Chain `key` (robust or control) of the full grid on the tracks, shards in `folder`, the missing ones flown on
+    `fan_out` (None: by the driver itself) -> (the chain's record, {shard file: its bytes})."""
+    p, root, tracks, bursts = grid
+    safety = load_chain(p, SHIPPED, root)
+    defended = None if key == campaigns.CONTROL else safety.defended
+    target = campaigns.attack_target(safety.onboard, defended)
+    record, _ = campaigns._fly_chain(p, SEED, key, safety, defended, target, tracks, bursts, folder, fan_out)
+    return record, {f.name: f.read_bytes() for f in sorted((folder / key).glob("*.pkl"))}
+
+
+def results(record: dict) -> tuple:
+    """What the page and metrics take from a chain's assembled campaign."""
+    return record["rows"], record["summary"], record["worst_hmi"], record["clean"], record["false_alarm_rate"]
+
+
+@pytest.fixture(scope="module")
+def by_driver(grid, tmp_path_factory) -> dict[str, tuple[dict, dict[str, bytes]]]:
+    """Each chain flown by the driver itself, one trajectory after another (the path without an engine)."""
+    return {key: fly(grid, key, tmp_path_factory.mktemp("driver")) for key in (SHIPPED.value, campaigns.CONTROL)}
+
+
+@pytest.mark.parametrize("key", [SHIPPED.value, campaigns.CONTROL])
+def test_missing_shards_fly_one_job_each_in_any_order_and_match_the_drivers(grid, by_driver, key, tmp_path) -> None:
+    calls: list[list[int]] = []
+
+    def backwards(worker_cls, setup, jobs, progress):
+        """The in-process engine, the jobs flown last first."""
+        calls.append([job.index for job in jobs])
+        last = len(jobs) - 1
+        return engine.run(worker_cls, setup, jobs[::-1], IN_PROCESS, progress=lambda i, r: progress(last - i, r))
+
+    record, shards = fly(grid, key, tmp_path, backwards)
+    want_record, want_shards = by_driver[key]
+    assert calls == [[0, 1, 2]] and list(shards) == ["t0.pkl", "t1.pkl", "t2.pkl"]
+    assert shards == want_shards  # byte for byte: key and share
+    assert results(record) == results(want_record) and record["rows"]
+
+    for name in ("t0.pkl", "t2.pkl"):  # a run killed before two trajectories were written
+        (tmp_path / key / name).unlink()
+    record, shards = fly(grid, key, tmp_path, backwards)
+    assert calls[1:] == [[0, 2]] and shards == want_shards and results(record) == results(want_record)
+    fly(grid, key, tmp_path, backwards)
+    assert len(calls) == 2  # every shard there: the engine is not called
+
+
+def test_each_trajectory_flies_on_its_own_seed_streams(grid, by_driver) -> None:
+    """A worker built cold flies t1 alone as the driver did (its index, 1), and otherwise on index 0: the test
+    above would see a worker that numbered the jobs by their order."""
+    p, root, tracks, bursts = grid
+    safety = load_chain(p, SHIPPED, root)
+    worker = campaigns.ShardWorker(campaigns.shard_setup(p, safety, safety.defended, SEED))
+    stored = pickle.loads(by_driver[SHIPPED.value][1]["t1.pkl"])["share"]
+
+    def flown(index: int) -> bytes:
+        return worker.run(campaigns.ShardJob(index, tracks[1], bursts[1]))
+
+    assert flown(1) == pickle.dumps(stored, protocol=pickle.HIGHEST_PROTOCOL) != flown(0)
+
+
+def test_the_cpu_fans_out_over_ray_workers_on_the_cpu_and_a_gpu_flies_in_process(grid, monkeypatch) -> None:
+    from stages import integrity
+
+    p, root, tracks, bursts = grid
+    p = dataclasses.replace(p, device="auto", engine=dataclasses.replace(p.engine, workers=2))
+    seen = []
+    monkeypatch.setattr(integrity.engine, "run", lambda *a, **k: seen.append((a[1], a[3], k["num_cpus"])))
+    setup = campaigns.ShardSetup(p, str(root), SHIPPED.value, None, SEED)
+    for device in (torch.device("cpu"), torch.device("cuda")):
+        es, fan_out = integrity.shard_engine(p, device)
+        fan_out(campaigns.ShardWorker, setup, [], lambda i, r: None)
+    (cpu, es_cpu, cpus), (gpu, es_gpu, _) = seen
+    assert es_cpu.workers == 2 and not es_cpu.in_process and cpus == 1  # threads=2 shared out over 2 workers
+    assert cpu.params.device == "cpu" and cpu.torch_threads == 1 and cpu.params.integrity == p.integrity
+    assert es_gpu.in_process and gpu == setup  # the stage's device (auto: the GPU), its torch threads
+
+
+@pytest.mark.slow
+def test_two_ray_workers_write_the_shards_the_driver_writes(grid, by_driver, tmp_path, monkeypatch) -> None:
+    from stages import integrity
+
+    pytest.importorskip("ray")
+    monkeypatch.setenv("RAY_AUTH_MODE", "disabled")
+    p = grid[0]
+    es, fan_out = integrity.shard_engine(
+        dataclasses.replace(p, engine=dataclasses.replace(p.engine, workers=2)), torch.device("cpu")
+    )
+    assert es.workers == 2 and not es.in_process
+    with engine.session(es):
+        record, shards = fly(grid, SHIPPED.value, tmp_path, fan_out)
+    want_record, want_shards = by_driver[SHIPPED.value]
+    assert shards == want_shards and results(record) == results(want_record)
