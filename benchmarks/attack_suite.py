@@ -135,31 +135,57 @@ def main() -> None:
         }
         table += comparison_rows(model, on_sub)[1:]
         members[model] = strongest_members(model, on_sub["full"])
-        for name, r, ref in (
-            ("lean / full", on_sub["lean"], on_sub["full"]),
-            ("pgd-50 / full", on_sub["pgd-50"], on_sub["full"]),
-            ("lean x2 / lean", on_sub["lean x2"], on_sub["lean"]),
-        ):
-            checks += [{"model": model, "check": name, **row} for row in ratio_rows(r, ref)]
-        checks += [
-            {
-                "model": model,
-                "check": "full >= each member (reference: the strongest)",
-                "eps": row["eps"],
-                "error": row["error"],
-                "result": row["suite"],
-                "reference": row["strongest_mean"],
-                "ratio": row["suite"] / row["strongest_mean"],
-                "ok": row["ok"],
-            }
-            for row in sanity_rows(on_sub["full"])
-        ]
+        checks += _checks(model, on_sub)
         print(markdown_table([r for r in table if r["model"] == model]), flush=True)
     load1 = os.getloadavg()[0]
-    body = (
+    body = _body(args, len(rows), len(sub), (load0, load1), full_cfg, table, checks, members)
+    print(body)
+    print(f"-> {write_benchmark('Strongest attack suite', body)} (## Strongest attack suite)")
+
+
+def _checks(model: str, on_sub: dict[str, SuiteResult]) -> list[dict[str, Any]]:
+    """The subsample's check rows of `model`: ratios lean / full, pgd-50 / full, doubled lean / lean, and the
+    full suite against each of its members."""
+    checks = []
+    for name, r, ref in (
+        ("lean / full", on_sub["lean"], on_sub["full"]),
+        ("pgd-50 / full", on_sub["pgd-50"], on_sub["full"]),
+        ("lean x2 / lean", on_sub["lean x2"], on_sub["lean"]),
+    ):
+        checks += [{"model": model, "check": name, **row} for row in ratio_rows(r, ref)]
+    checks += [
+        {
+            "model": model,
+            "check": "full >= each member (reference: the strongest)",
+            "eps": row["eps"],
+            "error": row["error"],
+            "result": row["suite"],
+            "reference": row["strongest_mean"],
+            "ratio": row["suite"] / row["strongest_mean"],
+            "ok": row["ok"],
+        }
+        for row in sanity_rows(on_sub["full"])
+    ]
+    return checks
+
+
+def _body(
+    args: argparse.Namespace,
+    frames: int,
+    sub: int,
+    load: tuple[float, float],
+    full_cfg: Any,
+    table: list[dict[str, Any]],
+    checks: list[dict[str, Any]],
+    members: dict[str, list[dict[str, Any]]],
+) -> str:
+    """The Markdown of the `## Strongest attack suite` section: `frames` sampled frames, `sub` of them for the
+    full suite, the load average at the start and the end, the tables."""
+    load0, load1 = load
+    return (
         f"`benchmarks/attack_suite.py` on {platform.machine()}, torch {torch.__version__}, {args.threads} "
-        f"thread(s), CPU; {len(rows)} seeded test frames (seed {args.seed}), the full suite and the doubled "
-        f"lean suite on a seeded subsample of {len(sub)} of them; load average {load0:.1f} at the start, "
+        f"thread(s), CPU; {frames} seeded test frames (seed {args.seed}), the full suite and the doubled "
+        f"lean suite on a seeded subsample of {sub} of them; load average {load0:.1f} at the start, "
         f"{load1:.1f} at the end (other processes were not stopped). Worst case per frame nested in eps; "
         f"means with 95% intervals (normal approximation); CPU s / frame: process time per frame at that eps "
         f"(all members).\n\nLean: {', '.join(LEAN.members)}; {LEAN.steps} steps, {LEAN.restarts} restarts "
@@ -171,8 +197,6 @@ def main() -> None:
         f"{markdown_table(checks, decimals=3)}\nFrames whose full-suite worst case each member found:\n\n"
         + "\n".join(markdown_table(rows) for rows in members.values())
     )
-    print(body)
-    print(f"-> {write_benchmark('Strongest attack suite', body)} (## Strongest attack suite)")
 
 
 if __name__ == "__main__":

@@ -288,14 +288,11 @@ def unit_totals(rows: list[dict[str, Any]]) -> dict[str, float]:
     return out
 
 
-def body(rows: list[dict[str, Any]], idle: list[dict[str, Any]], facts: dict[str, Any]) -> str:
-    """The Markdown of the `## Paper-profile cost model` section: `rows` predicted from the measured wall
-    rates, `idle` from the CPU time per unit over the threads (what an otherwise idle machine would take)."""
+def _unit_table(rows: list[dict[str, Any]], idle: list[dict[str, Any]]) -> str:
+    """Markdown table: per (stage, unit) its count, measured rate (units/s) and both predicted times (h)."""
     from pipeline.report.markdown import markdown_table
 
-    totals, idle_totals = stage_totals(rows), stage_totals(idle)
-    total, idle_total = sum(totals.values()), sum(idle_totals.values())
-    table = markdown_table(
+    return markdown_table(
         [
             {
                 "stage": r["stage"],
@@ -308,7 +305,13 @@ def body(rows: list[dict[str, Any]], idle: list[dict[str, Any]], facts: dict[str
             for r, q in zip(rows, idle)
         ]
     )
-    stages = markdown_table(
+
+
+def _stage_table(totals: dict[str, float], idle_totals: dict[str, float], total: float) -> str:
+    """Markdown table: per stage its predicted times (h) and share of the measured `total` (s)."""
+    from pipeline.report.markdown import markdown_table
+
+    return markdown_table(
         [
             {
                 "stage": k,
@@ -319,8 +322,15 @@ def body(rows: list[dict[str, Any]], idle: list[dict[str, Any]], facts: dict[str
             for k, v in totals.items()
         ]
     )
-    need, rate = required_rates(idle, TARGET_S), {r["unit"]: r["rate"] for r in idle}
-    req = markdown_table(
+
+
+def _requirement_table(rows: list[dict[str, Any]], idle: list[dict[str, Any]], rate: dict[str, float]) -> str:
+    """Markdown table: per unit its count, idle-machine `rate` here and the rates (units/s) the 2-hour target
+    requires (alone, and at its share of the idle prediction)."""
+    from pipeline.report.markdown import markdown_table
+
+    need = required_rates(idle, TARGET_S)
+    return markdown_table(
         [
             {
                 "unit": u,
@@ -333,9 +343,10 @@ def body(rows: list[dict[str, Any]], idle: list[dict[str, Any]], facts: dict[str
             for u, n in unit_totals(rows).items()
         ]
     )
-    top = ", ".join(f"{k} {v / total:.0%}" for k, v in list(totals.items())[:4])
-    renders = unit_totals(rows)["render"]
-    on = f"one {facts['gpu']} and " if facts["gpu"] else ""
+
+
+def _notes(rows: list[dict[str, Any]], total: float, facts: dict[str, Any]) -> tuple[str, str, str]:
+    """(what dominates the measured `total` (s), the note on a given Cycles rate, the note on the GPU path)."""
     rendering = sum(r["seconds"] for r in rows if r["unit"] == "render")
     dominant = (
         f"The Cycles renders dominate ({rendering / 3600:,.1f} h); every torch unit together takes "
@@ -360,6 +371,22 @@ def body(rows: list[dict[str, Any]], idle: list[dict[str, Any]], facts: dict[str
         "uint8 batches, NCCL under torchrun); its rates are measured with `--device cuda` on a GPU box "
         '(section "Paper-profile cost model on a GPU", when one was run).'
     )
+    return dominant, render_note, gpu_note
+
+
+def body(rows: list[dict[str, Any]], idle: list[dict[str, Any]], facts: dict[str, Any]) -> str:
+    """The Markdown of the `## Paper-profile cost model` section: `rows` predicted from the measured wall
+    rates, `idle` from the CPU time per unit over the threads (what an otherwise idle machine would take)."""
+    totals, idle_totals = stage_totals(rows), stage_totals(idle)
+    total, idle_total = sum(totals.values()), sum(idle_totals.values())
+    table = _unit_table(rows, idle)
+    stages = _stage_table(totals, idle_totals, total)
+    rate = {r["unit"]: r["rate"] for r in idle}
+    req = _requirement_table(rows, idle, rate)
+    top = ", ".join(f"{k} {v / total:.0%}" for k, v in list(totals.items())[:4])
+    renders = unit_totals(rows)["render"]
+    on = f"one {facts['gpu']} and " if facts["gpu"] else ""
+    dominant, render_note, gpu_note = _notes(rows, total, facts)
     return (
         f"`benchmarks/cost_model.py --device {facts['device']}` on {on}{platform.machine()}, "
         f"{os.cpu_count()} cores, torch {facts['torch']}, {facts['threads']} threads, AMP "

@@ -87,22 +87,7 @@ def main() -> None:
     k = args.deep_images
     t_deep = per_call(lambda: deep_shap(pose, feats[:k], background, batch_size=k), min_seconds=3.0) / k
     rows.append({"method": f"shap.DeepExplainer on the head, batch of {k}", "ms / image": t_deep * 1e3})
-    try:
-        from captum.attr import DeepLiftShap
-
-        from pipeline.shap import Head
-
-        head = Head(pose).eval()
-        dls = DeepLiftShap(head)
-        bg_t, x_t = torch.as_tensor(background), torch.as_tensor(feats[:k])
-        t_captum = (
-            per_call(lambda: [dls.attribute(x_t, baselines=bg_t, target=j) for j in range(9)], min_seconds=3.0) / k
-        )
-        rows.append(
-            {"method": f"captum DeepLiftShap on the head (9 targets), batch of {k}", "ms / image": t_captum * 1e3}
-        )
-    except ImportError:
-        rows.append({"method": "captum DeepLiftShap", "ms / image": "not installed"})
+    rows.append(_captum_row(pose, background, feats[:k], k))
 
     values = torch.as_tensor(explainer(feats))
     with torch.no_grad():
@@ -117,23 +102,56 @@ def main() -> None:
         {"per frame": "LSTM detector (batch of 256, per frame)", "ms": t_det_b * 1e3},
         {"per frame": "safety chain = pose + SHAP + detector (1 frame)", "ms": (t_pose + t_exact_1 + t_det_1) * 1e3},
     ]
-    ratio = t_deep / t_exact_1
+    ratios = (t_deep / t_exact_1, t_deep / t_exact_b, (t_pose + t_exact_1 + t_det_1) / t_pose)
+    body = _body(args, source, (w, h), rows, timing, ratios)
+    print(body)
+    print(f"-> {write_benchmark('Explanations', body)} (## Explanations)")
+
+
+def _captum_row(pose: PoseNet, background: np.ndarray, feats: np.ndarray, k: int) -> dict[str, object]:
+    """The row of captum's DeepLiftShap on the pose head (9 targets) over the features `feats` (k, 1000), a batch
+    of k: ms per image, or "not installed"."""
+    try:
+        from captum.attr import DeepLiftShap
+
+        from pipeline.shap import Head
+
+        head = Head(pose).eval()
+        dls = DeepLiftShap(head)
+        bg_t, x_t = torch.as_tensor(background), torch.as_tensor(feats)
+        t_captum = (
+            per_call(lambda: [dls.attribute(x_t, baselines=bg_t, target=j) for j in range(9)], min_seconds=3.0) / k
+        )
+        return {"method": f"captum DeepLiftShap on the head (9 targets), batch of {k}", "ms / image": t_captum * 1e3}
+    except ImportError:
+        return {"method": "captum DeepLiftShap", "ms / image": "not installed"}
+
+
+def _body(
+    args: argparse.Namespace,
+    source: str,
+    size: tuple[int, int],
+    rows: list[dict[str, object]],
+    timing: list[dict[str, object]],
+    ratios: tuple[float, float, float],
+) -> str:
+    """The Markdown of the `## Explanations` section: the models' `source`, input size (W, H) pixels, the tables,
+    and the ratios (DeepExplainer / closed form at 1 image and batched, whole chain / pose network)."""
+    (w, h), (ratio, batched, chain) = size, ratios
     load = os.getloadavg()[0]
-    body = f"""`benchmarks/explain_speed.py` on {platform.processor() or platform.machine()} ({os.cpu_count()} cores, load
+    return f"""`benchmarks/explain_speed.py` on {platform.processor() or platform.machine()} ({os.cpu_count()} cores, load
 average {load:.1f} when it ran), torch {torch.__version__}, {args.threads} thread(s); models: {source};
 input {w}x{h}; background of {args.background} images.
 Explaining the 9 outputs over the 1000 GAP features (a 9 x 1000 array per image):
 
 {markdown_table(rows, decimals=4)}
 The closed form is **{ratio:,.0f} times** faster per image than shap's DeepExplainer on the same head
-(batched: {t_deep / t_exact_b:,.0f} times), and gives the same values (tests/test_explain.py: max
+(batched: {batched:,.0f} times), and gives the same values (tests/test_explain.py: max
 difference < 1e-5).
 
 {markdown_table(timing, decimals=3)}
-The whole safety chain costs {(t_pose + t_exact_1 + t_det_1) / t_pose:.2f}x the pose network alone.
+The whole safety chain costs {chain:.2f}x the pose network alone.
 """
-    print(body)
-    print(f"-> {write_benchmark('Explanations', body)} (## Explanations)")
 
 
 if __name__ == "__main__":

@@ -28,6 +28,7 @@ import sys
 import time
 from functools import partial
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 
@@ -35,7 +36,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from pipeline.attacks.capacity import capacity_at, proportional_capacity  # noqa: E402
-from pipeline.defense.bound import ACCEPT, ALARM, HUBER, RESTART, record, worst_case  # noqa: E402
+from pipeline.defense.bound import ACCEPT, ALARM, HUBER, RESTART, Recording, WorstCase, record, worst_case  # noqa: E402
 from pipeline.defense.calibration import CleanRun  # noqa: E402
 from pipeline.defense.integrity import alert_limit  # noqa: E402
 from pipeline.evaluation.integrity_runs import Track  # noqa: E402
@@ -78,45 +79,14 @@ def main() -> None:
     spared: dict[float, list[float]] = {e: [] for e in args.eps}
     for g, ix in enumerate(trajs[: args.trajectories]):
         track = Track(f"t{g}", images[ix], labels[ix])
-        t0 = time.perf_counter()
-        est, prob = pose_estimates(chain, track.images, 32)
-        chain_s = time.perf_counter() - t0
-        run, truth, n = CleanRun(est, prob, track.R_cam, track.u), track.truth, len(ix)
-        rng, al = np.linalg.norm(truth, axis=1), alert_limit(np.linalg.norm(truth, axis=1), d.alert)
-        clean = record(d.settings, d.motion, d.noise, run, alert_limit=limit)
-        err = np.linalg.norm(clean.trace.trusted - truth, axis=1)
-        print(
-            f"\n{track.name}: {n} frames, range {rng[0]:.1f} -> {rng[-1]:.1f} m; chain {chain_s:.1f} s; clean: "
-            f"start frame {clean.start}, restart at {clean.horizon if clean.horizon < n else 'none'}, "
-            f"{int((clean.kind == HUBER).sum())} Huber, {int(clean.trace.flag.sum())} flags, "
-            f"{int(clean.trace.available.sum())} available, max error {np.nanmax(err):.2f} m, "
-            f"max error/PL {np.nanmax(err / clean.trace.pl):.2f}, restarts {int((clean.kind == RESTART).sum())}"
-        )
+        truth, n = track.truth, len(ix)
+        run, rng, al, clean, err = _clean_run(chain, d, limit, track, truth)
         targets = sorted(set(range(0, n, args.stride)) | {n - 1})
+        solve = partial(worst_case, d.settings, d.motion, d.noise, run, truth, alert_limit=limit)
         for e in args.eps:
             cap = capacity_at(caps, e, rng)
-            w = worst_case(d.settings, d.motion, d.noise, run, truth, cap, al, targets=targets, alert_limit=limit)
-            print(
-                f"  eps {e}: {w.seconds:.1f} s for {len(targets)} targets "
-                f"({w.seconds / len(targets):.2f} s per target); capacity at the start {cap[0, 0]:.2f} m"
-            )
-            print("    frame  range  AL    clean  upper  achieved  PL     upper/AL  achieved/PL  exact  available")
-            for t, j in enumerate(w.targets):
-                print(
-                    f"    {j:5d}  {rng[j]:5.1f}  {w.alert[t]:4.1f}  {err[j]:5.2f}  {w.upper[t]:5.2f}  "
-                    f"{w.achieved[t]:8.2f}  {w.pl[t]:5.2f}  {w.ratio[t]:8.2f}  {w.achieved[t] / w.pl[t]:11.2f}  "
-                    f"{str(bool(w.exact[t])):5s}  {bool(w.available[t])}"
-                )
-            trusted = np.flatnonzero(np.isin(clean.kind, (ACCEPT, HUBER, ALARM)))[d.motion.trusted_start - 1]
-            assumed = cap.copy()
-            assumed[: trusted + 1] = 0.0  # the PL's assumption A: those frames fault-free
-            later = [j for j in targets if j > trusted]
-            a = worst_case(d.settings, d.motion, d.noise, run, truth, assumed, al, targets=later, alert_limit=limit)
-            spared[e].append(float(np.nanmax(a.pl_index)))
-            print(
-                f"    sparing frames <= {trusted} (assumption A): max achieved {np.nanmax(a.achieved):.2f} m, "
-                f"max achieved/PL {np.nanmax(a.pl_index):.2f}"
-            )
+            w = _worst(solve, cap, al, targets, e, rng, err)
+            spared[e].append(_spared(solve, cap, al, targets, clean, d.motion.trusted_start))
             summary[e].append(
                 {
                     "upper_al": float(np.nanmax(w.ratio)),
@@ -128,6 +98,82 @@ def main() -> None:
                     "all_targets": w.seconds / len(targets) * (n - clean.start),
                 }
             )
+    _print_summary(summary, spared)
+    certify(safety.model, Track("t0", images[trajs[0]], labels[trajs[0]]), caps, args.eps)
+
+
+def _clean_run(
+    chain: Any, d: Any, limit: Callable[[float], float], track: Track, truth: np.ndarray
+) -> tuple[CleanRun, np.ndarray, np.ndarray, Recording, np.ndarray]:
+    """(the chain's clean run of `track` (true rel `truth` (N, 3), world, m), range (N,) (m), AL (N,) (m), its
+    recording through the defense `d`, the trusted error (N,) (m)); prints the clean run's structure."""
+    t0 = time.perf_counter()
+    est, prob = pose_estimates(chain, track.images, 32)
+    chain_s = time.perf_counter() - t0
+    run, n = CleanRun(est, prob, track.R_cam, track.u), len(track)
+    rng, al = np.linalg.norm(truth, axis=1), alert_limit(np.linalg.norm(truth, axis=1), d.alert)
+    clean = record(d.settings, d.motion, d.noise, run, alert_limit=limit)
+    err = np.linalg.norm(clean.trace.trusted - truth, axis=1)
+    print(
+        f"\n{track.name}: {n} frames, range {rng[0]:.1f} -> {rng[-1]:.1f} m; chain {chain_s:.1f} s; clean: "
+        f"start frame {clean.start}, restart at {clean.horizon if clean.horizon < n else 'none'}, "
+        f"{int((clean.kind == HUBER).sum())} Huber, {int(clean.trace.flag.sum())} flags, "
+        f"{int(clean.trace.available.sum())} available, max error {np.nanmax(err):.2f} m, "
+        f"max error/PL {np.nanmax(err / clean.trace.pl):.2f}, restarts {int((clean.kind == RESTART).sum())}"
+    )
+    return run, rng, al, clean, err
+
+
+def _worst(
+    solve: Callable[..., WorstCase],
+    cap: np.ndarray,
+    al: np.ndarray,
+    targets: list[int],
+    e: float,
+    rng: np.ndarray,
+    err: np.ndarray,
+) -> WorstCase:
+    """`solve` (`worst_case` on the clean run) at the target frames within the capacity `cap` (N, 3) (m) of eps `e`,
+    AL `al` (N,) (m); prints it per frame beside the range `rng` and the clean error `err` (m)."""
+    w = solve(cap, al, targets=targets)
+    print(
+        f"  eps {e}: {w.seconds:.1f} s for {len(targets)} targets "
+        f"({w.seconds / len(targets):.2f} s per target); capacity at the start {cap[0, 0]:.2f} m"
+    )
+    print("    frame  range  AL    clean  upper  achieved  PL     upper/AL  achieved/PL  exact  available")
+    for t, j in enumerate(w.targets):
+        print(
+            f"    {j:5d}  {rng[j]:5.1f}  {w.alert[t]:4.1f}  {err[j]:5.2f}  {w.upper[t]:5.2f}  "
+            f"{w.achieved[t]:8.2f}  {w.pl[t]:5.2f}  {w.ratio[t]:8.2f}  {w.achieved[t] / w.pl[t]:11.2f}  "
+            f"{str(bool(w.exact[t])):5s}  {bool(w.available[t])}"
+        )
+    return w
+
+
+def _spared(
+    solve: Callable[..., WorstCase],
+    cap: np.ndarray,
+    al: np.ndarray,
+    targets: list[int],
+    clean: Recording,
+    trusted_start: int,
+) -> float:
+    """Max achieved / PL of `solve` (`worst_case` on the clean run) sparing the frames the PL assumes fault-free
+    (assumption A: up to the `trusted_start`-th trusted frame of `clean`), at the targets after them; printed."""
+    trusted = np.flatnonzero(np.isin(clean.kind, (ACCEPT, HUBER, ALARM)))[trusted_start - 1]
+    assumed = cap.copy()
+    assumed[: trusted + 1] = 0.0  # the PL's assumption A: those frames fault-free
+    later = [j for j in targets if j > trusted]
+    a = solve(assumed, al, targets=later)
+    print(
+        f"    sparing frames <= {trusted} (assumption A): max achieved {np.nanmax(a.achieved):.2f} m, "
+        f"max achieved/PL {np.nanmax(a.pl_index):.2f}"
+    )
+    return float(np.nanmax(a.pl_index))
+
+
+def _print_summary(summary: dict[float, list[dict[str, float]]], spared: dict[float, list[float]]) -> None:
+    """Print per eps the maxima over the trajectories and the mean cost per trajectory (s)."""
     print(
         "\neps    trajectories  max upper (m)  max upper/AL  max achieved/PL  (sparing A)  exact  s/trajectory  "
         "s/trajectory at every frame (est.)"
@@ -140,7 +186,6 @@ def main() -> None:
             f"{np.mean([r['exact'] for r in rows]):5.2f}  {np.mean([r['seconds'] for r in rows]):12.1f}  "
             f"{np.mean([r['all_targets'] for r in rows]):10.0f}"
         )
-    certify(safety.model, Track("t0", images[trajs[0]], labels[trajs[0]]), caps, args.eps)
 
 
 def certify(model: object, track: Track, caps: list, eps: list[float], every: int = 20) -> None:

@@ -13,6 +13,7 @@ import dataclasses
 import os
 import platform
 import time
+from typing import Any
 
 import numpy as np
 
@@ -77,6 +78,20 @@ def main() -> None:
     load = os.getloadavg()
     base = scene_settings(p.render)
     R, t = poses(p, args.frames)
+    rows = _size_rows(p, base, R, t)
+
+    # Quality vs time at the default size: PSNR against a 256-sample, undenoised reference of the same poses.
+    K = intrinsics(p)
+    nq = min(10, args.frames)
+    Rq, tq = poses(p, nq)
+    ref = speed(K, dataclasses.replace(base, samples=256, denoiser="NONE"), Rq, tq)[3]
+    qrows = _quality_rows(K, base, Rq, tq, ref)
+    body = _body(args.frames, base, load, rows, K, nq, qrows)
+    print(f"wrote the Rendering section of {write_benchmark('Rendering', body)}")
+
+
+def _size_rows(p: Params, base: Any, R: np.ndarray, t: np.ndarray) -> list[dict[str, Any]]:
+    """Per size of SIZES the speed of the `base` scene settings over the poses R, t (one row each, printed)."""
     rows = []
     for w, h in SIZES:
         K = intrinsics(dataclasses.replace(p, render=dataclasses.replace(p.render, width=w, height=h)))
@@ -97,12 +112,12 @@ def main() -> None:
             f"idle estimate {idle} images/s), scene build {build:.2f} s",
             flush=True,
         )
+    return rows
 
-    # Quality vs time at the default size: PSNR against a 256-sample, undenoised reference of the same poses.
-    K = intrinsics(p)
-    nq = min(10, args.frames)
-    Rq, tq = poses(p, nq)
-    ref = speed(K, dataclasses.replace(base, samples=256, denoiser="NONE"), Rq, tq)[3]
+
+def _quality_rows(K: Any, base: Any, Rq: np.ndarray, tq: np.ndarray, ref: list[np.ndarray]) -> list[dict[str, Any]]:
+    """Per sample count and denoiser its time per image at K and PSNR (dB) against the reference images `ref` of
+    the poses Rq, tq (one row each, printed)."""
     variants = [
         (2, "NONE"),
         (4, "NONE"),
@@ -134,10 +149,23 @@ def main() -> None:
             f"PSNR {qrows[-1]['PSNR vs reference (dB)']:.1f} dB",
             flush=True,
         )
+    return qrows
 
-    body = "\n".join(
+
+def _body(
+    frames: int,
+    base: Any,
+    load: tuple[float, float, float],
+    rows: list[dict[str, Any]],
+    K: Any,
+    nq: int,
+    qrows: list[dict[str, Any]],
+) -> str:
+    """The Markdown of the '## Rendering' section: the speed `rows` of `frames` poses and the quality `qrows` of
+    `nq` poses at K (the load average `load` at the start, the current one at the end)."""
+    return "\n".join(
         [
-            f"`benchmarks/render_speed.py` ({args.frames} poses spread over the 13 approach sequences, after one "
+            f"`benchmarks/render_speed.py` ({frames} poses spread over the 13 approach sequences, after one "
             f"warm-up frame; {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
             f"threads={base.threads}; load average {load[0]:.1f} at the start, {os.getloadavg()[0]:.1f} at the end: "
             f"other processes on the machine were not stopped). Settings from params.yaml: "
@@ -158,7 +186,6 @@ def main() -> None:
             markdown_table(qrows, decimals=3),
         ]
     )
-    print(f"wrote the Rendering section of {write_benchmark('Rendering', body)}")
 
 
 if __name__ == "__main__":

@@ -144,7 +144,7 @@ def train(p: Any, name: str) -> None:
     from pipeline.pose.adversarial import Adversary
     from pipeline.pose.loss import PoseLoss
     from pipeline.pose.model import PoseNet
-    from pipeline.pose.train import PoseDataset, fit, make_deterministic
+    from pipeline.pose.train import fit, make_deterministic
     from stages.artifacts.models import load_pose
     from stages.config.build import adversarial_config, robust_train_config
 
@@ -154,14 +154,7 @@ def train(p: Any, name: str) -> None:
     cfg = robust_train_config(p.train, seed_for(p.seed, "robust"))
     make_deterministic(cfg.seed)
     model, loss = PoseNet(float(p.train.width), float(p.train.dropout), level), PoseLoss("mean")
-    (fit_split, fit_set, _), (val_split, _) = data.training_sets(p, seed_for(p.seed, "train"))
-    earth = _earth_frames(p)
-    share = options.get("earth_share", EARTH_SHARE)  # by default the FIT_FRAMES renders only (23%)
-    keys = ("fit", "fit_more") if "earth_share" in options else ("fit",)
-    train_set = PoseDataset(
-        _swapped(fit_split, earth, keys, share, 1), fit_split.targets, fit_set.augment_cfg, cfg.seed
-    )
-    val_set = PoseDataset(_swapped(val_split, earth, ("val",), share, 2), val_split.targets)
+    train_set, val_set = _datasets(p, options, cfg.seed)
     standard = load_pose(p)
     model.load_state_dict(standard.model.state_dict())
     loss.load_state_dict(standard.loss.state_dict())
@@ -200,6 +193,21 @@ def train(p: Any, name: str) -> None:
         },
         OUT / f"{name}.pt",
     )
+
+
+def _datasets(p: Any, options: dict[str, Any], seed: int) -> tuple[Any, Any]:
+    """(training set: the fit split with EARTH_SHARE of its frames swapped for their Earth renders (a recipe's
+    `earth_share`: with the MORE_FIT_FRAMES renders too), augmented with `seed`; validation set: the validation
+    split with that share swapped)."""
+    from pipeline.pose.train import PoseDataset
+
+    (fit_split, fit_set, _), (val_split, _) = data.training_sets(p, seed_for(p.seed, "train"))
+    earth = _earth_frames(p)
+    share = options.get("earth_share", EARTH_SHARE)  # by default the FIT_FRAMES renders only (23%)
+    keys = ("fit", "fit_more") if "earth_share" in options else ("fit",)
+    train_set = PoseDataset(_swapped(fit_split, earth, keys, share, 1), fit_split.targets, fit_set.augment_cfg, seed)
+    val_set = PoseDataset(_swapped(val_split, earth, ("val",), share, 2), val_split.targets)
+    return train_set, val_set
 
 
 def _model(p: Any, name: str) -> Any:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -72,7 +73,6 @@ def main(epochs: int | None = None) -> None:
     from pipeline.pose.metrics import pose_errors
     from pipeline.pose.model import PoseNet
     from pipeline.pose.train import fit, make_deterministic, predict
-    from pipeline.report.markdown import markdown_table
     from pipeline.seeds import seed_for
     from pipeline.stats import mean_interval
     from stages.artifacts import data
@@ -113,21 +113,29 @@ def main(epochs: int | None = None) -> None:
             ("allocentric (this trial)", allo, result.best_epoch),
         )
     ]
-    text = f"""# Trials
+    text = _report(params, cfg.epochs, len(val_split), rows, diff)
+    atomic_write_text(ROOT / "reports" / "trials.md", text)
+    print(text)
+
+
+def _report(params: Any, epochs: int, n_val: int, rows: list[dict[str, Any]], diff: tuple[float, float, float]) -> str:
+    """reports/trials.md: the trial's recipe, the table `rows` on its `n_val` validation images and the paired
+    allocentric minus egocentric attitude error (mean, 95% interval; deg)."""
+    from pipeline.report.markdown import markdown_table
+
+    return f"""# Trials
 
 ## Allocentric attitude
 
-`scripts/allocentric_trial.py`: the standard recipe (`train` params, seed {params.seed}, {cfg.epochs} epochs,
+`scripts/allocentric_trial.py`: the standard recipe (`train` params, seed {params.seed}, {epochs} epochs,
 {params.render.width}x{params.render.height}) trained with allocentric attitude targets (relative to the viewing ray,
 turned back with the predicted position), against the egocentric model of `rpod train`, on the
-{len(val_split)} **validation** images of the same split (the decision; the test split is not read).
+{n_val} **validation** images of the same split (the decision; the test split is not read).
 Means; attitude with its 95% interval (pipeline.pose.robustness.mean_interval).
 
 {markdown_table(rows)}
 Paired over the same images, allocentric minus egocentric attitude error: {diff[0]:+.2f} [{diff[1]:+.2f}, {diff[2]:+.2f}] deg.
 """
-    atomic_write_text(ROOT / "reports" / "trials.md", text)
-    print(text)
 
 
 def _row(e: dict[str, float]) -> dict[str, str]:

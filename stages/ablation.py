@@ -57,7 +57,6 @@ def main(params: Params) -> None:
 
     from pipeline.attacks.gradient import attack_loss
     from pipeline.detectors.lstm import LSTMConfig
-    from pipeline.evaluation.ablation import learning_curve, run_ablation
 
     a, d = params.ablation, params.detect
     device = torch_setup(params)
@@ -83,18 +82,57 @@ def main(params: Params) -> None:
     fit = {"epochs": d.epochs, "patience": d.patience, "batch_size": d.batch_size, "lr": float(d.lr)}
     split = (float(d.test_fraction), float(d.val_fraction), seed)
     t1 = time.perf_counter()
+    cells, curves = _fit_cells(protocols, list(a.fractions), config, fit, split, device)
+    fit_s = time.perf_counter() - t1
+    torch.set_num_threads(threads)
+    t2 = time.perf_counter()
+    runs, detectors = _sequence_runs(params, chain, loss_fn, cells)
+    sequence_s = time.perf_counter() - t2
+    metrics = _metrics(params, chain.pose_hash, cells, curves, runs, (explain_s, fit_s, sequence_s))
+    write_metrics(ABLATION_METRICS, metrics, params.profile_name)
+    atomic_write_text(
+        ABLATION_REPORT,
+        ablation_page(
+            cells, curves, metrics["sequences"], a, d, (params.render.frames_per_sequence, params.shap.frames)
+        ),
+    )
+    typer.echo(
+        f"ablation: {len(cells)} cells in {explain_s + fit_s:.0f} s (SHAP values {explain_s:.0f} s, LSTM fits "
+        f"{fit_s:.0f} s), {len(detectors)} detectors on {', '.join(runs)} sequences in {sequence_s:.0f} s "
+        f"-> {ABLATION_REPORT}"
+    )
+
+
+def _fit_cells(
+    protocols: dict[str, list[Any]],
+    fractions: list[float],
+    config: Any,
+    fit: dict[str, Any],
+    split: tuple[float, float, int],
+    device: Any,
+) -> tuple[list[Any], dict[str, list[Any]]]:
+    """(the cells of every eps mix's 2 x 2, each with its fitted LSTM; the learning curves of the paper's-mix cells
+    ours/strict and paper/paper on `fractions` of their training samples); a StageError for a failed fit."""
+    from pipeline.evaluation.ablation import learning_curve, run_ablation
+
     try:
         cells = [c for mix, prot in protocols.items() for c in run_ablation(prot, config, fit, *split, device, mix)]
         strict, paper = protocols["paper"]
         curves = {
-            f"{attack}/{p.protocol}": learning_curve(p, attack, list(a.fractions), config, fit, *split, device, "paper")
+            f"{attack}/{p.protocol}": learning_curve(p, attack, fractions, config, fit, *split, device, "paper")
             for attack, p in (("ours", strict), ("paper", paper))
         }
     except ValueError as e:  # also a diverged fit (DivergenceError)
         raise StageError(f"params.yaml ablation / detect: {e}") from None
-    fit_s = time.perf_counter() - t1
-    torch.set_num_threads(threads)
-    t2 = time.perf_counter()
+    return cells, curves
+
+
+def _sequence_runs(
+    params: Params, chain: Any, loss_fn: Any, cells: list[Any]
+) -> tuple[dict[str, dict[str, dict[str, Any]]], dict[str, tuple[Any, float, str]]]:
+    """(per place, integrated evaluation and lab (unless the lab stage retrains its models), the `sequence_counts`
+    of the standard detector under each FGSM variant and of each cell's detector under its own; those detectors)."""
+    a = params.ablation
     sequences = {
         "integrated": _eval_sequences(params),
         **({"lab": _lab_sequences(params)} if retrain_reason(params) is None else {}),
@@ -105,12 +143,26 @@ def main(params: Params) -> None:
         **{cell_key(c): (c.detector, c.threshold, c.attack) for c in cells},
     }
     runs = {
-        where: sequence_counts(chain.model, loss_fn, shap, seqs, detectors, [float(x) for x in a.eps])
+        where: sequence_counts(chain.model, loss_fn, onboard.shap, seqs, detectors, [float(x) for x in a.eps])
         for where, seqs in sequences.items()
     }
-    sequence_s = time.perf_counter() - t2
-    metrics = {
-        "model_hash": chain.pose_hash,
+    return runs, detectors
+
+
+def _metrics(
+    params: Params,
+    model_hash: str,
+    cells: list[Any],
+    curves: dict[str, list[Any]],
+    runs: dict[str, dict[str, dict[str, Any]]],
+    seconds: tuple[float, float, float],
+) -> dict[str, Any]:
+    """reports/metrics/ablation.json: the settings, the seconds (SHAP values, LSTM fits, sequences), the cells, the
+    learning curves and the sequence counts."""
+    a = params.ablation
+    explain_s, fit_s, sequence_s = seconds
+    return {
+        "model_hash": model_hash,
         "eps": [float(e) for e in a.eps],
         "normal": a.normal,
         "per_eps": a.per_eps,
@@ -126,18 +178,6 @@ def main(params: Params) -> None:
         "curves": {k: [cell_json(c) for c in v] for k, v in curves.items()},
         "sequences": {where: sequences_json(r, where) for where, r in runs.items()},
     }
-    write_metrics(ABLATION_METRICS, metrics, params.profile_name)
-    atomic_write_text(
-        ABLATION_REPORT,
-        ablation_page(
-            cells, curves, metrics["sequences"], a, d, (params.render.frames_per_sequence, params.shap.frames)
-        ),
-    )
-    typer.echo(
-        f"ablation: {len(cells)} cells in {explain_s + fit_s:.0f} s (SHAP values {explain_s:.0f} s, LSTM fits "
-        f"{fit_s:.0f} s), {len(detectors)} detectors on {', '.join(runs)} sequences in {sequence_s:.0f} s "
-        f"-> {ABLATION_REPORT}"
-    )
 
 
 def sequence_counts(

@@ -130,22 +130,43 @@ def _capacities(model: str, eps: list[float]) -> tuple[list[Any], dict[str, Any]
 
 def _chain(params: Params, model: str, tracks: list[Any], eps: list[float]) -> dict[str, Any]:
     """One chain's per-trajectory bounds, summary per eps and certificate (JSON-ready)."""
-    from tqdm import tqdm
-
-    from pipeline.evaluation.integrity_bound import (
-        ATTACKERS,
-        bound_track,
-        certificate,
-        first_over,
-        over_al_rate,
-        worst_over_trajectories,
-    )
+    from pipeline.evaluation.integrity_bound import certificate, first_over
 
     b = params.bound
     caps, meta = _capacities(model, eps)
     safety = load_chain(params, model)
     limit = alert_limit_settings(params)
     t0 = time.perf_counter()
+    rows = _bound_tracks(params, model, safety, tracks, caps, eps, limit)
+    per_eps = _per_eps(rows, eps)
+    cert = certificate(safety.model, tracks[0], caps, eps, b.certify_frames) if b.certify_frames and tracks else None
+    return {
+        "model_hash": safety.pose_hash,
+        "capacity": {
+            "eps": [c.eps for c in caps],
+            "quantile": caps[0].quantile,
+            "margin": caps[0].margin,
+            "edges": caps[0].edges.tolist(),
+            "meta": meta,
+        },
+        "per_eps": per_eps,
+        "first_over_al_eps": first_over(per_eps),
+        "tracks": rows,
+        "certificate": cert,
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def _bound_tracks(
+    params: Params, model: str, safety: Any, tracks: list[Any], caps: list[Any], eps: list[float], limit: Any
+) -> list[dict[str, Any]]:
+    """`bound_track` of the chain `safety` on every trajectory (a progress bar over its programs); a StageError
+    naming the trajectory when a range lies outside the capacity's bins or the solver finds no solution."""
+    from tqdm import tqdm
+
+    from pipeline.evaluation.integrity_bound import ATTACKERS, bound_track
+
+    b = params.bound
     rows = []
     with tqdm(total=len(tracks) * len(eps) * len(ATTACKERS), desc=f"bound ({model})", unit="program") as bar:
         for track in tracks:
@@ -172,6 +193,14 @@ def _chain(params: Params, model: str, tracks: list[Any], eps: list[float]) -> d
                     f"rpod bound ({model}) on eval_render {track.name}: {e}; no bound for this chain (a larger "
                     f"bound.stride changes the target frames)"
                 ) from None
+    return rows
+
+
+def _per_eps(rows: list[dict[str, Any]], eps: list[float]) -> dict[str, Any]:
+    """Per eps (its %g name) the worst bound over the trajectories per attacker, with the rate of its frames over
+    the alert limit (value, interval, frames)."""
+    from pipeline.evaluation.integrity_bound import ATTACKERS, over_al_rate, worst_over_trajectories
+
     per_eps = {}
     for e in (f"{v:g}" for v in eps):
         worst = worst_over_trajectories(rows, e)
@@ -179,19 +208,4 @@ def _chain(params: Params, model: str, tracks: list[Any], eps: list[float]) -> d
             r = over_al_rate(rows, e, who)
             worst[who]["frames_over_al"] = {"value": r.value if r.n else None, "ci": r.ci(), "n": r.n}
         per_eps[e] = worst
-    cert = certificate(safety.model, tracks[0], caps, eps, b.certify_frames) if b.certify_frames and tracks else None
-    return {
-        "model_hash": safety.pose_hash,
-        "capacity": {
-            "eps": [c.eps for c in caps],
-            "quantile": caps[0].quantile,
-            "margin": caps[0].margin,
-            "edges": caps[0].edges.tolist(),
-            "meta": meta,
-        },
-        "per_eps": per_eps,
-        "first_over_al_eps": first_over(per_eps),
-        "tracks": rows,
-        "certificate": cert,
-        "seconds": time.perf_counter() - t0,
-    }
+    return per_eps

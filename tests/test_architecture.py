@@ -311,3 +311,33 @@ def test_a_chain_has_one_door() -> None:
         "scripts/bundle_weights.py",
         "benchmarks/explain_speed.py",
     } <= doors
+
+
+MAX_FUNCTION_LINES = 60  # issue 36: a function, def line to last line (decorators excluded), reads on one screen
+
+
+def long_functions(source: str, name: str) -> list[str]:
+    """`name:line function (n lines)` of every function and method of `source`, nested ones included, longer
+    than MAX_FUNCTION_LINES."""
+    return [
+        f"{name}:{node.lineno} {node.name} ({node.end_lineno - node.lineno + 1} lines)"
+        for node in ast.walk(ast.parse(source))
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+        and node.end_lineno - node.lineno + 1 > MAX_FUNCTION_LINES
+    ]
+
+
+def test_no_function_is_longer_than_60_lines() -> None:
+    """Every function of the library, the API, the commands, the benchmarks and the scripts: split a longer one
+    into helpers."""
+    files = [p for pkg in (*PACKAGES, "benchmarks", "scripts") for p in sorted((REPO / pkg).rglob("*.py"))]
+    bad = [line for p in files for line in long_functions(p.read_text(), str(p.relative_to(REPO)))]
+    assert not bad, bad
+
+
+def test_the_length_check_finds_a_long_function() -> None:
+    body = "    x = 1\n"
+    nested = "class A:\n    def f(self):\n        def g():\n" + "            pass\n" * 60 + "        return g\n"
+    assert long_functions("@decorator\ndef f():\n" + body * 59, "a.py") == []
+    assert long_functions("@decorator\ndef f():\n" + body * 60, "a.py") == ["a.py:2 f (61 lines)"]
+    assert long_functions(nested, "b.py") == ["b.py:2 f (63 lines)", "b.py:3 g (61 lines)"]

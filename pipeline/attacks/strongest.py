@@ -297,17 +297,8 @@ def run_suite(
     (a ValueError when it is not in `eps`)."""
     images, targets = np.asarray(images), np.asarray(targets, np.float64)
     eps = _check_run(images, targets, eps, los)
-    if (
-        config.square_eps is not None
-        and any(m.startswith("square/") for m in config.members)
-        and not any(np.isclose(config.square_eps, e) for e in eps)
-    ):
-        raise ValueError(f"square_eps {config.square_eps} is not one of the suite's eps {list(eps)}")
-    members = tuple(
-        m
-        for m in config.members
-        if not (m.startswith("bpda/") and black_level(model) <= 0 and "apgd/" + m.partition("/")[2] in config.members)
-    )
+    _check_square(config, eps)
+    members = _members_run(model, config)
     n, shape = len(images), (len(members), len(eps), len(images))
     errors = {k: np.full(shape, np.nan) for k in ERRORS}
     shifts = {k: np.full(shape, np.nan) for k in SHIFTS}
@@ -326,11 +317,7 @@ def run_suite(
                 clean[k][lo:hi] = v
             for ei, e in enumerate(eps):
                 for mi, member in enumerate(members):
-                    if (
-                        member.startswith("square/")
-                        and config.square_eps is not None
-                        and not np.isclose(config.square_eps, e)
-                    ):
+                    if _off_square_eps(member, e, config):
                         continue
                     t0, c0 = time.perf_counter(), time.process_time()
                     found = run_member(model, member, x, y, e, config, _generator(config.seed, e, member, lo), los_b)
@@ -345,6 +332,31 @@ def run_suite(
     return SuiteResult(
         eps, members, errors, shifts, clean, np.linalg.norm(targets[:, :3], axis=1), seconds, cpu_seconds
     )
+
+
+def _check_square(config: SuiteConfig, eps: Sequence[float]) -> None:
+    """A ValueError when the suite has `square` members and its `square_eps` is not one of `eps`."""
+    if (
+        config.square_eps is not None
+        and any(m.startswith("square/") for m in config.members)
+        and not any(np.isclose(config.square_eps, e) for e in eps)
+    ):
+        raise ValueError(f"square_eps {config.square_eps} is not one of the suite's eps {list(eps)}")
+
+
+def _members_run(model: nn.Module, config: SuiteConfig) -> tuple[str, ...]:
+    """The suite's members, less a `bpda` member beside the `apgd` member of its objective on a model without a
+    clamp (the same attack)."""
+    return tuple(
+        m
+        for m in config.members
+        if not (m.startswith("bpda/") and black_level(model) <= 0 and "apgd/" + m.partition("/")[2] in config.members)
+    )
+
+
+def _off_square_eps(member: str, e: float, config: SuiteConfig) -> bool:
+    """Whether `member` is a `square` member, which runs at `config.square_eps` only, and eps `e` is not it."""
+    return bool(member.startswith("square/") and config.square_eps is not None and not np.isclose(config.square_eps, e))
 
 
 def frame_capacity(result: SuiteResult) -> Capacity:

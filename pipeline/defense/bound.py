@@ -339,41 +339,14 @@ class _Program:
                 lo[j, :3], hi[j, :3] = da_bounds[j, :, 0], da_bounds[j, :, 1]
             if k == START:  # eps_s = J_s B_s da_s
                 started, prev = True, None
-                JB = self.J[j] @ axes[j]
-                for i in range(3):
-                    self.eqs.add(j, {self.col(j, 3 + i): 1.0, **{self.col(j, m): -JB[i, m] for m in range(3)}}, 0.0)
+                self._start(j)
                 continue
-            K = ref.gain[j] if k in (ACCEPT, HUBER) else np.zeros((3, 3))
-            KB, KJ = K @ axes[j], K @ self.J[j]
-            for i in range(3):  # eps_j - (I - K J) eps_{j-1} - K B da_j = 0
-                row = {self.col(j, 3 + i): 1.0}
-                for m in range(3):
-                    row[self.col(j - 1, 3 + m)] = KJ[i, m] - (i == m)
-                    row[self.col(j, m)] = -KB[i, m]
-                self.eqs.add(j, row, 0.0)
+            self._update(j, k)
             if not np.isfinite(ref.nis[j]):
                 continue
-            L = np.linalg.cholesky(0.5 * (ref.s_inv[j] + ref.s_inv[j].T))
-            u_ref = L.T @ ref.innovation[j]
-            if k == HUBER:  # y_j = y_j^ref
-                for i in range(3):
-                    self.eqs.add(j, self._dy({}, j, np.eye(3)[i]), 0.0)
-            elif k == REJECT:  # u0^T L^T y_j >= sqrt(gate)
-                u0 = u_ref / np.linalg.norm(u_ref)
-                need = min(math.sqrt(gate * (1 + margin)), float(np.linalg.norm(u_ref)))
-                self.rows.add(j, self._dy({}, j, -(L @ u0)), float(u0 @ u_ref) - need)
-            else:  # ACCEPT, ALARM, SKIP: ||u_j|| <= sqrt(bound)
-                bound = soft if k == ACCEPT else gate
-                self.cones.add(j, {}, math.sqrt(max(bound * (1 - margin), float(u_ref @ u_ref))))
-                for i in range(3):
-                    self.cones.add(j, self._dy({}, j, -L[:, i]), u_ref[i])
+            self._gate(j, k, gate, soft, margin)
             if k in (ACCEPT, HUBER):  # tested, no alarm: g <= h
-                for side, sgn in ((0, 1.0), (1, -1.0)):
-                    for i in range(3):
-                        g = self.col(j, 6 + 3 * side + i)
-                        row = {g: -1.0} if prev is None else {g: -1.0, self.col(prev, 6 + 3 * side + i): 1.0}
-                        self.rows.add(j, self._dr(row, j, i, sgn), c - sgn * ref.r[j, i])
-                        hi[j, 6 + 3 * side + i] = max(h * (1 - margin), ref.statistic[j, side, i])
+                self._no_alarm(j, prev, c, h, margin, hi[j])
                 prev = j
             elif k == ALARM:
                 self._alarm(j, prev, c, h, margin)
@@ -381,6 +354,53 @@ class _Program:
         self.lo, self.hi = lo.ravel(), hi.ravel()
         for rows in (self.eqs, self.rows, self.cones):
             rows.freeze(_WIDTH * n)
+
+    def _start(self, j: int) -> None:
+        """The start frame j: eps_j = J_j B_j da_j (world, m)."""
+        JB = self.J[j] @ self.axes[j]
+        for i in range(3):
+            self.eqs.add(j, {self.col(j, 3 + i): 1.0, **{self.col(j, m): -JB[i, m] for m in range(3)}}, 0.0)
+
+    def _update(self, j: int, k: int) -> None:
+        """Frame j after the start: eps_j - (I - K J) eps_{j-1} - K B da_j = 0, K the reference's gain on an
+        accepted frame, 0 otherwise (world, m)."""
+        K = self.ref.gain[j] if k in (ACCEPT, HUBER) else np.zeros((3, 3))
+        KB, KJ = K @ self.axes[j], K @ self.J[j]
+        for i in range(3):
+            row = {self.col(j, 3 + i): 1.0}
+            for m in range(3):
+                row[self.col(j - 1, 3 + m)] = KJ[i, m] - (i == m)
+                row[self.col(j, m)] = -KB[i, m]
+            self.eqs.add(j, row, 0.0)
+
+    def _gate(self, j: int, k: int, gate: float, soft: float, margin: float) -> None:
+        """The gate's constraint on the checked frame j's whitened innovation u_j = L_j^T y_j: y_j = y_j^ref
+        (Huber-weighted), outside the gate by a half-space (rejected), or inside the (soft) gate's ball."""
+        ref = self.ref
+        L = np.linalg.cholesky(0.5 * (ref.s_inv[j] + ref.s_inv[j].T))
+        u_ref = L.T @ ref.innovation[j]
+        if k == HUBER:  # y_j = y_j^ref
+            for i in range(3):
+                self.eqs.add(j, self._dy({}, j, np.eye(3)[i]), 0.0)
+        elif k == REJECT:  # u0^T L^T y_j >= sqrt(gate)
+            u0 = u_ref / np.linalg.norm(u_ref)
+            need = min(math.sqrt(gate * (1 + margin)), float(np.linalg.norm(u_ref)))
+            self.rows.add(j, self._dy({}, j, -(L @ u0)), float(u0 @ u_ref) - need)
+        else:  # ACCEPT, ALARM, SKIP: ||u_j|| <= sqrt(bound)
+            bound = soft if k == ACCEPT else gate
+            self.cones.add(j, {}, math.sqrt(max(bound * (1 - margin), float(u_ref @ u_ref))))
+            for i in range(3):
+                self.cones.add(j, self._dy({}, j, -L[:, i]), u_ref[i])
+
+    def _no_alarm(self, j: int, prev: int | None, c: float, h: float, margin: float, hi: np.ndarray) -> None:
+        """The tested frame j raises no alarm: g+-_{j,k} >= g+-_{prev,k} +- r_{j,k} - c and g <= h, its upper
+        bounds set in `hi` (_WIDTH,), frame j's row of the variables' upper bounds."""
+        for side, sgn in ((0, 1.0), (1, -1.0)):
+            for i in range(3):
+                g = self.col(j, 6 + 3 * side + i)
+                row = {g: -1.0} if prev is None else {g: -1.0, self.col(prev, 6 + 3 * side + i): 1.0}
+                self.rows.add(j, self._dr(row, j, i, sgn), c - sgn * self.ref.r[j, i])
+                hi[6 + 3 * side + i] = max(h * (1 - margin), self.ref.statistic[j, side, i])
 
     @staticmethod
     def col(j: int, i: int) -> int:
@@ -554,76 +574,26 @@ def worst_case(
     little from the program's; alert_limit: AL(range) for the replay's availability (the defense's own,
     optional)."""
     start_time = time.perf_counter()
-    truth = np.asarray(truth, np.float64)
+    truth, capacity, alert, targets = _checked(run, truth, capacity, alert, targets)
     n = len(run.pose)
-    capacity, alert = np.asarray(capacity, np.float64), np.asarray(alert, np.float64)
-    if truth.shape != (n, 3) or capacity.shape != (n, 3) or alert.shape != (n,):
-        raise ValueError(
-            f"worst_case needs truth (N, 3), capacity (N, 3), alert (N,) for N = {n} frames, got "
-            f"{truth.shape}, {capacity.shape}, {alert.shape}"
-        )
-    if not (np.isfinite(capacity).all() and (capacity >= 0).all()):
-        raise ValueError("worst_case: capacity must be finite and >= 0 (m)")
-    targets = np.arange(n) if targets is None else np.asarray(targets, int)
-    if targets.size and (targets.min() < 0 or targets.max() >= n):
-        raise ValueError(f"worst_case: target frames must lie in [0, {n}), got {targets.min()}..{targets.max()}")
     axes = fault_axes(truth)
     box = np.stack([-capacity, capacity], axis=2)
     clean = record(settings, motion, noise, run, alert_limit=alert_limit)
     program, attack = (_Program(clean, axes, box, motion, noise, m) for m in (0.0, margin))
+    search = _Search(settings, motion, noise, run, truth, axes, box, clean, alert_limit, margin, tolerance, iterations)
     T = len(targets)
     out = {k: np.full(T, np.nan) for k in ("upper", "lower", "achieved", "pl")}
     flags = {k: np.zeros(T, bool) for k in ("available", "exact")}
     its, shift = np.zeros(T, int), np.zeros((T, n, 3))
-
-    def camera(a: np.ndarray) -> np.ndarray:
-        """Shifts a (m, 3) of the first m frames (capacity axes) in the camera frame."""
-        return np.einsum("nji,njk,nk->ni", run.R_cam[: len(a)], axes[: len(a)], a)
-
-    def replay(a: np.ndarray) -> Recording:
-        """The first len(a) frames through the real defense, shifted by a (capacity axes)."""
-        m = len(a)
-        return record(
-            settings,
-            motion,
-            noise,
-            CleanRun(run.pose[:m], run.prob[:m], run.R_cam[:m], run.u[:m]),
-            camera(a),
-            alert_limit,
-        )
-
     for t, j in enumerate(targets):
         if j < clean.start or j >= clean.horizon:
             continue
-        e_ref = clean.trace.trusted[j] - truth[j]
-        out["upper"][t], d = _box_bound(program, j, e_ref, axes[j])
-        _, eps, da = attack.maximize(j, [d])[0]  # the attack: that direction, with the margin
-        out["lower"][t], a = float(np.linalg.norm(e_ref + eps)), da[: j + 1]  # frames after j: not replayed
-        rec, it = replay(a), 0
-        while True:
-            if not same_flags(rec.trace, clean.trace, j):  # shrink toward the clean run until it passes
-                lo, hi = 0.0, 1.0
-                for _ in range(8):
-                    mid = 0.5 * (lo + hi)
-                    lo, hi = (mid, hi) if same_flags(replay(mid * a).trace, clean.trace, j) else (lo, mid)
-                a = lo * a
-                rec = replay(a)
-            achieved = float(np.linalg.norm(rec.trace.trusted[j] - truth[j]))
-            if abs(achieved - out["lower"][t]) <= tolerance or it == iterations or rec.horizon <= j:
-                break
-            it += 1  # re-solve around the replay (its own gains)
-            around = _Program(rec, axes[: j + 1], box[: j + 1] - a[:, :, None], motion, noise, margin)
-            _, eps, da = around.maximize(j, [d])[0]
-            out["lower"][t] = float(np.linalg.norm(rec.trace.trusted[j] - truth[j] + eps))
-            a = a + da
-            rec = replay(a)
-        if it:  # the bound around the final replay's gains too
-            final = _Program(rec, axes[: j + 1], box[: j + 1] - a[:, :, None], motion, noise, 0.0)
-            out["upper"][t] = max(out["upper"][t], _box_bound(final, j, rec.trace.trusted[j] - truth[j], axes[j])[0])
+        upper, lower, achieved, rec, a, it = search.target(j, program, attack)
+        out["upper"][t], out["lower"][t] = upper, lower
         out["achieved"][t], out["pl"][t] = achieved, rec.trace.pl[j]
         flags["available"][t] = bool(rec.trace.available[j])
         flags["exact"][t] = abs(achieved - out["lower"][t]) <= tolerance
-        its[t], shift[t, : j + 1] = it, camera(a)
+        its[t], shift[t, : j + 1] = it, search.camera(a)
     return WorstCase(
         targets,
         out["upper"],
@@ -637,3 +607,107 @@ def worst_case(
         shift,
         time.perf_counter() - start_time,
     )
+
+
+def _checked(
+    run: CleanRun, truth: np.ndarray, capacity: np.ndarray, alert: np.ndarray, targets: Sequence[int] | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`worst_case`'s truth (N, 3) (world, m), capacity (N, 3) (m), alert (N,) (m) as float64 arrays and its
+    target frames (default every frame), or a ValueError naming what is wrong."""
+    truth = np.asarray(truth, np.float64)
+    n = len(run.pose)
+    capacity, alert = np.asarray(capacity, np.float64), np.asarray(alert, np.float64)
+    if truth.shape != (n, 3) or capacity.shape != (n, 3) or alert.shape != (n,):
+        raise ValueError(
+            f"worst_case needs truth (N, 3), capacity (N, 3), alert (N,) for N = {n} frames, got "
+            f"{truth.shape}, {capacity.shape}, {alert.shape}"
+        )
+    if not (np.isfinite(capacity).all() and (capacity >= 0).all()):
+        raise ValueError("worst_case: capacity must be finite and >= 0 (m)")
+    targets = np.arange(n) if targets is None else np.asarray(targets, int)
+    if targets.size and (targets.min() < 0 or targets.max() >= n):
+        raise ValueError(f"worst_case: target frames must lie in [0, {n}), got {targets.min()}..{targets.max()}")
+    return truth, capacity, alert, targets
+
+
+@dataclass(frozen=True, eq=False)
+class _Search:
+    """What `worst_case` searches with around one clean run (its arguments): truth (N, 3) the true rel (world,
+    m), axes (N, 3, 3) `fault_axes`, box (N, 3, 2) the capacity box (capacity axes, m), clean the clean run's
+    `Recording`."""
+
+    settings: DefenseSettings
+    motion: MotionSettings
+    noise: NoiseModel
+    run: CleanRun
+    truth: np.ndarray
+    axes: np.ndarray
+    box: np.ndarray
+    clean: Recording
+    alert_limit: Callable[[float], float] | None
+    margin: float
+    tolerance: float
+    iterations: int
+
+    def camera(self, a: np.ndarray) -> np.ndarray:
+        """Shifts a (m, 3) of the first m frames (capacity axes) in the camera frame."""
+        return np.einsum("nji,njk,nk->ni", self.run.R_cam[: len(a)], self.axes[: len(a)], a)
+
+    def replay(self, a: np.ndarray) -> Recording:
+        """The first len(a) frames through the real defense, shifted by a (capacity axes)."""
+        m, run = len(a), self.run
+        return record(
+            self.settings,
+            self.motion,
+            self.noise,
+            CleanRun(run.pose[:m], run.prob[:m], run.R_cam[:m], run.u[:m]),
+            self.camera(a),
+            self.alert_limit,
+        )
+
+    def target(
+        self, j: int, program: _Program, attack: _Program
+    ) -> tuple[float, float, float, Recording, np.ndarray, int]:
+        """(upper, lower, achieved (m): module docstring; the final replay, its shifts a (j + 1, 3) (capacity
+        axes, m), the programs solved around a replay) at target frame j."""
+        e_ref = self.clean.trace.trusted[j] - self.truth[j]
+        upper, d = _box_bound(program, j, e_ref, self.axes[j])
+        _, eps, da = attack.maximize(j, [d])[0]  # the attack: that direction, with the margin
+        lower, a = float(np.linalg.norm(e_ref + eps)), da[: j + 1]  # frames after j: not replayed
+        rec, a, lower, achieved, it = self._refine(j, d, a, lower)
+        if it:  # the bound around the final replay's gains too
+            final = _Program(rec, self.axes[: j + 1], self.box[: j + 1] - a[:, :, None], self.motion, self.noise, 0.0)
+            upper = max(upper, _box_bound(final, j, rec.trace.trusted[j] - self.truth[j], self.axes[j])[0])
+        return upper, lower, achieved, rec, a, it
+
+    def _refine(
+        self, j: int, d: np.ndarray, a: np.ndarray, lower: float
+    ) -> tuple[Recording, np.ndarray, float, float, int]:
+        """Replay the shifts a (j + 1, 3) (capacity axes, m), shrunk until they pass, and re-solve direction d
+        around the replay until it reproduces the program's error `lower` (m) within the tolerance, at most
+        `iterations` times: (the final replay, its shifts, lower, its achieved error (m), re-solves)."""
+        rec, it = self.replay(a), 0
+        while True:
+            if not same_flags(rec.trace, self.clean.trace, j):  # shrink toward the clean run until it passes
+                a = self._shrink(j, a)
+                rec = self.replay(a)
+            achieved = float(np.linalg.norm(rec.trace.trusted[j] - self.truth[j]))
+            if abs(achieved - lower) <= self.tolerance or it == self.iterations or rec.horizon <= j:
+                break
+            it += 1  # re-solve around the replay (its own gains)
+            box = self.box[: j + 1] - a[:, :, None]
+            around = _Program(rec, self.axes[: j + 1], box, self.motion, self.noise, self.margin)
+            _, eps, da = around.maximize(j, [d])[0]
+            lower = float(np.linalg.norm(rec.trace.trusted[j] - self.truth[j] + eps))
+            a = a + da
+            rec = self.replay(a)
+        return rec, a, lower, achieved, it
+
+    def _shrink(self, j: int, a: np.ndarray) -> np.ndarray:
+        """The shifts a scaled toward the clean run by bisection (8 halvings) to the largest tried factor whose
+        replay flags the clean run's frames up to j."""
+        lo, hi = 0.0, 1.0
+        for _ in range(8):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if same_flags(self.replay(mid * a).trace, self.clean.trace, j) else (lo, mid)
+        return lo * a

@@ -171,16 +171,7 @@ def fit_noise(
     bins summarise them (and give the attitude std). Without rotations the attitude std is a
     constant 5 degrees.
     """
-    t_true, t_pred = np.asarray(t_true, np.float64), np.asarray(t_pred, np.float64)
-    if t_true.ndim != 2 or t_true.shape[1] != 3 or t_true.shape != t_pred.shape:
-        raise ValueError(f"fit_noise needs (N, 3) true and predicted positions, got {t_true.shape} and {t_pred.shape}")
-    if not (np.isfinite(t_true).all() and np.isfinite(t_pred).all()):
-        raise ValueError("fit_noise: positions contain NaN or inf")
-    bins = int(bins)
-    if bins < 2 or len(t_true) < 4 * bins:
-        raise ValueError(
-            f"fit_noise needs at least {4 * max(bins, 2)} frames for {max(bins, 2)} range bins, got {len(t_true)}"
-        )
+    t_true, t_pred, bins = _checked_fit_input(t_true, t_pred, bins)
     rng = np.linalg.norm(t_true, axis=1)
     err = t_pred - t_true
     att = None
@@ -216,3 +207,19 @@ def fit_noise(
         knot_bias=tuple(tuple(map(float, v)) for v in bias),
         knot_attitude=tuple(map(float, att_std)) if att is not None else (5.0,) * bins,
     )
+
+
+def _checked_fit_input(t_true: np.ndarray, t_pred: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """`fit_noise`'s positions (N, 3) (camera frame, m) as float64 and its bin count as an int; a ValueError for
+    mismatched shapes, NaN or inf, or fewer than 4 frames per bin (at least 2 bins)."""
+    t_true, t_pred = np.asarray(t_true, np.float64), np.asarray(t_pred, np.float64)
+    if t_true.ndim != 2 or t_true.shape[1] != 3 or t_true.shape != t_pred.shape:
+        raise ValueError(f"fit_noise needs (N, 3) true and predicted positions, got {t_true.shape} and {t_pred.shape}")
+    if not (np.isfinite(t_true).all() and np.isfinite(t_pred).all()):
+        raise ValueError("fit_noise: positions contain NaN or inf")
+    bins = int(bins)
+    if bins < 2 or len(t_true) < 4 * bins:
+        raise ValueError(
+            f"fit_noise needs at least {4 * max(bins, 2)} frames for {max(bins, 2)} range bins, got {len(t_true)}"
+        )
+    return t_true, t_pred, bins

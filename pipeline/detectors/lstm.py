@@ -185,13 +185,43 @@ def train_lstm(
     _check_settings(config, epochs, patience, batch_size, lr)
     if not (np.isfinite(x_train).all() and np.isfinite(x_val).all()):
         raise ValueError("LSTM detector inputs hold NaN or infinite values")
+    model = _seeded_model(config, x_train, seed, device)
+    arrays = (x_train, y_train, x_val, y_val)
+    best_state, best_epoch, history = _early_stopping(
+        model, arrays, device, lr, seed, epochs, patience, batch_size, on_epoch
+    )
+    check_improved(best_epoch, len(history))
+    model.load_state_dict(best_state)
+    model.cpu()
+    model.threshold.fill_(choose_threshold(model.predict_proba(x_val), y_val))
+    return TrainResult(model.eval(), history, best_epoch)
+
+
+def _seeded_model(config: LSTMConfig, x_train: np.ndarray, seed: int, device: str | torch.device) -> LSTMDetector:
+    """A fresh detector, its weights drawn after torch.manual_seed(seed), standardised on x_train, on `device`."""
     torch.manual_seed(seed)
     model = LSTMDetector(config)
     model.set_normalisation(x_train)
     model.to(device)
-    xt, yt, xv, yv = (
-        torch.as_tensor(np.asarray(a), dtype=torch.float32).to(device) for a in (x_train, y_train, x_val, y_val)
-    )
+    return model
+
+
+def _early_stopping(
+    model: LSTMDetector,
+    arrays: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+    device: str | torch.device,
+    lr: float,
+    seed: int,
+    epochs: int,
+    patience: int,
+    batch_size: int,
+    on_epoch: Callable[[dict[str, float]], None] | None,
+) -> tuple[dict[str, torch.Tensor], int, list[dict[str, float]]]:
+    """Adadelta at `lr` on binary cross-entropy over the training set of `arrays` (x_train, y_train, x_val,
+    y_val), on `device`, its shuffles drawn from a CPU generator seeded with `seed`, until `patience`
+    epochs bring no lower validation loss: (the best epoch's state dict, that epoch (0: none improved), every
+    epoch's record)."""
+    xt, yt, xv, yv = (torch.as_tensor(np.asarray(a), dtype=torch.float32).to(device) for a in arrays)
     opt = torch.optim.Adadelta(model.parameters(), lr=lr)
     loss_fn = nn.BCEWithLogitsLoss()
     gen = torch.Generator().manual_seed(seed)
@@ -199,11 +229,7 @@ def train_lstm(
     history: list[dict[str, float]] = []
     for epoch in range(1, epochs + 1):
         total = _train_epoch(model, xt, yt, opt, loss_fn, torch.randperm(len(xt), generator=gen), batch_size, epoch)
-        model.eval()
-        with torch.no_grad():
-            logits = torch.cat([model(xv[s : s + 1024]) for s in range(0, len(xv), 1024)])
-            val_loss = float(loss_fn(logits, yv))
-            val_acc = float(((logits >= 0).float() == yv).float().mean())
+        val_loss, val_acc = _validate(model, xv, yv, loss_fn)
         record = {"epoch": epoch, "train_loss": total / len(xt), "val_loss": val_loss, "val_accuracy": val_acc}
         history.append(record)
         if on_epoch is not None:
@@ -214,11 +240,17 @@ def train_lstm(
             stale += 1
             if stale >= patience:
                 break
-    check_improved(best_epoch, len(history))
-    model.load_state_dict(best_state)
-    model.cpu()
-    model.threshold.fill_(choose_threshold(model.predict_proba(x_val), y_val))
-    return TrainResult(model.eval(), history, best_epoch)
+    return best_state, best_epoch, history
+
+
+def _validate(model: LSTMDetector, xv: torch.Tensor, yv: torch.Tensor, loss_fn: nn.Module) -> tuple[float, float]:
+    """(loss, accuracy at logit 0) of the model in eval mode on the validation set, in batches of 1024."""
+    model.eval()
+    with torch.no_grad():
+        logits = torch.cat([model(xv[s : s + 1024]) for s in range(0, len(xv), 1024)])
+        val_loss = float(loss_fn(logits, yv))
+        val_acc = float(((logits >= 0).float() == yv).float().mean())
+    return val_loss, val_acc
 
 
 def _check_settings(config: LSTMConfig, epochs: int, patience: int, batch_size: int, lr: float) -> None:

@@ -215,15 +215,7 @@ def plan_attack(
     generator = torch.Generator().manual_seed(int(seed))
     shift: dict[int, torch.Tensor] = {}  # pair -> its last perturbation (3, H, W), floats
     for k in range(max(len(t) for t in tracks)):
-        active = []
-        for n, (p, (j, i)) in enumerate(zip(planners, pairs)):
-            c, t = clean[i], tracks[i]
-            if k >= len(t):
-                continue
-            if k < plans[j][1]:
-                p.deliver(c.pose[k, :3], float(c.prob[k]), t.R_cam[k], t.u[k], sixd_to_matrix(c.pose[k, 3:]))
-            else:
-                active.append(n)
+        active = _active_pairs(k, planners, pairs, plans, tracks, clean)
         if not active:
             continue
         wanted = []
@@ -245,6 +237,30 @@ def plan_attack(
             planners[n].deliver(pose[row, :3], float(prob[row]), t.R_cam[k], t.u[k], sixd_to_matrix(pose[row, 3:]))
         done()
     return stored
+
+
+def _active_pairs(
+    k: int,
+    planners: list[Any],
+    pairs: list[tuple[int, int]],
+    plans: Sequence[tuple[Any, int]],
+    tracks: Sequence[Track],
+    clean: Sequence[Flown],
+) -> list[int]:
+    """The indices of the pairs (plan, track) that attack frame k (plan started, track that long); a pair whose
+    plan starts later is fed its track's clean estimate of frame k instead."""
+    from pipeline.geometry.rotations import sixd_to_matrix
+
+    active = []
+    for n, (p, (j, i)) in enumerate(zip(planners, pairs)):
+        c, t = clean[i], tracks[i]
+        if k >= len(t):
+            continue
+        if k < plans[j][1]:
+            p.deliver(c.pose[k, :3], float(c.prob[k]), t.R_cam[k], t.u[k], sixd_to_matrix(c.pose[k, 3:]))
+        else:
+            active.append(n)
+    return active
 
 
 def counted(attacked: np.ndarray) -> np.ndarray:

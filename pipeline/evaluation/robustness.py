@@ -18,6 +18,7 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 import torch
 
+from pipeline.seeds import seed_for
 from pipeline.stats import rate
 
 Craft = Callable[[Any, Any], Any]  # (x (B, 3, H, W) in [0, 1], y (B, 9)) -> float adversarial images in [0, 1]
@@ -209,63 +210,90 @@ def attack_specs(
     gradients, MI-FGSM `mi_steps` (attack.steps, as in the attack stage). PGD at eps index i uses the
     "robustness.pgd" stream (pipeline/seeds.py), so plain PGD and the adaptive attack at lambda = 0 are one run (the
     `pgd` row is then taken from it, pipeline.evaluation.robustness.run_attack_rows)."""
-    from pipeline.attacks.adaptive import adaptive_pgd
-    from pipeline.attacks.gradient import attack_loss, get_attack
-    from pipeline.seeds import seed_for
+    from pipeline.attacks.gradient import attack_loss
 
-    def gen(stream: str, k: int) -> torch.Generator:
-        return torch.Generator().manual_seed(seed_for(seed, stream, k))
-
-    def cost(method: str) -> int:
-        return {"fgsm": 1, "pgd": steps}.get(method, mi_steps)
-
-    def spec(
-        name: str, method: str, lname: str | None, group: str, e: float, g: torch.Generator, model: Any = pose
-    ) -> AttackSpec:
-        fn = get_attack(method, steps=cost(method), step_size=None, random_start=True, momentum=momentum, generator=g)
-        lf = attack_loss(lname or loss, model.loss)
-        return AttackSpec(name, group, e, None, lambda x, y: fn(model.model, x, y, e, lf), cost(method))
-
-    out = [spec("fgsm", "fgsm", None, "seen", e, gen("robustness.fgsm", 0)) for e in eps]
-    out += [spec("fgsm", "fgsm", None, "transfer", e, gen("robustness.fgsm", 0)) for e in unseen_eps]
+    r = _AttackRows(steps, mi_steps, momentum, loss, seed)
+    out = [r.spec("fgsm", "fgsm", None, "seen", e, r.gen("robustness.fgsm", 0), pose) for e in eps]
+    out += [r.spec("fgsm", "fgsm", None, "transfer", e, r.gen("robustness.fgsm", 0), pose) for e in unseen_eps]
     pgd_is_lambda0 = "pgd" in [name for name, _, _ in transfer] and 0.0 in lambdas
     out += [
-        spec(
+        r.spec(
             name,
             method,
             lname,
             "transfer",
             e,
-            gen("robustness.pgd", i) if name == "pgd" else gen("robustness.transfer", 10 * j + i),
+            r.gen("robustness.pgd", i) if name == "pgd" else r.gen("robustness.transfer", 10 * j + i),
+            pose,
         )
         for j, (name, method, lname) in enumerate(transfer)
         for i, e in enumerate(eps)
         if not (name == "pgd" and pgd_is_lambda0)
     ]
-    full = attack_loss(loss, pose.loss)
-    out += [
-        AttackSpec(
-            "adaptive pgd",
-            "adaptive",
-            e,
-            lam,
-            lambda x, y, e=e, lam=lam, g=gen("robustness.pgd", i): adaptive_pgd(
-                target, x, y, e, full, lam, steps=steps, generator=g
-            ),
-            steps,
-        )
-        for i, e in enumerate(eps)
-        for lam in lambdas
-    ]
+    out += r.adaptive(target, attack_loss(loss, pose.loss), eps, lambdas)
     out += [
         replace(
-            spec(name, method, lname, "surrogate", e, gen("robustness.surrogate", 10 * j + i), surrogate),
+            r.spec(name, method, lname, "surrogate", e, r.gen("robustness.surrogate", 10 * j + i), surrogate),
             attack=f"surrogate {name}",
         )
         for j, (name, method, lname) in enumerate(surrogate_attacks)
         for i, e in enumerate(eps)
     ]
     return out
+
+
+@dataclass(frozen=True)
+class _AttackRows:
+    """The settings every row of `attack_specs` shares: PGD's `steps`, MI-FGSM's `mi_steps` and `momentum`, the
+    attack `loss` of rows that name none, and the `seed` of the attacks' generator streams (pipeline/seeds.py)."""
+
+    steps: int
+    mi_steps: int
+    momentum: float
+    loss: str
+    seed: int
+
+    def gen(self, stream: str, k: int) -> torch.Generator:
+        """A CPU generator seeded with the stream's k-th seed."""
+        return torch.Generator().manual_seed(seed_for(self.seed, stream, k))
+
+    def cost(self, method: str) -> int:
+        """Gradient evaluations per frame of an attack method."""
+        return {"fgsm": 1, "pgd": self.steps}.get(method, self.mi_steps)
+
+    def spec(
+        self, name: str, method: str, lname: str | None, group: str, e: float, g: torch.Generator, model: Any
+    ) -> AttackSpec:
+        """The row of attack `method` with loss `lname` (None: the default) at eps `e` on `model` (`.model`,
+        `.loss`), its randomness drawn from `g`."""
+        from pipeline.attacks.gradient import attack_loss, get_attack
+
+        fn = get_attack(
+            method, steps=self.cost(method), step_size=None, random_start=True, momentum=self.momentum, generator=g
+        )
+        lf = attack_loss(lname or self.loss, model.loss)
+        return AttackSpec(name, group, e, None, lambda x, y: fn(model.model, x, y, e, lf), self.cost(method))
+
+    def adaptive(self, target: Any, full: Any, eps: Sequence[float], lambdas: Sequence[float]) -> list[AttackSpec]:
+        """The adaptive PGD rows on the chain `target` with the loss `full`, per eps and lambda; eps index i
+        draws from the "robustness.pgd" stream's i-th generator, as plain PGD does."""
+        from pipeline.attacks.adaptive import adaptive_pgd
+
+        steps = self.steps
+        return [
+            AttackSpec(
+                "adaptive pgd",
+                "adaptive",
+                e,
+                lam,
+                lambda x, y, e=e, lam=lam, g=self.gen("robustness.pgd", i): adaptive_pgd(
+                    target, x, y, e, full, lam, steps=steps, generator=g
+                ),
+                steps,
+            )
+            for i, e in enumerate(eps)
+            for lam in lambdas
+        ]
 
 
 # ----------------------------------------------------------------------------- the fused chain on trajectories

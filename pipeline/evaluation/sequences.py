@@ -27,7 +27,7 @@ from pipeline.defense.noise import NoiseModel
 from pipeline.detectors.metrics import detection_delays, frame_metrics, mean_over, undetected_mask
 from pipeline.geometry.rotations import sixd_to_matrix
 from pipeline.pose.metrics import pose_errors
-from pipeline.stats import bootstrap_rate
+from pipeline.stats import Rate, bootstrap_rate
 
 
 @dataclass(frozen=True, eq=False)
@@ -324,13 +324,7 @@ def defended_summary(
     trusted_error_attacked_m (mean distance of the trusted estimate to the truth over all / the attacked
     frames, m).
     """
-    clean_flags, clean_groups = [], []
-    for g, s in enumerate(sequences):
-        clean = traces[(0.0, s.name)]
-        d = defend_trace(settings, motion, noise, clean.pose, clean.prob, s.R_cam, s.u)
-        clean_flags.append(d.flag)
-        clean_groups.append(np.full(len(d.flag), g))
-    fpr_clean = bootstrap_rate(np.concatenate(clean_flags), np.concatenate(clean_groups))
+    fpr_clean = _clean_fpr(traces, sequences, settings, motion, noise)
     out = []
     for eps in eps_list:
         cols: dict[str, list[np.ndarray]] = {k: [] for k in ("flag", "attacked", "harm", "group", "err")}
@@ -367,6 +361,24 @@ def defended_summary(
             }
         )
     return out
+
+
+def _clean_fpr(
+    traces: dict[tuple[float, str], Trace],
+    sequences: list[Sequence],
+    settings: DefenseSettings,
+    motion: MotionSettings,
+    noise: NoiseModel,
+) -> Rate:
+    """The defended chain's false-alarm rate on the attack-free runs (eps 0) of the sequences, frames pooled
+    (bootstrap over sequences)."""
+    clean_flags, clean_groups = [], []
+    for g, s in enumerate(sequences):
+        clean = traces[(0.0, s.name)]
+        d = defend_trace(settings, motion, noise, clean.pose, clean.prob, s.R_cam, s.u)
+        clean_flags.append(d.flag)
+        clean_groups.append(np.full(len(d.flag), g))
+    return bootstrap_rate(np.concatenate(clean_flags), np.concatenate(clean_groups))
 
 
 def rates_json(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -87,24 +87,11 @@ def _read_recording(
     max_pixels: int,
     empty_tolerance: float,
 ) -> dict[str, Any]:
-    import cv2
-    import pandas as pd
-    from PIL import Image
     from tqdm import tqdm
 
-    from pipeline.evaluation.lab import check_target_pixels, image_names, match_frames, resolve_inside
-    from pipeline.images import resize, segment
+    from pipeline.evaluation.lab import check_target_pixels, image_names, match_frames
 
-    tables = {}
-    for name in ("camera.csv", "mocap.csv"):
-        path = folder / name
-        if not path.exists():
-            raise DataError(f"{path} not found (a lab recording needs images/, camera.csv and mocap.csv)")
-        path = resolve_inside(folder, name, str(folder))
-        try:
-            tables[name] = pd.read_csv(path)
-        except Exception as e:
-            raise DataError(f"{folder / name} is not a readable CSV ({type(e).__name__}: {e})") from None
+    tables = _read_tables(folder)
     frames, t, q = match_frames(
         tables["camera.csv"],
         tables["mocap.csv"],
@@ -118,41 +105,85 @@ def _read_recording(
     names = image_names(tables["camera.csv"], frames, str(folder / "camera.csv"))
     images = np.zeros((len(frames), height, width, 3), np.uint8)
     for k, name in enumerate(tqdm(names, desc=f"read {folder.name}", unit="img", leave=False)):
-        where = f"(camera.csv line {k + 2})"
-        path = resolve_inside(folder / "images", name, f"{folder / 'camera.csv'} line {k + 2}")
-        try:
-            with warnings.catch_warnings():  # the size is checked against lab.max_image_pixels just below
-                warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-                with Image.open(path) as header:  # reads the header only
-                    w, h = header.size
-        except Image.DecompressionBombError as e:
-            raise DataError(f"{folder / 'images' / name} is above lab.max_image_pixels ({e}) {where}") from None
-        except Exception:
-            raise DataError(f"{folder / 'images' / name} cannot be read as an image {where}") from None
-        if w * h > max_pixels:
-            raise DataError(
-                f"{folder / 'images' / name} is {w}x{h} = {w * h} pixels, above lab.max_image_pixels "
-                f"= {max_pixels} {where}"
-            )
-        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise DataError(f"{folder / 'images' / name} cannot be read as an image {where}")
-        h, w = bgr.shape[:2]
-        if abs(w / h - width / height) > 0.01 * width / height:
-            raise DataError(
-                f"{folder / 'images' / name} is {w}x{h}; the lab images must have the model input's "
-                f"aspect {width}:{height} {where}"
-            )
-        mask = None
-        mpath = folder / "masks" / name
-        if (folder / "masks").is_dir():
-            if mpath.exists():
-                mpath = resolve_inside(folder / "masks", name, f"{folder / 'camera.csv'} line {k + 2}")
-            mask = cv2.imread(str(mpath), cv2.IMREAD_GRAYSCALE)
-            if mask is None:
-                raise DataError(f"{mpath} cannot be read as a mask {where}")
-            if mask.shape != (h, w):
-                raise DataError(f"{mpath} is {mask.shape[1]}x{mask.shape[0]}, its image {w}x{h} {where}")
-        images[k] = resize(segment(bgr[..., ::-1], mask, threshold), width, height)
+        images[k] = _read_image(folder, name, k, (width, height), threshold, max_pixels)
     check_target_pixels(images, empty_tolerance, str(folder))
     return {"name": folder.name, "frames": frames, "images": images, "t_lab": t, "q": q}
+
+
+def _read_tables(folder: Path) -> dict[str, Any]:
+    """camera.csv and mocap.csv of the recording (file name -> DataFrame), regular files inside the folder."""
+    import pandas as pd
+
+    from pipeline.evaluation.lab import resolve_inside
+
+    tables = {}
+    for name in ("camera.csv", "mocap.csv"):
+        path = folder / name
+        if not path.exists():
+            raise DataError(f"{path} not found (a lab recording needs images/, camera.csv and mocap.csv)")
+        path = resolve_inside(folder, name, str(folder))
+        try:
+            tables[name] = pd.read_csv(path)
+        except Exception as e:
+            raise DataError(f"{folder / name} is not a readable CSV ({type(e).__name__}: {e})") from None
+    return tables
+
+
+def _read_image(
+    folder: Path, name: str, k: int, size: tuple[int, int], threshold: float, max_pixels: int
+) -> np.ndarray:
+    """Image `name` of camera.csv's k-th frame: its size checked on the header against `max_pixels`, its aspect
+    against size (width, height) pixels, segmented (its mask, else the grey-level `threshold`) and resized to
+    size (uint8 RGB)."""
+    import cv2
+    from PIL import Image
+
+    from pipeline.evaluation.lab import resolve_inside
+    from pipeline.images import resize, segment
+
+    (width, height), where = size, f"(camera.csv line {k + 2})"
+    path = resolve_inside(folder / "images", name, f"{folder / 'camera.csv'} line {k + 2}")
+    try:
+        with warnings.catch_warnings():  # the size is checked against lab.max_image_pixels just below
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            with Image.open(path) as header:  # reads the header only
+                w, h = header.size
+    except Image.DecompressionBombError as e:
+        raise DataError(f"{folder / 'images' / name} is above lab.max_image_pixels ({e}) {where}") from None
+    except Exception:
+        raise DataError(f"{folder / 'images' / name} cannot be read as an image {where}") from None
+    if w * h > max_pixels:
+        raise DataError(
+            f"{folder / 'images' / name} is {w}x{h} = {w * h} pixels, above lab.max_image_pixels = {max_pixels} {where}"
+        )
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise DataError(f"{folder / 'images' / name} cannot be read as an image {where}")
+    h, w = bgr.shape[:2]
+    if abs(w / h - width / height) > 0.01 * width / height:
+        raise DataError(
+            f"{folder / 'images' / name} is {w}x{h}; the lab images must have the model input's "
+            f"aspect {width}:{height} {where}"
+        )
+    return resize(segment(bgr[..., ::-1], _read_mask(folder, name, k, (w, h)), threshold), width, height)
+
+
+def _read_mask(folder: Path, name: str, k: int, size: tuple[int, int]) -> np.ndarray | None:
+    """masks/`name` of camera.csv's k-th frame (grey levels, nonzero = target) when the recording has masks/, its
+    size (w, h) pixels that of its image; None without masks/."""
+    import cv2
+
+    from pipeline.evaluation.lab import resolve_inside
+
+    (w, h), where = size, f"(camera.csv line {k + 2})"
+    mask = None
+    mpath = folder / "masks" / name
+    if (folder / "masks").is_dir():
+        if mpath.exists():
+            mpath = resolve_inside(folder / "masks", name, f"{folder / 'camera.csv'} line {k + 2}")
+        mask = cv2.imread(str(mpath), cv2.IMREAD_GRAYSCALE)
+        if mask is None:
+            raise DataError(f"{mpath} cannot be read as a mask {where}")
+        if mask.shape != (h, w):
+            raise DataError(f"{mpath} is {mask.shape[1]}x{mask.shape[0]}, its image {w}x{h} {where}")
+    return mask

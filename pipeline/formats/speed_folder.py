@@ -198,8 +198,6 @@ def write_speed(
     nothing but an earlier export's files, unchanged (its MARKER lists them with their sha256; `overwrite`
     replaces edited ones too); a symbolic link `out` is followed (its target is written); files 0644,
     folders 0755."""
-    import cv2
-
     from pipeline.formats.speed import camera_to_json, to_speed
     from pipeline.io.atomic import followed, remove_stale_temps
 
@@ -221,16 +219,7 @@ def write_speed(
             f"(0..{images.shape[0] - 1}); re-run `rpod label`"
         )
     with atomic_dir(out) as tmp:
-        (tmp / EXPORT_DIR / "images").mkdir(parents=True)
-        for lo in range(0, int(images.shape[0]), step):  # one stored chunk at a time
-            rows = np.flatnonzero((index >= lo) & (index < lo + step))
-            block = np.asarray(images[lo : lo + step]) if len(rows) else None
-            for k in rows:
-                rgb = block[index[k] - lo]
-                pixels = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if gray else rgb[..., ::-1]
-                flags = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if gray else []
-                if not cv2.imwrite(str(tmp / EXPORT_DIR / "images" / names[k]), pixels, flags):
-                    raise DataError(f"could not write {out / EXPORT_DIR / 'images' / names[k]}")
+        _write_images(tmp, out, images, step, index, names, gray)
         for split, file in SPLIT_FILES.items():
             rows = (labels["split"] == split).to_numpy()
             try:
@@ -250,6 +239,25 @@ def write_speed(
             },
         )
         _world_readable(tmp)
+
+
+def _write_images(
+    tmp: Path, out: Path, images: Any, step: int, index: np.ndarray, names: list[str], gray: bool
+) -> None:
+    """tmp/EXPORT_DIR/images/: image index[k] of the render store `images` as names[k] (BGR PNG, or a grayscale
+    JPEG when `gray`), read one stored chunk of `step` images at a time; errors name the file in `out`."""
+    import cv2
+
+    (tmp / EXPORT_DIR / "images").mkdir(parents=True)
+    for lo in range(0, int(images.shape[0]), step):  # one stored chunk at a time
+        rows = np.flatnonzero((index >= lo) & (index < lo + step))
+        block = np.asarray(images[lo : lo + step]) if len(rows) else None
+        for k in rows:
+            rgb = block[index[k] - lo]
+            pixels = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if gray else rgb[..., ::-1]
+            flags = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if gray else []
+            if not cv2.imwrite(str(tmp / EXPORT_DIR / "images" / names[k]), pixels, flags):
+                raise DataError(f"could not write {out / EXPORT_DIR / 'images' / names[k]}")
 
 
 def check_replaceable(out: Path, overwrite: bool = False) -> None:

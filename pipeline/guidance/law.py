@@ -238,11 +238,7 @@ def run_rendezvous(
     variant the chaser lands where it believes it goes (act - cmd), so u is that point minus the
     defense's trusted estimate, and a biased estimate is not read as motion.
     """
-    if (settings.defense == "undefended") != (defense is None):
-        raise ValueError(
-            f"guidance defense {settings.defense!r} needs "
-            + ("no Defense" if defense is not None else "a Defense (pipeline/defense/fusion.py)")
-        )
+    _check_defense(settings.defense, defense)
     R_tw = np.eye(3) if target_attitude is None else np.asarray(target_attitude, dtype=np.float64)
     goal = np.asarray(settings.goal, dtype=np.float64)
     rel = np.asarray(settings.start, dtype=np.float64)
@@ -265,24 +261,8 @@ def run_rendezvous(
         act: np.ndarray | None = est
         trusted: np.ndarray | None = None
         if defense is not None:
-            d = defense.step(out.t, out.prob, R_c, u, out.R)
-            trusted = d.trusted if np.isfinite(d.trusted).all() else None
-            flags.append(d.flag)
-            modes.append(d.mode)
-            if settings.defense == "hold":
-                act = None if d.flag else est
-            else:
-                act = d.trusted if d.available else None
-        if act is None:  # hold: no command, the chaser and its camera stay as they are
-            u = np.zeros(3)
-            if executor is not None:  # station kept; its draws keep the errors aligned with the steps
-                executor.step(rel, u)
-        else:
-            nxt, believed = guidance_step(act, rel, goal, settings.max_step, settings.variant)
-            rel = nxt if executor is None else executor.step(rel, act - believed, R_c)
-            u = believed - (act if trusted is None or settings.variant != "paper" else trusted)
-            if np.linalg.norm(believed) > 1e-6:
-                R_c = look_at(believed)
+            act, trusted = _defend(defense, settings.defense, out, R_c, u, est, flags, modes)
+        rel, u, R_c = _move(act, trusted, rel, goal, R_c, settings, executor)
         positions.append(rel)
         estimates.append(est)
         attacked.append(hit)
@@ -290,17 +270,89 @@ def run_rendezvous(
         if not in_view(R_c.T @ rel, K):
             lost = True
             break
-    attacked_arr = np.array(attacked, dtype=bool)
     miss = float(np.linalg.norm(rel - goal))
+    logs = (positions, estimates, attacked, held, None if defense is None else (flags, modes))
+    return _result(logs, lost, miss, settings.tolerance, attack_start)
+
+
+def _check_defense(mode: str, defense: Defense | None) -> None:
+    """A ValueError unless a Defense is given exactly when the guidance defense `mode` is not "undefended"."""
+    if (mode == "undefended") != (defense is None):
+        raise ValueError(
+            f"guidance defense {mode!r} needs "
+            + ("no Defense" if defense is not None else "a Defense (pipeline/defense/fusion.py)")
+        )
+
+
+def _defend(
+    defense: Defense,
+    mode: str,
+    out: Estimate,
+    R_c: np.ndarray,
+    u: np.ndarray,
+    est: np.ndarray,
+    flags: list[Any],
+    modes: list[Any],
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """One frame through the defense (its flag and mode appended to `flags`, `modes`): (what the law acts on:
+    the estimate `est` (world, m) or, with "recover", the trusted estimate; None to hold; the trusted estimate
+    (world, m), None where it is not finite)."""
+    d = defense.step(out.t, out.prob, R_c, u, out.R)
+    trusted = d.trusted if np.isfinite(d.trusted).all() else None
+    flags.append(d.flag)
+    modes.append(d.mode)
+    if mode == "hold":
+        act = None if d.flag else est
+    else:
+        act = d.trusted if d.available else None
+    return act, trusted
+
+
+def _move(
+    act: np.ndarray | None,
+    trusted: np.ndarray | None,
+    rel: np.ndarray,
+    goal: np.ndarray,
+    R_c: np.ndarray,
+    settings: GuidanceSettings,
+    executor: Executor | None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The chaser's step on the estimate `act` (world, m; None: hold): (the next rel (world, m), the displacement
+    u told to the defense (world, m), the camera attitude R_c (camera -> world), re-pointed at the believed
+    target)."""
+    if act is None:  # hold: no command, the chaser and its camera stay as they are
+        u = np.zeros(3)
+        if executor is not None:  # station kept; its draws keep the errors aligned with the steps
+            executor.step(rel, u)
+    else:
+        nxt, believed = guidance_step(act, rel, goal, settings.max_step, settings.variant)
+        rel = nxt if executor is None else executor.step(rel, act - believed, R_c)
+        u = believed - (act if trusted is None or settings.variant != "paper" else trusted)
+        if np.linalg.norm(believed) > 1e-6:
+            R_c = look_at(believed)
+    return rel, u, R_c
+
+
+def _result(
+    logs: tuple[list[Any], list[Any], list[bool], list[bool], tuple[list[Any], list[Any]] | None],
+    lost: bool,
+    miss: float,
+    tolerance: float,
+    attack_start: int | None,
+) -> RendezvousResult:
+    """The run's `RendezvousResult` from its per-frame logs (positions, estimates, attacked, held, and the
+    defense's (flags, modes) or None undefended) and its end (lost, miss distance (m))."""
+    positions, estimates, attacked, held, defended = logs
+    attacked_arr = np.array(attacked, dtype=bool)
     return RendezvousResult(
         np.array(positions),
         np.array(estimates).reshape(-1, 3),
         attacked_arr,
-        outcome(lost, miss, settings.tolerance, attacked_arr),
+        outcome(lost, miss, tolerance, attacked_arr),
         miss,
         attack_start,
-        None if defense is None else np.array(flags, dtype=bool),
-        None if defense is None else np.array(modes),
+        None if defended is None else np.array(defended[0], dtype=bool),
+        None if defended is None else np.array(defended[1]),
         np.array(held, dtype=bool),
     )
 

@@ -267,15 +267,7 @@ def fit(
     device = torch.device(device)
     rank, world = _distributed()
     torch.manual_seed(cfg.seed)
-    model.to(device)
-    loss.to(device)
-    if cfg.channels_last:
-        model.to(memory_format=torch.channels_last)
-    objective: nn.Module = _Objective(model, loss)
-    if world > 1:
-        objective = nn.parallel.DistributedDataParallel(
-            objective, device_ids=[device.index] if device.type == "cuda" else None
-        )
+    objective = _placed_objective(model, loss, cfg, device, world)
     loader, sampler = _loader(train_set, cfg, device, rank, world)
     opt, sched = _optimiser(model, loss, cfg, len(loader))
     ema = WeightEMA(model, cfg.ema) if cfg.ema > 0 else None
@@ -284,11 +276,7 @@ def fit(
     best_score, best_epoch, best_state = math.inf, -1, copy.deepcopy(evaluated.state_dict())
     start, stopped_early, train_seconds, train_images = time.perf_counter(), False, 0.0, 0
     for epoch in range(cfg.epochs):
-        if (
-            cfg.max_minutes is not None
-            and history
-            and _should_stop(start, history[-1].seconds, cfg.max_minutes, device)
-        ):
+        if _out_of_time(cfg, history, start, device):
             stopped_early = True
             break
         t0 = time.perf_counter()
@@ -313,14 +301,32 @@ def fit(
         if on_epoch is not None:
             on_epoch(stats, is_best, evaluated)
     check_improved(best_epoch, len(history))
-    return FitResult(
-        history,
-        best_epoch,
-        best_score,
-        best_state,
-        time.perf_counter() - start,
-        stopped_early,
-        train_images / train_seconds if train_seconds else 0.0,
+    rate = train_images / train_seconds if train_seconds else 0.0
+    return FitResult(history, best_epoch, best_score, best_state, time.perf_counter() - start, stopped_early, rate)
+
+
+def _placed_objective(
+    model: nn.Module, loss: PoseLoss, cfg: TrainConfig, device: torch.device, world: int
+) -> nn.Module:
+    """The model (channels-last when `cfg.channels_last`) and the loss moved to `device`, as one objective module,
+    wrapped in DistributedDataParallel when `world` > 1 ranks train."""
+    model.to(device)
+    loss.to(device)
+    if cfg.channels_last:
+        model.to(memory_format=torch.channels_last)
+    objective: nn.Module = _Objective(model, loss)
+    if world > 1:
+        objective = nn.parallel.DistributedDataParallel(
+            objective, device_ids=[device.index] if device.type == "cuda" else None
+        )
+    return objective
+
+
+def _out_of_time(cfg: TrainConfig, history: list[EpochStats], start: float, device: torch.device) -> bool:
+    """Whether `cfg.max_minutes` is set and another epoch as long as the last (none run: never) would end past it,
+    `start` the fit's perf_counter start (s)."""
+    return bool(
+        cfg.max_minutes is not None and history and _should_stop(start, history[-1].seconds, cfg.max_minutes, device)
     )
 
 
