@@ -184,6 +184,7 @@ def test_trajectory_renders_keep_timings_out_of_meta_json(tmp_path, monkeypatch)
     """eval_render --detector: the same params give byte-identical meta.json and poses (a stable DVC hash);
     the render time goes to reports/metrics/detect_render.json."""
     from stages import eval_render
+    from stages.engine import trajectory_sets
 
     def fake_render(url, K, scene, R, t, chunk, es, label, **kw):  # stands in for Blender: zeros, 1.5 s
         create_array(
@@ -197,7 +198,7 @@ def test_trajectory_renders_keep_timings_out_of_meta_json(tmp_path, monkeypatch)
         return 1.5
 
     monkeypatch.chdir(tmp_path)
-    monkeypatch.setattr(eval_render, "render_to_store", fake_render)
+    monkeypatch.setattr(trajectory_sets, "render_to_store", fake_render)
     p = params_mod.build(params_mod.compose("smoke", ["engine.workers=1"]))
     seen = []
     for _ in range(2):

@@ -182,7 +182,7 @@ def test_eval_render_writes_the_planned_commands_and_flies_the_poses_with_their_
     and what the chain is told (`chaser_motion`) are those commands, not the flown steps."""
     from stages.artifacts.readers import chaser_motion
     from stages.config import params as params_mod
-    from stages.eval_render import poses_table, trajectories
+    from stages.engine.trajectory_sets import poses_table, trajectories
 
     p = params_mod.build(params_mod.compose("smoke"))
     base = params_mod.evaluation_seed(p)
