@@ -79,6 +79,14 @@ def test_compare_models_says_reversed_when_the_alternative_is_better():
     assert better["position_m"]["verdict"] == "holds" and worse["position_m"]["verdict"] == "reversed"
     assert better["tz_near_pct"]["frames"] == int(((ranges >= 10) & (ranges <= 30)).sum())
     assert better["position_m"]["difference"][0] < 0 < worse["position_m"]["difference"][0]
+    far = pose_errors_by_frame(small, target, traj, near=(100.0, 200.0))  # no frame in the band
+    assert compare_models(far, far)["tz_near_pct"] == {
+        "chosen": None,
+        "alternative": None,
+        "difference": None,
+        "verdict": "no frames",
+        "frames": 0,
+    }
 
 
 def _summary(availability: float, lo: float, fused: float) -> dict:

@@ -63,13 +63,16 @@ def verdict(difference: Sequence[float]) -> str:
 def compare_models(chosen: dict[str, np.ndarray], alternative: dict[str, np.ndarray]) -> dict[str, Any]:
     """Per error of METRICS: each model's mean with its interval and the chosen minus the alternative, paired by
     trajectory (the same approaches rendered for each), with its `verdict`; the frames that enter each (tz: only
-    those within the near band)."""
+    those within the near band; none there: verdict "no frames", no figures)."""
     from pipeline.pose.decomposition import bootstrap_mean, bootstrap_model_difference
 
     out: dict[str, Any] = {}
     for key in METRICS:
         a, b = chosen[key], alternative[key]
         ma, mb = np.isfinite(a), np.isfinite(b)
+        if not (ma.any() and mb.any()):  # e.g. no frame within the tz band: nothing to compare
+            out[key] = {"chosen": None, "alternative": None, "difference": None, "verdict": "no frames", "frames": 0}
+            continue
         diff = bootstrap_model_difference(a[ma], chosen["trajectory"][ma], b[mb], alternative["trajectory"][mb])
         out[key] = {
             "chosen": bootstrap_mean(a[ma], chosen["trajectory"][ma]),

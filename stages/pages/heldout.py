@@ -26,9 +26,9 @@ def _camera_rows(camera: dict[str, Any]) -> list[dict[str, Any]]:
             {
                 "error": name,
                 "frames": c["frames"],
-                f"fy = {camera['chosen_fy']:g} (chosen)": ci(c["chosen"], digits),
-                f"fy = {camera['alternative_fy']:g}": ci(c["alternative"], digits),
-                "chosen - alternative": ci(c["difference"], digits, sign=True),
+                f"fy = {camera['chosen_fy']:g} (chosen)": "-" if c["chosen"] is None else ci(c["chosen"], digits),
+                f"fy = {camera['alternative_fy']:g}": "-" if c["alternative"] is None else ci(c["alternative"], digits),
+                "chosen - alternative": "-" if c["difference"] is None else ci(c["difference"], digits, sign=True),
                 "verdict": c["verdict"],
             }
         )
