@@ -236,7 +236,7 @@ not a result. "runs" counts the runs that produced the number (a run may stop af
 Written by `scripts/variance.py`, with reports/variance.json (read by `rpod report` to show the spread
 beside the headline numbers in README.md).
 
-{_unmet_note(runs, seeds, isas)}{table}{_isa_section(runs, seeds, isas)}"""
+{_unmet_note(runs, seeds, isas)}{table}{_isa_section(runs, seeds, isas)}{pooled_section(runs, seeds)}"""
     spread = {
         "profile": profile,
         "seeds": seeds,
@@ -284,6 +284,130 @@ and everything after it differs. "largest ISA difference at one seed" beside "sd
 another seed; a larger one is a dependence on the machine.
 
 {markdown_table([{k: v for k, v in r.items() if k != "key"} for r in rows], decimals=3)}"""
+
+
+# Issue 39: each seed run flies its own trajectories (pipeline/seeds.py run_base), so the integrity campaign's
+# trajectories of N runs are N times as many independent ones; chains as `rpod robustness` names them.
+POOLED_CHAINS = {
+    "robust": "shipped (robust model, its detector and defense)",
+    "standard": "standard (the paper's reproduction, its detector and defense)",
+    "control": "undefended robust control",
+}
+
+
+def _integrity_chains(m: Metrics) -> dict[str, Any]:
+    try:
+        return m["robustness"]["integrity"]["chains"]
+    except (KeyError, TypeError):
+        return {}
+
+
+def pooled_chain_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str, Any]]:
+    """Per chain: trajectories pooled over the runs, each run's breaking eps, the clean availability with a
+    bootstrap over the pooled trajectories (pipeline/stats.py), and the largest clean error / AL."""
+    import numpy as np
+
+    from pipeline.stats import bootstrap_rate
+
+    rows = []
+    for chain, name in POOLED_CHAINS.items():
+        runs = [
+            (s, _integrity_chains(m)[chain]["summary"]) for s, m in zip(seeds, metrics) if chain in _integrity_chains(m)
+        ]
+        if not runs:
+            continue
+        clean = [t for _, s in runs for t in s["clean"]["trajectories"]]
+        hits = np.concatenate([np.arange(t["frames"]) < round(t["availability"] * t["frames"]) for t in clean])
+        groups = np.repeat(np.arange(len(clean)), [t["frames"] for t in clean])
+        avail = bootstrap_rate(hits, groups)
+        rows.append(
+            {
+                "chain": name,
+                "runs": len(runs),
+                "trajectories": len(clean),
+                "breaking eps per run": ", ".join(f"seed {s}: {b['breaking_eps'] or 'none'}" for s, b in runs),
+                "clean availability (%)": avail.pct(),
+                "clean max error / AL": max(t["max_error_al"] for t in clean),
+            }
+        )
+    return rows
+
+
+def pooled_eps_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str, Any]]:
+    """Per chain and eps: the trajectories failed (error / AL > 1 on an available frame, worst over the
+    attackers) of those flown, pooled over the runs that flew that eps (a chain stops after the eps it
+    breaks at), with a Clopper-Pearson interval over the pooled trajectories, and the largest error / AL."""
+    from pipeline.stats import clopper_pearson
+
+    rows = []
+    for chain in POOLED_CHAINS:
+        per_run = [
+            (s, _integrity_chains(m)[chain]["summary"]) for s, m in zip(seeds, metrics) if chain in _integrity_chains(m)
+        ]
+        for eps in sorted({e for _, r in per_run for e in r["per_eps"]}, key=float):
+            flown = [(s, r["per_eps"][eps]) for s, r in per_run if eps in r["per_eps"]]
+            failed = sum(p["failed"] for _, p in flown)
+            trajectories = sum(p["trajectories"] for _, p in flown)
+            stopped = [s for s, r in per_run if eps not in r["per_eps"]]
+            rows.append(
+                {
+                    "chain": chain,
+                    "eps": eps,
+                    "runs flown": len(flown)
+                    if not stopped
+                    else f"{len(flown)} (seed {', '.join(stopped)} broke before)",
+                    "trajectories failed / flown": f"{failed}/{trajectories}",
+                    "failed (%)": clopper_pearson(failed, trajectories).pct(),
+                    "largest error / AL": max(p["max_error_al"] for _, p in flown),
+                    "largest final error (m)": max(p["final_error_max_m"] for _, p in flown),
+                }
+            )
+    return rows
+
+
+def closed_loop_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str, Any]]:
+    """Per closed-loop variant (true-state dynamics, reports/guidance.md): each run's breaking eps, and the
+    attacked runs that failed their mission of those that met their attack, pooled per eps over the runs."""
+    have = [
+        (s, m["guidance"]["closed_loop"]["variants"]["true_state"]) for s, m in zip(seeds, metrics) if "guidance" in m
+    ]
+    rows = []
+    for variant in have[0][1] if have else []:
+        row: dict[str, Any] = {
+            "variant": variant,
+            "breaking eps per run": ", ".join(f"seed {s}: {v[variant]['breaking_eps'] or 'none'}" for s, v in have),
+            "no attack: largest miss (m)": max(v[variant]["clean"]["miss"] for _, v in have),
+        }
+        for eps in sorted({e for _, v in have for e in v[variant]["per_eps"]}, key=float):
+            cells = [v[variant]["per_eps"][eps] for _, v in have if eps in v[variant]["per_eps"]]
+            row[f"eps {eps}: failed / met"] = f"{sum(c['failed'] for c in cells)}/{sum(c['met'] for c in cells)}"
+        rows.append(row)
+    return rows
+
+
+def pooled_section(runs: list[Path], seeds: list[str]) -> str:
+    """The integrity campaign's trajectories pooled over the runs (issue 39): "" when no run has the campaign."""
+    metrics = [run_metrics(r) for r in runs]
+    chains = pooled_chain_rows(metrics, seeds)
+    if not chains:
+        return ""
+    have = [s for s, m in zip(seeds, metrics) if "evaluate" in m]
+    evaluation = sum(int(m["evaluate"]["trajectories"]) for m in metrics if "evaluate" in m)
+    return f"""
+## Independent trajectories pooled over the seed runs
+
+Each seed run draws its own evaluation, validation and campaign trajectories (pipeline/seeds.py `run_base`),
+so the runs' trajectories pool: {evaluation} evaluation trajectories of `rpod evaluate` over {len(have)} runs,
+and per chain of the integrity campaign (`rpod robustness`, reports/robustness.md) the count below. Failure:
+error / AL > 1 on an available frame, worst over the attackers flown (each nested in eps); the clean
+availability's interval is a bootstrap over the pooled trajectories.
+
+{markdown_table(chains, decimals=2)}
+{markdown_table(pooled_eps_rows(metrics, seeds), decimals=2)}
+The closed loop (true-state dynamics, reports/guidance.md): mission failure = collision, lost target or a docking
+miss beyond the tolerance; attacked runs that met their attack, pooled over the runs.
+
+{markdown_table(closed_loop_rows(metrics, seeds), decimals=2)}"""
 
 
 def yaml_profile(run: Path) -> str:

@@ -193,3 +193,42 @@ def test_a_run_whose_calibration_missed_its_target_is_named(tmp_path):
     assert "seed 2, AVX2: defense_standard.json: calibrate: the fused chain flags 0.520%" in note
     assert "seed 0" not in note and note.count("\n- ") == 1
     assert _load()._unmet_note([ok], ["0"], ["AVX2"]) == ""
+
+
+def _campaign(run: Path, per_eps: dict[str, tuple[int, int, float]], availability: float) -> None:
+    """RUN's robustness.json with the shipped chain's integrity summary: eps -> (failed, trajectories, error/AL)."""
+    n = next(iter(per_eps.values()))[1]
+    clean = [
+        {"frames": 200, "availability": availability, "max_error_al": 0.01 * (i + 1), "failed": False}
+        for i in range(n)
+    ]
+    summary = {
+        "breaking_eps": next((float(e) for e, (f, _, _) in per_eps.items() if f), None),
+        "clean": {"trajectories": clean},
+        "per_eps": {
+            e: {"failed": f, "trajectories": t, "max_error_al": r, "final_error_max_m": 2 * r}
+            for e, (f, t, r) in per_eps.items()
+        },
+    }
+    robustness = {"integrity": {"chains": {"robust": {"summary": summary}}}}
+    (run / "reports" / "metrics" / "robustness.json").write_text(json.dumps(robustness))
+
+
+def test_the_campaign_trajectories_pool_over_the_seed_runs(tmp_path):
+    """Issue 39 item 5: the runs' trajectories add up, failures with a Clopper-Pearson interval over the pooled
+    trajectories; an eps a run never flew (it broke before) counts only the runs that flew it, and says so."""
+    variance = _load()
+    a, b = _run(tmp_path, 0, 0.4, None), _run(tmp_path, 1, 0.4, None)
+    _campaign(a, {"0.01": (0, 4, 0.02), "0.05": (1, 4, 1.3)}, 0.8)
+    _campaign(b, {"0.01": (0, 4, 0.03), "0.05": (0, 4, 0.5), "0.2": (4, 4, 3.0)}, 0.9)
+    metrics = [variance.run_metrics(r) for r in (a, b)]
+    (chain,) = variance.pooled_chain_rows(metrics, ["0", "1"])
+    assert chain["trajectories"] == 8 and chain["runs"] == 2
+    assert chain["breaking eps per run"] == "seed 0: 0.05, seed 1: 0.2"
+    assert chain["clean availability (%)"].startswith("85.0 [")
+    rows = {r["eps"]: r for r in variance.pooled_eps_rows(metrics, ["0", "1"])}
+    assert rows["0.05"]["trajectories failed / flown"] == "1/8" and rows["0.05"]["largest error / AL"] == 1.3
+    assert rows["0.05"]["failed (%)"] == "12.5 [0.3, 52.7]"  # Clopper-Pearson 1 of 8
+    assert rows["0.2"]["trajectories failed / flown"] == "4/4" and "seed 0 broke before" in rows["0.2"]["runs flown"]
+    assert "pooled over the seed runs" in variance.pooled_section([a, b], ["0", "1"])
+    assert variance.pooled_section([_run(tmp_path, 2, 0.4, None)], ["2"]) == ""  # no campaign: no section
