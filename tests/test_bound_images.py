@@ -130,3 +130,30 @@ def test_a_capacity_beyond_the_networks_reach_is_not_realised() -> None:
     r = _realize(reach=0.05, along=0.05)  # the capacity asks for about 1 m per axis, the network reaches 0.1-0.3 m
     assert r["reached_share_median"] < 0.5 and r["residual_median_m"] > 0.05
     assert r["blind"]["error_m"] < r["requested"]["error_m"] - 0.1
+
+
+def test_a_replay_fails_only_on_an_available_frame_beyond_its_alert_limit() -> None:
+    """The measure of reports/robustness.md on a replay: error / AL over the available frames; a frame whose PL
+    exceeds AL is unavailable and cannot fail the chain, however large its error."""
+    from pipeline.evaluation.bound_images import _fly
+
+    rel, run = station(60, 3)
+    track = Track(
+        "t0", np.zeros((60, 6, 8, 3), np.uint8), np.hstack([np.einsum("nji,nj->ni", run.R_cam, rel), run.pose[:, 3:]])
+    )
+    shift = np.zeros((60, 3))
+    shift[20:, 2] = np.linspace(0.0, 3.0, 40)  # a slow drift along the line of sight
+    wide = _fly(DEFENDED, track, 59, AlertLimitSettings(fixed=1e3), run.pose, run.prob, shift)
+    assert wide["available"] and wide["pl_m"] is not None and wide["pl_m"] <= 1e3
+    assert not wide["failed"] and 0 < wide["max_error_al_available"] < 1e-2
+    tight = _fly(DEFENDED, track, 59, AlertLimitSettings(fixed=1e-3), run.pose, run.prob, shift)
+    assert tight["error_m"] == pytest.approx(wide["error_m"]) and tight["error_m"] > 1e-3  # far beyond AL ...
+    assert not tight["available"] and not tight["failed"]  # ... but PL > AL: unavailable, no failure
+    # a 2 m bias from the first frame (a capture: assumption A's blind spot) fails on the trusted-start frames,
+    # whose PL is under AL = 1 m, although the target frame itself (PL ~3 m) is unavailable; without it, no failure
+    capture = _fly(
+        DEFENDED, track, 59, AlertLimitSettings(fixed=1.0), run.pose, run.prob, np.tile([0, 0, 2.0], (60, 1))
+    )
+    assert capture["failed"] and capture["max_error_al_available"] > 1.5 and not capture["available"]
+    clean = _fly(DEFENDED, track, 59, AlertLimitSettings(fixed=1.0), run.pose, run.prob)
+    assert not clean["failed"] and clean["max_error_al_available"] < 0.5

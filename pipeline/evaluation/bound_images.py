@@ -13,7 +13,9 @@ Three replays of frames 0..target through the real defense separate the bound's 
 - `live`: the attacked images' estimates and detector probabilities: the real chain. Well below `blind`: the
   detector, which the bound takes as blind, is what stops the sequence.
 Per attacked frame: the requested shift s and the reached shift r (estimate minus clean estimate, camera frame, m):
-the share r.s / |s|^2 reached along the request, and the residual |r - s|.
+the share r.s / |s|^2 reached along the request, and the residual |r - s|. Per replay, what the safety measures of
+reports/robustness.md judge: whether the target frame is available (flown, PL <= AL) and the largest error / AL over
+the available frames up to it (above 1: the sequence fails the chain).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from functools import partial
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 import torch
@@ -31,7 +33,7 @@ from pipeline.attacks.toward import toward
 from pipeline.defense.bound import record, worst_case
 from pipeline.defense.calibration import CleanRun
 from pipeline.defense.chain import Defended, OnboardChain
-from pipeline.defense.integrity import AlertLimitSettings, alert_limit
+from pipeline.defense.integrity import AlertLimitSettings, alert_limit, defense_frames
 from pipeline.evaluation.integrity_runs import Track
 from pipeline.evaluation.robustness import pose_estimates
 
@@ -99,17 +101,27 @@ def _fly(
     d: Defended,
     track: Track,
     target: int,
-    limit_fn: Callable[[float], float],
+    limit: AlertLimitSettings,
     pose: np.ndarray,
     prob: np.ndarray,
     moved: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Frames 0..target with estimates `pose` (moved by `moved`, camera frame, m) and detector probabilities `prob`
-    through the real defense: the trusted error at the target (m) and the frames flagged (any check; the detector)."""
+    through the real defense: the trusted error at the target (m), whether the target frame is available (flown
+    and PL <= AL: pipeline/defense/integrity.py) and its PL (m), the largest error / AL over the available frames
+    up to it and whether that exceeds 1 (a failure, as reports/robustness.md counts one), and the frames flagged
+    (any check; the detector)."""
     m = target + 1
-    rec = record(d.settings, d.motion, d.noise, CleanRun(pose, prob, track.R_cam[:m], track.u[:m]), moved, limit_fn)
+    run = CleanRun(pose, prob, track.R_cam[:m], track.u[:m])
+    rec = record(d.settings, d.motion, d.noise, run, moved, partial(alert_limit, settings=limit))
+    f = defense_frames(rec.trace, track.truth[:m], track.name, limit)
+    ratio = np.where(f.available, f.error / f.alert, 0.0)
     return {
-        "error_m": float(np.linalg.norm(rec.trace.trusted[target] - track.truth[target])),
+        "error_m": float(f.error[target]),
+        "available": bool(f.available[target]),
+        "pl_m": None if f.pl is None or not np.isfinite(f.pl[target]) else float(f.pl[target]),
+        "max_error_al_available": float(ratio.max()),
+        "failed": bool(ratio.max() > 1),
         "flagged": int(rec.trace.flag.sum()),
         "detector_flagged": int(rec.trace.shap_flag.sum()),
     }
@@ -128,14 +140,15 @@ def realize_worst(
     """The bound's worst sequence at frame `target` of `track` at `eps` (L-inf, pixels in [0, 1]) realised in images
     (module docstring), JSON-ready: the bound (m), the trusted error at the target of the requested, blind and live
     replays and of the clean run (m), AL there (m), the frames attacked, the share of the request reached (median)
-    and the residual (median, 90th percentile, m) beside the requested shift's median length (m), and the frames
-    flagged (any check; the detector) up to the target in the clean and each attacked replay."""
+    and the residual (median, 90th percentile, m) beside the requested shift's median length (m), and per replay the
+    target's availability and PL, the largest error / AL on available frames (`_fly`) and the frames flagged (any
+    check; the detector) up to the target."""
     t0 = time.perf_counter()
     d, range_m = defended, np.linalg.norm(track.truth, axis=1)
-    limit_fn = partial(alert_limit, settings=limit)
     est, prob = pose_estimates(chain, track.images, settings.batch_size)
     run, cap = CleanRun(est, prob, track.R_cam, track.u), capacity_at(capacities, float(eps), range_m)
     al = alert_limit(range_m, limit)
+    limit_fn = partial(alert_limit, settings=limit)
     w = worst_case(d.settings, d.motion, d.noise, run, track.truth, cap, al, targets=[target], alert_limit=limit_fn)
     out: dict[str, Any] = {"trajectory": track.name, "frame": int(target), "range_m": float(range_m[target])}
     if not np.isfinite(w.upper[0]):
@@ -148,7 +161,7 @@ def realize_worst(
     images = track.images[:m].copy()
     images[index] = _attack_frames(chain, track, index, goal, float(eps), settings)
     est_a, prob_a = pose_estimates(chain, images, settings.batch_size)
-    fly = partial(_fly, d, track, target, limit_fn)
+    fly = partial(_fly, d, track, target, limit)
     return {
         **out,
         "modelled": True,

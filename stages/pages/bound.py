@@ -99,6 +99,32 @@ def _certificates(chains: dict[str, Any]) -> list[dict[str, str]]:
     return rows
 
 
+def _available(fly: dict[str, Any]) -> str:
+    """Whether a replay's target frame is available (PL <= AL, flown) and its PL: "yes (0.84)"; "-" for a replay
+    recorded before availability was."""
+    if "available" not in fly:
+        return "-"
+    return ("yes" if fly["available"] else "no") + ("" if fly["pl_m"] is None else f" ({fly['pl_m']:.2f})")
+
+
+def _breaking_lines(chains: dict[str, Any]) -> list[str]:
+    """Per chain: the smallest eps at which the worst sequence realised in images fails the real chain (error / AL
+    > 1 on an available frame), the campaign's measure of reports/robustness.md."""
+    out = []
+    for model, c in chains.items():
+        done = sorted((float(e), r) for e, r in c.get("realized", {}).items() if r.get("modelled"))
+        if not done or "failed" not in done[0][1]["live"]:
+            continue
+        broke = next((e for e, r in done if r["live"]["failed"]), None)
+        flown = ", ".join(f"{e:g}" for e, _ in done)
+        out.append(
+            f"- {CHAINS[model]}: "
+            + (f"fails the real chain from eps {broke:g}" if broke is not None else "no failure")
+            + f" (eps flown {flown}; one trajectory per eps, the bound's worst)"
+        )
+    return out
+
+
 def _realized_rows(chains: dict[str, Any]) -> list[dict[str, str]]:
     """Per chain and eps: the worst sequence realised in images (`realized`), beside the bound and its replay."""
     rows = []
@@ -118,6 +144,8 @@ def _realized_rows(chains: dict[str, Any]) -> list[dict[str, str]]:
                     "in images, detector blind (m)": _x(r["blind"]["error_m"]),
                     "in images, real chain (m)": _x(r["live"]["error_m"]),
                     "real chain / AL": _x(r["live"]["error_m"] / r["alert_m"]),
+                    "target available, real chain (PL m)": _available(r["live"]),
+                    "real chain: max error / AL, available frames": _x(r["live"].get("max_error_al_available")),
                     "real chain / upper": _x(r["live"]["error_m"] / r["bound_m"]),
                     "frames attacked": str(r["attacked_frames"]),
                     "shift requested, median (m)": _x(r["requested_length_median_m"]),
@@ -217,6 +245,11 @@ def bound_page(metrics: dict[str, Any]) -> str:
             REALIZED_INTRO,
             "",
             *([markdown_table(realized), *_realized_lines(chains), ""] if realized else ["Not run.", ""]),
+            *(
+                ["Where the worst sequence realised in images fails the real chain:", "", *lines, ""]
+                if (lines := _breaking_lines(chains))
+                else []
+            ),
             "## The capacity",
             "",
             *_capacity_lines(chains),
