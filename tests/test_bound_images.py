@@ -157,3 +157,20 @@ def test_a_replay_fails_only_on_an_available_frame_beyond_its_alert_limit() -> N
     assert capture["failed"] and capture["max_error_al_available"] > 1.5 and not capture["available"]
     clean = _fly(DEFENDED, track, 59, AlertLimitSettings(fixed=1.0), run.pose, run.prob)
     assert not clean["failed"] and clean["max_error_al_available"] < 0.5
+
+
+def test_the_page_names_the_eps_where_the_realised_sequence_fails_and_what_it_leaves_unjudged() -> None:
+    from stages.pages.bound import _breaking_lines
+
+    def realized(failed: bool, available: bool, pl: float, error: float) -> dict:
+        live = {"failed": failed, "available": available, "pl_m": pl, "error_m": error}
+        return {"modelled": True, "alert_m": 1.0, "live": live}
+
+    chains = {
+        "robust": {"realized": {"0.01": realized(False, True, 0.5, 0.2), "0.05": realized(True, True, 0.8, 1.4)}},
+        "standard": {"realized": {"0.01": realized(False, False, 6.5, 3.0), "0.02": realized(False, False, 9.1, 5.0)}},
+    }
+    robust, standard = _breaking_lines(chains)
+    assert "fails the real chain from eps 0.05" in robust and "unavailable" not in robust
+    assert "no failure on an available frame" in standard
+    assert "unavailable at 2 of 2 eps (PL 6.5-9.1 m against AL 1.00 m)" in standard and "up to 5.00 m" in standard

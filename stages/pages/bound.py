@@ -119,10 +119,32 @@ def _breaking_lines(chains: dict[str, Any]) -> list[str]:
         flown = ", ".join(f"{e:g}" for e, _ in done)
         out.append(
             f"- {CHAINS[model]}: "
-            + (f"fails the real chain from eps {broke:g}" if broke is not None else "no failure")
-            + f" (eps flown {flown}; one trajectory per eps, the bound's worst)"
+            + (f"fails the real chain from eps {broke:g}" if broke is not None else "no failure on an available frame")
+            + f" (eps flown {flown}; one trajectory per eps, the bound's worst){_unjudged(done)}"
         )
     return out
+
+
+def _unjudged(done: list[tuple[float, dict[str, Any]]]) -> str:
+    """Where the realised sequences' target frames were unavailable on the real chain (PL > AL): the error there is
+    not judged by the measure, and the sentence says so with the PLs, the AL and the largest error it leaves."""
+    off = [r for _, r in done if not r["live"]["available"]]
+    if not off:
+        return ""
+    pls = [r["live"]["pl_m"] for r in off if r["live"]["pl_m"] is not None]
+    return (
+        f"; its target frame is unavailable at {len(off)} of {len(done)} eps ("
+        + (f"PL {_span(pls, 1)}" if pls else "no PL")
+        + f" against AL {_span([r['alert_m'] for r in off], 2)}), so the error there (up to "
+        f"{max(r['live']['error_m'] for r in off):.2f} m) is not judged: the chain declares itself unavailable "
+        "there rather than fail"
+    )
+
+
+def _span(values: list[float], digits: int) -> str:
+    """ "8.5-11.2 m", or "1.00 m" when the values round alike."""
+    lo, hi = f"{min(values):.{digits}f}", f"{max(values):.{digits}f}"
+    return f"{lo} m" if lo == hi else f"{lo}-{hi} m"
 
 
 def _realized_rows(chains: dict[str, Any]) -> list[dict[str, str]]:
