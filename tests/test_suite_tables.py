@@ -98,3 +98,21 @@ def test_capacity_is_per_frame_and_eps_nested_and_its_files_round_trip(tmp_path)
     with pytest.raises(DataError, match="not a rpodguard-capacity/1 file of the standard model"):
         (tmp_path / "standard.json").write_text((tmp_path / "robust.json").read_text())
         read_capacity(tmp_path, "standard")
+
+
+def test_a_capacity_sample_short_in_a_range_bin_is_topped_up_from_that_bin() -> None:
+    """The seed-1 default run stopped with 19 of the 20 frames the 45-70 m bin needs: the top-up draws the missing
+    ones from the bin's other frames, leaves a sample that meets the minimum unchanged, and takes what there is."""
+    from pipeline.evaluation.strongest import top_up_bins
+    from pipeline.pose.robustness import sample_rows
+
+    range_m = np.r_[np.linspace(6, 24, 120), np.linspace(26, 44, 120), np.linspace(46, 69, 72)]
+    edges, rows = [5, 25, 45, 70], sample_rows(312, 80, 1)
+    count = lambda r: np.histogram(range_m[r], bins=edges)[0]  # noqa: E731
+    assert count(rows)[2] < 20  # this draw is short in the far bin
+    topped = top_up_bins(rows, range_m, edges, 20, seed=1)
+    assert (count(topped) >= 20).all() and set(rows) <= set(topped) and len(set(topped)) == len(topped)
+    assert count(topped)[2] == 20 and (count(topped)[:2] == count(rows)[:2]).all()  # only the short bin grows
+    assert np.array_equal(top_up_bins(topped, range_m, edges, 20, seed=1), topped)  # a full sample: unchanged
+    assert np.array_equal(top_up_bins(rows, range_m, edges, 20, seed=1), topped)  # seeded
+    assert count(top_up_bins(rows, range_m, edges, 100, seed=1))[2] == 72  # too few in the bin: all of them

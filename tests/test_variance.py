@@ -199,8 +199,7 @@ def _campaign(run: Path, per_eps: dict[str, tuple[int, int, float]], availabilit
     """RUN's robustness.json with the shipped chain's integrity summary: eps -> (failed, trajectories, error/AL)."""
     n = next(iter(per_eps.values()))[1]
     clean = [
-        {"frames": 200, "availability": availability, "max_error_al": 0.01 * (i + 1), "failed": False}
-        for i in range(n)
+        {"frames": 200, "availability": availability, "max_error_al": 0.01 * (i + 1), "failed": False} for i in range(n)
     ]
     summary = {
         "breaking_eps": next((float(e) for e, (f, _, _) in per_eps.items() if f), None),

@@ -137,6 +137,26 @@ def capacity_frames(
     )
 
 
+def top_up_bins(rows: np.ndarray, range_m: np.ndarray, edges: Sequence[float], min_count: int, seed: int) -> np.ndarray:
+    """The frames `rows` (indices into frames at true ranges `range_m`, m) a capacity is measured on, topped up: in
+    every range bin of `edges` (m, binned as pipeline.attacks.capacity.fit_capacity bins) that holds fewer than
+    `min_count` of them, a seeded draw (bin k: numpy's generator on (seed, k)) of the missing number from the bin's
+    other frames, all of them when too few; sorted. A sample that meets the minimum in every bin comes back
+    unchanged, so the fit's per-bin minimum stops a stage only when the frames themselves are too few."""
+    rows, range_m, edges = np.asarray(rows, np.int64), np.asarray(range_m, np.float64), np.asarray(edges, np.float64)
+    inside = (range_m >= edges[0]) & (range_m <= edges[-1])
+    b = np.clip(np.searchsorted(edges, range_m, side="right") - 1, 0, len(edges) - 2)
+    chosen = np.zeros(len(range_m), bool)
+    chosen[rows] = True
+    added = []
+    for k in range(len(edges) - 1):
+        short = int(min_count) - int((chosen & inside & (b == k)).sum())
+        if short > 0:
+            pool = np.flatnonzero(~chosen & inside & (b == k))
+            added.append(np.random.default_rng((int(seed), k)).permutation(pool)[:short])
+    return np.sort(np.concatenate([rows, *added])) if added else rows
+
+
 def fit_overbound(
     frames: pd.DataFrame, edges: Sequence[float], quantile: float, margin: float, min_count: int
 ) -> list[Overbound]:

@@ -57,14 +57,17 @@ def attacked_tables(params: Params, models: dict[str, Any], test: data.Split, de
 
 def capacities(params: Params, models: dict[str, Any], val: data.Split, device: Any) -> dict[str, Any]:
     """Per model (name -> pose network) the per-frame capacity table of the suite params on a seeded sample of
-    `suite.capacity.frames` frames of the validation split `val` at `suite.capacity.eps`, and its fitted overbound
-    ((table, overbounds); pipeline/evaluation/strongest.py); a bin with too few frames stops the stage."""
-    from pipeline.evaluation.strongest import capacity_frames, fit_overbound
+    `suite.capacity.frames` frames of the validation split `val` (topped up to `suite.capacity.min_count` frames
+    in each range bin: pipeline.evaluation.strongest.top_up_bins) at `suite.capacity.eps`, and its fitted overbound
+    ((table, overbounds); pipeline/evaluation/strongest.py); a bin with too few frames in `val` stops the stage."""
+    from pipeline.evaluation.strongest import capacity_frames, fit_overbound, top_up_bins
     from pipeline.pose.robustness import sample_rows
     from stages.errors import StageError
 
     c, seed = params.suite.capacity, seed_for(suite_seed(params), "suite.capacity")
-    sample = data.subset(val, sample_rows(len(val), c.frames, seed), "val")
+    range_m = np.linalg.norm(val.targets[:, :3].astype(np.float64), axis=1)
+    rows = top_up_bins(sample_rows(len(val), c.frames, seed), range_m, c.edges, c.min_count, seed)
+    sample = data.subset(val, rows, "val")
     images, targets = np.stack([sample.images[i] for i in range(len(sample))]), sample.targets.astype(np.float64)
     config, index = suite_config(params.suite, seed), sample.labels["index"].to_numpy()
     out = {}
