@@ -289,3 +289,28 @@ def test_per_track_shares_assemble_into_the_campaign_over_every_track(tracks) ->
     other = fly_track(ToyOnboard(ToyPose()), ToyPose(), d, tracks[1], dataclasses.replace(c, eps=[0.004]))
     with pytest.raises(ValueError, match="different attackers or eps"):
         assemble(tracks, [shares[0], other], c)
+
+
+def test_clean_availability_is_split_by_true_range_and_the_page_says_where_it_is_lost() -> None:
+    """Frames whose PL exceeds AL near the goal: the split puts the lost availability in the nearest band, and the
+    assumptions say an unavailable frame is never judged."""
+    from pipeline.defense.integrity import IntegrityFrames
+    from pipeline.evaluation.campaign import availability_by_range
+    from stages.pages.integrity import _where_unavailable
+
+    rng = np.linspace(60.0, 10.0, 200)
+    truth = np.stack([np.zeros(200), np.zeros(200), rng], axis=1)
+    alert = 1.0 + (rng - 10.0)  # the persistent AL
+    frames = IntegrityFrames(
+        np.zeros(200), np.arange(200), truth + 0.1, truth, np.full(200, "track"), alert, np.full(200, 9.0)
+    )
+    bands = availability_by_range([frames, frames])
+    assert [b["frames"] for b in bands] == [
+        2 * int(((rng >= lo) & (rng < hi)).sum()) for lo, hi in [(0, 15), (15, 20), (20, 30), (30, np.inf)]
+    ]
+    assert bands[0]["available"] == 0.0 and bands[2]["available"] == 1.0 and bands[3]["to_m"] is None
+    assert 0 < bands[1]["available"] < 1  # AL passes the PL (9 m) at 18 m
+    integrity = {"chains": {"robust": {"summary": {"clean": {"availability_by_range": bands}}}}}
+    text = _where_unavailable(integrity)
+    assert "0-15 m 0% of 40" in text and "beyond 30 m 100%" in text and "never judged" in text
+    assert _where_unavailable({"chains": {"robust": {"summary": {"clean": {}}}}}) == ""  # older metrics: nothing

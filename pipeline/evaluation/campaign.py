@@ -29,7 +29,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from pipeline.defense.chain import Defended, OnboardChain
-from pipeline.defense.integrity import AlertLimitSettings, single_frame_alert_limit
+from pipeline.defense.integrity import AlertLimitSettings, IntegrityFrames, single_frame_alert_limit
 from pipeline.evaluation.integrity_runs import (
     Flown,
     Track,
@@ -55,6 +55,7 @@ from pipeline.evaluation.robustness import fused_row
 from pipeline.stats import Rate, bootstrap_rate, clopper_pearson
 
 BURST_ROW = "fused chain: burst (nested, worst over lambda and restarts)"  # its per-frame row's name
+RANGE_BANDS_M = (0.0, 15.0, 20.0, 30.0, float("inf"))  # true-range bands (m) of the clean availability's split
 
 
 @dataclass(frozen=True)
@@ -277,6 +278,30 @@ def _flights(
     )
 
 
+def availability_by_range(
+    frames: Sequence[IntegrityFrames], edges: Sequence[float] = RANGE_BANDS_M
+) -> list[dict[str, Any]]:
+    """Where availability is lost: per band [lo, hi) of true range (m) of `edges` (the last may be open: inf),
+    pooled over the runs' records `frames`, the frames in it and the share available (None: no frame); [] without
+    records."""
+    if not frames:
+        return []
+    rng = np.concatenate([np.linalg.norm(f.truth, axis=1) for f in frames])
+    available = np.concatenate([f.available for f in frames])
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        inside = (rng >= lo) & (rng < hi)
+        out.append(
+            {
+                "from_m": float(lo),
+                "to_m": float(hi) if np.isfinite(hi) else None,
+                "frames": int(inside.sum()),
+                "available": float(available[inside].mean()) if inside.any() else None,
+            }
+        )
+    return out
+
+
 def _largest(values: Sequence[float]) -> float | None:
     """The largest finite value, None when there is none (the JSON's missing number)."""
     finite = [float(v) for v in values if np.isfinite(v)]
@@ -304,7 +329,8 @@ def safety_summary(flights: Flights) -> dict[str, Any]:
     of `trajectories`, the attacker behind the largest error / AL, trajectories with an HMI frame (Clopper-Pearson),
     Stanford counts, `per_trajectory` rows}, `attackers` {name: {"%g": per-trajectory measures, nested in eps}},
     `clean` {per-trajectory measures, largest indices, mean availability over trajectories, the availability and
-    false alarms over frames with their bootstrap intervals, Stanford counts}."""
+    false alarms over frames with their bootstrap intervals, the availability per true-range band
+    (`availability_by_range`), Stanford counts}."""
     f = flights
     nested = {a: nest_in_eps(by_eps) for a, by_eps in f.measures.items()}
     flown = sorted({e for by_eps in f.measures.values() for e in by_eps})
@@ -345,6 +371,7 @@ def safety_summary(flights: Flights) -> dict[str, Any]:
             "final_error_max_m": _largest([m.final_error for m in clean]),
             "failed": sum(m.failed for m in clean),
             "availability": f.clean_row["availability"],
+            "availability_by_range": availability_by_range([fl.frames for fl in f.clean]),
             "false_alarms": as_json(f.alarms, len(f.clean)),
             "stanford": f.stanford_clean,
         },

@@ -254,6 +254,26 @@ def _kind(integrity: dict[str, Any], p: Params) -> str:
     return f"the single-frame AL (pipeline/defense/integrity.py): {at}"
 
 
+def _where_unavailable(integrity: dict[str, Any]) -> str:
+    """Where the shipped chain's clean availability is lost, by true-range band (`availability_by_range` of
+    pipeline/evaluation/campaign.py): an unavailable frame is never judged, so the measure is blind there."""
+    bands = integrity["chains"]["robust"]["summary"]["clean"].get("availability_by_range")
+    if not bands:
+        return ""
+    shares = ", ".join(
+        ("beyond " if b["to_m"] is None else "")
+        + (f"{b['from_m']:g} m" if b["to_m"] is None else f"{b['from_m']:g}-{b['to_m']:g} m")
+        + f" {100 * b['available']:.0f}% of {b['frames']}"
+        for b in bands
+        if b["frames"]
+    )
+    return (
+        f"\n  Without attack, the shipped chain's frames available by true range: {shares}. An unavailable frame is "
+        "never judged: where the PL exceeds AL (which falls to the docking tolerance at the goal) the measure cannot "
+        "fail, and the chain declares itself unavailable (the guidance holds) rather than fail."
+    )
+
+
 def assumptions(integrity: dict[str, Any], p: Params) -> str:
     """The assumptions every integrity row rests on, in words (metrics `integrity.assumptions`)."""
     a, cap, d = integrity["assumptions"], integrity["capture"], integrity["drift"]
@@ -278,7 +298,7 @@ Assumptions of every row below:
   none.
 - **AL and availability**: {_kind(integrity, p)}; a frame is available when the guidance flies on it (mode track or
   coast) and PL <= AL at the true range; failure = error / AL > 1 on an available frame. The single-frame AL is the
-  second column.
+  second column.{_where_unavailable(integrity)}
 - **Attackers** ({attackers}): the captures hold a world-frame bias of {", ".join(f"{b:g}" for b in cap["initial_m"])}
   m from the first frame (growth {cap["rate_m"]:g} m per frame), the drifts grow from {d["start"]} as far as keeps
   every innovation under {d["gate_fraction"]:g} of the gate and every CUSUM statistic under half its threshold
