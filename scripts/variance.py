@@ -296,10 +296,13 @@ POOLED_CHAINS = {
 
 
 def _integrity_chains(m: Metrics) -> dict[str, Any]:
+    """The run's integrity chains that carry the safety summary (issue 39's measures): a run made before them
+    (no `summary`) has nothing to pool and is left out, not an error."""
     try:
-        return m["robustness"]["integrity"]["chains"]
+        chains = m["robustness"]["integrity"]["chains"]
     except (KeyError, TypeError):
         return {}
+    return {name: c for name, c in chains.items() if isinstance(c, dict) and "summary" in c}
 
 
 def pooled_chain_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str, Any]]:

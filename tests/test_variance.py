@@ -231,3 +231,7 @@ def test_the_campaign_trajectories_pool_over_the_seed_runs(tmp_path):
     assert rows["0.2"]["trajectories failed / flown"] == "4/4" and "seed 0 broke before" in rows["0.2"]["runs flown"]
     assert "pooled over the seed runs" in variance.pooled_section([a, b], ["0", "1"])
     assert variance.pooled_section([_run(tmp_path, 2, 0.4, None)], ["2"]) == ""  # no campaign: no section
+    old = _run(tmp_path, 3, 0.4, None)  # a run made before the safety summary: its chains have none
+    (old / "reports" / "metrics" / "robustness.json").write_text(json.dumps({"integrity": {"chains": {"robust": {}}}}))
+    (pooled,) = variance.pooled_chain_rows([variance.run_metrics(r) for r in (a, old)], ["0", "3"])
+    assert pooled["runs"] == 1 and pooled["trajectories"] == 4
