@@ -15,6 +15,8 @@ Variants (`VARIANTS`):
   sequence one fixed target attitude, 0 or +-10 deg; ours draws the rotating sequences' attitude every frame);
 - 320x180: the images (and the network's input) at 320x180, twice our 160x90 (a resolution point towards the
   paper's 480x270; K scales with the size);
+- per_sequence_320x180: both of the above at once (whether their contributions add: `rpod attitude`'s additivity
+  row);
 - 480x270: the paper's image size (for a GPU box: about 9x the default training's work);
 - fy360: the paper's printed camera, fy = 360 at 480x270 (the camera default's held-out check).
 """
@@ -40,6 +42,10 @@ VARIANTS: dict[str, tuple[str, dict[str, dict[str, Any]]]] = {
         {"render": {"target_attitude": "per_sequence"}},
     ),
     "320x180": ("images at 320x180 (twice our 160x90)", {"render": {"width": 320, "height": 180}}),
+    "per_sequence_320x180": (
+        "both: target attitude fixed per sequence, images at 320x180",
+        {"render": {"target_attitude": "per_sequence", "width": 320, "height": 180}},
+    ),
     "480x270": ("images at 480x270 (the paper's size)", {"render": {"width": 480, "height": 270}}),
     "fy360": ("the paper's printed camera, fy = 360 at 480x270", {"camera": {"fy": 360.0}}),
 }
