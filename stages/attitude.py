@@ -9,6 +9,9 @@ bootstrap intervals over the sequences (pipeline/pose/decomposition.py). Each va
 gap is the standard model's mean attitude error minus the variant model's, paired by sequence. Where a variant's
 images have the standard model's input size (per_sequence) the standard model also runs on them: the part of the
 contribution that the frames themselves bring (the standard model on them) and the part that training on them brings.
+Where one variant makes two others' changes at once (its settings are theirs merged, e.g. per_sequence_320x180), the
+interaction: its contribution minus the sum of the two alone, paired by sequence over the four models (whether the
+causes add).
 """
 
 from __future__ import annotations
@@ -77,6 +80,10 @@ def main(
             v: {s: _contribution(errors[STANDARD][s], errors[v][s], cross.get(v, {}).get(s)) for s in SPLITS}
             for v in variants
         },
+        "interactions": {
+            v: {"of": list(pair), **{s: _interaction(errors, v, pair, s) for s in SPLITS}}
+            for v, pair in _combinations({v: _summary_of(v).get("settings", {}) for v in variants}).items()
+        },
     }
     write_metrics(ATTITUDE_METRICS, metrics, params.profile_name)
     atomic_write_text(ATTITUDE_REPORT, attitude_page(metrics, {v: _changes(v) for v in variants}))
@@ -88,12 +95,48 @@ def main(
     )
 
 
-def _changes(variant: str) -> str:
-    """What a pose trial changes, in words (its summary.json)."""
+def _summary_of(variant: str) -> dict[str, Any]:
+    """A pose trial's summary.json (what it changes, in words and as settings)."""
     from pipeline.io.atomic import read_json
     from stages.artifacts.paths import trial_summary
 
-    return str(read_json(trial_summary(variant)).get("changes", variant))
+    return dict(read_json(trial_summary(variant)))
+
+
+def _changes(variant: str) -> str:
+    """What a pose trial changes, in words (its summary.json)."""
+    return str(_summary_of(variant).get("changes", variant))
+
+
+def _combinations(settings: dict[str, dict[str, dict[str, Any]]]) -> dict[str, tuple[str, str]]:
+    """variant -> (a, b): the given variants whose settings (section -> {field: value}) are exactly two others' merged,
+    those two changing disjoint fields."""
+
+    def fields(v: str) -> set[tuple[str, str, str]]:
+        return {(sec, k, repr(x)) for sec, kv in settings[v].items() for k, x in kv.items()}
+
+    out = {}
+    for v in settings:
+        for a in settings:
+            for b in settings:
+                if a < b and v not in (a, b) and fields(a) and fields(b) and not fields(a) & fields(b):
+                    if fields(a) | fields(b) == fields(v):
+                        out[v] = (a, b)
+    return out
+
+
+def _interaction(errors: dict[str, Any], both: str, pair: tuple[str, str], split: str) -> dict[str, Any]:
+    """The combined variant's contribution to the attitude gap minus the two alone (deg; > 0: together they remove
+    more than the sum), paired by sequence over the four models, and the sum alone."""
+    from pipeline.pose.decomposition import bootstrap_contrast
+
+    a, b = pair
+    sides = [errors[n][split] for n in (a, b, both, STANDARD)]
+    att = [(e["attitude_deg"], e["sequence"]) for e in sides]
+    return {
+        "interaction_deg": bootstrap_contrast(att, [1.0, 1.0, -1.0, -1.0]),
+        "alone_sum_deg": bootstrap_contrast(att[:2] + att[3:] + att[3:], [-1.0, -1.0, 1.0, 1.0]),
+    }
 
 
 def _size(p: Params) -> list[int]:

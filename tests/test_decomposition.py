@@ -8,7 +8,13 @@ import pytest
 
 from pipeline.geometry.rotations import matrix_to_6d
 from pipeline.geometry.trajectories import approach_sequences, attitude_groups, flatten
-from pipeline.pose.decomposition import bootstrap_difference, bootstrap_mean, group_errors
+from pipeline.pose.decomposition import (
+    bootstrap_contrast,
+    bootstrap_difference,
+    bootstrap_mean,
+    bootstrap_model_difference,
+    group_errors,
+)
 
 
 def test_the_default_sequences_are_unchanged_and_paper_like_ones_hold_one_attitude_per_sequence():
@@ -53,6 +59,26 @@ def test_the_difference_between_groups_and_its_interval():
     assert d == pytest.approx(-1.5, abs=0.1) and lo < d < hi < 0
     with pytest.raises(ValueError, match="both sides"):
         bootstrap_difference(values, seq % 2, a)
+
+
+def test_the_interaction_of_two_changes_is_zero_when_they_add_and_found_when_they_do_not():
+    """ab - a - b + s: the combined change's contribution minus the two alone (paired by sequence)."""
+    rng = np.random.default_rng(2)
+    seq = np.repeat(np.arange(13), 40)
+    offset = np.repeat(rng.normal(0, 0.5, 13), 40)  # per-sequence difficulty: shared, so it cancels when paired
+    s = 3.0 + offset + rng.normal(0, 0.1, seq.size)
+    a, b = s - 1.0, s - 0.5
+    sides = [(a - 0.5, seq), (a, seq), (b, seq), (s, seq)]
+    weights = [1.0, -1.0, -1.0, 1.0]
+    d, lo, hi = bootstrap_contrast(sides, weights)  # additive: ab = s - 1.5
+    assert d == pytest.approx(0.0, abs=1e-9) and lo <= d <= hi and hi - lo < 1e-9
+    d, lo, hi = bootstrap_contrast([(a - 0.2, seq), *sides[1:]], weights)  # they overlap: ab = s - 1.2
+    assert d == pytest.approx(0.3) and 0 < lo < d < hi
+    assert bootstrap_contrast(sides[1:3], [1.0, -1.0]) == bootstrap_model_difference(a, seq, b, seq)
+    with pytest.raises(ValueError, match="same sequences"):
+        bootstrap_contrast([(a, seq), (b, seq % 5)], [1.0, -1.0])
+    with pytest.raises(ValueError, match="one weight per side"):
+        bootstrap_contrast(sides, [1.0])
 
 
 def test_group_errors_split_the_errors_by_group():

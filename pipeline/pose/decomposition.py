@@ -10,6 +10,8 @@ intervals are coarse, as they should be.
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import numpy as np
 
 from pipeline.pose.metrics import pose_errors, tilt_roll_deg
@@ -70,18 +72,32 @@ def bootstrap_model_difference(
     same sequences (their frames may differ, e.g. two renders of one approach), with the 95% percentile bootstrap
     interval that draws the sequences once per resample for both sides (paired by sequence: what the sequences
     share cancels). Raises ValueError when the two sides do not hold the same sequence ids."""
-    a, b = np.asarray(a, np.float64).ravel(), np.asarray(b, np.float64).ravel()
-    a_sequence, b_sequence = np.asarray(a_sequence).ravel(), np.asarray(b_sequence).ravel()
-    if a.shape != a_sequence.shape or b.shape != b_sequence.shape or not a.size or not b.size:
+    return bootstrap_contrast([(a, a_sequence), (b, b_sequence)], [1.0, -1.0], n_resamples, seed)
+
+
+def bootstrap_contrast(
+    sides: Sequence[tuple[np.ndarray, np.ndarray]], weights: Sequence[float], n_resamples: int = 2000, seed: int = 0
+) -> tuple[float, float, float]:
+    """(contrast, lo, hi): sum_i weights[i] x the mean of side i's per-frame values, each side (values, sequence ids)
+    one model's errors on the same sequences (e.g. a - b, or the interaction ab - a - b + s of two changes made alone
+    and together), with the 95% percentile bootstrap interval that draws the sequences once per resample for every
+    side (paired by sequence). Raises ValueError when the sides do not all hold the same sequence ids."""
+    if len(sides) != len(weights) or not sides:
+        raise ValueError(f"need one weight per side (> 0 sides), got {len(weights)} weights for {len(sides)} sides")
+    flat = [(np.asarray(v, np.float64).ravel(), np.asarray(q).ravel()) for v, q in sides]
+    if any(v.shape != q.shape or not v.size for v, q in flat):
         raise ValueError("need one sequence id per value on each side (> 0 values)")
-    ids = np.unique(a_sequence)
-    if not np.array_equal(ids, np.unique(b_sequence)):
-        raise ValueError("the two sides must hold the same sequences")
-    (sa, ca), (sb, cb) = _per_sequence(a, a_sequence), _per_sequence(b, b_sequence)
+    ids = np.unique(flat[0][1])
+    if any(not np.array_equal(ids, np.unique(q)) for _, q in flat):
+        raise ValueError("every side must hold the same sequences")
     idx = np.random.default_rng(seed).integers(0, len(ids), size=(n_resamples, len(ids)))
-    boot = sa[idx].sum(axis=1) / ca[idx].sum(axis=1) - sb[idx].sum(axis=1) / cb[idx].sum(axis=1)
+    value, boot = 0.0, 0.0
+    for w, (v, q) in zip(weights, flat):
+        sums, counts = _per_sequence(v, q)
+        value = value + float(w) * v.mean()
+        boot = boot + float(w) * (sums[idx].sum(axis=1) / counts[idx].sum(axis=1))
     lo, hi = np.percentile(boot, [50 * (1 - LEVEL), 50 * (1 + LEVEL)])
-    return float(a.mean() - b.mean()), float(lo), float(hi)
+    return float(value), float(lo), float(hi)
 
 
 def group_errors(

@@ -63,6 +63,27 @@ def _contribution_rows(metrics: dict[str, Any], changes: dict[str, str]) -> list
     return rows
 
 
+def _additivity(metrics: dict[str, Any]) -> str:
+    """Whether the causes add: each combined trial against its two parts (or, without one, that this is unmeasured)."""
+    inter = metrics.get("interactions", {})
+    if not inter:
+        return "Each was measured alone from our setting; adding them assumes they do\nnot interact, which was not measured."
+    lines = []
+    for v, x in inter.items():
+        a, b = x["of"]
+        per = "; ".join(
+            f"{split}: together {ci(metrics['contributions'][v][split]['attitude_deg'], sign=True)} deg, "
+            f"{a} and {b} alone add to {ci(x[split]['alone_sum_deg'], sign=True)} deg, interaction "
+            f"{ci(x[split]['interaction_deg'], sign=True)} deg"
+            for split in ("validation", "test")
+        )
+        lines.append(
+            f"Whether they add ({v}: {a} and {b} at once; interaction = together - the sum alone, paired by "
+            f"sequence over the four models; < 0: they overlap, > 0: together they remove more): {per}."
+        )
+    return "\n".join(lines)
+
+
 def attitude_page(metrics: dict[str, Any], changes: dict[str, str]) -> str:
     """reports/attitude.md from reports/metrics/attitude.json's content; `changes`: each trial's change in words."""
     from pipeline.report.markdown import markdown_table
@@ -86,8 +107,7 @@ split a measurement only (no choice was made on it).
 ## Contributions
 
 {markdown_table(_contribution_rows(metrics, changes))}
-Measured on the validation split: {measured}. Each was measured alone from our setting; adding them assumes they do
-not interact, which was not measured. "The frames' part": the standard model itself on the trial's frames (possible
+Measured on the validation split: {measured}. {_additivity(metrics)} "The frames' part": the standard model itself on the trial's frames (possible
 where they have its input size); "the training's part": what training on them adds.
 
 ## Errors per split and target-attitude group
