@@ -107,7 +107,10 @@ def test_nested_worst_case_is_monotone_in_eps(scene) -> None:
     eps = [0.02, 0.021, 0.022, 0.023, 0.05]
     res = _attacker(alert_limit=1.0, steps=2).nested(chain, _defense(threshold), run, eps)
     keys = [b[0].key for b in res.bursts]
-    assert keys == sorted(keys)
+    # the previous eps's solution is judged again in a batch of another size: float32 reassociation can move its
+    # score by ~1e-7 (seen after some other test files), so scores are compared to that precision
+    assert [k[:2] for k in keys] == sorted(k[:2] for k in keys)
+    assert all(b[2] >= a[2] - 1e-5 * max(1.0, abs(a[2])) for a, b in zip(keys, keys[1:]) if a[:2] == b[:2])
     assert [b[0].found_at <= e for b, e in zip(res.bursts, eps)] == [True] * len(eps)
     assert keys[-1][2] > 0
 
