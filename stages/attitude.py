@@ -71,6 +71,7 @@ def main(
         "model_hash": file_hash(POSE),
         "seed": seed,
         "variants": variants,
+        "changes": {v: _changes(v) for v in variants},
         "models": {
             name: {"size": _size(trials.get(name, params)), **{s: _summary(e) for s, e in per.items()}}
             for name, per in errors.items()
@@ -86,7 +87,7 @@ def main(
         },
     }
     write_metrics(ATTITUDE_METRICS, metrics, params.profile_name)
-    atomic_write_text(ATTITUDE_REPORT, attitude_page(metrics, {v: _changes(v) for v in variants}))
+    atomic_write_text(ATTITUDE_REPORT, attitude_page(metrics, metrics["changes"]))
     c = metrics["contributions"]
     typer.echo(
         "attitude: "

@@ -111,6 +111,7 @@ STAGES = [
     "ablation",
     "pose_trial",
     "attitude",
+    "gaps",
     "heldout",
     "suite",
     "bound",

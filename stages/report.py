@@ -14,8 +14,8 @@ and writes:
 `--sync-readme` copies the summary and the generated "Known differences" bullets into the project README
 (between the `results` and `differences` markers), on the default profile only: the README publishes the
 default profile's numbers, so a smoke run or a `dvc exp run` sweep leaves it alone. `--check` writes
-nothing and fails if README and reports/README.md drifted apart or if a stage report changed after the
-page was built from it.
+nothing and fails if README and reports/README.md drifted apart, if README's measured differences table is not
+reports/gaps.md's (`rpod gaps --sync-readme`), or if a stage report changed after the page was built from it.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ import typer
 
 from pipeline.io.atomic import atomic_write_text, read_json, save_figure, write_json
 from stages.artifacts.dvc import make_hint
-from stages.artifacts.paths import BENCHMARKS, PAGE, README, REPORT_FIGURES, ROC_DATA, SUMMARY, VARIANCE
+from stages.artifacts.paths import BENCHMARKS, GAPS_REPORT, PAGE, README, REPORT_FIGURES, ROC_DATA, SUMMARY, VARIANCE
 from stages.artifacts.paths import SHAP as SHAP_STORE
 from stages.config.params import PARAMS_FILE, load
 from stages.config.schema import Params
@@ -39,6 +39,7 @@ from stages.pages.summary import summary
 
 BLOCK = "results"
 DIFFERENCES = "differences"
+GAPS = "gaps"  # README's measured differences table, a copy of reports/gaps.md's (`rpod gaps`)
 README_PROFILE = "default"  # the only profile whose numbers README.md publishes
 
 
@@ -111,6 +112,9 @@ def _check() -> None:
                 f"{README}'s {block} block differs from {PAGE}'s: run `rpod report --sync-readme` "
                 f"on the {README_PROFILE} profile"
             )
+    if profile == README_PROFILE and GAPS_REPORT.exists():  # `rpod gaps`'s table (optional/dvc.yaml)
+        if extract_block(GAPS_REPORT.read_text(), GAPS) != extract_block(README.read_text(), GAPS):
+            raise StageError(f"{README}'s {GAPS} block differs from {GAPS_REPORT}'s: run `rpod gaps --sync-readme`")
     stale = [report for _, report, _ in SECTIONS if report.exists() and _section_body(report) not in page]
     if stale:
         raise StageError(f"{PAGE} is older than {', '.join(str(r) for r in stale)}: run `rpod report`")

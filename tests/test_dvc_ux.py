@@ -274,9 +274,10 @@ def test_a_stage_name_that_is_a_flag_names_its_command():
         assert result.exit_code == 2 and f"runs `{cmd}`" in _plain(result.output), (name, result.output)
 
 
-def test_root_help_maps_every_stage_to_its_command_and_version_is_the_installed_one():
+def test_root_help_maps_every_stage_to_its_command_and_version_is_the_installed_one(monkeypatch):
     from importlib.metadata import version
 
+    monkeypatch.setenv("COLUMNS", "200")  # rich wraps at the terminal's width (80 without one): one row per stage here
     text = CliRunner().invoke(app, ["--help"], terminal_width=200).output
     rows = {tuple(line.strip(" │").split(None, 1)) for line in text.splitlines()}
     assert all((name, st["cmd"]) in rows for name, st in dvc_stages().items()), text

@@ -126,10 +126,14 @@ ABLATION_REPORT, ABLATION_METRICS = _outputs("ablation", "reports/ablation.md", 
 # standard recipe on a variant of the data set; `rpod attitude` measures the attitude gap's causes with them (the
 # fy360 variant is the camera default's held-out check, `rpod heldout`)
 POSE_TRIALS = Path("datasets/pose_trials")
-TRIAL_STAGES = ("per_sequence", "320x180", "fy360")  # the variants with a stage (480x270: for a GPU box)
+# the variants with a stage (480x270: for a GPU box)
+TRIAL_STAGES = ("per_sequence", "320x180", "per_sequence_320x180", "fy360")
 for _variant in TRIAL_STAGES:
     _outputs(f"trial_{_variant}", str(POSE_TRIALS / _variant))
 ATTITUDE_REPORT, ATTITUDE_METRICS = _outputs("attitude", "reports/attitude.md", "reports/metrics/attitude.json")
+# issue 38's "differences from the paper" table (`rpod gaps`, optional/dvc.yaml): read from the attitude, ablation and
+# detect metrics; its table is copied into README.md
+GAPS_REPORT, GAPS_METRICS = _outputs("gaps", "reports/gaps.md", "reports/metrics/gaps.json")
 # issue 38's held-out confirmation of the choices made on reported numbers (`rpod heldout`, optional/dvc.yaml): the
 # final held-out trajectories rendered with each camera (datasets/heldout/<camera>), its page and metrics
 HELDOUT, HELDOUT_REPORT, HELDOUT_METRICS = _outputs(
