@@ -42,6 +42,7 @@ STREAMS: dict[str, int] = {
     "evaluate": 1000,  # run_base: the evaluation trajectories' base (was the param evaluate.seed)
     "validation": 3000,  # run_base: the defense's validation trajectories' base (was defense.val_seed)
     "heldout": 7000,  # run_base: the final held-out trajectories (rpod heldout), read by no choice or calibration
+    "heldout.lab": 95000,  # on the held-out base, past its trajectories' items: the lab-like recordings' draws; index: draw
     "execution": 1900,  # the closed loop's execution errors (pipeline/guidance/dynamics.py), on `seed`
     # streams within a stage or a library step, on the seed it was given
     "eval_render.trajectory": 1,  # index: the trajectory of the set

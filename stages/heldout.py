@@ -9,7 +9,9 @@ read: `evaluate.trajectories` approaches of the evaluation's kind (`evaluate.fra
 with `guidance.execution`'s error), rendered once with the params' camera and once with the fy360 trial's.
 - **Camera default** (reports/camera.md): the committed standard model (models/pose.pt) on the held-out frames
   of its camera against the fy360 trial's model on the same approaches rendered with fy = 360: position,
-  attitude and depth (tz, 10-30 m) errors, each difference paired by approach.
+  attitude and depth (tz, 10-30 m) errors, each difference paired by approach; and the lab half of what the
+  choice was made on: the two models on held-out lab-like recordings (lab.sequences drawn `LAB_DRAWS` times from
+  the held-out base, datasets/heldout/lab/), each against the targets of its own camera, paired by recording.
 - **Motion checks' calibration** (on validation approaches of the mission's kind, datasets/val_render, kept over
   calibrating them on the envelope validation set, datasets/val_envelope): the shipped chain flown clean on the
   held-out approaches with its committed defense (models/defense.json) and with the alternative, calibrated here
@@ -45,6 +47,7 @@ from stages.errors import StageError
 from stages.pages.heldout import heldout_page
 
 CHOSEN, ALTERNATIVE = "chosen", "fy360"  # the held-out sets: the params' camera, the fy360 trial's
+LAB, LAB_DRAWS = "lab", 3  # held-out lab-like recordings: lab.sequences drawn LAB_DRAWS times (datasets/heldout/lab/)
 
 
 def main(params: Params) -> None:
@@ -63,13 +66,15 @@ def main(params: Params) -> None:
     device = torch_setup(params)
     t0 = time.perf_counter()
     cameras = {CHOSEN: params, ALTERNATIVE: trial}
-    render_s = _render(cameras)
+    render_s = {**_render(cameras), LAB: _render_lab(params)}
     sets = {name: read_heldout(p, HELDOUT / name) for name, p in cameras.items()}
+    models = {CHOSEN: load_pose(params).model, ALTERNATIVE: load_trial_pose(trial, POSE_TRIALS / ALTERNATIVE, device)}
     metrics = {
         "seed": heldout_seed(params),
         "trajectories": int(params.evaluate.trajectories),
         "frames": int(len(sets[CHOSEN][0])),
-        "camera": _camera(params, trial, sets, device),
+        "camera": _camera(params, trial, sets, models, device),
+        "lab_camera": _lab_camera(cameras, models, device),
         "calibration": _calibration(params, *sets[CHOSEN]),
         "clamp": _clamp(params, sets[CHOSEN][0]),
         "render_seconds": render_s,
@@ -123,13 +128,56 @@ def _render(cameras: dict[str, Params]) -> dict[str, Any]:
     return timings
 
 
-def _camera(params: Params, trial: Params, sets: dict[str, Any], device: Any) -> dict[str, Any]:
+def _render_lab(params: Params) -> float:
+    """Render the held-out lab-like recordings into datasets/heldout/lab/draw<d>/ (seconds): lab.sequences with the
+    lab camera and domain shift (stages/engine/lab_sets.py), each draw from the "heldout.lab" stream of the held-out
+    base, so no recording is one of `rpod lab`'s. The lab camera is the ZED's: one render serves both cameras."""
+    from pipeline.io.atomic import atomic_dir
+    from stages.engine.lab_sets import render_lab
+
+    t0, base = time.perf_counter(), heldout_seed(params)
+    with atomic_dir(HELDOUT / LAB) as tmp:
+        for d in range(LAB_DRAWS):
+            render_lab(params, tmp / f"draw{d + 1}", seed_for(base, "heldout.lab", d))
+    return time.perf_counter() - t0
+
+
+def _lab_camera(cameras: dict[str, Params], models: dict[str, Any], device: Any) -> dict[str, Any]:
+    """The lab half of the camera check: each camera's model on the held-out lab-like recordings read through the
+    real-data loader, against the synthetic-frame targets of its own camera (pipeline.evaluation.lab.chain_sequences:
+    the lab image is the same, the camera it is taken to be differs), paired by recording; tz on the frames within the
+    band for both cameras."""
+    from pipeline.evaluation.heldout import compare_models, pose_errors_by_frame
+    from pipeline.evaluation.lab import chain_sequences
+    from pipeline.pose.train import PoseDataset, predict
+    from stages.artifacts.recordings import read_recordings
+    from stages.engine.lab_sets import cameras as lab_cameras
+
+    errors = {}
+    for name, p in cameras.items():
+        recs = [r for d in range(LAB_DRAWS) for r in read_recordings(p, HELDOUT / LAB / f"draw{d + 1}")]
+        K_syn, K_zed = lab_cameras(p)
+        lab = p.lab
+        seqs, _ = chain_sequences(
+            recs, K_syn, K_zed, float(lab.scale), float(p.evaluate.p_start), lab.attack_length, lab.seed
+        )
+        targets = np.concatenate([q.targets for q in seqs])
+        ids = np.concatenate([np.full(len(q.targets), i) for i, q in enumerate(seqs)])
+        images = np.concatenate([q.images for q in seqs])
+        pred = predict(models[name], PoseDataset(images, targets, None, 0), device=device)
+        errors[name] = pose_errors_by_frame(pred, targets, ids)
+    both = np.isfinite(errors[CHOSEN]["tz_near_pct"]) & np.isfinite(errors[ALTERNATIVE]["tz_near_pct"])
+    for e in errors.values():
+        e["tz_near_pct"] = np.where(both, e["tz_near_pct"], np.nan)
+    return {"recordings": len(seqs), **compare_models(errors[CHOSEN], errors[ALTERNATIVE])}
+
+
+def _camera(params: Params, trial: Params, sets: dict[str, Any], models: dict[str, Any], device: Any) -> dict[str, Any]:
     """The committed standard model on the chosen camera's held-out frames against the fy360 trial's model on the
     same approaches rendered with its camera (pipeline.evaluation.heldout.compare_models)."""
     from pipeline.evaluation.heldout import compare_models, pose_errors_by_frame
     from pipeline.pose.train import PoseDataset, predict
 
-    models = {CHOSEN: load_pose(params).model, ALTERNATIVE: load_trial_pose(trial, POSE_TRIALS / ALTERNATIVE, device)}
     errors = {}
     for name, (images, poses) in sets.items():
         targets = poses[TARGET].to_numpy(np.float32)

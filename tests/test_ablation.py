@@ -161,7 +161,7 @@ def test_the_ablation_stage_writes_its_page_and_metrics(tmp_path, monkeypatch):
     for args in (["render"], ["label"], ["eval_render", "--detector"], ["eval_render"]):
         out = runner.invoke(app, args)
         assert out.exit_code == 0, (args, out.output, out.exception)
-    from stages.lab import render_lab
+    from stages.engine.lab_sets import render_lab
 
     render_lab(build(p), tmp_path / "datasets" / "lab")  # the lab stage's recordings (its models are not needed here)
     out = runner.invoke(app, ["ablation"])

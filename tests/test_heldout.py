@@ -119,3 +119,35 @@ def test_a_missing_fy360_trial_is_one_clear_error(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     with pytest.raises(StageError, match="pose_trial fy360"):
         heldout.main(build(params_mod.compose("smoke", [])))
+
+
+def test_the_page_gives_the_lab_half_of_the_camera_check_when_it_was_measured():
+    import json
+    from pathlib import Path
+
+    from stages.config import params as params_mod
+    from stages.config.schema import build
+    from stages.pages.heldout import heldout_page
+
+    m = json.loads((Path(__file__).resolve().parent.parent / "reports/metrics/heldout.json").read_text())
+    p = build(params_mod.compose("default", []))
+    m.pop("lab_camera", None)
+    assert "are not re-checked here" in heldout_page(m, p)
+    lab = {k: dict(m["camera"][k], verdict="reversed") for k in ("position_m", "attitude_deg", "tz_near_pct")}
+    page = heldout_page({**m, "lab_camera": {"recordings": 9, **lab}}, p)
+    assert "are not re-checked" not in page and "9\nheld-out lab-like recordings" in page
+    assert "; lab: position: reversed, attitude: reversed, tz at 10-30 m: reversed" in page
+
+
+def test_the_heldout_lab_recordings_are_drawn_apart_from_every_other_set():
+    """The held-out lab draws use their own stream on the held-out base: none is `rpod lab`'s or a trajectory's."""
+    for seed in (0, 1, 2):
+        base = run_base(seed, "heldout")
+        lab = {seed_for(base, "heldout.lab", d) for d in range(3)}
+        trajectories = {seed_for(base, "eval_render.trajectory", i) for i in range(100)}
+        others = {
+            seed_for(run_base(seed, s), "eval_render.trajectory", i)
+            for s in ("evaluate", "validation")
+            for i in range(100)
+        }
+        assert not lab & (trajectories | others | {seed_for(0, "lab"), seed_for(base, "background")})
