@@ -4,29 +4,10 @@ from __future__ import annotations
 
 import pytest
 import torch
+from tiny import TinyPose
 from torch import nn
 
 from pipeline.attacks.gradient import ATTACKS, attack_loss, fgsm, get_attack, mifgsm, pgd, quantize, stored_attack
-
-
-class TinyPose(nn.Module):
-    """Conv -> BN -> LeakyReLU -> GAP -> 9 outputs, like PoseNet in miniature."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.features = nn.Sequential(
-            nn.Conv2d(3, 8, 3, padding=1),
-            nn.BatchNorm2d(8),
-            nn.LeakyReLU(0.1),
-            nn.Conv2d(8, 16, 3, stride=2, padding=1),
-            nn.LeakyReLU(0.1),
-            nn.AdaptiveAvgPool2d(1),
-            nn.Flatten(),
-        )
-        self.head = nn.Linear(16, 9)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.head(self.features(x))
 
 
 class TinyLoss(nn.Module):

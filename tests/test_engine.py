@@ -6,6 +6,7 @@ import time
 
 import numpy as np
 import pytest
+import tiny
 from faults import exits_once
 
 from pipeline.io.store import open_zarr
@@ -17,14 +18,7 @@ from stages.engine import pool as engine
 from stages.engine.chunks import FrameRange, RenderSetup, RenderWorker
 from stages.errors import StageError
 
-TINY = [
-    "render.width=32",
-    "render.height=18",
-    "render.frames_per_sequence=2",
-    "render.samples=2",
-    "render.chunk=4",
-    "render.previews=1",
-]
+TINY = tiny.RENDER
 
 
 def _render(workdir, overrides):

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import tiny
 import zarr
 
 from pipeline.io.atomic import OWNER
@@ -23,15 +24,7 @@ from stages.config import params as params_mod
 from stages.config.params import load
 from stages.errors import StageError
 
-TINY = [
-    "render.width=32",
-    "render.height=18",
-    "render.frames_per_sequence=2",
-    "render.samples=2",
-    "render.chunk=4",
-    "render.previews=1",
-    "engine.workers=1",
-]
+TINY = [*tiny.RENDER, "engine.workers=1"]
 HOLD = (
     "import sys; from pipeline.io.atomic import exclusive\n"
     "with exclusive(sys.argv[1], 'x'):\n    print('held', flush=True); sys.stdin.read()"

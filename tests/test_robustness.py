@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from tiny import FEATURES as D
+from tiny import TinyPose
 from torch import nn
 
 from pipeline.attacks.adaptive import PerFrameChain, adaptive_objective, adaptive_pgd, check_lambdas
@@ -19,34 +21,6 @@ from pipeline.evaluation.robustness import attack_row, corruption_row, worst_by_
 from pipeline.pose.loss import PoseLoss
 from pipeline.shap import ExactShap
 from stages.config.params import load
-
-D = 16
-
-
-class TinyPose(nn.Module):
-    """Conv -> BN -> LeakyReLU -> GAP (D features) -> affine 9-output head, with PoseNet's two halves."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.features = nn.Sequential(
-            nn.Conv2d(3, 8, 3, padding=1),
-            nn.BatchNorm2d(8),
-            nn.LeakyReLU(0.1),
-            nn.Conv2d(8, D, 3, stride=2, padding=1),
-            nn.LeakyReLU(0.1),
-            nn.AdaptiveAvgPool2d(1),
-            nn.Flatten(),
-        )
-        self.head = nn.Linear(D, 9)
-
-    def forward_features(self, x: torch.Tensor) -> torch.Tensor:
-        return self.features(x)
-
-    def forward_head(self, f: torch.Tensor) -> torch.Tensor:
-        return self.head(f)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.forward_head(self.forward_features(x))
 
 
 @pytest.fixture()
