@@ -116,3 +116,16 @@ def test_report_check_flags_a_drifted_gaps_table(tmp_path, monkeypatch):
     (tmp_path / "README.md").write_text(replace_block(page, "gaps", "| a | 2.0 |"))
     result = CliRunner().invoke(app, ["report", "--check"])
     assert result.exit_code != 0 and "rpod gaps --sync-readme" in str(result.exception)
+
+
+def test_a_missing_source_is_one_line_naming_the_stage_that_writes_it(tmp_path, monkeypatch):
+    import shutil
+
+    shutil.copy(REPO / "params.yaml", tmp_path / "params.yaml")
+    (tmp_path / "reports" / "metrics").mkdir(parents=True)
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(app, ["gaps"])
+    assert result.exit_code != 0 and "reports/metrics/attitude.json not found: run `rpod attitude`" in str(
+        result.exception
+    )
+    assert not (tmp_path / "reports" / "gaps.md").exists()
