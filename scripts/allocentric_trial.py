@@ -7,7 +7,7 @@ so the same appearance anywhere in the image has the same label) and turns its p
 camera-frame attitudes with the predicted position (to_egocentric). Both models are compared on the
 **validation** split only (the decision); the test split is not read. The egocentric model is the run's
 models/pose.pt, trained by `rpod train` from the same seed and split (checkpoints are bit-identical run to
-run under one instruction-set cap, reports/benchmarks.md). Writes reports/trials.md (results only).
+run under one instruction-set cap, reports/benchmarks.md). Writes the section "Allocentric attitude" of reports/trials.md (results only).
 
 Usage (in a checkout that ran `dvc repro train`): python scripts/allocentric_trial.py [--epochs N]
 (--epochs: fewer than train.epochs for a quick check only; the comparison is fair at train.epochs).
@@ -113,21 +113,21 @@ def main(epochs: int | None = None) -> None:
             ("allocentric (this trial)", allo, result.best_epoch),
         )
     ]
+    from pipeline.report.markdown import replace_section
+
     text = _report(params, cfg.epochs, len(val_split), rows, diff)
-    atomic_write_text(ROOT / "reports" / "trials.md", text)
+    page = ROOT / "reports" / "trials.md"
+    old = page.read_text() if page.exists() else "# Trials\n"
+    atomic_write_text(page, replace_section(old, "Allocentric attitude", text))
     print(text)
 
 
 def _report(params: Any, epochs: int, n_val: int, rows: list[dict[str, Any]], diff: tuple[float, float, float]) -> str:
-    """reports/trials.md: the trial's recipe, the table `rows` on its `n_val` validation images and the paired
-    allocentric minus egocentric attitude error (mean, 95% interval; deg)."""
+    """reports/trials.md's section "Allocentric attitude": the trial's recipe, the table `rows` on its `n_val`
+    validation images and the paired allocentric minus egocentric attitude error (mean, 95% interval; deg)."""
     from pipeline.report.markdown import markdown_table
 
-    return f"""# Trials
-
-## Allocentric attitude
-
-`scripts/allocentric_trial.py`: the standard recipe (`train` params, seed {params.seed}, {epochs} epochs,
+    return f"""`scripts/allocentric_trial.py`: the standard recipe (`train` params, seed {params.seed}, {epochs} epochs,
 {params.render.width}x{params.render.height}) trained with allocentric attitude targets (relative to the viewing ray,
 turned back with the predicted position), against the egocentric model of `rpod train`, on the
 {n_val} **validation** images of the same split (the decision; the test split is not read).
