@@ -3,18 +3,16 @@ the shipped / control ratio is only claimed within what the two brackets allow."
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
+
+from script_loader import load_script
 
 REPO = Path(__file__).resolve().parent.parent
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("breaking_trial", REPO / "scripts" / "breaking_trial.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("breaking_trial")
 
 
 def _summary(failed: dict[str, int], breaking: float | None) -> dict:
