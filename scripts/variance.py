@@ -305,6 +305,50 @@ def _integrity_chains(m: Metrics) -> dict[str, Any]:
     return {name: c for name, c in chains.items() if isinstance(c, dict) and "summary" in c}
 
 
+def bracket(per_eps: dict[str, Any], breaking: float | None) -> tuple[float | None, float | None]:
+    """(held, broke): the largest eps flown below the breaking eps (no trajectory failed there) and the breaking eps,
+    so the chain's breaking point lies in (held, broke]; (the largest eps flown, None) when it never broke."""
+    flown = sorted(float(e) for e in per_eps)
+    held = [e for e in flown if breaking is None or e < breaking]
+    return (held[-1] if held else None), breaking
+
+
+def _bracket_text(b: tuple[float | None, float | None]) -> str:
+    held, broke = b
+    if broke is None:
+        return f"none (held at {held:g})" if held is not None else "none"
+    return f"({held:g}, {broke:g}]" if held is not None else f"<= {broke:g}"
+
+
+def ratio_range(shipped: tuple[float | None, float | None], control: tuple[float | None, float | None]) -> str:
+    """Where shipped / control of the breaking points can lie, from their brackets (held, broke]: above held_s /
+    broke_c and at most broke_s / held_c (no upper bound when the shipped chain never broke or the control broke at
+    the first eps)."""
+    (hs, bs), (hc, bc) = shipped, control
+    if bc is None:
+        return "- (the control did not break)"
+    high = f"at most {bs / hc:.2f}" if bs is not None and hc else "no upper bound"
+    return f"above {(hs / bc if hs else 0.0):.2f}, {high}"
+
+
+def ratio_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str, Any]]:
+    """Per run with both chains: the shipped chain's and the control's breaking brackets and their ratio's range."""
+    rows = []
+    for s, m in zip(seeds, metrics):
+        chains = _integrity_chains(m)
+        if "robust" in chains and "control" in chains:
+            b = {k: bracket(chains[k]["summary"]["per_eps"], chains[k]["summary"]["breaking_eps"]) for k in chains}
+            rows.append(
+                {
+                    "run": f"seed {s}",
+                    "shipped breaks in": _bracket_text(b["robust"]),
+                    "control breaks in": _bracket_text(b["control"]),
+                    "shipped / control": ratio_range(b["robust"], b["control"]),
+                }
+            )
+    return rows
+
+
 def pooled_chain_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str, Any]]:
     """Per chain: trajectories pooled over the runs, each run's breaking eps, the clean availability with a
     bootstrap over the pooled trajectories (pipeline/stats.py), and the largest clean error / AL."""
@@ -328,7 +372,9 @@ def pooled_chain_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str
                 "chain": name,
                 "runs": len(runs),
                 "trajectories": len(clean),
-                "breaking eps per run": ", ".join(f"seed {s}: {b['breaking_eps'] or 'none'}" for s, b in runs),
+                "breaking point per run (held, broke]": ", ".join(
+                    f"seed {s}: {_bracket_text(bracket(b['per_eps'], b['breaking_eps']))}" for s, b in runs
+                ),
                 "clean availability (%)": avail.pct(),
                 "clean max error / AL": max(t["max_error_al"] for t in clean),
             }
@@ -407,6 +453,10 @@ availability's interval is a bootstrap over the pooled trajectories.
 
 {markdown_table(chains, decimals=2)}
 {markdown_table(pooled_eps_rows(metrics, seeds), decimals=2)}
+A chain's breaking point lies between the largest eps it held at and the eps it broke at; issue 39's target asks the
+shipped chain's to be at least twice the control's. What the two brackets allow, per run:
+
+{markdown_table(ratio_rows(metrics, seeds))}
 The closed loop (true-state dynamics, reports/guidance.md): mission failure = collision, lost target or a docking
 miss beyond the tolerance; attacked runs that met their attack, pooled over the runs.
 
