@@ -314,3 +314,26 @@ def test_clean_availability_is_split_by_true_range_and_the_page_says_where_it_is
     text = _where_unavailable(integrity)
     assert "0-15 m 0% of 40" in text and "beyond 30 m 100%" in text and "never judged" in text
     assert _where_unavailable({"chains": {"robust": {"summary": {"clean": {}}}}}) == ""  # older metrics: nothing
+
+
+def test_an_eps_a_chain_did_not_fly_is_a_row_of_dashes_not_nan() -> None:
+    """The safety-index table: the eps after a chain broke say so, with "-" in every other column."""
+    from pipeline.report.markdown import markdown_table
+    from stages.pages.integrity import INDEX_COLUMNS, _safety_index
+
+    flown = {
+        "max_error_al": 1.4,
+        "max_error_al_single": 0.3,
+        "max_error_pl": 2.0,
+        "final_error_max_m": 1.5,
+        "failed": 1,
+        "trajectories": 2,
+        "worst_attacker": "capture",
+        "hmi_trajectories": {"value": 0.5, "ci": [0.01, 0.99]},
+        "stanford": {"nominal": 10},
+    }
+    summary = {"per_eps": {"0.05": flown}, "breaking_eps": 0.05, "clean": {"stanford": {"nominal": 12}}}
+    index, _ = _safety_index({"eps": [0.05, 0.1]}, {"standard": {"summary": summary}})
+    assert list(index[0]) == list(INDEX_COLUMNS) and list(index[1]) == list(INDEX_COLUMNS)
+    table = markdown_table(index)
+    assert "nan" not in table and "not flown (broken at 0.05)" in table

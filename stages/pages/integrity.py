@@ -175,6 +175,19 @@ def _points(chains: dict[str, Any]) -> list[dict[str, Any]]:
     ]
 
 
+INDEX_COLUMNS = (  # the safety-index table's columns
+    "chain",
+    "eps",
+    "max error / AL",
+    "max error / AL single-frame",
+    "max error / PL",
+    "largest final error (m)",
+    "trajectories failed",
+    "worst attacker",
+    "trajectories with HMI (%)",
+)
+
+
 def _safety_index(
     integrity: dict[str, Any], chains: dict[str, Any]
 ) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
@@ -185,9 +198,14 @@ def _safety_index(
         s = v["summary"]
         for e in integrity["eps"]:
             row = s["per_eps"].get(f"{e:g}")
-            if row is None:
+            if row is None:  # the other columns "-" (not NaN)
                 index.append(
-                    {"chain": k, "eps": f"{e:g}", "max error / AL": f"not flown (broken at {_eps(s['breaking_eps'])})"}
+                    dict.fromkeys(INDEX_COLUMNS, "-")
+                    | {
+                        "chain": k,
+                        "eps": f"{e:g}",
+                        "max error / AL": f"not flown (broken at {_eps(s['breaking_eps'])})",
+                    }
                 )
                 continue
             index.append(
