@@ -305,45 +305,24 @@ def _integrity_chains(m: Metrics) -> dict[str, Any]:
     return {name: c for name, c in chains.items() if isinstance(c, dict) and "summary" in c}
 
 
-def bracket(per_eps: dict[str, Any], breaking: float | None) -> tuple[float | None, float | None]:
-    """(held, broke): the largest eps flown below the breaking eps (no trajectory failed there) and the breaking eps,
-    so the chain's breaking point lies in (held, broke]; (the largest eps flown, None) when it never broke."""
-    flown = sorted(float(e) for e in per_eps)
-    held = [e for e in flown if breaking is None or e < breaking]
-    return (held[-1] if held else None), breaking
-
-
-def _bracket_text(b: tuple[float | None, float | None]) -> str:
-    held, broke = b
-    if broke is None:
-        return f"none (held at {held:g})" if held is not None else "none"
-    return f"({held:g}, {broke:g}]" if held is not None else f"<= {broke:g}"
-
-
-def ratio_range(shipped: tuple[float | None, float | None], control: tuple[float | None, float | None]) -> str:
-    """Where shipped / control of the breaking points can lie, from their brackets (held, broke]: above held_s /
-    broke_c and at most broke_s / held_c (no upper bound when the shipped chain never broke or the control broke at
-    the first eps)."""
-    (hs, bs), (hc, bc) = shipped, control
-    if bc is None:
-        return "- (the control did not break)"
-    high = f"at most {bs / hc:.2f}" if bs is not None and hc else "no upper bound"
-    return f"above {(hs / bc if hs else 0.0):.2f}, {high}"
-
-
 def ratio_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str, Any]]:
-    """Per run with both chains: the shipped chain's and the control's breaking brackets and their ratio's range."""
+    """Per run with both chains: the shipped chain's and the control's breaking brackets, where their ratio lies
+    and whether it is at least TARGET_RATIO (stages.pages.integrity.ratio_verdict)."""
+    from stages.pages.integrity import TARGET_RATIO, bracket_text, breaking_bracket, ratio_verdict
+
     rows = []
     for s, m in zip(seeds, metrics):
         chains = _integrity_chains(m)
         if "robust" in chains and "control" in chains:
-            b = {k: bracket(chains[k]["summary"]["per_eps"], chains[k]["summary"]["breaking_eps"]) for k in chains}
+            b = {k: breaking_bracket(c["summary"]["per_eps"], c["summary"]["breaking_eps"]) for k, c in chains.items()}
+            verdict, ratio = ratio_verdict(b["robust"], b["control"], TARGET_RATIO)
             rows.append(
                 {
                     "run": f"seed {s}",
-                    "shipped breaks in": _bracket_text(b["robust"]),
-                    "control breaks in": _bracket_text(b["control"]),
-                    "shipped / control": ratio_range(b["robust"], b["control"]),
+                    "shipped breaks in": bracket_text(b["robust"]),
+                    "control breaks in": bracket_text(b["control"]),
+                    "shipped / control": ratio,
+                    f">= {TARGET_RATIO:g}x": verdict,
                 }
             )
     return rows
@@ -355,6 +334,7 @@ def pooled_chain_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str
     import numpy as np
 
     from pipeline.stats import bootstrap_rate
+    from stages.pages.integrity import bracket_text, breaking_bracket
 
     rows = []
     for chain, name in POOLED_CHAINS.items():
@@ -373,7 +353,7 @@ def pooled_chain_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str
                 "runs": len(runs),
                 "trajectories": len(clean),
                 "breaking point per run (held, broke]": ", ".join(
-                    f"seed {s}: {_bracket_text(bracket(b['per_eps'], b['breaking_eps']))}" for s, b in runs
+                    f"seed {s}: {bracket_text(breaking_bracket(b['per_eps'], b['breaking_eps']))}" for s, b in runs
                 ),
                 "clean availability (%)": avail.pct(),
                 "clean max error / AL": max(t["max_error_al"] for t in clean),

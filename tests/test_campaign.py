@@ -199,7 +199,8 @@ def test_the_robustness_page_leads_with_the_breaking_point_and_says_which_target
     verdicts = dict((t.split(":")[0] if ":" in t else t, v) for t, v, _ in targets(broken))
     first = lead(broken, p).splitlines()[2]
     assert "Targets not met" in first and "clean availability" in first and "shipped 0.05" in first
-    assert list(verdicts.values()).count("**missed**") == 3  # shipped at eps <= 0.05, the ratio, availability
+    assert list(verdicts.values()).count("**missed**") == 2  # shipped at eps <= 0.05, availability
+    assert verdicts["shipped breaking eps >= 2 x the control's"] == "not shown"  # both in (0.01, 0.05]: cannot tell
     no_control = _integrity({"robust": None, "standard": 0.01, "control": None})
     assert targets(no_control)[0][1] == "**missed**" and targets(no_control)[2][1] == "not shown"
 
@@ -337,3 +338,23 @@ def test_an_eps_a_chain_did_not_fly_is_a_row_of_dashes_not_nan() -> None:
     assert list(index[0]) == list(INDEX_COLUMNS) and list(index[1]) == list(INDEX_COLUMNS)
     table = markdown_table(index)
     assert "nan" not in table and "not flown (broken at 0.05)" in table
+
+
+def test_a_breaking_point_is_a_bracket_and_a_ratio_is_judged_only_where_the_brackets_agree() -> None:
+    """(held, broke] from the eps flown; "met" needs the shipped chain to have held at twice the eps where the other
+    broke, "missed" needs it to have broken below twice the eps where the other held; otherwise "not shown"."""
+    from stages.pages.integrity import bracket_text, breaking_bracket, ratio_verdict
+
+    assert breaking_bracket({"0.01": {}, "0.05": {}, "0.1": {}}, 0.1) == (0.05, 0.1)
+    assert breaking_bracket({"0.01": {}, "0.2": {}}, None) == (0.2, None)  # never broke: held at the last eps
+    assert breaking_bracket({"0.01": {}}, 0.01) == (None, 0.01)  # broke at the first eps
+    assert [bracket_text(b) for b in ((0.07, 0.1), (0.2, None), (None, 0.01))] == [
+        "(0.07, 0.1]",
+        "none (held at 0.2)",
+        "<= 0.01",
+    ]
+    assert ratio_verdict((0.07, 0.1), (0.07, 0.1), 2.0) == ("**missed**", "ratio above 0.70, at most 1.43")
+    assert ratio_verdict((0.2, None), (0.07, 0.1), 2.0) == ("met", "ratio above 2.00")
+    verdict, text = ratio_verdict((0.14, 0.2), (0.07, 0.1), 2.0)  # the point values alone (0.2 vs 0.1) would say met
+    assert verdict == "not shown" and "above 1.40, at most 2.86" in text
+    assert ratio_verdict((0.2, None), (0.2, None), 2.0)[0] == "not shown"  # the other never broke

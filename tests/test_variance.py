@@ -234,19 +234,8 @@ def test_the_campaign_trajectories_pool_over_the_seed_runs(tmp_path):
     assert pooled["runs"] == 1 and pooled["trajectories"] == 4
 
 
-def test_a_breaking_point_is_bracketed_by_the_eps_held_at_and_the_eps_broken_at():
-    variance = _load()
-    assert variance.bracket({"0.01": {}, "0.05": {}, "0.1": {}}, 0.1) == (0.05, 0.1)
-    assert variance.bracket({"0.01": {}, "0.2": {}}, None) == (0.2, None)  # never broke: held at the last eps
-    assert variance.bracket({"0.01": {}}, 0.01) == (None, 0.01)  # broke at the first eps
-
-
 def test_the_shipped_over_control_ratio_is_only_claimed_within_both_brackets(tmp_path):
     variance = _load()
-    assert variance.ratio_range((0.1, 0.14), (0.05, 0.07)) == "above 1.43, at most 2.80"
-    assert variance.ratio_range((0.2, None), (0.1, 0.14)) == "above 1.43, no upper bound"
-    assert variance.ratio_range((0.1, 0.14), (None, 0.01)) == "above 10.00, no upper bound"
-    assert variance.ratio_range((0.1, 0.14), (0.2, None)).startswith("-")
     run = _run(tmp_path, 0, 0.4, None)
     _campaign(run, {"0.01": (0, 4, 0.02), "0.07": (0, 4, 0.2), "0.1": (1, 4, 1.3)}, 0.8)
     path = run / "reports" / "metrics" / "robustness.json"
@@ -261,5 +250,6 @@ def test_the_shipped_over_control_ratio_is_only_claimed_within_both_brackets(tmp
         "run": "seed 0",
         "shipped breaks in": "(0.07, 0.1]",
         "control breaks in": "(0.01, 0.07]",
-        "shipped / control": "above 1.00, at most 10.00",
+        "shipped / control": "ratio above 1.00, at most 10.00 (the grid cannot tell)",
+        ">= 2x": "not shown",
     }

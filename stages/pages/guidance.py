@@ -321,7 +321,7 @@ def docking_targets(d: dict[str, Any]) -> list[tuple[str, str, str]]:
     ts = d["variants"].get("true_state", {})
     if not ts:
         return []
-    und, rec = ts.get("undefended", {}).get("breaking_eps"), ts.get("recover", {}).get("breaking_eps")
+    und = ts.get("undefended", {}).get("breaking_eps")
     falsifiable = und is not None and und > 0  # failing without attack shows nothing about the attacks
     small = [x for k, x in ts.get("recover", {}).get("per_eps", {}).items() if float(k) <= TARGET_EPS]
     failed = sum(x["failed"] for x in small)
@@ -338,12 +338,27 @@ def docking_targets(d: dict[str, Any]) -> list[tuple[str, str, str]]:
             f"no-attack run {clean_ok.get('outcome', '-')} ({clean_ok.get('miss', float('nan')):.2f} m); "
             f"{failed} failed of {sum(x['met'] for x in small)} attacked runs up to eps {TARGET_EPS:g}",
         ),
-        (
-            "detect-and-recover breaking eps >= 2 x the undefended chain's",
-            "not shown" if und in (None, 0.0) else "met" if rec is None or rec >= 2 * und - 1e-12 else "**missed**",
-            f"recover {_break(rec)}, undefended {_break(und)}",
-        ),
+        _ratio_target(ts),
     ]
+
+
+def _ratio_target(ts: dict[str, Any]) -> tuple[str, str, str]:
+    """Detect-and-recover's breaking point against twice the undefended chain's, from their brackets (held, broke]
+    (stages.pages.integrity.ratio_verdict); not shown when the undefended chain never broke or fails unattacked."""
+    from stages.pages.integrity import bracket_text, breaking_bracket, ratio_verdict
+
+    rec, und = (
+        breaking_bracket(ts.get(k, {}).get("per_eps", {}), ts.get(k, {}).get("breaking_eps"))
+        for k in ("recover", "undefended")
+    )
+    verdict, ratio = ratio_verdict(rec, und, 2.0)
+    if und[1] == 0:
+        verdict, ratio = "not shown", "the undefended chain fails without attack"
+    return (
+        "detect-and-recover breaking eps >= 2 x the undefended chain's",
+        verdict,
+        f"recover {bracket_text(rec)}, undefended {bracket_text(und)}: {ratio}",
+    )
 
 
 def closed_loop_section(d: dict[str, Any], p: Params) -> str:

@@ -5,7 +5,7 @@ same frames unattacked); the attackers' names in words for the other pages."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Optional
 
 from stages.config.schema import Params
 
@@ -49,6 +49,42 @@ def _eps(x: float | None) -> str:
     return "none in the grid" if x is None else f"{x:g}"
 
 
+Bracket = tuple[Optional[float], Optional[float]]  # (held at, broke at): a breaking point lies in (held, broke]
+
+
+def breaking_bracket(per_eps: dict[str, Any], breaking: float | None) -> Bracket:
+    """(held, broke): the largest eps flown below the breaking eps (no run failed there) and the breaking eps, so the
+    breaking point lies in (held, broke]; (the largest eps flown, None) when the chain never broke, held None when it
+    broke at the first eps. `per_eps`: keyed by the eps flown ("%g")."""
+    flown = sorted(float(e) for e in per_eps)
+    held = [e for e in flown if breaking is None or e < breaking]
+    return (held[-1] if held else None), breaking
+
+
+def bracket_text(b: Bracket) -> str:
+    held, broke = b
+    if broke is None:
+        return "none in the grid" if held is None else f"none (held at {held:g})"
+    return f"({held:g}, {broke:g}]" if held is not None else f"<= {broke:g}"
+
+
+def ratio_verdict(a: Bracket, b: Bracket, target: float) -> tuple[str, str]:
+    """Whether a chain's breaking point is at least `target` times another's, from their brackets: "met" when `a`
+    held at `target` x the eps where `b` broke, "**missed**" when `a` broke below `target` x the eps where `b` held,
+    "not shown" when the brackets allow both (or `b` never broke); and where the ratio lies, in words."""
+    (ha, ba), (hb, bb) = a, b
+    if not bb:
+        return "not shown", "the other did not break in the grid"
+    low = ha / bb if ha else 0.0
+    high = ba / hb if ba is not None and hb else None
+    text = f"ratio above {low:.2f}" + ("" if high is None else f", at most {high:.2f}")
+    if low >= target - 1e-12:
+        return "met", text
+    if high is not None and high < target:
+        return "**missed**", text
+    return "not shown", f"{text} (the grid cannot tell)"
+
+
 def targets(integrity: dict[str, Any]) -> list[tuple[str, str, str]]:
     """Issue 39's targets on the open-loop evidence: (target, "met" / "**missed**" / "not shown", evidence)."""
     chains = integrity["chains"]
@@ -77,18 +113,15 @@ def targets(integrity: dict[str, Any]) -> list[tuple[str, str, str]]:
             + (f"; failed at eps {', '.join(f'{e:g}' for e in failed)}" if failed else ""),
         )
     )
-    b = shipped["breaking_eps"]
-    top = max(shipped["eps_flown"], default=None)
-    if c is None:
-        ratio = ("not shown", "the control did not break in the grid")
-    elif b is None:
-        ratio = (
-            "met" if top is not None and top >= TARGET_RATIO * c else "not shown",
-            f"shipped held to eps {_eps(top)}, control broke at {c:g}",
+    bs, bc = (breaking_bracket(x["per_eps"], x["breaking_eps"]) for x in (shipped, control))
+    verdict, ratio = ratio_verdict(bs, bc, TARGET_RATIO)
+    out.append(
+        (
+            f"shipped breaking eps >= {TARGET_RATIO:g} x the control's",
+            verdict,
+            f"shipped {bracket_text(bs)}, control {bracket_text(bc)}: {ratio}",
         )
-    else:
-        ratio = ("met" if b >= TARGET_RATIO * c - 1e-12 else "**missed**", f"shipped {b:g}, control {c:g}")
-    out.append((f"shipped breaking eps >= {TARGET_RATIO:g} x the control's", *ratio))
+    )
     avail = shipped["clean"]["availability"]
     alarms = shipped["clean"]["false_alarms"]
     out.append(
