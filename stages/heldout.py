@@ -56,7 +56,8 @@ def main(params: Params) -> None:
 
     Params: `seed` (the held-out base follows it), `evaluate.trajectories`, `frames`, `lateral_range`,
     `batch_size`; `guidance.execution` (the flown motion); `camera`, `render`; `defense` (the calibration's
-    budget and shares); `train.adversarial.black_level`, `lab.domain_shift` (the clamp's check); `engine`.
+    budget and shares); `train.adversarial.black_level`, `lab.domain_shift` (the clamp's check); `lab` (the held-out lab-like
+    recordings: its sequences, mock-up, camera and loader); `engine`.
     Needs datasets/pose_trials/fy360 (`rpod pose_trial fy360`).
     """
     from stages.config.device import torch_setup

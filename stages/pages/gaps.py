@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from stages.pages.attitude import ci
 from stages.pages.paper import ATTITUDE_DEG, DETECTOR_ACCURACY, INTEGRATED_EPS, LAB_EPS
 
 EPS = "0.01"
@@ -177,9 +178,8 @@ def gaps(attitude: dict[str, Any], ablation: dict[str, Any], detect: dict[str, A
 
 
 def _v(x: list[float], unit: str, sign: bool = False) -> str:
-    d = 2 if unit == "deg" else 1
-    f = f"{{:+.{d}f}}" if sign else f"{{:.{d}f}}"
-    return f"{f.format(x[0])} [{f.format(x[1])}, {f.format(x[2])}]"
+    """(value, lo, hi) in the row's unit: 2 decimals for degrees, 1 for percentage points."""
+    return ci(x, 2 if unit == "deg" else 1, sign)
 
 
 def table(rows: list[dict[str, Any]]) -> str:
@@ -199,7 +199,7 @@ def table(rows: list[dict[str, Any]]) -> str:
                 "paper": f"{g['paper']:.2f}",
                 "measured causes, each towards the paper": causes,
                 "together": _v(g["together"], u, True),
-                "share of the gap (%)": "{:.0f} [{:.0f}, {:.0f}]".format(*(100 * x for x in g["explained"])),
+                "share of the gap (%)": ci([100 * x for x in g["explained"]], 0),
                 "left unexplained": _v(g["left"], u),
                 "not measured": g["not_measured"],
             }
