@@ -165,7 +165,8 @@ def _integrity(breaking: dict[str, float | None], shipped_failed: int = 0, avail
         "stop_at_break": True,
         "assumptions": {
             "trusted_start_frames": 20,
-            "position_noise_m": 0.022,
+            "position_noise_m": 0.01,
+            "position_noise_scale": 0.02,
             "noise_model": "fitted",
             "detector": {"fusion": "or", "threshold": 0.61},
             "execution": {

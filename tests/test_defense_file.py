@@ -182,6 +182,7 @@ settings_values = st.fixed_dictionaries(
         "fusion": st.sampled_from(["paper", "motion", "or"]),
         "false_alarm": st.floats(1e-9, 1 - 1e-9),
         "position_noise": st.floats(1e-6, 1000),
+        "position_noise_scale": st.floats(0, 1),
         "soft_gate": st.floats(1e-6, 1),
         "reacquire_after": st.integers(2, 10_000_000),
         "trusted_start": st.integers(0, 10_000_000),

@@ -102,10 +102,11 @@ def test_the_builders_follow_the_params():
 
 def test_the_execution_error_and_the_frame_attack_follow_the_params():
     """guidance.execution reaches the library with its seed; the evaluation's 0.25 m frames keep the closed loop's
-    speed (2.5 s); defense.position_noise is that error's std for a guidance.max_step step; the drift's and the
+    speed (2.5 s); the filter's process noise (defense.position_noise, position_noise_scale) is that error's std for
+    any step: a guidance.max_step step and an evaluation frame's 0.25 m; the drift's and the
     capture's per-frame attack lifts the background and passes the clamp."""
     from pipeline.attackers.drift import TargetedPGD
-    from stages.config.build import capture_settings, execution_settings, frame_attack
+    from stages.config.build import capture_settings, defense_settings, execution_settings, frame_attack
     from stages.config.schema import build
 
     p = build(params_mod.compose("default"))
@@ -119,7 +120,9 @@ def test_the_execution_error_and_the_frame_attack_follow_the_params():
         5,
     )
     assert (frames.frame_interval, frames.seed) == (2.5, 6)
-    assert abs(p.defense.position_noise - loop.step_std(p.guidance.max_step)) < 1e-3
+    motion = defense_settings(p.defense, 0.5)[1]
+    for step in (p.guidance.max_step, 0.25):
+        assert abs(motion.step_variance(step) ** 0.5 - loop.step_std(step)) < 1e-3
     assert frame_attack(p) == TargetedPGD(steps=p.integrity.frame_steps, start="lift", bpda=True)
     c = capture_settings(p, "los", 5.0)
     assert (c.direction, c.initial, c.rate, c.gate_fraction) == ("los", 5.0, 0.0, 0.5)

@@ -120,6 +120,39 @@ def test_the_noise_term_starts_from_the_covariance_after_the_trusted_frames() ->
     assert noise_term > 1.5 * kappa(SHIPPED.integrity_risk) * np.sqrt(np.linalg.eigvalsh(f.pos.P)[-1])
 
 
+def test_each_steps_execution_error_follows_the_size_of_its_command() -> None:
+    """With a part of the execution error proportional to the step (position_noise_scale), each predicted frame
+    adds hypot(position_noise, scale |u_k|)^2 to the filter's covariance and to the PL's noise term, P_T + sum_k
+    Q_k: a long step more than a short one, a hold (u = 0) only the step-independent part; scale 0 is the
+    constant process noise exactly."""
+    from pipeline.defense.kalman import MotionFilter
+    from pipeline.defense.protection import kappa
+
+    scaled = dataclasses.replace(SHIPPED, position_noise=0.01, position_noise_scale=0.02, trusted_start=0)
+    assert scaled.step_variance(1.0) == pytest.approx(0.01**2 + 0.02**2)
+    steps = [np.array([0.0, 0.0, -s]) for s in (1.0, 0.25, 0.0, 2.0)]
+    for settings in (scaled, dataclasses.replace(scaled, position_noise_scale=0.0)):
+        f = MotionFilter(settings, NOISE)
+        f.start_from(np.array([1.0, -1.0, 40.0]), np.eye(3))
+        P_T, added = f.pos.P, 0.0
+        for u in steps:
+            before = f.pos.P
+            f.check(np.array([1.0, -1.0, 40.0]) + u, np.eye(3), u)
+            var = settings.step_variance(float(np.linalg.norm(u)))
+            assert np.allclose(f.pos.P - before, var * np.eye(3))  # coasting: the prediction's growth alone
+            f.coast()
+            added += var
+        C = P_T + added * np.eye(3)
+        assert f.protection_level == pytest.approx(
+            kappa(settings.integrity_risk) * np.sqrt(np.linalg.eigvalsh(C)[-1]) + f.protection.bias()
+        )
+    constant = ProtectionLevel(1.0, 3.0, 1e-5, 0.022)
+    constant.anchor(np.eye(3).tolist())
+    for _ in range(7):
+        constant.step()
+    assert constant.level(np.eye(3).tolist()) == kappa(1e-5) * np.sqrt(1.0 + 7 * 0.022**2)
+
+
 def test_calibrated_checks_meet_their_shares_on_heavy_tailed_clean_runs() -> None:
     """Each check set to its share on clean runs whose errors are heavier-tailed than the fitted
     Gaussian: the gate needs an inflation, the sequential test a threshold; then the fused chain's

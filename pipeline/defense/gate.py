@@ -27,9 +27,11 @@ from pipeline.settings import In
 
 @dataclass(frozen=True)
 class MotionSettings:
-    """Filter settings. position_noise: std of the execution error of the chaser's commanded
-    displacement per frame (m; the position state has no free velocity: the chaser commands its
-    relative motion); attitude_noise_deg and attitude_rate_noise_deg: the target attitude's
+    """Filter settings. position_noise and position_noise_scale: the execution error of the chaser's
+    commanded displacement per frame, its std per axis hypot(position_noise, position_noise_scale |u|)
+    (m; `step_std`: a part independent of the step and a part proportional to the commanded step u, as
+    thrusters err; the position state has no free velocity: the chaser commands its relative motion);
+    attitude_noise_deg and attitude_rate_noise_deg: the target attitude's
     unmodelled rotation and rate change per frame (deg, deg/frame; the target's tumble is not
     commanded); false_alarm: the gate's false-alarm probability per frame on motion consistent with
     the model, in (0, 1); soft_gate: fraction of the gate's NIS above which an accepted frame is
@@ -42,6 +44,7 @@ class MotionSettings:
     assumption A, pipeline/defense/protection.py: the detector alone guards them)."""
 
     position_noise: Annotated[float, In("(0, 1000]", "metres per frame")] = 0.005
+    position_noise_scale: Annotated[float, In("[0, 1]", "fraction of the commanded step")] = 0.0
     attitude_noise_deg: Annotated[float, In("(0, 180]", "degrees per frame")] = 0.5
     attitude_rate_noise_deg: Annotated[float, In("(0, 180]", "degrees per frame per frame")] = 0.05
     false_alarm: Annotated[float, In("(0, 1)", "probability per frame")] = 0.001
@@ -55,6 +58,10 @@ class MotionSettings:
     def __post_init__(self) -> None:
         for name in ("position_noise", "attitude_noise_deg", "attitude_rate_noise_deg", "cusum_threshold"):
             check_positive(f"defense.{name}", getattr(self, name))
+        if not (np.isfinite(self.position_noise_scale) and 0 <= self.position_noise_scale <= 1):
+            raise ValueError(
+                f"defense.position_noise_scale must be a fraction of the step in [0, 1], got {self.position_noise_scale}"
+            )
         if not 0 < float(self.false_alarm) < 1:
             raise ValueError(f"defense.false_alarm is a gate probability and must be in (0, 1), got {self.false_alarm}")
         if not 0 < float(self.soft_gate) <= 1:
@@ -67,6 +74,10 @@ class MotionSettings:
             raise ValueError(f"defense.trusted_start must be a whole number of frames >= 0, got {self.trusted_start}")
         if not 0 < float(self.integrity_risk) < 1:
             raise ValueError(f"defense.integrity_risk must be a probability in (0, 1), got {self.integrity_risk}")
+
+    def step_variance(self, step: float) -> float:
+        """The execution error's variance per axis (m^2) of a commanded displacement of length `step` (m)."""
+        return self.position_noise**2 + (self.position_noise_scale * float(step)) ** 2
 
     @property
     def gate(self) -> float:

@@ -6,8 +6,9 @@ Frames (those of pipeline/geometry/trajectories.py). The filter works in the tar
 its own camera attitude R_c (camera -> world) and the displacement of `rel` it commanded since the
 previous frame (`u`, world axes, metres), so a camera-frame estimate t_pred becomes the world
 measurement z = R_c t_pred, and the position state is rel alone: rel_k = rel_{k-1} + u_k + w_k, w_k
-the command's execution error (std `position_noise` per axis; the truth's execution error, which the
-filter is never told, is pipeline/guidance/dynamics.py's: set position_noise to its `step_std`, or
+the command's execution error (std hypot(position_noise, position_noise_scale |u_k|) per axis: the filter
+knows the command, so it knows the step's size; the truth's execution error, which the filter is never
+told, is pipeline/guidance/dynamics.py's: set the two to its noise_std and scale_std, or position_noise
 near zero where the commands are executed exactly). There is no free drift-velocity state: a chaser commands its own relative
 motion, and a velocity state would let a slowly growing bias (a drift attack) be absorbed as motion
 (Mo and Sinopoli 2010). The target attitude R_tw (target -> world, measured as R_c R_pred) follows a
@@ -87,6 +88,7 @@ class MotionFilter:
         self._tested = False  # the pending frame went through the sequential test
         self._trusted = 0  # frames after the start the protection level assumes fault-free
         self._moved = [0.0] * 3  # sum of the commanded displacements so far (world, m)
+        self._var: float | None = None  # the last step's process noise per axis (m^2; None: position_noise^2)
         self._candidates: list[tuple[list[float], Mat3, Mat3 | None]] = []
         self._history: deque[list[float]] = deque(maxlen=2 * settings.reacquire_after)
         self._last: tuple[list[float], Mat3, Mat3 | None] | None = None
@@ -177,8 +179,9 @@ class MotionFilter:
             u = float_lists(u)
             self._moved = [m + d for m, d in zip(self._moved, u)]
         self._tested = False
-        self.pos.predict(u)
-        self.protection.step()
+        var = self._step_variance(u)
+        self.pos.predict(u, var)
+        self.protection.step(var)
         self.att.predict()
         self.R_tw = mm(self.R_tw, rotmat_list(self.att.take_level()))
         predicted = self.position
@@ -204,6 +207,15 @@ class MotionFilter:
             att = (dth, var)
         bad = nis_p > self.gate or (not math.isnan(nis_a) and nis_a > self.gate)
         return self._stash(MotionCheck(nis_p, nis_a, bool(bad), predicted), (y, Rz, s_inv, att, r, sigma, R_cam))
+
+    def _step_variance(self, u: list[float] | None) -> float | None:
+        """The process noise per axis (m^2) of the step u (None: the filter's own, position_noise^2); the last
+        one is kept for `reacquire`."""
+        if u is None or self.settings.position_noise_scale == 0:
+            self._var = None
+        else:
+            self._var = self.settings.step_variance(math.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]))
+        return self._var
 
     def _stash(self, check: MotionCheck, pending: tuple | None) -> MotionCheck:
         self._pending = (check, pending)
@@ -299,7 +311,7 @@ class MotionFilter:
         tolerance = 2.0 * math.sqrt(self.gate * largest_eigenvalue((cov + np.array(candidates[-1][1])).tolist()))
         self.start(
             mean,
-            cov + np.eye(3) * (M * self.settings.position_noise) ** 2,
+            cov + np.eye(3) * M**2 * (self.settings.position_noise**2 if self._var is None else self._var),
             candidates[-1][2],
             offset=self.protection.bias() + tolerance,
         )

@@ -89,11 +89,11 @@ class Kalman3:
         self.level = [float(v) for v in level]
         self.A = [[float(v) for v in row] for row in level_cov]
 
-    def predict(self, u: Sequence[float] | None = None) -> None:
-        """level += u; P += Q."""
+    def predict(self, u: Sequence[float] | None = None, var: float | None = None) -> None:
+        """level += u; P += Q, Q = var I (m^2 per axis; None: q_level^2, the filter's own)."""
         if u is not None:
             self.level = [a + d for a, d in zip(self.level, u)]
-        self.A = add(self.A, eye(self.q_level))
+        self.A = add(self.A, eye(self.q_level if var is None else var))
 
     def innovation_inverse(self, R: Mat3) -> Mat3:
         """S^-1 with S = P + R (3, 3)."""

@@ -2,7 +2,8 @@
 construction adapted to the motion filter of pipeline/defense/kalman.py).
 
 Model (world axes, metres). The chaser commands its own relative motion: rel_k = rel_{k-1} + u_k + w_k,
-u_k known, w_k the execution error (std `position_noise` per axis); the measurement of frame k is
+u_k known, w_k the execution error (N(0, Q_k), Q_k = q_k^2 I, q_k = hypot(position_noise,
+position_noise_scale |u_k|) per axis: pipeline/defense/gate.py `step_variance`); the measurement of frame k is
 z_k = rel_k + v_k + f_k, v_k the pose model's noise (pipeline/defense/noise.py: covariance R_k), f_k a
 fault (an attack's shift). The filter predicts x_k^- = x_{k-1} + u_k, and on a frame it accepts updates
 x_k = x_k^- + K_k nu_k with the innovation nu_k = z_k - x_k^- (a frame it leaves out coasts: x_k = x_k^-).
@@ -32,11 +33,12 @@ not in the sequence. An alarm restarts the test (pipeline/defense/sequential.py)
 holds within each segment between alarms, the alarming frame is left out (W = 0), so the next
 segment's first weight counts in full in TV+ and the bound is the sum of the segments' bounds.
 
-Noise term. e_T - sum w_k ~ N(0, P_T + (n - T) Q), Q = position_noise^2 I: the covariance of the
-filter at T (a fault-free filter there, A) plus the execution error's random walk since; its norm is at
-most kappa sqrt(lambda_max(.)) with probability 1 - integrity_risk, kappa^2 the chi-square(3) quantile.
-Hence, after T,
-    PL_n = kappa sqrt(lambda_max(P_T + (n - T) Q)) + |b| (+ a restart's carried offset, below),
+Noise term. e_T - sum w_k ~ N(0, P_T + sum_{T < k <= n} Q_k): the covariance of the filter at T (a
+fault-free filter there, A) plus the execution error's random walk since, each step's variance from the
+size of its command (the filter is told the command; a step-independent part and a part proportional to the
+step, as thrusters err); its norm is at most kappa sqrt(lambda_max(.)) with probability 1 - integrity_risk,
+kappa^2 the chi-square(3) quantile. Hence, after T,
+    PL_n = kappa sqrt(lambda_max(P_T + sum_k Q_k)) + |b| (+ a restart's carried offset, below),
 and on the trusted frames before T, PL_n = kappa sqrt(lambda_max(P_n)) (the filter is fault-free there).
 
 Why the whole innovation (the missed-detection allowance). An earlier form split e = e^0 + e^f (the same
@@ -45,10 +47,10 @@ test saw the fault alone, with kappa sqrt(lambda_max(P_n)) for e^0. The test see
 an attacker who knows the noise (white box: the clean estimates are the network's outputs) spends its
 slack: shifts that cancel the noise's innovations (every measurement on the prediction) freeze the filter
 at its error at T while the test sees nothing; the faults' part then obeys only |e^f| <= |b| +
-|sum_j K_j nu^0_j|, whose last term has covariance sum_j K_j S_j K_j^T = P_T - P_n + (n - T) Q (plain
+|sum_j K_j nu^0_j|, whose last term has covariance sum_j K_j S_j K_j^T = P_T - P_n + sum Q_k (plain
 updates), an allowance the split left out. Bounding the whole error through the whole innovations
-needs no split and is tighter than adding that allowance: sqrt(P_T + (n - T) Q) <= sqrt(P_n) +
-sqrt(P_T - P_n + (n - T) Q). pipeline/defense/bound.py solves for the worst such attacker.
+needs no split and is tighter than adding that allowance: sqrt(P_T + sum Q_k) <= sqrt(P_n) +
+sqrt(P_T - P_n + sum Q_k). pipeline/defense/bound.py solves for the worst such attacker.
 With exact commands and a small process noise the gains decay like 1/n until they settle near
 q / sigma_R, so sum_j |W_j| grows like sigma_R ln n and then by about q per frame: the c term
 is the slow ramp (under c q per frame) that no test of this filter can tell from the execution error,
@@ -79,8 +81,9 @@ Assumptions the PL rests on (each one a way for it to fail):
     correlated from frame to frame (why h is calibrated, not derived), so the filter's average over
     those frames shrinks them less than P_T says; after T whiteness is not needed (the test bounds the
     innovations as they are). Measured, not bounded: reports give the clean errors' exceedances.
-(D) The execution error w_k is white, N(0, Q) per frame and independent of e_T; a scale error of the
-    commands (a bias growing with the distance flown) is not covered by this term.
+(D) The execution error w_k is white, N(0, Q_k) per frame and independent of e_T (a scale error drawn
+    afresh each step, as pipeline/guidance/dynamics.py draws it, is covered: it is in q_k); a scale error
+    held over the approach (a bias growing with the distance flown) and the unmodelled orbital motion are not.
 (E) Risk per frame: kappa is the chi-square(3) quantile at 1 - integrity_risk for one frame. Over an
     approach of N frames the union bound gives at most N x integrity_risk (2e-3 for 200 frames at 1e-5);
     the frames' noise terms share one start error and a random walk, so the true per-approach risk is
@@ -126,7 +129,8 @@ def kappa(integrity_risk: float) -> float:
 
 class ProtectionLevel:
     """The PL's accumulators over one filter run (see the module docstring): `anchor(P)` once, at the frame T
-    the sums start from, with the state covariance P_T (3x3, m^2); `step` once per predicted frame; `add`
+    the sums start from, with the state covariance P_T (3x3, m^2); `step` once per predicted frame (with its
+    execution error's variance per axis, m^2, when it is not `process_noise`'s); `add`
     once per frame the sequential test saw after T (G = K R: the gain times the camera attitude, 3x3, world
     rows and camera columns, of an accepted frame; None for one it left out) with the test's scales sigma
     (3,) (m, camera axes); `level(P)` the PL (m), P the current state covariance (3x3, m^2).
@@ -144,6 +148,7 @@ class ProtectionLevel:
         self.offset = float(offset)
         self.start: Mat3 | None = None  # P_T, once the sums have started
         self.steps = 0  # frames predicted since T
+        self.extra = 0.0  # the execution errors' variance since T beyond steps x process_var (m^2 per axis)
         self.total = [[0.0] * 3 for _ in range(3)]  # sum_j |W_j[i, k]|
         self.rise = [[0.0] * 3 for _ in range(3)]  # TV+(W+) + TV+(W-)
         self.last = [[0.0] * 3 for _ in range(3)]  # W_{j-1}[i, k] (signed)
@@ -151,11 +156,14 @@ class ProtectionLevel:
     def anchor(self, P: Mat3) -> None:
         """The sums start at this frame T, whose state covariance is P (3x3, m^2)."""
         self.start = [list(map(float, row)) for row in P]
-        self.steps = 0
+        self.steps, self.extra = 0, 0.0
 
-    def step(self) -> None:
-        """One more frame predicted (its execution error joins the noise term once the sums started)."""
+    def step(self, var: float | None = None) -> None:
+        """One more frame predicted; its execution error (variance `var` per axis, m^2; None: the process noise's)
+        joins the noise term once the sums started."""
         self.steps += 1
+        if var is not None:
+            self.extra += float(var) - self.process_var
 
     def add(self, G: Mat3 | None, sigma: Sequence[float]) -> None:
         for i in range(3):
@@ -175,6 +183,6 @@ class ProtectionLevel:
         return math.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2]) + self.offset
 
     def level(self, P: Mat3) -> float:
-        """PL (m) = kappa sqrt(lambda_max(C)) + bias, C = P_T + (n - T) Q once the sums started, else P."""
-        C = P if self.start is None else add(self.start, eye(self.steps * self.process_var))
+        """PL (m) = kappa sqrt(lambda_max(C)) + bias, C = P_T + sum_k Q_k once the sums started, else P."""
+        C = P if self.start is None else add(self.start, eye(self.steps * self.process_var + self.extra))
         return self.kappa * math.sqrt(max(largest_eigenvalue(C), 0.0)) + self.bias()

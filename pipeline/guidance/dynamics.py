@@ -45,9 +45,9 @@ Defaults and where they come from:
 A hold (no command) keeps station: the chaser stays where it is (its controller nulls the drift).
 
 Per step the error's std per axis is about sqrt((scale_std c)^2 + noise_std^2): 2.2 cm for a 1 m step,
-four times the filter's default process noise (`MotionSettings.position_noise`, 5 mm): `step_std` gives
-the figure to set the process noise to (the filter must not be told the truth, only how uncertain the
-commands are).
+1.1 cm for a 0.25 m one: the filter's process noise takes the same form (`MotionSettings.position_noise`
+and `position_noise_scale`, its `step_variance`; the library defaults, 5 mm and 0, are a filter's without
+a thruster model): it must not be told the truth, only how uncertain the commands are.
 """
 
 from __future__ import annotations

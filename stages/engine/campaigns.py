@@ -412,6 +412,7 @@ def _assumptions(p: Params, shipped: Any) -> dict[str, Any]:
     return {
         "trusted_start_frames": d.trusted_start,
         "position_noise_m": d.position_noise,
+        "position_noise_scale": d.position_noise_scale,
         "detector": {"fusion": d.fusion, "threshold": float(shipped.defended.settings.threshold)},
         "noise_model": "pose-network noise and bias per range bin fitted on the validation trajectories "
         f"(defense.noise_bins = {d.noise_bins}), inflated x{shipped.calibration.inflation:g} "

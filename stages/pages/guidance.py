@@ -430,7 +430,7 @@ def _closed_loop_text(
     """The closed-loop section's text around its lead `head`: the docking targets `lines`, the assumptions, the
     docking table `rows` and the attacked true-state `runs` (misses in m)."""
     from pipeline.report.markdown import markdown_table
-    from stages.pages.integrity import attacker_names
+    from stages.pages.integrity import attacker_names, process_noise
 
     x = p.guidance.execution
     return f"""# Closed-loop rendezvous: where the shipped chain docks
@@ -442,7 +442,8 @@ Assumptions: the shipped chain (robust model, its detector and its defense, mode
 True-state dynamics: the chaser moves by the command it sent, executed with the thrusters' error
 ({100 * x.scale_std:g}% of the step and {100 * x.noise_std:g} cm per axis, 1-sigma per step; seeded, the same draws
 in every run) and Clohessy-Wiltshire motion over {x.frame_interval:g} s per step (mean motion {x.mean_motion:g} rad/s,
-{x.approach}); the defense is told the commands only (process noise {p.defense.position_noise:g} m per step).
+{x.approach}); the defense is told the commands only (process noise per step, std per axis,
+{process_noise(p.defense.position_noise, p.defense.position_noise_scale)}).
 Detect-and-recover flies on the trusted estimate where it is available (PL <= AL, the
 {p.integrity.alert_limit_kind.replace("_", "-")} AL at the trusted estimate's range) and holds elsewhere; the protection
 level assumes no fault on the {p.defense.trusted_start} frames after the filter's first start. Mission failure: a

@@ -52,6 +52,11 @@ def _eps(x: float | None) -> str:
 Bracket = tuple[Optional[float], Optional[float]]  # (held at, broke at): a breaking point lies in (held, broke]
 
 
+def process_noise(sigma: float, scale: float) -> str:
+    """The filter's process noise per frame as the reports say it: `sigma` m per axis, plus `scale` of the step."""
+    return f"{sigma:g} m" if not scale else f"hypot({sigma:g} m, {100 * scale:g}% of the commanded step)"
+
+
 def breaking_bracket(per_eps: dict[str, Any], breaking: float | None) -> Bracket:
     """(held, broke): the largest eps flown below the breaking eps (no run failed there) and the breaking eps, so the
     breaking point lies in (held, broke]; (the largest eps flown, None) when the chain never broke, held None when it
@@ -337,8 +342,9 @@ Assumptions of every row below:
   and {100 * x["noise_std_m"]:g} cm per axis, 1-sigma per step) and Clohessy-Wiltshire motion (mean motion
   {x["mean_motion_rad_s"]:g} rad/s, {x["approach"]}); the chain is told the commands only. The standard chain and the
   control fly the first {integrity["chains"]["control"]["trajectories"]}.
-- **Noise model and process noise**: {a["noise_model"]}; the filter's process noise {a["position_noise_m"]:g} m per
-  frame; the CUSUM reference c = {a["cusum_reference"]:g}; integrity risk {a["integrity_risk"]:g} per frame.
+- **Noise model and process noise**: {a["noise_model"]}; the filter's process noise per frame, std per axis,
+  {process_noise(a["position_noise_m"], a.get("position_noise_scale", 0.0))}; the CUSUM reference c = {
+        a["cusum_reference"]:g}; integrity risk {a["integrity_risk"]:g} per frame.
 - **Trusted start**: the protection level assumes no fault on the {a["trusted_start_frames"]} frames after the
   filter's first start (assumption A, pipeline/defense/protection.py); the captures and a drift from acquisition
   attack inside them.
