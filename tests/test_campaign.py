@@ -359,3 +359,32 @@ def test_a_breaking_point_is_a_bracket_and_a_ratio_is_judged_only_where_the_brac
     verdict, text = ratio_verdict((0.14, 0.2), (0.07, 0.1), 2.0)  # the point values alone (0.2 vs 0.1) would say met
     assert verdict == "not shown" and "above 1.40, at most 2.86" in text
     assert ratio_verdict((0.2, None), (0.2, None), 2.0)[0] == "not shown"  # the other never broke
+
+
+def test_the_pl_parts_replay_the_flown_pl_and_leaving_a_part_out_only_adds_availability(tracks) -> None:
+    """pipeline/evaluation/availability.py on the toy defended chain's clean flights: the first part is the trace's
+    PL exactly (the replay is the flight) and its availability the clean row's; each part left out lowers the PL
+    frame by frame (the ramp and the transients are >= 0), so the availability can only grow; the page names every
+    part with its interval."""
+    from pipeline.evaluation.availability import PARTS, availability_parts, pl_parts
+    from stages.pages.integrity import _availability_parts
+
+    d = Defended(DefenseSettings(), EXACT, NOISE, PERSISTENT)
+    flights = fly_campaign(ToyOnboard(ToyPose()), ToyPose(), d, tracks, _campaign([0.004], False, True))
+    parts = [pl_parts(d, fl.pose, fl.prob, t.R_cam, t.u) for fl, t in zip(flights.clean, tracks)]
+    for fl, p in zip(flights.clean, parts):
+        assert np.array_equal(p[PARTS[0]], fl.trace.pl)
+        started = np.isfinite(p[PARTS[0]])
+        assert started.sum() > 30
+        for key in PARTS[1:]:
+            assert (p[key][started] <= p[PARTS[0]][started]).all()
+        assert (p[PARTS[3]][started] <= p[PARTS[1]][started]).all()
+        assert (p[PARTS[1]] < p[PARTS[0]])[started][-5:].all()  # the ramp has grown by the goal
+    out = availability_parts([fl.frames for fl in flights.clean], parts, 0)
+    assert out[PARTS[0]] == flights.clean_row["availability"]
+    values = [out[k]["value"] for k in PARTS]
+    assert values[0] <= min(values[1:]) and values[3] >= max(values[1:3])
+    text = _availability_parts(out)
+    assert all(k in text for k in PARTS) and "bounds nothing" in text
+    with pytest.raises(ValueError, match="1 flights' records for 2"):
+        availability_parts([flights.clean[0].frames], parts)

@@ -175,14 +175,21 @@ class ProtectionLevel:
                 total[k] += abs(w)
                 last[k] = w
 
-    def bias(self) -> float:
+    def bias(self, reference: float | None = None, threshold: float | None = None) -> float:
         """|b| + the carried offset (m): the most the tested innovations (noise and faults) can have moved the
-        estimate since T without an alarm, plus what a restart carried."""
-        c, h = self.reference, self.threshold
+        estimate since T without an alarm, plus what a restart carried. `reference`, `threshold`: c and h in
+        place of the test's (0 leaves out the slow ramp c sum|W| or the transients h TV+: the PL's parts,
+        pipeline/evaluation/availability.py)."""
+        c = self.reference if reference is None else float(reference)
+        h = self.threshold if threshold is None else float(threshold)
         b = [sum(c * t + h * r for t, r in zip(self.total[i], self.rise[i])) for i in range(3)]
         return math.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2]) + self.offset
 
-    def level(self, P: Mat3) -> float:
-        """PL (m) = kappa sqrt(lambda_max(C)) + bias, C = P_T + sum_k Q_k once the sums started, else P."""
+    def noise_term(self, P: Mat3) -> float:
+        """kappa sqrt(lambda_max(C)) (m), C = P_T + sum_k Q_k once the sums started, else P (3x3, m^2)."""
         C = P if self.start is None else add(self.start, eye(self.steps * self.process_var + self.extra))
-        return self.kappa * math.sqrt(max(largest_eigenvalue(C), 0.0)) + self.bias()
+        return self.kappa * math.sqrt(max(largest_eigenvalue(C), 0.0))
+
+    def level(self, P: Mat3) -> float:
+        """PL (m) = the noise term + bias (module docstring), P the current state covariance (3x3, m^2)."""
+        return self.noise_term(P) + self.bias()

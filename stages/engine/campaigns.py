@@ -119,8 +119,7 @@ def _fly_chain(
     the missing ones flown on `fan_out` (one `ShardWorker` job per trajectory) or, without it, here."""
     from tqdm import tqdm
 
-    from pipeline.evaluation.campaign import assemble, fly_campaign, fly_track, safety_summary
-    from pipeline.evaluation.integrity_runs import worst_hmi
+    from pipeline.evaluation.campaign import assemble, fly_campaign, fly_track
 
     k = len(tracks)
     campaign = _campaign(p, seed, defended, bursts)
@@ -145,12 +144,25 @@ def _fly_chain(
                 fly_all,
             )
             flown = assemble(tracks, shares, campaign)
-    record = {
+    return _record(safety, defended, flown, tracks, seed), flown
+
+
+def _record(safety: Any, defended: Any, flown: Any, tracks: list[Any], seed: int) -> dict[str, Any]:
+    """A chain's metrics record of its flown campaign: the safety summary (with, for a defended chain, where its
+    clean availability goes: the PL's parts replayed on the clean flights), the descriptive rows, the clean row."""
+    from pipeline.evaluation.availability import clean_availability_parts
+    from pipeline.evaluation.campaign import safety_summary
+    from pipeline.evaluation.integrity_runs import worst_hmi
+
+    summary = safety_summary(flown)
+    if defended is not None:
+        summary["clean"]["availability_parts"] = clean_availability_parts(defended, flown.clean, tracks, seed)
+    return {
         "model": safety.name,
         "model_hash": safety.pose_hash,
         "defended": defended is not None,
-        "trajectories": k,
-        "summary": safety_summary(flown),
+        "trajectories": len(tracks),
+        "summary": summary,
         "rows": flown.rows,
         "worst_hmi": worst_hmi(flown.rows),
         "clean": flown.clean_row,
@@ -158,7 +170,6 @@ def _fly_chain(
         "ci95_false_alarm": flown.alarms.ci(),
         "calibration_unmet": [] if defended is None else list(safety.calibration.unmet),
     }
-    return record, flown
 
 
 def _shard_base(p: Params, seed: int, key: str, safety: Any) -> dict[str, Any]:

@@ -327,6 +327,20 @@ def _where_unavailable(integrity: dict[str, Any]) -> str:
         f"\n  Without attack, the shipped chain's frames available by true range: {shares}. An unavailable frame is "
         "never judged: where the PL exceeds AL (which falls to the docking tolerance at the goal) the measure cannot "
         "fail, and the chain declares itself unavailable (the guidance holds) rather than fail."
+        + _availability_parts(integrity["chains"]["robust"]["summary"]["clean"].get("availability_parts"))
+    )
+
+
+def _availability_parts(parts: dict[str, Any] | None) -> str:
+    """What the clean availability would be with parts of the PL left out (pipeline/evaluation/availability.py):
+    which part costs it, measured."""
+    if not parts:
+        return ""
+    (flown, full), *rest = parts.items()
+    shares = "; ".join(f"{name} {_pct(v)}" for name, v in rest)
+    return (
+        f"\n  Which part of the PL costs the availability, measured on the same clean frames (a PL with a part left "
+        f"out bounds nothing; pipeline/evaluation/availability.py): {flown} {_pct(full)}; {shares}."
     )
 
 
