@@ -25,6 +25,7 @@ with `guidance.execution`'s error), rendered once with the params' camera and on
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -32,6 +33,7 @@ import typer
 
 from pipeline.geometry.labels import TARGET
 from pipeline.io.atomic import atomic_write_text, check_writable
+from pipeline.io.files import read_yaml
 from pipeline.seeds import seed_for
 from stages.artifacts.clean_runs import chain_outputs, clean_runs, fit_pose_noise
 from stages.artifacts.dvc import write_metrics
@@ -39,8 +41,8 @@ from stages.artifacts.models import load_chain, load_pose, load_trial_pose
 from stages.artifacts.paths import HELDOUT, HELDOUT_METRICS, HELDOUT_REPORT, POSE_TRIALS, SHIPPED
 from stages.artifacts.readers import read_eval_render, read_heldout, read_val_envelope
 from stages.config.build import alert_limit_settings, defense_settings, intrinsics, scene_settings
-from stages.config.params import PARAMS_FILE, heldout_fingerprint, heldout_seed, load
-from stages.config.schema import Params
+from stages.config.params import CONF_STAMP, PARAMS_FILE, heldout_fingerprint, heldout_seed
+from stages.config.schema import Params, build
 from stages.engine import pool as engine
 from stages.engine.trajectory_sets import render_set, trajectories
 from stages.errors import StageError
@@ -48,6 +50,7 @@ from stages.pages.heldout import heldout_page
 
 CHOSEN, ALTERNATIVE = "chosen", "fy360"  # the held-out sets: the params' camera, the fy360 trial's
 LAB, LAB_DRAWS = "lab", 3  # held-out lab-like recordings: lab.sequences drawn LAB_DRAWS times (datasets/heldout/lab/)
+TRIAL_SECTIONS = ("seed", "render", "label", "train")  # what the fy360 trial's model was trained on besides its camera
 
 
 def main(params: Params) -> None:
@@ -90,13 +93,23 @@ def main(params: Params) -> None:
     )
 
 
-def _fy360_trial(params: Params) -> Params:
-    """The fy360 pose trial's params (datasets/pose_trials/fy360/params.yaml), refused when it is missing or when it
-    does not differ from `params` in the camera alone."""
+def _fy360_trial(params: Params, current: Path = PARAMS_FILE) -> Params:
+    """The fy360 pose trial's params: `params` (read from `current`) with the camera of the trial's own record
+    (datasets/pose_trials/fy360/params.yaml). Refused when the record is missing, when it was trained on other
+    params than the camera (TRIAL_SECTIONS: then it is not the default's model with another camera) or when its
+    camera is the default's. Params added since the trial was trained (another stage's knobs) do not matter."""
     folder = POSE_TRIALS / ALTERNATIVE
     if not (folder / PARAMS_FILE).exists():
         raise StageError(f"{folder} not found: run `rpod pose_trial fy360` (dvc repro optional/dvc.yaml:trial_fy360)")
-    trial = load(folder / PARAMS_FILE)
+    record, now = read_yaml(folder / PARAMS_FILE), read_yaml(current)
+    changed = [key for key in TRIAL_SECTIONS if record.get(key) != now.get(key)]
+    if changed or "camera" not in record:
+        raise StageError(
+            f"{folder / PARAMS_FILE} differs from {current} in {', '.join(changed) or 'camera (missing)'}, not in the "
+            "camera alone: re-run `rpod pose_trial fy360` (dvc repro optional/dvc.yaml:trial_fy360)"
+        )
+    now.pop(CONF_STAMP, None)
+    trial = build({**now, "camera": record["camera"]})
     if trial.camera == params.camera:
         raise StageError(
             f"params.yaml camera = {folder / PARAMS_FILE}'s camera (fy = {params.camera.fy:g}): nothing to compare; "

@@ -151,3 +151,32 @@ def test_the_heldout_lab_recordings_are_drawn_apart_from_every_other_set():
             for i in range(100)
         }
         assert not lab & (trajectories | others | {seed_for(0, "lab"), seed_for(base, "background")})
+
+
+def test_the_fy360_trial_is_the_default_with_its_camera_and_a_trial_trained_otherwise_is_refused(tmp_path, monkeypatch):
+    """The trial's record gives its camera only: params added since it was trained do not break the check (a
+    defense knob here), the rest comes from params.yaml; a record that differs in what the trial trained on is
+    refused naming the section, one whose camera is the default's is refused too."""
+    import yaml
+
+    from stages import heldout
+    from stages.config import params as params_mod
+    from stages.config.schema import build
+    from stages.errors import StageError
+
+    monkeypatch.chdir(tmp_path)
+    now = params_mod.compose("smoke", [])
+    params = build({k: v for k, v in now.items() if k != params_mod.CONF_STAMP})
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(now))
+    folder = tmp_path / heldout.POSE_TRIALS / heldout.ALTERNATIVE
+    folder.mkdir(parents=True)
+    record = {**now, "camera": {**now["camera"], "fy": 360.0}, "defense": {"position_noise": 0.022}}
+    (folder / "params.yaml").write_text(yaml.safe_dump(record))
+    trial = heldout._fy360_trial(params)
+    assert trial.camera.fy == 360.0 and trial.defense == params.defense and trial.render == params.render
+    (folder / "params.yaml").write_text(yaml.safe_dump({**record, "train": {**now["train"], "epochs": 99}}))
+    with pytest.raises(StageError, match="differs from params.yaml in train, not in the camera alone"):
+        heldout._fy360_trial(params)
+    (folder / "params.yaml").write_text(yaml.safe_dump({**now}))
+    with pytest.raises(StageError, match="nothing to compare"):
+        heldout._fy360_trial(params)
