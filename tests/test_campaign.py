@@ -343,7 +343,8 @@ def test_an_eps_a_chain_did_not_fly_is_a_row_of_dashes_not_nan() -> None:
 
 def test_a_breaking_point_is_a_bracket_and_a_ratio_is_judged_only_where_the_brackets_agree() -> None:
     """(held, broke] from the eps flown; "met" needs the shipped chain to have held at twice the eps where the other
-    broke, "missed" needs it to have broken below twice the eps where the other held; otherwise "not shown"."""
+    broke, "missed" needs it to have broken at or below twice the eps where the other held (the other's breaking point
+    lies above its held eps, so the ratio is then below two); otherwise "not shown"."""
     from stages.pages.integrity import bracket_text, breaking_bracket, ratio_verdict
 
     assert breaking_bracket({"0.01": {}, "0.05": {}, "0.1": {}}, 0.1) == (0.05, 0.1)
@@ -354,10 +355,15 @@ def test_a_breaking_point_is_a_bracket_and_a_ratio_is_judged_only_where_the_brac
         "none (held at 0.2)",
         "<= 0.01",
     ]
-    assert ratio_verdict((0.07, 0.1), (0.07, 0.1), 2.0) == ("**missed**", "ratio above 0.70, at most 1.43")
+    assert ratio_verdict((0.07, 0.1), (0.07, 0.1), 2.0) == ("**missed**", "ratio above 0.70, below 1.43")
+    assert ratio_verdict((0.1, 0.14), (0.07, 0.1), 2.0) == (
+        "**missed**",
+        "ratio above 1.00, below 2.00",
+    )  # 0.14 <= 2 x 0.07
+    assert ratio_verdict((0.1, 0.15), (0.07, 0.1), 2.0)[0] == "not shown"
     assert ratio_verdict((0.2, None), (0.07, 0.1), 2.0) == ("met", "ratio above 2.00")
     verdict, text = ratio_verdict((0.14, 0.2), (0.07, 0.1), 2.0)  # the point values alone (0.2 vs 0.1) would say met
-    assert verdict == "not shown" and "above 1.40, at most 2.86" in text
+    assert verdict == "not shown" and "above 1.40, below 2.86" in text
     assert ratio_verdict((0.2, None), (0.2, None), 2.0)[0] == "not shown"  # the other never broke
 
 

@@ -250,6 +250,6 @@ def test_the_shipped_over_control_ratio_is_only_claimed_within_both_brackets(tmp
         "run": "seed 0",
         "shipped breaks in": "(0.07, 0.1]",
         "control breaks in": "(0.01, 0.07]",
-        "shipped / control": "ratio above 1.00, at most 10.00 (the grid cannot tell)",
+        "shipped / control": "ratio above 1.00, below 10.00 (the grid cannot tell)",
         ">= 2x": "not shown",
     }

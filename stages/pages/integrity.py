@@ -74,18 +74,20 @@ def bracket_text(b: Bracket) -> str:
 
 
 def ratio_verdict(a: Bracket, b: Bracket, target: float) -> tuple[str, str]:
-    """Whether a chain's breaking point is at least `target` times another's, from their brackets: "met" when `a`
-    held at `target` x the eps where `b` broke, "**missed**" when `a` broke below `target` x the eps where `b` held,
-    "not shown" when the brackets allow both (or `b` never broke); and where the ratio lies, in words."""
+    """Whether a chain's breaking point is at least `target` times another's, from their brackets (a breaking point
+    in (held, broke] lies above its held eps and at most at its broke eps, so the ratio lies strictly between
+    held_a / broke_b and broke_a / held_b): "met" when `a` held at `target` x the eps where `b` broke, "**missed**"
+    when `a` broke at or below `target` x the eps where `b` held, "not shown" when the brackets allow both (or `b`
+    never broke); and where the ratio lies, in words."""
     (ha, ba), (hb, bb) = a, b
     if not bb:
         return "not shown", "the other did not break in the grid"
     low = ha / bb if ha else 0.0
     high = ba / hb if ba is not None and hb else None
-    text = f"ratio above {low:.2f}" + ("" if high is None else f", at most {high:.2f}")
-    if low >= target - 1e-12:
+    text = f"ratio above {low:.2f}" + ("" if high is None else f", below {high:.2f}")
+    if low >= target * (1 - 1e-12):
         return "met", text
-    if high is not None and high < target:
+    if high is not None and high <= target * (1 + 1e-12):
         return "**missed**", text
     return "not shown", f"{text} (the grid cannot tell)"
 
