@@ -394,3 +394,25 @@ def test_the_pl_parts_replay_the_flown_pl_and_leaving_a_part_out_only_adds_avail
     assert all(k in text for k in PARTS) and "bounds nothing" in text
     with pytest.raises(ValueError, match="1 flights' records for 2"):
         availability_parts([flights.clean[0].frames], parts)
+
+
+def test_how_a_defended_chain_broke_says_whether_it_failed_inside_the_trusted_start(tracks) -> None:
+    """The planted 2 m capture breaks the defended toy at eps 0.03 where AL_p falls below 2 m, near the goal: its
+    first failing frame lies long after the filter's start, outside a 20-frame trusted start and inside a 1000-frame
+    one; at an eps where nothing failed, or with no breaking point, there is nothing to say; the page names them."""
+    from pipeline.evaluation.campaign import how_it_broke
+    from stages.pages.integrity import _how_it_broke
+
+    flights = _fly(tracks, [0.004, 0.03], stop=False, defended=True)
+    rows = how_it_broke(flights, 0.03, 20)
+    assert {r["trajectory"] for r in rows} == {"t0", "t1"} and {r["attacker"] for r in rows} >= {"capture/lateral 2 m"}
+    for r in rows:
+        assert r["start_frame"] == 0 and r["first_failure_frame"] > 25 and not r["inside_trusted_start"]
+    assert all(r["inside_trusted_start"] for r in how_it_broke(flights, 0.03, 1000))
+    assert how_it_broke(flights, 0.004, 20) == [] and how_it_broke(flights, None, 20) == []
+    summary = {"breaking_eps": 0.03, "how_it_broke": rows}
+    text = _how_it_broke({"robust": {"summary": summary}, "control": {"summary": {"breaking_eps": 0.1}}})
+    assert (
+        f"0 of {len(rows)} failed flights first fail inside the trusted-start frames" in text and "t0 (capture" in text
+    )
+    assert _how_it_broke({"robust": {"summary": {"breaking_eps": None}}}) == ""

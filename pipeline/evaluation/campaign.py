@@ -376,3 +376,33 @@ def safety_summary(flights: Flights) -> dict[str, Any]:
             "stanford": f.stanford_clean,
         },
     }
+
+
+def how_it_broke(flights: Flights, breaking: float | None, trusted_start: int) -> list[dict[str, Any]]:
+    """How a defended chain broke, measured: at the breaking eps, each failed flight's trajectory and attacker, the
+    frame its filter first started on (its first trusted estimate), its first failing frame (error / AL > 1 on an
+    available counted frame) and whether that frame lies within the `trusted_start` frames after the start, where the
+    protection level assumes no fault and the detector alone guards (assumption A of pipeline/defense/protection.py).
+    [] when the chain never broke."""
+    out: list[dict[str, Any]] = []
+    for name, e, flown, masks in flights.runs:
+        if breaking is None or e != breaking:
+            continue
+        for f, m in zip(flown, masks):
+            keep = counted(m) if np.any(m) else np.ones(len(m), bool)
+            bad = np.flatnonzero(f.frames.available & keep & (f.frames.error > f.frames.alert))
+            if not bad.size:
+                continue
+            started = np.flatnonzero(np.isfinite(f.frames.trusted[:, 0]))
+            start = int(started[0]) if started.size else None
+            first = int(bad[0])
+            out.append(
+                {
+                    "trajectory": str(f.frames.trajectory[0]),
+                    "attacker": name,
+                    "start_frame": start,
+                    "first_failure_frame": first,
+                    "inside_trusted_start": start is not None and first - start <= int(trusted_start),
+                }
+            )
+    return out

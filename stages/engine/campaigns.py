@@ -151,12 +151,13 @@ def _record(safety: Any, defended: Any, flown: Any, tracks: list[Any], seed: int
     """A chain's metrics record of its flown campaign: the safety summary (with, for a defended chain, where its
     clean availability goes: the PL's parts replayed on the clean flights), the descriptive rows, the clean row."""
     from pipeline.evaluation.availability import clean_availability_parts
-    from pipeline.evaluation.campaign import safety_summary
+    from pipeline.evaluation.campaign import how_it_broke, safety_summary
     from pipeline.evaluation.integrity_runs import worst_hmi
 
     summary = safety_summary(flown)
     if defended is not None:
         summary["clean"]["availability_parts"] = clean_availability_parts(defended, flown.clean, tracks, seed)
+        summary["how_it_broke"] = how_it_broke(flown, summary["breaking_eps"], defended.motion.trusted_start)
     return {
         "model": safety.name,
         "model_hash": safety.pose_hash,

@@ -171,7 +171,7 @@ reports/guidance.md):
 
 ### Breaking point per chain
 
-{markdown_table(points)}
+{markdown_table(points)}{_how_it_broke(chains)}
 ### Safety index per chain and eps (worst over attackers, per trajectory; the largest over trajectories)
 
 error / AL over the available frames (AL: {_kind(integrity, p)}); "single-frame": the same errors against the
@@ -194,6 +194,34 @@ def _head(integrity: dict[str, Any], verdicts: list[tuple[str, str, str]]) -> st
         f"Targets not met: {'; '.join(f'{t} ({v}: {e})' for t, v, e in missed)}."
         if missed
         else "Every target is met on this evidence."
+    )
+
+
+def _how_it_broke(chains: dict[str, Any]) -> str:
+    """Where each defended chain's failures at its breaking eps fell (pipeline.evaluation.campaign.how_it_broke):
+    inside the trusted-start frames after the filter's first start (assumption A) or later; "" without any."""
+    lines = []
+    for key in ("robust", "standard"):
+        rows = chains.get(key, {}).get("summary", {}).get("how_it_broke") or []
+        if not rows:
+            continue
+        inside = sum(r["inside_trusted_start"] for r in rows)
+        each = "; ".join(
+            f"{r['trajectory']} ({attacker_names(r['attacker'])}): started at frame {r['start_frame']}, failed at "
+            f"{r['first_failure_frame']}"
+            for r in rows
+        )
+        lines.append(
+            f"- {CHAINS[key].split(' (')[0]} at eps {_eps(chains[key]['summary']['breaking_eps'])}: {inside} of "
+            f"{len(rows)} failed flights first fail inside the trusted-start frames after the filter's first start "
+            f"(assumption A: the PL assumes them fault-free, the detector alone guards them); {each}."
+        )
+    if not lines:
+        return ""
+    return (
+        "\nWhere the defended chains' failures at their breaking eps fall (first failing frame of each failed flight):\n\n"
+        + "\n".join(lines)
+        + "\n"
     )
 
 
