@@ -102,6 +102,10 @@ def _fy360_trial(params: Params, current: Path = PARAMS_FILE) -> Params:
     if not (folder / PARAMS_FILE).exists():
         raise StageError(f"{folder} not found: run `rpod pose_trial fy360` (dvc repro optional/dvc.yaml:trial_fy360)")
     record, now = read_yaml(folder / PARAMS_FILE), read_yaml(current)
+    if not isinstance(record, dict):
+        raise StageError(
+            f"{folder / PARAMS_FILE} must hold a mapping of params sections: re-run `rpod pose_trial fy360`"
+        )
     changed = [key for key in TRIAL_SECTIONS if record.get(key) != now.get(key)]
     if changed or "camera" not in record:
         raise StageError(

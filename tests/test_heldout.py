@@ -180,3 +180,6 @@ def test_the_fy360_trial_is_the_default_with_its_camera_and_a_trial_trained_othe
     (folder / "params.yaml").write_text(yaml.safe_dump({**now}))
     with pytest.raises(StageError, match="nothing to compare"):
         heldout._fy360_trial(params)
+    (folder / "params.yaml").write_text("- a list, not params\n")
+    with pytest.raises(StageError, match="must hold a mapping of params sections"):
+        heldout._fy360_trial(params)

@@ -29,7 +29,7 @@ from pipeline.settings import In
 class MotionSettings:
     """Filter settings. position_noise and position_noise_scale: the execution error of the chaser's
     commanded displacement per frame, its std per axis hypot(position_noise, position_noise_scale |u|)
-    (m; `step_std`: a part independent of the step and a part proportional to the commanded step u, as
+    (m; `step_variance`: a part independent of the step and a part proportional to the commanded step u, as
     thrusters err; the position state has no free velocity: the chaser commands its relative motion);
     attitude_noise_deg and attitude_rate_noise_deg: the target attitude's
     unmodelled rotation and rate change per frame (deg, deg/frame; the target's tumble is not

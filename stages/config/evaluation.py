@@ -74,9 +74,7 @@ class Defense:
     fusion: Literal["or", "paper", "motion"]  # or: any check | paper: detector alone | motion: gate + sequential test
     # the motion filter's settings: their types and ranges are pipeline.defense.gate.MotionSettings' (`FILTER`)
     false_alarm: FILTER.false_alarm  # gate false-alarm probability per frame on consistent motion
-    position_noise: (
-        FILTER.position_noise
-    )  # metres per frame: the execution error's std, the part independent of the step
+    position_noise: FILTER.position_noise  # metres per frame: execution error std, the step-independent part
     position_noise_scale: FILTER.position_noise_scale  # fraction of the commanded step: the part proportional to it
     attitude_noise_deg: FILTER.attitude_noise_deg  # std of the unmodelled target rotation
     attitude_rate_noise_deg: FILTER.attitude_rate_noise_deg  # std of the rate change
