@@ -9,7 +9,9 @@ of `bound.eps`, with the chain's attacker capacity F(eps, range) read from datas
 pipeline/formats/capacity.py), the detector blind, the alert limit of params (the one the defense file records); then
 the largest indices over trajectories, the share of target frames whose bound exceeds AL (95% interval bootstrapped
 over trajectories) and, on `bound.certify_frames` frames of the first trajectory, the interval-bound certificate
-beside the capacity; beside the bound, the largest error / AL the image-space attackers of `rpod robustness` reached
+beside the capacity; once per trajectory the attacker limited by the checks alone (no capacity, the trusted frames
+spared), whose replayed errors give the ceiling on the availability of any protection level sound against it;
+beside the bound, the largest error / AL the image-space attackers of `rpod robustness` reached
 (reports/metrics/robustness.json, when present); and per eps the worst trajectory's worst sequence pursued in images by
 a targeted attack (the lean suite's APGD budget, `suite.steps`) and flown through the real chain
 (pipeline/evaluation/bound_images.py), which measures how much of the bound images reach.
@@ -130,7 +132,7 @@ def _capacities(model: str, eps: list[float]) -> tuple[list[Any], dict[str, Any]
 
 def _chain(params: Params, model: str, tracks: list[Any], eps: list[float]) -> dict[str, Any]:
     """One chain's per-trajectory bounds, summary per eps and certificate (JSON-ready)."""
-    from pipeline.evaluation.integrity_bound import certificate, first_over
+    from pipeline.evaluation.integrity_bound import certificate, checks_only_rates, first_over
 
     b = params.bound
     caps, meta = _capacities(model, eps)
@@ -151,6 +153,7 @@ def _chain(params: Params, model: str, tracks: list[Any], eps: list[float]) -> d
         },
         "per_eps": per_eps,
         "first_over_al_eps": first_over(per_eps),
+        "checks_only": checks_only_rates(rows),
         "tracks": rows,
         "certificate": cert,
         "seconds": time.perf_counter() - t0,
@@ -168,7 +171,7 @@ def _bound_tracks(
 
     b = params.bound
     rows = []
-    with tqdm(total=len(tracks) * len(eps) * len(ATTACKERS), desc=f"bound ({model})", unit="program") as bar:
+    with tqdm(total=len(tracks) * (len(eps) * len(ATTACKERS) + 1), desc=f"bound ({model})", unit="program") as bar:
         for track in tracks:
             try:
                 rows.append(

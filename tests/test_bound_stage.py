@@ -9,7 +9,14 @@ import pytest
 
 from pipeline.attacks.capacity import proportional_capacity
 from pipeline.defense.integrity import AlertLimitSettings
-from pipeline.evaluation.integrity_bound import ATTACKERS, bound_run, first_over, over_al_rate, worst_over_trajectories
+from pipeline.evaluation.integrity_bound import (
+    ATTACKERS,
+    bound_run,
+    checks_only_rates,
+    first_over,
+    over_al_rate,
+    worst_over_trajectories,
+)
 from pipeline.formats.capacity import COLUMNS, write_capacity
 from stages.config.bound import Bound
 from stages.errors import StageError
@@ -63,6 +70,7 @@ def _metrics() -> dict:
         "capacity": {"eps": [0.01, 0.05], "quantile": 0.99, "margin": 0.25, "edges": [0.0, 100.0]},
         "per_eps": per_eps,
         "first_over_al_eps": first_over(per_eps),
+        "checks_only": checks_only_rates(tracks),
         "tracks": tracks,
         "certificate": None,
         "seconds": 1.0,
@@ -83,6 +91,8 @@ def test_the_page_states_the_bound_its_replay_its_rate_with_an_interval_and_its_
         "detector is modelled as blind",
         "trusted-start frames",
         "Not computed",
+        "What availability any sound PL can have with these checks",
+        f"{100 * m['chains']['robust']['checks_only']['ceiling']['value']:.1f} [",
     ):
         assert words in page
     assert np.isfinite(b["max_error_m"])

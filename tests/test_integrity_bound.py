@@ -11,6 +11,7 @@ from pipeline.defense.chain import Defended
 from pipeline.defense.integrity import AlertLimitSettings
 from pipeline.evaluation.integrity_bound import (
     bound_run,
+    checks_only_rates,
     first_over,
     over_al_rate,
     targets_of,
@@ -93,3 +94,35 @@ def test_first_over_is_the_smallest_eps_whose_bound_exceeds_al() -> None:
     }
     assert first_over(rows) == 0.02
     assert first_over({"0.01": {"bound": {"max_error_al": None}}}) is None
+
+
+def test_the_checks_only_attacker_bounds_every_capacity_counts_every_frame_once_and_floors_a_sound_pl() -> None:
+    rel, run = toy(60, 3, FLAT)
+    out = bound_run(DEFENDED, "t0", run, rel, caps(0.02, 0.02), [0.05], 10, AlertLimitSettings())
+    c = out["checks_only"]
+    assert c["targets"][0] == out["start"] and c["targets"][-1] == 59
+    assert sum(c["weight"]) == 60 - out["start"]  # every frame from the start stands once
+    assert c["unmodelled"] == 0 and c["largest_shift_range"] < 1.0  # the box (the range) never binds
+    # no capacity: at least the capacity-limited attacker that spares the same trusted frames
+    assert c["max_error_m"] >= out["per_eps"]["0.05"]["spared"]["max_error_m"] - 1e-6
+    # a sound PL is at least the replayed error: every frame the PL makes available is within the ceiling
+    for ratio, avail in zip(c["achieved_al"], c["pl_available"]):
+        assert not avail or ratio <= 1.0
+    r = checks_only_rates([out, out])
+    assert r["ceiling"]["n"] == 2 * (60 - out["start"])
+    assert r["pl"]["value"] <= r["ceiling"]["value"]
+
+
+def test_the_ceiling_weights_each_target_by_the_frames_it_stands_for() -> None:
+    goal = {"achieved_m": 2.0, "alert_m": 1.0, "pl_m": 5.0}
+
+    def track(ratios: list, flown: list, avail: list, weight: list) -> dict:
+        c = {"targets": list(range(len(ratios))), "weight": weight, "achieved_al": ratios, "flown": flown}
+        return {"checks_only": {**c, "pl_available": avail, "goal": goal, "largest_shift_range": 0.3}}
+
+    a = track([0.2, 0.9, 1.5, None], [True, True, True, True], [True, False, False, False], [10, 1, 1, 1])
+    b = track([0.1, 2.0], [True, False], [True, False], [5, 5])  # a held frame is never available
+    r = checks_only_rates([a, b])
+    assert r["ceiling"]["n"] == 22 and r["ceiling"]["value"] == pytest.approx(16 / 22)
+    assert r["pl"]["value"] == pytest.approx(15 / 22)
+    assert r["goal_achieved_m"]["max"] == 2.0 and r["targets"] == 6

@@ -24,6 +24,9 @@ safety index against the AL), its frame and true range; the largest upper (m); t
 (m) and error / AL; the largest upper / PL and achieved / PL (above 1: the PL missed a real attack); the targets
 with upper / AL > 1 (all and available ones: PL <= AL and flown); the share of replays that reproduced the program.
 A target after the clean run's first restart is not modelled (the program stops there; counted as `unmodelled`).
+Once per trajectory, a third attacker limited by the checks alone (`checks_only`: no capacity, sparing the trusted
+frames): its replayed error is a floor under any PL sound against it with these checks, so the share of target
+frames where that error stays within AL (`checks_only_rates`) is a ceiling on the availability such a PL can have.
 
 Over trajectories (`worst_over_trajectories`) the largest of each index, the trajectories whose bound exceeds AL,
 and `first_over(per_eps)`: the smallest eps whose bound exceeds AL on some trajectory; `over_al_rate`: the share
@@ -42,6 +45,7 @@ from pipeline.attacks.capacity import Capacity, capacity_at
 from pipeline.defense.bound import ACCEPT, ALARM, HUBER, Recording, WorstCase, record, worst_case
 from pipeline.defense.calibration import CleanRun
 from pipeline.defense.chain import Defended, OnboardChain
+from pipeline.defense.fusion import HOLD
 from pipeline.defense.integrity import AlertLimitSettings, alert_limit
 from pipeline.evaluation.integrity_runs import Track
 from pipeline.evaluation.robustness import pose_estimates
@@ -142,6 +146,8 @@ def bound_run(
         },
         "per_eps": {},
     }
+    out["checks_only"] = checks_only(d, run, truth, clean, trusted, stride, al, limit_fn)
+    progress()
     for e in eps:
         cap = capacity_at(capacities, float(e), rng)
         spared = cap.copy()
@@ -157,6 +163,96 @@ def bound_run(
             **row,
         }
     return out
+
+
+def checks_only(
+    defended: Defended,
+    run: CleanRun,
+    truth: np.ndarray,
+    clean: Recording,
+    trusted: int,
+    stride: int,
+    alert: np.ndarray,
+    alert_limit: Callable[[float], float],
+) -> dict[str, Any]:
+    """The attacker limited by the checks alone (no capacity): a box as wide as the true range on every axis (m)
+    on the frames after the PL's anchor `trusted` (none before: assumption A), with `clean` the clean run's
+    recording and `alert` (N,) AL at the true range (m). Its replayed error (a sequence that passes every check
+    with the clean run's flags, through the real defense) is a floor for any protection level sound against it with
+    these checks: where it exceeds AL, no such PL can make the frame available.
+
+    Targets: every frame from the start whose AL is below the clean run's largest PL (where a PL of the chain's
+    size could be unavailable), the others every `stride`-th frame, each standing for the frames up to the next
+    target (`weight`, so that the weights count every frame from the start once). Per target: `achieved_al`
+    (replayed error / AL; None where unmodelled), `flown` (the clean run's mode is not hold), `pl_available` (flown
+    and the clean run's PL <= AL); `goal`: the last frame's replayed error, AL and PL (m); `largest_shift_range`:
+    the largest shift the worst sequences used over the true range (below 1: the box did not bind)."""
+    truth = np.asarray(truth, np.float64)
+    rng, n = np.linalg.norm(truth, axis=1), len(truth)
+    pl = clean.trace.pl
+    finite = pl[np.isfinite(pl)]
+    dense = (alert < (finite.max() if finite.size else 0.0)) & (np.arange(n) >= clean.start)
+    tg = np.array(sorted(set(targets_of(n, clean.start, stride)[:-1]) | set(np.flatnonzero(dense).tolist())), int)
+    tg = tg[tg < n]
+    if tg.size and tg[-1] != n - 1 and clean.start < n:
+        tg = np.append(tg, n - 1)
+    weight = np.diff(np.append(tg, n)) if tg.size else tg
+    box = np.repeat(rng[:, None], 3, axis=1)
+    box[: trusted + 1] = 0.0
+    d = defended
+    w = worst_case(d.settings, d.motion, d.noise, run, truth, box, alert, targets=tg, alert_limit=alert_limit)
+    ok = np.isfinite(w.achieved)
+    flown = clean.trace.mode[tg] != HOLD
+    shift = np.linalg.norm(w.shift, axis=2) / rng[None, :]
+    return {
+        **_measures(w, rng),
+        "targets": tg.tolist(),
+        "weight": weight.tolist(),
+        "achieved_al": [float(v) if k else None for v, k in zip(w.achieved / w.alert, ok)],
+        "flown": flown.tolist(),
+        "pl_available": (flown & (pl[tg] <= alert[tg])).tolist(),
+        "goal": {"achieved_m": _largest(w.achieved[-1:]), "alert_m": _largest(w.alert[-1:]), "pl_m": _largest(pl[-1:])},
+        "largest_shift_range": float(shift.max()) if shift.size else 0.0,
+    }
+
+
+def checks_only_rates(tracks: Sequence[dict[str, Any]], seed: int = 0) -> dict[str, Any]:
+    """Over the `bound_run` outputs `tracks`, every frame from the filter's start counted once (each target's
+    `weight`; unmodelled targets left out): `ceiling`, the share of frames a PL sound against the checks-only
+    attacker could make available at most (flown and its replayed error <= AL), beside `pl`, the share the chain's
+    PL made available; each with its 95% interval bootstrapped over trajectories; the replayed error at the last
+    frame (m: median, largest) against AL and the PL there; the largest shift over range."""
+    hits: dict[str, list[bool]] = {"ceiling": [], "pl": []}
+    groups: list[int] = []
+    for g, t in enumerate(tracks):
+        c = t["checks_only"]
+        for ratio, flown, avail, k in zip(c["achieved_al"], c["flown"], c["pl_available"], c["weight"]):
+            if ratio is None:
+                continue
+            hits["ceiling"] += [bool(flown and ratio <= 1.0)] * k
+            hits["pl"] += [bool(avail)] * k
+            groups += [g] * k
+    goal = [t["checks_only"]["goal"] for t in tracks if t["checks_only"]["goal"]["achieved_m"] is not None]
+    out: dict[str, Any] = {}
+    for key, h in hits.items():
+        r = bootstrap_rate(np.array(h, bool), np.array(groups, int), seed=seed)
+        out[key] = {"value": r.value if r.n else None, "ci": r.ci(), "n": r.n}
+    return {
+        **out,
+        "targets": sum(len(t["checks_only"]["targets"]) for t in tracks),
+        "goal_achieved_m": {
+            "median": float(np.median([g["achieved_m"] for g in goal])) if goal else None,
+            "max": _largest(np.array([g["achieved_m"] for g in goal])),
+        },
+        "goal_alert_m": _largest(np.array([g["alert_m"] for g in goal])),
+        "goal_pl_m": {
+            "min": float(min(g["pl_m"] for g in goal)) if goal else None,
+            "max": _largest(np.array([g["pl_m"] for g in goal])),
+        },
+        "max_achieved_al": _largest(np.array([t["checks_only"].get("max_achieved_al") or np.nan for t in tracks])),
+        "largest_shift_range": _largest(np.array([t["checks_only"]["largest_shift_range"] for t in tracks])),
+        "trajectories": len(tracks),
+    }
 
 
 def bound_track(

@@ -214,6 +214,42 @@ REALIZED_INTRO = (
 )
 
 
+CHECKS_INTRO = (
+    "An attacker limited by the checks alone: no capacity (a box as wide as the true range on every axis), the "
+    "detector blind, the frames the PL trusts spared (assumption A), the worst sequence per target frame replayed "
+    "through the real defense with the clean run's flags. A protection level sound against that attacker with these "
+    "checks must be at least its replayed error, so where that error exceeds AL no such PL can make the frame "
+    "available: the share of target frames within AL is a ceiling on the clean availability of any capacity-free "
+    "PL of this filter and its checks, beside what the chain's PL makes available on the same frames. Targets: every "
+    "frame whose AL is below the clean run's largest PL, the others every stride-th frame standing for the frames up "
+    "to the next (every frame from the filter's start counts once)."
+)
+
+
+def _checks_rows(chains: dict[str, Any]) -> list[dict[str, str]]:
+    """Per chain: the checks-only attacker's availability ceiling beside the PL's, and its error at the goal."""
+    rows = []
+    for model, c in chains.items():
+        k = c.get("checks_only")
+        if not k:
+            continue
+        goal, pl = k["goal_achieved_m"], k["goal_pl_m"]
+        rows.append(
+            {
+                "chain": CHAINS[model],
+                "frames (targets)": f"{k['ceiling']['n']} ({k['targets']})",
+                "availability ceiling, any sound PL (%)": _pct(k["ceiling"]),
+                "the chain's PL, same frames (%)": _pct(k["pl"]),
+                "replayed error at the last frame, median / max (m)": f"{_x(goal['median'])} / {_x(goal['max'])}",
+                "AL there (m)": _x(k["goal_alert_m"]),
+                "PL there (m)": f"{_x(pl['min'])}-{_x(pl['max'])}",
+                "max replayed / AL": _x(k["max_achieved_al"]),
+                "largest shift / range": _x(k["largest_shift_range"]),
+            }
+        )
+    return rows
+
+
 def _first_lines(chains: dict[str, Any]) -> list[str]:
     """Per chain: the eps at which the bound first exceeds AL (and the eps its capacity was measured at, if larger)."""
     out = []
@@ -262,6 +298,11 @@ def bound_page(metrics: dict[str, Any]) -> str:
             "",
             *_first_lines(chains),
             "",
+            "## What availability any sound PL can have with these checks",
+            "",
+            CHECKS_INTRO,
+            "",
+            markdown_table(checks) if (checks := _checks_rows(chains)) else "Not run.\n",
             "## The worst sequence in images",
             "",
             REALIZED_INTRO,
