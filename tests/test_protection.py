@@ -95,6 +95,31 @@ def test_pl_covers_the_clean_error_and_is_finite_once_tracking() -> None:
     assert pl.max() < 5.0 and pls[0][-1] > pls[0][21]
 
 
+def test_a_start_the_detector_doubted_claims_no_bound_until_the_anchor() -> None:
+    """Acquisition under attack: the detector flags every frame but one, the filter starts on that one with a
+    large error and coasts. Assumption A rests on the detector alone there, and the detector has flagged, so the
+    PL is inf (unavailable) on the trusted frames instead of the noise term of a start it cannot vouch for; a run
+    whose detector flagged nothing keeps its PL, and the motion fusion (detector ignored) is not affected."""
+    rel, run = approach(60, 0)
+    pose = run.pose.copy()
+    pose[:, 0] += 15.0  # a captured start: every estimate 15 m off
+    prob = np.ones(60)
+    prob[3] = 0.0  # the one frame the detector lets through
+    attacked = CleanRun(pose, prob, run.R_cam, run.u)
+    from functools import partial
+
+    from pipeline.defense.integrity import alert_limit
+
+    al = partial(alert_limit, settings=AlertLimitSettings())
+    d = defend_runs(DefenseSettings(threshold=0.5), SHIPPED, NOISE, [attacked], al)[0]
+    assert d.mode[3] == "track" and np.linalg.norm(d.trusted[3] - rel[3]) > 14.0
+    assert np.isinf(d.pl[3:]).all() and not d.available.any()
+    clean = defend_runs(DefenseSettings(threshold=0.5), SHIPPED, NOISE, [run], al)[0]
+    assert np.isfinite(clean.pl).all() and clean.available[:20].all()
+    motion = defend_runs(DefenseSettings(fusion="motion", threshold=0.5), SHIPPED, NOISE, [attacked], al)[0]
+    assert np.isfinite(motion.pl[3:]).all()  # it starts where the detector lets a frame through, as before
+
+
 def test_the_noise_term_starts_from_the_covariance_after_the_trusted_frames() -> None:
     """After the trusted frames the PL's noise term is that of the state covariance P_T then plus the execution
     error's random walk, kappa sqrt(lambda_max(P_T + (n - T) Q)), not the shrinking P_n: an attacker who knows

@@ -16,7 +16,8 @@ commanded displacement) into (flag, trusted estimate, mode, protection level, av
   innovations, pipeline/defense/sequential.py): a frame on which it alarms is flagged and coasts and
   the test restarts, so a slow drift that stays under the gate is flagged as it walks the state;
 - PL (m): the protection level of the trusted estimate (pipeline/defense/protection.py; inf before
-  the start), which grows with every restart of the test; available: the guidance may fly on the trusted
+  the start, and on the trusted-start frames once the detector has flagged a frame of the run: they rest on
+  the detector alone, assumption A), which grows with every restart of the test; available: the guidance may fly on the trusted
   estimate: mode track or coast and, with an alert limit AL(range) given, PL <= AL at the trusted
   estimate's range (the chaser's best knowledge of it; the offline integrity metrics,
   pipeline/defense/integrity.py, judge PL against AL at the true range);
@@ -143,6 +144,8 @@ class Defense:
         s = self.settings
         word = s.word(prob)
         shap_flag = word == ATTACK
+        if shap_flag and s.fusion != "motion":  # the guard of the trusted start has flagged (assumption A)
+            self.filter.doubt_start()
         if not self.filter.started:
             if shap_flag or not np.isfinite(t_pred).all():
                 return Decision(True, shap_flag, False, np.full(3, np.nan), HOLD, np.nan, np.nan)

@@ -87,6 +87,7 @@ class MotionFilter:
         self._pending: tuple[MotionCheck, tuple | None] | None = None  # last check, its update terms
         self._tested = False  # the pending frame went through the sequential test
         self._trusted = 0  # frames after the start the protection level assumes fault-free
+        self._doubted = False  # the detector flagged a frame of the run: assumption A is in doubt
         self._moved = [0.0] * 3  # sum of the commanded displacements so far (world, m)
         self._var: float | None = None  # the last step's process noise per axis (m^2; None: position_noise^2)
         self._candidates: list[tuple[list[float], Mat3, Mat3 | None]] = []
@@ -113,8 +114,9 @@ class MotionFilter:
 
     @property
     def protection_level(self) -> float:
-        """PL (m) of the current state (pipeline/defense/protection.py); inf before the start."""
-        if not self.started:
+        """PL (m) of the current state (pipeline/defense/protection.py); inf before the start, and inf on the
+        trusted frames once `doubt_start` was called (assumption A in doubt: no bound until the anchor)."""
+        if not self.started or (self._trusted > 0 and self._doubted):
             return math.inf
         return self.protection.level(self.pos.A)
 
@@ -143,6 +145,13 @@ class MotionFilter:
         self._candidates = []
         self._history.clear()
         self._history.append([p - m for p, m in zip(self.pos.level, self._moved)])
+
+    def doubt_start(self) -> None:
+        """The detector flagged a frame of this run. Assumption A (pipeline/defense/protection.py: no fault on
+        the first start and the trusted frames after it, the detector alone guards them) then rests on a guard
+        that has seen an attack or erred, so the protection level claims no bound (inf) on the trusted frames
+        until the anchor; from the anchor on, and after a restart (which trusts no frame), it is unchanged."""
+        self._doubted = True
 
     def measurement(
         self, t_pred: np.ndarray, R_cam: np.ndarray, rng: float | None = None

@@ -73,7 +73,11 @@ its T is the restart, P_T the restart's covariance.
 Assumptions the PL rests on (each one a way for it to fail):
 (A) No fault on the frame the filter first started from nor on the `trusted_start` frames after it: a
     bias present from the start is consistent with the commanded motion (no motion check can see it);
-    the detector alone guards them. pipeline/defense/bound.py does not assume it and shows its cost.
+    the detector alone guards them. Once the detector has flagged any frame of the run (before the start
+    included), that guard has seen an attack or erred, and the PL is inf on the trusted frames until T
+    (`MotionFilter.doubt_start`): an attack at acquisition that the detector flags on most frames no longer
+    starts the filter on the one frame it missed and flies on it. pipeline/defense/bound.py does not
+    assume A and shows its cost.
 (B) The checks themselves: every accepted frame went through the sequential test (its window
     constraint holds deterministically within a segment); the camera attitude of every frame is known.
 (C) The noise term: e_T ~ N(0, P_T), i.e. the pose errors of the frames up to T are Gaussian with the

@@ -41,7 +41,7 @@ def pl_parts(defended: Defended, pose: np.ndarray, prob: np.ndarray, R_cam: np.n
     for i in range(n):
         d.step(pose[i, :3], float(prob[i]), R_cam[i], u[i], R_pred[i])
         f = d.filter
-        if not f.started:
+        if not math.isfinite(f.protection_level):  # before the start, or a trusted start in doubt
             continue
         pr, noise = f.protection, f.protection.noise_term(f.pos.A)
         out[PARTS[0]][i] = noise + pr.bias()
