@@ -16,7 +16,8 @@ the real defense. The caller's filter is only read.
 (pipeline/defense/protection.py, `ProtectionLevel`) on that path, differentiably: the gain-weighted
 camera axes W_j = K_j R_j diag(sigma_j) of every accepted frame (the trusted frames after a first start
 left out, as `MotionFilter._bound` does) and the state covariance, so an attacker can ascend trusted
-error / PL.
+error / PL. A trusted start the detector has doubted (PL inf until the anchor, `MotionFilter.doubt_start`) is not
+mirrored: there the mirror's PL is the finite one, and the real defense the attacker checks its result on has none.
 """
 
 from __future__ import annotations

@@ -374,11 +374,12 @@ def raw_errors(flown: Sequence[Flown], tracks: Sequence[Track], masks: Sequence[
 
 
 def diagram_points(flown: Sequence[Flown], masks: Sequence[np.ndarray]) -> dict[str, list[float]]:
-    """For the integrity figure: over the counted frames with an estimate, the bound (PL where the frames
-    have one, else AL; m), the trusted error (m) and whether the frame was available."""
+    """For the integrity figure: over the counted frames with an estimate and a finite bound, the bound (PL where
+    the frames have one, else AL; m), the trusted error (m) and whether the frame was available. A frame whose PL
+    is inf (a trusted start the detector doubted: unavailable, no bound to plot) is left out."""
     fr = concat([f.frames for f in flown])
-    keep = np.concatenate([counted(m) for m in masks]) & np.isfinite(fr.error)
     bound = fr.alert if fr.pl is None else fr.pl
+    keep = np.concatenate([counted(m) for m in masks]) & np.isfinite(fr.error) & np.isfinite(bound)
     return {
         "bound": bound[keep].tolist(),
         "error": fr.error[keep].tolist(),
