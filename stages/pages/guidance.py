@@ -446,7 +446,8 @@ in every run) and Clohessy-Wiltshire motion over {x.frame_interval:g} s per step
 {process_noise(p.defense.position_noise, p.defense.position_noise_scale)}).
 Detect-and-recover flies on the trusted estimate where it is available (PL <= AL, the
 {p.integrity.alert_limit_kind.replace("_", "-")} AL at the trusted estimate's range) and holds elsewhere; the protection
-level assumes no fault on the {p.defense.trusted_start} frames after the filter's first start. Mission failure: a
+level assumes no fault on the {p.defense.trusted_start} frames after the filter's first start and claims none on
+them once the detector has flagged a frame of the run (the chaser holds until they are past). Mission failure: a
 collision (true range below {d["collision_range_m"]:g} m), a lost target, or a miss beyond {d["tolerance_m"]:g} m while
 the chaser still flew; a run that ends held far from the goal is a safe abort (an availability loss, not a
 failure). The paper dynamics rows are the paper's reproduction (prediction = truth by construction) and no part of

@@ -390,8 +390,9 @@ Assumptions of every row below:
   {process_noise(a["position_noise_m"], a.get("position_noise_scale", 0.0))}; the CUSUM reference c = {
         a["cusum_reference"]:g}; integrity risk {a["integrity_risk"]:g} per frame.
 - **Trusted start**: the protection level assumes no fault on the {a["trusted_start_frames"]} frames after the
-  filter's first start (assumption A, pipeline/defense/protection.py); the captures and a drift from acquisition
-  attack inside them.
+  filter's first start (assumption A, pipeline/defense/protection.py), and claims none (PL inf, unavailable) on
+  them once the detector has flagged a frame of the run, until they are past; the captures and a drift from
+  acquisition attack inside them.
 - **Detector**: the shipped chain's SHAP + LSTM detector at its calibrated threshold
   {a["detector"]["threshold"]:.4g} (models/defense.json), fused with the filter's checks (`defense.fusion`
   {a["detector"]["fusion"]}); it alone guards the trusted-start frames, and every attacker knows it and carries its
