@@ -1,7 +1,8 @@
 """`rpod bound`: issue 40's integrity bound under the attacker's capacity -> reports/integrity_bound.md and
 reports/metrics/bound.json. A stage of optional/dvc.yaml (`dvc repro optional/dvc.yaml`), not of the default
-`dvc repro`: on the default profile (10 trajectories, 3 eps, 2 attackers, 2 chains, stride 10) it took 21 minutes on
-the shared 2-core machine (reports/metrics/bound.json, seconds per chain).
+`dvc repro`: on the default profile (10 trajectories, 3 eps, 2 attackers and the checks-only one, 2 chains, stride 10)
+its programs took 27 minutes and the whole stage 31 on the 2-core machine while the test suite shared it for 12 of
+them (reports/metrics/bound.json, seconds per chain; the checks-only attacker adds about 5 of the 27).
 
 Per chain of `bound.models` (loaded through the one door, stages/artifacts/models.py `load_chain`) and each of the
 first `bound.trajectories` eval_render trajectories: pipeline/evaluation/integrity_bound.py `bound_track` at each eps
