@@ -241,8 +241,8 @@ def _checks_rows(chains: dict[str, Any]) -> list[dict[str, str]]:
                 "availability ceiling, any sound PL (%)": _pct(k["ceiling"]),
                 "the chain's PL, same frames (%)": _pct(k["pl"]),
                 "replayed error at the last frame, median / max (m)": f"{_x(goal['median'])} / {_x(goal['max'])}",
-                "AL there (m)": _x(k["goal_alert_m"]),
-                "PL there (m)": f"{_x(pl['min'])}-{_x(pl['max'])}",
+                "largest AL there (m)": _x(k["goal_alert_m"]),
+                "PL there, range (m)": f"{_x(pl['min'])}-{_x(pl['max'])}",
                 "max replayed / AL": _x(k["max_achieved_al"]),
                 "largest shift / range": _x(k["largest_shift_range"]),
             }
