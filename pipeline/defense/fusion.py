@@ -28,7 +28,9 @@ commanded displacement) into (flag, trusted estimate, mode, protection level, av
 - after `hold_after` consecutive flags the estimate is declared lost (mode "hold"): guidance should
   hold position until `release_after` consecutive frames pass both checks.
 Before the first unflagged frame there is no estimate to trust: such frames are in mode "hold" and
-the filter starts on the first frame the detector does not flag.
+the filter starts on the first frame the detector does not flag. The start is on probation like the end of
+a hold: the chain stays in mode "hold" until `release_after` frames in a row, the start frame among them,
+passed every check, so a single frame the detector let through at acquisition cannot be flown on alone.
 """
 
 from __future__ import annotations
@@ -150,8 +152,9 @@ class Defense:
             if shap_flag or not np.isfinite(t_pred).all():
                 return Decision(True, shap_flag, False, np.full(3, np.nan), HOLD, np.nan, np.nan)
             self.filter.start_from(t_pred, R_cam, R_pred)
-            self.holding = False
-            return self._decide(False, False, False, False, TRACK, np.nan, np.nan)
+            self.clean_in_a_row = 1  # the start frame is the first of `release_after` clean frames (probation)
+            self.holding = self.clean_in_a_row < s.release_after
+            return self._decide(False, False, False, False, HOLD if self.holding else TRACK, np.nan, np.nan)
         check = self.filter.check(t_pred, R_cam, u, R_pred)
         motion_flag, sequential_flag = check.inconsistent, False
         suspect = word != CLEAN and s.fusion != "motion"  # the detector's word, where it counts
