@@ -65,8 +65,19 @@ def test_before_a_trusted_frame_the_defense_holds():
     rel, t_pred, R_cam, u = straight(10)
     prob = np.array([0.9, 0.9] + [0.0] * 8)
     tr = run_defense(DefenseSettings(), MOTION, NOISE, t_pred, prob, R_cam, u)
-    assert list(tr.mode[:3]) == [HOLD, HOLD, TRACK] and np.isnan(tr.trusted[:2]).all()
-    assert np.allclose(tr.trusted[2], R_cam[2] @ t_pred[2])
+    # the filter starts on frame 2, which stays on probation (held) until a second clean frame passes
+    assert list(tr.mode[:4]) == [HOLD, HOLD, HOLD, TRACK] and np.isnan(tr.trusted[:2]).all()
+    assert np.allclose(tr.trusted[2], R_cam[2] @ t_pred[2]) and not tr.available[:3].any()
+
+
+def test_a_start_frame_is_flown_on_only_after_release_after_clean_frames():
+    rel, t_pred, R_cam, u = straight(10)
+    one = run_defense(DefenseSettings(release_after=1), MOTION, NOISE, t_pred, np.zeros(10), R_cam, u)
+    assert one.mode[0] == TRACK and one.available[0]
+    # a flag right after the start restarts the count: the chain holds until two clean frames in a row
+    prob = np.array([0.0, 0.9] + [0.0] * 8)
+    tr = run_defense(DefenseSettings(release_after=2), MOTION, NOISE, t_pred, prob, R_cam, u)
+    assert list(tr.mode[:4]) == [HOLD, HOLD, HOLD, TRACK]
 
 
 @pytest.mark.parametrize(

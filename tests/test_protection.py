@@ -111,13 +111,36 @@ def test_a_start_the_detector_doubted_claims_no_bound_until_the_anchor() -> None
     from pipeline.defense.integrity import alert_limit
 
     al = partial(alert_limit, settings=AlertLimitSettings())
-    d = defend_runs(DefenseSettings(threshold=0.5), SHIPPED, NOISE, [attacked], al)[0]
+    # release_after=1: no probation of the start frame, so the doubt alone must keep the start unflown
+    d = defend_runs(DefenseSettings(threshold=0.5, release_after=1), SHIPPED, NOISE, [attacked], al)[0]
     assert d.mode[3] == "track" and np.linalg.norm(d.trusted[3] - rel[3]) > 14.0
     assert np.isinf(d.pl[3:]).all() and not d.available.any()
     clean = defend_runs(DefenseSettings(threshold=0.5), SHIPPED, NOISE, [run], al)[0]
-    assert np.isfinite(clean.pl).all() and clean.available[:20].all()
+    assert np.isfinite(clean.pl).all() and clean.available[1:20].all() and not clean.available[0]
     motion = defend_runs(DefenseSettings(fusion="motion", threshold=0.5), SHIPPED, NOISE, [attacked], al)[0]
     assert np.isfinite(motion.pl[3:]).all()  # it starts where the detector lets a frame through, as before
+
+
+def test_a_captured_first_frame_the_detector_let_through_is_never_flown_on() -> None:
+    """The first-frame hole: the detector lets the very first frame through, so nothing has doubted the start
+    yet when the filter starts on it, and flags the rest. Without probation (release_after=1) the captured start
+    is flown on (available, 15 m off); with the start on probation (release_after=2, the default) the chain holds
+    until two frames in a row pass every check, which never happens here, so no frame is available."""
+    from functools import partial
+
+    from pipeline.defense.integrity import alert_limit
+
+    rel, run = approach(60, 0)
+    pose = run.pose.copy()
+    pose[:, 0] += 15.0
+    prob = np.ones(60)
+    prob[0] = 0.0
+    attacked = CleanRun(pose, prob, run.R_cam, run.u)
+    al = partial(alert_limit, settings=AlertLimitSettings())
+    loose = defend_runs(DefenseSettings(threshold=0.5, release_after=1), SHIPPED, NOISE, [attacked], al)[0]
+    assert loose.available[0] and np.linalg.norm(loose.trusted[0] - rel[0]) > 14.0
+    held = defend_runs(DefenseSettings(threshold=0.5), SHIPPED, NOISE, [attacked], al)[0]
+    assert (held.mode == "hold").all() and not held.available.any()
 
 
 def test_the_noise_term_starts_from_the_covariance_after_the_trusted_frames() -> None:
