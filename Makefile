@@ -19,10 +19,11 @@ paper: setup
 	dvc repro
 	dvc repro optional/dvc.yaml:ablation
 
-## Run the test suite (includes the smoke end-to-end run).
+## Run the test suite (includes the smoke end-to-end run), a whole test file at a time on each of up to 4 workers
+## (pytest-xdist; two on a 2-core machine); tests/conftest.py starts the longest files first.
 test: setup
 	ruff check . && ruff format --check .
-	python -m pytest -q
+	python -m pytest -q -n logical --maxprocesses 4 --dist loadfile --no-loadscope-reorder
 
 ## Run every stage end to end on the smoke profile in a temporary copy of the repository (a few minutes);
 ## the checkout's params.yaml, reports and dvc.lock stay as they were. Prints where the results are.
