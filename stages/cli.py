@@ -13,8 +13,9 @@ import sys
 # shared 2-core machine spinning threads made training 10-20x slower (7-12 vs ~146 img/s measured with
 # one other process running); the variable is only a default, a user's own setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-# Also before torch: its CPU kernels capped at AVX2 ($RPOD_CPU_ISA: avx2 | native; a variable the user set
-# wins), so that a seed gives the same models on machines with and without AVX-512 (stages/config/cpu.py).
+# numpy's and torch's CPU kernels are capped at AVX2 by `import stages` ($RPOD_CPU_ISA: avx2 | native; a
+# variable the user set wins), so that a seed gives the same results on machines with and without AVX-512
+# (stages/config/cpu.py); a bad $RPOD_CPU_ISA is reported here, in one line.
 from stages.config.cpu import pin_cpu_isa  # noqa: E402
 
 try:

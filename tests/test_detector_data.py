@@ -180,6 +180,25 @@ def test_rpod_pins_torch_before_it_loads():
     assert out == ["AVX2", "SSE41", "AVX2"]
 
 
+@pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64"), reason="the pins are for x86-64")
+def test_importing_stages_pins_numpy_before_it_loads():
+    """`import stages` (which imports numpy) runs numpy's OpenBLAS on the AVX2 kernels and no AVX-512 loop,
+    and every target the pin disables is one numpy dispatches (else numpy refuses to import)."""
+    probe = (
+        "import json, stages, numpy, threadpoolctl; "
+        "from numpy.core._multiarray_umath import __cpu_dispatch__, __cpu_features__; "
+        "print(json.dumps([sorted({i['architecture'] for i in threadpoolctl.threadpool_info() "
+        "if i['internal_api'] == 'openblas'}), [k for k, v in __cpu_features__.items() if v and 'AVX512' in k], "
+        "list(__cpu_dispatch__)]))"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in (*PINS["avx2"], ISA_ENV)}
+    env["PYTHONPATH"] = str(REPO)
+    out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=True, cwd=REPO)
+    blas, avx512_on, dispatched = json.loads(out.stdout)
+    assert blas == ["Haswell"] and avx512_on == []
+    assert set(PINS["avx2"]["NPY_DISABLE_CPU_FEATURES"].split()) <= set(dispatched)
+
+
 def test_trajectory_renders_keep_timings_out_of_meta_json(tmp_path, monkeypatch):
     """eval_render --detector: the same params give byte-identical meta.json and poses (a stable DVC hash);
     the render time goes to reports/metrics/detect_render.json."""

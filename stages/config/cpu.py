@@ -3,10 +3,15 @@
 torch picks its kernels by CPU when it loads: ATen's vectorised ops (`ATEN_CPU_CAPABILITY`), oneDNN's
 convolutions (`ONEDNN_MAX_CPU_ISA`) and MKL's BLAS (`MKL_CBWR`, conditional numerical reproducibility)
 each take the widest instructions the CPU has. AVX-512 and AVX2 kernels add in another order, so the
-same seed trained another pose model on a machine without AVX-512 (issue 27). `rpod` therefore caps
-all three at AVX2, which every x86-64 CPU of the last decade has, before torch is imported
-(`pin_cpu_isa`, called first thing by stages/cli.py); what it costs and what it buys is measured by
-benchmarks/cpu_isa.py (reports/benchmarks.md, "## CPU instruction set").
+same seed trained another pose model on a machine without AVX-512 (issue 27). numpy does the same: its
+OpenBLAS picks a kernel set by CPU (`OPENBLAS_CORETYPE`: Zen and Haswell run the same AVX2 kernels,
+bit for bit; SkylakeX runs AVX-512 ones) and its own loops dispatch AVX-512 paths where the CPU has
+them (`NPY_DISABLE_CPU_FEATURES`): attitude means and detector thresholds then differed in the 16th
+digit between an AVX-512 and an AVX2 machine. `rpod` therefore caps all five at AVX2, which every
+x86-64 CPU of the last decade has, before numpy and torch are imported (`pin_cpu_isa`, called first
+thing by stages/__init__.py, so by every `rpod` command, script and test that imports `stages`); what the
+torch cap costs and buys is measured by benchmarks/cpu_isa.py (reports/benchmarks.md, "## CPU
+instruction set").
 
 `RPOD_CPU_ISA` picks the cap: `avx2` (default) or `native` (no cap: torch's own choice, the fastest).
 A variable the user set themselves wins over the cap. Other architectures (arm64) are left alone.
@@ -23,9 +28,18 @@ from collections.abc import MutableMapping
 
 ISA_ENV = "RPOD_CPU_ISA"
 DEFAULT = "avx2"
+# numpy 1.26's dispatched AVX-512 targets (`numpy.core._multiarray_umath.__cpu_dispatch__`); disabling one
+# the CPU lacks is allowed, one numpy does not dispatch is an error at import
+NUMPY_AVX512 = "AVX512F AVX512CD AVX512_KNL AVX512_KNM AVX512_SKX AVX512_CLX AVX512_CNL AVX512_ICL"
 # cap -> the variables it sets (when the user has not); "native" sets none
 PINS: dict[str, dict[str, str]] = {
-    "avx2": {"ATEN_CPU_CAPABILITY": "avx2", "ONEDNN_MAX_CPU_ISA": "AVX2", "MKL_CBWR": "AVX2"},
+    "avx2": {
+        "ATEN_CPU_CAPABILITY": "avx2",
+        "ONEDNN_MAX_CPU_ISA": "AVX2",
+        "MKL_CBWR": "AVX2",
+        "OPENBLAS_CORETYPE": "Haswell",
+        "NPY_DISABLE_CPU_FEATURES": NUMPY_AVX512,
+    },
     "native": {},
 }
 X86 = ("x86_64", "amd64", "i686", "x86")
