@@ -3,8 +3,8 @@
 
 Configurations, each in its own processes (the variables act only before torch loads):
 native (`RPOD_CPU_ISA=native`: torch's own choice), each pin alone (`ATEN_CPU_CAPABILITY=avx2`,
-`ONEDNN_MAX_CPU_ISA=AVX2`, `MKL_CBWR=AVX2`), and all three (what `rpod` sets by default,
-stages/config/cpu.py).
+`ONEDNN_MAX_CPU_ISA=AVX2`, `MKL_CBWR=AVX2`), and all three (what `rpod` sets by default
+for torch, stages/config/cpu.py; it pins numpy's OpenBLAS and AVX-512 loops too, which this benchmark leaves alone).
 - Speed: training images/s of the default pose network (train.width at render.width x height, batch
   train.batch_size, random images) and the pose forward of one image: the process's CPU time (all
   threads) and wall time, medians over --rounds rounds in which the configurations take turns.
