@@ -2,7 +2,8 @@
 one means `dvc repro` would not re-run the stage when that code changes.
 
 The code a command can run is derived from the source, function by function: start from every
-function of stages/<command>.py (stages/cli.py only dispatches to it), follow the names each function
+function of stages/<command>.py (stages/cli.py only dispatches to it) and of stages/__init__.py (the CPU pin every
+command runs first), follow the names each function
 uses (module-level and in-function imports, `module.attr` references, calls to functions of the
 same module), and collect the files reached. Function granularity keeps, e.g., `rpod render` off
 pipeline/attacks/gradient.py although stages/config/build.py (which it uses) has an attack helper.
@@ -111,10 +112,15 @@ SUBPROCESSES = {
 }
 
 
+# every `rpod` command first runs the stages package's __init__: the CPU pin (stages/config/cpu.py), which sets
+# the kernels numpy and torch compute with, and the missing-input hint
+ENTRY = REPO / "stages" / "__init__.py"
+
+
 def stage_files(name: str) -> set[Path]:
     cmd = STAGES[name]["cmd"].split()
     assert cmd[0] == "rpod", f"stage {name}: command {cmd} is not an rpod command"
-    files = files_of(REPO / "stages" / f"{cmd[1]}.py")
+    files = files_of(REPO / "stages" / f"{cmd[1]}.py") | files_of(ENTRY) | {ENTRY}
     for sub in SUBPROCESSES.get(cmd[1], ()):
         files |= files_of(REPO / "stages" / f"{sub}.py")
     return files
