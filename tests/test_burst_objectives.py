@@ -20,8 +20,8 @@ from pipeline.defense.kalman import MotionFilter
 from pipeline.geometry.rotations import rotvec_to_matrix, sixd_to_matrix, sixd_to_matrix_t
 
 
-@pytest.mark.parametrize("trusted_start", [0, 3])
-def test_the_mirror_replays_the_protection_level(scene, trusted_start: int) -> None:
+@pytest.mark.parametrize("trusted_start,correlated", [(0, 0.0), (3, 0.0), (0, 0.5), (3, 0.5)])
+def test_the_mirror_replays_the_protection_level(scene, trusted_start: int, correlated: float) -> None:
     model, _, run, _ = scene
     rng = np.random.default_rng(1)
     with torch.no_grad():
@@ -29,7 +29,7 @@ def test_the_mirror_replays_the_protection_level(scene, trusted_start: int) -> N
     pose[5, :3] += torch.tensor([0.4, -0.3, 1.5], dtype=torch.float64)  # a Huber-weighted frame
     R_cam = np.stack([rotvec_to_matrix(rng.normal(0, 0.3, 3)) for _ in range(N)])
     u = rng.normal(0, 0.05, (N, 3))
-    motion = dataclasses.replace(MOTION, cusum_threshold=1e9, trusted_start=trusted_start)
+    motion = dataclasses.replace(MOTION, cusum_threshold=1e9, trusted_start=trusted_start, correlated_error=correlated)
     real = MotionFilter(motion, NOISE)
     mirror = FilterMirror(real, 2)
     assert torch.isinf(mirror.protection_level()).all()

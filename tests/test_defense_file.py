@@ -24,7 +24,7 @@ from rpodguard.api import BUNDLE
 RECORD = json.loads((BUNDLE / "defense.json").read_text())  # what `rpod calibrate` wrote for the shipped chain
 WHERE = "models/defense.json"
 EXAMPLES = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-CALIBRATED = {"threshold", "update_below", "cusum_threshold"}  # the settings calibrate chooses
+CALIBRATED = {"threshold", "update_below", "cusum_threshold", "correlated_error"}  # the settings calibrate chooses
 
 
 def paths(record: Any, prefix: tuple = ()) -> list[tuple]:
@@ -227,7 +227,8 @@ def test_a_file_calibrated_under_other_settings_is_refused_naming_both_values(na
 
 def test_the_committed_params_fly_exactly_what_the_committed_defense_file_records():
     """The switch to defense.json as the only source changes no number: the settings the stages built from
-    params.yaml and the calibrated thresholds (before) equal those the file records (after), field by field."""
+    params.yaml and the calibrated settings (thresholds, h, the PL's correlated share; before) equal those the file
+    records (after), field by field."""
     from stages.config.build import alert_limit_settings, defense_settings
     from stages.config.params import load
 
@@ -235,7 +236,10 @@ def test_the_committed_params_fly_exactly_what_the_committed_defense_file_record
     cal = parse_defense(copy.deepcopy(RECORD), WHERE)
     settings, motion = defense_settings(p.defense, cal.threshold, cal.settings.update_below)
     before = Defended(
-        settings, dataclasses.replace(motion, cusum_threshold=cal.cusum_threshold), cal.noise, alert_limit_settings(p)
+        settings,
+        dataclasses.replace(motion, cusum_threshold=cal.cusum_threshold, correlated_error=cal.motion.correlated_error),
+        cal.noise,
+        alert_limit_settings(p),
     )
     assert repr(before) == repr(cal.defended)  # equal values of equal types
     check_settings(cal, WHERE, before, p.defense.doubt_share, "params.yaml", {})

@@ -354,12 +354,17 @@ def test_calibrate_tightens_every_share_when_only_the_fusion_overshoots(monkeypa
         scales.append(scale)
         return [None, SimpleNamespace(setting=1.0), SimpleNamespace(setting=1.0), None], settings, motion
 
+    last: list[dict] = []
+
     def summary(traces, truths, alert):
         v = next(fused)
-        return {"fused": rate(np.arange(10000) < round(v * 10000))}
+        last.append({"fused": rate(np.arange(10000) < round(v * 10000))})
+        return last[-1]
 
     monkeypatch.setattr(cal, "calibrate_checks", checks)
     monkeypatch.setattr(cal, "clean_summary", summary)
+    covered = cal.CheckResult(cal.COVERAGE, 0.0, 0.0, 0.0, {0.0: 0.0})
+    monkeypatch.setattr(cal, "protection_coverage", lambda s, m, n, r, t, a: (covered, last[-1]))
     monkeypatch.setattr(cal, "defend_runs", lambda *a, **k: [])
     monkeypatch.setattr(cal, "inflate", lambda noise, k, k_att: noise)
     start = (DefenseSettings(threshold=0.5), MOTION)
@@ -378,3 +383,58 @@ def test_calibrate_tightens_every_share_when_only_the_fusion_overshoots(monkeypa
     assert len(scales) == cal.TIGHTEN_TRIES + 1 and out.final["fused"].value > p.defense.target_false_alarm
     line = unmet_line(None, 5000, out.final["fused"].value, p.defense.target_false_alarm, len(out.tightened))
     assert "\n" not in line and f"tightened {cal.TIGHTEN_TRIES} times" in line and "defense.allow_unmet" in line
+
+
+def test_the_correlated_share_is_held_in_the_noise_term_from_the_anchor() -> None:
+    """Assumption C: a share of one measurement's variance (m^2) joins lambda_max in the noise term, at the current
+    range before the anchor and held at the anchor's value after it; 0 leaves the PL as it was."""
+    P = np.diag([0.04, 0.01, 0.09]).tolist()
+    white, shared = ProtectionLevel(1.0, 3.0, 1e-5), ProtectionLevel(1.0, 3.0, 1e-5, correlated=0.5)
+    assert shared.noise_term(P, 0.64) == pytest.approx(shared.kappa * np.sqrt(0.09 + 0.32))
+    assert white.noise_term(P, 0.64) == pytest.approx(white.kappa * 0.3)
+    shared.anchor(P, 1.0)
+    shared.step(0.0)
+    assert shared.noise_term(np.eye(3).tolist(), 100.0) == pytest.approx(shared.kappa * np.sqrt(0.09 + 0.5))
+    with pytest.raises(ValueError, match=r"in \[0, 1\]"):
+        ProtectionLevel(1.0, 3.0, 1e-5, correlated=1.5)
+
+
+def _biased_runs(k: int, n: int = 60) -> tuple[list[np.ndarray], list[CleanRun]]:
+    """`k` toy approaches whose estimates share one range bias per approach (2 noise std, either sign) on top of
+    the white scatter: the errors the filter's average over its start frames cannot remove."""
+    truths, runs = [], []
+    for seed in range(k):
+        rel, run = approach(n, seed)
+        std = NOISE.position_std(40.0)[2]
+        pose = run.pose.copy()
+        pose[:, 2] += (1 if seed % 2 else -1) * 2.0 * std
+        truths.append(rel)
+        runs.append(dataclasses.replace(run, pose=pose))
+    return truths, runs
+
+
+def test_a_bias_shared_by_the_start_frames_breaks_a_white_pl_and_the_calibration_covers_it() -> None:
+    """Seed 1's failure on a toy: with the start frames' errors treated as white the trusted error exceeds the PL
+    (misleading frames on clean approaches); `protection_coverage` picks the smallest correlated share at which
+    none does, and reports a grid that cannot cover as unmet (one line, naming the setting)."""
+    from pipeline.defense.calibration import COVERAGE, protection_coverage
+    from stages.pages.calibrate import unmet_line
+
+    truths, runs = _biased_runs(4)
+    settings = DefenseSettings(threshold=0.5, fusion="motion")
+    white = clean_summary(defend_runs(settings, SHIPPED, NOISE, runs), truths, AlertLimitSettings())
+    assert white["mi"].value > 0.05
+    check, summary = protection_coverage(settings, SHIPPED, NOISE, runs, truths, AlertLimitSettings())
+    assert check.check == COVERAGE and check.met and check.setting > 0 and summary["mi"].value == 0.0
+    smaller = [f for f in check.rates if f < check.setting]
+    assert smaller and all(check.rates[f] > 0 for f in smaller)
+    covered = clean_summary(
+        defend_runs(settings, dataclasses.replace(SHIPPED, correlated_error=check.setting), NOISE, runs),
+        truths,
+        AlertLimitSettings(),
+    )
+    assert covered["mi"].value == 0.0
+    short, _ = protection_coverage(settings, SHIPPED, NOISE, runs, truths, AlertLimitSettings(), grid=(0.0,))
+    assert not short.met
+    line = unmet_line(short, 240)
+    assert "\n" not in line and "cannot cover" in line and "correlated share" in line and "allow_unmet" in line

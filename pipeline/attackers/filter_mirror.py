@@ -97,7 +97,9 @@ class FilterMirror:
         self.started = motion.started
         self.trusted_start, self.trusted = s.trusted_start, motion._trusted
         pl = motion.protection
-        self.kappa, self.offset = pl.kappa, pl.offset
+        self.kappa, self.offset, self.correlated = pl.kappa, pl.offset, pl.correlated
+        # the correlated variance held from the anchor (m^2; assumption C); None before the anchor
+        self.held = None if not self.started or pl.start is None else torch.full((self.runs,), pl.held, dtype=DTYPE)
 
         def rep(a: object) -> Tensor:
             return torch.as_tensor(np.asarray(a, np.float64)).expand(self.runs, *np.shape(a)).clone()
@@ -150,7 +152,13 @@ class FilterMirror:
         self.high, self.low = torch.zeros_like(z), torch.zeros_like(z)
         self.total, self.rise, self.last = (torch.zeros(self.runs, 3, 3, dtype=DTYPE) for _ in range(3))
         self.offset, self.trusted = 0.0, self.trusted_start
+        self.held = self.correlated * self._measurement_variance() if self.trusted == 0 else None
         self.started = True
+
+    def _measurement_variance(self) -> Tensor:
+        """(R,) one measurement's largest variance per camera axis at the state's range (m^2), as
+        `MotionFilter.measurement_variance`."""
+        return noise_terms_t(self.noise, self.level.norm(dim=1)[:, None])[1].amax(1) ** 2
 
     def _predict(self, u: np.ndarray | None) -> None:
         """`Kalman3.predict` and `IsoKalman6.predict` (the attitude rate moved into R_tw)."""
@@ -178,6 +186,8 @@ class FilterMirror:
         self.level = self.level + (K @ y.unsqueeze(2)).squeeze(2)
         M = torch.eye(3, dtype=DTYPE) - K
         self.A = _sym(M @ self.A @ M.transpose(1, 2) + K @ R @ K.transpose(1, 2))
+        if self.trusted == 0 and self.held is None:  # the anchor: the last trusted frame was just accepted
+            self.held = self.correlated * self._measurement_variance()
         return nis, cusum
 
     def _bound(self, W: Tensor) -> None:
@@ -196,13 +206,14 @@ class FilterMirror:
         self.last = W
 
     def protection_level(self) -> Tensor:
-        """PL (R,) m of the current state: kappa sqrt(lambda_max(P)) + |b| + the carried offset
-        (`ProtectionLevel.level`); inf before the start."""
+        """PL (R,) m of the current state: kappa sqrt(lambda_max(P) + B) + |b| + the carried offset
+        (`ProtectionLevel.level`, B its correlated variance); inf before the start."""
         if not self.started:
             return torch.full((self.runs,), math.inf, dtype=DTYPE)
         b = (self.reference * self.total + self.threshold * self.rise).sum(2)  # (R, 3) world axes
         lam = torch.linalg.eigvalsh(_sym(self.A))[:, -1].clamp(min=0.0)
-        return self.kappa * lam.sqrt() + b.norm(dim=1) + self.offset
+        held = self.correlated * self._measurement_variance() if self.held is None else self.held
+        return self.kappa * (lam + held).sqrt() + b.norm(dim=1) + self.offset
 
     def _update_attitude(self, R_meas: Tensor, rng: Tensor) -> Tensor:
         """NIS of the attitude error, then `IsoKalman6.update` (Huber-inflated) moved into R_tw."""

@@ -14,6 +14,12 @@ test data), in this order:
    also gives the smallest protection level (pipeline/defense/protection.py).
 Each returns a `CheckResult` that says whether the share was met. The shares add up to the budget, so
 the fused chain's rate is at most about the budget (the checks' flags overlap).
+4. the protection level's coverage (`protection_coverage`, last: it changes no flag): the smallest share of
+   one measurement's variance held as correlated (`CORRELATED`; MotionSettings.correlated_error, assumption C
+   of pipeline/defense/protection.py) at which no clean validation frame's trusted error exceeds its PL. The
+   pose errors are correlated over the frames the filter starts on, so a PL that treats them as white is
+   exceeded on clean approaches (seed 1 of the default profile: 2.2% of the validation frames with a PL); a
+   PL that still does at the largest share is a miss, and `UnmetShare` stops the search (`allow_unmet` aside).
 
 The search (`calibrate_to_target`, the one `rpod calibrate` runs): every check to its share
 (`calibrate_checks`; an unmet share raises `UnmetShare` unless the budget allows it), then the fused chain on
@@ -61,6 +67,10 @@ CUSUM_THRESHOLDS = (
     40.0,
     50.0,
 )
+# shares of one measurement's variance the protection level may hold as correlated (assumption C of
+# pipeline/defense/protection.py), smallest first
+CORRELATED = (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0)
+COVERAGE = "protection level"  # the CheckResult name of `protection_coverage`
 OFF = 1e12  # a CUSUM threshold no statistic reaches: the sequential test off
 # times the shares are tightened (each by the fused chain's overshoot) before the search gives up on the target
 TIGHTEN_TRIES = 3
@@ -202,6 +212,31 @@ def sequential_threshold(
     return CheckResult("sequential test", h, rates[h], share, rates)
 
 
+def protection_coverage(
+    settings: DefenseSettings,
+    motion: MotionSettings,
+    noise: NoiseModel,
+    runs: Sequence[CleanRun],
+    truths: Sequence[np.ndarray],
+    alert: Any,
+    grid: Sequence[float] = CORRELATED,
+) -> tuple[CheckResult, dict[str, Any]]:
+    """The smallest `correlated_error` of `grid` at which no frame of the clean validation `runs` (their true rel
+    `truths`, world m; the fused chain as calibrated) has a trusted error above its protection level: its share is
+    0 and its rate the misleading frames' (error > PL) share of the frames with a PL (`alert`: the
+    AlertLimitSettings the summary needs). Returns it and the runs' `clean_summary` at that setting."""
+    limit = None if alert is None else partial(alert_limit, settings=alert)
+    summaries: dict[float, dict[str, Any]] = {}
+
+    def rate(f: float) -> float:
+        tuned = dataclasses.replace(motion, correlated_error=f)
+        summaries[f] = clean_summary(defend_runs(settings, tuned, noise, runs, limit), truths, alert)
+        return summaries[f]["mi"].value
+
+    f, rates = first_meeting(rate, 0.0, grid)
+    return CheckResult(COVERAGE, f, rates[f], 0.0, rates), summaries[f]
+
+
 def clean_summary(traces: Sequence[DefenseTrace], truths: Sequence[np.ndarray], alert: Any) -> dict[str, Any]:
     """What the defense does on clean runs (`traces`, their true rel (N, 3) world m, `alert` the
     AlertLimitSettings): flag rates of each check and of the fused chain, availability (flown and PL
@@ -263,7 +298,7 @@ class Calibrated(NamedTuple):
     gate, sequential test), the chain's settings, the inflated noise model, `clean_summary` of the defended
     validation runs, and the share tightening."""
 
-    checks: list[CheckResult]
+    checks: list[CheckResult]  # detector, attitude gate, gate, sequential test, protection level
     settings: DefenseSettings
     motion: MotionSettings
     noise: NoiseModel
@@ -293,7 +328,11 @@ def calibrate_to_target(
         final = clean_summary(defend_runs(calibrated, filtered, noise, runs, limit), truths, alert)
         fused = final["fused"].value
         if fused <= budget.target or len(tightened) == TIGHTEN_TRIES:
-            return Calibrated(checks, calibrated, filtered, noise, final, scale, tightened)
+            coverage, final = protection_coverage(calibrated, filtered, noise, runs, truths, alert)
+            if not (budget.allow_unmet or coverage.met):
+                raise UnmetShare(coverage)
+            filtered = dataclasses.replace(filtered, correlated_error=coverage.setting)
+            return Calibrated([*checks, coverage], calibrated, filtered, noise, final, scale, tightened)
         tightened.append({"shares_scale": scale, "fused_pct": round(100 * fused, 4)})
         scale *= min(budget.target / fused, TIGHTEN_STEP)
 

@@ -41,7 +41,9 @@ class MotionSettings:
     (pipeline/defense/sequential.py; h is calibrated on validation trajectories); integrity_risk:
     the per-frame probability that the protection level's noise term is exceeded; trusted_start:
     frames after the filter's first start that the protection level assumes fault-free (its
-    assumption A, pipeline/defense/protection.py: the detector alone guards them)."""
+    assumption A, pipeline/defense/protection.py: the detector alone guards them); correlated_error: the
+    share of one measurement's variance that the frames share, which the filter's average cannot remove
+    (assumption C there; calibrated on validation trajectories, pipeline/defense/calibration.py)."""
 
     position_noise: Annotated[float, In("(0, 1000]", "metres per frame")] = 0.005
     position_noise_scale: Annotated[float, In("[0, 1]", "fraction of the commanded step")] = 0.0
@@ -54,6 +56,7 @@ class MotionSettings:
     cusum_threshold: Annotated[float, In("(0, 1000000]", "standard deviations")] = 10.0
     integrity_risk: Annotated[float, In("(0, 1)", "probability per frame")] = 1e-5
     trusted_start: Annotated[int, In("[0, 10000000]", "frames")] = 20
+    correlated_error: Annotated[float, In("[0, 1]", "share of one measurement's variance")] = 0.0
 
     def __post_init__(self) -> None:
         for name in ("position_noise", "attitude_noise_deg", "attitude_rate_noise_deg", "cusum_threshold"):
@@ -72,6 +75,8 @@ class MotionSettings:
             raise ValueError(f"defense.cusum_reference must be a finite number >= 0, got {self.cusum_reference}")
         if int(self.trusted_start) != self.trusted_start or self.trusted_start < 0:
             raise ValueError(f"defense.trusted_start must be a whole number of frames >= 0, got {self.trusted_start}")
+        if not (np.isfinite(self.correlated_error) and 0 <= self.correlated_error <= 1):
+            raise ValueError(f"defense.correlated_error must be a share in [0, 1], got {self.correlated_error}")
         if not 0 < float(self.integrity_risk) < 1:
             raise ValueError(f"defense.integrity_risk must be a probability in (0, 1), got {self.integrity_risk}")
 

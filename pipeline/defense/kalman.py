@@ -80,7 +80,11 @@ class MotionFilter:
         self.att = IsoKalman6(math.radians(settings.attitude_noise_deg), math.radians(settings.attitude_rate_noise_deg))
         self.cusum = Cusum(settings.cusum_reference, settings.cusum_threshold)
         self.protection = ProtectionLevel(
-            settings.cusum_reference, settings.cusum_threshold, settings.integrity_risk, settings.position_noise
+            settings.cusum_reference,
+            settings.cusum_threshold,
+            settings.integrity_risk,
+            settings.position_noise,
+            settings.correlated_error,
         )
         self.R_tw = eye()  # attitude estimate (target -> world), 3x3 nested list
         self.started = False
@@ -118,7 +122,18 @@ class MotionFilter:
         trusted frames once `doubt_start` was called (assumption A in doubt: no bound until the anchor)."""
         if not self.started or (self._trusted > 0 and self._doubted):
             return math.inf
-        return self.protection.level(self.pos.A)
+        return self.protection.level(self.pos.A, self.measurement_variance)
+
+    @property
+    def measurement_variance(self) -> float:
+        """One measurement's largest variance per camera axis at the state's range (m^2): what the protection
+        level holds a share of (`MotionSettings.correlated_error`, assumption C of pipeline/defense/protection.py)."""
+        return max(self.noise.terms(self.predicted_range)[1]) ** 2
+
+    @property
+    def pl_noise_term(self) -> float:
+        """The protection level's noise term (m) of the current state (pipeline/defense/protection.py)."""
+        return self.protection.noise_term(self.pos.A, self.measurement_variance)
 
     def start(
         self,
@@ -141,7 +156,7 @@ class MotionFilter:
         self.protection.reset(offset)
         self._trusted = int(trusted)
         if self._trusted == 0:
-            self.protection.anchor(self.pos.A)
+            self.protection.anchor(self.pos.A, self.measurement_variance)
         self._candidates = []
         self._history.clear()
         self._history.append([p - m for p, m in zip(self.pos.level, self._moved)])
@@ -285,7 +300,7 @@ class MotionFilter:
         if self._trusted > 0:
             self._trusted -= 1
             if self._trusted == 0:
-                self.protection.anchor(self.pos.A)
+                self.protection.anchor(self.pos.A, self.measurement_variance)
         else:
             self.protection.add(G, sigma)
 

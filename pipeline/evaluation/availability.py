@@ -43,7 +43,7 @@ def pl_parts(defended: Defended, pose: np.ndarray, prob: np.ndarray, R_cam: np.n
         f = d.filter
         if not math.isfinite(f.protection_level):  # before the start, or a trusted start in doubt
             continue
-        pr, noise = f.protection, f.protection.noise_term(f.pos.A)
+        pr, noise = f.protection, f.pl_noise_term
         out[PARTS[0]][i] = noise + pr.bias()
         out[PARTS[1]][i] = noise + pr.bias(reference=0.0)
         out[PARTS[2]][i] = noise + pr.bias(threshold=0.0)

@@ -179,7 +179,7 @@ def check_settings(
     their calibrated fields (the thresholds, h, the doubt level) aside, and a doubt level recorded exactly when
     the run asks for one (`doubt`: its share of the clean frames, None: none). `keys`: setting name (or "doubt")
     -> the key of `source` that gives it, for the message."""
-    calibrated = {"threshold", "update_below", "cusum_threshold"}
+    calibrated = {"threshold", "update_below", "cusum_threshold", "correlated_error"}
     pairs = [
         (f"{part}.{f.name}", getattr(have, f.name), getattr(want, f.name), f.name)
         for part, have, want in (

@@ -248,7 +248,7 @@ def defense_settings(defense: Defense, threshold: float, update_below: float | N
     try:
         return (
             settings_of(DefenseSettings, defense, threshold=threshold, update_below=doubt),
-            settings_of(MotionSettings, defense, ("cusum_threshold",)),
+            settings_of(MotionSettings, defense, ("cusum_threshold", "correlated_error")),
         )
     except ValueError as e:
         raise StageError(f"params.yaml: {e}") from None

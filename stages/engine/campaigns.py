@@ -427,7 +427,8 @@ def _assumptions(p: Params, shipped: Any) -> dict[str, Any]:
         "position_noise_scale": d.position_noise_scale,
         "detector": {"fusion": d.fusion, "threshold": float(shipped.defended.settings.threshold)},
         "noise_model": "pose-network noise and bias per range bin fitted on the validation trajectories "
-        f"(defense.noise_bins = {d.noise_bins}), inflated x{shipped.calibration.inflation:g} "
+        f"(defense.noise_bins = {d.noise_bins}), inflated x{shipped.calibration.inflation:g}, the PL holding "
+        f"{shipped.defended.motion.correlated_error:g} of one measurement's variance as shared by the start frames "
         "(rpod calibrate)",
         "execution": {
             "scale_std": x.scale_std,

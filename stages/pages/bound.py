@@ -36,7 +36,8 @@ ASSUMPTIONS = """\
   is over those target frames, its interval bootstrapped over trajectories (frames of one trajectory resample
   together).
 - The protection level's own assumptions (its risk allocated per frame, not per approach; the fault-free noise
-  model white in time) are pipeline/defense/protection.py's.
+  model white in time but for the share of one measurement's variance it holds as shared by the start frames,
+  calibrated on validation) are pipeline/defense/protection.py's.
 """
 
 

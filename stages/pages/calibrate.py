@@ -11,6 +11,7 @@ SETTING = {
     "attitude gate": "attitude noise inflation x{:g}",
     "gate": "position noise inflation x{:g}",
     "sequential test": "CUSUM threshold h = {:g}",
+    "protection level": "correlated share of the measurement variance {:g}",
 }
 
 
@@ -27,6 +28,12 @@ def unmet_line(
             f"{tightened} times); set defense.allow_unmet: true to continue anyway"
         )
     best = min(check.rates.values())
+    if check.share == 0.0:  # the protection level's coverage (pipeline/defense/calibration.py)
+        return (
+            f"calibrate: the {check.check} cannot cover the clean validation errors: on {frames} clean validation "
+            f"frames {100 * best:.3f}% of those with a PL have a larger error at best "
+            f"({SETTING[check.check].format(check.setting)}); set defense.allow_unmet: true to continue anyway"
+        )
     return (
         f"calibrate: the {check.check} cannot meet its share {100 * check.share:.3f}% of "
         f"defense.target_false_alarm on {frames} clean validation frames: it flags {100 * best:.3f}% at best "
@@ -46,7 +53,8 @@ def summary_line(cal: dict[str, Any], path: Path) -> str:
         f"{cal['inflation']:g} (attitude x{cal['attitude_inflation']:g}), CUSUM h {cal['cusum_threshold']:g}; false alarms detector {fa['detector']['pct']:.3f}%, "
         f"gate {fa['gate']['pct']:.3f}%, sequential {fa['sequential']['pct']:.3f}%, fused {fa['fused']['pct']:.3f}% "
         f"(detector on {v['envelope']['frames']} envelope frames {v['envelope']['detector_pct']:.3f}%) "
-        f"(target {v['target_pct']:g}%); availability {v['availability']['pct']:.2f}%{unmet} -> {path}"
+        f"(target {v['target_pct']:g}%); availability {v['availability']['pct']:.2f}%, PL correlated share "
+        f"{cal['settings'].get('correlated_error', 0.0):g} (error > PL on {v['mi']['pct']:.3f}%){unmet} -> {path}"
     )
 
 

@@ -67,7 +67,8 @@ def _mi_line(mi: dict[str, Any], risk: float) -> str:
     return (
         f"The chosen defense's error exceeds its PL (MI) on {100 * mi['value']:.2f}% of the held-out frames without "
         f"any attack, against the {risk:g} per frame the PL is sized for; the PL's noise term rests on assumption C of "
-        "pipeline/defense/protection.py (white Gaussian pose errors up to the trusted start), measured, not bounded."
+        "pipeline/defense/protection.py (Gaussian pose errors up to the trusted start, white but for the share the "
+        "calibration holds as shared), measured, not bounded."
     )
 
 
