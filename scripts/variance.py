@@ -328,9 +328,16 @@ def ratio_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str, Any]]
     return rows
 
 
+def _largest_or_dash(values: list[Any]) -> Any:
+    """The largest of `values` (None: a chain without a protection level), "-" when there is none."""
+    present = [v for v in values if v is not None]
+    return max(present) if present else "-"
+
+
 def pooled_chain_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str, Any]]:
     """Per chain: trajectories pooled over the runs, each run's breaking eps, the clean availability with a
-    bootstrap over the pooled trajectories (pipeline/stats.py), and the largest clean error / AL."""
+    bootstrap over the pooled trajectories (pipeline/stats.py), the largest clean error / AL and error / PL (the PL
+    bounds the clean error where this is at most 1)."""
     import numpy as np
 
     from pipeline.stats import bootstrap_rate
@@ -357,6 +364,7 @@ def pooled_chain_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str
                 ),
                 "clean availability (%)": avail.pct(),
                 "clean max error / AL": max(t["max_error_al"] for t in clean),
+                "clean max error / PL": _largest_or_dash([t["max_error_pl"] for t in clean]),
             }
         )
     return rows
@@ -429,7 +437,8 @@ Each seed run draws its own evaluation, validation and campaign trajectories (pi
 so the runs' trajectories pool: {evaluation} evaluation trajectories of `rpod evaluate` over {len(have)} runs,
 and per chain of the integrity campaign (`rpod robustness`, reports/robustness.md) the count below. Failure:
 error / AL > 1 on an available frame, worst over the attackers flown (each nested in eps); the clean
-availability's interval is a bootstrap over the pooled trajectories.
+availability's interval is a bootstrap over the pooled trajectories; clean max error / PL above 1 would be a clean
+frame whose error the protection level did not bound.
 
 {markdown_table(chains, decimals=2)}
 {markdown_table(pooled_eps_rows(metrics, seeds), decimals=2)}
