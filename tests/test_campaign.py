@@ -188,7 +188,7 @@ def test_the_robustness_page_leads_with_the_breaking_point_and_says_which_target
 
     p = params_mod.build(params_mod.compose("default"))
     held = _integrity({"robust": None, "standard": 0.01, "control": 0.02})
-    assert [v for _, v, _ in targets(held)] == ["met", "met", "met", "met", "met"]
+    assert [v for _, v, _ in targets(held)] == ["met", "met", "met", "met", "met", "met"]
     page = lead(held, p)
     assert page.startswith("## Safety evidence that can fail") and "Every target is met" in page
     assert "**Trusted start**" in page and "**Detector**" in page and "threshold\n  0.61" in page
@@ -202,6 +202,12 @@ def test_the_robustness_page_leads_with_the_breaking_point_and_says_which_target
     assert "Targets not met" in first and "clean availability" in first and "shipped 0.05" in first
     assert list(verdicts.values()).count("**missed**") == 2  # shipped at eps <= 0.05, availability
     assert verdicts["shipped breaking eps >= 2 x the control's"] == "not shown"  # both in (0.01, 0.05]: cannot tell
+    leaky = _integrity({"robust": None, "standard": 0.01, "control": 0.02})
+    leaky["chains"]["standard"]["summary"]["clean"]["max_error_pl"] = 1.15  # seed 1's failure, before the share
+    target, verdict, evidence = targets(leaky)[-1]
+    assert target.startswith("clean: the PL bounds") and verdict == "**missed**"
+    assert evidence == "largest clean error / PL: shipped 0.50, standard 1.15"
+    assert "clean: the PL bounds" in lead(leaky, p).splitlines()[2]  # named in the first lines
     no_control = _integrity({"robust": None, "standard": 0.01, "control": None})
     assert targets(no_control)[0][1] == "**missed**" and targets(no_control)[2][1] == "not shown"
 

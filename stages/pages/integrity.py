@@ -93,7 +93,8 @@ def ratio_verdict(a: Bracket, b: Bracket, target: float) -> tuple[str, str]:
 
 
 def targets(integrity: dict[str, Any]) -> list[tuple[str, str, str]]:
-    """Issue 39's targets on the open-loop evidence: (target, "met" / "**missed**" / "not shown", evidence)."""
+    """Issue 39's targets on the open-loop evidence, and the protection level's own claim on the clean flights:
+    (target, "met" / "**missed**" / "not shown", evidence)."""
     chains = integrity["chains"]
     shipped, control = chains["robust"]["summary"], chains["control"]["summary"]
     out = []
@@ -145,7 +146,19 @@ def targets(integrity: dict[str, Any]) -> list[tuple[str, str, str]]:
             f"{_pct(alarms)}%",
         )
     )
-    return out
+    return out + [_clean_protection(chains)]
+
+
+def _clean_protection(chains: dict[str, Any]) -> tuple[str, str, str]:
+    """The protection level's own claim on the clean flights: no frame's trusted error above its PL, on the chains
+    that have one (shipped and standard)."""
+    pl = {k: chains[k]["summary"]["clean"].get("max_error_pl") for k in ("robust", "standard") if k in chains}
+    known = [v for v in pl.values() if v is not None]
+    return (
+        "clean: the PL bounds the trusted error on every frame (max error / PL <= 1, shipped and standard chains)",
+        "met" if known and max(known) <= 1.0 else "**missed**",
+        "largest clean error / PL: " + ", ".join(f"{'shipped' if k == 'robust' else k} {_m(v)}" for k, v in pl.items()),
+    )
 
 
 def lead(integrity: dict[str, Any], p: Params) -> str:
