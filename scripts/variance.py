@@ -364,7 +364,7 @@ def pooled_chain_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str
                 ),
                 "clean availability (%)": avail.pct(),
                 "clean max error / AL": max(t["max_error_al"] for t in clean),
-                "clean max error / PL": _largest_or_dash([t["max_error_pl"] for t in clean]),
+                "clean max error / PL": _largest_or_dash([t.get("max_error_pl") for t in clean]),
             }
         )
     return rows
