@@ -335,9 +335,10 @@ def _largest_or_dash(values: list[Any]) -> Any:
 
 
 def pooled_chain_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str, Any]]:
-    """Per chain: trajectories pooled over the runs, each run's breaking eps, the clean availability with a
-    bootstrap over the pooled trajectories (pipeline/stats.py), the largest clean error / AL and error / PL (the PL
-    bounds the clean error where this is at most 1)."""
+    """Per chain: trajectories pooled over the runs, each run's breaking eps, the clean availability and false alarms
+    (flagged clean frames; "-" where a run's trajectories lack the count) with a bootstrap over the pooled
+    trajectories (pipeline/stats.py), the largest clean error / AL and error / PL (the PL bounds the clean error
+    where this is at most 1)."""
     import numpy as np
 
     from pipeline.stats import bootstrap_rate
@@ -354,6 +355,12 @@ def pooled_chain_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str
         hits = np.concatenate([np.arange(t["frames"]) < round(t["availability"] * t["frames"]) for t in clean])
         groups = np.repeat(np.arange(len(clean)), [t["frames"] for t in clean])
         avail = bootstrap_rate(hits, groups)
+        flagged = [t.get("flags") for t in clean]
+        alarms = (
+            bootstrap_rate(np.concatenate([np.arange(t["frames"]) < t["flags"] for t in clean]), groups).pct()
+            if None not in flagged
+            else "-"
+        )
         rows.append(
             {
                 "chain": name,
@@ -363,6 +370,7 @@ def pooled_chain_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str
                     f"seed {s}: {bracket_text(breaking_bracket(b['per_eps'], b['breaking_eps']))}" for s, b in runs
                 ),
                 "clean availability (%)": avail.pct(),
+                "clean false alarms (%)": alarms,
                 "clean max error / AL": max(t["max_error_al"] for t in clean),
                 "clean max error / PL": _largest_or_dash([t.get("max_error_pl") for t in clean]),
             }
@@ -404,7 +412,8 @@ def pooled_eps_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str, 
 
 def closed_loop_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str, Any]]:
     """Per closed-loop variant (true-state dynamics, reports/guidance.md): each run's breaking eps, and the
-    attacked runs that failed their mission of those that met their attack, pooled per eps over the runs."""
+    attacked runs that failed their mission of those that met their attack, pooled per eps over the runs, and the
+    attacked runs that did not dock but did not fail (held, timed out: pipeline/evaluation/measures.py)."""
     have = [
         (s, m["guidance"]["closed_loop"]["variants"]["true_state"]) for s, m in zip(seeds, metrics) if "guidance" in m
     ]
@@ -418,6 +427,10 @@ def closed_loop_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str,
         for eps in sorted({e for _, v in have for e in v[variant]["per_eps"]}, key=float):
             cells = [v[variant]["per_eps"][eps] for _, v in have if eps in v[variant]["per_eps"]]
             row[f"eps {eps}: failed / met"] = f"{sum(c['failed'] for c in cells)}/{sum(c['met'] for c in cells)}"
+        cells = [c for _, v in have for c in v[variant]["per_eps"].values()]
+        row["held / timed out"] = "/".join(
+            str(sum(c.get("outcomes", {}).get(o, 0) for c in cells)) for o in ("held", "timed out")
+        )
         rows.append(row)
     return rows
 
@@ -437,8 +450,8 @@ Each seed run draws its own evaluation, validation and campaign trajectories (pi
 so the runs' trajectories pool: {evaluation} evaluation trajectories of `rpod evaluate` over {len(have)} runs,
 and per chain of the integrity campaign (`rpod robustness`, reports/robustness.md) the count below. Failure:
 error / AL > 1 on an available frame, worst over the attackers flown (each nested in eps); the clean
-availability's interval is a bootstrap over the pooled trajectories; clean max error / PL above 1 would be a clean
-frame whose error the protection level did not bound.
+availability's and false alarms' intervals are a bootstrap over the pooled trajectories (issue 39's targets: >= 99%
+and <= 0.5%); clean max error / PL above 1 would be a clean frame whose error the protection level did not bound.
 
 {markdown_table(chains, decimals=2)}
 {markdown_table(pooled_eps_rows(metrics, seeds), decimals=2)}
@@ -447,7 +460,9 @@ shipped chain's to be at least twice the control's. What the two brackets allow,
 
 {markdown_table(ratio_rows(metrics, seeds))}
 The closed loop (true-state dynamics, reports/guidance.md): mission failure = collision, lost target or a docking
-miss beyond the tolerance; attacked runs that met their attack, pooled over the runs.
+miss beyond the tolerance; attacked runs that met their attack, pooled over the runs; "held / timed out" counts the
+attacked runs that did not dock and did not fail (a hold at the end, or holds that spent the step budget on the way:
+availability losses, which a denial of service would show as).
 
 {markdown_table(closed_loop_rows(metrics, seeds), decimals=2)}"""
 

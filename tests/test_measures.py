@@ -32,6 +32,7 @@ from pipeline.evaluation.measures import (
     MISSED,
     NO_ESTIMATE,
     NOMINAL,
+    TIMED_OUT,
     UNAVAILABLE,
     UNAVAILABLE_MI,
     TrajectoryMeasures,
@@ -106,7 +107,7 @@ def test_a_planted_persistent_bias_fails_the_closed_loop(defended) -> None:
     defense = Defense(DefenseSettings(), MotionSettings(position_noise=0.03), NOISE) if defended else None
     r = run_rendezvous(blank, biased_world(np.array([2.0, 0.0, 0.0])), WIDE, s, defense=defense)
     d = docking(r, s.goal, s.tolerance, 5.0)
-    assert d.failed and d.outcome == MISSED and not d.ended_in_hold
+    assert d.failed and d.outcome == MISSED and not d.ended_in_hold and d.arrived
     assert abs(d.lateral_miss - 2.0) < 0.3 and abs(d.range_miss) < 0.3 and d.lateral_miss > s.tolerance
     if defended:
         assert not r.flags.any()
@@ -141,6 +142,43 @@ def test_docking_outcomes_split_the_miss_and_count_a_safe_hold_apart() -> None:
     assert lost.outcome == "target lost" and lost.failed
     with pytest.raises(ValueError, match="goal"):
         docking(_result([[0, 0, 1], [0, 0, 1]]), (0.0, 0.0), tol, 5.0)
+
+
+def test_a_run_whose_holds_spent_its_steps_times_out_and_one_that_arrives_wrong_misses() -> None:
+    """The same end 10 m short of the goal on its line of sight: still commanding full steps toward it by its own
+    estimate, with holds that forwent at least the 9 m left beyond the tolerance, is timed out, not a failure; with
+    too few holds, believing it had reached the goal, lateral off, or without max_step, it is a miss, a failure; a
+    run without the believed log counts as arrived (the conservative reading)."""
+    goal, tol = (0.0, 0.0, 10.0), 1.0
+
+    def end(holds: int, last=(0.0, 0.0, 20.0), lateral: float = 0.0):
+        p = [[0, 0, 21]] * (holds + 1) + [[lateral, 0, 20]]
+        b = np.array([[np.nan] * 3] * holds + [last])
+        return dataclasses.replace(_result(p, [True] * holds + [False]), believed=b)
+
+    d = docking(end(9), goal, tol, 5.0, max_step=1.0)
+    assert d.outcome == TIMED_OUT and not d.failed and not d.arrived and d.hold_steps == 9
+    for r, step in ((end(8), 1.0), (end(9, goal), 1.0), (end(9, lateral=1.5), 1.0), (end(9), None)):
+        d = docking(r, goal, tol, 5.0, max_step=step)
+        assert d.outcome == MISSED and d.failed, (r.positions[-1], r.believed[-1], step)
+    assert docking(end(9), goal, tol, 5.0, max_step=1.0).timed_out
+    assert docking(dataclasses.replace(end(9), believed=None), goal, tol, 5.0, max_step=1.0).outcome == MISSED
+    held_last = dataclasses.replace(_result([[0, 0, 21], [0, 0, 20], [0, 0, 20]], [False, True]))
+    assert docking(held_last, goal, tol, 5.0, max_step=1.0).outcome == HELD
+
+
+def test_the_closed_loop_logs_where_each_command_aimed() -> None:
+    """run_rendezvous: the believed log is the estimate minus the command (an exact estimator: the next true rel),
+    NaN in no row without a hold; a budget too short for the approach, without a hold, misses (a failure: no hold
+    spent the steps); the full budget docks."""
+    short = GuidanceSettings(variant="true_state", max_steps=30)
+    r = run_rendezvous(blank, biased_world(np.zeros(3)), WIDE, short)
+    assert r.believed.shape == (30, 3) and np.isfinite(r.believed).all()
+    assert np.allclose(r.believed, r.positions[1:])
+    d = docking(r, short.goal, short.tolerance, 5.0, short.max_step)
+    assert d.outcome == MISSED and not d.arrived and d.hold_steps == 0
+    full = GuidanceSettings(variant="true_state", max_steps=60)
+    assert docking(run_rendezvous(blank, biased_world(np.zeros(3)), WIDE, full), full.goal, 1.0, 5.0).outcome == DOCKED
 
 
 def _approach(n: int = 60, seed: int = 0, scatter: float = 0.05):

@@ -196,7 +196,8 @@ def _campaign(run: Path, per_eps: dict[str, tuple[int, int, float]], availabilit
     """RUN's robustness.json with the shipped chain's integrity summary: eps -> (failed, trajectories, error/AL)."""
     n = next(iter(per_eps.values()))[1]
     clean = [
-        {"frames": 200, "availability": availability, "max_error_al": 0.01 * (i + 1), "failed": False} for i in range(n)
+        {"frames": 200, "availability": availability, "max_error_al": 0.01 * (i + 1), "failed": False, "flags": i}
+        for i in range(n)
     ]
     summary = {
         "breaking_eps": next((float(e) for e, (f, _, _) in per_eps.items() if f), None),
@@ -222,6 +223,7 @@ def test_the_campaign_trajectories_pool_over_the_seed_runs(tmp_path):
     assert chain["trajectories"] == 8 and chain["runs"] == 2
     assert chain["breaking point per run (held, broke]"] == "seed 0: (0.01, 0.05], seed 1: (0.05, 0.2]"
     assert chain["clean availability (%)"].startswith("85.0 [")
+    assert chain["clean false alarms (%)"].startswith("0.8 [")  # (0 + 1 + 2 + 3) x 2 of 1,600 frames
     rows = {r["eps"]: r for r in variance.pooled_eps_rows(metrics, ["0", "1"])}
     assert rows["0.05"]["trajectories failed / flown"] == "1/8" and rows["0.05"]["largest error / AL"] == 1.3
     assert rows["0.05"]["failed (%)"] == "12.5 [0.3, 52.7]"  # Clopper-Pearson 1 of 8
@@ -232,6 +234,12 @@ def test_the_campaign_trajectories_pool_over_the_seed_runs(tmp_path):
     (old / "reports" / "metrics" / "robustness.json").write_text(json.dumps({"integrity": {"chains": {"robust": {}}}}))
     (pooled,) = variance.pooled_chain_rows([variance.run_metrics(r) for r in (a, old)], ["0", "3"])
     assert pooled["runs"] == 1 and pooled["trajectories"] == 4
+    no_count = json.loads((a / "reports" / "metrics" / "robustness.json").read_text())
+    for t in no_count["integrity"]["chains"]["robust"]["summary"]["clean"]["trajectories"]:
+        del t["flags"]
+    (a / "reports" / "metrics" / "robustness.json").write_text(json.dumps(no_count))
+    (pooled,) = variance.pooled_chain_rows([variance.run_metrics(a)], ["0"])
+    assert pooled["clean false alarms (%)"] == "-"
 
 
 def test_the_shipped_over_control_ratio_is_only_claimed_within_both_brackets(tmp_path):
@@ -253,3 +261,19 @@ def test_the_shipped_over_control_ratio_is_only_claimed_within_both_brackets(tmp
         "shipped / control": "ratio above 1.00, below 10.00 (the grid cannot tell)",
         ">= 2x": "not shown",
     }
+
+
+def test_the_pooled_closed_loop_counts_runs_that_did_not_dock_apart_from_failures():
+    """Held and timed-out runs (availability losses) are summed over eps and runs beside the failures."""
+    variance = _load()
+
+    def run(failed: int, outcomes: dict) -> dict:
+        cell = {"met": 3, "failed": failed, "outcomes": outcomes}
+        hold = {"breaking_eps": 0.05 if failed else None, "clean": {"miss": 0.2}, "per_eps": {"0.05": cell}}
+        return {"guidance": {"closed_loop": {"variants": {"true_state": {"hold": hold}}}}}
+
+    (row,) = variance.closed_loop_rows(
+        [run(1, {"missed": 1, "timed out": 2}), run(0, {"held": 1, "docked": 2})], ["0", "1"]
+    )
+    assert row["eps 0.05: failed / met"] == "1/6" and row["held / timed out"] == "1/2"
+    assert row["breaking eps per run"] == "seed 0: 0.05, seed 1: none"

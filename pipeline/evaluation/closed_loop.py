@@ -3,11 +3,12 @@
 Every run of the shipped chain in a guidance grid (pipeline/guidance/grid.py `GridPlan`: the defended grid's
 no-attack and attacked runs per dynamics and defense variant, and the in-loop attacker's runs) is judged by
 `pipeline.evaluation.measures.docking`: range and lateral miss against the goal (m), collision, target lost, hold;
-mission failure = a collision, a lost target, or a miss beyond the tolerance while the chaser still flew (a run that
-ends held far from the goal is a safe abort). Per (dynamics, defense variant): the no-attack run's outcome, per eps
-the attacked runs that met the attack, how many failed and the largest miss, and the breaking point: the smallest
-eps at which an attacked run failed its mission (0 when the no-attack run already fails), None when none failed.
-Only the runs that met the attack count (a run that never reached the attack's start range was not attacked).
+mission failure = a collision, a lost target, or a miss beyond the tolerance (a run that ends held far from the goal
+is a safe abort; one whose holds spent the steps the approach needed timed out: pipeline/evaluation/measures.py).
+Per (dynamics, defense variant): the no-attack run's outcome, per eps the attacked runs that met the attack, how
+many failed and the largest miss, and the breaking point: the smallest eps at which an attacked run failed its
+mission (0 when the no-attack run already fails), None when none failed. Only the runs that met the attack count (a
+run that never reached the attack's start range was not attacked).
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ def closed_loop_outcomes(plan: GridPlan, results: Sequence[RendezvousResult], co
     for (chain, dyn, defense, cell), r in zip(plan.runs(), results):
         if chain != "shipped":
             continue
-        d = docking(r, s.goal, s.tolerance, collision_range)
+        d = docking(r, s.goal, s.tolerance, collision_range, s.max_step)
         attack, eps = _attack(plan, cell)
         met = cell is None or r.attacked_frames > 0
         runs.append(

@@ -5,10 +5,15 @@ The primary outcome of an approach is the mission's: where the chaser docks.
   along the goal's line of sight (range miss, m, positive short of the goal) and across it (lateral
   miss, m); collision (the least true range along the path below `collision_range`); hold (the run
   ended with the chaser holding: the defense declared the estimate lost or unavailable); target lost
-  (the target left the camera's image: the run stopped there). Mission failure = a collision, a lost
-  target, or a miss beyond the docking tolerance while the chaser still flew (it docked in the wrong
-  place believing it right); a run that ends held far from the goal is a safe abort, counted apart (an
-  availability loss, not an integrity failure).
+  (the target left the camera's image: the run stopped there); arrived (the chaser's last command aimed
+  within the tolerance of the goal by its own estimate). Mission failure = a collision, a lost target, or a
+  miss beyond the docking tolerance after the chaser arrived by its own estimate (it docked in the wrong
+  place believing it right, or was pushed about it); a run that ends held far from the goal is a safe abort,
+  and one that timed out is not docked either: its steps ran out with the chaser short of the goal on the
+  goal's line of sight (lateral miss within the tolerance), not arrived by its own estimate, and its holds
+  (steps without a command, `max_step` metres each forgone) at least the rest of the approach. Both are counted
+  apart (availability losses: the defense's holds spent the step budget), not integrity failures; a chain
+  that never holds (undefended) cannot time out.
 - Open loop (`trajectory_measures`, the IntegrityFrames of one recorded trajectory through the chain):
   per frame the safety indices error / AL and error / PL (the Stanford-ESA diagram's axes, ARAIM's
   "maximum safety index"), with AL the persistent-bias alert limit (pipeline/defense/integrity.py:
@@ -50,15 +55,24 @@ NOMINAL, MI, HMI, UNAVAILABLE, UNAVAILABLE_MI, NO_ESTIMATE = (
     "no estimate",
 )
 REGIONS = (NOMINAL, MI, HMI, UNAVAILABLE, UNAVAILABLE_MI, NO_ESTIMATE)
-DOCKED, MISSED, COLLISION, HELD, LOST = "docked", "missed", "collision", "held", "target lost"
+DOCKED, MISSED, COLLISION, HELD, LOST, TIMED_OUT = (
+    "docked",
+    "missed",
+    "collision",
+    "held",
+    "target lost",
+    "timed out",
+)
 
 
 @dataclass(frozen=True)
 class Docking:
     """One closed-loop run's end (metres): range_miss along the goal's line of sight (positive: short
     of the goal), lateral_miss across it, miss = |rel - goal|, closest_range along the path, whether it
-    collided (closest range < collision range), ended in a hold, its hold steps, the tolerance, and whether
-    the target was lost (the run stopped with the target out of the image)."""
+    collided (closest range < collision range), ended in a hold, its hold steps, the tolerance, whether
+    the target was lost (the run stopped with the target out of the image), whether the chaser arrived by its
+    own estimate (its last command aimed within the tolerance of the goal) and whether it timed out (module
+    docstring)."""
 
     range_miss: float
     lateral_miss: float
@@ -69,32 +83,41 @@ class Docking:
     hold_steps: int
     tolerance: float
     lost: bool = False
+    arrived: bool = True
+    timed_out: bool = False
 
     @property
     def outcome(self) -> str:
-        """collision, target lost, docked (miss <= tolerance), held (a safe abort), or missed (docked in the
-        wrong place)."""
+        """collision, target lost, docked (miss <= tolerance), held (a safe abort), timed out (its holds spent
+        the steps the approach needed) or missed (in the wrong place)."""
         if self.collided:
             return COLLISION
         if self.lost:
             return LOST
         if self.miss <= self.tolerance:
             return DOCKED
-        return HELD if self.ended_in_hold else MISSED
+        if self.ended_in_hold:
+            return HELD
+        return TIMED_OUT if self.timed_out else MISSED
 
     @property
     def failed(self) -> bool:
-        """Mission failure: a collision, a lost target, or a miss beyond the tolerance while still flying."""
+        """Mission failure: a collision, a lost target, or a miss beyond the tolerance (not held, not timed
+        out)."""
         return self.outcome in (COLLISION, LOST, MISSED)
 
     def as_dict(self) -> dict[str, Any]:
         return {**asdict(self), "outcome": self.outcome, "failed": self.failed}
 
 
-def docking(result: Any, goal: Sequence[float], tolerance: float, collision_range: float) -> Docking:
+def docking(
+    result: Any, goal: Sequence[float], tolerance: float, collision_range: float, max_step: float | None = None
+) -> Docking:
     """The `Docking` of a RendezvousResult `result` with goal rel `goal` (world, m), docking tolerance
-    (m) and collision range (m). The hold is read from `result.held` (steps without a command), else
-    from the defense's modes."""
+    (m), collision range (m) and the law's step limit `max_step` (m per axis; None: no run times out). The hold
+    is read from `result.held` (steps without a command), else from the defense's modes; the arrival from
+    `result.believed` (the last commanded step's aim within the tolerance of the goal; a result without it
+    counts as arrived, the conservative reading)."""
     g = np.asarray(goal, np.float64)
     if g.shape != (3,) or not np.linalg.norm(g) > 0:
         raise ValueError(f"docking: the goal must be a non-zero rel (3,) in metres, got {goal!r}")
@@ -111,17 +134,33 @@ def docking(result: Any, goal: Sequence[float], tolerance: float, collision_rang
         steps = np.asarray(result.modes) == "hold"
     else:
         steps = np.zeros(len(result.estimates), bool)
+    lateral = float(np.linalg.norm(d - along * los))
+    arrived = _arrived(getattr(result, "believed", None), g, tolerance)
+    holds = int(steps.sum())
+    on_the_way = along > tolerance and lateral <= tolerance and not arrived
     return Docking(
         along,
-        float(np.linalg.norm(d - along * los)),
+        lateral,
         float(np.linalg.norm(d)),
         float(result.closest_range),
         bool(result.closest_range < collision_range),
         bool(len(steps) and steps[-1]),
-        int(steps.sum()),
+        holds,
         float(tolerance),
         result.outcome == TARGET_LOST,
+        arrived,
+        bool(max_step is not None and on_the_way and along - tolerance <= holds * max_step),
     )
+
+
+def _arrived(believed: np.ndarray | None, goal: np.ndarray, tolerance: float) -> bool:
+    """Whether the last commanded step aimed within `tolerance` (m) of `goal` (world, m): `believed` (n, 3) the rel
+    each step aimed at (NaN rows: holds); None: True (unknown, counted as arrived); no commanded step: False."""
+    if believed is None:
+        return True
+    b = np.asarray(believed, np.float64).reshape(-1, 3)
+    commanded = b[np.isfinite(b).all(axis=1)]
+    return bool(len(commanded) and np.linalg.norm(commanded[-1] - goal) <= tolerance)
 
 
 @dataclass(frozen=True)

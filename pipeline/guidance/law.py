@@ -145,7 +145,9 @@ class RendezvousResult:
     """One closed-loop run. positions: (n+1, 3) true rel after each step (first row = start);
     estimates: (n, 3) world-frame estimates; attacked: (n,) bool; miss: final ||rel - goal|| (m);
     with a defense: flags (n,) bool and modes (n,) str of pipeline/defense/fusion.py, else None;
-    held: (n,) bool, the steps that sent no command (the chaser held), None in results made without it."""
+    held: (n,) bool, the steps that sent no command (the chaser held), None in results made without it;
+    believed: (n, 3) the rel each step's command aimed to reach by the chaser's own estimate (world, m; NaN rows
+    where it held), None in results made without it."""
 
     positions: np.ndarray
     estimates: np.ndarray
@@ -156,6 +158,7 @@ class RendezvousResult:
     flags: np.ndarray | None = None
     modes: np.ndarray | None = None
     held: np.ndarray | None = None
+    believed: np.ndarray | None = None
 
     @property
     def attacked_frames(self) -> int:
@@ -244,7 +247,7 @@ def run_rendezvous(
     rel = np.asarray(settings.start, dtype=np.float64)
     R_c = look_at(rel)
     executor = None if settings.execution is None else Executor(settings.execution)
-    positions, estimates, attacked, flags, modes, held = [rel], [], [], [], [], []
+    positions, estimates, attacked, flags, modes, held, believed = [rel], [], [], [], [], [], []
     attack_start: int | None = None
     lost = False
     u = np.zeros(3)
@@ -262,8 +265,9 @@ def run_rendezvous(
         trusted: np.ndarray | None = None
         if defense is not None:
             act, trusted = _defend(defense, settings.defense, out, R_c, u, est, flags, modes)
-        rel, u, R_c = _move(act, trusted, rel, goal, R_c, settings, executor)
+        rel, u, R_c, aim = _move(act, trusted, rel, goal, R_c, settings, executor)
         positions.append(rel)
+        believed.append(aim)
         estimates.append(est)
         attacked.append(hit)
         held.append(act is None)
@@ -271,7 +275,7 @@ def run_rendezvous(
             lost = True
             break
     miss = float(np.linalg.norm(rel - goal))
-    logs = (positions, estimates, attacked, held, None if defense is None else (flags, modes))
+    logs = (positions, estimates, attacked, held, believed, None if defense is None else (flags, modes))
     return _result(logs, lost, miss, settings.tolerance, attack_start)
 
 
@@ -316,10 +320,11 @@ def _move(
     R_c: np.ndarray,
     settings: GuidanceSettings,
     executor: Executor | None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The chaser's step on the estimate `act` (world, m; None: hold): (the next rel (world, m), the displacement
     u told to the defense (world, m), the camera attitude R_c (camera -> world), re-pointed at the believed
-    target)."""
+    target, and the rel the command aimed to reach by the chaser's estimate (world, m; NaN in a hold))."""
+    believed = np.full(3, np.nan)
     if act is None:  # hold: no command, the chaser and its camera stay as they are
         u = np.zeros(3)
         if executor is not None:  # station kept; its draws keep the errors aligned with the steps
@@ -330,19 +335,19 @@ def _move(
         u = believed - (act if trusted is None or settings.variant != "paper" else trusted)
         if np.linalg.norm(believed) > 1e-6:
             R_c = look_at(believed)
-    return rel, u, R_c
+    return rel, u, R_c, believed
 
 
 def _result(
-    logs: tuple[list[Any], list[Any], list[bool], list[bool], tuple[list[Any], list[Any]] | None],
+    logs: tuple[list[Any], list[Any], list[bool], list[bool], list[Any], tuple[list[Any], list[Any]] | None],
     lost: bool,
     miss: float,
     tolerance: float,
     attack_start: int | None,
 ) -> RendezvousResult:
-    """The run's `RendezvousResult` from its per-frame logs (positions, estimates, attacked, held, and the
-    defense's (flags, modes) or None undefended) and its end (lost, miss distance (m))."""
-    positions, estimates, attacked, held, defended = logs
+    """The run's `RendezvousResult` from its per-frame logs (positions, estimates, attacked, held, the believed
+    rel per step, and the defense's (flags, modes) or None undefended) and its end (lost, miss distance (m))."""
+    positions, estimates, attacked, held, believed, defended = logs
     attacked_arr = np.array(attacked, dtype=bool)
     return RendezvousResult(
         np.array(positions),
@@ -354,6 +359,7 @@ def _result(
         None if defended is None else np.array(defended[0], dtype=bool),
         None if defended is None else np.array(defended[1]),
         np.array(held, dtype=bool),
+        np.array(believed, dtype=np.float64).reshape(-1, 3),
     )
 
 

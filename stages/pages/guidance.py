@@ -399,7 +399,10 @@ def closed_loop_section(d: dict[str, Any], p: Params) -> str:
 
 def _docking_rows(v: dict[str, Any], order: list[str]) -> list[dict[str, Any]]:
     """Rows per dynamics (in `order`) and variant: breaking eps, the no-attack outcome and miss (m), and per eps
-    the failed and met runs and the largest miss (m); "-" where no attacked run flew that eps."""
+    the failed and met runs and the largest miss (m); "-" where no attacked run flew that eps; the attacked runs that
+    did not dock but did not fail (held, timed out)."""
+    from pipeline.evaluation.measures import HELD, TIMED_OUT
+
     rows = []
     for dyn in order:
         for variant, x in v[dyn].items():
@@ -414,6 +417,9 @@ def _docking_rows(v: dict[str, Any], order: list[str]) -> list[dict[str, Any]]:
                 row[f"eps {eps}: failed / met, largest miss (m)"] = (
                     f"{k['failed']}/{k['met']}, {k['largest_miss_m']:.2f}"
                 )
+            row["held / timed out"] = "/".join(
+                str(sum(k["outcomes"].get(o, 0) for k in x["per_eps"].values())) for o in (HELD, TIMED_OUT)
+            )
             rows.append(row)
     columns = list(dict.fromkeys(k for row in rows for k in row))
     return [{k: row.get(k, "-") for k in columns} for row in rows]
@@ -448,9 +454,12 @@ Detect-and-recover flies on the trusted estimate where it is available (PL <= AL
 {p.integrity.alert_limit_kind.replace("_", "-")} AL at the trusted estimate's range) and holds elsewhere; the protection
 level assumes no fault on the {p.defense.trusted_start} frames after the filter's first start and claims none on
 them once the detector has flagged a frame of the run (the chaser holds until they are past). Mission failure: a
-collision (true range below {d["collision_range_m"]:g} m), a lost target, or a miss beyond {d["tolerance_m"]:g} m while
-the chaser still flew; a run that ends held far from the goal is a safe abort (an availability loss, not a
-failure). The paper dynamics rows are the paper's reproduction (prediction = truth by construction) and no part of
+collision (true range below {d["collision_range_m"]:g} m), a lost target, or a miss beyond {d["tolerance_m"]:g} m
+(docked in the wrong place); a run that ends held far from the goal is a safe abort, and one that timed out did not
+dock either (its steps ran out with the chaser short of the goal on its line of sight, not arrived by its own
+estimate, and its holds at least the rest of the approach at {p.guidance.max_step:g} m per step: the defense's holds
+spent the step budget; the undefended chain never holds, so it cannot time out): both are availability losses,
+not failures, counted in the column "held / timed out". The paper dynamics rows are the paper's reproduction (prediction = truth by construction) and no part of
 the breaking point's headline. The in-loop attackers: {", ".join(attacker_names(g) for g in p.integrity.in_loop_goals)}
 at eps {", ".join(f"{e:g}" for e in p.integrity.in_loop_eps)}; the grid's FGSM at eps {", ".join(f"{e:g}" for e in p.guidance.eps)}.
 
