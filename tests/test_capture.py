@@ -24,7 +24,7 @@ from pipeline.defense.gate import MotionSettings
 from pipeline.defense.integrity import AlertLimitSettings
 from pipeline.defense.noise import NoiseModel
 from pipeline.evaluation.integrity_runs import Track, fly, plan_attack
-from pipeline.evaluation.measures import HELD, MISSED, docking, trajectory_measures
+from pipeline.evaluation.measures import DOCKED, HELD, MISSED, TIMED_OUT, docking, trajectory_measures
 from pipeline.geometry.camera import Intrinsics
 from pipeline.guidance.dynamics import ExecutionSettings
 from pipeline.guidance.law import AttackWindow, Estimate, GuidanceSettings, run_rendezvous
@@ -269,3 +269,20 @@ def test_bad_capture_settings_are_one_line(change: dict, word: str) -> None:
         )
     with pytest.raises(ValueError, match="start"):
         start_frame("later", MOTION)
+
+
+@pytest.mark.parametrize("steps, outcome", [(55, TIMED_OUT), (60, DOCKED)])
+def test_detect_and_hold_that_spends_its_step_budget_on_holds_times_out(steps: int, outcome: str) -> None:
+    """Detect-and-hold against 10 flagged frames at acquisition: it holds 10 steps, then flies on; with 55 steps the
+    budget runs out about 5 m short, still approaching by its own estimate: timed out (an availability loss, not a
+    failure); with 60 it docks."""
+    chain = ToyPose()
+    s = GuidanceSettings(variant="true_state", defense="hold", max_steps=steps, execution=ExecutionSettings(seed=0))
+    cam = ToyCamera(chain, 0)
+    cam.attack = lambda x, y: plain(chain, x, y).float() / 255
+    r = run_rendezvous(
+        cam.render, cam.estimate, WIDE, s, AttackWindow(60.0, 10), defense=Defense(DefenseSettings(), MOTION, NOISE)
+    )
+    d = docking(r, s.goal, s.tolerance, 5.0, s.max_step)
+    assert d.outcome == outcome and not d.failed and d.hold_steps == 10
+    assert d.arrived == (outcome == DOCKED)
