@@ -414,6 +414,8 @@ def closed_loop_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str,
     """Per closed-loop variant (true-state dynamics, reports/guidance.md): each run's breaking eps, and the
     attacked runs that failed their mission of those that met their attack, pooled per eps over the runs, and the
     attacked runs that did not dock but did not fail (held, timed out: pipeline/evaluation/measures.py)."""
+    from pipeline.evaluation.measures import HELD, TIMED_OUT
+
     have = [
         (s, m["guidance"]["closed_loop"]["variants"]["true_state"]) for s, m in zip(seeds, metrics) if "guidance" in m
     ]
@@ -429,7 +431,7 @@ def closed_loop_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str,
             row[f"eps {eps}: failed / met"] = f"{sum(c['failed'] for c in cells)}/{sum(c['met'] for c in cells)}"
         cells = [c for _, v in have for c in v[variant]["per_eps"].values()]
         row["held / timed out"] = "/".join(
-            str(sum(c.get("outcomes", {}).get(o, 0) for c in cells)) for o in ("held", "timed out")
+            str(sum(c.get("outcomes", {}).get(o, 0) for c in cells)) for o in (HELD, TIMED_OUT)
         )
         rows.append(row)
     return rows

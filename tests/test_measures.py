@@ -162,6 +162,8 @@ def test_a_run_whose_holds_spent_its_steps_times_out_and_one_that_arrives_wrong_
         d = docking(r, goal, tol, 5.0, max_step=step)
         assert d.outcome == MISSED and d.failed, (r.positions[-1], r.believed[-1], step)
     assert docking(end(9), goal, tol, 5.0, max_step=1.0).timed_out
+    with pytest.raises(ValueError, match="max_step"):
+        docking(end(9), goal, tol, 5.0, max_step=0.0)
     assert docking(dataclasses.replace(end(9), believed=None), goal, tol, 5.0, max_step=1.0).outcome == MISSED
     held_last = dataclasses.replace(_result([[0, 0, 21], [0, 0, 20], [0, 0, 20]], [False, True]))
     assert docking(held_last, goal, tol, 5.0, max_step=1.0).outcome == HELD

@@ -7,8 +7,8 @@ The primary outcome of an approach is the mission's: where the chaser docks.
   ended with the chaser holding: the defense declared the estimate lost or unavailable); target lost
   (the target left the camera's image: the run stopped there); arrived (the chaser's last command aimed
   within the tolerance of the goal by its own estimate). Mission failure = a collision, a lost target, or a
-  miss beyond the docking tolerance after the chaser arrived by its own estimate (it docked in the wrong
-  place believing it right, or was pushed about it); a run that ends held far from the goal is a safe abort,
+  miss beyond the docking tolerance that is neither held nor timed out (it docked in the wrong place
+  believing it right, or was pushed about it); a run that ends held far from the goal is a safe abort,
   and one that timed out is not docked either: its steps ran out with the chaser short of the goal on the
   goal's line of sight (lateral miss within the tolerance), not arrived by its own estimate, and its holds
   (steps without a command, `max_step` metres each forgone) at least the rest of the approach. Both are counted
@@ -125,6 +125,8 @@ def docking(
         raise ValueError(
             f"docking: tolerance must be > 0 and collision_range >= 0 (m), got {tolerance}, {collision_range}"
         )
+    if max_step is not None and not max_step > 0:
+        raise ValueError(f"docking: max_step must be > 0 (m per step) or None, got {max_step}")
     d = np.asarray(result.positions[-1], np.float64) - g
     los = g / np.linalg.norm(g)
     along = float(d @ los)
