@@ -39,16 +39,16 @@ from stages.pages.summary import Headline, Metrics  # noqa: E402
 # The headline numbers: summary.json's (stages/pages/summary.py: `dvc metrics show`: the integrity rows among
 # them) and a few more that only the seed spread needs. Keys name them in reports/variance.json, which
 # `rpod report` reads to show the spread beside the README's headline numbers.
-def _lost(m: Metrics) -> float:
-    """Percent of the attacked closed-loop runs (undefended) that lost the rendezvous."""
+def _not_docked(m: Metrics) -> float:
+    """Percent of the attacked closed-loop runs (undefended) that did not dock."""
     runs = [r for r in m["guidance"]["runs"] if r.get("attacked_frames", 1) > 0]
-    return 100 * sum(r["outcome"] != "rendezvous held" for r in runs) / len(runs)
+    return 100 * sum(r["outcome"] != "docked" for r in runs) / len(runs)
 
 
-def _paper_held(m: Metrics) -> float:
-    """Percent of attacked runs held with detect-and-recover under the paper's dynamics."""
-    held = m["guidance"]["defended"]["dynamics"]["paper"]["recover"]["held"].values()
-    return 100 * sum(k for k, _ in held) / sum(n for _, n in held)
+def _paper_docked(m: Metrics) -> float:
+    """Percent of attacked runs docked with detect-and-recover under the paper's dynamics."""
+    docked = m["guidance"]["defended"]["dynamics"]["paper"]["recover"]["docked"].values()
+    return 100 * sum(k for k, _ in docked) / sum(n for _, n in docked)
 
 
 def _worst(m: Metrics, key: str, eps: str) -> float:
@@ -63,9 +63,9 @@ HEADLINES: list[Headline] = [
         "FGSM position error at eps 0.05 (m)",
         lambda m: m["attack"]["eps"]["0.05"]["position_mean_m"],
     ),
-    Headline("undefended_lost_pct", "closed loop, attacked runs that lost the rendezvous, undefended (%)", _lost),
+    Headline("undefended_not_docked_pct", "closed loop, attacked runs that did not dock, undefended (%)", _not_docked),
     Headline(
-        "recover_held_pct", "closed loop, attacked runs held, detect-and-recover, paper dynamics (%)", _paper_held
+        "recover_docked_pct", "closed loop, attacked runs docked, detect-and-recover, paper dynamics (%)", _paper_docked
     ),
     Headline(
         "lstm_recall_0.01_pct",
@@ -366,7 +366,7 @@ def pooled_chain_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str
                 "chain": name,
                 "runs": len(runs),
                 "trajectories": len(clean),
-                "breaking point per run (held, broke]": ", ".join(
+                "breaking point per run (survived, broke]": ", ".join(
                     f"seed {s}: {bracket_text(breaking_bracket(b['per_eps'], b['breaking_eps']))}" for s, b in runs
                 ),
                 "clean availability (%)": avail.pct(),
@@ -457,7 +457,7 @@ and <= 0.5%); clean max error / PL above 1 would be a clean frame whose error th
 
 {markdown_table(chains, decimals=2)}
 {markdown_table(pooled_eps_rows(metrics, seeds), decimals=2)}
-A chain's breaking point lies between the largest eps it held at and the eps it broke at; issue 39's target asks the
+A chain's breaking point lies between the largest eps it survived and the eps it broke at; issue 39's target asks the
 shipped chain's to be at least twice the control's. What the two brackets allow, per run:
 
 {markdown_table(ratio_rows(metrics, seeds))}

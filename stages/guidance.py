@@ -149,7 +149,7 @@ def main(params: Params) -> None:
         f"guidance: baseline {baseline.outcome} ({baseline.miss:.2f} m); {len(attacked)} attacked runs in "
         f"{seconds:.0f} s; defended grid and {looped} in-loop runs in {defended['seconds']:.0f} s -> {REPORT}"
     )
-    if baseline.outcome != "rendezvous held":
+    if baseline.outcome != "docked":
         typer.secho(
             f"warning: the no-attack baseline did not reach the target ({baseline.outcome}, miss "
             f"{baseline.miss:.2f} m): the pose model is not good enough for closed-loop guidance, so the "
@@ -326,7 +326,7 @@ def _metrics(
     }
     # of the runs that met the attack (a run that never reached S was not attacked)
     met = {
-        e: [r.outcome != "rendezvous held" for e2, _, _, r in runs if e2 == e and r.attacked_frames > 0]
+        e: [r.outcome != "docked" for e2, _, _, r in runs if e2 == e and r.attacked_frames > 0]
         for e in dict.fromkeys(e for e, *_ in runs)
     }
     metrics["attack_success_rate"] = {f"{e:g}": float(np.mean(v)) if v else None for e, v in met.items()}

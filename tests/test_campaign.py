@@ -348,17 +348,17 @@ def test_an_eps_a_chain_did_not_fly_is_a_row_of_dashes_not_nan() -> None:
 
 
 def test_a_breaking_point_is_a_bracket_and_a_ratio_is_judged_only_where_the_brackets_agree() -> None:
-    """(held, broke] from the eps flown; "met" needs the shipped chain to have held at twice the eps where the other
+    """(survived, broke] from the eps flown; "met" needs the shipped chain to have survived twice the eps where the other
     broke, "missed" needs it to have broken at or below twice the eps where the other held (the other's breaking point
-    lies above its held eps, so the ratio is then below two); otherwise "not shown"."""
+    lies above its survived eps, so the ratio is then below two); otherwise "not shown"."""
     from stages.pages.integrity import bracket_text, breaking_bracket, ratio_verdict
 
     assert breaking_bracket({"0.01": {}, "0.05": {}, "0.1": {}}, 0.1) == (0.05, 0.1)
-    assert breaking_bracket({"0.01": {}, "0.2": {}}, None) == (0.2, None)  # never broke: held at the last eps
+    assert breaking_bracket({"0.01": {}, "0.2": {}}, None) == (0.2, None)  # never broke: survived the last eps
     assert breaking_bracket({"0.01": {}}, 0.01) == (None, 0.01)  # broke at the first eps
     assert [bracket_text(b) for b in ((0.07, 0.1), (0.2, None), (None, 0.01))] == [
         "(0.07, 0.1]",
-        "none (held at 0.2)",
+        "none (survived 0.2)",
         "<= 0.01",
     ]
     assert ratio_verdict((0.07, 0.1), (0.07, 0.1), 2.0) == ("**missed**", "ratio above 0.70, below 1.43")

@@ -146,7 +146,7 @@ def test_dvc_metrics_and_plots_show_after_repro(smoke_repo):
     summary = json.loads((dst / "reports" / "metrics" / "summary.json").read_text())
     keys = {f"{g}.{k}" for g, group in summary.items() for k in group}
     # on smoke no closed-loop run may meet its attack: a rate over zero runs is left out, never made up
-    closed_loop = {"guidance.shipped_held_pct", "in_loop.shipped_recover_collisions_pct"}
+    closed_loop = {"guidance.shipped_docked_pct", "in_loop.shipped_recover_collisions_pct"}
     # an optional headline may be absent from a complete run (stages/pages/summary.py), and an integrity number at
     # an eps the profile's integrity.eps does not fly is left out (smoke flies 0.05 only)
     flown = yaml.safe_load((dst / "params.yaml").read_text())["integrity"]["eps"]

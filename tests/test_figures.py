@@ -32,7 +32,7 @@ def _run(
         pos,
         est,
         attacked,
-        "rendezvous held",
+        "docked",
         abs(z_end - 10),
         attack[0] if attack else None,
         attacked.copy() if flags else None,

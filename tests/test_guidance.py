@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from pipeline.geometry.camera import reference_intrinsics
-from pipeline.guidance.law import HELD, LOST, MISSED, SUCCEEDED, GuidanceSettings, guidance_step, run_rendezvous
+from pipeline.guidance.law import DOCKED, LOST, MISSED, SUCCEEDED, GuidanceSettings, guidance_step, run_rendezvous
 from stages.config.sections import Execution, Guidance
 
 K = reference_intrinsics().scaled(160, 90)
@@ -32,7 +32,7 @@ def biased(offset):
 def test_perfect_estimator_reaches_goal_with_bounded_steps(variant, start):
     s = GuidanceSettings(start=start, variant=variant, max_steps=60)
     r = run_rendezvous(blank, perfect, K, s)
-    assert r.outcome == HELD and r.miss < 1e-9
+    assert r.outcome == DOCKED and r.miss < 1e-9
     assert len(r.positions) == 61 and not r.attacked.any()
     steps = np.abs(np.diff(r.positions, axis=0))
     assert steps.max() <= 1.0 + 1e-9
@@ -67,7 +67,7 @@ def test_early_attack_is_recovered_and_window_is_counted():
     s = GuidanceSettings(max_steps=60)
     r = run_rendezvous(blank, biased([5.0, 0.0, 0.0]), K, s, s.window(60, 5))
     assert r.attack_start == 0 and r.attacked_frames == 5
-    assert r.outcome == HELD and r.miss < 1e-9
+    assert r.outcome == DOCKED and r.miss < 1e-9
 
 
 def test_true_state_variant_loses_the_target_when_the_camera_follows_a_bad_estimate():
@@ -168,7 +168,7 @@ def test_arrival_step_is_when_the_chaser_reaches_the_goal_for_good():
         np.stack([np.zeros_like(z), np.zeros_like(z), z], axis=1),
         np.zeros((6, 3)),
         np.zeros(6, bool),
-        "rendezvous held",
+        "docked",
         0.0,
         None,
     )
@@ -216,7 +216,7 @@ def test_recovery_keeps_the_rendezvous_on_course_through_a_15_frame_attack(varia
         s.window(20, 15),
         defense=_defense(),
     )
-    assert r.outcome == HELD and r.miss < 0.5
+    assert r.outcome == DOCKED and r.miss < 0.5
     assert r.flags[r.attacked].all() and (r.modes[r.attacked] == COAST).all()
     assert not r.flags[~r.attacked].any()
     if variant == "true_state":  # the paper variant places the chaser at its (noisy) belief
@@ -229,7 +229,7 @@ def test_detect_and_hold_stops_the_chaser_while_flagged_and_resumes():
     hit = np.flatnonzero(r.attacked)
     assert r.flags[hit].all()
     assert np.allclose(r.positions[hit + 1], r.positions[hit[0]])  # held in place during the attack
-    assert r.outcome == HELD
+    assert r.outcome == DOCKED
 
 
 def test_defense_settings_and_defense_object_must_agree():
@@ -250,7 +250,7 @@ def test_paper_variant_hold_reads_a_biased_estimate_as_bias_not_motion():
     estimate = lambda image, attacked, pose: Estimate(pose[1] + bias + rng.normal(0, 0.02, 3), 0.0)  # noqa: E731
     s = GuidanceSettings(variant="paper", max_steps=70, defense="hold")
     r = run_rendezvous(blank, estimate, K, s, defense=_defense())
-    assert r.flags.sum() <= 1 and r.outcome == HELD
+    assert r.flags.sum() <= 1 and r.outcome == DOCKED
 
 
 def test_the_defended_page_explains_the_paper_dynamics_clean_flags_and_only_when_there_are_some() -> None:
@@ -264,8 +264,8 @@ def test_the_defended_page_explains_the_paper_dynamics_clean_flags_and_only_when
 
     def block(flags, arrival):
         return {
-            "baseline": {"outcome": "rendezvous held", "miss_m": 0.0, "arrival_step": arrival, "flags": flags},
-            "held": {},
+            "baseline": {"outcome": "docked", "miss_m": 0.0, "arrival_step": arrival, "flags": flags},
+            "docked": {},
             "not_met": {},
             "runs": [],
         }

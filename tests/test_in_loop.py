@@ -19,7 +19,7 @@ from pipeline.defense.noise import NoiseModel
 from pipeline.geometry.camera import reference_intrinsics
 from pipeline.geometry.rotations import sixd_to_matrix
 from pipeline.geometry.trajectories import look_at
-from pipeline.guidance.grid import GridPilot, GridPlan, held_counts, in_loop_grid
+from pipeline.guidance.grid import GridPilot, GridPlan, docked_counts, in_loop_grid
 from pipeline.guidance.law import Estimate, GuidanceSettings, LoopState, RendezvousResult, segment_range
 
 K = reference_intrinsics().scaled(160, 90)
@@ -71,7 +71,7 @@ def _fly(goal: str, eps: float = 0.05, start: float = 20.0) -> tuple[GridPlan, l
 def test_the_in_loop_attacker_puts_the_undefended_chaser_on_a_collision_course() -> None:
     plan, results, attackers = _fly("collide")
     _, baseline, attacked = results  # the paper chain's baseline, then the shipped chain's runs
-    assert baseline.outcome == "rendezvous held" and baseline.closest_range > 9
+    assert baseline.outcome == "docked" and baseline.closest_range > 9
     out = in_loop_grid(plan, results, collision_range=5.0)
     (run,) = out["runs"]
     assert run["collided"] and run["closest_range_m"] < 5.0 and run["attacked_frames"] > 0
@@ -82,15 +82,15 @@ def test_the_in_loop_attacker_puts_the_undefended_chaser_on_a_collision_course()
 def test_the_miss_variant_loses_the_rendezvous() -> None:
     plan, results, _ = _fly("miss")
     (run,) = in_loop_grid(plan, results, collision_range=5.0)["runs"]
-    assert run["outcome"] != "rendezvous held" and run["miss_m"] > 1.0
+    assert run["outcome"] != "docked" and run["miss_m"] > 1.0
 
 
 def test_a_run_that_never_meets_the_attack_is_not_counted() -> None:
     plan, results, _ = _fly("collide", start=10.0 - 1e-3)  # S below the goal range: never reached
     assert results[-1].attacked_frames == 0
     assert in_loop_grid(plan, results, collision_range=5.0)["counts"]["paper"]["undefended"]["0.05"] == [0, 0, 0, 0, 1]
-    held = RendezvousResult(np.zeros((2, 3)), np.zeros((1, 3)), np.array([True]), "rendezvous held", 0.0, 0)
-    assert held_counts([(0.5, 40, 5, results[-1]), (0.5, 40, 5, held)]) == {"0.5": [1, 1, 1]}
+    docked = RendezvousResult(np.zeros((2, 3)), np.zeros((1, 3)), np.array([True]), "docked", 0.0, 0)
+    assert docked_counts([(0.5, 40, 5, results[-1]), (0.5, 40, 5, docked)]) == {"0.5": [1, 1, 1]}
 
 
 def test_aiming_reads_the_defense_and_leaves_it_as_it_was() -> None:
@@ -142,19 +142,23 @@ def _run(outcome: str, miss: float, attacked: bool = True) -> RendezvousResult:
 
 
 @pytest.mark.parametrize(
-    "base, run, caused",
+    "base, run, denied",
     [
-        (_run("rendezvous held", 0.2, False), _run("attack succeeded", 1.2), True),  # it held without attack
+        (_run("docked", 0.2, False), _run("attack succeeded", 1.2), True),  # it docked without attack
         (_run("missed without attack", 1.1, False), _run("attack succeeded", 1.2), False),  # it missed as much anyway
         (_run("missed without attack", 1.1, False), _run("attack succeeded", 3.0), True),  # > 1 m further
-        (_run("rendezvous held", 0.2, False), _run("rendezvous held", 0.9), False),  # held
-        (_run("rendezvous held", 0.2, False), _run("missed without attack", 4.0, False), False),  # never met
+        (_run("docked", 0.2, False), _run("docked", 0.9), False),  # docked
+        (_run("docked", 0.2, False), _run("missed without attack", 4.0, False), False),  # never met
     ],
 )
-def test_only_the_harm_the_attack_caused_counts(base, run, caused) -> None:
-    from pipeline.guidance.grid import attack_caused, defended_record
+def test_only_the_docking_the_attack_denied_counts(base, run, denied) -> None:
+    from pipeline.guidance.grid import attack_denied, defended_record
 
-    assert attack_caused(run, base, tolerance=1.0) is caused
+    assert attack_denied(run, base, tolerance=1.0) is denied
     record = defended_record(base, None, [(0.05, 40, 5, run)], tolerance=1.0)
-    assert record["runs"][0]["attack_caused"] is caused
-    assert record["caused"] == ({"0.05": [int(caused), 1]} if run.attacked_frames else {})
+    assert record["runs"][0]["attack_denied"] is denied
+    assert record["denied"] == ({"0.05": [int(denied), 1]} if run.attacked_frames else {})
+    assert record["docked"]["0.05"] == [
+        int(run.outcome == "docked" and bool(run.attacked_frames)),
+        int(bool(run.attacked_frames)),
+    ]

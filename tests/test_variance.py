@@ -81,7 +81,7 @@ def test_readme_results_show_the_spread_of_each_headline_number():
         "shipped_test_fa_pct",
         "shipped_lab_max_prob",
         "robustness.shipped_harmful_missed_pct",
-        "guidance.shipped_held_pct",
+        "guidance.shipped_docked_pct",
     }
     keys = [k for k, *_ in _load().HEADLINES if k not in not_shown]
     spread = {
@@ -123,23 +123,10 @@ def test_the_spread_covers_every_summary_json_number():
 
 
 def test_the_committed_spread_names_only_headline_numbers():
-    """reports/variance.json (read by `rpod report`) uses the headline keys, or the former names of renamed ones
-    (stages.pages.summary.FORMER_KEYS, which the README's sd column reads too): an unknown key would drop its sd
-    (a headline added after the runs has no spread until they are re-run)."""
-    from stages.pages.summary import FORMER_KEYS
-
+    """reports/variance.json (read by `rpod report`) uses the headline keys: an unknown key would drop its sd (a
+    headline added or renamed after the runs has no spread until they are re-run)."""
     spread = json.loads((REPO / "reports" / "variance.json").read_text())
-    assert set(spread["numbers"]) <= {h.key for h in _load().HEADLINES} | set(FORMER_KEYS.values())
-
-
-def test_a_spread_under_former_keys_still_lands_in_the_readme():
-    """Issue 41 renamed the headline keys; the committed spread, run before, names the former ones."""
-    from stages.pages.readme import _sd
-    from stages.pages.summary import FORMER_KEYS
-
-    spread = {"numbers": {old: {"runs": 3, "sd": 0.5} for old in FORMER_KEYS.values()}}
-    assert all(_sd(spread, new) == "0.50 (3 seeds)" for new in FORMER_KEYS)
-    assert _sd(spread, "pose.no_such_m") == "-"
+    assert set(spread["numbers"]) <= {h.key for h in _load().HEADLINES}
 
 
 def test_runs_of_two_instruction_sets_make_a_seed_by_isa_table(tmp_path, monkeypatch):
@@ -221,7 +208,7 @@ def test_the_campaign_trajectories_pool_over_the_seed_runs(tmp_path):
     metrics = [variance.run_metrics(r) for r in (a, b)]
     (chain,) = variance.pooled_chain_rows(metrics, ["0", "1"])
     assert chain["trajectories"] == 8 and chain["runs"] == 2
-    assert chain["breaking point per run (held, broke]"] == "seed 0: (0.01, 0.05], seed 1: (0.05, 0.2]"
+    assert chain["breaking point per run (survived, broke]"] == "seed 0: (0.01, 0.05], seed 1: (0.05, 0.2]"
     assert chain["clean availability (%)"].startswith("85.0 [")
     assert chain["clean false alarms (%)"].startswith("0.8 [")  # (0 + 1 + 2 + 3) x 2 of 1,600 frames
     rows = {r["eps"]: r for r in variance.pooled_eps_rows(metrics, ["0", "1"])}

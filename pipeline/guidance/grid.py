@@ -22,7 +22,7 @@ import numpy as np
 from pipeline.geometry.camera import Intrinsics
 from pipeline.guidance.dynamics import ExecutionSettings
 from pipeline.guidance.law import (
-    HELD,
+    DOCKED,
     AttackWindow,
     CachedCamera,
     GuidanceSettings,
@@ -42,40 +42,41 @@ def _count(x: np.ndarray | None, value: Any = True) -> int | None:
     return None if x is None else int((x == value).sum())
 
 
-def held_counts(cells: list[tuple[Any, ...]]) -> dict[str, list[int]]:
-    """Per eps ("%g"): [runs held, runs that met the attack, runs that never met it] of (eps, ..., result) cells."""
+def docked_counts(cells: list[tuple[Any, ...]]) -> dict[str, list[int]]:
+    """Per eps ("%g"): [runs docked, runs that met the attack, runs that never met it] of (eps, ..., result) cells."""
     out: dict[str, list[int]] = {}
     for e, *_, r in cells:
         k = out.setdefault(f"{e:g}", [0, 0, 0])
         met = r.attacked_frames > 0
-        k[0] += int(met and r.outcome == HELD)
+        k[0] += int(met and r.outcome == DOCKED)
         k[1] += int(met)
         k[2] += int(not met)
     return out
 
 
-def attack_caused(run: RendezvousResult, base: RendezvousResult, tolerance: float) -> bool:
-    """Whether an attacked run's failure is the attack's doing: it met the attack, did not hold the rendezvous,
-    and either its no-attack run (same chain, dynamics and defense) held, or it ended more than `tolerance` (m)
-    further from the target point than that run did. A chain that misses by 1.1 m without attack and by 1.2 m
-    under it lost nothing to the attack."""
-    if run.attacked_frames == 0 or run.outcome == HELD:
+def attack_denied(run: RendezvousResult, base: RendezvousResult, tolerance: float) -> bool:
+    """Whether the attack kept an attacked run from docking: it met the attack, did not dock, and either its
+    no-attack run (same chain, dynamics and defense) docked, or it ended more than `tolerance` (m) further from the
+    target point than that run did. A chain that misses by 1.1 m without attack and by 1.2 m under it lost nothing
+    to the attack. A denial of docking: a safe abort (a hold) and a timed-out run count as much as a collision;
+    whether a run failed its mission (unsafe) is pipeline.evaluation.measures' docking outcome."""
+    if run.attacked_frames == 0 or run.outcome == DOCKED:
         return False
-    return base.outcome == HELD or run.miss > base.miss + tolerance
+    return base.outcome == DOCKED or run.miss > base.miss + tolerance
 
 
 def defended_record(
     base: RendezvousResult, arrival: int | None, cells: list[tuple[Any, ...]], tolerance: float
 ) -> dict[str, Any]:
-    """One (dynamics, defense) block of `defended_grid`: its no-attack run, every cell (`attack_caused`, with the
-    docking `tolerance` in metres), and per eps the runs held of those that met the attack (`held`: [held, met]),
-    the failures the attack caused (`caused`: [caused, met]) and the runs that never met it."""
-    counts = held_counts(cells)
-    caused: dict[str, list[int]] = {}
+    """One (dynamics, defense) block of `defended_grid`: its no-attack run, every cell (`attack_denied`, with the
+    docking `tolerance` in metres), and per eps the runs docked of those that met the attack (`docked`: [docked,
+    met]), the runs the attack kept from docking (`denied`: [denied, met]) and the runs that never met it."""
+    counts = docked_counts(cells)
+    denied: dict[str, list[int]] = {}
     for e, *_, r in cells:
         if r.attacked_frames > 0:
-            k = caused.setdefault(f"{e:g}", [0, 0])
-            k[0] += int(attack_caused(r, base, tolerance))
+            k = denied.setdefault(f"{e:g}", [0, 0])
+            k[0] += int(attack_denied(r, base, tolerance))
             k[1] += 1
     return {
         "baseline": {
@@ -95,12 +96,12 @@ def defended_record(
                 "steps": len(r.estimates),
                 "flags": _count(r.flags),
                 "hold_steps": _count(r.modes, "hold"),
-                "attack_caused": attack_caused(r, base, tolerance),
+                "attack_denied": attack_denied(r, base, tolerance),
             }
             for e, S, k, r in cells
         ],
-        "held": {e: v[:2] for e, v in counts.items()},
-        "caused": caused,
+        "docked": {e: v[:2] for e, v in counts.items()},
+        "denied": denied,
         "not_met": {e: v[2] for e, v in counts.items()},
     }
 
@@ -212,7 +213,7 @@ class GridPilot:
                 observe = attacker.observe
             else:
                 eps, _, k, window = p.grid[cell]
-                extra = k  # a held chaser may arrive up to K steps late
+                extra = k  # a chaser that holds on flags may arrive up to K steps late
                 camera.attack = self.attack_at(chain, eps, i)
             extra = 0 if defense == "undefended" else extra
             s = replace(s, max_steps=horizon(arrival, p.settings.max_steps, p.slack_steps + extra))
@@ -296,7 +297,7 @@ def in_loop_grid(plan: GridPlan, results: list[RendezvousResult], collision_rang
     """The in-loop runs of `plan.runs()`'s `results` -> {"runs": one record per run (dynamics, defense,
     eps, goal, S, outcome, collided: closest range < `collision_range` (m), closest range and miss (m),
     steps, attacked frames, flags, hold steps, ended in hold), "counts": per (dynamics, defense, eps)
-    [collisions, lost rendezvous (not held, no collision), rendezvous held, runs that met the attack,
+    [collisions, not docked without a collision, docked, runs that met the attack,
     runs that never met it] over goals and start ranges}."""
     first = len(plan.runs()) - len(plan.in_loop_runs())
     runs, counts = [], {}
@@ -324,8 +325,8 @@ def in_loop_grid(plan: GridPlan, results: list[RendezvousResult], collision_rang
         k = counts.setdefault(dyn, {}).setdefault(defense, {}).setdefault(f"{eps:g}", [0, 0, 0, 0, 0])
         met = r.attacked_frames > 0
         k[0] += int(met and collided)
-        k[1] += int(met and not collided and r.outcome != HELD)
-        k[2] += int(met and not collided and r.outcome == HELD)
+        k[1] += int(met and not collided and r.outcome != DOCKED)
+        k[2] += int(met and not collided and r.outcome == DOCKED)
         k[3] += int(met)
         k[4] += int(not met)
     return {"runs": runs, "counts": counts, "collision_range_m": float(collision_range)}

@@ -48,7 +48,7 @@ from pipeline.guidance.dynamics import ExecutionSettings, Executor
 
 VARIANTS = ("paper", "true_state")
 DEFENSES = ("undefended", "hold", "recover")
-HELD = "rendezvous held"
+DOCKED = "docked"
 SUCCEEDED = "attack succeeded"
 LOST = "target lost"
 MISSED = "missed without attack"
@@ -212,12 +212,12 @@ def guidance_step(
 
 
 def outcome(lost: bool, miss: float, tolerance: float, attacked: np.ndarray) -> str:
-    """How a run ended: target lost, held (final miss (m) within `tolerance` (m)), else attack
+    """How a run ended: target lost, docked (final miss (m) within `tolerance` (m)), else attack
     succeeded when any frame was attacked, missed without attack when none was."""
     if lost:
         return LOST
     if miss <= tolerance:
-        return HELD
+        return DOCKED
     return SUCCEEDED if attacked.any() else MISSED
 
 

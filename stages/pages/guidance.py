@@ -49,12 +49,15 @@ prediction on flagged frames) and holds position after `defense.hold_after` cons
 clean frames return. Horizon: undefended runs last the no-attack arrival + {g.slack_steps} steps
 as above; a defended run lasts its own no-attack run's arrival + {g.slack_steps} + K steps, since
 holding on a flag costs a step per flagged frame: a defended chaser that arrives late by at most the
-attack's length counts as held, one diverted or still short after that counts as lost. Success
-rates count only the runs that met the attack (a run that never reached S was not attacked: "not
-met") and carry 95% Wilson intervals over them (few runs: wide intervals). Only the harm the attack caused
-counts against a chain: a run that did not hold fails by the attack when its own no-attack run held, or when
-it ended more than the docking tolerance further from the target point than that run; otherwise it reads
-"missed, as without attack".
+attack's length counts as docked, one diverted or still short after that does not. "Docked" is the paper's
+success (within the docking tolerance when the run ends, "rendezvous held" in the paper), not the defense's
+hold: a run that holds far from the goal (a safe abort) is not docked. Rates count only the runs that met the
+attack (a run that never reached S was not attacked: "not met") and carry 95% Wilson intervals over them (few
+runs: wide intervals). Only what the attack caused counts against a chain: the attack kept a run from docking
+when its own no-attack run docked, or when it ended more than the docking tolerance further from the target point
+than that run; otherwise it reads "missed, as without attack". This is availability under attack (a safe abort
+counts as much as a collision); whether a run failed its mission (unsafe) is the docking table's outcome at the
+top of this page.
 
 {markdown_table(summary)}{_clean_flags_text(d, g)}
 ![one attacked cell per variant: distance from the approach axis and to the target point](figures/guidance_defended.png)
@@ -65,8 +68,8 @@ Every run:
 
 
 def _defended_row(dyn: str, variant: str, v: dict[str, Any]) -> dict[str, Any]:
-    """A row of the defended summary: the no-attack run (miss in m) and per eps the runs held (%, Wilson) and
-    those the attack failed."""
+    """A row of the defended summary: the no-attack run (miss in m) and per eps the runs docked (%, Wilson) and
+    those the attack kept from docking."""
     from pipeline.stats import wilson
 
     row = {
@@ -75,12 +78,16 @@ def _defended_row(dyn: str, variant: str, v: dict[str, Any]) -> dict[str, Any]:
         "no-attack run": f"{v['baseline']['outcome']}, {v['baseline']['miss_m']:.2f} m"
         + ("" if v["baseline"]["flags"] is None else f", {v['baseline']['flags']} flags"),
     }
-    for eps, (k, n) in v["held"].items():
+    for eps, (k, n) in v["docked"].items():
         unmet = v.get("not_met", {}).get(eps, 0)
-        caused = v.get("caused", {}).get(eps)
-        row[f"held % at eps {eps}"] = (
+        denied = v.get("denied", {}).get(eps)
+        row[f"docked % at eps {eps}"] = (
             f"{wilson(k, n).pct()} ({k}/{n})"
-            + ("" if caused is None else f", failed by the attack {wilson(*caused).pct()} ({caused[0]}/{caused[1]})")
+            + (
+                ""
+                if denied is None
+                else f", kept from docking by the attack {wilson(*denied).pct()} ({denied[0]}/{denied[1]})"
+            )
             + (f", {unmet} not met" if unmet else "")
         )
     return row
@@ -96,7 +103,7 @@ def _defended_run(dyn: str, variant: str, r: dict[str, Any]) -> dict[str, Any]:
         "K": r["length"],
         "outcome": (
             "missed, as without attack"
-            if r["outcome"] == "attack succeeded" and not r.get("attack_caused", True)
+            if r["outcome"] == "attack succeeded" and not r.get("attack_denied", True)
             else r["outcome"]
         ),
         "miss (m)": r["miss_m"],
@@ -157,7 +164,7 @@ def _horizon_text(m: dict[str, Any]) -> str:
 
 def _cell(r: dict[str, Any]) -> str:
     text = {
-        "rendezvous held": "held",
+        "docked": "docked",
         "attack succeeded": "**attack succeeded**",
         "target lost": f"**target lost** (step {r['steps']})",
         "missed without attack": "missed",
@@ -179,7 +186,7 @@ def guidance_page(m: dict[str, Any], g: Guidance, render: Render) -> str:
     )
     start, goal = (", ".join(f"{float(v):g}" for v in vs) for vs in (g.start, g.target))
     baseline = f"**No-attack baseline: {m['baseline']['outcome']}, final miss {m['baseline']['miss_m']:.2f} m.**"
-    if m["baseline"]["outcome"] != "rendezvous held":
+    if m["baseline"]["outcome"] != "docked":
         baseline += (
             " The pose model cannot guide the chaser even without an attack, so a miss in the tables "
             "below cannot be blamed on the attack."
@@ -241,7 +248,7 @@ def _grid_tables(m: dict[str, Any], g: Guidance) -> list[str]:
 
 
 def in_loop_section(d: dict[str, Any], i: Integrity) -> str:
-    """Markdown: the in-loop attacker's collisions, lost and held rendezvous per (dynamics, variant, eps), and every run."""
+    """Markdown: the in-loop attacker's collisions, runs not docked and docked per (dynamics, variant, eps), and every run."""
     from pipeline.report.markdown import markdown_table
 
     summary = _in_loop_summary(d)
@@ -276,9 +283,9 @@ docking point ("miss"). Goal "capture" (pipeline/attackers/capture.py): a bias o
 {i.capture_initial[0]:g} m across the line of sight from the first frame (acquisition, S = the start range), held
 to the end under the same stealth bound. Each frame by targeted L-inf PGD ({i.in_loop_steps} steps, the detector's
 margin in the objective) at eps {", ".join(f"{e:g}" for e in sorted(i.in_loop_eps))}, stored as 8 bits. Greedy: a
-course that needs a detour is not found. A **collision** is a true range below `integrity.collision_range_m` = {d["collision_range_m"]:g} m anywhere on the path; **lost
-rendezvous** a run that ends outside the tolerance or loses the target without a collision; **held**
-a run that ends docked. Horizon: the variant's no-attack arrival + `guidance.slack_steps`, plus as
+course that needs a detour is not found. A **collision** is a true range below `integrity.collision_range_m` = {d["collision_range_m"]:g} m anywhere on the path; **not
+docked** a run that ends outside the tolerance (a safe abort included) or loses the target without a collision;
+**docked** a run that ends within it. Horizon: the variant's no-attack arrival + `guidance.slack_steps`, plus as
 many again for the defended variants (a chaser that holds on flags arrives late). Only the runs that
 met the attack count; rates over goals and start ranges with 95% Wilson intervals (few runs: wide).
 
@@ -289,13 +296,13 @@ Every in-loop run:
 
 
 def _in_loop_summary(d: dict[str, Any]) -> list[dict[str, Any]]:
-    """Rows per (dynamics, variant, eps) of the in-loop runs: collisions, lost and held rendezvous (%, Wilson)."""
+    """Rows per (dynamics, variant, eps) of the in-loop runs: collisions, runs not docked and docked (%, Wilson)."""
     from pipeline.stats import wilson
 
     summary = []
     for dyn, variants in d["counts"].items():
         for variant in [v for v in VARIANTS if v in variants]:
-            for eps, (col, lost, held, met, unmet) in sorted(variants[variant].items(), key=lambda kv: float(kv[0])):
+            for eps, (col, lost, docked, met, unmet) in sorted(variants[variant].items(), key=lambda kv: float(kv[0])):
                 summary.append(
                     {
                         "dynamics": dyn,
@@ -303,8 +310,8 @@ def _in_loop_summary(d: dict[str, Any]) -> list[dict[str, Any]]:
                         "eps": eps,
                         "runs met": met,
                         "collisions (%)": f"{wilson(col, met).pct()} ({col}/{met})",
-                        "lost rendezvous, no collision (%)": f"{wilson(lost, met).pct()} ({lost}/{met})",
-                        "rendezvous held (%)": f"{wilson(held, met).pct()} ({held}/{met})",
+                        "not docked, no collision (%)": f"{wilson(lost, met).pct()} ({lost}/{met})",
+                        "docked (%)": f"{wilson(docked, met).pct()} ({docked}/{met})",
                         "not met": unmet,
                     }
                 )
@@ -343,7 +350,7 @@ def docking_targets(d: dict[str, Any]) -> list[tuple[str, str, str]]:
 
 
 def _ratio_target(ts: dict[str, Any]) -> tuple[str, str, str]:
-    """Detect-and-recover's breaking point against twice the undefended chain's, from their brackets (held, broke]
+    """Detect-and-recover's breaking point against twice the undefended chain's, from their brackets (survived, broke]
     (stages.pages.integrity.ratio_verdict); not shown when the undefended chain never broke or fails unattacked."""
     from stages.pages.integrity import bracket_text, breaking_bracket, ratio_verdict
 

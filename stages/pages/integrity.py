@@ -23,14 +23,14 @@ TARGET_FALSE_ALARMS = 0.005  # clean false alarms at most this
 
 
 def attacker_names(name: str) -> str:
-    """An attacker's name in words: "capture/lateral 2 m" -> "capture across it, 2 m held"; names joined by " = "
+    """An attacker's name in words: "capture/lateral 2 m" -> "capture across it, 2 m bias kept"; names joined by " = "
     (a tie) each in words."""
     out = []
     for one in name.split(" = "):
         kind, _, rest = one.partition("/")
         direction, _, size = rest.partition(" ")
         words = KINDS.get(kind, kind) + (f" {DIRECTIONS.get(direction, direction)}" if direction else "")
-        out.append(words + (f", {size} held" if size else ""))
+        out.append(words + (f", {size} bias kept" if size else ""))
     return " = ".join(out)
 
 
@@ -49,7 +49,7 @@ def _eps(x: float | None) -> str:
     return "none in the grid" if x is None else f"{x:g}"
 
 
-Bracket = tuple[Optional[float], Optional[float]]  # (held at, broke at): a breaking point lies in (held, broke]
+Bracket = tuple[Optional[float], Optional[float]]  # (survived, broke at): a breaking point lies in (survived, broke]
 
 
 def process_noise(sigma: float, scale: float) -> str:
@@ -58,26 +58,26 @@ def process_noise(sigma: float, scale: float) -> str:
 
 
 def breaking_bracket(per_eps: dict[str, Any], breaking: float | None) -> Bracket:
-    """(held, broke): the largest eps flown below the breaking eps (no run failed there) and the breaking eps, so the
-    breaking point lies in (held, broke]; (the largest eps flown, None) when the chain never broke, held None when it
-    broke at the first eps. `per_eps`: keyed by the eps flown ("%g")."""
+    """(survived, broke): the largest eps flown below the breaking eps (no run failed there) and the breaking eps, so
+    the breaking point lies in (survived, broke]; (the largest eps flown, None) when the chain never broke, survived
+    None when it broke at the first eps. `per_eps`: keyed by the eps flown ("%g")."""
     flown = sorted(float(e) for e in per_eps)
-    held = [e for e in flown if breaking is None or e < breaking]
-    return (held[-1] if held else None), breaking
+    survived = [e for e in flown if breaking is None or e < breaking]
+    return (survived[-1] if survived else None), breaking
 
 
 def bracket_text(b: Bracket) -> str:
-    held, broke = b
+    survived, broke = b
     if broke is None:
-        return "none in the grid" if held is None else f"none (held at {held:g})"
-    return f"({held:g}, {broke:g}]" if held is not None else f"<= {broke:g}"
+        return "none in the grid" if survived is None else f"none (survived {survived:g})"
+    return f"({survived:g}, {broke:g}]" if survived is not None else f"<= {broke:g}"
 
 
 def ratio_verdict(a: Bracket, b: Bracket, target: float) -> tuple[str, str]:
     """Whether a chain's breaking point is at least `target` times another's, from their brackets (a breaking point
-    in (held, broke] lies above its held eps and at most at its broke eps, so the ratio lies strictly between
-    held_a / broke_b and broke_a / held_b): "met" when `a` held at `target` x the eps where `b` broke, "**missed**"
-    when `a` broke at or below `target` x the eps where `b` held, "not shown" when the brackets allow both (or `b`
+    in (survived, broke] lies above its survived eps and at most at its broke eps, so the ratio lies strictly between
+    survived_a / broke_b and broke_a / survived_b): "met" when `a` survived `target` x the eps where `b` broke,
+    "**missed**" when `a` broke at or below `target` x the eps where `b` survived, "not shown" when the brackets allow both (or `b`
     never broke); and where the ratio lies, in words."""
     (ha, ba), (hb, bb) = a, b
     if not bb:

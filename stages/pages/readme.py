@@ -7,7 +7,6 @@ from __future__ import annotations
 from typing import Any
 
 from stages.pages.paper import ATTITUDE_DEG, DETECTOR_ACCURACY, INTEGRATED, INTEGRATED_EPS, LAB, LAB_EPS, POSITION_M
-from stages.pages.summary import FORMER_KEYS
 
 DETECTOR_NAMES = {
     "lstm": "LSTM on SHAP (paper)",
@@ -37,7 +36,7 @@ def _eps_keys(d: dict[str, Any]) -> list[str]:
 def _sd(spread: dict[str, Any] | None, key: str | None, note: str = "") -> str:
     """The seed spread of one headline number from reports/variance.json: "0.022 (3 seeds)", or "-"."""
     numbers = (spread or {}).get("numbers", {})
-    got = numbers.get(key or "") or numbers.get(FORMER_KEYS.get(key or "", ""))  # a spread run before a rename
+    got = numbers.get(key or "")
     if not got or not isinstance(got.get("sd"), (int, float)):
         return "-"
     unit = "runs" if len(set((spread or {}).get("isas") or [])) > 1 else "seeds"
@@ -80,7 +79,7 @@ def _paper_rows(
     tr, at, gd = (metrics[k] for k in ("train", "attack", "guidance"))
     eps_at = _eps_keys(at["eps"])
     runs = [r for r in gd["runs"] if r.get("attacked_frames", 1) > 0]
-    broken = sum(r["outcome"] != "rendezvous held" for r in runs)
+    broken = sum(r["outcome"] != "docked" for r in runs)
     return [
         (
             "pose, test mean position error (m), standard model",
@@ -112,11 +111,11 @@ def _paper_rows(
             "-",
         ),
         (
-            "closed loop, attacked runs that lost the rendezvous (undefended, standard model)",
+            "closed loop, attacked runs that did not dock (undefended, standard model)",
             f"{broken} of {len(runs)} ({wilson(broken, len(runs)).pct()} %)",
             "-",
             "guidance",
-            _sd(spread, "undefended_lost_pct", " %"),
+            _sd(spread, "undefended_not_docked_pct", " %"),
         ),
         *_detection_rows(metrics, spread),
     ]
@@ -291,22 +290,40 @@ def _pct_value(r: dict[str, Any] | None) -> float | None:
 
 # The detection and closed-loop targets of the defended chain (`defended_table` rows; key in fused per_eps)
 DETECTION_TARGETS = {"accuracy": ">= 99.5", "harmful_flagged": ">= 99.5", "harmful_undetected": "<= 1", "fpr": "<= 0.5"}
-CLEAN_ALARMS_TARGET, HELD_TARGET = "<= 0.5", ">= 95"
+CLEAN_ALARMS_TARGET, DOCKED_TARGET = "<= 0.5", ">= 95"
 
 
-def _held_counts(variants: dict[str, Any], variant: str, key: str = "held") -> tuple[int, int] | None:
-    """(held, attacked runs that met the attack) of one closed-loop variant (`key` "caused": (failures the attack
-    caused, met)), None where it was not flown or does not record them."""
+def _docked_counts(variants: dict[str, Any], variant: str, key: str = "docked") -> tuple[int, int] | None:
+    """(docked, attacked runs that met the attack) of one closed-loop variant (`key` "denied": (runs the attack
+    kept from docking, met)), None where it was not flown or does not record them."""
     if variant not in variants or key not in variants[variant]:
         return None
     k, n = (sum(v[i] for v in variants[variant][key].values()) for i in (0, 1))
     return k, n
 
 
-def _not_failed_pct(variants: dict[str, Any]) -> float | None:
-    """Detect-and-recover's attacked runs that the attack did not fail (%): what the rendezvous target judges."""
-    caused = _held_counts(variants, "recover", "caused")
-    return None if not caused or not caused[1] else 100 * (caused[1] - caused[0]) / caused[1]
+def _not_denied_pct(variants: dict[str, Any]) -> float | None:
+    """Detect-and-recover's attacked runs that the attack did not keep from docking (%): what the rendezvous
+    target judges."""
+    denied = _docked_counts(variants, "recover", "denied")
+    return None if not denied or not denied[1] else 100 * (denied[1] - denied[0]) / denied[1]
+
+
+def _grid_outcomes(closed_loop: dict[str, Any] | None, dyn: str) -> str:
+    """How detect-and-recover's attacked grid runs of `dyn` that met the attack ended by the docking measure
+    (pipeline/evaluation/measures.py: docked, held, timed out, failed), "" without the closed-loop table."""
+    from pipeline.evaluation.measures import HELD, TIMED_OUT
+
+    runs = [
+        r
+        for r in (closed_loop or {}).get("runs", [])
+        if r["dynamics"] == dyn and r["defense"] == "recover" and r["attack"].startswith("grid") and r["met"]
+    ]
+    if not runs:
+        return ""
+    held, timed_out = (sum(r["outcome"] == o for r in runs) for o in (HELD, TIMED_OUT))
+    failed = sum(r["failed"] for r in runs)
+    return f"; by the docking measure {held} held, {timed_out} timed out, {failed} failed the mission"
 
 
 def shipped_targets(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, str]]:
@@ -347,14 +364,15 @@ def shipped_targets(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, 
             )
         )
     for dyn, variants in gd.get("defended", {}).get("dynamics", {}).items():
-        counts, caused = _held_counts(variants, "recover"), _held_counts(variants, "recover", "caused")
-        if counts is not None and caused is not None:
+        counts, denied = _docked_counts(variants, "recover"), _docked_counts(variants, "recover", "denied")
+        if counts is not None and denied is not None:
             out.append(
                 (
-                    f"closed loop, {dyn} dynamics: attacked runs the attack did not fail, detect-and-recover "
-                    f"{HELD_TARGET}%",
-                    judge(_not_failed_pct(variants), HELD_TARGET),
-                    f"{caused[0]} of {caused[1]} failed by the attack, {wilson(*caused).pct()}% ({counts[0]} held)",
+                    f"closed loop, {dyn} dynamics: attacked runs the attack did not keep from docking, "
+                    f"detect-and-recover {DOCKED_TARGET}%",
+                    judge(_not_denied_pct(variants), DOCKED_TARGET),
+                    f"{denied[0]} of {denied[1]} kept from docking by the attack, {wilson(*denied).pct()}% "
+                    f"({counts[0]} docked{_grid_outcomes(gd.get('closed_loop'), dyn)})",
                 )
             )
     return out
@@ -370,8 +388,8 @@ def headline(metrics: dict[str, dict[str, Any]]) -> str:
         return ""
     met = [t for t, v, _ in verdicts if v == "met"]
     missed = [t for t, v, _ in verdicts if v == "**missed**"]
-    text = f"**{len(met)} of {len(verdicts)} targets met** (the table below gives the evidence). What holds: "
-    text += ("; ".join(met) or "none") + ". **What does not**: " + ("; ".join(missed) or "nothing") + "."
+    text = f"**{len(met)} of {len(verdicts)} targets met** (the table below gives the evidence). Met: "
+    text += ("; ".join(met) or "none") + ". **Missed**: " + ("; ".join(missed) or "nothing") + "."
     chains = metrics.get("robustness", {}).get("integrity", {}).get("chains", {})
     if "robust" in chains:
         text += (
@@ -393,7 +411,7 @@ def _rate(r: dict[str, Any] | None) -> str:
 
 def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any] | None = None) -> str:
     """The defended chain beside the paper's detector: integrated detection at the smallest
-    eps, harmful-undetected, false alarms, and closed-loop rendezvous held per variant (Markdown)."""
+    eps, harmful-undetected, false alarms, and closed-loop runs docked per variant (Markdown)."""
     from pipeline.report.markdown import markdown_table
 
     fused = ev.get("fused")
@@ -421,7 +439,7 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
         for name, key, p, t, sd in rows
     ]
     for dyn, variants in gd.get("defended", {}).get("dynamics", {}).items():
-        table.append(_held_row(dyn, variants, ours_col, std_col, spread))
+        table.append(_docked_row(dyn, variants, ours_col, std_col, spread))
     return (
         "\n\nThe defended chains (motion check fused with the detector, recovery and hold) beside the "
         "paper's detector, on the same trajectories and attack schedule, each on its own model's frames (FGSM "
@@ -468,30 +486,35 @@ def _defended_rows(fused: dict[str, Any], e: str) -> list[tuple[str, str, str, s
     ]
 
 
-def _held_row(
+def _docked_row(
     dyn: str, variants: dict[str, Any], ours_col: str, std_col: str, spread: dict[str, Any] | None
 ) -> dict[str, str]:
-    """`defended_table`'s closed-loop row of one dynamics: attacked runs held per variant, the failures the attack
-    caused with detect-and-recover, and its target (judged on the runs the attack did not fail)."""
+    """`defended_table`'s closed-loop row of one dynamics: attacked runs docked per variant, the runs the attack
+    kept from docking with detect-and-recover, and its target (judged on the runs the attack did not keep from
+    docking)."""
     from pipeline.stats import wilson
 
-    def held(variant: str) -> str:
-        counts = _held_counts(variants, variant)
+    def docked(variant: str) -> str:
+        counts = _docked_counts(variants, variant)
         return "-" if counts is None else f"{wilson(*counts).pct()} ({counts[0]}/{counts[1]})"
 
-    caused = _held_counts(variants, "recover", "caused")
+    denied = _docked_counts(variants, "recover", "denied")
     return {
-        "result": f"closed loop, attacked runs held (%), {dyn} dynamics, detect-and-recover (robust "
-        f"model: undefended {held('undefended')}, detect-and-hold {held('hold')}); the target counts the "
-        "runs the attack did not fail",
+        "result": f"closed loop, attacked runs docked (%), {dyn} dynamics, detect-and-recover (robust "
+        f"model: undefended {docked('undefended')}, detect-and-hold {docked('hold')}); the target counts the "
+        "runs the attack did not keep from docking (a safe abort counts as kept)",
         "paper's detector, standard model (this run)": "-",
         std_col: "-",
-        ours_col: held("recover")
-        + ("" if caused is None else f"; failed by the attack {wilson(*caused).pct()} ({caused[0]}/{caused[1]})"),
+        ours_col: docked("recover")
+        + (
+            ""
+            if denied is None
+            else f"; kept from docking by the attack {wilson(*denied).pct()} ({denied[0]}/{denied[1]})"
+        ),
         "paper": "-",
-        "target": f"{HELD_TARGET} ({judge(_not_failed_pct(variants), HELD_TARGET)})",
+        "target": f"{DOCKED_TARGET} ({judge(_not_denied_pct(variants), DOCKED_TARGET)})",
         **(
-            {"sd over seeds, defended": _sd(spread, "recover_held_pct" if dyn == "paper" else None, " %")}
+            {"sd over seeds, defended": _sd(spread, "recover_docked_pct" if dyn == "paper" else None, " %")}
             if spread
             else {}
         ),

@@ -36,11 +36,11 @@ def _defended(m: Metrics, rate: str) -> float:
     return 100 * per_eps[_smallest_eps(per_eps)][rate]["value"]
 
 
-def _held(m: Metrics) -> float:
-    """Closed-loop attacked runs (that met the attack) whose rendezvous held with detect-and-recover, true-state
+def _docked(m: Metrics) -> float:
+    """Closed-loop attacked runs (that met the attack) that docked with detect-and-recover, true-state
     dynamics (the paper dynamics, prediction = truth by construction, leave the headline) (%)."""
-    held = list(m["guidance"]["defended"]["dynamics"]["true_state"]["recover"]["held"].values())
-    return 100 * sum(k for k, _ in held) / sum(n for _, n in held)
+    docked = list(m["guidance"]["defended"]["dynamics"]["true_state"]["recover"]["docked"].values())
+    return 100 * sum(k for k, _ in docked) / sum(n for _, n in docked)
 
 
 def worst_hmi(m: Metrics, eps: str, chain: str = "robust") -> float:
@@ -140,7 +140,9 @@ HEADLINES: list[Headline] = [
         "lab: the shipped chain's detector false alarms on clean frames (%)",
         lambda m: 100 * m["lab"]["shipped"]["rate"],
     ),
-    Headline("guidance.shipped_held_pct", "closed loop (ships): attacked runs held with detect-and-recover (%)", _held),
+    Headline(
+        "guidance.shipped_docked_pct", "closed loop (ships): attacked runs docked with detect-and-recover (%)", _docked
+    ),
     Headline(
         "integrity.shipped_hmi_eps_0_01_pct",
         "integrity (ships): worst HMI caused by a chain-level attack at eps 0.01 (%)",
@@ -218,30 +220,6 @@ HEADLINES: list[Headline] = [
         lambda m: docking_miss(m, "0.05"),
     ),
 ]
-
-
-# The keys before issue 41 named their chain and eps consistently (new key -> former key): reports/variance.json,
-# written from seed runs made before the renames, still names the former ones (stages/pages/readme.py reads both).
-FORMER_KEYS = {
-    "pose.standard_position_m": "pose.test_position_m",
-    "pose.standard_attitude_deg": "pose.test_attitude_deg",
-    "pose.shipped_position_m": "pose.robust_test_position_m",
-    "pose.shipped_attitude_deg": "pose.robust_test_attitude_deg",
-    "detector.standard_accuracy_pct": "detector.lstm_accuracy_pct",
-    "detector.shipped_accuracy_pct": "detector.robust_lstm_accuracy_pct",
-    "integrated.standard_accuracy_pct": "integrated.accuracy_pct",
-    "defended.shipped_accuracy_min_eps_pct": "defended.accuracy_pct",
-    "defended.shipped_clean_false_alarm_pct": "defended.clean_false_alarm_pct",
-    "robustness.shipped_harmful_missed_pct": "robustness.harmful_undetected_pct",
-    "lab.standard_accuracy_pct": "lab.accuracy_pct",
-    "guidance.shipped_held_pct": "guidance.defended_held_pct",
-    "integrity.shipped_hmi_eps_0_01_pct": "integrity.worst_hmi_eps_0_01_pct",
-    "integrity.shipped_hmi_eps_0_05_pct": "integrity.worst_hmi_eps_0_05_pct",
-    "integrity.standard_hmi_eps_0_01_pct": "integrity.standard_worst_hmi_0_01_pct",
-    "integrity.standard_hmi_eps_0_05_pct": "integrity.standard_worst_hmi_0_05_pct",
-    "integrity.shipped_clean_availability_pct": "integrity.clean_availability_pct",
-    "in_loop.shipped_recover_collisions_pct": "in_loop.recover_collisions_pct",
-}
 
 
 def headline_values(metrics: Metrics) -> dict[str, float]:
