@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -145,3 +146,38 @@ def test_the_lead_drops_a_target_whose_stage_did_not_run():
     del metrics["guidance"]
     partial = shipped_targets(metrics)
     assert len(partial) < len(full) and not any("closed loop" in t or "docking" in t for t, _, _ in partial)
+
+
+def test_the_rendezvous_target_says_how_the_attacked_runs_ended_by_the_docking_measure():
+    """The defended grid's target counts the runs the attack kept from docking (a safe abort counts as kept); its
+    evidence says how detect-and-recover's attacked grid runs ended by the docking measure, so a hold is not read as a
+    mission failure. Only the variant's grid runs of that dynamics that met the attack count."""
+    from stages.pages.readme import _grid_outcomes, shipped_targets
+
+    def run(outcome, failed=False, dynamics="true_state", defense="recover", attack="grid S=60 m K=5", met=True):
+        return {
+            "dynamics": dynamics,
+            "defense": defense,
+            "attack": attack,
+            "met": met,
+            "outcome": outcome,
+            "failed": failed,
+        }
+
+    runs = [run("docked"), run("held"), run("held"), run("timed out"), run("missed", True)]
+    others = [
+        run("collision", True, dynamics="paper"),
+        run("collision", True, defense="hold"),
+        run("collision", True, attack="in-loop capture from 60 m"),
+        run("collision", True, met=False),
+        run("docked", attack="none"),
+    ]
+    said = _grid_outcomes({"runs": runs + others}, "true_state")
+    assert said == "; by the docking measure 2 held, 1 timed out, 1 failed the mission"
+    assert _grid_outcomes(None, "true_state") == "" and _grid_outcomes({"runs": others[:1]}, "true_state") == ""
+    rows = [(t, e) for t, _, e in shipped_targets(_committed_metrics()) if "did not keep from docking" in t]
+    assert rows and all("by the docking measure" in e for _, e in rows)
+    for _, evidence in rows:  # docked + held + timed out + failed = the attacked runs that met the attack
+        met = int(re.search(r"of (\d+) kept from docking", evidence).group(1))
+        parts = re.search(r"\((\d+) docked; by the docking measure (\d+) held, (\d+) timed out, (\d+) failed", evidence)
+        assert parts and sum(int(x) for x in parts.groups()) == met, evidence
