@@ -50,7 +50,7 @@ clean frames return. Horizon: undefended runs last the no-attack arrival + {g.sl
 as above; a defended run lasts its own no-attack run's arrival + {g.slack_steps} + K steps, since
 holding on a flag costs a step per flagged frame: a defended chaser that arrives late by at most the
 attack's length counts as docked, one diverted or still short after that does not. "Docked" is the paper's
-success (within the docking tolerance when the run ends, "rendezvous held" in the paper), not the defense's
+success (within the docking tolerance when the run ends; "rendezvous held" in our earlier reports), not the defense's
 hold: a run that holds far from the goal (a safe abort) is not docked. Rates count only the runs that met the
 attack (a run that never reached S was not attacked: "not met") and carry 95% Wilson intervals over them (few
 runs: wide intervals). Only what the attack caused counts against a chain: the attack kept a run from docking
