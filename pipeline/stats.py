@@ -9,13 +9,14 @@
   (trajectories: an HMI count over independent approaches), from SciPy's ``binomtest`` (method "exact",
   beta quantiles), conservative at any n, [0, 1 - (alpha/2)^(1/n)] at k = 0.
 - ``Rate``: a rate with its interval, formatted as ``"96.5 [95.1, 97.6]"`` (percent) for reports.
-- ``percent_ci(value, ci)``: the one formatter of a percent with its interval in every report.
+- ``percent_ci(value, ci)``: the one formatter of a percent with its interval in every report;
+  ``percent_of(rate)`` the same for a rate as the metrics JSON stores it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from scipy import stats as sps
@@ -30,6 +31,14 @@ def percent_ci(value: float | None, ci: Sequence[float | None] | None = None, de
     lo, hi = ci or (None, None)
     head = "-" if value is None else f"{100 * value:.{decimals}f}{unit}"
     return head + ("" if lo is None else f" [{100 * lo:.{decimals}f}, {100 * hi:.{decimals}f}]")
+
+
+def percent_of(rate: Mapping[str, Any] | None, decimals: int = 1) -> str:
+    """`percent_ci` of a rate as the metrics JSON stores it ({"value", "ci": [lo, hi]} and, where counted, "n"):
+    "-" when it is missing, has no value or counts no trial."""
+    if not rate or rate.get("value") is None or ("n" in rate and not rate["n"]):
+        return "-"
+    return percent_ci(rate["value"], rate["ci"], decimals)
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,7 @@ from typing import Any, Callable
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from pipeline.guidance.law import DOCKED  # noqa: E402
 from pipeline.io.atomic import atomic_write_text  # noqa: E402
 from pipeline.report.markdown import markdown_table  # noqa: E402
 from stages.pages.summary import HEADLINES as SUMMARY_HEADLINES  # noqa: E402
@@ -42,7 +43,7 @@ from stages.pages.summary import Headline, Metrics  # noqa: E402
 def _not_docked(m: Metrics) -> float:
     """Percent of the attacked closed-loop runs (undefended) that did not dock."""
     runs = [r for r in m["guidance"]["runs"] if r.get("attacked_frames", 1) > 0]
-    return 100 * sum(r["outcome"] != "docked" for r in runs) / len(runs)
+    return 100 * sum(r["outcome"] != DOCKED for r in runs) / len(runs)
 
 
 def _paper_docked(m: Metrics) -> float:

@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import typer
 
+from pipeline.guidance.law import DOCKED
 from pipeline.io.atomic import atomic_write_text, save_figure
 from pipeline.seeds import seed_for
 from stages.artifacts.dvc import write_metrics
@@ -149,7 +150,7 @@ def main(params: Params) -> None:
         f"guidance: baseline {baseline.outcome} ({baseline.miss:.2f} m); {len(attacked)} attacked runs in "
         f"{seconds:.0f} s; defended grid and {looped} in-loop runs in {defended['seconds']:.0f} s -> {REPORT}"
     )
-    if baseline.outcome != "docked":
+    if baseline.outcome != DOCKED:
         typer.secho(
             f"warning: the no-attack baseline did not reach the target ({baseline.outcome}, miss "
             f"{baseline.miss:.2f} m): the pose model is not good enough for closed-loop guidance, so the "
@@ -326,7 +327,7 @@ def _metrics(
     }
     # of the runs that met the attack (a run that never reached S was not attacked)
     met = {
-        e: [r.outcome != "docked" for e2, _, _, r in runs if e2 == e and r.attacked_frames > 0]
+        e: [r.outcome != DOCKED for e2, _, _, r in runs if e2 == e and r.attacked_frames > 0]
         for e in dict.fromkeys(e for e, *_ in runs)
     }
     metrics["attack_success_rate"] = {f"{e:g}": float(np.mean(v)) if v else None for e, v in met.items()}

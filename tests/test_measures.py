@@ -288,3 +288,21 @@ def test_hmi_counts_carry_clopper_pearson_intervals_over_trajectories() -> None:
     assert clopper_pearson(0, 0).n == 0
     with pytest.raises(ValueError, match="clopper_pearson"):
         clopper_pearson(3, 2)
+
+
+def test_the_outcome_words_have_one_home() -> None:
+    """The closed loop's end words are law.py's: measures re-uses them, and no stage, page or script compares an
+    outcome with a literal (issue 36: a renamed outcome cannot leave a stale copy behind)."""
+    import re
+    from pathlib import Path
+
+    from pipeline.evaluation import measures
+    from pipeline.guidance import law
+
+    assert measures.DOCKED is law.DOCKED and measures.LOST is law.LOST
+    root = Path(__file__).resolve().parents[1]
+    literal = re.compile(r"""outcome["'\]\)]*\s*[!=]=\s*["']""")
+    for folder in ("pipeline", "stages", "scripts", "rpodguard"):
+        for path in sorted((root / folder).rglob("*.py")):
+            hits = [line.strip() for line in path.read_text().splitlines() if literal.search(line)]
+            assert not hits, f"{path}: compare outcomes with the names in pipeline/guidance/law.py: {hits}"

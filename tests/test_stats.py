@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.stats import bootstrap_rate, rate, wilson
+from pipeline.stats import bootstrap_rate, percent_of, rate, wilson
 
 
 def _wilson_by_hand(k: int, n: int, z: float = 1.959963984540054) -> tuple[float, float]:
@@ -62,3 +62,24 @@ def test_bootstrap_single_group_falls_back_to_wilson() -> None:
     b = bootstrap_rate(hits, np.zeros(10))
     w = wilson(7, 10)
     assert (b.lo, b.hi) == (w.lo, w.hi)
+
+
+def test_percent_of_formats_a_metrics_rate_and_dashes_what_has_none() -> None:
+    r = wilson(12, 40)
+    stored = {"value": r.value, "ci": r.ci(), "n": r.n}
+    assert percent_of(stored) == r.pct() == "30.0 [18.1, 45.4]"
+    assert percent_of(stored, 2) == r.pct(2)
+    assert percent_of({"value": 0.5, "ci": [0.25, 0.75]}) == "50.0 [25.0, 75.0]"  # a rate stored without its count
+    for empty in (None, {}, {"value": None, "ci": [None, None], "n": 3}, {"value": 0.5, "ci": [0.1, 0.9], "n": 0}):
+        assert percent_of(empty) == "-"
+
+
+def test_pages_format_stored_rates_with_the_one_helper() -> None:
+    """No page writes its own wrapper around percent_ci for a stored rate (issue 36: one home)."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    for path in sorted((root / "stages").rglob("*.py")):
+        text = path.read_text()
+        assert 'percent_ci(r["value"], r["ci"]' not in text, f"{path}: use pipeline.stats.percent_of"
+        assert 'percent_ci(x["value"], x["ci"]' not in text, f"{path}: use pipeline.stats.percent_of"

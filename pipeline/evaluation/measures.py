@@ -43,7 +43,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from pipeline.defense.integrity import FLOWN, IntegrityFrames
-from pipeline.guidance.law import LOST as TARGET_LOST
+from pipeline.guidance.law import DOCKED, LOST
 from pipeline.stats import Rate, clopper_pearson
 
 NOMINAL, MI, HMI, UNAVAILABLE, UNAVAILABLE_MI, NO_ESTIMATE = (
@@ -55,14 +55,8 @@ NOMINAL, MI, HMI, UNAVAILABLE, UNAVAILABLE_MI, NO_ESTIMATE = (
     "no estimate",
 )
 REGIONS = (NOMINAL, MI, HMI, UNAVAILABLE, UNAVAILABLE_MI, NO_ESTIMATE)
-DOCKED, MISSED, COLLISION, HELD, LOST, TIMED_OUT = (
-    "docked",
-    "missed",
-    "collision",
-    "held",
-    "target lost",
-    "timed out",
-)
+# a run's end (docked and target lost are the closed loop's own words, pipeline/guidance/law.py)
+MISSED, COLLISION, HELD, TIMED_OUT = "missed", "collision", "held", "timed out"
 
 
 @dataclass(frozen=True)
@@ -149,7 +143,7 @@ def docking(
         bool(len(steps) and steps[-1]),
         holds,
         float(tolerance),
-        result.outcome == TARGET_LOST,
+        result.outcome == LOST,
         arrived,
         bool(max_step is not None and on_the_way and along - tolerance <= holds * max_step),
     )

@@ -246,7 +246,7 @@ def _curve_note(curves: dict[str, list[Any]], full: dict[str, Any], f: float) ->
 def _sequence_rows(sequences: dict[str, Any], cells: list[Any]) -> list[dict[str, str]]:
     """Per sequence set, detector and eps: f, TPR, FPR, accuracy and the accuracy at the paper's f (bootstrap over
     the sequences)."""
-    from pipeline.stats import Rate
+    from pipeline.stats import percent_of
 
     names = {
         "standard/ours": ("standard (models/detector.pt)", "ours"),
@@ -255,9 +255,6 @@ def _sequence_rows(sequences: dict[str, Any], cells: list[Any]) -> list[dict[str
     names |= {
         cell_key(c): (f"cell: protocol {PROTOCOL[c.protocol]}, trained on {MIX[c.eps_set]}", c.attack) for c in cells
     }
-
-    def pct(x: dict[str, Any]) -> str:
-        return Rate(x["value"] if x["value"] is not None else float("nan"), *x["ci"], x["n"]).pct()
 
     rows = []
     for where, run in sequences.items():
@@ -271,11 +268,11 @@ def _sequence_rows(sequences: dict[str, Any], cells: list[Any]) -> list[dict[str
                         "detector": detector,
                         "FGSM": ATTACK.get(attack, attack),
                         "eps": eps,
-                        "attacked f (%)": pct(r["attacked_fraction"]),
-                        "TPR (%)": pct(r["tpr"]),
-                        "FPR (%)": pct(r["fpr"]),
-                        "accuracy (%)": pct(r["accuracy"]),
-                        "accuracy at the paper's f (%)": f"{pct(r['accuracy_at'])} (f = {100 * f:.1f}%)",
+                        "attacked f (%)": percent_of(r["attacked_fraction"]),
+                        "TPR (%)": percent_of(r["tpr"]),
+                        "FPR (%)": percent_of(r["fpr"]),
+                        "accuracy (%)": percent_of(r["accuracy"]),
+                        "accuracy at the paper's f (%)": f"{percent_of(r['accuracy_at'])} (f = {100 * f:.1f}%)",
                     }
                 )
     return rows

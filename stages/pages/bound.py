@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from pipeline.stats import percent_of
+
 CHAINS = {"robust": "robust (shipped)", "standard": "standard (paper's reproduction)"}
 
 ASSUMPTIONS = """\
@@ -45,12 +47,6 @@ def _x(v: float | None, digits: int = 2) -> str:
     return "-" if v is None else f"{v:.{digits}f}"
 
 
-def _pct(r: dict[str, Any]) -> str:
-    from pipeline.stats import percent_ci
-
-    return "-" if not r.get("n") else percent_ci(r["value"], r["ci"], 1)
-
-
 def _rows(chain: dict[str, Any], label: str, stride: int) -> list[dict[str, str]]:
     """One row per eps: the bound's indices (from the first frame on) and the attacker sparing the trusted frames."""
     rows = []
@@ -67,7 +63,7 @@ def _rows(chain: dict[str, Any], label: str, stride: int) -> list[dict[str, str]
                 "max upper (m)": _x(b["max_error_m"]),
                 "replayed worst error (m)": _x(b["max_achieved_m"]),
                 "replayed / AL": _x(b["max_achieved_al"]),
-                f"target frames (1 in {stride}) with upper > AL (%)": _pct(b["frames_over_al"]),
+                f"target frames (1 in {stride}) with upper > AL (%)": percent_of(b["frames_over_al"]),
                 "max upper / PL": _x(b["max_error_pl"]),
                 "max replayed / PL": _x(b["max_achieved_pl"]),
                 "sparing the PL's trusted frames: max upper / AL": _x(s["max_error_al"]),
@@ -239,8 +235,8 @@ def _checks_rows(chains: dict[str, Any]) -> list[dict[str, str]]:
             {
                 "chain": CHAINS[model],
                 "frames (targets)": f"{k['ceiling']['n']} ({k['targets']})",
-                "availability ceiling, any sound PL (%)": _pct(k["ceiling"]),
-                "the chain's PL, same frames (%)": _pct(k["pl"]),
+                "availability ceiling, any sound PL (%)": percent_of(k["ceiling"]),
+                "the chain's PL, same frames (%)": percent_of(k["pl"]),
                 "replayed error at the last frame, median / max (m)": f"{_x(goal['median'])} / {_x(goal['max'])}",
                 "largest AL there (m)": _x(k["goal_alert_m"]),
                 "PL there, range (m)": f"{_x(pl['min'])}-{_x(pl['max'])}",

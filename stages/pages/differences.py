@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from pipeline.guidance.law import DOCKED
 from stages.config.params import evaluation_seed, validation_seed
 from stages.config.schema import Params
 from stages.pages.paper import ATTITUDE_DEG, DETECTOR_ACCURACY, INTEGRATED, INTEGRATED_EPS, LAB, POSITION_M
@@ -98,7 +99,7 @@ def _lab(lab: dict[str, Any]) -> str:
 def _closed_loop(params: Params, gd: dict[str, Any]) -> str:
     g = params.guidance
     runs = [r for r in gd["runs"] if r.get("attacked_frames", 1) > 0]
-    lost = [r for r in runs if r["outcome"] != "docked"]
+    lost = [r for r in runs if r["outcome"] != DOCKED]
     where = sorted({(float(r["eps"]), float(r["start_range"]), int(r["length"])) for r in lost}, reverse=True)
     cells = "; ".join(f"eps {e:g}, S = {s:g} m, K = {k}" for e, s, k in where) or "none"
     base = gd["baseline"]

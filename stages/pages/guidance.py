@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.guidance.law import DOCKED, LOST, MISSED, SUCCEEDED
 from stages.config.evaluation import Integrity
 from stages.config.schema import Params
 from stages.config.sections import Guidance, Render
@@ -103,7 +104,7 @@ def _defended_run(dyn: str, variant: str, r: dict[str, Any]) -> dict[str, Any]:
         "K": r["length"],
         "outcome": (
             "missed, as without attack"
-            if r["outcome"] == "attack succeeded" and not r.get("attack_denied", True)
+            if r["outcome"] == SUCCEEDED and not r.get("attack_denied", True)
             else r["outcome"]
         ),
         "miss (m)": r["miss_m"],
@@ -164,10 +165,10 @@ def _horizon_text(m: dict[str, Any]) -> str:
 
 def _cell(r: dict[str, Any]) -> str:
     text = {
-        "docked": "docked",
-        "attack succeeded": "**attack succeeded**",
-        "target lost": f"**target lost** (step {r['steps']})",
-        "missed without attack": "missed",
+        DOCKED: DOCKED,
+        SUCCEEDED: f"**{SUCCEEDED}**",
+        LOST: f"**{LOST}** (step {r['steps']})",
+        MISSED: "missed",
     }[r["outcome"]]
     frames = "" if r["attacked_frames"] == r["length"] else f", {r['attacked_frames']} attacked frames"
     return f"{text}, {r['miss_m']:.2f} m{frames}"
@@ -186,7 +187,7 @@ def guidance_page(m: dict[str, Any], g: Guidance, render: Render) -> str:
     )
     start, goal = (", ".join(f"{float(v):g}" for v in vs) for vs in (g.start, g.target))
     baseline = f"**No-attack baseline: {m['baseline']['outcome']}, final miss {m['baseline']['miss_m']:.2f} m.**"
-    if m["baseline"]["outcome"] != "docked":
+    if m["baseline"]["outcome"] != DOCKED:
         baseline += (
             " The pose model cannot guide the chaser even without an attack, so a miss in the tables "
             "below cannot be blamed on the attack."
@@ -341,7 +342,7 @@ def docking_targets(d: dict[str, Any]) -> list[tuple[str, str, str]]:
         ),
         (
             f"detect-and-recover, every attack up to eps {TARGET_EPS:g}: docking miss <= tolerance",
-            "met" if small and not failed and clean_ok.get("outcome") == "docked" else "**missed**",
+            "met" if small and not failed and clean_ok.get("outcome") == DOCKED else "**missed**",
             f"no-attack run {clean_ok.get('outcome', '-')} ({clean_ok.get('miss', float('nan')):.2f} m); "
             f"{failed} failed of {sum(x['met'] for x in small)} attacked runs up to eps {TARGET_EPS:g}",
         ),

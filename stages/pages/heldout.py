@@ -7,7 +7,7 @@ from __future__ import annotations
 from typing import Any
 
 from pipeline.report.markdown import markdown_table
-from pipeline.stats import percent_ci
+from pipeline.stats import percent_of
 from stages.config.schema import Params
 from stages.pages.attitude import ci
 
@@ -35,10 +35,6 @@ def _camera_rows(camera: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
-def _rate(r: dict[str, Any], decimals: int = 1) -> str:
-    return percent_ci(r["value"], r["ci"], decimals)
-
-
 def _calibration_rows(cal: dict[str, Any]) -> list[dict[str, Any]]:
     rows = []
     for name, s in (
@@ -48,9 +44,9 @@ def _calibration_rows(cal: dict[str, Any]) -> list[dict[str, Any]]:
         rows.append(
             {
                 "motion checks calibrated on": name,
-                "availability (%)": _rate(s["availability"]),
-                "false alarms, fused (%)": _rate(s["fused"], 2),
-                "MI (%)": _rate(s["mi"], 2),
+                "availability (%)": percent_of(s["availability"]),
+                "false alarms, fused (%)": percent_of(s["fused"], 2),
+                "MI (%)": percent_of(s["mi"], 2),
                 "PL median / p95 (m)": f"{s['pl_m']['median']:.2f} / {s['pl_m']['p95']:.2f}",
                 "trusted error median / p95 (m)": f"{s['error_m']['median']:.2f} / {s['error_m']['p95']:.2f}",
             }

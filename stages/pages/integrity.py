@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from typing import Any, Optional
 
+from pipeline.stats import percent_of
 from stages.config.schema import Params
 
 CHAINS = {
@@ -32,13 +33,6 @@ def attacker_names(name: str) -> str:
         words = KINDS.get(kind, kind) + (f" {DIRECTIONS.get(direction, direction)}" if direction else "")
         out.append(words + (f", {size} bias kept" if size else ""))
     return " = ".join(out)
-
-
-def _pct(r: dict[str, Any] | None) -> str:
-    """A rate of the metrics JSON ({"value", "ci", "n"}) in percent with its interval, or "-"."""
-    from pipeline.stats import percent_ci
-
-    return "-" if not r or not r.get("n") else percent_ci(r["value"], r["ci"], 1)
 
 
 def _m(x: float | None) -> str:
@@ -136,14 +130,14 @@ def targets(integrity: dict[str, Any]) -> list[tuple[str, str, str]]:
         (
             f"clean availability >= {100 * TARGET_AVAILABILITY:g}% (execution error on)",
             "met" if avail["value"] is not None and avail["value"] >= TARGET_AVAILABILITY else "**missed**",
-            f"{_pct(avail)}%",
+            f"{percent_of(avail)}%",
         )
     )
     out.append(
         (
             f"clean false alarms <= {100 * TARGET_FALSE_ALARMS:g}% (execution error on)",
             "met" if alarms["value"] is not None and alarms["value"] <= TARGET_FALSE_ALARMS else "**missed**",
-            f"{_pct(alarms)}%",
+            f"{percent_of(alarms)}%",
         )
     )
     return out + [_clean_protection(chains)]
@@ -247,8 +241,8 @@ def _points(chains: dict[str, Any]) -> list[dict[str, Any]]:
             "trajectories": v["trajectories"],
             "breaking eps": _eps(v["summary"]["breaking_eps"]),
             "eps flown": ", ".join(f"{e:g}" for e in v["summary"]["eps_flown"]),
-            "clean availability (%)": _pct(v["summary"]["clean"]["availability"]),
-            "clean false alarms (%)": _pct(v["summary"]["clean"]["false_alarms"]),
+            "clean availability (%)": percent_of(v["summary"]["clean"]["availability"]),
+            "clean false alarms (%)": percent_of(v["summary"]["clean"]["false_alarms"]),
             "clean max error / AL": _m(v["summary"]["clean"]["max_error_al"]),
             "clean max error / PL": _m(v["summary"]["clean"]["max_error_pl"]),
         }
@@ -299,7 +293,7 @@ def _safety_index(
                     "largest final error (m)": _m(row["final_error_max_m"]),
                     "trajectories failed": f"{row['failed']}/{row['trajectories']}",
                     "worst attacker": attacker_names(row["worst_attacker"] or "-"),
-                    "trajectories with HMI (%)": _pct(row["hmi_trajectories"]),
+                    "trajectories with HMI (%)": percent_of(row["hmi_trajectories"]),
                 }
             )
             regions.append({"chain": k, "eps": f"{e:g}", **row["stanford"]})
@@ -380,10 +374,10 @@ def _availability_parts(parts: dict[str, Any] | None) -> str:
     if not parts:
         return ""
     (flown, full), *rest = parts.items()
-    shares = "; ".join(f"{name} {_pct(v)}" for name, v in rest)
+    shares = "; ".join(f"{name} {percent_of(v)}" for name, v in rest)
     return (
         f"\n  Which part of the PL costs the availability, measured on the same clean frames (a PL with a part left "
-        f"out bounds nothing; pipeline/evaluation/availability.py): {flown} {_pct(full)}; {shares}."
+        f"out bounds nothing; pipeline/evaluation/availability.py): {flown} {percent_of(full)}; {shares}."
     )
 
 
@@ -439,16 +433,16 @@ def integrity_table(rows: list[dict[str, Any]], with_mi: bool) -> str:
             "attacker": attacker_names(r["attacker"]),
             "eps": f"{r['eps']:g}",
             "frames": r["frames"],
-            "HMI caused (%)": _pct(r["hmi"]),
-            "HMI without attack (%)": _pct(r["hmi_clean"]),
+            "HMI caused (%)": percent_of(r["hmi"]),
+            "HMI without attack (%)": percent_of(r["hmi_clean"]),
         }
         if with_mi:
-            cells["MI caused (%)"] = _pct(r["mi"])
+            cells["MI caused (%)"] = percent_of(r["mi"])
         cells |= {
-            "attacked frames flagged (%)": _pct(r["detected"]),
-            "same frames flagged without attack (%)": _pct(r["detected_clean"]),
-            "availability (%)": _pct(r["availability"]),
-            "availability without attack (%)": _pct(r["availability_clean"]),
+            "attacked frames flagged (%)": percent_of(r["detected"]),
+            "same frames flagged without attack (%)": percent_of(r["detected_clean"]),
+            "availability (%)": percent_of(r["availability"]),
+            "availability without attack (%)": percent_of(r["availability_clean"]),
             "trusted error mean / max (m)": f"{_m(r['trusted_error_mean_m'])} / {_m(r['trusted_error_max_m'])}",
             "without attack (m)": f"{_m(r['clean_error_mean_m'])} / {_m(r['clean_error_max_m'])}",
         }
@@ -490,7 +484,7 @@ def integrity_section(integrity: dict[str, Any], p: Params, figure: bool = True)
         parts.append(f"""### {CHAINS[key][0].upper() + CHAINS[key][1:]}
 
 Without any attack, on all {c["frames"]} frames of its {c["trajectories"]} trajectories: availability
-{_pct(c["availability"])}%, HMI {_pct(c["hmi"])}%, trusted error mean {_m(c["trusted_error_mean_m"])} m, max
+{percent_of(c["availability"])}%, HMI {percent_of(c["hmi"])}%, trusted error mean {_m(c["trusted_error_mean_m"])} m, max
 {_m(c["trusted_error_max_m"])} m.
 
 {integrity_table(chain["rows"], bool(c.get("has_pl")))}{_bursts(chain["rows"])}""")

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from pipeline.guidance.law import DOCKED
+from pipeline.stats import percent_of
 from stages.pages.paper import ATTITUDE_DEG, DETECTOR_ACCURACY, INTEGRATED, INTEGRATED_EPS, LAB, LAB_EPS, POSITION_M
 
 DETECTOR_NAMES = {
@@ -79,7 +81,7 @@ def _paper_rows(
     tr, at, gd = (metrics[k] for k in ("train", "attack", "guidance"))
     eps_at = _eps_keys(at["eps"])
     runs = [r for r in gd["runs"] if r.get("attacked_frames", 1) > 0]
-    broken = sum(r["outcome"] != "docked" for r in runs)
+    broken = sum(r["outcome"] != DOCKED for r in runs)
     return [
         (
             "pose, test mean position error (m), standard model",
@@ -353,14 +355,18 @@ def shipped_targets(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, 
         }
         for key, target in DETECTION_TARGETS.items():
             out.append(
-                (f"{names[key]} at eps {e} {target}%", judge(_pct_value(ours[key]), target), f"{_rate(ours[key])}%")
+                (
+                    f"{names[key]} at eps {e} {target}%",
+                    judge(_pct_value(ours[key]), target),
+                    f"{percent_of(ours[key], 2)}%",
+                )
             )
         clean = ours["fpr_clean"]
         out.append(
             (
                 f"false alarms on attack-free runs {CLEAN_ALARMS_TARGET}%",
                 judge(_pct_value(clean), CLEAN_ALARMS_TARGET),
-                f"{_rate(clean)}%",
+                f"{percent_of(clean, 2)}%",
             )
         )
     for dyn, variants in gd.get("defended", {}).get("dynamics", {}).items():
@@ -402,13 +408,6 @@ def headline(metrics: dict[str, dict[str, Any]]) -> str:
     return f"{text}\n\n{table}\n\n"
 
 
-def _rate(r: dict[str, Any] | None) -> str:
-    """A rate of the metrics JSON ({"value", "ci": [lo, hi], "n"}) as "96.5 [95.1, 97.6]" (%)."""
-    from pipeline.stats import percent_ci
-
-    return "-" if not r or not r.get("n") or r["value"] is None else percent_ci(r["value"], r["ci"], 2)
-
-
 def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any] | None = None) -> str:
     """The defended chain beside the paper's detector: integrated detection at the smallest
     eps, harmful-undetected, false alarms, and closed-loop runs docked per variant (Markdown)."""
@@ -429,9 +428,9 @@ def defended_table(ev: dict[str, Any], gd: dict[str, Any], spread: dict[str, Any
     table = [
         {
             "result": name,
-            "paper's detector, standard model (this run)": _rate(paper[key]),
-            std_col: _rate(standard[key]) if standard else "-",
-            ours_col: _rate(ours[key]),
+            "paper's detector, standard model (this run)": percent_of(paper[key], 2),
+            std_col: percent_of(standard[key], 2) if standard else "-",
+            ours_col: percent_of(ours[key], 2),
             "paper": p,
             "target": t if t == "-" else f"{t} ({judge(_pct_value(ours[key]), t)})",
             **{c: _sd(spread, sd) for c in sd_column},
@@ -641,7 +640,7 @@ def _hmi_rows(integrity: dict[str, Any], spread: dict[str, Any] | None) -> list[
     chains, out = integrity.get("chains", {}), []
     for e in ("0.01", "0.05"):
         w = integrity.get("worst_hmi", {}).get(e)
-        value = "-" if w is None else f"{_rate(w['hmi'])} ({attacker_names(w['attacker'])})"
+        value = "-" if w is None else f"{percent_of(w['hmi'], 2)} ({attacker_names(w['attacker'])})"
         out.append(
             (
                 f"integrity: worst HMI (%) a chain-level attack caused at eps {e} (trusted error > AL, "
@@ -660,7 +659,7 @@ def _hmi_rows(integrity: dict[str, Any], spread: dict[str, Any] | None) -> list[
             (
                 f"integrity: worst HMI (%) at eps {e}, standard model's chain ({std.get('trajectories', '-')} "
                 "trajectories: the interval's upper end is all this run rules out)",
-                "-" if w is None else _rate(w["hmi"]),
+                "-" if w is None else percent_of(w["hmi"], 2),
                 "-",
                 "robustness",
                 _sd(spread, f"integrity.standard_hmi_eps_{e.replace('.', '_')}_pct"),
@@ -670,7 +669,7 @@ def _hmi_rows(integrity: dict[str, Any], spread: dict[str, Any] | None) -> list[
     out.append(
         (
             "integrity: availability of the trusted estimate without attack (%), shipped chain (robust model)",
-            "-" if clean is None else _rate(clean["availability"]),
+            "-" if clean is None else percent_of(clean["availability"], 2),
             "-",
             "robustness",
             _sd(spread, "integrity.shipped_clean_availability_pct"),
