@@ -402,6 +402,39 @@ def test_the_pl_parts_replay_the_flown_pl_and_leaving_a_part_out_only_adds_avail
         availability_parts([flights.clean[0].frames], parts)
 
 
+def test_a_wider_docking_tolerance_only_adds_availability_and_the_mission_s_is_the_clean_row(tracks) -> None:
+    """tolerance_availability on the toy defended chain's clean flights: at the mission's tolerance it is the clean
+    row's availability, it never falls as the tolerance widens (the AL only grows) and reaches 100% once the
+    tolerance exceeds every PL; a fixed AL has no tolerance to widen; the page says from which tolerance the target
+    is met, sorted by value even where the JSON holds "10" before "2"."""
+    import dataclasses
+
+    from pipeline.evaluation.availability import tolerance_availability
+    from stages.pages.integrity import _tolerances
+
+    d = Defended(DefenseSettings(), EXACT, NOISE, PERSISTENT)
+    flights = fly_campaign(ToyOnboard(ToyPose()), ToyPose(), d, tracks, _campaign([0.004], False, True))
+    frames = [fl.frames for fl in flights.clean]
+    worst = max(float(np.nanmax(np.where(np.isfinite(f.pl), f.pl, np.nan))) for f in frames)
+    grid = (0.02, PERSISTENT.tolerance, worst + 1.0)
+    out = tolerance_availability(frames, PERSISTENT, grid)
+    assert out[f"{PERSISTENT.tolerance:g}"] == flights.clean_row["availability"]
+    values = [out[f"{t:g}"]["value"] for t in grid]
+    assert values == sorted(values) and values[0] < values[-1]
+    unbounded = [dataclasses.replace(f, alert=np.full(len(f.pl), np.inf)).available for f in frames]
+    assert values[-1] == pytest.approx(np.concatenate(unbounded).mean())  # only what no AL makes available is not
+    assert tolerance_availability(frames, dataclasses.replace(PERSISTENT, fixed=5.0)) == {}
+    with pytest.raises(ValueError, match="must be > 0"):
+        tolerance_availability(frames, PERSISTENT, (0.0,))
+    record = {"mission_tolerance_m": 1.0, "availability": {k: out[k] for k in reversed(list(out))}}
+    text = _tolerances(record)
+    assert text.index(f"{grid[0]:g} m") < text.index(f"{grid[-1]:g} m") and "the mission's is 1 m" in text
+    assert ("target is met from" in text) == any(v >= 0.99 for v in values)
+    ten = {"10": {"value": 1.0, "ci": [1.0, 1.0], "n": 2}, "2": {"value": 0.5, "ci": [0.4, 0.6], "n": 2}}
+    assert "from a 10 m tolerance" in _tolerances({"mission_tolerance_m": 1.0, "availability": ten})
+    assert _tolerances(None) == "" and _tolerances({"mission_tolerance_m": 1.0, "availability": {}}) == ""
+
+
 def test_how_a_defended_chain_broke_says_whether_it_failed_inside_the_trusted_start(tracks) -> None:
     """The planted 2 m capture breaks the defended toy at eps 0.03 where AL_p falls below 2 m, near the goal: its
     first failing frame lies long after the filter's start, outside a 20-frame trusted start and inside a 1000-frame

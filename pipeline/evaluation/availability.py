@@ -10,6 +10,10 @@ flight through a fresh defense and gives, per frame, the PL and the PL with part
 the availability each would give on the same frames, with its bootstrap interval over trajectories: which part
 costs how much availability, measured rather than guessed. A PL with a part left out bounds nothing (the part is
 there because an attacker can use it): these are diagnostics, never the chain's availability.
+
+`tolerance_availability` asks the other question: what the mission would have to accept for the same PL. The
+alert limit falls to the docking tolerance at the goal (pipeline/defense/integrity.py), so the availability of
+the same clean frames with the AL of a wider tolerance is what a looser docking requirement would buy, measured.
 """
 
 from __future__ import annotations
@@ -21,11 +25,12 @@ from typing import Any, Sequence
 import numpy as np
 
 from pipeline.defense.chain import Defended
-from pipeline.defense.integrity import IntegrityFrames, clean_rates, concat
+from pipeline.defense.integrity import AlertLimitSettings, IntegrityFrames, alert_limit, clean_rates, concat
 from pipeline.evaluation.integrity_runs import Flown, Track, as_json
 from pipeline.geometry.rotations import sixd_to_matrix
 
 PL = "protection level (as flown)"
+TOLERANCES = (1.0, 1.5, 2.0, 3.0, 5.0)  # docking tolerances (m) `tolerance_availability` judges the PL against
 PARTS = (PL, "without the slow ramp (c = 0)", "without the transients (h = 0)", "noise term and offset alone")
 
 
@@ -74,3 +79,28 @@ def clean_availability_parts(
     `tracks` through `defended`, `seed` the clean row's bootstrap seed."""
     parts = [pl_parts(defended, fl.pose, fl.prob, t.R_cam, t.u) for fl, t in zip(clean, tracks)]
     return availability_parts([fl.frames for fl in clean], parts, seed)
+
+
+def tolerance_availability(
+    frames: Sequence[IntegrityFrames],
+    alert: AlertLimitSettings,
+    tolerances: Sequence[float] = TOLERANCES,
+    seed: int = 0,
+) -> dict[str, dict[str, Any]]:
+    """{f"{t:g}": availability as the metrics JSON holds a rate}: the share of the flights' frames (`frames`, each
+    flight's integrity records with its PL) available when the same PL is judged against the alert limit `alert`
+    with docking tolerance t (m) instead of its own, at each frame's true range; bootstrapped over flights as the
+    clean row is (`seed`). At `alert.tolerance` it is the clean row's availability. {} for a fixed AL (no
+    tolerance in it)."""
+    if alert.fixed is not None:
+        return {}
+    if not frames:
+        raise ValueError("tolerance_availability: no flights")
+    out = {}
+    for t in tolerances:
+        if not float(t) > 0:
+            raise ValueError(f"tolerance_availability: a docking tolerance must be > 0 (metres), got {t!r}")
+        s = dataclasses.replace(alert, tolerance=float(t))
+        judged = [dataclasses.replace(f, alert=alert_limit(np.linalg.norm(f.truth, axis=1), s)) for f in frames]
+        out[f"{t:g}"] = as_json(clean_rates(concat(judged), seed=seed)["availability"], len(frames))
+    return out

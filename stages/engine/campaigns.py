@@ -150,13 +150,19 @@ def _fly_chain(
 def _record(safety: Any, defended: Any, flown: Any, tracks: list[Any], seed: int) -> dict[str, Any]:
     """A chain's metrics record of its flown campaign: the safety summary (with, for a defended chain, where its
     clean availability goes: the PL's parts replayed on the clean flights), the descriptive rows, the clean row."""
-    from pipeline.evaluation.availability import clean_availability_parts
+    from pipeline.evaluation.availability import clean_availability_parts, tolerance_availability
     from pipeline.evaluation.campaign import how_it_broke, safety_summary
     from pipeline.evaluation.integrity_runs import worst_hmi
 
     summary = safety_summary(flown)
     if defended is not None:
         summary["clean"]["availability_parts"] = clean_availability_parts(defended, flown.clean, tracks, seed)
+        if defended.alert is not None:
+            frames = [fl.frames for fl in flown.clean]
+            summary["clean"]["availability_by_tolerance"] = {
+                "mission_tolerance_m": defended.alert.tolerance,
+                "availability": tolerance_availability(frames, defended.alert, seed=seed),
+            }
         summary["how_it_broke"] = how_it_broke(flown, summary["breaking_eps"], defended.motion.trusted_start)
     return {
         "model": safety.name,

@@ -365,6 +365,7 @@ def _where_unavailable(integrity: dict[str, Any]) -> str:
         "never judged: where the PL exceeds AL (which falls to the docking tolerance at the goal) the measure cannot "
         "fail, and the chain declares itself unavailable (the guidance holds) rather than fail."
         + _availability_parts(integrity["chains"]["robust"]["summary"]["clean"].get("availability_parts"))
+        + _tolerances(integrity["chains"]["robust"]["summary"]["clean"].get("availability_by_tolerance"))
     )
 
 
@@ -378,6 +379,28 @@ def _availability_parts(parts: dict[str, Any] | None) -> str:
     return (
         f"\n  Which part of the PL costs the availability, measured on the same clean frames (a PL with a part left "
         f"out bounds nothing; pipeline/evaluation/availability.py): {flown} {percent_of(full)}; {shares}."
+    )
+
+
+def _tolerances(record: dict[str, Any] | None) -> str:
+    """The clean availability of the same PL against the alert limit of other docking tolerances (m; the record's
+    `mission_tolerance_m` the mission's): what a looser docking requirement would buy
+    (pipeline/evaluation/availability.py `tolerance_availability`)."""
+    if not record or not record["availability"]:
+        return ""
+    by = sorted(record["availability"].items(), key=lambda kv: float(kv[0]))  # JSON may hold "10" before "2"
+    tolerance = record["mission_tolerance_m"]
+    met = [t for t, r in by if r["value"] is not None and r["value"] >= TARGET_AVAILABILITY]
+    verdict = (
+        f"the {100 * TARGET_AVAILABILITY:g}% target is met from a {met[0]} m tolerance on"
+        if met
+        else f"the {100 * TARGET_AVAILABILITY:g}% target is met at none of them"
+    )
+    shares = "; ".join(f"{t} m {percent_of(r)}" for t, r in by)
+    return (
+        f"\n  The same PL on the same clean frames against the alert limit of another docking tolerance (the mission's "
+        f"is {tolerance:g} m; the limit falls to it at the goal): {shares}; {verdict}. A wider tolerance is a mission "
+        "decision, not a tuning of the chain."
     )
 
 
