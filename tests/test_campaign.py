@@ -455,3 +455,33 @@ def test_how_a_defended_chain_broke_says_whether_it_failed_inside_the_trusted_st
         f"0 of {len(rows)} failed flights first fail inside the trusted-start frames" in text and "t0 (capture" in text
     )
     assert _how_it_broke({"robust": {"summary": {"breaking_eps": None}}}) == ""
+
+
+def test_the_recover_hold_script_splits_the_pl_as_the_library_does(tracks) -> None:
+    """scripts/recover_hold.py's per-frame record on the toy defended chain's clean flight: no PL before the filter
+    starts, afterwards PL = noise + ramp + transients + offset with every part >= 0, the same split as
+    pipeline/evaluation/availability.py's pl_parts (its PL without the ramp, without the transients)."""
+    from script_loader import load_script
+
+    from pipeline.evaluation.availability import PARTS, pl_parts
+    from pipeline.geometry.rotations import sixd_to_matrix
+
+    record = load_script("recover_hold")._record
+    d = Defended(DefenseSettings(), EXACT, NOISE, PERSISTENT)
+    flight = fly_campaign(ToyOnboard(ToyPose()), ToyPose(), d, tracks, _campaign([0.004], False, True)).clean[0]
+    t = tracks[0]
+    parts, live = pl_parts(d, flight.pose, flight.prob, t.R_cam, t.u), d.defense()
+    rows = []
+    for i, pose in enumerate(np.asarray(flight.pose, np.float64)):
+        out = live.step(pose[:3], float(flight.prob[i]), t.R_cam[i], t.u[i], sixd_to_matrix(pose[None, 3:])[0])
+        rows.append(record(live, out))
+    started = [i for i, r in enumerate(rows) if r["pl"] is not None]
+    assert started and all(not np.isfinite(parts[PARTS[0]][i]) for i in range(started[0]))
+    assert sum(r["ramp"] > 0 for r in rows if r["pl"] is not None) > 10
+    for i in started:
+        r = rows[i]
+        assert min(r["noise"], r["ramp"], r["transients"], r["offset"]) >= 0
+        assert r["pl"] == pytest.approx(r["noise"] + r["ramp"] + r["transients"] + r["offset"])
+        assert r["pl"] == pytest.approx(parts[PARTS[0]][i])
+        assert r["pl"] - r["ramp"] == pytest.approx(parts[PARTS[1]][i])
+        assert r["pl"] - r["transients"] == pytest.approx(parts[PARTS[2]][i])
