@@ -276,6 +276,31 @@ def test_the_registry_literals_of_the_schema_are_the_registries() -> None:
     assert set(typing.get_args(typing.get_args(hints["guidance"]["defenses"])[0])) == set(DEFENSES) - {"undefended"}
 
 
+def test_the_schema_s_other_choice_literals_are_their_registries() -> None:
+    """The rest of the schema's Literal choices that name a library registry: the integrity campaign's alert-limit
+    kind, burst objective and drift start, the execution's approach, the adversarial training's objectives and
+    starts. A value added to one side only would pass params validation and fail deep inside a stage, or the
+    reverse."""
+    import typing
+
+    from pipeline.attackers.burst import OBJECTIVES as BURST_OBJECTIVES
+    from pipeline.attackers.drift import STARTS as DRIFT_STARTS
+    from pipeline.attacks.objectives import OBJECTIVES
+    from pipeline.attacks.starts import STARTS
+    from pipeline.defense.integrity import KINDS
+    from pipeline.guidance.dynamics import APPROACHES
+    from stages.config.evaluation import Integrity
+    from stages.config.sections import Adversarial, Execution
+
+    integrity, adversarial = typing.get_type_hints(Integrity), typing.get_type_hints(Adversarial)
+    assert set(typing.get_args(integrity["alert_limit_kind"])) == set(KINDS)
+    assert set(typing.get_args(integrity["burst_objective"])) == set(BURST_OBJECTIVES)
+    assert set(typing.get_args(integrity["drift_start"])) == set(DRIFT_STARTS)
+    assert set(typing.get_args(typing.get_type_hints(Execution)["approach"])) == set(APPROACHES)
+    assert set(typing.get_args(typing.get_args(adversarial["objectives"])[0])) == set(OBJECTIVES)
+    assert set(typing.get_args(adversarial["start"])) == set(STARTS)
+
+
 # a chain built from files goes through the one door; these build one from models in memory (a detector just
 # trained, random models for a benchmark)
 CHAIN_BUILDERS = {"pipeline/formats/chain.py", "stages/detect.py", "benchmarks/chain_latency.py"}
