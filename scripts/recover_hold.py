@@ -4,8 +4,10 @@ Flies the guidance stage's own no-attack run of the shipped chain (true-state dy
 stage's plan, seeds and execution errors: stages/guidance.py) in one process and records, after every frame, the
 protection level and its parts (pipeline/defense/protection.py; the split of pipeline/evaluation/availability.py):
 the noise term, the slow ramp c sum|W|, the transients h TV+ and a restart's offset, against the alert limit at
-the true range. Prints every fifth frame and the last ones, and the frame where the chain first stops being
-available; `--json PATH` writes every frame's record. A measurement of the committed models, not a choice.
+the true range. The ramp and the transients are what leaving each out removes from the PL: the bias adds them over
+the world axes in quadrature, so the parts add up to a little less than the PL (millimetres on the approach).
+Prints every fifth frame and the last ones, and the frame where the chain first stops being available; `--json
+PATH` writes every frame's record. A measurement of the committed models, not a choice.
 
 Usage (in a checkout with the default run's models/, e.g. after `dvc checkout`):
 python scripts/recover_hold.py [--json PATH]
@@ -104,8 +106,8 @@ def main() -> None:
         if r["pl"] is not None and (i % 5 == 0 or i >= len(rows) - 3 or i == lost):
             print(
                 f"frame {i:3d}{' (first PL > AL)' if i == lost else ''}: range {r['true_range']:.2f} m, AL "
-                f"{r['al']:.2f}, PL {r['pl']:.2f} = noise {r['noise']:.2f} + ramp {r['ramp']:.2f} + transients "
-                f"{r['transients']:.2f} + offset {r['offset']:.2f}; {r['mode']}"
+                f"{r['al']:.2f}, PL {r['pl']:.2f}: noise {r['noise']:.2f}, ramp {r['ramp']:.2f}, transients "
+                f"{r['transients']:.2f}, offset {r['offset']:.2f}; {r['mode']}"
             )
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))

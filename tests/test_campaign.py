@@ -459,7 +459,8 @@ def test_how_a_defended_chain_broke_says_whether_it_failed_inside_the_trusted_st
 
 def test_the_recover_hold_script_splits_the_pl_as_the_library_does(tracks) -> None:
     """scripts/recover_hold.py's per-frame record on the toy defended chain's clean flight: no PL before the filter
-    starts, afterwards PL = noise + ramp + transients + offset with every part >= 0, the same split as
+    starts, afterwards every part >= 0 and together no more than the PL (the bias adds the ramp and the transients
+    over the world axes in quadrature: each part is what leaving it out removes), the same split as
     pipeline/evaluation/availability.py's pl_parts (its PL without the ramp, without the transients)."""
     from script_loader import load_script
 
@@ -481,7 +482,7 @@ def test_the_recover_hold_script_splits_the_pl_as_the_library_does(tracks) -> No
     for i in started:
         r = rows[i]
         assert min(r["noise"], r["ramp"], r["transients"], r["offset"]) >= 0
-        assert r["pl"] == pytest.approx(r["noise"] + r["ramp"] + r["transients"] + r["offset"])
+        assert -1e-9 <= r["pl"] - (r["noise"] + r["ramp"] + r["transients"] + r["offset"]) <= 1e-9 + 0.05 * r["pl"]
         assert r["pl"] == pytest.approx(parts[PARTS[0]][i])
         assert r["pl"] - r["ramp"] == pytest.approx(parts[PARTS[1]][i])
         assert r["pl"] - r["transients"] == pytest.approx(parts[PARTS[2]][i])
