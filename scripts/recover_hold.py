@@ -32,19 +32,15 @@ pin_cpu_isa()
 
 
 def _record(defense: Any, out: Any) -> dict[str, Any]:
-    """One frame's PL (m) and its parts after `defense.step` returned `out`; the PL is None before it exists."""
-    f = defense.filter
+    """One frame's PL (m) and its parts (pipeline/guidance/law.py `protection_parts`) after `defense.step` returned
+    `out`; the PL is None before it exists."""
+    from pipeline.guidance.law import protection_parts
+
     row: dict[str, Any] = {"mode": out.mode, "available": bool(out.available), "pl": None}
-    if math.isfinite(f.protection_level):
-        pr, noise = f.protection, f.pl_noise_term
-        bias = pr.bias()
-        row |= {
-            "pl": f.protection_level,
-            "noise": noise,
-            "ramp": bias - pr.bias(reference=0.0),
-            "transients": bias - pr.bias(threshold=0.0),
-            "offset": pr.offset,
-        }
+    if math.isfinite(defense.filter.protection_level):
+        noise, ramp, transients, offset = protection_parts(defense)
+        row |= {"pl": defense.filter.protection_level, "noise": noise, "ramp": ramp, "transients": transients}
+        row["offset"] = offset
     return row
 
 

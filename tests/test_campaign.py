@@ -234,6 +234,7 @@ def test_the_closed_loop_breaking_point_and_docking_table_per_variant() -> None:
             estimates=np.zeros((1, 3)),
             held=np.array([held]),
             modes=None,
+            protection=None,  # made without the PL's record: no final_hold
             outcome="",
             attacked_frames=attacked,
             closest_range=float(np.linalg.norm(end)),

@@ -281,3 +281,36 @@ def test_the_defended_page_explains_the_paper_dynamics_clean_flags_and_only_when
     assert "arrives after 36 steps, not 50: about 0.39 m" in text and "(true_state: 4 with detect-and-recover)" in text
     d["dynamics"]["paper"]["recover"] = block(0, 46)
     assert "Flags without an attack" not in defended_section(d, g)
+
+
+def test_a_recover_run_records_its_protection_and_says_why_its_last_hold_began():
+    """run_rendezvous keeps, per defended frame, the PL, the AL it was judged against (at the trusted range) and the
+    PL's parts (law.protection_parts, each <= the PL, together no more than it); a detect-and-recover chaser holds
+    exactly where PL > AL (or the defense holds), and closed_loop.final_hold names the frame its last hold began with
+    PL > AL there and a PL that did not shrink by the end; the guidance page says it in words."""
+    from functools import partial
+
+    from pipeline.defense.integrity import AlertLimitSettings, alert_limit
+    from pipeline.evaluation.closed_loop import final_hold
+    from pipeline.guidance.law import PROTECTION
+    from stages.pages.guidance import hold_why
+
+    d = _defense()
+    d.alert_limit = partial(alert_limit, settings=AlertLimitSettings(kind="persistent", tolerance=0.3))
+    s = GuidanceSettings(variant="true_state", max_steps=70, defense="recover")
+    r = run_rendezvous(blank, noisy_attacked([0.0, 0.0, 0.0]), K, s, defense=d)
+    assert r.protection.shape == (len(r.held), len(PROTECTION))
+    pl, al, parts = r.protection[:, 0], r.protection[:, 1], r.protection[:, 2:]
+    has = np.isfinite(pl)
+    assert has.sum() > 20 and (parts[has] >= 0).all() and (parts[has].sum(axis=1) <= pl[has] + 1e-9).all()
+    flown = has & (pl <= al) & (r.modes != "hold")
+    assert np.array_equal(~flown, r.held)
+    hold = final_hold(r)
+    assert r.held[-1] and hold is not None and r.held[hold["frame"] :].all() and not r.held[hold["frame"] - 1]
+    assert hold["pl_m"] > hold["al_m"] and hold["pl_end_m"] >= hold["pl_m"]
+    assert hold["frames_held"] == len(r.held) - hold["frame"]
+    text = hold_why(hold)
+    assert f"held from frame {hold['frame']}" in text and f"> AL {hold['al_m']:.2f} m" in text
+    assert hold_why(None) == "" and hold_why(dict(hold, pl_m=None)) == ""
+    undefended = run_rendezvous(blank, perfect, K, GuidanceSettings(variant="true_state"))
+    assert undefended.protection is None and final_hold(undefended) is None

@@ -8,16 +8,41 @@ is a safe abort; one whose holds spent the steps the approach needed timed out: 
 Per (dynamics, defense variant): the no-attack run's outcome, per eps the attacked runs that met the attack, how
 many failed and the largest miss, and the breaking point: the smallest eps at which an attacked run failed its
 mission (0 when the no-attack run already fails), None when none failed. Only the runs that met the attack count (a
-run that never reached the attack's start range was not attacked).
+run that never reached the attack's start range was not attacked). A defended no-attack run that ends in a hold
+says why (`final_hold`): its protection level and the PL's parts against the alert limit where the hold began,
+and the PL at the end (the PL never shrinks while the chaser holds: pipeline/defense/protection.py).
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any, Sequence
+
+import numpy as np
 
 from pipeline.evaluation.measures import breaking_point, docking
 from pipeline.guidance.grid import GridPlan, InLoopRun
-from pipeline.guidance.law import RendezvousResult
+from pipeline.guidance.law import PROTECTION, RendezvousResult
+
+
+def final_hold(r: RendezvousResult) -> dict[str, Any] | None:
+    """Where and why a defended run's last hold began (None when it does not end in a hold or has no record of its
+    protection level): {"frame", "true_range_m", "frames_held", and at that frame each PROTECTION column as
+    "<column>_m" (None where there is none: a hold on a flag has no PL), "pl_end_m": the PL at the last frame}."""
+    if r.protection is None or r.held is None or not len(r.held) or not r.held[-1]:
+        return None
+    start = len(r.held) - int(np.argmin(r.held[::-1])) if not r.held.all() else 0
+
+    def m(x: float) -> float | None:
+        return None if not math.isfinite(x) else float(x)
+
+    return {
+        "frame": start,
+        "true_range_m": float(np.linalg.norm(r.positions[start])),
+        "frames_held": len(r.held) - start,
+        **{f"{k}_m": m(v) for k, v in zip(PROTECTION, r.protection[start])},
+        "pl_end_m": m(r.protection[-1][0]),
+    }
 
 
 def _attack(plan: GridPlan, cell: int | InLoopRun | None) -> tuple[str, float | None]:
@@ -57,7 +82,7 @@ def closed_loop_outcomes(plan: GridPlan, results: Sequence[RendezvousResult], co
         )
         v = variants.setdefault(dyn, {}).setdefault(defense, {"clean": None, "per_eps": {}, "records": []})
         if cell is None:
-            v["clean"] = d.as_dict()
+            v["clean"] = d.as_dict() | ({} if defense == "undefended" else {"final_hold": final_hold(r)})
             v["records"].append((0.0, d.failed))
         elif met:
             k = v["per_eps"].setdefault(f"{eps:g}", {"met": 0, "failed": 0, "largest_miss_m": 0.0, "outcomes": {}})

@@ -36,6 +36,7 @@ and lasts K consecutive frames (fewer if the run ends first). An attacker in the
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -52,6 +53,8 @@ DOCKED = "docked"
 SUCCEEDED = "attack succeeded"
 LOST = "target lost"
 MISSED = "missed without attack"
+
+PROTECTION = ("pl", "al", "noise", "ramp", "transients", "offset")  # RendezvousResult.protection's columns (m)
 
 RenderFn = Callable[[np.ndarray, np.ndarray], Any]
 """render(R, t) -> image (passed as is to the estimator): target attitude R (target -> camera),
@@ -147,7 +150,9 @@ class RendezvousResult:
     with a defense: flags (n,) bool and modes (n,) str of pipeline/defense/fusion.py, else None;
     held: (n,) bool, the steps that sent no command (the chaser held), None in results made without it;
     believed: (n, 3) the rel each step's command aimed to reach by the chaser's own estimate (world, m; NaN rows
-    where it held), None in results made without it."""
+    where it held), None in results made without it; protection: (n, 6) per frame the defense's PL, the AL it was
+    judged against and the PL's parts (`protection_parts`; columns PROTECTION, m; NaN where there is none), None
+    undefended or in results made without it."""
 
     positions: np.ndarray
     estimates: np.ndarray
@@ -159,6 +164,7 @@ class RendezvousResult:
     modes: np.ndarray | None = None
     held: np.ndarray | None = None
     believed: np.ndarray | None = None
+    protection: np.ndarray | None = None
 
     @property
     def attacked_frames(self) -> int:
@@ -247,7 +253,8 @@ def run_rendezvous(
     rel = np.asarray(settings.start, dtype=np.float64)
     R_c = look_at(rel)
     executor = None if settings.execution is None else Executor(settings.execution)
-    positions, estimates, attacked, flags, modes, held, believed = [rel], [], [], [], [], [], []
+    positions, estimates, attacked, held, believed = [rel], [], [], [], []
+    defended: tuple[list[Any], list[Any], list[Any]] = ([], [], [])  # flags, modes, PROTECTION rows
     attack_start: int | None = None
     lost = False
     u = np.zeros(3)
@@ -264,7 +271,7 @@ def run_rendezvous(
         act: np.ndarray | None = est
         trusted: np.ndarray | None = None
         if defense is not None:
-            act, trusted = _defend(defense, settings.defense, out, R_c, u, est, flags, modes)
+            act, trusted = _defend(defense, settings.defense, out, R_c, u, est, defended)
         rel, u, R_c, aim = _move(act, trusted, rel, goal, R_c, settings, executor)
         positions.append(rel)
         believed.append(aim)
@@ -275,7 +282,7 @@ def run_rendezvous(
             lost = True
             break
     miss = float(np.linalg.norm(rel - goal))
-    logs = (positions, estimates, attacked, held, believed, None if defense is None else (flags, modes))
+    logs = (positions, estimates, attacked, held, believed, None if defense is None else defended)
     return _result(logs, lost, miss, settings.tolerance, attack_start)
 
 
@@ -288,6 +295,19 @@ def _check_defense(mode: str, defense: Defense | None) -> None:
         )
 
 
+def protection_parts(defense: Defense) -> tuple[float, float, float, float]:
+    """The parts of `defense`'s protection level now (m; pipeline/defense/protection.py): the noise term, the slow
+    ramp c sum|W|, the transients h TV+ (each what leaving it out removes: the bias adds them over the world axes
+    in quadrature, so the parts add up to a little less than the PL) and a restart's carried offset; NaN before
+    the PL exists."""
+    f = defense.filter
+    if not math.isfinite(f.protection_level):
+        return (math.nan,) * 4
+    pr = f.protection
+    bias = pr.bias()
+    return f.pl_noise_term, bias - pr.bias(reference=0.0), bias - pr.bias(threshold=0.0), pr.offset
+
+
 def _defend(
     defense: Defense,
     mode: str,
@@ -295,16 +315,19 @@ def _defend(
     R_c: np.ndarray,
     u: np.ndarray,
     est: np.ndarray,
-    flags: list[Any],
-    modes: list[Any],
+    logs: tuple[list[Any], list[Any], list[Any]],
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """One frame through the defense (its flag and mode appended to `flags`, `modes`): (what the law acts on:
-    the estimate `est` (world, m) or, with "recover", the trusted estimate; None to hold; the trusted estimate
+    """One frame through the defense (its flag, mode and PROTECTION row appended to `logs`): (what the law acts
+    on: the estimate `est` (world, m) or, with "recover", the trusted estimate; None to hold; the trusted estimate
     (world, m), None where it is not finite)."""
     d = defense.step(out.t, out.prob, R_c, u, out.R)
     trusted = d.trusted if np.isfinite(d.trusted).all() else None
+    flags, modes, protection = logs
     flags.append(d.flag)
     modes.append(d.mode)
+    limit = defense.alert_limit
+    al = math.nan if limit is None or trusted is None else float(limit(float(np.linalg.norm(trusted))))
+    protection.append((d.pl if math.isfinite(d.pl) else math.nan, al, *protection_parts(defense)))
     if mode == "hold":
         act = None if d.flag else est
     else:
@@ -339,14 +362,15 @@ def _move(
 
 
 def _result(
-    logs: tuple[list[Any], list[Any], list[bool], list[bool], list[Any], tuple[list[Any], list[Any]] | None],
+    logs: tuple[list[Any], list[Any], list[bool], list[bool], list[Any], tuple[list[Any], ...] | None],
     lost: bool,
     miss: float,
     tolerance: float,
     attack_start: int | None,
 ) -> RendezvousResult:
     """The run's `RendezvousResult` from its per-frame logs (positions, estimates, attacked, held, the believed
-    rel per step, and the defense's (flags, modes) or None undefended) and its end (lost, miss distance (m))."""
+    rel per step, and the defense's (flags, modes, PROTECTION rows) or None undefended) and its end (lost, miss
+    distance (m))."""
     positions, estimates, attacked, held, believed, defended = logs
     attacked_arr = np.array(attacked, dtype=bool)
     return RendezvousResult(
@@ -360,6 +384,7 @@ def _result(
         None if defended is None else np.array(defended[1]),
         np.array(held, dtype=bool),
         np.array(believed, dtype=np.float64).reshape(-1, 3),
+        None if defended is None else np.array(defended[2], dtype=np.float64).reshape(-1, len(PROTECTION)),
     )
 
 

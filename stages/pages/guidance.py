@@ -343,11 +343,26 @@ def docking_targets(d: dict[str, Any]) -> list[tuple[str, str, str]]:
         (
             f"detect-and-recover, every attack up to eps {TARGET_EPS:g}: docking miss <= tolerance",
             "met" if small and not failed and clean_ok.get("outcome") == DOCKED else "**missed**",
-            f"no-attack run {clean_ok.get('outcome', '-')} ({clean_ok.get('miss', float('nan')):.2f} m); "
-            f"{failed} failed of {sum(x['met'] for x in small)} attacked runs up to eps {TARGET_EPS:g}",
+            f"no-attack run {clean_ok.get('outcome', '-')} ({clean_ok.get('miss', float('nan')):.2f} m"
+            f"{hold_why(clean_ok.get('final_hold'))}); {failed} failed of {sum(x['met'] for x in small)} attacked runs up to eps {TARGET_EPS:g}",
         ),
         _ratio_target(ts),
     ]
+
+
+def hold_why(hold: dict[str, Any] | None) -> str:
+    """Why a run's last hold began, from its `final_hold` record (pipeline/evaluation/closed_loop.py): "; held from
+    frame N, R m out: PL > AL (parts), PL at the end", or "" where there is no record or no PL (a hold on a flag)."""
+    if not hold or hold.get("pl_m") is None or hold.get("al_m") is None:
+        return ""
+    return (
+        f"; held from frame {hold['frame']}, {hold['true_range_m']:.2f} m out: PL {hold['pl_m']:.2f} m (noise "
+        f"{hold['noise_m']:.2f}, slow ramp {hold['ramp_m']:.2f}, transients {hold['transients_m']:.2f}"
+        + (f", offset {hold['offset_m']:.2f}" if hold.get("offset_m") else "")
+        + f") > AL "
+        f"{hold['al_m']:.2f} m, and the PL only grows in a hold: {hold['pl_end_m']:.2f} m after {hold['frames_held']} "
+        "frames"
+    )
 
 
 def _ratio_target(ts: dict[str, Any]) -> tuple[str, str, str]:
