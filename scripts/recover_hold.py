@@ -84,6 +84,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--json", type=Path, help="write every frame's record (m) to this file")
     args = parser.parse_args()
+    if args.json is not None and not args.json.parent.is_dir():
+        parser.error(f"--json {args.json}: the folder {args.json.parent} does not exist")
     import numpy as np
 
     from pipeline.defense.integrity import alert_limit
@@ -106,7 +108,9 @@ def main() -> None:
                 f"{r['transients']:.2f}, offset {r['offset']:.2f}; {r['mode']}"
             )
     if args.json:
-        args.json.write_text(json.dumps(rows, indent=1))
+        from pipeline.io.atomic import atomic_write_text
+
+        atomic_write_text(args.json, json.dumps(rows, indent=1))
 
 
 if __name__ == "__main__":

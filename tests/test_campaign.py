@@ -487,3 +487,14 @@ def test_the_recover_hold_script_splits_the_pl_as_the_library_does(tracks) -> No
         assert r["pl"] == pytest.approx(parts[PARTS[0]][i])
         assert r["pl"] - r["ramp"] == pytest.approx(parts[PARTS[1]][i])
         assert r["pl"] - r["transients"] == pytest.approx(parts[PARTS[2]][i])
+
+
+def test_the_recover_hold_script_refuses_a_json_path_in_a_missing_folder(monkeypatch, tmp_path, capsys) -> None:
+    """`--json` into a folder that does not exist stops with one line naming it, before anything is flown."""
+    from script_loader import load_script
+
+    script = load_script("recover_hold")
+    monkeypatch.setattr("sys.argv", ["recover_hold.py", "--json", str(tmp_path / "nowhere" / "rows.json")])
+    with pytest.raises(SystemExit) as stop:
+        script.main()
+    assert stop.value.code == 2 and f"the folder {tmp_path / 'nowhere'} does not exist" in capsys.readouterr().err

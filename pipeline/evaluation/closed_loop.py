@@ -10,7 +10,7 @@ many failed and the largest miss, and the breaking point: the smallest eps at wh
 mission (0 when the no-attack run already fails), None when none failed. Only the runs that met the attack count (a
 run that never reached the attack's start range was not attacked). A defended no-attack run that ends in a hold
 says why (`final_hold`): its protection level and the PL's parts against the alert limit where the hold began,
-and the PL at the end (the PL never shrinks while the chaser holds: pipeline/defense/protection.py).
+and the PL at the end (after its anchor every PL term only grows until a restart: pipeline/defense/protection.py).
 """
 
 from __future__ import annotations

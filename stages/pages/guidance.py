@@ -360,8 +360,7 @@ def hold_why(hold: dict[str, Any] | None) -> str:
         f"{hold['noise_m']:.2f}, slow ramp {hold['ramp_m']:.2f}, transients {hold['transients_m']:.2f}"
         + (f", offset {hold['offset_m']:.2f}" if hold.get("offset_m") else "")
         + f") > AL "
-        f"{hold['al_m']:.2f} m, and the PL only grows in a hold: {hold['pl_end_m']:.2f} m after {hold['frames_held']} "
-        "frames"
+        f"{hold['al_m']:.2f} m; {hold['frames_held']} frames later, at the end, PL {hold['pl_end_m']:.2f} m"
     )
 
 
