@@ -24,13 +24,21 @@ from scipy import stats as sps
 LEVEL = 0.95
 
 
-def percent_ci(value: float | None, ci: Sequence[float | None] | None = None, decimals: int = 1, unit: str = "") -> str:
+def percent_ci(
+    value: float | None,
+    ci: Sequence[float | None] | None = None,
+    decimals: int = 1,
+    unit: str = "",
+    signed: bool = False,
+) -> str:
     """A rate in [0, 1] as `100 * value` with `decimals` places and `unit` (e.g. "%"; "-" when None),
-    then its 95% interval " [lo, hi]" in percent when `ci` holds one: "94.1 [92.4, 95.4]".
+    then its 95% interval " [lo, hi]" in percent when `ci` holds one: "94.1 [92.4, 95.4]"; `signed`: a difference
+    of rates in points, every figure with its sign ("+1.2 [-0.4, +2.9]").
     Every percent-with-interval in the reports is written by this one function."""
     lo, hi = ci or (None, None)
-    head = "-" if value is None else f"{100 * value:.{decimals}f}{unit}"
-    return head + ("" if lo is None else f" [{100 * lo:.{decimals}f}, {100 * hi:.{decimals}f}]")
+    f = f"{'+' if signed else ''}.{decimals}f"
+    head = "-" if value is None else f"{100 * value:{f}}{unit}"
+    return head + ("" if lo is None else f" [{100 * lo:{f}}, {100 * hi:{f}}]")
 
 
 def percent_of(rate: Mapping[str, Any] | None, decimals: int = 1) -> str:

@@ -4,7 +4,8 @@ Flies the guidance stage's own no-attack run of the shipped chain (true-state dy
 stage's plan, seeds and execution errors: stages/guidance.py) in one process and records, after every frame, the
 protection level and its parts (pipeline/defense/protection.py; the split of pipeline/evaluation/availability.py):
 the noise term, the slow ramp c sum|W|, the transients h TV+ and a restart's offset, against the alert limit at
-the true range. The ramp and the transients are what leaving each out removes from the PL: the bias adds them over
+the true range, and the error of the estimate the guidance flew on (m; where it exceeds the PL, the frames and the
+largest error / PL). The ramp and the transients are what leaving each out removes from the PL: the bias adds them over
 the world axes in quadrature, so the parts add up to a little less than the PL (millimetres on the approach).
 Prints every fifth frame and the last ones, and the frame where the chain first stops being available; `--json
 PATH` writes every frame's record. A measurement of the committed models, not a choice.
@@ -98,14 +99,26 @@ def main() -> None:
     for i, row in enumerate(rows):  # frame i is taken at positions[i], before step i moves the chaser
         row["true_range"] = float(np.linalg.norm(result.positions[i]))
         row["al"] = float(alert_limit(row["true_range"], limit))
+        error = float(np.linalg.norm(result.acted[i] - result.positions[i]))  # NaN where the chaser held
+        row["error"] = error if math.isfinite(error) else None
     print(f"outcome: {result.outcome}, {result.miss:.2f} m from the goal after {len(rows)} frames")
+    over = [i for i, r in enumerate(rows) if r["pl"] is not None and r["error"] is not None and r["error"] > r["pl"]]
+    if over:
+        worst = max(over, key=lambda i: rows[i]["error"] / rows[i]["pl"])
+        print(
+            f"the flown estimate's error exceeds the PL on {len(over)} frames ({over[0]}-{over[-1]}, "
+            f"{rows[over[-1]]['true_range']:.1f}-{rows[over[0]]['true_range']:.1f} m); the largest error / PL "
+            f"{rows[worst]['error'] / rows[worst]['pl']:.2f} at frame {worst}: error {rows[worst]['error']:.2f} m, PL "
+            f"{rows[worst]['pl']:.2f} m (noise {rows[worst]['noise']:.2f}, ramp {rows[worst]['ramp']:.2f})"
+        )
     lost = next((i for i, r in enumerate(rows) if r["pl"] is not None and r["pl"] > r["al"]), None)
     for i, r in enumerate(rows):
         if r["pl"] is not None and (i % 5 == 0 or i >= len(rows) - 3 or i == lost):
+            flown = "held" if r["error"] is None else f"flown error {r['error']:.2f}"
             print(
                 f"frame {i:3d}{' (first PL > AL)' if i == lost else ''}: range {r['true_range']:.2f} m, AL "
                 f"{r['al']:.2f}, PL {r['pl']:.2f}: noise {r['noise']:.2f}, ramp {r['ramp']:.2f}, transients "
-                f"{r['transients']:.2f}, offset {r['offset']:.2f}; {r['mode']}"
+                f"{r['transients']:.2f}, offset {r['offset']:.2f}; {r['mode']}, {flown}"
             )
     if args.json:
         from pipeline.io.atomic import atomic_write_text

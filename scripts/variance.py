@@ -413,8 +413,9 @@ def pooled_eps_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str, 
 
 def closed_loop_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str, Any]]:
     """Per closed-loop variant (true-state dynamics, reports/guidance.md): each run's breaking eps, and the
-    attacked runs that failed their mission of those that met their attack, pooled per eps over the runs, and the
-    attacked runs that did not dock but did not fail (held, timed out: pipeline/evaluation/measures.py)."""
+    attacked runs that failed their mission of those that met their attack, pooled per eps over the runs, with the
+    largest error / AL of what the guidance flew on (the closed loop's safety index; "-" where no run recorded it),
+    and the attacked runs that did not dock but did not fail (held, timed out: pipeline/evaluation/measures.py)."""
     from pipeline.evaluation.measures import HELD, TIMED_OUT
 
     have = [
@@ -429,7 +430,11 @@ def closed_loop_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str,
         }
         for eps in sorted({e for _, v in have for e in v[variant]["per_eps"]}, key=float):
             cells = [v[variant]["per_eps"][eps] for _, v in have if eps in v[variant]["per_eps"]]
-            row[f"eps {eps}: failed / met"] = f"{sum(c['failed'] for c in cells)}/{sum(c['met'] for c in cells)}"
+            ratios = [c["largest_error_al"] for c in cells if c.get("largest_error_al") is not None]
+            row[f"eps {eps}: failed / met, largest error / AL"] = (
+                f"{sum(c['failed'] for c in cells)}/{sum(c['met'] for c in cells)}, "
+                + (f"{max(ratios):.2f}" if ratios else "-")
+            )
         cells = [c for _, v in have for c in v[variant]["per_eps"].values()]
         row["held / timed out"] = "/".join(
             str(sum(c.get("outcomes", {}).get(o, 0) for c in cells)) for o in (HELD, TIMED_OUT)
@@ -463,7 +468,9 @@ shipped chain's to be at least twice the control's. What the two brackets allow,
 
 {markdown_table(ratio_rows(metrics, seeds))}
 The closed loop (true-state dynamics, reports/guidance.md): mission failure = collision, lost target or a docking
-miss beyond the tolerance; attacked runs that met their attack, pooled over the runs; "held / timed out" counts the
+miss beyond the tolerance; attacked runs that met their attack, pooled over the runs, with the largest error / AL of
+what the guidance flew on (the estimate each command was computed from, against the persistent AL at the true range:
+above 1 is the closed loop's HMI); "held / timed out" counts the
 attacked runs that did not dock and did not fail (a hold at the end, or holds that spent the step budget on the way:
 availability losses, which a denial of service would show as).
 

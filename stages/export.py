@@ -41,7 +41,6 @@ def speed(
 ) -> None:
     """Write datasets/render + datasets/labels.parquet as a SPEED+ folder: camera.json,
     synthetic/{train,validation}.json, synthetic/images/*.png (or *.jpg). `render.source: OUT` imports it back."""
-    import numpy as np
 
     from pipeline.formats.speed_folder import IMAGE_FORMATS, write_speed
     from pipeline.geometry.camera import Intrinsics
@@ -53,8 +52,7 @@ def speed(
         raise StageError(f"--format {image_format}: not one of {', '.join(IMAGE_FORMATS)}")
     images, _, meta = read_render_store(RENDER)
     labels = load_labels(LABELS)
-    K = np.asarray(meta["K"], dtype=np.float64)
-    K = Intrinsics(int(meta["width"]), int(meta["height"]), K[0, 0], K[1, 1], K[0, 2], K[1, 2])
+    K = Intrinsics.from_K(meta["K"], int(meta["width"]), int(meta["height"]))
     write_speed(out, images, labels, K, image_format, overwrite)
     counts = labels["split"].value_counts()
     typer.echo(

@@ -236,13 +236,18 @@ def _grids(
 def _shipped_metrics(params: Params, plan: Any, flown: list[Any], looped: int, t0: float) -> dict[str, Any]:
     """The metrics of the shipped chain's in-loop and closed-loop judgement, the execution params and the
     stage's minutes so far."""
+    from functools import partial
+
+    from pipeline.defense.integrity import alert_limit
     from pipeline.evaluation.closed_loop import closed_loop_outcomes
     from pipeline.guidance.grid import grid_counts, in_loop_grid
+    from stages.config.build import alert_limit_settings
 
     collision = params.integrity.collision_range_m
+    limit = partial(alert_limit, settings=alert_limit_settings(params))
     return {
         "in_loop": in_loop_grid(plan, [r for r, _ in flown], collision) | grid_counts(flown[len(flown) - looped :]),
-        "closed_loop": closed_loop_outcomes(plan, [r for r, _ in flown], collision),
+        "closed_loop": closed_loop_outcomes(plan, [r for r, _ in flown], collision, limit),
         "execution": dataclasses.asdict(params.guidance.execution),
         "minutes": (time.perf_counter() - t0) / 60,
     }

@@ -244,7 +244,8 @@ def _corruption_rows(
 
 
 def _integrity_figure(clean: list[Any], top: list[tuple[str, list[Any], list[np.ndarray]]], eps: float) -> Any:
-    """The Stanford diagram of every attacker at the largest eps (and the clean runs), and trajectory 0 over frames."""
+    """The Stanford diagram of every attacker at `eps` (integrity_runs.diagram_eps: the largest with a plotted attacked
+    frame) and the clean runs, and trajectory 0 over frames."""
     from pipeline.evaluation.integrity_runs import diagram_points
     from pipeline.report.figures import integrity_diagram
     from stages.pages.integrity import attacker_names

@@ -366,3 +366,13 @@ def test_the_length_check_finds_a_long_function() -> None:
     assert long_functions("@decorator\ndef f():\n" + body * 59, "a.py") == []
     assert long_functions("@decorator\ndef f():\n" + body * 60, "a.py") == ["a.py:2 f (61 lines)"]
     assert long_functions(nested, "b.py") == ["b.py:2 f (63 lines)", "b.py:3 g (61 lines)"]
+
+
+def test_contributing_prints_the_layer_order_the_test_enforces() -> None:
+    """CONTRIBUTING's "Layers" paragraph names every unit of PIPELINE_ORDER and STAGES_ORDER, in that order."""
+    import re
+
+    text = (REPO / "CONTRIBUTING.md").read_text()
+    para = text[text.index("- **Layers.**") : text.index("### How to add")]
+    said = [n for n in re.findall(r"`([a-z_]+)`", para) if n in PIPELINE_ORDER or n in STAGES_ORDER]
+    assert said == [*PIPELINE_ORDER, *STAGES_ORDER], said

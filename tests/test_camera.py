@@ -40,3 +40,21 @@ def test_bad_inputs():
         reference_intrinsics().scaled(160, 0)
     with pytest.raises(ValueError, match="behind"):
         project(np.array([0, 0, -1.0]), reference_intrinsics())
+
+
+def test_a_camera_matrix_becomes_intrinsics_only_when_it_is_a_pinhole_with_positive_focal_lengths() -> None:
+    """Intrinsics.from_K is the one K -> Intrinsics (the SPEED+ reader and `rpod export` use it)."""
+    import numpy as np
+    import pytest
+
+    from pipeline.geometry.camera import Intrinsics
+
+    K = np.array([[100.0, 0.0, 80.0], [0.0, 90.0, 45.0], [0.0, 0.0, 1.0]])
+    cam = Intrinsics.from_K(K, 160, 90)
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (100.0, 90.0, 80.0, 45.0) and np.array_equal(cam.K, K)
+    with pytest.raises(ValueError, match="not transposed"):
+        Intrinsics.from_K(K.T, 160, 90)
+    negative = K.copy()
+    negative[1, 1] = -90.0
+    with pytest.raises(ValueError, match="fx, fy > 0"):
+        Intrinsics.from_K(negative, 160, 90)

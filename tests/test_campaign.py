@@ -8,6 +8,8 @@ the closed loop's docking table and breaking point per variant."""
 from __future__ import annotations
 
 import dataclasses
+from functools import partial
+from typing import Any
 
 import numpy as np
 import pytest
@@ -17,7 +19,7 @@ from pipeline.attackers.capture import CaptureSettings
 from pipeline.attackers.drift import DriftSettings
 from pipeline.defense.chain import Defended
 from pipeline.defense.fusion import DefenseSettings
-from pipeline.defense.integrity import AlertLimitSettings
+from pipeline.defense.integrity import AlertLimitSettings, alert_limit
 from pipeline.evaluation.campaign import Campaign, Plan, fly_campaign, safety_summary
 from pipeline.evaluation.integrity_runs import Track
 from pipeline.evaluation.measures import TrajectoryMeasures
@@ -227,7 +229,7 @@ def test_the_closed_loop_breaking_point_and_docking_table_per_variant() -> None:
     s = GuidanceSettings(variant="true_state")
     plan = GridPlan(s, ((0.05, 20.0, 5, None),), 10, ("true_state",), ("recover",), ((0.01, "capture", 60.0),))
 
-    def run(end: tuple[float, float, float], attacked: int = 0, held: bool = False) -> SimpleNamespace:
+    def run(end: tuple[float, float, float], attacked: int = 0, held: bool = False, lateral: float = 0.0) -> Any:
         positions = np.array([[0.0, 0.0, 60.0], end])
         return SimpleNamespace(
             positions=positions,
@@ -235,6 +237,7 @@ def test_the_closed_loop_breaking_point_and_docking_table_per_variant() -> None:
             held=np.array([held]),
             modes=None,
             protection=None,  # made without the PL's record: no final_hold
+            acted=np.array([[0.0, 0.0, 60.0]]) + [lateral, 0.0, 0.0],  # what the guidance flew on
             outcome="",
             attacked_frames=attacked,
             closest_range=float(np.linalg.norm(end)),
@@ -244,7 +247,7 @@ def test_the_closed_loop_breaking_point_and_docking_table_per_variant() -> None:
     results = {("paper", None): run((0, 0, 30)), ("paper", 0): run((0, 0, 30), 5)}
     results |= {
         ("undefended", None): run((0, 0, 10.2)),
-        ("undefended", 0): run((3.0, 0, 10.0), 5),
+        ("undefended", 0): run((3.0, 0, 10.0), 5, lateral=102.0),  # error / AL 2 at 60 m (AL 51 m)
         ("recover", None): run((0, 0, 13.0), held=True),
         ("recover", 0): run((0, 0, 13.0), 5, held=True),
     }
@@ -254,7 +257,7 @@ def test_the_closed_loop_breaking_point_and_docking_table_per_variant() -> None:
         )
         for c, _, d, k in runs
     ]
-    out = closed_loop_outcomes(plan, order, 5.0)
+    out = closed_loop_outcomes(plan, order, 5.0, partial(alert_limit, settings=AlertLimitSettings(kind="persistent")))
     v = out["variants"]["true_state"]
     assert {r["defense"] for r in out["runs"]} == {"undefended", "recover"}
     assert v["undefended"]["clean"]["outcome"] == "docked" and v["undefended"]["breaking_eps"] == 0.01
@@ -263,12 +266,17 @@ def test_the_closed_loop_breaking_point_and_docking_table_per_variant() -> None:
         "failed": 1,
         "largest_miss_m": 3.0,
         "outcomes": {"missed": 1},
+        "largest_error_al": 2.0,
+        "largest_error_pl": None,
     }
+    assert v["undefended"]["clean"]["max_error_al"] == 0.0 and v["undefended"]["clean"]["frames_flown"] == 1
     assert v["recover"]["clean"]["outcome"] == "held" and v["recover"]["breaking_eps"] == 0.01  # the capture's miss
     page = closed_loop_section(out, params_mod.build(params_mod.compose("default")))
     assert page.startswith("# Closed-loop rendezvous: where the shipped chain docks")
     assert "undefended 0.01; detect-and-recover 0.01" in page.splitlines()[2] and "Targets not met" in page
     assert "nan" not in page  # a variant without runs at an eps shows "-"
+    index = page[page.index("Safety index per dynamics and variant") :]
+    assert "| 2.00 / -" in index  # the undefended run's planted 102 m error at 60 m (AL 51 m), no PL
     v["undefended"]["breaking_eps"] = 0.0  # failing without attack says nothing about the attacks
     page = closed_loop_section(out, params_mod.build(params_mod.compose("default")))
     assert "not shown" in next(line for line in page.splitlines() if line.startswith("| falsifiable"))

@@ -8,7 +8,16 @@ import numpy as np
 import pytest
 
 from pipeline.geometry.camera import reference_intrinsics
-from pipeline.guidance.law import DOCKED, LOST, MISSED, SUCCEEDED, GuidanceSettings, guidance_step, run_rendezvous
+from pipeline.guidance.law import (
+    DOCKED,
+    LOST,
+    MISSED,
+    SUCCEEDED,
+    GuidanceSettings,
+    RendezvousResult,
+    guidance_step,
+    run_rendezvous,
+)
 from stages.config.sections import Execution, Guidance
 
 K = reference_intrinsics().scaled(160, 90)
@@ -314,3 +323,34 @@ def test_a_recover_run_records_its_protection_and_says_why_its_last_hold_began()
     assert hold_why(None) == "" and hold_why(dict(hold, pl_m=None)) == ""
     undefended = run_rendezvous(blank, perfect, K, GuidanceSettings(variant="true_state"))
     assert undefended.protection is None and final_hold(undefended) is None
+
+
+def test_the_closed_loop_safety_index_fails_a_planted_persistent_bias() -> None:
+    """Issue 39: what the guidance flew on is judged as a trajectory is: a 2 m lateral bias held to the 10 m goal
+    is an error / AL of 2 there (AL 1 m, the docking tolerance) and of 2 / PL with a 1 m PL; a held frame (NaN)
+    flies on nothing and does not count; a result made without `acted` has no index."""
+    from functools import partial
+
+    from pipeline.defense.integrity import AlertLimitSettings, alert_limit
+    from pipeline.evaluation.closed_loop import safety_index
+    from pipeline.guidance.law import PROTECTION
+
+    positions = np.stack([np.zeros(53), np.zeros(53), np.arange(61.0, 8.0, -1.0)], axis=1)  # frames 61 m .. 10 m
+    acted = positions[:-1] + [2.0, 0.0, 0.0]
+    acted[0] = np.nan  # held on the first frame
+    protection = np.full((52, len(PROTECTION)), np.nan)
+    protection[:, 0] = 1.0
+    run = RendezvousResult(positions, acted, np.ones(52, bool), "missed", 2.0, 0, protection=protection, acted=acted)
+    index = safety_index(run, partial(alert_limit, settings=AlertLimitSettings(kind="persistent")))
+    assert index["frames_flown"] == 51
+    assert index["max_error_al"] == pytest.approx(2.0)  # the 10 m frame: AL 1 m (at 11 m: 2 / 2 m)
+    assert index["max_error_pl"] == pytest.approx(2.0)
+    unbiased = dataclasses.replace(run, acted=positions[:-1].copy())
+    assert safety_index(unbiased, partial(alert_limit, settings=AlertLimitSettings(kind="persistent")))[
+        "max_error_al"
+    ] == pytest.approx(0.0)
+    assert safety_index(dataclasses.replace(run, acted=None), alert_limit)["max_error_al"] is None
+    raw = safety_index(run, partial(alert_limit, settings=AlertLimitSettings(kind="persistent")), flies_trusted=False)
+    assert raw["max_error_pl"] is None and raw["max_error_al"] == pytest.approx(
+        2.0
+    )  # hold: the PL bounds no raw estimate

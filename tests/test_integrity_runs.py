@@ -7,6 +7,7 @@ random PoseNet and LSTM on 18 x 32 frames, CPU."""
 from __future__ import annotations
 
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -131,3 +132,33 @@ def test_a_bootstrap_without_spread_falls_back_to_trajectories_as_trials() -> No
     assert every["ci"][0] == pytest.approx(wilson(10, 10).lo) and every["ci"][1] == 1.0
     spread = as_json(Rate(0.2, 0.1, 0.3, 100), trajectories=10)
     assert spread["ci"] == [0.1, 0.3] and spread["ci_method"] == "bootstrap over trajectories"
+
+
+def _flown(pl: float) -> Any:
+    """A 4-frame flight at 20 m, error 0.5 m, every frame tracked, with PL `pl` (m) on every frame."""
+    from pipeline.defense.fusion import TRACK
+    from pipeline.defense.integrity import IntegrityFrames
+    from pipeline.evaluation.integrity_runs import Flown
+
+    truth = np.tile([0.0, 0.0, 20.0], (4, 1))
+    frames = IntegrityFrames(
+        np.zeros(4, int),
+        np.arange(4),
+        truth + [0.5, 0.0, 0.0],
+        truth,
+        np.full(4, TRACK),
+        np.full(4, 11.0),
+        np.full(4, pl),
+    )
+    return Flown(np.zeros((4, 9)), np.zeros(4), None, frames)
+
+
+def test_the_integrity_figure_shows_the_largest_eps_with_an_attacked_frame_on_the_diagram() -> None:
+    from pipeline.evaluation.integrity_runs import diagram_eps
+
+    attacked = [np.array([False, True, True, True])]
+    runs = [("capture", 0.05, [_flown(2.0)], attacked), ("capture", 0.1, [_flown(3.0)], attacked)]
+    lost = [("capture", 0.2, [_flown(np.inf)], attacked)]  # every attacked frame without a PL: nothing to plot
+    assert diagram_eps(runs + lost) == 0.1
+    assert diagram_eps(lost) == 0.2  # none plotted: the largest flown
+    assert diagram_eps([]) is None

@@ -181,3 +181,23 @@ def test_the_rendezvous_target_says_how_the_attacked_runs_ended_by_the_docking_m
         met = int(re.search(r"of (\d+) kept from docking", evidence).group(1))
         parts = re.search(r"\((\d+) docked; by the docking measure (\d+) held, (\d+) timed out, (\d+) failed", evidence)
         assert parts and sum(int(x) for x in parts.groups()) == met, evidence
+
+
+def test_the_hmi_rows_give_the_trajectories_with_an_hmi_frame_by_clopper_pearson():
+    """Issue 39: the HMI rows stay descriptive, beside the frame rate the count of trajectories with an HMI frame
+    and its Clopper-Pearson interval over independent trajectories; the paper dynamics' target says it is the
+    paper's reproduction (prediction = truth by construction)."""
+    from pipeline.stats import clopper_pearson
+    from stages.pages.readme import _hmi_trajectories, shipped_targets, summary_tables
+
+    metrics = _committed_metrics()
+    robust = metrics["robustness"]["integrity"]["chains"]["robust"]
+    r = robust["summary"]["per_eps"]["0.01"]["hmi_trajectories"]
+    k, n = round(r["value"] * r["n"]), r["n"]
+    lo, hi = clopper_pearson(k, n).ci()
+    said = _hmi_trajectories(robust, "0.01")
+    assert said == f"; {k} of {n} trajectories: {100 * r['value']:.1f} [{100 * lo:.1f}, {100 * hi:.1f}]%"
+    assert said in summary_tables(metrics)
+    assert _hmi_trajectories(robust, "0.3") == ""  # an eps the chain did not fly
+    paper = [t for t, _, _ in shipped_targets(metrics) if "paper dynamics" in t]
+    assert paper and all("prediction = truth by construction" in t for t in paper)

@@ -83,3 +83,12 @@ def test_pages_format_stored_rates_with_the_one_helper() -> None:
         text = path.read_text()
         assert 'percent_ci(r["value"], r["ci"]' not in text, f"{path}: use pipeline.stats.percent_of"
         assert 'percent_ci(x["value"], x["ci"]' not in text, f"{path}: use pipeline.stats.percent_of"
+
+
+def test_percent_ci_writes_a_difference_of_rates_in_signed_points() -> None:
+    """Issue 36: the ablation's differences in points go through the one formatter, every figure with its sign."""
+    from pipeline.stats import percent_ci
+
+    assert percent_ci(0.012, (-0.004, 0.029), signed=True) == "+1.2 [-0.4, +2.9]"
+    assert percent_ci(-0.5, None, signed=True) == "-50.0"
+    assert percent_ci(0.941, (0.924, 0.954)) == "94.1 [92.4, 95.4]"  # rates unsigned, as before

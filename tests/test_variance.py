@@ -254,13 +254,15 @@ def test_the_pooled_closed_loop_counts_runs_that_did_not_dock_apart_from_failure
     """Held and timed-out runs (availability losses) are summed over eps and runs beside the failures."""
     variance = _load()
 
-    def run(failed: int, outcomes: dict) -> dict:
-        cell = {"met": 3, "failed": failed, "outcomes": outcomes}
+    def run(failed: int, outcomes: dict, ratio: float | None = None) -> dict:
+        cell = {"met": 3, "failed": failed, "outcomes": outcomes, "largest_error_al": ratio}
         hold = {"breaking_eps": 0.05 if failed else None, "clean": {"miss": 0.2}, "per_eps": {"0.05": cell}}
         return {"guidance": {"closed_loop": {"variants": {"true_state": {"hold": hold}}}}}
 
     (row,) = variance.closed_loop_rows(
-        [run(1, {"missed": 1, "timed out": 2}), run(0, {"held": 1, "docked": 2})], ["0", "1"]
+        [run(1, {"missed": 1, "timed out": 2}, 1.4), run(0, {"held": 1, "docked": 2}, 0.3)], ["0", "1"]
     )
-    assert row["eps 0.05: failed / met"] == "1/6" and row["held / timed out"] == "1/2"
+    assert row["eps 0.05: failed / met, largest error / AL"] == "1/6, 1.40" and row["held / timed out"] == "1/2"
     assert row["breaking eps per run"] == "seed 0: 0.05, seed 1: none"
+    (row,) = variance.closed_loop_rows([run(0, {"docked": 3})], ["0"])  # a run made before the safety index
+    assert row["eps 0.05: failed / met, largest error / AL"] == "0/3, -"

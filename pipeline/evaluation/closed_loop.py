@@ -16,7 +16,7 @@ and the PL at the end (after its anchor every PL term only grows until a restart
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -45,6 +45,41 @@ def final_hold(r: RendezvousResult) -> dict[str, Any] | None:
     }
 
 
+def safety_index(
+    r: RendezvousResult, limit: Callable[[np.ndarray], np.ndarray], flies_trusted: bool = True
+) -> dict[str, float | None]:
+    """What the guidance flew on, judged as the open-loop measures judge a trajectory (pipeline/evaluation/
+    measures.py): over the frames whose command was computed from an estimate (`r.acted`; a held frame flies on
+    nothing), the largest error of that estimate (m, against the true rel of the frame) over `limit` (the AL at the
+    frame's true range, m: the persistent-bias AL) and, where the guidance flies on the trusted estimate
+    (`flies_trusted`: detect-and-recover; detect-and-hold flies on the raw estimate, which the PL does not bound),
+    over the frame's PL (frames without a PL left out) -> {"max_error_al", "max_error_pl", "frames_flown"} (None
+    where no frame counts, or in a result made without `acted`). A max error / AL above 1 is the closed loop's HMI,
+    a max error / PL above 1 its MI (the PL failed to bound what was flown)."""
+    if r.acted is None:
+        return {"max_error_al": None, "max_error_pl": None, "frames_flown": None}
+    truth = r.positions[: len(r.acted)]
+    error = np.linalg.norm(r.acted - truth, axis=1)
+    flown = np.isfinite(error)
+    al = np.asarray(limit(np.linalg.norm(truth, axis=1)), dtype=np.float64)
+    pl = np.full(len(error), np.nan) if r.protection is None or not flies_trusted else r.protection[:, 0]
+    with_pl = flown & np.isfinite(pl) & (pl > 0)
+
+    def largest(x: np.ndarray, keep: np.ndarray) -> float | None:
+        return float(x[keep].max()) if keep.any() else None
+
+    return {
+        "max_error_al": largest(error / al, flown),
+        "max_error_pl": largest(error / np.where(with_pl, pl, 1.0), with_pl),
+        "frames_flown": int(flown.sum()),
+    }
+
+
+def _larger(a: float | None, b: float | None) -> float | None:
+    """The larger of two figures, either None where there is none."""
+    return a if b is None else b if a is None else max(a, b)
+
+
 def _attack(plan: GridPlan, cell: int | InLoopRun | None) -> tuple[str, float | None]:
     """(what attacked the run, its eps): "none", "fgsm S=.. m K=..", or "in-loop <goal>" (S)."""
     if cell is None:
@@ -56,17 +91,25 @@ def _attack(plan: GridPlan, cell: int | InLoopRun | None) -> tuple[str, float | 
     return f"grid S={start:g} m K={k}", float(eps)
 
 
-def closed_loop_outcomes(plan: GridPlan, results: Sequence[RendezvousResult], collision_range: float) -> dict[str, Any]:
+def closed_loop_outcomes(
+    plan: GridPlan,
+    results: Sequence[RendezvousResult],
+    collision_range: float,
+    limit: Callable[[np.ndarray], np.ndarray],
+) -> dict[str, Any]:
     """The docking of every shipped-chain run of `plan.runs()`'s `results` (module docstring) -> {"runs": one record
-    per run (dynamics, defense, attack, eps, met: the run met the attack, and `Docking.as_dict()`), "variants":
-    {dynamics: {defense: {"clean": the no-attack run's docking, "per_eps": {"%g": {"met", "failed", "largest_miss_m",
-    "outcomes": {outcome: count}}}, "breaking_eps"}}}, "tolerance_m", "collision_range_m"}."""
+    per run (dynamics, defense, attack, eps, met: the run met the attack, `Docking.as_dict()` and its
+    `safety_index` against `limit`, the AL (m) at a true range (m)), "variants": {dynamics: {defense: {"clean": the
+    no-attack run's docking and safety index, "per_eps": {"%g": {"met", "failed", "largest_miss_m", "outcomes":
+    {outcome: count}, "largest_error_al", "largest_error_pl"}}, "breaking_eps"}}}, "tolerance_m",
+    "collision_range_m"}."""
     s = plan.settings
     runs, variants = [], {}
     for (chain, dyn, defense, cell), r in zip(plan.runs(), results):
         if chain != "shipped":
             continue
         d = docking(r, s.goal, s.tolerance, collision_range, s.max_step)
+        index = safety_index(r, limit, flies_trusted=defense == "recover")
         attack, eps = _attack(plan, cell)
         met = cell is None or r.attacked_frames > 0
         runs.append(
@@ -78,11 +121,12 @@ def closed_loop_outcomes(plan: GridPlan, results: Sequence[RendezvousResult], co
                 "met": bool(met),
                 "steps": len(r.estimates),
                 **d.as_dict(),
+                **index,
             }
         )
         v = variants.setdefault(dyn, {}).setdefault(defense, {"clean": None, "per_eps": {}, "records": []})
         if cell is None:
-            v["clean"] = d.as_dict() | ({} if defense == "undefended" else {"final_hold": final_hold(r)})
+            v["clean"] = d.as_dict() | index | ({} if defense == "undefended" else {"final_hold": final_hold(r)})
             v["records"].append((0.0, d.failed))
         elif met:
             k = v["per_eps"].setdefault(f"{eps:g}", {"met": 0, "failed": 0, "largest_miss_m": 0.0, "outcomes": {}})
@@ -90,6 +134,8 @@ def closed_loop_outcomes(plan: GridPlan, results: Sequence[RendezvousResult], co
             k["failed"] += int(d.failed)
             k["largest_miss_m"] = max(k["largest_miss_m"], d.miss)
             k["outcomes"][d.outcome] = k["outcomes"].get(d.outcome, 0) + 1
+            for key in ("error_al", "error_pl"):
+                k[f"largest_{key}"] = _larger(k.get(f"largest_{key}"), index[f"max_{key}"])
             v["records"].append((eps, d.failed))
     for by_defense in variants.values():
         for v in by_defense.values():

@@ -373,6 +373,17 @@ def raw_errors(flown: Sequence[Flown], tracks: Sequence[Track], masks: Sequence[
     return tuple(np.concatenate(v) for v in (err, flag, group))
 
 
+def diagram_eps(runs: Sequence[tuple[str, float, Sequence[Flown], Sequence[np.ndarray]]]) -> float | None:
+    """The eps the integrity figure shows, of a campaign's attacked `runs` (attacker, eps, flights, attacked masks):
+    the largest at which some attacker's counted frame has a point on the Stanford diagram (`diagram_points`: a
+    finite bound), else the largest flown (where every attacked frame lost its PL, the chain declared itself
+    unavailable and the diagram would show the clean frames alone); None without runs."""
+    if not runs:
+        return None
+    plotted = [e for _, e, flights, masks in runs if diagram_points(flights, masks)["bound"]]
+    return max(plotted) if plotted else max(e for _, e, _, _ in runs)
+
+
 def diagram_points(flown: Sequence[Flown], masks: Sequence[np.ndarray]) -> dict[str, list[float]]:
     """For the integrity figure: over the counted frames with an estimate and a finite bound, the bound (PL where
     the frames have one, else AL; m), the trusted error (m) and whether the frame was available. A frame whose PL

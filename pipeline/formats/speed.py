@@ -153,17 +153,10 @@ def camera_from_json(cam: Any, size: tuple[int, int] | None = None) -> Intrinsic
     w, h = int(_number(cam, "Nu")), int(_number(cam, "Nv"))
     if "cameraMatrix" in cam:
         try:
-            K = np.asarray(cam["cameraMatrix"], dtype=np.float64)
-        except (TypeError, ValueError):
-            K = np.zeros(0)
-        if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise ValueError(f"cameraMatrix must be a 3x3 K with fx, fy > 0, got {cam['cameraMatrix']!r}")
-        if K[0, 1] != 0 or K[1, 0] != 0 or list(K[2]) != [0, 0, 1]:
-            raise ValueError(
-                f"cameraMatrix must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew; not "
-                f"transposed), got {cam['cameraMatrix']!r}"
-            )
-        return _checked(Intrinsics(w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])))
+            K = Intrinsics.from_K(cam["cameraMatrix"], w, h)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"cameraMatrix {e}") from None
+        return _checked(K)
     if not {"fx", "ppx"} <= set(cam):
         raise ValueError(
             "no camera matrix: needs 'cameraMatrix' (3x3 K in pixels) or 'fx', 'fy' (m) with 'ppx', 'ppy' (m per pixel)"

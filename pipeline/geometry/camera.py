@@ -31,7 +31,11 @@ class Intrinsics:
         pixels (ValueError for any other matrix: skewed, transposed, not finite, fx or fy <= 0)."""
         k = np.asarray(K, dtype=np.float64)
         if k.shape != (3, 3) or not np.isfinite(k).all() or k[0, 1] != 0 or k[1, 0] != 0 or list(k[2]) != [0, 0, 1]:
-            raise ValueError(f"must be a 3x3 pinhole matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], got {K!r}")
+            raise ValueError(
+                f"must be a 3x3 pinhole matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew; not transposed), got {K!r}"
+            )
+        if k[0, 0] <= 0 or k[1, 1] <= 0:
+            raise ValueError(f"must have focal lengths fx, fy > 0 (pixels), got {K!r}")
         return cls(width, height, float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
 
     @property

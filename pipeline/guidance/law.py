@@ -152,7 +152,9 @@ class RendezvousResult:
     believed: (n, 3) the rel each step's command aimed to reach by the chaser's own estimate (world, m; NaN rows
     where it held), None in results made without it; protection: (n, 6) per frame the defense's PL, the AL it was
     judged against and the PL's parts (`protection_parts`; columns PROTECTION, m; NaN where there is none), None
-    undefended or in results made without it."""
+    undefended or in results made without it; acted: (n, 3) the estimate each step's command was computed from, what
+    the guidance flew on (world, m: the raw estimate, or with "recover" the trusted one; NaN rows where it held),
+    None in results made without it."""
 
     positions: np.ndarray
     estimates: np.ndarray
@@ -165,6 +167,7 @@ class RendezvousResult:
     held: np.ndarray | None = None
     believed: np.ndarray | None = None
     protection: np.ndarray | None = None
+    acted: np.ndarray | None = None
 
     @property
     def attacked_frames(self) -> int:
@@ -253,7 +256,7 @@ def run_rendezvous(
     rel = np.asarray(settings.start, dtype=np.float64)
     R_c = look_at(rel)
     executor = None if settings.execution is None else Executor(settings.execution)
-    positions, estimates, attacked, held, believed = [rel], [], [], [], []
+    positions, estimates, attacked, held, believed, acted = [rel], [], [], [], [], []
     defended: tuple[list[Any], list[Any], list[Any]] = ([], [], [])  # flags, modes, PROTECTION rows
     attack_start: int | None = None
     lost = False
@@ -273,6 +276,7 @@ def run_rendezvous(
         if defense is not None:
             act, trusted = _defend(defense, settings.defense, out, R_c, u, est, defended)
         rel, u, R_c, aim = _move(act, trusted, rel, goal, R_c, settings, executor)
+        acted.append(np.full(3, np.nan) if act is None else act)
         positions.append(rel)
         believed.append(aim)
         estimates.append(est)
@@ -282,7 +286,7 @@ def run_rendezvous(
             lost = True
             break
     miss = float(np.linalg.norm(rel - goal))
-    logs = (positions, estimates, attacked, held, believed, None if defense is None else defended)
+    logs = (positions, estimates, attacked, held, believed, acted, None if defense is None else defended)
     return _result(logs, lost, miss, settings.tolerance, attack_start)
 
 
@@ -362,16 +366,16 @@ def _move(
 
 
 def _result(
-    logs: tuple[list[Any], list[Any], list[bool], list[bool], list[Any], tuple[list[Any], ...] | None],
+    logs: tuple[list[Any], list[Any], list[bool], list[bool], list[Any], list[Any], tuple[list[Any], ...] | None],
     lost: bool,
     miss: float,
     tolerance: float,
     attack_start: int | None,
 ) -> RendezvousResult:
     """The run's `RendezvousResult` from its per-frame logs (positions, estimates, attacked, held, the believed
-    rel per step, and the defense's (flags, modes, PROTECTION rows) or None undefended) and its end (lost, miss
-    distance (m))."""
-    positions, estimates, attacked, held, believed, defended = logs
+    rel per step, the estimate each command was computed from, and the defense's (flags, modes, PROTECTION rows) or
+    None undefended) and its end (lost, miss distance (m))."""
+    positions, estimates, attacked, held, believed, acted, defended = logs
     attacked_arr = np.array(attacked, dtype=bool)
     return RendezvousResult(
         np.array(positions),
@@ -385,6 +389,7 @@ def _result(
         np.array(held, dtype=bool),
         np.array(believed, dtype=np.float64).reshape(-1, 3),
         None if defended is None else np.array(defended[2], dtype=np.float64).reshape(-1, len(PROTECTION)),
+        np.array(acted, dtype=np.float64).reshape(-1, 3),
     )
 
 

@@ -53,6 +53,8 @@ def integrity_campaign(
     None: flown here, one after another).
     Returns {"fused_rows", "fused" (facts about the shipped defense), "integrity" (the metrics), "figure"}."""
 
+    from pipeline.evaluation.integrity_runs import diagram_eps
+
     t0 = time.perf_counter()
     if full:
         p = full_grid(p)
@@ -61,7 +63,7 @@ def integrity_campaign(
         raise ValueError("integrity_campaign: shards need the full grid (a ladder that stops cannot be split)")
     if fan_out is not None and shards is None:
         raise ValueError("integrity_campaign: fan_out flies shards: give the shards folder")
-    tracks, bursts, info = _tracks(p, shipped)
+    tracks, bursts, info = integrity_tracks(p, shipped)
     trajectories = trajectories if full else i.trajectories
     tracks, bursts = tracks[:trajectories], bursts[:trajectories]
     paper = load_chain(p, PAPER)
@@ -80,7 +82,7 @@ def integrity_campaign(
         if key == SHIPPED.value:
             info.update(false_alarm_rate=flown.alarms.value, ci95_false_alarm=flown.alarms.ci())
             fused_rows = flown.fused_rows
-            top = max(e for _, e, _, _ in flown.runs) if flown.runs else None
+            top = diagram_eps(flown.runs)
             figure = (flown.clean, [(a, runs, masks) for a, e, runs, masks in flown.runs if e == top], top)
     return {
         "fused_rows": fused_rows,
@@ -122,7 +124,7 @@ def _fly_chain(
     from pipeline.evaluation.campaign import assemble, fly_campaign, fly_track
 
     k = len(tracks)
-    campaign = _campaign(p, seed, defended, bursts)
+    campaign = campaign_for(p, seed, defended, bursts)
     steps = len(campaign.eps) * sum(len(t) for t in tracks) if campaign.plans else 0
     fly_all = None if fan_out is None else _on_engine(fan_out, shard_setup(p, safety, defended, seed), tracks, bursts)
     with tqdm(  # the plans step every track's frame together; shards one track at a time (`_steps`)
@@ -137,7 +139,7 @@ def _fly_chain(
             shares = _fly_shards(
                 _shard_base(p, seed, key, safety),
                 tracks,
-                lambda g: _campaign(p, seed, defended, [bursts[g]], index=g),
+                lambda g: campaign_for(p, seed, defended, [bursts[g]], index=g),
                 lambda t, c: fly_track(safety.onboard, target, defended, t, c, lambda: bar.update(1)),
                 shards,
                 bar,
@@ -305,7 +307,7 @@ class ShardWorker:
         track = job.track
         if not track.images.flags.writeable:  # a Ray job's arrays arrive read-only: torch takes a writable copy
             track = dataclasses.replace(track, images=np.array(track.images), labels=np.array(track.labels))
-        campaign = _campaign(self.params, self.seed, self.defended, [job.bursts], index=job.index)
+        campaign = campaign_for(self.params, self.seed, self.defended, [job.bursts], index=job.index)
         share = fly_track(self.onboard, self.target, self.defended, track, campaign)
         return pickle.dumps(share, protocol=pickle.HIGHEST_PROTOCOL)
 
@@ -377,7 +379,7 @@ def _integrity_metrics(
     }
 
 
-def _campaign(p: Params, seed: int, defended: Any, bursts: list[list[tuple[int, int]]], index: int = 0) -> Any:
+def campaign_for(p: Params, seed: int, defended: Any, bursts: list[list[tuple[int, int]]], index: int = 0) -> Any:
     """The Campaign of params.integrity against `defended` (None: the undefended control, whose drift grows by
     integrity.undefended_drift_rate per frame): the captures per direction and initial bias from frame 0, the
     drifts from integrity.drift_start, the burst on `bursts`, the AL of integrity.alert_limit_kind beside the
@@ -451,7 +453,7 @@ def _assumptions(p: Params, shipped: Any) -> dict[str, Any]:
     }
 
 
-def _tracks(p: Params, safety: Any) -> tuple[list[Any], list[list[tuple[int, int]]], dict[str, Any]]:
+def integrity_tracks(p: Params, safety: Any) -> tuple[list[Any], list[list[tuple[int, int]]], dict[str, Any]]:
     """(the eval_render trajectories as Tracks told their commands, the bursts of each, facts about the shipped
     chain's defense `safety`)."""
     from pipeline.evaluation.integrity_runs import Track

@@ -90,9 +90,10 @@ def _rows(cells: list[Any], f: float) -> list[dict[str, str]]:
 def _diff(a: Any, b: Any) -> str:
     """a - b of two Rates in points with the MOVER interval (pipeline.evaluation.rates.rate_difference)."""
     from pipeline.evaluation.rates import rate_difference
+    from pipeline.stats import percent_ci
 
     d, lo, hi = rate_difference(a, b)
-    return "-" if d != d else f"{100 * d:+.1f} [{100 * lo:+.1f}, {100 * hi:+.1f}]"
+    return "-" if d != d else percent_ci(d, (lo, hi), signed=True)
 
 
 def _effects(cells: list[Any], f: float) -> list[dict[str, str]]:
@@ -329,8 +330,10 @@ def _sequence_counts(sequences: dict[str, Any]) -> str:
 
 
 def _effect_rows(effects: list[dict[str, Any]]) -> list[dict[str, str]]:
+    from pipeline.stats import percent_ci
+
     def pts(v: tuple[float, float, float]) -> str:
-        return f"{100 * v[0]:+.1f} [{100 * v[1]:+.1f}, {100 * v[2]:+.1f}]"
+        return percent_ci(v[0], v[1:], signed=True)
 
     return [
         {

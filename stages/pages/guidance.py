@@ -6,7 +6,7 @@ the in-loop attacker."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -347,7 +347,35 @@ def docking_targets(d: dict[str, Any]) -> list[tuple[str, str, str]]:
             f"{hold_why(clean_ok.get('final_hold'))}); {failed} failed of {sum(x['met'] for x in small)} attacked runs up to eps {TARGET_EPS:g}",
         ),
         _ratio_target(ts),
+        *_index_targets(ts.get("recover", {}), small),
     ]
+
+
+def _index_targets(rec: dict[str, Any], small: list[dict[str, Any]]) -> list[tuple[str, str, str]]:
+    """The safety index's targets on detect-and-recover (its record `rec`, its attacked cells `small` up to
+    TARGET_EPS): no attacked run's flown estimate above AL, and the no-attack run's flown estimate within its PL (the
+    closed-loop analogue of reports/robustness.md's clean row); none where the runs did not record the index."""
+    clean = rec.get("clean") or {}
+    ratios = [x["largest_error_al"] for x in small if x.get("largest_error_al") is not None]
+    out = []
+    if ratios:
+        out.append(
+            (
+                f"detect-and-recover, every attack up to eps {TARGET_EPS:g}: max error / AL < 1 on what the guidance "
+                "flew on",
+                "met" if max(ratios) < 1 else "**missed**",
+                f"largest error / AL {max(ratios):.2f}",
+            )
+        )
+    if clean.get("max_error_pl") is not None:
+        out.append(
+            (
+                "detect-and-recover without attack: the PL bounds what the guidance flew on (max error / PL <= 1)",
+                "met" if clean["max_error_pl"] <= 1 else "**missed**",
+                f"largest error / PL {clean['max_error_pl']:.2f}",
+            )
+        )
+    return out
 
 
 def hold_why(hold: dict[str, Any] | None) -> str:
@@ -400,7 +428,8 @@ def closed_loop_section(d: dict[str, Any], p: Params) -> str:
             else "Every docking target is met in this grid."
         )
     )
-    rows = _docking_rows(v, order)
+    rows = _per_variant(v, order, _docking_cells)
+    index = _per_variant(v, order, _safety_cells)
     runs = [
         {
             "dynamics": r["dynamics"],
@@ -416,35 +445,49 @@ def closed_loop_section(d: dict[str, Any], p: Params) -> str:
         for r in d["runs"]
         if r["dynamics"] == "true_state" and r["met"]
     ]
-    return _closed_loop_text(d, p, head, lines, rows, runs)
+    return _closed_loop_text(d, p, head, lines, rows, runs, index)
 
 
-def _docking_rows(v: dict[str, Any], order: list[str]) -> list[dict[str, Any]]:
-    """Rows per dynamics (in `order`) and variant: breaking eps, the no-attack outcome and miss (m), and per eps
-    the failed and met runs and the largest miss (m); "-" where no attacked run flew that eps; the attacked runs that
-    did not dock but did not fail (held, timed out)."""
-    from pipeline.evaluation.measures import HELD, TIMED_OUT
-
-    rows = []
-    for dyn in order:
-        for variant, x in v[dyn].items():
-            c = x["clean"] or {}
-            row = {
-                "dynamics": dyn,
-                "variant": VARIANTS[variant],
-                "breaking eps": _break(x["breaking_eps"]),
-                "no attack: outcome, miss (m)": f"{c.get('outcome', '-')}, {c.get('miss', float('nan')):.2f}",
-            }
-            for eps, k in x["per_eps"].items():
-                row[f"eps {eps}: failed / met, largest miss (m)"] = (
-                    f"{k['failed']}/{k['met']}, {k['largest_miss_m']:.2f}"
-                )
-            row["held / timed out"] = "/".join(
-                str(sum(k["outcomes"].get(o, 0) for k in x["per_eps"].values())) for o in (HELD, TIMED_OUT)
-            )
-            rows.append(row)
+def _per_variant(v: dict[str, Any], order: list[str], cells: Callable[[dict[str, Any]], dict[str, Any]]) -> list[Any]:
+    """One row per dynamics (in `order`) and variant of the closed loop's `v`: its names, then `cells` of its record;
+    every row with every column, "-" where a variant has none (no attacked run at that eps)."""
+    rows = [
+        {"dynamics": dyn, "variant": VARIANTS[variant], **cells(x)} for dyn in order for variant, x in v[dyn].items()
+    ]
     columns = list(dict.fromkeys(k for row in rows for k in row))
     return [{k: row.get(k, "-") for k in columns} for row in rows]
+
+
+def _docking_cells(x: dict[str, Any]) -> dict[str, Any]:
+    """A variant's docking row: breaking eps, the no-attack outcome and miss (m), and per eps the failed and met runs
+    and the largest miss (m); the attacked runs that did not dock but did not fail (held, timed out)."""
+    from pipeline.evaluation.measures import HELD, TIMED_OUT
+
+    c = x["clean"] or {}
+    row = {
+        "breaking eps": _break(x["breaking_eps"]),
+        "no attack: outcome, miss (m)": f"{c.get('outcome', '-')}, {c.get('miss', float('nan')):.2f}",
+    }
+    for eps, k in x["per_eps"].items():
+        row[f"eps {eps}: failed / met, largest miss (m)"] = f"{k['failed']}/{k['met']}, {k['largest_miss_m']:.2f}"
+    row["held / timed out"] = "/".join(
+        str(sum(k["outcomes"].get(o, 0) for k in x["per_eps"].values())) for o in (HELD, TIMED_OUT)
+    )
+    return row
+
+
+def _safety_cells(x: dict[str, Any]) -> dict[str, Any]:
+    """A variant's safety index row: what the guidance flew on, largest error / AL / largest error / PL, without
+    attack and per eps over the attacked runs that met the attack ("-" where none counts)."""
+
+    def pair(al: float | None, pl: float | None) -> str:
+        return " / ".join("-" if y is None else f"{y:.2f}" for y in (al, pl))
+
+    c = x["clean"] or {}
+    row = {"no attack": pair(c.get("max_error_al"), c.get("max_error_pl"))}
+    for eps, k in x["per_eps"].items():
+        row[f"eps {eps}"] = pair(k.get("largest_error_al"), k.get("largest_error_pl"))
+    return row
 
 
 def _closed_loop_text(
@@ -454,9 +497,10 @@ def _closed_loop_text(
     lines: list[tuple[str, str, str]],
     rows: list[dict[str, Any]],
     runs: list[dict[str, Any]],
+    index: list[dict[str, Any]],
 ) -> str:
     """The closed-loop section's text around its lead `head`: the docking targets `lines`, the assumptions, the
-    docking table `rows` and the attacked true-state `runs` (misses in m)."""
+    docking table `rows`, the safety index table `index` and the attacked true-state `runs` (misses in m)."""
     from pipeline.report.markdown import markdown_table
     from stages.pages.integrity import attacker_names, process_noise
 
@@ -488,6 +532,13 @@ at eps {", ".join(f"{e:g}" for e in p.integrity.in_loop_eps)}; the grid's FGSM a
 Docking per dynamics and variant (only the attacked runs that met the attack count):
 
 {markdown_table(rows)}
+Safety index per dynamics and variant: what the guidance flew on (the estimate each command was computed from; a
+held frame flies on nothing) judged as reports/robustness.md judges a trajectory, the largest error / AL (AL: the
+{p.integrity.alert_limit_kind.replace("_", "-")} AL at the frame's true range; above 1 is the closed loop's HMI)
+/ the largest error / PL (detect-and-recover only, which flies on the trusted estimate the PL bounds; detect-and-hold
+flies on the raw estimate), without attack and over the attacked runs that met the attack at each eps:
+
+{markdown_table(index)}
 Every attacked true-state run that met its attack, where it ended (range miss: along the goal's line of sight,
 positive short of the goal):
 

@@ -183,7 +183,10 @@ reports/guidance.md):
 
 error / AL over the available frames (AL: {_kind(integrity, p)}); "single-frame": the same errors against the
 single-frame AL; error / PL over the frames with a protection level (none on the undefended control); final error:
-the trusted error on the last frame, the bias the chaser would dock with; "trajectories with HMI": a descriptive
+the trusted error on the last frame, the bias the chaser would dock with (a final error above the docking tolerance
+fails a trajectory only where that frame is available: at the goal AL is the tolerance, so it is then an error / AL
+above 1; on an unavailable last frame the chain has declared it cannot be trusted, and the closed loop holds, a
+safe abort, reports/guidance.md); "trajectories with HMI": a descriptive
 count over independent trajectories (Clopper-Pearson 95%), of the attacks tried only.
 
 {markdown_table(index)}{per_trajectory}
@@ -525,6 +528,7 @@ trajectories as trials. These counts speak only of the attacks tried; the sectio
 
 
 FIGURE = (
-    "![trusted error against its bound (Stanford diagram) at the largest eps flown on the shipped chain, and one "
+    "![trusted error against its bound (Stanford diagram) on the shipped chain at the largest eps at which an "
+    "attacked frame keeps a finite PL (past it the chain declares every attacked frame unavailable), and one "
     "trajectory over frames](figures/integrity.png)\n"
 )

@@ -10,6 +10,8 @@ from pipeline.guidance.law import DOCKED
 from pipeline.stats import percent_of
 from stages.pages.paper import ATTITUDE_DEG, DETECTOR_ACCURACY, INTEGRATED, INTEGRATED_EPS, LAB, LAB_EPS, POSITION_M
 
+PAPER_LABEL = " (the paper's reproduction: prediction = truth by construction, no integrity evidence)"
+
 DETECTOR_NAMES = {
     "lstm": "LSTM on SHAP (paper)",
     "mlp": "MLP on SHAP",
@@ -374,7 +376,8 @@ def shipped_targets(metrics: dict[str, dict[str, Any]]) -> list[tuple[str, str, 
         if counts is not None and denied is not None:
             out.append(
                 (
-                    f"closed loop, {dyn} dynamics: attacked runs the attack did not keep from docking, "
+                    f"closed loop, {dyn} dynamics{PAPER_LABEL if dyn == 'paper' else ''}: attacked runs the attack "
+                    "did not keep from docking, "
                     f"detect-and-recover {DOCKED_TARGET}%",
                     judge(_not_denied_pct(variants), DOCKED_TARGET),
                     f"{denied[0]} of {denied[1]} kept from docking by the attack, {wilson(*denied).pct()}% "
@@ -632,6 +635,15 @@ def _docking_rows(gd: dict[str, Any], spread: dict[str, Any] | None) -> list[tup
     return out
 
 
+def _hmi_trajectories(chain: dict[str, Any], e: str) -> str:
+    """ "; k of n trajectories: rate [CI]%": a chain's trajectories with an HMI frame at eps `e`, worst over its
+    attackers (its safety summary's Clopper-Pearson count); "" where the chain did not fly `e`."""
+    r = chain.get("summary", {}).get("per_eps", {}).get(e, {}).get("hmi_trajectories")
+    if r is None or not r.get("n"):
+        return ""
+    return f"; {round(r['value'] * r['n'])} of {r['n']} trajectories: {percent_of(r, 1)}%"
+
+
 def _hmi_rows(integrity: dict[str, Any], spread: dict[str, Any] | None) -> list[tuple[str, str, str, str, str]]:
     """The worst HMI a chain-level attack caused on the shipped and the standard chain, and the shipped chain's
     availability without attack."""
@@ -645,8 +657,9 @@ def _hmi_rows(integrity: dict[str, Any], spread: dict[str, Any] | None) -> list[
             (
                 f"integrity: worst HMI (%) a chain-level attack caused at eps {e} (trusted error > AL, "
                 f"available), shipped chain (robust model; {chains.get('robust', {}).get('trajectories', '-')} "
-                "trajectories: the interval's upper end is all this run rules out)",
-                value,
+                "trajectories: the interval's upper end is all this run rules out); of the frames, then the "
+                "trajectories with an HMI frame (Clopper-Pearson)",
+                value + _hmi_trajectories(chains.get("robust", {}), e),
                 "-",
                 "robustness",
                 _sd(spread, f"integrity.shipped_hmi_eps_{e.replace('.', '_')}_pct"),
@@ -658,8 +671,9 @@ def _hmi_rows(integrity: dict[str, Any], spread: dict[str, Any] | None) -> list[
         out.append(
             (
                 f"integrity: worst HMI (%) at eps {e}, standard model's chain ({std.get('trajectories', '-')} "
-                "trajectories: the interval's upper end is all this run rules out)",
-                "-" if w is None else percent_of(w["hmi"], 2),
+                "trajectories: the interval's upper end is all this run rules out); of the frames, then the "
+                "trajectories with an HMI frame (Clopper-Pearson)",
+                "-" if w is None else percent_of(w["hmi"], 2) + _hmi_trajectories(std, e),
                 "-",
                 "robustness",
                 _sd(spread, f"integrity.standard_hmi_eps_{e.replace('.', '_')}_pct"),
