@@ -376,3 +376,70 @@ def test_contributing_prints_the_layer_order_the_test_enforces() -> None:
     para = text[text.index("- **Layers.**") : text.index("### How to add")]
     said = [n for n in re.findall(r"`([a-z_]+)`", para) if n in PIPELINE_ORDER or n in STAGES_ORDER]
     assert said == [*PIPELINE_ORDER, *STAGES_ORDER], said
+
+
+# Where the default profile's value (conf/config.yaml) and the library dataclass's default differ, and why. Every
+# other field a params section shares with its library settings has one value in both (the test below), so a default
+# changed on one side only fails here instead of drifting apart in silence. The stages pass every field from
+# params.yaml (settings_of refuses a gap), so the library default never reaches a run.
+LIBRARY_DEFAULTS_DIFFER: dict[str, str] = {  # reasons: conf/config.yaml's comments, the library docstrings
+    "train.cycle_epochs": "the cyclic schedule's half cycle; the default profile flies cosine",
+    "train.schedule": "the library's is the cyclic LR (triangular2); the default profile chose cosine with warm-up",
+    "train.warmup_epochs": "cosine's warm-up, which the library's cyclic default does not use",
+    "train.ema": "no weight averaging unless asked; the default profile validates and saves the average (0.998)",
+    "train.adversarial.position_weight": "the profile's inner loss is position only (the harm is position)",
+    "train.adversarial.fraction": "profile 0.5: validation attitude 4.4 deg against 6.9 at 1.0 (conf comment)",
+    "train.adversarial.attacked_rotation": "profile off, which needs fraction < 1 (conf comment)",
+    "train.augment.p": "profile 0.3: lighter than 0.5, the 160x90 default underfits (conf comment)",
+    "train.augment.blur_sigma": "the profile's lighter augmentation, with train.augment.p",
+    "train.augment.jpeg_quality": "the profile's lighter augmentation, with train.augment.p",
+    "suite.steps": "SuiteConfig's default is the full suite's strength (FULL); the default profile runs LEAN",
+    "suite.restarts": "as suite.steps",
+    "suite.starts": "as suite.steps",
+    "suite.full.square_eps": "the library's None runs Square at every eps; suite.full names 0.05, FULL's",
+    "defense.position_noise": "MotionSettings' 5 mm per frame without a step scale; the profile's: the thrusters'",
+    "defense.position_noise_scale": "as defense.position_noise",
+}
+
+
+def test_a_library_default_equals_the_default_profiles_value_or_says_why_not() -> None:
+    """For each section of SECTION_SETTINGS, every field its library settings share has the default profile's value
+    as the library default, except the LIBRARY_DEFAULTS_DIFFER fields (which must still differ: a list that lies
+    fails); fields without a library default (required) and the mesh sentinel are not defaults."""
+    import dataclasses
+    import importlib
+
+    from stages.config import params as params_mod
+    from stages.config.build import SECTION_SETTINGS
+
+    p = params_mod.build(params_mod.compose("default"))
+
+    def plain(v: object) -> object:
+        if dataclasses.is_dataclass(v):
+            return {f.name: plain(getattr(v, f.name)) for f in dataclasses.fields(v)}
+        if isinstance(v, (list, tuple)):
+            return tuple(plain(x) for x in v)
+        return float(v) if isinstance(v, int) and not isinstance(v, bool) else v
+
+    differ = set()
+    for path, classes in SECTION_SETTINGS.items():
+        section = p
+        for name in path.split("."):
+            section = getattr(section, name)
+        for spec in classes:
+            module, name = spec.split(":")
+            for f in dataclasses.fields(getattr(importlib.import_module(module), name)):
+                if not hasattr(section, f.name) or (path, f.name) == ("render", "mesh"):
+                    continue
+                if f.default is not dataclasses.MISSING:
+                    default = f.default
+                elif f.default_factory is not dataclasses.MISSING:
+                    default = f.default_factory()
+                else:
+                    continue
+                if plain(default) != plain(getattr(section, f.name)):
+                    differ.add(f"{path}.{f.name}")
+    assert differ == set(LIBRARY_DEFAULTS_DIFFER), (
+        sorted(differ - set(LIBRARY_DEFAULTS_DIFFER)),
+        sorted(set(LIBRARY_DEFAULTS_DIFFER) - differ),
+    )
