@@ -120,8 +120,10 @@ def main() -> None:
     ap.add_argument("--eps", type=float, nargs="+", default=[0.05, 0.1], help="eps flown (L-inf, pixels in [0, 1])")
     ap.add_argument("--factors", type=int, nargs="+", default=[1, 2, 4], help="multiples of integrity.frame_steps")
     args = ap.parse_args()
-    if args.tracks < 1 or 1 not in args.factors or 2 not in args.factors:
-        ap.error("--tracks must be >= 1 and --factors must hold 1 and 2 (the verdict compares them)")
+    if args.tracks < 1 or 1 not in args.factors or 2 not in args.factors or min(args.factors) < 1:
+        ap.error("--tracks must be >= 1 and --factors positive, holding 1 and 2 (the verdict compares them)")
+    if any(not 0 < e <= 1 for e in args.eps):
+        ap.error(f"--eps {args.eps}: each must be in (0, 1] (L-inf, pixels in [0, 1])")
     from pipeline.seeds import seed_for
     from stages.artifacts.models import load_chain
     from stages.artifacts.paths import SHIPPED

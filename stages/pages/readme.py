@@ -652,14 +652,19 @@ def _hmi_rows(integrity: dict[str, Any], spread: dict[str, Any] | None) -> list[
     chains, out = integrity.get("chains", {}), []
     for e in ("0.01", "0.05"):
         w = integrity.get("worst_hmi", {}).get(e)
-        value = "-" if w is None else f"{percent_of(w['hmi'], 2)} ({attacker_names(w['attacker'])})"
+        value = (
+            "-"
+            if w is None
+            else f"{percent_of(w['hmi'], 2)} ({attacker_names(w['attacker'])})"
+            + _hmi_trajectories(chains.get("robust", {}), e)
+        )
         out.append(
             (
                 f"integrity: worst HMI (%) a chain-level attack caused at eps {e} (trusted error > AL, "
                 f"available), shipped chain (robust model; {chains.get('robust', {}).get('trajectories', '-')} "
                 "trajectories: the interval's upper end is all this run rules out); of the frames, then the "
                 "trajectories with an HMI frame (Clopper-Pearson)",
-                value + _hmi_trajectories(chains.get("robust", {}), e),
+                value,
                 "-",
                 "robustness",
                 _sd(spread, f"integrity.shipped_hmi_eps_{e.replace('.', '_')}_pct"),
