@@ -295,7 +295,7 @@ def test_the_schema_s_other_choice_literals_are_their_registries() -> None:
     integrity, adversarial = typing.get_type_hints(Integrity), typing.get_type_hints(Adversarial)
     assert set(typing.get_args(integrity["alert_limit_kind"])) == set(KINDS)
     assert set(typing.get_args(integrity["burst_objective"])) == set(BURST_OBJECTIVES)
-    assert set(typing.get_args(integrity["drift_start"])) == set(DRIFT_STARTS)
+    assert set(typing.get_args(integrity["drift_start"])) == {*DRIFT_STARTS, "both"}  # both: one drift from each
     assert set(typing.get_args(typing.get_type_hints(Execution)["approach"])) == set(APPROACHES)
     assert set(typing.get_args(typing.get_args(adversarial["objectives"])[0])) == set(OBJECTIVES)
     assert set(typing.get_args(adversarial["start"])) == set(STARTS)

@@ -158,3 +158,28 @@ def test_the_evaluation_and_validation_trajectories_follow_the_seed():
     assert len({params_mod.val_render_fingerprint(p) for p in runs}) == len(runs)
     starts = [tuple(np.round(s.rel[0], 6)) for p, (e, _) in zip(runs[:2], bases) for s in trajectories(p, e, 3)]
     assert len(set(starts)) == len(starts)
+
+
+def test_the_full_grid_flies_every_attacker_and_the_drifts_from_both_starts():
+    """`rpod integrity`'s grid: every attacker of the schema, each drift from acquisition and from the end of the
+    trusted start (frame trusted_start + 1), no stop at the breaking point; the default flies one start and keeps the
+    plain drift names its committed outputs carry. The page names each drift's start."""
+    from stages.config.schema import build
+    from stages.engine.campaigns import campaign_for, full_grid
+    from stages.pages.integrity import attacker_names
+
+    p = build(params_mod.compose("default"))
+    default = campaign_for(p, 0, None, [])
+    assert [(c.name, c.start) for c in default.plans] == [("capture/lateral 2 m", 0), ("drift/lateral", 0)]
+    full = campaign_for(full_grid(p), 0, None, [])
+    after = 1 + p.defense.trusted_start
+    assert [(c.name, c.start) for c in full.plans if c.name.startswith("drift/")] == [
+        ("drift/los acquisition", 0),
+        ("drift/los after_trusted", after),
+        ("drift/lateral acquisition", 0),
+        ("drift/lateral after_trusted", after),
+    ]
+    assert {c.name for c in full.plans if c.name.startswith("capture/")} == {"capture/los 2 m", "capture/lateral 2 m"}
+    assert full.burst is not None and not full.stop_at_break
+    assert attacker_names("drift/lateral after_trusted") == "drift across it, from the end of the trusted start"
+    assert attacker_names("drift/los") == "drift along the line of sight"

@@ -311,7 +311,8 @@ class Integrity:
     burst_objective: Literal["error", "error_al", "error_pl"]  # pipeline.attackers.burst.OBJECTIVES
     burst_hinge: Optional[Annotated[float, In("[0, 1000]", "margin units")]]  # stop paying for stealth this far
     # under each threshold; None: softplus margins
-    drift_start: Literal["acquisition", "after_trusted"]  # pipeline.attackers.drift.STARTS: first drifted frame
+    drift_start: Literal["acquisition", "after_trusted", "both"]  # pipeline.attackers.drift.STARTS: first drifted
+    # frame; both: one drift from each (the full grid's)
     undefended_drift_rate: Annotated[float, In("(0, 1000]", "metres per frame")]  # the drift's growth against the
     # undefended control, which no check bounds
     frame_steps: Steps  # targeted PGD steps per attacked frame of the drift and the capture

@@ -93,11 +93,12 @@ def integrity_campaign(
 
 
 def full_grid(p: Params) -> Params:
-    """The params of the full grid (`rpod integrity`): every attacker of the schema, no stop at a chain's breaking
-    point, every trajectory on every chain."""
+    """The params of the full grid (`rpod integrity`): every attacker of the schema, the drifts from acquisition and
+    from the end of the trusted start, no stop at a chain's breaking point, every trajectory on every chain."""
     i = dataclasses.replace(
         p.integrity,
         attackers=list(typing.get_args(IntegrityAttacker)),
+        drift_start="both",
         stop_at_break=False,
         comparison_trajectories=None,
     )
@@ -382,11 +383,12 @@ def _integrity_metrics(
 def campaign_for(p: Params, seed: int, defended: Any, bursts: list[list[tuple[int, int]]], index: int = 0) -> Any:
     """The Campaign of params.integrity against `defended` (None: the undefended control, whose drift grows by
     integrity.undefended_drift_rate per frame): the captures per direction and initial bias from frame 0, the
-    drifts from integrity.drift_start, the burst on `bursts`, the AL of integrity.alert_limit_kind beside the
-    single-frame one; its attacks draw on item `index` of their streams (a trajectory's own in the sharded grid)."""
+    drifts from integrity.drift_start (both: one from each start, named "drift/<direction> <start>"), the burst on
+    `bursts`, the AL of integrity.alert_limit_kind beside the single-frame one; its attacks draw on item `index` of
+    their streams (a trajectory's own in the sharded grid)."""
     import dataclasses as dc
 
-    from pipeline.attackers.drift import start_frame
+    from pipeline.attackers.drift import STARTS, start_frame
     from pipeline.evaluation.campaign import Campaign, Plan
     from stages.config.build import (
         alert_limit_settings,
@@ -399,6 +401,7 @@ def campaign_for(p: Params, seed: int, defended: Any, bursts: list[list[tuple[in
 
     i = p.integrity
     motion = defense_settings(p.defense, 0.5)[1]  # the filter settings (trusted_start) the drift's start counts on
+    starts = STARTS if i.drift_start == "both" else (i.drift_start,)
     plans = []
     for name in i.attackers:
         kind, _, direction = name.partition("/")
@@ -408,7 +411,8 @@ def campaign_for(p: Params, seed: int, defended: Any, bursts: list[list[tuple[in
             drift = drift_settings(p, direction)
             if defended is None:
                 drift = dc.replace(drift, max_rate=float(i.undefended_drift_rate))
-            plans.append(Plan(name, drift, start_frame(i.drift_start, motion)))
+            named = len(starts) > 1
+            plans += [Plan(f"{name} {s}" if named else name, drift, start_frame(s, motion)) for s in starts]
     return Campaign(
         [float(e) for e in i.eps],
         plans,

@@ -17,6 +17,7 @@ CHAINS = {
 }
 KINDS = {"capture": "capture", "drift": "drift", "burst": "burst (nested)"}
 DIRECTIONS = {"los": "along the line of sight", "lateral": "across it"}
+STARTS = {"acquisition": "acquisition", "after_trusted": "the end of the trusted start"}  # where a drift begins
 TARGET_SHIPPED_EPS = 0.05  # issue 39: the shipped chain holds at every eps up to this
 TARGET_RATIO = 2.0  # ... and breaks at least this many times the control's eps
 TARGET_AVAILABILITY = 0.99  # clean availability at least this
@@ -24,15 +25,24 @@ TARGET_FALSE_ALARMS = 0.005  # clean false alarms at most this
 
 
 def attacker_names(name: str) -> str:
-    """An attacker's name in words: "capture/lateral 2 m" -> "capture across it, 2 m bias kept"; names joined by " = "
-    (a tie) each in words."""
+    """An attacker's name in words: "capture/lateral 2 m" -> "capture across it, 2 m bias kept", "drift/los
+    after_trusted" -> "drift along the line of sight, from the end of the trusted start"; names joined by " = " (a tie)
+    each in words."""
     out = []
     for one in name.split(" = "):
         kind, _, rest = one.partition("/")
         direction, _, size = rest.partition(" ")
         words = KINDS.get(kind, kind) + (f" {DIRECTIONS.get(direction, direction)}" if direction else "")
-        out.append(words + (f", {size} bias kept" if size else ""))
+        if kind == "drift" and size:
+            out.append(f"{words}, from {STARTS.get(size, size)}")
+        else:
+            out.append(words + (f", {size} bias kept" if size else ""))
     return " = ".join(out)
+
+
+def _starts(start: str) -> str:
+    """Where the drifts begin, in words (integrity.drift_start; both: one drift from each start)."""
+    return " and from ".join(STARTS.values()) if start == "both" else STARTS.get(start, start)
 
 
 def _m(x: float | None) -> str:
@@ -410,6 +420,7 @@ def _tolerances(record: dict[str, Any] | None) -> str:
 def assumptions(integrity: dict[str, Any], p: Params) -> str:
     """The assumptions every integrity row rests on, in words (metrics `integrity.assumptions`)."""
     a, cap, d = integrity["assumptions"], integrity["capture"], integrity["drift"]
+    starts = _starts(d["start"])
     x = a["execution"]
     attackers = ", ".join(attacker_names(n) for n in integrity["attackers"])
     return f"""
@@ -435,7 +446,7 @@ Assumptions of every row below:
   coast) and PL <= AL at the true range; failure = error / AL > 1 on an available frame. The single-frame AL is the
   second column.{_where_unavailable(integrity)}
 - **Attackers** ({attackers}): the captures hold a world-frame bias of {", ".join(f"{b:g}" for b in cap["initial_m"])}
-  m from the first frame (growth {cap["rate_m"]:g} m per frame), the drifts grow from {d["start"]} as far as keeps
+  m from the first frame (growth {cap["rate_m"]:g} m per frame), the drifts grow from {starts} as far as keeps
   every innovation under {d["gate_fraction"]:g} of the gate and every CUSUM statistic under half its threshold
   ({d["undefended_rate_m"]:g} m per frame against the control); each frame a targeted PGD of
   {integrity["frame_steps"]} steps from the background-lifting start with BPDA through the clamp, warm-started from
