@@ -127,7 +127,7 @@ def _integrity(breaking: dict[str, float | None], shipped_failed: int = 0, avail
                 "trajectories": 10,
                 "worst_attacker": "capture/lateral 2 m",
                 "hmi_trajectories": {"value": 0.0, "ci": [0.0, 0.31], "n": 10},
-                "stanford": {"nominal": 5},
+                "stanford": {"nominal": 5, "unavailable": 5 if e >= 0.05 else 0},
                 "per_trajectory": [
                     {
                         "trajectory": "t0",
@@ -149,9 +149,17 @@ def _integrity(breaking: dict[str, float | None], shipped_failed: int = 0, avail
             "max_error_pl": 0.5,
             "stanford": {"nominal": 100},
         }
+        record = {"trajectory": "t0", "flags": 7, "availability": 0.625, "frames": 200}
+        attackers = {"drift/los": {f"{e:g}": [record] for e in (0.01, 0.05)}}
         return {
             "trajectories": 10,
-            "summary": {"breaking_eps": b, "eps_flown": [0.01, 0.05], "per_eps": per, "clean": clean},
+            "summary": {
+                "breaking_eps": b,
+                "eps_flown": [0.01, 0.05],
+                "per_eps": per,
+                "clean": clean,
+                "attackers": attackers,
+            },
         }
 
     return {
@@ -331,6 +339,27 @@ def test_clean_availability_is_split_by_true_range_and_the_page_says_where_it_is
     text = _where_unavailable(integrity)
     assert "0-15 m 0% of 40" in text and "beyond 30 m 100%" in text and "never judged" in text
     assert _where_unavailable({"chains": {"robust": {"summary": {"clean": {}}}}}) == ""  # older metrics: nothing
+
+
+def test_the_page_shows_availability_under_attack_and_each_chain_per_trajectory_and_reads_back_from_json() -> None:
+    """The safety-index table's "available frames" (a Stanford-ESA row's nominal, MI and HMI over its frames) and the
+    lowest of them per chain; every chain per trajectory with the flags and availability of the attack that found
+    its worst; and the page drawn from the metrics JSON (keys sorted) is the page drawn from the stage's dict."""
+    import json
+
+    from stages.config import params as params_mod
+    from stages.pages.integrity import lead
+
+    p = params_mod.build(params_mod.compose("default"))
+    m = _integrity({"robust": None, "standard": 0.05, "control": 0.05})
+    page = lead(m, p)
+    index = [line for line in page.splitlines() if line.startswith("| robust   | 0.05")][0]
+    assert index.rstrip(" |").endswith("50.0")  # 5 nominal, 5 unavailable
+    assert "Lowest share of available frames under attack: shipped 50.0% (first at eps 0.05)" in page
+    rows = [line for line in page.splitlines() if "| t0 " in line]
+    assert [r.split("|")[1].strip() for r in rows] == ["robust", "standard", "control"]
+    assert all(r.split("|")[-3].strip() == "7" and r.split("|")[-2].strip() == "62.5" for r in rows)
+    assert lead(json.loads(json.dumps(m, sort_keys=True)), p) == page
 
 
 def test_an_eps_a_chain_did_not_fly_is_a_row_of_dashes_not_nan() -> None:

@@ -167,15 +167,16 @@ def _clean_protection(chains: dict[str, Any]) -> tuple[str, str, str]:
 
 def lead(integrity: dict[str, Any], p: Params) -> str:
     """The section reports/robustness.md leads with: targets missed first, the breaking point per chain, the
-    safety-index table, Stanford counts, the shipped chain per trajectory, and the assumptions."""
+    safety-index table, Stanford counts, each chain per trajectory, and the assumptions."""
     from pipeline.report.markdown import markdown_table
 
+    integrity = in_order(integrity)
     chains = integrity["chains"]
     verdicts = targets(integrity)
     head = _head(integrity, verdicts)
     points = _points(chains)
     index, regions = _safety_index(integrity, chains)
-    per_trajectory = _per_trajectory(chains["robust"]["summary"])
+    per_trajectory = _per_trajectory(chains)
     return f"""## Safety evidence that can fail
 
 {head}
@@ -197,9 +198,12 @@ the trusted error on the last frame, the bias the chaser would dock with (a fina
 fails a trajectory only where that frame is available: at the goal AL is the tolerance, so it is then an error / AL
 above 1; on an unavailable last frame the chain has declared it cannot be trusted, and the closed loop holds, a
 safe abort, reports/guidance.md); "trajectories with HMI": a descriptive
-count over independent trajectories (Clopper-Pearson 95%), of the attacks tried only.
+count over independent trajectories (Clopper-Pearson 95%), of the attacks tried only; "available frames": the
+share of frames the chain would fly on under every attacker at that eps itself (summed, from each attack's first
+frame; not nested in eps), where the error / AL columns cannot see an attack that makes the chain declare itself
+unavailable (the guidance holds: safe, but no docking).
 
-{markdown_table(index)}{per_trajectory}
+{markdown_table(index)}{_lowest(chains, integrity["eps"])}{per_trajectory}
 ### Stanford-ESA regions (frames counted from each attack's first frame, every attacker summed)
 
 {markdown_table(regions)}
@@ -273,6 +277,7 @@ INDEX_COLUMNS = (  # the safety-index table's columns
     "trajectories failed",
     "worst attacker",
     "trajectories with HMI (%)",
+    "available frames (%)",
 )
 
 
@@ -307,39 +312,78 @@ def _safety_index(
                     "trajectories failed": f"{row['failed']}/{row['trajectories']}",
                     "worst attacker": attacker_names(row["worst_attacker"] or "-"),
                     "trajectories with HMI (%)": percent_of(row["hmi_trajectories"]),
+                    "available frames (%)": _available(row["stanford"]),
                 }
             )
-            regions.append({"chain": k, "eps": f"{e:g}", **row["stanford"]})
-        regions.append({"chain": k, "eps": "no attack", **s["clean"]["stanford"]})
+            regions.append({"chain": k, "eps": f"{e:g}", **_regions(row["stanford"])})
+        regions.append({"chain": k, "eps": "no attack", **_regions(s["clean"]["stanford"])})
     return index, regions
 
 
-def _per_trajectory(shipped: dict[str, Any]) -> str:
-    """The shipped chain's table per trajectory at the target eps (errors over AL / PL, final error in m), or ""
-    when that eps was not flown."""
+def _lowest(chains: dict[str, Any], eps: list[float]) -> str:
+    """One line: per chain the lowest share of available frames under attack over the eps it flew, and where."""
+    parts = []
+    for k, v in chains.items():
+        rows = [(v["summary"]["per_eps"].get(f"{e:g}"), e) for e in eps]
+        shares = [(a, e) for r, e in rows if r and (a := _available_share(r["stanford"])) is not None]
+        if shares:
+            low, at = min(shares, key=lambda x: (x[0], x[1]))
+            parts.append(f"{CHAINS[k].split(' (')[0]} {low:.1f}% (first at eps {at:g})")
+    return f"\nLowest share of available frames under attack: {', '.join(parts)}.\n" if parts else ""
+
+
+def _regions(stanford: dict[str, int]) -> dict[str, int]:
+    """A Stanford-ESA row's counts in the order of pipeline.evaluation.measures.REGIONS."""
+    from pipeline.evaluation.measures import REGIONS
+
+    return {r: stanford.get(r, 0) for r in REGIONS}
+
+
+def _available_share(stanford: dict[str, int]) -> float | None:
+    """The share of frames (%) available (nominal, MI or HMI) among a Stanford-ESA row's frames (None: no frames):
+    at one eps itself, every attacker summed (not nested: a larger eps may abort more), from each attack's first
+    frame."""
+    total = sum(stanford.values())
+    return 100 * sum(stanford.get(r, 0) for r in ("nominal", "MI", "HMI")) / total if total else None
+
+
+def _available(stanford: dict[str, int]) -> str:
+    share = _available_share(stanford)
+    return "-" if share is None else f"{share:.1f}"
+
+
+def _per_trajectory(chains: dict[str, Any]) -> str:
+    """Each chain's table per trajectory at the target eps (errors over AL / PL, final error in m; the flags and
+    availability of the attack that found them), or "" when no chain flew that eps."""
     from pipeline.report.markdown import markdown_table
 
-    at = shipped["per_eps"].get(f"{TARGET_SHIPPED_EPS:g}")
+    eps, rows = f"{TARGET_SHIPPED_EPS:g}", []
+    for key, chain in chains.items():
+        at = chain["summary"]["per_eps"].get(eps)
+        for w in [] if at is None else at["per_trajectory"]:
+            records = (
+                chain["summary"].get("attackers", {}).get((w["worst_attacker"] or "").split(" = ")[0], {}).get(eps, [])
+            )
+            attack = next((t for t in records if t["trajectory"] == w["trajectory"]), None)
+            rows.append(
+                {
+                    "chain": key,
+                    "trajectory": w["trajectory"],
+                    "max error / AL": _m(w["max_error_al"]),
+                    "single-frame": _m(w["max_error_al_single"]),
+                    "max error / PL": _m(w["max_error_pl"]),
+                    "final error (m)": _m(w["final_error"]),
+                    "worst attacker": attacker_names(w["worst_attacker"] or "-"),
+                    "failed": "**yes**" if w["failed"] else "no",
+                    "flagged frames": "-" if attack is None else attack["flags"],
+                    "available (%)": "-" if attack is None else f"{100 * attack['availability']:.1f}",
+                }
+            )
     return (
         ""
-        if at is None
-        else (
-            f"\nThe shipped chain per trajectory at eps {TARGET_SHIPPED_EPS:g} (worst over attackers, nested in eps):\n\n"
-            + markdown_table(
-                [
-                    {
-                        "trajectory": w["trajectory"],
-                        "max error / AL": _m(w["max_error_al"]),
-                        "single-frame": _m(w["max_error_al_single"]),
-                        "max error / PL": _m(w["max_error_pl"]),
-                        "final error (m)": _m(w["final_error"]),
-                        "worst attacker": attacker_names(w["worst_attacker"] or "-"),
-                        "failed": "**yes**" if w["failed"] else "no",
-                    }
-                    for w in at["per_trajectory"]
-                ]
-            )
-        )
+        if not rows
+        else f"\nEach chain per trajectory at eps {eps} (worst over attackers, nested in eps; flagged frames and "
+        "availability: of the attack that found that worst, over its attacked frames):\n\n" + markdown_table(rows)
     )
 
 
@@ -502,6 +546,28 @@ def _bursts(rows: list[dict[str, Any]]) -> str:
     )
 
 
+def in_order(integrity: dict[str, Any]) -> dict[str, Any]:
+    """`integrity` (metrics) with its per-chain dicts in the order of CHAINS and the shipped chain's availability parts
+    in the order of pipeline.evaluation.availability.PARTS, so a page drawn from the metrics JSON (whose keys are
+    sorted) is the page the stage drew."""
+    from pipeline.evaluation.availability import PARTS
+
+    def chain_order(d: dict[str, Any]) -> dict[str, Any]:
+        return {k: d[k] for k in sorted(d, key=lambda k: (list(CHAINS).index(k) if k in CHAINS else len(CHAINS), k))}
+
+    out = integrity | {
+        "chains": chain_order(integrity["chains"]),
+        "breaking_eps": chain_order(integrity["breaking_eps"]),
+    }
+    clean = integrity["chains"].get("robust", {}).get("summary", {}).get("clean", {})
+    if clean.get("availability_parts"):
+        parts = {k: clean["availability_parts"][k] for k in PARTS if k in clean["availability_parts"]}
+        robust = out["chains"]["robust"]
+        summary = robust["summary"] | {"clean": clean | {"availability_parts": parts | clean["availability_parts"]}}
+        out["chains"] = out["chains"] | {"robust": robust | {"summary": summary}}
+    return out
+
+
 def integrity_page(integrity: dict[str, Any], p: Params) -> str:
     """reports/integrity_full.md (`rpod integrity`): the full grid's evidence and descriptive rows."""
     return (
@@ -516,7 +582,7 @@ def integrity_section(integrity: dict[str, Any], p: Params, figure: bool = True)
     """Markdown: the descriptive rows of every chain (HMI and MI the attack caused beside the same frames
     unattacked, detection, availability, trusted error) and, with `figure`, the integrity figure."""
     parts = []
-    for key, chain in integrity["chains"].items():
+    for key, chain in in_order(integrity)["chains"].items():
         c = chain["clean"]
         parts.append(f"""### {CHAINS[key][0].upper() + CHAINS[key][1:]}
 
