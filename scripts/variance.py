@@ -422,7 +422,7 @@ def closed_loop_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str,
         (s, m["guidance"]["closed_loop"]["variants"]["true_state"]) for s, m in zip(seeds, metrics) if "guidance" in m
     ]
     rows = []
-    for variant in have[0][1] if have else []:
+    for variant in [k for k in have[0][1] if all(k in v for _, v in have)] if have else []:  # flown in every run
         row: dict[str, Any] = {
             "variant": variant,
             "breaking eps per run": ", ".join(f"seed {s}: {v[variant]['breaking_eps'] or 'none'}" for s, v in have),

@@ -14,11 +14,13 @@ the robust model) -> the defended section of the report, metrics `defended`, and
 reports/figures/guidance_defended.png (one run per variant). Last, the in-loop attacker
 (pipeline/attackers/in_loop.py; goal capture: pipeline/attackers/capture.py) on the shipped chain at each
 `integrity.in_loop_eps`, goal and start range under the true_state dynamics (the paper dynamics place the chaser at
-its estimate: prediction = truth by construction, no integrity evidence) and every variant -> the in-loop section,
-metrics `in_loop`. Every true_state run executes its commands with the thrusters' error and Clohessy-Wiltshire
-motion (`guidance.execution`, pipeline/guidance/dynamics.py; the defense is told the commands). Every run of the
-shipped chain is judged by where it docks (pipeline/evaluation/closed_loop.py: range and lateral miss, collision,
-lost target, hold; the breaking point per dynamics and variant) -> metrics `closed_loop`, the section the page
+its estimate: prediction = truth by construction, no integrity evidence) and every variant, then on the standard
+chain (the standard model with its detector and models/defense_standard.json) with each of
+`guidance.standard_defenses`, its no-attack run first -> the in-loop section, metrics `in_loop`. Every true_state
+run executes its commands with the thrusters' error and Clohessy-Wiltshire motion (`guidance.execution`,
+pipeline/guidance/dynamics.py; the defense is told the commands). Every run of the shipped chain and of the standard
+chain is judged by where it docks (pipeline/evaluation/closed_loop.py: range and lateral miss, collision, lost
+target, hold; the breaking point per dynamics and variant) -> metrics `closed_loop`, the section the page
 leads with. Rates count only the runs that met the attack.
 """
 
@@ -134,13 +136,14 @@ def main(params: Params) -> None:
     make_attack(params.attack, g.method, 0)  # refuses bad attack params before anything runs
     torch_setup(params)
     # each refuses a pose model whose input size is not render.width x height, or a detector of another model
-    chains = {m.value: load_chain(params, m, defended=m == SHIPPED) for m in (PAPER, SHIPPED)}
+    defended = {SHIPPED: True, PAPER: bool(g.standard_defenses)}  # the standard chain flies defended in the loop too
+    chains = {m.value: load_chain(params, m, defended=defended[m]) for m in (PAPER, SHIPPED)}
     hashes = {m: chain.pose_hash for m, chain in chains.items()}
     shipped = chains[SHIPPED.value]
     K, es = intrinsics(params), engine.engine_settings(params)  # K: the model's input size
     plan = _grid_plan(params, settings, grid, in_loop)
     check_duration(plan, shipped.onboard, K)
-    flown, t0, seconds = _fly(params, plan, shipped, K, es)
+    flown, t0, seconds = _fly(params, plan, chains, K, es)
     counts, paper_runs, defended, looped = _grids(plan, flown, t0, seconds)
     baseline, _, _, attacked = paper_runs
     metrics = _metrics(settings, g, params.attack, hashes, seconds, counts, paper_runs, defended)
@@ -167,7 +170,8 @@ def _grid_plan(
     in_loop: tuple[tuple[float, str, float], ...],
 ) -> Any:
     """The GridPlan of every run: the paper grid, the defended grid per `guidance.dynamics` and defense, and the
-    in-loop cells (under true_state when guidance.dynamics has it), with the seeded execution settings."""
+    in-loop cells (under true_state when guidance.dynamics has it) on the shipped chain and, with each of
+    `guidance.standard_defenses`, the standard chain, with the seeded execution settings."""
     from pipeline.guidance.grid import GridPlan
 
     g = params.guidance
@@ -180,12 +184,16 @@ def _grid_plan(
         in_loop,
         execution_settings(params, seed_for(params.seed, "execution")),
         ("true_state",) if "true_state" in g.dynamics else (),
+        tuple(g.standard_defenses),
     )
 
 
-def _fly(params: Params, plan: Any, shipped: Any, K: Any, es: engine.EngineSettings) -> tuple[list[Any], float, float]:
-    """Fly every run of `plan` on the engine's workers: ((result, rendered keys) per run in plan order, the
-    time.perf_counter() reading at the start (s), the seconds until the paper grid's last run finished)."""
+def _fly(
+    params: Params, plan: Any, chains: dict[str, Any], K: Any, es: engine.EngineSettings
+) -> tuple[list[Any], float, float]:
+    """Fly every run of `plan` on the engine's workers (`chains`: the loaded chains by name, whose calibrated
+    defenses the workers take): ((result, rendered keys) per run in plan order, the time.perf_counter() reading at
+    the start (s), the seconds until the paper grid's last run finished)."""
     from tqdm import tqdm
 
     scene, threads = chunks.prepare(K, scene_settings(params.render), es)
@@ -205,10 +213,11 @@ def _fly(params: Params, plan: Any, shipped: Any, K: Any, es: engine.EngineSetti
             K=K,
             scene=scene,
             root=str(Path.cwd()),
-            defense=shipped.defended,
+            defense=chains[SHIPPED.value].defended,
             plan=plan,
             seed=seed_for(params.seed, "guidance"),
             torch_threads=None if es.in_process else threads,
+            standard_defense=chains[PAPER.value].defended if plan.standard_defenses else None,
         )
         flown = engine.run(GuidanceWorker, setup, runs, es, num_cpus=threads, progress=progress)
     return flown, t0, paper_done[0]

@@ -89,12 +89,20 @@ def main(
 def shard_engine(params: Params, device: Any) -> tuple[engine.EngineSettings, Callable[..., list[Any]]]:
     """(the engine settings, the campaign's `fan_out`: stages/engine/pool.py `run` on them): the missing shares fan
     out over CPU workers (the params' torch threads shared out, each worker's chain on the CPU); on a GPU they are
-    flown in this process, where the GPU does the work."""
+    flown in this process, where the GPU does the work. engine.timeout_s counts per (attacker, eps) run of a
+    trajectory, the job's unit of progress."""
     import dataclasses
+
+    from stages.engine.campaigns import campaign_for, full_grid
 
     es = engine.engine_settings(params)
     if device.type != "cpu":
         es = dataclasses.replace(es, workers=1, address=None)
+    # a job is a whole trajectory of the full grid (about an hour on 2 cores): the no-progress guard waits
+    # engine.timeout_s for each of its (attacker, eps) runs
+    grid = campaign_for(full_grid(params), 0, None, [])
+    runs = (len(grid.plans) + (grid.burst is not None)) * len(grid.eps)
+    es = dataclasses.replace(es, timeout_s=es.timeout_s * runs)
     threads = es.threads(params.threads or os.cpu_count() or 1)
 
     def fan_out(worker_cls: Any, setup: Any, jobs: list[Any], progress: Callable[[int, Any], None]) -> list[Any]:

@@ -274,6 +274,8 @@ def test_the_registry_literals_of_the_schema_are_the_registries() -> None:
     assert set(typing.get_args(hints["defense"]["fusion"])) == set(FUSIONS)
     assert set(typing.get_args(typing.get_args(hints["guidance"]["dynamics"])[0])) == set(VARIANTS)
     assert set(typing.get_args(typing.get_args(hints["guidance"]["defenses"])[0])) == set(DEFENSES) - {"undefended"}
+    standard = typing.get_args(typing.get_args(hints["guidance"]["standard_defenses"])[0])
+    assert set(standard) == set(DEFENSES) - {"undefended"}
 
 
 def test_the_schema_s_other_choice_literals_are_their_registries() -> None:

@@ -240,14 +240,15 @@ def test_every_table_has_the_expected_rows(smoke_repo):
     assert len(rows_under(page("robustness"), "Standard (the paper", "attacker")) == len(chains["standard"]["rows"])
     assert rows_under(page("robustness"), "The two pose models", "measure")[0].startswith("clean test position")
     in_loop = rows_under(page("guidance"), "The in-loop attacker", "dynamics")  # true-state dynamics only
-    assert in_loop == ["true_state"] * (1 + len(p["guidance"]["defenses"])) * len(i["in_loop_eps"])
+    g = p["guidance"]  # the shipped chain undefended and each defense, then the standard chain's variants
+    assert in_loop == ["true_state"] * (1 + len(g["defenses"]) + len(g["standard_defenses"])) * len(i["in_loop_eps"])
     runs = json.loads((dst / "reports" / "metrics" / "guidance.json").read_text())["in_loop"]["runs"]
     per_cell = sum(1 if g == "capture" else len(i["in_loop_start_ranges"]) for g in i["in_loop_goals"])
     assert len(runs) == len(in_loop) * per_cell  # the capture attacks from acquisition: one start per cell
     assert page("guidance").startswith("# Closed-loop rendezvous: where the shipped chain docks")
 
     summary = rows_under(page("README"), "Summary against the paper", "result")
-    assert len(summary) == 31 and summary[0].startswith("pose")
+    assert len(summary) == 31 + len(p["guidance"]["standard_defenses"]) and summary[0].startswith("pose")
     # 3 breaking points, error / AL at eps 0.05, 2 + 2 worst-HMI rows (shipped, standard), availability
     assert sum(r.startswith("integrity") for r in summary) == 9
     assert sum(r.startswith("closed loop: ") for r in summary) == 2  # the shipped chain's docking misses

@@ -133,6 +133,7 @@ def _params(**changes: object) -> Guidance:
         "method": "fgsm",
         "dynamics": ["paper"],
         "defenses": ["hold"],
+        "standard_defenses": [],
         "execution": Execution(
             scale_std=0.02, noise_std=0.01, mean_motion=0.0011, frame_interval=10.0, approach="vbar"
         ),

@@ -162,3 +162,51 @@ def test_only_the_docking_the_attack_denied_counts(base, run, denied) -> None:
         int(run.outcome == "docked" and bool(run.attacked_frames)),
         int(bool(run.attacked_frames)),
     ]
+
+
+def test_the_standard_chain_flies_the_in_loop_cells_last_on_its_own_camera_attacker_and_key() -> None:
+    """The standard chain's runs (its no-attack run, then each in-loop cell) come after every other run, so the runs
+    before keep their places (and seeds); the pilot flies them on the standard chain's camera and in-loop attacker;
+    in_loop_grid and closed_loop_outcomes report them under "standard <defense>", the no-attack run as its clean
+    record."""
+    from functools import partial
+
+    from pipeline.defense.integrity import AlertLimitSettings, alert_limit
+    from pipeline.evaluation.closed_loop import closed_loop_outcomes
+
+    cells = ((0.05, "collide", 20.0),)
+    plain = GridPlan(GuidanceSettings(max_steps=100), (), 10, ("paper",), (), cells)
+    plan = dataclasses.replace(plain, standard_defenses=("undefended",))
+    assert plan.runs()[: len(plain.runs())] == plain.runs()
+    assert plan.runs()[len(plain.runs()) :] == [
+        ("standard", "paper", "undefended", None),
+        ("standard", "paper", "undefended", plan.in_loop_runs()[-1][3]),
+    ]
+    called = []
+
+    def in_loop_on(name: str, chain: ToyChain):
+        def at(e: float, g: str, i: int) -> InLoopAttacker:
+            called.append((name, i))
+            return InLoopAttacker(chain, e, InLoopSettings(goal=g, steps=5), seed=i)
+
+        return at
+
+    chain = ToyChain()
+    cameras = {"paper": ToyCamera(chain), "shipped": ToyCamera(chain), "standard": ToyCamera(chain)}
+    attackers = {"shipped": in_loop_on("shipped", chain), "standard": in_loop_on("standard", chain)}
+    pilot = GridPilot(cameras, K, plan, None, None, attackers)
+    results = [pilot.fly(*run)[0] for run in plan.runs()]
+    assert called == [("shipped", 2), ("standard", 4)]  # each run's attacker on its own chain, seeded by its place
+    assert results[4].attacked_frames > 0 and results[3].attacked_frames == 0
+    out = in_loop_grid(plan, results, collision_range=5.0)
+    assert [(r["chain"], r["defense"]) for r in out["runs"]] == [
+        ("shipped", "undefended"),
+        ("standard", "standard undefended"),
+    ]
+    assert set(out["counts"]["paper"]) == {"undefended", "standard undefended"}
+    judged = closed_loop_outcomes(
+        plan, results, 5.0, partial(alert_limit, settings=AlertLimitSettings(kind="persistent"))
+    )
+    standard = judged["variants"]["paper"]["standard undefended"]
+    assert standard["clean"]["outcome"] == "docked" and standard["per_eps"]["0.05"]["met"] == 1
+    assert [r["chain"] for r in judged["runs"]] == ["shipped", "shipped", "standard", "standard"]

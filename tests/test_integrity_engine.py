@@ -127,6 +127,11 @@ def test_the_cpu_fans_out_over_ray_workers_on_the_cpu_and_a_gpu_flies_in_process
     assert es_cpu.workers == 2 and not es_cpu.in_process and cpus == 1  # threads=2 shared out over 2 workers
     assert cpu.params.device == "cpu" and cpu.torch_threads == 1 and cpu.params.integrity == p.integrity
     assert es_gpu.in_process and gpu == setup  # the stage's device (auto: the GPU), its torch threads
+    # a job is a whole trajectory: the no-progress guard waits engine.timeout_s per (attacker, eps) run of it
+    i = p.integrity
+    starts = 2 * sum(a.startswith("drift") for a in i.attackers)
+    runs = (sum(a.startswith("capture") for a in i.attackers) * len(i.capture_initial) + starts + 1) * len(i.eps)
+    assert es_cpu.timeout_s == es_gpu.timeout_s == p.engine.timeout_s * runs
 
 
 @pytest.mark.slow

@@ -1,7 +1,9 @@
-"""The closed loop's mission outcomes (`rpod guidance`): where the shipped chain's runs dock.
+"""The closed loop's mission outcomes (`rpod guidance`): where the shipped chain's runs dock, and the standard
+chain's.
 
 Every run of the shipped chain in a guidance grid (pipeline/guidance/grid.py `GridPlan`: the defended grid's
-no-attack and attacked runs per dynamics and defense variant, and the in-loop attacker's runs) is judged by
+no-attack and attacked runs per dynamics and defense variant, and the in-loop attacker's runs), and every run of the
+standard chain (its no-attack run and the in-loop attacker's, reported as "standard <defense>"), is judged by
 `pipeline.evaluation.measures.docking`: range and lateral miss against the goal (m), collision, target lost, hold;
 mission failure = a collision, a lost target, or a miss beyond the tolerance (a run that ends held far from the goal
 is a safe abort; one whose holds spent the steps the approach needed timed out: pipeline/evaluation/measures.py).
@@ -21,7 +23,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from pipeline.evaluation.measures import breaking_point, docking
-from pipeline.guidance.grid import GridPlan, InLoopRun
+from pipeline.guidance.grid import GridPlan, InLoopRun, variant_key
 from pipeline.guidance.law import PROTECTION, RendezvousResult
 
 
@@ -97,23 +99,25 @@ def closed_loop_outcomes(
     collision_range: float,
     limit: Callable[[np.ndarray], np.ndarray],
 ) -> dict[str, Any]:
-    """The docking of every shipped-chain run of `plan.runs()`'s `results` (module docstring) -> {"runs": one record
-    per run (dynamics, defense, attack, eps, met: the run met the attack, `Docking.as_dict()` and its
-    `safety_index` against `limit`, the AL (m) at a true range (m)), "variants": {dynamics: {defense: {"clean": the
-    no-attack run's docking and safety index, "per_eps": {"%g": {"met", "failed", "largest_miss_m", "outcomes":
-    {outcome: count}, "largest_error_al", "largest_error_pl"}}, "breaking_eps"}}}, "tolerance_m",
-    "collision_range_m"}."""
+    """The docking of every shipped- and standard-chain run of `plan.runs()`'s `results` (module docstring) ->
+    {"runs": one record per run (chain, dynamics, defense: pipeline.guidance.grid.variant_key, attack, eps, met: the
+    run met the attack, `Docking.as_dict()` and its `safety_index` against `limit`, the AL (m) at a true range (m)),
+    "variants": {dynamics: {defense: {"clean": the no-attack run's docking and safety index, "per_eps": {"%g":
+    {"met", "failed", "largest_miss_m", "outcomes": {outcome: count}, "largest_error_al", "largest_error_pl"}},
+    "breaking_eps"}}}, "tolerance_m", "collision_range_m"}."""
     s = plan.settings
     runs, variants = [], {}
     for (chain, dyn, defense, cell), r in zip(plan.runs(), results):
-        if chain != "shipped":
+        if chain == "paper":
             continue
         d = docking(r, s.goal, s.tolerance, collision_range, s.max_step)
         index = safety_index(r, limit, flies_trusted=defense == "recover")
         attack, eps = _attack(plan, cell)
         met = cell is None or r.attacked_frames > 0
+        defense = variant_key(chain, defense)
         runs.append(
             {
+                "chain": chain,
                 "dynamics": dyn,
                 "defense": defense,
                 "attack": attack,

@@ -2,9 +2,10 @@
 shared image cache (`GridPilot`), and their results as the paper grid, the defended grid and the
 in-loop attacker's runs.
 
-Two chains fly: the paper grid on the "paper" chain (the paper's reproduction), everything else (the
-defended grid with its undefended reference, the in-loop attacker) on the "shipped" chain; a pilot holds a
-camera per chain (one camera may serve both).
+Three chains fly: the paper grid on the "paper" chain (the paper's reproduction), the defended grid with its
+undefended reference and the in-loop attacker on the "shipped" chain, and, as the comparison the integrity evidence
+asks for, the in-loop attacker on the "standard" chain (the paper's pose model with its own detector and
+calibrated defense); a pilot holds a camera per chain (one camera may serve several).
 
 A grid cell is (eps, S = attack start range in metres, K = attacked frames, AttackWindow); runs use the
 closed loop of pipeline/guidance/law.py. An in-loop cell is (eps, goal, S): the in-loop attacker
@@ -113,11 +114,18 @@ class InLoopRun:
     index: int
 
 
-CHAINS = ("paper", "shipped")  # the chain a run flies: the paper grid's, or the one that ships
+CHAINS = ("paper", "shipped", "standard")  # the chain a run flies: the paper grid's, the one that ships, or the
+# paper's model defended (the comparison of the in-loop attacker)
 
 Run = tuple[str, str, str, "int | InLoopRun | None"]
-"""One closed-loop run of a `GridPlan`: (chain: "paper" or "shipped", dynamics = settings.variant, defense,
+"""One closed-loop run of a `GridPlan`: (chain: one of CHAINS, dynamics = settings.variant, defense,
 grid cell index, an `InLoopRun`, or None for that (chain, dynamics, defense)'s no-attack baseline)."""
+
+
+def variant_key(chain: str, defense: str) -> str:
+    """The name a run's (chain, defense) is reported under: the defense on the shipped chain ("undefended",
+    "hold", "recover"), "<chain> <defense>" on another (e.g. "standard recover")."""
+    return defense if chain == "shipped" else f"{chain} {defense}"
 
 
 @dataclass(frozen=True)
@@ -126,7 +134,8 @@ class GridPlan:
     flown on the paper chain under settings.variant undefended, the defended grid on the shipped chain under
     every (`dynamics`, undefended and each of `defenses`). `in_loop`: the in-loop attacker's (eps, goal, S)
     cells, flown last on the shipped chain under every (dynamics of `in_loop_dynamics`, default every one of
-    `dynamics`; undefended and each defense). `execution`: how every true_state run executes its commands
+    `dynamics`; undefended and each defense) and then on the standard chain under the same dynamics and each of
+    `standard_defenses` (its no-attack run first). `execution`: how every true_state run executes its commands
     (pipeline/guidance/dynamics.py; None: exactly); the paper dynamics never take it."""
 
     settings: GuidanceSettings
@@ -137,6 +146,7 @@ class GridPlan:
     in_loop: tuple[tuple[float, str, float], ...] = ()
     execution: ExecutionSettings | None = None
     in_loop_dynamics: tuple[str, ...] = ()
+    standard_defenses: tuple[str, ...] = ()
 
     def _block(self, chain: str, dyn: str, defense: str) -> list[Run]:
         return [(chain, dyn, defense, None), *[(chain, dyn, defense, i) for i in range(len(self.grid))]]
@@ -151,13 +161,14 @@ class GridPlan:
 
     def in_loop_runs(self) -> list[Run]:
         """The in-loop runs: per dynamics (`in_loop_dynamics`, else `dynamics`, else settings.variant), undefended and
-        each defense, each cell."""
-        return [
-            ("shipped", dyn, d, InLoopRun(i))
-            for dyn in self.in_loop_dynamics or self.dynamics or (self.settings.variant,)
-            for d in ("undefended", *self.defenses)
-            for i in range(len(self.in_loop))
-        ]
+        each defense, each cell, on the shipped chain; then, when there are cells, per dynamics and each of
+        `standard_defenses` the standard chain's no-attack run and each cell (last, so the runs before keep their
+        places and seeds)."""
+        dynamics = self.in_loop_dynamics or self.dynamics or (self.settings.variant,)
+        cells = [InLoopRun(i) for i in range(len(self.in_loop))]
+        shipped = [("shipped", dyn, d, c) for dyn in dynamics for d in ("undefended", *self.defenses) for c in cells]
+        standard = [("standard", dyn, d, c) for dyn in dynamics for d in self.standard_defenses for c in [None, *cells]]
+        return shipped + (standard if cells else [])
 
     @property
     def paper_size(self) -> int:
@@ -176,8 +187,9 @@ class GridPilot:
     from its block's no-attack baseline (flown here first when this pilot has not flown it: runs are
     deterministic, so any pilot gets the same one); `attack_at(chain, eps, i)` is the attack of run i of
     `plan.runs()` on that chain (seeded per run, so the outcome does not depend on which pilot flies it or in
-    what order); `in_loop_at(eps, goal, i)` the in-loop attacker (pipeline.attackers.in_loop.InLoopAttacker, on
-    the shipped chain) of run i; `defense.new()` a fresh Defense per defended run."""
+    what order); `in_loop_at(eps, goal, i)` the in-loop attacker (pipeline.attackers.in_loop.InLoopAttacker) of
+    run i, `defense.new()` a fresh Defense per defended run: each one for every chain, or a dict per chain as
+    `cameras`."""
 
     def __init__(
         self,
@@ -186,11 +198,12 @@ class GridPilot:
         plan: GridPlan,
         attack_at: Callable[[str, float, int], Any] | None,
         defense: Any = None,
-        in_loop_at: Callable[[float, str, int], Any] | None = None,
+        in_loop_at: Callable[[float, str, int], Any] | dict[str, Callable[[float, str, int], Any]] | None = None,
     ) -> None:
         self.cameras = cameras if isinstance(cameras, dict) else dict.fromkeys(CHAINS, cameras)
-        self.K, self.plan, self.attack_at, self.defense = K, plan, attack_at, defense
-        self.in_loop_at = in_loop_at
+        self.K, self.plan, self.attack_at = K, plan, attack_at
+        self.defenses = defense if isinstance(defense, dict) else dict.fromkeys(CHAINS, defense)
+        self.in_loop_at = in_loop_at if isinstance(in_loop_at, dict) else dict.fromkeys(CHAINS, in_loop_at)
         self.index = {r: i for i, r in enumerate(plan.runs())}
         self.baselines: dict[tuple[str, str, str], RendezvousResult] = {}
 
@@ -209,7 +222,7 @@ class GridPilot:
             if isinstance(cell, InLoopRun):  # attacked to the end; a defended chaser may hold for slack more steps
                 eps, goal, start = p.in_loop[cell.index]
                 window, extra = AttackWindow(start, p.settings.max_steps), p.slack_steps
-                camera.attack = attacker = self.in_loop_at(eps, goal, i)
+                camera.attack = attacker = self.in_loop_at[chain](eps, goal, i)
                 observe = attacker.observe
             else:
                 eps, _, k, window = p.grid[cell]
@@ -224,7 +237,7 @@ class GridPilot:
             self.K,
             s,
             window,
-            defense=None if defense == "undefended" else self.defense.new(),
+            defense=None if defense == "undefended" else self.defenses[chain].new(),
             observe=observe,
         )
         if cell is None:
@@ -294,18 +307,22 @@ def defended_grid(plan: GridPlan, results: list[RendezvousResult]) -> dict[str, 
 
 
 def in_loop_grid(plan: GridPlan, results: list[RendezvousResult], collision_range: float) -> dict[str, Any]:
-    """The in-loop runs of `plan.runs()`'s `results` -> {"runs": one record per run (dynamics, defense,
-    eps, goal, S, outcome, collided: closest range < `collision_range` (m), closest range and miss (m),
+    """The in-loop runs of `plan.runs()`'s `results` -> {"runs": one record per attacked run (chain, dynamics, defense:
+    its `variant_key`, eps, goal, S, outcome, collided: closest range < `collision_range` (m), closest range and miss (m),
     steps, attacked frames, flags, hold steps, ended in hold), "counts": per (dynamics, defense, eps)
     [collisions, not docked without a collision, docked, runs that met the attack,
     runs that never met it] over goals and start ranges}."""
     first = len(plan.runs()) - len(plan.in_loop_runs())
     runs, counts = [], {}
-    for (_, dyn, defense, cell), r in zip(plan.in_loop_runs(), results[first:]):
+    for (chain, dyn, defense, cell), r in zip(plan.in_loop_runs(), results[first:]):
+        if cell is None:  # another chain's no-attack run (closed_loop_outcomes judges it)
+            continue
         eps, goal, start = plan.in_loop[cell.index]
         collided = r.closest_range < collision_range
+        defense = variant_key(chain, defense)
         runs.append(
             {
+                "chain": chain,
                 "dynamics": dyn,
                 "defense": defense,
                 "eps": eps,

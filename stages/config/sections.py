@@ -227,6 +227,7 @@ class Guidance:
     method: str
     dynamics: list[Literal["paper", "true_state"]]  # dynamics of the defended comparison
     defenses: list[Literal["hold", "recover"]]  # defended variants flown beside the undefended one
+    standard_defenses: list[Literal["hold", "recover"]]  # the standard chain's variants against the in-loop attacker
     execution: Execution  # the truth's executed motion (true_state runs, evaluation and validation trajectories)
 
     def __post_init__(self) -> None:

@@ -1,6 +1,7 @@
 """The guidance stage's engine worker: one Blender scene and two safety chains per worker (the paper grid's,
-the standard model's; and the shipped one, the robust model's: stages.artifacts.paths.PAPER, SHIPPED), one
-flight of the grid (pipeline.guidance.grid.GridPlan) per job; stages/guidance.py builds the jobs.
+the standard model's, which also flies as the defended "standard" chain; and the shipped one, the robust model's:
+stages.artifacts.paths.PAPER, SHIPPED), one flight of the grid (pipeline.guidance.grid.GridPlan) per job;
+stages/guidance.py builds the jobs.
 
 Each attacked run's attack is seeded by its place in the grid, and each rendered pose's background
 (render.background) by the pose itself, so the flights do not depend on which worker flies which run.
@@ -31,13 +32,14 @@ class GuidanceSetup:
     plan: Any  # pipeline.guidance.law.GridPlan: every run of the grid
     seed: int  # the attack seed of run 0 (params seed + the stage's offset); the backgrounds'
     torch_threads: int | None  # torch threads of this worker; None: left as set up
+    standard_defense: Any = None  # the standard chain's Defended (models/defense_standard.json); None: not flown
 
 
 @dataclass(frozen=True)
 class Flight:
     """One guidance job: one run of the plan."""
 
-    chain: str  # "paper" (the paper grid) or "shipped" (pipeline.guidance.grid.CHAINS)
+    chain: str  # "paper" (the paper grid), "shipped" or "standard" (pipeline.guidance.grid.CHAINS)
     dynamics: str  # the chaser's dynamics (a name of guidance.dynamics)
     defense: str  # "undefended" or a name of guidance.defenses
     cell: Any  # index of the (eps, S, K) attack window in plan.grid, an InLoopRun, or None: the no-attack run
@@ -53,9 +55,6 @@ class GuidanceWorker:
     run of the plan (pipeline.guidance.grid.GridPilot) -> (result, keys of the poses it rendered)."""
 
     def __init__(self, setup: GuidanceSetup) -> None:
-        from pipeline.attackers.capture import CaptureInLoop
-        from pipeline.attackers.in_loop import InLoopAttacker
-        from pipeline.attacks.adaptive import PerFrameChain
         from pipeline.attacks.gradient import attack_loss, stored_attack
         from pipeline.guidance.grid import GridPilot
         from pipeline.guidance.law import CachedCamera
@@ -75,34 +74,49 @@ class GuidanceWorker:
         def attack_at(name: str, eps: float, i: int) -> Any:
             return stored_attack(chains[name].model, losses[name], eps, make_attack(a, method, seed + i))
 
-        shipped = chains["shipped"].onboard
-        target = PerFrameChain(shipped.model, shipped.shap, shipped.detector)
-
-        p = setup.params
-        capture = (
-            capture_settings(p, "lateral", p.integrity.capture_initial[0])
-            if "capture" in p.integrity.in_loop_goals
-            else None
-        )
-
-        def in_loop_at(eps: float, goal: str, i: int) -> Any:
-            if goal == "capture":
-                return CaptureInLoop(target, eps, capture, frame_attack=in_loop_attack(p), seed=seed + i)
-            return InLoopAttacker(target, eps, in_loop_settings(p, goal), seed + i)
-
         self.renderer = Renderer(setup.K, setup.scene)
         images: dict[bytes, Any] = {}  # both chains see the same rendered poses: each is rendered once
         render_image = pose_renderer(self.renderer, setup.seed)
         cameras = {
             name: CachedCamera(render_image, c.model, chain=c.onboard, images=images) for name, c in chains.items()
         }
-        self.pilot = GridPilot(cameras, setup.K, setup.plan, attack_at, setup.defense, in_loop_at)
+        cameras["standard"] = cameras["paper"]  # the same model and detector; the defense is the run's
+        defenses = {"shipped": setup.defense, "standard": setup.standard_defense}
+        in_loop = in_loop_attackers(setup.params, {"shipped": chains["shipped"], "standard": chains["paper"]}, seed)
+        self.pilot = GridPilot(cameras, setup.K, setup.plan, attack_at, defenses, in_loop)
 
     def run(self, job: Flight) -> tuple[Any, frozenset[bytes]]:
         return self.pilot.fly(job.chain, job.dynamics, job.defense, job.cell)
 
     def close(self) -> None:
         self.renderer.close()
+
+
+def in_loop_attackers(p: Params, chains: dict[str, Any], seed: int) -> dict[str, Callable[[float, str, int], Any]]:
+    """Per chain name (of `chains`: the loaded chains it attacks) `in_loop_at(eps, goal, i)`: the in-loop attacker
+    of run i (pipeline/attackers/in_loop.py; goal capture: pipeline/attackers/capture.py), seeded `seed` + i, on that
+    chain's pose model, SHAP explainer and detector."""
+    from pipeline.attackers.capture import CaptureInLoop
+    from pipeline.attackers.in_loop import InLoopAttacker
+    from pipeline.attacks.adaptive import PerFrameChain
+
+    capture = (
+        capture_settings(p, "lateral", p.integrity.capture_initial[0])
+        if "capture" in p.integrity.in_loop_goals
+        else None
+    )
+
+    def on(chain: Any) -> Callable[[float, str, int], Any]:
+        target = PerFrameChain(chain.onboard.model, chain.onboard.shap, chain.onboard.detector)
+
+        def in_loop_at(eps: float, goal: str, i: int) -> Any:
+            if goal == "capture":
+                return CaptureInLoop(target, eps, capture, frame_attack=in_loop_attack(p), seed=seed + i)
+            return InLoopAttacker(target, eps, in_loop_settings(p, goal), seed + i)
+
+        return in_loop_at
+
+    return {name: on(chain) for name, chain in chains.items()}
 
 
 def pose_renderer(renderer: Any, seed: int) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:

@@ -22,7 +22,13 @@ DYNAMICS = {
     "and Clohessy-Wiltshire motion)",
 }
 TARGET_EPS = 0.05  # issue 39: the shipped chain docks within the tolerance under every attack up to this eps
-VARIANTS = {"undefended": "undefended", "hold": "detect-and-hold", "recover": "detect-and-recover"}
+VARIANTS = {  # pipeline.guidance.grid.variant_key -> words: the shipped chain's variants, then the standard chain's
+    "undefended": "undefended",
+    "hold": "detect-and-hold",
+    "recover": "detect-and-recover",
+    "standard hold": "standard chain, detect-and-hold",
+    "standard recover": "standard chain, detect-and-recover",
+}
 
 
 def defended_section(d: dict[str, Any], g: Guidance) -> str:
@@ -274,7 +280,9 @@ def in_loop_section(d: dict[str, Any], i: Integrity) -> str:
 
 ## The in-loop attacker: collision course, miss and capture
 
-On the chain that ships (robust model, its detector and defense). Goals "collide" and "miss": every frame from the
+On the chain that ships (robust model, its detector and defense) and, as the comparison, on the standard chain (the
+paper's model with its own detector and calibrated defense, models/defense_standard.json: "standard chain" rows).
+Goals "collide" and "miss": every frame from the
 first step at range <= S (S in {", ".join(f"{s:g}" for s in i.in_loop_start_ranges)} m) to the end of the run is
 crafted by an attacker who knows the chain (pose network and detector), the defense with its state, the guidance law
 and where the chaser truly is (pipeline/attackers/in_loop.py): it looks one step ahead over estimates pushed along
@@ -490,6 +498,19 @@ def _safety_cells(x: dict[str, Any]) -> dict[str, Any]:
     return row
 
 
+def _standard_text(d: dict[str, Any]) -> str:
+    """The clause on the standard chain's runs, where the closed loop flew any ("" otherwise)."""
+    flown = sorted({r["defense"] for r in d["runs"] if r.get("chain") == "standard"})
+    return (
+        ""
+        if not flown
+        else " but those of the standard chain (the standard model, its detector and its defense,\n"
+        "models/defense_standard.json), which flies its no-attack run and the in-loop attackers as the comparison ("
+        + ", ".join(VARIANTS[k] for k in flown)
+        + ")"
+    )
+
+
 def _closed_loop_text(
     d: dict[str, Any],
     p: Params,
@@ -504,13 +525,15 @@ def _closed_loop_text(
     from pipeline.report.markdown import markdown_table
     from stages.pages.integrity import attacker_names, process_noise
 
-    x = p.guidance.execution
+    x, standard = p.guidance.execution, _standard_text(d)
     return f"""# Closed-loop rendezvous: where the shipped chain docks
 
 {head}
 
 {markdown_table([{"target": t, "verdict": w, "evidence": e} for t, w, e in lines]) if lines else ""}
-Assumptions: the shipped chain (robust model, its detector and its defense, models/defense.json) flies every run.
+Assumptions: the shipped chain (robust model, its detector and its defense, models/defense.json) flies every run{
+        standard
+    }.
 True-state dynamics: the chaser moves by the command it sent, executed with the thrusters' error
 ({100 * x.scale_std:g}% of the step and {100 * x.noise_std:g} cm per axis, 1-sigma per step; seeded, the same draws
 in every run) and Clohessy-Wiltshire motion over {x.frame_interval:g} s per step (mean motion {x.mean_motion:g} rad/s,
@@ -527,7 +550,9 @@ estimate, and its holds at least the rest of the approach at {p.guidance.max_ste
 spent the step budget; the undefended chain never holds, so it cannot time out): both are availability losses,
 not failures, counted in the column "held / timed out". The paper dynamics rows are the paper's reproduction (prediction = truth by construction) and no part of
 the breaking point's headline. The in-loop attackers: {", ".join(attacker_names(g) for g in p.integrity.in_loop_goals)}
-at eps {", ".join(f"{e:g}" for e in p.integrity.in_loop_eps)}; the grid's FGSM at eps {", ".join(f"{e:g}" for e in p.guidance.eps)}.
+at eps {", ".join(f"{e:g}" for e in p.integrity.in_loop_eps)}; the grid's FGSM at eps {
+        ", ".join(f"{e:g}" for e in p.guidance.eps)
+    }.
 
 Docking per dynamics and variant (only the attacked runs that met the attack count):
 

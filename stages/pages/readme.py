@@ -562,13 +562,14 @@ def _integrity_rows(
     undefended robust control), the shipped chain's largest error / AL at eps 0.05, its docking miss in the closed
     loop (detect-and-recover, true-state dynamics) without attack and at eps 0.05; then the worst HMI a chain-level
     attack caused on the shipped chain (descriptive) and on the standard one, availability without attack, and the
-    in-loop attacker's collisions per variant on the shipped chain ("-" where not run)."""
+    in-loop attacker's collisions per variant on the shipped chain ("-" where not run) and on the standard chain."""
     integrity = rb.get("integrity", {})
     return [
         *_breaking_rows(integrity, spread),
         *_docking_rows(gd, spread),
         *_hmi_rows(integrity, spread),
         _in_loop_row(gd, spread),
+        *_standard_in_loop_rows(gd),
     ]
 
 
@@ -697,6 +698,34 @@ def _hmi_rows(integrity: dict[str, Any], spread: dict[str, Any] | None) -> list[
     return out
 
 
+def _in_loop_eps(gd: dict[str, Any]) -> str:
+    return " and ".join(sorted({f"{r['eps']:g}" for r in gd.get("in_loop", {}).get("runs", [])}))
+
+
+def _standard_in_loop_rows(gd: dict[str, Any]) -> list[tuple[str, str, str, str, str]]:
+    """The in-loop attacker's collisions and docking misses on the standard chain per variant flown (none: no row)."""
+    from pipeline.stats import wilson
+
+    counts, rows = gd.get("in_loop", {}).get("counts", {}), []
+    for variant in ("standard hold", "standard recover"):
+        c = [v for d in counts.values() for v in d.get(variant, {}).values()]
+        if not c:
+            continue
+        col, lost, n = (sum(x[i] for x in c) for i in (0, 1, 3))
+        rows.append(
+            (
+                f"closed loop, in-loop attacker at eps {_in_loop_eps(gd)}: collisions / not docked without a collision "
+                f"of attacked runs (%), standard chain (standard model, its detector and defense), "
+                f"{variant.split()[1].replace('hold', 'detect-and-hold').replace('recover', 'detect-and-recover')}",
+                f"{wilson(col, n).pct()} ({col}/{n}) / {wilson(lost, n).pct()} ({lost}/{n})",
+                "-",
+                "guidance",
+                "-",
+            )
+        )
+    return rows
+
+
 def _in_loop_row(gd: dict[str, Any], spread: dict[str, Any] | None) -> tuple[str, str, str, str, str]:
     """The in-loop attacker's collisions per variant on the shipped chain."""
     from pipeline.stats import wilson
@@ -708,8 +737,7 @@ def _in_loop_row(gd: dict[str, Any], spread: dict[str, Any] | None) -> tuple[str
         k, n = sum(x[0] for x in c), sum(x[3] for x in c)
         cells.append("-" if not c else f"{wilson(k, n).pct()} ({k}/{n})")
     return (
-        "closed loop, in-loop attacker at eps "
-        + " and ".join(sorted({f"{r['eps']:g}" for r in gd.get("in_loop", {}).get("runs", [])}))
+        f"closed loop, in-loop attacker at eps {_in_loop_eps(gd)}"
         + ": collisions of attacked runs (%), shipped chain (robust "
         "model), undefended / detect-and-hold / detect-and-recover",
         " / ".join(cells),
