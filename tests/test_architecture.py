@@ -133,6 +133,14 @@ def test_the_api_imports_the_library_only() -> None:
     assert deps and all(d.split(".")[0] in ("pipeline", "rpodguard") for d in deps), deps
 
 
+def test_the_api_imports_no_evaluation_helper() -> None:
+    """The public API (rpodguard) runs the chain; judging it (pipeline.evaluation, pipeline.report) is the stages'.
+    A helper the API needs from there belongs in a lower layer (issue 36: resize and alert_limit were moved)."""
+    deps = {dep for name in MODULES if name.startswith("rpodguard") for dep in imports(name)}
+    bad = sorted(d for d in deps if d.startswith(("pipeline.evaluation", "pipeline.report")))
+    assert not bad, bad
+
+
 def test_every_unit_has_its_place_in_the_order() -> None:
     units = {unit(name) for name in MODULES if name != "pipeline"}
     assert units - set(ORDER) == set(), "declare the new package in PIPELINE_ORDER or STAGES_ORDER"
