@@ -440,7 +440,8 @@ def closed_loop_rows(metrics: list[Metrics], seeds: list[str]) -> list[dict[str,
             str(sum(c.get("outcomes", {}).get(o, 0) for c in cells)) for o in (HELD, TIMED_OUT)
         )
         rows.append(row)
-    return rows
+    columns = list(dict.fromkeys(k for row in rows for k in row))  # "-" where a variant flew no run at an eps
+    return [{k: row.get(k, "-") for k in columns} for row in rows]
 
 
 def pooled_section(runs: list[Path], seeds: list[str]) -> str:
