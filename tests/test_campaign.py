@@ -362,6 +362,19 @@ def test_the_page_shows_availability_under_attack_and_each_chain_per_trajectory_
     assert lead(json.loads(json.dumps(m, sort_keys=True)), p) == page
 
 
+def test_the_full_grid_page_says_how_many_trajectories_it_flew() -> None:
+    from stages.config import params as params_mod
+    from stages.pages.integrity import grid_head
+
+    p = params_mod.build(params_mod.compose("default"))
+    m = _integrity({"robust": None, "standard": 0.05, "control": 0.05})
+    assert "control, every trajectory and every eps" in grid_head(m, p)
+    for chain in m["chains"].values():
+        chain["trajectories"] = 1
+    head = grid_head(m, p)
+    assert f"the first 1 of the {p.evaluate.trajectories} eval_render trajectories only (`--trajectories 1`)" in head
+
+
 def test_an_eps_a_chain_did_not_fly_is_a_row_of_dashes_not_nan() -> None:
     """The safety-index table: the eps after a chain broke say so, with "-" in every other column."""
     from pipeline.report.markdown import markdown_table

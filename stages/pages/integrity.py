@@ -570,11 +570,23 @@ def in_order(integrity: dict[str, Any]) -> dict[str, Any]:
 
 def integrity_page(integrity: dict[str, Any], p: Params) -> str:
     """reports/integrity_full.md (`rpod integrity`): the full grid's evidence and descriptive rows."""
+    return grid_head(integrity, p) + lead(integrity, p) + integrity_section(integrity, p, figure=False)
+
+
+def grid_head(integrity: dict[str, Any], p: Params) -> str:
+    """The full grid page's title and first paragraph: what it flies and how many of the evaluation trajectories
+    (`--trajectories N` flies the first N)."""
+    flown = max(c["trajectories"] for c in integrity["chains"].values())
+    total = p.evaluate.trajectories
+    which = (
+        "every trajectory"
+        if flown >= total
+        else f"the first {flown} of the {total} eval_render trajectories only (`--trajectories {flown}`)"
+    )
     return (
         "# The full integrity grid (`rpod integrity`)\n\nEvery attacker on the shipped chain, the standard one and "
-        "the undefended robust control, every trajectory and every eps (the default profile's `rpod robustness` "
-        "flies fewer attackers on fewer trajectories and stops each chain at its breaking point: "
-        "reports/robustness.md).\n\n" + lead(integrity, p) + integrity_section(integrity, p, figure=False)
+        f"the undefended robust control, {which} and every eps (the default profile's `rpod robustness` flies fewer "
+        "attackers on fewer trajectories and stops each chain at its breaking point: reports/robustness.md).\n\n"
     )
 
 
