@@ -9,6 +9,7 @@ starts a local Ray with 2 workers (~20 s)."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import pickle
 
 import numpy as np
@@ -88,12 +89,12 @@ def test_missing_shards_fly_one_job_each_in_any_order_and_match_the_drivers(grid
     want_record, want_shards = by_driver[key]
     assert calls == [[0, 1, 2]] and list(shards) == ["t0.pkl", "t1.pkl", "t2.pkl"]
     assert shards == want_shards  # byte for byte: key and share
-    assert results(record) == results(want_record) and record["rows"]
+    assert same(results(record), results(want_record)) and record["rows"]
 
     for name in ("t0.pkl", "t2.pkl"):  # a run killed before two trajectories were written
         (tmp_path / key / name).unlink()
     record, shards = fly(grid, key, tmp_path, backwards)
-    assert calls[1:] == [[0, 2]] and shards == want_shards and results(record) == results(want_record)
+    assert calls[1:] == [[0, 2]] and shards == want_shards and same(results(record), results(want_record))
     fly(grid, key, tmp_path, backwards)
     assert len(calls) == 2  # every shard there: the engine is not called
 
@@ -154,6 +155,12 @@ def test_two_ray_workers_write_the_shards_the_driver_writes(grid, by_driver, tmp
     assert list(shards) == list(want_shards)
     assert [pickle.loads(b)["key"] for b in shards.values()] == [pickle.loads(b)["key"] for b in want_shards.values()]
     assert close(results(record), results(want_record)) and record["rows"]
+
+
+def same(a, b) -> bool:
+    """Nested records exactly equal, NaN equal to NaN (the full grid's drift from the end of the trusted start
+    attacks no frame of a 12-frame toy track: its rows hold NaN)."""
+    return json.dumps(a, sort_keys=True, default=repr) == json.dumps(b, sort_keys=True, default=repr)
 
 
 def close(a, b) -> bool:
