@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import pickle
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -30,6 +31,7 @@ from stages.engine import pool as engine
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # the driver's flights on 1 torch thread, as each Ray worker's
 SEED = 5
+REPO = Path(__file__).resolve().parent.parent
 IN_PROCESS = engine.EngineSettings(1, None, 60.0, 0)
 
 
@@ -174,3 +176,31 @@ def close(a, b) -> bool:
     if isinstance(a, float) and isinstance(b, float):
         return a == b or (np.isnan(a) and np.isnan(b)) or abs(a - b) <= 1e-5 * max(abs(a), abs(b)) + 1e-9
     return a == b
+
+
+def test_the_shards_script_prints_each_share_as_the_campaign_judges_it(by_driver, tmp_path, capsys) -> None:
+    """scripts/integrity_shards.py on the shards of a flown chain: one row per (attacker, eps) run and the no-attack
+    row; each attacker's "nested" column is the campaign summary's per-trajectory error / AL (nested in eps)."""
+    import importlib.util
+
+    from stages.config.build import alert_limit_settings
+
+    spec = importlib.util.spec_from_file_location("integrity_shards", REPO / "scripts" / "integrity_shards.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    record, shards = by_driver[SHIPPED.value]
+    for name, data in shards.items():
+        (tmp_path / SHIPPED.value).mkdir(exist_ok=True)
+        (tmp_path / SHIPPED.value / name).write_bytes(data)
+    p = build(params_mod.compose("smoke"))
+    attackers = record["summary"]["attackers"]
+    for g, name in enumerate(sorted(shards)):
+        rows = script.share_rows(pickle.loads(shards[name])["share"], alert_limit_settings(p, "single_frame"))
+        assert rows[-1]["attacker"] == "no attack" and len(rows) == 1 + sum(len(v) for v in attackers.values())
+        for row in rows[:-1]:
+            want = attackers[row["attacker"]][row["eps"]][g]["max_error_al"]
+            assert row["nested"] == ("-" if want is None or want != want else f"{want:.2f}"), (name, row)
+    assert script.main([str(tmp_path)]) == 0 and capsys.readouterr().out.count("| no attack") == len(shards)
+    assert script.main([str(tmp_path / "none")]) == 1
+    (tmp_path / SHIPPED.value / "t9.pkl").write_bytes(b"not a shard")
+    assert script.main([str(tmp_path)]) == 0 and "t9.pkl: unreadable" in capsys.readouterr().out
