@@ -136,8 +136,8 @@ def main(params: Params) -> None:
     make_attack(params.attack, g.method, 0)  # refuses bad attack params before anything runs
     torch_setup(params)
     # each refuses a pose model whose input size is not render.width x height, or a detector of another model
-    defended = {SHIPPED: True, PAPER: bool(g.standard_defenses)}  # the standard chain flies defended in the loop too
-    chains = {m.value: load_chain(params, m, defended=defended[m]) for m in (PAPER, SHIPPED)}
+    with_defense = {SHIPPED: True, PAPER: bool(g.standard_defenses)}  # the standard chain flies defended in the loop
+    chains = {m.value: load_chain(params, m, defended=with_defense[m]) for m in (PAPER, SHIPPED)}
     hashes = {m: chain.pose_hash for m, chain in chains.items()}
     shipped = chains[SHIPPED.value]
     K, es = intrinsics(params), engine.engine_settings(params)  # K: the model's input size
@@ -148,7 +148,8 @@ def main(params: Params) -> None:
     baseline, _, _, attacked = paper_runs
     metrics = _metrics(settings, g, params.attack, hashes, seconds, counts, paper_runs, defended)
     metrics |= _shipped_metrics(params, plan, flown, looped, t0)
-    _write_outputs(params, metrics, shipped, settings, (baseline, attacked), defended)
+    standard = chains[PAPER.value] if g.standard_defenses else None
+    _write_outputs(params, metrics, (shipped, standard), settings, (baseline, attacked), defended)
     typer.echo(
         f"guidance: baseline {baseline.outcome} ({baseline.miss:.2f} m); {len(attacked)} attacked runs in "
         f"{seconds:.0f} s; defended grid and {looped} in-loop runs in {defended['seconds']:.0f} s -> {REPORT}"
@@ -265,13 +266,14 @@ def _shipped_metrics(params: Params, plan: Any, flown: list[Any], looped: int, t
 def _write_outputs(
     params: Params,
     metrics: dict[str, Any],
-    shipped: Any,
+    chains: tuple[Any, Any],
     settings: Any,
     paper: tuple[Any, list[Any]],
     defended: dict[str, Any],
 ) -> None:
-    """reports/metrics/guidance.json, reports/guidance.md and the two figures; `paper`: the paper grid's
-    (baseline, attacked runs)."""
+    """reports/metrics/guidance.json, reports/guidance.md (behind the unmet-calibration banners of the shipped chain
+    and, where it flies defended, the standard one) and the two figures; `chains`: (shipped, standard or None);
+    `paper`: the paper grid's (baseline, attacked runs)."""
     from pipeline.report.figures import guidance_trajectories, guidance_variants
 
     g = params.guidance
@@ -279,7 +281,8 @@ def _write_outputs(
     write_metrics(METRICS, metrics, params.profile_name)
     atomic_write_text(
         REPORT,
-        unmet_banner(shipped.calibration.unmet)
+        unmet_banner(chains[0].calibration.unmet)
+        + (unmet_banner(chains[1].calibration.unmet, PAPER) if chains[1] is not None else "")
         + closed_loop_section(metrics["closed_loop"], params)
         + guidance_page(metrics, g, params.render)
         + defended_section(metrics["defended"], g)

@@ -354,8 +354,8 @@ def test_the_page_shows_availability_under_attack_and_each_chain_per_trajectory_
     m = _integrity({"robust": None, "standard": 0.05, "control": 0.05})
     page = lead(m, p)
     index = [line for line in page.splitlines() if line.startswith("| robust   | 0.05")][0]
-    assert index.rstrip(" |").endswith("50.0")  # 5 nominal, 5 unavailable
-    assert "Lowest share of available frames under attack: shipped 50.0% (first at eps 0.05)" in page
+    assert index.rstrip(" |").endswith("5 of 10")  # 5 nominal, 5 unavailable
+    assert "Fewest available frames under attack: shipped 5 of 10 (first at eps 0.05)" in page
     rows = [line for line in page.splitlines() if "| t0 " in line]
     assert [r.split("|")[1].strip() for r in rows] == ["robust", "standard", "control"]
     assert all(r.split("|")[-3].strip() == "7" and r.split("|")[-2].strip() == "62.5" for r in rows)

@@ -59,6 +59,11 @@ def test_every_profile_builds_typed_params(profile):
         (("defense", "harm_m", 0.0), r"defense.harm_m must be > 0"),
         (("guidance", "defenses", ["hold", "pray"]), r"guidance.defenses\[1\] must be one of hold, recover"),
         (("guidance", "standard_defenses", ["pray"]), r"guidance.standard_defenses\[0\] must be one of hold, recover"),
+        (
+            ("guidance", "standard_defenses", ["recover", "recover"]),
+            r"guidance.standard_defenses lists 'recover' twice",
+        ),
+        (("guidance", "defenses", ["hold", "hold"]), r"guidance.defenses lists 'hold' twice"),
         (("attack", "eps", [0.1, 0.05, 0.1]), r"attack.eps lists 0.1 twice"),  # issue 42 item 10: the guards
         (("shap", "eps", [0.05, 0.05]), r"shap.eps lists 0.05 twice"),
         (("evaluate", "eps", [0.01, 0.01]), r"evaluate.eps lists 0.01 twice"),

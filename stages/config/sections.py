@@ -232,6 +232,11 @@ class Guidance:
 
     def __post_init__(self) -> None:
         distinct(self.eps, "guidance.eps")
+        for key in ("dynamics", "defenses", "standard_defenses"):  # a repeat would fly a block twice under one name
+            values = getattr(self, key)
+            twice = next((v for i, v in enumerate(values) if v in values[:i]), None)
+            if twice is not None:
+                raise ValueError(f"guidance.{key} lists {twice!r} twice; give each value once")
 
 
 @dataclass(frozen=True)

@@ -198,10 +198,11 @@ the trusted error on the last frame, the bias the chaser would dock with (a fina
 fails a trajectory only where that frame is available: at the goal AL is the tolerance, so it is then an error / AL
 above 1; on an unavailable last frame the chain has declared it cannot be trusted, and the closed loop holds, a
 safe abort, reports/guidance.md); "trajectories with HMI": a descriptive
-count over independent trajectories (Clopper-Pearson 95%), of the attacks tried only; "available frames": the
-share of frames the chain would fly on under every attacker at that eps itself (summed, from each attack's first
-frame; not nested in eps), where the error / AL columns cannot see an attack that makes the chain declare itself
-unavailable (the guidance holds: safe, but no docking).
+count over independent trajectories (Clopper-Pearson 95%), of the attacks tried only; "available frames": of the
+frames under every attacker at that eps itself (summed, from each attack's first frame; not nested in eps), those
+the chain would fly on, where the error / AL columns cannot see an attack that makes the chain declare itself
+unavailable (the guidance holds: safe, but no docking); a count, like the Stanford-ESA table's (the frames of a
+trajectory are not independent, so no interval is drawn from them).
 
 {markdown_table(index)}{_lowest(chains, integrity["eps"])}{per_trajectory}
 ### Stanford-ESA regions (frames counted from each attack's first frame, every attacker summed)
@@ -277,7 +278,7 @@ INDEX_COLUMNS = (  # the safety-index table's columns
     "trajectories failed",
     "worst attacker",
     "trajectories with HMI (%)",
-    "available frames (%)",
+    "available frames",
 )
 
 
@@ -312,7 +313,7 @@ def _safety_index(
                     "trajectories failed": f"{row['failed']}/{row['trajectories']}",
                     "worst attacker": attacker_names(row["worst_attacker"] or "-"),
                     "trajectories with HMI (%)": percent_of(row["hmi_trajectories"]),
-                    "available frames (%)": _available(row["stanford"]),
+                    "available frames": _available(row["stanford"]),
                 }
             )
             regions.append({"chain": k, "eps": f"{e:g}", **_regions(row["stanford"])})
@@ -321,15 +322,16 @@ def _safety_index(
 
 
 def _lowest(chains: dict[str, Any], eps: list[float]) -> str:
-    """One line: per chain the lowest share of available frames under attack over the eps it flew, and where."""
+    """One line: per chain the eps it flew with the lowest share of available frames under attack (the first such
+    eps), and that count."""
     parts = []
     for k, v in chains.items():
         rows = [(v["summary"]["per_eps"].get(f"{e:g}"), e) for e in eps]
-        shares = [(a, e) for r, e in rows if r and (a := _available_share(r["stanford"])) is not None]
+        shares = [(a, e, r["stanford"]) for r, e in rows if r and (a := _available_share(r["stanford"])) is not None]
         if shares:
-            low, at = min(shares, key=lambda x: (x[0], x[1]))
-            parts.append(f"{CHAINS[k].split(' (')[0]} {low:.1f}% (first at eps {at:g})")
-    return f"\nLowest share of available frames under attack: {', '.join(parts)}.\n" if parts else ""
+            _, at, stanford = min(shares, key=lambda x: (x[0], x[1]))
+            parts.append(f"{CHAINS[k].split(' (')[0]} {_available(stanford)} (first at eps {at:g})")
+    return f"\nFewest available frames under attack: {', '.join(parts)}.\n" if parts else ""
 
 
 def _regions(stanford: dict[str, int]) -> dict[str, int]:
@@ -340,16 +342,17 @@ def _regions(stanford: dict[str, int]) -> dict[str, int]:
 
 
 def _available_share(stanford: dict[str, int]) -> float | None:
-    """The share of frames (%) available (nominal, MI or HMI) among a Stanford-ESA row's frames (None: no frames):
+    """The share of frames available (nominal, MI or HMI) among a Stanford-ESA row's frames (None: no frames):
     at one eps itself, every attacker summed (not nested: a larger eps may abort more), from each attack's first
     frame."""
     total = sum(stanford.values())
-    return 100 * sum(stanford.get(r, 0) for r in ("nominal", "MI", "HMI")) / total if total else None
+    return sum(stanford.get(r, 0) for r in ("nominal", "MI", "HMI")) / total if total else None
 
 
 def _available(stanford: dict[str, int]) -> str:
-    share = _available_share(stanford)
-    return "-" if share is None else f"{share:.1f}"
+    """A Stanford-ESA row's available frames as "k of n" ("-": no frames)."""
+    total = sum(stanford.values())
+    return f"{sum(stanford.get(r, 0) for r in ('nominal', 'MI', 'HMI'))} of {total}" if total else "-"
 
 
 def _per_trajectory(chains: dict[str, Any]) -> str:
