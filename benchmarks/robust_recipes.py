@@ -7,12 +7,15 @@ fit split (FIT_FRAMES), every validation frame and TEST_FRAMES test frames. A ca
 preset of RECIPES) is the robust stage's recipe (the standard model fine-tuned behind the clamp, its seeds,
 schedule and validation split) with overrides of train.adversarial, on the fit split with its FIT_FRAMES Earth
 renders swapped in (23%; or a recipe's `earth_share`, with the MORE_FIT_FRAMES renders) and EARTH_SHARE of the
-validation frames it selects its checkpoint on. `eval NAME`
+validation frames it selects its checkpoint on. The ablation of the committed recipe is three presets of it on
+the same frames: `neither` (fine-tuned clean, no clamp), `clamp-only` (no attacks) and `adversarial-only` (no
+clamp), beside `today+earth` (both). `eval NAME`
 runs the LEAN suite (pipeline.attacks.strongest) on a seeded sample of validation (choosing) or test (reporting)
 frames, each frame black and over its Earth background (pipeline.pose.ablation.ablation_rows: rows per
 background kind: black, space = stars and the sensor's offset and noise, earth = the sunlit Earth in view), plus
-the clean errors of the whole black split. `table` writes the `## Robust training recipes` section of
-reports/benchmarks.md from the stored evaluations. Files go to datasets/robust_recipes/ (ignored by git).
+the clean errors of the whole black split. `table [NAME ...] [--section TITLE]` writes a section of
+reports/benchmarks.md (default `## Robust training recipes`) from the stored evaluations of those recipes (all).
+Files go to datasets/robust_recipes/ (ignored by git).
 
     .venv/bin/python benchmarks/robust_recipes.py render
     .venv/bin/python benchmarks/robust_recipes.py train c4 && .venv/bin/python benchmarks/robust_recipes.py eval c4
@@ -56,7 +59,11 @@ EPS = (0.01, 0.05, 0.1)
 PAST_CLAMP = {"start": "lift", "bpda": True, "eps": 0.1}
 # name -> (overrides of train.adversarial, options: black_level (None: the params'), clean (no attack), earth_share)
 RECIPES: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
-    "today+earth": ({}, {}),  # the committed recipe (params.yaml), on the Earth-swapped frames
+    "today+earth": ({}, {}),  # the committed recipe (params.yaml), on the Earth-swapped frames: clamp and attacks
+    # the ablation of the committed recipe, same frames, epochs and schedule: what the clamp and the attacks each buy
+    "neither": ({}, {"clean": True, "black_level": 0.0}),
+    "clamp-only": ({}, {"clean": True}),
+    "adversarial-only": ({}, {"black_level": 0.0}),
     "c1": ({**PAST_CLAMP, "objectives": ["position", "attitude"], "attacked_rotation": True}, {}),
     "c2": ({**PAST_CLAMP, "eps": 0.05, "objectives": ["position", "attitude"], "attacked_rotation": True}, {}),
     "c4": (
@@ -287,14 +294,18 @@ def table_rows(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
-def table() -> None:
-    """The `## Robust training recipes` section of reports/benchmarks.md from the stored evaluations."""
+def table(names: list[str], section: str) -> None:
+    """The `## {section}` section of reports/benchmarks.md from the stored evaluations of `names` (every stored
+    one when empty)."""
     from pipeline.report.markdown import markdown_table
     from stages.report import write_benchmark
 
-    records = [json.loads(f.read_text()) for f in sorted(OUT.glob("*_val.json")) + sorted(OUT.glob("*_test.json"))]
+    files = sorted(OUT.glob("*_val.json")) + sorted(OUT.glob("*_test.json"))
+    records = [r for r in (json.loads(f.read_text()) for f in files) if not names or r["name"] in names]
     costs = []
     for name, (overrides, options) in RECIPES.items():
+        if names and name not in names:
+            continue
         path = OUT / f"{name}.pt"
         ckpt = torch.load(path) if path.exists() else {}
         costs.append(
@@ -318,8 +329,8 @@ def table() -> None:
         for r in records
     ]
     body = (
-        f"`benchmarks/robust_recipes.py` on {platform.machine()}, torch {torch.__version__}, 1 thread, CPU, niced, "
-        f"beside other sessions on the same 2 cores (wall times are not the idle machine's). Earth frames: "
+        f"`benchmarks/robust_recipes.py` on {platform.machine()}, torch {torch.__version__}, CPU, 1 thread per "
+        f"process, two or more processes on the same 2 cores (wall times are not the idle machine's). Earth frames: "
         f"{json.dumps(EARTH)} (pipeline/render/backgrounds.py; `space` = stars and the sensor only, `earth` = the "
         f"sunlit Earth in view); training swaps {EARTH_SHARE:.0%} of the fit and validation frames for their Earth "
         f"versions. Attacks: LEAN ({', '.join(LEAN.members)}; {LEAN.steps} steps, lifting start), worst case per "
@@ -328,13 +339,18 @@ def table() -> None:
         f"Clean errors of the whole black split:\n\n{markdown_table(clean)}"
     )
     print(body)
-    print(f"-> {write_benchmark('Robust training recipes', body)} (## Robust training recipes)")
+    print(f"-> {write_benchmark(section, body)} (## {section})")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("command", choices=["render", "train", "eval", "table"])
-    ap.add_argument("name", nargs="?", help="a preset of RECIPES (eval: also committed-standard, committed-robust)")
+    ap.add_argument(
+        "name",
+        nargs="*",
+        help="a preset of RECIPES (eval: also committed-standard, committed-robust); table: those to include (all)",
+    )
+    ap.add_argument("--section", default="Robust training recipes", help="table: the reports/benchmarks.md section")
     ap.add_argument("--split", default="val", choices=["val", "test"])
     ap.add_argument("--frames", type=int, default=64)
     ap.add_argument("--threads", type=int, default=1)
@@ -343,12 +359,14 @@ def main() -> None:
     p = params_mod.load()
     if args.command == "render":
         render(p)
+    elif args.command in ("train", "eval") and len(args.name) != 1:
+        raise SystemExit(f"{args.command} takes one recipe name, got {len(args.name)}")
     elif args.command == "train":
-        train(p, args.name)
+        train(p, args.name[0])
     elif args.command == "eval":
-        evaluate(p, args.name, args.split, args.frames)
+        evaluate(p, args.name[0], args.split, args.frames)
     else:
-        table()
+        table(args.name, args.section)
 
 
 if __name__ == "__main__":
