@@ -302,6 +302,13 @@ def table(names: list[str], section: str) -> None:
 
     files = sorted(OUT.glob("*_val.json")) + sorted(OUT.glob("*_test.json"))
     records = [r for r in (json.loads(f.read_text()) for f in files) if not names or r["name"] in names]
+    unknown = sorted(set(names) - set(RECIPES) - {"committed-standard", "committed-robust"})
+    unmeasured = sorted(set(names) - {r["name"] for r in records})
+    if unknown or unmeasured or not records:
+        raise SystemExit(
+            f"table: unknown recipes {unknown}, no stored evaluation in {OUT} for {unmeasured or 'any'}; "
+            f"run `eval NAME` first"
+        )
     costs = []
     for name, (overrides, options) in RECIPES.items():
         if names and name not in names:
