@@ -237,31 +237,56 @@ def _model(params: Params, epochs: int, seed: int) -> tuple[Any, Any]:
 
 
 def _robust(params: Params, surrogate: bool) -> None:
-    """`rpod train --robust`: adversarial training of the clamped network, then both models on test."""
-    from pipeline.pose.adversarial import Adversary
-    from pipeline.pose.loss import PoseLoss
-    from pipeline.pose.model import PoseNet
-    from pipeline.pose.train import DivergenceError, fit, make_deterministic
+    """`rpod train --robust`: adversarial training of the clamped network (with train.adversarial.ablation, also
+    the clamp alone and the attacks alone), then the models on test."""
     from stages.artifacts import data
-    from stages.artifacts.models import load_pose
-    from stages.config.build import adversarial_config, robust_train_config
     from stages.config.device import distributed
 
     if surrogate:
         raise StageError("rpod train: --robust and --surrogate train different models; give one")
     adv = params.train.adversarial
     rank, world, device = distributed(params)
+    # the standard model's split: its validation frames were never fitted by either model
+    sets = data.training_sets(params, seed_for(params.seed, "train"))
+    model, result, best = _fine_tune(params, float(adv.black_level), True, sets, (rank, world, device))
+    variants = {}
+    if adv.ablation:  # the ablation's variants: the same recipe without the attacks, or without the clamp
+        for name, level, attacked in ABLATION:
+            if rank == 0:
+                print(f"train --robust: the ablation's '{name}' variant", flush=True)
+            level = float(adv.black_level) if level is None else level
+            variants[name] = _fine_tune(params, level, attacked, sets, (rank, world, device))[:2]
+    if rank == 0:
+        (train_split, _, _), (val_split, val_set) = sets
+        _write_robust(params, model, best, result, (train_split, val_split, val_set), device, variants)
+    _finish(world)
+
+
+# the ablation's variants (name, black level (None: train.adversarial.black_level), attacked): the same recipe
+ABLATION = (("clamp only", None, False), ("adversarial training only", 0.0, True))
+
+
+def _fine_tune(
+    params: Params, level: float, attacked: bool, sets: tuple[Any, Any], where: tuple[int, int, Any]
+) -> tuple[Any, Any, dict[str, Any]]:
+    """The robust recipe (train.adversarial) on `sets` (data.training_sets) with the input clamp at `level` and
+    the attacks on or off: (the network at its best epoch, fit's result, the best epoch's loss and facts).
+    `where`: (rank, world, device)."""
+    from pipeline.pose.adversarial import Adversary
+    from pipeline.pose.loss import PoseLoss
+    from pipeline.pose.model import PoseNet
+    from pipeline.pose.train import DivergenceError, fit, make_deterministic
+    from stages.artifacts.models import load_pose
+    from stages.config.build import adversarial_config, robust_train_config
+
+    adv, (rank, world, device) = params.train.adversarial, where
     try:
         cfg = robust_train_config(params.train, seed_for(params.seed, "robust"))
     except ValueError as e:
         raise StageError(f"params.yaml: bad train.adversarial section ({e})") from None
     make_deterministic(cfg.seed)
-    model, loss = (
-        PoseNet(float(params.train.width), float(params.train.dropout), float(adv.black_level)),
-        PoseLoss("mean"),
-    )
-    # the standard model's split: its validation frames were never fitted by either model
-    (train_split, train_set, _), (val_split, val_set) = data.training_sets(params, seed_for(params.seed, "train"))
+    model, loss = PoseNet(float(params.train.width), float(params.train.dropout), level), PoseLoss("mean")
+    (train_split, train_set, _), (_, val_set) = sets
     if adv.init == "standard":
         standard = load_pose(params)
         model.load_state_dict(standard.model.state_dict())
@@ -269,7 +294,8 @@ def _robust(params: Params, surrogate: bool) -> None:
     else:
         model.set_output_bias(train_split.targets[:, :3].mean(0), train_split.targets[:, 3:].mean(0))
     model.place(device, params.amp)
-    adversary = Adversary(adversarial_config(adv), loss, len(train_set) // (cfg.batch_size * world), cfg.seed)
+    steps = len(train_set) // (cfg.batch_size * world)
+    adversary = Adversary(adversarial_config(adv), loss, steps, cfg.seed) if attacked else None
     best: dict[str, Any] = {}
     try:
         result = fit(
@@ -277,20 +303,25 @@ def _robust(params: Params, surrogate: bool) -> None:
         )
     except DivergenceError as e:
         raise StageError(f"{e}; lower train.adversarial.lr_max ({POSE_ROBUST} was left as it was)") from None
-    if rank == 0:
-        model.load_state_dict(result.best_state)
-        _write_robust(params, model, best, result, (train_split, val_split, val_set), device)
-    _finish(world)
+    model.load_state_dict(result.best_state)
+    return model, result, best
 
 
 def _write_robust(
-    params: Params, net: Any, best: dict[str, Any], result: Any, splits: tuple[Any, Any, Any], device: Any
+    params: Params,
+    net: Any,
+    best: dict[str, Any],
+    result: Any,
+    splits: tuple[Any, Any, Any],
+    device: Any,
+    variants: dict[str, tuple[Any, Any]],
 ) -> None:
     """Both models on validation and test (clean), and under the strongest-attack suite (`suite` params) on a
-    seeded sample of test frames; each model's attacker capacity on the validation frames; the clamp threshold
-    against the data (training frames); then models/pose_robust.pt, datasets/capacity/,
-    reports/metrics/robust.json, reports/pose_robust.md and dvclive/robust/ together. `splits`: (fit split,
-    validation split, its dataset). The test split is read here, after training."""
+    seeded sample of test frames, the ablation's `variants` (name -> (network, fit's result)) too; each model's
+    attacker capacity on the validation frames; the clamp threshold against the data (training frames); then
+    models/pose_robust.pt, datasets/capacity/, reports/metrics/robust.json, reports/pose_robust.md and
+    dvclive/robust/ together. `splits`: (fit split, validation split, its dataset). The test split is read here,
+    after training."""
     from pipeline.pose.metrics import summarize_errors
     from pipeline.pose.robustness import black_level_stats
     from pipeline.pose.train import predict
@@ -310,6 +341,7 @@ def _write_robust(
         }
     capacity, seconds = _attacked(params, out, (standard.model, net), (test_split, val_split), device)
     _training_cost(params, out, result, len(train_split))
+    ablation = _ablation(params, variants, test_split, device, seconds)
     shift = params.lab.domain_shift
     metrics = {
         **out,
@@ -323,6 +355,7 @@ def _write_robust(
         "train_images_per_s": result.train_images_per_s,
         "device": str(device),
         "suite_seconds": seconds,
+        **({"ablation": ablation} if variants else {}),
     }
     _save_robust(params, net, best, metrics, capacity, result.history)
     print(
@@ -350,6 +383,25 @@ def _attacked(
     t1 = time.perf_counter()
     capacity = capacities(params, models, val_split, device)
     return capacity, {"suite": t1 - t0, "capacity": time.perf_counter() - t1}
+
+
+def _ablation(
+    params: Params, variants: dict[str, tuple[Any, Any]], test_split: Any, device: Any, seconds: dict[str, float]
+) -> dict[str, Any]:
+    """Each ablation variant (name -> (network, fit's result)) under the suite on the two models' test sample
+    (its table without the checks: stages.engine.suite.attacked_tables), its best epoch and training minutes;
+    the seconds go to `seconds["ablation"]`."""
+    import time
+
+    from stages.engine.suite import attacked_tables
+
+    t0 = time.perf_counter()
+    tables = attacked_tables(params, {k: net for k, (net, _) in variants.items()}, test_split, device, checks=False)
+    seconds["ablation"] = time.perf_counter() - t0
+    return {
+        name: {"suite": tables[name], "best_epoch": fitted.best_epoch, "train_minutes": fitted.seconds / 60}
+        for name, (_, fitted) in variants.items()
+    }
 
 
 def _training_cost(params: Params, out: dict[str, Any], result: Any, n_train: int) -> None:

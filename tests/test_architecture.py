@@ -183,18 +183,26 @@ def test_seeds_have_one_home() -> None:
     assert not SEED_ARITHMETIC.search("seed_for(seed, 'lab.schedule', i)")
 
 
-def test_the_seeds_are_those_the_committed_outputs_were_made_with() -> None:
-    """The offset values stay until the next output-changing run switches to hashed stream names (issue 36), the
-    known collision of guidance and shap included; an unknown stream is refused."""
+def test_seeds_are_hashed_from_base_stream_and_index_and_never_shared() -> None:
+    """A stream's seed depends on its name (guidance and shap, which shared one under the old offset table, now
+    differ), on the base and on the index; every declared stream's first items and every seed run's trajectory
+    bases (the stream's seed on the run's seed) are distinct, in [0, 2**31), and the same on every call; an unknown
+    stream or a negative base is refused."""
     import pytest
 
-    from pipeline.seeds import seed_for
+    from pipeline.seeds import RUN_STREAMS, STREAMS, run_base, seed_for
 
-    assert seed_for(7, "guidance") == seed_for(7, "shap") == 507 and seed_for(0, "evaluate.schedule", 2) == 19
-    streams = ("lab.schedule", "robustness.burst", "eval_render.envelope")
-    assert [seed_for(1000, s, 3) for s in streams] == [1034, 1803, 1503]
+    assert seed_for(7, "guidance") != seed_for(7, "shap") and seed_for(7, "shap") == seed_for(7, "shap")
+    assert seed_for(7, "guidance", 1) != seed_for(7, "guidance") != seed_for(8, "guidance")
+    drawn = [seed_for(b, s, i) for b in range(3) for s in sorted(STREAMS) for i in range(50)]
+    drawn += [run_base(seed, s) for seed in range(3, 100) for s in RUN_STREAMS]  # seeds 0-2: seed_for(seed, s) above
+    assert run_base(2, "heldout") == seed_for(2, "heldout")
+    assert len(set(drawn)) == len(drawn) and all(0 <= d < 2**31 for d in drawn)
+    assert seed_for(0, "evaluate.schedule", 2) == 1646237154  # the hash is part of the outputs: a change fails here
     with pytest.raises(KeyError, match="declare it in pipeline/seeds.py"):
         seed_for(0, "guidence")
+    with pytest.raises(ValueError, match="non-negative"):
+        seed_for(-1, "guidance")
 
 
 def test_no_import_cycles() -> None:
@@ -399,7 +407,17 @@ LIBRARY_DEFAULTS_DIFFER: dict[str, str] = {  # reasons: conf/config.yaml's comme
     "train.ema": "no weight averaging unless asked; the default profile validates and saves the average (0.998)",
     "train.adversarial.position_weight": "the profile's inner loss is position only (the harm is position)",
     "train.adversarial.fraction": "profile 0.5: validation attitude 4.4 deg against 6.9 at 1.0 (conf comment)",
-    "train.adversarial.attacked_rotation": "profile off, which needs fraction < 1 (conf comment)",
+    "train.adversarial.eps": "the library's plain PGD recipe (0.05); the profile ships benchmarks/robust_recipes.py's c6",
+    "train.adversarial.objectives": "as train.adversarial.eps: the profile attacks position and attitude",
+    "train.adversarial.objective_eps": "as train.adversarial.eps: attitude at 0.03",
+    "train.adversarial.start": "as train.adversarial.eps: past the clamp the profile starts from the lifted background",
+    "train.adversarial.bpda": "as train.adversarial.start",
+    "train.adversarial.trades": "as train.adversarial.eps: TRADES beta 0.3",
+    "render.background": "SceneSettings' background is off; the default profile renders a quarter of the frames over the Earth",
+    "render.background.share": "BackgroundSettings is off (every frame black) unless asked; the profile: a quarter",
+    "render.background.stars": "as render.background.share: the profile's frames over the Earth carry stars",
+    "render.background.black_offset": "as render.background.stars: a sensor black offset (0.02, below the clamp)",
+    "render.background.noise_std": "as render.background.stars: sensor read noise",
     "train.augment.p": "profile 0.3: lighter than 0.5, the 160x90 default underfits (conf comment)",
     "train.augment.blur_sigma": "the profile's lighter augmentation, with train.augment.p",
     "train.augment.jpeg_quality": "the profile's lighter augmentation, with train.augment.p",

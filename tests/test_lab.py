@@ -15,6 +15,7 @@ from pipeline.geometry.camera import Intrinsics, project, reference_intrinsics
 from pipeline.geometry.rotations import euler_to_matrix, matrix_to_quat, quat_to_matrix
 from pipeline.images import domain_shift, segment
 from pipeline.pose.metrics import attitude_error_deg
+from pipeline.seeds import run_base
 from stages.config.schema import Params, build
 
 K_ZED = Intrinsics(1920, 1080, 1400.41, 1400.41, 956.29, 557.258)
@@ -275,7 +276,7 @@ def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
         out = runner.invoke(app, args)
         assert out.exit_code == 0, (args, out.output, out.exception)
     cal = json.loads((tmp_path / "models/defense.json").read_text())
-    assert cal["validation"]["frames"] == 2 * 12 and cal["validation"]["seed"] == 3000 + 100_000 * p["seed"]
+    assert cal["validation"]["frames"] == 2 * 12 and cal["validation"]["seed"] == run_base(p["seed"], "validation")
     ev = json.loads((tmp_path / "reports/metrics/evaluate.json").read_text())
     assert set(ev["per_eps"]) == {"0.5", "0.05"} and len(ev["rows"]) == 2
     assert set(ev["fused"]["per_eps"]) == {"0.5", "0.05"} and ev["fused"]["per_eps"]["0.5"]["tpr"]["n"] > 0

@@ -122,6 +122,8 @@ def test_typed_params_keep_the_yaml_values_and_every_fingerprint(profile):
     """A whole number where a float is expected stays an int (e.g. guidance.start_ranges [60, 40]): the typed
     params are the params.yaml mapping, so the fingerprints (JSON of params sub-mappings) and every value
     echoed into metrics and reports are those of the YAML."""
+    from pipeline.seeds import run_base
+
     raw = params_mod.compose(profile)
     p = build(raw)
     assert dataclasses.asdict(p) == raw and type(p.guidance.start_ranges[0]) is type(raw["guidance"]["start_ranges"][0])
@@ -129,13 +131,16 @@ def test_typed_params_keep_the_yaml_values_and_every_fingerprint(profile):
     flown = ("execution", (*raw["guidance"]["execution"].items(), ("max_step", raw["guidance"]["max_step"])))
     evaluate = {
         "evaluate": {k: raw["evaluate"][k] for k in ("trajectories", "frames", "lateral_range")}
-        | {"seed": 1000 + 100_000 * raw["seed"]}
+        | {"seed": run_base(raw["seed"], "evaluate")}
     }  # the evaluation's base seed follows `seed`
     assert params_mod.eval_render_fingerprint(p) == _raw_key(
         {**raw, **evaluate}, ("evaluate", ("trajectories", "frames", "lateral_range", "seed")), flown
     )
     validation = {
-        "defense": {"val_trajectories": raw["defense"]["val_trajectories"], "val_seed": 3000 + 100_000 * raw["seed"]}
+        "defense": {
+            "val_trajectories": raw["defense"]["val_trajectories"],
+            "val_seed": run_base(raw["seed"], "validation"),
+        }
     }
     assert params_mod.val_render_fingerprint(p) == _raw_key(
         {**raw, **validation},

@@ -116,3 +116,32 @@ def test_a_capacity_sample_short_in_a_range_bin_is_topped_up_from_that_bin() -> 
     assert np.array_equal(top_up_bins(topped, range_m, edges, 20, seed=1), topped)  # a full sample: unchanged
     assert np.array_equal(top_up_bins(rows, range_m, edges, 20, seed=1), topped)  # seeded
     assert count(top_up_bins(rows, range_m, edges, 100, seed=1))[2] == 72  # too few in the bin: all of them
+
+
+def test_the_ablation_section_lists_neither_each_variant_and_both_per_background():
+    from types import SimpleNamespace
+
+    from stages.pages.suite import ablation_section
+
+    images, targets = frames(4, black=True)
+    kinds = np.array(["black", "earth", "black", "earth"])
+    table = {
+        name: attacked_table(ToyPose(black_level=level), images, targets, EPS, LEAN, backgrounds=kinds)
+        for name, level in (("standard", 0.0), ("clamp", 0.07), ("adv", 0.0), ("robust", 0.07))
+    }
+    m = {
+        "standard": {"suite": table["standard"]},
+        "robust": {"suite": table["robust"]},
+        "ablation": {
+            "clamp only": {"suite": table["clamp"], "best_epoch": 3, "train_minutes": 1.0},
+            "adversarial training only": {"suite": table["adv"], "best_epoch": 5, "train_minutes": 2.0},
+        },
+    }
+    params = SimpleNamespace(train=SimpleNamespace(adversarial=SimpleNamespace(epochs=8, black_level=0.07)))
+    page = ablation_section(m, params)
+    lines = [line for line in page.splitlines() if line.startswith("| ") and "variant" not in line]
+    names = ["neither (standard)", "clamp only", "adversarial training only", "both (robust)"]
+    assert [line.split("|")[1].strip() for line in lines] == [n for n in names for _ in range(2 * (1 + len(EPS)))]
+    assert {line.split("|")[2].strip() for line in lines} == {"black", "earth"}
+    assert "Best epochs: clamp only 3, adversarial training only 5" in " ".join(page.split())
+    assert ablation_section({k: v for k, v in m.items() if k != "ablation"}, params) == ""

@@ -74,7 +74,7 @@ STAGE_ONLY: dict[str, tuple[str, ...]] = {
     ),
     "render.background": (),
     "train": ("adversarial", "augment", "compile", "dropout", "range_bins", "val_fraction", "width"),
-    "train.adversarial": ("black_level", "epochs", "init", "lr_max", "warmup_epochs"),
+    "train.adversarial": ("ablation", "black_level", "epochs", "init", "lr_max", "warmup_epochs"),
     "train.augment": (),
     "suite": ("capacity", "check_frames", "eps", "frames", "full", "full_frames"),
     "suite.full": (),

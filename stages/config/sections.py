@@ -140,6 +140,7 @@ class Adversarial:
     bpda: bool  # the attack's gradient passes the clamp as the identity
     objective_eps: list[Eps]  # each objective's budget in (0, eps] ([] = eps for every one)
     trades: Annotated[float, In("[0, 1000]", "weight")]  # beta of the TRADES-style consistency term (0: off)
+    ablation: bool  # also fine-tune the clamp alone and the attacks alone, and attack both (pose_robust.md)
 
     def __post_init__(self) -> None:
         unmasked = self.start == "lift" and self.bpda

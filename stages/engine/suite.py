@@ -25,18 +25,21 @@ def suite_seed(params: Params) -> int:
     return seed_for(params.seed, "suite")
 
 
-def attacked_tables(params: Params, models: dict[str, Any], test: data.Split, device: Any) -> dict[str, Any]:
+def attacked_tables(
+    params: Params, models: dict[str, Any], test: data.Split, device: Any, checks: bool = True
+) -> dict[str, Any]:
     """Per model (name -> pose network) `pipeline.evaluation.strongest.attacked_table` of the suite params on a
     seeded sample of `suite.frames` frames of the test split, its stability check on `suite.check_frames` of them
-    and its lean-vs-full check on `suite.full_frames` (0: not run), the frames' backgrounds split."""
+    and its lean-vs-full check on `suite.full_frames` (0: not run; without `checks` neither runs), the frames'
+    backgrounds split."""
     from pipeline.evaluation.strongest import attacked_table
     from pipeline.pose.robustness import sample_rows
 
     s, seed = params.suite, suite_seed(params)
     sample = data.subset(test, sample_rows(len(test), s.frames, seed), "test")
     images, targets = np.stack([sample.images[i] for i in range(len(sample))]), sample.targets.astype(np.float64)
-    check = sample_rows(len(sample), s.check_frames, seed_for(seed, "suite.check"))
-    full_check = sample_rows(len(sample), s.full_frames, seed_for(seed, "suite.full"))
+    check = sample_rows(len(sample), s.check_frames if checks else 0, seed_for(seed, "suite.check"))
+    full_check = sample_rows(len(sample), s.full_frames if checks else 0, seed_for(seed, "suite.full"))
     lean, full = suite_config(s, seed), suite_config(s, seed, full=True)
     return {
         name: attacked_table(
