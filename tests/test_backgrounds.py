@@ -207,12 +207,13 @@ def _render(workdir, overrides):
 
 @pytest.mark.slow
 def test_render_stage_with_backgrounds_on_and_off(tmp_path, monkeypatch, scene):
-    """Off (the default): no `background` column, no background in meta.json, the same fingerprint as params
-    without the section. On: a `background` column (black, space, earth) in poses and labels, the non-black frames
-    the drawn ones; the same images for another chunk length; the frames of a black kind are black around the
-    target and the others lifted above the clamp by the black offset."""
+    """Off (share 0; the profiles render a quarter of the frames over a background): no `background` column, no
+    background in meta.json, the same fingerprint as params without the section. On: a `background` column (black,
+    space, earth) in poses and labels, the non-black frames the drawn ones; the same images for another chunk
+    length; the frames of a black kind are black around the target and the others lifted above the clamp by the
+    black offset."""
     monkeypatch.chdir(tmp_path)
-    images, poses, labels, meta = _render(tmp_path, [])
+    images, poses, labels, meta = _render(tmp_path, ["render.background.share=0"])
     assert "background" not in poses and "background" not in labels and "background" not in meta["render"]
     assert "## Backgrounds" not in (tmp_path / "reports/dataset.md").read_text()
     without = params_mod.compose("smoke", TINY)

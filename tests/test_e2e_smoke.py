@@ -245,7 +245,10 @@ def test_every_table_has_the_expected_rows(smoke_repo):
     runs = json.loads((dst / "reports" / "metrics" / "guidance.json").read_text())["in_loop"]["runs"]
     per_cell = sum(1 if g == "capture" else len(i["in_loop_start_ranges"]) for g in i["in_loop_goals"])
     assert len(runs) == len(in_loop) * per_cell  # the capture attacks from acquisition: one start per cell
-    assert page("guidance").startswith("# Closed-loop rendezvous: where the shipped chain docks")
+    guidance = page("guidance")  # after the unmet-shares banner where smoke's calibration missed one (allow_unmet)
+    if guidance.startswith("> **Warning: the defense was calibrated with unmet false-alarm shares"):
+        guidance = guidance.split("\n\n", 1)[1]
+    assert guidance.startswith("# Closed-loop rendezvous: where the shipped chain docks")
 
     summary = rows_under(page("README"), "Summary against the paper", "result")
     assert len(summary) == 31 + len(p["guidance"]["standard_defenses"]) and summary[0].startswith("pose")

@@ -135,14 +135,17 @@ def test_the_execution_error_and_the_frame_attack_follow_the_params():
 
 
 def test_the_evaluation_and_validation_trajectories_follow_the_seed():
-    """Issue 39 item 5: the trajectories' base seeds follow `seed` (seed 0 keeps the committed 1000 and 3000), so seed
-    runs fly other trajectories: other starts, other per-trajectory seeds (no run shares one), other fingerprints."""
-    from pipeline.seeds import seed_for
+    """Issue 39 item 5: the trajectories' base seeds follow `seed` (hashed with the set's name: pipeline/seeds.py
+    run_base), so seed runs fly other trajectories: other starts, other per-trajectory seeds (no run shares one),
+    other fingerprints."""
+    from pipeline.seeds import run_base, seed_for
     from stages.config.schema import build
     from stages.engine.trajectory_sets import trajectories
 
     runs = [build(params_mod.compose("default", [f"seed={k}"])) for k in range(6)]
-    assert (params_mod.evaluation_seed(runs[0]), params_mod.validation_seed(runs[0])) == (1000, 3000)
+    assert [(params_mod.evaluation_seed(p), params_mod.validation_seed(p)) for p in runs[:2]] == [
+        (run_base(k, "evaluate"), run_base(k, "validation")) for k in range(2)
+    ]
     bases = [(params_mod.evaluation_seed(p), params_mod.validation_seed(p)) for p in runs]
     drawn = [
         {

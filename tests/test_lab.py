@@ -15,7 +15,7 @@ from pipeline.geometry.camera import Intrinsics, project, reference_intrinsics
 from pipeline.geometry.rotations import euler_to_matrix, matrix_to_quat, quat_to_matrix
 from pipeline.images import domain_shift, segment
 from pipeline.pose.metrics import attitude_error_deg
-from pipeline.seeds import run_base
+from pipeline.seeds import run_base, seed_for
 from stages.config.schema import Params, build
 
 K_ZED = Intrinsics(1920, 1080, 1400.41, 1400.41, 956.29, 557.258)
@@ -352,7 +352,7 @@ def test_lab_stage_retrains_a_synthetic_lab_pose_model_and_detector(tmp_path, mo
     assert det["pose_model_hash"] == lab["model_hash"]
     s = lab["synthetic_lab"]
     assert s["images"] == 13 * 3 and s["size"] == [64, 36] and s["mesh"] is None and s["mesh_scale"] == 1.0
-    assert s["seed"] == p["lab"]["seed"] + 700 and set(s["seconds"]) == {
+    assert s["seed"] == seed_for(p["lab"]["seed"], "lab_models") and set(s["seconds"]) == {
         "render",
         "label",
         "train",

@@ -107,7 +107,9 @@ def test_render_and_label_stages(workdir):
 
     label.main(load())
     labels = pd.read_parquet("datasets/labels.parquet")
-    assert list(labels.columns) == CONTRACT and len(labels) == 26
+    # the default share of frames over the Earth or stars: the render's background column carried over
+    assert list(labels.columns) == [*CONTRACT, "background"] and len(labels) == 26
+    assert set(labels.background) <= {"black", "space", "earth"} and (labels.background == "black").any()
     assert labels.tz.max() > 59 and abs(labels.tz.min() - 10) < 0.01
     assert set(labels.sequence) == set(range(13))
     assert not (workdir / "datasets/speed_labels.json").exists()  # `rpod export speed` writes SPEED+ folders

@@ -214,7 +214,7 @@ def test_tilt_and_roll_split_the_attitude_error_about_the_line_of_sight():
         ("steps", 0, r"train.adversarial.steps must be a positive whole number in \[1, 1000\]"),
         ("black_level", 0.03, r"train.adversarial: black_level \(0.03\) must exceed eps \(0.05\)"),
         ("black_level", 1.0, r"train.adversarial.black_level must be a number in \[0, 1\)"),
-        ("fraction", 1.0, r"train.adversarial: attacked_rotation: false needs fraction < 1"),  # the default is false
+        ("fraction", 1.0, r"train.adversarial: attacked_rotation: false needs fraction < 1"),
         (
             "start",
             "lift",
@@ -227,6 +227,11 @@ def test_tilt_and_roll_split_the_attitude_error_about_the_line_of_sight():
 def test_bad_adversarial_params_are_refused_in_one_line_naming_the_key(tmp_path, monkeypatch, key, value, message):
     monkeypatch.chdir(tmp_path)
     p = params_mod.compose("smoke")
+    # Each case on a budget below the clamp, the random start, no BPDA and the position objective alone (the
+    # profiles ship eps 0.1 past the clamp with the lifting start, BPDA and attitude), so one key is wrong at a time.
+    p["train"]["adversarial"].update(
+        eps=0.05, start="random", bpda=False, objectives=[], objective_eps=[], attacked_rotation=False
+    )
     p["train"]["adversarial"][key] = value
     if key == "start":
         p["train"]["adversarial"]["black_level"] = 0.03
@@ -277,8 +282,9 @@ def test_robust_stage_writes_the_model_its_page_and_a_loader_reads_it(dataset):
         assert (wide[0.05] >= wide[0.02]).all() and (wide[0.02] >= wide[0.01]).all()  # nested in eps
         assert m["capacity"][name]["per_eps"][0]["count"] == [len(val)]
     assert m["robust"]["train_minutes"] > 0 and m["standard"]["train_minutes"] > 0
-    a = params_mod.load().train.adversarial  # 1 epoch each; PGD-k on a share of each batch
-    assert m["robust"]["gradients"] == round((1 + a.steps * a.fraction) * m["standard"]["gradients"]) > 0
+    a = params_mod.load().train.adversarial  # 1 epoch each; PGD-k on a share of each batch (+1: TRADES's pairs)
+    assert a.trades > 0
+    assert m["robust"]["gradients"] == round((1 + (a.steps + 1) * a.fraction) * m["standard"]["gradients"]) > 0
     page = Path("reports/pose_robust.md").read_text()
     assert "Black-level clamp t = 0.07" in page and "## Under the strongest attack suite" in page
     assert "## Attacker capacity (validation frames)" in page and "no Earth frames to split" in page
