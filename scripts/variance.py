@@ -237,7 +237,7 @@ not a result. "runs" counts the runs that produced the number (a run may stop af
 Written by `scripts/variance.py`, with reports/variance.json (read by `rpod report` to show the spread
 beside the headline numbers in README.md).
 
-{_unmet_note(runs, seeds, isas)}{table}{_isa_section(runs, seeds, isas)}{pooled_section(runs, seeds)}"""
+{_one_run_note(runs)}{_unmet_note(runs, seeds, isas)}{table}{_isa_section(runs, seeds, isas)}{pooled_section(runs, seeds)}"""
     spread = {
         "profile": profile,
         "seeds": seeds,
@@ -247,6 +247,15 @@ beside the headline numbers in README.md).
     atomic_write_text(ROOT / "reports" / "variance.json", json.dumps(spread, indent=1) + "\n")
     atomic_write_text(ROOT / "reports" / "variance.md", text)
     print(text)
+
+
+def _one_run_note(runs: list[Path]) -> str:
+    """A page of one run says it has no spread (the seed runs are still to be added)."""
+    return (
+        '**One run: no spread yet** (sd "-"); add the seed runs (above) before judging a change.\n\n'
+        if len(runs) == 1
+        else ""
+    )
 
 
 def _unmet_note(runs: list[Path], seeds: list[str], isas: list[str]) -> str:
@@ -485,6 +494,6 @@ def yaml_profile(run: Path) -> str:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) < 3:
+    if len(sys.argv) < 2:
         raise SystemExit(__doc__)
     main(sys.argv[1:])
