@@ -7,6 +7,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+import re
 from typing import Any
 
 import pytest
@@ -221,7 +222,8 @@ def test_a_file_calibrated_under_other_settings_is_refused_naming_both_values(na
         rf"defense.{name} = {new!r}: calibrated under other settings",
     ):
         check_settings(cal, WHERE, other, 0.05, "params.yaml", {name: f"defense.{name}"})
-    with pytest.raises(DataError, match="records settings.update_below = 0.39.* but params.yaml gives doubt = None"):
+    doubt = re.escape(repr(wanted.settings.update_below))  # the bundle's calibrated doubt level
+    with pytest.raises(DataError, match=rf"records settings.update_below = {doubt} but params.yaml gives doubt = None"):
         check_settings(cal, WHERE, wanted, None, "params.yaml", {})
 
 
