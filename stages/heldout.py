@@ -4,7 +4,7 @@ datasets/heldout/. A stage of optional/dvc.yaml (`dvc repro optional/dvc.yaml:he
 
 Three choices were made looking at numbers that are also reported as results (README, "Choices made on reported
 numbers"). Each is re-checked once here, on a final set of approaches drawn from their own base seed
-(`run_base(seed, "heldout")`, 7000 at seed 0: pipeline/seeds.py), which no choice, calibration or training
+(`run_base(seed, "heldout")`: pipeline/seeds.py), which no choice, calibration or training
 read: `evaluate.trajectories` approaches of the evaluation's kind (`evaluate.frames`, `lateral_range`, flown
 with `guidance.execution`'s error), rendered once with the params' camera and once with the fy360 trial's.
 - **Camera default** (reports/camera.md): the committed standard model (models/pose.pt) on the held-out frames
