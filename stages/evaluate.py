@@ -75,7 +75,7 @@ def main(params: Params) -> None:
     shipped_cal = shipped.chain.calibration
     summary = per_eps_summary(res.rows)
     eps_fig = _timeline(e, sequences, res, chain.threshold)
-    clamp = _clamp_heldout(params, images)
+    clamp = _clamp_heldout(params, images, poses)
     metrics = _metrics(params, paper, shipped, fused, sequences, summary, meta, seconds, clamp)
     write_metrics(METRICS, nan_to_none(metrics), params.profile_name)
     atomic_write_text(
@@ -163,11 +163,13 @@ def _metrics(
     }
 
 
-def _clamp_heldout(params: Params, images: Any) -> dict[str, float]:
+def _clamp_heldout(params: Params, images: Any, poses: Any) -> dict[str, float]:
     """The black-level clamp's statistics (pipeline.pose.robustness.black_level_stats: the robust model's threshold
     train.adversarial.black_level against the background under the simulated lab shift lab.domain_shift, and the
-    target values it erases) on the evaluation frames, which the threshold's choice did not read."""
+    target values it erases) on the evaluation frames over a black background, which the threshold's choice did
+    not read."""
     from pipeline.pose.robustness import black_level_stats
+    from stages.artifacts.data import backgrounds
 
     shift = params.lab.domain_shift
     return black_level_stats(
@@ -176,6 +178,7 @@ def _clamp_heldout(params: Params, images: Any) -> dict[str, float]:
         float(shift.noise_std),
         float(shift.blur_sigma),
         seed_for(evaluation_seed(params), "evaluate.black_level"),
+        backgrounds=backgrounds(poses),
     )
 
 

@@ -4,7 +4,7 @@ datasets/heldout/. A stage of optional/dvc.yaml (`dvc repro optional/dvc.yaml:he
 
 Three choices were made looking at numbers that are also reported as results (README, "Choices made on reported
 numbers"). Each is re-checked once here, on a final set of approaches drawn from their own base seed
-(`run_base(seed, "heldout")`, 7000 at seed 0: pipeline/seeds.py), which no choice, calibration or training
+(`run_base(seed, "heldout")`: pipeline/seeds.py), which no choice, calibration or training
 read: `evaluate.trajectories` approaches of the evaluation's kind (`evaluate.frames`, `lateral_range`, flown
 with `guidance.execution`'s error), rendered once with the params' camera and once with the fy360 trial's.
 - **Camera default** (reports/camera.md): the committed standard model (models/pose.pt) on the held-out frames
@@ -80,7 +80,7 @@ def main(params: Params) -> None:
         "camera": _camera(params, trial, sets, models, device),
         "lab_camera": _lab_camera(cameras, models, device),
         "calibration": _calibration(params, *sets[CHOSEN]),
-        "clamp": _clamp(params, sets[CHOSEN][0]),
+        "clamp": _clamp(params, *sets[CHOSEN]),
         "render_seconds": render_s,
         "seconds": time.perf_counter() - t0,
     }
@@ -253,11 +253,12 @@ def _summary_json(s: dict[str, Any]) -> dict[str, Any]:
     return {k: {"value": v.value, "ci": v.ci()} if hasattr(v, "ci") else v for k, v in s.items()}
 
 
-def _clamp(params: Params, images: np.ndarray) -> dict[str, Any]:
-    """The black-level clamp's statistics on the held-out frames (pipeline.pose.robustness.black_level_stats, on
-    the held-out base's stream) and its verdict."""
+def _clamp(params: Params, images: np.ndarray, poses: Any) -> dict[str, Any]:
+    """The black-level clamp's statistics on the held-out frames over a black background
+    (pipeline.pose.robustness.black_level_stats, on the held-out base's stream) and its verdict."""
     from pipeline.evaluation.heldout import clamp_verdict
     from pipeline.pose.robustness import black_level_stats
+    from stages.artifacts.data import backgrounds
 
     shift = params.lab.domain_shift
     stats = black_level_stats(
@@ -266,5 +267,6 @@ def _clamp(params: Params, images: np.ndarray) -> dict[str, Any]:
         float(shift.noise_std),
         float(shift.blur_sigma),
         seed_for(heldout_seed(params), "evaluate.black_level"),
+        backgrounds=backgrounds(poses),
     )
     return {**stats, "verdict": clamp_verdict(stats)}

@@ -39,7 +39,7 @@ def main(params: Params) -> None:
     s, seed = params.suite, suite_seed(params)
     test = data.load_split(params, "test")
     images, targets = np.stack([test.images[i] for i in range(len(test))]), test.targets.astype(np.float64)
-    kinds = data.backgrounds(test)
+    kinds = data.backgrounds(test.labels)
     configs = {"full": suite_config(s, seed, full=True), "lean": suite_config(s, seed)}
     out, seconds = {}, {}
     for name, path in (("standard", POSE), ("robust", POSE_ROBUST)):

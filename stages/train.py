@@ -350,7 +350,12 @@ def _write_robust(
         "stopped_early": result.stopped_early,
         "score": result.best_score,
         "black_level": black_level_stats(
-            train_split.images, float(adv.black_level), float(shift.noise_std), float(shift.blur_sigma), seed
+            train_split.images,
+            float(adv.black_level),
+            float(shift.noise_std),
+            float(shift.blur_sigma),
+            seed,
+            backgrounds=data.backgrounds(train_split.labels),
         ),
         "train_images_per_s": result.train_images_per_s,
         "device": str(device),

@@ -187,6 +187,13 @@ def test_black_level_stats_measure_the_render_and_the_lab_background():
     b = black_level_stats(images, 0.07, 0.02, 0.0, seed=0)
     assert b["render_black"] == pytest.approx(1 - 100 / 2400) and b["target_erased"] == pytest.approx(0.1)
     assert 0.05 < b["lab_black_999"] < 0.08 and 0 < b["lab_passed"] < 0.01
+    # frames over a background with a sensor offset (no exact black) would count their sky as the target's
+    offset = images.copy()
+    offset[offset == 0] = 5
+    mixed = np.concatenate([images, offset])
+    kinds = np.array(["black"] * 5 + ["space"] * 5)
+    assert black_level_stats(mixed, 0.07, 0.02, 0.0, seed=0, backgrounds=kinds) == b
+    assert black_level_stats(mixed, 0.07, 0.02, 0.0, seed=0)["target_erased"] > 0.5  # the flaw it avoids
 
 
 def test_tilt_and_roll_split_the_attitude_error_about_the_line_of_sight():

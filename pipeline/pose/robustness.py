@@ -17,10 +17,19 @@ def sample_rows(n_total: int, n: int | None, seed: int) -> np.ndarray:
 
 
 def black_level_stats(
-    images: Any, threshold: float, noise_std: float, blur_sigma: float, seed: int, n: int = 200, margin: int = 3
+    images: Any,
+    threshold: float,
+    noise_std: float,
+    blur_sigma: float,
+    seed: int,
+    n: int = 200,
+    margin: int = 3,
+    backgrounds: np.ndarray | None = None,
 ) -> dict[str, float]:
     """How a clamp threshold t (pixel units in [0, 1]) meets the data, on n seeded images of `images` (uint8
-    (N, H, W, 3) renders on a black background; anything indexable by an int):
+    (N, H, W, 3) renders; anything indexable by an int) rendered on a black background: with `backgrounds` (each
+    row's kind: black, space, earth) the black rows only, since over the Earth or stars with a sensor offset no
+    pixel is exactly black and every background value would count as the target's:
     - render_black: share of the pixels whose three channels are exactly 0 (the background);
     - target_erased: share of the other pixels' channel values below t (what the clamp takes from the target);
     - lab_black_999: the 99.9th percentile of the channel values of the background (pixels at least
@@ -34,7 +43,8 @@ def black_level_stats(
     rng = np.random.default_rng(seed)
     kernel = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
     black, lit, lab = [], [], []
-    for i in sample_rows(len(images), n, seed):
+    rows = np.arange(len(images)) if backgrounds is None else np.flatnonzero(np.asarray(backgrounds) == "black")
+    for i in rows[sample_rows(len(rows), n, seed)]:
         image = np.asarray(images[int(i)])
         dark = image.max(axis=-1) == 0
         far = cv2.erode(dark.astype(np.uint8), kernel) > 0

@@ -164,10 +164,10 @@ def subset(split: Split, rows: np.ndarray, name: str) -> Split:
     return Split(name, split.labels.iloc[rows].reset_index(drop=True), images)
 
 
-def backgrounds(split: Split) -> np.ndarray | None:
-    """(N,) each frame's background kind (black, space, earth: the labels' `background` column); None when the
-    labels have none (every frame black)."""
-    return split.labels["background"].to_numpy(str) if "background" in split.labels else None
+def backgrounds(table: pd.DataFrame) -> np.ndarray | None:
+    """(N,) each frame's background kind (black, space, earth: the `background` column of a split's labels or a
+    rendered set's poses); None when the table has none (every frame black)."""
+    return table["background"].to_numpy(str) if "background" in table else None
 
 
 def pose_dataset(split: Split, augment: Augment | None = None, seed: int = 0) -> Any:

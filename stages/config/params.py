@@ -87,19 +87,20 @@ def render_fingerprint(params: Params) -> str:
 
 def evaluation_seed(params: Params) -> int:
     """The base seed of the evaluation trajectories (their paths, pointing jitter, execution errors and attack
-    schedules): it follows `seed` (pipeline/seeds.py run_base; 1000 at seed 0, the former evaluate.seed)."""
+    schedules): it follows `seed` (pipeline/seeds.py run_base: hashed from `seed` and the set's name)."""
     return run_base(params.seed, "evaluate")
 
 
 def validation_seed(params: Params) -> int:
     """The base seed of the defense's validation trajectories (datasets/val_render, val_envelope): it follows `seed`
-    (pipeline/seeds.py run_base; 3000 at seed 0, the former defense.val_seed), never the evaluation's."""
+    (pipeline/seeds.py run_base: hashed from `seed` and the set's name), never the evaluation's."""
     return run_base(params.seed, "validation")
 
 
 def heldout_seed(params: Params) -> int:
     """The base seed of the final held-out trajectories (`rpod heldout`): it follows `seed` (pipeline/seeds.py
-    run_base; 7000 at seed 0), never the evaluation's or the validation's, and no choice or calibration reads them."""
+    run_base: hashed from `seed` and the set's name), never the evaluation's or the validation's, and no choice or
+    calibration reads them."""
     return run_base(params.seed, "heldout")
 
 

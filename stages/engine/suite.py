@@ -48,7 +48,7 @@ def attacked_tables(
             targets,
             s.eps,
             lean,
-            backgrounds=data.backgrounds(sample),
+            backgrounds=data.backgrounds(sample.labels),
             check=check,
             full_check=full_check,
             full=full,

@@ -28,7 +28,7 @@ def clamp_section(b: dict[str, float], seed: int) -> str:
 ## Held-out check of the black-level clamp
 
 The robust model's clamp t = {t:g} (pixels in [0, 1]) was set from training frames and their simulated lab shift
-(reports/pose_robust.md). The same statistics on {b["images"]} frames of these trajectories (base seed {seed}),
+(reports/pose_robust.md). The same statistics on {b["images"]} black-background frames of these trajectories (base seed {seed}),
 which that choice did not read: the background is exactly black in {100 * b["render_black"]:.1f}% of the pixels;
 under the lab domain shift its 99.9th percentile is {lab:.4f}, so t is {"still above" if t > lab else "NOT above"} the
 lab black level here; {100 * b["lab_passed"]:.3f}% of the shifted background values pass the clamp and

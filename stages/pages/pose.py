@@ -139,16 +139,23 @@ Training curves: `dvc plots show` (DVCLive, {live_dir}/).
 """
 
 
-def black_level_line(b: dict[str, Any], eps: float) -> str:
-    """How the clamp threshold was chosen, against the data it was chosen on (`b`: black_level_stats): above
-    the training budget as stored (so a black pixel lifted by eps stays black) and above the lab black level."""
+def black_level_line(b: dict[str, Any], eps: float, unmasked: bool = False) -> str:
+    """How the clamp threshold was chosen, against the data it was chosen on (`b`: black_level_stats on the
+    black-background training frames): above the training budget as stored (so a black pixel lifted by eps stays
+    black; else the training attack must reach past the clamp: `unmasked`, the lifting start and BPDA) and above
+    the lab black level."""
     t, stored, lab = b["threshold"], _levels(eps) / 255, b["lab_black_999"]
+    past = (
+        ""
+        if t > stored
+        else (", so the training attack lifts it past the clamp and passes the clamp by BPDA" if unmasked else "")
+    )
     return (
         f"Black-level clamp t = {t:g} (pixels in [0, 1]), chosen from data: the rendered background is exactly "
-        f"black ({100 * b['render_black']:.1f}% of the pixels of {b['images']} training frames); under the lab domain "
-        f"shift (lab.domain_shift: blur, then noise) its 99.9th percentile is {lab:.4f}. t is "
+        f"black ({100 * b['render_black']:.1f}% of the pixels of {b['images']} black-background training frames); "
+        f"under the lab domain shift (lab.domain_shift: blur, then noise) its 99.9th percentile is {lab:.4f}. t is "
         f"{'above' if t > stored else 'NOT above'} the training budget eps = {eps:g} as stored ({_levels(eps)} grey "
-        f"levels = {stored:.4f}: a black pixel lifted by eps {'stays' if t > stored else 'does not stay'} black) and "
+        f"levels = {stored:.4f}: a black pixel lifted by eps {'stays' if t > stored else 'does not stay'} black{past}) and "
         f"{'above' if t > lab else 'below'} that lab black level; {100 * b['lab_passed']:.3f}% of lab-like "
         f"background values pass the clamp and {100 * b['target_erased']:.1f}% of the target's channel values "
         f"fall below t."
@@ -191,7 +198,7 @@ with PGD-{a.steps} adversarial training ({_inner(a)}, eps ramped to
 epoch {m["best_epoch"]} by the clean validation SPEED score plus the {"SPEED score" if a.objectives else "mean relative position error"} under PGD-{a.val_steps}
 at eps {a.eps:g} ({a.val_frames} validation frames attacked every epoch). Profile `{params.profile_name}`.
 
-{black_level_line(m["black_level"], a.eps)}
+{black_level_line(m["black_level"], a.eps, a.start == "lift" and a.bpda)}
 
 ## Clean errors
 
