@@ -131,9 +131,13 @@ def bootstrap_rate(
     return Rate(value, min(lo, value), max(hi, value), int(n.sum()))
 
 
-def mean_interval(values: np.ndarray) -> tuple[float, float, float]:
-    """(mean, low, high): the mean with its 95% normal-approximation interval (low = high = mean for n < 2)."""
+def mean_interval(values: np.ndarray, floor: float | None = None) -> tuple[float, float, float]:
+    """(mean, low, high): the mean with its 95% Student-t interval (low = high = mean for n < 2), intersected with
+    [floor, inf) when the values cannot lie below `floor` (errors: 0): the true mean lies there too, so the
+    intersection keeps the coverage and the interval never reaches an impossible value."""
     values = np.asarray(values, np.float64)
     mean = float(values.mean())
-    half = 1.96 * float(values.std(ddof=1)) / np.sqrt(len(values)) if len(values) > 1 else 0.0
-    return mean, mean - half, mean + half
+    n = len(values)
+    half = float(sps.t.ppf(0.5 + LEVEL / 2, n - 1)) * float(values.std(ddof=1)) / np.sqrt(n) if n > 1 else 0.0
+    low = mean - half if floor is None else max(mean - half, float(floor))
+    return mean, low, mean + half

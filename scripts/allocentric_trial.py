@@ -131,7 +131,7 @@ def _report(params: Any, epochs: int, n_val: int, rows: list[dict[str, Any]], di
 {params.render.width}x{params.render.height}) trained with allocentric attitude targets (relative to the viewing ray,
 turned back with the predicted position), against the egocentric model of `rpod train`, on the
 {n_val} **validation** images of the same split (the decision; the test split is not read).
-Means; attitude with its 95% interval (pipeline.pose.robustness.mean_interval).
+Means; attitude with its 95% interval (pipeline.stats.mean_interval).
 
 {markdown_table(rows)}
 Paired over the same images, allocentric minus egocentric attitude error: {diff[0]:+.2f} [{diff[1]:+.2f}, {diff[2]:+.2f}] deg.

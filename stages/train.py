@@ -322,23 +322,18 @@ def _write_robust(
     models/pose_robust.pt, datasets/capacity/, reports/metrics/robust.json, reports/pose_robust.md and
     dvclive/robust/ together. `splits`: (fit split, validation split, its dataset). The test split is read here,
     after training."""
-    from pipeline.pose.metrics import summarize_errors
     from pipeline.pose.robustness import black_level_stats
-    from pipeline.pose.train import predict
     from stages.artifacts import data
     from stages.artifacts.models import load_pose
 
-    adv, bins, seed = params.train.adversarial, params.train.range_bins, seed_for(params.seed, "robust")
+    adv, seed = params.train.adversarial, seed_for(params.seed, "robust")
     train_split, val_split, val_set = splits
     test_split = data.load_split(params, "test")
-    test_set = data.pose_dataset(test_split)
     standard = load_pose(params)
-    out: dict[str, Any] = {}
-    for name, model in (("standard", standard.model), ("robust", net)):
-        out[name] = {
-            split: summarize_errors(predict(model, ds, 64, device), s.targets, s.labels["range"].to_numpy(), bins)
-            for split, ds, s in (("val", val_set, val_split), ("test", test_set, test_split))
-        }
+    out = {
+        name: _clean(params, model, ((val_set, val_split), (data.pose_dataset(test_split), test_split)), device)
+        for name, model in (("standard", standard.model), ("robust", net))
+    }
     capacity, seconds = _attacked(params, out, (standard.model, net), (test_split, val_split), device)
     _training_cost(params, out, result, len(train_split))
     ablation = _ablation(params, variants, test_split, device, seconds)
@@ -367,6 +362,21 @@ def _write_robust(
         f"train --robust: best epoch {result.best_epoch}: test {out['robust']['test']['pos_mean_m']:.3f} m, "
         f"{out['robust']['test']['att_mean_deg']:.2f} deg -> {POSE_ROBUST}, {ROBUST_REPORT}, {ROBUST_METRICS}"
     )
+
+
+def _clean(params: Params, model: Any, sets: tuple[tuple[Any, Any], tuple[Any, Any]], device: Any) -> dict[str, Any]:
+    """A model's clean errors on validation and test (`sets`: (dataset, split) each): `summarize_errors` per split
+    and the test errors per background kind (`test_by_background`: means with 95% intervals)."""
+    from pipeline.pose.metrics import errors_by_background, summarize_errors
+    from pipeline.pose.train import predict
+    from stages.artifacts import data
+
+    out: dict[str, Any] = {}
+    for split, (ds, s) in zip(("val", "test"), sets):
+        pred = predict(model, ds, 64, device)
+        out[split] = summarize_errors(pred, s.targets, s.labels["range"].to_numpy(), params.train.range_bins)
+    out["test_by_background"] = errors_by_background(pred, s.targets, data.backgrounds(s.labels))
+    return out
 
 
 def _attacked(

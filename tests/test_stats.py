@@ -92,3 +92,19 @@ def test_percent_ci_writes_a_difference_of_rates_in_signed_points() -> None:
     assert percent_ci(0.012, (-0.004, 0.029), signed=True) == "+1.2 [-0.4, +2.9]"
     assert percent_ci(-0.5, None, signed=True) == "-50.0"
     assert percent_ci(0.941, (0.924, 0.954)) == "94.1 [92.4, 95.4]"  # rates unsigned, as before
+
+
+def test_mean_interval_is_students_t_and_floored_where_values_cannot_go() -> None:
+    from scipy import stats as sps
+
+    from pipeline.stats import mean_interval
+
+    x = np.array([0.1, 0.2, 3.0])  # skewed, n = 3: the t interval reaches below 0
+    mean, lo, hi = mean_interval(x)
+    half = sps.t.ppf(0.975, 2) * x.std(ddof=1) / math.sqrt(3)
+    assert (mean, lo, hi) == pytest.approx((1.1, 1.1 - half, 1.1 + half))
+    assert lo < 0
+    assert mean_interval(x, floor=0.0) == pytest.approx((1.1, 0.0, 1.1 + half))
+    wide = np.linspace(1.0, 2.0, 50)  # far from the floor: the floor changes nothing
+    assert mean_interval(wide, floor=0.0) == mean_interval(wide)
+    assert mean_interval(np.array([2.5])) == (2.5, 2.5, 2.5)

@@ -145,3 +145,23 @@ def test_the_ablation_section_lists_neither_each_variant_and_both_per_background
     assert {line.split("|")[2].strip() for line in lines} == {"black", "earth"}
     assert "Best epochs: clamp only 3, adversarial training only 5" in " ".join(page.split())
     assert ablation_section({k: v for k, v in m.items() if k != "ablation"}, params) == ""
+
+
+def test_clean_errors_by_background_select_each_kinds_frames_with_floored_intervals():
+    from pipeline.pose.metrics import errors_by_background, pose_errors
+
+    rng = np.random.default_rng(0)
+    _, target = frames(6, black=True)
+    pred = target + rng.normal(0, [0.3] * 3 + [0.05] * 6, target.shape).astype(target.dtype)
+    kinds = np.array(["earth", "black", "earth", "space", "black", "black"])
+    split = errors_by_background(pred, target, kinds)
+    pos, att = pose_errors(pred, target)
+    assert list(split) == ["black", "space", "earth"]
+    for kind, r in split.items():
+        mask = kinds == kind
+        assert r["n"] == mask.sum() and r["pos_m"] == pytest.approx(pos[mask].mean())
+        assert r["att_deg"] == pytest.approx(att[mask].mean())
+        assert 0 <= r["pos_ci"][0] <= r["pos_m"] <= r["pos_ci"][1] and r["att_ci"][0] >= 0
+    assert list(errors_by_background(pred, target, None)) == ["black"]
+    with pytest.raises(ValueError, match="kinds of black, space, earth"):
+        errors_by_background(pred, target, np.array(["cloud"] * 6))

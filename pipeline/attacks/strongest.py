@@ -371,8 +371,8 @@ def frame_capacity(result: SuiteResult) -> Capacity:
 
 
 def _stats(values: np.ndarray) -> dict[str, Any]:
-    """{mean, ci} of per-frame values, the 95% normal-approximation interval (pipeline.stats.mean_interval)."""
-    mean, lo, hi = mean_interval(values)
+    """{mean, ci} of per-frame errors (non-negative), the 95% interval of pipeline.stats.mean_interval (floor 0)."""
+    mean, lo, hi = mean_interval(values, floor=0.0)
     return {"mean": mean, "ci": [lo, hi]}
 
 

@@ -18,6 +18,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from pipeline.geometry.rotations import matrix_to_quat, normalize_quat, sixd_to_matrix, sixd_to_quat
+from pipeline.render.backgrounds import KINDS
+from pipeline.stats import mean_interval
 
 
 def position_error(t_pred: np.ndarray, t_gt: np.ndarray) -> np.ndarray:
@@ -101,4 +103,19 @@ def summarize_errors(pred: np.ndarray, target: np.ndarray, ranges: np.ndarray, b
     out["lateral_10_30_m"] = float(lateral[near].mean()) if near.any() else float("nan")
     out["tz_pct_10_30"] = float(tz_pct[near].mean()) if near.any() else float("nan")
     out["bins"] = per_bin[::-1]
+    return out
+
+
+def errors_by_background(pred: np.ndarray, target: np.ndarray, backgrounds: Sequence[str] | None) -> dict[str, Any]:
+    """Per background kind present (pipeline/render/backgrounds.py KINDS order; `backgrounds` (N,) each frame's
+    kind, None = every frame black) of (N, 9) predictions: {n, pos_m, pos_ci, att_deg, att_ci}, the mean position
+    (m) and attitude (deg) errors with their 95% intervals (pipeline.stats.mean_interval, floor 0)."""
+    pos, att = pose_errors(pred, target)
+    kinds = np.full(len(pos), KINDS[0]) if backgrounds is None else np.asarray(backgrounds, str)
+    if kinds.shape != pos.shape or not set(kinds) <= set(KINDS):
+        raise ValueError(f"backgrounds must be ({len(pos)},) kinds of {', '.join(KINDS)}, got {kinds.shape}")
+    out: dict[str, Any] = {}
+    for kind in (k for k in KINDS if (kinds == k).any()):
+        (p, *p_ci), (a, *a_ci) = (mean_interval(e[kinds == kind], floor=0.0) for e in (pos, att))
+        out[kind] = {"n": int((kinds == kind).sum()), "pos_m": p, "pos_ci": p_ci, "att_deg": a, "att_ci": a_ci}
     return out

@@ -208,6 +208,13 @@ gradient); the robust model's counts its own training only (fine-tuned, it also 
 Minutes on this machine: `train_minutes` in reports/metrics/robust.json.
 
 {markdown_table(clean, decimals=3)}
+### Clean errors by background (test)
+
+Every test frame of each background kind (pipeline/render/backgrounds.py, render.background): `black` (a black
+sky), `space` (stars, the sensor's black offset and read noise) and `earth` (the same with the Earth's day side in
+view); means with their 95% intervals.
+
+{markdown_table(_background_rows(m, models))}
 ## Errors per range bin (test)
 
 {markdown_table(_bins(m, models), decimals=3)}
@@ -232,6 +239,23 @@ def _fitted(attacked_rotation: bool) -> str:
         if attacked_rotation
         else "only their position fitted: the rotation is fitted on the clean images"
     )
+
+
+def _background_rows(m: dict[str, Any], models: tuple[str, ...]) -> list[dict[str, Any]]:
+    """Per model and background kind its clean test errors with intervals (`test_by_background`)."""
+    from stages.pages.suite import ci
+
+    return [
+        {
+            "model": k,
+            "background": kind,
+            "images": r["n"],
+            "position mean (m)": ci(r["pos_m"], r["pos_ci"], 3),
+            "attitude mean (deg)": ci(r["att_deg"], r["att_ci"]),
+        }
+        for k in models
+        for kind, r in m[k]["test_by_background"].items()
+    ]
 
 
 def _bins(m: dict[str, Any], models: tuple[str, ...]) -> list[dict[str, Any]]:

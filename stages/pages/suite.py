@@ -18,9 +18,27 @@ MODELS = ("standard", "robust")
 ERRORS = {"position_m": "position", "attitude_deg": "attitude"}
 
 
-def ci(value: float, interval: list[float]) -> str:
+def ci(value: float, interval: list[float], decimals: int = 2) -> str:
     """A mean with its 95% interval: "1.23 [1.01, 1.45]"."""
-    return f"{value:.2f} [{interval[0]:.2f}, {interval[1]:.2f}]"
+    return f"{value:.{decimals}f} [{interval[0]:.{decimals}f}, {interval[1]:.{decimals}f}]"
+
+
+def by_background(tables: dict[str, dict[str, Any]], label: str) -> list[dict[str, Any]]:
+    """Per table (`label`: its column, e.g. model or variant), background kind and row of its split by background
+    (the clean row, then the suite's worst case per eps): frames and mean errors with intervals."""
+    return [
+        {
+            label: name,
+            "background": kind,
+            "frames": r["n"],
+            "eps": "clean" if r["attack"] == "clean" else f"{r['eps']:g}",
+            "position (m)": ci(r["pos_m"], r["pos_ci"]),
+            "attitude (deg)": ci(r["att_deg"], r["att_ci"]),
+        }
+        for name, t in tables.items()
+        for kind, rs in t["backgrounds"].items()
+        for r in rs
+    ]
 
 
 def worst_rows(tables: dict[str, Any]) -> list[dict[str, Any]]:
@@ -134,20 +152,7 @@ def background_section(tables: dict[str, Any]) -> str:
             "Every attacked test frame has a black background in this profile (render.background.share = 0): "
             "there are no Earth frames to split.\n"
         )
-    rows = [
-        {
-            "model": k,
-            "background": kind,
-            "frames": r["n"],
-            "eps": "clean" if r["attack"] == "clean" else f"{r['eps']:g}",
-            "position (m)": ci(r["pos_m"], r["pos_ci"]),
-            "attitude (deg)": ci(r["att_deg"], r["att_ci"]),
-        }
-        for k, t in tables.items()
-        for kind, rs in t["backgrounds"].items()
-        for r in rs
-    ]
-    return markdown_table(rows)
+    return markdown_table(by_background(tables, "model"))
 
 
 def capacity_section(capacity: dict[str, Any], params: Params) -> str:
@@ -231,19 +236,7 @@ def ablation_section(m: dict[str, Any], params: Params) -> str:
         **{name: v["suite"] for name, v in m["ablation"].items()},
         "both (robust)": m["robust"]["suite"],
     }
-    rows = [
-        {
-            "variant": name,
-            "background": kind,
-            "frames": r["n"],
-            "eps": "clean" if r["attack"] == "clean" else f"{r['eps']:g}",
-            "position (m)": ci(r["pos_m"], r["pos_ci"]),
-            "attitude (deg)": ci(r["att_deg"], r["att_ci"]),
-        }
-        for name, t in variants.items()
-        for kind, rs in t["backgrounds"].items()
-        for r in rs
-    ]
+    rows = by_background(variants, "variant")
     a = params.train.adversarial
     best = ", ".join(f"{name} {v['best_epoch']}" for name, v in m["ablation"].items())
     return f"""### Ablation: the clamp alone, adversarial training alone, both
