@@ -2,7 +2,7 @@
 
 On a seeded sample of test frames (`--frames`) of the working folder (params.yaml, datasets/, models/pose.pt and
 models/pose_robust.pt), at each `--eps`: PGD-50 (position objective, one random start, last iterate: the attack
-of reports/pose_robust.md) and the lean suite (pipeline.attacks.strongest.LEAN); on a seeded subsample of those
+reports/pose_robust.md used before the suite) and the lean suite (LEAN, or `--members`); on a seeded subsample of those
 (`--full-frames`) also the full suite (FULL, Square at `--square-eps`) and the lean suite with doubled steps and
 restarts. Every image stored as 8 bits before it is scored; the worst case nested in eps. Prints and writes
 (`## Strongest attack suite` of reports/benchmarks.md): position and attitude means with 95% intervals, the CPU
@@ -52,7 +52,7 @@ from stages.report import write_benchmark  # noqa: E402
 
 
 def _ci(values: np.ndarray) -> str:
-    mean, lo, hi = mean_interval(values)
+    mean, lo, hi = mean_interval(values, floor=0.0)
     return f"{mean:.2f} [{lo:.2f}, {hi:.2f}]"
 
 
@@ -107,7 +107,14 @@ def main() -> None:
     ap.add_argument("--models", nargs="+", default=["standard", "robust"], choices=["standard", "robust"])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument(
+        "--members",
+        nargs="+",
+        default=list(LEAN.members),
+        help="the lean suite's members (method/objective; default LEAN's; params.yaml suite.members is the page's)",
+    )
     args = ap.parse_args()
+    lean = dataclasses.replace(LEAN, members=tuple(args.members))
     torch.set_num_threads(args.threads)
     p = params_mod.load()
     test = data.load_split(p, "test")
@@ -123,14 +130,14 @@ def main() -> None:
         print(f"{model}: PGD-50 and lean on {len(rows)} frames", flush=True)
         runs = {
             "pgd-50": run_suite(net, images, targets, args.eps, PGD50),
-            "lean": run_suite(net, images, targets, args.eps, LEAN),
+            "lean": run_suite(net, images, targets, args.eps, lean),
         }
         table += comparison_rows(model, runs)
         print(f"{model}: full and doubled lean on {len(sub)} frames", flush=True)
         on_sub = {
             "pgd-50": runs["pgd-50"].select(sub),
             "lean": runs["lean"].select(sub),
-            "lean x2": run_suite(net, images[sub], targets[sub], args.eps, LEAN.doubled()),
+            "lean x2": run_suite(net, images[sub], targets[sub], args.eps, lean.doubled()),
             "full": run_suite(net, images[sub], targets[sub], args.eps, full_cfg),
         }
         table += comparison_rows(model, on_sub)[1:]
@@ -138,7 +145,7 @@ def main() -> None:
         checks += _checks(model, on_sub)
         print(markdown_table([r for r in table if r["model"] == model]), flush=True)
     load1 = os.getloadavg()[0]
-    body = _body(args, len(rows), len(sub), (load0, load1), full_cfg, table, checks, members)
+    body = _body(args, len(rows), len(sub), (load0, load1), (lean, full_cfg), table, checks, members)
     print(body)
     print(f"-> {write_benchmark('Strongest attack suite', body)} (## Strongest attack suite)")
 
@@ -174,7 +181,7 @@ def _body(
     frames: int,
     sub: int,
     load: tuple[float, float],
-    full_cfg: Any,
+    configs: tuple[Any, Any],
     table: list[dict[str, Any]],
     checks: list[dict[str, Any]],
     members: dict[str, list[dict[str, Any]]],
@@ -182,14 +189,15 @@ def _body(
     """The Markdown of the `## Strongest attack suite` section: `frames` sampled frames, `sub` of them for the
     full suite, the load average at the start and the end, the tables."""
     load0, load1 = load
+    lean, full_cfg = configs
     return (
         f"`benchmarks/attack_suite.py` on {platform.machine()}, torch {torch.__version__}, {args.threads} "
         f"thread(s), CPU; {frames} seeded test frames (seed {args.seed}), the full suite and the doubled "
         f"lean suite on a seeded subsample of {sub} of them; load average {load0:.1f} at the start, "
         f"{load1:.1f} at the end (other processes were not stopped). Worst case per frame nested in eps; "
-        f"means with 95% intervals (normal approximation); CPU s / frame: process time per frame at that eps "
-        f"(all members).\n\nLean: {', '.join(LEAN.members)}; {LEAN.steps} steps, {LEAN.restarts} restarts "
-        f"({'/'.join(LEAN.starts)} starts). Full: {', '.join(full_cfg.members)}; {full_cfg.steps} steps, "
+        f"means with 95% Student-t intervals floored at 0; CPU s / frame: process time per frame at that eps "
+        f"(all members).\n\nLean: {', '.join(lean.members)}; {lean.steps} steps, {lean.restarts} restarts "
+        f"({'/'.join(lean.starts)} starts). Full: {', '.join(full_cfg.members)}; {full_cfg.steps} steps, "
         f"{full_cfg.restarts} restarts ({'/'.join(full_cfg.starts)}), Square {full_cfg.queries} queries at eps "
         f"{full_cfg.square_eps:g}; on a model without a clamp a bpda member is skipped beside the apgd member of "
         f"its objective (the same attack).\n\n"

@@ -259,6 +259,7 @@ def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
 
     from typer.testing import CliRunner
 
+    from stages.artifacts.readers import read_eval_render
     from stages.cli import app
     from stages.config import params as params_mod
 
@@ -282,8 +283,10 @@ def test_evaluate_and_lab_stages_end_to_end(tmp_path, monkeypatch):
     assert set(ev["fused"]["per_eps"]) == {"0.5", "0.05"} and ev["fused"]["per_eps"]["0.5"]["tpr"]["n"] > 0
     assert (tmp_path / "reports/figures/timeline.png").stat().st_size > 1000
     assert "| 0.5 " in (tmp_path / "reports/integrated.md").read_text()
-    held = ev["black_level_heldout"]  # the clamp's check on the evaluation frames (fewer here than its 200)
-    assert held["images"] == p["evaluate"]["trajectories"] * 12
+    held = ev["black_level_heldout"]  # the clamp's check on the black-background evaluation frames (fewer than 200)
+    _, poses, _ = read_eval_render(params_mod.load())
+    black = int((poses["background"] == "black").sum()) if "background" in poses else len(poses)
+    assert 0 < black < p["evaluate"]["trajectories"] * 12 and held["images"] == black  # smoke renders a share over sky
     assert held["threshold"] == p["train"]["adversarial"]["black_level"]
     assert "## Held-out check of the black-level clamp" in (tmp_path / "reports/integrated.md").read_text()
     lab = json.loads((tmp_path / "reports/metrics/lab.json").read_text())
