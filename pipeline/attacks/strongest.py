@@ -19,11 +19,12 @@ eps) is what the integrity bound consumes.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 import zlib
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -288,18 +289,75 @@ def run_suite(
     *,
     device: str | torch.device = "cpu",
     los: np.ndarray | None = None,
+    part: Callable[[float, Callable[[], SuiteResult]], SuiteResult] | None = None,
+    progress: str | None = None,
 ) -> SuiteResult:
     """The suite `config` on clean uint8 images (N, H, W, 3) with true poses `targets` (N, 9: camera-frame
     position in m, 6-D rotation) at every eps of the increasing list `eps` (L-inf, pixel units); `los` (N, 3)
     camera-frame lines of sight (default: the true target directions). Attacks run on `device` (the draws on
-    the CPU); model in eval mode (its mode restored). On a model without a clamp a `bpda` member is skipped
-    when the suite has the `apgd` member of its objective; `square` members run at `config.square_eps` only
-    (a ValueError when it is not in `eps`)."""
+    the CPU; on CUDA under the network's own precision, bf16 with its `amp`); every score (clean and attacked)
+    in exact float32 (`exact_math`). Model in eval mode (its mode restored). On a model without a clamp a `bpda`
+    member is skipped when the suite has the `apgd` member of its objective; `square` members run at
+    `config.square_eps` only (a ValueError when it is not in `eps`).
+
+    The run is one run per eps, in increasing eps (each member's draws depend on its eps and batch only, so the
+    result is the same as one pass): `part(e, compute)` returns the run at eps e, by default `compute()`; a
+    caller may return a stored run of that eps instead (a cache: same model, frames, config and eps, one eps;
+    the clean errors are the first eps's). `progress`: a tqdm bar with that description over the frames x eps."""
     images, targets = np.asarray(images), np.asarray(targets, np.float64)
     eps = _check_run(images, targets, eps, los)
     _check_square(config, eps)
     members = _members_run(model, config)
-    n, shape = len(images), (len(members), len(eps), len(images))
+    bar = _bar(progress, len(eps) * len(images))
+    try:
+
+        def compute(e: float) -> SuiteResult:
+            return _run_eps(model, images, targets, e, members, config, device, los, bar)
+
+        parts = []
+        for e in eps:
+            found = compute(e) if part is None else part(e, lambda e=e: compute(e))
+            if found.eps != (e,) or found.members != members or found.frames != len(images):
+                raise ValueError(f"the suite's run at eps {e:g} does not match the suite (eps, members or frames)")
+            parts.append(found)
+            if bar is not None:
+                bar.n = len(parts) * len(images)
+                bar.refresh()
+    finally:
+        if bar is not None:
+            bar.close()
+    return join_eps(parts)
+
+
+def join_eps(parts: Sequence[SuiteResult]) -> SuiteResult:
+    """One run over the eps of `parts` (runs of the same members on the same frames, each at its own eps, in
+    increasing eps); the clean errors and ranges are the first part's."""
+    first = parts[0]
+    return SuiteResult(
+        tuple(e for p in parts for e in p.eps),
+        first.members,
+        {k: np.concatenate([p.errors[k] for p in parts], axis=1) for k in ERRORS},
+        {k: np.concatenate([p.shifts[k] for p in parts], axis=1) for k in SHIFTS},
+        first.clean,
+        first.target_range_m,
+        np.concatenate([p.seconds for p in parts], axis=1),
+        np.concatenate([p.cpu_seconds for p in parts], axis=1),
+    )
+
+
+def _run_eps(
+    model: nn.Module,
+    images: np.ndarray,
+    targets: np.ndarray,
+    e: float,
+    members: tuple[str, ...],
+    config: SuiteConfig,
+    device: str | torch.device,
+    los: np.ndarray | None,
+    bar: Any,
+) -> SuiteResult:
+    """The suite's `members` at one eps over every frame, batch by batch (`run_suite`)."""
+    n, shape = len(images), (len(members), 1, len(images))
     errors = {k: np.full(shape, np.nan) for k in ERRORS}
     shifts = {k: np.full(shape, np.nan) for k in SHIFTS}
     clean = {k: np.zeros(n) for k in ERRORS}
@@ -311,27 +369,54 @@ def run_suite(
             y = torch.from_numpy(targets[lo:hi]).float().to(device)
             los_b = None if los is None else torch.from_numpy(np.asarray(los[lo:hi], np.float32)).to(device)
             u = line_of_sight(y.double(), None if los_b is None else los_b.double())
-            with torch.no_grad():
+            with torch.no_grad(), exact_math(model):
                 p0 = model(x).double()
             for k, v in _score(p0, y.double(), p0, u)[0].items():
                 clean[k][lo:hi] = v
-            for ei, e in enumerate(eps):
-                for mi, member in enumerate(members):
-                    if _off_square_eps(member, e, config):
-                        continue
-                    t0, c0 = time.perf_counter(), time.process_time()
-                    found = run_member(model, member, x, y, e, config, _generator(config.seed, e, member, lo), los_b)
-                    with torch.no_grad():
-                        err, shift = _score(model(found.images.float() / 255.0).double(), y.double(), p0, u)
-                    seconds[mi, ei] += (time.perf_counter() - t0) / n
-                    cpu_seconds[mi, ei] += (time.process_time() - c0) / n
-                    for k in ERRORS:
-                        errors[k][mi, ei, lo:hi] = err[k]
-                    for k in SHIFTS:
-                        shifts[k][mi, ei, lo:hi] = shift[k]
+            for mi, member in enumerate(members):
+                if _off_square_eps(member, e, config):
+                    continue
+                t0, c0 = time.perf_counter(), time.process_time()
+                found = run_member(model, member, x, y, e, config, _generator(config.seed, e, member, lo), los_b)
+                with torch.no_grad(), exact_math(model):
+                    err, shift = _score(model(found.images.float() / 255.0).double(), y.double(), p0, u)
+                seconds[mi, 0] += (time.perf_counter() - t0) / n
+                cpu_seconds[mi, 0] += (time.process_time() - c0) / n
+                for k in ERRORS:
+                    errors[k][mi, 0, lo:hi] = err[k]
+                for k in SHIFTS:
+                    shifts[k][mi, 0, lo:hi] = shift[k]
+            if bar is not None:
+                bar.update(hi - lo)
     return SuiteResult(
-        eps, members, errors, shifts, clean, np.linalg.norm(targets[:, :3], axis=1), seconds, cpu_seconds
+        (e,), members, errors, shifts, clean, np.linalg.norm(targets[:, :3], axis=1), seconds, cpu_seconds
     )
+
+
+@contextlib.contextmanager
+def exact_math(model: nn.Module) -> Iterator[None]:
+    """Float32 without shortcuts inside: the network's bf16 autocast off (its `amp` attribute, when it has one)
+    and TF32 off for CUDA convolutions and matrix products (no effect on the CPU); all restored after."""
+    amp = getattr(model, "amp", None)
+    flags = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    if amp is not None:
+        model.amp = False
+    torch.backends.cudnn.allow_tf32 = torch.backends.cuda.matmul.allow_tf32 = False
+    try:
+        yield
+    finally:
+        torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32 = flags
+        if amp is not None:
+            model.amp = amp
+
+
+def _bar(desc: str | None, total: int) -> Any:
+    """A tqdm bar of `total` frames described `desc` (None: no bar)."""
+    if desc is None:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="frame", dynamic_ncols=True)
 
 
 def _check_square(config: SuiteConfig, eps: Sequence[float]) -> None:

@@ -118,7 +118,9 @@ ROBUSTNESS_REPORT, ROBUSTNESS_FIGURE, ROBUSTNESS_METRICS, INTEGRITY_FIGURE = _ou
 LAB_MODELS, LAB_MODELS_SUMMARY = _outputs("lab_models", "datasets/lab_models", "datasets/lab_models/summary.json")
 LAB, LAB_REPORT, LAB_METRICS = _outputs("lab", "datasets/lab", "reports/lab.md", "reports/metrics/lab.json")
 # the full strongest-attack suite on every test frame (`rpod suite`): a stage of optional/dvc.yaml
-SUITE_REPORT, SUITE_METRICS = _outputs("suite", "reports/suite.md", "reports/metrics/suite.json")
+SUITE_REPORT, SUITE_METRICS, SUITE_PARTS = _outputs(
+    "suite", "reports/suite.md", "reports/metrics/suite.json", "datasets/suite"
+)
 # issue 38's 2 x 2 ablation of the paper's detector: a stage of optional/dvc.yaml (`dvc repro optional/dvc.yaml`), not of
 # the default `dvc repro`
 ABLATION_REPORT, ABLATION_METRICS = _outputs("ablation", "reports/ablation.md", "reports/metrics/ablation.json")

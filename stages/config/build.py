@@ -220,7 +220,6 @@ def suite_config(suite: Suite, seed: int, full: bool = False) -> Any:
                 members=FULL.members,
                 starts=FULL.starts,
                 seed=seed,
-                batch_size=suite.batch_size,
             )
         return settings_of(SuiteConfig, suite, ("queries", "p_init", "square_eps"), seed=seed)
     except ValueError as e:

@@ -46,6 +46,7 @@ class SuiteFull:
     restarts: Annotated[int, In("[1, 1000]", "restarts")]
     queries: Annotated[int, In("[1, 1000000]", "queries")]  # Square's, per frame
     square_eps: Eps  # the one eps Square runs at: one of suite.eps
+    batch_size: Batch  # frames per attack batch of rpod suite, its full and its lean suite (part of the seeding)
 
 
 @dataclass(frozen=True)

@@ -10,12 +10,17 @@ seed: never fitted by either model); the test split is never read for it.
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from pipeline.io.atomic import file_hash
 from pipeline.seeds import seed_for
 from stages.artifacts import data
+from stages.artifacts.paths import POSE, POSE_ROBUST, SUITE_PARTS
 from stages.config.build import suite_config
 from stages.config.schema import Params
 
@@ -104,3 +109,36 @@ def write_capacities(folder: Any, capacity: dict[str, Any], params: Params, hash
         }
         out[name] = write_capacity(folder, name, table, overbounds, meta)
     return out
+
+
+@dataclass(frozen=True)
+class SuiteJob:
+    """One suite run of `rpod suite`: pose model `name` (standard | robust) from `path`, suite `kind` (full | lean)
+    with its SuiteConfig, and `key`: the identity of its parts (the model file, the frames, the settings); its part
+    at eps e is SUITE_PARTS/<name>-<kind>-<e>.npz."""
+
+    name: str
+    path: Path
+    kind: str
+    config: Any
+    key: str
+
+    def part_path(self, e: float) -> Path:
+        return SUITE_PARTS / f"{self.name}-{self.kind}-{e:g}.npz"
+
+
+def suite_jobs(params: Params, images: np.ndarray, targets: np.ndarray) -> list[SuiteJob]:
+    """`rpod suite`'s runs on the test `images` (N, H, W, 3 uint8) and `targets` (N, 9), in the order it runs them:
+    the robust model first (the chain that ships), the full suite then the lean one, both in batches of
+    `suite.full.batch_size`."""
+    from pipeline.formats.suite import part_key
+
+    s, seed = params.suite, suite_seed(params)
+    jobs = []
+    for name, path in (("robust", POSE_ROBUST), ("standard", POSE)):
+        for kind in ("full", "lean"):
+            config = dataclasses.replace(suite_config(s, seed, full=kind == "full"), batch_size=s.full.batch_size)
+            jobs.append(
+                SuiteJob(name, Path(path), kind, config, part_key(file_hash(path, 64), images, targets, config))
+            )
+    return jobs
