@@ -2,7 +2,7 @@
 DVC cache or environment) and bring them back: `rpod suite` reads them as its own.
 
     python scripts/suite_parts.py export JOB                # here: test frames, both pose models, the plan -> JOB/
-    python scripts/suite_parts.py run JOB OUT [--minutes M]  # there (from a checkout): parts -> OUT/*.npz
+    python scripts/suite_parts.py run JOB OUT [--minutes M] [--only standard/lean]  # there: parts -> OUT/*.npz
     cp OUT/*.npz datasets/suite/ && rpod suite               # here: matching parts are read, the rest computed
 
 `export` writes JOB/frames.npz (the test split's uint8 images and targets, as `rpod suite` loads them), JOB/<name>.pt
@@ -52,9 +52,9 @@ def export(job: Path) -> None:
     print(f"suite_parts: {len(images)} test frames, {len(runs)} runs x {len(plan['eps'])} eps -> {job}/")
 
 
-def run(job: Path, out: Path, minutes: float | None, device: str | None) -> int:
-    """Every part of job/plan.json not yet in out/, in order, on `device`; 0 when all are there, 3 when the budget
-    stopped it."""
+def run(job: Path, out: Path, minutes: float | None, device: str | None, only: list[str]) -> int:
+    """Every part of job/plan.json not yet in out/, in order, on `device` (of the runs `only` names as
+    model/suite, e.g. standard/lean; none: every run); 0 when all are there, 3 when the budget stopped it."""
     import torch
 
     from pipeline.attacks.strongest import SuiteConfig, run_suite
@@ -71,6 +71,8 @@ def run(job: Path, out: Path, minutes: float | None, device: str | None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     start, budget = time.perf_counter(), None if minutes is None else 60.0 * minutes
     for r in plan["runs"]:
+        if only and f"{r['name']}/{r['kind']}" not in only:
+            continue
         config = SuiteConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in r["config"].items()})
         path = job / f"{r['name']}.pt"
         if part_key(file_hash(path, 64), images, targets, config) != r["key"]:
@@ -111,11 +113,12 @@ def main() -> None:
     r.add_argument("out", type=Path)
     r.add_argument("--minutes", type=float, default=None, help="time budget (no part starts that would end past it)")
     r.add_argument("--device", default=None, help="torch device (default: cuda when there is one, else cpu)")
+    r.add_argument("--only", action="append", default=[], help="a run as model/suite, e.g. standard/lean (repeatable)")
     args = parser.parse_args()
     if args.command == "export":
         export(args.job)
     else:
-        sys.exit(run(args.job, args.out, args.minutes, args.device))
+        sys.exit(run(args.job, args.out, args.minutes, args.device, args.only))
 
 
 if __name__ == "__main__":

@@ -45,34 +45,33 @@ Minutes = Annotated[
 ]
 
 
+Partial = Annotated[
+    bool,
+    typer.Option(
+        "--partial",
+        help="Attack nothing: write the page and metrics from the parts kept in datasets/suite/, each model over the "
+        "eps (from the smallest up) both its suites reached; the page names the parts that did not run.",
+    ),
+]
+
+
 class _OutOfTime(Exception):
     """The time budget of `--minutes` is spent."""
 
 
-def main(params: Params, minutes: Minutes = None) -> None:
+def main(params: Params, minutes: Minutes = None, partial: Partial = False) -> None:
     """Run the full and the lean strongest-attack suite on every test frame of both pose models; write the page and
     metrics (parts kept in datasets/suite/ as they finish)."""
-    from pipeline.attacks.strongest import run_suite
     from pipeline.evaluation.strongest import compare, table
 
     device = torch_setup(params)
     test = data.load_split(params, "test")
     images, targets = np.stack([test.images[i] for i in range(len(test))]), test.targets.astype(np.float64)
-    kinds, eps = data.backgrounds(test.labels), params.suite.eps
-    clock = _Clock(time.perf_counter(), None if minutes is None else 60.0 * minutes)
-    runs, devices, here = {}, set(), _device_name(device)
-    try:
-        for job in suite_jobs(params, images, targets):
-            model = load_pose(params, job.path).model
-            part = _parts(job, here, clock, devices)
-            runs[job.name, job.kind] = run_suite(
-                model, images, targets, eps, job.config, device=device, part=part, progress=f"{job.name} {job.kind}"
-            )
-    except _OutOfTime:
-        raise StageError(
-            f"suite: stopped at the {minutes:g}-minute budget; the parts done are kept in {SUITE_PARTS}/: run "
-            "`rpod suite` again to go on"
-        ) from None
+    jobs, kinds = suite_jobs(params, images, targets), data.backgrounds(test.labels)
+    if partial:
+        runs, devices, missing = _kept(jobs, params.suite.eps)
+    else:
+        (runs, devices), missing = _run(params, jobs, images, targets, device, minutes), []
     out, seconds = {}, {}
     for name in ("standard", "robust"):
         full, lean = runs[name, "full"], runs[name, "lean"]
@@ -81,17 +80,71 @@ def main(params: Params, minutes: Minutes = None) -> None:
         }
         out[name]["lean"]["full_check"] = compare(lean, full)
         seconds[name] = float(sum(r.seconds.sum() * r.frames for r in (full, lean)))
-        typer.echo(f"suite: {name} model, {len(test)} test frames, {len(eps)} eps: {seconds[name]:.0f} s of attacks")
+        typer.echo(
+            f"suite: {name} model, {len(test)} test frames, eps {list(full.eps)}: {seconds[name]:.0f} s attacking"
+        )
     metrics = {
         "models": out,
         "frames": len(test),
-        "eps": [float(e) for e in eps],
+        "eps": [float(e) for e in params.suite.eps],
+        "missing": missing,
         "device": ", ".join(sorted(devices)),
         "seconds": seconds,
     }
     write_metrics(SUITE_METRICS, metrics, params.profile_name)
     atomic_write_text(SUITE_REPORT, suite_page(metrics, params))
-    typer.echo(f"suite: -> {SUITE_REPORT}, {SUITE_METRICS}")
+    typer.echo(f"suite: -> {SUITE_REPORT}, {SUITE_METRICS}" + (f" ({len(missing)} parts not run)" if missing else ""))
+
+
+def _run(
+    params: Params, jobs: list[SuiteJob], images: np.ndarray, targets: np.ndarray, device: Any, minutes: float | None
+) -> tuple[dict[tuple[str, str], Any], set[str]]:
+    """(runs, devices): every job's run over every eps (parts kept read, the others computed and kept) and the
+    devices the parts ran on; a StageError when the `minutes` budget stops it."""
+    from pipeline.attacks.strongest import run_suite
+
+    clock = _Clock(time.perf_counter(), None if minutes is None else 60.0 * minutes)
+    here, runs, devices = _device_name(device), {}, set()
+    try:
+        for job in jobs:
+            model = load_pose(params, job.path).model
+            part = _parts(job, here, clock, devices)
+            run = run_suite(
+                model,
+                images,
+                targets,
+                params.suite.eps,
+                job.config,
+                device=device,
+                part=part,
+                progress=f"{job.name} {job.kind}",
+            )
+            runs[job.name, job.kind] = run
+    except _OutOfTime:
+        raise StageError(
+            f"suite: stopped at the {minutes:g}-minute budget; the parts done are kept in {SUITE_PARTS}/: run "
+            "`rpod suite` again to go on (or `rpod suite --partial` for a page of what is there)"
+        ) from None
+    return runs, devices
+
+
+def _kept(jobs: list[SuiteJob], eps: list[float]) -> tuple[dict[tuple[str, str], Any], set[str], list[str]]:
+    """(runs, devices, missing part files) of `--partial`: per model its two suites over the longest run of eps
+    from the smallest up that both have kept; a StageError when a model has none."""
+    from pipeline.attacks.strongest import join_eps
+    from pipeline.formats.suite import read_suite_part
+
+    kept = {(j.name, j.kind): [read_suite_part(j.part_path(e), j.key) for e in eps] for j in jobs}
+    missing = [j.part_path(e).name for j in jobs for e, got in zip(eps, kept[j.name, j.kind]) if got is None]
+    runs, devices = {}, set()
+    for name in dict.fromkeys(j.name for j in jobs):
+        n = min(next((i for i, got in enumerate(kept[name, k]) if got is None), len(eps)) for k in ("full", "lean"))
+        if n == 0:
+            raise StageError(f"suite --partial: no part of the {name} model at eps {eps[0]:g} in {SUITE_PARTS}/")
+        for k in ("full", "lean"):
+            runs[name, k] = join_eps([got[0] for got in kept[name, k][:n]])
+            devices |= {got[1] for got in kept[name, k][:n]}
+    return runs, devices, missing
 
 
 @dataclasses.dataclass

@@ -425,6 +425,7 @@ LIBRARY_DEFAULTS_DIFFER: dict[str, str] = {  # reasons: conf/config.yaml's comme
     "suite.restarts": "as suite.steps",
     "suite.starts": "as suite.steps",
     "suite.full.square_eps": "the library's None runs Square at every eps; suite.full names 0.05, FULL's",
+    "suite.full.batch_size": "rpod suite attacks every test frame in one batch (a GPU's best); the library's 32",
     "defense.position_noise": "MotionSettings' 5 mm per frame without a step scale; the profile's: the thrusters'",
     "defense.position_noise_scale": "as defense.position_noise",
     "guidance.max_steps": "GuidanceSettings' 60 steps (the nominal 50-step approach and 10 more); the profile's 100",

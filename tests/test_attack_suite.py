@@ -21,7 +21,9 @@ from pipeline.attacks.strongest import (
     PGD50,
     SuiteConfig,
     SuiteResult,
+    exact_math,
     frame_capacity,
+    join_eps,
     nested_worst,
     ratio_rows,
     run_member,
@@ -29,7 +31,9 @@ from pipeline.attacks.strongest import (
     sanity_rows,
     suite_rows,
 )
+from pipeline.formats.suite import part_key, read_suite_part, write_suite_part
 from pipeline.geometry.rotations import matrix_to_6d, quat_to_6d, rotvec_to_matrix
+from pipeline.io.errors import DataError
 from pipeline.pose.metrics import pose_errors
 
 
@@ -381,3 +385,52 @@ def test_suite_is_deterministic_and_doubled_doubles():
     assert (d.steps, d.restarts, d.queries, d.members) == (40, 4, 2 * SMALL.queries, SMALL.members)
     with pytest.raises(ValueError, match="method/objective"):
         SuiteConfig(members=("apgd/range",))
+
+
+def test_a_run_is_the_same_whether_its_eps_parts_are_computed_or_handed_back(tmp_path):
+    images, targets = frames(n=6)
+    model, cfg = ToyPose(black_level=0.07), dataclasses.replace(SMALL, steps=5, restarts=1)
+    kept = {}
+
+    def keep(e, compute):
+        kept[e] = compute()
+        return kept[e]
+
+    whole = run_suite(model, images, targets, [0.01, 0.1], cfg, part=keep)
+    assert sorted(kept) == [0.01, 0.1] and all(p.eps == (e,) for e, p in kept.items())
+    key = "k" * 64
+    for e, p in kept.items():
+        write_suite_part(tmp_path / f"{e:g}.npz", p, key, "cpu")
+    assert read_suite_part(tmp_path / "0.1.npz", "other") is None and read_suite_part(tmp_path / "no.npz", key) is None
+
+    def stored(e, compute):
+        return read_suite_part(tmp_path / f"{e:g}.npz", key)[0]
+
+    again = run_suite(model, images, targets, [0.01, 0.1], cfg, part=stored)
+    assert again.eps == whole.eps and again.members == whole.members
+    for k in whole.errors:
+        assert np.array_equal(again.errors[k], whole.errors[k], equal_nan=True)
+    assert np.array_equal(join_eps([kept[0.01], kept[0.1]]).worst("position_m"), whole.worst("position_m"))
+    with pytest.raises(ValueError, match="does not match the suite"):
+        run_suite(model, images, targets, [0.01, 0.1], cfg, part=lambda e, compute: kept[0.01])
+    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    with pytest.raises(DataError, match="bad.npz: not a readable suite part"):
+        read_suite_part(tmp_path / "bad.npz", key)
+
+
+def test_part_keys_name_the_model_the_frames_and_the_settings():
+    images, targets = frames(n=4)
+    key = part_key("a" * 64, images, targets, SMALL)
+    assert key == part_key("a" * 64, images.copy(), targets.copy(), SMALL)
+    assert key != part_key("b" * 64, images, targets, SMALL)
+    assert key != part_key("a" * 64, images[::-1], targets, SMALL)
+    assert key != part_key("a" * 64, images, targets, dataclasses.replace(SMALL, batch_size=8))
+
+
+def test_exact_math_turns_off_autocast_and_tf32_and_restores_them():
+    model = ToyPose()
+    model.amp = True
+    before = torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32
+    with exact_math(model):
+        assert model.amp is False and not torch.backends.cudnn.allow_tf32 and not torch.backends.cuda.matmul.allow_tf32
+    assert model.amp is True and (torch.backends.cudnn.allow_tf32, torch.backends.cuda.matmul.allow_tf32) == before

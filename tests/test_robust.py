@@ -259,7 +259,7 @@ def test_a_budget_past_the_clamp_is_accepted_with_the_lifting_start_and_bpda(tmp
     assert a.unmasked() and a.eps == 0.1 and a.objectives == ("position", "attitude")
 
 
-def test_robust_stage_writes_the_model_its_page_and_a_loader_reads_it(dataset):
+def test_robust_stage_writes_the_model_its_page_and_a_loader_reads_it(dataset, monkeypatch):
     from stages.train import main
 
     main(params_mod.load())
@@ -315,3 +315,54 @@ def test_robust_stage_writes_the_model_its_page_and_a_loader_reads_it(dataset):
     assert full["full"]["frames"] == full["lean"]["frames"] == 16 and len(full["full"]["members"]) == 12
     assert full["lean"]["full_check"]["frames"] == 16 and all(r["ok"] for r in full["full"]["sanity"])
     assert "## Worst case: the full suite" in Path("reports/suite.md").read_text()
+    _suite_parts_are_kept_and_read(suite, monkeypatch)
+
+
+def _suite_parts_are_kept_and_read(suite, monkeypatch) -> None:
+    """`rpod suite` keeps a part per model, suite and eps; a second run reads them all (no attack), --partial writes
+    the page from what is kept, --minutes stops before a missing part, and the parts scripts/suite_parts.py runs
+    from an exported job are read as the stage's own."""
+    import importlib.util
+
+    import pipeline.attacks.strongest as strongest
+
+    eps, metrics = params_mod.load().suite.eps, Path("reports/metrics/suite.json")
+    first = json.loads(metrics.read_text())["models"]
+    assert len(list(Path("datasets/suite").glob("*.npz"))) == 4 * len(eps)
+    attack = strongest.run_member
+
+    def no_attack(*args, **kwargs):
+        raise AssertionError("a kept part was attacked again")
+
+    monkeypatch.setattr(strongest, "run_member", no_attack)
+    suite(params_mod.load())
+    assert json.loads(metrics.read_text())["models"] == first
+    gone = f"standard-lean-{eps[-1]:g}.npz"
+    Path("datasets/suite", gone).unlink()
+    suite(params_mod.load(), partial=True)
+    m = json.loads(metrics.read_text())
+    assert m["missing"] == [gone] and m["models"]["robust"]["full"]["eps"] == eps
+    assert m["models"]["standard"]["full"]["eps"] == m["models"]["standard"]["lean"]["eps"] == eps[:-1]
+    page = Path("reports/suite.md").read_text()
+    assert "**Partial run**" in page and gone.removesuffix(".npz") in page and "not run" in page
+    with pytest.raises(StageError, match="minute budget"):
+        suite(params_mod.load(), minutes=0.0)
+    spec = importlib.util.spec_from_file_location("suite_parts", Path(__file__).parents[1] / "scripts/suite_parts.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    script.export(Path("job"))
+    monkeypatch.setattr(strongest, "run_member", attack)
+    assert script.run(Path("job"), Path("out"), None, "cpu", ["standard/lean"]) == 0
+    assert sorted(p.name for p in Path("out").glob("*.npz")) == sorted(f"standard-lean-{e:g}.npz" for e in eps)
+    Path("out", gone).rename(Path("datasets/suite", gone))
+    monkeypatch.setattr(strongest, "run_member", no_attack)
+    suite(params_mod.load())
+    m = json.loads(metrics.read_text())
+    assert m["missing"] == [] and _untimed(m["models"]) == _untimed(first)  # the same attacks, timed again
+
+
+def _untimed(tree):
+    """A metrics tree less its timings (seconds per frame)."""
+    if isinstance(tree, dict):
+        return {k: _untimed(v) for k, v in tree.items() if not k.endswith("seconds_per_frame")}
+    return [_untimed(v) for v in tree] if isinstance(tree, list) else tree

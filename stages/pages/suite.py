@@ -42,17 +42,23 @@ def by_background(tables: dict[str, dict[str, Any]], label: str) -> list[dict[st
 
 
 def worst_rows(tables: dict[str, Any]) -> list[dict[str, Any]]:
-    """Per eps (clean first) each model's clean error or the suite's worst case, position (m) and attitude (deg)."""
+    """Per eps (clean first) each model's clean error or the suite's worst case, position (m) and attitude (deg);
+    "not run" where a model's table stops at a smaller eps (`rpod suite --partial`)."""
+    keys = sorted(
+        {(r["attack"], r["eps"]) for t in tables.values() for r in t["rows"] if r["attack"] in ("clean", "suite")},
+        key=lambda k: k[1],
+    )
     rows = []
-    for row in tables[MODELS[0]]["rows"]:
-        if row["attack"] not in ("clean", "suite"):
-            continue
-        got = {k: _find(tables[k]["rows"], row["attack"], row["eps"]) for k in tables}
+    for attack, eps in keys:
+        got = {
+            k: next((r for r in t["rows"] if r["attack"] == attack and r["eps"] == eps), None)
+            for k, t in tables.items()
+        }
         rows.append(
             {
-                "eps": "clean" if row["attack"] == "clean" else f"{row['eps']:g}",
-                **{f"{k} position (m)": ci(r["pos_m"], r["pos_ci"]) for k, r in got.items()},
-                **{f"{k} attitude (deg)": ci(r["att_deg"], r["att_ci"]) for k, r in got.items()},
+                "eps": "clean" if attack == "clean" else f"{eps:g}",
+                **{f"{k} position (m)": ci(r["pos_m"], r["pos_ci"]) if r else "not run" for k, r in got.items()},
+                **{f"{k} attitude (deg)": ci(r["att_deg"], r["att_ci"]) if r else "not run" for k, r in got.items()},
             }
         )
     return rows
@@ -261,9 +267,16 @@ def _cost(m: dict[str, Any]) -> str:
     )
 
 
-def _find(rows: list[dict[str, Any]], attack: str, eps: float) -> dict[str, Any]:
-    """The row of `rows` with this attack and eps."""
-    return next(r for r in rows if r["attack"] == attack and r["eps"] == eps)
+def _partial(m: dict[str, Any]) -> str:
+    """The note of a page written from the parts kept (`rpod suite --partial`), naming the parts not run."""
+    if not m.get("missing"):
+        return ""
+    names = ", ".join(p.removesuffix(".npz") for p in m["missing"])
+    return (
+        f"\n**Partial run** (`rpod suite --partial`): these parts (model-suite-eps) did not run: {names}. Each "
+        "model's tables stop at the largest eps both its suites reached; `rpod suite` runs the rest and keeps "
+        "what is here.\n"
+    )
 
 
 def suite_page(m: dict[str, Any], params: Params) -> str:
@@ -282,8 +295,9 @@ restart(s) alternating the random and the background-lifting start, Square with 
 {s.full.square_eps:g}. The lean suite is the one `rpod train --robust` runs for reports/pose_robust.md:
 {", ".join(lean[MODELS[0]]["members"])}; {s.steps} steps, {s.restarts} restart(s), {"/".join(s.starts)} start.
 Every adversarial image is stored as 8 bits before it is scored; the worst case per frame is the largest error any
-member found at any eps up to the row's (nested in eps). Means with 95% intervals.
-
+member found at any eps up to the row's (nested in eps). Means with 95% intervals. Attacks ran on
+{m["device"]}; every score in exact float32.
+{_partial(m)}
 ## Worst case: the full suite
 
 {markdown_table(worst_rows(full))}
