@@ -194,6 +194,8 @@ def test_black_level_stats_measure_the_render_and_the_lab_background():
     kinds = np.array(["black"] * 5 + ["space"] * 5)
     assert black_level_stats(mixed, 0.07, 0.02, 0.0, seed=0, backgrounds=kinds) == b
     assert black_level_stats(mixed, 0.07, 0.02, 0.0, seed=0)["target_erased"] > 0.5  # the flaw it avoids
+    with pytest.raises(ValueError, match="none of the 5 given has one .*background share of 1"):
+        black_level_stats(offset, 0.07, 0.02, 0.0, seed=0, backgrounds=np.array(["earth"] * 5))
 
 
 def test_tilt_and_roll_split_the_attitude_error_about_the_line_of_sight():

@@ -39,7 +39,7 @@ from pipeline.attacks.strongest import (
     sanity_rows,
     suite_rows,
 )
-from pipeline.render.backgrounds import KINDS
+from pipeline.render.backgrounds import KINDS, background_kinds
 
 TOLERANCE = 0.05  # the stability and lean-vs-full checks: mean worst cases within 5% of each other
 
@@ -97,12 +97,7 @@ def compare(result: SuiteResult, reference: SuiteResult) -> dict[str, Any]:
 def background_rows(result: SuiteResult, backgrounds: Sequence[str] | None) -> dict[str, list[dict[str, Any]]]:
     """Per background kind present (in KINDS order) the `suite_rows` of its frames that are not a single member's:
     the clean row and the suite's worst case per eps; `backgrounds` (N,) each frame's kind, None = all black."""
-    kinds = np.full(result.frames, KINDS[0]) if backgrounds is None else np.asarray(backgrounds, str)
-    if kinds.shape != (result.frames,) or not set(kinds) <= set(KINDS):
-        raise ValueError(
-            f"backgrounds must be ({result.frames},) kinds of {', '.join(KINDS)}, got "
-            f"{kinds.shape} {sorted(set(kinds.ravel()))}"
-        )
+    kinds = background_kinds(backgrounds, result.frames)
     return {
         kind: [r for r in suite_rows(result.select(kinds == kind)) if r["attack"] in ("clean", "suite")]
         for kind in KINDS

@@ -18,7 +18,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from pipeline.geometry.rotations import matrix_to_quat, normalize_quat, sixd_to_matrix, sixd_to_quat
-from pipeline.render.backgrounds import KINDS
+from pipeline.render.backgrounds import KINDS, background_kinds
 from pipeline.stats import mean_interval
 
 
@@ -111,9 +111,7 @@ def errors_by_background(pred: np.ndarray, target: np.ndarray, backgrounds: Sequ
     kind, None = every frame black) of (N, 9) predictions: {n, pos_m, pos_ci, att_deg, att_ci}, the mean position
     (m) and attitude (deg) errors with their 95% intervals (pipeline.stats.mean_interval, floor 0)."""
     pos, att = pose_errors(pred, target)
-    kinds = np.full(len(pos), KINDS[0]) if backgrounds is None else np.asarray(backgrounds, str)
-    if kinds.shape != pos.shape or not set(kinds) <= set(KINDS):
-        raise ValueError(f"backgrounds must be ({len(pos)},) kinds of {', '.join(KINDS)}, got {kinds.shape}")
+    kinds = background_kinds(backgrounds, len(pos))
     out: dict[str, Any] = {}
     for kind in (k for k in KINDS if (kinds == k).any()):
         (p, *p_ci), (a, *a_ci) = (mean_interval(e[kinds == kind], floor=0.0) for e in (pos, att))

@@ -44,6 +44,11 @@ def black_level_stats(
     kernel = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
     black, lit, lab = [], [], []
     rows = np.arange(len(images)) if backgrounds is None else np.flatnonzero(np.asarray(backgrounds) == "black")
+    if not len(rows):
+        raise ValueError(
+            f"the clamp's statistics sample black-background images and none of the {len(images)} given has one "
+            "(every frame rendered over the Earth or stars: a background share of 1)"
+        )
     for i in rows[sample_rows(len(rows), n, seed)]:
         image = np.asarray(images[int(i)])
         dark = image.max(axis=-1) == 0

@@ -41,6 +41,7 @@ import functools
 import hashlib
 import itertools
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
@@ -82,6 +83,17 @@ class FrameBackground:
 
     nadir: tuple[float, float, float]  # unit vector from the camera to the Earth's centre, camera frame
     seed: int  # of the frame's Earth texture, stars and read noise
+
+
+def background_kinds(backgrounds: Sequence[str] | None, n: int) -> np.ndarray:
+    """(n,) each frame's background kind (KINDS) from `backgrounds` (None: every frame black); a ValueError naming
+    the shape and kinds given otherwise."""
+    kinds = np.full(n, KINDS[0]) if backgrounds is None else np.asarray(backgrounds, str)
+    if kinds.shape != (n,) or not set(kinds.ravel()) <= set(KINDS):
+        raise ValueError(
+            f"backgrounds must be ({n},) kinds of {', '.join(KINDS)}, got {kinds.shape} {sorted(set(kinds.ravel()))}"
+        )
+    return kinds
 
 
 def check_background(s: BackgroundSettings) -> None:
