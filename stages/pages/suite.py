@@ -286,11 +286,11 @@ def suite_page(m: dict[str, Any], params: Params) -> str:
 
     s = params.suite
     full, lean = ({k: m["models"][k][run] for k in MODELS} for run in ("full", "lean"))
-    first = full[MODELS[0]]
     return f"""# The full strongest-attack suite (`rpod suite`)
 
 Both pose models on all {m["frames"]} test frames, profile `{params.profile_name}`. The full suite:
-{", ".join(first["members"])}; {s.full.steps} APGD steps with momentum and the best iterate kept, {s.full.restarts}
+{", ".join(full["robust"]["members"])} (on the standard model, which has no clamp, a bpda member is its apgd member
+and runs once); {s.full.steps} APGD steps with momentum and the best iterate kept, {s.full.restarts}
 restart(s) alternating the random and the background-lifting start, Square with {s.full.queries} queries at eps
 {s.full.square_eps:g}. The lean suite is the one `rpod train --robust` runs for reports/pose_robust.md:
 {", ".join(lean[MODELS[0]]["members"])}; {s.steps} steps, {s.restarts} restart(s), {"/".join(s.starts)} start.
