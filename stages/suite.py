@@ -1,7 +1,8 @@
 """`rpod suite`: the full strongest-attack suite (issue 37) on every test frame of both pose models ->
 reports/suite.md and reports/metrics/suite.json. A stage of optional/dvc.yaml (`dvc repro optional/dvc.yaml`), not of
-the default `dvc repro`: on 2 CPU cores it would take days (the full suite costs 10-20 CPU-seconds per frame and eps);
-on CUDA (`device: auto` finds it) it takes minutes.
+the default `dvc repro`: on 2 CPU cores it would take about 40 hours (the full suite costs about 23 s per frame and eps
+on the robust model, 12 s on the standard one); on one H200 (`device: auto` finds CUDA) about 16 minutes (README, "GPU
+and the paper profile").
 
 Per model (models/pose_robust.pt first, then models/pose.pt) at every eps of `suite.eps`: the full suite
 (pipeline/attacks/strongest.py FULL's members and starts at the sizes of `suite.full`) and the lean suite of `rpod
