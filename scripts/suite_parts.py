@@ -62,9 +62,7 @@ def run(job: Path, out: Path, minutes: float | None, device: str | None, only: l
     from pipeline.formats.suite import part_key, read_suite_part, write_suite_part
     from pipeline.io.atomic import file_hash
 
-    plan = json.loads((job / "plan.json").read_text())
-    with np.load(job / "frames.npz") as z:
-        images, targets = z["images"], z["targets"]
+    plan, images, targets = _read_job(job)
     dev = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     name = f"cuda ({torch.cuda.get_device_name(dev)})" if dev.type == "cuda" else "cpu"
     torch.backends.cudnn.benchmark = dev.type == "cuda"  # fixed shapes: the fastest convolution per layer
@@ -101,6 +99,17 @@ def run(job: Path, out: Path, minutes: float | None, device: str | None, only: l
             return 3
     print(f"suite_parts: every part in {out}/", flush=True)
     return 0
+
+
+def _read_job(job: Path) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
+    """(plan, images, targets) of an exported job folder; SystemExit with one line naming the folder otherwise."""
+    try:
+        plan = json.loads((job / "plan.json").read_text())
+        with np.load(job / "frames.npz") as z:
+            images, targets = z["images"], z["targets"]
+    except (OSError, ValueError, KeyError) as e:
+        raise SystemExit(f"suite_parts: the job folder {job} cannot be read ({e}): export it again") from None
+    return plan, images, targets
 
 
 def main() -> None:

@@ -324,7 +324,7 @@ def _suite_parts_are_kept_and_read(suite, monkeypatch) -> None:
     """`rpod suite` keeps a part per model, suite and eps; a second run reads them all (no attack), --partial writes
     the page from what is kept, --minutes stops before a missing part, and the parts scripts/suite_parts.py runs
     from an exported job are read as the stage's own."""
-    import importlib.util
+    from script_loader import load_script
 
     import pipeline.attacks.strongest as strongest
 
@@ -349,10 +349,10 @@ def _suite_parts_are_kept_and_read(suite, monkeypatch) -> None:
     assert "**Partial run**" in page and gone.removesuffix(".npz") in page and "not run" in page
     with pytest.raises(StageError, match="minute budget"):
         suite(params_mod.load(), minutes=0.0)
-    spec = importlib.util.spec_from_file_location("suite_parts", Path(__file__).parents[1] / "scripts/suite_parts.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = load_script("suite_parts")
     script.export(Path("job"))
+    with pytest.raises(SystemExit, match="the job folder nojob cannot be read .*plan.json"):
+        script.run(Path("nojob"), Path("out"), None, "cpu", [])
     monkeypatch.setattr(strongest, "run_member", attack)
     assert script.run(Path("job"), Path("out"), None, "cpu", ["standard/lean"]) == 0
     assert sorted(p.name for p in Path("out").glob("*.npz")) == sorted(f"standard-lean-{e:g}.npz" for e in eps)
