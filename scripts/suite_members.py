@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import sys
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -27,28 +28,37 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from pipeline.attacks.strongest import SuiteResult, join_eps, nested_worst  # noqa: E402
+from pipeline.attacks.strongest import SuiteResult, join_eps, nested_worst, ratio_rows  # noqa: E402
 from pipeline.formats.suite import read_suite_part  # noqa: E402
 
 ERRORS = ("position_m", "attitude_deg")
 
 
-def load_run(folder: Path, model: str, kind: str) -> SuiteResult | None:
-    """The `kind` (full | lean) suite's parts of `model` in `folder`, joined in increasing eps; None when there is
-    none. Parts of one run share their key (one model file, frames and settings); SystemExit otherwise."""
-    paths = sorted(folder.glob(f"{model}-{kind}-*.npz"), key=lambda p: float(p.stem.rsplit("-", 1)[1]))
+def load_run(folder: Path, model: str, kind: str, eps: tuple[float, ...] | None = None) -> SuiteResult | None:
+    """The `kind` (full | lean) suite's parts of `model` in `folder` (those at `eps` only, when given), joined in
+    increasing eps; None when there is none. Parts of one run share their key (one model file, frames and
+    settings); SystemExit with one line naming the file otherwise, or when a part is misnamed or damaged."""
+    parts: dict[float, Path] = {}
+    for path in folder.glob(f"{model}-{kind}-*.npz"):
+        try:
+            parts[float(path.stem.rsplit("-", 1)[1])] = path
+        except ValueError:
+            raise SystemExit(f"suite_members: {path}: not named <model>-<suite>-<eps>.npz") from None
+    paths = [parts[e] for e in sorted(parts) if eps is None or e in eps]
     if not paths:
         return None
-    keys = set()
-    parts = []
+    keys, results = set(), []
     for path in paths:
-        with np.load(path, allow_pickle=False) as z:
-            key = str(z["key"])
-        keys.add(key)
-        parts.append(read_suite_part(path, key)[0])
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                key = str(z["key"])
+            keys.add(key)
+            results.append(read_suite_part(path, key)[0])
+        except (OSError, KeyError, ValueError, zipfile.BadZipFile) as e:
+            raise SystemExit(f"suite_members: {path}: not a readable suite part ({e})") from None
     if len(keys) > 1:
         raise SystemExit(f"suite_members: {folder}/{model}-{kind}-*.npz are parts of {len(keys)} runs: keep one")
-    return join_eps(parts)
+    return join_eps(results)
 
 
 def share(full: SuiteResult, members: tuple[str, ...], error: str) -> np.ndarray:
@@ -56,7 +66,7 @@ def share(full: SuiteResult, members: tuple[str, ...], error: str) -> np.ndarray
     index = [full.members.index(_name(full, m)) for m in members]
     clean = full.clean[error]
     ours = nested_worst(full.errors[error][index], clean).mean(axis=1)  # a member off its eps (square) counts as clean
-    return ours / nested_worst(full.errors[error], clean).mean(axis=1)
+    return ours / full.worst(error).mean(axis=1)
 
 
 def _name(full: SuiteResult, member: str) -> str:
@@ -75,13 +85,15 @@ def candidates(full: SuiteResult, size: int) -> list[tuple[str, ...]]:
     return list(itertools.combinations(gradient, size))
 
 
-def lean_share(full: SuiteResult, lean: SuiteResult, error: str) -> np.ndarray:
-    """(E',) the lean suite's nested worst case over the full suite's, at the eps both ran."""
-    n = min(len(full.eps), len(lean.eps))
-    if full.eps[:n] != lean.eps[:n]:
-        raise SystemExit(f"suite_members: the lean parts' eps {lean.eps} are not the full parts' {full.eps}")
-    ours = nested_worst(lean.errors[error][:, :n], full.clean[error]).mean(axis=1)
-    return ours / nested_worst(full.errors[error][:, :n], full.clean[error]).mean(axis=1)
+def lean_share(folder: Path, model: str, full: SuiteResult, error: str) -> tuple[tuple[str, ...], np.ndarray] | None:
+    """The lean suite's members and its worst case over the full suite's (`ratio_rows`) at the eps both ran; None
+    when `folder` has no lean part at the full suite's eps."""
+    lean = load_run(folder, model, "lean", full.eps)
+    if lean is None:
+        return None
+    reference = full if lean.eps == full.eps else load_run(folder, model, "full", lean.eps)
+    rows = [r for r in ratio_rows(lean, reference) if r["error"] == error]
+    return lean.members, np.array([r["ratio"] for r in rows])
 
 
 def report(folder: Path, subsets: list[tuple[str, ...]], size: int, top: int) -> None:
@@ -92,14 +104,13 @@ def report(folder: Path, subsets: list[tuple[str, ...]], size: int, top: int) ->
         if full is None:
             continue
         found = True
-        lean = load_run(folder, model, "lean")
         eps = " / ".join(f"{e:g}" for e in full.eps)
         print(f"\n{model}: {full.clean['position_m'].size} frames, eps {eps}")
         for error in ERRORS:
-            worst = nested_worst(full.errors[error], full.clean[error]).mean(axis=1)
-            print(f"  {error}: full suite {' / '.join(f'{v:.2f}' for v in worst)}")
+            print(f"  {error}: full suite {' / '.join(f'{v:.2f}' for v in full.worst(error).mean(axis=1))}")
+            lean = lean_share(folder, model, full, error)
             if lean is not None:
-                print(f"    lean suite as run ({', '.join(lean.members)}): {_ratios(lean_share(full, lean, error))}")
+                print(f"    lean suite as run ({', '.join(lean[0])}): {_ratios(lean[1])}")
             rows = [(m, share(full, m, error)) for m in (subsets or candidates(full, size))]
             rows.sort(key=lambda r: -r[1].min())
             for members, ratio in rows if subsets else rows[:top]:

@@ -63,7 +63,7 @@ def test_the_report_prints_the_lean_suite_beside_the_subsets(tmp_path, capsys) -
     assert "apgd/position, apgd/range_far: 1.000" in out  # the best pair holds every frame's worst
 
 
-@pytest.mark.parametrize("case", ["empty", "two runs", "unknown member"])
+@pytest.mark.parametrize("case", ["empty", "two runs", "unknown member", "damaged", "misnamed"])
 def test_bad_input_stops_with_one_line_naming_it(tmp_path, case) -> None:
     errors = np.ones((3, 4))
     if case == "two runs":
@@ -71,8 +71,19 @@ def test_bad_input_stops_with_one_line_naming_it(tmp_path, case) -> None:
         _write(tmp_path, "robust", "full", "k2", {0.02: errors})
     if case == "unknown member":
         _write(tmp_path, "robust", "full", "k1", {0.01: errors})
+    if case == "damaged":
+        (tmp_path / "robust-full-0.01.npz").write_bytes(b"not a zip")
+    if case == "misnamed":
+        _write(tmp_path, "robust", "full", "k1", {0.01: errors})
+        (tmp_path / "robust-full-0.01.npz").rename(tmp_path / "robust-full-last.npz")
     subsets = [("apgd/lateral",)] if case == "unknown member" else []
     with pytest.raises(SystemExit) as e:
         members.report(tmp_path, subsets, 3, 5)
-    expected = {"empty": "no full-suite parts", "two runs": "parts of 2 runs", "unknown member": "not a member"}[case]
+    expected = {
+        "empty": "no full-suite parts",
+        "two runs": "parts of 2 runs",
+        "unknown member": "not a member",
+        "damaged": "robust-full-0.01.npz: not a readable suite part",
+        "misnamed": "robust-full-last.npz: not named",
+    }[case]
     assert expected in str(e.value) and "\n" not in str(e.value)
