@@ -21,6 +21,7 @@ spread over seeds at one instruction set. Results only (no times), so `git diff 
 
 from __future__ import annotations
 
+import hashlib
 import json
 import statistics
 import sys
@@ -117,19 +118,43 @@ HEADLINES: list[Headline] = [
 
 
 def run_metrics(run: Path) -> Metrics:
-    """RUN's stage metrics by file stem, without those of stages that did not run there: metrics that
-    name a pose model (`model_hash`) count only when it is RUN's own checkpoint of that model (`model`: standard,
-    models/pose.pt, when not named; robust, models/pose_robust.pt), as a copy of the repository carries the
-    committed metrics of stages it never ran."""
+    """RUN's stage metrics by file stem, without those of stages that did not run there, as a copy of the
+    repository carries the committed metrics of stages it never ran: a metrics file that RUN's dvc.lock (or
+    optional/dvc.lock) records counts only when the recorded stage ran with RUN's seed and wrote this very file
+    (its md5; a stage without a `seed` param is judged by the md5 only); metrics that name a pose model
+    (`model_hash`) count only when it is RUN's own checkpoint of that model (`model`: standard, models/pose.pt,
+    when not named; robust, models/pose_robust.pt)."""
     from pipeline.io.atomic import file_hash
     from stages.artifacts.paths import CHAINS
 
     own = {m.value: file_hash(run / f.pose) if (run / f.pose).exists() else None for m, f in CHAINS.items()}
+    locked, seed = lock_records(run), _seed(run)
     out = {}
     for path in sorted((run / "reports" / "metrics").glob("*.json")):
-        metrics = json.loads(path.read_text())
+        record = locked.get(path.relative_to(run).as_posix())
+        data = path.read_bytes()
+        if record is not None and (record[0] != hashlib.md5(data).hexdigest() or record[1] not in (seed, None)):
+            continue
+        metrics = json.loads(data)
         if "model_hash" not in metrics or metrics["model_hash"] == own.get(metrics.get("model", "standard")):
             out[path.stem] = metrics
+    return out
+
+
+def lock_records(run: Path) -> dict[str, tuple[str, str | None]]:
+    """Per output path that RUN's dvc.lock and optional/dvc.lock record: (its md5, the stage's `seed` param; None
+    for a stage without one)."""
+    import yaml
+
+    out = {}
+    for lock in (run / "dvc.lock", run / "optional" / "dvc.lock"):
+        if not lock.exists():
+            continue
+        for stage in (yaml.safe_load(lock.read_text()) or {}).get("stages", {}).values():
+            seed = (stage.get("params") or {}).get("params.yaml", {}).get("seed")
+            seed = None if seed is None else str(seed)
+            for o in stage.get("outs", []):
+                out[o["path"]] = (str(o.get("md5")), seed)
     return out
 
 

@@ -58,6 +58,32 @@ def test_metrics_of_another_pose_model_do_not_count(tmp_path):
     assert "detector.standard_accuracy_pct" not in rows and rows["pose.standard_position_m"]["runs"] == 1
 
 
+def test_metrics_a_stage_wrote_under_another_seed_do_not_count(tmp_path):
+    """Metrics without a model hash (robust.json) that the copy's dvc.lock records for another seed, or that the
+    stage did not write (another md5), are the committed run's, not this run's."""
+    import hashlib
+
+    import yaml
+
+    run = _run(tmp_path, 2, 0.40, None)
+    train = run / "reports" / "metrics" / "train.json"
+
+    def lock(seed: int, md5: str) -> None:
+        stage = {
+            "params": {"params.yaml": {"seed": seed}},
+            "outs": [{"path": "reports/metrics/train.json", "md5": md5}],
+        }
+        (run / "dvc.lock").write_text(yaml.safe_dump({"schema": "2.0", "stages": {"train": stage}}))
+
+    own = hashlib.md5(train.read_bytes()).hexdigest()
+    lock(2, own)
+    assert "train" in _load().run_metrics(run)
+    lock(0, own)
+    assert "train" not in _load().run_metrics(run)
+    lock(2, "0" * 32)
+    assert "train" not in _load().run_metrics(run)
+
+
 def test_every_headline_has_a_unique_key():
     keys = [k for k, *_ in _load().HEADLINES]
     assert len(keys) == len(set(keys))
@@ -92,7 +118,9 @@ def test_readme_results_show_the_spread_of_each_headline_number():
         },
     }
     text = summary_tables(metrics, spread)
-    assert "sd over seeds" in text and "differ only in `seed`" in text
+    assert "sd over seeds" in text and "differ only in `seed`" in text and "over the 3 runs that" in text
+    fewer = dict(spread, numbers={**spread["numbers"], keys[0]: dict(spread["numbers"][keys[0]], runs=2)})
+    assert "over the 2 to 3 runs that" in summary_tables(metrics, fewer)
     for i, k in enumerate(keys):
         assert any(f"{1.01 + 0.01 * i:.2f}{note} (3 seeds)" in text for note in ("", " %", " at eps 0.05")), k
     assert "sd over seeds" not in summary_tables(metrics)

@@ -199,9 +199,11 @@ def _lead(metrics: dict[str, dict[str, Any]], spread: dict[str, Any] | None) -> 
             if len(isas) > 1
             else "differ only in `seed`"
         )
+        counts = sorted({n["runs"] for n in spread["numbers"].values()}) or [len(spread["seeds"])]
+        runs = f"{counts[0]}" if len(counts) == 1 else f"{counts[0]} to {counts[-1]}"
         head += (
-            f" The last column is the standard deviation of the number over {len(spread['seeds'])} runs that "
-            f"{what} (reports/variance.md); a difference smaller than about twice it is noise."
+            f" The last column is the standard deviation of the number over the {runs} runs that {what} "
+            "(each cell says how many; reports/variance.md); a difference smaller than about twice it is noise."
         )
     return head
 
