@@ -436,5 +436,10 @@ def test_a_bias_shared_by_the_start_frames_breaks_a_white_pl_and_the_calibration
     assert covered["mi"].value == 0.0
     short, _ = protection_coverage(settings, SHIPPED, NOISE, runs, truths, AlertLimitSettings(), grid=(0.0,))
     assert not short.met
+    # no share of a grid covers them: the smallest with the fewest misleading frames stands, not the largest
+    weak = (0.0, smaller[-1] / 2, smaller[-1] / 2 + 1e-9)
+    best, _ = protection_coverage(settings, SHIPPED, NOISE, runs, truths, AlertLimitSettings(), grid=weak)
+    assert not best.met and best.reached == min(best.rates.values()) and best.reached < best.rates[0.0]
+    assert best.setting == min(g for g, r in best.rates.items() if r == best.reached) < weak[-1]
     line = unmet_line(short, 240)
     assert "\n" not in line and "cannot cover" in line and "correlated share" in line and "allow_unmet" in line

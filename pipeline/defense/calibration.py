@@ -19,7 +19,8 @@ the fused chain's rate is at most about the budget (the checks' flags overlap).
    of pipeline/defense/protection.py) at which no clean validation frame's trusted error exceeds its PL. The
    pose errors are correlated over the frames the filter starts on, so a PL that treats them as white is
    exceeded on clean approaches (seed 1 of the default profile: 2.2% of the validation frames with a PL); a
-   PL that still does at the largest share is a miss, and `UnmetShare` stops the search (`allow_unmet` aside).
+   PL that still does at the largest share is a miss, and `UnmetShare` stops the search (`allow_unmet` aside:
+   then the smallest share with the fewest misleading frames stands).
 
 The search (`calibrate_to_target`, the one `rpod calibrate` runs): every check to its share
 (`calibrate_checks`; an unmet share raises `UnmetShare` unless the budget allows it), then the fused chain on
@@ -224,7 +225,10 @@ def protection_coverage(
     """The smallest `correlated_error` of `grid` at which no frame of the clean validation `runs` (their true rel
     `truths`, world m; the fused chain as calibrated) has a trusted error above its protection level: its share is
     0 and its rate the misleading frames' (error > PL) share of the frames with a PL (`alert`: the
-    AlertLimitSettings the summary needs). Returns it and the runs' `clean_summary` at that setting."""
+    AlertLimitSettings the summary needs). When no share covers them (unmet), the smallest share with the fewest
+    such frames: a larger one widens every PL, costing availability, and covers no more (seed 1 of the default
+    profile: the frames left from share 0.1 to 1 were one approach's first 7, where the filter started on a gross
+    range outlier). Returns it and the runs' `clean_summary` at that setting."""
     limit = None if alert is None else partial(alert_limit, settings=alert)
     summaries: dict[float, dict[str, Any]] = {}
 
@@ -234,6 +238,8 @@ def protection_coverage(
         return summaries[f]["mi"].value
 
     f, rates = first_meeting(rate, 0.0, grid)
+    if rates[f] > 0.0:
+        f = min(rates, key=lambda g: (rates[g], g))
     return CheckResult(COVERAGE, f, rates[f], 0.0, rates), summaries[f]
 
 
