@@ -421,7 +421,7 @@ LIBRARY_DEFAULTS_DIFFER: dict[str, str] = {  # reasons: conf/config.yaml's comme
     "train.augment.p": "profile 0.3: lighter than 0.5, the 160x90 default underfits (conf comment)",
     "train.augment.blur_sigma": "the profile's lighter augmentation, with train.augment.p",
     "train.augment.jpeg_quality": "the profile's lighter augmentation, with train.augment.p",
-    "suite.steps": "SuiteConfig's default is the full suite's strength (FULL); the default profile runs LEAN",
+    "suite.steps": "SuiteConfig's default is the full suite's strength (FULL); the default profile's lean suite: 50",
     "suite.restarts": "as suite.steps",
     "suite.starts": "as suite.steps",
     "suite.full.square_eps": "the library's None runs Square at every eps; suite.full names 0.05, FULL's",
