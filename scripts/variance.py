@@ -150,11 +150,14 @@ def lock_records(run: Path) -> dict[str, tuple[str, str | None]]:
     for lock in (run / "dvc.lock", run / "optional" / "dvc.lock"):
         if not lock.exists():
             continue
-        for stage in (yaml.safe_load(lock.read_text()) or {}).get("stages", {}).values():
-            seed = (stage.get("params") or {}).get("params.yaml", {}).get("seed")
-            seed = None if seed is None else str(seed)
-            for o in stage.get("outs", []):
-                out[o["path"]] = (str(o.get("md5")), seed)
+        try:
+            for stage in (yaml.safe_load(lock.read_text()) or {}).get("stages", {}).values():
+                seed = (stage.get("params") or {}).get("params.yaml", {}).get("seed")
+                seed = None if seed is None else str(seed)
+                for o in stage.get("outs", []):
+                    out[o["path"]] = (str(o.get("md5")), seed)
+        except (yaml.YAMLError, AttributeError, KeyError, TypeError) as e:
+            raise SystemExit(f"variance: {lock}: not a readable dvc.lock ({type(e).__name__}: {e})") from None
     return out
 
 

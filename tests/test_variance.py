@@ -82,6 +82,9 @@ def test_metrics_a_stage_wrote_under_another_seed_do_not_count(tmp_path):
     assert "train" not in _load().run_metrics(run)
     lock(2, "0" * 32)
     assert "train" not in _load().run_metrics(run)
+    (run / "dvc.lock").write_text("stages: [not, a, mapping")
+    with pytest.raises(SystemExit, match="dvc.lock: not a readable dvc.lock"):
+        _load().run_metrics(run)
 
 
 def test_every_headline_has_a_unique_key():
