@@ -11,12 +11,13 @@ import pytest
 from scipy.optimize import linprog
 
 from pipeline.defense.calibration import CleanRun, clean_summary, defend_runs, detector_threshold, doubt_level
-from pipeline.defense.fusion import DefenseSettings, run_defense
+from pipeline.defense.fusion import run_defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.integrity import AlertLimitSettings
 from pipeline.defense.noise import NoiseModel
 from pipeline.defense.protection import ProtectionLevel, largest_eigenvalue
 from pipeline.defense.sequential import Cusum
+from pipeline.defense.settings import DefenseSettings
 from pipeline.geometry.rotations import matrix_to_6d
 
 NOISE = NoiseModel((0.05, 0.05, 0.1), (0.005, 0.005, 0.01), 1.0, 0.0)  # 0.2, 0.2, 0.4 m std at 30 m
