@@ -507,8 +507,9 @@ LIBRARY_DEFAULTS_DIFFER: dict[str, str] = {  # reasons: conf/config.yaml's comme
 
 def test_a_library_default_equals_the_default_profiles_value_or_says_why_not() -> None:
     """For each section of SECTION_SETTINGS, every field its library settings share has the default profile's value
-    as the library default (and so has every field of a composed section), except the LIBRARY_DEFAULTS_DIFFER fields (which must still differ: a list that lies
-    fails); fields without a library default (required) and the mesh sentinel are not defaults."""
+    as the library default (and so has every field of a composed section), except the LIBRARY_DEFAULTS_DIFFER fields
+    (which must still differ: a list that lies fails); fields without a library default (required) and the mesh
+    sentinel are not defaults."""
     import dataclasses
     import importlib
 
