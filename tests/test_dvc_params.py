@@ -1,5 +1,5 @@
-"""dvc.yaml lists, as a stage's `params:`, only keys its command reads, so `dvc exp run -S key=value` does not re-
-run a stage that never reads `key` (e.g. `train.epochs` and the surrogate, which trains for
+"""dvc.yaml lists, as a stage's `params:`, only keys its command reads, so `dvc exp run -S key=value` does not
+re-run a stage that never reads `key` (e.g. `train.epochs` and the surrogate, which trains for
 `robustness.surrogate_epochs`).
 
 The keys a command reads are derived from the source: from the stage's `main(params, ...)`, follow the attribute
