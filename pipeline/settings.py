@@ -240,12 +240,22 @@ def _build(cls: type, section: Any, key: str, source: Source) -> Any:
         built = cls(**values)
     except source.error:
         raise  # already names its key in full
-    except (TypeError, ValueError) as e:  # a message that names the key in full keeps it; else it is prefixed
-        said = str(e).startswith(f"{key}.") or not key
-        raise source.error(f"{source.name} {'' if said else key + ': '}{e}") from None
+    except (TypeError, ValueError) as e:
+        raise source.error(f"{source.name} {_keyed(str(e), key)}") from None
     for name, value in values.items():  # after the section's own checks, so their messages come first
         _check_range(value, hints[name], prefix + name, source)
     return built
+
+
+def _keyed(message: str, key: str) -> str:
+    """`message` naming `key` in full: kept when it does ("defense.hold_after must ..."), completed when it names the
+    key's last part ("background.share must ..." under render.background), else prefixed ("train: ...")."""
+    last = key.rsplit(".", 1)[-1]
+    if not key or message.startswith(f"{key}."):
+        return message
+    if message.startswith(f"{last}."):
+        return key + message[len(last) :]
+    return f"{key}: {message}"
 
 
 def _check_range(value: Any, hint: Any, key: str, source: Source) -> None:

@@ -265,9 +265,9 @@ def test_bad_background_params_are_one_line():
     from stages.config.schema import build
     from stages.config.sections import ParamsError
 
-    with pytest.raises(ParamsError, match=r"render.background.share must be a number in \[0, 1\]"):
+    with pytest.raises(ParamsError, match=r"^params.yaml render.background.share must be in \[0, 1\], got 1.5$"):
         build(params_mod.compose("smoke", ["render.background.share=1.5"]))
-    with pytest.raises(ParamsError, match=r"background.nadir must be a non-zero 3-vector"):
+    with pytest.raises(ParamsError, match=r"^params.yaml render.background.nadir must be a non-zero 3-vector"):
         build(params_mod.compose("smoke", ["render.background.nadir=[0,0,0]"]))
 
 

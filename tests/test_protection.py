@@ -318,8 +318,9 @@ def test_calibrate_refuses_an_unreachable_share_with_one_line() -> None:
     "key, value, message",
     [
         ("shares", {"detector": 0.5, "gate": 0.4, "sequential": 0.4}, r"defense.shares must add up to 1 .*got 1.3$"),
-        ("cusum_reference", -1.0, r"^params.yaml defense.cusum_reference must be a number in \[0, 100\]"),
-        ("integrity_risk", 0.0, r"^params.yaml defense.integrity_risk must be a positive number in \(0, 1\)"),
+        ("cusum_reference", -1.0, r"^params.yaml defense.cusum_reference must be a finite number >= 0, got -1.0$"),
+        ("cusum_reference", 101.0, r"^params.yaml defense.cusum_reference must be a number in \[0, 100\]"),
+        ("integrity_risk", 0.0, r"^params.yaml defense.integrity_risk must be a probability in \(0, 1\), got 0.0$"),
         ("allow_unmet", "maybe", r"defense.allow_unmet"),
     ],
 )
