@@ -29,9 +29,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from pipeline.defense.chain import OnboardChain  # noqa: E402
-from pipeline.defense.fusion import Defense, DefenseSettings  # noqa: E402
+from pipeline.defense.fusion import Defense  # noqa: E402
 from pipeline.defense.gate import MotionSettings  # noqa: E402
 from pipeline.defense.noise import NoiseModel  # noqa: E402
+from pipeline.defense.settings import DefenseSettings  # noqa: E402
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector  # noqa: E402
 from pipeline.geometry.trajectories import look_at  # noqa: E402
 from pipeline.pose.model import PoseNet  # noqa: E402

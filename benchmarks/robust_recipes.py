@@ -99,8 +99,9 @@ def _earth_frames(p: Any) -> dict[str, np.ndarray]:
 def render(p: Any) -> None:
     """Earth-background versions of FIT_FRAMES seeded fit frames, every validation frame, TEST_FRAMES test frames."""
     from pipeline.geometry.trajectories import flatten
-    from pipeline.render.backgrounds import BackgroundSettings, draw, kind
+    from pipeline.render.backgrounds import draw, kind
     from pipeline.render.scene import Renderer
+    from pipeline.render.settings import BackgroundSettings
     from stages.config.build import intrinsics, scene_settings
     from stages.render import sequences
 

@@ -4,8 +4,11 @@ mapping (a params.yaml section, a JSON file's record) with every value's type, f
 and unknown keys refused, each refusal one line naming the file (`Source.name`) and the dotted key.
 
 A value keeps the type its file gave it: a whole number where a float is expected stays an int (PEP 484's
-numeric tower), so `dataclasses.asdict` of the result is the mapping read. A list is read as a tuple where the
-field is a tuple.
+numeric tower), so `dataclasses.asdict` of the result is the mapping read, as JSON and YAML write it: a list is
+read as a tuple where the field is a tuple.
+
+`composed` declares a settings section (a params.yaml section) by the library settings dataclasses it is made of,
+so each setting's type, range and default are declared once, beside the code that uses it; `part` builds one back.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import math
 import types
 import typing
 from dataclasses import dataclass
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Callable, Literal
 
 
 @dataclass(frozen=True)
@@ -78,6 +81,84 @@ def ranges(cls: type, prefix: str = "") -> dict[str, In]:
         if typing.get_origin(hint) is Annotated and rule is not None:
             out[f"{prefix}{name}"] = rule
     return out
+
+
+def composed(*parts: type, runtime: tuple[str, ...] = ()) -> Callable[[type], type]:
+    """Class decorator: a settings section (a frozen dataclass, keyword-only) declared by the library settings
+    dataclasses `parts`: their fields with their types, ranges and defaults, less `runtime` (fields a caller sets
+    when it builds a part, never read from a file), then the decorated class's own annotated fields (settings no
+    part takes) and its methods. Built, the section runs the class's own `__post_init__`, then builds each part
+    from its fields, so every part's own checks refuse a bad value. `part(section, cls, **runtime)` builds one
+    back. A name given by two parts, or by a part and the class, is a TypeError."""
+
+    def compose(cls: type) -> type:
+        specs: list[tuple[str, Any, Any]] = []
+        for owner in parts:
+            hints = typing.get_type_hints(owner, include_extras=True)
+            for f in dataclasses.fields(owner):
+                if f.name not in runtime:
+                    specs.append(
+                        (f.name, hints[f.name], dataclasses.field(default=f.default, default_factory=f.default_factory))
+                    )
+        own = typing.get_type_hints(cls, include_extras=True)
+        for name in cls.__dict__.get("__annotations__", {}):
+            default = cls.__dict__.get(name, dataclasses.MISSING)
+            given = default if isinstance(default, dataclasses.Field) else dataclasses.field(default=default)
+            specs.append((name, own[name], given))
+        names = [name for name, _, _ in specs]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        unknown = sorted(set(runtime) - {f.name for owner in parts for f in dataclasses.fields(owner)})
+        if twice or unknown:
+            raise TypeError(f"{cls.__name__}: fields declared twice {twice}, runtime fields no part has {unknown}")
+        namespace = {k: v for k, v in vars(cls).items() if k not in ("__dict__", "__weakref__", "__annotations__")}
+        namespace = {k: v for k, v in namespace.items() if k not in names}
+        namespace.update(
+            __parts__=parts,
+            __runtime__=runtime,
+            __post_init__=_composed_checks(cls.__dict__.get("__post_init__"), parts),
+        )
+        return dataclasses.make_dataclass(cls.__name__, specs, namespace=namespace, frozen=True, kw_only=True)
+
+    return compose
+
+
+def _composed_checks(own: Callable[[Any], None] | None, parts: tuple[type, ...]) -> Callable[[Any], None]:
+    def __post_init__(self: Any) -> None:
+        if own is not None:
+            own(self)
+        for cls in parts:
+            part(self, cls)
+
+    return __post_init__
+
+
+def part(section: Any, cls: type, **runtime: Any) -> Any:
+    """The library settings `cls` (one of the parts a `composed` section was declared by) from `section`'s fields,
+    each converted to `cls`'s field type (a whole number to float, a list to a tuple), and `runtime` for the fields a
+    caller sets (a runtime value also overrides the section's)."""
+    if cls not in getattr(type(section), "__parts__", ()):
+        raise TypeError(f"{type(section).__name__} is not composed of {cls.__name__}")
+    hints = typing.get_type_hints(cls)
+    values = {
+        f.name: as_type(getattr(section, f.name), hints[f.name])
+        for f in dataclasses.fields(cls)
+        if f.name not in runtime and hasattr(section, f.name)
+    }
+    return cls(**values, **runtime)
+
+
+def as_type(value: Any, hint: Any) -> Any:
+    """`value` as the type `hint` names: float(int) for float, a tuple of converted items for tuple[...]."""
+    if value is None:
+        return None
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        return as_type(value, next(a for a in typing.get_args(hint) if a is not type(None)))
+    if typing.get_origin(hint) is tuple:
+        args = typing.get_args(hint)
+        if len(args) == 2 and args[1] is Ellipsis:  # tuple[X, ...]: every item an X
+            return tuple(as_type(v, args[0]) for v in value)
+        return tuple(as_type(v, a) for v, a in zip(value, args))
+    return float(value) if hint is float else value
 
 
 OPTIONAL = {"optional": True}  # field metadata: a key a file may leave out (the field keeps its default)
@@ -160,10 +241,21 @@ def _build(cls: type, section: Any, key: str, source: Source) -> Any:
     except source.error:
         raise  # already names its key in full
     except (TypeError, ValueError) as e:
-        raise source.error(f"{source.name} {key + ': ' if key else ''}{e}") from None
+        raise source.error(f"{source.name} {_keyed(str(e), key)}") from None
     for name, value in values.items():  # after the section's own checks, so their messages come first
         _check_range(value, hints[name], prefix + name, source)
     return built
+
+
+def _keyed(message: str, key: str) -> str:
+    """`message` naming `key` in full: kept when it does ("defense.hold_after must ..."), completed when it names the
+    key's last part ("background.share must ..." under render.background), else prefixed ("train: ...")."""
+    last = key.rsplit(".", 1)[-1]
+    if not key or message.startswith(f"{key}."):
+        return message
+    if message.startswith(f"{last}."):
+        return key + message[len(last) :]
+    return f"{key}: {message}"
 
 
 def _check_range(value: Any, hint: Any, key: str, source: Source) -> None:

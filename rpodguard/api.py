@@ -44,7 +44,7 @@ BUNDLE = Path(__file__).resolve().parent / "weights" / "default"  # the default 
 @dataclass(frozen=True)
 class VerdictRule:
     """How `predict` judges an image by its attack probability, as the defended chain does: `settings` (the chain's
-    pipeline.defense.fusion.DefenseSettings: "attack" at or above its threshold, "doubt" at or above its doubt level
+    pipeline.defense.settings.DefenseSettings: "attack" at or above its threshold, "doubt" at or above its doubt level
     `update_below`, else "clean": `DefenseSettings.word`), `calibrated`: whether they are the defense file's
     (`path`), else the detector checkpoint's own threshold (`path`: the detector) with no doubt level."""
 
@@ -188,7 +188,7 @@ class Chain:
     def rule(self) -> VerdictRule:
         """How `predict` judges an image (`VerdictRule`): the defended chain's calibrated threshold and doubt level
         from its defense file, else the detector checkpoint's own threshold."""
-        from pipeline.defense.fusion import DefenseSettings
+        from pipeline.defense.settings import DefenseSettings
 
         _, detector, defense = self.files
         if self.safety.defended is not None:

@@ -246,6 +246,79 @@ def test_every_schema_field_maps_to_a_library_field() -> None:
         assert schema & library, path
 
 
+def _composed_sections() -> dict[str, type]:
+    """Dotted params path -> each params section composed of library settings (pipeline.settings `composed`)."""
+    import dataclasses
+    import typing
+
+    from stages.config.schema import Params
+
+    out: dict[str, type] = {}
+
+    def walk(cls: type, prefix: str) -> None:
+        for name, hint in typing.get_type_hints(cls).items():
+            if dataclasses.is_dataclass(hint):
+                if hasattr(hint, "__parts__"):
+                    out[prefix + name] = hint
+                walk(hint, f"{prefix}{name}.")
+
+    walk(Params, "")
+    return out
+
+
+def test_a_composed_section_declares_each_knob_once() -> None:
+    """A section composed of library settings takes each library field's type (with its range) and default as
+    declared there, leaves out only the fields named runtime (set by the caller, never params), and declares on
+    itself only fields that no part has; the sections that still mirror library settings are the rest."""
+    import dataclasses
+    import typing
+
+    from stages.config.build import SECTION_SETTINGS
+
+    composed = _composed_sections()
+    assert set(composed) == {"render.background", "train.augment", "defense", "guidance.execution"}
+    assert not set(composed) & set(SECTION_SETTINGS)
+    for path, section in composed.items():
+        fields = {f.name: f for f in dataclasses.fields(section)}
+        hints = typing.get_type_hints(section, include_extras=True)
+        library: set[str] = set()
+        for cls in section.__parts__:
+            own = typing.get_type_hints(cls, include_extras=True)
+            for f in dataclasses.fields(cls):
+                library.add(f.name)
+                if f.name in section.__runtime__:
+                    assert f.name not in fields, (path, f.name)
+                    continue
+                assert hints[f.name] == own[f.name], (path, f.name)
+                assert fields[f.name].default == f.default, (path, f.name)
+        assert set(section.__runtime__) <= library, path
+
+
+def test_a_composed_section_refuses_what_its_parts_refuse() -> None:
+    """Built from a params mapping, a composed section runs its parts' own checks (a bad value is one ParamsError
+    naming the key), and `part` builds each part back with the runtime fields the caller gives."""
+    import dataclasses
+
+    import pytest
+
+    from pipeline.defense.gate import MotionSettings
+    from pipeline.defense.settings import DefenseSettings
+    from pipeline.settings import part
+    from stages.config import params as params_mod
+    from stages.config.sections import ParamsError
+
+    p = params_mod.build(params_mod.compose("default"))
+    motion = part(p.defense, MotionSettings)
+    assert motion.trusted_start == p.defense.trusted_start and isinstance(motion.position_noise, float)
+    assert part(p.defense, DefenseSettings, threshold=0.3).threshold == 0.3
+    with pytest.raises(TypeError, match="not composed of"):
+        part(p.guidance.execution, MotionSettings)
+    bad = dataclasses.asdict(p)
+    bad["defense"]["reacquire_after"] = 1
+    with pytest.raises(ParamsError, match=r"^params.yaml defense.reacquire_after must be >= 2 frames, got 1$"):
+        params_mod.build(bad)
+
+
 def test_settings_of_refuses_a_library_field_that_nothing_gives() -> None:
     import dataclasses
 
@@ -278,7 +351,7 @@ def test_the_registry_literals_of_the_schema_are_the_registries() -> None:
     from pipeline.attackers.in_loop import GOALS
     from pipeline.attackers.suite import ATTACKERS
     from pipeline.attacks.gradient import ATTACKS, LOSSES
-    from pipeline.defense.fusion import FUSIONS
+    from pipeline.defense.settings import FUSIONS
     from pipeline.guidance.law import DEFENSES, VARIANTS
     from stages.config.evaluation import AttackLoss, AttackMethod, Defense, InLoopGoal, IntegrityAttacker
     from stages.config.sections import Guidance
@@ -306,7 +379,7 @@ def test_the_schema_s_other_choice_literals_are_their_registries() -> None:
     from pipeline.attacks.objectives import OBJECTIVES
     from pipeline.attacks.starts import STARTS
     from pipeline.defense.integrity import KINDS
-    from pipeline.guidance.dynamics import APPROACHES
+    from pipeline.guidance.settings import APPROACHES
     from stages.config.evaluation import Integrity
     from stages.config.sections import Adversarial, Execution
 
@@ -434,8 +507,9 @@ LIBRARY_DEFAULTS_DIFFER: dict[str, str] = {  # reasons: conf/config.yaml's comme
 
 def test_a_library_default_equals_the_default_profiles_value_or_says_why_not() -> None:
     """For each section of SECTION_SETTINGS, every field its library settings share has the default profile's value
-    as the library default, except the LIBRARY_DEFAULTS_DIFFER fields (which must still differ: a list that lies
-    fails); fields without a library default (required) and the mesh sentinel are not defaults."""
+    as the library default (and so has every field of a composed section), except the LIBRARY_DEFAULTS_DIFFER fields
+    (which must still differ: a list that lies fails); fields without a library default (required) and the mesh
+    sentinel are not defaults."""
     import dataclasses
     import importlib
 
@@ -469,6 +543,13 @@ def test_a_library_default_equals_the_default_profiles_value_or_says_why_not() -
                     continue
                 if plain(default) != plain(getattr(section, f.name)):
                     differ.add(f"{path}.{f.name}")
+    for path, section in _composed_sections().items():  # their defaults are the library's, field by field
+        value = p
+        for name in path.split("."):
+            value = getattr(value, name)
+        for f in dataclasses.fields(section):
+            if f.default is not dataclasses.MISSING and plain(f.default) != plain(getattr(value, f.name)):
+                differ.add(f"{path}.{f.name}")
     from pipeline.guidance.law import GuidanceSettings  # built by hand in stages/guidance.py (target -> goal; its
     # execution is the guidance.execution section above)
 

@@ -8,19 +8,10 @@ import pandas as pd
 import pytest
 
 from pipeline.geometry.camera import Intrinsics, reference_intrinsics
-from pipeline.render.backgrounds import (
-    BackgroundSettings,
-    FrameBackground,
-    backdrop,
-    composite,
-    draw,
-    earth,
-    kind,
-    pose_key,
-)
+from pipeline.render.backgrounds import FrameBackground, backdrop, composite, draw, earth, kind, pose_key
+from pipeline.render.settings import BackgroundSettings
 from stages.config import params as params_mod
 from stages.config.params import load
-from stages.errors import StageError
 
 K160 = reference_intrinsics(fy=640.0).scaled(160, 90)
 SUN_DOWN = np.array([0.0, 1.0, 0.0])  # sunlight travelling towards image-down (camera frame): the Earth below lit
@@ -265,24 +256,19 @@ def test_workers_render_the_same_frames_in_any_order(tmp_path, scene):
     assert any(d is None for d in draws) and any(d is not None for d in draws)
 
 
-def test_bad_background_params_are_one_line(scene):
-    from stages.engine.chunks import frame_backgrounds
-
-    K = reference_intrinsics(fy=640.0).scaled(32, 18)
-    with pytest.raises(StageError, match=r"params.yaml render: background.nadir must be a non-zero 3-vector") as e:
-        frame_backgrounds(
-            K,
-            scene.SceneSettings(background=BackgroundSettings(share=0.5, nadir=(0.0, 0.0, 0.0))),
-            np.eye(3)[None],
-            np.eye(3)[None],
-            0,
-        )
+def test_bad_background_params_are_one_line():
+    """The settings refuse a bad value when built (one line naming it), and params.yaml's section, composed from
+    them, refuses it naming the key."""
+    with pytest.raises(ValueError, match=r"background.nadir must be a non-zero 3-vector") as e:
+        BackgroundSettings(share=0.5, nadir=(0.0, 0.0, 0.0))
     assert "\n" not in str(e.value)
     from stages.config.schema import build
     from stages.config.sections import ParamsError
 
-    with pytest.raises(ParamsError, match=r"render.background.share must be a number in \[0, 1\]"):
+    with pytest.raises(ParamsError, match=r"^params.yaml render.background.share must be in \[0, 1\], got 1.5$"):
         build(params_mod.compose("smoke", ["render.background.share=1.5"]))
+    with pytest.raises(ParamsError, match=r"^params.yaml render.background.nadir must be a non-zero 3-vector"):
+        build(params_mod.compose("smoke", ["render.background.nadir=[0,0,0]"]))
 
 
 @pytest.mark.slow

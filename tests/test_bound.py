@@ -12,9 +12,9 @@ from scipy.spatial.transform import Rotation
 from pipeline.attacks.capacity import Shifts, capacity_at, fit_capacity, measure_shifts, proportional_capacity
 from pipeline.defense.bound import ACCEPT, ALARM, HUBER, REJECT, fault_axes, record, worst_case
 from pipeline.defense.calibration import CleanRun
-from pipeline.defense.fusion import DefenseSettings
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel
+from pipeline.defense.settings import DefenseSettings
 from pipeline.geometry.rotations import matrix_to_6d
 from pipeline.geometry.trajectories import approach_trajectory, look_at
 

@@ -16,10 +16,11 @@ from pipeline.attackers.filter_mirror import FilterMirror
 from pipeline.attackers.suite import get_attacker
 from pipeline.attacks.adaptive import PerFrameChain
 from pipeline.attacks.gradient import attack_loss, pgd, quantize
-from pipeline.defense.fusion import Defense, DefenseSettings, run_defense
+from pipeline.defense.fusion import Defense, run_defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.kalman import MotionFilter
 from pipeline.defense.noise import NoiseModel
+from pipeline.defense.settings import DefenseSettings
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
 from pipeline.geometry.rotations import rotvec_to_matrix, sixd_to_matrix, sixd_to_matrix_t
 from pipeline.pose.loss import PoseLoss

@@ -15,8 +15,9 @@ from test_burst import MOTION, NOISE, N, scene  # noqa: F401  (its tiny PoseNet,
 from pipeline.attackers.base import margin_cost
 from pipeline.attackers.burst import WIDE_LAMBDAS, BurstAttacker
 from pipeline.attackers.filter_mirror import FilterMirror
-from pipeline.defense.fusion import Defense, DefenseSettings
+from pipeline.defense.fusion import Defense
 from pipeline.defense.kalman import MotionFilter
+from pipeline.defense.settings import DefenseSettings
 from pipeline.geometry.rotations import rotvec_to_matrix, sixd_to_matrix, sixd_to_matrix_t
 
 

@@ -18,8 +18,8 @@ from test_capture import EXACT, IDENTITY6, NOISE, ToyOnboard, ToyPose, encode, s
 from pipeline.attackers.capture import CaptureSettings
 from pipeline.attackers.drift import DriftSettings
 from pipeline.defense.chain import Defended
-from pipeline.defense.fusion import DefenseSettings
 from pipeline.defense.integrity import AlertLimitSettings, alert_limit
+from pipeline.defense.settings import DefenseSettings
 from pipeline.evaluation.campaign import Campaign, Plan, fly_campaign, safety_summary
 from pipeline.evaluation.integrity_runs import Track
 from pipeline.evaluation.measures import TrajectoryMeasures

@@ -19,15 +19,16 @@ from pipeline.attackers.capture import CaptureAttacker, CaptureInLoop, CaptureSe
 from pipeline.attackers.drift import DriftAttacker, DriftSettings, start_frame
 from pipeline.attackers.suite import get_attacker
 from pipeline.defense.chain import ChainOutput, Defended
-from pipeline.defense.fusion import Defense, DefenseSettings
+from pipeline.defense.fusion import Defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.integrity import AlertLimitSettings
 from pipeline.defense.noise import NoiseModel
+from pipeline.defense.settings import DefenseSettings
 from pipeline.evaluation.integrity_runs import Track, fly, plan_attack
 from pipeline.evaluation.measures import DOCKED, HELD, MISSED, TIMED_OUT, docking, trajectory_measures
 from pipeline.geometry.camera import Intrinsics
-from pipeline.guidance.dynamics import ExecutionSettings
 from pipeline.guidance.law import AttackWindow, Estimate, GuidanceSettings, run_rendezvous
+from pipeline.guidance.settings import ExecutionSettings
 
 G, OFFSET = 75.0, np.array([37.5, 37.5, 0.0])  # metres per unit of channel mean; offset (m)
 EPS = 0.02

@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.defense.fusion import COAST, HOLD, TRACK, Defense, DefenseSettings, run_defense
+from pipeline.defense.fusion import COAST, HOLD, TRACK, Defense, run_defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel
+from pipeline.defense.settings import DefenseSettings
 from pipeline.geometry.trajectories import look_at
 
 NOISE = NoiseModel((0.05, 0.05, 0.1), (0.004, 0.004, 0.015), 1.0, 0.02)

@@ -15,8 +15,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pipeline.defense.chain import Defended
-from pipeline.defense.fusion import DefenseSettings
 from pipeline.defense.gate import MotionSettings
+from pipeline.defense.settings import DefenseSettings
 from pipeline.formats.defense import DefenseFile, check_settings, parse_defense, read_defense
 from pipeline.io.errors import DataError
 from pipeline.settings import ranges

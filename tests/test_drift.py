@@ -19,9 +19,10 @@ from pipeline.attackers.base import AttackRun
 from pipeline.attackers.drift import DriftAttacker, DriftSettings, drift_estimates, targeted_pgd
 from pipeline.attackers.suite import get_attacker
 from pipeline.attacks.adaptive import PerFrameChain
-from pipeline.defense.fusion import Defense, DefenseSettings, run_defense
+from pipeline.defense.fusion import Defense, run_defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel
+from pipeline.defense.settings import DefenseSettings
 from pipeline.detectors.lstm import LSTMConfig, LSTMDetector
 from pipeline.geometry.rotations import matrix_to_6d
 from pipeline.pose.model import PoseNet

@@ -1,14 +1,14 @@
-"""dvc.yaml lists, as a stage's `params:`, only keys its command reads, so `dvc exp run -S key=value` does
-not re-run a stage that never reads `key` (e.g. `train.epochs` and the surrogate, which trains for
+"""dvc.yaml lists, as a stage's `params:`, only keys its command reads, so `dvc exp run -S key=value` does not
+re-run a stage that never reads `key` (e.g. `train.epochs` and the surrogate, which trains for
 `robustness.surrogate_epochs`).
 
-The keys a command reads are derived from the source: from the stage's `main(params, ...)`, follow the
-attribute chains on `params` (`params.train.width`), names bound to them (`e = params.evaluate`), calls
-that pass them to project functions (into those functions, argument to parameter), the library settings
-built from a section (`settings_of(TrainConfig, params.train, epochs=...)` reads TrainConfig's fields but
-the ones given), and take only the branch a command-line flag selects (`--surrogate`). A chain passed to
-anything else counts as read whole. The derivation over-approximates, so it can only show a listed key
-unread, which is what these tests check (tests/test_dvc_deps.py does the same for code deps).
+The keys a command reads are derived from the source: from the stage's `main(params, ...)`, follow the attribute
+chains on `params` (`params.train.width`), names bound to them (`e = params.evaluate`), calls that pass them to
+project functions (into those functions, argument to parameter), the library settings built from a section
+(`settings_of(TrainConfig, params.train, epochs=...)` and `part(params.defense, MotionSettings)` read the
+settings' fields but the ones given), and take only the branch a command-line flag selects (`--surrogate`). A
+chain passed to anything else counts as read whole. The derivation over-approximates, so it can only show a
+listed key unread, which is what these tests check (tests/test_dvc_deps.py does the same for code deps).
 """
 
 from __future__ import annotations
@@ -67,9 +67,10 @@ class Reads:
         if target is None:
             return False
         file, name = target
-        if name == "settings_of":
-            section, given = _rooted(node.args[1], env), {k.arg for k in node.keywords}
-            cls = _resolve(node.args[0], path, scope)
+        if name in ("settings_of", "part"):  # settings_of(cls, section, ...), part(section, cls, ...)
+            at = (1, 0) if name == "settings_of" else (0, 1)
+            section, given = _rooted(node.args[at[0]], env), {k.arg for k in node.keywords}
+            cls = _resolve(node.args[at[1]], path, scope)
             if section is None or cls is None:
                 return False
             self.keys |= {section + (f,) for f in _fields(*cls) if f not in given}

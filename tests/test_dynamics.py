@@ -11,14 +11,16 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from pipeline.defense.fusion import Defense, DefenseSettings
+from pipeline.defense.fusion import Defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel
+from pipeline.defense.settings import DefenseSettings
 from pipeline.geometry.camera import reference_intrinsics
 from pipeline.geometry.trajectories import approach_trajectory
-from pipeline.guidance.dynamics import ExecutionSettings, Executor, cw_matrices, execute_plan
+from pipeline.guidance.dynamics import Executor, cw_matrices, execute_plan
 from pipeline.guidance.grid import GridPilot, GridPlan
 from pipeline.guidance.law import GuidanceSettings, run_rendezvous
+from pipeline.guidance.settings import ExecutionSettings
 
 K = reference_intrinsics().scaled(160, 90)
 NOISE = NoiseModel((0.05, 0.05, 0.1), (0.002, 0.002, 0.01), 1.0, 0.0)

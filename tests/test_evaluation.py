@@ -86,9 +86,9 @@ def _approach(n=60, seed=0, offset=(4.0, 0.0, 3.0), attacked=None):
 def test_defended_summary_flags_what_the_detector_misses_with_intervals():
     import numpy as np
 
-    from pipeline.defense.fusion import DefenseSettings
     from pipeline.defense.gate import MotionSettings
     from pipeline.defense.noise import NoiseModel
+    from pipeline.defense.settings import DefenseSettings
     from pipeline.evaluation.sequences import Sequence, Trace, defended_summary, defense_table, rates_json
 
     noise = NoiseModel((0.05, 0.05, 0.1), (0.0, 0.0, 0.0), 1.0, 0.0)

@@ -44,9 +44,9 @@ def attack_at(chain: str, eps: float, i: int):
 
 def defense():
     from pipeline.defense.chain import Defended
-    from pipeline.defense.fusion import DefenseSettings
     from pipeline.defense.gate import MotionSettings
     from pipeline.defense.noise import NoiseModel
+    from pipeline.defense.settings import DefenseSettings
 
     return Defended(
         DefenseSettings(hold_after=20),

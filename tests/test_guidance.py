@@ -188,9 +188,10 @@ def test_arrival_step_is_when_the_chaser_reaches_the_goal_for_good():
 
 
 def _defense():
-    from pipeline.defense.fusion import Defense, DefenseSettings
+    from pipeline.defense.fusion import Defense
     from pipeline.defense.gate import MotionSettings
     from pipeline.defense.noise import NoiseModel
+    from pipeline.defense.settings import DefenseSettings
 
     return Defense(
         DefenseSettings(hold_after=20),

@@ -13,9 +13,10 @@ import torch
 from torch import nn
 
 from pipeline.attackers.in_loop import InLoopAttacker, InLoopSettings, axes
-from pipeline.defense.fusion import Defense, DefenseSettings
+from pipeline.defense.fusion import Defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel
+from pipeline.defense.settings import DefenseSettings
 from pipeline.geometry.camera import reference_intrinsics
 from pipeline.geometry.rotations import sixd_to_matrix
 from pipeline.geometry.trajectories import look_at

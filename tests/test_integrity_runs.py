@@ -17,10 +17,10 @@ from test_burst import scene  # noqa: F401  (its tiny PoseNet and LSTM)
 from pipeline.attackers.burst import BurstAttacker
 from pipeline.attackers.drift import DriftSettings
 from pipeline.defense.chain import Defended, OnboardChain
-from pipeline.defense.fusion import DefenseSettings
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.integrity import AlertLimitSettings, defense_frames
 from pipeline.defense.noise import NoiseModel
+from pipeline.defense.settings import DefenseSettings
 from pipeline.evaluation.integrity_runs import Track, burst_attack, clean_row, counted, fly, integrity_row, plan_attack
 
 N = 12

@@ -11,7 +11,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from pipeline.defense.fusion import COAST, HOLD, TRACK, Defense, DefenseSettings, run_defense
+from pipeline.defense.fusion import COAST, HOLD, TRACK, Defense, run_defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.integrity import (
     AlertLimitSettings,
@@ -22,6 +22,7 @@ from pipeline.defense.integrity import (
     single_frame_alert_limit,
 )
 from pipeline.defense.noise import NoiseModel
+from pipeline.defense.settings import DefenseSettings
 from pipeline.evaluation.integrity_runs import undefended_trace
 from pipeline.evaluation.measures import (
     COLLISION,
@@ -46,8 +47,8 @@ from pipeline.evaluation.measures import (
     worst_over_attackers,
 )
 from pipeline.geometry.camera import Intrinsics
-from pipeline.guidance.dynamics import ExecutionSettings
 from pipeline.guidance.law import LOST, GuidanceSettings, RendezvousResult, run_rendezvous
+from pipeline.guidance.settings import ExecutionSettings
 from pipeline.stats import clopper_pearson
 
 WIDE = Intrinsics(160, 90, 20.0, 20.0, 79.5, 44.5)  # a wide camera: a displaced chaser keeps the target in view

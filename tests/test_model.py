@@ -10,9 +10,10 @@ import torch
 from torch import nn
 
 from pipeline.geometry.rotations import quat_to_6d, sixd_to_matrix
-from pipeline.pose.augment import AugmentConfig, augment
+from pipeline.pose.augment import augment
 from pipeline.pose.loss import PoseLoss
 from pipeline.pose.model import N_FEATURES, PoseNet
+from pipeline.pose.settings import AugmentConfig
 
 
 @pytest.fixture(autouse=True)

@@ -278,10 +278,10 @@ def defense_record(pose: Path, detector_threshold: float, model: str = "robust",
     at `pose` and a detector of that threshold, with made-up calibration results; `changes`: DefenseFile fields."""
     import dataclasses
 
-    from pipeline.defense.fusion import DefenseSettings
     from pipeline.defense.gate import MotionSettings
     from pipeline.defense.integrity import AlertLimitSettings
     from pipeline.defense.noise import NoiseModel
+    from pipeline.defense.settings import DefenseSettings
     from pipeline.formats.defense import DEFENSE_FORMAT, DefenseFile, Validation
     from pipeline.io.atomic import file_hash
 
@@ -332,7 +332,7 @@ def test_the_verdict_is_the_calibrated_chain_s_and_a_folder_without_defense_file
 ):
     """predict judges at the defense file's calibrated threshold and doubt level (the chain's verdict), printed in
     full; without a defense file at the detector's own threshold, saying so."""
-    from pipeline.defense.fusion import DefenseSettings
+    from pipeline.defense.settings import DefenseSettings
     from pipeline.io.atomic import write_json
 
     folder = tmp_path / "chain"

@@ -11,12 +11,13 @@ import pytest
 from scipy.optimize import linprog
 
 from pipeline.defense.calibration import CleanRun, clean_summary, defend_runs, detector_threshold, doubt_level
-from pipeline.defense.fusion import DefenseSettings, run_defense
+from pipeline.defense.fusion import run_defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.integrity import AlertLimitSettings
 from pipeline.defense.noise import NoiseModel
 from pipeline.defense.protection import ProtectionLevel, largest_eigenvalue
 from pipeline.defense.sequential import Cusum
+from pipeline.defense.settings import DefenseSettings
 from pipeline.geometry.rotations import matrix_to_6d
 
 NOISE = NoiseModel((0.05, 0.05, 0.1), (0.005, 0.005, 0.01), 1.0, 0.0)  # 0.2, 0.2, 0.4 m std at 30 m
@@ -317,8 +318,9 @@ def test_calibrate_refuses_an_unreachable_share_with_one_line() -> None:
     "key, value, message",
     [
         ("shares", {"detector": 0.5, "gate": 0.4, "sequential": 0.4}, r"defense.shares must add up to 1 .*got 1.3$"),
-        ("cusum_reference", -1.0, r"^params.yaml defense.cusum_reference must be a number in \[0, 100\]"),
-        ("integrity_risk", 0.0, r"^params.yaml defense.integrity_risk must be a positive number in \(0, 1\)"),
+        ("cusum_reference", -1.0, r"^params.yaml defense.cusum_reference must be a finite number >= 0, got -1.0$"),
+        ("cusum_reference", 101.0, r"^params.yaml defense.cusum_reference must be a number in \[0, 100\]"),
+        ("integrity_risk", 0.0, r"^params.yaml defense.integrity_risk must be a probability in \(0, 1\), got 0.0$"),
         ("allow_unmet", "maybe", r"defense.allow_unmet"),
     ],
 )

@@ -86,10 +86,11 @@ import numpy as np
 from scipy import sparse
 
 from pipeline.defense.calibration import CleanRun
-from pipeline.defense.fusion import Defense, DefenseSettings, DefenseTrace, trace_of
+from pipeline.defense.fusion import Defense, DefenseTrace, trace_of
 from pipeline.defense.gate import MotionCheck, MotionSettings
 from pipeline.defense.kalman import MotionFilter
 from pipeline.defense.noise import NoiseModel
+from pipeline.defense.settings import DefenseSettings
 from pipeline.geometry.rotations import Mat3, sixd_to_matrix
 
 NONE, START, ACCEPT, HUBER, REJECT, ALARM, SKIP, RESTART = range(8)

@@ -40,10 +40,11 @@ from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 
-from pipeline.defense.fusion import DefenseSettings, DefenseTrace, run_defense
+from pipeline.defense.fusion import DefenseTrace, run_defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.integrity import AlertLimitSettings, alert_limit
 from pipeline.defense.noise import NoiseModel, inflate
+from pipeline.defense.settings import DefenseSettings
 from pipeline.geometry.rotations import sixd_to_matrix
 
 INFLATIONS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0)

@@ -23,10 +23,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from pipeline.defense.fusion import Defense, DefenseSettings
+from pipeline.defense.fusion import Defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.integrity import AlertLimitSettings, alert_limit
 from pipeline.defense.noise import NoiseModel
+from pipeline.defense.settings import DefenseSettings
 from pipeline.detectors.lstm import LSTMDetector
 from pipeline.shap import ExactShap, affine_head
 

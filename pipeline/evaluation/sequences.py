@@ -21,9 +21,10 @@ import torch
 from pipeline.attacks.gradient import stored_attack
 from pipeline.attacks.schedule import schedule_bursts
 from pipeline.defense.chain import OnboardChain, run_sequence
-from pipeline.defense.fusion import DefenseSettings, run_defense
+from pipeline.defense.fusion import run_defense
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.noise import NoiseModel
+from pipeline.defense.settings import DefenseSettings
 from pipeline.detectors.metrics import detection_delays, frame_metrics, mean_over, undetected_mask
 from pipeline.geometry.rotations import sixd_to_matrix
 from pipeline.pose.metrics import pose_errors

@@ -25,10 +25,10 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Optional
 
 from pipeline.defense.chain import Defended
-from pipeline.defense.fusion import DefenseSettings
 from pipeline.defense.gate import MotionSettings
 from pipeline.defense.integrity import AlertLimitSettings
 from pipeline.defense.noise import NoiseModel, inflate
+from pipeline.defense.settings import DefenseSettings
 from pipeline.formats.run import MODELS
 from pipeline.io.atomic import read_json
 from pipeline.io.errors import DataError

@@ -53,51 +53,17 @@ a thruster model): it must not be told the truth, only how uncertain the command
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
 from pipeline.geometry.trajectories import look_at
+from pipeline.guidance.settings import ExecutionSettings
 
-APPROACHES = ("vbar", "rbar")
 # Hill (x radial, y along-track, z orbit normal) <- world, per approach: rows are the Hill axes in world axes
 _HILL_FROM_WORLD = {
     "vbar": np.array([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]]),
     "rbar": np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]),
 }
-
-
-@dataclass(frozen=True)
-class ExecutionSettings:
-    """How a commanded step is executed (see the module docstring): scale_std (fraction, 1-sigma per
-    thruster axis and step), noise_std (m, 1-sigma per axis and step), mean_motion (rad/s; 0: no
-    orbital motion), frame_interval (s per step), approach ("vbar" or "rbar": how the world axes sit in
-    the target's orbit frame) and seed (of the errors' draws)."""
-
-    scale_std: float = 0.02
-    noise_std: float = 0.01
-    mean_motion: float = 0.0011
-    frame_interval: float = 10.0
-    approach: str = "vbar"
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        for name in ("scale_std", "noise_std", "mean_motion"):
-            v = float(getattr(self, name))
-            if not (math.isfinite(v) and v >= 0):
-                raise ValueError(f"execution {name} must be a finite number >= 0, got {getattr(self, name)!r}")
-        if not (math.isfinite(self.frame_interval) and self.frame_interval > 0):
-            raise ValueError(f"execution frame_interval (s) must be a finite number > 0, got {self.frame_interval!r}")
-        if self.approach not in APPROACHES:
-            raise ValueError(f"unknown execution approach {self.approach!r}; choose one of {', '.join(APPROACHES)}")
-
-    def step_std(self, step: float) -> float:
-        """The execution error's std per axis (m) of a commanded step of `step` m along that axis (CW aside)."""
-        return math.hypot(self.scale_std * float(step), self.noise_std)
-
-    def draws(self) -> np.random.Generator:
-        """The generator of the errors' draws (six standard normals per step: `Executor.step`)."""
-        return np.random.default_rng(self.seed)
 
 
 def cw_matrices(mean_motion: float, dt: float) -> tuple[np.ndarray, np.ndarray]:

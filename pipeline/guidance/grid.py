@@ -21,7 +21,6 @@ from typing import Any, Callable
 import numpy as np
 
 from pipeline.geometry.camera import Intrinsics
-from pipeline.guidance.dynamics import ExecutionSettings
 from pipeline.guidance.law import (
     DOCKED,
     AttackWindow,
@@ -31,6 +30,7 @@ from pipeline.guidance.law import (
     arrival_step,
     run_rendezvous,
 )
+from pipeline.guidance.settings import ExecutionSettings
 
 
 def horizon(arrival: int | None, max_steps: int, slack: int) -> int:

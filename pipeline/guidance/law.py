@@ -45,7 +45,8 @@ import numpy as np
 from pipeline.defense.fusion import Defense
 from pipeline.geometry.camera import Intrinsics
 from pipeline.geometry.trajectories import look_at, pose_in_camera
-from pipeline.guidance.dynamics import ExecutionSettings, Executor
+from pipeline.guidance.dynamics import Executor
+from pipeline.guidance.settings import ExecutionSettings
 
 VARIANTS = ("paper", "true_state")
 DEFENSES = ("undefended", "hold", "recover")

@@ -7,32 +7,10 @@ encoder). Geometry is never changed, so the pose labels stay valid.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
 
-
-@dataclass(frozen=True)
-class AugmentConfig:
-    """Ranges are sampled uniformly. Units: blur sigma in pixels, noise std in [0, 1] pixel units,
-    JPEG quality 0-100, brightness as a multiplicative gain."""
-
-    p: float = 0.5
-    blur_sigma: tuple[float, float] = (0.3, 1.2)
-    noise_std: tuple[float, float] = (0.0, 0.03)
-    jpeg_quality: tuple[int, int] = (40, 95)
-    brightness: tuple[float, float] = (0.7, 1.3)
-
-    def __post_init__(self) -> None:
-        if not 0 <= self.p <= 1:
-            raise ValueError(f"augment p must be in [0, 1], got {self.p}")
-        for name in ("blur_sigma", "noise_std", "jpeg_quality", "brightness"):
-            lo, hi = getattr(self, name)
-            if lo > hi or lo < 0:
-                raise ValueError(f"augment {name} must be a range [low, high] with 0 <= low <= high, got {[lo, hi]}")
-        if self.jpeg_quality[1] > 100:
-            raise ValueError(f"augment jpeg_quality must be within 0..100, got {list(self.jpeg_quality)}")
+from pipeline.pose.settings import AugmentConfig
 
 
 def augment(image: np.ndarray, rng: np.random.Generator, cfg: AugmentConfig) -> np.ndarray:

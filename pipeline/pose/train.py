@@ -35,10 +35,11 @@ from torch.utils.data import DataLoader, Dataset, DistributedSampler
 from tqdm import tqdm
 
 from pipeline.pose.adversarial import Adversary
-from pipeline.pose.augment import AugmentConfig, augment
+from pipeline.pose.augment import augment
 from pipeline.pose.loss import PoseLoss
 from pipeline.pose.metrics import pose_errors, speed_score
 from pipeline.pose.optim import SCHEDULES, WeightEMA, make_scheduler
+from pipeline.pose.settings import AugmentConfig
 
 LOSS_WEIGHT_LR_FACTOR = 10.0
 

@@ -46,6 +46,7 @@ from typing import Sequence
 import numpy as np
 
 from pipeline.geometry.camera import Intrinsics
+from pipeline.render.settings import BackgroundSettings
 
 EARTH_RADIUS_KM = 6371.0
 KINDS = ("black", "space", "earth")  # a poses/labels table's `background` column (absent: black): `kind`
@@ -61,20 +62,6 @@ _GLOW_KM = 25.0  # scale height of the limb's glow above the surface, km
 _STAR_SIGMA = 0.6  # star image (Gaussian PSF) standard deviation, pixels
 _STAR_RANGE = 10.0  # faintest drawn star = star_peak / this (2.5 magnitudes)
 _STAR_SLOPE = 1.25  # star counts N(> flux) ~ flux^-slope (about x3 per magnitude)
-
-
-@dataclass(frozen=True)
-class BackgroundSettings:
-    """What the frames of the share see behind the target; every other frame stays black."""
-
-    share: float = 0.0  # of the frames, each drawn on its own; 0 = every frame black (off)
-    altitude_km: float = 1336.0  # the target's orbit altitude above the Earth's surface, km (Jason-1)
-    nadir: tuple[float, float, float] = (0.0, 0.848, 0.530)  # to the Earth's centre, world frame (any length)
-    nadir_jitter_deg: float = 10.0  # per frame the nadir tilts uniformly within this cone, degrees
-    stars: float = 0.0  # mean stars per square degree of sky (Poisson); 0 = none
-    star_peak: float = 0.6  # the brightest star's peak pixel value, pixel units (0, 1]
-    black_offset: float = 0.0  # sensor black level added to every pixel, pixel units [0, 1)
-    noise_std: float = 0.0  # sensor read noise, Gaussian standard deviation, pixel units
 
 
 @dataclass(frozen=True)
@@ -94,28 +81,6 @@ def background_kinds(backgrounds: Sequence[str] | None, n: int) -> np.ndarray:
             f"backgrounds must be ({n},) kinds of {', '.join(KINDS)}, got {kinds.shape} {sorted(set(kinds.ravel()))}"
         )
     return kinds
-
-
-def check_background(s: BackgroundSettings) -> None:
-    """ValueError naming the first bad background setting."""
-    n = np.asarray(s.nadir, dtype=np.float64)
-    if not 0 <= s.share <= 1:
-        raise ValueError(f"background.share must be in [0, 1], got {s.share}")
-    if not s.altitude_km > 0:
-        raise ValueError(f"background.altitude_km must be positive, got {s.altitude_km}")
-    if n.shape != (3,) or not np.isfinite(n).all() or not np.linalg.norm(n) > 0:
-        raise ValueError(f"background.nadir must be a non-zero 3-vector (world frame), got {s.nadir!r}")
-    if not 0 <= s.nadir_jitter_deg <= 90:
-        raise ValueError(f"background.nadir_jitter_deg must be in [0, 90] degrees, got {s.nadir_jitter_deg}")
-    if not s.stars >= 0 or not 0 < s.star_peak <= 1:
-        raise ValueError(
-            f"background: need stars >= 0 per square degree and star_peak in (0, 1], got {s.stars} and {s.star_peak}"
-        )
-    if not 0 <= s.black_offset < 1 or not s.noise_std >= 0:
-        raise ValueError(
-            f"background: need black_offset in [0, 1) and noise_std >= 0 (pixel units), "
-            f"got {s.black_offset} and {s.noise_std}"
-        )
 
 
 def pose_key(R: np.ndarray, t: np.ndarray) -> int:

@@ -32,7 +32,8 @@ from mathutils import Matrix
 
 from pipeline import interrupt
 from pipeline.geometry.camera import Intrinsics
-from pipeline.render.backgrounds import BackgroundSettings, FrameBackground, check_background, composite
+from pipeline.render.backgrounds import FrameBackground, composite
+from pipeline.render.settings import BackgroundSettings
 
 MESH_FORMATS = (".obj", ".glb", ".gltf", ".stl", ".ply")
 _FLIP = np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes <-> Blender camera axes
@@ -238,7 +239,6 @@ def check_settings(K: Intrinsics, settings: SceneSettings) -> None:
                 f"mesh file {settings.mesh!r}: unsupported format {p.suffix.lower() or '(none)'!r}; "
                 f"use one of {', '.join(MESH_FORMATS)}"
             )
-    check_background(settings.background)
 
 
 class Renderer:

@@ -7,11 +7,11 @@ policy. Bad values raise a StageError naming the key.
 from __future__ import annotations
 
 import dataclasses
-import types
 import typing
 from pathlib import Path
 from typing import Any
 
+from pipeline.settings import as_type, part
 from stages.config.evaluation import Defense
 from stages.config.params import given
 from stages.config.schema import Params
@@ -40,22 +40,20 @@ def settings_of(cls: type, section: Any, library_defaults: tuple[str, ...] = (),
         if f.name in extra:
             values[f.name] = extra[f.name]
         elif hasattr(section, f.name):
-            values[f.name] = _as(getattr(section, f.name), hints[f.name])
+            values[f.name] = as_type(getattr(section, f.name), hints[f.name])
     return cls(**values)
 
 
-# params section -> the library settings dataclasses `settings_of` builds from it, and the section's fields that
-# no library settings take (the stages read them themselves: sizes, counts, file and calibration params)
+# params section still declared beside its library settings (the sections composed of theirs, render.background,
+# train.augment, defense and guidance.execution, are built back with pipeline.settings `part`) -> the library settings
+# dataclasses `settings_of` builds from it, and the section's fields that no library settings take (the stages read
+# them themselves: sizes, counts, file and calibration params)
 SECTION_SETTINGS: dict[str, tuple[str, ...]] = {
     "render": ("pipeline.render.scene:SceneSettings",),
-    "render.background": ("pipeline.render.backgrounds:BackgroundSettings",),
     "train": ("pipeline.pose.train:TrainConfig",),
     "train.adversarial": ("pipeline.pose.adversarial:AdversarialConfig",),
-    "train.augment": ("pipeline.pose.augment:AugmentConfig",),
     "suite": ("pipeline.attacks.strongest:SuiteConfig",),
     "suite.full": ("pipeline.attacks.strongest:SuiteConfig",),
-    "defense": ("pipeline.defense.fusion:DefenseSettings", "pipeline.defense.gate:MotionSettings"),
-    "guidance.execution": ("pipeline.guidance.dynamics:ExecutionSettings",),
 }
 STAGE_ONLY: dict[str, tuple[str, ...]] = {
     "render": (
@@ -72,37 +70,11 @@ STAGE_ONLY: dict[str, tuple[str, ...]] = {
         "target_attitude",
         "width",
     ),
-    "render.background": (),
     "train": ("adversarial", "augment", "compile", "dropout", "range_bins", "val_fraction", "width"),
     "train.adversarial": ("ablation", "black_level", "epochs", "init", "lr_max", "warmup_epochs"),
-    "train.augment": (),
     "suite": ("capacity", "check_frames", "eps", "frames", "full", "full_frames"),
     "suite.full": (),
-    "defense": (
-        "allow_unmet",
-        "doubt_share",
-        "harm_m",
-        "noise_bins",
-        "shares",
-        "target_false_alarm",
-        "val_trajectories",
-    ),
-    "guidance.execution": (),
 }
-
-
-def _as(value: Any, hint: Any) -> Any:
-    """`value` as the type `hint` names: float(int) for float, a tuple of converted items for tuple[...]."""
-    if value is None:
-        return None
-    if typing.get_origin(hint) in (typing.Union, types.UnionType):
-        return _as(value, next(a for a in typing.get_args(hint) if a is not type(None)))
-    if typing.get_origin(hint) is tuple:
-        args = typing.get_args(hint)
-        if len(args) == 2 and args[1] is Ellipsis:  # tuple[X, ...]: every item an X
-            return tuple(_as(v, args[0]) for v in value)
-        return tuple(_as(v, a) for v, a in zip(value, args))
-    return float(value) if hint is float else value
 
 
 def intrinsics(params: Params) -> Any:
@@ -119,15 +91,15 @@ def intrinsics(params: Params) -> Any:
 def scene_settings(render: Render) -> Any:
     """The Blender scene settings of a `render` params section (mesh None = the procedural target), with its
     background (`render.background`)."""
-    from pipeline.render.backgrounds import BackgroundSettings
     from pipeline.render.scene import SceneSettings
+    from pipeline.render.settings import BackgroundSettings
 
     return settings_of(
         SceneSettings,
         render,
         ("ambient", "max_bounces"),
         mesh=given(render.mesh),
-        background=settings_of(BackgroundSettings, render.background),
+        background=part(render.background, BackgroundSettings),
     )
 
 
@@ -228,10 +200,10 @@ def suite_config(suite: Suite, seed: int, full: bool = False) -> Any:
 
 def augment_config(augment: Augment) -> Any:
     """The AugmentConfig of the `train.augment` params section."""
-    from pipeline.pose.augment import AugmentConfig
+    from pipeline.pose.settings import AugmentConfig
 
     try:
-        return settings_of(AugmentConfig, augment)
+        return part(augment, AugmentConfig)
     except ValueError as e:
         raise StageError(f"params.yaml: bad train.augment ({e})") from None
 
@@ -240,14 +212,14 @@ def defense_settings(defense: Defense, threshold: float, update_below: float | N
     """(DefenseSettings, MotionSettings) of params.defense with the detector's `threshold` and doubt level
     `update_below` (calibrated from `defense.doubt_share`; None: no doubt zone); a doubt level above the
     threshold starts at it."""
-    from pipeline.defense.fusion import DefenseSettings
     from pipeline.defense.gate import MotionSettings
+    from pipeline.defense.settings import DefenseSettings
 
     doubt = None if update_below is None else min(float(update_below), threshold)
     try:
         return (
-            settings_of(DefenseSettings, defense, threshold=threshold, update_below=doubt),
-            settings_of(MotionSettings, defense, ("cusum_threshold", "correlated_error")),
+            part(defense, DefenseSettings, threshold=threshold, update_below=doubt),
+            part(defense, MotionSettings),
         )
     except ValueError as e:
         raise StageError(f"params.yaml: {e}") from None
@@ -257,12 +229,12 @@ def execution_settings(params: Params, seed: int, step: float | None = None) -> 
     """The ExecutionSettings of params.guidance.execution with the errors' `seed` (pipeline/seeds.py); `step` (m per
     frame, e.g. an evaluation trajectory's 0.25 m): the frame interval of that step at the closed loop's speed
     (guidance.max_step per guidance.execution.frame_interval); None: the closed loop's own."""
-    from pipeline.guidance.dynamics import ExecutionSettings
+    from pipeline.guidance.settings import ExecutionSettings
 
     x, g = params.guidance.execution, params.guidance
     interval = float(x.frame_interval) * (1.0 if step is None else float(step) / float(g.max_step))
     try:
-        return settings_of(ExecutionSettings, x, seed=int(seed), frame_interval=interval)
+        return part(x, ExecutionSettings, seed=int(seed), frame_interval=interval)
     except ValueError as e:
         raise StageError(f"params.yaml guidance.execution: {e}") from None
 

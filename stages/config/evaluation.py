@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import typing
 from dataclasses import dataclass
-from types import SimpleNamespace
 from typing import Annotated, Literal, Optional
 
 from pipeline.defense.gate import MotionSettings
-from pipeline.settings import In
+from pipeline.defense.settings import DefenseSettings
+from pipeline.settings import In, composed
 from stages.config.guards import distinct
 from stages.config.sections import (
     Batch,
@@ -28,7 +28,6 @@ from stages.config.sections import (
 )
 
 Frames = Annotated[int, In("[1, 10000000]", "frames")]
-FILTER = SimpleNamespace(**typing.get_type_hints(MotionSettings, include_extras=True))  # field: its type and range
 OpenProbability = Annotated[float, In("(0, 1)", "probability")]
 
 
@@ -67,24 +66,13 @@ class Shares:
     sequential: Annotated[float, In("[0, 1]", "fraction of the budget")]
 
 
-@dataclass(frozen=True)
+@composed(DefenseSettings, MotionSettings, runtime=("threshold", "update_below", "cusum_threshold", "correlated_error"))
 class Defense:
-    """The defense (pipeline/defense/kalman.py and pipeline/defense/fusion.py); bad values are refused naming defense.<key>."""
+    """The defense: the chain's settings (pipeline/defense/settings.py `DefenseSettings`) and the motion filter's
+    (pipeline/defense/gate.py `MotionSettings`) declare its keys, units, ranges and defaults, less the ones
+    `rpod calibrate` sets (the detector's threshold and doubt level, the sequential test's threshold, the
+    correlated error); then the calibration's own params. Bad values are refused naming defense.<key>."""
 
-    fusion: Literal["or", "paper", "motion"]  # or: any check | paper: detector alone | motion: gate + sequential test
-    # the motion filter's settings: their types and ranges are pipeline.defense.gate.MotionSettings' (`FILTER`)
-    false_alarm: FILTER.false_alarm  # gate false-alarm probability per frame on consistent motion
-    position_noise: FILTER.position_noise  # metres per frame: execution error std, the step-independent part
-    position_noise_scale: FILTER.position_noise_scale  # fraction of the commanded step: the part proportional to it
-    attitude_noise_deg: FILTER.attitude_noise_deg  # std of the unmodelled target rotation
-    attitude_rate_noise_deg: FILTER.attitude_rate_noise_deg  # std of the rate change
-    soft_gate: FILTER.soft_gate  # NIS fraction above which frames are down-weighted
-    reacquire_after: FILTER.reacquire_after  # M: agreeing rejected frames that restart the filter
-    cusum_reference: FILTER.cusum_reference  # c of the sequential test
-    integrity_risk: FILTER.integrity_risk  # per frame, of the protection level's noise term
-    trusted_start: FILTER.trusted_start  # assumed attack-free after the filter's first start
-    hold_after: Frames  # K: consecutive flags that declare the estimate lost -> hold
-    release_after: Frames  # consecutive clean frames that end a hold
     doubt_share: Optional[OpenProbability]  # of clean validation frames at or above the doubt level (calibrated),
     # from which a frame does not update the filter; None: the detector's threshold
     noise_bins: Annotated[int, In("[2, 1000]", "range bins")]  # of the measurement-noise fit
@@ -95,31 +83,6 @@ class Defense:
     harm_m: Metres  # metres: an attacked frame with a larger position error is harmful
 
     def __post_init__(self) -> None:
-        def bad(key: str, rule: str) -> ParamsError:
-            return ParamsError(f"params.yaml defense.{key} must be {rule}, got {getattr(self, key)!r}")
-
-        for key in ("position_noise", "attitude_noise_deg", "attitude_rate_noise_deg"):
-            if not getattr(self, key) > 0:
-                raise bad(key, "> 0 (a noise std)")
-        if not 0 < self.false_alarm < 1:
-            raise bad("false_alarm", "a gate probability in (0, 1)")
-        if not 0 < self.target_false_alarm < 1:
-            raise bad("target_false_alarm", "a fraction in (0, 1)")
-        if not 0 < self.soft_gate <= 1:
-            raise bad("soft_gate", "in (0, 1]")
-        if self.doubt_share is not None and not 0 < self.doubt_share < 1:
-            raise bad("doubt_share", "null or a fraction in (0, 1)")
-        for key, low in (
-            ("hold_after", 1),
-            ("release_after", 1),
-            ("reacquire_after", 2),
-            ("noise_bins", 2),
-            ("val_trajectories", 1),
-        ):
-            if getattr(self, key) < low:
-                raise bad(key, f"a whole number >= {low}")
-        if not self.harm_m > 0:
-            raise bad("harm_m", "> 0 (metres)")
         total = self.shares.detector + self.shares.gate + self.shares.sequential
         if abs(total - 1.0) > 1e-6:
             raise ParamsError(

@@ -9,7 +9,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated, Literal, Optional
 
-from pipeline.settings import In
+from pipeline.guidance.settings import ExecutionSettings
+from pipeline.pose.settings import AugmentConfig
+from pipeline.render.settings import BackgroundSettings
+from pipeline.settings import In, composed
 from stages.config.guards import distinct, odd, range_bins
 
 
@@ -43,20 +46,12 @@ class Camera:
     cy: Principal
 
 
-@dataclass(frozen=True)
+@composed(BackgroundSettings)
 class Background:
     """render.background: a share of the frames with the Earth below the target, stars and a sensor black offset
-    (pipeline/render/backgrounds.py); the others stay black. render, eval_render and the guidance loop each draw
-    their frames' own; the lab's frames stay black (segmented to black by their masks)."""
-
-    share: Probability  # of the frames, each drawn on its own; 0 = off (every frame black, as before)
-    altitude_km: Annotated[float, In("(0, 100000]", "km")]  # the target's orbit altitude above the Earth
-    nadir: list[Direction]  # direction from the target to the Earth's centre, world frame (any length)
-    nadir_jitter_deg: Annotated[float, In("[0, 90]", "degrees")]  # per frame, uniform within this cone
-    stars: Annotated[float, In("[0, 1000]", "stars per square degree")]  # 0 = none
-    star_peak: Annotated[float, In("(0, 1]", "pixel units")]  # the brightest star's peak value
-    black_offset: Annotated[float, In("[0, 1)", "pixel units")]  # sensor black level added to every pixel
-    noise_std: Annotated[float, In("[0, 1]", "pixel units")]  # sensor read noise (Gaussian std)
+    (pipeline/render/settings.py declares them: units, ranges, defaults); the others stay black. render, eval_render
+    and the guidance loop each draw their frames' own; the lab's frames stay black (segmented to black by their
+    masks)."""
 
 
 @dataclass(frozen=True)
@@ -108,13 +103,9 @@ class Label:
     test_fraction: Fraction  # of the frames
 
 
-@dataclass(frozen=True)
+@composed(AugmentConfig)
 class Augment:
-    p: Probability  # probability of each augmentation
-    blur_sigma: list[Annotated[float, In("[0, 20]", "pixels")]]  # [low, high]
-    noise_std: list[Annotated[float, In("[0, 1]", "pixel units")]]
-    jpeg_quality: list[Annotated[int, In("[1, 100]", "JPEG quality")]]
-    brightness: list[Annotated[float, In("(0, 10]", "gain")]]  # multiplicative
+    """train.augment: the photometric augmentation (pipeline/pose/settings.py declares it)."""
 
 
 @dataclass(frozen=True)
@@ -200,17 +191,10 @@ class Attack:
         distinct(self.eps, "attack.eps")
 
 
-@dataclass(frozen=True)
+@composed(ExecutionSettings, runtime=("seed",))
 class Execution:
-    """guidance.execution: how the thrusters and the orbit execute a commanded step (pipeline/guidance/dynamics.py
-    ExecutionSettings, which checks them again; declared here rather than imported from there, so that every params
-    load, and every stage's code deps, do not take the guidance package); the seed comes from pipeline/seeds.py."""
-
-    scale_std: Annotated[float, In("[0, 1]", "fraction of the step")]  # 1-sigma per thruster axis and step
-    noise_std: Annotated[float, In("[0, 100]", "metres per step")]  # 1-sigma per axis (the part independent of it)
-    mean_motion: Annotated[float, In("[0, 0.1]", "rad/s")]  # the target's orbit (Clohessy-Wiltshire); 0: none
-    frame_interval: Annotated[float, In("(0, 100000]", "seconds per step")]  # per closed-loop step of max_step metres
-    approach: Literal["vbar", "rbar"]  # pipeline.guidance.dynamics.APPROACHES
+    """guidance.execution: how the thrusters and the orbit execute a commanded step (pipeline/guidance/settings.py
+    declares it); the errors' seed comes from pipeline/seeds.py."""
 
 
 @dataclass(frozen=True)
